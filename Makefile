@@ -1,0 +1,36 @@
+# Two commands for a new user: `make serve` and `make test`. Both are idempotent: the venv and the
+# installs are redone only when pyproject.toml or constraints.txt change.
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+PIP    := $(PY) -m pip install --disable-pip-version-check -q -c constraints.txt
+HOST   ?= 127.0.0.1
+PORT   ?= 8000
+
+.PHONY: serve test install-server install-dev bench clean
+
+$(PY):
+	$(PYTHON) -m venv $(VENV)
+
+$(VENV)/.server-installed: $(PY) pyproject.toml constraints.txt
+	$(PIP) -e ".[server]"
+	touch $@
+
+$(VENV)/.dev-installed: $(PY) pyproject.toml constraints.txt
+	$(PIP) -e ".[dev]"
+	touch $@ $(VENV)/.server-installed
+
+install-server: $(VENV)/.server-installed
+install-dev: $(VENV)/.dev-installed
+
+serve: install-server
+	SVRNET_HOST=$(HOST) SVRNET_PORT=$(PORT) $(VENV)/bin/svrnet-server
+
+test: install-dev
+	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+bench: install-dev
+	$(PY) benchmarks/se3_bench.py
+
+clean:
+	rm -rf $(VENV) .pytest_cache build *.egg-info

@@ -1,0 +1,1 @@
+"""HTTP routes of API v1 (``shared/design/api-v1.md``)."""

@@ -1,0 +1,74 @@
+"""World-frame conversions: the ONE place where LPS (ITK/SimpleITK/DICOM) meets RAS (NIfTI, atlas).
+
+* a voxel -> world affine converts as ``A_ras = F @ A_lps`` with ``F = diag(-1, -1, 1, 1)``;
+* a world -> world transform converts as ``T_ras = F @ T_lps @ F`` (``F`` is its own inverse).
+
+Also the affine <-> (origin, spacing, direction) bridge used by the readers, so that no other
+module composes these by hand.
+
+Example:
+    >>> import numpy as np
+    >>> a = affine_from_itk(origin=(1, 2, 3), spacing=(0.5, 0.5, 2), direction=np.eye(3))
+    >>> a[:3, 3].tolist(), np.diag(a)[:3].tolist()
+    ([-1.0, -2.0, 3.0], [-0.5, -0.5, 2.0])
+    >>> o, s, d = itk_from_affine(a)
+    >>> o.tolist(), s.tolist()
+    ([1.0, 2.0, 3.0], [0.5, 0.5, 2.0])
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
+RAS_FROM_LPS = LPS_FROM_RAS  # its own inverse
+
+
+def ras_affine_from_lps(affine_lps: ArrayLike) -> NDArray[np.float64]:
+    """Voxel -> RAS affine from a voxel -> LPS affine."""
+    return RAS_FROM_LPS @ np.asarray(affine_lps, dtype=np.float64)
+
+
+def lps_affine_from_ras(affine_ras: ArrayLike) -> NDArray[np.float64]:
+    """Voxel -> LPS affine from a voxel -> RAS affine."""
+    return LPS_FROM_RAS @ np.asarray(affine_ras, dtype=np.float64)
+
+
+def ras_transform_from_lps(transform_lps: ArrayLike) -> NDArray[np.float64]:
+    """A world -> world transform written in LPS, rewritten in RAS (``F T F``)."""
+    return RAS_FROM_LPS @ np.asarray(transform_lps, dtype=np.float64) @ LPS_FROM_RAS
+
+
+lps_transform_from_ras = ras_transform_from_lps  # the same conjugation
+
+
+def affine_from_itk(origin: ArrayLike, spacing: ArrayLike, direction: ArrayLike) -> NDArray[np.float64]:
+    """Voxel index ``(i, j, k)`` -> RAS mm affine from ITK's LPS origin, spacing and direction.
+
+    ITK: ``p_lps = origin + direction @ diag(spacing) @ index``.
+    """
+    a = np.eye(4)
+    a[:3, :3] = np.asarray(direction, dtype=np.float64).reshape(3, 3) * np.asarray(spacing, dtype=np.float64)
+    a[:3, 3] = np.asarray(origin, dtype=np.float64)
+    return ras_affine_from_lps(a)
+
+
+def itk_from_affine(affine_ras: ArrayLike) -> tuple[NDArray, NDArray, NDArray]:
+    """Inverse of :func:`affine_from_itk`: (LPS origin, spacing, direction) of a RAS affine.
+
+    Raises:
+        ValueError: if the affine has shear (columns not orthogonal), which ITK cannot store.
+    """
+    a = lps_affine_from_ras(affine_ras)
+    m = a[:3, :3]
+    spacing = np.linalg.norm(m, axis=0)
+    direction = m / spacing
+    if not np.allclose(direction.T @ direction, np.eye(3), atol=1e-4):
+        raise ValueError("affine has shear; cannot be expressed as ITK origin/spacing/direction")
+    return a[:3, 3].copy(), spacing, direction
+
+
+def voxel_spacing(affine: ArrayLike) -> NDArray[np.float64]:
+    """Voxel sizes (mm) along i, j, k of a voxel -> world affine."""
+    return np.linalg.norm(np.asarray(affine, dtype=np.float64)[:3, :3], axis=0)

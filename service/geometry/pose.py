@@ -1,0 +1,62 @@
+"""Building blocks of the pose convention (see the package docstring).
+
+Example:
+    >>> import numpy as np
+    >>> xy = slice_pixel_coordinates(3, 2.0)
+    >>> xy[0, 0].tolist(), xy[1, 1].tolist(), xy[2, 0].tolist()
+    ([-2.0, -2.0], [0.0, 0.0], [-2.0, 2.0])
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+
+def make_pose(rotation: ArrayLike, translation: ArrayLike) -> NDArray[np.float64]:
+    """Homogeneous ``[..., 4, 4]`` poses from rotations ``[..., 3, 3]`` and translations ``[..., 3]``."""
+    r = np.asarray(rotation, dtype=np.float64)
+    t = np.asarray(translation, dtype=np.float64)
+    shape = np.broadcast_shapes(r.shape[:-2], t.shape[:-1])
+    out = np.zeros(shape + (4, 4))
+    out[..., :3, :3] = r
+    out[..., :3, 3] = t
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def slice_pixel_coordinates(size: int, pixel_mm: float) -> NDArray[np.float64]:
+    """In-plane mm coordinates ``[L, L, 2]`` (x, y) of the pixel centres of an ``L x L`` slice.
+
+    ``[r, c] -> (x, y) = ((c - (L-1)/2) s, (r - (L-1)/2) s)``.
+    """
+    centre = (size - 1) / 2.0
+    idx = (np.arange(size, dtype=np.float64) - centre) * pixel_mm
+    x = np.broadcast_to(idx[None, :], (size, size))
+    y = np.broadcast_to(idx[:, None], (size, size))
+    return np.stack([x, y], axis=-1)
+
+
+def slice_from_pixel(size: int, pixel_mm: float) -> NDArray[np.float64]:
+    """The ``4 x 4`` map from homogeneous pixel indices ``(c, r, 0, 1)`` to slice-frame mm.
+
+    Note the order: column first (x), then row (y), matching voxel-index conventions ``(i, j, k)``
+    where ``i`` runs along x.
+    """
+    centre = (size - 1) / 2.0
+    m = np.diag([pixel_mm, pixel_mm, pixel_mm, 1.0])
+    m[0, 3] = m[1, 3] = -centre * pixel_mm
+    return m
+
+
+def translate(offset: ArrayLike) -> NDArray[np.float64]:
+    """Homogeneous translations ``[..., 4, 4]`` by ``offset`` ``[..., 3]``."""
+    off = np.asarray(offset, dtype=np.float64)
+    return make_pose(np.broadcast_to(np.eye(3), off.shape[:-1] + (3, 3)), off)
+
+
+def apply(transform: ArrayLike, points: ArrayLike) -> NDArray[np.float64]:
+    """Apply ``[..., 4, 4]`` transforms to points ``[..., 3]`` (broadcasting)."""
+    m = np.asarray(transform, dtype=np.float64)
+    p = np.asarray(points, dtype=np.float64)
+    return np.einsum("...ij,...j->...i", m[..., :3, :3], p) + m[..., :3, 3]

@@ -1,0 +1,133 @@
+"""The slice forward model shared by training and reconstruction.
+
+A slice with pose ``P`` (slice mm -> atlas mm, see the package docstring) is sampled from a volume
+given as an array indexed ``[i, j, k]`` and its voxel -> world (RAS) affine. All slices of a call
+are sampled in one vectorised ``map_coordinates`` call.
+
+Example:
+    >>> import numpy as np
+    >>> vol = np.zeros((9, 9, 9)); vol[:, :, 4] = 1.0                 # a plane z = 0
+    >>> aff = np.eye(4); aff[:3, 3] = -4.0                              # voxel (4,4,4) at origin
+    >>> sl = sample_slices(vol, aff, np.eye(4)[None], size=5, pixel_mm=1.0)
+    >>> sl.shape, float(sl.min())
+    ((1, 5, 5), 1.0)
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy import ndimage
+
+from service.geometry.pose import apply, make_pose, slice_pixel_coordinates
+
+FWHM_TO_SIGMA = 1.0 / (2.0 * np.sqrt(2.0 * np.log(2.0)))
+INPLANE_FWHM_FACTOR = 1.2
+"""In-plane PSF FWHM as a multiple of the acquisition pixel size (Kainz et al. 2015)."""
+
+
+def slice_points(poses: ArrayLike, size: int, pixel_mm: float, offset_mm: float = 0.0) -> NDArray:
+    """Atlas mm coordinates ``[B, L, L, 3]`` of the pixel centres of slices at ``poses`` ``[B, 4, 4]``.
+
+    ``offset_mm`` shifts the plane along its normal (used by the through-plane PSF).
+    """
+    p = np.asarray(poses, dtype=np.float64)
+    xy = slice_pixel_coordinates(size, pixel_mm)
+    local = np.concatenate([xy, np.full(xy.shape[:-1] + (1,), offset_mm)], axis=-1)
+    return apply(p[:, None, None], local[None])
+
+
+def sample_points(volume: ArrayLike, affine: ArrayLike, points: ArrayLike, order: int = 1) -> NDArray:
+    """Interpolate ``volume`` at world points ``[..., 3]`` (zero outside the field of view)."""
+    vox = apply(np.linalg.inv(np.asarray(affine, dtype=np.float64)), points)
+    coords = np.moveaxis(vox, -1, 0).reshape(3, -1)
+    vals = ndimage.map_coordinates(np.asarray(volume, dtype=np.float32), coords, order=order,
+                                   mode="constant", cval=0.0, prefilter=False)
+    return vals.reshape(vox.shape[:-1])
+
+
+def psf_offsets(thickness_mm: float, step_mm: float) -> tuple[NDArray, NDArray]:
+    """Through-plane quadrature: offsets (mm) and normalised Gaussian weights for FWHM = thickness."""
+    sigma = thickness_mm * FWHM_TO_SIGMA
+    n = max(3, int(np.ceil(4.0 * sigma / max(step_mm, 1e-6))) | 1)
+    offsets = np.linspace(-2.0 * sigma, 2.0 * sigma, n)
+    w = np.exp(-0.5 * (offsets / sigma) ** 2)
+    return offsets, w / w.sum()
+
+
+def sample_slices(
+    volume: ArrayLike,
+    affine: ArrayLike,
+    poses: ArrayLike,
+    size: int,
+    pixel_mm: float,
+    *,
+    thickness_mm: float | None = None,
+    inplane_fwhm_mm: float | None = None,
+    order: int = 1,
+) -> NDArray[np.float32]:
+    """Sample ``L x L`` slices ``[B, L, L]`` at ``poses`` ``[B, 4, 4]`` by trilinear interpolation.
+
+    Args:
+        volume: ``[I, J, K]`` array.
+        affine: voxel -> world (RAS mm) ``4 x 4``.
+        poses: slice -> world poses.
+        size: ``L``.
+        pixel_mm: ``s``.
+        thickness_mm: if given, a Gaussian through-plane PSF with this FWHM (thick slices).
+        inplane_fwhm_mm: if given, a Gaussian in-plane PSF with this FWHM (default with a
+            thickness: ``1.2 * pixel_mm``).
+        order: interpolation order (1 = trilinear).
+    """
+    p = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+    if thickness_mm is None:
+        out = sample_points(volume, affine, slice_points(p, size, pixel_mm), order)
+    else:
+        step = 0.5 * float(np.min(np.linalg.norm(np.asarray(affine)[:3, :3], axis=0)))
+        offsets, weights = psf_offsets(thickness_mm, step)
+        pts = np.stack([slice_points(p, size, pixel_mm, o) for o in offsets])  # [n_psf, B, L, L, 3]
+        out = np.tensordot(weights, sample_points(volume, affine, pts, order), axes=1)
+        if inplane_fwhm_mm is None:
+            inplane_fwhm_mm = INPLANE_FWHM_FACTOR * pixel_mm
+    if inplane_fwhm_mm:
+        sigma_px = inplane_fwhm_mm * FWHM_TO_SIGMA / pixel_mm
+        out = ndimage.gaussian_filter(out, sigma=(0.0, sigma_px, sigma_px), mode="constant")
+    return out.astype(np.float32)
+
+
+def mask_centroids(masks: ArrayLike, pixel_mm: float, threshold: float = 0.5) -> tuple[NDArray, NDArray]:
+    """In-plane centroids ``[B, 2]`` (x, y mm in the slice frame) of slice masks ``[B, L, L]``.
+
+    Returns ``(centroids, counts)``; a slice with an empty mask has centroid ``(0, 0)`` and count 0.
+    """
+    m = (np.asarray(masks) > threshold).astype(np.float64)
+    size = m.shape[-1]
+    xy = slice_pixel_coordinates(size, pixel_mm)
+    counts = m.sum(axis=(-1, -2))
+    sums = np.einsum("brc,rcd->bd", m, xy)
+    cent = np.where(counts[:, None] > 0, sums / np.maximum(counts, 1)[:, None], 0.0)
+    return cent, counts
+
+
+def recentre(poses: ArrayLike, shift_xy_mm: ArrayLike) -> NDArray[np.float64]:
+    """Poses whose slice-frame origin is moved in-plane by ``shift_xy_mm`` ``[B, 2]``.
+
+    ``P' = P o translate(dx, dy, 0)``: the same plane, its centre now at the old frame's
+    ``(dx, dy)`` (the crop/centre step, with the label moved along).
+    """
+    s = np.asarray(shift_xy_mm, dtype=np.float64)
+    shift = make_pose(np.broadcast_to(np.eye(3), s.shape[:-1] + (3, 3)),
+                      np.concatenate([s, np.zeros(s.shape[:-1] + (1,))], axis=-1))
+    return np.asarray(poses, dtype=np.float64) @ shift
+
+
+def centre_on_mask(
+    mask_volume: ArrayLike, affine: ArrayLike, poses: ArrayLike, size: int, pixel_mm: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Re-centre slice poses on the centroid of the mask they cut.
+
+    Returns ``(centred_poses [B, 4, 4], shift_xy_mm [B, 2])``.
+    """
+    masks = sample_slices(mask_volume, affine, poses, size, pixel_mm)
+    cent, _ = mask_centroids(masks, pixel_mm)
+    return recentre(poses, cent), cent

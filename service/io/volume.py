@@ -1,0 +1,65 @@
+"""A volume in the project's convention, and reading/writing it through SimpleITK.
+
+Arrays are indexed ``[i, j, k]`` (NIfTI voxel order, x fastest on disk); the affine maps voxel
+indices to world RAS mm. SimpleITK's ``[k, j, i]`` array order and LPS frame are converted here and
+in :mod:`service.geometry.frames`, nowhere else.
+
+Example:
+    >>> import numpy as np, tempfile, os
+    >>> aff = np.diag([-0.8, 0.8, 3.0, 1.0]); aff[:3, 3] = (10, -20, 5)
+    >>> v = Volume(np.zeros((4, 5, 6), np.float32), aff)
+    >>> path = os.path.join(tempfile.mkdtemp(), "v.nii.gz"); write_volume(v, path)
+    >>> w = read_volume(path); w.array.shape, bool(np.allclose(w.affine, aff))
+    ((4, 5, 6), True)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import SimpleITK as sitk
+from numpy.typing import NDArray
+
+from service.geometry import frames
+
+
+@dataclass
+class Volume:
+    """A 3D image: ``array`` ``[i, j, k]`` and its voxel -> RAS mm ``affine`` (4 x 4)."""
+
+    array: NDArray
+    affine: NDArray[np.float64]
+
+    @property
+    def spacing(self) -> NDArray[np.float64]:
+        """Voxel sizes along ``i, j, k`` (mm)."""
+        return frames.voxel_spacing(self.affine)
+
+
+def from_sitk(image: sitk.Image) -> Volume:
+    """Convert a 3D SimpleITK image (LPS, array ``[k, j, i]``) to a :class:`Volume`."""
+    arr = sitk.GetArrayFromImage(image).transpose(2, 1, 0)
+    aff = frames.affine_from_itk(image.GetOrigin(), image.GetSpacing(), image.GetDirection())
+    return Volume(arr, aff)
+
+
+def to_sitk(volume: Volume) -> sitk.Image:
+    """Convert a :class:`Volume` to a SimpleITK image (LPS)."""
+    image = sitk.GetImageFromArray(np.ascontiguousarray(np.asarray(volume.array).transpose(2, 1, 0)))
+    origin, spacing, direction = frames.itk_from_affine(volume.affine)
+    image.SetOrigin(tuple(float(x) for x in origin))
+    image.SetSpacing(tuple(float(x) for x in spacing))
+    image.SetDirection(tuple(float(x) for x in direction.ravel()))
+    return image
+
+
+def read_volume(path: str | Path) -> Volume:
+    """Read a NIfTI/NRRD/MHA file (any format SimpleITK reads) as a :class:`Volume`."""
+    return from_sitk(sitk.ReadImage(str(path)))
+
+
+def write_volume(volume: Volume, path: str | Path) -> None:
+    """Write a :class:`Volume`; the format follows the file name (``.nii.gz``, ``.nrrd``, ``.mha``)."""
+    sitk.WriteImage(to_sitk(volume), str(path), useCompression=True)

@@ -1,0 +1,63 @@
+"""World geometry survives SimpleITK (LPS) and nibabel (RAS) writes: LPS/RAS handled once."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from service.geometry import frames, se3
+from service.io.volume import Volume, read_volume, write_volume
+
+nib = pytest.importorskip("nibabel", reason="nibabel (dev extra) not installed")
+
+
+def oblique_affine() -> np.ndarray:
+    r = se3.so3_exp(np.array([0.3, -0.5, 0.8]))
+    aff = np.eye(4)
+    aff[:3, :3] = r * [0.9, 1.1, 3.5]
+    aff[:3, 3] = [12.0, -40.0, 7.5]
+    return aff
+
+
+@pytest.mark.parametrize("suffix", [".nii.gz", ".nrrd", ".mha"])
+def test_round_trip_through_simpleitk(tmp_path: Path, suffix: str) -> None:
+    arr = np.random.default_rng(0).random((5, 6, 7)).astype(np.float32)
+    path = tmp_path / f"v{suffix}"
+    write_volume(Volume(arr, oblique_affine()), path)
+    back = read_volume(path)
+    np.testing.assert_allclose(back.affine, oblique_affine(), atol=1e-5)
+    np.testing.assert_array_equal(back.array, arr)
+
+
+def test_simpleitk_written_world_point_matches_nibabel(tmp_path: Path) -> None:
+    """A voxel's world position: SimpleITK's LPS point, flipped, equals nibabel's RAS point."""
+    arr = np.zeros((5, 6, 7), np.float32)
+    path = tmp_path / "v.nii.gz"
+    write_volume(Volume(arr, oblique_affine()), path)
+    img = sitk.ReadImage(str(path))
+    lps = np.array(img.TransformContinuousIndexToPhysicalPoint((1.0, 2.0, 3.0)))
+    ras_nib = nib.load(str(path)).affine @ [1, 2, 3, 1]
+    np.testing.assert_allclose(np.r_[-lps[0], -lps[1], lps[2]], ras_nib[:3], atol=1e-4)
+    np.testing.assert_allclose(read_volume(path).affine @ [1, 2, 3, 1], ras_nib, atol=1e-4)
+
+
+def test_nibabel_written_file_reads_with_the_same_affine(tmp_path: Path) -> None:
+    arr = np.random.default_rng(1).random((4, 5, 6)).astype(np.float32)
+    path = tmp_path / "n.nii.gz"
+    nib.save(nib.Nifti1Image(arr, oblique_affine()), str(path))
+    back = read_volume(path)
+    np.testing.assert_allclose(back.affine, oblique_affine(), atol=1e-5)
+    np.testing.assert_array_equal(back.array, arr)
+
+
+def test_world_transform_conjugation() -> None:
+    """F T F: an LPS world transform and its RAS rewrite move the same physical point alike."""
+    t_lps = se3.exp(np.array([0.2, 0.1, -0.3, 5.0, -2.0, 1.0]))
+    t_ras = frames.ras_transform_from_lps(t_lps)
+    p_ras = np.array([3.0, 4.0, 5.0, 1.0])
+    moved_lps = t_lps @ (frames.LPS_FROM_RAS @ p_ras)
+    np.testing.assert_allclose(frames.RAS_FROM_LPS @ moved_lps, t_ras @ p_ras)
+    assert np.isclose(np.linalg.det(t_ras[:3, :3]), 1.0)
