@@ -5,27 +5,41 @@ Run with ``svrnet-server`` (or ``make serve``); settings come from ``SVRNET_*`` 
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from service.api import health
+from service.api import health, metrics, models, predict, problems
+from service.api.metrics import Metrics
+from service.api.middleware import RequestContext
+from service.core import logging as service_logging
 from service.core.settings import Settings
+from service.inference.registry import ModelRegistry
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
-    """Build the FastAPI app for ``settings`` (default: from the environment)."""
+def create_app(settings: Settings | None = None, registry: ModelRegistry | None = None) -> FastAPI:
+    """Build the app; models load in the lifespan from ``settings.models_dir`` unless ``registry`` is given."""
     settings = settings or Settings()
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        app.state.settings = settings
+        app.state.registry = registry or ModelRegistry.from_directory(
+            settings.models_dir, settings.default_model, settings.onnx_threads)
         yield
 
-    app = FastAPI(title="SVRnet", version="0.1.0", lifespan=lifespan,
-                  description="Slice-to-atlas pose estimation for fetal MRI with MC-dropout confidence.")
-    app.include_router(health.router)
+    app = FastAPI(title="SVRnet", version="1.0.0", lifespan=lifespan,
+                  description="Slice-to-atlas pose estimation for fetal MRI with MC-dropout confidence "
+                              "(Hou et al., IEEE TMI). Contract: API v1.")
+    app.state.settings = settings
+    app.state.metrics = Metrics()
+    app.state.slots = asyncio.Semaphore(settings.max_concurrent)
+    app.state.registry = None
+    problems.install(app)
+    for module in (health, metrics, models, predict):
+        app.include_router(module.router)
+    app.add_middleware(RequestContext, metrics=app.state.metrics, max_body_bytes=int(settings.max_upload_mb * 2**20))
     return app
 
 
@@ -34,4 +48,5 @@ def run() -> None:
     import uvicorn
 
     settings = Settings()
+    service_logging.configure(settings.log_level)
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=settings.log_level)

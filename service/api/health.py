@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Request
+
+from service.core.errors import NotReady
 
 router = APIRouter(tags=["operations"])
 
@@ -11,3 +13,16 @@ router = APIRouter(tags=["operations"])
 async def healthz() -> dict[str, str]:
     """``200 {"status": "ok"}`` while the process serves requests."""
     return {"status": "ok"}
+
+
+@router.get("/readyz", summary="Readiness")
+async def readyz(request: Request) -> dict[str, object]:
+    """``200`` once every model is loaded and the job store is reachable; ``503`` before."""
+    state = request.app.state
+    registry = getattr(state, "registry", None)
+    if registry is None or not registry.estimators:
+        raise NotReady("no model loaded yet")
+    store = getattr(state, "job_store", None)
+    if store is not None and not store.ping():
+        raise NotReady("the job store is not reachable")
+    return {"status": "ready", "models": sorted(registry.estimators)}

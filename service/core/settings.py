@@ -5,6 +5,8 @@ Example:
     >>> os.environ["SVRNET_PORT"] = "9000"
     >>> Settings().port
     9000
+    >>> Settings(api_keys="a, b").key_set()
+    {'a', 'b'}
 """
 
 from __future__ import annotations
@@ -27,3 +29,15 @@ class Settings(BaseSettings):
     models_dir: Path = DEFAULT_MODELS_DIR
     default_model: str = "default"
     log_level: str = "info"
+    api_keys: str = Field("", description="comma-separated keys; empty = no authentication")
+    max_upload_mb: float = Field(512.0, gt=0, description="limit of one request body (413 above)")
+    max_files: int = Field(32, ge=1, description="most stacks (and masks) per request")
+    max_concurrent: int = Field(2, ge=1, description="requests processed at once; more get 503")
+    preprocess_workers: int = Field(2, ge=1, description="stacks preprocessed in parallel")
+    onnx_threads: int = Field(0, ge=0, description="onnxruntime intra-op threads (0 = all cores)")
+    tmp_dir: Path | None = Field(None, description="where uploads are spooled (default: system temp)")
+    data_dir: Path = Field(Path.home() / ".svrnet", description="job store: SQLite database and files")
+    retry_after_s: int = Field(2, ge=1)
+
+    def key_set(self) -> set[str]:
+        return {k.strip() for k in self.api_keys.split(",") if k.strip()}

@@ -1,0 +1,95 @@
+"""``svrnet-train``: train, export, calibrate and evaluate SVRnet models.
+
+Examples:
+    svrnet-train train --steps 20000 --out runs/default
+    svrnet-train export runs/default/best.pt service/models/default/model.onnx --threshold 25
+    svrnet-train calibrate runs/default/best.pt
+    svrnet-train evaluate service/models/default/model.onnx --report model_export/reports/default.md
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from model_export.atlas import DEFAULT_ATLAS_ROOT
+
+app = typer.Typer(add_completion=False, help=__doc__, no_args_is_help=True)
+
+Root = Annotated[Path, typer.Option(help="folder holding crl_sta/ and spina_bifida_cc0/")]
+
+
+@app.command()
+def train(
+    out: Annotated[Path, typer.Option(help="run folder: checkpoints, log.csv, loss.png")] = Path("runs/default"),
+    backbone: str = "compact",
+    width: float = 1.0,
+    label_type: Annotated[str, typer.Option(help="anchor, euler or quaternion")] = "anchor",
+    sampling: Annotated[str, typer.Option(help="random, euler or fibonacci")] = "random",
+    steps: int = 20000,
+    batch: int = 64,
+    lr: Annotated[float, typer.Option(help="Adam learning rate (step decay x0.2 at 60 % and 85 %)")] = 1e-4,
+    dropout: float = 0.5,
+    val_every: int = 500,
+    threads: int = 1,
+    seed: int = 0,
+    resume: Annotated[Optional[Path], typer.Option(help="checkpoint to continue from")] = None,
+    root: Root = DEFAULT_ATLAS_ROOT,
+) -> None:
+    """Train a model on simulated slices of the atlas volumes."""
+    from model_export.train import TrainConfig, train as run
+
+    cfg = TrainConfig(backbone=backbone, width=width, label_type=label_type, sampling=sampling, steps=steps,
+                      batch=batch, lr=lr, dropout=dropout, val_every=val_every, threads=threads, seed=seed)
+    best = run(cfg, out, root, resume)
+    typer.echo(f"best checkpoint: {best}")
+
+
+@app.command()
+def export(
+    checkpoint: Path,
+    output: Path,
+    name: str = "default",
+    version: str = "0.1.0",
+    threshold: Annotated[Optional[float], typer.Option(help="variance threshold (default: calibrate now)")] = None,
+    root: Root = DEFAULT_ATLAS_ROOT,
+) -> None:
+    """Export a checkpoint to ONNX (MC dropout kept stochastic) with its metadata."""
+    from model_export.calibrate import calibrate as run_calibration
+    from model_export.export import count_random_nodes
+    from model_export.packaging import export_checkpoint
+
+    if threshold is None:
+        threshold = run_calibration(checkpoint, root)["threshold"]
+    path = export_checkpoint(checkpoint, output, name=name, version=version, variance_threshold=threshold)
+    typer.echo(f"wrote {path} ({count_random_nodes(path)} random nodes, variance threshold {threshold:.3g})")
+
+
+@app.command()
+def calibrate(checkpoint: Path, root: Root = DEFAULT_ATLAS_ROOT, mc_samples: int = 100) -> None:
+    """Choose the variance threshold on the validation volumes; print AUROC and the chosen value."""
+    from model_export.calibrate import calibrate as run
+
+    typer.echo(json.dumps(run(checkpoint, root, mc_samples=mc_samples), indent=2))
+
+
+@app.command()
+def evaluate(
+    model: Path,
+    report: Annotated[Path, typer.Option(help="markdown report; figures beside it")] = Path("model_export/reports/default.md"),
+    root: Root = DEFAULT_ATLAS_ROOT,
+    per_volume: int = 100,
+    mc_samples: int = 100,
+) -> None:
+    """The paper's metrics on the validation volumes, written as a markdown report."""
+    from model_export.evaluate import evaluate as run
+
+    summary = run(model, report, root, per_volume=per_volume, mc_samples=mc_samples)
+    typer.echo(json.dumps(summary, indent=2))
+
+
+if __name__ == "__main__":
+    app()

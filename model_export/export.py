@@ -1,0 +1,83 @@
+"""ONNX export with Monte Carlo dropout that stays stochastic in onnxruntime.
+
+The exported graph is :class:`~model_export.model.MCExport`: inputs ``slices [B, 1, L, L]``
+(float32, 0-255) and ``passes [N]`` (float32; 1 = an MC-dropout pass, 0 = a deterministic pass),
+output ``labels [B, N, D]``. The trunk runs once per slice, the head ``N`` times.
+
+* The network is exported in eval mode: BatchNorm uses its running statistics (exported in training
+  mode it would use batch statistics and shift the MC mean by several standard deviations).
+* Dropout masks come from ``RandomUniformLike`` nodes (``torch.rand_like``). onnxruntime's default
+  optimiser removes ``Dropout`` nodes even with ``training_mode=True`` (``EliminateDropout``), but
+  it cannot remove these: :func:`count_random_nodes` checks them in the saved file.
+* The model card facts the service needs travel in ``metadata_props`` (onnxruntime's
+  ``custom_metadata_map``).
+"""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import onnx
+import torch
+
+from model_export.model import MCExport, SVRNet
+from service.geometry.anchors import ANCHOR_HALF_SIZE_MM
+
+INPUT_SLICES, INPUT_PASSES, OUTPUT_LABELS = "slices", "passes", "labels"
+INTENSITY_CONVENTION = ("0-255: N4-corrected slice, masked, clipped to the 1st/99th percentile inside the mask "
+                        "and rescaled; resampled to the model grid centred on the mask centroid")
+
+
+def git_commit() -> str:
+    """The current commit of the repository (``unknown`` outside git)."""
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                              check=True, cwd=Path(__file__).parent).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def build_metadata(model: SVRNet, *, name: str, version: str, pixel_mm: float, variance_threshold: float,
+                   atlas_id: str, training_data: str, licences: str, extra: dict | None = None) -> dict[str, str]:
+    """The metadata stored in the ONNX file (all values strings)."""
+    c = model.config
+    meta = {
+        "name": name, "version": version, "backbone": c["backbone"], "width": c["width"],
+        "label_type": c["label_type"], "input_size": c["input_size"], "pixel_spacing_mm": pixel_mm,
+        "intensity": INTENSITY_CONVENTION, "atlas_id": atlas_id, "anchor_half_size_mm": ANCHOR_HALF_SIZE_MM,
+        "variance_threshold": variance_threshold, "dropout_p": c["dropout"], "training_data": training_data,
+        "licences": licences, "commit": git_commit(),
+        "inputs": f"{INPUT_SLICES}[B,1,L,L] float32 0-255; {INPUT_PASSES}[N] float32 (1 = MC pass, 0 = deterministic)",
+        "outputs": f"{OUTPUT_LABELS}[B,N,D] float32, physical units (mm, rad)",
+    }
+    meta.update(extra or {})
+    return {k: str(v) for k, v in meta.items()}
+
+
+def export_onnx(model: SVRNet, path: Path, metadata: dict[str, str], opset: int = 17) -> Path:
+    """Export ``model`` (put in eval mode) with MC dropout kept stochastic; writes ``metadata``."""
+    model = model.eval()
+    size = int(model.config["input_size"])
+    dummy = (torch.zeros(2, 1, size, size), torch.ones(3))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.onnx.export(
+        MCExport(model), dummy, str(path), input_names=[INPUT_SLICES, INPUT_PASSES], output_names=[OUTPUT_LABELS],
+        dynamic_axes={INPUT_SLICES: {0: "batch"}, INPUT_PASSES: {0: "samples"}, OUTPUT_LABELS: {0: "batch", 1: "samples"}},
+        opset_version=opset, dynamo=False, do_constant_folding=True,
+    )
+    proto = onnx.load(str(path))
+    del proto.metadata_props[:]
+    for k, v in metadata.items():
+        proto.metadata_props.add(key=k, value=v)
+    onnx.checker.check_model(proto)
+    onnx.save(proto, str(path))
+    return path
+
+
+def count_random_nodes(path: Path) -> int:
+    """Number of random-number nodes in the graph (one per dropout layer of the head)."""
+    proto = onnx.load(str(path))
+    return sum(n.op_type in ("RandomUniformLike", "RandomUniform", "RandomNormalLike", "Bernoulli")
+               for n in proto.graph.node)

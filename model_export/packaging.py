@@ -1,0 +1,35 @@
+"""Checkpoints <-> models: rebuild an :class:`SVRNet` from a checkpoint, export it with its metadata."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from model_export.atlas import ATLAS_ID, POPULATIONS
+from model_export.export import build_metadata, export_onnx
+from model_export.model import SVRNet
+
+
+def load_checkpoint(path: Path) -> tuple[SVRNet, dict]:
+    """The model (eval mode) and the whole checkpoint dict."""
+    ck = torch.load(path, map_location="cpu", weights_only=False)
+    model = SVRNet(**ck["model_config"])
+    model.load_state_dict(ck["model"])
+    return model.eval(), ck
+
+
+def export_checkpoint(checkpoint: Path, output: Path, *, name: str, version: str,
+                      variance_threshold: float, extra: dict | None = None) -> Path:
+    """Export a training checkpoint to ONNX with the metadata the service reads."""
+    model, ck = load_checkpoint(checkpoint)
+    cfg = ck["config"]
+    training = (f"{len(cfg['train_volumes'])} atlas volumes ({', '.join(cfg['train_volumes'])}); "
+                f"validation held out: {', '.join(cfg['val_volumes'])}")
+    meta = build_metadata(
+        model, name=name, version=version, pixel_mm=ck["simulation"]["pixel_mm"],
+        variance_threshold=variance_threshold, atlas_id=ATLAS_ID, training_data=training,
+        licences="; ".join(POPULATIONS.values()),
+        extra={"train_steps": ck["step"], "samples_seen": ck["samples_seen"], **(extra or {})},
+    )
+    return export_onnx(model, output, meta)

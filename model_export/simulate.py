@@ -1,0 +1,214 @@
+"""Training-slice simulation: realistic thick, noisy, bias-shaded slices cut at any angle.
+
+A batch is made per volume, as a scanner would acquire it, then put through EXACTLY the service's
+slice preprocessing (:func:`service.preprocess.slices.preprocess_slices`):
+
+1. poses from the paper's iterators (random, Euler or Fibonacci; full 360 degree in-plane range),
+   ``Tz`` within the central 70 % of the brain along the slice normal;
+2. acquisition on an ``H x H`` grid of ``0.8-1.5`` mm pixels with a Gaussian thick-slice PSF
+   (``2-4.5`` mm FWHM through-plane, ``1.2 x`` pixel in-plane), by trilinear interpolation in
+   PyTorch (``grid_sample``); brain size varies by +-10 % (the atlas is sampled with pixels ``1/k``
+   smaller than declared, which is a brain ``k`` times larger);
+3. smooth multiplicative bias, gamma, occasional signal voids, Rician noise; the mask is perturbed
+   (blurred and re-thresholded) like an imperfect localisation;
+4. mask, 1/99 % rescale to 0-255, resample to the model grid centred on the mask centroid; the label
+   is the atlas pose of the CENTRED slice (the label moves with the crop).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from model_export.atlas import AtlasVolume
+from service.geometry import iterators, sampling
+from service.geometry.pose import make_pose, slice_pixel_coordinates
+from service.preprocess.slices import preprocess_slices
+
+
+PSF_POINTS = 5
+"""Through-plane Gaussian quadrature points (+-2 sigma) of the simulated thick-slice PSF."""
+
+
+@dataclass
+class SimulationConfig:
+    """Ranges of the simulated acquisition; each value is drawn uniformly per slice or per batch."""
+
+    size: int = 96
+    pixel_mm: float = 1.25
+    fov_mm: float = 140.0
+    acq_pixel_mm: tuple[float, float] = (0.8, 1.5)
+    thickness_mm: tuple[float, float] = (2.0, 4.5)
+    brain_scale: tuple[float, float] = (0.9, 1.1)
+    noise: tuple[float, float] = (0.0, 0.08)
+    bias: float = 0.35
+    gamma: tuple[float, float] = (0.75, 1.35)
+    void_probability: float = 0.1
+    mask_threshold: tuple[float, float] = (0.3, 0.7)
+    mask_blur_px: float = 1.5
+    sampling: str = "random"
+    inplane_range: float = 2 * np.pi
+    tz_fraction: float = iterators.TZ_FRACTION
+    min_mask_fraction: float = 0.02
+
+    @classmethod
+    def validation(cls, **overrides: object) -> "SimulationConfig":
+        """The fixed evaluation setting: 3 mm thick, 1.0 mm pixels, moderate noise and bias, no voids."""
+        base = dict(acq_pixel_mm=(1.0, 1.0), thickness_mm=(3.0, 3.0), brain_scale=(1.0, 1.0),
+                    noise=(0.03, 0.03), bias=0.2, gamma=(1.0, 1.0), void_probability=0.0,
+                    mask_threshold=(0.5, 0.5))
+        base.update(overrides)
+        return cls(**base)  # type: ignore[arg-type]
+
+
+@dataclass
+class SliceBatch:
+    """Network inputs with their labels and the acquisition that made them."""
+
+    inputs: NDArray[np.float32]           # [B, L, L], 0-255
+    poses: NDArray[np.float64]            # [B, 4, 4] atlas pose of each centred network input
+    volume: list[str] = field(default_factory=list)
+    thickness_mm: NDArray[np.float64] | None = None
+
+
+def sample_slices_torch(volume: torch.Tensor, affine: NDArray, poses: NDArray, size: int, pixel_mm: float,
+                        offsets_mm: NDArray | None = None, weights: NDArray | None = None) -> torch.Tensor:
+    """Trilinear slices ``[B, C, L, L]`` of ``volume [1, C, I, J, K]`` at ``poses``, optionally PSF-weighted.
+
+    The same forward model as :func:`service.geometry.sampling.sample_slices` (whose tests pin it
+    down), in PyTorch for speed: ``grid_sample`` with ``align_corners=True`` indexes voxel centres.
+    """
+    if offsets_mm is None:
+        offsets_mm, weights = np.zeros(1), np.ones(1)
+    xy = slice_pixel_coordinates(size, pixel_mm)                                     # [L, L, 2]
+    local = np.concatenate([np.broadcast_to(xy, (len(offsets_mm), size, size, 2)),
+                            np.broadcast_to(offsets_mm[:, None, None, None], (len(offsets_mm), size, size, 1))], -1)
+    vox_from_slice = np.linalg.inv(affine) @ poses                                  # [B, 4, 4]
+    vox = np.einsum("bij,orcj->borci", vox_from_slice[:, :3, :3], local) + vox_from_slice[:, None, None, None, :3, 3]
+    shape = np.array(volume.shape[2:], dtype=np.float64)
+    norm = 2.0 * vox / (shape - 1.0) - 1.0                                           # (i, j, k) -> [-1, 1]
+    grid = torch.from_numpy(norm[..., ::-1].astype(np.float32).reshape(1, -1, size, size, 3).copy())
+    out = F.grid_sample(volume, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+    out = out.reshape(volume.shape[1], len(poses), len(offsets_mm), size, size)
+    w = torch.from_numpy(np.asarray(weights, dtype=np.float32))
+    return torch.einsum("cbors,o->bcrs", out, w)
+
+
+@dataclass
+class Acquisition:
+    """Clean thick slices of one volume before corruption (reusable: corruption is redrawn)."""
+
+    images: NDArray[np.float32]
+    masks: NDArray[np.float32]
+    poses: NDArray[np.float64]          # atlas poses of the acquisition planes
+    pixel_mm: float                     # declared (subject) pixel size
+    thickness_mm: float
+    scale: float                        # brain size factor k (atlas sampled at pixel_mm / k)
+    volume: str
+
+
+class SliceSimulator:
+    """Draws batches of simulated, preprocessed slices with their centred atlas poses."""
+
+    def __init__(self, volumes: list[AtlasVolume], config: SimulationConfig | None = None) -> None:
+        self.volumes = volumes
+        self.config = config or SimulationConfig()
+        self._tensors = [(torch.from_numpy(v.image)[None, None], torch.from_numpy(v.mask)[None, None])
+                         for v in volumes]
+        self._grids: dict[str, NDArray] = {}
+
+    # ---- poses ------------------------------------------------------------------------------
+    def _rotations(self, n: int, rng: np.random.Generator) -> NDArray:
+        c = self.config
+        if c.sampling == "random":
+            return iterators.random_rotations(n, rng, c.inplane_range)
+        if c.sampling not in self._grids:
+            if c.sampling == "euler":
+                grid = iterators.euler_grid(tz_max_mm=0.0, tz_step_mm=1.0)
+            elif c.sampling == "fibonacci":
+                grid = iterators.fibonacci_grid(tz_max_mm=0.0, tz_step_mm=1.0, inplane_range=c.inplane_range)
+            else:
+                raise ValueError(f"unknown sampling {c.sampling!r}; expected random, euler or fibonacci")
+            self._grids[c.sampling] = grid[:, :3, :3]
+        grid = self._grids[c.sampling]
+        return grid[rng.integers(0, len(grid), n)]
+
+    def sample_poses(self, vol: AtlasVolume, n: int, rng: np.random.Generator) -> NDArray[np.float64]:
+        """Atlas poses of ``n`` acquisition planes through ``vol``: Tz in the central 70 % of the brain."""
+        rot = self._rotations(n, rng)
+        lo, hi = vol.extent_along(rot[:, :, 2])
+        mid, half = (lo + hi) / 2.0, (hi - lo) / 2.0
+        tz = mid + rng.uniform(-1.0, 1.0, n) * 2.0 * self.config.tz_fraction * half
+        return make_pose(rot, vol.centre + rot[:, :, 2] * tz[:, None])
+
+    # ---- acquisition and corruption -----------------------------------------------------------
+    def acquire(self, index: int, poses: NDArray, acq_pixel_mm: float, thickness_mm: float,
+                scale: float = 1.0) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Thick slices and their (thin, centre-plane) masks ``[B, H, H]`` of volume ``index``."""
+        vol = self.volumes[index]
+        h = int(np.ceil(self.config.fov_mm / acq_pixel_mm / 2.0)) * 2
+        sigma = thickness_mm / scale * sampling.FWHM_TO_SIGMA
+        offsets = np.linspace(-2.0 * sigma, 2.0 * sigma, PSF_POINTS)
+        weights = np.exp(-0.5 * (offsets / sigma) ** 2)
+        image, mask = self._tensors[index]
+        img = sample_slices_torch(image, vol.affine, poses, h, acq_pixel_mm / scale, offsets,
+                                  weights / weights.sum())[:, 0].numpy()
+        msk = sample_slices_torch(mask, vol.affine, poses, h, acq_pixel_mm / scale)[:, 0].numpy()
+        s = sampling.INPLANE_FWHM_FACTOR * sampling.FWHM_TO_SIGMA   # in acquisition pixels
+        return ndimage.gaussian_filter(img, (0.0, s, s), mode="constant"), msk
+
+    def corrupt(self, img: NDArray, mask: NDArray, rng: np.random.Generator) -> tuple[NDArray, NDArray]:
+        """Bias, gamma, signal voids, Rician noise; an imperfect mask."""
+        c = self.config
+        b, h, _ = img.shape
+        u = np.linspace(-1.0, 1.0, h)
+        yy, xx = np.meshgrid(u, u, indexing="ij")
+        basis = np.stack([xx, yy, xx * xx, yy * yy, xx * yy])                       # [5, H, H]
+        coef = rng.normal(scale=c.bias / 2.0, size=(b, 5))
+        img = img * np.exp(np.einsum("bk,khw->bhw", coef, basis))
+        scale = np.maximum(np.percentile(img.reshape(b, -1), 99.5, axis=1), 1e-6)[:, None, None]
+        img = np.clip(img / scale, 0.0, None) ** rng.uniform(*c.gamma, size=(b, 1, 1))
+        voids = rng.random(b) < c.void_probability
+        if voids.any():
+            cy, cx = rng.uniform(-0.4, 0.4, size=(2, b, 1, 1))
+            r = rng.uniform(0.05, 0.2, size=(b, 1, 1))
+            blob = np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * r * r))
+            img = np.where(voids[:, None, None], img * (1.0 - 0.9 * blob), img)
+        sd = rng.uniform(*c.noise, size=(b, 1, 1))
+        img = np.sqrt((img + sd * rng.normal(size=img.shape)) ** 2 + (sd * rng.normal(size=img.shape)) ** 2)
+        soft = ndimage.gaussian_filter(mask, (0.0, c.mask_blur_px, c.mask_blur_px))
+        mask = soft > rng.uniform(*c.mask_threshold, size=(b, 1, 1))
+        return img.astype(np.float32), mask
+
+    def simulate(self, index: int, n: int, rng: np.random.Generator) -> SliceBatch:
+        """``n`` preprocessed slices from volume ``index`` with one acquisition setting."""
+        c = self.config
+        vol = self.volumes[index]
+        poses = self.sample_poses(vol, n, rng)
+        acq = float(rng.uniform(*c.acq_pixel_mm))
+        thick = float(rng.uniform(*c.thickness_mm))
+        k = float(rng.uniform(*c.brain_scale))
+        img, mask = self.acquire(index, poses, acq, thick, k)
+        return self.finish(Acquisition(img, mask, poses, acq, thick, k, vol.name), rng)
+
+    def finish(self, acq: "Acquisition", rng: np.random.Generator) -> SliceBatch:
+        """Corrupt an acquisition (fresh draws every call) and preprocess it as the service does."""
+        img, mask = self.corrupt(acq.images, acq.masks, rng)
+        prep = preprocess_slices(img, mask, (acq.pixel_mm, acq.pixel_mm), self.config.size, self.config.pixel_mm)
+        labels = sampling.recentre(acq.poses, prep.centroid_mm / acq.scale)
+        keep = prep.mask_fraction >= self.config.min_mask_fraction
+        return SliceBatch(prep.inputs[keep], labels[keep], [acq.volume] * int(keep.sum()),
+                          np.full(int(keep.sum()), acq.thickness_mm))
+
+    def batch(self, n: int, rng: np.random.Generator, volumes_per_batch: int = 4) -> SliceBatch:
+        """A batch of about ``n`` slices from ``volumes_per_batch`` random volumes."""
+        picks = rng.choice(len(self.volumes), size=min(volumes_per_batch, len(self.volumes)), replace=False)
+        parts = [self.simulate(int(i), int(np.ceil(n / len(picks))), rng) for i in picks]
+        return SliceBatch(np.concatenate([p.inputs for p in parts])[:n], np.concatenate([p.poses for p in parts])[:n],
+                          sum((p.volume for p in parts), [])[:n],
+                          np.concatenate([p.thickness_mm for p in parts])[:n])

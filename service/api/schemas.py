@@ -1,0 +1,67 @@
+"""Response bodies of API v1 (``shared/design/api-v1.md``), for validation and the OpenAPI page."""
+
+from __future__ import annotations
+
+from typing import Literal, Optional
+
+from pydantic import BaseModel, Field
+
+Vec3 = list[float]
+Mat = list[list[float]]
+
+
+class ModelRef(BaseModel):
+    name: str
+    version: str
+    backbone: str
+    sha256: str
+
+
+class SliceResult(BaseModel):
+    index: int = Field(description="index along slice_axis")
+    accepted: bool
+    reason: Optional[Literal["empty", "high_variance", "degenerate_anchor_points", "outside_atlas"]] = None
+    geodesic_variance: Optional[float] = Field(description="SE(3) geodesic variance of the MC samples")
+    anchor_points_mm: list[Vec3] = Field(description="P1, P2, P3 of the mean pose, atlas RAS mm")
+    rotation: Mat = Field(description="3x3, slice frame -> atlas (Fréchet mean)")
+    rotation_vector: Vec3
+    quaternion_wxyz: list[float]
+    translation_mm: Vec3
+    atlas_from_voxel: Mat = Field(description="4x4: voxel (i, j, k, 1) of this slice -> atlas RAS mm")
+
+
+class StackResult(BaseModel):
+    index: int
+    filename: str
+    shape: list[int]
+    spacing_mm: list[float]
+    slice_axis: int
+    slices: list[SliceResult]
+
+
+class PredictResponse(BaseModel):
+    request_id: str
+    model: ModelRef
+    mc_samples: int
+    variance_threshold: float
+    stacks: list[StackResult]
+    timing_ms: dict[str, float]
+
+
+class ModelDescription(BaseModel):
+    name: str
+    version: str
+    backbone: str
+    sha256: str
+    input_size: int
+    spacing_mm: float
+    label_type: str
+    variance_threshold: float
+    trained_on: str
+
+
+class Problem(BaseModel):
+    type: str
+    title: str
+    status: int
+    detail: str

@@ -1,0 +1,70 @@
+"""The one exception tree of the service. Each error knows its HTTP status and problem type;
+:mod:`service.api.problems` is the only place that turns them into RFC 7807 responses.
+
+Messages name the offending field or file and never contain patient information.
+"""
+
+from __future__ import annotations
+
+
+class ServiceError(Exception):
+    """Base class: ``status`` and ``title`` of the problem+json answer; ``detail`` is the message."""
+
+    status = 400
+    title = "Bad request"
+    type = "about:blank"
+    headers: dict[str, str] | None = None
+
+    def __init__(self, detail: str) -> None:
+        super().__init__(detail)
+        self.detail = detail
+
+
+class MalformedRequest(ServiceError):
+    status, title, type = 400, "Malformed request", "/problems/malformed-request"
+
+
+class Unauthorized(ServiceError):
+    status, title, type = 401, "Unauthorized", "/problems/unauthorized"
+    headers = {"WWW-Authenticate": "Bearer"}
+
+
+class NotFound(ServiceError):
+    status, title, type = 404, "Not found", "/problems/not-found"
+
+
+class Conflict(ServiceError):
+    status, title, type = 409, "Conflict", "/problems/conflict"
+
+
+class PayloadTooLarge(ServiceError):
+    status, title, type = 413, "Upload too large", "/problems/payload-too-large"
+
+
+class UnsupportedFile(ServiceError):
+    """The file cannot be read at all (not an image, unknown format, truncated)."""
+
+    status, title, type = 415, "Unreadable or unsupported file", "/problems/unsupported-file"
+
+
+class UnusableImage(ServiceError):
+    """The file was read but cannot be used (2D, 4D, empty, NaN, mask grid mismatch ...)."""
+
+    status, title, type = 422, "Unusable image", "/problems/unusable-image"
+
+
+class InvalidParameter(ServiceError):
+    status, title, type = 422, "Invalid parameter", "/problems/invalid-parameter"
+
+
+class Saturated(ServiceError):
+    status, title, type = 503, "Service saturated", "/problems/saturated"
+
+    def __init__(self, detail: str, retry_after_s: int = 2) -> None:
+        super().__init__(detail)
+        self.headers = {"Retry-After": str(retry_after_s)}
+
+
+class NotReady(ServiceError):
+    status, title, type = 503, "Not ready", "/problems/not-ready"
+    headers = {"Retry-After": "5"}

@@ -1,0 +1,1 @@
+"""Pose inference: the ONNX model files, the MC-dropout estimator, acceptance rules."""

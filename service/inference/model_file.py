@@ -1,0 +1,91 @@
+"""An exported SVRnet model: the ONNX file, its metadata, an onnxruntime session.
+
+Example (with a model file at hand):
+    >>> model = load_model(Path("service/models/default/model.onnx"))  # doctest: +SKIP
+    >>> model.info.label_type, model.info.input_size                     # doctest: +SKIP
+    ('anchor', 96)
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+from numpy.typing import NDArray
+
+INPUT_SLICES, INPUT_PASSES, OUTPUT_LABELS = "slices", "passes", "labels"
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    """What the service needs to know about a model, read from the ONNX metadata."""
+
+    name: str
+    version: str
+    backbone: str
+    label_type: str
+    input_size: int
+    pixel_spacing_mm: float
+    variance_threshold: float
+    dropout_p: float
+    atlas_id: str
+    trained_on: str
+    sha256: str
+    metadata: dict[str, str] = field(default_factory=dict, repr=False)
+
+    @classmethod
+    def from_metadata(cls, meta: dict[str, str], sha256: str) -> "ModelInfo":
+        try:
+            return cls(
+                name=meta["name"], version=meta["version"], backbone=meta["backbone"], label_type=meta["label_type"],
+                input_size=int(meta["input_size"]), pixel_spacing_mm=float(meta["pixel_spacing_mm"]),
+                variance_threshold=float(meta["variance_threshold"]), dropout_p=float(meta.get("dropout_p", 0.5)),
+                atlas_id=meta.get("atlas_id", ""), trained_on=meta.get("training_data", ""), sha256=sha256,
+                metadata=dict(meta),
+            )
+        except (KeyError, ValueError) as exc:
+            raise ValueError(f"model metadata incomplete or invalid: {exc}") from exc
+
+
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def session_options(threads: int = 0) -> ort.SessionOptions:
+    """CPU session options: all graph optimisations (the dropout masks survive them), no spinning."""
+    opts = ort.SessionOptions()
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    opts.intra_op_num_threads = threads
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    return opts
+
+
+@dataclass
+class LoadedModel:
+    """A model file with its session; :meth:`run` returns labels ``[B, N, D]``."""
+
+    path: Path
+    info: ModelInfo
+    session: ort.InferenceSession
+
+    def run(self, slices: NDArray[np.float32], passes: NDArray[np.float32]) -> NDArray[np.float32]:
+        """Run the graph on network inputs ``[B, L, L]`` (or ``[B, 1, L, L]``) for ``passes [N]``."""
+        x = np.asarray(slices, dtype=np.float32)
+        if x.ndim == 3:
+            x = x[:, None]
+        return self.session.run([OUTPUT_LABELS], {INPUT_SLICES: x, INPUT_PASSES: np.asarray(passes, np.float32)})[0]
+
+
+def load_model(path: Path, threads: int = 0) -> LoadedModel:
+    """Open an exported model file with onnxruntime and read its metadata."""
+    path = Path(path)
+    sess = ort.InferenceSession(str(path), session_options(threads), providers=["CPUExecutionProvider"])
+    meta = sess.get_modelmeta().custom_metadata_map
+    return LoadedModel(path, ModelInfo.from_metadata(meta, file_sha256(path)), sess)

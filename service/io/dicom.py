@@ -1,0 +1,122 @@
+"""Single DICOM files with pydicom: classic single-frame, Enhanced multi-frame and Siemens mosaic.
+
+Only pixel data and geometry are taken; no identifying attribute is read into the result or
+logged (de-identification on read). Geometry (LPS, converted to RAS in
+:mod:`service.geometry.frames`):
+
+* Enhanced multi-frame: per-frame ``PlanePositionSequence`` positions, shared or per-frame
+  orientation and pixel measures; without functional groups (rare, truncated files) the frames
+  are stacked with ``SpacingBetweenSlices`` along the normal of an identity orientation.
+* Siemens mosaic (``ImageType`` contains ``MOSAIC``): ``NumberOfImagesInMosaic`` (0019,100A) tiles
+  of ``AcquisitionMatrix`` size; the position of the first tile is corrected from the mosaic's
+  top-left corner by half the size difference (as dcm2niix and nibabel do).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pydicom
+from pydicom.errors import InvalidDicomError
+
+from service.core.errors import UnsupportedFile, UnusableImage
+from service.geometry import frames
+from service.io.volume import Volume
+
+NUMBER_OF_IMAGES_IN_MOSAIC = (0x0019, 0x100A)
+
+
+def _lps_affine(row_dir: np.ndarray, col_dir: np.ndarray, normal: np.ndarray, spacing: tuple[float, float, float],
+                origin: np.ndarray) -> np.ndarray:
+    """Voxel (i = column, j = row, k = frame) -> LPS affine."""
+    a = np.eye(4)
+    a[:3, 0] = row_dir * spacing[0]     # along a row: next column
+    a[:3, 1] = col_dir * spacing[1]     # along a column: next row
+    a[:3, 2] = normal * spacing[2]
+    a[:3, 3] = origin
+    return a
+
+
+def read_dicom_file(path: Path) -> Volume:
+    """Read one DICOM file as a 3D :class:`Volume` (array ``[i, j, k]`` = column, row, frame)."""
+    try:
+        ds = pydicom.dcmread(str(path))
+        pixels = ds.pixel_array.astype(np.float32)
+    except (InvalidDicomError, AttributeError, ValueError, OSError, KeyError) as exc:
+        raise UnsupportedFile(f"{path.name}: unreadable DICOM pixel data") from exc
+    slope = float(getattr(ds, "RescaleSlope", 1) or 1)
+    pixels = pixels * slope + float(getattr(ds, "RescaleIntercept", 0) or 0)
+    image_type = [str(t).upper() for t in getattr(ds, "ImageType", [])]
+    if "MOSAIC" in image_type and NUMBER_OF_IMAGES_IN_MOSAIC in ds:
+        return _mosaic(ds, pixels)
+    if pixels.ndim == 2:
+        pixels = pixels[None]
+    if pixels.ndim != 3:
+        raise UnusableImage(f"{path.name}: DICOM pixel data with {pixels.ndim} dimensions")
+    return _multiframe(ds, pixels)
+
+
+def _orientation(item) -> tuple[np.ndarray, np.ndarray]:  # noqa: ANN001 - a pydicom dataset
+    iop = np.asarray(item.ImageOrientationPatient, dtype=np.float64)
+    return iop[:3], iop[3:]
+
+
+def _multiframe(ds, pixels: np.ndarray) -> Volume:  # noqa: ANN001
+    shared = ds.SharedFunctionalGroupsSequence[0] if "SharedFunctionalGroupsSequence" in ds else None
+    per_frame = ds.PerFrameFunctionalGroupsSequence if "PerFrameFunctionalGroupsSequence" in ds else None
+
+    def group(name: str, frame: int = 0):  # noqa: ANN202
+        for source in ((per_frame[frame] if per_frame is not None else None), shared):
+            if source is not None and name in source:
+                return source[name].value[0]
+        return None
+
+    orient, measures = group("PlaneOrientationSequence"), group("PixelMeasuresSequence")
+    if orient is not None:
+        row_dir, col_dir = _orientation(orient)
+    elif "ImageOrientationPatient" in ds:
+        row_dir, col_dir = _orientation(ds)
+    else:
+        row_dir, col_dir = np.array([1.0, 0, 0]), np.array([0.0, 1, 0])
+    src = measures if measures is not None and "PixelSpacing" in measures else ds
+    ps = [float(x) for x in getattr(src, "PixelSpacing", [1.0, 1.0])]
+    normal = np.cross(row_dir, col_dir)
+    positions = []
+    for f in range(len(pixels)):
+        pos = group("PlanePositionSequence", f)
+        if pos is None:
+            break
+        positions.append(np.asarray(pos.ImagePositionPatient, dtype=np.float64))
+    if len(positions) == len(pixels) and len(pixels) > 1:
+        order = np.argsort([p @ normal for p in positions])
+        pixels = pixels[order]
+        positions = [positions[i] for i in order]
+        dz = float(np.median(np.diff([p @ normal for p in positions])))
+        origin = positions[0]
+    else:
+        dz = float(getattr(ds, "SpacingBetweenSlices", None) or getattr(ds, "SliceThickness", None) or 1.0)
+        origin = np.asarray(getattr(ds, "ImagePositionPatient", [0.0, 0.0, 0.0]), dtype=np.float64)
+    lps = _lps_affine(row_dir, col_dir, normal, (ps[1], ps[0], abs(dz) or 1.0), origin)
+    return Volume(np.ascontiguousarray(pixels.transpose(2, 1, 0)), frames.ras_affine_from_lps(lps))
+
+
+def _mosaic(ds, pixels: np.ndarray) -> Volume:  # noqa: ANN001
+    n = int(ds[NUMBER_OF_IMAGES_IN_MOSAIC].value)
+    tiles_per_row = int(np.ceil(np.sqrt(n)))
+    rows, cols = pixels.shape
+    tr, tc = rows // tiles_per_row, cols // tiles_per_row
+    acq = [int(x) for x in getattr(ds, "AcquisitionMatrix", []) if int(x) > 0]
+    if len(acq) == 2 and acq[0] * tiles_per_row <= cols:
+        tr, tc = acq[1], acq[0]
+    tiles = pixels[: tr * tiles_per_row, : tc * tiles_per_row].reshape(tiles_per_row, tr, tiles_per_row, tc)
+    stack = tiles.transpose(0, 2, 1, 3).reshape(-1, tr, tc)[:n]
+    row_dir, col_dir = _orientation(ds)
+    ps = [float(x) for x in ds.PixelSpacing]
+    normal = np.cross(row_dir, col_dir)
+    # ImagePositionPatient is the top-left of the whole mosaic: move to the first tile's corner.
+    origin = np.asarray(ds.ImagePositionPatient, dtype=np.float64)
+    origin = origin + row_dir * ps[1] * (cols - tc) / 2.0 + col_dir * ps[0] * (rows - tr) / 2.0
+    dz = float(getattr(ds, "SpacingBetweenSlices", None) or ds.SliceThickness)
+    lps = _lps_affine(row_dir, col_dir, normal, (ps[1], ps[0], dz), origin)
+    return Volume(np.ascontiguousarray(stack.transpose(2, 1, 0)), frames.ras_affine_from_lps(lps))

@@ -1,0 +1,65 @@
+"""N4 bias-field correction (SimpleITK), fitted small and applied at full resolution.
+
+The field is smooth, so it is fitted on an image shrunk in-plane (default x4; the few slices of a
+stack are kept) and restricted to the region around the brain (the mask's bounding box plus a
+margin), then evaluated on the full-resolution grid of that region
+(``GetLogBiasFieldAsImage``) and divided out. Outside the region the image is left as it is (it
+is masked out later anyway). Fitting on the whole field of view at full resolution gives the same
+correction ~50x slower.
+
+Example:
+    >>> import numpy as np
+    >>> from service.io.volume import Volume
+    >>> x = np.linspace(-1, 1, 48)
+    >>> field = np.exp(0.3 * x)[:, None, None] * np.ones((48, 48, 6))
+    >>> vol = Volume((100 * field).astype(np.float32), np.diag([1.0, 1.0, 3.0, 1.0]))
+    >>> out = n4_correct(vol, np.ones(vol.array.shape, bool))
+    >>> bool(out.std() < vol.array.std())
+    True
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import SimpleITK as sitk
+from numpy.typing import NDArray
+
+from service.io.volume import Volume, to_sitk
+
+MARGIN_MM = 20.0
+
+
+def _roi(mask: NDArray, spacing: NDArray, margin_mm: float) -> tuple[list[int], list[int]]:
+    idx = np.argwhere(mask)
+    if len(idx) == 0:
+        return [0, 0, 0], list(mask.shape)
+    pad = np.ceil(margin_mm / spacing).astype(int)
+    lo = np.maximum(idx.min(0) - pad, 0)
+    hi = np.minimum(idx.max(0) + pad + 1, mask.shape)
+    return lo.tolist(), (hi - lo).tolist()
+
+
+def n4_correct(volume: Volume, mask: NDArray | None = None, *, shrink: int = 4, iterations: int = 50,
+               levels: int = 3, threads: int = 1, margin_mm: float = MARGIN_MM) -> NDArray[np.float32]:
+    """Bias-corrected copy of ``volume.array``; the fit uses ``mask`` (dilated by its ROI) if given."""
+    arr = np.asarray(volume.array, dtype=np.float32)
+    roi_mask = np.ones(arr.shape, bool) if mask is None else np.asarray(mask, bool)
+    lo, size = _roi(roi_mask, volume.spacing, margin_mm)
+    image = sitk.RegionOfInterest(to_sitk(Volume(np.maximum(arr, 0.0), volume.affine)), size, lo)
+    image = sitk.Cast(image, sitk.sitkFloat32)
+    sp = np.asarray(image.GetSpacing())
+    factors = [max(1, int(round(shrink * min(sp) / s))) for s in sp]          # keep thick-slice axis
+    factors = [min(f, max(1, n // 4)) for f, n in zip(factors, image.GetSize())]
+    small = sitk.Shrink(image, factors)
+    fit_mask = sitk.OtsuThreshold(small, 0, 1, 200)
+    if sitk.GetArrayViewFromImage(fit_mask).sum() < 10:
+        fit_mask = small > 0
+    n4 = sitk.N4BiasFieldCorrectionImageFilter()
+    n4.SetMaximumNumberOfIterations([iterations] * levels)
+    n4.SetNumberOfThreads(threads)
+    n4.Execute(small, sitk.Cast(fit_mask, sitk.sitkUInt8))
+    log_field = sitk.GetArrayFromImage(n4.GetLogBiasFieldAsImage(image)).transpose(2, 1, 0)
+    out = arr.copy()
+    sl = tuple(slice(a, a + n) for a, n in zip(lo, size))
+    out[sl] = arr[sl] / np.exp(log_field).astype(np.float32)
+    return out

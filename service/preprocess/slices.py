@@ -1,0 +1,115 @@
+"""THE slice preprocessing: what the network sees, shared by the service and by training.
+
+For a batch of 2D slices with their masks and in-plane pixel size, in order:
+
+1. mask and rescale to 0-255 with 1 %/99 % pruning (:func:`~service.preprocess.intensity.rescale_0_255`);
+2. find the mask centroid in the slice frame (mm);
+3. resample to the model's ``L x L`` grid of ``s`` mm pixels centred on that centroid (bilinear;
+   Gaussian anti-aliasing first when the model's pixels are coarser than the input's).
+
+Slice frame of an input image ``[H, W]`` with pixel size ``(row_mm, col_mm)``: pixel ``(r, c)`` at
+``x = (c - (W-1)/2) col_mm``, ``y = (r - (H-1)/2) row_mm`` -- the package convention of
+:mod:`service.geometry` generalised to rectangular grids. The network frame is that same frame
+translated by the centroid: ``p_input = p_network + (cx, cy, 0)``. So a pose ``P`` predicted for the
+network input places the input slice at ``P @ translate(-cx, -cy, 0)``, and a training label is
+``recentre(P_acquired, centroid)``.
+
+Example:
+    >>> import numpy as np
+    >>> img = np.zeros((1, 40, 40)); img[0, 5:15, 20:30] = np.arange(1.0, 101.0).reshape(10, 10)
+    >>> out = preprocess_slices(img, img > 0, (1.0, 1.0), size=16, pixel_out_mm=1.0)
+    >>> out.centroid_mm.round(2).tolist()          # (x, y) of the box centre
+    [[5.0, -10.0]]
+    >>> float(out.inputs[0, 8, 8]) > 0
+    True
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy import ndimage
+
+from service.geometry.pose import translate
+from service.geometry.sampling import FWHM_TO_SIGMA
+from service.preprocess.intensity import rescale_0_255
+
+
+@dataclass
+class PreparedSlices:
+    """Network inputs and how they relate to the input slices.
+
+    Attributes:
+        inputs: ``[B, L, L]`` float32, 0-255, what the network is fed.
+        centroid_mm: ``[B, 2]`` mask centroid (x, y) in the input slice frame, mm.
+        mask_pixels: ``[B]`` mask area in the input slice, pixels.
+        mask_fraction: ``[B]`` share of the network input covered by the resampled mask.
+    """
+
+    inputs: NDArray[np.float32]
+    centroid_mm: NDArray[np.float64]
+    mask_pixels: NDArray[np.float64]
+    mask_fraction: NDArray[np.float64]
+
+    def input_from_network(self) -> NDArray[np.float64]:
+        """``[B, 4, 4]``: network-frame mm -> input-slice-frame mm (a pure in-plane translation)."""
+        c = self.centroid_mm
+        return translate(np.concatenate([c, np.zeros((len(c), 1))], axis=1))
+
+
+def _frame_coordinates(shape: tuple[int, int], pixel_mm: tuple[float, float]) -> tuple[NDArray, NDArray]:
+    h, w = shape
+    x = (np.arange(w) - (w - 1) / 2.0) * pixel_mm[1]
+    y = (np.arange(h) - (h - 1) / 2.0) * pixel_mm[0]
+    return x, y
+
+
+def preprocess_slices(
+    images: ArrayLike,
+    masks: ArrayLike,
+    pixel_mm: tuple[float, float],
+    size: int,
+    pixel_out_mm: float,
+) -> PreparedSlices:
+    """Mask, rescale, centre and resample slices ``[B, H, W]`` to network inputs ``[B, L, L]``.
+
+    Args:
+        images: raw (bias-corrected) slice intensities.
+        masks: region-of-interest masks on the same grid (bool or 0/1).
+        pixel_mm: input pixel size ``(row_mm, col_mm)``.
+        size: ``L``.
+        pixel_out_mm: the model's pixel size ``s`` (mm).
+    """
+    s = float(pixel_out_mm)
+    img = np.asarray(images, dtype=np.float32)
+    m = np.asarray(masks) > 0.5
+    b, h, w = img.shape
+    scaled = rescale_0_255(img, m)
+    x, y = _frame_coordinates((h, w), pixel_mm)
+    counts = m.sum(axis=(1, 2)).astype(np.float64)
+    safe = np.maximum(counts, 1.0)
+    cx = np.where(counts > 0, m.sum(axis=1) @ x / safe, 0.0)
+    cy = np.where(counts > 0, m.sum(axis=2) @ y / safe, 0.0)
+
+    # Anti-alias when the output grid is coarser than the input.
+    sig = [np.sqrt(max(s**2 - p**2, 0.0)) * FWHM_TO_SIGMA / p for p in pixel_mm]
+    if max(sig) > 0.2:
+        scaled = ndimage.gaussian_filter(scaled, (0.0, sig[0], sig[1]), mode="constant")
+
+    grid = (np.arange(size) - (size - 1) / 2.0) * s
+    cols = (cx[:, None] + grid[None, :]) / pixel_mm[1] + (w - 1) / 2.0          # [B, L]
+    rows = (cy[:, None] + grid[None, :]) / pixel_mm[0] + (h - 1) / 2.0          # [B, L]
+    bb = np.broadcast_to(np.arange(b, dtype=np.float64)[:, None, None], (b, size, size))
+    rr = np.broadcast_to(rows[:, :, None], (b, size, size))
+    cc = np.broadcast_to(cols[:, None, :], (b, size, size))
+    coords = np.stack([bb, rr, cc]).reshape(3, -1)
+    out = ndimage.map_coordinates(scaled, coords, order=1, mode="constant", cval=0.0, prefilter=False)
+    mres = ndimage.map_coordinates(m.astype(np.float32), coords, order=1, mode="constant", prefilter=False)
+    return PreparedSlices(
+        inputs=out.reshape(b, size, size).astype(np.float32),
+        centroid_mm=np.stack([cx, cy], axis=1),
+        mask_pixels=counts,
+        mask_fraction=(mres.reshape(b, -1) > 0.5).mean(axis=1),
+    )

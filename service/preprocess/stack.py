@@ -1,0 +1,72 @@
+"""A stack as a batch of 2D slices along its slice axis, with each slice's voxel -> slice-frame map.
+
+The slice axis is the voxel axis of largest spacing (ties: the last one), per the API contract.
+Of the two in-plane voxel axes ``p < q``, ``p`` runs along image columns (slice-frame ``x``) and ``q``
+along rows (``y``); the slice normal ``z = x cross y`` points to the side of increasing slice index
+when the voxel axes are right-handed and to the other side otherwise, so that the slice frame is
+always a right-handed, physically scaled copy of the stack's geometry.
+
+Example:
+    >>> import numpy as np
+    >>> from service.io.volume import Volume
+    >>> vol = Volume(np.zeros((4, 5, 3), np.float32), np.diag([1.0, 1.0, 4.0, 1.0]))
+    >>> s = split_stack(vol, np.ones((4, 5, 3), bool))
+    >>> s.slice_axis, s.images.shape, s.pixel_mm
+    (2, (3, 5, 4), (1.0, 1.0))
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from service.geometry import frames
+from service.io.volume import Volume
+
+
+@dataclass
+class StackSlices:
+    """Slices of one stack.
+
+    Attributes:
+        images: ``[n, H, W]`` float32 (rows along voxel axis ``q``, columns along ``p``).
+        masks: ``[n, H, W]`` bool.
+        pixel_mm: ``(row_mm, col_mm)``.
+        slice_axis: the voxel axis the slices are taken along.
+        slice_from_voxel: ``[n, 4, 4]`` voxel index ``(i, j, k, 1)`` -> slice-frame mm of each slice.
+    """
+
+    images: NDArray[np.float32]
+    masks: NDArray[np.bool_]
+    pixel_mm: tuple[float, float]
+    slice_axis: int
+    slice_from_voxel: NDArray[np.float64]
+
+
+def slice_axis_of(spacing: NDArray) -> int:
+    """The axis of largest spacing; ties go to the last axis."""
+    sp = np.asarray(spacing, dtype=np.float64)
+    return int(np.flatnonzero(sp >= sp.max() * (1 - 1e-6))[-1])
+
+
+def split_stack(volume: Volume, mask: NDArray) -> StackSlices:
+    """Slices, masks and slice-frame transforms of a stack (vectorised, no per-slice loop)."""
+    a = slice_axis_of(volume.spacing)
+    p, q = [ax for ax in range(3) if ax != a]
+    images = np.moveaxis(np.asarray(volume.array, dtype=np.float32), a, 0).transpose(0, 2, 1)
+    masks = np.moveaxis(np.asarray(mask, dtype=bool), a, 0).transpose(0, 2, 1)
+    n, h, w = images.shape
+    sp = frames.voxel_spacing(volume.affine)
+    cols = volume.affine[:3, :3] / sp
+    sign = np.sign(np.dot(cols[:, a], np.cross(cols[:, p], cols[:, q]))) or 1.0
+    m = np.zeros((n, 4, 4))
+    m[:, 0, p] = sp[p]
+    m[:, 0, 3] = -(w - 1) / 2.0 * sp[p]
+    m[:, 1, q] = sp[q]
+    m[:, 1, 3] = -(h - 1) / 2.0 * sp[q]
+    m[:, 2, a] = sign * sp[a]
+    m[:, 2, 3] = -sign * sp[a] * np.arange(n)
+    m[:, 3, 3] = 1.0
+    return StackSlices(images, masks, (float(sp[q]), float(sp[p])), a, m)

@@ -1,0 +1,72 @@
+"""App fixtures: an oracle estimator that knows the simulated truth, a tiny real exported model."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from fastapi.testclient import TestClient
+
+from model_export.export import build_metadata, export_onnx
+from model_export.model import SVRNet
+from service.core.settings import Settings
+from service.inference.estimator import OnnxPoseEstimator, PoseEstimate
+from service.inference.model_file import ModelInfo, load_model
+from service.inference.registry import ModelRegistry
+from service.main import create_app
+
+INFO = ModelInfo(name="oracle", version="0", backbone="oracle", label_type="anchor", input_size=64,
+                 pixel_spacing_mm=2.0, variance_threshold=10.0, dropout_p=0.5, atlas_id="phantom",
+                 trained_on="-", sha256="0" * 64)
+
+
+class OracleEstimator:
+    """Returns, for the k-th slice it is given, the k-th pose of ``truth`` (set by each test)."""
+
+    info = INFO
+
+    def __init__(self) -> None:
+        self.truth: np.ndarray | None = None
+        self.seen: np.ndarray | None = None
+
+    def estimate(self, inputs: np.ndarray, mc_samples: int) -> PoseEstimate:
+        assert self.truth is not None and len(self.truth) == len(inputs), "truth and slices out of step"
+        self.seen = inputs
+        n = len(inputs)
+        return PoseEstimate(self.truth.copy(), np.full(n, 1.0), np.zeros(n, bool))
+
+
+@pytest.fixture(scope="session")
+def tiny_model_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A small exported SVRnet (random weights, 64 px at 2 mm) with real MC dropout."""
+    torch.manual_seed(0)
+    model = SVRNet("compact", 0.25, "anchor", 64, hidden=32).eval()
+    model.set_label_normalisation(torch.randn(50, 9) * 40)
+    meta = build_metadata(model, name="tiny", version="0.0.1", pixel_mm=2.0, variance_threshold=1e9,
+                          atlas_id="phantom", training_data="none", licences="n/a")
+    return export_onnx(model, tmp_path_factory.mktemp("models") / "tiny" / "model.onnx", meta)
+
+
+def make_client(registry: ModelRegistry, **settings: object) -> TestClient:
+    return TestClient(create_app(Settings(**settings), registry=registry), raise_server_exceptions=False)
+
+
+@pytest.fixture
+def oracle() -> OracleEstimator:
+    return OracleEstimator()
+
+
+@pytest.fixture
+def oracle_client(oracle: OracleEstimator) -> Iterator[TestClient]:
+    with make_client(ModelRegistry({"default": oracle})) as client:
+        yield client
+
+
+@pytest.fixture
+def real_client(tiny_model_path: Path) -> Iterator[TestClient]:
+    registry = ModelRegistry({"default": OnnxPoseEstimator(load_model(tiny_model_path))})
+    with make_client(registry) as client:
+        yield client

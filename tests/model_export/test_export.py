@@ -1,0 +1,126 @@
+"""ONNX export: real MC dropout in onnxruntime, parity with PyTorch, metadata, the whole pipeline."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+
+from model_export.export import build_metadata, count_random_nodes, export_onnx
+from model_export.model import SVRNet
+from service.geometry import encodings
+from service.inference.estimator import OnnxPoseEstimator
+from service.inference.model_file import load_model
+
+SIZE = 64
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory: pytest.TempPathFactory) -> tuple[SVRNet, Path]:
+    torch.manual_seed(0)
+    model = SVRNet("compact", 0.25, "anchor", SIZE, hidden=64, dropout=0.5)
+    # Non-trivial BatchNorm statistics, so that exporting BN in training mode would be caught.
+    model.train()
+    with torch.no_grad():
+        for _ in range(3):
+            model.features(torch.rand(16, 1, SIZE, SIZE) * 255)
+    model.set_label_normalisation(torch.randn(100, 9) * 40 + 5)
+    model.eval()
+    meta = build_metadata(model, name="tiny", version="0.0.1", pixel_mm=2.0, variance_threshold=12.5,
+                          atlas_id="phantom", training_data="none", licences="n/a")
+    path = export_onnx(model, tmp_path_factory.mktemp("onnx") / "tiny.onnx", meta)
+    return model, path
+
+
+def inputs(n: int, seed: int = 0) -> np.ndarray:
+    return (np.random.default_rng(seed).random((n, 1, SIZE, SIZE)) * 255).astype(np.float32)
+
+
+def test_graph_keeps_one_random_node_per_dropout_layer(exported: tuple[SVRNet, Path]) -> None:
+    assert count_random_nodes(exported[1]) == 2  # before the shared FC and before the branch FCs
+    import onnx
+
+    ops = {n.op_type for n in onnx.load(str(exported[1])).graph.node}
+    assert "Dropout" not in ops and "BatchNormalization" not in ops  # eval-mode export, BN folded
+
+
+def test_metadata_is_readable_by_the_service(exported: tuple[SVRNet, Path]) -> None:
+    m = load_model(exported[1])
+    assert (m.info.name, m.info.backbone, m.info.label_type, m.info.input_size) == ("tiny", "compact", "anchor", SIZE)
+    assert m.info.pixel_spacing_mm == 2.0 and m.info.variance_threshold == 12.5
+    for key in ("intensity", "atlas_id", "training_data", "licences", "commit", "version"):
+        assert key in m.info.metadata
+    assert len(m.info.sha256) == 64
+
+
+def test_deterministic_pass_equals_pytorch(exported: tuple[SVRNet, Path]) -> None:
+    model, path = exported
+    x = inputs(7)
+    got = load_model(path).run(x, np.zeros(1, np.float32))[:, 0]
+    with torch.no_grad():
+        ref = model(torch.from_numpy(x)).numpy()
+    np.testing.assert_allclose(got, ref, atol=1e-4, rtol=1e-5)
+
+
+def test_mc_passes_differ_and_match_pytorch_mc_statistics(exported: tuple[SVRNet, Path]) -> None:
+    model, path = exported
+    x = inputs(2, seed=1)
+    n = 3000
+    got = load_model(path).run(x, np.ones(n, np.float32))                       # [2, n, 9]
+    assert got.shape == (2, n, 9)
+    assert np.abs(got[:, 0] - got[:, 1]).max() > 1e-3
+    # PyTorch reference: trunk in eval mode, the head's dropout active (nn.functional.dropout).
+    model.eval()
+    with torch.no_grad():
+        feats = model.features(torch.from_numpy(x)).repeat_interleave(n, 0)
+        drop = lambda t: torch.nn.functional.dropout(t, model.head.p, True)  # noqa: E731
+        ref = (model.head(feats, drop) * model.label_scale + model.label_mean).numpy().reshape(2, n, 9)
+    sd = ref.std(axis=1)
+    assert (sd > 0.1).all()
+    # Means agree within 5 standard errors; spreads within 10 %.
+    np.testing.assert_array_less(np.abs(got.mean(1) - ref.mean(1)), 5 * sd * np.sqrt(2 / n) + 1e-6)
+    np.testing.assert_allclose(got.std(1), sd, rtol=0.1)
+
+
+def test_seeded_runs_are_reproducible_while_successive_runs_differ(exported: tuple[SVRNet, Path]) -> None:
+    x = inputs(2, seed=2)
+    model = load_model(exported[1])
+    ort.set_seed(1234)
+    a1, a2 = model.run(x, np.ones(5, np.float32)), model.run(x, np.ones(5, np.float32))
+    ort.set_seed(1234)
+    b1 = load_model(exported[1]).run(x, np.ones(5, np.float32))
+    np.testing.assert_array_equal(a1, b1)
+    assert np.abs(a1 - a2).max() > 1e-3
+
+
+def test_decoded_outputs_are_proper_rotations(exported: tuple[SVRNet, Path]) -> None:
+    est = OnnxPoseEstimator(load_model(exported[1]), batch_slices=4)
+    labels = est.sample_labels(inputs(9)[:, 0], 20)
+    assert labels.shape == (9, 20, 9)
+    r = encodings.decode("anchor", labels.astype(np.float64))[..., :3, :3]
+    np.testing.assert_allclose(np.linalg.det(r), 1.0, atol=1e-9)
+    result = est.estimate(inputs(9)[:, 0], 20)
+    assert result.mean.shape == (9, 4, 4) and (result.variance > 0).all()
+
+
+def test_tiny_pipeline_trains_exports_and_loads(phantom_atlas: Path, tmp_path: Path) -> None:
+    from model_export.packaging import export_checkpoint
+    from model_export.train import TrainConfig, train
+
+    cfg = TrainConfig(backbone="compact", width=0.25, steps=6, batch=16, lr=1e-3, val_every=3, val_per_volume=4,
+                      reuse=2, pool=3, hidden=32, simulation=dict(size=48, pixel_mm=2.5))
+    best = train(cfg, tmp_path / "run", phantom_atlas, progress=False)
+    assert best.exists() and (tmp_path / "run" / "loss.png").exists()
+    log = (tmp_path / "run" / "log.csv").read_text().splitlines()
+    assert log[0].startswith("step,samples") and len(log) >= 3
+    onnx_path = export_checkpoint(best, tmp_path / "m.onnx", name="t", version="0", variance_threshold=5.0)
+    m = load_model(onnx_path)
+    assert m.info.input_size == 48 and m.info.pixel_spacing_mm == 2.5
+    assert m.run(np.zeros((1, 48, 48), np.float32), np.ones(3, np.float32)).shape == (1, 3, 9)
+    # Resume continues from the checkpoint's step.
+    cfg.steps = 9
+    train(cfg, tmp_path / "run", phantom_atlas, resume=tmp_path / "run" / "last.pt", progress=False)
+    assert (tmp_path / "run" / "log.csv").read_text().splitlines()[-1].startswith("9,")

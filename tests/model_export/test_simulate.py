@@ -1,0 +1,70 @@
+"""Training-slice simulation conforms to the service's forward model and preprocessing."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from model_export.atlas import load_volumes, split
+from model_export.simulate import Acquisition, SimulationConfig, SliceSimulator, sample_slices_torch
+from service.geometry import iterators, sampling
+from service.preprocess.intensity import rescale_0_255
+
+
+def test_torch_sampler_equals_the_numpy_forward_model(phantom_atlas: Path) -> None:
+    vol = load_volumes(["STA30"], phantom_atlas)[0]
+    rng = np.random.default_rng(0)
+    poses = iterators.random_poses(6, rng, tz_max_mm=10.0, centre=vol.centre)
+    ref = sampling.sample_slices(vol.image, vol.affine, poses, 40, 1.3)
+    got = sample_slices_torch(torch.from_numpy(vol.image)[None, None], vol.affine, poses, 40, 1.3)[:, 0].numpy()
+    assert np.abs(ref).max() > 50
+    np.testing.assert_allclose(got, ref, atol=1e-3)
+    offsets, w = sampling.psf_offsets(3.0, 0.8)
+    thick = sample_slices_torch(torch.from_numpy(vol.image)[None, None], vol.affine, poses, 40, 1.3, offsets, w)
+    ref_thick = sampling.sample_slices(vol.image, vol.affine, poses, 40, 1.3, thickness_mm=3.0, inplane_fwhm_mm=0.0)
+    np.testing.assert_allclose(thick[:, 0].numpy(), ref_thick, atol=1e-3)
+
+
+def test_training_slice_is_the_service_preprocessing_and_its_label_re_renders_it(phantom_atlas: Path) -> None:
+    """A clean simulated input equals the slice rendered at its label pose on the network grid.
+
+    This is the crop/centre contract: the label is the atlas pose of the CENTRED network input.
+    """
+    vol = load_volumes(["STA30"], phantom_atlas)[0]
+    cfg = SimulationConfig(size=48, pixel_mm=1.5, acq_pixel_mm=(1.5, 1.5), thickness_mm=(0.01, 0.01), noise=(0, 0),
+                           bias=0.0, gamma=(1, 1), void_probability=0.0, mask_threshold=(0.5, 0.5), mask_blur_px=0.01)
+    sim = SliceSimulator([vol], cfg)
+    rng = np.random.default_rng(1)
+    poses = sim.sample_poses(vol, 8, rng)
+    # Shift the acquisition planes in-plane so that the brain is NOT centred in the acquired field.
+    poses = sampling.recentre(poses, rng.uniform(-15, 15, size=(8, 2)))
+    img, mask = sim.acquire(0, poses, 1.5, 0.01)
+    batch = sim.finish(Acquisition(img, mask, poses, 1.5, 0.01, 1.0, "STA30"), rng)
+    assert len(batch.inputs) == 8
+    rendered = sampling.sample_slices(vol.image, vol.affine, batch.poses, 48, 1.5)
+    rmask = sampling.sample_slices(vol.mask, vol.affine, batch.poses, 48, 1.5) > 0.5
+    expected = rescale_0_255(rendered, rmask)
+    # In-plane blur of the acquisition (1.2 px FWHM) and one extra interpolation separate the two.
+    inside = rmask & (batch.inputs > 0)
+    diff = np.abs(batch.inputs - expected)[inside]
+    assert np.median(diff) < 6.0, np.median(diff)
+    # The label moved with the crop: the mask is centred in the re-rendered slice.
+    cent, _ = sampling.mask_centroids(rmask.astype(np.float32), 1.5)
+    assert np.abs(cent).max() < 1.5
+    # ... whereas the acquisition planes themselves were off-centre.
+    cent0, _ = sampling.mask_centroids(sampling.sample_slices(vol.mask, vol.affine, poses, 48, 1.5), 1.5)
+    assert np.abs(cent0).max() > 5.0
+
+
+def test_batches_have_labels_and_realistic_ranges(phantom_atlas: Path) -> None:
+    train, val = split(phantom_atlas)
+    assert set(val).isdisjoint(train) and any(v.startswith("SB") for v in val) and any(v.startswith("STA") for v in val)
+    sim = SliceSimulator(load_volumes(train, phantom_atlas), SimulationConfig(size=48, pixel_mm=2.0))
+    b = sim.batch(32, np.random.default_rng(2), volumes_per_batch=2)
+    assert b.inputs.shape[1:] == (48, 48) and len(b.inputs) == len(b.poses) > 16
+    assert b.inputs.min() >= 0 and b.inputs.max() <= 255 and b.inputs.max() > 200
+    r = b.poses[:, :3, :3]
+    np.testing.assert_allclose(np.linalg.det(r), 1.0, atol=1e-9)
+    assert (b.thickness_mm >= 2.0).all() and (b.thickness_mm <= 4.5).all()
