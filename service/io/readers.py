@@ -14,6 +14,7 @@ from __future__ import annotations
 import gzip
 import tempfile
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +34,9 @@ def sniff(path: Path) -> str:
         try:
             with gzip.open(path, "rb") as g:
                 inner = g.read(352)
-        except (OSError, EOFError):
+                while g.read(1 << 22):  # to the end: a truncated stream or a bad CRC raises here
+                    pass
+        except (OSError, EOFError, zlib.error):
             return "unknown"
         return "nifti-gz" if _is_nifti(inner) else "unknown"
     if _is_nifti(head):
@@ -62,6 +65,8 @@ def read_upload(path: Path, filename: str) -> Volume:
     try:
         if kind in SUFFIX_BY_KIND:
             # SimpleITK picks its reader by suffix: give it a link named by the sniffed content.
+            if kind.startswith("nifti") and _nifti_has_nonfinite(path, kind == "nifti-gz"):
+                raise UnusableImage(f"{filename}: contains NaN or infinite values")
             with tempfile.TemporaryDirectory(prefix="svrnet-read-") as tmp:
                 named = Path(tmp) / f"upload{SUFFIX_BY_KIND[kind]}"
                 named.symlink_to(Path(path).resolve())
@@ -81,7 +86,26 @@ def read_upload(path: Path, filename: str) -> Volume:
     return validate(vol, filename)
 
 
+def _nifti_has_nonfinite(path: Path, compressed: bool) -> bool:
+    """Scan the raw float voxels of a NIfTI-1 file (ITK's reader silently replaces NaN)."""
+    with (gzip.open(path, "rb") if compressed else open(path, "rb")) as f:
+        raw = f.read()
+    endian = "<" if int.from_bytes(raw[:4], "little") == 348 else ">"
+    if int.from_bytes(raw[:4], "little" if endian == "<" else "big") != 348:
+        return False  # NIfTI-2: left to the reader
+    datatype = int(np.frombuffer(raw, endian + "i2", 1, 70)[0])
+    dtype = {16: "f4", 64: "f8"}.get(datatype)
+    if dtype is None:
+        return False
+    offset = int(np.frombuffer(raw, endian + "f4", 1, 108)[0])
+    data = np.frombuffer(raw, endian + dtype, (len(raw) - offset) // np.dtype(dtype).itemsize, offset)
+    return not np.isfinite(data).all()
+
+
 def _squeeze_4d(image: sitk.Image, filename: str) -> sitk.Image:
+    if image.GetNumberOfComponentsPerPixel() > 1:
+        raise UnusableImage(f"{filename}: 4D or multi-component image ({image.GetNumberOfComponentsPerPixel()} "
+                            "values per voxel); upload one 3D stack per file")
     dim = image.GetDimension()
     if dim == 4:
         size = image.GetSize()
@@ -102,8 +126,8 @@ def validate(vol: Volume, filename: str) -> Volume:
         raise UnusableImage(f"{filename}: {a.ndim}D image; a 3D stack is required")
     if min(a.shape) < 1 or a.size == 0:
         raise UnusableImage(f"{filename}: empty image (shape {list(a.shape)})")
-    if sorted(a.shape)[1] < 2:
-        raise UnusableImage(f"{filename}: 2D image (shape {list(a.shape)}); a stack of slices is required")
+    if min(a.shape) < 2:
+        raise UnusableImage(f"{filename}: 2D image (shape {list(a.shape)}); a stack of at least two slices is required")
     if not np.issubdtype(a.dtype, np.number) or np.iscomplexobj(a):
         raise UnusableImage(f"{filename}: unsupported pixel type {a.dtype}")
     if not np.isfinite(a).all():

@@ -1,0 +1,125 @@
+"""Operations: models, health, readiness, metrics, API keys, request ids, saturation, logs, real model."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from service.core.logging import JsonFormatter
+from service.inference.estimator import OnnxPoseEstimator
+from service.inference.model_file import load_model
+from service.inference.registry import ModelRegistry
+from service.io.volume import Volume, write_volume
+from tests.api.conftest import make_client
+from tests.phantoms import acquire_stack, phantom_brain, stack_affine
+
+
+@pytest.fixture(scope="module")
+def phantom_files(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, int]:
+    brain = phantom_brain(3)
+    shape = (48, 48, 16)
+    aff = stack_affine(2, np.eye(3), 1.5, 3.5, shape)
+    g = np.broadcast_to(np.eye(4), (16, 4, 4))
+    img, msk = acquire_stack(*brain, aff, shape, 2, g)
+    d = tmp_path_factory.mktemp("phantom_stack")
+    write_volume(Volume(img * 3.0 + 20.0, aff), d / "stack.nii.gz")
+    write_volume(Volume(msk.astype(np.uint8), aff), d / "mask.nii.gz")
+    return d / "stack.nii.gz", d / "mask.nii.gz", 16
+
+
+def upload(client: TestClient, stack: Path, mask: Path | None, **data: str):  # noqa: ANN201
+    files = [("stacks", (stack.name, stack.read_bytes()))]
+    if mask is not None:
+        files.append(("masks", (mask.name, mask.read_bytes())))
+    return client.post("/v1/predict", files=files, data=data)
+
+
+def test_real_exported_model_through_the_whole_path(real_client: TestClient, phantom_files) -> None:
+    stack, mask, n = phantom_files
+    r = upload(real_client, stack, mask, mc_samples="20")
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["model"]["name"] == "default" and body["model"]["backbone"] == "compact"
+    assert body["mc_samples"] == 20 and len(body["model"]["sha256"]) == 64
+    slices = body["stacks"][0]["slices"]
+    assert len(slices) == n
+    for s in slices:
+        r_ = np.array(s["rotation"])
+        np.testing.assert_allclose(r_ @ r_.T, np.eye(3), atol=1e-9)
+        assert s["geodesic_variance"] > 0  # real MC dropout: samples differ
+        assert np.array(s["atlas_from_voxel"]).shape == (4, 4) and len(s["quaternion_wxyz"]) == 4
+        assert (s["reason"] is None) == s["accepted"]
+    assert set(body["timing_ms"]) >= {"read", "preprocess", "inference", "statistics", "total"}
+    # N4 on (default) and off give results for the same slices.
+    r2 = upload(real_client, stack, mask, mc_samples="5", bias_correction="false")
+    assert r2.status_code == 200 and len(r2.json()["stacks"][0]["slices"]) == n
+
+
+def test_without_mask_the_service_localises_the_brain(real_client: TestClient, phantom_files) -> None:
+    stack, _, n = phantom_files
+    r = upload(real_client, stack, None, mc_samples="3")
+    assert r.status_code == 200, r.text
+    reasons = [s["reason"] for s in r.json()["stacks"][0]["slices"]]
+    assert reasons.count("empty") < n // 2          # most slices found brain
+
+
+def test_models_health_ready_metrics(real_client: TestClient, phantom_files) -> None:
+    models = real_client.get("/v1/models").json()
+    assert models[0]["name"] == "default" and models[0]["input_size"] == 64 and models[0]["label_type"] == "anchor"
+    assert set(models[0]) >= {"name", "version", "backbone", "sha256", "input_size", "spacing_mm", "label_type",
+                              "variance_threshold", "trained_on"}
+    assert real_client.get("/healthz").json() == {"status": "ok"}
+    assert real_client.get("/readyz").status_code == 200
+    upload(real_client, *phantom_files[:2], mc_samples="2")
+    text = real_client.get("/metrics").text
+    assert 'svrnet_requests_total{method="POST",model="default",route="/v1/predict",status="200"}' in text
+    assert "svrnet_slices_processed_total" in text and "svrnet_request_seconds_bucket" in text
+    assert real_client.get("/openapi.json").json()["paths"]["/v1/predict"]["post"]
+
+
+def test_readyz_is_503_without_models() -> None:
+    with make_client(ModelRegistry({})) as client:
+        r = client.get("/readyz")
+    assert r.status_code == 503 and r.headers["retry-after"]
+
+
+def test_api_keys(tiny_model_path: Path, phantom_files) -> None:
+    registry = ModelRegistry({"default": OnnxPoseEstimator(load_model(tiny_model_path))})
+    with make_client(registry, api_keys="k1,k2") as client:
+        assert client.get("/v1/models").status_code == 401
+        assert client.get("/v1/models", headers={"Authorization": "Bearer wrong"}).status_code == 401
+        assert client.get("/v1/models", headers={"Authorization": "Bearer k2"}).status_code == 200
+        assert client.get("/v1/models", headers={"X-API-Key": "k1"}).status_code == 200
+        assert client.get("/healthz").status_code == 200          # liveness stays open
+        r = client.post("/v1/predict", files=[("stacks", ("s.nii.gz", phantom_files[0].read_bytes()))])
+        assert r.status_code == 401 and r.headers["content-type"].startswith("application/problem+json")
+
+
+def test_request_id_is_returned_and_kept(real_client: TestClient) -> None:
+    r = real_client.get("/healthz", headers={"X-Request-ID": "abc-123"})
+    assert r.headers["x-request-id"] == "abc-123"
+    r = real_client.get("/healthz", headers={"X-Request-ID": "bad id with spaces"})
+    assert r.headers["x-request-id"] != "bad id with spaces" and len(r.headers["x-request-id"]) == 32
+
+
+def test_saturation_answers_503_with_retry_after(oracle, phantom_files) -> None:
+    with make_client(ModelRegistry({"default": oracle}), max_concurrent=1, retry_after_s=7) as client:
+        sem: asyncio.Semaphore = client.app.state.slots
+        sem._value = 0  # all slots taken by other requests
+        r = upload(client, *phantom_files[:2])
+        assert r.status_code == 503 and r.headers["retry-after"] == "7"
+
+
+def test_logs_never_contain_file_names(real_client: TestClient, phantom_files, caplog, tmp_path: Path) -> None:
+    secret = tmp_path / "Doe_Jane_19840101.nii.gz"
+    secret.write_bytes(phantom_files[0].read_bytes())
+    with caplog.at_level(logging.DEBUG, logger="service"):
+        upload(real_client, secret, phantom_files[1], mc_samples="2")
+        real_client.post("/v1/predict", files=[("stacks", ("Doe_Jane_19840101.nii.gz", b"garbage"))])
+    lines = [JsonFormatter().format(r) for r in caplog.records]
+    assert lines and not any("Doe" in line for line in lines)

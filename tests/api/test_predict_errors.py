@@ -1,0 +1,117 @@
+"""Every error path of the contract: right status, problem+json, a detail naming the file or field."""
+
+from __future__ import annotations
+
+import gzip
+import io
+from pathlib import Path
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+from fastapi.testclient import TestClient
+
+from service.inference.registry import ModelRegistry
+from service.io.volume import Volume, write_volume
+from tests.api.conftest import make_client
+
+
+def nifti_bytes(array: np.ndarray, affine: np.ndarray | None = None, tmp: Path | None = None) -> bytes:
+    path = (tmp or Path("/tmp")) / f"x{np.random.default_rng().integers(1e9)}.nii.gz"
+    write_volume(Volume(array, affine if affine is not None else np.diag([1.0, 1.0, 3.0, 1.0])), path)
+    data = path.read_bytes()
+    path.unlink()
+    return data
+
+
+def stack(shape=(20, 20, 6), seed=0) -> np.ndarray:
+    return np.random.default_rng(seed).random(shape).astype(np.float32) * 100
+
+
+def post(client: TestClient, files: list, data: dict | None = None):  # noqa: ANN201
+    return client.post("/v1/predict", files=files, data=data or {})
+
+
+def assert_problem(r, status: int, *needles: str) -> None:  # noqa: ANN001
+    assert r.status_code == status, r.text
+    assert r.headers["content-type"].startswith("application/problem+json")
+    body = r.json()
+    assert {"type", "title", "status", "detail"} <= set(body) and body["status"] == status
+    for n in needles:
+        assert n in body["detail"], (n, body["detail"])
+    assert "Traceback" not in r.text
+
+
+def sitk_bytes(image: sitk.Image, tmp_path: Path, name: str) -> bytes:
+    path = tmp_path / name
+    sitk.WriteImage(image, str(path))
+    return path.read_bytes()
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "status", "needle"),
+    [
+        ("notes.nii.gz", b"hello, this is not an image" * 20, 415, "notes.nii.gz"),
+        ("empty.nii", b"", 415, "empty.nii"),
+        ("trunc.nii.gz", None, 415, "trunc.nii.gz"),
+    ],
+)
+def test_unreadable_files_are_415(oracle_client: TestClient, name: str, content: bytes | None, status: int,
+                                  needle: str) -> None:
+    if content is None:
+        content = nifti_bytes(stack())[:200]          # a gzip stream cut short
+    assert_problem(post(oracle_client, [("stacks", (name, content))]), status, needle)
+
+
+def test_2d_4d_nan_and_empty_images_are_422(oracle_client: TestClient, tmp_path: Path) -> None:
+    two_d = sitk_bytes(sitk.GetImageFromArray(np.ones((8, 8), np.float32)), tmp_path, "a.nii.gz")
+    assert_problem(post(oracle_client, [("stacks", ("flat.nii.gz", two_d))]), 422, "flat.nii.gz", "2D")
+    four_d = sitk_bytes(sitk.GetImageFromArray(np.ones((2, 4, 8, 8), np.float32)), tmp_path, "b.nii.gz")
+    assert_problem(post(oracle_client, [("stacks", ("time.nii.gz", four_d))]), 422, "time.nii.gz", "4D")
+    nan = stack()
+    nan[3, 3, 3] = np.nan
+    assert_problem(post(oracle_client, [("stacks", ("nan.nii.gz", nifti_bytes(nan, tmp=tmp_path)))]), 422, "nan.nii.gz", "NaN")
+    single = sitk_bytes(sitk.GetImageFromArray(np.ones((1, 8, 8), np.float32)), tmp_path, "c.nii.gz")
+    assert_problem(post(oracle_client, [("stacks", ("one.nii.gz", single))]), 422, "one.nii.gz")
+
+
+def test_mask_problems(oracle_client: TestClient, tmp_path: Path) -> None:
+    s = nifti_bytes(stack(), tmp=tmp_path)
+    wrong_shape = nifti_bytes(np.ones((20, 20, 5), np.float32), tmp=tmp_path)
+    r = post(oracle_client, [("stacks", ("s.nii.gz", s)), ("masks", ("m.nii.gz", wrong_shape))])
+    assert_problem(r, 422, "masks", "m.nii.gz", "s.nii.gz")
+    shifted = nifti_bytes(np.ones((20, 20, 6), np.float32), np.array([[1, 0, 0, 5.0], [0, 1, 0, 0], [0, 0, 3, 0], [0, 0, 0, 1]]), tmp_path)
+    assert_problem(post(oracle_client, [("stacks", ("s.nii.gz", s)), ("masks", ("m2.nii.gz", shifted))]), 422, "m2.nii.gz", "grid")
+    two_masks = [("stacks", ("s.nii.gz", s)), ("masks", ("a.nii.gz", s)), ("masks", ("b.nii.gz", s))]
+    assert_problem(post(oracle_client, two_masks), 422, "masks", "2 masks for 1 stacks")
+
+
+def test_parameters_and_models(oracle_client: TestClient, tmp_path: Path) -> None:
+    s = nifti_bytes(stack(), tmp=tmp_path)
+    for field, value in [("mc_samples", "0"), ("mc_samples", "1001"), ("mc_samples", "many"),
+                         ("variance_threshold", "-1"), ("bias_correction", "perhaps")]:
+        assert_problem(post(oracle_client, [("stacks", ("s.nii.gz", s))], {field: value}), 422, field)
+    assert_problem(post(oracle_client, [("stacks", ("s.nii.gz", s))], {"model": "nope"}), 404, "model", "nope")
+    assert_problem(post(oracle_client, []), 422, "stacks")
+
+
+def test_too_many_files_and_too_large(oracle: object, tmp_path: Path) -> None:
+    s = nifti_bytes(stack(), tmp=tmp_path)
+    with make_client(ModelRegistry({"default": oracle}), max_files=2) as client:
+        assert_problem(post(client, [("stacks", (f"s{i}.nii.gz", s)) for i in range(3)]), 422, "stacks", "at most 2")
+    with make_client(ModelRegistry({"default": oracle}), max_upload_mb=0.001) as client:
+        r = post(client, [("stacks", ("big.nii.gz", s + b"\0" * 4096))])
+        assert_problem(r, 413, "limit")
+
+
+def test_malformed_multipart_is_400_or_422_never_500(oracle_client: TestClient) -> None:
+    r = oracle_client.post("/v1/predict", content=b"--xx\r\nnot multipart", headers={"content-type": "multipart/form-data; boundary=xx"})
+    assert r.status_code in (400, 422), r.text
+    r = oracle_client.post("/v1/predict", content=b"{}", headers={"content-type": "application/json"})
+    assert r.status_code in (400, 422)
+
+
+def test_gzip_of_garbage_is_415(oracle_client: TestClient) -> None:
+    data = gzip.compress(b"\0" * 4000)
+    assert_problem(post(oracle_client, [("stacks", ("zeros.nii.gz", data))]), 415, "zeros.nii.gz")
+    assert_problem(post(oracle_client, [("stacks", ("a.zip", io.BytesIO(b"PK\x03\x04broken").read()))]), 415, "a.zip")
