@@ -1,0 +1,125 @@
+"""Readers recognise content, not names; DICOM (mosaic, multi-frame, zipped series) geometry."""
+
+from __future__ import annotations
+
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from service.core.errors import UnsupportedFile, UnusableImage
+from service.geometry import frames, se3
+from service.io.readers import read_upload, sniff
+from service.io.volume import Volume, write_volume
+from tests.conftest import SHARED_DATA
+
+DICOM_DIR = SHARED_DATA / "dicom"
+
+
+def oblique() -> np.ndarray:
+    a = np.eye(4)
+    a[:3, :3] = se3.so3_exp(np.array([0.2, -0.1, 0.3])) * [0.8, 0.8, 3.0]
+    a[:3, 3] = [10.0, -20.0, 5.0]
+    return a
+
+
+@pytest.mark.parametrize(("suffix", "kind"), [(".nii.gz", "nifti-gz"), (".nii", "nifti"), (".nrrd", "nrrd"), (".mha", "mha")])
+def test_formats_are_recognised_by_content_whatever_the_name(tmp_path: Path, suffix: str, kind: str) -> None:
+    arr = np.random.default_rng(0).random((6, 7, 5)).astype(np.float32)
+    path = tmp_path / f"v{suffix}"
+    write_volume(Volume(arr, oblique()), path)
+    renamed = tmp_path / "upload.bin"
+    path.rename(renamed)
+    assert sniff(renamed) == kind
+    vol = read_upload(renamed, "upload.bin")
+    np.testing.assert_allclose(vol.affine, oblique(), atol=1e-4)
+    np.testing.assert_array_equal(vol.array, arr)
+    assert renamed.exists()  # the upload is not moved away
+
+
+def test_unknown_content_is_415(tmp_path: Path) -> None:
+    p = tmp_path / "x.nii.gz"
+    p.write_bytes(b"\x00" * 600)
+    with pytest.raises(UnsupportedFile, match="x.nii.gz"):
+        read_upload(p, "x.nii.gz")
+
+
+def _write_series(folder: Path, vol: Volume, series_uid: str) -> list[Path]:
+    image = sitk.Cast(sitk.GetImageFromArray(vol.array.transpose(2, 1, 0).astype(np.int16)), sitk.sitkInt16)
+    origin, spacing, direction = frames.itk_from_affine(vol.affine)
+    image.SetOrigin(tuple(origin))
+    image.SetSpacing(tuple(spacing))
+    image.SetDirection(tuple(direction.ravel()))
+    writer = sitk.ImageFileWriter()
+    writer.KeepOriginalImageUIDOn()
+    paths = []
+    for k in range(image.GetDepth()):
+        sl = image[:, :, k]
+        for tag, value in [("0008|0060", "MR"), ("0020|000e", series_uid), ("0020|000d", "1.2.826.0.1.3680043.2.1125.1"),
+                           ("0020|0013", str(k + 1)), ("0010|0010", "Doe^Jane"),
+                           ("0020|0032", "\\".join(map(str, image.TransformIndexToPhysicalPoint((0, 0, k))))),
+                           ("0020|0037", "\\".join(map(str, direction[:, 0].tolist() + direction[:, 1].tolist()))),
+                           ("0018|0050", str(spacing[2])), ("0028|0030", f"{spacing[1]}\\{spacing[0]}")]:
+            sl.SetMetaData(tag, value)
+        p = folder / f"{series_uid[-3:]}_{k:03d}.dcm"
+        writer.SetFileName(str(p))
+        writer.Execute(sl)
+        paths.append(p)
+    return paths
+
+
+def test_zipped_dicom_series_keeps_geometry(tmp_path: Path) -> None:
+    arr = (np.random.default_rng(1).random((12, 10, 6)) * 1000).astype(np.float32).round()
+    aff = np.eye(4)
+    aff[:3, :3] = se3.so3_exp(np.array([0.0, 0.0, 0.3])) * [0.9, 0.9, 3.0]
+    aff[:3, 3] = [5.0, 6.0, -7.0]
+    files = _write_series(tmp_path, Volume(arr, aff), "1.2.826.0.1.3680043.2.1125.101")
+    z = tmp_path / "series.zip"
+    with zipfile.ZipFile(z, "w") as f:
+        for p in files:
+            f.write(p, f"nested/dir/{p.name}")
+    vol = read_upload(z, "series.zip")
+    np.testing.assert_allclose(vol.affine, aff, atol=1e-3)
+    np.testing.assert_allclose(vol.array, arr, atol=0.5)
+
+
+def test_zip_with_two_series_or_none(tmp_path: Path) -> None:
+    arr = np.ones((8, 8, 3), np.float32)
+    files = _write_series(tmp_path, Volume(arr, np.diag([1.0, 1, 2, 1])), "1.2.3.111")
+    files += _write_series(tmp_path, Volume(arr, np.diag([1.0, 1, 2, 1])), "1.2.3.222")
+    z = tmp_path / "two.zip"
+    with zipfile.ZipFile(z, "w") as f:
+        for p in files:
+            f.write(p, p.name)
+    with pytest.raises(UnusableImage, match="2 DICOM series"):
+        read_upload(z, "two.zip")
+    z2 = tmp_path / "none.zip"
+    with zipfile.ZipFile(z2, "w") as f:
+        f.writestr("readme.txt", "hello")
+    with pytest.raises(UnsupportedFile, match="no DICOM series"):
+        read_upload(z2, "none.zip")
+
+
+def test_siemens_mosaic_is_demosaiced() -> None:
+    path = DICOM_DIR / "dicom3tools_0051_siemens_pasl_mosaic.dcm"
+    if not path.exists():
+        pytest.skip(f"needs the shared DICOM examples at {DICOM_DIR}")
+    vol = read_upload(path, path.name)
+    assert vol.array.shape == (72, 72, 20)
+    np.testing.assert_allclose(vol.spacing, [3.0, 3.0, 6.0], atol=1e-6)
+    # Tiles hold different slices: neighbouring slices correlate, but are not identical.
+    a, b = vol.array[:, :, 9].ravel(), vol.array[:, :, 10].ravel()
+    assert 0.3 < np.corrcoef(a, b)[0, 1] < 0.9999
+    # The slice normal is the cross product of the DICOM row and column directions (LPS -> RAS).
+    assert abs(np.linalg.det(vol.affine[:3, :3] / vol.spacing)) == pytest.approx(1.0)
+
+
+def test_enhanced_multiframe() -> None:
+    path = DICOM_DIR / "pydicom_data_emri_small_enhancedMR_10frames.dcm"
+    if not path.exists():
+        pytest.skip(f"needs the shared DICOM examples at {DICOM_DIR}")
+    vol = read_upload(path, path.name)
+    assert vol.array.shape == (64, 64, 10) and np.isfinite(vol.array).all()
+    assert vol.array.std() > 0
