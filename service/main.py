@@ -11,12 +11,16 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from service.api import health, metrics, models, predict, problems
+from service.api import health, metrics, models, predict, problems, reconstructions
 from service.api.metrics import Metrics
 from service.api.middleware import RequestContext
 from service.core import logging as service_logging
 from service.core.settings import Settings
 from service.inference.registry import ModelRegistry
+from service.jobs.store import JobStore
+from service.jobs.worker import JobRunner
+
+RETENTION_CHECK_S = 600.0
 
 
 def create_app(settings: Settings | None = None, registry: ModelRegistry | None = None) -> FastAPI:
@@ -27,7 +31,21 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         app.state.registry = registry or ModelRegistry.from_directory(
             settings.models_dir, settings.default_model, settings.onnx_threads)
-        yield
+        app.state.job_store = JobStore(settings.data_dir)
+        app.state.job_runner = JobRunner(app.state.job_store, settings.models_dir, settings.job_workers)
+        app.state.job_runner.start()
+
+        async def expire() -> None:
+            while True:
+                app.state.job_store.expire(settings.retention_hours * 3600)
+                await asyncio.sleep(RETENTION_CHECK_S)
+
+        janitor = asyncio.create_task(expire())
+        try:
+            yield
+        finally:
+            janitor.cancel()
+            app.state.job_runner.shutdown()
 
     app = FastAPI(title="SVRnet", version="1.0.0", lifespan=lifespan,
                   description="Slice-to-atlas pose estimation for fetal MRI with MC-dropout confidence "
@@ -37,7 +55,7 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
     app.state.slots = asyncio.Semaphore(settings.max_concurrent)
     app.state.registry = None
     problems.install(app)
-    for module in (health, metrics, models, predict):
+    for module in (health, metrics, models, predict, reconstructions):
         app.include_router(module.router)
     app.add_middleware(RequestContext, metrics=app.state.metrics, max_body_bytes=int(settings.max_upload_mb * 2**20))
     return app

@@ -38,6 +38,8 @@ class Settings(BaseSettings):
     tmp_dir: Path | None = Field(None, description="where uploads are spooled (default: system temp)")
     data_dir: Path = Field(Path.home() / ".svrnet", description="job store: SQLite database and files")
     retry_after_s: int = Field(2, ge=1)
+    job_workers: int = Field(1, ge=1, description="reconstruction jobs run at once (worker processes)")
+    retention_hours: float = Field(72.0, gt=0, description="finished jobs and their files are deleted after this")
 
     def key_set(self) -> set[str]:
         return {k.strip() for k in self.api_keys.split(",") if k.strip()}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -51,6 +52,8 @@ def tiny_model_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def make_client(registry: ModelRegistry, **settings: object) -> TestClient:
+    """A TestClient of the app with ``registry``; the job store goes to a fresh temporary folder."""
+    settings.setdefault("data_dir", tempfile.mkdtemp(prefix="svrnet-test-"))
     return TestClient(create_app(Settings(**settings), registry=registry), raise_server_exceptions=False)
 
 

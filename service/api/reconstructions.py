@@ -1,0 +1,136 @@
+"""Reconstruction jobs: ``/v1/reconstructions`` (submit, status, volume, preview, cancel)."""
+
+from __future__ import annotations
+
+import json
+from datetime import datetime, timezone
+from typing import Annotated, Optional
+
+from anyio import to_thread
+from fastapi import APIRouter, File, Form, Request, Response, UploadFile
+from fastapi.responses import FileResponse
+
+from service.api.deps import ApiKey, RegistryDep, SettingsDep
+from service.api.predict import ERRORS
+from service.api.uploads import display_name, save_and_read
+from service.core.errors import Conflict, InvalidParameter, NotFound
+from service.jobs.store import Job, JobStore
+from service.jobs.worker import poses_from_predict_body
+from service.preprocess.stack import slice_axis_of
+
+router = APIRouter(prefix="/v1/reconstructions", tags=["reconstruction"], dependencies=[ApiKey])
+
+
+def _store(request: Request) -> JobStore:
+    return request.app.state.job_store
+
+
+def _iso(t: float) -> str:
+    return datetime.fromtimestamp(t, timezone.utc).isoformat()
+
+
+def _status(job: Job) -> dict:
+    done = job.status == "succeeded"
+    base = f"/v1/reconstructions/{job.id}"
+    return {"job_id": job.id, "status": job.status, "stage": job.stage, "progress": job.progress, "error": job.error,
+            "created_at": _iso(job.created_at), "updated_at": _iso(job.updated_at),
+            "result_url": f"{base}/volume" if done else None, "preview_url": f"{base}/preview.png" if done else None,
+            "report": job.report}
+
+
+def _job(request: Request, job_id: str) -> Job:
+    job = _store(request).get(job_id)
+    if job is None:
+        raise NotFound(f"job_id: no job {job_id!r}")
+    return job
+
+
+@router.post("", status_code=202, responses=ERRORS, summary="Start a reconstruction job")
+async def submit(
+    request: Request,
+    response: Response,
+    registry: RegistryDep,
+    settings: SettingsDep,
+    stacks: Annotated[list[UploadFile], File(description="the stacks, as for /v1/predict")],
+    masks: Annotated[Optional[list[UploadFile]], File(description="0 or one mask per stack")] = None,
+    resolution_mm: Annotated[float, Form(gt=0.2, le=5.0)] = 0.8,
+    svr_iterations: Annotated[int, Form(ge=0, le=10)] = 3,
+    mc_samples: Annotated[int, Form(ge=1, le=1000)] = 100,
+    variance_threshold: Annotated[Optional[float], Form(gt=0)] = None,
+    model: Annotated[str, Form()] = "default",
+) -> dict:
+    """Validates the files now (4xx at once), then queues the job; poll ``Location``.
+
+    ``poses`` (optional, a form field or a file): the JSON body ``/v1/predict`` returned for the
+    same files; without it the job predicts first.
+    """
+    registry.get(model)
+    masks = [m for m in (masks or []) if m.filename or m.size]
+    if len(stacks) > settings.max_files:
+        raise InvalidParameter(f"stacks: {len(stacks)} files; at most {settings.max_files} per request")
+    form = await request.form()
+    raw = form.get("poses")
+    poses_text = (await raw.read()).decode("utf-8", "replace") if hasattr(raw, "read") else raw
+    store = _store(request)
+    job = store.create({"resolution_mm": resolution_mm, "svr_iterations": svr_iterations, "mc_samples": mc_samples,
+                        "variance_threshold": variance_threshold, "model": model})
+    inputs = store.directory(job.id) / "inputs"
+    inputs.mkdir()
+    try:
+        uploads = await to_thread.run_sync(save_and_read, stacks, masks, inputs)
+        if poses_text:
+            try:
+                body = json.loads(poses_text)
+            except json.JSONDecodeError as exc:
+                raise InvalidParameter("poses: not valid JSON") from exc
+            counts = [u.volume.array.shape[slice_axis_of(u.volume.spacing)] for u in uploads]
+            try:
+                poses_from_predict_body(body, counts)
+            except ValueError as exc:
+                raise InvalidParameter(str(exc)) from exc
+            (inputs / "poses.json").write_text(json.dumps(body))
+        from service.inference.pipeline import check_mask_grid
+
+        for u in uploads:
+            check_mask_grid(u)
+    except Exception:
+        store.delete(job.id)          # rejected input leaves no job behind
+        raise
+    names = [display_name(u, "stacks", j) for j, u in enumerate(stacks)]
+    (inputs / "names.json").write_text(json.dumps({"stacks": names}))
+    (inputs / "params.json").write_text(json.dumps(store.get(job.id).params))
+    request.app.state.job_runner.submit(job.id)
+    response.headers["Location"] = f"/v1/reconstructions/{job.id}"
+    return {"job_id": job.id, "status": "queued", "status_url": f"/v1/reconstructions/{job.id}"}
+
+
+@router.get("/{job_id}", summary="Job status")
+async def status(request: Request, job_id: str) -> dict:
+    return _status(_job(request, job_id))
+
+
+def _result(request: Request, job_id: str, name: str, media_type: str, download: str) -> FileResponse:
+    job = _job(request, job_id)
+    if job.status != "succeeded":
+        raise Conflict(f"job_id: job {job_id} is {job.status}; results exist once it has succeeded")
+    path = _store(request).directory(job_id) / "outputs" / name
+    if not path.exists():
+        raise NotFound(f"job_id: the results of job {job_id} have expired")
+    return FileResponse(path, media_type=media_type, filename=download)
+
+
+@router.get("/{job_id}/volume", summary="The reconstructed volume (.nii.gz, atlas space)", response_class=FileResponse)
+async def volume(request: Request, job_id: str) -> FileResponse:
+    return _result(request, job_id, "volume.nii.gz", "application/gzip", f"{job_id}.nii.gz")
+
+
+@router.get("/{job_id}/preview.png", summary="Three orthogonal mid-planes", response_class=FileResponse)
+async def preview(request: Request, job_id: str) -> FileResponse:
+    return _result(request, job_id, "preview.png", "image/png", f"{job_id}.png")
+
+
+@router.delete("/{job_id}", status_code=204, summary="Cancel a job and delete its files")
+async def cancel(request: Request, job_id: str) -> Response:
+    _job(request, job_id)
+    _store(request).cancel(job_id)
+    return Response(status_code=204)

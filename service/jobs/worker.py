@@ -1,0 +1,143 @@
+"""Job execution in worker processes (bounded concurrency), outside the request handlers.
+
+A job folder holds ``inputs/`` (the uploaded stacks and masks as sent, ``params.json``, optional
+``poses.json``) and, once done, ``outputs/`` (``volume.nii.gz``, ``preview.png``, ``report.json``,
+``transforms/``). :func:`run_job` is what a worker process executes; it claims the job atomically,
+reports stage and progress to the store, checks for cancellation between stages, and records any
+failure with its reason.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing
+from concurrent.futures import Future, ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from service.jobs.store import JobStore
+
+log = logging.getLogger(__name__)
+
+
+class Cancelled(Exception):
+    """The job was cancelled while running."""
+
+
+def _stack_files(inputs: Path) -> list[tuple[Path, Path | None]]:
+    stacks = sorted(inputs.glob("stack*"), key=lambda p: int(p.name[5:]))
+    return [(s, (inputs / f"mask{s.name[5:]}") if (inputs / f"mask{s.name[5:]}").exists() else None) for s in stacks]
+
+
+def poses_from_predict_body(body: dict, n_slices: list[int]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``(atlas_from_voxel [n, 4, 4], accepted [n])`` per stack from a ``/v1/predict`` response body.
+
+    Raises:
+        ValueError: naming what does not match the uploaded stacks.
+    """
+    stacks = body.get("stacks") if isinstance(body, dict) else None
+    if not isinstance(stacks, list) or len(stacks) != len(n_slices):
+        raise ValueError(f"poses: expected results for {len(n_slices)} stacks")
+    out = []
+    for i, (st, n) in enumerate(zip(stacks, n_slices)):
+        slices = st.get("slices", []) if isinstance(st, dict) else []
+        if len(slices) != n:
+            raise ValueError(f"poses: stack {i} has {n} slices but the poses list {len(slices)}")
+        try:
+            mats = np.array([s["atlas_from_voxel"] for s in slices], dtype=np.float64)
+            acc = np.array([bool(s["accepted"]) for s in slices])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"poses: stack {i}: each slice needs atlas_from_voxel and accepted") from exc
+        if mats.shape != (n, 4, 4) or not np.isfinite(mats).all():
+            raise ValueError(f"poses: stack {i}: atlas_from_voxel must be finite 4x4 matrices")
+        out.append((mats, acc))
+    return out
+
+
+def run_job(data_dir: str, models_dir: str, job_id: str) -> None:
+    """Execute one job (in a worker process)."""
+    store = JobStore(Path(data_dir))
+    if not store.claim(job_id):
+        return
+    folder = store.directory(job_id)
+
+    def progress(stage: str, fraction: float) -> None:
+        if store.is_cancelled(job_id):
+            raise Cancelled
+        store.update(job_id, stage=stage, progress=float(min(max(fraction, 0.0), 1.0)))
+
+    try:
+        _execute(store, folder, Path(models_dir), job_id, progress)
+    except Cancelled:
+        log.info("job cancelled", extra={"job_id": job_id})
+    except Exception as exc:  # noqa: BLE001 - every failure is recorded on the job, not lost
+        if not store.is_cancelled(job_id):
+            store.update(job_id, status="failed", stage="failed", error=f"{type(exc).__name__}: {exc}")
+        log.warning("job failed", extra={"job_id": job_id, "error_type": type(exc).__name__})
+
+
+def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progress) -> None:  # noqa: ANN001
+    from service.inference.estimator import OnnxPoseEstimator
+    from service.inference.model_file import load_model
+    from service.inference.pipeline import StackUpload, predict, prepare_stacks
+    from service.io.readers import read_upload
+    from service.reconstruction.export import write_outputs
+    from service.reconstruction.pipeline import reconstruct
+    from service.reconstruction.slices import SliceSet
+
+    params = json.loads((folder / "inputs" / "params.json").read_text())
+    progress("reading", 0.02)
+    uploads = []
+    for s, m in _stack_files(folder / "inputs"):
+        vol = read_upload(s, s.name)
+        mask = read_upload(m, m.name) if m is not None else None
+        uploads.append(StackUpload(s.name, vol, mask, m.name if m else None))
+    poses_path = folder / "inputs" / "poses.json"
+    if poses_path.exists():
+        from service.preprocess.localise import localise_brain
+        from service.preprocess.stack import slice_axis_of
+
+        counts = [u.volume.array.shape[slice_axis_of(u.volume.spacing)] for u in uploads]
+        poses = poses_from_predict_body(json.loads(poses_path.read_text()), counts)
+        masks = [u.mask.array > 0 if u.mask is not None else localise_brain(u.volume, slice_axis_of(u.volume.spacing))
+                 for u in uploads]
+    else:
+        progress("predicting poses", 0.05)
+        estimator = OnnxPoseEstimator(load_model(models_dir / params.get("model", "default") / "model.onnx", threads=1))
+        threshold = params.get("variance_threshold") or estimator.info.variance_threshold
+        prepared = prepare_stacks(uploads, estimator.info, bias_correction=True, workers=1)
+        results, _ = predict(prepared, estimator, int(params.get("mc_samples", 100)), threshold)
+        poses = poses_from_predict_body({"stacks": results}, [len(r["slices"]) for r in results])
+        masks = [p.slices.masks.transpose(0, 2, 1) for p in prepared]
+        masks = [np.moveaxis(m, 0, p.slices.slice_axis) for m, p in zip(masks, prepared)]
+    progress("reconstructing", 0.15)
+    slice_set = SliceSet.from_stacks([(u.volume, m, mats, acc) for u, m, (mats, acc) in zip(uploads, masks, poses)])
+    result = reconstruct(slice_set, resolution_mm=float(params.get("resolution_mm", 0.8)),
+                         svr_iterations=int(params.get("svr_iterations", 3)),
+                         progress=lambda stage, f: progress(stage, 0.15 + 0.8 * f))
+    progress("writing", 0.97)
+    report = write_outputs(result, slice_set, folder / "outputs")
+    store.update(job_id, status="succeeded", stage="done", progress=1.0, report=report)
+
+
+class JobRunner:
+    """Submits queued jobs to a pool of ``workers`` processes; recovers the queue at start."""
+
+    def __init__(self, store: JobStore, models_dir: Path, workers: int = 1) -> None:
+        self.store, self.models_dir = store, models_dir
+        self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+        self.futures: dict[str, Future] = {}
+
+    def start(self) -> list[str]:
+        queued = self.store.recover()
+        for job_id in queued:
+            self.submit(job_id)
+        return queued
+
+    def submit(self, job_id: str) -> None:
+        self.futures[job_id] = self.pool.submit(run_job, str(self.store.data_dir), str(self.models_dir), job_id)
+
+    def shutdown(self) -> None:
+        self.pool.shutdown(wait=False, cancel_futures=True)
