@@ -73,7 +73,8 @@ def calibrate(checkpoint: Path, root: Root = DEFAULT_ATLAS_ROOT, mc_samples: int
     """Choose the variance threshold on the validation volumes; print AUROC and the chosen value."""
     from model_export.calibrate import calibrate as run
 
-    typer.echo(json.dumps(run(checkpoint, root, mc_samples=mc_samples), indent=2))
+    result = run(checkpoint, root, mc_samples=mc_samples)
+    typer.echo(json.dumps({k: v for k, v in result.items() if not isinstance(v, list)}, indent=2))
 
 
 @app.command()
@@ -89,6 +90,20 @@ def evaluate(
 
     summary = run(model, report, root, per_volume=per_volume, mc_samples=mc_samples)
     typer.echo(json.dumps(summary, indent=2))
+
+
+@app.command()
+def compare(
+    out: Annotated[Path, typer.Option(help="folder for the runs and table.json")] = Path("runs/compare"),
+    steps: int = 300,
+    batch: int = 32,
+    width: float = 0.25,
+    root: Root = DEFAULT_ATLAS_ROOT,
+) -> None:
+    """Equal-budget training of the paper's six backbones (Table II at small width)."""
+    from model_export.compare import compare as run, markdown
+
+    typer.echo(markdown(run(out, steps=steps, batch=batch, width=width, root=root)))
 
 
 if __name__ == "__main__":

@@ -46,12 +46,17 @@ class SVRNet(nn.Module):
     """Backbone + :class:`PoseHead`; outputs labels ``[B, D]`` of ``label_type`` in physical units."""
 
     def __init__(self, backbone: str = "compact", width: float = 1.0, label_type: str = "anchor",
-                 input_size: int = 96, hidden: int = 256, dropout: float = 0.5) -> None:
+                 input_size: int = 96, hidden: int = 256, dropout: float = 0.5, spatial_grid: int = 3) -> None:
         super().__init__()
         self.config = dict(backbone=backbone, width=width, label_type=label_type, input_size=input_size,
-                           hidden=hidden, dropout=dropout)
+                           hidden=hidden, dropout=dropout, spatial_grid=spatial_grid)
         self.trunk = build_backbone(backbone, width)
-        self.head = PoseHead(self.trunk.out_features, label_type, hidden, dropout)
+        # Pose needs WHERE features are: keep a coarse spatial grid instead of global pooling
+        # (0 = the trunk's global average pooling).
+        self.grid = nn.AdaptiveAvgPool2d(spatial_grid) if spatial_grid else None
+        with torch.no_grad():
+            n_features = self.features(torch.zeros(1, 1, input_size, input_size)).shape[1]
+        self.head = PoseHead(n_features, label_type, hidden, dropout)
         size = encodings.get(label_type).size
         self.register_buffer("label_mean", torch.zeros(size))
         self.register_buffer("label_scale", torch.ones(size))
@@ -66,7 +71,10 @@ class SVRNet(nn.Module):
         self.label_scale.copy_(labels.std(0).clamp_min(1e-3))
 
     def features(self, slices: torch.Tensor) -> torch.Tensor:
-        return self.trunk(slices / 127.5 - 1.0)
+        x = slices / 127.5 - 1.0
+        if self.grid is None:
+            return self.trunk(x)
+        return torch.flatten(self.grid(self.trunk.features(x)), 1)
 
     def normalised(self, slices: torch.Tensor) -> torch.Tensor:
         """Normalised outputs (training target space); dropout follows ``self.training``."""

@@ -10,6 +10,7 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
+from fastapi_offline import FastAPIOffline
 
 from service.api import health, metrics, models, predict, problems, reconstructions
 from service.api.metrics import Metrics
@@ -47,7 +48,8 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
             janitor.cancel()
             app.state.job_runner.shutdown()
 
-    app = FastAPI(title="SVRnet", version="1.0.0", lifespan=lifespan,
+    # Swagger UI and ReDoc assets are served by the app itself: /docs works without internet access.
+    app = FastAPIOffline(title="SVRnet", version="1.0.0", lifespan=lifespan,
                   description="Slice-to-atlas pose estimation for fetal MRI with MC-dropout confidence "
                               "(Hou et al., IEEE TMI). Contract: API v1.")
     app.state.settings = settings

@@ -5,11 +5,12 @@ from __future__ import annotations
 from fastapi import APIRouter
 
 from service.api.deps import ApiKey, RegistryDep
+from service.api.schemas import ModelDescription
 
 router = APIRouter(prefix="/v1", tags=["models"], dependencies=[ApiKey])
 
 
-@router.get("/models", summary="Models this server offers")
+@router.get("/models", response_model=list[ModelDescription], summary="Models this server offers")
 async def list_models(registry: RegistryDep) -> list[dict]:
     """Name, version, backbone, checksum, input geometry, label type, default variance threshold."""
     return registry.describe()
