@@ -62,8 +62,10 @@ def export_onnx(model: SVRNet, path: Path, metadata: dict[str, str], opset: int 
     dummy = (torch.zeros(2, 1, size, size), torch.ones(3))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    # The wrapper must be in eval mode too: the exporter restores the wrapper's mode recursively
+    # afterwards, which would leave the wrapped network in training mode.
     torch.onnx.export(
-        MCExport(model), dummy, str(path), input_names=[INPUT_SLICES, INPUT_PASSES], output_names=[OUTPUT_LABELS],
+        MCExport(model).eval(), dummy, str(path), input_names=[INPUT_SLICES, INPUT_PASSES], output_names=[OUTPUT_LABELS],
         dynamic_axes={INPUT_SLICES: {0: "batch"}, INPUT_PASSES: {0: "samples"}, OUTPUT_LABELS: {0: "batch", 1: "samples"}},
         opset_version=opset, dynamo=False, do_constant_folding=True,
     )

@@ -51,9 +51,14 @@ class SVRNet(nn.Module):
         self.config = dict(backbone=backbone, width=width, label_type=label_type, input_size=input_size,
                            hidden=hidden, dropout=dropout, spatial_grid=spatial_grid)
         self.trunk = build_backbone(backbone, width)
-        # Pose needs WHERE features are: keep a coarse spatial grid instead of global pooling
-        # (0 = the trunk's global average pooling).
-        self.grid = nn.AdaptiveAvgPool2d(spatial_grid) if spatial_grid else None
+        # Pose needs WHERE features are: keep a coarse spatial grid of the last feature map instead
+        # of global pooling (0 = the trunk's global average pooling). Plain average pooling (which
+        # ONNX exports) when the map divides into the grid, else the map as it is.
+        self.grid: nn.Module | None = None
+        if spatial_grid:
+            with torch.no_grad():
+                m = self.trunk.features(torch.zeros(1, 1, input_size, input_size)).shape[-1]
+            self.grid = nn.AvgPool2d(m // spatial_grid) if m >= spatial_grid and m % spatial_grid == 0 else nn.Identity()
         with torch.no_grad():
             n_features = self.features(torch.zeros(1, 1, input_size, input_size)).shape[1]
         self.head = PoseHead(n_features, label_type, hidden, dropout)

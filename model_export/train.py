@@ -135,7 +135,8 @@ def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resu
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     milestones = [int(m * cfg.steps) for m in cfg.lr_milestones]
     sched = torch.optim.lr_scheduler.MultiStepLR(opt, milestones, cfg.lr_gamma)
-    val = validation_set(cfg.val_volumes, root, cfg.val_per_volume)
+    val = validation_set(cfg.val_volumes, root, cfg.val_per_volume,
+                         config=SimulationConfig.validation(size=sim.size, pixel_mm=sim.pixel_mm))
     step, best, seen, elapsed = 0, float("inf"), 0, 0.0
     if resume is not None:
         ck = torch.load(resume, map_location="cpu", weights_only=False)

@@ -22,12 +22,10 @@ def test_docs_page_renders_offline(tmp_path: Path) -> None:
 
 
 def test_docs_assets_are_served_locally() -> None:
-    from fastapi.testclient import TestClient
-
-    from service.main import create_app
     from service.inference.registry import ModelRegistry
+    from tests.api.conftest import make_client
 
-    with TestClient(create_app(registry=ModelRegistry({}))) as client:
+    with make_client(ModelRegistry({})) as client:
         html = client.get("/docs").text
         assert "cdn" not in html.lower()
         js = [part.split('"')[0] for part in html.split('src="')[1:]]

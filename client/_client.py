@@ -1,0 +1,478 @@
+"""The thin SVRnet client: the HTTP API v1 (``../shared/design/api-v1.md``) over :mod:`httpx`.
+
+Only httpx and the standard library are used, so scanner-side scripts stay small.
+
+Example:
+    >>> from client import SVRnetClient
+    >>> with SVRnetClient("http://127.0.0.1:8000") as svr:          # doctest: +SKIP
+    ...     result = svr.predict(["stack1.nii.gz", "stack2.nii.gz"], mc_samples=50)
+    ...     accepted = [s for st in result["stacks"] for s in st["slices"] if s["accepted"]]
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any, Union
+from urllib.parse import quote
+
+import httpx
+
+from client.errors import ConnectionFailed, JobFailed, SVRnetError, WaitTimeout, error_from_response, \
+    parse_retry_after
+
+__all__ = ["SVRnetClient", "DEFAULT_SERVER", "DEFAULT_TIMEOUT", "ProgressCallback", "PathLike"]
+
+PathLike = Union[str, "os.PathLike[str]"]
+ProgressCallback = Callable[[int, int], None]
+"""``progress(bytes_sent, total)``, called after every chunk of an upload (or download)."""
+
+DEFAULT_SERVER = "http://127.0.0.1:8000"
+DEFAULT_TIMEOUT = httpx.Timeout(connect=5.0, read=300.0, write=300.0, pool=5.0)
+MAX_RETRY_SLEEP_S = 30.0
+CHUNK = 256 * 1024
+TERMINAL = ("succeeded", "failed", "cancelled")
+_NO_RETRY_TRANSPORT = (httpx.ReadTimeout, httpx.WriteTimeout, httpx.UnsupportedProtocol)
+
+try:
+    from importlib.metadata import version as _version
+
+    _USER_AGENT = f"svrnet-client/{_version('svrnet')}"
+except Exception:  # noqa: BLE001 - not installed as a distribution
+    _USER_AGENT = "svrnet-client"
+
+
+def _sleep(seconds: float) -> None:
+    """``time.sleep``; a seam for tests."""
+    time.sleep(seconds)
+
+
+def _quote_param(value: str) -> str:
+    """Escape a ``Content-Disposition`` parameter the way browsers do (HTML5 form encoding)."""
+    return value.replace("\\", "\\\\").replace('"', "%22").replace("\r", "%0D").replace("\n", "%0A")
+
+
+class _Multipart:
+    """A ``multipart/form-data`` body streamed from disk in chunks, with a known length.
+
+    Each :meth:`chunks` call yields the whole body again (so a retry can resend it) and reports
+    ``progress(bytes_sent, total)`` after every chunk.
+    """
+
+    def __init__(self, fields: Sequence[tuple[str, str]],
+                 files: Sequence[tuple[str, str, Path | bytes, str]]) -> None:
+        self.boundary = secrets.token_hex(16)
+        self.parts: list[tuple[bytes, Path | bytes | None]] = []
+        for name, value in fields:
+            head = (f"--{self.boundary}\r\nContent-Disposition: form-data; name=\"{_quote_param(name)}\""
+                    f"\r\n\r\n{value}\r\n")
+            self.parts.append((head.encode(), None))
+        for name, filename, source, content_type in files:
+            head = (f"--{self.boundary}\r\nContent-Disposition: form-data; name=\"{_quote_param(name)}\"; "
+                    f"filename=\"{_quote_param(filename)}\"\r\nContent-Type: {content_type}\r\n\r\n")
+            self.parts.append((head.encode(), source))
+        self.closing = f"--{self.boundary}--\r\n".encode()
+        self.total = len(self.closing)
+        for head, source in self.parts:
+            self.total += len(head)
+            if source is not None:
+                size = len(source) if isinstance(source, bytes) else Path(source).stat().st_size
+                self.total += size + 2
+
+    @property
+    def content_type(self) -> str:
+        return f"multipart/form-data; boundary={self.boundary}"
+
+    def chunks(self, progress: ProgressCallback | None = None) -> Iterator[bytes]:
+        sent = 0
+
+        def emit(data: bytes) -> bytes:
+            nonlocal sent
+            sent += len(data)
+            if progress is not None:
+                progress(sent, self.total)
+            return data
+
+        if progress is not None:
+            progress(0, self.total)
+        for head, source in self.parts:
+            yield emit(head)
+            if source is None:
+                continue
+            if isinstance(source, bytes):
+                for i in range(0, len(source), CHUNK):
+                    yield emit(source[i:i + CHUNK])
+            else:
+                with open(source, "rb") as fh:
+                    while data := fh.read(CHUNK):
+                        yield emit(data)
+            yield emit(b"\r\n")
+        yield emit(self.closing)
+
+
+def _form_value(value: object) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    return str(value)
+
+
+class SVRnetClient:
+    """A synchronous client of the SVRnet HTTP API v1.
+
+    Args:
+        base_url: the server, e.g. ``http://scanner-gpu:8000``; ignored when ``http`` is given
+            (that client's own ``base_url`` is used).
+        api_key: sent as ``Authorization: Bearer <key>``; defaults to ``$SVRNET_API_KEY``.
+        timeout: httpx timeouts; reads and writes get 300 s, since a large request takes a while.
+        retries: how many times a ``429``/``503`` answer (any method) or a transport error
+            (``GET`` only) is retried before :class:`~client.errors.Busy` /
+            :class:`~client.errors.ConnectionFailed` is raised.
+        transport: an ``httpx.BaseTransport`` for the client this object creates (e.g.
+            ``httpx.MockTransport`` in tests).
+        http: an existing ``httpx.Client`` to use instead (e.g. FastAPI's ``TestClient``); it is not
+            closed by :meth:`close`.
+        backoff_s: the first sleep of the exponential backoff used when no ``Retry-After`` came.
+
+    Example:
+        >>> with SVRnetClient("http://127.0.0.1:8000", api_key="secret") as svr:   # doctest: +SKIP
+        ...     print([m["name"] for m in svr.models()])
+        ['default']
+    """
+
+    def __init__(self, base_url: str = DEFAULT_SERVER, api_key: str | None = None,
+                 timeout: httpx.Timeout | float | None = DEFAULT_TIMEOUT, retries: int = 3,
+                 transport: httpx.BaseTransport | None = None, *, http: httpx.Client | None = None,
+                 backoff_s: float = 0.5) -> None:
+        if retries < 0:
+            raise ValueError("retries must be >= 0")
+        self.api_key = api_key if api_key is not None else (os.environ.get("SVRNET_API_KEY") or None)
+        self.retries = retries
+        self.backoff_s = backoff_s
+        self._owns_http = http is None
+        self._http = http if http is not None else httpx.Client(base_url=base_url, timeout=timeout,
+                                                                 transport=transport)
+        self.base_url = str(self._http.base_url)
+
+    # -- lifecycle -----------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Close the connection pool (not that of an ``http`` client passed in)."""
+        if self._owns_http:
+            self._http.close()
+
+    def __enter__(self) -> "SVRnetClient":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"SVRnetClient({self.base_url!r}, api_key={'***' if self.api_key else None})"
+
+    # -- plumbing ------------------------------------------------------------------------------
+
+    def _headers(self, extra: Mapping[str, str] | None = None) -> dict[str, str]:
+        headers = {"User-Agent": _USER_AGENT}
+        if self.api_key:
+            headers["Authorization"] = f"Bearer {self.api_key}"
+        headers.update(extra or {})
+        return headers
+
+    def _sleep_for(self, attempt: int, retry_after: float | None) -> float:
+        delay = retry_after if retry_after is not None else self.backoff_s * 2 ** attempt
+        return min(max(delay, 0.0), MAX_RETRY_SLEEP_S)
+
+    def _send(self, method: str, path: str, *, body: _Multipart | None = None,
+              progress: ProgressCallback | None = None, stream: bool = False,
+              params: Mapping[str, str] | None = None) -> httpx.Response:
+        """Send with retries; returns a successful response (still open when ``stream``), or raises."""
+        idempotent = method in ("GET", "HEAD")
+        for attempt in range(self.retries + 1):
+            extra = None
+            content = None
+            if body is not None:
+                extra = {"Content-Type": body.content_type, "Content-Length": str(body.total)}
+                content = body.chunks(progress)
+            try:
+                request = self._http.build_request(method, path, content=content, headers=self._headers(extra),
+                                                   params=params)
+                response = self._http.send(request, stream=True)
+            except httpx.TransportError as exc:
+                if idempotent and attempt < self.retries and not isinstance(exc, _NO_RETRY_TRANSPORT):
+                    _sleep(self._sleep_for(attempt, None))
+                    continue
+                raise self._transport_error(method, path, exc) from exc
+            except httpx.InvalidURL as exc:
+                raise ConnectionFailed(f"{method} {path}: invalid URL: {exc}") from exc
+            if response.status_code in (429, 503):
+                response.read()
+                response.close()
+                if attempt < self.retries:
+                    _sleep(self._sleep_for(attempt, parse_retry_after(response.headers.get("retry-after"))))
+                    continue
+                raise error_from_response(response)
+            if response.is_error:
+                response.read()
+                response.close()
+                raise error_from_response(response)
+            if not stream:
+                try:
+                    response.read()
+                except httpx.TransportError as exc:
+                    raise self._transport_error(method, path, exc) from exc
+                finally:
+                    response.close()
+            return response
+        raise AssertionError("unreachable")  # pragma: no cover
+
+    def _url(self, path: str) -> str:
+        return str(self._http.base_url).rstrip("/") + "/" + path.lstrip("/")
+
+    def _transport_error(self, method: str, path: str, exc: Exception) -> ConnectionFailed:
+        reason = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+        return ConnectionFailed(f"{method} {self._url(path)}: {reason}", title="Connection failed")
+
+    @staticmethod
+    def _json(response: httpx.Response) -> Any:
+        try:
+            return response.json()
+        except ValueError as exc:
+            raise SVRnetError(f"the server answered {response.status_code} with a body that is not JSON",
+                              status=response.status_code,
+                              request_id=response.headers.get("x-request-id")) from exc
+
+    @staticmethod
+    def _files(stacks: Sequence[PathLike], masks: Sequence[PathLike] | None) -> list[tuple[str, str, Path, str]]:
+        if isinstance(stacks, (str, os.PathLike)):
+            stacks = [stacks]
+        if isinstance(masks, (str, os.PathLike)):
+            masks = [masks]
+        if not stacks:
+            raise ValueError("stacks: at least one file is required")
+        masks = list(masks or [])
+        if masks and len(masks) != len(stacks):
+            raise ValueError(f"masks: {len(masks)} given for {len(stacks)} stacks; give none or one per stack")
+        files = []
+        for field, paths in (("stacks", stacks), ("masks", masks)):
+            for p in paths:
+                path = Path(p)
+                if not path.is_file():
+                    raise FileNotFoundError(f"{field}: no such file: {path}")
+                files.append((field, path.name, path, "application/octet-stream"))
+        return files
+
+    @staticmethod
+    def _job_path(job_id: str, suffix: str = "") -> str:
+        if not job_id:
+            raise ValueError("job_id is empty")
+        return f"/v1/reconstructions/{quote(str(job_id), safe='')}{suffix}"
+
+    def _download(self, path: str, out_path: PathLike, progress: ProgressCallback | None) -> Path:
+        out = Path(out_path)
+        tmp = out.with_name(f".{out.name}.part-{secrets.token_hex(4)}")
+        response = self._send("GET", path, stream=True)
+        try:
+            total = int(response.headers.get("content-length") or 0)
+            done = 0
+            with open(tmp, "wb") as fh:
+                for data in response.iter_bytes(CHUNK):
+                    fh.write(data)
+                    done += len(data)
+                    if progress is not None:
+                        progress(done, total or done)
+            os.replace(tmp, out)
+        except httpx.TransportError as exc:
+            raise self._transport_error("GET", path, exc) from exc
+        finally:
+            response.close()
+            tmp.unlink(missing_ok=True)
+        return out
+
+    # -- the API -------------------------------------------------------------------------------
+
+    def health(self) -> dict[str, Any]:
+        """``GET /healthz``.
+
+        Example:
+            >>> SVRnetClient().health()                               # doctest: +SKIP
+            {'status': 'ok'}
+        """
+        return self._json(self._send("GET", "/healthz"))
+
+    def models(self) -> list[dict[str, Any]]:
+        """``GET /v1/models``: name, version, backbone, sha256, input geometry, default threshold.
+
+        Example:
+            >>> [m["name"] for m in SVRnetClient().models()]           # doctest: +SKIP
+            ['default']
+        """
+        return self._json(self._send("GET", "/v1/models"))
+
+    def predict(self, stacks: Sequence[PathLike], masks: Sequence[PathLike] | None = None, *,
+                mc_samples: int | None = None, variance_threshold: float | None = None,
+                bias_correction: bool | None = None, model: str | None = None,
+                progress: ProgressCallback | None = None) -> dict[str, Any]:
+        """``POST /v1/predict``: the atlas pose and confidence of every slice of every stack.
+
+        Only the optional parameters that are given are sent; the server's defaults apply otherwise.
+
+        Args:
+            stacks: 1..32 files (``.nii``, ``.nii.gz``, ``.nrrd``, ``.mha``, ``.dcm``, ``.zip``).
+            masks: none, or one region-of-interest mask per stack, in the same order.
+            mc_samples: Monte Carlo dropout passes per slice (1..1000).
+            variance_threshold: slices above this geodesic variance are not accepted.
+            bias_correction: N4 bias-field correction before normalisation.
+            model: a name listed by :meth:`models`.
+            progress: ``progress(bytes_sent, total)`` during the upload.
+
+        Returns:
+            The contract's JSON body: ``request_id``, ``model``, ``stacks[].slices[]`` ...
+
+        Raises:
+            UnsupportedFile: 415. UnusableInput: 422. PayloadTooLarge: 413. Busy: still 429/503
+            after the retries. ConnectionFailed, Unauthorized, NotFound, ServerError.
+
+        Example:
+            >>> r = SVRnetClient().predict(["ax.nii.gz"], masks=["ax_mask.nii.gz"], mc_samples=50)  # doctest: +SKIP
+            >>> r["stacks"][0]["slices"][0]["atlas_from_voxel"]                                     # doctest: +SKIP
+            [[...], [...], [...], [0, 0, 0, 1]]
+        """
+        fields = [(k, _form_value(v)) for k, v in (("mc_samples", mc_samples),
+                                                   ("variance_threshold", variance_threshold),
+                                                   ("bias_correction", bias_correction), ("model", model))
+                  if v is not None]
+        body = _Multipart(fields, self._files(stacks, masks))
+        return self._json(self._send("POST", "/v1/predict", body=body, progress=progress))
+
+    def reconstruct(self, stacks: Sequence[PathLike], masks: Sequence[PathLike] | None = None,
+                    poses: Mapping[str, Any] | PathLike | None = None, *, resolution_mm: float | None = None,
+                    svr_iterations: int | None = None, mc_samples: int | None = None,
+                    variance_threshold: float | None = None,
+                    progress: ProgressCallback | None = None) -> dict[str, Any]:
+        """``POST /v1/reconstructions``: start a slice-to-volume reconstruction job.
+
+        Args:
+            stacks: the stacks, as for :meth:`predict`.
+            masks: none, or one mask per stack.
+            poses: the body :meth:`predict` returned for the same files (a dict, or the path of a
+                JSON file holding it); sent as the file field ``poses`` (``application/json``).
+                Without it the job predicts first.
+            resolution_mm: isotropic output spacing (server default 0.8).
+            svr_iterations: slice-to-volume registration iterations (server default 3).
+            mc_samples: as for :meth:`predict`.
+            variance_threshold: as for :meth:`predict`.
+            progress: ``progress(bytes_sent, total)`` during the upload.
+
+        Returns:
+            ``{"job_id", "status", "status_url"}`` (``status_url`` filled from ``Location`` if absent).
+
+        Example:
+            >>> with SVRnetClient() as svr:                                      # doctest: +SKIP
+            ...     job = svr.reconstruct(["a.nii.gz", "b.nii.gz"], resolution_mm=0.8)
+            ...     svr.wait(job["job_id"])
+            ...     svr.download_volume(job["job_id"], "recon.nii.gz")
+        """
+        fields = [(k, _form_value(v)) for k, v in (("resolution_mm", resolution_mm),
+                                                   ("svr_iterations", svr_iterations),
+                                                   ("mc_samples", mc_samples),
+                                                   ("variance_threshold", variance_threshold)) if v is not None]
+        files: list[tuple[str, str, Path | bytes, str]] = list(self._files(stacks, masks))
+        if poses is not None:
+            if isinstance(poses, Mapping):
+                files.append(("poses", "poses.json", json.dumps(poses).encode(), "application/json"))
+            else:
+                path = Path(poses)
+                if not path.is_file():
+                    raise FileNotFoundError(f"poses: no such file: {path}")
+                files.append(("poses", path.name, path, "application/json"))
+        response = self._send("POST", "/v1/reconstructions", body=_Multipart(fields, files), progress=progress)
+        body = self._json(response)
+        if isinstance(body, dict):
+            location = response.headers.get("location")
+            if location and not body.get("status_url"):
+                body["status_url"] = location
+            if "job_id" not in body and location:
+                body["job_id"] = location.rstrip("/").rsplit("/", 1)[-1]
+        return body
+
+    def status(self, job_id: str) -> dict[str, Any]:
+        """``GET /v1/reconstructions/{job_id}``: status, stage, progress (0..1), error, report.
+
+        Example:
+            >>> SVRnetClient().status("3f2a")["status"]                    # doctest: +SKIP
+            'running'
+        """
+        return self._json(self._send("GET", self._job_path(job_id)))
+
+    def wait(self, job_id: str, poll_s: float = 1.0, timeout_s: float = 3600.0,
+             on_progress: Callable[[dict[str, Any]], None] | None = None) -> dict[str, Any]:
+        """Poll :meth:`status` until the job is ``succeeded``, ``failed`` or ``cancelled``.
+
+        Args:
+            job_id: the job.
+            poll_s: seconds between polls.
+            timeout_s: give up (:class:`~client.errors.WaitTimeout`) after this long; the job goes on.
+            on_progress: called with every status body (e.g. to draw ``body["progress"]``).
+
+        Returns:
+            The final status body of a succeeded job.
+
+        Raises:
+            JobFailed: the job ended ``failed`` or ``cancelled``.
+            WaitTimeout: ``timeout_s`` passed first.
+
+        Example:
+            >>> SVRnetClient().wait("3f2a", on_progress=lambda s: print(s["stage"], s["progress"]))  # doctest: +SKIP
+        """
+        deadline = time.monotonic() + timeout_s
+        while True:
+            job = self.status(job_id)
+            if on_progress is not None:
+                on_progress(job)
+            state = job.get("status")
+            if state == "succeeded":
+                return job
+            if state in ("failed", "cancelled"):
+                raise JobFailed(job)
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise WaitTimeout(f"job {job_id} still {state} after {timeout_s:g} s", job=job)
+            _sleep(min(poll_s, remaining))
+
+    def download_volume(self, job_id: str, out_path: PathLike,
+                        progress: ProgressCallback | None = None) -> Path:
+        """``GET /v1/reconstructions/{job_id}/volume``: the ``.nii.gz`` in atlas space, written to ``out_path``.
+
+        The file is written under a temporary name and renamed when complete.
+
+        Raises:
+            Conflict: 409, the job has not succeeded (yet). NotFound: unknown job.
+
+        Example:
+            >>> SVRnetClient().download_volume("3f2a", "recon.nii.gz")           # doctest: +SKIP
+            PosixPath('recon.nii.gz')
+        """
+        return self._download(self._job_path(job_id, "/volume"), out_path, progress)
+
+    def download_preview(self, job_id: str, out_path: PathLike,
+                         progress: ProgressCallback | None = None) -> Path:
+        """``GET /v1/reconstructions/{job_id}/preview.png``: three orthogonal mid-planes, as PNG.
+
+        Example:
+            >>> SVRnetClient().download_preview("3f2a", "preview.png")           # doctest: +SKIP
+            PosixPath('preview.png')
+        """
+        return self._download(self._job_path(job_id, "/preview.png"), out_path, progress)
+
+    def cancel(self, job_id: str) -> None:
+        """``DELETE /v1/reconstructions/{job_id}``: cancel a queued/running job and delete its files.
+
+        Example:
+            >>> SVRnetClient().cancel("3f2a")                                    # doctest: +SKIP
+        """
+        self._send("DELETE", self._job_path(job_id))
+

@@ -1,0 +1,350 @@
+"""``svrnet``: the SVRnet command line (HTTP API v1 client).
+
+Commands::
+
+    svrnet predict STACK... [--mask M...] [--out poses.json] [--mc-samples N] [--threshold T]
+                            [--no-bias-correction] [--model NAME]
+    svrnet reconstruct STACK... [--mask M...] [--poses poses.json] [--resolution 0.8] [--svr-iterations 3]
+                                [--wait] [--out recon.nii.gz] [--preview preview.png]
+    svrnet status JOB
+    svrnet cancel JOB
+    svrnet models
+
+Every command takes ``--server URL`` (default ``$SVRNET_SERVER``, else ``http://127.0.0.1:8000``); the
+API key comes from ``$SVRNET_API_KEY`` (sent as ``Authorization: Bearer``).
+
+Exit codes:
+    0   success
+    1   unexpected error (e.g. a local file could not be written)
+    2   usage error (bad option or argument; typer's own)
+    3   connection failed (server unreachable, timeout)
+    4   unauthorized (missing or wrong API key)
+    5   bad input (400, 413, 415, 422: malformed request, too large, unreadable or unusable file)
+    6   not found (unknown model or job)
+    7   busy (429/503 after every retry)
+    8   job failed or cancelled
+    9   server error (5xx)
+    10  conflict (409, e.g. result asked for before the job succeeded)
+    11  timed out waiting for a job (the job goes on)
+
+Errors are one red line on stderr with the server's problem detail (and request id), never a traceback.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import statistics
+from collections import Counter
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Annotated, Any, Optional
+
+import click
+import typer
+from rich.console import Console
+from rich.progress import (BarColumn, DownloadColumn, Progress, SpinnerColumn, TaskProgressColumn, TextColumn,
+                           TimeElapsedColumn, TransferSpeedColumn)
+from rich.table import Table
+
+from client._client import DEFAULT_SERVER, SVRnetClient
+from client.errors import (BadRequest, Busy, Conflict, ConnectionFailed, JobFailed, NotFound, PayloadTooLarge,
+                           ServerError, SVRnetError, Unauthorized, UnsupportedFile, UnusableInput, WaitTimeout)
+
+EXIT_OK, EXIT_UNEXPECTED, EXIT_USAGE = 0, 1, 2
+EXIT_CONNECTION, EXIT_UNAUTHORIZED, EXIT_BAD_INPUT, EXIT_NOT_FOUND = 3, 4, 5, 6
+EXIT_BUSY, EXIT_JOB_FAILED, EXIT_SERVER, EXIT_CONFLICT, EXIT_TIMEOUT = 7, 8, 9, 10, 11
+
+EXIT_CODES: list[tuple[type[SVRnetError] | tuple[type[SVRnetError], ...], int]] = [
+    (ConnectionFailed, EXIT_CONNECTION),
+    (Unauthorized, EXIT_UNAUTHORIZED),
+    ((BadRequest, PayloadTooLarge, UnsupportedFile, UnusableInput), EXIT_BAD_INPUT),
+    (NotFound, EXIT_NOT_FOUND),
+    (Busy, EXIT_BUSY),
+    (JobFailed, EXIT_JOB_FAILED),
+    (ServerError, EXIT_SERVER),
+    (Conflict, EXIT_CONFLICT),
+    (WaitTimeout, EXIT_TIMEOUT),
+]
+
+EXIT_HELP = (
+    "Exit codes: 0 ok · 1 unexpected error · 2 usage · 3 connection failed · 4 unauthorized · "
+    "5 bad input (400/413/415/422) · 6 not found · 7 busy (429/503 after retries) · "
+    "8 job failed/cancelled · 9 server error (5xx) · 10 conflict (409) · 11 timed out waiting."
+)
+
+app = typer.Typer(
+    name="svrnet",
+    help="SVRnet client: slice-to-atlas poses (predict) and reconstructions of fetal MRI stacks.\n\n"
+         "Server: --server or $SVRNET_SERVER (default http://127.0.0.1:8000); API key: $SVRNET_API_KEY.",
+    epilog=EXIT_HELP,
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+
+def make_client(server: str, api_key: str | None) -> SVRnetClient:
+    """The client every command uses (tests monkeypatch this factory)."""
+    return SVRnetClient(base_url=server, api_key=api_key)
+
+
+def exit_code_for(error: BaseException) -> int:
+    """The documented exit code of a client error.
+
+    Example:
+        >>> exit_code_for(UnusableInput("stacks: flat.nii.gz is 2D", status=422))
+        5
+    """
+    for kinds, code in EXIT_CODES:
+        if isinstance(error, kinds):
+            return code
+    return EXIT_UNEXPECTED
+
+
+def _stdout() -> Console:
+    return Console(highlight=False)
+
+
+def _stderr() -> Console:
+    return Console(stderr=True, highlight=False)
+
+
+def _fail(message: str, code: int) -> None:
+    _stderr().print(f"error: {message}", style="bold red", markup=False, soft_wrap=True)
+    raise typer.Exit(code)
+
+
+@contextmanager
+def _errors() -> Iterator[None]:
+    """Client errors -> one red line on stderr and the documented exit code; never a traceback."""
+    try:
+        yield
+    except (click.exceptions.Exit, click.ClickException, click.exceptions.Abort):
+        raise
+    except SVRnetError as e:
+        _fail(" ".join(str(e).split()), exit_code_for(e))
+    except KeyboardInterrupt:
+        _fail("interrupted", 130)
+    except OSError as e:
+        _fail(f"{type(e).__name__}: {e}", EXIT_UNEXPECTED)
+    except Exception as e:  # noqa: BLE001 - the CLI promises no tracebacks
+        _fail(f"unexpected {type(e).__name__}: {e}", EXIT_UNEXPECTED)
+
+
+@contextmanager
+def _client(server: str) -> Iterator[SVRnetClient]:
+    svr = make_client(server, os.environ.get("SVRNET_API_KEY") or None)
+    try:
+        yield svr
+    finally:
+        svr.close()
+
+
+@contextmanager
+def _upload_bar(console: Console, label: str) -> Iterator[Callable[[int, int], None]]:
+    """A rich progress bar fed by ``progress(bytes_sent, total)``; shows 'processing' once sent."""
+    with Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), DownloadColumn(),
+                  TransferSpeedColumn(), TimeElapsedColumn(), console=console, transient=True,
+                  disable=not console.is_terminal) as bar:
+        task = bar.add_task(f"uploading {label}", total=None)
+
+        def update(sent: int, total: int) -> None:
+            done = sent >= total
+            bar.update(task, completed=sent, total=total,
+                       description="waiting for the server" if done else f"uploading {label}")
+
+        yield update
+
+
+def _check_masks(stacks: list[Path], masks: list[Path] | None) -> None:
+    if masks and len(masks) != len(stacks):
+        raise typer.BadParameter(f"{len(masks)} masks for {len(stacks)} stacks; give none or one per stack",
+                                 param_hint="--mask")
+
+
+def _positive(value: float | None) -> float | None:
+    if value is not None and not value > 0:
+        raise typer.BadParameter("must be > 0")
+    return value
+
+
+def _write_json(path: Path, body: Any) -> None:
+    path.write_text(json.dumps(body, indent=2) + "\n")
+
+
+def summarise(result: dict[str, Any]) -> Table:
+    """The per-stack summary table of a ``/v1/predict`` body."""
+    model = result.get("model") or {}
+    title = (f"model {model.get('name', '?')} {model.get('version', '')} · mc_samples {result.get('mc_samples')} · "
+             f"variance threshold {result.get('variance_threshold')}")
+    table = Table(title=title, title_justify="left")
+    for col, just in (("#", "right"), ("stack", "left"), ("slices", "right"), ("accepted", "right"),
+                      ("rejected (by reason)", "left"), ("median variance", "right")):
+        table.add_column(col, justify=just)  # type: ignore[arg-type]
+    for i, stack in enumerate(result.get("stacks") or []):
+        slices = stack.get("slices") or []
+        accepted = sum(1 for s in slices if s.get("accepted"))
+        reasons = Counter(s.get("reason") or "unknown" for s in slices if not s.get("accepted"))
+        variances = [s["geodesic_variance"] for s in slices if s.get("geodesic_variance") is not None]
+        table.add_row(str(stack.get("index", i)), str(stack.get("filename", "")), str(len(slices)), str(accepted),
+                      ", ".join(f"{k} {v}" for k, v in sorted(reasons.items())) or "-",
+                      f"{statistics.median(variances):.4g}" if variances else "-")
+    return table
+
+
+ServerOpt = Annotated[str, typer.Option("--server", envvar="SVRNET_SERVER", help="server URL")]
+MaskOpt = Annotated[Optional[list[Path]], typer.Option(
+    "--mask", "-m", exists=True, dir_okay=False, readable=True,
+    help="region-of-interest mask; repeat, one per stack in the same order (or none)")]
+StacksArg = Annotated[list[Path], typer.Argument(
+    exists=True, dir_okay=False, readable=True,
+    help=".nii, .nii.gz, .nrrd, .mha, .dcm or .zip of a DICOM series")]
+
+
+@app.command(epilog=EXIT_HELP)
+def predict(
+    stacks: StacksArg,
+    mask: MaskOpt = None,
+    server: ServerOpt = DEFAULT_SERVER,
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", dir_okay=False,
+                                                help="write the full JSON answer here")] = None,
+    mc_samples: Annotated[Optional[int], typer.Option(min=1, max=1000, help="MC-dropout passes per slice")] = None,
+    threshold: Annotated[Optional[float], typer.Option(
+        "--threshold", callback=_positive, help="variance threshold (default: the model's)")] = None,
+    bias_correction: Annotated[bool, typer.Option("--bias-correction/--no-bias-correction",
+                                                  help="N4 bias-field correction")] = True,
+    model: Annotated[Optional[str], typer.Option(help="model name (see `svrnet models`)")] = None,
+) -> None:
+    """Atlas pose and confidence of every slice of every stack (POST /v1/predict)."""
+    _check_masks(stacks, mask)
+    err = _stderr()
+    with _errors(), _client(server) as svr:
+        with _upload_bar(err, f"{len(stacks)} stack(s)") as progress:
+            result = svr.predict(stacks, mask, mc_samples=mc_samples, variance_threshold=threshold,
+                                 bias_correction=None if bias_correction else False, model=model,
+                                 progress=progress)
+        console = _stdout()
+        console.print(summarise(result))
+        total = (result.get("timing_ms") or {}).get("total")
+        console.print(f"request {result.get('request_id', '?')}"
+                      + (f" · {total / 1e3:.2f} s on the server" if isinstance(total, (int, float)) else ""))
+        if out is not None:
+            _write_json(out, result)
+            console.print(f"wrote {out}")
+
+
+@app.command(epilog=EXIT_HELP)
+def reconstruct(
+    stacks: StacksArg,
+    mask: MaskOpt = None,
+    server: ServerOpt = DEFAULT_SERVER,
+    poses: Annotated[Optional[Path], typer.Option(
+        exists=True, dir_okay=False, readable=True,
+        help="JSON answer of `svrnet predict --out` for these files")] = None,
+    resolution: Annotated[Optional[float], typer.Option(
+        "--resolution", callback=_positive, help="output spacing in mm (server default 0.8)")] = None,
+    svr_iterations: Annotated[Optional[int], typer.Option(min=0, help="SVR iterations (server default 3)")] = None,
+    mc_samples: Annotated[Optional[int], typer.Option(min=1, max=1000, help="MC-dropout passes per slice")] = None,
+    threshold: Annotated[Optional[float], typer.Option(
+        "--threshold", callback=_positive, help="variance threshold (default: the model's)")] = None,
+    wait: Annotated[bool, typer.Option("--wait", help="wait for the job and download its results")] = False,
+    out: Annotated[Optional[Path], typer.Option(
+        "--out", "-o", dir_okay=False, help="volume file (implies --wait; default recon.nii.gz with --wait)")] = None,
+    preview: Annotated[Optional[Path], typer.Option(
+        dir_okay=False, help="also download the preview PNG here (implies --wait)")] = None,
+    timeout: Annotated[float, typer.Option(min=0, help="seconds to wait for the job")] = 3600.0,
+    poll: Annotated[float, typer.Option(min=0.05, help="seconds between status polls")] = 1.0,
+) -> None:
+    """Start a reconstruction job (POST /v1/reconstructions); with --wait, follow it and download the volume."""
+    _check_masks(stacks, mask)
+    wait = wait or out is not None or preview is not None
+    err, console = _stderr(), _stdout()
+    with _errors(), _client(server) as svr:
+        with _upload_bar(err, f"{len(stacks)} stack(s)") as progress:
+            job = svr.reconstruct(stacks, mask, poses, resolution_mm=resolution, svr_iterations=svr_iterations,
+                                  mc_samples=mc_samples, variance_threshold=threshold, progress=progress)
+        job_id = str(job.get("job_id", ""))
+        console.print(f"job {job_id} {job.get('status', 'queued')}: {job.get('status_url', '')}")
+        if not wait:
+            console.print(f"follow it with: svrnet status {job_id}")
+            return
+        with Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
+                      TimeElapsedColumn(), console=err, transient=True, disable=not err.is_terminal) as bar:
+            task = bar.add_task("queued", total=1.0)
+
+            def on_progress(state: dict[str, Any]) -> None:
+                label = " ".join(str(x) for x in (state.get("status"), state.get("stage")) if x)
+                bar.update(task, completed=float(state.get("progress") or 0.0), description=label)
+
+            svr.wait(job_id, poll_s=poll, timeout_s=timeout, on_progress=on_progress)
+        target = out if out is not None else Path("recon.nii.gz")
+        svr.download_volume(job_id, target)
+        console.print(f"job {job_id} succeeded; wrote {target}")
+        if preview is not None:
+            svr.download_preview(job_id, preview)
+            console.print(f"wrote {preview}")
+
+
+@app.command(epilog=EXIT_HELP)
+def status(
+    job: Annotated[str, typer.Argument(help="job id")],
+    server: ServerOpt = DEFAULT_SERVER,
+    as_json: Annotated[bool, typer.Option("--json", help="print the raw JSON")] = False,
+) -> None:
+    """Status of a reconstruction job (GET /v1/reconstructions/{job})."""
+    with _errors(), _client(server) as svr:
+        state = svr.status(job)
+        console = _stdout()
+        if as_json:
+            console.print_json(data=state)
+            return
+        table = Table(show_header=False, title=f"job {job}", title_justify="left")
+        table.add_column("field", style="bold")
+        table.add_column("value")
+        for key in ("status", "stage", "progress", "error", "created_at", "updated_at", "result_url",
+                    "preview_url"):
+            value = state.get(key)
+            if key == "progress" and isinstance(value, (int, float)):
+                value = f"{value:.0%}"
+            table.add_row(key, "-" if value is None else str(value))
+        console.print(table)
+
+
+@app.command(epilog=EXIT_HELP)
+def cancel(
+    job: Annotated[str, typer.Argument(help="job id")],
+    server: ServerOpt = DEFAULT_SERVER,
+) -> None:
+    """Cancel a queued or running job and delete its files (DELETE /v1/reconstructions/{job})."""
+    with _errors(), _client(server) as svr:
+        svr.cancel(job)
+        _stdout().print(f"job {job} cancelled")
+
+
+@app.command(epilog=EXIT_HELP)
+def models(
+    server: ServerOpt = DEFAULT_SERVER,
+    as_json: Annotated[bool, typer.Option("--json", help="print the raw JSON")] = False,
+) -> None:
+    """Models the server offers (GET /v1/models)."""
+    with _errors(), _client(server) as svr:
+        listed = svr.models()
+        console = _stdout()
+        if as_json:
+            console.print_json(data=listed)
+            return
+        table = Table()
+        for col in ("name", "version", "backbone", "label_type", "input_size", "spacing_mm", "variance_threshold",
+                    "trained_on", "sha256"):
+            table.add_column(col)
+        for m in listed:
+            row = [m.get(c) for c in ("name", "version", "backbone", "label_type", "input_size", "spacing_mm",
+                                      "variance_threshold", "trained_on")]
+            table.add_row(*("-" if v is None else str(v) for v in row), str(m.get("sha256", ""))[:12])
+        console.print(table)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    app()

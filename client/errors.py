@@ -1,0 +1,210 @@
+"""Typed exceptions of the SVRnet client, one per failure kind of the HTTP API v1.
+
+Every error the server answers is an RFC 7807 ``application/problem+json`` body
+(``{"type", "title", "status", "detail"}`` plus ``request_id``); :func:`error_from_response`
+turns such a response into the matching subclass of :class:`SVRnetError`, keeping those fields.
+
+Example:
+    >>> from client import SVRnetClient, UnusableInput
+    >>> try:                                                       # doctest: +SKIP
+    ...     SVRnetClient().predict(["flat.nii.gz"])
+    ... except UnusableInput as e:
+    ...     print(e.status, e.detail)
+    422 stacks: flat.nii.gz is a 2D image
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import httpx
+
+__all__ = [
+    "SVRnetError", "BadRequest", "Unauthorized", "NotFound", "Conflict", "PayloadTooLarge", "UnsupportedFile",
+    "UnusableInput", "Busy", "ServerError", "ConnectionFailed", "JobFailed", "WaitTimeout",
+    "error_from_response", "error_class_for_status",
+]
+
+
+class SVRnetError(Exception):
+    """Base class of every client error.
+
+    Attributes:
+        status: the HTTP status (``None`` when no response came back).
+        title: the problem title, or the reason phrase.
+        detail: the problem detail: names the offending field or file.
+        request_id: the server's request id (quote it in bug reports), when known.
+        type: the problem type URI, when given.
+        body: the decoded problem body (empty when the body was not JSON).
+    """
+
+    def __init__(self, detail: str, *, status: int | None = None, title: str | None = None,
+                 request_id: str | None = None, type: str | None = None,  # noqa: A002 - RFC 7807 field name
+                 body: dict[str, Any] | None = None) -> None:
+        super().__init__(detail)
+        self.status = status
+        self.title = title
+        self.detail = detail
+        self.request_id = request_id
+        self.type = type
+        self.body = body or {}
+
+    def __str__(self) -> str:
+        head = " ".join(str(p) for p in (self.status, self.title) if p)
+        text = f"{head}: {self.detail}" if head else self.detail
+        return f"{text} (request id {self.request_id})" if self.request_id else text
+
+
+class BadRequest(SVRnetError):
+    """400 (and any other 4xx without a class of its own): the request itself is malformed."""
+
+
+class Unauthorized(SVRnetError):
+    """401/403: missing or wrong API key (set ``SVRNET_API_KEY`` or pass ``api_key=``)."""
+
+
+class NotFound(SVRnetError):
+    """404: unknown model or job."""
+
+
+class Conflict(SVRnetError):
+    """409: e.g. a reconstruction result asked for before the job succeeded."""
+
+
+class PayloadTooLarge(SVRnetError):
+    """413: the upload is over the server's limit."""
+
+
+class UnsupportedFile(SVRnetError):
+    """415: a file that cannot be read at all (not an image, unknown format, truncated)."""
+
+
+class UnusableInput(SVRnetError):
+    """422: a readable file or a parameter that cannot be used (2D, 4D, mask grid differs ...)."""
+
+
+class Busy(SVRnetError):
+    """429/503 still answered after every retry.
+
+    Attributes:
+        retry_after_s: the server's last ``Retry-After`` in seconds, when it sent one.
+    """
+
+    def __init__(self, detail: str, *, retry_after_s: float | None = None, **kwargs: Any) -> None:
+        super().__init__(detail, **kwargs)
+        self.retry_after_s = retry_after_s
+
+
+class ServerError(SVRnetError):
+    """5xx other than 503: a fault on the server side; quote :attr:`request_id`."""
+
+
+class ConnectionFailed(SVRnetError):
+    """No HTTP answer: connection refused, DNS failure, timeout, connection dropped."""
+
+
+class JobFailed(SVRnetError):
+    """A reconstruction job ended ``failed`` or ``cancelled``.
+
+    Attributes:
+        job_id: the job.
+        job_status: ``"failed"`` or ``"cancelled"``.
+        job: the last ``GET /v1/reconstructions/{job_id}`` body.
+    """
+
+    def __init__(self, job: dict[str, Any]) -> None:
+        self.job = job
+        self.job_id = str(job.get("job_id", ""))
+        self.job_status = str(job.get("status", ""))
+        error = job.get("error")
+        reason = f": {error}" if error else ""
+        super().__init__(f"job {self.job_id} {self.job_status}{reason}", title=f"Job {self.job_status}")
+
+
+class WaitTimeout(SVRnetError):
+    """:meth:`SVRnetClient.wait` gave up before the job finished (the job itself goes on)."""
+
+    def __init__(self, detail: str, *, job: dict[str, Any] | None = None) -> None:
+        super().__init__(detail, title="Timed out waiting")
+        self.job = job or {}
+
+
+_BY_STATUS: dict[int, type[SVRnetError]] = {
+    400: BadRequest, 401: Unauthorized, 403: Unauthorized, 404: NotFound, 409: Conflict, 413: PayloadTooLarge,
+    415: UnsupportedFile, 422: UnusableInput, 429: Busy, 503: Busy,
+}
+
+
+def error_class_for_status(status: int) -> type[SVRnetError]:
+    """The exception class for an HTTP error status.
+
+    Example:
+        >>> error_class_for_status(422).__name__
+        'UnusableInput'
+        >>> error_class_for_status(502).__name__
+        'ServerError'
+    """
+    if status in _BY_STATUS:
+        return _BY_STATUS[status]
+    if 400 <= status < 500:
+        return BadRequest
+    if status >= 500:
+        return ServerError
+    return SVRnetError
+
+
+def parse_retry_after(value: str | None) -> float | None:
+    """``Retry-After`` in seconds (delta-seconds or an HTTP date), ``None`` when absent or unreadable."""
+    if not value:
+        return None
+    value = value.strip()
+    try:
+        return max(0.0, float(value))
+    except ValueError:
+        pass
+    from datetime import datetime, timezone
+    from email.utils import parsedate_to_datetime
+
+    try:
+        when = parsedate_to_datetime(value)
+    except (TypeError, ValueError):
+        return None
+    if when.tzinfo is None:
+        when = when.replace(tzinfo=timezone.utc)
+    return max(0.0, (when - datetime.now(timezone.utc)).total_seconds())
+
+
+def error_from_response(response: httpx.Response) -> SVRnetError:
+    """The typed exception for an error ``response`` (its body must have been read).
+
+    Reads the problem+json fields when the body is JSON; otherwise the detail is the start of the
+    body text. The request id comes from the body or the ``X-Request-ID`` header.
+
+    Example:
+        >>> r = httpx.Response(404, json={"type": "/problems/not-found", "title": "Not found",
+        ...                               "status": 404, "detail": "model: unknown model 'x'"})
+        >>> e = error_from_response(r)
+        >>> type(e).__name__, e.detail
+        ('NotFound', "model: unknown model 'x'")
+    """
+    status = response.status_code
+    body: dict[str, Any] = {}
+    try:
+        decoded = json.loads(response.content) if response.content else None
+        if isinstance(decoded, dict):
+            body = decoded
+    except (ValueError, UnicodeDecodeError):
+        pass
+    title = body.get("title") or response.reason_phrase or None
+    detail = body.get("detail")
+    if not isinstance(detail, str) or not detail:
+        detail = str(detail) if detail else (response.text.strip()[:300] if response.content and not body else "")
+        detail = detail or (title or f"HTTP {status}")
+    request_id = body.get("request_id") or response.headers.get("x-request-id")
+    kwargs: dict[str, Any] = {"status": status, "title": str(title) if title else None,
+                              "request_id": request_id, "type": body.get("type"), "body": body}
+    cls = error_class_for_status(status)
+    if cls is Busy:
+        return Busy(detail, retry_after_s=parse_retry_after(response.headers.get("retry-after")), **kwargs)
+    return cls(detail, **kwargs)

@@ -1,0 +1,183 @@
+"""The output grid and the trilinear interpolation shared by every stage of the reconstruction.
+
+Interpolation follows "grid-constant zero" semantics: a point's value is the trilinear blend of its
+8 surrounding voxels, and voxels outside the grid count as 0. :func:`interpolation_matrix` builds
+exactly that linear map as a sparse matrix (rows = samples, columns = voxels), so the forward
+operator and its adjoint (the transpose, i.e. trilinear splatting) are exact transposes of each other
+by construction. :func:`trilinear` evaluates the same interpolant together with its exact gradient
+(used by the slice registration).
+
+Example:
+    >>> import numpy as np
+    >>> g = make_grid(1.0, ([0.0, 0.0, 0.0], [3.0, 3.0, 3.0]))
+    >>> g.shape
+    (4, 4, 4)
+    >>> vol = np.arange(64, dtype=np.float32).reshape(4, 4, 4)
+    >>> val, grad = trilinear(vol, np.array([[1.5, 1.0, 2.0]]), gradient=True)
+    >>> float(val[0]), grad[0].tolist()       # 16 * 1.5 + 4 * 1 + 2
+    (30.0, [16.0, 4.0, 1.0])
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy import sparse
+
+from service.geometry.pose import apply
+
+_CORNERS = np.array([[dx, dy, dz] for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)])
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A 3D voxel grid in atlas space.
+
+    Attributes:
+        affine: voxel index ``(i, j, k, 1)`` -> atlas RAS mm (``4 x 4``).
+        shape: ``(I, J, K)``.
+    """
+
+    affine: NDArray[np.float64]
+    shape: tuple[int, int, int]
+
+    @property
+    def spacing(self) -> NDArray[np.float64]:
+        """Voxel sizes (mm) along ``i, j, k``."""
+        return np.linalg.norm(self.affine[:3, :3], axis=0)
+
+    @property
+    def size(self) -> int:
+        """Number of voxels."""
+        return int(np.prod(self.shape))
+
+    def voxel_of(self, points: ArrayLike) -> NDArray[np.float64]:
+        """Continuous voxel indices ``[..., 3]`` of atlas points ``[..., 3]``."""
+        return apply(np.linalg.inv(self.affine), points)
+
+    def gradient_to_world(self, grad_voxel: NDArray) -> NDArray:
+        """Convert gradients ``[..., 3]`` w.r.t. voxel index into gradients w.r.t. atlas mm."""
+        jac = np.linalg.inv(self.affine[:3, :3]).astype(grad_voxel.dtype)   # d voxel / d mm
+        return grad_voxel @ jac
+
+
+def make_grid(resolution_mm: float, bounds_mm: ArrayLike) -> Grid:
+    """An axis-aligned (RAS) isotropic grid covering ``bounds_mm = (lower [3], upper [3])``.
+
+    The grid is centred on the box; its extent is rounded up to whole voxels.
+
+    Args:
+        resolution_mm: voxel size (mm).
+        bounds_mm: ``[[xmin, ymin, zmin], [xmax, ymax, zmax]]`` in atlas RAS mm.
+
+    Returns:
+        The :class:`Grid` (affine with positive diagonal ``resolution_mm``).
+    """
+    lo, hi = np.asarray(bounds_mm, dtype=np.float64).reshape(2, 3)
+    if resolution_mm <= 0 or np.any(hi < lo):
+        raise ValueError("make_grid: resolution must be > 0 and bounds ordered (lower, upper)")
+    shape = np.ceil((hi - lo) / resolution_mm).astype(int) + 1
+    centre = (lo + hi) / 2.0
+    affine = np.diag([resolution_mm] * 3 + [1.0])
+    affine[:3, 3] = centre - (shape - 1) / 2.0 * resolution_mm
+    return Grid(affine, tuple(int(s) for s in shape))
+
+
+def bounds_of(points: ArrayLike, margin_mm: float) -> NDArray[np.float64]:
+    """``[[lower], [upper]]`` bounding box of points ``[N, 3]`` enlarged by ``margin_mm`` on each side."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    return np.stack([p.min(axis=0) - margin_mm, p.max(axis=0) + margin_mm])
+
+
+def _corners(coords: NDArray, shape: tuple[int, int, int]) -> tuple[NDArray, NDArray, NDArray]:
+    """Base index, fractional offsets and per-corner validity of continuous voxel coordinates ``[N, 3]``."""
+    c = np.asarray(coords, dtype=np.float64)
+    base = np.floor(c)
+    frac = (c - base).astype(np.float32)
+    i0 = base.astype(np.int64)
+    dims = np.asarray(shape)
+    # valid[axis][d]: is corner offset d (0 or 1) inside the grid along axis?
+    valid = [[(i0[:, a] + d >= 0) & (i0[:, a] + d < dims[a]) for d in (0, 1)] for a in range(3)]
+    return i0, frac, valid
+
+
+def trilinear_entries(coords: NDArray, shape: tuple[int, int, int]) -> tuple[NDArray, NDArray]:
+    """Flat voxel indices ``[N, 8]`` (int64) and weights ``[N, 8]`` (float32) of trilinear interpolation.
+
+    Corners outside the grid get weight 0 (and a harmless in-range index).
+    """
+    i0, frac, valid = _corners(coords, shape)
+    n = len(i0)
+    idx = np.empty((n, 8), np.int64)
+    w = np.empty((n, 8), np.float32)
+    sj, sk = shape[1] * shape[2], shape[2]
+    flat0 = i0[:, 0] * sj + i0[:, 1] * sk + i0[:, 2]
+    for c, (dx, dy, dz) in enumerate(_CORNERS):
+        wx = frac[:, 0] if dx else 1.0 - frac[:, 0]
+        wy = frac[:, 1] if dy else 1.0 - frac[:, 1]
+        wz = frac[:, 2] if dz else 1.0 - frac[:, 2]
+        ok = valid[0][dx] & valid[1][dy] & valid[2][dz]
+        w[:, c] = np.where(ok, wx * wy * wz, 0.0)
+        idx[:, c] = np.where(ok, flat0 + dx * sj + dy * sk + dz, 0)
+    return idx, w
+
+
+def interpolation_matrix(coords: NDArray, shape: tuple[int, int, int], point_weights: ArrayLike | None = None,
+                         dtype: type = np.float32) -> sparse.csr_matrix:
+    """Sparse ``[N, I*J*K]`` matrix of ``N`` weighted sums of trilinear samples.
+
+    Args:
+        coords: ``[N, Q, 3]`` continuous voxel indices: ``Q`` sample points per row.
+        shape: grid shape.
+        point_weights: ``[Q]`` or ``[N, Q]`` weights of the points of a row (default 1).
+        dtype: value type of the matrix.
+
+    Returns:
+        CSR matrix ``M`` with ``(M @ x.ravel())[n] = sum_q w[n, q] * trilinear(x, coords[n, q])``.
+        Its transpose is the exact adjoint (trilinear splatting).
+    """
+    c = np.asarray(coords, dtype=np.float64)
+    n, q = c.shape[:2]
+    idx, w = trilinear_entries(c.reshape(-1, 3), shape)
+    if point_weights is not None:
+        pw = np.broadcast_to(np.asarray(point_weights, dtype=np.float32), (n, q)).reshape(-1, 1)
+        w *= pw
+    size = int(np.prod(shape))
+    small = max(size, n * q * 8) < np.iinfo(np.int32).max
+    index_dtype = np.int32 if small else np.int64
+    indptr = np.arange(0, n * q * 8 + 1, q * 8, dtype=index_dtype)
+    return sparse.csr_matrix((w.ravel().astype(dtype), idx.ravel().astype(index_dtype), indptr),
+                             shape=(n, size))
+
+
+def trilinear(volume: NDArray, coords: NDArray, gradient: bool = False) -> tuple[NDArray, NDArray | None]:
+    """Trilinear values ``[N]`` at continuous voxel indices ``[N, 3]`` and, optionally, their gradient.
+
+    The gradient ``[N, 3]`` (w.r.t. voxel index) is the exact derivative of the interpolant (piecewise
+    constant across voxel faces), consistent with the values. Outside the grid the volume is 0.
+    """
+    vol = np.asarray(volume, dtype=np.float32)
+    flat = vol.ravel()
+    shape = vol.shape
+    i0, frac, valid = _corners(coords, shape)
+    sj, sk = shape[1] * shape[2], shape[2]
+    flat0 = i0[:, 0] * sj + i0[:, 1] * sk + i0[:, 2]
+    n = len(i0)
+    val = np.zeros(n, np.float32)
+    grad = np.zeros((n, 3), np.float32) if gradient else None
+    one = np.float32(1.0)
+    for dx, dy, dz in _CORNERS:
+        ok = valid[0][dx] & valid[1][dy] & valid[2][dz]
+        v = np.where(ok, flat[np.where(ok, flat0 + dx * sj + dy * sk + dz, 0)], 0.0).astype(np.float32)
+        wx = frac[:, 0] if dx else one - frac[:, 0]
+        wy = frac[:, 1] if dy else one - frac[:, 1]
+        wz = frac[:, 2] if dz else one - frac[:, 2]
+        val += wx * wy * wz * v
+        if gradient:
+            sx, sy, sz = (1.0 if dx else -1.0), (1.0 if dy else -1.0), (1.0 if dz else -1.0)
+            grad[:, 0] += sx * wy * wz * v
+            grad[:, 1] += sy * wx * wz * v
+            grad[:, 2] += sz * wx * wy * v
+    return val, grad

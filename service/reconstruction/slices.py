@@ -1,0 +1,170 @@
+"""The reconstruction's input: every masked pixel of every included slice, with its slice's pose.
+
+Slices come from :func:`service.preprocess.stack.split_stack` (slice axis = the voxel axis of
+largest spacing). Pixels are kept as voxel indices ``(i, j, k)`` of their own stack, so that the
+atlas position of pixel ``k`` under any set of slice transforms is
+``apply(atlas_from_voxel[slice_id[k]], voxel[k])`` (see :meth:`SliceSet.positions`). Pixels are stored
+grouped by slice (``slice_id`` is non-decreasing), in stack, slice, row, column order.
+
+Example:
+    >>> import numpy as np
+    >>> from service.io.volume import Volume
+    >>> vol = Volume(np.ones((4, 5, 3), np.float32), np.diag([1.0, 1.0, 3.0, 1.0]))
+    >>> mats = np.repeat(vol.affine[None], 3, axis=0)
+    >>> ss = SliceSet.from_stacks([(vol, np.ones((4, 5, 3), bool), mats, np.array([True, False, True]))])
+    >>> ss.n_slices, len(ss.values), float(ss.values[0]), ss.thickness_mm.tolist()
+    (3, 40, 100.0, [3.0, 3.0, 3.0])
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from service.io.volume import Volume
+from service.preprocess.stack import split_stack
+
+INTENSITY_SCALE = 100.0
+"""Each stack is scaled so that the median of its masked intensities is this value."""
+
+StackInput = tuple[Volume, "NDArray | None", ArrayLike, ArrayLike]
+
+
+@dataclass
+class SliceSet:
+    """All pixels of all included slices, and per-slice geometry.
+
+    Attributes:
+        values: ``[N]`` float32 intensities (each stack scaled to median ``INTENSITY_SCALE`` in its mask).
+        voxel: ``[N, 3]`` float32 voxel indices ``(i, j, k)`` of the pixels in their own stack.
+        slice_id: ``[N]`` int32 index of each pixel's slice (into the per-slice arrays).
+        atlas_from_voxel: ``[n, 4, 4]`` initial voxel -> atlas RAS mm transform of each slice.
+        thickness_mm: ``[n]`` slice spacing of the slice's stack (taken as the slice thickness).
+        pixel_mm: ``[n]`` mean in-plane pixel size.
+        slice_axis: ``[n]`` the stack's voxel axis the slice was taken along.
+        stack_index: ``[n]`` index of the slice's stack in the input list.
+        slice_index: ``[n]`` index of the slice within its stack.
+        stack_affine: ``[n, 4, 4]`` voxel -> scanner RAS affine of the slice's stack (its file header).
+        include: ``[n]`` bool: accepted by the caller and with at least one masked pixel (only these
+            slices have pixels).
+    """
+
+    values: NDArray[np.float32]
+    voxel: NDArray[np.float32]
+    slice_id: NDArray[np.int32]
+    atlas_from_voxel: NDArray[np.float64]
+    thickness_mm: NDArray[np.float64]
+    pixel_mm: NDArray[np.float64]
+    slice_axis: NDArray[np.int64]
+    stack_index: NDArray[np.int64]
+    slice_index: NDArray[np.int64]
+    stack_affine: NDArray[np.float64]
+    include: NDArray[np.bool_]
+
+    @property
+    def n_slices(self) -> int:
+        """Number of slices (included or not)."""
+        return len(self.atlas_from_voxel)
+
+    @property
+    def n_pixels(self) -> int:
+        """Number of pixels ``N``."""
+        return len(self.values)
+
+    def pixel_counts(self) -> NDArray[np.int64]:
+        """``[n]`` number of pixels of each slice."""
+        return np.bincount(self.slice_id, minlength=self.n_slices)
+
+    def positions(self, atlas_from_voxel: ArrayLike | None = None, pixels: NDArray | None = None) -> NDArray:
+        """Atlas positions ``[N, 3]`` (float64 mm) of the pixels (or of the subset ``pixels``).
+
+        Args:
+            atlas_from_voxel: ``[n, 4, 4]`` slice transforms (default: the initial ones).
+            pixels: optional index array selecting pixels.
+        """
+        t = np.asarray(self.atlas_from_voxel if atlas_from_voxel is None else atlas_from_voxel, np.float64)
+        sid = self.slice_id if pixels is None else self.slice_id[pixels]
+        vox = self.voxel if pixels is None else self.voxel[pixels]
+        m = t[:, :3, :]
+        out = m[sid, :, 3].copy()
+        for j in range(3):
+            out += m[sid, :, j] * vox[:, j:j + 1].astype(np.float64)
+        return out
+
+    def normals(self, atlas_from_voxel: ArrayLike | None = None) -> NDArray[np.float64]:
+        """Unit slice normals ``[n, 3]`` in atlas space (the image of the slice axis; sign irrelevant)."""
+        t = np.asarray(self.atlas_from_voxel if atlas_from_voxel is None else atlas_from_voxel, np.float64)
+        cols = t[np.arange(len(t)), :3, self.slice_axis]
+        return cols / np.maximum(np.linalg.norm(cols, axis=-1, keepdims=True), 1e-12)
+
+    def centres(self, atlas_from_voxel: ArrayLike | None = None) -> NDArray[np.float64]:
+        """``[n, 3]`` mean atlas position of each slice's pixels (0 for slices without pixels)."""
+        pos = self.positions(atlas_from_voxel)
+        counts = np.maximum(self.pixel_counts(), 1)[:, None]
+        return np.stack([np.bincount(self.slice_id, pos[:, d], self.n_slices) for d in range(3)], -1) / counts
+
+    @classmethod
+    def from_stacks(cls, stacks: list[StackInput]) -> "SliceSet":
+        """Collect the masked pixels of the included slices of several stacks.
+
+        Args:
+            stacks: per stack ``(volume, mask, atlas_from_voxel [n, 4, 4], include [n])`` where
+                ``mask`` is an array of the volume's shape (nonzero = brain; ``None``: every pixel),
+                ``n`` is the number of slices along the slice axis (largest spacing), and
+                ``atlas_from_voxel[s]`` maps voxel indices of slice ``s`` to atlas RAS mm.
+
+        Returns:
+            The :class:`SliceSet`.
+
+        Raises:
+            ValueError: if a transform or include array does not match its stack's slice count.
+        """
+        if not stacks:
+            raise ValueError("SliceSet.from_stacks: no stacks")
+        parts: dict[str, list] = {k: [] for k in ("values", "voxel", "slice_id", "mats", "thick", "pix", "axis",
+                                                  "stack", "index", "saff", "include")}
+        offset = 0
+        for si, (volume, mask, mats, include) in enumerate(stacks):
+            arr = np.asarray(volume.array, dtype=np.float32)
+            m = np.ones(arr.shape, bool) if mask is None else np.asarray(mask) > 0
+            if m.shape != arr.shape:
+                raise ValueError(f"stack {si}: mask shape {m.shape} differs from the volume's {arr.shape}")
+            split = split_stack(volume, m)
+            n = len(split.images)
+            mats = np.asarray(mats, dtype=np.float64)
+            inc = np.asarray(include, dtype=bool).reshape(-1)
+            if mats.shape != (n, 4, 4) or inc.shape != (n,):
+                raise ValueError(f"stack {si}: expected {n} slices (transforms {mats.shape}, include {inc.shape})")
+            a = split.slice_axis
+            p, q = [ax for ax in range(3) if ax != a]
+            finite = np.isfinite(split.images)
+            brain = split.masks & finite
+            inside = split.images[brain]
+            scale = float(np.median(inside)) if inside.size else 0.0
+            if not scale > 0:
+                pos = inside[inside > 0]
+                scale = float(pos.mean()) if pos.size else 1.0
+            keep = brain & inc[:, None, None]
+            s_idx, r_idx, c_idx = np.nonzero(keep)
+            vox = np.empty((len(s_idx), 3), np.float32)
+            vox[:, a], vox[:, q], vox[:, p] = s_idx, r_idx, c_idx
+            parts["values"].append(split.images[keep] * np.float32(INTENSITY_SCALE / scale))
+            parts["voxel"].append(vox)
+            parts["slice_id"].append((s_idx + offset).astype(np.int32))
+            parts["mats"].append(mats)
+            sp = volume.spacing
+            parts["thick"].append(np.full(n, sp[a]))
+            parts["pix"].append(np.full(n, 0.5 * (sp[p] + sp[q])))
+            parts["axis"].append(np.full(n, a))
+            parts["stack"].append(np.full(n, si))
+            parts["index"].append(np.arange(n))
+            parts["saff"].append(np.repeat(np.asarray(volume.affine, np.float64)[None], n, axis=0))
+            parts["include"].append(inc & keep.any(axis=(1, 2)))
+            offset += n
+        cat = {k: np.concatenate(v) for k, v in parts.items()}
+        return cls(values=cat["values"].astype(np.float32), voxel=cat["voxel"], slice_id=cat["slice_id"],
+                   atlas_from_voxel=cat["mats"], thickness_mm=cat["thick"], pixel_mm=cat["pix"],
+                   slice_axis=cat["axis"].astype(np.int64), stack_index=cat["stack"].astype(np.int64),
+                   slice_index=cat["index"].astype(np.int64), stack_affine=cat["saff"], include=cat["include"])
