@@ -106,5 +106,43 @@ def compare(
     typer.echo(markdown(run(out, steps=steps, batch=batch, width=width, root=root)))
 
 
+@app.command()
+def ship(
+    checkpoint: Path,
+    out: Annotated[Path, typer.Option(help="model folder the service reads")] = Path("service/models/default"),
+    name: str = "default",
+    version: str = "1.0.0",
+    comparison: Annotated[Optional[Path], typer.Option(help="table.json of `compare`")] = None,
+    report: Path = Path("model_export/reports/default.md"),
+    root: Root = DEFAULT_ATLAS_ROOT,
+) -> None:
+    """Calibrate, export, evaluate and write the model card: the folder the service loads."""
+    import shutil
+
+    from model_export.calibrate import calibrate as run_calibration
+    from model_export.card import load_json, write_card
+    from model_export.evaluate import evaluate as run_evaluation
+    from model_export.packaging import export_checkpoint, load_checkpoint
+    from service.inference.model_file import load_model
+
+    out.mkdir(parents=True, exist_ok=True)
+    cal = run_calibration(checkpoint, root)
+    typer.echo(f"calibrated variance threshold {cal['threshold']:.4g} (AUROC {cal['auroc']:.3f})")
+    onnx_path = export_checkpoint(checkpoint, out / "model.onnx", name=name, version=version,
+                                  variance_threshold=cal["threshold"])
+    shutil.copyfile(checkpoint, out / "checkpoint.pt")
+    evaluation = run_evaluation(onnx_path, report, root)
+    _, ck = load_checkpoint(checkpoint)
+    summary = {"train_seconds": ck["train_seconds"], "samples_seen": ck["samples_seen"], "steps": ck["step"],
+               "train_volumes_text": f"{len(ck['config']['train_volumes'])} atlas volumes: "
+                                     + ", ".join(ck["config"]["train_volumes"])}
+    info = load_model(onnx_path).info.metadata
+    write_card(out / "card.md", info=info, train_summary=summary, train_config=ck["config"], calibration=cal,
+               evaluation=evaluation, comparison=load_json(comparison) if comparison else None,
+               report_path=str(report), onnx_bytes=onnx_path.stat().st_size)
+    (out / "calibration.json").write_text(json.dumps(cal))
+    typer.echo(json.dumps(evaluation, indent=2))
+
+
 if __name__ == "__main__":
     app()

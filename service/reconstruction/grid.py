@@ -104,13 +104,14 @@ def _corners(coords: NDArray, shape: tuple[int, int, int]) -> tuple[NDArray, NDA
 
 
 def trilinear_entries(coords: NDArray, shape: tuple[int, int, int]) -> tuple[NDArray, NDArray]:
-    """Flat voxel indices ``[N, 8]`` (int64) and weights ``[N, 8]`` (float32) of trilinear interpolation.
+    """Flat voxel indices ``[N, 8]`` and weights ``[N, 8]`` (float32) of trilinear interpolation.
 
-    Corners outside the grid get weight 0 (and a harmless in-range index).
+    Indices are int32 when the grid allows it (int64 otherwise). Corners outside the grid get
+    weight 0 (and a harmless in-range index).
     """
     i0, frac, valid = _corners(coords, shape)
     n = len(i0)
-    idx = np.empty((n, 8), np.int64)
+    idx = np.empty((n, 8), np.int32 if int(np.prod(shape)) < np.iinfo(np.int32).max else np.int64)
     w = np.empty((n, 8), np.float32)
     sj, sk = shape[1] * shape[2], shape[2]
     flat0 = i0[:, 0] * sj + i0[:, 1] * sk + i0[:, 2]
@@ -148,8 +149,8 @@ def interpolation_matrix(coords: NDArray, shape: tuple[int, int, int], point_wei
     small = max(size, n * q * 8) < np.iinfo(np.int32).max
     index_dtype = np.int32 if small else np.int64
     indptr = np.arange(0, n * q * 8 + 1, q * 8, dtype=index_dtype)
-    return sparse.csr_matrix((w.ravel().astype(dtype), idx.ravel().astype(index_dtype), indptr),
-                             shape=(n, size))
+    return sparse.csr_matrix((w.ravel().astype(dtype, copy=False), idx.ravel().astype(index_dtype, copy=False),
+                              indptr), shape=(n, size))
 
 
 def trilinear(volume: NDArray, coords: NDArray, gradient: bool = False) -> tuple[NDArray, NDArray | None]:

@@ -1,0 +1,123 @@
+"""Writing a reconstruction: volume, preview, per-slice transforms (ITK ``.tfm`` and a text listing), report.
+
+Per-slice ``.tfm`` files (``transforms/stack{S}_slice{K:03d}.tfm``) hold an
+``AffineTransform_double_3_3`` in ITK's LPS world frame with centre 0. The mapping is exactly
+
+    T_lps = F @ scanner_from_atlas @ F,   scanner_from_atlas = stack_affine @ inverse(atlas_from_voxel),
+
+with ``F = diag(-1, -1, 1, 1)`` (:mod:`service.geometry.frames`): it maps a point of the
+reconstruction / atlas space (LPS mm) to the point of the uploaded stack's own physical space
+(LPS mm, as ITK reads that file's header) where that slice observed it. This is ITK's registration
+convention with the reconstruction as the fixed image and the stack as the moving image, so
+``sitk.Resample(stack_image, reconstruction_image, sitk.ReadTransform(path))`` maps that slice of
+the stack into atlas space. (``atlas_from_scanner``, the other direction, is its inverse.)
+
+``transforms/slice_transforms.txt`` lists every slice, SVRTK-style, one line each:
+``stack slice included weight`` then the 12 numbers of the top 3 x 4 block (row-major) of
+``atlas_from_voxel`` (voxel index of the stack file -> atlas RAS mm). ``report.json`` has the same
+per slice with the NCC, plus the volume's geometry and the timings.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from service.geometry import frames
+from service.io.volume import write_volume
+from service.reconstruction.pipeline import ReconstructionResult
+from service.reconstruction.preview import preview_png
+from service.reconstruction.slices import SliceSet
+
+TFM_HEADER = "#Insight Transform File V1.0"
+
+
+def scanner_from_atlas(atlas_from_voxel: ArrayLike, stack_affine: ArrayLike) -> NDArray[np.float64]:
+    """``[n, 4, 4]`` RAS transforms atlas mm -> the stack's scanner mm (``stack_affine @ inv(atlas_from_voxel)``)."""
+    return np.asarray(stack_affine, np.float64) @ np.linalg.inv(np.asarray(atlas_from_voxel, np.float64))
+
+
+def tfm_text(transform_lps: ArrayLike) -> str:
+    """The ``.tfm`` text of one ``4 x 4`` world -> world affine given in LPS."""
+    m = np.asarray(transform_lps, dtype=np.float64)
+    params = " ".join(repr(float(v)) for v in list(m[:3, :3].ravel()) + list(m[:3, 3]))
+    return (f"{TFM_HEADER}\n#Transform 0\nTransform: AffineTransform_double_3_3\n"
+            f"Parameters: {params}\nFixedParameters: 0 0 0\n")
+
+
+def write_slice_tfms(folder: Path, atlas_from_voxel: ArrayLike, slices: SliceSet) -> list[Path]:
+    """Write one ``.tfm`` per slice (see the module docstring for the mapping); returns the paths."""
+    folder.mkdir(parents=True, exist_ok=True)
+    lps = frames.LPS_FROM_RAS @ scanner_from_atlas(atlas_from_voxel, slices.stack_affine) @ frames.RAS_FROM_LPS
+    paths = []
+    for i, m in enumerate(lps):
+        path = folder / f"stack{int(slices.stack_index[i])}_slice{int(slices.slice_index[i]):03d}.tfm"
+        path.write_text(tfm_text(m))
+        paths.append(path)
+    return paths
+
+
+def _num(v: float) -> float | None:
+    return None if v is None or not math.isfinite(float(v)) else float(v)
+
+
+def slice_records(result: ReconstructionResult, slices: SliceSet) -> list[dict]:
+    """Per-slice report entries (stack, slice, included, weight, ncc, atlas_from_voxel)."""
+    return [{"stack": int(slices.stack_index[i]), "slice": int(slices.slice_index[i]),
+             "included": bool(result.included[i]), "weight": _num(result.slice_weight[i]),
+             "ncc": _num(result.ncc[i]), "atlas_from_voxel": result.atlas_from_voxel_final[i].tolist()}
+            for i in range(slices.n_slices)]
+
+
+def listing_text(result: ReconstructionResult, slices: SliceSet) -> str:
+    """The SVRTK-style per-slice listing (see the module docstring)."""
+    lines = ["# stack slice included weight  atlas_from_voxel[0:3, 0:4] row-major "
+             "(voxel index of the stack file -> atlas RAS mm)"]
+    for i in range(slices.n_slices):
+        mat = " ".join(f"{v:.9g}" for v in result.atlas_from_voxel_final[i, :3, :].ravel())
+        lines.append(f"{int(slices.stack_index[i])} {int(slices.slice_index[i])} {int(bool(result.included[i]))} "
+                     f"{float(result.slice_weight[i]):.6f} {mat}")
+    return "\n".join(lines) + "\n"
+
+
+def write_outputs(result: ReconstructionResult, slices: SliceSet, folder: str | Path) -> dict:
+    """Write ``volume.nii.gz``, ``preview.png``, ``report.json`` and ``transforms/`` into ``folder``.
+
+    Args:
+        result: the reconstruction.
+        slices: the slice set it was computed from (for stack/slice indices and stack headers).
+        folder: output folder (created).
+
+    Returns:
+        The JSON-ready report (counts, geometry, timings, file names and, per slice, inclusion, weight
+        and final pose) that is also written to ``report.json``; the job record holds it.
+    """
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    write_volume(result.volume, out / "volume.nii.gz")
+    (out / "preview.png").write_bytes(preview_png(result.volume))
+    tfms = write_slice_tfms(out / "transforms", result.atlas_from_voxel_final, slices)
+    (out / "transforms" / "slice_transforms.txt").write_text(listing_text(result, slices))
+    ncc = result.ncc[result.included]
+    summary = {
+        "n_stacks": int(slices.stack_index.max()) + 1 if slices.n_slices else 0,
+        "n_slices": int(slices.n_slices),
+        "n_included": int(result.included.sum()),
+        "n_excluded": int((slices.include & ~result.included).sum()),
+        "n_not_used": int((~slices.include).sum()),
+        "mean_ncc": _num(float(np.mean(ncc))) if ncc.size else None,
+        "shape": [int(s) for s in result.volume.array.shape],
+        "resolution_mm": [float(s) for s in result.volume.spacing],
+        "affine": result.volume.affine.tolist(),
+        "timings_s": {k: round(float(v), 3) for k, v in result.timings.items()},
+        "files": ["volume.nii.gz", "preview.png", "report.json", "transforms/slice_transforms.txt",
+                  f"transforms/*.tfm ({len(tfms)})"],
+    }
+    mapping = "LPS, atlas (fixed) -> stack scanner space (moving); see service.reconstruction.export"
+    report = dict(summary, tfm_mapping=mapping, slices=slice_records(result, slices))
+    (out / "report.json").write_text(json.dumps(report, indent=1))
+    return report

@@ -1,0 +1,125 @@
+"""Reconstruction jobs through the app: lifecycle, results, cancel, failure, restart with a queued job."""
+
+from __future__ import annotations
+
+import gzip
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from service.io.volume import Volume, read_volume, write_volume
+from service.jobs.store import JobStore
+from tests.api.conftest import OracleEstimator, make_client
+from service.inference.registry import ModelRegistry
+from tests.phantoms import acquire_stack, phantom_brain, stack_affine
+
+BRAIN = phantom_brain(5)
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """Three small orthogonal stacks with their true poses as a /v1/predict body."""
+    d = tmp_path_factory.mktemp("job_case")
+    files, body = [], {"stacks": []}
+    for axis in range(3):
+        shape = [36, 36, 36]
+        shape[axis] = 12
+        aff = stack_affine(axis, np.eye(3), 2.0, 5.0, tuple(shape))
+        g = np.broadcast_to(np.eye(4), (12, 4, 4))
+        img, msk = acquire_stack(*BRAIN, aff, tuple(shape), axis, g)
+        write_volume(Volume(img, aff), d / f"s{axis}.nii.gz")
+        write_volume(Volume(msk.astype(np.uint8), aff), d / f"m{axis}.nii.gz")
+        files.append((d / f"s{axis}.nii.gz", d / f"m{axis}.nii.gz"))
+        body["stacks"].append({"slices": [{"index": s, "accepted": True, "atlas_from_voxel": (g[s] @ aff).tolist()}
+                                          for s in range(12)]})
+    return {"files": files, "poses": body}
+
+
+def submit(client: TestClient, case: dict, poses: dict | None = None, **data: str):  # noqa: ANN201
+    files = [("stacks", (s.name, s.read_bytes())) for s, _ in case["files"]]
+    files += [("masks", (m.name, m.read_bytes())) for _, m in case["files"]]
+    files.append(("poses", ("poses.json", json.dumps(poses or case["poses"]).encode(), "application/json")))
+    return client.post("/v1/reconstructions", files=files, data={"resolution_mm": "2.0", "svr_iterations": "1", **data})
+
+
+def wait(client: TestClient, job_id: str, timeout: float = 180.0) -> dict:
+    seen = set()
+    t0 = time.time()
+    while time.time() - t0 < timeout:
+        st = client.get(f"/v1/reconstructions/{job_id}").json()
+        seen.add(st["status"])
+        if st["status"] in ("succeeded", "failed", "cancelled"):
+            st["seen"] = seen
+            return st
+        time.sleep(0.3)
+    raise AssertionError(f"job {job_id} did not finish in {timeout} s (seen {seen})")
+
+
+@pytest.fixture
+def client(tmp_path: Path):  # noqa: ANN201
+    with make_client(ModelRegistry({"default": OracleEstimator()}), data_dir=str(tmp_path)) as c:
+        yield c
+
+
+def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: dict, tmp_path: Path) -> None:
+    r = submit(client, case)
+    assert r.status_code == 202, r.text
+    job_id = r.json()["job_id"]
+    assert r.headers["location"] == f"/v1/reconstructions/{job_id}" == r.json()["status_url"]
+    early = client.get(f"/v1/reconstructions/{job_id}/volume")
+    assert early.status_code in (409, 200)
+    st = wait(client, job_id)
+    assert st["status"] == "succeeded", st
+    assert st["progress"] == 1.0 and st["result_url"].endswith("/volume") and st["preview_url"].endswith(".png")
+    vol_bytes = client.get(st["result_url"]).content
+    (tmp_path / "v.nii.gz").write_bytes(vol_bytes)
+    vol = read_volume(tmp_path / "v.nii.gz")
+    assert vol.array.ndim == 3 and np.isfinite(vol.array).all() and vol.array.max() > 0
+    np.testing.assert_allclose(vol.spacing, 2.0, atol=1e-4)
+    png = client.get(st["preview_url"])
+    assert png.status_code == 200 and png.content[:8] == b"\x89PNG\r\n\x1a\n"
+    report = st["report"]
+    assert report and len(report["slices"]) == 36
+    assert {"stack", "slice", "included", "weight"} <= set(report["slices"][0])
+    assert client.get("/v1/reconstructions/unknown").status_code == 404
+
+
+def test_cancel_and_failure(client: TestClient, case: dict) -> None:
+    job_id = submit(client, case, svr_iterations="3").json()["job_id"]
+    assert client.delete(f"/v1/reconstructions/{job_id}").status_code == 204
+    st = client.get(f"/v1/reconstructions/{job_id}").json()
+    assert st["status"] == "cancelled"
+    assert client.get(f"/v1/reconstructions/{job_id}/volume").status_code == 409
+    # Every slice rejected: the job fails, with its reason.
+    rejected = json.loads(json.dumps(case["poses"]))
+    for st_ in rejected["stacks"]:
+        for s in st_["slices"]:
+            s["accepted"] = False
+    job_id = submit(client, case, poses=rejected).json()["job_id"]
+    st = wait(client, job_id)
+    assert st["status"] == "failed" and st["error"]
+
+
+def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict) -> None:
+    short = {"stacks": case["poses"]["stacks"][:2]}
+    r = submit(client, case, poses=short)
+    assert r.status_code == 422 and "poses" in r.json()["detail"]
+
+
+def test_a_job_queued_before_a_restart_completes_after_it(case: dict, tmp_path: Path) -> None:
+    store = JobStore(tmp_path)                   # the previous server accepted a job and stopped
+    job = store.create({"resolution_mm": 2.0, "svr_iterations": 0, "mc_samples": 10, "model": "default"})
+    inputs = store.directory(job.id) / "inputs"
+    inputs.mkdir()
+    for i, (s, m) in enumerate(case["files"]):
+        (inputs / f"stack{i}").write_bytes(s.read_bytes())
+        (inputs / f"mask{i}").write_bytes(m.read_bytes())
+    (inputs / "poses.json").write_text(json.dumps(case["poses"]))
+    (inputs / "params.json").write_text(json.dumps(store.get(job.id).params))
+    with make_client(ModelRegistry({"default": OracleEstimator()}), data_dir=str(tmp_path)) as client:
+        st = wait(client, job.id)
+    assert st["status"] == "succeeded", st

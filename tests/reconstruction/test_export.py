@@ -1,0 +1,88 @@
+"""Outputs: ITK .tfm round trip through SimpleITK, the per-slice listing, report, volume and preview."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+from PIL import Image
+
+from service.geometry import frames
+from service.geometry.pose import apply
+from service.io.volume import Volume, read_volume, to_sitk
+from service.reconstruction.export import scanner_from_atlas, write_outputs
+from service.reconstruction.pipeline import reconstruct
+from service.reconstruction.preview import preview_png
+from tests.reconstruction.helpers import perturb
+
+
+@pytest.fixture(scope="module")
+def written(acquisition, tmp_path_factory):
+    truth = acquisition.slice_set()
+    start = perturb(truth.atlas_from_voxel, np.random.default_rng(2), 1.0, 1.0, truth.centres())
+    include = [np.ones(len(t), bool) for t in acquisition.truth]
+    include[1][3] = False
+    ss = acquisition.slice_set(poses=np.split(start, [20, 40]), include=include)
+    result = reconstruct(ss, resolution_mm=1.5, svr_iterations=1)
+    folder = tmp_path_factory.mktemp("outputs")
+    summary = write_outputs(result, ss, folder)
+    return ss, result, folder, summary
+
+
+def test_tfm_round_trips_through_simpleitk(acquisition, written):
+    """(f) Each .tfm, read by SimpleITK, maps a slice voxel's atlas position (LPS) to that voxel's
+    physical point in the stack file (LPS), i.e. fixed = atlas, moving = stack."""
+    ss, result, folder, _ = written
+    rng = np.random.default_rng(0)
+    for i in rng.choice(np.flatnonzero(ss.include), 6, replace=False):
+        s, k = int(ss.stack_index[i]), int(ss.slice_index[i])
+        tfm = sitk.ReadTransform(str(folder / "transforms" / f"stack{s}_slice{k:03d}.tfm"))
+        stack_image = to_sitk(acquisition.stacks[s][0])
+        voxels = ss.voxel[ss.slice_id == i][:5].astype(np.float64)
+        atlas_ras = apply(result.atlas_from_voxel_final[i], voxels)
+        for v, p in zip(voxels, atlas_ras):
+            mapped = tfm.TransformPoint(tuple(float(c) for c in frames.LPS_FROM_RAS[:3, :3] @ p))
+            expected = stack_image.TransformContinuousIndexToPhysicalPoint(tuple(float(c) for c in v))
+            assert np.allclose(mapped, expected, atol=1e-6)
+        # and the matrix is F (stack_affine @ inv(atlas_from_voxel)) F
+        m = np.eye(4)
+        m[:3, :3] = np.array(tfm.GetParameters()[:9]).reshape(3, 3)
+        m[:3, 3] = tfm.GetParameters()[9:]
+        want = frames.lps_transform_from_ras(scanner_from_atlas(result.atlas_from_voxel_final[i], ss.stack_affine[i]))
+        assert np.allclose(m, want, atol=1e-9)
+
+
+def test_listing_report_volume_and_preview(written):
+    ss, result, folder, summary = written
+    lines = (folder / "transforms" / "slice_transforms.txt").read_text().splitlines()
+    assert lines[0].startswith("#") and len(lines) == ss.n_slices + 1
+    rows = np.array([[float(v) for v in line.split()] for line in lines[1:]])
+    assert rows.shape == (ss.n_slices, 16)
+    assert np.array_equal(rows[:, 0], ss.stack_index) and np.array_equal(rows[:, 1], ss.slice_index)
+    assert np.array_equal(rows[:, 2].astype(bool), result.included)
+    assert np.allclose(rows[:, 4:].reshape(-1, 3, 4), result.atlas_from_voxel_final[:, :3, :], rtol=1e-8, atol=1e-6)
+    assert len(list((folder / "transforms").glob("*.tfm"))) == ss.n_slices
+
+    report = json.loads((folder / "report.json").read_text())
+    assert report["n_slices"] == ss.n_slices == len(report["slices"])
+    entry = report["slices"][20 + 3]
+    assert (entry["stack"], entry["slice"], entry["included"], entry["ncc"]) == (1, 3, False, None)
+    assert summary["n_not_used"] >= 1 and summary["n_included"] == int(result.included.sum())
+    assert summary == report                       # the job record holds the same report, per-slice included
+
+    vol = read_volume(folder / "volume.nii.gz")
+    assert np.allclose(vol.affine, result.volume.affine) and np.allclose(vol.array, result.volume.array)
+    png = Image.open(folder / "preview.png")
+    i, j, k = result.volume.array.shape
+    assert png.size == (j + i + i + 4, max(k, j)) and png.mode == "L"
+
+
+def test_preview_handles_anisotropic_and_empty_volumes():
+    vol = Volume(np.random.default_rng(0).random((10, 12, 6)).astype(np.float32), np.diag([1.0, 1.0, 2.0, 1.0]))
+    img = Image.open(io.BytesIO(preview_png(vol)))
+    assert img.size == (12 + 10 + 10 + 4, 12)                 # k stretched to 12 mm of 1 mm pixels
+    blank = Image.open(io.BytesIO(preview_png(Volume(np.zeros((4, 4, 4), np.float32), np.eye(4)))))
+    assert np.asarray(blank).max() == 0
