@@ -56,6 +56,21 @@ def poses_from_predict_body(body: dict, n_slices: list[int]) -> list[tuple[np.nd
     return out
 
 
+def predicted_poses(uploads: list, estimator, mc_samples: int = 100,  # noqa: ANN001
+                    variance_threshold: float | None = None) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[np.ndarray]]:
+    """Poses from the service's own prediction: ``[(atlas_from_voxel, accepted)]`` and the brain masks
+    (on each stack's grid) per stack, exactly as ``/v1/predict`` would answer for these uploads.
+    """
+    from service.inference.pipeline import predict, prepare_stacks
+
+    threshold = variance_threshold or estimator.info.variance_threshold
+    prepared = prepare_stacks(uploads, estimator.info, bias_correction=True, workers=1)
+    results, _ = predict(prepared, estimator, mc_samples, threshold)
+    poses = poses_from_predict_body({"stacks": results}, [len(r["slices"]) for r in results])
+    masks = [np.moveaxis(p.slices.masks.transpose(0, 2, 1), 0, p.slices.slice_axis) for p in prepared]
+    return poses, masks
+
+
 def run_job(data_dir: str, models_dir: str, job_id: str) -> None:
     """Execute one job (in a worker process)."""
     store = JobStore(Path(data_dir))
@@ -81,7 +96,7 @@ def run_job(data_dir: str, models_dir: str, job_id: str) -> None:
 def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progress) -> None:  # noqa: ANN001
     from service.inference.estimator import OnnxPoseEstimator
     from service.inference.model_file import load_model
-    from service.inference.pipeline import StackUpload, predict, prepare_stacks
+    from service.inference.pipeline import StackUpload
     from service.io.readers import read_upload
     from service.reconstruction.export import write_outputs
     from service.reconstruction.pipeline import reconstruct
@@ -106,12 +121,8 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     else:
         progress("predicting poses", 0.05)
         estimator = OnnxPoseEstimator(load_model(models_dir / params.get("model", "default") / "model.onnx", threads=1))
-        threshold = params.get("variance_threshold") or estimator.info.variance_threshold
-        prepared = prepare_stacks(uploads, estimator.info, bias_correction=True, workers=1)
-        results, _ = predict(prepared, estimator, int(params.get("mc_samples", 100)), threshold)
-        poses = poses_from_predict_body({"stacks": results}, [len(r["slices"]) for r in results])
-        masks = [p.slices.masks.transpose(0, 2, 1) for p in prepared]
-        masks = [np.moveaxis(m, 0, p.slices.slice_axis) for m, p in zip(masks, prepared)]
+        poses, masks = predicted_poses(uploads, estimator, int(params.get("mc_samples", 100)),
+                                       params.get("variance_threshold"))
     progress("reconstructing", 0.15)
     slice_set = SliceSet.from_stacks([(u.volume, m, mats, acc) for u, m, (mats, acc) in zip(uploads, masks, poses)])
     result = reconstruct(slice_set, resolution_mm=float(params.get("resolution_mm", 0.8)),
