@@ -13,7 +13,7 @@ from fastapi.testclient import TestClient
 
 from service.io.volume import Volume, read_volume, write_volume
 from service.jobs.store import JobStore
-from tests.api.conftest import OracleEstimator, make_client
+from tests.api.conftest import OracleEstimator, make_client, tiny_model_path  # noqa: F401 - fixture
 from service.inference.registry import ModelRegistry
 from tests.phantoms import acquire_stack, phantom_brain, stack_affine
 
@@ -123,3 +123,27 @@ def test_a_job_queued_before_a_restart_completes_after_it(case: dict, tmp_path: 
     with make_client(ModelRegistry({"default": OracleEstimator()}), data_dir=str(tmp_path)) as client:
         st = wait(client, job.id)
     assert st["status"] == "succeeded", st
+
+
+def test_job_without_poses_predicts_them_with_the_model(case: dict, tiny_model_path: Path, tmp_path: Path) -> None:
+    """No poses uploaded: the worker runs the model (here the tests' tiny real ONNX model) itself.
+
+    Its random weights place slices anywhere, so the job either succeeds with a report of every
+    slice or fails with a reason -- it never hangs or disappears.
+    """
+    from service.inference.estimator import OnnxPoseEstimator
+    from service.inference.model_file import load_model
+
+    registry = ModelRegistry({"tiny": OnnxPoseEstimator(load_model(tiny_model_path))})
+    with make_client(registry, data_dir=str(tmp_path), models_dir=str(tiny_model_path.parent.parent)) as client:
+        files = [("stacks", (s.name, s.read_bytes())) for s, _ in case["files"]]
+        files += [("masks", (m.name, m.read_bytes())) for _, m in case["files"]]
+        r = client.post("/v1/reconstructions", files=files,
+                        data={"resolution_mm": "3.0", "svr_iterations": "0", "mc_samples": "5", "model": "tiny"})
+        assert r.status_code == 202, r.text
+        st = wait(client, r.json()["job_id"])
+    assert st["seen"] & {"queued", "running"}
+    if st["status"] == "succeeded":
+        assert len(st["report"]["slices"]) == 36
+    else:
+        assert st["status"] == "failed" and st["error"]
