@@ -31,7 +31,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy import ndimage
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -42,7 +41,8 @@ from service.io.volume import Volume, read_volume  # noqa: E402
 from service.reconstruction.pipeline import ReconstructionConfig, reconstruct  # noqa: E402
 from service.reconstruction.registration import anchor_frame  # noqa: E402
 from service.reconstruction.slices import SliceSet  # noqa: E402
-from tests.phantoms import acquire_stack, phantom_brain, stack_affine  # noqa: E402
+from tests.phantoms import phantom_brain, stack_affine  # noqa: E402
+from tests.reconstruction.helpers import thick_stack  # noqa: E402
 
 ATLAS = ROOT.parent / "shared" / "data" / "fetal_atlas" / "crl_sta"
 
@@ -61,22 +61,6 @@ def rigid_about(centres: np.ndarray, rot_deg: np.ndarray, trans_mm: np.ndarray) 
     rot = se3.so3_exp(np.deg2rad(rot_deg))
     t = centres + trans_mm - np.einsum("nij,nj->ni", rot, centres)
     return make_pose(rot, t)
-
-
-def thick_stack(img, msk, aff, saff, shape, axis, motion, points: int = 7):  # noqa: ANN001, ANN201
-    """A stack through a Gaussian PSF: FWHM = slice spacing through-plane, 1.2 pixels in-plane."""
-    u = np.linspace(-2.0, 2.0, points)
-    w = np.exp(-0.5 * u**2)
-    w /= w.sum()
-    out = np.zeros(shape, np.float32)
-    for ui, wi in zip(u, w):
-        shift = np.eye(4)
-        shift[axis, 3] = ui * sampling.FWHM_TO_SIGMA
-        out += wi * acquire_stack(img, msk, aff, saff @ shift, shape, axis, motion)[0]
-    inplane = np.full(3, sampling.INPLANE_FWHM_FACTOR * sampling.FWHM_TO_SIGMA)   # in pixels
-    inplane[axis] = 0.0
-    out = ndimage.gaussian_filter(out, inplane, mode="constant")
-    return out, acquire_stack(img, msk, aff, saff, shape, axis, motion)[1]
 
 
 def make_data(seed: int = 0):  # noqa: ANN201

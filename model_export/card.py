@@ -9,6 +9,16 @@ from model_export.atlas import POPULATIONS
 from model_export.compare import markdown as table_markdown
 
 
+def _stage_text(train_config: dict) -> str:
+    """The first stage's figures when the run started from another checkpoint's weights (``--init``)."""
+    prior = train_config.get("init_from")
+    if not prior:
+        return ""
+    return (f"; a second stage, started from the weights of a first run of {prior['steps']} steps "
+            f"({prior['samples_seen']:,} samples, {prior['train_seconds'] / 3600:.2f} h, val E.D. "
+            f"{prior['val_ed_mm']:.1f} mm) with the same recipe -- the cost below is the total of both")
+
+
 def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict, calibration: dict,
                evaluation: dict, comparison: list[dict] | None, report_path: str, onnx_bytes: int) -> Path:
     """Write ``card.md`` with training cost, validation accuracy, calibration and the backbone table."""
@@ -34,7 +44,7 @@ def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict
   bias field, gamma, signal voids, Rician noise, perturbed masks; then the service's own slice
   preprocessing (`service/preprocess/slices.py`).
 - optimiser: Adam, lr {train_config['lr']}, step decay x{train_config['lr_gamma']} at {train_config['lr_milestones']} of
-  {train_summary['steps']} steps, batch {train_config['batch']}
+  {train_summary['steps']} steps, batch {train_config['batch']}{_stage_text(train_config)}
 - cost on this 2-core CPU: **{hours:.2f} h**, **{train_summary['samples_seen']:,} samples seen**
 
 ## Validation (whole held-out volumes: {', '.join(train_config['val_volumes'])})

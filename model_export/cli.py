@@ -37,6 +37,8 @@ def train(
     threads: int = 1,
     seed: int = 0,
     resume: Annotated[Optional[Path], typer.Option(help="checkpoint to continue from")] = None,
+    init: Annotated[Optional[Path], typer.Option(help="checkpoint whose weights start a new stage "
+                                                      "(fresh optimiser and schedule)")] = None,
     root: Root = DEFAULT_ATLAS_ROOT,
 ) -> None:
     """Train a model on simulated slices of the atlas volumes."""
@@ -44,7 +46,7 @@ def train(
 
     cfg = TrainConfig(backbone=backbone, width=width, label_type=label_type, sampling=sampling, steps=steps,
                       batch=batch, lr=lr, dropout=dropout, val_every=val_every, threads=threads, seed=seed)
-    best = run(cfg, out, root, resume)
+    best = run(cfg, out, root, resume, init=init)
     typer.echo(f"best checkpoint: {best}")
 
 

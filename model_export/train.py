@@ -50,6 +50,7 @@ class TrainConfig:
     train_volumes: list[str] | None = None
     val_volumes: list[str] | None = None
     simulation: dict = field(default_factory=dict)
+    init_from: dict | None = None
 
 
 class SliceStream(IterableDataset):
@@ -122,8 +123,19 @@ def pose_errors(pred: np.ndarray, true: np.ndarray) -> dict[str, np.ndarray]:
 
 
 def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resume: Path | None = None,
-          progress: bool = True) -> Path:
-    """Train, logging to ``out_dir/log.csv``; returns the path of the best checkpoint."""
+          progress: bool = True, init: Path | None = None) -> Path:
+    """Train, logging to ``out_dir/log.csv``; returns the path of the best checkpoint.
+
+    Args:
+        cfg: the run's configuration.
+        out_dir: run folder (checkpoints, ``log.csv``, ``loss.png``, ``summary.json``).
+        root: the atlas folder.
+        resume: continue a run exactly (weights, optimiser, learning-rate schedule, step).
+        progress: show a progress bar.
+        init: start from this checkpoint's weights (and label normalisation) with a fresh optimiser
+            and schedule of ``cfg.steps`` -- a second training stage. Samples seen and training time
+            carry over, so the figures of the final checkpoint are the totals.
+    """
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
@@ -144,6 +156,14 @@ def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resu
         opt.load_state_dict(ck["optimizer"])
         sched.load_state_dict(ck["scheduler"])
         step, best, seen, elapsed = ck["step"], ck.get("best_ed_mm", best), ck.get("samples_seen", 0), ck.get("train_seconds", 0.0)
+    elif init is not None:
+        ck = torch.load(init, map_location="cpu", weights_only=False)
+        if {**ck["model_config"], "dropout": model.config["dropout"]} != model.config:
+            raise ValueError(f"--init {init}: its network {ck['model_config']} differs from {model.config}")
+        model.load_state_dict(ck["model"])
+        seen, elapsed = ck.get("samples_seen", 0), ck.get("train_seconds", 0.0)
+        cfg.init_from = {"checkpoint": str(init), "steps": ck["step"], "samples_seen": seen,
+                         "train_seconds": elapsed, "val_ed_mm": ck.get("val_ed_mm", float("nan"))}
     else:
         model.set_label_normalisation(torch.from_numpy(label_sample(cfg, root, sim)).float())
 

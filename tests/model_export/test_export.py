@@ -125,3 +125,15 @@ def test_tiny_pipeline_trains_exports_and_loads(phantom_atlas: Path, tmp_path: P
     cfg.steps = 9
     train(cfg, tmp_path / "run", phantom_atlas, resume=tmp_path / "run" / "last.pt", progress=False)
     assert (tmp_path / "run" / "log.csv").read_text().splitlines()[-1].startswith("9,")
+    # A second stage starts from the weights with a fresh schedule; samples and time are totals.
+    import torch
+
+    first = torch.load(tmp_path / "run" / "last.pt", weights_only=False)
+    stage = TrainConfig(**{**cfg.__dict__, "steps": 3, "val_every": 3})
+    train(stage, tmp_path / "stage2", phantom_atlas, init=tmp_path / "run" / "last.pt", progress=False)
+    second = torch.load(tmp_path / "stage2" / "last.pt", weights_only=False)
+    assert second["step"] == 3 and second["samples_seen"] == first["samples_seen"] + 3 * 16
+    assert second["config"]["init_from"]["steps"] == 9 and second["scheduler"]["milestones"]
+    with pytest.raises(ValueError, match="differs"):
+        train(TrainConfig(**{**stage.__dict__, "hidden": 64}), tmp_path / "bad", phantom_atlas,
+              init=tmp_path / "run" / "last.pt", progress=False)
