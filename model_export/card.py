@@ -9,6 +9,14 @@ from model_export.atlas import POPULATIONS
 from model_export.compare import markdown as table_markdown
 
 
+def _grid_text(train_config: dict) -> str:
+    grid, channels = train_config.get("spatial_grid", 0), train_config.get("grid_channels", 0)
+    if not grid:
+        return "global average pooled features"
+    reduce = f"1x1 convolution to {channels} channels, then " if channels else ""
+    return f"{reduce}a {grid}x{grid} spatial grid of features"
+
+
 def _stage_text(train_config: dict) -> str:
     """The first stage's figures when the run started from another checkpoint's weights (``--init``)."""
     prior = train_config.get("init_from")
@@ -28,7 +36,7 @@ def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict
 
 | | |
 |---|---|
-| backbone | `{info['backbone']}` (width {train_config['width']}), spatial 3x3 grid features, head FC-{train_config['hidden']} with one branch per anchor point, dropout {train_config['dropout']} before every FC layer |
+| backbone | `{info['backbone']}` (width {train_config['width']}), {_grid_text(train_config)}, head FC-{train_config['hidden']} with one branch per anchor point, dropout {train_config['dropout']} before every FC layer |
 | labels | {info['label_type']} points (P1, P2, P3 at +-60 mm; multi-loss, one L2 term per point) |
 | input | {info['input_size']} x {info['input_size']} px of {info['pixel_spacing_mm']} mm; {info['intensity']} |
 | output space | atlas `{info['atlas_id']}` (RAS mm of `shared/data/fetal_atlas`) |

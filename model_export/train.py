@@ -37,8 +37,9 @@ class TrainConfig:
     lr_milestones: tuple[float, ...] = (0.6, 0.85)
     lr_gamma: float = 0.2
     dropout: float = 0.5
-    hidden: int = 256
+    hidden: int = 128
     spatial_grid: int = 3
+    grid_channels: int = 32
     loss_weights: tuple[float, ...] | None = None
     seed: int = 0
     val_every: int = 500
@@ -143,7 +144,8 @@ def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resu
     cfg.train_volumes = cfg.train_volumes or train_names
     cfg.val_volumes = cfg.val_volumes or val_names
     sim = SimulationConfig(sampling=cfg.sampling, **cfg.simulation)
-    model = SVRNet(cfg.backbone, cfg.width, cfg.label_type, sim.size, cfg.hidden, cfg.dropout, cfg.spatial_grid)
+    model = SVRNet(cfg.backbone, cfg.width, cfg.label_type, sim.size, cfg.hidden, cfg.dropout, cfg.spatial_grid,
+                   cfg.grid_channels)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     milestones = [int(m * cfg.steps) for m in cfg.lr_milestones]
     sched = torch.optim.lr_scheduler.MultiStepLR(opt, milestones, cfg.lr_gamma)
