@@ -5,6 +5,11 @@ bias, voids, imperfect masks), the MC-dropout statistics are computed exactly as
 (same head sampling, same Fréchet mean and variance), and the variance is compared to the true
 anchor-point error of the mean pose. The threshold maximises Youden's J (TPR - FPR) for flagging
 slices with error > ``error_mm``; the AUROC says how well variance ranks bad slices.
+
+When fewer than ``MIN_CLASS_FRACTION`` of the slices fall on one side of ``error_mm`` (a weak model:
+nearly every slice is off by more than 10 mm), Youden's J on a handful of slices is noise; the
+threshold is then chosen for the median error instead (flag the worse half), and both AUROCs are
+reported.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from model_export.train import pose_errors, validation_set
 from service.inference.estimator import statistics
 
 ERROR_MM = 10.0
+MIN_CLASS_FRACTION = 0.1
 
 
 def auroc(scores: np.ndarray, positive: np.ndarray) -> float:
@@ -60,10 +66,15 @@ def calibrate(checkpoint: Path, root: Path = DEFAULT_ATLAS_ROOT, *, mc_samples: 
     est = mc_statistics(model, val.inputs, mc_samples)
     err = pose_errors(est.mean, val.poses)["ed_mm"]
     bad = err > error_mm
-    thr = youden_threshold(est.variance, bad)
+    criterion = error_mm
+    if min(bad.mean(), 1 - bad.mean()) < MIN_CLASS_FRACTION:
+        criterion = float(np.median(err))
+    thr = youden_threshold(est.variance, err > criterion)
     accepted = est.variance <= thr
     return {
-        "threshold": thr, "auroc": auroc(est.variance, bad), "error_mm": error_mm, "n_slices": int(len(err)),
+        "threshold": thr, "auroc": auroc(est.variance, bad), "error_mm": error_mm,
+        "criterion_mm": criterion, "auroc_criterion": auroc(est.variance, err > criterion),
+        "n_slices": int(len(err)),
         "bad_fraction": float(bad.mean()), "accepted_fraction": float(accepted.mean()),
         "ed_accepted_mean_mm": float(err[accepted].mean()) if accepted.any() else float("nan"),
         "ed_rejected_mean_mm": float(err[~accepted].mean()) if (~accepted).any() else float("nan"),

@@ -1,0 +1,51 @@
+"""Calibration statistics and the model card, on synthetic numbers (no training)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from model_export.calibrate import auroc, youden_threshold
+from model_export.card import write_card
+
+RNG = np.random.default_rng(0)
+
+
+def test_auroc_and_youden_on_separable_and_random_scores() -> None:
+    bad = np.r_[np.zeros(50, bool), np.ones(50, bool)]
+    scores = np.r_[RNG.uniform(0, 1, 50), RNG.uniform(2, 3, 50)]
+    assert auroc(scores, bad) == 1.0 and auroc(-scores, bad) == 0.0
+    thr = youden_threshold(scores, bad)
+    assert scores[:50].max() <= thr < scores[50:].min() and ((scores > thr) == bad).all()
+    noise = RNG.uniform(size=4000)
+    assert abs(auroc(noise, RNG.uniform(size=4000) > 0.5) - 0.5) < 0.05
+    assert np.isnan(auroc(scores, np.zeros(100, bool)))
+
+
+def _card(tmp_path: Path, calibration: dict, train_config: dict) -> str:
+    info = dict(name="default", version="1.0.0", backbone="compact", label_type="anchor", input_size="96",
+                pixel_spacing_mm="1.25", intensity="0-255", atlas_id="atlas", variance_threshold="8.4", commit="abc")
+    config = dict(width=1.0, hidden=128, dropout=0.25, lr=1e-3, lr_gamma=0.2, lr_milestones=[0.6, 0.85], batch=64,
+                  val_volumes=["STA24"], spatial_grid=3, grid_channels=32, **train_config)
+    evaluation = dict(ed_mean_mm=40.0, ed_median_mm=38.0, ed_p90_mm=70.0, gd_mean=10.0, outlier_fraction=0.03,
+                      auroc_variance_error_gt_10mm=0.6, accepted_fraction=0.4, ed_accepted_mean_mm=35.0)
+    summary = dict(train_seconds=3600.0, samples_seen=500000, steps=8500, train_volumes_text="23 volumes")
+    out = write_card(tmp_path / "card.md", info=info, train_summary=summary, train_config=config,
+                     calibration=calibration, evaluation=evaluation, comparison=None, report_path="r.md",
+                     onnx_bytes=3_000_000)
+    return out.read_text()
+
+
+def test_card_states_the_head_the_criterion_and_a_second_stage(tmp_path: Path) -> None:
+    cal = dict(threshold=8.43, auroc=0.85, error_mm=10.0, criterion_mm=37.5, auroc_criterion=0.66, n_slices=600,
+               bad_fraction=0.99, accepted_fraction=0.4, ed_accepted_mean_mm=30.0, ed_rejected_mean_mm=45.0,
+               spearman_variance_error=0.35, variance=[1.0], ed_mm=[2.0])
+    prior = dict(init_from=dict(checkpoint="a.pt", steps=4400, samples_seen=281554, train_seconds=1631.0,
+                                val_ed_mm=43.2))
+    text = _card(tmp_path, cal, prior)
+    assert "1x1 convolution to 32 channels, then a 3x3 spatial grid" in text
+    assert "median error, 37.5 mm" in text and "**8.43**" in text and "0.660" in text
+    assert "second stage" in text and "4400 steps" in text and "**1.00 h**" in text
+    plain = _card(tmp_path, {**cal, "criterion_mm": 10.0, "bad_fraction": 0.5}, {})
+    assert "median error" not in plain and "second stage" not in plain and "E.D. > 10.0 mm" in plain
