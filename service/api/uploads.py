@@ -5,6 +5,7 @@ from __future__ import annotations
 import shutil
 import tempfile
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -13,6 +14,8 @@ from fastapi import UploadFile
 from service.core.errors import InvalidParameter
 from service.inference.pipeline import StackUpload
 from service.io.readers import read_upload
+
+READ_WORKERS = 2
 
 
 @contextmanager
@@ -30,19 +33,17 @@ def display_name(upload: UploadFile, field: str, index: int) -> str:
 
 def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: Path) -> list[StackUpload]:
     """Write each upload to ``directory`` and read it (blocking: run in a worker thread)."""
-    if len(masks) > len(stacks):
-        raise InvalidParameter(f"masks: {len(masks)} masks for {len(stacks)} stacks; give none or one per stack")
     if masks and len(masks) != len(stacks):
         raise InvalidParameter(f"masks: {len(masks)} masks for {len(stacks)} stacks; give none or one per stack")
-    out = []
-    for i, up in enumerate(stacks):
-        vol = _read(up, directory / f"stack{i}", display_name(up, "stacks", i))
-        mask, mask_name = None, None
-        if masks:
-            mask_name = display_name(masks[i], "masks", i)
-            mask = _read(masks[i], directory / f"mask{i}", mask_name)
-        out.append(StackUpload(display_name(up, "stacks", i), vol, mask, mask_name))
-    return out
+    jobs = [(up, directory / f"stack{i}", display_name(up, "stacks", i)) for i, up in enumerate(stacks)]
+    jobs += [(up, directory / f"mask{i}", display_name(up, "masks", i)) for i, up in enumerate(masks)]
+    # Decompression and parsing release the GIL: read two files at a time. Errors surface in
+    # upload order, as a sequential loop would raise them.
+    with ThreadPoolExecutor(max_workers=READ_WORKERS) as pool:
+        volumes = list(pool.map(lambda job: _read(*job), jobs))
+    n = len(stacks)
+    return [StackUpload(jobs[i][2], volumes[i], volumes[n + i] if masks else None, jobs[n + i][2] if masks else None)
+            for i in range(n)]
 
 
 def _read(upload: UploadFile, path: Path, name: str):  # noqa: ANN202

