@@ -27,6 +27,18 @@ def _criterion_text(cal: dict) -> str:
             "separates this model's better half of the slices from its worse half.")
 
 
+def _comparison_text(comparison: list[dict] | None) -> str:
+    """The Table II rows with the budget they were trained on."""
+    if not comparison:
+        return "not run"
+    r = comparison[0]
+    return (f"Each backbone: {r['steps']} steps of batch {r['batch']} ({r['steps'] * r['batch']:,} samples), width "
+            f"{r['width']}, the same data stream and validation slices (`svrnet-train compare`). At this budget "
+            "no backbone gets far from predicting the average pose (compare the default above, trained "
+            "about 70x longer); the table shows their cost -- parameters, training time, inference speed "
+            "on this CPU -- more than their eventual accuracy.\n\n" + table_markdown(comparison))
+
+
 def _stage_text(train_config: dict) -> str:
     """The first stage's figures when the run started from another checkpoint's weights (``--init``)."""
     prior = train_config.get("init_from")
@@ -91,7 +103,7 @@ accepted {100 * cal['accepted_fraction']:.0f} % with mean E.D. {cal['ed_accepted
 
 ## The six backbones of the paper (equal short budget, small width)
 
-{table_markdown(comparison) if comparison else "not run"}
+{_comparison_text(comparison)}
 
 ## Data and licences
 
