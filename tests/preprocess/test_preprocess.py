@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 
 import numpy as np
 import pytest
@@ -69,18 +68,16 @@ def biased_phantom(strength: float = 0.5) -> tuple[Volume, np.ndarray, np.ndarra
     return Volume((img * field).astype(np.float32), aff), mask > 0.5, img
 
 
-def test_n4_removes_a_smooth_bias_field_and_shrinking_is_faster_with_the_same_result() -> None:
+def test_n4_removes_a_smooth_bias_field_and_the_shrunk_fit_equals_the_full_resolution_one() -> None:
+    """The default fit (shrunk x4 / to >= 4 mm pixels) corrects as the full-resolution fit does
+    (its speed is a benchmark matter: ``benchmarks/predict_bench.py`` reports the N4 stage)."""
     vol, mask, clean = biased_phantom()
     tissue = mask & (clean > 60) & (clean < 120)             # the uniform 'parenchyma'
     cv = lambda a: a[tissue].std() / a[tissue].mean()       # noqa: E731
-    t0 = time.perf_counter()
-    fast = n4_correct(vol, mask, shrink=4)
-    t1 = time.perf_counter()
-    slow = n4_correct(vol, mask, shrink=1)
-    t2 = time.perf_counter()
+    fast = n4_correct(vol, mask)
+    full = n4_correct(vol, mask, shrink=1, fit_spacing_mm=0.0)
     assert cv(fast) < 0.6 * cv(vol.array)
-    assert np.corrcoef(fast[mask], slow[mask])[0, 1] > 0.98
-    assert (t1 - t0) < (t2 - t1)
+    assert np.corrcoef(fast[mask], full[mask])[0, 1] > 0.98
 
 
 def uterus_phantom() -> tuple[Volume, np.ndarray]:
