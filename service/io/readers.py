@@ -5,13 +5,18 @@ Enhanced multi-frame, or Siemens mosaic), or a ``.zip`` holding one DICOM series
 de-identified on read: only pixel data and geometry leave this module, no tag values are logged.
 
 Validation (each failure raises with the file's name, never a tag value):
-* unreadable, truncated or unknown -> :class:`UnsupportedFile` (415);
+* unreadable, truncated, unknown or inconsistent (any parser error) -> :class:`UnsupportedFile` (415);
+* NRRD / MetaImage headers that point at a detached data file -> 415 (a header must never make the
+  server read one of its own files);
+* voxel data that decode to more than ``max_decoded_bytes`` (gzip or archive bombs) ->
+  :class:`PayloadTooLarge` (413), checked before anything is decoded into memory;
 * 2D, 4D with more than one volume, empty, or non-finite values -> :class:`UnusableImage` (422).
 """
 
 from __future__ import annotations
 
 import gzip
+import re
 import tempfile
 import zipfile
 import zlib
@@ -20,22 +25,36 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
-from service.core.errors import UnsupportedFile, UnusableImage
+from service.core.errors import PayloadTooLarge, ServiceError, UnsupportedFile, UnusableImage
 from service.io.volume import Volume, from_sitk
 
 SUFFIX_BY_KIND = {"nifti": ".nii", "nifti-gz": ".nii.gz", "nrrd": ".nrrd", "mha": ".mha"}
+MAX_DECODED_BYTES = 2 * 2**30
+DETACHED_DATA = {"nrrd": re.compile(rb"^data ?file:", re.I | re.M),
+                 "mha": re.compile(rb"^ElementDataFile\s*=(?![ \t]*LOCAL\b)", re.M)}
 
 
-def sniff(path: Path) -> str:
-    """The kind of file: ``nifti``, ``nifti-gz``, ``nrrd``, ``mha``, ``dicom``, ``zip`` or ``unknown``."""
+class _TooLarge(Exception):
+    """A gzip stream decodes to more than the limit."""
+
+
+def sniff(path: Path, max_decoded_bytes: int = MAX_DECODED_BYTES) -> str:
+    """The kind of file: ``nifti``, ``nifti-gz``, ``nrrd``, ``mha``, ``dicom``, ``zip`` or ``unknown``.
+
+    Raises:
+        _TooLarge: a gzip file that decodes to more than ``max_decoded_bytes``.
+    """
     with open(path, "rb") as f:
         head = f.read(1024)
     if head[:2] == b"\x1f\x8b":
+        decoded = 0
         try:
             with gzip.open(path, "rb") as g:
                 inner = g.read(352)
-                while g.read(1 << 22):  # to the end: a truncated stream or a bad CRC raises here
-                    pass
+                while chunk := g.read(1 << 22):  # to the end: a truncated stream or a bad CRC raises here
+                    decoded += len(chunk)
+                    if decoded > max_decoded_bytes:
+                        raise _TooLarge
         except (OSError, EOFError, zlib.error):
             return "unknown"
         return "nifti-gz" if _is_nifti(inner) else "unknown"
@@ -59,31 +78,61 @@ def _is_nifti(head: bytes) -> bool:
     return (348 in sizeof and head[344:348] in (b"n+1\x00", b"ni1\x00")) or 540 in sizeof
 
 
-def read_upload(path: Path, filename: str) -> Volume:
-    """Read one uploaded file as a 3D :class:`Volume`; ``filename`` is used in error messages only."""
-    kind = sniff(path)
+def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_BYTES) -> Volume:
+    """Read one uploaded file as a 3D :class:`Volume`; ``filename`` is used in error messages only.
+
+    Whatever a parser raises on a client's bytes becomes a 4xx naming ``filename``, never a 500.
+    """
+    too_large = PayloadTooLarge(f"{filename}: its voxel data decode to more than {max_decoded_bytes // 2**20} MB")
     try:
+        kind = sniff(path, max_decoded_bytes)
         if kind in SUFFIX_BY_KIND:
             # SimpleITK picks its reader by suffix: give it a link named by the sniffed content.
             if kind.startswith("nifti") and _nifti_has_nonfinite(path, kind == "nifti-gz"):
                 raise UnusableImage(f"{filename}: contains NaN or infinite values")
+            if kind in DETACHED_DATA and DETACHED_DATA[kind].search(_header(path)):
+                raise UnsupportedFile(f"{filename}: a {kind.upper()} header with a detached data file; "
+                                      "upload one file with its voxel data attached")
             with tempfile.TemporaryDirectory(prefix="svrnet-read-") as tmp:
                 named = Path(tmp) / f"upload{SUFFIX_BY_KIND[kind]}"
                 named.symlink_to(Path(path).resolve())
+                if _declared_bytes(named) > max_decoded_bytes:
+                    raise too_large
                 vol = from_sitk(_squeeze_4d(sitk.ReadImage(str(named)), filename))
         elif kind == "dicom":
             from service.io.dicom import read_dicom_file
 
             vol = read_dicom_file(path)
         elif kind == "zip":
-            vol = _read_dicom_zip(path, filename)
+            vol = _read_dicom_zip(path, filename, max_decoded_bytes)
         else:
             raise UnsupportedFile(f"{filename}: not a NIfTI, NRRD, MHA, DICOM or ZIP file (or truncated)")
-    except (UnsupportedFile, UnusableImage):
+    except ServiceError:
         raise
-    except RuntimeError as exc:  # SimpleITK's errors; their text may contain paths, not patient data
-        raise UnsupportedFile(f"{filename}: could not be read as {kind} (corrupt or truncated)") from exc
+    except _TooLarge:
+        raise too_large from None
+    except MemoryError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - SimpleITK's RuntimeError, pydicom's and numpy's errors ...
+        # The text may hold paths or tag values: it stays out of the answer and the log.
+        raise UnsupportedFile(f"{filename}: could not be read (corrupt, truncated or inconsistent file)") from exc
     return validate(vol, filename)
+
+
+def _header(path: Path) -> bytes:
+    """The text header of an NRRD or MetaImage file (up to its first blank line / 64 KB)."""
+    with open(path, "rb") as f:
+        return f.read(1 << 16).split(b"\n\n", 1)[0]
+
+
+def _declared_bytes(path: Path) -> int:
+    """Bytes of voxel data the header declares (read without decoding any voxels)."""
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(path))
+    reader.ReadImageInformation()
+    n = float(np.prod(reader.GetSize(), dtype=np.float64)) * reader.GetNumberOfComponents()
+    itemsize = sitk.GetArrayViewFromImage(sitk.Image([1, 1], reader.GetPixelID())).dtype.itemsize
+    return int(n * itemsize)
 
 
 def _nifti_has_nonfinite(path: Path, compressed: bool) -> bool:
@@ -97,7 +146,10 @@ def _nifti_has_nonfinite(path: Path, compressed: bool) -> bool:
     dtype = {16: "f4", 64: "f8"}.get(datatype)
     if dtype is None:
         return False
-    offset = int(np.frombuffer(raw, endian + "f4", 1, 108)[0])
+    offset = float(np.frombuffer(raw, endian + "f4", 1, 108)[0])
+    if not np.isfinite(offset) or not 348 <= offset <= len(raw):
+        return False  # an impossible header: the reader reports it
+    offset = int(offset)
     data = np.frombuffer(raw, endian + dtype, (len(raw) - offset) // np.dtype(dtype).itemsize, offset)
     return not np.isfinite(data).all()
 
@@ -137,16 +189,20 @@ def validate(vol: Volume, filename: str) -> Volume:
     return Volume(a.astype(np.float32, copy=False), vol.affine)
 
 
-def _read_dicom_zip(path: Path, filename: str) -> Volume:
+def _read_dicom_zip(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_BYTES) -> Volume:
     with tempfile.TemporaryDirectory(prefix="svrnet-zip-") as tmp:
         try:
             with zipfile.ZipFile(path) as z:
                 members = [m for m in z.infolist() if not m.is_dir()]
                 if len(members) > 5000:
                     raise UnusableImage(f"{filename}: too many files in the archive ({len(members)})")
+                # zipfile never inflates a member past its declared size (it raises instead).
+                if sum(m.file_size for m in members) > max_decoded_bytes:
+                    raise PayloadTooLarge(f"{filename}: the archive inflates to more than "
+                                          f"{max_decoded_bytes // 2**20} MB")
                 for i, m in enumerate(members):  # flat, safe names: never trust archive paths
                     (Path(tmp) / f"{i:05d}.dcm").write_bytes(z.read(m))
-        except (zipfile.BadZipFile, OSError, EOFError) as exc:
+        except (zipfile.BadZipFile, OSError, EOFError, zlib.error) as exc:
             raise UnsupportedFile(f"{filename}: corrupt or truncated ZIP archive") from exc
         reader = sitk.ImageSeriesReader()
         series = reader.GetGDCMSeriesIDs(tmp)

@@ -123,3 +123,39 @@ def test_enhanced_multiframe() -> None:
     vol = read_upload(path, path.name)
     assert vol.array.shape == (64, 64, 10) and np.isfinite(vol.array).all()
     assert vol.array.std() > 0
+
+
+def test_impossible_headers_are_read_or_refused_never_an_unexpected_error(tmp_path: Path) -> None:
+    """A NIfTI data offset that is NaN or beyond the file: the reader copes or answers 415/422."""
+    path = tmp_path / "v.nii"
+    write_volume(Volume(np.random.default_rng(1).random((6, 7, 5)).astype(np.float32), oblique()), path)
+    raw = bytearray(path.read_bytes())
+    for offset in (np.nan, 1e9, -5.0):
+        raw[108:112] = np.float32(offset).tobytes()
+        path.write_bytes(bytes(raw))
+        try:
+            vol = read_upload(path, "odd.nii")
+        except (UnsupportedFile, UnusableImage) as exc:
+            assert "odd.nii" in exc.detail
+        else:
+            assert vol.array.shape == (6, 7, 5)
+
+
+@pytest.mark.parametrize("damage", ["orientation with 5 values", "no orientation", "empty shared groups"])
+def test_dicom_with_broken_geometry_is_415(tmp_path: Path, damage: str) -> None:
+    pydicom = pytest.importorskip("pydicom")
+    name = ("pydicom_data_emri_small_enhancedMR_10frames.dcm" if damage == "empty shared groups"
+            else "dicom3tools_0051_siemens_pasl_mosaic.dcm")
+    if not (DICOM_DIR / name).exists():
+        pytest.skip(f"needs the shared DICOM examples at {DICOM_DIR}")
+    ds = pydicom.dcmread(DICOM_DIR / name)
+    if damage == "orientation with 5 values":
+        ds.ImageOrientationPatient = [1, 0, 0, 0, 1]
+    elif damage == "no orientation":
+        del ds.ImageOrientationPatient
+    else:
+        ds.SharedFunctionalGroupsSequence = pydicom.Sequence([])
+    path = tmp_path / "broken.dcm"
+    ds.save_as(path)
+    with pytest.raises(UnsupportedFile, match="broken.dcm"):
+        read_upload(path, "broken.dcm")
