@@ -57,7 +57,8 @@ class SVRnetError(Exception):
 
 
 class BadRequest(SVRnetError):
-    """400 (and any other 4xx without a class of its own): the request itself is malformed."""
+    """400 (and any other 4xx without a class of its own): the request itself is malformed -- a missing
+    field, a parameter out of range, more masks than stacks, a ``poses`` body that does not fit."""
 
 
 class Unauthorized(SVRnetError):
@@ -81,7 +82,7 @@ class UnsupportedFile(SVRnetError):
 
 
 class UnusableInput(SVRnetError):
-    """422: a readable file or a parameter that cannot be used (2D, 4D, mask grid differs ...)."""
+    """422: a readable file that cannot be used (2D, 4D, NaN, mask grid differs from its stack ...)."""
 
 
 class Busy(SVRnetError):

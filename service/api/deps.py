@@ -8,9 +8,10 @@ from collections.abc import AsyncIterator
 from typing import Annotated
 
 from fastapi import Depends, Header, Request
+from starlette.datastructures import State
 
 from service.api.metrics import Metrics
-from service.core.errors import Saturated, Unauthorized
+from service.core.errors import QueueFull, Saturated, ServiceError, Unauthorized
 from service.core.settings import Settings
 from service.inference.registry import ModelRegistry
 
@@ -32,20 +33,54 @@ RegistryDep = Annotated[ModelRegistry, Depends(get_registry)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 
 
+def api_key_ok(keys: set[str], authorization: str | None, x_api_key: str | None) -> bool:
+    """``Authorization: Bearer <key>`` or ``X-API-Key: <key>`` is one of ``keys`` (always true without keys)."""
+    if not keys:
+        return True
+    given = x_api_key
+    if authorization and authorization.lower().startswith("bearer "):
+        given = authorization[7:].strip()
+    return bool(given) and any(hmac.compare_digest(given, k) for k in keys)
+
+
+UNAUTHORIZED = "Authorization: a valid API key is required (Bearer token or X-API-Key header)"
+
+
 def require_api_key(
     settings: SettingsDep,
     authorization: Annotated[str | None, Header(include_in_schema=False)] = None,
     x_api_key: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> None:
     """When ``SVRNET_API_KEYS`` is set: ``Authorization: Bearer <key>`` or ``X-API-Key: <key>``."""
-    keys = settings.key_set()
-    if not keys:
-        return
-    given = x_api_key
-    if authorization and authorization.lower().startswith("bearer "):
-        given = authorization[7:].strip()
-    if not given or not any(hmac.compare_digest(given, k) for k in keys):
-        raise Unauthorized("Authorization: a valid API key is required (Bearer token or X-API-Key header)")
+    if not api_key_ok(settings.key_set(), authorization, x_api_key):
+        raise Unauthorized(UNAUTHORIZED)
+
+
+def early_rejection(state: State, method: str, path: str, headers: dict[str, str]) -> ServiceError | None:
+    """What can be refused before the upload is read (run by the middleware, so a client without a
+    key, or one that would only be told to come back later, does not push its stacks first).
+
+    The route dependencies make the same checks again; these are the early, cheap copies.
+    """
+    settings: Settings = state.settings
+    if path.startswith("/v1/") and not api_key_ok(settings.key_set(), headers.get("authorization"),
+                                                   headers.get("x-api-key")):
+        return Unauthorized(UNAUTHORIZED)
+    if method == "POST" and path == "/v1/predict" and state.slots.locked():
+        return Saturated("the server is busy with other requests; retry later", settings.retry_after_s)
+    if method == "POST" and path == "/v1/reconstructions":
+        return queue_full(state)
+    return None
+
+
+def queue_full(state: State) -> QueueFull | None:
+    """429 when ``max_queued_jobs`` jobs are waiting already."""
+    store = getattr(state, "job_store", None)
+    settings: Settings = state.settings
+    if store is not None and len(store.queued()) >= settings.max_queued_jobs:
+        return QueueFull(f"{settings.max_queued_jobs} reconstruction jobs are queued already; retry later",
+                         settings.retry_after_s)
+    return None
 
 
 async def processing_slot(request: Request) -> AsyncIterator[None]:

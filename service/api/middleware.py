@@ -1,7 +1,8 @@
-"""ASGI middleware: request ids, the upload size limit, metrics and access logs."""
+"""ASGI middleware: request ids, early refusals, the upload size limit, metrics and access logs."""
 
 from __future__ import annotations
 
+import json
 import logging
 import re
 import time
@@ -9,16 +10,27 @@ import uuid
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service.api.deps import early_rejection
 from service.api.metrics import Metrics
-from service.api.problems import MEDIA_TYPE
+from service.api.problems import MEDIA_TYPE, problem_body
+from service.core.errors import PayloadTooLarge, ServiceError
 
 log = logging.getLogger("service.access")
 SAFE_ID = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
 
 
 class RequestContext:
-    """Assigns ``X-Request-ID`` (kept from the client when it is a safe token), limits the body
-    size (413 before or while reading), records metrics and writes one access-log line."""
+    """The outermost layer of the app, around every request:
+
+    * assigns ``X-Request-ID`` (kept from the client when it is a safe token) to every answer;
+    * refuses what needs no body -- a missing API key, a saturated server -- before the upload is read
+      (:func:`service.api.deps.early_rejection`);
+    * limits the body size: 413 from ``Content-Length`` at once, or as soon as a chunked body passes
+      the limit, whatever the form parser makes of the cut-off body;
+    * turns any unexpected exception into a 500 problem+json with the request id, logged by type
+      only (no traceback reaches the client or the log, no patient data the log);
+    * records metrics and writes one access-log line.
+    """
 
     def __init__(self, app: ASGIApp, metrics: Metrics, max_body_bytes: int) -> None:
         self.app, self.metrics, self.max_body = app, metrics, max_body_bytes
@@ -32,50 +44,74 @@ class RequestContext:
         rid = rid if SAFE_ID.match(rid) else uuid.uuid4().hex
         scope.setdefault("state", {})["request_id"] = rid
         start = time.perf_counter()
-        status = {"code": 500}
+        state = {"code": 500, "started": False, "too_large": False}
 
-        async def send_with_id(message: Message) -> None:
+        async def emit(message: Message) -> None:
             if message["type"] == "http.response.start":
-                status["code"] = message["status"]
-                message.setdefault("headers", [])
-                message["headers"] = list(message["headers"]) + [(b"x-request-id", rid.encode())]
+                state["code"], state["started"] = message["status"], True
+                message["headers"] = list(message.get("headers", [])) + [(b"x-request-id", rid.encode())]
             await send(message)
 
+        async def send_with_id(message: Message) -> None:
+            if message["type"] == "http.response.start" and state["too_large"] and not state["started"]:
+                # The body was cut off at the limit: whatever the app answers (the form parser
+                # reports a 400), the client is told 413.
+                state["replaced"] = True
+                await self._problem(emit, rid, PayloadTooLarge(self._too_large_detail()))
+                return
+            if state.get("replaced"):
+                return  # the body of the app's own answer, replaced above
+            await emit(message)
+
+        async def limited_receive() -> Message:
+            message = await receive()
+            if message["type"] == "http.request":
+                state["received"] = state.get("received", 0) + len(message.get("body", b""))
+                if state["received"] > self.max_body:
+                    state["too_large"] = True
+                    raise BodyTooLarge
+            return message
+
+        app = scope.get("app")
+        early = early_rejection(app.state, scope["method"], scope["path"], headers) if app is not None else None
         length = headers.get("content-length")
-        if length is not None and length.isdigit() and int(length) > self.max_body:
-            await self._too_large(send_with_id, rid)
-        else:
-            received = {"n": 0}
-
-            async def limited_receive() -> Message:
-                message = await receive()
-                if message["type"] == "http.request":
-                    received["n"] += len(message.get("body", b""))
-                    if received["n"] > self.max_body:
-                        raise BodyTooLarge
-                return message
-
-            try:
+        try:
+            if early is not None:
+                await self._problem(emit, rid, early)
+            elif length is not None and length.isdigit() and int(length) > self.max_body:
+                await self._problem(emit, rid, PayloadTooLarge(self._too_large_detail()))
+            else:
                 await self.app(scope, limited_receive, send_with_id)
-            except BodyTooLarge:
-                await self._too_large(send_with_id, rid)
+        except BodyTooLarge:
+            if not state["started"]:
+                await self._problem(emit, rid, PayloadTooLarge(self._too_large_detail()))
+        except Exception as exc:  # noqa: BLE001 - the last line of defence: never a traceback
+            log.error("unhandled error", extra={"request_id": rid, "error_type": type(exc).__name__})
+            if not state["started"]:
+                await self._send(emit, 500, problem_body(
+                    500, "Internal server error", "an unexpected error occurred; quote the request id", request_id=rid))
         route = scope.get("route")
         path = getattr(route, "path", None) or "unmatched"
         model = scope["state"].get("model", "")
         elapsed = time.perf_counter() - start
-        self.metrics.observe_request(path, scope["method"], model, status["code"], elapsed)
+        self.metrics.observe_request(path, scope["method"], model, state["code"], elapsed)
         log.info("request", extra={"request_id": rid, "route": path, "method": scope["method"],
-                                   "status": status["code"], "duration_ms": round(elapsed * 1e3, 1)})
+                                   "status": state["code"], "duration_ms": round(elapsed * 1e3, 1)})
 
-    async def _too_large(self, send: Send, rid: str) -> None:
-        import json
+    def _too_large_detail(self) -> str:
+        return f"the request body exceeds the limit of {self.max_body} bytes"
 
-        body = json.dumps({"type": "/problems/payload-too-large", "title": "Upload too large", "status": 413,
-                           "detail": f"the request body exceeds the limit of {self.max_body} bytes",
-                           "request_id": rid}).encode()
-        await send({"type": "http.response.start", "status": 413,
-                    "headers": [(b"content-type", MEDIA_TYPE.encode()), (b"content-length", str(len(body)).encode())]})
-        await send({"type": "http.response.body", "body": body})
+    async def _problem(self, send: Send, rid: str, error: ServiceError) -> None:
+        body = problem_body(error.status, error.title, error.detail, error.type, rid)
+        await self._send(send, error.status, body, error.headers)
+
+    @staticmethod
+    async def _send(send: Send, status: int, body: dict, headers: dict[str, str] | None = None) -> None:
+        data = json.dumps(body).encode()
+        raw = [(b"content-type", MEDIA_TYPE.encode()), (b"content-length", str(len(data)).encode())]
+        raw += [(k.lower().encode("latin-1"), v.encode("latin-1")) for k, v in (headers or {}).items()]
+        await send({"type": "http.response.start", "status": status, "headers": raw})
+        await send({"type": "http.response.body", "body": data})
 
 
 class BodyTooLarge(Exception):

@@ -10,7 +10,7 @@ from fastapi import APIRouter, File, Form, Request, UploadFile
 
 from service.api.deps import ApiKey, MetricsDep, RegistryDep, SettingsDep, SlotDep
 from service.api.schemas import PredictResponse, Problem
-from service.api.uploads import save_and_read, upload_directory
+from service.api.uploads import check_threshold, save_and_read, upload_directory
 from service.core.errors import InvalidParameter
 from service.inference.pipeline import predict as run_prediction
 from service.inference.pipeline import prepare_stacks
@@ -18,7 +18,7 @@ from service.inference.pipeline import prepare_stacks
 router = APIRouter(prefix="/v1", tags=["prediction"], dependencies=[ApiKey])
 
 ERRORS = {code: {"model": Problem, "content": {"application/problem+json": {}}}
-          for code in (400, 401, 404, 413, 415, 422, 503)}
+          for code in (400, 401, 404, 413, 415, 422, 429, 503)}
 
 
 @router.post("/predict", response_model=PredictResponse, responses=ERRORS, summary="Atlas pose of every slice")
@@ -37,14 +37,16 @@ async def predict(
 ) -> dict:
     """Every slice of every stack, accepted or not, in order, with its SE(3) Fréchet-mean pose."""
     t0 = time.perf_counter()
+    model = registry.resolve(model)
     request.scope["state"]["model"] = model
     estimator = registry.get(model)
+    check_threshold(variance_threshold)
     masks = [m for m in (masks or []) if m.filename or m.size]
     if len(stacks) > settings.max_files:
         raise InvalidParameter(f"stacks: {len(stacks)} files; at most {settings.max_files} per request")
     threshold = variance_threshold if variance_threshold is not None else estimator.info.variance_threshold
     with upload_directory(settings.tmp_dir) as tmp:
-        uploads = await to_thread.run_sync(save_and_read, stacks, masks, tmp)
+        uploads = await to_thread.run_sync(save_and_read, stacks, masks, tmp, settings.max_decoded_bytes)
     t_read = time.perf_counter()
     prepared = await to_thread.run_sync(prepare_stacks, uploads, estimator.info, bias_correction,
                                         settings.preprocess_workers)

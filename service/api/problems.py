@@ -1,7 +1,7 @@
 """The one place where exceptions become RFC 7807 ``application/problem+json`` responses.
 
 * :class:`ServiceError` subclasses carry their status, title and detail;
-* request validation errors (FastAPI) become 422 naming the field, or 400 for a malformed body;
+* request validation errors (FastAPI) become 400 naming the field (API v1 keeps 422 for unusable files);
 * Starlette HTTP errors keep their status;
 * anything else is a server fault: 500 with a generic detail and the request id, never a traceback.
 """
@@ -21,13 +21,20 @@ log = logging.getLogger(__name__)
 MEDIA_TYPE = "application/problem+json"
 
 
+def problem_body(status: int, title: str, detail: str, type_: str = "about:blank",
+                 request_id: str | None = None) -> dict:
+    """The RFC 7807 body (plus the request id, when there is one)."""
+    body = {"type": type_, "title": title, "status": status, "detail": detail}
+    if request_id:
+        body["request_id"] = request_id
+    return body
+
+
 def problem(status: int, title: str, detail: str, type_: str = "about:blank",
             headers: dict[str, str] | None = None, request: Request | None = None) -> JSONResponse:
-    body = {"type": type_, "title": title, "status": status, "detail": detail}
     rid = getattr(getattr(request, "state", None), "request_id", None)
-    if rid:
-        body["request_id"] = rid
-    return JSONResponse(body, status_code=status, headers=headers, media_type=MEDIA_TYPE)
+    return JSONResponse(problem_body(status, title, detail, type_, rid), status_code=status, headers=headers,
+                        media_type=MEDIA_TYPE)
 
 
 def _field(loc: tuple) -> str:
@@ -48,7 +55,7 @@ def install(app: FastAPI) -> None:
         if any(e.get("type") in ("json_invalid", "value_error.jsondecode") for e in errors):
             return problem(400, "Malformed request", "the request body could not be parsed", request=request)
         detail = "; ".join(f"{_field(tuple(e.get('loc', ())))}: {e.get('msg', 'invalid')}" for e in errors)
-        return problem(422, "Invalid parameter", detail, "/problems/invalid-parameter", request=request)
+        return problem(400, "Invalid parameter", detail, "/problems/invalid-parameter", request=request)
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:

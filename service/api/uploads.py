@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import shutil
 import tempfile
 from collections.abc import Iterator
@@ -13,7 +14,7 @@ from fastapi import UploadFile
 
 from service.core.errors import InvalidParameter
 from service.inference.pipeline import StackUpload
-from service.io.readers import read_upload
+from service.io.readers import MAX_DECODED_BYTES, read_upload
 
 READ_WORKERS = 2
 
@@ -31,7 +32,14 @@ def display_name(upload: UploadFile, field: str, index: int) -> str:
     return name or f"{field}[{index}]"
 
 
-def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: Path) -> list[StackUpload]:
+def check_threshold(value: float | None) -> None:
+    """``variance_threshold`` is a finite number > 0 when given (the form parser lets ``inf`` through)."""
+    if value is not None and not math.isfinite(value):
+        raise InvalidParameter("variance_threshold: must be a finite number > 0")
+
+
+def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: Path,
+                  max_decoded_bytes: int = MAX_DECODED_BYTES) -> list[StackUpload]:
     """Write each upload to ``directory`` and read it (blocking: run in a worker thread)."""
     if masks and len(masks) != len(stacks):
         raise InvalidParameter(f"masks: {len(masks)} masks for {len(stacks)} stacks; give none or one per stack")
@@ -40,14 +48,14 @@ def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: 
     # Decompression and parsing release the GIL: read two files at a time. Errors surface in
     # upload order, as a sequential loop would raise them.
     with ThreadPoolExecutor(max_workers=READ_WORKERS) as pool:
-        volumes = list(pool.map(lambda job: _read(*job), jobs))
+        volumes = list(pool.map(lambda job: _read(*job, max_decoded_bytes), jobs))
     n = len(stacks)
     return [StackUpload(jobs[i][2], volumes[i], volumes[n + i] if masks else None, jobs[n + i][2] if masks else None)
             for i in range(n)]
 
 
-def _read(upload: UploadFile, path: Path, name: str):  # noqa: ANN202
+def _read(upload: UploadFile, path: Path, name: str, max_decoded_bytes: int):  # noqa: ANN202
     upload.file.seek(0)
     with open(path, "wb") as f:
         shutil.copyfileobj(upload.file, f, 1 << 20)
-    return read_upload(path, name)
+    return read_upload(path, name, max_decoded_bytes)

@@ -54,15 +54,26 @@ class UnusableImage(ServiceError):
 
 
 class InvalidParameter(ServiceError):
-    status, title, type = 422, "Invalid parameter", "/problems/invalid-parameter"
+    """A form field is missing, out of range or inconsistent with another (API v1: "400 malformed request";
+    422 is kept for files that were read but cannot be used)."""
+
+    status, title, type = 400, "Invalid parameter", "/problems/invalid-parameter"
 
 
 class Saturated(ServiceError):
+    """503: every processing slot is taken (``Retry-After`` says when to try again)."""
+
     status, title, type = 503, "Service saturated", "/problems/saturated"
 
     def __init__(self, detail: str, retry_after_s: int = 2) -> None:
         super().__init__(detail)
         self.headers = {"Retry-After": str(retry_after_s)}
+
+
+class QueueFull(Saturated):
+    """429: the reconstruction queue holds its maximum of jobs."""
+
+    status, title, type = 429, "Too many queued jobs", "/problems/queue-full"
 
 
 class NotReady(ServiceError):

@@ -5,8 +5,9 @@ Example:
     >>> os.environ["SVRNET_PORT"] = "9000"
     >>> Settings().port
     9000
-    >>> Settings(api_keys="a, b").key_set()
-    {'a', 'b'}
+    >>> del os.environ["SVRNET_PORT"]
+    >>> sorted(Settings(api_keys="a, b").key_set())
+    ['a', 'b']
 """
 
 from __future__ import annotations
@@ -39,7 +40,13 @@ class Settings(BaseSettings):
     data_dir: Path = Field(Path.home() / ".svrnet", description="job store: SQLite database and files")
     retry_after_s: int = Field(2, ge=1)
     job_workers: int = Field(1, ge=1, description="reconstruction jobs run at once (worker processes)")
+    max_queued_jobs: int = Field(16, ge=1, description="reconstruction jobs waiting at most; more get 429")
+    max_decoded_mb: float = Field(2048.0, gt=0, description="limit of one file's decoded voxel data (422 above)")
     retention_hours: float = Field(72.0, gt=0, description="finished jobs and their files are deleted after this")
+
+    @property
+    def max_decoded_bytes(self) -> int:
+        return int(self.max_decoded_mb * 2**20)
 
     def key_set(self) -> set[str]:
         return {k.strip() for k in self.api_keys.split(",") if k.strip()}

@@ -27,13 +27,23 @@ class ModelRegistry:
             log.info("model loaded", extra={"model": path.parent.name})
         return cls(estimators, default_name)
 
-    def get(self, name: str) -> PoseEstimator:
-        """The estimator called ``name``; raises :class:`NotFound` (404) naming the field otherwise."""
-        try:
-            return self.estimators[name]
-        except KeyError:
+    def resolve(self, name: str) -> str:
+        """The loaded model's name that ``name`` means: ``"default"`` is ``default_name``
+        (``SVRNET_DEFAULT_MODEL``); raises :class:`NotFound` (404) naming the field otherwise.
+
+        Example:
+            >>> ModelRegistry({"v2": None}, default_name="v2").resolve("default")
+            'v2'
+        """
+        resolved = self.default_name if name == "default" else name
+        if resolved not in self.estimators:
             known = ", ".join(sorted(self.estimators)) or "none loaded"
-            raise NotFound(f"model: unknown model {name!r} (available: {known})") from None
+            raise NotFound(f"model: unknown model {name!r} (available: {known})")
+        return resolved
+
+    def get(self, name: str) -> PoseEstimator:
+        """The estimator ``name`` resolves to (see :meth:`resolve`)."""
+        return self.estimators[self.resolve(name)]
 
     def describe(self) -> list[dict]:
         """The ``GET /v1/models`` body."""

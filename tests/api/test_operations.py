@@ -123,3 +123,45 @@ def test_logs_never_contain_file_names(real_client: TestClient, phantom_files, c
         real_client.post("/v1/predict", files=[("stacks", ("Doe_Jane_19840101.nii.gz", b"garbage"))])
     lines = [JsonFormatter().format(r) for r in caplog.records]
     assert lines and not any("Doe" in line for line in lines)
+
+
+def _call_without_reading_the_body(app, path: str, headers: list) -> tuple[int, dict, bool]:  # noqa: ANN001
+    """Drive the ASGI app by hand: the answer's status and headers, and whether the body was read."""
+    read = {"body": False}
+    answer: dict = {}
+
+    async def receive() -> dict:
+        read["body"] = True
+        return {"type": "http.request", "body": b"x" * 1000, "more_body": False}
+
+    async def send(message: dict) -> None:
+        if message["type"] == "http.response.start":
+            answer["status"] = message["status"]
+            answer["headers"] = {k.decode(): v.decode() for k, v in message["headers"]}
+
+    scope = {"type": "http", "method": "POST", "path": path, "raw_path": path.encode(), "query_string": b"",
+             "headers": [(b"content-type", b"multipart/form-data; boundary=xx"), *headers], "app": app,
+             "root_path": "", "scheme": "http", "server": ("test", 80), "client": ("test", 1)}
+    asyncio.run(app(scope, receive, send))
+    return answer["status"], answer["headers"], read["body"]
+
+
+def test_refusals_come_before_the_upload_is_read(oracle) -> None:
+    """No key, or a saturated server: the client is answered before it has pushed its stacks."""
+    with make_client(ModelRegistry({"default": oracle}), api_keys="k1", max_concurrent=1, retry_after_s=5) as client:
+        app = client.app
+        status, headers, read = _call_without_reading_the_body(app, "/v1/predict", [])
+        assert (status, read) == (401, False) and headers["x-request-id"]
+        status, _, read = _call_without_reading_the_body(app, "/v1/reconstructions", [(b"x-api-key", b"wrong")])
+        assert (status, read) == (401, False)
+        app.state.slots._value = 0
+        status, headers, read = _call_without_reading_the_body(app, "/v1/predict", [(b"authorization", b"Bearer k1")])
+        assert (status, read, headers["retry-after"]) == (503, False, "5")
+
+
+def test_model_default_means_the_configured_default(oracle, phantom_files) -> None:
+    with make_client(ModelRegistry({"v7": oracle}, default_name="v7"), default_model="v7") as client:
+        r = client.post("/v1/predict", files=[("stacks", ("s.nii.gz", b"not an image"))])
+        assert r.status_code == 415                                     # got past the model lookup
+        r = client.post("/v1/predict", files=[("stacks", ("s.nii.gz", b"x"))], data={"model": "v8"})
+        assert r.status_code == 404 and "v8" in r.json()["detail"]
