@@ -10,9 +10,9 @@ from anyio import to_thread
 from fastapi import APIRouter, File, Form, Request, Response, UploadFile
 from fastapi.responses import FileResponse
 
-from service.api.deps import ApiKey, RegistryDep, SettingsDep
+from service.api.deps import ApiKey, RegistryDep, SettingsDep, queue_full
 from service.api.predict import ERRORS
-from service.api.uploads import display_name, save_and_read
+from service.api.uploads import check_threshold, display_name, save_and_read
 from service.core.errors import Conflict, InvalidParameter, NotFound
 from service.jobs.store import Job, JobStore
 from service.jobs.worker import poses_from_predict_body
@@ -64,7 +64,10 @@ async def submit(
     ``poses`` (optional, a form field or a file): the JSON body ``/v1/predict`` returned for the
     same files; without it the job predicts first.
     """
-    registry.get(model)
+    model = registry.resolve(model)
+    check_threshold(variance_threshold)
+    if (full := queue_full(request.app.state)) is not None:
+        raise full
     masks = [m for m in (masks or []) if m.filename or m.size]
     if len(stacks) > settings.max_files:
         raise InvalidParameter(f"stacks: {len(stacks)} files; at most {settings.max_files} per request")
@@ -77,17 +80,19 @@ async def submit(
     inputs = store.directory(job.id) / "inputs"
     inputs.mkdir()
     try:
-        uploads = await to_thread.run_sync(save_and_read, stacks, masks, inputs)
+        uploads = await to_thread.run_sync(save_and_read, stacks, masks, inputs, settings.max_decoded_bytes)
         if poses_text:
             try:
                 body = json.loads(poses_text)
-            except json.JSONDecodeError as exc:
+            except (ValueError, RecursionError) as exc:
                 raise InvalidParameter("poses: not valid JSON") from exc
             counts = [u.volume.array.shape[slice_axis_of(u.volume.spacing)] for u in uploads]
             try:
                 poses_from_predict_body(body, counts)
             except ValueError as exc:
                 raise InvalidParameter(str(exc)) from exc
+            except Exception as exc:  # noqa: BLE001 - any other shape of JSON is the client's mistake too
+                raise InvalidParameter("poses: not the JSON body of a /v1/predict answer") from exc
             (inputs / "poses.json").write_text(json.dumps(body))
         from service.inference.pipeline import check_mask_grid
 
@@ -131,6 +136,11 @@ async def preview(request: Request, job_id: str) -> FileResponse:
 
 @router.delete("/{job_id}", status_code=204, summary="Cancel a job and delete its files")
 async def cancel(request: Request, job_id: str) -> Response:
-    _job(request, job_id)
-    _store(request).cancel(job_id)
+    """A queued or running job is cancelled (its status stays readable as ``cancelled``); a finished
+    one is deleted with its files (then ``404``)."""
+    job = _job(request, job_id)
+    if job.status in ("queued", "running"):
+        _store(request).cancel(job_id)
+    else:
+        _store(request).delete(job_id)
     return Response(status_code=204)

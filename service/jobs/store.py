@@ -115,6 +115,14 @@ class JobStore:
                              "updated_at = ? WHERE id = ? AND status = 'queued'", (time.time(), job_id))
             return cur.rowcount == 1
 
+    def finish(self, job_id: str, report: dict) -> bool:
+        """running -> succeeded with ``report``, atomically; False if the job was cancelled meanwhile."""
+        with self._connect() as db:
+            cur = db.execute("UPDATE jobs SET status = 'succeeded', stage = 'done', progress = 1.0, report = ?, "
+                             "updated_at = ? WHERE id = ? AND status = 'running'",
+                             (json.dumps(report), time.time(), job_id))
+            return cur.rowcount == 1
+
     def is_cancelled(self, job_id: str) -> bool:
         job = self.get(job_id)
         return job is None or job.status == "cancelled"

@@ -12,11 +12,13 @@ from __future__ import annotations
 import json
 import logging
 import multiprocessing
+import shutil
 from concurrent.futures import Future, ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
+from service.core.errors import ServiceError
 from service.jobs.store import JobStore
 
 log = logging.getLogger(__name__)
@@ -42,13 +44,15 @@ def poses_from_predict_body(body: dict, n_slices: list[int]) -> list[tuple[np.nd
         raise ValueError(f"poses: expected results for {len(n_slices)} stacks")
     out = []
     for i, (st, n) in enumerate(zip(stacks, n_slices)):
-        slices = st.get("slices", []) if isinstance(st, dict) else []
+        slices = st.get("slices") if isinstance(st, dict) else None
+        if not isinstance(slices, list):
+            raise ValueError(f"poses: stack {i} has no list of slices")
         if len(slices) != n:
             raise ValueError(f"poses: stack {i} has {n} slices but the poses list {len(slices)}")
         try:
             mats = np.array([s["atlas_from_voxel"] for s in slices], dtype=np.float64)
             acc = np.array([bool(s["accepted"]) for s in slices])
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, IndexError, RecursionError) as exc:
             raise ValueError(f"poses: stack {i}: each slice needs atlas_from_voxel and accepted") from exc
         if mats.shape != (n, 4, 4) or not np.isfinite(mats).all():
             raise ValueError(f"poses: stack {i}: atlas_from_voxel must be finite 4x4 matrices")
@@ -89,8 +93,26 @@ def run_job(data_dir: str, models_dir: str, job_id: str) -> None:
         log.info("job cancelled", extra={"job_id": job_id})
     except Exception as exc:  # noqa: BLE001 - every failure is recorded on the job, not lost
         if not store.is_cancelled(job_id):
-            store.update(job_id, status="failed", stage="failed", error=f"{type(exc).__name__}: {exc}")
+            store.update(job_id, status="failed", stage="failed", error=failure_reason(exc))
         log.warning("job failed", extra={"job_id": job_id, "error_type": type(exc).__name__})
+
+
+def failure_reason(exc: Exception) -> str:
+    """What the job's ``error`` says: the message of a service error (it names the file or field) or of
+    a ``ValueError`` (the reconstruction's own account of unusable input, e.g. no slice left), else
+    only the kind of failure -- other messages (OS, ITK) may hold server paths.
+
+    Example:
+        >>> failure_reason(ValueError("reconstruct: no included slice has any pixel inside its mask"))
+        'reconstruct: no included slice has any pixel inside its mask'
+        >>> failure_reason(FileNotFoundError("/srv/data/x"))
+        'internal error (FileNotFoundError); the server log has the job id'
+    """
+    if isinstance(exc, ServiceError):
+        return exc.detail
+    if type(exc) is ValueError:
+        return str(exc)
+    return f"internal error ({type(exc).__name__}); the server log has the job id"
 
 
 def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progress) -> None:  # noqa: ANN001
@@ -130,7 +152,9 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
                          progress=lambda stage, f: progress(stage, 0.15 + 0.8 * f))
     progress("writing", 0.97)
     report = write_outputs(result, slice_set, folder / "outputs")
-    store.update(job_id, status="succeeded", stage="done", progress=1.0, report=report)
+    if not store.finish(job_id, report):       # cancelled while writing: leave nothing behind
+        shutil.rmtree(folder, ignore_errors=True)
+        raise Cancelled
 
 
 class JobRunner:

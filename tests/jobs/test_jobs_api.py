@@ -39,10 +39,12 @@ def case(tmp_path_factory: pytest.TempPathFactory) -> dict:
     return {"files": files, "poses": body}
 
 
-def submit(client: TestClient, case: dict, poses: dict | None = None, **data: str):  # noqa: ANN201
+def submit(client: TestClient, case: dict, poses: object = None, **data: str):  # noqa: ANN201
+    """Submit the case; ``poses``: a body (default: the true poses) or the raw text of one."""
+    text = poses if isinstance(poses, str) else json.dumps(poses or case["poses"])
     files = [("stacks", (s.name, s.read_bytes())) for s, _ in case["files"]]
     files += [("masks", (m.name, m.read_bytes())) for _, m in case["files"]]
-    files.append(("poses", ("poses.json", json.dumps(poses or case["poses"]).encode(), "application/json")))
+    files.append(("poses", ("poses.json", text.encode(), "application/json")))
     return client.post("/v1/reconstructions", files=files, data={"resolution_mm": "2.0", "svr_iterations": "1", **data})
 
 
@@ -101,13 +103,31 @@ def test_cancel_and_failure(client: TestClient, case: dict) -> None:
             s["accepted"] = False
     job_id = submit(client, case, poses=rejected).json()["job_id"]
     st = wait(client, job_id)
-    assert st["status"] == "failed" and st["error"]
+    assert st["status"] == "failed" and "no included slice" in st["error"], st
 
 
 def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict) -> None:
-    short = {"stacks": case["poses"]["stacks"][:2]}
-    r = submit(client, case, poses=short)
-    assert r.status_code == 422 and "poses" in r.json()["detail"]
+    n = len(case["poses"]["stacks"])
+    for bad in ({"stacks": case["poses"]["stacks"][:2]}, {"stacks": [{"slices": 5}] * n},
+                {"stacks": [{"slices": [[1, 2]]}] * n}, {"stacks": [None] * n}, [1, 2],
+                "[" * 100_000 + "]" * 100_000, "{not json"):
+        r = submit(client, case, poses=bad)
+        assert r.status_code == 400 and "poses" in r.json()["detail"], r.text
+    assert not client.app.state.job_store.queued()                   # nothing left behind
+
+
+def test_delete_of_a_finished_job_removes_it_and_a_full_queue_is_429(case: dict, tmp_path: Path) -> None:
+    with make_client(ModelRegistry({"default": OracleEstimator()}), data_dir=str(tmp_path), max_queued_jobs=1,
+                     retry_after_s=9) as client:
+        client.app.state.job_runner.submit = lambda job_id: None      # the worker is busy elsewhere
+        first = submit(client, case, svr_iterations="0").json()["job_id"]
+        r = submit(client, case, svr_iterations="0")
+        assert r.status_code == 429 and r.headers["retry-after"] == "9" and "queued" in r.json()["detail"]
+        store = client.app.state.job_store
+        assert store.claim(first) and store.finish(first, {"slices": []})
+        assert client.get(f"/v1/reconstructions/{first}").json()["status"] == "succeeded"
+        assert client.delete(f"/v1/reconstructions/{first}").status_code == 204
+        assert client.get(f"/v1/reconstructions/{first}").status_code == 404
 
 
 def test_a_job_queued_before_a_restart_completes_after_it(case: dict, tmp_path: Path) -> None:

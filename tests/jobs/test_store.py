@@ -51,3 +51,14 @@ def test_retention_expires_only_finished_jobs(tmp_path: Path) -> None:
     assert store.expire(retention_s=0.01) == [old.id]
     assert store.get(old.id) is None and not store.directory(old.id).exists()
     assert store.get(live.id).status == "queued"
+
+
+def test_a_job_cancelled_while_it_writes_does_not_end_succeeded(tmp_path: Path) -> None:
+    store = JobStore(tmp_path)
+    job = store.create({})
+    assert store.claim(job.id)
+    store.cancel(job.id)
+    assert not store.finish(job.id, {"slices": []}) and store.get(job.id).status == "cancelled"
+    other = store.create({})
+    assert store.claim(other.id) and store.finish(other.id, {"slices": [1]})
+    assert (store.get(other.id).status, store.get(other.id).report) == ("succeeded", {"slices": [1]})
