@@ -9,7 +9,7 @@ from anyio import to_thread
 from fastapi import APIRouter, File, Form, Request, UploadFile
 
 from service.api.deps import ApiKey, MetricsDep, RegistryDep, SettingsDep, SlotDep
-from service.api.schemas import PredictResponse, Problem
+from service.api.schemas import PredictResponse, problem_responses
 from service.api.uploads import check_threshold, save_and_read, upload_directory
 from service.core.errors import InvalidParameter
 from service.inference.pipeline import predict as run_prediction
@@ -17,11 +17,10 @@ from service.inference.pipeline import prepare_stacks
 
 router = APIRouter(prefix="/v1", tags=["prediction"], dependencies=[ApiKey])
 
-ERRORS = {code: {"model": Problem, "content": {"application/problem+json": {}}}
-          for code in (400, 401, 404, 413, 415, 422, 429, 503)}
+UPLOAD_ERRORS = problem_responses(400, 401, 404, 413, 415, 422, 429, 503)
 
 
-@router.post("/predict", response_model=PredictResponse, responses=ERRORS, summary="Atlas pose of every slice")
+@router.post("/predict", response_model=PredictResponse, responses=UPLOAD_ERRORS, summary="Atlas pose of every slice")
 async def predict(
     request: Request,
     registry: RegistryDep,

@@ -42,8 +42,38 @@ def _field(loc: tuple) -> str:
     return ".".join(parts) or "request"
 
 
+def _document_problems(app: FastAPI) -> None:
+    """Make the OpenAPI page say what the handlers do: errors are ``application/problem+json``, and
+    a request that fails validation is a 400 (FastAPI documents its own 422 "Validation Error")."""
+    generate = app.openapi
+
+    def openapi() -> dict:
+        if app.openapi_schema:
+            return app.openapi_schema
+        schema = generate()
+        known = schema.get("components", {}).get("schemas", {})
+        problem_ref = {"schema": {"$ref": "#/components/schemas/Problem"}} if "Problem" in known else {}
+        for ops in schema.get("paths", {}).values():
+            for op in ops.values():
+                responses = op.get("responses", {})
+                if responses.get("422", {}).get("description") == "Validation Error":
+                    del responses["422"]
+                    responses.setdefault("400", {"description": "Bad Request", "content": {MEDIA_TYPE: problem_ref}})
+                for code, response in responses.items():
+                    content = response.get("content", {})
+                    if code[0] in "45" and "application/json" in content:
+                        content[MEDIA_TYPE] = content.pop("application/json")
+        for name in ("HTTPValidationError", "ValidationError"):
+            schema.get("components", {}).get("schemas", {}).pop(name, None)
+        app.openapi_schema = schema
+        return schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+
 def install(app: FastAPI) -> None:
-    """Register the handlers on ``app``."""
+    """Register the handlers on ``app`` (and document them in its OpenAPI schema)."""
+    _document_problems(app)
 
     @app.exception_handler(ServiceError)
     async def service_error(request: Request, exc: ServiceError) -> JSONResponse:

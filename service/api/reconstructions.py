@@ -11,7 +11,8 @@ from fastapi import APIRouter, File, Form, Request, Response, UploadFile
 from fastapi.responses import FileResponse
 
 from service.api.deps import ApiKey, RegistryDep, SettingsDep, queue_full
-from service.api.predict import ERRORS
+from service.api.predict import UPLOAD_ERRORS
+from service.api.schemas import problem_responses
 from service.api.uploads import check_threshold, display_name, save_and_read
 from service.core.errors import Conflict, InvalidParameter, NotFound
 from service.jobs.store import Job, JobStore
@@ -45,7 +46,7 @@ def _job(request: Request, job_id: str) -> Job:
     return job
 
 
-@router.post("", status_code=202, responses=ERRORS, summary="Start a reconstruction job")
+@router.post("", status_code=202, responses=UPLOAD_ERRORS, summary="Start a reconstruction job")
 async def submit(
     request: Request,
     response: Response,
@@ -109,7 +110,7 @@ async def submit(
     return {"job_id": job.id, "status": "queued", "status_url": f"/v1/reconstructions/{job.id}"}
 
 
-@router.get("/{job_id}", summary="Job status")
+@router.get("/{job_id}", summary="Job status", responses=problem_responses(401, 404))
 async def status(request: Request, job_id: str) -> dict:
     return _status(_job(request, job_id))
 
@@ -124,17 +125,17 @@ def _result(request: Request, job_id: str, name: str, media_type: str, download:
     return FileResponse(path, media_type=media_type, filename=download)
 
 
-@router.get("/{job_id}/volume", summary="The reconstructed volume (.nii.gz, atlas space)", response_class=FileResponse)
+@router.get("/{job_id}/volume", responses=problem_responses(401, 404, 409), summary="The reconstructed volume (.nii.gz, atlas space)", response_class=FileResponse)
 async def volume(request: Request, job_id: str) -> FileResponse:
     return _result(request, job_id, "volume.nii.gz", "application/gzip", f"{job_id}.nii.gz")
 
 
-@router.get("/{job_id}/preview.png", summary="Three orthogonal mid-planes", response_class=FileResponse)
+@router.get("/{job_id}/preview.png", responses=problem_responses(401, 404, 409), summary="Three orthogonal mid-planes", response_class=FileResponse)
 async def preview(request: Request, job_id: str) -> FileResponse:
     return _result(request, job_id, "preview.png", "image/png", f"{job_id}.png")
 
 
-@router.delete("/{job_id}", status_code=204, summary="Cancel a job and delete its files")
+@router.delete("/{job_id}", status_code=204, responses=problem_responses(401, 404), summary="Cancel a job and delete its files")
 async def cancel(request: Request, job_id: str) -> Response:
     """A queued or running job is cancelled (its status stays readable as ``cancelled``); a finished
     one is deleted with its files (then ``404``)."""

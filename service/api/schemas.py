@@ -65,3 +65,9 @@ class Problem(BaseModel):
     title: str
     status: int
     detail: str
+    request_id: Optional[str] = Field(None, description="the X-Request-ID of the answer, to quote")
+
+
+def problem_responses(*codes: int) -> dict:
+    """OpenAPI ``responses`` for these error statuses: problem+json bodies (RFC 7807)."""
+    return {code: {"model": Problem} for code in codes}

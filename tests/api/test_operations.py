@@ -165,3 +165,18 @@ def test_model_default_means_the_configured_default(oracle, phantom_files) -> No
         assert r.status_code == 415                                     # got past the model lookup
         r = client.post("/v1/predict", files=[("stacks", ("s.nii.gz", b"x"))], data={"model": "v8"})
         assert r.status_code == 404 and "v8" in r.json()["detail"]
+
+
+def test_openapi_documents_errors_as_the_handlers_answer_them(oracle) -> None:
+    with make_client(ModelRegistry({"default": oracle})) as client:
+        spec = client.get("/openapi.json").json()
+    for path, ops in spec["paths"].items():
+        for method, op in ops.items():
+            responses = op["responses"]
+            if path.startswith("/v1/"):
+                assert "401" in responses, (method, path)
+            for code, response in responses.items():
+                assert response.get("description") != "Validation Error", (method, path)
+                if code[0] in "45":
+                    assert list(response["content"]) == ["application/problem+json"], (method, path, code)
+    assert "422" in spec["paths"]["/v1/predict"]["post"]["responses"]       # unusable images
