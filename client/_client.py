@@ -128,9 +128,10 @@ class SVRnetClient:
             (that client's own ``base_url`` is used).
         api_key: sent as ``Authorization: Bearer <key>``; defaults to ``$SVRNET_API_KEY``.
         timeout: httpx timeouts; reads and writes get 300 s, since a large request takes a while.
-        retries: how many times a ``429``/``503`` answer (any method) or a transport error
-            (``GET`` only) is retried before :class:`~client.errors.Busy` /
-            :class:`~client.errors.ConnectionFailed` is raised.
+        retries: how many times a ``429``/``503`` answer or a transport error (``GET`` only) is
+            retried before :class:`~client.errors.Busy` / :class:`~client.errors.ConnectionFailed`
+            is raised. Uploads are retried only on an answer with ``Retry-After``; a
+            ``Retry-After`` longer than 30 s raises :class:`~client.errors.Busy` at once.
         transport: an ``httpx.BaseTransport`` for the client this object creates (e.g.
             ``httpx.MockTransport`` in tests).
         http: an existing ``httpx.Client`` to use instead (e.g. FastAPI's ``TestClient``); it is not
@@ -211,11 +212,15 @@ class SVRnetClient:
             if response.status_code in (429, 503):
                 response.read()
                 response.close()
-                if attempt < self.retries:
-                    _sleep(self._sleep_for(attempt, parse_retry_after(response.headers.get("retry-after"))))
+                retry_after = parse_retry_after(response.headers.get("retry-after"))
+                # An upload is sent again only when the server said when (its refusals come before
+                # any job exists); a wait longer than the cap is the caller's decision, not ours.
+                retryable = idempotent or retry_after is not None
+                if attempt < self.retries and retryable and (retry_after or 0.0) <= MAX_RETRY_SLEEP_S:
+                    _sleep(self._sleep_for(attempt, retry_after))
                     continue
                 raise error_from_response(response)
-            if response.is_error:
+            if not response.is_success:              # 4xx/5xx, and redirects (never followed)
                 response.read()
                 response.close()
                 raise error_from_response(response)

@@ -11,7 +11,8 @@ Commands::
     svrnet models
 
 Every command takes ``--server URL`` (default ``$SVRNET_SERVER``, else ``http://127.0.0.1:8000``); the
-API key comes from ``$SVRNET_API_KEY`` (sent as ``Authorization: Bearer``).
+API key comes from ``$SVRNET_API_KEY`` (sent as ``Authorization: Bearer``); ``$SVRNET_TIMEOUT`` sets the
+read/write timeout in seconds (default 300).
 
 Exit codes:
     0   success
@@ -41,7 +42,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, Any, Optional
 
-import click
+import httpx
 import typer
 from rich.console import Console
 from rich.progress import (BarColumn, DownloadColumn, Progress, SpinnerColumn, TaskProgressColumn, TextColumn,
@@ -87,7 +88,37 @@ app = typer.Typer(
 
 def make_client(server: str, api_key: str | None) -> SVRnetClient:
     """The client every command uses (tests monkeypatch this factory)."""
-    return SVRnetClient(base_url=server, api_key=api_key)
+    return SVRnetClient(base_url=server, api_key=api_key, timeout=_timeout())
+
+
+def _timeout() -> httpx.Timeout:
+    """Read/write timeout from ``$SVRNET_TIMEOUT`` (seconds; default 300): a large request on a CPU
+    server can take longer."""
+    raw = os.environ.get("SVRNET_TIMEOUT", "300")
+    try:
+        seconds = float(raw)
+    except ValueError:
+        seconds = -1.0
+    if not seconds > 0:
+        raise typer.BadParameter(f"SVRNET_TIMEOUT={raw!r}: must be a number of seconds > 0")
+    return httpx.Timeout(connect=5.0, read=seconds, write=seconds, pool=5.0)
+
+
+def _check_writable(*paths: Path | None) -> None:
+    """Output files must be writable BEFORE anything is uploaded (not after an hour of reconstruction)."""
+    for path in paths:
+        if path is None:
+            continue
+        folder = path.expanduser().resolve().parent
+        if not folder.is_dir() or not os.access(folder, os.W_OK):
+            raise typer.BadParameter(f"{path}: its folder {folder} does not exist or is not writable",
+                                     param_hint="--out/--preview")
+
+
+def _job_id(job: str) -> str:
+    if not job.strip():
+        raise typer.BadParameter("the job id is empty", param_hint="JOB")
+    return job.strip()
 
 
 def exit_code_for(error: BaseException) -> int:
@@ -121,7 +152,7 @@ def _errors() -> Iterator[None]:
     """Client errors -> one red line on stderr and the documented exit code; never a traceback."""
     try:
         yield
-    except (click.exceptions.Exit, click.ClickException, click.exceptions.Abort):
+    except (typer.Exit, typer.Abort, typer.BadParameter):   # typer's own ending: its exit code stands
         raise
     except SVRnetError as e:
         _fail(" ".join(str(e).split()), exit_code_for(e))
@@ -219,6 +250,7 @@ def predict(
 ) -> None:
     """Atlas pose and confidence of every slice of every stack (POST /v1/predict)."""
     _check_masks(stacks, mask)
+    _check_writable(out)
     err = _stderr()
     with _errors(), _client(server) as svr:
         with _upload_bar(err, f"{len(stacks)} stack(s)") as progress:
@@ -259,6 +291,7 @@ def reconstruct(
 ) -> None:
     """Start a reconstruction job (POST /v1/reconstructions); with --wait, follow it and download the volume."""
     _check_masks(stacks, mask)
+    _check_writable(out, preview)
     wait = wait or out is not None or preview is not None
     err, console = _stderr(), _stdout()
     with _errors(), _client(server) as svr:
@@ -294,6 +327,7 @@ def status(
     as_json: Annotated[bool, typer.Option("--json", help="print the raw JSON")] = False,
 ) -> None:
     """Status of a reconstruction job (GET /v1/reconstructions/{job})."""
+    job = _job_id(job)
     with _errors(), _client(server) as svr:
         state = svr.status(job)
         console = _stdout()
@@ -318,6 +352,7 @@ def cancel(
     server: ServerOpt = DEFAULT_SERVER,
 ) -> None:
     """Cancel a queued or running job and delete its files (DELETE /v1/reconstructions/{job})."""
+    job = _job_id(job)
     with _errors(), _client(server) as svr:
         svr.cancel(job)
         _stdout().print(f"job {job} cancelled")

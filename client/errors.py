@@ -202,6 +202,9 @@ def error_from_response(response: httpx.Response) -> SVRnetError:
     if not isinstance(detail, str) or not detail:
         detail = str(detail) if detail else (response.text.strip()[:300] if response.content and not body else "")
         detail = detail or (title or f"HTTP {status}")
+    if 300 <= status < 400:                   # the client follows no redirect: most likely a wrong URL
+        detail = (f"the server answered a redirect ({status}) to {response.headers.get('location', '?')}; "
+                  "check the server URL")
     request_id = body.get("request_id") or response.headers.get("x-request-id")
     kwargs: dict[str, Any] = {"status": status, "title": str(title) if title else None,
                               "request_id": request_id, "type": body.get("type"), "body": body}

@@ -279,18 +279,44 @@ def test_upload_progress_reaches_the_total(stack_file: Path) -> None:
     assert files[0][3] == big.read_bytes()
 
 
-def test_always_busy_raises_busy(no_sleep: list[float]) -> None:
+@pytest.mark.parametrize(("retry_after", "calls_made", "sleeps"), [("2", 4, [2.0, 2.0, 2.0]), ("100", 1, [])])
+def test_always_busy_raises_busy(no_sleep: list[float], retry_after: str, calls_made: int,
+                                 sleeps: list[float]) -> None:
+    """Retry-After is honoured; a wait longer than 30 s is not shortened but handed to the caller."""
     calls = []
 
     def handler(request: httpx.Request) -> httpx.Response:
         calls.append(request)
-        return httpx.Response(503, headers={"Retry-After": "100"}, json=problem(503, "saturated", "Busy"))
+        return httpx.Response(503, headers={"Retry-After": retry_after}, json=problem(503, "saturated", "Busy"))
 
     with pytest.raises(Busy) as e:
         mock(handler, retries=3).models()
-    assert len(calls) == 4 and e.value.status == 503 and e.value.retry_after_s == 100
-    assert no_sleep == [30.0, 30.0, 30.0]                     # Retry-After honoured, capped at 30 s
-    assert "saturated" in str(e.value)
+    assert len(calls) == calls_made and e.value.status == 503 and e.value.retry_after_s == float(retry_after)
+    assert no_sleep == sleeps and "saturated" in str(e.value)
+
+
+def test_an_upload_is_resent_only_when_the_server_said_when(no_sleep: list[float], stack_file: Path) -> None:
+    calls = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        calls.append(request)
+        return httpx.Response(503, text="bad gateway of some proxy")
+
+    with pytest.raises(Busy):
+        mock(handler, retries=3).predict([stack_file])
+    assert len(calls) == 1 and no_sleep == []
+
+
+def test_a_redirect_is_an_error_not_a_volume(tmp_path: Path) -> None:
+    def handler(request: httpx.Request) -> httpx.Response:
+        return httpx.Response(308, headers={"Location": "https://svr.test/"}, text="<html>moved</html>")
+
+    svr = mock(handler)
+    with pytest.raises(SVRnetError, match="redirect .308. to https://svr.test/"):
+        svr.download_volume("job1", tmp_path / "v.nii.gz")
+    assert not (tmp_path / "v.nii.gz").exists()
+    with pytest.raises(SVRnetError, match="redirect"):
+        svr.cancel("job1")
 
 
 def test_429_without_retry_after_backs_off_exponentially(no_sleep: list[float]) -> None:
@@ -545,10 +571,15 @@ def test_cli_exit_codes(fake_cli: Callable, stack_file: Path, kwargs: dict, args
 
 
 def test_cli_usage_errors_and_help(fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
-    fake_cli()
+    fake, _ = fake_cli()
     assert invoke(["predict", str(stack_file), str(stack_file), "--mask", str(stack_file)]).exit_code == 2
     assert invoke(["predict", str(tmp_path / "missing.nii.gz")]).exit_code == 2
     assert invoke(["predict", str(stack_file), "--threshold", "0"]).exit_code == 2
+    for args in (["status", " "], ["cancel", ""], ["reconstruct", str(stack_file), "--out", str(tmp_path / "no" / "r.nii.gz")],
+                 ["predict", str(stack_file), "--out", str(tmp_path / "no" / "p.json")]):
+        r = invoke(args)
+        assert r.exit_code == 2 and "Traceback" not in r.output, (args, r.output)
+    assert not fake.requests                                  # refused before anything was uploaded
     help_text = invoke(["--help"]).stdout
     assert "Exit codes" in help_text and "3 connection failed" in help_text and "10 conflict" in help_text
     assert "Exit codes" in invoke(["predict", "--help"]).stdout
@@ -600,3 +631,9 @@ def test_import_client_pulls_in_nothing_heavy() -> None:
     done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == ""
+
+
+def test_cli_timeout_from_the_environment(stack_file: Path) -> None:
+    r = invoke(["models", "--server", "http://127.0.0.1:9"], SVRNET_TIMEOUT="soon")
+    assert r.exit_code == 2 and "SVRNET_TIMEOUT" in r.output
+    assert cli.make_client("http://x", None)._http.timeout.read == 300.0
