@@ -10,8 +10,7 @@ from fastapi import APIRouter, File, Form, Request, UploadFile
 
 from service.api.deps import ApiKey, MetricsDep, RegistryDep, SettingsDep, SlotDep
 from service.api.schemas import PredictResponse, problem_responses
-from service.api.uploads import check_threshold, save_and_read, upload_directory
-from service.core.errors import InvalidParameter
+from service.api.uploads import check_form, save_and_read, upload_directory
 from service.inference.pipeline import predict as run_prediction
 from service.inference.pipeline import prepare_stacks
 
@@ -39,10 +38,7 @@ async def predict(
     model = registry.resolve(model)
     request.scope["state"]["model"] = model
     estimator = registry.get(model)
-    check_threshold(variance_threshold)
-    masks = [m for m in (masks or []) if m.filename or m.size]
-    if len(stacks) > settings.max_files:
-        raise InvalidParameter(f"stacks: {len(stacks)} files; at most {settings.max_files} per request")
+    masks = check_form(stacks, masks, variance_threshold, settings.max_files)
     threshold = variance_threshold if variance_threshold is not None else estimator.info.variance_threshold
     with upload_directory(settings.tmp_dir) as tmp:
         uploads = await to_thread.run_sync(save_and_read, stacks, masks, tmp, settings.max_decoded_bytes)

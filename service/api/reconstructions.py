@@ -13,7 +13,7 @@ from fastapi.responses import FileResponse
 from service.api.deps import ApiKey, RegistryDep, SettingsDep, queue_full
 from service.api.predict import UPLOAD_ERRORS
 from service.api.schemas import problem_responses
-from service.api.uploads import check_threshold, display_name, save_and_read
+from service.api.uploads import check_form, display_name, save_and_read
 from service.core.errors import Conflict, InvalidParameter, NotFound
 from service.jobs.store import Job, JobStore
 from service.jobs.worker import poses_from_predict_body
@@ -66,12 +66,9 @@ async def submit(
     same files; without it the job predicts first.
     """
     model = registry.resolve(model)
-    check_threshold(variance_threshold)
     if (full := queue_full(request.app.state)) is not None:
         raise full
-    masks = [m for m in (masks or []) if m.filename or m.size]
-    if len(stacks) > settings.max_files:
-        raise InvalidParameter(f"stacks: {len(stacks)} files; at most {settings.max_files} per request")
+    masks = check_form(stacks, masks, variance_threshold, settings.max_files)
     form = await request.form()
     raw = form.get("poses")
     poses_text = (await raw.read()).decode("utf-8", "replace") if hasattr(raw, "read") else raw
@@ -92,8 +89,6 @@ async def submit(
                 poses_from_predict_body(body, counts)
             except ValueError as exc:
                 raise InvalidParameter(str(exc)) from exc
-            except Exception as exc:  # noqa: BLE001 - any other shape of JSON is the client's mistake too
-                raise InvalidParameter("poses: not the JSON body of a /v1/predict answer") from exc
             (inputs / "poses.json").write_text(json.dumps(body))
         from service.inference.pipeline import check_mask_grid
 

@@ -32,10 +32,15 @@ def display_name(upload: UploadFile, field: str, index: int) -> str:
     return name or f"{field}[{index}]"
 
 
-def check_threshold(value: float | None) -> None:
-    """``variance_threshold`` is a finite number > 0 when given (the form parser lets ``inf`` through)."""
-    if value is not None and not math.isfinite(value):
-        raise InvalidParameter("variance_threshold: must be a finite number > 0")
+def check_form(stacks: list[UploadFile], masks: list[UploadFile] | None, variance_threshold: float | None,
+               max_files: int) -> list[UploadFile]:
+    """The checks FastAPI's form validation leaves to the routes; returns the masks really given
+    (a form with an empty file field sends a nameless, empty part)."""
+    if variance_threshold is not None and not math.isfinite(variance_threshold):
+        raise InvalidParameter("variance_threshold: must be a finite number > 0")   # the parser lets inf through
+    if len(stacks) > max_files:
+        raise InvalidParameter(f"stacks: {len(stacks)} files; at most {max_files} per request")
+    return [m for m in (masks or []) if m.filename or m.size]
 
 
 def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: Path,
