@@ -44,7 +44,7 @@ class RequestContext:
         rid = rid if SAFE_ID.match(rid) else uuid.uuid4().hex
         scope.setdefault("state", {})["request_id"] = rid
         start = time.perf_counter()
-        state = {"code": 500, "started": False, "too_large": False}
+        state = {"code": 500, "started": False, "received": 0, "too_large": False, "replaced": False}
 
         async def emit(message: Message) -> None:
             if message["type"] == "http.response.start":
@@ -59,14 +59,14 @@ class RequestContext:
                 state["replaced"] = True
                 await self._problem(emit, rid, PayloadTooLarge(self._too_large_detail()))
                 return
-            if state.get("replaced"):
+            if state["replaced"]:
                 return  # the body of the app's own answer, replaced above
             await emit(message)
 
         async def limited_receive() -> Message:
             message = await receive()
             if message["type"] == "http.request":
-                state["received"] = state.get("received", 0) + len(message.get("body", b""))
+                state["received"] += len(message.get("body", b""))
                 if state["received"] > self.max_body:
                     state["too_large"] = True
                     raise BodyTooLarge
