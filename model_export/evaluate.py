@@ -81,10 +81,43 @@ def evaluate(model_path: Path, report: Path, root: Path = DEFAULT_ATLAS_ROOT, *,
     outlier = se3.mad_outliers(err["gd"])
     accepted = est.variance <= info.variance_threshold
     summary = _summary(metrics, outlier, accepted, names, info)
+    summary["components"] = _quartiles(error_components(est.mean, val.poses))
     report.parent.mkdir(parents=True, exist_ok=True)
     _figures(report, metrics, val.inputs, pred, info.variance_threshold)
     report.write_text(_markdown(model_path, info, summary, mc_samples, len(names), report))
-    return {k: v for k, v in summary.items() if not isinstance(v, dict)} | {"per_volume": summary["per_volume"]}
+    return ({k: v for k, v in summary.items() if not isinstance(v, dict)}
+            | {"per_volume": summary["per_volume"], "components": summary["components"]})
+
+
+def error_components(pred: np.ndarray, true: np.ndarray) -> dict[str, np.ndarray]:
+    """Where a pose error comes from, per slice (poses ``[n, 4, 4]`` in atlas mm).
+
+    The relative rotation ``R = R_true^T R_pred`` (in the true slice frame) is split into a swing,
+    which tilts the slice normal, and a twist about the normal (swing-twist decomposition):
+
+    * ``tilt_deg``: angle between the two planes (0-90, whichever side each faces);
+    * ``flipped``: the predicted normal points the other way (tilt beyond 90 degrees before folding);
+    * ``twist_deg``: in-plane rotation about the normal (0-180);
+    * ``centre_mm``: distance between the plane centres; ``off_plane_mm``: its part along the true normal.
+
+    Example:
+        >>> from scipy.spatial.transform import Rotation
+        >>> true, pred = np.eye(4)[None], np.eye(4)[None].copy()
+        >>> pred[0, :3, :3] = Rotation.from_euler("xz", [40, 30], degrees=True).as_matrix()
+        >>> c = error_components(pred, true)
+        >>> round(float(c["tilt_deg"][0]), 6), round(float(c["twist_deg"][0]), 6)
+        (40.0, 30.0)
+    """
+    from scipy.spatial.transform import Rotation
+
+    rel = np.einsum("nji,njk->nik", true[:, :3, :3], pred[:, :3, :3])
+    cos_tilt = np.clip(rel[:, 2, 2], -1.0, 1.0)
+    x, y, z, w = Rotation.from_matrix(rel).as_quat().T
+    twist = 2.0 * np.arctan2(np.abs(z), np.abs(w))
+    shift = pred[:, :3, 3] - true[:, :3, 3]
+    return {"tilt_deg": np.degrees(np.arccos(np.abs(cos_tilt))), "flipped": cos_tilt < 0,
+            "twist_deg": np.degrees(twist), "centre_mm": np.linalg.norm(shift, axis=1),
+            "off_plane_mm": np.abs(np.einsum("ni,ni->n", shift, true[:, :3, 2]))}
 
 
 def _stats(metrics: dict[str, np.ndarray], sel: np.ndarray) -> dict[str, float]:
@@ -103,6 +136,13 @@ def _summary(metrics, outlier, accepted, names, info) -> dict:  # noqa: ANN001
         "all": _stats(metrics, np.ones_like(outlier)), "inliers": _stats(metrics, ~outlier),
         "per_volume": {n: float(ed[names == n].mean()) for n in dict.fromkeys(names)},
     }
+
+
+def _quartiles(components: dict[str, np.ndarray]) -> dict[str, list[float] | float]:
+    out: dict[str, list[float] | float] = {k: np.percentile(v, [25, 50, 75]).tolist()
+                                           for k, v in components.items() if k != "flipped"}
+    out["flipped_fraction"] = float(components["flipped"].mean())
+    return out
 
 
 def _figures(report: Path, metrics, inputs, pred, threshold) -> None:  # noqa: ANN001
@@ -142,6 +182,10 @@ def _markdown(model_path, info, s, mc, n, report) -> str:  # noqa: ANN001
     stem = report.with_suffix("").name
     row = lambda k, d: f"| {k} | {d['cc']:.3f} | {d['mse']:.1f} | {d['psnr']:.2f} | {d['ssim']:.3f} | {d['ed_mm']:.2f} | {d['gd']:.2f} |"  # noqa: E731
     vols = "\n".join(f"| {k} | {v:.2f} |" for k, v in s["per_volume"].items())
+    c = s["components"]
+    labels = {"tilt_deg": "tilt of the plane (deg)", "twist_deg": "in-plane twist (deg)",
+              "centre_mm": "distance of the centres (mm)", "off_plane_mm": "  of which along the normal (mm)"}
+    parts = "\n".join(f"| {label} | " + " | ".join(f"{q:.1f}" for q in c[k]) + " |" for k, label in labels.items())
     return f"""# Evaluation of `{model_path.name}` ({info.name} {info.version}, {info.backbone}, {info.label_type})
 
 Validation volumes held out by whole volume; {n} slices, 3 mm thick (Gaussian PSF), 1.0 mm pixels,
@@ -158,6 +202,16 @@ Rician noise 3 %, bias field, random orientation (full sphere, any in-plane angl
 - 3-MAD outliers: {100 * s['outlier_fraction']:.1f} % of slices
 - AUROC of geodesic variance for E.D. > 10 mm: {s['auroc_variance_error_gt_10mm']:.3f}
 - accepted at the model's threshold {info.variance_threshold:.3g}: {100 * s['accepted_fraction']:.1f} %, their mean E.D. {s['ed_accepted_mean_mm']:.2f} mm
+
+Where the error comes from (quartiles 25 / 50 / 75 %; the relative rotation split into the tilt
+of the slice plane and the twist about its normal):
+
+| component | 25 % | median | 75 % |
+|---|---|---|---|
+{parts}
+
+The predicted normal faces the other way for {100 * c['flipped_fraction']:.1f} % of the slices (the same
+plane seen from behind, a mirrored image).
 
 | validation volume | mean E.D. (mm) |
 |---|---|
