@@ -38,23 +38,15 @@ class _TooLarge(Exception):
     """A gzip stream decodes to more than the limit."""
 
 
-def sniff(path: Path, max_decoded_bytes: int = MAX_DECODED_BYTES) -> str:
-    """The kind of file: ``nifti``, ``nifti-gz``, ``nrrd``, ``mha``, ``dicom``, ``zip`` or ``unknown``.
-
-    Raises:
-        _TooLarge: a gzip file that decodes to more than ``max_decoded_bytes``.
-    """
+def sniff(path: Path) -> str:
+    """The kind of file: ``nifti``, ``nifti-gz``, ``nrrd``, ``mha``, ``dicom``, ``zip`` or ``unknown``
+    (from the first bytes; a gzip stream's integrity is checked when it is decoded, once)."""
     with open(path, "rb") as f:
         head = f.read(1024)
     if head[:2] == b"\x1f\x8b":
-        decoded = 0
         try:
             with gzip.open(path, "rb") as g:
                 inner = g.read(352)
-                while chunk := g.read(1 << 22):  # to the end: a truncated stream or a bad CRC raises here
-                    decoded += len(chunk)
-                    if decoded > max_decoded_bytes:
-                        raise _TooLarge
         except (OSError, EOFError, zlib.error):
             return "unknown"
         return "nifti-gz" if _is_nifti(inner) else "unknown"
@@ -85,15 +77,17 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
     """
     too_large = PayloadTooLarge(f"{filename}: its voxel data decode to more than {max_decoded_bytes // 2**20} MB")
     try:
-        kind = sniff(path, max_decoded_bytes)
+        kind = sniff(path)
         if kind in SUFFIX_BY_KIND:
-            # SimpleITK picks its reader by suffix: give it a link named by the sniffed content.
-            if kind.startswith("nifti") and _nifti_has_nonfinite(path, kind == "nifti-gz"):
-                raise UnusableImage(f"{filename}: contains NaN or infinite values")
-            if kind in DETACHED_DATA and DETACHED_DATA[kind].search(_header(path)):
-                raise UnsupportedFile(f"{filename}: a {kind.upper()} header with a detached data file; "
-                                      "upload one file with its voxel data attached")
             with tempfile.TemporaryDirectory(prefix="svrnet-read-") as tmp:
+                if kind == "nifti-gz":   # decoded once, here; the checks and SimpleITK read the plain file
+                    path, kind = _gunzip(path, Path(tmp) / "decoded.nii", max_decoded_bytes, filename), "nifti"
+                if kind == "nifti" and _nifti_has_nonfinite(path):
+                    raise UnusableImage(f"{filename}: contains NaN or infinite values")
+                if kind in DETACHED_DATA and DETACHED_DATA[kind].search(_header(path)):
+                    raise UnsupportedFile(f"{filename}: a {kind.upper()} header with a detached data file; "
+                                          "upload one file with its voxel data attached")
+                # SimpleITK picks its reader by suffix: give it a link named by the sniffed content.
                 named = Path(tmp) / f"upload{SUFFIX_BY_KIND[kind]}"
                 named.symlink_to(Path(path).resolve())
                 if _declared_bytes(named) > max_decoded_bytes:
@@ -119,6 +113,22 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
     return validate(vol, filename)
 
 
+def _gunzip(path: Path, out: Path, max_decoded_bytes: int, filename: str) -> Path:
+    """Decode a gzip file to ``out``, refusing more than ``max_decoded_bytes`` (raises :class:`_TooLarge`)
+    and truncated or corrupt streams (:class:`UnsupportedFile`)."""
+    decoded = 0
+    try:
+        with gzip.open(path, "rb") as src, open(out, "wb") as dst:
+            while chunk := src.read(1 << 22):   # to the end: a truncated stream or a bad CRC raises here
+                decoded += len(chunk)
+                if decoded > max_decoded_bytes:
+                    raise _TooLarge
+                dst.write(chunk)
+    except (OSError, EOFError, zlib.error) as exc:
+        raise UnsupportedFile(f"{filename}: truncated or corrupt gzip stream") from exc
+    return out
+
+
 def _header(path: Path) -> bytes:
     """The text header of an NRRD or MetaImage file (up to its first blank line / 64 KB)."""
     with open(path, "rb") as f:
@@ -135,22 +145,23 @@ def _declared_bytes(path: Path) -> int:
     return int(n * itemsize)
 
 
-def _nifti_has_nonfinite(path: Path, compressed: bool) -> bool:
-    """Scan the raw float voxels of a NIfTI-1 file (ITK's reader silently replaces NaN)."""
-    with (gzip.open(path, "rb") if compressed else open(path, "rb")) as f:
-        raw = f.read()
-    endian = "<" if int.from_bytes(raw[:4], "little") == 348 else ">"
-    if int.from_bytes(raw[:4], "little" if endian == "<" else "big") != 348:
+def _nifti_has_nonfinite(path: Path) -> bool:
+    """Scan the raw float voxels of an uncompressed NIfTI-1 file (ITK's reader silently replaces NaN)."""
+    with open(path, "rb") as f:
+        head = f.read(348)
+    size = path.stat().st_size
+    endian = "<" if int.from_bytes(head[:4], "little") == 348 else ">"
+    if int.from_bytes(head[:4], "little" if endian == "<" else "big") != 348:
         return False  # NIfTI-2: left to the reader
-    datatype = int(np.frombuffer(raw, endian + "i2", 1, 70)[0])
+    datatype = int(np.frombuffer(head, endian + "i2", 1, 70)[0])
     dtype = {16: "f4", 64: "f8"}.get(datatype)
     if dtype is None:
         return False
-    offset = float(np.frombuffer(raw, endian + "f4", 1, 108)[0])
-    if not np.isfinite(offset) or not 348 <= offset <= len(raw):
+    offset = float(np.frombuffer(head, endian + "f4", 1, 108)[0])
+    if not np.isfinite(offset) or not 348 <= offset < size:
         return False  # an impossible header: the reader reports it
-    offset = int(offset)
-    data = np.frombuffer(raw, endian + dtype, (len(raw) - offset) // np.dtype(dtype).itemsize, offset)
+    count = (size - int(offset)) // np.dtype(dtype).itemsize
+    data = np.memmap(path, endian + dtype, mode="r", offset=int(offset), shape=(count,))
     return not np.isfinite(data).all()
 
 
