@@ -13,7 +13,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from service.api.deps import early_rejection
 from service.api.metrics import Metrics
 from service.api.problems import MEDIA_TYPE, problem_body
-from service.core.errors import PayloadTooLarge, ServiceError
+from service.core.errors import InternalError, PayloadTooLarge, ServiceError
 
 log = logging.getLogger("service.access")
 SAFE_ID = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
@@ -57,7 +57,7 @@ class RequestContext:
                 # The body was cut off at the limit: whatever the app answers (the form parser
                 # reports a 400), the client is told 413.
                 state["replaced"] = True
-                await self._problem(emit, rid, PayloadTooLarge(self._too_large_detail()))
+                await self._problem(emit, rid, self._too_large())
                 return
             if state["replaced"]:
                 return  # the body of the app's own answer, replaced above
@@ -79,17 +79,16 @@ class RequestContext:
             if early is not None:
                 await self._problem(emit, rid, early)
             elif length is not None and length.isdigit() and int(length) > self.max_body:
-                await self._problem(emit, rid, PayloadTooLarge(self._too_large_detail()))
+                await self._problem(emit, rid, self._too_large())
             else:
                 await self.app(scope, limited_receive, send_with_id)
         except BodyTooLarge:
             if not state["started"]:
-                await self._problem(emit, rid, PayloadTooLarge(self._too_large_detail()))
+                await self._problem(emit, rid, self._too_large())
         except Exception as exc:  # noqa: BLE001 - the last line of defence: never a traceback
             log.error("unhandled error", extra={"request_id": rid, "error_type": type(exc).__name__})
             if not state["started"]:
-                await self._send(emit, 500, problem_body(
-                    500, "Internal server error", "an unexpected error occurred; quote the request id", request_id=rid))
+                await self._problem(emit, rid, InternalError())
         route = scope.get("route")
         path = getattr(route, "path", None) or "unmatched"
         model = scope["state"].get("model", "")
@@ -98,19 +97,15 @@ class RequestContext:
         log.info("request", extra={"request_id": rid, "route": path, "method": scope["method"],
                                    "status": state["code"], "duration_ms": round(elapsed * 1e3, 1)})
 
-    def _too_large_detail(self) -> str:
-        return f"the request body exceeds the limit of {self.max_body} bytes"
-
-    async def _problem(self, send: Send, rid: str, error: ServiceError) -> None:
-        body = problem_body(error.status, error.title, error.detail, error.type, rid)
-        await self._send(send, error.status, body, error.headers)
+    def _too_large(self) -> PayloadTooLarge:
+        return PayloadTooLarge(f"the request body exceeds the limit of {self.max_body} bytes")
 
     @staticmethod
-    async def _send(send: Send, status: int, body: dict, headers: dict[str, str] | None = None) -> None:
-        data = json.dumps(body).encode()
+    async def _problem(send: Send, rid: str, error: ServiceError) -> None:
+        data = json.dumps(problem_body(error.status, error.title, error.detail, error.type, rid)).encode()
         raw = [(b"content-type", MEDIA_TYPE.encode()), (b"content-length", str(len(data)).encode())]
-        raw += [(k.lower().encode("latin-1"), v.encode("latin-1")) for k, v in (headers or {}).items()]
-        await send({"type": "http.response.start", "status": status, "headers": raw})
+        raw += [(k.lower().encode("latin-1"), v.encode("latin-1")) for k, v in (error.headers or {}).items()]
+        await send({"type": "http.response.start", "status": error.status, "headers": raw})
         await send({"type": "http.response.body", "body": data})
 
 

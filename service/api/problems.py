@@ -3,21 +3,19 @@
 * :class:`ServiceError` subclasses carry their status, title and detail;
 * request validation errors (FastAPI) become 400 naming the field (API v1 keeps 422 for unusable files);
 * Starlette HTTP errors keep their status;
-* anything else is a server fault: 500 with a generic detail and the request id, never a traceback.
+* anything else is a server fault, answered by :class:`service.api.middleware.RequestContext` (the
+  outermost layer) as :class:`~service.core.errors.InternalError`: 500 with the request id, never a traceback.
 """
 
 from __future__ import annotations
-
-import logging
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from service.core.errors import ServiceError
+from service.core.errors import InvalidParameter, MalformedRequest, ServiceError
 
-log = logging.getLogger(__name__)
 MEDIA_TYPE = "application/problem+json"
 
 
@@ -83,18 +81,11 @@ def install(app: FastAPI) -> None:
     async def validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
         errors = exc.errors()
         if any(e.get("type") in ("json_invalid", "value_error.jsondecode") for e in errors):
-            return problem(400, "Malformed request", "the request body could not be parsed", request=request)
+            return await service_error(request, MalformedRequest("the request body could not be parsed"))
         detail = "; ".join(f"{_field(tuple(e.get('loc', ())))}: {e.get('msg', 'invalid')}" for e in errors)
-        return problem(400, "Invalid parameter", detail, "/problems/invalid-parameter", request=request)
+        return await service_error(request, InvalidParameter(detail))
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         return problem(exc.status_code, str(exc.detail) if exc.status_code < 500 else "Server error",
                        str(exc.detail), headers=getattr(exc, "headers", None), request=request)
-
-    @app.exception_handler(Exception)
-    async def unexpected(request: Request, exc: Exception) -> JSONResponse:
-        log.error("unhandled error", extra={"error_type": type(exc).__name__,
-                                            "request_id": getattr(request.state, "request_id", None)})
-        return problem(500, "Internal server error", "an unexpected error occurred; quote the request id",
-                       request=request)

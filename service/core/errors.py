@@ -76,6 +76,15 @@ class QueueFull(Saturated):
     status, title, type = 429, "Too many queued jobs", "/problems/queue-full"
 
 
+class InternalError(ServiceError):
+    """500: a fault of the server, not of the request (details go to the log by type only)."""
+
+    status, title, type = 500, "Internal server error", "/problems/internal-error"
+
+    def __init__(self, detail: str = "an unexpected error occurred; quote the request id") -> None:
+        super().__init__(detail)
+
+
 class NotReady(ServiceError):
     status, title, type = 503, "Not ready", "/problems/not-ready"
     headers = {"Retry-After": "5"}

@@ -41,7 +41,7 @@ class Settings(BaseSettings):
     retry_after_s: int = Field(2, ge=1)
     job_workers: int = Field(1, ge=1, description="reconstruction jobs run at once (worker processes)")
     max_queued_jobs: int = Field(16, ge=1, description="reconstruction jobs waiting at most; more get 429")
-    max_decoded_mb: float = Field(2048.0, gt=0, description="limit of one file's decoded voxel data (422 above)")
+    max_decoded_mb: float = Field(2048.0, gt=0, description="limit of one file's decoded voxel data (413 above)")
     retention_hours: float = Field(72.0, gt=0, description="finished jobs and their files are deleted after this")
 
     @property
