@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
+from scipy.spatial.transform import Rotation
 
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
 from model_export.calibrate import ERROR_MM, auroc
@@ -108,8 +109,6 @@ def error_components(pred: np.ndarray, true: np.ndarray) -> dict[str, np.ndarray
         >>> round(float(c["tilt_deg"][0]), 6), round(float(c["twist_deg"][0]), 6)
         (40.0, 30.0)
     """
-    from scipy.spatial.transform import Rotation
-
     rel = np.einsum("nji,njk->nik", true[:, :3, :3], pred[:, :3, :3])
     cos_tilt = np.clip(rel[:, 2, 2], -1.0, 1.0)
     x, y, z, w = Rotation.from_matrix(rel).as_quat().T

@@ -9,14 +9,12 @@ from anyio import to_thread
 from fastapi import APIRouter, File, Form, Request, UploadFile
 
 from service.api.deps import ApiKey, MetricsDep, RegistryDep, SettingsDep, SlotDep
-from service.api.schemas import PredictResponse, problem_responses
+from service.api.schemas import UPLOAD_ERRORS, PredictResponse
 from service.api.uploads import check_form, save_and_read, upload_directory
 from service.inference.pipeline import predict as run_prediction
 from service.inference.pipeline import prepare_stacks
 
 router = APIRouter(prefix="/v1", tags=["prediction"], dependencies=[ApiKey])
-
-UPLOAD_ERRORS = problem_responses(400, 401, 404, 413, 415, 422, 429, 503)
 
 
 @router.post("/predict", response_model=PredictResponse, responses=UPLOAD_ERRORS, summary="Atlas pose of every slice")

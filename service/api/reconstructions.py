@@ -11,8 +11,7 @@ from fastapi import APIRouter, File, Form, Request, Response, UploadFile
 from fastapi.responses import FileResponse
 
 from service.api.deps import ApiKey, RegistryDep, SettingsDep, queue_full
-from service.api.predict import UPLOAD_ERRORS
-from service.api.schemas import problem_responses
+from service.api.schemas import UPLOAD_ERRORS, problem_responses
 from service.api.uploads import check_form, display_name, save_and_read
 from service.core.errors import Conflict, InvalidParameter, NotFound
 from service.jobs.store import Job, JobStore

@@ -71,3 +71,6 @@ class Problem(BaseModel):
 def problem_responses(*codes: int) -> dict:
     """OpenAPI ``responses`` for these error statuses: problem+json bodies (RFC 7807)."""
     return {code: {"model": Problem} for code in codes}
+
+
+UPLOAD_ERRORS = problem_responses(400, 401, 404, 413, 415, 422, 429, 503)   # the routes that take stacks
