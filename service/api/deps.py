@@ -66,10 +66,17 @@ def early_rejection(state: State, method: str, path: str, headers: dict[str, str
     if path.startswith("/v1/") and not api_key_ok(settings.key_set(), headers.get("authorization"),
                                                    headers.get("x-api-key")):
         return Unauthorized(UNAUTHORIZED)
-    if method == "POST" and path == "/v1/predict" and state.slots.locked():
-        return Saturated("the server is busy with other requests; retry later", settings.retry_after_s)
+    if method == "POST" and path == "/v1/predict":
+        return saturated(state)
     if method == "POST" and path == "/v1/reconstructions":
         return queue_full(state)
+    return None
+
+
+def saturated(state: State) -> Saturated | None:
+    """503 when every one of the ``max_concurrent`` processing slots is taken."""
+    if state.slots.locked():
+        return Saturated("the server is busy with other requests; retry later", state.settings.retry_after_s)
     return None
 
 
@@ -85,10 +92,9 @@ def queue_full(state: State) -> QueueFull | None:
 
 async def processing_slot(request: Request) -> AsyncIterator[None]:
     """One of ``max_concurrent`` processing slots, or 503 with ``Retry-After`` at once."""
+    if (busy := saturated(request.app.state)) is not None:
+        raise busy
     sem: asyncio.Semaphore = request.app.state.slots
-    if sem.locked():
-        raise Saturated("the server is busy with other requests; retry later",
-                        request.app.state.settings.retry_after_s)
     async with sem:
         yield
 
