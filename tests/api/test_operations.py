@@ -11,10 +11,12 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.core.logging import JsonFormatter
+from service.core.settings import Settings
 from service.inference.estimator import OnnxPoseEstimator
 from service.inference.model_file import load_model
 from service.inference.registry import ModelRegistry
 from service.io.volume import Volume, write_volume
+from service.main import create_app
 from tests.api.conftest import make_client
 from tests.phantoms import acquire_stack, phantom_brain, stack_affine
 
@@ -159,10 +161,14 @@ def test_refusals_come_before_the_upload_is_read(oracle) -> None:
         assert (status, read, headers["retry-after"]) == (503, False, "5")
 
 
-def test_model_default_means_the_configured_default(oracle, phantom_files) -> None:
-    with make_client(ModelRegistry({"v7": oracle}, default_name="v7"), default_model="v7") as client:
-        r = client.post("/v1/predict", files=[("stacks", ("s.nii.gz", b"not an image"))])
-        assert r.status_code == 415                                     # got past the model lookup
+def test_model_default_means_the_configured_default(tiny_model_path: Path, phantom_files, tmp_path: Path) -> None:
+    """SVRNET_DEFAULT_MODEL=v7 with only ``<models_dir>/v7/model.onnx``: ``model=default`` is v7."""
+    (tmp_path / "models" / "v7").mkdir(parents=True)
+    (tmp_path / "models" / "v7" / "model.onnx").symlink_to(tiny_model_path)
+    with TestClient(create_app(Settings(models_dir=tmp_path / "models", default_model="v7",
+                                        data_dir=tmp_path / "jobs"))) as client:
+        r = upload(client, phantom_files[0], phantom_files[1], mc_samples="2")
+        assert r.status_code == 200 and r.json()["model"]["name"] == "v7", r.text
         r = client.post("/v1/predict", files=[("stacks", ("s.nii.gz", b"x"))], data={"model": "v8"})
         assert r.status_code == 404 and "v8" in r.json()["detail"]
 
