@@ -23,6 +23,7 @@ import torch
 
 from model_export.model import MCExport, SVRNet
 from service.geometry.anchors import ANCHOR_HALF_SIZE_MM
+from service.geometry.twin import DEFAULT_PLANE_X_MM
 
 INPUT_SLICES, INPUT_PASSES, OUTPUT_LABELS = "slices", "passes", "labels"
 INTENSITY_CONVENTION = ("0-255: N4-corrected slice, masked, clipped to the 1st/99th percentile inside the mask "
@@ -39,15 +40,19 @@ def git_commit() -> str:
 
 
 def build_metadata(model: SVRNet, *, name: str, version: str, pixel_mm: float, variance_threshold: float,
-                   atlas_id: str, training_data: str, licences: str, extra: dict | None = None) -> dict[str, str]:
-    """The metadata stored in the ONNX file (all values strings)."""
+                   atlas_id: str, training_data: str, licences: str, extra: dict | None = None,
+                   symmetry_plane_x_mm: float = DEFAULT_PLANE_X_MM) -> dict[str, str]:
+    """The metadata stored in the ONNX file (all values strings).
+
+    ``symmetry_plane_x_mm`` is the atlas mid-sagittal plane the model was trained with (its twin).
+    """
     c = model.config
     meta = {
         "name": name, "version": version, "backbone": c["backbone"], "width": c["width"],
         "label_type": c["label_type"], "input_size": c["input_size"], "pixel_spacing_mm": pixel_mm,
         "intensity": INTENSITY_CONVENTION, "atlas_id": atlas_id, "anchor_half_size_mm": ANCHOR_HALF_SIZE_MM,
         "variance_threshold": variance_threshold, "dropout_p": c["dropout"], "training_data": training_data,
-        "licences": licences, "commit": git_commit(),
+        "licences": licences, "commit": git_commit(), "symmetry_plane_x_mm": symmetry_plane_x_mm,
         "inputs": f"{INPUT_SLICES}[B,1,L,L] float32 0-255; {INPUT_PASSES}[N] float32 (1 = MC pass, 0 = deterministic)",
         "outputs": f"{OUTPUT_LABELS}[B,N,D] float32, physical units (mm, rad)",
     }

@@ -20,6 +20,8 @@ Pose convention (the ONE convention of the project)
 * **Anchor points** (the paper's labels) are the images under a pose of ``P1 = (-h, -h, 0)``
   (bottom-left corner), ``P2 = (0, 0, 0)`` (centre) and ``P3 = (h, -h, 0)`` (bottom-right corner)
   with ``h = ANCHOR_HALF_SIZE_MM`` (see :mod:`service.geometry.anchors`).
+* **The twin.** Atlas space is left-right symmetric about ``x = x0``; a slice at ``T`` and at
+  ``twin(T) = M T diag(1, 1, -1, 1)`` render the same image (see :mod:`service.geometry.twin`).
 
 Example:
     >>> import numpy as np
@@ -29,7 +31,7 @@ Example:
     [0.0, 1.0, 0.0]
 """
 
-from service.geometry import anchors, encodings, frames, iterators, sampling, se3
+from service.geometry import anchors, encodings, frames, iterators, sampling, se3, twin
 from service.geometry.anchors import ANCHOR_HALF_SIZE_MM
 from service.geometry.pose import make_pose, slice_pixel_coordinates
 
@@ -43,4 +45,5 @@ __all__ = [
     "sampling",
     "se3",
     "slice_pixel_coordinates",
+    "twin",
 ]

@@ -16,6 +16,8 @@ import numpy as np
 import onnxruntime as ort
 from numpy.typing import NDArray
 
+from service.geometry.twin import DEFAULT_PLANE_X_MM
+
 INPUT_SLICES, INPUT_PASSES, OUTPUT_LABELS = "slices", "passes", "labels"
 
 
@@ -34,6 +36,7 @@ class ModelInfo:
     atlas_id: str
     trained_on: str
     sha256: str
+    symmetry_plane_x_mm: float = DEFAULT_PLANE_X_MM
     metadata: dict[str, str] = field(default_factory=dict, repr=False)
 
     @classmethod
@@ -44,7 +47,7 @@ class ModelInfo:
                 input_size=int(meta["input_size"]), pixel_spacing_mm=float(meta["pixel_spacing_mm"]),
                 variance_threshold=float(meta["variance_threshold"]), dropout_p=float(meta.get("dropout_p", 0.5)),
                 atlas_id=meta.get("atlas_id", ""), trained_on=meta.get("training_data", ""), sha256=sha256,
-                metadata=dict(meta),
+                symmetry_plane_x_mm=float(meta.get("symmetry_plane_x_mm", DEFAULT_PLANE_X_MM)), metadata=dict(meta),
             )
         except (KeyError, ValueError) as exc:
             raise ValueError(f"model metadata incomplete or invalid: {exc}") from exc
