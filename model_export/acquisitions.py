@@ -116,9 +116,9 @@ def simulate_stack(image: NDArray, mask: NDArray, affine: NDArray, centre: NDArr
         about_centre = translate(centre) @ se3.exp(smooth_motion(times, rng, *level)) @ translate(-centre)
         truth = about_centre @ static[None]
     slice_poses = truth @ np.linalg.inv(stack_geo.slice_from_voxel)        # slice frame -> atlas, rigid
-    img = sampling.sample_slices(image, affine, slice_poses, size, pixel_mm, thickness_mm=thickness_mm)
+    img = sampling.sample_slices(image, affine, slice_poses, size, pixel_mm, thickness_mm=thickness_mm or None)
     msk = sampling.sample_slices(mask.astype(np.float32), affine, slice_poses, size, pixel_mm) > 0.5
-    img = _corrupt(img, rng, noise, bias)
+    img = _corrupt(img, rng, noise, bias) if noise or bias else img
     # slice [r, c] is voxel (i = c, j = r, k): the array is [i, j, k]
     array = np.ascontiguousarray(img.transpose(2, 1, 0).astype(np.float32))
     marray = np.ascontiguousarray(msk.transpose(2, 1, 0).astype(np.uint8))

@@ -13,15 +13,17 @@ Steps (all slices at once, numpy only):
    most slices (MSAC cost of the anchor-point distance, each slice on its nearer branch) wins;
    each slice takes the branch nearer to it.
 2. **Rigid fit** (IRLS): a Tukey-weighted Fréchet mean of the proposals, branches re-decided on
-   the way: ``atlas_from_scanner`` and the inlier fraction. Under
-   :data:`MIN_INLIER_FRACTION` the stack is *undecidable* and nothing is changed.
+   the way: ``atlas_from_scanner``.
 3. **Motion** (leave-one-out local model): each slice's pose predicted from the others, weighted
    by a Gaussian kernel over acquisition time; the acquisition order (sequential or interleaved)
    and the kernel width (down to rigid) are chosen by cross-validation of that prediction.
 4. **Fusion**: each slice's pose becomes the inverse-variance mean of its own and the model's,
    with the network's error from its calibrated MC spread (or, without one, from acquisition
-   neighbours) and the model's from the cross-validated residual; slices whose own pose disagrees with the model beyond a robust
-   limit are *inconsistent* (they take the model's pose).
+   neighbours) and the model's from the cross-validated residual; slices whose own pose
+   disagrees with the model beyond what both errors explain are *inconsistent* (they take the
+   model's pose). When fewer than
+   :data:`MIN_INLIER_FRACTION` of the slices agree, or the model's error exceeds
+   :data:`MAX_MODEL_ERROR_MM`, the stack is *undecidable* and nothing is changed.
 
 Distances are the paper's E.D.: mean distance of the three anchor points (mm).
 
@@ -54,14 +56,18 @@ from service.geometry.pose import make_pose
 RANSAC_TAU_MM = 30.0
 """MSAC truncation of a slice's residual when scoring branch proposals (mm of E.D.)."""
 MIN_INLIER_FRACTION = 0.5
-"""A stack whose rigid fit explains fewer of its usable slices than this is undecidable."""
+"""A stack whose model explains fewer of its usable slices than this is undecidable."""
+MAX_MODEL_ERROR_MM = 25.0
+"""A stack whose model predicts its slices worse than this (cross-validated, network error removed)
+has no common geometry (e.g. every slice moved independently): undecidable, nothing is changed."""
 MIN_SLICES = 3
 TUKEY_C = 4.685
 MIN_SCALE_MM = 3.0
 """Floor of the robust residual scale (mm), so a near-perfect stack does not reject its noise."""
 OUTLIER_K = 3.0
 OUTLIER_FLOOR_MM = 15.0
-"""A slice is inconsistent when its residual to the model exceeds ``max(K * scale, floor)``."""
+"""A slice is inconsistent when its residual to the model exceeds ``max(K * sqrt(network^2 +
+model^2), floor)``: K times what the two estimated errors together explain."""
 BRANCH_MARGIN_MM = 5.0
 MIN_NOISE_MM = 0.1
 """Floor of a pose's expected error (mm), so an exact oracle still has a finite weight."""
@@ -80,7 +86,7 @@ class StackFit:
         residual_mm: ``[n]`` E.D. between the network's pose (on its branch) and the model's.
         decidable: False where the slices do not agree on one stack (nothing was changed).
         atlas_from_scanner: ``4 x 4`` rigid fit (``None`` when undecidable).
-        inlier_fraction: fraction of usable slices explained by the rigid fit.
+        inlier_fraction: fraction of usable slices the stack model explains (not inconsistent).
         acquisition_order: the order chosen (``sequential``, ``interleaved-even-first``, ...).
         bandwidth: kernel width in acquisitions (``inf``: rigid, no motion needed).
         noise_mm, model_mm: estimated E.D. of a network pose and of the model's prediction.
@@ -163,9 +169,6 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
             return unchanged
         s = se3.frechet_mean(proposals[np.arange(n), branch], w)
     inliers = (w > 0) & use
-    fraction = float(inliers.sum() / use.sum())
-    if fraction < MIN_INLIER_FRACTION or inliers.sum() < MIN_SLICES:
-        return StackFit(p.copy(), np.zeros(n, bool), np.zeros(n, bool), r, False, s, fraction)
 
     # 3. motion: leave-one-out local models over acquisition time, chosen by cross-validation
     own = cand[np.arange(n), branch]                                        # [n, 4, 4] each on its branch
@@ -173,27 +176,38 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     best_score, best_fit = np.inf, None
     for name, t in acquisition_orders(n).items():
         for bw in BANDWIDTHS:
-            kern = np.ones((n, n)) if np.isinf(bw) else np.exp(-0.5 * ((t[:, None] - t[None]) / bw) ** 2)
-            wts = kern * w[None]
-            np.fill_diagonal(wts, 0.0)
-            predicted = _local_models(chosen, s, wts) @ inv_n               # [n, 4, 4]
+            predicted = _local_models(chosen, s, _loo_weights(t, bw, w)) @ inv_n   # [n, 4, 4]
             r_loo = ed(predicted, own)
             score = float(np.median(r_loo[inliers] ** 2))
             if score < best_score - 1e-9:
                 best_score, best_fit = score, (name, bw, t, predicted, r_loo)
     name, bw, t, predicted, r_loo = best_fit
+    # branches again, against the local model (the rigid fit is off by the motion; near the
+    # mid-sagittal plane that can exceed half the distance to the twin), and the model once more
+    branch = _branch(ed(predicted[:, None], cand))
+    own = cand[np.arange(n), branch]
+    chosen = proposals[np.arange(n), branch]
+    predicted = _local_models(chosen, s, _loo_weights(t, bw, w)) @ inv_n
+    r_loo = ed(predicted, own)
+    best_score = float(np.median(r_loo[inliers] ** 2))
 
     # 4. fusion: inverse-variance weights from the network's and the model's estimated errors
+    close = inliers & (r_loo <= np.percentile(r_loo[inliers], 90))         # trimmed: a few wild slices aside
     if noise_mm is not None:
         noise2_k = np.maximum(np.asarray(noise_mm, dtype=np.float64) ** 2, MIN_NOISE_MM ** 2)
-        noise2 = float(np.median(noise2_k[inliers]))
+        noise2 = float(np.mean(noise2_k[close]))
     else:
         noise2 = min(_neighbour_noise2(chosen, own, inv_n, t, inliers, best_score), best_score)
         noise2_k = np.full(n, noise2)
-    model2 = max(best_score - noise2, 1e-3 * best_score, MIN_NOISE_MM ** 2)
+    residual2 = float(np.mean(r_loo[close] ** 2))
+    model2 = max(residual2 - noise2, 1e-3 * residual2, MIN_NOISE_MM ** 2)
     alpha = model2 / (model2 + noise2_k)                                     # weight of each slice's own pose
-    limit = max(OUTLIER_K * _scale(r_loo[inliers]), OUTLIER_FLOOR_MM)
+    limit = np.maximum(OUTLIER_K * np.sqrt(noise2_k + model2), OUTLIER_FLOOR_MM)
     inconsistent = use & (r_loo > limit)
+    fraction = float((use & ~inconsistent).sum() / use.sum())
+    if fraction < MIN_INLIER_FRACTION or np.sqrt(model2) > MAX_MODEL_ERROR_MM:
+        return StackFit(p.copy(), np.zeros(n, bool), np.zeros(n, bool), r_loo, False, s, fraction, name, float(bw),
+                        float(np.sqrt(noise2)), float(np.sqrt(model2)))
     trust_own = use & ~inconsistent
     weights = np.stack([np.where(trust_own, alpha, 0.0), np.where(trust_own, 1.0 - alpha, 1.0)], axis=1)
     fused = se3.frechet_mean(np.stack([own, predicted], axis=1), weights)
@@ -217,6 +231,15 @@ def _neighbour_noise2(chosen: NDArray, own: NDArray, inv_n: NDArray, t: NDArray,
         return fallback
     a, c = np.array(pairs).T
     return float(np.median(ed(chosen[a] @ inv_n[c], own[c]) ** 2)) / 2.0
+
+
+def _loo_weights(t: NDArray, bandwidth: float, w: NDArray) -> NDArray:
+    """``[n, n]`` leave-one-out weights: a Gaussian kernel over acquisition time times the robust weights."""
+    dt = t[:, None] - t[None]
+    kern = np.ones(dt.shape) if np.isinf(bandwidth) else np.exp(-0.5 * (dt / bandwidth) ** 2)
+    wts = kern * w[None]
+    np.fill_diagonal(wts, 0.0)
+    return wts
 
 
 def _local_models(chosen: NDArray, centre: NDArray, weights: NDArray) -> NDArray:
