@@ -68,6 +68,9 @@ OUTLIER_K = 3.0
 OUTLIER_FLOOR_MM = 15.0
 """A slice is inconsistent when its residual to the model exceeds ``max(K * sqrt(network^2 +
 model^2), floor)``: K times what the two estimated errors together explain."""
+IRLS_ROUNDS = 4
+MEAN_TOL_RAD = 1e-7
+"""Fréchet-mean tolerance of the stage (1e-7 rad moves an anchor 60 mm away by 6 nm)."""
 BRANCH_MARGIN_MM = 5.0
 MIN_NOISE_MM = 0.1
 """Floor of a pose's expected error (mm), so an exact oracle still has a finite weight."""
@@ -159,7 +162,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
 
     # 2. rigid fit: IRLS with Tukey weights, branches re-decided each round
     s = proposals[idx[h], b]
-    for _ in range(5):
+    for _ in range(IRLS_ROUNDS):
         model = s @ inv_n                                                   # [n, 4, 4]
         both = ed(model[:, None], cand)                                     # [n, 2]
         branch = _branch(both)
@@ -167,20 +170,20 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
         w = _tukey(r, _scale(r[use])) * use
         if w.sum() <= 0:
             return unchanged
-        s = se3.frechet_mean(proposals[np.arange(n), branch], w)
+        s = se3.frechet_mean(proposals[np.arange(n), branch], w, tol=MEAN_TOL_RAD)
     inliers = (w > 0) & use
 
     # 3. motion: leave-one-out local models over acquisition time, chosen by cross-validation
     own = cand[np.arange(n), branch]                                        # [n, 4, 4] each on its branch
     chosen = proposals[np.arange(n), branch]
-    best_score, best_fit = np.inf, None
-    for name, t in acquisition_orders(n).items():
-        for bw in BANDWIDTHS:
-            predicted = _local_models(chosen, s, _loo_weights(t, bw, w)) @ inv_n   # [n, 4, 4]
-            r_loo = ed(predicted, own)
-            score = float(np.median(r_loo[inliers] ** 2))
-            if score < best_score - 1e-9:
-                best_score, best_fit = score, (name, bw, t, predicted, r_loo)
+    combos = [(name, t, bw) for name, t in acquisition_orders(n).items() for bw in BANDWIDTHS]
+    all_w = np.stack([_loo_weights(t, bw, w) for _, t, bw in combos])        # [c, n, n]: all at once
+    all_pred = _local_models(chosen, s, all_w) @ inv_n                       # [c, n, 4, 4]
+    all_r = ed(all_pred, own[None])                                          # [c, n]
+    scores = np.median(all_r[:, inliers] ** 2, axis=1)
+    c = int(np.argmin(scores))
+    best_score = float(scores[c])
+    best_fit = (combos[c][0], combos[c][2], combos[c][1], all_pred[c], all_r[c])
     name, bw, t, predicted, r_loo = best_fit
     # branches again, against the local model (the rigid fit is off by the motion; near the
     # mid-sagittal plane that can exceed half the distance to the twin), and the model once more
@@ -210,7 +213,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
                         float(np.sqrt(noise2)), float(np.sqrt(model2)))
     trust_own = use & ~inconsistent
     weights = np.stack([np.where(trust_own, alpha, 0.0), np.where(trust_own, 1.0 - alpha, 1.0)], axis=1)
-    fused = se3.frechet_mean(np.stack([own, predicted], axis=1), weights)
+    fused = se3.frechet_mean(np.stack([own, predicted], axis=1), weights, tol=MEAN_TOL_RAD)
     return StackFit(fused, branch == 1, inconsistent, r_loo, True, s, fraction, name, float(bw),
                     float(np.sqrt(noise2)), float(np.sqrt(model2)))
 
@@ -243,7 +246,7 @@ def _loo_weights(t: NDArray, bandwidth: float, w: NDArray) -> NDArray:
 
 
 def _local_models(chosen: NDArray, centre: NDArray, weights: NDArray) -> NDArray:
-    """Weighted means ``[n, 4, 4]`` of the proposals ``chosen [n, 4, 4]`` with rows of ``weights``.
+    """Weighted means ``[..., n, 4, 4]`` of the proposals ``chosen [n, 4, 4]`` with rows of ``weights [..., n, n]``.
 
     Linearised at ``centre`` (rotation vectors of ``R_c^T R_j``, translations as they are): the
     proposals of one stack lie within the motion's few tens of degrees of each other, where this
@@ -252,11 +255,10 @@ def _local_models(chosen: NDArray, centre: NDArray, weights: NDArray) -> NDArray
     """
     rc = centre[:3, :3]
     omega = se3.so3_log(rc.T @ chosen[:, :3, :3])                           # [n, 3]
-    total = weights.sum(axis=1, keepdims=True)
+    total = weights.sum(axis=-1, keepdims=True)
     norm = np.where(total > 0, weights / np.where(total > 0, total, 1.0), 0.0)
-    empty = total[:, 0] <= 0
     w_omega = norm @ omega
-    w_t = np.where(empty[:, None], centre[:3, 3], norm @ chosen[:, :3, 3])
+    w_t = np.where(total > 0, norm @ chosen[:, :3, 3], centre[:3, 3])
     return make_pose(rc @ se3.so3_exp(w_omega), w_t)
 
 
