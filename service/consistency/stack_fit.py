@@ -180,14 +180,11 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     all_w = np.stack([_loo_weights(t, bw, w) for _, t, bw in combos])        # [c, n, n]: all at once
     all_pred = _local_models(chosen, s, all_w) @ inv_n                       # [c, n, 4, 4]
     all_r = ed(all_pred, own[None])                                          # [c, n]
-    scores = np.median(all_r[:, inliers] ** 2, axis=1)
-    c = int(np.argmin(scores))
-    best_score = float(scores[c])
-    best_fit = (combos[c][0], combos[c][2], combos[c][1], all_pred[c], all_r[c])
-    name, bw, t, predicted, r_loo = best_fit
+    c = int(np.argmin(np.median(all_r[:, inliers] ** 2, axis=1)))
+    name, t, bw = combos[c]
     # branches again, against the local model (the rigid fit is off by the motion; near the
     # mid-sagittal plane that can exceed half the distance to the twin), and the model once more
-    branch = _branch(ed(predicted[:, None], cand))
+    branch = _branch(ed(all_pred[c][:, None], cand))
     own = cand[np.arange(n), branch]
     chosen = proposals[np.arange(n), branch]
     predicted = _local_models(chosen, s, _loo_weights(t, bw, w)) @ inv_n
