@@ -50,6 +50,12 @@ class StackConsistency(BaseModel):
         None, description="width (in acquisitions) of the motion model's kernel; null: one rigid fit sufficed")
     network_error_mm: Optional[float] = Field(None, description="estimated E.D. of one network pose")
     model_error_mm: Optional[float] = Field(None, description="estimated E.D. of the stack model's prediction")
+    branch_margin: Optional[float] = Field(
+        None, description="how many times worse one rigid stack fits with every slice on its other twin")
+    branch_decided: bool = Field(
+        False, description="the stack's left-right branch is decided by its slices' order along the normal "
+                            "(branch_margin >= 1.5); when false the poses are consistent but the whole stack "
+                            "may be the mirror image")
 
 
 class StackResult(BaseModel):

@@ -72,6 +72,8 @@ IRLS_ROUNDS = 4
 MEAN_TOL_RAD = 1e-7
 """Fréchet-mean tolerance of the stage (1e-7 rad moves an anchor 60 mm away by 6 nm)."""
 BRANCH_MARGIN_MM = 5.0
+MIN_STACK_BRANCH_MARGIN = 1.5
+"""A stack whose twin fits a rigid stack less than this many times worse has not decided its branch."""
 MIN_NOISE_MM = 0.1
 """Floor of a pose's expected error (mm), so an exact oracle still has a finite weight."""
 BANDWIDTHS = (1.0, 2.0, 4.0, 8.0, np.inf)
@@ -93,6 +95,8 @@ class StackFit:
         acquisition_order: the order chosen (``sequential``, ``interleaved-even-first``, ...).
         bandwidth: kernel width in acquisitions (``inf``: rigid, no motion needed).
         noise_mm, model_mm: estimated E.D. of a network pose and of the model's prediction.
+        branch_margin: how many times worse the whole stack on its other twin fits one rigid
+            stack (under :data:`MIN_STACK_BRANCH_MARGIN`: this stack does not decide its branch).
     """
 
     poses: NDArray[np.float64]
@@ -106,6 +110,12 @@ class StackFit:
     bandwidth: float = np.inf
     noise_mm: float = float("nan")
     model_mm: float = float("nan")
+    branch_margin: float = float("nan")
+
+    @property
+    def branch_decided(self) -> bool:
+        """The stack's left-right branch is decided by its slices' order along the normal."""
+        return bool(self.decidable and self.branch_margin >= MIN_STACK_BRANCH_MARGIN)
 
 
 def ed(a: ArrayLike, b: ArrayLike) -> NDArray[np.float64]:
@@ -183,10 +193,18 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     c = int(np.argmin(np.median(all_r[:, inliers] ** 2, axis=1)))
     name, t, bw = combos[c]
     # branches again, against the local model (the rigid fit is off by the motion; near the
-    # mid-sagittal plane that can exceed half the distance to the twin), and the model once more
+    # mid-sagittal plane that can exceed half the distance to the twin); then the stack's branch as
+    # a whole by the rigid model (only the order along the normal tells a stack from its twin, and a
+    # flexible motion model can bend to either order); then the model once more
     branch = _branch(ed(all_pred[c][:, None], cand))
     own = cand[np.arange(n), branch]
     chosen = proposals[np.arange(n), branch]
+    margin = _branch_margin(proposals, cand, branch, inv_n, w, inliers)
+    if margin < 1.0:                       # the whole stack's twin is the better rigid stack: take it
+        branch, margin = 1 - branch, 1.0 / margin
+        own = cand[np.arange(n), branch]
+        chosen = proposals[np.arange(n), branch]
+        s = se3.frechet_mean(chosen, np.maximum(w, 1e-12), tol=MEAN_TOL_RAD)
     predicted = _local_models(chosen, s, _loo_weights(t, bw, w)) @ inv_n
     r_loo = ed(predicted, own)
     best_score = float(np.median(r_loo[inliers] ** 2))
@@ -212,7 +230,26 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     weights = np.stack([np.where(trust_own, alpha, 0.0), np.where(trust_own, 1.0 - alpha, 1.0)], axis=1)
     fused = se3.frechet_mean(np.stack([own, predicted], axis=1), weights, tol=MEAN_TOL_RAD)
     return StackFit(fused, branch == 1, inconsistent, r_loo, True, s, fraction, name, float(bw),
-                    float(np.sqrt(noise2)), float(np.sqrt(model2)))
+                    float(np.sqrt(noise2)), float(np.sqrt(model2)), margin)
+
+
+def _branch_margin(proposals: NDArray, cand: NDArray, branch: NDArray, inv_n: NDArray, w: NDArray,
+                   inliers: NDArray) -> float:
+    """How many times worse one rigid stack explains the slices with every slice on its other twin
+    (ratio of median squared leave-one-out E.D.). The whole stack's twin differs from the truth
+    only in the order of its slices along the normal, which a rigid model sees and a flexible
+    motion model can bend to; a network whose positions along the normal are poor leaves this
+    ratio near 1: the branch is then not decided by this stack."""
+    n = len(branch)
+    rigid = np.ones((n, n)) * w[None]
+    np.fill_diagonal(rigid, 0.0)
+    scores = []
+    for b in (branch, 1 - branch):
+        chosen = proposals[np.arange(n), b]
+        centre = se3.frechet_mean(chosen, np.maximum(w, 1e-12), tol=MEAN_TOL_RAD)
+        r = ed(_local_models(chosen, centre, rigid) @ inv_n, cand[np.arange(n), b])
+        scores.append(np.median(r[inliers] ** 2))
+    return float(scores[1] / max(scores[0], 1e-12))
 
 
 def _branch(residuals: NDArray) -> NDArray[np.int64]:

@@ -65,4 +65,6 @@ def stack_report(fit: StackFit | None) -> dict | None:
         "motion_bandwidth_slices": finite(fit.bandwidth) if fit.decidable else None,
         "network_error_mm": finite(fit.noise_mm),
         "model_error_mm": finite(fit.model_mm),
+        "branch_margin": finite(fit.branch_margin) if fit.decidable else None,
+        "branch_decided": fit.branch_decided,
     }

@@ -101,3 +101,26 @@ def test_the_acquisition_order_is_recognised() -> None:
     poses = truth @ se3.exp(rng.normal(0, 1, (len(truth), 6)) * NOISE * 0.2)
     fit = fit_stack(poses, nk, noise_mm=np.full(len(poses), 3.0))
     assert fit.acquisition_order == "interleaved-even-first" and np.isfinite(fit.bandwidth)
+
+
+def test_branch_margin_tells_a_stack_that_orders_its_slices_from_one_that_does_not() -> None:
+    rng = np.random.default_rng(13)
+    truth, nk = stack(rng, "mild")
+    poses = truth @ se3.exp(rng.normal(0, 1, (len(truth), 6)) * NOISE * 0.3)
+    fit = fit_stack(poses, nk, noise_mm=np.full(len(poses), 4.0))
+    assert fit.decidable and fit.branch_decided and fit.branch_margin > 3.0
+    # a network that puts every slice at the stack's centre along the normal: the order is gone
+    normal = truth[:, :3, 2]
+    offset = np.einsum("ni,ni->n", truth[:, :3, 3] - truth[:, :3, 3].mean(0), normal)
+    collapsed = poses.copy()
+    collapsed[:, :3, 3] -= offset[:, None] * normal
+    fit = fit_stack(collapsed, nk, noise_mm=np.full(len(poses), 4.0))
+    assert not fit.branch_decided and fit.branch_margin < 1.5
+
+
+def test_the_whole_stack_on_its_twin_is_put_back() -> None:
+    rng = np.random.default_rng(17)
+    truth, nk = stack(rng, "mild")
+    poses = twin.twin(truth) @ se3.exp(rng.normal(0, 1, (len(truth), 6)) * NOISE * 0.3)   # every slice twinned
+    fit = fit_stack(poses, nk, noise_mm=np.full(len(poses), 4.0))
+    assert fit.twinned.all() and ed(fit.poses, truth).mean() < 5.0
