@@ -12,8 +12,8 @@ Steps (all slices at once, numpy only):
 1. **Branch** (RANSAC): every usable slice and branch proposes ``S``; the proposal that explains
    most slices (MSAC cost of the anchor-point distance, each slice on its nearer branch) wins;
    each slice takes the branch nearer to it.
-2. **Rigid fit** (IRLS): a Tukey-weighted Fréchet mean of the proposals, branches re-decided on
-   the way: ``atlas_from_scanner``.
+2. **Rigid fit** (IRLS): a Tukey-weighted Fréchet mean of the proposals (one Gauss-Newton step
+   per round, from the RANSAC proposal), branches re-decided on the way: ``atlas_from_scanner``.
 3. **Motion** (leave-one-out local model): each slice's pose predicted from the others, weighted
    by a Gaussian kernel over acquisition time; the acquisition order (sequential or interleaved)
    and the kernel width (down to rigid) are chosen by cross-validation of that prediction.
@@ -68,7 +68,7 @@ OUTLIER_K = 3.0
 OUTLIER_FLOOR_MM = 15.0
 """A slice is inconsistent when its residual to the model exceeds ``max(K * sqrt(network^2 +
 model^2), floor)``: K times what the two estimated errors together explain."""
-IRLS_ROUNDS = 4
+IRLS_ROUNDS = 6
 MEAN_TOL_RAD = 1e-7
 """Fréchet-mean tolerance of the stage (1e-7 rad moves an anchor 60 mm away by 6 nm)."""
 BRANCH_MARGIN_MM = 5.0
@@ -180,7 +180,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
         w = _tukey(r, _scale(r[use])) * use
         if w.sum() <= 0:
             return unchanged
-        s = se3.frechet_mean(proposals[np.arange(n), branch], w, tol=MEAN_TOL_RAD)
+        s = _local_models(proposals[np.arange(n), branch], s, w[None])[0]   # one Gauss-Newton step a round
     inliers = (w > 0) & use
 
     # 3. motion: leave-one-out local models over acquisition time, chosen by cross-validation

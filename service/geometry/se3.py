@@ -119,10 +119,17 @@ def geodesic_distance(a: ArrayLike, b: ArrayLike) -> NDArray[np.float64]:
 
 # ---- quaternion helpers (scalar-last, as scipy) -------------------------------------------------
 
+def _cross(a: NDArray, b: NDArray) -> NDArray:
+    """``a x b`` over the last axis (np.cross's axis handling dominates on small batches)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
 def _qmul(p: NDArray, q: NDArray) -> NDArray:
     pv, pw = p[..., :3], p[..., 3:]
     qv, qw = q[..., :3], q[..., 3:]
-    v = pw * qv + qw * pv + np.cross(pv, qv)
+    v = pw * qv + qw * pv + _cross(pv, qv)
     w = pw * qw - np.sum(pv * qv, axis=-1, keepdims=True)
     return np.concatenate([v, w], axis=-1)
 
