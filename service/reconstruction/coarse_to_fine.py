@@ -52,6 +52,8 @@ class CoarseAlignment:
         atlas_from_scanner: ``[n_stacks, 4, 4]`` after stack registration.
         start: ``[n]`` int, which candidate each slice starts from (``START_OWN`` / ``START_STACK``).
         candidate_ncc: ``[2, n]`` NCC of the two candidates (NaN where not evaluated).
+        stack_poses: ``[n, 4, 4]`` each slice at its registered stack's transform (the restart pose
+            of a slice whose own pose turns out not to fit).
     """
 
     poses: NDArray[np.float64]
@@ -60,6 +62,7 @@ class CoarseAlignment:
     atlas_from_scanner: NDArray[np.float64]
     start: NDArray[np.int64]
     candidate_ncc: NDArray[np.float64]
+    stack_poses: NDArray[np.float64]
 
 
 def choose_by_ncc(ncc: NDArray, evaluated: NDArray) -> NDArray[np.int64]:
@@ -133,4 +136,4 @@ def coarse_align(slices: SliceSet, poses: NDArray | None = None, *, plane_x_mm: 
     ncc = candidate_ncc(slices, candidates, stack_poses, float(min(levels_mm)))
     start = choose_by_ncc(ncc, slices.include & np.isfinite(ncc).all(axis=0))
     chosen = np.where((start == START_STACK)[:, None, None], stack_poses, own)
-    return CoarseAlignment(chosen, branch, fit, g, start, ncc)
+    return CoarseAlignment(chosen, branch, fit, g, start, ncc, stack_poses)

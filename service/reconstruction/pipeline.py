@@ -48,12 +48,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from service.io.volume import Volume
-from service.reconstruction.coarse_to_fine import CoarseAlignment, coarse_align
+from service.reconstruction.coarse_to_fine import START_OWN, CoarseAlignment, coarse_align
 from service.reconstruction.forward import ForwardModel, inplane_sigma_mm
 from service.reconstruction.gaussian_average import gaussian_average
 from service.reconstruction.grid import Grid, bounds_of, make_grid
 from service.reconstruction.registration import anchor_frame, register_slices
-from service.reconstruction.robust import robust_weights
+from service.reconstruction.robust import ncc_outliers, robust_weights
 from service.reconstruction.slices import SliceSet
 from service.reconstruction.superresolution import DEFAULT_DELTA_FRACTION, DEFAULT_LAMBDA, default_delta, super_resolve
 
@@ -105,7 +105,9 @@ class ReconstructionConfig:
         robust_tolerance: pixel weights use the EM inlier Gaussian widened by this factor, so only
             gross outliers lose weight (1: the plain EM posteriors, which also down-weight the
             sharpest edges and cost about 1 dB on clean data).
-        exclude_ratio: slices with potential below this fraction of the median are excluded.
+        exclude_ratio: slices with potential below this fraction of the median are excluded (and
+            slices whose NCC with the volume is an outlier, :func:`~service.reconstruction.robust.ncc_outliers`;
+            one that started from its own predicted pose restarts once from its stack's).
     """
 
     margin_mm: float = 5.0
@@ -290,7 +292,7 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
         t0 = time.perf_counter()
         coarse = coarse_align(slice_set, poses, plane_x_mm=cfg.symmetry_plane_x_mm, levels_mm=cfg.stack_levels_mm,
                               sweeps=cfg.stack_sweeps, stage=stage)
-        poses = coarse.poses
+        poses = coarse.poses.copy()
         timings["coarse"] = time.perf_counter() - t0
     bounds = bounds_of(slice_set.positions(poses), cfg.margin_mm) if bounds_mm is None else bounds_mm
     grid = make_grid(resolution_mm, bounds)
@@ -307,12 +309,18 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
     included = slice_set.include.copy()
     model = None
     pixel_weight = slice_weight[sid].astype(np.float32)
+    poor = np.zeros(n, bool)
+    restarted = np.zeros(n, bool)
     for it, lam in enumerate(lams):
         delta = default_delta(x, support, cfg.delta_fraction)
         if it > 0:
             stage(f"registration {it}/{rounds}")
             t0 = time.perf_counter()
             if cfg.register:
+                if coarse is not None:             # a slice started from a pose that does not fit: restart it
+                    restart = poor & (coarse.start == START_OWN) & ~restarted
+                    poses[restart] = coarse.stack_poses[restart]
+                    restarted |= restart
                 moved, t_sr = _register(slice_set, poses, x, grid, model, pixel_weight, float(lam), delta,
                                         support, cfg, it)
                 poses = anchor_frame(slice_set, poses, moved, slice_weight) if cfg.anchor_frame else moved
@@ -324,9 +332,12 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
         t0 = time.perf_counter()
         model = ForwardModel(slice_set, poses, grid, psf_points=cfg.psf_points)
         if cfg.robust:
-            rw = robust_weights(slice_set.values - model.forward(x), sid, n, ratio=cfg.exclude_ratio,
+            simulated = model.forward(x)
+            rw = robust_weights(slice_set.values - simulated, sid, n, ratio=cfg.exclude_ratio,
                                 candidates=slice_set.include, tolerance=cfg.robust_tolerance)
-            included = slice_set.include & ~rw.excluded
+            poor = ncc_outliers(slice_ncc(simulated, slice_set.values, sid, n), slice_set.include)
+            rw.slice_weight[poor] = 0.0
+            included = slice_set.include & ~rw.excluded & ~poor
             slice_weight = rw.slice_weight
             pixel_weight = rw.pixel_weight * slice_weight[sid].astype(np.float32)
         timings["robust"] += time.perf_counter() - t0
