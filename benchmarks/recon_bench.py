@@ -283,7 +283,8 @@ def main() -> None:
         print(f"     PSNR {psnr:.2f} dB, NCC {ncc:.4f}, pose error {err:.2f} mm "
               f"({rel:.2f} mm without the common rigid offset), included {int(used.sum())}/{int(ss.include.sum())}")
         angle = np.degrees(np.linalg.norm(se3.so3_log(offset[:3, :3])))
-        print(f"     common offset {angle:.2f} deg / {err - rel if err > rel else 0.0:.2f} mm (the mean error of the "
+        shift = np.linalg.norm(ss_true.positions(offset @ t_all) - ss_true.positions(t_all), axis=1).mean()
+        print(f"     common offset {angle:.2f} deg / {shift:.2f} mm (the mean error of the "
               f"starting poses, kept as the frame); undoing it: PSNR {psnr_f:.2f} dB, NCC {ncc_f:.4f}")
         if key == "5":
             ok = twin_side(ss_true, res.atlas_from_voxel_final, t_all, plane) | ~used
