@@ -30,6 +30,8 @@ async def predict(
     variance_threshold: Annotated[Optional[float], Form(gt=0, description="default: the model's")] = None,
     bias_correction: Annotated[bool, Form(description="N4 before normalisation")] = True,
     model: Annotated[str, Form(description="a name from GET /v1/models")] = "default",
+    stack_consistency: Annotated[bool, Form(description="decide each stack's left-right branch from all its slices, "
+                                                        "fit a motion-tolerant stack model, flag inconsistent slices")] = True,
 ) -> dict:
     """Every slice of every stack, accepted or not, in order, with its SE(3) Fréchet-mean pose."""
     t0 = time.perf_counter()
@@ -44,7 +46,8 @@ async def predict(
     prepared = await to_thread.run_sync(prepare_stacks, uploads, estimator.info, bias_correction,
                                         settings.preprocess_workers)
     t_prep = time.perf_counter()
-    results, timings = await to_thread.run_sync(run_prediction, prepared, estimator, mc_samples, threshold)
+    results, timings = await to_thread.run_sync(run_prediction, prepared, estimator, mc_samples, threshold,
+                                                stack_consistency)
     metrics.observe_slices(model, [s["reason"] for st in results for s in st["slices"]])
     info = estimator.info
     stage = lambda key: sum(p.timings.get(key, 0.0) for p in prepared)  # noqa: E731 - CPU time summed over stacks
@@ -56,6 +59,6 @@ async def predict(
             "read": (t_read - t0) * 1e3, "localisation": stage("localisation") * 1e3,
             "bias_correction": stage("bias_correction") * 1e3, "preprocess": (t_prep - t_read) * 1e3,
             "inference": timings.get("inference", 0.0) * 1e3, "statistics": timings.get("statistics", 0.0) * 1e3,
-            "total": (time.perf_counter() - t0) * 1e3,
+            "stack_consistency": timings.get("stack_consistency", 0.0) * 1e3, "total": (time.perf_counter() - t0) * 1e3,
         },
     }

@@ -20,7 +20,8 @@ class ModelRef(BaseModel):
 class SliceResult(BaseModel):
     index: int = Field(description="index along slice_axis")
     accepted: bool
-    reason: Optional[Literal["empty", "high_variance", "degenerate_anchor_points", "outside_atlas"]] = None
+    reason: Optional[Literal["empty", "high_variance", "degenerate_anchor_points", "outside_atlas",
+                             "inconsistent_with_stack"]] = None
     geodesic_variance: Optional[float] = Field(description="SE(3) geodesic variance of the MC samples")
     anchor_points_mm: list[Vec3] = Field(description="P1, P2, P3 of the mean pose, atlas RAS mm")
     rotation: Mat = Field(description="3x3, slice frame -> atlas (Fréchet mean)")
@@ -28,6 +29,27 @@ class SliceResult(BaseModel):
     quaternion_wxyz: list[float]
     translation_mm: Vec3
     atlas_from_voxel: Mat = Field(description="4x4: voxel (i, j, k, 1) of this slice -> atlas RAS mm")
+    branch: Literal["network", "twin"] = Field(
+        "network", description="'twin' when stack consistency put the slice on the left-right twin of the "
+                               "network's majority MC branch (a slice and its twin render the same image)")
+    twin_mass: float = Field(0.0, ge=0.0, le=1.0,
+                             description="fraction of the MC samples that sat on the other twin of the returned pose")
+    network_atlas_from_voxel: Optional[Mat] = Field(
+        None, description="4x4: the network's own pose of this slice (MC majority branch, before stack consistency)")
+
+
+class StackConsistency(BaseModel):
+    decidable: bool = Field(description="false when the slices do not agree on one stack: poses left as the network gave them")
+    atlas_from_scanner: Optional[Mat] = Field(
+        None, description="4x4 robust rigid fit: the stack's scanner RAS mm -> atlas RAS mm (the file's own geometry)")
+    inlier_fraction: float = Field(description="share of the usable slices the rigid fit explains")
+    twinned_slices: int = Field(description="slices moved to the twin of the network's branch")
+    inconsistent_slices: int = Field(description="slices whose network pose disagreed with the stack model")
+    acquisition_order: Optional[str] = Field(None, description="order the motion model chose: sequential or interleaved")
+    motion_bandwidth_slices: Optional[float] = Field(
+        None, description="width (in acquisitions) of the motion model's kernel; null: one rigid fit sufficed")
+    network_error_mm: Optional[float] = Field(None, description="estimated E.D. of one network pose")
+    model_error_mm: Optional[float] = Field(None, description="estimated E.D. of the stack model's prediction")
 
 
 class StackResult(BaseModel):
@@ -37,6 +59,7 @@ class StackResult(BaseModel):
     spacing_mm: list[float]
     slice_axis: int
     slices: list[SliceResult]
+    consistency: Optional[StackConsistency] = Field(None, description="the stack-consistency stage (null when off)")
 
 
 class PredictResponse(BaseModel):

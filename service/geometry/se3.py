@@ -152,42 +152,56 @@ def _to_quat(rotation: NDArray) -> NDArray:
 
 
 def frechet_mean_and_variance(
-    poses: ArrayLike, *, tol: float = 1e-10, max_iter: int = 100
+    poses: ArrayLike, weights: ArrayLike | None = None, *, tol: float = 1e-10, max_iter: int = 100
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Fréchet mean and geodesic variance of pose samples.
+    """Fréchet mean and geodesic variance of pose samples, optionally weighted.
 
     Args:
         poses: ``[..., n_samples, 4, 4]`` (e.g. ``[n_slices, n_mc, 4, 4]``).
+        weights: ``[..., n_samples]`` non-negative weights (default: all equal); each batch needs a
+            positive total. The weighted mean minimises ``sum_i w_i d^2(m, x_i)``.
         tol: Stop when every batch's Gauss-Newton update is below ``tol`` radians.
         max_iter: Upper bound on iterations (a handful suffice for MC-dropout clouds).
 
     Returns:
-        ``(mean [..., 4, 4], variance [...])`` with variance ``mean_i d^2(m, x_i)``.
+        ``(mean [..., 4, 4], variance [...])`` with variance ``sum_i w_i d^2(m, x_i) / sum_i w_i``.
+
+    Example:
+        >>> import numpy as np
+        >>> x = make_pose(np.broadcast_to(np.eye(3), (2, 3, 3)), np.array([[0.0, 0, 0], [4.0, 0, 0]]))
+        >>> m, v = frechet_mean_and_variance(x, np.array([3.0, 1.0]))
+        >>> m[:3, 3].tolist(), float(v)
+        ([1.0, 0.0, 0.0], 3.0)
     """
     x = np.asarray(poses, dtype=np.float64)
+    if weights is None:
+        w = np.full(x.shape[:-2], 1.0 / x.shape[-3])
+    else:
+        w = np.broadcast_to(np.asarray(weights, dtype=np.float64), x.shape[:-2])
+        w = w / w.sum(axis=-1, keepdims=True)
     q = _to_quat(x[..., :3, :3])                             # [..., N, 4]
-    # Start from the chordal (Markley) mean: the dominant eigenvector of sum q q^T.
-    scatter = np.einsum("...ni,...nj->...ij", q, q)
+    # Start from the chordal (Markley) mean: the dominant eigenvector of sum w q q^T.
+    scatter = np.einsum("...n,...ni,...nj->...ij", w, q, q)
     qm = np.linalg.eigh(scatter)[1][..., :, -1]              # [..., 4]
     for _ in range(max_iter):
         tangent = _qlog(_qmul(_qconj(qm)[..., None, :], q))  # [..., N, 3]
-        step = tangent.mean(axis=-2)
+        step = np.einsum("...n,...ni->...i", w, tangent)
         qm = _qmul(qm, _qexp(step))
         qm /= np.linalg.norm(qm, axis=-1, keepdims=True)
         if np.max(np.linalg.norm(step, axis=-1), initial=0.0) < tol:
             break
     tangent = _qlog(_qmul(_qconj(qm)[..., None, :], q))
     t = x[..., :3, 3]
-    tm = t.mean(axis=-2)
+    tm = np.einsum("...n,...ni->...i", w, t)
     dt = t - tm[..., None, :]
-    var = np.mean(ROTATION_METRIC_WEIGHT * np.sum(tangent**2, -1) + np.sum(dt**2, -1), axis=-1)
+    var = np.sum(w * (ROTATION_METRIC_WEIGHT * np.sum(tangent**2, -1) + np.sum(dt**2, -1)), axis=-1)
     rot = Rotation.from_quat(qm.reshape(-1, 4)).as_matrix().reshape(qm.shape[:-1] + (3, 3))
     return make_pose(rot, tm), var
 
 
-def frechet_mean(poses: ArrayLike, **kwargs: float) -> NDArray[np.float64]:
+def frechet_mean(poses: ArrayLike, weights: ArrayLike | None = None, **kwargs: float) -> NDArray[np.float64]:
     """Fréchet mean ``[..., 4, 4]`` of ``[..., n_samples, 4, 4]``; see :func:`frechet_mean_and_variance`."""
-    return frechet_mean_and_variance(poses, **kwargs)[0]
+    return frechet_mean_and_variance(poses, weights, **kwargs)[0]
 
 
 def geodesic_variance(poses: ArrayLike, mean: ArrayLike | None = None) -> NDArray[np.float64]:

@@ -38,6 +38,9 @@ DEFAULT_PLANE_X_MM = 0.0
 FLIP_NORMAL = np.diag([1.0, 1.0, -1.0, 1.0])
 """Reverses a slice frame's normal (and so its z offsets): the "seen from behind" half of the twin."""
 
+MEDOID_CANDIDATES = 16
+"""Samples tried as the branch reference by :func:`align_samples` (cost ``O(M N)``, not ``O(N^2)``)."""
+
 POINT_LABELS = ("anchor", "grid")
 """Label types made of atlas points of the slice plane: their twin mirrors each point's x."""
 
@@ -148,3 +151,56 @@ def _overlap_correlation(a: NDArray, b: NDArray, shift: int) -> float:
     y = y.ravel() - y.mean()
     denom = np.sqrt(np.dot(x, x) * np.dot(y, y))
     return float(np.dot(x, y) / denom) if denom > 0 else -1.0
+
+
+def align_samples(poses: ArrayLike, plane_x_mm: float = DEFAULT_PLANE_X_MM) -> tuple[NDArray, NDArray]:
+    """Put pose samples ``[..., N, 4, 4]`` on one branch: the majority branch of their twin-free medoid.
+
+    Samples are compared by the anchor-point distance modulo the twin (``min(|a - b|,
+    |a - twin(b)|)``, mean over the three anchors); of the first :data:`MEDOID_CANDIDATES` samples
+    (MC samples are i.i.d., so these are a random subset) the one minimising the sum of these
+    distances to all samples (a medoid of the quotient space) fixes a branch, every sample is replaced
+    by whichever of itself and its twin is nearer that medoid, and finally the branch holding the
+    greater part of the samples becomes the reference (so a slice's reported pose is where most
+    of its MC mass sat).
+
+    Returns:
+        ``(aligned [..., N, 4, 4], flipped [..., N] bool)``: ``flipped`` marks the samples replaced
+        by their twin, so ``flipped.mean(-1)`` is the MC mass that sat on the other twin (<= 0.5).
+
+    Example:
+        >>> import numpy as np
+        >>> from service.geometry import se3
+        >>> rng = np.random.default_rng(0)
+        >>> base = se3.exp(np.array([0.4, 0.2, 0.1, 20.0, 5.0, 0.0]))
+        >>> x = base @ se3.exp(rng.normal(0, 0.02, (10, 6)))
+        >>> x[:3] = twin(x[:3])                      # 3 of 10 samples on the other twin
+        >>> aligned, flipped = align_samples(x)
+        >>> int(flipped.sum()), bool(np.allclose(aligned[:3], twin(x[:3])))
+        (3, True)
+    """
+    from service.geometry import anchors        # anchors imports pose only
+
+    x = np.asarray(poses, dtype=np.float64)
+    pts = anchors.encode(x).reshape(x.shape[:-2] + (3, 3))          # [..., N, 3, 3]
+    tw = mirror_points(pts, plane_x_mm)
+    cand = pts[..., :MEDOID_CANDIDATES, :, :]                     # MC samples are i.i.d.: any subset is random
+    direct = _pairwise_mean_distance(cand, pts)                    # [..., M, N]
+    mirrored = _pairwise_mean_distance(cand, tw)
+    medoid = np.argmin(np.minimum(direct, mirrored).sum(axis=-1), axis=-1)          # [...]
+    take = np.expand_dims(medoid, (-1, -2))
+    flipped = np.take_along_axis(mirrored, take, axis=-2)[..., 0, :] < np.take_along_axis(direct, take, axis=-2)[..., 0, :]
+    majority_twin = flipped.mean(axis=-1) > 0.5
+    flipped = flipped ^ majority_twin[..., None]
+    aligned = np.where(flipped[..., None, None], twin(x, plane_x_mm), x)
+    return aligned, flipped
+
+
+def _pairwise_mean_distance(a: NDArray, b: NDArray) -> NDArray:
+    """``[..., N, M]``: mean over the point axis P of ``|a_n,p - b_m,p|`` for ``[..., N, P, 3]`` and
+    ``[..., M, P, 3]`` (Gram matrices per point, no ``N x M x P x 3`` intermediate)."""
+    a_p = np.moveaxis(a, -2, -3)                                   # [..., P, N, 3]
+    b_p = np.moveaxis(b, -2, -3)
+    sq = (np.sum(a_p * a_p, -1)[..., :, None] + np.sum(b_p * b_p, -1)[..., None, :]
+          - 2.0 * a_p @ np.swapaxes(b_p, -1, -2))                   # [..., P, N, M]
+    return np.sqrt(np.maximum(sq, 0.0)).mean(axis=-3)

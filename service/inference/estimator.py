@@ -14,7 +14,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from service.geometry import anchors, encodings, se3
+from service.geometry import anchors, encodings, se3, twin
 from service.inference.model_file import LoadedModel, ModelInfo
 
 
@@ -26,12 +26,24 @@ class PoseEstimate:
         mean: ``[B, 4, 4]`` Fréchet mean pose of the network frame in atlas space.
         variance: ``[B]`` geodesic variance (the paper's confidence measure).
         degenerate: ``[B]`` predictions whose anchor points collapse (anchor models only).
+        twin_mass: ``[B]`` fraction of the MC samples that sat on the other twin of ``mean``
+            (<= 0.5: ``mean`` is on the majority branch; see :func:`service.geometry.twin.align_samples`).
+        spread_mm: ``[B]`` root-mean-square E.D. (anchor points, mm) of the aligned samples about
+            ``mean``: the network's own uncertainty in the units of the pose error.
     """
 
     mean: NDArray[np.float64]
     variance: NDArray[np.float64]
     degenerate: NDArray[np.bool_]
+    twin_mass: NDArray[np.float64] | None = None
+    spread_mm: NDArray[np.float64] | None = None
     timings: dict[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.twin_mass is None:
+            self.twin_mass = np.zeros(len(self.mean))
+        if self.spread_mm is None:
+            self.spread_mm = np.zeros(len(self.mean))
 
 
 class PoseEstimator(Protocol):
@@ -42,16 +54,25 @@ class PoseEstimator(Protocol):
     def estimate(self, inputs: NDArray[np.float32], mc_samples: int) -> PoseEstimate: ...
 
 
-def statistics(labels: NDArray, label_type: str) -> PoseEstimate:
-    """Decode MC labels ``[B, N, D]`` and reduce them to :class:`PoseEstimate`."""
+def statistics(labels: NDArray, label_type: str, plane_x_mm: float = twin.DEFAULT_PLANE_X_MM) -> PoseEstimate:
+    """Decode MC labels ``[B, N, D]`` and reduce them to :class:`PoseEstimate`, twin-aware.
+
+    The samples of each slice are put on one branch first (a sample and its left-right twin
+    render the same image), so a split between the twins neither inflates the variance nor
+    disappears: it is reported as ``twin_mass``.
+    """
     lab = np.asarray(labels, dtype=np.float64)
     poses = encodings.decode(label_type, lab)                        # [B, N, 4, 4]
-    mean, var = se3.frechet_mean_and_variance(poses)
+    aligned, flipped = twin.align_samples(poses, plane_x_mm)
+    mean, var = se3.frechet_mean_and_variance(aligned)
     if label_type == "anchor":
         degenerate = anchors.degenerate(lab).mean(axis=1) > 0.5
     else:
         degenerate = np.zeros(len(lab), dtype=bool)
-    return PoseEstimate(mean, var, degenerate)
+    pts = anchors.encode(aligned).reshape(aligned.shape[:-2] + (3, 3))
+    centre = anchors.encode(mean).reshape(mean.shape[:-2] + (1, 3, 3))
+    spread = np.sqrt(np.mean(np.linalg.norm(pts - centre, axis=-1).mean(axis=-1) ** 2, axis=-1))
+    return PoseEstimate(mean, var, degenerate, flipped.mean(axis=-1), spread)
 
 
 class OnnxPoseEstimator:
@@ -73,6 +94,6 @@ class OnnxPoseEstimator:
         t0 = time.perf_counter()
         labels = self.sample_labels(inputs, mc_samples)
         t1 = time.perf_counter()
-        result = statistics(labels, self.info.label_type)
+        result = statistics(labels, self.info.label_type, self.info.symmetry_plane_x_mm)
         result.timings = {"inference": t1 - t0, "statistics": time.perf_counter() - t1}
         return result

@@ -37,6 +37,8 @@ class ModelInfo:
     trained_on: str
     sha256: str
     symmetry_plane_x_mm: float = DEFAULT_PLANE_X_MM
+    mc_error_scale: float = 1.0
+    """Calibration: expected E.D. of a pose = ``mc_error_scale`` x its MC spread (``PoseEstimate.spread_mm``)."""
     metadata: dict[str, str] = field(default_factory=dict, repr=False)
 
     @classmethod
@@ -47,7 +49,8 @@ class ModelInfo:
                 input_size=int(meta["input_size"]), pixel_spacing_mm=float(meta["pixel_spacing_mm"]),
                 variance_threshold=float(meta["variance_threshold"]), dropout_p=float(meta.get("dropout_p", 0.5)),
                 atlas_id=meta.get("atlas_id", ""), trained_on=meta.get("training_data", ""), sha256=sha256,
-                symmetry_plane_x_mm=float(meta.get("symmetry_plane_x_mm", DEFAULT_PLANE_X_MM)), metadata=dict(meta),
+                symmetry_plane_x_mm=float(meta.get("symmetry_plane_x_mm", DEFAULT_PLANE_X_MM)),
+                mc_error_scale=float(meta.get("mc_error_scale", 1.0)), metadata=dict(meta),
             )
         except (KeyError, ValueError) as exc:
             raise ValueError(f"model metadata incomplete or invalid: {exc}") from exc

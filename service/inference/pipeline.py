@@ -2,12 +2,14 @@
 
 Stages follow the paper's Fig. 1: localisation (uploaded mask, else :func:`localise_brain`), N4
 bias correction, masking and per-slice rescale/crop/centre (:func:`preprocess_slices`), MC-dropout
-inference of ALL slices of ALL stacks in one batched estimator call, SE(3) statistics, acceptance.
+inference of ALL slices of ALL stacks in one batched estimator call, twin-aware SE(3) statistics,
+stack consistency (:mod:`service.consistency`), acceptance.
 
-Geometry of every slice (composition written once, here)::
+Geometry of every slice (the composition is written once, in
+:func:`service.consistency.stage.network_from_voxel`)::
 
-    atlas_from_voxel = mean_pose @ network_from_input @ input_from_voxel
-                     = mean_pose @ translate(-centroid) @ slice_from_voxel
+    atlas_from_voxel = pose @ network_from_input @ input_from_voxel
+                     = pose @ translate(-centroid) @ slice_from_voxel
 """
 
 from __future__ import annotations
@@ -21,9 +23,11 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from service.core.errors import UnusableImage
-from service.geometry import anchors, se3
+from service.consistency.stage import consistent_poses, network_from_voxel, stack_report
+from service.geometry import anchors
+from service.geometry.twin import DEFAULT_PLANE_X_MM
 from service.inference import acceptance
-from service.inference.estimator import PoseEstimator
+from service.inference.estimator import PoseEstimate, PoseEstimator
 from service.inference.model_file import ModelInfo
 from service.io.volume import Volume
 from service.preprocess.bias import n4_correct
@@ -95,46 +99,62 @@ def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction:
         return list(pool.map(lambda u: prepare_stack(u, info, bias_correction), uploads))
 
 
-def slice_results(mean: NDArray, variance: NDArray, degenerate: NDArray, prepared: PreparedStack,
-                  threshold: float) -> list[dict]:
-    """The contract's per-slice objects for one stack (vectorised geometry, then plain lists)."""
+def slice_results(est: PoseEstimate, sl: slice, prepared: PreparedStack, threshold: float,
+                  stack_consistency: bool, plane_x_mm: float, error_scale: float = 1.0) -> tuple[list[dict], dict | None]:
+    """The contract's per-slice objects for one stack and its ``consistency`` report."""
     p = prepared.prepared
-    atlas_from_voxel = mean @ se3.inverse(p.input_from_network()) @ prepared.slices.slice_from_voxel
+    net_from_vox = network_from_voxel(p.input_from_network(), prepared.slices.slice_from_voxel)
+    degenerate = est.degenerate[sl]
+    usable = (p.mask_fraction >= acceptance.MIN_MASK_FRACTION) & ~degenerate
+    out = consistent_poses(est.mean[sl], est.twin_mass[sl], net_from_vox, prepared.upload.volume.affine, usable,
+                           plane_x_mm, est.spread_mm[sl] * error_scale, stack_consistency)
+    mean, variance = out.poses, est.variance[sl]
+    atlas_from_voxel = mean @ net_from_vox
+    network_atlas_from_voxel = est.mean[sl] @ net_from_vox
     rot = mean[:, :3, :3]
     r = Rotation.from_matrix(rot)
     rotvec = r.as_rotvec()
     quat = r.as_quat(canonical=True, scalar_first=True)
     pts = anchors.encode(mean).reshape(-1, 3, 3)
-    why = acceptance.reasons(p.mask_fraction, degenerate, mean[:, :3, 3], variance, threshold)
-    return [
+    why = acceptance.reasons(p.mask_fraction, degenerate, mean[:, :3, 3], variance, threshold, out.inconsistent)
+    slices = [
         {
             "index": i, "accepted": why[i] is None, "reason": why[i],
             "geodesic_variance": float(variance[i]) if np.isfinite(variance[i]) else None,
             "anchor_points_mm": pts[i].tolist(), "rotation": rot[i].tolist(), "rotation_vector": rotvec[i].tolist(),
             "quaternion_wxyz": quat[i].tolist(), "translation_mm": mean[i, :3, 3].tolist(),
             "atlas_from_voxel": atlas_from_voxel[i].tolist(),
+            "branch": "twin" if out.twinned[i] else "network", "twin_mass": float(out.twin_mass[i]),
+            "network_atlas_from_voxel": network_atlas_from_voxel[i].tolist(),
         }
         for i in range(len(mean))
     ]
+    return slices, stack_report(out.fit)
 
 
 def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples: int,
-            threshold: float) -> tuple[list[dict], dict[str, float]]:
-    """Run all slices of all stacks through ``estimator`` at once; returns stack results and timings."""
+            threshold: float, stack_consistency: bool = True) -> tuple[list[dict], dict[str, float]]:
+    """Run all slices of all stacks through ``estimator`` at once, then each stack through the
+    stack-consistency stage; returns stack results and timings."""
     inputs = np.concatenate([s.prepared.inputs for s in prepared])
     t = time.perf_counter()
     est = estimator.estimate(inputs, mc_samples)
     elapsed = time.perf_counter() - t
     timings = dict(getattr(est, "timings", None) or {"inference": elapsed, "statistics": 0.0})
+    plane_x_mm = getattr(estimator.info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM)
+    error_scale = getattr(estimator.info, "mc_error_scale", 1.0)
+    t = time.perf_counter()
     stacks, start = [], 0
     for index, s in enumerate(prepared):
         n = len(s.prepared.inputs)
         sl = slice(start, start + n)
         start += n
         vol = s.upload.volume
+        slices, report = slice_results(est, sl, s, threshold, stack_consistency, plane_x_mm, error_scale)
         stacks.append({
             "index": index, "filename": s.upload.filename, "shape": list(vol.array.shape),
             "spacing_mm": [float(x) for x in vol.spacing], "slice_axis": s.slices.slice_axis,
-            "slices": slice_results(est.mean[sl], est.variance[sl], est.degenerate[sl], s, threshold),
+            "slices": slices, "consistency": report,
         })
+    timings["stack_consistency"] = time.perf_counter() - t
     return stacks, timings

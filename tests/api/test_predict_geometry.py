@@ -85,17 +85,22 @@ def test_atlas_from_voxel_matches_truth(oracle, oracle_client, tmp_path: Path, w
     stack = body["stacks"][0]
     assert stack["slice_axis"] == axis and stack["shape"] == list(shape)
     assert [s["index"] for s in stack["slices"]] == list(range(shape[axis]))
-    worst = 0.0
+    worst = {"network_atlas_from_voxel": 0.0, "atlas_from_voxel": 0.0}
     for s in stack["slices"]:
-        got = np.array(s["atlas_from_voxel"])
         corners = np.array([[0, 0, 0], [shape[0] - 1, shape[1] - 1, shape[2] - 1], [shape[0] - 1, 0, 0]], float)
         corners[:, axis] = s["index"]
         want = apply(g[s["index"]] @ aff, corners)
-        worst = max(worst, float(np.abs(apply(got, corners) - want).max()))
-    assert worst < 0.01, f"max corner error {worst:.4f} mm"
-    # The oracle pose is reported as the mean pose, with its anchor points.
+        for key in worst:
+            if key == "atlas_from_voxel" and s["reason"] == "empty":
+                continue                       # an empty slice takes the stack model's pose
+            worst[key] = max(worst[key], float(np.abs(apply(np.array(s[key]), corners) - want).max()))
+    # The network's own pose composes exactly; stack consistency (on by default) fuses it with the
+    # stack model by inverse variance: an exact oracle (no MC spread) keeps its pose.
+    assert worst["network_atlas_from_voxel"] < 0.01, worst
+    assert worst["atlas_from_voxel"] < 0.05, worst
+    assert stack["consistency"]["decidable"] and stack["consistency"]["twinned_slices"] == 0
     s0 = stack["slices"][shape[axis] // 2]
-    np.testing.assert_allclose(s0["translation_mm"], oracle.truth[shape[axis] // 2][:3, 3], atol=1e-9)
+    np.testing.assert_allclose(s0["translation_mm"], oracle.truth[shape[axis] // 2][:3, 3], atol=0.05)
 
     # Content: each network input is the phantom seen at its true centred pose (crop/centre consistent).
     truth = oracle.truth

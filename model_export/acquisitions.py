@@ -1,0 +1,158 @@
+"""Simulated 3-stack acquisitions with exact per-slice ground truth, for tests and evaluation.
+
+An acquisition is three stacks (axial, coronal, sagittal with respect to the brain, each tilted
+by up to :data:`STACK_TILT_DEG`), 3 mm slices 3 mm apart on a square in-plane grid, acquired
+interleaved (even slices first), with a smooth bias field and Rician noise, placed in a scanner
+frame at a random rigid position of the fetus. The fetus moves during the acquisition:
+
+* ``mild``: a smooth random trajectory reaching 5 deg / 3 mm at its largest;
+* ``moderate``: the same reaching 20 deg / 8 mm;
+* ``extreme``: an independent random orientation (and a position within 15 mm of the brain
+  centre) for every slice.
+
+Each slice's truth is its ``atlas_from_voxel`` (voxel ``(i, j, k)`` of THAT slice -> atlas mm),
+exactly what ``/v1/predict`` returns. Numpy only (the service's sampler); the volume may be an
+atlas volume or a phantom.
+
+Example:
+    >>> import numpy as np
+    >>> vol = np.zeros((40, 40, 40), np.float32); vol[10:30, 12:28, 14:26] = 100.0
+    >>> aff = np.diag([2.0, 2.0, 2.0, 1.0]); aff[:3, 3] = -39.0
+    >>> stacks = simulate_acquisition(vol, vol > 0, aff, np.random.default_rng(0), "mild", size=24, pixel_mm=2.0)
+    >>> [s.orientation for s in stacks], stacks[0].volume.array.shape[:2]
+    (['axial', 'coronal', 'sagittal'], (24, 24))
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy import ndimage
+
+from service.geometry import iterators, sampling, se3
+from service.geometry.pose import make_pose, translate
+from service.io.volume import Volume
+from service.preprocess.stack import split_stack
+
+MOTION_LEVELS: dict[str, tuple[float, float] | None] = {"mild": (5.0, 3.0), "moderate": (20.0, 8.0), "extreme": None}
+"""Largest rotation (deg) and translation (mm) of the smooth motion; ``None``: independent per slice."""
+STACK_TILT_DEG = 10.0
+EXTREME_OFFSET_MM = 15.0
+ORIENTATIONS = {
+    # columns: the stack's in-plane x, in-plane y and normal, as atlas directions
+    "axial": np.eye(3),
+    "coronal": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]),
+    "sagittal": np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),
+}
+
+
+@dataclass
+class SimulatedStack:
+    """One simulated stack as a file would hold it, with its truth.
+
+    Attributes:
+        volume: the stack in scanner RAS (``[W, W, n]``, slice axis last).
+        mask: the brain mask on the same grid.
+        atlas_from_voxel: ``[n, 4, 4]`` exact per-slice truth.
+        orientation: ``axial``, ``coronal`` or ``sagittal``.
+        times: ``[n]`` acquisition time (order) of each slice.
+        motion: the motion level.
+    """
+
+    volume: Volume
+    mask: Volume
+    atlas_from_voxel: NDArray[np.float64]
+    orientation: str
+    times: NDArray[np.int64]
+    motion: str
+
+
+def interleaved_times(n: int) -> NDArray[np.int64]:
+    """Acquisition order of an interleaved stack: even slices first, then odd ones."""
+    k = np.arange(n)
+    return np.where(k % 2 == 0, k // 2, (n + 1) // 2 + k // 2)
+
+
+def smooth_motion(times: ArrayLike, rng: np.random.Generator, max_deg: float, max_mm: float) -> NDArray[np.float64]:
+    """Twists ``[n, 6]`` of a smooth random trajectory over acquisition ``times``, scaled to its maxima.
+
+    Each of the six components is a sum of three sinusoids of random phase over the acquisition;
+    the rotation vector's largest norm is ``max_deg`` and the translation's ``max_mm``.
+    """
+    t = np.asarray(times, dtype=np.float64) / max(1.0, float(np.max(times)))
+    freq = np.arange(1, 4)[:, None, None]
+    amp = rng.normal(0.0, 1.0, (3, 1, 6)) / freq
+    phase = rng.uniform(0, 2 * np.pi, (3, 1, 6))
+    xi = np.sum(amp * np.sin(2 * np.pi * freq * 0.5 * t[None, :, None] + phase), axis=0)   # [n, 6]
+    xi -= xi.mean(axis=0)
+    rot = np.linalg.norm(xi[:, :3], axis=1).max()
+    tra = np.linalg.norm(xi[:, 3:], axis=1).max()
+    xi[:, :3] *= np.radians(max_deg) / max(rot, 1e-12)
+    xi[:, 3:] *= max_mm / max(tra, 1e-12)
+    return xi
+
+
+def simulate_stack(image: NDArray, mask: NDArray, affine: NDArray, centre: NDArray, orientation: str,
+                   scanner_from_atlas: NDArray, rng: np.random.Generator, motion: str, *, size: int = 128,
+                   pixel_mm: float = 1.0, gap_mm: float = 3.0, thickness_mm: float = 3.0, noise: float = 0.03,
+                   bias: float = 0.2) -> SimulatedStack:
+    """One stack through ``centre`` (atlas mm) in ``orientation``; see the module docstring."""
+    tilt = se3.so3_exp(rng.normal(0, 1, 3) * np.radians(STACK_TILT_DEG) / np.sqrt(3))
+    rot = tilt @ ORIENTATIONS[orientation]
+    n = int(np.ceil(_brain_extent(mask, affine, rot[:, 2]) / gap_mm)) + 2
+    spacing = np.array([pixel_mm, pixel_mm, gap_mm])
+    static = make_pose(rot, centre) @ translate(-(np.array([size, size, n]) - 1) / 2.0 * spacing) @ np.diag([*spacing, 1.0])
+    times = interleaved_times(n)
+    file_affine = scanner_from_atlas @ static
+    stack_geo = split_stack(Volume(np.zeros((size, size, n), np.float32), file_affine), np.ones((size, size, n), bool))
+    level = MOTION_LEVELS[motion]
+    if level is None:
+        poses = iterators.random_poses(n, rng, tz_max_mm=0.0, centre=np.zeros(3))
+        poses[:, :3, 3] = centre + rng.uniform(-EXTREME_OFFSET_MM, EXTREME_OFFSET_MM, (n, 3))
+        truth = poses @ stack_geo.slice_from_voxel
+    else:
+        about_centre = translate(centre) @ se3.exp(smooth_motion(times, rng, *level)) @ translate(-centre)
+        truth = about_centre @ static[None]
+    slice_poses = truth @ np.linalg.inv(stack_geo.slice_from_voxel)        # slice frame -> atlas, rigid
+    img = sampling.sample_slices(image, affine, slice_poses, size, pixel_mm, thickness_mm=thickness_mm or None)
+    msk = sampling.sample_slices(mask.astype(np.float32), affine, slice_poses, size, pixel_mm) > 0.5
+    img = _corrupt(img, rng, noise, bias) if noise or bias else img
+    # slice [r, c] is voxel (i = c, j = r, k): the array is [i, j, k]
+    array = np.ascontiguousarray(img.transpose(2, 1, 0).astype(np.float32))
+    marray = np.ascontiguousarray(msk.transpose(2, 1, 0).astype(np.uint8))
+    return SimulatedStack(Volume(array, file_affine), Volume(marray, file_affine), truth, orientation, times, motion)
+
+
+def simulate_acquisition(image: NDArray, mask: NDArray, affine: NDArray, rng: np.random.Generator,
+                         motion: str = "mild", **kwargs: float) -> list[SimulatedStack]:
+    """Axial, coronal and sagittal stacks of one volume, one fetus position in the scanner."""
+    if motion not in MOTION_LEVELS:
+        raise ValueError(f"unknown motion level {motion!r}; expected one of {list(MOTION_LEVELS)}")
+    m = np.asarray(mask) > 0.5
+    centre = _centroid(m, affine)
+    scanner_from_atlas = make_pose(iterators.random_rotations(1, rng, np.pi)[0], rng.uniform(-30, 30, 3))
+    return [simulate_stack(np.asarray(image, np.float32), m, affine, centre, o, scanner_from_atlas, rng, motion, **kwargs)
+            for o in ORIENTATIONS]
+
+
+def _centroid(mask: NDArray, affine: NDArray) -> NDArray:
+    idx = np.argwhere(mask).mean(axis=0)
+    return affine[:3, :3] @ idx + affine[:3, 3]
+
+
+def _brain_extent(mask: NDArray, affine: NDArray, normal: NDArray) -> float:
+    pts = np.argwhere(mask)[::50] @ affine[:3, :3].T + affine[:3, 3]
+    proj = pts @ normal
+    return float(proj.max() - proj.min())
+
+
+def _corrupt(img: NDArray, rng: np.random.Generator, noise: float, bias: float) -> NDArray:
+    """A smooth multiplicative bias field over the stack and Rician noise (sigma relative to p99)."""
+    field = ndimage.gaussian_filter(rng.normal(0, 1, img.shape), sigma=(2.0, img.shape[1] / 4, img.shape[2] / 4))
+    field = np.exp(bias * field / max(np.abs(field).max(), 1e-12))
+    scale = float(np.percentile(img, 99)) or 1.0
+    signal = img * field
+    sigma = noise * scale
+    return np.sqrt((signal + rng.normal(0, sigma, img.shape)) ** 2 + rng.normal(0, sigma, img.shape) ** 2)

@@ -1,0 +1,179 @@
+"""Simulated 3-stack acquisitions through the very pipeline the server runs, scored per motion level.
+
+For each motion level (:data:`model_export.acquisitions.MOTION_LEVELS`) and each volume, an
+acquisition is simulated with exact per-slice truth, prepared by the service's own
+:func:`~service.inference.pipeline.prepare_stacks` (uploaded masks, N4 as the server does) and
+predicted by :func:`~service.inference.pipeline.predict` with stack consistency on. Every pose is
+scored twice: against the truth and twin-min (the nearer of the truth and its left-right twin),
+for the network's own poses and for the stack-consistent ones.
+
+:class:`NoisyTwinEstimator` stands in for a network: per slice it returns the truth or its twin at
+random plus 10 mm / 10 deg of noise, with MC samples spread like that noise (a calibrated
+network) and a fifth of them on the other twin; it tests the service's half of the symmetry
+independently of any model.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from model_export.acquisitions import MOTION_LEVELS, SimulatedStack, simulate_acquisition
+from service.consistency import ed
+from service.geometry import anchors, se3, twin
+from service.inference.estimator import PoseEstimate, statistics
+from service.inference.model_file import ModelInfo
+from service.inference.pipeline import PreparedStack, StackUpload, predict, prepare_stacks
+
+ERROR_MM = 10.0
+DISTINGUISHABLE_MM = 20.0
+"""A slice whose truth and twin are nearer than this is its own twin within the error: both branches count as right."""
+MIN_MASK_PIXELS = 20
+
+
+class NoisyTwinEstimator:
+    """Truth or twin (50 %) plus noise, per slice; set :attr:`truth` before each call."""
+
+    def __init__(self, info: ModelInfo, rng: np.random.Generator, noise_deg: float = 10.0, noise_mm: float = 10.0,
+                 other_twin_fraction: float = 0.2) -> None:
+        self.info, self.rng = info, rng
+        self.sigma = np.array([np.radians(noise_deg)] * 3 + [noise_mm] * 3) / np.sqrt(3.0)
+        self.other = other_twin_fraction
+        self.truth: NDArray | None = None
+        self.chose_twin: NDArray | None = None
+
+    def estimate(self, inputs: NDArray, mc_samples: int) -> PoseEstimate:
+        assert self.truth is not None and len(self.truth) == len(inputs), "truth and slices out of step"
+        n, plane = len(inputs), self.info.symmetry_plane_x_mm
+        self.chose_twin = self.rng.random(n) < 0.5
+        centre = np.where(self.chose_twin[:, None, None], twin.twin(self.truth, plane), self.truth)
+        centre = centre @ se3.exp(self.rng.normal(0, 1, (n, 6)) * self.sigma)
+        samples = centre[:, None] @ se3.exp(self.rng.normal(0, 1, (n, mc_samples, 6)) * self.sigma)
+        flip = self.rng.random((n, mc_samples)) < self.other
+        samples = np.where(flip[..., None, None], twin.twin(samples, plane), samples)
+        return statistics(anchors.encode(samples), "anchor", plane)
+
+
+@dataclass
+class Scored:
+    """Per-slice errors of one motion level, gathered over acquisitions."""
+
+    ed_network: list = field(default_factory=list)
+    ed_network_min: list = field(default_factory=list)
+    ed: list = field(default_factory=list)
+    ed_min: list = field(default_factory=list)
+    right_branch: list = field(default_factory=list)
+    twin_gap: list = field(default_factory=list)
+    variance: list = field(default_factory=list)
+    accepted: list = field(default_factory=list)
+    mask_pixels: list = field(default_factory=list)
+    orientation: list = field(default_factory=list)
+    decidable: list = field(default_factory=list)
+
+    def array(self, key: str) -> NDArray:
+        return np.concatenate(getattr(self, key)) if getattr(self, key) else np.zeros(0)
+
+
+def run_acquisition(stacks: list[SimulatedStack], estimator, mc_samples: int = 100,  # noqa: ANN001
+                    bias_correction: bool = True) -> tuple[list[dict], list[PreparedStack], list[NDArray]]:
+    """Predict one acquisition as the server would; returns the stack results, the prepared stacks
+    and each stack's true network-frame poses."""
+    uploads = [StackUpload(f"{s.orientation}.nii.gz", s.volume, s.mask, f"{s.orientation}_mask.nii.gz") for s in stacks]
+    prepared = prepare_stacks(uploads, estimator.info, bias_correction, workers=2)
+    truth = []
+    for s, p in zip(stacks, prepared):
+        nfv = se3.inverse(p.prepared.input_from_network()) @ p.slices.slice_from_voxel
+        truth.append(s.atlas_from_voxel @ np.linalg.inv(nfv))
+    if hasattr(estimator, "truth"):
+        estimator.truth = np.concatenate(truth)
+    results, _ = predict(prepared, estimator, mc_samples, estimator.info.variance_threshold)
+    return results, prepared, truth
+
+
+def score(results: list[dict], prepared: list[PreparedStack], truth: list[NDArray], stacks: list[SimulatedStack],
+          plane_x_mm: float, into: Scored) -> None:
+    """Add one acquisition's per-slice errors to ``into``."""
+    for res, p, true, sim in zip(results, prepared, truth, stacks):
+        nfv = se3.inverse(p.prepared.input_from_network()) @ p.slices.slice_from_voxel
+        inv = np.linalg.inv(nfv)
+        final = np.array([s["atlas_from_voxel"] for s in res["slices"]]) @ inv
+        network = np.array([s["network_atlas_from_voxel"] for s in res["slices"]]) @ inv
+        tw = twin.twin(true, plane_x_mm)
+        e, e_tw = ed(final, true), ed(final, tw)
+        into.ed.append(e)
+        into.ed_min.append(np.minimum(e, e_tw))
+        into.ed_network.append(ed(network, true))
+        into.ed_network_min.append(np.minimum(ed(network, true), ed(network, tw)))
+        gap = ed(true, tw)
+        into.twin_gap.append(gap)
+        into.right_branch.append((e <= e_tw) | (gap < DISTINGUISHABLE_MM))
+        into.variance.append(np.array([s["geodesic_variance"] or np.inf for s in res["slices"]]))
+        into.accepted.append(np.array([s["accepted"] for s in res["slices"]]))
+        into.mask_pixels.append(p.prepared.mask_pixels)
+        into.orientation.append(np.array([sim.orientation] * len(e)))
+        into.decidable.append(np.full(len(e), bool(res["consistency"] and res["consistency"]["decidable"])))
+
+
+def summarise(sc: Scored) -> dict:
+    """Per motion level: E.D. (mean, median, p90) against the truth and twin-min, before and after
+    the stack stage, the right-branch fraction, the AUROC of the variance and acceptance."""
+    from model_export.calibrate import auroc
+
+    keep = sc.array("mask_pixels") >= MIN_MASK_PIXELS
+    out: dict = {"slices": int(keep.sum())}
+    for key in ("ed", "ed_min", "ed_network", "ed_network_min"):
+        v = sc.array(key)[keep]
+        out[key] = {"mean": float(v.mean()), "median": float(np.median(v)), "p90": float(np.percentile(v, 90))}
+    e, e_min, right = sc.array("ed")[keep], sc.array("ed_min")[keep], sc.array("right_branch")[keep].astype(bool)
+    out["right_branch"] = float(right.mean())
+    good = e_min < 15.0
+    out["right_branch_twin_min_under_15mm"] = float(right[good].mean()) if good.any() else float("nan")
+    var = sc.array("variance")[keep]
+    out["auroc_variance_ed_over_10mm"] = auroc(np.nan_to_num(var, posinf=1e12), e > ERROR_MM)
+    acc = sc.array("accepted")[keep].astype(bool)
+    out["accepted"] = float(acc.mean())
+    out["accepted_ed_mean"] = float(e[acc].mean()) if acc.any() else float("nan")
+    out["decidable_stacks"] = float(sc.array("decidable")[keep].mean())
+    out["by_orientation"] = {o: {"ed_mean": float(e[sc.array("orientation")[keep] == o].mean()),
+                                 "right_branch": float(right[sc.array("orientation")[keep] == o].mean())}
+                             for o in np.unique(sc.array("orientation")[keep])}
+    return out
+
+
+def evaluate_acquisitions(volumes: list, estimator, rng: np.random.Generator, levels: tuple[str, ...] = tuple(MOTION_LEVELS),  # noqa: ANN001
+                          per_volume: int = 1, mc_samples: int = 100, bias_correction: bool = True,
+                          **sim: float) -> dict[str, dict]:
+    """Score ``per_volume`` acquisitions of each of ``volumes`` (objects with ``image``, ``mask``,
+    ``affine``) at each motion level; returns :func:`summarise` per level."""
+    plane = estimator.info.symmetry_plane_x_mm
+    out = {}
+    for level in levels:
+        sc = Scored()
+        for vol in volumes:
+            for _ in range(per_volume):
+                stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level, **sim)
+                results, prepared, truth = run_acquisition(stacks, estimator, mc_samples, bias_correction)
+                score(results, prepared, truth, stacks, plane, sc)
+        out[level] = summarise(sc)
+    return out
+
+
+def markdown(summary: dict[str, dict], title: str) -> str:
+    """A report table: one row per motion level."""
+    rows = [f"# {title}", "",
+            "E.D. in mm over slices with >= 20 mask pixels; 'network' = the network's own per-slice poses, "
+            "'consistent' = after the stack-consistency stage; twin-min = the nearer of the truth and its "
+            "left-right twin.", "",
+            "| motion | slices | network E.D. mean / median / p90 | network twin-min mean | consistent E.D. mean / "
+            "median / p90 | consistent twin-min mean | right branch | right branch (twin-min < 15 mm) | "
+            "AUROC var > 10 mm | accepted | decidable stacks |",
+            "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for level, s in summary.items():
+        f = lambda d: f"{d['mean']:.1f} / {d['median']:.1f} / {d['p90']:.1f}"  # noqa: E731
+        rows.append(f"| {level} | {s['slices']} | {f(s['ed_network'])} | {s['ed_network_min']['mean']:.1f} | "
+                    f"{f(s['ed'])} | {s['ed_min']['mean']:.1f} | {100 * s['right_branch']:.1f} % | "
+                    f"{100 * s['right_branch_twin_min_under_15mm']:.1f} % | {s['auroc_variance_ed_over_10mm']:.2f} | "
+                    f"{100 * s['accepted']:.0f} % | {100 * s['decidable_stacks']:.0f} % |")
+    return "\n".join(rows) + "\n"

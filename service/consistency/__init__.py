@@ -1,0 +1,9 @@
+"""Stack consistency: the stage between inference and the response that uses what one slice cannot know.
+
+A single slice cannot tell its pose from its left-right twin, nor its own error from the motion
+of the fetus; the slices of one stack together can (:mod:`service.consistency.stack_fit`).
+"""
+
+from service.consistency.stack_fit import StackFit, ed, fit_stack
+
+__all__ = ["StackFit", "ed", "fit_stack"]

@@ -1,0 +1,68 @@
+"""The stack-consistency stage of ``/v1/predict``: per stack, the network's poses in, consistent poses out.
+
+The stage sits between inference (with its twin-aware MC statistics) and the response. It needs,
+per slice, the map from the stack's scanner frame to the slice's network frame; the pipeline
+composes it once here from the service's own crop/centre and the file's geometry::
+
+    network_from_scanner_k = network_from_input_k @ slice_from_voxel_k @ voxel_from_scanner
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from service.consistency.stack_fit import StackFit, fit_stack
+from service.geometry import se3
+
+
+@dataclass
+class StackPoses:
+    """What the response reports for one stack's slices, after the stage (or without it)."""
+
+    poses: NDArray[np.float64]          # [n, 4, 4] network frame -> atlas
+    twin_mass: NDArray[np.float64]      # [n] MC mass on the other twin of the reported pose
+    twinned: NDArray[np.bool_]          # [n] reported pose is the twin of the network's majority branch
+    inconsistent: NDArray[np.bool_]     # [n]
+    fit: StackFit | None                # None when the stage is off
+
+
+def network_from_voxel(input_from_network: NDArray, slice_from_voxel: NDArray) -> NDArray[np.float64]:
+    """``[n, 4, 4]`` voxel ``(i, j, k)`` of slice ``k`` -> its network frame (the service's crop/centre)."""
+    return se3.inverse(input_from_network) @ slice_from_voxel
+
+
+def consistent_poses(mean: NDArray, twin_mass: NDArray, network_from_vox: NDArray, scanner_from_voxel: NDArray,
+                     usable: NDArray, plane_x_mm: float, noise_mm: NDArray | None = None,
+                     enabled: bool = True) -> StackPoses:
+    """Run :func:`fit_stack` on one stack (or pass the network's poses through when ``enabled`` is False).
+
+    ``noise_mm`` is each pose's expected error: the MC spread times the model's calibration.
+    """
+    n = len(mean)
+    if not enabled:
+        return StackPoses(mean, twin_mass, np.zeros(n, bool), np.zeros(n, bool), None)
+    network_from_scanner = network_from_vox @ np.linalg.inv(scanner_from_voxel)
+    fit = fit_stack(mean, network_from_scanner, usable, plane_x_mm, noise_mm)
+    mass = np.where(fit.twinned, 1.0 - twin_mass, twin_mass)
+    return StackPoses(fit.poses, mass, fit.twinned, fit.inconsistent, fit)
+
+
+def stack_report(fit: StackFit | None) -> dict | None:
+    """The response's per-stack ``consistency`` object (``None`` when the stage was off)."""
+    if fit is None:
+        return None
+    finite = lambda v: float(v) if np.isfinite(v) else None  # noqa: E731
+    return {
+        "decidable": bool(fit.decidable),
+        "atlas_from_scanner": fit.atlas_from_scanner.tolist() if fit.decidable and fit.atlas_from_scanner is not None else None,
+        "inlier_fraction": float(fit.inlier_fraction),
+        "twinned_slices": int(fit.twinned.sum()),
+        "inconsistent_slices": int(fit.inconsistent.sum()),
+        "acquisition_order": fit.acquisition_order if fit.decidable else None,
+        "motion_bandwidth_slices": finite(fit.bandwidth) if fit.decidable else None,
+        "network_error_mm": finite(fit.noise_mm),
+        "model_error_mm": finite(fit.model_mm),
+    }

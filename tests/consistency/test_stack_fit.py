@@ -1,0 +1,103 @@
+"""Stack consistency on simulated stack geometry: branch decided, motion-tolerant fit, extreme left alone."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from model_export.acquisitions import MOTION_LEVELS, interleaved_times, smooth_motion
+from service.consistency import ed, fit_stack
+from service.geometry import iterators, se3, twin
+from service.geometry.pose import make_pose, translate
+from service.io.volume import Volume
+from service.preprocess.stack import split_stack
+
+NOISE = np.array([np.radians(10.0)] * 3 + [10.0] * 3) / np.sqrt(3.0)      # 10 deg / 10 mm RMS
+
+
+def stack(rng: np.random.Generator, motion: str, n: int = 36, orientation: np.ndarray | None = None):
+    """Network-frame truth ``[n, 4, 4]`` and ``network_from_scanner`` of a 3 mm stack through the brain."""
+    rot = se3.so3_exp(rng.normal(0, 0.15, 3)) @ (np.eye(3) if orientation is None else orientation)
+    centre = np.array([1.0, -3.0, 10.0])
+    spacing = np.array([1.0, 1.0, 3.0])
+    static = make_pose(rot, centre) @ translate(-(np.array([128, 128, n]) - 1) / 2 * spacing) @ np.diag([*spacing, 1])
+    scanner_from_atlas = make_pose(iterators.random_rotations(1, rng, np.pi)[0], rng.uniform(-30, 30, 3))
+    affine = scanner_from_atlas @ static
+    geo = split_stack(Volume(np.zeros((128, 128, n), np.float32), affine), np.ones((128, 128, n), bool))
+    level = MOTION_LEVELS[motion]
+    if level is None:
+        truth = iterators.random_poses(n, rng, tz_max_mm=0.0, centre=np.zeros(3))
+        truth[:, :3, 3] = centre + rng.uniform(-15, 15, (n, 3))
+    else:
+        moved = translate(centre) @ se3.exp(smooth_motion(interleaved_times(n), rng, *level)) @ translate(-centre)
+        truth = moved @ static[None] @ np.linalg.inv(geo.slice_from_voxel)
+    return truth, geo.slice_from_voxel @ np.linalg.inv(affine)
+
+
+def fake_network(truth: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Per slice the truth or its twin (50 %) plus 10 mm / 10 deg of noise; returns (poses, chose_twin)."""
+    chose = rng.random(len(truth)) < 0.5
+    poses = np.where(chose[:, None, None], twin.twin(truth), truth) @ se3.exp(rng.normal(0, 1, (len(truth), 6)) * NOISE)
+    return poses, chose
+
+
+@pytest.mark.parametrize("motion", ["mild", "moderate"])
+@pytest.mark.parametrize("orientation", ["axial", "coronal", "sagittal"])
+def test_branch_decided_and_fit_beats_the_network(motion: str, orientation: str) -> None:
+    from model_export.acquisitions import ORIENTATIONS
+
+    rng = np.random.default_rng(hash((motion, orientation)) % 2**32)
+    right, ed_fit, ed_net = [], [], []
+    for _ in range(4):
+        truth, nk = stack(rng, motion, orientation=ORIENTATIONS[orientation])
+        poses, chose = fake_network(truth, rng)
+        fit = fit_stack(poses, nk, noise_mm=np.full(len(poses), 14.0))
+        assert fit.decidable
+        distinguishable = ed(truth, twin.twin(truth)) > 20.0      # midline sagittal slices are their own twins
+        right.append((ed(fit.poses, truth) < ed(fit.poses, twin.twin(truth)))[distinguishable])
+        assert (fit.twinned == chose)[distinguishable].mean() > 0.9    # the network's poses were put on their side
+        ed_fit.append(ed(fit.poses, truth))
+        ed_net.append(np.minimum(ed(poses, truth), ed(poses, twin.twin(truth))))   # the network's twin-min
+    assert np.concatenate(right).mean() >= 0.99
+    assert np.concatenate(ed_fit).mean() < 0.6 * np.concatenate(ed_net).mean()
+
+
+def test_extreme_motion_is_undecidable_and_changes_nothing() -> None:
+    rng = np.random.default_rng(7)
+    for _ in range(3):
+        truth, nk = stack(rng, "extreme")
+        poses, _ = fake_network(truth, rng)
+        fit = fit_stack(poses, nk, noise_mm=np.full(len(poses), 14.0))
+        assert not fit.decidable
+        np.testing.assert_array_equal(fit.poses, poses)
+        assert not fit.twinned.any() and not fit.inconsistent.any()
+
+
+def test_a_gross_outlier_is_flagged_and_given_the_stack_pose() -> None:
+    rng = np.random.default_rng(3)
+    truth, nk = stack(rng, "mild")
+    poses = truth @ se3.exp(rng.normal(0, 1, (len(truth), 6)) * NOISE * 0.3)
+    poses[10] = truth[10] @ se3.exp(np.array([0.0, 1.2, 0.0, 30.0, 0.0, 0.0]))   # 69 deg and 30 mm off
+    fit = fit_stack(poses, nk, noise_mm=np.full(len(poses), 4.0))
+    assert fit.decidable and fit.inconsistent[10] and fit.inconsistent.sum() <= 2
+    assert ed(fit.poses[10], truth[10]) < 10.0
+
+
+def test_unusable_slices_take_the_stack_model_and_do_not_vote() -> None:
+    rng = np.random.default_rng(5)
+    truth, nk = stack(rng, "mild")
+    poses = truth @ se3.exp(rng.normal(0, 1, (len(truth), 6)) * NOISE * 0.3)
+    usable = np.ones(len(truth), bool)
+    usable[:4] = False
+    poses[:4] = se3.exp(rng.normal(0, 1, (4, 6)) * [2, 2, 2, 50, 50, 50])      # junk from empty slices
+    fit = fit_stack(poses, nk, usable, noise_mm=np.full(len(poses), 4.0))
+    assert fit.decidable and not fit.inconsistent[:4].any()
+    assert ed(fit.poses[:4], truth[:4]).max() < 10.0
+
+
+def test_the_acquisition_order_is_recognised() -> None:
+    rng = np.random.default_rng(11)
+    truth, nk = stack(rng, "moderate", n=40)
+    poses = truth @ se3.exp(rng.normal(0, 1, (len(truth), 6)) * NOISE * 0.2)
+    fit = fit_stack(poses, nk, noise_mm=np.full(len(poses), 3.0))
+    assert fit.acquisition_order == "interleaved-even-first" and np.isfinite(fit.bandwidth)

@@ -1,0 +1,41 @@
+"""Twin-aware MC statistics: a split between the twins neither inflates the variance nor hides."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.geometry import anchors, se3, twin
+from service.inference.estimator import statistics
+
+
+def cloud(rng: np.random.Generator, n_slices: int, n_mc: int, on_twin: float) -> tuple[np.ndarray, np.ndarray]:
+    truth = se3.exp(np.concatenate([rng.normal(0, 1.0, (n_slices, 3)), rng.normal(0, 15, (n_slices, 3))], 1))
+    samples = truth[:, None] @ se3.exp(rng.normal(0, 1, (n_slices, n_mc, 6)) * [0.03, 0.03, 0.03, 1, 1, 1])
+    flip = np.zeros((n_slices, n_mc), bool)
+    flip[:, : int(round(on_twin * n_mc))] = True
+    samples = np.where(flip[..., None, None], twin.twin(samples, 0.7), samples)
+    return truth, samples
+
+
+@pytest.mark.parametrize("on_twin", [0.0, 0.3, 0.45])
+def test_samples_split_between_twins_keep_a_small_variance_and_report_the_split(on_twin: float) -> None:
+    rng = np.random.default_rng(0)
+    truth, samples = cloud(rng, 40, 100, on_twin)
+    est = statistics(anchors.encode(samples), "anchor", 0.7)
+    assert np.allclose(est.twin_mass, on_twin)
+    assert est.variance.max() < 10.0                        # ~ 2 * 3 * 0.03^2 + 3 mm^2, not hundreds
+    assert np.abs(est.mean[:, :3, 3] - truth[:, :3, 3]).max() < 1.0
+    _, naive = se3.frechet_mean_and_variance(samples)
+    if on_twin > 0:
+        assert np.median(naive) > 50.0                      # what a twin-blind mean would report
+
+
+def test_the_majority_branch_wins_and_the_spread_is_in_mm() -> None:
+    rng = np.random.default_rng(1)
+    truth, samples = cloud(rng, 10, 100, 0.7)               # 70 % on the twin: the twin is the answer
+    est = statistics(anchors.encode(samples), "anchor", 0.7)
+    assert np.allclose(est.twin_mass, 0.3)
+    tw = twin.twin(truth, 0.7)
+    assert np.abs(est.mean[:, :3, 3] - tw[:, :3, 3]).max() < 1.0
+    assert np.all((est.spread_mm > 1.0) & (est.spread_mm < 4.0))

@@ -1,0 +1,48 @@
+"""Simulated acquisitions: exact truth, and the pipeline with a twin-confused estimator, per motion level."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from model_export.acquisitions import simulate_acquisition
+from model_export.evaluate_acquisitions import NoisyTwinEstimator, evaluate_acquisitions
+from service.geometry import sampling
+from service.geometry.pose import apply
+from tests.api.conftest import INFO
+from tests.phantoms import phantom_brain
+
+BRAIN = phantom_brain(0)
+
+
+def test_every_voxel_shows_the_atlas_at_its_true_position() -> None:
+    img, mask, aff = BRAIN
+    stacks = simulate_acquisition(img, mask, aff, np.random.default_rng(0), "moderate", size=48, pixel_mm=2.0,
+                                  thickness_mm=0.0, noise=0.0, bias=0.0)
+    for s in stacks:
+        n = s.volume.array.shape[2]
+        ij = np.stack(np.meshgrid(np.arange(48), np.arange(48), indexing="ij"), -1).reshape(-1, 2)
+        for k in (n // 3, n // 2):
+            vox = np.concatenate([ij, np.full((len(ij), 1), k)], 1).astype(float)
+            want = sampling.sample_points(img, aff, apply(s.atlas_from_voxel[k], vox))
+            got = s.volume.array[ij[:, 0], ij[:, 1], k]
+            assert np.abs(got - want).max() < 1e-3 * img.max()
+            assert want.max() > 0.2 * img.max()
+
+
+def test_pipeline_with_a_twin_confused_estimator_per_motion_level() -> None:
+    img, mask, aff = BRAIN
+    vol = type("V", (), {"image": img, "mask": mask, "affine": aff})
+    est = NoisyTwinEstimator(INFO, np.random.default_rng(1))
+    out = evaluate_acquisitions([vol], est, np.random.default_rng(2), per_volume=2, mc_samples=20,
+                                bias_correction=False, size=64, pixel_mm=1.6)
+    for level in ("mild", "moderate"):
+        s = out[level]
+        # >= 99 % is the target on the validation volumes (model_export/reports/acquisitions.md); this
+        # small phantom has fewer slices per stack, and 1-2 sagittal slices next to each other in time,
+        # both given on the twin, can carry a short motion kernel with them.
+        assert s["right_branch"] >= 0.97, (level, s)
+        assert s["ed"]["mean"] < s["ed_network_min"]["mean"], (level, s)       # the stack fit beats the slices
+        assert s["decidable_stacks"] == 1.0
+    ex = out["extreme"]
+    assert ex["decidable_stacks"] == 0.0
+    assert ex["ed_min"]["mean"] == ex["ed_network_min"]["mean"]                  # no slice made worse
