@@ -19,7 +19,7 @@ Example:
     >>> vol = Volume(np.ones((6, 6, 4), np.float32), np.diag([1.0, 1.0, 3.0, 1.0]))
     >>> ss = SliceSet.from_stacks([(vol, None, np.repeat(vol.affine[None], 4, 0), np.ones(4, bool))] * 2)
     >>> bodies = stacks_as_bodies(ss, np.repeat(np.eye(4)[None], 2, 0))
-    >>> bodies.n_slices, bodies.n_pixels, bodies.slice_id.max()
+    >>> bodies.n_slices, bodies.n_pixels, int(bodies.slice_id.max())
     (2, 288, 1)
 """
 

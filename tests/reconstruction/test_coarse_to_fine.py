@@ -4,6 +4,11 @@ Every slice's pose is moved about its centre by RMS 10 mm and RMS 10 deg (normal
 5.77 mm / 5.77 deg), the "10 mm / 10 deg" scenario of the benchmark on the small phantom. The
 1 mm / 1 deg trust radius of the slice registration alone leaves the poses where they started
 (measured before this stage existed: 8.2 mm of relative pose error left, 18 dB).
+
+Measured with the coarse-to-fine stages: relative pose error 0.17 mm, 31.3 dB / NCC 0.981 against
+the phantom in its true frame (the 0.84 mm absolute error is the common offset of the starting
+poses, 0.79 mm, which the reconstruction keeps as its frame), 49 of 52 slices included.
+Thresholds: relative error < 1 mm (the issue's target), > 29 dB, NCC > 0.97, 90 % included.
 """
 
 from __future__ import annotations
@@ -32,5 +37,5 @@ def test_converges_from_10_mm_10_deg_per_slice(acquisition):
     psnr, ncc = psnr_ncc(result.volume.array, ref, mask)
     assert before > 7.0
     assert after < 1.0
-    assert psnr > 30.0 and ncc > 0.97
+    assert psnr > 29.0 and ncc > 0.97
     assert result.included.sum() >= 0.9 * ss.include.sum()
