@@ -473,6 +473,22 @@ class SVRnetClient:
         """
         return self._download(self._job_path(job_id, "/preview.png"), out_path, progress)
 
+    def refined_poses(self, job_id: str) -> dict[str, Any]:
+        """``GET /v1/reconstructions/{job_id}/poses``: the slice poses refined by the reconstruction.
+
+        The body has the ``/v1/predict`` schema (``atlas_from_voxel`` and the pose fields refined;
+        ``accepted`` stays the model's) plus, per slice, ``included``, ``exclusion_reason``, ``weight``
+        and ``ncc``; it can be passed as ``poses`` to a new job.
+
+        Raises:
+            Conflict: 409, the job has not succeeded (yet). NotFound: unknown job.
+
+        Example:
+            >>> SVRnetClient().refined_poses("3f2a")["stacks"][0]["slices"][0]["included"]   # doctest: +SKIP
+            True
+        """
+        return self._json(self._send("GET", self._job_path(job_id, "/poses")))
+
     def cancel(self, job_id: str) -> None:
         """``DELETE /v1/reconstructions/{job_id}``: cancel a queued/running job and delete its files.
 

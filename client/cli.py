@@ -5,6 +5,7 @@ Commands::
     svrnet predict STACK... [--mask M...] [--out poses.json] [--mc-samples N] [--threshold T]
                             [--no-bias-correction] [--model NAME]
     svrnet reconstruct STACK... [--mask M...] [--poses poses.json] [--resolution 0.8] [--svr-iterations 3]
+                       [--poses-out refined.json]
                                 [--wait] [--out recon.nii.gz] [--preview preview.png]
     svrnet status JOB
     svrnet cancel JOB
@@ -267,6 +268,19 @@ def predict(
             console.print(f"wrote {out}")
 
 
+def stage_label(state: dict[str, Any]) -> str:
+    """The progress bar's label: the job's status and the stage it is in.
+
+    Example:
+        >>> stage_label({"status": "running", "stage": "stack registration"})
+        'running: stack registration'
+        >>> stage_label({"status": "queued", "stage": "queued"})
+        'queued'
+    """
+    status, stage = state.get("status"), state.get("stage")
+    return str(status) if not stage or stage == status else f"{status}: {stage}"
+
+
 @app.command(epilog=EXIT_HELP)
 def reconstruct(
     stacks: StacksArg,
@@ -286,13 +300,16 @@ def reconstruct(
         "--out", "-o", dir_okay=False, help="volume file (implies --wait; default recon.nii.gz with --wait)")] = None,
     preview: Annotated[Optional[Path], typer.Option(
         dir_okay=False, help="also download the preview PNG here (implies --wait)")] = None,
+    poses_out: Annotated[Optional[Path], typer.Option(
+        "--poses-out", dir_okay=False,
+        help="also write the refined slice poses (/v1/predict schema) here (implies --wait)")] = None,
     timeout: Annotated[float, typer.Option(min=0, help="seconds to wait for the job")] = 3600.0,
     poll: Annotated[float, typer.Option(min=0.05, help="seconds between status polls")] = 1.0,
 ) -> None:
     """Start a reconstruction job (POST /v1/reconstructions); with --wait, follow it and download the volume."""
     _check_masks(stacks, mask)
-    _check_writable(out, preview)
-    wait = wait or out is not None or preview is not None
+    _check_writable(out, preview, poses_out)
+    wait = wait or out is not None or preview is not None or poses_out is not None
     err, console = _stderr(), _stdout()
     with _errors(), _client(server) as svr:
         with _upload_bar(err, f"{len(stacks)} stack(s)") as progress:
@@ -308,7 +325,7 @@ def reconstruct(
             task = bar.add_task("queued", total=1.0)
 
             def on_progress(state: dict[str, Any]) -> None:
-                label = " ".join(str(x) for x in (state.get("status"), state.get("stage")) if x)
+                label = stage_label(state)
                 bar.update(task, completed=float(state.get("progress") or 0.0), description=label)
 
             svr.wait(job_id, poll_s=poll, timeout_s=timeout, on_progress=on_progress)
@@ -318,6 +335,9 @@ def reconstruct(
         if preview is not None:
             svr.download_preview(job_id, preview)
             console.print(f"wrote {preview}")
+        if poses_out is not None:
+            _write_json(poses_out, svr.refined_poses(job_id))
+            console.print(f"wrote {poses_out}")
 
 
 @app.command(epilog=EXIT_HELP)

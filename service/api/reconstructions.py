@@ -1,4 +1,4 @@
-"""Reconstruction jobs: ``/v1/reconstructions`` (submit, status, volume, preview, cancel)."""
+"""Reconstruction jobs: ``/v1/reconstructions`` (submit, status, volume, preview, refined poses, cancel)."""
 
 from __future__ import annotations
 
@@ -35,7 +35,7 @@ def _status(job: Job) -> dict:
     return {"job_id": job.id, "status": job.status, "stage": job.stage, "progress": job.progress, "error": job.error,
             "created_at": _iso(job.created_at), "updated_at": _iso(job.updated_at),
             "result_url": f"{base}/volume" if done else None, "preview_url": f"{base}/preview.png" if done else None,
-            "report": job.report}
+            "poses_url": f"{base}/poses" if done else None, "report": job.report}
 
 
 def _job(request: Request, job_id: str) -> Job:
@@ -127,6 +127,15 @@ async def volume(request: Request, job_id: str) -> FileResponse:
 @router.get("/{job_id}/preview.png", responses=problem_responses(401, 404, 409), summary="Three orthogonal mid-planes", response_class=FileResponse)
 async def preview(request: Request, job_id: str) -> FileResponse:
     return _result(request, job_id, "preview.png", "image/png", f"{job_id}.png")
+
+
+@router.get("/{job_id}/poses", responses=problem_responses(401, 404, 409),
+            summary="Refined slice poses, in the /v1/predict schema", response_class=FileResponse)
+async def poses(request: Request, job_id: str) -> FileResponse:
+    """The ``/v1/predict`` body the job started from with every slice's pose refined by the reconstruction
+    (``atlas_from_voxel`` and the pose fields; ``accepted``/``reason`` stay the model's), plus per slice
+    ``included``, ``exclusion_reason``, ``weight``, ``ncc``. It is a valid ``poses`` input to a new job."""
+    return _result(request, job_id, "poses.json", "application/json", f"{job_id}_poses.json")
 
 
 @router.delete("/{job_id}", status_code=204, responses=problem_responses(401, 404), summary="Cancel a job and delete its files")

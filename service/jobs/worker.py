@@ -2,7 +2,12 @@
 
 A job folder holds ``inputs/`` (the uploaded stacks and masks as sent, ``params.json``, optional
 ``poses.json``) and, once done, ``outputs/`` (``volume.nii.gz``, ``preview.png``, ``report.json``,
-``transforms/``). :func:`run_job` is what a worker process executes; it claims the job atomically,
+``transforms/``, ``poses.json``: the refined poses in the ``/v1/predict`` schema).
+
+Stages (the job's ``stage``, with ``progress`` in 0..1): ``reading``, ``predicting poses`` (without
+uploaded poses), then those of the reconstruction -- ``stack consistency``, ``stack registration``,
+``slice starting poses``, ``gaussian average``, then per round ``registration k/K``,
+``robust weighting k/K``, ``super-resolution k/K`` -- and ``writing``. :func:`run_job` is what a worker process executes; it claims the job atomically,
 reports stage and progress to the store, checks for cancellation between stages, and records any
 failure with its reason.
 """
@@ -65,14 +70,24 @@ def predicted_poses(uploads: list, estimator, mc_samples: int = 100,  # noqa: AN
     """Poses from the service's own prediction: ``[(atlas_from_voxel, accepted)]`` and the brain masks
     (on each stack's grid) per stack, exactly as ``/v1/predict`` would answer for these uploads.
     """
+    body, masks = predicted_body(uploads, estimator, mc_samples, variance_threshold)
+    return poses_from_predict_body(body, [len(r["slices"]) for r in body["stacks"]]), masks
+
+
+def predicted_body(uploads: list, estimator, mc_samples: int = 100,  # noqa: ANN001
+                   variance_threshold: float | None = None) -> tuple[dict, list[np.ndarray]]:
+    """The ``/v1/predict``-shaped body (``model``, ``mc_samples``, ``variance_threshold``, ``stacks``) of
+    the service's own prediction, and the brain masks per stack."""
     from service.inference.pipeline import predict, prepare_stacks
 
-    threshold = variance_threshold or estimator.info.variance_threshold
-    prepared = prepare_stacks(uploads, estimator.info, bias_correction=True, workers=1)
+    info = estimator.info
+    threshold = variance_threshold or info.variance_threshold
+    prepared = prepare_stacks(uploads, info, bias_correction=True, workers=1)
     results, _ = predict(prepared, estimator, mc_samples, threshold)
-    poses = poses_from_predict_body({"stacks": results}, [len(r["slices"]) for r in results])
     masks = [np.moveaxis(p.slices.masks.transpose(0, 2, 1), 0, p.slices.slice_axis) for p in prepared]
-    return poses, masks
+    model = {"name": info.name, "version": info.version, "backbone": info.backbone,
+             "sha256": info.sha256}
+    return {"model": model, "mc_samples": mc_samples, "variance_threshold": threshold, "stacks": results}, masks
 
 
 def run_job(data_dir: str, models_dir: str, job_id: str) -> None:
@@ -121,7 +136,10 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     from service.inference.pipeline import StackUpload
     from service.io.readers import read_upload
     from service.reconstruction.export import write_outputs
-    from service.reconstruction.pipeline import reconstruct
+    from service.geometry.twin import DEFAULT_PLANE_X_MM
+    from service.preprocess.stack import split_stack
+    from service.reconstruction.pipeline import ReconstructionConfig, reconstruct
+    from service.reconstruction.refined_poses import refined_poses_body
     from service.reconstruction.slices import SliceSet
 
     params = json.loads((folder / "inputs" / "params.json").read_text())
@@ -137,21 +155,31 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         from service.preprocess.stack import slice_axis_of
 
         counts = [u.volume.array.shape[slice_axis_of(u.volume.spacing)] for u in uploads]
-        poses = poses_from_predict_body(json.loads(poses_path.read_text()), counts)
+        body = json.loads(poses_path.read_text())
+        poses = poses_from_predict_body(body, counts)
+        plane = DEFAULT_PLANE_X_MM
         masks = [u.mask.array > 0 if u.mask is not None else localise_brain(u.volume, slice_axis_of(u.volume.spacing))
                  for u in uploads]
     else:
         progress("predicting poses", 0.05)
         estimator = OnnxPoseEstimator(load_model(models_dir / params.get("model", "default") / "model.onnx", threads=1))
-        poses, masks = predicted_poses(uploads, estimator, int(params.get("mc_samples", 100)),
-                                       params.get("variance_threshold"))
+        body, masks = predicted_body(uploads, estimator, int(params.get("mc_samples", 100)),
+                                     params.get("variance_threshold"))
+        poses = poses_from_predict_body(body, [len(r["slices"]) for r in body["stacks"]])
+        plane = estimator.info.symmetry_plane_x_mm
     progress("reconstructing", 0.15)
     slice_set = SliceSet.from_stacks([(u.volume, m, mats, acc) for u, m, (mats, acc) in zip(uploads, masks, poses)])
     result = reconstruct(slice_set, resolution_mm=float(params.get("resolution_mm", 0.8)),
                          svr_iterations=int(params.get("svr_iterations", 3)),
-                         progress=lambda stage, f: progress(stage, 0.15 + 0.8 * f))
+                         progress=lambda stage, f: progress(stage, 0.15 + 0.8 * f),
+                         config=ReconstructionConfig(symmetry_plane_x_mm=plane))
     progress("writing", 0.97)
     report = write_outputs(result, slice_set, folder / "outputs")
+    frames = [split_stack(u.volume, np.ones(u.volume.array.shape, bool)).slice_from_voxel for u in uploads]
+    refined = refined_poses_body(body, result.atlas_from_voxel_final, frames, included=result.included,
+                                 weight=result.slice_weight, ncc=result.ncc, reasons=result.exclusion_reason,
+                                 job_id=job_id)
+    (folder / "outputs" / "poses.json").write_text(json.dumps(refined))
     if not store.finish(job_id, report):       # cancelled while writing: leave nothing behind
         shutil.rmtree(folder, ignore_errors=True)
         raise Cancelled

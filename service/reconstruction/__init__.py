@@ -11,7 +11,11 @@ Modules:
     * :mod:`~service.reconstruction.registration` -- batched rigid slice-to-volume registration (NCC);
     * :mod:`~service.reconstruction.robust` -- EM outlier rejection of pixels and slices;
     * :mod:`~service.reconstruction.superresolution` -- CG super-resolution, edge-preserving prior;
+    * :mod:`~service.reconstruction.stack_rigid` -- one robust, twin-aware rigid transform per stack;
+    * :mod:`~service.reconstruction.stack_registration` -- stack-to-stack registration, 4 -> 2 -> 1 mm;
+    * :mod:`~service.reconstruction.coarse_to_fine` -- the coarse steps and each slice's starting pose;
     * :mod:`~service.reconstruction.pipeline` -- :func:`reconstruct`, the whole loop;
+    * :mod:`~service.reconstruction.refined_poses` -- refined poses in the ``/v1/predict`` schema;
     * :mod:`~service.reconstruction.export` -- volume, ITK ``.tfm`` transforms, listing, JSON report;
     * :mod:`~service.reconstruction.preview` -- PNG of three orthogonal mid-planes.
 

@@ -126,3 +126,23 @@ def robust_weights(residuals: NDArray, slice_id: NDArray, n_slices: int, *, rati
         excluded = cand & (np.nan_to_num(potential, nan=0.0) < threshold)
         weight = np.where(cand & ~excluded, np.clip(np.nan_to_num(potential) / max(med, 1e-12), 0.0, 1.0), 0.0)
     return RobustWeights(pixel.astype(np.float32), potential, weight, excluded, sigma, c)
+
+
+def ncc_outliers(ncc: NDArray, candidates: NDArray, k: float = 3.0, floor: float = 0.05) -> NDArray[np.bool_]:
+    """Slices whose NCC with the volume is far below the others': ``ncc < median - k max(1.4826 MAD, floor)``.
+
+    A slice left at a wrong pose can keep plausible residuals (a smooth region, a low-contrast
+    slice) while its correlation with the volume stays poor; this is the slice-level test the EM
+    pixel model misses. The median and MAD are taken over ``candidates`` (NaN counts as -1).
+
+    Example:
+        >>> ncc_outliers(np.array([0.97, 0.98, 0.96, 0.57, 0.99]), np.ones(5, bool)).tolist()
+        [False, False, False, True, False]
+    """
+    cand = np.asarray(candidates, bool)
+    x = np.nan_to_num(np.asarray(ncc, dtype=np.float64), nan=-1.0)
+    if not cand.any():
+        return np.zeros(len(x), bool)
+    med = float(np.median(x[cand]))
+    mad = max(MAD_SCALE * float(np.median(np.abs(x[cand] - med))), floor)
+    return cand & (x < med - k * mad)

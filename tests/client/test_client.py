@@ -401,7 +401,7 @@ class FakeJobs:
             url = f"/v1/reconstructions/{job_id}"
             return httpx.Response(202, headers={"Location": url},
                                   json={"job_id": job_id, "status": "queued", "status_url": url})
-        m = re.fullmatch(r"/v1/reconstructions/([^/]+)(/volume|/preview\.png)?", path)
+        m = re.fullmatch(r"/v1/reconstructions/([^/]+)(/volume|/preview\.png|/poses)?", path)
         if not m or m.group(1) not in self.jobs:
             return httpx.Response(404, json=problem(404, f"job: unknown job {m.group(1) if m else path}"))
         job = self.jobs[m.group(1)]
@@ -411,6 +411,8 @@ class FakeJobs:
         if m.group(2):
             if job["status"] != "succeeded":
                 return httpx.Response(409, json=problem(409, f"job {job['job_id']} is {job['status']}"))
+            if m.group(2) == "/poses":
+                return httpx.Response(200, json=dict(PREDICT_BODY, refined_by={"job_id": job["job_id"]}))
             return httpx.Response(200, content=self.VOLUME if m.group(2) == "/volume" else self.PREVIEW)
         job["polls"] += 1
         if job["polls"] == 2:
@@ -590,11 +592,13 @@ def test_cli_reconstruct_wait_downloads(fake_cli: Callable, stack_file: Path, tm
     fake, _ = fake_cli()
     poses = tmp_path / "poses.json"
     poses.write_text(json.dumps(PREDICT_BODY))
-    out, preview = tmp_path / "recon.nii.gz", tmp_path / "preview.png"
+    out, preview, refined = tmp_path / "recon.nii.gz", tmp_path / "preview.png", tmp_path / "refined.json"
     r = invoke(["reconstruct", str(stack_file), "--poses", str(poses), "--resolution", "0.8", "--svr-iterations",
-                "2", "--wait", "--poll", "0.05", "--out", str(out), "--preview", str(preview)])
+                "2", "--wait", "--poll", "0.05", "--out", str(out), "--preview", str(preview),
+                "--poses-out", str(refined)])
     assert r.exit_code == 0, r.output
     assert out.read_bytes() == FakeJobs.VOLUME and preview.read_bytes() == FakeJobs.PREVIEW
+    assert json.loads(refined.read_text())["refined_by"] == {"job_id": "job1"}
     assert "job1" in r.stdout and "succeeded" in r.stdout
     fields, files = fake.jobs.uploads[0]
     assert fields == {"resolution_mm": ["0.8"], "svr_iterations": ["2"]} and files[-1][0] == "poses"

@@ -86,8 +86,39 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
     assert png.status_code == 200 and png.content[:8] == b"\x89PNG\r\n\x1a\n"
     report = st["report"]
     assert report and len(report["slices"]) == 36
-    assert {"stack", "slice", "included", "weight"} <= set(report["slices"][0])
+    assert {"stack", "slice", "included", "exclusion_reason", "weight"} <= set(report["slices"][0])
     assert client.get("/v1/reconstructions/unknown").status_code == 404
+    # The refined poses, in the /v1/predict schema (a valid `poses` input to a new job).
+    assert st["poses_url"] == f"/v1/reconstructions/{job_id}/poses"
+    body = client.get(st["poses_url"]).json()
+    slices = [s for stack in body["stacks"] for s in stack["slices"]]
+    assert len(slices) == 36 and body["refined_by"]["job_id"] == job_id
+    for got, rec in zip(slices, report["slices"]):
+        np.testing.assert_allclose(got["atlas_from_voxel"], rec["atlas_from_voxel"])
+        assert got["included"] == rec["included"] and got["exclusion_reason"] == rec["exclusion_reason"]
+        rot = np.array(got["rotation"])
+        np.testing.assert_allclose(rot @ rot.T, np.eye(3), atol=1e-9)
+        assert len(got["anchor_points_mm"]) == 3 and len(got["quaternion_wxyz"]) == 4
+    assert submit(client, case, poses=body).status_code == 202
+
+
+def test_stages_are_reported_in_order(client: TestClient, case: dict) -> None:
+    job_id = submit(client, case).json()["job_id"]
+    stages = []
+    t0 = time.time()
+    while time.time() - t0 < 180:
+        st = client.get(f"/v1/reconstructions/{job_id}").json()
+        if not stages or stages[-1] != st["stage"]:
+            stages.append(st["stage"])
+        if st["status"] in ("succeeded", "failed", "cancelled"):
+            break
+        time.sleep(0.05)
+    assert st["status"] == "succeeded", st
+    known = ["queued", "starting", "reading", "reconstructing", "stack consistency", "stack registration", "slice starting poses",
+             "gaussian average", "registration 1/1", "robust weighting 1/1", "super-resolution 1/1", "writing"]
+    order = [known.index(s) for s in stages if s in known]
+    assert order == sorted(order) and len(order) >= 2
+    assert set(stages) <= set(known) | {"robust weighting 0/1", "super-resolution 0/1", "done", None}
 
 
 def test_cancel_and_failure(client: TestClient, case: dict) -> None:

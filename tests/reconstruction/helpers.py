@@ -150,3 +150,16 @@ def psnr_ncc(volume: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> tup
     psnr = 10.0 * np.log10(y.max() ** 2 / mse)
     ncc = float(np.corrcoef(x, y)[0, 1])
     return float(psnr), ncc
+
+
+def relative_pose_error_mm(slices: SliceSet, estimate: np.ndarray, truth: np.ndarray,
+                           which: np.ndarray | None = None) -> float:
+    """:func:`pose_error_mm` after removing the rigid offset common to all slices (robust fit).
+
+    A reconstruction keeps the frame of its input poses; the common offset of their errors is
+    invisible to it. ``which`` restricts both the fit and the mean to those slices.
+    """
+    from service.reconstruction.registration import anchor_frame
+
+    w = None if which is None else np.asarray(which, np.float64)
+    return pose_error_mm(slices, anchor_frame(slices, truth, estimate, w), truth, which)

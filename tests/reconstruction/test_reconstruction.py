@@ -67,7 +67,9 @@ def test_progress_is_monotone_and_cancel_stops(acquisition):
     reconstruct(ss, resolution_mm=1.5, svr_iterations=1, progress=lambda s, f: seen.append((s, f)),
                 config=ReconstructionConfig(sr_iterations=2, registration_iterations=3))
     fractions = [f for _, f in seen]
-    assert seen[0] == ("gaussian average", 0.0) and seen[-1] == ("done", 1.0)
+    names = [s for s, _ in seen]
+    assert seen[0] == ("stack consistency", 0.0) and seen[-1] == ("done", 1.0)
+    assert names[:4] == ["stack consistency", "stack registration", "slice starting poses", "gaussian average"]
     assert all(0.0 <= a <= b <= 1.0 for a, b in zip(fractions, fractions[1:]))
     assert any(s.startswith("registration") for s, _ in seen) and any(s.startswith("super") for s, _ in seen)
     calls = []
