@@ -116,6 +116,22 @@ def evaluate(
     typer.echo(json.dumps(summary, indent=2))
 
 
+@app.command("calibrate-spread")
+def calibrate_spread(
+    model: Path,
+    root: Root = DEFAULT_ATLAS_ROOT,
+    per_volume: int = 60,
+    write: Annotated[bool, typer.Option(help="write mc_error_scale into the model's metadata")] = True,
+) -> None:
+    """Measure how the model's MC spread relates to its twin-min error; store it as mc_error_scale."""
+    from model_export.spread import measure_error_scale, write_metadata
+
+    result = measure_error_scale(model, root, per_volume)
+    if write:
+        write_metadata(model, {"mc_error_scale": f"{result['mc_error_scale']:.3f}"})
+    typer.echo(json.dumps(result, indent=2))
+
+
 @app.command()
 def midplane(
     root: Root = DEFAULT_ATLAS_ROOT,

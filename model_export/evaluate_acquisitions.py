@@ -71,6 +71,7 @@ class Scored:
     mask_pixels: list = field(default_factory=list)
     orientation: list = field(default_factory=list)
     decidable: list = field(default_factory=list)
+    branch_decided: list = field(default_factory=list)
 
     def array(self, key: str) -> NDArray:
         return np.concatenate(getattr(self, key)) if getattr(self, key) else np.zeros(0)
@@ -114,6 +115,7 @@ def score(results: list[dict], prepared: list[PreparedStack], truth: list[NDArra
         into.mask_pixels.append(p.prepared.mask_pixels)
         into.orientation.append(np.array([sim.orientation] * len(e)))
         into.decidable.append(np.full(len(e), bool(res["consistency"] and res["consistency"]["decidable"])))
+        into.branch_decided.append(np.full(len(e), bool(res["consistency"] and res["consistency"]["branch_decided"])))
 
 
 def summarise(sc: Scored) -> dict:
@@ -136,6 +138,11 @@ def summarise(sc: Scored) -> dict:
     out["accepted"] = float(acc.mean())
     out["accepted_ed_mean"] = float(e[acc].mean()) if acc.any() else float("nan")
     out["decidable_stacks"] = float(sc.array("decidable")[keep].mean())
+    decided = sc.array("branch_decided")[keep].astype(bool)
+    out["branch_decided_slices"] = float(decided.mean())
+    out["right_branch_where_decided"] = float(right[decided].mean()) if decided.any() else float("nan")
+    both = decided & good
+    out["right_branch_where_decided_twin_min_under_15mm"] = float(right[both].mean()) if both.any() else float("nan")
     out["by_orientation"] = {o: {"ed_mean": float(e[sc.array("orientation")[keep] == o].mean()),
                                  "right_branch": float(right[sc.array("orientation")[keep] == o].mean())}
                              for o in np.unique(sc.array("orientation")[keep])}
@@ -168,12 +175,15 @@ def markdown(summary: dict[str, dict], title: str) -> str:
             "left-right twin.", "",
             "| motion | slices | network E.D. mean / median / p90 | network twin-min mean | consistent E.D. mean / "
             "median / p90 | consistent twin-min mean | right branch | right branch (twin-min < 15 mm) | "
-            "AUROC var > 10 mm | accepted | decidable stacks |",
-            "|---|---|---|---|---|---|---|---|---|---|---|"]
+            "AUROC var > 10 mm | accepted | decidable stacks | branch decided | right branch where decided "
+            "(all / twin-min < 15 mm) |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for level, s in summary.items():
         f = lambda d: f"{d['mean']:.1f} / {d['median']:.1f} / {d['p90']:.1f}"  # noqa: E731
         rows.append(f"| {level} | {s['slices']} | {f(s['ed_network'])} | {s['ed_network_min']['mean']:.1f} | "
                     f"{f(s['ed'])} | {s['ed_min']['mean']:.1f} | {100 * s['right_branch']:.1f} % | "
                     f"{100 * s['right_branch_twin_min_under_15mm']:.1f} % | {s['auroc_variance_ed_over_10mm']:.2f} | "
-                    f"{100 * s['accepted']:.0f} % | {100 * s['decidable_stacks']:.0f} % |")
+                    f"{100 * s['accepted']:.0f} % | {100 * s['decidable_stacks']:.0f} % | "
+                    f"{100 * s['branch_decided_slices']:.0f} % | {100 * s['right_branch_where_decided']:.1f} % / "
+                    f"{100 * s['right_branch_where_decided_twin_min_under_15mm']:.1f} % |")
     return "\n".join(rows) + "\n"
