@@ -6,8 +6,10 @@ de-identified on read: only pixel data and geometry leave this module, no tag va
 
 Validation (each failure raises with the file's name, never a tag value):
 * unreadable, truncated, unknown or inconsistent (any parser error) -> :class:`UnsupportedFile` (415);
-* NRRD / MetaImage headers that point at a detached data file -> 415 (a header must never make the
-  server read one of its own files);
+* NRRD / MetaImage headers that point at a detached data file, however long the header, and NIfTI
+  ``.hdr/.img`` pairs -> 415: a header must never make the server open a path. Readers only ever see
+  the upload's bytes, behind a header rebuilt from allowed fields (:mod:`service.io.headers`), through
+  the ImageIO chosen by the sniffed content;
 * voxel data that decode to more than ``max_decoded_bytes`` (gzip or archive bombs) ->
   :class:`PayloadTooLarge` (413), checked before anything is decoded into memory;
 * 2D, 4D with more than one volume, empty, or non-finite values -> :class:`UnusableImage` (422).
@@ -16,7 +18,6 @@ Validation (each failure raises with the file's name, never a tag value):
 from __future__ import annotations
 
 import gzip
-import re
 import tempfile
 import zipfile
 import zlib
@@ -26,12 +27,12 @@ import numpy as np
 import SimpleITK as sitk
 
 from service.core.errors import PayloadTooLarge, ServiceError, UnsupportedFile, UnusableImage
+from service.io.headers import clean_header
 from service.io.volume import Volume, from_sitk
 
 SUFFIX_BY_KIND = {"nifti": ".nii", "nifti-gz": ".nii.gz", "nrrd": ".nrrd", "mha": ".mha"}
 MAX_DECODED_BYTES = 2 * 2**30
-DETACHED_DATA = {"nrrd": re.compile(rb"^data ?file:", re.I | re.M),
-                 "mha": re.compile(rb"^ElementDataFile\s*=(?![ \t]*LOCAL\b)", re.M)}
+IMAGE_IO = {"nifti": "NiftiImageIO", "nrrd": "NrrdImageIO", "mha": "MetaImageIO"}
 
 
 class _TooLarge(Exception):
@@ -82,17 +83,22 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
             with tempfile.TemporaryDirectory(prefix="svrnet-read-") as tmp:
                 if kind == "nifti-gz":   # decoded once, here; the checks and SimpleITK read the plain file
                     path, kind = _gunzip(path, Path(tmp) / "decoded.nii", max_decoded_bytes, filename), "nifti"
+                if kind == "nifti" and _nifti_pair(path):
+                    raise UnsupportedFile(f"{filename}: the header of a NIfTI .hdr/.img pair (its voxels are in "
+                                          "another file); upload a single .nii or .nii.gz")
                 if kind == "nifti" and _nifti_has_nonfinite(path):
                     raise UnusableImage(f"{filename}: contains NaN or infinite values")
-                if kind in DETACHED_DATA and DETACHED_DATA[kind].search(_header(path)):
-                    raise UnsupportedFile(f"{filename}: a {kind.upper()} header with a detached data file; "
-                                          "upload one file with its voxel data attached")
-                # SimpleITK picks its reader by suffix: give it a link named by the sniffed content.
+                # SimpleITK reads a copy named by the sniffed content, with the reader chosen here
+                # (never by probing), and for NRRD/MHA a header rebuilt from allowed fields.
                 named = Path(tmp) / f"upload{SUFFIX_BY_KIND[kind]}"
-                named.symlink_to(Path(path).resolve())
-                if _declared_bytes(named) > max_decoded_bytes:
+                if kind in ("nrrd", "mha"):
+                    with open(path, "rb") as src, open(named, "wb") as dst:
+                        clean_header(src, dst, kind, filename)
+                else:
+                    named.symlink_to(Path(path).resolve())
+                if _declared_bytes(named, kind) > max_decoded_bytes:
                     raise too_large
-                vol = from_sitk(_squeeze_4d(sitk.ReadImage(str(named)), filename))
+                vol = from_sitk(_squeeze_4d(_reader(named, kind).Execute(), filename))
         elif kind == "dicom":
             from service.io.dicom import read_dicom_file
 
@@ -129,20 +135,28 @@ def _gunzip(path: Path, out: Path, max_decoded_bytes: int, filename: str) -> Pat
     return out
 
 
-def _header(path: Path) -> bytes:
-    """The text header of an NRRD or MetaImage file (up to its first blank line / 64 KB)."""
-    with open(path, "rb") as f:
-        return f.read(1 << 16).split(b"\n\n", 1)[0]
-
-
-def _declared_bytes(path: Path) -> int:
-    """Bytes of voxel data the header declares (read without decoding any voxels)."""
+def _reader(path: Path, kind: str) -> sitk.ImageFileReader:
+    """A SimpleITK reader of ``path`` with the ImageIO of ``kind`` (no other reader is ever tried)."""
     reader = sitk.ImageFileReader()
+    reader.SetImageIO(IMAGE_IO[kind])
     reader.SetFileName(str(path))
+    return reader
+
+
+def _declared_bytes(path: Path, kind: str) -> int:
+    """Bytes of voxel data the header declares (read without decoding any voxels)."""
+    reader = _reader(path, kind)
     reader.ReadImageInformation()
     n = float(np.prod(reader.GetSize(), dtype=np.float64)) * reader.GetNumberOfComponents()
     itemsize = sitk.GetArrayViewFromImage(sitk.Image([1, 1], reader.GetPixelID())).dtype.itemsize
     return int(n * itemsize)
+
+
+def _nifti_pair(path: Path) -> bool:
+    """A NIfTI-1/2 header whose magic says the voxels are in a separate ``.img`` file."""
+    with open(path, "rb") as f:
+        head = f.read(348)
+    return head[344:348] == b"ni1\x00" or head[4:8] == b"ni2\x00"
 
 
 def _nifti_has_nonfinite(path: Path) -> bool:
