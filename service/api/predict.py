@@ -39,7 +39,8 @@ async def predict(
     masks = check_form(stacks, masks, variance_threshold, settings.max_files)
     threshold = variance_threshold if variance_threshold is not None else estimator.info.variance_threshold
     with upload_directory(settings.tmp_dir) as tmp:
-        uploads = await to_thread.run_sync(save_and_read, stacks, masks, tmp, settings.max_decoded_bytes)
+        uploads = await to_thread.run_sync(save_and_read, stacks, masks, tmp, settings.max_decoded_bytes,
+                                              settings.max_request_decoded_bytes)
     t_read = time.perf_counter()
     prepared = await to_thread.run_sync(prepare_stacks, uploads, estimator.info, bias_correction,
                                         settings.preprocess_workers)

@@ -12,7 +12,7 @@ from fastapi.responses import FileResponse
 
 from service.api.deps import ApiKey, RegistryDep, SettingsDep, queue_full
 from service.api.schemas import UPLOAD_ERRORS, problem_responses
-from service.api.uploads import check_form, display_name, save_and_read
+from service.api.uploads import check_form, save_and_read
 from service.core.errors import Conflict, InvalidParameter, NotFound
 from service.jobs.store import Job, JobStore
 from service.jobs.worker import poses_from_predict_body
@@ -77,7 +77,8 @@ async def submit(
     inputs = store.directory(job.id) / "inputs"
     inputs.mkdir()
     try:
-        uploads = await to_thread.run_sync(save_and_read, stacks, masks, inputs, settings.max_decoded_bytes)
+        uploads = await to_thread.run_sync(save_and_read, stacks, masks, inputs, settings.max_decoded_bytes,
+                                               settings.max_request_decoded_bytes)
         if poses_text:
             try:
                 body = json.loads(poses_text)
@@ -96,8 +97,8 @@ async def submit(
     except Exception:
         store.delete(job.id)          # rejected input leaves no job behind
         raise
-    names = [display_name(u, "stacks", j) for j, u in enumerate(stacks)]
-    (inputs / "names.json").write_text(json.dumps({"stacks": names}))
+    names = {"stacks": [u.filename for u in uploads], "masks": [u.mask_filename for u in uploads if u.mask_filename]}
+    (inputs / "names.json").write_text(json.dumps(names))
     (inputs / "params.json").write_text(json.dumps(store.get(job.id).params))
     request.app.state.job_runner.submit(job.id)
     response.headers["Location"] = f"/v1/reconstructions/{job.id}"

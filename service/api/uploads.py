@@ -14,6 +14,7 @@ from fastapi import UploadFile
 
 from service.core.errors import InvalidParameter
 from service.inference.pipeline import StackUpload
+from service.io.limits import DecodeBudget
 from service.io.readers import MAX_DECODED_BYTES, read_upload
 
 READ_WORKERS = 2
@@ -44,8 +45,13 @@ def check_form(stacks: list[UploadFile], masks: list[UploadFile] | None, varianc
 
 
 def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: Path,
-                  max_decoded_bytes: int = MAX_DECODED_BYTES) -> list[StackUpload]:
-    """Write each upload to ``directory`` and read it (blocking: run in a worker thread)."""
+                  max_decoded_bytes: int = MAX_DECODED_BYTES, max_request_bytes: int | None = None) -> list[StackUpload]:
+    """Write each upload to ``directory`` and read it (blocking: run in a worker thread).
+
+    Each file may decode to ``max_decoded_bytes``, all of them together to ``max_request_bytes``
+    (:class:`~service.io.limits.DecodeBudget`): many bombs in one request stop at the request's limit.
+    """
+    budget = DecodeBudget(max_decoded_bytes, max_request_bytes)
     if masks and len(masks) != len(stacks):
         raise InvalidParameter(f"masks: {len(masks)} masks for {len(stacks)} stacks; give none or one per stack")
     jobs = [(up, directory / f"stack{i}", display_name(up, "stacks", i)) for i, up in enumerate(stacks)]
@@ -53,14 +59,14 @@ def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: 
     # Decompression and parsing release the GIL: read two files at a time. Errors surface in
     # upload order, as a sequential loop would raise them.
     with ThreadPoolExecutor(max_workers=READ_WORKERS) as pool:
-        volumes = list(pool.map(lambda job: _read(*job, max_decoded_bytes), jobs))
+        volumes = list(pool.map(lambda job: _read(*job, budget), jobs))
     n = len(stacks)
     return [StackUpload(jobs[i][2], volumes[i], volumes[n + i] if masks else None, jobs[n + i][2] if masks else None)
             for i in range(n)]
 
 
-def _read(upload: UploadFile, path: Path, name: str, max_decoded_bytes: int):  # noqa: ANN202
+def _read(upload: UploadFile, path: Path, name: str, budget: DecodeBudget):  # noqa: ANN202
     upload.file.seek(0)
     with open(path, "wb") as f:
         shutil.copyfileobj(upload.file, f, 1 << 20)
-    return read_upload(path, name, max_decoded_bytes)
+    return read_upload(path, name, budget=budget.file(name))

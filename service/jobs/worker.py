@@ -115,10 +115,17 @@ def failure_reason(exc: Exception) -> str:
     return f"internal error ({type(exc).__name__}); the server log has the job id"
 
 
+def _name(names: dict, field: str, index: int) -> str:
+    """The client's name of an input file (for messages), from ``names.json``."""
+    listed = names.get(field) or []
+    return listed[index] if index < len(listed) and isinstance(listed[index], str) else f"{field}[{index}]"
+
+
 def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progress) -> None:  # noqa: ANN001
     from service.inference.estimator import OnnxPoseEstimator
     from service.inference.model_file import load_model
     from service.inference.pipeline import StackUpload
+    from service.io.limits import DecodeBudget
     from service.io.readers import read_upload
     from service.reconstruction.export import write_outputs
     from service.reconstruction.pipeline import reconstruct
@@ -127,10 +134,16 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     params = json.loads((folder / "inputs" / "params.json").read_text())
     progress("reading", 0.02)
     uploads = []
-    for s, m in _stack_files(folder / "inputs"):
-        vol = read_upload(s, s.name)
-        mask = read_upload(m, m.name) if m is not None else None
-        uploads.append(StackUpload(s.name, vol, mask, m.name if m else None))
+    names_path = folder / "inputs" / "names.json"
+    names = json.loads(names_path.read_text()) if names_path.exists() else {}
+    # The files passed the limits when they were submitted: re-read without a budget of their own.
+    budget = DecodeBudget(2**62)
+    for i, (s, m) in enumerate(_stack_files(folder / "inputs")):
+        sname = _name(names, "stacks", i)
+        vol = read_upload(s, sname, budget=budget.file(sname))
+        mname = _name(names, "masks", i) if m is not None else None
+        mask = read_upload(m, mname, budget=budget.file(mname)) if m is not None else None
+        uploads.append(StackUpload(sname, vol, mask, mname))
     poses_path = folder / "inputs" / "poses.json"
     if poses_path.exists():
         from service.preprocess.localise import localise_brain
