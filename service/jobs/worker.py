@@ -170,22 +170,60 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         raise Cancelled
 
 
+def _watch_parent(parent: int) -> None:
+    """In a worker process: exit as soon as the server that started it is gone (even after ``kill -9``),
+    so no worker keeps running a job against the data dir after the server has stopped."""
+    import os
+    import threading
+    import time
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
 class JobRunner:
-    """Submits queued jobs to a pool of ``workers`` processes; recovers the queue at start."""
+    """Submits queued jobs to a pool of ``workers`` processes; recovers the queue at start, and on
+    shutdown stops the workers and hands their running jobs back to the queue."""
 
     def __init__(self, store: JobStore, models_dir: Path, workers: int = 1) -> None:
+        import os
+
         self.store, self.models_dir = store, models_dir
-        self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+        self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                                        initializer=_watch_parent, initargs=(os.getpid(),))
         self.futures: dict[str, Future] = {}
 
     def start(self) -> list[str]:
         queued = self.store.recover()
         for job_id in queued:
+            job = self.store.get(job_id)
+            if job is not None and job.attempts:
+                log.info(f"re-queued job {job_id}, attempt {job.attempts + 1}",
+                         extra={"job_id": job_id, "attempt": job.attempts + 1})
             self.submit(job_id)
         return queued
 
     def submit(self, job_id: str) -> None:
         self.futures[job_id] = self.pool.submit(run_job, str(self.store.data_dir), str(self.models_dir), job_id)
 
-    def shutdown(self) -> None:
+    def shutdown(self, timeout_s: float = 10.0) -> list[str]:
+        """Stop every worker process (SIGTERM, then SIGKILL after ``timeout_s``) and put the jobs they
+        were running back in the queue, to be re-run after a restart (as after ``kill -9``)."""
+        processes = list((getattr(self.pool, "_processes", None) or {}).values())
         self.pool.shutdown(wait=False, cancel_futures=True)
+        for proc in processes:
+            if proc.is_alive():
+                proc.terminate()
+        for proc in processes:
+            proc.join(timeout_s)
+            if proc.is_alive():
+                proc.kill()
+                proc.join(timeout_s)
+        handed_back = [j for j in self.store.recover() if j in self.futures]
+        for job_id in handed_back:
+            log.info(f"handed job {job_id} back to the queue", extra={"job_id": job_id})
+        return handed_back
