@@ -1,7 +1,8 @@
 """Job execution in worker processes (bounded concurrency), outside the request handlers.
 
-A job folder holds ``inputs/`` (the uploaded stacks and masks as sent, ``params.json``, optional
-``poses.json``) and, once done, ``outputs/`` (``volume.nii.gz``, ``preview.png``, ``report.json``,
+A job folder holds ``inputs/`` (the uploaded stacks and masks as sent, ``params.json``, ``names.json``,
+optional ``poses.json``) while the job is queued or running -- they are deleted as soon as it ends,
+whatever the outcome -- and, once done, ``outputs/`` (``volume.nii.gz``, ``preview.png``, ``report.json``,
 ``transforms/``). :func:`run_job` is what a worker process executes; it claims the job atomically,
 reports stage and progress to the store, checks for cancellation between stages, and records any
 failure with its reason.
@@ -95,6 +96,9 @@ def run_job(data_dir: str, models_dir: str, job_id: str) -> None:
         if not store.is_cancelled(job_id):
             store.update(job_id, status="failed", stage="failed", error=failure_reason(exc))
         log.warning("job failed", extra={"job_id": job_id, "error_type": type(exc).__name__})
+    # Ended, whatever the outcome: the uploads (raw headers, the clients' file names) go now, not at
+    # the retention limit. A worker stopped mid-job never gets here, so a re-run still has them.
+    store.discard_inputs(job_id)
 
 
 def failure_reason(exc: Exception) -> str:
