@@ -31,6 +31,8 @@ class Settings(BaseSettings):
     default_model: str = "default"
     log_level: str = "info"
     api_keys: str = Field("", description="comma-separated keys; empty = no authentication")
+    metrics_public: bool = Field(False, description="serve /metrics without an API key even when keys are "
+                                 "configured (by default it needs one, like /v1/)")
     max_upload_mb: float = Field(512.0, gt=0, description="limit of one request body (413 above)")
     max_files: int = Field(32, ge=1, description="most stacks (and masks) per request")
     max_concurrent: int = Field(2, ge=1, description="requests processed at once; more get 503")
