@@ -6,18 +6,20 @@ import time
 from typing import Annotated, Optional
 
 from anyio import to_thread
-from fastapi import APIRouter, File, Form, Request, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 
 from service.api.deps import ApiKey, MetricsDep, RegistryDep, SettingsDep, SlotDep
 from service.api.schemas import UPLOAD_ERRORS, PredictResponse
-from service.api.uploads import check_form, save_and_read, upload_directory
+from service.api.uploads import check_form, known_fields, save_and_read, upload_directory
 from service.inference.pipeline import predict as run_prediction
 from service.inference.pipeline import prepare_stacks
 
 router = APIRouter(prefix="/v1", tags=["prediction"], dependencies=[ApiKey])
+FIELDS = ("stacks", "masks", "mc_samples", "variance_threshold", "bias_correction", "model")
 
 
-@router.post("/predict", response_model=PredictResponse, responses=UPLOAD_ERRORS, summary="Atlas pose of every slice")
+@router.post("/predict", response_model=PredictResponse, responses=UPLOAD_ERRORS, summary="Atlas pose of every slice",
+             dependencies=[Depends(known_fields(*FIELDS))])
 async def predict(
     request: Request,
     registry: RegistryDep,

@@ -7,18 +7,19 @@ from datetime import datetime, timezone
 from typing import Annotated, Optional
 
 from anyio import to_thread
-from fastapi import APIRouter, File, Form, Request, Response, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Request, Response, UploadFile
 from fastapi.responses import FileResponse
 
 from service.api.deps import ApiKey, RegistryDep, SettingsDep, queue_full
 from service.api.schemas import UPLOAD_ERRORS, problem_responses
-from service.api.uploads import check_form, save_and_read
+from service.api.uploads import check_form, known_fields, save_and_read
 from service.core.errors import Conflict, InvalidParameter, NotFound
 from service.jobs.store import Job, JobStore
 from service.jobs.worker import poses_from_predict_body
 from service.preprocess.stack import slice_axis_of
 
 router = APIRouter(prefix="/v1/reconstructions", tags=["reconstruction"], dependencies=[ApiKey])
+FIELDS = ("stacks", "masks", "poses", "resolution_mm", "svr_iterations", "mc_samples", "variance_threshold", "model")
 
 
 def _store(request: Request) -> JobStore:
@@ -45,7 +46,8 @@ def _job(request: Request, job_id: str) -> Job:
     return job
 
 
-@router.post("", status_code=202, responses=UPLOAD_ERRORS, summary="Start a reconstruction job")
+@router.post("", status_code=202, responses=UPLOAD_ERRORS, summary="Start a reconstruction job",
+             dependencies=[Depends(known_fields(*FIELDS))])
 async def submit(
     request: Request,
     response: Response,

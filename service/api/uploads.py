@@ -5,14 +5,15 @@ from __future__ import annotations
 import math
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Awaitable, Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 
-from fastapi import UploadFile
+from fastapi import Request, UploadFile
 
 from service.core.errors import InvalidParameter
+from service.core.names import clean_name
 from service.inference.pipeline import StackUpload
 from service.io.limits import DecodeBudget
 from service.io.readers import MAX_DECODED_BYTES, read_upload
@@ -28,9 +29,23 @@ def upload_directory(base: Path | None) -> Iterator[Path]:
 
 
 def display_name(upload: UploadFile, field: str, index: int) -> str:
-    """The client's file name (for messages to the client only), or ``field[index]``."""
-    name = Path(upload.filename or "").name
+    """The client's file name (for messages to the client only, without control characters), or
+    ``field[index]``."""
+    name = clean_name(Path((upload.filename or "").replace("\\", "/")).name)
     return name or f"{field}[{index}]"
+
+
+def known_fields(*names: str) -> Callable[[Request], Awaitable[None]]:
+    """A dependency refusing (400, by name) any form field that is not one of ``names``: a misspelt or
+    misplaced option must not be ignored silently."""
+
+    async def check(request: Request) -> None:
+        form = await request.form()       # parsed once: FastAPI reuses it for the route's fields
+        unknown = [clean_name(k) or repr(k) for k in dict.fromkeys(form.keys()) if k not in names]
+        if unknown:
+            raise InvalidParameter(f"{unknown[0]}: unknown field; this route takes {', '.join(names)}")
+
+    return check
 
 
 def check_form(stacks: list[UploadFile], masks: list[UploadFile] | None, variance_threshold: float | None,

@@ -85,6 +85,9 @@ def check_pixels(ds: Dataset, filename: str, budget: FileBudget) -> None:
     budget.voxels(rows * cols * frames * spp)
     ts = ds.file_meta.get("TransferSyntaxUID") if hasattr(ds, "file_meta") else None
     if ts is None or not uid.UID(ts).is_encapsulated:
+        bits = int(getattr(ds, "BitsAllocated", 16) or 16)
+        if len(ds.PixelData) < rows * cols * frames * spp * bits // 8:
+            raise UnsupportedFile(f"{filename}: DICOM pixel data shorter than its header declares (truncated file)")
         return
     if ts == uid.RLELossless:
         bits = int(getattr(ds, "BitsAllocated", 8) or 8)
