@@ -12,7 +12,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
 
-from service.api import health, metrics, models, predict, problems, reconstructions
+from service.api import health, metrics, models, openapi, predict, problems, reconstructions
 from service.api.deps import MetricsAccess
 from service.api.metrics import Metrics
 from service.api.middleware import RequestContext
@@ -59,6 +59,7 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
     app.state.slots = asyncio.Semaphore(settings.max_concurrent)
     app.state.registry = None
     problems.install(app)
+    openapi.document_uploads(app, settings.max_files)
     for module in (health, models, predict, reconstructions):
         app.include_router(module.router)
     app.include_router(metrics.router, dependencies=[MetricsAccess], responses=problem_responses(401))
