@@ -2,6 +2,8 @@
 
 * ``stacks`` carry ``minItems: 1`` and ``maxItems: SVRNET_MAX_FILES``, ``masks`` ``maxItems`` too: a
   generated client never sends a list the schema calls valid and the server refuses;
+* optional form fields are optional, not nullable (a multipart form cannot send a null: FastAPI's
+  ``anyOf [..., null]`` made generated clients send the text ``null``);
 * ``poses`` (read by ``POST /v1/reconstructions`` from the raw form: a JSON text or a JSON file) is
   documented with the other fields;
 * :func:`allowed_methods` lists every documented method of a path, for ``Allow`` (on ``405`` and
@@ -37,12 +39,16 @@ def document_uploads(app: FastAPI, max_files: int) -> None:
                 if target is None:
                     continue
                 props = target.setdefault("properties", {})
+                target["additionalProperties"] = False         # unknown fields are refused (400)
+                for name, prop in props.items():     # a form field is given or left out: never null
+                    variants = [v for v in prop.get("anyOf", []) if v.get("type") != "null"]
+                    if "anyOf" in prop and len(variants) == 1:
+                        props[name] = {**{k: v for k, v in prop.items() if k != "anyOf"}, **variants[0]}
                 for name, low in (("stacks", 1), ("masks", 0)):
-                    for variant in props.get(name, {}).get("anyOf", [props.get(name, {})]):
-                        if variant.get("type") == "array":
-                            variant["maxItems"] = max_files
-                            if low:
-                                variant["minItems"] = low
+                    if props.get(name, {}).get("type") == "array":
+                        props[name]["maxItems"] = max_files
+                        if low:
+                            props[name]["minItems"] = low
                 props.update(EXTRA_FIELDS.get(path, {}))
         app.openapi_schema = schema
         return schema

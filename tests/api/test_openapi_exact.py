@@ -21,9 +21,10 @@ def test_stacks_and_masks_carry_their_limits(oracle, max_files: int) -> None:  #
     for path in ("/v1/predict", "/v1/reconstructions"):
         props = _body_schema(spec, path)["properties"]
         assert (props["stacks"]["minItems"], props["stacks"]["maxItems"]) == (1, max_files), path
-        masks = props["masks"]["anyOf"][0] if "anyOf" in props["masks"] else props["masks"]
-        assert masks["maxItems"] == max_files, path
+        assert props["masks"]["maxItems"] == max_files, path
+        assert not [n for n, p in props.items() if {"type": "null"} in p.get("anyOf", [])], props
     assert "poses" in _body_schema(spec, "/v1/reconstructions")["properties"]
+    assert _body_schema(spec, "/v1/predict")["additionalProperties"] is False
 
 
 @pytest.mark.parametrize(("path", "declared"), [("/v1/reconstructions/abc", {"GET", "DELETE"}),
