@@ -128,3 +128,34 @@ def zipped(members: dict[str, bytes], method: int = zipfile.ZIP_DEFLATED) -> byt
         for name, data in members.items():
             z.writestr(name, data)
     return buf.getvalue()
+
+
+def nifti(array: np.ndarray, pixdim: tuple[float, ...] = (1.0, 1.0, 3.0), magic: bytes = b"n+1\x00",
+          dims: tuple[int, ...] | None = None) -> bytes:
+    """An uncompressed NIfTI-1 file of float32 ``array`` (``dims`` overrides the declared dim field)."""
+    a = np.asarray(array, np.float32)
+    head = bytearray(352)
+    head[0:4] = (348).to_bytes(4, "little")
+    d = dims if dims is not None else (a.ndim, *a.shape)
+    head[40:56] = np.array(list(d) + [1] * (8 - len(d)), "<i2").tobytes()
+    head[70:74] = np.array([16, 32], "<i2").tobytes()
+    head[76:108] = np.array([1, *pixdim, *[1.0] * (7 - len(pixdim))], "<f4").tobytes()
+    head[108:112] = np.float32(352).tobytes()
+    head[252:256] = np.array([1, 0], "<i2").tobytes()                # qform: scanner (identity), no sform
+    head[344:348] = magic
+    return bytes(head) + a.tobytes(order="F")
+
+
+def gz(data: bytes) -> bytes:
+    return gzip.compress(data, mtime=0)
+
+
+def encrypted_zip(members: dict[str, bytes]) -> bytes:
+    """A ZIP whose members claim to be encrypted (general-purpose flag bit 0)."""
+    data = bytearray(zipped(members, zipfile.ZIP_STORED))
+    for sig, flag_at in ((b"PK\x03\x04", 6), (b"PK\x01\x02", 8)):
+        at = data.find(sig)
+        while at >= 0:
+            data[at + flag_at] |= 1
+            at = data.find(sig, at + 4)
+    return bytes(data)

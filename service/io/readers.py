@@ -58,7 +58,7 @@ def sniff(path: Path) -> str:
         return "mha"
     if head[128:132] == b"DICM":
         return "dicom"
-    if head[:4] == b"PK\x03\x04":
+    if head[:4] in (b"PK\x03\x04", b"PK\x05\x06"):       # a ZIP, or an empty one
         return "zip"
     return "unknown"
 
@@ -88,6 +88,8 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
                 if kind == "nifti" and _nifti_pair(path):
                     raise UnsupportedFile(f"{filename}: the header of a NIfTI .hdr/.img pair (its voxels are in "
                                           "another file); upload a single .nii or .nii.gz")
+                if kind == "nifti" and _nifti1_truncated(path):
+                    raise UnsupportedFile(f"{filename}: truncated NIfTI file (less voxel data than its header declares)")
                 if kind == "nifti" and _nifti_has_nonfinite(path):
                     raise UnusableImage(f"{filename}: contains NaN or infinite values")
                 # SimpleITK reads a copy named by the sniffed content, with the reader chosen here
@@ -163,6 +165,22 @@ def _nifti_pair(path: Path) -> bool:
     with open(path, "rb") as f:
         head = f.read(348)
     return head[344:348] == b"ni1\x00" or head[4:8] == b"ni2\x00"
+
+
+def _nifti1_truncated(path: Path) -> bool:
+    """An uncompressed NIfTI-1 file shorter than its header's offset plus voxel data (ITK would read
+    it without a word, filling the missing voxels)."""
+    with open(path, "rb") as f:
+        head = f.read(352)
+    values = _nifti1_values(head)
+    if not values:
+        return False
+    endian = "<" if int.from_bytes(head[:4], "little") == 348 else ">"
+    bitpix = int(np.frombuffer(head, endian + "i2", 1, 72)[0])
+    offset = float(np.frombuffer(head, endian + "f4", 1, 108)[0])
+    if not np.isfinite(offset) or bitpix <= 0:
+        return False  # an impossible header: the reader reports it
+    return path.stat().st_size < max(int(offset), 348) + values * bitpix // 8
 
 
 def _nifti_has_nonfinite(path: Path) -> bool:
