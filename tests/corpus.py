@@ -116,9 +116,10 @@ def gzip_bomb(megabytes: int) -> bytes:
     buf = io.BytesIO()
     with gzip.GzipFile(fileobj=buf, mode="wb", compresslevel=9, mtime=0) as g:
         g.write(bytes(head))
-        block = b"\0" * (1 << 20)
-        for _ in range(side ** 3 * 4 // len(block)):
-            g.write(block)
+        block, left = b"\0" * (1 << 20), side ** 3 * 4
+        while left > 0:
+            g.write(block[:left])
+            left -= len(block)
     return buf.getvalue()
 
 
