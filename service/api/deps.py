@@ -85,7 +85,7 @@ def early_rejection(state: State, method: str, path: str, headers: dict[str, str
     if method == "POST" and path == "/v1/predict":
         return saturated(state)
     if method == "POST" and path == "/v1/reconstructions":
-        return queue_full(state)
+        return queue_full(state) or saturated(state)
     return None
 
 

@@ -10,7 +10,7 @@ from anyio import to_thread
 from fastapi import APIRouter, Depends, File, Form, Request, Response, UploadFile
 from fastapi.responses import FileResponse
 
-from service.api.deps import ApiKey, RegistryDep, SettingsDep, queue_full
+from service.api.deps import ApiKey, RegistryDep, SettingsDep, SlotDep, queue_full
 from service.api.schemas import UPLOAD_ERRORS, problem_responses
 from service.api.uploads import check_form, known_fields, save_and_read
 from service.core.errors import Conflict, InvalidParameter, NotFound
@@ -53,6 +53,7 @@ async def submit(
     response: Response,
     registry: RegistryDep,
     settings: SettingsDep,
+    _slot: SlotDep,
     stacks: Annotated[list[UploadFile], File(description="the stacks, as for /v1/predict")],
     masks: Annotated[Optional[list[UploadFile]], File(description="0 or one mask per stack")] = None,
     resolution_mm: Annotated[float, Form(gt=0.2, le=5.0)] = 0.8,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import shutil
 import tempfile
+import threading
 from collections.abc import Awaitable, Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
@@ -19,6 +20,9 @@ from service.io.limits import DecodeBudget
 from service.io.readers import MAX_DECODED_BYTES, read_upload
 
 READ_WORKERS = 2
+# Files decoded at once in the whole process, whatever the number of requests: with the per-file
+# limit this bounds the memory that decoding can take (a request waits for its turn here).
+DECODING = threading.BoundedSemaphore(READ_WORKERS)
 
 
 @contextmanager
@@ -84,4 +88,5 @@ def _read(upload: UploadFile, path: Path, name: str, budget: DecodeBudget):  # n
     upload.file.seek(0)
     with open(path, "wb") as f:
         shutil.copyfileobj(upload.file, f, 1 << 20)
-    return read_upload(path, name, budget=budget.file(name))
+    with DECODING:
+        return read_upload(path, name, budget=budget.file(name))

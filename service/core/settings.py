@@ -43,7 +43,7 @@ class Settings(BaseSettings):
     retry_after_s: int = Field(2, ge=1)
     job_workers: int = Field(1, ge=1, description="reconstruction jobs run at once (worker processes)")
     max_queued_jobs: int = Field(16, ge=1, description="reconstruction jobs waiting at most; more get 429")
-    max_decoded_mb: float = Field(256.0, gt=0, description="limit of what one file decodes to: each inflated "
+    max_decoded_mb: float = Field(128.0, gt=0, description="limit of what one file decodes to: each inflated "
                                   "stream, and its voxels counted as float32 (413 above)")
     max_request_decoded_mb: float = Field(1024.0, gt=0, description="limit of what all files of one request "
                                           "decode to together (413 above)")

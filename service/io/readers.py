@@ -34,7 +34,7 @@ from service.io.limits import DecodeBudget, FileBudget
 from service.io.volume import Volume, from_sitk
 
 SUFFIX_BY_KIND = {"nifti": ".nii", "nifti-gz": ".nii.gz", "nrrd": ".nrrd", "mha": ".mha"}
-MAX_DECODED_BYTES = 256 * 2**20
+MAX_DECODED_BYTES = 128 * 2**20
 IMAGE_IO = {"nifti": "NiftiImageIO", "nrrd": "NrrdImageIO", "mha": "MetaImageIO"}
 
 
