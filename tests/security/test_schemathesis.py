@@ -30,7 +30,7 @@ def test_schemathesis_finds_nothing(tmp_path: Path) -> None:
              "--checks", "all", "--max-examples", EXAMPLES, "--generation-deterministic", "--request-timeout", "60",
              "--suppress-health-check", "all"],
             cwd=ROOT, env={**os.environ, "SCHEMATHESIS_HOOKS": "tools.fuzz.hooks"}, capture_output=True,
-            text=True, timeout=300)
+            encoding="utf-8", errors="replace", timeout=300)
         assert server.proc.poll() is None, "the server died during the run"
         server.stop(signal.SIGTERM)
     finally:
