@@ -96,5 +96,8 @@ def install(app: FastAPI) -> None:
                 return Response(status_code=204, headers=allow)
             return problem(405, "Method not allowed", f"{request.method} is not allowed here; allowed: "
                            f"{allow['Allow']}", headers=allow, request=request)
+        if exc.status_code == 400:      # the form parser (a part header over 8 KB, a broken boundary ...)
+            return await service_error(request, MalformedRequest(f"the request body could not be parsed "
+                                                                 f"({str(exc.detail).rstrip('.')})"))
         return problem(exc.status_code, str(exc.detail) if exc.status_code < 500 else "Server error",
                        str(exc.detail), headers=getattr(exc, "headers", None), request=request)

@@ -126,6 +126,13 @@ def test_each_malformed_upload_gets_its_exact_answer(client: TestClient, route: 
     assert client.get("/healthz").status_code == 200 and client.get("/readyz").status_code == 200
 
 
+@pytest.mark.parametrize("route", ROUTES)
+def test_a_part_header_too_long_to_parse_is_a_malformed_request(client: TestClient, route: str) -> None:
+    r = client.post(route, files=[("stacks", ("a" * 9000 + ".nii", b"x" * 500))])
+    assert r.status_code == 400 and r.json()["type"] == "/problems/malformed-request"
+    assert "could not be parsed" in r.json()["detail"] and client.get("/healthz").status_code == 200
+
+
 def test_a_bad_file_among_good_ones_is_named(client: TestClient) -> None:
     good = corpus.gz(corpus.nifti(STACK))
     r = client.post("/v1/predict", files=[("stacks", ("good.nii.gz", good)), ("stacks", ("bad.nii.gz", b"x")),
