@@ -110,26 +110,27 @@ def single_uploads(server: Server, watch: RssWatch, cases: dict[str, list]) -> l
 
 
 def concurrent(server: Server, watch: RssWatch, cases: dict[str, list], clients: int, seconds: float) -> dict:
-    mix = list(cases.values())
+    mix = list(cases.items())
     stop = time.time() + seconds
-    results: list[tuple[int, float, bool]] = []
+    results: list[tuple[int, float, bool, str]] = []
     lock = threading.Lock()
 
     def client(i: int) -> None:
         k = i
         while time.time() < stop:
             route = "/v1/reconstructions" if k % 5 == 4 else "/v1/predict"
-            files = mix[k % len(mix)] if route == "/v1/predict" else mix[1 + k % (len(mix) - 1)]
-            out = post(server.url, files, route)
+            j = k % len(mix) if route == "/v1/predict" else 1 + k % (len(mix) - 1)
+            status, seconds, retry = post(server.url, mix[j][1], route)
             with lock:
-                results.append(out)
+                results.append((status, seconds, retry, "valid" if mix[j][0] == "valid stack" else "hostile"))
             k += clients
 
     watch.reset()
     with ThreadPoolExecutor(clients) as pool:
         list(pool.map(client, range(clients)))
     lat = np.array([r[1] for r in results])
-    return {"clients": clients, "requests": len(results), "status": dict(sorted(Counter(r[0] for r in results).items())),
+    by_kind = {kind: dict(sorted(Counter(r[0] for r in results if r[3] == kind).items())) for kind in ("valid", "hostile")}
+    return {"clients": clients, "requests": len(results), "status": by_kind,
             "retry_after_on_429_503": all(r[2] for r in results if r[0] in (429, 503)),
             "latency_s": {f"p{p}": round(float(np.percentile(lat, p)), 3) for p in (50, 90, 99)} | {"max": round(float(lat.max()), 3)},
             "peak_rss_mb": round(watch.peak / 2**20)}
@@ -165,7 +166,8 @@ def main() -> None:
     for row in singles:
         print(f"{row['upload']:32} {row['bytes']:>10} {row['status']:>6} {row['seconds']:>8} {row['peak_rss_mb']:>12}")
     print(f"\n{load['clients']} concurrent clients, {args.seconds:.0f} s: {load['requests']} requests")
-    print(f"  status counts: {load['status']}  (Retry-After on every 429/503: {load['retry_after_on_429_503']})")
+    print(f"  status counts, valid stacks: {load['status']['valid']}; hostile uploads: {load['status']['hostile']}")
+    print(f"  Retry-After on every 429/503: {load['retry_after_on_429_503']}")
     print(f"  latency: {load['latency_s']}")
     print(f"  peak RSS (server + workers): {load['peak_rss_mb']} MB")
     print(f"healthy after: {alive}; processes left after SIGTERM: {len(left)}")
