@@ -15,11 +15,10 @@ from service.inference.pipeline import predict as run_prediction
 from service.inference.pipeline import prepare_stacks
 
 router = APIRouter(prefix="/v1", tags=["prediction"], dependencies=[ApiKey])
-FIELDS = ("stacks", "masks", "mc_samples", "variance_threshold", "bias_correction", "model")
 
 
 @router.post("/predict", response_model=PredictResponse, responses=UPLOAD_ERRORS, summary="Atlas pose of every slice",
-             dependencies=[Depends(known_fields(*FIELDS))])
+             dependencies=[Depends(known_fields())])
 async def predict(
     request: Request,
     registry: RegistryDep,

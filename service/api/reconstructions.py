@@ -19,7 +19,6 @@ from service.jobs.worker import poses_from_predict_body
 from service.preprocess.stack import slice_axis_of
 
 router = APIRouter(prefix="/v1/reconstructions", tags=["reconstruction"], dependencies=[ApiKey])
-FIELDS = ("stacks", "masks", "poses", "resolution_mm", "svr_iterations", "mc_samples", "variance_threshold", "model")
 
 
 def _store(request: Request) -> JobStore:
@@ -47,7 +46,7 @@ def _job(request: Request, job_id: str) -> Job:
 
 
 @router.post("", status_code=202, responses=UPLOAD_ERRORS, summary="Start a reconstruction job",
-             dependencies=[Depends(known_fields(*FIELDS))])
+             dependencies=[Depends(known_fields("poses"))])
 async def submit(
     request: Request,
     response: Response,

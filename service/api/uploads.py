@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
+import functools
 import math
 import shutil
 import tempfile
 import threading
+import typing
 from collections.abc import Awaitable, Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 
-from fastapi import Request, UploadFile
+from fastapi import Request, UploadFile, params
 
 from service.core.errors import InvalidParameter
 from service.core.names import clean_name
@@ -39,11 +41,20 @@ def display_name(upload: UploadFile, field: str, index: int) -> str:
     return name or f"{field}[{index}]"
 
 
-def known_fields(*names: str) -> Callable[[Request], Awaitable[None]]:
-    """A dependency refusing (400, by name) any form field that is not one of ``names``: a misspelt or
-    misplaced option must not be ignored silently."""
+@functools.cache
+def form_fields(endpoint: Callable) -> tuple[str, ...]:
+    """The form and file fields a route function declares (``Annotated[..., Form()]`` / ``File()``)."""
+    hints = typing.get_type_hints(endpoint, include_extras=True)
+    return tuple(meta.alias or name for name, hint in hints.items()
+                 for meta in getattr(hint, "__metadata__", ()) if isinstance(meta, params.Form))
+
+
+def known_fields(*extra: str) -> Callable[[Request], Awaitable[None]]:
+    """A dependency refusing (400, by name) any form field that the route neither declares nor lists in
+    ``extra`` (fields it reads from the raw form): a misspelt or misplaced option is never ignored."""
 
     async def check(request: Request) -> None:
+        names = form_fields(request.scope["endpoint"]) + extra
         form = await request.form()       # parsed once: FastAPI reuses it for the route's fields
         unknown = [clean_name(k) or repr(k) for k in dict.fromkeys(form.keys()) if k not in names]
         if unknown:

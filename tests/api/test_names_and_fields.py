@@ -51,3 +51,15 @@ def test_an_unknown_file_field_is_400_too(oracle_client: TestClient) -> None:
     r = oracle_client.post("/v1/predict", files=[("stacks", ("s.nii.gz", nifti_bytes(stack()))),
                                                  ("stack", ("t.nii.gz", b"x"))])
     assert_problem(r, 400, "stack:", "unknown field")
+
+
+def test_the_fields_a_route_takes_come_from_its_signature() -> None:
+    """A field added to a route is accepted at once: the allowed names are not a second list to keep."""
+    from service.api.predict import predict
+    from service.api.reconstructions import submit
+    from service.api.uploads import form_fields
+
+    assert set(form_fields(predict)) >= {"stacks", "masks", "mc_samples", "variance_threshold", "bias_correction",
+                                         "model"}
+    assert set(form_fields(submit)) >= {"stacks", "masks", "resolution_mm", "svr_iterations", "mc_samples",
+                                        "variance_threshold", "model"}
