@@ -12,9 +12,11 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
 
-from service.api import health, metrics, models, predict, problems, reconstructions
+from service.api import health, metrics, models, openapi, predict, problems, reconstructions
+from service.api.deps import MetricsAccess
 from service.api.metrics import Metrics
 from service.api.middleware import RequestContext
+from service.api.schemas import problem_responses
 from service.core import logging as service_logging
 from service.core.settings import Settings
 from service.inference.registry import ModelRegistry
@@ -57,8 +59,10 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
     app.state.slots = asyncio.Semaphore(settings.max_concurrent)
     app.state.registry = None
     problems.install(app)
-    for module in (health, metrics, models, predict, reconstructions):
+    openapi.document_uploads(app, settings.max_files)
+    for module in (health, models, predict, reconstructions):
         app.include_router(module.router)
+    app.include_router(metrics.router, dependencies=[MetricsAccess], responses=problem_responses(401))
     app.add_middleware(RequestContext, metrics=app.state.metrics, max_body_bytes=int(settings.max_upload_mb * 2**20))
     return app
 

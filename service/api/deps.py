@@ -56,6 +56,22 @@ def require_api_key(
         raise Unauthorized(UNAUTHORIZED)
 
 
+def require_metrics_access(
+    settings: SettingsDep,
+    authorization: Annotated[str | None, Header(include_in_schema=False)] = None,
+    x_api_key: Annotated[str | None, Header(include_in_schema=False)] = None,
+) -> None:
+    """``/metrics`` (routes, status counts, slice reasons per model) needs a key like ``/v1/`` when keys
+    are configured, unless ``SVRNET_METRICS_PUBLIC=true``."""
+    if not settings.metrics_public:
+        require_api_key(settings, authorization, x_api_key)
+
+
+def needs_key(settings: Settings, path: str) -> bool:
+    """Whether ``path`` is protected by the API keys (when some are configured)."""
+    return path.startswith("/v1/") or (path == "/metrics" and not settings.metrics_public)
+
+
 def early_rejection(state: State, method: str, path: str, headers: dict[str, str]) -> ServiceError | None:
     """What can be refused before the upload is read (run by the middleware, so a client without a
     key, or one that would only be told to come back later, does not push its stacks first).
@@ -63,13 +79,13 @@ def early_rejection(state: State, method: str, path: str, headers: dict[str, str
     The route dependencies make the same checks again; these are the early, cheap copies.
     """
     settings: Settings = state.settings
-    if path.startswith("/v1/") and not api_key_ok(settings.key_set(), headers.get("authorization"),
-                                                   headers.get("x-api-key")):
+    if needs_key(settings, path) and not api_key_ok(settings.key_set(), headers.get("authorization"),
+                                                    headers.get("x-api-key")):
         return Unauthorized(UNAUTHORIZED)
     if method == "POST" and path == "/v1/predict":
         return saturated(state)
     if method == "POST" and path == "/v1/reconstructions":
-        return queue_full(state)
+        return queue_full(state) or saturated(state)
     return None
 
 
@@ -100,4 +116,5 @@ async def processing_slot(request: Request) -> AsyncIterator[None]:
 
 
 ApiKey = Depends(require_api_key)
+MetricsAccess = Depends(require_metrics_access)
 SlotDep = Annotated[None, Depends(processing_slot)]

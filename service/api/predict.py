@@ -6,18 +6,19 @@ import time
 from typing import Annotated, Optional
 
 from anyio import to_thread
-from fastapi import APIRouter, File, Form, Request, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 
 from service.api.deps import ApiKey, MetricsDep, RegistryDep, SettingsDep, SlotDep
 from service.api.schemas import UPLOAD_ERRORS, PredictResponse
-from service.api.uploads import check_form, save_and_read, upload_directory
+from service.api.uploads import check_form, known_fields, save_and_read, upload_directory
 from service.inference.pipeline import predict as run_prediction
 from service.inference.pipeline import prepare_stacks
 
 router = APIRouter(prefix="/v1", tags=["prediction"], dependencies=[ApiKey])
 
 
-@router.post("/predict", response_model=PredictResponse, responses=UPLOAD_ERRORS, summary="Atlas pose of every slice")
+@router.post("/predict", response_model=PredictResponse, responses=UPLOAD_ERRORS, summary="Atlas pose of every slice",
+             dependencies=[Depends(known_fields())])
 async def predict(
     request: Request,
     registry: RegistryDep,
@@ -41,7 +42,8 @@ async def predict(
     masks = check_form(stacks, masks, variance_threshold, settings.max_files)
     threshold = variance_threshold if variance_threshold is not None else estimator.info.variance_threshold
     with upload_directory(settings.tmp_dir) as tmp:
-        uploads = await to_thread.run_sync(save_and_read, stacks, masks, tmp, settings.max_decoded_bytes)
+        uploads = await to_thread.run_sync(save_and_read, stacks, masks, tmp, settings.max_decoded_bytes,
+                                              settings.max_request_decoded_bytes)
     t_read = time.perf_counter()
     prepared = await to_thread.run_sync(prepare_stacks, uploads, estimator.info, bias_correction,
                                         settings.preprocess_workers)

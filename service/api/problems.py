@@ -2,7 +2,8 @@
 
 * :class:`ServiceError` subclasses carry their status, title and detail;
 * request validation errors (FastAPI) become 400 naming the field (API v1 keeps 422 for unusable files);
-* Starlette HTTP errors keep their status;
+* Starlette HTTP errors keep their status; a 405 lists every method of the path in ``Allow``, and
+  ``OPTIONS`` answers 204 with that ``Allow``;
 * anything else is a server fault, answered by :class:`service.api.middleware.RequestContext` (the
   outermost layer) as :class:`~service.core.errors.InternalError`: 500 with the request id, never a traceback.
 """
@@ -11,9 +12,10 @@ from __future__ import annotations
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from service.api.openapi import allowed_methods
 from service.core.errors import InvalidParameter, MalformedRequest, ServiceError
 
 MEDIA_TYPE = "application/problem+json"
@@ -86,6 +88,16 @@ def install(app: FastAPI) -> None:
         return await service_error(request, InvalidParameter(detail))
 
     @app.exception_handler(StarletteHTTPException)
-    async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+    async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
+        if exc.status_code == 405:      # Allow: every method of the path, not only the first route's
+            methods = allowed_methods(request.app, request.url.path) or [(exc.headers or {}).get("Allow", "GET")]
+            allow = {"Allow": ", ".join(methods)}
+            if request.method == "OPTIONS":
+                return Response(status_code=204, headers=allow)
+            return problem(405, "Method not allowed", f"{request.method} is not allowed here; allowed: "
+                           f"{allow['Allow']}", headers=allow, request=request)
+        if exc.status_code == 400:      # the form parser (a part header over 8 KB, a broken boundary ...)
+            return await service_error(request, MalformedRequest(f"the request body could not be parsed "
+                                                                 f"({str(exc.detail).rstrip('.')})"))
         return problem(exc.status_code, str(exc.detail) if exc.status_code < 500 else "Server error",
                        str(exc.detail), headers=getattr(exc, "headers", None), request=request)

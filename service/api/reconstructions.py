@@ -7,12 +7,12 @@ from datetime import datetime, timezone
 from typing import Annotated, Optional
 
 from anyio import to_thread
-from fastapi import APIRouter, File, Form, Request, Response, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Request, Response, UploadFile
 from fastapi.responses import FileResponse
 
-from service.api.deps import ApiKey, RegistryDep, SettingsDep, queue_full
+from service.api.deps import ApiKey, RegistryDep, SettingsDep, SlotDep, queue_full
 from service.api.schemas import UPLOAD_ERRORS, problem_responses
-from service.api.uploads import check_form, display_name, save_and_read
+from service.api.uploads import check_form, known_fields, save_and_read
 from service.core.errors import Conflict, InvalidParameter, NotFound
 from service.jobs.store import Job, JobStore
 from service.jobs.worker import poses_from_predict_body
@@ -45,12 +45,14 @@ def _job(request: Request, job_id: str) -> Job:
     return job
 
 
-@router.post("", status_code=202, responses=UPLOAD_ERRORS, summary="Start a reconstruction job")
+@router.post("", status_code=202, responses=UPLOAD_ERRORS, summary="Start a reconstruction job",
+             dependencies=[Depends(known_fields("poses"))])
 async def submit(
     request: Request,
     response: Response,
     registry: RegistryDep,
     settings: SettingsDep,
+    _slot: SlotDep,
     stacks: Annotated[list[UploadFile], File(description="the stacks, as for /v1/predict")],
     masks: Annotated[Optional[list[UploadFile]], File(description="0 or one mask per stack")] = None,
     resolution_mm: Annotated[float, Form(gt=0.2, le=5.0)] = 0.8,
@@ -77,7 +79,8 @@ async def submit(
     inputs = store.directory(job.id) / "inputs"
     inputs.mkdir()
     try:
-        uploads = await to_thread.run_sync(save_and_read, stacks, masks, inputs, settings.max_decoded_bytes)
+        uploads = await to_thread.run_sync(save_and_read, stacks, masks, inputs, settings.max_decoded_bytes,
+                                               settings.max_request_decoded_bytes)
         if poses_text:
             try:
                 body = json.loads(poses_text)
@@ -96,8 +99,8 @@ async def submit(
     except Exception:
         store.delete(job.id)          # rejected input leaves no job behind
         raise
-    names = [display_name(u, "stacks", j) for j, u in enumerate(stacks)]
-    (inputs / "names.json").write_text(json.dumps({"stacks": names}))
+    names = {"stacks": [u.filename for u in uploads], "masks": [u.mask_filename for u in uploads if u.mask_filename]}
+    (inputs / "names.json").write_text(json.dumps(names))
     (inputs / "params.json").write_text(json.dumps(store.get(job.id).params))
     request.app.state.job_runner.submit(job.id)
     response.headers["Location"] = f"/v1/reconstructions/{job.id}"

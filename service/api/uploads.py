@@ -2,21 +2,29 @@
 
 from __future__ import annotations
 
+import functools
 import math
 import shutil
 import tempfile
-from collections.abc import Iterator
+import threading
+import typing
+from collections.abc import Awaitable, Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 
-from fastapi import UploadFile
+from fastapi import Request, UploadFile, params
 
 from service.core.errors import InvalidParameter
+from service.core.names import clean_name
 from service.inference.pipeline import StackUpload
+from service.io.limits import DecodeBudget
 from service.io.readers import MAX_DECODED_BYTES, read_upload
 
 READ_WORKERS = 2
+# Files decoded at once in the whole process, whatever the number of requests: with the per-file
+# limit this bounds the memory that decoding can take (a request waits for its turn here).
+DECODING = threading.BoundedSemaphore(READ_WORKERS)
 
 
 @contextmanager
@@ -27,9 +35,32 @@ def upload_directory(base: Path | None) -> Iterator[Path]:
 
 
 def display_name(upload: UploadFile, field: str, index: int) -> str:
-    """The client's file name (for messages to the client only), or ``field[index]``."""
-    name = Path(upload.filename or "").name
+    """The client's file name (for messages to the client only, without control characters), or
+    ``field[index]``."""
+    name = clean_name(Path((upload.filename or "").replace("\\", "/")).name)
     return name or f"{field}[{index}]"
+
+
+@functools.cache
+def form_fields(endpoint: Callable) -> tuple[str, ...]:
+    """The form and file fields a route function declares (``Annotated[..., Form()]`` / ``File()``)."""
+    hints = typing.get_type_hints(endpoint, include_extras=True)
+    return tuple(meta.alias or name for name, hint in hints.items()
+                 for meta in getattr(hint, "__metadata__", ()) if isinstance(meta, params.Form))
+
+
+def known_fields(*extra: str) -> Callable[[Request], Awaitable[None]]:
+    """A dependency refusing (400, by name) any form field that the route neither declares nor lists in
+    ``extra`` (fields it reads from the raw form): a misspelt or misplaced option is never ignored."""
+
+    async def check(request: Request) -> None:
+        names = form_fields(request.scope["endpoint"]) + extra
+        form = await request.form()       # parsed once: FastAPI reuses it for the route's fields
+        unknown = [clean_name(k) or repr(k) for k in dict.fromkeys(form.keys()) if k not in names]
+        if unknown:
+            raise InvalidParameter(f"{unknown[0]}: unknown field; this route takes {', '.join(names)}")
+
+    return check
 
 
 def check_form(stacks: list[UploadFile], masks: list[UploadFile] | None, variance_threshold: float | None,
@@ -44,8 +75,13 @@ def check_form(stacks: list[UploadFile], masks: list[UploadFile] | None, varianc
 
 
 def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: Path,
-                  max_decoded_bytes: int = MAX_DECODED_BYTES) -> list[StackUpload]:
-    """Write each upload to ``directory`` and read it (blocking: run in a worker thread)."""
+                  max_decoded_bytes: int = MAX_DECODED_BYTES, max_request_bytes: int | None = None) -> list[StackUpload]:
+    """Write each upload to ``directory`` and read it (blocking: run in a worker thread).
+
+    Each file may decode to ``max_decoded_bytes``, all of them together to ``max_request_bytes``
+    (:class:`~service.io.limits.DecodeBudget`): many bombs in one request stop at the request's limit.
+    """
+    budget = DecodeBudget(max_decoded_bytes, max_request_bytes)
     if masks and len(masks) != len(stacks):
         raise InvalidParameter(f"masks: {len(masks)} masks for {len(stacks)} stacks; give none or one per stack")
     jobs = [(up, directory / f"stack{i}", display_name(up, "stacks", i)) for i, up in enumerate(stacks)]
@@ -53,14 +89,15 @@ def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: 
     # Decompression and parsing release the GIL: read two files at a time. Errors surface in
     # upload order, as a sequential loop would raise them.
     with ThreadPoolExecutor(max_workers=READ_WORKERS) as pool:
-        volumes = list(pool.map(lambda job: _read(*job, max_decoded_bytes), jobs))
+        volumes = list(pool.map(lambda job: _read(*job, budget), jobs))
     n = len(stacks)
     return [StackUpload(jobs[i][2], volumes[i], volumes[n + i] if masks else None, jobs[n + i][2] if masks else None)
             for i in range(n)]
 
 
-def _read(upload: UploadFile, path: Path, name: str, max_decoded_bytes: int):  # noqa: ANN202
+def _read(upload: UploadFile, path: Path, name: str, budget: DecodeBudget):  # noqa: ANN202
     upload.file.seek(0)
     with open(path, "wb") as f:
         shutil.copyfileobj(upload.file, f, 1 << 20)
-    return read_upload(path, name, max_decoded_bytes)
+    with DECODING:
+        return read_upload(path, name, budget=budget.file(name))

@@ -31,6 +31,8 @@ class Settings(BaseSettings):
     default_model: str = "default"
     log_level: str = "info"
     api_keys: str = Field("", description="comma-separated keys; empty = no authentication")
+    metrics_public: bool = Field(False, description="serve /metrics without an API key even when keys are "
+                                 "configured (by default it needs one, like /v1/)")
     max_upload_mb: float = Field(512.0, gt=0, description="limit of one request body (413 above)")
     max_files: int = Field(32, ge=1, description="most stacks (and masks) per request")
     max_concurrent: int = Field(2, ge=1, description="requests processed at once; more get 503")
@@ -41,12 +43,19 @@ class Settings(BaseSettings):
     retry_after_s: int = Field(2, ge=1)
     job_workers: int = Field(1, ge=1, description="reconstruction jobs run at once (worker processes)")
     max_queued_jobs: int = Field(16, ge=1, description="reconstruction jobs waiting at most; more get 429")
-    max_decoded_mb: float = Field(2048.0, gt=0, description="limit of one file's decoded voxel data (413 above)")
+    max_decoded_mb: float = Field(128.0, gt=0, description="limit of what one file decodes to: each inflated "
+                                  "stream, and its voxels counted as float32 (413 above)")
+    max_request_decoded_mb: float = Field(1024.0, gt=0, description="limit of what all files of one request "
+                                          "decode to together (413 above)")
     retention_hours: float = Field(72.0, gt=0, description="finished jobs and their files are deleted after this")
 
     @property
     def max_decoded_bytes(self) -> int:
         return int(self.max_decoded_mb * 2**20)
+
+    @property
+    def max_request_decoded_bytes(self) -> int:
+        return int(self.max_request_decoded_mb * 2**20)
 
     def key_set(self) -> set[str]:
         return {k.strip() for k in self.api_keys.split(",") if k.strip()}

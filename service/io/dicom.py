@@ -17,11 +17,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import pydicom
 from pydicom.errors import InvalidDicomError
 
 from service.core.errors import UnsupportedFile, UnusableImage
 from service.geometry import frames
+from service.io.dicom_guard import load_dataset
+from service.io.limits import FileBudget
 from service.io.volume import Volume
 
 NUMBER_OF_IMAGES_IN_MOSAIC = (0x0019, 0x100A)
@@ -38,13 +39,17 @@ def _lps_affine(row_dir: np.ndarray, col_dir: np.ndarray, normal: np.ndarray, sp
     return a
 
 
-def read_dicom_file(path: Path) -> Volume:
-    """Read one DICOM file as a 3D :class:`Volume` (array ``[i, j, k]`` = column, row, frame)."""
+def read_dicom_file(path: Path, filename: str, budget: FileBudget) -> Volume:
+    """Read one DICOM file as a 3D :class:`Volume` (array ``[i, j, k]`` = column, row, frame).
+
+    ``filename`` is the client's name of the file (for a ZIP member: ``archive.zip: member``); every
+    decoder is bounded by ``budget`` (:mod:`service.io.dicom_guard`).
+    """
     try:
-        ds = pydicom.dcmread(str(path))
+        ds = load_dataset(path, filename, budget)
         pixels = ds.pixel_array.astype(np.float32)
-    except (InvalidDicomError, AttributeError, ValueError, OSError, KeyError) as exc:
-        raise UnsupportedFile(f"{path.name}: unreadable DICOM pixel data") from exc
+    except (InvalidDicomError, AttributeError, ValueError, OSError, KeyError, EOFError) as exc:
+        raise UnsupportedFile(f"{filename}: unreadable DICOM pixel data") from exc
     slope = float(getattr(ds, "RescaleSlope", 1) or 1)
     pixels = pixels * slope + float(getattr(ds, "RescaleIntercept", 0) or 0)
     image_type = [str(t).upper() for t in getattr(ds, "ImageType", [])]
@@ -53,7 +58,7 @@ def read_dicom_file(path: Path) -> Volume:
     if pixels.ndim == 2:
         pixels = pixels[None]
     if pixels.ndim != 3:
-        raise UnusableImage(f"{path.name}: DICOM pixel data with {pixels.ndim} dimensions")
+        raise UnusableImage(f"{filename}: DICOM pixel data with {pixels.ndim} dimensions")
     return _multiframe(ds, pixels)
 
 

@@ -6,36 +6,36 @@ de-identified on read: only pixel data and geometry leave this module, no tag va
 
 Validation (each failure raises with the file's name, never a tag value):
 * unreadable, truncated, unknown or inconsistent (any parser error) -> :class:`UnsupportedFile` (415);
-* NRRD / MetaImage headers that point at a detached data file -> 415 (a header must never make the
-  server read one of its own files);
-* voxel data that decode to more than ``max_decoded_bytes`` (gzip or archive bombs) ->
-  :class:`PayloadTooLarge` (413), checked before anything is decoded into memory;
+* NRRD / MetaImage headers that point at a detached data file, however long the header, and NIfTI
+  ``.hdr/.img`` pairs -> 415: a header must never make the server open a path. Readers only ever see
+  the upload's bytes, behind a header rebuilt from allowed fields (:mod:`service.io.headers`), through
+  the ImageIO chosen by the sniffed content;
+* data that decode to more than the file's or the request's budget (gzip, ZIP or DICOM bombs, many
+  files at once) -> :class:`PayloadTooLarge` (413), charged while inflating and before any voxel
+  array is allocated (:mod:`service.io.limits`);
 * 2D, 4D with more than one volume, empty, or non-finite values -> :class:`UnusableImage` (422).
 """
 
 from __future__ import annotations
 
 import gzip
-import re
 import tempfile
-import zipfile
 import zlib
 from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
 
-from service.core.errors import PayloadTooLarge, ServiceError, UnsupportedFile, UnusableImage
+from service.core.errors import ServiceError, UnsupportedFile, UnusableImage
+from service.io.archive import read_dicom_zip
+from service.io.dicom import read_dicom_file
+from service.io.headers import clean_header
+from service.io.limits import DecodeBudget, FileBudget
 from service.io.volume import Volume, from_sitk
 
 SUFFIX_BY_KIND = {"nifti": ".nii", "nifti-gz": ".nii.gz", "nrrd": ".nrrd", "mha": ".mha"}
-MAX_DECODED_BYTES = 2 * 2**30
-DETACHED_DATA = {"nrrd": re.compile(rb"^data ?file:", re.I | re.M),
-                 "mha": re.compile(rb"^ElementDataFile\s*=(?![ \t]*LOCAL\b)", re.M)}
-
-
-class _TooLarge(Exception):
-    """A gzip stream decodes to more than the limit."""
+MAX_DECODED_BYTES = 128 * 2**20
+IMAGE_IO = {"nifti": "NiftiImageIO", "nrrd": "NrrdImageIO", "mha": "MetaImageIO"}
 
 
 def sniff(path: Path) -> str:
@@ -58,7 +58,7 @@ def sniff(path: Path) -> str:
         return "mha"
     if head[128:132] == b"DICM":
         return "dicom"
-    if head[:4] == b"PK\x03\x04":
+    if head[:4] in (b"PK\x03\x04", b"PK\x05\x06"):       # a ZIP, or an empty one
         return "zip"
     return "unknown"
 
@@ -70,41 +70,46 @@ def _is_nifti(head: bytes) -> bool:
     return (348 in sizeof and head[344:348] in (b"n+1\x00", b"ni1\x00")) or 540 in sizeof
 
 
-def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_BYTES) -> Volume:
+def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_BYTES,
+                budget: FileBudget | None = None) -> Volume:
     """Read one uploaded file as a 3D :class:`Volume`; ``filename`` is used in error messages only.
 
+    ``budget`` (default: ``max_decoded_bytes`` for this file alone) is charged by every decoder as it
+    decodes: gzip, ZIP members, DICOM deflate and the voxel array itself (see :mod:`service.io.limits`).
     Whatever a parser raises on a client's bytes becomes a 4xx naming ``filename``, never a 500.
     """
-    too_large = PayloadTooLarge(f"{filename}: its voxel data decode to more than {max_decoded_bytes // 2**20} MB")
+    budget = budget or DecodeBudget(max_decoded_bytes).file(filename)
     try:
         kind = sniff(path)
         if kind in SUFFIX_BY_KIND:
             with tempfile.TemporaryDirectory(prefix="svrnet-read-") as tmp:
                 if kind == "nifti-gz":   # decoded once, here; the checks and SimpleITK read the plain file
-                    path, kind = _gunzip(path, Path(tmp) / "decoded.nii", max_decoded_bytes, filename), "nifti"
+                    path, kind = _gunzip(path, Path(tmp) / "decoded.nii", budget), "nifti"
+                if kind == "nifti" and _nifti_pair(path):
+                    raise UnsupportedFile(f"{filename}: the header of a NIfTI .hdr/.img pair (its voxels are in "
+                                          "another file); upload a single .nii or .nii.gz")
+                if kind == "nifti" and _nifti1_truncated(path):
+                    raise UnsupportedFile(f"{filename}: truncated NIfTI file (less voxel data than its header declares)")
                 if kind == "nifti" and _nifti_has_nonfinite(path):
                     raise UnusableImage(f"{filename}: contains NaN or infinite values")
-                if kind in DETACHED_DATA and DETACHED_DATA[kind].search(_header(path)):
-                    raise UnsupportedFile(f"{filename}: a {kind.upper()} header with a detached data file; "
-                                          "upload one file with its voxel data attached")
-                # SimpleITK picks its reader by suffix: give it a link named by the sniffed content.
+                # SimpleITK reads a copy named by the sniffed content, with the reader chosen here
+                # (never by probing), and for NRRD/MHA a header rebuilt from allowed fields.
                 named = Path(tmp) / f"upload{SUFFIX_BY_KIND[kind]}"
-                named.symlink_to(Path(path).resolve())
-                if _declared_bytes(named) > max_decoded_bytes:
-                    raise too_large
-                vol = from_sitk(_squeeze_4d(sitk.ReadImage(str(named)), filename))
+                if kind in ("nrrd", "mha"):
+                    with open(path, "rb") as src, open(named, "wb") as dst:
+                        clean_header(src, dst, kind, filename)
+                else:
+                    named.symlink_to(Path(path).resolve())
+                budget.voxels(_declared_values(named, kind))
+                vol = from_sitk(_squeeze_4d(_reader(named, kind).Execute(), filename))
         elif kind == "dicom":
-            from service.io.dicom import read_dicom_file
-
-            vol = read_dicom_file(path)
+            vol = read_dicom_file(path, filename, budget)
         elif kind == "zip":
-            vol = _read_dicom_zip(path, filename, max_decoded_bytes)
+            vol = read_dicom_zip(path, filename, budget)
         else:
             raise UnsupportedFile(f"{filename}: not a NIfTI, NRRD, MHA, DICOM or ZIP file (or truncated)")
     except ServiceError:
         raise
-    except _TooLarge:
-        raise too_large from None
     except MemoryError:
         raise
     except Exception as exc:  # noqa: BLE001 - SimpleITK's RuntimeError, pydicom's and numpy's errors ...
@@ -113,36 +118,69 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
     return validate(vol, filename)
 
 
-def _gunzip(path: Path, out: Path, max_decoded_bytes: int, filename: str) -> Path:
-    """Decode a gzip file to ``out``, refusing more than ``max_decoded_bytes`` (raises :class:`_TooLarge`)
-    and truncated or corrupt streams (:class:`UnsupportedFile`)."""
-    decoded = 0
+def _gunzip(path: Path, out: Path, budget: FileBudget) -> Path:
+    """Decode a gzip file to ``out``, charging ``budget`` as it inflates (a NIfTI-1 header that declares
+    too much is refused before anything else is inflated); truncated or corrupt streams are 415."""
     try:
         with gzip.open(path, "rb") as src, open(out, "wb") as dst:
+            head = src.read(352)
+            if _nifti1_values(head) * 4 > budget.limit:
+                raise budget.too_large("its voxel data decode")
+            budget.inflate(len(head))
+            dst.write(head)
             while chunk := src.read(1 << 22):   # to the end: a truncated stream or a bad CRC raises here
-                decoded += len(chunk)
-                if decoded > max_decoded_bytes:
-                    raise _TooLarge
+                budget.inflate(len(chunk))
                 dst.write(chunk)
     except (OSError, EOFError, zlib.error) as exc:
-        raise UnsupportedFile(f"{filename}: truncated or corrupt gzip stream") from exc
+        raise UnsupportedFile(f"{budget.filename}: truncated or corrupt gzip stream") from exc
     return out
 
 
-def _header(path: Path) -> bytes:
-    """The text header of an NRRD or MetaImage file (up to its first blank line / 64 KB)."""
-    with open(path, "rb") as f:
-        return f.read(1 << 16).split(b"\n\n", 1)[0]
+def _nifti1_values(head: bytes) -> int:
+    """Voxel values a NIfTI-1 header declares (0 when it is not one)."""
+    if len(head) < 348 or 348 not in (int.from_bytes(head[:4], "little"), int.from_bytes(head[:4], "big")):
+        return 0
+    endian = "<" if int.from_bytes(head[:4], "little") == 348 else ">"
+    dim = np.frombuffer(head, endian + "i2", 8, 40).astype(np.int64)
+    return int(np.prod(np.clip(dim[1:1 + int(np.clip(dim[0], 1, 7))], 1, None), dtype=np.float64))
 
 
-def _declared_bytes(path: Path) -> int:
-    """Bytes of voxel data the header declares (read without decoding any voxels)."""
+def _reader(path: Path, kind: str) -> sitk.ImageFileReader:
+    """A SimpleITK reader of ``path`` with the ImageIO of ``kind`` (no other reader is ever tried)."""
     reader = sitk.ImageFileReader()
+    reader.SetImageIO(IMAGE_IO[kind])
     reader.SetFileName(str(path))
+    return reader
+
+
+def _declared_values(path: Path, kind: str) -> int:
+    """Voxel values the header declares (read without decoding any voxels)."""
+    reader = _reader(path, kind)
     reader.ReadImageInformation()
-    n = float(np.prod(reader.GetSize(), dtype=np.float64)) * reader.GetNumberOfComponents()
-    itemsize = sitk.GetArrayViewFromImage(sitk.Image([1, 1], reader.GetPixelID())).dtype.itemsize
-    return int(n * itemsize)
+    return int(np.prod(reader.GetSize(), dtype=np.float64) * reader.GetNumberOfComponents())
+
+
+def _nifti_pair(path: Path) -> bool:
+    """A NIfTI-1/2 header whose magic says the voxels are in a separate ``.img`` file."""
+    with open(path, "rb") as f:
+        head = f.read(348)
+    return head[344:348] == b"ni1\x00" or head[4:8] == b"ni2\x00"
+
+
+def _nifti1_truncated(path: Path) -> bool:
+    """An uncompressed NIfTI-1 file shorter than its header's offset plus voxel data (ITK would read
+    it without a word, filling the missing voxels)."""
+    with open(path, "rb") as f:
+        head = f.read(352)
+    values = _nifti1_values(head)
+    if not values:
+        return False
+    endian = "<" if int.from_bytes(head[:4], "little") == 348 else ">"
+    bitpix = int(np.frombuffer(head, endian + "i2", 1, 72)[0])
+    offset = float(np.frombuffer(head, endian + "f4", 1, 108)[0])
+    if not np.isfinite(offset) or bitpix <= 0:
+        return False  # an impossible header: the reader reports it
+    return path.stat().st_size < max(int(offset), 348) + values * bitpix // 8
 
 
 def _nifti_has_nonfinite(path: Path) -> bool:
@@ -198,36 +236,6 @@ def validate(vol: Volume, filename: str) -> Volume:
     if not np.isfinite(vol.affine).all() or abs(np.linalg.det(vol.affine[:3, :3])) < 1e-9:
         raise UnusableImage(f"{filename}: invalid geometry (singular voxel-to-world matrix)")
     return Volume(a.astype(np.float32, copy=False), vol.affine)
-
-
-def _read_dicom_zip(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_BYTES) -> Volume:
-    with tempfile.TemporaryDirectory(prefix="svrnet-zip-") as tmp:
-        try:
-            with zipfile.ZipFile(path) as z:
-                members = [m for m in z.infolist() if not m.is_dir()]
-                if len(members) > 5000:
-                    raise UnusableImage(f"{filename}: too many files in the archive ({len(members)})")
-                # zipfile never inflates a member past its declared size (it raises instead).
-                if sum(m.file_size for m in members) > max_decoded_bytes:
-                    raise PayloadTooLarge(f"{filename}: the archive inflates to more than "
-                                          f"{max_decoded_bytes // 2**20} MB")
-                for i, m in enumerate(members):  # flat, safe names: never trust archive paths
-                    (Path(tmp) / f"{i:05d}.dcm").write_bytes(z.read(m))
-        except (zipfile.BadZipFile, OSError, EOFError, zlib.error) as exc:
-            raise UnsupportedFile(f"{filename}: corrupt or truncated ZIP archive") from exc
-        reader = sitk.ImageSeriesReader()
-        series = reader.GetGDCMSeriesIDs(tmp)
-        if not series:
-            raise UnsupportedFile(f"{filename}: the ZIP archive holds no DICOM series")
-        if len(series) > 1:
-            raise UnusableImage(f"{filename}: the ZIP archive holds {len(series)} DICOM series; upload one per file")
-        files = reader.GetGDCMSeriesFileNames(tmp, series[0])
-        if len(files) == 1:
-            from service.io.dicom import read_dicom_file
-
-            return read_dicom_file(Path(files[0]))
-        reader.SetFileNames(files)
-        return from_sitk(reader.Execute())
 
 
 __all__ = ["read_upload", "sniff", "validate"]

@@ -1,6 +1,7 @@
 """The job store: one SQLite database (WAL, safe across processes) and a folder per job.
 
-States: ``queued -> running -> succeeded | failed | cancelled``. After a restart,
+States: ``queued -> running -> succeeded | failed | cancelled``. A job's uploads (``inputs/``) live
+only while it is queued or running; results (``outputs/``) until the retention limit. After a restart,
 :meth:`JobStore.recover` puts jobs that were ``running`` back to ``queued`` (they are re-run from
 their stored inputs; after ``max_attempts`` they fail with a reason), so no job is silently lost.
 
@@ -144,15 +145,24 @@ class JobStore:
         with self._connect() as db:
             return [r["id"] for r in db.execute("SELECT id FROM jobs WHERE status = 'queued' ORDER BY created_at")]
 
+    def discard_inputs(self, job_id: str) -> None:
+        """Delete a job's uploads (``inputs/``): done once the job has ended, whatever its outcome."""
+        shutil.rmtree(self.directory(job_id) / "inputs", ignore_errors=True)
+
     def recover(self, max_attempts: int = 2) -> list[str]:
-        """After a restart: re-queue interrupted jobs (or fail them after ``max_attempts``); the queue."""
+        """After a restart: re-queue interrupted jobs (or fail them after ``max_attempts``, deleting their
+        uploads); the queue."""
         now = time.time()
         with self._connect() as db:
+            given_up = [r["id"] for r in db.execute(
+                "SELECT id FROM jobs WHERE status = 'running' AND attempts >= ?", (max_attempts,))]
             db.execute("UPDATE jobs SET status = 'failed', stage = 'failed', updated_at = ?, error = "
                        "'interrupted by a server restart too many times' WHERE status = 'running' AND attempts >= ?",
                        (now, max_attempts))
             db.execute("UPDATE jobs SET status = 'queued', stage = 'queued (re-run after restart)', progress = 0, "
                        "updated_at = ? WHERE status = 'running'", (now,))
+        for job_id in given_up:
+            self.discard_inputs(job_id)
         return self.queued()
 
     def expire(self, retention_s: float) -> list[str]:

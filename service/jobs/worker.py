@@ -1,13 +1,15 @@
 """Job execution in worker processes (bounded concurrency), outside the request handlers.
 
-A job folder holds ``inputs/`` (the uploaded stacks and masks as sent, ``params.json``, optional
-``poses.json``) and, once done, ``outputs/`` (``volume.nii.gz``, ``preview.png``, ``report.json``,
-``transforms/``, ``poses.json``: the refined poses in the ``/v1/predict`` schema).
+A job folder holds ``inputs/`` (the uploaded stacks and masks as sent, ``params.json``, ``names.json``,
+optional ``poses.json``) while the job is queued or running -- they are deleted as soon as it ends,
+whatever the outcome -- and, once done, ``outputs/`` (``volume.nii.gz``, ``preview.png``,
+``report.json``, ``transforms/``, ``poses.json``: the refined poses in the ``/v1/predict`` schema).
 
 Stages (the job's ``stage``, with ``progress`` in 0..1): ``reading``, ``predicting poses`` (without
 uploaded poses), then those of the reconstruction -- ``stack consistency``, ``stack registration``,
 ``slice starting poses``, ``gaussian average``, then per round ``registration k/K``,
-``robust weighting k/K``, ``super-resolution k/K`` -- and ``writing``. :func:`run_job` is what a worker process executes; it claims the job atomically,
+``robust weighting k/K``, ``super-resolution k/K`` -- and ``writing``. :func:`run_job` is what a
+worker process executes; it claims the job atomically,
 reports stage and progress to the store, checks for cancellation between stages, and records any
 failure with its reason.
 """
@@ -110,6 +112,9 @@ def run_job(data_dir: str, models_dir: str, job_id: str) -> None:
         if not store.is_cancelled(job_id):
             store.update(job_id, status="failed", stage="failed", error=failure_reason(exc))
         log.warning("job failed", extra={"job_id": job_id, "error_type": type(exc).__name__})
+    # Ended, whatever the outcome: the uploads (raw headers, the clients' file names) go now, not at
+    # the retention limit. A worker stopped mid-job never gets here, so a re-run still has them.
+    store.discard_inputs(job_id)
 
 
 def failure_reason(exc: Exception) -> str:
@@ -130,10 +135,17 @@ def failure_reason(exc: Exception) -> str:
     return f"internal error ({type(exc).__name__}); the server log has the job id"
 
 
+def _name(names: dict, field: str, index: int) -> str:
+    """The client's name of an input file (for messages), from ``names.json``."""
+    listed = names.get(field) or []
+    return listed[index] if index < len(listed) and isinstance(listed[index], str) else f"{field}[{index}]"
+
+
 def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progress) -> None:  # noqa: ANN001
     from service.inference.estimator import OnnxPoseEstimator
     from service.inference.model_file import load_model
     from service.inference.pipeline import StackUpload
+    from service.io.limits import DecodeBudget
     from service.io.readers import read_upload
     from service.reconstruction.export import write_outputs
     from service.geometry.twin import DEFAULT_PLANE_X_MM
@@ -145,10 +157,16 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     params = json.loads((folder / "inputs" / "params.json").read_text())
     progress("reading", 0.02)
     uploads = []
-    for s, m in _stack_files(folder / "inputs"):
-        vol = read_upload(s, s.name)
-        mask = read_upload(m, m.name) if m is not None else None
-        uploads.append(StackUpload(s.name, vol, mask, m.name if m else None))
+    names_path = folder / "inputs" / "names.json"
+    names = json.loads(names_path.read_text()) if names_path.exists() else {}
+    # The files passed the limits when they were submitted: re-read without a budget of their own.
+    budget = DecodeBudget(2**62)
+    for i, (s, m) in enumerate(_stack_files(folder / "inputs")):
+        sname = _name(names, "stacks", i)
+        vol = read_upload(s, sname, budget=budget.file(sname))
+        mname = _name(names, "masks", i) if m is not None else None
+        mask = read_upload(m, mname, budget=budget.file(mname)) if m is not None else None
+        uploads.append(StackUpload(sname, vol, mask, mname))
     poses_path = folder / "inputs" / "poses.json"
     if poses_path.exists():
         from service.preprocess.localise import localise_brain
@@ -185,22 +203,60 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         raise Cancelled
 
 
+def _watch_parent(parent: int) -> None:
+    """In a worker process: exit as soon as the server that started it is gone (even after ``kill -9``),
+    so no worker keeps running a job against the data dir after the server has stopped."""
+    import os
+    import threading
+    import time
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
 class JobRunner:
-    """Submits queued jobs to a pool of ``workers`` processes; recovers the queue at start."""
+    """Submits queued jobs to a pool of ``workers`` processes; recovers the queue at start, and on
+    shutdown stops the workers and hands their running jobs back to the queue."""
 
     def __init__(self, store: JobStore, models_dir: Path, workers: int = 1) -> None:
+        import os
+
         self.store, self.models_dir = store, models_dir
-        self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+        self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                                        initializer=_watch_parent, initargs=(os.getpid(),))
         self.futures: dict[str, Future] = {}
 
     def start(self) -> list[str]:
         queued = self.store.recover()
         for job_id in queued:
+            job = self.store.get(job_id)
+            if job is not None and job.attempts:
+                log.info(f"re-queued job {job_id}, attempt {job.attempts + 1}",
+                         extra={"job_id": job_id, "attempt": job.attempts + 1})
             self.submit(job_id)
         return queued
 
     def submit(self, job_id: str) -> None:
         self.futures[job_id] = self.pool.submit(run_job, str(self.store.data_dir), str(self.models_dir), job_id)
 
-    def shutdown(self) -> None:
+    def shutdown(self, timeout_s: float = 10.0) -> list[str]:
+        """Stop every worker process (SIGTERM, then SIGKILL after ``timeout_s``) and put the jobs they
+        were running back in the queue, to be re-run after a restart (as after ``kill -9``)."""
+        processes = list((getattr(self.pool, "_processes", None) or {}).values())
         self.pool.shutdown(wait=False, cancel_futures=True)
+        for proc in processes:
+            if proc.is_alive():
+                proc.terminate()
+        for proc in processes:
+            proc.join(timeout_s)
+            if proc.is_alive():
+                proc.kill()
+                proc.join(timeout_s)
+        handed_back = [j for j in self.store.recover() if j in self.futures]
+        for job_id in handed_back:
+            log.info(f"handed job {job_id} back to the queue", extra={"job_id": job_id})
+        return handed_back

@@ -1,0 +1,73 @@
+"""What the OpenAPI page says about uploads and methods, made exact.
+
+* ``stacks`` carry ``minItems: 1`` and ``maxItems: SVRNET_MAX_FILES``, ``masks`` ``maxItems`` too: a
+  generated client never sends a list the schema calls valid and the server refuses;
+* optional form fields are optional, not nullable (a multipart form cannot send a null: FastAPI's
+  ``anyOf [..., null]`` made generated clients send the text ``null``);
+* ``poses`` (read by ``POST /v1/reconstructions`` from the raw form: a JSON text or a JSON file) is
+  documented with the other fields;
+* :func:`allowed_methods` lists every documented method of a path, for ``Allow`` (on ``405`` and
+  ``OPTIONS``): Starlette's own answer names only the methods of the first route that matched.
+"""
+
+from __future__ import annotations
+
+from fastapi import FastAPI
+
+POSES = {
+    "anyOf": [{"type": "string", "format": "binary"}, {"type": "string"}],
+    "title": "Poses",
+    "description": "optional: the JSON body /v1/predict returned for the same files (as a JSON file or text); "
+                   "without it the job predicts the poses first",
+}
+EXTRA_FIELDS = {"/v1/reconstructions": {"poses": POSES}}
+
+
+def document_uploads(app: FastAPI, max_files: int) -> None:
+    """Add the list sizes and the undeclared ``poses`` field to the multipart bodies of ``app``'s schema."""
+    generate = app.openapi
+
+    def openapi() -> dict:
+        if app.openapi_schema:
+            return app.openapi_schema
+        schema = generate()
+        components = schema.get("components", {}).get("schemas", {})
+        for path, ops in schema.get("paths", {}).items():
+            for op in ops.values():
+                body = op.get("requestBody", {}).get("content", {}).get("multipart/form-data", {}).get("schema", {})
+                target = components.get(body.get("$ref", "").rsplit("/", 1)[-1])
+                if target is None:
+                    continue
+                props = target.setdefault("properties", {})
+                target["additionalProperties"] = False         # unknown fields are refused (400)
+                for name, prop in props.items():     # a form field is given or left out: never null
+                    variants = [v for v in prop.get("anyOf", []) if v.get("type") != "null"]
+                    if "anyOf" in prop and len(variants) == 1:
+                        props[name] = {**{k: v for k, v in prop.items() if k != "anyOf"}, **variants[0]}
+                for name, low in (("stacks", 1), ("masks", 0)):
+                    if props.get(name, {}).get("type") == "array":
+                        props[name]["maxItems"] = max_files
+                        if low:
+                            props[name]["minItems"] = low
+                props.update(EXTRA_FIELDS.get(path, {}))
+        app.openapi_schema = schema
+        return schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+
+def allowed_methods(app: FastAPI, path: str) -> list[str]:
+    """The methods the OpenAPI schema documents for ``path`` (HEAD with GET, and OPTIONS), for ``Allow``;
+    empty when no documented path matches."""
+    parts = path.rstrip("/").split("/")
+    methods: set[str] = set()
+    for template, ops in app.openapi().get("paths", {}).items():
+        tparts = template.rstrip("/").split("/")
+        if len(tparts) == len(parts) and all(t == p or (t.startswith("{") and p) for t, p in zip(tparts, parts)):
+            methods |= {m.upper() for m in ops}
+    if "GET" in methods:
+        methods.add("HEAD")
+    return sorted(methods | {"OPTIONS"}) if methods else []
+
+
+__all__ = ["allowed_methods", "document_uploads"]

@@ -1,0 +1,104 @@
+"""A ZIP archive holding one DICOM series, unpacked with every decoder bounded.
+
+* Members are inflated in chunks to flat, numbered files of a private folder (archive paths are never
+  used), each chunk charged to the upload's :class:`~service.io.limits.FileBudget`.
+* A member that is itself an archive (ZIP, gzip, bzip2, xz, 7z, RAR) is refused by name: nothing nested
+  is ever decoded.
+* Each DICOM member goes through :func:`service.io.dicom_guard.load_dataset` (deflate bounded, pixel data
+  checked against the budget and compressed frames against the header) before GDCM sees it; a deflated
+  member is handed to GDCM already inflated, so GDCM never inflates anything itself. Members that are
+  not DICOM files with pixel data (a README, a DICOMDIR) are left out.
+
+Every message names the client's archive and, where it is about one member, the member.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import zipfile
+import zlib
+from pathlib import Path
+
+import SimpleITK as sitk
+from pydicom import uid
+
+from service.core.errors import PayloadTooLarge, UnsupportedFile, UnusableImage
+from service.core.names import clean_name
+from service.io.dicom import read_dicom_file
+from service.io.dicom_guard import load_dataset
+from service.io.limits import FileBudget
+from service.io.volume import Volume, from_sitk
+
+MAX_MEMBERS = 5000
+ARCHIVE_MAGIC = (b"PK\x03\x04", b"PK\x05\x06", b"\x1f\x8b", b"BZh", b"\xfd7zXZ", b"7z\xbc\xaf", b"Rar!")
+
+
+def read_dicom_zip(path: Path, filename: str, budget: FileBudget) -> Volume:
+    """The one DICOM series inside the ZIP archive ``path`` (the client's ``filename``)."""
+    with tempfile.TemporaryDirectory(prefix="svrnet-zip-") as tmp:
+        labels: dict[str, str] = {}           # unpacked file -> "archive.zip: member" (for messages)
+        try:
+            with zipfile.ZipFile(path) as z:
+                members = [m for m in z.infolist() if not m.is_dir()]
+                if len(members) > MAX_MEMBERS:
+                    raise UnusableImage(f"{filename}: too many files in the archive ({len(members)})")
+                if sum(m.file_size for m in members) > budget.limit:
+                    raise budget.too_large("the archive inflates")
+                for i, m in enumerate(members):
+                    label = f"{filename}: {clean_name(m.filename) or f'member {i}'}"
+                    out = Path(tmp) / f"{i:05d}.dcm"
+                    if _unpack(z, m, out, budget.member(label), label):
+                        labels[str(out)] = label
+        except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as exc:
+            raise UnsupportedFile(f"{filename}: corrupt or truncated ZIP archive") from exc
+        except (NotImplementedError, RuntimeError) as exc:     # an unknown method, an encrypted member
+            raise UnsupportedFile(f"{filename}: a ZIP archive with encrypted members or an unsupported "
+                                  "compression method") from exc
+        reader = sitk.ImageSeriesReader()
+        series = reader.GetGDCMSeriesIDs(tmp) if labels else ()
+        if not series:
+            raise UnsupportedFile(f"{filename}: the ZIP archive holds no DICOM series")
+        if len(series) > 1:
+            raise UnusableImage(f"{filename}: the ZIP archive holds {len(series)} DICOM series; upload one per file")
+        files = reader.GetGDCMSeriesFileNames(tmp, series[0])
+        if len(files) == 1:
+            return read_dicom_file(Path(files[0]), labels.get(files[0], filename), budget)
+        reader.SetFileNames(files)
+        return from_sitk(reader.Execute())
+
+
+def _unpack(z: zipfile.ZipFile, member: zipfile.ZipInfo, out: Path, budget: FileBudget, label: str) -> bool:
+    """Inflate ``member`` to ``out`` (charged to ``budget``) and screen it; False: not a DICOM image."""
+    with z.open(member) as src, open(out, "wb") as dst:
+        while chunk := src.read(1 << 20):
+            budget.inflate(len(chunk))
+            dst.write(chunk)
+    with open(out, "rb") as f:
+        head = f.read(132)
+    if head.startswith(ARCHIVE_MAGIC):
+        raise UnsupportedFile(f"{label}: an archive nested in the archive; upload the DICOM files of one "
+                              "series in a single ZIP")
+    if head[128:132] != b"DICM":
+        out.unlink()
+        return False
+    try:
+        ds = load_dataset(out, label, budget, require_pixels=False)
+    except (PayloadTooLarge, UnsupportedFile):
+        raise
+    except Exception as exc:  # noqa: BLE001 - pydicom's errors on a client's bytes
+        raise UnsupportedFile(f"{label}: unreadable DICOM file") from exc
+    if "PixelData" not in ds:
+        out.unlink()
+        return False
+    if ds.file_meta.TransferSyntaxUID == uid.ExplicitVRLittleEndian and _was_deflated(out):
+        ds.save_as(out, implicit_vr=False, little_endian=True, enforce_file_format=True)
+    return True
+
+
+def _was_deflated(path: Path) -> bool:
+    """Whether the file on disk still says Deflated Explicit VR Little Endian (then it is rewritten)."""
+    with open(path, "rb") as f:
+        return uid.DeflatedExplicitVRLittleEndian.encode() in f.read(1024)
+
+
+__all__ = ["MAX_MEMBERS", "read_dicom_zip"]

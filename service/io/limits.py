@@ -1,0 +1,87 @@
+"""How much the files of one request may decode to: per file, and all files of the request together.
+
+Every decoder charges what it produces *while* it produces it (gzip and ZIP inflation, DICOM deflate)
+or *before* it allocates it (voxel arrays, from the sizes the header declares), so a bomb is stopped
+at the limit, not after it has filled the memory. Voxel arrays are counted as float32 (4 bytes per
+value: what the service holds in memory), whatever the stored type.
+
+Example:
+    >>> budget = DecodeBudget(per_file=100, per_request=150)
+    >>> a, b = budget.file("a.nii.gz"), budget.file("b.nii.gz")
+    >>> a.inflate(80); b.inflate(60)
+    >>> try:
+    ...     b.voxels(20)
+    ... except PayloadTooLarge as exc:
+    ...     print(exc.detail)
+    b.nii.gz: the files of this request decode to more than 0.000143 MB in total
+"""
+
+from __future__ import annotations
+
+import threading
+
+from service.core.errors import PayloadTooLarge
+
+
+def mb(n: int) -> str:
+    """``n`` bytes in MB, for messages."""
+    return f"{n / 2**20:.3g} MB"
+
+
+class DecodeBudget:
+    """The decoded bytes one request may produce (thread-safe: files are read two at a time)."""
+
+    def __init__(self, per_file: int, per_request: int | None = None) -> None:
+        self.per_file = int(per_file)
+        self.per_request = int(per_request if per_request is not None else per_file)
+        self.used = 0
+        self._lock = threading.Lock()
+
+    def file(self, filename: str) -> FileBudget:
+        """The budget of one file of the request, named ``filename`` in the errors it raises."""
+        return FileBudget(self, filename)
+
+    def _charge(self, filename: str, n: int) -> None:
+        with self._lock:
+            self.used += n
+            over = self.used > self.per_request
+        if over:
+            raise PayloadTooLarge(f"{filename}: the files of this request decode to more than "
+                                  f"{mb(self.per_request)} in total")
+
+
+class FileBudget:
+    """One file's share: its inflated streams and its voxel array are each limited to ``per_file``."""
+
+    def __init__(self, request: DecodeBudget, filename: str, parent: FileBudget | None = None) -> None:
+        self.request, self.filename, self.parent = request, filename, parent
+        self.inflated = 0
+
+    def member(self, label: str) -> FileBudget:
+        """The same budget, spent by a part of the file (a ZIP member) and naming ``label`` in errors."""
+        return FileBudget(self.request, label, self.parent or self)
+
+    @property
+    def limit(self) -> int:
+        return self.request.per_file
+
+    def too_large(self, what: str = "its data decode") -> PayloadTooLarge:
+        return PayloadTooLarge(f"{self.filename}: {what} to more than {mb(self.limit)}")
+
+    def inflate(self, n: int) -> None:
+        """Charge ``n`` more bytes produced by a decompressor (gzip, ZIP member, DICOM deflate)."""
+        owner = self.parent or self
+        owner.inflated += n
+        if owner.inflated > self.limit:
+            raise self.too_large()
+        self.request._charge(self.filename, n)
+
+    def voxels(self, n_values: int) -> None:
+        """Charge an array of ``n_values`` voxel values (as float32) before it is allocated."""
+        n = int(n_values) * 4
+        if n > self.limit:
+            raise self.too_large("its voxel data decode")
+        self.request._charge(self.filename, n)
+
+
+__all__ = ["DecodeBudget", "FileBudget", "mb"]

@@ -1,0 +1,65 @@
+"""Defects F and H: answers name the client's file (and the ZIP member), never a server temp file; names
+are echoed without control characters; unknown form fields are refused by name."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from tests import corpus
+from tests.api.test_predict_errors import assert_problem, nifti_bytes, post, stack
+
+BROKEN_DICOM = corpus.dicom(np.zeros((64, 64), np.uint16))[:-5000]      # pixel data cut short
+
+
+def test_a_dicom_error_names_the_clients_file(oracle_client: TestClient) -> None:
+    r = post(oracle_client, [("stacks", ("MR.1.2.840.dcm", BROKEN_DICOM))])
+    assert_problem(r, 415, "MR.1.2.840.dcm")
+    assert "stack0" not in r.text
+
+
+def test_a_dicom_error_inside_a_zip_names_the_archive_and_the_member(oracle_client: TestClient) -> None:
+    r = post(oracle_client, [("stacks", ("study.zip", corpus.zipped({"series 3/IM0007": BROKEN_DICOM})))])
+    assert_problem(r, 415, "study.zip", "series 3/IM0007")
+    assert "00000.dcm" not in r.text and "svrnet-" not in r.text
+
+
+@pytest.mark.parametrize("name", ["scan\u202egpj.nii.gz", "scan\x1b[31m.nii.gz", "scan\u200b\x07.nii.gz"])
+def test_control_characters_never_come_back(oracle_client: TestClient, oracle, name: str) -> None:  # noqa: ANN001
+    r = post(oracle_client, [("stacks", (name, b"not an image" * 50))])
+    assert r.status_code == 415
+    detail = r.json()["detail"]
+    assert not any(c in detail for c in "\u202e\x1b\x07\u200b"), detail
+    assert "scan" in detail
+    oracle.truth = np.broadcast_to(np.eye(4), (6, 4, 4)).copy()
+    ok = post(oracle_client, [("stacks", (name, nifti_bytes(stack())))], {"mc_samples": "2"})
+    assert ok.status_code == 200, ok.text
+    filename = ok.json()["stacks"][0]["filename"]
+    assert filename.startswith("scan") and filename.isprintable(), repr(filename)
+
+
+@pytest.mark.parametrize(("route", "field"), [("/v1/predict", "bias_corection"), ("/v1/reconstructions", "bias_correction"),
+                                               ("/v1/reconstructions", "svr_iteration")])
+def test_unknown_form_fields_are_400_naming_them(oracle_client: TestClient, route: str, field: str) -> None:
+    r = oracle_client.post(route, files=[("stacks", ("s.nii.gz", nifti_bytes(stack())))], data={field: "1"})
+    assert_problem(r, 400, field, "unknown field")
+    assert not oracle_client.app.state.job_store.queued()
+
+
+def test_an_unknown_file_field_is_400_too(oracle_client: TestClient) -> None:
+    r = oracle_client.post("/v1/predict", files=[("stacks", ("s.nii.gz", nifti_bytes(stack()))),
+                                                 ("stack", ("t.nii.gz", b"x"))])
+    assert_problem(r, 400, "stack:", "unknown field")
+
+
+def test_the_fields_a_route_takes_come_from_its_signature() -> None:
+    """A field added to a route is accepted at once: the allowed names are not a second list to keep."""
+    from service.api.predict import predict
+    from service.api.reconstructions import submit
+    from service.api.uploads import form_fields
+
+    assert set(form_fields(predict)) >= {"stacks", "masks", "mc_samples", "variance_threshold", "bias_correction",
+                                         "model"}
+    assert set(form_fields(submit)) >= {"stacks", "masks", "resolution_mm", "svr_iterations", "mc_samples",
+                                        "variance_threshold", "model"}

@@ -1,0 +1,48 @@
+"""Defect G: the OpenAPI page says exactly what the server does (methods, Allow, list sizes, fields)."""
+
+from __future__ import annotations
+
+import pytest
+from fastapi.testclient import TestClient
+
+from service.inference.registry import ModelRegistry
+from tests.api.conftest import make_client
+
+
+def _body_schema(spec: dict, path: str) -> dict:
+    ref = spec["paths"][path]["post"]["requestBody"]["content"]["multipart/form-data"]["schema"]["$ref"]
+    return spec["components"]["schemas"][ref.rsplit("/", 1)[1]]
+
+
+@pytest.mark.parametrize("max_files", [32, 5])
+def test_stacks_and_masks_carry_their_limits(oracle, max_files: int) -> None:  # noqa: ANN001
+    with make_client(ModelRegistry({"default": oracle}), max_files=max_files) as client:
+        spec = client.get("/openapi.json").json()
+    for path in ("/v1/predict", "/v1/reconstructions"):
+        props = _body_schema(spec, path)["properties"]
+        assert (props["stacks"]["minItems"], props["stacks"]["maxItems"]) == (1, max_files), path
+        assert props["masks"]["maxItems"] == max_files, path
+        assert not [n for n, p in props.items() if {"type": "null"} in p.get("anyOf", [])], props
+    assert "poses" in _body_schema(spec, "/v1/reconstructions")["properties"]
+    assert _body_schema(spec, "/v1/predict")["additionalProperties"] is False
+
+
+@pytest.mark.parametrize(("path", "declared"), [("/v1/reconstructions/abc", {"GET", "DELETE"}),
+                                                ("/v1/reconstructions", {"POST"}), ("/v1/predict", {"POST"}),
+                                                ("/v1/reconstructions/abc/volume", {"GET"})])
+def test_allow_lists_every_method_of_the_path(oracle_client: TestClient, path: str, declared: set[str]) -> None:
+    options = oracle_client.options(path)
+    assert options.status_code == 204
+    allow = {m.strip() for m in options.headers["allow"].split(",")}
+    assert allow - {"HEAD", "OPTIONS"} == declared, allow
+    r = oracle_client.request("PATCH", path)
+    assert r.status_code == 405 and r.headers["content-type"].startswith("application/problem+json")
+    assert {m.strip() for m in r.headers["allow"].split(",")} == allow
+
+
+def test_every_documented_method_is_in_allow(oracle_client: TestClient) -> None:
+    spec = oracle_client.get("/openapi.json").json()
+    for path, ops in spec["paths"].items():
+        concrete = path.replace("{job_id}", "abc")
+        allow = {m.strip().lower() for m in oracle_client.options(concrete).headers["allow"].split(",")}
+        assert set(ops) <= allow, (path, allow)

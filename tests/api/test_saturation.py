@@ -1,0 +1,64 @@
+"""Uploads decode within bounded memory however many clients send at once: reconstructions take a
+processing slot like predictions (503 with Retry-After when none is free), and at most
+``READ_WORKERS`` files are decoded at a time in the whole process."""
+
+from __future__ import annotations
+
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.api import uploads
+from service.inference.registry import ModelRegistry
+from tests import corpus
+from tests.api.conftest import make_client
+from tests.api.test_operations import _call_without_reading_the_body
+
+
+def test_a_saturated_server_refuses_reconstructions_before_reading_them(oracle) -> None:  # noqa: ANN001
+    with make_client(ModelRegistry({"default": oracle}), max_concurrent=1, retry_after_s=4) as client:
+        client.app.state.slots._value = 0
+        status, headers, read = _call_without_reading_the_body(client.app, "/v1/reconstructions", [])
+        assert (status, read, headers["retry-after"]) == (503, False, "4")
+        r = client.post("/v1/reconstructions", files=[("stacks", ("s.nii.gz", b"x"))])
+        assert r.status_code == 503 and r.headers["retry-after"] == "4"
+
+
+def test_no_more_than_two_files_decode_at_once_across_requests(monkeypatch: pytest.MonkeyPatch,
+                                                                tmp_path: Path) -> None:
+    busy, peak, lock = [0], [0], threading.Lock()
+    real = uploads.read_upload
+
+    def tracked(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        with lock:
+            busy[0] += 1
+            peak[0] = max(peak[0], busy[0])
+        time.sleep(0.05)
+        try:
+            return real(*args, **kwargs)
+        finally:
+            with lock:
+                busy[0] -= 1
+
+    monkeypatch.setattr(uploads, "read_upload", tracked)
+
+    class Upload:
+        def __init__(self, data: bytes, name: str) -> None:
+            import io
+
+            self.file, self.filename, self.size = io.BytesIO(data), name, len(data)
+
+    data = corpus.gz(corpus.nifti(np.ones((6, 6, 4))))
+
+    def request(i: int) -> int:
+        folder = tmp_path / f"r{i}"
+        folder.mkdir()
+        return len(uploads.save_and_read([Upload(data, f"s{j}.nii.gz") for j in range(4)], [], folder))
+
+    with ThreadPoolExecutor(6) as pool:
+        assert list(pool.map(request, range(6))) == [4] * 6
+    assert peak[0] == uploads.READ_WORKERS

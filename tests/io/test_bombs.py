@@ -1,0 +1,109 @@
+"""Defect B: every decoder is bounded before or while it inflates, and so is a whole request."""
+
+from __future__ import annotations
+
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pydicom import uid
+
+from service.core.errors import PayloadTooLarge, UnsupportedFile
+from service.io.limits import DecodeBudget
+from service.io.readers import read_upload
+from tests import corpus
+
+MB = 2**20
+
+
+def read(tmp_path: Path, data: bytes, name: str, limit_mb: float = 8, request_mb: float | None = None):  # noqa: ANN201
+    path = tmp_path / "upload"
+    path.write_bytes(data)
+    budget = DecodeBudget(int(limit_mb * MB), int((request_mb or limit_mb) * MB))
+    return read_upload(path, name, budget=budget.file(name))
+
+
+def test_a_dicom_deflate_bomb_is_stopped_while_it_inflates(tmp_path: Path) -> None:
+    bomb = corpus.deflate_bomb(64)                      # 64 MB of pixels in ~66 KB
+    assert len(bomb) < 100_000
+    tracemalloc.start()
+    with pytest.raises(PayloadTooLarge, match="bomb.dcm"):
+        read(tmp_path, bomb, "bomb.dcm", limit_mb=4)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 3 * 4 * MB, f"{peak / MB:.0f} MB allocated to refuse a 64 MB bomb at 4 MB"
+
+
+def test_a_deflated_dicom_within_the_limit_is_read(tmp_path: Path) -> None:
+    pixels = np.arange(3 * 8 * 6, dtype=np.uint16).reshape(3, 8, 6)
+    vol = read(tmp_path, corpus.dicom(pixels, ts=uid.DeflatedExplicitVRLittleEndian), "ok.dcm")
+    np.testing.assert_array_equal(vol.array, pixels.transpose(2, 1, 0))
+
+
+def test_a_multiframe_header_declaring_more_than_the_limit_is_413_before_decoding(tmp_path: Path) -> None:
+    ds_bytes = corpus.dicom(np.zeros((2, 64, 64), np.uint16))
+    big = ds_bytes.replace(b"IS\x02\x002 ", b"IS\x06\x0099999 ")   # NumberOfFrames 2 -> 99999
+    assert big != ds_bytes
+    with pytest.raises(PayloadTooLarge, match="frames.dcm"):
+        read(tmp_path, big, "frames.dcm")
+
+
+@pytest.mark.parametrize(("frame", "ts"), [(corpus.jpeg_claiming(20000, 20000), uid.JPEGBaseline8Bit),
+                                           (corpus.jpeg_claiming(20000, 20000), uid.JPEGLSLossless),
+                                           (corpus.rle_bomb(), uid.RLELossless)])
+def test_compressed_frames_larger_than_their_header_are_refused_before_decoding(tmp_path: Path, frame: bytes,
+                                                                                ts: str) -> None:
+    with pytest.raises(UnsupportedFile, match="frame 0 does not match"):
+        read(tmp_path, corpus.encapsulated([frame], 8, 8, ts), "lying.dcm")
+
+
+def test_a_bomb_inside_a_zip_is_stopped_and_named(tmp_path: Path) -> None:
+    data = corpus.zipped({"series/IM0001": corpus.deflate_bomb(64)})
+    with pytest.raises(PayloadTooLarge) as info:
+        read(tmp_path, data, "study.zip", limit_mb=4)
+    assert "study.zip" in info.value.detail and "series/IM0001" in info.value.detail
+
+
+@pytest.mark.parametrize("inner", ["zip", "gzip"])
+def test_archives_nested_in_a_zip_are_refused_by_name(tmp_path: Path, inner: str) -> None:
+    member = (corpus.zipped({"a.dcm": corpus.dicom(np.ones((4, 4), np.uint16))}) if inner == "zip"
+              else corpus.gzip_bomb(1))
+    with pytest.raises(UnsupportedFile) as info:
+        read(tmp_path, corpus.zipped({"inner.bin": member}), "outer.zip")
+    assert "outer.zip" in info.value.detail and "inner.bin" in info.value.detail and "nested" in info.value.detail
+
+
+def test_a_zip_member_inflating_past_the_limit_is_stopped(tmp_path: Path) -> None:
+    data = corpus.zipped({"a.dcm": b"\0" * (6 * MB)})
+    with pytest.raises(PayloadTooLarge, match="big.zip"):
+        read(tmp_path, data, "big.zip", limit_mb=4)
+
+
+def test_a_gzip_whose_header_declares_too_much_is_413(tmp_path: Path) -> None:
+    with pytest.raises(PayloadTooLarge, match="bomb.nii.gz"):
+        read(tmp_path, corpus.gzip_bomb(16), "bomb.nii.gz", limit_mb=4)
+
+
+def test_the_decoded_total_of_one_request_is_bounded(tmp_path: Path) -> None:
+    """Each file alone is within its limit; together they pass the request's."""
+    budget = DecodeBudget(6 * MB, 10 * MB)
+    path = tmp_path / "g.nii.gz"
+    path.write_bytes(corpus.gzip_bomb(2))
+    read_upload(path, "a.nii.gz", budget=budget.file("a.nii.gz"))
+    read_upload(path, "b.nii.gz", budget=budget.file("b.nii.gz"))
+    with pytest.raises(PayloadTooLarge, match="c.nii.gz: the files of this request decode to more than"):
+        read_upload(path, "c.nii.gz", budget=budget.file("c.nii.gz"))
+
+
+def test_a_zipped_series_of_deflated_files_is_read_in_order(tmp_path: Path) -> None:
+    """GDCM gets deflated members already inflated (by the bounded reader) and orders the series."""
+    rng = np.random.default_rng(4)
+    planes = [(rng.random((8, 6)) * 1000).astype(np.uint16) for _ in range(3)]
+    members = {f"IM{k:04d}": corpus.dicom(p, k, uid.DeflatedExplicitVRLittleEndian) for k, p in enumerate(planes)}
+    vol = read(tmp_path, corpus.zipped(dict(reversed(list(members.items())))), "deflated.zip")
+    np.testing.assert_array_equal(vol.array, np.stack(planes).transpose(2, 1, 0))
+    np.testing.assert_allclose(vol.spacing, [1, 1, 3])
+    multiframe = corpus.dicom(np.stack(planes), 0, uid.DeflatedExplicitVRLittleEndian)
+    single = read(tmp_path, corpus.zipped({"IM0000": multiframe}), "one.zip")
+    np.testing.assert_array_equal(single.array, np.stack(planes).transpose(2, 1, 0))

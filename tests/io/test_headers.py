@@ -1,0 +1,98 @@
+"""Defect A: a header can never make the server read one of its own files, however it is written."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from service.core.errors import UnsupportedFile
+from service.io.headers import MAX_HEADER_BYTES
+from service.io.readers import read_upload
+
+COMMENTS = b"".join(b"# padding line %05d to push the field past any fixed-size peek\n" % i for i in range(1400))
+
+
+def nrrd(data_file: bytes, comments: bytes = COMMENTS, field: bytes = b"data file") -> bytes:
+    return (b"NRRD0004\n" + comments + b"type: uchar\ndimension: 3\nsizes: 8 8 8\nencoding: raw\n"
+            + field + b": " + data_file + b"\n\n")
+
+
+def mha(data_file: bytes, comments: bytes = b"", key: bytes = b"ElementDataFile") -> bytes:
+    return (b"ObjectType = Image\nNDims = 3\n" + comments + b"DimSize = 8 8 8\nElementType = MET_UCHAR\n"
+            + key + b" = " + data_file + b"\n")
+
+
+@pytest.fixture
+def secret(tmp_path: Path) -> Path:
+    path = tmp_path / "server_secret.raw"
+    path.write_bytes(bytes(range(256)) * 2)
+    return path
+
+
+def refuse(tmp_path: Path, content: bytes, name: str) -> str:
+    upload = tmp_path / "upload.bin"
+    upload.write_bytes(content)
+    with pytest.raises(UnsupportedFile) as info:
+        read_upload(upload, name)
+    assert name in info.value.detail
+    return info.value.detail
+
+
+def test_an_nrrd_data_file_after_80_kb_of_comments_is_refused(tmp_path: Path, secret: Path) -> None:
+    hostile = nrrd(str(secret).encode())
+    assert len(COMMENTS) > 80_000
+    probe = tmp_path / "probe.nrrd"
+    probe.write_bytes(hostile)
+    assert sitk.ReadImage(str(probe)).GetSize() == (8, 8, 8)          # the hole is real for a plain reader
+    existing = refuse(tmp_path, hostile, "long.nrrd")
+    missing = refuse(tmp_path, nrrd(str(secret.with_name("absent.raw")).encode()), "long.nrrd")
+    assert "detached" in existing and existing == missing              # tells nothing about the server's files
+
+
+@pytest.mark.parametrize("field", [b"data file", b"datafile", b"DATA FILE", b"Data  File"])
+def test_every_spelling_of_the_nrrd_field_is_refused(tmp_path: Path, secret: Path, field: bytes) -> None:
+    assert "detached" in refuse(tmp_path, nrrd(str(secret).encode(), b"", field), "x.nrrd")
+
+
+@pytest.mark.parametrize("value", [b"LIST", b"slice%03d.raw 1 8 1", b"/etc/passwd"])
+def test_nrrd_list_and_pattern_forms_are_refused(tmp_path: Path, value: bytes) -> None:
+    assert "detached" in refuse(tmp_path, nrrd(value, b""), "x.nrrd")
+
+
+@pytest.mark.parametrize("comments", [b"", b"Comment = x\n" * 3000])
+@pytest.mark.parametrize("key", [b"ElementDataFile", b"elementdatafile"])
+def test_an_mha_element_data_file_is_refused(tmp_path: Path, secret: Path, comments: bytes, key: bytes) -> None:
+    existing = refuse(tmp_path, mha(str(secret).encode(), comments, key), "x.mha")
+    assert "detached" in existing
+    assert existing == refuse(tmp_path, mha(b"/no/such/file.raw", comments, key), "x.mha")
+    assert "detached" in refuse(tmp_path, mha(b"LIST", comments, key), "x.mha")
+
+
+def test_a_header_too_long_to_end_is_refused(tmp_path: Path) -> None:
+    endless = b"NRRD0004\n" + b"# x\n" * (MAX_HEADER_BYTES // 4 + 10)
+    assert "longer than" in refuse(tmp_path, endless, "endless.nrrd")
+
+
+def test_attached_data_after_a_long_header_still_read(tmp_path: Path) -> None:
+    """Comments and unknown fields are dropped; the geometry and the voxels are kept."""
+    data = np.arange(8 * 8 * 8, dtype=np.uint8)
+    content = (b"NRRD0004\n" + COMMENTS + b"type: uchar\ndimension: 3\nsizes: 8 8 8\nencoding: raw\n"
+               b"space: left-posterior-superior\nspace directions: (2,0,0) (0,2,0) (0,0,3)\n"
+               b"space origin: (1,2,3)\nmystery field: 7\nowner:=Doe^Jane\n\n" + data.tobytes())
+    path = tmp_path / "ok.bin"
+    path.write_bytes(content)
+    vol = read_upload(path, "ok.nrrd")
+    np.testing.assert_array_equal(vol.array, data.reshape(8, 8, 8).transpose(2, 1, 0).astype(np.float32))
+    np.testing.assert_allclose(vol.spacing, [2, 2, 3])
+    np.testing.assert_allclose(vol.affine[:3, 3], [-1, -2, 3])          # LPS origin -> RAS
+
+
+def test_a_two_file_nifti_header_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "v.nii"
+    sitk.WriteImage(sitk.GetImageFromArray(np.ones((4, 5, 6), np.float32)), str(path))
+    raw = bytearray(path.read_bytes())
+    raw[344:348] = b"ni1\x00"                         # "my voxels are in the .img beside me"
+    assert "pair" in refuse(tmp_path, bytes(raw[:352]), "x.hdr")

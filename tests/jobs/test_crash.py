@@ -1,0 +1,80 @@
+"""Defect C: a real server stopped mid-job (SIGTERM, or kill -9) leaves no process behind, and the job
+completes after a restart. Runs ``svrnet-server``'s code under uvicorn as a subprocess, on a tiny job."""
+
+from __future__ import annotations
+
+import json
+import signal
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from service.io.volume import Volume, write_volume
+from service.jobs.store import JobStore
+from tests.live_server import Server
+from tests.phantoms import acquire_stack, phantom_brain, stack_affine
+
+
+@pytest.fixture(scope="module")
+def job_files(tmp_path_factory: pytest.TempPathFactory) -> tuple[list, dict]:
+    d = tmp_path_factory.mktemp("crash_case")
+    brain = phantom_brain(5)
+    files, body = [], {"stacks": []}
+    for axis in range(3):
+        shape = [36, 36, 36]
+        shape[axis] = 12
+        aff = stack_affine(axis, np.eye(3), 2.0, 5.0, tuple(shape))
+        g = np.broadcast_to(np.eye(4), (12, 4, 4))
+        img, msk = acquire_stack(*brain, aff, tuple(shape), axis, g)
+        write_volume(Volume(img, aff), d / f"Doe_Jane_s{axis}.nii.gz")
+        write_volume(Volume(msk.astype(np.uint8), aff), d / f"m{axis}.nii.gz")
+        files += [("stacks", (f"Doe_Jane_s{axis}.nii.gz", (d / f"Doe_Jane_s{axis}.nii.gz").read_bytes())),
+                  ("masks", (f"m{axis}.nii.gz", (d / f"m{axis}.nii.gz").read_bytes()))]
+        body["stacks"].append({"slices": [{"index": s, "accepted": True, "atlas_from_voxel": (g[s] @ aff).tolist()}
+                                          for s in range(12)]})
+    return files, body
+
+
+def _status(server: Server, job_id: str) -> dict:
+    return httpx.get(f"{server.url}/v1/reconstructions/{job_id}", timeout=10).json()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL], ids=["SIGTERM", "kill-9"])
+def test_a_server_stopped_mid_job_leaves_nothing_and_the_job_completes_after_restart(
+        tmp_path: Path, job_files: tuple[list, dict], sig: int) -> None:
+    files, poses = job_files
+    log = tmp_path / "server.log"
+    server = Server(tmp_path / "data", log)
+    try:
+        r = httpx.post(f"{server.url}/v1/reconstructions", files=files + [("poses", ("p.json", json.dumps(poses)))],
+                       data={"resolution_mm": "1.0", "svr_iterations": "3"}, timeout=60)
+        assert r.status_code == 202, r.text
+        job_id = r.json()["job_id"]
+        deadline = time.time() + 60
+        while (st := _status(server, job_id))["status"] == "queued" or st["stage"] in ("starting", "reading"):
+            assert time.time() < deadline, st
+            time.sleep(0.05)
+        assert st["status"] == "running", st                       # stopped mid-job
+        server.stop(sig)
+        left = server.leftovers()
+        assert not left, f"processes left behind after {signal.Signals(sig).name}: {left}"
+    finally:
+        server.kill_group()
+    job = JobStore(tmp_path / "data").get(job_id)
+    assert job is not None and job.status in ("queued", "running") and job.attempts == 1, job
+    server = Server(tmp_path / "data", log)
+    try:
+        deadline = time.time() + 240
+        while (st := _status(server, job_id))["status"] not in ("succeeded", "failed", "cancelled"):
+            assert time.time() < deadline, st
+            time.sleep(0.3)
+        assert st["status"] == "succeeded", st
+        assert f"re-queued job {job_id}, attempt 2" in log.read_text()
+        server.stop(signal.SIGTERM)
+        assert not server.leftovers()
+    finally:
+        server.kill_group()

@@ -1,0 +1,67 @@
+"""Defect D: a job's uploads (raw stacks with their headers, their names) are deleted as soon as the job
+ends, whatever its outcome; only what the results need is kept."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+
+from service.inference.registry import ModelRegistry
+from service.jobs.store import JobStore
+from tests.api.conftest import OracleEstimator, make_client
+from tests.jobs.test_jobs_api import case, submit, wait  # noqa: F401 - fixture
+
+PATIENT = b"Doe^Jane"
+
+
+@pytest.fixture
+def client(tmp_path: Path):  # noqa: ANN201
+    with make_client(ModelRegistry({"default": OracleEstimator()}), data_dir=str(tmp_path)) as c:
+        yield c
+
+
+def _files(folder: Path) -> list[str]:
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())
+
+
+def _assert_no_upload_left(folder: Path) -> None:
+    assert not (folder / "inputs").exists(), _files(folder)
+    for p in folder.rglob("*"):
+        if p.is_file():
+            data = p.read_bytes()
+            assert b"names.json" not in data and b"s0.nii.gz" not in data, p
+
+
+def test_a_succeeded_job_keeps_only_its_results(client: TestClient, case: dict) -> None:
+    job_id = submit(client, case, svr_iterations="0").json()["job_id"]
+    folder = client.app.state.job_store.directory(job_id)
+    assert (folder / "inputs" / "names.json").exists()            # while it is queued or running
+    assert wait(client, job_id)["status"] == "succeeded"
+    _assert_no_upload_left(folder)
+    assert {"outputs/volume.nii.gz", "outputs/preview.png", "outputs/report.json"} <= set(_files(folder))
+    assert client.get(f"/v1/reconstructions/{job_id}/volume").status_code == 200
+
+
+def test_a_failed_job_keeps_nothing_of_its_uploads(client: TestClient, case: dict) -> None:
+    rejected = json.loads(json.dumps(case["poses"]))
+    for st in rejected["stacks"]:
+        for s in st["slices"]:
+            s["accepted"] = False
+    job_id = submit(client, case, poses=rejected).json()["job_id"]
+    assert wait(client, job_id)["status"] == "failed"
+    _assert_no_upload_left(client.app.state.job_store.directory(job_id))
+
+
+def test_a_job_failed_by_too_many_restarts_keeps_nothing(tmp_path: Path) -> None:
+    store = JobStore(tmp_path)
+    job = store.create({"resolution_mm": 2.0})
+    (store.directory(job.id) / "inputs").mkdir()
+    (store.directory(job.id) / "inputs" / "stack0").write_bytes(PATIENT)
+    for _ in range(2):
+        assert store.claim(job.id)
+        store.recover()
+    assert store.get(job.id).status == "failed"
+    assert not (store.directory(job.id) / "inputs").exists()

@@ -1,0 +1,74 @@
+"""A real ``svrnet-server`` (uvicorn) in a subprocess of its own process group, for the crash test, the
+schemathesis run and the load benchmark: whatever it leaves behind can be found and reaped."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Server:
+    """``svrnet-server`` in its own process group (so whatever it leaves behind can be found)."""
+
+    def __init__(self, data_dir: Path, log: Path, **settings: str) -> None:
+        self.port = _free_port()
+        env = {**os.environ, "SVRNET_PORT": str(self.port), "SVRNET_DATA_DIR": str(data_dir),
+               "SVRNET_LOG_LEVEL": "info", "SVRNET_MAX_CONCURRENT": "1"}
+        env.update({f"SVRNET_{k.upper()}": str(v) for k, v in settings.items()})
+        self.log = open(log, "ab")  # noqa: SIM115 - closed in stop()
+        self.proc = subprocess.Popen([sys.executable, "-c", "from service.main import run; run()"], cwd=ROOT, env=env,
+                                     stdout=self.log, stderr=subprocess.STDOUT, start_new_session=True)
+        self.url = f"http://127.0.0.1:{self.port}"
+        deadline = time.time() + 120
+        while time.time() < deadline:
+            assert self.proc.poll() is None, log.read_text()[-3000:]
+            try:
+                if httpx.get(f"{self.url}/readyz", timeout=2).status_code == 200:
+                    return
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.2)
+        raise AssertionError("the server did not become ready")
+
+    def stop(self, sig: int) -> int:
+        os.kill(self.proc.pid, sig)
+        code = self.proc.wait(timeout=60)
+        self.log.close()
+        return code
+
+    def leftovers(self, wait_s: float = 15.0) -> list[int]:
+        """Processes still in the server's process group after ``wait_s`` (empty when all are gone)."""
+        deadline = time.time() + wait_s
+        while True:
+            pids = [int(p) for p in os.listdir("/proc") if p.isdigit() and _pgid(int(p)) == self.proc.pid]
+            if not pids or time.time() > deadline:
+                return pids
+            time.sleep(0.2)
+
+    def kill_group(self) -> None:
+        try:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
+def _pgid(pid: int) -> int | None:
+    try:
+        return os.getpgid(pid)
+    except (ProcessLookupError, PermissionError):
+        return None
