@@ -23,8 +23,12 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from service.geometry.sampling import FWHM_TO_SIGMA, INPLANE_FWHM_FACTOR
 from service.io.volume import Volume
 from service.preprocess.stack import split_stack
+
+BIN_BELOW_FRACTION = 0.75
+""":func:`inplane_bin_factors`: slices whose pixels are at most this fraction of the voxel size are binned 2 x 2."""
 
 INTENSITY_SCALE = 100.0
 """Each stack is scaled so that the median of its masked intensities is this value."""
@@ -105,6 +109,66 @@ class SliceSet:
         counts = np.maximum(self.pixel_counts(), 1)[:, None]
         return np.stack([np.bincount(self.slice_id, pos[:, d], self.n_slices) for d in range(3)], -1) / counts
 
+    def binned(self, factor: ArrayLike) -> "SliceSet":
+        """The slice set with each slice's pixels averaged over ``f x f`` in-plane blocks.
+
+        A block is the pixels of one slice whose in-plane voxel indices floor-divide to the same
+        pair (blocks start at index 0). Its value is the mean of its masked pixels and its voxel
+        coordinate their mean voxel coordinate -- for a full block ``(f a + (f - 1) / 2, f b + (f - 1) / 2)``,
+        the block's centre -- so, ``atlas_from_voxel`` being affine, the binned pixel sits exactly at
+        the mean atlas position of its pixels under any pose, and every per-slice array (poses, the
+        result's slice weights) keeps its meaning. Blocks cut by the mask average fewer pixels and
+        sit at their centroid.
+
+        ``pixel_mm`` becomes the PSF-equivalent pixel size: the in-plane PSF of a binned pixel is the
+        original one (sigma ``INPLANE_FWHM_FACTOR x pixel x FWHM_TO_SIGMA``) convolved with the
+        uniform average of ``f`` samples ``pixel`` apart (variance ``(f^2 - 1) / 12 pixel^2``), and
+        ``pixel_mm`` is chosen so that :func:`~service.reconstruction.forward.inplane_sigma_mm` gives
+        that width.
+
+        Args:
+            factor: ``[n]`` (or a scalar) integer block size per slice (1: unchanged).
+
+        Returns:
+            A new :class:`SliceSet` (pixels still grouped by slice, in slice, row, column order).
+
+        Example:
+            >>> import numpy as np
+            >>> from service.io.volume import Volume
+            >>> vol = Volume(np.arange(32, dtype=np.float32).reshape(4, 4, 2) + 1, np.diag([1.0, 1.0, 3.0, 1.0]))
+            >>> ss = SliceSet.from_stacks([(vol, None, np.repeat(vol.affine[None], 2, 0), np.ones(2, bool))])
+            >>> b = ss.binned(2)
+            >>> b.n_pixels, b.voxel[:2].tolist(), bool(np.isclose(b.values[0], ss.values[[0, 1, 4, 5]].mean()))
+            (8, [[0.5, 0.5, 0.0], [2.5, 0.5, 0.0]], True)
+        """
+        f = np.broadcast_to(np.asarray(factor, np.int64), (self.n_slices,)).copy()
+        f = np.maximum(f, 1)
+        if np.all(f == 1) or self.n_pixels == 0:
+            return self
+        sid = self.slice_id.astype(np.int64)
+        fp = f[sid]
+        vox = self.voxel.astype(np.int64)
+        axis = self.slice_axis[sid]
+        first = np.where(axis == 0, 1, 0)                        # the in-plane axes p < q of each pixel's slice
+        second = np.where(axis == 2, 1, 2)
+        cols = np.take_along_axis(vox, first[:, None], 1)[:, 0] // fp       # storage order: q rows, p columns
+        rows = np.take_along_axis(vox, second[:, None], 1)[:, 0] // fp
+        span = int(max(rows.max(), cols.max())) + 1
+        key = (sid * span + rows) * span + cols                  # non-decreasing in slice: grouping kept
+        uniq, block = np.unique(key, return_inverse=True)
+        block = block.reshape(-1)
+        count = np.bincount(block).astype(np.float64)
+        values = np.bincount(block, self.values.astype(np.float64)) / count
+        voxel = np.stack([np.bincount(block, self.voxel[:, d].astype(np.float64)) / count for d in range(3)], -1)
+        new_sid = (uniq // (span * span)).astype(np.int32)
+        var = (INPLANE_FWHM_FACTOR * FWHM_TO_SIGMA) ** 2
+        pixel_mm = self.pixel_mm * np.sqrt(1.0 + (f**2 - 1) / 12.0 / var)
+        return SliceSet(values=values.astype(np.float32), voxel=voxel.astype(np.float32), slice_id=new_sid,
+                        atlas_from_voxel=self.atlas_from_voxel.copy(), thickness_mm=self.thickness_mm.copy(),
+                        pixel_mm=pixel_mm, slice_axis=self.slice_axis.copy(), stack_index=self.stack_index.copy(),
+                        slice_index=self.slice_index.copy(), stack_affine=self.stack_affine.copy(),
+                        include=self.include.copy())
+
     @classmethod
     def from_stacks(cls, stacks: list[StackInput]) -> "SliceSet":
         """Collect the masked pixels of the included slices of several stacks.
@@ -168,3 +232,21 @@ class SliceSet:
                    atlas_from_voxel=cat["mats"], thickness_mm=cat["thick"], pixel_mm=cat["pix"],
                    slice_axis=cat["axis"].astype(np.int64), stack_index=cat["stack"].astype(np.int64),
                    slice_index=cat["index"].astype(np.int64), stack_affine=cat["saff"], include=cat["include"])
+
+
+def inplane_bin_factors(slices: SliceSet, resolution_mm: float,
+                        below_fraction: float = BIN_BELOW_FRACTION) -> NDArray[np.int64]:
+    """``[n]`` in-plane binning per slice: 2 where its pixels are at most ``below_fraction x resolution_mm``, else 1.
+
+    A 0.55 mm pixel is finer than a 0.8 mm reconstruction grid resolves; 2 x 2 blocks (1.1 mm)
+    keep what the grid can hold at a quarter of the pixels (registration, forward model, memory).
+
+    Example:
+        >>> import numpy as np
+        >>> from service.io.volume import Volume
+        >>> vol = Volume(np.ones((4, 4, 2), np.float32), np.diag([0.55, 0.55, 3.0, 1.0]))
+        >>> ss = SliceSet.from_stacks([(vol, None, np.repeat(vol.affine[None], 2, 0), np.ones(2, bool))])
+        >>> inplane_bin_factors(ss, 0.8).tolist(), inplane_bin_factors(ss, 0.6).tolist()
+        ([2, 2], [1, 1])
+    """
+    return np.where(slices.pixel_mm <= below_fraction * float(resolution_mm), 2, 1).astype(np.int64)
