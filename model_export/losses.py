@@ -12,7 +12,7 @@ the network's normalised units ``(label - mean) / scale``:
   twin keeps every point's ``(y, z)`` and negates every offset ``a_i = x_i - x0`` from the symmetry
   plane, all at once. So the ``(y, z)`` parts are compared directly, and the offsets through the
   sign-invariant outer product ``a a^T`` (the Veronese map of R^P / {+-1}):
-  ``|â â^T - a a^T|_F / (|â| + |a| + eps)``, which is ``|â - a| / sqrt 2`` near ``â = a``, the
+  ``|â â^T - a a^T|_F / (|â| + |a|)``, which is ``|â - a| / sqrt 2`` near ``â = a``, the
   same near ``â = -a``, and smooth across ``a = 0`` (sagittal slices near the midline, where the
   two twins meet and the ``min`` switches branch). The network's output stays a plain point label
   of one of the twins; which one (the branch) is left to the stack (the service's consistency
@@ -35,6 +35,7 @@ from service.geometry.twin import DEFAULT_PLANE_X_MM, POINT_LABELS
 
 LOSSES = ("l2", "min", "invariant")
 EPS = 1e-3
+TINY = 1e-12
 
 
 def twin_points(labels: torch.Tensor, plane_x_mm: float = DEFAULT_PLANE_X_MM) -> torch.Tensor:
@@ -79,10 +80,12 @@ def point_loss(pred: torch.Tensor, target: torch.Tensor, mean: torch.Tensor, sca
     a = ((target[:, 0::3] - plane_x_mm) / sx)
     yz = (norm(pred) - norm(target)).reshape(b, -1, 3)[..., 1:]
     yz_term = torch.linalg.vector_norm(yz, dim=-1).mean(-1)
-    # |â â^T - a a^T|_F^2 = |â|^4 + |a|^4 - 2 (â . a)^2, without forming the P x P matrices.
-    na2, a2, dot = (a_hat * a_hat).sum(-1), (a * a).sum(-1), (a_hat * a).sum(-1)
-    frob = torch.sqrt((na2 * na2 + a2 * a2 - 2.0 * dot * dot).clamp_min(0.0) + EPS**2)
-    denom = torch.sqrt(na2 + EPS**2) + torch.sqrt(a2 + EPS**2)
+    # With u = â - a and v = â + a: â â^T - a a^T = (u v^T + v u^T) / 2, whose squared Frobenius norm is
+    # (|u|^2 |v|^2 + (u . v)^2) / 2 -- no cancellation near either twin (u -> 0 or v -> 0).
+    u, v = a_hat - a, a_hat + a
+    sq = 0.5 * ((u * u).sum(-1) * (v * v).sum(-1) + (u * v).sum(-1) ** 2)
+    frob = torch.sqrt(sq + TINY) - TINY ** 0.5                         # finite gradient at 0
+    denom = torch.linalg.vector_norm(a_hat, dim=-1) + torch.linalg.vector_norm(a, dim=-1) + EPS
     n_points = a.shape[1]
     x_term = (2.0 ** 0.5) * frob / denom / n_points ** 0.5           # ~ RMS offset error per point
     return 3.0 * (yz_term + x_term)

@@ -242,7 +242,7 @@ def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resu
                    TextColumn("{task.fields[info]}"), TimeRemainingColumn(), disable=not progress)
     best_path = out_dir / "best.pt"
     t_start, run_steps = time.perf_counter(), 0
-    deadline = t_start + 60.0 * cfg.max_minutes if cfg.max_minutes else float("inf")
+    deadline = t_start + 60.0 * cfg.max_minutes if cfg.max_minutes is not None else float("inf")
     with bar:
         task = bar.add_task("training", total=cfg.steps, completed=step, info="")
         running = None
