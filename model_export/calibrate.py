@@ -1,9 +1,11 @@
 """Calibration of the acceptance threshold on geodesic variance.
 
 On whole held-out volumes, slices are simulated with the full training corruptions (thick, noisy,
-bias, voids, imperfect masks), the MC-dropout statistics are computed exactly as the service does
-(same head sampling, same Fréchet mean and variance), and the variance is compared to the true
-anchor-point error of the mean pose. The threshold maximises Youden's J (TPR - FPR) for flagging
+bias, voids, imperfect masks), the MC-dropout statistics are computed as the service does (same
+head sampling, same Fréchet mean and variance) after the samples of each slice are put on one
+branch of the left-right twin (:func:`one_branch`), and the variance is compared to the twin-min
+anchor-point error of the mean pose: a single slice cannot tell a pose from its twin (the stack
+decides the branch), so the variance is asked to flag slices that are wrong on either branch. The threshold maximises Youden's J (TPR - FPR) for flagging
 slices with error > ``error_mm``; the AUROC says how well variance ranks bad slices.
 
 When fewer than ``MIN_CLASS_FRACTION`` of the slices fall on one side of ``error_mm`` (a weak model:
@@ -24,6 +26,7 @@ from model_export.atlas import DEFAULT_ATLAS_ROOT
 from model_export.packaging import load_checkpoint
 from model_export.simulate import SimulationConfig
 from model_export.train import pose_errors, validation_set
+from service.geometry.twin import POINT_LABELS, twin_label
 from service.inference.estimator import statistics
 
 ERROR_MM = 10.0
@@ -47,13 +50,39 @@ def youden_threshold(scores: np.ndarray, positive: np.ndarray) -> float:
     return float(cand[np.argmax(tpr - fpr)])
 
 
+def one_branch(labels: np.ndarray, label_type: str, plane_x_mm: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """MC labels ``[B, N, D]`` with each sample replaced by its twin where that is nearer the medoid.
+
+    The medoid of a slice's samples is taken under the twin-min distance, so it does not care which
+    branch it sits on. Non-point labels are returned as they are. Also returns ``[B]`` the fraction
+    of each slice's samples that were moved (the MC mass on the other twin).
+
+    Example:
+        >>> lab = np.array([[[10.0, 0, 0] * 3, [-10.0, 0, 0] * 3, [11.0, 0, 0] * 3]])
+        >>> aligned, moved = one_branch(lab, "anchor")
+        >>> aligned[0, :, 0].tolist(), moved.round(2).tolist()
+        ([10.0, 10.0, 11.0], [0.33])
+    """
+    lab = np.asarray(labels, dtype=np.float64)
+    if label_type not in POINT_LABELS:
+        return lab, np.zeros(len(lab))
+    tw = twin_label(label_type, lab, plane_x_mm)
+    direct = np.linalg.norm(lab[:, :, None] - lab[:, None], axis=-1)          # [B, N, N]
+    mirrored = np.linalg.norm(lab[:, :, None] - tw[:, None], axis=-1)
+    ref = np.argmin(np.minimum(direct, mirrored).sum(-1), axis=1)             # [B]
+    r = lab[np.arange(len(lab)), ref][:, None]                                 # [B, 1, D]
+    flip = np.linalg.norm(tw - r, axis=-1) < np.linalg.norm(lab - r, axis=-1)
+    return np.where(flip[..., None], tw, lab), flip.mean(axis=1)
+
+
 @torch.no_grad()
-def mc_statistics(model, inputs: np.ndarray, mc_samples: int, batch: int = 64):  # noqa: ANN001
-    """Torch MC sampling through the export path (``mc_forward``), reduced like the service."""
+def mc_statistics(model, inputs: np.ndarray, mc_samples: int, batch: int = 64,  # noqa: ANN001
+                  plane_x_mm: float = 0.0):
+    """Torch MC sampling through the export path (``mc_forward``), on one branch, reduced like the service."""
     passes = torch.ones(mc_samples)
     labels = np.concatenate([model.mc_forward(torch.from_numpy(inputs[i:i + batch, None]), passes).double().numpy()
                              for i in range(0, len(inputs), batch)])
-    return statistics(labels, model.label_type)
+    return statistics(one_branch(labels, model.label_type, plane_x_mm)[0], model.label_type)
 
 
 def calibrate(checkpoint: Path, root: Path = DEFAULT_ATLAS_ROOT, *, mc_samples: int = 100,
@@ -61,10 +90,12 @@ def calibrate(checkpoint: Path, root: Path = DEFAULT_ATLAS_ROOT, *, mc_samples: 
     """Choose the variance threshold; returns it with the AUROC and the data behind them."""
     model, ck = load_checkpoint(checkpoint)
     torch.manual_seed(seed)
+    plane = float(ck["config"].get("plane_x_mm", 0.0))
     sim = SimulationConfig(**{k: v for k, v in ck["simulation"].items() if k in SimulationConfig.__dataclass_fields__})
     val = validation_set(ck["config"]["val_volumes"], root, per_volume, seed=seed, config=sim)
-    est = mc_statistics(model, val.inputs, mc_samples)
-    err = pose_errors(est.mean, val.poses)["ed_mm"]
+    est = mc_statistics(model, val.inputs, mc_samples, plane_x_mm=plane)
+    errors = pose_errors(est.mean, val.poses, plane)
+    err = errors["ed_twin_mm"]
     bad = err > error_mm
     criterion = error_mm
     if min(bad.mean(), 1 - bad.mean()) < MIN_CLASS_FRACTION:
@@ -72,7 +103,8 @@ def calibrate(checkpoint: Path, root: Path = DEFAULT_ATLAS_ROOT, *, mc_samples: 
     thr = youden_threshold(est.variance, err > criterion)
     accepted = est.variance <= thr
     return {
-        "threshold": thr, "auroc": auroc(est.variance, bad), "error_mm": error_mm,
+        "threshold": thr, "auroc": auroc(est.variance, bad), "error_mm": error_mm, "errors": "twin-min",
+        "auroc_truth": auroc(est.variance, errors["ed_mm"] > error_mm),
         "criterion_mm": criterion, "auroc_criterion": auroc(est.variance, err > criterion),
         "n_slices": int(len(err)),
         "bad_fraction": float(bad.mean()), "accepted_fraction": float(accepted.mean()),

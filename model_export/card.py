@@ -49,17 +49,55 @@ def _stage_text(train_config: dict) -> str:
             f"{prior['val_ed_mm']:.1f} mm) with the same recipe -- the cost below is the total of both")
 
 
+LABEL_TEXT = {
+    "anchor": "anchor points (P1, P2, P3 at +-60 mm; one L2 term per point)",
+    "grid": "grid of 8 x 8 plane points over +-60 mm (atlas mm of each; pose by a weighted Kabsch fit)",
+}
+LOSS_TEXT = {
+    "l2": "plain L2 (the average of the left-right twins is what it learns)",
+    "min": "mirror-aware: the distance to the nearer of the label and its left-right twin",
+    "invariant": "mirror-aware by construction: (y, z) of each point directly, the x offsets from the symmetry plane "
+                 "through their sign-invariant outer product; the branch is left to the stack",
+}
+
+
+def _label_text(info: dict, train_config: dict) -> str:
+    label = LABEL_TEXT.get(info["label_type"], info["label_type"])
+    return f"{label}; loss {LOSS_TEXT.get(train_config.get('loss', 'l2'), train_config.get('loss'))}"
+
+
+def _totals_text(train_summary: dict) -> str:
+    """Samples and hours of every training stage behind the checkpoint, per hardware."""
+    totals = train_summary.get("totals")
+    if not totals:
+        hours = train_summary["train_seconds"] / 3600
+        return f"- cost on this 2-core CPU: **{hours:.2f} h**, **{train_summary['samples_seen']:,} samples seen**"
+    rows = "\n".join(f"| {hw} | {d['samples']:,} | {d['hours']:.2f} |" for hw, d in totals["by_hardware"].items())
+    return (f"- totals over all stages (training compounds: each run starts from the previous checkpoint): "
+            f"**{totals['samples']:,} samples**, **{totals['hours']:.2f} h**\n\n"
+            f"| hardware | samples | hours |\n|---|---|---|\n{rows}")
+
+
+def _twin_rows(evaluation: dict) -> str:
+    if "ed_twin_mean_mm" not in evaluation:
+        return ""
+    return (f"| twin-min E.D. (nearer of truth and twin) | **{evaluation['ed_twin_mean_mm']:.2f} mm** |\n"
+            f"| twin-min median / p90 | {evaluation['ed_twin_median_mm']:.2f} / {evaluation['ed_twin_p90_mm']:.2f} mm |\n"
+            f"| slices under 10 mm: truth / twin-min | {100 * evaluation['ed_under_10mm']:.1f} % / "
+            f"{100 * evaluation['ed_twin_under_10mm']:.1f} % |\n"
+            f"| slices nearer the twin than the truth | {100 * evaluation['on_twin_fraction']:.1f} % |\n")
+
+
 def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict, calibration: dict,
                evaluation: dict, comparison: list[dict] | None, report_path: str, onnx_bytes: int) -> Path:
     """Write ``card.md`` with training cost, validation accuracy, calibration and the backbone table."""
     cal = {k: v for k, v in calibration.items() if not isinstance(v, list)}
-    hours = train_summary["train_seconds"] / 3600
     text = f"""# Model card: SVRnet `{info['name']}` {info['version']}
 
 | | |
 |---|---|
-| backbone | `{info['backbone']}` (width {train_config['width']}), {_grid_text(train_config)}, head FC-{train_config['hidden']} with one branch per anchor point, dropout {train_config['dropout']} before every FC layer |
-| labels | {info['label_type']} points (P1, P2, P3 at +-60 mm; multi-loss, one L2 term per point) |
+| backbone | `{info['backbone']}` (width {train_config['width']}), {_grid_text(train_config)}, head FC-{train_config['hidden']} with one output branch per label component, dropout {train_config['dropout']} before every FC layer |
+| labels | {_label_text(info, train_config)} |
 | input | {info['input_size']} x {info['input_size']} px of {info['pixel_spacing_mm']} mm; {info['intensity']} |
 | output space | atlas `{info['atlas_id']}` (RAS mm of `shared/data/fetal_atlas`) |
 | variance threshold | {float(info['variance_threshold']):.4g} (calibrated, see below) |
@@ -75,7 +113,7 @@ def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict
   preprocessing (`service/preprocess/slices.py`).
 - optimiser: Adam, lr {train_config['lr']}, step decay x{train_config['lr_gamma']} at {train_config['lr_milestones']} of
   {train_summary['steps']} steps, batch {train_config['batch']}{_stage_text(train_config)}
-- cost on this 2-core CPU: **{hours:.2f} h**, **{train_summary['samples_seen']:,} samples seen**
+{_totals_text(train_summary)}
 
 ## Validation (whole held-out volumes: {', '.join(train_config['val_volumes'])})
 
@@ -84,17 +122,18 @@ def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict
 
 | metric | value |
 |---|---|
-| mean anchor-point E.D. | **{evaluation['ed_mean_mm']:.2f} mm** |
+| mean anchor-point E.D. (against the truth) | **{evaluation['ed_mean_mm']:.2f} mm** |
 | median / p90 E.D. | {evaluation['ed_median_mm']:.2f} / {evaluation['ed_p90_mm']:.2f} mm |
+{_twin_rows(evaluation)}
 | geodesic distance (mean) | {evaluation['gd_mean']:.2f} |
 | 3-MAD outliers | {100 * evaluation['outlier_fraction']:.1f} % |
-| AUROC of geodesic variance for E.D. > 10 mm | {evaluation['auroc_variance_error_gt_10mm']:.3f} |
+| AUROC of geodesic variance for {'twin-min ' if 'ed_twin_mean_mm' in evaluation else ''}E.D. > 10 mm | {evaluation['auroc_variance_error_gt_10mm']:.3f} |
 | accepted at the threshold | {100 * evaluation['accepted_fraction']:.1f} %, their mean E.D. {evaluation['ed_accepted_mean_mm']:.2f} mm |
 
 ## Calibration of the variance threshold
 
 On {cal['n_slices']} slices of the validation volumes simulated with the full training corruptions,
-{100 * cal['bad_fraction']:.0f} % of the slices have E.D. > {cal['error_mm']:.0f} mm; the AUROC of variance for
+{100 * cal['bad_fraction']:.0f} % of the slices have {'twin-min ' if cal.get('errors') == 'twin-min' else ''}E.D. > {cal['error_mm']:.0f} mm (MC samples put on one branch first); the AUROC of variance for
 flagging them is {cal['auroc']:.3f}. {_criterion_text(cal)} The threshold maximising Youden's J for
 flagging slices with E.D. > {cal.get('criterion_mm', cal['error_mm']):.1f} mm is **{cal['threshold']:.4g}** (the paper
 found ~10 on its data); Spearman correlation of variance and error {cal['spearman_variance_error']:.2f};

@@ -158,8 +158,11 @@ def ship(
                                   variance_threshold=cal["threshold"])
     shutil.copyfile(checkpoint, out / "checkpoint.pt")
     evaluation = run_evaluation(onnx_path, report, root)
+    from model_export.train import prior_history, totals
+
     _, ck = load_checkpoint(checkpoint)
     summary = {"train_seconds": ck["train_seconds"], "samples_seen": ck["samples_seen"], "steps": ck["step"],
+               "totals": totals(prior_history(ck)),
                "train_volumes_text": f"{len(ck['config']['train_volumes'])} atlas volumes: "
                                      + ", ".join(ck["config"]["train_volumes"])}
     info = load_model(onnx_path).info.metadata
