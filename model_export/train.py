@@ -237,9 +237,7 @@ def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resu
                          "val_twin_ed_mm", "val_twin_ed_median_mm", "val_twin_ed_p90_mm", "val_twin_under_10mm",
                          "val_gd"])
 
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
-    bar = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                   TextColumn("{task.fields[info]}"), TimeRemainingColumn(), disable=not progress)
+    bar = _progress_bar(progress)
     best_path = out_dir / "best.pt"
     t_start, run_steps = time.perf_counter(), 0
     deadline = t_start + 60.0 * cfg.max_minutes if cfg.max_minutes is not None else float("inf")
@@ -296,9 +294,29 @@ def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resu
     return best_path
 
 
+def _progress_bar(progress: bool):  # noqa: ANN202 - rich's Progress, or a silent stand-in
+    """A rich progress bar; a silent stand-in when rich is missing (a bare GPU host) or not wanted."""
+    try:
+        from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+    except ImportError:
+        progress = False
+    if not progress:
+        class Silent:
+            def __enter__(self): return self                   # noqa: E704, ANN204
+            def __exit__(self, *exc): return False             # noqa: E704, ANN204, ANN002
+            def add_task(self, *a, **k): return 0              # noqa: E704, ANN202, ANN002, ANN003
+            def update(self, *a, **k): pass                    # noqa: E704, ANN202, ANN002, ANN003
+        return Silent()
+    return Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                    TextColumn("{task.fields[info]}"), TimeRemainingColumn())
+
+
 def plot_log(log_path: Path, png: Path) -> None:
-    """Loss and validation E.D. curves (truth and twin-min) from a training log."""
-    import matplotlib
+    """Loss and validation E.D. curves (truth and twin-min) from a training log (skipped without matplotlib)."""
+    try:
+        import matplotlib
+    except ImportError:
+        return
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -317,3 +335,41 @@ def plot_log(log_path: Path, png: Path) -> None:
     fig.tight_layout()
     fig.savefig(png, dpi=100)
     plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> Path:
+    """``python -m model_export.train``: the same training with numpy, scipy and torch only (no typer).
+
+    For a bare GPU host. Any :class:`TrainConfig` field is set as ``field=value`` (JSON values).
+
+    Example:
+        python -m model_export.train --out $OUT/run --root data/packed --init service/models/default/checkpoint.pt \\
+            device=auto workers=14 loss='"min"' steps=20000 max_minutes=8.5
+    """
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m model_export.train", description=main.__doc__)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--root", type=Path, default=DEFAULT_ATLAS_ROOT)
+    ap.add_argument("--init", type=Path)
+    ap.add_argument("--resume", type=Path)
+    ap.add_argument("fields", nargs="*", help="TrainConfig overrides, field=value (JSON)")
+    args = ap.parse_args(argv)
+    values = {}
+    for item in args.fields:
+        key, _, raw = item.partition("=")
+        if key not in TrainConfig.__dataclass_fields__:
+            ap.error(f"unknown TrainConfig field {key!r}")
+        try:
+            values[key] = json.loads(raw)
+        except json.JSONDecodeError:
+            values[key] = raw                      # a bare string: loss=min
+    if "lr_milestones" in values:
+        values["lr_milestones"] = tuple(values["lr_milestones"])
+    best = train(TrainConfig(**values), args.out, args.root, resume=args.resume, init=args.init, progress=False)
+    print(json.loads((args.out / "summary.json").read_text()))
+    return best
+
+
+if __name__ == "__main__":
+    main()

@@ -103,3 +103,21 @@ def test_training_compounds_on_any_device(device: str, packed: Path, tmp_path: P
     assert done["train_seconds"] == pytest.approx(sum(s["seconds"] for s in done["history"]))
     log = (tmp_path / "b" / "log.csv").read_text().splitlines()
     assert log[0].split(",")[7] == "val_twin_ed_mm" and log[-1].startswith("3,")
+
+
+def test_module_entry_point_trains_without_typer_rich_or_matplotlib(packed: Path, tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """``python -m model_export.train``: what a bare GPU host runs (numpy, scipy, torch only)."""
+    from model_export.train import main
+
+    for name in ("rich", "rich.progress", "matplotlib", "typer"):
+        monkeypatch.setitem(sys.modules, name, None)
+    fields = ["backbone=compact", "width=0.25", "steps=2", "batch=16", "val_every=2", "val_per_volume=4", "reuse=2",
+              "pool=3", "hidden=32", "grid_channels=8", "workers=0", "loss=min", "device=cpu",
+              'simulation={"size": 48, "pixel_mm": 2.5}', "lr_milestones=[]"]
+    best = main(["--out", str(tmp_path / "m"), "--root", str(packed), *fields])
+    ck = torch.load(best, weights_only=False)
+    assert ck["config"]["loss"] == "min" and ck["step"] == 2 and ck["config"]["lr_milestones"] == ()
+    assert not (tmp_path / "m" / "loss.png").exists()
+    with pytest.raises(SystemExit):
+        main(["--out", str(tmp_path / "x"), "nonsense=1"])
