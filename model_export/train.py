@@ -68,6 +68,7 @@ class TrainConfig:
     threads: int = 1
     workers: int = 2
     device: str = "cpu"
+    channels_last: bool = False
     max_minutes: float | None = None
     train_volumes: list[str] | None = None
     val_volumes: list[str] | None = None
@@ -209,6 +210,8 @@ def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resu
         model.set_label_normalisation(torch.from_numpy(
             label_sample(cfg.train_volumes, cfg.label_type, root, sim, cfg.seed)).float())
     model.to(device)
+    if cfg.channels_last:
+        model.to(memory_format=torch.channels_last)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     milestones = [int(m * cfg.steps) for m in cfg.lr_milestones]
     sched = torch.optim.lr_scheduler.MultiStepLR(opt, milestones, cfg.lr_gamma)
@@ -248,6 +251,8 @@ def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resu
             model.train()
             x, y = next(loader)
             x, y = x.to(device, non_blocking=True), y.to(device, non_blocking=True)
+            if cfg.channels_last:
+                x = x.contiguous(memory_format=torch.channels_last)
             loss = _loss(model, x, y, cfg)
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -340,7 +345,8 @@ def plot_log(log_path: Path, png: Path) -> None:
 def main(argv: list[str] | None = None) -> Path:
     """``python -m model_export.train``: the same training with numpy, scipy and torch only (no typer).
 
-    For a bare GPU host. Any :class:`TrainConfig` field is set as ``field=value`` (JSON values).
+    For a bare GPU host. Any :class:`TrainConfig` field is set as ``field=value`` (JSON values); with
+    ``--resume`` the run's own configuration is the starting point, so only changes need naming.
 
     Example:
         python -m model_export.train --out $OUT/run --root data/packed --init service/models/default/checkpoint.pt \\
@@ -364,6 +370,9 @@ def main(argv: list[str] | None = None) -> Path:
             values[key] = json.loads(raw)
         except json.JSONDecodeError:
             values[key] = raw                      # a bare string: loss=min
+    if args.resume is not None:
+        saved = torch.load(args.resume, map_location="cpu", weights_only=False)["config"]
+        values = {**{k: v for k, v in saved.items() if k in TrainConfig.__dataclass_fields__}, **values}
     if "lr_milestones" in values:
         values["lr_milestones"] = tuple(values["lr_milestones"])
     best = train(TrainConfig(**values), args.out, args.root, resume=args.resume, init=args.init, progress=False)

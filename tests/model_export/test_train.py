@@ -84,7 +84,7 @@ def _tiny(**kw: object) -> TrainConfig:
 @pytest.mark.parametrize("device", DEVICES)
 def test_training_compounds_on_any_device(device: str, packed: Path, tmp_path: Path) -> None:
     """The code path a GPU host runs (there with device="cuda"): stages, totals, a stop and a resume."""
-    train(_tiny(device=device, loss="min"), tmp_path / "a", packed, progress=False)
+    train(_tiny(device=device, loss="min", channels_last=True), tmp_path / "a", packed, progress=False)
     first = torch.load(tmp_path / "a" / "last.pt", weights_only=False)
     assert first["samples_seen"] == 64 and first["history"][-1]["device"] == device
     assert all(v.device.type == "cpu" for v in first["model"].values())   # checkpoints load anywhere
@@ -119,5 +119,9 @@ def test_module_entry_point_trains_without_typer_rich_or_matplotlib(packed: Path
     ck = torch.load(best, weights_only=False)
     assert ck["config"]["loss"] == "min" and ck["step"] == 2 and ck["config"]["lr_milestones"] == ()
     assert not (tmp_path / "m" / "loss.png").exists()
+    # Resuming elsewhere (a fresh GPU machine writes to a fresh $OUT) needs only what changes.
+    main(["--out", str(tmp_path / "m2"), "--root", str(packed), "--resume", str(tmp_path / "m" / "last.pt"), "steps=3"])
+    again = torch.load(tmp_path / "m2" / "last.pt", weights_only=False)
+    assert again["step"] == 3 and again["config"]["loss"] == "min" and len(again["history"]) == 2
     with pytest.raises(SystemExit):
         main(["--out", str(tmp_path / "x"), "nonsense=1"])
