@@ -7,9 +7,9 @@ expensive 3D sampling, :meth:`SliceSimulator.acquire`) and re-corrupts and re-pr
 them ``reuse`` times with fresh draws (:meth:`SliceSimulator.finish`): bias, gamma, voids, noise
 and the imperfect mask change every time, the pose does not.
 
-Example:
+Example (needs the atlas, or a packed folder, as ``root``):
     >>> from model_export.simulate import SimulationConfig                     # doctest: +SKIP
-    >>> s = SliceStream(["STA30"], root, SimulationConfig(), "anchor", 32, reuse=6, pool=8, seed=0)
+    >>> s = SliceStream(["STA30"], root, SimulationConfig(), "anchor", 32, reuse=6, pool=8, seed=0)  # doctest: +SKIP
     >>> x, y = next(iter(s)); x.shape, y.shape                                  # doctest: +SKIP
     (torch.Size([32, 1, 96, 96]), torch.Size([32, 9]))
 """
