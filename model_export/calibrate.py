@@ -51,11 +51,12 @@ def youden_threshold(scores: np.ndarray, positive: np.ndarray) -> float:
 
 
 def one_branch(labels: np.ndarray, label_type: str, plane_x_mm: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """MC labels ``[B, N, D]`` with each sample replaced by its twin where that is nearer the medoid.
+    """MC labels ``[B, N, D]`` put on one branch: the majority's, split by nearness to the medoid.
 
-    The medoid of a slice's samples is taken under the twin-min distance, so it does not care which
-    branch it sits on. Non-point labels are returned as they are. Also returns ``[B]`` the fraction
-    of each slice's samples that were moved (the MC mass on the other twin).
+    The medoid of a slice's samples is taken under the twin-min distance (blind to the branch); each
+    sample joins the medoid's side or its twin's, whichever it is nearer, and the smaller side is
+    replaced by its twins. Non-point labels are returned as they are. Also returns ``[B]`` the
+    fraction of each slice's samples that were moved (the MC mass on the other twin, <= 0.5).
 
     Example:
         >>> lab = np.array([[[10.0, 0, 0] * 3, [-10.0, 0, 0] * 3, [11.0, 0, 0] * 3]])
@@ -67,11 +68,14 @@ def one_branch(labels: np.ndarray, label_type: str, plane_x_mm: float = 0.0) -> 
     if label_type not in POINT_LABELS:
         return lab, np.zeros(len(lab))
     tw = twin_label(label_type, lab, plane_x_mm)
-    direct = np.linalg.norm(lab[:, :, None] - lab[:, None], axis=-1)          # [B, N, N]
-    mirrored = np.linalg.norm(lab[:, :, None] - tw[:, None], axis=-1)
+    sq, sq_tw = (lab * lab).sum(-1), (tw * tw).sum(-1)                       # pairwise distances via Gram
+    direct = np.sqrt(np.clip(sq[:, :, None] + sq[:, None] - 2 * np.einsum("bnd,bmd->bnm", lab, lab), 0, None))
+    mirrored = np.sqrt(np.clip(sq[:, :, None] + sq_tw[:, None] - 2 * np.einsum("bnd,bmd->bnm", lab, tw), 0, None))
     ref = np.argmin(np.minimum(direct, mirrored).sum(-1), axis=1)             # [B]
     r = lab[np.arange(len(lab)), ref][:, None]                                 # [B, 1, D]
     flip = np.linalg.norm(tw - r, axis=-1) < np.linalg.norm(lab - r, axis=-1)
+    # The medoid may sit on the minority branch (the twin-min distance cannot tell): keep the majority's.
+    flip ^= (flip.mean(axis=1) > 0.5)[:, None]
     return np.where(flip[..., None], tw, lab), flip.mean(axis=1)
 
 

@@ -75,3 +75,23 @@ def test_card_gives_both_errors_and_the_totals_per_hardware(tmp_path: Path) -> N
     assert "| NVIDIA H100 | 2,000,000 | 0.33 |" in text and "| CPU, 2 cores | 400,000 | 1.00 |" in text
     assert "grid of 8 x 8" in text and "nearer of the label and its left-right twin" in text
     assert "twin-min E.D. > 10 mm" in text
+
+
+def test_one_branch_puts_mc_samples_of_a_split_slice_on_one_twin() -> None:
+    """A slice whose samples split 70/30 between the twins: after alignment one branch, small spread."""
+    from model_export.calibrate import one_branch
+    from service.geometry import encodings, iterators
+    from service.geometry.twin import twin_label
+
+    poses = iterators.random_poses(4, np.random.default_rng(5), tz_max_mm=10.0, centre=np.array([25.0, 0.0, 0.0]))
+    truth = encodings.encode("grid", poses)                                   # [4, 192]
+    rng = np.random.default_rng(6)
+    samples = truth[:, None] + rng.normal(scale=1.0, size=(4, 50, 192))
+    other = rng.random((4, 50)) < 0.3
+    samples = np.where(other[..., None], twin_label("grid", samples, 0.0), samples)
+    aligned, moved = one_branch(samples, "grid", 0.0)
+    spread = np.linalg.norm(aligned - aligned.mean(1, keepdims=True), axis=-1).max()
+    assert spread < 25.0 < np.linalg.norm(samples - samples.mean(1, keepdims=True), axis=-1).max()
+    assert np.allclose(moved, np.minimum(other.mean(1), 1 - other.mean(1)))
+    same, none = one_branch(samples[..., :7], "euler")                        # not a point label: untouched
+    assert np.array_equal(same, samples[..., :7]) and not none.any()
