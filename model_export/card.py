@@ -44,9 +44,13 @@ def _stage_text(train_config: dict) -> str:
     prior = train_config.get("init_from")
     if not prior:
         return ""
-    return (f"; a second stage, started from the weights of a first run of {prior['steps']} steps "
-            f"({prior['samples_seen']:,} samples, {prior['train_seconds'] / 3600:.2f} h, val E.D. "
-            f"{prior['val_ed_mm']:.1f} mm) with the same recipe -- the cost below is the total of both")
+    if "whole_network" not in prior:          # checkpoints from before training histories
+        return (f"; a second stage, started from the weights of a first run of {prior['steps']} steps "
+                f"({prior['samples_seen']:,} samples, {prior['train_seconds'] / 3600:.2f} h, val E.D. "
+                f"{prior['val_ed_mm']:.1f} mm) with the same recipe -- the cost below is the total of both")
+    part = "all its weights" if prior["whole_network"] else "its trunk (a new head for the new label)"
+    return (f"; a new stage, started from {part} of `{prior['checkpoint']}` ({prior['samples_seen']:,} samples, "
+            f"{prior['train_seconds'] / 3600:.2f} h) -- the cost below is the total of all stages")
 
 
 LABEL_TEXT = {
@@ -78,14 +82,26 @@ def _totals_text(train_summary: dict) -> str:
             f"| hardware | samples | hours |\n|---|---|---|\n{rows}")
 
 
+def _accepted_twin(evaluation: dict) -> str:
+    v = evaluation.get("ed_twin_accepted_mean_mm")
+    return "" if v is None else f", twin-min {v:.2f} mm"
+
+
+def _schedule_text(train_config: dict, steps: int) -> str:
+    if not train_config.get("lr_milestones"):
+        return f"constant lr {train_config['lr']}, {steps} steps"
+    return (f"lr {train_config['lr']}, step decay x{train_config['lr_gamma']} at {train_config['lr_milestones']} of "
+            f"{steps} steps")
+
+
 def _twin_rows(evaluation: dict) -> str:
     if "ed_twin_mean_mm" not in evaluation:
         return ""
-    return (f"| twin-min E.D. (nearer of truth and twin) | **{evaluation['ed_twin_mean_mm']:.2f} mm** |\n"
+    return (f"\n| twin-min E.D. (nearer of truth and twin) | **{evaluation['ed_twin_mean_mm']:.2f} mm** |\n"
             f"| twin-min median / p90 | {evaluation['ed_twin_median_mm']:.2f} / {evaluation['ed_twin_p90_mm']:.2f} mm |\n"
             f"| slices under 10 mm: truth / twin-min | {100 * evaluation['ed_under_10mm']:.1f} % / "
             f"{100 * evaluation['ed_twin_under_10mm']:.1f} % |\n"
-            f"| slices nearer the twin than the truth | {100 * evaluation['on_twin_fraction']:.1f} % |\n")
+            f"| slices nearer the twin than the truth | {100 * evaluation['on_twin_fraction']:.1f} % |")
 
 
 def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict, calibration: dict,
@@ -101,7 +117,7 @@ def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict
 | input | {info['input_size']} x {info['input_size']} px of {info['pixel_spacing_mm']} mm; {info['intensity']} |
 | output space | atlas `{info['atlas_id']}` (RAS mm of `shared/data/fetal_atlas`) |
 | variance threshold | {float(info['variance_threshold']):.4g} (calibrated, see below) |
-| file | `model.onnx` ({onnx_bytes / 1e6:.1f} MB), `checkpoint.pt` (resume with `svrnet-train train --resume`) |
+| file | `model.onnx` ({onnx_bytes / 1e6:.1f} MB), `checkpoint.pt` (the next training run starts from it: `svrnet-train train --init`) |
 | commit | {info['commit']} |
 
 ## Training
@@ -111,8 +127,7 @@ def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict
   (uniform normals, 0-360 degree in-plane), Tz in the central 70 % of the brain, +-10 % brain size,
   bias field, gamma, signal voids, Rician noise, perturbed masks; then the service's own slice
   preprocessing (`service/preprocess/slices.py`).
-- optimiser: Adam, lr {train_config['lr']}, step decay x{train_config['lr_gamma']} at {train_config['lr_milestones']} of
-  {train_summary['steps']} steps, batch {train_config['batch']}{_stage_text(train_config)}
+- optimiser: Adam, {_schedule_text(train_config, train_summary['steps'])}, batch {train_config['batch']}{_stage_text(train_config)}
 {_totals_text(train_summary)}
 
 ## Validation (whole held-out volumes: {', '.join(train_config['val_volumes'])})
@@ -123,12 +138,11 @@ def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict
 | metric | value |
 |---|---|
 | mean anchor-point E.D. (against the truth) | **{evaluation['ed_mean_mm']:.2f} mm** |
-| median / p90 E.D. | {evaluation['ed_median_mm']:.2f} / {evaluation['ed_p90_mm']:.2f} mm |
-{_twin_rows(evaluation)}
+| median / p90 E.D. | {evaluation['ed_median_mm']:.2f} / {evaluation['ed_p90_mm']:.2f} mm |{_twin_rows(evaluation)}
 | geodesic distance (mean) | {evaluation['gd_mean']:.2f} |
 | 3-MAD outliers | {100 * evaluation['outlier_fraction']:.1f} % |
 | AUROC of geodesic variance for {'twin-min ' if 'ed_twin_mean_mm' in evaluation else ''}E.D. > 10 mm | {evaluation['auroc_variance_error_gt_10mm']:.3f} |
-| accepted at the threshold | {100 * evaluation['accepted_fraction']:.1f} %, their mean E.D. {evaluation['ed_accepted_mean_mm']:.2f} mm |
+| accepted at the threshold | {100 * evaluation['accepted_fraction']:.1f} %, their mean E.D. {evaluation['ed_accepted_mean_mm']:.2f} mm{_accepted_twin(evaluation)} |
 
 ## Calibration of the variance threshold
 
