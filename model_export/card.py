@@ -30,7 +30,8 @@ def _criterion_text(cal: dict) -> str:
 def _comparison_text(comparison: list[dict] | None) -> str:
     """The Table II rows with the budget they were trained on."""
     if not comparison:
-        return "not run"
+        return ("not rerun for this model: the six backbones at an equal short budget are in the card of "
+                "v1.0.0 (the git history of this file)")
     r = comparison[0]
     return (f"Each backbone: {r['steps']} steps of batch {r['batch']} ({r['steps'] * r['batch']:,} samples), width "
             f"{r['width']}, the same data stream and validation slices (`svrnet-train compare`). At this budget "
@@ -49,8 +50,9 @@ def _stage_text(train_config: dict) -> str:
                 f"({prior['samples_seen']:,} samples, {prior['train_seconds'] / 3600:.2f} h, val E.D. "
                 f"{prior['val_ed_mm']:.1f} mm) with the same recipe -- the cost below is the total of both")
     part = "all its weights" if prior["whole_network"] else "its trunk (a new head for the new label)"
-    return (f"; a new stage, started from {part} of `{prior['checkpoint']}` ({prior['samples_seen']:,} samples, "
-            f"{prior['train_seconds'] / 3600:.2f} h) -- the cost below is the total of all stages")
+    return (f"; the last of the stages below, started from {part} of the previous stage's checkpoint "
+            f"({prior['samples_seen']:,} samples, {prior['train_seconds'] / 3600:.2f} h) -- the cost below is the "
+            "total of all stages")
 
 
 LABEL_TEXT = {
@@ -77,9 +79,14 @@ def _totals_text(train_summary: dict) -> str:
         hours = train_summary["train_seconds"] / 3600
         return f"- cost on this 2-core CPU: **{hours:.2f} h**, **{train_summary['samples_seen']:,} samples seen**"
     rows = "\n".join(f"| {hw} | {d['samples']:,} | {d['hours']:.2f} |" for hw, d in totals["by_hardware"].items())
+    stages = "\n".join(f"| {i + 1} | {seg.get('label_type', '?')} | {seg.get('loss', '?')} | {seg['hardware']} | "
+                       f"{seg['samples']:,} | {seg['seconds'] / 3600:.2f} |"
+                       for i, seg in enumerate(train_summary.get("history", [])))
+    stage_table = ("\n\n| stage | label | loss | hardware | samples | hours |\n|---|---|---|---|---|---|\n" + stages
+                   if stages else "")
     return (f"- totals over all stages (training compounds: each run starts from the previous checkpoint): "
             f"**{totals['samples']:,} samples**, **{totals['hours']:.2f} h**\n\n"
-            f"| hardware | samples | hours |\n|---|---|---|\n{rows}")
+            f"| hardware | samples | hours |\n|---|---|---|\n{rows}{stage_table}")
 
 
 def _accepted_twin(evaluation: dict) -> str:

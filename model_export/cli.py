@@ -162,7 +162,7 @@ def ship(
 
     _, ck = load_checkpoint(checkpoint)
     summary = {"train_seconds": ck["train_seconds"], "samples_seen": ck["samples_seen"], "steps": ck["step"],
-               "totals": totals(prior_history(ck)),
+               "totals": totals(prior_history(ck)), "history": prior_history(ck),
                "train_volumes_text": f"{len(ck['config']['train_volumes'])} atlas volumes: "
                                      + ", ".join(ck["config"]["train_volumes"])}
     info = load_model(onnx_path).info.metadata
