@@ -95,10 +95,12 @@ def _accepted_twin(evaluation: dict) -> str:
 
 
 def _schedule_text(train_config: dict, steps: int) -> str:
+    planned = int(train_config.get("steps", steps))
+    stopped = f" (stopped at step {steps} by its time budget)" if steps < planned else ""
     if not train_config.get("lr_milestones"):
-        return f"constant lr {train_config['lr']}, {steps} steps"
+        return f"constant lr {train_config['lr']}, {planned} steps{stopped}"
     return (f"lr {train_config['lr']}, step decay x{train_config['lr_gamma']} at {train_config['lr_milestones']} of "
-            f"{steps} steps")
+            f"{planned} steps{stopped}")
 
 
 def _twin_rows(evaluation: dict) -> str:
