@@ -4,17 +4,21 @@
 the CRL spatio-temporal atlas (``crl_sta``, research use only) and the spina-bifida atlas
 (``spina_bifida_cc0``, CC0). Neighbouring weeks look alike, so validation uses whole held-out
 volumes of both populations (:data:`VALIDATION_VOLUMES`), never slices of a training volume.
+
+A *packed* folder (:func:`pack`, ``svrnet-train pack``) holds the same volumes as one ``.npz`` each
+(image and mask cropped to the image's non-zero box, exact float32, the affine moved with the crop)
+and a ``packed.json`` index: it reads with numpy alone (no SimpleITK on a GPU host), and every
+function here accepts it as ``root`` in place of the atlas folder.
 """
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-
-from service.io.volume import read_volume
 
 DEFAULT_ATLAS_ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "fetal_atlas"
 ATLAS_ID = "fetal-atlas-ras-0.8mm-135x189x155"
@@ -60,7 +64,14 @@ class AtlasVolume:
 
 
 def list_volumes(root: Path = DEFAULT_ATLAS_ROOT) -> list[tuple[str, str, Path, Path]]:
-    """``(name, population, t2_path, mask_path)`` of every atlas volume under ``root``."""
+    """``(name, population, t2_path, mask_path)`` of every atlas volume under ``root``.
+
+    For a packed folder both paths are the volume's ``.npz``.
+    """
+    index = Path(root) / PACKED_INDEX
+    if index.exists():
+        return [(n, pop, Path(root) / f"{n}.npz", Path(root) / f"{n}.npz")
+                for n, pop in json.loads(index.read_text())["volumes"]]
     out = []
     for population in POPULATIONS:
         for t2 in sorted((root / population).glob("*_T2.nii.gz")):
@@ -77,11 +88,46 @@ def load_volumes(names: list[str] | None = None, root: Path = DEFAULT_ATLAS_ROOT
     for name, population, t2, mask in list_volumes(root):
         if names is not None and name not in names:
             continue
+        if t2.suffix == ".npz":
+            with np.load(t2) as z:
+                vols.append(AtlasVolume(name, population, z["image"], z["mask"].astype(np.float32), z["affine"]))
+            continue
+        from service.io.volume import read_volume   # SimpleITK: only for the NIfTI atlas
+
         img = read_volume(t2)
         msk = read_volume(mask)
         vols.append(AtlasVolume(name, population, img.array.astype(np.float32),
                                 (msk.array > 0.5).astype(np.float32), img.affine))
     return vols
+
+
+PACKED_INDEX = "packed.json"
+
+
+def pack(out: Path, root: Path = DEFAULT_ATLAS_ROOT) -> Path:
+    """Write every atlas volume of ``root`` as ``out/<name>.npz`` plus the ``packed.json`` index.
+
+    Voxels outside the image's non-zero box are zero, and slice sampling pads with zeros, so the
+    crop changes nothing that the simulation sees; the affine's origin moves with it.
+
+    Example:
+        >>> import tempfile                                          # doctest: +SKIP
+        >>> pack(Path(tempfile.mkdtemp()))                           # doctest: +SKIP
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    entries = []
+    for vol in load_volumes(None, root):
+        nz = np.argwhere((vol.image != 0) | (vol.mask > 0))
+        lo, hi = nz.min(0), nz.max(0) + 1
+        box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
+        affine = vol.affine.copy()
+        affine[:3, 3] = vol.affine[:3, :3] @ lo + vol.affine[:3, 3]
+        np.savez_compressed(out / f"{vol.name}.npz", image=np.ascontiguousarray(vol.image[box]),
+                            mask=np.ascontiguousarray(vol.mask[box] > 0.5), affine=affine)
+        entries.append((vol.name, vol.population))
+    (out / PACKED_INDEX).write_text(json.dumps({"volumes": entries}, indent=1))
+    return out
 
 
 def split(root: Path = DEFAULT_ATLAS_ROOT,

@@ -1,9 +1,11 @@
 """Calibration of the acceptance threshold on geodesic variance.
 
 On whole held-out volumes, slices are simulated with the full training corruptions (thick, noisy,
-bias, voids, imperfect masks), the MC-dropout statistics are computed exactly as the service does
-(same head sampling, same Fréchet mean and variance), and the variance is compared to the true
-anchor-point error of the mean pose. The threshold maximises Youden's J (TPR - FPR) for flagging
+bias, voids, imperfect masks), the MC-dropout statistics are computed as the service does (same
+head sampling, same Fréchet mean and variance) after the samples of each slice are put on one
+branch of the left-right twin (the service's twin-aware statistics), and the variance is compared to the twin-min
+anchor-point error of the mean pose: a single slice cannot tell a pose from its twin (the stack
+decides the branch), so the variance is asked to flag slices that are wrong on either branch. The threshold maximises Youden's J (TPR - FPR) for flagging
 slices with error > ``error_mm``; the AUROC says how well variance ranks bad slices.
 
 When fewer than ``MIN_CLASS_FRACTION`` of the slices fall on one side of ``error_mm`` (a weak model:
@@ -48,12 +50,13 @@ def youden_threshold(scores: np.ndarray, positive: np.ndarray) -> float:
 
 
 @torch.no_grad()
-def mc_statistics(model, inputs: np.ndarray, mc_samples: int, batch: int = 64):  # noqa: ANN001
-    """Torch MC sampling through the export path (``mc_forward``), reduced like the service."""
+def mc_statistics(model, inputs: np.ndarray, mc_samples: int, batch: int = 64,  # noqa: ANN001
+                  plane_x_mm: float = 0.0):
+    """Torch MC sampling through the export path (``mc_forward``), on one branch, reduced like the service."""
     passes = torch.ones(mc_samples)
     labels = np.concatenate([model.mc_forward(torch.from_numpy(inputs[i:i + batch, None]), passes).double().numpy()
                              for i in range(0, len(inputs), batch)])
-    return statistics(labels, model.label_type)
+    return statistics(labels, model.label_type, plane_x_mm)
 
 
 def calibrate(checkpoint: Path, root: Path = DEFAULT_ATLAS_ROOT, *, mc_samples: int = 100,
@@ -61,10 +64,12 @@ def calibrate(checkpoint: Path, root: Path = DEFAULT_ATLAS_ROOT, *, mc_samples: 
     """Choose the variance threshold; returns it with the AUROC and the data behind them."""
     model, ck = load_checkpoint(checkpoint)
     torch.manual_seed(seed)
+    plane = float(ck["config"].get("plane_x_mm", 0.0))
     sim = SimulationConfig(**{k: v for k, v in ck["simulation"].items() if k in SimulationConfig.__dataclass_fields__})
     val = validation_set(ck["config"]["val_volumes"], root, per_volume, seed=seed, config=sim)
-    est = mc_statistics(model, val.inputs, mc_samples)
-    err = pose_errors(est.mean, val.poses)["ed_mm"]
+    est = mc_statistics(model, val.inputs, mc_samples, plane_x_mm=plane)
+    errors = pose_errors(est.mean, val.poses, plane)
+    err = errors["ed_twin_mm"]
     bad = err > error_mm
     criterion = error_mm
     if min(bad.mean(), 1 - bad.mean()) < MIN_CLASS_FRACTION:
@@ -72,7 +77,8 @@ def calibrate(checkpoint: Path, root: Path = DEFAULT_ATLAS_ROOT, *, mc_samples: 
     thr = youden_threshold(est.variance, err > criterion)
     accepted = est.variance <= thr
     return {
-        "threshold": thr, "auroc": auroc(est.variance, bad), "error_mm": error_mm,
+        "threshold": thr, "auroc": auroc(est.variance, bad), "error_mm": error_mm, "errors": "twin-min",
+        "auroc_truth": auroc(est.variance, errors["ed_mm"] > error_mm),
         "criterion_mm": criterion, "auroc_criterion": auroc(est.variance, err > criterion),
         "n_slices": int(len(err)),
         "bad_fraction": float(bad.mean()), "accepted_fraction": float(accepted.mean()),

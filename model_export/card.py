@@ -30,7 +30,8 @@ def _criterion_text(cal: dict) -> str:
 def _comparison_text(comparison: list[dict] | None) -> str:
     """The Table II rows with the budget they were trained on."""
     if not comparison:
-        return "not run"
+        return ("not rerun for this model: the six backbones at an equal short budget are in the card of "
+                "v1.0.0 (the git history of this file)")
     r = comparison[0]
     return (f"Each backbone: {r['steps']} steps of batch {r['batch']} ({r['steps'] * r['batch']:,} samples), width "
             f"{r['width']}, the same data stream and validation slices (`svrnet-train compare`). At this budget "
@@ -44,26 +45,88 @@ def _stage_text(train_config: dict) -> str:
     prior = train_config.get("init_from")
     if not prior:
         return ""
-    return (f"; a second stage, started from the weights of a first run of {prior['steps']} steps "
-            f"({prior['samples_seen']:,} samples, {prior['train_seconds'] / 3600:.2f} h, val E.D. "
-            f"{prior['val_ed_mm']:.1f} mm) with the same recipe -- the cost below is the total of both")
+    if "whole_network" not in prior:          # checkpoints from before training histories
+        return (f"; a second stage, started from the weights of a first run of {prior['steps']} steps "
+                f"({prior['samples_seen']:,} samples, {prior['train_seconds'] / 3600:.2f} h, val E.D. "
+                f"{prior['val_ed_mm']:.1f} mm) with the same recipe -- the cost below is the total of both")
+    part = "all its weights" if prior["whole_network"] else "its trunk (a new head for the new label)"
+    return (f"; the last of the stages below, started from {part} of the previous stage's checkpoint "
+            f"({prior['samples_seen']:,} samples, {prior['train_seconds'] / 3600:.2f} h) -- the cost below is the "
+            "total of all stages")
+
+
+LABEL_TEXT = {
+    "anchor": "anchor points (P1, P2, P3 at +-60 mm; one L2 term per point)",
+    "grid": "grid of 8 x 8 plane points over +-60 mm (atlas mm of each; pose by a weighted Kabsch fit)",
+}
+LOSS_TEXT = {
+    "l2": "plain L2 (the average of the left-right twins is what it learns)",
+    "min": "mirror-aware: the distance to the nearer of the label and its left-right twin",
+    "invariant": "mirror-aware by construction: (y, z) of each point directly, the x offsets from the symmetry plane "
+                 "through their sign-invariant outer product; the branch is left to the stack",
+}
+
+
+def _label_text(info: dict, train_config: dict) -> str:
+    label = LABEL_TEXT.get(info["label_type"], info["label_type"])
+    return f"{label}; loss {LOSS_TEXT.get(train_config.get('loss', 'l2'), train_config.get('loss'))}"
+
+
+def _totals_text(train_summary: dict) -> str:
+    """Samples and hours of every training stage behind the checkpoint, per hardware."""
+    totals = train_summary.get("totals")
+    if not totals:
+        hours = train_summary["train_seconds"] / 3600
+        return f"- cost on this 2-core CPU: **{hours:.2f} h**, **{train_summary['samples_seen']:,} samples seen**"
+    rows = "\n".join(f"| {hw} | {d['samples']:,} | {d['hours']:.2f} |" for hw, d in totals["by_hardware"].items())
+    stages = "\n".join(f"| {i + 1} | {seg.get('label_type', '?')} | {seg.get('loss', '?')} | {seg['hardware']} | "
+                       f"{seg['samples']:,} | {seg['seconds'] / 3600:.2f} |"
+                       for i, seg in enumerate(train_summary.get("history", [])))
+    stage_table = ("\n\n| stage | label | loss | hardware | samples | hours |\n|---|---|---|---|---|---|\n" + stages
+                   if stages else "")
+    return (f"- totals over all stages (training compounds: each run starts from the previous checkpoint): "
+            f"**{totals['samples']:,} samples**, **{totals['hours']:.2f} h**\n\n"
+            f"| hardware | samples | hours |\n|---|---|---|\n{rows}{stage_table}")
+
+
+def _accepted_twin(evaluation: dict) -> str:
+    v = evaluation.get("ed_twin_accepted_mean_mm")
+    return "" if v is None else f", twin-min {v:.2f} mm"
+
+
+def _schedule_text(train_config: dict, steps: int) -> str:
+    planned = int(train_config.get("steps", steps))
+    stopped = f" (stopped at step {steps} by its time budget)" if steps < planned else ""
+    if not train_config.get("lr_milestones"):
+        return f"constant lr {train_config['lr']}, {planned} steps{stopped}"
+    return (f"lr {train_config['lr']}, step decay x{train_config['lr_gamma']} at {train_config['lr_milestones']} of "
+            f"{planned} steps{stopped}")
+
+
+def _twin_rows(evaluation: dict) -> str:
+    if "ed_twin_mean_mm" not in evaluation:
+        return ""
+    return (f"\n| twin-min E.D. (nearer of truth and twin) | **{evaluation['ed_twin_mean_mm']:.2f} mm** |\n"
+            f"| twin-min median / p90 | {evaluation['ed_twin_median_mm']:.2f} / {evaluation['ed_twin_p90_mm']:.2f} mm |\n"
+            f"| slices under 10 mm: truth / twin-min | {100 * evaluation['ed_under_10mm']:.1f} % / "
+            f"{100 * evaluation['ed_twin_under_10mm']:.1f} % |\n"
+            f"| slices nearer the twin than the truth | {100 * evaluation['on_twin_fraction']:.1f} % |")
 
 
 def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict, calibration: dict,
                evaluation: dict, comparison: list[dict] | None, report_path: str, onnx_bytes: int) -> Path:
     """Write ``card.md`` with training cost, validation accuracy, calibration and the backbone table."""
     cal = {k: v for k, v in calibration.items() if not isinstance(v, list)}
-    hours = train_summary["train_seconds"] / 3600
     text = f"""# Model card: SVRnet `{info['name']}` {info['version']}
 
 | | |
 |---|---|
-| backbone | `{info['backbone']}` (width {train_config['width']}), {_grid_text(train_config)}, head FC-{train_config['hidden']} with one branch per anchor point, dropout {train_config['dropout']} before every FC layer |
-| labels | {info['label_type']} points (P1, P2, P3 at +-60 mm; multi-loss, one L2 term per point) |
+| backbone | `{info['backbone']}` (width {train_config['width']}), {_grid_text(train_config)}, head FC-{train_config['hidden']} with one output branch per label component, dropout {train_config['dropout']} before every FC layer |
+| labels | {_label_text(info, train_config)} |
 | input | {info['input_size']} x {info['input_size']} px of {info['pixel_spacing_mm']} mm; {info['intensity']} |
 | output space | atlas `{info['atlas_id']}` (RAS mm of `shared/data/fetal_atlas`) |
 | variance threshold | {float(info['variance_threshold']):.4g} (calibrated, see below) |
-| file | `model.onnx` ({onnx_bytes / 1e6:.1f} MB), `checkpoint.pt` (resume with `svrnet-train train --resume`) |
+| file | `model.onnx` ({onnx_bytes / 1e6:.1f} MB), `checkpoint.pt` (the next training run starts from it: `svrnet-train train --init`) |
 | commit | {info['commit']} |
 
 ## Training
@@ -73,9 +136,8 @@ def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict
   (uniform normals, 0-360 degree in-plane), Tz in the central 70 % of the brain, +-10 % brain size,
   bias field, gamma, signal voids, Rician noise, perturbed masks; then the service's own slice
   preprocessing (`service/preprocess/slices.py`).
-- optimiser: Adam, lr {train_config['lr']}, step decay x{train_config['lr_gamma']} at {train_config['lr_milestones']} of
-  {train_summary['steps']} steps, batch {train_config['batch']}{_stage_text(train_config)}
-- cost on this 2-core CPU: **{hours:.2f} h**, **{train_summary['samples_seen']:,} samples seen**
+- optimiser: Adam, {_schedule_text(train_config, train_summary['steps'])}, batch {train_config['batch']}{_stage_text(train_config)}
+{_totals_text(train_summary)}
 
 ## Validation (whole held-out volumes: {', '.join(train_config['val_volumes'])})
 
@@ -84,17 +146,17 @@ def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict
 
 | metric | value |
 |---|---|
-| mean anchor-point E.D. | **{evaluation['ed_mean_mm']:.2f} mm** |
-| median / p90 E.D. | {evaluation['ed_median_mm']:.2f} / {evaluation['ed_p90_mm']:.2f} mm |
+| mean anchor-point E.D. (against the truth) | **{evaluation['ed_mean_mm']:.2f} mm** |
+| median / p90 E.D. | {evaluation['ed_median_mm']:.2f} / {evaluation['ed_p90_mm']:.2f} mm |{_twin_rows(evaluation)}
 | geodesic distance (mean) | {evaluation['gd_mean']:.2f} |
 | 3-MAD outliers | {100 * evaluation['outlier_fraction']:.1f} % |
-| AUROC of geodesic variance for E.D. > 10 mm | {evaluation['auroc_variance_error_gt_10mm']:.3f} |
-| accepted at the threshold | {100 * evaluation['accepted_fraction']:.1f} %, their mean E.D. {evaluation['ed_accepted_mean_mm']:.2f} mm |
+| AUROC of geodesic variance for {'twin-min ' if 'ed_twin_mean_mm' in evaluation else ''}E.D. > 10 mm | {evaluation['auroc_variance_error_gt_10mm']:.3f} |
+| accepted at the threshold | {100 * evaluation['accepted_fraction']:.1f} %, their mean E.D. {evaluation['ed_accepted_mean_mm']:.2f} mm{_accepted_twin(evaluation)} |
 
 ## Calibration of the variance threshold
 
 On {cal['n_slices']} slices of the validation volumes simulated with the full training corruptions,
-{100 * cal['bad_fraction']:.0f} % of the slices have E.D. > {cal['error_mm']:.0f} mm; the AUROC of variance for
+{100 * cal['bad_fraction']:.0f} % of the slices have {'twin-min ' if cal.get('errors') == 'twin-min' else ''}E.D. > {cal['error_mm']:.0f} mm (MC samples put on one branch first); the AUROC of variance for
 flagging them is {cal['auroc']:.3f}. {_criterion_text(cal)} The threshold maximising Youden's J for
 flagging slices with E.D. > {cal.get('criterion_mm', cal['error_mm']):.1f} mm is **{cal['threshold']:.4g}** (the paper
 found ~10 on its data); Spearman correlation of variance and error {cal['spearman_variance_error']:.2f};

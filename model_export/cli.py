@@ -27,14 +27,22 @@ def train(
     out: Annotated[Path, typer.Option(help="run folder: checkpoints, log.csv, loss.png")] = Path("runs/default"),
     backbone: str = "compact",
     width: float = 1.0,
-    label_type: Annotated[str, typer.Option(help="anchor, euler or quaternion")] = "anchor",
+    label_type: Annotated[str, typer.Option(help="anchor, grid, euler or quaternion")] = "anchor",
+    loss: Annotated[str, typer.Option(help="l2, or mirror-aware min / invariant (point labels)")] = "l2",
     sampling: Annotated[str, typer.Option(help="random, euler or fibonacci")] = "random",
     steps: int = 20000,
     batch: int = 64,
     lr: Annotated[float, typer.Option(help="Adam learning rate (step decay x0.2 at 60 % and 85 %)")] = 1e-4,
+    constant_lr: Annotated[bool, typer.Option(help="no step decay")] = False,
     dropout: float = 0.5,
     val_every: int = 500,
+    val_per_volume: int = 100,
     threads: int = 1,
+    workers: Annotated[int, typer.Option(help="simulation worker processes")] = 2,
+    reuse: Annotated[int, typer.Option(help="corruptions of each clean acquisition in the bank")] = 6,
+    device: Annotated[str, typer.Option(help="cpu, cuda or auto")] = "cpu",
+    max_minutes: Annotated[Optional[float], typer.Option(help="stop at a checkpoint after this wall time")] = None,
+    plane_x_mm: Annotated[float, typer.Option(help="atlas symmetry plane x0 of the twin")] = 0.0,
     seed: int = 0,
     resume: Annotated[Optional[Path], typer.Option(help="checkpoint to continue from")] = None,
     init: Annotated[Optional[Path], typer.Option(help="checkpoint whose weights start a new stage "
@@ -45,9 +53,25 @@ def train(
     from model_export.train import TrainConfig, train as run
 
     cfg = TrainConfig(backbone=backbone, width=width, label_type=label_type, sampling=sampling, steps=steps,
-                      batch=batch, lr=lr, dropout=dropout, val_every=val_every, threads=threads, seed=seed)
+                      batch=batch, lr=lr, dropout=dropout, val_every=val_every, threads=threads, seed=seed, loss=loss,
+                      val_per_volume=val_per_volume, workers=workers, reuse=reuse, device=device,
+                      max_minutes=max_minutes, plane_x_mm=plane_x_mm,
+                      lr_milestones=() if constant_lr else TrainConfig.lr_milestones)
     best = run(cfg, out, root, resume, init=init)
     typer.echo(f"best checkpoint: {best}")
+
+
+@app.command()
+def pack(
+    out: Annotated[Path, typer.Option(help="packed folder (one .npz per volume + packed.json)")] = Path("data/packed"),
+    root: Root = DEFAULT_ATLAS_ROOT,
+) -> None:
+    """Pack the atlas volumes as .npz (numpy only: no SimpleITK needed where they are read)."""
+    from model_export.atlas import pack as run
+
+    path = run(out, root)
+    size = sum(f.stat().st_size for f in path.iterdir())
+    typer.echo(f"wrote {path} ({size / 1e6:.1f} MB)")
 
 
 @app.command()
@@ -200,8 +224,11 @@ def ship(
                                   variance_threshold=cal["threshold"])
     shutil.copyfile(checkpoint, out / "checkpoint.pt")
     evaluation = run_evaluation(onnx_path, report, root)
+    from model_export.train import prior_history, totals
+
     _, ck = load_checkpoint(checkpoint)
     summary = {"train_seconds": ck["train_seconds"], "samples_seen": ck["samples_seen"], "steps": ck["step"],
+               "totals": totals(prior_history(ck)), "history": prior_history(ck),
                "train_volumes_text": f"{len(ck['config']['train_volumes'])} atlas volumes: "
                                      + ", ".join(ck["config"]["train_volumes"])}
     info = load_model(onnx_path).info.metadata

@@ -30,7 +30,8 @@ def export_checkpoint(checkpoint: Path, output: Path, *, name: str, version: str
     meta = build_metadata(
         model, name=name, version=version, pixel_mm=ck["simulation"]["pixel_mm"],
         variance_threshold=variance_threshold, atlas_id=ATLAS_ID, training_data=training,
-        licences="; ".join(POPULATIONS.values()),
-        extra={"train_steps": ck["step"], "samples_seen": ck["samples_seen"], **(extra or {})},
+        licences="; ".join(POPULATIONS.values()), symmetry_plane_x_mm=float(cfg.get("plane_x_mm", 0.0)),
+        extra={"train_steps": ck["step"], "samples_seen": ck["samples_seen"],
+               "train_loss": cfg.get("loss", "l2"), **(extra or {})},
     )
     return export_onnx(model, output, meta)

@@ -85,14 +85,19 @@ def sample_slices_torch(volume: torch.Tensor, affine: NDArray, poses: NDArray, s
     """
     if offsets_mm is None:
         offsets_mm, weights = np.zeros(1), np.ones(1)
-    xy = slice_pixel_coordinates(size, pixel_mm)                                     # [L, L, 2]
-    local = np.concatenate([np.broadcast_to(xy, (len(offsets_mm), size, size, 2)),
-                            np.broadcast_to(offsets_mm[:, None, None, None], (len(offsets_mm), size, size, 1))], -1)
+    # The map slice mm (x, y, z) -> grid_sample's normalised (k, j, i) coordinates is affine per pose:
+    # columns c0, c1, c2 and offset d. Built in float64 (tiny), applied in float32 by broadcasting.
     vox_from_slice = np.linalg.inv(affine) @ poses                                  # [B, 4, 4]
-    vox = np.einsum("bij,orcj->borci", vox_from_slice[:, :3, :3], local) + vox_from_slice[:, None, None, None, :3, 3]
     shape = np.array(volume.shape[2:], dtype=np.float64)
-    norm = 2.0 * vox / (shape - 1.0) - 1.0                                           # (i, j, k) -> [-1, 1]
-    grid = torch.from_numpy(norm[..., ::-1].astype(np.float32).reshape(1, -1, size, size, 3).copy())
+    norm = np.diag(np.append(2.0 / (shape - 1.0), 1.0))
+    norm[:3, 3] = -1.0
+    lin = (norm @ vox_from_slice)[:, [2, 1, 0], :]                                   # [B, 3 (k, j, i), 4]
+    lin_t = torch.from_numpy(lin.astype(np.float32))
+    xy = torch.from_numpy(slice_pixel_coordinates(size, pixel_mm).astype(np.float32))     # [L, L, 2]
+    plane = xy[None, ..., 0:1] * lin_t[:, None, None, :, 0] + xy[None, ..., 1:2] * lin_t[:, None, None, :, 1]
+    z = torch.from_numpy(np.asarray(offsets_mm, dtype=np.float32))                      # plane: [B, L, L, 3]
+    shift = z[None, :, None] * lin_t[:, None, :, 2] + lin_t[:, None, :, 3]                # [B, O, 3]
+    grid = (plane[:, None] + shift[:, :, None, None, :]).reshape(1, -1, size, size, 3)
     out = F.grid_sample(volume, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
     out = out.reshape(volume.shape[1], len(poses), len(offsets_mm), size, size)
     w = torch.from_numpy(np.asarray(weights, dtype=np.float32))

@@ -1,26 +1,43 @@
-"""Training: simulated slices streamed from a worker process, Adam with step decay, checkpoints.
+"""Training: simulated slices streamed from worker processes, Adam with step decay, checkpoints.
 
-The worker keeps a pool of clean acquisitions (the expensive 3D sampling) and re-corrupts and
-re-preprocesses each of them several times (``reuse``) with fresh draws, so that the two CPU cores
-are shared between simulation and the network without starving either.
+* Data: :class:`~model_export.stream.SliceStream` workers (CPU) simulate slices exactly as the
+  service preprocesses them; the network trains on ``device`` (``cpu``, ``cuda`` or ``auto``).
+* Loss: point labels (``anchor``, ``grid``) train with :func:`~model_export.losses.point_loss`
+  (``l2``, or mirror-aware ``min`` / ``invariant``); other labels with the paper's multi-loss.
+* Validation: deterministic pass on fixed held-out slices; the error against the truth (E.D.) and
+  the twin-min E.D. (to whichever of truth and twin is nearer); the best checkpoint is chosen on
+  the twin-min E.D. (a single slice cannot tell the twins apart).
+* Training compounds: every checkpoint carries ``history``, one segment per run (hardware, device,
+  samples, seconds, loss, label), and ``samples_seen`` / ``train_seconds`` are the totals over all
+  of them. ``resume`` continues a run exactly; ``init`` starts a new stage from a checkpoint's
+  weights (the whole network, or only the trunk when the label type changes). ``max_minutes``
+  stops at a checkpoint when a wall-clock budget is spent (a later ``resume`` goes on).
 """
 
 from __future__ import annotations
 
 import csv
 import json
+import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
-from torch.utils.data import DataLoader, IterableDataset
+from torch.utils.data import DataLoader
 
-from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
+from model_export.atlas import DEFAULT_ATLAS_ROOT, split
+from model_export.losses import check_label_type, point_loss
 from model_export.model import SVRNet, multi_loss
-from model_export.simulate import Acquisition, SimulationConfig, SliceBatch, SliceSimulator
+from model_export.simulate import SimulationConfig
+from model_export.stream import SliceStream, label_sample, validation_set
 from service.geometry import anchors, encodings, se3
+from service.geometry.twin import POINT_LABELS, twin
+
+__all__ = ["TrainConfig", "train", "predict_poses", "pose_errors", "validation_set", "totals", "hardware"]
+
+LEGACY_HARDWARE = "2-core shared CPU (earlier sessions)"
 
 
 @dataclass
@@ -41,6 +58,8 @@ class TrainConfig:
     spatial_grid: int = 3
     grid_channels: int = 32
     loss_weights: tuple[float, ...] | None = None
+    loss: str = "l2"
+    plane_x_mm: float = 0.0
     seed: int = 0
     val_every: int = 500
     val_per_volume: int = 100
@@ -48,79 +67,100 @@ class TrainConfig:
     pool: int = 24
     threads: int = 1
     workers: int = 2
+    device: str = "cpu"
+    channels_last: bool = False
+    max_minutes: float | None = None
     train_volumes: list[str] | None = None
     val_volumes: list[str] | None = None
     simulation: dict = field(default_factory=dict)
     init_from: dict | None = None
 
 
-class SliceStream(IterableDataset):
-    """Endless batches from a :class:`SliceSimulator` with a pool of reusable acquisitions."""
-
-    def __init__(self, names: list[str], root: Path, sim: SimulationConfig, label_type: str, batch: int,
-                 reuse: int, pool: int, seed: int) -> None:
-        self.names, self.root, self.sim, self.label_type, self.batch = names, root, sim, label_type, batch
-        self.reuse, self.pool, self.seed = reuse, pool, seed
-
-    def __iter__(self):  # noqa: ANN204 - generator
-        torch.set_num_threads(1)
-        info = torch.utils.data.get_worker_info()
-        rng = np.random.default_rng(self.seed + (info.id if info else 0) * 7919)
-        simulator = SliceSimulator(load_volumes(self.names, self.root), self.sim)
-        per_group = 16
-        groups = max(1, self.batch // per_group)
-
-        def fresh():
-            i = int(rng.integers(len(simulator.volumes)))
-            c = simulator.config
-            poses = simulator.sample_poses(simulator.volumes[i], per_group, rng)
-            acq, thick, k = (float(rng.uniform(*c.acq_pixel_mm)), float(rng.uniform(*c.thickness_mm)),
-                             float(rng.uniform(*c.brain_scale)))
-            img, mask = simulator.acquire(i, poses, acq, thick, k)
-            return Acquisition(img, mask, poses, acq, thick, k, simulator.volumes[i].name)
-
-        pool = [fresh() for _ in range(self.pool)]
-        refresh = max(1, round(groups / self.reuse))
-        while True:
-            picks = rng.choice(len(pool), size=groups, replace=False)
-            parts = [simulator.finish(pool[j], rng) for j in picks]
-            x = np.concatenate([p.inputs for p in parts])
-            y = np.concatenate([encodings.encode(self.label_type, p.poses) for p in parts])
-            yield torch.from_numpy(x[:, None]), torch.from_numpy(y.astype(np.float32))
-            for j in rng.choice(len(pool), size=refresh, replace=False):
-                pool[j] = fresh()
+def resolve_device(name: str) -> torch.device:
+    """``auto`` -> ``cuda`` when available, else ``cpu``."""
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    return torch.device(name)
 
 
-def validation_set(names: list[str], root: Path, per_volume: int, seed: int = 12345,
-                   config: SimulationConfig | None = None) -> SliceBatch:
-    """Fixed validation slices (3 mm thick, noisy) from whole held-out volumes."""
-    sim = SliceSimulator(load_volumes(names, root), config or SimulationConfig.validation())
-    rng = np.random.default_rng(seed)
-    parts = [sim.simulate(i, per_volume, rng) for i in range(len(sim.volumes))]
-    return SliceBatch(np.concatenate([p.inputs for p in parts]), np.concatenate([p.poses for p in parts]),
-                      sum((p.volume for p in parts), []), np.concatenate([p.thickness_mm for p in parts]))
+def hardware(device: torch.device) -> str:
+    """A short description of what trains: the GPU's name, or the CPU's core count."""
+    if device.type == "cuda":
+        return torch.cuda.get_device_name(device)
+    return f"CPU, {os.cpu_count()} cores"
 
 
-def label_sample(cfg: TrainConfig, root: Path, sim: SimulationConfig, n_per_volume: int = 200) -> np.ndarray:
-    """Labels of random training poses (no rendering), for the output normalisation."""
-    rng = np.random.default_rng(cfg.seed)
-    simulator = SliceSimulator(load_volumes(cfg.train_volumes, root), sim)
-    poses = np.concatenate([simulator.sample_poses(v, n_per_volume, rng) for v in simulator.volumes])
-    return encodings.encode(cfg.label_type, poses)
+def totals(history: list[dict]) -> dict:
+    """Samples and hours over all training segments, overall and per hardware.
+
+    Example:
+        >>> totals([{"hardware": "a", "samples": 10, "seconds": 3600}, {"hardware": "b", "samples": 5, "seconds": 0}])
+        {'samples': 15, 'hours': 1.0, 'by_hardware': {'a': {'samples': 10, 'hours': 1.0}, 'b': {'samples': 5, 'hours': 0.0}}}
+    """
+    by: dict[str, dict] = {}
+    for seg in history:
+        d = by.setdefault(seg["hardware"], {"samples": 0, "hours": 0.0})
+        d["samples"] += int(seg["samples"])
+        d["hours"] += seg["seconds"] / 3600
+    return {"samples": sum(d["samples"] for d in by.values()), "hours": sum(d["hours"] for d in by.values()),
+            "by_hardware": by}
+
+
+def prior_history(ck: dict) -> list[dict]:
+    """The training segments behind a checkpoint (one synthesised segment for older checkpoints)."""
+    if ck.get("history"):
+        return list(ck["history"])
+    cfg = ck.get("config", {})
+    return [{"hardware": LEGACY_HARDWARE, "device": "cpu", "samples": int(ck.get("samples_seen", 0)),
+             "seconds": float(ck.get("train_seconds", 0.0)), "steps": int(ck.get("step", 0)),
+             "label_type": cfg.get("label_type", "anchor"), "loss": cfg.get("loss", "l2")}]
 
 
 @torch.no_grad()
 def predict_poses(model: SVRNet, inputs: np.ndarray, batch: int = 256) -> np.ndarray:
-    """Deterministic (eval-mode) poses ``[B, 4, 4]`` of network inputs ``[B, L, L]``."""
+    """Deterministic (eval-mode) poses ``[B, 4, 4]`` of network inputs ``[B, L, L]`` (on the model's device)."""
     model.eval()
-    out = [model(torch.from_numpy(inputs[i:i + batch, None])).double().numpy() for i in range(0, len(inputs), batch)]
+    device = next(model.parameters()).device
+    out = [model(torch.from_numpy(inputs[i:i + batch, None]).to(device)).double().cpu().numpy()
+           for i in range(0, len(inputs), batch)]
     return encodings.decode(model.label_type, np.concatenate(out))
 
 
-def pose_errors(pred: np.ndarray, true: np.ndarray) -> dict[str, np.ndarray]:
-    """Per-slice mean anchor-point Euclidean distance (mm) and geodesic distance."""
-    ed = np.linalg.norm((anchors.encode(pred) - anchors.encode(true)).reshape(-1, 3, 3), axis=-1).mean(-1)
-    return {"ed_mm": ed, "gd": se3.geodesic_distance(pred, true)}
+def pose_errors(pred: np.ndarray, true: np.ndarray, plane_x_mm: float = 0.0) -> dict[str, np.ndarray]:
+    """Per slice: the mean anchor-point E.D. (mm) to the truth and to the nearer twin, and the G.D.
+
+    Returns ``ed_mm`` (against the truth), ``ed_twin_mm`` (twin-min: against whichever of the truth
+    and its twin is nearer), ``on_twin`` (the twin is strictly nearer) and ``gd`` (to the truth).
+    """
+    def ed(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.linalg.norm((anchors.encode(a) - anchors.encode(b)).reshape(-1, 3, 3), axis=-1).mean(-1)
+
+    e_true, e_twin = ed(pred, true), ed(pred, twin(true, plane_x_mm))
+    return {"ed_mm": e_true, "ed_twin_mm": np.minimum(e_true, e_twin), "on_twin": e_twin < e_true,
+            "gd": se3.geodesic_distance(pred, true)}
+
+
+def _load_init(model: SVRNet, ck: dict, path: Path) -> bool:
+    """Load ``ck``'s weights into ``model``: all of them, or the trunk only for another label type.
+
+    Returns True when the whole network (and its label normalisation) was loaded.
+    """
+    mine, theirs = model.config, {"spatial_grid": 0, **ck["model_config"]}
+    if {**theirs, "dropout": mine["dropout"]} == mine:
+        model.load_state_dict(ck["model"])
+        return True
+    if {**theirs, "dropout": mine["dropout"], "label_type": mine["label_type"]} != mine:
+        raise ValueError(f"--init {path}: its network {ck['model_config']} differs from {mine}")
+    trunk = {k: v for k, v in ck["model"].items() if k.startswith(("trunk.", "grid.", "head.shared."))}
+    model.load_state_dict(trunk, strict=False)
+    return False
+
+
+def _loss(model: SVRNet, x: torch.Tensor, y: torch.Tensor, cfg: TrainConfig) -> torch.Tensor:
+    if cfg.label_type in POINT_LABELS:
+        return point_loss(model(x), y, model.label_mean, model.label_scale, cfg.loss, cfg.plane_x_mm).mean()
+    target = (y - model.label_mean) / model.label_scale
+    return multi_loss(model.normalised(x), target, cfg.label_type, cfg.loss_weights)[0]
 
 
 def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resume: Path | None = None,
@@ -130,104 +170,158 @@ def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resu
     Args:
         cfg: the run's configuration.
         out_dir: run folder (checkpoints, ``log.csv``, ``loss.png``, ``summary.json``).
-        root: the atlas folder.
-        resume: continue a run exactly (weights, optimiser, learning-rate schedule, step).
+        root: the atlas folder or a packed folder (:func:`model_export.atlas.pack`).
+        resume: continue a run exactly (weights, optimiser, learning-rate schedule, step, history).
         progress: show a progress bar.
         init: start from this checkpoint's weights (and label normalisation) with a fresh optimiser
-            and schedule of ``cfg.steps`` -- a second training stage. Samples seen and training time
-            carry over, so the figures of the final checkpoint are the totals.
+            and schedule of ``cfg.steps`` -- a new training stage. Its history carries over, so the
+            figures of the final checkpoint are the totals.
     """
+    check_label_type(cfg.label_type, cfg.loss)
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
+    device = resolve_device(cfg.device)
     train_names, val_names = split(root)
     cfg.train_volumes = cfg.train_volumes or train_names
     cfg.val_volumes = cfg.val_volumes or val_names
     sim = SimulationConfig(sampling=cfg.sampling, **cfg.simulation)
     model = SVRNet(cfg.backbone, cfg.width, cfg.label_type, sim.size, cfg.hidden, cfg.dropout, cfg.spatial_grid,
                    cfg.grid_channels)
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
-    milestones = [int(m * cfg.steps) for m in cfg.lr_milestones]
-    sched = torch.optim.lr_scheduler.MultiStepLR(opt, milestones, cfg.lr_gamma)
-    val = validation_set(cfg.val_volumes, root, cfg.val_per_volume,
-                         config=SimulationConfig.validation(size=sim.size, pixel_mm=sim.pixel_mm))
-    step, best, seen, elapsed = 0, float("inf"), 0, 0.0
+    step, best, history = 0, float("inf"), []
+    ck = None
     if resume is not None:
         ck = torch.load(resume, map_location="cpu", weights_only=False)
         model.load_state_dict(ck["model"])
+        step, best = ck["step"], ck.get("best_ed_mm", best)
+        history = prior_history(ck)
+        cfg.init_from = ck["config"].get("init_from")
+    elif init is not None:
+        prev = torch.load(init, map_location="cpu", weights_only=False)
+        whole = _load_init(model, prev, init)
+        if not whole:
+            model.set_label_normalisation(torch.from_numpy(
+                label_sample(cfg.train_volumes, cfg.label_type, root, sim, cfg.seed)).float())
+        history = prior_history(prev)
+        cfg.init_from = {"checkpoint": str(init), "steps": prev["step"], "samples_seen": prev.get("samples_seen", 0),
+                         "train_seconds": prev.get("train_seconds", 0.0), "whole_network": whole,
+                         "val_ed_mm": prev.get("val_ed_mm", float("nan"))}
+    else:
+        model.set_label_normalisation(torch.from_numpy(
+            label_sample(cfg.train_volumes, cfg.label_type, root, sim, cfg.seed)).float())
+    model.to(device)
+    if cfg.channels_last:
+        model.to(memory_format=torch.channels_last)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    milestones = [int(m * cfg.steps) for m in cfg.lr_milestones]
+    sched = torch.optim.lr_scheduler.MultiStepLR(opt, milestones, cfg.lr_gamma)
+    if resume is not None:
         opt.load_state_dict(ck["optimizer"])
         sched.load_state_dict(ck["scheduler"])
-        step, best, seen, elapsed = ck["step"], ck.get("best_ed_mm", best), ck.get("samples_seen", 0), ck.get("train_seconds", 0.0)
-    elif init is not None:
-        ck = torch.load(init, map_location="cpu", weights_only=False)
-        if {**ck["model_config"], "dropout": model.config["dropout"]} != model.config:
-            raise ValueError(f"--init {init}: its network {ck['model_config']} differs from {model.config}")
-        model.load_state_dict(ck["model"])
-        seen, elapsed = ck.get("samples_seen", 0), ck.get("train_seconds", 0.0)
-        cfg.init_from = {"checkpoint": str(init), "steps": ck["step"], "samples_seen": seen,
-                         "train_seconds": elapsed, "val_ed_mm": ck.get("val_ed_mm", float("nan"))}
-    else:
-        model.set_label_normalisation(torch.from_numpy(label_sample(cfg, root, sim)).float())
+    # This run's own segment; a resumed run continues the segment of its checkpoint when the hardware matches.
+    segment = {"hardware": hardware(device), "device": device.type, "samples": 0, "seconds": 0.0, "steps": 0,
+               "label_type": cfg.label_type, "loss": cfg.loss, "run": str(out_dir)}
+    if resume is not None and history and history[-1].get("run") == str(out_dir) \
+            and history[-1]["hardware"] == segment["hardware"]:
+        segment = history.pop()
+    base = {"samples": segment["samples"], "seconds": segment["seconds"], "steps": segment["steps"]}
+    val = validation_set(cfg.val_volumes, root, cfg.val_per_volume,
+                         config=SimulationConfig.validation(size=sim.size, pixel_mm=sim.pixel_mm))
 
     stream = SliceStream(cfg.train_volumes, root, sim, cfg.label_type, cfg.batch, cfg.reuse, cfg.pool, cfg.seed + step)
-    loader = iter(DataLoader(stream, batch_size=None, num_workers=cfg.workers, prefetch_factor=4, persistent_workers=True))
+    loader = iter(DataLoader(stream, batch_size=None, num_workers=cfg.workers, prefetch_factor=4 if cfg.workers else None,
+                             persistent_workers=cfg.workers > 0, pin_memory=device.type == "cuda"))
     log_path = out_dir / "log.csv"
     new_log = not log_path.exists() or resume is None
     log = open(log_path, "w" if new_log else "a", newline="")
     writer = csv.writer(log)
-    branches = [n for n, _ in encodings.get(cfg.label_type).branches]
     if new_log:
-        writer.writerow(["step", "samples", "seconds", "lr", "loss", *branches, "val_ed_mm", "val_ed_median_mm", "val_gd"])
+        writer.writerow(["step", "samples", "seconds", "lr", "loss", "val_ed_mm", "val_ed_median_mm",
+                         "val_twin_ed_mm", "val_twin_ed_median_mm", "val_twin_ed_p90_mm", "val_twin_under_10mm",
+                         "val_gd"])
 
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
-    bar = Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                   TextColumn("{task.fields[info]}"), TimeRemainingColumn(), disable=not progress)
+    bar = _progress_bar(progress)
     best_path = out_dir / "best.pt"
-    t0 = time.perf_counter() - elapsed
+    t_start, run_steps = time.perf_counter(), 0
+    deadline = t_start + 60.0 * cfg.max_minutes if cfg.max_minutes is not None else float("inf")
     with bar:
         task = bar.add_task("training", total=cfg.steps, completed=step, info="")
         running = None
         while step < cfg.steps:
             model.train()
             x, y = next(loader)
-            target = (y - model.label_mean) / model.label_scale
-            loss, parts = multi_loss(model.normalised(x), target, cfg.label_type, cfg.loss_weights)
+            x, y = x.to(device, non_blocking=True), y.to(device, non_blocking=True)
+            if cfg.channels_last:
+                x = x.contiguous(memory_format=torch.channels_last)
+            loss = _loss(model, x, y, cfg)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
             sched.step()
             step += 1
-            seen += len(x)
-            running = float(loss.detach()) if running is None else 0.98 * running + 0.02 * float(loss.detach())
+            run_steps += 1
+            value = float(loss.detach())
+            running = value if running is None else 0.98 * running + 0.02 * value
+            out_of_time = time.perf_counter() >= deadline
+            segment.update(samples=base["samples"] + run_steps * cfg.batch, steps=base["steps"] + run_steps,
+                           seconds=base["seconds"] + time.perf_counter() - t_start)
             row = None
-            if step % cfg.val_every == 0 or step == cfg.steps:
-                err = pose_errors(predict_poses(model, val.inputs), val.poses)
-                ed, gd = float(err["ed_mm"].mean()), float(err["gd"].mean())
-                row = [ed, float(np.median(err["ed_mm"])), gd]
-                state = dict(model=model.state_dict(), optimizer=opt.state_dict(), scheduler=sched.state_dict(),
-                             step=step, samples_seen=seen, train_seconds=time.perf_counter() - t0,
-                             config=asdict(cfg), model_config=model.config, simulation=asdict(sim),
-                             best_ed_mm=min(best, ed), val_ed_mm=ed)
+            if step % cfg.val_every == 0 or step == cfg.steps or out_of_time:
+                err = pose_errors(predict_poses(model, val.inputs), val.poses, cfg.plane_x_mm)
+                ed, ed_twin = err["ed_mm"], err["ed_twin_mm"]
+                score = float(ed_twin.mean())
+                row = [float(ed.mean()), float(np.median(ed)), score, float(np.median(ed_twin)),
+                       float(np.percentile(ed_twin, 90)), float((ed_twin < 10.0).mean()), float(err["gd"].mean())]
+                full = history + [dict(segment)]
+                tot = totals(full)
+                state = dict(model={k: v.cpu() for k, v in model.state_dict().items()}, optimizer=opt.state_dict(),
+                             scheduler=sched.state_dict(), step=step, samples_seen=tot["samples"],
+                             train_seconds=tot["hours"] * 3600, history=full, config=asdict(cfg),
+                             model_config=model.config, simulation=asdict(sim), best_ed_mm=min(best, score),
+                             val_ed_mm=float(ed.mean()), val_twin_ed_mm=score)
                 torch.save(state, out_dir / "last.pt")
-                if ed < best:
-                    best = ed
+                if score < best:
+                    best = score
                     torch.save(state, best_path)
-                bar.update(task, info=f"loss {running:.3f} val E.D. {ed:.2f} mm (best {best:.2f})")
+                bar.update(task, info=f"loss {running:.3f} val twin-min E.D. {score:.2f} mm (best {best:.2f})")
             if step % 50 == 0 or row is not None:
-                writer.writerow([step, seen, round(time.perf_counter() - t0, 1), sched.get_last_lr()[0],
-                                 round(running, 5), *[round(parts[b], 5) for b in branches], *(row or ["", "", ""])])
+                writer.writerow([step, totals(history + [segment])["samples"], round(segment["seconds"], 1),
+                                 sched.get_last_lr()[0], round(running, 5), *(row or [""] * 7)])
                 log.flush()
             bar.update(task, completed=step)
+            if out_of_time:
+                break
     log.close()
     plot_log(log_path, out_dir / "loss.png")
-    (out_dir / "summary.json").write_text(json.dumps({"best_val_ed_mm": best, "steps": step, "samples_seen": seen,
-                                                      "train_seconds": time.perf_counter() - t0}, indent=2))
+    (out_dir / "summary.json").write_text(json.dumps({"best_val_twin_ed_mm": best, "steps": step,
+                                                      "finished": step >= cfg.steps,
+                                                      "totals": totals(history + [segment])}, indent=2))
     return best_path
 
 
+def _progress_bar(progress: bool):  # noqa: ANN202 - rich's Progress, or a silent stand-in
+    """A rich progress bar; a silent stand-in when rich is missing (a bare GPU host) or not wanted."""
+    try:
+        from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+    except ImportError:
+        progress = False
+    if not progress:
+        class Silent:
+            def __enter__(self): return self                   # noqa: E704, ANN204
+            def __exit__(self, *exc): return False             # noqa: E704, ANN204, ANN002
+            def add_task(self, *a, **k): return 0              # noqa: E704, ANN202, ANN002, ANN003
+            def update(self, *a, **k): pass                    # noqa: E704, ANN202, ANN002, ANN003
+        return Silent()
+    return Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                    TextColumn("{task.fields[info]}"), TimeRemainingColumn())
+
+
 def plot_log(log_path: Path, png: Path) -> None:
-    """Loss and validation E.D. curves from a training log."""
-    import matplotlib
+    """Loss and validation E.D. curves (truth and twin-min) from a training log (skipped without matplotlib)."""
+    try:
+        import matplotlib
+    except ImportError:
+        return
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -237,10 +331,54 @@ def plot_log(log_path: Path, png: Path) -> None:
         return
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.5))
     ax[0].plot([int(r["samples"]) for r in rows], [float(r["loss"]) for r in rows])
-    ax[0].set(xlabel="samples", ylabel="multi-loss (normalised)", yscale="log", title="training loss")
+    ax[0].set(xlabel="samples (total)", ylabel="loss (normalised)", yscale="log", title="training loss")
     val = [r for r in rows if r["val_ed_mm"]]
-    ax[1].plot([int(r["samples"]) for r in val], [float(r["val_ed_mm"]) for r in val], "o-")
-    ax[1].set(xlabel="samples", ylabel="mm", title="validation mean anchor E.D.")
+    ax[1].plot([int(r["samples"]) for r in val], [float(r["val_ed_mm"]) for r in val], "o-", label="E.D.")
+    ax[1].plot([int(r["samples"]) for r in val], [float(r["val_twin_ed_mm"]) for r in val], "s-", label="twin-min E.D.")
+    ax[1].set(xlabel="samples (total)", ylabel="mm", title="validation mean anchor E.D.")
+    ax[1].legend()
     fig.tight_layout()
     fig.savefig(png, dpi=100)
     plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> Path:
+    """``python -m model_export.train``: the same training with numpy, scipy and torch only (no typer).
+
+    For a bare GPU host. Any :class:`TrainConfig` field is set as ``field=value`` (JSON values); with
+    ``--resume`` the run's own configuration is the starting point, so only changes need naming.
+
+    Example:
+        python -m model_export.train --out $OUT/run --root data/packed --init service/models/default/checkpoint.pt \\
+            device=auto workers=14 loss='"min"' steps=20000 max_minutes=8.5
+    """
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m model_export.train", description=main.__doc__)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--root", type=Path, default=DEFAULT_ATLAS_ROOT)
+    ap.add_argument("--init", type=Path)
+    ap.add_argument("--resume", type=Path)
+    ap.add_argument("fields", nargs="*", help="TrainConfig overrides, field=value (JSON)")
+    args = ap.parse_args(argv)
+    values = {}
+    for item in args.fields:
+        key, _, raw = item.partition("=")
+        if key not in TrainConfig.__dataclass_fields__:
+            ap.error(f"unknown TrainConfig field {key!r}")
+        try:
+            values[key] = json.loads(raw)
+        except json.JSONDecodeError:
+            values[key] = raw                      # a bare string: loss=min
+    if args.resume is not None:
+        saved = torch.load(args.resume, map_location="cpu", weights_only=False)["config"]
+        values = {**{k: v for k, v in saved.items() if k in TrainConfig.__dataclass_fields__}, **values}
+    if "lr_milestones" in values:
+        values["lr_milestones"] = tuple(values["lr_milestones"])
+    best = train(TrainConfig(**values), args.out, args.root, resume=args.resume, init=args.init, progress=False)
+    print(json.loads((args.out / "summary.json").read_text()))
+    return best
+
+
+if __name__ == "__main__":
+    main()

@@ -1,4 +1,4 @@
-"""Pose label encodings of the paper: anchor points (9), Euler-Cartesian (6), Quaternion-Cartesian (7).
+"""Pose label encodings: the paper's anchor points (9), Euler-Cartesian (6), Quaternion-Cartesian (7), and a grid (192).
 
 Each encoding is a pair of vectorised functions pose ``[..., 4, 4]`` <-> label ``[..., D]`` and a
 list of named components, one per output branch of the network (the multi-loss framework).
@@ -7,6 +7,8 @@ list of named components, one per output branch of the network (the multi-loss f
 * ``euler``: extrinsic x-y-z Euler angles (radians), then the translation (mm).
 * ``quaternion``: unit quaternion ``(w, x, y, z)`` with ``w >= 0``, then the translation (mm);
   decoding normalises the predicted quaternion (PoseNet convention).
+* ``grid``: the atlas mm of an ``8 x 8`` grid of slice-plane points (see :mod:`service.geometry.grid`),
+  decoded by a weighted Kabsch fit (always a proper rotation).
 
 Example:
     >>> import numpy as np
@@ -25,7 +27,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from service.geometry import anchors
+from service.geometry import anchors, grid
 from service.geometry.pose import make_pose
 
 
@@ -77,12 +79,14 @@ ENCODINGS: dict[str, Encoding] = {
                       euler_encode, euler_decode),
     "quaternion": Encoding("quaternion", 7, (("rotation", slice(0, 4)), ("translation", slice(4, 7))),
                            quaternion_encode, quaternion_decode),
+    "grid": Encoding("grid", 3 * grid.GRID_SIZE**2, (("points", slice(0, 3 * grid.GRID_SIZE**2)),),
+                     grid.encode, grid.decode),
 }
 LABEL_TYPES = tuple(ENCODINGS)
 
 
 def get(label_type: str) -> Encoding:
-    """The :class:`Encoding` called ``label_type`` (``anchor``, ``euler`` or ``quaternion``)."""
+    """The :class:`Encoding` called ``label_type`` (``anchor``, ``euler``, ``quaternion`` or ``grid``)."""
     try:
         return ENCODINGS[label_type]
     except KeyError:

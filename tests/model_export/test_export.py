@@ -137,3 +137,25 @@ def test_tiny_pipeline_trains_exports_and_loads(phantom_atlas: Path, tmp_path: P
     with pytest.raises(ValueError, match="differs"):
         train(TrainConfig(**{**stage.__dict__, "hidden": 64}), tmp_path / "bad", phantom_atlas,
               init=tmp_path / "run" / "last.pt", progress=False)
+
+
+def test_a_grid_model_exports_and_the_service_decodes_it(tmp_path: Path) -> None:
+    """The grid label through ONNX and the service's statistics: 192 outputs, proper mean poses."""
+    torch.manual_seed(1)
+    model = SVRNet("compact", 0.25, "grid", SIZE, hidden=32, dropout=0.25)
+    model.set_label_normalisation(torch.from_numpy(encodings.encode("grid", np.stack([np.eye(4)] * 2))).float()
+                                  + torch.randn(2, 192) * 30)
+    model.eval()
+    meta = build_metadata(model, name="g", version="0", pixel_mm=2.0, variance_threshold=1.0, atlas_id="p",
+                          training_data="none", licences="n/a", symmetry_plane_x_mm=0.5)
+    path = export_onnx(model, tmp_path / "g.onnx", meta)
+    m = load_model(path)
+    assert m.info.label_type == "grid" and m.info.symmetry_plane_x_mm == 0.5
+    assert m.run(inputs(2)[:, 0], np.ones(4, np.float32)).shape == (2, 4, 192)
+    est = OnnxPoseEstimator(m).estimate(inputs(3)[:, 0], 10)
+    rot = est.mean[:, :3, :3]
+    assert np.allclose(np.linalg.det(rot), 1.0) and np.all(np.isfinite(est.variance))
+    with torch.no_grad():
+        ref = model(torch.from_numpy(inputs(3))).double().numpy()
+    det = OnnxPoseEstimator(m).sample_labels(inputs(3)[:, 0], 0)[:, 0]
+    assert np.allclose(det, ref, atol=1e-3)

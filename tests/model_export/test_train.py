@@ -1,0 +1,127 @@
+"""Training that compounds: packed volumes, any device, totals over stages, a wall-clock stop."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from model_export.atlas import load_volumes, pack
+from model_export.model import SVRNet
+from model_export.stream import validation_set
+from model_export.train import LEGACY_HARDWARE, TrainConfig, _load_init, pose_errors, prior_history, totals, train
+from service.geometry import iterators, twin
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.fixture(scope="module")
+def packed(phantom_atlas: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return pack(tmp_path_factory.mktemp("packed"), phantom_atlas)
+
+
+def test_packed_volumes_simulate_the_same_slices(phantom_atlas: Path, packed: Path) -> None:
+    a, b = load_volumes(None, phantom_atlas), load_volumes(None, packed)
+    assert [v.name for v in a] == [v.name for v in b]
+    assert all(np.allclose(u.centre, v.centre) for u, v in zip(a, b))
+    assert b[0].image.size < a[0].image.size                       # cropped to the non-zero box
+    names = [a[0].name, a[1].name]
+    va, vb = validation_set(names, phantom_atlas, 6), validation_set(names, packed, 6)
+    assert np.allclose(va.poses, vb.poses)
+    assert np.abs(va.inputs - vb.inputs).max() < 0.05              # 0-255 scale: float32 rounding only
+
+
+def test_packed_volumes_load_without_simpleitk(packed: Path) -> None:
+    code = ("import sys; sys.modules['SimpleITK'] = None\n"
+            "from model_export.atlas import load_volumes, split\n"
+            f"print(len(load_volumes(None, {str(packed)!r})), len(split({str(packed)!r})[1]))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["7", "5"]
+
+
+def test_pose_errors_report_the_truth_and_the_nearer_twin() -> None:
+    rng = np.random.default_rng(0)
+    true = iterators.random_poses(8, rng, tz_max_mm=10.0, centre=np.array([20.0, 0.0, 0.0]))
+    pred = true.copy()
+    pred[4:] = twin.twin(true[4:], 0.5)
+    err = pose_errors(pred, true, plane_x_mm=0.5)
+    assert np.allclose(err["ed_twin_mm"], 0.0, atol=1e-9)
+    assert np.allclose(err["ed_mm"][:4], 0.0) and np.all(err["ed_mm"][4:] > 1.0)
+    assert err["on_twin"].tolist() == [False] * 4 + [True] * 4
+
+
+def test_totals_add_up_segments_and_legacy_checkpoints() -> None:
+    legacy = prior_history({"samples_seen": 1000, "train_seconds": 7200.0, "step": 10, "config": {}})
+    assert legacy[0]["hardware"] == LEGACY_HARDWARE and legacy[0]["samples"] == 1000
+    t = totals(legacy + [{"hardware": "GPU", "samples": 500, "seconds": 1800.0}])
+    assert t["samples"] == 1500 and t["hours"] == pytest.approx(2.5)
+    assert t["by_hardware"]["GPU"] == {"samples": 500, "hours": 0.5}
+
+
+def test_init_across_label_types_loads_the_trunk_only() -> None:
+    torch.manual_seed(0)
+    anchor = SVRNet("compact", 0.25, "anchor", 48, 32, 0.25, 3, 8)
+    ck = {"model": anchor.state_dict(), "model_config": anchor.config}
+    grid = SVRNet("compact", 0.25, "grid", 48, 32, 0.5, 3, 8)
+    assert _load_init(grid, ck, Path("x")) is False
+    a, g = anchor.state_dict(), grid.state_dict()
+    assert all(torch.equal(a[k], g[k]) for k in a if k.startswith(("trunk.", "grid.", "head.shared.")))
+    assert g["head.branches.0.weight"].shape == (192, 32)
+    with pytest.raises(ValueError, match="differs"):
+        _load_init(SVRNet("compact", 0.25, "grid", 48, 64, 0.5, 3, 8), ck, Path("x"))
+
+
+def _tiny(**kw: object) -> TrainConfig:
+    base = dict(backbone="compact", width=0.25, steps=4, batch=16, lr=1e-3, val_every=2, val_per_volume=4, reuse=2,
+                pool=3, hidden=32, grid_channels=8, workers=0, simulation=dict(size=48, pixel_mm=2.5))
+    return TrainConfig(**{**base, **kw})
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_training_compounds_on_any_device(device: str, packed: Path, tmp_path: Path) -> None:
+    """The code path a GPU host runs (there with device="cuda"): stages, totals, a stop and a resume."""
+    train(_tiny(device=device, loss="min", channels_last=True), tmp_path / "a", packed, progress=False)
+    first = torch.load(tmp_path / "a" / "last.pt", weights_only=False)
+    assert first["samples_seen"] == 64 and first["history"][-1]["device"] == device
+    assert all(v.device.type == "cpu" for v in first["model"].values())   # checkpoints load anywhere
+    assert first["val_twin_ed_mm"] <= first["val_ed_mm"]
+    # A new stage with another label and loss, stopped by its wall-clock budget after one step...
+    stage = _tiny(device=device, label_type="grid", loss="invariant", steps=3, max_minutes=0.0)
+    train(stage, tmp_path / "b", packed, init=tmp_path / "a" / "last.pt", progress=False)
+    stopped = torch.load(tmp_path / "b" / "last.pt", weights_only=False)
+    assert stopped["step"] == 1 and stopped["config"]["init_from"]["whole_network"] is False
+    # ... and resumed to its end: one segment per run folder, totals over both stages.
+    stage.max_minutes = None
+    train(stage, tmp_path / "b", packed, resume=tmp_path / "b" / "last.pt", progress=False)
+    done = torch.load(tmp_path / "b" / "last.pt", weights_only=False)
+    assert done["step"] == 3 and len(done["history"]) == 2
+    assert done["samples_seen"] == 64 + 3 * 16
+    assert done["train_seconds"] == pytest.approx(sum(s["seconds"] for s in done["history"]))
+    log = (tmp_path / "b" / "log.csv").read_text().splitlines()
+    assert log[0].split(",")[7] == "val_twin_ed_mm" and log[-1].startswith("3,")
+
+
+def test_module_entry_point_trains_without_typer_rich_or_matplotlib(packed: Path, tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """``python -m model_export.train``: what a bare GPU host runs (numpy, scipy, torch only)."""
+    from model_export.train import main
+
+    for name in ("rich", "rich.progress", "matplotlib", "typer"):
+        monkeypatch.setitem(sys.modules, name, None)
+    fields = ["backbone=compact", "width=0.25", "steps=2", "batch=16", "val_every=2", "val_per_volume=4", "reuse=2",
+              "pool=3", "hidden=32", "grid_channels=8", "workers=0", "loss=min", "device=cpu",
+              'simulation={"size": 48, "pixel_mm": 2.5}', "lr_milestones=[]"]
+    best = main(["--out", str(tmp_path / "m"), "--root", str(packed), *fields])
+    ck = torch.load(best, weights_only=False)
+    assert ck["config"]["loss"] == "min" and ck["step"] == 2 and ck["config"]["lr_milestones"] == ()
+    assert not (tmp_path / "m" / "loss.png").exists()
+    # Resuming elsewhere (a fresh GPU machine writes to a fresh $OUT) needs only what changes.
+    main(["--out", str(tmp_path / "m2"), "--root", str(packed), "--resume", str(tmp_path / "m" / "last.pt"), "steps=3"])
+    again = torch.load(tmp_path / "m2" / "last.pt", weights_only=False)
+    assert again["step"] == 3 and again["config"]["loss"] == "min" and len(again["history"]) == 2
+    with pytest.raises(SystemExit):
+        main(["--out", str(tmp_path / "x"), "nonsense=1"])
