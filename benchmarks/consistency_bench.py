@@ -6,28 +6,18 @@ too, the stage's time over that of the twin-aware MC-100 statistics of the same 
 
 from __future__ import annotations
 
-import time
-
-import numpy as np
-
 import sys
 from pathlib import Path
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from service.consistency import fit_stack  # noqa: E402
 from service.geometry import anchors, se3  # noqa: E402
 from service.inference.estimator import statistics  # noqa: E402
+from benchmarks.se3_bench import best_of  # noqa: E402
 from tests.consistency.test_stack_fit import fake_network, stack  # noqa: E402
-
-
-def best_of(fn, repeat: int = 5) -> float:  # noqa: ANN001
-    times = []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return min(times)
 
 
 def main() -> None:
@@ -38,7 +28,7 @@ def main() -> None:
             truth, nk = stack(rng, "moderate", n=n_slices)
             poses, _ = fake_network(truth, rng)
             cases.append((poses, nk, np.full(n_slices, 14.0)))
-        t = best_of(lambda: [fit_stack(p, nk, noise_mm=noise) for p, nk, noise in cases])
+        t = best_of(lambda: [fit_stack(p, nk, noise_mm=noise) for p, nk, noise in cases], 5)
         total = n_stacks * n_slices
         mc = anchors.encode(np.concatenate([p for p, _, _ in cases])[:, None]
                             @ se3.exp(rng.normal(0, 0.05, (total, 100, 6))))

@@ -55,3 +55,26 @@ def acquire_stack(image: np.ndarray, mask: np.ndarray, atlas_affine: np.ndarray,
     img = sampling.sample_points(image, atlas_affine, atlas)
     msk = sampling.sample_points(mask, atlas_affine, atlas) > 0.5
     return img.astype(np.float32), msk
+
+
+def orthogonal_stacks_case(directory, stack_prefix: str = "s", seed: int = 5):  # noqa: ANN001, ANN201
+    """Three small orthogonal stacks (36 x 36 x 12, 2 mm x 5 mm) of :func:`phantom_brain` with their masks,
+    written to ``directory``; returns ``([(stack_path, mask_path)], poses)`` with ``poses`` the true
+    poses as a ``/v1/predict`` body."""
+    from service.io.volume import Volume, write_volume
+
+    brain = phantom_brain(seed)
+    files, body = [], {"stacks": []}
+    for axis in range(3):
+        shape = [36, 36, 36]
+        shape[axis] = 12
+        aff = stack_affine(axis, np.eye(3), 2.0, 5.0, tuple(shape))
+        g = np.broadcast_to(np.eye(4), (12, 4, 4))
+        img, msk = acquire_stack(*brain, aff, tuple(shape), axis, g)
+        stack, mask = directory / f"{stack_prefix}{axis}.nii.gz", directory / f"m{axis}.nii.gz"
+        write_volume(Volume(img, aff), stack)
+        write_volume(Volume(msk.astype(np.uint8), aff), mask)
+        files.append((stack, mask))
+        body["stacks"].append({"slices": [{"index": s, "accepted": True, "atlas_from_voxel": (g[s] @ aff).tolist()}
+                                          for s in range(12)]})
+    return files, body

@@ -9,32 +9,17 @@ import time
 from pathlib import Path
 
 import httpx
-import numpy as np
 import pytest
 
-from service.io.volume import Volume, write_volume
 from service.jobs.store import JobStore
 from tests.live_server import Server
-from tests.phantoms import acquire_stack, phantom_brain, stack_affine
+from tests.phantoms import orthogonal_stacks_case
 
 
 @pytest.fixture(scope="module")
 def job_files(tmp_path_factory: pytest.TempPathFactory) -> tuple[list, dict]:
-    d = tmp_path_factory.mktemp("crash_case")
-    brain = phantom_brain(5)
-    files, body = [], {"stacks": []}
-    for axis in range(3):
-        shape = [36, 36, 36]
-        shape[axis] = 12
-        aff = stack_affine(axis, np.eye(3), 2.0, 5.0, tuple(shape))
-        g = np.broadcast_to(np.eye(4), (12, 4, 4))
-        img, msk = acquire_stack(*brain, aff, tuple(shape), axis, g)
-        write_volume(Volume(img, aff), d / f"Doe_Jane_s{axis}.nii.gz")
-        write_volume(Volume(msk.astype(np.uint8), aff), d / f"m{axis}.nii.gz")
-        files += [("stacks", (f"Doe_Jane_s{axis}.nii.gz", (d / f"Doe_Jane_s{axis}.nii.gz").read_bytes())),
-                  ("masks", (f"m{axis}.nii.gz", (d / f"m{axis}.nii.gz").read_bytes()))]
-        body["stacks"].append({"slices": [{"index": s, "accepted": True, "atlas_from_voxel": (g[s] @ aff).tolist()}
-                                          for s in range(12)]})
+    paths, body = orthogonal_stacks_case(tmp_path_factory.mktemp("crash_case"), "Doe_Jane_s")
+    files = [part for s, m in paths for part in (("stacks", (s.name, s.read_bytes())), ("masks", (m.name, m.read_bytes())))]
     return files, body
 
 

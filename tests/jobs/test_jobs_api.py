@@ -11,31 +11,17 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from service.io.volume import Volume, read_volume, write_volume
+from service.io.volume import read_volume
 from service.jobs.store import JobStore
 from tests.api.conftest import OracleEstimator, make_client, tiny_model_path  # noqa: F401 - fixture
 from service.inference.registry import ModelRegistry
-from tests.phantoms import acquire_stack, phantom_brain, stack_affine
-
-BRAIN = phantom_brain(5)
+from tests.phantoms import orthogonal_stacks_case
 
 
 @pytest.fixture(scope="module")
 def case(tmp_path_factory: pytest.TempPathFactory) -> dict:
     """Three small orthogonal stacks with their true poses as a /v1/predict body."""
-    d = tmp_path_factory.mktemp("job_case")
-    files, body = [], {"stacks": []}
-    for axis in range(3):
-        shape = [36, 36, 36]
-        shape[axis] = 12
-        aff = stack_affine(axis, np.eye(3), 2.0, 5.0, tuple(shape))
-        g = np.broadcast_to(np.eye(4), (12, 4, 4))
-        img, msk = acquire_stack(*BRAIN, aff, tuple(shape), axis, g)
-        write_volume(Volume(img, aff), d / f"s{axis}.nii.gz")
-        write_volume(Volume(msk.astype(np.uint8), aff), d / f"m{axis}.nii.gz")
-        files.append((d / f"s{axis}.nii.gz", d / f"m{axis}.nii.gz"))
-        body["stacks"].append({"slices": [{"index": s, "accepted": True, "atlas_from_voxel": (g[s] @ aff).tolist()}
-                                          for s in range(12)]})
+    files, body = orthogonal_stacks_case(tmp_path_factory.mktemp("job_case"))
     return {"files": files, "poses": body}
 
 
