@@ -15,14 +15,15 @@ independently of any model.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections import defaultdict
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from model_export.acquisitions import MOTION_LEVELS, SimulatedStack, simulate_acquisition
-from service.consistency import ed
+from service.consistency.stage import network_from_voxel
 from service.geometry import anchors, se3, twin
+from service.geometry.anchors import ed
 from service.inference.estimator import PoseEstimate, statistics
 from service.inference.model_file import ModelInfo
 from service.inference.pipeline import PreparedStack, StackUpload, predict, prepare_stacks
@@ -56,25 +57,22 @@ class NoisyTwinEstimator:
         return statistics(anchors.encode(samples), "anchor", plane)
 
 
-@dataclass
 class Scored:
-    """Per-slice errors of one motion level, gathered over acquisitions."""
+    """Per-slice columns of one motion level, gathered over acquisitions."""
 
-    ed_network: list = field(default_factory=list)
-    ed_network_min: list = field(default_factory=list)
-    ed: list = field(default_factory=list)
-    ed_min: list = field(default_factory=list)
-    right_branch: list = field(default_factory=list)
-    twin_gap: list = field(default_factory=list)
-    variance: list = field(default_factory=list)
-    accepted: list = field(default_factory=list)
-    mask_pixels: list = field(default_factory=list)
-    orientation: list = field(default_factory=list)
-    decidable: list = field(default_factory=list)
-    branch_decided: list = field(default_factory=list)
+    def __init__(self) -> None:
+        self.columns: dict[str, list[NDArray]] = defaultdict(list)
+
+    def add(self, **columns: ArrayLike) -> None:
+        for key, values in columns.items():
+            self.columns[key].append(np.asarray(values))
 
     def array(self, key: str) -> NDArray:
-        return np.concatenate(getattr(self, key)) if getattr(self, key) else np.zeros(0)
+        return np.concatenate(self.columns[key]) if self.columns[key] else np.zeros(0)
+
+
+def _network_from_voxel(p: PreparedStack) -> NDArray:
+    return network_from_voxel(p.prepared.input_from_network(), p.slices.slice_from_voxel)
 
 
 def run_acquisition(stacks: list[SimulatedStack], estimator, mc_samples: int = 100,  # noqa: ANN001
@@ -83,10 +81,7 @@ def run_acquisition(stacks: list[SimulatedStack], estimator, mc_samples: int = 1
     and each stack's true network-frame poses."""
     uploads = [StackUpload(f"{s.orientation}.nii.gz", s.volume, s.mask, f"{s.orientation}_mask.nii.gz") for s in stacks]
     prepared = prepare_stacks(uploads, estimator.info, bias_correction, workers=2)
-    truth = []
-    for s, p in zip(stacks, prepared):
-        nfv = se3.inverse(p.prepared.input_from_network()) @ p.slices.slice_from_voxel
-        truth.append(s.atlas_from_voxel @ np.linalg.inv(nfv))
+    truth = [s.atlas_from_voxel @ np.linalg.inv(_network_from_voxel(p)) for s, p in zip(stacks, prepared)]
     if hasattr(estimator, "truth"):
         estimator.truth = np.concatenate(truth)
     results, _ = predict(prepared, estimator, mc_samples, estimator.info.variance_threshold)
@@ -97,25 +92,20 @@ def score(results: list[dict], prepared: list[PreparedStack], truth: list[NDArra
           plane_x_mm: float, into: Scored) -> None:
     """Add one acquisition's per-slice errors to ``into``."""
     for res, p, true, sim in zip(results, prepared, truth, stacks):
-        nfv = se3.inverse(p.prepared.input_from_network()) @ p.slices.slice_from_voxel
-        inv = np.linalg.inv(nfv)
+        inv = np.linalg.inv(_network_from_voxel(p))
         final = np.array([s["atlas_from_voxel"] for s in res["slices"]]) @ inv
         network = np.array([s["network_atlas_from_voxel"] for s in res["slices"]]) @ inv
         tw = twin.twin(true, plane_x_mm)
         e, e_tw = ed(final, true), ed(final, tw)
-        into.ed.append(e)
-        into.ed_min.append(np.minimum(e, e_tw))
-        into.ed_network.append(ed(network, true))
-        into.ed_network_min.append(np.minimum(ed(network, true), ed(network, tw)))
-        gap = ed(true, tw)
-        into.twin_gap.append(gap)
-        into.right_branch.append((e <= e_tw) | (gap < DISTINGUISHABLE_MM))
-        into.variance.append(np.array([s["geodesic_variance"] or np.inf for s in res["slices"]]))
-        into.accepted.append(np.array([s["accepted"] for s in res["slices"]]))
-        into.mask_pixels.append(p.prepared.mask_pixels)
-        into.orientation.append(np.array([sim.orientation] * len(e)))
-        into.decidable.append(np.full(len(e), bool(res["consistency"] and res["consistency"]["decidable"])))
-        into.branch_decided.append(np.full(len(e), bool(res["consistency"] and res["consistency"]["branch_decided"])))
+        stage = res["consistency"] or {}
+        n = len(e)
+        into.add(ed=e, ed_min=np.minimum(e, e_tw), ed_network=ed(network, true),
+                 ed_network_min=twin.twin_min_ed(network, true, plane_x_mm),
+                 right_branch=(e <= e_tw) | (ed(true, tw) < DISTINGUISHABLE_MM),
+                 variance=[s["geodesic_variance"] or np.inf for s in res["slices"]],
+                 accepted=[s["accepted"] for s in res["slices"]], mask_pixels=p.prepared.mask_pixels,
+                 orientation=[sim.orientation] * n, decidable=np.full(n, bool(stage.get("decidable"))),
+                 branch_decided=np.full(n, bool(stage.get("branch_decided"))))
 
 
 def summarise(sc: Scored) -> dict:

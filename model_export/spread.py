@@ -20,7 +20,6 @@ import onnx
 from model_export.atlas import DEFAULT_ATLAS_ROOT, split
 from model_export.simulate import SimulationConfig
 from model_export.train import validation_set
-from service.consistency import ed
 from service.geometry import twin
 from service.inference.estimator import OnnxPoseEstimator
 from service.inference.model_file import load_model
@@ -46,7 +45,7 @@ def measure_error_scale(model_path: Path, root: Path = DEFAULT_ATLAS_ROOT, per_v
     val = validation_set(val_names, root, per_volume, seed=seed, config=cfg)
     est = OnnxPoseEstimator(model).estimate(val.inputs, mc_samples)
     plane = info.symmetry_plane_x_mm
-    err = np.minimum(ed(est.mean, val.poses), ed(est.mean, twin.twin(val.poses, plane)))
+    err = twin.twin_min_ed(est.mean, val.poses, plane)
     return {"slices": len(err), "twin_min_ed_rms_mm": float(np.sqrt(np.mean(err ** 2))),
             "spread_rms_mm": float(np.sqrt(np.mean(est.spread_mm ** 2))),
             "mc_error_scale": error_scale(err, est.spread_mm)}

@@ -132,10 +132,7 @@ def pose_errors(pred: np.ndarray, true: np.ndarray, plane_x_mm: float = 0.0) -> 
     Returns ``ed_mm`` (against the truth), ``ed_twin_mm`` (twin-min: against whichever of the truth
     and its twin is nearer), ``on_twin`` (the twin is strictly nearer) and ``gd`` (to the truth).
     """
-    def ed(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        return np.linalg.norm((anchors.encode(a) - anchors.encode(b)).reshape(-1, 3, 3), axis=-1).mean(-1)
-
-    e_true, e_twin = ed(pred, true), ed(pred, twin(true, plane_x_mm))
+    e_true, e_twin = anchors.ed(pred, true), anchors.ed(pred, twin(true, plane_x_mm))
     return {"ed_mm": e_true, "ed_twin_mm": np.minimum(e_true, e_twin), "on_twin": e_twin < e_true,
             "gd": se3.geodesic_distance(pred, true)}
 

@@ -4,6 +4,6 @@ A single slice cannot tell its pose from its left-right twin, nor its own error 
 of the fetus; the slices of one stack together can (:mod:`service.consistency.stack_fit`).
 """
 
-from service.consistency.stack_fit import StackFit, ed, fit_stack
+from service.consistency.stack_fit import StackFit, fit_stack
 
-__all__ = ["StackFit", "ed", "fit_stack"]
+__all__ = ["StackFit", "fit_stack"]

@@ -25,7 +25,7 @@ Steps (all slices at once, numpy only):
    :data:`MIN_INLIER_FRACTION` of the slices agree, or the model's error exceeds
    :data:`MAX_MODEL_ERROR_MM`, the stack is *undecidable* and nothing is changed.
 
-Distances are the paper's E.D.: mean distance of the three anchor points (mm).
+Distances are the paper's E.D. (:func:`service.geometry.anchors.ed`, mm).
 
 Example:
     >>> import numpy as np
@@ -50,7 +50,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from service.geometry import anchors, se3, twin
+from service.geometry import se3, twin
+from service.geometry.anchors import ed
 from service.geometry.pose import make_pose
 
 RANSAC_TAU_MM = 30.0
@@ -116,13 +117,6 @@ class StackFit:
     def branch_decided(self) -> bool:
         """The stack's left-right branch is decided by its slices' order along the normal."""
         return bool(self.decidable and self.branch_margin >= MIN_STACK_BRANCH_MARGIN)
-
-
-def ed(a: ArrayLike, b: ArrayLike) -> NDArray[np.float64]:
-    """The paper's E.D.: mean distance (mm) of the three anchor points of poses ``a`` and ``b``."""
-    pa = anchors.encode(a).reshape(np.shape(a)[:-2] + (3, 3))
-    pb = anchors.encode(b).reshape(np.shape(b)[:-2] + (3, 3))
-    return np.linalg.norm(pa - pb, axis=-1).mean(axis=-1)
 
 
 def acquisition_orders(n: int) -> dict[str, NDArray[np.int64]]:

@@ -61,6 +61,20 @@ def decode(points: ArrayLike) -> NDArray[np.float64]:
     return make_pose(np.stack([x, y, n], axis=-1), p2)
 
 
+def ed(a: ArrayLike, b: ArrayLike) -> NDArray[np.float64]:
+    """The paper's E.D.: mean distance (mm) of the three anchor points of poses ``a`` and ``b`` (broadcast).
+
+    Example:
+        >>> import numpy as np
+        >>> shifted = np.eye(4); shifted[0, 3] = 3.0
+        >>> float(ed(np.eye(4), shifted))
+        3.0
+    """
+    pa = encode(a).reshape(np.shape(a)[:-2] + (3, 3))
+    pb = encode(b).reshape(np.shape(b)[:-2] + (3, 3))
+    return np.linalg.norm(pa - pb, axis=-1).mean(axis=-1)
+
+
 def degenerate(points: ArrayLike, min_fraction: float = MIN_DISTANCE_FRACTION) -> NDArray[np.bool_]:
     """True where predicted anchors are too close together or nearly collinear.
 

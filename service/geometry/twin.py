@@ -93,6 +93,21 @@ def twin_label(label_type: str, label: ArrayLike, plane_x_mm: float = DEFAULT_PL
     return enc.encode(twin(enc.decode(lab), plane_x_mm))
 
 
+def twin_min_ed(pred: ArrayLike, true: ArrayLike, plane_x_mm: float = DEFAULT_PLANE_X_MM) -> NDArray[np.float64]:
+    """Mirror-invariant error: the E.D. of ``pred`` to whichever of ``true`` and its twin is nearer.
+
+    Example:
+        >>> import numpy as np
+        >>> from service.geometry import se3
+        >>> pose = se3.exp(np.array([0.2, 0.1, 0.3, 20.0, 5.0, 0.0]))
+        >>> float(twin_min_ed(twin(pose), pose))
+        0.0
+    """
+    from service.geometry import anchors
+
+    return np.minimum(anchors.ed(pred, true), anchors.ed(pred, twin(true, plane_x_mm)))
+
+
 def measure_plane_x(image: ArrayLike, affine: ArrayLike, max_shift_mm: float = 8.0) -> float:
     """The mid-sagittal plane ``x0`` of a volume: where its left-right mirror correlates best with it.
 
