@@ -82,16 +82,17 @@ def kabsch(source: ArrayLike, target: ArrayLike, weights: ArrayLike | None = Non
     w = np.where(total > 0, w, 1.0) / np.where(total > 0, total, w.shape[-1])
     ok = np.all(np.isfinite(p), axis=(-1, -2), keepdims=True)
     p = np.where(ok, p, s)                                    # non-finite predictions -> identity fit
-    cs = np.einsum("...p,...pi->...i", w, s)
-    cp = np.einsum("...p,...pi->...i", w, p)
-    h = np.einsum("...p,...pi,...pj->...ij", w, s - cs[..., None, :], p - cp[..., None, :])   # [..., 3, 3]
+    # batched matrix products (BLAS), not multi-operand einsums: the MC statistics decode B x N labels
+    cs = (w[..., None, :] @ s)[..., 0, :]
+    cp = (w[..., None, :] @ p)[..., 0, :]
+    h = np.swapaxes((s - cs[..., None, :]) * w[..., None], -1, -2) @ (p - cp[..., None, :])   # [..., 3, 3]
     u, _, vt = np.linalg.svd(h)
-    d = np.sign(np.linalg.det(np.einsum("...ij,...jk->...ik", u, vt).swapaxes(-1, -2)))
+    d = np.sign(np.linalg.det(u @ vt))
     d = np.where(d == 0, 1.0, d)
     fix = np.broadcast_to(np.eye(3), h.shape).copy()
     fix[..., 2, 2] = d
-    rot = np.einsum("...ji,...jk,...lk->...il", vt, fix, u)   # V diag(1, 1, d) U^T
-    return make_pose(rot, cp - np.einsum("...ij,...j->...i", rot, cs))
+    rot = np.swapaxes(vt, -1, -2) @ fix @ np.swapaxes(u, -1, -2)   # V diag(1, 1, d) U^T
+    return make_pose(rot, cp - (rot @ cs[..., None])[..., 0])
 
 
 def decode(label: ArrayLike, weights: ArrayLike | None = None) -> NDArray[np.float64]:
