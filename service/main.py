@@ -6,6 +6,7 @@ Run with ``svrnet-server`` (or ``make serve``); settings come from ``SVRNET_*`` 
 from __future__ import annotations
 
 import asyncio
+import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -20,10 +21,10 @@ from service.api.schemas import problem_responses
 from service.core import logging as service_logging
 from service.core.settings import Settings
 from service.inference.registry import ModelRegistry
-from service.jobs.store import JobStore
-from service.jobs.worker import JobRunner
+from service.jobs.runner import open_backend
 
 RETENTION_CHECK_S = 600.0
+log = logging.getLogger(__name__)
 
 
 def create_app(settings: Settings | None = None, registry: ModelRegistry | None = None) -> FastAPI:
@@ -34,16 +35,23 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         app.state.registry = registry or ModelRegistry.from_directory(
             settings.models_dir, settings.default_model, settings.onnx_threads)
-        app.state.job_store = JobStore(settings.data_dir)
-        app.state.job_runner = JobRunner(app.state.job_store, settings.models_dir, settings.job_workers)
-        app.state.job_runner.start()
+        app.state.job_store, app.state.job_runner = open_backend(settings)
+        await asyncio.to_thread(app.state.job_runner.start)
+        app.state.metrics.watch_jobs(app.state.job_store, app.state.job_runner)
 
-        async def expire() -> None:
+        async def upkeep() -> None:
+            # Retention everywhere; with the distributed back-end also the queue's maintenance
+            # (re-delivering the jobs of lost workers), which every replica may do.
+            period = settings.queue_maintenance_s if settings.queue_url else RETENTION_CHECK_S
             while True:
-                app.state.job_store.expire(settings.retention_hours * 3600)
-                await asyncio.sleep(RETENTION_CHECK_S)
+                try:
+                    await asyncio.to_thread(app.state.job_store.expire, settings.retention_hours * 3600)
+                    await asyncio.to_thread(app.state.job_runner.maintain)
+                except Exception:  # noqa: BLE001 - a store briefly unreachable: /readyz says so; retry
+                    log.warning("job upkeep failed; retrying", exc_info=True)
+                await asyncio.sleep(period)
 
-        janitor = asyncio.create_task(expire())
+        janitor = asyncio.create_task(upkeep())
         try:
             yield
         finally:

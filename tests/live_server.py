@@ -72,3 +72,32 @@ def _pgid(pid: int) -> int | None:
         return os.getpgid(pid)
     except (ProcessLookupError, PermissionError):
         return None
+
+
+class Worker:
+    """``svrnet-worker`` in its own process group, on the queue of ``env`` (``SVRNET_*`` settings)."""
+
+    def __init__(self, log: Path, env: dict[str, str], *args: str) -> None:
+        self.log = open(log, "ab")  # noqa: SIM115 - closed in stop()
+        self.proc = subprocess.Popen([sys.executable, "-c", "from service.jobs.worker_cli import run; run()", *args],
+                                     cwd=ROOT, env={**os.environ, **env}, stdout=self.log, stderr=subprocess.STDOUT,
+                                     start_new_session=True)
+
+    def stop(self, sig: int = signal.SIGTERM, timeout: float = 60) -> int | None:
+        """Send ``sig``; the exit code (None if it was still running after ``timeout``, then killed)."""
+        try:
+            os.kill(self.proc.pid, sig)
+            return self.proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.kill_group()
+            return None
+        except ProcessLookupError:
+            return self.proc.poll()
+        finally:
+            self.log.close()
+
+    def kill_group(self) -> None:
+        try:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Request, Response
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Histogram, generate_latest
+from prometheus_client.core import GaugeMetricFamily
 
 
 class Metrics:
@@ -21,6 +22,11 @@ class Metrics:
         self.rejected = Counter("svrnet_slices_rejected_total", "slices not accepted", ["model", "reason"],
                                 registry=self.registry)
 
+    def watch_jobs(self, store, runner) -> None:  # noqa: ANN001 - JobStore, JobRunner
+        """Export the job counts per state and the runner's numbers (workers, queue length), read from
+        the store at each scrape: with the distributed back-end every replica reports the whole queue."""
+        self.registry.register(_JobCollector(store, runner))
+
     def observe_request(self, route: str, method: str, model: str, status: int, seconds: float) -> None:
         self.requests.labels(route, method, model, str(status)).inc()
         self.latency.labels(route, model).observe(seconds)
@@ -30,6 +36,24 @@ class Metrics:
         for r in reasons:
             if r is not None:
                 self.rejected.labels(model, r).inc()
+
+
+class _JobCollector:
+    def __init__(self, store, runner) -> None:  # noqa: ANN001
+        self.store, self.runner = store, runner
+
+    def collect(self):  # noqa: ANN201
+        jobs = GaugeMetricFamily("svrnet_jobs", "reconstruction jobs by state", labels=["status"])
+        runner = GaugeMetricFamily("svrnet_job_runner", "job runner figures (workers, queue_length)", labels=["what"])
+        try:
+            for status, n in self.store.counts().items():
+                jobs.add_metric([status], n)
+            for what, value in self.runner.stats().items():
+                runner.add_metric([what], value)
+        except Exception:  # noqa: BLE001 - a scrape never fails because the queue is briefly unreachable
+            pass
+        yield jobs
+        yield runner
 
 
 router = APIRouter(tags=["operations"])

@@ -35,7 +35,8 @@ def _status(job: Job) -> dict:
     return {"job_id": job.id, "status": job.status, "stage": job.stage, "progress": job.progress, "error": job.error,
             "created_at": _iso(job.created_at), "updated_at": _iso(job.updated_at),
             "result_url": f"{base}/volume" if done else None, "preview_url": f"{base}/preview.png" if done else None,
-            "poses_url": f"{base}/poses" if done else None, "report": job.report}
+            "poses_url": f"{base}/poses" if done else None, "report": job.report, "attempts": job.attempts,
+            "started_at": _iso(job.started_at) if job.started_at else None}
 
 
 def _job(request: Request, job_id: str) -> Job:
@@ -148,6 +149,7 @@ async def cancel(request: Request, job_id: str) -> Response:
     job = _job(request, job_id)
     if job.status in ("queued", "running"):
         _store(request).cancel(job_id)
+        request.app.state.job_runner.cancel(job_id)
     else:
         _store(request).delete(job_id)
     return Response(status_code=204)

@@ -48,6 +48,18 @@ class Settings(BaseSettings):
     max_request_decoded_mb: float = Field(1024.0, gt=0, description="limit of what all files of one request "
                                           "decode to together (413 above)")
     retention_hours: float = Field(72.0, gt=0, description="finished jobs and their files are deleted after this")
+    job_max_attempts: int = Field(2, ge=1, description="runs of a job whose worker (or server) was lost, at most; "
+                                  "then it fails with that reason")
+    queue_url: str | None = Field(None, description="redis://host:port/db: the distributed back-end (job records "
+                                  "in Redis, an RQ queue, `svrnet-worker` processes anywhere); unset: embedded")
+    queue_name: str = Field("svrnet", pattern=r"^[A-Za-z0-9_.-]{1,64}$",
+                            description="the RQ queue and the namespace of the job records in Redis")
+    queue_maintenance_s: float = Field(15.0, gt=0, description="distributed: how often each API replica re-delivers "
+                                       "the jobs of lost workers and fails those past the retry limit")
+    job_timeout_h: float = Field(6.0, gt=0, description="distributed: a job running longer is stopped and fails")
+    worker_lost_after_s: int = Field(60, ge=1, description="distributed: a worker silent this long (beyond its "
+                                     "heartbeat interval) is lost and its job re-delivered")
+    worker_heartbeat_s: int = Field(10, ge=1, description="distributed: a busy worker's heartbeat interval")
 
     @property
     def max_decoded_bytes(self) -> int:

@@ -1,16 +1,23 @@
-"""The job store: one SQLite database (WAL, safe across processes) and a folder per job.
+"""Where jobs live: the interface every back-end honours, and the embedded one (SQLite).
 
 States: ``queued -> running -> succeeded | failed | cancelled``. A job's uploads (``inputs/``) live
-only while it is queued or running; results (``outputs/``) until the retention limit. After a restart,
-:meth:`JobStore.recover` puts jobs that were ``running`` back to ``queued`` (they are re-run from
-their stored inputs; after ``max_attempts`` they fail with a reason), so no job is silently lost.
+only while it is queued or running; results (``outputs/``) until the retention limit. Files are in
+``<data_dir>/jobs/<id>/`` for every back-end (with the distributed one, ``data_dir`` is a volume that
+every API replica and worker mounts). The distributed back-end keeps the same records in Redis
+(:mod:`service.jobs.redis_store`); the same tests run against both.
+
+After a restart of the embedded server, :meth:`SqliteJobStore.recover` puts jobs that were
+``running`` back to ``queued`` (they are re-run from their stored inputs; after ``max_attempts`` they
+fail with a reason), so no job is silently lost.
 
 Example:
     >>> import tempfile
-    >>> store = JobStore(Path(tempfile.mkdtemp()))
+    >>> store = SqliteJobStore(Path(tempfile.mkdtemp()))
     >>> job = store.create({"resolution_mm": 0.8})
     >>> store.get(job.id).status
     'queued'
+    >>> store.claim(job.id), store.claim(job.id)
+    (True, False)
 """
 
 from __future__ import annotations
@@ -20,11 +27,116 @@ import shutil
 import sqlite3
 import time
 import uuid
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
 
 STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 FINAL = ("succeeded", "failed", "cancelled")
+FIELDS = ("id", "status", "stage", "progress", "error", "params", "report", "attempts", "created_at", "updated_at",
+          "submitted_at", "started_at")
+
+
+@dataclass
+class Job:
+    """One reconstruction job as every back-end stores it.
+
+    ``submitted_at``: when its inputs were complete and it was handed to the queue; ``started_at``:
+    when a worker last claimed it (the two give the queue's submit-to-start latency).
+    """
+
+    id: str
+    status: str
+    stage: str | None
+    progress: float
+    error: str | None
+    params: dict
+    report: dict | None
+    attempts: int
+    created_at: float
+    updated_at: float
+    submitted_at: float | None = None
+    started_at: float | None = None
+
+
+class JobStore(ABC):
+    """The job records (state, stage, progress, report) and the job folders under ``data_dir``.
+
+    Transitions are atomic in every back-end: a job is claimed by one worker at a time, a cancelled
+    job never ends ``succeeded``, a finished one never changes again.
+    """
+
+    data_dir: Path
+
+    def directory(self, job_id: str) -> Path:
+        return self.data_dir / "jobs" / job_id
+
+    def discard_inputs(self, job_id: str) -> None:
+        """Delete a job's uploads (``inputs/``): done once the job has ended, whatever its outcome."""
+        shutil.rmtree(self.directory(job_id) / "inputs", ignore_errors=True)
+
+    def is_cancelled(self, job_id: str) -> bool:
+        job = self.get(job_id)
+        return job is None or job.status == "cancelled"
+
+    def _new_id(self) -> str:
+        job_id = uuid.uuid4().hex
+        self.directory(job_id).mkdir(parents=True)
+        return job_id
+
+    @abstractmethod
+    def ping(self) -> bool:
+        """Whether the store answers."""
+
+    @abstractmethod
+    def create(self, params: dict) -> Job:
+        """A new ``queued`` job with an empty folder."""
+
+    @abstractmethod
+    def get(self, job_id: str) -> Job | None:
+        """The job, or None."""
+
+    @abstractmethod
+    def update(self, job_id: str, **fields: object) -> None:
+        """Set ``stage``, ``progress`` or ``submitted_at`` of an existing job (never its status)."""
+
+    @abstractmethod
+    def claim(self, job_id: str, redelivered: bool = False) -> bool:
+        """``queued -> running`` (attempts + 1), atomically; False if the job is no longer queued
+        (cancelled, finished, taken). ``redelivered``: the queue hands the job out again after its
+        worker was lost, so ``running`` may be claimed too."""
+
+    @abstractmethod
+    def finish(self, job_id: str, report: dict) -> bool:
+        """``running -> succeeded`` with ``report``, atomically; False if the job was cancelled meanwhile."""
+
+    @abstractmethod
+    def fail(self, job_id: str, reason: str) -> bool:
+        """``queued | running -> failed`` with ``reason``; False if it had ended (e.g. was cancelled)."""
+
+    @abstractmethod
+    def cancel(self, job_id: str) -> None:
+        """Mark cancelled (a running worker stops at its next check) and delete the job's files."""
+
+    @abstractmethod
+    def delete(self, job_id: str) -> None:
+        """Remove a job's record and files."""
+
+    @abstractmethod
+    def ids(self, status: str) -> list[str]:
+        """The jobs in ``status``, oldest first."""
+
+    @abstractmethod
+    def expire(self, retention_s: float) -> list[str]:
+        """Delete finished jobs older than ``retention_s`` (records and files); their ids."""
+
+    def queued(self) -> list[str]:
+        return self.ids("queued")
+
+    def counts(self) -> dict[str, int]:
+        """Jobs per state (for the metrics)."""
+        return {s: len(self.ids(s)) for s in STATES}
+
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS jobs (
@@ -37,27 +149,16 @@ CREATE TABLE IF NOT EXISTS jobs (
     report TEXT,
     attempts INTEGER NOT NULL DEFAULT 0,
     created_at REAL NOT NULL,
-    updated_at REAL NOT NULL
+    updated_at REAL NOT NULL,
+    submitted_at REAL,
+    started_at REAL
 )
 """
 
 
-@dataclass
-class Job:
-    id: str
-    status: str
-    stage: str | None
-    progress: float
-    error: str | None
-    params: dict
-    report: dict | None
-    attempts: int
-    created_at: float
-    updated_at: float
-
-
-class JobStore:
-    """Jobs in ``<data_dir>/jobs.sqlite3``; files in ``<data_dir>/jobs/<id>/``."""
+class SqliteJobStore(JobStore):
+    """The embedded back-end: jobs in ``<data_dir>/jobs.sqlite3`` (WAL, safe across the server's
+    worker processes); files in ``<data_dir>/jobs/<id>/``."""
 
     def __init__(self, data_dir: Path) -> None:
         self.data_dir = Path(data_dir)
@@ -66,11 +167,19 @@ class JobStore:
         with self._connect() as db:
             db.execute("PRAGMA journal_mode=WAL")
             db.execute(SCHEMA)
+            cols = {r["name"] for r in db.execute("PRAGMA table_info(jobs)")}
+            for col in ("submitted_at", "started_at"):       # a database from before these columns
+                if col not in cols:
+                    db.execute(f"ALTER TABLE jobs ADD COLUMN {col} REAL")
 
     def _connect(self) -> sqlite3.Connection:
         db = sqlite3.connect(self.db_path, timeout=30, isolation_level=None)
         db.row_factory = sqlite3.Row
         return db
+
+    def _write(self, sql: str, args: tuple) -> bool:
+        with self._connect() as db:
+            return db.execute(sql, args).rowcount == 1
 
     def ping(self) -> bool:
         try:
@@ -80,16 +189,10 @@ class JobStore:
         except sqlite3.Error:
             return False
 
-    def directory(self, job_id: str) -> Path:
-        return self.data_dir / "jobs" / job_id
-
     def create(self, params: dict) -> Job:
-        job_id = uuid.uuid4().hex
-        now = time.time()
-        self.directory(job_id).mkdir(parents=True)
-        with self._connect() as db:
-            db.execute("INSERT INTO jobs (id, status, stage, progress, params, created_at, updated_at) "
-                       "VALUES (?, 'queued', 'queued', 0, ?, ?, ?)", (job_id, json.dumps(params), now, now))
+        job_id, now = self._new_id(), time.time()
+        self._write("INSERT INTO jobs (id, status, stage, progress, params, created_at, updated_at) "
+                    "VALUES (?, 'queued', 'queued', 0, ?, ?, ?)", (job_id, json.dumps(params), now, now))
         return self.get(job_id)  # type: ignore[return-value]
 
     def get(self, job_id: str) -> Job | None:
@@ -97,57 +200,45 @@ class JobStore:
             row = db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
         if row is None:
             return None
-        return Job(row["id"], row["status"], row["stage"], row["progress"], row["error"], json.loads(row["params"]),
-                   json.loads(row["report"]) if row["report"] else None, row["attempts"], row["created_at"],
-                   row["updated_at"])
+        values = {k: row[k] for k in FIELDS}
+        values["params"] = json.loads(values["params"])
+        values["report"] = json.loads(values["report"]) if values["report"] else None
+        return Job(**values)
 
     def update(self, job_id: str, **fields: object) -> None:
-        if "report" in fields and fields["report"] is not None:
-            fields["report"] = json.dumps(fields["report"])
+        if not set(fields) <= {"stage", "progress", "submitted_at"}:
+            raise ValueError(f"update: only stage, progress, submitted_at (not {sorted(fields)})")
         fields["updated_at"] = time.time()
         cols = ", ".join(f"{k} = ?" for k in fields)
-        with self._connect() as db:
-            db.execute(f"UPDATE jobs SET {cols} WHERE id = ?", (*fields.values(), job_id))
+        self._write(f"UPDATE jobs SET {cols} WHERE id = ?", (*fields.values(), job_id))
 
-    def claim(self, job_id: str) -> bool:
-        """queued -> running, atomically; False if the job is no longer queued (cancelled, taken)."""
-        with self._connect() as db:
-            cur = db.execute("UPDATE jobs SET status = 'running', stage = 'starting', attempts = attempts + 1, "
-                             "updated_at = ? WHERE id = ? AND status = 'queued'", (time.time(), job_id))
-            return cur.rowcount == 1
+    def claim(self, job_id: str, redelivered: bool = False) -> bool:
+        states = "('queued', 'running')" if redelivered else "('queued')"
+        now = time.time()
+        return self._write("UPDATE jobs SET status = 'running', stage = 'starting', progress = 0, "
+                           f"attempts = attempts + 1, started_at = ?, updated_at = ? WHERE id = ? AND status IN {states}",
+                           (now, now, job_id))
 
     def finish(self, job_id: str, report: dict) -> bool:
-        """running -> succeeded with ``report``, atomically; False if the job was cancelled meanwhile."""
-        with self._connect() as db:
-            cur = db.execute("UPDATE jobs SET status = 'succeeded', stage = 'done', progress = 1.0, report = ?, "
-                             "updated_at = ? WHERE id = ? AND status = 'running'",
-                             (json.dumps(report), time.time(), job_id))
-            return cur.rowcount == 1
+        return self._write("UPDATE jobs SET status = 'succeeded', stage = 'done', progress = 1.0, report = ?, "
+                           "updated_at = ? WHERE id = ? AND status = 'running'", (json.dumps(report), time.time(), job_id))
 
-    def is_cancelled(self, job_id: str) -> bool:
-        job = self.get(job_id)
-        return job is None or job.status == "cancelled"
+    def fail(self, job_id: str, reason: str) -> bool:
+        return self._write("UPDATE jobs SET status = 'failed', stage = 'failed', error = ?, updated_at = ? "
+                           "WHERE id = ? AND status IN ('queued', 'running')", (reason, time.time(), job_id))
 
     def cancel(self, job_id: str) -> None:
-        """Mark cancelled (a running worker stops at its next check) and delete the job's files."""
-        with self._connect() as db:
-            db.execute("UPDATE jobs SET status = 'cancelled', stage = 'cancelled', updated_at = ? "
-                       "WHERE id = ? AND status IN ('queued', 'running')", (time.time(), job_id))
+        self._write("UPDATE jobs SET status = 'cancelled', stage = 'cancelled', updated_at = ? "
+                    "WHERE id = ? AND status IN ('queued', 'running')", (time.time(), job_id))
         shutil.rmtree(self.directory(job_id), ignore_errors=True)
 
     def delete(self, job_id: str) -> None:
-        """Remove a job's row and files."""
-        with self._connect() as db:
-            db.execute("DELETE FROM jobs WHERE id = ?", (job_id,))
+        self._write("DELETE FROM jobs WHERE id = ?", (job_id,))
         shutil.rmtree(self.directory(job_id), ignore_errors=True)
 
-    def queued(self) -> list[str]:
+    def ids(self, status: str) -> list[str]:
         with self._connect() as db:
-            return [r["id"] for r in db.execute("SELECT id FROM jobs WHERE status = 'queued' ORDER BY created_at")]
-
-    def discard_inputs(self, job_id: str) -> None:
-        """Delete a job's uploads (``inputs/``): done once the job has ended, whatever its outcome."""
-        shutil.rmtree(self.directory(job_id) / "inputs", ignore_errors=True)
+            return [r["id"] for r in db.execute("SELECT id FROM jobs WHERE status = ? ORDER BY created_at", (status,))]
 
     def recover(self, max_attempts: int = 2) -> list[str]:
         """After a restart: re-queue interrupted jobs (or fail them after ``max_attempts``, deleting their
@@ -166,7 +257,6 @@ class JobStore:
         return self.queued()
 
     def expire(self, retention_s: float) -> list[str]:
-        """Delete finished jobs older than ``retention_s`` (rows and files)."""
         cutoff = time.time() - retention_s
         with self._connect() as db:
             ids = [r["id"] for r in db.execute(

@@ -11,16 +11,15 @@ uploaded poses), then those of the reconstruction -- ``stack consistency``, ``st
 ``robust weighting k/K``, ``super-resolution k/K`` -- and ``writing``. :func:`run_job` is what a
 worker process executes; it claims the job atomically,
 reports stage and progress to the store, checks for cancellation between stages, and records any
-failure with its reason.
+failure with its reason. The back-ends run it: :mod:`service.jobs.local_runner` (the
+embedded process pool) and :mod:`service.jobs.rq_runner` (workers on a Redis queue).
 """
 
 from __future__ import annotations
 
 import json
 import logging
-import multiprocessing
 import shutil
-from concurrent.futures import Future, ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -92,10 +91,13 @@ def predicted_body(uploads: list, estimator, mc_samples: int = 100,  # noqa: ANN
     return {"model": model, "mc_samples": mc_samples, "variance_threshold": threshold, "stacks": results}, masks
 
 
-def run_job(data_dir: str, models_dir: str, job_id: str) -> None:
-    """Execute one job (in a worker process)."""
-    store = JobStore(Path(data_dir))
-    if not store.claim(job_id):
+def run_job(store: JobStore, models_dir: Path, job_id: str, redelivered: bool = False) -> None:
+    """Execute one job (in a worker process of either back-end): claim it atomically, report stage and
+    progress, stop at the next stage when it is cancelled, record any failure with its reason.
+
+    ``redelivered``: the queue hands the job out again after the worker running it was lost.
+    """
+    if not store.claim(job_id, redelivered=redelivered):
         return
     folder = store.directory(job_id)
 
@@ -109,8 +111,7 @@ def run_job(data_dir: str, models_dir: str, job_id: str) -> None:
     except Cancelled:
         log.info("job cancelled", extra={"job_id": job_id})
     except Exception as exc:  # noqa: BLE001 - every failure is recorded on the job, not lost
-        if not store.is_cancelled(job_id):
-            store.update(job_id, status="failed", stage="failed", error=failure_reason(exc))
+        store.fail(job_id, failure_reason(exc))
         log.warning("job failed", extra={"job_id": job_id, "error_type": type(exc).__name__})
     # Ended, whatever the outcome: the uploads (raw headers, the clients' file names) go now, not at
     # the retention limit. A worker stopped mid-job never gets here, so a re-run still has them.
@@ -201,62 +202,3 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     if not store.finish(job_id, report):       # cancelled while writing: leave nothing behind
         shutil.rmtree(folder, ignore_errors=True)
         raise Cancelled
-
-
-def _watch_parent(parent: int) -> None:
-    """In a worker process: exit as soon as the server that started it is gone (even after ``kill -9``),
-    so no worker keeps running a job against the data dir after the server has stopped."""
-    import os
-    import threading
-    import time
-
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(0.5)
-        os._exit(0)
-
-    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
-
-
-class JobRunner:
-    """Submits queued jobs to a pool of ``workers`` processes; recovers the queue at start, and on
-    shutdown stops the workers and hands their running jobs back to the queue."""
-
-    def __init__(self, store: JobStore, models_dir: Path, workers: int = 1) -> None:
-        import os
-
-        self.store, self.models_dir = store, models_dir
-        self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                                        initializer=_watch_parent, initargs=(os.getpid(),))
-        self.futures: dict[str, Future] = {}
-
-    def start(self) -> list[str]:
-        queued = self.store.recover()
-        for job_id in queued:
-            job = self.store.get(job_id)
-            if job is not None and job.attempts:
-                log.info(f"re-queued job {job_id}, attempt {job.attempts + 1}",
-                         extra={"job_id": job_id, "attempt": job.attempts + 1})
-            self.submit(job_id)
-        return queued
-
-    def submit(self, job_id: str) -> None:
-        self.futures[job_id] = self.pool.submit(run_job, str(self.store.data_dir), str(self.models_dir), job_id)
-
-    def shutdown(self, timeout_s: float = 10.0) -> list[str]:
-        """Stop every worker process (SIGTERM, then SIGKILL after ``timeout_s``) and put the jobs they
-        were running back in the queue, to be re-run after a restart (as after ``kill -9``)."""
-        processes = list((getattr(self.pool, "_processes", None) or {}).values())
-        self.pool.shutdown(wait=False, cancel_futures=True)
-        for proc in processes:
-            if proc.is_alive():
-                proc.terminate()
-        for proc in processes:
-            proc.join(timeout_s)
-            if proc.is_alive():
-                proc.kill()
-                proc.join(timeout_s)
-        handed_back = [j for j in self.store.recover() if j in self.futures]
-        for job_id in handed_back:
-            log.info(f"handed job {job_id} back to the queue", extra={"job_id": job_id})
-        return handed_back

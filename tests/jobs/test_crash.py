@@ -11,7 +11,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from service.jobs.store import JobStore
+from service.jobs.store import SqliteJobStore
 from tests.live_server import Server
 from tests.phantoms import orthogonal_stacks_case
 
@@ -49,7 +49,7 @@ def test_a_server_stopped_mid_job_leaves_nothing_and_the_job_completes_after_res
         assert not left, f"processes left behind after {signal.Signals(sig).name}: {left}"
     finally:
         server.kill_group()
-    job = JobStore(tmp_path / "data").get(job_id)
+    job = SqliteJobStore(tmp_path / "data").get(job_id)
     assert job is not None and job.status in ("queued", "running") and job.attempts == 1, job
     server = Server(tmp_path / "data", log)
     try:

@@ -10,16 +10,17 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.inference.registry import ModelRegistry
-from service.jobs.store import JobStore
+from service.jobs.store import SqliteJobStore
 from tests.api.conftest import OracleEstimator, make_client
+from tests.jobs.conftest import BACKENDS
 from tests.jobs.test_jobs_api import case, submit, wait  # noqa: F401 - fixture
 
 PATIENT = b"Doe^Jane"
 
 
 @pytest.fixture
-def client(tmp_path: Path):  # noqa: ANN201
-    with make_client(ModelRegistry({"default": OracleEstimator()}), data_dir=str(tmp_path)) as c:
+def client(queue_settings: dict[str, str], workers: list):  # noqa: ANN201
+    with make_client(ModelRegistry({"default": OracleEstimator()}), **queue_settings) as c:
         yield c
 
 
@@ -35,6 +36,7 @@ def _assert_no_upload_left(folder: Path) -> None:
             assert b"names.json" not in data and b"s0.nii.gz" not in data, p
 
 
+@pytest.mark.parametrize("queue_settings", BACKENDS, indirect=True)
 def test_a_succeeded_job_keeps_only_its_results(client: TestClient, case: dict) -> None:
     job_id = submit(client, case, svr_iterations="0").json()["job_id"]
     folder = client.app.state.job_store.directory(job_id)
@@ -45,6 +47,7 @@ def test_a_succeeded_job_keeps_only_its_results(client: TestClient, case: dict) 
     assert client.get(f"/v1/reconstructions/{job_id}/volume").status_code == 200
 
 
+@pytest.mark.parametrize("queue_settings", BACKENDS, indirect=True)
 def test_a_failed_job_keeps_nothing_of_its_uploads(client: TestClient, case: dict) -> None:
     rejected = json.loads(json.dumps(case["poses"]))
     for st in rejected["stacks"]:
@@ -56,7 +59,7 @@ def test_a_failed_job_keeps_nothing_of_its_uploads(client: TestClient, case: dic
 
 
 def test_a_job_failed_by_too_many_restarts_keeps_nothing(tmp_path: Path) -> None:
-    store = JobStore(tmp_path)
+    store = SqliteJobStore(tmp_path)
     job = store.create({"resolution_mm": 2.0})
     (store.directory(job.id) / "inputs").mkdir()
     (store.directory(job.id) / "inputs" / "stack0").write_bytes(PATIENT)

@@ -1,60 +1,79 @@
-"""The job store: lifecycle, cancellation, restart recovery, retention."""
+"""The job stores, both back-ends through one interface: lifecycle, atomic claims, cancellation,
+failure, retention; and the embedded store's recovery after a restart."""
 
 from __future__ import annotations
 
 import time
 from pathlib import Path
 
-from service.jobs.store import JobStore
+import pytest
+
+from service.jobs.store import JobStore, SqliteJobStore
+from tests.jobs.conftest import BACKENDS
+
+both = pytest.mark.parametrize("queue_settings", BACKENDS, indirect=True)
 
 
-def test_lifecycle_and_claim_is_atomic(tmp_path: Path) -> None:
-    store = JobStore(tmp_path)
+@both
+def test_lifecycle_and_claim_is_atomic(store: JobStore) -> None:
     job = store.create({"resolution_mm": 0.8})
-    assert job.status == "queued" and store.directory(job.id).is_dir()
+    assert job.status == "queued" and store.directory(job.id).is_dir() and store.queued() == [job.id]
+    assert job.attempts == 0 and job.started_at is None and job.params == {"resolution_mm": 0.8}
     assert store.claim(job.id) and not store.claim(job.id)
     store.update(job.id, stage="reconstructing", progress=0.5)
     got = store.get(job.id)
     assert (got.status, got.stage, got.progress, got.attempts) == ("running", "reconstructing", 0.5, 1)
-    store.update(job.id, status="succeeded", progress=1.0, report={"slices": [1, 2]})
-    assert store.get(job.id).report == {"slices": [1, 2]}
+    assert got.started_at is not None and store.queued() == [] and store.ids("running") == [job.id]
+    assert store.finish(job.id, {"slices": [1, 2]}) and not store.finish(job.id, {"slices": []})
+    got = store.get(job.id)
+    assert (got.status, got.progress, got.report) == ("succeeded", 1.0, {"slices": [1, 2]})
+    assert store.counts() == {"queued": 0, "running": 0, "succeeded": 1, "failed": 0, "cancelled": 0}
     assert store.get("nope") is None and store.ping()
+    with pytest.raises(ValueError, match="only stage"):
+        store.update(job.id, status="queued")          # states change only through the transitions
 
 
-def test_cancel_deletes_files_and_stops_claims(tmp_path: Path) -> None:
-    store = JobStore(tmp_path)
+@both
+def test_a_redelivered_job_may_be_claimed_while_running_but_not_once_finished(store: JobStore) -> None:
+    job = store.create({})
+    assert store.claim(job.id) and not store.claim(job.id)
+    assert store.claim(job.id, redelivered=True) and store.get(job.id).attempts == 2
+    assert store.finish(job.id, {}) and not store.claim(job.id, redelivered=True)
+
+
+@both
+def test_cancel_deletes_files_and_stops_claims(store: JobStore) -> None:
     job = store.create({})
     (store.directory(job.id) / "inputs").mkdir()
     store.cancel(job.id)
     assert store.get(job.id).status == "cancelled" and not store.directory(job.id).exists()
-    assert not store.claim(job.id) and store.is_cancelled(job.id)
+    assert not store.claim(job.id) and not store.claim(job.id, redelivered=True) and store.is_cancelled(job.id)
+    assert not store.fail(job.id, "late") and store.get(job.id).error is None
 
 
-def test_restart_requeues_running_jobs_then_fails_them_after_max_attempts(tmp_path: Path) -> None:
-    store = JobStore(tmp_path)
-    queued, running = store.create({}), store.create({})
-    store.claim(running.id)
-    reopened = JobStore(tmp_path)                     # a new server process
-    assert set(reopened.recover(max_attempts=2)) == {queued.id, running.id}
-    assert reopened.get(running.id).status == "queued"
-    reopened.claim(running.id)                        # second attempt, interrupted again
-    assert reopened.recover(max_attempts=2) == [queued.id]
-    failed = reopened.get(running.id)
-    assert failed.status == "failed" and "restart" in failed.error
+@both
+def test_failure_keeps_the_reason_and_is_final(store: JobStore) -> None:
+    job = store.create({})
+    assert store.claim(job.id) and store.fail(job.id, "no included slice")
+    got = store.get(job.id)
+    assert (got.status, got.error) == ("failed", "no included slice")
+    assert not store.finish(job.id, {}) and not store.claim(job.id, redelivered=True)
+    queued = store.create({})
+    assert store.fail(queued.id, "lost") and store.queued() == []
 
 
-def test_retention_expires_only_finished_jobs(tmp_path: Path) -> None:
-    store = JobStore(tmp_path)
+@both
+def test_retention_expires_only_finished_jobs(store: JobStore) -> None:
     old, live = store.create({}), store.create({})
-    store.update(old.id, status="succeeded")
+    assert store.claim(old.id) and store.finish(old.id, {})
     time.sleep(0.05)
     assert store.expire(retention_s=0.01) == [old.id]
     assert store.get(old.id) is None and not store.directory(old.id).exists()
-    assert store.get(live.id).status == "queued"
+    assert store.get(live.id).status == "queued" and store.expire(retention_s=0.01) == []
 
 
-def test_a_job_cancelled_while_it_writes_does_not_end_succeeded(tmp_path: Path) -> None:
-    store = JobStore(tmp_path)
+@both
+def test_a_job_cancelled_while_it_writes_does_not_end_succeeded(store: JobStore) -> None:
     job = store.create({})
     assert store.claim(job.id)
     store.cancel(job.id)
@@ -62,3 +81,23 @@ def test_a_job_cancelled_while_it_writes_does_not_end_succeeded(tmp_path: Path) 
     other = store.create({})
     assert store.claim(other.id) and store.finish(other.id, {"slices": [1]})
     assert (store.get(other.id).status, store.get(other.id).report) == ("succeeded", {"slices": [1]})
+
+
+@both
+def test_delete_removes_record_and_files(store: JobStore) -> None:
+    job = store.create({})
+    store.delete(job.id)
+    assert store.get(job.id) is None and not store.directory(job.id).exists() and store.queued() == []
+
+
+@pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)
+def test_restart_requeues_running_jobs_then_fails_them_after_max_attempts(store: JobStore, tmp_path: Path) -> None:
+    queued, running = store.create({}), store.create({})
+    store.claim(running.id)
+    reopened = SqliteJobStore(store.data_dir)         # a new server process
+    assert set(reopened.recover(max_attempts=2)) == {queued.id, running.id}
+    assert reopened.get(running.id).status == "queued"
+    reopened.claim(running.id)                        # second attempt, interrupted again
+    assert reopened.recover(max_attempts=2) == [queued.id]
+    failed = reopened.get(running.id)
+    assert failed.status == "failed" and "restart" in failed.error

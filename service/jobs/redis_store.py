@@ -1,0 +1,163 @@
+"""The distributed back-end's job records: one Redis hash per job, one sorted set per state.
+
+Every API replica and every worker reads and writes the same records, so a job submitted through
+one replica is polled through another. Each transition is one Lua script (atomic in Redis): a job is
+claimed by one worker at a time, a cancelled job never ends ``succeeded``, a finished one never
+changes again. Files stay on the shared ``data_dir`` (see :class:`~service.jobs.store.JobStore`).
+
+Keys, under ``svrnet:<queue name>:``: ``job:<id>`` (hash), ``state:<status>`` (sorted set: by
+creation for ``queued``/``running``, by last change for the final states, which retention reads).
+
+Example (needs a Redis server):
+    >>> store = RedisJobStore("redis://127.0.0.1:6379/0", Path("/srv/svrnet-data"))  # doctest: +SKIP
+    >>> store.claim(store.create({"resolution_mm": 0.8}).id)  # doctest: +SKIP
+    True
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from pathlib import Path
+
+import redis
+
+from service.jobs.store import FINAL, STATES, Job, JobStore
+
+# KEYS: the job's hash, then the state sets in the order of STATES. ARGV: job id, the states it may
+# leave (space-separated), the new state, now, then field/value pairs ("+field" increments).
+TRANSITION = """
+local status = redis.call('HGET', KEYS[1], 'status')
+if not status then return 0 end
+local allowed = false
+for s in string.gmatch(ARGV[2], '%S+') do if s == status then allowed = true end end
+if not allowed then return 0 end
+local states = {queued = 2, running = 3, succeeded = 4, failed = 5, cancelled = 6}
+redis.call('HSET', KEYS[1], 'status', ARGV[3], 'updated_at', ARGV[4])
+for i = 5, #ARGV, 2 do
+  if string.sub(ARGV[i], 1, 1) == '+' then
+    redis.call('HINCRBY', KEYS[1], string.sub(ARGV[i], 2), ARGV[i + 1])
+  else
+    redis.call('HSET', KEYS[1], ARGV[i], ARGV[i + 1])
+  end
+end
+redis.call('ZREM', KEYS[states[status]], ARGV[1])
+local score = ARGV[4]
+if ARGV[3] == 'queued' or ARGV[3] == 'running' then score = redis.call('HGET', KEYS[1], 'created_at') end
+redis.call('ZADD', KEYS[states[ARGV[3]]], score, ARGV[1])
+return 1
+"""
+
+# KEYS: the job's hash. ARGV: field/value pairs, set only if the job exists.
+UPDATE = """
+if redis.call('EXISTS', KEYS[1]) == 0 then return 0 end
+for i = 1, #ARGV, 2 do redis.call('HSET', KEYS[1], ARGV[i], ARGV[i + 1]) end
+return 1
+"""
+
+_FLOATS = ("progress", "created_at", "updated_at", "submitted_at", "started_at")
+
+
+def _job(values: dict[str, str]) -> Job:
+    """A :class:`Job` from the strings of its hash."""
+    return Job(id=values["id"], status=values["status"], stage=values.get("stage"),
+               progress=float(values.get("progress", 0.0)), error=values.get("error"),
+               params=json.loads(values["params"]), report=json.loads(values["report"]) if "report" in values else None,
+               attempts=int(values.get("attempts", 0)), created_at=float(values["created_at"]),
+               updated_at=float(values["updated_at"]),
+               submitted_at=float(values["submitted_at"]) if "submitted_at" in values else None,
+               started_at=float(values["started_at"]) if "started_at" in values else None)
+
+
+class RedisJobStore(JobStore):
+    """Job records in Redis at ``url`` (namespace ``svrnet:<queue_name>``); files under ``data_dir``,
+    a folder every API replica and worker mounts."""
+
+    def __init__(self, url: str, data_dir: Path, queue_name: str = "svrnet") -> None:
+        self.data_dir = Path(data_dir)
+        (self.data_dir / "jobs").mkdir(parents=True, exist_ok=True)
+        self.redis = redis.Redis.from_url(url, decode_responses=True, socket_timeout=10, socket_connect_timeout=5,
+                                          health_check_interval=30)
+        self.prefix = f"svrnet:{queue_name}:"
+        self._transition = self.redis.register_script(TRANSITION)
+        self._update = self.redis.register_script(UPDATE)
+
+    def _key(self, job_id: str) -> str:
+        return f"{self.prefix}job:{job_id}"
+
+    def _state_keys(self) -> list[str]:
+        return [f"{self.prefix}state:{s}" for s in STATES]
+
+    def _move(self, job_id: str, allowed: tuple[str, ...], to: str, **fields: object) -> bool:
+        args = [job_id, " ".join(allowed), to, repr(time.time())]
+        for k, v in fields.items():
+            args += [k, v if isinstance(v, str) else json.dumps(v)]
+        return bool(self._transition(keys=[self._key(job_id), *self._state_keys()], args=args))
+
+    def ping(self) -> bool:
+        try:
+            return bool(self.redis.ping())
+        except redis.RedisError:
+            return False
+
+    def create(self, params: dict) -> Job:
+        job_id, now = self._new_id(), repr(time.time())
+        with self.redis.pipeline(transaction=True) as pipe:
+            pipe.hset(self._key(job_id), mapping={"id": job_id, "status": "queued", "stage": "queued", "progress": "0",
+                                                  "params": json.dumps(params), "attempts": "0", "created_at": now,
+                                                  "updated_at": now})
+            pipe.zadd(f"{self.prefix}state:queued", {job_id: float(now)})
+            pipe.execute()
+        return self.get(job_id)  # type: ignore[return-value]
+
+    def get(self, job_id: str) -> Job | None:
+        values = self.redis.hgetall(self._key(job_id))
+        return _job(values) if values else None
+
+    def update(self, job_id: str, **fields: object) -> None:
+        if not set(fields) <= {"stage", "progress", "submitted_at"}:
+            raise ValueError(f"update: only stage, progress, submitted_at (not {sorted(fields)})")
+        args: list[str] = ["updated_at", repr(time.time())]
+        for k, v in fields.items():
+            args += [k, v if isinstance(v, str) else repr(float(v))]  # type: ignore[arg-type]
+        self._update(keys=[self._key(job_id)], args=args)
+
+    def claim(self, job_id: str, redelivered: bool = False) -> bool:
+        allowed = ("queued", "running") if redelivered else ("queued",)
+        return self._move(job_id, allowed, "running", stage="starting", progress="0", started_at=repr(time.time()),
+                          **{"+attempts": 1})
+
+    def finish(self, job_id: str, report: dict) -> bool:
+        return self._move(job_id, ("running",), "succeeded", stage="done", progress="1.0", report=report)
+
+    def fail(self, job_id: str, reason: str) -> bool:
+        return self._move(job_id, ("queued", "running"), "failed", stage="failed", error=reason)
+
+    def cancel(self, job_id: str) -> None:
+        self._move(job_id, ("queued", "running"), "cancelled", stage="cancelled")
+        shutil.rmtree(self.directory(job_id), ignore_errors=True)
+
+    def delete(self, job_id: str) -> None:
+        with self.redis.pipeline(transaction=True) as pipe:
+            for key in self._state_keys():
+                pipe.zrem(key, job_id)
+            pipe.delete(self._key(job_id))
+            pipe.execute()
+        shutil.rmtree(self.directory(job_id), ignore_errors=True)
+
+    def ids(self, status: str) -> list[str]:
+        return list(self.redis.zrange(f"{self.prefix}state:{status}", 0, -1))
+
+    def counts(self) -> dict[str, int]:
+        with self.redis.pipeline(transaction=False) as pipe:
+            for key in self._state_keys():
+                pipe.zcard(key)
+            return dict(zip(STATES, pipe.execute()))
+
+    def expire(self, retention_s: float) -> list[str]:
+        cutoff = time.time() - retention_s
+        ids = [i for s in FINAL for i in self.redis.zrangebyscore(f"{self.prefix}state:{s}", "-inf", cutoff)]
+        for job_id in ids:
+            self.delete(job_id)
+        return ids

@@ -1,0 +1,172 @@
+"""The distributed back-end's runner: an RQ queue on Redis (why RQ: README, "Running on several machines").
+
+* The API replicas only **enqueue** (the RQ job id is the job's id) and, every
+  ``queue_maintenance_s``, **maintain**: RQ's registry clean-up re-delivers the job of a worker that
+  stopped heart-beating (``kill -9``, a lost machine) while its retries last, and
+  :meth:`RqRunner.reconcile` fails, with a reason, each job RQ has given up.
+* ``svrnet-worker`` processes (:mod:`service.jobs.worker_cli`) run :func:`execute` in a forked work
+  horse per job; the job records and the progress live in :class:`~service.jobs.redis_store.RedisJobStore`.
+* **Cancel** marks the record and stops the work horse at once (RQ's stop command); a stopped job is
+  never retried.
+
+Delivery is at-least-once; "run to completion once" comes from the store: a job is claimed
+atomically, only ``running -> succeeded`` finishes it, and a horse whose worker died exits (it
+watches its parent), so the re-delivered run is the only one left.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import redis
+from rq import Callback, Queue, Retry, get_current_job
+from rq.command import send_stop_job_command
+from rq.exceptions import InvalidJobOperation, NoSuchJobError
+from rq.job import Job as RqJob
+from rq.job import JobStatus
+from rq.registry import clean_registries
+from rq.worker import Worker
+
+from service.core.settings import Settings
+from service.jobs.redis_store import RedisJobStore
+from service.jobs.runner import JobRunner, watch_parent
+from service.jobs.worker import run_job
+
+log = logging.getLogger(__name__)
+
+GIVEN_UP = (JobStatus.FAILED, JobStatus.STOPPED, JobStatus.CANCELED, JobStatus.FINISHED)
+
+
+@dataclass
+class WorkerContext:
+    """What a work horse needs: set by ``svrnet-worker`` before it forks (else read from ``SVRNET_*``)."""
+
+    store: RedisJobStore
+    models_dir: Path
+    max_attempts: int
+
+
+_context: WorkerContext | None = None
+
+
+def set_context(settings: Settings) -> WorkerContext:
+    global _context
+    assert settings.queue_url, "the distributed back-end needs SVRNET_QUEUE_URL"
+    _context = WorkerContext(RedisJobStore(settings.queue_url, settings.data_dir, settings.queue_name),
+                             Path(settings.models_dir), settings.job_max_attempts)
+    return _context
+
+
+def _worker_context() -> WorkerContext:
+    return _context or set_context(Settings())
+
+
+def execute(job_id: str) -> None:
+    """The RQ task (in the work horse): run the job; ``redelivered`` when RQ retried it."""
+    ctx = _worker_context()
+    watch_parent()
+    current = get_current_job()
+    retries_left = current.retries_left if current is not None else None
+    redelivered = retries_left is not None and retries_left < ctx.max_attempts - 1
+    if redelivered:
+        log.info(f"re-delivered job {job_id}, attempt {ctx.max_attempts - retries_left}", extra={"job_id": job_id})
+    run_job(ctx.store, ctx.models_dir, job_id, redelivered=redelivered)
+
+
+def on_stopped(job: RqJob, connection: redis.Redis) -> None:  # noqa: ARG001 - RQ's callback signature
+    """After RQ killed a cancelled job's horse (in the worker): remove what it may have written since."""
+    store = _worker_context().store
+    if store.is_cancelled(job.id):
+        shutil.rmtree(store.directory(job.id), ignore_errors=True)
+
+
+def failure_reason(rq_job: RqJob, max_attempts: int) -> str:
+    """Why RQ gave the job up, in words with no server detail.
+
+    Example:
+        >>> class J:  # what RQ records of a job whose workers were killed
+        ...     exc_info = "Moved to FailedJobRegistry, due to AbandonedJobError"
+        ...     def get_status(self): return "failed"
+        >>> failure_reason(J(), 2)
+        'the worker running it was lost 2 times (SVRNET_JOB_MAX_ATTEMPTS); the job was not completed'
+    """
+    exc = str(getattr(rq_job, "exc_info", None) or "")
+    if "JobTimeoutException" in exc:
+        return "the job ran longer than SVRNET_JOB_TIMEOUT_H and was stopped"
+    if rq_job.get_status() == JobStatus.FINISHED:
+        return "the worker ended without completing the job"
+    return (f"the worker running it was lost {max_attempts} time{'s' if max_attempts > 1 else ''} "
+            "(SVRNET_JOB_MAX_ATTEMPTS); the job was not completed")
+
+
+class RqRunner(JobRunner):
+    """Enqueues jobs on the RQ queue ``settings.queue_name``; the workers are ``svrnet-worker`` processes."""
+
+    def __init__(self, store: RedisJobStore, settings: Settings) -> None:
+        self.store, self.settings = store, settings
+        self.connection = redis.Redis.from_url(settings.queue_url, socket_timeout=10, socket_connect_timeout=5)
+        self.queue = Queue(settings.queue_name, connection=self.connection)
+
+    def start(self) -> list[str]:
+        try:
+            self.maintain()
+        except redis.RedisError:
+            log.warning("the queue is not reachable yet; /readyz says so until it is")
+        return []
+
+    def submit(self, job_id: str) -> None:
+        handed = time.time()
+        retries = self.settings.job_max_attempts - 1
+        self.queue.enqueue(execute, job_id, job_id=job_id, retry=Retry(max=retries) if retries else None,
+                           job_timeout=int(self.settings.job_timeout_h * 3600), result_ttl=600,
+                           failure_ttl=int(self.settings.retention_hours * 3600), on_stopped=Callback(on_stopped),
+                           description="svrnet reconstruction")
+        self.store.update(job_id, submitted_at=handed)
+
+    def cancel(self, job_id: str) -> None:
+        try:
+            rq_job = RqJob.fetch(job_id, connection=self.connection)
+            if rq_job.get_status() == JobStatus.STARTED:
+                send_stop_job_command(self.connection, job_id)
+            else:
+                rq_job.cancel()
+        except (NoSuchJobError, InvalidJobOperation):
+            pass                       # already over: the store's state is what counts
+
+    def maintain(self) -> None:
+        if self.queue.acquire_maintenance_lock():
+            try:
+                clean_registries(self.queue)
+            finally:
+                self.queue.release_maintenance_lock()
+        self.reconcile()
+
+    def reconcile(self) -> list[str]:
+        """Fail (with the reason) every unfinished job RQ has given up or lost; their ids."""
+        failed = []
+        for job_id in self.store.ids("queued") + self.store.ids("running"):
+            job = self.store.get(job_id)
+            if job is None or job.submitted_at is None:
+                continue               # still being uploaded through a replica
+            try:
+                rq_job = RqJob.fetch(job_id, connection=self.connection)
+                gone = rq_job.get_status(refresh=True) in GIVEN_UP
+                reason = failure_reason(rq_job, self.settings.job_max_attempts) if gone else ""
+            except NoSuchJobError:
+                gone, reason = True, "the queue lost the job (was Redis restarted without persistence?)"
+            if gone and self.store.fail(job_id, reason):
+                self.store.discard_inputs(job_id)
+                log.warning(f"job {job_id} failed: {reason}", extra={"job_id": job_id})
+                failed.append(job_id)
+        return failed
+
+    def stats(self) -> dict[str, float]:
+        return {"workers": float(Worker.count(queue=self.queue)), "queue_length": float(len(self.queue))}
+
+    def shutdown(self) -> list[str]:
+        self.connection.close()
+        return []

@@ -1,0 +1,132 @@
+"""``svrnet-worker``: reconstruction workers against the Redis queue, on any machine that mounts the
+shared ``SVRNET_DATA_DIR`` and has the models.
+
+Settings are the service's ``SVRNET_*`` variables (``SVRNET_QUEUE_URL`` is required); options:
+
+* ``--workers N``: N worker processes (default 1), each forking a work horse per job;
+* ``--burst``: stop once the queue is empty (batch machines, tests);
+* ``--health``: exit 0 when a worker of this host is registered and heart-beating (container health
+  checks), 1 otherwise.
+
+Signals: the first SIGTERM (or Ctrl-C) lets the running job finish, then the worker exits (RQ's warm
+shutdown); a second one stops the job at once and hands it back to the queue. After ``kill -9`` of a
+worker its horse exits too, and the job is re-delivered to another worker once the lost worker has
+been silent ``SVRNET_WORKER_LOST_AFTER_S`` (beyond its heartbeat); after ``SVRNET_JOB_MAX_ATTEMPTS``
+runs it fails with that reason. Nothing is silently lost.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import multiprocessing
+import os
+import signal
+import socket
+import sys
+from datetime import datetime, timezone
+
+import redis
+from rq import Queue
+from rq.job import Job as RqJob
+from rq.worker import Worker
+
+from service.core import logging as service_logging
+from service.core.settings import Settings
+from service.jobs.rq_runner import set_context
+
+log = logging.getLogger(__name__)
+
+
+class SvrnetWorker(Worker):
+    """RQ's forking worker, declared lost after ``lost_after_s`` of silence (RQ's fixed 60 s margin
+    is too long for tests and too short to be tuned per site)."""
+
+    lost_after_s = 60
+
+    def get_heartbeat_ttl(self, job: RqJob) -> int:
+        return int(self.job_monitoring_interval + self.lost_after_s)
+
+
+def _preload() -> None:
+    """Import what jobs use before forking, so each work horse starts at once."""
+    import service.inference.pipeline  # noqa: F401
+    import service.reconstruction.pipeline  # noqa: F401
+    import service.jobs.worker  # noqa: F401
+
+
+def build_worker(settings: Settings, name: str | None = None) -> SvrnetWorker:
+    connection = redis.Redis.from_url(settings.queue_url)
+    worker = SvrnetWorker([Queue(settings.queue_name, connection=connection)], connection=connection, name=name,
+                          job_monitoring_interval=settings.worker_heartbeat_s,
+                          maintenance_interval=max(1, int(settings.queue_maintenance_s)),
+                          worker_ttl=max(30, settings.worker_lost_after_s))
+    worker.lost_after_s = settings.worker_lost_after_s
+    return worker
+
+
+def work(settings: Settings, burst: bool = False, name: str | None = None) -> None:
+    """One worker in this process until SIGTERM (or, with ``burst``, until the queue is empty)."""
+    set_context(settings)
+    build_worker(settings, name).work(burst=burst, logging_level=settings.log_level.upper())
+
+
+def healthy(settings: Settings, host: str | None = None) -> bool:
+    """A worker of ``host`` (default: this one) is registered and its heartbeat is recent."""
+    connection = redis.Redis.from_url(settings.queue_url, socket_timeout=5, socket_connect_timeout=5)
+    host = host or socket.gethostname()
+    limit = settings.worker_heartbeat_s + settings.worker_lost_after_s
+    now = datetime.now(timezone.utc)
+    for worker in Worker.all(connection=connection, queue=Queue(settings.queue_name, connection=connection)):
+        beat = worker.last_heartbeat
+        if worker.hostname == host and beat is not None:
+            beat = beat if beat.tzinfo else beat.replace(tzinfo=timezone.utc)
+            if (now - beat).total_seconds() < limit:
+                return True
+    return False
+
+
+def _pool(settings: Settings, n: int, burst: bool) -> int:
+    """``n`` workers in child processes; SIGTERM/SIGINT are passed on; the exit code of the worst."""
+    ctx = multiprocessing.get_context("fork")
+    children = [ctx.Process(target=work, args=(settings, burst), name=f"svrnet-worker-{i}") for i in range(n)]
+    for child in children:
+        child.start()
+
+    def forward(signum: int, frame: object) -> None:  # noqa: ARG001
+        for child in children:
+            if child.pid is not None and child.is_alive():
+                os.kill(child.pid, signum)
+
+    signal.signal(signal.SIGTERM, forward)
+    signal.signal(signal.SIGINT, forward)
+    for child in children:
+        child.join()
+    return max(abs(child.exitcode or 0) for child in children)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="svrnet-worker", description="SVRnet reconstruction workers on the Redis "
+                                 "queue named by SVRNET_QUEUE_URL / SVRNET_QUEUE_NAME.")
+    ap.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    ap.add_argument("--burst", action="store_true", help="exit once the queue is empty")
+    ap.add_argument("--name", help="worker name (one worker only; default: RQ's unique name)")
+    ap.add_argument("--health", action="store_true", help="exit 0 if a worker of this host is alive")
+    args = ap.parse_args(argv)
+    settings = Settings()
+    if not settings.queue_url:
+        print("svrnet-worker: set SVRNET_QUEUE_URL=redis://host:port/db", file=sys.stderr)
+        return 2
+    if args.health:
+        return 0 if healthy(settings) else 1
+    service_logging.configure(settings.log_level)
+    _preload()
+    if args.workers <= 1:
+        work(settings, args.burst, args.name)
+        return 0
+    return _pool(settings, args.workers, args.burst)
+
+
+def run() -> None:
+    """Console entry point."""
+    sys.exit(main())
