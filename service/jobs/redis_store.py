@@ -26,16 +26,18 @@ import redis
 from service.jobs.store import FINAL, STATES, Job, JobStore
 
 # KEYS: the job's hash, then the state sets in the order of STATES. ARGV: job id, the states it may
-# leave (space-separated), the new state, now, then field/value pairs ("+field" increments).
+# leave (space-separated), the new state, now, the attempt the job must be at ("" for any), then
+# field/value pairs ("+field" increments). Returns the job's attempts after the move, -1 if refused.
 TRANSITION = """
 local status = redis.call('HGET', KEYS[1], 'status')
-if not status then return 0 end
+if not status then return -1 end
 local allowed = false
 for s in string.gmatch(ARGV[2], '%S+') do if s == status then allowed = true end end
-if not allowed then return 0 end
+if not allowed then return -1 end
+if ARGV[5] ~= '' and redis.call('HGET', KEYS[1], 'attempts') ~= ARGV[5] then return -1 end
 local states = {queued = 2, running = 3, succeeded = 4, failed = 5, cancelled = 6}
 redis.call('HSET', KEYS[1], 'status', ARGV[3], 'updated_at', ARGV[4])
-for i = 5, #ARGV, 2 do
+for i = 6, #ARGV, 2 do
   if string.sub(ARGV[i], 1, 1) == '+' then
     redis.call('HINCRBY', KEYS[1], string.sub(ARGV[i], 2), ARGV[i + 1])
   else
@@ -46,7 +48,7 @@ redis.call('ZREM', KEYS[states[status]], ARGV[1])
 local score = ARGV[4]
 if ARGV[3] == 'queued' or ARGV[3] == 'running' then score = redis.call('HGET', KEYS[1], 'created_at') end
 redis.call('ZADD', KEYS[states[ARGV[3]]], score, ARGV[1])
-return 1
+return tonumber(redis.call('HGET', KEYS[1], 'attempts'))
 """
 
 # KEYS: the job's hash. ARGV: field/value pairs, set only if the job exists.
@@ -89,11 +91,13 @@ class RedisJobStore(JobStore):
     def _state_keys(self) -> list[str]:
         return [f"{self.prefix}state:{s}" for s in STATES]
 
-    def _move(self, job_id: str, allowed: tuple[str, ...], to: str, **fields: object) -> bool:
-        args = [job_id, " ".join(allowed), to, repr(time.time())]
+    def _move(self, job_id: str, allowed: tuple[str, ...], to: str, attempt: int | None = None,
+              **fields: object) -> int:
+        """The transition script: the job's attempts after the move, -1 if refused."""
+        args = [job_id, " ".join(allowed), to, repr(time.time()), "" if attempt is None else str(attempt)]
         for k, v in fields.items():
             args += [k, v if isinstance(v, str) else json.dumps(v)]
-        return bool(self._transition(keys=[self._key(job_id), *self._state_keys()], args=args))
+        return int(self._transition(keys=[self._key(job_id), *self._state_keys()], args=args))
 
     def ping(self) -> bool:
         try:
@@ -123,16 +127,16 @@ class RedisJobStore(JobStore):
             args += [k, v if isinstance(v, str) else repr(float(v))]  # type: ignore[arg-type]
         self._update(keys=[self._key(job_id)], args=args)
 
-    def claim(self, job_id: str, redelivered: bool = False) -> bool:
+    def claim(self, job_id: str, redelivered: bool = False) -> int:
         allowed = ("queued", "running") if redelivered else ("queued",)
-        return self._move(job_id, allowed, "running", stage="starting", progress="0", started_at=repr(time.time()),
-                          **{"+attempts": 1})
+        return max(0, self._move(job_id, allowed, "running", stage="starting", progress="0",
+                                 started_at=repr(time.time()), **{"+attempts": 1}))
 
-    def finish(self, job_id: str, report: dict) -> bool:
-        return self._move(job_id, ("running",), "succeeded", stage="done", progress="1.0", report=report)
+    def finish(self, job_id: str, report: dict, attempt: int | None = None) -> bool:
+        return self._move(job_id, ("running",), "succeeded", attempt, stage="done", progress="1.0", report=report) >= 0
 
-    def fail(self, job_id: str, reason: str) -> bool:
-        return self._move(job_id, ("queued", "running"), "failed", stage="failed", error=reason)
+    def fail(self, job_id: str, reason: str, attempt: int | None = None) -> bool:
+        return self._move(job_id, ("queued", "running"), "failed", attempt, stage="failed", error=reason) >= 0
 
     def cancel(self, job_id: str) -> None:
         self._move(job_id, ("queued", "running"), "cancelled", stage="cancelled")

@@ -17,7 +17,7 @@ Example:
     >>> store.get(job.id).status
     'queued'
     >>> store.claim(job.id), store.claim(job.id)
-    (True, False)
+    (1, 0)
 """
 
 from __future__ import annotations
@@ -101,18 +101,20 @@ class JobStore(ABC):
         """Set ``stage``, ``progress`` or ``submitted_at`` of an existing job (never its status)."""
 
     @abstractmethod
-    def claim(self, job_id: str, redelivered: bool = False) -> bool:
-        """``queued -> running`` (attempts + 1), atomically; False if the job is no longer queued
-        (cancelled, finished, taken). ``redelivered``: the queue hands the job out again after its
-        worker was lost, so ``running`` may be claimed too."""
+    def claim(self, job_id: str, redelivered: bool = False) -> int:
+        """``queued -> running``, atomically: the run's attempt number (1, 2, ...), or 0 if the job is no
+        longer queued (cancelled, finished, taken). ``redelivered``: the queue hands the job out again
+        after its worker was lost, so ``running`` may be claimed too (the newer run supersedes)."""
 
     @abstractmethod
-    def finish(self, job_id: str, report: dict) -> bool:
-        """``running -> succeeded`` with ``report``, atomically; False if the job was cancelled meanwhile."""
+    def finish(self, job_id: str, report: dict, attempt: int | None = None) -> bool:
+        """``running -> succeeded`` with ``report``, atomically; False if the job was cancelled meanwhile
+        or (given ``attempt``) a later run has claimed it."""
 
     @abstractmethod
-    def fail(self, job_id: str, reason: str) -> bool:
-        """``queued | running -> failed`` with ``reason``; False if it had ended (e.g. was cancelled)."""
+    def fail(self, job_id: str, reason: str, attempt: int | None = None) -> bool:
+        """``queued | running -> failed`` with ``reason``; False if it had ended (e.g. was cancelled) or
+        (given ``attempt``) a later run has claimed it."""
 
     @abstractmethod
     def cancel(self, job_id: str) -> None:
@@ -212,20 +214,24 @@ class SqliteJobStore(JobStore):
         cols = ", ".join(f"{k} = ?" for k in fields)
         self._write(f"UPDATE jobs SET {cols} WHERE id = ?", (*fields.values(), job_id))
 
-    def claim(self, job_id: str, redelivered: bool = False) -> bool:
+    def claim(self, job_id: str, redelivered: bool = False) -> int:
         states = "('queued', 'running')" if redelivered else "('queued')"
         now = time.time()
-        return self._write("UPDATE jobs SET status = 'running', stage = 'starting', progress = 0, "
-                           f"attempts = attempts + 1, started_at = ?, updated_at = ? WHERE id = ? AND status IN {states}",
-                           (now, now, job_id))
+        with self._connect() as db:
+            row = db.execute("UPDATE jobs SET status = 'running', stage = 'starting', progress = 0, attempts = "
+                             f"attempts + 1, started_at = ?, updated_at = ? WHERE id = ? AND status IN {states} "
+                             "RETURNING attempts", (now, now, job_id)).fetchone()
+        return int(row["attempts"]) if row else 0
 
-    def finish(self, job_id: str, report: dict) -> bool:
+    def finish(self, job_id: str, report: dict, attempt: int | None = None) -> bool:
         return self._write("UPDATE jobs SET status = 'succeeded', stage = 'done', progress = 1.0, report = ?, "
-                           "updated_at = ? WHERE id = ? AND status = 'running'", (json.dumps(report), time.time(), job_id))
+                           "updated_at = ? WHERE id = ? AND status = 'running' AND (? IS NULL OR attempts = ?)",
+                           (json.dumps(report), time.time(), job_id, attempt, attempt))
 
-    def fail(self, job_id: str, reason: str) -> bool:
+    def fail(self, job_id: str, reason: str, attempt: int | None = None) -> bool:
         return self._write("UPDATE jobs SET status = 'failed', stage = 'failed', error = ?, updated_at = ? "
-                           "WHERE id = ? AND status IN ('queued', 'running')", (reason, time.time(), job_id))
+                           "WHERE id = ? AND status IN ('queued', 'running') AND (? IS NULL OR attempts = ?)",
+                           (reason, time.time(), job_id, attempt, attempt))
 
     def cancel(self, job_id: str) -> None:
         self._write("UPDATE jobs SET status = 'cancelled', stage = 'cancelled', updated_at = ? "

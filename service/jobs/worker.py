@@ -34,6 +34,10 @@ class Cancelled(Exception):
     """The job was cancelled while running."""
 
 
+class Superseded(Exception):
+    """A later run of the job (re-delivered by the queue) has claimed it: this run leaves everything to it."""
+
+
 def _stack_files(inputs: Path) -> list[tuple[Path, Path | None]]:
     stacks = sorted(inputs.glob("stack*"), key=lambda p: int(p.name[5:]))
     return [(s, (inputs / f"mask{s.name[5:]}") if (inputs / f"mask{s.name[5:]}").exists() else None) for s in stacks]
@@ -97,21 +101,29 @@ def run_job(store: JobStore, models_dir: Path, job_id: str, redelivered: bool = 
 
     ``redelivered``: the queue hands the job out again after the worker running it was lost.
     """
-    if not store.claim(job_id, redelivered=redelivered):
+    attempt = store.claim(job_id, redelivered=redelivered)
+    if not attempt:
         return
     folder = store.directory(job_id)
 
     def progress(stage: str, fraction: float) -> None:
-        if store.is_cancelled(job_id):
+        job = store.get(job_id)
+        if job is None or job.status == "cancelled":
             raise Cancelled
+        if job.attempts != attempt:
+            raise Superseded
         store.update(job_id, stage=stage, progress=float(min(max(fraction, 0.0), 1.0)))
 
     try:
-        _execute(store, folder, Path(models_dir), job_id, progress)
+        _execute(store, folder, Path(models_dir), job_id, progress, attempt)
+        log.info(f"job {job_id} completed, attempt {attempt}", extra={"job_id": job_id, "attempt": attempt})
+    except Superseded:
+        log.warning(f"job {job_id}: attempt {attempt} superseded by a re-delivery", extra={"job_id": job_id})
+        return                         # the later run owns the job's files
     except Cancelled:
         log.info("job cancelled", extra={"job_id": job_id})
     except Exception as exc:  # noqa: BLE001 - every failure is recorded on the job, not lost
-        store.fail(job_id, failure_reason(exc))
+        store.fail(job_id, failure_reason(exc), attempt)
         log.warning("job failed", extra={"job_id": job_id, "error_type": type(exc).__name__})
     # Ended, whatever the outcome: the uploads (raw headers, the clients' file names) go now, not at
     # the retention limit. A worker stopped mid-job never gets here, so a re-run still has them.
@@ -142,7 +154,8 @@ def _name(names: dict, field: str, index: int) -> str:
     return listed[index] if index < len(listed) and isinstance(listed[index], str) else f"{field}[{index}]"
 
 
-def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progress) -> None:  # noqa: ANN001
+def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progress,  # noqa: ANN001
+             attempt: int) -> None:
     from service.inference.estimator import OnnxPoseEstimator
     from service.inference.model_file import load_model
     from service.inference.pipeline import StackUpload
@@ -199,6 +212,8 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
                                  weight=result.slice_weight, ncc=result.ncc, reasons=result.exclusion_reason,
                                  job_id=job_id)
     (folder / "outputs" / "poses.json").write_text(json.dumps(refined))
-    if not store.finish(job_id, report):       # cancelled while writing: leave nothing behind
-        shutil.rmtree(folder, ignore_errors=True)
+    if not store.finish(job_id, report, attempt):
+        if not store.is_cancelled(job_id):
+            raise Superseded
+        shutil.rmtree(folder, ignore_errors=True)    # cancelled while writing: leave nothing behind
         raise Cancelled

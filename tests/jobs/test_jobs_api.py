@@ -222,3 +222,26 @@ def test_a_job_queued_while_no_worker_runs_completes_when_one_starts(case: dict,
     finally:
         worker.stop()
     assert st["status"] == "succeeded" and st["attempts"] == 1, st
+
+
+def wait_running(client: TestClient, job_id: str, timeout: float = 60.0) -> dict:
+    """Poll until the job is inside the reconstruction (past reading), i.e. truly mid-job."""
+    deadline = time.time() + timeout
+    while (st := client.get(f"/v1/reconstructions/{job_id}").json())["status"] == "queued" or \
+            st["stage"] in ("starting", "reading"):
+        assert time.time() < deadline and st["status"] in ("queued", "running"), st
+        time.sleep(0.05)
+    return st
+
+
+@both
+def test_cancelling_a_running_job_stops_it_and_leaves_nothing(client: TestClient, case: dict) -> None:
+    job_id = submit(client, case, resolution_mm="1.0", svr_iterations="3").json()["job_id"]
+    assert wait_running(client, job_id)["status"] == "running"
+    assert client.delete(f"/v1/reconstructions/{job_id}").status_code == 204
+    folder = client.app.state.job_store.directory(job_id)
+    time.sleep(3.0)                                   # whatever the stopped run still did is gone
+    st = client.get(f"/v1/reconstructions/{job_id}").json()
+    assert st["status"] == "cancelled" and not folder.exists(), (st, folder.exists())
+    # The worker is free again and serves the next job.
+    assert wait(client, submit(client, case, svr_iterations="0").json()["job_id"])["status"] == "succeeded"

@@ -36,9 +36,13 @@ def test_lifecycle_and_claim_is_atomic(store: JobStore) -> None:
 @both
 def test_a_redelivered_job_may_be_claimed_while_running_but_not_once_finished(store: JobStore) -> None:
     job = store.create({})
-    assert store.claim(job.id) and not store.claim(job.id)
-    assert store.claim(job.id, redelivered=True) and store.get(job.id).attempts == 2
-    assert store.finish(job.id, {}) and not store.claim(job.id, redelivered=True)
+    assert store.claim(job.id) == 1 and not store.claim(job.id)
+    assert store.claim(job.id, redelivered=True) == 2 and store.get(job.id).attempts == 2
+    # The superseded first run can neither finish nor fail the job; the second one can.
+    assert not store.finish(job.id, {"run": 1}, attempt=1) and not store.fail(job.id, "x", attempt=1)
+    assert store.get(job.id).status == "running"
+    assert store.finish(job.id, {"run": 2}, attempt=2) and store.get(job.id).report == {"run": 2}
+    assert not store.claim(job.id, redelivered=True)
 
 
 @both

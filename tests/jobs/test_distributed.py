@@ -1,0 +1,139 @@
+"""The distributed back-end end to end: real ``svrnet-server`` replicas and ``svrnet-worker``
+processes on one real Redis. Jobs submitted through one replica are polled through the other; a
+worker killed with ``kill -9`` mid-job has its job re-delivered to the other worker, which completes
+it; SIGTERM lets a worker finish its job; nothing is lost or completed twice."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import time
+import uuid
+from pathlib import Path
+
+import httpx
+import pytest
+import redis
+from rq.job import Job as RqJob
+
+from tests.jobs.conftest import env_of
+from tests.live_server import Server, Worker
+from tests.phantoms import orthogonal_stacks_case
+
+FINAL = ("succeeded", "failed", "cancelled")
+
+
+@pytest.fixture(scope="module")
+def job_files(tmp_path_factory: pytest.TempPathFactory) -> list:
+    paths, body = orthogonal_stacks_case(tmp_path_factory.mktemp("distributed_case"))
+    files = [part for s, m in paths for part in (("stacks", (s.name, s.read_bytes())), ("masks", (m.name, m.read_bytes())))]
+    return files + [("poses", ("poses.json", json.dumps(body)))]
+
+
+@pytest.fixture
+def cluster_settings(tmp_path: Path, redis_url: str) -> dict[str, str]:
+    return {"data_dir": str(tmp_path / "shared"), "queue_url": redis_url, "queue_name": f"t{uuid.uuid4().hex[:12]}",
+            "queue_maintenance_s": "1", "worker_heartbeat_s": "1", "worker_lost_after_s": "3"}
+
+
+def submit(url: str, files: list, **data: str) -> str:
+    r = httpx.post(f"{url}/v1/reconstructions", files=files, data={"resolution_mm": "1.5", "svr_iterations": "2", **data},
+                   timeout=60)
+    assert r.status_code == 202, r.text
+    return r.json()["job_id"]
+
+
+def status(url: str, job_id: str) -> dict:
+    return httpx.get(f"{url}/v1/reconstructions/{job_id}", timeout=10).json()
+
+
+def completions(logs: list[Path]) -> dict[str, list[int]]:
+    """Job id -> the attempts that completed it, from the workers' logs."""
+    done: dict[str, list[int]] = {}
+    for log in logs:
+        for job_id, attempt in re.findall(r"job ([0-9a-f]{32}) completed, attempt (\d+)", log.read_text()):
+            done.setdefault(job_id, []).append(int(attempt))
+    return done
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+        return True
+    except ProcessLookupError:
+        return False
+
+
+@pytest.mark.slow
+def test_two_replicas_two_workers_and_a_worker_killed_mid_job(tmp_path: Path, job_files: list,
+                                                              cluster_settings: dict[str, str]) -> None:
+    env = env_of(cluster_settings)
+    apis = [Server(Path(cluster_settings["data_dir"]), tmp_path / f"api{i}.log", **{
+        k: v for k, v in cluster_settings.items() if k != "data_dir"}) for i in range(2)]
+    logs = [tmp_path / f"worker{i}.log" for i in range(2)]
+    workers = [Worker(logs[i], env, "--name", f"w{i}-{cluster_settings['queue_name']}") for i in range(2)]
+    conn = redis.Redis.from_url(cluster_settings["queue_url"])
+    try:
+        jobs = [submit(apis[0].url, job_files) for _ in range(6)]
+        # Wait until worker 0 is inside a job, then kill it (and only it: its horse must follow).
+        deadline, victim = time.time() + 90, None
+        while victim is None:
+            assert time.time() < deadline, [status(apis[1].url, j) for j in jobs]
+            for job_id in jobs:
+                st = status(apis[1].url, job_id)
+                if st["status"] == "running" and st["stage"] not in ("starting", "reading") and \
+                        (RqJob.fetch(job_id, connection=conn).worker_name or "").startswith("w0-"):
+                    victim = job_id
+                    break
+            time.sleep(0.05)
+        workers[0].stop(signal.SIGKILL, timeout=10)
+        deadline = time.time() + 240
+        while not all((st := status(apis[1].url, j))["status"] in FINAL for j in jobs):
+            assert time.time() < deadline, st
+            time.sleep(0.3)
+        final = {j: status(apis[int(j[-1], 16) % 2].url, j) for j in jobs}   # polled through either replica
+    finally:
+        for w in workers:
+            w.stop(signal.SIGTERM, timeout=10)
+        for api in apis:
+            api.stop(signal.SIGTERM)
+            api.kill_group()
+    assert all(st["status"] == "succeeded" for st in final.values()), final
+    assert final[victim]["attempts"] == 2, final[victim]
+    assert all(st["attempts"] == 1 for j, st in final.items() if j != victim)
+    done = completions(logs)
+    assert {j: len(done.get(j, [])) for j in jobs} == {j: 1 for j in jobs}, done     # each completed exactly once
+    assert done[victim] == [2] and victim in re.findall(r"job ([0-9a-f]{32}) completed", logs[1].read_text())
+    # The killed worker's work horse did not outlive it (it would otherwise finish the job a second time).
+    leftovers = [int(p) for p in os.listdir("/proc") if p.isdigit() and
+                 f"w0-{cluster_settings['queue_name']}".encode() in Path(f"/proc/{p}/cmdline").read_bytes()]
+    assert not [p for p in leftovers if _alive(p)]
+
+
+@pytest.mark.slow
+def test_sigterm_lets_the_worker_finish_its_job(tmp_path: Path, job_files: list,
+                                                cluster_settings: dict[str, str]) -> None:
+    from service.core.settings import Settings
+    from service.jobs.runner import open_backend
+
+    store, runner = open_backend(Settings(**cluster_settings))
+    api = Server(Path(cluster_settings["data_dir"]), tmp_path / "api.log",
+                 **{k: v for k, v in cluster_settings.items() if k != "data_dir"})
+    worker = Worker(tmp_path / "worker.log", env_of(cluster_settings))
+    try:
+        job_id = submit(api.url, job_files)
+        deadline = time.time() + 60
+        while (st := status(api.url, job_id))["status"] == "queued" or st["stage"] in ("starting", "reading"):
+            assert time.time() < deadline, st
+            time.sleep(0.05)
+        code = worker.stop(signal.SIGTERM, timeout=120)        # warm shutdown: the job finishes first
+        st = status(api.url, job_id)
+    finally:
+        worker.kill_group()
+        api.stop(signal.SIGTERM)
+        api.kill_group()
+    assert code == 0 and st["status"] == "succeeded" and st["attempts"] == 1, (code, st)
+    assert store.get(job_id).status == "succeeded"
+    runner.shutdown()
