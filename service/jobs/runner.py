@@ -57,8 +57,11 @@ class JobRunner(ABC):
 def open_backend(settings: Settings) -> tuple[JobStore, JobRunner]:
     """The store and runner that ``settings`` choose: distributed when ``queue_url`` is set."""
     if settings.queue_url:
-        from service.jobs.redis_store import RedisJobStore
-        from service.jobs.rq_runner import RqRunner
+        try:
+            from service.jobs.redis_store import RedisJobStore
+            from service.jobs.rq_runner import RqRunner
+        except ImportError as exc:
+            raise RuntimeError("SVRNET_QUEUE_URL needs the queue extra: pip install 'svrnet[queue]'") from exc
 
         store = RedisJobStore(settings.queue_url, settings.data_dir, settings.queue_name)
         return store, RqRunner(store, settings)

@@ -1,0 +1,68 @@
+"""``docker/compose.yaml`` cannot be run here (no container engine): parse it and check that it says
+what the README promises -- Redis, two API replicas behind one port, two workers, one shared volume,
+a health check per service -- and that every command it runs exists in this package."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import re
+import tomllib
+from pathlib import Path
+
+import yaml
+
+from service.jobs.worker_cli import main
+
+ROOT = Path(__file__).resolve().parents[2]
+COMPOSE = yaml.safe_load((ROOT / "docker" / "compose.yaml").read_text())
+SCRIPTS = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+SERVICES = COMPOSE["services"]
+
+
+def _svrnet_services() -> dict[str, dict]:
+    return {name: s for name, s in SERVICES.items() if s.get("image", "").startswith("svrnet")}
+
+
+def test_the_services_and_their_health_checks() -> None:
+    assert {"redis", "api-1", "api-2", "worker", "lb"} <= set(SERVICES)
+    for name, service in SERVICES.items():
+        test = service.get("healthcheck", {}).get("test")
+        assert isinstance(test, list) and test[0] == "CMD" and len(test) > 1, name
+    assert SERVICES["worker"]["deploy"]["replicas"] == 2
+    assert SERVICES["lb"]["ports"] == ["8000:8000"] and not any("ports" in s for s in _svrnet_services().values())
+
+
+def test_every_command_exists() -> None:
+    svrnet = _svrnet_services()
+    assert {"api-1", "api-2", "worker"} == set(svrnet)
+    for name, service in svrnet.items():
+        assert service["command"][0] in SCRIPTS, (name, service["command"])
+        assert service["build"]["dockerfile"] == "docker/Dockerfile"
+    assert [SERVICES[n]["command"] for n in ("api-1", "api-2")] == [["svrnet-server"]] * 2
+    assert SERVICES["worker"]["command"] == ["svrnet-worker"]
+    assert SERVICES["worker"]["healthcheck"]["test"][1:] == ["svrnet-worker", "--health"]
+    out = io.StringIO()                               # the worker's option parser knows those options
+    with contextlib.redirect_stdout(out), contextlib.suppress(SystemExit):
+        main(["--help"])
+    assert "--health" in out.getvalue() and "--workers" in out.getvalue()
+    dockerfile = (ROOT / "docker" / "Dockerfile").read_text()
+    assert re.search(r'pip install .*"\.\[server,queue\]"', dockerfile)
+    assert 'CMD ["svrnet-server"]' in dockerfile
+
+
+def test_one_queue_and_one_shared_volume_for_api_and_workers() -> None:
+    for name, service in _svrnet_services().items():
+        env = service["environment"]
+        assert env["SVRNET_QUEUE_URL"].startswith("redis://redis:"), name
+        assert f"svrnet-data:{env['SVRNET_DATA_DIR']}" in service["volumes"], name
+        assert service["depends_on"]["redis"]["condition"] == "service_healthy"
+    assert "svrnet-data" in COMPOSE["volumes"]
+
+
+def test_the_load_balancer_sends_to_both_replicas() -> None:
+    mount = SERVICES["lb"]["volumes"][0].split(":")
+    conf = (ROOT / "docker" / mount[0]).read_text()
+    assert re.findall(r"server\s+([\w-]+):8000", conf) == ["api-1", "api-2"]
+    assert re.search(r"proxy_pass\s+http://svrnet_api;", conf) and "listen 8000;" in conf
+    assert set(SERVICES["lb"]["depends_on"]) == {"api-1", "api-2"}
