@@ -117,12 +117,19 @@ def test_sigterm_lets_the_worker_finish_its_job(tmp_path: Path, job_files: list,
                                                 cluster_settings: dict[str, str]) -> None:
     from service.core.settings import Settings
     from service.jobs.runner import open_backend
+    from service.jobs.worker_cli import healthy
 
-    store, runner = open_backend(Settings(**cluster_settings))
+    settings = Settings(**cluster_settings)
+    store, runner = open_backend(settings)
     api = Server(Path(cluster_settings["data_dir"]), tmp_path / "api.log",
                  **{k: v for k, v in cluster_settings.items() if k != "data_dir"})
+    assert not healthy(settings)                       # the container health check, before any worker
     worker = Worker(tmp_path / "worker.log", env_of(cluster_settings))
     try:
+        deadline = time.time() + 60
+        while not healthy(settings):
+            assert time.time() < deadline and worker.proc.poll() is None
+            time.sleep(0.1)
         job_id = submit(api.url, job_files)
         deadline = time.time() + 60
         while (st := status(api.url, job_id))["status"] == "queued" or st["stage"] in ("starting", "reading"):
@@ -135,5 +142,5 @@ def test_sigterm_lets_the_worker_finish_its_job(tmp_path: Path, job_files: list,
         api.stop(signal.SIGTERM)
         api.kill_group()
     assert code == 0 and st["status"] == "succeeded" and st["attempts"] == 1, (code, st)
-    assert store.get(job_id).status == "succeeded"
+    assert store.get(job_id).status == "succeeded" and not healthy(settings)
     runner.shutdown()

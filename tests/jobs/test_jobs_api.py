@@ -5,6 +5,7 @@ restart."""
 from __future__ import annotations
 
 import json
+import re
 import time
 from pathlib import Path
 
@@ -93,6 +94,10 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
         np.testing.assert_allclose(rot @ rot.T, np.eye(3), atol=1e-9)
         assert len(got["anchor_points_mm"]) == 3 and len(got["quaternion_wxyz"]) == 4
     assert submit(client, case, poses=body).status_code == 202
+    # Prometheus: the jobs by state and the runner's workers, as the store has them.
+    metrics = client.get("/metrics").text
+    assert 'svrnet_jobs{status="succeeded"} 1.0' in metrics, metrics[-2000:]
+    assert re.search(r'svrnet_job_runner\{what="workers"\} [1-9]', metrics)
 
 
 @both
