@@ -144,3 +144,52 @@ def test_sigterm_lets_the_worker_finish_its_job(tmp_path: Path, job_files: list,
     assert code == 0 and st["status"] == "succeeded" and st["attempts"] == 1, (code, st)
     assert store.get(job_id).status == "succeeded" and not healthy(settings)
     runner.shutdown()
+
+
+@pytest.mark.slow
+def test_past_the_retry_limit_a_lost_job_fails_with_the_reason(tmp_path: Path, job_files: list,
+                                                               cluster_settings: dict[str, str]) -> None:
+    from service.inference.registry import ModelRegistry
+    from tests.api.conftest import OracleEstimator, make_client
+
+    settings = {**cluster_settings, "job_max_attempts": "1"}
+    with make_client(ModelRegistry({"default": OracleEstimator()}), **settings) as client:
+        worker = Worker(tmp_path / "worker.log", env_of(settings))
+        try:
+            r = client.post("/v1/reconstructions", files=job_files, data={"resolution_mm": "1.0", "svr_iterations": "3"})
+            job_id = r.json()["job_id"]
+            deadline = time.time() + 60
+            while (st := client.get(f"/v1/reconstructions/{job_id}").json())["status"] == "queued" or \
+                    st["stage"] in ("starting", "reading"):
+                assert time.time() < deadline, st
+                time.sleep(0.05)
+            worker.stop(signal.SIGKILL)
+            deadline = time.time() + 60
+            while (st := client.get(f"/v1/reconstructions/{job_id}").json())["status"] not in FINAL:
+                assert time.time() < deadline, st
+                time.sleep(0.2)
+        finally:
+            worker.kill_group()
+        folder = client.app.state.job_store.directory(job_id)
+    assert st["status"] == "failed" and st["attempts"] == 1, st
+    assert st["error"] == "the worker running it was lost 1 time (SVRNET_JOB_MAX_ATTEMPTS); the job was not completed"
+    assert not (folder / "inputs").exists()            # the uploads go when the job ends, whatever the end
+
+
+def test_svrnet_worker_runs_several_workers_and_stops_them_all(tmp_path: Path,
+                                                               cluster_settings: dict[str, str]) -> None:
+    from rq import Queue
+    from rq.worker import Worker as RqWorker
+
+    conn = redis.Redis.from_url(cluster_settings["queue_url"])
+    queue = Queue(cluster_settings["queue_name"], connection=conn)
+    pool = Worker(tmp_path / "pool.log", env_of(cluster_settings), "--workers", "2")
+    try:
+        deadline = time.time() + 60
+        while RqWorker.count(queue=queue) < 2:
+            assert time.time() < deadline and pool.proc.poll() is None, (tmp_path / "pool.log").read_text()[-2000:]
+            time.sleep(0.1)
+        assert pool.stop(signal.SIGTERM, timeout=30) == 0
+    finally:
+        pool.kill_group()
+    assert RqWorker.count(queue=queue) == 0                 # both unregistered on the way out
