@@ -39,6 +39,7 @@ from service.jobs.worker import run_job
 log = logging.getLogger(__name__)
 
 GIVEN_UP = (JobStatus.FAILED, JobStatus.STOPPED, JobStatus.CANCELED, JobStatus.FINISHED)
+INTERRUPTED = "the submission was interrupted before the job was queued (the API replica stopped); submit again"
 
 
 @dataclass
@@ -106,6 +107,9 @@ def failure_reason(rq_job: RqJob, max_attempts: int) -> str:
 class RqRunner(JobRunner):
     """Enqueues jobs on the RQ queue ``settings.queue_name``; the workers are ``svrnet-worker`` processes."""
 
+    submit_grace_s = 3600.0
+    """A job created this long ago and never handed to the queue was orphaned by a replica that stopped."""
+
     def __init__(self, store: RedisJobStore, settings: Settings) -> None:
         self.store, self.settings = store, settings
         self.connection = redis.Redis.from_url(settings.queue_url, socket_timeout=10, socket_connect_timeout=5)
@@ -146,12 +150,18 @@ class RqRunner(JobRunner):
         self.reconcile()
 
     def reconcile(self) -> list[str]:
-        """Fail (with the reason) every unfinished job RQ has given up or lost; their ids."""
+        """Fail (with the reason) every unfinished job RQ has given up or lost, or whose submission a
+        stopped replica left half done; their ids."""
         failed = []
         for job_id in self.store.ids("queued") + self.store.ids("running"):
             job = self.store.get(job_id)
-            if job is None or job.submitted_at is None:
-                continue               # still being uploaded through a replica
+            if job is None:
+                continue
+            if job.submitted_at is None:   # being stored by a replica, or orphaned when it stopped
+                if time.time() - job.created_at > self.submit_grace_s and self.store.fail(job_id, INTERRUPTED):
+                    self.store.discard_inputs(job_id)
+                    failed.append(job_id)
+                continue
             try:
                 rq_job = RqJob.fetch(job_id, connection=self.connection)
                 gone = rq_job.get_status(refresh=True) in GIVEN_UP

@@ -105,3 +105,27 @@ def test_restart_requeues_running_jobs_then_fails_them_after_max_attempts(store:
     assert reopened.recover(max_attempts=2) == [queued.id]
     failed = reopened.get(running.id)
     assert failed.status == "failed" and "restart" in failed.error
+
+
+@pytest.mark.parametrize("queue_settings", ["redis"], indirect=True)
+def test_the_queue_maintenance_fails_orphaned_and_given_up_jobs_with_reasons(queue_settings: dict) -> None:
+    """What a replica's maintenance does with jobs the queue cannot run: a submission left half done
+    by a stopped replica (after a grace period), a job the queue no longer knows."""
+    from service.core.settings import Settings
+    from service.jobs.rq_runner import INTERRUPTED
+    from service.jobs.runner import open_backend
+
+    store, runner = open_backend(Settings(**queue_settings))
+    orphan, lost, healthy = (store.create({}) for _ in range(3))
+    for job in (orphan, lost):
+        (store.directory(job.id) / "inputs").mkdir()
+    store.update(lost.id, submitted_at=time.time())      # handed over, but the queue has no record of it
+    runner.submit(healthy.id)
+    runner.submit_grace_s = 0.5
+    time.sleep(0.6)
+    uploading = store.create({})                          # created just now: still within the grace
+    assert sorted(runner.reconcile()) == sorted([orphan.id, lost.id])
+    assert store.get(orphan.id).error == INTERRUPTED and "lost the job" in store.get(lost.id).error
+    assert not (store.directory(orphan.id) / "inputs").exists()
+    assert store.get(uploading.id).status == "queued" and store.get(healthy.id).status == "queued"
+    runner.shutdown()
