@@ -34,18 +34,29 @@ from rq.worker import Worker
 from service.core import logging as service_logging
 from service.core.settings import Settings
 from service.jobs.rq_runner import set_context
+from service.jobs.runner import watch_parent
 
 log = logging.getLogger(__name__)
 
 
+STOP_SIGNALS = {signal.SIGTERM, signal.SIGINT}
+
+
 class SvrnetWorker(Worker):
     """RQ's forking worker, declared lost after ``lost_after_s`` of silence (RQ's fixed 60 s margin
-    is too long for tests and too short to be tuned per site)."""
+    is too long for tests and too short to be tuned per site), and safe to stop while it starts."""
 
     lost_after_s = 60
 
     def get_heartbeat_ttl(self, job: RqJob) -> int:
         return int(self.job_monitoring_interval + self.lost_after_s)
+
+    def _install_signal_handlers(self) -> None:
+        # RQ registers the worker before it installs its handlers: a SIGTERM in between would kill it
+        # and leave a stale registration. :func:`work` blocks the stop signals until now, so one that
+        # came early is delivered here, to RQ's handler (a warm shutdown).
+        super()._install_signal_handlers()
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
 
 
 def _preload() -> None:
@@ -67,6 +78,7 @@ def build_worker(settings: Settings, name: str | None = None) -> SvrnetWorker:
 
 def work(settings: Settings, burst: bool = False, name: str | None = None) -> None:
     """One worker in this process until SIGTERM (or, with ``burst``, until the queue is empty)."""
+    signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
     set_context(settings)
     build_worker(settings, name).work(burst=burst, logging_level=settings.log_level.upper())
 
@@ -86,10 +98,16 @@ def healthy(settings: Settings, host: str | None = None) -> bool:
     return False
 
 
+def _child(settings: Settings, burst: bool, parent: int) -> None:
+    watch_parent(parent)               # `kill -9` of svrnet-worker takes its workers (and their horses) along
+    work(settings, burst)
+
+
 def _pool(settings: Settings, n: int, burst: bool) -> int:
     """``n`` workers in child processes; SIGTERM/SIGINT are passed on; the exit code of the worst."""
     ctx = multiprocessing.get_context("fork")
-    children = [ctx.Process(target=work, args=(settings, burst), name=f"svrnet-worker-{i}") for i in range(n)]
+    children = [ctx.Process(target=_child, args=(settings, burst, os.getpid()), name=f"svrnet-worker-{i}")
+                for i in range(n)]
     for child in children:
         child.start()
 
