@@ -34,7 +34,7 @@ from rq.worker import Worker
 from service.core.settings import Settings
 from service.jobs.redis_store import RedisJobStore
 from service.jobs.runner import JobRunner, watch_parent
-from service.jobs.worker import run_job
+from service.jobs.worker import TIMED_OUT, run_job
 
 log = logging.getLogger(__name__)
 
@@ -85,20 +85,19 @@ def on_stopped(job: RqJob, connection: redis.Redis) -> None:  # noqa: ARG001 - R
         shutil.rmtree(store.directory(job.id), ignore_errors=True)
 
 
-def failure_reason(rq_job: RqJob, max_attempts: int) -> str:
-    """Why RQ gave the job up, in words with no server detail.
+def failure_reason(status: str, exc_string: str, max_attempts: int) -> str:
+    """Why RQ gave the job up (its status and the last run's exception text), in words with no server
+    detail.
 
     Example:
-        >>> class J:  # what RQ records of a job whose workers were killed
-        ...     exc_info = "Moved to FailedJobRegistry, due to AbandonedJobError"
-        ...     def get_status(self): return "failed"
-        >>> failure_reason(J(), 2)
+        >>> failure_reason("failed", "Moved to FailedJobRegistry, due to AbandonedJobError", 2)
         'the worker running it was lost 2 times (SVRNET_JOB_MAX_ATTEMPTS); the job was not completed'
+        >>> failure_reason("failed", "rq.timeouts.JobTimeoutException: Task exceeded maximum timeout", 2)
+        'the job ran longer than SVRNET_JOB_TIMEOUT_H and was stopped'
     """
-    exc = str(getattr(rq_job, "exc_info", None) or "")
-    if "JobTimeoutException" in exc:
-        return "the job ran longer than SVRNET_JOB_TIMEOUT_H and was stopped"
-    if rq_job.get_status() == JobStatus.FINISHED:
+    if "JobTimeoutException" in exc_string:
+        return TIMED_OUT
+    if status == JobStatus.FINISHED:
         return "the worker ended without completing the job"
     return (f"the worker running it was lost {max_attempts} time{'s' if max_attempts > 1 else ''} "
             "(SVRNET_JOB_MAX_ATTEMPTS); the job was not completed")
@@ -164,8 +163,12 @@ class RqRunner(JobRunner):
                 continue
             try:
                 rq_job = RqJob.fetch(job_id, connection=self.connection)
-                gone = rq_job.get_status(refresh=True) in GIVEN_UP
-                reason = failure_reason(rq_job, self.settings.job_max_attempts) if gone else ""
+                status = rq_job.get_status(refresh=True)
+                gone, reason = status in GIVEN_UP, ""
+                if gone:
+                    last = rq_job.latest_result()
+                    reason = failure_reason(status, (last.exc_string if last else None) or "",
+                                            self.settings.job_max_attempts)
             except NoSuchJobError:
                 gone, reason = True, "the queue lost the job (was Redis restarted without persistence?)"
             if gone and self.store.fail(job_id, reason):

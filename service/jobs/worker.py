@@ -30,6 +30,9 @@ from service.jobs.store import JobStore
 log = logging.getLogger(__name__)
 
 
+TIMED_OUT = "the job ran longer than SVRNET_JOB_TIMEOUT_H and was stopped"
+
+
 class Cancelled(Exception):
     """The job was cancelled while running."""
 
@@ -143,6 +146,8 @@ def failure_reason(exc: Exception) -> str:
     """
     if isinstance(exc, ServiceError):
         return exc.detail
+    if type(exc).__name__ == "JobTimeoutException":     # raised in the job by the queue's time limit
+        return TIMED_OUT
     if type(exc) is ValueError:
         return str(exc)
     return f"internal error ({type(exc).__name__}); the server log has the job id"

@@ -146,34 +146,48 @@ def test_sigterm_lets_the_worker_finish_its_job(tmp_path: Path, job_files: list,
     runner.shutdown()
 
 
-@pytest.mark.slow
-def test_past_the_retry_limit_a_lost_job_fails_with_the_reason(tmp_path: Path, job_files: list,
-                                                               cluster_settings: dict[str, str]) -> None:
+def _run_one(tmp_path: Path, job_files: list, settings: dict[str, str], kill: bool) -> tuple[dict, Path]:
+    """One long job on one worker (killed -9 once the job is past reading, if ``kill``): its final
+    status and folder."""
     from service.inference.registry import ModelRegistry
     from tests.api.conftest import OracleEstimator, make_client
 
-    settings = {**cluster_settings, "job_max_attempts": "1"}
     with make_client(ModelRegistry({"default": OracleEstimator()}), **settings) as client:
         worker = Worker(tmp_path / "worker.log", env_of(settings))
         try:
             r = client.post("/v1/reconstructions", files=job_files, data={"resolution_mm": "1.0", "svr_iterations": "3"})
             job_id = r.json()["job_id"]
             deadline = time.time() + 60
-            while (st := client.get(f"/v1/reconstructions/{job_id}").json())["status"] == "queued" or \
-                    st["stage"] in ("starting", "reading"):
+            while kill and ((st := client.get(f"/v1/reconstructions/{job_id}").json())["status"] == "queued" or
+                            st["stage"] in ("starting", "reading")):
                 assert time.time() < deadline, st
                 time.sleep(0.05)
-            worker.stop(signal.SIGKILL)
+            if kill:
+                worker.stop(signal.SIGKILL)
             deadline = time.time() + 60
             while (st := client.get(f"/v1/reconstructions/{job_id}").json())["status"] not in FINAL:
                 assert time.time() < deadline, st
                 time.sleep(0.2)
         finally:
             worker.kill_group()
-        folder = client.app.state.job_store.directory(job_id)
+        return st, client.app.state.job_store.directory(job_id)
+
+
+@pytest.mark.slow
+def test_past_the_retry_limit_a_lost_job_fails_with_the_reason(tmp_path: Path, job_files: list,
+                                                               cluster_settings: dict[str, str]) -> None:
+    st, folder = _run_one(tmp_path, job_files, {**cluster_settings, "job_max_attempts": "1"}, kill=True)
     assert st["status"] == "failed" and st["attempts"] == 1, st
     assert st["error"] == "the worker running it was lost 1 time (SVRNET_JOB_MAX_ATTEMPTS); the job was not completed"
     assert not (folder / "inputs").exists()            # the uploads go when the job ends, whatever the end
+
+
+@pytest.mark.slow
+def test_a_job_past_its_time_limit_is_stopped_and_fails_with_the_reason(tmp_path: Path, job_files: list,
+                                                                         cluster_settings: dict[str, str]) -> None:
+    st, folder = _run_one(tmp_path, job_files, {**cluster_settings, "job_timeout_h": str(1 / 3600)}, kill=False)
+    assert st["status"] == "failed" and st["error"] == "the job ran longer than SVRNET_JOB_TIMEOUT_H and was stopped"
+    assert not (folder / "inputs").exists() and not (folder / "outputs" / "volume.nii.gz").exists()
 
 
 def test_svrnet_worker_runs_several_workers_and_stops_them_all(tmp_path: Path,
