@@ -73,7 +73,10 @@ class RequestContext:
             return message
 
         app = scope.get("app")
-        early = early_rejection(app.state, scope["method"], scope["path"], headers) if app is not None else None
+        try:
+            early = early_rejection(app.state, scope["method"], scope["path"], headers) if app is not None else None
+        except ServiceError as exc:            # e.g. the job store does not answer: 503, not a traceback
+            early = exc
         length = headers.get("content-length")
         try:
             if early is not None:

@@ -76,6 +76,12 @@ class QueueFull(Saturated):
     status, title, type = 429, "Too many queued jobs", "/problems/queue-full"
 
 
+class StoreUnavailable(Saturated):
+    """503: the job store (Redis, with the distributed back-end) does not answer; retry later."""
+
+    status, title, type = 503, "Job store unavailable", "/problems/store-unavailable"
+
+
 class InternalError(ServiceError):
     """500: a fault of the server, not of the request (details go to the log by type only)."""
 

@@ -16,14 +16,20 @@ Example (needs a Redis server):
 
 from __future__ import annotations
 
+import functools
 import json
 import shutil
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import redis
 
+from service.core.errors import StoreUnavailable
 from service.jobs.store import FINAL, STATES, Job, JobStore
+
+F = TypeVar("F", bound=Callable)
 
 # KEYS: the job's hash, then the state sets in the order of STATES. ARGV: job id, the states it may
 # leave (space-separated), the new state, now, the attempt the job must be at ("" for any), then
@@ -72,6 +78,19 @@ def _job(values: dict[str, str]) -> Job:
                started_at=float(values["started_at"]) if "started_at" in values else None)
 
 
+def _answering(method: F) -> F:
+    """Redis not answering becomes :class:`StoreUnavailable` (a 503 with ``Retry-After``), not a 500."""
+
+    @functools.wraps(method)
+    def wrapper(self, *args, **kwargs):  # noqa: ANN001, ANN202
+        try:
+            return method(self, *args, **kwargs)
+        except redis.RedisError as exc:
+            raise StoreUnavailable("the job store (Redis) does not answer; retry later", 5) from exc
+
+    return wrapper  # type: ignore[return-value]
+
+
 class RedisJobStore(JobStore):
     """Job records in Redis at ``url`` (namespace ``svrnet:<queue_name>``); files under ``data_dir``,
     a folder every API replica and worker mounts."""
@@ -105,6 +124,7 @@ class RedisJobStore(JobStore):
         except redis.RedisError:
             return False
 
+    @_answering
     def create(self, params: dict) -> Job:
         job_id, now = self._new_id(), repr(time.time())
         with self.redis.pipeline(transaction=True) as pipe:
@@ -115,10 +135,12 @@ class RedisJobStore(JobStore):
             pipe.execute()
         return self.get(job_id)  # type: ignore[return-value]
 
+    @_answering
     def get(self, job_id: str) -> Job | None:
         values = self.redis.hgetall(self._key(job_id))
         return _job(values) if values else None
 
+    @_answering
     def update(self, job_id: str, **fields: object) -> None:
         if not set(fields) <= {"stage", "progress", "submitted_at"}:
             raise ValueError(f"update: only stage, progress, submitted_at (not {sorted(fields)})")
@@ -127,21 +149,26 @@ class RedisJobStore(JobStore):
             args += [k, v if isinstance(v, str) else repr(float(v))]  # type: ignore[arg-type]
         self._update(keys=[self._key(job_id)], args=args)
 
+    @_answering
     def claim(self, job_id: str, redelivered: bool = False) -> int:
         allowed = ("queued", "running") if redelivered else ("queued",)
         return max(0, self._move(job_id, allowed, "running", stage="starting", progress="0",
                                  started_at=repr(time.time()), **{"+attempts": 1}))
 
+    @_answering
     def finish(self, job_id: str, report: dict, attempt: int | None = None) -> bool:
         return self._move(job_id, ("running",), "succeeded", attempt, stage="done", progress="1.0", report=report) >= 0
 
+    @_answering
     def fail(self, job_id: str, reason: str, attempt: int | None = None) -> bool:
         return self._move(job_id, ("queued", "running"), "failed", attempt, stage="failed", error=reason) >= 0
 
+    @_answering
     def cancel(self, job_id: str) -> None:
         self._move(job_id, ("queued", "running"), "cancelled", stage="cancelled")
         shutil.rmtree(self.directory(job_id), ignore_errors=True)
 
+    @_answering
     def delete(self, job_id: str) -> None:
         with self.redis.pipeline(transaction=True) as pipe:
             for key in self._state_keys():
@@ -150,15 +177,18 @@ class RedisJobStore(JobStore):
             pipe.execute()
         shutil.rmtree(self.directory(job_id), ignore_errors=True)
 
+    @_answering
     def ids(self, status: str) -> list[str]:
         return list(self.redis.zrange(f"{self.prefix}state:{status}", 0, -1))
 
+    @_answering
     def counts(self) -> dict[str, int]:
         with self.redis.pipeline(transaction=False) as pipe:
             for key in self._state_keys():
                 pipe.zcard(key)
             return dict(zip(STATES, pipe.execute()))
 
+    @_answering
     def expire(self, retention_s: float) -> list[str]:
         cutoff = time.time() - retention_s
         ids = [i for s in FINAL for i in self.redis.zrangebyscore(f"{self.prefix}state:{s}", "-inf", cutoff)]
