@@ -11,7 +11,7 @@ creation for ``queued``/``running``, by last change for the final states, which 
 Example (needs a Redis server):
     >>> store = RedisJobStore("redis://127.0.0.1:6379/0", Path("/srv/svrnet-data"))  # doctest: +SKIP
     >>> store.claim(store.create({"resolution_mm": 0.8}).id)  # doctest: +SKIP
-    True
+    1
 """
 
 from __future__ import annotations
@@ -63,9 +63,6 @@ if redis.call('EXISTS', KEYS[1]) == 0 then return 0 end
 for i = 1, #ARGV, 2 do redis.call('HSET', KEYS[1], ARGV[i], ARGV[i + 1]) end
 return 1
 """
-
-_FLOATS = ("progress", "created_at", "updated_at", "submitted_at", "started_at")
-
 
 def _job(values: dict[str, str]) -> Job:
     """A :class:`Job` from the strings of its hash."""
