@@ -27,6 +27,7 @@ from model_export.packaging import load_checkpoint
 from model_export.simulate import SimulationConfig
 from model_export.train import pose_errors, validation_set
 from service.inference.estimator import statistics
+from service.inference.views import sample_views
 
 ERROR_MM = 10.0
 MIN_CLASS_FRACTION = 0.1
@@ -51,23 +52,28 @@ def youden_threshold(scores: np.ndarray, positive: np.ndarray) -> float:
 
 @torch.no_grad()
 def mc_statistics(model, inputs: np.ndarray, mc_samples: int, batch: int = 64,  # noqa: ANN001
-                  plane_x_mm: float = 0.0):
-    """Torch MC sampling through the export path (``mc_forward``), on one branch, reduced like the service."""
-    passes = torch.ones(mc_samples)
-    labels = np.concatenate([model.mc_forward(torch.from_numpy(inputs[i:i + batch, None]), passes).double().numpy()
-                             for i in range(0, len(inputs), batch)])
-    return statistics(labels, model.label_type, plane_x_mm)
+                  plane_x_mm: float = 0.0, views: int = 1):
+    """Torch MC sampling through the export path (``mc_forward``) over the service's test-time
+    ``views``, on one branch, reduced like the service."""
+
+    def run(x: np.ndarray, n: int) -> np.ndarray:
+        passes = torch.ones(n) if n > 0 else torch.zeros(1)
+        return np.concatenate([model.mc_forward(torch.from_numpy(x[i:i + batch, None]), passes).double().numpy()
+                               for i in range(0, len(x), batch)])
+
+    return statistics(sample_views(run, inputs, mc_samples, model.label_type, plane_x_mm, views),
+                      model.label_type, plane_x_mm)
 
 
 def calibrate(checkpoint: Path, root: Path = DEFAULT_ATLAS_ROOT, *, mc_samples: int = 100,
-              per_volume: int = 120, error_mm: float = ERROR_MM, seed: int = 777) -> dict:
+              per_volume: int = 120, error_mm: float = ERROR_MM, seed: int = 777, views: int = 1) -> dict:
     """Choose the variance threshold; returns it with the AUROC and the data behind them."""
     model, ck = load_checkpoint(checkpoint)
     torch.manual_seed(seed)
     plane = float(ck["config"].get("plane_x_mm", 0.0))
     sim = SimulationConfig(**{k: v for k, v in ck["simulation"].items() if k in SimulationConfig.__dataclass_fields__})
     val = validation_set(ck["config"]["val_volumes"], root, per_volume, seed=seed, config=sim)
-    est = mc_statistics(model, val.inputs, mc_samples, plane_x_mm=plane)
+    est = mc_statistics(model, val.inputs, mc_samples, plane_x_mm=plane, views=views)
     errors = pose_errors(est.mean, val.poses, plane)
     err = errors["ed_twin_mm"]
     bad = err > error_mm
@@ -77,7 +83,7 @@ def calibrate(checkpoint: Path, root: Path = DEFAULT_ATLAS_ROOT, *, mc_samples: 
     thr = youden_threshold(est.variance, err > criterion)
     accepted = est.variance <= thr
     return {
-        "threshold": thr, "auroc": auroc(est.variance, bad), "error_mm": error_mm, "errors": "twin-min",
+        "threshold": thr, "auroc": auroc(est.variance, bad), "error_mm": error_mm, "errors": "twin-min", "views": views,
         "auroc_truth": auroc(est.variance, errors["ed_mm"] > error_mm),
         "criterion_mm": criterion, "auroc_criterion": auroc(est.variance, err > criterion),
         "n_slices": int(len(err)),

@@ -113,6 +113,13 @@ def _twin_rows(evaluation: dict) -> str:
             f"| slices nearer the twin than the truth | {100 * evaluation['on_twin_fraction']:.1f} % |")
 
 
+def _views_text(info: dict) -> str:
+    n = int(info.get("tta_views", 1))
+    what = {1: "the image only", 4: "its 4 rotations by 90 degrees", 8: "its 4 rotations, with and without a left-right flip"}
+    return (f"{n}: {what.get(n, '')}; the MC samples are shared among them, each view's poses mapped back exactly "
+            "(`service/inference/views.py`)")
+
+
 def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict, calibration: dict,
                evaluation: dict, comparison: list[dict] | None, report_path: str, onnx_bytes: int) -> Path:
     """Write ``card.md`` with training cost, validation accuracy, calibration and the backbone table."""
@@ -126,6 +133,7 @@ def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict
 | input | {info['input_size']} x {info['input_size']} px of {info['pixel_spacing_mm']} mm; {info['intensity']} |
 | output space | atlas `{info['atlas_id']}` (RAS mm of `shared/data/fetal_atlas`) |
 | variance threshold | {float(info['variance_threshold']):.4g} (calibrated, see below) |
+| test-time views | {_views_text(info)} |
 | file | `model.onnx` ({onnx_bytes / 1e6:.1f} MB), `checkpoint.pt` (the next training run starts from it: `svrnet-train train --init`) |
 | commit | {info['commit']} |
 
@@ -141,7 +149,8 @@ def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict
 
 ## Validation (whole held-out volumes: {', '.join(train_config['val_volumes'])})
 
-3 mm thick, 1 mm pixels, noisy and bias-shaded slices, any orientation; 100 MC-dropout passes; full report:
+3 mm thick, 1 mm pixels, noisy and bias-shaded slices, any orientation; 100 MC-dropout passes
+(shared among the test-time views, as the service runs it); full report:
 `{report_path}`.
 
 | metric | value |

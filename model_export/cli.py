@@ -95,11 +95,11 @@ def export(
 
 
 @app.command()
-def calibrate(checkpoint: Path, root: Root = DEFAULT_ATLAS_ROOT, mc_samples: int = 100) -> None:
+def calibrate(checkpoint: Path, root: Root = DEFAULT_ATLAS_ROOT, mc_samples: int = 100, tta_views: int = 8) -> None:
     """Choose the variance threshold on the validation volumes; print AUROC and the chosen value."""
     from model_export.calibrate import calibrate as run
 
-    result = run(checkpoint, root, mc_samples=mc_samples)
+    result = run(checkpoint, root, mc_samples=mc_samples, views=tta_views)
     typer.echo(json.dumps({k: v for k, v in result.items() if not isinstance(v, list)}, indent=2))
 
 
@@ -207,6 +207,8 @@ def ship(
     comparison: Annotated[Optional[Path], typer.Option(help="table.json of `compare`")] = None,
     report: Path = Path("model_export/reports/default.md"),
     root: Root = DEFAULT_ATLAS_ROOT,
+    tta_views: Annotated[int, typer.Option(help="test-time views the MC samples are shared among: 1, 4 "
+                                                "(rotations) or 8 (rotations and flips)")] = 8,
 ) -> None:
     """Calibrate, export, evaluate and write the model card: the folder the service loads."""
     import shutil
@@ -218,10 +220,10 @@ def ship(
     from service.inference.model_file import load_model
 
     out.mkdir(parents=True, exist_ok=True)
-    cal = run_calibration(checkpoint, root)
+    cal = run_calibration(checkpoint, root, views=tta_views)
     typer.echo(f"calibrated variance threshold {cal['threshold']:.4g} (AUROC {cal['auroc']:.3f})")
     onnx_path = export_checkpoint(checkpoint, out / "model.onnx", name=name, version=version,
-                                  variance_threshold=cal["threshold"])
+                                  variance_threshold=cal["threshold"], extra={"tta_views": tta_views})
     shutil.copyfile(checkpoint, out / "checkpoint.pt")
     evaluation = run_evaluation(onnx_path, report, root)
     from model_export.train import prior_history, totals

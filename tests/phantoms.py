@@ -78,3 +78,23 @@ def orthogonal_stacks_case(directory, stack_prefix: str = "s", seed: int = 5):  
         body["stacks"].append({"slices": [{"index": s, "accepted": True, "atlas_from_voxel": (g[s] @ aff).tolist()}
                                           for s in range(12)]})
     return files, body
+
+
+def mirror_symmetric_volume(plane_x: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
+    """A 1 mm volume, asymmetric in y and z, mirror-symmetric about x = plane_x (a random blob field).
+
+    The grid is centred on the plane so that the mirror maps voxel centres onto voxel centres.
+    """
+    rng = np.random.default_rng(3)
+    n = 61
+    aff = np.eye(4)
+    aff[:3, 3] = [plane_x - 30.0, -30.0, -30.0]
+    xyz = np.stack(np.meshgrid(*[np.arange(n) - 30.0] * 3, indexing="ij"), -1)
+    centres = rng.uniform(-20, 20, (12, 3))
+    vol = np.zeros((n, n, n))
+    for c, amp in zip(centres, rng.uniform(0.5, 2.0, 12)):
+        for sx in (1.0, -1.0):                      # each blob and its mirror image
+            d = xyz - c * np.array([sx, 1.0, 1.0])
+            vol += amp * np.exp(-np.sum(d * d, -1) / 40.0)
+    vol += 0.02 * xyz[..., 1] + 0.01 * xyz[..., 2]  # breaks any other symmetry
+    return vol.astype(np.float32), aff

@@ -2,7 +2,7 @@
 
 :class:`PoseEstimator` is the seam the API depends on (tests swap in an oracle). The ONNX
 implementation runs all slices of a request in a few batched calls, each running the trunk once
-per slice and the dropout head ``mc_samples`` times.
+per slice and view and the dropout head ``mc_samples`` times in all (:mod:`service.inference.views`).
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 
 from service.geometry import anchors, encodings, se3, twin
 from service.inference.model_file import LoadedModel, ModelInfo
+from service.inference.views import sample_views
 
 
 @dataclass
@@ -83,8 +84,14 @@ class OnnxPoseEstimator:
         self.info = model.info
         self.batch_slices = batch_slices
 
-    def sample_labels(self, inputs: NDArray[np.float32], mc_samples: int) -> NDArray[np.float32]:
-        """Raw labels ``[B, N, D]``; ``mc_samples = 0`` gives one deterministic pass (N = 1)."""
+    def sample_labels(self, inputs: NDArray[np.float32], mc_samples: int) -> NDArray:
+        """Labels ``[B, N, D]`` of the slices, the ``N = mc_samples`` samples shared among the model's
+        test-time views (``info.tta_views``); ``mc_samples = 0``: one deterministic pass per view."""
+        return sample_views(self.run, inputs, mc_samples, self.info.label_type, self.info.symmetry_plane_x_mm,
+                            self.info.tta_views)
+
+    def run(self, inputs: NDArray[np.float32], mc_samples: int) -> NDArray[np.float32]:
+        """Raw labels ``[B, N, D]`` of one view; ``mc_samples = 0`` gives one deterministic pass (N = 1)."""
         passes = np.ones(mc_samples, np.float32) if mc_samples > 0 else np.zeros(1, np.float32)
         x = np.asarray(inputs, dtype=np.float32)
         chunks = [self.model.run(x[i:i + self.batch_slices], passes) for i in range(0, len(x), self.batch_slices)]

@@ -39,6 +39,9 @@ class ModelInfo:
     symmetry_plane_x_mm: float = DEFAULT_PLANE_X_MM
     mc_error_scale: float = 1.0
     """Calibration: expected E.D. of a pose = ``mc_error_scale`` x its MC spread (``PoseEstimate.spread_mm``)."""
+    tta_views: int = 1
+    """Test-time views the MC samples are shared among (:mod:`service.inference.views`); the variance
+    threshold and ``mc_error_scale`` were calibrated with them."""
     metadata: dict[str, str] = field(default_factory=dict, repr=False)
 
     @classmethod
@@ -50,7 +53,8 @@ class ModelInfo:
                 variance_threshold=float(meta["variance_threshold"]), dropout_p=float(meta.get("dropout_p", 0.5)),
                 atlas_id=meta.get("atlas_id", ""), trained_on=meta.get("training_data", ""), sha256=sha256,
                 symmetry_plane_x_mm=float(meta.get("symmetry_plane_x_mm", DEFAULT_PLANE_X_MM)),
-                mc_error_scale=float(meta.get("mc_error_scale", 1.0)), metadata=dict(meta),
+                mc_error_scale=float(meta.get("mc_error_scale", 1.0)), tta_views=int(meta.get("tta_views", 1)),
+                metadata=dict(meta),
             )
         except (KeyError, ValueError) as exc:
             raise ValueError(f"model metadata incomplete or invalid: {exc}") from exc

@@ -9,28 +9,9 @@ from service.geometry import anchors, encodings, iterators, sampling, se3, twin
 from service.geometry.pose import apply, make_pose
 from service.io.volume import Volume
 from service.preprocess.stack import split_stack
+from tests.phantoms import mirror_symmetric_volume
 
 PLANE_X = 1.5
-
-
-def _symmetric_phantom(plane_x: float = PLANE_X) -> tuple[np.ndarray, np.ndarray]:
-    """A 1 mm volume, asymmetric in y and z, mirror-symmetric about x = plane_x (a random blob field).
-
-    The grid is centred on the plane so that the mirror maps voxel centres onto voxel centres.
-    """
-    rng = np.random.default_rng(3)
-    n = 61
-    aff = np.eye(4)
-    aff[:3, 3] = [plane_x - 30.0, -30.0, -30.0]
-    xyz = np.stack(np.meshgrid(*[np.arange(n) - 30.0] * 3, indexing="ij"), -1)
-    centres = rng.uniform(-20, 20, (12, 3))
-    vol = np.zeros((n, n, n))
-    for c, amp in zip(centres, rng.uniform(0.5, 2.0, 12)):
-        for sx in (1.0, -1.0):                      # each blob and its mirror image
-            d = xyz - c * np.array([sx, 1.0, 1.0])
-            vol += amp * np.exp(-np.sum(d * d, -1) / 40.0)
-    vol += 0.02 * xyz[..., 1] + 0.01 * xyz[..., 2]  # breaks any other symmetry
-    return vol.astype(np.float32), aff
 
 
 def test_twin_is_a_proper_involution_and_mirrors_plane_points() -> None:
@@ -50,7 +31,7 @@ def test_twin_is_a_proper_involution_and_mirrors_plane_points() -> None:
 
 
 def test_slice_and_twin_render_the_same_image_from_a_symmetric_phantom() -> None:
-    vol, aff = _symmetric_phantom()
+    vol, aff = mirror_symmetric_volume(PLANE_X)
     rng = np.random.default_rng(1)
     poses = iterators.random_poses(20, rng, tz_max_mm=10.0, centre=np.array([PLANE_X, 0.0, 0.0]))
     a = sampling.sample_slices(vol, aff, poses, size=32, pixel_mm=1.0, thickness_mm=3.0)
@@ -112,7 +93,7 @@ def test_atlas_from_voxel_of_the_twin_places_each_voxel_at_its_mirror() -> None:
 
 @pytest.mark.parametrize("sign", [1.0, -1.0])
 def test_measure_plane_x_recovers_the_plane_of_a_phantom(sign: float) -> None:
-    vol, aff = _symmetric_phantom(plane_x=2.4)
+    vol, aff = mirror_symmetric_volume(plane_x=2.4)
     if sign < 0:                                   # store the x axis reversed (radiological order)
         vol = vol[::-1].copy()
         aff = aff @ np.array([[-1.0, 0, 0, vol.shape[0] - 1], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
