@@ -28,12 +28,13 @@ Example:
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import NDArray
 
-from service.geometry import encodings, twin
+from service.geometry import encodings, grid, twin
 
 VIEW_COUNTS = (1, 4, 8)
 """1: the image as it is; 4: its four rotations; 8: rotations and flips (the symmetries of the square)."""
@@ -61,6 +62,29 @@ def pose_from_view(poses: NDArray, k: int, flip: bool, plane_x_mm: float) -> NDA
     return twin.mirror(plane_x_mm) @ out @ _F if flip else out
 
 
+@functools.lru_cache(maxsize=16)
+def _grid_permutation(k: int, flip: bool) -> NDArray[np.intp] | None:
+    """For grid labels: the point order that maps a view's label to the original's (the grid is
+    closed under the symmetries of the square), or None if it is not."""
+    q = np.concatenate([grid.TEMPLATE, np.ones((len(grid.TEMPLATE), 1))], axis=1)
+    turned = (np.linalg.matrix_power(_R, k) @ (_F if flip else np.eye(4)) @ q.T).T[:, :3]
+    dist = np.linalg.norm(turned[:, None] - grid.TEMPLATE[None], axis=-1)
+    perm = dist.argmin(1)
+    return perm if np.allclose(dist[np.arange(len(perm)), perm], 0.0, atol=1e-9) else None
+
+
+def labels_from_view(labels: NDArray, label_type: str, k: int, flip: bool, plane_x_mm: float) -> NDArray[np.float64]:
+    """Labels ``[..., D]`` predicted for view ``(k, flip)`` -> labels of the original slice: for grid
+    labels a reordering of the points (and the mirror for flips), exact also for predictions that are
+    not a rigid pose; otherwise through the pose (:func:`pose_from_view`)."""
+    lab = np.asarray(labels, dtype=np.float64)
+    perm = _grid_permutation(k, flip) if label_type == "grid" and lab.shape[-1] == 3 * len(grid.TEMPLATE) else None
+    if perm is None:
+        return encodings.encode(label_type, pose_from_view(encodings.decode(label_type, lab), k, flip, plane_x_mm))
+    pts = lab.reshape(lab.shape[:-1] + (-1, 3))[..., perm, :]
+    return (twin.mirror_points(pts, plane_x_mm) if flip else pts).reshape(lab.shape)
+
+
 def split_samples(total: int, n_views: int) -> list[int]:
     """``total`` MC samples shared among ``n_views`` views as evenly as possible (0 stays 0: one
     deterministic pass per view)."""
@@ -83,7 +107,5 @@ def sample_views(run: Callable[[NDArray, int], NDArray], inputs: NDArray, mc_sam
         return run(inputs, mc_samples)
     parts = []
     for (k, flip), n in zip(views(n_views), split_samples(mc_samples, n_views)):
-        labels = np.asarray(run(view_images(inputs, k, flip), n), dtype=np.float64)
-        poses = pose_from_view(encodings.decode(label_type, labels), k, flip, plane_x_mm)
-        parts.append(encodings.encode(label_type, poses))
+        parts.append(labels_from_view(run(view_images(inputs, k, flip), n), label_type, k, flip, plane_x_mm))
     return np.concatenate(parts, axis=1)

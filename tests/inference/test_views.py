@@ -94,3 +94,16 @@ def test_the_estimator_shares_its_samples_among_the_models_views(tiny_model_path
     labels = est.sample_labels(x, 10)
     assert labels.shape[:2] == (3, 10) and np.isfinite(labels).all()
     assert est.estimate(x, 0).mean.shape == (3, 4, 4)
+
+
+def test_grid_labels_map_back_by_reordering_their_points_as_through_the_pose(scene: tuple) -> None:
+    from service.inference.views import labels_from_view
+
+    poses = scene[0]
+    noisy = encodings.encode("grid", poses) + np.random.default_rng(2).normal(0, 0.5, (len(poses), 192))
+    for k, flip in views(8):
+        fast = labels_from_view(noisy, "grid", k, flip, PLANE_X)
+        via_pose = encodings.encode("grid", pose_from_view(encodings.decode("grid", noisy), k, flip, PLANE_X))
+        np.testing.assert_allclose(encodings.decode("grid", fast), encodings.decode("grid", via_pose), atol=1e-9)
+        np.testing.assert_allclose(labels_from_view(encodings.encode("grid", poses), "grid", k, flip, PLANE_X),
+                                   encodings.encode("grid", pose_from_view(poses, k, flip, PLANE_X)), atol=1e-9)
