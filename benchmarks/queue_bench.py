@@ -30,6 +30,7 @@ from pathlib import Path
 import httpx
 import redis
 from rq.job import Job as RqJob
+from rq.worker import Worker as RqWorker
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -111,16 +112,16 @@ def cluster(files: list, folder: Path, settings: dict[str, str], n_jobs: int) ->
         jobs = [_submit(apis[i % 2].url, files, resolution_mm="1.5", svr_iterations="2") for i in range(n_jobs)]
         victim = None
         while victim is None:      # once a quarter of the jobs are done, worker 0 inside a job, past reading: kill it
-            states = [httpx.get(f"{apis[1].url}/v1/reconstructions/{j}", timeout=10).json() for j in jobs]
-            if sum(st["status"] == "succeeded" for st in states) >= n_jobs // 4:
-                for job_id, st in zip(jobs, states):
-                    if st["status"] == "running" and st["stage"] not in ("starting", "reading") and \
-                            RqJob.fetch(job_id, connection=conn).worker_name == names[0]:
-                        victim = job_id
-                        break
+            done = sum(httpx.get(f"{apis[1].url}/v1/reconstructions/{j}", timeout=10).json()["status"] == "succeeded"
+                       for j in jobs)
+            current = RqWorker.find_by_key(f"rq:worker:{names[0]}", connection=conn).get_current_job_id() \
+                if done >= n_jobs // 4 else None
+            if current is not None:
+                st = httpx.get(f"{apis[1].url}/v1/reconstructions/{current}", timeout=10).json()
+                if st["status"] == "running" and st["stage"] not in ("starting", "reading"):
+                    victim, killed_at = current, time.time()
+                    workers[0].stop(signal.SIGKILL, timeout=10)
             time.sleep(0.05)
-        killed_at = time.time()
-        workers[0].stop(signal.SIGKILL, timeout=10)
         final = {j: _wait(apis[(k + 1) % 2].url, j) for k, j in enumerate(jobs)}
         wall = time.time() - t0
         store, runner = open_backend(Settings(**settings))

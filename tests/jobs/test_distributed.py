@@ -16,7 +16,7 @@ from pathlib import Path
 import httpx
 import pytest
 import redis
-from rq.job import Job as RqJob
+from rq.worker import Worker as RqWorker
 
 from tests.jobs.conftest import env_of
 from tests.live_server import Server, Worker
@@ -77,18 +77,17 @@ def test_two_replicas_two_workers_and_a_worker_killed_mid_job(tmp_path: Path, jo
     conn = redis.Redis.from_url(cluster_settings["queue_url"])
     try:
         jobs = [submit(apis[0].url, job_files) for _ in range(6)]
-        # Wait until worker 0 is inside a job, then kill it (and only it: its horse must follow).
-        deadline, victim = time.time() + 90, None
+        # Wait until worker 0 is inside a job, past reading, then kill it (and only it: its horse must follow).
+        deadline, victim, key = time.time() + 90, None, f"rq:worker:w0-{cluster_settings['queue_name']}"
         while victim is None:
             assert time.time() < deadline, [status(apis[1].url, j) for j in jobs]
-            for job_id in jobs:
-                st = status(apis[1].url, job_id)
-                if st["status"] == "running" and st["stage"] not in ("starting", "reading") and \
-                        (RqJob.fetch(job_id, connection=conn).worker_name or "").startswith("w0-"):
-                    victim = job_id
-                    break
+            worker = RqWorker.find_by_key(key, connection=conn)
+            current = worker.get_current_job_id() if worker is not None else None
+            if current is not None and (st := status(apis[1].url, current))["status"] == "running" and \
+                    st["stage"] not in ("starting", "reading"):
+                victim = current
+                workers[0].stop(signal.SIGKILL, timeout=10)
             time.sleep(0.05)
-        workers[0].stop(signal.SIGKILL, timeout=10)
         deadline = time.time() + 240
         while not all((st := status(apis[1].url, j))["status"] in FINAL for j in jobs):
             assert time.time() < deadline, st
