@@ -94,9 +94,13 @@ def _accepted_twin(evaluation: dict) -> str:
     return "" if v is None else f", twin-min {v:.2f} mm"
 
 
-def _schedule_text(train_config: dict, steps: int) -> str:
+def _schedule_text(train_config: dict, steps: int, best: bool = False) -> str:
     planned = int(train_config.get("steps", steps))
-    stopped = f" (stopped at step {steps} by its time budget)" if steps < planned else ""
+    stopped = ""
+    if best and steps < planned:
+        stopped = f" (this is the checkpoint of step {steps}, the best of the run on the validation slices)"
+    elif steps < planned:
+        stopped = f" (stopped at step {steps} by its time budget)"
     if not train_config.get("lr_milestones"):
         return f"constant lr {train_config['lr']}, {planned} steps{stopped}"
     return (f"lr {train_config['lr']}, step decay x{train_config['lr_gamma']} at {train_config['lr_milestones']} of "
@@ -144,7 +148,7 @@ def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict
   (uniform normals, 0-360 degree in-plane), Tz in the central 70 % of the brain, +-10 % brain size,
   bias field, gamma, signal voids, Rician noise, perturbed masks; then the service's own slice
   preprocessing (`service/preprocess/slices.py`).
-- optimiser: Adam, {_schedule_text(train_config, train_summary['steps'])}, batch {train_config['batch']}{_stage_text(train_config)}
+- optimiser: Adam, {_schedule_text(train_config, train_summary['steps'], train_summary.get('best_checkpoint', False))}, batch {train_config['batch']}{_stage_text(train_config)}
 {_totals_text(train_summary)}
 
 ## Validation (whole held-out volumes: {', '.join(train_config['val_volumes'])})

@@ -230,6 +230,7 @@ def ship(
 
     _, ck = load_checkpoint(checkpoint)
     summary = {"train_seconds": ck["train_seconds"], "samples_seen": ck["samples_seen"], "steps": ck["step"],
+               "best_checkpoint": ck.get("val_twin_ed_mm") is not None and ck.get("val_twin_ed_mm") == ck.get("best_ed_mm"),
                "totals": totals(prior_history(ck)), "history": prior_history(ck),
                "train_volumes_text": f"{len(ck['config']['train_volumes'])} atlas volumes: "
                                      + ", ".join(ck["config"]["train_volumes"])}
