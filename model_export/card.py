@@ -117,6 +117,11 @@ def _twin_rows(evaluation: dict) -> str:
             f"| slices nearer the twin than the truth | {100 * evaluation['on_twin_fraction']:.1f} % |")
 
 
+def _tz_text(train_config: dict) -> str:
+    fraction = float((train_config.get("simulation") or {}).get("tz_fraction", 0.35))
+    return f"the central {200 * fraction:.0f} %"
+
+
 def _views_text(info: dict) -> str:
     n = int(info.get("tta_views", 1))
     what = {1: "the image only", 4: "its 4 rotations by 90 degrees", 8: "its 4 rotations, with and without a left-right flip"}
@@ -145,7 +150,7 @@ def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict
 
 - data: {train_summary.get('train_volumes_text', '')}
 - simulation: thick slices (2-4.5 mm Gaussian PSF), 0.8-1.5 mm acquisition pixels, any orientation
-  (uniform normals, 0-360 degree in-plane), Tz in the central 70 % of the brain, +-10 % brain size,
+  (uniform normals, 0-360 degree in-plane), Tz over {_tz_text(train_config)} of the brain's extent, +-10 % brain size,
   bias field, gamma, signal voids, Rician noise, perturbed masks; then the service's own slice
   preprocessing (`service/preprocess/slices.py`).
 - optimiser: Adam, {_schedule_text(train_config, train_summary['steps'], train_summary.get('best_checkpoint', False))}, batch {train_config['batch']}{_stage_text(train_config)}
