@@ -87,6 +87,7 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
     body = client.get(st["poses_url"]).json()
     slices = [s for stack in body["stacks"] for s in stack["slices"]]
     assert len(slices) == 36 and body["refined_by"]["job_id"] == job_id
+    assert [st_["filename"] for st_ in body["stacks"]] == ["stacks[0]", "stacks[1]", "stacks[2]"]   # no client names kept
     for got, rec in zip(slices, report["slices"]):
         np.testing.assert_allclose(got["atlas_from_voxel"], rec["atlas_from_voxel"])
         assert got["included"] == rec["included"] and got["exclusion_reason"] == rec["exclusion_reason"]
