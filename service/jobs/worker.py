@@ -231,10 +231,10 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     refined = refined_poses_body(body, result.atlas_from_voxel_final, frames, included=result.included,
                                  weight=result.slice_weight, ncc=result.ncc, reasons=result.exclusion_reason,
                                  job_id=job_id)
-    for stack in refined.get("stacks", []):
+    for i, stack in enumerate(refined.get("stacks", [])):
         # Results are kept until the retention limit; the clients' file names (often patient names)
         # are not: a stack is named by its place in the upload.
-        stack["filename"] = f"stacks[{stack.get('index', 0)}]"
+        stack["filename"] = f"stacks[{i}]"
     (folder / "outputs" / "poses.json").write_text(json.dumps(refined))
     if not store.finish(job_id, report, attempt):
         if not store.is_cancelled(job_id):
