@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import signal
 import statistics
 import sys
@@ -36,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from service.core.settings import Settings  # noqa: E402
 from service.jobs.runner import open_backend  # noqa: E402
-from tests.live_server import Server, Worker  # noqa: E402
+from tests.live_server import Server, Worker, completions, stop_all  # noqa: E402
 from tests.phantoms import orthogonal_stacks_case  # noqa: E402
 from tests.redis_server import RedisServer  # noqa: E402
 
@@ -129,15 +128,8 @@ def cluster(files: list, folder: Path, settings: dict[str, str], n_jobs: int) ->
         requeued = RqJob.fetch(victim, connection=conn).enqueued_at.replace(tzinfo=timezone.utc).timestamp() - killed_at
         runner.shutdown()
     finally:
-        for w in workers:
-            w.stop(signal.SIGTERM, timeout=60)
-        for api in apis:
-            api.stop(signal.SIGTERM)
-            api.kill_group()
-    done: dict[str, list[str]] = {}
-    for i, log in enumerate(logs):
-        for job_id, attempt in re.findall(r"job ([0-9a-f]{32}) completed, attempt (\d+)", log.read_text()):
-            done.setdefault(job_id, []).append(f"w{i}#{attempt}")
+        stop_all(workers, apis, timeout=60)
+    done = {j: [f"w{i}#{a}" for i, a in runs] for j, runs in completions(logs).items()}
     states = Counter(st["status"] for st in final.values())
     once = sum(len(done.get(j, [])) == 1 for j in jobs)
     print(f"\n2 replicas, 2 workers, {n_jobs} jobs (1.5 mm, 2 SVR rounds), worker 0 killed -9 mid-job:")

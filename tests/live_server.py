@@ -4,6 +4,7 @@ schemathesis run and the load benchmark: whatever it leaves behind can be found 
 from __future__ import annotations
 
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -101,3 +102,21 @@ class Worker:
             os.killpg(self.proc.pid, signal.SIGKILL)
         except ProcessLookupError:
             pass
+
+
+def stop_all(workers: list[Worker], servers: list[Server], timeout: float = 10.0) -> None:
+    """SIGTERM every worker (killed after ``timeout``) and every server, leaving no process behind."""
+    for w in workers:
+        w.stop(signal.SIGTERM, timeout=timeout)
+    for server in servers:
+        server.stop(signal.SIGTERM)
+        server.kill_group()
+
+
+def completions(logs: list[Path]) -> dict[str, list[tuple[int, int]]]:
+    """Job id -> ``(worker index in logs, attempt)`` of every run that completed it, from the workers' logs."""
+    done: dict[str, list[tuple[int, int]]] = {}
+    for i, log in enumerate(logs):
+        for job_id, attempt in re.findall(r"job ([0-9a-f]{32}) completed, attempt (\d+)", log.read_text()):
+            done.setdefault(job_id, []).append((i, int(attempt)))
+    return done
