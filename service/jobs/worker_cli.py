@@ -99,6 +99,7 @@ def healthy(settings: Settings, host: str | None = None) -> bool:
 
 
 def _child(settings: Settings, burst: bool, parent: int) -> None:
+    # Started with the stop signals blocked (see _pool); RQ's handlers unblock them.
     watch_parent(parent)               # `kill -9` of svrnet-worker takes its workers (and their horses) along
     work(settings, burst)
 
@@ -108,6 +109,10 @@ def _pool(settings: Settings, n: int, burst: bool) -> int:
     ctx = multiprocessing.get_context("fork")
     children = [ctx.Process(target=_child, args=(settings, burst, os.getpid()), name=f"svrnet-worker-{i}")
                 for i in range(n)]
+    # Children inherit this mask, and so does every thread they start (the parent watch): a stop signal
+    # reaching a child before RQ's handlers are in place waits for them instead of killing the child
+    # through a thread that does not block it. The parent takes its own pending ones once it forwards.
+    signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
     for child in children:
         child.start()
 
@@ -118,6 +123,7 @@ def _pool(settings: Settings, n: int, burst: bool) -> int:
 
     signal.signal(signal.SIGTERM, forward)
     signal.signal(signal.SIGINT, forward)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
     for child in children:
         child.join()
     return max(abs(child.exitcode or 0) for child in children)
