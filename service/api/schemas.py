@@ -47,7 +47,7 @@ class StackConsistency(BaseModel):
     inconsistent_slices: int = Field(description="slices whose network pose disagreed with the stack model")
     acquisition_order: Optional[str] = Field(None, description="order the motion model chose: sequential or interleaved")
     motion_bandwidth_slices: Optional[float] = Field(
-        None, description="width (in acquisitions) of the motion model's kernel; null: one rigid fit sufficed")
+        None, description="length (in acquisitions) of the motion model; null: one rigid fit sufficed")
     network_error_mm: Optional[float] = Field(None, description="estimated E.D. of one network pose")
     model_error_mm: Optional[float] = Field(None, description="estimated E.D. of the stack model's prediction")
     branch_margin: Optional[float] = Field(

@@ -14,16 +14,17 @@ Steps (all slices at once, numpy only):
    each slice takes the branch nearer to it.
 2. **Rigid fit** (IRLS): a Tukey-weighted Fréchet mean of the proposals (one Gauss-Newton step
    per round, from the RANSAC proposal), branches re-decided on the way: ``atlas_from_scanner``.
-3. **Motion** (leave-one-out local model): each slice's pose predicted from the others, weighted
-   by a Gaussian kernel over acquisition time; the acquisition order (sequential or interleaved)
-   and the kernel width (down to rigid) are chosen by cross-validation of that prediction.
-4. **Fusion**: each slice's pose becomes the inverse-variance mean of its own and the model's,
-   with the network's error from its calibrated MC spread (or, without one, from acquisition
-   neighbours) and the model's from the cross-validated residual; slices whose own pose
-   disagrees with the model beyond what both errors explain are *inconsistent* (they take the
-   model's pose). When fewer than
-   :data:`MIN_INLIER_FRACTION` of the slices agree, or the model's error exceeds
-   :data:`MAX_MODEL_ERROR_MM`, the stack is *undecidable* and nothing is changed.
+3. **Motion** (a Gaussian process over acquisition time, :mod:`service.consistency.motion_model`):
+   the proposals, each with its expected error (its calibrated MC spread, or without one an
+   estimate from neighbouring slices), follow a smooth motion; the acquisition order (sequential
+   or interleaved), the motion's length (down to rigid) and amplitude, and how much neighbouring
+   slices' network errors are alike, are chosen by the marginal likelihood.
+4. **Fusion and consistency**: each slice's pose becomes the model's posterior mean (its own
+   proposal weighed against the others' by their errors); a slice whose own pose disagrees with
+   the others' prediction beyond what both spreads explain is *inconsistent*: it does not vote
+   and takes the prediction. When fewer than :data:`MIN_INLIER_FRACTION` of the slices agree, or
+   the model's spread exceeds :data:`MAX_MODEL_ERROR_MM`, the stack is *undecidable* and nothing
+   is changed.
 
 Distances are the paper's E.D. (:func:`service.geometry.anchors.ed`, mm).
 
@@ -50,6 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from service.consistency.motion_model import NO_VOTE, Grid, MotionFit, fit_motion, refit
 from service.geometry import se3, twin
 from service.geometry.anchors import ed
 from service.geometry.pose import make_pose
@@ -59,7 +61,7 @@ RANSAC_TAU_MM = 30.0
 MIN_INLIER_FRACTION = 0.5
 """A stack whose model explains fewer of its usable slices than this is undecidable."""
 MAX_MODEL_ERROR_MM = 25.0
-"""A stack whose model predicts its slices worse than this (cross-validated, network error removed)
+"""A stack whose model predicts its slices worse than this (the spread of the others' prediction)
 has no common geometry (e.g. every slice moved independently): undecidable, nothing is changed."""
 MIN_SLICES = 3
 TUKEY_C = 4.685
@@ -75,10 +77,12 @@ MEAN_TOL_RAD = 1e-7
 BRANCH_MARGIN_MM = 5.0
 MIN_STACK_BRANCH_MARGIN = 1.5
 """A stack whose twin fits a rigid stack less than this many times worse has not decided its branch."""
-MIN_NOISE_MM = 0.1
+MIN_NOISE_MM = 0.01
 """Floor of a pose's expected error (mm), so an exact oracle still has a finite weight."""
-BANDWIDTHS = (1.0, 2.0, 4.0, 8.0, np.inf)
-"""Kernel widths (in acquisitions) tried by the cross-validation; ``inf`` is one rigid fit."""
+FIRST_GRID = Grid(error_correlations=(0.5,))
+"""The first motion fit only re-weighs the slices: one error correlation suffices."""
+MIN_STANDARD_SCALE = 0.5
+"""Floor of the robust scale of residuals in units of the slices' expected errors."""
 
 
 @dataclass
@@ -94,7 +98,7 @@ class StackFit:
         atlas_from_scanner: ``4 x 4`` rigid fit (``None`` when undecidable).
         inlier_fraction: fraction of usable slices the stack model explains (not inconsistent).
         acquisition_order: the order chosen (``sequential``, ``interleaved-even-first``, ...).
-        bandwidth: kernel width in acquisitions (``inf``: rigid, no motion needed).
+        bandwidth: length of the motion model in acquisitions (``inf``: rigid, no motion needed).
         noise_mm, model_mm: estimated E.D. of a network pose and of the model's prediction.
         branch_margin: how many times worse the whole stack on its other twin fits one rigid
             stack (under :data:`MIN_STACK_BRANCH_MARGIN`: this stack does not decide its branch).
@@ -164,67 +168,68 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     h, b = np.unravel_index(np.argmin(cost), cost.shape)
     branch = _branch(res[h, b])                                             # [n]
 
-    # 2. rigid fit: IRLS with Tukey weights, branches re-decided each round
+    # 2. rigid fit: IRLS with Tukey weights (on residuals in units of each slice's expected error,
+    #    and times its precision, when the errors are known), branches re-decided each round
+    sig = None if noise_mm is None else np.sqrt(np.maximum(np.asarray(noise_mm, dtype=np.float64) ** 2, MIN_NOISE_MM ** 2))
     s = proposals[idx[h], b]
     for _ in range(IRLS_ROUNDS):
         model = s @ inv_n                                                   # [n, 4, 4]
         both = ed(model[:, None], cand)                                     # [n, 2]
         branch = _branch(both)
         r = both[np.arange(n), branch]
-        w = _tukey(r, _scale(r[use])) * use
+        tukey = _robust(r, sig, use)
+        w = tukey * (1.0 if sig is None else _precision(sig, use))
         if w.sum() <= 0:
             return unchanged
         s = _local_models(proposals[np.arange(n), branch], s, w[None])[0]   # one Gauss-Newton step a round
     inliers = (w > 0) & use
 
-    # 3. motion: leave-one-out local models over acquisition time, chosen by cross-validation
-    own = cand[np.arange(n), branch]                                        # [n, 4, 4] each on its branch
-    chosen = proposals[np.arange(n), branch]
-    combos = [(name, t, bw) for name, t in acquisition_orders(n).items() for bw in BANDWIDTHS]
-    all_w = np.stack([_loo_weights(t, bw, w) for _, t, bw in combos])        # [c, n, n]: all at once
-    all_pred = _local_models(chosen, s, all_w) @ inv_n                       # [c, n, 4, 4]
-    all_r = ed(all_pred, own[None])                                          # [c, n]
-    c = int(np.argmin(np.median(all_r[:, inliers] ** 2, axis=1)))
-    name, t, bw = combos[c]
-    # branches again, against the local model (the rigid fit is off by the motion; near the
-    # mid-sagittal plane that can exceed half the distance to the twin); then the stack's branch as
-    # a whole by the rigid model (only the order along the normal tells a stack from its twin, and a
-    # flexible motion model can bend to either order); then the model once more
-    branch = _branch(ed(all_pred[c][:, None], cand))
-    own = cand[np.arange(n), branch]
-    chosen = proposals[np.arange(n), branch]
+    # 3. motion: a Gaussian process over acquisition time (service/consistency/motion_model.py);
+    #    then the branches against what the other slices predict (the rigid fit is off by the
+    #    motion; near the mid-sagittal plane that can exceed half the distance to the twin); then
+    #    the stack's branch as a whole by the rigid model (only the order along the normal tells a
+    #    stack from its twin, and a flexible motion model can bend to either order)
+    orders = acquisition_orders(n)
+    centre = inv_n[:, :3, 3].mean(axis=0)                                   # the slices' centre, scanner mm
+    if sig is None:
+        noise2 = _neighbour_noise2(proposals[np.arange(n), branch], cand[np.arange(n), branch], inv_n,
+                                   np.arange(n), inliers, float(np.median(r[inliers] ** 2)))
+        sig = np.full(n, np.sqrt(max(noise2, MIN_NOISE_MM ** 2)))
+    votes = np.where(inliers, sig / np.sqrt(np.maximum(tukey, 1e-12)), NO_VOTE)
+    motion = fit_motion(proposals[np.arange(n), branch], s, votes, orders, centre, FIRST_GRID)
+    # a slice far from the rigid fit may just have moved: every usable slice is weighed again by
+    # how well the others predict it, in units of the spread both errors explain
+    votes = _votes(ed(motion.loo @ inv_n, cand[np.arange(n), branch]), motion, sig, use)
+    motion = fit_motion(proposals[np.arange(n), branch], s, votes, orders, centre)
+    first = branch
+    branch = _branch(ed((motion.loo @ inv_n)[:, None], cand))
     margin = _branch_margin(proposals, cand, branch, inv_n, w, inliers)
     if margin < 1.0:                       # the whole stack's twin is the better rigid stack: take it
         branch, margin = 1 - branch, 1.0 / margin
-        own = cand[np.arange(n), branch]
-        chosen = proposals[np.arange(n), branch]
-        s = se3.frechet_mean(chosen, np.maximum(w, 1e-12), tol=MEAN_TOL_RAD)
-    predicted = _local_models(chosen, s, _loo_weights(t, bw, w)) @ inv_n
+        s = se3.frechet_mean(proposals[np.arange(n), branch], np.maximum(w, 1e-12), tol=MEAN_TOL_RAD)
+    own = cand[np.arange(n), branch]
+    chosen = proposals[np.arange(n), branch]
+    if not np.array_equal(branch, first):
+        motion = refit(motion, chosen, s, votes, orders, centre)
+    predicted = motion.loo @ inv_n
     r_loo = ed(predicted, own)
-    best_score = float(np.median(r_loo[inliers] ** 2))
 
-    # 4. fusion: inverse-variance weights from the network's and the model's estimated errors
-    close = inliers & (r_loo <= np.percentile(r_loo[inliers], 90))         # trimmed: a few wild slices aside
-    if noise_mm is not None:
-        noise2_k = np.maximum(np.asarray(noise_mm, dtype=np.float64) ** 2, MIN_NOISE_MM ** 2)
-        noise2 = float(np.mean(noise2_k[close]))
-    else:
-        noise2 = min(_neighbour_noise2(chosen, own, inv_n, t, inliers, best_score), best_score)
-        noise2_k = np.full(n, noise2)
-    residual2 = float(np.mean(r_loo[close] ** 2))
-    model2 = max(residual2 - noise2, 1e-3 * residual2, MIN_NOISE_MM ** 2)
-    alpha = model2 / (model2 + noise2_k)                                     # weight of each slice's own pose
-    limit = np.maximum(OUTLIER_K * np.sqrt(noise2_k + model2), OUTLIER_FLOOR_MM)
+    # 4. consistency: a slice the others predict worse than both errors explain is inconsistent and
+    #    does not vote in the final model; every slice takes the model's posterior mean (its own
+    #    pose weighed against its neighbours' by their errors; the prediction alone when it did not vote)
+    noise_sd = motion.noise_scale * sig                                     # as the likelihood scaled them
+    noise_mm = float(np.sqrt(np.median(noise_sd[inliers] ** 2)))
+    model_mm = float(np.sqrt(np.median(motion.model_sd_mm[use] ** 2)))
+    limit = np.maximum(OUTLIER_K * np.sqrt(noise_sd ** 2 + motion.model_sd_mm ** 2), OUTLIER_FLOOR_MM)
     inconsistent = use & (r_loo > limit)
     fraction = float((use & ~inconsistent).sum() / use.sum())
-    if fraction < MIN_INLIER_FRACTION or np.sqrt(model2) > MAX_MODEL_ERROR_MM:
-        return StackFit(p.copy(), np.zeros(n, bool), np.zeros(n, bool), r_loo, False, s, fraction, name, float(bw),
-                        float(np.sqrt(noise2)), float(np.sqrt(model2)))
-    trust_own = use & ~inconsistent
-    weights = np.stack([np.where(trust_own, alpha, 0.0), np.where(trust_own, 1.0 - alpha, 1.0)], axis=1)
-    fused = se3.frechet_mean(np.stack([own, predicted], axis=1), weights, tol=MEAN_TOL_RAD)
-    return StackFit(fused, branch == 1, inconsistent, r_loo, True, s, fraction, name, float(bw),
-                    float(np.sqrt(noise2)), float(np.sqrt(model2)), margin)
+    if fraction < MIN_INLIER_FRACTION or model_mm > MAX_MODEL_ERROR_MM:
+        return StackFit(p.copy(), np.zeros(n, bool), np.zeros(n, bool), r_loo, False, s, fraction, motion.order,
+                        motion.length, noise_mm, model_mm)
+    final = refit(motion, chosen, s, np.where(use & ~inconsistent, np.where(np.isfinite(votes), votes, sig), NO_VOTE),
+                  orders, centre)
+    return StackFit(final.poses @ inv_n, branch == 1, inconsistent, r_loo, True, s, fraction, final.order,
+                    final.length, noise_mm, model_mm, margin)
 
 
 def _branch_margin(proposals: NDArray, cand: NDArray, branch: NDArray, inv_n: NDArray, w: NDArray,
@@ -264,15 +269,6 @@ def _neighbour_noise2(chosen: NDArray, own: NDArray, inv_n: NDArray, t: NDArray,
     return float(np.median(ed(chosen[a] @ inv_n[c], own[c]) ** 2)) / 2.0
 
 
-def _loo_weights(t: NDArray, bandwidth: float, w: NDArray) -> NDArray:
-    """``[n, n]`` leave-one-out weights: a Gaussian kernel over acquisition time times the robust weights."""
-    dt = t[:, None] - t[None]
-    kern = np.ones(dt.shape) if np.isinf(bandwidth) else np.exp(-0.5 * (dt / bandwidth) ** 2)
-    wts = kern * w[None]
-    np.fill_diagonal(wts, 0.0)
-    return wts
-
-
 def _local_models(chosen: NDArray, centre: NDArray, weights: NDArray) -> NDArray:
     """Weighted means ``[..., n, 4, 4]`` of the proposals ``chosen [n, 4, 4]`` with rows of ``weights [..., n, n]``.
 
@@ -288,6 +284,29 @@ def _local_models(chosen: NDArray, centre: NDArray, weights: NDArray) -> NDArray
     w_omega = norm @ omega
     w_t = np.where(total > 0, norm @ chosen[:, :3, 3], centre[:3, 3])
     return make_pose(rc @ se3.so3_exp(w_omega), w_t)
+
+
+def _robust(r: NDArray, sig: NDArray | None, use: NDArray) -> NDArray:
+    """Tukey weights of the residuals ``r`` (mm), in units of each slice's expected error ``sig`` when
+    known (then with a scale floor of :data:`MIN_STANDARD_SCALE`), zero where not ``use``."""
+    if sig is None:
+        return _tukey(r, _scale(r[use])) * use
+    u = r / sig
+    return _tukey(u, max(se3.MAD_SCALE * float(np.median(u[use])), MIN_STANDARD_SCALE)) * use
+
+
+def _votes(r_loo: NDArray, motion: MotionFit, sig: NDArray, use: NDArray) -> NDArray:
+    """Each usable slice's expected error, inflated by its Tukey weight on the residual to the
+    others' prediction in units of the spread that both errors explain (:data:`NO_VOTE` at zero)."""
+    z = r_loo / np.sqrt((motion.noise_scale * sig) ** 2 + motion.model_sd_mm ** 2)
+    tk = _tukey(z, 1.0) * use
+    return np.where(tk > 0, sig / np.sqrt(np.maximum(tk, 1e-12)), NO_VOTE)
+
+
+def _precision(sig: NDArray, use: NDArray) -> NDArray:
+    """``1 / sig^2`` normalised to a mean of 1 over the usable slices."""
+    prec = 1.0 / sig ** 2
+    return prec / prec[use].mean()
 
 
 def _scale(r: NDArray) -> float:
