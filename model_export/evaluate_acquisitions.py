@@ -103,6 +103,8 @@ def score(results: list[dict], prepared: list[PreparedStack], truth: list[NDArra
                  ed_network_min=twin.twin_min_ed(network, true, plane_x_mm),
                  right_branch=(e <= e_tw) | (ed(true, tw) < DISTINGUISHABLE_MM),
                  variance=[s["geodesic_variance"] or np.inf for s in res["slices"]],
+                 expected=[np.inf if s.get("expected_error_mm") is None else s["expected_error_mm"]
+                           for s in res["slices"]],
                  accepted=[s["accepted"] for s in res["slices"]], mask_pixels=p.prepared.mask_pixels,
                  orientation=[sim.orientation] * n, decidable=np.full(n, bool(stage.get("decidable"))),
                  branch_decided=np.full(n, bool(stage.get("branch_decided"))))
@@ -124,6 +126,10 @@ def summarise(sc: Scored) -> dict:
     out["right_branch_twin_min_under_15mm"] = float(right[good].mean()) if good.any() else float("nan")
     var = sc.array("variance")[keep]
     out["auroc_variance_ed_over_10mm"] = auroc(np.nan_to_num(var, posinf=1e12), e > ERROR_MM)
+    expected = sc.array("expected")[keep]
+    out["auroc_expected_error_ed_over_10mm"] = auroc(np.nan_to_num(expected, posinf=1e12), e > ERROR_MM)
+    out["expected_error_mm_rms"] = float(np.sqrt(np.mean(expected[np.isfinite(expected)] ** 2)))
+    out["ed_rms"] = float(np.sqrt(np.mean(e ** 2)))
     acc = sc.array("accepted")[keep].astype(bool)
     out["accepted"] = float(acc.mean())
     out["accepted_ed_mean"] = float(e[acc].mean()) if acc.any() else float("nan")
@@ -165,14 +171,15 @@ def markdown(summary: dict[str, dict], title: str) -> str:
             "left-right twin.", "",
             "| motion | slices | network E.D. mean / median / p90 | network twin-min mean | consistent E.D. mean / "
             "median / p90 | consistent twin-min mean | right branch | right branch (twin-min < 15 mm) | "
-            "AUROC var > 10 mm | accepted | decidable stacks | branch decided | right branch where decided "
-            "(all / twin-min < 15 mm) |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+            "AUROC var > 10 mm | AUROC expected_error_mm > 10 mm | RMS E.D. / RMS expected_error_mm | accepted | "
+            "decidable stacks | branch decided | right branch where decided (all / twin-min < 15 mm) |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for level, s in summary.items():
         f = lambda d: f"{d['mean']:.1f} / {d['median']:.1f} / {d['p90']:.1f}"  # noqa: E731
         rows.append(f"| {level} | {s['slices']} | {f(s['ed_network'])} | {s['ed_network_min']['mean']:.1f} | "
                     f"{f(s['ed'])} | {s['ed_min']['mean']:.1f} | {100 * s['right_branch']:.1f} % | "
                     f"{100 * s['right_branch_twin_min_under_15mm']:.1f} % | {s['auroc_variance_ed_over_10mm']:.2f} | "
+                    f"{s['auroc_expected_error_ed_over_10mm']:.2f} | {s['ed_rms']:.1f} / {s['expected_error_mm_rms']:.1f} | "
                     f"{100 * s['accepted']:.0f} % | {100 * s['decidable_stacks']:.0f} % | "
                     f"{100 * s['branch_decided_slices']:.0f} % | {100 * s['right_branch_where_decided']:.1f} % / "
                     f"{100 * s['right_branch_where_decided_twin_min_under_15mm']:.1f} % |")

@@ -36,6 +36,9 @@ class SliceResult(BaseModel):
                              description="fraction of the MC samples that sat on the other twin of the returned pose")
     network_atlas_from_voxel: Optional[Mat] = Field(
         None, description="4x4: the network's own pose of this slice (MC majority branch, before stack consistency)")
+    expected_error_mm: Optional[float] = Field(
+        None, description="expected E.D. (mm) of the returned pose: the stack model's posterior spread where the "
+                          "stack is consistent, else the MC spread times the model's calibration (mc_error_scale)")
 
 
 class StackConsistency(BaseModel):

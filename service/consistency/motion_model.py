@@ -178,7 +178,9 @@ def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dic
     alpha = c_inv @ yv                                                                      # [m, 6]
     k_all = a2 * corr[ci][:, vote]                                                          # [n, m]
     post = k_all @ alpha                                                                    # motion at each slice
-    post_var = a2 - np.einsum("nm,mk,nk->n", k_all, c_inv, k_all)
+    # the spread includes that of the offset: the rigid fit is an estimate too (its GLS variance)
+    offset_var = 1.0 / max(float(c_inv.sum()), 1e-12)
+    post_var = a2 - np.einsum("nm,mk,nk->n", k_all, c_inv, k_all) + (1.0 - k_all @ c_inv.sum(1)) ** 2 * offset_var
     own_var = scales[gi] * np.asarray(noise_mm, dtype=np.float64)[vote] ** 2 / 3.0
     loo_y, loo_var = post.copy(), post_var.copy()
     inv_diag = np.diagonal(c_inv)

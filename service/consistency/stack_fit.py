@@ -102,6 +102,8 @@ class StackFit:
         noise_mm, model_mm: estimated E.D. of a network pose and of the model's prediction.
         branch_margin: how many times worse the whole stack on its other twin fits one rigid
             stack (under :data:`MIN_STACK_BRANCH_MARGIN`: this stack does not decide its branch).
+        expected_mm: ``[n]`` expected E.D. of each returned pose: the motion model's posterior
+            spread, the rigid fit's own included (``None`` when undecidable).
     """
 
     poses: NDArray[np.float64]
@@ -116,6 +118,7 @@ class StackFit:
     noise_mm: float = float("nan")
     model_mm: float = float("nan")
     branch_margin: float = float("nan")
+    expected_mm: NDArray[np.float64] | None = None
 
     @property
     def branch_decided(self) -> bool:
@@ -229,7 +232,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     final = refit(motion, chosen, s, np.where(use & ~inconsistent, np.where(np.isfinite(votes), votes, sig), NO_VOTE),
                   orders, centre)
     return StackFit(final.poses @ inv_n, branch == 1, inconsistent, r_loo, True, s, fraction, final.order,
-                    final.length, noise_mm, model_mm, margin)
+                    final.length, noise_mm, model_mm, margin, final.sd_mm)
 
 
 def _branch_margin(proposals: NDArray, cand: NDArray, branch: NDArray, inv_n: NDArray, w: NDArray,

@@ -27,6 +27,7 @@ class StackPoses:
     twinned: NDArray[np.bool_]          # [n] reported pose is the twin of the network's majority branch
     inconsistent: NDArray[np.bool_]     # [n]
     fit: StackFit | None                # None when the stage is off
+    expected_mm: NDArray[np.float64] | None = None   # [n] expected E.D. of each pose (None: not calibrated)
 
 
 def network_from_voxel(input_from_network: NDArray, slice_from_voxel: NDArray) -> NDArray[np.float64]:
@@ -39,15 +40,18 @@ def consistent_poses(mean: NDArray, twin_mass: NDArray, network_from_vox: NDArra
                      enabled: bool = True) -> StackPoses:
     """Run :func:`fit_stack` on one stack (or pass the network's poses through when ``enabled`` is False).
 
-    ``noise_mm`` is each pose's expected error: the MC spread times the model's calibration.
+    ``noise_mm`` is each pose's expected error: the MC spread times the model's calibration. The
+    returned ``expected_mm`` is that of the returned poses: the stack model's posterior spread
+    where the stack is decidable, ``noise_mm`` otherwise.
     """
     n = len(mean)
     if not enabled:
-        return StackPoses(mean, twin_mass, np.zeros(n, bool), np.zeros(n, bool), None)
+        return StackPoses(mean, twin_mass, np.zeros(n, bool), np.zeros(n, bool), None, noise_mm)
     network_from_scanner = network_from_vox @ np.linalg.inv(scanner_from_voxel)
     fit = fit_stack(mean, network_from_scanner, usable, plane_x_mm, noise_mm)
     mass = np.where(fit.twinned, 1.0 - twin_mass, twin_mass)
-    return StackPoses(fit.poses, mass, fit.twinned, fit.inconsistent, fit)
+    expected = fit.expected_mm if fit.decidable and noise_mm is not None else noise_mm
+    return StackPoses(fit.poses, mass, fit.twinned, fit.inconsistent, fit, expected)
 
 
 def stack_report(fit: StackFit | None) -> dict | None:

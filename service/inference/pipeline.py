@@ -108,6 +108,7 @@ def slice_results(est: PoseEstimate, sl: slice, prepared: PreparedStack, thresho
     out = consistent_poses(est.mean[sl], est.twin_mass[sl], net_from_vox, prepared.upload.volume.affine, usable,
                            plane_x_mm, est.spread_mm[sl] * error_scale, stack_consistency)
     mean, variance = out.poses, est.variance[sl]
+    expected = out.expected_mm
     atlas_from_voxel = mean @ net_from_vox
     network_atlas_from_voxel = est.mean[sl] @ net_from_vox
     rot = mean[:, :3, :3]
@@ -125,10 +126,15 @@ def slice_results(est: PoseEstimate, sl: slice, prepared: PreparedStack, thresho
             "atlas_from_voxel": atlas_from_voxel[i].tolist(),
             "branch": "twin" if out.twinned[i] else "network", "twin_mass": float(out.twin_mass[i]),
             "network_atlas_from_voxel": network_atlas_from_voxel[i].tolist(),
+            "expected_error_mm": _finite(expected, i),
         }
         for i in range(len(mean))
     ]
     return slices, stack_report(out.fit)
+
+
+def _finite(values: np.ndarray | None, i: int) -> float | None:
+    return float(values[i]) if values is not None and np.isfinite(values[i]) else None
 
 
 def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples: int,

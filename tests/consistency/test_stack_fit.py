@@ -127,3 +127,22 @@ def test_the_whole_stack_on_its_twin_is_put_back() -> None:
     poses = twin.twin(truth) @ se3.exp(rng.normal(0, 1, (len(truth), 6)) * NOISE * 0.3)   # every slice twinned
     fit = fit_stack(poses, nk, noise_mm=np.full(len(poses), 4.0))
     assert fit.twinned.all() and ed(fit.poses, truth).mean() < 5.0
+
+
+def test_the_expected_error_of_the_returned_poses_is_honest_and_ranks_them() -> None:
+    # the outer slices of a stack are where a network is lost, and its spread says so
+    rng = np.random.default_rng(19)
+    errors, expected = [], []
+    for _ in range(6):
+        truth, nk = stack(rng, "moderate")
+        n = len(truth)
+        sd = np.where(np.abs(np.arange(n) - n / 2) > n / 3, 40.0, 6.0)
+        poses = truth @ se3.exp(rng.normal(0, 1, (n, 6)) * NOISE * (sd / 14.0)[:, None])
+        fit = fit_stack(poses, nk, noise_mm=sd)
+        assert fit.decidable and fit.expected_mm is not None
+        errors.append(ed(fit.poses, truth))
+        expected.append(fit.expected_mm)
+    errors, expected = np.concatenate(errors), np.concatenate(expected)
+    assert 0.5 < np.sqrt(np.mean(errors ** 2) / np.mean(expected ** 2)) < 2.0
+    worst = errors > np.percentile(errors, 80)
+    assert expected[worst].mean() > 1.2 * expected[~worst].mean()

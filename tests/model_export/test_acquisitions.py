@@ -43,6 +43,7 @@ def test_pipeline_with_a_twin_confused_estimator_per_motion_level() -> None:
         assert s["right_branch"] >= 0.97, (level, s)
         assert s["ed"]["mean"] < s["ed_network_min"]["mean"], (level, s)       # the stack fit beats the slices
         assert s["decidable_stacks"] == 1.0
+        assert 0.5 < s["ed_rms"] / s["expected_error_mm_rms"] < 2.0, (level, s)   # the expected error is honest
     ex = out["extreme"]
     assert ex["decidable_stacks"] == 0.0
     assert ex["ed_min"]["mean"] == ex["ed_network_min"]["mean"]                  # no slice made worse
