@@ -28,6 +28,7 @@ from datetime import datetime, timezone
 
 import redis
 from rq import Queue
+from rq.exceptions import StopRequested
 from rq.job import Job as RqJob
 from rq.worker import Worker
 
@@ -39,7 +40,21 @@ from service.jobs.runner import watch_parent
 log = logging.getLogger(__name__)
 
 
-STOP_SIGNALS = {signal.SIGTERM, signal.SIGINT}
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+_early_stops: list[int] = []
+
+
+def _remember_stop(signum: int, frame: object) -> None:  # noqa: ARG001
+    """Until RQ's handlers are in place, a stop signal is only remembered (see :class:`SvrnetWorker`)."""
+    _early_stops.append(signum)
+
+
+def hold_stop_signals() -> None:
+    """Remember stop signals instead of dying of them. A handler, not a blocked mask: a process-wide
+    signal goes to any thread that does not block it (BLAS pools, the parent watch), and with the
+    default action there it would kill the worker; a Python handler always runs in the main thread."""
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, _remember_stop)
 
 
 class SvrnetWorker(Worker):
@@ -52,11 +67,16 @@ class SvrnetWorker(Worker):
         return int(self.job_monitoring_interval + self.lost_after_s)
 
     def _install_signal_handlers(self) -> None:
-        # RQ registers the worker before it installs its handlers: a SIGTERM in between would kill it
-        # and leave a stale registration. :func:`work` blocks the stop signals until now, so one that
-        # came early is delivered here, to RQ's handler (a warm shutdown).
+        # RQ registers the worker before it installs its handlers, and installs them outside its
+        # loop: its handler, raising StopRequested there, would end the worker without unregistering.
+        # A stop that came early (remembered by hold_stop_signals) is requested as the flag the loop
+        # checks before it takes a job: a warm shutdown; a second signal is RQ's cold one.
         super()._install_signal_handlers()
-        signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
+        while _early_stops:
+            try:
+                self.request_stop(_early_stops.pop(0), None)
+            except StopRequested:
+                self._stop_requested = True
 
 
 def _preload() -> None:
@@ -78,7 +98,7 @@ def build_worker(settings: Settings, name: str | None = None) -> SvrnetWorker:
 
 def work(settings: Settings, burst: bool = False, name: str | None = None) -> None:
     """One worker in this process until SIGTERM (or, with ``burst``, until the queue is empty)."""
-    signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+    hold_stop_signals()
     set_context(settings)
     build_worker(settings, name).work(burst=burst, logging_level=settings.log_level.upper())
 
@@ -99,7 +119,9 @@ def healthy(settings: Settings, host: str | None = None) -> bool:
 
 
 def _child(settings: Settings, burst: bool, parent: int) -> None:
-    # Started with the stop signals blocked (see _pool); RQ's handlers unblock them.
+    # Started holding the stop signals (see _pool) until RQ's handlers take over; the pool forwards
+    # what it got before the fork.
+    _early_stops.clear()
     watch_parent(parent)               # `kill -9` of svrnet-worker takes its workers (and their horses) along
     work(settings, burst)
 
@@ -109,10 +131,9 @@ def _pool(settings: Settings, n: int, burst: bool) -> int:
     ctx = multiprocessing.get_context("fork")
     children = [ctx.Process(target=_child, args=(settings, burst, os.getpid()), name=f"svrnet-worker-{i}")
                 for i in range(n)]
-    # Children inherit this mask, and so does every thread they start (the parent watch): a stop signal
-    # reaching a child before RQ's handlers are in place waits for them instead of killing the child
-    # through a thread that does not block it. The parent takes its own pending ones once it forwards.
-    signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+    # Children inherit the held stop signals (a stop before RQ's handlers is a warm one, never a kill);
+    # one that reaches the pool before it forwards is forwarded as soon as it does.
+    hold_stop_signals()
     for child in children:
         child.start()
 
@@ -123,7 +144,8 @@ def _pool(settings: Settings, n: int, burst: bool) -> int:
 
     signal.signal(signal.SIGTERM, forward)
     signal.signal(signal.SIGINT, forward)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
+    while _early_stops:
+        forward(_early_stops.pop(0), None)
     for child in children:
         child.join()
     return max(abs(child.exitcode or 0) for child in children)
@@ -143,6 +165,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.health:
         return 0 if healthy(settings) else 1
+    hold_stop_signals()
     service_logging.configure(settings.log_level)
     _preload()
     if args.workers <= 1:
