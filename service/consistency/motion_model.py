@@ -4,16 +4,17 @@ Every slice ``k`` proposes the stack's ``atlas_from_scanner`` ``S_k = P_k N_k`` 
 :mod:`service.consistency.stack_fit`). Linearised at the rigid fit ``S`` about the stack's centre,
 each proposal is a 6-vector ``y_k``: the rotation vector of ``S^-1 S_k`` scaled to mm at the anchor
 radius (:data:`~service.geometry.anchors.ANCHOR_HALF_SIZE_MM`) and the translation of the centre
-(mm). The fetus moves smoothly over acquisition time, the network errs independently per slice with
-a known spread, so
+(mm). The fetus moves smoothly over acquisition time; the network errs per slice with a known
+spread, and alike on slices next to each other in space (they look alike), so
 
-    ``y_k = f(t_k) + e_k``, ``f ~ GP(0, a^2 exp(-(t - t')^2 / 2 l^2))``, ``e_k ~ N(0, g^2 s_k^2 / 3)``
+    ``y_k = f(t_k) + e_k``, ``f ~ GP(0, a^2 exp(-(t - t')^2 / 2 l^2))``,
+    ``cov(e_j, e_k) = g^2 s_j s_k / 3 * (r exp(-(j - k)^2 / 2 * 1.5^2) + (1 - r) [j = k])``
 
 per component, with ``s_k`` the slice's expected E.D. (its calibrated MC spread: it tracks the
 network's real error closely, far from the brain's centre most of all) and ``t`` the acquisition
 time under one of the candidate orders. The order, the length ``l`` (in acquisitions; ``inf`` is a
-rigid stack), the amplitude ``a`` and the noise scale ``g`` are chosen by the marginal likelihood
-over one grid, all candidates at once. The posterior mean is each slice's pose (its own proposal
+rigid stack), the amplitude ``a``, the noise scale ``g`` and the error correlation ``r`` are chosen
+by the marginal likelihood over one grid, all candidates at once. The posterior mean is each slice's pose (its own proposal
 weighed against its neighbours': the fusion needs no separate step); the closed-form leave-one-out
 mean is the pose the other slices predict for it.
 
