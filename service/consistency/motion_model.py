@@ -100,9 +100,8 @@ def to_coordinates(proposals: NDArray, rigid: NDArray, centre: NDArray) -> NDArr
 
 def from_coordinates(y: NDArray, rigid: NDArray, centre: NDArray) -> NDArray[np.float64]:
     """Inverse of :func:`to_coordinates`."""
-    about = translate(centre)
     d = make_pose(se3.so3_exp(y[:, :3] / ANCHOR_HALF_SIZE_MM), y[:, 3:])
-    return (rigid @ about)[None] @ d @ np.linalg.inv(about)[None]
+    return (rigid @ translate(centre))[None] @ d @ translate(-centre)[None]
 
 
 @dataclass(frozen=True)

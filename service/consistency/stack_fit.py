@@ -194,45 +194,44 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     #    stack from its twin, and a flexible motion model can bend to either order)
     orders = acquisition_orders(n)
     centre = inv_n[:, :3, 3].mean(axis=0)                                   # the slices' centre, scanner mm
+    on = np.arange(n)
+    own, chosen = cand[on, branch], proposals[on, branch]                   # each slice on its branch
     if sig is None:
-        noise2 = _neighbour_noise2(proposals[np.arange(n), branch], cand[np.arange(n), branch], inv_n,
-                                   np.arange(n), inliers, float(np.median(r[inliers] ** 2)))
+        noise2 = _neighbour_noise2(chosen, own, inv_n, on, inliers, float(np.median(r[inliers] ** 2)))
         sig = np.full(n, np.sqrt(max(noise2, MIN_NOISE_MM ** 2)))
     votes = np.where(inliers, sig / np.sqrt(np.maximum(tukey, 1e-12)), NO_VOTE)
-    motion = fit_motion(proposals[np.arange(n), branch], s, votes, orders, centre, FIRST_GRID)
+    motion = fit_motion(chosen, s, votes, orders, centre, FIRST_GRID)
     # a slice far from the rigid fit may just have moved: every usable slice is weighed again by
     # how well the others predict it, in units of the spread both errors explain
-    votes = _votes(ed(motion.loo @ inv_n, cand[np.arange(n), branch]), motion, sig, use)
-    motion = fit_motion(proposals[np.arange(n), branch], s, votes, orders, centre)
+    votes = _votes(ed(motion.loo @ inv_n, own), motion, sig, use)
+    motion = fit_motion(chosen, s, votes, orders, centre)
     first = branch
     branch = _branch(ed((motion.loo @ inv_n)[:, None], cand))
     margin = _branch_margin(proposals, cand, branch, inv_n, w, inliers)
     if margin < 1.0:                       # the whole stack's twin is the better rigid stack: take it
         branch, margin = 1 - branch, 1.0 / margin
-        s = se3.frechet_mean(proposals[np.arange(n), branch], np.maximum(w, 1e-12), tol=MEAN_TOL_RAD)
-    own = cand[np.arange(n), branch]
-    chosen = proposals[np.arange(n), branch]
+        s = se3.frechet_mean(proposals[on, branch], np.maximum(w, 1e-12), tol=MEAN_TOL_RAD)
     if not np.array_equal(branch, first):
+        own, chosen = cand[on, branch], proposals[on, branch]
         motion = refit(motion, chosen, s, votes, orders, centre)
-    predicted = motion.loo @ inv_n
-    r_loo = ed(predicted, own)
+    r_loo = ed(motion.loo @ inv_n, own)
 
     # 4. consistency: a slice the others predict worse than both errors explain is inconsistent and
     #    does not vote in the final model; every slice takes the model's posterior mean (its own
     #    pose weighed against its neighbours' by their errors; the prediction alone when it did not vote)
     noise_sd = motion.noise_scale * sig                                     # as the likelihood scaled them
-    noise_mm = float(np.sqrt(np.median(noise_sd[inliers] ** 2)))
+    network_mm = float(np.sqrt(np.median(noise_sd[inliers] ** 2)))
     model_mm = float(np.sqrt(np.median(motion.model_sd_mm[use] ** 2)))
     limit = np.maximum(OUTLIER_K * np.sqrt(noise_sd ** 2 + motion.model_sd_mm ** 2), OUTLIER_FLOOR_MM)
     inconsistent = use & (r_loo > limit)
     fraction = float((use & ~inconsistent).sum() / use.sum())
     if fraction < MIN_INLIER_FRACTION or model_mm > MAX_MODEL_ERROR_MM:
         return StackFit(p.copy(), np.zeros(n, bool), np.zeros(n, bool), r_loo, False, s, fraction, motion.order,
-                        motion.length, noise_mm, model_mm)
-    final = refit(motion, chosen, s, np.where(use & ~inconsistent, np.where(np.isfinite(votes), votes, sig), NO_VOTE),
-                  orders, centre)
+                        motion.length, network_mm, model_mm)
+    final_votes = np.where(use & ~inconsistent, np.where(np.isfinite(votes), votes, sig), NO_VOTE)
+    final = refit(motion, chosen, s, final_votes, orders, centre)
     return StackFit(final.poses @ inv_n, branch == 1, inconsistent, r_loo, True, s, fraction, final.order,
-                    final.length, noise_mm, model_mm, margin, final.sd_mm)
+                    final.length, network_mm, model_mm, margin, final.sd_mm)
 
 
 def _branch_margin(proposals: NDArray, cand: NDArray, branch: NDArray, inv_n: NDArray, w: NDArray,

@@ -50,8 +50,8 @@ def consistent_poses(mean: NDArray, twin_mass: NDArray, network_from_vox: NDArra
     network_from_scanner = network_from_vox @ np.linalg.inv(scanner_from_voxel)
     fit = fit_stack(mean, network_from_scanner, usable, plane_x_mm, noise_mm)
     mass = np.where(fit.twinned, 1.0 - twin_mass, twin_mass)
-    expected = fit.expected_mm if fit.decidable and noise_mm is not None else noise_mm
-    return StackPoses(fit.poses, mass, fit.twinned, fit.inconsistent, fit, expected)
+    return StackPoses(fit.poses, mass, fit.twinned, fit.inconsistent, fit,
+                      fit.expected_mm if fit.decidable else noise_mm)
 
 
 def stack_report(fit: StackFit | None) -> dict | None:
