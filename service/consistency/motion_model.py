@@ -78,6 +78,9 @@ class MotionFit:
         error_correlation: correlation of neighbouring slices' network errors it preferred.
         sd_mm: ``[n]`` posterior spread of each slice's motion (E.D.-like mm).
         model_sd_mm: ``[n]`` spread of the others' prediction of each slice (E.D.-like mm).
+        offset_sd_mm: standard error of the rigid offset per coordinate (mm; its GLS variance).
+        offset_share: ``[n]`` how much of that variance is in each slice's posterior (``sd_mm^2`` is
+            ``3 (motion part + offset_share offset_sd_mm^2)``).
     """
 
     poses: NDArray[np.float64]
@@ -89,6 +92,8 @@ class MotionFit:
     error_correlation: float
     sd_mm: NDArray[np.float64]
     model_sd_mm: NDArray[np.float64]
+    offset_sd_mm: float = float("nan")
+    offset_share: NDArray[np.float64] | None = None
 
 
 def to_coordinates(proposals: NDArray, rigid: NDArray, centre: NDArray) -> NDArray[np.float64]:
@@ -180,7 +185,8 @@ def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dic
     post = k_all @ alpha                                                                    # motion at each slice
     # the spread includes that of the offset: the rigid fit is an estimate too (its GLS variance)
     offset_var = 1.0 / max(float(c_inv.sum()), 1e-12)
-    post_var = a2 - np.einsum("nm,mk,nk->n", k_all, c_inv, k_all) + (1.0 - k_all @ c_inv.sum(1)) ** 2 * offset_var
+    share = (1.0 - k_all @ c_inv.sum(1)) ** 2
+    post_var = a2 - np.einsum("nm,mk,nk->n", k_all, c_inv, k_all) + share * offset_var
     own_var = scales[gi] * np.asarray(noise_mm, dtype=np.float64)[vote] ** 2 / 3.0
     loo_y, loo_var = post.copy(), post_var.copy()
     inv_diag = np.diagonal(c_inv)
@@ -188,7 +194,8 @@ def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dic
     loo_var[vote] = 1.0 / inv_diag - own_var                                                # less its own error
     return MotionFit(from_coordinates(post, rigid, centre), from_coordinates(loo_y, rigid, centre), order,
                      float(length), float(np.sqrt(a2)), float(grid.noise_scales[gi]), float(grid.error_correlations[ri]),
-                     np.sqrt(3.0 * np.maximum(post_var, 0.0)), np.sqrt(3.0 * np.maximum(loo_var, 0.0)))
+                     np.sqrt(3.0 * np.maximum(post_var, 0.0)), np.sqrt(3.0 * np.maximum(loo_var, 0.0)),
+                     float(np.sqrt(offset_var)), share)
 
 
 def refit(fit: MotionFit, proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dict[str, NDArray],

@@ -104,6 +104,10 @@ class StackFit:
             stack (under :data:`MIN_STACK_BRANCH_MARGIN`: this stack does not decide its branch).
         expected_mm: ``[n]`` expected E.D. of each returned pose: the motion model's posterior
             spread, the rigid fit's own included (``None`` when undecidable).
+        offset_sd_mm: standard error of ``atlas_from_scanner`` per coordinate (mm: translations, and
+            rotation vectors times :data:`~service.geometry.anchors.ANCHOR_HALF_SIZE_MM`).
+        centre: ``[3]`` the stack's centre in scanner mm (its rotations are linearised about it).
+        offset_share: ``[n]`` the part of ``offset_sd_mm^2`` in each slice's ``expected_mm^2 / 3``.
     """
 
     poses: NDArray[np.float64]
@@ -119,6 +123,9 @@ class StackFit:
     model_mm: float = float("nan")
     branch_margin: float = float("nan")
     expected_mm: NDArray[np.float64] | None = None
+    offset_sd_mm: float = float("nan")
+    centre: NDArray[np.float64] | None = None
+    offset_share: NDArray[np.float64] | None = None
 
     @property
     def branch_decided(self) -> bool:
@@ -231,7 +238,8 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     final_votes = np.where(use & ~inconsistent, np.where(np.isfinite(votes), votes, sig), NO_VOTE)
     final = refit(motion, chosen, s, final_votes, orders, centre)
     return StackFit(final.poses @ inv_n, branch == 1, inconsistent, r_loo, True, s, fraction, final.order,
-                    final.length, network_mm, model_mm, margin, final.sd_mm)
+                    final.length, network_mm, model_mm, margin, final.sd_mm, final.offset_sd_mm, centre,
+                    final.offset_share)
 
 
 def _branch_margin(proposals: NDArray, cand: NDArray, branch: NDArray, inv_n: NDArray, w: NDArray,

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from service.consistency.cross_stack import pool_stacks
 from service.consistency.stack_fit import StackFit, fit_stack
 from service.geometry import se3
 
@@ -52,6 +53,32 @@ def consistent_poses(mean: NDArray, twin_mass: NDArray, network_from_vox: NDArra
     mass = np.where(fit.twinned, 1.0 - twin_mass, twin_mass)
     return StackPoses(fit.poses, mass, fit.twinned, fit.inconsistent, fit,
                       fit.expected_mm if fit.decidable else noise_mm)
+
+
+def pool_request(outs: list[StackPoses]) -> list[dict | None]:
+    """Pool the positions of a request's decidable stacks (:mod:`service.consistency.cross_stack`),
+    in place: each such stack's poses move with its pooled position and their ``expected_mm`` loses
+    the offset variance pooling removed. Returns each stack's ``consistency`` report."""
+    reports = [stack_report(o.fit) for o in outs]
+    which = [i for i, o in enumerate(outs) if o.fit is not None and o.fit.decidable and o.fit.centre is not None
+             and np.isfinite(o.fit.offset_sd_mm)]
+    if len(which) < 2:
+        return reports
+    fits = [outs[i].fit for i in which]
+    pooled = pool_stacks(np.stack([f.atlas_from_scanner for f in fits]), np.array([f.offset_sd_mm for f in fits]),
+                         np.stack([f.centre for f in fits]))
+    for j, i in enumerate(which):
+        out, fit = outs[i], fits[j]
+        out.poses = pooled.corrections[j] @ out.poses
+        if out.expected_mm is not None and fit.offset_share is not None:
+            removed = 3.0 * fit.offset_share * max(fit.offset_sd_mm ** 2 - pooled.sd_mm[j] ** 2, 0.0)
+            out.expected_mm = np.sqrt(np.maximum(out.expected_mm ** 2 - removed, 0.0))
+        reports[i].update({
+            "pooled_atlas_from_scanner": (pooled.corrections[j] @ fit.atlas_from_scanner).tolist(),
+            "stacks_pooled": len(which),
+            "between_stacks_sd_mm": pooled.tau_mm,
+        })
+    return reports
 
 
 def stack_report(fit: StackFit | None) -> dict | None:

@@ -22,7 +22,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from service.core.errors import UnusableImage
-from service.consistency.stage import consistent_poses, network_from_voxel, stack_report
+from service.consistency.stage import StackPoses, consistent_poses, network_from_voxel, pool_request
 from service.geometry import anchors
 from service.geometry.twin import DEFAULT_PLANE_X_MM
 from service.inference import acceptance
@@ -98,15 +98,26 @@ def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction:
         return list(pool.map(lambda u: prepare_stack(u, info, bias_correction), uploads))
 
 
-def slice_results(est: PoseEstimate, sl: slice, prepared: PreparedStack, threshold: float,
-                  stack_consistency: bool, plane_x_mm: float, error_scale: float = 1.0) -> tuple[list[dict], dict | None]:
-    """The contract's per-slice objects for one stack and its ``consistency`` report."""
+def _network_from_voxel(prepared: PreparedStack) -> np.ndarray:
+    return network_from_voxel(prepared.prepared.input_from_network(), prepared.slices.slice_from_voxel)
+
+
+def stack_poses(est: PoseEstimate, sl: slice, prepared: PreparedStack, stack_consistency: bool,
+                plane_x_mm: float, expected_mm: np.ndarray) -> StackPoses:
+    """One stack's poses through the stack-consistency stage (or as the network gave them);
+    ``expected_mm`` is each slice's expected error: its MC spread times the model's ``mc_error_scale``."""
     p = prepared.prepared
-    net_from_vox = network_from_voxel(p.input_from_network(), prepared.slices.slice_from_voxel)
+    usable = (p.mask_fraction >= acceptance.MIN_MASK_FRACTION) & ~est.degenerate[sl]
+    return consistent_poses(est.mean[sl], est.twin_mass[sl], _network_from_voxel(prepared),
+                            prepared.upload.volume.affine, usable, plane_x_mm, expected_mm[sl], stack_consistency)
+
+
+def slice_results(est: PoseEstimate, sl: slice, prepared: PreparedStack, out: StackPoses,
+                  threshold: float) -> list[dict]:
+    """The contract's per-slice objects for one stack, from its poses after the stage."""
+    p = prepared.prepared
+    net_from_vox = _network_from_voxel(prepared)
     degenerate = est.degenerate[sl]
-    usable = (p.mask_fraction >= acceptance.MIN_MASK_FRACTION) & ~degenerate
-    out = consistent_poses(est.mean[sl], est.twin_mass[sl], net_from_vox, prepared.upload.volume.affine, usable,
-                           plane_x_mm, est.spread_mm[sl] * error_scale, stack_consistency)
     mean, variance = out.poses, est.variance[sl]
     expected = out.expected_mm
     atlas_from_voxel = mean @ net_from_vox
@@ -130,7 +141,7 @@ def slice_results(est: PoseEstimate, sl: slice, prepared: PreparedStack, thresho
         }
         for i in range(len(mean))
     ]
-    return slices, stack_report(out.fit)
+    return slices
 
 
 def _finite(values: np.ndarray | None, i: int) -> float | None:
@@ -140,22 +151,24 @@ def _finite(values: np.ndarray | None, i: int) -> float | None:
 def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples: int,
             threshold: float, stack_consistency: bool = True) -> tuple[list[dict], dict[str, float]]:
     """Run all slices of all stacks through ``estimator`` at once, then each stack through the
-    stack-consistency stage; returns stack results and timings."""
+    stack-consistency stage and the stacks' positions pooled where they agree
+    (:func:`~service.consistency.stage.pool_request`); returns stack results and timings."""
     inputs = np.concatenate([s.prepared.inputs for s in prepared])
     t = time.perf_counter()
     est = estimator.estimate(inputs, mc_samples)
     elapsed = time.perf_counter() - t
     timings = dict(getattr(est, "timings", None) or {"inference": elapsed, "statistics": 0.0})
     plane_x_mm = getattr(estimator.info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM)
-    error_scale = getattr(estimator.info, "mc_error_scale", 1.0)
+    expected = est.spread_mm * getattr(estimator.info, "mc_error_scale", 1.0)
     t = time.perf_counter()
-    stacks, start = [], 0
-    for index, s in enumerate(prepared):
-        n = len(s.prepared.inputs)
-        sl = slice(start, start + n)
-        start += n
+    bounds = np.cumsum([0] + [len(s.prepared.inputs) for s in prepared])
+    spans = [slice(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
+    outs = [stack_poses(est, sl, s, stack_consistency, plane_x_mm, expected) for sl, s in zip(spans, prepared)]
+    reports = pool_request(outs) if stack_consistency else [None] * len(outs)
+    stacks = []
+    for index, (s, sl, out, report) in enumerate(zip(prepared, spans, outs, reports)):
         vol = s.upload.volume
-        slices, report = slice_results(est, sl, s, threshold, stack_consistency, plane_x_mm, error_scale)
+        slices = slice_results(est, sl, s, out, threshold)
         stacks.append({
             "index": index, "filename": s.upload.filename, "shape": list(vol.array.shape),
             "spacing_mm": [float(x) for x in vol.spacing], "slice_axis": s.slices.slice_axis,

@@ -57,7 +57,8 @@ class StackRegistrationResult:
 
 
 def stacks_as_bodies(slices: SliceSet, atlas_from_scanner: ArrayLike, pixel_weight: ArrayLike | None = None,
-                     max_pixels: int | None = MAX_BODY_PIXELS) -> SliceSet:
+                     max_pixels: int | None = MAX_BODY_PIXELS,
+                     slice_poses: ArrayLike | None = None) -> SliceSet:
     """A :class:`SliceSet` with one "slice" per stack, its pose ``atlas_from_scanner[s] @ stack_affine``.
 
     Args:
@@ -65,6 +66,10 @@ def stacks_as_bodies(slices: SliceSet, atlas_from_scanner: ArrayLike, pixel_weig
         atlas_from_scanner: ``[n_stacks, 4, 4]``.
         pixel_weight: optional ``[N]``; pixels of weight 0 are left out (e.g. outlier slices).
         max_pixels: keep every k-th pixel so that at most about this many remain (``None``: all).
+        slice_poses: optional ``[n, 4, 4]`` per-slice transforms that hold the motion within each
+            stack (e.g. the stack-consistency stage's): each pixel's body coordinates are then those
+            that put it, at the body's starting pose, where its slice's transform puts it, so the
+            stack moves as a rigid body *with* its slices' motion rather than as the file's grid.
     """
     g = np.asarray(atlas_from_scanner, dtype=np.float64)
     n_stacks = len(g)
@@ -78,7 +83,13 @@ def stacks_as_bodies(slices: SliceSet, atlas_from_scanner: ArrayLike, pixel_weig
     first = np.array([int(np.flatnonzero(slices.stack_index == s)[0]) for s in range(n_stacks)])
     saff = slices.stack_affine[first]
     has = np.bincount(sid, minlength=n_stacks) > 0
-    return SliceSet(values=slices.values[pix], voxel=slices.voxel[pix], slice_id=sid, atlas_from_voxel=g @ saff,
+    voxel = slices.voxel[pix]
+    if slice_poses is not None:        # body coordinates: inverse(body pose) @ slice pose @ voxel
+        body = np.linalg.inv(g @ saff)
+        moved = slices.positions(np.asarray(slice_poses, np.float64), pix)
+        b = body[sid]
+        voxel = (np.einsum("nij,nj->ni", b[:, :3, :3], moved) + b[:, :3, 3]).astype(np.float32)
+    return SliceSet(values=slices.values[pix], voxel=voxel, slice_id=sid, atlas_from_voxel=g @ saff,
                     thickness_mm=slices.thickness_mm[first], pixel_mm=slices.pixel_mm[first],
                     slice_axis=slices.slice_axis[first], stack_index=np.arange(n_stacks),
                     slice_index=np.zeros(n_stacks, np.int64), stack_affine=saff, include=has)
@@ -86,7 +97,8 @@ def stacks_as_bodies(slices: SliceSet, atlas_from_scanner: ArrayLike, pixel_weig
 
 def register_stacks(slices: SliceSet, atlas_from_scanner: ArrayLike, *, pixel_weight: ArrayLike | None = None,
                     levels_mm: tuple[float, ...] = DEFAULT_LEVELS_MM, sweeps: int = 2, margin_mm: float = 10.0,
-                    max_iterations: int = 30, cancel: Callable[[], None] | None = None) -> StackRegistrationResult:
+                    max_iterations: int = 30, cancel: Callable[[], None] | None = None,
+                    slice_poses: ArrayLike | None = None) -> StackRegistrationResult:
     """Rigidly register the stacks to each other, coarse to fine (see the module docstring).
 
     Args:
@@ -98,12 +110,15 @@ def register_stacks(slices: SliceSet, atlas_from_scanner: ArrayLike, *, pixel_we
         margin_mm: field-of-view margin of the templates.
         max_iterations: iteration bound of each registration.
         cancel: called between registrations (may raise to stop).
+        slice_poses: optional ``[n, 4, 4]`` slice transforms carrying each stack's motion
+            (:func:`stacks_as_bodies`); the result still maps each stack's rigid frame, so that
+            ``result[s] @ inverse(atlas_from_scanner[s])`` moves its slices' transforms.
 
     Returns:
         The :class:`StackRegistrationResult` (a single stack is returned unchanged, NCC NaN).
     """
     start = np.array(atlas_from_scanner, dtype=np.float64)
-    bodies = stacks_as_bodies(slices, start, pixel_weight)
+    bodies = stacks_as_bodies(slices, start, pixel_weight, slice_poses=slice_poses)
     n_stacks = bodies.n_slices
     ncc = np.full(n_stacks, np.nan)
     if int(bodies.include.sum()) < 2:

@@ -48,12 +48,16 @@ class StackFit:
         inlier: ``[n]`` bool, slices (on their chosen branch) consistent with the stack's transform.
         distance_mm: ``[n]`` E.D. (mm) of each slice's pose (its branch) from the stack's motion model
             (NaN: stack undecidable or no slice used).
+        motion_poses: ``[n, 4, 4]`` each slice's transform under its stack's motion model (the
+            stage's posterior mean: the motion it found, without the network's per-slice noise);
+            the stack's rigid transform where the stack is undecidable (``None``: not computed).
     """
 
     atlas_from_scanner: NDArray[np.float64]
     twin: NDArray[np.bool_]
     inlier: NDArray[np.bool_]
     distance_mm: NDArray[np.float64]
+    motion_poses: NDArray[np.float64] | None = None
 
     def branch_poses(self, slices: SliceSet, atlas_from_voxel: ArrayLike, plane_x_mm: float) -> NDArray[np.float64]:
         """``atlas_from_voxel`` with the twin-branch slices replaced by their twins (the stack's branch)."""
@@ -131,9 +135,11 @@ def fit_stack_rigid(slices: SliceSet, atlas_from_voxel: ArrayLike | None = None,
     twin = np.zeros(n, bool)
     inlier = np.zeros(n, bool)
     dist = np.full(n, np.nan)
+    motion = np.zeros((n, 4, 4))
     for s in range(n_stacks):                   # a loop over the few stacks; slices are batched
         idx = np.flatnonzero(slices.stack_index == s)
         if not use[idx].any():
+            motion[idx] = slices.stack_affine[idx]
             continue
         fit = fit_stack(frame_poses[idx], n_k[idx], use[idx],
                         DEFAULT_PLANE_X_MM if plane_x_mm is None else plane_x_mm)
@@ -142,8 +148,12 @@ def fit_stack_rigid(slices: SliceSet, atlas_from_voxel: ArrayLike | None = None,
             twin[idx] = fit.twinned & (plane_x_mm is not None)
             inlier[idx] = use[idx] & ~fit.inconsistent
             dist[idx] = fit.residual_mm
+            if plane_x_mm is not None or not fit.twinned.any():
+                motion[idx] = fit.poses @ n_k[idx] @ slices.stack_affine[idx]
+                continue
         else:
             out[s] = se3.frechet_mean(x_all[idx[use[idx]]])
+        motion[idx] = out[s] @ slices.stack_affine[idx]
     if plane_x_mm is None and twin.any():
         twin[:] = False
-    return StackFit(out, twin, inlier, dist)
+    return StackFit(out, twin, inlier, dist, motion)
