@@ -115,3 +115,35 @@ def test_atlas_from_voxel_matches_truth(oracle, oracle_client, tmp_path: Path, w
         if rmask[k].mean() > 0.1:
             cc = np.corrcoef(seen[k].ravel(), expected[k].ravel())[0, 1]
             assert cc > 0.85, (k, cc)
+
+
+def test_two_stacks_of_one_position_are_pooled_and_stay_exact(oracle, oracle_client, tmp_path: Path) -> None:
+    """Two stacks (axial, oblique coronal) of the same, still fetus, an exact oracle: the response
+    says both were pooled with no spread between them, each stack's pooled position is the same
+    ``atlas_from_scanner``, and the poses stay exact (pooling moves nothing that agrees)."""
+    files, truths = [], []
+    for i, (axis, rotation) in enumerate([(2, np.eye(3)), (1, OBLIQUE)]):
+        shape = [44, 44, 44]
+        shape[axis] = 18
+        aff = stack_affine(axis, rotation, 1.5, 3.5, tuple(shape))
+        g = np.repeat(np.eye(4)[None], shape[axis], axis=0)          # the fetus still
+        img, msk = acquire_stack(*BRAIN, aff, tuple(shape), axis, g)
+        write(tmp_path / f"s{i}.nii.gz", img, aff, "simpleitk")
+        write(tmp_path / f"m{i}.nii.gz", msk.astype(np.uint8), aff, "simpleitk")
+        truths.append(true_network_poses(aff, msk, axis, g))
+        files += [("stacks", (f"s{i}.nii.gz", (tmp_path / f"s{i}.nii.gz").read_bytes())),
+                  ("masks", (f"m{i}.nii.gz", (tmp_path / f"m{i}.nii.gz").read_bytes()))]
+    oracle.truth = np.concatenate(truths)
+    r = oracle_client.post("/v1/predict", files=files, data={"bias_correction": "false", "mc_samples": "5"})
+    assert r.status_code == 200, r.text
+    reports = [s["consistency"] for s in r.json()["stacks"]]
+    assert [c["stacks_pooled"] for c in reports] == [2, 2]
+    assert all(c["between_stacks_sd_mm"] < 0.1 for c in reports)
+    pooled = np.array([c["pooled_atlas_from_scanner"] for c in reports])
+    np.testing.assert_allclose(pooled[0], pooled[1], atol=0.05)
+    np.testing.assert_allclose(pooled[0], reports[0]["atlas_from_scanner"], atol=0.05)
+    for stack in r.json()["stacks"]:
+        for s in stack["slices"]:
+            if s["reason"] != "empty":
+                np.testing.assert_allclose(np.array(s["atlas_from_voxel"]), np.array(s["network_atlas_from_voxel"]),
+                                           atol=0.05)
