@@ -118,7 +118,9 @@ def _twin_rows(evaluation: dict) -> str:
 
 
 def _tz_text(train_config: dict) -> str:
-    fraction = float((train_config.get("simulation") or {}).get("tz_fraction", 0.35))
+    from model_export.simulate import FULL_EXTENT_TZ_FRACTION   # the default when the run changed nothing
+
+    fraction = float((train_config.get("simulation") or {}).get("tz_fraction", FULL_EXTENT_TZ_FRACTION))
     return f"the central {200 * fraction:.0f} %"
 
 

@@ -21,9 +21,9 @@ take the better one; the slice-level registration then starts within its capture
 The stacks move as bodies of their slices where the stage's motion model puts them (its posterior
 mean: the motion it found, not each prediction's noise; the rigid stack where it found none): a
 stack's file grid is a distorted image of the brain when the fetus moved during it. On 6
-simulated acquisitions with moderate motion (20 deg / 8 mm, model 2.4.0; the predicted poses off by
-7.3 mm) the refined poses of a job (1.5 mm, 3 rounds) were off by 6.5 mm, against 8.6 mm with the
-file grids; with mild motion 4.4 and 4.3 mm (predicted: 5.5 mm).
+simulated acquisitions with moderate motion (20 deg / 8 mm, model 2.4.0, ``benchmarks/refine_bench.py``)
+the refined poses of a job (1.5 mm, 3 rounds) are off by 6.1 mm (predicted: 6.8 mm), against
+9.1 mm with the file grids; with mild motion 3.9 mm either way (predicted: 4.4 mm).
 
 Example:
     >>> choose_by_ncc(np.array([[0.5, 0.9], [0.8, 0.2]]), np.array([True, True])).tolist()
@@ -111,7 +111,7 @@ def candidate_ncc(slices: SliceSet, candidates: NDArray, stack_poses: NDArray, r
 
 def coarse_align(slices: SliceSet, poses: NDArray | None = None, *, plane_x_mm: float | None = None,
                  levels_mm: tuple[float, ...] = DEFAULT_LEVELS_MM, sweeps: int = 2,
-                 stage: Callable[[str], None] | None = None) -> CoarseAlignment:
+                 stage: Callable[[str], None] | None = None, follow_motion: bool = True) -> CoarseAlignment:
     """Stack rigid fit, stack-to-stack registration and each slice's starting pose (module docstring).
 
     Args:
@@ -121,6 +121,8 @@ def coarse_align(slices: SliceSet, poses: NDArray | None = None, *, plane_x_mm: 
         levels_mm: stack registration levels, coarse to fine.
         sweeps: stack registration sweeps per level.
         stage: ``stage(name)`` called at the start of each step (progress and cancellation).
+        follow_motion: register each stack as a body of its slices at the stage's motion model
+            (False: as its file's grid).
 
     Returns:
         The :class:`CoarseAlignment`.
@@ -136,7 +138,7 @@ def coarse_align(slices: SliceSet, poses: NDArray | None = None, *, plane_x_mm: 
     step("stack registration")
     weight = fit.inlier[slices.slice_id].astype(np.float32)
     reg = register_stacks(slices, fit.atlas_from_scanner, pixel_weight=weight, levels_mm=levels_mm, sweeps=sweeps,
-                          slice_poses=fit.motion_poses)
+                          slice_poses=fit.motion_poses if follow_motion else None)
     g = reg.atlas_from_scanner
     delta = g @ np.linalg.inv(fit.atlas_from_scanner)
     stack_poses = g[slices.stack_index] @ slices.stack_affine

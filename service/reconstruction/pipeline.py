@@ -100,6 +100,8 @@ class ReconstructionConfig:
             lies on the twin branch of their stack are flipped (``None``: no twin handling).
         stack_levels_mm: stack registration resolutions (and trust radii), coarse to fine.
         stack_sweeps: stack registration sweeps per level.
+        stack_follows_motion: register each stack as a rigid body of its slices where the stack
+            stage's motion model puts them (False: as its file's grid, distorted by the motion).
         capture_schedule: ``(trust radius mm, extra blur sigma mm)`` of the first registration rounds
             when the coarse step found the predictions coarse (see :func:`capture`)
             (wide capture range against a blurred volume); later rounds use
@@ -138,6 +140,7 @@ class ReconstructionConfig:
     symmetry_plane_x_mm: float | None = None
     stack_levels_mm: tuple[float, ...] = (4.0, 2.0, 1.0)
     stack_sweeps: int = 2
+    stack_follows_motion: bool = True
     capture_schedule: tuple[tuple[float, float], ...] = ((4.0, 2.0), (2.0, 1.0))
     psf_points: int = 5
     sr_iterations: int = 8
@@ -314,7 +317,7 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
     if coarse_on:
         t0 = time.perf_counter()
         coarse = coarse_align(slice_set, poses, plane_x_mm=cfg.symmetry_plane_x_mm, levels_mm=cfg.stack_levels_mm,
-                              sweeps=cfg.stack_sweeps, stage=stage)
+                              sweeps=cfg.stack_sweeps, stage=stage, follow_motion=cfg.stack_follows_motion)
         poses = coarse.poses.copy()
         timings["coarse"] = time.perf_counter() - t0
     bounds = bounds_of(unbinned.positions(poses), cfg.margin_mm) if bounds_mm is None else bounds_mm

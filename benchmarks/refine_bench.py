@@ -1,0 +1,91 @@
+"""Refined poses of a reconstruction job against the truth, on simulated 3-stack acquisitions.
+
+For each motion level, acquisitions of the validation volumes (``model_export.acquisitions``) are
+predicted by the shipped model through the server's pipeline (stack consistency, the stacks
+pooled), then reconstructed as a job does from the service's own poses (every slice included,
+coarse-to-fine, SVR rounds). Printed per level: the mean E.D. (mm, slices with >= 20 mask pixels,
+network frames) of the predicted poses and of the refined poses, with stacks registered as bodies
+that follow the stage's motion model (the default) and as their files' grids; and the seconds of
+each reconstruction. Needs ``../shared/data`` (the atlas volumes). Run:
+``.venv/bin/python benchmarks/refine_bench.py [--per-level 6] [--resolution 1.5] [--rounds 3]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from model_export.acquisitions import simulate_acquisition
+from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
+from model_export.evaluate_acquisitions import (
+    MIN_MASK_PIXELS,
+    _network_from_voxel,
+    run_acquisition,
+)
+from service.geometry.anchors import ed
+from service.inference.estimator import OnnxPoseEstimator
+from service.inference.model_file import load_model
+from service.jobs.worker import poses_from_predict_body, starting_inclusion
+from service.reconstruction.pipeline import ReconstructionConfig, reconstruct
+from service.reconstruction.slices import SliceSet
+
+
+def errors(stacks, prepared, poses) -> np.ndarray:
+    """E.D. of ``poses`` (``atlas_from_voxel``, all stacks) against the truth, in network frames."""
+    out, off = [], 0
+    for s, p in zip(stacks, prepared):
+        n = len(s.atlas_from_voxel)
+        inv = np.linalg.inv(_network_from_voxel(p))
+        keep = p.prepared.mask_pixels >= MIN_MASK_PIXELS
+        out.append(ed(poses[off:off + n] @ inv, s.atlas_from_voxel @ inv)[keep])
+        off += n
+    return np.concatenate(out)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--model", default="service/models/default/model.onnx")
+    ap.add_argument("--per-level", type=int, default=6)
+    ap.add_argument("--resolution", type=float, default=1.5)
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--seed", type=int, default=7)
+    args = ap.parse_args()
+    if not DEFAULT_ATLAS_ROOT.exists():
+        sys.exit(f"needs the atlas volumes at {DEFAULT_ATLAS_ROOT}")
+    est = OnnxPoseEstimator(load_model(Path(args.model)))
+    plane = est.info.symmetry_plane_x_mm
+    vols = load_volumes(split(DEFAULT_ATLAS_ROOT)[1], DEFAULT_ATLAS_ROOT)
+    rng = np.random.default_rng(args.seed)
+    for level in ("mild", "moderate"):
+        rows = {"predicted": [], "refined": [], "refined, file grids": []}
+        seconds = {"refined": [], "refined, file grids": []}
+        for a in range(args.per_level):
+            vol = vols[a % len(vols)]
+            stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level)
+            results, prepared, _ = run_acquisition(stacks, est, 100, True)
+            counts = [len(r["slices"]) for r in results]
+            poses = starting_inclusion(poses_from_predict_body({"stacks": results}, counts))
+            masks = [np.moveaxis(p.slices.masks.transpose(0, 2, 1), 0, p.slices.slice_axis) for p in prepared]
+            ss = SliceSet.from_stacks([(s.volume, m, mats, inc) for s, m, (mats, inc) in zip(stacks, masks, poses)])
+            rows["predicted"].append(errors(stacks, prepared, ss.atlas_from_voxel))
+            for name, follow in (("refined", True), ("refined, file grids", False)):
+                t = time.perf_counter()
+                res = reconstruct(ss, resolution_mm=args.resolution, svr_iterations=args.rounds,
+                                  config=ReconstructionConfig(symmetry_plane_x_mm=plane, stack_follows_motion=follow))
+                seconds[name].append(time.perf_counter() - t)
+                rows[name].append(errors(stacks, prepared, res.atlas_from_voxel_final))
+            print(f"{level} {a}: " + ", ".join(f"{k} {v[-1].mean():.2f}" for k, v in rows.items()), flush=True)
+        summary = ", ".join(f"{k} {np.concatenate(v).mean():.2f} mm" for k, v in rows.items())
+        times = ", ".join(f"{k} {np.mean(v):.1f} s" for k, v in seconds.items())
+        print(f"== {level} ({args.per_level} acquisitions, {args.resolution} mm, {args.rounds} rounds): {summary}; "
+              f"reconstruction {times}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
