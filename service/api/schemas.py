@@ -60,9 +60,9 @@ class StackConsistency(BaseModel):
                             "(branch_margin >= 1.5); when false the poses are consistent but the whole stack "
                             "may be the mirror image")
     pooled_atlas_from_scanner: Optional[Mat] = Field(
-        None, description="4x4: the stack's position after pooling it with the request's other decidable stacks "
-                          "(the returned poses use it); null when not pooled")
-    stacks_pooled: Optional[int] = Field(None, description="decidable stacks of the request pooled (null: not pooled)")
+        None, description="4x4: the stack's position after pooling it with the request's other stacks that decided "
+                          "their left-right branch (the returned poses use it); null when not pooled")
+    stacks_pooled: Optional[int] = Field(None, description="stacks of the request pooled (null: this one was not)")
     between_stacks_sd_mm: Optional[float] = Field(
         None, description="spread of the fetus's position between the pooled stacks beyond their fits' errors "
                           "(mm per coordinate; 0: one position, fully pooled; large: each stack kept nearly its own)")

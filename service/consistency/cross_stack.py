@@ -53,13 +53,11 @@ class PooledStacks:
         sd_mm: ``[S]`` standard error of each stack's pooled position per coordinate (mm).
         tau_mm: the spread of the fetus's position between stacks beyond their errors (mm per
             coordinate; 0: one position).
-        heterogeneity: ``Q / df`` (about 1 or less when the stacks agree within their errors).
     """
 
     corrections: NDArray[np.float64]
     sd_mm: NDArray[np.float64]
     tau_mm: float
-    heterogeneity: float
 
 
 def pool_stacks(atlas_from_scanner: ArrayLike, sd_mm: ArrayLike, centres: ArrayLike) -> PooledStacks:
@@ -69,6 +67,8 @@ def pool_stacks(atlas_from_scanner: ArrayLike, sd_mm: ArrayLike, centres: ArrayL
         atlas_from_scanner: ``[S, 4, 4]`` each stack's rigid fit.
         sd_mm: ``[S]`` their standard errors per coordinate (mm).
         centres: ``[S, 3]`` the stacks' centres (scanner mm): rotations are linearised about their mean.
+            (``sd_mm`` were measured about each stack's own centre; for the stacks of one brain, a
+            few cm apart at most, the difference is a few per cent of the translation errors.)
 
     Returns:
         The :class:`PooledStacks` (identity corrections for fewer than two stacks).
@@ -77,7 +77,7 @@ def pool_stacks(atlas_from_scanner: ArrayLike, sd_mm: ArrayLike, centres: ArrayL
     v = np.maximum(np.asarray(sd_mm, dtype=np.float64), 1e-6) ** 2
     n = len(a)
     if n < 2:
-        return PooledStacks(np.repeat(np.eye(4)[None], n, 0), np.sqrt(v), 0.0, float("nan"))
+        return PooledStacks(np.repeat(np.eye(4)[None], n, 0), np.sqrt(v), 0.0)
     centre = np.asarray(centres, dtype=np.float64).mean(axis=0)
     y = to_coordinates(a, a[0], centre)                                   # [S, 6] mm
     w = 1.0 / v
@@ -92,4 +92,4 @@ def pool_stacks(atlas_from_scanner: ArrayLike, sd_mm: ArrayLike, centres: ArrayL
     post = mu + keep[:, None] * (y - mu)
     post_var = keep * v + (1.0 - keep) ** 2 * mu_var
     corrections = from_coordinates(post, a[0], centre) @ se3.inverse(a)
-    return PooledStacks(corrections, np.sqrt(post_var), float(np.sqrt(tau2)), q / df)
+    return PooledStacks(corrections, np.sqrt(post_var), float(np.sqrt(tau2)))

@@ -56,11 +56,16 @@ def consistent_poses(mean: NDArray, twin_mass: NDArray, network_from_vox: NDArra
 
 
 def pool_request(outs: list[StackPoses]) -> list[dict | None]:
-    """Pool the positions of a request's decidable stacks (:mod:`service.consistency.cross_stack`),
-    in place: each such stack's poses move with its pooled position and their ``expected_mm`` loses
-    the offset variance pooling removed. Returns each stack's ``consistency`` report."""
+    """Pool the positions of a request's stacks (:mod:`service.consistency.cross_stack`), in place.
+
+    Only stacks that decided their left-right branch take part (a stack that may be the mirror image
+    of the others would only add spread). Each such stack's poses move with its pooled position, and
+    their ``expected_mm`` loses the offset variance pooling removed, in the share the motion model
+    gives the offset in each slice's posterior (conservative: every slice moves with the whole
+    correction, which measured better than moving each by its share). Returns each stack's
+    ``consistency`` report."""
     reports = [stack_report(o.fit) for o in outs]
-    which = [i for i, o in enumerate(outs) if o.fit is not None and o.fit.decidable and o.fit.centre is not None
+    which = [i for i, o in enumerate(outs) if o.fit is not None and o.fit.branch_decided and o.fit.centre is not None
              and np.isfinite(o.fit.offset_sd_mm)]
     if len(which) < 2:
         return reports

@@ -50,7 +50,8 @@ class StackFit:
             (NaN: stack undecidable or no slice used).
         motion_poses: ``[n, 4, 4]`` each slice's transform under its stack's motion model (the
             stage's posterior mean: the motion it found, without the network's per-slice noise);
-            the stack's rigid transform where the stack is undecidable (``None``: not computed).
+            the stack's rigid transform where the stack is undecidable, has no usable slice, or
+            put slices on the twin branch while ``plane_x_mm`` is ``None`` (``None``: not computed).
     """
 
     atlas_from_scanner: NDArray[np.float64]

@@ -92,12 +92,37 @@ def test_the_stage_pools_three_stacks_through_their_slices():
         before.append(anchors.ed(out.poses, truth).mean())
         outs.append(out)
         truths.append(truth)
-    expected_before = [o.expected_mm.copy() for o in outs]
+    expected_before = np.concatenate([o.expected_mm for o in outs])
     reports = pool_request(outs)
     after = [anchors.ed(o.poses, t).mean() for o, t in zip(outs, truths)]
     assert np.mean(after) < 0.7 * np.mean(before)
-    assert all(np.all(o.expected_mm <= e + 1e-9) for o, e in zip(outs, expected_before))
+    # one rigid offset per stack: the offset is most of each slice's posterior, and pooling three
+    # stacks removes about two thirds of its variance
+    expected_after = np.concatenate([o.expected_mm for o in outs])
+    assert np.mean(expected_after) < 0.9 * np.mean(expected_before)
     assert all(r["stacks_pooled"] == 3 and r["between_stacks_sd_mm"] >= 0.0 for r in reports)
     pooled = np.array([r["pooled_atlas_from_scanner"] for r in reports])
     assert reports[0]["between_stacks_sd_mm"] == 0.0                   # one position: the same for all
     assert np.abs(pooled - pooled[0]).max() < 1e-6
+
+
+def test_only_stacks_that_decided_their_branch_are_pooled():
+    """A stack whose slices share no geometry (every pose random) is undecidable: it is neither
+    pooled nor moved, and the two others are pooled with each other."""
+    rng = np.random.default_rng(9)
+    atlas_from_scanner = make_pose(se3.so3_exp(np.array([0.2, -0.4, 0.3])), [0.0, 5.0, -5.0])
+    outs = []
+    for i, rot in enumerate([np.eye(3), np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]), np.eye(3)]):
+        n = 20
+        nfs = np.stack([se3.inverse(make_pose(rot, rot[:, 2] * 3.0 * (k - n / 2))) for k in range(n)])
+        truth = atlas_from_scanner @ se3.inverse(nfs)
+        noise = rng.normal(0.0, 1.0, (n, 6)) * np.array([np.radians(5.0)] * 3 + [5.0] * 3) / np.sqrt(3.0)
+        poses = truth @ se3.exp(noise)
+        if i == 2:                                           # every slice anywhere: no common geometry
+            poses = make_pose(se3.so3_exp(rng.normal(0, 1.5, (n, 3))), rng.uniform(-40, 40, (n, 3)))
+        outs.append(consistent_poses(poses, np.zeros(n), nfs, np.eye(4), np.ones(n, bool), 0.0, np.full(n, 8.0)))
+    untouched = outs[2].poses.copy()
+    reports = pool_request(outs)
+    assert not reports[2]["decidable"] and reports[2].get("stacks_pooled") is None
+    assert np.array_equal(outs[2].poses, untouched)
+    assert [r.get("stacks_pooled") for r in reports[:2]] == [2, 2]
