@@ -23,11 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from model_export.acquisitions import simulate_acquisition
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
-from model_export.evaluate_acquisitions import (
-    MIN_MASK_PIXELS,
-    _network_from_voxel,
-    run_acquisition,
-)
+from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, run_acquisition
 from service.geometry.anchors import ed
 from service.inference.estimator import OnnxPoseEstimator
 from service.inference.model_file import load_model
@@ -41,7 +37,7 @@ def errors(stacks, prepared, poses) -> np.ndarray:
     out, off = [], 0
     for s, p in zip(stacks, prepared):
         n = len(s.atlas_from_voxel)
-        inv = np.linalg.inv(_network_from_voxel(p))
+        inv = np.linalg.inv(p.network_from_voxel())
         keep = p.prepared.mask_pixels >= MIN_MASK_PIXELS
         out.append(ed(poses[off:off + n] @ inv, s.atlas_from_voxel @ inv)[keep])
         off += n

@@ -21,7 +21,6 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from model_export.acquisitions import MOTION_LEVELS, SimulatedStack, simulate_acquisition
-from service.consistency.stage import network_from_voxel
 from service.geometry import anchors, se3, twin
 from service.geometry.anchors import ed
 from service.inference.estimator import PoseEstimate, statistics
@@ -71,17 +70,13 @@ class Scored:
         return np.concatenate(self.columns[key]) if self.columns[key] else np.zeros(0)
 
 
-def _network_from_voxel(p: PreparedStack) -> NDArray:
-    return network_from_voxel(p.prepared.input_from_network(), p.slices.slice_from_voxel)
-
-
 def run_acquisition(stacks: list[SimulatedStack], estimator, mc_samples: int = 100,  # noqa: ANN001
                     bias_correction: bool = True) -> tuple[list[dict], list[PreparedStack], list[NDArray]]:
     """Predict one acquisition as the server would; returns the stack results, the prepared stacks
     and each stack's true network-frame poses."""
     uploads = [StackUpload(f"{s.orientation}.nii.gz", s.volume, s.mask, f"{s.orientation}_mask.nii.gz") for s in stacks]
     prepared = prepare_stacks(uploads, estimator.info, bias_correction, workers=2)
-    truth = [s.atlas_from_voxel @ np.linalg.inv(_network_from_voxel(p)) for s, p in zip(stacks, prepared)]
+    truth = [s.atlas_from_voxel @ np.linalg.inv(p.network_from_voxel()) for s, p in zip(stacks, prepared)]
     if hasattr(estimator, "truth"):
         estimator.truth = np.concatenate(truth)
     results, _ = predict(prepared, estimator, mc_samples, estimator.info.variance_threshold)
@@ -92,7 +87,7 @@ def score(results: list[dict], prepared: list[PreparedStack], truth: list[NDArra
           plane_x_mm: float, into: Scored) -> None:
     """Add one acquisition's per-slice errors to ``into``."""
     for res, p, true, sim in zip(results, prepared, truth, stacks):
-        inv = np.linalg.inv(_network_from_voxel(p))
+        inv = np.linalg.inv(p.network_from_voxel())
         final = np.array([s["atlas_from_voxel"] for s in res["slices"]]) @ inv
         network = np.array([s["network_atlas_from_voxel"] for s in res["slices"]]) @ inv
         tw = twin.twin(true, plane_x_mm)

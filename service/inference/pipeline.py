@@ -17,6 +17,7 @@ from __future__ import annotations
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from itertools import pairwise
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -53,6 +54,10 @@ class PreparedStack:
     slices: StackSlices
     prepared: PreparedSlices
     timings: dict[str, float] = field(default_factory=dict)
+
+    def network_from_voxel(self) -> np.ndarray:
+        """``[n, 4, 4]`` voxel ``(i, j, k)`` of slice ``k`` -> its network frame (the service's crop/centre)."""
+        return network_from_voxel(self.prepared.input_from_network(), self.slices.slice_from_voxel)
 
 
 def check_mask_grid(upload: StackUpload) -> None:
@@ -98,25 +103,20 @@ def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction:
         return list(pool.map(lambda u: prepare_stack(u, info, bias_correction), uploads))
 
 
-def _network_from_voxel(prepared: PreparedStack) -> np.ndarray:
-    return network_from_voxel(prepared.prepared.input_from_network(), prepared.slices.slice_from_voxel)
-
-
-def stack_poses(est: PoseEstimate, sl: slice, prepared: PreparedStack, stack_consistency: bool,
-                plane_x_mm: float, expected_mm: np.ndarray) -> StackPoses:
+def stack_poses(est: PoseEstimate, sl: slice, prepared: PreparedStack, net_from_vox: np.ndarray,
+                stack_consistency: bool, plane_x_mm: float, expected_mm: np.ndarray) -> StackPoses:
     """One stack's poses through the stack-consistency stage (or as the network gave them);
     ``expected_mm`` is each slice's expected error: its MC spread times the model's ``mc_error_scale``."""
     p = prepared.prepared
     usable = (p.mask_fraction >= acceptance.MIN_MASK_FRACTION) & ~est.degenerate[sl]
-    return consistent_poses(est.mean[sl], est.twin_mass[sl], _network_from_voxel(prepared),
-                            prepared.upload.volume.affine, usable, plane_x_mm, expected_mm[sl], stack_consistency)
+    return consistent_poses(est.mean[sl], est.twin_mass[sl], net_from_vox, prepared.upload.volume.affine, usable,
+                            plane_x_mm, expected_mm[sl], stack_consistency)
 
 
-def slice_results(est: PoseEstimate, sl: slice, prepared: PreparedStack, out: StackPoses,
+def slice_results(est: PoseEstimate, sl: slice, prepared: PreparedStack, net_from_vox: np.ndarray, out: StackPoses,
                   threshold: float) -> list[dict]:
     """The contract's per-slice objects for one stack, from its poses after the stage."""
     p = prepared.prepared
-    net_from_vox = _network_from_voxel(prepared)
     degenerate = est.degenerate[sl]
     mean, variance = out.poses, est.variance[sl]
     expected = out.expected_mm
@@ -162,13 +162,15 @@ def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples:
     expected = est.spread_mm * getattr(estimator.info, "mc_error_scale", 1.0)
     t = time.perf_counter()
     bounds = np.cumsum([0] + [len(s.prepared.inputs) for s in prepared])
-    spans = [slice(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
-    outs = [stack_poses(est, sl, s, stack_consistency, plane_x_mm, expected) for sl, s in zip(spans, prepared)]
+    spans = [slice(int(a), int(b)) for a, b in pairwise(bounds)]
+    frames = [s.network_from_voxel() for s in prepared]
+    outs = [stack_poses(est, sl, s, nfv, stack_consistency, plane_x_mm, expected)
+            for sl, s, nfv in zip(spans, prepared, frames)]
     reports = pool_request(outs) if stack_consistency else [None] * len(outs)
     stacks = []
-    for index, (s, sl, out, report) in enumerate(zip(prepared, spans, outs, reports)):
+    for index, (s, sl, nfv, out, report) in enumerate(zip(prepared, spans, frames, outs, reports)):
         vol = s.upload.volume
-        slices = slice_results(est, sl, s, out, threshold)
+        slices = slice_results(est, sl, s, nfv, out, threshold)
         stacks.append({
             "index": index, "filename": s.upload.filename, "shape": list(vol.array.shape),
             "spacing_mm": [float(x) for x in vol.spacing], "slice_axis": s.slices.slice_axis,
