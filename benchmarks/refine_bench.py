@@ -4,9 +4,9 @@ For each motion level, acquisitions of the validation volumes (``model_export.ac
 predicted by the shipped model through the server's pipeline (stack consistency, the stacks
 pooled), then reconstructed as a job does from the service's own poses (every slice included,
 coarse-to-fine, SVR rounds). Printed per level: the mean E.D. (mm, slices with >= 20 mask pixels,
-network frames) of the predicted poses and of the refined poses, with stacks registered as bodies
-that follow the stage's motion model (the default) and as their files' grids; and the seconds of
-each reconstruction. Needs ``../shared/data`` (the atlas volumes). Run:
+network frames; against the truth and twin-min) of the predicted poses and of the refined poses,
+with stacks registered as bodies that follow the stage's motion model (the default) and as their
+files' grids; and the seconds of each reconstruction. Needs ``../shared/data`` (the atlas volumes). Run:
 ``.venv/bin/python benchmarks/refine_bench.py [--per-level 6] [--resolution 1.5] [--rounds 3]``.
 """
 
@@ -24,6 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from model_export.acquisitions import simulate_acquisition
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, run_acquisition
+from service.geometry import twin
 from service.geometry.anchors import ed
 from service.inference.estimator import OnnxPoseEstimator
 from service.inference.model_file import load_model
@@ -32,16 +33,18 @@ from service.reconstruction.pipeline import ReconstructionConfig, reconstruct
 from service.reconstruction.slices import SliceSet
 
 
-def errors(stacks, prepared, poses) -> np.ndarray:
-    """E.D. of ``poses`` (``atlas_from_voxel``, all stacks) against the truth, in network frames."""
+def errors(stacks, prepared, poses, plane_x_mm: float) -> np.ndarray:
+    """``[2, N]`` E.D. of ``poses`` (``atlas_from_voxel``, all stacks) against the truth and twin-min
+    (the nearer of the truth and its left-right twin), in network frames."""
     out, off = [], 0
     for s, p in zip(stacks, prepared):
         n = len(s.atlas_from_voxel)
         inv = np.linalg.inv(p.network_from_voxel())
         keep = p.prepared.mask_pixels >= MIN_MASK_PIXELS
-        out.append(ed(poses[off:off + n] @ inv, s.atlas_from_voxel @ inv)[keep])
+        pose, true = poses[off:off + n] @ inv, s.atlas_from_voxel @ inv
+        out.append(np.stack([ed(pose, true), twin.twin_min_ed(pose, true, plane_x_mm)])[:, keep])
         off += n
-    return np.concatenate(out)
+    return np.concatenate(out, axis=1)
 
 
 def main() -> None:
@@ -69,17 +72,20 @@ def main() -> None:
             poses = starting_inclusion(poses_from_predict_body({"stacks": results}, counts))
             masks = [np.moveaxis(p.slices.masks.transpose(0, 2, 1), 0, p.slices.slice_axis) for p in prepared]
             ss = SliceSet.from_stacks([(s.volume, m, mats, inc) for s, m, (mats, inc) in zip(stacks, masks, poses)])
-            rows["predicted"].append(errors(stacks, prepared, ss.atlas_from_voxel))
+            rows["predicted"].append(errors(stacks, prepared, ss.atlas_from_voxel, plane))
             for name, follow in (("refined", True), ("refined, file grids", False)):
                 t = time.perf_counter()
                 res = reconstruct(ss, resolution_mm=args.resolution, svr_iterations=args.rounds,
                                   config=ReconstructionConfig(symmetry_plane_x_mm=plane, stack_follows_motion=follow))
                 seconds[name].append(time.perf_counter() - t)
-                rows[name].append(errors(stacks, prepared, res.atlas_from_voxel_final))
-            print(f"{level} {a}: " + ", ".join(f"{k} {v[-1].mean():.2f}" for k, v in rows.items()), flush=True)
-        summary = ", ".join(f"{k} {np.concatenate(v).mean():.2f} mm" for k, v in rows.items())
+                rows[name].append(errors(stacks, prepared, res.atlas_from_voxel_final, plane))
+            print(f"{level} {a}: " + ", ".join(f"{k} {v[-1][0].mean():.2f} / {v[-1][1].mean():.2f}"
+                                              for k, v in rows.items()), flush=True)
+        means = {k: np.concatenate(v, axis=1).mean(axis=1) for k, v in rows.items()}
+        summary = ", ".join(f"{k} {m[0]:.2f} / {m[1]:.2f} mm" for k, m in means.items())
         times = ", ".join(f"{k} {np.mean(v):.1f} s" for k, v in seconds.items())
-        print(f"== {level} ({args.per_level} acquisitions, {args.resolution} mm, {args.rounds} rounds): {summary}; "
+        print(f"== {level} ({args.per_level} acquisitions, {args.resolution} mm, {args.rounds} rounds; mean E.D. "
+              f"against the truth / twin-min): {summary}; "
               f"reconstruction {times}", flush=True)
 
 
