@@ -67,7 +67,7 @@ def main() -> None:
         for a in range(args.per_level):
             vol = vols[a % len(vols)]
             stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level)
-            results, prepared, _ = run_acquisition(stacks, est, 100, True)
+            (results,), prepared, _ = run_acquisition(stacks, est, 100, True)
             counts = [len(r["slices"]) for r in results]
             poses = starting_inclusion(poses_from_predict_body({"stacks": results}, counts))
             masks = [np.moveaxis(p.slices.masks.transpose(0, 2, 1), 0, p.slices.slice_axis) for p in prepared]

@@ -56,6 +56,12 @@ def _quote_param(value: str) -> str:
     return value.replace("\\", "\\\\").replace('"', "%22").replace("\r", "%0D").replace("\n", "%0A")
 
 
+def _order_fields(slice_order: str | Sequence[str] | None) -> list[tuple[str, str]]:
+    """The repeated ``slice_order`` form field: one value for every stack, or one per stack."""
+    orders = [slice_order] if isinstance(slice_order, str) else list(slice_order or [])
+    return [("slice_order", str(o)) for o in orders]
+
+
 class _Multipart:
     """A ``multipart/form-data`` body streamed from disk in chunks, with a known length.
 
@@ -320,6 +326,7 @@ class SVRnetClient:
     def predict(self, stacks: Sequence[PathLike], masks: Sequence[PathLike] | None = None, *,
                 mc_samples: int | None = None, variance_threshold: float | None = None,
                 bias_correction: bool | None = None, model: str | None = None,
+                slice_order: str | Sequence[str] | None = None,
                 progress: ProgressCallback | None = None) -> dict[str, Any]:
         """``POST /v1/predict``: the atlas pose and confidence of every slice of every stack.
 
@@ -332,6 +339,10 @@ class SVRnetClient:
             variance_threshold: slices above this geodesic variance are not accepted.
             bias_correction: N4 bias-field correction before normalisation.
             model: a name listed by :meth:`models`.
+            slice_order: the stacks' acquisition order, if known: one value for every stack or one
+                per stack; each ``auto``, ``interleaved``, ``sequential``, ``interleaved-even-first``,
+                ``interleaved-odd-first``, or the slice indices in the order they were acquired
+                (``"0,2,4,1,3"``). Without it the server's motion model chooses.
             progress: ``progress(bytes_sent, total)`` during the upload.
 
         Returns:
@@ -350,13 +361,14 @@ class SVRnetClient:
                                                    ("variance_threshold", variance_threshold),
                                                    ("bias_correction", bias_correction), ("model", model))
                   if v is not None]
+        fields += _order_fields(slice_order)
         body = _Multipart(fields, self._files(stacks, masks))
         return self._json(self._send("POST", "/v1/predict", body=body, progress=progress))
 
     def reconstruct(self, stacks: Sequence[PathLike], masks: Sequence[PathLike] | None = None,
                     poses: Mapping[str, Any] | PathLike | None = None, *, resolution_mm: float | None = None,
                     svr_iterations: int | None = None, mc_samples: int | None = None,
-                    variance_threshold: float | None = None,
+                    variance_threshold: float | None = None, slice_order: str | Sequence[str] | None = None,
                     progress: ProgressCallback | None = None) -> dict[str, Any]:
         """``POST /v1/reconstructions``: start a slice-to-volume reconstruction job.
 
@@ -370,6 +382,7 @@ class SVRnetClient:
             svr_iterations: slice-to-volume registration iterations (server default 3).
             mc_samples: as for :meth:`predict`.
             variance_threshold: as for :meth:`predict`.
+            slice_order: as for :meth:`predict`.
             progress: ``progress(bytes_sent, total)`` during the upload.
 
         Returns:
@@ -385,6 +398,7 @@ class SVRnetClient:
                                                    ("svr_iterations", svr_iterations),
                                                    ("mc_samples", mc_samples),
                                                    ("variance_threshold", variance_threshold)) if v is not None]
+        fields += _order_fields(slice_order)
         files: list[tuple[str, str, Path | bytes, str]] = list(self._files(stacks, masks))
         if poses is not None:
             if isinstance(poses, Mapping):

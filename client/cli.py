@@ -248,6 +248,10 @@ def predict(
     bias_correction: Annotated[bool, typer.Option("--bias-correction/--no-bias-correction",
                                                   help="N4 bias-field correction")] = True,
     model: Annotated[Optional[str], typer.Option(help="model name (see `svrnet models`)")] = None,
+    slice_order: Annotated[Optional[list[str]], typer.Option(
+        help="acquisition order, once for every stack or once per stack: interleaved, sequential, "
+             "interleaved-even-first, interleaved-odd-first, or slice indices as acquired (0,2,4,1,3); "
+             "default: the server's motion model chooses")] = None,
 ) -> None:
     """Atlas pose and confidence of every slice of every stack (POST /v1/predict)."""
     _check_masks(stacks, mask)
@@ -257,7 +261,7 @@ def predict(
         with _upload_bar(err, f"{len(stacks)} stack(s)") as progress:
             result = svr.predict(stacks, mask, mc_samples=mc_samples, variance_threshold=threshold,
                                  bias_correction=None if bias_correction else False, model=model,
-                                 progress=progress)
+                                 slice_order=slice_order, progress=progress)
         console = _stdout()
         console.print(summarise(result))
         total = (result.get("timing_ms") or {}).get("total")
@@ -305,6 +309,8 @@ def reconstruct(
         help="also write the refined slice poses (/v1/predict schema) here (implies --wait)")] = None,
     timeout: Annotated[float, typer.Option(min=0, help="seconds to wait for the job")] = 3600.0,
     poll: Annotated[float, typer.Option(min=0.05, help="seconds between status polls")] = 1.0,
+    slice_order: Annotated[Optional[list[str]], typer.Option(
+        help="acquisition order, once for every stack or once per stack (as for predict)")] = None,
 ) -> None:
     """Start a reconstruction job (POST /v1/reconstructions); with --wait, follow it and download the volume."""
     _check_masks(stacks, mask)
@@ -314,7 +320,8 @@ def reconstruct(
     with _errors(), _client(server) as svr:
         with _upload_bar(err, f"{len(stacks)} stack(s)") as progress:
             job = svr.reconstruct(stacks, mask, poses, resolution_mm=resolution, svr_iterations=svr_iterations,
-                                  mc_samples=mc_samples, variance_threshold=threshold, progress=progress)
+                                  mc_samples=mc_samples, variance_threshold=threshold, slice_order=slice_order,
+                                  progress=progress)
         job_id = str(job.get("job_id", ""))
         console.print(f"job {job_id} {job.get('status', 'queued')}: {job.get('status_url', '')}")
         if not wait:

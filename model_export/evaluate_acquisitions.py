@@ -25,6 +25,7 @@ from service.geometry import anchors, se3, twin
 from service.geometry.anchors import ed
 from service.inference.estimator import PoseEstimate, statistics
 from service.inference.model_file import ModelInfo
+from service.consistency.slice_order import SliceOrder
 from service.inference.pipeline import PreparedStack, StackUpload, predict, prepare_stacks
 
 ERROR_MM = 10.0
@@ -70,16 +71,33 @@ class Scored:
         return np.concatenate(self.columns[key]) if self.columns[key] else np.zeros(0)
 
 
+class _Reused:
+    """An estimator's one answer, given again to each call with the same inputs (the stage's variants
+    are compared on the same network poses)."""
+
+    def __init__(self, estimator) -> None:  # noqa: ANN001
+        self.estimator, self.info, self.last = estimator, estimator.info, None
+
+    def estimate(self, inputs: NDArray, mc_samples: int) -> PoseEstimate:
+        if self.last is None or not np.array_equal(self.last[0], inputs):
+            self.last = (inputs, self.estimator.estimate(inputs, mc_samples))
+        return self.last[1]
+
+
 def run_acquisition(stacks: list[SimulatedStack], estimator, mc_samples: int = 100,  # noqa: ANN001
-                    bias_correction: bool = True) -> tuple[list[dict], list[PreparedStack], list[NDArray]]:
-    """Predict one acquisition as the server would; returns the stack results, the prepared stacks
-    and each stack's true network-frame poses."""
+                    bias_correction: bool = True, orders: tuple[str | None, ...] = (None,),
+                    ) -> tuple[list[list[dict]], list[PreparedStack], list[NDArray]]:
+    """Predict one acquisition as the server would, once per ``orders`` (``slice_order`` values;
+    ``None``: not given) from one network pass; returns the stack results per order, the prepared
+    stacks and each stack's true network-frame poses."""
     uploads = [StackUpload(f"{s.orientation}.nii.gz", s.volume, s.mask, f"{s.orientation}_mask.nii.gz") for s in stacks]
     prepared = prepare_stacks(uploads, estimator.info, bias_correction, workers=2)
     truth = [s.atlas_from_voxel @ np.linalg.inv(p.network_from_voxel()) for s, p in zip(stacks, prepared)]
     if hasattr(estimator, "truth"):
         estimator.truth = np.concatenate(truth)
-    results, _ = predict(prepared, estimator, mc_samples, estimator.info.variance_threshold)
+    once = _Reused(estimator)
+    results = [predict(prepared, once, mc_samples, estimator.info.variance_threshold,
+                       orders=None if order is None else [SliceOrder.parse(order)])[0] for order in orders]
     return results, prepared, truth
 
 
@@ -142,19 +160,24 @@ def summarise(sc: Scored) -> dict:
 
 def evaluate_acquisitions(volumes: list, estimator, rng: np.random.Generator, levels: tuple[str, ...] = tuple(MOTION_LEVELS),  # noqa: ANN001
                           per_volume: int = 1, mc_samples: int = 100, bias_correction: bool = True,
-                          **sim: float) -> dict[str, dict]:
+                          told: tuple[str, ...] = (), **sim: float) -> dict[str, dict]:
     """Score ``per_volume`` acquisitions of each of ``volumes`` (objects with ``image``, ``mask``,
-    ``affine``) at each motion level; returns :func:`summarise` per level."""
+    ``affine``) at each motion level; returns :func:`summarise` per level. Each of ``told``
+    (``slice_order`` values, e.g. ``interleaved``: what the simulation acquires) adds a row per
+    level, ``"<level>, told <order>"``, scored on the same network poses."""
     plane = estimator.info.symmetry_plane_x_mm
     out = {}
+    orders = (None, *told)
     for level in levels:
-        sc = Scored()
+        scored = [Scored() for _ in orders]
         for vol in volumes:
             for _ in range(per_volume):
                 stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level, **sim)
-                results, prepared, truth = run_acquisition(stacks, estimator, mc_samples, bias_correction)
-                score(results, prepared, truth, stacks, plane, sc)
-        out[level] = summarise(sc)
+                results, prepared, truth = run_acquisition(stacks, estimator, mc_samples, bias_correction, orders)
+                for res, sc in zip(results, scored):
+                    score(res, prepared, truth, stacks, plane, sc)
+        for order, sc in zip(orders, scored):
+            out[level if order is None else f"{level}, told {order}"] = summarise(sc)
     return out
 
 

@@ -10,7 +10,7 @@ from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 
 from service.api.deps import ApiKey, MetricsDep, RegistryDep, SettingsDep, SlotDep
 from service.api.schemas import UPLOAD_ERRORS, PredictResponse
-from service.api.uploads import check_form, known_fields, save_and_read, upload_directory
+from service.api.uploads import SLICE_ORDER_HELP, check_form, known_fields, parse_orders, save_and_read, upload_directory
 from service.inference.pipeline import predict as run_prediction
 from service.inference.pipeline import prepare_stacks
 
@@ -33,6 +33,7 @@ async def predict(
     model: Annotated[str, Form(description="a name from GET /v1/models")] = "default",
     stack_consistency: Annotated[bool, Form(description="decide each stack's left-right branch from all its slices, "
                                                         "fit a motion-tolerant stack model, flag inconsistent slices")] = True,
+    slice_order: Annotated[Optional[list[str]], Form(description=SLICE_ORDER_HELP)] = None,
 ) -> dict:
     """Every slice of every stack, accepted or not, in order, with its SE(3) Fréchet-mean pose."""
     t0 = time.perf_counter()
@@ -40,6 +41,7 @@ async def predict(
     request.scope["state"]["model"] = model
     estimator = registry.get(model)
     masks = check_form(stacks, masks, variance_threshold, settings.max_files)
+    orders = parse_orders(slice_order, len(stacks))
     threshold = variance_threshold if variance_threshold is not None else estimator.info.variance_threshold
     with upload_directory(settings.tmp_dir) as tmp:
         uploads = await to_thread.run_sync(save_and_read, stacks, masks, tmp, settings.max_decoded_bytes,
@@ -49,7 +51,7 @@ async def predict(
                                         settings.preprocess_workers)
     t_prep = time.perf_counter()
     results, timings = await to_thread.run_sync(run_prediction, prepared, estimator, mc_samples, threshold,
-                                                stack_consistency)
+                                                stack_consistency, orders)
     metrics.observe_slices(model, [s["reason"] for st in results for s in st["slices"]])
     info = estimator.info
     stage = lambda key: sum(p.timings.get(key, 0.0) for p in prepared)  # noqa: E731 - CPU time summed over stacks

@@ -12,7 +12,8 @@ from fastapi.responses import FileResponse
 
 from service.api.deps import ApiKey, RegistryDep, SettingsDep, SlotDep, queue_full
 from service.api.schemas import UPLOAD_ERRORS, problem_responses
-from service.api.uploads import check_form, known_fields, save_and_read
+from service.api.uploads import SLICE_ORDER_HELP, check_form, known_fields, parse_orders, save_and_read
+from service.inference.pipeline import stack_orders
 from service.core.errors import Conflict, InvalidParameter, NotFound
 from service.jobs.store import Job, JobStore
 from service.jobs.worker import poses_from_predict_body
@@ -61,6 +62,7 @@ async def submit(
     mc_samples: Annotated[int, Form(ge=1, le=1000)] = 100,
     variance_threshold: Annotated[Optional[float], Form(gt=0)] = None,
     model: Annotated[str, Form()] = "default",
+    slice_order: Annotated[Optional[list[str]], Form(description=SLICE_ORDER_HELP)] = None,
 ) -> dict:
     """Validates the files now (4xx at once), then queues the job; poll ``Location``.
 
@@ -71,17 +73,20 @@ async def submit(
     if (full := queue_full(request.app.state)) is not None:
         raise full
     masks = check_form(stacks, masks, variance_threshold, settings.max_files)
+    orders = parse_orders(slice_order, len(stacks))
     form = await request.form()
     raw = form.get("poses")
     poses_text = (await raw.read()).decode("utf-8", "replace") if hasattr(raw, "read") else raw
     store = _store(request)
     job = store.create({"resolution_mm": resolution_mm, "svr_iterations": svr_iterations, "mc_samples": mc_samples,
-                        "variance_threshold": variance_threshold, "model": model})
+                        "variance_threshold": variance_threshold, "model": model,
+                        "slice_order": slice_order or []})
     inputs = store.directory(job.id) / "inputs"
     inputs.mkdir()
     try:
         uploads = await to_thread.run_sync(save_and_read, stacks, masks, inputs, settings.max_decoded_bytes,
                                                settings.max_request_decoded_bytes)
+        stack_orders(orders, uploads)
         if poses_text:
             try:
                 body = json.loads(poses_text)

@@ -48,7 +48,8 @@ class StackConsistency(BaseModel):
     inlier_fraction: float = Field(description="share of the usable slices the rigid fit explains")
     twinned_slices: int = Field(description="slices moved to the twin of the network's branch")
     inconsistent_slices: int = Field(description="slices whose network pose disagreed with the stack model")
-    acquisition_order: Optional[str] = Field(None, description="order the motion model chose: sequential or interleaved")
+    acquisition_order: Optional[str] = Field(None, description="acquisition order the motion model chose among those the request allowed (slice_order): "
+                                                     "sequential, interleaved-even-first, interleaved-odd-first, or given")
     motion_bandwidth_slices: Optional[float] = Field(
         None, description="length (in acquisitions) of the motion model; null: one rigid fit sufficed")
     network_error_mm: Optional[float] = Field(None, description="estimated E.D. of one network pose")

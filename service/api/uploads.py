@@ -15,6 +15,7 @@ from pathlib import Path
 
 from fastapi import Request, UploadFile, params
 
+from service.consistency.slice_order import SliceOrder, per_stack
 from service.core.errors import InvalidParameter
 from service.core.names import clean_name
 from service.inference.pipeline import StackUpload
@@ -72,6 +73,27 @@ def check_form(stacks: list[UploadFile], masks: list[UploadFile] | None, varianc
     if len(stacks) > max_files:
         raise InvalidParameter(f"stacks: {len(stacks)} files; at most {max_files} per request")
     return [m for m in (masks or []) if m.filename or m.size]
+
+
+SLICE_ORDER_HELP = ("the stacks' acquisition order, if known: none (the motion model chooses), one value for every "
+                    "stack, or one per stack; each auto, interleaved (either phase), sequential, "
+                    "interleaved-even-first, interleaved-odd-first, or the slice indices (0-based, along "
+                    "slice_axis) in the order they were acquired, comma-separated")
+
+
+def parse_orders(values: list[str] | None, n_stacks: int) -> list[SliceOrder]:
+    """One acquisition order per stack from the ``slice_order`` field (:class:`InvalidParameter` naming
+    the value that says nothing known, or a count that is neither 0, 1 nor one per stack)."""
+    orders = []
+    for i, text in enumerate(values or []):
+        try:
+            orders.append(SliceOrder.parse(text))
+        except ValueError as e:
+            raise InvalidParameter(f"slice_order[{i}]: {e}") from None
+    try:
+        return per_stack(orders, n_stacks)
+    except ValueError as e:
+        raise InvalidParameter(f"slice_order: {e}") from None
 
 
 def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: Path,

@@ -52,6 +52,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from service.consistency.motion_model import NO_VOTE, Grid, MotionFit, fit_motion, refit
+from service.consistency.slice_order import acquisition_orders
 from service.geometry import se3, twin
 from service.geometry.anchors import ed
 from service.geometry.pose import make_pose
@@ -133,17 +134,9 @@ class StackFit:
         return bool(self.decidable and self.branch_margin >= MIN_STACK_BRANCH_MARGIN)
 
 
-def acquisition_orders(n: int) -> dict[str, NDArray[np.int64]]:
-    """Candidate acquisition times ``t[k]`` of slice ``k``: sequential, and interleaved by 2."""
-    k = np.arange(n)
-    half = (n + 1) // 2
-    even_first = np.where(k % 2 == 0, k // 2, half + k // 2)
-    odd_first = np.where(k % 2 == 1, k // 2, n // 2 + k // 2)
-    return {"sequential": k, "interleaved-even-first": even_first, "interleaved-odd-first": odd_first}
-
-
 def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLike | None = None,
-              plane_x_mm: float = twin.DEFAULT_PLANE_X_MM, noise_mm: ArrayLike | None = None) -> StackFit:
+              plane_x_mm: float = twin.DEFAULT_PLANE_X_MM, noise_mm: ArrayLike | None = None,
+              times: dict[str, NDArray] | None = None) -> StackFit:
     """Make one stack's slice poses consistent (see the module docstring).
 
     Args:
@@ -157,6 +150,9 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
             alone; this tells them apart. Without it the error is estimated from acquisition
             neighbours (an upper bound: right for smooth motion, too trusting of the model for
             jittery motion).
+        times: candidate acquisition times ``{order: [n]}`` of the slices (default: every named
+            order, :func:`~service.consistency.slice_order.acquisition_orders`; see
+            :class:`~service.consistency.slice_order.SliceOrder` for an order the user gave).
     """
     p = np.asarray(poses, dtype=np.float64)
     nk = np.asarray(network_from_scanner, dtype=np.float64)
@@ -199,7 +195,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     #    motion; near the mid-sagittal plane that can exceed half the distance to the twin); then
     #    the stack's branch as a whole by the rigid model (only the order along the normal tells a
     #    stack from its twin, and a flexible motion model can bend to either order)
-    orders = acquisition_orders(n)
+    orders = acquisition_orders(n) if times is None else times
     centre = inv_n[:, :3, 3].mean(axis=0)                                   # the slices' centre, scanner mm
     on = np.arange(n)
     own, chosen = cand[on, branch], proposals[on, branch]                   # each slice on its branch

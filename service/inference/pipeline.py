@@ -22,7 +22,8 @@ from itertools import pairwise
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from service.core.errors import UnusableImage
+from service.core.errors import InvalidParameter, UnusableImage
+from service.consistency.slice_order import SliceOrder, per_stack
 from service.consistency.stage import StackPoses, consistent_poses, network_from_voxel, pool_request
 from service.geometry import anchors
 from service.geometry.twin import DEFAULT_PLANE_X_MM
@@ -104,13 +105,15 @@ def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction:
 
 
 def stack_poses(est: PoseEstimate, sl: slice, prepared: PreparedStack, net_from_vox: np.ndarray,
-                stack_consistency: bool, plane_x_mm: float, expected_mm: np.ndarray) -> StackPoses:
+                stack_consistency: bool, plane_x_mm: float, expected_mm: np.ndarray,
+                order: SliceOrder = SliceOrder()) -> StackPoses:
     """One stack's poses through the stack-consistency stage (or as the network gave them);
-    ``expected_mm`` is each slice's expected error: its MC spread times the model's ``mc_error_scale``."""
+    ``expected_mm`` is each slice's expected error: its MC spread times the model's ``mc_error_scale``;
+    ``order`` what is known of the stack's acquisition order."""
     p = prepared.prepared
     usable = (p.mask_fraction >= acceptance.MIN_MASK_FRACTION) & ~est.degenerate[sl]
     return consistent_poses(est.mean[sl], est.twin_mass[sl], net_from_vox, prepared.upload.volume.affine, usable,
-                            plane_x_mm, expected_mm[sl], stack_consistency)
+                            plane_x_mm, expected_mm[sl], stack_consistency, order.times(len(p.inputs)))
 
 
 def slice_results(est: PoseEstimate, sl: slice, prepared: PreparedStack, net_from_vox: np.ndarray, out: StackPoses,
@@ -148,11 +151,29 @@ def _finite(values: np.ndarray | None, i: int) -> float | None:
     return float(values[i]) if values is not None and np.isfinite(values[i]) else None
 
 
+def stack_orders(orders: list[SliceOrder] | None, uploads: list[StackUpload]) -> list[SliceOrder]:
+    """One acquisition order per stack (:func:`~service.consistency.slice_order.per_stack`), each
+    fitting its stack's slice count; :class:`InvalidParameter` naming the field and the file otherwise."""
+    try:
+        every = per_stack(orders, len(uploads))
+    except ValueError as e:
+        raise InvalidParameter(f"slice_order: {e}") from None
+    for i, (order, up) in enumerate(zip(every, uploads)):
+        try:
+            order.times(up.volume.array.shape[slice_axis_of(up.volume.spacing)])
+        except ValueError as e:
+            raise InvalidParameter(f"slice_order[{i}] ({up.filename}): {e}") from None
+    return every
+
+
 def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples: int,
-            threshold: float, stack_consistency: bool = True) -> tuple[list[dict], dict[str, float]]:
+            threshold: float, stack_consistency: bool = True,
+            orders: list[SliceOrder] | None = None) -> tuple[list[dict], dict[str, float]]:
     """Run all slices of all stacks through ``estimator`` at once, then each stack through the
     stack-consistency stage and the stacks' positions pooled where they agree
-    (:func:`~service.consistency.stage.pool_request`); returns stack results and timings."""
+    (:func:`~service.consistency.stage.pool_request`); returns stack results and timings.
+    ``orders``: what the request says of the stacks' acquisition orders (:func:`stack_orders`)."""
+    orders = stack_orders(orders, [p.upload for p in prepared])
     inputs = np.concatenate([s.prepared.inputs for s in prepared])
     t = time.perf_counter()
     est = estimator.estimate(inputs, mc_samples)
@@ -164,8 +185,8 @@ def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples:
     bounds = np.cumsum([0] + [len(s.prepared.inputs) for s in prepared])
     spans = [slice(int(a), int(b)) for a, b in pairwise(bounds)]
     frames = [s.network_from_voxel() for s in prepared]
-    outs = [stack_poses(est, sl, s, nfv, stack_consistency, plane_x_mm, expected)
-            for sl, s, nfv in zip(spans, prepared, frames)]
+    outs = [stack_poses(est, sl, s, nfv, stack_consistency, plane_x_mm, expected, order)
+            for sl, s, nfv, order in zip(spans, prepared, frames, orders)]
     reports = pool_request(outs) if stack_consistency else [None] * len(outs)
     stacks = []
     for index, (s, sl, nfv, out, report) in enumerate(zip(prepared, spans, frames, outs, reports)):

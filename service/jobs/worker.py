@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from service.consistency.slice_order import SliceOrder, per_stack
 from service.core.errors import ServiceError
 from service.jobs.store import JobStore
 
@@ -98,15 +99,16 @@ def starting_inclusion(poses: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple
 
 
 def predicted_body(uploads: list, estimator, mc_samples: int = 100,  # noqa: ANN001
-                   variance_threshold: float | None = None) -> tuple[dict, list[np.ndarray]]:
+                   variance_threshold: float | None = None, orders: list | None = None) -> tuple[dict, list[np.ndarray]]:
     """The ``/v1/predict``-shaped body (``model``, ``mc_samples``, ``variance_threshold``, ``stacks``) of
-    the service's own prediction, and the brain masks per stack."""
+    the service's own prediction, and the brain masks per stack; ``orders``: the stacks'
+    acquisition orders (:class:`~service.consistency.slice_order.SliceOrder`), if known."""
     from service.inference.pipeline import predict, prepare_stacks
 
     info = estimator.info
     threshold = variance_threshold or info.variance_threshold
     prepared = prepare_stacks(uploads, info, bias_correction=True, workers=1)
-    results, _ = predict(prepared, estimator, mc_samples, threshold)
+    results, _ = predict(prepared, estimator, mc_samples, threshold, orders=orders)
     masks = [np.moveaxis(p.slices.masks.transpose(0, 2, 1), 0, p.slices.slice_axis) for p in prepared]
     model = {"name": info.name, "version": info.version, "backbone": info.backbone,
              "sha256": info.sha256}
@@ -189,6 +191,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     from service.reconstruction.slices import SliceSet
 
     params = json.loads((folder / "inputs" / "params.json").read_text())
+    orders = per_stack([SliceOrder.parse(t) for t in params.get("slice_order") or []], len(_stack_files(folder / "inputs")))
     progress("reading", 0.02)
     uploads = []
     names_path = folder / "inputs" / "names.json"
@@ -216,7 +219,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         progress("predicting poses", 0.05)
         estimator = OnnxPoseEstimator(load_model(models_dir / params.get("model", "default") / "model.onnx", threads=1))
         body, masks = predicted_body(uploads, estimator, int(params.get("mc_samples", 100)),
-                                     params.get("variance_threshold"))
+                                     params.get("variance_threshold"), orders)
         poses = starting_inclusion(poses_from_predict_body(body, [len(r["slices"]) for r in body["stacks"]]))
         plane = estimator.info.symmetry_plane_x_mm
     progress("reconstructing", 0.15)
@@ -224,7 +227,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     result = reconstruct(slice_set, resolution_mm=float(params.get("resolution_mm", 0.8)),
                          svr_iterations=int(params.get("svr_iterations", 3)),
                          progress=lambda stage, f: progress(stage, 0.15 + 0.8 * f),
-                         config=ReconstructionConfig(symmetry_plane_x_mm=plane))
+                         config=ReconstructionConfig(symmetry_plane_x_mm=plane, slice_orders=tuple(orders)))
     progress("writing", 0.97)
     report = write_outputs(result, slice_set, folder / "outputs")
     frames = [split_stack(u.volume, np.ones(u.volume.array.shape, bool)).slice_from_voxel for u in uploads]

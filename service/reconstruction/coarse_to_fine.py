@@ -32,12 +32,13 @@ Example:
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
+from service.consistency.slice_order import SliceOrder
 from service.reconstruction.gaussian_average import gaussian_average
 from service.reconstruction.grid import bounds_of, make_grid
 from service.reconstruction.registration import _Objective
@@ -111,7 +112,8 @@ def candidate_ncc(slices: SliceSet, candidates: NDArray, stack_poses: NDArray, r
 
 def coarse_align(slices: SliceSet, poses: NDArray | None = None, *, plane_x_mm: float | None = None,
                  levels_mm: tuple[float, ...] = DEFAULT_LEVELS_MM, sweeps: int = 2,
-                 stage: Callable[[str], None] | None = None, follow_motion: bool = True) -> CoarseAlignment:
+                 stage: Callable[[str], None] | None = None, follow_motion: bool = True,
+                 orders: Sequence[SliceOrder] | None = None) -> CoarseAlignment:
     """Stack rigid fit, stack-to-stack registration and each slice's starting pose (module docstring).
 
     Args:
@@ -123,6 +125,7 @@ def coarse_align(slices: SliceSet, poses: NDArray | None = None, *, plane_x_mm: 
         stage: ``stage(name)`` called at the start of each step (progress and cancellation).
         follow_motion: register each stack as a body of its slices at the stage's motion model
             (False: as its file's grid).
+        orders: per stack, what is known of its acquisition order (default: the stage chooses).
 
     Returns:
         The :class:`CoarseAlignment`.
@@ -133,7 +136,7 @@ def coarse_align(slices: SliceSet, poses: NDArray | None = None, *, plane_x_mm: 
 
     start_poses = np.array(slices.atlas_from_voxel if poses is None else poses, dtype=np.float64)
     step("stack consistency")
-    fit = fit_stack_rigid(slices, start_poses, plane_x_mm=plane_x_mm)
+    fit = fit_stack_rigid(slices, start_poses, plane_x_mm=plane_x_mm, orders=orders)
     branch = fit.branch_poses(slices, start_poses, 0.0 if plane_x_mm is None else plane_x_mm)
     step("stack registration")
     weight = fit.inlier[slices.slice_id].astype(np.float32)

@@ -49,6 +49,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from service.consistency.slice_order import SliceOrder
 from service.io.volume import Volume
 from service.reconstruction.coarse_to_fine import START_OWN, CoarseAlignment, coarse_align
 from service.reconstruction.forward import ForwardModel, inplane_sigma_mm
@@ -102,6 +103,8 @@ class ReconstructionConfig:
         stack_sweeps: stack registration sweeps per level.
         stack_follows_motion: register each stack as a rigid body of its slices where the stack
             stage's motion model puts them (False: as its file's grid, distorted by the motion).
+        slice_orders: per stack, what is known of its acquisition order
+            (:class:`~service.consistency.slice_order.SliceOrder`; ``None``: the stage chooses).
         capture_schedule: ``(trust radius mm, extra blur sigma mm)`` of the first registration rounds
             when the coarse step found the predictions coarse (see :func:`capture`)
             (wide capture range against a blurred volume); later rounds use
@@ -141,6 +144,7 @@ class ReconstructionConfig:
     stack_levels_mm: tuple[float, ...] = (4.0, 2.0, 1.0)
     stack_sweeps: int = 2
     stack_follows_motion: bool = True
+    slice_orders: tuple[SliceOrder, ...] | None = None
     capture_schedule: tuple[tuple[float, float], ...] = ((4.0, 2.0), (2.0, 1.0))
     psf_points: int = 5
     sr_iterations: int = 8
@@ -317,7 +321,8 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
     if coarse_on:
         t0 = time.perf_counter()
         coarse = coarse_align(slice_set, poses, plane_x_mm=cfg.symmetry_plane_x_mm, levels_mm=cfg.stack_levels_mm,
-                              sweeps=cfg.stack_sweeps, stage=stage, follow_motion=cfg.stack_follows_motion)
+                              sweeps=cfg.stack_sweeps, stage=stage, follow_motion=cfg.stack_follows_motion,
+                              orders=cfg.slice_orders)
         poses = coarse.poses.copy()
         timings["coarse"] = time.perf_counter() - t0
     bounds = bounds_of(unbinned.positions(poses), cfg.margin_mm) if bounds_mm is None else bounds_mm

@@ -26,11 +26,13 @@ Example:
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from service.consistency.slice_order import SliceOrder
 from service.consistency.stack_fit import fit_stack
 from service.geometry import se3
 from service.geometry.pose import make_pose
@@ -113,7 +115,8 @@ def frame_from_scanner(slices: SliceSet) -> NDArray[np.float64]:
 
 
 def fit_stack_rigid(slices: SliceSet, atlas_from_voxel: ArrayLike | None = None, *,
-                    plane_x_mm: float | None = None, use: ArrayLike | None = None) -> StackFit:
+                    plane_x_mm: float | None = None, use: ArrayLike | None = None,
+                    orders: Sequence[SliceOrder] | None = None) -> StackFit:
     """Per-stack ``atlas_from_scanner`` from per-slice poses by the stack-consistency stage (module docstring).
 
     Args:
@@ -122,6 +125,7 @@ def fit_stack_rigid(slices: SliceSet, atlas_from_voxel: ArrayLike | None = None,
         plane_x_mm: the atlas mid-sagittal plane; ``None``: the poses have no twin (the stage still
             runs with the default plane, but no slice is flipped).
         use: ``[n]`` bool, the slices to fit from (default: the included ones).
+        orders: per stack, what is known of its acquisition order (default: the stage chooses).
 
     Returns:
         The :class:`StackFit`.
@@ -142,8 +146,9 @@ def fit_stack_rigid(slices: SliceSet, atlas_from_voxel: ArrayLike | None = None,
         if not use[idx].any():
             motion[idx] = slices.stack_affine[idx]
             continue
+        order = orders[s] if orders is not None else SliceOrder()
         fit = fit_stack(frame_poses[idx], n_k[idx], use[idx],
-                        DEFAULT_PLANE_X_MM if plane_x_mm is None else plane_x_mm)
+                        DEFAULT_PLANE_X_MM if plane_x_mm is None else plane_x_mm, times=order.times(len(idx)))
         if fit.decidable and fit.atlas_from_scanner is not None:
             out[s] = fit.atlas_from_scanner
             twin[idx] = fit.twinned & (plane_x_mm is not None)

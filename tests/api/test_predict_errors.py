@@ -95,6 +95,20 @@ def test_parameters_and_models(oracle_client: TestClient, tmp_path: Path) -> Non
     assert_problem(post(oracle_client, []), 400, "stacks")
 
 
+def test_a_slice_order_that_says_nothing_known_or_does_not_fit_is_400(oracle, oracle_client: TestClient,  # noqa: ANN001
+                                                                     tmp_path: Path) -> None:
+    s = nifti_bytes(stack(), tmp=tmp_path)                   # 6 slices
+    one = [("stacks", ("s.nii.gz", s))]
+    assert_problem(post(oracle_client, one, {"slice_order": "zigzag"}), 400, "slice_order[0]", "interleaved")
+    assert_problem(post(oracle_client, one, {"slice_order": ["sequential", "auto"]}), 400,
+                   "slice_order", "2 values for 1 stacks")
+    oracle.truth = np.repeat(np.eye(4)[None], 6, axis=0)
+    r = post(oracle_client, one, {"slice_order": "0,2,4,1,3"})
+    assert_problem(r, 400, "slice_order[0]", "s.nii.gz", "5 indices given for a stack of 6 slices")
+    r = post(oracle_client, one, {"slice_order": "0,2,4,1,3,5", "bias_correction": "false"})
+    assert r.status_code == 200, r.text
+
+
 def test_too_many_files_and_too_large(oracle: object, tmp_path: Path) -> None:
     s = nifti_bytes(stack(), tmp=tmp_path)
     with make_client(ModelRegistry({"default": oracle}), max_files=2) as client:

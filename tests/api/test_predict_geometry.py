@@ -147,3 +147,28 @@ def test_two_stacks_of_one_position_are_pooled_and_stay_exact(oracle, oracle_cli
             if s["reason"] != "empty":
                 np.testing.assert_allclose(np.array(s["atlas_from_voxel"]), np.array(s["network_atlas_from_voxel"]),
                                            atol=0.05)
+
+
+def test_a_given_acquisition_order_is_used_and_keeps_the_poses_exact(oracle, oracle_client, tmp_path: Path) -> None:
+    """``slice_order``: the stage fits its motion over the order the request gives (the report says
+    ``given``), a named family restricts its choice, and the poses stay exact with an exact oracle."""
+    shape, axis = (44, 44, 18), 2
+    aff = stack_affine(axis, OBLIQUE, 1.5, 3.5, shape)
+    g = motion(shape[axis], seed=4)
+    img, msk = acquire_stack(*BRAIN, aff, shape, axis, g)
+    write(tmp_path / "stack.nii.gz", img, aff, "simpleitk")
+    write(tmp_path / "mask.nii.gz", msk.astype(np.uint8), aff, "simpleitk")
+    oracle.truth = true_network_poses(aff, msk, axis, g)
+    files = [("stacks", ("stack.nii.gz", (tmp_path / "stack.nii.gz").read_bytes())),
+             ("masks", ("mask.nii.gz", (tmp_path / "mask.nii.gz").read_bytes()))]
+    given = ",".join(str(k) for k in [*range(0, 18, 2), *range(1, 18, 2)])
+    for order, said in ((given, {"given"}), ("interleaved", {"interleaved-even-first", "interleaved-odd-first"}),
+                        ("sequential", {"sequential"})):
+        r = oracle_client.post("/v1/predict", files=files,
+                               data={"bias_correction": "false", "mc_samples": "5", "slice_order": order})
+        assert r.status_code == 200, r.text
+        stack = r.json()["stacks"][0]
+        assert stack["consistency"]["acquisition_order"] in said, (order, stack["consistency"])
+        for s in stack["slices"]:
+            if s["reason"] != "empty":
+                np.testing.assert_allclose(s["atlas_from_voxel"], s["network_atlas_from_voxel"], atol=0.05)

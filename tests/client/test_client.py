@@ -146,6 +146,15 @@ def test_predict_against_the_app_returns_the_contract(app_client: TestClient, st
     assert seen[-1][0] == seen[-1][1] > stack_file.stat().st_size
 
 
+def test_a_slice_order_reaches_the_stage_and_a_wrong_one_is_named(app_client: TestClient, stack_file: Path) -> None:
+    svr = SVRnetClient(http=app_client)
+    result = svr.predict([stack_file], slice_order="5,4,3,2,1,0", mc_samples=2, bias_correction=False)
+    assert len(result["stacks"][0]["slices"]) == 6
+    with pytest.raises(BadRequest) as e400:
+        svr.predict([stack_file], slice_order="0,1,2", bias_correction=False)
+    assert e400.value.status == 400 and "slice_order[0]" in e400.value.detail
+
+
 def test_predict_without_options_uses_server_defaults(app_client: TestClient, stack_file: Path) -> None:
     result = SVRnetClient(http=app_client).predict([stack_file])
     assert result["mc_samples"] == 100 and len(result["stacks"][0]["slices"]) == 6
@@ -548,6 +557,15 @@ def test_cli_predict_writes_json_and_prints_a_summary(fake_cli: Callable, stack_
     assert "median variance" in r.stdout and "abc" in r.stdout
     fields, files = parse_multipart(fake.requests[0])
     assert fields == {"mc_samples": ["5"], "bias_correction": ["false"]} and files[0][1] == "stack.nii.gz"
+
+
+def test_cli_sends_each_slice_order_as_one_field(fake_cli: Callable, stack_file: Path) -> None:
+    fake, _ = fake_cli()
+    r = invoke(["predict", str(stack_file), str(stack_file), "--slice-order", "interleaved",
+                "--slice-order", "0,2,4,1,3,5"])
+    assert r.exit_code == 0, r.output
+    fields, _ = parse_multipart(fake.requests[0])
+    assert fields == {"slice_order": ["interleaved", "0,2,4,1,3,5"]}
 
 
 def test_cli_server_and_key_from_the_environment(fake_cli: Callable) -> None:

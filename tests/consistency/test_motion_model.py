@@ -6,7 +6,7 @@ import numpy as np
 
 from model_export.acquisitions import interleaved_times, smooth_motion
 from service.consistency.motion_model import NO_VOTE, Grid, fit_motion, from_coordinates, refit, to_coordinates
-from service.consistency.stack_fit import acquisition_orders
+from service.consistency.slice_order import acquisition_orders
 from service.geometry import se3
 from service.geometry.anchors import ed
 

@@ -103,7 +103,7 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
 
 @both
 def test_stages_are_reported_in_order(client: TestClient, case: dict) -> None:
-    job_id = submit(client, case).json()["job_id"]
+    job_id = submit(client, case, slice_order="sequential").json()["job_id"]   # the order reaches the job's stage
     stages = []
     t0 = time.time()
     while time.time() - t0 < 180:
@@ -146,6 +146,11 @@ def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict) ->
                 "[" * 100_000 + "]" * 100_000, "{not json"):
         r = submit(client, case, poses=bad)
         assert r.status_code == 400 and "poses" in r.json()["detail"], r.text
+    n_slices = len(case["poses"]["stacks"][1]["slices"])
+    for order, needles in (("zigzag", ["slice_order[0]"]), (["auto", "auto"], ["2 values for 3 stacks"]),
+                           (["auto", "0,1", "auto"], ["slice_order[1]", case["files"][1][0].name, f"stack of {n_slices} slices"])):
+        r = submit(client, case, slice_order=order)
+        assert r.status_code == 400 and all(n in r.json()["detail"] for n in needles), r.text
     assert not client.app.state.job_store.queued()                   # nothing left behind
 
 
@@ -197,7 +202,8 @@ def test_job_without_poses_predicts_them_with_the_model(case: dict, tiny_model_p
         files = [("stacks", (s.name, s.read_bytes())) for s, _ in case["files"]]
         files += [("masks", (m.name, m.read_bytes())) for _, m in case["files"]]
         r = client.post("/v1/reconstructions", files=files,
-                        data={"resolution_mm": "3.0", "svr_iterations": "0", "mc_samples": "5", "model": "tiny"})
+                        data={"resolution_mm": "3.0", "svr_iterations": "0", "mc_samples": "5", "model": "tiny",
+                              "slice_order": "interleaved"})
         assert r.status_code == 202, r.text
         st = wait(client, r.json()["job_id"])
     if worker is not None:

@@ -34,7 +34,7 @@ def test_pipeline_with_a_twin_confused_estimator_per_motion_level() -> None:
     vol = type("V", (), {"image": img, "mask": mask, "affine": aff})
     est = NoisyTwinEstimator(INFO, np.random.default_rng(1))
     out = evaluate_acquisitions([vol], est, np.random.default_rng(2), per_volume=2, mc_samples=20,
-                                bias_correction=False, size=64, pixel_mm=1.6)
+                                bias_correction=False, told=("interleaved",), size=64, pixel_mm=1.6)
     for level in ("mild", "moderate"):
         s = out[level]
         # >= 99 % is the target on the validation volumes (model_export/reports/acquisitions.md); this
@@ -44,6 +44,8 @@ def test_pipeline_with_a_twin_confused_estimator_per_motion_level() -> None:
         assert s["ed"]["mean"] < s["ed_network_min"]["mean"], (level, s)       # the stack fit beats the slices
         assert s["decidable_stacks"] == 1.0
         assert 0.5 < s["ed_rms"] / s["expected_error_mm_rms"] < 2.0, (level, s)   # the expected error is honest
+        told = out[f"{level}, told interleaved"]                 # the same network poses, the stage told the order
+        assert told["ed_network"] == s["ed_network"] and told["right_branch"] >= 0.97, (level, told)
     ex = out["extreme"]
     assert ex["decidable_stacks"] == 0.0
     assert ex["ed_min"]["mean"] == ex["ed_network_min"]["mean"]                  # no slice made worse
