@@ -40,6 +40,8 @@ FAMILIES: dict[str, tuple[str, ...]] = {"auto": NAMED_ORDERS, "interleaved": NAM
 """What each word of the ``slice_order`` field lets the motion model choose among."""
 GIVEN = "given"
 """The name of an order given as a list of slice indices."""
+FROM_FILE = "acquisition-times"
+"""The name of an order read from the file (a DICOM series' per-slice acquisition times)."""
 MAX_TEXT = 20_000
 """Longest ``slice_order`` text accepted (a list of indices of a very long stack fits easily)."""
 
@@ -65,10 +67,17 @@ class SliceOrder:
     Attributes:
         names: the named orders the motion model chooses among (:data:`FAMILIES`).
         sequence: the slice indices in the order they were acquired, when given (then ``names`` is empty).
+        source: what the stage reports as the order of a ``sequence`` (:data:`GIVEN`, :data:`FROM_FILE`).
     """
 
     names: tuple[str, ...] = NAMED_ORDERS
     sequence: tuple[int, ...] | None = None
+    source: str = GIVEN
+
+    @property
+    def known(self) -> bool:
+        """Whether the request said anything (the default lets the file's times, else the stage, choose)."""
+        return self != SliceOrder()
 
     @classmethod
     def parse(cls, text: str) -> SliceOrder:
@@ -101,7 +110,7 @@ class SliceOrder:
             raise ValueError(f"{len(seq)} indices given for a stack of {n} slices; give each index 0..{n - 1} once")
         t = np.empty(n, dtype=np.int64)
         t[seq] = np.arange(n)
-        return {GIVEN: t}
+        return {self.source: t}
 
 
 def per_stack(orders: list[SliceOrder] | None, n_stacks: int) -> list[SliceOrder]:

@@ -23,7 +23,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from service.core.errors import InvalidParameter, UnusableImage
-from service.consistency.slice_order import SliceOrder, per_stack
+from service.consistency.slice_order import FROM_FILE, SliceOrder, per_stack
 from service.consistency.stage import StackPoses, consistent_poses, network_from_voxel, pool_request
 from service.geometry import anchors
 from service.geometry.twin import DEFAULT_PLANE_X_MM
@@ -153,17 +153,26 @@ def _finite(values: np.ndarray | None, i: int) -> float | None:
 
 def stack_orders(orders: list[SliceOrder] | None, uploads: list[StackUpload]) -> list[SliceOrder]:
     """One acquisition order per stack (:func:`~service.consistency.slice_order.per_stack`), each
-    fitting its stack's slice count; :class:`InvalidParameter` naming the field and the file otherwise."""
+    fitting its stack's slice count (:class:`InvalidParameter` naming the field and the file
+    otherwise). Where the request says nothing, the order the file holds (a DICOM series' acquisition
+    times, along the slice axis), else the stage chooses."""
     try:
         every = per_stack(orders, len(uploads))
     except ValueError as e:
         raise InvalidParameter(f"slice_order: {e}") from None
+    out = []
     for i, (order, up) in enumerate(zip(every, uploads)):
+        vol = up.volume
+        axis = slice_axis_of(vol.spacing)
+        if not order.known and vol.acquisition_order is not None and axis == 2 \
+                and len(vol.acquisition_order) == vol.array.shape[2]:
+            order = SliceOrder((), vol.acquisition_order, FROM_FILE)
         try:
-            order.times(up.volume.array.shape[slice_axis_of(up.volume.spacing)])
+            order.times(vol.array.shape[axis])
         except ValueError as e:
             raise InvalidParameter(f"slice_order[{i}] ({up.filename}): {e}") from None
-    return every
+        out.append(order)
+    return out
 
 
 def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples: int,

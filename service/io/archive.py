@@ -17,6 +17,7 @@ from __future__ import annotations
 import tempfile
 import zipfile
 import zlib
+from dataclasses import replace
 from pathlib import Path
 
 import SimpleITK as sitk
@@ -24,6 +25,7 @@ from pydicom import uid
 
 from service.core.errors import PayloadTooLarge, UnsupportedFile, UnusableImage
 from service.core.names import clean_name
+from service.io.acquisition_times import order_of, seconds
 from service.io.dicom import read_dicom_file
 from service.io.dicom_guard import load_dataset
 from service.io.limits import FileBudget
@@ -37,6 +39,7 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget) -> Volume:
     """The one DICOM series inside the ZIP archive ``path`` (the client's ``filename``)."""
     with tempfile.TemporaryDirectory(prefix="svrnet-zip-") as tmp:
         labels: dict[str, str] = {}           # unpacked file -> "archive.zip: member" (for messages)
+        times: dict[str, float | None] = {}   # unpacked file -> its acquisition time (for the order only)
         try:
             with zipfile.ZipFile(path) as z:
                 members = [m for m in z.infolist() if not m.is_dir()]
@@ -47,7 +50,7 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget) -> Volume:
                 for i, m in enumerate(members):
                     label = f"{filename}: {clean_name(m.filename) or f'member {i}'}"
                     out = Path(tmp) / f"{i:05d}.dcm"
-                    if _unpack(z, m, out, budget.member(label), label):
+                    if _unpack(z, m, out, budget.member(label), label, times):
                         labels[str(out)] = label
         except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as exc:
             raise UnsupportedFile(f"{filename}: corrupt or truncated ZIP archive") from exc
@@ -64,11 +67,13 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget) -> Volume:
         if len(files) == 1:
             return read_dicom_file(Path(files[0]), labels.get(files[0], filename), budget)
         reader.SetFileNames(files)
-        return from_sitk(reader.Execute())
+        return replace(from_sitk(reader.Execute()), acquisition_order=order_of([times.get(f) for f in files]))
 
 
-def _unpack(z: zipfile.ZipFile, member: zipfile.ZipInfo, out: Path, budget: FileBudget, label: str) -> bool:
-    """Inflate ``member`` to ``out`` (charged to ``budget``) and screen it; False: not a DICOM image."""
+def _unpack(z: zipfile.ZipFile, member: zipfile.ZipInfo, out: Path, budget: FileBudget, label: str,
+            times: dict[str, float | None]) -> bool:
+    """Inflate ``member`` to ``out`` (charged to ``budget``) and screen it; False: not a DICOM image.
+    Its acquisition time goes to ``times`` (:mod:`service.io.acquisition_times`)."""
     with z.open(member) as src, open(out, "wb") as dst:
         while chunk := src.read(1 << 20):
             budget.inflate(len(chunk))
@@ -90,6 +95,7 @@ def _unpack(z: zipfile.ZipFile, member: zipfile.ZipInfo, out: Path, budget: File
     if "PixelData" not in ds:
         out.unlink()
         return False
+    times[str(out)] = seconds(ds)
     if ds.file_meta.TransferSyntaxUID == uid.ExplicitVRLittleEndian and _was_deflated(out):
         ds.save_as(out, implicit_vr=False, little_endian=True, enforce_file_format=True)
     return True

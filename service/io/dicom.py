@@ -1,7 +1,8 @@
 """Single DICOM files with pydicom: classic single-frame, Enhanced multi-frame and Siemens mosaic.
 
-Only pixel data and geometry are taken; no identifying attribute is read into the result or
-logged (de-identification on read). Geometry (LPS, converted to RAS in
+Only pixel data and geometry are taken, and of the frames' acquisition times only their order
+(:mod:`service.io.acquisition_times`); no identifying attribute is read into the result or logged
+(de-identification on read). Geometry (LPS, converted to RAS in
 :mod:`service.geometry.frames`):
 
 * Enhanced multi-frame: per-frame ``PlanePositionSequence`` positions, shared or per-frame
@@ -21,6 +22,7 @@ from pydicom.errors import InvalidDicomError
 
 from service.core.errors import UnsupportedFile, UnusableImage
 from service.geometry import frames
+from service.io.acquisition_times import order_of, seconds
 from service.io.dicom_guard import load_dataset
 from service.io.limits import FileBudget
 from service.io.volume import Volume
@@ -87,6 +89,7 @@ def _multiframe(ds, pixels: np.ndarray) -> Volume:  # noqa: ANN001
     src = measures if measures is not None and "PixelSpacing" in measures else ds
     ps = [float(x) for x in getattr(src, "PixelSpacing", [1.0, 1.0])]
     normal = np.cross(row_dir, col_dir)
+    frame_times = [seconds(ds, group("FrameContentSequence", f)) for f in range(len(pixels))]
     positions = []
     for f in range(len(pixels)):
         pos = group("PlanePositionSequence", f)
@@ -97,13 +100,15 @@ def _multiframe(ds, pixels: np.ndarray) -> Volume:  # noqa: ANN001
         order = np.argsort([p @ normal for p in positions])
         pixels = pixels[order]
         positions = [positions[i] for i in order]
+        frame_times = [frame_times[i] for i in order]
         dz = float(np.median(np.diff([p @ normal for p in positions])))
         origin = positions[0]
     else:
         dz = float(getattr(ds, "SpacingBetweenSlices", None) or getattr(ds, "SliceThickness", None) or 1.0)
         origin = np.asarray(getattr(ds, "ImagePositionPatient", [0.0, 0.0, 0.0]), dtype=np.float64)
     lps = _lps_affine(row_dir, col_dir, normal, (ps[1], ps[0], abs(dz) or 1.0), origin)
-    return Volume(np.ascontiguousarray(pixels.transpose(2, 1, 0)), frames.ras_affine_from_lps(lps))
+    return Volume(np.ascontiguousarray(pixels.transpose(2, 1, 0)), frames.ras_affine_from_lps(lps),
+                  order_of(frame_times))
 
 
 def _mosaic(ds, pixels: np.ndarray) -> Volume:  # noqa: ANN001

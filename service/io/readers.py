@@ -19,6 +19,7 @@ Validation (each failure raises with the file's name, never a tag value):
 from __future__ import annotations
 
 import gzip
+from dataclasses import replace
 import tempfile
 import zlib
 from pathlib import Path
@@ -235,7 +236,7 @@ def validate(vol: Volume, filename: str) -> Volume:
         raise UnusableImage(f"{filename}: contains NaN or infinite values")
     if not np.isfinite(vol.affine).all() or abs(np.linalg.det(vol.affine[:3, :3])) < 1e-9:
         raise UnusableImage(f"{filename}: invalid geometry (singular voxel-to-world matrix)")
-    return Volume(a.astype(np.float32, copy=False), vol.affine)
+    return replace(vol, array=a.astype(np.float32, copy=False))
 
 
 __all__ = ["read_upload", "sniff", "validate"]

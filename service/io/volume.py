@@ -31,6 +31,9 @@ class Volume:
 
     array: NDArray
     affine: NDArray[np.float64]
+    acquisition_order: tuple[int, ...] | None = None
+    """The indices ``k`` in the order the scanner acquired the slices, where the file says (a DICOM
+    series' per-slice acquisition times; only their order is kept, never the times)."""
 
     @property
     def spacing(self) -> NDArray[np.float64]:

@@ -180,7 +180,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
              attempt: int) -> None:
     from service.inference.estimator import OnnxPoseEstimator
     from service.inference.model_file import load_model
-    from service.inference.pipeline import StackUpload
+    from service.inference.pipeline import StackUpload, stack_orders
     from service.io.limits import DecodeBudget
     from service.io.readers import read_upload
     from service.reconstruction.export import write_outputs
@@ -227,7 +227,8 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     result = reconstruct(slice_set, resolution_mm=float(params.get("resolution_mm", 0.8)),
                          svr_iterations=int(params.get("svr_iterations", 3)),
                          progress=lambda stage, f: progress(stage, 0.15 + 0.8 * f),
-                         config=ReconstructionConfig(symmetry_plane_x_mm=plane, slice_orders=tuple(orders)))
+                         config=ReconstructionConfig(symmetry_plane_x_mm=plane,
+                                                     slice_orders=tuple(stack_orders(orders, uploads))))
     progress("writing", 0.97)
     report = write_outputs(result, slice_set, folder / "outputs")
     frames = [split_stack(u.volume, np.ones(u.volume.array.shape, bool)).slice_from_voxel for u in uploads]

@@ -46,7 +46,7 @@ def test_unknown_content_is_415(tmp_path: Path) -> None:
         read_upload(p, "x.nii.gz")
 
 
-def _write_series(folder: Path, vol: Volume, series_uid: str) -> list[Path]:
+def _write_series(folder: Path, vol: Volume, series_uid: str, times: list[str] | None = None) -> list[Path]:
     image = sitk.Cast(sitk.GetImageFromArray(vol.array.transpose(2, 1, 0).astype(np.int16)), sitk.sitkInt16)
     origin, spacing, direction = frames.itk_from_affine(vol.affine)
     image.SetOrigin(tuple(origin))
@@ -63,6 +63,8 @@ def _write_series(folder: Path, vol: Volume, series_uid: str) -> list[Path]:
                            ("0020|0037", "\\".join(map(str, direction[:, 0].tolist() + direction[:, 1].tolist()))),
                            ("0018|0050", str(spacing[2])), ("0028|0030", f"{spacing[1]}\\{spacing[0]}")]:
             sl.SetMetaData(tag, value)
+        if times is not None:
+            sl.SetMetaData("0008|0032", times[k])                # AcquisitionTime
         p = folder / f"{series_uid[-3:]}_{k:03d}.dcm"
         writer.SetFileName(str(p))
         writer.Execute(sl)
@@ -83,6 +85,24 @@ def test_zipped_dicom_series_keeps_geometry(tmp_path: Path) -> None:
     vol = read_upload(z, "series.zip")
     np.testing.assert_allclose(vol.affine, aff, atol=1e-3)
     np.testing.assert_allclose(vol.array, arr, atol=0.5)
+
+
+@pytest.mark.parametrize(("times", "order"), [
+    (["101500.50", "101502.70", "101500.94", "101503.14", "101501.38", "101503.58"], (0, 2, 4, 1, 3, 5)),
+    (["101500"] * 6, None),                                   # the series' start on every slice: no order
+    (["235959.0", "", "000001.0", "000002", "000003", "000004"], None),   # a slice without a time
+])
+def test_a_zipped_series_keeps_the_order_of_its_acquisition_times(tmp_path: Path, times: list[str],
+                                                                   order: tuple | None) -> None:
+    arr = (np.random.default_rng(2).random((10, 10, 6)) * 1000).astype(np.float32).round()
+    files = _write_series(tmp_path, Volume(arr, np.diag([1.0, 1.0, 3.0, 1.0])), "1.2.3.444", times)
+    z = tmp_path / "series.zip"
+    with zipfile.ZipFile(z, "w") as f:
+        for p in reversed(files):                             # members out of order: sorted by position
+            f.write(p, p.name)
+    vol = read_upload(z, "series.zip")
+    np.testing.assert_allclose(vol.array, arr, atol=0.5)
+    assert vol.acquisition_order == order
 
 
 def test_zip_with_two_series_or_none(tmp_path: Path) -> None:
@@ -159,3 +179,36 @@ def test_dicom_with_broken_geometry_is_415(tmp_path: Path, damage: str) -> None:
     ds.save_as(path)
     with pytest.raises(UnsupportedFile, match="broken.dcm"):
         read_upload(path, "broken.dcm")
+
+
+def test_an_enhanced_multiframe_keeps_the_order_of_its_frame_times(tmp_path: Path) -> None:
+    """Frames stored out of spatial order, each with its position and acquisition time: the reader
+    sorts them along the normal and keeps the order in which those positions were acquired."""
+    pydicom = pytest.importorskip("pydicom")
+    src = DICOM_DIR / "pydicom_data_emri_small_enhancedMR_10frames.dcm"
+    if not src.exists():
+        pytest.skip(f"needs the shared DICOM examples at {DICOM_DIR}")
+    from pydicom.dataset import Dataset
+    from pydicom.sequence import Sequence
+
+    ds = pydicom.dcmread(src)
+    stored_depth = [3, 0, 7, 1, 9, 4, 2, 8, 5, 6]            # frame f lies at depth stored_depth[f]
+    acquired_at = [2, 7, 4, 9, 5, 0, 8, 1, 3, 6]              # frame f was acquired acquired_at[f]-th
+    frames_ = []
+    for f in range(10):
+        item = Dataset()
+        pos, content = Dataset(), Dataset()
+        pos.ImagePositionPatient = [0.0, 0.0, 4.0 * stored_depth[f]]
+        content.FrameAcquisitionDateTime = f"20261124101500.{acquired_at[f]:02d}"
+        item.PlanePositionSequence = Sequence([pos])
+        item.FrameContentSequence = Sequence([content])
+        frames_.append(item)
+    ds.PerFrameFunctionalGroupsSequence = Sequence(frames_)
+    ds.ImageOrientationPatient = [1, 0, 0, 0, 1, 0]
+    path = tmp_path / "enhanced.dcm"
+    ds.save_as(path)
+    vol = read_upload(path, "enhanced.dcm")
+    np.testing.assert_allclose(vol.spacing[2], 4.0)
+    depth_of_time = {acquired_at[f]: stored_depth[f] for f in range(10)}
+    assert vol.acquisition_order == tuple(depth_of_time[t] for t in range(10))
+    np.testing.assert_allclose(vol.array[:, :, 0], ds.pixel_array[1].T)      # depth 0 is frame 1
