@@ -103,7 +103,12 @@ def run_acquisition(stacks: list[SimulatedStack], estimator, mc_samples: int = 1
 
 def score(results: list[dict], prepared: list[PreparedStack], truth: list[NDArray], stacks: list[SimulatedStack],
           plane_x_mm: float, into: Scored) -> None:
-    """Add one acquisition's per-slice errors to ``into``."""
+    """Add one acquisition's per-slice errors to ``into``, with where each lies: its components
+    against the nearer of the truth and twin (tilt, twist, centre, along the normal), its depth in
+    the stack (0 centre, 1 the outermost slice with >= :data:`MIN_MASK_PIXELS`) and its place in the
+    acquisition (0 first, 1 last)."""
+    from model_export.evaluate import error_components
+
     for res, p, true, sim in zip(results, prepared, truth, stacks):
         inv = np.linalg.inv(p.network_from_voxel())
         final = np.array([s["atlas_from_voxel"] for s in res["slices"]]) @ inv
@@ -112,6 +117,12 @@ def score(results: list[dict], prepared: list[PreparedStack], truth: list[NDArra
         e, e_tw = ed(final, true), ed(final, tw)
         stage = res["consistency"] or {}
         n = len(e)
+        parts = error_components(final, np.where((e <= e_tw)[:, None, None], true, tw))
+        k = np.arange(n)
+        inside = k[p.prepared.mask_pixels >= MIN_MASK_PIXELS]
+        mid, half = ((inside.min() + inside.max()) / 2.0, max((inside.max() - inside.min()) / 2.0, 1.0)) if len(inside) \
+            else ((n - 1) / 2.0, max((n - 1) / 2.0, 1.0))
+        times = np.asarray(sim.times, dtype=np.float64)
         into.add(ed=e, ed_min=np.minimum(e, e_tw), ed_network=ed(network, true),
                  ed_network_min=twin.twin_min_ed(network, true, plane_x_mm),
                  right_branch=(e <= e_tw) | (ed(true, tw) < DISTINGUISHABLE_MM),
@@ -120,7 +131,10 @@ def score(results: list[dict], prepared: list[PreparedStack], truth: list[NDArra
                            for s in res["slices"]],
                  accepted=[s["accepted"] for s in res["slices"]], mask_pixels=p.prepared.mask_pixels,
                  orientation=[sim.orientation] * n, decidable=np.full(n, bool(stage.get("decidable"))),
-                 branch_decided=np.full(n, bool(stage.get("branch_decided"))))
+                 branch_decided=np.full(n, bool(stage.get("branch_decided"))),
+                 tilt_deg=parts["tilt_deg"], twist_deg=parts["twist_deg"], centre_mm=parts["centre_mm"],
+                 off_plane_mm=parts["off_plane_mm"], depth=np.abs(k - mid) / half,
+                 time=(times - times.min()) / max(float(np.ptp(times)), 1.0))
 
 
 def summarise(sc: Scored) -> dict:
@@ -152,6 +166,13 @@ def summarise(sc: Scored) -> dict:
     out["right_branch_where_decided"] = float(right[decided].mean()) if decided.any() else float("nan")
     both = decided & good
     out["right_branch_where_decided_twin_min_under_15mm"] = float(right[both].mean()) if both.any() else float("nan")
+    out["components"] = {key: float(sc.array(key)[keep].mean())
+                         for key in ("tilt_deg", "twist_deg", "centre_mm", "off_plane_mm")}
+    thirds = lambda x: np.minimum((x * 3).astype(int), 2)  # noqa: E731
+    for key, names in (("depth", ("centre", "middle", "outer")), ("time", ("start", "middle", "end"))):
+        which = thirds(np.clip(sc.array(key)[keep], 0.0, 1.0))
+        out[f"ed_by_{key}"] = {name: float(e[which == i].mean()) if (which == i).any() else float("nan")
+                               for i, name in enumerate(names)}
     out["by_orientation"] = {o: {"ed_mean": float(e[sc.array("orientation")[keep] == o].mean()),
                                  "right_branch": float(right[sc.array("orientation")[keep] == o].mean())}
                              for o in np.unique(sc.array("orientation")[keep])}
@@ -201,4 +222,13 @@ def markdown(summary: dict[str, dict], title: str) -> str:
                     f"{100 * s['accepted']:.0f} % | {100 * s['decidable_stacks']:.0f} % | "
                     f"{100 * s['branch_decided_slices']:.0f} % | {100 * s['right_branch_where_decided']:.1f} % / "
                     f"{100 * s['right_branch_where_decided_twin_min_under_15mm']:.1f} % |")
+    rows += ["", "Where the consistent poses' error lies (means; against the nearer of the truth and its twin; "
+             "depth: thirds from the stack's centre to its outermost slice; time: thirds of the acquisition):", "",
+             "| motion | tilt (deg) | twist (deg) | centre (mm) | along the normal (mm) | E.D. by depth: centre / "
+             "middle / outer | E.D. by time: start / middle / end |", "|---|---|---|---|---|---|---|"]
+    for level, s in summary.items():
+        c, d, t = s["components"], s["ed_by_depth"], s["ed_by_time"]
+        rows.append(f"| {level} | {c['tilt_deg']:.1f} | {c['twist_deg']:.1f} | {c['centre_mm']:.1f} | "
+                    f"{c['off_plane_mm']:.1f} | {d['centre']:.1f} / {d['middle']:.1f} / {d['outer']:.1f} | "
+                    f"{t['start']:.1f} / {t['middle']:.1f} / {t['end']:.1f} |")
     return "\n".join(rows) + "\n"

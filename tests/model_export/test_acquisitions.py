@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from model_export.acquisitions import simulate_acquisition
-from model_export.evaluate_acquisitions import NoisyTwinEstimator, evaluate_acquisitions
+from model_export.evaluate_acquisitions import NoisyTwinEstimator, evaluate_acquisitions, markdown
 from service.geometry import sampling
 from service.geometry.pose import apply
 from tests.api.conftest import INFO
@@ -44,8 +44,12 @@ def test_pipeline_with_a_twin_confused_estimator_per_motion_level() -> None:
         assert s["ed"]["mean"] < s["ed_network_min"]["mean"], (level, s)       # the stack fit beats the slices
         assert s["decidable_stacks"] == 1.0
         assert 0.5 < s["ed_rms"] / s["expected_error_mm_rms"] < 2.0, (level, s)   # the expected error is honest
+        assert 0 < s["components"]["tilt_deg"] < 90 and s["components"]["off_plane_mm"] <= s["components"]["centre_mm"]
+        assert set(s["ed_by_depth"]) == {"centre", "middle", "outer"} and np.isfinite(list(s["ed_by_time"].values())).all()
         told = out[f"{level}, told interleaved"]                 # the same network poses, the stage told the order
         assert told["ed_network"] == s["ed_network"] and told["right_branch"] >= 0.97, (level, told)
+    report = markdown(out, "phantom")
+    assert report.count("| mild, told interleaved |") == 2 and "along the normal" in report
     ex = out["extreme"]
     assert ex["decidable_stacks"] == 0.0
     assert ex["ed_min"]["mean"] == ex["ed_network_min"]["mean"]                  # no slice made worse
