@@ -5,8 +5,9 @@ predicted by the shipped model through the server's pipeline (stack consistency,
 pooled), then reconstructed as a job does from the service's own poses (every slice included,
 coarse-to-fine, SVR rounds). Printed per level: the mean E.D. (mm, slices with >= 20 mask pixels,
 network frames; against the truth and twin-min) of the predicted poses and of the refined poses,
-with stacks registered as bodies that follow the stage's motion model (the default) and as their
-files' grids; and the seconds of each reconstruction. Needs ``../shared/data`` (the atlas volumes). Run:
+for each ``--follow-mm`` threshold (a stack whose motion model moves its slices by more than it is
+registered as a body that follows that motion, the others as their files' grids: 0 = every stack
+with motion follows it, inf = file grids); and the seconds of each reconstruction. Needs ``../shared/data`` (the atlas volumes). Run:
 ``.venv/bin/python benchmarks/refine_bench.py [--per-level 6] [--resolution 1.5] [--rounds 3]``.
 """
 
@@ -54,6 +55,9 @@ def main() -> None:
     ap.add_argument("--resolution", type=float, default=1.5)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--follow-mm", type=float, nargs="+", default=[0.0, float("inf")],
+                    help="stack_follow_motion_mm of each variant (0: every stack with motion follows it; "
+                         "inf: file grids)")
     args = ap.parse_args()
     if not DEFAULT_ATLAS_ROOT.exists():
         sys.exit(f"needs the atlas volumes at {DEFAULT_ATLAS_ROOT}")
@@ -62,8 +66,9 @@ def main() -> None:
     vols = load_volumes(split(DEFAULT_ATLAS_ROOT)[1], DEFAULT_ATLAS_ROOT)
     rng = np.random.default_rng(args.seed)
     for level in ("mild", "moderate"):
-        rows = {"predicted": [], "refined": [], "refined, file grids": []}
-        seconds = {"refined": [], "refined, file grids": []}
+        variants = {f"refined, follow > {t:g} mm": t for t in args.follow_mm}
+        rows = {"predicted": [], **{k: [] for k in variants}}
+        seconds = {k: [] for k in variants}
         for a in range(args.per_level):
             vol = vols[a % len(vols)]
             stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level)
@@ -73,10 +78,10 @@ def main() -> None:
             masks = [np.moveaxis(p.slices.masks.transpose(0, 2, 1), 0, p.slices.slice_axis) for p in prepared]
             ss = SliceSet.from_stacks([(s.volume, m, mats, inc) for s, m, (mats, inc) in zip(stacks, masks, poses)])
             rows["predicted"].append(errors(stacks, prepared, ss.atlas_from_voxel, plane))
-            for name, follow in (("refined", True), ("refined, file grids", False)):
+            for name, follow in variants.items():
                 t = time.perf_counter()
                 res = reconstruct(ss, resolution_mm=args.resolution, svr_iterations=args.rounds,
-                                  config=ReconstructionConfig(symmetry_plane_x_mm=plane, stack_follows_motion=follow))
+                                  config=ReconstructionConfig(symmetry_plane_x_mm=plane, stack_follow_motion_mm=follow))
                 seconds[name].append(time.perf_counter() - t)
                 rows[name].append(errors(stacks, prepared, res.atlas_from_voxel_final, plane))
             print(f"{level} {a}: " + ", ".join(f"{k} {v[-1][0].mean():.2f} / {v[-1][1].mean():.2f}"

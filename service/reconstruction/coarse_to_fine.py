@@ -110,9 +110,20 @@ def candidate_ncc(slices: SliceSet, candidates: NDArray, stack_poses: NDArray, r
     return out
 
 
+def _bodies(slices: SliceSet, fit: StackFit, follow_motion_mm: float) -> NDArray[np.float64] | None:
+    """Per slice, where its stack's body puts it: the motion model's pose in stacks that moved by more
+    than ``follow_motion_mm``, the rigid stack's elsewhere (``None``: every stack as its file's grid)."""
+    if fit.motion_poses is None or fit.motion_mm is None:
+        return None
+    follow = fit.motion_mm > follow_motion_mm
+    if not follow.any():
+        return None
+    return np.where(follow[slices.stack_index][:, None, None], fit.motion_poses, fit.stack_poses(slices))
+
+
 def coarse_align(slices: SliceSet, poses: NDArray | None = None, *, plane_x_mm: float | None = None,
                  levels_mm: tuple[float, ...] = DEFAULT_LEVELS_MM, sweeps: int = 2,
-                 stage: Callable[[str], None] | None = None, follow_motion: bool = True,
+                 stage: Callable[[str], None] | None = None, follow_motion_mm: float = 0.0,
                  orders: Sequence[SliceOrder] | None = None) -> CoarseAlignment:
     """Stack rigid fit, stack-to-stack registration and each slice's starting pose (module docstring).
 
@@ -123,8 +134,9 @@ def coarse_align(slices: SliceSet, poses: NDArray | None = None, *, plane_x_mm: 
         levels_mm: stack registration levels, coarse to fine.
         sweeps: stack registration sweeps per level.
         stage: ``stage(name)`` called at the start of each step (progress and cancellation).
-        follow_motion: register each stack as a body of its slices at the stage's motion model
-            (False: as its file's grid).
+        follow_motion_mm: register a stack as a body of its slices at the stage's motion model
+            where that model moves them by more than this from the rigid stack (RMS E.D.; 0: every
+            stack the model found motion in; ``inf``: none), else as its file's grid.
         orders: per stack, what is known of its acquisition order (default: the stage chooses).
 
     Returns:
@@ -141,7 +153,7 @@ def coarse_align(slices: SliceSet, poses: NDArray | None = None, *, plane_x_mm: 
     step("stack registration")
     weight = fit.inlier[slices.slice_id].astype(np.float32)
     reg = register_stacks(slices, fit.atlas_from_scanner, pixel_weight=weight, levels_mm=levels_mm, sweeps=sweeps,
-                          slice_poses=fit.motion_poses if follow_motion else None)
+                          slice_poses=_bodies(slices, fit, follow_motion_mm))
     g = reg.atlas_from_scanner
     delta = g @ np.linalg.inv(fit.atlas_from_scanner)
     stack_poses = g[slices.stack_index] @ slices.stack_affine

@@ -101,8 +101,10 @@ class ReconstructionConfig:
             lies on the twin branch of their stack are flipped (``None``: no twin handling).
         stack_levels_mm: stack registration resolutions (and trust radii), coarse to fine.
         stack_sweeps: stack registration sweeps per level.
-        stack_follows_motion: register each stack as a rigid body of its slices where the stack
-            stage's motion model puts them (False: as its file's grid, distorted by the motion).
+        stack_follow_motion_mm: register a stack as a rigid body of its slices where the stack
+            stage's motion model puts them when that model moves them by more than this from the
+            rigid stack (RMS E.D., mm), else as its file's grid (distorted by any motion); 0: every
+            stack with motion, ``inf``: none.
         slice_orders: per stack, what is known of its acquisition order
             (:class:`~service.consistency.slice_order.SliceOrder`; ``None``: the stage chooses).
         capture_schedule: ``(trust radius mm, extra blur sigma mm)`` of the first registration rounds
@@ -143,7 +145,7 @@ class ReconstructionConfig:
     symmetry_plane_x_mm: float | None = None
     stack_levels_mm: tuple[float, ...] = (4.0, 2.0, 1.0)
     stack_sweeps: int = 2
-    stack_follows_motion: bool = True
+    stack_follow_motion_mm: float = 0.0
     slice_orders: tuple[SliceOrder, ...] | None = None
     capture_schedule: tuple[tuple[float, float], ...] = ((4.0, 2.0), (2.0, 1.0))
     psf_points: int = 5
@@ -321,7 +323,7 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
     if coarse_on:
         t0 = time.perf_counter()
         coarse = coarse_align(slice_set, poses, plane_x_mm=cfg.symmetry_plane_x_mm, levels_mm=cfg.stack_levels_mm,
-                              sweeps=cfg.stack_sweeps, stage=stage, follow_motion=cfg.stack_follows_motion,
+                              sweeps=cfg.stack_sweeps, stage=stage, follow_motion_mm=cfg.stack_follow_motion_mm,
                               orders=cfg.slice_orders)
         poses = coarse.poses.copy()
         timings["coarse"] = time.perf_counter() - t0

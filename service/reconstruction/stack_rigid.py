@@ -35,6 +35,7 @@ from numpy.typing import ArrayLike, NDArray
 from service.consistency.slice_order import SliceOrder
 from service.consistency.stack_fit import fit_stack
 from service.geometry import se3
+from service.geometry.anchors import ed
 from service.geometry.pose import make_pose
 from service.geometry.twin import DEFAULT_PLANE_X_MM, mirror
 from service.reconstruction.slices import SliceSet
@@ -54,6 +55,8 @@ class StackFit:
             stage's posterior mean: the motion it found, without the network's per-slice noise);
             the stack's rigid transform where the stack is undecidable, has no usable slice, or
             put slices on the twin branch while ``plane_x_mm`` is ``None`` (``None``: not computed).
+        motion_mm: ``[n_stacks]`` how far the motion model moves each stack's slices from its rigid
+            transform (RMS E.D. over the slices it was fitted from; 0 where it found none).
     """
 
     atlas_from_scanner: NDArray[np.float64]
@@ -61,6 +64,7 @@ class StackFit:
     inlier: NDArray[np.bool_]
     distance_mm: NDArray[np.float64]
     motion_poses: NDArray[np.float64] | None = None
+    motion_mm: NDArray[np.float64] | None = None
 
     def branch_poses(self, slices: SliceSet, atlas_from_voxel: ArrayLike, plane_x_mm: float) -> NDArray[np.float64]:
         """``atlas_from_voxel`` with the twin-branch slices replaced by their twins (the stack's branch)."""
@@ -141,6 +145,7 @@ def fit_stack_rigid(slices: SliceSet, atlas_from_voxel: ArrayLike | None = None,
     inlier = np.zeros(n, bool)
     dist = np.full(n, np.nan)
     motion = np.zeros((n, 4, 4))
+    moved = np.zeros(n_stacks)
     for s in range(n_stacks):                   # a loop over the few stacks; slices are batched
         idx = np.flatnonzero(slices.stack_index == s)
         if not use[idx].any():
@@ -156,10 +161,13 @@ def fit_stack_rigid(slices: SliceSet, atlas_from_voxel: ArrayLike | None = None,
             dist[idx] = fit.residual_mm
             if plane_x_mm is not None or not fit.twinned.any():
                 motion[idx] = fit.poses @ n_k[idx] @ slices.stack_affine[idx]
+                rigid = fit.atlas_from_scanner @ se3.inverse(n_k[idx])
+                used = use[idx]
+                moved[s] = float(np.sqrt(np.mean(ed(fit.poses[used], rigid[used]) ** 2)))
                 continue
         else:
             out[s] = se3.frechet_mean(x_all[idx[use[idx]]])
         motion[idx] = out[s] @ slices.stack_affine[idx]
     if plane_x_mm is None and twin.any():
         twin[:] = False
-    return StackFit(out, twin, inlier, dist, motion)
+    return StackFit(out, twin, inlier, dist, motion, moved)

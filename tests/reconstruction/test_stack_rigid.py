@@ -72,3 +72,28 @@ def test_motion_poses_follow_a_smooth_motion_exactly():
     fit = fit_stack_rigid(ss, truth)
     assert pose_error_mm(ss, fit.motion_poses, truth) < 0.1
     assert pose_error_mm(ss, fit.stack_poses(ss), truth) > 0.5
+    assert (fit.motion_mm > 1.0).all()                      # each stack says how far its motion moves it
+    still = fit_stack_rigid(ss, ss.atlas_from_voxel)
+    assert (still.motion_mm < 0.05).all()
+
+
+def test_only_stacks_that_moved_more_than_the_threshold_follow_their_motion():
+    """``coarse_align``'s stack bodies: a stack whose motion model moves its slices by more than the
+    threshold is registered where that model puts them, the others as their rigid stack."""
+    from service.reconstruction.coarse_to_fine import _bodies
+    from tests.reconstruction.helpers import CENTRE, make_acquisition, rigid_about
+
+    ss = make_acquisition(3, rot_deg=0.0, trans_mm=0.0).slice_set()
+    n = np.bincount(ss.stack_index)[ss.stack_index].astype(float)
+    phase = ss.slice_index / np.maximum(n - 1, 1)
+    amount = np.array([1.0, 0.1, 0.0])[ss.stack_index][:, None]          # stack 0 moves, 1 barely, 2 not
+    rotv = amount * np.stack([8.0 * np.sin(np.pi * phase), np.zeros_like(phase), np.zeros_like(phase)], 1)
+    fit = fit_stack_rigid(ss, rigid_about(CENTRE, rotv, np.zeros_like(rotv)) @ ss.atlas_from_voxel)
+    assert fit.motion_mm[0] > 1.0 > fit.motion_mm[1] and fit.motion_mm[2] < 0.05
+    bodies = _bodies(ss, fit, 1.0)
+    first = ss.stack_index == 0
+    np.testing.assert_allclose(bodies[first], fit.motion_poses[first])
+    np.testing.assert_allclose(bodies[~first], fit.stack_poses(ss)[~first])
+    assert _bodies(ss, fit, np.inf) is None
+    np.testing.assert_allclose(_bodies(ss, fit, 0.0)[~first & (ss.stack_index == 1)],
+                               fit.motion_poses[ss.stack_index == 1])
