@@ -7,7 +7,8 @@ coarse-to-fine, SVR rounds). Printed per level: the mean E.D. (mm, slices with >
 network frames; against the truth and twin-min) of the predicted poses and of the refined poses,
 for each ``--follow-mm`` threshold (a stack whose motion model moves its slices by more than it is
 registered as a body that follows that motion, the others as their files' grids: 0 = every stack
-with motion follows it, inf = file grids); and the seconds of each reconstruction. Needs ``../shared/data`` (the atlas volumes). Run:
+with motion follows it, inf = file grids), each also with its atlas frame re-estimated by the network
+(``service/reconstruction/atlas_frame.py``); and the seconds of each reconstruction. Needs ``../shared/data`` (the atlas volumes). Run:
 ``.venv/bin/python benchmarks/refine_bench.py [--per-level 6] [--resolution 1.5] [--rounds 3]``.
 """
 
@@ -30,6 +31,7 @@ from service.geometry.anchors import ed
 from service.inference.estimator import OnnxPoseEstimator
 from service.inference.model_file import load_model
 from service.jobs.worker import poses_from_predict_body, starting_inclusion
+from service.reconstruction.atlas_frame import atlas_frame
 from service.reconstruction.pipeline import ReconstructionConfig, reconstruct
 from service.reconstruction.slices import SliceSet
 
@@ -60,6 +62,8 @@ def main() -> None:
     ap.add_argument("--resolution", type=float, default=1.5)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--atlas-frame", action=argparse.BooleanOptionalAction, default=True,
+                    help="also each variant with the reconstruction's atlas frame re-estimated by the network")
     ap.add_argument("--follow-mm", type=float, nargs="+", default=[0.0, float("inf")],
                     help="stack_follow_motion_mm of each variant (0: every stack with motion follows it; "
                          "inf: file grids)")
@@ -72,7 +76,8 @@ def main() -> None:
     rng = np.random.default_rng(args.seed)
     for level in ("mild", "moderate"):
         variants = {f"refined, follow > {t:g} mm": t for t in args.follow_mm}
-        rows = {"predicted": [], **{k: [] for k in variants}}
+        framed = [f"{k}, atlas frame" for k in variants] if args.atlas_frame else []
+        rows = {"predicted": [], **{k: [] for k in variants}, **{k: [] for k in framed}}
         seconds = {k: [] for k in variants}
         for a in range(args.per_level):
             vol = vols[a % len(vols)]
@@ -89,6 +94,10 @@ def main() -> None:
                                   config=ReconstructionConfig(symmetry_plane_x_mm=plane, stack_follow_motion_mm=follow))
                 seconds[name].append(time.perf_counter() - t)
                 rows[name].append(errors(stacks, prepared, res.atlas_from_voxel_final, plane))
+                if args.atlas_frame:
+                    fit = atlas_frame(res.volume, est, plane)
+                    rows[f"{name}, atlas frame"].append(errors(stacks, prepared,
+                                                               fit.correction @ res.atlas_from_voxel_final, plane))
             print(f"{level} {a}: " + ", ".join(f"{k} {v[-1][0].mean():.2f} / {v[-1][1].mean():.2f} / "
                                               f"{v[-1][2].mean():.2f}" for k, v in rows.items()), flush=True)
         means = {k: np.concatenate(v, axis=1).mean(axis=1) for k, v in rows.items()}

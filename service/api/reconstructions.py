@@ -63,6 +63,8 @@ async def submit(
     variance_threshold: Annotated[Optional[float], Form(gt=0)] = None,
     model: Annotated[str, Form()] = "default",
     slice_order: Annotated[Optional[list[str]], Form(description=SLICE_ORDER_HELP)] = None,
+    atlas_frame: Annotated[bool, Form(description="re-estimate the reconstruction's atlas frame with the model on "
+                                                  "slices re-cut from it (corrects the common error of the poses)")] = True,
 ) -> dict:
     """Validates the files now (4xx at once), then queues the job; poll ``Location``.
 
@@ -80,7 +82,7 @@ async def submit(
     store = _store(request)
     job = store.create({"resolution_mm": resolution_mm, "svr_iterations": svr_iterations, "mc_samples": mc_samples,
                         "variance_threshold": variance_threshold, "model": model,
-                        "slice_order": slice_order or []})
+                        "slice_order": slice_order or [], "atlas_frame": atlas_frame})
     inputs = store.directory(job.id) / "inputs"
     inputs.mkdir()
     try:

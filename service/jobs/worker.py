@@ -186,6 +186,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     from service.reconstruction.export import write_outputs
     from service.geometry.twin import DEFAULT_PLANE_X_MM
     from service.preprocess.stack import split_stack
+    from service.reconstruction.atlas_frame import atlas_frame, with_frame
     from service.reconstruction.pipeline import ReconstructionConfig, reconstruct
     from service.reconstruction.refined_poses import refined_poses_body
     from service.reconstruction.slices import SliceSet
@@ -205,6 +206,8 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         mask = read_upload(m, mname, budget=budget.file(mname)) if m is not None else None
         uploads.append(StackUpload(sname, vol, mask, mname))
     poses_path = folder / "inputs" / "poses.json"
+    model_file = models_dir / params.get("model", "default") / "model.onnx"
+    estimator = None
     if poses_path.exists():
         from service.preprocess.localise import localise_brain
         from service.preprocess.stack import slice_axis_of
@@ -217,7 +220,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
                  for u in uploads]
     else:
         progress("predicting poses", 0.05)
-        estimator = OnnxPoseEstimator(load_model(models_dir / params.get("model", "default") / "model.onnx", threads=1))
+        estimator = OnnxPoseEstimator(load_model(model_file, threads=1))
         body, masks = predicted_body(uploads, estimator, int(params.get("mc_samples", 100)),
                                      params.get("variance_threshold"), orders)
         poses = starting_inclusion(poses_from_predict_body(body, [len(r["slices"]) for r in body["stacks"]]))
@@ -229,8 +232,16 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
                          progress=lambda stage, f: progress(stage, 0.15 + 0.8 * f),
                          config=ReconstructionConfig(symmetry_plane_x_mm=plane,
                                                      slice_orders=tuple(stack_orders(orders, uploads))))
+    frame = None
+    if params.get("atlas_frame", True):
+        progress("atlas frame", 0.95)
+        if estimator is None and model_file.exists():
+            estimator = OnnxPoseEstimator(load_model(model_file, threads=1))
+        frame = atlas_frame(result.volume, estimator, plane, mc_samples=int(params.get("mc_samples", 100)))
+        result = with_frame(result, frame)
     progress("writing", 0.97)
-    report = write_outputs(result, slice_set, folder / "outputs")
+    report = write_outputs(result, slice_set, folder / "outputs",
+                           extra=None if frame is None else {"atlas_frame": frame.report()})
     frames = [split_stack(u.volume, np.ones(u.volume.array.shape, bool)).slice_from_voxel for u in uploads]
     refined = refined_poses_body(body, result.atlas_from_voxel_final, frames, included=result.included,
                                  weight=result.slice_weight, ncc=result.ncc, reasons=result.exclusion_reason,

@@ -86,13 +86,14 @@ def listing_text(result: ReconstructionResult, slices: SliceSet) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_outputs(result: ReconstructionResult, slices: SliceSet, folder: str | Path) -> dict:
+def write_outputs(result: ReconstructionResult, slices: SliceSet, folder: str | Path, extra: dict | None = None) -> dict:
     """Write ``volume.nii.gz``, ``preview.png``, ``report.json`` and ``transforms/`` into ``folder``.
 
     Args:
         result: the reconstruction.
         slices: the slice set it was computed from (for stack/slice indices and stack headers).
         folder: output folder (created).
+        extra: more entries for the report (e.g. the job's ``atlas_frame``).
 
     Returns:
         The JSON-ready report (counts, geometry, timings, file names and, per slice, inclusion, weight
@@ -122,6 +123,6 @@ def write_outputs(result: ReconstructionResult, slices: SliceSet, folder: str | 
                   f"transforms/*.tfm ({len(tfms)})"],
     }
     mapping = "LPS, atlas (fixed) -> stack scanner space (moving); see service.reconstruction.export"
-    report = dict(summary, tfm_mapping=mapping, slices=slice_records(result, slices))
+    report = dict(summary, **(extra or {}), tfm_mapping=mapping, slices=slice_records(result, slices))
     (out / "report.json").write_text(json.dumps(report, indent=1))
     return report

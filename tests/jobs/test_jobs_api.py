@@ -37,7 +37,8 @@ def submit(client: TestClient, case: dict, poses: object = None, **data: str):  
     files = [("stacks", (s.name, s.read_bytes())) for s, _ in case["files"]]
     files += [("masks", (m.name, m.read_bytes())) for _, m in case["files"]]
     files.append(("poses", ("poses.json", text.encode(), "application/json")))
-    return client.post("/v1/reconstructions", files=files, data={"resolution_mm": "2.0", "svr_iterations": "1", **data})
+    data = {"resolution_mm": "2.0", "svr_iterations": "1", "atlas_frame": "false", **data}   # a phantom, no brain
+    return client.post("/v1/reconstructions", files=files, data=data)
 
 
 def wait(client: TestClient, job_id: str, timeout: float = 180.0) -> dict:
@@ -103,7 +104,8 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
 
 @both
 def test_stages_are_reported_in_order(client: TestClient, case: dict) -> None:
-    job_id = submit(client, case, slice_order="sequential").json()["job_id"]   # the order reaches the job's stage
+    job_id = submit(client, case, slice_order="sequential",           # the order reaches the job's stage
+                    atlas_frame="true").json()["job_id"]
     stages = []
     t0 = time.time()
     while time.time() - t0 < 180:
@@ -115,7 +117,8 @@ def test_stages_are_reported_in_order(client: TestClient, case: dict) -> None:
         time.sleep(0.05)
     assert st["status"] == "succeeded", st
     known = ["queued", "starting", "reading", "reconstructing", "stack consistency", "stack registration", "slice starting poses",
-             "gaussian average", "registration 1/1", "robust weighting 1/1", "super-resolution 1/1", "writing"]
+             "gaussian average", "registration 1/1", "robust weighting 1/1", "super-resolution 1/1", "atlas frame",
+             "writing"]
     order = [known.index(s) for s in stages if s in known]
     assert order == sorted(order) and len(order) >= 2
     assert set(stages) <= set(known) | {"robust weighting 0/1", "super-resolution 0/1", "done", None}
@@ -211,6 +214,8 @@ def test_job_without_poses_predicts_them_with_the_model(case: dict, tiny_model_p
     assert st["seen"] & {"queued", "running"}
     if st["status"] == "succeeded":
         assert len(st["report"]["slices"]) == 36
+        frame = st["report"]["atlas_frame"]        # the model re-poses slices re-cut from the volume
+        assert isinstance(frame["applied"], bool) and frame["slices"] >= 0
     else:
         assert st["status"] == "failed" and st["error"]
 
