@@ -369,7 +369,7 @@ class SVRnetClient:
                     poses: Mapping[str, Any] | PathLike | None = None, *, resolution_mm: float | None = None,
                     svr_iterations: int | None = None, mc_samples: int | None = None,
                     variance_threshold: float | None = None, slice_order: str | Sequence[str] | None = None,
-                    progress: ProgressCallback | None = None) -> dict[str, Any]:
+                    atlas_frame: bool | None = None, progress: ProgressCallback | None = None) -> dict[str, Any]:
         """``POST /v1/reconstructions``: start a slice-to-volume reconstruction job.
 
         Args:
@@ -383,6 +383,7 @@ class SVRnetClient:
             mc_samples: as for :meth:`predict`.
             variance_threshold: as for :meth:`predict`.
             slice_order: as for :meth:`predict`.
+            atlas_frame: re-estimate the reconstruction's atlas frame with the model (server default true).
             progress: ``progress(bytes_sent, total)`` during the upload.
 
         Returns:
@@ -397,7 +398,8 @@ class SVRnetClient:
         fields = [(k, _form_value(v)) for k, v in (("resolution_mm", resolution_mm),
                                                    ("svr_iterations", svr_iterations),
                                                    ("mc_samples", mc_samples),
-                                                   ("variance_threshold", variance_threshold)) if v is not None]
+                                                   ("variance_threshold", variance_threshold),
+                                                   ("atlas_frame", atlas_frame)) if v is not None]
         fields += _order_fields(slice_order)
         files: list[tuple[str, str, Path | bytes, str]] = list(self._files(stacks, masks))
         if poses is not None:

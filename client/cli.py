@@ -311,6 +311,8 @@ def reconstruct(
     poll: Annotated[float, typer.Option(min=0.05, help="seconds between status polls")] = 1.0,
     slice_order: Annotated[Optional[list[str]], typer.Option(
         help="acquisition order, once for every stack or once per stack (as for predict)")] = None,
+    atlas_frame: Annotated[bool, typer.Option("--atlas-frame/--no-atlas-frame",
+                                              help="re-estimate the volume's atlas frame with the model")] = True,
 ) -> None:
     """Start a reconstruction job (POST /v1/reconstructions); with --wait, follow it and download the volume."""
     _check_masks(stacks, mask)
@@ -321,7 +323,7 @@ def reconstruct(
         with _upload_bar(err, f"{len(stacks)} stack(s)") as progress:
             job = svr.reconstruct(stacks, mask, poses, resolution_mm=resolution, svr_iterations=svr_iterations,
                                   mc_samples=mc_samples, variance_threshold=threshold, slice_order=slice_order,
-                                  progress=progress)
+                                  atlas_frame=None if atlas_frame else False, progress=progress)
         job_id = str(job.get("job_id", ""))
         console.print(f"job {job_id} {job.get('status', 'queued')}: {job.get('status_url', '')}")
         if not wait:
