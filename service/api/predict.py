@@ -10,7 +10,7 @@ from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 
 from service.api.deps import ApiKey, MetricsDep, RegistryDep, SettingsDep, SlotDep
 from service.api.schemas import UPLOAD_ERRORS, PredictResponse
-from service.api.uploads import SLICE_ORDER_HELP, check_form, known_fields, parse_orders, save_and_read, upload_directory
+from service.api.uploads import SLICE_ORDER_HELP, SliceOrderField, check_form, known_fields, parse_orders, save_and_read, upload_directory
 from service.inference.pipeline import predict as run_prediction
 from service.inference.pipeline import prepare_stacks
 
@@ -33,7 +33,7 @@ async def predict(
     model: Annotated[str, Form(description="a name from GET /v1/models")] = "default",
     stack_consistency: Annotated[bool, Form(description="decide each stack's left-right branch from all its slices, "
                                                         "fit a motion-tolerant stack model, flag inconsistent slices")] = True,
-    slice_order: Annotated[Optional[list[str]], Form(description=SLICE_ORDER_HELP)] = None,
+    slice_order: Annotated[Optional[list[SliceOrderField]], Form(description=SLICE_ORDER_HELP)] = None,
 ) -> dict:
     """Every slice of every stack, accepted or not, in order, with its SE(3) Fréchet-mean pose."""
     t0 = time.perf_counter()

@@ -12,7 +12,7 @@ from fastapi.responses import FileResponse
 
 from service.api.deps import ApiKey, RegistryDep, SettingsDep, SlotDep, queue_full
 from service.api.schemas import UPLOAD_ERRORS, problem_responses
-from service.api.uploads import SLICE_ORDER_HELP, check_form, known_fields, parse_orders, save_and_read
+from service.api.uploads import SLICE_ORDER_HELP, SliceOrderField, check_form, known_fields, parse_orders, save_and_read
 from service.inference.pipeline import stack_orders
 from service.core.errors import Conflict, InvalidParameter, NotFound
 from service.jobs.store import Job, JobStore
@@ -62,7 +62,7 @@ async def submit(
     mc_samples: Annotated[int, Form(ge=1, le=1000)] = 100,
     variance_threshold: Annotated[Optional[float], Form(gt=0)] = None,
     model: Annotated[str, Form()] = "default",
-    slice_order: Annotated[Optional[list[str]], Form(description=SLICE_ORDER_HELP)] = None,
+    slice_order: Annotated[Optional[list[SliceOrderField]], Form(description=SLICE_ORDER_HELP)] = None,
     atlas_frame: Annotated[bool, Form(description="re-estimate the reconstruction's atlas frame with the model on "
                                                   "slices re-cut from it (corrects the common error of the poses)")] = True,
 ) -> dict:

@@ -12,10 +12,12 @@ from collections.abc import Awaitable, Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Annotated
 
 from fastapi import Request, UploadFile, params
+from pydantic import StringConstraints
 
-from service.consistency.slice_order import SliceOrder, per_stack
+from service.consistency.slice_order import MAX_TEXT, PATTERN, SliceOrder, per_stack
 from service.core.errors import InvalidParameter
 from service.core.names import clean_name
 from service.inference.pipeline import StackUpload
@@ -75,6 +77,8 @@ def check_form(stacks: list[UploadFile], masks: list[UploadFile] | None, varianc
     return [m for m in (masks or []) if m.filename or m.size]
 
 
+SliceOrderField = Annotated[str, StringConstraints(pattern=PATTERN, max_length=MAX_TEXT)]
+"""One value of the ``slice_order`` form field."""
 SLICE_ORDER_HELP = ("the stacks' acquisition order, if known: none (the motion model chooses), one value for every "
                     "stack, or one per stack; each auto, interleaved (either phase), sequential, "
                     "interleaved-even-first, interleaved-odd-first, or the slice indices (0-based, along "

@@ -44,6 +44,8 @@ FROM_FILE = "acquisition-times"
 """The name of an order read from the file (a DICOM series' per-slice acquisition times)."""
 MAX_TEXT = 20_000
 """Longest ``slice_order`` text accepted (a list of indices of a very long stack fits easily)."""
+PATTERN = r"^\s*(auto|interleaved|sequential|interleaved-even-first|interleaved-odd-first|\d{1,6}( *, *\d{1,6})*)\s*$"
+"""What a ``slice_order`` value looks like (the API's schema states it; :meth:`SliceOrder.parse` decides)."""
 
 
 def acquisition_orders(n: int) -> dict[str, NDArray[np.int64]]:

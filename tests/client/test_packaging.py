@@ -14,7 +14,7 @@ ROOT = Path(__file__).resolve().parents[2]
 def client_imports() -> set[str]:
     names: set[str] = set()
     for path in (ROOT / "client").rglob("*.py"):
-        for node in ast.walk(ast.parse(path.read_text())):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
             if isinstance(node, ast.Import):
                 names |= {a.name.split(".")[0] for a in node.names}
             elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
@@ -23,9 +23,9 @@ def client_imports() -> set[str]:
 
 
 def test_client_extra_covers_every_import_and_nothing_heavy() -> None:
-    extra = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]["client"]
+    extra = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"]["optional-dependencies"]["client"]
     required = {re.split(r"[<>=!~\[ ;]", r, maxsplit=1)[0].lower() for r in extra}
-    base = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"].get("dependencies", [])
+    base = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"].get("dependencies", [])
     required |= {re.split(r"[<>=!~\[ ;]", r, maxsplit=1)[0].lower() for r in base}
     imported = {n.lower() for n in client_imports()}
     assert imported <= required, f"imported by client/ but not in the client extra: {sorted(imported - required)}"

@@ -73,3 +73,14 @@ def test_told_interleaved_the_stage_no_longer_takes_smooth_network_errors_for_mo
                                  times=SliceOrder.parse("interleaved").times(30)).poses, truth).mean())
     assert chosen.count("sequential") >= 4
     assert np.mean(told) < 0.7 * np.mean(auto)
+
+
+def test_the_schema_pattern_admits_what_parse_reads() -> None:
+    import re
+
+    from service.consistency.slice_order import PATTERN
+
+    for text in ("auto", " interleaved ", "sequential", "interleaved-odd-first", "0, 2,1", "12,3"):
+        assert re.match(PATTERN, text) and SliceOrder.parse(text) is not None, text
+    for text in ("zigzag", "", "1.5,0", "0;1", "-1,0", "1" * 7, "0,,1"):
+        assert not re.match(PATTERN, text), text

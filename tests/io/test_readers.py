@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import locale
 import zipfile
 from pathlib import Path
 
@@ -47,6 +48,16 @@ def test_unknown_content_is_415(tmp_path: Path) -> None:
 
 
 def _write_series(folder: Path, vol: Volume, series_uid: str, times: list[str] | None = None) -> list[Path]:
+    """One DICOM file per slice (SimpleITK's GDCM writer; it leaves the process in the C locale,
+    which is put back here so that later tests read text as before)."""
+    before = locale.setlocale(locale.LC_ALL, None)
+    try:
+        return _write_series_files(folder, vol, series_uid, times)
+    finally:
+        locale.setlocale(locale.LC_ALL, before)
+
+
+def _write_series_files(folder: Path, vol: Volume, series_uid: str, times: list[str] | None) -> list[Path]:
     image = sitk.Cast(sitk.GetImageFromArray(vol.array.transpose(2, 1, 0).astype(np.int16)), sitk.sitkInt16)
     origin, spacing, direction = frames.itk_from_affine(vol.affine)
     image.SetOrigin(tuple(origin))

@@ -150,7 +150,7 @@ def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict) ->
         r = submit(client, case, poses=bad)
         assert r.status_code == 400 and "poses" in r.json()["detail"], r.text
     n_slices = len(case["poses"]["stacks"][1]["slices"])
-    for order, needles in (("zigzag", ["slice_order[0]"]), (["auto", "auto"], ["2 values for 3 stacks"]),
+    for order, needles in (("zigzag", ["slice_order", "interleaved-odd-first"]), (["auto", "auto"], ["2 values for 3 stacks"]),
                            (["auto", "0,1", "auto"], ["slice_order[1]", case["files"][1][0].name, f"stack of {n_slices} slices"])):
         r = submit(client, case, slice_order=order)
         assert r.status_code == 400 and all(n in r.json()["detail"] for n in needles), r.text

@@ -1,6 +1,7 @@
 """Schemathesis hooks (``SCHEMATHESIS_HOOKS=tools.fuzz.hooks``): the one rule of API v1 that JSON Schema
-cannot state -- ``masks`` are none or one per stack -- applied to generated *positive* cases, so a
-schema-valid request is one the contract calls valid. Negative cases are left as generated."""
+cannot state -- ``masks`` are none or one per stack, and ``slice_order`` none, one, or one per stack --
+applied to generated *positive* cases, so a schema-valid request is one the contract calls valid.
+Negative cases are left as generated."""
 
 from __future__ import annotations
 
@@ -20,4 +21,7 @@ def map_case(context: Any, case: Any) -> Any:  # noqa: ANN401 - schemathesis' ow
         masks = body["masks"][: len(body["stacks"])]
         keep = len(masks) == len(body["stacks"])
         case.body = {**body, "masks": masks} if keep else {k: v for k, v in body.items() if k != "masks"}
+    body = case.body
+    if positive and isinstance(body, dict) and isinstance(body.get("slice_order"), list) and len(body["slice_order"]) > 1:
+        case.body = {**body, "slice_order": body["slice_order"][:1]}      # one value serves every stack
     return case
