@@ -13,7 +13,7 @@ from fastapi.responses import FileResponse
 from service.api.deps import ApiKey, RegistryDep, SettingsDep, SlotDep, queue_full
 from service.api.schemas import UPLOAD_ERRORS, problem_responses
 from service.api.uploads import SLICE_ORDER_HELP, SliceOrderField, check_form, known_fields, parse_orders, save_and_read
-from service.inference.pipeline import stack_orders
+from service.inference.pipeline import check_mask_grid, stack_orders
 from service.core.errors import Conflict, InvalidParameter, NotFound
 from service.jobs.store import Job, JobStore
 from service.jobs.worker import poses_from_predict_body
@@ -100,8 +100,6 @@ async def submit(
             except ValueError as exc:
                 raise InvalidParameter(str(exc)) from exc
             (inputs / "poses.json").write_text(json.dumps(body))
-        from service.inference.pipeline import check_mask_grid
-
         for u in uploads:
             check_mask_grid(u)
     except Exception:

@@ -22,9 +22,14 @@ from itertools import pairwise
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from service.core.errors import InvalidParameter, UnusableImage
 from service.consistency.slice_order import FROM_FILE, SliceOrder, per_stack
-from service.consistency.stage import StackPoses, consistent_poses, network_from_voxel, pool_request
+from service.consistency.stage import (
+    StackPoses,
+    consistent_poses,
+    network_from_voxel,
+    pool_request,
+)
+from service.core.errors import InvalidParameter, UnusableImage
 from service.geometry import anchors
 from service.geometry.twin import DEFAULT_PLANE_X_MM
 from service.inference import acceptance
@@ -106,14 +111,14 @@ def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction:
 
 def stack_poses(est: PoseEstimate, sl: slice, prepared: PreparedStack, net_from_vox: np.ndarray,
                 stack_consistency: bool, plane_x_mm: float, expected_mm: np.ndarray,
-                order: SliceOrder = SliceOrder()) -> StackPoses:
+                order: SliceOrder | None = None) -> StackPoses:
     """One stack's poses through the stack-consistency stage (or as the network gave them);
     ``expected_mm`` is each slice's expected error: its MC spread times the model's ``mc_error_scale``;
-    ``order`` what is known of the stack's acquisition order."""
+    ``order`` what is known of the stack's acquisition order (default: nothing; the stage chooses)."""
     p = prepared.prepared
     usable = (p.mask_fraction >= acceptance.MIN_MASK_FRACTION) & ~est.degenerate[sl]
     return consistent_poses(est.mean[sl], est.twin_mass[sl], net_from_vox, prepared.upload.volume.affine, usable,
-                            plane_x_mm, expected_mm[sl], stack_consistency, order.times(len(p.inputs)))
+                            plane_x_mm, expected_mm[sl], stack_consistency, (order or SliceOrder()).times(len(p.inputs)))
 
 
 def slice_results(est: PoseEstimate, sl: slice, prepared: PreparedStack, net_from_vox: np.ndarray, out: StackPoses,

@@ -30,7 +30,7 @@ Example:
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Protocol
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -40,6 +40,10 @@ from service.geometry.anchors import ed
 from service.geometry.pose import make_pose, translate
 from service.io.volume import Volume
 from service.preprocess.slices import preprocess_slices
+
+if TYPE_CHECKING:                      # the estimator is handed in; nothing of inference runs here
+    from service.inference.estimator import PoseEstimator
+    from service.reconstruction.pipeline import ReconstructionResult
 
 SLICES = 256
 """Slices re-cut from the reconstruction."""
@@ -53,14 +57,6 @@ MIN_SLICES = 32
 MAX_ROTATION_DEG = 20.0
 MAX_SHIFT_MM = 20.0
 TUKEY_C = 4.685
-
-
-class Estimator(Protocol):
-    """What the step needs of the service's pose estimator (:class:`~service.inference.estimator.PoseEstimator`)."""
-
-    info: object
-
-    def estimate(self, inputs: NDArray, mc_samples: int): ...  # noqa: ANN201, D102
 
 
 @dataclass
@@ -89,9 +85,9 @@ class FrameFit:
                 "spread_mm": round(self.spread_mm, 3) if np.isfinite(self.spread_mm) else None}
 
 
-def with_frame(result, fit: FrameFit):  # noqa: ANN001, ANN201 - a ReconstructionResult
-    """``result`` (:class:`~service.reconstruction.pipeline.ReconstructionResult`) moved by the fit's
-    correction: the volume's affine and every refined pose (no resampling)."""
+def with_frame(result: ReconstructionResult, fit: FrameFit) -> ReconstructionResult:
+    """``result`` moved by the fit's correction: the volume's affine and every refined pose, so each
+    voxel and each slice pixel keep their relation (no resampling)."""
     if not fit.applied:
         return result
     return replace(result, volume=replace(result.volume, affine=fit.correction @ result.volume.affine),
@@ -115,7 +111,7 @@ def recut(volume: Volume, mask: NDArray, n: int, rng: np.random.Generator, size:
     return images, masks, poses, centre
 
 
-def atlas_frame(volume: Volume, estimator: Estimator | None, plane_x_mm: float, *, n_slices: int = SLICES,
+def atlas_frame(volume: Volume, estimator: PoseEstimator | None, plane_x_mm: float, *, n_slices: int = SLICES,
                 mc_samples: int = 100, seed: int = 0) -> FrameFit:
     """Re-estimate the atlas frame of a reconstruction (module docstring); ``estimator`` None: not applied."""
     arr = np.asarray(volume.array, dtype=np.float32)

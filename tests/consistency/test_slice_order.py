@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 
 from service.consistency import fit_stack
-from service.consistency.slice_order import GIVEN, NAMED_ORDERS, SliceOrder, acquisition_orders, per_stack
+from service.consistency.slice_order import (
+    GIVEN,
+    NAMED_ORDERS,
+    SliceOrder,
+    acquisition_orders,
+    per_stack,
+)
 from service.geometry import se3
 from service.geometry.anchors import ed
 from tests.consistency.test_stack_fit import NOISE, stack

@@ -78,3 +78,25 @@ def test_an_implausible_correction_is_reported_not_applied(brain: Volume, monkey
     fit = af.atlas_frame(brain, Lost(0.0, 0.0), 0.0, n_slices=48)
     assert not fit.applied and np.array_equal(fit.correction, np.eye(4)) and fit.rotation_deg > af.MAX_ROTATION_DEG
     assert fit.report()["applied"] is False
+
+
+def test_the_correction_moves_the_volume_and_every_slice_together() -> None:
+    """``with_frame``: after the correction a slice pixel and the volume voxel it was reconstructed
+    from still coincide, both now where the correction puts them in the atlas."""
+    from dataclasses import dataclass
+
+    vol = Volume(np.zeros((4, 4, 4), np.float32), np.diag([1.5, 1.5, 1.5, 1.0]))
+    slice_from_voxel = make_pose(se3.so3_exp(np.array([0.1, 0.2, 0.3])), np.array([3.0, -2.0, 5.0]))
+
+    @dataclass
+    class Result:
+        volume: Volume
+        atlas_from_voxel_final: np.ndarray
+
+    result = Result(vol, slice_from_voxel[None])
+    pixel = np.array([1.0, 2.0, 0.0, 1.0])
+    voxel = np.linalg.solve(vol.affine, slice_from_voxel @ pixel)          # where the pixel sits in the volume
+    moved = af.with_frame(result, af.FrameFit(FRAME_ERROR, True))
+    np.testing.assert_allclose(moved.atlas_from_voxel_final[0] @ pixel, FRAME_ERROR @ slice_from_voxel @ pixel)
+    np.testing.assert_allclose(moved.volume.affine @ voxel, moved.atlas_from_voxel_final[0] @ pixel, atol=1e-9)
+    assert af.with_frame(result, af.FrameFit(FRAME_ERROR, False)) is result
