@@ -116,6 +116,8 @@ def evaluate(
                                             "instead of the model (tests the service's half)")] = False,
     told: Annotated[Optional[list[str]], typer.Option(help="with --acquisitions: also score each stage told this "
                                                           "slice_order (e.g. interleaved), on the same network poses")] = None,
+    slices: Annotated[Optional[Path], typer.Option(help="with --acquisitions: every slice's errors, variance and "
+                                                        "place in its stack, as .npz (for analyses)")] = None,
     seed: int = 1,
 ) -> None:
     """The paper's metrics on the validation volumes, written as a markdown report."""
@@ -131,7 +133,7 @@ def evaluate(
         est = NoisyTwinEstimator(onnx.info, np.random.default_rng(seed)) if fake else onnx
         vols = load_volumes(split(root)[1], root)
         summary = evaluate_acquisitions(vols, est, np.random.default_rng(seed), per_volume=max(1, per_volume),
-                                        mc_samples=mc_samples, told=tuple(told or ()))
+                                        mc_samples=mc_samples, told=tuple(told or ()), slices=slices)
         report.parent.mkdir(parents=True, exist_ok=True)
         report.write_text(markdown(summary, f"Acquisitions through the pipeline: {'fake estimator' if fake else model}"))
         typer.echo(json.dumps(summary, indent=2))

@@ -16,6 +16,7 @@ independently of any model.
 from __future__ import annotations
 
 from collections import defaultdict
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -123,7 +124,11 @@ def score(results: list[dict], prepared: list[PreparedStack], truth: list[NDArra
         mid, half = ((inside.min() + inside.max()) / 2.0, max((inside.max() - inside.min()) / 2.0, 1.0)) if len(inside) \
             else ((n - 1) / 2.0, max((n - 1) / 2.0, 1.0))
         times = np.asarray(sim.times, dtype=np.float64)
-        into.add(ed=e, ed_min=np.minimum(e, e_tw), ed_network=ed(network, true),
+        # The slice's true motion: how far the truth lies from where the stack's mean rigid pose puts it.
+        moved = sim.atlas_from_voxel @ np.linalg.inv(sim.volume.affine)              # [n] atlas_from_scanner
+        still = se3.frechet_mean(moved) @ np.linalg.inv(moved) @ true
+        into.add(ed=e, ed_min=np.minimum(e, e_tw), ed_network=ed(network, true), moved_mm=ed(final, network), motion_mm=ed(true, still),
+                 stack=np.full(n, len(into.columns["ed"])),
                  ed_network_min=twin.twin_min_ed(network, true, plane_x_mm),
                  right_branch=(e <= e_tw) | (ed(true, tw) < DISTINGUISHABLE_MM),
                  variance=[s["geodesic_variance"] or np.inf for s in res["slices"]],
@@ -181,13 +186,15 @@ def summarise(sc: Scored) -> dict:
 
 def evaluate_acquisitions(volumes: list, estimator, rng: np.random.Generator, levels: tuple[str, ...] = tuple(MOTION_LEVELS),  # noqa: ANN001
                           per_volume: int = 1, mc_samples: int = 100, bias_correction: bool = True,
-                          told: tuple[str, ...] = (), **sim: float) -> dict[str, dict]:
+                          told: tuple[str, ...] = (), slices: Path | None = None, **sim: float) -> dict[str, dict]:
     """Score ``per_volume`` acquisitions of each of ``volumes`` (objects with ``image``, ``mask``,
     ``affine``) at each motion level; returns :func:`summarise` per level. Each of ``told``
     (``slice_order`` values, e.g. ``interleaved``: what the simulation acquires) adds a row per
-    level, ``"<level>, told <order>"``, scored on the same network poses."""
+    level, ``"<level>, told <order>"``, scored on the same network poses. ``slices``: also write every
+    per-slice column of every row to this ``.npz`` (keys ``"<row>/<column>"``; ``stack`` numbers the
+    stacks of a row), for analyses the summary does not make."""
     plane = estimator.info.symmetry_plane_x_mm
-    out = {}
+    out, columns = {}, {}
     orders = (None, *told)
     for level in levels:
         scored = [Scored() for _ in orders]
@@ -198,7 +205,11 @@ def evaluate_acquisitions(volumes: list, estimator, rng: np.random.Generator, le
                 for res, sc in zip(results, scored):
                     score(res, prepared, truth, stacks, plane, sc)
         for order, sc in zip(orders, scored):
-            out[level if order is None else f"{level}, told {order}"] = summarise(sc)
+            row = level if order is None else f"{level}, told {order}"
+            out[row] = summarise(sc)
+            columns.update({f"{row}/{key}": sc.array(key) for key in sc.columns})
+    if slices is not None:
+        np.savez_compressed(slices, **columns)
     return out
 
 

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
-import locale
+import multiprocessing
 import zipfile
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -48,13 +49,11 @@ def test_unknown_content_is_415(tmp_path: Path) -> None:
 
 
 def _write_series(folder: Path, vol: Volume, series_uid: str, times: list[str] | None = None) -> list[Path]:
-    """One DICOM file per slice (SimpleITK's GDCM writer; it leaves the process in the C locale,
-    which is put back here so that later tests read text as before)."""
-    before = locale.setlocale(locale.LC_ALL, None)
-    try:
-        return _write_series_files(folder, vol, series_uid, times)
-    finally:
-        locale.setlocale(locale.LC_ALL, before)
+    """One DICOM file per slice, written by SimpleITK's GDCM writer in a child process: the writer
+    calls ``setlocale`` (leaving the C locale behind), which is not thread-safe, and the test process
+    has other threads (servers, job runners) that must never see the locale change under them."""
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        return pool.submit(_write_series_files, folder, vol, series_uid, times).result()
 
 
 def _write_series_files(folder: Path, vol: Volume, series_uid: str, times: list[str] | None) -> list[Path]:

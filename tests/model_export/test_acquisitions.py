@@ -29,12 +29,13 @@ def test_every_voxel_shows_the_atlas_at_its_true_position() -> None:
             assert want.max() > 0.2 * img.max()
 
 
-def test_pipeline_with_a_twin_confused_estimator_per_motion_level() -> None:
+def test_pipeline_with_a_twin_confused_estimator_per_motion_level(tmp_path) -> None:  # noqa: ANN001
     img, mask, aff = BRAIN
     vol = type("V", (), {"image": img, "mask": mask, "affine": aff})
     est = NoisyTwinEstimator(INFO, np.random.default_rng(1))
     out = evaluate_acquisitions([vol], est, np.random.default_rng(2), per_volume=2, mc_samples=20,
-                                bias_correction=False, told=("interleaved",), size=64, pixel_mm=1.6)
+                                bias_correction=False, told=("interleaved",), size=64, pixel_mm=1.6,
+                                slices=tmp_path / "slices.npz")
     for level in ("mild", "moderate"):
         s = out[level]
         # >= 99 % is the target on the validation volumes (model_export/reports/acquisitions.md); this
@@ -48,6 +49,14 @@ def test_pipeline_with_a_twin_confused_estimator_per_motion_level() -> None:
         assert set(s["ed_by_depth"]) == {"centre", "middle", "outer"} and np.isfinite(list(s["ed_by_time"].values())).all()
         told = out[f"{level}, told interleaved"]                 # the same network poses, the stage told the order
         assert told["ed_network"] == s["ed_network"] and told["right_branch"] >= 0.97, (level, told)
+    with np.load(tmp_path / "slices.npz") as cols:          # every slice of every row, as the summary saw it
+        for row in out:
+            keep = cols[f"{row}/mask_pixels"] >= 20
+            assert keep.sum() == out[row]["slices"] and cols[f"{row}/ed"][keep].mean() == out[row]["ed"]["mean"]
+            assert len(np.unique(cols[f"{row}/stack"])) == 3 * 2                  # 3 stacks x 2 acquisitions
+            assert np.all(cols[f"{row}/moved_mm"] >= 0)
+            motion = {lv: np.median(cols[f"{lv}/motion_mm"]) for lv in ("mild", "moderate", "extreme")}
+            assert 0 < motion["mild"] < motion["moderate"] < motion["extreme"], motion
     report = markdown(out, "phantom")
     assert report.count("| mild, told interleaved |") == 2 and "along the normal" in report
     ex = out["extreme"]
