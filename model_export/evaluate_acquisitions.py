@@ -127,7 +127,10 @@ def score(results: list[dict], prepared: list[PreparedStack], truth: list[NDArra
         # The slice's true motion: how far the truth lies from where the stack's mean rigid pose puts it.
         moved = sim.atlas_from_voxel @ np.linalg.inv(sim.volume.affine)              # [n] atlas_from_scanner
         still = se3.frechet_mean(moved) @ np.linalg.inv(moved) @ true
-        into.add(ed=e, ed_min=np.minimum(e, e_tw), ed_network=ed(network, true), moved_mm=ed(final, network), motion_mm=ed(true, still),
+        # The motion the stage fitted: how far it put each slice from its rigid stack pose.
+        rigid = stage.get("pooled_atlas_from_scanner") or stage.get("atlas_from_scanner")
+        fitted = ed(final, np.asarray(rigid) @ sim.volume.affine @ inv) if rigid is not None else np.full(n, np.nan)
+        into.add(ed=e, ed_min=np.minimum(e, e_tw), ed_network=ed(network, true), moved_mm=ed(final, network), motion_mm=ed(true, still), fitted_motion_mm=fitted,
                  stack=np.full(n, len(into.columns["ed"])),
                  ed_network_min=twin.twin_min_ed(network, true, plane_x_mm),
                  right_branch=(e <= e_tw) | (ed(true, tw) < DISTINGUISHABLE_MM),

@@ -57,6 +57,9 @@ def test_pipeline_with_a_twin_confused_estimator_per_motion_level(tmp_path) -> N
             assert np.all(cols[f"{row}/moved_mm"] >= 0)
             motion = {lv: np.median(cols[f"{lv}/motion_mm"]) for lv in ("mild", "moderate", "extreme")}
             assert 0 < motion["mild"] < motion["moderate"] < motion["extreme"], motion
+            fitted = {lv: np.median(cols[f"{lv}/fitted_motion_mm"]) for lv in ("mild", "moderate")}
+            assert fitted["mild"] < fitted["moderate"] < 2 * motion["moderate"], (fitted, motion)
+            assert np.isnan(cols["extreme/fitted_motion_mm"]).all()                # undecidable: no rigid fit
     report = markdown(out, "phantom")
     assert report.count("| mild, told interleaved |") == 2 and "along the normal" in report
     ex = out["extreme"]
