@@ -35,7 +35,7 @@ from model_export.stream import SliceStream, label_sample, validation_set
 from service.geometry import anchors, encodings, se3
 from service.geometry.twin import POINT_LABELS, twin
 
-__all__ = ["TrainConfig", "train", "predict_poses", "pose_errors", "validation_set", "totals", "hardware"]
+__all__ = ["TrainConfig", "train", "stream_seed", "predict_poses", "pose_errors", "validation_set", "totals", "hardware"]
 
 LEGACY_HARDWARE = "2-core shared CPU (earlier sessions)"
 
@@ -104,6 +104,20 @@ def totals(history: list[dict]) -> dict:
         d["hours"] += seg["seconds"] / 3600
     return {"samples": sum(d["samples"] for d in by.values()), "hours": sum(d["hours"] for d in by.values()),
             "by_hardware": by}
+
+
+def stream_seed(seed: int, samples_seen: int) -> int:
+    """The training stream's seed for a run that starts (or resumes) after ``samples_seen`` samples.
+
+    Every stage and every resume draws new slices: a stage started from a checkpoint must not replay
+    the stream an earlier stage already trained on (before 2.7.0 every ``--init`` stage restarted
+    the same stream, so their samples repeated).
+
+    Example:
+        >>> stream_seed(0, 0) == stream_seed(0, 0), stream_seed(0, 0) == stream_seed(0, 64)
+        (True, False)
+    """
+    return int(np.random.SeedSequence([seed, samples_seen]).generate_state(1)[0])
 
 
 def prior_history(ck: dict) -> list[dict]:
@@ -225,7 +239,9 @@ def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resu
     val = validation_set(cfg.val_volumes, root, cfg.val_per_volume,
                          config=SimulationConfig.validation(size=sim.size, pixel_mm=sim.pixel_mm))
 
-    stream = SliceStream(cfg.train_volumes, root, sim, cfg.label_type, cfg.batch, cfg.reuse, cfg.pool, cfg.seed + step)
+    seed = stream_seed(cfg.seed, totals(history)["samples"] + base["samples"])
+    segment["stream_seeds"] = [*segment.get("stream_seeds", []), seed]
+    stream = SliceStream(cfg.train_volumes, root, sim, cfg.label_type, cfg.batch, cfg.reuse, cfg.pool, seed)
     loader = iter(DataLoader(stream, batch_size=None, num_workers=cfg.workers, prefetch_factor=4 if cfg.workers else None,
                              persistent_workers=cfg.workers > 0, pin_memory=device.type == "cuda"))
     log_path = out_dir / "log.csv"

@@ -99,6 +99,9 @@ def test_training_compounds_on_any_device(device: str, packed: Path, tmp_path: P
     train(stage, tmp_path / "b", packed, resume=tmp_path / "b" / "last.pt", progress=False)
     done = torch.load(tmp_path / "b" / "last.pt", weights_only=False)
     assert done["step"] == 3 and len(done["history"]) == 2
+    # Every start draws its own slices: the stage's start and its resume, and the first stage.
+    seeds = [first["history"][-1]["stream_seeds"][0], *done["history"][-1]["stream_seeds"]]
+    assert len(seeds) == 3 and len(set(seeds)) == 3, seeds
     assert done["samples_seen"] == 64 + 3 * 16
     assert done["train_seconds"] == pytest.approx(sum(s["seconds"] for s in done["history"]))
     log = (tmp_path / "b" / "log.csv").read_text().splitlines()
