@@ -66,6 +66,8 @@ def read_dicom_file(path: Path, filename: str, budget: FileBudget) -> Volume:
 
 def _orientation(item) -> tuple[np.ndarray, np.ndarray]:  # noqa: ANN001 - a pydicom dataset
     iop = np.asarray(item.ImageOrientationPatient, dtype=np.float64)
+    if iop.shape != (6,) or not np.isfinite(iop).all():
+        raise ValueError(f"ImageOrientationPatient holds {iop.size} values, not 6 finite numbers")
     return iop[:3], iop[3:]
 
 
