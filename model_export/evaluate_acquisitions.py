@@ -124,13 +124,11 @@ def score(results: list[dict], prepared: list[PreparedStack], truth: list[NDArra
         mid, half = ((inside.min() + inside.max()) / 2.0, max((inside.max() - inside.min()) / 2.0, 1.0)) if len(inside) \
             else ((n - 1) / 2.0, max((n - 1) / 2.0, 1.0))
         times = np.asarray(sim.times, dtype=np.float64)
-        # The slice's true motion: how far the truth lies from where the stack's mean rigid pose puts it.
-        moved = sim.atlas_from_voxel @ np.linalg.inv(sim.volume.affine)              # [n] atlas_from_scanner
-        still = se3.frechet_mean(moved) @ np.linalg.inv(moved) @ true
         # The motion the stage fitted: how far it put each slice from its rigid stack pose.
         rigid = stage.get("pooled_atlas_from_scanner") or stage.get("atlas_from_scanner")
         fitted = ed(final, np.asarray(rigid) @ sim.volume.affine @ inv) if rigid is not None else np.full(n, np.nan)
-        into.add(ed=e, ed_min=np.minimum(e, e_tw), ed_network=ed(network, true), moved_mm=ed(final, network), motion_mm=ed(true, still), fitted_motion_mm=fitted,
+        into.add(ed=e, ed_min=np.minimum(e, e_tw), ed_network=ed(network, true), moved_mm=ed(final, network),
+                 motion_mm=true_motion_mm(sim.atlas_from_voxel, sim.volume.affine, true), fitted_motion_mm=fitted,
                  stack=np.full(n, len(into.columns["ed"])),
                  ed_network_min=twin.twin_min_ed(network, true, plane_x_mm),
                  right_branch=(e <= e_tw) | (ed(true, tw) < DISTINGUISHABLE_MM),
@@ -143,6 +141,21 @@ def score(results: list[dict], prepared: list[PreparedStack], truth: list[NDArra
                  tilt_deg=parts["tilt_deg"], twist_deg=parts["twist_deg"], centre_mm=parts["centre_mm"],
                  off_plane_mm=parts["off_plane_mm"], depth=np.abs(k - mid) / half,
                  time=(times - times.min()) / max(float(np.ptp(times)), 1.0))
+
+
+def true_motion_mm(atlas_from_voxel: NDArray, scanner_from_voxel: NDArray, poses: NDArray) -> NDArray:
+    """Each slice's true motion: the E.D. between its pose ``poses[k]`` (network frame -> atlas) and
+    where the stack's mean rigid placement (the Frechet mean of the slices' atlas_from_scanner) would
+    put it.
+
+    Example:
+        >>> a = np.stack([np.eye(4)] * 4); a[0, 0, 3] = 8.0          # slice 0 moved 8 mm along x
+        >>> true_motion_mm(a, np.eye(4), a).round(1).tolist()
+        [6.0, 2.0, 2.0, 2.0]
+    """
+    atlas_from_scanner = atlas_from_voxel @ np.linalg.inv(scanner_from_voxel)
+    still = se3.frechet_mean(atlas_from_scanner) @ np.linalg.inv(atlas_from_scanner) @ poses
+    return ed(poses, still)
 
 
 def summarise(sc: Scored) -> dict:

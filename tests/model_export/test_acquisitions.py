@@ -55,13 +55,39 @@ def test_pipeline_with_a_twin_confused_estimator_per_motion_level(tmp_path) -> N
             assert keep.sum() == out[row]["slices"] and cols[f"{row}/ed"][keep].mean() == out[row]["ed"]["mean"]
             assert len(np.unique(cols[f"{row}/stack"])) == 3 * 2                  # 3 stacks x 2 acquisitions
             assert np.all(cols[f"{row}/moved_mm"] >= 0)
-            motion = {lv: np.median(cols[f"{lv}/motion_mm"]) for lv in ("mild", "moderate", "extreme")}
-            assert 0 < motion["mild"] < motion["moderate"] < motion["extreme"], motion
-            fitted = {lv: np.median(cols[f"{lv}/fitted_motion_mm"]) for lv in ("mild", "moderate")}
-            assert fitted["mild"] < fitted["moderate"] < 2 * motion["moderate"], (fitted, motion)
-            assert np.isnan(cols["extreme/fitted_motion_mm"]).all()                # undecidable: no rigid fit
+        motion = {lv: np.median(cols[f"{lv}/motion_mm"]) for lv in ("mild", "moderate", "extreme")}
+        assert 0 < motion["mild"] < motion["moderate"] < motion["extreme"], motion
+        fitted = {lv: np.median(cols[f"{lv}/fitted_motion_mm"]) for lv in ("mild", "moderate")}
+        assert fitted["mild"] < fitted["moderate"] < 2 * motion["moderate"], (fitted, motion)
+        assert np.isnan(cols["extreme/fitted_motion_mm"]).all()                    # undecidable: no rigid fit
     report = markdown(out, "phantom")
     assert report.count("| mild, told interleaved |") == 2 and "along the normal" in report
     ex = out["extreme"]
     assert ex["decidable_stacks"] == 0.0
     assert ex["ed_min"]["mean"] == ex["ed_network_min"]["mean"]                  # no slice made worse
+
+
+def test_true_motion_is_the_distance_from_the_stacks_mean_rigid_placement() -> None:
+    """A stack whose slices share one placement has no motion; when one slice of six turns about its
+    own centre, it carries most of the turn and the others only the mean's small share."""
+    from model_export.evaluate_acquisitions import true_motion_mm
+    from service.geometry import anchors, se3
+
+    rng = np.random.default_rng(3)
+    scanner_from_voxel = np.diag([0.8, 0.8, 3.0, 1.0])
+    atlas_from_scanner = se3.exp(np.r_[rng.normal(size=3) * 0.3, rng.normal(size=3) * 5.0])
+    voxel_from_network = np.stack([np.eye(4)] * 6)
+    voxel_from_network[:, 2, 3] = np.arange(6)
+    poses = atlas_from_scanner @ scanner_from_voxel @ voxel_from_network          # network frame -> atlas
+    atlas_from_voxel = np.stack([atlas_from_scanner @ scanner_from_voxel] * 6)
+    np.testing.assert_allclose(true_motion_mm(atlas_from_voxel, scanner_from_voxel, poses), 0.0, atol=1e-9)
+    turn = poses[2] @ se3.exp(np.r_[np.deg2rad(6.0), 0.0, 0.0, 0.0, 0.0, 0.0]) @ np.linalg.inv(poses[2])
+    moved = poses.copy()
+    moved[2] = turn @ poses[2]
+    moved_voxel = atlas_from_voxel.copy()
+    moved_voxel[2] = turn @ atlas_from_voxel[2]
+    got = true_motion_mm(moved_voxel, scanner_from_voxel, moved)
+    whole = anchors.ed(moved[2:3], poses[2:3])[0]                       # the turn itself, at the anchors
+    assert whole > 3.0
+    assert 0.75 * whole < got[2] < whole                                # less the mean's share (about 1/6)
+    assert np.all(got[[0, 1, 3, 4, 5]] < 0.3 * whole), (got, whole)
