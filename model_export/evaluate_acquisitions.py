@@ -125,8 +125,8 @@ def score(results: list[dict], prepared: list[PreparedStack], truth: list[NDArra
             else ((n - 1) / 2.0, max((n - 1) / 2.0, 1.0))
         times = np.asarray(sim.times, dtype=np.float64)
         # The motion the stage fitted: how far it put each slice from its rigid stack pose.
-        rigid = stage.get("pooled_atlas_from_scanner") or stage.get("atlas_from_scanner")
-        fitted = ed(final, np.asarray(rigid) @ sim.volume.affine @ inv) if rigid is not None else np.full(n, np.nan)
+        rigid = rigid_poses(stage, sim.volume.affine, inv)
+        fitted = ed(final, rigid) if rigid is not None else np.full(n, np.nan)
         into.add(ed=e, ed_min=np.minimum(e, e_tw), ed_network=ed(network, true), moved_mm=ed(final, network),
                  motion_mm=true_motion_mm(sim.atlas_from_voxel, sim.volume.affine, true), fitted_motion_mm=fitted,
                  stack=np.full(n, len(into.columns["ed"])),
@@ -141,6 +141,13 @@ def score(results: list[dict], prepared: list[PreparedStack], truth: list[NDArra
                  tilt_deg=parts["tilt_deg"], twist_deg=parts["twist_deg"], centre_mm=parts["centre_mm"],
                  off_plane_mm=parts["off_plane_mm"], depth=np.abs(k - mid) / half,
                  time=(times - times.min()) / max(float(np.ptp(times)), 1.0))
+
+
+def rigid_poses(report: dict, scanner_from_voxel: NDArray, voxel_from_network: NDArray) -> NDArray | None:
+    """Each slice's pose ``[n, 4, 4]`` (network frame -> atlas) under the rigid placement the stage
+    reported for its stack (pooled across stacks when it was); None where the stack was undecidable."""
+    rigid = report.get("pooled_atlas_from_scanner") or report.get("atlas_from_scanner")
+    return None if rigid is None else np.asarray(rigid) @ scanner_from_voxel @ voxel_from_network
 
 
 def true_motion_mm(atlas_from_voxel: NDArray, scanner_from_voxel: NDArray, poses: NDArray) -> NDArray:

@@ -91,3 +91,25 @@ def test_true_motion_is_the_distance_from_the_stacks_mean_rigid_placement() -> N
     assert whole > 3.0
     assert 0.75 * whole < got[2] < whole                                # less the mean's share (about 1/6)
     assert np.all(got[[0, 1, 3, 4, 5]] < 0.3 * whole), (got, whole)
+
+
+def test_the_stages_rigid_placement_is_the_stacks_true_mean_placement() -> None:
+    """With nearly exact network poses (1 deg / 1 mm, either twin), each stack's reported rigid
+    placement, composed with the file's geometry and the service's crop, lands every slice where the
+    stack's true mean placement puts it: the composition behind ``fitted_motion_mm``."""
+    from model_export.evaluate_acquisitions import rigid_poses, run_acquisition
+    from service.geometry import anchors, se3, twin
+
+    img, mask, aff = BRAIN
+    stacks = simulate_acquisition(img, mask, aff, np.random.default_rng(4), "mild", size=64, pixel_mm=1.6)
+    est = NoisyTwinEstimator(INFO, np.random.default_rng(5), noise_deg=1.0, noise_mm=1.0, other_twin_fraction=0.0)
+    (results,), prepared, truth = run_acquisition(stacks, est, mc_samples=20, bias_correction=False)
+    for res, p, sim, true in zip(results, prepared, stacks, truth):
+        rigid = rigid_poses(res["consistency"], sim.volume.affine, np.linalg.inv(p.network_from_voxel()))
+        assert rigid is not None
+        atlas_from_scanner = sim.atlas_from_voxel @ np.linalg.inv(sim.volume.affine)
+        still = se3.frechet_mean(atlas_from_scanner) @ sim.volume.affine @ np.linalg.inv(p.network_from_voxel())
+        np.testing.assert_allclose(still, se3.frechet_mean(atlas_from_scanner) @ np.linalg.inv(atlas_from_scanner) @ true,
+                                   atol=1e-6)                                    # the same placement, two ways
+        err = np.minimum(anchors.ed(rigid, still), anchors.ed(rigid, twin.twin(still, INFO.symmetry_plane_x_mm)))
+        assert np.median(err) < 1.0, (sim.orientation, err)         # the slices themselves move ~3 mm (mild)
