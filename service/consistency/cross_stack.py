@@ -1,8 +1,8 @@
 """The stacks of one request, pooled: one fetus position shared as far as their fits agree.
 
-Every decidable stack ``s`` of a request gives its own rigid ``atlas_from_scanner`` ``A_s`` (the
-stack fit, :mod:`service.consistency.stack_fit`) with a standard error ``v_s`` per coordinate (its
-GLS variance under the motion model). The stacks share the scanner frame: where the fetus did not
+Every decidable stack ``s`` of a request gives its own placement ``A_s`` (where the stack fit,
+:mod:`service.consistency.stack_fit`, puts it on average over its acquisition) with a standard
+error ``v_s`` per coordinate (from the posterior of its motion model). The stacks share the scanner frame: where the fetus did not
 move between them they estimate one position, and their average is more precise than any of them
 (the rigid offset of a stack is most of what is left of its error after the stage).
 
@@ -53,18 +53,20 @@ class PooledStacks:
         sd_mm: ``[S]`` standard error of each stack's pooled position per coordinate (mm).
         tau_mm: the spread of the fetus's position between stacks beyond their errors (mm per
             coordinate; 0: one position).
+        kept: ``[S]`` the share of each stack's own position in its pooled one (0: the common one).
     """
 
     corrections: NDArray[np.float64]
     sd_mm: NDArray[np.float64]
     tau_mm: float
+    kept: NDArray[np.float64] | None = None
 
 
 def pool_stacks(atlas_from_scanner: ArrayLike, sd_mm: ArrayLike, centres: ArrayLike) -> PooledStacks:
     """Random-effects pooling of the stacks' rigid fits (module docstring).
 
     Args:
-        atlas_from_scanner: ``[S, 4, 4]`` each stack's rigid fit.
+        atlas_from_scanner: ``[S, 4, 4]`` each stack's placement.
         sd_mm: ``[S]`` their standard errors per coordinate (mm).
         centres: ``[S, 3]`` the stacks' centres (scanner mm): rotations are linearised about their mean.
             (``sd_mm`` were measured about each stack's own centre; for the stacks of one brain, a
@@ -77,7 +79,7 @@ def pool_stacks(atlas_from_scanner: ArrayLike, sd_mm: ArrayLike, centres: ArrayL
     v = np.maximum(np.asarray(sd_mm, dtype=np.float64), 1e-6) ** 2
     n = len(a)
     if n < 2:
-        return PooledStacks(np.repeat(np.eye(4)[None], n, 0), np.sqrt(v), 0.0)
+        return PooledStacks(np.repeat(np.eye(4)[None], n, 0), np.sqrt(v), 0.0, np.ones(n))
     centre = np.asarray(centres, dtype=np.float64).mean(axis=0)
     y = to_coordinates(a, a[0], centre)                                   # [S, 6] mm
     w = 1.0 / v
@@ -92,4 +94,4 @@ def pool_stacks(atlas_from_scanner: ArrayLike, sd_mm: ArrayLike, centres: ArrayL
     post = mu + keep[:, None] * (y - mu)
     post_var = keep * v + (1.0 - keep) ** 2 * mu_var
     corrections = from_coordinates(post, a[0], centre) @ se3.inverse(a)
-    return PooledStacks(corrections, np.sqrt(post_var), float(np.sqrt(tau2)))
+    return PooledStacks(corrections, np.sqrt(post_var), float(np.sqrt(tau2)), keep)

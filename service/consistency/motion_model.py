@@ -78,9 +78,12 @@ class MotionFit:
         error_correlation: correlation of neighbouring slices' network errors it preferred.
         sd_mm: ``[n]`` posterior spread of each slice's motion (E.D.-like mm).
         model_sd_mm: ``[n]`` spread of the others' prediction of each slice (E.D.-like mm).
-        offset_sd_mm: standard error of the rigid offset per coordinate (mm; its GLS variance).
-        offset_share: ``[n]`` how much of that variance is in each slice's posterior (``sd_mm^2`` is
-            ``3 (motion part + offset_share offset_sd_mm^2)``).
+        placement: ``4 x 4`` the stack's mean placement: ``rigid`` moved by the posterior motion
+            averaged over all its slices (where the stack was over its acquisition; the rigid fit
+            itself is a robust centre of the proposals, off that mean when the fetus moved).
+        placement_sd_mm: its standard error per coordinate (mm).
+        placement_cov: ``[n]`` covariance (mm^2 per coordinate) of each slice's posterior error with
+            the placement's error (how much of a slice's error the stack's position carries).
     """
 
     poses: NDArray[np.float64]
@@ -92,8 +95,9 @@ class MotionFit:
     error_correlation: float
     sd_mm: NDArray[np.float64]
     model_sd_mm: NDArray[np.float64]
-    offset_sd_mm: float = float("nan")
-    offset_share: NDArray[np.float64] | None = None
+    placement: NDArray[np.float64] | None = None
+    placement_sd_mm: float = float("nan")
+    placement_cov: NDArray[np.float64] | None = None
 
 
 def to_coordinates(proposals: NDArray, rigid: NDArray, centre: NDArray) -> NDArray[np.float64]:
@@ -183,19 +187,22 @@ def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dic
     alpha = c_inv @ yv                                                                      # [m, 6]
     k_all = a2 * corr[ci][:, vote]                                                          # [n, m]
     post = k_all @ alpha                                                                    # motion at each slice
-    # the spread includes that of the offset: the rigid fit is an estimate too (its GLS variance)
+    # the posterior covariance of the motion at every slice, with that of the offset: the rigid fit
+    # is an estimate too (its GLS variance; the universal-kriging form)
     offset_var = 1.0 / max(float(c_inv.sum()), 1e-12)
-    share = (1.0 - k_all @ c_inv.sum(1)) ** 2
-    post_var = a2 - np.einsum("nm,mk,nk->n", k_all, c_inv, k_all) + share * offset_var
+    g = 1.0 - k_all @ c_inv.sum(1)
+    post_cov = a2 * corr[ci] - k_all @ c_inv @ k_all.T + offset_var * np.outer(g, g)          # [n, n]
+    post_var = np.diagonal(post_cov).copy()
     own_var = scales[gi] * np.asarray(noise_mm, dtype=np.float64)[vote] ** 2 / 3.0
     loo_y, loo_var = post.copy(), post_var.copy()
     inv_diag = np.diagonal(c_inv)
     loo_y[vote] = yv - alpha / inv_diag[:, None]                                            # closed-form leave-one-out
     loo_var[vote] = 1.0 / inv_diag - own_var                                                # less its own error
+    placement = from_coordinates(post.mean(axis=0, keepdims=True), rigid, centre)[0]
     return MotionFit(from_coordinates(post, rigid, centre), from_coordinates(loo_y, rigid, centre), order,
                      float(length), float(np.sqrt(a2)), float(grid.noise_scales[gi]), float(grid.error_correlations[ri]),
                      np.sqrt(3.0 * np.maximum(post_var, 0.0)), np.sqrt(3.0 * np.maximum(loo_var, 0.0)),
-                     float(np.sqrt(offset_var)), share)
+                     placement, float(np.sqrt(max(post_cov.mean(), 0.0))), post_cov.mean(axis=1))
 
 
 def refit(fit: MotionFit, proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dict[str, NDArray],

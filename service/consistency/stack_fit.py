@@ -96,7 +96,9 @@ class StackFit:
         inconsistent: ``[n]`` slices whose own pose disagreed with the stack model.
         residual_mm: ``[n]`` E.D. between the network's pose (on its branch) and the model's.
         decidable: False where the slices do not agree on one stack (nothing was changed).
-        atlas_from_scanner: ``4 x 4`` rigid fit (``None`` when undecidable).
+        atlas_from_scanner: ``4 x 4`` the stack's placement: where its slices were on average over
+            the acquisition (the robust rigid fit moved by the mean of the fitted motion; the rigid
+            fit alone where undecidable, not reported).
         inlier_fraction: fraction of usable slices the stack model explains (not inconsistent).
         acquisition_order: the order chosen (``sequential``, ``interleaved-even-first``, ...).
         bandwidth: length of the motion model in acquisitions (``inf``: rigid, no motion needed).
@@ -105,10 +107,10 @@ class StackFit:
             stack (under :data:`MIN_STACK_BRANCH_MARGIN`: this stack does not decide its branch).
         expected_mm: ``[n]`` expected E.D. of each returned pose: the motion model's posterior
             spread, the rigid fit's own included (``None`` when undecidable).
-        offset_sd_mm: standard error of ``atlas_from_scanner`` per coordinate (mm: translations, and
-            rotation vectors times :data:`~service.geometry.anchors.ANCHOR_HALF_SIZE_MM`).
+        placement_sd_mm: standard error of ``atlas_from_scanner`` per coordinate (mm: translations,
+            and rotation vectors times :data:`~service.geometry.anchors.ANCHOR_HALF_SIZE_MM`).
         centre: ``[3]`` the stack's centre in scanner mm (its rotations are linearised about it).
-        offset_share: ``[n]`` the part of ``offset_sd_mm^2`` in each slice's ``expected_mm^2 / 3``.
+        placement_cov: ``[n]`` covariance of each slice's error with the placement's (mm^2 per coordinate).
     """
 
     poses: NDArray[np.float64]
@@ -124,9 +126,9 @@ class StackFit:
     model_mm: float = float("nan")
     branch_margin: float = float("nan")
     expected_mm: NDArray[np.float64] | None = None
-    offset_sd_mm: float = float("nan")
+    placement_sd_mm: float = float("nan")
     centre: NDArray[np.float64] | None = None
-    offset_share: NDArray[np.float64] | None = None
+    placement_cov: NDArray[np.float64] | None = None
 
     @property
     def branch_decided(self) -> bool:
@@ -233,9 +235,9 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
                         motion.length, network_mm, model_mm)
     final_votes = np.where(use & ~inconsistent, np.where(np.isfinite(votes), votes, sig), NO_VOTE)
     final = refit(motion, chosen, s, final_votes, orders, centre)
-    return StackFit(final.poses @ inv_n, branch == 1, inconsistent, r_loo, True, s, fraction, final.order,
-                    final.length, network_mm, model_mm, margin, final.sd_mm, final.offset_sd_mm, centre,
-                    final.offset_share)
+    return StackFit(final.poses @ inv_n, branch == 1, inconsistent, r_loo, True, final.placement, fraction, final.order,
+                    final.length, network_mm, model_mm, margin, final.sd_mm, final.placement_sd_mm, centre,
+                    final.placement_cov)
 
 
 def _branch_margin(proposals: NDArray, cand: NDArray, branch: NDArray, inv_n: NDArray, w: NDArray,

@@ -126,3 +126,35 @@ def test_only_stacks_that_decided_their_branch_are_pooled():
     assert not reports[2]["decidable"] and reports[2].get("stacks_pooled") is None
     assert np.array_equal(outs[2].poses, untouched)
     assert [r.get("stacks_pooled") for r in reports[:2]] == [2, 2]
+
+
+def test_stacks_that_moved_within_themselves_keep_exact_poses_when_pooled():
+    """Three stacks of one fetus position, each moving by up to 20 deg / 8 mm over its interleaved
+    acquisition (zero mean), every slice pose exact: what is pooled is each stack's mean placement,
+    which the three share, so pooling moves the poses by less than 0.1 mm (measured 0.11 -> 0.18 mm
+    mean E.D.). Pooling the stacks' robust rigid fits instead, each off its stack's mean where the
+    fetus moved, cost 0.4 mm here (0.11 -> 0.51) and 1.5 mm on simulated acquisitions."""
+    rng = np.random.default_rng(13)
+    atlas_from_scanner = make_pose(se3.so3_exp(np.array([0.3, -0.6, 0.2])), [4.0, 6.0, -8.0])
+    centre = np.array([2.0, -3.0, 1.0])
+    frames = [np.eye(3), np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]), np.array([[0, 0, 1.0], [1, 0, 0], [0, 1, 0]])]
+    outs, truths = [], []
+    for rot in frames:
+        n = 24
+        t = np.r_[np.arange(0, n, 2), np.arange(1, n, 2)].argsort() / (n - 1)       # interleaved times, 0..1
+        xi = sum(rng.normal(0, 1, 6)[None] / f * np.sin(np.pi * f * t[:, None] + rng.uniform(0, 2 * np.pi, 6))
+                 for f in (1, 2, 3))
+        xi -= xi.mean(axis=0)
+        xi[:, :3] *= np.radians(20.0) / np.linalg.norm(xi[:, :3], axis=1).max()
+        xi[:, 3:] *= 8.0 / np.linalg.norm(xi[:, 3:], axis=1).max()
+        moved = make_pose(np.eye(3), centre) @ se3.exp(xi) @ make_pose(np.eye(3), -centre)
+        nfs = np.stack([se3.inverse(make_pose(rot, centre + rot[:, 2] * 3.0 * (k - n / 2))) for k in range(n)])
+        truth = atlas_from_scanner @ moved @ se3.inverse(nfs)
+        outs.append(consistent_poses(truth, np.zeros(n), nfs, np.eye(4), np.ones(n, bool), 0.0, np.full(n, 0.35)))
+        truths.append(truth)
+    assert all(o.fit.decidable and o.fit.bandwidth < np.inf for o in outs)         # the motion was followed
+    before = np.mean([anchors.ed(o.poses, t).mean() for o, t in zip(outs, truths)])
+    reports = pool_request(outs)
+    after = np.mean([anchors.ed(o.poses, t).mean() for o, t in zip(outs, truths)])
+    assert [r["stacks_pooled"] for r in reports] == [3, 3, 3]
+    assert before < 0.2 and after - before < 0.1
