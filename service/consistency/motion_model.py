@@ -61,6 +61,8 @@ ERROR_CORRELATION_SLICES = 1.5
 NO_VOTE = np.inf
 """Expected error of a slice that must not vote (empty, degenerate, rejected): it only receives."""
 JITTER = 1e-6
+MIN_MODEL_WEIGHT = 1e-3
+"""Hyper-parameter combinations with less posterior weight than this are left out of the average."""
 
 
 @dataclass
@@ -157,6 +159,13 @@ def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dic
     error). Whitened by ``W_r`` it is ``a^2 W K W^T + g^2 I``: one eigendecomposition per (order,
     length, error correlation) gives the likelihood of every amplitude and noise scale at once.
 
+    The poses are averaged over the grid, each combination weighed by its marginal likelihood (a
+    uniform prior over the grid; combinations under :data:`MIN_MODEL_WEIGHT` left out), and their
+    spreads include the combinations' disagreement. Choosing the single most likely combination
+    made the result jump where two are nearly as likely: a 2 % change of every slice's expected
+    error moved the mean E.D. of 10 moderate acquisitions by 0.3 mm. The returned hyper-parameters
+    (``order``, ``length``, ...) are those of the most likely combination.
+
     Args:
         proposals: ``[n, 4, 4]`` each slice's ``atlas_from_scanner`` (on its branch).
         rigid: ``4 x 4`` the robust rigid fit the proposals are linearised at.
@@ -182,22 +191,42 @@ def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dic
     ci, ri, ai, gi = (int(i) for i in np.unravel_index(int(np.argmin(nll)), nll.shape))
     order, length = combos[ci]
     a2 = amps[ai]
-    wu = np.swapaxes(w[ri], 0, 1) @ u[ci, ri]                                               # C^-1 = wu diag(1/ev) wu^T
-    c_inv = (wu / ev[ci, ri, ai, gi]) @ wu.T
-    alpha = c_inv @ yv                                                                      # [m, 6]
-    k_all = a2 * corr[ci][:, vote]                                                          # [n, m]
-    post = k_all @ alpha                                                                    # motion at each slice
-    # the posterior covariance of the motion at every slice, with that of the offset: the rigid fit
-    # is an estimate too (its GLS variance; the universal-kriging form)
-    offset_var = 1.0 / max(float(c_inv.sum()), 1e-12)
-    g = 1.0 - k_all @ c_inv.sum(1)
-    post_cov = a2 * corr[ci] - k_all @ c_inv @ k_all.T + offset_var * np.outer(g, g)          # [n, n]
+    noise = np.asarray(noise_mm, dtype=np.float64)[vote]
+
+    def posterior(c: int, r: int, a: int, g: int) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+        """Posterior mean ``[n, 6]`` and covariance ``[n, n]`` of the motion, leave-one-out means and variances."""
+        wu = np.swapaxes(w[r], 0, 1) @ u[c, r]                                              # C^-1 = wu diag(1/ev) wu^T
+        c_inv = (wu / ev[c, r, a, g]) @ wu.T
+        alpha = c_inv @ yv                                                                  # [m, 6]
+        k_all = amps[a] * corr[c][:, vote]                                                  # [n, m]
+        post = k_all @ alpha                                                                # motion at each slice
+        # with the offset's covariance: the rigid fit is an estimate too (its GLS variance; the
+        # universal-kriging form)
+        offset_var = 1.0 / max(float(c_inv.sum()), 1e-12)
+        h = 1.0 - k_all @ c_inv.sum(1)
+        cov = amps[a] * corr[c] - k_all @ c_inv @ k_all.T + offset_var * np.outer(h, h)     # [n, n]
+        loo_y, loo_var = post.copy(), np.diagonal(cov).copy()
+        inv_diag = np.diagonal(c_inv)
+        loo_y[vote] = yv - alpha / inv_diag[:, None]                                        # closed-form leave-one-out
+        loo_var[vote] = 1.0 / inv_diag - scales[g] * noise ** 2 / 3.0                      # less its own error
+        return post, cov, loo_y, loo_var
+
+    if nll.size > 1:                         # Bayesian model averaging over the grid
+        weight = np.exp(-(nll - nll.min()))
+        weight /= weight.sum()
+        picked = np.argwhere(weight >= MIN_MODEL_WEIGHT)
+        parts = [posterior(*idx) for idx in picked]
+        wts = weight[tuple(picked.T)] / weight[tuple(picked.T)].sum()
+        post = np.einsum("k,knd->nd", wts, np.stack([p[0] for p in parts]))
+        loo_y = np.einsum("k,knd->nd", wts, np.stack([p[2] for p in parts]))
+        d = np.stack([p[0] for p in parts]) - post[None]
+        dl = np.stack([p[2] for p in parts]) - loo_y[None]
+        post_cov = (np.einsum("k,knm->nm", wts, np.stack([p[1] for p in parts]))
+                    + np.einsum("k,knd,kmd->nm", wts, d, d) / 6.0)
+        loo_var = np.einsum("k,kn->n", wts, np.stack([p[3] for p in parts]) + (dl ** 2).mean(-1))
+    else:
+        post, post_cov, loo_y, loo_var = posterior(ci, ri, ai, gi)
     post_var = np.diagonal(post_cov).copy()
-    own_var = scales[gi] * np.asarray(noise_mm, dtype=np.float64)[vote] ** 2 / 3.0
-    loo_y, loo_var = post.copy(), post_var.copy()
-    inv_diag = np.diagonal(c_inv)
-    loo_y[vote] = yv - alpha / inv_diag[:, None]                                            # closed-form leave-one-out
-    loo_var[vote] = 1.0 / inv_diag - own_var                                                # less its own error
     placement = from_coordinates(post.mean(axis=0, keepdims=True), rigid, centre)[0]
     return MotionFit(from_coordinates(post, rigid, centre), from_coordinates(loo_y, rigid, centre), order,
                      float(length), float(np.sqrt(a2)), float(grid.noise_scales[gi]), float(grid.error_correlations[ri]),
@@ -207,6 +236,6 @@ def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dic
 
 def refit(fit: MotionFit, proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dict[str, NDArray],
           centre: NDArray) -> MotionFit:
-    """:func:`fit_motion` with the hyper-parameters ``fit`` chose (other votes, other branches)."""
+    """:func:`fit_motion` with the most likely hyper-parameters of ``fit`` alone (other votes, other branches)."""
     grid = Grid((fit.length,), (fit.amplitude_mm,), (fit.noise_scale,), (fit.error_correlation,))
     return fit_motion(proposals, rigid, noise_mm, {fit.order: times[fit.order]}, centre, grid)

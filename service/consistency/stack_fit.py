@@ -19,10 +19,11 @@ Steps (all slices at once, numpy only):
    estimate from neighbouring slices), follow a smooth motion; the acquisition order (sequential
    or interleaved), the motion's length (down to rigid) and amplitude, and how much neighbouring
    slices' network errors are alike, are chosen by the marginal likelihood.
-4. **Fusion and consistency**: each slice's pose becomes the model's posterior mean (its own
-   proposal weighed against the others' by their errors); a slice whose own pose disagrees with
-   the others' prediction beyond what both spreads explain is *inconsistent*: it does not vote
-   and takes the prediction. When fewer than :data:`MIN_INLIER_FRACTION` of the slices agree, or
+4. **Fusion and consistency**: a slice whose own pose disagrees with the others' prediction
+   beyond what both spreads explain is *inconsistent*: it does not vote and takes the prediction;
+   with the remaining votes every motion model is fitted again, and each slice's pose becomes the
+   posterior mean averaged over the models (its own proposal weighed against the others' by their
+   errors). When fewer than :data:`MIN_INLIER_FRACTION` of the slices agree, or
    the model's spread exceeds :data:`MAX_MODEL_ERROR_MM`, the stack is *undecidable* and nothing
    is changed.
 
@@ -234,7 +235,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
         return StackFit(p.copy(), np.zeros(n, bool), np.zeros(n, bool), r_loo, False, s, fraction, motion.order,
                         motion.length, network_mm, model_mm)
     final_votes = np.where(use & ~inconsistent, np.where(np.isfinite(votes), votes, sig), NO_VOTE)
-    final = refit(motion, chosen, s, final_votes, orders, centre)
+    final = fit_motion(chosen, s, final_votes, orders, centre)             # every model again, averaged
     return StackFit(final.poses @ inv_n, branch == 1, inconsistent, r_loo, True, final.placement, fraction, final.order,
                     final.length, network_mm, model_mm, margin, final.sd_mm, final.placement_sd_mm, centre,
                     final.placement_cov)
