@@ -2,9 +2,10 @@
 
 Every decidable stack ``s`` of a request gives its own placement ``A_s`` (where the stack fit,
 :mod:`service.consistency.stack_fit`, puts it on average over its acquisition) with a standard
-error ``v_s`` per coordinate (from the posterior of its motion model). The stacks share the scanner frame: where the fetus did not
-move between them they estimate one position, and their average is more precise than any of them
-(the rigid offset of a stack is most of what is left of its error after the stage).
+error ``v_s`` per coordinate (from the posterior of its motion model). The stacks share the scanner
+frame: where the fetus did not move between them they estimate one position, and their average is
+more precise than any of them (the rigid offset of a stack is most of what is left of its error
+after the stage).
 
 Between stacks the fetus may have moved, so the pooling is a random-effects model (DerSimonian and
 Laird, 1986), in the stage's coordinates (rotation vectors at the anchor radius and translations,
@@ -63,7 +64,7 @@ class PooledStacks:
 
 
 def pool_stacks(atlas_from_scanner: ArrayLike, sd_mm: ArrayLike, centres: ArrayLike) -> PooledStacks:
-    """Random-effects pooling of the stacks' rigid fits (module docstring).
+    """Random-effects pooling of the stacks' placements (module docstring).
 
     Args:
         atlas_from_scanner: ``[S, 4, 4]`` each stack's placement.
