@@ -44,7 +44,9 @@ class SliceResult(BaseModel):
 class StackConsistency(BaseModel):
     decidable: bool = Field(description="false when the slices do not agree on one stack: poses left as the network gave them")
     atlas_from_scanner: Optional[Mat] = Field(
-        None, description="4x4 robust rigid fit: the stack's scanner RAS mm -> atlas RAS mm (the file's own geometry)")
+        None, description="4x4 the stack's placement: scanner RAS mm -> atlas RAS mm (the file's own geometry) where "
+                          "its slices were on average over the acquisition (the robust rigid fit moved by the mean "
+                          "of the fitted motion)")
     inlier_fraction: float = Field(description="share of the usable slices the rigid fit explains")
     twinned_slices: int = Field(description="slices moved to the twin of the network's branch")
     inconsistent_slices: int = Field(description="slices whose network pose disagreed with the stack model")
