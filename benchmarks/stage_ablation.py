@@ -43,6 +43,7 @@ from service.inference.estimator import OnnxPoseEstimator, PoseEstimate  # noqa:
 from service.inference.model_file import load_model  # noqa: E402
 from service.inference.pipeline import predict  # noqa: E402
 
+
 class Recording:
     """The ONNX estimator, keeping its last estimate."""
 
