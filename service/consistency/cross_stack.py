@@ -60,7 +60,7 @@ class PooledStacks:
     corrections: NDArray[np.float64]
     sd_mm: NDArray[np.float64]
     tau_mm: float
-    kept: NDArray[np.float64] | None = None
+    kept: NDArray[np.float64]
 
 
 def pool_stacks(atlas_from_scanner: ArrayLike, sd_mm: ArrayLike, centres: ArrayLike) -> PooledStacks:

@@ -214,7 +214,7 @@ def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dic
     if nll.size > 1:                         # Bayesian model averaging over the grid
         weight = np.exp(-(nll - nll.min()))
         weight /= weight.sum()
-        picked = np.argwhere(weight >= MIN_MODEL_WEIGHT)
+        picked = np.argwhere((weight >= MIN_MODEL_WEIGHT) | (weight == weight.max()))   # the most likely always
         parts = [posterior(*idx) for idx in picked]
         wts = weight[tuple(picked.T)] / weight[tuple(picked.T)].sum()
         post = np.einsum("k,knd->nd", wts, np.stack([p[0] for p in parts]))
