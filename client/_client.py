@@ -15,7 +15,7 @@ import json
 import os
 import secrets
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Union
 from urllib.parse import quote
@@ -24,17 +24,15 @@ import httpx
 
 from client.errors import ConnectionFailed, JobFailed, SVRnetError, WaitTimeout, error_from_response, \
     parse_retry_after
+from client.multipart import CHUNK, MultipartBody, ProgressCallback, form_value, order_fields
 
 __all__ = ["SVRnetClient", "DEFAULT_SERVER", "DEFAULT_TIMEOUT", "ProgressCallback", "PathLike"]
 
 PathLike = Union[str, "os.PathLike[str]"]
-ProgressCallback = Callable[[int, int], None]
-"""``progress(bytes_sent, total)``, called after every chunk of an upload (or download)."""
 
 DEFAULT_SERVER = "http://127.0.0.1:8000"
 DEFAULT_TIMEOUT = httpx.Timeout(connect=5.0, read=300.0, write=300.0, pool=5.0)
 MAX_RETRY_SLEEP_S = 30.0
-CHUNK = 256 * 1024
 TERMINAL = ("succeeded", "failed", "cancelled")
 _NO_RETRY_TRANSPORT = (httpx.ReadTimeout, httpx.WriteTimeout, httpx.UnsupportedProtocol)
 
@@ -49,81 +47,6 @@ except Exception:  # noqa: BLE001 - not installed as a distribution
 def _sleep(seconds: float) -> None:
     """``time.sleep``; a seam for tests."""
     time.sleep(seconds)
-
-
-def _quote_param(value: str) -> str:
-    """Escape a ``Content-Disposition`` parameter the way browsers do (HTML5 form encoding)."""
-    return value.replace("\\", "\\\\").replace('"', "%22").replace("\r", "%0D").replace("\n", "%0A")
-
-
-def _order_fields(slice_order: str | Sequence[str] | None) -> list[tuple[str, str]]:
-    """The repeated ``slice_order`` form field: one value for every stack, or one per stack."""
-    orders = [slice_order] if isinstance(slice_order, str) else list(slice_order or [])
-    return [("slice_order", str(o)) for o in orders]
-
-
-class _Multipart:
-    """A ``multipart/form-data`` body streamed from disk in chunks, with a known length.
-
-    Each :meth:`chunks` call yields the whole body again (so a retry can resend it) and reports
-    ``progress(bytes_sent, total)`` after every chunk.
-    """
-
-    def __init__(self, fields: Sequence[tuple[str, str]],
-                 files: Sequence[tuple[str, str, Path | bytes, str]]) -> None:
-        self.boundary = secrets.token_hex(16)
-        self.parts: list[tuple[bytes, Path | bytes | None]] = []
-        for name, value in fields:
-            head = (f"--{self.boundary}\r\nContent-Disposition: form-data; name=\"{_quote_param(name)}\""
-                    f"\r\n\r\n{value}\r\n")
-            self.parts.append((head.encode(), None))
-        for name, filename, source, content_type in files:
-            head = (f"--{self.boundary}\r\nContent-Disposition: form-data; name=\"{_quote_param(name)}\"; "
-                    f"filename=\"{_quote_param(filename)}\"\r\nContent-Type: {content_type}\r\n\r\n")
-            self.parts.append((head.encode(), source))
-        self.closing = f"--{self.boundary}--\r\n".encode()
-        self.total = len(self.closing)
-        for head, source in self.parts:
-            self.total += len(head)
-            if source is not None:
-                size = len(source) if isinstance(source, bytes) else Path(source).stat().st_size
-                self.total += size + 2
-
-    @property
-    def content_type(self) -> str:
-        return f"multipart/form-data; boundary={self.boundary}"
-
-    def chunks(self, progress: ProgressCallback | None = None) -> Iterator[bytes]:
-        sent = 0
-
-        def emit(data: bytes) -> bytes:
-            nonlocal sent
-            sent += len(data)
-            if progress is not None:
-                progress(sent, self.total)
-            return data
-
-        if progress is not None:
-            progress(0, self.total)
-        for head, source in self.parts:
-            yield emit(head)
-            if source is None:
-                continue
-            if isinstance(source, bytes):
-                for i in range(0, len(source), CHUNK):
-                    yield emit(source[i:i + CHUNK])
-            else:
-                with open(source, "rb") as fh:
-                    while data := fh.read(CHUNK):
-                        yield emit(data)
-            yield emit(b"\r\n")
-        yield emit(self.closing)
-
-
-def _form_value(value: object) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    return str(value)
 
 
 class SVRnetClient:
@@ -193,7 +116,7 @@ class SVRnetClient:
         delay = retry_after if retry_after is not None else self.backoff_s * 2 ** attempt
         return min(max(delay, 0.0), MAX_RETRY_SLEEP_S)
 
-    def _send(self, method: str, path: str, *, body: _Multipart | None = None,
+    def _send(self, method: str, path: str, *, body: MultipartBody | None = None,
               progress: ProgressCallback | None = None, stream: bool = False,
               params: Mapping[str, str] | None = None) -> httpx.Response:
         """Send with retries; returns a successful response (still open when ``stream``), or raises."""
@@ -357,12 +280,12 @@ class SVRnetClient:
             >>> r["stacks"][0]["slices"][0]["atlas_from_voxel"]                                     # doctest: +SKIP
             [[...], [...], [...], [0, 0, 0, 1]]
         """
-        fields = [(k, _form_value(v)) for k, v in (("mc_samples", mc_samples),
+        fields = [(k, form_value(v)) for k, v in (("mc_samples", mc_samples),
                                                    ("variance_threshold", variance_threshold),
                                                    ("bias_correction", bias_correction), ("model", model))
                   if v is not None]
-        fields += _order_fields(slice_order)
-        body = _Multipart(fields, self._files(stacks, masks))
+        fields += order_fields(slice_order)
+        body = MultipartBody(fields, self._files(stacks, masks))
         return self._json(self._send("POST", "/v1/predict", body=body, progress=progress))
 
     def reconstruct(self, stacks: Sequence[PathLike], masks: Sequence[PathLike] | None = None,
@@ -395,12 +318,12 @@ class SVRnetClient:
             ...     svr.wait(job["job_id"])
             ...     svr.download_volume(job["job_id"], "recon.nii.gz")
         """
-        fields = [(k, _form_value(v)) for k, v in (("resolution_mm", resolution_mm),
+        fields = [(k, form_value(v)) for k, v in (("resolution_mm", resolution_mm),
                                                    ("svr_iterations", svr_iterations),
                                                    ("mc_samples", mc_samples),
                                                    ("variance_threshold", variance_threshold),
                                                    ("atlas_frame", atlas_frame)) if v is not None]
-        fields += _order_fields(slice_order)
+        fields += order_fields(slice_order)
         files: list[tuple[str, str, Path | bytes, str]] = list(self._files(stacks, masks))
         if poses is not None:
             if isinstance(poses, Mapping):
@@ -410,7 +333,7 @@ class SVRnetClient:
                 if not path.is_file():
                     raise FileNotFoundError(f"poses: no such file: {path}")
                 files.append(("poses", path.name, path, "application/json"))
-        response = self._send("POST", "/v1/reconstructions", body=_Multipart(fields, files), progress=progress)
+        response = self._send("POST", "/v1/reconstructions", body=MultipartBody(fields, files), progress=progress)
         body = self._json(response)
         if isinstance(body, dict):
             location = response.headers.get("location")
