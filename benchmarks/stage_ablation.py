@@ -13,7 +13,12 @@ slices with >= 20 mask pixels, against the truth and twin-min):
   distribution, no correlation between neighbours; its spread travels with it);
 * ``tails cut at X mm``: a slice whose error exceeds X mm gets the error of a random slice of
   its stack below X (are the outer planes' large errors the limit?);
-* ``errors x F``: every error scaled by F on the SE(3) log (how accurate must the network be?).
+* ``errors x F``: every error scaled by F on the SE(3) log (how accurate must the network be?);
+* ``exact acquisition order``: the network's poses as given, the stage told each stack's true
+  order (is choosing the order the limit?).
+
+Below the table, the network's own errors by depth: ``|Tz - middle| / half-extent`` of each slice
+against the brain's true extent along its normal (training planes reach 0.94 of it).
 
 An error is ``E = N^-1 M`` (network frame), ``M`` the network's pose and ``N`` the truth or its
 twin, whichever is nearer; an edited pose is ``N' E'`` with ``N'`` on the branch the network chose.
@@ -42,6 +47,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from model_export.acquisitions import simulate_acquisition  # noqa: E402
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, Scored, run_acquisition, score  # noqa: E402
+from service.consistency.slice_order import SliceOrder  # noqa: E402
 from service.geometry import se3, twin  # noqa: E402
 from service.geometry.anchors import ed  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator, PoseEstimate  # noqa: E402
@@ -114,6 +120,22 @@ def edited(est: PoseEstimate, truth: np.ndarray, stack: np.ndarray, plane: float
     return dataclasses.replace(est, mean=mean, spread_mm=spread)
 
 
+def exact_orders(stacks: list) -> list[SliceOrder]:
+    """Each stack's true acquisition order, as a request would give it (slice indices in time order)."""
+    return [SliceOrder.parse(",".join(str(int(k)) for k in np.argsort(s.times, kind="stable"))) for s in stacks]
+
+
+DEPTH_BANDS = ((0.0, 0.35), (0.35, 0.7), (0.7, 0.85), (0.85, 0.94), (0.94, np.inf))
+
+
+def true_depth(truth: np.ndarray, vol) -> np.ndarray:  # noqa: ANN001 - an AtlasVolume
+    """``|Tz - middle| / half-extent`` of each slice (network frame -> atlas poses) in ``vol``'s brain."""
+    normal = truth[:, :3, 2] / np.linalg.norm(truth[:, :3, 2], axis=1, keepdims=True)
+    lo, hi = vol.extent_along(normal)
+    tz = np.einsum("ij,ij->i", truth[:, :3, 3] - vol.centre, normal)
+    return np.abs(tz - (lo + hi) / 2.0) / ((hi - lo) / 2.0)
+
+
 def acquisitions(onnx: Recording, level: str, per_volume: int, seed: int, cache: Path | None) -> list[tuple]:
     """``(stacks, prepared, truth, estimate)`` of each simulated acquisition, from ``cache`` where it exists."""
     if cache is not None and cache.exists():
@@ -155,17 +177,26 @@ def main() -> None:
         "errors x 0.75": lambda e, t, s, r: edit(e, t, s, rng=r, factor=0.75),
         "errors x 0.5": lambda e, t, s, r: edit(e, t, s, rng=r, factor=0.5),
         "errors x 0.5, oracle weights": lambda e, t, s, r: edit(e, t, s, rng=r, factor=0.5, oracle_weights=True),
+        "exact acquisition order": lambda e, t, s, r: e,
     }
     rows = {k: v for k, v in rows.items() if not args.rows or k in args.rows}
     scored = {k: Scored() for k in rows}
     edit_rng = np.random.default_rng(args.seed + 1000)
-    for stacks, prepared, truth, est in acquisitions(onnx, args.level, args.per_volume, args.seed, args.cache):
+    volumes = load_volumes(split(DEFAULT_ATLAS_ROOT)[1], DEFAULT_ATLAS_ROOT)
+    depth, network_min = [], []
+    for i, (stacks, prepared, truth, est) in enumerate(acquisitions(onnx, args.level, args.per_volume, args.seed,
+                                                                    args.cache)):
         truth_all = np.concatenate(truth)
+        inside = np.concatenate([p.prepared.mask_pixels for p in prepared]) >= MIN_MASK_PIXELS
+        depth.append(true_depth(truth_all, volumes[i // args.per_volume])[inside])
+        network_min.append(twin.twin_min_ed(est.mean, truth_all, plane)[inside])
         # slices outside the brain keep their own errors (they are not scored)
         stack = np.concatenate([np.where(p.prepared.mask_pixels >= MIN_MASK_PIXELS, i, -1)
                                 for i, p in enumerate(prepared)])
         for name, row in rows.items():
-            res = predict(prepared, Fixed(info, row(est, truth_all, stack, edit_rng)), 100, info.variance_threshold)[0]
+            orders = exact_orders(stacks) if name == "exact acquisition order" else None
+            res = predict(prepared, Fixed(info, row(est, truth_all, stack, edit_rng)), 100, info.variance_threshold,
+                          orders=orders)[0]
             score(res, prepared, truth, stacks, plane, scored[name])
     print(f"{args.level} motion, the validation volumes x {args.per_volume} acquisitions; mean E.D. (mm) over "
           f"slices with >= {MIN_MASK_PIXELS} mask pixels")
@@ -176,6 +207,14 @@ def main() -> None:
         e, m = sc.array("ed")[keep], sc.array("ed_min")[keep]
         print(f"| {name} | {sc.array('ed_network_min')[keep].mean():.1f} | {e.mean():.2f} | {m.mean():.2f} | "
               f"{np.percentile(e, 90):.1f} |")
+    depth, network_min = np.concatenate(depth), np.concatenate(network_min)
+    print("\nThe network's own twin-min E.D. by depth (|Tz - middle| / half-extent of the brain along the normal):")
+    print("| depth | slices | network twin-min (mm) | share of the summed error |")
+    print("|---|---|---|---|")
+    for lo, hi in DEPTH_BANDS:
+        m = (depth >= lo) & (depth < hi)
+        print(f"| {lo:.2f}-{hi:.2f} | {100 * m.mean():.1f} % | {network_min[m].mean() if m.any() else np.nan:.1f} | "
+              f"{100 * network_min[m].sum() / network_min.sum():.1f} % |")
 
 
 if __name__ == "__main__":
