@@ -136,13 +136,15 @@ def true_depth(truth: np.ndarray, vol) -> np.ndarray:  # noqa: ANN001 - an Atlas
     return np.abs(tz - (lo + hi) / 2.0) / ((hi - lo) / 2.0)
 
 
-def acquisitions(onnx: Recording, level: str, per_volume: int, seed: int, cache: Path | None) -> list[tuple]:
-    """``(stacks, prepared, truth, estimate)`` of each simulated acquisition, from ``cache`` where it exists."""
+def acquisitions(onnx: Recording, volumes: list, level: str, per_volume: int, seed: int,
+                 cache: Path | None) -> list[tuple]:
+    """``(stacks, prepared, truth, estimate)`` of each simulated acquisition (``per_volume`` of each of
+    ``volumes``), from ``cache`` where it exists."""
     if cache is not None and cache.exists():
         with cache.open("rb") as f:
             return pickle.load(f)
     rng, out = np.random.default_rng(seed), []
-    for vol in load_volumes(split(DEFAULT_ATLAS_ROOT)[1], DEFAULT_ATLAS_ROOT):
+    for vol in volumes:
         for _ in range(per_volume):
             stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level)
             _, prepared, truth = run_acquisition(stacks, onnx)
@@ -184,8 +186,8 @@ def main() -> None:
     edit_rng = np.random.default_rng(args.seed + 1000)
     volumes = load_volumes(split(DEFAULT_ATLAS_ROOT)[1], DEFAULT_ATLAS_ROOT)
     depth, network_min = [], []
-    for i, (stacks, prepared, truth, est) in enumerate(acquisitions(onnx, args.level, args.per_volume, args.seed,
-                                                                    args.cache)):
+    for i, (stacks, prepared, truth, est) in enumerate(acquisitions(onnx, volumes, args.level, args.per_volume,
+                                                                    args.seed, args.cache)):
         truth_all = np.concatenate(truth)
         inside = np.concatenate([p.prepared.mask_pixels for p in prepared]) >= MIN_MASK_PIXELS
         depth.append(true_depth(truth_all, volumes[i // args.per_volume])[inside])
