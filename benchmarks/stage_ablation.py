@@ -129,7 +129,19 @@ DEPTH_BANDS = ((0.0, 0.35), (0.35, 0.7), (0.7, 0.85), (0.85, 0.94), (0.94, np.in
 
 
 def true_depth(truth: np.ndarray, vol) -> np.ndarray:  # noqa: ANN001 - an AtlasVolume
-    """``|Tz - middle| / half-extent`` of each slice (network frame -> atlas poses) in ``vol``'s brain."""
+    """``|Tz - middle| / half-extent`` of each slice (network frame -> atlas poses) in ``vol``'s brain.
+
+    Example (a brain filling x in 0..10 mm; planes normal to x at 5, 7.5 and 10 mm, each crossed at
+    another in-plane point, which does not change its depth):
+        >>> from model_export.atlas import AtlasVolume
+        >>> mask = np.ones((11, 3, 3), np.float32)
+        >>> vol = AtlasVolume("toy", "toy", mask, mask, np.eye(4))
+        >>> to_x = np.array([[0, 0, 1], [0, 1, 0], [-1, 0, 0]], float)      # network z -> atlas x
+        >>> poses = np.stack([np.eye(4)] * 3); poses[:, :3, :3] = to_x
+        >>> poses[:, :3, 3] = [[5, 1, 1], [7.5, 0, 2], [10, 2, 0]]
+        >>> true_depth(poses, vol).round(2).tolist()
+        [0.0, 0.5, 1.0]
+    """
     normal = truth[:, :3, 2] / np.linalg.norm(truth[:, :3, 2], axis=1, keepdims=True)
     lo, hi = vol.extent_along(normal)
     tz = np.einsum("ij,ij->i", truth[:, :3, 3] - vol.centre, normal)
