@@ -31,13 +31,13 @@ BANDS = ((0.0, 0.35), (0.35, 0.7), (0.7, 0.85), (0.85, 1.0))
 
 def relative_depth(poses: np.ndarray, names: list[str], volumes: dict) -> np.ndarray:
     """``|Tz - middle| / half-extent`` of each plane in its volume (0 = middle, 1 = the brain's edge)."""
-    out = []
-    for pose, name in zip(poses, names):
-        vol, normal = volumes[name], pose[:3, 2]
-        lo, hi = vol.extent_along(normal[None])
-        tz = (pose[:3, 3] - vol.centre) @ normal
-        out.append(abs(tz - (lo[0] + hi[0]) / 2) / ((hi[0] - lo[0]) / 2))
-    return np.array(out)
+    names = np.asarray(names)
+    out = np.empty(len(poses))
+    for name, vol in volumes.items():
+        mine = names == name
+        if mine.any():
+            out[mine] = vol.relative_depth(poses[mine])
+    return out
 
 
 def main() -> None:

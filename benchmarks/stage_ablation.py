@@ -128,26 +128,6 @@ def exact_orders(stacks: list) -> list[SliceOrder]:
 DEPTH_BANDS = ((0.0, 0.35), (0.35, 0.7), (0.7, 0.85), (0.85, 0.94), (0.94, np.inf))
 
 
-def true_depth(truth: np.ndarray, vol) -> np.ndarray:  # noqa: ANN001 - an AtlasVolume
-    """``|Tz - middle| / half-extent`` of each slice (network frame -> atlas poses) in ``vol``'s brain.
-
-    Example (a brain filling x in 0..10 mm; planes normal to x at 5, 7.5 and 10 mm, each crossed at
-    another in-plane point, which does not change its depth):
-        >>> from model_export.atlas import AtlasVolume
-        >>> mask = np.ones((11, 3, 3), np.float32)
-        >>> vol = AtlasVolume("toy", "toy", mask, mask, np.eye(4))
-        >>> to_x = np.array([[0, 0, 1], [0, 1, 0], [-1, 0, 0]], float)      # network z -> atlas x
-        >>> poses = np.stack([np.eye(4)] * 3); poses[:, :3, :3] = to_x
-        >>> poses[:, :3, 3] = [[5, 1, 1], [7.5, 0, 2], [10, 2, 0]]
-        >>> true_depth(poses, vol).round(2).tolist()
-        [0.0, 0.5, 1.0]
-    """
-    normal = truth[:, :3, 2] / np.linalg.norm(truth[:, :3, 2], axis=1, keepdims=True)
-    lo, hi = vol.extent_along(normal)
-    tz = np.einsum("ij,ij->i", truth[:, :3, 3] - vol.centre, normal)
-    return np.abs(tz - (lo + hi) / 2.0) / ((hi - lo) / 2.0)
-
-
 def acquisitions(onnx: Recording, volumes: list, level: str, per_volume: int, seed: int,
                  cache: Path | None) -> list[tuple]:
     """``(stacks, prepared, truth, estimate)`` of each simulated acquisition (``per_volume`` of each of
@@ -181,8 +161,9 @@ def main() -> None:
     info, plane = onnx.info, onnx.info.symmetry_plane_x_mm
     scale_mc = getattr(info, "mc_error_scale", 1.0)
     edit = functools.partial(edited, plane=plane, scale_mc=scale_mc)
+    same = lambda e, t, s, r: e  # noqa: E731
     rows: dict[str, Callable] = {
-        "network": lambda e, t, s, r: e,
+        "network": same,
         "oracle weights": lambda e, t, s, r: edit(e, t, s, rng=r, oracle_weights=True),
         "errors shuffled within stacks": lambda e, t, s, r: edit(e, t, s, rng=r, pick=shuffled),
         "errors x 0 (the truth)": lambda e, t, s, r: edit(e, t, s, rng=r, factor=0.0),
@@ -191,8 +172,9 @@ def main() -> None:
         "errors x 0.75": lambda e, t, s, r: edit(e, t, s, rng=r, factor=0.75),
         "errors x 0.5": lambda e, t, s, r: edit(e, t, s, rng=r, factor=0.5),
         "errors x 0.5, oracle weights": lambda e, t, s, r: edit(e, t, s, rng=r, factor=0.5, oracle_weights=True),
-        "exact acquisition order": lambda e, t, s, r: e,
+        "exact acquisition order": same,
     }
+    told = {"exact acquisition order": exact_orders}       # rows whose stage is told the stacks' orders
     rows = {k: v for k, v in rows.items() if not args.rows or k in args.rows}
     scored = {k: Scored() for k in rows}
     edit_rng = np.random.default_rng(args.seed + 1000)
@@ -202,13 +184,13 @@ def main() -> None:
                                                                     args.seed, args.cache)):
         truth_all = np.concatenate(truth)
         inside = np.concatenate([p.prepared.mask_pixels for p in prepared]) >= MIN_MASK_PIXELS
-        depth.append(true_depth(truth_all, volumes[i // args.per_volume])[inside])
+        depth.append(volumes[i // args.per_volume].relative_depth(truth_all)[inside])
         network_min.append(twin.twin_min_ed(est.mean, truth_all, plane)[inside])
         # slices outside the brain keep their own errors (they are not scored)
         stack = np.concatenate([np.where(p.prepared.mask_pixels >= MIN_MASK_PIXELS, i, -1)
                                 for i, p in enumerate(prepared)])
         for name, row in rows.items():
-            orders = exact_orders(stacks) if name == "exact acquisition order" else None
+            orders = told[name](stacks) if name in told else None
             res = predict(prepared, Fixed(info, row(est, truth_all, stack, edit_rng)), 100, info.variance_threshold,
                           orders=orders)[0]
             score(res, prepared, truth, stacks, plane, scored[name])

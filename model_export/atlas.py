@@ -62,6 +62,27 @@ class AtlasVolume:
         proj = (self.surface - self.centre) @ np.asarray(normals).T
         return proj.min(axis=0), proj.max(axis=0)
 
+    def relative_depth(self, poses: NDArray) -> NDArray[np.float64]:
+        """``|Tz - middle| / half-extent`` of planes ``poses [N, 4, 4]`` (plane frame -> atlas mm, the
+        plane's normal its third column, its origin on the plane) in this brain: 0 at the middle
+        along the normal, 1 at the brain's edge.
+
+        Example (a brain filling x in 0..10 mm; planes normal to x at 5, 7.5 and 10 mm, each
+        crossed at another in-plane point, which does not change its depth):
+            >>> mask = np.ones((11, 3, 3), np.float32)
+            >>> vol = AtlasVolume("toy", "toy", mask, mask, np.eye(4))
+            >>> poses = np.stack([np.eye(4)] * 3)
+            >>> poses[:, :3, :3] = [[0, 0, 1], [0, 1, 0], [-1, 0, 0]]          # plane z -> atlas x
+            >>> poses[:, :3, 3] = [[5, 1, 1], [7.5, 0, 2], [10, 2, 0]]
+            >>> vol.relative_depth(poses).round(2).tolist()
+            [0.0, 0.5, 1.0]
+        """
+        poses = np.asarray(poses, dtype=np.float64)
+        normal = poses[:, :3, 2] / np.linalg.norm(poses[:, :3, 2], axis=1, keepdims=True)
+        lo, hi = self.extent_along(normal)
+        tz = np.einsum("ij,ij->i", poses[:, :3, 3] - self.centre, normal)
+        return np.abs(tz - (lo + hi) / 2.0) / ((hi - lo) / 2.0)
+
 
 def list_volumes(root: Path = DEFAULT_ATLAS_ROOT) -> list[tuple[str, str, Path, Path]]:
     """``(name, population, t2_path, mask_path)`` of every atlas volume under ``root``.

@@ -215,15 +215,13 @@ def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dic
         weight = np.exp(-(nll - nll.min()))
         weight /= weight.sum()
         picked = np.argwhere((weight >= MIN_MODEL_WEIGHT) | (weight == weight.max()))   # the most likely always
-        parts = [posterior(*idx) for idx in picked]
+        posts, covs, loos, loo_vars = (np.stack(x) for x in zip(*(posterior(*idx) for idx in picked)))
         wts = weight[tuple(picked.T)] / weight[tuple(picked.T)].sum()
-        post = np.einsum("k,knd->nd", wts, np.stack([p[0] for p in parts]))
-        loo_y = np.einsum("k,knd->nd", wts, np.stack([p[2] for p in parts]))
-        d = np.stack([p[0] for p in parts]) - post[None]
-        dl = np.stack([p[2] for p in parts]) - loo_y[None]
-        post_cov = (np.einsum("k,knm->nm", wts, np.stack([p[1] for p in parts]))
-                    + np.einsum("k,knd,kmd->nm", wts, d, d) / 6.0)
-        loo_var = np.einsum("k,kn->n", wts, np.stack([p[3] for p in parts]) + (dl ** 2).mean(-1))
+        post = np.einsum("k,knd->nd", wts, posts)
+        loo_y = np.einsum("k,knd->nd", wts, loos)
+        d, dl = posts - post[None], loos - loo_y[None]                       # each model's departure
+        post_cov = np.einsum("k,knm->nm", wts, covs) + np.einsum("k,knd,kmd->nm", wts, d, d) / 6.0
+        loo_var = np.einsum("k,kn->n", wts, loo_vars + (dl ** 2).mean(-1))
     else:
         post, post_cov, loo_y, loo_var = posterior(ci, ri, ai, gi)
     post_var = np.diagonal(post_cov).copy()
