@@ -151,8 +151,33 @@ def _whiteners(sig: NDArray, correlations: tuple[float, ...]) -> tuple[NDArray[n
     return w, np.log(lam).sum(-1) + 2.0 * np.log(d).sum()
 
 
+def _whitened(sig: NDArray, shape: NDArray, cv: NDArray, correlations: tuple[float, ...]
+              ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """Per coordinate ``d`` (errors ``sig * sqrt(shape[:, d])``): the whiteners ``[6, r, m, m]``, their
+    ``log det`` ``[6, r]`` and the eigendecompositions ``[c, 6, r, m]``, ``[c, 6, r, m, m]`` of the
+    whitened motion correlations ``cv [c, m, m]``. A coordinate whose shape is the same for every
+    slice shares the decomposition of the unshaped errors (its eigenvalues divided by the factor)."""
+    def decompose(w: NDArray) -> tuple[NDArray, NDArray]:
+        lam, u = np.linalg.eigh(w[None] @ cv[:, None] @ np.swapaxes(w, 1, 2)[None] + JITTER * np.eye(len(sig)))
+        return np.maximum(lam, 0.0), u                                                      # [c, r, m], [c, r, m, m]
+
+    w0, logdet0 = _whiteners(sig, correlations)
+    lam0, u0 = decompose(w0)
+    parts = []
+    for col in shape.T:
+        if np.ptp(col) <= 1e-12 * col[0]:
+            v = float(col[0])
+            parts.append((w0 / np.sqrt(v), logdet0 + len(sig) * np.log(v), lam0 / v, u0))
+        else:
+            w, logdet = _whiteners(sig * np.sqrt(col), correlations)
+            parts.append((w, logdet, *decompose(w)))
+    w, logdet, lam, u = zip(*parts)
+    return np.stack(w), np.stack(logdet), np.stack(lam, axis=1), np.stack(u, axis=1)
+
+
 def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dict[str, NDArray],
-               centre: NDArray, grid: Grid = Grid()) -> MotionFit:
+               centre: NDArray, grid: Grid = Grid(), axes: NDArray | None = None,
+               noise_shape: NDArray | None = None) -> MotionFit:
     """Choose and apply the motion model of one stack (see the module docstring).
 
     The covariance of the voting slices' coordinates is ``a^2 K + g^2 E_r`` (motion plus network
@@ -173,42 +198,51 @@ def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dic
         times: candidate acquisition times ``{order: [n]}``.
         centre: the stack's centre in scanner mm (rotations are linearised about it).
         grid: the candidate hyper-parameters (:func:`refit` keeps those of an earlier fit).
+        axes: ``3 x 3`` the stack's slice axes (columns: in-plane x, y, normal) in scanner
+            coordinates; ``noise_shape`` is given along them.
+        noise_shape: ``[6]`` factors on the network's error variance per coordinate (rotation
+            about x, y, normal; translation along x, y, normal), mean 1; default all 1.
     """
+    q = np.eye(3) if axes is None else np.asarray(axes, dtype=np.float64)
     y = to_coordinates(proposals, rigid, centre)
+    y = np.concatenate([y[:, :3] @ q, y[:, 3:] @ q], axis=1)                                # along the stack's axes
     vote = np.isfinite(noise_mm)
     yv = y[vote]
+    noise = np.asarray(noise_mm, dtype=np.float64)[vote]
+    shape = np.broadcast_to(np.ones(6) if noise_shape is None else np.asarray(noise_shape, dtype=np.float64),
+                            (len(y), 6))[vote]                                              # [m, 6]
     combos, corr = _correlations(times, grid.lengths)
     cv = corr[:, vote][:, :, vote]                                                          # [c, m, m]
-    w, logdet_e = _whiteners(np.asarray(noise_mm, dtype=np.float64)[vote], grid.error_correlations)  # [r, m, m]
-    lam, u = np.linalg.eigh(w[None] @ cv[:, None] @ np.swapaxes(w, 1, 2)[None] + JITTER * np.eye(len(yv)))
-    lam = np.maximum(lam, 0.0)                                                              # [c, r, m]
-    yt = np.swapaxes(u, -1, -2) @ (w @ yv)[None]                                            # [c, r, m, 6]
+    w, logdet_e, lam, u = _whitened(noise, shape, cv, grid.error_correlations)
+    yt = (np.swapaxes(u, -1, -2) @ (w @ yv.T[:, None, :, None])[None])[..., 0]             # [c, 6, r, m]
     amps = np.asarray(grid.amplitudes_mm, dtype=np.float64) ** 2
     scales = np.asarray(grid.noise_scales, dtype=np.float64) ** 2
-    ev = amps[:, None, None] * lam[:, :, None, None] + scales[None, :, None]                # [c, r, a, g, m]
-    nll = (0.5 * np.einsum("crm,cragm->crag", (yt ** 2).sum(-1), 1.0 / ev)
-           + 3.0 * np.log(ev).sum(-1) + 3.0 * logdet_e[None, :, None, None])
+    ev = amps[:, None, None] * lam[:, :, :, None, None] + scales[:, None]                   # [c, 6, r, a, g, m]
+    nll = (0.5 * np.einsum("cdrm,cdragm->crag", yt ** 2, 1.0 / ev) + 0.5 * np.log(ev).sum((1, -1))
+           + 0.5 * logdet_e.sum(0)[None, :, None, None])
     ci, ri, ai, gi = (int(i) for i in np.unravel_index(int(np.argmin(nll)), nll.shape))
     order, length = combos[ci]
     a2 = amps[ai]
-    noise = np.asarray(noise_mm, dtype=np.float64)[vote]
 
     def posterior(c: int, r: int, a: int, g: int) -> tuple[NDArray, NDArray, NDArray, NDArray]:
-        """Posterior mean ``[n, 6]`` and covariance ``[n, n]`` of the motion, leave-one-out means and variances."""
-        wu = np.swapaxes(w[r], 0, 1) @ u[c, r]                                              # C^-1 = wu diag(1/ev) wu^T
-        c_inv = (wu / ev[c, r, a, g]) @ wu.T
-        alpha = c_inv @ yv                                                                  # [m, 6]
+        """Posterior mean ``[n, 6]`` and covariance ``[n, n]`` (the mean over the coordinates) of the
+        motion, leave-one-out means and variances."""
+        wu = np.swapaxes(w[:, r], -1, -2) @ u[c, :, r]                                      # C_d^-1 = wu_d diag(1/ev_d) wu_d^T
+        c_inv = (wu / ev[c, :, r, a, g][:, None, :]) @ np.swapaxes(wu, -1, -2)             # [6, m, m]
+        alpha = np.einsum("dmk,kd->md", c_inv, yv)                                         # [m, 6]
         k_all = amps[a] * corr[c][:, vote]                                                  # [n, m]
         post = k_all @ alpha                                                                # motion at each slice
         # with the offset's covariance: the rigid fit is an estimate too (its GLS variance; the
         # universal-kriging form)
-        offset_var = 1.0 / max(float(c_inv.sum()), 1e-12)
-        h = 1.0 - k_all @ c_inv.sum(1)
-        cov = amps[a] * corr[c] - k_all @ c_inv @ k_all.T + offset_var * np.outer(h, h)     # [n, n]
+        row = c_inv.sum(-1)                                                                 # [6, m]
+        offset_var = 1.0 / np.maximum(row.sum(-1), 1e-12)                                   # [6]
+        h = 1.0 - row @ k_all.T                                                             # [6, n]
+        cov = (amps[a] * corr[c] - k_all @ c_inv.mean(0) @ k_all.T
+               + (h.T * offset_var) @ h / 6.0)                                              # [n, n]
         loo_y, loo_var = post.copy(), np.diagonal(cov).copy()
-        inv_diag = np.diagonal(c_inv)
-        loo_y[vote] = yv - alpha / inv_diag[:, None]                                        # closed-form leave-one-out
-        loo_var[vote] = 1.0 / inv_diag - scales[g] * noise ** 2 / 3.0                      # less its own error
+        inv_diag = np.diagonal(c_inv, axis1=1, axis2=2).T                                   # [m, 6]
+        loo_y[vote] = yv - alpha / inv_diag                                                 # closed-form leave-one-out
+        loo_var[vote] = (1.0 / inv_diag - scales[g] * shape * noise[:, None] ** 2 / 3.0).mean(-1)   # less its own error
         return post, cov, loo_y, loo_var
 
     if nll.size > 1:                         # Bayesian model averaging over the grid
@@ -225,6 +259,8 @@ def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dic
     else:
         post, post_cov, loo_y, loo_var = posterior(ci, ri, ai, gi)
     post_var = np.diagonal(post_cov).copy()
+    post = np.concatenate([post[:, :3] @ q.T, post[:, 3:] @ q.T], axis=1)                   # back to scanner axes
+    loo_y = np.concatenate([loo_y[:, :3] @ q.T, loo_y[:, 3:] @ q.T], axis=1)
     placement = from_coordinates(post.mean(axis=0, keepdims=True), rigid, centre)[0]
     return MotionFit(from_coordinates(post, rigid, centre), from_coordinates(loo_y, rigid, centre), order,
                      float(length), float(np.sqrt(a2)), float(grid.noise_scales[gi]), float(grid.error_correlations[ri]),
@@ -233,7 +269,7 @@ def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dic
 
 
 def refit(fit: MotionFit, proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dict[str, NDArray],
-          centre: NDArray) -> MotionFit:
+          centre: NDArray, **kwargs: NDArray | None) -> MotionFit:
     """:func:`fit_motion` with the most likely hyper-parameters of ``fit`` alone (other votes, other branches)."""
     grid = Grid((fit.length,), (fit.amplitude_mm,), (fit.noise_scale,), (fit.error_correlation,))
-    return fit_motion(proposals, rigid, noise_mm, {fit.order: times[fit.order]}, centre, grid)
+    return fit_motion(proposals, rigid, noise_mm, {fit.order: times[fit.order]}, centre, grid, **kwargs)

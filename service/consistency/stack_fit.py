@@ -52,6 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from service.consistency.error_shape import anatomical_axes, stack_noise_shape
 from service.consistency.motion_model import NO_VOTE, Grid, MotionFit, fit_motion, refit
 from service.consistency.slice_order import acquisition_orders
 from service.geometry import se3, twin
@@ -139,7 +140,7 @@ class StackFit:
 
 def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLike | None = None,
               plane_x_mm: float = twin.DEFAULT_PLANE_X_MM, noise_mm: ArrayLike | None = None,
-              times: dict[str, NDArray] | None = None) -> StackFit:
+              times: dict[str, NDArray] | None = None, error_shape: ArrayLike | None = None) -> StackFit:
     """Make one stack's slice poses consistent (see the module docstring).
 
     Args:
@@ -156,6 +157,9 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
         times: candidate acquisition times ``{order: [n]}`` of the slices (default: every named
             order, :func:`~service.consistency.slice_order.acquisition_orders`; see
             :class:`~service.consistency.slice_order.SliceOrder` for an order the user gave).
+        error_shape: ``[6]`` the network's error variance per coordinate of its own frame (rotation
+            about x, y, normal; translation along x, y, normal), mean 1: the model's
+            ``mc_error_shape`` (:func:`model_export.spread.error_shape`). Default: alike in all.
     """
     p = np.asarray(poses, dtype=np.float64)
     nk = np.asarray(network_from_scanner, dtype=np.float64)
@@ -200,17 +204,24 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     #    stack from its twin, and a flexible motion model can bend to either order)
     orders = acquisition_orders(n) if times is None else times
     centre = inv_n[:, :3, 3].mean(axis=0)                                   # the slices' centre, scanner mm
+    axes = inv_n[idx[0], :3, :3]                                            # the stack's x, y, normal in scanner
+    axes = axes @ anatomical_axes(s[:3, :3] @ axes)                         # x along the brain's left-right
+    # the slices' offsets from the centre along the normal (their in-plane offsets, a few mm, left out:
+    # then only the two in-plane translations vary from slice to slice, and the other four share
+    # one eigendecomposition in the motion model; on 2.8.0's moderate outputs the same to 0.01 mm)
+    along = ((inv_n[:, :3, 3] - centre) @ axes) * [0.0, 0.0, 1.0]
+    shape = {"axes": axes, "noise_shape": None if error_shape is None else stack_noise_shape(error_shape, along)}
     on = np.arange(n)
     own, chosen = cand[on, branch], proposals[on, branch]                   # each slice on its branch
     if sig is None:
         noise2 = _neighbour_noise2(chosen, own, inv_n, on, inliers, float(np.median(r[inliers] ** 2)))
         sig = np.full(n, np.sqrt(max(noise2, MIN_NOISE_MM ** 2)))
     votes = np.where(inliers, sig / np.sqrt(np.maximum(tukey, 1e-12)), NO_VOTE)
-    motion = fit_motion(chosen, s, votes, orders, centre, FIRST_GRID)
+    motion = fit_motion(chosen, s, votes, orders, centre, FIRST_GRID, **shape)
     # a slice far from the rigid fit may just have moved: every usable slice is weighed again by
     # how well the others predict it, in units of the spread both errors explain
     votes = _votes(ed(motion.loo @ inv_n, own), motion, sig, use)
-    motion = fit_motion(chosen, s, votes, orders, centre)
+    motion = fit_motion(chosen, s, votes, orders, centre, **shape)
     first = branch
     branch = _branch(ed((motion.loo @ inv_n)[:, None], cand))
     margin = _branch_margin(proposals, cand, branch, inv_n, w, inliers)
@@ -219,7 +230,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
         s = se3.frechet_mean(proposals[on, branch], np.maximum(w, 1e-12), tol=MEAN_TOL_RAD)
     if not np.array_equal(branch, first):
         own, chosen = cand[on, branch], proposals[on, branch]
-        motion = refit(motion, chosen, s, votes, orders, centre)
+        motion = refit(motion, chosen, s, votes, orders, centre, **shape)
     r_loo = ed(motion.loo @ inv_n, own)
 
     # 4. consistency: a slice the others predict worse than both errors explain is inconsistent and
@@ -235,7 +246,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
         return StackFit(p.copy(), np.zeros(n, bool), np.zeros(n, bool), r_loo, False, s, fraction, motion.order,
                         motion.length, network_mm, model_mm)
     final_votes = np.where(use & ~inconsistent, np.where(np.isfinite(votes), votes, sig), NO_VOTE)
-    final = fit_motion(chosen, s, final_votes, orders, centre)             # every model again, averaged
+    final = fit_motion(chosen, s, final_votes, orders, centre, **shape)             # every model again, averaged
     return StackFit(final.poses @ inv_n, branch == 1, inconsistent, r_loo, True, final.placement, fraction, final.order,
                     final.length, network_mm, model_mm, margin, final.sd_mm, final.placement_sd_mm, centre,
                     final.placement_cov)

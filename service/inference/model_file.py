@@ -39,6 +39,9 @@ class ModelInfo:
     symmetry_plane_x_mm: float = DEFAULT_PLANE_X_MM
     mc_error_scale: float = 1.0
     """Calibration: expected E.D. of a pose = ``mc_error_scale`` x its MC spread (``PoseEstimate.spread_mm``)."""
+    mc_error_shape: tuple[float, ...] = (1.0,) * 6
+    """Calibration: the error's variance per coordinate of the network frame, mean 1 (rotation about
+    x, y, normal; translation along x, y, normal; :func:`model_export.spread.error_shape`)."""
     tta_views: int = 1
     """Test-time views the MC samples are shared among (:mod:`service.inference.views`); the variance
     threshold and ``mc_error_scale`` were calibrated with them."""
@@ -54,10 +57,21 @@ class ModelInfo:
                 atlas_id=meta.get("atlas_id", ""), trained_on=meta.get("training_data", ""), sha256=sha256,
                 symmetry_plane_x_mm=float(meta.get("symmetry_plane_x_mm", DEFAULT_PLANE_X_MM)),
                 mc_error_scale=float(meta.get("mc_error_scale", 1.0)), tta_views=int(meta.get("tta_views", 1)),
+                mc_error_shape=_shape(meta.get("mc_error_shape", "")),
                 metadata=dict(meta),
             )
         except (KeyError, ValueError) as exc:
             raise ValueError(f"model metadata incomplete or invalid: {exc}") from exc
+
+
+def _shape(text: str) -> tuple[float, ...]:
+    """``mc_error_shape`` from its metadata text (six comma-separated positive numbers; absent: all 1)."""
+    if not text:
+        return (1.0,) * 6
+    shape = tuple(float(x) for x in text.split(","))
+    if len(shape) != 6 or not all(x > 0 for x in shape):
+        raise ValueError(f"mc_error_shape must be six positive numbers, not {text!r}")
+    return shape
 
 
 def file_sha256(path: Path) -> str:

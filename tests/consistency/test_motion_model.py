@@ -169,3 +169,15 @@ def test_averaging_over_the_models_changes_the_poses_smoothly_with_the_expected_
         single.append(refit(fit, proposals, s, sd * f, orders, CENTRE).poses)
     step = lambda poses: max(ed(a, b).mean() for a, b in zip(poses[:-1], poses[1:]))  # noqa: E731
     assert step(averaged) < 0.6 * step(single)
+
+
+def test_rotating_the_axes_of_alike_errors_changes_nothing() -> None:
+    rng = np.random.default_rng(11)
+    s, truth = moving_stack(rng, 20.0, 8.0)
+    proposals = noisy(truth, rng, np.full(N, 6.0))
+    plain = fit_motion(proposals, s, np.full(N, 6.0), acquisition_orders(N), CENTRE)
+    turned = fit_motion(proposals, s, np.full(N, 6.0), acquisition_orders(N), CENTRE,
+                        axes=se3.so3_exp(np.array([0.4, -1.1, 0.7])), noise_shape=np.ones(6))
+    np.testing.assert_allclose(turned.poses, plain.poses, atol=1e-9)
+    np.testing.assert_allclose(turned.sd_mm, plain.sd_mm, rtol=1e-9)
+

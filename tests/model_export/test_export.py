@@ -159,3 +159,19 @@ def test_a_grid_model_exports_and_the_service_decodes_it(tmp_path: Path) -> None
         ref = model(torch.from_numpy(inputs(3))).double().numpy()
     det = OnnxPoseEstimator(m).sample_labels(inputs(3)[:, 0], 0)[:, 0]
     assert np.allclose(det, ref, atol=1e-3)
+
+
+def test_error_shape_metadata_round_trips_and_bad_values_are_refused(exported: tuple[SVRNet, Path], tmp_path: Path) -> None:
+    import shutil
+
+    from model_export.spread import write_metadata
+
+    path = tmp_path / "shaped.onnx"
+    shutil.copy(exported[1], path)
+    assert load_model(path).info.mc_error_shape == (1.0,) * 6              # not calibrated: alike in all
+    write_metadata(path, {"mc_error_shape": "3.8,0.5,0.2,0.03,0.13,1.3"})
+    assert load_model(path).info.mc_error_shape == (3.8, 0.5, 0.2, 0.03, 0.13, 1.3)
+    for bad in ("1,2,3", "1,1,1,1,1,0", "a,b,c,d,e,f"):
+        write_metadata(path, {"mc_error_shape": bad})
+        with pytest.raises(ValueError, match="metadata"):
+            load_model(path)

@@ -1,0 +1,102 @@
+"""The shape of the network's pose error: how it splits over a slice's six coordinates.
+
+A slice's tilt out of its plane and its position along its normal are far less certain than its
+twist and its position in the plane: the image pins what lies in the plane, not how the plane
+leans. Model 2.8.0 on the slices of simulated stacks, error variance per coordinate relative to
+its MC spread (mean 1): rotation about x / y / the normal 3.1 / 1.2 / 0.27 (mm at the anchor
+radius), translation along x / y / the normal 0.07 / 0.15 / 1.25. The stage
+(:mod:`service.consistency.motion_model`) weighs each coordinate by its own variance, so it
+follows the motion closely where the network is precise and smooths where it is not.
+
+The coordinates are those of :func:`error_coordinates`: a slice's frame turned about its normal
+so that x points along the brain's left-right axis (:func:`anatomical_axes`), because the
+brain's anatomy, not the scanner, makes the two tilts differ (a tilt about left-right, the head
+nodding, is the harder one: the mid-sagittal symmetry pins the other).
+
+Example (a plane whose x axis points front-back while left-right lies in its plane as y):
+    >>> import numpy as np
+    >>> plane = np.array([[0.0, 1, 0], [1, 0, 0], [0, 0, -1]])         # columns: x, y, normal (atlas)
+    >>> (plane @ anatomical_axes(plane)).round(6)[:, 0].tolist()        # x now along left-right
+    [1.0, 0.0, 0.0]
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from service.geometry import se3
+from service.geometry.anchors import ANCHOR_HALF_SIZE_MM
+
+MIN_IN_PLANE = 0.5
+"""A plane in which the left-right axis has a shorter projection than this (within 30 deg of
+sagittal) is turned to the front-back axis instead."""
+
+
+def anatomical_axes(plane_axes: ArrayLike) -> NDArray[np.float64]:
+    """``[..., 3, 3]`` rotations about the normal taking a plane's axes to anatomical ones.
+
+    ``plane_axes [..., 3, 3]``: columns x, y, normal of planes in atlas coordinates. The returned
+    ``R`` keeps the normal; ``plane_axes @ R`` has its x along the projection of the atlas
+    left-right axis on the plane, or of the front-back axis where the plane is near sagittal.
+    """
+    a = np.asarray(plane_axes, dtype=np.float64)
+    lr, ap = a[..., 0, :2], a[..., 1, :2]                      # atlas x and y in the plane's (x, y)
+    use = np.linalg.norm(lr, axis=-1, keepdims=True) >= MIN_IN_PLANE
+    d = np.where(use, lr, ap)
+    phi = np.arctan2(d[..., 1], d[..., 0])
+    c, s = np.cos(phi), np.sin(phi)
+    out = np.zeros(a.shape)
+    out[..., 0, 0], out[..., 0, 1], out[..., 1, 0], out[..., 1, 1], out[..., 2, 2] = c, -s, s, c, 1.0
+    return out
+
+
+def error_coordinates(pred: ArrayLike, true: ArrayLike) -> NDArray[np.float64]:
+    """``[n, 6]`` the error ``E = true^-1 pred`` of poses ``[n, 4, 4]`` (plane frame -> atlas) in
+    the anatomical axes of ``true``: rotation vector (mm at the anchor radius), translation (mm)."""
+    t = np.asarray(true, dtype=np.float64)
+    err = se3.inverse(t) @ np.asarray(pred, dtype=np.float64)
+    r = anatomical_axes(t[:, :3, :3])
+    rot = np.einsum("nji,nj->ni", r, se3.so3_log(err[:, :3, :3])) * ANCHOR_HALF_SIZE_MM
+    return np.concatenate([rot, np.einsum("nji,nj->ni", r, err[:, :3, 3])], axis=1)
+
+
+def error_shape(coordinates: ArrayLike, expected_mm: ArrayLike) -> NDArray[np.float64]:
+    """``[6]`` variance per coordinate of errors ``[n, 6]`` in units of their expected errors, mean 1.
+
+    Robust (``1.4826 x`` the median absolute value, squared): a slice the network cannot place is an
+    outlier the stage rejects, not part of the noise it weighs.
+
+    Example (errors ten times larger along the normal than in the plane):
+        >>> rng = np.random.default_rng(0)
+        >>> shape = error_shape(rng.normal(0, [1, 1, 1, 0.5, 0.5, 5.0], (4000, 6)), np.ones(4000))
+        >>> round(float(shape[5] / shape[3]), -1)
+        100.0
+    """
+    u = np.asarray(coordinates, dtype=np.float64) / np.asarray(expected_mm, dtype=np.float64)[:, None]
+    var = (se3.MAD_SCALE * np.median(np.abs(u), axis=0)) ** 2
+    return var / var.mean()
+
+
+def stack_noise_shape(slice_shape: ArrayLike, offsets_mm: ArrayLike) -> NDArray[np.float64]:
+    """``[n, 6]`` factors on each slice's error variance in a stack's coordinates (about its centre,
+    along its axes; see :func:`~service.consistency.motion_model.fit_motion`) from the network's
+    ``slice_shape [6]`` (about the slice's origin, along the same axes) and each slice origin's
+    ``offsets_mm [n, 3]`` from the centre.
+
+    A rotation error ``w`` about the slice's origin moves the stack's centre by ``w x (-offset)``: a
+    tilt of a slice far along the normal is a shift of the centre in the plane. With independent
+    errors per coordinate, the centre's translation variances gain ``var(w_y) r_z^2 + var(w_z) r_y^2``
+    (and cyclically); rotations are the same about any point. Rotation shapes are in mm at the anchor
+    radius (rad x :data:`~service.geometry.anchors.ANCHOR_HALF_SIZE_MM`), as the coordinates are.
+
+    Example (tilts about x and y only; a slice 60 mm along the normal, one at the centre):
+        >>> stack_noise_shape([1, 1, 0, 0, 0, 0], [[0, 0, 60.0], [0, 0, 0]]).round(2).tolist()
+        [[1.0, 1.0, 0.0, 1.0, 1.0, 0.0], [1.0, 1.0, 0.0, 0.0, 0.0, 0.0]]
+    """
+    shape = np.asarray(slice_shape, dtype=np.float64)
+    r2 = np.asarray(offsets_mm, dtype=np.float64) ** 2 / ANCHOR_HALF_SIZE_MM ** 2          # [n, 3]
+    v = shape[:3]
+    lever = np.stack([v[1] * r2[:, 2] + v[2] * r2[:, 1], v[2] * r2[:, 0] + v[0] * r2[:, 2],
+                      v[0] * r2[:, 1] + v[1] * r2[:, 0]], axis=1)
+    return np.concatenate([np.broadcast_to(v, lever.shape), shape[3:] + lever], axis=1)

@@ -1,0 +1,71 @@
+"""The shape of the network's error: anatomical axes, error coordinates, and the lever arm to a stack's centre."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.consistency.error_shape import anatomical_axes, error_coordinates, error_shape, stack_noise_shape
+from service.consistency.motion_model import to_coordinates
+from service.geometry import se3
+from service.geometry.anchors import ANCHOR_HALF_SIZE_MM
+from service.geometry.iterators import random_rotations
+from service.geometry.pose import make_pose
+
+
+def test_anatomical_x_is_the_in_plane_direction_nearest_left_right() -> None:
+    planes = random_rotations(500, np.random.default_rng(0))
+    r = anatomical_axes(planes)
+    np.testing.assert_allclose(np.linalg.det(r), 1.0, atol=1e-12)
+    np.testing.assert_allclose(r[:, :, 2], np.tile([0.0, 0.0, 1.0], (500, 1)), atol=1e-12)   # the normal is kept
+    axes = planes @ r
+    normal = planes[:, :, 2]
+    for ref, k in ((np.array([1.0, 0, 0]), 0), (np.array([0, 1.0, 0]), 1)):
+        proj = ref - (normal @ ref)[:, None] * normal                  # the reference projected on each plane
+        sagittal = np.linalg.norm(planes[:, 0, :2], axis=1) < 0.5
+        pick = ~sagittal if k == 0 else sagittal
+        unit = proj[pick] / np.linalg.norm(proj[pick], axis=1, keepdims=True)
+        np.testing.assert_allclose(np.einsum("ij,ij->i", axes[pick, :, 0], unit), 1.0, atol=1e-9)
+
+
+def test_error_coordinates_recover_a_known_error_in_anatomical_axes() -> None:
+    rng = np.random.default_rng(1)
+    true = make_pose(random_rotations(50, rng), rng.normal(0, 30, (50, 3)))
+    w, t = rng.normal(0, 0.05, (50, 3)), rng.normal(0, 3, (50, 3))        # rad, mm, along the anatomical axes
+    r = anatomical_axes(true[:, :3, :3])
+    err = make_pose(r @ se3.so3_exp(w) @ np.swapaxes(r, 1, 2), np.einsum("nij,nj->ni", r, t))
+    got = error_coordinates(true @ err, true)
+    np.testing.assert_allclose(got, np.concatenate([w * ANCHOR_HALF_SIZE_MM, t], axis=1), atol=1e-9)
+
+
+def test_error_shape_is_robust_to_slices_the_network_cannot_place() -> None:
+    rng = np.random.default_rng(2)
+    clean = rng.normal(0, [2.0, 1.0, 0.5, 0.2, 0.3, 1.5], (2000, 6))
+    dirty = clean.copy()
+    dirty[:200] = rng.normal(0, 60.0, (200, 6))                              # a tenth far off in every coordinate
+    expected = rng.uniform(0.5, 2.0, 2000)
+    a, b = error_shape(clean * expected[:, None], expected), error_shape(dirty * expected[:, None], expected)
+    np.testing.assert_allclose(a.mean(), 1.0)
+    np.testing.assert_allclose(a / a[0], np.array([4.0, 1.0, 0.25, 0.04, 0.09, 2.25]) / 4.0, rtol=0.15)
+    np.testing.assert_allclose(b / b[0], a / a[0], rtol=0.3, atol=0.01)
+
+
+def test_stack_noise_shape_matches_the_composed_errors_at_the_stacks_centre() -> None:
+    """Slice-frame errors of known variances, composed into the stack's coordinates about its centre
+    exactly as the stage does (``to_coordinates``): their variances are the predicted ones."""
+    rng = np.random.default_rng(3)
+    axes = random_rotations(1, rng)[0]                                      # the stack's x, y, normal (scanner)
+    centre = np.array([5.0, -10.0, 20.0])
+    offsets = np.array([[0.0, 0.0, 0.0], [4.0, -3.0, 30.0], [-2.0, 6.0, -55.0], [10.0, 0.0, 45.0]])
+    shape = np.array([3.0, 1.0, 0.3, 0.05, 0.15, 1.5])
+    sd = 2.0                                                                # mm: small, the linear regime
+    n = 40000
+    s = se3.exp(np.array([0.2, -0.1, 0.3, 10.0, 5.0, -3.0]))               # atlas_from_scanner (rigid, no motion)
+    for k, off in enumerate(offsets):
+        slice_pose = make_pose(axes, centre + axes @ off)                  # slice frame -> scanner
+        xi = rng.normal(0, sd, (n, 6)) * np.sqrt(shape)
+        err = make_pose(se3.so3_exp(xi[:, :3] / ANCHOR_HALF_SIZE_MM), xi[:, 3:])
+        proposals = s @ slice_pose @ err @ se3.inverse(slice_pose)          # the slice's proposal of S
+        y = to_coordinates(proposals, s, centre)
+        y = np.concatenate([y[:, :3] @ axes, y[:, 3:] @ axes], axis=1)     # along the stack's axes
+        predicted = stack_noise_shape(shape, off[None])[0] * sd ** 2
+        np.testing.assert_allclose(y.var(axis=0), predicted, rtol=0.05, err_msg=f"slice {k}")
