@@ -149,16 +149,18 @@ def calibrate_spread(
     model: Path,
     root: Root = DEFAULT_ATLAS_ROOT,
     per_volume: int = 60,
-    write: Annotated[bool, typer.Option(help="write mc_error_scale and mc_error_shape into the model's metadata")] = True,
+    write: Annotated[bool, typer.Option(help="write mc_error_scale, mc_error_shape and mc_error_depth_gain into the model's metadata")] = True,
 ) -> None:
     """Measure how the model's MC spread relates to its twin-min error (mc_error_scale), and the error's
-    shape over the six coordinates of a slice (mc_error_shape); store both."""
+    shape over the six coordinates of a slice (mc_error_shape) and its growth towards a stack's outer
+    slices (mc_error_depth_gain); store them."""
     from model_export.spread import measure_error_scale, measure_error_shape, write_metadata
 
     result = measure_error_scale(model, root, per_volume) | measure_error_shape(model, root)
     if write:
         write_metadata(model, {"mc_error_scale": f"{result['mc_error_scale']:.3f}",
-                               "mc_error_shape": ",".join(f"{x:.3f}" for x in result["mc_error_shape"])})
+                               "mc_error_shape": ",".join(f"{x:.3f}" for x in result["mc_error_shape"]),
+                               "mc_error_depth_gain": f"{result['mc_error_depth_gain']:.2f}"})
     typer.echo(json.dumps(result, indent=2))
 
 

@@ -30,7 +30,7 @@ from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS
 from model_export.simulate import SimulationConfig
 from model_export.train import validation_set
-from service.consistency.error_shape import error_coordinates, error_shape
+from service.consistency.error_shape import depth_gain, error_coordinates, error_shape, relative_depth
 from service.geometry import twin
 from service.geometry.anchors import ed
 from service.inference.estimator import OnnxPoseEstimator
@@ -66,7 +66,8 @@ def measure_error_scale(model_path: Path, root: Path = DEFAULT_ATLAS_ROOT, per_v
 
 def measure_error_shape(model_path: Path, root: Path = DEFAULT_ATLAS_ROOT, per_volume: int = 2,
                         mc_samples: int = 100, seed: int = 777, motion: str = "mild") -> dict[str, object]:
-    """The shape of the model's error (:func:`~service.consistency.error_shape.error_shape`) on the
+    """The shape of the model's error (:func:`~service.consistency.error_shape.error_shape`) and its
+    growth towards a stack's outer slices (:func:`~service.consistency.error_shape.depth_gain`) on the
     slices with >= 20 mask pixels of ``per_volume`` simulated 3-stack acquisitions of each validation
     volume (``seed``: another stream than the evaluation's), each against the nearer of the truth
     and its twin, in units of its expected error."""
@@ -74,7 +75,7 @@ def measure_error_shape(model_path: Path, root: Path = DEFAULT_ATLAS_ROOT, per_v
     info = model.info
     estimator = OnnxPoseEstimator(model)
     volumes = load_volumes(split(root)[1], root)
-    rng, coords, spread = np.random.default_rng(seed), [], []
+    rng, coords, spread, depth = np.random.default_rng(seed), [], [], []
     for vol in volumes:
         for _ in range(per_volume):
             stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, motion)
@@ -84,13 +85,18 @@ def measure_error_shape(model_path: Path, root: Path = DEFAULT_ATLAS_ROOT, per_v
             truth = np.concatenate([s.atlas_from_voxel @ np.linalg.inv(p.network_from_voxel())
                                     for s, p in zip(stacks, prepared)])
             inside = np.concatenate([p.prepared.mask_pixels for p in prepared]) >= MIN_MASK_PIXELS
+            depth.append(np.concatenate([relative_depth(np.arange(len(p.prepared.inputs), dtype=float),
+                                                        p.prepared.mask_pixels >= MIN_MASK_PIXELS)
+                                         for p in prepared])[inside])
             est = estimator.estimate(np.concatenate([p.prepared.inputs for p in prepared]), mc_samples)
             tw = twin.twin(truth, info.symmetry_plane_x_mm)
             near = np.where((ed(est.mean, truth) <= ed(est.mean, tw))[:, None, None], truth, tw)
             coords.append(error_coordinates(est.mean, near)[inside])
             spread.append(est.spread_mm[inside])
-    shape = error_shape(np.concatenate(coords), np.concatenate(spread))
-    return {"stack_slices": int(sum(len(c) for c in coords)), "mc_error_shape": [round(float(x), 3) for x in shape]}
+    coords, spread, depth = np.concatenate(coords), np.concatenate(spread), np.concatenate(depth)
+    shape = error_shape(coords, spread)
+    return {"stack_slices": len(coords), "mc_error_shape": [round(float(x), 3) for x in shape],
+            "mc_error_depth_gain": depth_gain(coords, spread, depth)}
 
 
 def write_metadata(model_path: Path, updates: dict[str, object]) -> None:

@@ -52,7 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from service.consistency.error_shape import anatomical_axes, stack_noise_shape
+from service.consistency.error_shape import anatomical_axes, relative_depth, stack_noise_shape
 from service.consistency.motion_model import NO_VOTE, Grid, MotionFit, fit_motion, refit
 from service.consistency.slice_order import acquisition_orders
 from service.geometry import se3, twin
@@ -140,7 +140,8 @@ class StackFit:
 
 def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLike | None = None,
               plane_x_mm: float = twin.DEFAULT_PLANE_X_MM, noise_mm: ArrayLike | None = None,
-              times: dict[str, NDArray] | None = None, error_shape: ArrayLike | None = None) -> StackFit:
+              times: dict[str, NDArray] | None = None, error_shape: ArrayLike | None = None,
+              depth_gain: float = 0.0) -> StackFit:
     """Make one stack's slice poses consistent (see the module docstring).
 
     Args:
@@ -160,6 +161,10 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
         error_shape: ``[6]`` the network's error variance per coordinate of its own frame (rotation
             about x, y, normal; translation along x, y, normal), mean 1: the model's
             ``mc_error_shape`` (:func:`model_export.spread.error_shape`). Default: alike in all.
+        depth_gain: ``beta``: the errors' variances grow by ``1 + beta rho^2`` beyond their
+            expected errors towards the stack's outer slices (``rho`` the relative depth among
+            the usable slices; the model's ``mc_error_depth_gain``,
+            :func:`~service.consistency.error_shape.depth_gain`). Only with ``error_shape``.
     """
     p = np.asarray(poses, dtype=np.float64)
     nk = np.asarray(network_from_scanner, dtype=np.float64)
@@ -210,7 +215,9 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     # then only the two in-plane translations vary from slice to slice, and the other four share
     # one eigendecomposition in the motion model; on 2.8.0's moderate outputs the same to 0.01 mm)
     along = ((inv_n[:, :3, 3] - centre) @ axes) * [0.0, 0.0, 1.0]
-    shape = {"axes": axes, "noise_shape": None if error_shape is None else stack_noise_shape(error_shape, along)}
+    grow = 1.0 + depth_gain * relative_depth(along[:, 2], use) ** 2
+    shape = {"axes": axes,
+             "noise_shape": None if error_shape is None else stack_noise_shape(error_shape, along) * grow[:, None]}
     on = np.arange(n)
     own, chosen = cand[on, branch], proposals[on, branch]                   # each slice on its branch
     if sig is None:

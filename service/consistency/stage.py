@@ -39,20 +39,20 @@ def network_from_voxel(input_from_network: NDArray, slice_from_voxel: NDArray) -
 def consistent_poses(mean: NDArray, twin_mass: NDArray, network_from_vox: NDArray, scanner_from_voxel: NDArray,
                      usable: NDArray, plane_x_mm: float, noise_mm: NDArray | None = None,
                      enabled: bool = True, times: dict[str, NDArray] | None = None,
-                     error_shape: NDArray | None = None) -> StackPoses:
+                     error_shape: NDArray | None = None, depth_gain: float = 0.0) -> StackPoses:
     """Run :func:`fit_stack` on one stack (or pass the network's poses through when ``enabled`` is False).
 
     ``noise_mm`` is each pose's expected error: the MC spread times the model's calibration. The
     returned ``expected_mm`` is that of the returned poses: the stack model's posterior spread
     where the stack is decidable, ``noise_mm`` otherwise. ``times``: the candidate acquisition
     orders (:class:`~service.consistency.slice_order.SliceOrder`; default every named one).
-    ``error_shape``: the model's ``mc_error_shape`` (see :func:`fit_stack`).
+    ``error_shape``, ``depth_gain``: the model's ``mc_error_shape`` and ``mc_error_depth_gain`` (see :func:`fit_stack`).
     """
     n = len(mean)
     if not enabled:
         return StackPoses(mean, twin_mass, np.zeros(n, bool), np.zeros(n, bool), None, noise_mm)
     network_from_scanner = network_from_vox @ np.linalg.inv(scanner_from_voxel)
-    fit = fit_stack(mean, network_from_scanner, usable, plane_x_mm, noise_mm, times, error_shape)
+    fit = fit_stack(mean, network_from_scanner, usable, plane_x_mm, noise_mm, times, error_shape, depth_gain)
     mass = np.where(fit.twinned, 1.0 - twin_mass, twin_mass)
     return StackPoses(fit.poses, mass, fit.twinned, fit.inconsistent, fit,
                       fit.expected_mm if fit.decidable else noise_mm)

@@ -42,6 +42,9 @@ class ModelInfo:
     mc_error_shape: tuple[float, ...] = (1.0,) * 6
     """Calibration: the error's variance per coordinate of the network frame, mean 1 (rotation about
     x, y, normal; translation along x, y, normal; :func:`model_export.spread.error_shape`)."""
+    mc_error_depth_gain: float = 0.0
+    """Calibration: the error's variance outgrows ``mc_error_scale x`` the spread by ``1 + gain rho^2``
+    towards a stack's outer slices (:func:`service.consistency.error_shape.depth_gain`)."""
     tta_views: int = 1
     """Test-time views the MC samples are shared among (:mod:`service.inference.views`); the variance
     threshold and ``mc_error_scale`` were calibrated with them."""
@@ -58,6 +61,7 @@ class ModelInfo:
                 symmetry_plane_x_mm=float(meta.get("symmetry_plane_x_mm", DEFAULT_PLANE_X_MM)),
                 mc_error_scale=float(meta.get("mc_error_scale", 1.0)), tta_views=int(meta.get("tta_views", 1)),
                 mc_error_shape=_shape(meta.get("mc_error_shape", "")),
+                mc_error_depth_gain=float(meta.get("mc_error_depth_gain", 0.0)),
                 metadata=dict(meta),
             )
         except (KeyError, ValueError) as exc:

@@ -111,16 +111,17 @@ def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction:
 
 def stack_poses(est: PoseEstimate, sl: slice, prepared: PreparedStack, net_from_vox: np.ndarray,
                 stack_consistency: bool, plane_x_mm: float, expected_mm: np.ndarray,
-                order: SliceOrder | None = None, error_shape: tuple[float, ...] | None = None) -> StackPoses:
+                order: SliceOrder | None = None, error_shape: tuple[float, ...] | None = None,
+                depth_gain: float = 0.0) -> StackPoses:
     """One stack's poses through the stack-consistency stage (or as the network gave them);
     ``expected_mm`` is each slice's expected error: its MC spread times the model's ``mc_error_scale``;
     ``order`` what is known of the stack's acquisition order (default: nothing; the stage chooses);
-    ``error_shape`` the model's ``mc_error_shape``."""
+    ``error_shape`` and ``depth_gain`` the model's ``mc_error_shape`` and ``mc_error_depth_gain``."""
     p = prepared.prepared
     usable = (p.mask_fraction >= acceptance.MIN_MASK_FRACTION) & ~est.degenerate[sl]
     return consistent_poses(est.mean[sl], est.twin_mass[sl], net_from_vox, prepared.upload.volume.affine, usable,
                             plane_x_mm, expected_mm[sl], stack_consistency, (order or SliceOrder()).times(len(p.inputs)),
-                            None if error_shape is None else np.asarray(error_shape))
+                            None if error_shape is None else np.asarray(error_shape), depth_gain)
 
 
 def slice_results(est: PoseEstimate, sl: slice, prepared: PreparedStack, net_from_vox: np.ndarray, out: StackPoses,
@@ -202,7 +203,8 @@ def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples:
     spans = [slice(int(a), int(b)) for a, b in pairwise(bounds)]
     frames = [s.network_from_voxel() for s in prepared]
     shape = getattr(estimator.info, "mc_error_shape", None)
-    outs = [stack_poses(est, sl, s, nfv, stack_consistency, plane_x_mm, expected, order, shape)
+    gain = float(getattr(estimator.info, "mc_error_depth_gain", 0.0))
+    outs = [stack_poses(est, sl, s, nfv, stack_consistency, plane_x_mm, expected, order, shape, gain)
             for sl, s, nfv, order in zip(spans, prepared, frames, orders)]
     reports = pool_request(outs) if stack_consistency else [None] * len(outs)
     stacks = []

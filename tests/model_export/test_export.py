@@ -171,6 +171,9 @@ def test_error_shape_metadata_round_trips_and_bad_values_are_refused(exported: t
     assert load_model(path).info.mc_error_shape == (1.0,) * 6              # not calibrated: alike in all
     write_metadata(path, {"mc_error_shape": "3.8,0.5,0.2,0.03,0.13,1.3"})
     assert load_model(path).info.mc_error_shape == (3.8, 0.5, 0.2, 0.03, 0.13, 1.3)
+    assert load_model(path).info.mc_error_depth_gain == 0.0
+    write_metadata(path, {"mc_error_depth_gain": "1.8"})
+    assert load_model(path).info.mc_error_depth_gain == 1.8
     for bad in ("1,2,3", "1,1,1,1,1,0", "a,b,c,d,e,f"):
         write_metadata(path, {"mc_error_shape": bad})
         with pytest.raises(ValueError, match="metadata"):
