@@ -1,5 +1,5 @@
-"""Calibrate a model's MC spread into an expected pose error (the ``mc_error_scale`` and
-``mc_error_shape`` metadata).
+"""Calibrate a model's MC spread into an expected pose error (the ``mc_error_scale``,
+``mc_error_shape`` and ``mc_error_depth_gain`` metadata).
 
 The stack-consistency stage weighs each network pose by its expected error. MC dropout measures
 the network's uncertainty, not its error: on the validation volumes the shipped compact model's
@@ -12,7 +12,8 @@ The error is not alike in the six coordinates of a slice either
 stage weighs, the slices of simulated stacks through the validation volumes (with motion, so each
 slice sits at its own tilt): on single slices at any orientation the twist is three times as
 uncertain as on a stack's near-standard planes, and the stage weighed with that shape gave 6.66
-instead of 6.25 mm (model 2.8.0's outputs, 10 moderate acquisitions).
+instead of 6.26 mm (model 2.8.0's outputs, 10 moderate acquisitions). The same acquisitions give
+the errors' growth towards a stack's ends beyond their spread (``mc_error_depth_gain``).
 
 Example (with the atlas at hand):
     >>> scale = measure_error_scale(Path("service/models/default/model.onnx"))   # doctest: +SKIP

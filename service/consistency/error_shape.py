@@ -2,9 +2,10 @@
 
 A slice's tilt out of its plane and its position along its normal are far less certain than its
 twist and its position in the plane: the image pins what lies in the plane, not how the plane
-leans. Model 2.8.0 on the slices of simulated stacks, error variance per coordinate relative to
-its MC spread (mean 1): rotation about x / y / the normal 3.1 / 1.2 / 0.27 (mm at the anchor
-radius), translation along x / y / the normal 0.07 / 0.15 / 1.25. The stage
+leans. Model 2.11.0 on the slices of simulated stacks, error variance per coordinate relative to
+its MC spread (mean 1): rotation about x / y / the normal 3.4 / 0.6 / 0.23 (mm at the anchor
+radius), translation along x / y / the normal 0.04 / 0.15 / 1.6 (``svrnet-train calibrate-spread``,
+stored as the model's ``mc_error_shape``). The stage
 (:mod:`service.consistency.motion_model`) weighs each coordinate by its own variance, so it
 follows the motion closely where the network is precise and smooths where it is not.
 

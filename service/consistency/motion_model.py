@@ -10,7 +10,8 @@ spread, and alike on slices next to each other in space (they look alike), so
     ``y_k = f(t_k) + e_k``, ``f ~ GP(0, a^2 exp(-(t - t')^2 / 2 l^2))``,
     ``cov(e_j, e_k) = g^2 s_j s_k / 3 * (r exp(-(j - k)^2 / 2 * 1.5^2) + (1 - r) [j = k])``
 
-per component, with ``s_k`` the slice's expected E.D. (its calibrated MC spread: it tracks the
+per component (times the component's factor of the network's error shape, when the model has
+one: :mod:`service.consistency.error_shape`), with ``s_k`` the slice's expected E.D. (its calibrated MC spread: it tracks the
 network's real error closely, far from the brain's centre most of all) and ``t`` the acquisition
 time under one of the candidate orders. The order, the length ``l`` (in acquisitions; ``inf`` is a
 rigid stack), the amplitude ``a``, the noise scale ``g`` and the error correlation ``r`` are chosen
@@ -200,8 +201,9 @@ def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dic
         grid: the candidate hyper-parameters (:func:`refit` keeps those of an earlier fit).
         axes: ``3 x 3`` the stack's slice axes (columns: in-plane x, y, normal) in scanner
             coordinates; ``noise_shape`` is given along them.
-        noise_shape: ``[6]`` factors on the network's error variance per coordinate (rotation
-            about x, y, normal; translation along x, y, normal), mean 1; default all 1.
+        noise_shape: ``[6]`` or ``[n, 6]`` (per slice) factors on the network's error variance per
+            coordinate along ``axes`` (rotation about x, y, normal; translation along x, y, normal);
+            default all 1 (:func:`~service.consistency.error_shape.stack_noise_shape`).
     """
     q = np.eye(3) if axes is None else np.asarray(axes, dtype=np.float64)
     y = to_coordinates(proposals, rigid, centre)

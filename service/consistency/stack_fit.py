@@ -160,7 +160,9 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
             :class:`~service.consistency.slice_order.SliceOrder` for an order the user gave).
         error_shape: ``[6]`` the network's error variance per coordinate of its own frame (rotation
             about x, y, normal; translation along x, y, normal), mean 1: the model's
-            ``mc_error_shape`` (:func:`model_export.spread.error_shape`). Default: alike in all.
+            ``mc_error_shape`` (:func:`~service.consistency.error_shape.error_shape`), carried to the
+            stack's centre (:func:`~service.consistency.error_shape.stack_noise_shape`). Default: the
+            coordinates about the stack's centre alike.
         depth_gain: ``beta``: the errors' variances grow by ``1 + beta rho^2`` beyond their
             expected errors towards the stack's outer slices (``rho`` the relative depth among
             the usable slices; the model's ``mc_error_depth_gain``,
@@ -253,7 +255,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
         return StackFit(p.copy(), np.zeros(n, bool), np.zeros(n, bool), r_loo, False, s, fraction, motion.order,
                         motion.length, network_mm, model_mm)
     final_votes = np.where(use & ~inconsistent, np.where(np.isfinite(votes), votes, sig), NO_VOTE)
-    final = fit_motion(chosen, s, final_votes, orders, centre, **shape)             # every model again, averaged
+    final = fit_motion(chosen, s, final_votes, orders, centre, **shape)     # every model again, averaged
     return StackFit(final.poses @ inv_n, branch == 1, inconsistent, r_loo, True, final.placement, fraction, final.order,
                     final.length, network_mm, model_mm, margin, final.sd_mm, final.placement_sd_mm, centre,
                     final.placement_cov)

@@ -39,9 +39,10 @@ class ModelInfo:
     symmetry_plane_x_mm: float = DEFAULT_PLANE_X_MM
     mc_error_scale: float = 1.0
     """Calibration: expected E.D. of a pose = ``mc_error_scale`` x its MC spread (``PoseEstimate.spread_mm``)."""
-    mc_error_shape: tuple[float, ...] = (1.0,) * 6
+    mc_error_shape: tuple[float, ...] | None = None
     """Calibration: the error's variance per coordinate of the network frame, mean 1 (rotation about
-    x, y, normal; translation along x, y, normal; :func:`model_export.spread.error_shape`)."""
+    x, y, normal; translation along x, y, normal; :func:`service.consistency.error_shape.error_shape`);
+    None (not calibrated): the stage weighs the coordinates alike."""
     mc_error_depth_gain: float = 0.0
     """Calibration: the error's variance outgrows ``mc_error_scale x`` the spread by ``1 + gain rho^2``
     towards a stack's outer slices (:func:`service.consistency.error_shape.depth_gain`)."""
@@ -68,10 +69,10 @@ class ModelInfo:
             raise ValueError(f"model metadata incomplete or invalid: {exc}") from exc
 
 
-def _shape(text: str) -> tuple[float, ...]:
-    """``mc_error_shape`` from its metadata text (six comma-separated positive numbers; absent: all 1)."""
+def _shape(text: str) -> tuple[float, ...] | None:
+    """``mc_error_shape`` from its metadata text (six comma-separated positive numbers; absent: None)."""
     if not text:
-        return (1.0,) * 6
+        return None
     shape = tuple(float(x) for x in text.split(","))
     if len(shape) != 6 or not all(x > 0 for x in shape):
         raise ValueError(f"mc_error_shape must be six positive numbers, not {text!r}")

@@ -184,7 +184,7 @@ def test_a_depth_gain_trusts_the_outer_slices_less() -> None:
     rng = np.random.default_rng(22)
     truth, nk = stack(rng, "moderate")
     poses = truth @ se3.exp(rng.normal(0, 1, (len(truth), 6)) * NOISE * 0.5)
-    sd, shape = np.full(len(truth), 8.0), np.array([3.4, 0.6, 0.23, 0.04, 0.15, 1.6]) / 1.0
+    sd, shape = np.full(len(truth), 8.0), np.array([3.4, 0.6, 0.23, 0.04, 0.15, 1.6])
     plain = fit_stack(poses, nk, noise_mm=sd, error_shape=shape)
     told = fit_stack(poses, nk, noise_mm=sd, error_shape=shape, depth_gain=4.0)
     rho = relative_depth(np.arange(len(truth), dtype=float), np.ones(len(truth), bool))
