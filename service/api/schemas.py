@@ -62,6 +62,10 @@ class StackConsistency(BaseModel):
         False, description="the stack's left-right branch is decided by its slices' order along the normal "
                             "(branch_margin >= 1.5); when false the poses are consistent but the whole stack "
                             "may be the mirror image")
+    branch_from_request: bool = Field(
+        False, description="the stack did not decide its left-right branch; the request's stacks that did "
+                           "decided it (the branch whose rigid fit lies nearer to theirs: the stacks share the "
+                           "scanner frame)")
     pooled_atlas_from_scanner: Optional[Mat] = Field(
         None, description="4x4: the stack's position after pooling it with the request's other stacks that decided "
                           "their left-right branch (the returned poses use it); null when not pooled")

@@ -126,27 +126,3 @@ def depth_gain(coordinates: ArrayLike, expected_mm: ArrayLike, depth: ArrayLike,
     g = np.asarray(gains, dtype=np.float64)[:, None]
     model = np.log1p(g * np.asarray(mid)) - np.log1p(g * mid[0])
     return float(g[np.argmin(((model - np.log(np.asarray(var) / var[0])) ** 2).sum(1)), 0])
-
-
-def stack_noise_shape(slice_shape: ArrayLike, offsets_mm: ArrayLike) -> NDArray[np.float64]:
-    """``[n, 6]`` factors on each slice's error variance in a stack's coordinates (about its centre,
-    along its axes; see :func:`~service.consistency.motion_model.fit_motion`) from the network's
-    ``slice_shape [6]`` (about the slice's origin, along the same axes) and each slice origin's
-    ``offsets_mm [n, 3]`` from the centre.
-
-    A rotation error ``w`` about the slice's origin moves the stack's centre by ``w x (-offset)``: a
-    tilt of a slice far along the normal is a shift of the centre in the plane. With independent
-    errors per coordinate, the centre's translation variances gain ``var(w_y) r_z^2 + var(w_z) r_y^2``
-    (and cyclically); rotations are the same about any point. Rotation shapes are in mm at the anchor
-    radius (rad x :data:`~service.geometry.anchors.ANCHOR_HALF_SIZE_MM`), as the coordinates are.
-
-    Example (tilts about x and y only; a slice 60 mm along the normal, one at the centre):
-        >>> stack_noise_shape([1, 1, 0, 0, 0, 0], [[0, 0, 60.0], [0, 0, 0]]).round(2).tolist()
-        [[1.0, 1.0, 0.0, 1.0, 1.0, 0.0], [1.0, 1.0, 0.0, 0.0, 0.0, 0.0]]
-    """
-    shape = np.asarray(slice_shape, dtype=np.float64)
-    r2 = np.asarray(offsets_mm, dtype=np.float64) ** 2 / ANCHOR_HALF_SIZE_MM ** 2          # [n, 3]
-    v = shape[:3]
-    lever = np.stack([v[1] * r2[:, 2] + v[2] * r2[:, 1], v[2] * r2[:, 0] + v[0] * r2[:, 2],
-                      v[0] * r2[:, 1] + v[1] * r2[:, 0]], axis=1)
-    return np.concatenate([np.broadcast_to(v, lever.shape), shape[3:] + lever], axis=1)

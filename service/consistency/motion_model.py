@@ -11,7 +11,9 @@ spread, and alike on slices next to each other in space (they look alike), so
     ``cov(e_j, e_k) = g^2 s_j s_k / 3 * (r exp(-(j - k)^2 / 2 * 1.5^2) + (1 - r) [j = k])``
 
 per component (times the component's factor of the network's error shape, when the model has
-one: :mod:`service.consistency.error_shape`), with ``s_k`` the slice's expected E.D. (its calibrated MC spread: it tracks the
+one: :mod:`service.consistency.error_shape`; the errors are then independent in each slice's own
+coordinates, where a tilt and a shift of the stack's centre are one error:
+:mod:`service.consistency.motion_blocks`), with ``s_k`` the slice's expected E.D. (its calibrated MC spread: it tracks the
 network's real error closely, far from the brain's centre most of all) and ``t`` the acquisition
 time under one of the candidate orders. The order, the length ``l`` (in acquisitions; ``inf`` is a
 rigid stack), the amplitude ``a``, the noise scale ``g`` and the error correlation ``r`` are chosen
@@ -44,6 +46,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from service.consistency.motion_blocks import decompose, posterior, to_slices
+from service.consistency.motion_blocks import nll as block_nll
 from service.geometry import se3
 from service.geometry.anchors import ANCHOR_HALF_SIZE_MM
 from service.geometry.pose import make_pose, translate
@@ -61,7 +65,6 @@ ERROR_CORRELATION_SLICES = 1.5
 """How far (in slices, along the normal) the network's errors stay correlated."""
 NO_VOTE = np.inf
 """Expected error of a slice that must not vote (empty, degenerate, rejected): it only receives."""
-JITTER = 1e-6
 MIN_MODEL_WEIGHT = 1e-3
 """Hyper-parameter combinations with less posterior weight than this are left out of the average."""
 
@@ -139,51 +142,16 @@ def _correlations(times: dict[str, NDArray], lengths: tuple[float, ...]) -> tupl
     return combos, np.stack(mats)
 
 
-def _whiteners(sig: NDArray, correlations: tuple[float, ...]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Per error correlation ``r`` (:data:`ERROR_CORRELATIONS`): ``W_r`` with ``W_r E_r W_r^T = I``,
-    ``E_r = R_r * s s^T / 3`` the network's errors (``R_r``: :data:`ERROR_CORRELATIONS` between
-    neighbours in space, decaying over :data:`ERROR_CORRELATION_SLICES`), and ``log det E_r``."""
-    k = np.arange(len(sig), dtype=np.float64)
-    near = np.exp(-0.5 * ((k[:, None] - k[None]) / ERROR_CORRELATION_SLICES) ** 2)
-    rho = np.asarray(correlations)[:, None, None]
-    lam, q = np.linalg.eigh(rho * near + (1.0 - rho) * np.eye(len(sig)))                   # [r, m], [r, m, m]
-    d = sig / np.sqrt(3.0)
-    w = (q / np.sqrt(lam)[:, None]) @ np.swapaxes(q, 1, 2) / d[None, None, :]              # R^-1/2 D^-1
-    return w, np.log(lam).sum(-1) + 2.0 * np.log(d).sum()
-
-
-def _whitened(sig: NDArray, shape: NDArray, cv: NDArray, correlations: tuple[float, ...]
-              ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
-    """Per coordinate ``d`` (errors ``sig * sqrt(shape[:, d])``): the whiteners ``[6, r, m, m]``, their
-    ``log det`` ``[6, r]`` and the eigendecompositions ``[c, 6, r, m]``, ``[c, 6, r, m, m]`` of the
-    whitened motion correlations ``cv [c, m, m]``. A coordinate whose shape is the same for every
-    slice shares the decomposition of the unshaped errors (its eigenvalues divided by the factor)."""
-    def decompose(w: NDArray) -> tuple[NDArray, NDArray]:
-        lam, u = np.linalg.eigh(w[None] @ cv[:, None] @ np.swapaxes(w, 1, 2)[None] + JITTER * np.eye(len(sig)))
-        return np.maximum(lam, 0.0), u                                                      # [c, r, m], [c, r, m, m]
-
-    w0, logdet0 = _whiteners(sig, correlations)
-    lam0, u0 = decompose(w0)
-    parts = []
-    for col in shape.T:
-        if np.ptp(col) <= 1e-12 * col[0]:
-            v = float(col[0])
-            parts.append((w0 / np.sqrt(v), logdet0 + len(sig) * np.log(v), lam0 / v, u0))
-        else:
-            w, logdet = _whiteners(sig * np.sqrt(col), correlations)
-            parts.append((w, logdet, *decompose(w)))
-    w, logdet, lam, u = zip(*parts)
-    return np.stack(w), np.stack(logdet), np.stack(lam, axis=1), np.stack(u, axis=1)
-
-
 def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dict[str, NDArray],
                centre: NDArray, grid: Grid = Grid(), axes: NDArray | None = None,
-               noise_shape: NDArray | None = None) -> MotionFit:
+               noise_shape: NDArray | None = None, lever_mm: NDArray | None = None) -> MotionFit:
     """Choose and apply the motion model of one stack (see the module docstring).
 
     The covariance of the voting slices' coordinates is ``a^2 K + g^2 E_r`` (motion plus network
     error). Whitened by ``W_r`` it is ``a^2 W K W^T + g^2 I``: one eigendecomposition per (order,
-    length, error correlation) gives the likelihood of every amplitude and noise scale at once.
+    length, error correlation) and block of coupled coordinates
+    (:mod:`service.consistency.motion_blocks`) gives the likelihood of every amplitude and noise
+    scale at once.
 
     The poses are averaged over the grid, each combination weighed by its marginal likelihood (a
     uniform prior over the grid; combinations under :data:`MIN_MODEL_WEIGHT` left out), and their
@@ -203,71 +171,59 @@ def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dic
             coordinates; ``noise_shape`` is given along them.
         noise_shape: ``[6]`` or ``[n, 6]`` (per slice) factors on the network's error variance per
             coordinate along ``axes`` (rotation about x, y, normal; translation along x, y, normal);
-            default all 1 (:func:`~service.consistency.error_shape.stack_noise_shape`).
+            default all 1; about each slice's origin when ``lever_mm`` is given, else about the centre.
+        lever_mm: ``[n]`` each slice origin's offset from ``centre`` along the normal (mm): the errors
+            are then independent in the slices' own coordinates, where a tilt and an in-plane shift
+            of the centre are one error (:mod:`service.consistency.motion_blocks`); default 0.
     """
     q = np.eye(3) if axes is None else np.asarray(axes, dtype=np.float64)
     y = to_coordinates(proposals, rigid, centre)
     y = np.concatenate([y[:, :3] @ q, y[:, 3:] @ q], axis=1)                                # along the stack's axes
+    z = np.zeros(len(y)) if lever_mm is None else np.asarray(lever_mm, dtype=np.float64) / ANCHOR_HALF_SIZE_MM
     vote = np.isfinite(noise_mm)
-    yv = y[vote]
     noise = np.asarray(noise_mm, dtype=np.float64)[vote]
     shape = np.broadcast_to(np.ones(6) if noise_shape is None else np.asarray(noise_shape, dtype=np.float64),
                             (len(y), 6))[vote]                                              # [m, 6]
     combos, corr = _correlations(times, grid.lengths)
     cv = corr[:, vote][:, :, vote]                                                          # [c, m, m]
-    w, logdet_e, lam, u = _whitened(noise, shape, cv, grid.error_correlations)
-    yt = (np.swapaxes(u, -1, -2) @ (w @ yv.T[:, None, :, None])[None])[..., 0]             # [c, 6, r, m]
+    blocks = decompose(y[vote], noise, shape, z[vote], cv, grid.error_correlations, ERROR_CORRELATION_SLICES)
     amps = np.asarray(grid.amplitudes_mm, dtype=np.float64) ** 2
     scales = np.asarray(grid.noise_scales, dtype=np.float64) ** 2
-    ev = amps[:, None, None] * lam[:, :, :, None, None] + scales[:, None]                   # [c, 6, r, a, g, m]
-    nll = (0.5 * np.einsum("cdrm,cdragm->crag", yt ** 2, 1.0 / ev) + 0.5 * np.log(ev).sum((1, -1))
-           + 0.5 * logdet_e.sum(0)[None, :, None, None])
+    nll = block_nll(blocks, amps, scales)                                                   # [c, r, a, g]
     ci, ri, ai, gi = (int(i) for i in np.unravel_index(int(np.argmin(nll)), nll.shape))
     order, length = combos[ci]
-    a2 = amps[ai]
+    noise_var = shape * noise[:, None] ** 2 / 3.0
 
-    def posterior(c: int, r: int, a: int, g: int) -> tuple[NDArray, NDArray, NDArray, NDArray]:
-        """Posterior mean ``[n, 6]`` and covariance ``[n, n]`` (the mean over the coordinates) of the
-        motion, leave-one-out means and variances."""
-        wu = np.swapaxes(w[:, r], -1, -2) @ u[c, :, r]                                      # C_d^-1 = wu_d diag(1/ev_d) wu_d^T
-        c_inv = (wu / ev[c, :, r, a, g][:, None, :]) @ np.swapaxes(wu, -1, -2)             # [6, m, m]
-        alpha = np.einsum("dmk,kd->md", c_inv, yv)                                         # [m, 6]
-        k_all = amps[a] * corr[c][:, vote]                                                  # [n, m]
-        post = k_all @ alpha                                                                # motion at each slice
-        # with the offset's covariance: the rigid fit is an estimate too (its GLS variance; the
-        # universal-kriging form)
-        row = c_inv.sum(-1)                                                                 # [6, m]
-        offset_var = 1.0 / np.maximum(row.sum(-1), 1e-12)                                   # [6]
-        h = 1.0 - row @ k_all.T                                                             # [6, n]
-        cov = (amps[a] * corr[c] - k_all @ c_inv.mean(0) @ k_all.T
-               + (h.T * offset_var) @ h / 6.0)                                              # [n, n]
-        loo_y, loo_var = post.copy(), np.diagonal(cov).copy()
-        inv_diag = np.diagonal(c_inv, axis1=1, axis2=2).T                                   # [m, 6]
-        loo_y[vote] = yv - alpha / inv_diag                                                 # closed-form leave-one-out
-        loo_var[vote] = (1.0 / inv_diag - scales[g] * shape * noise[:, None] ** 2 / 3.0).mean(-1)   # less its own error
-        return post, cov, loo_y, loo_var
+    def one(c: int, r: int, a: int, g: int) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray]:
+        """Posterior mean ``[n, 6]``, covariance ``[n, n]`` (the mean over the coordinates), variance in
+        the slices' coordinates ``[n]``, leave-one-out means ``[n, 6]`` and variances ``[n]``."""
+        p = posterior(blocks, c, r, amps[a], scales[g], corr[c][:, vote], corr[c], z, z[vote], noise_var)
+        loo_y, loo_var = p.mean.copy(), p.slice_var.mean(-1)
+        loo_y[vote], loo_var[vote] = p.loo, p.loo_var.mean(-1)
+        return p.mean, p.cov.mean(0), p.slice_var.mean(-1), loo_y, loo_var
 
     if nll.size > 1:                         # Bayesian model averaging over the grid
         weight = np.exp(-(nll - nll.min()))
         weight /= weight.sum()
         picked = np.argwhere((weight >= MIN_MODEL_WEIGHT) | (weight == weight.max()))   # the most likely always
-        posts, covs, loos, loo_vars = (np.stack(x) for x in zip(*(posterior(*idx) for idx in picked)))
+        posts, covs, svars, loos, loo_vars = (np.stack(x) for x in zip(*(one(*idx) for idx in picked)))
         wts = weight[tuple(picked.T)] / weight[tuple(picked.T)].sum()
         post = np.einsum("k,knd->nd", wts, posts)
         loo_y = np.einsum("k,knd->nd", wts, loos)
         d, dl = posts - post[None], loos - loo_y[None]                       # each model's departure
         post_cov = np.einsum("k,knm->nm", wts, covs) + np.einsum("k,knd,kmd->nm", wts, d, d) / 6.0
-        loo_var = np.einsum("k,kn->n", wts, loo_vars + (dl ** 2).mean(-1))
+        slice_var = np.einsum("k,kn->n", wts, svars + (to_slices(d, z) ** 2).mean(-1))
+        loo_var = np.einsum("k,kn->n", wts, loo_vars + (to_slices(dl, z) ** 2).mean(-1))
     else:
-        post, post_cov, loo_y, loo_var = posterior(ci, ri, ai, gi)
-    post_var = np.diagonal(post_cov).copy()
+        post, post_cov, slice_var, loo_y, loo_var = one(ci, ri, ai, gi)
     post = np.concatenate([post[:, :3] @ q.T, post[:, 3:] @ q.T], axis=1)                   # back to scanner axes
     loo_y = np.concatenate([loo_y[:, :3] @ q.T, loo_y[:, 3:] @ q.T], axis=1)
     placement = from_coordinates(post.mean(axis=0, keepdims=True), rigid, centre)[0]
     return MotionFit(from_coordinates(post, rigid, centre), from_coordinates(loo_y, rigid, centre), order,
-                     float(length), float(np.sqrt(a2)), float(grid.noise_scales[gi]), float(grid.error_correlations[ri]),
-                     np.sqrt(3.0 * np.maximum(post_var, 0.0)), np.sqrt(3.0 * np.maximum(loo_var, 0.0)),
-                     placement, float(np.sqrt(max(post_cov.mean(), 0.0))), post_cov.mean(axis=1))
+                     float(length), float(np.sqrt(amps[ai])), float(grid.noise_scales[gi]),
+                     float(grid.error_correlations[ri]), np.sqrt(3.0 * np.maximum(slice_var, 0.0)),
+                     np.sqrt(3.0 * np.maximum(loo_var, 0.0)), placement, float(np.sqrt(max(post_cov.mean(), 0.0))),
+                     post_cov.mean(axis=1))
 
 
 def refit(fit: MotionFit, proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dict[str, NDArray],

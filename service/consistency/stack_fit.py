@@ -52,7 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from service.consistency.error_shape import anatomical_axes, relative_depth, stack_noise_shape
+from service.consistency.error_shape import anatomical_axes, relative_depth
 from service.consistency.motion_model import NO_VOTE, Grid, MotionFit, fit_motion, refit
 from service.consistency.slice_order import acquisition_orders
 from service.geometry import se3, twin
@@ -113,6 +113,8 @@ class StackFit:
             and rotation vectors times :data:`~service.geometry.anchors.ANCHOR_HALF_SIZE_MM`).
         centre: ``[3]`` the stack's centre in scanner mm (its rotations are linearised about it).
         placement_cov: ``[n]`` covariance of each slice's error with the placement's (mm^2 per coordinate).
+        branch_from_request: the branch was not decided by this stack but by the request's other
+            stacks (the ``reference`` of :func:`fit_stack`).
     """
 
     poses: NDArray[np.float64]
@@ -131,6 +133,7 @@ class StackFit:
     placement_sd_mm: float = float("nan")
     centre: NDArray[np.float64] | None = None
     placement_cov: NDArray[np.float64] | None = None
+    branch_from_request: bool = False
 
     @property
     def branch_decided(self) -> bool:
@@ -141,7 +144,7 @@ class StackFit:
 def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLike | None = None,
               plane_x_mm: float = twin.DEFAULT_PLANE_X_MM, noise_mm: ArrayLike | None = None,
               times: dict[str, NDArray] | None = None, error_shape: ArrayLike | None = None,
-              depth_gain: float = 0.0) -> StackFit:
+              depth_gain: float = 0.0, reference: ArrayLike | None = None) -> StackFit:
     """Make one stack's slice poses consistent (see the module docstring).
 
     Args:
@@ -160,13 +163,21 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
             :class:`~service.consistency.slice_order.SliceOrder` for an order the user gave).
         error_shape: ``[6]`` the network's error variance per coordinate of its own frame (rotation
             about x, y, normal; translation along x, y, normal), mean 1: the model's
-            ``mc_error_shape`` (:func:`~service.consistency.error_shape.error_shape`), carried to the
-            stack's centre (:func:`~service.consistency.error_shape.stack_noise_shape`). Default: the
-            coordinates about the stack's centre alike.
+            ``mc_error_shape`` (:func:`~service.consistency.error_shape.error_shape`), about each
+            slice's origin, whose offset along the normal couples a tilt with a shift of the stack's
+            centre (:mod:`~service.consistency.motion_blocks`). Default: the coordinates about the
+            stack's centre alike.
         depth_gain: ``beta``: the errors' variances grow by ``1 + beta rho^2`` beyond their
             expected errors towards the stack's outer slices (``rho`` the relative depth among
             the usable slices; the model's ``mc_error_depth_gain``,
             :func:`~service.consistency.error_shape.depth_gain`). Only with ``error_shape``.
+        reference: ``4 x 4`` an ``atlas_from_scanner`` of the same scanner frame from stacks that
+            decided their branch (:func:`~service.consistency.stage.request_reference`): where this
+            stack does not decide its own (``branch_margin`` under :data:`MIN_STACK_BRANCH_MARGIN`),
+            the branch whose rigid fit lies nearer to it is taken (``branch_from_request``). The
+            whole stack's twin is a gross move (the mirror composed with the reversal of the slice
+            order: 180 deg for a stack across the mid-sagittal plane), far beyond the fetus's usual
+            motion between stacks.
     """
     p = np.asarray(poses, dtype=np.float64)
     nk = np.asarray(network_from_scanner, dtype=np.float64)
@@ -218,8 +229,9 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     # one eigendecomposition in the motion model; on 2.8.0's moderate outputs the same to 0.01 mm)
     along = ((inv_n[:, :3, 3] - centre) @ axes) * [0.0, 0.0, 1.0]
     grow = 1.0 + depth_gain * relative_depth(along[:, 2], use) ** 2
-    shape = {"axes": axes,
-             "noise_shape": None if error_shape is None else stack_noise_shape(error_shape, along) * grow[:, None]}
+    shape = {"axes": axes} if error_shape is None else {   # errors per coordinate about each slice's origin
+        "axes": axes, "noise_shape": np.asarray(error_shape, dtype=np.float64)[None] * grow[:, None],
+        "lever_mm": along[:, 2]}
     on = np.arange(n)
     own, chosen = cand[on, branch], proposals[on, branch]                   # each slice on its branch
     if sig is None:
@@ -234,7 +246,13 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     first = branch
     branch = _branch(ed((motion.loo @ inv_n)[:, None], cand))
     margin = _branch_margin(proposals, cand, branch, inv_n, w, inliers)
-    if margin < 1.0:                       # the whole stack's twin is the better rigid stack: take it
+    by_request = reference is not None and max(margin, 1.0 / margin) < MIN_STACK_BRANCH_MARGIN
+    if by_request:                         # the request's other stacks decide: the branch nearer to them
+        fits = [se3.frechet_mean(proposals[on, b], np.maximum(w, 1e-12), tol=MEAN_TOL_RAD) for b in (branch, 1 - branch)]
+        far = [float(ed(f @ inv_n[use], np.asarray(reference, dtype=np.float64) @ inv_n[use]).mean()) for f in fits]
+        if far[1] < far[0]:
+            branch, margin, s = 1 - branch, 1.0 / margin, fits[1]
+    elif margin < 1.0:                     # the whole stack's twin is the better rigid stack: take it
         branch, margin = 1 - branch, 1.0 / margin
         s = se3.frechet_mean(proposals[on, branch], np.maximum(w, 1e-12), tol=MEAN_TOL_RAD)
     if not np.array_equal(branch, first):
@@ -258,7 +276,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     final = fit_motion(chosen, s, final_votes, orders, centre, **shape)     # every model again, averaged
     return StackFit(final.poses @ inv_n, branch == 1, inconsistent, r_loo, True, final.placement, fraction, final.order,
                     final.length, network_mm, model_mm, margin, final.sd_mm, final.placement_sd_mm, centre,
-                    final.placement_cov)
+                    final.placement_cov, by_request)
 
 
 def _branch_margin(proposals: NDArray, cand: NDArray, branch: NDArray, inv_n: NDArray, w: NDArray,

@@ -39,7 +39,8 @@ def network_from_voxel(input_from_network: NDArray, slice_from_voxel: NDArray) -
 def consistent_poses(mean: NDArray, twin_mass: NDArray, network_from_vox: NDArray, scanner_from_voxel: NDArray,
                      usable: NDArray, plane_x_mm: float, noise_mm: NDArray | None = None,
                      enabled: bool = True, times: dict[str, NDArray] | None = None,
-                     error_shape: NDArray | None = None, depth_gain: float = 0.0) -> StackPoses:
+                     error_shape: NDArray | None = None, depth_gain: float = 0.0,
+                     reference: NDArray | None = None) -> StackPoses:
     """Run :func:`fit_stack` on one stack (or pass the network's poses through when ``enabled`` is False).
 
     ``noise_mm`` is each pose's expected error: the MC spread times the model's calibration. The
@@ -47,15 +48,36 @@ def consistent_poses(mean: NDArray, twin_mass: NDArray, network_from_vox: NDArra
     where the stack is decidable, ``noise_mm`` otherwise. ``times``: the candidate acquisition
     orders (:class:`~service.consistency.slice_order.SliceOrder`; default every named one).
     ``error_shape``, ``depth_gain``: the model's ``mc_error_shape`` and ``mc_error_depth_gain`` (see :func:`fit_stack`).
+    ``reference``: the placement of the request's stacks that decided their branch (:func:`request_reference`).
     """
     n = len(mean)
     if not enabled:
         return StackPoses(mean, twin_mass, np.zeros(n, bool), np.zeros(n, bool), None, noise_mm)
     network_from_scanner = network_from_vox @ np.linalg.inv(scanner_from_voxel)
-    fit = fit_stack(mean, network_from_scanner, usable, plane_x_mm, noise_mm, times, error_shape, depth_gain)
+    fit = fit_stack(mean, network_from_scanner, usable, plane_x_mm, noise_mm, times, error_shape, depth_gain, reference)
     mass = np.where(fit.twinned, 1.0 - twin_mass, twin_mass)
     return StackPoses(fit.poses, mass, fit.twinned, fit.inconsistent, fit,
                       fit.expected_mm if fit.decidable else noise_mm)
+
+
+def undecided(out: StackPoses) -> bool:
+    """The stage found one consistent stack but not its left-right branch (the request may decide it)."""
+    return out.fit is not None and out.fit.decidable and not out.fit.branch_decided
+
+
+def request_reference(outs: list[StackPoses]) -> NDArray[np.float64] | None:
+    """Where the request's stacks that decided their left-right branch put the scanner frame: their
+    placements' mean, each weighed by its precision (None when no stack decided).
+
+    The stacks of one request share the scanner frame; a stack that cannot tell its own branch (its
+    slices' order along the normal fits its twin nearly as well) takes the branch nearer to this
+    (:func:`fit_stack`'s ``reference``)."""
+    fits = [o.fit for o in outs if o.fit is not None and o.fit.branch_decided and o.fit.atlas_from_scanner is not None
+            and np.isfinite(o.fit.placement_sd_mm)]
+    if not fits:
+        return None
+    weights = np.array([1.0 / max(f.placement_sd_mm, 1e-3) ** 2 for f in fits])
+    return se3.frechet_mean(np.stack([f.atlas_from_scanner for f in fits]), weights)
 
 
 def pool_request(outs: list[StackPoses]) -> list[dict | None]:
@@ -125,4 +147,5 @@ def stack_report(fit: StackFit | None) -> dict | None:
         "model_error_mm": finite(fit.model_mm),
         "branch_margin": finite(fit.branch_margin) if fit.decidable else None,
         "branch_decided": fit.branch_decided,
+        "branch_from_request": fit.branch_from_request,
     }

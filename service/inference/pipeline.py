@@ -28,6 +28,8 @@ from service.consistency.stage import (
     consistent_poses,
     network_from_voxel,
     pool_request,
+    request_reference,
+    undecided,
 )
 from service.core.errors import InvalidParameter, UnusableImage
 from service.geometry import anchors
@@ -112,16 +114,17 @@ def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction:
 def stack_poses(est: PoseEstimate, sl: slice, prepared: PreparedStack, net_from_vox: np.ndarray,
                 stack_consistency: bool, plane_x_mm: float, expected_mm: np.ndarray,
                 order: SliceOrder | None = None, error_shape: tuple[float, ...] | None = None,
-                depth_gain: float = 0.0) -> StackPoses:
+                depth_gain: float = 0.0, reference: np.ndarray | None = None) -> StackPoses:
     """One stack's poses through the stack-consistency stage (or as the network gave them);
     ``expected_mm`` is each slice's expected error: its MC spread times the model's ``mc_error_scale``;
     ``order`` what is known of the stack's acquisition order (default: nothing; the stage chooses);
-    ``error_shape`` and ``depth_gain`` the model's ``mc_error_shape`` and ``mc_error_depth_gain``."""
+    ``error_shape`` and ``depth_gain`` the model's ``mc_error_shape`` and ``mc_error_depth_gain``;
+    ``reference`` where the request's stacks that decided their branch put the scanner frame."""
     p = prepared.prepared
     usable = (p.mask_fraction >= acceptance.MIN_MASK_FRACTION) & ~est.degenerate[sl]
     return consistent_poses(est.mean[sl], est.twin_mass[sl], net_from_vox, prepared.upload.volume.affine, usable,
                             plane_x_mm, expected_mm[sl], stack_consistency, (order or SliceOrder()).times(len(p.inputs)),
-                            None if error_shape is None else np.asarray(error_shape), depth_gain)
+                            None if error_shape is None else np.asarray(error_shape), depth_gain, reference)
 
 
 def slice_results(est: PoseEstimate, sl: slice, prepared: PreparedStack, net_from_vox: np.ndarray, out: StackPoses,
@@ -206,6 +209,10 @@ def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples:
     gain = float(getattr(estimator.info, "mc_error_depth_gain", 0.0))
     outs = [stack_poses(est, sl, s, nfv, stack_consistency, plane_x_mm, expected, order, shape, gain)
             for sl, s, nfv, order in zip(spans, prepared, frames, orders)]
+    reference = request_reference(outs) if stack_consistency else None
+    if reference is not None:              # a stack that did not decide its branch takes the others' word
+        outs = [stack_poses(est, sl, s, nfv, True, plane_x_mm, expected, order, shape, gain, reference)
+                if undecided(out) else out for sl, s, nfv, order, out in zip(spans, prepared, frames, orders, outs)]
     reports = pool_request(outs) if stack_consistency else [None] * len(outs)
     stacks = []
     for index, (s, sl, nfv, out, report) in enumerate(zip(prepared, spans, frames, outs, reports)):

@@ -1,11 +1,10 @@
-"""The shape of the network's error: anatomical axes, error coordinates, and the lever arm to a stack's centre."""
+"""The shape of the network's error: anatomical axes, error coordinates, the depth gain."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from service.consistency.error_shape import anatomical_axes, error_coordinates, error_shape, stack_noise_shape
-from service.consistency.motion_model import to_coordinates
+from service.consistency.error_shape import anatomical_axes, error_coordinates, error_shape
 from service.geometry import se3
 from service.geometry.anchors import ANCHOR_HALF_SIZE_MM
 from service.geometry.iterators import random_rotations
@@ -47,25 +46,3 @@ def test_error_shape_is_robust_to_slices_the_network_cannot_place() -> None:
     np.testing.assert_allclose(a.mean(), 1.0)
     np.testing.assert_allclose(a / a[0], np.array([4.0, 1.0, 0.25, 0.04, 0.09, 2.25]) / 4.0, rtol=0.15)
     np.testing.assert_allclose(b / b[0], a / a[0], rtol=0.3, atol=0.01)
-
-
-def test_stack_noise_shape_matches_the_composed_errors_at_the_stacks_centre() -> None:
-    """Slice-frame errors of known variances, composed into the stack's coordinates about its centre
-    exactly as the stage does (``to_coordinates``): their variances are the predicted ones."""
-    rng = np.random.default_rng(3)
-    axes = random_rotations(1, rng)[0]                                      # the stack's x, y, normal (scanner)
-    centre = np.array([5.0, -10.0, 20.0])
-    offsets = np.array([[0.0, 0.0, 0.0], [4.0, -3.0, 30.0], [-2.0, 6.0, -55.0], [10.0, 0.0, 45.0]])
-    shape = np.array([3.0, 1.0, 0.3, 0.05, 0.15, 1.5])
-    sd = 2.0                                                                # mm: small, the linear regime
-    n = 40000
-    s = se3.exp(np.array([0.2, -0.1, 0.3, 10.0, 5.0, -3.0]))               # atlas_from_scanner (rigid, no motion)
-    for k, off in enumerate(offsets):
-        slice_pose = make_pose(axes, centre + axes @ off)                  # slice frame -> scanner
-        xi = rng.normal(0, sd, (n, 6)) * np.sqrt(shape)
-        err = make_pose(se3.so3_exp(xi[:, :3] / ANCHOR_HALF_SIZE_MM), xi[:, 3:])
-        proposals = s @ slice_pose @ err @ se3.inverse(slice_pose)          # the slice's proposal of S
-        y = to_coordinates(proposals, s, centre)
-        y = np.concatenate([y[:, :3] @ axes, y[:, 3:] @ axes], axis=1)     # along the stack's axes
-        predicted = stack_noise_shape(shape, off[None])[0] * sd ** 2
-        np.testing.assert_allclose(y.var(axis=0), predicted, rtol=0.05, err_msg=f"slice {k}")

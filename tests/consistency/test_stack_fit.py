@@ -44,6 +44,18 @@ def fake_network(truth: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarra
     return poses, chose
 
 
+def shaped_errors(truth: np.ndarray, rng: np.random.Generator, shape: np.ndarray, sd_mm: float) -> np.ndarray:
+    """``truth`` with errors of variance ``sd_mm^2 * shape`` per coordinate of each slice's anatomical
+    axes (:func:`~service.consistency.error_shape.anatomical_axes`; rotations in mm at the anchor radius)."""
+    from service.consistency.error_shape import anatomical_axes
+    from service.geometry.anchors import ANCHOR_HALF_SIZE_MM
+
+    r = anatomical_axes(truth[:, :3, :3])
+    xi = rng.normal(0, 1, (len(truth), 6)) * np.sqrt(shape) * sd_mm
+    return truth @ make_pose(r @ se3.so3_exp(xi[:, :3] / ANCHOR_HALF_SIZE_MM) @ np.swapaxes(r, 1, 2),
+                             np.einsum("nij,nj->ni", r, xi[:, 3:]))
+
+
 @pytest.mark.parametrize("motion", ["mild", "moderate"])
 @pytest.mark.parametrize("orientation", ["axial", "coronal", "sagittal"])
 def test_branch_decided_and_fit_beats_the_network(motion: str, orientation: str) -> None:
@@ -151,10 +163,10 @@ def test_the_expected_error_of_the_returned_poses_is_honest_and_ranks_them() -> 
 def test_errors_unlike_per_coordinate_are_weighed_per_coordinate() -> None:
     """A network that errs mostly in the nodding tilt and along the normal (the measured shape of
     model 2.8.0, in each slice's anatomical axes): told that shape, the stage follows the motion
-    where the network is precise and lands nearer the truth than weighing every coordinate alike."""
+    where the network is precise and lands nearer the truth than weighing every coordinate alike
+    (here 2.78 against 3.95 mm; 3.43 when each slice's tilt and the shift it makes of the stack's
+    centre were taken as independent errors, before the lever arm coupled them)."""
     from model_export.acquisitions import ORIENTATIONS
-    from service.consistency.error_shape import anatomical_axes
-    from service.geometry.anchors import ANCHOR_HALF_SIZE_MM
 
     shape = np.array([3.84, 0.53, 0.18, 0.03, 0.13, 1.30])
     rng = np.random.default_rng(21)
@@ -162,32 +174,49 @@ def test_errors_unlike_per_coordinate_are_weighed_per_coordinate() -> None:
     for name in ("axial", "coronal", "sagittal"):
         for _ in range(3):
             truth, nk = stack(rng, "moderate", orientation=ORIENTATIONS[name])
-            r = anatomical_axes(truth[:, :3, :3])
-            xi = rng.normal(0, 1, (len(truth), 6)) * np.sqrt(shape) * 5.0          # mm (rotations at the anchor radius)
-            err = make_pose(r @ se3.so3_exp(xi[:, :3] / ANCHOR_HALF_SIZE_MM) @ np.swapaxes(r, 1, 2),
-                            np.einsum("nij,nj->ni", r, xi[:, 3:]))                # in the anatomical axes
-            poses = truth @ err
+            poses = shaped_errors(truth, rng, shape, 5.0)
             sd = np.full(len(poses), 10.0)
             alike.append(ed(fit_stack(poses, nk, noise_mm=sd).poses, truth).mean())
             told.append(ed(fit_stack(poses, nk, noise_mm=sd, error_shape=shape / shape.mean()).poses, truth).mean())
-    assert np.mean(told) < 0.9 * np.mean(alike), (np.mean(told), np.mean(alike))
+    assert np.mean(told) < 0.8 * np.mean(alike), (np.mean(told), np.mean(alike))
 
 
 
 def test_a_depth_gain_trusts_the_outer_slices_less() -> None:
     """Told that errors outgrow their expected errors towards the stack's ends (``1 + 4 rho^2``), the
-    stage's expected errors grow there and not at the middle. (On Gaussian errors this weighting
-    gains nothing measurable; on the network's outer planes, lost and heavy-tailed, it gained
-    0.1-0.3 mm: see the README, "The error's shape".)"""
+    stage's expected errors grow there more than at the middle (which shares a little of it: the
+    outer slices' positions pin the stack's tilt at every depth through the lever arm). (On Gaussian
+    errors this weighting gains nothing measurable; on the network's outer planes, lost and
+    heavy-tailed, it gained 0.1-0.3 mm: see the README, "The error's shape".)"""
     from service.consistency.error_shape import relative_depth
 
     rng = np.random.default_rng(22)
     truth, nk = stack(rng, "moderate")
-    poses = truth @ se3.exp(rng.normal(0, 1, (len(truth), 6)) * NOISE * 0.5)
     sd, shape = np.full(len(truth), 8.0), np.array([3.4, 0.6, 0.23, 0.04, 0.15, 1.6])
+    poses = shaped_errors(truth, rng, shape, 4.0)
     plain = fit_stack(poses, nk, noise_mm=sd, error_shape=shape)
     told = fit_stack(poses, nk, noise_mm=sd, error_shape=shape, depth_gain=4.0)
     rho = relative_depth(np.arange(len(truth), dtype=float), np.ones(len(truth), bool))
     ratio = told.expected_mm / plain.expected_mm
-    assert ratio[rho > 0.8].mean() > 1.2 * ratio[rho < 0.2].mean()
-    assert abs(ratio[rho < 0.2].mean() - 1.0) < 0.15
+    assert ratio[rho > 0.8].mean() > 1.15 * ratio[rho < 0.2].mean()
+    assert 1.0 <= ratio[rho < 0.2].mean() < 1.35
+
+
+def test_a_stack_that_cannot_tell_its_branch_takes_the_requests_word(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every slice put on its twin: a stack that does not decide its own branch (here: none does, the
+    margin required is out of reach) takes the branch whose rigid fit lies nearer to the placement
+    the request's other stacks give (``reference``), whichever that is; without one it is left as it fits."""
+    import service.consistency.stack_fit as stack_fit_module
+
+    monkeypatch.setattr(stack_fit_module, "MIN_STACK_BRANCH_MARGIN", 1e9)
+    rng = np.random.default_rng(31)
+    truth, nk = stack(rng, "mild")
+    poses = twin.twin(truth) @ se3.exp(rng.normal(0, 1, (len(truth), 6)) * NOISE * 0.3)
+    placement = se3.frechet_mean(truth @ nk)                                  # where the other stacks put the scanner
+    told = fit_stack(poses, nk, reference=placement)
+    assert told.decidable and told.branch_from_request and not told.branch_decided
+    assert told.twinned.all() and ed(told.poses, truth).mean() < 5.0
+    mirrored = fit_stack(poses, nk, reference=se3.frechet_mean(twin.twin(truth) @ nk))
+    assert not mirrored.twinned.any()
+    alone = fit_stack(poses, nk)
+    assert not alone.branch_from_request

@@ -6,7 +6,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.consistency.stage import consistent_poses, network_from_voxel, stack_report
+from service.consistency.stack_fit import StackFit
+from service.consistency.stage import (
+    StackPoses,
+    consistent_poses,
+    network_from_voxel,
+    request_reference,
+    stack_report,
+    undecided,
+)
 from service.geometry import anchors, se3, twin
 from service.geometry.pose import make_pose, translate
 from service.io.volume import Volume
@@ -35,3 +43,16 @@ def test_atlas_from_scanner_is_recovered_from_slice_poses(handedness: float) -> 
     np.testing.assert_array_equal(out.twinned, np.arange(n) % 2 == 0)
     assert anchors.ed(out.poses, truth).max() < 1e-6
     np.testing.assert_allclose(out.twin_mass, np.where(out.twinned, 0.9, 0.1))
+
+
+def test_the_request_reference_is_the_precision_weighted_placement_of_the_decided_stacks() -> None:
+    def out(x_mm: float, sd_mm: float, margin: float) -> StackPoses:
+        fit = StackFit(np.eye(4)[None], np.zeros(1, bool), np.zeros(1, bool), np.zeros(1), True,
+                       translate([x_mm, 0.0, 0.0]), 1.0, branch_margin=margin, placement_sd_mm=sd_mm)
+        return StackPoses(fit.poses, np.zeros(1), fit.twinned, fit.inconsistent, fit)
+
+    undecided_one = out(50.0, 0.1, 1.1)                                    # precise, but its branch is open
+    assert undecided(undecided_one) and not undecided(out(0.0, 1.0, 3.0))
+    assert request_reference([undecided_one]) is None
+    ref = request_reference([out(0.0, 1.0, 3.0), out(3.0, 2.0, 2.0), undecided_one])
+    np.testing.assert_allclose(ref[:3, 3], [0.6, 0.0, 0.0], atol=1e-6)     # weights 1 and 1/4
