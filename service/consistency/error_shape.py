@@ -43,13 +43,23 @@ def anatomical_axes(plane_axes: ArrayLike) -> NDArray[np.float64]:
     """
     a = np.asarray(plane_axes, dtype=np.float64)
     lr, ap = a[..., 0, :2], a[..., 1, :2]                      # atlas x and y in the plane's (x, y)
-    use = np.linalg.norm(lr, axis=-1, keepdims=True) >= MIN_IN_PLANE
-    d = np.where(use, lr, ap)
+    d = np.where(near_sagittal(a)[..., None], ap, lr)
     phi = np.arctan2(d[..., 1], d[..., 0])
     c, s = np.cos(phi), np.sin(phi)
     out = np.zeros(a.shape)
     out[..., 0, 0], out[..., 0, 1], out[..., 1, 0], out[..., 1, 1], out[..., 2, 2] = c, -s, s, c, 1.0
     return out
+
+
+def near_sagittal(plane_axes: ArrayLike) -> NDArray[np.bool_]:
+    """``[...]`` planes (columns x, y, normal in atlas coordinates) within 30 deg of sagittal: the
+    atlas left-right axis projects on them shorter than :data:`MIN_IN_PLANE`.
+
+    Example:
+        >>> near_sagittal(np.stack([np.eye(3), np.eye(3)[:, [1, 2, 0]]])).tolist()   # axial, sagittal
+        [False, True]
+    """
+    return np.linalg.norm(np.asarray(plane_axes, dtype=np.float64)[..., 0, :2], axis=-1) < MIN_IN_PLANE
 
 
 def error_coordinates(pred: ArrayLike, true: ArrayLike) -> NDArray[np.float64]:

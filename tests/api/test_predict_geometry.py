@@ -149,6 +149,47 @@ def test_two_stacks_of_one_position_are_pooled_and_stay_exact(oracle, oracle_cli
                                            atol=0.05)
 
 
+def test_a_stack_that_does_not_decide_its_branch_takes_the_other_stacks(oracle, oracle_client, tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two stacks of the same still fetus; the second comes from the network wholly on its twin and
+    1 mm / 1 deg off per slice. With the margin a stack needs to decide its own branch set between
+    the two stacks' margins (exact: ~1e15; noisy: ~3e2), only the first decides; the second takes
+    the branch nearer to the first's placement: every slice back from the twin, its placement that
+    of the first stack, and the response says whose word it took."""
+    import service.consistency.stack_fit as stack_fit_module
+    from service.geometry import twin
+
+    monkeypatch.setattr(stack_fit_module, "MIN_STACK_BRANCH_MARGIN", 1e5)
+    rng = np.random.default_rng(12)
+    files, poses = [], []
+    for i, (axis, rotation) in enumerate([(2, np.eye(3)), (1, OBLIQUE)]):
+        shape = [44, 44, 44]
+        shape[axis] = 18
+        aff = stack_affine(axis, rotation, 1.5, 3.5, tuple(shape))
+        g = np.repeat(np.eye(4)[None], shape[axis], axis=0)
+        img, msk = acquire_stack(*BRAIN, aff, tuple(shape), axis, g)
+        write(tmp_path / f"s{i}.nii.gz", img, aff, "simpleitk")
+        write(tmp_path / f"m{i}.nii.gz", msk.astype(np.uint8), aff, "simpleitk")
+        truth = true_network_poses(aff, msk, axis, g)
+        if i == 1:
+            noise = np.concatenate([rng.normal(0, np.radians(1.0), (len(truth), 3)), rng.normal(0, 1.0, (len(truth), 3))], 1)
+            truth = twin.twin(truth @ se3.exp(noise))
+        poses.append(truth)
+        files += [("stacks", (f"s{i}.nii.gz", (tmp_path / f"s{i}.nii.gz").read_bytes())),
+                  ("masks", (f"m{i}.nii.gz", (tmp_path / f"m{i}.nii.gz").read_bytes()))]
+    oracle.truth = np.concatenate(poses)
+    r = oracle_client.post("/v1/predict", files=files, data={"bias_correction": "false", "mc_samples": "5"})
+    assert r.status_code == 200, r.text
+    first, second = (s["consistency"] for s in r.json()["stacks"])
+    assert first["branch_decided"] and not first["branch_from_request"]
+    assert second["decidable"] and not second["branch_decided"] and second["branch_from_request"]
+    used = [s for s in r.json()["stacks"][1]["slices"] if s["reason"] != "empty"]
+    assert used and all(s["branch"] == "twin" for s in used)
+    a, b = np.array(first["atlas_from_scanner"]), np.array(second["atlas_from_scanner"])
+    assert np.linalg.norm(a[:3, 3] - b[:3, 3]) < 3.0
+    assert np.degrees(np.linalg.norm(se3.so3_log(a[:3, :3].T @ b[:3, :3]))) < 2.0
+
+
 def test_a_given_acquisition_order_is_used_and_keeps_the_poses_exact(oracle, oracle_client, tmp_path: Path) -> None:
     """``slice_order``: the stage fits its motion over the order the request gives (the report says
     ``given``), a named family restricts its choice, and the poses it keeps stay exact with an exact oracle."""
