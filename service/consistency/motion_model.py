@@ -84,7 +84,8 @@ class MotionFit:
         amplitude_mm: motion amplitude per component (mm).
         noise_scale: factor on the expected errors the likelihood preferred.
         error_correlation: correlation of neighbouring slices' network errors it preferred.
-        sd_mm: ``[n]`` posterior spread of each slice's motion (E.D.-like mm).
+        sd_mm: ``[n]`` posterior spread of each slice's motion (E.D.-like mm; in the slice's own
+            coordinates, about its origin, when the lever arm is given).
         model_sd_mm: ``[n]`` spread of the others' prediction of each slice (E.D.-like mm).
         placement: ``4 x 4`` the stack's mean placement: ``rigid`` moved by the posterior motion
             averaged over all its slices (where the stack was over its acquisition; the rigid fit
