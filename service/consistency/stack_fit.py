@@ -246,14 +246,14 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     first = branch
     branch = _branch(ed((motion.loo @ inv_n)[:, None], cand))
     margin = _branch_margin(proposals, cand, branch, inv_n, w, inliers)
-    by_request = reference is not None and max(margin, 1.0 / margin) < MIN_STACK_BRANCH_MARGIN
+    by_request = reference is not None and 1.0 / MIN_STACK_BRANCH_MARGIN < margin < MIN_STACK_BRANCH_MARGIN
     if by_request:                         # the request's other stacks decide: the branch nearer to them
         fits = [se3.frechet_mean(proposals[on, b], np.maximum(w, 1e-12), tol=MEAN_TOL_RAD) for b in (branch, 1 - branch)]
         far = [float(ed(f @ inv_n[use], np.asarray(reference, dtype=np.float64) @ inv_n[use]).mean()) for f in fits]
         if far[1] < far[0]:
             branch, margin, s = 1 - branch, 1.0 / margin, fits[1]
     elif margin < 1.0:                     # the whole stack's twin is the better rigid stack: take it
-        branch, margin = 1 - branch, 1.0 / margin
+        branch, margin = 1 - branch, 1.0 / max(margin, 1e-12)
         s = se3.frechet_mean(proposals[on, branch], np.maximum(w, 1e-12), tol=MEAN_TOL_RAD)
     if not np.array_equal(branch, first):
         own, chosen = cand[on, branch], proposals[on, branch]
