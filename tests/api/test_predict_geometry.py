@@ -65,6 +65,24 @@ CASES = [
 ]
 
 
+def two_still_stacks(tmp_path: Path) -> tuple[list[tuple], list[np.ndarray]]:
+    """An axial and an oblique coronal stack of the same, still fetus: the upload's form files and
+    each stack's true network-frame poses."""
+    files, truths = [], []
+    for i, (axis, rotation) in enumerate([(2, np.eye(3)), (1, OBLIQUE)]):
+        shape = [44, 44, 44]
+        shape[axis] = 18
+        aff = stack_affine(axis, rotation, 1.5, 3.5, tuple(shape))
+        g = np.repeat(np.eye(4)[None], shape[axis], axis=0)          # the fetus still
+        img, msk = acquire_stack(*BRAIN, aff, tuple(shape), axis, g)
+        write(tmp_path / f"s{i}.nii.gz", img, aff, "simpleitk")
+        write(tmp_path / f"m{i}.nii.gz", msk.astype(np.uint8), aff, "simpleitk")
+        truths.append(true_network_poses(aff, msk, axis, g))
+        files += [("stacks", (f"s{i}.nii.gz", (tmp_path / f"s{i}.nii.gz").read_bytes())),
+                  ("masks", (f"m{i}.nii.gz", (tmp_path / f"m{i}.nii.gz").read_bytes()))]
+    return files, truths
+
+
 @pytest.mark.parametrize(("writer", "axis", "rotation"), CASES, ids=[f"{w}-axis{a}-{i}" for i, (w, a, _) in enumerate(CASES)])
 def test_atlas_from_voxel_matches_truth(oracle, oracle_client, tmp_path: Path, writer: str, axis: int,
                                         rotation: np.ndarray) -> None:
@@ -121,18 +139,7 @@ def test_two_stacks_of_one_position_are_pooled_and_stay_exact(oracle, oracle_cli
     """Two stacks (axial, oblique coronal) of the same, still fetus, an exact oracle: the response
     says both were pooled with no spread between them, each stack's pooled position is the same
     ``atlas_from_scanner``, and the poses stay exact (pooling moves nothing that agrees)."""
-    files, truths = [], []
-    for i, (axis, rotation) in enumerate([(2, np.eye(3)), (1, OBLIQUE)]):
-        shape = [44, 44, 44]
-        shape[axis] = 18
-        aff = stack_affine(axis, rotation, 1.5, 3.5, tuple(shape))
-        g = np.repeat(np.eye(4)[None], shape[axis], axis=0)          # the fetus still
-        img, msk = acquire_stack(*BRAIN, aff, tuple(shape), axis, g)
-        write(tmp_path / f"s{i}.nii.gz", img, aff, "simpleitk")
-        write(tmp_path / f"m{i}.nii.gz", msk.astype(np.uint8), aff, "simpleitk")
-        truths.append(true_network_poses(aff, msk, axis, g))
-        files += [("stacks", (f"s{i}.nii.gz", (tmp_path / f"s{i}.nii.gz").read_bytes())),
-                  ("masks", (f"m{i}.nii.gz", (tmp_path / f"m{i}.nii.gz").read_bytes()))]
+    files, truths = two_still_stacks(tmp_path)
     oracle.truth = np.concatenate(truths)
     r = oracle_client.post("/v1/predict", files=files, data={"bias_correction": "false", "mc_samples": "5"})
     assert r.status_code == 200, r.text
@@ -161,23 +168,10 @@ def test_a_stack_that_does_not_decide_its_branch_takes_the_other_stacks(oracle, 
 
     monkeypatch.setattr(stack_fit_module, "MIN_STACK_BRANCH_MARGIN", 1e5)
     rng = np.random.default_rng(12)
-    files, poses = [], []
-    for i, (axis, rotation) in enumerate([(2, np.eye(3)), (1, OBLIQUE)]):
-        shape = [44, 44, 44]
-        shape[axis] = 18
-        aff = stack_affine(axis, rotation, 1.5, 3.5, tuple(shape))
-        g = np.repeat(np.eye(4)[None], shape[axis], axis=0)
-        img, msk = acquire_stack(*BRAIN, aff, tuple(shape), axis, g)
-        write(tmp_path / f"s{i}.nii.gz", img, aff, "simpleitk")
-        write(tmp_path / f"m{i}.nii.gz", msk.astype(np.uint8), aff, "simpleitk")
-        truth = true_network_poses(aff, msk, axis, g)
-        if i == 1:
-            noise = np.concatenate([rng.normal(0, np.radians(1.0), (len(truth), 3)), rng.normal(0, 1.0, (len(truth), 3))], 1)
-            truth = twin.twin(truth @ se3.exp(noise))
-        poses.append(truth)
-        files += [("stacks", (f"s{i}.nii.gz", (tmp_path / f"s{i}.nii.gz").read_bytes())),
-                  ("masks", (f"m{i}.nii.gz", (tmp_path / f"m{i}.nii.gz").read_bytes()))]
-    oracle.truth = np.concatenate(poses)
+    files, (first_truth, second_truth) = two_still_stacks(tmp_path)
+    noise = np.concatenate([rng.normal(0, np.radians(1.0), (len(second_truth), 3)),
+                            rng.normal(0, 1.0, (len(second_truth), 3))], 1)
+    oracle.truth = np.concatenate([first_truth, twin.twin(second_truth @ se3.exp(noise))])
     r = oracle_client.post("/v1/predict", files=files, data={"bias_correction": "false", "mc_samples": "5"})
     assert r.status_code == 200, r.text
     first, second = (s["consistency"] for s in r.json()["stacks"])
