@@ -76,12 +76,6 @@ class Fixed:
         return self.est
 
 
-def nearer_truth(mean: np.ndarray, truth: np.ndarray, plane: float) -> np.ndarray:
-    """Per slice, the truth or its twin, whichever is nearer to the network's pose."""
-    tw = twin.twin(truth, plane)
-    return np.where((ed(mean, truth) <= ed(mean, tw))[:, None, None], truth, tw)
-
-
 def shuffled(size: np.ndarray, stack: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Whose error each slice takes: a permutation within each stack's slices in the brain (``stack`` -1: not scored)."""
     out = np.arange(len(size))
@@ -108,7 +102,7 @@ def tails_cut(limit: float) -> Callable:
 def edited(est: PoseEstimate, truth: np.ndarray, stack: np.ndarray, plane: float, scale_mc: float, rng: np.random.Generator,
            pick: Callable | None = None, factor: float = 1.0, oracle_weights: bool = False) -> PoseEstimate:
     """The estimate with its errors moved (``pick``: whose error each slice takes), scaled, or its spread the truth."""
-    near = nearer_truth(est.mean, truth, plane)
+    near = twin.nearer(est.mean, truth, plane)
     err = se3.inverse(near) @ est.mean                                      # network-frame errors
     size = ed(est.mean, near)
     src = np.arange(len(err)) if pick is None else pick(size, stack, rng)

@@ -85,15 +85,23 @@ class _Reused:
         return self.last[1]
 
 
+def prepare_acquisition(stacks: list[SimulatedStack], info: ModelInfo, bias_correction: bool = True,
+                        ) -> tuple[list[PreparedStack], list[NDArray]]:
+    """One simulated acquisition prepared as the server prepares uploads, and each stack's true
+    network-frame poses ``[n, 4, 4]`` (the simulation's ``atlas_from_voxel`` through the service's
+    own crop/centre)."""
+    uploads = [StackUpload(f"{s.orientation}.nii.gz", s.volume, s.mask, f"{s.orientation}_mask.nii.gz") for s in stacks]
+    prepared = prepare_stacks(uploads, info, bias_correction, workers=2)
+    return prepared, [s.atlas_from_voxel @ np.linalg.inv(p.network_from_voxel()) for s, p in zip(stacks, prepared)]
+
+
 def run_acquisition(stacks: list[SimulatedStack], estimator, mc_samples: int = 100,  # noqa: ANN001
                     bias_correction: bool = True, orders: tuple[str | None, ...] = (None,),
                     ) -> tuple[list[list[dict]], list[PreparedStack], list[NDArray]]:
     """Predict one acquisition as the server would, once per ``orders`` (``slice_order`` values;
     ``None``: not given) from one network pass; returns the stack results per order, the prepared
     stacks and each stack's true network-frame poses."""
-    uploads = [StackUpload(f"{s.orientation}.nii.gz", s.volume, s.mask, f"{s.orientation}_mask.nii.gz") for s in stacks]
-    prepared = prepare_stacks(uploads, estimator.info, bias_correction, workers=2)
-    truth = [s.atlas_from_voxel @ np.linalg.inv(p.network_from_voxel()) for s, p in zip(stacks, prepared)]
+    prepared, truth = prepare_acquisition(stacks, estimator.info, bias_correction)
     if hasattr(estimator, "truth"):
         estimator.truth = np.concatenate(truth)
     once = _Reused(estimator)

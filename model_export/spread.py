@@ -28,15 +28,13 @@ import onnx
 
 from model_export.acquisitions import simulate_acquisition
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
-from model_export.evaluate_acquisitions import MIN_MASK_PIXELS
+from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, prepare_acquisition
 from model_export.simulate import SimulationConfig
 from model_export.train import validation_set
 from service.consistency.error_shape import depth_gain, error_coordinates, error_shape, relative_depth
 from service.geometry import twin
-from service.geometry.anchors import ed
 from service.inference.estimator import OnnxPoseEstimator
 from service.inference.model_file import load_model
-from service.inference.pipeline import StackUpload, prepare_stacks
 
 
 def error_scale(error_mm: np.ndarray, spread_mm: np.ndarray) -> float:
@@ -79,20 +77,14 @@ def measure_error_shape(model_path: Path, root: Path = DEFAULT_ATLAS_ROOT, per_v
     rng, coords, spread, depth = np.random.default_rng(seed), [], [], []
     for vol in volumes:
         for _ in range(per_volume):
-            stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, motion)
-            uploads = [StackUpload(f"{s.orientation}.nii.gz", s.volume, s.mask, f"{s.orientation}_mask.nii.gz")
-                       for s in stacks]
-            prepared = prepare_stacks(uploads, info, True)
-            truth = np.concatenate([s.atlas_from_voxel @ np.linalg.inv(p.network_from_voxel())
-                                    for s, p in zip(stacks, prepared)])
+            prepared, truths = prepare_acquisition(simulate_acquisition(vol.image, vol.mask, vol.affine, rng, motion), info)
+            truth = np.concatenate(truths)
             inside = np.concatenate([p.prepared.mask_pixels for p in prepared]) >= MIN_MASK_PIXELS
             depth.append(np.concatenate([relative_depth(np.arange(len(p.prepared.inputs), dtype=float),
                                                         p.prepared.mask_pixels >= MIN_MASK_PIXELS)
                                          for p in prepared])[inside])
             est = estimator.estimate(np.concatenate([p.prepared.inputs for p in prepared]), mc_samples)
-            tw = twin.twin(truth, info.symmetry_plane_x_mm)
-            near = np.where((ed(est.mean, truth) <= ed(est.mean, tw))[:, None, None], truth, tw)
-            coords.append(error_coordinates(est.mean, near)[inside])
+            coords.append(error_coordinates(est.mean, twin.nearer(est.mean, truth, info.symmetry_plane_x_mm))[inside])
             spread.append(est.spread_mm[inside])
     coords, spread, depth = np.concatenate(coords), np.concatenate(spread), np.concatenate(depth)
     shape = error_shape(coords, spread)

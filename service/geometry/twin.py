@@ -108,6 +108,24 @@ def twin_min_ed(pred: ArrayLike, true: ArrayLike, plane_x_mm: float = DEFAULT_PL
     return np.minimum(anchors.ed(pred, true), anchors.ed(pred, twin(true, plane_x_mm)))
 
 
+def nearer(pred: ArrayLike, true: ArrayLike, plane_x_mm: float = DEFAULT_PLANE_X_MM) -> NDArray[np.float64]:
+    """``[..., 4, 4]`` per pose, ``true`` or its twin, whichever is nearer to ``pred`` (E.D.; ``true`` on a tie):
+    the reference a mirror-invariant error is measured against (:func:`twin_min_ed`).
+
+    Example:
+        >>> import numpy as np
+        >>> from service.geometry import se3
+        >>> pose = se3.exp(np.array([0.2, 0.1, 0.3, 20.0, 5.0, 0.0]))
+        >>> bool(np.allclose(nearer(twin(pose), pose), twin(pose)))
+        True
+    """
+    from service.geometry import anchors
+
+    t = np.asarray(true, dtype=np.float64)
+    tw = twin(t, plane_x_mm)
+    return np.where((anchors.ed(pred, t) <= anchors.ed(pred, tw))[..., None, None], t, tw)
+
+
 def measure_plane_x(image: ArrayLike, affine: ArrayLike, max_shift_mm: float = 8.0) -> float:
     """The mid-sagittal plane ``x0`` of a volume: where its left-right mirror correlates best with it.
 
