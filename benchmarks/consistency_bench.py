@@ -2,8 +2,9 @@
 
 Prints milliseconds per 100 slices (target <= 50) and, as a ratio that holds on a loaded machine
 too, the stage's time over that of the twin-aware MC-100 statistics of the same slices; then the
-cost of weighing the error's shape (a model's ``mc_error_shape``: the two in-plane translations
-get their own eigendecompositions) over weighing every coordinate alike. Run:
+cost of weighing the error's shape (a model's ``mc_error_shape``: each tilt and the in-plane
+translation its lever arm couples form one block of twice the slices,
+:mod:`service.consistency.motion_blocks`) over weighing every coordinate alike. Run:
 ``.venv/bin/python benchmarks/consistency_bench.py``.
 """
 
