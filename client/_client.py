@@ -249,7 +249,7 @@ class SVRnetClient:
     def predict(self, stacks: Sequence[PathLike], masks: Sequence[PathLike] | None = None, *,
                 mc_samples: int | None = None, variance_threshold: float | None = None,
                 bias_correction: bool | None = None, model: str | None = None,
-                slice_order: str | Sequence[str] | None = None,
+                slice_order: str | Sequence[str] | None = None, image_consistency: bool | None = None,
                 progress: ProgressCallback | None = None) -> dict[str, Any]:
         """``POST /v1/predict``: the atlas pose and confidence of every slice of every stack.
 
@@ -266,6 +266,7 @@ class SVRnetClient:
                 per stack; each ``auto``, ``interleaved``, ``sequential``, ``interleaved-even-first``,
                 ``interleaved-odd-first``, or the slice indices in the order they were acquired
                 (``"0,2,4,1,3"``). Without it the server's motion model chooses.
+            image_consistency: refine the poses where slices of different stacks cross (default on).
             progress: ``progress(bytes_sent, total)`` during the upload.
 
         Returns:
@@ -282,7 +283,8 @@ class SVRnetClient:
         """
         fields = [(k, form_value(v)) for k, v in (("mc_samples", mc_samples),
                                                    ("variance_threshold", variance_threshold),
-                                                   ("bias_correction", bias_correction), ("model", model))
+                                                   ("bias_correction", bias_correction), ("model", model),
+                                                   ("image_consistency", image_consistency))
                   if v is not None]
         fields += order_fields(slice_order)
         body = MultipartBody(fields, self._files(stacks, masks))

@@ -252,6 +252,9 @@ def predict(
         help="acquisition order, once for every stack or once per stack: interleaved, sequential, "
              "interleaved-even-first, interleaved-odd-first, or slice indices as acquired (0,2,4,1,3); "
              "default: the server's motion model chooses")] = None,
+    image_consistency: Annotated[bool, typer.Option(
+        "--image-consistency/--no-image-consistency",
+        help="refine the poses where slices of different stacks cross")] = True,
 ) -> None:
     """Atlas pose and confidence of every slice of every stack (POST /v1/predict)."""
     _check_masks(stacks, mask)
@@ -261,7 +264,8 @@ def predict(
         with _upload_bar(err, f"{len(stacks)} stack(s)") as progress:
             result = svr.predict(stacks, mask, mc_samples=mc_samples, variance_threshold=threshold,
                                  bias_correction=None if bias_correction else False, model=model,
-                                 slice_order=slice_order, progress=progress)
+                                 slice_order=slice_order, image_consistency=None if image_consistency else False,
+                                 progress=progress)
         console = _stdout()
         console.print(summarise(result))
         total = (result.get("timing_ms") or {}).get("total")

@@ -34,6 +34,9 @@ async def predict(
     stack_consistency: Annotated[bool, Form(description="decide each stack's left-right branch from all its slices, "
                                                         "fit a motion-tolerant stack model, flag inconsistent slices")] = True,
     slice_order: Annotated[Optional[list[SliceOrderField]], Form(description=SLICE_ORDER_HELP)] = None,
+    image_consistency: Annotated[bool, Form(description="refine the poses of the settled stacks where their slices "
+                                                        "cross (their images must agree there); needs stack_consistency "
+                                                        "and two stacks that decided their left-right branch")] = True,
 ) -> dict:
     """Every slice of every stack, accepted or not, in order, with its SE(3) Fréchet-mean pose."""
     t0 = time.perf_counter()
@@ -51,7 +54,7 @@ async def predict(
                                         settings.preprocess_workers)
     t_prep = time.perf_counter()
     results, timings = await to_thread.run_sync(run_prediction, prepared, estimator, mc_samples, threshold,
-                                                stack_consistency, orders)
+                                                stack_consistency, orders, image_consistency)
     metrics.observe_slices(model, [s["reason"] for st in results for s in st["slices"]])
     info = estimator.info
     stage = lambda key: sum(p.timings.get(key, 0.0) for p in prepared)  # noqa: E731 - CPU time summed over stacks
@@ -63,6 +66,7 @@ async def predict(
             "read": (t_read - t0) * 1e3, "localisation": stage("localisation") * 1e3,
             "bias_correction": stage("bias_correction") * 1e3, "preprocess": (t_prep - t_read) * 1e3,
             "inference": timings.get("inference", 0.0) * 1e3, "statistics": timings.get("statistics", 0.0) * 1e3,
-            "stack_consistency": timings.get("stack_consistency", 0.0) * 1e3, "total": (time.perf_counter() - t0) * 1e3,
+            "stack_consistency": timings.get("stack_consistency", 0.0) * 1e3,
+            "image_consistency": timings.get("image_consistency", 0.0) * 1e3, "total": (time.perf_counter() - t0) * 1e3,
         },
     }

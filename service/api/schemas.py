@@ -38,7 +38,18 @@ class SliceResult(BaseModel):
         None, description="4x4: the network's own pose of this slice (MC majority branch, before stack consistency)")
     expected_error_mm: Optional[float] = Field(
         None, description="expected E.D. (mm) of the returned pose: the stack model's posterior spread where the "
-                          "stack is consistent, else the MC spread times the model's calibration (mc_error_scale)")
+                          "stack is consistent (scaled by the slice's remaining image mismatch where image "
+                          "consistency refined it), else the MC spread times the model's calibration (mc_error_scale)")
+
+
+class ImageConsistency(BaseModel):
+    stacks: int = Field(description="stacks refined together")
+    pairs: int = Field(description="crossing slice pairs whose images were compared")
+    slices_refined: int = Field(description="slices of this stack that took part")
+    median_move_mm: float = Field(description="median E.D. between a taking-part slice's pose before and after")
+    mismatch_before: Optional[float] = Field(None, description="mean squared image difference along the crossings "
+                                                               "(noise units), at the stage's poses")
+    mismatch_after: Optional[float] = Field(None, description="the same at the refined poses")
 
 
 class StackConsistency(BaseModel):
@@ -73,6 +84,10 @@ class StackConsistency(BaseModel):
     between_stacks_sd_mm: Optional[float] = Field(
         None, description="spread of the fetus's position between the pooled stacks beyond their fits' errors "
                           "(mm per coordinate; 0: one position, fully pooled; large: each stack kept nearly its own)")
+    image_consistency: Optional[ImageConsistency] = Field(
+        None, description="the stack's slices refined where they cross the slices of the request's other settled "
+                          "stacks (null: not refined: the field image_consistency off, or fewer than two stacks "
+                          "that decided their left-right branch)")
 
 
 class StackResult(BaseModel):

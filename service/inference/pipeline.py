@@ -22,6 +22,7 @@ from itertools import pairwise
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from service.consistency.intersections import StackImages, expected_after, refine
 from service.consistency.slice_order import FROM_FILE, SliceOrder, per_stack
 from service.consistency.stage import (
     StackPoses,
@@ -111,6 +112,11 @@ def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction:
         return list(pool.map(lambda u: prepare_stack(u, info, bias_correction), uploads))
 
 
+def usable_slices(est: PoseEstimate, sl: slice, prepared: PreparedStack) -> np.ndarray:
+    """``[n]`` slices with enough brain and a proper network pose: what the stages work with."""
+    return (prepared.prepared.mask_fraction >= acceptance.MIN_MASK_FRACTION) & ~est.degenerate[sl]
+
+
 def stack_poses(est: PoseEstimate, sl: slice, prepared: PreparedStack, net_from_vox: np.ndarray,
                 stack_consistency: bool, plane_x_mm: float, expected_mm: np.ndarray,
                 order: SliceOrder | None = None, error_shape: tuple[float, ...] | None = None,
@@ -121,7 +127,7 @@ def stack_poses(est: PoseEstimate, sl: slice, prepared: PreparedStack, net_from_
     ``error_shape`` and ``depth_gain`` the model's ``mc_error_shape`` and ``mc_error_depth_gain``;
     ``reference`` where the request's stacks that decided their branch put the scanner frame."""
     p = prepared.prepared
-    usable = (p.mask_fraction >= acceptance.MIN_MASK_FRACTION) & ~est.degenerate[sl]
+    usable = usable_slices(est, sl, prepared)
     return consistent_poses(est.mean[sl], est.twin_mass[sl], net_from_vox, prepared.upload.volume.affine, usable,
                             plane_x_mm, expected_mm[sl], stack_consistency, (order or SliceOrder()).times(len(p.inputs)),
                             None if error_shape is None else np.asarray(error_shape), depth_gain, reference)
@@ -186,13 +192,47 @@ def stack_orders(orders: list[SliceOrder] | None, uploads: list[StackUpload]) ->
     return out
 
 
+def image_consistency(prepared: list[PreparedStack], outs: list[StackPoses], proper: list[np.ndarray],
+                      reports: list[dict | None]) -> None:
+    """Refine the poses of the request's settled stacks where their slices cross
+    (:func:`~service.consistency.intersections.refine`), in place; each such stack's report gains
+    ``image_consistency``. A stack takes part when the stage found it consistent and its left-right
+    branch is decided (by its own slices or by the request): a stack that may be the mirror image of
+    the others would pull them towards it. Needs two such stacks. Of their slices, those with a
+    ``proper`` network pose that the stage did not flag as inconsistent take part."""
+    take = [i for i, o in enumerate(outs) if o.fit is not None and o.fit.decidable
+            and (o.fit.branch_decided or o.fit.branch_from_request)]
+    if len(take) < 2:
+        return
+    images = [StackImages(prepared[i].slices.images, prepared[i].slices.masks, prepared[i].slices.pixel_mm,
+                          prepared[i].prepared.input_from_network(), proper[i] & ~outs[i].inconsistent) for i in take]
+    noise = [outs[i].expected_mm if outs[i].expected_mm is not None else np.full(len(outs[i].poses), np.nan) for i in take]
+    ref = refine(images, [outs[i].poses for i in take], noise)
+    expected = expected_after(noise, ref.mismatch)
+    for j, i in enumerate(take):
+        outs[i].poses = ref.poses[j]
+        if outs[i].expected_mm is not None:
+            outs[i].expected_mm = expected[j]
+        if reports[i] is not None:
+            moved = ref.moved_mm[j][images[j].active]
+            reports[i]["image_consistency"] = {
+                "stacks": len(take), "pairs": ref.pairs,
+                "slices_refined": int(images[j].active.sum()),
+                "median_move_mm": float(np.median(moved)) if len(moved) else 0.0,
+                "mismatch_before": _finite(np.array([ref.cost_before]), 0),
+                "mismatch_after": _finite(np.array([ref.cost_after]), 0),
+            }
+
+
 def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples: int,
             threshold: float, stack_consistency: bool = True,
-            orders: list[SliceOrder] | None = None) -> tuple[list[dict], dict[str, float]]:
+            orders: list[SliceOrder] | None = None,
+            image_refinement: bool = True) -> tuple[list[dict], dict[str, float]]:
     """Run all slices of all stacks through ``estimator`` at once, then each stack through the
-    stack-consistency stage and the stacks' positions pooled where they agree
-    (:func:`~service.consistency.stage.pool_request`); returns stack results and timings.
-    ``orders``: what the request says of the stacks' acquisition orders (:func:`stack_orders`)."""
+    stack-consistency stage, the stacks' positions pooled where they agree
+    (:func:`~service.consistency.stage.pool_request`) and their slices refined where they cross
+    (:func:`image_consistency`; with ``image_refinement`` and the stage on); returns stack results
+    and timings. ``orders``: what the request says of the stacks' acquisition orders (:func:`stack_orders`)."""
     orders = stack_orders(orders, [p.upload for p in prepared])
     inputs = np.concatenate([s.prepared.inputs for s in prepared])
     t = time.perf_counter()
@@ -214,6 +254,11 @@ def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples:
         outs = [stack_poses(est, sl, s, nfv, True, plane_x_mm, expected, order, shape, gain, reference)
                 if undecided(out) else out for sl, s, nfv, order, out in zip(spans, prepared, frames, orders, outs)]
     reports = pool_request(outs) if stack_consistency else [None] * len(outs)
+    timings["stack_consistency"] = time.perf_counter() - t
+    t = time.perf_counter()
+    if stack_consistency and image_refinement:
+        image_consistency(prepared, outs, [~est.degenerate[sl] for sl in spans], reports)
+    timings["image_consistency"] = time.perf_counter() - t
     stacks = []
     for index, (s, sl, nfv, out, report) in enumerate(zip(prepared, spans, frames, outs, reports)):
         vol = s.upload.volume
@@ -223,5 +268,4 @@ def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples:
             "spacing_mm": [float(x) for x in vol.spacing], "slice_axis": s.slices.slice_axis,
             "slices": slices, "consistency": report,
         })
-    timings["stack_consistency"] = time.perf_counter() - t
     return stacks, timings

@@ -25,19 +25,21 @@ INFO = ModelInfo(name="oracle", version="0", backbone="oracle", label_type="anch
 
 
 class OracleEstimator:
-    """Returns, for the k-th slice it is given, the k-th pose of ``truth`` (set by each test)."""
+    """Returns, for the k-th slice it is given, the k-th pose of ``truth`` (set by each test), with an
+    MC spread of ``spread_mm`` (0: certain)."""
 
     info = INFO
 
     def __init__(self) -> None:
         self.truth: np.ndarray | None = None
         self.seen: np.ndarray | None = None
+        self.spread_mm = 0.0
 
     def estimate(self, inputs: np.ndarray, mc_samples: int) -> PoseEstimate:
         assert self.truth is not None and len(self.truth) == len(inputs), "truth and slices out of step"
         self.seen = inputs
         n = len(inputs)
-        return PoseEstimate(self.truth.copy(), np.full(n, 1.0), np.zeros(n, bool))
+        return PoseEstimate(self.truth.copy(), np.full(n, 1.0), np.zeros(n, bool), spread_mm=np.full(n, self.spread_mm))
 
 
 @pytest.fixture(scope="session")

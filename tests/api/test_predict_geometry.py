@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from service.geometry import se3, sampling
+from service.geometry.anchors import ed
 from service.geometry.pose import apply, make_pose
 from service.io.volume import Volume, write_volume
 from service.preprocess.intensity import rescale_0_255
@@ -141,9 +142,11 @@ def test_two_stacks_of_one_position_are_pooled_and_stay_exact(oracle, oracle_cli
     ``atlas_from_scanner``, and the poses stay exact (pooling moves nothing that agrees)."""
     files, truths = two_still_stacks(tmp_path)
     oracle.truth = np.concatenate(truths)
-    r = oracle_client.post("/v1/predict", files=files, data={"bias_correction": "false", "mc_samples": "5"})
+    r = oracle_client.post("/v1/predict", files=files, data={"bias_correction": "false", "mc_samples": "5",
+                                                             "image_consistency": "false"})
     assert r.status_code == 200, r.text
     reports = [s["consistency"] for s in r.json()["stacks"]]
+    assert all(c["image_consistency"] is None for c in reports)
     assert [c["stacks_pooled"] for c in reports] == [2, 2]
     assert all(c["between_stacks_sd_mm"] < 0.1 for c in reports)
     pooled = np.array([c["pooled_atlas_from_scanner"] for c in reports])
@@ -154,6 +157,42 @@ def test_two_stacks_of_one_position_are_pooled_and_stay_exact(oracle, oracle_cli
             if s["reason"] != "empty":
                 np.testing.assert_allclose(np.array(s["atlas_from_voxel"]), np.array(s["network_atlas_from_voxel"]),
                                            atol=0.05)
+
+
+def test_two_stacks_are_refined_where_their_slices_cross(oracle, oracle_client, tmp_path: Path) -> None:
+    """Two stacks of a still fetus; the network puts the second 4 deg / 4 mm off the first as a whole
+    (each slice a further 0.5 deg / 0.5 mm off on its own; the MC spread says 4 mm). Each stack is
+    consistent on its own, so only the images can tell: where the slices cross they pull the stacks
+    together. What images can correct (the poses relative to each other: the E.D. once the one rigid
+    map that best takes all poses to the truth is applied) drops with ``image_consistency`` to under
+    0.6 of what it is without (measured: 1.82 -> 0.86 mm); the report says what it did."""
+    files, truths = two_still_stacks(tmp_path)
+    rng = np.random.default_rng(5)
+    truth = np.concatenate(truths)
+    centre = make_pose(np.eye(3), [0.0, 3.0, 8.0])
+    offset = centre @ se3.exp(np.array([*np.radians([2.0, -2.5, 2.0]), 2.5, -2.0, 2.5])) @ se3.inverse(centre)
+    given = np.concatenate([truths[0], offset @ truths[1]])
+    oracle.truth = given @ se3.exp(np.concatenate([rng.normal(0, np.radians(0.5), (len(truth), 3)),
+                                                   rng.normal(0, 0.5, (len(truth), 3))], 1))
+    oracle.spread_mm = 4.0
+    relative = {}
+    for on in ("true", "false"):
+        r = oracle_client.post("/v1/predict", files=files, data={"bias_correction": "false", "mc_samples": "5",
+                                                                 "image_consistency": on})
+        assert r.status_code == 200, r.text
+        out = [s for st in r.json()["stacks"] for s in st["slices"]]
+        keep = np.array([s["reason"] is None for s in out])
+        network = np.array([s["network_atlas_from_voxel"] for s in out])
+        returned = (np.array([s["atlas_from_voxel"] for s in out]) @ np.linalg.inv(network) @ oracle.truth)[keep]
+        frame = se3.frechet_mean(truth[keep] @ se3.inverse(returned), np.ones(int(keep.sum())))
+        relative[on] = ed(frame @ returned, truth[keep]).mean()
+        reports = [st["consistency"]["image_consistency"] for st in r.json()["stacks"]]
+        if on == "true":
+            assert all(c["stacks"] == 2 and c["pairs"] > 50 and c["slices_refined"] > 5 for c in reports), reports
+            assert all(c["mismatch_after"] < c["mismatch_before"] for c in reports), reports
+        else:
+            assert reports == [None, None]
+    assert relative["true"] < 0.6 * relative["false"], relative
 
 
 def test_a_stack_that_does_not_decide_its_branch_takes_the_other_stacks(oracle, oracle_client, tmp_path: Path,
