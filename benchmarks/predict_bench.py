@@ -1,7 +1,7 @@
 """``POST /v1/predict`` over real HTTP: a uvicorn server on 127.0.0.1, timings by stage, peak RSS.
 
 Scenarios (stacks cut from an atlas volume at three orthogonal orientations with motion, masks
-uploaded, N4 on, 100 MC samples):
+uploaded, N4 on, 100 MC samples), each with and without ``image_consistency`` (the ratio printed):
   A. three stacks of 128 x 128 x 35 (target <= 2 s);
   B. six stacks of 320 x 320 x 22 (target <= 5 s).
 
@@ -72,12 +72,12 @@ def peak_rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def run(client: httpx.Client, stacks: list[tuple[Path, Path]], repeats: int = 3) -> tuple[float, dict]:
+def run(client: httpx.Client, stacks: list[tuple[Path, Path]], repeats: int = 3, **form: str) -> tuple[float, dict]:
     files = [("stacks", (p.name, p.read_bytes())) for p, _ in stacks] + [("masks", (m.name, m.read_bytes())) for _, m in stacks]
     best, timing = float("inf"), {}
     for _ in range(repeats):
         t0 = time.perf_counter()
-        r = client.post("/v1/predict", files=files, data={"mc_samples": "100"})
+        r = client.post("/v1/predict", files=files, data={"mc_samples": "100", **form})
         wall = time.perf_counter() - t0
         r.raise_for_status()
         if wall < best:
@@ -106,10 +106,15 @@ def main() -> None:
                 time.sleep(0.2)
             print(f"source: {brain()[3]}; server pid {server.pid} on 127.0.0.1:{port}")
             for name, stacks, target in (("A: 3 x 128x128x35", a, 2.0), ("B: 6 x 320x320x22", b, 5.0)):
-                wall, t = run(client, stacks)
-                stages = ", ".join(f"{k} {v:.0f}" for k, v in t.items() if k != "total")
-                print(f"{name}: {wall:.2f} s wall over HTTP (target <= {target:.0f} s); server total {t['total']:.0f} ms")
-                print(f"   stages (ms; localisation and N4 are summed over stacks run in parallel): {stages}")
+                walls = {}
+                for image in ("true", "false"):
+                    wall, t = run(client, stacks, image_consistency=image)
+                    walls[image] = wall
+                    stages = ", ".join(f"{k} {v:.0f}" for k, v in t.items() if k != "total")
+                    print(f"{name}, image_consistency={image}: {wall:.2f} s wall over HTTP (target <= {target:.0f} s); "
+                          f"server total {t['total']:.0f} ms")
+                    print(f"   stages (ms; localisation and N4 are summed over stacks run in parallel): {stages}")
+                print(f"   image consistency costs x{walls['true'] / walls['false']:.2f} of the request without it")
             print(f"peak RSS of the server: {peak_rss_mb(server.pid):.0f} MB (target <= 2048 MB)")
     finally:
         server.terminate()

@@ -33,6 +33,7 @@ Example:
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,6 +57,13 @@ acquisitions (model 2.11.0, seed 1; seed 2 gave 0.67 and 1.91): a refined slice'
 images could not check (on no line) is ``UNCHECKED_GAIN`` times it (the edge slices: the stage
 under-states them, and the rest of their stack moved)."""
 MIN_BRAIN_PIXELS = 20
+MIN_LINE_WEIGHT = 1.0
+TOLERANCE = 1e-3
+MAX_POINTS = 60_000
+"""Points per pass at most: with many stacks, a fixed random share of the crossing pairs (their
+lines whole) bounds the time; three stacks of a fetal brain use about 20,000-50,000."""
+"""A pass ends when an iteration lowers the objective by less than this fraction."""
+"""A pair takes part when its line crosses both brains over this many points' worth (mask weights)."""
 """Slices with less brain than this take no part (their lines cross too little brain to tell)."""
 MIN_SINE = np.sin(np.radians(30.0))
 """Pairs whose planes meet at less than this angle are left out (their line is ill-placed)."""
@@ -124,6 +132,10 @@ class _Stack:
         images = s.images.astype(np.float32) / max(scale, 1e-6)
         self.images = ndimage.gaussian_filter(images, sig)
         self.masks = ndimage.gaussian_filter(s.masks.astype(np.float32), (0.0, 1.0, 1.0))
+        pad = ((0, 0), (1, 1), (1, 1))                                      # a zero border: bilinear fades to 0
+        self.images_flat = np.pad(self.images, pad).ravel()
+        self.masks_flat = np.pad(self.masks, pad).ravel()
+        self.padded = (s.images.shape[1] + 2, s.images.shape[2] + 2)
         n, h, w = s.images.shape
         self.pixel_from_slice = np.array([[0.0, 1.0 / s.pixel_mm[0], 0.0, (h - 1) / 2.0],    # row
                                           [1.0 / s.pixel_mm[1], 0.0, 0.0, (w - 1) / 2.0]])  # column
@@ -135,9 +147,18 @@ class _Stack:
         return np.einsum("mij,mej->mei", pixel_from_atlas[:, :, :3], line) + pixel_from_atlas[:, None, :, 3]
 
     def sample(self, which: NDArray, rc: NDArray, masks: bool = False) -> NDArray[np.float32]:
-        """Values of slices ``which`` ``[P]`` at pixels ``rc`` ``[P, 2]``; 0 outside the image."""
-        coords = np.stack([which.astype(np.float64), rc[:, 0], rc[:, 1]])
-        return ndimage.map_coordinates(self.masks if masks else self.images, coords, order=1, mode="constant", cval=0.0)
+        """Values of slices ``which`` ``[P]`` at pixels ``rc`` ``[P, 2]`` (bilinear; 0 beyond the
+        image, fading over its border pixel)."""
+        flat, (h, w) = (self.masks_flat if masks else self.images_flat), self.padded
+        r, c = rc[:, 0] + 1.0, rc[:, 1] + 1.0
+        inside = (r >= 0) & (r < h - 1) & (c >= 0) & (c < w - 1)
+        r, c = np.clip(r, 0, h - 1.001), np.clip(c, 0, w - 1.001)
+        r0, c0 = r.astype(np.int64), c.astype(np.int64)
+        fr, fc = (r - r0).astype(np.float32), (c - c0).astype(np.float32)
+        i = which.astype(np.int64) * (h * w) + r0 * w + c0
+        top = flat[i] + fc * (flat[i + 1] - flat[i])
+        bottom = flat[i + w] + fc * (flat[i + w + 1] - flat[i + w])
+        return np.where(inside, top + fr * (bottom - top), 0.0).astype(np.float32)
 
 
 def _prior_sd(sd_mm: NDArray) -> NDArray[np.float64]:
@@ -199,7 +220,6 @@ def refine(stacks: list[StackImages], poses: list[NDArray], sd_mm: list[NDArray]
     sd = np.concatenate([np.where(np.isfinite(e), e, 10.0) for e in sd_mm])
     prior = _prior_sd(np.maximum(sd[free], 0.5)) / prior_weight            # [F, 6]
     radius = max(_brain_radius(s) for s in stacks)
-    t = np.arange(-radius, radius + 1e-9, spacing_mm)
     x = np.zeros((int(free.sum()), 6))
 
     def atlas_from_slice(params: NDArray) -> NDArray:
@@ -214,21 +234,31 @@ def refine(stacks: list[StackImages], poses: list[NDArray], sd_mm: list[NDArray]
     used = 0
     mismatch = np.full(len(p0), np.nan)
     for sigma in sigmas_mm:
+        step = max(spacing_mm, sigma)                                   # a smoother pass needs fewer points
+        t = np.arange(-radius, radius + 1e-9, step)
         term = _ImageTerm([_Stack(s, sigma) for s in stacks], stack_of, local, pairs, t)
         w = np.clip(np.prod(term.values(atlas_from_slice(x), masks=True), axis=0), 0.0, 1.0).astype(np.float64)
-        term.select(w, min_weight=3.0)
+        term.select(w, min_weight=MIN_LINE_WEIGHT)
         if not len(term.pair_of):
             break
         used = len(term.pairs)
-        residual = lambda params: term.residuals(atlas_from_slice(params)) / noise  # noqa: E731
+        def residual(params: NDArray, stack: int | None = None, term: _ImageTerm = term) -> NDArray:
+            part = term if stack is None else term.restricted(stack)[0]
+            return part.residuals(atlas_from_slice(params)) / noise
+
         costs.append(_mean_square(residual(x), term.sw))
-        x = _gauss_newton(residual, x, prior, col, stack_of, term.pairs[term.pair_of], iterations)
+        x = _gauss_newton(residual, lambda k, term=term: term.restricted(k)[1], x, prior, col, stack_of,
+                          term.pairs[term.pair_of], iterations)
         r = residual(x)
         costs.append(_mean_square(r, term.sw))
         mismatch = _per_slice(r, term.sw, term.pairs[term.pair_of], len(p0))
     final = atlas_from_slice(x) @ se3.inverse(network_from_slice)
+    checked = np.isfinite(mismatch)
+    if not checked.any():
+        return unchanged
+    final = follow_neighbours(final, p0, checked, stack_of, local)
     # The images do not see the request's frame; it goes back where the stage's poses put it.
-    frame = se3.frechet_mean(p0[free] @ se3.inverse(final[free]), 1.0 / np.maximum(sd[free], 0.5) ** 2)
+    frame = se3.frechet_mean(p0[checked] @ se3.inverse(final[checked]), 1.0 / np.maximum(sd[checked], 0.5) ** 2)
     final = frame @ final
     moved = ed(final, p0)
     cut = lambda a: [a[i:j] for i, j in zip(bounds[:-1], bounds[1:])]  # noqa: E731
@@ -244,6 +274,31 @@ def _per_slice(r: NDArray, sw: NDArray, point_pairs: NDArray, n: int) -> NDArray
     return np.where(den > 0, num / np.maximum(den, 1e-12), np.nan)
 
 
+def follow_neighbours(final: NDArray, start: NDArray, checked: NDArray, stack_of: NDArray,
+                      index: NDArray) -> NDArray[np.float64]:
+    """Slices the images could not check (on no line: the edge slices, those left out) move as the
+    nearest checked slices of their stack on either side did (the mean of their corrections
+    ``final start^-1``): the stage placed them with their stack, and their stack moved.
+
+    Example:
+        >>> from service.geometry.pose import translate
+        >>> start = np.stack([np.eye(4)] * 3)
+        >>> final = np.stack([translate([2.0, 0, 0]), np.eye(4), translate([4.0, 0, 0])])
+        >>> follow_neighbours(final, start, np.array([True, False, True]), np.zeros(3, int), np.arange(3))[1, :3, 3].tolist()
+        [3.0, 0.0, 0.0]
+    """
+    out = final.copy()
+    correction = final @ se3.inverse(start)
+    for g in np.flatnonzero(~checked):
+        mine = np.flatnonzero(checked & (stack_of == stack_of[g]))
+        if not len(mine):
+            continue
+        below, above = mine[index[mine] < index[g]], mine[index[mine] > index[g]]
+        near = [side[np.argmin(np.abs(index[side] - index[g]))] for side in (below, above) if len(side)]
+        out[g] = se3.frechet_mean(correction[near], np.ones(len(near))) @ start[g]
+    return out
+
+
 def _mean_square(r: NDArray, sw: NDArray) -> float:
     return float(np.sum(r ** 2) / max(float(np.sum(sw ** 2)), 1e-12))
 
@@ -256,45 +311,73 @@ class _ImageTerm:
         self.pair_of = np.repeat(np.arange(len(pairs)), len(t))
         self.t_of = np.tile(np.arange(len(t)), len(pairs))
         self.sw = np.ones(len(self.pair_of))
+        self._index()
 
     def select(self, w: NDArray, min_weight: float) -> None:
         """Keep the points of pairs whose lines cross both brains over ``min_weight`` points' worth,
         where both masks are (nearly) nonzero; weights fixed from here on."""
         total = np.bincount(self.pair_of, weights=w, minlength=len(self.pairs))
         keep = (w > 1e-3) & (total[self.pair_of] >= min_weight)
+        count = np.bincount(self.pair_of[keep], minlength=len(self.pairs))
+        if count.sum() > MAX_POINTS:               # many stacks: a fixed random share of the pairs, whole lines
+            order = np.random.default_rng(0).permutation(len(self.pairs))
+            chosen = np.zeros(len(self.pairs), bool)
+            chosen[order[np.cumsum(count[order]) <= MAX_POINTS]] = True
+            keep &= chosen[self.pair_of]
         used, pair_of = np.unique(self.pair_of[keep], return_inverse=True)
         self.pairs, self.pair_of, self.t_of, self.sw = self.pairs[used], pair_of, self.t_of[keep], np.sqrt(w[keep])
+        self._index()
+
+    def _index(self) -> None:
+        """Per (role, stack): the pairs whose slice in that role is of that stack, and their points
+        (what :meth:`values` gathers, worked out once per point set)."""
+        self.groups, self._subs = [], {}
+        for role in (0, 1):
+            g = self.pairs[:, role]
+            for s in range(len(self.sampled)):
+                mine = np.flatnonzero(self.stack_of[g] == s)
+                if not len(mine):
+                    continue
+                where = np.zeros(len(self.pairs), int)
+                where[mine] = np.arange(len(mine))
+                rows = np.flatnonzero(self.stack_of[g[self.pair_of]] == s)
+                self.groups.append((role, s, mine, g[mine], rows, where[self.pair_of[rows]],
+                                    self.local[g[self.pair_of[rows]]], self.t[self.t_of[rows]][:, None]))
 
     def values(self, atlas_from_slice: NDArray, masks: bool = False) -> NDArray[np.float32]:
         """``[2, P]`` both slices' values at each point (images, or masks)."""
         line = pair_points(atlas_from_slice, atlas_from_slice, self.pairs, np.array([0.0, 1.0]))   # base, base + d
         inv = se3.inverse(atlas_from_slice)
-        t = self.t[self.t_of]
         out = np.zeros((2, len(self.pair_of)), np.float32)
-        for role in (0, 1):
-            g = self.pairs[:, role]
-            for s, st in enumerate(self.sampled):
-                mine = np.flatnonzero(self.stack_of[g] == s)                   # pairs with this role in stack s
-                if not len(mine):
-                    continue
-                ends = np.zeros((len(self.pairs), 2, 2))
-                ends[mine] = st.line_pixels(inv[g[mine]], line[mine])
-                rows = np.flatnonzero(self.stack_of[g[self.pair_of]] == s)
-                e = ends[self.pair_of[rows]]
-                rc = e[:, 0] + t[rows, None] * (e[:, 1] - e[:, 0])
-                out[role, rows] = st.sample(self.local[g[self.pair_of[rows]]], rc, masks)
+        for role, s, mine, g, rows, pos, k, t in self.groups:
+            ends = self.sampled[s].line_pixels(inv[g], line[mine])[pos]            # [P_s, 2, 2]
+            out[role, rows] = self.sampled[s].sample(k, ends[:, 0] + t * (ends[:, 1] - ends[:, 0]), masks)
         return out
+
+    def restricted(self, stack: int) -> tuple[_ImageTerm, NDArray[np.int64]]:
+        """The term of the points whose pair has a slice in ``stack``, and their rows here: all
+        that moving that stack's slices changes (cached)."""
+        if stack not in self._subs:
+            involved = (self.stack_of[self.pairs] == stack).any(axis=1)
+            rows = np.flatnonzero(involved[self.pair_of])
+            sub = copy.copy(self)
+            used, sub.pair_of = np.unique(self.pair_of[rows], return_inverse=True)
+            sub.pairs, sub.t_of, sub.sw, sub._subs = self.pairs[used], self.t_of[rows], self.sw[rows], {}
+            sub._index()
+            self._subs[stack] = (sub, rows)
+        return self._subs[stack]
 
     def residuals(self, atlas_from_slice: NDArray) -> NDArray[np.float64]:
         va, vb = self.values(atlas_from_slice)
         return self.sw * (va.astype(np.float64) - vb)
 
 
-def _gauss_newton(residual, x: NDArray, prior: NDArray, col: NDArray, stack_of: NDArray,  # noqa: ANN001
+def _gauss_newton(residual, rows_of, x: NDArray, prior: NDArray, col: NDArray, stack_of: NDArray,  # noqa: ANN001
                   point_pairs: NDArray, iterations: int) -> NDArray[np.float64]:
     """Levenberg-Marquardt on the soft-L1 image residuals plus the Gaussian prior ``x / prior``,
     with a forward-difference Jacobian in groups: one coordinate of every free slice of one stack
-    at a time (no image residual involves two slices of one stack)."""
+    at a time (no image residual involves two slices of one stack), each evaluated on the residuals
+    that stack takes part in (``residual(params, stack)``, rows ``rows_of(stack)``)."""
     steps = np.array([5e-3, 5e-3, 5e-3, 0.2, 0.2, 0.2])
     cols = col[point_pairs]                                                # [P, 2] parameter row of each slice
     stack_free = stack_of[col >= 0][np.argsort(col[col >= 0])]              # the stack of each parameter row
@@ -309,11 +392,13 @@ def _gauss_newton(residual, x: NDArray, prior: NDArray, col: NDArray, stack_of: 
     mu = 1e-3
     for _ in range(iterations):
         rows, cidx, vals = [], [], []
-        for s in np.unique(stack_of):
+        for s in np.unique(stack_free):
+            part = rows_of(s)
             for j in range(6):
                 dx = np.zeros_like(x)
                 dx[:, j] = steps[j]
-                dr = (residual(x + dx * (stack_free == s)[:, None]) - r) / steps[j]
+                dr = np.zeros(len(r))
+                dr[part] = (residual(x + dx * (stack_free == s)[:, None], s) - r[part]) / steps[j]
                 for role in (0, 1):
                     hit = np.flatnonzero((stacks_pp[:, role] == s) & (cols[:, role] >= 0))
                     rows.append(hit)
@@ -332,7 +417,7 @@ def _gauss_newton(residual, x: NDArray, prior: NDArray, col: NDArray, stack_of: 
             c_trial = cost(r_trial, trial)
             if c_trial < c:
                 x, r, mu = trial, r_trial, max(mu / 3.0, 1e-6)
-                done = c - c_trial < 1e-4 * c
+                done = c - c_trial < TOLERANCE * c
                 c = c_trial
                 break
             mu *= 10.0
