@@ -22,7 +22,8 @@ from itertools import pairwise
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from service.consistency.intersections import StackImages, expected_after, refine
+from service.consistency.image_refinement import expected_after, refine
+from service.consistency.intersections import StackImages
 from service.consistency.slice_order import FROM_FILE, SliceOrder, per_stack
 from service.consistency.stage import (
     StackPoses,

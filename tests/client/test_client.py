@@ -277,13 +277,13 @@ def test_upload_progress_reaches_the_total(stack_file: Path) -> None:
         return httpx.Response(200, json={})
 
     seen: list[tuple[int, int]] = []
-    mock(handler).predict([big, stack_file], bias_correction=True, model="m",
+    mock(handler).predict([big, stack_file], bias_correction=True, model="m", image_consistency=False,
                           progress=lambda s, t: seen.append((s, t)))
     total = len(got[0].content)
     assert len(seen) > 4 and all(t == total for _, t in seen)
     assert [s for s, _ in seen] == sorted(s for s, _ in seen) and seen[0][0] == 0 and seen[-1][0] == total
     fields, files = parse_multipart(got[0])
-    assert fields == {"bias_correction": ["true"], "model": ["m"]}
+    assert fields == {"bias_correction": ["true"], "model": ["m"], "image_consistency": ["false"]}
     assert [(f[0], f[1]) for f in files] == [("stacks", "big.nii"), ("stacks", "stack.nii.gz")]
     assert files[0][3] == big.read_bytes()
 
@@ -549,14 +549,15 @@ def test_cli_predict_writes_json_and_prints_a_summary(fake_cli: Callable, stack_
     fake, made = fake_cli()
     out = tmp_path / "poses.json"
     r = invoke(["predict", str(stack_file), "--out", str(out), "--mc-samples", "5", "--no-bias-correction",
-                "--server", "http://scanner:9000"])
+                "--no-image-consistency", "--server", "http://scanner:9000"])
     assert r.exit_code == 0, r.output
     assert json.loads(out.read_text()) == PREDICT_BODY
     assert made == [("http://scanner:9000", None)]
     assert "stack.nii.gz" in r.stdout and "empty 1, high_variance 1" in r.stdout and "3" in r.stdout
     assert "median variance" in r.stdout and "abc" in r.stdout
     fields, files = parse_multipart(fake.requests[0])
-    assert fields == {"mc_samples": ["5"], "bias_correction": ["false"]} and files[0][1] == "stack.nii.gz"
+    assert fields == {"mc_samples": ["5"], "bias_correction": ["false"], "image_consistency": ["false"]}
+    assert files[0][1] == "stack.nii.gz"
 
 
 def test_cli_sends_each_slice_order_as_one_field(fake_cli: Callable, stack_file: Path) -> None:
