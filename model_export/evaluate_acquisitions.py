@@ -244,6 +244,16 @@ def evaluate_acquisitions(volumes: list, estimator, rng: np.random.Generator, le
     return out
 
 
+def _auc(value: float) -> str:
+    """An AUROC for the report; none where no slice is over the error it ranks for.
+
+    Example:
+        >>> _auc(0.8612), _auc(float("nan"))
+        ('0.86', 'none > 10 mm')
+    """
+    return f"{value:.2f}" if np.isfinite(value) else "none > 10 mm"
+
+
 def markdown(summary: dict[str, dict], title: str) -> str:
     """A report table: one row per motion level."""
     rows = [f"# {title}", "",
@@ -259,8 +269,8 @@ def markdown(summary: dict[str, dict], title: str) -> str:
         f = lambda d: f"{d['mean']:.1f} / {d['median']:.1f} / {d['p90']:.1f}"  # noqa: E731
         rows.append(f"| {level} | {s['slices']} | {f(s['ed_network'])} | {s['ed_network_min']['mean']:.1f} | "
                     f"{f(s['ed'])} | {s['ed_min']['mean']:.1f} | {100 * s['right_branch']:.1f} % | "
-                    f"{100 * s['right_branch_twin_min_under_15mm']:.1f} % | {s['auroc_variance_ed_over_10mm']:.2f} | "
-                    f"{s['auroc_expected_error_ed_over_10mm']:.2f} | {s['ed_rms']:.1f} / {s['expected_error_mm_rms']:.1f} | "
+                    f"{100 * s['right_branch_twin_min_under_15mm']:.1f} % | {_auc(s['auroc_variance_ed_over_10mm'])} | "
+                    f"{_auc(s['auroc_expected_error_ed_over_10mm'])} | {s['ed_rms']:.1f} / {s['expected_error_mm_rms']:.1f} | "
                     f"{100 * s['accepted']:.0f} % | {100 * s['decidable_stacks']:.0f} % | "
                     f"{100 * s['branch_decided_slices']:.0f} % | {100 * s['right_branch_where_decided']:.1f} % / "
                     f"{100 * s['right_branch_where_decided_twin_min_under_15mm']:.1f} % |")

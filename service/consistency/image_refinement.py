@@ -62,7 +62,7 @@ class Refinement:
 
 def refine(stacks: list[StackImages], poses: list[NDArray], sd_mm: list[NDArray], *,
            sigmas_mm: tuple[float, ...] = SIGMAS_MM, spacing_mm: float = 2.0, noise: float = 0.15,
-           prior_weight: float = 1.0, iterations: int = 8) -> Refinement:
+           prior_weight: float = 1.0, iterations: int = 8, jacobian: str = "analytic") -> Refinement:
     """Refine every free slice's pose so that slices of different stacks agree where they cross.
 
     Args:
@@ -75,6 +75,7 @@ def refine(stacks: list[StackImages], poses: list[NDArray], sd_mm: list[NDArray]
             as one standard deviation; the soft-L1 loss turns linear beyond it.
         prior_weight: multiplies the prior's residuals (1: the stage's expected errors as they are).
         iterations: Gauss-Newton iterations per pass.
+        jacobian: ``analytic`` (:func:`image_jacobian`) or ``differences`` (:func:`difference_jacobian`).
 
     Returns:
         :class:`Refinement`; a request with fewer than two stacks, or no crossing pairs, comes back
@@ -126,8 +127,17 @@ def refine(stacks: list[StackImages], poses: list[NDArray], sd_mm: list[NDArray]
             return part.residuals(atlas_from_slice(params)) / noise
 
         costs.append(_mean_square(residual(x), term.sw))
-        x = _gauss_newton(residual, lambda k, term=term: term.restricted(k)[1], x, prior, col, stack_of,
-                          term.pairs[term.pair_of], iterations)
+        if jacobian == "analytic":
+            def jac(params: NDArray, term: ImageTerm = term) -> sparse.csr_matrix:
+                twist = np.zeros((len(p0), 6))
+                twist[free] = params
+                current = p0 @ se3.exp(twist)
+                return image_jacobian(term, current @ network_from_slice, current, col, noise)
+        else:
+            def jac(params: NDArray, term: ImageTerm = term) -> sparse.csr_matrix:
+                return difference_jacobian(residual, lambda k: term.restricted(k)[1], params, col, stack_of,
+                                           term.pairs[term.pair_of])
+        x = _gauss_newton(residual, jac, x, prior, iterations)
         r = residual(x)
         costs.append(_mean_square(r, term.sw))
         mismatch = _per_slice(r, term.sw, term.pairs[term.pair_of], len(p0))
@@ -188,17 +198,37 @@ def expected_after(expected_mm: list[NDArray], mismatch: list[NDArray]) -> list[
     return out
 
 
-def _gauss_newton(residual, rows_of, x: NDArray, prior: NDArray, col: NDArray, stack_of: NDArray,  # noqa: ANN001
-                  point_pairs: NDArray, iterations: int) -> NDArray[np.float64]:
-    """Levenberg-Marquardt on the soft-L1 image residuals plus the Gaussian prior ``x / prior``,
-    with a forward-difference Jacobian in groups: one coordinate of every free slice of one stack
-    at a time (no image residual involves two slices of one stack), each evaluated on the residuals
-    that stack takes part in (``residual(params, stack)``, rows ``rows_of(stack)``)."""
+def difference_jacobian(residual, rows_of, x: NDArray, col: NDArray, stack_of: NDArray,  # noqa: ANN001
+                        point_pairs: NDArray) -> sparse.csr_matrix:
+    """The image residuals' Jacobian by forward differences, in groups: one coordinate of every free
+    slice of one stack at a time (no residual holds two slices of one stack), each evaluated on the
+    residuals that stack takes part in (``residual(params, stack)``, rows ``rows_of(stack)``): the
+    check of :func:`image_jacobian`, and ``refine(..., jacobian="differences")``."""
     steps = np.array([5e-3, 5e-3, 5e-3, 0.2, 0.2, 0.2])
     cols = col[point_pairs]                                                # [P, 2] parameter row of each slice
     stack_free = stack_of[col >= 0][np.argsort(col[col >= 0])]              # the stack of each parameter row
     stacks_pp = stack_of[point_pairs]
-    n = x.size
+    r = residual(x)
+    rows, cidx, vals = [], [], []
+    for s in np.unique(stack_free):
+        part = rows_of(s)
+        for j in range(6):
+            dx = np.zeros_like(x)
+            dx[:, j] = steps[j]
+            dr = np.zeros(len(r))
+            dr[part] = (residual(x + dx * (stack_free == s)[:, None], s) - r[part]) / steps[j]
+            for role in (0, 1):
+                hit = np.flatnonzero((stacks_pp[:, role] == s) & (cols[:, role] >= 0))
+                rows.append(hit)
+                cidx.append(6 * cols[hit, role] + j)
+                vals.append(dr[hit])
+    return sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cidx))),
+                             shape=(len(r), x.size))
+
+
+def _gauss_newton(residual, jacobian, x: NDArray, prior: NDArray, iterations: int) -> NDArray[np.float64]:  # noqa: ANN001
+    """Levenberg-Marquardt on the soft-L1 image residuals plus the Gaussian prior ``x / prior``
+    (IRLS weights; ``jacobian(x)`` the residuals' sparse Jacobian)."""
 
     def cost(r: NDArray, params: NDArray) -> float:
         return float(np.sum(2.0 * (np.sqrt(1.0 + r ** 2) - 1.0)) + np.sum((params / prior) ** 2))
@@ -207,21 +237,7 @@ def _gauss_newton(residual, rows_of, x: NDArray, prior: NDArray, col: NDArray, s
     c = cost(r, x)
     mu = 1e-3
     for _ in range(iterations):
-        rows, cidx, vals = [], [], []
-        for s in np.unique(stack_free):
-            part = rows_of(s)
-            for j in range(6):
-                dx = np.zeros_like(x)
-                dx[:, j] = steps[j]
-                dr = np.zeros(len(r))
-                dr[part] = (residual(x + dx * (stack_free == s)[:, None], s) - r[part]) / steps[j]
-                for role in (0, 1):
-                    hit = np.flatnonzero((stacks_pp[:, role] == s) & (cols[:, role] >= 0))
-                    rows.append(hit)
-                    cidx.append(6 * cols[hit, role] + j)
-                    vals.append(dr[hit])
-        jac = sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cidx))),
-                                shape=(len(r), n))
+        jac = jacobian(x)
         omega = 1.0 / np.sqrt(1.0 + r ** 2)                                 # IRLS weights of the soft-L1 loss
         jw = jac.multiply(omega[:, None]).tocsr()
         hess = (jac.T @ jw).toarray() + np.diag(1.0 / prior.ravel() ** 2)
@@ -272,3 +288,63 @@ def _brain_radius(s: StackImages) -> float:
     x = (c - (w - 1) / 2.0) * s.pixel_mm[1] - s.slice_from_network[k, 0, 3]
     y = (r - (h - 1) / 2.0) * s.pixel_mm[0] - s.slice_from_network[k, 1, 3]
     return float(np.sqrt(x ** 2 + y ** 2).max())
+
+
+def _hat(v: NDArray) -> NDArray[np.float64]:
+    """``[M, 3, 3]`` cross-product matrices: ``hat(v) @ u = v x u``."""
+    out = np.zeros((*v.shape[:-1], 3, 3))
+    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    out[..., 1, 0], out[..., 2, 0], out[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
+    return out
+
+
+def image_jacobian(term: ImageTerm, atlas_from_slice: NDArray, poses: NDArray, col: NDArray,
+                   noise: float) -> sparse.csr_matrix:
+    """``[P, 6F]`` the image residuals' derivatives by each free slice's twist (its network frame).
+
+    A slice moved by a small rigid motion ``(w, v)`` of the atlas moves the pair's line with it: its
+    plane ``n . x = c`` turns (``dn = w x n``, ``dc = n . v``), the line's direction
+    ``d = n_a x n_b / |n_a x n_b|`` turns, and the point of the line nearest the two slices' mean
+    origin moves (``L dp = rhs``, ``L`` the rows ``n_a, n_b, d``). A point ``x = p + t d`` moves by
+    ``dx``; the moved slice sees it at ``dx - (w x x + v)`` in its own frame, the other at ``dx``.
+    So for ``r = I_a - I_b`` with gradients ``G_a``, ``G_b`` (atlas mm):
+    ``dr = (G_a - G_b) . dx - G_a . (w x x + v)`` when ``a`` moves, ``... + G_b . (w x x + v)`` when
+    ``b`` does; ``(w, v)`` is ``Ad(P) d`` of the twist ``d`` in the network frame of the slice's
+    current pose ``P`` (``w = R d_w``, ``v = R d_v + t x w``). Checked against finite differences
+    in the tests."""
+    x, grad = term.gradients(atlas_from_slice)
+    pairs, j, tt = term.pairs, term.pair_of, term.t[term.t_of]
+    a, b = atlas_from_slice[pairs[:, 0]], atlas_from_slice[pairs[:, 1]]
+    na, nb, oa, ob = a[:, :3, 2], b[:, :3, 2], a[:, :3, 3], b[:, :3, 3]
+    cross = np.cross(na, nb)
+    size = np.maximum(np.linalg.norm(cross, axis=1), 1e-12)
+    d = cross / size[:, None]
+    m = 0.5 * (oa + ob)
+    lhs = np.stack([na, nb, d], axis=1)
+    p = np.linalg.solve(lhs, np.stack([np.sum(na * oa, 1), np.sum(nb * ob, 1), np.sum(d * m, 1)], 1)[..., None])[..., 0]
+    inv = np.linalg.inv(lhs)                                               # columns: dp per unit of each rhs
+    perp = (np.eye(3) - d[:, :, None] * d[:, None, :]) / size[:, None, None]
+    differ = grad[0] - grad[1]
+    rows, cols, vals = [], [], []
+    scale = term.sw / noise
+    for role, (n, o) in enumerate(((na, oa), (nb, ob))):
+        dd = perp @ _hat(nb) @ _hat(na) if role == 0 else -perp @ _hat(na) @ _hat(nb)        # d(d)/dw
+        q = np.einsum("mji,mj->mi", dd, m - p)
+        c_own, c_line = inv[:, :, role], inv[:, :, 2]
+        dp_w = -c_own[:, :, None] * np.cross(n, p)[:, None, :] + c_line[:, :, None] * (q + 0.5 * np.cross(o, d))[:, None, :]
+        dp_v = c_own[:, :, None] * n[:, None, :] + 0.5 * c_line[:, :, None] * d[:, None, :]
+        jw = np.einsum("pij,pi->pj", dp_w[j] + tt[:, None, None] * dd[j], differ)
+        jv = np.einsum("pij,pi->pj", dp_v[j], differ)
+        sign = -1.0 if role == 0 else 1.0
+        jw += sign * np.cross(x, grad[role])
+        jv += sign * grad[role]
+        g = pairs[j, role]
+        rot, shift = poses[g, :3, :3], poses[g, :3, 3]
+        jd = np.concatenate([np.einsum("pji,pj->pi", rot, jw - np.cross(shift, jv)), np.einsum("pji,pj->pi", rot, jv)], 1)
+        ok = col[g] >= 0
+        rows.append(np.repeat(np.flatnonzero(ok), 6))
+        cols.append((6 * col[g[ok]][:, None] + np.arange(6)).ravel())
+        vals.append((jd[ok] * scale[ok, None]).ravel())
+    n_params = 6 * int((col >= 0).sum())
+    return sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                             shape=(len(j), n_params))

@@ -101,17 +101,21 @@ class SampledStack:
     def __init__(self, s: StackImages, sigma_mm: float) -> None:
         brain = s.images[s.masks]
         scale = float(np.median(brain)) if brain.size else 1.0
-        sig = (0.0, sigma_mm / s.pixel_mm[0], sigma_mm / s.pixel_mm[1])
-        images = s.images.astype(np.float32) / max(scale, 1e-6)
-        self.images = ndimage.gaussian_filter(images, sig)
-        self.masks = ndimage.gaussian_filter(s.masks.astype(np.float32), (0.0, 1.0, 1.0))
+        n, h, w = s.images.shape
+        # pixels finer than ~1 mm are averaged in blocks first: the finest pass smooths at 0.9 mm anyway
+        f = (max(1, round(1.0 / s.pixel_mm[0])), max(1, round(1.0 / s.pixel_mm[1])))
+        images, masks = _blocks(s.images.astype(np.float32) / max(scale, 1e-6), f), _blocks(s.masks.astype(np.float32), f)
+        pixel = (s.pixel_mm[0] * f[0], s.pixel_mm[1] * f[1])
+        self.images = ndimage.gaussian_filter(images, (0.0, sigma_mm / pixel[0], sigma_mm / pixel[1]))
+        self.masks = ndimage.gaussian_filter(masks, (0.0, 1.0, 1.0))
         pad = ((0, 0), (1, 1), (1, 1))                                      # a zero border: bilinear fades to 0
         self.images_flat = np.pad(self.images, pad).ravel()
         self.masks_flat = np.pad(self.masks, pad).ravel()
-        self.padded = (s.images.shape[1] + 2, s.images.shape[2] + 2)
-        n, h, w = s.images.shape
-        self.pixel_from_slice = np.array([[0.0, 1.0 / s.pixel_mm[0], 0.0, (h - 1) / 2.0],    # row
-                                          [1.0 / s.pixel_mm[1], 0.0, 0.0, (w - 1) / 2.0]])  # column
+        self.gradient_flat = [np.pad(g, pad).ravel() for g in np.gradient(self.images, axis=(1, 2))]
+        self.padded = (images.shape[1] + 2, images.shape[2] + 2)
+        # block (r', c') is centred on the original pixel (f r' + (f - 1) / 2, ...)
+        self.pixel_from_slice = np.array([[0.0, 1.0 / pixel[0], 0.0, ((h - 1) / 2.0 - (f[0] - 1) / 2.0) / f[0]],   # row
+                                          [1.0 / pixel[1], 0.0, 0.0, ((w - 1) / 2.0 - (f[1] - 1) / 2.0) / f[1]]])  # column
 
     def line_pixels(self, slice_from_atlas: NDArray, line: NDArray) -> NDArray[np.float64]:
         """``[M, 2, 2]`` (row, column) of two atlas points ``line`` ``[M, 2, 3]`` in slices whose
@@ -122,16 +126,42 @@ class SampledStack:
     def sample(self, which: NDArray, rc: NDArray, masks: bool = False) -> NDArray[np.float32]:
         """Values of slices ``which`` ``[P]`` at pixels ``rc`` ``[P, 2]`` (bilinear; 0 beyond the
         image, fading over its border pixel)."""
-        flat, (h, w) = (self.masks_flat if masks else self.images_flat), self.padded
+        return self._bilinear(self.masks_flat if masks else self.images_flat, *self._cells(which, rc))
+
+    def sample_gradient(self, which: NDArray, rc: NDArray) -> NDArray[np.float32]:
+        """``[P, 2]`` the smoothed image's derivatives along rows and columns (per pixel) there."""
+        cells = self._cells(which, rc)
+        return np.stack([self._bilinear(g, *cells) for g in self.gradient_flat], axis=1)
+
+    def _cells(self, which: NDArray, rc: NDArray) -> tuple[NDArray, ...]:
+        h, w = self.padded
         r, c = rc[:, 0] + 1.0, rc[:, 1] + 1.0
         inside = (r >= 0) & (r < h - 1) & (c >= 0) & (c < w - 1)
         r, c = np.clip(r, 0, h - 1.001), np.clip(c, 0, w - 1.001)
         r0, c0 = r.astype(np.int64), c.astype(np.int64)
         fr, fc = (r - r0).astype(np.float32), (c - c0).astype(np.float32)
-        i = which.astype(np.int64) * (h * w) + r0 * w + c0
+        return which.astype(np.int64) * (h * w) + r0 * w + c0, fr, fc, inside
+
+    def _bilinear(self, flat: NDArray, i: NDArray, fr: NDArray, fc: NDArray, inside: NDArray) -> NDArray[np.float32]:
+        w = self.padded[1]
         top = flat[i] + fc * (flat[i + 1] - flat[i])
         bottom = flat[i + w] + fc * (flat[i + w + 1] - flat[i + w])
         return np.where(inside, top + fr * (bottom - top), 0.0).astype(np.float32)
+
+
+def _blocks(images: NDArray, f: tuple[int, int]) -> NDArray[np.float32]:
+    """``[n, H, W]`` averaged over ``f[0] x f[1]`` pixel blocks (the rows and columns past the last
+    whole block dropped).
+
+    Example:
+        >>> _blocks(np.arange(12.0).reshape(1, 3, 4), (2, 2)).tolist()
+        [[[2.5, 4.5]]]
+    """
+    if f == (1, 1):
+        return images
+    n, h, w = images.shape
+    hh, ww = h // f[0], w // f[1]
+    return images[:, :hh * f[0], :ww * f[1]].reshape(n, hh, f[0], ww, f[1]).mean(axis=(2, 4)).astype(np.float32)
 
 
 class ImageTerm:
@@ -197,6 +227,22 @@ class ImageTerm:
             sub._index()
             self._subs[stack] = (sub, rows)
         return self._subs[stack]
+
+    def gradients(self, atlas_from_slice: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Each point ``[P, 3]`` (atlas) and both slices' image gradients there ``[2, P, 3]`` (per atlas
+        mm, in each slice's plane): what the residuals' derivatives need besides the geometry."""
+        line = pair_points(atlas_from_slice, atlas_from_slice, self.pairs, np.array([0.0, 1.0]))
+        inv = se3.inverse(atlas_from_slice)
+        ends = line[self.pair_of]
+        x = ends[:, 0] + self.t[self.t_of][:, None] * (ends[:, 1] - ends[:, 0])
+        grad = np.zeros((2, len(self.pair_of), 3))
+        for role, s, mine, g, rows, pos, k, t in self.groups:
+            st = self.sampled[s]
+            px = st.line_pixels(inv[g], line[mine])[pos]
+            gp = st.sample_gradient(k, px[:, 0] + t * (px[:, 1] - px[:, 0]))          # per pixel (row, col)
+            in_plane = gp[:, :1] * st.pixel_from_slice[0, :3] + gp[:, 1:] * st.pixel_from_slice[1, :3]
+            grad[role, rows] = np.einsum("pij,pj->pi", atlas_from_slice[g[pos], :3, :3], in_plane)
+        return x, grad
 
     def residuals(self, atlas_from_slice: NDArray) -> NDArray[np.float64]:
         va, vb = self.values(atlas_from_slice)
