@@ -81,6 +81,8 @@ def refine(stacks: list[StackImages], poses: list[NDArray], sd_mm: list[NDArray]
         :class:`Refinement`; a request with fewer than two stacks, or no crossing pairs, comes back
         unchanged.
     """
+    if jacobian not in ("analytic", "differences"):
+        raise ValueError(f"jacobian: {jacobian!r}; expected 'analytic' or 'differences'")
     sizes = [len(p) for p in poses]
     bounds = np.cumsum([0, *sizes])
     unchanged = Refinement([p.copy() for p in poses], [np.zeros(n) for n in sizes], 0, np.nan, np.nan,
@@ -122,6 +124,7 @@ def refine(stacks: list[StackImages], poses: list[NDArray], sd_mm: list[NDArray]
         if not len(term.pair_of):
             break
         used = len(term.pairs)
+
         def residual(params: NDArray, stack: int | None = None, term: ImageTerm = term) -> NDArray:
             part = term if stack is None else term.restricted(stack)[0]
             return part.residuals(atlas_from_slice(params)) / noise
