@@ -113,11 +113,6 @@ def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction:
         return list(pool.map(lambda u: prepare_stack(u, info, bias_correction), uploads))
 
 
-def usable_slices(est: PoseEstimate, sl: slice, prepared: PreparedStack) -> np.ndarray:
-    """``[n]`` slices with enough brain and a proper network pose: what the stages work with."""
-    return (prepared.prepared.mask_fraction >= acceptance.MIN_MASK_FRACTION) & ~est.degenerate[sl]
-
-
 def stack_poses(est: PoseEstimate, sl: slice, prepared: PreparedStack, net_from_vox: np.ndarray,
                 stack_consistency: bool, plane_x_mm: float, expected_mm: np.ndarray,
                 order: SliceOrder | None = None, error_shape: tuple[float, ...] | None = None,
@@ -128,7 +123,7 @@ def stack_poses(est: PoseEstimate, sl: slice, prepared: PreparedStack, net_from_
     ``error_shape`` and ``depth_gain`` the model's ``mc_error_shape`` and ``mc_error_depth_gain``;
     ``reference`` where the request's stacks that decided their branch put the scanner frame."""
     p = prepared.prepared
-    usable = usable_slices(est, sl, prepared)
+    usable = (p.mask_fraction >= acceptance.MIN_MASK_FRACTION) & ~est.degenerate[sl]
     return consistent_poses(est.mean[sl], est.twin_mass[sl], net_from_vox, prepared.upload.volume.affine, usable,
                             plane_x_mm, expected_mm[sl], stack_consistency, (order or SliceOrder()).times(len(p.inputs)),
                             None if error_shape is None else np.asarray(error_shape), depth_gain, reference)
@@ -193,10 +188,10 @@ def stack_orders(orders: list[SliceOrder] | None, uploads: list[StackUpload]) ->
     return out
 
 
-def image_consistency(prepared: list[PreparedStack], outs: list[StackPoses], proper: list[np.ndarray],
-                      reports: list[dict | None]) -> None:
+def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPoses], proper: list[np.ndarray],
+                              reports: list[dict | None]) -> None:
     """Refine the poses of the request's settled stacks where their slices cross
-    (:func:`~service.consistency.intersections.refine`), in place; each such stack's report gains
+    (:func:`~service.consistency.image_refinement.refine`), in place; each such stack's report gains
     ``image_consistency``. A stack takes part when the stage found it consistent and its left-right
     branch is decided (by its own slices or by the request): a stack that may be the mirror image of
     the others would pull them towards it. Needs two such stacks. Of their slices, those with a
@@ -228,11 +223,11 @@ def image_consistency(prepared: list[PreparedStack], outs: list[StackPoses], pro
 def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples: int,
             threshold: float, stack_consistency: bool = True,
             orders: list[SliceOrder] | None = None,
-            image_refinement: bool = True) -> tuple[list[dict], dict[str, float]]:
+            image_consistency: bool = True) -> tuple[list[dict], dict[str, float]]:
     """Run all slices of all stacks through ``estimator`` at once, then each stack through the
     stack-consistency stage, the stacks' positions pooled where they agree
     (:func:`~service.consistency.stage.pool_request`) and their slices refined where they cross
-    (:func:`image_consistency`; with ``image_refinement`` and the stage on); returns stack results
+    (:func:`refine_where_stacks_cross`; with ``image_consistency`` and the stage on); returns stack results
     and timings. ``orders``: what the request says of the stacks' acquisition orders (:func:`stack_orders`)."""
     orders = stack_orders(orders, [p.upload for p in prepared])
     inputs = np.concatenate([s.prepared.inputs for s in prepared])
@@ -257,8 +252,8 @@ def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples:
     reports = pool_request(outs) if stack_consistency else [None] * len(outs)
     timings["stack_consistency"] = time.perf_counter() - t
     t = time.perf_counter()
-    if stack_consistency and image_refinement:
-        image_consistency(prepared, outs, [~est.degenerate[sl] for sl in spans], reports)
+    if stack_consistency and image_consistency:
+        refine_where_stacks_cross(prepared, outs, [~est.degenerate[sl] for sl in spans], reports)
     timings["image_consistency"] = time.perf_counter() - t
     stacks = []
     for index, (s, sl, nfv, out, report) in enumerate(zip(prepared, spans, frames, outs, reports)):
