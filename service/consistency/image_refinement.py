@@ -293,14 +293,6 @@ def _brain_radius(s: StackImages) -> float:
     return float(np.sqrt(x ** 2 + y ** 2).max())
 
 
-def _hat(v: NDArray) -> NDArray[np.float64]:
-    """``[M, 3, 3]`` cross-product matrices: ``hat(v) @ u = v x u``."""
-    out = np.zeros((*v.shape[:-1], 3, 3))
-    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-    out[..., 1, 0], out[..., 2, 0], out[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
-    return out
-
-
 def image_jacobian(term: ImageTerm, atlas_from_slice: NDArray, poses: NDArray, col: NDArray,
                    noise: float) -> sparse.csr_matrix:
     """``[P, 6F]`` the image residuals' derivatives by each free slice's twist (its network frame).
@@ -331,7 +323,7 @@ def image_jacobian(term: ImageTerm, atlas_from_slice: NDArray, poses: NDArray, c
     rows, cols, vals = [], [], []
     scale = term.sw / noise
     for role, (n, o) in enumerate(((na, oa), (nb, ob))):
-        dd = perp @ _hat(nb) @ _hat(na) if role == 0 else -perp @ _hat(na) @ _hat(nb)        # d(d)/dw
+        dd = perp @ se3.hat(nb) @ se3.hat(na) if role == 0 else -perp @ se3.hat(na) @ se3.hat(nb)        # d(d)/dw
         q = np.einsum("mji,mj->mi", dd, m - p)
         c_own, c_line = inv[:, :, role], inv[:, :, 2]
         dp_w = -c_own[:, :, None] * np.cross(n, p)[:, None, :] + c_line[:, :, None] * (q + 0.5 * np.cross(o, d))[:, None, :]

@@ -36,7 +36,8 @@ ROTATION_METRIC_WEIGHT = 2.0
 """Weight of ``||omega||^2`` in the squared distance: Frobenius norm of the skew matrix."""
 
 
-def _hat(w: NDArray) -> NDArray:
+def hat(w: NDArray) -> NDArray:
+    """Cross-product matrices ``[..., 3, 3]`` of vectors ``[..., 3]``: ``hat(w) @ u = w x u``."""
     out = np.zeros(w.shape[:-1] + (3, 3))
     out[..., 0, 1], out[..., 0, 2] = -w[..., 2], w[..., 1]
     out[..., 1, 0], out[..., 1, 2] = w[..., 2], -w[..., 0]
@@ -71,7 +72,7 @@ def exp(twist: ArrayLike) -> NDArray[np.float64]:
     w, v = xi[..., :3], xi[..., 3:]
     theta = np.linalg.norm(w, axis=-1)
     a, b = _v_coefficients(theta)
-    k = _hat(w)
+    k = hat(w)
     vmat = np.eye(3) + a[..., None, None] * k + b[..., None, None] * (k @ k)
     return make_pose(so3_exp(w), np.einsum("...ij,...j->...i", vmat, v))
 
@@ -85,7 +86,7 @@ def log(pose: ArrayLike) -> NDArray[np.float64]:
     t = np.where(small, 1.0, theta)
     c = np.where(small, 1.0 / 12.0 + theta**2 / 720.0,
                  (1.0 - t * np.sin(t) / (2.0 * (1.0 - np.cos(t)))) / t**2)
-    k = _hat(w)
+    k = hat(w)
     vinv = np.eye(3) - 0.5 * k + c[..., None, None] * (k @ k)
     return np.concatenate([w, np.einsum("...ij,...j->...i", vinv, m[..., :3, 3])], axis=-1)
 

@@ -36,7 +36,7 @@ def test_exp_is_a_proper_rigid_transform_and_matches_matrix_exponential() -> Non
 
     xi = np.array([0.4, -0.3, 1.2, 10.0, -5.0, 2.0])
     twist = np.zeros((4, 4))
-    twist[:3, :3] = se3._hat(xi[:3])
+    twist[:3, :3] = se3.hat(xi[:3])
     twist[:3, 3] = xi[3:]
     np.testing.assert_allclose(se3.exp(xi), expm(twist), atol=1e-10)
 
