@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import sparse
 
-from service.consistency.intersections import ImageTerm, SampledStack, StackImages, candidate_pairs
+from service.consistency.intersections import ImageTerm, SampledStack, StackImages, candidate_pairs, lines
 from service.geometry import se3
 from service.geometry.anchors import ed
 
@@ -62,7 +62,7 @@ class Refinement:
 
 def refine(stacks: list[StackImages], poses: list[NDArray], sd_mm: list[NDArray], *,
            sigmas_mm: tuple[float, ...] = SIGMAS_MM, spacing_mm: float = 2.0, noise: float = 0.15,
-           prior_weight: float = 1.0, iterations: int = 8, jacobian: str = "analytic") -> Refinement:
+           prior_weight: float = 1.0, iterations: int = 8) -> Refinement:
     """Refine every free slice's pose so that slices of different stacks agree where they cross.
 
     Args:
@@ -75,14 +75,11 @@ def refine(stacks: list[StackImages], poses: list[NDArray], sd_mm: list[NDArray]
             as one standard deviation; the soft-L1 loss turns linear beyond it.
         prior_weight: multiplies the prior's residuals (1: the stage's expected errors as they are).
         iterations: Gauss-Newton iterations per pass.
-        jacobian: ``analytic`` (:func:`image_jacobian`) or ``differences`` (:func:`difference_jacobian`).
 
     Returns:
         :class:`Refinement`; a request with fewer than two stacks, or no crossing pairs, comes back
         unchanged.
     """
-    if jacobian not in ("analytic", "differences"):
-        raise ValueError(f"jacobian: {jacobian!r}; expected 'analytic' or 'differences'")
     sizes = [len(p) for p in poses]
     bounds = np.cumsum([0, *sizes])
     unchanged = Refinement([p.copy() for p in poses], [np.zeros(n) for n in sizes], 0, np.nan, np.nan,
@@ -104,10 +101,13 @@ def refine(stacks: list[StackImages], poses: list[NDArray], sd_mm: list[NDArray]
     radius = max(_brain_radius(s) for s in stacks)
     x = np.zeros((int(free.sum()), 6))
 
-    def atlas_from_slice(params: NDArray) -> NDArray:
+    def poses_at(params: NDArray) -> NDArray:
         twist = np.zeros((len(p0), 6))
         twist[free] = params
-        return p0 @ se3.exp(twist) @ network_from_slice
+        return p0 @ se3.exp(twist)
+
+    def atlas_from_slice(params: NDArray) -> NDArray:
+        return poses_at(params) @ network_from_slice
 
     pairs = candidate_pairs(atlas_from_slice(x), stack_of, free)
     if not len(pairs):
@@ -125,21 +125,14 @@ def refine(stacks: list[StackImages], poses: list[NDArray], sd_mm: list[NDArray]
             break
         used = len(term.pairs)
 
-        def residual(params: NDArray, stack: int | None = None, term: ImageTerm = term) -> NDArray:
-            part = term if stack is None else term.restricted(stack)[0]
-            return part.residuals(atlas_from_slice(params)) / noise
+        def residual(params: NDArray, term: ImageTerm = term) -> NDArray:
+            return term.residuals(atlas_from_slice(params)) / noise
+
+        def jac(params: NDArray, term: ImageTerm = term) -> sparse.csr_matrix:
+            current = poses_at(params)
+            return image_jacobian(term, current @ network_from_slice, current, col, noise)
 
         costs.append(_mean_square(residual(x), term.sw))
-        if jacobian == "analytic":
-            def jac(params: NDArray, term: ImageTerm = term) -> sparse.csr_matrix:
-                twist = np.zeros((len(p0), 6))
-                twist[free] = params
-                current = p0 @ se3.exp(twist)
-                return image_jacobian(term, current @ network_from_slice, current, col, noise)
-        else:
-            def jac(params: NDArray, term: ImageTerm = term) -> sparse.csr_matrix:
-                return difference_jacobian(residual, lambda k: term.restricted(k)[1], params, col, stack_of,
-                                           term.pairs[term.pair_of])
         x = _gauss_newton(residual, jac, x, prior, iterations)
         r = residual(x)
         costs.append(_mean_square(r, term.sw))
@@ -199,34 +192,6 @@ def expected_after(expected_mm: list[NDArray], mismatch: list[NDArray]) -> list[
         ratio = np.sqrt(np.maximum(m, 0.0) / max(ref, 1e-12)) if np.isfinite(ref) else np.full(len(m), np.nan)
         out.append(np.where(np.isfinite(ratio), REFINED_GAIN * e * ratio, UNCHECKED_GAIN * np.asarray(e, np.float64)))
     return out
-
-
-def difference_jacobian(residual, rows_of, x: NDArray, col: NDArray, stack_of: NDArray,  # noqa: ANN001
-                        point_pairs: NDArray) -> sparse.csr_matrix:
-    """The image residuals' Jacobian by forward differences, in groups: one coordinate of every free
-    slice of one stack at a time (no residual holds two slices of one stack), each evaluated on the
-    residuals that stack takes part in (``residual(params, stack)``, rows ``rows_of(stack)``): the
-    check of :func:`image_jacobian`, and ``refine(..., jacobian="differences")``."""
-    steps = np.array([5e-3, 5e-3, 5e-3, 0.2, 0.2, 0.2])
-    cols = col[point_pairs]                                                # [P, 2] parameter row of each slice
-    stack_free = stack_of[col >= 0][np.argsort(col[col >= 0])]              # the stack of each parameter row
-    stacks_pp = stack_of[point_pairs]
-    r = residual(x)
-    rows, cidx, vals = [], [], []
-    for s in np.unique(stack_free):
-        part = rows_of(s)
-        for j in range(6):
-            dx = np.zeros_like(x)
-            dx[:, j] = steps[j]
-            dr = np.zeros(len(r))
-            dr[part] = (residual(x + dx * (stack_free == s)[:, None], s) - r[part]) / steps[j]
-            for role in (0, 1):
-                hit = np.flatnonzero((stacks_pp[:, role] == s) & (cols[:, role] >= 0))
-                rows.append(hit)
-                cidx.append(6 * cols[hit, role] + j)
-                vals.append(dr[hit])
-    return sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cidx))),
-                             shape=(len(r), x.size))
 
 
 def _gauss_newton(residual, jacobian, x: NDArray, prior: NDArray, iterations: int) -> NDArray[np.float64]:  # noqa: ANN001
@@ -307,18 +272,12 @@ def image_jacobian(term: ImageTerm, atlas_from_slice: NDArray, poses: NDArray, c
     ``b`` does; ``(w, v)`` is ``Ad(P) d`` of the twist ``d`` in the network frame of the slice's
     current pose ``P`` (``w = R d_w``, ``v = R d_v + t x w``). Checked against finite differences
     in the tests."""
-    x, grad = term.gradients(atlas_from_slice)
+    x, grad = term.points(atlas_from_slice), term.gradients(atlas_from_slice)
     pairs, j, tt = term.pairs, term.pair_of, term.t[term.t_of]
-    a, b = atlas_from_slice[pairs[:, 0]], atlas_from_slice[pairs[:, 1]]
-    na, nb, oa, ob = a[:, :3, 2], b[:, :3, 2], a[:, :3, 3], b[:, :3, 3]
-    cross = np.cross(na, nb)
-    size = np.maximum(np.linalg.norm(cross, axis=1), 1e-12)
-    d = cross / size[:, None]
-    m = 0.5 * (oa + ob)
-    lhs = np.stack([na, nb, d], axis=1)
-    p = np.linalg.solve(lhs, np.stack([np.sum(na * oa, 1), np.sum(nb * ob, 1), np.sum(d * m, 1)], 1)[..., None])[..., 0]
-    inv = np.linalg.inv(lhs)                                               # columns: dp per unit of each rhs
-    perp = (np.eye(3) - d[:, :, None] * d[:, None, :]) / size[:, None, None]
+    ln = lines(atlas_from_slice, atlas_from_slice, pairs)
+    na, nb, oa, ob, d, m, p = ln.na, ln.nb, ln.oa, ln.ob, ln.d, ln.m, ln.p
+    inv = np.linalg.inv(ln.lhs)                                            # columns: dp per unit of each rhs
+    perp = (np.eye(3) - d[:, :, None] * d[:, None, :]) / ln.size[:, None, None]
     differ = grad[0] - grad[1]
     rows, cols, vals = [], [], []
     scale = term.sw / noise

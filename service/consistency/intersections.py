@@ -25,7 +25,6 @@ Example:
 
 from __future__ import annotations
 
-import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -53,7 +52,8 @@ class StackImages:
         slice_from_network: ``[n, 4, 4]`` network frame -> the slice frame of ``images`` (pixel
             ``(r, c)`` at ``x = (c - (W-1)/2) col_mm``, ``y = (r - (H-1)/2) row_mm``).
         active: ``[n]`` slices that take part (their poses move); the others, and slices with
-            fewer than :data:`MIN_BRAIN_PIXELS` brain pixels, keep their poses and do not take part.
+            fewer than :data:`~service.consistency.image_refinement.MIN_BRAIN_PIXELS` brain
+            pixels, keep their poses and do not take part.
     """
 
     images: NDArray[np.float32]
@@ -63,6 +63,39 @@ class StackImages:
     active: NDArray[np.bool_]
 
 
+@dataclass
+class Lines:
+    """The intersection line of each pair's planes (``[M, ...]``): the planes' normals ``na``, ``nb``
+    and origins ``oa``, ``ob``, the line's direction ``d = cross / size`` (``cross = na x nb``), the
+    midpoint ``m`` of the origins, and the line's point ``p`` nearest it (``lhs @ p = rhs``, ``lhs``
+    the rows ``na, nb, d``)."""
+
+    na: NDArray[np.float64]
+    nb: NDArray[np.float64]
+    oa: NDArray[np.float64]
+    ob: NDArray[np.float64]
+    d: NDArray[np.float64]
+    size: NDArray[np.float64]
+    m: NDArray[np.float64]
+    lhs: NDArray[np.float64]
+    p: NDArray[np.float64]
+
+
+def lines(atlas_from_slice_a: NDArray, atlas_from_slice_b: NDArray, pairs: NDArray) -> Lines:
+    """The intersection line of each pair's planes; ``pairs`` indexes the two arrays of
+    ``atlas_from_slice`` poses."""
+    a, b = atlas_from_slice_a[pairs[:, 0]], atlas_from_slice_b[pairs[:, 1]]
+    na, nb = a[:, :3, 2], b[:, :3, 2]
+    oa, ob = a[:, :3, 3], b[:, :3, 3]
+    cross = np.cross(na, nb)
+    size = np.maximum(np.linalg.norm(cross, axis=1), 1e-12)
+    d = cross / size[:, None]
+    m = 0.5 * (oa + ob)
+    lhs = np.stack([na, nb, d], axis=1)                                     # [M, 3, 3]
+    rhs = np.stack([np.sum(na * oa, 1), np.sum(nb * ob, 1), np.sum(d * m, 1)], axis=1)
+    return Lines(na, nb, oa, ob, d, size, m, lhs, np.linalg.solve(lhs, rhs[..., None])[..., 0])
+
+
 def pair_points(atlas_from_slice_a: NDArray, atlas_from_slice_b: NDArray, pairs: NDArray,
                 t_mm: NDArray) -> NDArray[np.float64]:
     """``[M, N, 3]`` atlas points along the intersection line of each pair's planes.
@@ -70,16 +103,8 @@ def pair_points(atlas_from_slice_a: NDArray, atlas_from_slice_b: NDArray, pairs:
     The line's points sit at ``t_mm`` from the point of the line nearest the midpoint of the two
     slices' origins (so the samples move smoothly with the poses). ``pairs`` indexes the two
     arrays of ``atlas_from_slice`` poses."""
-    a, b = atlas_from_slice_a[pairs[:, 0]], atlas_from_slice_b[pairs[:, 1]]
-    na, nb = a[:, :3, 2], b[:, :3, 2]
-    oa, ob = a[:, :3, 3], b[:, :3, 3]
-    d = np.cross(na, nb)
-    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
-    m = 0.5 * (oa + ob)
-    lhs = np.stack([na, nb, d], axis=1)                                     # [M, 3, 3]
-    rhs = np.stack([np.sum(na * oa, 1), np.sum(nb * ob, 1), np.sum(d * m, 1)], axis=1)
-    p0 = np.linalg.solve(lhs, rhs[..., None])[..., 0]
-    return p0[:, None, :] + t_mm[None, :, None] * d[:, None, :]
+    ln = lines(atlas_from_slice_a, atlas_from_slice_b, pairs)
+    return ln.p[:, None, :] + t_mm[None, :, None] * ln.d[:, None, :]
 
 
 def candidate_pairs(atlas_from_slice: NDArray, stack_of: NDArray, free: NDArray) -> NDArray[np.int64]:
@@ -192,7 +217,7 @@ class ImageTerm:
     def _index(self) -> None:
         """Per (role, stack): the pairs whose slice in that role is of that stack, and their points
         (what :meth:`values` gathers, worked out once per point set)."""
-        self.groups, self._subs = [], {}
+        self.groups = []
         for role in (0, 1):
             g = self.pairs[:, role]
             for s in range(len(self.sampled)):
@@ -205,44 +230,36 @@ class ImageTerm:
                 self.groups.append((role, s, mine, g[mine], rows, where[self.pair_of[rows]],
                                     self.local[g[self.pair_of[rows]]], self.t[self.t_of[rows]][:, None]))
 
-    def values(self, atlas_from_slice: NDArray, masks: bool = False) -> NDArray[np.float32]:
-        """``[2, P]`` both slices' values at each point (images, or masks)."""
+    def _where(self, atlas_from_slice: NDArray):  # noqa: ANN202 - a generator of tuples
+        """Per (role, stack) group: the stack, the group's rows, their slices (global and in the
+        stack) and their pixels ``[P_s, 2]`` in those slices."""
         line = pair_points(atlas_from_slice, atlas_from_slice, self.pairs, np.array([0.0, 1.0]))   # base, base + d
         inv = se3.inverse(atlas_from_slice)
-        out = np.zeros((2, len(self.pair_of)), np.float32)
         for role, s, mine, g, rows, pos, k, t in self.groups:
             ends = self.sampled[s].line_pixels(inv[g], line[mine])[pos]            # [P_s, 2, 2]
-            out[role, rows] = self.sampled[s].sample(k, ends[:, 0] + t * (ends[:, 1] - ends[:, 0]), masks)
+            yield role, self.sampled[s], rows, g[pos], k, ends[:, 0] + t * (ends[:, 1] - ends[:, 0])
+
+    def points(self, atlas_from_slice: NDArray) -> NDArray[np.float64]:
+        """``[P, 3]`` each point in the atlas."""
+        line = pair_points(atlas_from_slice, atlas_from_slice, self.pairs, np.array([0.0, 1.0]))[self.pair_of]
+        return line[:, 0] + self.t[self.t_of][:, None] * (line[:, 1] - line[:, 0])
+
+    def values(self, atlas_from_slice: NDArray, masks: bool = False) -> NDArray[np.float32]:
+        """``[2, P]`` both slices' values at each point (images, or masks)."""
+        out = np.zeros((2, len(self.pair_of)), np.float32)
+        for role, st, rows, _, k, rc in self._where(atlas_from_slice):
+            out[role, rows] = st.sample(k, rc, masks)
         return out
 
-    def restricted(self, stack: int) -> tuple[ImageTerm, NDArray[np.int64]]:
-        """The term of the points whose pair has a slice in ``stack``, and their rows here: all
-        that moving that stack's slices changes (cached)."""
-        if stack not in self._subs:
-            involved = (self.stack_of[self.pairs] == stack).any(axis=1)
-            rows = np.flatnonzero(involved[self.pair_of])
-            sub = copy.copy(self)
-            used, sub.pair_of = np.unique(self.pair_of[rows], return_inverse=True)
-            sub.pairs, sub.t_of, sub.sw, sub._subs = self.pairs[used], self.t_of[rows], self.sw[rows], {}
-            sub._index()
-            self._subs[stack] = (sub, rows)
-        return self._subs[stack]
-
-    def gradients(self, atlas_from_slice: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Each point ``[P, 3]`` (atlas) and both slices' image gradients there ``[2, P, 3]`` (per atlas
-        mm, in each slice's plane): what the residuals' derivatives need besides the geometry."""
-        line = pair_points(atlas_from_slice, atlas_from_slice, self.pairs, np.array([0.0, 1.0]))
-        inv = se3.inverse(atlas_from_slice)
-        ends = line[self.pair_of]
-        x = ends[:, 0] + self.t[self.t_of][:, None] * (ends[:, 1] - ends[:, 0])
+    def gradients(self, atlas_from_slice: NDArray) -> NDArray[np.float64]:
+        """``[2, P, 3]`` both slices' image gradients at each point (per atlas mm, in each slice's
+        plane): what the residuals' derivatives need besides the geometry."""
         grad = np.zeros((2, len(self.pair_of), 3))
-        for role, s, mine, g, rows, pos, k, t in self.groups:
-            st = self.sampled[s]
-            px = st.line_pixels(inv[g], line[mine])[pos]
-            gp = st.sample_gradient(k, px[:, 0] + t * (px[:, 1] - px[:, 0]))          # per pixel (row, col)
+        for role, st, rows, slices, k, rc in self._where(atlas_from_slice):
+            gp = st.sample_gradient(k, rc)                                        # per pixel (row, col)
             in_plane = gp[:, :1] * st.pixel_from_slice[0, :3] + gp[:, 1:] * st.pixel_from_slice[1, :3]
-            grad[role, rows] = np.einsum("pij,pj->pi", atlas_from_slice[g[pos], :3, :3], in_plane)
-        return x, grad
+            grad[role, rows] = np.einsum("pij,pj->pi", atlas_from_slice[slices, :3, :3], in_plane)
+        return grad
 
     def residuals(self, atlas_from_slice: NDArray) -> NDArray[np.float64]:
         va, vb = self.values(atlas_from_slice)

@@ -205,6 +205,7 @@ def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPos
     noise = [outs[i].expected_mm if outs[i].expected_mm is not None else np.full(len(outs[i].poses), np.nan) for i in take]
     ref = refine(images, [outs[i].poses for i in take], noise)
     expected = expected_after(noise, ref.mismatch)
+    costs = np.array([ref.cost_before, ref.cost_after])
     for j, i in enumerate(take):
         outs[i].poses = ref.poses[j]
         if outs[i].expected_mm is not None:
@@ -215,8 +216,7 @@ def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPos
                 "stacks": len(take), "pairs": ref.pairs,
                 "slices_refined": int(images[j].active.sum()),
                 "median_move_mm": float(np.median(moved)) if len(moved) else 0.0,
-                "mismatch_before": _finite(np.array([ref.cost_before]), 0),
-                "mismatch_after": _finite(np.array([ref.cost_after]), 0),
+                "mismatch_before": _finite(costs, 0), "mismatch_after": _finite(costs, 1),
             }
 
 
