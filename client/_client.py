@@ -11,10 +11,12 @@ Example:
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import secrets
 import time
+import zipfile
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Union
@@ -47,6 +49,10 @@ except Exception:  # noqa: BLE001 - not installed as a distribution
 def _sleep(seconds: float) -> None:
     """``time.sleep``; a seam for tests."""
     time.sleep(seconds)
+
+
+MAX_MASK_BYTES = 1 << 30
+"""The largest archive member :meth:`SVRnetClient.masks` writes (a mask file of the server's)."""
 
 
 class SVRnetClient:
@@ -289,6 +295,37 @@ class SVRnetClient:
         fields += order_fields(slice_order)
         body = MultipartBody(fields, self._files(stacks, masks))
         return self._json(self._send("POST", "/v1/predict", body=body, progress=progress))
+
+    def masks(self, stacks: Sequence[PathLike], out_dir: PathLike, *, model: str | None = None,
+              progress: ProgressCallback | None = None) -> dict[str, Any]:
+        """``POST /v1/masks``: the server's brain mask of every stack, written into ``out_dir``.
+
+        Each mask is ``<stem>_mask.nii.gz`` on its stack's own grid (uint8 0/1); ``report.json`` lies
+        beside them. Only the archive's own plain file names are written, never a path it names.
+
+        Returns:
+            The report: ``stacks[]`` with ``filename``, ``mask``, ``brain_volume_ml``, ``confidence``,
+            ``slices_with_brain``.
+
+        Example:
+            >>> SVRnetClient().masks(["ax.nii.gz"], "masks/")["stacks"][0]["confidence"]   # doctest: +SKIP
+            0.97
+        """
+        fields = [("model", model)] if model is not None else []
+        body = MultipartBody(fields, self._files(stacks, None))
+        response = self._send("POST", "/v1/masks", body=body, progress=progress)
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        try:
+            archive = zipfile.ZipFile(io.BytesIO(response.content))
+            names = [i.filename for i in archive.infolist() if i.filename == Path(i.filename).name
+                     and i.filename.endswith((".nii.gz", ".json")) and i.file_size <= MAX_MASK_BYTES]
+            for name in names:
+                (out / name).write_bytes(archive.read(name))
+            return json.loads(archive.read("report.json"))
+        except (zipfile.BadZipFile, KeyError, ValueError) as exc:
+            raise SVRnetError("the server's masks archive is unreadable", status=response.status_code,
+                              request_id=response.headers.get("x-request-id")) from exc
 
     def reconstruct(self, stacks: Sequence[PathLike], masks: Sequence[PathLike] | None = None,
                     poses: Mapping[str, Any] | PathLike | None = None, *, resolution_mm: float | None = None,

@@ -212,7 +212,7 @@ def summarise(result: dict[str, Any]) -> Table:
     title = (f"model {model.get('name', '?')} {model.get('version', '')} · mc_samples {result.get('mc_samples')} · "
              f"variance threshold {result.get('variance_threshold')}")
     table = Table(title=title, title_justify="left")
-    for col, just in (("#", "right"), ("stack", "left"), ("slices", "right"), ("accepted", "right"),
+    for col, just in (("#", "right"), ("stack", "left"), ("brain", "left"), ("slices", "right"), ("accepted", "right"),
                       ("rejected (by reason)", "left"), ("median variance", "right")):
         table.add_column(col, justify=just)  # type: ignore[arg-type]
     for i, stack in enumerate(result.get("stacks") or []):
@@ -220,7 +220,10 @@ def summarise(result: dict[str, Any]) -> Table:
         accepted = sum(1 for s in slices if s.get("accepted"))
         reasons = Counter(s.get("reason") or "unknown" for s in slices if not s.get("accepted"))
         variances = [s["geodesic_variance"] for s in slices if s.get("geodesic_variance") is not None]
-        table.add_row(str(stack.get("index", i)), str(stack.get("filename", "")), str(len(slices)), str(accepted),
+        where = stack.get("localisation") or {}
+        brain = "mask" if where.get("method") == "mask" else \
+            f"found, {where.get('brain_volume_ml', 0):.0f} ml, confidence {where.get('confidence', 0):.2f}" if where else "-"
+        table.add_row(str(stack.get("index", i)), str(stack.get("filename", "")), brain, str(len(slices)), str(accepted),
                       ", ".join(f"{k} {v}" for k, v in sorted(reasons.items())) or "-",
                       f"{statistics.median(variances):.4g}" if variances else "-")
     return table
@@ -274,6 +277,29 @@ def predict(
         if out is not None:
             _write_json(out, result)
             console.print(f"wrote {out}")
+
+
+@app.command(epilog=EXIT_HELP)
+def masks(
+    stacks: StacksArg,
+    out_dir: Annotated[Path, typer.Option("--out-dir", "-o", file_okay=False, help="where the masks are written")],
+    server: ServerOpt = DEFAULT_SERVER,
+    model: Annotated[Optional[str], typer.Option(help="localiser name (default: the server's)")] = None,
+) -> None:
+    """Brain masks of stacks as they leave the scanner (POST /v1/masks): one NIfTI per stack."""
+    err = _stderr()
+    with _errors(), _client(server) as svr:
+        with _upload_bar(err, f"{len(stacks)} stack(s)") as progress:
+            report = svr.masks(stacks, out_dir, model=model, progress=progress)
+        table = Table(title=f"brain masks in {out_dir}", title_justify="left")
+        for col, just in (("stack", "left"), ("mask", "left"), ("volume (ml)", "right"), ("confidence", "right"),
+                          ("slices with brain", "right")):
+            table.add_column(col, justify=just)  # type: ignore[arg-type]
+        for row in report.get("stacks") or []:
+            table.add_row(str(row.get("filename", "")), str(row.get("mask", "")),
+                          f"{row.get('brain_volume_ml', 0):.0f}", f"{row.get('confidence', 0):.2f}",
+                          str(row.get("slices_with_brain", "")))
+        _stdout().print(table)
 
 
 def stage_label(state: dict[str, Any]) -> str:

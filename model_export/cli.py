@@ -5,6 +5,7 @@ Examples:
     svrnet-train export runs/default/best.pt service/models/default/model.onnx --threshold 25
     svrnet-train calibrate runs/default/best.pt
     svrnet-train evaluate service/models/default/model.onnx --report model_export/reports/default.md
+    svrnet-train localiser --help
 """
 
 from __future__ import annotations
@@ -16,8 +17,10 @@ from typing import Annotated, Optional
 import typer
 
 from model_export.atlas import DEFAULT_ATLAS_ROOT
+from model_export.localiser.cli import app as localiser_app
 
 app = typer.Typer(add_completion=False, help=__doc__, no_args_is_help=True)
+app.add_typer(localiser_app, name="localiser", help="the brain localiser: synthetic data, training, shipping")
 
 Root = Annotated[Path, typer.Option(help="folder holding crl_sta/ and spina_bifida_cc0/")]
 

@@ -13,7 +13,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
 
-from service.api import health, metrics, models, openapi, predict, problems, reconstructions
+from service.api import health, masks, metrics, models, openapi, predict, problems, reconstructions
 from service.api.deps import MetricsAccess
 from service.api.metrics import Metrics
 from service.api.middleware import RequestContext
@@ -22,6 +22,7 @@ from service.core import logging as service_logging
 from service.core.settings import Settings
 from service.inference.registry import ModelRegistry
 from service.jobs.runner import open_backend
+from service.preprocess.localise import Localisers
 
 RETENTION_CHECK_S = 600.0
 log = logging.getLogger(__name__)
@@ -35,6 +36,7 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         app.state.registry = registry or ModelRegistry.from_directory(
             settings.models_dir, settings.default_model, settings.onnx_threads)
+        app.state.localisers = Localisers.from_directory(settings.localisers_dir, settings.onnx_threads)
         app.state.job_store, app.state.job_runner = open_backend(settings)
         await asyncio.to_thread(app.state.job_runner.start)
         app.state.metrics.watch_jobs(app.state.job_store, app.state.job_runner)
@@ -66,9 +68,10 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
     app.state.metrics = Metrics()
     app.state.slots = asyncio.Semaphore(settings.max_concurrent)
     app.state.registry = None
+    app.state.localisers = Localisers({})
     problems.install(app)
     openapi.document_uploads(app, settings.max_files)
-    for module in (health, models, predict, reconstructions):
+    for module in (health, models, predict, masks, reconstructions):
         app.include_router(module.router)
     app.include_router(metrics.router, dependencies=[MetricsAccess], responses=problem_responses(401))
     app.add_middleware(RequestContext, metrics=app.state.metrics, max_body_bytes=int(settings.max_upload_mb * 2**20))

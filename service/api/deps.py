@@ -14,6 +14,7 @@ from service.api.metrics import Metrics
 from service.core.errors import QueueFull, Saturated, ServiceError, Unauthorized
 from service.core.settings import Settings
 from service.inference.registry import ModelRegistry
+from service.preprocess.localise import Localisers
 
 
 def get_settings(request: Request) -> Settings:
@@ -24,6 +25,10 @@ def get_registry(request: Request) -> ModelRegistry:
     return request.app.state.registry
 
 
+def get_localisers(request: Request) -> Localisers:
+    return request.app.state.localisers
+
+
 def get_metrics(request: Request) -> Metrics:
     return request.app.state.metrics
 
@@ -31,6 +36,7 @@ def get_metrics(request: Request) -> Metrics:
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 RegistryDep = Annotated[ModelRegistry, Depends(get_registry)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
+LocalisersDep = Annotated[Localisers, Depends(get_localisers)]
 
 
 def api_key_ok(keys: set[str], authorization: str | None, x_api_key: str | None) -> bool:

@@ -8,7 +8,7 @@ from typing import Annotated, Optional
 from anyio import to_thread
 from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 
-from service.api.deps import ApiKey, MetricsDep, RegistryDep, SettingsDep, SlotDep
+from service.api.deps import ApiKey, LocalisersDep, MetricsDep, RegistryDep, SettingsDep, SlotDep
 from service.api.schemas import UPLOAD_ERRORS, PredictResponse
 from service.api.uploads import SLICE_ORDER_HELP, SliceOrderField, check_form, known_fields, parse_orders, save_and_read, upload_directory
 from service.inference.pipeline import predict as run_prediction
@@ -22,6 +22,7 @@ router = APIRouter(prefix="/v1", tags=["prediction"], dependencies=[ApiKey])
 async def predict(
     request: Request,
     registry: RegistryDep,
+    localisers: LocalisersDep,
     settings: SettingsDep,
     metrics: MetricsDep,
     _slot: SlotDep,
@@ -44,6 +45,7 @@ async def predict(
     request.scope["state"]["model"] = model
     estimator = registry.get(model)
     masks = check_form(stacks, masks, variance_threshold, settings.max_files)
+    localiser = None if masks else localisers.get()
     orders = parse_orders(slice_order, len(stacks))
     threshold = variance_threshold if variance_threshold is not None else estimator.info.variance_threshold
     with upload_directory(settings.tmp_dir) as tmp:
@@ -51,7 +53,7 @@ async def predict(
                                               settings.max_request_decoded_bytes)
     t_read = time.perf_counter()
     prepared = await to_thread.run_sync(prepare_stacks, uploads, estimator.info, bias_correction,
-                                        settings.preprocess_workers)
+                                        settings.preprocess_workers, localiser)
     t_prep = time.perf_counter()
     results, timings = await to_thread.run_sync(run_prediction, prepared, estimator, mc_samples, threshold,
                                                 stack_consistency, orders, image_consistency)

@@ -90,6 +90,14 @@ class StackConsistency(BaseModel):
                           "that decided their left-right branch)")
 
 
+class Localisation(BaseModel):
+    method: Literal["mask", "network"] = Field(description="'mask': the uploaded mask; 'network': the service's "
+                                                            "learned localiser found the brain")
+    brain_volume_ml: float = Field(description="volume of the brain mask used (intracranial: brain and extra-axial CSF)")
+    confidence: float = Field(description="0..1; 1 for an uploaded mask; low when no brain-like region was found "
+                                          "(the stack's slices are then 'empty')")
+
+
 class StackResult(BaseModel):
     index: int
     filename: str
@@ -98,6 +106,7 @@ class StackResult(BaseModel):
     slice_axis: int
     slices: list[SliceResult]
     consistency: Optional[StackConsistency] = Field(None, description="the stack-consistency stage (null when off)")
+    localisation: Optional[Localisation] = Field(None, description="how the stack's brain was localised")
 
 
 class PredictResponse(BaseModel):

@@ -14,9 +14,11 @@ Example:
 
 from __future__ import annotations
 
+import re
 import unicodedata
 
 MAX_NAME = 255
+IMAGE_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd", ".dcm", ".zip", ".gz")
 
 
 def clean_name(name: str) -> str:
@@ -25,4 +27,28 @@ def clean_name(name: str) -> str:
     return kept.strip()[:MAX_NAME]
 
 
-__all__ = ["MAX_NAME", "clean_name"]
+def unique_stems(names: list[str]) -> list[str]:
+    """File-system-safe stems of upload names (extensions dropped, only ``[A-Za-z0-9._-]``), made
+    unique with ``-1``, ``-2`` ... in order.
+
+    Example:
+        >>> unique_stems(["axial.nii.gz", "axial.nii", "../x y.mha", "stacks[3]"])
+        ['axial', 'axial-1', 'x_y', 'stacks_3']
+    """
+    out: list[str] = []
+    for name in names:
+        base = name.replace("\\", "/").rsplit("/", 1)[-1]
+        for suffix in IMAGE_SUFFIXES:
+            if base.lower().endswith(suffix):
+                base = base[: -len(suffix)]
+                break
+        stem = re.sub(r"[^A-Za-z0-9._-]+", "_", base).strip("._") or "stack"
+        candidate, k = stem, 0
+        while candidate in out:
+            k += 1
+            candidate = f"{stem}-{k}"
+        out.append(candidate)
+    return out
+
+
+__all__ = ["MAX_NAME", "clean_name", "unique_stems"]

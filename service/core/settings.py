@@ -18,6 +18,7 @@ from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 DEFAULT_MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
+DEFAULT_LOCALISERS_DIR = Path(__file__).resolve().parents[1] / "localisers"
 
 
 class Settings(BaseSettings):
@@ -28,6 +29,7 @@ class Settings(BaseSettings):
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
     models_dir: Path = DEFAULT_MODELS_DIR
+    localisers_dir: Path = Field(DEFAULT_LOCALISERS_DIR, description="brain localisers: <name>/model.onnx")
     default_model: str = "default"
     log_level: str = "info"
     api_keys: str = Field("", description="comma-separated keys; empty = no authentication")

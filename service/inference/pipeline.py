@@ -1,6 +1,7 @@
 """The prediction pipeline of one request: stacks -> preprocessed slices -> poses -> per-slice results.
 
-Stages follow the paper's Fig. 1: localisation (uploaded mask, else :func:`localise_brain`), N4
+Stages follow the paper's Fig. 1: localisation (uploaded mask, else the learned localiser of
+:mod:`service.preprocess.localise`), N4
 bias correction, masking and per-slice rescale/crop/centre (:func:`preprocess_slices`), MC-dropout
 inference of ALL slices of ALL stacks in one batched estimator call, twin-aware SE(3) statistics,
 stack consistency (:mod:`service.consistency`), acceptance.
@@ -41,7 +42,7 @@ from service.inference.estimator import PoseEstimate, PoseEstimator
 from service.inference.model_file import ModelInfo
 from service.io.volume import Volume
 from service.preprocess.bias import n4_correct
-from service.preprocess.localise import localise_brain
+from service.preprocess.localise import Localisation, Localiser, default_localiser
 from service.preprocess.slices import PreparedSlices, preprocess_slices
 from service.preprocess.stack import StackSlices, slice_axis_of, split_stack
 
@@ -63,6 +64,7 @@ class PreparedStack:
     upload: StackUpload
     slices: StackSlices
     prepared: PreparedSlices
+    localisation: Localisation
     timings: dict[str, float] = field(default_factory=dict)
 
     def network_from_voxel(self) -> np.ndarray:
@@ -84,15 +86,21 @@ def check_mask_grid(upload: StackUpload) -> None:
                             "(different origin, spacing or orientation)")
 
 
-def prepare_stack(upload: StackUpload, info: ModelInfo, bias_correction: bool) -> PreparedStack:
+def localise(upload: StackUpload, localiser: Localiser | None = None) -> Localisation:
+    """The uploaded mask, else the brain that ``localiser`` (default: the shipped one) finds."""
+    if upload.mask is not None:
+        return Localisation.of(upload.mask.array, upload.volume.spacing, "mask", 1.0)
+    return (localiser or default_localiser()).localise(upload.volume)
+
+
+def prepare_stack(upload: StackUpload, info: ModelInfo, bias_correction: bool,
+                  localiser: Localiser | None = None) -> PreparedStack:
     """Localise, bias-correct, split and preprocess one stack (runs in a worker thread)."""
     timings: dict[str, float] = {}
     vol = upload.volume
     t = time.perf_counter()
-    if upload.mask is not None:
-        mask = upload.mask.array > 0
-    else:
-        mask = localise_brain(vol, slice_axis_of(vol.spacing))
+    localisation = localise(upload, localiser)
+    mask = localisation.mask
     timings["localisation"] = time.perf_counter() - t
     t = time.perf_counter()
     array = n4_correct(vol, mask) if bias_correction and mask.any() else vol.array
@@ -101,16 +109,17 @@ def prepare_stack(upload: StackUpload, info: ModelInfo, bias_correction: bool) -
     slices = split_stack(Volume(array, vol.affine), mask)
     prepared = preprocess_slices(slices.images, slices.masks, slices.pixel_mm, info.input_size, info.pixel_spacing_mm)
     timings["preprocess"] = time.perf_counter() - t
-    return PreparedStack(upload, slices, prepared, timings)
+    return PreparedStack(upload, slices, prepared, localisation, timings)
 
 
 def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction: bool,
-                   workers: int = 2) -> list[PreparedStack]:
-    """:func:`prepare_stack` for every stack, ``workers`` stacks at a time (N4 releases the GIL)."""
+                   workers: int = 2, localiser: Localiser | None = None) -> list[PreparedStack]:
+    """:func:`prepare_stack` for every stack, ``workers`` stacks at a time (N4 releases the GIL);
+    stacks without a mask are localised by ``localiser`` (default: the shipped one)."""
     for u in uploads:
         check_mask_grid(u)
     with ThreadPoolExecutor(max_workers=max(1, min(workers, len(uploads)))) as pool:
-        return list(pool.map(lambda u: prepare_stack(u, info, bias_correction), uploads))
+        return list(pool.map(lambda u: prepare_stack(u, info, bias_correction, localiser), uploads))
 
 
 def stack_poses(est: PoseEstimate, sl: slice, prepared: PreparedStack, net_from_vox: np.ndarray,
@@ -262,6 +271,6 @@ def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples:
         stacks.append({
             "index": index, "filename": s.upload.filename, "shape": list(vol.array.shape),
             "spacing_mm": [float(x) for x in vol.spacing], "slice_axis": s.slices.slice_axis,
-            "slices": slices, "consistency": report,
+            "slices": slices, "consistency": report, "localisation": s.localisation.report(),
         })
     return stacks, timings

@@ -209,15 +209,14 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     model_file = models_dir / params.get("model", "default") / "model.onnx"
     estimator = None
     if poses_path.exists():
-        from service.preprocess.localise import localise_brain
+        from service.inference.pipeline import localise
         from service.preprocess.stack import slice_axis_of
 
         counts = [u.volume.array.shape[slice_axis_of(u.volume.spacing)] for u in uploads]
         body = json.loads(poses_path.read_text())
         poses = poses_from_predict_body(body, counts)
         plane = DEFAULT_PLANE_X_MM
-        masks = [u.mask.array > 0 if u.mask is not None else localise_brain(u.volume, slice_axis_of(u.volume.spacing))
-                 for u in uploads]
+        masks = [localise(u).mask for u in uploads]
     else:
         progress("predicting poses", 0.05)
         estimator = OnnxPoseEstimator(load_model(model_file, threads=1))

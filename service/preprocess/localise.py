@@ -1,72 +1,183 @@
-"""Automatic brain localisation for stacks uploaded without a mask (a heuristic; see its limits).
+"""Brain localisation for stacks sent without a mask: a learned network, then the stack's geometry.
 
-Method (on T2-weighted fetal stacks, where the fetal head is soft tissue bathed in bright
-amniotic fluid and CSF):
+1. **The network** (``<localisers_dir>/<name>/model.onnx``, run in onnxruntime): a 2.5D U-Net that
+   sees every slice between its two neighbours on a grid of the model's ``grid_mm`` pixels
+   (:func:`~service.preprocess.localiser_inputs.localiser_inputs`) and gives each pixel's
+   probability of lying inside the fetal skull. It is trained on synthetic whole-uterus stacks only
+   (atlas brains in generated surroundings; ``model_export.localiser``), so no scanner's contrast,
+   pixel size or field of view is special to it.
+2. **The geometry** settles the answer (:func:`brain_from_probabilities`), on the network's grid:
+   one 3D connected brain (the component holding most of the probability), its in-plane holes
+   filled, of a plausible volume for 20-40 weeks; then the probabilities inside that brain are
+   brought back to the stack's own grid and cut at 0.5.
+3. **The confidence** (0..1) multiplies how sure the network is inside the brain, the share of all
+   brain-like probability the chosen brain holds, and the plausibility of its volume. A stack with
+   no brain (noise, another body part) gets a low confidence; below :data:`MIN_CONFIDENCE` its mask
+   is empty and its slices are ``empty``.
 
-1. smooth lightly; split intensities with a three-class Otsu (SimpleITK) into background, tissue
-   and fluid (the brightest class);
-2. tissue = signal that is not fluid, opened in-plane to cut thin bridges; its 3D connected
-   components are candidates;
-3. a candidate must not touch the in-plane border of the field of view (the maternal body does;
-   the fetal head, surrounded by fluid, does not) and have an equivalent radius of 15-60 mm; among
-   those, the most compact one closest to a 35 mm radius wins;
-4. the winner is hole-filled slice by slice and dilated by 3 mm (to take in the surrounding CSF).
-
-Failure modes (measured on the test phantoms; no real uncropped fetal stacks are in this
-repository's data): a fetal head touching the uterine wall or the field-of-view edge in-plane is
-rejected at step 3 and the method falls back to the most compact component of any size, which may
-be maternal tissue; a fetal body of brain size can win over the head; very low-contrast (early
-gestation, heavy bias) stacks can merge fluid and tissue classes. Clients that need reliability
-upload masks (``masks`` field); the response flags slices whose mask is empty.
+Example (a localiser is an ONNX file; see :class:`Localiser`):
+    >>> loc = Localiser.load(DEFAULT_LOCALISERS_DIR / "default" / "model.onnx")   # doctest: +SKIP
+    >>> found = loc.localise(volume)                                               # doctest: +SKIP
+    >>> found.method, found.brain_volume_ml, found.confidence                      # doctest: +SKIP
+    ('network', 312.4, 0.93)
 """
 
 from __future__ import annotations
 
+import functools
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
 import numpy as np
-import SimpleITK as sitk
+import onnxruntime as ort
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from service.io.volume import Volume, to_sitk
+from service.core.errors import NotFound
+from service.core.settings import DEFAULT_LOCALISERS_DIR
+from service.inference.model_file import file_sha256, session_options
+from service.io.volume import Volume
+from service.preprocess.localiser_inputs import localiser_inputs
+from service.preprocess.stack import slice_axis_of
 
-RADIUS_MM = (15.0, 60.0)
-TARGET_RADIUS_MM = 35.0
-DILATE_MM = 3.0
+log = logging.getLogger(__name__)
+
+PLAUSIBLE_ML = (30.0, 700.0)
+"""Intracranial volumes of 20-40 weeks' gestation (brain and extra-axial CSF), with a margin."""
+MIN_BRAIN_ML = 5.0
+THRESHOLD = 0.5
+MIN_CONFIDENCE = 0.15
+"""Below this confidence no brain is reported: the mask is empty and the stack's slices ``empty``."""
 
 
-def _three_classes(volume: Volume) -> NDArray[np.uint8]:
-    image = sitk.SmoothingRecursiveGaussian(sitk.Cast(to_sitk(volume), sitk.sitkFloat32), 1.0)
-    labels = sitk.OtsuMultipleThresholds(image, numberOfThresholds=2, numberOfHistogramBins=128)
-    return sitk.GetArrayFromImage(labels).transpose(2, 1, 0).astype(np.uint8)
+@dataclass(frozen=True)
+class Localisation:
+    """Where a stack's brain is and how it was found (the ``localisation`` object of a response)."""
+
+    mask: NDArray[np.bool_]
+    method: str                    # "mask" (uploaded) or "network"
+    brain_volume_ml: float
+    confidence: float
+    slices_with_brain: int
+
+    @classmethod
+    def of(cls, mask: NDArray, spacing: NDArray, method: str, confidence: float) -> "Localisation":
+        """A mask on a stack's grid of voxel sizes ``spacing``, with its volume and slice count."""
+        m = np.asarray(mask) > 0
+        axis = slice_axis_of(spacing)
+        slices = int(np.count_nonzero(np.moveaxis(m, axis, 0).reshape(m.shape[axis], -1).any(1)))
+        return cls(m, method, float(m.sum() * np.prod(spacing) / 1000.0), float(confidence), slices)
+
+    def report(self) -> dict:
+        """The ``localisation`` object of a ``/v1/predict`` stack."""
+        return {"method": self.method, "brain_volume_ml": round(self.brain_volume_ml, 1),
+                "confidence": round(self.confidence, 3)}
 
 
-def localise_brain(volume: Volume, slice_axis: int) -> NDArray[np.bool_]:
-    """A brain mask on the stack's grid (see the module docstring for the method and its limits)."""
-    classes = _three_classes(volume)
-    inplane = [ax for ax in range(3) if ax != slice_axis]
-    struct = np.zeros((3, 3, 3), bool)
-    struct[tuple(slice(None) if ax in inplane else 1 for ax in range(3))] = True
-    tissue = ndimage.binary_opening(classes == 1, structure=struct)
-    labels, n = ndimage.label(tissue)
+def plausibility(volume_ml: float) -> float:
+    """1 inside :data:`PLAUSIBLE_ML`, falling off linearly in log-volume to 0 at a factor of 3 outside.
+
+    Example:
+        >>> plausibility(300.0), plausibility(10.0), round(plausibility(2100.0), 2)
+        (1.0, 0.0, 0.0)
+    """
+    lo, hi = PLAUSIBLE_ML
+    if volume_ml <= 0:
+        return 0.0
+    out = max(np.log(lo / volume_ml), np.log(volume_ml / hi), 0.0) / np.log(3.0)
+    return float(np.clip(1.0 - out, 0.0, 1.0))
+
+
+def brain_from_probabilities(prob: NDArray[np.float32], voxel_ml: float) -> tuple[NDArray[np.bool_], float]:
+    """The brain's 3D component in per-slice probability maps ``[n, H, W]`` (``voxel_ml`` the volume of
+    one grid voxel) and the confidence in it.
+
+    Example (two blobs: the larger, surer one wins; the small one is dropped):
+        >>> p = np.zeros((6, 20, 20), np.float32); p[1:5, 2:10, 2:10] = 0.95; p[2:3, 15:18, 15:18] = 0.6
+        >>> brain, conf = brain_from_probabilities(p, voxel_ml=1.0)
+        >>> int(brain.sum()), bool(brain[2, 16, 16]), round(conf, 2)
+        (256, False, 0.93)
+    """
+    above = prob >= THRESHOLD
+    labels, n = ndimage.label(above, structure=np.ones((3, 3, 3), bool))
     if n == 0:
-        return np.zeros(classes.shape, bool)
-    ids = np.arange(1, n + 1)
-    voxel_mm3 = float(np.prod(volume.spacing))
-    counts = ndimage.sum_labels(np.ones_like(labels), labels, ids)
-    radius = np.cbrt(3.0 * counts * voxel_mm3 / (4.0 * np.pi))
-    border = np.zeros(n + 1, bool)
-    for ax in inplane:
-        for edge in (0, -1):
-            border[np.unique(np.take(labels, edge, axis=ax))] = True
-    boxes = ndimage.find_objects(labels)
-    box_mm3 = np.array([np.prod([(s.stop - s.start) for s in b]) for b in boxes]) * voxel_mm3
-    compact = counts * voxel_mm3 / box_mm3                       # 1 for a box, ~0.52 for a sphere
-    ok = (~border[1:]) & (radius >= RADIUS_MM[0]) & (radius <= RADIUS_MM[1])
-    score = compact - np.abs(radius - TARGET_RADIUS_MM) / TARGET_RADIUS_MM
-    pool = ok if ok.any() else (counts > 0.01 * counts.max())
-    best = ids[pool][np.argmax(score[pool])]
-    mask = labels == best
-    mask = np.moveaxis(ndimage.binary_fill_holes(np.moveaxis(mask, slice_axis, 0), structure=np.ones((1, 3, 3))),
-                       0, slice_axis)
-    iters = max(1, int(round(DILATE_MM / min(volume.spacing[inplane]))))
-    return ndimage.binary_dilation(mask, structure=struct, iterations=iters)
+        return np.zeros(prob.shape, bool), 0.0
+    mass = ndimage.sum_labels(prob, labels, np.arange(1, n + 1))
+    best = int(np.argmax(mass)) + 1
+    brain = labels == best
+    brain = np.stack([ndimage.binary_fill_holes(s) for s in brain])
+    volume_ml = float(brain.sum() * voxel_ml)
+    if volume_ml < MIN_BRAIN_ML:
+        return np.zeros(prob.shape, bool), 0.0
+    sureness = float(prob[brain].mean())
+    share = float(mass[best - 1] / mass.sum())
+    return brain, sureness * share * plausibility(volume_ml)
+
+
+@dataclass
+class Localiser:
+    """A localiser model file and its onnxruntime session (the metadata give its grid and version)."""
+
+    path: Path
+    session: ort.InferenceSession
+    grid_mm: float
+    version: str
+    sha256: str
+
+    @classmethod
+    def load(cls, path: Path, threads: int = 0) -> "Localiser":
+        path = Path(path)
+        sess = ort.InferenceSession(str(path), session_options(threads), providers=["CPUExecutionProvider"])
+        meta = sess.get_modelmeta().custom_metadata_map
+        return cls(path, sess, float(meta["grid_mm"]), meta.get("version", "unknown"), file_sha256(path))
+
+    def probabilities(self, volume: Volume) -> tuple[NDArray[np.float32], object]:
+        """Per-slice brain probabilities on the network grid ``[n, Hp, Wp]`` and that grid."""
+        x, grid = localiser_inputs(volume, self.grid_mm)
+        logits = self.session.run(None, {self.session.get_inputs()[0].name: x})[0][:, 0]
+        return 1.0 / (1.0 + np.exp(-logits)), grid
+
+    def localise(self, volume: Volume) -> Localisation:
+        """The brain mask of ``volume`` on its own grid, its volume and the confidence."""
+        prob, grid = self.probabilities(volume)
+        axis = slice_axis_of(volume.spacing)
+        voxel_ml = self.grid_mm ** 2 * float(volume.spacing[axis]) / 1000.0
+        brain, confidence = brain_from_probabilities(prob, voxel_ml)
+        if not brain.any() or confidence < MIN_CONFIDENCE:
+            return Localisation.of(np.zeros(volume.array.shape, bool), volume.spacing, "network", confidence)
+        near = ndimage.binary_dilation(brain, structure=np.ones((1, 3, 3), bool))
+        kept = np.where(near, np.maximum(prob, brain.astype(np.float32)), 0.0)
+        return Localisation.of(grid.to_stack(kept) >= THRESHOLD, volume.spacing, "network", confidence)
+
+
+@functools.cache
+def default_localiser() -> Localiser:
+    """The shipped default localiser, loaded once per process (for callers without a server's set)."""
+    path = DEFAULT_LOCALISERS_DIR / "default" / "model.onnx"
+    if not path.exists():
+        raise NotFound("model: no localiser is installed; upload a brain mask for every stack")
+    return Localiser.load(path)
+
+
+class Localisers:
+    """Name -> :class:`Localiser`: every ``<folder>/<name>/model.onnx``, loaded once."""
+
+    def __init__(self, localisers: dict[str, Localiser], default_name: str = "default") -> None:
+        self.localisers = localisers
+        self.default_name = default_name
+
+    @classmethod
+    def from_directory(cls, folder: Path, threads: int = 0) -> "Localisers":
+        found = {p.parent.name: Localiser.load(p, threads) for p in sorted(Path(folder).glob("*/model.onnx"))}
+        for name in found:
+            log.info("localiser loaded", extra={"model": name})
+        return cls(found)
+
+    def get(self, name: str = "default") -> Localiser:
+        """The localiser ``name`` (``default``: the default one); :class:`NotFound` names the field."""
+        resolved = self.default_name if name == "default" else name
+        if resolved not in self.localisers:
+            known = ", ".join(sorted(self.localisers)) or "none loaded"
+            raise NotFound(f"model: unknown localiser {name!r} (available: {known})")
+        return self.localisers[resolved]

@@ -51,12 +51,25 @@ def slice_axis_of(spacing: NDArray) -> int:
     return int(np.flatnonzero(sp >= sp.max() * (1 - 1e-6))[-1])
 
 
+def slice_images(array: NDArray, affine: NDArray, axis: int) -> tuple[NDArray, tuple[float, float]]:
+    """``[n, H, W]`` slices of a stack's ``array`` along ``axis`` (rows along the higher in-plane voxel
+    axis, columns along the lower) and their ``(row_mm, col_mm)``; a view where it can be."""
+    p, q = [ax for ax in range(3) if ax != axis]
+    sp = frames.voxel_spacing(affine)
+    return np.moveaxis(np.asarray(array), axis, 0).transpose(0, 2, 1), (float(sp[q]), float(sp[p]))
+
+
+def stack_from_slice_images(images: NDArray, axis: int) -> NDArray:
+    """The inverse of :func:`slice_images`: ``[n, H, W]`` back to the stack's voxel order."""
+    return np.moveaxis(np.asarray(images).transpose(0, 2, 1), 0, axis)
+
+
 def split_stack(volume: Volume, mask: NDArray) -> StackSlices:
     """Slices, masks and slice-frame transforms of a stack (vectorised, no per-slice loop)."""
     a = slice_axis_of(volume.spacing)
     p, q = [ax for ax in range(3) if ax != a]
-    images = np.moveaxis(np.asarray(volume.array, dtype=np.float32), a, 0).transpose(0, 2, 1)
-    masks = np.moveaxis(np.asarray(mask, dtype=bool), a, 0).transpose(0, 2, 1)
+    images = slice_images(np.asarray(volume.array, dtype=np.float32), volume.affine, a)[0]
+    masks = slice_images(np.asarray(mask, dtype=bool), volume.affine, a)[0]
     n, h, w = images.shape
     sp = frames.voxel_spacing(volume.affine)
     cols = volume.affine[:3, :3] / sp

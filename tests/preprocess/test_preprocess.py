@@ -1,4 +1,4 @@
-"""Intensity rescale, slice crop/centre, N4 bias correction, brain localisation."""
+"""Intensity rescale, slice crop/centre, N4 bias correction."""
 
 from __future__ import annotations
 
@@ -9,7 +9,6 @@ from scipy import ndimage
 from service.io.volume import Volume
 from service.preprocess.bias import n4_correct
 from service.preprocess.intensity import rescale_0_255
-from service.preprocess.localise import localise_brain
 from service.preprocess.slices import preprocess_slices
 from service.preprocess.stack import slice_axis_of, split_stack
 from tests.phantoms import phantom_brain
@@ -77,33 +76,3 @@ def test_n4_removes_a_smooth_bias_field_and_the_shrunk_fit_equals_the_full_resol
     full = n4_correct(vol, mask, shrink=1, fit_spacing_mm=0.0)
     assert cv(fast) < 0.6 * cv(vol.array)
     assert np.corrcoef(fast[mask], full[mask])[0, 1] > 0.98
-
-
-def uterus_phantom() -> tuple[Volume, np.ndarray]:
-    """A fetal head (tissue) in amniotic fluid (bright) inside a maternal body touching the FoV."""
-    img, brain, aff = phantom_brain(2, shape=(56, 64, 56), spacing=1.6)
-    big = np.zeros((130, 130, 24), np.float32)
-    yy, xx = np.mgrid[:130, :130]
-    body = (((xx - 65) / 80.0) ** 2 + ((yy - 65) / 70.0) ** 2) <= 1.0     # extends past the FoV
-    fluid = (((xx - 70) / 40.0) ** 2 + ((yy - 60) / 38.0) ** 2) <= 1.0
-    big[body] = 90.0
-    big[fluid] = 240.0
-    # Paste the brain (resampled to 1.5 x 1.5 x 4 mm) into the fluid.
-    zoom = (1.6 / 1.5, 1.6 / 1.5, 1.6 / 4.0)
-    b = ndimage.zoom(img, zoom, order=1)
-    m = ndimage.zoom(brain, zoom, order=0) > 0.5
-    b = np.where(m, np.clip(b, 60, 200), 0.0)
-    ox, oy, oz = 70 - b.shape[0] // 2, 60 - b.shape[1] // 2, (24 - b.shape[2]) // 2
-    truth = np.zeros(big.shape, bool)
-    region = (slice(ox, ox + b.shape[0]), slice(oy, oy + b.shape[1]), slice(oz, oz + b.shape[2]))
-    big[region] = np.where(m, b, big[region])
-    truth[region] = m
-    big += np.random.default_rng(0).normal(0, 5, big.shape).astype(np.float32)
-    return Volume(big, np.diag([1.5, 1.5, 4.0, 1.0])), truth
-
-
-def test_localisation_finds_the_fetal_head_inside_the_uterus() -> None:
-    vol, truth = uterus_phantom()
-    mask = localise_brain(vol, 2)
-    dice = 2 * (mask & truth).sum() / (mask.sum() + truth.sum())
-    assert dice > 0.7, dice

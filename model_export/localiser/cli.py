@@ -1,0 +1,81 @@
+"""``svrnet-train localiser``: generate synthetic stacks, train, ship (export, evaluate, card).
+
+Examples:
+    svrnet-train localiser data --out runs/localiser/train --count 600
+    svrnet-train localiser data --out runs/localiser/heldout --count 40 --style heldout --seed 1000000 --keep-stack
+    svrnet-train localiser train --data runs/localiser/train --out runs/localiser/localiser.pt --minutes 60
+    svrnet-train localiser ship runs/localiser/localiser.pt --heldout runs/localiser/heldout
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from model_export.atlas import DEFAULT_ATLAS_ROOT
+
+app = typer.Typer(add_completion=False, help=__doc__, no_args_is_help=True)
+GRID_MM = 2.5
+"""The network grid of the shipped localiser (its ONNX metadata carry it to the service)."""
+
+
+@app.command()
+def data(
+    out: Annotated[Path, typer.Option(help="shard folder")],
+    count: int = 600,
+    style: Annotated[str, typer.Option(help="train (training surroundings) or heldout (the validation set's)")] = "train",
+    seed: Annotated[int, typer.Option(help="first seed; shards are named by seed and never rewritten")] = 0,
+    keep_stack: Annotated[bool, typer.Option(help="keep each stack and mask (for evaluation)")] = False,
+    workers: int = 2,
+    grid_mm: float = GRID_MM,
+    root: Path = DEFAULT_ATLAS_ROOT,
+) -> None:
+    """Synthetic whole-uterus stacks: training volumes for ``train``, validation volumes for ``heldout``."""
+    from model_export.atlas import split
+    from model_export.localiser.dataset import generate
+
+    train_names, val_names = split(root)
+    names = generate(out, train_names if style == "train" else val_names, count, style, grid_mm, seed, workers,
+                     keep_stack, root)
+    typer.echo(f"{len(names)} shards in {out}")
+
+
+@app.command()
+def train(
+    data: Annotated[Path, typer.Option(help="shard folder of `data` (read again as it grows)")],
+    out: Annotated[Path, typer.Option(help="checkpoint (resumed when it exists)")],
+    minutes: float = 60.0,
+    width: int = 8,
+    depth: int = 4,
+    threads: int = 2,
+    seed: int = 0,
+) -> None:
+    """Train (or continue training) the localiser for a wall-clock budget; progress in ``<out>.log``."""
+    from model_export.localiser.train import train as run
+
+    run(data, out, minutes, width=width, depth=depth, threads=threads, seed=seed, log=Path(f"{out}.log"))
+
+
+@app.command()
+def ship(
+    checkpoint: Path,
+    heldout: Annotated[Path, typer.Option(help="shard folder of `data --style heldout --keep-stack`")],
+    out: Path = Path("service/localisers/default"),
+    version: str = "1.0.0",
+    grid_mm: float = GRID_MM,
+    pose_stacks: Annotated[int, typer.Option(help="held-out stacks whose poses are compared without/with masks")] = 8,
+) -> None:
+    """Export to ONNX, measure (held-out set, real scans, poses without masks) and write the card."""
+    from model_export.localiser.card import write_card
+    from model_export.localiser.evaluate import measure
+    from model_export.localiser.export import export_onnx
+    from service.preprocess.localise import Localiser
+
+    onnx_path = export_onnx(checkpoint, out / "model.onnx", grid_mm=grid_mm, version=version)
+    figures = measure(Localiser.load(onnx_path), heldout, pose_stacks)
+    (out / "evaluation.json").write_text(json.dumps(figures, indent=1))
+    write_card(out / "card.md", onnx_path, figures)
+    typer.echo(json.dumps(figures["summary"], indent=1))

@@ -1,0 +1,50 @@
+"""Synthetic localiser data on disk: shards of network-grid slices and brain targets.
+
+Each shard ``<style>-<seed>.npz`` holds one synthetic stack (:func:`~model_export.localiser.scenes.synth_stack`)
+passed through the service's own input function: ``slices [n, Hp, Wp]`` float16 (the middle channel
+of :func:`~service.preprocess.localiser_inputs.localiser_inputs`; the 2.5D channels are rebuilt with
+:func:`~service.preprocess.localiser_inputs.with_neighbours`) and ``target [n, Hp, Wp]`` uint8 (brain
+fraction x 255), plus the stack itself when ``keep_stack`` (for evaluation on the stack's own grid).
+"""
+
+from __future__ import annotations
+
+from multiprocessing import Pool
+from pathlib import Path
+
+import numpy as np
+
+from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes
+from model_export.localiser.scenes import HeadModel, synth_stack
+from service.preprocess.localiser_inputs import localiser_inputs, target_maps
+
+_HEADS: list[HeadModel] = []
+
+
+def _init(names: list[str], root: Path) -> None:
+    _HEADS.extend(HeadModel.from_arrays(v.image, v.mask, v.affine) for v in load_volumes(names, root))
+
+
+def _one(job: tuple[Path, str, int, float, bool]) -> str:
+    out, style, seed, grid_mm, keep_stack = job
+    path = out / f"{style}-{seed:06d}.npz"
+    if path.exists():
+        return path.name
+    rng = np.random.default_rng(seed)
+    head = _HEADS[int(rng.integers(len(_HEADS)))]
+    volume, mask = synth_stack(head, rng, style)
+    x, _ = localiser_inputs(volume, grid_mm)
+    extra = {"stack": volume.array.astype(np.float16), "affine": volume.affine, "mask": mask} if keep_stack else {}
+    np.savez_compressed(path, slices=x[:, 1].astype(np.float16),
+                        target=np.round(target_maps(mask, volume, grid_mm) * 255).astype(np.uint8), **extra)
+    return path.name
+
+
+def generate(out: Path, names: list[str], count: int, style: str, grid_mm: float, first_seed: int = 0,
+             workers: int = 2, keep_stack: bool = False, root: Path = DEFAULT_ATLAS_ROOT) -> list[str]:
+    """Write ``count`` shards of ``style`` from the atlas volumes ``names`` (seeds ``first_seed...``)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = [(out, style, first_seed + i, grid_mm, keep_stack) for i in range(count)]
+    with Pool(workers, initializer=_init, initargs=(names, root)) as pool:
+        return list(pool.imap_unordered(_one, jobs))

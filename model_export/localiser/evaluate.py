@@ -1,0 +1,145 @@
+"""Measured figures of a localiser: Dice, pose agreement without masks, latency.
+
+* **Generated whole-uterus validation set**: shards of the ``heldout`` style
+  (:mod:`model_export.localiser.scenes`; surroundings unlike the training ones) around the
+  validation atlas volumes, kept with their stacks; Dice on each stack's own grid.
+* **Real scans** (``../shared/data/real_scans``): Dice against the manual masks where there are
+  some; volume and confidence elsewhere.
+* **Poses without masks**: ``/v1/predict``'s pipeline run on the same stacks with the reference
+  masks and with the localiser's; the median anchor-point distance (E.D.) between the two sets of
+  poses, and the ratio of their wall times.
+
+Example:
+    >>> import numpy as np
+    >>> a = np.zeros((4, 4, 4), bool); a[:2] = True; b = np.zeros_like(a); b[1:3] = True
+    >>> dice(a, b)
+    0.5
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from service.geometry import anchors
+from service.inference.pipeline import StackUpload, predict, prepare_stacks
+from service.io.volume import Volume, read_volume
+from service.preprocess.localise import Localiser
+
+REAL_SCANS = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real_scans"
+
+
+def dice(a: NDArray, b: NDArray) -> float:
+    """Dice overlap of two boolean masks (1 when both are empty)."""
+    a, b = np.asarray(a, bool), np.asarray(b, bool)
+    total = a.sum() + b.sum()
+    return 1.0 if total == 0 else float(2 * np.logical_and(a, b).sum() / total)
+
+
+def heldout_dice(localiser: Localiser, folder: Path) -> list[dict]:
+    """Dice, volumes, confidence and time on every kept-stack shard of ``folder``."""
+    rows = []
+    for path in sorted(Path(folder).glob("*.npz")):
+        with np.load(path) as z:
+            volume, truth = Volume(z["stack"].astype(np.float32), z["affine"]), z["mask"]
+        t = time.perf_counter()
+        found = localiser.localise(volume)
+        rows.append({"stack": path.stem, "dice": dice(found.mask, truth), "confidence": found.confidence,
+                     "ml": found.brain_volume_ml, "true_ml": float(truth.sum() * np.prod(volume.spacing) / 1e3),
+                     "ms": (time.perf_counter() - t) * 1e3, "shape": list(volume.array.shape)})
+    return rows
+
+
+def real_scan_rows(localiser: Localiser, root: Path = REAL_SCANS) -> list[dict]:
+    """Per real stack: Dice against its manual mask (None without one), volume, confidence, time."""
+    rows = []
+    for path in sorted(Path(root).glob("*/*.nii.gz")):
+        if "mask" in path.name:
+            continue
+        volume = read_volume(path)
+        manual = path.with_name(path.name.replace(".nii.gz", "_brain_mask.nii.gz"))
+        t = time.perf_counter()
+        found = localiser.localise(volume)
+        ms = (time.perf_counter() - t) * 1e3
+        truth = read_volume(manual).array > 0 if manual.exists() else None
+        rows.append({"stack": f"{path.parent.name}/{path.name}", "dice": None if truth is None else dice(found.mask, truth),
+                     "confidence": found.confidence, "ml": found.brain_volume_ml, "ms": ms,
+                     "shape": list(volume.array.shape)})
+    return rows
+
+
+def pose_agreement(uploads_with_masks: list[StackUpload], localiser: Localiser, estimator, mc_samples: int = 100,  # noqa: ANN001
+                   ) -> dict:
+    """Median E.D. (mm) between the poses predicted with the given masks and with the localiser's,
+    over the slices both accept, and the ratio of the two requests' wall times."""
+    def run(uploads: list[StackUpload]) -> tuple[list[dict], list, float]:
+        t = time.perf_counter()
+        prepared = prepare_stacks(uploads, estimator.info, True, workers=2, localiser=localiser)
+        stacks, _ = predict(prepared, estimator, mc_samples, estimator.info.variance_threshold)
+        return stacks, prepared, time.perf_counter() - t
+
+    with_masks, prepared, t_masks = run(uploads_with_masks)
+    without, _, t_without = run([StackUpload(u.filename, u.volume) for u in uploads_with_masks])
+    distances = []
+    for a, b, p in zip(with_masks, without, prepared):
+        voxel_from_slice = np.linalg.inv(p.slices.slice_from_voxel)
+        for sa, sb, v in zip(a["slices"], b["slices"], voxel_from_slice):
+            if sa["reason"] != "empty" and sb["reason"] != "empty":
+                distances.append(float(anchors.ed(np.array(sa["atlas_from_voxel"]) @ v,
+                                                  np.array(sb["atlas_from_voxel"]) @ v)))
+    return {"median_ed_mm": float(np.median(distances)) if distances else None, "slices": len(distances),
+            "latency_ratio": t_without / t_masks, "seconds_with_masks": t_masks, "seconds_without": t_without}
+
+
+def _pose_estimator():  # noqa: ANN202 - the service's default pose model
+    from service.core.settings import DEFAULT_MODELS_DIR
+    from service.inference.estimator import OnnxPoseEstimator
+    from service.inference.model_file import load_model
+
+    return OnnxPoseEstimator(load_model(DEFAULT_MODELS_DIR / "default" / "model.onnx"))
+
+
+def latency_ms(localiser: Localiser, shape: tuple[int, int, int] = (320, 320, 22), pixel_mm: float = 1.125,
+               repeats: int = 5) -> float:
+    """Median wall time (ms) of :meth:`Localiser.localise` on a random stack of ``shape``."""
+    rng = np.random.default_rng(0)
+    volume = Volume(rng.random(shape, np.float32) * 100, np.diag([pixel_mm, pixel_mm, 3.3, 1.0]))
+    times = []
+    for _ in range(repeats + 1):
+        t = time.perf_counter()
+        localiser.localise(volume)
+        times.append((time.perf_counter() - t) * 1e3)
+    return float(np.median(times[1:]))
+
+
+def measure(localiser: Localiser, heldout: Path, pose_stacks: int = 8, root: Path = REAL_SCANS) -> dict:
+    """Every figure of the model card (see the module docstring)."""
+    held = heldout_dice(localiser, heldout)
+    real = real_scan_rows(localiser, root) if Path(root).exists() else []
+    estimator = _pose_estimator()
+    poses_heldout = []
+    for path in sorted(Path(heldout).glob("*.npz"))[:pose_stacks]:
+        with np.load(path) as z:
+            volume = Volume(z["stack"].astype(np.float32), z["affine"])
+            poses_heldout.append(pose_agreement(
+                [StackUpload(path.stem, volume, Volume(z["mask"].astype(np.uint8), z["affine"]))], localiser, estimator))
+    manual = sorted(Path(root).glob("*/*_brain_mask.nii.gz")) if Path(root).exists() else []
+    uploads = [StackUpload(m.name, read_volume(Path(str(m).replace("_brain_mask", ""))), read_volume(m)) for m in manual]
+    poses_real = pose_agreement(uploads, localiser, estimator) if uploads else None
+    held_dice = [r["dice"] for r in held]
+    real_dice = [r["dice"] for r in real if r["dice"] is not None]
+    summary = {
+        "heldout_median_dice": float(np.median(held_dice)), "heldout_min_dice": float(np.min(held_dice)),
+        "heldout_stacks": len(held), "real_dice": real_dice,
+        "real_without_mask": [r["stack"] for r in real if r["ml"] == 0],
+        "poses_real_median_ed_mm": poses_real and poses_real["median_ed_mm"],
+        "poses_real_latency_ratio": poses_real and poses_real["latency_ratio"],
+        "poses_heldout_median_ed_mm": float(np.median([p["median_ed_mm"] for p in poses_heldout
+                                                       if p["median_ed_mm"] is not None])) if poses_heldout else None,
+        "latency_ms_320x320x22": latency_ms(localiser),
+        "onnx_mb": localiser.path.stat().st_size / 2**20,
+    }
+    return {"summary": summary, "heldout": held, "real": real, "poses_real": poses_real, "poses_heldout": poses_heldout}

@@ -1,0 +1,305 @@
+"""Synthetic whole-uterus stacks: an atlas brain in generated surroundings (domain randomisation).
+
+A stack is generated in its own frame (``x`` along columns, ``y`` along rows, ``z`` the slice normal,
+millimetres, the field of view centred on 0), at a random in-plane pixel size, field of view (mostly
+250-400 mm, sometimes cropped to 130-250 mm), slice thickness and slice count, in the way SynthSeg and SynthStrip train on synthetic images:
+every tissue's intensity, shape and texture is drawn at random, so that the network learns the
+brain's shape and its setting, not one scanner's contrast.
+
+* **Surroundings**, on a grid of twice the pixel size, made of analytic shapes distorted by smooth
+  noise: the mother's body (an ellipsoid; air outside), a subcutaneous fat layer, maternal tissue
+  split into random labels, a uterus with its wall and a placenta, amniotic fluid, the fetal body
+  (spine, fluid-filled organs) and limbs. Some organs and maternal tissues carry *decoy* texture:
+  the atlas brain's interior, folded and tiled, so that texture alone never says "brain" and the
+  network must learn the head's shape and setting (skull, CSF rim, size).
+* **The fetal head** at the stack's own resolution, with the slice profile (three sub-planes
+  averaged): the atlas brain (its T2 intensities, remapped by a random gamma), then an extra-axial
+  CSF layer, the skull and the scalp, all from the atlas mask's signed distance. The head takes any
+  orientation and moves from slice to slice (small drift plus occasional jumps).
+* **Acquisition**: a smooth multiplicative bias field, slice-to-slice intensity changes, noise.
+
+The brain mask the network learns is everything inside the skull (brain and extra-axial CSF), as
+manual fetal brain masks are drawn.
+
+Two *styles* share the head and differ in everything around it: ``"train"`` (maternal tissue from
+the arg-max of smooth noise fields, Rician noise, T2-like intensity priors with 20 % fully random
+draws) and ``"heldout"`` (maternal tissue from Voronoi cells, Gaussian noise, a polynomial bias
+field, intensities drawn uniformly), so that a validation set of the held-out style measures
+generalisation rather than memory of the generator.
+
+Example:
+    >>> import numpy as np
+    >>> from model_export.localiser.scenes import HeadModel, synth_stack
+    >>> mask = np.zeros((40, 48, 44), np.float32); mask[8:32, 10:38, 8:36] = 1
+    >>> head = HeadModel.from_arrays(mask * 1000.0, mask, np.diag([2.0, 2.0, 2.0, 1.0]))
+    >>> vol, brain = synth_stack(head, np.random.default_rng(0))
+    >>> vol.array.shape == brain.shape, brain.dtype, bool(brain.any())
+    (True, dtype('bool'), True)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+from scipy.spatial.transform import Rotation
+
+from service.io.volume import Volume
+
+STYLES = ("train", "heldout")
+
+
+@dataclass
+class HeadModel:
+    """An atlas brain ready for sampling: normalised T2, signed distance to its mask (mm, < 0 inside)."""
+
+    t2: NDArray[np.float32]
+    sdf: NDArray[np.float32]
+    voxel_from_mm: NDArray[np.float64]       # centred brain mm -> voxel index (4 x 4)
+    radius_mm: float
+
+    @classmethod
+    def from_arrays(cls, image: NDArray, mask: NDArray, affine: NDArray) -> "HeadModel":
+        """From an atlas image, its brain mask and its voxel -> mm affine."""
+        inside = np.asarray(mask) > 0.5
+        spacing = np.sqrt((np.asarray(affine)[:3, :3] ** 2).sum(0))
+        sdf = (ndimage.distance_transform_edt(~inside, sampling=spacing)
+               - ndimage.distance_transform_edt(inside, sampling=spacing)).astype(np.float32)
+        t2 = np.where(inside, image, 0.0).astype(np.float32)
+        t2 /= max(float(np.percentile(t2[inside], 99.0)), 1e-6)
+        idx = np.argwhere(inside)
+        centre = idx.mean(0)
+        radius = float(np.sqrt((((idx - centre) * spacing) ** 2).sum(1)).max())
+        mm_from_voxel = np.diag([*spacing, 1.0])
+        mm_from_voxel[:3, 3] = -centre * spacing
+        return cls(np.clip(t2, 0, 1.5), sdf, np.linalg.inv(mm_from_voxel), radius)
+
+
+def _random_rotation(rng: np.random.Generator) -> NDArray[np.float64]:
+    return Rotation.random(random_state=int(rng.integers(2**31))).as_matrix()
+
+
+def _smooth_noise(rng: np.random.Generator, shape: tuple[int, ...], cells: tuple[int, ...]) -> NDArray[np.float32]:
+    """Zero-mean, unit-scale smooth noise on ``shape``: Gaussian noise on ``cells`` points, upsampled."""
+    small = rng.standard_normal(cells).astype(np.float32)
+    out = ndimage.zoom(small, [s / c for s, c in zip(shape, cells)], order=1, mode="nearest", grid_mode=True)
+    return out[tuple(slice(0, s) for s in shape)]
+
+
+def _ellipsoid_radius(points: NDArray, centre: NDArray, axes: NDArray, rotation: NDArray) -> NDArray[np.float32]:
+    """Normalised radius of ``points [..., 3]`` in an ellipsoid (1 on its surface)."""
+    local = (points - centre) @ rotation / axes
+    return np.sqrt((local ** 2).sum(-1)).astype(np.float32)
+
+
+def _intensities(rng: np.random.Generator, style: str) -> dict[str, float]:
+    """Mean intensity of each tissue (fluid about 1 in a T2-like draw)."""
+    if style == "heldout" or rng.random() < 0.2:
+        names = ("fluid", "csf", "skull", "scalp", "body", "wall", "placenta", "fat", "air")
+        out = {k: float(rng.uniform(0.0, 1.0)) for k in names}
+        out["air"] *= 0.3
+        return out
+    fluid = rng.uniform(0.7, 1.0)
+    return {"fluid": fluid, "csf": fluid * rng.uniform(0.85, 1.1), "skull": rng.uniform(0.0, 0.15),
+            "scalp": rng.uniform(0.15, 0.5), "body": rng.uniform(0.15, 0.55), "wall": rng.uniform(0.15, 0.5),
+            "placenta": rng.uniform(0.25, 0.6), "fat": rng.uniform(0.4, 1.0), "air": rng.uniform(0.0, 0.05)}
+
+
+@dataclass
+class StackGeometry:
+    pixel_mm: float
+    size: int
+    thickness_mm: float
+    gap_mm: float
+    slices: int
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator) -> "StackGeometry":
+        pixel = rng.uniform(0.9, 1.6)
+        fov = rng.uniform(250.0, 400.0) if rng.random() > 0.12 else rng.uniform(130.0, 250.0)   # some cropped
+        thickness = rng.uniform(2.0, 4.5)
+        gap = thickness * rng.uniform(0.85, 1.15)
+        slices = int(np.clip(rng.uniform(60.0, 140.0) / gap, 12, 48))
+        return cls(pixel, int(fov / pixel), thickness, gap, slices)
+
+    def coordinates(self, step: int = 1) -> NDArray[np.float32]:
+        """``[size/step, size/step, slices, 3]`` pixel centres (mm) on a grid ``step`` times coarser in-plane."""
+        n = int(np.ceil(self.size / step))
+        xy = ((np.arange(n) + 0.5) * step - 0.5 - (self.size - 1) / 2.0) * self.pixel_mm
+        z = (np.arange(self.slices) - (self.slices - 1) / 2.0) * self.gap_mm
+        return np.stack(np.meshgrid(xy, xy, z, indexing="ij"), -1).astype(np.float32)
+
+
+def _maternal_labels(rng: np.random.Generator, shape: tuple[int, ...], style: str, count: int) -> NDArray[np.int8]:
+    if style == "train":
+        fields = np.stack([_smooth_noise(rng, shape, (rng.integers(4, 12),) * 2 + (rng.integers(2, 5),))
+                           for _ in range(count)])
+        return np.argmax(fields, 0).astype(np.int8)
+    small = tuple(max(2, s // 4) for s in shape)
+    seeds = rng.uniform(0, 1, (count * 6, 3)) * np.array(small)
+    grid = np.stack(np.meshgrid(*[np.arange(s, dtype=np.float32) for s in small], indexing="ij"), -1)
+    cells = (np.argmin(((grid[..., None, :] - seeds) ** 2).sum(-1), axis=-1) % count).astype(np.int8)
+    out = ndimage.zoom(cells, [s / c for s, c in zip(shape, small)], order=0, grid_mode=True, mode="nearest")
+    return out[tuple(slice(0, s) for s in shape)]
+
+
+def _surroundings(rng: np.random.Generator, geo: StackGeometry, brain_centre: NDArray, head_radius: float,
+                  tissue: dict[str, float], style: str, decoy: HeadModel | None = None) -> NDArray[np.float32]:
+    """The scene without the head, on the half-resolution grid ``[n, n, slices]``."""
+    pts = geo.coordinates(step=2)
+    shape = pts.shape[:3]
+    def wobble(amount: float) -> NDArray[np.float32]:
+        return amount * _smooth_noise(rng, shape, (5, 5, 3))
+    # the mother: an ellipsoid body, air outside, a fat layer under the skin, tissues inside
+    body_r = _ellipsoid_radius(pts, rng.normal(0, 30, 3), rng.uniform([150, 110, 150], [230, 180, 260]),
+                               _random_rotation(rng)) + wobble(0.03)
+    fat_depth = rng.uniform(0.04, 0.15)
+    n_labels = int(rng.integers(3, 7))
+    labels = _maternal_labels(rng, shape, style, n_labels)
+    means = rng.uniform(0.02, 0.9, n_labels) if style == "heldout" else \
+        np.concatenate([[tissue["fat"]], rng.uniform(0.02, 0.7, n_labels - 1)])
+    image = means[labels].astype(np.float32) * (1 + 0.25 * _smooth_noise(rng, shape, (24, 24, 6)))
+    if rng.random() < 0.5:                                   # bowel gas and fluid-filled loops: small blobs
+        blobs = _smooth_noise(rng, shape, (40, 40, 8))
+        image = np.where(blobs > 1.6, rng.choice([0.02, tissue["fluid"]]), image)
+    image = np.where(body_r > 1 - fat_depth, tissue["fat"], image)
+    image = np.where(body_r > 1, tissue["air"], image)
+    # the fetal body beside the head (its near end at the head), and a few limbs
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    length = rng.uniform(1.0, 2.0) * head_radius
+    trunk_c = brain_centre + direction * (head_radius + rng.uniform(0.7, 1.0) * length)
+    # the uterus around the fetus: wall, placenta on one side, amniotic fluid
+    axes = rng.uniform(70, 150, 3)
+    uterus_c = (brain_centre + trunk_c) / 2 + rng.normal(0, 0.15, 3) * axes
+    rot = _random_rotation(rng)
+    uterus_r = _ellipsoid_radius(pts, uterus_c, axes, rot) + wobble(0.06)
+    if style == "heldout":                                      # a squarer uterus
+        local = np.abs((pts - uterus_c) @ rot / axes)
+        uterus_r = ((local ** 4).sum(-1) ** 0.25).astype(np.float32) + wobble(0.04)
+    wall = rng.uniform(4, 12) / axes.mean()
+    image = np.where(uterus_r <= 1, tissue["wall"], image)
+    side = rot[:, 0] * rng.choice([-1, 1])
+    towards = ((pts - uterus_c) @ side) / (np.linalg.norm(pts - uterus_c, axis=-1) + 1e-3)
+    placenta = (uterus_r <= 1) & (uterus_r > 1 - rng.uniform(0.15, 0.35)) & (towards > rng.uniform(0.3, 0.8))
+    image = np.where(placenta, tissue["placenta"] * (1 + 0.15 * _smooth_noise(rng, shape, (20, 20, 5))), image)
+    fluid = tissue["fluid"] * (1 + rng.uniform(0, 0.1) * _smooth_noise(rng, shape, (8, 8, 3)))
+    image = np.where(uterus_r <= 1 - wall, fluid, image)
+    trunk_rot = Rotation.align_vectors([direction], [[1.0, 0.0, 0.0]])[0].as_matrix()
+    body = _ellipsoid_radius(pts, trunk_c, np.array([length, *rng.uniform(0.5, 0.9, 2) * head_radius]),
+                             trunk_rot) + wobble(0.05) <= 1
+    for _ in range(int(rng.integers(0, 5))):
+        c = trunk_c + rng.normal(0, 1, 3) * length
+        body |= _ellipsoid_radius(pts, c, rng.uniform(6, 25, 3), _random_rotation(rng)) <= 1
+    body_texture = tissue["body"] * (1 + 0.3 * _smooth_noise(rng, shape, (30, 30, 8)))
+    if decoy is not None and rng.random() < 0.6:               # organs as rich in texture as a brain
+        body_texture = tissue["body"] * (0.4 + 1.2 * _decoy_texture(rng, decoy, pts, trunk_c))
+    local = (pts - trunk_c) @ trunk_rot                           # the spine: a dark rod along the trunk
+    spine = (np.hypot(local[..., 1] - rng.uniform(-0.5, 0.5) * head_radius, local[..., 2]) < rng.uniform(3, 7)) \
+        & (np.abs(local[..., 0]) < length)
+    body_texture = np.where(spine, tissue["skull"], body_texture)
+    for _ in range(int(rng.integers(0, 4))):                       # stomach, bladder, heart: fluid-like blobs
+        c = trunk_c + (rng.uniform(-0.6, 0.6, 3) * [length, 0.4 * head_radius, 0.4 * head_radius]) @ trunk_rot.T
+        blob = _ellipsoid_radius(pts, c, rng.uniform(6, 18, 3), _random_rotation(rng)) <= 1
+        body_texture = np.where(blob, tissue["fluid"] * rng.uniform(0.5, 1.0), body_texture)
+    image = np.where(body & (uterus_r <= 1), body_texture, image)
+    if decoy is not None and rng.random() < 0.4:               # a maternal tissue textured like a brain
+        label = int(rng.integers(n_labels))
+        texture = means[label] * (0.4 + 1.2 * _decoy_texture(rng, decoy, pts, pts.reshape(-1, 3).mean(0)))
+        image = np.where((labels == label) & (body_r <= 1 - fat_depth) & (uterus_r > 1), texture, image)
+    return image.astype(np.float32)
+
+
+def _decoy_texture(rng: np.random.Generator, head: HeadModel, pts: NDArray, centre: NDArray) -> NDArray[np.float32]:
+    """Brain-like texture without a brain's shape: the atlas interior, folded into a cube and tiled
+    at a random scale and orientation (0..1)."""
+    half = rng.uniform(12.0, 22.0)
+    local = ((pts - centre) @ _random_rotation(rng)) * rng.uniform(0.6, 1.4)
+    folded = np.abs(np.mod(local + half, 4 * half) - 2 * half) - half       # a mirror tiling of the cube
+    vox = folded @ head.voxel_from_mm[:3, :3].T + head.voxel_from_mm[:3, 3]
+    t2 = ndimage.map_coordinates(head.t2, np.moveaxis(vox, -1, 0), order=1, mode="nearest")
+    return np.clip(t2, 0, 1.2).astype(np.float32) ** rng.uniform(0.7, 1.4)
+
+
+def _head_motion(rng: np.random.Generator, slices: int) -> tuple[NDArray, NDArray]:
+    """Per-slice rotation ``[n, 3, 3]`` and shift ``[n, 3]`` of the head: a drift plus a few jumps."""
+    sigma_deg, sigma_mm = rng.uniform(0, 6), rng.uniform(0, 4)
+    rotvec = np.cumsum(rng.normal(0, sigma_deg / 3, (slices, 3)), 0)
+    shift = np.cumsum(rng.normal(0, sigma_mm / 3, (slices, 3)), 0)
+    jumps = rng.random(slices) < rng.uniform(0, 0.15)
+    rotvec[jumps] += rng.normal(0, 12, (int(jumps.sum()), 3))
+    shift[jumps] += rng.normal(0, 5, (int(jumps.sum()), 3))
+    return Rotation.from_rotvec(np.deg2rad(rotvec - rotvec.mean(0))).as_matrix(), shift - shift.mean(0)
+
+
+def _head(head: HeadModel, geo: StackGeometry, centre: NDArray, rotation: NDArray, rng: np.random.Generator,
+          tissue: dict[str, float], background: NDArray[np.float32]) -> tuple[NDArray, NDArray, tuple]:
+    """The head's intensities and brain fractions in its in-plane box of every slice (slice profile)."""
+    csf, skull, scalp = rng.uniform(1.0, 3.5), rng.uniform(1.5, 4.0), rng.uniform(2.0, 6.0)
+    outer = csf + skull + scalp
+    reach = head.radius_mm * 1.15 + outer + 10.0
+    lo = np.clip(np.floor((centre[:2] - reach) / geo.pixel_mm + (geo.size - 1) / 2.0), 0, geo.size).astype(int)
+    hi = np.clip(np.ceil((centre[:2] + reach) / geo.pixel_mm + (geo.size - 1) / 2.0) + 1, 0, geo.size).astype(int)
+    box = (slice(lo[0], hi[0]), slice(lo[1], hi[1]))
+    pts = geo.coordinates()[box]                                     # [bx, by, slices, 3]
+    rots, shifts = _head_motion(rng, geo.slices)
+    gamma = rng.uniform(0.6, 1.6)
+    brain_scale = tissue["fluid"] * rng.uniform(0.75, 1.05) if rng.random() > 0.15 else rng.uniform(0.2, 1.0)
+    values, inside = 0.0, 0.0
+    offsets = (np.array([-1.0, 0.0, 1.0]) * geo.thickness_mm / 3.0)
+    for dz in offsets:
+        p = pts + np.array([0, 0, dz], np.float32)
+        local = np.einsum("xysc,scd->xysd", p - centre - shifts[None, None], rots) @ rotation
+        vox = local @ head.voxel_from_mm[:3, :3].T + head.voxel_from_mm[:3, 3]
+        coords = np.moveaxis(vox, -1, 0)
+        d = ndimage.map_coordinates(head.sdf, coords, order=1, mode="nearest")
+        t2 = ndimage.map_coordinates(head.t2, coords, order=1, mode="constant")
+        v = np.where(d <= 0, brain_scale * np.power(np.clip(t2, 1e-3, None), gamma), tissue["csf"])
+        v = np.where(d > csf, tissue["skull"], v)
+        v = np.where(d > csf + skull, tissue["scalp"], v)
+        v = np.where(d > outer, background[box], v)
+        values = values + v / len(offsets)
+        inside = inside + (d <= csf) / len(offsets)
+    return values, inside, box
+
+
+def synth_stack(head: HeadModel, rng: np.random.Generator, style: str = "train") -> tuple[Volume, NDArray[np.bool_]]:
+    """One synthetic whole-uterus stack and its brain mask (voxel order ``[x, y, slice]``)."""
+    if style not in STYLES:
+        raise ValueError(f"style must be one of {STYLES}")
+    geo = StackGeometry.draw(rng)
+    tissue = _intensities(rng, style)
+    half_fov = geo.size * geo.pixel_mm / 2.0
+    centre = np.array([*rng.uniform(-0.55, 0.55, 2) * max(half_fov - head.radius_mm, 10.0),
+                       rng.uniform(-0.3, 0.3) * geo.slices * geo.gap_mm]).astype(np.float32)
+    scale = rng.uniform(0.9, 1.1)
+    coarse = _surroundings(rng, geo, centre, 0.8 * head.radius_mm * scale, tissue, style, head)
+    background = ndimage.zoom(coarse, (2, 2, 1), order=1, grid_mode=True, mode="nearest")[:geo.size, :geo.size]
+    rotation = _random_rotation(rng) / scale
+    values, inside, box = _head(head, geo, centre, rotation, rng, tissue, background)
+    image = background.copy()
+    image[box] = values
+    mask = np.zeros(image.shape, bool)
+    mask[box] = inside >= 0.5
+    image *= _bias(rng, image.shape, style)
+    image *= rng.uniform(0.9, 1.1, geo.slices).astype(np.float32)
+    sigma = rng.uniform(0.005, 0.08)
+    noise = rng.standard_normal(image.shape).astype(np.float32) * sigma
+    if style == "train":
+        image = np.sqrt((image + noise) ** 2 + (rng.standard_normal(image.shape).astype(np.float32) * sigma) ** 2)
+    else:
+        image = np.maximum(image + noise, 0)
+    affine = np.diag([geo.pixel_mm, geo.pixel_mm, geo.gap_mm, 1.0])
+    return Volume((image * rng.uniform(100, 2000)).astype(np.float32), affine), mask
+
+
+def _bias(rng: np.random.Generator, shape: tuple[int, ...], style: str) -> NDArray[np.float32]:
+    strength = rng.uniform(0.0, 0.6)
+    if style == "train":
+        return np.exp(strength * _smooth_noise(rng, shape, (3, 3, 2)))
+    axes = [np.linspace(-1, 1, s, dtype=np.float32) for s in shape]
+    x, y, z = np.meshgrid(*axes, indexing="ij")
+    c = rng.normal(0, 1, 6)
+    return np.exp(strength * 0.5 * (c[0] * x + c[1] * y + c[2] * z + c[3] * x * x + c[4] * y * y + c[5] * x * y))

@@ -1,0 +1,132 @@
+"""Training of the brain localiser on synthetic shards (:mod:`model_export.localiser.dataset`).
+
+Each step draws a batch of slices (most of them crossing the brain), rebuilds their 2.5D channels
+exactly as the service does (:func:`~service.preprocess.localiser_inputs.with_neighbours`: a slice
+between its neighbours, the ends repeated), crops a random ``crop`` x ``crop`` window (one that holds
+the brain's centre where the slice has brain), flips and turns it, and minimises binary cross-entropy
+plus soft Dice against the brain fraction of every pixel. The learning rate follows a cosine over
+the wall-clock budget, so a run of any length ends annealed; a checkpoint is written every
+``checkpoint_s`` seconds and at the end, and training resumes from it.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from model_export.localiser.net import LocaliserNet
+
+
+@dataclass
+class Shard:
+    slices: np.ndarray          # [n, H, W] float16
+    target: np.ndarray          # [n, H, W] uint8
+    brain: np.ndarray           # indices of slices with brain
+
+
+def load_shards(folder: Path, known: dict[str, Shard]) -> dict[str, Shard]:
+    """Every shard of ``folder`` (those already in ``known`` are kept, not read again)."""
+    for path in sorted(Path(folder).glob("*.npz")):
+        if path.name in known:
+            continue
+        try:
+            with np.load(path) as z:
+                t = z["target"]
+                known[path.name] = Shard(z["slices"], t, np.flatnonzero(t.reshape(len(t), -1).max(1) > 127))
+        except (OSError, ValueError, KeyError, EOFError):
+            continue                                   # a shard still being written
+    return known
+
+
+def draw_batch(shards: list[Shard], rng: np.random.Generator, batch: int, crop: int,
+               brain_share: float = 0.75) -> tuple[np.ndarray, np.ndarray]:
+    """``[B, 3, crop, crop]`` inputs and ``[B, 1, crop, crop]`` targets (0..1)."""
+    xs = np.zeros((batch, 3, crop, crop), np.float32)
+    ys = np.zeros((batch, 1, crop, crop), np.float32)
+    for b in range(batch):
+        s = shards[int(rng.integers(len(shards)))]
+        n, h, w = s.slices.shape
+        with_brain = len(s.brain) > 0 and rng.random() < brain_share
+        k = int(rng.choice(s.brain)) if with_brain else int(rng.integers(n))
+        idx = np.clip([k - 1, k, k + 1], 0, n - 1)
+        x = s.slices[idx].astype(np.float32)
+        y = s.target[k].astype(np.float32) / 255.0
+        if with_brain:
+            rows, cols = np.nonzero(y > 0.5)
+            cr, cc = (rows.mean(), cols.mean()) if len(rows) else (h / 2, w / 2)
+            r0 = int(np.clip(cr - crop / 2 + rng.uniform(-0.35, 0.35) * crop, 0, max(0, h - crop)))
+            c0 = int(np.clip(cc - crop / 2 + rng.uniform(-0.35, 0.35) * crop, 0, max(0, w - crop)))
+        else:
+            r0, c0 = int(rng.integers(max(1, h - crop + 1))), int(rng.integers(max(1, w - crop + 1)))
+        x, y = x[:, r0:r0 + crop, c0:c0 + crop], y[r0:r0 + crop, c0:c0 + crop]
+        turns, flip = int(rng.integers(4)), rng.random() < 0.5
+        x, y = np.rot90(x, turns, (1, 2)), np.rot90(y, turns)
+        if flip:
+            x, y = x[:, :, ::-1], y[:, ::-1]
+        if rng.random() < 0.5:
+            x = x[::-1]                                # the slice order reversed
+        x = x * rng.uniform(0.8, 1.25) ** np.sign(rng.standard_normal())
+        xs[b, :, :x.shape[1], :x.shape[2]] = x
+        ys[b, 0, :y.shape[0], :y.shape[1]] = y
+    return xs, ys
+
+
+def loss_fn(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Binary cross-entropy plus soft Dice (over the batch)."""
+    p = torch.sigmoid(logits)
+    dice = 1 - (2 * (p * target).sum() + 1) / (p.sum() + target.sum() + 1)
+    return F.binary_cross_entropy_with_logits(logits, target) + dice
+
+
+def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int = 4, batch: int = 16,
+          crop: int = 128, lr: float = 2e-3, seed: int = 0, checkpoint_s: float = 120.0,
+          threads: int = 2, log: Path | None = None) -> Path:
+    """Train for ``minutes`` of wall clock (resuming ``out`` if it exists); returns the checkpoint path."""
+    torch.set_num_threads(threads)
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    out = Path(out)
+    net = LocaliserNet(width=width, depth=depth)
+    opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
+    step, spent = 0, 0.0
+    if out.exists():
+        state = torch.load(out, map_location="cpu", weights_only=False)
+        net.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimiser"])
+        step, spent = state["step"], state.get("spent_s", 0.0)
+    budget = spent + minutes * 60.0
+    known: dict[str, Shard] = {}
+    start, last_ckpt, losses = time.perf_counter() - spent, time.perf_counter(), []
+
+    def save() -> None:
+        torch.save({"model": net.state_dict(), "optimiser": opt.state_dict(), "config": net.config,
+                    "step": step, "spent_s": time.perf_counter() - start, "shards": len(known)}, out)
+
+    net.train()
+    while (elapsed := time.perf_counter() - start) < budget:
+        if step % 200 == 0 or not known:
+            load_shards(data, known)
+        for g in opt.param_groups:
+            g["lr"] = lr * 0.5 * (1 + np.cos(np.pi * min(elapsed / budget, 1.0)))
+        x, y = draw_batch(list(known.values()), rng, batch, crop)
+        loss = loss_fn(net(torch.from_numpy(x)), torch.from_numpy(y))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+        step += 1
+        if time.perf_counter() - last_ckpt > checkpoint_s:
+            save()
+            last_ckpt = time.perf_counter()
+            if log is not None:
+                with open(log, "a") as f:
+                    f.write(json.dumps({"step": step, "elapsed_s": round(elapsed), "loss": float(np.mean(losses[-200:])),
+                                        "lr": opt.param_groups[0]["lr"], "shards": len(known)}) + "\n")
+    save()
+    return out

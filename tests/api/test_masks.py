@@ -1,0 +1,94 @@
+"""``POST /v1/masks`` and the ``localisation`` of ``/v1/predict``: a generated whole-uterus stack in,
+a mask on its own grid out; bad input gets a 4xx that names it."""
+
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from model_export.localiser.scenes import HeadModel, synth_stack
+from service.io.volume import Volume, read_volume, write_volume
+from tests.phantoms import phantom_brain
+
+
+@pytest.fixture(scope="module")
+def uterus_files(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, np.ndarray]:
+    """A generated whole-uterus stack (phantom brain, held-out surroundings), its true mask file and mask."""
+    image, mask, affine = phantom_brain(11)
+    volume, truth = synth_stack(HeadModel.from_arrays(image, mask, affine), np.random.default_rng(100), "heldout")
+    rotated = volume.affine.copy()
+    rotated[:3, :3] = np.array([[0, 0, 1], [1, 0, 0], [0, 1, 0]]) @ volume.affine[:3, :3]   # an oblique-free but
+    rotated[:3, 3] = (-80.0, 12.0, 40.0)                                                      # non-axial stack
+    d = tmp_path_factory.mktemp("uterus")
+    write_volume(Volume(volume.array, rotated), d / "uterus.nii.gz")
+    write_volume(Volume(truth.astype(np.uint8), rotated), d / "uterus_mask.nii.gz")
+    return d / "uterus.nii.gz", d / "uterus_mask.nii.gz", truth
+
+
+def post_masks(client: TestClient, *paths: Path, **data: str):  # noqa: ANN201
+    files = [("stacks", (p.name, p.read_bytes())) for p in paths]
+    return client.post("/v1/masks", files=files, data=data)
+
+
+def test_masks_come_back_on_each_stacks_grid_with_a_report(real_client: TestClient, uterus_files, tmp_path: Path) -> None:
+    stack, _, truth = uterus_files
+    r = post_masks(real_client, stack, stack)
+    assert r.status_code == 200, r.text
+    assert r.headers["content-type"] == "application/zip"
+    archive = zipfile.ZipFile(io.BytesIO(r.content))
+    assert sorted(archive.namelist()) == ["report.json", "uterus-1_mask.nii.gz", "uterus_mask.nii.gz"]
+    report = json.loads(archive.read("report.json"))
+    row = report["stacks"][0]
+    assert set(row) >= {"filename", "brain_volume_ml", "confidence", "slices_with_brain"}
+    assert row["filename"] == "uterus.nii.gz" and row["confidence"] > 0.5
+    (tmp_path / "m.nii.gz").write_bytes(archive.read("uterus_mask.nii.gz"))
+    mask, original = read_volume(tmp_path / "m.nii.gz"), read_volume(stack)
+    assert mask.array.shape == original.array.shape and np.allclose(mask.affine, original.affine, atol=1e-4)
+    assert set(np.unique(mask.array)) <= {0, 1}
+    found = mask.array > 0
+    assert 2 * (found & truth).sum() / (found.sum() + truth.sum()) > 0.8
+    assert row["slices_with_brain"] == int(found.any(axis=(0, 1)).sum())
+
+
+def test_masks_refuse_what_they_cannot_use(real_client: TestClient, uterus_files, tmp_path: Path) -> None:
+    stack = uterus_files[0]
+    r = post_masks(real_client, stack, model="nope")
+    assert r.status_code == 404 and "localiser 'nope'" in r.json()["detail"]
+    junk = tmp_path / "notes.txt"
+    junk.write_text("not an image")
+    r = post_masks(real_client, junk)
+    assert r.status_code == 415 and "notes.txt" in r.json()["detail"]
+    r = real_client.post("/v1/masks", files=[("stacks", (stack.name, stack.read_bytes()))], data={"mc_samples": "3"})
+    assert r.status_code == 400 and "mc_samples" in r.json()["detail"]
+
+
+def test_predict_says_how_each_stack_was_localised(real_client: TestClient, uterus_files) -> None:
+    stack, mask, _ = uterus_files
+    files = [("stacks", (stack.name, stack.read_bytes()))]
+    without = real_client.post("/v1/predict", files=files, data={"mc_samples": "2"})
+    assert without.status_code == 200, without.text
+    where = without.json()["stacks"][0]["localisation"]
+    assert where["method"] == "network" and where["confidence"] > 0.5 and 50 < where["brain_volume_ml"] < 700
+    reasons = [s["reason"] for s in without.json()["stacks"][0]["slices"]]
+    assert 0 < reasons.count("empty") < len(reasons)              # slices beyond the head are empty, not all
+    files.append(("masks", (mask.name, mask.read_bytes())))
+    with_mask = real_client.post("/v1/predict", files=files, data={"mc_samples": "2"})
+    assert with_mask.json()["stacks"][0]["localisation"]["method"] == "mask"
+
+
+def test_a_stack_of_noise_answers_200_with_empty_slices(real_client: TestClient, tmp_path: Path) -> None:
+    noise = np.random.default_rng(1).random((200, 200, 12), np.float32) * 300
+    write_volume(Volume(noise, np.diag([1.5, 1.5, 3.0, 1.0])), tmp_path / "noise.nii.gz")
+    r = real_client.post("/v1/predict", files=[("stacks", ("noise.nii.gz", (tmp_path / "noise.nii.gz").read_bytes()))],
+                         data={"mc_samples": "2"})
+    assert r.status_code == 200, r.text
+    stack = r.json()["stacks"][0]
+    assert stack["localisation"]["confidence"] < 0.3
+    if stack["localisation"]["confidence"] < 0.15:               # below MIN_CONFIDENCE: no brain at all
+        assert all(s["reason"] == "empty" for s in stack["slices"]) and stack["localisation"]["brain_volume_ml"] == 0

@@ -1,0 +1,63 @@
+"""Shards -> training -> ONNX: the shards hold what the service's input function gives, training
+resumes from its checkpoint, and the exported graph computes what the network does."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+
+from model_export.localiser.dataset import generate
+from model_export.localiser.export import export_onnx, load_checkpoint
+from model_export.localiser.train import draw_batch, load_shards, train
+from service.preprocess.localise import Localiser
+
+GRID_MM = 4.0                        # coarse: small shards, fast tests
+
+
+@pytest.fixture(scope="module")
+def shards(phantom_atlas: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("shards")
+    names = generate(out, ["STA30"], 2, "train", GRID_MM, first_seed=0, workers=1, keep_stack=True, root=phantom_atlas)
+    assert sorted(names) == ["train-000000.npz", "train-000001.npz"]
+    return out
+
+
+def test_a_shard_is_the_service_input_and_its_target(shards: Path) -> None:
+    from service.io.volume import Volume
+    from service.preprocess.localiser_inputs import localiser_inputs, target_maps
+
+    with np.load(shards / "train-000000.npz") as z:
+        volume = Volume(z["stack"].astype(np.float32), z["affine"])
+        x, _ = localiser_inputs(volume, GRID_MM)
+        assert z["slices"].shape == x[:, 1].shape
+        assert np.allclose(z["slices"], x[:, 1], atol=2e-2)                  # float16 storage
+        target = target_maps(z["mask"], volume, GRID_MM)
+        assert np.abs(z["target"] / 255.0 - target).max() <= 1 / 255 + 1e-6
+        assert z["target"].max() == 255 and z["target"].mean() < 0.1 * 255
+
+
+def test_batches_are_mostly_brain_and_shaped_for_the_net(shards: Path) -> None:
+    known = load_shards(shards, {})
+    x, y = draw_batch(list(known.values()), np.random.default_rng(0), 8, 32)
+    assert x.shape == (8, 3, 32, 32) and y.shape == (8, 1, 32, 32)
+    assert (y.reshape(8, -1).max(1) > 0.5).sum() >= 4                     # 75 % drawn from brain slices
+
+
+def test_training_resumes_and_the_export_computes_what_the_network_does(shards: Path, tmp_path: Path) -> None:
+    ckpt = tmp_path / "loc.pt"
+    train(shards, ckpt, 0.05, width=4, depth=2, batch=4, crop=32, checkpoint_s=1.0, threads=1)
+    first = torch.load(ckpt, weights_only=False)["step"]
+    train(shards, ckpt, 0.02, width=4, depth=2, batch=4, crop=32, threads=1)
+    assert torch.load(ckpt, weights_only=False)["step"] > first > 0
+    onnx_path = export_onnx(ckpt, tmp_path / "model.onnx", grid_mm=GRID_MM, version="0.0.1")
+    x = np.random.default_rng(1).random((3, 3, 48, 32), np.float32)
+    sess = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
+    with torch.no_grad():
+        expected = load_checkpoint(ckpt)(torch.from_numpy(x)).numpy()
+    assert np.allclose(sess.run(None, {"stacks": x})[0], expected, atol=1e-4)
+    loc = Localiser.load(onnx_path)
+    assert loc.grid_mm == GRID_MM and loc.version == "0.0.1" and len(loc.sha256) == 64

@@ -1,0 +1,65 @@
+"""Synthetic whole-uterus stacks: reproducible, with a brain of the head's size where it was put,
+and surroundings that differ between the two styles."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from model_export.localiser.scenes import HeadModel, StackGeometry, synth_stack
+from tests.phantoms import phantom_brain
+
+
+@pytest.fixture(scope="module")
+def head() -> HeadModel:
+    image, mask, affine = phantom_brain(3)
+    return HeadModel.from_arrays(image, mask, affine)
+
+
+def test_the_head_model_knows_the_brain_inside_and_out(head: HeadModel) -> None:
+    assert head.sdf.min() < -20 and head.sdf.max() > 5            # mm: deep inside, well outside
+    assert 30 < head.radius_mm < 45                                 # the phantom's largest radius is 38 mm +- 5 %
+    assert float(head.t2.max()) <= 1.5 and float(head.t2.min()) >= 0
+
+
+def test_a_seed_gives_the_same_stack(head: HeadModel) -> None:
+    a, ma = synth_stack(head, np.random.default_rng(4))
+    b, mb = synth_stack(head, np.random.default_rng(4))
+    assert np.array_equal(a.array, b.array) and np.array_equal(ma, mb)
+    c, _ = synth_stack(head, np.random.default_rng(5))
+    assert c.array.shape != a.array.shape or not np.allclose(c.array, a.array)
+
+
+@pytest.mark.parametrize("style", ["train", "heldout"])
+def test_the_stack_is_whole_uterus_with_a_brain_of_plausible_volume(head: HeadModel, style: str) -> None:
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        vol, mask = synth_stack(head, rng, style)
+        fov = vol.array.shape[0] * vol.spacing[0]
+        assert 125 <= fov <= 405 and vol.array.shape[0] == vol.array.shape[1]
+        assert 0.85 <= vol.spacing[0] <= 1.65 and 1.6 <= vol.spacing[2] <= 5.2
+        ml = mask.sum() * np.prod(vol.spacing) / 1e3
+        brain_ml = (head.sdf <= 0).sum() * 1.6 ** 3 / 1e3
+        # the mask is the skull's inside: the brain plus 1-3.5 mm of CSF, scaled by 0.9-1.1, cut by the slab
+        assert 0.1 * brain_ml < ml < 2.0 * brain_ml, (ml, brain_ml)
+        assert mask.mean() < 0.1                                        # most of the field of view is not brain
+        inside, outside = vol.array[mask].mean(), vol.array[~mask].mean()
+        assert np.isfinite(inside) and np.isfinite(outside) and vol.array.min() >= 0
+
+
+def test_the_styles_differ_around_the_same_head(head: HeadModel) -> None:
+    a, _ = synth_stack(head, np.random.default_rng(7), "train")
+    b, _ = synth_stack(head, np.random.default_rng(7), "heldout")
+    assert a.array.shape == b.array.shape                       # the same geometry draw ...
+    assert not np.allclose(a.array / a.array.max(), b.array / b.array.max(), atol=0.05)   # ... other scenes
+    with pytest.raises(ValueError, match="style"):
+        synth_stack(head, np.random.default_rng(0), "other")
+
+
+def test_geometry_draws_cover_the_scanners_ranges() -> None:
+    draws = [StackGeometry.draw(np.random.default_rng(s)) for s in range(200)]
+    pixels = np.array([g.pixel_mm for g in draws])
+    fovs = np.array([g.size * g.pixel_mm for g in draws])
+    assert pixels.min() < 1.0 and pixels.max() > 1.5
+    assert fovs.min() < 160 and fovs.max() > 380 and np.mean(fovs >= 250) > 0.8
+    assert min(g.thickness_mm for g in draws) < 2.3 and max(g.thickness_mm for g in draws) > 4.2

@@ -1,0 +1,106 @@
+"""Brain localisation: the geometry step, the confidence, and the shipped localiser on generated
+whole-uterus phantoms, on noise, and on the real scans of ../shared/data (skipped without them)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.core.settings import DEFAULT_LOCALISERS_DIR
+from service.io.volume import Volume, read_volume
+from service.preprocess.localise import Localisation, Localiser, Localisers, brain_from_probabilities, plausibility
+from tests.conftest import SHARED_DATA
+
+REAL = SHARED_DATA / "real_scans"
+
+
+def dice(a: np.ndarray, b: np.ndarray) -> float:
+    return float(2 * (a & b).sum() / max(a.sum() + b.sum(), 1))
+
+
+@pytest.fixture(scope="module")
+def localiser() -> Localiser:
+    return Localiser.load(DEFAULT_LOCALISERS_DIR / "default" / "model.onnx")
+
+
+def test_the_geometry_keeps_one_connected_brain_with_its_holes_filled() -> None:
+    p = np.zeros((8, 40, 40), np.float32)
+    p[1:7, 5:25, 5:25] = 0.9
+    p[3, 12:16, 12:16] = 0.1                                       # a hole (a dark ventricle, say)
+    p[2:4, 30:36, 30:36] = 0.8                                     # a smaller, separate blob
+    brain, confidence = brain_from_probabilities(p, voxel_ml=0.5)
+    assert brain[3, 13, 13] and not brain[2, 32, 32]
+    assert brain.sum() == 6 * 20 * 20 and 0.7 < confidence < 0.9
+
+
+def test_no_brain_or_an_implausible_one_gives_a_low_confidence() -> None:
+    brain, confidence = brain_from_probabilities(np.full((5, 20, 20), 0.2, np.float32), voxel_ml=1.0)
+    assert not brain.any() and confidence == 0.0
+    everything = np.full((20, 60, 60), 0.95, np.float32)          # 72 l: no fetal brain is that large
+    _, confidence = brain_from_probabilities(everything, voxel_ml=1.0)
+    assert confidence == 0.0
+    tiny = np.zeros((5, 20, 20), np.float32)
+    tiny[2, 5:7, 5:7] = 0.99                                       # 4 ml
+    assert brain_from_probabilities(tiny, voxel_ml=1.0)[0].sum() == 0
+
+
+def test_plausible_volumes_span_the_second_and_third_trimester() -> None:
+    assert plausibility(60.0) == plausibility(450.0) == 1.0
+    assert 0 < plausibility(20.0) < 1 and 0 < plausibility(1200.0) < 1
+    assert plausibility(5.0) == plausibility(5000.0) == 0.0
+
+
+def test_an_uploaded_mask_is_reported_as_such() -> None:
+    mask = np.zeros((10, 12, 6), np.uint8)
+    mask[2:5, 3:6, 1:4] = 1
+    found = Localisation.of(mask, np.array([2.0, 2.0, 4.0]), "mask", 1.0)
+    assert found.brain_volume_ml == pytest.approx(27 * 16 / 1000)
+    assert found.slices_with_brain == 3
+    assert found.report() == {"method": "mask", "brain_volume_ml": 0.4, "confidence": 1.0}
+
+
+def test_the_registry_names_what_it_lacks() -> None:
+    from service.core.errors import NotFound
+
+    with pytest.raises(NotFound, match="model: unknown localiser 'other'"):
+        Localisers.from_directory(DEFAULT_LOCALISERS_DIR).get("other")
+
+
+def test_the_shipped_localiser_finds_the_brain_of_a_generated_whole_uterus_stack(localiser: Localiser) -> None:
+    from model_export.localiser.scenes import HeadModel, synth_stack
+    from tests.phantoms import phantom_brain
+
+    image, mask, affine = phantom_brain(11)
+    head = HeadModel.from_arrays(image, mask, affine)
+    scores = []
+    for seed in range(3):
+        volume, truth = synth_stack(head, np.random.default_rng(100 + seed), "heldout")
+        found = localiser.localise(volume)
+        assert found.mask.shape == volume.array.shape and found.method == "network"
+        scores.append(dice(found.mask, truth))
+    assert np.median(scores) > 0.8, scores
+
+
+def test_noise_is_no_brain(localiser: Localiser) -> None:
+    noise = np.random.default_rng(0).random((256, 256, 30), np.float32) * 500
+    found = localiser.localise(Volume(noise, np.diag([1.2, 1.2, 3.0, 1.0])))
+    assert found.confidence < 0.3
+
+
+@pytest.mark.skipif(not (REAL / "mial_lausanne_t30").is_dir(), reason=f"needs the real scans at {REAL}")
+@pytest.mark.parametrize("name", ["axial1_lr", "coronal1_lr", "sagittal1_lr"])
+def test_real_scan_against_its_manual_mask(localiser: Localiser, name: str) -> None:
+    volume = read_volume(REAL / "mial_lausanne_t30" / f"{name}.nii.gz")
+    manual = read_volume(REAL / "mial_lausanne_t30" / f"{name}_brain_mask.nii.gz").array > 0
+    found = localiser.localise(volume)
+    assert dice(found.mask, manual) > 0.85
+    assert found.confidence > 0.5
+
+
+@pytest.mark.skipif(not (REAL / "bch_f0832s1").is_dir(), reason=f"needs the real scans at {REAL}")
+@pytest.mark.parametrize("name", ["fetus_03", "fetus_04"])
+def test_real_whole_uterus_stacks_without_masks_get_one(localiser: Localiser, name: str) -> None:
+    found = localiser.localise(read_volume(REAL / "bch_f0832s1" / f"{name}.nii.gz"))
+    assert 60 < found.brain_volume_ml < 700 and found.slices_with_brain >= 10
