@@ -52,11 +52,13 @@ def train(
     depth: int = 4,
     threads: int = 2,
     seed: int = 0,
+    channels: Annotated[int, typer.Option(help="3: 2.5D (a slice between its neighbours); 1: 2D")] = 3,
 ) -> None:
     """Train (or continue training) the localiser for a wall-clock budget; progress in ``<out>.log``."""
     from model_export.localiser.train import train as run
 
-    run(data, out, minutes, width=width, depth=depth, threads=threads, seed=seed, log=Path(f"{out}.log"))
+    run(data, out, minutes, width=width, depth=depth, threads=threads, seed=seed, log=Path(f"{out}.log"),
+        in_channels=channels)
 
 
 @app.command()

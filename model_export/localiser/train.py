@@ -86,13 +86,16 @@ def loss_fn(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int = 4, batch: int = 16,
           crop: int = 128, lr: float = 2e-3, seed: int = 0, checkpoint_s: float = 120.0,
-          threads: int = 2, log: Path | None = None) -> Path:
-    """Train for ``minutes`` of wall clock (resuming ``out`` if it exists); returns the checkpoint path."""
+          threads: int = 2, log: Path | None = None, in_channels: int = 3) -> Path:
+    """Train for ``minutes`` of wall clock (resuming ``out`` if it exists); returns the checkpoint path.
+
+    ``in_channels`` 3 is the 2.5D network (a slice and its neighbours), 1 the 2D one (the slice alone).
+    """
     torch.set_num_threads(threads)
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     out = Path(out)
-    net = LocaliserNet(width=width, depth=depth)
+    net = LocaliserNet(in_channels=in_channels, width=width, depth=depth)
     opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
     step, spent = 0, 0.0
     if out.exists():
@@ -115,6 +118,7 @@ def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int =
         for g in opt.param_groups:
             g["lr"] = lr * 0.5 * (1 + np.cos(np.pi * min(elapsed / budget, 1.0)))
         x, y = draw_batch(list(known.values()), rng, batch, crop)
+        x = x if in_channels == 3 else x[:, 1:2]
         loss = loss_fn(net(torch.from_numpy(x)), torch.from_numpy(y))
         opt.zero_grad()
         loss.backward()

@@ -8,7 +8,6 @@ Example (with a model file at hand):
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -16,6 +15,7 @@ import numpy as np
 import onnxruntime as ort
 from numpy.typing import NDArray
 
+from service.core.onnx import file_sha256, session_options
 from service.geometry.twin import DEFAULT_PLANE_X_MM
 
 INPUT_SLICES, INPUT_PASSES, OUTPUT_LABELS = "slices", "passes", "labels"
@@ -77,23 +77,6 @@ def _shape(text: str) -> tuple[float, ...] | None:
     if len(shape) != 6 or not all(x > 0 for x in shape):
         raise ValueError(f"mc_error_shape must be six positive numbers, not {text!r}")
     return shape
-
-
-def file_sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
-def session_options(threads: int = 0) -> ort.SessionOptions:
-    """CPU session options: all graph optimisations (the dropout masks survive them), no spinning."""
-    opts = ort.SessionOptions()
-    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    opts.intra_op_num_threads = threads
-    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    return opts
 
 
 @dataclass

@@ -7,8 +7,8 @@
    (atlas brains in generated surroundings; ``model_export.localiser``), so no scanner's contrast,
    pixel size or field of view is special to it.
 2. **The geometry** settles the answer (:func:`brain_from_probabilities`), on the network's grid:
-   one 3D connected brain (the component holding most of the probability), its in-plane holes
-   filled, of a plausible volume for 20-40 weeks; then the probabilities inside that brain are
+   one 3D connected brain (the component with most probability, weighed by how plausible its
+   volume is for 20-40 weeks), its in-plane holes filled; then the probabilities inside that brain are
    brought back to the stack's own grid and cut at 0.5.
 3. **The confidence** (0..1) multiplies how sure the network is inside the brain, the share of all
    brain-like probability the chosen brain holds, and the plausibility of its volume. A stack with
@@ -36,7 +36,7 @@ from scipy import ndimage
 
 from service.core.errors import NotFound
 from service.core.settings import DEFAULT_LOCALISERS_DIR
-from service.inference.model_file import file_sha256, session_options
+from service.core.onnx import file_sha256, session_options
 from service.io.volume import Volume
 from service.preprocess.localiser_inputs import localiser_inputs
 from service.preprocess.stack import slice_axis_of
@@ -103,8 +103,10 @@ def brain_from_probabilities(prob: NDArray[np.float32], voxel_ml: float) -> tupl
     labels, n = ndimage.label(above, structure=np.ones((3, 3, 3), bool))
     if n == 0:
         return np.zeros(prob.shape, bool), 0.0
-    mass = ndimage.sum_labels(prob, labels, np.arange(1, n + 1))
-    best = int(np.argmax(mass)) + 1
+    ids = np.arange(1, n + 1)
+    mass = ndimage.sum_labels(prob, labels, ids)
+    volume_of = ndimage.sum_labels(np.ones(prob.shape, np.float32), labels, ids) * voxel_ml
+    best = int(np.argmax(mass * np.array([plausibility(v) for v in volume_of]) + 1e-6 * mass)) + 1
     brain = labels == best
     brain = np.stack([ndimage.binary_fill_holes(s) for s in brain])
     volume_ml = float(brain.sum() * voxel_ml)
@@ -135,7 +137,10 @@ class Localiser:
     def probabilities(self, volume: Volume) -> tuple[NDArray[np.float32], object]:
         """Per-slice brain probabilities on the network grid ``[n, Hp, Wp]`` and that grid."""
         x, grid = localiser_inputs(volume, self.grid_mm)
-        logits = self.session.run(None, {self.session.get_inputs()[0].name: x})[0][:, 0]
+        feed = self.session.get_inputs()[0]
+        if feed.shape[1] == 1:                                  # a 2D localiser: the slice alone
+            x = np.ascontiguousarray(x[:, 1:2])
+        logits = self.session.run(None, {feed.name: x})[0][:, 0]
         return 1.0 / (1.0 + np.exp(-logits)), grid
 
     def localise(self, volume: Volume) -> Localisation:

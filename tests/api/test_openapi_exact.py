@@ -23,12 +23,16 @@ def test_stacks_and_masks_carry_their_limits(oracle, max_files: int) -> None:  #
         assert (props["stacks"]["minItems"], props["stacks"]["maxItems"]) == (1, max_files), path
         assert props["masks"]["maxItems"] == max_files, path
         assert not [n for n, p in props.items() if {"type": "null"} in p.get("anyOf", [])], props
+    masks_route = _body_schema(spec, "/v1/masks")["properties"]
+    assert (masks_route["stacks"]["minItems"], masks_route["stacks"]["maxItems"]) == (1, max_files)
+    assert set(masks_route) == {"stacks", "model"}
     assert "poses" in _body_schema(spec, "/v1/reconstructions")["properties"]
     assert _body_schema(spec, "/v1/predict")["additionalProperties"] is False
 
 
 @pytest.mark.parametrize(("path", "declared"), [("/v1/reconstructions/abc", {"GET", "DELETE"}),
                                                 ("/v1/reconstructions", {"POST"}), ("/v1/predict", {"POST"}),
+                                                ("/v1/masks", {"POST"}),
                                                 ("/v1/reconstructions/abc/volume", {"GET"})])
 def test_allow_lists_every_method_of_the_path(oracle_client: TestClient, path: str, declared: set[str]) -> None:
     options = oracle_client.options(path)

@@ -495,8 +495,24 @@ PREDICT_BODY = {
                     {"index": 0, "accepted": True, "reason": None, "geodesic_variance": 1.0},
                     {"index": 1, "accepted": True, "reason": None, "geodesic_variance": 3.0},
                     {"index": 2, "accepted": False, "reason": "high_variance", "geodesic_variance": 40.0},
-                    {"index": 3, "accepted": False, "reason": "empty", "geodesic_variance": None}]}],
+                    {"index": 3, "accepted": False, "reason": "empty", "geodesic_variance": None}],
+                "localisation": {"method": "network", "brain_volume_ml": 312.4, "confidence": 0.93}}],
 }
+
+
+def masks_archive() -> bytes:
+    """What /v1/masks answers, plus a member that names a path (never written)."""
+    import io
+    import zipfile
+
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as z:
+        z.writestr("stack_mask.nii.gz", b"mask bytes")
+        z.writestr("../escape.json", b"{}")
+        z.writestr("report.json", json.dumps({"stacks": [{"filename": "stack.nii.gz", "mask": "stack_mask.nii.gz",
+                                                          "brain_volume_ml": 301.0, "confidence": 0.91,
+                                                          "slices_with_brain": 17}]}))
+    return buffer.getvalue()
 
 
 class FakeServer:
@@ -517,6 +533,8 @@ class FakeServer:
             return httpx.Response(422, json=problem(422, "stacks: flat.nii.gz is a 2D image", "Unusable image"))
         if request.url.path == "/v1/predict":
             return httpx.Response(200, json=PREDICT_BODY)
+        if request.url.path == "/v1/masks":
+            return httpx.Response(200, content=masks_archive(), headers={"content-type": "application/zip"})
         if request.url.path == "/v1/models":
             return httpx.Response(200, json=[{"name": "default", "version": "1", "backbone": "b",
                                               "sha256": "0" * 64, "input_size": 128, "spacing_mm": 0.8,
@@ -555,9 +573,24 @@ def test_cli_predict_writes_json_and_prints_a_summary(fake_cli: Callable, stack_
     assert made == [("http://scanner:9000", None)]
     assert "stack.nii.gz" in r.stdout and "empty 1, high_variance 1" in r.stdout and "3" in r.stdout
     assert "median variance" in r.stdout and "abc" in r.stdout
+    assert "found, 312 ml, confidence 0.93" in r.stdout
     fields, files = parse_multipart(fake.requests[0])
     assert fields == {"mc_samples": ["5"], "bias_correction": ["false"], "image_consistency": ["false"]}
     assert files[0][1] == "stack.nii.gz"
+
+
+def test_cli_masks_writes_the_masks_and_nothing_outside(fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
+    fake, _ = fake_cli()
+    out = tmp_path / "deep" / "masks"
+    r = invoke(["masks", str(stack_file), "--out-dir", str(out), "--model", "default"])
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in out.iterdir()) == ["report.json", "stack_mask.nii.gz"]
+    assert not (tmp_path / "deep" / "escape.json").exists()
+    assert (out / "stack_mask.nii.gz").read_bytes() == b"mask bytes"
+    assert "stack_mask.nii.gz" in r.stdout and "0.91" in r.stdout and "301" in r.stdout
+    fields, files = parse_multipart(fake.requests[0])
+    assert fake.requests[0].url.path == "/v1/masks" and fields == {"model": ["default"]}
+    assert [f[:2] for f in files] == [("stacks", "stack.nii.gz")]
 
 
 def test_cli_sends_each_slice_order_as_one_field(fake_cli: Callable, stack_file: Path) -> None:

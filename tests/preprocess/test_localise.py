@@ -30,9 +30,9 @@ def test_the_geometry_keeps_one_connected_brain_with_its_holes_filled() -> None:
     p[1:7, 5:25, 5:25] = 0.9
     p[3, 12:16, 12:16] = 0.1                                       # a hole (a dark ventricle, say)
     p[2:4, 30:36, 30:36] = 0.8                                     # a smaller, separate blob
-    brain, confidence = brain_from_probabilities(p, voxel_ml=0.5)
+    brain, confidence = brain_from_probabilities(p, voxel_ml=0.1)             # 240 ml: plausible
     assert brain[3, 13, 13] and not brain[2, 32, 32]
-    assert brain.sum() == 6 * 20 * 20 and 0.7 < confidence < 0.9
+    assert brain.sum() == 6 * 20 * 20 and 0.8 < confidence < 0.9          # 0.9 sure, 97 % of the mass
 
 
 def test_no_brain_or_an_implausible_one_gives_a_low_confidence() -> None:

@@ -1,0 +1,86 @@
+"""The brain localiser: its time per stack, and what it costs ``/v1/predict`` against uploaded masks.
+
+1. :meth:`Localiser.localise` on stacks of the sizes scanners write (random content: the cost does
+   not depend on it), split into input, network and geometry.
+2. The predict pipeline (no HTTP; N4, 100 MC samples, every stage on) on the same stacks with the
+   reference masks and without them: wall times, their ratio, and the median E.D. between the two
+   sets of poses. Stacks: the real scan of ``../shared/data/real_scans/mial_lausanne_t30`` where it
+   is, else generated whole-uterus stacks around a phantom brain.
+
+    .venv/bin/python benchmarks/localise_bench.py
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, pose_agreement  # noqa: E402
+from service.core.settings import DEFAULT_LOCALISERS_DIR  # noqa: E402
+from service.inference.pipeline import StackUpload  # noqa: E402
+from service.io.volume import Volume, read_volume  # noqa: E402
+from service.preprocess.localise import Localiser, brain_from_probabilities  # noqa: E402
+from service.preprocess.localiser_inputs import localiser_inputs  # noqa: E402
+
+SIZES = [((320, 320, 22), 1.125, 3.3), ((256, 256, 40), 1.17, 3.0), ((512, 512, 30), 0.7, 4.0), ((192, 192, 25), 1.6, 3.0)]
+
+
+def timed(fn, repeats: int = 5) -> tuple[float, object]:  # noqa: ANN001
+    out = fn()
+    t = time.perf_counter()
+    for _ in range(repeats):
+        out = fn()
+    return (time.perf_counter() - t) / repeats * 1e3, out
+
+
+def stage_times(loc: Localiser) -> None:
+    print(f"{'stack':>14} {'pixel':>6} {'inputs ms':>10} {'network ms':>11} {'geometry ms':>12} {'total ms':>9}")
+    rng = np.random.default_rng(0)
+    for shape, pixel, thick in SIZES:
+        vol = Volume(rng.random(shape, np.float32) * 300, np.diag([pixel, pixel, thick, 1.0]))
+        t_in, (x, grid) = timed(lambda: localiser_inputs(vol, loc.grid_mm))
+        name = loc.session.get_inputs()[0].name
+        t_net, logits = timed(lambda: loc.session.run(None, {name: x})[0][:, 0])
+        prob = 1 / (1 + np.exp(-logits))
+        t_geo, _ = timed(lambda: brain_from_probabilities(prob, loc.grid_mm ** 2 * thick / 1e3))
+        t_all, _ = timed(lambda: loc.localise(vol))
+        print(f"{'x'.join(map(str, shape)):>14} {pixel:>6.2f} {t_in:>10.0f} {t_net:>11.0f} {t_geo:>12.0f} {t_all:>9.0f}")
+
+
+def uploads() -> tuple[list[StackUpload], str]:
+    real = REAL_SCANS / "mial_lausanne_t30"
+    if real.is_dir():
+        masks = sorted(real.glob("*_brain_mask.nii.gz"))
+        return [StackUpload(m.name.replace("_brain_mask", ""), read_volume(Path(str(m).replace("_brain_mask", ""))),
+                            read_volume(m)) for m in masks], "real scan mial_lausanne_t30, manual masks"
+    from model_export.localiser.scenes import HeadModel, synth_stack
+    from tests.phantoms import phantom_brain
+
+    head = HeadModel.from_arrays(*phantom_brain(11))
+    out = []
+    for seed in range(3):
+        vol, mask = synth_stack(head, np.random.default_rng(200 + seed), "heldout")
+        out.append(StackUpload(f"generated{seed}", vol, Volume(mask.astype(np.uint8), vol.affine)))
+    return out, "generated whole-uterus stacks (phantom brain), true masks"
+
+
+def main() -> None:
+    loc = Localiser.load(DEFAULT_LOCALISERS_DIR / "default" / "model.onnx")
+    print(f"localiser {loc.version}, grid {loc.grid_mm} mm")
+    stage_times(loc)
+    stacks, what = uploads()
+    print(f"\n/v1/predict pipeline on {what}:")
+    r = pose_agreement(stacks, loc, _pose_estimator())
+    print(f"with masks {r['seconds_with_masks']:.2f} s, without {r['seconds_without']:.2f} s: "
+          f"ratio {r['latency_ratio']:.2f}; poses without vs with masks: median E.D. {r['median_ed_mm']:.2f} mm "
+          f"over {r['slices']} slices")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,32 @@
+"""What every ONNX model of the service shares: its CPU session options and the file's checksum.
+
+Example:
+    >>> session_options(2).intra_op_num_threads
+    2
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import onnxruntime as ort
+
+
+def file_sha256(path: Path) -> str:
+    """The SHA-256 of a file (hex), read in 1 MiB chunks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def session_options(threads: int = 0) -> ort.SessionOptions:
+    """CPU session options: all graph optimisations (the pose models' dropout masks survive them), no
+    spinning; ``threads`` 0 means all cores."""
+    opts = ort.SessionOptions()
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    opts.intra_op_num_threads = threads
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    return opts
