@@ -20,6 +20,17 @@ def write_card(path: Path, onnx_path: Path, figures: dict) -> Path:
     real_rows = "\n".join(f"| `{r['stack']}` | {'x'.join(map(str, r['shape']))} | {_fmt(r['dice'])} | "
                           f"{r['ml']:.0f} | {r['confidence']:.2f} | {r['ms']:.0f} |" for r in figures["real"])
     pr = figures["poses_real"] or {}
+    arch_rows = "\n".join(f"| {a['inputs']} | {a['width']} | {a['depth']} | {_fmt(a['heldout_median_dice'])} | "
+                          f"{_fmt(a['heldout_min_dice'])} | {_fmt(a['real_median_dice'])} | {a['ms']:.0f} |"
+                          for a in figures.get("architectures") or [])
+    architecture = f"""
+## Architecture, chosen by measurement
+The same data, seed and wall-clock budget for each (`svrnet-train localiser compare`), from scratch:
+
+| inputs | width | depth | held-out Dice median | min | real-scan Dice median | ms (320×320×22) |
+|---|---|---|---|---|---|---|
+{arch_rows}
+""" if arch_rows else ""
     text = f"""# Brain localiser `{meta['version']}`
 
 {meta['architecture']} on a {meta['grid_mm']} mm grid; {s['onnx_mb']:.1f} MB ONNX. It finds the fetal brain
@@ -49,6 +60,8 @@ Commands: `svrnet-train localiser data --out H --count 40 --style heldout --seed
 | set | stacks | Dice median | Dice min |
 |---|---|---|---|
 | generated whole-uterus validation (validation atlas volumes; held-out surroundings generator) | {s['heldout_stacks']} | {_fmt(s['heldout_median_dice'])} | {_fmt(s['heldout_min_dice'])} |
+| — of which T2-like contrast | {sum(1 for r in held if r.get('t2_like'))} | {_fmt(s.get('heldout_t2_like_median_dice'))} | |
+| — of which every intensity drawn uniformly | {sum(1 for r in held if r.get('t2_like') is False)} | {_fmt(s.get('heldout_random_contrast_median_dice'))} | |
 | real scan, manual masks (`mial_lausanne_t30`) | {len(s['real_dice'])} | {_fmt(float(np.median(s['real_dice'])) if s['real_dice'] else None)} | {_fmt(min(s['real_dice']) if s['real_dice'] else None)} |
 
 Real stacks one by one (the BCH stacks have no manual mask: volume and confidence only):
@@ -62,11 +75,12 @@ Poses without masks against poses with the reference masks (`/v1/predict`'s pipe
 | set | median E.D. between the two (mm) | latency without / with masks |
 |---|---|---|
 | real scan, 3 stacks | {_fmt(pr.get('median_ed_mm'), 2)} | {_fmt(pr.get('latency_ratio'), 2)} |
-| generated validation stacks, one at a time ({len(figures['poses_heldout'])}) | {_fmt(s['poses_heldout_median_ed_mm'], 2)} | {_fmt(float(np.median([p['latency_ratio'] for p in figures['poses_heldout']])) if figures['poses_heldout'] else None, 2)} |
+| generated validation stacks of T2-like contrast, one at a time ({len(figures['poses_heldout'])}) | {_fmt(s['poses_heldout_median_ed_mm'], 2)} | {_fmt(float(np.median([p['latency_ratio'] for p in figures['poses_heldout']])) if figures['poses_heldout'] else None, 2)} |
 
 Localiser latency (320×320×22 stack, this machine's 2 CPU cores, onnxruntime): {s['latency_ms_320x320x22']:.0f} ms.
 Generated validation stacks: median volume error {np.median([abs(r['ml'] - r['true_ml']) / r['true_ml'] for r in held]) * 100:.1f} %.
 
+{architecture}
 ## Limits
 - Trained on synthetic surroundings: organs and textures unlike those generated may be taken for brain;
   the geometry step keeps one connected brain of plausible volume and reports its confidence.

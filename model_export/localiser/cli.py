@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Optional
 
 import typer
 
@@ -69,6 +69,7 @@ def ship(
     version: str = "1.0.0",
     grid_mm: float = GRID_MM,
     pose_stacks: Annotated[int, typer.Option(help="held-out stacks whose poses are compared without/with masks")] = 8,
+    ablation: Annotated[Optional[Path], typer.Option(help="JSON of `compare`: architectures measured alike")] = None,
 ) -> None:
     """Export to ONNX, measure (held-out set, real scans, poses without masks) and write the card."""
     from model_export.localiser.card import write_card
@@ -78,6 +79,37 @@ def ship(
 
     onnx_path = export_onnx(checkpoint, out / "model.onnx", grid_mm=grid_mm, version=version)
     figures = measure(Localiser.load(onnx_path), heldout, pose_stacks)
+    figures["architectures"] = json.loads(ablation.read_text()) if ablation else []
     (out / "evaluation.json").write_text(json.dumps(figures, indent=1))
     write_card(out / "card.md", onnx_path, figures)
     typer.echo(json.dumps(figures["summary"], indent=1))
+
+
+@app.command()
+def compare(
+    checkpoints: Annotated[list[Path], typer.Argument(help="checkpoints trained alike (same data, seed, minutes)")],
+    heldout: Annotated[Path, typer.Option(help="shard folder of `data --style heldout --keep-stack`")],
+    out: Annotated[Path, typer.Option(help="JSON rows for `ship --ablation`")],
+    grid_mm: float = GRID_MM,
+) -> None:
+    """Dice of each checkpoint on the held-out set and the real scans: the architecture chosen by measurement."""
+    import tempfile
+
+    import numpy as np
+
+    from model_export.localiser.evaluate import heldout_dice, latency_ms, real_scan_rows
+    from model_export.localiser.export import export_onnx, load_checkpoint
+    from service.preprocess.localise import Localiser
+
+    rows = []
+    for ckpt in checkpoints:
+        onnx_path = export_onnx(ckpt, Path(tempfile.mkdtemp()) / "model.onnx", grid_mm=grid_mm, version=ckpt.stem)
+        loc = Localiser.load(onnx_path)
+        held = [r["dice"] for r in heldout_dice(loc, heldout)]
+        real = [r["dice"] for r in real_scan_rows(loc) if r["dice"] is not None]
+        config = load_checkpoint(ckpt).config
+        rows.append({"checkpoint": ckpt.name, "inputs": "2.5D" if config["in_channels"] == 3 else "2D", **config,
+                     "heldout_median_dice": float(np.median(held)), "heldout_min_dice": float(np.min(held)),
+                     "real_median_dice": float(np.median(real)) if real else None, "ms": latency_ms(loc)})
+        typer.echo(json.dumps(rows[-1]))
+    out.write_text(json.dumps(rows, indent=1))

@@ -4,7 +4,8 @@ Each shard ``<style>-<seed>.npz`` holds one synthetic stack (:func:`~model_expor
 passed through the service's own input function: ``slices [n, Hp, Wp]`` float16 (the middle channel
 of :func:`~service.preprocess.localiser_inputs.localiser_inputs`; the 2.5D channels are rebuilt with
 :func:`~service.preprocess.localiser_inputs.with_neighbours`) and ``target [n, Hp, Wp]`` uint8 (brain
-fraction x 255), plus the stack itself when ``keep_stack`` (for evaluation on the stack's own grid).
+fraction x 255), plus the stack itself when ``keep_stack`` (for evaluation on the stack's own grid)
+with ``t2_like`` (held-out stacks alternate T2-like and uniformly random contrasts by seed).
 """
 
 from __future__ import annotations
@@ -32,9 +33,11 @@ def _one(job: tuple[Path, str, int, float, bool]) -> str:
         return path.name
     rng = np.random.default_rng(seed)
     head = _HEADS[int(rng.integers(len(_HEADS)))]
-    volume, mask = synth_stack(head, rng, style)
+    random_contrast = bool(seed % 2) if style == "heldout" else None      # held out: T2-like and random, alternately
+    volume, mask = synth_stack(head, rng, style, random_contrast)
     x, _ = localiser_inputs(volume, grid_mm)
-    extra = {"stack": volume.array.astype(np.float16), "affine": volume.affine, "mask": mask} if keep_stack else {}
+    extra = {"stack": volume.array.astype(np.float16), "affine": volume.affine, "mask": mask,
+             "t2_like": not random_contrast} if keep_stack else {}
     np.savez_compressed(path, slices=x[:, 1].astype(np.float16),
                         target=np.round(target_maps(mask, volume, grid_mm) * 255).astype(np.uint8), **extra)
     return path.name

@@ -45,11 +45,12 @@ def heldout_dice(localiser: Localiser, folder: Path) -> list[dict]:
     for path in sorted(Path(folder).glob("*.npz")):
         with np.load(path) as z:
             volume, truth = Volume(z["stack"].astype(np.float32), z["affine"]), z["mask"]
+            t2_like = bool(z["t2_like"]) if "t2_like" in z else None
         t = time.perf_counter()
         found = localiser.localise(volume)
         rows.append({"stack": path.stem, "dice": dice(found.mask, truth), "confidence": found.confidence,
                      "ml": found.brain_volume_ml, "true_ml": float(truth.sum() * np.prod(volume.spacing) / 1e3),
-                     "ms": (time.perf_counter() - t) * 1e3, "shape": list(volume.array.shape)})
+                     "ms": (time.perf_counter() - t) * 1e3, "shape": list(volume.array.shape), "t2_like": t2_like})
     return rows
 
 
@@ -121,7 +122,8 @@ def measure(localiser: Localiser, heldout: Path, pose_stacks: int = 8, root: Pat
     real = real_scan_rows(localiser, root) if Path(root).exists() else []
     estimator = _pose_estimator()
     poses_heldout = []
-    for path in sorted(Path(heldout).glob("*.npz"))[:pose_stacks]:
+    t2_like = [p for p in sorted(Path(heldout).glob("*.npz")) if bool(np.load(p)["t2_like"])]
+    for path in t2_like[:pose_stacks]:                 # the pose network knows T2 contrast only
         with np.load(path) as z:
             volume = Volume(z["stack"].astype(np.float32), z["affine"])
             poses_heldout.append(pose_agreement(
@@ -134,6 +136,9 @@ def measure(localiser: Localiser, heldout: Path, pose_stacks: int = 8, root: Pat
     summary = {
         "heldout_median_dice": float(np.median(held_dice)), "heldout_min_dice": float(np.min(held_dice)),
         "heldout_stacks": len(held), "real_dice": real_dice,
+        "heldout_t2_like_median_dice": float(np.median([r["dice"] for r in held if r["t2_like"]] or [np.nan])),
+        "heldout_random_contrast_median_dice": float(np.median([r["dice"] for r in held if r["t2_like"] is False]
+                                                               or [np.nan])),
         "real_without_mask": [r["stack"] for r in real if r["ml"] == 0],
         "poses_real_median_ed_mm": poses_real and poses_real["median_ed_mm"],
         "poses_real_latency_ratio": poses_real and poses_real["latency_ratio"],

@@ -23,8 +23,8 @@ manual fetal brain masks are drawn.
 
 Two *styles* share the head and differ in everything around it: ``"train"`` (maternal tissue from
 the arg-max of smooth noise fields, Rician noise, T2-like intensity priors with 20 % fully random
-draws) and ``"heldout"`` (maternal tissue from Voronoi cells, Gaussian noise, a polynomial bias
-field, intensities drawn uniformly), so that a validation set of the held-out style measures
+draws) and ``"heldout"`` (maternal tissue from Voronoi cells, a squarer uterus, Gaussian noise, a
+polynomial bias field, half the stacks with every intensity drawn uniformly), so that a validation set of the held-out style measures
 generalisation rather than memory of the generator.
 
 Example:
@@ -94,9 +94,9 @@ def _ellipsoid_radius(points: NDArray, centre: NDArray, axes: NDArray, rotation:
     return np.sqrt((local ** 2).sum(-1)).astype(np.float32)
 
 
-def _intensities(rng: np.random.Generator, style: str) -> dict[str, float]:
-    """Mean intensity of each tissue (fluid about 1 in a T2-like draw)."""
-    if style == "heldout" or rng.random() < 0.2:
+def _intensities(rng: np.random.Generator, random_contrast: bool) -> dict[str, float]:
+    """Mean intensity of each tissue: T2-like (fluid bright, skull dark), or each drawn uniformly."""
+    if random_contrast:
         names = ("fluid", "csf", "skull", "scalp", "body", "wall", "placenta", "fat", "air")
         out = {k: float(rng.uniform(0.0, 1.0)) for k in names}
         out["air"] *= 0.3
@@ -265,12 +265,19 @@ def _head(head: HeadModel, geo: StackGeometry, centre: NDArray, rotation: NDArra
     return values, inside, box
 
 
-def synth_stack(head: HeadModel, rng: np.random.Generator, style: str = "train") -> tuple[Volume, NDArray[np.bool_]]:
-    """One synthetic whole-uterus stack and its brain mask (voxel order ``[x, y, slice]``)."""
+def synth_stack(head: HeadModel, rng: np.random.Generator, style: str = "train",
+                random_contrast: bool | None = None) -> tuple[Volume, NDArray[np.bool_]]:
+    """One synthetic whole-uterus stack and its brain mask (voxel order ``[x, y, slice]``).
+
+    ``random_contrast``: every tissue's intensity drawn uniformly (True) or T2-like (False); by
+    default drawn, for 20 % of the ``train`` stacks and half of the ``heldout`` ones.
+    """
     if style not in STYLES:
         raise ValueError(f"style must be one of {STYLES}")
     geo = StackGeometry.draw(rng)
-    tissue = _intensities(rng, style)
+    if random_contrast is None:
+        random_contrast = bool(rng.random() < (0.2 if style == "train" else 0.5))
+    tissue = _intensities(rng, random_contrast)
     half_fov = geo.size * geo.pixel_mm / 2.0
     centre = np.array([*rng.uniform(-0.55, 0.55, 2) * max(half_fov - head.radius_mm, 10.0),
                        rng.uniform(-0.3, 0.3) * geo.slices * geo.gap_mm]).astype(np.float32)

@@ -35,10 +35,10 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from service.core.errors import NotFound
-from service.core.settings import DEFAULT_LOCALISERS_DIR
 from service.core.onnx import file_sha256, session_options
+from service.core.settings import DEFAULT_LOCALISERS_DIR
 from service.io.volume import Volume
-from service.preprocess.localiser_inputs import localiser_inputs
+from service.preprocess.localiser_inputs import LocaliserGrid, localiser_inputs
 from service.preprocess.stack import slice_axis_of
 
 log = logging.getLogger(__name__)
@@ -75,18 +75,18 @@ class Localisation:
                 "confidence": round(self.confidence, 3)}
 
 
-def plausibility(volume_ml: float) -> float:
-    """1 inside :data:`PLAUSIBLE_ML`, falling off linearly in log-volume to 0 at a factor of 3 outside.
+def plausibility(volume_ml: float | NDArray) -> float | NDArray:
+    """1 inside :data:`PLAUSIBLE_ML`, falling off linearly in log-volume to 0 at a factor of 3 outside
+    (element-wise for an array).
 
     Example:
         >>> plausibility(300.0), plausibility(10.0), round(plausibility(2100.0), 2)
         (1.0, 0.0, 0.0)
     """
     lo, hi = PLAUSIBLE_ML
-    if volume_ml <= 0:
-        return 0.0
-    out = max(np.log(lo / volume_ml), np.log(volume_ml / hi), 0.0) / np.log(3.0)
-    return float(np.clip(1.0 - out, 0.0, 1.0))
+    v = np.maximum(np.asarray(volume_ml, np.float64), 1e-9)
+    out = np.clip(1.0 - np.maximum(np.maximum(np.log(lo / v), np.log(v / hi)), 0.0) / np.log(3.0), 0.0, 1.0)
+    return float(out) if out.ndim == 0 else out
 
 
 def brain_from_probabilities(prob: NDArray[np.float32], voxel_ml: float) -> tuple[NDArray[np.bool_], float]:
@@ -106,7 +106,7 @@ def brain_from_probabilities(prob: NDArray[np.float32], voxel_ml: float) -> tupl
     ids = np.arange(1, n + 1)
     mass = ndimage.sum_labels(prob, labels, ids)
     volume_of = ndimage.sum_labels(np.ones(prob.shape, np.float32), labels, ids) * voxel_ml
-    best = int(np.argmax(mass * np.array([plausibility(v) for v in volume_of]) + 1e-6 * mass)) + 1
+    best = int(np.argmax(mass * plausibility(volume_of) + 1e-6 * mass)) + 1
     brain = labels == best
     brain = np.stack([ndimage.binary_fill_holes(s) for s in brain])
     volume_ml = float(brain.sum() * voxel_ml)
@@ -129,12 +129,13 @@ class Localiser:
 
     @classmethod
     def load(cls, path: Path, threads: int = 0) -> "Localiser":
+        """Open ``path`` with onnxruntime (``threads`` 0: all cores) and read its metadata."""
         path = Path(path)
         sess = ort.InferenceSession(str(path), session_options(threads), providers=["CPUExecutionProvider"])
         meta = sess.get_modelmeta().custom_metadata_map
         return cls(path, sess, float(meta["grid_mm"]), meta.get("version", "unknown"), file_sha256(path))
 
-    def probabilities(self, volume: Volume) -> tuple[NDArray[np.float32], object]:
+    def probabilities(self, volume: Volume) -> tuple[NDArray[np.float32], LocaliserGrid]:
         """Per-slice brain probabilities on the network grid ``[n, Hp, Wp]`` and that grid."""
         x, grid = localiser_inputs(volume, self.grid_mm)
         feed = self.session.get_inputs()[0]
