@@ -16,7 +16,8 @@ brain's shape and its setting, not one scanner's contrast.
   averaged): the atlas brain (its T2 intensities, remapped by a random gamma), then an extra-axial
   CSF layer, the skull and the scalp, all from the atlas mask's signed distance. The head takes any
   orientation and moves from slice to slice (small drift plus occasional jumps).
-* **Acquisition**: a smooth multiplicative bias field, slice-to-slice intensity changes, noise.
+* **Acquisition**: a smooth multiplicative bias field and, for half the stacks, a surface coil's
+  fall-off; slice-to-slice intensity changes; noise.
 
 The brain mask the network learns is everything inside the skull (brain and extra-axial CSF), as
 manual fetal brain masks are drawn.
@@ -104,7 +105,7 @@ def _intensities(rng: np.random.Generator, random_contrast: bool) -> dict[str, f
     fluid = rng.uniform(0.7, 1.0)
     return {"fluid": fluid, "csf": fluid * rng.uniform(0.85, 1.1), "skull": rng.uniform(0.0, 0.15),
             "scalp": rng.uniform(0.15, 0.5), "body": rng.uniform(0.15, 0.55), "wall": rng.uniform(0.15, 0.5),
-            "placenta": rng.uniform(0.25, 0.6), "fat": rng.uniform(0.4, 1.0), "air": rng.uniform(0.0, 0.05)}
+            "placenta": rng.uniform(0.25, 0.6), "fat": rng.uniform(0.4, 1.6), "air": rng.uniform(0.0, 0.05)}
 
 
 @dataclass
@@ -303,6 +304,18 @@ def synth_stack(head: HeadModel, rng: np.random.Generator, style: str = "train",
 
 
 def _bias(rng: np.random.Generator, shape: tuple[int, ...], style: str) -> NDArray[np.float32]:
+    """A smooth multiplicative field, and for half the stacks the fall-off away from a surface coil
+    (up to about x10 across the field of view, as near-coil fat shows in body-array scans)."""
+    coil = np.ones(shape[:2] + (1,), np.float32)
+    if rng.random() < 0.5:
+        axes = np.linspace(-1, 1, shape[0], dtype=np.float32)
+        angle = rng.uniform(0, 2 * np.pi)
+        towards = np.cos(angle) * axes[:, None] + np.sin(angle) * axes[None, :]
+        coil = np.exp(rng.uniform(0.2, 1.2) * towards)[:, :, None].astype(np.float32)
+    return coil * _field(rng, shape, style)
+
+
+def _field(rng: np.random.Generator, shape: tuple[int, ...], style: str) -> NDArray[np.float32]:
     strength = rng.uniform(0.0, 0.6)
     if style == "train":
         return np.exp(strength * _smooth_noise(rng, shape, (3, 3, 2)))
