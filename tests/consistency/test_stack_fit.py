@@ -187,7 +187,7 @@ def test_a_depth_gain_trusts_the_outer_slices_less() -> None:
     stage's expected errors grow there more than at the middle (which shares a little of it: the
     outer slices' positions pin the stack's tilt at every depth through the lever arm). (On Gaussian
     errors this weighting gains nothing measurable; on the network's outer planes, lost and
-    heavy-tailed, it gained 0.1-0.3 mm: see the README, "The error's shape".)"""
+    heavy-tailed, it gained 0.1-0.3 mm: see CHANGELOG.md, "The error's shape".)"""
     from service.consistency.error_shape import relative_depth
 
     rng = np.random.default_rng(22)

@@ -1,5 +1,5 @@
 """``docker/compose.yaml`` cannot be run here (no container engine): parse it and check that it says
-what the README promises -- Redis, two API replicas behind one port, two workers, one shared volume,
+what docs/deployment.md promises -- Redis, two API replicas behind one port, two workers, one shared volume,
 a health check per service -- and that every command it runs exists in this package."""
 
 from __future__ import annotations
