@@ -133,7 +133,11 @@ def measure(localiser: Localiser, heldout: Path, pose_stacks: int = 8, root: Pat
     real = real_scan_rows(localiser, root) if Path(root).exists() else []
     estimator = _pose_estimator()
     poses_heldout = []
-    t2_like = [p for p in sorted(Path(heldout).glob("*.npz")) if bool(np.load(p)["t2_like"])]
+    def is_t2_like(path: Path) -> bool:
+        with np.load(path) as z:
+            return bool(z["t2_like"])
+
+    t2_like = [p for p in sorted(Path(heldout).glob("*.npz")) if is_t2_like(p)]
     for path in t2_like[:pose_stacks]:                 # the pose network knows T2 contrast only
         with np.load(path) as z:
             volume = Volume(z["stack"].astype(np.float32), z["affine"])

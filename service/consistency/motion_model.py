@@ -25,7 +25,7 @@ Compared with a leave-one-out kernel smoother chosen by cross-validation (what t
 likelihood does not chase errors that neighbouring slices share, and the slices the network cannot
 place (the outer third of a stack, 47-104 deg off) weigh by their spread instead of like the rest:
 with model 2.3.0's poses of 45 simulated stacks per level, the mean E.D. after the stage fell from
-19.1 to 5.7 mm (mild motion) and from 14.8 to 8.6 mm (moderate); see the README, "Stack consistency".
+19.1 to 5.7 mm (mild motion) and from 14.8 to 8.6 mm (moderate); see CHANGELOG.md, "The left–right twin and stack consistency".
 
 Example:
     >>> import numpy as np

@@ -13,7 +13,7 @@ Why it matters, measured: with mild motion (5 deg / 3 mm) the likelihood cannot 
 from network errors that change smoothly with depth, and took the sequential order for 27 of 45
 interleaved stacks, fitting those errors as motion. Told "interleaved" (either phase), the mean
 E.D. after the stage fell from 5.74 to 5.40 mm on those stacks (model 2.3.0's poses; moderate
-motion 8.58 -> 8.59: there the motion itself picks the order). See the README, "Stack consistency".
+motion 8.58 -> 8.59: there the motion itself picks the order). See CHANGELOG.md, "The left–right twin and stack consistency".
 
 Example:
     >>> order = SliceOrder.parse("interleaved")

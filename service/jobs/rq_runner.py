@@ -1,4 +1,4 @@
-"""The distributed back-end's runner: an RQ queue on Redis (why RQ: README, "Running on several machines").
+"""The distributed back-end's runner: an RQ queue on Redis (why RQ: docs/deployment.md, "Running on several machines").
 
 * The API replicas only **enqueue** (the RQ job id is the job's id) and, every
   ``queue_maintenance_s``, **maintain**: RQ's registry clean-up re-delivers the job of a worker that

@@ -105,7 +105,7 @@ def brain_from_probabilities(prob: NDArray[np.float32], voxel_ml: float) -> tupl
         return np.zeros(prob.shape, bool), 0.0
     ids = np.arange(1, n + 1)
     mass = ndimage.sum_labels(prob, labels, ids)
-    volume_of = ndimage.sum_labels(np.ones(prob.shape, np.float32), labels, ids) * voxel_ml
+    volume_of = np.bincount(labels.ravel(), minlength=n + 1)[1:] * voxel_ml
     best = int(np.argmax(mass * plausibility(volume_of) + 1e-6 * mass)) + 1
     brain = labels == best
     brain = np.stack([ndimage.binary_fill_holes(s) for s in brain])

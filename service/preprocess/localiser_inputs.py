@@ -71,15 +71,16 @@ class LocaliserGrid:
         return stack_from_slice_images(native, self.slice_axis)
 
 
-def _resample(images: NDArray[np.float32], pixel_mm: tuple[float, float], grid_mm: float,
-              order: int = 1) -> NDArray[np.float32]:
+def _resample(images: NDArray[np.float32], pixel_mm: tuple[float, float], grid_mm: float) -> NDArray[np.float32]:
+    """Slices ``[n, H, W]`` to square ``grid_mm`` pixels over the same field of view (bilinear, Gaussian
+    anti-aliasing first where the grid is coarser)."""
     factors = np.array(pixel_mm) / grid_mm                       # < 1: shrinking
     sigma = [0.0] + [FWHM_TO_SIGMA * np.sqrt(max(1.0 / f ** 2 - 1.0, 0.0)) for f in factors]
-    if order > 0 and max(sigma) > 0:
+    if max(sigma) > 0:
         images = ndimage.gaussian_filter(images, sigma, mode="nearest", truncate=3.0)
     size = np.maximum(1, np.round(np.array(images.shape[1:]) * factors)).astype(int)
     zoom = (1.0, *(size / np.array(images.shape[1:])))
-    return ndimage.zoom(images, zoom, order=order, mode="nearest", grid_mode=True)
+    return ndimage.zoom(images, zoom, order=1, mode="nearest", grid_mode=True)
 
 
 def _pad(small: NDArray[np.float32]) -> tuple[NDArray[np.float32], tuple[int, int]]:
@@ -102,7 +103,7 @@ def localiser_inputs(volume: Volume, grid_mm: float) -> tuple[NDArray[np.float32
     """The network inputs ``[n, 3, Hp, Wp]`` of a stack and the grid to map outputs back with."""
     axis = slice_axis_of(volume.spacing)
     images, pixel_mm = slice_images(volume.array, volume.affine, axis)
-    images = np.nan_to_num(images.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    images = np.nan_to_num(np.asarray(images, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
     scale = float(np.percentile(images[:, ::3, ::3], PERCENTILE))        # every 9th pixel: as good, 30x faster
     images = np.clip(images / scale, 0.0, 2.0) if scale > 0 else np.zeros_like(images)
     small = _resample(images, pixel_mm, grid_mm)
@@ -115,6 +116,5 @@ def localiser_inputs(volume: Volume, grid_mm: float) -> tuple[NDArray[np.float32
 def target_maps(mask: NDArray, volume: Volume, grid_mm: float) -> NDArray[np.float32]:
     """A stack's brain mask on the network grid ``[n, Hp, Wp]`` (brain fraction per pixel): the
     training target that matches :func:`localiser_inputs` pixel for pixel."""
-    axis = slice_axis_of(volume.spacing)
-    images, pixel_mm = slice_images(np.asarray(mask, np.float32), volume.affine, axis)
+    images, pixel_mm = slice_images(np.asarray(mask, np.float32), volume.affine, slice_axis_of(volume.spacing))
     return _pad(np.clip(_resample(images, pixel_mm, grid_mm), 0.0, 1.0))[0]
