@@ -63,6 +63,8 @@ svrnet-train localiser train --data T --out L.pt --minutes 60   # 2 CPU cores, c
 svrnet-train localiser data --out H --count 40 --style heldout --seed 1000000 --keep-stack
 svrnet-train localiser ship L.pt --heldout H --ablation A.json  # this card and evaluation.json
 ```
+`checkpoint.pt` beside this card is the shipped network's training state: `svrnet-train localiser train
+--out` a copy of it resumes training from there.
 
 ## Measured
 
