@@ -1,5 +1,6 @@
-# Two commands for a new user: `make serve` and `make test`. Both are idempotent: the venv and the
-# installs are redone only when pyproject.toml or constraints.txt change.
+# Two commands for a new user: `make serve` and `make test` (the tests, then the documentation site
+# built with --strict). Both are idempotent: the venv and the installs are redone only when
+# pyproject.toml or constraints.txt change.
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
@@ -28,6 +29,7 @@ serve: install-server
 
 test: install-dev
 	$(PY) -m pytest -q $(PYTEST_ARGS)
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict -q -d $(or $(TMPDIR),/tmp)/svrnet-site
 
 bench: install-dev
 	$(PY) benchmarks/se3_bench.py
