@@ -254,6 +254,7 @@ class SVRnetClient:
 
     def predict(self, stacks: Sequence[PathLike], masks: Sequence[PathLike] | None = None, *,
                 mc_samples: int | None = None, variance_threshold: float | None = None,
+                max_expected_error_mm: float | None = None,
                 bias_correction: bool | None = None, model: str | None = None,
                 slice_order: str | Sequence[str] | None = None, image_consistency: bool | None = None,
                 progress: ProgressCallback | None = None) -> dict[str, Any]:
@@ -266,6 +267,8 @@ class SVRnetClient:
             masks: none, or one region-of-interest mask per stack, in the same order.
             mc_samples: Monte Carlo dropout passes per slice (1..1000).
             variance_threshold: slices above this geodesic variance are not accepted.
+            max_expected_error_mm: slices whose returned pose's expected error (mm) exceeds it are
+                not accepted (``high_expected_error``); default: the model's calibrated value.
             bias_correction: N4 bias-field correction before normalisation.
             model: a name listed by :meth:`models`.
             slice_order: the stacks' acquisition order, if known: one value for every stack or one
@@ -289,6 +292,7 @@ class SVRnetClient:
         """
         fields = [(k, form_value(v)) for k, v in (("mc_samples", mc_samples),
                                                    ("variance_threshold", variance_threshold),
+                                                   ("max_expected_error_mm", max_expected_error_mm),
                                                    ("bias_correction", bias_correction), ("model", model),
                                                    ("image_consistency", image_consistency))
                   if v is not None]
@@ -330,8 +334,8 @@ class SVRnetClient:
     def reconstruct(self, stacks: Sequence[PathLike], masks: Sequence[PathLike] | None = None,
                     poses: Mapping[str, Any] | PathLike | None = None, *, resolution_mm: float | None = None,
                     svr_iterations: int | None = None, mc_samples: int | None = None,
-                    variance_threshold: float | None = None, slice_order: str | Sequence[str] | None = None,
-                    atlas_frame: bool | None = None, progress: ProgressCallback | None = None) -> dict[str, Any]:
+                    variance_threshold: float | None = None, max_expected_error_mm: float | None = None,
+                    slice_order: str | Sequence[str] | None = None, atlas_frame: bool | None = None, progress: ProgressCallback | None = None) -> dict[str, Any]:
         """``POST /v1/reconstructions``: start a slice-to-volume reconstruction job.
 
         Args:
@@ -344,6 +348,7 @@ class SVRnetClient:
             svr_iterations: slice-to-volume registration iterations (server default 3).
             mc_samples: as for :meth:`predict`.
             variance_threshold: as for :meth:`predict`.
+            max_expected_error_mm: as for :meth:`predict`.
             slice_order: as for :meth:`predict`.
             atlas_frame: re-estimate the reconstruction's atlas frame with the model (server default true).
             progress: ``progress(bytes_sent, total)`` during the upload.
@@ -361,6 +366,7 @@ class SVRnetClient:
                                                    ("svr_iterations", svr_iterations),
                                                    ("mc_samples", mc_samples),
                                                    ("variance_threshold", variance_threshold),
+                                                   ("max_expected_error_mm", max_expected_error_mm),
                                                    ("atlas_frame", atlas_frame)) if v is not None]
         fields += order_fields(slice_order)
         files: list[tuple[str, str, Path | bytes, str]] = list(self._files(stacks, masks))

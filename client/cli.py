@@ -209,26 +209,33 @@ def _write_json(path: Path, body: Any) -> None:
 def summarise(result: dict[str, Any]) -> Table:
     """The per-stack summary table of a ``/v1/predict`` body."""
     model = result.get("model") or {}
+    limit, threshold = result.get("max_expected_error_mm"), result.get("variance_threshold")
     title = (f"model {model.get('name', '?')} {model.get('version', '')} · mc_samples {result.get('mc_samples')} · "
-             f"variance threshold {result.get('variance_threshold')}")
+             f"accepted: expected error <= {'-' if limit is None else f'{limit:.3g} mm'}, "
+             f"variance <= {'-' if threshold is None else f'{threshold:.4g}'}")
     table = Table(title=title, title_justify="left")
     for col, just in (("#", "right"), ("stack", "left"), ("brain", "left"), ("slices", "right"), ("accepted", "right"),
-                      ("rejected (by reason)", "left"), ("median variance", "right")):
+                      ("rejected (by reason)", "left"), ("median expected error", "right"), ("median variance", "right")):
         table.add_column(col, justify=just)  # type: ignore[arg-type]
     for i, stack in enumerate(result.get("stacks") or []):
         slices = stack.get("slices") or []
         accepted = sum(1 for s in slices if s.get("accepted"))
         reasons = Counter(s.get("reason") or "unknown" for s in slices if not s.get("accepted"))
         variances = [s["geodesic_variance"] for s in slices if s.get("geodesic_variance") is not None]
+        expected = [s["expected_error_mm"] for s in slices if s.get("expected_error_mm") is not None]
         where = stack.get("localisation") or {}
         brain = "mask" if where.get("method") == "mask" else \
             f"found, {where.get('brain_volume_ml', 0):.0f} ml, confidence {where.get('confidence', 0):.2f}" if where else "-"
         table.add_row(str(stack.get("index", i)), str(stack.get("filename", "")), brain, str(len(slices)), str(accepted),
                       ", ".join(f"{k} {v}" for k, v in sorted(reasons.items())) or "-",
+                      f"{statistics.median(expected):.1f} mm" if expected else "-",
                       f"{statistics.median(variances):.4g}" if variances else "-")
     return table
 
 
+MaxExpectedOpt = Annotated[Optional[float], typer.Option(
+    "--max-expected-error", callback=_positive,
+    help="accept only slices whose expected error (mm) is at most this (default: the model's)")]
 ServerOpt = Annotated[str, typer.Option("--server", envvar="SVRNET_SERVER", help="server URL")]
 MaskOpt = Annotated[Optional[list[Path]], typer.Option(
     "--mask", "-m", exists=True, dir_okay=False, readable=True,
@@ -248,6 +255,7 @@ def predict(
     mc_samples: Annotated[Optional[int], typer.Option(min=1, max=1000, help="MC-dropout passes per slice")] = None,
     threshold: Annotated[Optional[float], typer.Option(
         "--threshold", callback=_positive, help="variance threshold (default: the model's)")] = None,
+    max_expected_error: MaxExpectedOpt = None,
     bias_correction: Annotated[bool, typer.Option("--bias-correction/--no-bias-correction",
                                                   help="N4 bias-field correction")] = True,
     model: Annotated[Optional[str], typer.Option(help="model name (see `svrnet models`)")] = None,
@@ -266,6 +274,7 @@ def predict(
     with _errors(), _client(server) as svr:
         with _upload_bar(err, f"{len(stacks)} stack(s)") as progress:
             result = svr.predict(stacks, mask, mc_samples=mc_samples, variance_threshold=threshold,
+                                 max_expected_error_mm=max_expected_error,
                                  bias_correction=None if bias_correction else False, model=model,
                                  slice_order=slice_order, image_consistency=None if image_consistency else False,
                                  progress=progress)
@@ -329,6 +338,7 @@ def reconstruct(
     mc_samples: Annotated[Optional[int], typer.Option(min=1, max=1000, help="MC-dropout passes per slice")] = None,
     threshold: Annotated[Optional[float], typer.Option(
         "--threshold", callback=_positive, help="variance threshold (default: the model's)")] = None,
+    max_expected_error: MaxExpectedOpt = None,
     wait: Annotated[bool, typer.Option("--wait", help="wait for the job and download its results")] = False,
     out: Annotated[Optional[Path], typer.Option(
         "--out", "-o", dir_okay=False, help="volume file (implies --wait; default recon.nii.gz with --wait)")] = None,
@@ -352,7 +362,8 @@ def reconstruct(
     with _errors(), _client(server) as svr:
         with _upload_bar(err, f"{len(stacks)} stack(s)") as progress:
             job = svr.reconstruct(stacks, mask, poses, resolution_mm=resolution, svr_iterations=svr_iterations,
-                                  mc_samples=mc_samples, variance_threshold=threshold, slice_order=slice_order,
+                                  mc_samples=mc_samples, variance_threshold=threshold,
+                                  max_expected_error_mm=max_expected_error, slice_order=slice_order,
                                   atlas_frame=None if atlas_frame else False, progress=progress)
         job_id = str(job.get("job_id", ""))
         console.print(f"job {job_id} {job.get('status', 'queued')}: {job.get('status_url', '')}")

@@ -7,6 +7,10 @@ frame at a random rigid position of the fetus. The fetus moves during the acquis
 
 * ``mild``: a smooth random trajectory reaching 5 deg / 3 mm at its largest;
 * ``moderate``: the same reaching 20 deg / 8 mm;
+* ``jumps``: smooth drift (10 deg / 4 mm) with sudden jumps: at 1-4 random moments the fetus
+  moves to a new position (up to 20 deg and 8 mm per axis from the stack's) and stays there;
+* ``independent``: every slice an independent draw, uniform within 20 deg and 8 mm per axis
+  (no temporal smoothness at all);
 * ``extreme``: an independent random orientation (and a position within 15 mm of the brain
   centre) for every slice.
 
@@ -36,8 +40,13 @@ from service.geometry.pose import make_pose, translate
 from service.io.volume import Volume
 from service.preprocess.stack import split_stack
 
-MOTION_LEVELS: dict[str, tuple[float, float] | None] = {"mild": (5.0, 3.0), "moderate": (20.0, 8.0), "extreme": None}
-"""Largest rotation (deg) and translation (mm) of the smooth motion; ``None``: independent per slice."""
+MOTION_LEVELS: dict[str, tuple[float, float] | None] = {
+    "mild": (5.0, 3.0), "moderate": (20.0, 8.0), "jumps": (10.0, 4.0), "independent": (20.0, 8.0), "extreme": None}
+"""Largest rotation (deg) and translation (mm) of each level's motion (for ``jumps``, of its smooth
+drift); ``None``: any orientation per slice."""
+JUMP_DEG, JUMP_MM = 20.0, 8.0
+"""Largest rotation angle and translation per axis of a jump, and of an ``independent`` slice."""
+MAX_JUMPS = 4
 STACK_TILT_DEG = 10.0
 EXTREME_OFFSET_MM = 15.0
 ORIENTATIONS = {
@@ -94,6 +103,40 @@ def smooth_motion(times: ArrayLike, rng: np.random.Generator, max_deg: float, ma
     return xi
 
 
+def uniform_twists(n: int, rng: np.random.Generator, max_deg: float, max_mm: float) -> NDArray[np.float64]:
+    """``[n, 6]`` independent twists: a rotation about a random axis by up to ``max_deg`` (uniform
+    angle) and a translation uniform within ``max_mm`` along each axis."""
+    axis = rng.normal(size=(n, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    angle = rng.uniform(-np.radians(max_deg), np.radians(max_deg), (n, 1))
+    return np.concatenate([axis * angle, rng.uniform(-max_mm, max_mm, (n, 3))], axis=1)
+
+
+def motion_twists(times: ArrayLike, rng: np.random.Generator, motion: str) -> NDArray[np.float64]:
+    """Twists ``[n, 6]`` (about the brain centre, scanner axes) of one stack's slices acquired at
+    ``times`` under a smooth or jumping motion level (see the module docstring; not ``extreme``).
+
+    Example:
+        >>> tw = motion_twists(np.arange(20), np.random.default_rng(0), "jumps")
+        >>> jumps = np.linalg.norm(np.diff(tw[np.argsort(np.arange(20))], axis=0), axis=1)
+        >>> bool(jumps.max() > 5 * np.median(jumps))                   # a few large steps, many small
+        True
+    """
+    t = np.asarray(times)
+    max_deg, max_mm = MOTION_LEVELS[motion]
+    if motion == "independent":
+        return uniform_twists(len(t), rng, max_deg, max_mm)
+    drift = smooth_motion(t, rng, max_deg, max_mm)
+    if motion != "jumps":
+        return drift
+    moments_after = np.arange(1, max(len(t), 2))                       # a jump between two acquisitions
+    count = min(int(rng.integers(1, MAX_JUMPS + 1)), len(moments_after))
+    moments = np.sort(rng.choice(moments_after, size=count, replace=False))
+    segment = np.searchsorted(moments, t, side="right")                 # 0 before the first jump
+    offsets = np.concatenate([np.zeros((1, 6)), uniform_twists(count, rng, JUMP_DEG, JUMP_MM)])
+    return se3.log(se3.exp(offsets[segment]) @ se3.exp(drift))
+
+
 def simulate_stack(image: NDArray, mask: NDArray, affine: NDArray, centre: NDArray, orientation: str,
                    scanner_from_atlas: NDArray, rng: np.random.Generator, motion: str, *, size: int = 128,
                    pixel_mm: float = 1.0, gap_mm: float = 3.0, thickness_mm: float = 3.0, noise: float = 0.03,
@@ -113,7 +156,7 @@ def simulate_stack(image: NDArray, mask: NDArray, affine: NDArray, centre: NDArr
         poses[:, :3, 3] = centre + rng.uniform(-EXTREME_OFFSET_MM, EXTREME_OFFSET_MM, (n, 3))
         truth = poses @ stack_geo.slice_from_voxel
     else:
-        about_centre = translate(centre) @ se3.exp(smooth_motion(times, rng, *level)) @ translate(-centre)
+        about_centre = translate(centre) @ se3.exp(motion_twists(times, rng, motion)) @ translate(-centre)
         truth = about_centre @ static[None]
     slice_poses = truth @ np.linalg.inv(stack_geo.slice_from_voxel)        # slice frame -> atlas, rigid
     img = sampling.sample_slices(image, affine, slice_poses, size, pixel_mm, thickness_mm=thickness_mm or None)

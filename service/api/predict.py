@@ -10,7 +10,7 @@ from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 
 from service.api.deps import ApiKey, LocalisersDep, MetricsDep, RegistryDep, SettingsDep, SlotDep
 from service.api.schemas import UPLOAD_ERRORS, PredictResponse
-from service.api.uploads import SLICE_ORDER_HELP, SliceOrderField, check_form, known_fields, parse_orders, save_and_read, upload_directory
+from service.api.uploads import MAX_EXPECTED_ERROR_HELP, SLICE_ORDER_HELP, SliceOrderField, check_form, known_fields, parse_orders, save_and_read, upload_directory
 from service.inference.pipeline import predict as run_prediction
 from service.inference.pipeline import prepare_stacks
 
@@ -30,6 +30,7 @@ async def predict(
     masks: Annotated[Optional[list[UploadFile]], File(description="0 or one mask per stack, same grid")] = None,
     mc_samples: Annotated[int, Form(ge=1, le=1000, description="MC-dropout passes per slice")] = 100,
     variance_threshold: Annotated[Optional[float], Form(gt=0, description="default: the model's")] = None,
+    max_expected_error_mm: Annotated[Optional[float], Form(gt=0, description=MAX_EXPECTED_ERROR_HELP)] = None,
     bias_correction: Annotated[bool, Form(description="N4 before normalisation")] = True,
     model: Annotated[str, Form(description="a name from GET /v1/models")] = "default",
     stack_consistency: Annotated[bool, Form(description="decide each stack's left-right branch from all its slices, "
@@ -44,10 +45,11 @@ async def predict(
     model = registry.resolve(model)
     request.scope["state"]["model"] = model
     estimator = registry.get(model)
-    masks = check_form(stacks, masks, variance_threshold, settings.max_files)
+    masks = check_form(stacks, masks, variance_threshold, settings.max_files, max_expected_error_mm)
     localiser = None if masks else localisers.get()
     orders = parse_orders(slice_order, len(stacks))
     threshold = variance_threshold if variance_threshold is not None else estimator.info.variance_threshold
+    max_expected = max_expected_error_mm if max_expected_error_mm is not None else estimator.info.max_expected_error_mm
     with upload_directory(settings.tmp_dir) as tmp:
         uploads = await to_thread.run_sync(save_and_read, stacks, masks, tmp, settings.max_decoded_bytes,
                                               settings.max_request_decoded_bytes)
@@ -56,14 +58,15 @@ async def predict(
                                         settings.preprocess_workers, localiser)
     t_prep = time.perf_counter()
     results, timings = await to_thread.run_sync(run_prediction, prepared, estimator, mc_samples, threshold,
-                                                stack_consistency, orders, image_consistency)
+                                                stack_consistency, orders, image_consistency, max_expected)
     metrics.observe_slices(model, [s["reason"] for st in results for s in st["slices"]])
     info = estimator.info
     stage = lambda key: sum(p.timings.get(key, 0.0) for p in prepared)  # noqa: E731 - CPU time summed over stacks
     return {
         "request_id": request.scope["state"]["request_id"],
         "model": {"name": model, "version": info.version, "backbone": info.backbone, "sha256": info.sha256},
-        "mc_samples": mc_samples, "variance_threshold": threshold, "stacks": results,
+        "mc_samples": mc_samples, "variance_threshold": threshold, "max_expected_error_mm": max_expected,
+        "stacks": results,
         "timing_ms": {
             "read": (t_read - t0) * 1e3, "localisation": stage("localisation") * 1e3,
             "bias_correction": stage("bias_correction") * 1e3, "preprocess": (t_prep - t_read) * 1e3,

@@ -12,7 +12,8 @@ from fastapi.responses import FileResponse
 
 from service.api.deps import ApiKey, RegistryDep, SettingsDep, SlotDep, queue_full
 from service.api.schemas import UPLOAD_ERRORS, problem_responses
-from service.api.uploads import SLICE_ORDER_HELP, SliceOrderField, check_form, known_fields, parse_orders, save_and_read
+from service.api.uploads import (MAX_EXPECTED_ERROR_HELP, SLICE_ORDER_HELP, SliceOrderField, check_form, known_fields,
+                                 parse_orders, save_and_read)
 from service.inference.pipeline import check_mask_grid, stack_orders
 from service.core.errors import Conflict, InvalidParameter, NotFound
 from service.jobs.store import Job, JobStore
@@ -61,6 +62,7 @@ async def submit(
     svr_iterations: Annotated[int, Form(ge=0, le=10)] = 3,
     mc_samples: Annotated[int, Form(ge=1, le=1000)] = 100,
     variance_threshold: Annotated[Optional[float], Form(gt=0)] = None,
+    max_expected_error_mm: Annotated[Optional[float], Form(gt=0, description=MAX_EXPECTED_ERROR_HELP)] = None,
     model: Annotated[str, Form()] = "default",
     slice_order: Annotated[Optional[list[SliceOrderField]], Form(description=SLICE_ORDER_HELP)] = None,
     atlas_frame: Annotated[bool, Form(description="re-estimate the reconstruction's atlas frame with the model on "
@@ -74,14 +76,15 @@ async def submit(
     model = registry.resolve(model)
     if (full := queue_full(request.app.state)) is not None:
         raise full
-    masks = check_form(stacks, masks, variance_threshold, settings.max_files)
+    masks = check_form(stacks, masks, variance_threshold, settings.max_files, max_expected_error_mm)
     orders = parse_orders(slice_order, len(stacks))
     form = await request.form()
     raw = form.get("poses")
     poses_text = (await raw.read()).decode("utf-8", "replace") if hasattr(raw, "read") else raw
     store = _store(request)
     job = store.create({"resolution_mm": resolution_mm, "svr_iterations": svr_iterations, "mc_samples": mc_samples,
-                        "variance_threshold": variance_threshold, "model": model,
+                        "variance_threshold": variance_threshold, "max_expected_error_mm": max_expected_error_mm,
+                        "model": model,
                         "slice_order": slice_order or [], "atlas_frame": atlas_frame})
     inputs = store.directory(job.id) / "inputs"
     inputs.mkdir()

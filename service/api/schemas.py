@@ -20,7 +20,7 @@ class ModelRef(BaseModel):
 class SliceResult(BaseModel):
     index: int = Field(description="index along slice_axis")
     accepted: bool
-    reason: Optional[Literal["empty", "high_variance", "degenerate_anchor_points", "outside_atlas",
+    reason: Optional[Literal["empty", "high_variance", "high_expected_error", "degenerate_anchor_points", "outside_atlas",
                              "inconsistent_with_stack"]] = None
     geodesic_variance: Optional[float] = Field(description="SE(3) geodesic variance of the MC samples")
     anchor_points_mm: list[Vec3] = Field(description="P1, P2, P3 of the mean pose, atlas RAS mm")
@@ -114,6 +114,8 @@ class PredictResponse(BaseModel):
     model: ModelRef
     mc_samples: int
     variance_threshold: float
+    max_expected_error_mm: Optional[float] = Field(
+        None, description="slices whose expected_error_mm exceeds it are not accepted (null: not judged by it)")
     stacks: list[StackResult]
     timing_ms: dict[str, float]
 
@@ -127,6 +129,7 @@ class ModelDescription(BaseModel):
     spacing_mm: float
     label_type: str
     variance_threshold: float
+    max_expected_error_mm: Optional[float] = None
     trained_on: str
 
 

@@ -67,15 +67,19 @@ def known_fields(*extra: str) -> Callable[[Request], Awaitable[None]]:
 
 
 def check_form(stacks: list[UploadFile], masks: list[UploadFile] | None, variance_threshold: float | None,
-               max_files: int) -> list[UploadFile]:
+               max_files: int, max_expected_error_mm: float | None = None) -> list[UploadFile]:
     """The checks FastAPI's form validation leaves to the routes; returns the masks really given
     (a form with an empty file field sends a nameless, empty part)."""
-    if variance_threshold is not None and not math.isfinite(variance_threshold):
-        raise InvalidParameter("variance_threshold: must be a finite number > 0")   # the parser lets inf through
+    for name, value in (("variance_threshold", variance_threshold), ("max_expected_error_mm", max_expected_error_mm)):
+        if value is not None and not math.isfinite(value):
+            raise InvalidParameter(f"{name}: must be a finite number > 0")   # the parser lets inf through
     if len(stacks) > max_files:
         raise InvalidParameter(f"stacks: {len(stacks)} files; at most {max_files} per request")
     return [m for m in (masks or []) if m.filename or m.size]
 
+
+MAX_EXPECTED_ERROR_HELP = ("slices whose pose's expected error (mm, after every stage) exceeds it are not "
+                           "accepted (reason high_expected_error); default: the model's calibrated value")
 
 SliceOrderField = Annotated[str, StringConstraints(pattern=PATTERN, max_length=MAX_TEXT)]
 """One value of the ``slice_order`` form field."""

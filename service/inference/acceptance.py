@@ -6,8 +6,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 EMPTY, DEGENERATE, OUTSIDE, HIGH_VARIANCE = "empty", "degenerate_anchor_points", "outside_atlas", "high_variance"
-INCONSISTENT = "inconsistent_with_stack"
-REASONS = (EMPTY, DEGENERATE, OUTSIDE, INCONSISTENT, HIGH_VARIANCE)
+INCONSISTENT, HIGH_EXPECTED_ERROR = "inconsistent_with_stack", "high_expected_error"
+REASONS = (EMPTY, DEGENERATE, OUTSIDE, INCONSISTENT, HIGH_EXPECTED_ERROR, HIGH_VARIANCE)
 
 MIN_MASK_FRACTION = 0.01
 """A network input whose region of interest covers less than 1 % of it is ``empty``."""
@@ -18,12 +18,27 @@ ATLAS_CENTRE_MM = np.array([0.0, 2.0, 8.0])
 
 
 def reasons(mask_fraction: NDArray, degenerate: NDArray, translation_mm: NDArray, variance: NDArray,
-            threshold: float, inconsistent: NDArray | None = None) -> list[str | None]:
-    """The reason each slice is not accepted (``None`` = accepted)."""
+            threshold: float, inconsistent: NDArray | None = None, expected_error_mm: NDArray | None = None,
+            max_expected_error_mm: float | None = None) -> list[str | None]:
+    """The reason each slice is not accepted (``None`` = accepted).
+
+    ``expected_error_mm`` is the returned pose's calibrated expected E.D. (after every stage);
+    above ``max_expected_error_mm`` the slice is ``high_expected_error``. A slice without one (NaN,
+    or none given) and a threshold of None are judged by the variance alone.
+
+    Example:
+        >>> reasons(np.array([0.5, 0.5, 0.5]), np.zeros(3, bool), np.zeros((3, 3)), np.array([1.0, 1.0, 9.0]),
+        ...         5.0, expected_error_mm=np.array([2.0, 7.0, np.nan]), max_expected_error_mm=4.0)
+        [None, 'high_expected_error', 'high_variance']
+    """
     empty = np.asarray(mask_fraction) < MIN_MASK_FRACTION
     outside = np.linalg.norm(np.asarray(translation_mm) - ATLAS_CENTRE_MM, axis=-1) > ATLAS_RADIUS_MM
     high = ~(np.asarray(variance) <= threshold)            # NaN variance is not accepted either
     bad = np.zeros(len(empty), bool) if inconsistent is None else np.asarray(inconsistent, bool)
-    flags = np.stack([empty, np.asarray(degenerate, bool), outside, bad, high], axis=1)
+    if expected_error_mm is None or max_expected_error_mm is None:
+        unsure = np.zeros(len(empty), bool)
+    else:
+        unsure = np.asarray(expected_error_mm, dtype=np.float64) > max_expected_error_mm   # NaN: not judged
+    flags = np.stack([empty, np.asarray(degenerate, bool), outside, bad, unsure, high], axis=1)
     first = np.argmax(flags, axis=1)
     return [REASONS[f] if flags[i, f] else None for i, f in enumerate(first)]

@@ -46,6 +46,9 @@ class ModelInfo:
     mc_error_depth_gain: float = 0.0
     """Calibration: the error's variance outgrows ``mc_error_scale x`` the spread by ``1 + gain rho^2``
     towards a stack's outer slices (:func:`service.consistency.error_shape.depth_gain`)."""
+    max_expected_error_mm: float | None = None
+    """Calibration: the default ``max_expected_error_mm`` of the accept flag (``high_expected_error``);
+    None (not calibrated): slices are judged by their variance alone unless a request sets it."""
     tta_views: int = 1
     """Test-time views the MC samples are shared among (:mod:`service.inference.views`); the variance
     threshold and ``mc_error_scale`` were calibrated with them."""
@@ -63,6 +66,7 @@ class ModelInfo:
                 mc_error_scale=float(meta.get("mc_error_scale", 1.0)), tta_views=int(meta.get("tta_views", 1)),
                 mc_error_shape=_shape(meta.get("mc_error_shape", "")),
                 mc_error_depth_gain=float(meta.get("mc_error_depth_gain", 0.0)),
+                max_expected_error_mm=float(meta["max_expected_error_mm"]) if meta.get("max_expected_error_mm") else None,
                 metadata=dict(meta),
             )
         except (KeyError, ValueError) as exc:

@@ -139,8 +139,9 @@ def stack_poses(est: PoseEstimate, sl: slice, prepared: PreparedStack, net_from_
 
 
 def slice_results(est: PoseEstimate, sl: slice, prepared: PreparedStack, net_from_vox: np.ndarray, out: StackPoses,
-                  threshold: float) -> list[dict]:
-    """The contract's per-slice objects for one stack, from its poses after the stage."""
+                  threshold: float, max_expected_error_mm: float | None = None) -> list[dict]:
+    """The contract's per-slice objects for one stack, from its poses after the stage; the accept
+    flag judges the returned pose (:func:`~service.inference.acceptance.reasons`)."""
     p = prepared.prepared
     degenerate = est.degenerate[sl]
     mean, variance = out.poses, est.variance[sl]
@@ -152,7 +153,9 @@ def slice_results(est: PoseEstimate, sl: slice, prepared: PreparedStack, net_fro
     rotvec = r.as_rotvec()
     quat = r.as_quat(canonical=True, scalar_first=True)
     pts = anchors.encode(mean).reshape(-1, 3, 3)
-    why = acceptance.reasons(p.mask_fraction, degenerate, mean[:, :3, 3], variance, threshold, out.inconsistent)
+    why = acceptance.reasons(p.mask_fraction, degenerate, mean[:, :3, 3], variance, threshold, out.inconsistent,
+                             None if expected is None else np.where(np.isfinite(expected), expected, np.nan),
+                             max_expected_error_mm)
     slices = [
         {
             "index": i, "accepted": why[i] is None, "reason": why[i],
@@ -232,13 +235,17 @@ def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPos
 def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples: int,
             threshold: float, stack_consistency: bool = True,
             orders: list[SliceOrder] | None = None,
-            image_consistency: bool = True) -> tuple[list[dict], dict[str, float]]:
+            image_consistency: bool = True,
+            max_expected_error_mm: float | None = None) -> tuple[list[dict], dict[str, float]]:
     """Run all slices of all stacks through ``estimator`` at once, then each stack through the
     stack-consistency stage, the stacks' positions pooled where they agree
     (:func:`~service.consistency.stage.pool_request`) and their slices refined where they cross
     (:func:`refine_where_stacks_cross`; with ``image_consistency`` and the stage on); returns stack results
-    and timings. ``orders``: what the request says of the stacks' acquisition orders (:func:`stack_orders`)."""
+    and timings. ``orders``: what the request says of the stacks' acquisition orders (:func:`stack_orders`).
+    ``threshold`` and ``max_expected_error_mm`` (default: the model's) decide the accept flags."""
     orders = stack_orders(orders, [p.upload for p in prepared])
+    if max_expected_error_mm is None:
+        max_expected_error_mm = getattr(estimator.info, "max_expected_error_mm", None)
     inputs = np.concatenate([s.prepared.inputs for s in prepared])
     t = time.perf_counter()
     est = estimator.estimate(inputs, mc_samples)
@@ -267,7 +274,7 @@ def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples:
     stacks = []
     for index, (s, sl, nfv, out, report) in enumerate(zip(prepared, spans, frames, outs, reports)):
         vol = s.upload.volume
-        slices = slice_results(est, sl, s, nfv, out, threshold)
+        slices = slice_results(est, sl, s, nfv, out, threshold, max_expected_error_mm)
         stacks.append({
             "index": index, "filename": s.upload.filename, "shape": list(vol.array.shape),
             "spacing_mm": [float(x) for x in vol.spacing], "slice_axis": s.slices.slice_axis,

@@ -99,7 +99,8 @@ def starting_inclusion(poses: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple
 
 
 def predicted_body(uploads: list, estimator, mc_samples: int = 100,  # noqa: ANN001
-                   variance_threshold: float | None = None, orders: list | None = None) -> tuple[dict, list[np.ndarray]]:
+                   variance_threshold: float | None = None, orders: list | None = None,
+                   max_expected_error_mm: float | None = None) -> tuple[dict, list[np.ndarray]]:
     """The ``/v1/predict``-shaped body (``model``, ``mc_samples``, ``variance_threshold``, ``stacks``) of
     the service's own prediction, and the brain masks per stack; ``orders``: the stacks'
     acquisition orders (:class:`~service.consistency.slice_order.SliceOrder`), if known."""
@@ -108,11 +109,13 @@ def predicted_body(uploads: list, estimator, mc_samples: int = 100,  # noqa: ANN
     info = estimator.info
     threshold = variance_threshold or info.variance_threshold
     prepared = prepare_stacks(uploads, info, bias_correction=True, workers=1)
-    results, _ = predict(prepared, estimator, mc_samples, threshold, orders=orders)
+    max_expected = max_expected_error_mm or info.max_expected_error_mm
+    results, _ = predict(prepared, estimator, mc_samples, threshold, orders=orders, max_expected_error_mm=max_expected)
     masks = [np.moveaxis(p.slices.masks.transpose(0, 2, 1), 0, p.slices.slice_axis) for p in prepared]
     model = {"name": info.name, "version": info.version, "backbone": info.backbone,
              "sha256": info.sha256}
-    return {"model": model, "mc_samples": mc_samples, "variance_threshold": threshold, "stacks": results}, masks
+    return {"model": model, "mc_samples": mc_samples, "variance_threshold": threshold,
+            "max_expected_error_mm": max_expected, "stacks": results}, masks
 
 
 def run_job(store: JobStore, models_dir: Path, job_id: str, redelivered: bool = False) -> None:
@@ -221,7 +224,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         progress("predicting poses", 0.05)
         estimator = OnnxPoseEstimator(load_model(model_file, threads=1))
         body, masks = predicted_body(uploads, estimator, int(params.get("mc_samples", 100)),
-                                     params.get("variance_threshold"), orders)
+                                     params.get("variance_threshold"), orders, params.get("max_expected_error_mm"))
         poses = starting_inclusion(poses_from_predict_body(body, [len(r["slices"]) for r in body["stacks"]]))
         plane = estimator.info.symmetry_plane_x_mm
     progress("reconstructing", 0.15)

@@ -24,13 +24,11 @@ HIGH_PERCENTILE = 99.0
 
 def masked_percentiles(images: ArrayLike, masks: ArrayLike, q: tuple[float, float]) -> NDArray[np.float64]:
     """Per-slice percentiles ``[B, len(q)]`` of ``images [B, H, W]`` inside ``masks`` (NaN if empty)."""
-    x = np.asarray(images, dtype=np.float64)
+    x = np.asarray(images)
     m = np.asarray(masks, dtype=bool)
-    flat = np.where(m, x, np.nan).reshape(x.shape[0], -1)
     out = np.full((x.shape[0], len(q)), np.nan)
-    ok = m.reshape(x.shape[0], -1).any(axis=1)
-    if ok.any():
-        out[ok] = np.nanpercentile(flat[ok], q, axis=1).T
+    for i in np.flatnonzero(m.reshape(len(m), -1).any(axis=1)):   # a slice's brain only: no NaN-padded rows
+        out[i] = np.percentile(x[i][m[i]].astype(np.float64), q)
     return out
 
 

@@ -66,6 +66,17 @@ def _frame_coordinates(shape: tuple[int, int], pixel_mm: tuple[float, float]) ->
     return x, y
 
 
+def _bounding_box(masks: NDArray, margin: list[int]) -> tuple[int, int, int, int]:
+    """Rows ``[r0, r1)`` and columns ``[c0, c1)`` of the masks' joint bounding box grown by ``margin``
+    (rows, columns) pixels, within the image (a single pixel box when every mask is empty)."""
+    h, w = masks.shape[1:]
+    rows, cols = np.flatnonzero(masks.any(axis=(0, 2))), np.flatnonzero(masks.any(axis=(0, 1)))
+    if not len(rows):
+        return 0, 1, 0, 1
+    return (max(int(rows[0]) - margin[0], 0), min(int(rows[-1]) + margin[0] + 1, h),
+            max(int(cols[0]) - margin[1], 0), min(int(cols[-1]) + margin[1] + 1, w))
+
+
 def preprocess_slices(
     images: ArrayLike,
     masks: ArrayLike,
@@ -83,24 +94,28 @@ def preprocess_slices(
         pixel_out_mm: the model's pixel size ``s`` (mm).
     """
     s = float(pixel_out_mm)
-    img = np.asarray(images, dtype=np.float32)
-    m = np.asarray(masks) > 0.5
-    b, h, w = img.shape
+    m_full = np.asarray(masks) > 0.5
+    b, h, w = m_full.shape
+    sig = [np.sqrt(max(s**2 - p**2, 0.0)) * FWHM_TO_SIGMA / p for p in pixel_mm]
+    blur = max(sig) > 0.2                                  # anti-alias when the output grid is coarser
+    # Everything outside the masks is 0 after the rescale: work on their bounding box, with room
+    # for the anti-aliasing kernel (4 sigma) and the bilinear sampler. The result is the same.
+    r0, r1, c0, c1 = _bounding_box(m_full, [int(np.ceil(4.0 * g)) + 2 if blur else 2 for g in sig])
+    img = np.asarray(np.asarray(images)[:, r0:r1, c0:c1], dtype=np.float32)
+    m = m_full[:, r0:r1, c0:c1]
     scaled = rescale_0_255(img, m)
     x, y = _frame_coordinates((h, w), pixel_mm)
+    x, y = x[c0:c1], y[r0:r1]
     counts = m.sum(axis=(1, 2)).astype(np.float64)
     safe = np.maximum(counts, 1.0)
     cx = np.where(counts > 0, m.sum(axis=1) @ x / safe, 0.0)
     cy = np.where(counts > 0, m.sum(axis=2) @ y / safe, 0.0)
-
-    # Anti-alias when the output grid is coarser than the input.
-    sig = [np.sqrt(max(s**2 - p**2, 0.0)) * FWHM_TO_SIGMA / p for p in pixel_mm]
-    if max(sig) > 0.2:
+    if blur:
         scaled = ndimage.gaussian_filter(scaled, (0.0, sig[0], sig[1]), mode="constant")
 
     grid = (np.arange(size) - (size - 1) / 2.0) * s
-    cols = (cx[:, None] + grid[None, :]) / pixel_mm[1] + (w - 1) / 2.0          # [B, L]
-    rows = (cy[:, None] + grid[None, :]) / pixel_mm[0] + (h - 1) / 2.0          # [B, L]
+    cols = (cx[:, None] + grid[None, :]) / pixel_mm[1] + (w - 1) / 2.0 - c0     # [B, L], in the box
+    rows = (cy[:, None] + grid[None, :]) / pixel_mm[0] + (h - 1) / 2.0 - r0     # [B, L]
     bb = np.broadcast_to(np.arange(b, dtype=np.float64)[:, None, None], (b, size, size))
     rr = np.broadcast_to(rows[:, :, None], (b, size, size))
     cc = np.broadcast_to(cols[:, None, :], (b, size, size))

@@ -89,7 +89,8 @@ def test_mask_problems(oracle_client: TestClient, tmp_path: Path) -> None:
 def test_parameters_and_models(oracle_client: TestClient, tmp_path: Path) -> None:
     s = nifti_bytes(stack(), tmp=tmp_path)
     for field, value in [("mc_samples", "0"), ("mc_samples", "1001"), ("mc_samples", "many"),
-                         ("variance_threshold", "-1"), ("variance_threshold", "inf"), ("bias_correction", "perhaps")]:
+                         ("variance_threshold", "-1"), ("variance_threshold", "inf"), ("bias_correction", "perhaps"),
+                         ("max_expected_error_mm", "0"), ("max_expected_error_mm", "inf"), ("max_expected_error_mm", "x")]:
         assert_problem(post(oracle_client, [("stacks", ("s.nii.gz", s))], {field: value}), 400, field)
     assert_problem(post(oracle_client, [("stacks", ("s.nii.gz", s))], {"model": "nope"}), 404, "model", "nope")
     assert_problem(post(oracle_client, []), 400, "stacks")

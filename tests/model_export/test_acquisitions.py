@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from model_export.acquisitions import simulate_acquisition
+from model_export.acquisitions import interleaved_times, simulate_acquisition
 from model_export.evaluate_acquisitions import NoisyTwinEstimator, evaluate_acquisitions, markdown
 from service.geometry import sampling
 from service.geometry.pose import apply
@@ -113,3 +113,25 @@ def test_the_stages_rigid_placement_is_the_stacks_true_mean_placement() -> None:
                                    atol=1e-6)                                    # the same placement, two ways
         err = np.minimum(anchors.ed(rigid, still), anchors.ed(rigid, twin.twin(still, INFO.symmetry_plane_x_mm)))
         assert np.median(err) < 1.0, (sim.orientation, err)         # the slices themselves move ~3 mm (mild)
+
+
+def test_jumps_are_few_sudden_moves_and_independent_slices_stay_in_their_bounds() -> None:
+    """``jumps``: ordered by acquisition, the trajectory is smooth drift (small steps) with 1 to
+    MAX_JUMPS steps far larger than the drift's; ``independent``: every slice within 20 deg and 8 mm per
+    axis, and neighbours in time no closer than any two slices."""
+    from model_export.acquisitions import JUMP_DEG, JUMP_MM, MAX_JUMPS, motion_twists
+    from service.geometry import se3
+
+    rng = np.random.default_rng(3)
+    times = interleaved_times(30)
+    for _ in range(20):
+        tw = motion_twists(times, rng, "jumps")[np.argsort(times)]
+        steps = se3.exp(tw[1:]) @ se3.inverse(se3.exp(tw[:-1]))
+        size = np.linalg.norm(se3.log(steps), axis=1)
+        drift = np.median(size)
+        assert 1 <= (size > 5 * drift).sum() <= MAX_JUMPS, size.round(3)
+    tw = motion_twists(times, rng, "independent")
+    assert np.degrees(np.linalg.norm(tw[:, :3], axis=1)).max() <= JUMP_DEG + 1e-9
+    assert np.abs(tw[:, 3:]).max() <= JUMP_MM and np.abs(tw[:, 3:]).max() > JUMP_MM / 2
+    ordered = tw[np.argsort(times)]
+    assert np.linalg.norm(np.diff(ordered, axis=0), axis=1).mean() > 0.8 * np.linalg.norm(tw - tw.mean(0), axis=1).mean()

@@ -67,7 +67,7 @@ def biased_phantom(strength: float = 0.5) -> tuple[Volume, np.ndarray, np.ndarra
 
 
 def test_n4_removes_a_smooth_bias_field_and_the_shrunk_fit_equals_the_full_resolution_one() -> None:
-    """The default fit (shrunk x4 / to >= 4 mm pixels) corrects as the full-resolution fit does
+    """The default fit (shrunk x4 / to >= 8 mm pixels) corrects as the full-resolution fit does
     (its speed is a benchmark matter: ``benchmarks/predict_bench.py`` reports the N4 stage)."""
     vol, mask, clean = biased_phantom()
     tissue = mask & (clean > 60) & (clean < 120)             # the uniform 'parenchyma'
@@ -76,3 +76,23 @@ def test_n4_removes_a_smooth_bias_field_and_the_shrunk_fit_equals_the_full_resol
     full = n4_correct(vol, mask, shrink=1, fit_spacing_mm=0.0)
     assert cv(fast) < 0.6 * cv(vol.array)
     assert np.corrcoef(fast[mask], full[mask])[0, 1] > 0.98
+
+
+def test_the_inputs_do_not_depend_on_the_empty_field_of_view_around_the_masks() -> None:
+    """The same slices inside a larger field of view (padded equally on both sides, so the slice
+    frame stays put) give the same network inputs, centroids and mask fractions: only the masks'
+    surroundings within the anti-aliasing kernel's reach count. Fine pixels (anti-aliased) and
+    coarse ones (not) alike."""
+    rng = np.random.default_rng(4)
+    for pixel in ((0.5, 0.6), (1.5, 1.5)):
+        img = rng.random((5, 60, 70)).astype(np.float32) * 100
+        yy, xx = np.mgrid[:60, :70]
+        mask = np.stack([(yy - 28 - k) ** 2 / 15 ** 2 + (xx - 40) ** 2 / 12 ** 2 < 1 for k in range(5)])
+        mask[2] = False                                            # an empty slice too
+        small = preprocess_slices(img, mask, pixel, 32, 1.25)
+        pad = ((0, 0), (40, 40), (30, 30))
+        large = preprocess_slices(np.pad(img, pad, constant_values=500.0), np.pad(mask, pad), pixel, 32, 1.25)
+        np.testing.assert_allclose(large.inputs, small.inputs, atol=1e-3)
+        np.testing.assert_allclose(large.centroid_mm, small.centroid_mm, atol=1e-9)
+        np.testing.assert_array_equal(large.mask_fraction, small.mask_fraction)
+        assert small.inputs[2].max() == 0 and small.inputs[0].max() > 100
