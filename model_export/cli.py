@@ -4,6 +4,7 @@ Examples:
     svrnet-train train --steps 20000 --out runs/default
     svrnet-train export runs/default/best.pt service/models/default/model.onnx --threshold 25
     svrnet-train calibrate runs/default/best.pt
+    svrnet-train calibrate-acceptance service/models/default/model.onnx
     svrnet-train evaluate service/models/default/model.onnx --report model_export/reports/default.md
     svrnet-train localiser --help
 """
@@ -164,6 +165,33 @@ def calibrate_spread(
         write_metadata(model, {"mc_error_scale": f"{result['mc_error_scale']:.3f}",
                                "mc_error_shape": ",".join(f"{x:.3f}" for x in result["mc_error_shape"]),
                                "mc_error_depth_gain": f"{result['mc_error_depth_gain']:.2f}"})
+    typer.echo(json.dumps(result, indent=2))
+
+
+@app.command("calibrate-acceptance")
+def calibrate_acceptance(
+    model: Path,
+    root: Root = DEFAULT_ATLAS_ROOT,
+    per_volume: Annotated[int, typer.Option(help="acquisitions per validation volume and motion level")] = 3,
+    report: Path = Path("model_export/reports/acceptance.md"),
+    write: Annotated[bool, typer.Option(help="write expected_error_floor_mm, variance_threshold and "
+                                             "max_expected_error_mm into the model's metadata")] = True,
+    seed: int = 1,
+) -> None:
+    """Calibrate the accept flags on the pipeline's final poses over simulated acquisitions of the
+    validation volumes at every motion level (mild, moderate, jumps, independent)."""
+    from model_export.atlas import load_volumes, split
+    from model_export.calibrate_acceptance import markdown, measure
+    from model_export.spread import write_metadata
+    from service.inference.estimator import OnnxPoseEstimator
+    from service.inference.model_file import load_model
+
+    result = measure(OnnxPoseEstimator(load_model(model)), load_volumes(split(root)[1], root), per_volume, seed)
+    report.parent.mkdir(parents=True, exist_ok=True)
+    report.write_text(markdown(result, f"Accept flags of {model}"))
+    if write:
+        write_metadata(model, {k: f"{result[k]:.4g}" for k in
+                               ("expected_error_floor_mm", "variance_threshold", "max_expected_error_mm")})
     typer.echo(json.dumps(result, indent=2))
 
 

@@ -143,7 +143,8 @@ def score(results: list[dict], prepared: list[PreparedStack], truth: list[NDArra
                  variance=[s["geodesic_variance"] or np.inf for s in res["slices"]],
                  expected=[np.inf if s.get("expected_error_mm") is None else s["expected_error_mm"]
                            for s in res["slices"]],
-                 accepted=[s["accepted"] for s in res["slices"]], mask_pixels=p.prepared.mask_pixels,
+                 accepted=[s["accepted"] for s in res["slices"]], reason=[s["reason"] or "" for s in res["slices"]],
+                 mask_pixels=p.prepared.mask_pixels,
                  orientation=[sim.orientation] * n, decidable=np.full(n, bool(stage.get("decidable"))),
                  branch_decided=np.full(n, bool(stage.get("branch_decided"))),
                  tilt_deg=parts["tilt_deg"], twist_deg=parts["twist_deg"], centre_mm=parts["centre_mm"],

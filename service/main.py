@@ -21,7 +21,7 @@ from service.api.schemas import problem_responses
 from service.core import logging as service_logging
 from service.core.settings import Settings
 from service.inference.registry import ModelRegistry
-from service.jobs.runner import open_backend
+from service.jobs.backends import open_backend
 from service.preprocess.localise import Localisers
 
 RETENTION_CHECK_S = 600.0

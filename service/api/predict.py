@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import time
-from typing import Annotated, Optional
+from typing import Annotated
 
 from anyio import to_thread
-from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
+from fastapi import APIRouter, Depends, Form, Request
 
 from service.api.deps import ApiKey, LocalisersDep, MetricsDep, RegistryDep, SettingsDep, SlotDep
 from service.api.schemas import UPLOAD_ERRORS, PredictResponse
-from service.api.uploads import MAX_EXPECTED_ERROR_HELP, SLICE_ORDER_HELP, SliceOrderField, check_form, known_fields, parse_orders, save_and_read, upload_directory
+from service.api.uploads import UploadFormDep, known_fields, save_and_read, upload_directory
 from service.inference.pipeline import predict as run_prediction
 from service.inference.pipeline import prepare_stacks
 
@@ -26,46 +26,38 @@ async def predict(
     settings: SettingsDep,
     metrics: MetricsDep,
     _slot: SlotDep,
-    stacks: Annotated[list[UploadFile], File(description="1..32 stacks: .nii(.gz), .nrrd, .mha, .dcm or .zip of a DICOM series")],
-    masks: Annotated[Optional[list[UploadFile]], File(description="0 or one mask per stack, same grid")] = None,
-    mc_samples: Annotated[int, Form(ge=1, le=1000, description="MC-dropout passes per slice")] = 100,
-    variance_threshold: Annotated[Optional[float], Form(gt=0, description="default: the model's")] = None,
-    max_expected_error_mm: Annotated[Optional[float], Form(gt=0, description=MAX_EXPECTED_ERROR_HELP)] = None,
+    form: UploadFormDep,
     bias_correction: Annotated[bool, Form(description="N4 before normalisation")] = True,
-    model: Annotated[str, Form(description="a name from GET /v1/models")] = "default",
     stack_consistency: Annotated[bool, Form(description="decide each stack's left-right branch from all its slices, "
                                                         "fit a motion-tolerant stack model, flag inconsistent slices")] = True,
-    slice_order: Annotated[Optional[list[SliceOrderField]], Form(description=SLICE_ORDER_HELP)] = None,
     image_consistency: Annotated[bool, Form(description="refine the poses of the settled stacks where their slices "
                                                         "cross (their images must agree there); needs stack_consistency "
                                                         "and two stacks that decided their left-right branch")] = True,
 ) -> dict:
     """Every slice of every stack, accepted or not, in order, with its SE(3) Fréchet-mean pose."""
     t0 = time.perf_counter()
-    model = registry.resolve(model)
+    model = registry.resolve(form.model)
     request.scope["state"]["model"] = model
     estimator = registry.get(model)
-    masks = check_form(stacks, masks, variance_threshold, settings.max_files, max_expected_error_mm)
-    localiser = None if masks else localisers.get()
-    orders = parse_orders(slice_order, len(stacks))
-    threshold = variance_threshold if variance_threshold is not None else estimator.info.variance_threshold
-    max_expected = max_expected_error_mm if max_expected_error_mm is not None else estimator.info.max_expected_error_mm
+    localiser = None if form.masks else localisers.get()
+    info = estimator.info
+    threshold = form.variance_threshold if form.variance_threshold is not None else info.variance_threshold
+    max_expected = form.max_expected_error_mm if form.max_expected_error_mm is not None else info.max_expected_error_mm
     with upload_directory(settings.tmp_dir) as tmp:
-        uploads = await to_thread.run_sync(save_and_read, stacks, masks, tmp, settings.max_decoded_bytes,
-                                              settings.max_request_decoded_bytes)
+        uploads = await to_thread.run_sync(save_and_read, form.stacks, form.masks, tmp, settings.max_decoded_bytes,
+                                           settings.max_request_decoded_bytes)
     t_read = time.perf_counter()
     prepared = await to_thread.run_sync(prepare_stacks, uploads, estimator.info, bias_correction,
                                         settings.preprocess_workers, localiser)
     t_prep = time.perf_counter()
-    results, timings = await to_thread.run_sync(run_prediction, prepared, estimator, mc_samples, threshold,
-                                                stack_consistency, orders, image_consistency, max_expected)
+    results, timings = await to_thread.run_sync(run_prediction, prepared, estimator, form.mc_samples, threshold,
+                                                stack_consistency, form.orders, image_consistency, max_expected)
     metrics.observe_slices(model, [s["reason"] for st in results for s in st["slices"]])
-    info = estimator.info
     stage = lambda key: sum(p.timings.get(key, 0.0) for p in prepared)  # noqa: E731 - CPU time summed over stacks
     return {
         "request_id": request.scope["state"]["request_id"],
         "model": {"name": model, "version": info.version, "backbone": info.backbone, "sha256": info.sha256},
-        "mc_samples": mc_samples, "variance_threshold": threshold, "max_expected_error_mm": max_expected,
+        "mc_samples": form.mc_samples, "variance_threshold": threshold, "max_expected_error_mm": max_expected,
         "stacks": results,
         "timing_ms": {
             "read": (t_read - t0) * 1e3, "localisation": stage("localisation") * 1e3,

@@ -4,16 +4,15 @@ from __future__ import annotations
 
 import json
 from datetime import datetime, timezone
-from typing import Annotated, Optional
+from typing import Annotated
 
 from anyio import to_thread
-from fastapi import APIRouter, Depends, File, Form, Request, Response, UploadFile
+from fastapi import APIRouter, Depends, Form, Request, Response
 from fastapi.responses import FileResponse
 
 from service.api.deps import ApiKey, RegistryDep, SettingsDep, SlotDep, queue_full
 from service.api.schemas import UPLOAD_ERRORS, problem_responses
-from service.api.uploads import (MAX_EXPECTED_ERROR_HELP, SLICE_ORDER_HELP, SliceOrderField, check_form, known_fields,
-                                 parse_orders, save_and_read)
+from service.api.uploads import UploadFormDep, known_fields, save_and_read
 from service.inference.pipeline import check_mask_grid, stack_orders
 from service.core.errors import Conflict, InvalidParameter, NotFound
 from service.jobs.store import Job, JobStore
@@ -56,15 +55,9 @@ async def submit(
     registry: RegistryDep,
     settings: SettingsDep,
     _slot: SlotDep,
-    stacks: Annotated[list[UploadFile], File(description="the stacks, as for /v1/predict")],
-    masks: Annotated[Optional[list[UploadFile]], File(description="0 or one mask per stack")] = None,
+    form: UploadFormDep,
     resolution_mm: Annotated[float, Form(gt=0.2, le=5.0)] = 0.8,
     svr_iterations: Annotated[int, Form(ge=0, le=10)] = 3,
-    mc_samples: Annotated[int, Form(ge=1, le=1000)] = 100,
-    variance_threshold: Annotated[Optional[float], Form(gt=0)] = None,
-    max_expected_error_mm: Annotated[Optional[float], Form(gt=0, description=MAX_EXPECTED_ERROR_HELP)] = None,
-    model: Annotated[str, Form()] = "default",
-    slice_order: Annotated[Optional[list[SliceOrderField]], Form(description=SLICE_ORDER_HELP)] = None,
     atlas_frame: Annotated[bool, Form(description="re-estimate the reconstruction's atlas frame with the model on "
                                                   "slices re-cut from it (corrects the common error of the poses)")] = True,
 ) -> dict:
@@ -73,25 +66,21 @@ async def submit(
     ``poses`` (optional, a form field or a file): the JSON body ``/v1/predict`` returned for the
     same files; without it the job predicts first.
     """
-    model = registry.resolve(model)
+    model = registry.resolve(form.model)
     if (full := queue_full(request.app.state)) is not None:
         raise full
-    masks = check_form(stacks, masks, variance_threshold, settings.max_files, max_expected_error_mm)
-    orders = parse_orders(slice_order, len(stacks))
-    form = await request.form()
-    raw = form.get("poses")
+    raw = (await request.form()).get("poses")
     poses_text = (await raw.read()).decode("utf-8", "replace") if hasattr(raw, "read") else raw
     store = _store(request)
-    job = store.create({"resolution_mm": resolution_mm, "svr_iterations": svr_iterations, "mc_samples": mc_samples,
-                        "variance_threshold": variance_threshold, "max_expected_error_mm": max_expected_error_mm,
-                        "model": model,
-                        "slice_order": slice_order or [], "atlas_frame": atlas_frame})
+    job = store.create({"resolution_mm": resolution_mm, "svr_iterations": svr_iterations, "mc_samples": form.mc_samples,
+                        "variance_threshold": form.variance_threshold, "max_expected_error_mm": form.max_expected_error_mm,
+                        "model": model, "slice_order": form.slice_order, "atlas_frame": atlas_frame})
     inputs = store.directory(job.id) / "inputs"
     inputs.mkdir()
     try:
-        uploads = await to_thread.run_sync(save_and_read, stacks, masks, inputs, settings.max_decoded_bytes,
-                                               settings.max_request_decoded_bytes)
-        stack_orders(orders, uploads)
+        uploads = await to_thread.run_sync(save_and_read, form.stacks, form.masks, inputs, settings.max_decoded_bytes,
+                                           settings.max_request_decoded_bytes)
+        stack_orders(form.orders, uploads)
         if poses_text:
             try:
                 body = json.loads(poses_text)

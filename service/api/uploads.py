@@ -12,11 +12,13 @@ from collections.abc import Awaitable, Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated
+from dataclasses import dataclass
+from typing import Annotated, Optional
 
-from fastapi import Request, UploadFile, params
+from fastapi import Depends, File, Form, Request, UploadFile, params
 from pydantic import StringConstraints
 
+from service.api.deps import SettingsDep
 from service.consistency.slice_order import MAX_TEXT, PATTERN, SliceOrder, per_stack
 from service.core.errors import InvalidParameter
 from service.core.names import clean_name
@@ -46,10 +48,17 @@ def display_name(upload: UploadFile, field: str, index: int) -> str:
 
 @functools.cache
 def form_fields(endpoint: Callable) -> tuple[str, ...]:
-    """The form and file fields a route function declares (``Annotated[..., Form()]`` / ``File()``)."""
+    """The form and file fields a route function declares (``Annotated[..., Form()]`` / ``File()``),
+    its dependencies' included."""
     hints = typing.get_type_hints(endpoint, include_extras=True)
-    return tuple(meta.alias or name for name, hint in hints.items()
-                 for meta in getattr(hint, "__metadata__", ()) if isinstance(meta, params.Form))
+    out: list[str] = []
+    for name, hint in hints.items():
+        for meta in getattr(hint, "__metadata__", ()):
+            if isinstance(meta, params.Form):
+                out.append(meta.alias or name)
+            elif isinstance(meta, params.Depends) and meta.dependency is not None:
+                out.extend(form_fields(meta.dependency))
+    return tuple(out)
 
 
 def known_fields(*extra: str) -> Callable[[Request], Awaitable[None]]:
@@ -87,6 +96,40 @@ SLICE_ORDER_HELP = ("the stacks' acquisition order, if known: none (the motion m
                     "stack, or one per stack; each auto, interleaved (either phase), sequential, "
                     "interleaved-even-first, interleaved-odd-first, or the slice indices (0-based, along "
                     "slice_axis) in the order they were acquired, comma-separated")
+
+
+@dataclass
+class UploadForm:
+    """The fields every route that takes stacks for poses shares (``/v1/predict``,
+    ``/v1/reconstructions``), checked: the masks really given, one acquisition order per stack."""
+
+    stacks: list[UploadFile]
+    masks: list[UploadFile]
+    mc_samples: int
+    variance_threshold: float | None
+    max_expected_error_mm: float | None
+    model: str
+    slice_order: list[str]
+    orders: list[SliceOrder]
+
+
+async def upload_form(
+    settings: SettingsDep,
+    stacks: Annotated[list[UploadFile], File(description="1..32 stacks: .nii(.gz), .nrrd, .mha, .dcm or .zip of a DICOM series")],
+    masks: Annotated[Optional[list[UploadFile]], File(description="0 or one mask per stack, same grid")] = None,
+    mc_samples: Annotated[int, Form(ge=1, le=1000, description="MC-dropout passes per slice")] = 100,
+    variance_threshold: Annotated[Optional[float], Form(gt=0, description="default: the model's")] = None,
+    max_expected_error_mm: Annotated[Optional[float], Form(gt=0, description=MAX_EXPECTED_ERROR_HELP)] = None,
+    model: Annotated[str, Form(description="a name from GET /v1/models")] = "default",
+    slice_order: Annotated[Optional[list[SliceOrderField]], Form(description=SLICE_ORDER_HELP)] = None,
+) -> UploadForm:
+    """The shared fields of a request (:class:`UploadForm`); 400 naming the field that is wrong."""
+    given = check_form(stacks, masks, variance_threshold, settings.max_files, max_expected_error_mm)
+    return UploadForm(stacks, given, mc_samples, variance_threshold, max_expected_error_mm, model,
+                      slice_order or [], parse_orders(slice_order, len(stacks)))
+
+
+UploadFormDep = Annotated[UploadForm, Depends(upload_form)]
 
 
 def parse_orders(values: list[str] | None, n_stacks: int) -> list[SliceOrder]:

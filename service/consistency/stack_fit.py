@@ -67,7 +67,6 @@ MAX_MODEL_ERROR_MM = 25.0
 """A stack whose model predicts its slices worse than this (the spread of the others' prediction)
 has no common geometry (e.g. every slice moved independently): undecidable, nothing is changed."""
 MIN_SLICES = 3
-TUKEY_C = 4.685
 MIN_SCALE_MM = 3.0
 """Floor of the robust residual scale (mm), so a near-perfect stack does not reject its noise."""
 OUTLIER_K = 3.0
@@ -337,16 +336,16 @@ def _robust(r: NDArray, sig: NDArray | None, use: NDArray) -> NDArray:
     """Tukey weights of the residuals ``r`` (mm), in units of each slice's expected error ``sig`` when
     known (then with a scale floor of :data:`MIN_STANDARD_SCALE`), zero where not ``use``."""
     if sig is None:
-        return _tukey(r, _scale(r[use])) * use
+        return se3.tukey_weights(r, _scale(r[use])) * use
     u = r / sig
-    return _tukey(u, max(se3.MAD_SCALE * float(np.median(u[use])), MIN_STANDARD_SCALE)) * use
+    return se3.tukey_weights(u, max(se3.MAD_SCALE * float(np.median(u[use])), MIN_STANDARD_SCALE)) * use
 
 
 def _votes(r_loo: NDArray, motion: MotionFit, sig: NDArray, use: NDArray) -> NDArray:
     """Each usable slice's expected error, inflated by its Tukey weight on the residual to the
     others' prediction in units of the spread that both errors explain (:data:`NO_VOTE` at zero)."""
     z = r_loo / np.sqrt((motion.noise_scale * sig) ** 2 + motion.model_sd_mm ** 2)
-    tk = _tukey(z, 1.0) * use
+    tk = se3.tukey_weights(z, 1.0) * use
     return np.where(tk > 0, sig / np.sqrt(np.maximum(tk, 1e-12)), NO_VOTE)
 
 
@@ -363,7 +362,3 @@ def _scale(r: NDArray) -> float:
         return MIN_SCALE_MM
     return float(max(se3.MAD_SCALE * np.median(r), MIN_SCALE_MM))
 
-
-def _tukey(r: NDArray, scale: float) -> NDArray:
-    u = r / (TUKEY_C * scale)
-    return np.where(u < 1.0, (1.0 - u * u) ** 2, 0.0)

@@ -224,6 +224,22 @@ MAD_SCALE = 1.4826
 """Makes the MAD a consistent estimator of the standard deviation for normal data (the paper's K)."""
 
 
+TUKEY_C = 4.685
+"""Tukey's biweight constant: 95 % efficiency for normal residuals."""
+
+
+def tukey_weights(residuals: ArrayLike, scale: float) -> NDArray[np.float64]:
+    """Tukey's biweight of non-negative ``residuals`` at robust ``scale``: ``(1 - u^2)^2`` for
+    ``u = r / (TUKEY_C scale) < 1``, else 0.
+
+    Example:
+        >>> tukey_weights([0.0, 4.685, 10.0], 2.0).round(3).tolist()
+        [1.0, 0.562, 0.0]
+    """
+    u = np.asarray(residuals, dtype=np.float64) / (TUKEY_C * scale)
+    return np.where(u < 1.0, (1.0 - u * u) ** 2, 0.0)
+
+
 def mad_outliers(values: ArrayLike, k: float = 3.0, axis: int = -1) -> NDArray[np.bool_]:
     """The paper's rule: ``|x - median| > k * MAD`` with ``MAD = 1.4826 median(|x - median|)``.
 

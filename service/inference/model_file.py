@@ -46,6 +46,9 @@ class ModelInfo:
     mc_error_depth_gain: float = 0.0
     """Calibration: the error's variance outgrows ``mc_error_scale x`` the spread by ``1 + gain rho^2``
     towards a stack's outer slices (:func:`service.consistency.error_shape.depth_gain`)."""
+    expected_error_floor_mm: float = 0.0
+    """Calibration: the part of every returned pose's error that no stage sees (the request's
+    placement in the atlas frame); added in quadrature to each slice's expected error."""
     max_expected_error_mm: float | None = None
     """Calibration: the default ``max_expected_error_mm`` of the accept flag (``high_expected_error``);
     None (not calibrated): slices are judged by their variance alone unless a request sets it."""
@@ -66,6 +69,7 @@ class ModelInfo:
                 mc_error_scale=float(meta.get("mc_error_scale", 1.0)), tta_views=int(meta.get("tta_views", 1)),
                 mc_error_shape=_shape(meta.get("mc_error_shape", "")),
                 mc_error_depth_gain=float(meta.get("mc_error_depth_gain", 0.0)),
+                expected_error_floor_mm=float(meta.get("expected_error_floor_mm", 0.0)),
                 max_expected_error_mm=float(meta["max_expected_error_mm"]) if meta.get("max_expected_error_mm") else None,
                 metadata=dict(meta),
             )

@@ -271,6 +271,10 @@ def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples:
     if stack_consistency and image_consistency:
         refine_where_stacks_cross(prepared, outs, [~est.degenerate[sl] for sl in spans], reports)
     timings["image_consistency"] = time.perf_counter() - t
+    floor = float(getattr(estimator.info, "expected_error_floor_mm", 0.0))
+    for out in outs:                                       # what no stage sees: the request's placement
+        if out.expected_mm is not None:
+            out.expected_mm = np.hypot(out.expected_mm, floor)
     stacks = []
     for index, (s, sl, nfv, out, report) in enumerate(zip(prepared, spans, frames, outs, reports)):
         vol = s.upload.volume

@@ -1,20 +1,5 @@
-"""The job-runner interface, its two back-ends, and the choice between them.
-
-* **embedded** (default, nothing to install): :class:`~service.jobs.store.SqliteJobStore` and a pool
-  of worker processes beside the API (:class:`~service.jobs.local_runner.LocalRunner`).
-* **distributed** (``SVRNET_QUEUE_URL=redis://...``): :class:`~service.jobs.redis_store.RedisJobStore`
-  and an RQ queue (:class:`~service.jobs.rq_runner.RqRunner`); the API replicas only enqueue, and
-  ``svrnet-worker`` processes on any machine run the jobs.
-
-Example:
-    >>> import tempfile
-    >>> from service.core.settings import Settings
-    >>> store, runner = open_backend(Settings(data_dir=tempfile.mkdtemp()))
-    >>> type(store).__name__, type(runner).__name__
-    ('SqliteJobStore', 'LocalRunner')
-    >>> runner.shutdown()
-    []
-"""
+"""The job-runner interface: what the API asks of a back-end (:mod:`service.jobs.backends` chooses
+one), and the watch a worker keeps on the process that started it."""
 
 from __future__ import annotations
 
@@ -23,8 +8,6 @@ import threading
 import time
 from abc import ABC, abstractmethod
 
-from service.core.settings import Settings
-from service.jobs.store import JobStore
 
 
 class JobRunner(ABC):
@@ -52,24 +35,6 @@ class JobRunner(ABC):
     @abstractmethod
     def shutdown(self) -> list[str]:
         """At the API's stop: the jobs handed back to the queue."""
-
-
-def open_backend(settings: Settings) -> tuple[JobStore, JobRunner]:
-    """The store and runner that ``settings`` choose: distributed when ``queue_url`` is set."""
-    if settings.queue_url:
-        try:
-            from service.jobs.redis_store import RedisJobStore
-            from service.jobs.rq_runner import RqRunner
-        except ImportError as exc:
-            raise RuntimeError("SVRNET_QUEUE_URL needs the queue extra: pip install 'svrnet[queue]'") from exc
-
-        store = RedisJobStore(settings.queue_url, settings.data_dir, settings.queue_name)
-        return store, RqRunner(store, settings)
-    from service.jobs.local_runner import LocalRunner
-    from service.jobs.store import SqliteJobStore
-
-    sqlite = SqliteJobStore(settings.data_dir)
-    return sqlite, LocalRunner(sqlite, settings.models_dir, settings.job_workers, settings.job_max_attempts)
 
 
 def watch_parent(parent: int | None = None, interval_s: float = 0.5) -> None:

@@ -27,15 +27,12 @@ import numpy as np
 from service.consistency.slice_order import SliceOrder, per_stack
 from service.core.errors import ServiceError
 from service.jobs.store import JobStore
+from service.reconstruction.pipeline import Cancelled
 
 log = logging.getLogger(__name__)
 
 
 TIMED_OUT = "the job ran longer than SVRNET_JOB_TIMEOUT_H and was stopped"
-
-
-class Cancelled(Exception):
-    """The job was cancelled while running."""
 
 
 class Superseded(Exception):

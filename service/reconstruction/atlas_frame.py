@@ -56,7 +56,6 @@ MIN_MASK_FRACTION = 0.05
 MIN_SLICES = 32
 MAX_ROTATION_DEG = 20.0
 MAX_SHIFT_MM = 20.0
-TUKEY_C = 4.685
 
 
 @dataclass
@@ -139,8 +138,7 @@ def atlas_frame(volume: Volume, estimator: PoseEstimator | None, plane_x_mm: flo
     frame = se3.frechet_mean(each, w)
     for _ in range(3):
         r = ed(each, frame[None])
-        scale = max(TUKEY_C * 1.4826 * float(np.median(r)), 1e-6)
-        frame = se3.frechet_mean(each, w * np.clip(1.0 - (r / scale) ** 2, 0.0, None) ** 2)
+        frame = se3.frechet_mean(each, w * se3.tukey_weights(r, max(se3.MAD_SCALE * float(np.median(r)), 1e-6)))
     rotation = float(np.degrees(np.linalg.norm(se3.so3_log(frame[:3, :3]))))
     shift = float(np.linalg.norm(frame[:3, 3]))
     applied = rotation <= MAX_ROTATION_DEG and shift <= MAX_SHIFT_MM

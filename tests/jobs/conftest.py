@@ -59,7 +59,7 @@ def workers(queue_settings: dict[str, str], tmp_path: Path) -> Iterator[list]:
 def store(queue_settings: dict[str, str]):  # noqa: ANN201
     """The job store of the back-end, as a worker or an API replica opens it."""
     from service.core.settings import Settings
-    from service.jobs.runner import open_backend
+    from service.jobs.backends import open_backend
 
     store, runner = open_backend(Settings(**queue_settings))
     yield store

@@ -101,7 +101,7 @@ def test_two_replicas_two_workers_and_a_worker_killed_mid_job(tmp_path: Path, jo
 def test_sigterm_lets_the_worker_finish_its_job(tmp_path: Path, job_files: list,
                                                 cluster_settings: dict[str, str]) -> None:
     from service.core.settings import Settings
-    from service.jobs.runner import open_backend
+    from service.jobs.backends import open_backend
     from service.jobs.worker_cli import healthy
 
     settings = Settings(**cluster_settings)

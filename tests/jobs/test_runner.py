@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from service.core.settings import Settings
-from service.jobs.runner import open_backend
+from service.jobs.backends import open_backend
 
 ROOT = Path(__file__).resolve().parents[2]
 

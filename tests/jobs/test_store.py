@@ -113,7 +113,7 @@ def test_the_queue_maintenance_fails_orphaned_and_given_up_jobs_with_reasons(que
     by a stopped replica (after a grace period), a job the queue no longer knows."""
     from service.core.settings import Settings
     from service.jobs.rq_runner import INTERRUPTED
-    from service.jobs.runner import open_backend
+    from service.jobs.backends import open_backend
 
     store, runner = open_backend(Settings(**queue_settings))
     orphan, lost, healthy = (store.create({}) for _ in range(3))

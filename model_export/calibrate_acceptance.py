@@ -1,0 +1,144 @@
+"""Calibrate a model's accept flags on the pipeline's final poses.
+
+Simulated 3-stack acquisitions of the validation volumes at every motion level
+(:data:`model_export.acquisitions.MOTION_LEVELS` but ``extreme``) go through the very pipeline the
+server runs (:func:`~model_export.evaluate_acquisitions.evaluate_acquisitions`), with the model's
+expected-error floor at 0 and no expected-error limit. From every slice's final E.D. (against the
+truth), its expected error, its variance and the other reasons it may be rejected for:
+
+1. ``expected_error_floor_mm``: the error no stage sees (the request's placement in the atlas
+   frame), added in quadrature to every slice's expected error; chosen so that RMS E.D. / RMS
+   expected error is nearest 1 at every level (the largest ``|log ratio|`` smallest);
+2. ``variance_threshold``: the :data:`GOOD_VARIANCE_QUANTILE` quantile of the variance of the slices
+   whose E.D. is under :data:`GOOD_MM`: the network's spread for one slice alone does not reject a
+   good fused pose;
+3. ``max_expected_error_mm``: the largest limit under which at most :data:`MAX_BAD_ACCEPTED` of the
+   slices whose E.D. exceeds :data:`BAD_MM` are accepted at every level of :data:`TARGET_LEVELS`
+   (every other reason applied too); where no limit does that, the one that accepts the fewest.
+
+Example:
+    >>> ed = {"a": np.array([1.0, 2.0, 3.0]), "b": np.array([4.0, 6.0, 8.0])}
+    >>> expected = {"a": np.array([0.5, 0.5, 0.5]), "b": np.array([5.0, 6.0, 7.0])}
+    >>> round(choose_floor(ed, expected), 1)           # a's RMS E.D. 2.2 mm, its expected error 0.5 mm
+    2.1
+"""
+
+from __future__ import annotations
+
+import tempfile
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, evaluate_acquisitions
+from service.inference import acceptance
+
+LEVELS = ("mild", "moderate", "jumps", "independent")
+TARGET_LEVELS = ("mild", "moderate", "jumps")
+"""The levels the limit must hold at (``independent`` is reported beside them)."""
+GOOD_MM, BAD_MM = 5.0, 10.0
+MAX_BAD_ACCEPTED = 0.10
+GOOD_VARIANCE_QUANTILE = 99.5
+FLOORS_MM = np.arange(0.0, 4.01, 0.1)
+LIMITS_MM = np.arange(2.0, 12.01, 0.25)
+OTHER_REASONS = (acceptance.EMPTY, acceptance.DEGENERATE, acceptance.OUTSIDE, acceptance.INCONSISTENT)
+
+
+def rms(x: NDArray) -> float:
+    x = np.asarray(x, dtype=np.float64)
+    x = x[np.isfinite(x)]
+    return float(np.sqrt(np.mean(x ** 2))) if len(x) else float("nan")
+
+
+def choose_floor(ed: dict[str, NDArray], expected: dict[str, NDArray]) -> float:
+    """The floor (mm) that brings RMS E.D. / RMS expected error nearest 1 at every level at once."""
+    worst = [max(abs(np.log(rms(ed[k]) / rms(np.hypot(expected[k], f)))) for k in ed) for f in FLOORS_MM]
+    return float(FLOORS_MM[int(np.argmin(worst))])
+
+
+def accepted(columns: dict[str, NDArray], floor_mm: float, variance_threshold: float, limit_mm: float) -> NDArray:
+    """Which slices the service would accept with these settings (``columns``: one level's slices)."""
+    other = np.isin(columns["reason"], OTHER_REASONS)
+    expected = np.hypot(columns["expected"], floor_mm)
+    unsure = np.isfinite(expected) & (expected > limit_mm)
+    return ~other & ~unsure & (columns["variance"] <= variance_threshold)
+
+
+def rates(columns: dict[str, NDArray], ok: NDArray) -> dict[str, float]:
+    """The share of good (E.D. < 5 mm) and of bad (> 10 mm) slices accepted, against the truth and twin-min."""
+    out = {}
+    for name, key in (("", "ed"), ("_twin_min", "ed_min")):
+        e = columns[key]
+        good, bad = e < GOOD_MM, e > BAD_MM
+        out[f"good_accepted{name}"] = float(ok[good].mean()) if good.any() else float("nan")
+        out[f"bad_accepted{name}"] = float(ok[bad].mean()) if bad.any() else float("nan")
+        out[f"bad_slices{name}"] = int(bad.sum())
+    out["accepted"] = float(ok.mean())
+    return out
+
+
+def calibrate(by_level: dict[str, dict[str, NDArray]]) -> dict:
+    """The three settings (module docstring) from each level's slice columns, and how they do per level."""
+    floor = choose_floor({k: c["ed"] for k, c in by_level.items()}, {k: c["expected"] for k, c in by_level.items()})
+    good_var = np.concatenate([c["variance"][c["ed"] < GOOD_MM] for c in by_level.values()])
+    variance_threshold = float(np.percentile(good_var[np.isfinite(good_var)], GOOD_VARIANCE_QUANTILE))
+    targets = [k for k in TARGET_LEVELS if k in by_level]
+
+    def worst_bad(limit: float) -> float:
+        r = [rates(by_level[k], accepted(by_level[k], floor, variance_threshold, limit))["bad_accepted"] for k in targets]
+        return float(np.nanmax(r)) if np.isfinite(r).any() else 0.0
+
+    bad = np.array([worst_bad(t) for t in LIMITS_MM])
+    feasible = np.flatnonzero(bad <= MAX_BAD_ACCEPTED)
+    limit = float(LIMITS_MM[feasible[-1]] if len(feasible) else LIMITS_MM[int(np.argmin(bad))])
+    levels = {}
+    for k, c in by_level.items():
+        levels[k] = {"slices": len(c["ed"]), "ed_mean": float(c["ed"].mean()), "ed_twin_min_mean": float(c["ed_min"].mean()),
+                     "rms_ed_over_rms_expected": rms(c["ed"]) / rms(np.hypot(c["expected"], floor)),
+                     "rms_ed_over_rms_expected_before": rms(c["ed"]) / rms(c["expected"]),
+                     **rates(c, accepted(c, floor, variance_threshold, limit))}
+    return {"expected_error_floor_mm": floor, "variance_threshold": variance_threshold, "max_expected_error_mm": limit,
+            "limit_meets_target": bool(len(feasible)), "levels": levels}
+
+
+def level_columns(npz: Path, levels: tuple[str, ...]) -> dict[str, dict[str, NDArray]]:
+    """Each level's per-slice columns (slices with brain) from an ``evaluate_acquisitions`` ``.npz``."""
+    with np.load(npz) as f:
+        out = {}
+        for lv in levels:
+            keep = f[f"{lv}/mask_pixels"] >= MIN_MASK_PIXELS
+            out[lv] = {key: f[f"{lv}/{key}"][keep] for key in ("ed", "ed_min", "expected", "variance", "reason")}
+            out[lv]["expected"] = np.where(np.isinf(out[lv]["expected"]), np.nan, out[lv]["expected"])
+    return out
+
+
+def measure(estimator, volumes: list, per_volume: int, seed: int = 1, levels: tuple[str, ...] = LEVELS) -> dict:  # noqa: ANN001
+    """:func:`calibrate` on acquisitions of ``volumes`` through the pipeline, the estimator's own
+    floor and limit switched off while they are measured."""
+    estimator.info = replace(estimator.info, expected_error_floor_mm=0.0, max_expected_error_mm=None)
+    with tempfile.TemporaryDirectory() as tmp:
+        npz = Path(tmp) / "slices.npz"
+        evaluate_acquisitions(volumes, estimator, np.random.default_rng(seed), levels=levels, per_volume=per_volume,
+                              slices=npz)
+        return calibrate(level_columns(npz, levels))
+
+
+def markdown(result: dict, title: str) -> str:
+    """The calibration's report: the settings, then per level the accuracy and what the flags accept."""
+    rows = [f"# {title}", "",
+            f"- expected-error floor: {result['expected_error_floor_mm']:.1f} mm (in quadrature)",
+            f"- variance threshold: {result['variance_threshold']:.1f} ({GOOD_VARIANCE_QUANTILE} % of slices with E.D. < 5 mm under it)",
+            f"- max expected error: {result['max_expected_error_mm']:.2f} mm "
+            f"({'meets' if result['limit_meets_target'] else 'does NOT meet'} <= {MAX_BAD_ACCEPTED:.0%} of E.D. > 10 mm "
+            f"accepted at {', '.join(TARGET_LEVELS)})", "",
+            "| motion | slices | E.D. mean (truth / twin-min) | RMS E.D. / RMS expected (before floor) | accepted "
+            "| E.D. < 5 mm accepted (truth / twin-min) | E.D. > 10 mm accepted (truth / twin-min; slices) |",
+            "|---|---|---|---|---|---|---|"]
+    for k, v in result["levels"].items():
+        rows.append(f"| {k} | {v['slices']} | {v['ed_mean']:.2f} / {v['ed_twin_min_mean']:.2f} | "
+                    f"{v['rms_ed_over_rms_expected']:.2f} ({v['rms_ed_over_rms_expected_before']:.2f}) | {v['accepted']:.0%} | "
+                    f"{v['good_accepted']:.0%} / {v['good_accepted_twin_min']:.0%} | "
+                    f"{v['bad_accepted']:.0%} / {v['bad_accepted_twin_min']:.0%} ({v['bad_slices']} / {v['bad_slices_twin_min']}) |")
+    return "\n".join(rows) + "\n"
