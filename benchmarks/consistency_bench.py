@@ -24,7 +24,7 @@ from benchmarks.se3_bench import best_of  # noqa: E402
 from tests.consistency.test_stack_fit import fake_network, stack  # noqa: E402
 
 
-SHAPE = np.array([3.84, 0.53, 0.18, 0.03, 0.13, 1.30]) / 1.0016      # model 2.8.0's, mean 1
+SHAPE = np.array([3.84, 0.53, 0.18, 0.03, 0.13, 1.30]) / 1.0016      # a model's measured shape, mean 1
 
 
 def main() -> None:

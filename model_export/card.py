@@ -45,7 +45,7 @@ def _stage_text(train_config: dict) -> str:
     prior = train_config.get("init_from")
     if not prior:
         return ""
-    if "whole_network" not in prior:          # checkpoints from before training histories
+    if "whole_network" not in prior:          # a checkpoint without a training history
         return (f"; a second stage, started from the weights of a first run of {prior['steps']} steps "
                 f"({prior['samples_seen']:,} samples, {prior['train_seconds'] / 3600:.2f} h, val E.D. "
                 f"{prior['val_ed_mm']:.1f} mm) with the same recipe -- the cost below is the total of both")
@@ -77,7 +77,7 @@ def _totals_text(train_summary: dict) -> str:
     totals = train_summary.get("totals")
     if not totals:
         hours = train_summary["train_seconds"] / 3600
-        return f"- cost on this 2-core CPU: **{hours:.2f} h**, **{train_summary['samples_seen']:,} samples seen**"
+        return f"- cost: **{hours:.2f} h**, **{train_summary['samples_seen']:,} samples seen** (hardware not recorded)"
     rows = "\n".join(f"| {hw} | {d['samples']:,} | {d['hours']:.2f} |" for hw, d in totals["by_hardware"].items())
     stages = "\n".join(f"| {i + 1} | {seg.get('label_type', '?')} | {seg.get('loss', '?')} | {seg['hardware']} | "
                        f"{seg['samples']:,} | {seg['seconds'] / 3600:.2f} |"

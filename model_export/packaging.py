@@ -14,7 +14,7 @@ from model_export.model import SVRNet
 def load_checkpoint(path: Path) -> tuple[SVRNet, dict]:
     """The model (eval mode) and the whole checkpoint dict."""
     ck = torch.load(path, map_location="cpu", weights_only=False)
-    config = {"spatial_grid": 0, **ck["model_config"]}   # checkpoints before the grid head pooled globally
+    config = {"spatial_grid": 0, **ck["model_config"]}   # a checkpoint without spatial_grid pools globally
     model = SVRNet(**config)
     model.load_state_dict(ck["model"])
     return model.eval(), ck

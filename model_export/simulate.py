@@ -36,10 +36,10 @@ PSF_POINTS = 5
 
 
 FULL_EXTENT_TZ_FRACTION = 0.47
-"""Training planes cover 94 % of the brain's extent along their normal. Until model 2.2.0 they covered
-the central 70 % (``iterators.TZ_FRACTION``, the paper's range, still the one of the standard
-validation): slices beyond it, about a quarter of a real stack, were never seen, and 2.2.0 erred by
-57-68 mm there against 12-17 mm inside (``benchmarks/depth_bench.py``)."""
+"""Training planes cover 94 % of the brain's extent along their normal. A real stack covers the whole
+brain: about a quarter of its slices lie beyond the central 70 % (``iterators.TZ_FRACTION``, the
+paper's range and the standard validation's), and a network that never sees such planes is lost
+there (the twin-min E.D. by depth is in docs/accuracy.md)."""
 
 
 @dataclass

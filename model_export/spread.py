@@ -2,18 +2,18 @@
 ``mc_error_shape`` and ``mc_error_depth_gain`` metadata).
 
 The stack-consistency stage weighs each network pose by its expected error. MC dropout measures
-the network's uncertainty, not its error: on the validation volumes the shipped compact model's
-twin-min E.D. is 1.45x its MC spread (root mean squares). This module measures that ratio on
+the network's uncertainty, not its error: the two differ by a factor, the ratio of their root mean
+squares (the shipped model's is in docs/consistency.md). This module measures that ratio on
 single validation slices and writes it into the ONNX file's metadata (weights untouched), where
 :class:`service.inference.model_file.ModelInfo` reads it.
 
 The error is not alike in the six coordinates of a slice either
 (:mod:`service.consistency.error_shape`). Its shape is measured on what the stack-consistency
 stage weighs, the slices of simulated stacks through the validation volumes (with motion, so each
-slice sits at its own tilt): on single slices at any orientation the twist is three times as
-uncertain as on a stack's near-standard planes, and the stage weighed with that shape gave 6.66
-instead of 6.26 mm (model 2.8.0's outputs, 10 moderate acquisitions). The same acquisitions give
-the errors' growth towards a stack's ends beyond their spread (``mc_error_depth_gain``).
+slice sits at its own tilt): single slices at any orientation have a far less certain twist than
+a stack's near-standard planes, so a shape measured on them would mis-weigh the stage's slices.
+The same acquisitions give the errors' growth towards a stack's ends beyond their spread
+(``mc_error_depth_gain``).
 
 Example (with the atlas at hand):
     >>> scale = measure_error_scale(Path("service/models/default/model.onnx"))   # doctest: +SKIP

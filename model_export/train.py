@@ -37,7 +37,8 @@ from service.geometry.twin import POINT_LABELS, twin
 
 __all__ = ["TrainConfig", "train", "stream_seed", "predict_poses", "pose_errors", "validation_set", "totals", "hardware"]
 
-LEGACY_HARDWARE = "2-core shared CPU (earlier sessions)"
+UNRECORDED_HARDWARE = "not recorded"
+"""The hardware of a training segment whose checkpoint does not record it (see :func:`prior_history`)."""
 
 
 @dataclass
@@ -110,8 +111,7 @@ def stream_seed(seed: int, samples_seen: int) -> int:
     """The training stream's seed for a run that starts (or resumes) after ``samples_seen`` samples.
 
     Every stage and every resume draws new slices: a stage started from a checkpoint must not replay
-    the stream an earlier stage already trained on (before 2.7.0 every ``--init`` stage restarted
-    the same stream, so their samples repeated).
+    the stream an earlier stage already trained on (their samples would repeat).
 
     Example:
         >>> stream_seed(0, 0) == stream_seed(0, 0), stream_seed(0, 0) == stream_seed(0, 64)
@@ -121,11 +121,24 @@ def stream_seed(seed: int, samples_seen: int) -> int:
 
 
 def prior_history(ck: dict) -> list[dict]:
-    """The training segments behind a checkpoint (one synthesised segment for older checkpoints)."""
+    """The training segments behind a checkpoint, stating only what it records.
+
+    A run records its own segment, with its ``run`` folder and its hardware. A checkpoint without a
+    ``history`` records only its totals: they make one segment whose hardware is
+    :data:`UNRECORDED_HARDWARE`, and a later checkpoint carries that segment on (the one without
+    ``run``), so such a segment's hardware is read as unrecorded whatever label it carries.
+
+    Example:
+        >>> [seg["hardware"] for seg in prior_history({"samples_seen": 10, "train_seconds": 1.0})]
+        ['not recorded']
+        >>> [seg["hardware"] for seg in prior_history({"history": [{"hardware": "a label", "samples": 10},
+        ...                                                        {"hardware": "CPU, 2 cores", "run": "r"}]})]
+        ['not recorded', 'CPU, 2 cores']
+    """
     if ck.get("history"):
-        return list(ck["history"])
+        return [seg if "run" in seg else {**seg, "hardware": UNRECORDED_HARDWARE} for seg in ck["history"]]
     cfg = ck.get("config", {})
-    return [{"hardware": LEGACY_HARDWARE, "device": "cpu", "samples": int(ck.get("samples_seen", 0)),
+    return [{"hardware": UNRECORDED_HARDWARE, "device": "cpu", "samples": int(ck.get("samples_seen", 0)),
              "seconds": float(ck.get("train_seconds", 0.0)), "steps": int(ck.get("step", 0)),
              "label_type": cfg.get("label_type", "anchor"), "loss": cfg.get("loss", "l2")}]
 

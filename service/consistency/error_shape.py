@@ -2,10 +2,9 @@
 
 A slice's tilt out of its plane and its position along its normal are far less certain than its
 twist and its position in the plane: the image pins what lies in the plane, not how the plane
-leans. Model 2.11.0 on the slices of simulated stacks, error variance per coordinate relative to
-its MC spread (mean 1): rotation about x / y / the normal 3.4 / 0.6 / 0.23 (mm at the anchor
-radius), translation along x / y / the normal 0.04 / 0.15 / 1.6 (``svrnet-train calibrate-spread``,
-stored as the model's ``mc_error_shape``). The stage
+leans. ``svrnet-train calibrate-spread`` measures the error variance per coordinate relative to
+the MC spread on the slices of simulated stacks and stores it as the model's ``mc_error_shape``
+(the shipped model's values are in docs/consistency.md). The stage
 (:mod:`service.consistency.motion_model`) weighs each coordinate by its own variance, so it
 follows the motion closely where the network is precise and smooths where it is not.
 
@@ -115,9 +114,9 @@ def depth_gain(coordinates: ArrayLike, expected_mm: ArrayLike, depth: ArrayLike,
     expected errors towards a stack's outer slices (``depth`` rho, :func:`relative_depth`).
 
     MC dropout saturates on the outer planes, where the network is lost: there its spread grows
-    less than its error (model 2.11.0 on stack slices, robust variance in units of the spread:
-    1.0 / 1.1 / 2.3 / 3.5 from the centre out by 15 mm bands). Measured per :data:`DEPTH_BANDS`
-    (robust variance summed over the coordinates, relative to the central band), fitted in logs.
+    less than its error (the shipped model's gain is in docs/consistency.md). Measured per
+    :data:`DEPTH_BANDS` (robust variance summed over the coordinates, relative to the central band),
+    fitted in logs.
 
     Example (errors whose variance grows as 1 + 3 rho^2):
         >>> rng = np.random.default_rng(0)

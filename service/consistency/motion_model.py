@@ -21,11 +21,10 @@ by the marginal likelihood over one grid, all candidates at once. The posterior 
 weighed against its neighbours': the fusion needs no separate step); the closed-form leave-one-out
 mean is the pose the other slices predict for it.
 
-Compared with a leave-one-out kernel smoother chosen by cross-validation (what this replaced), the
-likelihood does not chase errors that neighbouring slices share, and the slices the network cannot
-place (the outer third of a stack, 47-104 deg off) weigh by their spread instead of like the rest:
-with model 2.3.0's poses of 45 simulated stacks per level, the mean E.D. after the stage fell from
-19.1 to 5.7 mm (mild motion) and from 14.8 to 8.6 mm (moderate); see CHANGELOG.md, "The left–right twin and stack consistency".
+Why the marginal likelihood: it does not chase errors that neighbouring slices share (the error
+correlation ``r`` explains them), and the slices the network cannot place (a stack's outer planes)
+weigh by their spread instead of like the rest. What the stage achieves is measured in
+docs/consistency.md ("Measured").
 
 Example:
     >>> import numpy as np
@@ -54,9 +53,9 @@ from service.geometry.pose import make_pose, translate
 
 LENGTHS = (0.5, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0, np.inf)
 """Candidate lengths of the motion kernel, in acquisitions (0.5: jitter from one slice to the next;
-``inf``: one rigid offset). Steps of 1.5x or less: with doubling steps (no 3 and 6) and amplitudes
-(no 2, 4.5, 9, 18) the models averaged were too far apart, and 2.11.0's cached outputs came out
-0.04-0.10 mm worse (moderate and mild, seeds 1 and 2); a grid finer still gains nothing more."""
+``inf``: one rigid offset). The lengths and :data:`AMPLITUDES_MM` step by 1.5x or less, so that the
+models averaged lie close enough together; a coarser grid is measurably worse, a finer one gains
+nothing (measured in docs/consistency.md)."""
 AMPLITUDES_MM = (1.0, 2.0, 3.0, 4.5, 6.0, 9.0, 12.0, 18.0, 24.0)
 """Candidate motion amplitudes (mm at the anchor radius, per component)."""
 NOISE_SCALES = (1.0, 1.5, 2.0)
@@ -158,9 +157,9 @@ def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dic
 
     The poses are averaged over the grid, each combination weighed by its marginal likelihood (a
     uniform prior over the grid; combinations under :data:`MIN_MODEL_WEIGHT` left out), and their
-    spreads include the combinations' disagreement. Choosing the single most likely combination
-    made the result jump where two are nearly as likely: a 2 % change of every slice's expected
-    error moved the mean E.D. of 10 moderate acquisitions by 0.3 mm. The returned hyper-parameters
+    spreads include the combinations' disagreement. The average, unlike the single most likely
+    combination, does not jump where two combinations are nearly as likely (a small change of the
+    slices' expected errors then moves the poses little). The returned hyper-parameters
     (``order``, ``length``, ...) are those of the most likely combination.
 
     Args:

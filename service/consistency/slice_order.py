@@ -9,11 +9,10 @@ interleaved by 2 with either phase. The scanner knows the order, and the user ma
 * or the slice indices (along the stack's slice axis, 0-based, as in the response) in the order
   they were acquired, e.g. ``"0,2,4,1,3"``.
 
-Why it matters, measured: with mild motion (5 deg / 3 mm) the likelihood cannot tell smooth motion
-from network errors that change smoothly with depth, and took the sequential order for 27 of 45
-interleaved stacks, fitting those errors as motion. Told "interleaved" (either phase), the mean
-E.D. after the stage fell from 5.74 to 5.40 mm on those stacks (model 2.3.0's poses; moderate
-motion 8.58 -> 8.59: there the motion itself picks the order). See CHANGELOG.md, "The left–right twin and stack consistency".
+Why the user may say it: with mild motion the likelihood cannot always tell smooth motion from
+network errors that change smoothly with depth, and may take a wrong order, fitting those errors as
+motion; with more motion, the motion itself picks the order. Being told removes the choice (what
+it changes for the shipped model is measured in docs/accuracy.md).
 
 Example:
     >>> order = SliceOrder.parse("interleaved")

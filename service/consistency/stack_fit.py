@@ -225,7 +225,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     axes = axes @ anatomical_axes(s[:3, :3] @ axes)                         # x along the brain's left-right
     # the slices' offsets from the centre along the normal (their in-plane offsets, a few mm, left out:
     # then only the two in-plane translations vary from slice to slice, and the other four share
-    # one eigendecomposition in the motion model; on 2.8.0's moderate outputs the same to 0.01 mm)
+    # one eigendecomposition in the motion model; the poses come out the same to a hundredth of a mm)
     along = ((inv_n[:, :3, 3] - centre) @ axes) * [0.0, 0.0, 1.0]
     grow = 1.0 + depth_gain * relative_depth(along[:, 2], use) ** 2
     shape = {"axes": axes} if error_shape is None else {   # errors per coordinate about each slice's origin

@@ -86,7 +86,7 @@ def pool_request(outs: list[StackPoses]) -> list[dict | None]:
     Only stacks that decided their left-right branch take part (a stack that may be the mirror image
     of the others would only add spread). A stack's placement is where its motion model puts it on
     average over its acquisition (not its robust rigid fit, which sits off that mean where the fetus
-    moved: pooling the rigid fits cost 1.5 mm on exact poses with moderate motion). Each such
+    moved, and would pool a position the stack never had). Each such
     stack's poses move with its pooled placement, and their ``expected_mm`` follows
     (:func:`pooled_expected_mm`). Returns each stack's ``consistency`` report."""
     reports = [stack_report(o.fit) for o in outs]

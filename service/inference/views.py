@@ -11,11 +11,11 @@ with no resampling. Each view's prediction maps back to a pose of the original s
   diag(-1, 1, 1)``), a proper pose, and ``P = M P_view R^k F``.
 
 The MC-dropout samples are shared among the views (100 samples over 8 views: 13, 13, 13, 13, 12, ...),
-so the head runs as often as before and only the trunk runs once per view. Their spread then
-holds the disagreement between views as well as the dropout's. On model 2.1.0's validation slices
-(3 mm, noisy; 200 slices), 8 views cut the twin-min E.D. from 17.9 to 14.5 mm and raise the AUROC of
-the variance for E.D. > 10 mm from 0.63 to 0.75 (``tests/inference/test_views.py`` checks the
-algebra on rendered phantom slices).
+so the head runs as often as with one view and only the trunk runs once per view. Their spread
+then holds the disagreement between views as well as the dropout's: the mean pose averages errors
+that depend on how the slice lies in the grid, and the variance ranks bad slices better
+(``benchmarks/views_bench.py`` measures accuracy and cost per number of views, docs/benchmarks.md;
+``tests/inference/test_views.py`` checks the algebra on rendered phantom slices).
 
 Example:
     >>> import numpy as np

@@ -170,7 +170,7 @@ class SqliteJobStore(JobStore):
             db.execute("PRAGMA journal_mode=WAL")
             db.execute(SCHEMA)
             cols = {r["name"] for r in db.execute("PRAGMA table_info(jobs)")}
-            for col in ("submitted_at", "started_at"):       # a database from before these columns
+            for col in ("submitted_at", "started_at"):       # a database without these columns
                 if col not in cols:
                     db.execute(f"ALTER TABLE jobs ADD COLUMN {col} REAL")
 

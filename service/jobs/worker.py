@@ -84,9 +84,8 @@ def predicted_poses(uploads: list, estimator, mc_samples: int = 100,  # noqa: AN
 def starting_inclusion(poses: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[np.ndarray, np.ndarray]]:
     """With the service's own poses every slice starts included, whatever its ``accepted`` flag (which
     the job's report keeps): the reconstruction's stack fit and robust exclusion reject bad slices
-    better than the variance threshold does. Measured with model 2.3.0 (``recon_bench.py --only 6``):
-    frame-free PSNR 24.8 dB and 0.68 mm relative pose error from all 105 slices, against 20.3 dB and
-    5.3 mm from the 37 accepted ones. Poses a client uploads keep the client's flags.
+    better than the variance threshold does (docs/reconstruction.md, "What a job does"). Poses a
+    client uploads keep the client's flags.
 
     Example:
         >>> [inc.tolist() for _, inc in starting_inclusion([(np.zeros((3, 4, 4)), np.array([True, False, False]))])]

@@ -1,10 +1,9 @@
 """A reconstruction's atlas frame, re-estimated by the network on slices re-cut from it.
 
 SVR makes a job's slices consistent with each other, but the reconstruction stays in the frame its
-starting poses gave it: their common error stays. Measured on one simulated acquisition with
-moderate motion (model 2.5.0): after SVR the slices agree within 0.8 mm (median, in the
-acquisition's own frame) while their E.D. against the truth is 4.4 mm. The reconstruction,
-though, is a motion-free brain, and the network can pose any slice of it:
+starting poses gave it: their common error stays, and after SVR the slices agree with each other
+far better than with the truth. The reconstruction, though, is a motion-free brain, and the
+network can pose any slice of it:
 
 1. re-cut ``n`` thick slices (3 mm) in random orientations through the central 70 % of its
    brain (where the network errs least), at known poses ``Q_i`` in the reconstruction's frame;

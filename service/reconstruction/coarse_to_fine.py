@@ -20,10 +20,8 @@ take the better one; the slice-level registration then starts within its capture
 
 The stacks move as bodies of their slices where the stage's motion model puts them (its posterior
 mean: the motion it found, not each prediction's noise; the rigid stack where it found none): a
-stack's file grid is a distorted image of the brain when the fetus moved during it. On 6
-simulated acquisitions with moderate motion (20 deg / 8 mm, model 2.4.0, ``benchmarks/refine_bench.py``)
-the refined poses of a job (1.5 mm, 3 rounds) are off by 6.1 mm (predicted: 6.8 mm), against
-9.1 mm with the file grids; with mild motion 3.9 mm either way (predicted: 4.4 mm).
+stack's file grid is a distorted image of the brain when the fetus moved during it
+(``benchmarks/refine_bench.py`` measures a job's refined poses; docs/reconstruction.md).
 
 Example:
     >>> choose_by_ncc(np.array([[0.5, 0.9], [0.8, 0.2]]), np.array([True, True])).tolist()

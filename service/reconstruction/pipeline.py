@@ -22,9 +22,8 @@ super-resolution.
 
 Registering against the Gaussian average itself would bias the poses (a blurred target pulls the
 slices inwards), hence round 0. Leaving a slice's own stacks out of the volume it is registered to
-keeps a misplaced slice from being held in place by its own imprint: on the benchmark (3 mm / 3 deg
-pose noise) three rounds leave 0.4 mm of relative pose error with it and 1.0 mm without. ``lambda`` decreases from ``lam_first`` to ``lam``
-over the rounds.
+keeps a misplaced slice from being held in place by its own imprint. ``lambda`` decreases from
+``lam_first`` to ``lam`` over the rounds.
 
 The function is numpy/scipy only and reports progress through a callback (which may raise to stop
 the job); ``cancel`` is polled between stages and raises :class:`Cancelled`.
@@ -123,7 +122,7 @@ class ReconstructionConfig:
         robust: EM pixel weights and slice exclusion (False: all weights 1).
         robust_tolerance: pixel weights use the EM inlier Gaussian widened by this factor, so only
             gross outliers lose weight (1: the plain EM posteriors, which also down-weight the
-            sharpest edges and cost about 1 dB on clean data).
+            sharpest edges and lose detail on clean data).
         exclude_ratio: slices with potential below this fraction of the median are excluded (and
             slices whose NCC with the volume is an outlier, :func:`~service.reconstruction.robust.ncc_outliers`;
             one that started from its own predicted pose restarts once from its stack's).
@@ -230,8 +229,8 @@ def capture(cfg: ReconstructionConfig, round_index: int, slices: SliceSet,
     When most slices start from their stack's pose (their own predicted poses fit the other stacks
     worse: the predictions are coarse), the first rounds follow ``cfg.capture_schedule`` (the extra
     blur added in quadrature to the forward model's in-plane blur); otherwise, and in the later
-    rounds, ``cfg.registration_step_mm`` and that blur. (A wide, blurred first round costs accurate
-    starting poses dearly: from the true poses of the benchmark 24.8 dB instead of 28.9 dB.)
+    rounds, ``cfg.registration_step_mm`` and that blur. (A wide, blurred first round would cost
+    accurate starting poses dearly, hence the condition.)
     """
     base = inplane_sigma_mm(slices)
     wide = coarse is not None and np.mean(coarse.start[slices.include] != START_OWN) >= WIDE_CAPTURE_FRACTION

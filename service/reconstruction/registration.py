@@ -18,10 +18,10 @@ clipped to the slice's trust radius in the metric where 1 mm of translation coun
 degree of rotation; it evaluates the NCC (and its derivatives) at the trial poses of all those
 slices in one vectorised pass, keeps the step where the NCC improved and, where it did not, halves
 the radius and raises the damping. The radius starts at 1 mm / 1 deg and a slice stops when it
-falls below 0.1 mm / 0.1 deg or its accepted steps become negligible. (Plain normalised gradient
-ascent with the same schedule stalls in the ill-conditioned directions: registering a smooth
-phantom from 2 mm / 2 deg it left 0.5 mm of error where this leaves 0.1 mm.) The rigid update is left-composed
-in atlas space: ``atlas_from_voxel <- U @ atlas_from_voxel``.
+falls below 0.1 mm / 0.1 deg or its accepted steps become negligible. (The Gauss-Newton matrix
+is what makes the ill-conditioned directions converge: plain normalised gradient ascent with the
+same schedule stalls in them.) The rigid update is left-composed in atlas space:
+``atlas_from_voxel <- U @ atlas_from_voxel``.
 
 :func:`anchor_frame` removes the common rigid drift of all slices that registration cannot
 constrain (the volume is built from the same slices).

@@ -1,4 +1,4 @@
-"""Defect E: with API keys configured, ``/metrics`` needs a key too, unless SVRNET_METRICS_PUBLIC says so."""
+"""With API keys configured, ``/metrics`` needs a key too, unless SVRNET_METRICS_PUBLIC says so."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Defects F and H: answers name the client's file (and the ZIP member), never a server temp file; names
+"""Answers name the client's file (and the ZIP member), never a server temp file; names
 are echoed without control characters; unknown form fields are refused by name."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Defect G: the OpenAPI page says exactly what the server does (methods, Allow, list sizes, fields)."""
+"""The OpenAPI page says exactly what the server does (methods, Allow, list sizes, fields)."""
 
 from __future__ import annotations
 

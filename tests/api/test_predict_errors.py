@@ -206,7 +206,7 @@ def test_a_server_fault_is_a_500_problem_with_the_request_id_and_no_internals(or
 
 
 def test_many_bombs_in_one_request_stop_at_the_request_limit(oracle: object) -> None:
-    """Defect B: each file is within its own limit; together they pass the request's (413 naming one)."""
+    """Each file is within its own limit; together they pass the request's (413 naming one)."""
     from tests.corpus import gzip_bomb
 
     bomb = gzip_bomb(2)

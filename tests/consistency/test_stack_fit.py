@@ -161,11 +161,9 @@ def test_the_expected_error_of_the_returned_poses_is_honest_and_ranks_them() -> 
 
 
 def test_errors_unlike_per_coordinate_are_weighed_per_coordinate() -> None:
-    """A network that errs mostly in the nodding tilt and along the normal (the measured shape of
-    model 2.8.0, in each slice's anatomical axes): told that shape, the stage follows the motion
-    where the network is precise and lands nearer the truth than weighing every coordinate alike
-    (here 2.78 against 3.95 mm; 3.43 when each slice's tilt and the shift it makes of the stack's
-    centre were taken as independent errors, before the lever arm coupled them)."""
+    """A network that errs mostly in the nodding tilt and along the normal (a measured shape, in each
+    slice's anatomical axes): told that shape, the stage follows the motion where the network is
+    precise and lands nearer the truth than weighing every coordinate alike."""
     from model_export.acquisitions import ORIENTATIONS
 
     shape = np.array([3.84, 0.53, 0.18, 0.03, 0.13, 1.30])
@@ -186,8 +184,8 @@ def test_a_depth_gain_trusts_the_outer_slices_less() -> None:
     """Told that errors outgrow their expected errors towards the stack's ends (``1 + 4 rho^2``), the
     stage's expected errors grow there more than at the middle (which shares a little of it: the
     outer slices' positions pin the stack's tilt at every depth through the lever arm). (On Gaussian
-    errors this weighting gains nothing measurable; on the network's outer planes, lost and
-    heavy-tailed, it gained 0.1-0.3 mm: see CHANGELOG.md, "The error's shape".)"""
+    errors this weighting gains nothing measurable; it is for the network's outer planes, where the
+    errors are lost and heavy-tailed.)"""
     from service.consistency.error_shape import relative_depth
 
     rng = np.random.default_rng(22)

@@ -1,4 +1,4 @@
-"""Defect B: every decoder is bounded before or while it inflates, and so is a whole request."""
+"""Every decoder is bounded before or while it inflates, and so is a whole request."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Defect A: a header can never make the server read one of its own files, however it is written."""
+"""A header can never make the server read one of its own files, however it is written."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Defect C: a real server stopped mid-job (SIGTERM, or kill -9) leaves no process behind, and the job
+"""A real server stopped mid-job (SIGTERM, or kill -9) leaves no process behind, and the job
 completes after a restart. Runs ``svrnet-server``'s code under uvicorn as a subprocess, on a tiny job."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Defect D: a job's uploads (raw stacks with their headers, their names) are deleted as soon as the job
+"""A job's uploads (raw stacks with their headers, their names) are deleted as soon as the job
 ends, whatever its outcome; only what the results need is kept."""
 
 from __future__ import annotations

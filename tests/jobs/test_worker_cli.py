@@ -37,8 +37,8 @@ POOL = textwrap.dedent("""
 
 
 def test_a_stop_signal_in_a_workers_start_up_window_is_a_warm_stop_not_a_kill(tmp_path: Path) -> None:
-    # Each pooled worker runs a parent-watch thread (and BLAS pools); a SIGTERM forwarded while RQ had
-    # not yet installed its handlers used to land on such a thread and kill the worker with -15.
+    # Each pooled worker runs a parent-watch thread (and BLAS pools); a SIGTERM forwarded before RQ has
+    # installed its handlers must not land on such a thread and kill the worker with -15.
     proc = subprocess.Popen([sys.executable, "-c", POOL, str(tmp_path)], cwd=ROOT, start_new_session=True)
     try:
         deadline = time.time() + 30

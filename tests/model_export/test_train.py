@@ -13,7 +13,7 @@ import torch
 from model_export.atlas import load_volumes, pack
 from model_export.model import SVRNet
 from model_export.stream import validation_set
-from model_export.train import LEGACY_HARDWARE, TrainConfig, _load_init, pose_errors, prior_history, totals, train
+from model_export.train import UNRECORDED_HARDWARE, TrainConfig, _load_init, pose_errors, prior_history, totals, train
 from service.geometry import iterators, twin
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
@@ -54,10 +54,12 @@ def test_pose_errors_report_the_truth_and_the_nearer_twin() -> None:
     assert err["on_twin"].tolist() == [False] * 4 + [True] * 4
 
 
-def test_totals_add_up_segments_and_legacy_checkpoints() -> None:
-    legacy = prior_history({"samples_seen": 1000, "train_seconds": 7200.0, "step": 10, "config": {}})
-    assert legacy[0]["hardware"] == LEGACY_HARDWARE and legacy[0]["samples"] == 1000
-    t = totals(legacy + [{"hardware": "GPU", "samples": 500, "seconds": 1800.0}])
+def test_totals_add_up_segments_and_checkpoints_without_history() -> None:
+    bare = prior_history({"samples_seen": 1000, "train_seconds": 7200.0, "step": 10, "config": {}})
+    assert bare[0]["hardware"] == UNRECORDED_HARDWARE and bare[0]["samples"] == 1000
+    carried = prior_history({"history": bare[:1] + [{"hardware": "GPU", "samples": 5, "seconds": 1.0, "run": "r"}]})
+    assert [seg["hardware"] for seg in carried] == [UNRECORDED_HARDWARE, "GPU"]
+    t = totals(bare + [{"hardware": "GPU", "samples": 500, "seconds": 1800.0}])
     assert t["samples"] == 1500 and t["hours"] == pytest.approx(2.5)
     assert t["by_hardware"]["GPU"] == {"samples": 500, "hours": 0.5}
 

@@ -23,8 +23,7 @@ def test_true_poses_recover_the_phantom(acquisition):
     Thresholds: PSNR > 39 dB and NCC > 0.995 (about 3 dB and 0.003 of margin), at least 10 dB
     better than the average, and registration must not move the slices away from the truth
     (measured mean pixel displacement 0.05-0.07 mm; threshold 0.25 mm). Slices kept: measured 49 / 52
-    / 51 / 51 of 52 / 53 / 52 / 52 (seeds 0-3; 50 at seed 0 before the stage averaged its motion
-    models, which moves the stacks' bodies by a few tenths of a mm); threshold: at most 3 excluded.
+    / 51 / 51 of 52 / 53 / 52 / 52 (seeds 0-3); threshold: at most 3 excluded.
     """
     ss = acquisition.slice_set()
     average = reconstruct(ss, resolution_mm=1.0, svr_iterations=0)
