@@ -14,8 +14,9 @@ The MC-dropout samples are shared among the views (100 samples over 8 views: 13,
 so the head runs as often as with one view and only the trunk runs once per view. Their spread
 then holds the disagreement between views as well as the dropout's: the mean pose averages errors
 that depend on how the slice lies in the grid, and the variance ranks bad slices better
-(``benchmarks/views_bench.py`` measures accuracy and cost per number of views, docs/benchmarks.md;
-``tests/inference/test_views.py`` checks the algebra on rendered phantom slices).
+(``model_export/experiments/views_bench.py`` measures accuracy and cost per number of views,
+docs/benchmarks.md; ``tests/inference/test_views.py`` checks the algebra on rendered phantom
+slices).
 
 Example:
     >>> import numpy as np

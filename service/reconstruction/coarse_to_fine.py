@@ -21,7 +21,7 @@ take the better one; the slice-level registration then starts within its capture
 The stacks move as bodies of their slices where the stage's motion model puts them (its posterior
 mean: the motion it found, not each prediction's noise; the rigid stack where it found none): a
 stack's file grid is a distorted image of the brain when the fetus moved during it
-(``benchmarks/refine_bench.py`` measures a job's refined poses; docs/reconstruction.md).
+(``model_export/experiments/refine_bench.py`` measures a job's refined poses; docs/reconstruction.md).
 
 Example:
     >>> choose_by_ncc(np.array([[0.5, 0.9], [0.8, 0.2]]), np.array([True, True])).tolist()

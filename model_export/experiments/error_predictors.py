@@ -9,7 +9,7 @@ stack (no stack in its own training fold), shows what a learned predictor would 
 
     .venv/bin/svrnet-train evaluate service/models/default/model.onnx --acquisitions --per-volume 2 \\
         --told interleaved --report model_export/reports/acquisitions-default.md --slices /tmp/slices.npz
-    .venv/bin/python benchmarks/error_predictors.py /tmp/slices.npz
+    .venv/bin/python model_export/experiments/error_predictors.py /tmp/slices.npz
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import minimize
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.calibrate import auroc  # noqa: E402
 from model_export.evaluate_acquisitions import ERROR_MM, MIN_MASK_PIXELS  # noqa: E402

@@ -5,7 +5,7 @@ covers all of it. Validation slices are drawn over the full extent here (``tz_fr
 the twin-min E.D. is reported per band of ``|Tz - middle| / half-extent``, for each checkpoint, through
 the export path with the service's statistics and test-time views. Needs ``../shared/data``.
 
-    .venv/bin/python benchmarks/depth_bench.py service/models/default/checkpoint.pt [more.pt ...] [--views 8]
+    .venv/bin/python model_export/experiments/depth_bench.py service/models/default/checkpoint.pt [more.pt ...] [--views 8]
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes  # noqa: E402
 from model_export.calibrate import mc_statistics  # noqa: E402

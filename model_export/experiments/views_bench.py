@@ -6,7 +6,7 @@ Accuracy goes through the export path in torch (``model_export.calibrate.mc_stat
 service's statistics); the cost is the service's ONNX estimator on the same slices, as a ratio to
 one view measured in the same run.
 
-    .venv/bin/python benchmarks/views_bench.py service/models/default/checkpoint.pt [more.pt ...] [--per-volume 60]
+    .venv/bin/python model_export/experiments/views_bench.py service/models/default/checkpoint.pt [more.pt ...] [--per-volume 60]
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.atlas import DEFAULT_ATLAS_ROOT  # noqa: E402
 from model_export.calibrate import auroc, mc_statistics  # noqa: E402

@@ -9,7 +9,7 @@ for each ``--follow-mm`` threshold (a stack whose motion model moves its slices 
 registered as a body that follows that motion, the others as their files' grids: 0 = every stack
 with motion follows it, inf = file grids), each also with its atlas frame re-estimated by the network
 (``service/reconstruction/atlas_frame.py``); and the seconds of each reconstruction. Needs ``../shared/data`` (the atlas volumes). Run:
-``.venv/bin/python benchmarks/refine_bench.py [--per-level 6] [--resolution 1.5] [--rounds 3]``.
+``.venv/bin/python model_export/experiments/refine_bench.py [--per-level 6] [--resolution 1.5] [--rounds 3]``.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.acquisitions import simulate_acquisition
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split

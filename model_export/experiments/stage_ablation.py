@@ -23,11 +23,11 @@ against the brain's true extent along its normal (training planes reach 0.94 of 
 An error is ``E = N^-1 M`` (network frame), ``M`` the network's pose and ``N`` the truth or its
 twin, whichever is nearer; an edited pose is ``N' E'`` with ``N'`` on the branch the network chose.
 
-    .venv/bin/python benchmarks/stage_ablation.py [--level moderate] [--per-volume 2]   # needs ../shared/data
+    .venv/bin/python model_export/experiments/stage_ablation.py [--level moderate] [--per-volume 2]   # needs ../shared/data
 
 With ``--cache`` name the ``--model`` that made the cached outputs: its ``mc_error_scale`` turns
-their spreads into the stage's expected errors (another model's scale moves the figures by tenths
-of a mm: 6.80 vs 6.83 mm for 2.8.0's moderate outputs under 2.8.0's and 2.9.0's scale).
+their spreads into the stage's expected errors (another model's scale moves the figures by up to
+tenths of a mm).
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ from typing import Callable
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.acquisitions import simulate_acquisition  # noqa: E402
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
