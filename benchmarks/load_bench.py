@@ -34,9 +34,9 @@ import psutil
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from service.io.volume import Volume, write_volume  # noqa: E402
-from tests import corpus  # noqa: E402
-from tests.live_server import Server  # noqa: E402
-from tests.phantoms import acquire_stack, phantom_brain, stack_affine  # noqa: E402
+from tests.support import corpus  # noqa: E402
+from tests.support.live_server import Server  # noqa: E402
+from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine  # noqa: E402
 
 
 def valid_stack(folder: Path) -> bytes:

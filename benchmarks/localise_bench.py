@@ -60,7 +60,7 @@ def uploads() -> tuple[list[StackUpload], str]:
         return [StackUpload(m.name.replace("_brain_mask", ""), read_volume(Path(str(m).replace("_brain_mask", ""))),
                             read_volume(m)) for m in masks], "real scan mial_lausanne_t30, manual masks"
     from model_export.localiser.scenes import HeadModel, synth_stack
-    from tests.phantoms import phantom_brain
+    from tests.support.phantoms import phantom_brain
 
     head = HeadModel.from_arrays(*phantom_brain(11))
     out = []

@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT))
 
 from service.geometry import se3  # noqa: E402
 from service.io.volume import Volume, read_volume, write_volume  # noqa: E402
-from tests.phantoms import acquire_stack, phantom_brain, stack_affine  # noqa: E402
+from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine  # noqa: E402
 
 ATLAS = ROOT.parent / "shared" / "data" / "fetal_atlas" / "crl_sta"
 

@@ -34,10 +34,10 @@ from rq.worker import Worker as RqWorker
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from service.core.settings import Settings  # noqa: E402
-from service.jobs.runner import open_backend  # noqa: E402
-from tests.live_server import Server, Worker, completions, stop_all  # noqa: E402
-from tests.phantoms import orthogonal_stacks_case  # noqa: E402
-from tests.redis_server import RedisServer  # noqa: E402
+from service.jobs.backends import open_backend  # noqa: E402
+from tests.support.live_server import Server, Worker, completions, stop_all  # noqa: E402
+from tests.support.phantoms import orthogonal_stacks_case  # noqa: E402
+from tests.support.redis_server import RedisServer  # noqa: E402
 
 FINAL = ("succeeded", "failed", "cancelled")
 

@@ -56,7 +56,7 @@ from service.io.volume import Volume, read_volume  # noqa: E402
 from service.reconstruction.pipeline import ReconstructionConfig, reconstruct  # noqa: E402
 from service.reconstruction.registration import anchor_frame  # noqa: E402
 from service.reconstruction.slices import SliceSet  # noqa: E402
-from tests.phantoms import phantom_brain, stack_affine  # noqa: E402
+from tests.support.phantoms import phantom_brain, stack_affine  # noqa: E402
 from tests.reconstruction.helpers import thick_stack  # noqa: E402
 
 ATLAS = ROOT.parent / "shared" / "data" / "fetal_atlas" / "crl_sta"

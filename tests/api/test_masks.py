@@ -14,7 +14,7 @@ from fastapi.testclient import TestClient
 
 from model_export.localiser.scenes import HeadModel, synth_stack
 from service.io.volume import Volume, read_volume, write_volume
-from tests.phantoms import phantom_brain
+from tests.support.phantoms import phantom_brain
 
 
 @pytest.fixture(scope="module")

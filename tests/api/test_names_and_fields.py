@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from tests import corpus
+from tests.support import corpus
 from tests.api.test_predict_errors import assert_problem, nifti_bytes, post, stack
 
 BROKEN_DICOM = corpus.dicom(np.zeros((64, 64), np.uint16))[:-5000]      # pixel data cut short

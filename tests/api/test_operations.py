@@ -18,7 +18,7 @@ from service.inference.registry import ModelRegistry
 from service.io.volume import Volume, write_volume
 from service.main import create_app
 from tests.api.conftest import make_client
-from tests.phantoms import acquire_stack, phantom_brain, stack_affine
+from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine
 
 
 @pytest.fixture(scope="module")

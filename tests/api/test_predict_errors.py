@@ -207,7 +207,7 @@ def test_a_server_fault_is_a_500_problem_with_the_request_id_and_no_internals(or
 
 def test_many_bombs_in_one_request_stop_at_the_request_limit(oracle: object) -> None:
     """Each file is within its own limit; together they pass the request's (413 naming one)."""
-    from tests.corpus import gzip_bomb
+    from tests.support.corpus import gzip_bomb
 
     bomb = gzip_bomb(2)
     files = [("stacks", (f"b{i}.nii.gz", bomb)) for i in range(8)]
@@ -216,7 +216,7 @@ def test_many_bombs_in_one_request_stop_at_the_request_limit(oracle: object) -> 
 
 
 def test_a_dicom_deflate_bomb_is_413_naming_the_file(oracle: object) -> None:
-    from tests.corpus import deflate_bomb
+    from tests.support.corpus import deflate_bomb
 
     assert_problem(post_to(oracle, [("stacks", ("bomb.dcm", deflate_bomb(64)))], max_decoded_mb=16), 413,
                    "bomb.dcm")

@@ -19,7 +19,7 @@ from service.geometry.anchors import ed
 from service.geometry.pose import apply, make_pose
 from service.io.volume import Volume, write_volume
 from service.preprocess.intensity import rescale_0_255
-from tests.phantoms import acquire_stack, phantom_brain, stack_affine
+from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine
 
 nib = pytest.importorskip("nibabel", reason="nibabel (dev extra) writes the nibabel case")
 

@@ -14,7 +14,7 @@ import pytest
 
 from service.api import uploads
 from service.inference.registry import ModelRegistry
-from tests import corpus
+from tests.support import corpus
 from tests.api.conftest import make_client
 from tests.api.test_operations import _call_without_reading_the_body
 

@@ -13,7 +13,7 @@ from service.geometry import se3
 from service.geometry.anchors import ed
 from service.geometry.pose import translate
 from tests.api.conftest import INFO
-from tests.phantoms import phantom_brain
+from tests.support.phantoms import phantom_brain
 
 
 def prepared_acquisition(n4: bool = True, **corruption: float) -> tuple[list[StackImages], list[np.ndarray]]:

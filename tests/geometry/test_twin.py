@@ -9,7 +9,7 @@ from service.geometry import anchors, encodings, iterators, sampling, se3, twin
 from service.geometry.pose import apply, make_pose
 from service.io.volume import Volume
 from service.preprocess.stack import split_stack
-from tests.phantoms import mirror_symmetric_volume
+from tests.support.phantoms import mirror_symmetric_volume
 
 PLANE_X = 1.5
 

@@ -12,7 +12,7 @@ import pytest
 from service.geometry import encodings, iterators, sampling, twin
 from service.inference.views import VIEW_COUNTS, pose_from_view, sample_views, split_samples, view_images, views
 from tests.api.conftest import tiny_model_path  # noqa: F401 - fixture
-from tests.phantoms import mirror_symmetric_volume
+from tests.support.phantoms import mirror_symmetric_volume
 
 PLANE_X = 1.5
 SIZE, PIXEL, THICK = 32, 1.0, 3.0

@@ -12,7 +12,7 @@ from pydicom import uid
 from service.core.errors import PayloadTooLarge, UnsupportedFile
 from service.io.limits import DecodeBudget
 from service.io.readers import read_upload
-from tests import corpus
+from tests.support import corpus
 
 MB = 2**20
 

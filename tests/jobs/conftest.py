@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.redis_server import SKIP_REASON, RedisServer, redis_server_binary
+from tests.support.redis_server import SKIP_REASON, RedisServer, redis_server_binary
 
 BACKENDS = ["embedded", "redis"]
 
@@ -45,7 +45,7 @@ def env_of(settings: dict[str, str]) -> dict[str, str]:
 @pytest.fixture
 def workers(queue_settings: dict[str, str], tmp_path: Path) -> Iterator[list]:
     """For the redis back-end: one ``svrnet-worker`` on the test's queue (stopped at the end)."""
-    from tests.live_server import Worker
+    from tests.support.live_server import Worker
 
     started = []
     if "queue_url" in queue_settings:

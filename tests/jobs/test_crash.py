@@ -12,8 +12,8 @@ import httpx
 import pytest
 
 from service.jobs.store import SqliteJobStore
-from tests.live_server import Server
-from tests.phantoms import orthogonal_stacks_case
+from tests.support.live_server import Server
+from tests.support.phantoms import orthogonal_stacks_case
 
 
 @pytest.fixture(scope="module")

@@ -18,8 +18,8 @@ import redis
 from rq.worker import Worker as RqWorker
 
 from tests.jobs.conftest import env_of
-from tests.live_server import Server, Worker, completions, stop_all
-from tests.phantoms import orthogonal_stacks_case
+from tests.support.live_server import Server, Worker, completions, stop_all
+from tests.support.phantoms import orthogonal_stacks_case
 
 FINAL = ("succeeded", "failed", "cancelled")
 

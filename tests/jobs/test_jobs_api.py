@@ -18,8 +18,8 @@ from service.io.volume import read_volume
 from service.jobs.store import SqliteJobStore
 from tests.api.conftest import OracleEstimator, make_client, tiny_model_path  # noqa: F401 - fixture
 from tests.jobs.conftest import BACKENDS, env_of
-from tests.live_server import Worker
-from tests.phantoms import orthogonal_stacks_case
+from tests.support.live_server import Worker
+from tests.support.phantoms import orthogonal_stacks_case
 
 both = pytest.mark.parametrize("queue_settings", BACKENDS, indirect=True)
 

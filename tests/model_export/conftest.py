@@ -8,7 +8,7 @@ import pytest
 
 from model_export.atlas import VALIDATION_VOLUMES
 from service.io.volume import Volume, write_volume
-from tests.phantoms import phantom_brain
+from tests.support.phantoms import phantom_brain
 
 
 @pytest.fixture(scope="session")

@@ -9,7 +9,7 @@ from model_export.evaluate_acquisitions import NoisyTwinEstimator, evaluate_acqu
 from service.geometry import sampling
 from service.geometry.pose import apply
 from tests.api.conftest import INFO
-from tests.phantoms import phantom_brain
+from tests.support.phantoms import phantom_brain
 
 BRAIN = phantom_brain(0)
 

@@ -70,7 +70,7 @@ def test_the_registry_names_what_it_lacks() -> None:
 
 def test_the_shipped_localiser_finds_the_brain_of_a_generated_whole_uterus_stack(localiser: Localiser) -> None:
     from model_export.localiser.scenes import HeadModel, synth_stack
-    from tests.phantoms import phantom_brain
+    from tests.support.phantoms import phantom_brain
 
     image, mask, affine = phantom_brain(11)
     head = HeadModel.from_arrays(image, mask, affine)

@@ -11,7 +11,7 @@ from service.preprocess.bias import n4_correct
 from service.preprocess.intensity import rescale_0_255
 from service.preprocess.slices import preprocess_slices
 from service.preprocess.stack import slice_axis_of, split_stack
-from tests.phantoms import phantom_brain
+from tests.support.phantoms import phantom_brain
 
 
 def test_rescale_prunes_one_percent_and_zeroes_outside() -> None:

@@ -1,7 +1,7 @@
 """Small phantom acquisitions for the reconstruction tests (fixed seeds, a few seconds to build).
 
 Three orthogonal stacks of thick slices (Gaussian through-plane profile, FWHM = slice spacing) are
-acquired from :func:`tests.phantoms.phantom_brain` with known per-slice rigid motion; the true
+acquired from :func:`tests.support.phantoms.phantom_brain` with known per-slice rigid motion; the true
 ``atlas_from_voxel`` of slice ``s`` is ``motion[s] @ stack_affine``.
 """
 
@@ -17,7 +17,7 @@ from service.geometry.pose import make_pose
 from service.io.volume import Volume
 from service.reconstruction.grid import Grid
 from service.reconstruction.slices import SliceSet
-from tests.phantoms import acquire_stack, phantom_brain, stack_affine
+from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine
 
 CENTRE = np.array([0.0, 3.0, 8.0])
 

@@ -10,7 +10,7 @@ from service.geometry.pose import make_pose
 from service.inference.estimator import PoseEstimate
 from service.io.volume import Volume
 from service.reconstruction import atlas_frame as af
-from tests.phantoms import phantom_brain
+from tests.support.phantoms import phantom_brain
 
 FRAME_ERROR = make_pose(se3.so3_exp(np.radians([3.0, -2.0, 4.0])), np.array([2.5, -1.5, 3.0]))   # atlas <- recon
 

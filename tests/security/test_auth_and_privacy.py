@@ -11,7 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.inference.registry import ModelRegistry
-from tests import corpus
+from tests.support import corpus
 from tests.api.conftest import OracleEstimator, make_client
 
 OPEN = {"/healthz", "/readyz", "/openapi.json", "/docs", "/redoc", "/docs/oauth2-redirect"}

@@ -13,7 +13,7 @@ from fastapi.testclient import TestClient
 from pydicom import uid
 
 from service.inference.registry import ModelRegistry
-from tests import corpus
+from tests.support import corpus
 from tests.api.conftest import OracleEstimator, make_client
 from tests.io.test_headers import COMMENTS, mha, nrrd
 

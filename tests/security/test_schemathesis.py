@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.live_server import ROOT, Server
+from tests.support.live_server import ROOT, Server
 
 EXAMPLES = os.environ.get("SVRNET_SCHEMATHESIS_EXAMPLES", "8")
 

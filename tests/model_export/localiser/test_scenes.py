@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from model_export.localiser.scenes import HeadModel, StackGeometry, synth_stack
-from tests.phantoms import phantom_brain
+from tests.support.phantoms import phantom_brain
 
 
 @pytest.fixture(scope="module")
