@@ -1,11 +1,15 @@
-"""``POST /v1/predict`` over real HTTP: a uvicorn server on 127.0.0.1, timings by stage, peak RSS.
+"""``POST /v1/predict`` over real HTTP: a uvicorn server on 127.0.0.1, timings by stage, peak RSS,
+and the ratio to a previous version measured in the same run.
 
 Scenarios (stacks cut from an atlas volume at three orthogonal orientations with motion, masks
-uploaded, N4 on, 100 MC samples), each with and without ``image_consistency`` (the ratio printed):
-  A. three stacks of 128 x 128 x 35 (target <= 2 s);
-  B. six stacks of 320 x 320 x 22 (target <= 5 s).
+uploaded, N4 on, 100 MC samples, every stage on), each also without ``image_consistency``:
+  A. three stacks of 128 x 128 x 35 (target <= 1 s);
+  B. six stacks of 320 x 320 x 22 (target <= 2 s).
 
-    .venv/bin/python benchmarks/predict_bench.py [--model-dir service/models]
+``--baseline REV`` serves the same scenarios from a git worktree of ``REV`` (its code and its
+shipped models) on a second port and prints each scenario's wall time beside it, as a ratio.
+
+    .venv/bin/python benchmarks/predict_bench.py [--baseline HEAD~3] [--model-dir service/models]
 """
 
 from __future__ import annotations
@@ -85,40 +89,77 @@ def run(client: httpx.Client, stacks: list[tuple[Path, Path]], repeats: int = 3,
     return best, timing
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--model-dir", default=str(ROOT / "service" / "models"))
-    args = ap.parse_args()
+SCENARIOS = (("A: 3 x 128x128x35", 1.0), ("B: 6 x 320x320x22", 2.0))
+
+
+def start_server(root: Path, model_dir: Path) -> tuple[subprocess.Popen, int]:
+    """A server of the code under ``root`` serving ``model_dir``, on a free port."""
     port = free_port()
-    env = dict(os.environ, SVRNET_PORT=str(port), SVRNET_MODELS_DIR=args.model_dir, SVRNET_LOG_LEVEL="warning")
-    server = subprocess.Popen([sys.executable, "-c", "from service.main import run; run()"], env=env, cwd=ROOT)
+    env = dict(os.environ, SVRNET_PORT=str(port), SVRNET_MODELS_DIR=str(model_dir), SVRNET_LOG_LEVEL="warning",
+               PYTHONPATH=str(root))
+    return subprocess.Popen([sys.executable, "-c", "from service.main import run; run()"], env=env, cwd=root), port
+
+
+def wait_ready(client: httpx.Client) -> None:
+    for _ in range(300):
+        try:
+            if client.get("/readyz").status_code == 200:
+                return
+        except httpx.TransportError:
+            pass
+        time.sleep(0.2)
+    raise RuntimeError("the server did not become ready")
+
+
+def measure(root: Path, model_dir: Path, scenarios: list[list[tuple[Path, Path]]]) -> tuple[dict, float]:
+    """Best-of-3 wall time and server stage timings per (scenario, image_consistency), and the peak RSS."""
+    server, port = start_server(root, model_dir)
+    out = {}
     try:
-        with tempfile.TemporaryDirectory() as tmp, httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=300) as client:
-            (Path(tmp) / "b").mkdir()
-            a = make_stacks(Path(tmp), 3, 128, 35, 1.1)
-            b = make_stacks(Path(tmp) / "b", 6, 320, 22, 0.55)
-            for _ in range(100):
-                try:
-                    if client.get("/readyz").status_code == 200:
-                        break
-                except httpx.TransportError:
-                    pass
-                time.sleep(0.2)
-            print(f"source: {brain()[3]}; server pid {server.pid} on 127.0.0.1:{port}")
-            for name, stacks, target in (("A: 3 x 128x128x35", a, 2.0), ("B: 6 x 320x320x22", b, 5.0)):
-                walls = {}
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=300) as client:
+            wait_ready(client)
+            for (name, _), stacks in zip(SCENARIOS, scenarios):
                 for image in ("true", "false"):
-                    wall, t = run(client, stacks, image_consistency=image)
-                    walls[image] = wall
-                    stages = ", ".join(f"{k} {v:.0f}" for k, v in t.items() if k != "total")
-                    print(f"{name}, image_consistency={image}: {wall:.2f} s wall over HTTP (target <= {target:.0f} s); "
-                          f"server total {t['total']:.0f} ms")
-                    print(f"   stages (ms; localisation and N4 are summed over stacks run in parallel): {stages}")
-                print(f"   image consistency costs x{walls['true'] / walls['false']:.2f} of the request without it")
-            print(f"peak RSS of the server: {peak_rss_mb(server.pid):.0f} MB (target <= 2048 MB)")
+                    out[name, image] = run(client, stacks, image_consistency=image)
+        return out, peak_rss_mb(server.pid)
     finally:
         server.terminate()
         server.wait(10)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--model-dir", default=str(ROOT / "service" / "models"))
+    ap.add_argument("--baseline", help="a git revision to compare with, in the same run")
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        (Path(tmp) / "b").mkdir()
+        scenarios = [make_stacks(Path(tmp), 3, 128, 35, 1.1), make_stacks(Path(tmp) / "b", 6, 320, 22, 0.55)]
+        print(f"source: {brain()[3]}")
+        now, rss = measure(ROOT, Path(args.model_dir), scenarios)
+        before = None
+        if args.baseline:
+            tree = Path(tmp) / "baseline"
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), args.baseline],
+                           check=True, capture_output=True)
+            try:
+                before, _ = measure(tree, tree / "service" / "models", scenarios)
+            finally:
+                subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False)
+    for name, target in SCENARIOS:
+        for image in ("true", "false"):
+            wall, t = now[name, image]
+            total = max(t["total"], 1e-9)
+            ratio = f"; {before[name, image][0]:.2f} s at {args.baseline}: x{wall / before[name, image][0]:.2f}" \
+                if before else ""
+            print(f"{name}, image_consistency={image}: {wall:.2f} s wall over HTTP (target <= {target:.0f} s){ratio}")
+            print("   server stages, ms (share of the server's total): "
+                  + ", ".join(f"{k} {v:.0f} ({v / total:.0%})" for k, v in t.items() if k != "total")
+                  + f"; total {t['total']:.0f}")
+        print(f"   image consistency costs x{now[name, 'true'][0] / now[name, 'false'][0]:.2f} of the request without it")
+    print(f"peak RSS of the server: {rss:.0f} MB (target <= 2048 MB)")
+    print("localisation and N4 are summed over the stacks prepared in parallel; preprocess is the wall time of "
+          "preparing them all")
 
 
 if __name__ == "__main__":

@@ -100,7 +100,8 @@ def calibrate(by_level: dict[str, dict[str, NDArray]]) -> dict:
                      "rms_ed_over_rms_expected_before": rms(c["ed"]) / rms(c["expected"]),
                      **rates(c, accepted(c, floor, variance_threshold, limit))}
     return {"expected_error_floor_mm": floor, "variance_threshold": variance_threshold, "max_expected_error_mm": limit,
-            "limit_meets_target": bool(len(feasible)), "levels": levels}
+            "limit_meets_target": bool(len(feasible)), "levels": levels,
+            "trade_off": {f"{t:g}": v for t, v in trade_off(by_level, floor, variance_threshold).items()}}
 
 
 def level_columns(npz: Path, levels: tuple[str, ...]) -> dict[str, dict[str, NDArray]]:
@@ -114,15 +115,31 @@ def level_columns(npz: Path, levels: tuple[str, ...]) -> dict[str, dict[str, NDA
     return out
 
 
-def measure(estimator, volumes: list, per_volume: int, seed: int = 1, levels: tuple[str, ...] = LEVELS) -> dict:  # noqa: ANN001
+def measure(estimator, volumes: list, per_volume: int, seed: int = 1, levels: tuple[str, ...] = LEVELS,  # noqa: ANN001
+            slices: Path | None = None) -> dict:
     """:func:`calibrate` on acquisitions of ``volumes`` through the pipeline, the estimator's own
-    floor and limit switched off while they are measured."""
+    floor and limit switched off while they are measured; ``slices``: keep every slice's columns
+    there (``.npz``, as :func:`~model_export.evaluate_acquisitions.evaluate_acquisitions` writes them)."""
     estimator.info = replace(estimator.info, expected_error_floor_mm=0.0, max_expected_error_mm=None)
     with tempfile.TemporaryDirectory() as tmp:
-        npz = Path(tmp) / "slices.npz"
+        npz = slices or Path(tmp) / "slices.npz"
         evaluate_acquisitions(volumes, estimator, np.random.default_rng(seed), levels=levels, per_volume=per_volume,
                               slices=npz)
         return calibrate(level_columns(npz, levels))
+
+
+def trade_off(by_level: dict[str, dict[str, NDArray]], floor_mm: float, variance_threshold: float,
+              limits_mm: tuple[float, ...] = (3.0, 4.0, 5.0, 6.0, 8.0)) -> dict[float, dict[str, tuple[float, float]]]:
+    """For each limit, each level's share of good and of bad slices accepted (what a request's
+    ``max_expected_error_mm`` buys)."""
+    out = {}
+    for limit in limits_mm:
+        row = {}
+        for k, c in by_level.items():
+            r = rates(c, accepted(c, floor_mm, variance_threshold, limit))
+            row[k] = (r["good_accepted"], r["bad_accepted"])
+        out[limit] = row
+    return out
 
 
 def markdown(result: dict, title: str) -> str:
@@ -141,4 +158,8 @@ def markdown(result: dict, title: str) -> str:
                     f"{v['rms_ed_over_rms_expected']:.2f} ({v['rms_ed_over_rms_expected_before']:.2f}) | {v['accepted']:.0%} | "
                     f"{v['good_accepted']:.0%} / {v['good_accepted_twin_min']:.0%} | "
                     f"{v['bad_accepted']:.0%} / {v['bad_accepted_twin_min']:.0%} ({v['bad_slices']} / {v['bad_slices_twin_min']}) |")
+    rows += ["", "What other limits accept (`max_expected_error_mm`; E.D. < 5 mm / E.D. > 10 mm accepted, against the truth):",
+             "", "| limit (mm) | " + " | ".join(result["levels"]) + " |", "|---|" + "---|" * len(result["levels"])]
+    for limit, row in result["trade_off"].items():
+        rows.append(f"| {limit} | " + " | ".join(f"{g:.0%} / {b:.0%}" for g, b in row.values()) + " |")
     return "\n".join(rows) + "\n"

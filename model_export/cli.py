@@ -177,6 +177,7 @@ def calibrate_acceptance(
     write: Annotated[bool, typer.Option(help="write expected_error_floor_mm, variance_threshold and "
                                              "max_expected_error_mm into the model's metadata")] = True,
     seed: int = 1,
+    slices: Annotated[Optional[Path], typer.Option(help="also keep every slice's columns here (.npz)")] = None,
 ) -> None:
     """Calibrate the accept flags on the pipeline's final poses over simulated acquisitions of the
     validation volumes at every motion level (mild, moderate, jumps, independent)."""
@@ -186,7 +187,8 @@ def calibrate_acceptance(
     from service.inference.estimator import OnnxPoseEstimator
     from service.inference.model_file import load_model
 
-    result = measure(OnnxPoseEstimator(load_model(model)), load_volumes(split(root)[1], root), per_volume, seed)
+    result = measure(OnnxPoseEstimator(load_model(model)), load_volumes(split(root)[1], root), per_volume, seed,
+                     slices=slices)
     report.parent.mkdir(parents=True, exist_ok=True)
     report.write_text(markdown(result, f"Accept flags of {model}"))
     if write:

@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import sparse
 
-from service.consistency.intersections import ImageTerm, SampledStack, StackImages, candidate_pairs, lines
+from service.consistency.intersections import BlockedStack, ImageTerm, SampledStack, StackImages, candidate_pairs, lines
 from service.geometry import se3
 from service.geometry.anchors import ed
 
@@ -32,14 +32,14 @@ ANCHOR_RADIUS_MM = 40.0
 SIGMAS_MM = (3.0, 0.9)
 """In-plane smoothing of the passes: coarse, then about a 3 mm slice's own profile across its plane
 (3 / sqrt(12) mm), so that two crossing thick slices see the same blur (at the true poses of a
-noise-free phantom the refinement then moves slices by 0.10 mm, against 0.30 mm at 1.5 mm)."""
+noise-free phantom the refinement then hardly moves them)."""
 REFINED_GAIN = 0.65
 """A refined slice's expected E.D.: this times the stage's, times the square root of its remaining
-mismatch over the request's median (:func:`expected_after`; measured on simulated moderate
-acquisitions, model 2.11.0, seed 1; seed 2 gave 0.67)."""
+mismatch over the request's median (:func:`expected_after`; fitted on simulated moderate
+acquisitions, docs/consistency.md)."""
 UNCHECKED_GAIN = 1.9
 """A slice on no line (the brain's caps): this times the stage's expected E.D. (the stage
-under-states them, and the rest of their stack moved; seed 2 gave 1.91)."""
+under-states them, and the rest of their stack moved)."""
 MIN_BRAIN_PIXELS = 20
 """Slices with less brain than this take no part (their lines cross too little brain to tell)."""
 MIN_LINE_WEIGHT = 1.0
@@ -115,10 +115,11 @@ def refine(stacks: list[StackImages], poses: list[NDArray], sd_mm: list[NDArray]
     costs: list[float] = []
     used = 0
     mismatch = np.full(len(p0), np.nan)
+    blocked = [BlockedStack.of(s) for s in stacks]
     for sigma in sigmas_mm:
         step = max(spacing_mm, sigma)                                   # a smoother pass needs fewer points
         t = np.arange(-radius, radius + 1e-9, step)
-        term = ImageTerm([SampledStack(s, sigma) for s in stacks], stack_of, local, pairs, t)
+        term = ImageTerm([SampledStack(s, sigma, b) for s, b in zip(stacks, blocked)], stack_of, local, pairs, t)
         w = np.clip(np.prod(term.values(atlas_from_slice(x), masks=True), axis=0), 0.0, 1.0).astype(np.float64)
         term.select(w, min_weight=MIN_LINE_WEIGHT)
         if not len(term.pair_of):

@@ -120,16 +120,31 @@ def candidate_pairs(atlas_from_slice: NDArray, stack_of: NDArray, free: NDArray)
     return np.stack([a[keep], b[keep]], axis=1)
 
 
+@dataclass
+class BlockedStack:
+    """A stack's images scaled by its median brain intensity, and its masks, averaged over blocks of
+    ``factors`` pixels (pixels finer than ~1 mm: the finest pass smooths at 0.9 mm anyway); worked
+    out once per request and shared by the passes."""
+
+    images: NDArray[np.float32]
+    masks: NDArray[np.float32]
+    factors: tuple[int, int]
+
+    @classmethod
+    def of(cls, s: StackImages) -> "BlockedStack":
+        brain = s.images[s.masks]
+        scale = float(np.median(brain)) if brain.size else 1.0
+        f = (max(1, round(1.0 / s.pixel_mm[0])), max(1, round(1.0 / s.pixel_mm[1])))
+        return cls(_blocks(s.images.astype(np.float32) / max(scale, 1e-6), f), _blocks(s.masks.astype(np.float32), f), f)
+
+
 class SampledStack:
     """A stack's smoothed, scaled images and masks, sampled at atlas points (bilinear)."""
 
-    def __init__(self, s: StackImages, sigma_mm: float) -> None:
-        brain = s.images[s.masks]
-        scale = float(np.median(brain)) if brain.size else 1.0
+    def __init__(self, s: StackImages, sigma_mm: float, blocked: BlockedStack | None = None) -> None:
         n, h, w = s.images.shape
-        # pixels finer than ~1 mm are averaged in blocks first: the finest pass smooths at 0.9 mm anyway
-        f = (max(1, round(1.0 / s.pixel_mm[0])), max(1, round(1.0 / s.pixel_mm[1])))
-        images, masks = _blocks(s.images.astype(np.float32) / max(scale, 1e-6), f), _blocks(s.masks.astype(np.float32), f)
+        blocked = blocked or BlockedStack.of(s)
+        images, masks, f = blocked.images, blocked.masks, blocked.factors
         pixel = (s.pixel_mm[0] * f[0], s.pixel_mm[1] * f[1])
         self.images = ndimage.gaussian_filter(images, (0.0, sigma_mm / pixel[0], sigma_mm / pixel[1]))
         self.masks = ndimage.gaussian_filter(masks, (0.0, 1.0, 1.0))
@@ -185,8 +200,9 @@ def _blocks(images: NDArray, f: tuple[int, int]) -> NDArray[np.float32]:
     if f == (1, 1):
         return images
     n, h, w = images.shape
-    hh, ww = h // f[0], w // f[1]
-    return images[:, :hh * f[0], :ww * f[1]].reshape(n, hh, f[0], ww, f[1]).mean(axis=(2, 4)).astype(np.float32)
+    whole = images[:, :h // f[0] * f[0], :w // f[1] * f[1]]
+    total = sum(whole[:, i::f[0], j::f[1]].astype(np.float32) for i in range(f[0]) for j in range(f[1]))
+    return (total / (f[0] * f[1])).astype(np.float32)
 
 
 class ImageTerm:
