@@ -2,8 +2,8 @@
 
 For each motion level (:data:`model_export.acquisitions.MOTION_LEVELS`) and each volume, an
 acquisition is simulated with exact per-slice truth, prepared by the service's own
-:func:`~service.inference.pipeline.prepare_stacks` (uploaded masks, N4 as the server does) and
-predicted by :func:`~service.inference.pipeline.predict` with stack consistency on. Every pose is
+:func:`~service.pipeline.predict.prepare_stacks` (uploaded masks, N4 as the server does) and
+predicted by :func:`~service.pipeline.predict.predict` with stack consistency on. Every pose is
 scored twice: against the truth and twin-min (the nearer of the truth and its left-right twin),
 for the network's own poses and for the stack-consistent ones.
 
@@ -27,7 +27,8 @@ from service.geometry.anchors import ed
 from service.inference.estimator import PoseEstimate, statistics
 from service.inference.model_file import ModelInfo
 from service.consistency.slice_order import SliceOrder
-from service.inference.pipeline import PreparedStack, StackUpload, predict, prepare_stacks
+from service.api.responses import stack_objects
+from service.pipeline.predict import PreparedStack, StackUpload, predict, prepare_stacks
 
 ERROR_MM = 10.0
 DISTINGUISHABLE_MM = 20.0
@@ -105,8 +106,8 @@ def run_acquisition(stacks: list[SimulatedStack], estimator, mc_samples: int = 1
     if hasattr(estimator, "truth"):
         estimator.truth = np.concatenate(truth)
     once = _Reused(estimator)
-    results = [predict(prepared, once, mc_samples, estimator.info.variance_threshold,
-                       orders=None if order is None else [SliceOrder.parse(order)])[0] for order in orders]
+    results = [stack_objects(predict(prepared, once, mc_samples, estimator.info.variance_threshold,
+                                     orders=None if order is None else [SliceOrder.parse(order)])[0]) for order in orders]
     return results, prepared, truth
 
 

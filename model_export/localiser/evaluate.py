@@ -25,7 +25,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.geometry import anchors
-from service.inference.pipeline import StackUpload, predict, prepare_stacks
+from service.api.responses import stack_objects
+from service.pipeline.predict import StackUpload, predict, prepare_stacks
 from service.io.volume import Volume, read_volume
 from service.preprocess.localise import Localiser
 
@@ -93,8 +94,8 @@ def pose_agreement(uploads_with_masks: list[StackUpload], localiser: Localiser, 
     def run(uploads: list[StackUpload]) -> tuple[list[dict], list, float]:
         t = time.perf_counter()
         prepared = prepare_stacks(uploads, estimator.info, True, workers=2, localiser=localiser)
-        stacks, _ = predict(prepared, estimator, mc_samples, estimator.info.variance_threshold)
-        return stacks, prepared, time.perf_counter() - t
+        predictions, _ = predict(prepared, estimator, mc_samples, estimator.info.variance_threshold)
+        return stack_objects(predictions), prepared, time.perf_counter() - t
 
     with_masks, prepared, t_masks = run(uploads_with_masks)
     without, _, t_without = run([StackUpload(u.filename, u.volume) for u in uploads_with_masks])

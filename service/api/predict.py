@@ -9,10 +9,11 @@ from anyio import to_thread
 from fastapi import APIRouter, Depends, Form, Request
 
 from service.api.deps import ApiKey, LocalisersDep, MetricsDep, RegistryDep, SettingsDep, SlotDep
+from service.api.responses import stack_objects
 from service.api.schemas import UPLOAD_ERRORS, PredictResponse
 from service.api.uploads import UploadFormDep, known_fields, save_and_read, upload_directory
-from service.inference.pipeline import predict as run_prediction
-from service.inference.pipeline import prepare_stacks
+from service.pipeline.predict import predict as run_prediction
+from service.pipeline.predict import prepare_stacks
 
 router = APIRouter(prefix="/v1", tags=["prediction"], dependencies=[ApiKey])
 
@@ -50,15 +51,15 @@ async def predict(
     prepared = await to_thread.run_sync(prepare_stacks, uploads, estimator.info, bias_correction,
                                         settings.preprocess_workers, localiser)
     t_prep = time.perf_counter()
-    results, timings = await to_thread.run_sync(run_prediction, prepared, estimator, form.mc_samples, threshold,
-                                                stack_consistency, form.orders, image_consistency, max_expected)
-    metrics.observe_slices(model, [s["reason"] for st in results for s in st["slices"]])
+    predictions, timings = await to_thread.run_sync(run_prediction, prepared, estimator, form.mc_samples, threshold,
+                                                    stack_consistency, form.orders, image_consistency, max_expected)
+    metrics.observe_slices(model, [r for p in predictions for r in p.reasons])
     stage = lambda key: sum(p.timings.get(key, 0.0) for p in prepared)  # noqa: E731 - CPU time summed over stacks
     return {
         "request_id": request.scope["state"]["request_id"],
         "model": {"name": model, "version": info.version, "backbone": info.backbone, "sha256": info.sha256},
         "mc_samples": form.mc_samples, "variance_threshold": threshold, "max_expected_error_mm": max_expected,
-        "stacks": results,
+        "stacks": stack_objects(predictions),
         "timing_ms": {
             "read": (t_read - t0) * 1e3, "localisation": stage("localisation") * 1e3,
             "bias_correction": stage("bias_correction") * 1e3, "preprocess": (t_prep - t_read) * 1e3,

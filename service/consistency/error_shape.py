@@ -71,7 +71,7 @@ def error_coordinates(pred: ArrayLike, true: ArrayLike) -> NDArray[np.float64]:
     return np.concatenate([rot, np.einsum("nji,nj->ni", r, err[:, :3, 3])], axis=1)
 
 
-def error_shape(coordinates: ArrayLike, expected_mm: ArrayLike) -> NDArray[np.float64]:
+def error_shape(coordinates: ArrayLike, expected_error_mm: ArrayLike) -> NDArray[np.float64]:
     """``[6]`` variance per coordinate of errors ``[n, 6]`` in units of their expected errors, mean 1.
 
     Robust (``1.4826 x`` the median absolute value, squared): a slice the network cannot place is an
@@ -83,7 +83,7 @@ def error_shape(coordinates: ArrayLike, expected_mm: ArrayLike) -> NDArray[np.fl
         >>> round(float(shape[5] / shape[3]), -1)
         100.0
     """
-    u = np.asarray(coordinates, dtype=np.float64) / np.asarray(expected_mm, dtype=np.float64)[:, None]
+    u = np.asarray(coordinates, dtype=np.float64) / np.asarray(expected_error_mm, dtype=np.float64)[:, None]
     var = (se3.MAD_SCALE * np.median(np.abs(u), axis=0)) ** 2
     return var / var.mean()
 
@@ -108,7 +108,7 @@ def relative_depth(offsets_mm: ArrayLike, inside: ArrayLike) -> NDArray[np.float
     return np.minimum(np.abs(z - (lo + hi) / 2.0) / max((hi - lo) / 2.0, 1e-9), 1.0)
 
 
-def depth_gain(coordinates: ArrayLike, expected_mm: ArrayLike, depth: ArrayLike,
+def depth_gain(coordinates: ArrayLike, expected_error_mm: ArrayLike, depth: ArrayLike,
                gains: ArrayLike = np.linspace(0.0, 10.0, 101)) -> float:
     """``beta`` of the variance factor ``1 + beta rho^2`` by which errors ``[n, 6]`` outgrow their
     expected errors towards a stack's outer slices (``depth`` rho, :func:`relative_depth`).
@@ -125,7 +125,7 @@ def depth_gain(coordinates: ArrayLike, expected_mm: ArrayLike, depth: ArrayLike,
         >>> round(depth_gain(err, np.ones(20000), rho))
         3
     """
-    u = np.asarray(coordinates, dtype=np.float64) / np.asarray(expected_mm, dtype=np.float64)[:, None]
+    u = np.asarray(coordinates, dtype=np.float64) / np.asarray(expected_error_mm, dtype=np.float64)[:, None]
     rho = np.asarray(depth, dtype=np.float64)
     var, mid = [], []
     for lo, hi in DEPTH_BANDS:

@@ -60,7 +60,7 @@ class Refinement:
     mismatch: list[NDArray[np.float64]]   # per stack [n]: each slice's image term per weighted point, after (NaN: none)
 
 
-def refine(stacks: list[StackImages], poses: list[NDArray], sd_mm: list[NDArray], *,
+def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: list[NDArray], *,
            sigmas_mm: tuple[float, ...] = SIGMAS_MM, spacing_mm: float = 2.0, noise: float = 0.15,
            prior_weight: float = 1.0, iterations: int = 8) -> Refinement:
     """Refine every free slice's pose so that slices of different stacks agree where they cross.
@@ -68,7 +68,7 @@ def refine(stacks: list[StackImages], poses: list[NDArray], sd_mm: list[NDArray]
     Args:
         stacks: each stack's images (:class:`StackImages`).
         poses: each stack's poses ``[n, 4, 4]`` (network frame -> atlas), the stage's output.
-        sd_mm: each stack's expected E.D. per slice ``[n]`` (the prior's scale; non-finite: 10 mm).
+        expected_error_mm: each stack's expected E.D. per slice ``[n]`` (the prior's scale; non-finite: 10 mm).
         sigmas_mm: in-plane smoothing of each pass, coarse to fine.
         spacing_mm: spacing of the points along each intersection line.
         noise: the intensity difference (in units of a stack's median brain intensity) that counts
@@ -96,7 +96,7 @@ def refine(stacks: list[StackImages], poses: list[NDArray], sd_mm: list[NDArray]
         return unchanged
     col = -np.ones(len(p0), int)
     col[free] = np.arange(free.sum())
-    sd = np.concatenate([np.where(np.isfinite(e), e, 10.0) for e in sd_mm])
+    sd = np.concatenate([np.where(np.isfinite(e), e, 10.0) for e in expected_error_mm])
     prior = _prior_sd(np.maximum(sd[free], 0.5)) / prior_weight            # [F, 6]
     radius = max(_brain_radius(s) for s in stacks)
     x = np.zeros((int(free.sum()), 6))
@@ -177,8 +177,8 @@ def follow_neighbours(final: NDArray, start: NDArray, checked: NDArray, stack_of
     return out
 
 
-def expected_after(expected_mm: list[NDArray], mismatch: list[NDArray]) -> list[NDArray[np.float64]]:
-    """Each slice's expected E.D. after :func:`refine`, from the stage's (``expected_mm``) and the
+def expected_after(expected_error_mm: list[NDArray], mismatch: list[NDArray]) -> list[NDArray[np.float64]]:
+    """Each slice's expected E.D. after :func:`refine`, from the stage's (``expected_error_mm``) and the
     slice's remaining image mismatch relative to the request's median (:data:`REFINED_GAIN`,
     :data:`UNCHECKED_GAIN`).
 
@@ -189,7 +189,7 @@ def expected_after(expected_mm: list[NDArray], mismatch: list[NDArray]) -> list[
     every = np.concatenate([m for m in mismatch]) if mismatch else np.zeros(0)
     ref = float(np.nanmedian(every)) if np.isfinite(every).any() else np.nan
     out = []
-    for e, m in zip(expected_mm, mismatch):
+    for e, m in zip(expected_error_mm, mismatch):
         ratio = np.sqrt(np.maximum(m, 0.0) / max(ref, 1e-12)) if np.isfinite(ref) else np.full(len(m), np.nan)
         out.append(np.where(np.isfinite(ratio), REFINED_GAIN * e * ratio, UNCHECKED_GAIN * np.asarray(e, np.float64)))
     return out

@@ -106,7 +106,7 @@ class StackFit:
         noise_mm, model_mm: estimated E.D. of a network pose and of the model's prediction.
         branch_margin: how many times worse the whole stack on its other twin fits one rigid
             stack (under :data:`MIN_STACK_BRANCH_MARGIN`: this stack does not decide its branch).
-        expected_mm: ``[n]`` expected E.D. of each returned pose: the motion model's posterior
+        expected_error_mm: ``[n]`` expected E.D. of each returned pose: the motion model's posterior
             spread, the rigid fit's own included (``None`` when undecidable).
         placement_sd_mm: standard error of ``atlas_from_scanner`` per coordinate (mm: translations,
             and rotation vectors times :data:`~service.geometry.anchors.ANCHOR_HALF_SIZE_MM`).
@@ -128,7 +128,7 @@ class StackFit:
     noise_mm: float = float("nan")
     model_mm: float = float("nan")
     branch_margin: float = float("nan")
-    expected_mm: NDArray[np.float64] | None = None
+    expected_error_mm: NDArray[np.float64] | None = None
     placement_sd_mm: float = float("nan")
     centre: NDArray[np.float64] | None = None
     placement_cov: NDArray[np.float64] | None = None
@@ -141,7 +141,7 @@ class StackFit:
 
 
 def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLike | None = None,
-              plane_x_mm: float = twin.DEFAULT_PLANE_X_MM, noise_mm: ArrayLike | None = None,
+              plane_x_mm: float = twin.DEFAULT_PLANE_X_MM, expected_error_mm: ArrayLike | None = None,
               times: dict[str, NDArray] | None = None, error_shape: ArrayLike | None = None,
               depth_gain: float = 0.0, reference: ArrayLike | None = None) -> StackFit:
     """Make one stack's slice poses consistent (see the module docstring).
@@ -152,7 +152,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
             slice's network frame.
         usable: ``[n]`` slices allowed to vote (default all); the others only receive the model's pose.
         plane_x_mm: the atlas mid-sagittal plane of the twin.
-        noise_mm: ``[n]`` the expected E.D. of each network pose (its calibrated MC spread). Motion
+        expected_error_mm: ``[n]`` the expected E.D. of each network pose (its calibrated MC spread). Motion
             that is independent from slice to slice cannot be told from network error by the poses
             alone; this tells them apart. Without it the error is estimated from acquisition
             neighbours (an upper bound: right for smooth motion, too trusting of the model for
@@ -200,7 +200,8 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
 
     # 2. rigid fit: IRLS with Tukey weights (on residuals in units of each slice's expected error,
     #    and times its precision, when the errors are known), branches re-decided each round
-    sig = None if noise_mm is None else np.sqrt(np.maximum(np.asarray(noise_mm, dtype=np.float64) ** 2, MIN_NOISE_MM ** 2))
+    sig = None if expected_error_mm is None else np.sqrt(np.maximum(np.asarray(expected_error_mm, dtype=np.float64) ** 2,
+                                                                      MIN_NOISE_MM ** 2))
     s = proposals[idx[h], b]
     for _ in range(IRLS_ROUNDS):
         model = s @ inv_n                                                   # [n, 4, 4]

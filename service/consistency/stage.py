@@ -20,15 +20,38 @@ from service.geometry import se3
 
 
 @dataclass
+class Pooled:
+    """Where pooling the request's stacks put one stack (:func:`pool_request`)."""
+
+    atlas_from_scanner: NDArray[np.float64]   # 4 x 4, the stack's pooled placement
+    stacks: int                               # stacks pooled
+    between_stacks_sd_mm: float               # spread of the placements between stacks
+
+
+@dataclass
+class ImageConsistency:
+    """What refining the poses where slices of different stacks cross did to one stack."""
+
+    stacks: int                               # stacks refined together
+    pairs: int                                # crossing pairs of slices used
+    slices_refined: int
+    median_move_mm: float
+    mismatch_before: float                    # the image term per weighted point (NaN: none)
+    mismatch_after: float
+
+
+@dataclass
 class StackPoses:
-    """What the response reports for one stack's slices, after the stage (or without it)."""
+    """One stack's slices after the stage (or without it), and what the request's later steps did."""
 
     poses: NDArray[np.float64]          # [n, 4, 4] network frame -> atlas
     twin_mass: NDArray[np.float64]      # [n] MC mass on the other twin of the reported pose
     twinned: NDArray[np.bool_]          # [n] reported pose is the twin of the network's majority branch
     inconsistent: NDArray[np.bool_]     # [n]
     fit: StackFit | None                # None when the stage is off
-    expected_mm: NDArray[np.float64] | None = None   # [n] expected E.D. of each pose (None: not calibrated)
+    expected_error_mm: NDArray[np.float64] | None = None   # [n] expected E.D. of each pose (None: not calibrated)
+    pooled: Pooled | None = None
+    image_consistency: ImageConsistency | None = None
 
 
 def network_from_voxel(input_from_network: NDArray, slice_from_voxel: NDArray) -> NDArray[np.float64]:
@@ -37,27 +60,28 @@ def network_from_voxel(input_from_network: NDArray, slice_from_voxel: NDArray) -
 
 
 def consistent_poses(mean: NDArray, twin_mass: NDArray, network_from_vox: NDArray, scanner_from_voxel: NDArray,
-                     usable: NDArray, plane_x_mm: float, noise_mm: NDArray | None = None,
+                     usable: NDArray, plane_x_mm: float, expected_error_mm: NDArray | None = None,
                      enabled: bool = True, times: dict[str, NDArray] | None = None,
                      error_shape: NDArray | None = None, depth_gain: float = 0.0,
                      reference: NDArray | None = None) -> StackPoses:
     """Run :func:`fit_stack` on one stack (or pass the network's poses through when ``enabled`` is False).
 
-    ``noise_mm`` is each pose's expected error: the MC spread times the model's calibration. The
-    returned ``expected_mm`` is that of the returned poses: the stack model's posterior spread
-    where the stack is decidable, ``noise_mm`` otherwise. ``times``: the candidate acquisition
+    ``expected_error_mm`` is each network pose's expected error: the MC spread times the model's
+    calibration. The returned ``expected_error_mm`` is that of the returned poses: the stack model's
+    posterior spread where the stack is decidable, the network poses' otherwise. ``times``: the candidate acquisition
     orders (:class:`~service.consistency.slice_order.SliceOrder`; default every named one).
     ``error_shape``, ``depth_gain``: the model's ``mc_error_shape`` and ``mc_error_depth_gain`` (see :func:`fit_stack`).
     ``reference``: the placement of the request's stacks that decided their branch (:func:`request_reference`).
     """
     n = len(mean)
     if not enabled:
-        return StackPoses(mean, twin_mass, np.zeros(n, bool), np.zeros(n, bool), None, noise_mm)
+        return StackPoses(mean, twin_mass, np.zeros(n, bool), np.zeros(n, bool), None, expected_error_mm)
     network_from_scanner = network_from_vox @ np.linalg.inv(scanner_from_voxel)
-    fit = fit_stack(mean, network_from_scanner, usable, plane_x_mm, noise_mm, times, error_shape, depth_gain, reference)
+    fit = fit_stack(mean, network_from_scanner, usable, plane_x_mm, expected_error_mm, times, error_shape, depth_gain,
+                    reference)
     mass = np.where(fit.twinned, 1.0 - twin_mass, twin_mass)
     return StackPoses(fit.poses, mass, fit.twinned, fit.inconsistent, fit,
-                      fit.expected_mm if fit.decidable else noise_mm)
+                      fit.expected_error_mm if fit.decidable else expected_error_mm)
 
 
 def undecided(out: StackPoses) -> bool:
@@ -80,38 +104,33 @@ def request_reference(outs: list[StackPoses]) -> NDArray[np.float64] | None:
     return se3.frechet_mean(np.stack([f.atlas_from_scanner for f in fits]), weights)
 
 
-def pool_request(outs: list[StackPoses]) -> list[dict | None]:
+def pool_request(outs: list[StackPoses]) -> None:
     """Pool the placements of a request's stacks (:mod:`service.consistency.cross_stack`), in place.
 
     Only stacks that decided their left-right branch take part (a stack that may be the mirror image
     of the others would only add spread). A stack's placement is where its motion model puts it on
     average over its acquisition (not its robust rigid fit, which sits off that mean where the fetus
     moved, and would pool a position the stack never had). Each such
-    stack's poses move with its pooled placement, and their ``expected_mm`` follows
-    (:func:`pooled_expected_mm`). Returns each stack's ``consistency`` report."""
-    reports = [stack_report(o.fit) for o in outs]
+    stack's poses move with its pooled placement, and their ``expected_error_mm`` follows
+    (:func:`pooled_expected_error_mm`); its ``pooled`` says where it went."""
     which = [i for i, o in enumerate(outs) if o.fit is not None and o.fit.branch_decided and o.fit.centre is not None
              and o.fit.atlas_from_scanner is not None and np.isfinite(o.fit.placement_sd_mm)]
     if len(which) < 2:
-        return reports
+        return
     fits = [outs[i].fit for i in which]
     pooled = pool_stacks(np.stack([f.atlas_from_scanner for f in fits]), np.array([f.placement_sd_mm for f in fits]),
                          np.stack([f.centre for f in fits]))
     for j, i in enumerate(which):
         out, fit = outs[i], fits[j]
         out.poses = pooled.corrections[j] @ out.poses
-        if out.expected_mm is not None and fit.placement_cov is not None:
-            out.expected_mm = pooled_expected_mm(out.expected_mm, fit.placement_cov, fit.placement_sd_mm ** 2,
-                                                 float(pooled.sd_mm[j] ** 2), float(pooled.kept[j]))
-        reports[i].update({
-            "pooled_atlas_from_scanner": (pooled.corrections[j] @ fit.atlas_from_scanner).tolist(),
-            "stacks_pooled": len(which),
-            "between_stacks_sd_mm": pooled.tau_mm,
-        })
-    return reports
+        if out.expected_error_mm is not None and fit.placement_cov is not None:
+            out.expected_error_mm = pooled_expected_error_mm(out.expected_error_mm, fit.placement_cov,
+                                                             fit.placement_sd_mm ** 2, float(pooled.sd_mm[j] ** 2),
+                                                             float(pooled.kept[j]))
+        out.pooled = Pooled(pooled.corrections[j] @ fit.atlas_from_scanner, len(which), float(pooled.tau_mm))
 
 
-def pooled_expected_mm(expected_mm: NDArray, cov: NDArray, v: float, v_pooled: float, kept: float) -> NDArray:
+def pooled_expected_error_mm(expected_error_mm: NDArray, cov: NDArray, v: float, v_pooled: float, kept: float) -> NDArray:
     """Each slice's expected E.D. once its stack moved to its pooled placement.
 
     A slice's error ``e_k`` moves by the placement's correction, ``(1 - kept)`` of the pooled
@@ -123,29 +142,8 @@ def pooled_expected_mm(expected_mm: NDArray, cov: NDArray, v: float, v_pooled: f
     loses ``v - v_pooled``; one whose error is its own gains the placement's correction.
 
     Example:
-        >>> pooled_expected_mm(np.array([3.0]), np.array([2.0]), 2.0, 0.5, 0.0).round(3).tolist()   # 9 - 3 * 1.5
+        >>> pooled_expected_error_mm(np.array([3.0]), np.array([2.0]), 2.0, 0.5, 0.0).round(3).tolist()   # 9 - 3 * 1.5
         [2.121]
     """
     change = v_pooled - v + 2.0 * (v - np.asarray(cov)) * (1.0 - v_pooled / max(v, 1e-12))
-    return np.sqrt(np.maximum(np.asarray(expected_mm) ** 2 + 3.0 * (1.0 - kept) * change, 0.0))
-
-
-def stack_report(fit: StackFit | None) -> dict | None:
-    """The response's per-stack ``consistency`` object (``None`` when the stage was off)."""
-    if fit is None:
-        return None
-    finite = lambda v: float(v) if np.isfinite(v) else None  # noqa: E731
-    return {
-        "decidable": bool(fit.decidable),
-        "atlas_from_scanner": fit.atlas_from_scanner.tolist() if fit.decidable and fit.atlas_from_scanner is not None else None,
-        "inlier_fraction": float(fit.inlier_fraction),
-        "twinned_slices": int(fit.twinned.sum()),
-        "inconsistent_slices": int(fit.inconsistent.sum()),
-        "acquisition_order": fit.acquisition_order if fit.decidable else None,
-        "motion_bandwidth_slices": finite(fit.bandwidth) if fit.decidable else None,
-        "network_error_mm": finite(fit.noise_mm),
-        "model_error_mm": finite(fit.model_mm),
-        "branch_margin": finite(fit.branch_margin) if fit.decidable else None,
-        "branch_decided": fit.branch_decided,
-        "branch_from_request": fit.branch_from_request,
-    }
+    return np.sqrt(np.maximum(np.asarray(expected_error_mm) ** 2 + 3.0 * (1.0 - kept) * change, 0.0))

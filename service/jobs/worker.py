@@ -100,18 +100,19 @@ def predicted_body(uploads: list, estimator, mc_samples: int = 100,  # noqa: ANN
     """The ``/v1/predict``-shaped body (``model``, ``mc_samples``, ``variance_threshold``, ``stacks``) of
     the service's own prediction, and the brain masks per stack; ``orders``: the stacks'
     acquisition orders (:class:`~service.consistency.slice_order.SliceOrder`), if known."""
-    from service.inference.pipeline import predict, prepare_stacks
+    from service.api.responses import stack_objects
+    from service.pipeline.predict import predict, prepare_stacks
 
     info = estimator.info
     threshold = variance_threshold or info.variance_threshold
     prepared = prepare_stacks(uploads, info, bias_correction=True, workers=1)
     max_expected = max_expected_error_mm or info.max_expected_error_mm
-    results, _ = predict(prepared, estimator, mc_samples, threshold, orders=orders, max_expected_error_mm=max_expected)
+    predictions, _ = predict(prepared, estimator, mc_samples, threshold, orders=orders, max_expected_error_mm=max_expected)
     masks = [np.moveaxis(p.slices.masks.transpose(0, 2, 1), 0, p.slices.slice_axis) for p in prepared]
     model = {"name": info.name, "version": info.version, "backbone": info.backbone,
              "sha256": info.sha256}
     return {"model": model, "mc_samples": mc_samples, "variance_threshold": threshold,
-            "max_expected_error_mm": max_expected, "stacks": results}, masks
+            "max_expected_error_mm": max_expected, "stacks": stack_objects(predictions)}, masks
 
 
 def run_job(store: JobStore, models_dir: Path, job_id: str, redelivered: bool = False) -> None:
@@ -179,7 +180,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
              attempt: int) -> None:
     from service.inference.estimator import OnnxPoseEstimator
     from service.inference.model_file import load_model
-    from service.inference.pipeline import StackUpload, stack_orders
+    from service.pipeline.predict import StackUpload, stack_orders
     from service.io.limits import DecodeBudget
     from service.io.readers import read_upload
     from service.reconstruction.export import write_outputs
@@ -208,7 +209,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     model_file = models_dir / params.get("model", "default") / "model.onnx"
     estimator = None
     if poses_path.exists():
-        from service.inference.pipeline import localise
+        from service.pipeline.predict import localise
         from service.preprocess.stack import slice_axis_of
 
         counts = [u.volume.array.shape[slice_axis_of(u.volume.spacing)] for u in uploads]

@@ -81,7 +81,7 @@ class SvrnetWorker(Worker):
 
 def _preload() -> None:
     """Import what jobs use before forking, so each work horse starts at once."""
-    import service.inference.pipeline  # noqa: F401
+    import service.pipeline.predict  # noqa: F401
     import service.reconstruction.pipeline  # noqa: F401
     import service.jobs.worker  # noqa: F401
 

@@ -92,17 +92,17 @@ def test_the_stage_pools_three_stacks_through_their_slices():
         before.append(anchors.ed(out.poses, truth).mean())
         outs.append(out)
         truths.append(truth)
-    expected_before = np.concatenate([o.expected_mm for o in outs])
-    reports = pool_request(outs)
+    expected_before = np.concatenate([o.expected_error_mm for o in outs])
+    pool_request(outs)
     after = [anchors.ed(o.poses, t).mean() for o, t in zip(outs, truths)]
     assert np.mean(after) < 0.7 * np.mean(before)
     # one rigid offset per stack: the offset is most of each slice's posterior, and pooling three
     # stacks removes about two thirds of its variance
-    expected_after = np.concatenate([o.expected_mm for o in outs])
+    expected_after = np.concatenate([o.expected_error_mm for o in outs])
     assert np.mean(expected_after) < 0.9 * np.mean(expected_before)
-    assert all(r["stacks_pooled"] == 3 and r["between_stacks_sd_mm"] >= 0.0 for r in reports)
-    pooled = np.array([r["pooled_atlas_from_scanner"] for r in reports])
-    assert reports[0]["between_stacks_sd_mm"] == 0.0                   # one position: the same for all
+    assert all(o.pooled.stacks == 3 and o.pooled.between_stacks_sd_mm >= 0.0 for o in outs)
+    pooled = np.array([o.pooled.atlas_from_scanner for o in outs])
+    assert outs[0].pooled.between_stacks_sd_mm == 0.0                   # one position: the same for all
     assert np.abs(pooled - pooled[0]).max() < 1e-6
 
 
@@ -122,10 +122,10 @@ def test_only_stacks_that_decided_their_branch_are_pooled():
             poses = make_pose(se3.so3_exp(rng.normal(0, 1.5, (n, 3))), rng.uniform(-40, 40, (n, 3)))
         outs.append(consistent_poses(poses, np.zeros(n), nfs, np.eye(4), np.ones(n, bool), 0.0, np.full(n, 8.0)))
     untouched = outs[2].poses.copy()
-    reports = pool_request(outs)
-    assert not reports[2]["decidable"] and reports[2].get("stacks_pooled") is None
+    pool_request(outs)
+    assert not outs[2].fit.decidable and outs[2].pooled is None
     assert np.array_equal(outs[2].poses, untouched)
-    assert [r.get("stacks_pooled") for r in reports[:2]] == [2, 2]
+    assert [o.pooled.stacks for o in outs[:2]] == [2, 2]
 
 
 def test_stacks_that_moved_within_themselves_keep_exact_poses_when_pooled():
@@ -154,7 +154,7 @@ def test_stacks_that_moved_within_themselves_keep_exact_poses_when_pooled():
         truths.append(truth)
     assert all(o.fit.decidable and o.fit.bandwidth < np.inf for o in outs)         # the motion was followed
     before = np.mean([anchors.ed(o.poses, t).mean() for o, t in zip(outs, truths)])
-    reports = pool_request(outs)
+    pool_request(outs)
     after = np.mean([anchors.ed(o.poses, t).mean() for o, t in zip(outs, truths)])
-    assert [r["stacks_pooled"] for r in reports] == [3, 3, 3]
+    assert [o.pooled.stacks for o in outs] == [3, 3, 3]
     assert before < 0.2 and after - before < 0.1

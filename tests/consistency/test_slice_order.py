@@ -53,9 +53,9 @@ def test_the_stage_keeps_to_the_order_it_was_given() -> None:
     truth, nk = stack(rng, "moderate", n=40)
     poses = truth @ se3.exp(rng.normal(0, 1, (len(truth), 6)) * NOISE * 0.2)
     given = SliceOrder.parse(",".join(str(k) for k in np.argsort(acquisition_orders(40)["interleaved-even-first"])))
-    fit = fit_stack(poses, nk, noise_mm=np.full(40, 3.0), times=given.times(40))
+    fit = fit_stack(poses, nk, expected_error_mm=np.full(40, 3.0), times=given.times(40))
     assert fit.acquisition_order == GIVEN and np.isfinite(fit.bandwidth)
-    wrong = fit_stack(poses, nk, noise_mm=np.full(40, 3.0), times=SliceOrder.parse("sequential").times(40))
+    wrong = fit_stack(poses, nk, expected_error_mm=np.full(40, 3.0), times=SliceOrder.parse("sequential").times(40))
     assert wrong.acquisition_order == "sequential"
     assert ed(fit.poses, truth).mean() < 0.8 * ed(wrong.poses, truth).mean()     # the true order follows the motion
 
@@ -72,10 +72,10 @@ def test_told_interleaved_the_stage_no_longer_takes_smooth_network_errors_for_mo
         smooth = np.sin(2 * np.pi * (depth * rng.uniform(0.5, 1.0, 6) + rng.uniform(0, 1, 6)))
         errors = (2.0 * smooth + 0.5 * rng.normal(0, 1, (30, 6))) * NOISE
         poses = truth @ se3.exp(errors)
-        kept = fit_stack(poses, nk, noise_mm=np.full(30, 10.0))
+        kept = fit_stack(poses, nk, expected_error_mm=np.full(30, 10.0))
         auto.append(ed(kept.poses, truth).mean())
         chosen.append(kept.acquisition_order)
-        told.append(ed(fit_stack(poses, nk, noise_mm=np.full(30, 10.0),
+        told.append(ed(fit_stack(poses, nk, expected_error_mm=np.full(30, 10.0),
                                  times=SliceOrder.parse("interleaved").times(30)).poses, truth).mean())
     assert chosen.count("sequential") >= 4
     assert np.mean(told) < 0.7 * np.mean(auto)

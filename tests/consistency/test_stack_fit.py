@@ -66,7 +66,7 @@ def test_branch_decided_and_fit_beats_the_network(motion: str, orientation: str)
     for _ in range(4):
         truth, nk = stack(rng, motion, orientation=ORIENTATIONS[orientation])
         poses, chose = fake_network(truth, rng)
-        fit = fit_stack(poses, nk, noise_mm=np.full(len(poses), 14.0))
+        fit = fit_stack(poses, nk, expected_error_mm=np.full(len(poses), 14.0))
         assert fit.decidable
         distinguishable = ed(truth, twin.twin(truth)) > 20.0      # midline sagittal slices are their own twins
         right.append((ed(fit.poses, truth) < ed(fit.poses, twin.twin(truth)))[distinguishable])
@@ -82,7 +82,7 @@ def test_extreme_motion_is_undecidable_and_changes_nothing() -> None:
     for _ in range(3):
         truth, nk = stack(rng, "extreme")
         poses, _ = fake_network(truth, rng)
-        fit = fit_stack(poses, nk, noise_mm=np.full(len(poses), 14.0))
+        fit = fit_stack(poses, nk, expected_error_mm=np.full(len(poses), 14.0))
         assert not fit.decidable
         np.testing.assert_array_equal(fit.poses, poses)
         assert not fit.twinned.any() and not fit.inconsistent.any()
@@ -93,7 +93,7 @@ def test_a_gross_outlier_is_flagged_and_given_the_stack_pose() -> None:
     truth, nk = stack(rng, "mild")
     poses = truth @ se3.exp(rng.normal(0, 1, (len(truth), 6)) * NOISE * 0.3)
     poses[10] = truth[10] @ se3.exp(np.array([0.0, 1.2, 0.0, 30.0, 0.0, 0.0]))   # 69 deg and 30 mm off
-    fit = fit_stack(poses, nk, noise_mm=np.full(len(poses), 4.0))
+    fit = fit_stack(poses, nk, expected_error_mm=np.full(len(poses), 4.0))
     assert fit.decidable and fit.inconsistent[10] and fit.inconsistent.sum() <= 2
     assert ed(fit.poses[10], truth[10]) < 10.0
 
@@ -105,7 +105,7 @@ def test_unusable_slices_take_the_stack_model_and_do_not_vote() -> None:
     usable = np.ones(len(truth), bool)
     usable[:4] = False
     poses[:4] = se3.exp(rng.normal(0, 1, (4, 6)) * [2, 2, 2, 50, 50, 50])      # junk from empty slices
-    fit = fit_stack(poses, nk, usable, noise_mm=np.full(len(poses), 4.0))
+    fit = fit_stack(poses, nk, usable, expected_error_mm=np.full(len(poses), 4.0))
     assert fit.decidable and not fit.inconsistent[:4].any()
     assert ed(fit.poses[:4], truth[:4]).max() < 10.0
 
@@ -114,7 +114,7 @@ def test_the_acquisition_order_is_recognised() -> None:
     rng = np.random.default_rng(11)
     truth, nk = stack(rng, "moderate", n=40)
     poses = truth @ se3.exp(rng.normal(0, 1, (len(truth), 6)) * NOISE * 0.2)
-    fit = fit_stack(poses, nk, noise_mm=np.full(len(poses), 3.0))
+    fit = fit_stack(poses, nk, expected_error_mm=np.full(len(poses), 3.0))
     assert fit.acquisition_order == "interleaved-even-first" and np.isfinite(fit.bandwidth)
 
 
@@ -122,14 +122,14 @@ def test_branch_margin_tells_a_stack_that_orders_its_slices_from_one_that_does_n
     rng = np.random.default_rng(13)
     truth, nk = stack(rng, "mild")
     poses = truth @ se3.exp(rng.normal(0, 1, (len(truth), 6)) * NOISE * 0.3)
-    fit = fit_stack(poses, nk, noise_mm=np.full(len(poses), 4.0))
+    fit = fit_stack(poses, nk, expected_error_mm=np.full(len(poses), 4.0))
     assert fit.decidable and fit.branch_decided and fit.branch_margin > 3.0
     # a network that puts every slice at the stack's centre along the normal: the order is gone
     normal = truth[:, :3, 2]
     offset = np.einsum("ni,ni->n", truth[:, :3, 3] - truth[:, :3, 3].mean(0), normal)
     collapsed = poses.copy()
     collapsed[:, :3, 3] -= offset[:, None] * normal
-    fit = fit_stack(collapsed, nk, noise_mm=np.full(len(poses), 4.0))
+    fit = fit_stack(collapsed, nk, expected_error_mm=np.full(len(poses), 4.0))
     assert not fit.branch_decided and fit.branch_margin < 1.5
 
 
@@ -137,7 +137,7 @@ def test_the_whole_stack_on_its_twin_is_put_back() -> None:
     rng = np.random.default_rng(17)
     truth, nk = stack(rng, "mild")
     poses = twin.twin(truth) @ se3.exp(rng.normal(0, 1, (len(truth), 6)) * NOISE * 0.3)   # every slice twinned
-    fit = fit_stack(poses, nk, noise_mm=np.full(len(poses), 4.0))
+    fit = fit_stack(poses, nk, expected_error_mm=np.full(len(poses), 4.0))
     assert fit.twinned.all() and ed(fit.poses, truth).mean() < 5.0
 
 
@@ -150,10 +150,10 @@ def test_the_expected_error_of_the_returned_poses_is_honest_and_ranks_them() -> 
         n = len(truth)
         sd = np.where(np.abs(np.arange(n) - n / 2) > n / 3, 40.0, 6.0)
         poses = truth @ se3.exp(rng.normal(0, 1, (n, 6)) * NOISE * (sd / 14.0)[:, None])
-        fit = fit_stack(poses, nk, noise_mm=sd)
-        assert fit.decidable and fit.expected_mm is not None
+        fit = fit_stack(poses, nk, expected_error_mm=sd)
+        assert fit.decidable and fit.expected_error_mm is not None
         errors.append(ed(fit.poses, truth))
-        expected.append(fit.expected_mm)
+        expected.append(fit.expected_error_mm)
     errors, expected = np.concatenate(errors), np.concatenate(expected)
     assert 0.5 < np.sqrt(np.mean(errors ** 2) / np.mean(expected ** 2)) < 2.0
     worst = errors > np.percentile(errors, 80)
@@ -174,8 +174,8 @@ def test_errors_unlike_per_coordinate_are_weighed_per_coordinate() -> None:
             truth, nk = stack(rng, "moderate", orientation=ORIENTATIONS[name])
             poses = shaped_errors(truth, rng, shape, 5.0)
             sd = np.full(len(poses), 10.0)
-            alike.append(ed(fit_stack(poses, nk, noise_mm=sd).poses, truth).mean())
-            told.append(ed(fit_stack(poses, nk, noise_mm=sd, error_shape=shape / shape.mean()).poses, truth).mean())
+            alike.append(ed(fit_stack(poses, nk, expected_error_mm=sd).poses, truth).mean())
+            told.append(ed(fit_stack(poses, nk, expected_error_mm=sd, error_shape=shape / shape.mean()).poses, truth).mean())
     assert np.mean(told) < 0.8 * np.mean(alike), (np.mean(told), np.mean(alike))
 
 
@@ -192,10 +192,10 @@ def test_a_depth_gain_trusts_the_outer_slices_less() -> None:
     truth, nk = stack(rng, "moderate")
     sd, shape = np.full(len(truth), 8.0), np.array([3.4, 0.6, 0.23, 0.04, 0.15, 1.6])
     poses = shaped_errors(truth, rng, shape, 4.0)
-    plain = fit_stack(poses, nk, noise_mm=sd, error_shape=shape)
-    told = fit_stack(poses, nk, noise_mm=sd, error_shape=shape, depth_gain=4.0)
+    plain = fit_stack(poses, nk, expected_error_mm=sd, error_shape=shape)
+    told = fit_stack(poses, nk, expected_error_mm=sd, error_shape=shape, depth_gain=4.0)
     rho = relative_depth(np.arange(len(truth), dtype=float), np.ones(len(truth), bool))
-    ratio = told.expected_mm / plain.expected_mm
+    ratio = told.expected_error_mm / plain.expected_error_mm
     assert ratio[rho > 0.8].mean() > 1.15 * ratio[rho < 0.2].mean()
     assert 1.0 <= ratio[rho < 0.2].mean() < 1.35
 

@@ -12,9 +12,9 @@ from service.consistency.stage import (
     consistent_poses,
     network_from_voxel,
     request_reference,
-    stack_report,
     undecided,
 )
+from service.api.responses import stack_report
 from service.geometry import anchors, se3, twin
 from service.geometry.pose import make_pose, translate
 from service.io.volume import Volume
@@ -37,7 +37,7 @@ def test_atlas_from_scanner_is_recovered_from_slice_poses(handedness: float) -> 
     poses = truth.copy()
     poses[::2] = twin.twin(truth[::2])                                                      # half on the other twin
     out = consistent_poses(poses, np.full(n, 0.1), nfv, affine, np.ones(n, bool), 0.0, np.full(n, 0.5))
-    report = stack_report(out.fit)
+    report = stack_report(out)
     assert report["decidable"] and report["branch_decided"]
     np.testing.assert_allclose(report["atlas_from_scanner"], atlas_from_scanner, atol=1e-6)
     np.testing.assert_array_equal(out.twinned, np.arange(n) % 2 == 0)

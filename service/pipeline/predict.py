@@ -1,10 +1,11 @@
-"""The prediction pipeline of one request: stacks -> preprocessed slices -> poses -> per-slice results.
+"""The prediction pipeline of one request: stacks -> preprocessed slices -> poses -> accept flags.
 
 Stages follow the paper's Fig. 1: localisation (uploaded mask, else the learned localiser of
 :mod:`service.preprocess.localise`), N4
 bias correction, masking and per-slice rescale/crop/centre (:func:`preprocess_slices`), MC-dropout
 inference of ALL slices of ALL stacks in one batched estimator call, twin-aware SE(3) statistics,
-stack consistency (:mod:`service.consistency`), acceptance.
+stack consistency (:mod:`service.consistency`), acceptance. The results are plain data
+(:class:`StackPrediction`); :mod:`service.api.responses` writes them as the contract's JSON.
 
 Geometry of every slice (the composition is written once, in
 :func:`service.consistency.stage.network_from_voxel`)::
@@ -21,12 +22,12 @@ from dataclasses import dataclass, field
 from itertools import pairwise
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from service.consistency.image_refinement import expected_after, refine
 from service.consistency.intersections import StackImages
 from service.consistency.slice_order import FROM_FILE, SliceOrder, per_stack
 from service.consistency.stage import (
+    ImageConsistency,
     StackPoses,
     consistent_poses,
     network_from_voxel,
@@ -35,7 +36,6 @@ from service.consistency.stage import (
     undecided,
 )
 from service.core.errors import InvalidParameter, UnusableImage
-from service.geometry import anchors
 from service.geometry.twin import DEFAULT_PLANE_X_MM
 from service.inference import acceptance
 from service.inference.estimator import PoseEstimate, PoseEstimator
@@ -123,57 +123,48 @@ def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction:
 
 
 def stack_poses(est: PoseEstimate, sl: slice, prepared: PreparedStack, net_from_vox: np.ndarray,
-                stack_consistency: bool, plane_x_mm: float, expected_mm: np.ndarray,
+                stack_consistency: bool, plane_x_mm: float, expected_error_mm: np.ndarray,
                 order: SliceOrder | None = None, error_shape: tuple[float, ...] | None = None,
                 depth_gain: float = 0.0, reference: np.ndarray | None = None) -> StackPoses:
     """One stack's poses through the stack-consistency stage (or as the network gave them);
-    ``expected_mm`` is each slice's expected error: its MC spread times the model's ``mc_error_scale``;
+    ``expected_error_mm`` is each slice's expected error: its MC spread times the model's ``mc_error_scale``;
     ``order`` what is known of the stack's acquisition order (default: nothing; the stage chooses);
     ``error_shape`` and ``depth_gain`` the model's ``mc_error_shape`` and ``mc_error_depth_gain``;
     ``reference`` where the request's stacks that decided their branch put the scanner frame."""
     p = prepared.prepared
     usable = (p.mask_fraction >= acceptance.MIN_MASK_FRACTION) & ~est.degenerate[sl]
     return consistent_poses(est.mean[sl], est.twin_mass[sl], net_from_vox, prepared.upload.volume.affine, usable,
-                            plane_x_mm, expected_mm[sl], stack_consistency, (order or SliceOrder()).times(len(p.inputs)),
+                            plane_x_mm, expected_error_mm[sl], stack_consistency, (order or SliceOrder()).times(len(p.inputs)),
                             None if error_shape is None else np.asarray(error_shape), depth_gain, reference)
 
 
-def slice_results(est: PoseEstimate, sl: slice, prepared: PreparedStack, net_from_vox: np.ndarray, out: StackPoses,
-                  threshold: float, max_expected_error_mm: float | None = None) -> list[dict]:
-    """The contract's per-slice objects for one stack, from its poses after the stage; the accept
-    flag judges the returned pose (:func:`~service.inference.acceptance.reasons`)."""
-    p = prepared.prepared
-    degenerate = est.degenerate[sl]
-    mean, variance = out.poses, est.variance[sl]
-    expected = out.expected_mm
-    atlas_from_voxel = mean @ net_from_vox
-    network_atlas_from_voxel = est.mean[sl] @ net_from_vox
-    rot = mean[:, :3, :3]
-    r = Rotation.from_matrix(rot)
-    rotvec = r.as_rotvec()
-    quat = r.as_quat(canonical=True, scalar_first=True)
-    pts = anchors.encode(mean).reshape(-1, 3, 3)
-    why = acceptance.reasons(p.mask_fraction, degenerate, mean[:, :3, 3], variance, threshold, out.inconsistent,
-                             None if expected is None else np.where(np.isfinite(expected), expected, np.nan),
-                             max_expected_error_mm)
-    slices = [
-        {
-            "index": i, "accepted": why[i] is None, "reason": why[i],
-            "geodesic_variance": float(variance[i]) if np.isfinite(variance[i]) else None,
-            "anchor_points_mm": pts[i].tolist(), "rotation": rot[i].tolist(), "rotation_vector": rotvec[i].tolist(),
-            "quaternion_wxyz": quat[i].tolist(), "translation_mm": mean[i, :3, 3].tolist(),
-            "atlas_from_voxel": atlas_from_voxel[i].tolist(),
-            "branch": "twin" if out.twinned[i] else "network", "twin_mass": float(out.twin_mass[i]),
-            "network_atlas_from_voxel": network_atlas_from_voxel[i].tolist(),
-            "expected_error_mm": _finite(expected, i),
-        }
-        for i in range(len(mean))
-    ]
-    return slices
+@dataclass
+class StackPrediction:
+    """One stack's answer, as plain data (:mod:`service.api.responses` writes it as the contract's JSON).
+
+    Attributes:
+        prepared: the stack as it was prepared (its upload, slices, network inputs, localisation).
+        network_from_voxel: ``[n, 4, 4]`` voxel of slice ``k`` -> its network frame.
+        estimate: the network's MC statistics of the stack's slices.
+        poses: the returned poses and what the stages did (:class:`~service.consistency.stage.StackPoses`).
+        reasons: why each slice is not accepted (None: accepted).
+    """
+
+    prepared: PreparedStack
+    network_from_voxel: np.ndarray
+    estimate: PoseEstimate
+    poses: StackPoses
+    reasons: list[str | None]
 
 
-def _finite(values: np.ndarray | None, i: int) -> float | None:
-    return float(values[i]) if values is not None and np.isfinite(values[i]) else None
+def judge(prepared: PreparedStack, estimate: PoseEstimate, out: StackPoses, threshold: float,
+          max_expected_error_mm: float | None) -> list[str | None]:
+    """Each returned pose's accept flag (:func:`~service.inference.acceptance.reasons`)."""
+    expected = out.expected_error_mm
+    return acceptance.reasons(prepared.prepared.mask_fraction, estimate.degenerate, out.poses[:, :3, 3],
+                              estimate.variance, threshold, out.inconsistent,
+                              None if expected is None else np.where(np.isfinite(expected), expected, np.nan),
+                              max_expected_error_mm)
 
 
 def stack_orders(orders: list[SliceOrder] | None, uploads: list[StackUpload]) -> list[SliceOrder]:
@@ -200,88 +191,80 @@ def stack_orders(orders: list[SliceOrder] | None, uploads: list[StackUpload]) ->
     return out
 
 
-def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPoses], proper: list[np.ndarray],
-                              reports: list[dict | None]) -> None:
+def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPoses], proper: list[np.ndarray]) -> None:
     """Refine the poses of the request's settled stacks where their slices cross
-    (:func:`~service.consistency.image_refinement.refine`), in place; each such stack's report gains
-    ``image_consistency``. A stack takes part when the stage found it consistent and its left-right
-    branch is decided (by its own slices or by the request): a stack that may be the mirror image of
-    the others would pull them towards it. Needs two such stacks. Of their slices, those with a
-    ``proper`` network pose that the stage did not flag as inconsistent take part."""
+    (:func:`~service.consistency.image_refinement.refine`), in place; each such stack's
+    ``image_consistency`` says what it did. A stack takes part when the stage found it consistent and
+    its left-right branch is decided (by its own slices or by the request): a stack that may be the
+    mirror image of the others would pull them towards it. Needs two such stacks. Of their slices,
+    those with a ``proper`` network pose that the stage did not flag as inconsistent take part."""
     take = [i for i, o in enumerate(outs) if o.fit is not None and o.fit.decidable
             and (o.fit.branch_decided or o.fit.branch_from_request)]
     if len(take) < 2:
         return
     images = [StackImages(prepared[i].slices.images, prepared[i].slices.masks, prepared[i].slices.pixel_mm,
                           prepared[i].prepared.input_from_network(), proper[i] & ~outs[i].inconsistent) for i in take]
-    noise = [outs[i].expected_mm if outs[i].expected_mm is not None else np.full(len(outs[i].poses), np.nan) for i in take]
-    ref = refine(images, [outs[i].poses for i in take], noise)
-    expected = expected_after(noise, ref.mismatch)
-    costs = np.array([ref.cost_before, ref.cost_after])
+    expected = [outs[i].expected_error_mm if outs[i].expected_error_mm is not None
+                else np.full(len(outs[i].poses), np.nan) for i in take]
+    ref = refine(images, [outs[i].poses for i in take], expected)
+    after = expected_after(expected, ref.mismatch)
     for j, i in enumerate(take):
         outs[i].poses = ref.poses[j]
-        if outs[i].expected_mm is not None:
-            outs[i].expected_mm = expected[j]
-        if reports[i] is not None:
-            moved = ref.moved_mm[j][images[j].active]
-            reports[i]["image_consistency"] = {
-                "stacks": len(take), "pairs": ref.pairs,
-                "slices_refined": int(images[j].active.sum()),
-                "median_move_mm": float(np.median(moved)) if len(moved) else 0.0,
-                "mismatch_before": _finite(costs, 0), "mismatch_after": _finite(costs, 1),
-            }
+        if outs[i].expected_error_mm is not None:
+            outs[i].expected_error_mm = after[j]
+        moved = ref.moved_mm[j][images[j].active]
+        outs[i].image_consistency = ImageConsistency(len(take), ref.pairs, int(images[j].active.sum()),
+                                                     float(np.median(moved)) if len(moved) else 0.0,
+                                                     float(ref.cost_before), float(ref.cost_after))
 
 
 def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples: int,
             threshold: float, stack_consistency: bool = True,
             orders: list[SliceOrder] | None = None,
             image_consistency: bool = True,
-            max_expected_error_mm: float | None = None) -> tuple[list[dict], dict[str, float]]:
+            max_expected_error_mm: float | None = None) -> tuple[list[StackPrediction], dict[str, float]]:
     """Run all slices of all stacks through ``estimator`` at once, then each stack through the
     stack-consistency stage, the stacks' positions pooled where they agree
     (:func:`~service.consistency.stage.pool_request`) and their slices refined where they cross
-    (:func:`refine_where_stacks_cross`; with ``image_consistency`` and the stage on); returns stack results
-    and timings. ``orders``: what the request says of the stacks' acquisition orders (:func:`stack_orders`).
-    ``threshold`` and ``max_expected_error_mm`` (default: the model's) decide the accept flags."""
+    (:func:`refine_where_stacks_cross`; with ``image_consistency`` and the stage on); returns each
+    stack's :class:`StackPrediction` and the timings. ``orders``: what the request says of the stacks'
+    acquisition orders (:func:`stack_orders`). ``threshold`` and ``max_expected_error_mm`` (default:
+    the model's) decide the accept flags."""
     orders = stack_orders(orders, [p.upload for p in prepared])
+    info = estimator.info
     if max_expected_error_mm is None:
-        max_expected_error_mm = getattr(estimator.info, "max_expected_error_mm", None)
+        max_expected_error_mm = getattr(info, "max_expected_error_mm", None)
     inputs = np.concatenate([s.prepared.inputs for s in prepared])
     t = time.perf_counter()
     est = estimator.estimate(inputs, mc_samples)
     elapsed = time.perf_counter() - t
     timings = dict(getattr(est, "timings", None) or {"inference": elapsed, "statistics": 0.0})
-    plane_x_mm = getattr(estimator.info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM)
-    expected = est.spread_mm * getattr(estimator.info, "mc_error_scale", 1.0)
+    plane_x_mm = getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM)
+    expected = est.spread_mm * getattr(info, "mc_error_scale", 1.0)
     t = time.perf_counter()
     bounds = np.cumsum([0] + [len(s.prepared.inputs) for s in prepared])
     spans = [slice(int(a), int(b)) for a, b in pairwise(bounds)]
     frames = [s.network_from_voxel() for s in prepared]
-    shape = getattr(estimator.info, "mc_error_shape", None)
-    gain = float(getattr(estimator.info, "mc_error_depth_gain", 0.0))
+    shape = getattr(info, "mc_error_shape", None)
+    gain = float(getattr(info, "mc_error_depth_gain", 0.0))
     outs = [stack_poses(est, sl, s, nfv, stack_consistency, plane_x_mm, expected, order, shape, gain)
             for sl, s, nfv, order in zip(spans, prepared, frames, orders)]
     reference = request_reference(outs) if stack_consistency else None
     if reference is not None:              # a stack that did not decide its branch takes the others' word
         outs = [stack_poses(est, sl, s, nfv, True, plane_x_mm, expected, order, shape, gain, reference)
                 if undecided(out) else out for sl, s, nfv, order, out in zip(spans, prepared, frames, orders, outs)]
-    reports = pool_request(outs) if stack_consistency else [None] * len(outs)
+    if stack_consistency:
+        pool_request(outs)
     timings["stack_consistency"] = time.perf_counter() - t
     t = time.perf_counter()
     if stack_consistency and image_consistency:
-        refine_where_stacks_cross(prepared, outs, [~est.degenerate[sl] for sl in spans], reports)
+        refine_where_stacks_cross(prepared, outs, [~est.degenerate[sl] for sl in spans])
     timings["image_consistency"] = time.perf_counter() - t
-    floor = float(getattr(estimator.info, "expected_error_floor_mm", 0.0))
-    for out in outs:                                       # what no stage sees: the request's placement
-        if out.expected_mm is not None:
-            out.expected_mm = np.hypot(out.expected_mm, floor)
-    stacks = []
-    for index, (s, sl, nfv, out, report) in enumerate(zip(prepared, spans, frames, outs, reports)):
-        vol = s.upload.volume
-        slices = slice_results(est, sl, s, nfv, out, threshold, max_expected_error_mm)
-        stacks.append({
-            "index": index, "filename": s.upload.filename, "shape": list(vol.array.shape),
-            "spacing_mm": [float(x) for x in vol.spacing], "slice_axis": s.slices.slice_axis,
-            "slices": slices, "consistency": report, "localisation": s.localisation.report(),
-        })
-    return stacks, timings
+    floor = float(getattr(info, "expected_error_floor_mm", 0.0))
+    results = []
+    for s, sl, nfv, out in zip(prepared, spans, frames, outs):
+        if out.expected_error_mm is not None:              # what no stage sees: the request's placement
+            out.expected_error_mm = np.hypot(out.expected_error_mm, floor)
+        mine = PoseEstimate(est.mean[sl], est.variance[sl], est.degenerate[sl], est.twin_mass[sl], est.spread_mm[sl])
+        results.append(StackPrediction(s, nfv, mine, out, judge(s, mine, out, threshold, max_expected_error_mm)))
+    return results, timings

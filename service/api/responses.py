@@ -1,0 +1,97 @@
+"""The contract's JSON of a ``/v1/predict`` answer, from the pipeline's plain results.
+
+The one place that writes a stack, a slice and a stack's ``consistency`` report as the HTTP
+contract (``docs/api.md``) names them: the route, the reconstruction jobs (the body their poses
+start from) and the evaluations all write it here.
+
+Example:
+    >>> stack_report(None) is None                   # the stage was off
+    True
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from service.consistency.stage import StackPoses
+from service.geometry import anchors
+from service.pipeline.predict import StackPrediction
+
+
+def _finite(value: float) -> float | None:
+    return float(value) if np.isfinite(value) else None
+
+
+def slice_objects(p: StackPrediction) -> list[dict]:
+    """Every slice of one stack, accepted or not, in order."""
+    out, est = p.poses, p.estimate
+    mean = out.poses
+    atlas_from_voxel = mean @ p.network_from_voxel
+    network_atlas_from_voxel = est.mean @ p.network_from_voxel
+    rot = mean[:, :3, :3]
+    r = Rotation.from_matrix(rot)
+    rotvec = r.as_rotvec()
+    quat = r.as_quat(canonical=True, scalar_first=True)
+    pts = anchors.encode(mean).reshape(-1, 3, 3)
+    expected: NDArray = out.expected_error_mm if out.expected_error_mm is not None else np.full(len(mean), np.nan)
+    return [
+        {
+            "index": i, "accepted": p.reasons[i] is None, "reason": p.reasons[i],
+            "geodesic_variance": _finite(est.variance[i]),
+            "anchor_points_mm": pts[i].tolist(), "rotation": rot[i].tolist(), "rotation_vector": rotvec[i].tolist(),
+            "quaternion_wxyz": quat[i].tolist(), "translation_mm": mean[i, :3, 3].tolist(),
+            "atlas_from_voxel": atlas_from_voxel[i].tolist(),
+            "branch": "twin" if out.twinned[i] else "network", "twin_mass": float(out.twin_mass[i]),
+            "network_atlas_from_voxel": network_atlas_from_voxel[i].tolist(),
+            "expected_error_mm": _finite(expected[i]),
+        }
+        for i in range(len(mean))
+    ]
+
+
+def stack_report(out: StackPoses | None) -> dict | None:
+    """A stack's ``consistency`` object: the stage's fit, where pooling put the stack and what image
+    consistency did (``None`` when the stage was off)."""
+    fit = None if out is None else out.fit
+    if fit is None:
+        return None
+    report = {
+        "decidable": bool(fit.decidable),
+        "atlas_from_scanner": fit.atlas_from_scanner.tolist() if fit.decidable and fit.atlas_from_scanner is not None else None,
+        "inlier_fraction": float(fit.inlier_fraction),
+        "twinned_slices": int(fit.twinned.sum()),
+        "inconsistent_slices": int(fit.inconsistent.sum()),
+        "acquisition_order": fit.acquisition_order if fit.decidable else None,
+        "motion_bandwidth_slices": _finite(fit.bandwidth) if fit.decidable else None,
+        "network_error_mm": _finite(fit.noise_mm),
+        "model_error_mm": _finite(fit.model_mm),
+        "branch_margin": _finite(fit.branch_margin) if fit.decidable else None,
+        "branch_decided": fit.branch_decided,
+        "branch_from_request": fit.branch_from_request,
+    }
+    if out.pooled is not None:
+        report.update({"pooled_atlas_from_scanner": out.pooled.atlas_from_scanner.tolist(),
+                       "stacks_pooled": out.pooled.stacks, "between_stacks_sd_mm": out.pooled.between_stacks_sd_mm})
+    ic = out.image_consistency
+    report["image_consistency"] = None if ic is None else {
+        "stacks": ic.stacks, "pairs": ic.pairs, "slices_refined": ic.slices_refined,
+        "median_move_mm": ic.median_move_mm, "mismatch_before": _finite(ic.mismatch_before),
+        "mismatch_after": _finite(ic.mismatch_after),
+    }
+    return report
+
+
+def stack_objects(predictions: list[StackPrediction]) -> list[dict]:
+    """The response's ``stacks``: each stack's file, geometry, slices, consistency and localisation."""
+    stacks = []
+    for index, p in enumerate(predictions):
+        vol = p.prepared.upload.volume
+        stacks.append({
+            "index": index, "filename": p.prepared.upload.filename, "shape": list(vol.array.shape),
+            "spacing_mm": [float(x) for x in vol.spacing], "slice_axis": p.prepared.slices.slice_axis,
+            "slices": slice_objects(p), "consistency": stack_report(p.poses),
+            "localisation": p.prepared.localisation.report(),
+        })
+    return stacks
