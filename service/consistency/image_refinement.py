@@ -44,7 +44,7 @@ MIN_BRAIN_PIXELS = 20
 """Slices with less brain than this take no part (their lines cross too little brain to tell)."""
 MIN_LINE_WEIGHT = 1.0
 """A pair takes part when its line crosses both brains over this many points' worth (mask weights)."""
-TOLERANCE = 1e-3
+TOLERANCE = 1e-2
 """A pass ends when an iteration lowers the objective by less than this fraction."""
 
 

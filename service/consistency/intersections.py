@@ -35,9 +35,10 @@ from service.geometry import se3
 
 MIN_SINE = np.sin(np.radians(30.0))
 """Pairs whose planes meet at less than this angle are left out (their line is ill-placed)."""
-MAX_POINTS = 60_000
-"""Points per pass at most: with many stacks, a fixed random share of the crossing pairs (their
-lines whole) bounds the time; three stacks of a fetal brain use about 7,000-60,000."""
+MAX_POINTS = 25_000
+"""Points per pass at most: a fixed random share of the crossing pairs (their lines whole) bounds
+the time. Three stacks of a fetal brain cross at about 7,000-60,000 points; 25,000 give the same
+poses within a few hundredths of a millimetre (docs/consistency.md)."""
 
 
 @dataclass

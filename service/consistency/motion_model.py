@@ -66,7 +66,7 @@ ERROR_CORRELATION_SLICES = 1.5
 """How far (in slices, along the normal) the network's errors stay correlated."""
 NO_VOTE = np.inf
 """Expected error of a slice that must not vote (empty, degenerate, rejected): it only receives."""
-MIN_MODEL_WEIGHT = 1e-3
+MIN_MODEL_WEIGHT = 1e-2
 """Hyper-parameter combinations with less posterior weight than this are left out of the average."""
 
 
