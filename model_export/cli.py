@@ -251,7 +251,8 @@ def ship(
     tta_views: Annotated[int, typer.Option(help="test-time views the MC samples are shared among: 1, 4 "
                                                 "(rotations) or 8 (rotations and flips)")] = 8,
 ) -> None:
-    """Calibrate, export, evaluate and write the model card: the folder the service loads."""
+    """Calibrate, export, evaluate and write the model card: the folder the service loads (the accept
+    flags calibrated on the pipeline's final poses, as `calibrate-acceptance` does)."""
     import shutil
 
     from model_export.calibrate import calibrate as run_calibration
@@ -275,10 +276,20 @@ def ship(
                "totals": totals(prior_history(ck)), "history": prior_history(ck),
                "train_volumes_text": f"{len(ck['config']['train_volumes'])} atlas volumes: "
                                      + ", ".join(ck["config"]["train_volumes"])}
+    from model_export.atlas import load_volumes, split
+    from model_export.calibrate_acceptance import measure, markdown as acceptance_markdown
+    from model_export.spread import write_metadata
+    from service.inference.estimator import OnnxPoseEstimator
+
+    flags = measure(OnnxPoseEstimator(load_model(onnx_path)), load_volumes(split(root)[1], root), per_volume=3)
+    write_metadata(onnx_path, {k: f"{flags[k]:.4g}" for k in
+                               ("expected_error_floor_mm", "variance_threshold", "max_expected_error_mm")})
     info = load_model(onnx_path).info.metadata
     write_card(out / "card.md", info=info, train_summary=summary, train_config=ck["config"], calibration=cal,
                evaluation=evaluation, comparison=load_json(comparison) if comparison else None,
                report_path=str(report), onnx_bytes=onnx_path.stat().st_size)
+    card = out / "card.md"
+    card.write_text(card.read_text() + "\n" + acceptance_markdown(flags, "Accept flags").replace("# Accept", "## Accept", 1))
     (out / "calibration.json").write_text(json.dumps(cal))
     typer.echo(json.dumps(evaluation, indent=2))
 
