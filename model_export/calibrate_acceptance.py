@@ -142,6 +142,11 @@ def trade_off(by_level: dict[str, dict[str, NDArray]], floor_mm: float, variance
     return out
 
 
+def _share(x: float) -> str:
+    """A share as a percentage; ``-`` where there was nothing to count."""
+    return f"{x:.0%}" if np.isfinite(x) else "-"
+
+
 def markdown(result: dict, title: str) -> str:
     """The calibration's report: the settings, then per level the accuracy and what the flags accept."""
     rows = [f"# {title}", "",
@@ -155,11 +160,12 @@ def markdown(result: dict, title: str) -> str:
             "|---|---|---|---|---|---|---|"]
     for k, v in result["levels"].items():
         rows.append(f"| {k} | {v['slices']} | {v['ed_mean']:.2f} / {v['ed_twin_min_mean']:.2f} | "
-                    f"{v['rms_ed_over_rms_expected']:.2f} ({v['rms_ed_over_rms_expected_before']:.2f}) | {v['accepted']:.0%} | "
-                    f"{v['good_accepted']:.0%} / {v['good_accepted_twin_min']:.0%} | "
-                    f"{v['bad_accepted']:.0%} / {v['bad_accepted_twin_min']:.0%} ({v['bad_slices']} / {v['bad_slices_twin_min']}) |")
+                    f"{v['rms_ed_over_rms_expected']:.2f} ({v['rms_ed_over_rms_expected_before']:.2f}) | {_share(v['accepted'])} | "
+                    f"{_share(v['good_accepted'])} / {_share(v['good_accepted_twin_min'])} | "
+                    f"{_share(v['bad_accepted'])} / {_share(v['bad_accepted_twin_min'])} "
+                    f"({v['bad_slices']} / {v['bad_slices_twin_min']}) |")
     rows += ["", "What other limits accept (`max_expected_error_mm`; E.D. < 5 mm / E.D. > 10 mm accepted, against the truth):",
              "", "| limit (mm) | " + " | ".join(result["levels"]) + " |", "|---|" + "---|" * len(result["levels"])]
     for limit, row in result["trade_off"].items():
-        rows.append(f"| {limit} | " + " | ".join(f"{g:.0%} / {b:.0%}" for g, b in row.values()) + " |")
+        rows.append(f"| {limit} | " + " | ".join(f"{_share(g)} / {_share(b)}" for g, b in row.values()) + " |")
     return "\n".join(rows) + "\n"
