@@ -11,8 +11,8 @@ import typing
 from collections.abc import Awaitable, Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
-from pathlib import Path
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Annotated, Optional
 
 from fastapi import Depends, File, Form, Request, UploadFile, params
