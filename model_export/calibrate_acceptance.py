@@ -26,6 +26,7 @@ Example:
 from __future__ import annotations
 
 import tempfile
+from copy import copy
 from dataclasses import replace
 from pathlib import Path
 
@@ -60,10 +61,9 @@ def choose_floor(ed: dict[str, NDArray], expected: dict[str, NDArray]) -> float:
 
 def accepted(columns: dict[str, NDArray], floor_mm: float, variance_threshold: float, limit_mm: float) -> NDArray:
     """Which slices the service would accept with these settings (``columns``: one level's slices)."""
-    other = np.isin(columns["reason"], OTHER_REASONS)
-    expected = np.hypot(columns["expected"], floor_mm)
-    unsure = np.isfinite(expected) & (expected > limit_mm)
-    return ~other & ~unsure & (columns["variance"] <= variance_threshold)
+    unsure, high = acceptance.over_limits(columns["variance"], variance_threshold,
+                                          np.hypot(columns["expected"], floor_mm), limit_mm)
+    return ~np.isin(columns["reason"], OTHER_REASONS) & ~unsure & ~high
 
 
 def rates(columns: dict[str, NDArray], ok: NDArray) -> dict[str, float]:
@@ -120,6 +120,7 @@ def measure(estimator, volumes: list, per_volume: int, seed: int = 1, levels: tu
     """:func:`calibrate` on acquisitions of ``volumes`` through the pipeline, the estimator's own
     floor and limit switched off while they are measured; ``slices``: keep every slice's columns
     there (``.npz``, as :func:`~model_export.evaluate_acquisitions.evaluate_acquisitions` writes them)."""
+    estimator = copy(estimator)                  # the caller's keeps its calibration
     estimator.info = replace(estimator.info, expected_error_floor_mm=0.0, max_expected_error_mm=None)
     with tempfile.TemporaryDirectory() as tmp:
         npz = slices or Path(tmp) / "slices.npz"

@@ -17,6 +17,21 @@ atlas brains reach ~60 mm from their centre)."""
 ATLAS_CENTRE_MM = np.array([0.0, 2.0, 8.0])
 
 
+def over_limits(variance: NDArray, threshold: float, expected_error_mm: NDArray | None = None,
+                max_expected_error_mm: float | None = None) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """Which slices are over the expected-error limit (``high_expected_error``; a NaN expected error,
+    or none, is not judged) and over the variance threshold (``high_variance``; NaN variance is).
+
+    Example:
+        >>> [f.tolist() for f in over_limits(np.array([1.0, np.nan]), 5.0, np.array([6.0, np.nan]), 4.0)]
+        [[True, False], [False, True]]
+    """
+    high = ~(np.asarray(variance) <= threshold)
+    if expected_error_mm is None or max_expected_error_mm is None:
+        return np.zeros(len(high), bool), high
+    return np.asarray(expected_error_mm, dtype=np.float64) > max_expected_error_mm, high
+
+
 def reasons(mask_fraction: NDArray, degenerate: NDArray, translation_mm: NDArray, variance: NDArray,
             threshold: float, inconsistent: NDArray | None = None, expected_error_mm: NDArray | None = None,
             max_expected_error_mm: float | None = None) -> list[str | None]:
@@ -33,12 +48,8 @@ def reasons(mask_fraction: NDArray, degenerate: NDArray, translation_mm: NDArray
     """
     empty = np.asarray(mask_fraction) < MIN_MASK_FRACTION
     outside = np.linalg.norm(np.asarray(translation_mm) - ATLAS_CENTRE_MM, axis=-1) > ATLAS_RADIUS_MM
-    high = ~(np.asarray(variance) <= threshold)            # NaN variance is not accepted either
     bad = np.zeros(len(empty), bool) if inconsistent is None else np.asarray(inconsistent, bool)
-    if expected_error_mm is None or max_expected_error_mm is None:
-        unsure = np.zeros(len(empty), bool)
-    else:
-        unsure = np.asarray(expected_error_mm, dtype=np.float64) > max_expected_error_mm   # NaN: not judged
+    unsure, high = over_limits(variance, threshold, expected_error_mm, max_expected_error_mm)
     flags = np.stack([empty, np.asarray(degenerate, bool), outside, bad, unsure, high], axis=1)
     first = np.argmax(flags, axis=1)
     return [REASONS[f] if flags[i, f] else None for i, f in enumerate(first)]

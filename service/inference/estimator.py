@@ -46,6 +46,11 @@ class PoseEstimate:
         if self.spread_mm is None:
             self.spread_mm = np.zeros(len(self.mean))
 
+    def part(self, which: slice) -> "PoseEstimate":
+        """The statistics of the slices ``which`` (one stack of a request)."""
+        return PoseEstimate(self.mean[which], self.variance[which], self.degenerate[which], self.twin_mass[which],
+                            self.spread_mm[which])
+
 
 class PoseEstimator(Protocol):
     """Anything that turns preprocessed slices ``[B, L, L]`` into pose estimates."""

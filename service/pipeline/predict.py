@@ -122,19 +122,20 @@ def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction:
         return list(pool.map(lambda u: prepare_stack(u, info, bias_correction, localiser), uploads))
 
 
-def stack_poses(est: PoseEstimate, sl: slice, prepared: PreparedStack, net_from_vox: np.ndarray,
+def stack_poses(est: PoseEstimate, prepared: PreparedStack, net_from_vox: np.ndarray,
                 stack_consistency: bool, plane_x_mm: float, expected_error_mm: np.ndarray,
                 order: SliceOrder | None = None, error_shape: tuple[float, ...] | None = None,
                 depth_gain: float = 0.0, reference: np.ndarray | None = None) -> StackPoses:
-    """One stack's poses through the stack-consistency stage (or as the network gave them);
+    """One stack's poses through the stack-consistency stage (or as the network gave them), from its
+    slices' statistics ``est``;
     ``expected_error_mm`` is each slice's expected error: its MC spread times the model's ``mc_error_scale``;
     ``order`` what is known of the stack's acquisition order (default: nothing; the stage chooses);
     ``error_shape`` and ``depth_gain`` the model's ``mc_error_shape`` and ``mc_error_depth_gain``;
     ``reference`` where the request's stacks that decided their branch put the scanner frame."""
     p = prepared.prepared
-    usable = (p.mask_fraction >= acceptance.MIN_MASK_FRACTION) & ~est.degenerate[sl]
-    return consistent_poses(est.mean[sl], est.twin_mass[sl], net_from_vox, prepared.upload.volume.affine, usable,
-                            plane_x_mm, expected_error_mm[sl], stack_consistency, (order or SliceOrder()).times(len(p.inputs)),
+    usable = (p.mask_fraction >= acceptance.MIN_MASK_FRACTION) & ~est.degenerate
+    return consistent_poses(est.mean, est.twin_mass, net_from_vox, prepared.upload.volume.affine, usable,
+                            plane_x_mm, expected_error_mm, stack_consistency, (order or SliceOrder()).times(len(p.inputs)),
                             None if error_shape is None else np.asarray(error_shape), depth_gain, reference)
 
 
@@ -240,31 +241,30 @@ def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples:
     elapsed = time.perf_counter() - t
     timings = dict(getattr(est, "timings", None) or {"inference": elapsed, "statistics": 0.0})
     plane_x_mm = getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM)
-    expected = est.spread_mm * getattr(info, "mc_error_scale", 1.0)
+    scale = getattr(info, "mc_error_scale", 1.0)
     t = time.perf_counter()
     bounds = np.cumsum([0] + [len(s.prepared.inputs) for s in prepared])
-    spans = [slice(int(a), int(b)) for a, b in pairwise(bounds)]
+    parts = [est.part(slice(int(a), int(b))) for a, b in pairwise(bounds)]
     frames = [s.network_from_voxel() for s in prepared]
     shape = getattr(info, "mc_error_shape", None)
     gain = float(getattr(info, "mc_error_depth_gain", 0.0))
-    outs = [stack_poses(est, sl, s, nfv, stack_consistency, plane_x_mm, expected, order, shape, gain)
-            for sl, s, nfv, order in zip(spans, prepared, frames, orders)]
+    outs = [stack_poses(e, s, nfv, stack_consistency, plane_x_mm, e.spread_mm * scale, order, shape, gain)
+            for e, s, nfv, order in zip(parts, prepared, frames, orders)]
     reference = request_reference(outs) if stack_consistency else None
     if reference is not None:              # a stack that did not decide its branch takes the others' word
-        outs = [stack_poses(est, sl, s, nfv, True, plane_x_mm, expected, order, shape, gain, reference)
-                if undecided(out) else out for sl, s, nfv, order, out in zip(spans, prepared, frames, orders, outs)]
+        outs = [stack_poses(e, s, nfv, True, plane_x_mm, e.spread_mm * scale, order, shape, gain, reference)
+                if undecided(out) else out for e, s, nfv, order, out in zip(parts, prepared, frames, orders, outs)]
     if stack_consistency:
         pool_request(outs)
     timings["stack_consistency"] = time.perf_counter() - t
     t = time.perf_counter()
     if stack_consistency and image_consistency:
-        refine_where_stacks_cross(prepared, outs, [~est.degenerate[sl] for sl in spans])
+        refine_where_stacks_cross(prepared, outs, [~e.degenerate for e in parts])
     timings["image_consistency"] = time.perf_counter() - t
     floor = float(getattr(info, "expected_error_floor_mm", 0.0))
     results = []
-    for s, sl, nfv, out in zip(prepared, spans, frames, outs):
+    for s, e, nfv, out in zip(prepared, parts, frames, outs):
         if out.expected_error_mm is not None:              # what no stage sees: the request's placement
             out.expected_error_mm = np.hypot(out.expected_error_mm, floor)
-        mine = PoseEstimate(est.mean[sl], est.variance[sl], est.degenerate[sl], est.twin_mass[sl], est.spread_mm[sl])
-        results.append(StackPrediction(s, nfv, mine, out, judge(s, mine, out, threshold, max_expected_error_mm)))
+        results.append(StackPrediction(s, nfv, e, out, judge(s, e, out, threshold, max_expected_error_mm)))
     return results, timings

@@ -26,21 +26,12 @@ import SimpleITK as sitk
 from numpy.typing import NDArray
 
 from service.io.volume import Volume, to_sitk
+from service.preprocess.stack import mask_box
 
 MARGIN_MM = 20.0
 FIT_SPACING_MM = 8.0
 ITERATIONS = 50
 LEVELS = 2
-
-
-def _roi(mask: NDArray, spacing: NDArray, margin_mm: float) -> tuple[list[int], list[int]]:
-    idx = np.argwhere(mask)
-    if len(idx) == 0:
-        return [0, 0, 0], list(mask.shape)
-    pad = np.ceil(margin_mm / spacing).astype(int)
-    lo = np.maximum(idx.min(0) - pad, 0)
-    hi = np.minimum(idx.max(0) + pad + 1, mask.shape)
-    return lo.tolist(), (hi - lo).tolist()
 
 
 def n4_correct(volume: Volume, mask: NDArray | None = None, *, shrink: int = 4, iterations: int = ITERATIONS,
@@ -59,8 +50,9 @@ def n4_correct(volume: Volume, mask: NDArray | None = None, *, shrink: int = 4, 
             shrunk further (a 0.55 mm stack by 15, not 4).
     """
     arr = np.asarray(volume.array, dtype=np.float32)
-    roi_mask = np.ones(arr.shape, bool) if mask is None else np.asarray(mask, bool)
-    lo, size = _roi(roi_mask, volume.spacing, margin_mm)
+    box = None if mask is None else mask_box(np.asarray(mask, bool), np.ceil(margin_mm / volume.spacing).astype(int))
+    box = box or tuple(slice(0, n) for n in arr.shape)
+    lo, size = [b.start for b in box], [b.stop - b.start for b in box]
     image = sitk.RegionOfInterest(to_sitk(Volume(np.maximum(arr, 0.0), volume.affine)), size, lo)
     image = sitk.Cast(image, sitk.sitkFloat32)
     sp = np.asarray(image.GetSpacing())
@@ -80,6 +72,5 @@ def n4_correct(volume: Volume, mask: NDArray | None = None, *, shrink: int = 4, 
                               useNearestNeighborExtrapolator=True)
     log_field = sitk.GetArrayFromImage(log_field).transpose(2, 1, 0)
     out = arr.copy()
-    sl = tuple(slice(a, a + n) for a, n in zip(lo, size))
-    out[sl] = arr[sl] / np.exp(log_field).astype(np.float32)
+    out[box] = arr[box] / np.exp(log_field).astype(np.float32)
     return out

@@ -35,6 +35,7 @@ from scipy import ndimage
 from service.geometry.pose import translate
 from service.geometry.sampling import FWHM_TO_SIGMA
 from service.preprocess.intensity import rescale_0_255
+from service.preprocess.stack import mask_box
 
 
 @dataclass
@@ -66,17 +67,6 @@ def _frame_coordinates(shape: tuple[int, int], pixel_mm: tuple[float, float]) ->
     return x, y
 
 
-def _bounding_box(masks: NDArray, margin: list[int]) -> tuple[int, int, int, int]:
-    """Rows ``[r0, r1)`` and columns ``[c0, c1)`` of the masks' joint bounding box grown by ``margin``
-    (rows, columns) pixels, within the image (a single pixel box when every mask is empty)."""
-    h, w = masks.shape[1:]
-    rows, cols = np.flatnonzero(masks.any(axis=(0, 2))), np.flatnonzero(masks.any(axis=(0, 1)))
-    if not len(rows):
-        return 0, 1, 0, 1
-    return (max(int(rows[0]) - margin[0], 0), min(int(rows[-1]) + margin[0] + 1, h),
-            max(int(cols[0]) - margin[1], 0), min(int(cols[-1]) + margin[1] + 1, w))
-
-
 def preprocess_slices(
     images: ArrayLike,
     masks: ArrayLike,
@@ -100,7 +90,8 @@ def preprocess_slices(
     blur = max(sig) > 0.2                                  # anti-alias when the output grid is coarser
     # Everything outside the masks is 0 after the rescale: work on their bounding box, with room
     # for the anti-aliasing kernel (4 sigma) and the bilinear sampler. The result is the same.
-    r0, r1, c0, c1 = _bounding_box(m_full, [int(np.ceil(4.0 * g)) + 2 if blur else 2 for g in sig])
+    box = mask_box(m_full.any(axis=0), [int(np.ceil(4.0 * g)) + 2 if blur else 2 for g in sig]) or (slice(0, 1),) * 2
+    (r0, r1), (c0, c1) = ((b.start, b.stop) for b in box)
     img = np.asarray(np.asarray(images)[:, r0:r1, c0:c1], dtype=np.float32)
     m = m_full[:, r0:r1, c0:c1]
     scaled = rescale_0_255(img, m)

@@ -45,6 +45,23 @@ class StackSlices:
     slice_from_voxel: NDArray[np.float64]
 
 
+def mask_box(mask: NDArray, margin: NDArray | list[int]) -> tuple[slice, ...] | None:
+    """The index box of ``mask``'s nonzero voxels grown by ``margin`` voxels per axis, clipped to the
+    array (None when the mask is empty).
+
+    Example:
+        >>> m = np.zeros((6, 8), bool); m[2, 3:5] = True
+        >>> mask_box(m, [1, 2])
+        (slice(1, 4, None), slice(1, 7, None))
+    """
+    idx = np.argwhere(mask)
+    if not len(idx):
+        return None
+    lo = np.maximum(idx.min(0) - np.asarray(margin), 0)
+    hi = np.minimum(idx.max(0) + np.asarray(margin) + 1, mask.shape)
+    return tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
+
+
 def slice_axis_of(spacing: NDArray) -> int:
     """The axis of largest spacing; ties go to the last axis."""
     sp = np.asarray(spacing, dtype=np.float64)
