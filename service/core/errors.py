@@ -94,3 +94,8 @@ class InternalError(ServiceError):
 class NotReady(ServiceError):
     status, title, type = 503, "Not ready", "/problems/not-ready"
     headers = {"Retry-After": "5"}
+
+
+class Cancelled(Exception):
+    """A job was cancelled while it ran: the reconstruction's ``cancel`` hook said so, or the worker
+    found the job cancelled in the store. Not a client error: it never reaches an HTTP answer."""

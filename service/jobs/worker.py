@@ -25,9 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from service.consistency.slice_order import SliceOrder, per_stack
-from service.core.errors import ServiceError
+from service.core.errors import Cancelled, ServiceError
 from service.jobs.store import JobStore
-from service.reconstruction.pipeline import Cancelled
 
 log = logging.getLogger(__name__)
 

@@ -49,6 +49,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from service.consistency.slice_order import SliceOrder
+from service.core.errors import Cancelled
 from service.io.volume import Volume
 from service.reconstruction.coarse_to_fine import START_OWN, CoarseAlignment, coarse_align
 from service.reconstruction.forward import ForwardModel, inplane_sigma_mm
@@ -64,10 +65,6 @@ WIDE_CAPTURE_FRACTION = 0.5
 """The wide capture schedule runs when at least this fraction of the slices start from their stack's pose."""
 NCC_MIN_PIXEL_FRACTION = 0.2
 """Slices with fewer pixels than this fraction of the median are not judged by their NCC."""
-
-
-class Cancelled(Exception):
-    """Raised when the ``cancel`` hook of :func:`reconstruct` returns True."""
 
 
 @dataclass
