@@ -40,12 +40,13 @@ from service.geometry.pose import make_pose, translate
 from service.io.volume import Volume
 from service.preprocess.stack import split_stack
 
-MOTION_LEVELS: dict[str, tuple[float, float] | None] = {
-    "mild": (5.0, 3.0), "moderate": (20.0, 8.0), "jumps": (10.0, 4.0), "independent": (20.0, 8.0), "extreme": None}
-"""Largest rotation (deg) and translation (mm) of each level's motion (for ``jumps``, of its smooth
-drift); ``None``: any orientation per slice."""
 JUMP_DEG, JUMP_MM = 20.0, 8.0
 """Largest rotation angle and translation per axis of a jump, and of an ``independent`` slice."""
+MOTION_LEVELS: dict[str, tuple[float, float] | None] = {
+    "mild": (5.0, 3.0), "moderate": (20.0, 8.0), "jumps": (10.0, 4.0), "independent": (JUMP_DEG, JUMP_MM),
+    "extreme": None}
+"""Largest rotation (deg) and translation (mm) of each level's motion (for ``jumps``, of its smooth
+drift); ``None``: any orientation per slice."""
 MAX_JUMPS = 4
 STACK_TILT_DEG = 10.0
 EXTREME_OFFSET_MM = 15.0
