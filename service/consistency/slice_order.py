@@ -41,6 +41,8 @@ GIVEN = "given"
 """The name of an order given as a list of slice indices."""
 FROM_FILE = "acquisition-times"
 """The name of an order read from the file (a DICOM series' per-slice acquisition times)."""
+STREAMED = "as-streamed"
+"""The name of an order taken from a stream: the order the scanner sent the slices in (or numbered them)."""
 MAX_TEXT = 20_000
 """Longest ``slice_order`` text accepted (a list of indices of a very long stack fits easily)."""
 PATTERN = r"^\s*(auto|interleaved|sequential|interleaved-even-first|interleaved-odd-first|\d{1,6}( *, *\d{1,6})*)\s*$"

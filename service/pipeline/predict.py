@@ -57,6 +57,9 @@ class StackUpload:
     volume: Volume
     mask: Volume | None = None
     mask_filename: str | None = None
+    slice_axis: int | None = None
+    """The axis the slices were acquired along, where known (a streamed stack); otherwise the axis
+    of largest spacing."""
 
 
 @dataclass
@@ -106,7 +109,7 @@ def prepare_stack(upload: StackUpload, info: ModelInfo, bias_correction: bool,
     array = n4_correct(vol, mask) if bias_correction and mask.any() else vol.array
     timings["bias_correction"] = time.perf_counter() - t
     t = time.perf_counter()
-    slices = split_stack(Volume(array, vol.affine), mask)
+    slices = split_stack(Volume(array, vol.affine), mask, upload.slice_axis)
     prepared = preprocess_slices(slices.images, slices.masks, slices.pixel_mm, info.input_size, info.pixel_spacing_mm)
     timings["preprocess"] = time.perf_counter() - t
     return PreparedStack(upload, slices, prepared, localisation, timings)
@@ -224,27 +227,47 @@ def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples:
             orders: list[SliceOrder] | None = None,
             image_consistency: bool = True,
             max_expected_error_mm: float | None = None) -> tuple[list[StackPrediction], dict[str, float]]:
-    """Run all slices of all stacks through ``estimator`` at once, then each stack through the
-    stack-consistency stage, the stacks' positions pooled where they agree
-    (:func:`~service.consistency.stage.pool_request`) and their slices refined where they cross
-    (:func:`refine_where_stacks_cross`; with ``image_consistency`` and the stage on); returns each
-    stack's :class:`StackPrediction` and the timings. ``orders``: what the request says of the stacks'
-    acquisition orders (:func:`stack_orders`). ``threshold`` and ``max_expected_error_mm`` (default:
-    the model's) decide the accept flags."""
-    orders = stack_orders(orders, [p.upload for p in prepared])
-    info = estimator.info
-    if max_expected_error_mm is None:
-        max_expected_error_mm = getattr(info, "max_expected_error_mm", None)
+    """Run all slices of all stacks through ``estimator`` at once (:func:`estimate_stacks`), then on
+    to the poses (:func:`predict_from_estimates`); returns each stack's :class:`StackPrediction` and
+    the timings."""
+    parts, timings = estimate_stacks(prepared, estimator, mc_samples)
+    predictions, more = predict_from_estimates(prepared, parts, estimator.info, threshold, stack_consistency, orders,
+                                               image_consistency, max_expected_error_mm)
+    return predictions, {**timings, **more}
+
+
+def estimate_stacks(prepared: list[PreparedStack], estimator: PoseEstimator,
+                    mc_samples: int) -> tuple[list[PoseEstimate], dict[str, float]]:
+    """The network's MC statistics of every stack's slices, all slices in one batched call; and the
+    time inference and statistics took."""
     inputs = np.concatenate([s.prepared.inputs for s in prepared])
     t = time.perf_counter()
     est = estimator.estimate(inputs, mc_samples)
     elapsed = time.perf_counter() - t
     timings = dict(getattr(est, "timings", None) or {"inference": elapsed, "statistics": 0.0})
+    bounds = np.cumsum([0] + [len(s.prepared.inputs) for s in prepared])
+    return [est.part(slice(int(a), int(b))) for a, b in pairwise(bounds)], timings
+
+
+def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstimate], info: ModelInfo,
+                           threshold: float, stack_consistency: bool = True,
+                           orders: list[SliceOrder] | None = None, image_consistency: bool = True,
+                           max_expected_error_mm: float | None = None,
+                           ) -> tuple[list[StackPrediction], dict[str, float]]:
+    """Each stack (with its slices' statistics ``parts``) through the stack-consistency stage, the
+    stacks' positions pooled where they agree (:func:`~service.consistency.stage.pool_request`) and
+    their slices refined where they cross (:func:`refine_where_stacks_cross`; with
+    ``image_consistency`` and the stage on); returns each stack's :class:`StackPrediction` and the
+    timings. ``orders``: what the request says of the stacks' acquisition orders
+    (:func:`stack_orders`). ``threshold`` and ``max_expected_error_mm`` (default: the model's)
+    decide the accept flags."""
+    orders = stack_orders(orders, [p.upload for p in prepared])
+    if max_expected_error_mm is None:
+        max_expected_error_mm = getattr(info, "max_expected_error_mm", None)
+    timings: dict[str, float] = {}
     plane_x_mm = getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM)
     scale = getattr(info, "mc_error_scale", 1.0)
     t = time.perf_counter()
-    bounds = np.cumsum([0] + [len(s.prepared.inputs) for s in prepared])
-    parts = [est.part(slice(int(a), int(b))) for a, b in pairwise(bounds)]
     frames = [s.network_from_voxel() for s in prepared]
     shape = getattr(info, "mc_error_shape", None)
     gain = float(getattr(info, "mc_error_depth_gain", 0.0))

@@ -47,6 +47,8 @@ PLAUSIBLE_ML = (30.0, 700.0)
 """Intracranial volumes of 20-40 weeks' gestation (brain and extra-axial CSF), with a margin."""
 MIN_BRAIN_ML = 5.0
 THRESHOLD = 0.5
+MIN_SLICE_AREA_MM2 = 100.0
+"""A slice's brain region smaller than this is not taken for a brain (:meth:`Localiser.localise_slice`)."""
 MIN_CONFIDENCE = 0.15
 """Below this confidence no brain is reported: the mask is empty and the stack's slices ``empty``."""
 
@@ -156,6 +158,34 @@ class Localiser:
         kept = np.where(near, np.maximum(prob, brain.astype(np.float32)), 0.0)
         return Localisation.of(grid.to_stack(kept) >= THRESHOLD, volume.spacing, "network", confidence)
 
+
+    def localise_slice(self, volume: Volume, which: int) -> Localisation:
+        """The brain in slice ``which`` of ``volume`` (a few neighbouring slices of a stack that is still
+        being acquired): in that slice's probabilities, the 2D region with most brain probability,
+        its holes filled, back on the slice's grid. Its confidence multiplies how sure the network is
+        inside it and the share of the slice's brain-like probability it holds; below
+        :data:`MIN_CONFIDENCE`, or under :data:`MIN_SLICE_AREA_MM2`, the slice has no brain. The
+        returned mask covers ``volume``, brain only in slice ``which``."""
+        prob, grid = self.probabilities(volume)
+        p = prob[which]
+        labels, n = ndimage.label(p >= THRESHOLD)
+        axis = slice_axis_of(volume.spacing)
+        empty = Localisation.of(np.zeros(volume.array.shape, bool), volume.spacing, "network", 0.0)
+        if n == 0:
+            return empty
+        mass = ndimage.sum_labels(p, labels, np.arange(1, n + 1))
+        best = labels == int(np.argmax(mass)) + 1
+        confidence = float(p[best].mean() * mass.max() / mass.sum())
+        if best.sum() * self.grid_mm ** 2 < MIN_SLICE_AREA_MM2 or confidence < MIN_CONFIDENCE:
+            return Localisation.of(empty.mask, volume.spacing, "network", confidence)
+        maps = np.zeros_like(prob)
+        maps[which] = np.where(ndimage.binary_dilation(best, iterations=1), np.maximum(p, ndimage.binary_fill_holes(best)), 0.0)
+        mask = grid.to_stack(maps) >= THRESHOLD
+        only = np.zeros(volume.array.shape, bool)
+        keep = [slice(None)] * 3
+        keep[axis] = which
+        only[tuple(keep)] = mask[tuple(keep)]
+        return Localisation.of(only, volume.spacing, "network", confidence)
 
 @functools.cache
 def default_localiser() -> Localiser:

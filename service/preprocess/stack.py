@@ -81,9 +81,10 @@ def stack_from_slice_images(images: NDArray, axis: int) -> NDArray:
     return np.moveaxis(np.asarray(images).transpose(0, 2, 1), 0, axis)
 
 
-def split_stack(volume: Volume, mask: NDArray) -> StackSlices:
-    """Slices, masks and slice-frame transforms of a stack (vectorised, no per-slice loop)."""
-    a = slice_axis_of(volume.spacing)
+def split_stack(volume: Volume, mask: NDArray, axis: int | None = None) -> StackSlices:
+    """Slices, masks and slice-frame transforms of a stack (vectorised, no per-slice loop), along
+    ``axis`` (default: :func:`slice_axis_of` its spacing; a streamed slice says its own)."""
+    a = slice_axis_of(volume.spacing) if axis is None else axis
     p, q = [ax for ax in range(3) if ax != a]
     images = slice_images(np.asarray(volume.array, dtype=np.float32), volume.affine, a)[0]
     masks = slice_images(np.asarray(mask, dtype=bool), volume.affine, a)[0]

@@ -1,0 +1,133 @@
+"""How much of the fetal brain the accepted slices of a session already sample, and where the gaps are.
+
+The brain's extent in atlas space comes from the session itself, not from an atlas of one age: it
+is the convex hull of every accepted slice's brain pixels placed at their poses. A point of that
+hull is **covered** when an accepted slice passes through it: within half the slice's thickness of
+its plane (the slice profile), inside its brain mask (one pixel of slack). That is what a
+slice-to-volume reconstruction needs of every voxel. The uncovered points form the **gaps**; each
+gap, a 3D connected region, is reported by its centre, its thinnest direction (``normal``: slices
+stacked along it fill the gap fastest), its extent along that normal and its volume.
+
+Example (one stack of 3 mm slices every 3 mm, one slice missing):
+    >>> import numpy as np
+    >>> slices = []
+    >>> for k in [0, 1, 2, 4, 5]:
+    ...     a = np.diag([1.0, 1.0, 3.0, 1.0]); a[:3, 3] = (-20, -20, 3.0 * k)
+    ...     slices.append(CoveredSlice(a, np.ones((41, 41), bool)))
+    >>> c = coverage(slices)
+    >>> round(c.brain_fraction, 2), len(c.gaps), [round(v, 1) for v in c.gaps[0].normal]
+    (0.75, 1, [0.0, 0.0, 1.0])
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+from scipy.spatial import Delaunay, QhullError
+
+GRID_MM = 2.0
+"""Spacing of the atlas-space grid coverage is counted on."""
+MAX_HULL_POINTS = 4000
+"""Brain pixels kept (evenly) to build the hull: enough for its shape, cheap to triangulate."""
+MIN_GAP_ML = 0.1
+MAX_GAPS = 5
+
+
+@dataclass(frozen=True)
+class CoveredSlice:
+    """One accepted slice: ``atlas_from_voxel`` (voxel ``(i0, i1, 0, 1)``, third column normal x
+    thickness) and its brain ``mask`` ``[n0, n1]``."""
+
+    atlas_from_voxel: NDArray[np.float64]
+    mask: NDArray[np.bool_]
+
+
+@dataclass(frozen=True)
+class Gap:
+    centre_mm: list[float]
+    normal: list[float]
+    extent_mm: float
+    volume_ml: float
+
+
+@dataclass(frozen=True)
+class Coverage:
+    """``brain_fraction``: share of the brain's hull covered; ``gaps``: the largest uncovered regions;
+    ``brain_volume_ml``: the hull's volume (0 when the accepted slices do not span a volume yet)."""
+
+    brain_fraction: float
+    brain_volume_ml: float
+    gaps: list[Gap] = field(default_factory=list)
+
+    def report(self) -> dict:
+        """The contract's ``coverage`` object."""
+        return {"brain_fraction": round(self.brain_fraction, 4), "brain_volume_ml": round(self.brain_volume_ml, 1),
+                "gaps": [{"centre_mm": g.centre_mm, "normal": g.normal, "extent_mm": round(g.extent_mm, 1),
+                          "volume_ml": round(g.volume_ml, 2)} for g in self.gaps]}
+
+
+def brain_points(slices: list[CoveredSlice]) -> NDArray[np.float64]:
+    """Atlas mm of the slices' brain pixels (an even subset of at most :data:`MAX_HULL_POINTS`)."""
+    pts = []
+    for s in slices:
+        idx = np.argwhere(np.asarray(s.mask))
+        if len(idx):
+            pts.append(idx @ s.atlas_from_voxel[:3, :2].T + s.atlas_from_voxel[:3, 3])
+    if not pts:
+        return np.zeros((0, 3))
+    every = np.concatenate(pts)
+    return every[:: max(1, len(every) // MAX_HULL_POINTS)]
+
+
+def coverage(slices: list[CoveredSlice]) -> Coverage:
+    """The coverage of the brain by ``slices`` (see the module)."""
+    points = brain_points(slices)
+    if len(points) < 4:
+        return Coverage(0.0, 0.0)
+    lo = points.min(0) - GRID_MM
+    shape = tuple(int(x) for x in np.ceil((points.max(0) + GRID_MM - lo) / GRID_MM) + 1)
+    grid = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1).reshape(-1, 3) * GRID_MM + lo
+    try:
+        inside = Delaunay(points).find_simplex(grid) >= 0
+    except QhullError:                      # the slices are coplanar: no volume yet
+        return Coverage(0.0, 0.0)
+    brain = grid[inside]
+    covered = np.zeros(len(brain), bool)
+    for s in slices:
+        voxel = (brain - s.atlas_from_voxel[:3, 3]) @ np.linalg.inv(s.atlas_from_voxel[:3, :3]).T
+        near = np.abs(voxel[:, 2]) <= 0.5
+        i0, i1 = np.rint(voxel[near, 0]).astype(int), np.rint(voxel[near, 1]).astype(int)
+        m = ndimage.binary_dilation(np.asarray(s.mask), iterations=1)
+        ok = (i0 >= 0) & (i0 < m.shape[0]) & (i1 >= 0) & (i1 < m.shape[1])
+        hit = np.zeros(int(near.sum()), bool)
+        hit[ok] = m[i0[ok], i1[ok]]
+        covered[np.flatnonzero(near)[hit]] = True
+    voxel_ml = GRID_MM ** 3 / 1000.0
+    volume_ml = float(inside.sum() * voxel_ml)
+    holes = np.zeros(shape, bool)
+    holes.reshape(-1)[np.flatnonzero(inside)[~covered]] = True
+    return Coverage(float(covered.mean()) if len(covered) else 0.0, volume_ml, gaps(holes, lo))
+
+
+def gaps(holes: NDArray[np.bool_], origin_mm: NDArray) -> list[Gap]:
+    """The largest connected regions of ``holes`` (a grid of :data:`GRID_MM` from ``origin_mm``)."""
+    labels, n = ndimage.label(holes, structure=np.ones((3, 3, 3), bool))
+    if n == 0:
+        return []
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)[1:]
+    voxel_ml = GRID_MM ** 3 / 1000.0
+    out = []
+    for label in np.argsort(sizes)[::-1][:MAX_GAPS] + 1:
+        if sizes[label - 1] * voxel_ml < MIN_GAP_ML:
+            break
+        pts = np.argwhere(labels == label) * GRID_MM + origin_mm
+        centre = pts.mean(0)
+        normal = np.linalg.eigh(np.cov((pts - centre).T) + 1e-9 * np.eye(3))[1][:, 0] if len(pts) > 1 else np.eye(3)[2]
+        normal = normal * (1.0 if normal[np.argmax(np.abs(normal))] > 0 else -1.0)
+        along = (pts - centre) @ normal
+        out.append(Gap([round(float(x), 1) for x in centre], [round(float(x), 4) for x in normal],
+                       float(along.max() - along.min() + GRID_MM), float(len(pts) * voxel_ml)))
+    return out

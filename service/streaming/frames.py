@@ -1,0 +1,166 @@
+"""Slices as a scanner sends them, one at a time, and the stack they add up to.
+
+A streamed slice is a 2D array ``[n0, n1]`` with its ``scanner_from_voxel`` (RAS mm): voxel
+``(i0, i1, 0, 1)`` -> scanner mm, the third column the slice normal times its thickness. The slices
+of one stack share their in-plane axes and sit along one normal; :class:`StreamedStack` checks that
+as they arrive and, once the stack is complete, builds the :class:`~service.io.volume.Volume` that
+``/v1/predict`` would have read from a file: voxel ``(i0, i1, k)`` is pixel ``(i0, i1)`` of the
+slice of index ``k``, and the third column of its affine is the step between neighbouring slices
+(the spacing, which may differ from the thickness where slices have gaps or overlap).
+
+Example:
+    >>> import numpy as np
+    >>> stack = StreamedStack("ax")
+    >>> for k in (1, 0, 2):                                   # any order: interleaved, say
+    ...     a = np.diag([1.0, 1.0, 3.0, 1.0]); a[:3, 3] = (0, 0, 3.5 * k)
+    ...     stack.add(SliceFrame("ax", k, np.full((4, 5), k, np.float32), a))
+    >>> vol, mask = stack.volume()
+    >>> vol.array.shape, vol.spacing.round(2).tolist(), mask is None, stack.arrival_order()
+    ((4, 5, 3), [1.0, 1.0, 3.5], True, (1, 0, 2))
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from service.core.errors import InvalidParameter
+from service.io.volume import Volume
+
+AXIS_TOLERANCE = 1e-3
+"""Largest relative difference between the in-plane axes of two slices of one stack."""
+LINE_TOLERANCE_MM = 0.05
+"""Largest distance of a slice's origin from the stack's line of slices (and from its even spacing)."""
+
+
+@dataclass
+class SliceFrame:
+    """One slice as sent: its stack's name, its index along the stack normal, pixels and geometry.
+
+    Attributes:
+        stack: the client's name of the stack.
+        index: position of the slice in its stack along the normal, 0-based.
+        pixels: ``[n0, n1]`` intensities.
+        scanner_from_voxel: ``4 x 4``: voxel ``(i0, i1, 0, 1)`` -> scanner RAS mm; third column the
+            normal times the slice thickness.
+        mask: ``[n0, n1]`` brain mask (None: the service localises the brain).
+        acquisition_index: the slice's place in its stack's acquisition, when the client says it
+            (otherwise the order the slices arrive in is the acquisition order).
+    """
+
+    stack: str
+    index: int
+    pixels: NDArray
+    scanner_from_voxel: NDArray[np.float64]
+    mask: NDArray[np.bool_] | None = None
+    acquisition_index: int | None = None
+
+    @property
+    def thickness_mm(self) -> float:
+        return float(np.linalg.norm(self.scanner_from_voxel[:3, 2]))
+
+
+def check_frame(frame: SliceFrame, max_pixels: int) -> None:
+    """Raise :class:`InvalidParameter` naming the field when ``frame`` cannot be a slice."""
+    px = np.asarray(frame.pixels)
+    if px.ndim != 2 or min(px.shape) < 2:
+        raise InvalidParameter(f"slice.shape: a slice is a 2D array of at least 2 x 2 pixels, not {list(px.shape)}")
+    if px.size > max_pixels:
+        raise InvalidParameter(f"slice.shape: {px.shape[0]} x {px.shape[1]} pixels is over this server's limit of "
+                               f"{max_pixels} pixels per slice")
+    if not np.all(np.isfinite(px)):
+        raise InvalidParameter("slice: the pixels hold NaN or infinite values")
+    if frame.index < 0:
+        raise InvalidParameter(f"slice.index: {frame.index} is negative (indices start at 0)")
+    a = np.asarray(frame.scanner_from_voxel, dtype=np.float64)
+    if a.shape != (4, 4) or not np.all(np.isfinite(a)) or not np.allclose(a[3], [0, 0, 0, 1]):
+        raise InvalidParameter("slice.scanner_from_voxel: a 4 x 4 affine with last row 0, 0, 0, 1 is required")
+    lengths = np.linalg.norm(a[:3, :3], axis=0)
+    if lengths.min() <= 1e-6 or abs(np.linalg.det(a[:3, :3] / lengths)) < 0.5:
+        raise InvalidParameter("slice.scanner_from_voxel: its columns (pixel axes and normal x thickness) must be "
+                               "nonzero and not parallel")
+    if frame.mask is not None and np.asarray(frame.mask).shape != px.shape:
+        raise InvalidParameter(f"slice.mask: shape {list(np.asarray(frame.mask).shape)} differs from the slice's "
+                               f"{list(px.shape)}")
+
+
+@dataclass
+class StreamedStack:
+    """The slices of one stack received so far, checked to form one stack (see the module)."""
+
+    name: str
+    frames: dict[int, SliceFrame] = field(default_factory=dict)
+    arrivals: list[int] = field(default_factory=list)
+
+    def add(self, frame: SliceFrame) -> None:
+        """Keep ``frame`` (:class:`InvalidParameter`, the stack unchanged, when it does not fit)."""
+        if frame.index in self.frames:
+            raise InvalidParameter(f"slice.index: stack {self.name!r} already has a slice {frame.index}")
+        if self.frames:
+            self._check_fits(frame, self.frames[self.arrivals[0]])
+        self.frames[frame.index] = frame
+        self.arrivals.append(frame.index)
+
+    def _check_fits(self, frame: SliceFrame, first: SliceFrame) -> None:
+        if np.shape(frame.pixels) != np.shape(first.pixels):
+            raise InvalidParameter(f"slice.shape: {list(np.shape(frame.pixels))} differs from the "
+                                   f"{list(np.shape(first.pixels))} of stack {self.name!r}'s first slice")
+        a, b = frame.scanner_from_voxel, first.scanner_from_voxel
+        if np.abs(a[:3, :3] - b[:3, :3]).max() > AXIS_TOLERANCE * np.abs(b[:3, :3]).max():
+            raise InvalidParameter(f"slice.scanner_from_voxel: its axes differ from those of stack {self.name!r}'s "
+                                   "first slice (a stack's slices are parallel, of one pixel grid)")
+        normal = b[:3, 2] / np.linalg.norm(b[:3, 2])
+        offset = a[:3, 3] - b[:3, 3]
+        if np.linalg.norm(offset - normal * (offset @ normal)) > LINE_TOLERANCE_MM:
+            raise InvalidParameter(f"slice.scanner_from_voxel: the slice is shifted in plane from stack {self.name!r}'s "
+                                   "other slices (they must lie along one normal)")
+        if (frame.mask is None) != (first.mask is None):
+            raise InvalidParameter(f"slice.mask: either every slice of stack {self.name!r} comes with a mask or none does")
+
+    def remove(self, index: int) -> None:
+        """Forget the slice ``index`` (one the service could not take after all)."""
+        self.frames.pop(index, None)
+        self.arrivals.remove(index)
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def arrival_order(self) -> tuple[int, ...]:
+        """The slice indices in the order they were acquired: as the client numbered them
+        (``acquisition_index``) where every slice has one, else as they arrived."""
+        given = [self.frames[k].acquisition_index for k in self.arrivals]
+        if all(g is not None for g in given):
+            return tuple(k for _, k in sorted(zip(given, self.arrivals)))
+        return tuple(self.arrivals)
+
+    def missing(self) -> list[int]:
+        """The indices below the largest received one that have not arrived."""
+        return sorted(set(range(max(self.frames) + 1)) - set(self.frames)) if self.frames else []
+
+    def volume(self) -> tuple[Volume, Volume | None]:
+        """The complete stack as a volume (and its mask volume, when the slices came with masks);
+        :class:`InvalidParameter` when slices are missing or unevenly spaced."""
+        if not self.frames:
+            raise InvalidParameter(f"end_stack.stack: stack {self.name!r} has no slices")
+        gaps = self.missing()
+        if gaps:
+            raise InvalidParameter(f"end_stack.stack: stack {self.name!r} lacks the slices {gaps[:10]} (indices 0.."
+                                   f"{max(self.frames)} are expected)")
+        n = len(self.frames)
+        first = self.frames[0]
+        origins = np.stack([self.frames[k].scanner_from_voxel[:3, 3] for k in range(n)])
+        affine = np.array(first.scanner_from_voxel, dtype=np.float64)
+        step = (origins[-1] - origins[0]) / (n - 1) if n > 1 else affine[:3, 2]
+        if n > 1 and np.abs(origins - origins[0] - np.outer(np.arange(n), step)).max() > LINE_TOLERANCE_MM:
+            raise InvalidParameter(f"end_stack.stack: the slices of stack {self.name!r} are not evenly spaced along "
+                                   "their normal")
+        if np.linalg.norm(step) < 1e-3:
+            raise InvalidParameter(f"end_stack.stack: the slices of stack {self.name!r} all sit at one position")
+        affine[:3, 2] = step
+        image = np.stack([np.asarray(self.frames[k].pixels, dtype=np.float32) for k in range(n)], axis=-1)
+        mask = None
+        if first.mask is not None:
+            mask = Volume(np.stack([np.asarray(self.frames[k].mask, bool) for k in range(n)], axis=-1), affine)
+        return Volume(image, affine), mask

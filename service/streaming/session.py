@@ -1,0 +1,371 @@
+"""One real-time session: slices in as the scanner reconstructs them, poses out, stacks firming up.
+
+The stages are those of ``/v1/predict`` (:mod:`service.pipeline.predict`), run at three moments:
+
+1. **A slice arrives** (:meth:`StreamSession.add_slice`): its brain (the sent mask, else the
+   localiser on the slice and its received neighbours), the service's slice preprocessing, MC-dropout
+   inference and the twin-aware statistics of that slice alone. Where the stack's model has already
+   decided the stack's left-right branch, the slice takes the twin nearer to where that model puts
+   it. N4 needs the whole stack, so this pose is of the slice as sent.
+2. **Between slices** (:meth:`StreamSession.firm_up`): the stack-consistency stage on the slices of
+   the open stack received so far, their acquisition order the order they arrived in (or the
+   client's ``acquisition_index``), with the branch of the stacks already ended. Slices whose pose
+   moved by more than :data:`UPDATE_MM` (or whose accept flag changed) are returned as updates.
+3. **The stack ends** (:meth:`StreamSession.end_stack`): the stack, rebuilt from its slices, goes
+   through ``/v1/predict``'s whole pipeline (localisation, N4, preprocessing, inference) and, with
+   the stacks ended before it and their network statistics, through the same request-level stages
+   (:func:`~service.pipeline.predict.predict_from_estimates`): its poses are those ``/v1/predict``
+   gives for these stacks. Earlier stacks' slices that moved are returned as updates; the slices
+   worth acquiring again and the session's coverage of the brain come with the stack.
+
+Every pose an answer holds maps the slice **as sent**: ``network_from_voxel`` of each answer takes
+voxel ``(i0, i1, 0, 1)`` of the sent slice to the network frame (composed once, in
+:func:`sent_network_from_voxel`). A session is used from two threads (poses, and the background
+firm-up); its state changes under one lock, its computations run outside it.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from service.consistency.slice_order import STREAMED, SliceOrder
+from service.consistency.stage import StackPoses, consistent_poses, request_reference
+from service.core.errors import InvalidParameter
+from service.geometry import anchors, twin
+from service.geometry.twin import DEFAULT_PLANE_X_MM
+from service.inference import acceptance
+from service.inference.estimator import PoseEstimate, PoseEstimator
+from service.io.volume import Volume
+from service.pipeline.predict import (
+    PreparedStack,
+    StackPrediction,
+    StackUpload,
+    estimate_stacks,
+    judge,
+    predict_from_estimates,
+    prepare_stack,
+)
+from service.preprocess.localise import Localisation, Localiser
+from service.preprocess.slices import preprocess_slices
+from service.preprocess.stack import split_stack
+from service.streaming.coverage import Coverage, CoveredSlice, coverage
+from service.streaming.frames import SliceFrame, StreamedStack, check_frame
+
+UPDATE_MM = 1.0
+"""A slice whose pose moves by more than this (E.D., mm) is sent again as an update."""
+MIN_FIRM_UP_SLICES = 4
+"""The stack stage runs on an open stack once it has this many slices."""
+WINDOW = 1
+"""Neighbours on each side the localiser sees with a slice (when they have arrived)."""
+
+
+@dataclass(frozen=True)
+class StreamLimits:
+    """What one session may hold."""
+
+    max_slices: int = 2000
+    max_pixels: int = 1024 * 1024
+
+
+@dataclass
+class SliceAnswer:
+    """One slice's pose: row ``row`` of ``prediction``, whose ``network_from_voxel`` maps the slice as sent."""
+
+    stack: str
+    index: int
+    prediction: StackPrediction
+    row: int = 0
+    compute_ms: float = 0.0
+
+
+@dataclass
+class StackAnswer:
+    """A stack's final poses, the earlier slices they moved, what to acquire again, the coverage."""
+
+    stack: str
+    prediction: StackPrediction
+    updates: list[SliceAnswer]
+    reacquire: list[tuple[int, str]]
+    coverage: Coverage
+    timings: dict[str, float]
+
+
+@dataclass
+class SessionSummary:
+    stacks: list[str]
+    coverage: Coverage
+    slices: int
+    compute_ms: dict[str, float]
+
+
+@dataclass
+class _Slice:
+    """A received slice: its frame, its preparation alone, its network statistics and what was last sent."""
+
+    frame: SliceFrame
+    prepared: PreparedStack
+    estimate: PoseEstimate
+    network_from_voxel: NDArray[np.float64]          # [1, 4, 4] sent voxel -> this slice's network frame
+    answer: SliceAnswer | None = None
+
+
+@dataclass
+class _Ended:
+    prepared: PreparedStack
+    estimate: PoseEstimate
+    order: SliceOrder
+
+
+def sent_network_from_voxel(p: StackPrediction, frames: list[SliceFrame]) -> NDArray[np.float64]:
+    """``[n, 4, 4]``: voxel ``(i0, i1, 0, 1)`` of each sent slice -> its network frame in the stack ``p``
+    (built from those slices): through the scanner and the stack's voxel ``(i0, i1, k)``."""
+    stack_from_sent = np.linalg.inv(p.prepared.upload.volume.affine) @ np.stack([f.scanner_from_voxel for f in frames])
+    return p.network_from_voxel @ stack_from_sent
+
+
+def moved_mm(a: SliceAnswer, b: SliceAnswer, reference: NDArray) -> float:
+    """E.D. between the poses of two answers for one slice, in the frame ``reference`` (sent voxel ->
+    a fixed network frame of the slice), so that different crops compare."""
+    def pose(x: SliceAnswer) -> NDArray:
+        return x.prediction.poses.poses[x.row] @ x.prediction.network_from_voxel[x.row] @ np.linalg.inv(reference)
+    return float(anchors.ed(pose(a), pose(b)))
+
+
+class StreamSession:
+    """A session's stacks and slices, and the stages run on them (see the module)."""
+
+    def __init__(self, estimator: PoseEstimator, localiser: Localiser | None, limits: StreamLimits = StreamLimits(),
+                 mc_samples: int = 100, variance_threshold: float | None = None,
+                 max_expected_error_mm: float | None = None, bias_correction: bool = True) -> None:
+        self.estimator, self.localiser, self.limits = estimator, localiser, limits
+        info = estimator.info
+        self.mc_samples = mc_samples
+        self.threshold = info.variance_threshold if variance_threshold is None else variance_threshold
+        self.max_expected_error_mm = (getattr(info, "max_expected_error_mm", None) if max_expected_error_mm is None
+                                      else max_expected_error_mm)
+        self.bias_correction = bias_correction
+        self.stacks: dict[str, StreamedStack] = {}
+        self.slices: dict[str, dict[int, _Slice]] = {}
+        self.fits: dict[str, StackPoses] = {}
+        self.ended: dict[str, _Ended] = {}
+        self.finals: dict[str, StackPrediction] = {}
+        self.compute_ms: dict[str, float] = {"slices": 0.0, "firm_up": 0.0, "end_stack": 0.0}
+        self._lock = threading.Lock()
+
+    # -- 1. a slice arrives ------------------------------------------------------------------------------
+    def add_slice(self, frame: SliceFrame) -> SliceAnswer:
+        """The slice's pose, right away (:class:`InvalidParameter` naming the field, the session
+        unchanged, when the slice cannot be taken)."""
+        t0 = time.perf_counter()
+        check_frame(frame, self.limits.max_pixels)
+        with self._lock:
+            if frame.stack in self.ended:
+                raise InvalidParameter(f"slice.stack: stack {frame.stack!r} has ended; send a new stack under a new name")
+            if sum(len(s) for s in self.stacks.values()) >= self.limits.max_slices:
+                raise InvalidParameter(f"slice: this session reached its limit of {self.limits.max_slices} slices")
+            stack = self.stacks.get(frame.stack) or StreamedStack(frame.stack)
+            stack.add(frame)
+            self.stacks[frame.stack] = stack
+            neighbours = self._neighbours(stack, frame.index)
+            fit = self.fits.get(frame.stack)
+        try:
+            state = self._prepare_alone(frame, neighbours)
+        except Exception:
+            with self._lock:
+                stack.remove(frame.index)
+                if not len(stack):
+                    del self.stacks[frame.stack]
+            raise
+        answer = self._alone(state, fit)
+        with self._lock:
+            self.slices.setdefault(frame.stack, {})[frame.index] = state
+            state.answer = answer
+        answer.compute_ms = (time.perf_counter() - t0) * 1e3
+        self.compute_ms["slices"] += answer.compute_ms
+        return answer
+
+    def _neighbours(self, stack: StreamedStack, index: int) -> list[SliceFrame]:
+        """The slice and its received, contiguous neighbours (up to :data:`WINDOW` a side), by index."""
+        lo = hi = index
+        while lo - 1 in stack.frames and index - lo < WINDOW:
+            lo -= 1
+        while hi + 1 in stack.frames and hi - index < WINDOW:
+            hi += 1
+        return [stack.frames[k] for k in range(lo, hi + 1)]
+
+    def _prepare_alone(self, frame: SliceFrame, neighbours: list[SliceFrame]) -> _Slice:
+        info = self.estimator.info
+        pixels = np.asarray(frame.pixels, dtype=np.float32)[..., None]
+        volume = Volume(pixels, np.asarray(frame.scanner_from_voxel, dtype=np.float64))
+        if frame.mask is not None:
+            localisation = Localisation.of(np.asarray(frame.mask, bool)[..., None], volume.spacing, "mask", 1.0)
+        elif self.localiser is None:
+            raise InvalidParameter("slice.mask: no localiser is installed; send a mask frame with every slice")
+        else:
+            localisation = self._localise(frame, neighbours)
+        slices = split_stack(volume, localisation.mask, axis=2)
+        prepared = preprocess_slices(slices.images, slices.masks, slices.pixel_mm, info.input_size, info.pixel_spacing_mm)
+        stack = PreparedStack(StackUpload(frame.stack, volume, slice_axis=2), slices, prepared, localisation)
+        est = self.estimator.estimate(prepared.inputs, self.mc_samples)
+        return _Slice(frame, stack, est, stack.network_from_voxel())
+
+    def _localise(self, frame: SliceFrame, neighbours: list[SliceFrame]) -> Localisation:
+        """The brain of ``frame`` by the localiser, seen between its received neighbours."""
+        if len(neighbours) > 1:
+            k = [f.index for f in neighbours].index(frame.index)
+            affine = np.array(neighbours[0].scanner_from_voxel, dtype=np.float64)
+            affine[:3, 2] = (neighbours[-1].scanner_from_voxel[:3, 3] - affine[:3, 3]) / (len(neighbours) - 1)
+            window = Volume(np.stack([np.asarray(f.pixels, np.float32) for f in neighbours], axis=-1), affine)
+        else:
+            k, window = 0, Volume(np.asarray(frame.pixels, np.float32)[..., None], frame.scanner_from_voxel)
+        found = self.localiser.localise_slice(window, k)
+        return replace(found, mask=found.mask[:, :, k:k + 1])
+
+    def _alone(self, state: _Slice, fit: StackPoses | None) -> SliceAnswer:
+        """The slice's own pose; on the branch of its stack's model where that model decided it."""
+        info, est = self.estimator.info, state.estimate
+        plane = getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM)
+        pose, mass, twinned = est.mean.copy(), est.twin_mass.copy(), np.zeros(1, bool)
+        if fit is not None and fit.fit is not None and fit.fit.branch_decided and fit.fit.atlas_from_scanner is not None:
+            predicted = fit.fit.atlas_from_scanner @ state.frame.scanner_from_voxel @ np.linalg.inv(state.network_from_voxel[0])
+            other = twin.twin(pose[0], plane)
+            if anchors.ed(other, predicted) < anchors.ed(pose[0], predicted):
+                pose[0], mass, twinned = other, 1.0 - mass, np.ones(1, bool)
+        expected = self._with_floor(est.spread_mm * getattr(info, "mc_error_scale", 1.0))
+        out = StackPoses(pose, mass, twinned, np.zeros(1, bool), None, expected)
+        return SliceAnswer(state.frame.stack, state.frame.index, self._judged(state.prepared, state.network_from_voxel,
+                                                                               est, out))
+
+    def _with_floor(self, expected: NDArray) -> NDArray:
+        return np.hypot(expected, float(getattr(self.estimator.info, "expected_error_floor_mm", 0.0)))
+
+    def _judged(self, prepared: PreparedStack, network_from_voxel: NDArray, est: PoseEstimate,
+                out: StackPoses) -> StackPrediction:
+        return StackPrediction(prepared, network_from_voxel, est, out,
+                               judge(prepared, est, out, self.threshold, self.max_expected_error_mm))
+
+    # -- 2. between slices ---------------------------------------------------------------------------------
+    def firm_up(self, stack: str) -> list[SliceAnswer]:
+        """The open ``stack``'s received slices through the stack-consistency stage; the answers of
+        those that moved by more than :data:`UPDATE_MM` or changed their accept flag."""
+        t0 = time.perf_counter()
+        with self._lock:
+            if stack in self.ended or len(self.slices.get(stack, {})) < MIN_FIRM_UP_SLICES:
+                return []
+            states = [self.slices[stack][k] for k in sorted(self.slices[stack])]
+            order = self.stacks[stack].arrival_order()
+            reference = request_reference([p.poses for p in self.finals.values()])
+        info = self.estimator.info
+        est = PoseEstimate(*(np.concatenate([getattr(s.estimate, f) for s in states])
+                             for f in ("mean", "variance", "degenerate", "twin_mass", "spread_mm")))
+        nfv = np.concatenate([s.network_from_voxel for s in states])
+        network_from_scanner = nfv @ np.linalg.inv(np.stack([s.frame.scanner_from_voxel for s in states]))
+        rank = {k: r for r, k in enumerate(k for k in order if k in {s.frame.index for s in states})}
+        times = {STREAMED: np.array([rank[s.frame.index] for s in states])}
+        usable = (np.concatenate([s.prepared.prepared.mask_fraction for s in states]) >= acceptance.MIN_MASK_FRACTION) \
+            & ~est.degenerate
+        shape = getattr(info, "mc_error_shape", None)
+        out = consistent_poses(est.mean, est.twin_mass, network_from_scanner, np.eye(4), usable,
+                               getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM),
+                               est.spread_mm * getattr(info, "mc_error_scale", 1.0), True, times,
+                               None if shape is None else np.asarray(shape),
+                               float(getattr(info, "mc_error_depth_gain", 0.0)), reference)
+        if out.expected_error_mm is not None:
+            out.expected_error_mm = self._with_floor(out.expected_error_mm)
+        answers = []
+        for i, s in enumerate(states):
+            one = StackPoses(out.poses[i:i + 1], out.twin_mass[i:i + 1], out.twinned[i:i + 1], out.inconsistent[i:i + 1],
+                             None, None if out.expected_error_mm is None else out.expected_error_mm[i:i + 1])
+            answers.append(SliceAnswer(stack, s.frame.index, self._judged(s.prepared, s.network_from_voxel,
+                                                                           s.estimate, one)))
+        with self._lock:
+            if stack in self.ended:
+                return []
+            self.fits[stack] = out
+            changed = self._changed(stack, answers)
+        self.compute_ms["firm_up"] += (time.perf_counter() - t0) * 1e3
+        return changed
+
+    def _changed(self, stack: str, answers: list[SliceAnswer]) -> list[SliceAnswer]:
+        """Of ``answers`` (new poses of ``stack``'s slices), those that moved or changed their flag
+        since last sent; they become the last sent (call under the lock)."""
+        out = []
+        for a in answers:
+            state = self.slices[stack][a.index]
+            last = state.answer
+            flag = lambda x: x.prediction.reasons[x.row] is None  # noqa: E731
+            if last is None or flag(last) != flag(a) or moved_mm(last, a, state.network_from_voxel[0]) > UPDATE_MM:
+                out.append(a)
+                state.answer = a
+        return out
+
+    # -- 3. the stack ends ------------------------------------------------------------------------------------
+    def end_stack(self, stack: str) -> StackAnswer:
+        """The stack's final poses, as ``/v1/predict`` gives them with the stacks ended before it."""
+        t0 = time.perf_counter()
+        with self._lock:
+            if stack in self.ended:
+                raise InvalidParameter(f"end_stack.stack: stack {stack!r} has already ended")
+            if stack not in self.stacks:
+                raise InvalidParameter(f"end_stack.stack: no slice of a stack {stack!r} has arrived")
+            streamed = self.stacks[stack]
+            volume, mask = streamed.volume()
+            order = SliceOrder((), streamed.arrival_order(), STREAMED)
+            before = dict(self.ended)
+        info = self.estimator.info
+        upload = StackUpload(stack, volume, mask, None if mask is None else f"{stack} (mask frames)", slice_axis=2)
+        prepared = prepare_stack(upload, info, self.bias_correction, self.localiser)
+        (estimate,), timings = estimate_stacks([prepared], self.estimator, self.mc_samples)
+        ended = {**before, stack: _Ended(prepared, estimate, order)}
+        names = list(ended)
+        predictions, more = predict_from_estimates([ended[n].prepared for n in names], [ended[n].estimate for n in names],
+                                                   info, self.threshold, True, [ended[n].order for n in names], True,
+                                                   self.max_expected_error_mm)
+        timings.update(more)
+        with self._lock:
+            self.ended[stack] = ended[stack]
+            updates = []
+            for name, p in zip(names, predictions):
+                sent = self.stacks[name].frames
+                p = replace(p, network_from_voxel=sent_network_from_voxel(p, [sent[k] for k in range(len(sent))]))
+                answers = [SliceAnswer(name, k, p, k) for k in range(len(p.reasons))]
+                self.finals[name] = p
+                if name == stack:
+                    for a in answers:
+                        self.slices[stack][a.index].answer = a
+                    final = p
+                else:
+                    updates += self._changed(name, answers)
+            covered = self._covered()
+        reacquire = [(k, r) for k, r in enumerate(final.reasons) if r not in (None, acceptance.EMPTY)]
+        answer = StackAnswer(stack, final, updates, reacquire, coverage(covered), timings)
+        self.compute_ms["end_stack"] += (time.perf_counter() - t0) * 1e3
+        return answer
+
+    def _covered(self) -> list[CoveredSlice]:
+        """The accepted slices of the session at their latest poses, with their brain masks (under the lock)."""
+        out = []
+        for states in self.slices.values():
+            for s in states.values():
+                a = s.answer
+                if a is None or a.prediction.reasons[a.row] is not None:
+                    continue
+                brain = np.asarray(a.prediction.prepared.localisation.mask[:, :, a.row], bool)
+                out.append(CoveredSlice(a.prediction.poses.poses[a.row] @ a.prediction.network_from_voxel[a.row], brain))
+        return out
+
+    def coverage(self) -> Coverage:
+        with self._lock:
+            covered = self._covered()
+        return coverage(covered)
+
+    def summary(self) -> SessionSummary:
+        with self._lock:
+            names = list(self.stacks)
+            n = sum(len(s) for s in self.stacks.values())
+        return SessionSummary(names, self.coverage(), n, dict(self.compute_ms))

@@ -1,0 +1,161 @@
+"""The streaming core against a simulated truth: every pose it answers, immediate or final, places
+each slice as sent where the simulation put it."""
+
+from __future__ import annotations
+
+import hashlib
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from service.core.errors import InvalidParameter
+from service.geometry import twin
+from service.inference.estimator import PoseEstimate
+from service.io.volume import Volume
+from service.pipeline.predict import StackUpload, prepare_stack
+from service.streaming.frames import SliceFrame
+from service.streaming.session import StreamLimits, StreamSession
+from tests.api.conftest import INFO
+from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine
+
+SHAPE = (64, 64, 20)
+
+
+class KeyedOracle:
+    """Returns the true network pose of each slice it has been told about, found by its input's bytes
+    (the service feeds a slice's network input identically alone and within its stack when no N4 runs)."""
+
+    info = INFO
+
+    def __init__(self) -> None:
+        self.truth: dict[str, np.ndarray] = {}
+        self.calls: list[int] = []
+
+    def learn(self, inputs: np.ndarray, poses: np.ndarray) -> None:
+        for x, p in zip(inputs, poses):
+            self.truth[hashlib.sha1(np.ascontiguousarray(x).tobytes()).hexdigest()] = p
+
+    def estimate(self, inputs: np.ndarray, mc_samples: int) -> PoseEstimate:
+        self.calls.append(len(inputs))
+        poses = np.stack([self.truth[hashlib.sha1(np.ascontiguousarray(x).tobytes()).hexdigest()] for x in inputs])
+        n = len(inputs)
+        return PoseEstimate(poses, np.ones(n), np.zeros(n, bool), spread_mm=np.full(n, 0.5))
+
+
+def simulated_stack(seed: int, axis_rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A stack of the phantom with a small rigid offset: (image, mask, affine, true atlas_from_voxel per slice)."""
+    img, mask, atlas_aff = phantom_brain(seed)
+    affine = stack_affine(2, axis_rotation, shape=SHAPE)
+    offset = np.eye(4)
+    offset[:3, :3] = Rotation.from_rotvec([0.05, -0.03, 0.08]).as_matrix()
+    offset[:3, 3] = (1.5, -2.0, 1.0)
+    motion = np.repeat(offset[None], SHAPE[2], axis=0)
+    image, m = acquire_stack(img, mask, atlas_aff, affine, SHAPE, 2, motion)
+    return image, m, affine, motion @ affine
+
+
+def frames_of(name: str, image: np.ndarray, mask: np.ndarray, affine: np.ndarray) -> list[SliceFrame]:
+    out = []
+    for k in range(image.shape[2]):
+        sent = affine.copy()
+        sent[:3, 3] = affine[:3, 3] + k * affine[:3, 2]
+        out.append(SliceFrame(name, k, image[:, :, k], sent, mask[:, :, k]))
+    return out
+
+
+def teach(oracle: KeyedOracle, name: str, image: np.ndarray, mask: np.ndarray, affine: np.ndarray,
+          atlas_from_voxel: np.ndarray) -> None:
+    """Tell the oracle each slice's true network pose, through the service's own preparation."""
+    prepared = prepare_stack(StackUpload(name, Volume(image, affine), Volume(mask, affine), slice_axis=2), INFO, False)
+    nfv = prepared.network_from_voxel()
+    truth = atlas_from_voxel @ np.linalg.inv(nfv)       # atlas_from_network: slice k's voxel (i, j, k) frame
+    oracle.learn(prepared.prepared.inputs, truth)
+
+
+@pytest.fixture
+def case() -> tuple[KeyedOracle, list[list[SliceFrame]], list[np.ndarray]]:
+    oracle = KeyedOracle()
+    stacks, truths = [], []
+    for name, rot in (("ax", np.eye(3)), ("cor", Rotation.from_euler("x", 90, degrees=True).as_matrix())):
+        image, mask, affine, truth = simulated_stack(3, rot)
+        teach(oracle, name, image, mask, affine, truth)
+        stacks.append(frames_of(name, image, mask, affine))
+        truths.append(truth)
+    return oracle, stacks, truths
+
+
+def true_sent(truth: np.ndarray, k: int) -> np.ndarray:
+    """The true atlas_from_voxel of slice ``k`` as sent (voxel (i0, i1, 0))."""
+    shift = np.eye(4)
+    shift[2, 3] = k
+    return truth[k] @ shift
+
+
+def test_each_pose_places_the_slice_as_sent_where_the_simulation_put_it(case) -> None:  # noqa: ANN001
+    oracle, stacks, truths = case
+    session = StreamSession(oracle, None, mc_samples=10, bias_correction=False)
+    for frames, truth in zip(stacks, truths):
+        order = list(range(0, len(frames), 2)) + list(range(1, len(frames), 2))       # interleaved
+        for k in order:
+            a = session.add_slice(frames[k])
+            got = a.prediction.poses.poses[a.row] @ a.prediction.network_from_voxel[a.row]
+            assert a.index == k and np.allclose(got, true_sent(truth, k), atol=1e-6)
+        final = session.end_stack(frames[0].stack)
+        p = final.prediction
+        got = p.poses.poses @ p.network_from_voxel
+        err = np.linalg.norm(got[:, :3, 3] - np.stack([true_sent(truth, k) for k in range(len(frames))])[:, :3, 3], axis=1)
+        assert err.max() < 0.5, err
+        assert final.prediction.poses.fit.acquisition_order == "as-streamed"
+    summary = session.summary()
+    assert summary.stacks == ["ax", "cor"] and summary.slices == 2 * SHAPE[2]
+    assert summary.coverage.brain_fraction > 0.5
+
+
+def test_a_slice_takes_the_branch_its_stack_decided(case) -> None:  # noqa: ANN001
+    oracle, stacks, truths = case
+    session = StreamSession(oracle, None, mc_samples=10, bias_correction=False)
+    frames = stacks[0]
+    for k in range(12):
+        session.add_slice(frames[k])
+    session.firm_up("ax")
+    assert session.fits["ax"].fit.branch_decided
+    # The network now answers the twin for the next slice: the stack's model puts it back.
+    for h, pose in list(oracle.truth.items()):
+        oracle.truth[h] = twin.twin(pose, INFO.symmetry_plane_x_mm)
+    a = session.add_slice(frames[12])
+    got = a.prediction.poses.poses[0] @ a.prediction.network_from_voxel[0]
+    assert bool(a.prediction.poses.twinned[0])
+    assert np.allclose(got, true_sent(truths[0], 12), atol=1e-6)
+
+
+def test_bad_slices_are_refused_and_change_nothing(case) -> None:  # noqa: ANN001
+    oracle, stacks, _ = case
+    session = StreamSession(oracle, None, StreamLimits(max_slices=3, max_pixels=64 * 64), mc_samples=10,
+                            bias_correction=False)
+    first = stacks[0][0]
+    session.add_slice(first)
+    bad = [
+        (SliceFrame("ax", 0, first.pixels, first.scanner_from_voxel, first.mask), "already has a slice 0"),
+        (SliceFrame("ax", 1, first.pixels[:10], first.scanner_from_voxel, first.mask[:10]), "slice.shape"),
+        (SliceFrame("ax", 1, np.zeros((65, 65)), first.scanner_from_voxel), "limit of 4096 pixels"),
+        (SliceFrame("ax", 1, first.pixels, np.eye(3)), "slice.scanner_from_voxel"),
+        (SliceFrame("ax", 1, first.pixels, stacks[1][1].scanner_from_voxel, first.mask), "axes differ"),
+        (SliceFrame("ax", 1, first.pixels, first.scanner_from_voxel, None), "slice.mask"),
+        (SliceFrame("ax", -1, first.pixels, first.scanner_from_voxel, first.mask), "negative"),
+    ]
+    for frame, words in bad:
+        with pytest.raises(InvalidParameter, match=words):
+            session.add_slice(frame)
+    assert len(session.stacks["ax"]) == 1
+    with pytest.raises(InvalidParameter, match="lacks the slices"):
+        session.add_slice(stacks[0][2])
+        session.end_stack("ax")
+    session.add_slice(stacks[0][1])
+    with pytest.raises(InvalidParameter, match="limit of 3 slices"):
+        session.add_slice(stacks[0][3])
+    session.end_stack("ax")
+    with pytest.raises(InvalidParameter, match="has ended"):
+        session.add_slice(stacks[0][3])
+    with pytest.raises(InvalidParameter, match="already ended"):
+        session.end_stack("ax")
