@@ -10,10 +10,11 @@ import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
+from anyio import CapacityLimiter
 from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
 
-from service.api import health, masks, metrics, models, openapi, predict, problems, reconstructions
+from service.api import health, masks, metrics, models, openapi, predict, problems, reconstructions, stream
 from service.api.deps import MetricsAccess
 from service.api.metrics import Metrics
 from service.api.middleware import RequestContext
@@ -71,7 +72,10 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
     app.state.localisers = Localisers({})
     problems.install(app)
     openapi.document_uploads(app, settings.max_files)
-    for module in (health, models, predict, masks, reconstructions):
+    app.state.stream_sessions = 0
+    app.state.stream_pose_limiter = CapacityLimiter(settings.stream_workers)
+    app.state.stream_stage_limiter = CapacityLimiter(1)
+    for module in (health, models, predict, masks, reconstructions, stream):
         app.include_router(module.router)
     app.include_router(metrics.router, dependencies=[MetricsAccess], responses=problem_responses(401))
     app.add_middleware(RequestContext, metrics=app.state.metrics, max_body_bytes=int(settings.max_upload_mb * 2**20))

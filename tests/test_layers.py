@@ -1,6 +1,6 @@
 """The service's imports follow the data and never loop: io -> preprocess -> inference ->
-consistency -> pipeline -> api, with the numeric core (geometry, core) below them all and
-reconstruction and jobs apart."""
+consistency -> pipeline -> streaming -> api -> mrd, with the numeric core (geometry, core) below
+them all and reconstruction and jobs apart."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import ast
 from pathlib import Path
 
 SERVICE = Path(__file__).resolve().parents[1] / "service"
-RANK = {"core": 0, "geometry": 0, "io": 1, "preprocess": 2, "inference": 3, "consistency": 4, "pipeline": 5, "api": 6}
+RANK = {"core": 0, "geometry": 0, "io": 1, "preprocess": 2, "inference": 3, "consistency": 4, "pipeline": 5, "streaming": 6, "api": 7, "mrd": 8}
 
 
 def modules() -> dict[str, Path]:

@@ -18,6 +18,7 @@ from scipy.spatial.transform import Rotation
 from service.consistency.stage import StackPoses
 from service.geometry import anchors
 from service.pipeline.predict import StackPrediction
+from service.streaming.session import SessionSummary, SliceAnswer, StackAnswer
 
 
 def _finite(value: float) -> float | None:
@@ -95,3 +96,47 @@ def stack_objects(predictions: list[StackPrediction]) -> list[dict]:
             "localisation": p.prepared.localisation.report(),
         })
     return stacks
+
+
+def pose_object(answer: SliceAnswer, **extra: object) -> dict:
+    """A stream's ``pose`` body: the fields of a ``/v1/predict`` slice for the slice as sent, its
+    stack and index, how its brain was found, and ``extra`` (e.g. ``latency_ms``)."""
+    p = answer.prediction
+    body = slice_objects(StackPrediction(p.prepared, p.network_from_voxel[answer.row:answer.row + 1],
+                                         p.estimate.part(slice(answer.row, answer.row + 1)),
+                                         _row(p.poses, answer.row), p.reasons[answer.row:answer.row + 1]))[0]
+    loc = p.prepared.localisation
+    body.update({"stack": answer.stack, "index": answer.index,
+                 "localisation": {"method": loc.method, "confidence": round(loc.confidence, 3)}, **extra})
+    return body
+
+
+def _row(out: StackPoses, k: int) -> StackPoses:
+    expected = None if out.expected_error_mm is None else out.expected_error_mm[k:k + 1]
+    return StackPoses(out.poses[k:k + 1], out.twin_mass[k:k + 1], out.twinned[k:k + 1], out.inconsistent[k:k + 1],
+                      None, expected)
+
+
+def stack_message(answer: StackAnswer) -> dict:
+    """A stream's ``stack`` message: the stack's final poses, its consistency and localisation, the
+    slices worth acquiring again and the session's coverage."""
+    p = answer.prediction
+    slices = [{"stack": answer.stack, **s} for s in slice_objects(p)]
+    return {"type": "stack", "stack": answer.stack, "slices": slices, "consistency": stack_report(p.poses),
+            "localisation": p.prepared.localisation.report(),
+            "reacquire": [{"index": k, "reason": r} for k, r in answer.reacquire],
+            "coverage": answer.coverage.report(),
+            "timing_ms": {k: round(v * 1e3, 1) for k, v in answer.timings.items()}}
+
+
+def update_message(answers: list[SliceAnswer]) -> dict:
+    """A stream's ``update``: slices of one stack whose pose moved (or whose accept flag changed)."""
+    return {"type": "update", "stack": answers[0].stack, "slices": [pose_object(a) for a in answers]}
+
+
+def summary_message(summary: SessionSummary, **timing_ms: float) -> dict:
+    """A stream's ``summary``: the session's stacks, slices, coverage and where its time went."""
+    return {"type": "summary", "stacks": summary.stacks, "slices": summary.slices,
+            "coverage": summary.coverage.report(),
+            "timing_ms": {**{k: round(v, 1) for k, v in summary.compute_ms.items()},
+                          **{k: round(v, 1) for k, v in timing_ms.items()}}}

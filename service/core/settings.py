@@ -63,6 +63,12 @@ class Settings(BaseSettings):
     worker_lost_after_s: int = Field(60, ge=1, description="distributed: a worker silent this long (beyond its "
                                      "heartbeat interval) is lost and its job re-delivered")
     worker_heartbeat_s: int = Field(10, ge=1, description="distributed: a busy worker's heartbeat interval")
+    stream_max_sessions: int = Field(32, ge=1, description="/v1/stream sessions at once; more are closed with "
+                                     "code 1013 and a retry_after_s")
+    stream_max_slices: int = Field(2000, ge=1, description="slices one stream session may send")
+    stream_max_pixels: int = Field(1024 * 1024, ge=4, description="pixels of one streamed slice")
+    stream_idle_s: float = Field(300.0, gt=0, description="a stream session silent this long is closed (code 1001)")
+    stream_workers: int = Field(2, ge=1, description="slices of all stream sessions posed at once (threads)")
 
     @property
     def max_decoded_bytes(self) -> int:

@@ -1,0 +1,314 @@
+"""``/v1/stream``: the real-time WebSocket of Stream v1 (``docs/stream.md``).
+
+One connection is one :class:`~service.streaming.session.StreamSession`. Messages are handled in
+the order they arrive, so poses go out in the order the slices came; the stack stage firms the open
+stack up in the background (one task per connection, coalescing the slices that arrive meanwhile)
+and sends ``update`` messages between the poses. Compute runs in worker threads: poses on
+``stream_workers`` threads shared by all sessions, the stack stages on one more, so that no number
+of sessions takes more than those cores from ``/v1/predict``.
+
+A bad message gets an ``error`` (the problem's RFC 7807 fields, its ``type`` as ``problem_type``)
+and changes nothing; only the message's type and size reach the logs, never a pixel.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import time
+import uuid
+from typing import Any
+
+import numpy as np
+from anyio import CapacityLimiter, to_thread
+from fastapi import APIRouter, WebSocket
+from starlette.websockets import WebSocketDisconnect
+
+from service.api.deps import UNAUTHORIZED, api_key_ok
+from service.api.responses import pose_object, stack_message, summary_message, update_message
+from service.core.errors import InternalError, InvalidParameter, MalformedRequest, NotReady, Saturated, ServiceError, Unauthorized
+from service.streaming.frames import SliceFrame
+from service.streaming.session import SliceAnswer, StreamLimits, StreamSession
+
+router = APIRouter()
+log = logging.getLogger(__name__)
+
+DTYPES = {"uint8": "<u1", "int16": "<i2", "uint16": "<u2", "float32": "<f4"}
+MAX_TEXT_BYTES = 64 * 1024
+"""Longest JSON message accepted (a slice's header is a few hundred bytes)."""
+POLICY_VIOLATION, GOING_AWAY, TRY_AGAIN_LATER = 1008, 1001, 1013
+
+
+def error_message(e: ServiceError, **extra: object) -> dict:
+    """An ``error``: the problem's fields, its RFC 7807 ``type`` as ``problem_type`` (``type`` names the message)."""
+    return {"type": "error", "problem_type": e.type, "title": e.title, "status": e.status, "detail": str(e), **extra}
+
+
+class _Closed(Exception):
+    """The client went away, or the session ended."""
+
+
+class StreamConnection:
+    """One client's session: reads messages, answers them, firms stacks up in the background."""
+
+    def __init__(self, ws: WebSocket) -> None:
+        self.ws = ws
+        state = ws.app.state
+        self.settings = state.settings
+        self.registry, self.localisers = state.registry, state.localisers
+        self.pose_limiter: CapacityLimiter = state.stream_pose_limiter
+        self.stage_limiter: CapacityLimiter = state.stream_stage_limiter
+        self.session: StreamSession | None = None
+        self.session_id = uuid.uuid4().hex
+        self.send_lock = asyncio.Lock()
+        self.pending: dict | None = None            # a text message read while a binary frame was due
+        self.dirty: set[str] = set()
+        self.firming: asyncio.Task | None = None
+        self.latencies: list[float] = []
+        self.started = time.perf_counter()
+
+    async def send(self, message: dict) -> None:
+        async with self.send_lock:
+            await self.ws.send_text(json.dumps(message))
+
+    async def receive(self) -> dict:
+        """The next frame (``{"text": …}`` or ``{"bytes": …}``); :class:`_Closed` when the client left
+        or stayed idle past ``stream_idle_s`` (then the server closes with 1001)."""
+        if self.pending is not None:
+            frame, self.pending = self.pending, None
+            return frame
+        try:
+            frame = await asyncio.wait_for(self.ws.receive(), self.settings.stream_idle_s)
+        except TimeoutError:
+            await self.send(error_message(MalformedRequest(f"session: idle for {self.settings.stream_idle_s:g} s; "
+                                                           "closing")))
+            await self.ws.close(GOING_AWAY)
+            raise _Closed from None
+        if frame["type"] == "websocket.disconnect":
+            raise _Closed
+        return frame
+
+    async def run(self) -> None:
+        try:
+            while True:
+                frame = await self.receive()
+                if frame.get("text") is None:
+                    size = len(frame.get("bytes") or b"")
+                    await self.send(error_message(MalformedRequest(
+                        f"binary frame ({size} bytes): not expected here; binary frames follow their slice message")))
+                    continue
+                try:
+                    await self.handle(parse(frame["text"]))
+                except ServiceError as e:
+                    log.info("stream message refused", extra={"status": e.status})
+                    await self.send(error_message(e))
+                except (_Closed, WebSocketDisconnect):
+                    raise
+                except Exception:  # noqa: BLE001 - a server fault ends one message, never the session
+                    log.exception("stream message failed")
+                    await self.send(error_message(InternalError(f"session {self.session_id}: the server could "
+                                                                "not answer this message")))
+        except (_Closed, WebSocketDisconnect):
+            pass
+        finally:
+            if self.firming is not None:
+                self.firming.cancel()
+
+    async def handle(self, msg: dict) -> None:
+        kind = msg["type"]
+        if kind == "auth":
+            return
+        if kind == "start":
+            return await self.start(msg)
+        if self.session is None and kind in ("slice", "end_stack", "end"):
+            raise InvalidParameter(f"{kind}: no session yet; send a start message first")
+        if kind == "slice":
+            return await self.slice(msg)
+        if kind == "end_stack":
+            return await self.end_stack(_text(msg, "stack", "end_stack"))
+        if kind == "end":
+            await self.settle()
+            summary = await to_thread.run_sync(self.session.summary, limiter=self.stage_limiter)
+            lat = np.array(self.latencies) if self.latencies else np.zeros(1)
+            await self.send(summary_message(summary, session=(time.perf_counter() - self.started) * 1e3,
+                                            pose_latency_p50=float(np.percentile(lat, 50)),
+                                            pose_latency_p95=float(np.percentile(lat, 95))))
+            await self.ws.close(1000)
+            raise _Closed
+        raise InvalidParameter(f"type: unknown message type {kind!r} (auth, start, slice, end_stack, end)")
+
+    async def start(self, msg: dict) -> None:
+        if self.session is not None:
+            raise InvalidParameter("start: the session has started already")
+        if self.registry is None:
+            raise NotReady("model: the models are still loading")
+        model = self.registry.resolve(_text(msg, "model", "start", "default"))
+        estimator = self.registry.get(model)
+        mc = msg.get("mc_samples", 100)
+        if not isinstance(mc, int) or isinstance(mc, bool) or not 1 <= mc <= 1000:
+            raise InvalidParameter("start.mc_samples: an integer from 1 to 1000")
+        limits = {f: _positive(msg, f, "start") for f in ("variance_threshold", "max_expected_error_mm")}
+        bias_correction = msg.get("bias_correction", True)
+        if not isinstance(bias_correction, bool):
+            raise InvalidParameter("start.bias_correction: true or false")
+        localiser = self.localisers.get() if self.localisers.localisers else None
+        self.session = StreamSession(estimator, localiser, StreamLimits(self.settings.stream_max_slices,
+                                                                        self.settings.stream_max_pixels),
+                                     mc, limits["variance_threshold"], limits["max_expected_error_mm"], bias_correction)
+        info = estimator.info
+        await self.send({"type": "ready", "session_id": self.session_id,
+                         "model": {"name": model, "version": info.version, "backbone": info.backbone,
+                                   "sha256": info.sha256},
+                         "mc_samples": mc, "variance_threshold": self.session.threshold,
+                         "max_expected_error_mm": self.session.max_expected_error_mm,
+                         "localiser": localiser is not None,
+                         "limits": {"slices": self.settings.stream_max_slices,
+                                    "pixels_per_slice": self.settings.stream_max_pixels,
+                                    "idle_s": self.settings.stream_idle_s}})
+
+    async def slice(self, msg: dict) -> None:
+        frame = await self.read_slice(msg)
+        t = time.perf_counter()
+        answer: SliceAnswer = await to_thread.run_sync(self.session.add_slice, frame, limiter=self.pose_limiter)
+        latency = (time.perf_counter() - t) * 1e3
+        self.latencies.append(latency)
+        await self.send({"type": "pose", **pose_object(answer, latency_ms=round(latency, 2))})
+        self.firm_up(frame.stack)
+
+    async def read_slice(self, msg: dict) -> SliceFrame:
+        """The slice message's fields and its binary frame(s), checked before anything is decoded."""
+        stack = _text(msg, "stack", "slice")
+        index = _integer(msg, "index", "slice")
+        acquisition = _integer(msg, "acquisition_index", "slice") if msg.get("acquisition_index") is not None else None
+        shape = msg.get("shape")
+        if not (isinstance(shape, list) and len(shape) == 2 and all(isinstance(n, int) and n > 0 for n in shape)):
+            raise InvalidParameter("slice.shape: [n0, n1], two positive integers (a slice is 2D)")
+        if shape[0] * shape[1] > self.settings.stream_max_pixels:
+            raise InvalidParameter(f"slice.shape: {shape[0]} x {shape[1]} pixels is over this server's limit of "
+                                   f"{self.settings.stream_max_pixels} pixels per slice")
+        dtype = msg.get("dtype")
+        if dtype not in DTYPES:
+            raise InvalidParameter(f"slice.dtype: one of {', '.join(DTYPES)}")
+        affine = msg.get("scanner_from_voxel")
+        try:
+            affine = np.array(affine, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise InvalidParameter("slice.scanner_from_voxel: a 4 x 4 array of numbers") from None
+        with_mask = msg.get("mask", False)
+        if not isinstance(with_mask, bool):
+            raise InvalidParameter("slice.mask: true or false")
+        pixels = np.frombuffer(await self.binary(np.dtype(DTYPES[dtype]).itemsize * shape[0] * shape[1], "pixels"),
+                               DTYPES[dtype]).reshape(shape)
+        mask = None
+        if with_mask:
+            mask = np.frombuffer(await self.binary(shape[0] * shape[1], "mask"), np.uint8).reshape(shape) > 0
+        return SliceFrame(stack, index, pixels.astype(np.float32), affine, mask, acquisition)
+
+    async def binary(self, size: int, what: str) -> bytes:
+        frame = await self.receive()
+        data = frame.get("bytes")
+        if data is None:
+            self.pending = frame
+            raise InvalidParameter(f"slice: its {what} binary frame was due, a text frame came; the slice is dropped")
+        if len(data) != size:
+            raise InvalidParameter(f"slice: its {what} frame has {len(data)} bytes, {size} were due "
+                                   "(shape x dtype size); the slice is dropped")
+        return data
+
+    def firm_up(self, stack: str) -> None:
+        """Run the stack stage on ``stack`` in the background (one run at a time; slices that arrive
+        meanwhile are taken by the next run)."""
+        self.dirty.add(stack)
+        if self.firming is None or self.firming.done():
+            self.firming = asyncio.create_task(self._firm_up_loop())
+
+    async def _firm_up_loop(self) -> None:
+        while self.dirty:
+            stack = self.dirty.pop()
+            try:
+                updates = await to_thread.run_sync(self.session.firm_up, stack, limiter=self.stage_limiter)
+                if updates:
+                    await self.send(update_message(updates))
+            except Exception:  # noqa: BLE001 - a background stage must not end the session; the stack's end says more
+                log.warning("stream firm-up failed", exc_info=True)
+
+    async def settle(self) -> None:
+        """Wait for the background stage (its updates go out before what follows)."""
+        self.dirty.clear()
+        if self.firming is not None:
+            await asyncio.gather(self.firming, return_exceptions=True)
+
+    async def end_stack(self, stack: str) -> None:
+        await self.settle()
+        answer = await to_thread.run_sync(self.session.end_stack, stack, limiter=self.stage_limiter)
+        by_stack: dict[str, list[SliceAnswer]] = {}
+        for a in answer.updates:
+            by_stack.setdefault(a.stack, []).append(a)
+        for answers in by_stack.values():
+            await self.send(update_message(answers))
+        await self.send(stack_message(answer))
+
+
+def parse(text: str) -> dict:
+    """A client message: a JSON object with a string ``type`` (:class:`MalformedRequest` otherwise)."""
+    if len(text) > MAX_TEXT_BYTES:
+        raise MalformedRequest(f"message: {len(text)} characters is over the limit of {MAX_TEXT_BYTES}")
+    try:
+        msg = json.loads(text)
+    except ValueError:
+        raise MalformedRequest("message: not JSON") from None
+    if not isinstance(msg, dict) or not isinstance(msg.get("type"), str):
+        raise MalformedRequest("message: a JSON object with a string field type")
+    return msg
+
+
+def _text(msg: dict, name: str, kind: str, default: str | None = None) -> str:
+    value = msg.get(name, default)
+    if not isinstance(value, str) or not 1 <= len(value) <= 128:
+        raise InvalidParameter(f"{kind}.{name}: a string of 1 to 128 characters")
+    return value
+
+
+def _integer(msg: dict, name: str, kind: str) -> int:
+    value = msg.get(name)
+    if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value < 100_000:
+        raise InvalidParameter(f"{kind}.{name}: an integer from 0 to 99999")
+    return value
+
+
+def _positive(msg: dict, name: str, kind: str) -> float | None:
+    value: Any = msg.get(name)
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
+        raise InvalidParameter(f"{kind}.{name}: a positive number")
+    return float(value)
+
+
+@router.websocket("/v1/stream")
+async def stream(ws: WebSocket) -> None:
+    """Stream v1: one session per connection (see the module)."""
+    await ws.accept()
+    state = ws.app.state
+    keys = state.settings.key_set()
+    if not api_key_ok(keys, ws.headers.get("authorization"), ws.headers.get("x-api-key")):
+        try:
+            first = parse(await asyncio.wait_for(ws.receive_text(), state.settings.stream_idle_s))
+        except (ServiceError, TimeoutError, WebSocketDisconnect, KeyError, RuntimeError):
+            first = {}
+        key = first.get("api_key") if first.get("type") == "auth" else None
+        if not (isinstance(key, str) and api_key_ok(keys, f"Bearer {key}", None)):
+            await ws.send_text(json.dumps(error_message(Unauthorized(UNAUTHORIZED))))
+            await ws.close(POLICY_VIOLATION)
+            return
+    if state.stream_sessions >= state.settings.stream_max_sessions:
+        busy = Saturated(f"session: {state.settings.stream_max_sessions} stream sessions are open; try again later")
+        await ws.send_text(json.dumps(error_message(busy, retry_after_s=state.settings.retry_after_s)))
+        await ws.close(TRY_AGAIN_LATER)
+        return
+    state.stream_sessions += 1
+    try:
+        await StreamConnection(ws).run()
+    finally:
+        state.stream_sessions -= 1

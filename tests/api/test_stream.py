@@ -1,0 +1,141 @@
+"""``/v1/stream`` end to end in the app: the messages of Stream v1, in order, with the simulated
+truth; bad messages answered with an ``error`` while the session goes on; keys and limits."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+from starlette.websockets import WebSocketDisconnect
+
+from service.inference.registry import ModelRegistry
+from service.streaming.frames import SliceFrame
+from tests.api.conftest import make_client
+from tests.support.streams import KeyedOracle, true_sent, two_stacks_case
+
+
+@pytest.fixture(scope="module")
+def case() -> tuple[KeyedOracle, list[list[SliceFrame]], list[np.ndarray]]:
+    return two_stacks_case()
+
+
+@pytest.fixture
+def client(case) -> Iterator[TestClient]:  # noqa: ANN001
+    with make_client(ModelRegistry({"default": case[0]}), stream_max_pixels=64 * 64) as c:
+        yield c
+
+
+def send_slice(ws, frame: SliceFrame, dtype: str = "float32", **override: object) -> None:  # noqa: ANN001
+    msg = {"type": "slice", "stack": frame.stack, "index": frame.index, "shape": list(frame.pixels.shape),
+           "dtype": dtype, "scanner_from_voxel": np.asarray(frame.scanner_from_voxel).tolist(), "mask": True, **override}
+    ws.send_text(json.dumps(msg))
+    ws.send_bytes(np.ascontiguousarray(frame.pixels, np.dtype(dtype).newbyteorder("<")).tobytes())
+    if msg["mask"]:
+        ws.send_bytes(np.ascontiguousarray(frame.mask, np.uint8).tobytes())
+
+
+def receive(ws, kinds: tuple[str, ...] = ("pose",)) -> dict:  # noqa: ANN001
+    """The next message of one of ``kinds`` (``update`` messages in between are kept aside)."""
+    while True:
+        msg = ws.receive_json()
+        if msg["type"] in kinds:
+            return msg
+        assert msg["type"] == "update", msg
+
+
+def test_a_session_answers_every_slice_in_order_where_the_truth_is(client, case) -> None:  # noqa: ANN001
+    _, stacks, truths = case
+    with client.websocket_connect("/v1/stream") as ws:
+        ws.send_text(json.dumps({"type": "start", "mc_samples": 10, "bias_correction": False}))
+        ready = ws.receive_json()
+        assert ready["type"] == "ready" and ready["mc_samples"] == 10 and ready["model"]["name"] == "default"
+        for frames, truth in zip(stacks, truths):
+            for f in frames:
+                send_slice(ws, f)
+                pose = receive(ws)
+                assert (pose["stack"], pose["index"]) == (f.stack, f.index)
+                assert np.allclose(pose["atlas_from_voxel"], true_sent(truth, f.index), atol=1e-4)
+                assert pose["latency_ms"] >= 0 and pose["localisation"]["method"] == "mask"
+            ws.send_text(json.dumps({"type": "end_stack", "stack": frames[0].stack}))
+            stack = receive(ws, ("stack",))
+            assert [s["index"] for s in stack["slices"]] == list(range(len(frames)))
+            got = np.array([s["atlas_from_voxel"] for s in stack["slices"]])
+            want = np.stack([true_sent(truth, k) for k in range(len(frames))])
+            assert np.abs(got[:, :3, 3] - want[:, :3, 3]).max() < 0.5
+            assert stack["consistency"]["acquisition_order"] == "as-streamed"
+            assert 0.0 < stack["coverage"]["brain_fraction"] <= 1.0
+            assert all(r["reason"] for r in stack["reacquire"])
+        ws.send_text(json.dumps({"type": "end"}))
+        summary = receive(ws, ("summary",))
+        assert summary["stacks"] == ["ax", "cor"] and summary["slices"] == sum(len(f) for f in stacks)
+        assert summary["timing_ms"]["pose_latency_p95"] >= summary["timing_ms"]["pose_latency_p50"]
+        with pytest.raises(WebSocketDisconnect) as closed:
+            ws.receive_json()
+        assert closed.value.code == 1000
+
+
+def test_bad_messages_get_an_error_naming_them_and_the_session_goes_on(client, case) -> None:  # noqa: ANN001
+    _, stacks, truths = case
+    f0, f1 = stacks[0][0], stacks[0][1]
+    with client.websocket_connect("/v1/stream") as ws:
+        send_slice(ws, f0)                                    # before start
+        assert "start message first" in ws.receive_json()["detail"]
+        ws.receive_json()                                     # its pixel frame, unexpected now
+        ws.receive_json()                                     # and its mask frame
+        ws.send_text(json.dumps({"type": "start", "mc_samples": 0}))
+        assert "start.mc_samples" in ws.receive_json()["detail"]
+        ws.send_text(json.dumps({"type": "start", "mc_samples": 10, "bias_correction": False}))
+        assert ws.receive_json()["type"] == "ready"
+        cases = [
+            ("not json", None, "not JSON"),
+            (json.dumps([1, 2]), None, "JSON object"),
+            (json.dumps({"type": "dance"}), None, "unknown message type"),
+            (json.dumps({"type": "slice", "stack": "ax", "index": 1, "shape": [4, 4, 4], "dtype": "uint8",
+                         "scanner_from_voxel": np.eye(4).tolist()}), None, "slice.shape"),
+            (json.dumps({"type": "slice", "stack": "ax", "index": 1, "shape": [100, 100], "dtype": "uint8",
+                         "scanner_from_voxel": np.eye(4).tolist()}), None, "limit of 4096 pixels"),
+            (json.dumps({"type": "slice", "stack": "ax", "index": 1, "shape": [4, 4], "dtype": "float64",
+                         "scanner_from_voxel": np.eye(4).tolist()}), None, "slice.dtype"),
+            (json.dumps({"type": "slice", "stack": "ax", "index": 1, "shape": [4, 4], "dtype": "uint8",
+                         "scanner_from_voxel": np.eye(4).tolist()}), b"\x00" * 15, "15 bytes, 16 were due"),
+            (json.dumps({"type": "end_stack", "stack": "nothing"}), None, "no slice"),
+        ]
+        for text, data, words in cases:
+            ws.send_text(text)
+            if data is not None:
+                ws.send_bytes(data)
+            err = ws.receive_json()
+            assert err["type"] == "error" and err["status"] == 400 and words in err["detail"], (words, err)
+        ws.send_bytes(b"\x01\x02")                            # a binary frame out of place
+        assert "not expected" in ws.receive_json()["detail"]
+        send_slice(ws, f0, dtype="uint16")                    # another dtype; the session still works
+        pose = receive(ws)
+        assert pose["index"] == 0
+        send_slice(ws, f1, scanner_from_voxel=stacks[1][1].scanner_from_voxel.tolist())
+        assert "axes differ" in receive(ws, ("error",))["detail"]
+        ws.send_text(json.dumps({"type": "end_stack", "stack": "ax"}))
+        assert "lacks" not in json.dumps(receive(ws, ("stack", "error")))
+
+
+def test_keys_and_the_session_limit(case) -> None:  # noqa: ANN001
+    registry = ModelRegistry({"default": case[0]})
+    with make_client(registry, api_keys="k1", stream_max_sessions=1) as client:
+        with client.websocket_connect("/v1/stream") as ws:
+            ws.send_text(json.dumps({"type": "auth", "api_key": "wrong"}))
+            assert ws.receive_json()["status"] == 401
+            with pytest.raises(WebSocketDisconnect) as closed:
+                ws.receive_json()
+            assert closed.value.code == 1008
+        with client.websocket_connect("/v1/stream", headers={"X-API-Key": "k1"}) as first:
+            first.send_text(json.dumps({"type": "start", "mc_samples": 5}))
+            assert first.receive_json()["type"] == "ready"
+            with client.websocket_connect("/v1/stream") as second:
+                second.send_text(json.dumps({"type": "auth", "api_key": "k1"}))
+                busy = second.receive_json()
+                assert busy["status"] == 503 and busy["retry_after_s"] >= 1
+                with pytest.raises(WebSocketDisconnect) as closed:
+                    second.receive_json()
+                assert closed.value.code == 1013
