@@ -1,0 +1,345 @@
+"""One MRD connection: config and XML header, images in; each image back with its pose, TEXT messages
+with each stack's final poses and the session's summary.
+
+The messages are those of Gadgetron's external language interface and Siemens FIRE's
+python-ismrmrd-server, read and written by ``ismrmrd``'s :class:`~ismrmrd.ProtocolDeserializer` and
+:class:`~ismrmrd.ProtocolSerializer`:
+
+* ``CONFIG_TEXT`` holding a JSON object sets the session's options (``model``, ``mc_samples``,
+  ``variance_threshold``, ``max_expected_error_mm``, as ``/v1/predict`` and Stream v1's ``start``); any
+  other config (a FIRE config name, a Gadgetron XML configuration) is accepted and ignored;
+* ``HEADER``: ``encoding[0].encodingLimits.slice.maximum + 1``, when present, is the number of slices
+  of each series; the series ends (``end_stack``) as soon as that many distinct slices have arrived;
+* ``IMAGE``: stack = ``image_series_index`` (a series that arrives again after it ended is a new stack,
+  ``"<series>.<n>"``), index = ``slice``; the order of arrival is the acquisition order;
+* ``CLOSE``: the open stacks end, the summary follows, then the server's ``CLOSE``.
+
+Each answer is written as soon as it exists. A message that cannot be used gets a TEXT error (RFC 7807
+fields) and the connection goes on, except where the stream cannot be followed any more (an image
+over the pixel limit, an unknown message, an unreadable image): then the error is followed by
+``CLOSE``. Only message kinds and counts reach the log, never pixels, headers or meta attributes.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import json
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, BinaryIO
+
+import ismrmrd
+from ismrmrd.serialization import ConfigFile, ConfigText, ISMRMRDMessageID
+
+from service.api.responses import pose_object, stack_message, summary_message
+from service.api.stream import error_message
+from service.core.errors import InternalError, InvalidParameter, PayloadTooLarge, ServiceError, UnusableImage
+from service.mrd.images import pixel_count, slice_from_image, with_pose
+from service.streaming.frames import SliceFrame
+from service.streaming.session import StreamLimits, StreamSession
+
+log = logging.getLogger(__name__)
+
+MAX_TEXT_BYTES = 1 << 20
+"""Largest config, XML header, TEXT or meta attribute string one message may hold."""
+BYTES_PER_VALUE = 16
+"""The widest MRD pixel (complex double): what a pixel of an announced image can cost to read."""
+IMAGE_HEADER_BYTES = ctypes.sizeof(ismrmrd.ImageHeader)
+RAW_DATA = {ISMRMRDMessageID.ACQUISITION: "acquisition", ISMRMRDMessageID.WAVEFORM: "waveform",
+            ISMRMRDMessageID.NDARRAY: "ndarray"}
+KNOWN = {int(m) for m in ISMRMRDMessageID} - {int(ISMRMRDMessageID.UNPEEKED)}
+MAX_MC_SAMPLES = 1000
+
+
+@dataclass(frozen=True)
+class SessionOptions:
+    """A session's options, as ``/v1/predict``'s form and Stream v1's ``start`` name them."""
+
+    model: str = "default"
+    mc_samples: int = 100
+    variance_threshold: float | None = None
+    max_expected_error_mm: float | None = None
+    bias_correction: bool = True
+
+    @classmethod
+    def from_json(cls, text: str) -> "SessionOptions":
+        """Options from a JSON object; :class:`InvalidParameter` names the field at fault.
+
+        Example:
+            >>> SessionOptions.from_json('{"mc_samples": 20, "model": "default"}').mc_samples
+            20
+            >>> SessionOptions.from_json('{"mc_samples": 0}')
+            Traceback (most recent call last):
+            ...
+            service.core.errors.InvalidParameter: config.mc_samples: an integer from 1 to 1000 is required
+        """
+        try:
+            given = json.loads(text)
+        except ValueError:
+            raise InvalidParameter("config: not a JSON object") from None
+        if not isinstance(given, dict):
+            raise InvalidParameter("config: not a JSON object")
+        unknown = sorted(set(given) - set(cls.__dataclass_fields__))
+        if unknown:
+            raise InvalidParameter(f"config: unknown options {unknown}")
+        model, samples = given.get("model", "default"), given.get("mc_samples", 100)
+        if not isinstance(model, str):
+            raise InvalidParameter("config.model: a model name (string) is required")
+        if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= MAX_MC_SAMPLES:
+            raise InvalidParameter(f"config.mc_samples: an integer from 1 to {MAX_MC_SAMPLES} is required")
+        limits = {}
+        for name in ("variance_threshold", "max_expected_error_mm"):
+            value = given.get(name)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0):
+                raise InvalidParameter(f"config.{name}: a positive number (or null) is required")
+            limits[name] = None if value is None else float(value)
+        bias_correction = given.get("bias_correction", True)
+        if not isinstance(bias_correction, bool):
+            raise InvalidParameter("config.bias_correction: true or false")
+        return cls(model, samples, **limits, bias_correction=bias_correction)
+
+
+SessionFactory = Callable[[SessionOptions], StreamSession]
+
+
+class BoundedReader:
+    """A binary stream whose single reads are refused above ``max_read_bytes`` (what a message's length
+    fields can make the server read into memory), remembering the last chunk it read.
+
+    Example:
+        >>> import io
+        >>> r = BoundedReader(io.BytesIO(b"abcdef"), 4)
+        >>> r.read(3), r.last
+        (b'abc', b'abc')
+        >>> r.read(5)
+        Traceback (most recent call last):
+        ...
+        service.core.errors.PayloadTooLarge: message: a field of 5 bytes is over this server's limit of 4
+    """
+
+    def __init__(self, raw: BinaryIO, max_read_bytes: int) -> None:
+        self.raw, self.max_read_bytes = raw, max_read_bytes
+        self.last = b""
+
+    def read(self, n: int = -1) -> bytes:
+        if n is None or n < 0 or n > self.max_read_bytes:
+            raise PayloadTooLarge(f"message: a field of {n} bytes is over this server's limit of {self.max_read_bytes}")
+        self.last = self.raw.read(n)
+        return self.last
+
+
+class ProtocolBroken(Exception):
+    """The stream cannot be followed past this point: the connection ends after the error is sent."""
+
+    def __init__(self, error: ServiceError) -> None:
+        super().__init__(error.detail)
+        self.error = error
+
+
+@dataclass
+class SeriesState:
+    """Where a series stands: its current stack's name, the slices it has, how often it has ended."""
+
+    stack: str
+    slices: set[int] = field(default_factory=set)
+    passes: int = 1
+
+
+class MrdConnection:
+    """The messages of one connection, answered in order (see the module)."""
+
+    def __init__(self, reader: BinaryIO, writer: BinaryIO, new_session: SessionFactory, limits: StreamLimits) -> None:
+        self.reader = BoundedReader(reader, max(limits.max_pixels * BYTES_PER_VALUE, MAX_TEXT_BYTES))
+        self.writer = writer
+        self.incoming = ismrmrd.ProtocolDeserializer(self.reader)  # type: ignore[arg-type]
+        self.outgoing = ismrmrd.ProtocolSerializer(writer)
+        self.new_session, self.limits = new_session, limits
+        self.session: StreamSession | None = None
+        self.slices_per_series: int | None = None
+        self.series: dict[int, SeriesState] = {}
+        self.counts = {"images": 0, "refused": 0, "stacks": 0}
+        self.ignored: set[str] = set()
+        self.broken = False
+        """Whether the connection ended inside a message (its rest unread)."""
+
+    # -- the loop -------------------------------------------------------------------------------------------
+    def run(self) -> None:
+        """Answer messages until the client's ``CLOSE`` (answered by the summary and ``CLOSE``), the end
+        of its stream (no answer), or a broken stream (an error, then ``CLOSE``)."""
+        t0 = time.perf_counter()
+        outcome = "closed"
+        try:
+            while self.step():
+                pass
+            self.finish()
+        except ProtocolBroken as broken:
+            outcome, self.broken = "broken", True
+            self.close_with(broken.error)
+        except TimeoutError:
+            outcome, self.broken = "idle", True
+            self.close_with(InvalidParameter("connection: no message for too long; the server closes it"))
+        except (EOFError, ConnectionError):
+            outcome = "client gone"
+        log.info("mrd connection ended: %s", outcome,
+                 extra={"n_slices": self.counts["images"], "n_stacks": self.counts["stacks"],
+                        "duration_ms": round((time.perf_counter() - t0) * 1e3, 1)})
+
+    def step(self) -> bool:
+        """Read and answer one message; ``False`` at the client's ``CLOSE``."""
+        kind = self.incoming.peek()
+        if kind not in KNOWN:
+            raise ProtocolBroken(InvalidParameter(f"message: unknown MRD message id {kind}"))
+        if kind == ISMRMRDMessageID.IMAGE:
+            self.check_announced_image()
+        try:
+            message = next(self.incoming.deserialize(), None)
+        except (EOFError, OSError, ProtocolBroken):
+            raise
+        except PayloadTooLarge as too_large:
+            raise ProtocolBroken(too_large) from None
+        except Exception as exc:  # noqa: BLE001 - ismrmrd's parsers raise many kinds; the type is what we log
+            log.info("mrd message unreadable", extra={"error_type": type(exc).__name__})
+            problem = UnusableImage(f"{ISMRMRDMessageID(kind).name.lower()}: the message could not be parsed")
+            if kind in (ISMRMRDMessageID.HEADER, ISMRMRDMessageID.CONFIG_TEXT, ISMRMRDMessageID.TEXT,
+                        ISMRMRDMessageID.CONFIG_FILE):
+                self.send_error(problem)            # read whole before parsing: the stream is still in step
+                return True
+            raise ProtocolBroken(problem) from None
+        if message is None:
+            return False
+        self.dispatch(kind, message)
+        return True
+
+    def check_announced_image(self) -> None:
+        """Refuse, before its data are read, an image whose header announces more pixels than the limit
+        (``peek`` has read the header: the last chunk of the stream)."""
+        head = ismrmrd.ImageHeader.from_buffer_copy(self.reader.last[:IMAGE_HEADER_BYTES])
+        if int(head.data_type) not in ismrmrd.image.dtype_mapping:
+            raise ProtocolBroken(UnusableImage(f"image.data_type: unknown code {int(head.data_type)}"))
+        if pixel_count(head) > self.limits.max_pixels:
+            raise ProtocolBroken(PayloadTooLarge(
+                f"image: {pixel_count(head)} values (channels x matrix_size) is over this server's limit of "
+                f"{self.limits.max_pixels} pixels per image"))
+
+    def dispatch(self, kind: int, message: Any) -> None:
+        if kind == ISMRMRDMessageID.IMAGE:
+            self.on_image(message)
+        elif kind == ISMRMRDMessageID.HEADER:
+            self.on_header(message)
+        elif kind == ISMRMRDMessageID.CONFIG_TEXT:
+            self.on_config(message)
+        elif kind == ISMRMRDMessageID.CONFIG_FILE:
+            log.info("mrd config file name ignored")
+        elif kind in RAW_DATA:
+            name = RAW_DATA[ISMRMRDMessageID(kind)]
+            if name not in self.ignored:                      # said once per kind: raw data come by the thousand
+                self.ignored.add(name)
+                self.send_error(InvalidParameter(f"{name}: svrnet-mrd takes reconstructed images; "
+                                                 f"{name} messages are ignored"))
+        else:
+            log.info("mrd text message ignored")
+
+    # -- messages ---------------------------------------------------------------------------------------------
+    def on_config(self, text: ConfigText) -> None:
+        """JSON options of the session (before its first image); other config texts are ignored."""
+        if not text.lstrip().startswith("{"):
+            log.info("mrd config text ignored")
+            return
+        if self.counts["images"]:
+            self.send_error(InvalidParameter("config: options arrive before the first image; these are ignored"))
+            return
+        try:
+            options = SessionOptions.from_json(text)
+            self.session = self.new_session(options)      # an unknown model is named now, not at each image
+        except ServiceError as bad:
+            self.send_error(bad)
+
+    def on_header(self, header: ismrmrd.xsd.ismrmrdHeader) -> None:
+        """The number of slices of each series, from the first encoding's slice limit (when given)."""
+        encoding = header.encoding[0] if header.encoding else None
+        limit = None if encoding is None or encoding.encodingLimits is None else encoding.encodingLimits.slice
+        self.slices_per_series = None if limit is None else int(limit.maximum) + 1
+
+    def on_image(self, image: ismrmrd.Image) -> None:
+        received = time.perf_counter()
+        self.counts["images"] += 1
+        series_index = int(image.image_series_index)
+        series = self.series.setdefault(series_index, SeriesState(str(series_index)))
+        try:
+            session = self.open_session()
+            pixels, scanner_from_voxel = slice_from_image(image)
+            answer = session.add_slice(SliceFrame(series.stack, int(image.slice), pixels, scanner_from_voxel))
+        except ServiceError as refused:
+            self.counts["refused"] += 1
+            self.send_error(refused, series=series_index, slice_index=int(image.slice))
+            return
+        except Exception as fault:  # noqa: BLE001 - a fault of the server: the type goes to the log, the session goes on
+            log.error("mrd image failed", extra={"error_type": type(fault).__name__})
+            self.send_error(InternalError("image: the server failed on this image"), series_index, int(image.slice))
+            return
+        pose = pose_object(answer, latency_ms=round((time.perf_counter() - received) * 1e3, 2))
+        self.send(with_pose(image, pose))
+        series.slices.add(int(image.slice))
+        if self.slices_per_series is not None and len(series.slices) >= self.slices_per_series:
+            self.end_series(series_index)
+
+    def open_session(self) -> StreamSession:
+        if self.session is None:
+            self.session = self.new_session(SessionOptions())
+        return self.session
+
+    def end_series(self, series_index: int) -> None:
+        """End the series' stack (answered by its final poses) and start its next pass afresh."""
+        series = self.series.pop(series_index)
+        try:
+            answer = self.open_session().end_stack(series.stack)
+        except ServiceError as failed:
+            self.send_error(failed, series=series_index)
+        except Exception as fault:  # noqa: BLE001 - as in on_image
+            log.error("mrd stack failed", extra={"error_type": type(fault).__name__})
+            self.send_error(InternalError("stack: the server failed on this series"), series=series_index)
+        else:
+            self.counts["stacks"] += 1
+            self.send_text(stack_message(answer))
+        following = SeriesState(f"{series_index}.{series.passes + 1}", passes=series.passes + 1)
+        self.series[series_index] = following
+
+    def finish(self) -> None:
+        """The client closed: end the open stacks, send the summary, close."""
+        for series_index, series in list(self.series.items()):
+            if series.slices:
+                self.end_series(series_index)
+        if self.session is not None:
+            self.send_text(summary_message(self.session.summary()))
+        self.outgoing.close()
+
+    # -- answers ---------------------------------------------------------------------------------------------------
+    def send(self, message: Any) -> None:
+        self.outgoing.serialize(message)
+        self.writer.flush()
+
+    def send_text(self, body: dict) -> None:
+        self.send(json.dumps(body))
+
+    def close_with(self, error: ServiceError) -> None:
+        """The error, then ``CLOSE`` (as far as the client still listens)."""
+        try:
+            self.send_error(error)
+            self.outgoing.close()
+        except OSError:
+            pass
+
+    def send_error(self, error: ServiceError, series: int | None = None, slice_index: int | None = None) -> None:
+        """A TEXT with Stream v1's ``error`` (the problem's RFC 7807 fields, its ``type`` as
+        ``problem_type``), and the image's series and slice when it names one."""
+        extra = {k: v for k, v in (("image_series_index", series), ("slice", slice_index)) if v is not None}
+        self.send_text(error_message(error, **extra))
+
+
+def refuse(writer: BinaryIO, error: ServiceError, **extra: object) -> None:
+    """Answer a connection that is not taken: the error as a TEXT, then ``CLOSE``."""
+    outgoing = ismrmrd.ProtocolSerializer(writer)
+    outgoing.serialize(json.dumps(error_message(error, **extra)))
+    outgoing.close()

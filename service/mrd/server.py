@@ -1,0 +1,170 @@
+"""``svrnet-mrd``: a TCP server speaking the MRD streaming protocol (Gadgetron's external language
+interface, Siemens FIRE's python-ismrmrd-server) in front of the streaming core of ``/v1/stream``.
+
+Each connection is one :class:`~service.streaming.session.StreamSession` in a thread of its own
+(:class:`~service.mrd.connection.MrdConnection` says what it answers). Settings are the service's
+``SVRNET_*`` variables: the models (``SVRNET_MODELS_DIR``, ``SVRNET_DEFAULT_MODEL``,
+``SVRNET_ONNX_THREADS``), the localiser (``SVRNET_LOCALISERS_DIR``: MRD images carry no brain mask,
+so one must be installed) and the stream's limits (``SVRNET_STREAM_MAX_SESSIONS``,
+``SVRNET_STREAM_MAX_SLICES``, ``SVRNET_STREAM_MAX_PIXELS``, ``SVRNET_STREAM_IDLE_S``); options:
+
+* ``--host`` (default ``SVRNET_HOST``) and ``--port`` (default 9002, FIRE's);
+* ``--max-sessions``, ``--idle-s``: override the stream settings for this server.
+
+SIGTERM or Ctrl-C stops the server; open connections end with it.
+
+Example:
+    >>> parser().parse_args(["--port", "9100"]).port
+    9100
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import socket
+import socketserver
+import sys
+import threading
+from dataclasses import dataclass
+
+from service.core import logging as service_logging
+from service.core.errors import Saturated
+from service.core.settings import Settings
+from service.inference.registry import ModelRegistry
+from service.mrd.connection import MrdConnection, SessionFactory, SessionOptions, refuse
+from service.preprocess.localise import Localiser, Localisers
+from service.streaming.session import StreamLimits, StreamSession
+
+log = logging.getLogger(__name__)
+
+LINGER_S, LINGER_CHUNKS = 2.0, 256
+"""After a broken stream: how long, and how many 64 KiB chunks, the server drains before it closes."""
+DEFAULT_PORT = 9002
+"""The port of FIRE's python-ismrmrd-server, which scanners' FIRE configurations name by default."""
+
+
+def session_factory(registry: ModelRegistry, localiser: Localiser | None, limits: StreamLimits) -> SessionFactory:
+    """A new :class:`StreamSession` for each connection's options (:class:`NotFound` names an unknown model)."""
+    def new_session(options: SessionOptions) -> StreamSession:
+        return StreamSession(registry.get(options.model), localiser, limits, options.mc_samples,
+                             options.variance_threshold, options.max_expected_error_mm, options.bias_correction)
+    return new_session
+
+
+@dataclass(frozen=True)
+class ServerLimits:
+    """What the server takes at once: connections, and how long one may stay silent."""
+
+    max_sessions: int = 32
+    idle_s: float = 300.0
+
+
+class MrdHandler(socketserver.StreamRequestHandler):
+    """One connection: a session when a slot is free, else an error with ``retry_after_s`` and ``CLOSE``."""
+
+    server: "MrdServer"
+    rbufsize = 1 << 16
+    wbufsize = 1 << 16                      # answers go out whole: flushed after each message
+    disable_nagle_algorithm = True
+
+    def handle(self) -> None:
+        server = self.server
+        self.connection.settimeout(server.limits.idle_s)
+        if not server.slots.acquire(blocking=False):
+            log.warning("mrd connection refused: every session slot is taken")
+            busy = Saturated(f"session: {server.limits.max_sessions} MRD sessions are open; try again later")
+            refuse(self.wfile, busy, retry_after_s=server.retry_after_s)
+            return
+        try:
+            connection = MrdConnection(self.rfile, self.wfile, server.new_session, server.stream_limits)
+            connection.run()
+        finally:
+            server.slots.release()
+        if connection.broken:
+            self.linger()
+
+    def linger(self) -> None:
+        """Half-close and drain what the client still sends (bounded), so that closing with unread data
+        does not reset the connection before the client has read the error and ``CLOSE``."""
+        try:
+            self.wfile.flush()
+            self.connection.shutdown(socket.SHUT_WR)
+            self.connection.settimeout(LINGER_S)
+            for _ in range(LINGER_CHUNKS):
+                if not self.connection.recv(1 << 16):
+                    break
+        except OSError:
+            pass
+
+
+class MrdServer(socketserver.ThreadingTCPServer):
+    """The threaded TCP server; each connection runs in a daemon thread of its own."""
+
+    daemon_threads = True
+    allow_reuse_address = True
+
+    def __init__(self, address: tuple[str, int], new_session: SessionFactory, stream_limits: StreamLimits,
+                 limits: ServerLimits = ServerLimits(), retry_after_s: int = 2) -> None:
+        self.new_session, self.stream_limits, self.limits = new_session, stream_limits, limits
+        self.retry_after_s = retry_after_s
+        self.slots = threading.BoundedSemaphore(limits.max_sessions)
+        super().__init__(address, MrdHandler)
+
+    @property
+    def port(self) -> int:
+        return int(self.server_address[1])
+
+
+def build_server(settings: Settings, host: str, port: int, limits: ServerLimits) -> MrdServer:
+    """The server with the models and the default localiser of ``settings``; :class:`SystemExit` (2)
+    when no model or no localiser is installed."""
+    registry = ModelRegistry.from_directory(settings.models_dir, settings.default_model, settings.onnx_threads)
+    localisers = Localisers.from_directory(settings.localisers_dir, settings.onnx_threads)
+    if not registry.estimators:
+        print(f"svrnet-mrd: no model in {settings.models_dir}", file=sys.stderr)
+        raise SystemExit(2)
+    if not localisers.localisers:
+        print(f"svrnet-mrd: no localiser in {settings.localisers_dir}; MRD images carry no brain mask",
+              file=sys.stderr)
+        raise SystemExit(2)
+    stream_limits = StreamLimits(settings.stream_max_slices, settings.stream_max_pixels)
+    factory = session_factory(registry, localisers.get(), stream_limits)
+    return MrdServer((host, port), factory, stream_limits, limits, settings.retry_after_s)
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="svrnet-mrd", description="SVRnet poses for MRD (ISMRMRD) image streams: "
+                                 "Gadgetron's external language interface, Siemens FIRE.")
+    ap.add_argument("--host", help="address to listen on (default: SVRNET_HOST)")
+    ap.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"TCP port (default {DEFAULT_PORT})")
+    ap.add_argument("--max-sessions", type=int, help="connections at once (default: SVRNET_STREAM_MAX_SESSIONS)")
+    ap.add_argument("--idle-s", type=float, help="seconds a connection may stay silent (default: SVRNET_STREAM_IDLE_S)")
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    settings = Settings()
+    service_logging.configure(settings.log_level)
+    limits = ServerLimits(args.max_sessions or settings.stream_max_sessions, args.idle_s or settings.stream_idle_s)
+    server = build_server(settings, args.host or settings.host, args.port, limits)
+
+    def stop(signum: int, frame: object) -> None:  # noqa: ARG001
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, stop)
+    log.info("svrnet-mrd listening")
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.server_close()
+    return 0
+
+
+def run() -> None:
+    """Console entry point."""
+    sys.exit(main())

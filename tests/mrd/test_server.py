@@ -1,0 +1,129 @@
+"""``svrnet-mrd`` end to end: a client sends simulated stacks as MRD images over TCP and gets every
+image back, in order, with the pose of the simulated truth as meta attributes; each series' final
+poses; the summary; and errors that name the message at fault while the session goes on."""
+
+from __future__ import annotations
+
+import json
+
+import ismrmrd
+import numpy as np
+import pytest
+from ismrmrd.serialization import ConfigText
+
+from service.mrd.images import pose_from_meta
+from service.mrd.server import ServerLimits
+from service.streaming.session import StreamLimits
+from tests.mrd.conftest import Case, MrdClient, mrd_header
+from tests.support.streams import true_sent
+
+CONFIG = ConfigText(json.dumps({"mc_samples": 10, "bias_correction": False}))
+INTERLEAVED = list(range(0, 20, 2)) + list(range(1, 20, 2))
+
+
+def texts(received: list) -> list[dict]:
+    return [json.loads(m) for m in received if isinstance(m, str)]
+
+
+def test_every_image_comes_back_in_order_with_its_true_pose(case: Case, serve) -> None:  # noqa: ANN001
+    server = serve()
+    client = MrdClient(server.port)
+    client.send(ismrmrd.ConfigFile("svrnet"), CONFIG, mrd_header(slices=20))
+    sent = [case.images[series][k] for series in (0, 1) for k in INTERLEAVED]
+    client.send(*sent)
+    received = client.close()
+    assert client.closed_by_server
+
+    images = [m for m in received if isinstance(m, ismrmrd.Image)]
+    assert [(i.image_series_index, i.slice) for i in images] == [(i.image_series_index, i.slice) for i in sent]
+    for back, image in zip(images, sent):
+        np.testing.assert_array_equal(back.data, image.data)
+        assert bytes(back.getHead())[:-4] == bytes(image.getHead())[:-4]        # all but attribute_string_len
+        pose = pose_from_meta(back.meta)
+        assert pose["accepted"] in (True, False) and pose["latency_ms"] >= 0
+        truth = true_sent(case.truths[back.image_series_index], back.slice)
+        np.testing.assert_allclose(pose["atlas_from_voxel"], truth, atol=1e-3)
+
+    kinds = [("image", m.image_series_index) if isinstance(m, ismrmrd.Image) else json.loads(m)["type"]
+             for m in received if not (isinstance(m, str) and json.loads(m)["type"] == "update")]
+    assert kinds == [("image", 0)] * 20 + ["stack"] + [("image", 1)] * 20 + ["stack", "summary"]
+    messages = texts(received)
+    stacks = [m for m in messages if m["type"] == "stack"]
+    assert [s["stack"] for s in stacks] == ["0", "1"]
+    for series, stack in enumerate(stacks):
+        final = np.array([s["atlas_from_voxel"] for s in stack["slices"]])
+        truth = np.stack([true_sent(case.truths[series], k) for k in range(20)])
+        assert np.linalg.norm(final[:, :3, 3] - truth[:, :3, 3], axis=1).max() < 0.5
+    summary = messages[-1]
+    assert summary["stacks"] == ["0", "1"] and summary["slices"] == 40
+
+
+def image_like(image: ismrmrd.Image, data: np.ndarray, **fields: object) -> ismrmrd.Image:
+    """An image with ``image``'s header but other data (``[channels, z, y, x]``) and ``fields``."""
+    out = ismrmrd.Image(head=image.getHead(), data=data)
+    for name, value in fields.items():
+        setattr(out, name, value)
+    return out
+
+
+def test_unusable_messages_get_an_error_and_the_session_goes_on(case: Case, serve) -> None:  # noqa: ANN001
+    server = serve()
+    client = MrdClient(server.port)
+    first = case.images[0][0]
+    plane = first.data
+    client.send(ConfigText('{"mc_samples": 0}'), CONFIG,
+                image_like(first, plane, image_type=ismrmrd.IMTYPE_PHASE),
+                image_like(first, np.repeat(plane, 3, axis=1)),                    # 3D: z = 3
+                image_like(first, np.repeat(plane, 2, axis=0)),                    # two channels
+                ismrmrd.Acquisition.from_array(np.zeros((2, 16), np.complex64)),
+                ismrmrd.Acquisition.from_array(np.zeros((2, 16), np.complex64)))
+    client.send(*[case.images[0][k] for k in INTERLEAVED])                         # no header: the stack ends at CLOSE
+    received = client.close()
+    assert client.closed_by_server
+
+    errors = [m for m in texts(received) if m["type"] == "error"]
+    details = [e["detail"] for e in errors]
+    assert len(errors) == 5, details
+    for words, error in zip(["config.mc_samples", "image_type: phase", "matrix_size: a 3D image", "channels: 2",
+                             "acquisition"], errors):
+        assert words in error["detail"] and error["status"] in (400, 422) and error["problem_type"].startswith("/problems/")
+    assert errors[1]["image_series_index"] == 0 and errors[1]["slice"] == 0
+    images = [m for m in received if isinstance(m, ismrmrd.Image)]
+    assert [i.slice for i in images] == INTERLEAVED
+    assert all("SVRnet.AtlasFromVoxel" in i.meta for i in images)
+    kinds = [m["type"] for m in texts(received) if m["type"] != "update"]
+    assert kinds[-2:] == ["stack", "summary"]
+
+
+def test_an_image_over_the_pixel_limit_is_refused_before_its_data(case: Case, serve) -> None:  # noqa: ANN001
+    server = serve(StreamLimits(max_pixels=32 * 32))
+    client = MrdClient(server.port)
+    try:
+        client.send(case.images[0][0])
+    except OSError:
+        pass                                            # the server may have closed while the data went out
+    received = client.wait()
+    assert client.closed_by_server
+    (error,) = texts(received)
+    assert error["type"] == "error" and error["status"] == 413 and "limit of 1024 pixels" in error["detail"]
+
+
+def test_sessions_over_the_limit_are_told_to_retry(case: Case, serve) -> None:  # noqa: ANN001
+    server = serve(limits=ServerLimits(max_sessions=1))
+    holder = MrdClient(server.port)
+    holder.send(CONFIG, case.images[0][0])
+    while not holder.received:                          # the first session holds the slot once it answers
+        holder._reader.join(timeout=0.05)
+    other = MrdClient(server.port)
+    (error,) = texts(other.wait())
+    assert other.closed_by_server
+    assert error["status"] == 503 and error["retry_after_s"] >= 1
+    assert isinstance(holder.close()[0], ismrmrd.Image)
+
+
+@pytest.mark.parametrize("silent_s", [0.2])
+def test_a_silent_connection_is_closed_with_an_error(serve, silent_s: float) -> None:  # noqa: ANN001
+    server = serve(limits=ServerLimits(idle_s=silent_s))
+    client = MrdClient(server.port)
+    (error,) = texts(client.wait())
+    assert client.closed_by_server and "no message for too long" in error["detail"]
