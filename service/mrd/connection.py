@@ -1,5 +1,5 @@
 """One MRD connection: config and XML header, images in; each image back with its pose, TEXT messages
-with each stack's final poses and the session's summary.
+with updates, each stack's final poses and the session's summary.
 
 The messages are those of Gadgetron's external language interface and Siemens FIRE's
 python-ismrmrd-server, read and written by ``ismrmrd``'s :class:`~ismrmrd.ProtocolDeserializer` and
@@ -14,7 +14,9 @@ python-ismrmrd-server, read and written by ``ismrmrd``'s :class:`~ismrmrd.Protoc
   ``"<series>.<n>"``), index = ``slice``; the order of arrival is the acquisition order;
 * ``CLOSE``: the open stacks end, the summary follows, then the server's ``CLOSE``.
 
-Each answer is written as soon as it exists. A message that cannot be used gets a TEXT error (RFC 7807
+Each answer is written as soon as it exists. Between images, the stack stage firms the open series up
+in a background thread of the connection; slices it moves by more than 1 mm go out as TEXT ``update``
+messages (Stream v1's), as do earlier series' slices moved by a series' end. A message that cannot be used gets a TEXT error (RFC 7807
 fields) and the connection goes on, except where the stream cannot be followed any more (an image
 over the pixel limit, an unknown message, an unreadable image): then the error is followed by
 ``CLOSE``. Only message kinds and counts reach the log, never pixels, headers or meta attributes.
@@ -25,15 +27,17 @@ from __future__ import annotations
 import ctypes
 import json
 import logging
+import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from typing import Any, BinaryIO
 
 import ismrmrd
 from ismrmrd.serialization import ConfigFile, ConfigText, ISMRMRDMessageID
 
-from service.api.responses import pose_object, stack_message, summary_message
+from service.api.responses import pose_object, stack_message, summary_message, update_message
 from service.api.stream import error_message
 from service.core.errors import InternalError, InvalidParameter, PayloadTooLarge, ServiceError, UnusableImage
 from service.mrd.images import pixel_count, slice_from_image, with_pose
@@ -163,6 +167,10 @@ class MrdConnection:
         self.ignored: set[str] = set()
         self.broken = False
         """Whether the connection ended inside a message (its rest unread)."""
+        self.send_lock, self.stage_lock = threading.Lock(), threading.Lock()
+        self.stage = ThreadPoolExecutor(max_workers=1, thread_name_prefix="svrnet-mrd-stage")
+        self.dirty: set[str] = set()
+        self.firming: Future | None = None
 
     # -- the loop -------------------------------------------------------------------------------------------
     def run(self) -> None:
@@ -182,6 +190,9 @@ class MrdConnection:
             self.close_with(InvalidParameter("connection: no message for too long; the server closes it"))
         except (EOFError, ConnectionError):
             outcome = "client gone"
+        finally:
+            self.settle()
+            self.stage.shutdown()
         log.info("mrd connection ended: %s", outcome,
                  extra={"n_slices": self.counts["images"], "n_stacks": self.counts["stacks"],
                         "duration_ms": round((time.perf_counter() - t0) * 1e3, 1)})
@@ -284,6 +295,38 @@ class MrdConnection:
         series.slices.add(int(image.slice))
         if self.slices_per_series is not None and len(series.slices) >= self.slices_per_series:
             self.end_series(series_index)
+        else:
+            self.firm_up(series.stack)
+
+    def firm_up(self, stack: str) -> None:
+        """Run the stack stage on ``stack`` in this connection's background thread (one run at a time;
+        the slices that arrive meanwhile are taken by the next run); moved slices go out as updates."""
+        with self.stage_lock:
+            self.dirty.add(stack)
+            if self.firming is None:
+                self.firming = self.stage.submit(self._firm_up_loop)
+
+    def _firm_up_loop(self) -> None:
+        while True:
+            with self.stage_lock:
+                if not self.dirty:
+                    self.firming = None
+                    return
+                stack = self.dirty.pop()
+            try:
+                updates = self.open_session().firm_up(stack)
+                if updates:
+                    self.send_text(update_message(updates))
+            except Exception as fault:  # noqa: BLE001 - a background stage must not end the session
+                log.warning("mrd firm-up failed", extra={"error_type": type(fault).__name__})
+
+    def settle(self) -> None:
+        """Wait for the background stage (its updates go out before what follows); drop what it had to do."""
+        with self.stage_lock:
+            self.dirty.clear()
+            running = self.firming
+        if running is not None:
+            wait([running])
 
     def open_session(self) -> StreamSession:
         if self.session is None:
@@ -293,6 +336,7 @@ class MrdConnection:
     def end_series(self, series_index: int) -> None:
         """End the series' stack (answered by its final poses) and start its next pass afresh."""
         series = self.series.pop(series_index)
+        self.settle()
         try:
             answer = self.open_session().end_stack(series.stack)
         except ServiceError as failed:
@@ -302,6 +346,11 @@ class MrdConnection:
             self.send_error(InternalError("stack: the server failed on this series"), series=series_index)
         else:
             self.counts["stacks"] += 1
+            moved: dict[str, list] = {}
+            for update in answer.updates:                  # earlier stacks' slices that the new one moved
+                moved.setdefault(update.stack, []).append(update)
+            for updates in moved.values():
+                self.send_text(update_message(updates))
             self.send_text(stack_message(answer))
         following = SeriesState(f"{series_index}.{series.passes + 1}", passes=series.passes + 1)
         self.series[series_index] = following
@@ -311,20 +360,23 @@ class MrdConnection:
         for series_index, series in list(self.series.items()):
             if series.slices:
                 self.end_series(series_index)
+        self.settle()
         if self.session is not None:
             self.send_text(summary_message(self.session.summary()))
         self.outgoing.close()
 
     # -- answers ---------------------------------------------------------------------------------------------------
     def send(self, message: Any) -> None:
-        self.outgoing.serialize(message)
-        self.writer.flush()
+        with self.send_lock:                               # the background stage writes updates too
+            self.outgoing.serialize(message)
+            self.writer.flush()
 
     def send_text(self, body: dict) -> None:
         self.send(json.dumps(body))
 
     def close_with(self, error: ServiceError) -> None:
         """The error, then ``CLOSE`` (as far as the client still listens)."""
+        self.settle()
         try:
             self.send_error(error)
             self.outgoing.close()
