@@ -59,7 +59,9 @@ class StreamConnection:
         self.registry, self.localisers = state.registry, state.localisers
         self.pose_limiter: CapacityLimiter = state.stream_pose_limiter
         self.stage_limiter: CapacityLimiter = state.stream_stage_limiter
+        self.metrics = state.metrics
         self.session: StreamSession | None = None
+        self.model = ""
         self.session_id = uuid.uuid4().hex
         self.send_lock = asyncio.Lock()
         self.pending: dict | None = None            # a text message read while a binary frame was due
@@ -145,6 +147,7 @@ class StreamConnection:
             raise NotReady("model: the models are still loading")
         model = self.registry.resolve(_text(msg, "model", "start", "default"))
         estimator = self.registry.get(model)
+        self.model = model
         mc = msg.get("mc_samples", 100)
         if not isinstance(mc, int) or isinstance(mc, bool) or not 1 <= mc <= 1000:
             raise InvalidParameter("start.mc_samples: an integer from 1 to 1000")
@@ -173,6 +176,7 @@ class StreamConnection:
         answer: SliceAnswer = await to_thread.run_sync(self.session.add_slice, frame, limiter=self.pose_limiter)
         latency = (time.perf_counter() - t) * 1e3
         self.latencies.append(latency)
+        self.metrics.observe_slices(self.model, [answer.prediction.reasons[answer.row]])
         await self.send({"type": "pose", **pose_object(answer, latency_ms=round(latency, 2))})
         self.firm_up(frame.stack)
 

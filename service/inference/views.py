@@ -11,7 +11,9 @@ with no resampling. Each view's prediction maps back to a pose of the original s
   diag(-1, 1, 1)``), a proper pose, and ``P = M P_view R^k F``.
 
 The MC-dropout samples are shared among the views (100 samples over 8 views: 13, 13, 13, 13, 12, ...),
-so the head runs as often as with one view and only the trunk runs once per view. Their spread
+so the head runs as often as with one view and only the trunk runs once per view. All views of all
+slices go through the model in one call (each with the largest share of samples, the surplus
+dropped), so a single streamed slice costs one call, not one per view. Their spread
 then holds the disagreement between views as well as the dropout's: the mean pose averages errors
 that depend on how the slice lies in the grid, and the variance ranks bad slices better
 (``model_export/experiments/views_bench.py`` measures accuracy and cost per number of views,
@@ -106,7 +108,9 @@ def sample_views(run: Callable[[NDArray, int], NDArray], inputs: NDArray, mc_sam
     """
     if n_views == 1:
         return run(inputs, mc_samples)
-    parts = []
-    for (k, flip), n in zip(views(n_views), split_samples(mc_samples, n_views)):
-        parts.append(labels_from_view(run(view_images(inputs, k, flip), n), label_type, k, flip, plane_x_mm))
-    return np.concatenate(parts, axis=1)
+    counts = split_samples(mc_samples, n_views)
+    shown = views(n_views)[:len(counts)]
+    b = len(inputs)
+    labels = run(np.concatenate([view_images(inputs, k, flip) for k, flip in shown]), max(counts))
+    return np.concatenate([labels_from_view(labels[i * b:(i + 1) * b, :max(n, 1)], label_type, k, flip, plane_x_mm)
+                           for i, ((k, flip), n) in enumerate(zip(shown, counts))], axis=1)

@@ -60,6 +60,9 @@ UPDATE_MM = 1.0
 """A slice whose pose moves by more than this (E.D., mm) is sent again as an update."""
 MIN_FIRM_UP_SLICES = 4
 """The stack stage runs on an open stack once it has this many slices."""
+FIRM_UP_GROWTH = 0.25
+"""... and again once the slices it has grew by this share since its last run (at least one more):
+the stage's cost grows with the stack, so its total stays near linear in the slices."""
 WINDOW = 1
 """Neighbours on each side the localiser sees with a slice (when they have arrived)."""
 
@@ -152,6 +155,7 @@ class StreamSession:
         self.stacks: dict[str, StreamedStack] = {}
         self.slices: dict[str, dict[int, _Slice]] = {}
         self.fits: dict[str, StackPoses] = {}
+        self.firmed: dict[str, int] = {}
         self.ended: dict[str, _Ended] = {}
         self.finals: dict[str, StackPrediction] = {}
         self.compute_ms: dict[str, float] = {"slices": 0.0, "firm_up": 0.0, "end_stack": 0.0}
@@ -251,12 +255,15 @@ class StreamSession:
 
     # -- 2. between slices ---------------------------------------------------------------------------------
     def firm_up(self, stack: str) -> list[SliceAnswer]:
-        """The open ``stack``'s received slices through the stack-consistency stage; the answers of
-        those that moved by more than :data:`UPDATE_MM` or changed their accept flag."""
+        """The open ``stack``'s received slices through the stack-consistency stage (when enough
+        arrived since its last run: :data:`FIRM_UP_GROWTH`); the answers of those that moved by
+        more than :data:`UPDATE_MM` or changed their accept flag."""
         t0 = time.perf_counter()
         with self._lock:
-            if stack in self.ended or len(self.slices.get(stack, {})) < MIN_FIRM_UP_SLICES:
+            have, last = len(self.slices.get(stack, {})), self.firmed.get(stack, 0)
+            if stack in self.ended or have < max(MIN_FIRM_UP_SLICES, last + max(1, int(FIRM_UP_GROWTH * last))):
                 return []
+            self.firmed[stack] = have
             states = [self.slices[stack][k] for k in sorted(self.slices[stack])]
             order = self.stacks[stack].arrival_order()
             reference = request_reference([p.poses for p in self.finals.values()])
