@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from service.consistency.stage import StackPoses
+from service.core.errors import ServiceError
 from service.geometry import anchors
 from service.pipeline.predict import StackPrediction
 from service.streaming.session import SessionSummary, SliceAnswer, StackAnswer
@@ -140,3 +141,8 @@ def summary_message(summary: SessionSummary, **timing_ms: float) -> dict:
             "coverage": summary.coverage.report(),
             "timing_ms": {**{k: round(v, 1) for k, v in summary.compute_ms.items()},
                           **{k: round(v, 1) for k, v in timing_ms.items()}}}
+
+
+def error_message(e: ServiceError, **extra: object) -> dict:
+    """An ``error``: the problem's fields, its RFC 7807 ``type`` as ``problem_type`` (``type`` names the message)."""
+    return {"type": "error", "problem_type": e.type, "title": e.title, "status": e.status, "detail": str(e), **extra}

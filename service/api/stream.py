@@ -18,7 +18,6 @@ import json
 import logging
 import time
 import uuid
-from typing import Any
 
 import numpy as np
 from anyio import CapacityLimiter, to_thread
@@ -26,10 +25,10 @@ from fastapi import APIRouter, WebSocket
 from starlette.websockets import WebSocketDisconnect
 
 from service.api.deps import UNAUTHORIZED, api_key_ok
-from service.api.responses import pose_object, stack_message, summary_message, update_message
+from service.api.responses import error_message, pose_object, stack_message, summary_message, update_message
 from service.core.errors import InternalError, InvalidParameter, MalformedRequest, NotReady, Saturated, ServiceError, Unauthorized
 from service.streaming.frames import SliceFrame
-from service.streaming.session import SliceAnswer, StreamLimits, StreamSession
+from service.streaming.session import SessionOptions, SliceAnswer, StreamLimits, StreamSession
 
 router = APIRouter()
 log = logging.getLogger(__name__)
@@ -38,11 +37,6 @@ DTYPES = {"uint8": "<u1", "int16": "<i2", "uint16": "<u2", "float32": "<f4"}
 MAX_TEXT_BYTES = 64 * 1024
 """Longest JSON message accepted (a slice's header is a few hundred bytes)."""
 POLICY_VIOLATION, GOING_AWAY, TRY_AGAIN_LATER = 1008, 1001, 1013
-
-
-def error_message(e: ServiceError, **extra: object) -> dict:
-    """An ``error``: the problem's fields, its RFC 7807 ``type`` as ``problem_type`` (``type`` names the message)."""
-    return {"type": "error", "problem_type": e.type, "title": e.title, "status": e.status, "detail": str(e), **extra}
 
 
 class _Closed(Exception):
@@ -145,25 +139,18 @@ class StreamConnection:
             raise InvalidParameter("start: the session has started already")
         if self.registry is None:
             raise NotReady("model: the models are still loading")
-        model = self.registry.resolve(_text(msg, "model", "start", "default"))
+        options = SessionOptions.from_message(msg, "start")
+        model = self.registry.resolve(options.model)
         estimator = self.registry.get(model)
         self.model = model
-        mc = msg.get("mc_samples", 100)
-        if not isinstance(mc, int) or isinstance(mc, bool) or not 1 <= mc <= 1000:
-            raise InvalidParameter("start.mc_samples: an integer from 1 to 1000")
-        limits = {f: _positive(msg, f, "start") for f in ("variance_threshold", "max_expected_error_mm")}
-        bias_correction = msg.get("bias_correction", True)
-        if not isinstance(bias_correction, bool):
-            raise InvalidParameter("start.bias_correction: true or false")
         localiser = self.localisers.get() if self.localisers.localisers else None
         self.session = StreamSession(estimator, localiser, StreamLimits(self.settings.stream_max_slices,
-                                                                        self.settings.stream_max_pixels),
-                                     mc, limits["variance_threshold"], limits["max_expected_error_mm"], bias_correction)
+                                                                        self.settings.stream_max_pixels), options)
         info = estimator.info
         await self.send({"type": "ready", "session_id": self.session_id,
                          "model": {"name": model, "version": info.version, "backbone": info.backbone,
                                    "sha256": info.sha256},
-                         "mc_samples": mc, "variance_threshold": self.session.threshold,
+                         "mc_samples": options.mc_samples, "variance_threshold": self.session.threshold,
                          "max_expected_error_mm": self.session.max_expected_error_mm,
                          "localiser": localiser is not None,
                          "limits": {"slices": self.settings.stream_max_slices,
@@ -279,15 +266,6 @@ def _integer(msg: dict, name: str, kind: str) -> int:
     if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value < 100_000:
         raise InvalidParameter(f"{kind}.{name}: an integer from 0 to 99999")
     return value
-
-
-def _positive(msg: dict, name: str, kind: str) -> float | None:
-    value: Any = msg.get(name)
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
-        raise InvalidParameter(f"{kind}.{name}: a positive number")
-    return float(value)
 
 
 @router.websocket("/v1/stream")

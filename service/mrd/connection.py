@@ -37,12 +37,11 @@ from typing import Any, BinaryIO
 import ismrmrd
 from ismrmrd.serialization import ConfigFile, ConfigText, ISMRMRDMessageID
 
-from service.api.responses import pose_object, stack_message, summary_message, update_message
-from service.api.stream import error_message
+from service.api.responses import error_message, pose_object, stack_message, summary_message, update_message
 from service.core.errors import InternalError, InvalidParameter, PayloadTooLarge, ServiceError, UnusableImage
 from service.mrd.images import pixel_count, slice_from_image, with_pose
 from service.streaming.frames import SliceFrame
-from service.streaming.session import StreamLimits, StreamSession
+from service.streaming.session import SessionOptions, StreamLimits, StreamSession
 
 log = logging.getLogger(__name__)
 
@@ -54,55 +53,6 @@ IMAGE_HEADER_BYTES = ctypes.sizeof(ismrmrd.ImageHeader)
 RAW_DATA = {ISMRMRDMessageID.ACQUISITION: "acquisition", ISMRMRDMessageID.WAVEFORM: "waveform",
             ISMRMRDMessageID.NDARRAY: "ndarray"}
 KNOWN = {int(m) for m in ISMRMRDMessageID} - {int(ISMRMRDMessageID.UNPEEKED)}
-MAX_MC_SAMPLES = 1000
-
-
-@dataclass(frozen=True)
-class SessionOptions:
-    """A session's options, as ``/v1/predict``'s form and Stream v1's ``start`` name them."""
-
-    model: str = "default"
-    mc_samples: int = 100
-    variance_threshold: float | None = None
-    max_expected_error_mm: float | None = None
-    bias_correction: bool = True
-
-    @classmethod
-    def from_json(cls, text: str) -> "SessionOptions":
-        """Options from a JSON object; :class:`InvalidParameter` names the field at fault.
-
-        Example:
-            >>> SessionOptions.from_json('{"mc_samples": 20, "model": "default"}').mc_samples
-            20
-            >>> SessionOptions.from_json('{"mc_samples": 0}')
-            Traceback (most recent call last):
-            ...
-            service.core.errors.InvalidParameter: config.mc_samples: an integer from 1 to 1000 is required
-        """
-        try:
-            given = json.loads(text)
-        except ValueError:
-            raise InvalidParameter("config: not a JSON object") from None
-        if not isinstance(given, dict):
-            raise InvalidParameter("config: not a JSON object")
-        unknown = sorted(set(given) - set(cls.__dataclass_fields__))
-        if unknown:
-            raise InvalidParameter(f"config: unknown options {unknown}")
-        model, samples = given.get("model", "default"), given.get("mc_samples", 100)
-        if not isinstance(model, str):
-            raise InvalidParameter("config.model: a model name (string) is required")
-        if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= MAX_MC_SAMPLES:
-            raise InvalidParameter(f"config.mc_samples: an integer from 1 to {MAX_MC_SAMPLES} is required")
-        limits = {}
-        for name in ("variance_threshold", "max_expected_error_mm"):
-            value = given.get(name)
-            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0):
-                raise InvalidParameter(f"config.{name}: a positive number (or null) is required")
-            limits[name] = None if value is None else float(value)
-        bias_correction = given.get("bias_correction", True)
-        if not isinstance(bias_correction, bool):
-            raise InvalidParameter("config.bias_correction: true or false")
-        return cls(model, samples, **limits, bias_correction=bias_correction)
 
 
 SessionFactory = Callable[[SessionOptions], StreamSession]
@@ -262,7 +212,7 @@ class MrdConnection:
             self.send_error(InvalidParameter("config: options arrive before the first image; these are ignored"))
             return
         try:
-            options = SessionOptions.from_json(text)
+            options = SessionOptions.from_json(text, "config")
             self.session = self.new_session(options)      # an unknown model is named now, not at each image
         except ServiceError as bad:
             self.send_error(bad)

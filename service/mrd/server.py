@@ -33,9 +33,9 @@ from service.core import logging as service_logging
 from service.core.errors import Saturated
 from service.core.settings import Settings
 from service.inference.registry import ModelRegistry
-from service.mrd.connection import MrdConnection, SessionFactory, SessionOptions, refuse
+from service.mrd.connection import MrdConnection, SessionFactory, refuse
 from service.preprocess.localise import Localiser, Localisers
-from service.streaming.session import StreamLimits, StreamSession
+from service.streaming.session import SessionOptions, StreamLimits, StreamSession
 
 log = logging.getLogger(__name__)
 
@@ -48,8 +48,7 @@ DEFAULT_PORT = 9002
 def session_factory(registry: ModelRegistry, localiser: Localiser | None, limits: StreamLimits) -> SessionFactory:
     """A new :class:`StreamSession` for each connection's options (:class:`NotFound` names an unknown model)."""
     def new_session(options: SessionOptions) -> StreamSession:
-        return StreamSession(registry.get(options.model), localiser, limits, options.mc_samples,
-                             options.variance_threshold, options.max_expected_error_mm, options.bias_correction)
+        return StreamSession(registry.get(options.model), localiser, limits, options)
     return new_session
 
 

@@ -26,6 +26,7 @@ firm-up); its state changes under one lock, its computations run outside it.
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from dataclasses import dataclass, field, replace
@@ -56,6 +57,7 @@ from service.preprocess.stack import split_stack
 from service.streaming.coverage import Coverage, CoveredSlice, coverage
 from service.streaming.frames import SliceFrame, StreamedStack, check_frame
 
+MAX_MC_SAMPLES = 1000
 UPDATE_MM = 1.0
 """A slice whose pose moves by more than this (E.D., mm) is sent again as an update."""
 MIN_FIRM_UP_SLICES = 4
@@ -73,6 +75,61 @@ class StreamLimits:
 
     max_slices: int = 2000
     max_pixels: int = 1024 * 1024
+
+
+@dataclass(frozen=True)
+class SessionOptions:
+    """A session's options, as ``/v1/predict``'s form and Stream v1's ``start`` name them.
+
+    Example:
+        >>> SessionOptions.from_message({"type": "start", "mc_samples": 20}, "start").mc_samples
+        20
+        >>> SessionOptions.from_json('{"mc_samples": 0}', "config")
+        Traceback (most recent call last):
+        ...
+        service.core.errors.InvalidParameter: config.mc_samples: an integer from 1 to 1000 is required
+    """
+
+    model: str = "default"
+    mc_samples: int = 100
+    variance_threshold: float | None = None
+    max_expected_error_mm: float | None = None
+    bias_correction: bool = True
+
+    @classmethod
+    def from_json(cls, text: str, where: str) -> "SessionOptions":
+        """Options from a JSON object holding nothing else (an MRD config text); :class:`InvalidParameter`
+        names the field at fault, ``where`` the message."""
+        try:
+            given = json.loads(text)
+        except ValueError:
+            raise InvalidParameter(f"{where}: not a JSON object") from None
+        if not isinstance(given, dict):
+            raise InvalidParameter(f"{where}: not a JSON object")
+        unknown = sorted(set(given) - set(cls.__dataclass_fields__))
+        if unknown:
+            raise InvalidParameter(f"{where}: unknown options {unknown}")
+        return cls.from_message(given, where)
+
+    @classmethod
+    def from_message(cls, given: dict, where: str) -> "SessionOptions":
+        """Options from the fields of a message (others are left to the caller)."""
+        model, samples = given.get("model", "default"), given.get("mc_samples", 100)
+        if not isinstance(model, str) or not 1 <= len(model) <= 128:
+            raise InvalidParameter(f"{where}.model: a model name (string) is required")
+        if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= MAX_MC_SAMPLES:
+            raise InvalidParameter(f"{where}.mc_samples: an integer from 1 to {MAX_MC_SAMPLES} is required")
+        limits = {}
+        for name in ("variance_threshold", "max_expected_error_mm"):
+            value = given.get(name)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
+                                      or not np.isfinite(value) or not value > 0):
+                raise InvalidParameter(f"{where}.{name}: a positive number (or null) is required")
+            limits[name] = None if value is None else float(value)
+        bias_correction = given.get("bias_correction", True)
+        if not isinstance(bias_correction, bool):
+            raise InvalidParameter(f"{where}.bias_correction: true or false")
+        return cls(model, samples, **limits, bias_correction=bias_correction)
 
 
 @dataclass
@@ -143,15 +200,14 @@ class StreamSession:
     """A session's stacks and slices, and the stages run on them (see the module)."""
 
     def __init__(self, estimator: PoseEstimator, localiser: Localiser | None, limits: StreamLimits = StreamLimits(),
-                 mc_samples: int = 100, variance_threshold: float | None = None,
-                 max_expected_error_mm: float | None = None, bias_correction: bool = True) -> None:
+                 options: SessionOptions = SessionOptions()) -> None:
         self.estimator, self.localiser, self.limits = estimator, localiser, limits
         info = estimator.info
-        self.mc_samples = mc_samples
-        self.threshold = info.variance_threshold if variance_threshold is None else variance_threshold
-        self.max_expected_error_mm = (getattr(info, "max_expected_error_mm", None) if max_expected_error_mm is None
-                                      else max_expected_error_mm)
-        self.bias_correction = bias_correction
+        self.mc_samples = options.mc_samples
+        self.threshold = info.variance_threshold if options.variance_threshold is None else options.variance_threshold
+        self.max_expected_error_mm = (getattr(info, "max_expected_error_mm", None)
+                                      if options.max_expected_error_mm is None else options.max_expected_error_mm)
+        self.bias_correction = options.bias_correction
         self.stacks: dict[str, StreamedStack] = {}
         self.slices: dict[str, dict[int, _Slice]] = {}
         self.fits: dict[str, StackPoses] = {}

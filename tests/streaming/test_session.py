@@ -9,9 +9,12 @@ import pytest
 from service.core.errors import InvalidParameter
 from service.geometry import twin
 from service.streaming.frames import SliceFrame
-from service.streaming.session import StreamLimits, StreamSession
+from service.streaming.session import SessionOptions, StreamLimits, StreamSession
 from tests.api.conftest import INFO
 from tests.support.streams import SHAPE, KeyedOracle, true_sent, two_stacks_case
+
+
+FAST = SessionOptions(mc_samples=10, bias_correction=False)
 
 
 @pytest.fixture
@@ -21,7 +24,7 @@ def case() -> tuple[KeyedOracle, list[list[SliceFrame]], list[np.ndarray]]:
 
 def test_each_pose_places_the_slice_as_sent_where_the_simulation_put_it(case) -> None:  # noqa: ANN001
     oracle, stacks, truths = case
-    session = StreamSession(oracle, None, mc_samples=10, bias_correction=False)
+    session = StreamSession(oracle, None, options=FAST)
     for frames, truth in zip(stacks, truths):
         order = list(range(0, len(frames), 2)) + list(range(1, len(frames), 2))       # interleaved
         for k in order:
@@ -41,7 +44,7 @@ def test_each_pose_places_the_slice_as_sent_where_the_simulation_put_it(case) ->
 
 def test_a_slice_takes_the_branch_its_stack_decided(case) -> None:  # noqa: ANN001
     oracle, stacks, truths = case
-    session = StreamSession(oracle, None, mc_samples=10, bias_correction=False)
+    session = StreamSession(oracle, None, options=FAST)
     frames = stacks[0]
     for k in range(12):
         session.add_slice(frames[k])
@@ -58,8 +61,7 @@ def test_a_slice_takes_the_branch_its_stack_decided(case) -> None:  # noqa: ANN0
 
 def test_bad_slices_are_refused_and_change_nothing(case) -> None:  # noqa: ANN001
     oracle, stacks, _ = case
-    session = StreamSession(oracle, None, StreamLimits(max_slices=3, max_pixels=64 * 64), mc_samples=10,
-                            bias_correction=False)
+    session = StreamSession(oracle, None, StreamLimits(max_slices=3, max_pixels=64 * 64), FAST)
     first = stacks[0][0]
     session.add_slice(first)
     bad = [
