@@ -7,6 +7,8 @@ Commands::
     svrnet reconstruct STACK... [--mask M...] [--poses poses.json] [--resolution 0.8] [--svr-iterations 3]
                        [--poses-out refined.json]
                                 [--wait] [--out recon.nii.gz] [--preview preview.png]
+    svrnet stream STACK... [--mask M...] [--pace SECONDS] [--order sequential|interleaved]
+                           [--mc-samples N] [--max-expected-error MM] [--json-out messages.jsonl]
     svrnet status JOB
     svrnet cancel JOB
     svrnet models
@@ -40,19 +42,24 @@ import statistics
 from collections import Counter
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from enum import Enum
 from pathlib import Path
-from typing import Annotated, Any, Optional
+from typing import TYPE_CHECKING, Annotated, Any, Optional
 
 import httpx
 import typer
 from rich.console import Console
 from rich.progress import (BarColumn, DownloadColumn, Progress, SpinnerColumn, TaskProgressColumn, TextColumn,
                            TimeElapsedColumn, TransferSpeedColumn)
+from rich.live import Live
 from rich.table import Table
 
 from client._client import DEFAULT_SERVER, SVRnetClient
 from client.errors import (BadRequest, Busy, Conflict, ConnectionFailed, JobFailed, NotFound, PayloadTooLarge,
                            ServerError, SVRnetError, Unauthorized, UnsupportedFile, UnusableInput, WaitTimeout)
+
+if TYPE_CHECKING:                     # client.stream needs numpy and nibabel: imported by `svrnet stream` only
+    from client.stream import Sent
 
 EXIT_OK, EXIT_UNEXPECTED, EXIT_USAGE = 0, 1, 2
 EXIT_CONNECTION, EXIT_UNAUTHORIZED, EXIT_BAD_INPUT, EXIT_NOT_FOUND = 3, 4, 5, 6
@@ -388,6 +395,197 @@ def reconstruct(
         if poses_out is not None:
             _write_json(poses_out, svr.refined_poses(job_id))
             console.print(f"wrote {poses_out}")
+
+
+class SendOrder(str, Enum):
+    """The acquisition order ``svrnet stream`` sends a stack's slices in."""
+
+    sequential = "sequential"
+    interleaved = "interleaved"
+
+
+class StreamView:
+    """What ``svrnet stream`` shows: a table of the open stack's slices that grows as poses arrive
+    (``renderable``, for :class:`rich.live.Live`), and, printed above it, each finished stack's table,
+    a line on its acceptance and coverage, the slices of finished stacks that a later one moved, and
+    the server's errors in red."""
+
+    def __init__(self, console: Console) -> None:
+        self.console = console
+        self.rows: dict[tuple[str, int], dict[str, Any]] = {}    # (stack, index) -> the row's fields
+        self.finished: set[str] = set()                           # stacks whose `stack` message came
+
+    def on_message(self, message: dict[str, Any], answered: Sent | None) -> None:
+        kind = message.get("type")
+        if kind == "ready":
+            model = message.get("model") or {}
+            limit = message.get("max_expected_error_mm")
+            self.console.print(f"session {message.get('session_id', '?')} · model {model.get('name', '?')} "
+                               f"{model.get('version', '')} · mc_samples {message.get('mc_samples')} · accepted: "
+                               f"expected error <= {'-' if limit is None else f'{limit:.3g} mm'}")
+        elif kind == "pose":
+            self.rows[(message.get("stack"), message.get("index"))] = {**message, "updated": False}
+        elif kind == "update":
+            name = message.get("stack")
+            for moved in message.get("slices") or []:
+                row = self.rows.setdefault((name, moved.get("index")), {"stack": name})
+                row.update({k: v for k, v in moved.items() if k != "latency_ms"}, updated=True)
+            if name in self.finished:
+                self.console.print(f"update of stack {name}: " + ", ".join(
+                    f"#{s.get('index')} {' '.join(pose_cells(s)[2:4])}" for s in message.get("slices") or []),
+                    markup=False)
+        elif kind == "stack":
+            self.close_stack(message)
+        elif kind == "error":
+            about = f" ({sent_label(answered)})" if answered is not None else ""
+            head = " ".join(str(p) for p in (message.get("status"), message.get("title")) if p)
+            self.console.print(f"error{about}: {head}: {message.get('detail', '')}", style="red", markup=False)
+
+    def close_stack(self, message: dict[str, Any]) -> None:
+        """Print the stack's table with its final poses and the line on its acceptance and coverage."""
+        name = message.get("stack")
+        final = message.get("slices") or []
+        for s in final:
+            self.rows.setdefault((name, s.get("index")), {"stack": name}).update(
+                {k: v for k, v in s.items() if k != "latency_ms"})
+        self.finished.add(name)
+        rows = [row for (stack, _), row in self.rows.items() if stack == name]
+        self.console.print(self.table(sorted(rows, key=lambda r: r.get("index", 0)),
+                                      f"stack {name}: final poses"))
+        accepted = sum(1 for s in final if s.get("accepted"))
+        self.console.print(f"stack {name}: {accepted}/{len(final)} accepted · "
+                           f"reacquire: {reacquire_text(message.get('reacquire'))} · "
+                           f"coverage {coverage_text(message.get('coverage'))}", markup=False)
+
+    def table(self, rows: list[dict[str, Any]], title: str | None = None) -> Table:
+        table = Table(title=title, title_justify="left")
+        for col, just in (("stack", "left"), ("index", "right"), ("accepted", "left"),
+                          ("expected error", "right"), ("translation (mm)", "right"), ("latency", "right"),
+                          ("updated", "left")):
+            table.add_column(col, justify=just)  # type: ignore[arg-type]
+        for row in rows:
+            table.add_row(*pose_cells(row))
+        return table
+
+    def renderable(self) -> Table:
+        """The open stack's slices, the latest that fit the terminal."""
+        rows = [row for (stack, _), row in self.rows.items() if stack not in self.finished]
+        room = max(self.console.height - 8, 3)
+        return self.table(rows[-room:], f"streaming ({len(rows)} slices, the last {min(len(rows), room)} shown)"
+                          if len(rows) > room else "streaming")
+
+
+def sent_label(sent: Sent) -> str:
+    """How a message of the client is named to the user.
+
+    Example:
+        >>> from client.stream import Sent
+        >>> sent_label(Sent("slice", "ax", 3)), sent_label(Sent("end_stack", "ax"))
+        ('slice ax #3', 'end_stack ax')
+    """
+    return " ".join(p for p in (sent.type, sent.stack, None if sent.index is None else f"#{sent.index}") if p)
+
+
+def pose_cells(row: dict[str, Any]) -> list[str]:
+    """A pose's cells in ``svrnet stream``'s table.
+
+    Example:
+        >>> pose_cells({"stack": "ax", "index": 3, "accepted": False, "reason": "high_expected_error",
+        ...             "expected_error_mm": 7.25, "translation_mm": [1, -2.5, 30], "latency_ms": 21.4})
+        ['ax', '3', '✗ high_expected_error', '7.2 mm', '(1.0, -2.5, 30.0)', '21 ms', '']
+    """
+    expected, translation, latency = row.get("expected_error_mm"), row.get("translation_mm"), row.get("latency_ms")
+    return [str(row.get("stack", "")), str(row.get("index", "")),
+            "✓" if row.get("accepted") else f"✗ {row.get('reason') or ''}".rstrip(),
+            "-" if expected is None else f"{expected:.1f} mm",
+            "-" if not translation else "(" + ", ".join(f"{v:.1f}" for v in translation) + ")",
+            "-" if latency is None else f"{latency:.0f} ms", "updated" if row.get("updated") else ""]
+
+
+def reacquire_text(reacquire: list[dict[str, Any]] | None) -> str:
+    """The slices worth acquiring again, by reason.
+
+    Example:
+        >>> reacquire_text([{"index": 3, "reason": "high_expected_error"}, {"index": 7, "reason": "empty"},
+        ...                 {"index": 4, "reason": "high_expected_error"}])
+        'high_expected_error #3 #4; empty #7'
+        >>> reacquire_text([])
+        'none'
+    """
+    by_reason: dict[str, list[str]] = {}
+    for r in reacquire or []:
+        by_reason.setdefault(str(r.get("reason")), []).append(f"#{r.get('index')}")
+    return "; ".join(f"{reason} {' '.join(indices)}" for reason, indices in by_reason.items()) or "none"
+
+
+def coverage_text(coverage: dict[str, Any] | None) -> str:
+    """The coverage of the atlas brain in words.
+
+    Example:
+        >>> coverage_text({"brain_fraction": 0.834, "gaps": [{"extent_mm": 12.0}]})
+        '83% of the brain, 1 gap'
+    """
+    coverage = coverage or {}
+    fraction, gaps = coverage.get("brain_fraction"), len(coverage.get("gaps") or [])
+    return f"{'-' if fraction is None else f'{fraction:.0%}'} of the brain, {gaps} gap{'' if gaps == 1 else 's'}"
+
+
+@app.command(epilog=EXIT_HELP)
+def stream(
+    stacks: Annotated[list[Path], typer.Argument(exists=True, dir_okay=False, readable=True,
+                                                 help=".nii or .nii.gz stacks, sent one after the other")],
+    mask: MaskOpt = None,
+    server: ServerOpt = DEFAULT_SERVER,
+    api_key: Annotated[Optional[str], typer.Option(envvar="SVRNET_API_KEY", show_default=False,
+                                                   help="API key (default $SVRNET_API_KEY)")] = None,
+    pace: Annotated[float, typer.Option(
+        min=0, help="seconds between two slices (0: as fast as the answers come)")] = 0.0,
+    order: Annotated[SendOrder, typer.Option(help="acquisition order: sequential, or interleaved (even "
+                                                  "indices, then odd)")] = SendOrder.sequential,
+    mc_samples: Annotated[Optional[int], typer.Option(min=1, max=1000, help="MC-dropout passes per slice")] = None,
+    threshold: Annotated[Optional[float], typer.Option(
+        "--threshold", callback=_positive, help="variance threshold (default: the model's)")] = None,
+    max_expected_error: MaxExpectedOpt = None,
+    bias_correction: Annotated[bool, typer.Option("--bias-correction/--no-bias-correction",
+                                                  help="N4 bias-field correction")] = True,
+    model: Annotated[Optional[str], typer.Option(help="model name (see `svrnet models`)")] = None,
+    json_out: Annotated[Optional[Path], typer.Option(
+        "--json-out", dir_okay=False, help="write every message received here, one JSON object a line")] = None,
+) -> None:
+    """Send stacks slice by slice as a scanner would (WebSocket /v1/stream) and show each pose as it comes."""
+    from client import stream as streaming
+
+    _check_masks(stacks, mask)
+    _check_writable(json_out)
+    console = _stdout()
+    view = StreamView(console)
+    with _errors():
+        read = [streaming.read_stack(path, m) for path, m in zip(stacks, mask or [None] * len(stacks))]
+        names = Counter(st.name for st in read)
+        read = [streaming.ScannerStack(f"{st.name}#{i}" if names[st.name] > 1 else st.name, st.slice_axis, st.slices)
+                for i, st in enumerate(read)]
+        with Live(view.renderable(), console=console, auto_refresh=False, transient=True) as live:
+            def on_message(message: dict[str, Any], answered: Sent | None) -> None:
+                view.on_message(message, answered)
+                live.update(view.renderable(), refresh=True)
+
+            result = streaming.stream_stacks(
+                read, server, api_key=api_key or None, mc_samples=mc_samples, variance_threshold=threshold,
+                max_expected_error_mm=max_expected_error, bias_correction=None if bias_correction else False,
+                model=model, pace_s=pace, order=order.value, on_message=on_message, json_out=json_out,
+                answer_timeout_s=_timeout().read or 300.0)
+        summary = result.summary or {}
+        timing = summary.get("timing_ms") or {}
+        p50, p95 = timing.get("pose_latency_p50"), timing.get("pose_latency_p95")
+        console.print(f"session: {len(summary.get('stacks') or [])} stack(s), {summary.get('slices', 0)} slices · "
+                      f"pose latency p50 {'-' if p50 is None else f'{p50:.0f}'} ms, "
+                      f"p95 {'-' if p95 is None else f'{p95:.0f}'} ms · "
+                      f"coverage {coverage_text(summary.get('coverage'))}", markup=False)
+        errors = len(result.of_type("error"))
+        if errors:
+            console.print(f"{errors} error(s) from the server (above, in red)", style="red")
+        if json_out is not None:
+            console.print(f"wrote {json_out}")
 
 
 @app.command(epilog=EXIT_HELP)

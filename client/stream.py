@@ -1,0 +1,400 @@
+"""Stream v1 from the scanner side: stack files sent slice by slice over ``/v1/stream`` (``docs/stream.md``).
+
+A stack file is cut along its slice axis (the voxel axis of largest spacing, ties to the last, as
+``/v1/predict`` does) into the 2D slices a scanner would send (:func:`scanner_slices`);
+:func:`stream_stacks` sends them in one session over :func:`websockets.sync.client.connect`, a few
+slices ahead of their poses, and hands every message the server sends to a callback.
+
+Example:
+    >>> from client.stream import read_stack, stream_stacks
+    >>> stack = read_stack("ax.nii.gz", mask_path="ax_mask.nii.gz")                 # doctest: +SKIP
+    >>> result = stream_stacks([stack], "http://127.0.0.1:8000", mc_samples=20)      # doctest: +SKIP
+    >>> len(result.of_type("pose")), result.summary["coverage"]["brain_fraction"]    # doctest: +SKIP
+    (22, 0.41)
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from contextlib import nullcontext
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import nibabel as nib
+import numpy as np
+from numpy.typing import NDArray
+from websockets.exceptions import ConnectionClosed, InvalidStatus, InvalidURI, WebSocketException
+from websockets.sync.client import ClientConnection, connect
+
+from client._client import _USER_AGENT as USER_AGENT
+from client._client import DEFAULT_SERVER
+from client.errors import (Busy, ConnectionFailed, SVRnetError, UnsupportedFile, UnusableInput,
+                           error_class_for_status)
+
+__all__ = ["ScannerSlice", "ScannerStack", "Sent", "StreamResult", "ORDERS", "slice_axis_of", "scanner_slices",
+           "read_stack", "send_order", "stream_url", "stream_stacks"]
+
+SENT_DTYPES = ("uint8", "int16", "uint16")
+"""Pixel types sent as they are; any other is sent as ``float32`` (all little endian)."""
+ORDERS = ("sequential", "interleaved")
+MAX_IN_FLIGHT = 4
+"""Slices sent ahead of their poses at most, so that a slow server is never buried."""
+OPEN_TIMEOUT_S = 10.0
+MAX_MESSAGE_BYTES = 64 << 20
+"""Largest message taken from the server (a ``stack`` message of a long stack is a few MB)."""
+
+MessageCallback = Callable[[dict[str, Any], "Sent | None"], None]
+
+
+@dataclass(frozen=True)
+class ScannerSlice:
+    """One slice as a scanner sends it.
+
+    Attributes:
+        index: its position along the stack's slice axis, 0-based.
+        pixels: ``[n0, n1]``: the two in-plane voxel axes of the file, in increasing axis order.
+        scanner_from_voxel: ``4 x 4``: voxel ``(i0, i1, 0, 1)`` of ``pixels`` -> scanner RAS mm.
+        mask: ``[n0, n1]`` brain mask (``None``: the server finds the brain).
+    """
+
+    index: int
+    pixels: NDArray
+    scanner_from_voxel: NDArray[np.float64]
+    mask: NDArray[np.bool_] | None = None
+
+
+@dataclass(frozen=True)
+class ScannerStack:
+    """A stack file cut into the slices a scanner would send: its ``name`` in the session, the file's
+    ``slice_axis`` and its ``slices`` in index order."""
+
+    name: str
+    slice_axis: int
+    slices: list[ScannerSlice]
+
+
+@dataclass(frozen=True)
+class Sent:
+    """A message the client sent and the server answers: its ``type``, and ``stack`` and ``index`` where it has them."""
+
+    type: str
+    stack: str | None = None
+    index: int | None = None
+
+
+@dataclass
+class StreamResult:
+    """Every message of a session, in the order received (``messages``), its ``ready`` and ``summary``."""
+
+    ready: dict[str, Any] = field(default_factory=dict)
+    messages: list[dict[str, Any]] = field(default_factory=list)
+    summary: dict[str, Any] | None = None
+
+    def of_type(self, kind: str) -> list[dict[str, Any]]:
+        """The messages of one type (``pose``, ``update``, ``stack``, ``error`` ...), in order."""
+        return [m for m in self.messages if m.get("type") == kind]
+
+
+def slice_axis_of(spacing: Sequence[float]) -> int:
+    """The voxel axis of largest spacing; ties go to the last axis (as the server's ``/v1/predict``).
+
+    Example:
+        >>> slice_axis_of([1.0, 4.0, 1.0]), slice_axis_of([3.0, 1.0, 3.0]), slice_axis_of([2.0, 2.0, 2.0])
+        (1, 2, 2)
+    """
+    sp = np.asarray(spacing, dtype=np.float64)
+    return int(np.flatnonzero(sp >= sp.max() * (1 - 1e-6))[-1])
+
+
+def scanner_slices(image: NDArray, affine: NDArray, mask: NDArray | None = None) -> tuple[int, list[ScannerSlice]]:
+    """The slices a scanner would send of a 3D ``image`` with its voxel -> RAS mm ``affine``.
+
+    Args:
+        image: the stack's voxels ``[n_x, n_y, n_z]``.
+        affine: ``4 x 4``, voxel -> RAS mm (a NIfTI file's affine).
+        mask: brain mask on the image's grid, or ``None``.
+
+    Returns:
+        The slice axis and the slices in index order: voxel ``(i0, i1, 0)`` of slice ``k`` is voxel
+        ``(k, i0, i1)``, ``(i0, k, i1)`` or ``(i0, i1, k)`` of ``image`` as the slice axis is 0, 1 or 2.
+
+    Example:
+        >>> affine = np.diag([1.0, 4.0, 1.5, 1.0])                 # axis 1 is the thickest: the slice axis
+        >>> axis, slices = scanner_slices(np.arange(24).reshape(2, 3, 4), affine)
+        >>> axis, len(slices), slices[2].pixels.shape, int(slices[2].pixels[1, 3])
+        (1, 3, (2, 4), 23)
+        >>> slices[2].scanner_from_voxel @ [1, 3, 0, 1]             # voxel (1, 2, 3) of the file
+        array([1. , 8. , 4.5, 1. ])
+    """
+    affine = np.asarray(affine, dtype=np.float64)
+    axis = slice_axis_of(np.linalg.norm(affine[:3, :3], axis=0))
+    first, second = (ax for ax in range(3) if ax != axis)
+    reordered = affine[:, [first, second, axis, 3]]
+    slices = []
+    for k in range(image.shape[axis]):
+        at = (slice(None),) * axis + (k,)
+        scanner_from_voxel = reordered.copy()
+        scanner_from_voxel[:3, 3] = affine[:3, 3] + k * affine[:3, axis]
+        slices.append(ScannerSlice(k, image[at], scanner_from_voxel, None if mask is None else mask[at] > 0))
+    return axis, slices
+
+
+def _volume(path: Path, what: str) -> tuple[NDArray, NDArray[np.float64]]:
+    """A 3D NIfTI file's voxels (scaled where the file says) and its affine."""
+    try:
+        img = nib.load(str(path))
+        data = np.asanyarray(img.dataobj)
+    except nib.filebasedimages.ImageFileError as e:
+        raise UnsupportedFile(f"{what}: {path.name} is not a NIfTI file nibabel can read ({e})") from None
+    data = data.reshape(data.shape[:3]) if data.ndim > 3 and np.prod(data.shape[3:]) == 1 else data
+    if data.ndim != 3:
+        raise UnusableInput(f"{what}: {path.name} has shape {data.shape}; a stack is 3D")
+    return data, np.asarray(img.affine, dtype=np.float64)
+
+
+def read_stack(path: str | Path, mask_path: str | Path | None = None, name: str | None = None) -> ScannerStack:
+    """A NIfTI stack file (and its mask on the same grid) cut into the slices a scanner would send.
+
+    Pixels of ``uint8``, ``int16`` or ``uint16`` files go out as they are; any other type as ``float32``.
+
+    Args:
+        path: the stack file (``.nii`` or ``.nii.gz``).
+        mask_path: its brain mask on the same grid, or ``None`` (the server finds the brain).
+        name: the stack's name in the session (default: the file name without its extension).
+
+    Raises:
+        UnsupportedFile: a file nibabel cannot read. UnusableInput: not 3D, or the mask's grid differs.
+    """
+    path = Path(path)
+    image, affine = _volume(path, "stack")
+    if image.dtype.name not in SENT_DTYPES:
+        image = image.astype(np.float32)
+    mask = None
+    if mask_path is not None:
+        mask, mask_affine = _volume(Path(mask_path), "mask")
+        if mask.shape != image.shape or not np.allclose(mask_affine, affine, atol=1e-3):
+            raise UnusableInput(f"mask: the grid of {Path(mask_path).name} ({mask.shape}) differs from that of its "
+                                f"stack {path.name} ({image.shape})")
+    axis, slices = scanner_slices(image, affine, mask)
+    return ScannerStack(name or path.name.removesuffix(".gz").removesuffix(".nii"), axis, slices)
+
+
+def send_order(count: int, order: str = "sequential") -> list[int]:
+    """The slice indices of a stack of ``count`` slices in the order they are sent (acquired).
+
+    Example:
+        >>> send_order(5, "sequential"), send_order(5, "interleaved")
+        ([0, 1, 2, 3, 4], [0, 2, 4, 1, 3])
+    """
+    if order == "sequential":
+        return list(range(count))
+    if order == "interleaved":
+        return list(range(0, count, 2)) + list(range(1, count, 2))
+    raise ValueError(f"order: {order!r} is none of {', '.join(ORDERS)}")
+
+
+def stream_url(server: str) -> str:
+    """The WebSocket address of ``/v1/stream`` on a server given by its HTTP(S) address.
+
+    Example:
+        >>> stream_url("http://127.0.0.1:8000"), stream_url("https://svr.example/api/")
+        ('ws://127.0.0.1:8000/v1/stream', 'wss://svr.example/api/v1/stream')
+    """
+    scheme, sep, rest = server.strip().partition("://")
+    schemes = {"http": "ws", "https": "wss", "ws": "ws", "wss": "wss"}
+    if not sep or scheme.lower() not in schemes:
+        raise ConnectionFailed(f"{server}: not an http(s):// or ws(s):// address of a server")
+    return f"{schemes[scheme.lower()]}://{rest.rstrip('/')}/v1/stream"
+
+
+def _server_error(message: dict[str, Any]) -> SVRnetError:
+    """The client error of an ``error`` message (a ``Busy`` with ``retry_after_s`` where it says)."""
+    status = message.get("status") if isinstance(message.get("status"), int) else 400
+    detail = str(message.get("detail") or message.get("title") or f"error {status}")
+    kwargs = {"status": status, "title": message.get("title"), "type": message.get("problem_type"), "body": message}
+    if error_class_for_status(status) is Busy:
+        return Busy(detail, retry_after_s=message.get("retry_after_s"), **kwargs)
+    return error_class_for_status(status)(detail, **kwargs)
+
+
+class _Session:
+    """One connection: sends what the client has, reads what the server answers (one thread)."""
+
+    def __init__(self, ws: ClientConnection, on_message: MessageCallback | None, record: IO[str] | None,
+                 answer_timeout_s: float) -> None:
+        self.ws, self.on_message, self.record, self.answer_timeout_s = ws, on_message, record, answer_timeout_s
+        self.unanswered: deque[Sent] = deque()
+        self.result = StreamResult()
+        self.last_error: dict[str, Any] | None = None
+
+    def send(self, header: dict[str, Any], *frames: bytes) -> None:
+        """A text message and its binary frames; it is then owed one answer."""
+        self.unanswered.append(Sent(header["type"], header.get("stack"), header.get("index")))
+        try:
+            self.ws.send(json.dumps(header))
+            for frame in frames:
+                self.ws.send(frame)
+        except ConnectionClosed:
+            while True:                   # what the server said before it closed, then why it closed
+                self.receive(None)
+
+    def wait_to_send(self, not_before: float, max_in_flight: int) -> None:
+        """Handle messages until fewer than ``max_in_flight`` slices await their pose and the clock
+        (``time.monotonic``) has passed ``not_before``; then those that have come already."""
+        while sum(1 for s in self.unanswered if s.type == "slice") >= max_in_flight:
+            self.receive(None)
+        while time.monotonic() < not_before:
+            self.receive(not_before - time.monotonic())
+        while self.receive(0):
+            pass
+
+    def receive(self, timeout: float | None) -> bool:
+        """Handle the next message; False when none came within ``timeout`` seconds (``None``: the
+        answer timeout, then :class:`ConnectionFailed`)."""
+        try:
+            data = self.ws.recv(timeout=self.answer_timeout_s if timeout is None else max(timeout, 0.0))
+        except TimeoutError:
+            if timeout is None:
+                raise ConnectionFailed(f"no answer from the server in {self.answer_timeout_s:g} s") from None
+            return False
+        except ConnectionClosed as e:
+            raise self.closed_error(e) from None
+        self.handle(data)
+        return True
+
+    def handle(self, data: str | bytes) -> None:
+        """Record a message, match it to the message it answers (every message of the client gets one
+        answer, in order; an ``update`` answers none) and hand both to the callback."""
+        message = json.loads(data) if isinstance(data, str) else None
+        if not isinstance(message, dict):
+            return
+        if self.record is not None:
+            self.record.write(json.dumps(message) + "\n")
+            self.record.flush()
+        self.result.messages.append(message)
+        kind = message.get("type")
+        answered = self.unanswered.popleft() if kind != "update" and self.unanswered else None
+        if kind == "ready":
+            self.result.ready = message
+        elif kind == "summary":
+            self.result.summary = message
+        elif kind == "error":
+            self.last_error = message
+            if (answered is not None and answered.type == "start") or message.get("status") == 401:
+                raise _server_error(message)
+        if self.on_message is not None:
+            self.on_message(message, answered)
+
+    def closed_error(self, e: ConnectionClosed) -> SVRnetError:
+        """Why the server closed the session early: a refusal (1008, 1013) as its last ``error`` says,
+        else the close code and reason (or, for an idle session, 1001, its ``error``'s detail)."""
+        code, reason = (e.rcvd.code, e.rcvd.reason) if e.rcvd is not None else (1006, "no close frame")
+        said = self.last_error or {}
+        if code in (1008, 1013) and said:
+            return _server_error(said)
+        if code == 1013:
+            return Busy("the server is busy (close code 1013)", status=503)
+        why = said.get("detail") if code == 1001 and said else reason
+        return ConnectionFailed(f"the server closed the stream (close code {code}{': ' + why if why else ''})")
+
+
+def stream_stacks(stacks: Sequence[ScannerStack], server: str = DEFAULT_SERVER, *, api_key: str | None = None,
+                  mc_samples: int | None = None, variance_threshold: float | None = None,
+                  max_expected_error_mm: float | None = None, bias_correction: bool | None = None,
+                  model: str | None = None, pace_s: float = 0.0, order: str = "sequential",
+                  on_message: MessageCallback | None = None, json_out: str | Path | None = None,
+                  answer_timeout_s: float = 300.0, max_in_flight: int = MAX_IN_FLIGHT) -> StreamResult:
+    """Stream stacks in one session: ``start``, every slice of each stack then its ``end_stack``, ``end``.
+
+    Slices go out every ``pace_s`` seconds (0: as fast as the answers come), at most
+    ``max_in_flight`` of them ahead of their poses. An ``error`` answering a slice or an ``end_stack``
+    is handed to ``on_message`` and the session goes on; one answering ``start``, or a 401, ends it.
+
+    Args:
+        stacks: the stacks, in the order they are sent (see :func:`read_stack`).
+        server: the server's address (``http(s)://`` or ``ws(s)://``).
+        api_key: sent as ``Authorization: Bearer``.
+        mc_samples: MC-dropout passes per slice (server default 100).
+        variance_threshold: as for ``/v1/predict`` (default: the model's).
+        max_expected_error_mm: as for ``/v1/predict`` (default: the model's).
+        bias_correction: N4 bias-field correction (server default true).
+        model: the model's name (server default ``default``).
+        pace_s: seconds between two slices.
+        order: ``sequential`` or ``interleaved`` (even indices, then odd): the order slices go out in.
+        on_message: called with every message received and the message of the client it answers
+            (``None`` for an ``update``).
+        json_out: where every message received is written, one JSON object a line.
+        answer_timeout_s: the longest wait for an answer before :class:`ConnectionFailed`.
+        max_in_flight: slices sent ahead of their poses at most.
+
+    Returns:
+        Every message received; its ``summary`` is that of the session.
+
+    Raises:
+        ConnectionFailed: no connection, no answer, or the server closed the session early.
+        Unauthorized: a missing or wrong API key. Busy: the server's sessions are all taken (1013).
+        UnusableInput: slices over the server's ``ready.limits`` (before any is sent).
+        SVRnetError: the server refused ``start`` (its error's class).
+    """
+    options = {"model": model, "mc_samples": mc_samples, "variance_threshold": variance_threshold,
+               "max_expected_error_mm": max_expected_error_mm, "bias_correction": bias_correction}
+    orders = [send_order(len(stack.slices), order) for stack in stacks]
+    with (open(json_out, "w", encoding="utf-8") if json_out is not None else nullcontext()) as record, \
+            _connect(stream_url(server), api_key) as ws:
+        session = _Session(ws, on_message, record, answer_timeout_s)
+        session.send({"type": "start", **{k: v for k, v in options.items() if v is not None}})
+        while not session.result.ready:
+            session.receive(None)
+        _check_limits(stacks, session.result.ready.get("limits") or {})
+        next_send = time.monotonic()
+        for stack, indices in zip(stacks, orders):
+            for position, k in enumerate(indices):
+                session.wait_to_send(next_send, max_in_flight)
+                header, frames = _slice_message(stack.name, stack.slices[k], position)
+                session.send(header, *frames)
+                next_send = time.monotonic() + pace_s
+            session.send({"type": "end_stack", "stack": stack.name})
+        session.send({"type": "end"})
+        while session.result.summary is None:
+            session.receive(None)
+        return session.result
+
+
+def _connect(url: str, api_key: str | None) -> ClientConnection:
+    """The open WebSocket; a refusal as the client's errors (an HTTP status as its class)."""
+    try:
+        return connect(url, additional_headers={"Authorization": f"Bearer {api_key}"} if api_key else None,
+                       open_timeout=OPEN_TIMEOUT_S, max_size=MAX_MESSAGE_BYTES, user_agent_header=USER_AGENT)
+    except InvalidStatus as e:
+        status = e.response.status_code
+        raise error_class_for_status(status)(f"{url}: the server refused the WebSocket ({status})",
+                                             status=status) from None
+    except (OSError, TimeoutError, InvalidURI, WebSocketException) as e:
+        raise ConnectionFailed(f"cannot open {url}: {type(e).__name__}: {e}") from None
+
+
+def _check_limits(stacks: Sequence[ScannerStack], limits: dict[str, Any]) -> None:
+    """Refuse, before any slice is sent, what the server would refuse slice by slice (``ready.limits``)."""
+    pixels, slices = limits.get("pixels_per_slice") or np.inf, limits.get("slices") or np.inf
+    for stack in stacks:
+        if stack.slices and stack.slices[0].pixels.size > pixels:
+            raise UnusableInput(f"stack {stack.name}: slices of {stack.slices[0].pixels.shape} pixels are over "
+                                f"the server's limit of {pixels} pixels a slice")
+    if sum(len(st.slices) for st in stacks) > slices:
+        raise UnusableInput(f"{sum(len(st.slices) for st in stacks)} slices: over the server's limit of {slices}")
+
+
+def _slice_message(stack: str, s: ScannerSlice, acquisition_index: int) -> tuple[dict[str, Any], list[bytes]]:
+    """The ``slice`` message of ``s`` and its binary frames (pixels, then the mask if any)."""
+    dtype = s.pixels.dtype.name if s.pixels.dtype.name in SENT_DTYPES else "float32"
+    header = {"type": "slice", "stack": stack, "index": s.index, "acquisition_index": acquisition_index,
+              "shape": list(s.pixels.shape), "dtype": dtype,
+              "scanner_from_voxel": np.asarray(s.scanner_from_voxel).tolist(), "mask": s.mask is not None}
+    frames = [np.ascontiguousarray(s.pixels, np.dtype(dtype).newbyteorder("<")).tobytes()]
+    if s.mask is not None:
+        frames.append(np.ascontiguousarray(s.mask, np.uint8).tobytes())
+    return header, frames

@@ -1,0 +1,246 @@
+"""``svrnet stream``: the slices a stack file is cut into (against the file's affine, voxel by voxel),
+the session against a scripted WebSocket server (errors shown, the stream going on, exit codes), and
+end to end against a real ``svrnet-server`` with the shipped model."""
+
+from __future__ import annotations
+
+import json
+import socket
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import nibabel as nib
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from typer.testing import CliRunner
+from websockets.sync.server import ServerConnection, serve
+
+import client.cli as cli
+from client.errors import UnusableInput
+from client.stream import read_stack, scanner_slices, send_order
+
+runner = CliRunner(env={"COLUMNS": "200"})
+
+
+# --- (a) the geometry of the slices, against the file ------------------------------------------------------
+
+
+def oblique_affine(spacing: tuple[float, float, float], seed: int) -> np.ndarray:
+    affine = np.eye(4)
+    affine[:3, :3] = Rotation.from_rotvec(np.random.default_rng(seed).normal(size=3)).as_matrix() * spacing
+    affine[:3, 3] = (-40.0, 12.5, 7.0)
+    return affine
+
+
+@pytest.mark.parametrize(("spacing", "axis"), [((4.0, 1.0, 1.2), 0), ((1.0, 3.5, 1.2), 1), ((1.1, 1.0, 3.0), 2),
+                                               ((2.0, 2.0, 2.0), 2), ((3.0, 1.0, 3.0), 2)])
+def test_every_pixel_of_every_slice_sits_where_the_file_puts_its_voxel(spacing: tuple[float, float, float],
+                                                                       axis: int) -> None:
+    shape = (7, 6, 5)
+    image = np.random.default_rng(1).normal(size=shape).astype(np.float32)
+    mask = np.random.default_rng(2).random(shape) > 0.5
+    affine = oblique_affine(spacing, seed=axis)
+    got_axis, slices = scanner_slices(image, affine, mask)
+    assert got_axis == axis and [s.index for s in slices] == list(range(shape[axis]))
+    first, second = [ax for ax in range(3) if ax != axis]
+    for s in slices:
+        assert s.pixels.shape == (shape[first], shape[second]) and s.mask is not None
+        i0, i1 = np.meshgrid(np.arange(shape[first]), np.arange(shape[second]), indexing="ij")
+        voxel = np.zeros((*i0.shape, 3), int)
+        voxel[..., first], voxel[..., second], voxel[..., axis] = i0, i1, s.index
+        in_slice = np.stack([i0, i1, np.zeros_like(i0), np.ones_like(i0)], -1).astype(float)
+        in_file = np.concatenate([voxel, np.ones((*i0.shape, 1))], -1).astype(float)
+        assert np.allclose(in_slice @ s.scanner_from_voxel.T, in_file @ affine.T, atol=1e-9)
+        assert np.array_equal(s.pixels, image[voxel[..., 0], voxel[..., 1], voxel[..., 2]])
+        assert np.array_equal(s.mask, mask[voxel[..., 0], voxel[..., 1], voxel[..., 2]])
+        assert np.allclose(s.scanner_from_voxel[:3, 2], affine[:3, axis])          # normal x thickness
+        assert np.allclose(s.scanner_from_voxel[3], [0, 0, 0, 1])
+
+
+def test_a_file_is_read_with_its_type_and_its_mask_must_share_its_grid(tmp_path: Path) -> None:
+    affine = oblique_affine((1.0, 3.0, 1.0), seed=4)
+    image = np.arange(5 * 4 * 3, dtype=np.int16).reshape(5, 4, 3)
+    nib.save(nib.Nifti1Image(image, affine), tmp_path / "cor.nii.gz")
+    nib.save(nib.Nifti1Image((image % 2).astype(np.uint8), affine), tmp_path / "m.nii.gz")
+    nib.save(nib.Nifti1Image(np.zeros((5, 4, 2), np.uint8), affine), tmp_path / "other.nii.gz")
+    stack = read_stack(tmp_path / "cor.nii.gz", tmp_path / "m.nii.gz")
+    assert (stack.name, stack.slice_axis, len(stack.slices)) == ("cor", 1, 4)
+    assert stack.slices[2].pixels.dtype == np.int16 and np.array_equal(stack.slices[2].pixels, image[:, 2, :])
+    assert np.array_equal(stack.slices[2].mask, image[:, 2, :] % 2 == 1)
+    with pytest.raises(UnusableInput, match="differs"):
+        read_stack(tmp_path / "cor.nii.gz", tmp_path / "other.nii.gz")
+
+
+def test_send_orders() -> None:
+    assert send_order(6, "interleaved") == [0, 2, 4, 1, 3, 5] and send_order(1, "interleaved") == [0]
+    with pytest.raises(ValueError, match="order"):
+        send_order(3, "random")
+
+
+# --- (b) against a scripted server: the messages, the table, errors and exit codes ---------------------------
+
+
+@pytest.fixture
+def stack_file(tmp_path: Path) -> Path:
+    path = tmp_path / "ax.nii.gz"
+    nib.save(nib.Nifti1Image(np.random.default_rng(0).random((6, 5, 4)).astype(np.float32),
+                             np.diag([1.0, 1.0, 3.0, 1.0])), path)
+    return path
+
+
+@contextmanager
+def scripted_server(handler: Callable[[ServerConnection], None]) -> Iterator[str]:
+    """A WebSocket server on a free port running ``handler`` per connection; yields its http:// address."""
+    with serve(handler, "127.0.0.1", 0) as server:
+        thread = threading.Thread(target=server.serve_forever, daemon=True)
+        thread.start()
+        try:
+            yield f"http://127.0.0.1:{server.socket.getsockname()[1]}"
+        finally:
+            server.shutdown()
+            thread.join(timeout=5)
+
+
+def pose(msg: dict, **fields: object) -> dict:
+    return {"type": "pose", "stack": msg["stack"], "index": msg["index"], "accepted": True, "reason": None,
+            "expected_error_mm": 2.0, "translation_mm": [1.0, 2.0, float(msg["index"])], "latency_ms": 12.0, **fields}
+
+
+def test_a_scripted_session_shows_poses_updates_errors_and_the_summary(stack_file: Path, tmp_path: Path) -> None:
+    heard: list[tuple[dict, list[bytes]]] = []
+    keys: list[str | None] = []
+
+    def handler(ws: ServerConnection) -> None:
+        keys.append(ws.request.headers.get("Authorization"))
+        assert json.loads(ws.recv())["mc_samples"] == 10
+        ws.send(json.dumps({"type": "ready", "session_id": "s1", "model": {"name": "default", "version": "1"},
+                            "mc_samples": 10, "max_expected_error_mm": 5.0,
+                            "limits": {"slices": 100, "pixels_per_slice": 1000, "idle_s": 30}}))
+        while True:
+            msg = json.loads(ws.recv())
+            frames = [ws.recv() for _ in range(1 + bool(msg.get("mask")))] if msg["type"] == "slice" else []
+            heard.append((msg, frames))
+            if msg["type"] == "slice" and (msg["stack"], msg["index"]) == ("ax", 1):
+                ws.send(json.dumps({"type": "error", "problem_type": "/problems/invalid-parameter",
+                                    "title": "Invalid parameter", "status": 400, "detail": "slice: made up"}))
+            elif msg["type"] == "slice":
+                rejected = (msg["stack"], msg["index"]) == ("ax", 3)
+                reason = "high_expected_error" if rejected else None
+                ws.send(json.dumps(pose(msg, accepted=not rejected, reason=reason)))
+            elif msg["type"] == "end_stack":                  # cor moves a slice of ax, ended before it
+                moved = {"stack": "ax", "index": 0 if msg["stack"] == "ax" else 2}
+                ws.send(json.dumps({"type": "update", "stack": "ax", "slices": [pose(moved, expected_error_mm=1.5)]}))
+                final = (0, 2) if msg["stack"] == "ax" else (0, 1, 2, 3)
+                ws.send(json.dumps({"type": "stack", "stack": msg["stack"],
+                                    "slices": [pose({"stack": msg["stack"], "index": k}) for k in final],
+                                    "reacquire": [{"index": 3, "reason": "high_expected_error"}] if len(final) < 4
+                                    else [], "coverage": {"brain_fraction": 0.42, "gaps": [{"extent_mm": 9.0}]}}))
+            elif msg["type"] == "end":
+                ws.send(json.dumps({"type": "summary", "stacks": ["ax", "cor"], "slices": 7,
+                                    "coverage": {"brain_fraction": 0.42, "gaps": []},
+                                    "timing_ms": {"pose_latency_p50": 12.0, "pose_latency_p95": 19.0}}))
+                ws.close(1000)
+                return
+
+    cor = tmp_path / "cor.nii.gz"
+    cor.write_bytes(stack_file.read_bytes())
+    out = tmp_path / "messages.jsonl"
+    with scripted_server(handler) as url:
+        result = runner.invoke(cli.app, ["stream", str(stack_file), str(cor), "--server", url, "--api-key", "k1",
+                                         "--order", "interleaved", "--mc-samples", "10", "--json-out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert keys == ["Bearer k1"]
+    slices = [(m, f) for m, f in heard if m["type"] == "slice"]
+    assert [(m["stack"], m["index"]) for m, _ in slices] == [("ax", 0), ("ax", 2), ("ax", 1), ("ax", 3),
+                                                            ("cor", 0), ("cor", 2), ("cor", 1), ("cor", 3)]
+    assert [m["acquisition_index"] for m, _ in slices] == [0, 1, 2, 3] * 2
+    assert all(m["dtype"] == "float32" and m["shape"] == [6, 5] and len(f) == 1 and len(f[0]) == 6 * 5 * 4
+               for m, f in slices)
+    assert [m["type"] for m, _ in heard if m["type"] != "slice"] == ["end_stack", "end_stack", "end"]
+    text = " ".join(result.output.split())
+    assert "error (slice ax #1): 400 Invalid parameter: slice: made up" in text
+    assert "✗ high_expected_error" in text and "updated" in text
+    assert "stack ax: 2/2 accepted · reacquire: high_expected_error #3 · coverage 42% of the brain, 1 gap" in text
+    assert "update of stack ax: #2 ✓ 1.5 mm" in text and "stack cor: 4/4 accepted · reacquire: none" in text
+    assert ("session: 2 stack(s), 7 slices · pose latency p50 12 ms, p95 19 ms · "
+            "coverage 42% of the brain, 0 gaps") in text
+    kinds = [json.loads(line)["type"] for line in out.read_text().splitlines()]
+    assert kinds == ["ready", "pose", "pose", "error", "pose", "update", "stack", "pose", "pose", "pose", "pose",
+                     "update", "stack", "summary"]
+
+
+@pytest.mark.parametrize(("answer", "code"), [
+    ({"type": "error", "title": "Service saturated", "status": 503, "detail": "32 stream sessions are open",
+      "retry_after_s": 2}, 1013),
+    ({"type": "error", "title": "Unauthorized", "status": 401, "detail": "missing or invalid API key"}, 1008),
+], ids=["busy-1013", "unauthorized-1008"])
+def test_a_refused_session_exits_with_the_clients_codes(stack_file: Path, answer: dict, code: int) -> None:
+    def handler(ws: ServerConnection) -> None:
+        ws.recv()
+        ws.send(json.dumps(answer))
+        ws.close(code)
+
+    with scripted_server(handler) as url:
+        result = runner.invoke(cli.app, ["stream", str(stack_file), "--server", url])
+    assert result.exit_code == {1013: cli.EXIT_BUSY, 1008: cli.EXIT_UNAUTHORIZED}[code], result.output
+    assert answer["detail"] in " ".join(result.output.split())
+
+
+def test_no_server_exits_with_connection_failed(stack_file: Path) -> None:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    result = runner.invoke(cli.app, ["stream", str(stack_file), "--server", f"http://127.0.0.1:{port}"])
+    assert result.exit_code == cli.EXIT_CONNECTION and "cannot open ws://127.0.0.1" in result.output
+
+
+# --- (c) end to end: a real svrnet-server with the shipped model ---------------------------------------------------
+
+
+def phantom_stack(directory: Path, name: str, slice_axis: int) -> tuple[Path, Path]:
+    """A 64 x 64 x 12 stack of the phantom brain (12 slices along ``slice_axis``) and its mask, as NIfTI."""
+    from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine
+
+    shape = [64, 64, 64]
+    shape[slice_axis] = 12
+    affine = stack_affine(slice_axis, np.eye(3), 2.0, 5.0, tuple(shape))
+    image, mask = acquire_stack(*phantom_brain(7), affine, tuple(shape), slice_axis,
+                                np.broadcast_to(np.eye(4), (12, 4, 4)))
+    paths = directory / f"{name}.nii.gz", directory / f"{name}_mask.nii.gz"
+    nib.save(nib.Nifti1Image((image * 10).astype(np.int16), affine), paths[0])
+    nib.save(nib.Nifti1Image(mask.astype(np.uint8), affine), paths[1])
+    return paths
+
+
+@pytest.mark.slow
+def test_end_to_end_against_a_real_server(tmp_path: Path) -> None:
+    from tests.support.live_server import Server
+
+    (ax, ax_mask), (cor, cor_mask) = phantom_stack(tmp_path, "ax", 2), phantom_stack(tmp_path, "cor", 1)
+    server = Server(tmp_path / "data", tmp_path / "server.log")
+    try:
+        out = tmp_path / "messages.jsonl"
+        result = runner.invoke(cli.app, ["stream", str(ax), str(cor), "--mask", str(ax_mask), "--mask", str(cor_mask),
+                                         "--server", server.url, "--mc-samples", "10", "--no-bias-correction",
+                                         "--order", "interleaved", "--json-out", str(out)])
+    finally:
+        server.stop(15)
+        server.kill_group()
+    assert result.exit_code == 0, result.output + (tmp_path / "server.log").read_text()[-3000:]
+    messages = [json.loads(line) for line in out.read_text().splitlines()]
+    assert messages[0]["type"] == "ready" and messages[-1]["type"] == "summary"
+    answers = [m["type"] for m in messages if m["type"] not in ("pose", "update")]
+    assert answers == ["ready", "stack", "stack", "summary"]
+    sent = [("ax", k) for k in send_order(12, "interleaved")] + [("cor", k) for k in send_order(12, "interleaved")]
+    assert [(m["stack"], m["index"]) for m in messages if m["type"] == "pose"] == sent
+    stacks = [m for m in messages if m["type"] == "stack"]
+    assert [s["stack"] for s in stacks] == ["ax", "cor"]
+    assert all(sorted(s["index"] for s in st["slices"]) == list(range(12)) for st in stacks)
+    summary = messages[-1]
+    assert summary["stacks"] == ["ax", "cor"] and summary["slices"] == 24
+    assert "pose_latency_p95" in summary["timing_ms"] and 0.0 <= summary["coverage"]["brain_fraction"] <= 1.0
+    text = " ".join(result.output.split())
+    assert "stack ax:" in text and "stack cor:" in text and "session: 2 stack(s), 24 slices" in text
