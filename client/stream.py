@@ -292,7 +292,7 @@ class _Session:
     def closed_error(self, e: ConnectionClosed) -> SVRnetError:
         """Why the server closed the session early: a refusal (1008, 1013) as its last ``error`` says,
         else the close code and reason (or, for an idle session, 1001, its ``error``'s detail)."""
-        code, reason = (e.rcvd.code, e.rcvd.reason) if e.rcvd is not None else (1006, "no close frame")
+        code, reason = (e.rcvd.code, e.rcvd.reason) if e.rcvd is not None else (1006, str(e))
         said = self.last_error or {}
         if code in (1008, 1013) and said:
             return _server_error(said)
@@ -344,7 +344,7 @@ def stream_stacks(stacks: Sequence[ScannerStack], server: str = DEFAULT_SERVER, 
                "max_expected_error_mm": max_expected_error_mm, "bias_correction": bias_correction}
     orders = [send_order(len(stack.slices), order) for stack in stacks]
     with (open(json_out, "w", encoding="utf-8") if json_out is not None else nullcontext()) as record, \
-            _connect(stream_url(server), api_key) as ws:
+            _connect(stream_url(server), api_key, answer_timeout_s) as ws:
         session = _Session(ws, on_message, record, answer_timeout_s)
         session.send({"type": "start", **{k: v for k, v in options.items() if v is not None}})
         while not session.result.ready:
@@ -364,11 +364,13 @@ def stream_stacks(stacks: Sequence[ScannerStack], server: str = DEFAULT_SERVER, 
         return session.result
 
 
-def _connect(url: str, api_key: str | None) -> ClientConnection:
-    """The open WebSocket; a refusal as the client's errors (an HTTP status as its class)."""
+def _connect(url: str, api_key: str | None, answer_timeout_s: float) -> ClientConnection:
+    """The open WebSocket; a refusal as the client's errors (an HTTP status as its class). Its
+    keep-alive pings wait as long as an answer may take: a server busy ending a stack can be slow to pong."""
     try:
         return connect(url, additional_headers={"Authorization": f"Bearer {api_key}"} if api_key else None,
-                       open_timeout=OPEN_TIMEOUT_S, max_size=MAX_MESSAGE_BYTES, user_agent_header=USER_AGENT)
+                       open_timeout=OPEN_TIMEOUT_S, ping_timeout=answer_timeout_s, max_size=MAX_MESSAGE_BYTES,
+                       user_agent_header=USER_AGENT)
     except InvalidStatus as e:
         status = e.response.status_code
         raise error_class_for_status(status)(f"{url}: the server refused the WebSocket ({status})",
