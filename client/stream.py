@@ -38,8 +38,7 @@ from client.errors import (Busy, ConnectionFailed, SVRnetError, UnsupportedFile,
 __all__ = ["ScannerSlice", "ScannerStack", "Sent", "StreamResult", "ORDERS", "slice_axis_of", "scanner_slices",
            "read_stack", "send_order", "stream_url", "stream_stacks"]
 
-SENT_DTYPES = ("uint8", "int16", "uint16")
-"""Pixel types sent as they are; any other is sent as ``float32`` (all little endian)."""
+SENT_DTYPES = ("uint8", "int16", "uint16")   # sent as they are; any other as float32 (all little endian)
 ORDERS = ("sequential", "interleaved")
 MAX_IN_FLIGHT = 4
 """Slices sent ahead of their poses at most, so that a slow server is never buried."""
@@ -284,7 +283,7 @@ class _Session:
             self.result.summary = message
         elif kind == "error":
             self.last_error = message
-            if (answered is not None and answered.type == "start") or message.get("status") == 401:
+            if (answered is not None and answered.type in ("start", "end")) or message.get("status") == 401:
                 raise _server_error(message)
         if self.on_message is not None:
             self.on_message(message, answered)
@@ -312,7 +311,7 @@ def stream_stacks(stacks: Sequence[ScannerStack], server: str = DEFAULT_SERVER, 
 
     Slices go out every ``pace_s`` seconds (0: as fast as the answers come), at most
     ``max_in_flight`` of them ahead of their poses. An ``error`` answering a slice or an ``end_stack``
-    is handed to ``on_message`` and the session goes on; one answering ``start``, or a 401, ends it.
+    is handed to ``on_message`` and the session goes on; one answering ``start`` or ``end``, or a 401, ends it.
 
     Args:
         stacks: the stacks, in the order they are sent (see :func:`read_stack`).
@@ -338,7 +337,7 @@ def stream_stacks(stacks: Sequence[ScannerStack], server: str = DEFAULT_SERVER, 
         ConnectionFailed: no connection, no answer, or the server closed the session early.
         Unauthorized: a missing or wrong API key. Busy: the server's sessions are all taken (1013).
         UnusableInput: slices over the server's ``ready.limits`` (before any is sent).
-        SVRnetError: the server refused ``start`` (its error's class).
+        SVRnetError: the server refused ``start`` or ``end`` (its error's class).
     """
     options = {"model": model, "mc_samples": mc_samples, "variance_threshold": variance_threshold,
                "max_expected_error_mm": max_expected_error_mm, "bias_correction": bias_correction}
@@ -365,8 +364,7 @@ def stream_stacks(stacks: Sequence[ScannerStack], server: str = DEFAULT_SERVER, 
 
 
 def _connect(url: str, api_key: str | None, answer_timeout_s: float) -> ClientConnection:
-    """The open WebSocket; a refusal as the client's errors (an HTTP status as its class). Its
-    keep-alive pings wait as long as an answer may take: a server busy ending a stack can be slow to pong."""
+    """The open WebSocket (its pings wait for a pong as long as for an answer); a refusal as a client error."""
     try:
         return connect(url, additional_headers={"Authorization": f"Bearer {api_key}"} if api_key else None,
                        open_timeout=OPEN_TIMEOUT_S, ping_timeout=answer_timeout_s, max_size=MAX_MESSAGE_BYTES,
