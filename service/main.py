@@ -24,6 +24,7 @@ from service.core.settings import Settings
 from service.inference.registry import ModelRegistry
 from service.jobs.backends import open_backend
 from service.preprocess.localise import Localisers
+from service.streaming.session import background_executor
 
 RETENTION_CHECK_S = 600.0
 log = logging.getLogger(__name__)
@@ -60,6 +61,7 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
         finally:
             janitor.cancel()
             app.state.job_runner.shutdown()
+            app.state.stream_stage_executor.shutdown(wait=False, cancel_futures=True)
 
     # Swagger UI and ReDoc assets are served by the app itself: /docs works without internet access.
     app = FastAPIOffline(title="SVRnet", version="1.0.0", lifespan=lifespan,
@@ -74,7 +76,7 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
     openapi.document_uploads(app, settings.max_files)
     app.state.stream_sessions = 0
     app.state.stream_pose_limiter = CapacityLimiter(settings.stream_workers)
-    app.state.stream_stage_limiter = CapacityLimiter(1)
+    app.state.stream_stage_executor = background_executor("svrnet-stream-stage")
     for module in (health, models, predict, masks, reconstructions, stream):
         app.include_router(module.router)
     app.include_router(metrics.router, dependencies=[MetricsAccess], responses=problem_responses(401))

@@ -30,7 +30,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor, wait
+from concurrent.futures import Future, wait
 from dataclasses import dataclass, field
 from typing import Any, BinaryIO
 
@@ -41,7 +41,7 @@ from service.api.responses import error_message, pose_object, stack_message, sum
 from service.core.errors import InternalError, InvalidParameter, PayloadTooLarge, ServiceError, UnusableImage
 from service.mrd.images import pixel_count, slice_from_image, with_pose
 from service.streaming.frames import SliceFrame
-from service.streaming.session import SessionOptions, StreamLimits, StreamSession
+from service.streaming.session import SessionOptions, StreamLimits, StreamSession, background_executor
 
 log = logging.getLogger(__name__)
 
@@ -118,7 +118,7 @@ class MrdConnection:
         self.broken = False
         """Whether the connection ended inside a message (its rest unread)."""
         self.send_lock, self.stage_lock = threading.Lock(), threading.Lock()
-        self.stage = ThreadPoolExecutor(max_workers=1, thread_name_prefix="svrnet-mrd-stage")
+        self.stage = background_executor("svrnet-mrd-stage")
         self.dirty: set[str] = set()
         self.firming: Future | None = None
 
