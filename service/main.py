@@ -61,7 +61,8 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
         finally:
             janitor.cancel()
             app.state.job_runner.shutdown()
-            app.state.stream_stage_executor.shutdown(wait=False, cancel_futures=True)
+            for executor in app.state.stream_stages.values():
+                executor.shutdown(wait=False, cancel_futures=True)
 
     # Swagger UI and ReDoc assets are served by the app itself: /docs works without internet access.
     app = FastAPIOffline(title="SVRnet", version="1.0.0", lifespan=lifespan,
@@ -76,7 +77,8 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
     openapi.document_uploads(app, settings.max_files)
     app.state.stream_sessions = 0
     app.state.stream_pose_limiter = CapacityLimiter(settings.stream_workers)
-    app.state.stream_stage_executor = background_executor("svrnet-stream-stage")
+    app.state.stream_stages = {"firm_up": background_executor("svrnet-stream-firm-up"),
+                               "end_stack": background_executor("svrnet-stream-end-stack")}
     for module in (health, models, predict, masks, reconstructions, stream):
         app.include_router(module.router)
     app.include_router(metrics.router, dependencies=[MetricsAccess], responses=problem_responses(401))

@@ -4,9 +4,10 @@ One connection is one :class:`~service.streaming.session.StreamSession`. Message
 the order they arrive, so poses go out in the order the slices came; the stack stage firms the open
 stack up in the background (one task per connection, coalescing the slices that arrive meanwhile)
 and sends ``update`` messages between the poses. Compute runs in worker threads: poses on
-``stream_workers`` threads shared by all sessions, the stack stages on one more at a lower OS
-priority (:func:`~service.streaming.session.background_executor`), so that no number of sessions
-takes more than those cores from ``/v1/predict`` and no pose waits for a stack stage.
+``stream_workers`` threads shared by all sessions, the stack stages on two more (firm-ups, stack
+ends) at a lower OS priority (:func:`~service.streaming.session.background_executor`), so that no
+number of sessions takes more than those cores from ``/v1/predict`` and no pose waits for a stack
+stage.
 
 A bad message gets an ``error`` (the problem's RFC 7807 fields, its ``type`` as ``problem_type``)
 and changes nothing; only the message's type and size reach the logs, never a pixel.
@@ -57,7 +58,7 @@ class StreamConnection:
         self.settings = state.settings
         self.registry, self.localisers = state.registry, state.localisers
         self.pose_limiter: CapacityLimiter = state.stream_pose_limiter
-        self.stage: ThreadPoolExecutor = state.stream_stage_executor
+        self.stages: dict[str, ThreadPoolExecutor] = state.stream_stages
         self.metrics = state.metrics
         self.session: StreamSession | None = None
         self.model = ""
@@ -130,7 +131,7 @@ class StreamConnection:
             return await self.end_stack(_text(msg, "stack", "end_stack"))
         if kind == "end":
             await self.settle()
-            summary = await self.in_background(self.session.summary)
+            summary = await self.in_background("end_stack", self.session.summary)
             lat = np.array(self.latencies) if self.latencies else np.zeros(1)
             await self.send(summary_message(summary, session=(time.perf_counter() - self.started) * 1e3,
                                             pose_latency_p50=float(np.percentile(lat, 50)),
@@ -212,9 +213,10 @@ class StreamConnection:
                                    "(shape x dtype size); the slice is dropped")
         return data
 
-    async def in_background(self, fn: Callable[..., T], *args: object) -> T:
-        """``fn(*args)`` on the stack stages' thread (lower OS priority than the poses')."""
-        return await asyncio.get_running_loop().run_in_executor(self.stage, fn, *args)
+    async def in_background(self, stage: str, fn: Callable[..., T], *args: object) -> T:
+        """``fn(*args)`` on the thread of ``stage`` (``firm_up`` or ``end_stack``; a lower OS priority
+        than the poses'; a stack's end never waits behind the firm-ups of other sessions)."""
+        return await asyncio.get_running_loop().run_in_executor(self.stages[stage], fn, *args)
 
     def firm_up(self, stack: str) -> None:
         """Run the stack stage on ``stack`` in the background (one run at a time; slices that arrive
@@ -227,7 +229,7 @@ class StreamConnection:
         while self.dirty:
             stack = self.dirty.pop()
             try:
-                updates = await self.in_background(self.session.firm_up, stack)
+                updates = await self.in_background("firm_up", self.session.firm_up, stack)
                 if updates:
                     await self.send(update_message(updates))
             except Exception:  # noqa: BLE001 - a background stage must not end the session; the stack's end says more
@@ -241,7 +243,7 @@ class StreamConnection:
 
     async def end_stack(self, stack: str) -> None:
         await self.settle()
-        answer = await self.in_background(self.session.end_stack, stack)
+        answer = await self.in_background("end_stack", self.session.end_stack, stack)
         by_stack: dict[str, list[SliceAnswer]] = {}
         for a in answer.updates:
             by_stack.setdefault(a.stack, []).append(a)
