@@ -385,16 +385,40 @@ def reconstruct(
                 label = stage_label(state)
                 bar.update(task, completed=float(state.get("progress") or 0.0), description=label)
 
-            svr.wait(job_id, poll_s=poll, timeout_s=timeout, on_progress=on_progress)
+            done = svr.wait(job_id, poll_s=poll, timeout_s=timeout, on_progress=on_progress)
         target = out if out is not None else Path("recon.nii.gz")
         svr.download_volume(job_id, target)
         console.print(f"job {job_id} succeeded; wrote {target}")
+        quality = quality_line((done.get("report") or {}).get("quality"))
+        if quality:
+            console.print(quality)
         if preview is not None:
             svr.download_preview(job_id, preview)
             console.print(f"wrote {preview}")
         if poses_out is not None:
             _write_json(poses_out, svr.refined_poses(job_id))
             console.print(f"wrote {poses_out}")
+
+
+def quality_line(quality: dict[str, Any] | None) -> str:
+    """The job report's ``quality`` in one line (empty when the job has none).
+
+    Example:
+        >>> quality_line({"judged_slices": 80, "median_ncc": 0.91, "fraction_ncc_above_0_7": 0.95,
+        ...               "leave_one_stack_out": {"median_ncc": 0.84, "per_stack_median_ncc": [0.86, 0.8, 0.85]}})
+        'quality: slices vs volume median NCC 0.91, 95% above 0.7 (80 slices); leave one stack out 0.84 (per stack 0.86, 0.80, 0.85)'
+    """
+    if not quality:
+        return ""
+    held = quality.get("leave_one_stack_out") or {}
+    num = lambda x: "-" if x is None else f"{x:.2f}"  # noqa: E731
+    share = quality.get("fraction_ncc_above_0_7")
+    line = (f"quality: slices vs volume median NCC {num(quality.get('median_ncc'))}, "
+            f"{'-' if share is None else f'{share:.0%}'} above 0.7 ({quality.get('judged_slices', 0)} slices)")
+    if held.get("median_ncc") is not None:
+        per = ", ".join(num(x) for x in held.get("per_stack_median_ncc") or [])
+        line += f"; leave one stack out {num(held['median_ncc'])} (per stack {per})"
+    return line
 
 
 class SendOrder(str, Enum):

@@ -1,15 +1,18 @@
-"""Refined poses of a reconstruction job against the truth, on simulated 3-stack acquisitions.
+"""Refined poses of a reconstruction job against the truth, on simulated 3-stack acquisitions, and
+what each stage of the job does to them (ablations).
 
-For each motion level, acquisitions of the validation volumes (``model_export.acquisitions``) are
-predicted by the shipped model through the server's pipeline (stack consistency, the stacks
-pooled), then reconstructed as a job does from the service's own poses (every slice included,
-coarse-to-fine, SVR rounds). Printed per level: the mean E.D. (mm, slices with >= 20 mask pixels,
-network frames; against the truth and twin-min) of the predicted poses and of the refined poses,
-for each ``--follow-mm`` threshold (a stack whose motion model moves its slices by more than it is
-registered as a body that follows that motion, the others as their files' grids: 0 = every stack
-with motion follows it, inf = file grids), each also with its atlas frame re-estimated by the network
-(``service/reconstruction/atlas_frame.py``); and the seconds of each reconstruction. Needs ``../shared/data`` (the atlas volumes). Run:
-``.venv/bin/python model_export/experiments/refine_bench.py [--per-level 6] [--resolution 1.5] [--rounds 3]``.
+For each motion level (``--levels``; the smooth ones and those with jumps), acquisitions of the
+validation volumes (``model_export.acquisitions``) are predicted by the shipped model through the
+server's pipeline (stack consistency, the stacks pooled), then reconstructed as a job does from the
+service's own poses (every slice included, coarse-to-fine, SVR rounds), once per ``--variants``
+(:data:`VARIANTS`: the default job and the job without one of its stages). Printed per level and
+variant: the mean E.D. (mm, slices with >= 20 mask pixels, network frames; against the truth,
+twin-min, and the truth in the acquisition's own frame) of the predicted and of the refined poses,
+on how many acquisitions the refined poses are worse than the predicted ones, and the seconds of
+each reconstruction. ``--atlas-frame`` adds each variant with its atlas frame re-estimated by the
+network (``service/reconstruction/atlas_frame.py``). Needs ``../shared/data`` (the atlas volumes). Run:
+``.venv/bin/python model_export/experiments/refine_bench.py [--levels mild,jumps] [--variants default,no-coarse]
+[--per-level 6] [--resolution 1.5] [--rounds 3]``.
 """
 
 from __future__ import annotations
@@ -55,6 +58,19 @@ def errors(stacks, prepared, poses, plane_x_mm: float) -> np.ndarray:
     return np.stack([ed(pose, true), twin.twin_min_ed(pose, true, plane_x_mm), ed(frame @ pose, true)])
 
 
+VARIANTS: dict[str, dict] = {
+    "default": {},
+    "no-coarse": {"coarse_to_fine": False},              # no stack fit, stack registration, own-or-stack start
+    "no-folds": {"leave_out_folds": 1},                  # register to the whole volume
+    "no-capture": {"capture_schedule": ()},              # no wide, blurred first rounds
+    "no-robust": {"robust": False},                      # every slice and pixel weighs 1
+    "no-anchor": {"anchor_frame": False},                # the slices' common drift kept
+    "file-grids": {"stack_follow_motion_mm": float("inf")},
+    "no-register": {"register": False},                  # super-resolution at the starting poses
+}
+"""Each variant's :class:`ReconstructionConfig` fields (beside the model's symmetry plane)."""
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", default="service/models/default/model.onnx")
@@ -62,11 +78,10 @@ def main() -> None:
     ap.add_argument("--resolution", type=float, default=1.5)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--seed", type=int, default=7)
-    ap.add_argument("--atlas-frame", action=argparse.BooleanOptionalAction, default=True,
+    ap.add_argument("--atlas-frame", action=argparse.BooleanOptionalAction, default=False,
                     help="also each variant with the reconstruction's atlas frame re-estimated by the network")
-    ap.add_argument("--follow-mm", type=float, nargs="+", default=[0.0, float("inf")],
-                    help="stack_follow_motion_mm of each variant (0: every stack with motion follows it; "
-                         "inf: file grids)")
+    ap.add_argument("--levels", default="mild,moderate,jumps,independent")
+    ap.add_argument("--variants", default="default", help=f"comma-separated, of {', '.join(VARIANTS)}")
     args = ap.parse_args()
     if not DEFAULT_ATLAS_ROOT.exists():
         sys.exit(f"needs the atlas volumes at {DEFAULT_ATLAS_ROOT}")
@@ -74,8 +89,8 @@ def main() -> None:
     plane = est.info.symmetry_plane_x_mm
     vols = load_volumes(split(DEFAULT_ATLAS_ROOT)[1], DEFAULT_ATLAS_ROOT)
     rng = np.random.default_rng(args.seed)
-    for level in ("mild", "moderate"):
-        variants = {f"refined, follow > {t:g} mm": t for t in args.follow_mm}
+    variants = args.variants.split(",")
+    for level in args.levels.split(","):
         framed = [f"{k}, atlas frame" for k in variants] if args.atlas_frame else []
         rows = {"predicted": [], **{k: [] for k in variants}, **{k: [] for k in framed}}
         seconds = {k: [] for k in variants}
@@ -88,10 +103,10 @@ def main() -> None:
             masks = [np.moveaxis(p.slices.masks.transpose(0, 2, 1), 0, p.slices.slice_axis) for p in prepared]
             ss = SliceSet.from_stacks([(s.volume, m, mats, inc) for s, m, (mats, inc) in zip(stacks, masks, poses)])
             rows["predicted"].append(errors(stacks, prepared, ss.atlas_from_voxel, plane))
-            for name, follow in variants.items():
+            for name in variants:
                 t = time.perf_counter()
                 res = reconstruct(ss, resolution_mm=args.resolution, svr_iterations=args.rounds,
-                                  config=ReconstructionConfig(symmetry_plane_x_mm=plane, stack_follow_motion_mm=follow))
+                                  config=ReconstructionConfig(symmetry_plane_x_mm=plane, **VARIANTS[name]))
                 seconds[name].append(time.perf_counter() - t)
                 rows[name].append(errors(stacks, prepared, res.atlas_from_voxel_final, plane))
                 if args.atlas_frame:
@@ -101,11 +116,13 @@ def main() -> None:
             print(f"{level} {a}: " + ", ".join(f"{k} {v[-1][0].mean():.2f} / {v[-1][1].mean():.2f} / "
                                               f"{v[-1][2].mean():.2f}" for k, v in rows.items()), flush=True)
         means = {k: np.concatenate(v, axis=1).mean(axis=1) for k, v in rows.items()}
+        before = np.array([r[1].mean() for r in rows["predicted"]])
+        worse = {k: int(np.sum(np.array([r[1].mean() for r in rows[k]]) > before)) for k in variants}
         summary = ", ".join(f"{k} {m[0]:.2f} / {m[1]:.2f} / {m[2]:.2f} mm" for k, m in means.items())
         times = ", ".join(f"{k} {np.mean(v):.1f} s" for k, v in seconds.items())
         print(f"== {level} ({args.per_level} acquisitions, {args.resolution} mm, {args.rounds} rounds; mean E.D. "
               f"against the truth / twin-min / the truth in the acquisition's own frame): {summary}; "
-              f"reconstruction {times}", flush=True)
+              f"acquisitions worse than predicted (twin-min): {worse}; reconstruction {times}", flush=True)
 
 
 if __name__ == "__main__":

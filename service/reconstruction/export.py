@@ -66,12 +66,15 @@ def _num(v: float) -> float | None:
 
 
 def slice_records(result: ReconstructionResult, slices: SliceSet) -> list[dict]:
-    """Per-slice report entries (stack, slice, included, exclusion_reason, weight, ncc, atlas_from_voxel)."""
+    """Per-slice report entries (stack, slice, included, exclusion_reason, weight, ncc, held_out_ncc,
+    atlas_from_voxel)."""
     reasons = result.exclusion_reason or [None if inc else "excluded" for inc in result.included.tolist()]
+    held = result.held_out_ncc if result.held_out_ncc is not None else np.full(slices.n_slices, np.nan)
     return [{"stack": int(slices.stack_index[i]), "slice": int(slices.slice_index[i]),
              "included": bool(result.included[i]), "exclusion_reason": reasons[i],
              "weight": _num(result.slice_weight[i]),
-             "ncc": _num(result.ncc[i]), "atlas_from_voxel": result.atlas_from_voxel_final[i].tolist()}
+             "ncc": _num(result.ncc[i]), "held_out_ncc": _num(held[i]),
+             "atlas_from_voxel": result.atlas_from_voxel_final[i].tolist()}
             for i in range(slices.n_slices)]
 
 
@@ -115,6 +118,7 @@ def write_outputs(result: ReconstructionResult, slices: SliceSet, folder: str | 
         "excluded_by_reason": {r: (result.exclusion_reason or []).count(r)
                                for r in sorted({x for x in (result.exclusion_reason or []) if x})},
         "mean_ncc": _num(float(np.mean(ncc))) if ncc.size else None,
+        "quality": result.quality,
         "shape": [int(s) for s in result.volume.array.shape],
         "resolution_mm": [float(s) for s in result.volume.spacing],
         "affine": result.volume.affine.tolist(),

@@ -56,6 +56,7 @@ from service.reconstruction.forward import ForwardModel, inplane_sigma_mm
 from service.reconstruction.gaussian_average import gaussian_average
 from service.reconstruction.grid import Grid, bounds_of, make_grid
 from service.reconstruction.registration import anchor_frame, register_slices
+from service.reconstruction.quality import held_out_ncc, judged_slices, quality_report
 from service.reconstruction.robust import ncc_outliers, robust_weights
 from service.reconstruction.slices import BIN_BELOW_FRACTION, SliceSet, inplane_bin_factors
 from service.reconstruction.superresolution import DEFAULT_DELTA_FRACTION, DEFAULT_LAMBDA, default_delta, super_resolve
@@ -63,8 +64,6 @@ from service.reconstruction.superresolution import DEFAULT_DELTA_FRACTION, DEFAU
 Progress = Callable[[str, float], None]
 WIDE_CAPTURE_FRACTION = 0.5
 """The wide capture schedule runs when at least this fraction of the slices start from their stack's pose."""
-NCC_MIN_PIXEL_FRACTION = 0.2
-"""Slices with fewer pixels than this fraction of the median are not judged by their NCC."""
 
 
 @dataclass
@@ -123,6 +122,8 @@ class ReconstructionConfig:
         exclude_ratio: slices with potential below this fraction of the median are excluded (and
             slices whose NCC with the volume is an outlier, :func:`~service.reconstruction.robust.ncc_outliers`;
             one that started from its own predicted pose restarts once from its stack's).
+        quality: measure the result without ground truth (:mod:`~service.reconstruction.quality`;
+            its leave-one-stack-out volumes cost a few CG iterations per stack).
     """
 
     inplane_binning: bool = True
@@ -153,6 +154,7 @@ class ReconstructionConfig:
     robust: bool = True
     robust_tolerance: float = 3.0
     exclude_ratio: float = 0.5
+    quality: bool = True
 
 
 @dataclass
@@ -175,6 +177,8 @@ class ReconstructionResult:
             ``"residual_outlier"`` (rejected by the robust statistics after registration),
             ``"stack_outlier"`` (also inconsistent with its stack's other slices from the start).
         coarse: the coarse alignment (``None`` when not run).
+        quality: the report of :func:`~service.reconstruction.quality.quality_report` (``None`` when off).
+        held_out_ncc: ``[n]`` each slice's NCC with the volume solved without its stack (NaN: not measured).
     """
 
     volume: Volume
@@ -186,6 +190,8 @@ class ReconstructionResult:
     grid: Grid | None = None
     exclusion_reason: list[str | None] = field(default_factory=list)
     coarse: CoarseAlignment | None = None
+    quality: dict | None = None
+    held_out_ncc: NDArray[np.float64] | None = None
 
 
 def exclusion_reasons(include: NDArray, included: NDArray, stack_inlier: NDArray | None) -> list[str | None]:
@@ -341,7 +347,7 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
     poor = np.zeros(n, bool)
     restarted = np.zeros(n, bool)
     counts = slice_set.pixel_counts()             # the NCC of a slice with a few pixels at the edge says little
-    judged = slice_set.include & (counts >= NCC_MIN_PIXEL_FRACTION * np.median(counts[slice_set.include]))
+    judged = judged_slices(slice_set.include, counts)
     for it, lam in enumerate(lams):
         delta = default_delta(x, support, cfg.delta_fraction)
         if it > 0:
@@ -386,9 +392,18 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
         model = ForwardModel(slice_set, poses, grid, psf_points=cfg.psf_points)
     ncc = slice_ncc(model.forward(x), slice_set.values, sid, n)
     timings["final_ncc"] = time.perf_counter() - t0
+    quality, held_out = None, None
+    if cfg.quality:
+        t0 = time.perf_counter()
+        held_out = held_out_ncc(model, slice_set.values, pixel_weight, sid, slice_set.stack_index, x,
+                                lambda sim, val: slice_ncc(sim, val, sid, n), float(lams[-1] if lams else cfg.lam),
+                                default_delta(x, support, cfg.delta_fraction), support)
+        quality = quality_report(ncc, held_out, judged_slices(included, counts), slice_set.stack_index)
+        timings["quality"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
     if progress is not None:
         progress("done", 1.0)
     reasons = exclusion_reasons(slice_set.include, included, None if coarse is None else coarse.fit.inlier)
     return ReconstructionResult(Volume(x.astype(np.float32), grid.affine.copy()), poses,
-                                np.where(included, slice_weight, 0.0), included, ncc, timings, grid, reasons, coarse)
+                                np.where(included, slice_weight, 0.0), included, ncc, timings, grid, reasons, coarse,
+                                quality, held_out)

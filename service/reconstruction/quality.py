@@ -1,0 +1,89 @@
+"""How good a reconstruction is, judged without ground truth: what a user (and our benchmarks on
+real scans) can trust.
+
+Two measures, both from the acquired slices themselves:
+
+* **agreement**: each slice against the volume simulated at its refined pose through the
+  acquisition model (its NCC). A slice that sits where it was acquired looks like the volume there.
+  Reported: the median over the judged slices and the fraction above :data:`GOOD_NCC`.
+* **leave one stack out**: the volume re-solved without one stack's pixels (warm-started, a few
+  conjugate-gradient iterations), each slice of that stack against it. A volume that only echoes its
+  own slices, or stacks that disagree, score well on agreement and badly here: it measures whether
+  the stacks predict each other. Reported: the median per stack and over all slices.
+
+A slice is judged when it was used and has at least :data:`MIN_PIXEL_FRACTION` of the median
+slice's pixels (an edge slice of a few pixels says little).
+
+Example (a volume that predicts its slices perfectly, and one slice that does not):
+    >>> import numpy as np
+    >>> ncc = np.array([0.95, 0.9, 0.92, 0.1]); held = np.array([0.9, 0.85, 0.88, 0.05])
+    >>> r = quality_report(ncc, held, np.ones(4, bool), np.array([0, 0, 1, 1]))
+    >>> r["median_ncc"], r["fraction_ncc_above_0_7"], r["leave_one_stack_out"]["per_stack_median_ncc"]
+    (0.91, 0.75, [0.875, 0.465])
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from service.reconstruction.forward import ForwardModel
+from service.reconstruction.superresolution import super_resolve
+
+GOOD_NCC = 0.7
+MIN_PIXEL_FRACTION = 0.2
+HELD_OUT_ITERATIONS = 4
+
+
+def judged_slices(use: NDArray, pixel_counts: NDArray) -> NDArray[np.bool_]:
+    """The slices whose NCC says something: used, with enough pixels (see the module)."""
+    use = np.asarray(use, bool)
+    counts = np.asarray(pixel_counts, np.float64)
+    if not use.any():
+        return use
+    return use & (counts >= MIN_PIXEL_FRACTION * np.median(counts[use]))
+
+
+def held_out_ncc(model: ForwardModel, values: NDArray, pixel_weight: NDArray, slice_id: NDArray,
+                 stack_index: NDArray, x: NDArray, ncc: Callable[[NDArray, NDArray], NDArray], lam: float,
+                 delta: float, support: NDArray | None, iterations: int = HELD_OUT_ITERATIONS) -> NDArray[np.float64]:
+    """``[n]``: each slice's NCC against the volume solved without its stack's pixels (NaN where
+    the stack is the only one). ``ncc(simulated, values)`` gives the per-slice NCC of pixel vectors."""
+    n = len(stack_index)
+    out = np.full(n, np.nan)
+    stacks = np.unique(stack_index)
+    if len(stacks) < 2:
+        return out
+    stack_of_pixel = np.asarray(stack_index)[slice_id]
+    for s in stacks:                                    # a loop over the stacks, not the slices
+        w = np.where(stack_of_pixel == s, np.float32(0.0), pixel_weight)
+        xs = super_resolve(model, values, w, x, iterations=iterations, lam=lam, delta=delta, support=support).volume
+        mine = stack_index == s
+        out[mine] = ncc(model.forward(xs), values)[mine]
+    return out
+
+
+def _median(x: NDArray) -> float | None:
+    x = np.asarray(x, np.float64)
+    x = x[np.isfinite(x)]
+    return round(float(np.median(x)), 4) if x.size else None
+
+
+def quality_report(ncc: NDArray, held_out: NDArray, judged: NDArray, stack_index: NDArray) -> dict:
+    """The ``quality`` object of a job's report (see the module)."""
+    judged = np.asarray(judged, bool)
+    c = np.asarray(ncc, np.float64)[judged]
+    c = c[np.isfinite(c)]
+    h = np.asarray(held_out, np.float64)
+    stacks = np.unique(stack_index)
+    return {
+        "judged_slices": int(judged.sum()),
+        "median_ncc": _median(c),
+        "fraction_ncc_above_0_7": round(float(np.mean(c > GOOD_NCC)), 4) if c.size else None,
+        "leave_one_stack_out": {
+            "median_ncc": _median(h[judged]),
+            "per_stack_median_ncc": [_median(h[judged & (stack_index == s)]) for s in stacks],
+        },
+    }

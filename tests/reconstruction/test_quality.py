@@ -1,0 +1,39 @@
+"""The quality report without ground truth: high where the poses are true, and the leave-one-stack-out
+score singles out a stack placed where it was not acquired."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.geometry.pose import translate
+from service.reconstruction.pipeline import ReconstructionConfig, reconstruct
+from service.reconstruction.slices import SliceSet
+
+FAST = ReconstructionConfig(register=False, sr_iterations=4)
+
+
+def test_true_poses_score_high_and_a_misplaced_stack_scores_low_when_left_out(acquisition) -> None:  # noqa: ANN001
+    truth = [(vol, mask, t, np.ones(len(t), bool)) for (vol, mask), t in zip(acquisition.stacks, acquisition.truth)]
+    good = reconstruct(SliceSet.from_stacks(truth), resolution_mm=1.5, svr_iterations=1, config=FAST)
+    q = good.quality
+    assert q["judged_slices"] > 0.8 * len(good.ncc)
+    assert q["median_ncc"] > 0.9 and q["fraction_ncc_above_0_7"] > 0.9
+    assert min(q["leave_one_stack_out"]["per_stack_median_ncc"]) > 0.8
+    assert np.all(np.isfinite(good.held_out_ncc[good.included]))
+
+    wrong = list(truth)
+    vol, mask, t, use = wrong[1]
+    wrong[1] = (vol, mask, translate([6.0, -5.0, 4.0]) @ t, use)            # placed 9 mm from where it was
+    bad = reconstruct(SliceSet.from_stacks(wrong), resolution_mm=1.5, svr_iterations=1, config=FAST)
+    held = bad.quality["leave_one_stack_out"]["per_stack_median_ncc"]
+    assert held[1] < min(held[0], held[2]) - 0.1, held
+    assert bad.quality["leave_one_stack_out"]["median_ncc"] < q["leave_one_stack_out"]["median_ncc"]
+
+
+def test_quality_can_be_off(acquisition) -> None:  # noqa: ANN001
+    vol, mask = acquisition.stacks[0]
+    ss = SliceSet.from_stacks([(vol, mask, acquisition.truth[0], np.ones(len(acquisition.truth[0]), bool))])
+    res = reconstruct(ss, resolution_mm=2.0, svr_iterations=0, config=ReconstructionConfig(quality=False))
+    assert res.quality is None and res.held_out_ncc is None
+    single = reconstruct(ss, resolution_mm=2.0, svr_iterations=0)
+    assert single.quality["leave_one_stack_out"]["median_ncc"] is None        # one stack: nothing to leave out
