@@ -244,6 +244,12 @@ MaxExpectedOpt = Annotated[Optional[float], typer.Option(
     "--max-expected-error", callback=_positive,
     help="accept only slices whose expected error (mm) is at most this (default: the model's)")]
 ServerOpt = Annotated[str, typer.Option("--server", envvar="SVRNET_SERVER", help="server URL")]
+McSamplesOpt = Annotated[Optional[int], typer.Option(min=1, max=1000, help="MC-dropout passes per slice")]
+ThresholdOpt = Annotated[Optional[float], typer.Option(
+    "--threshold", callback=_positive, help="variance threshold (default: the model's)")]
+BiasCorrectionOpt = Annotated[bool, typer.Option("--bias-correction/--no-bias-correction",
+                                                 help="N4 bias-field correction")]
+ModelOpt = Annotated[Optional[str], typer.Option(help="model name (see `svrnet models`)")]
 MaskOpt = Annotated[Optional[list[Path]], typer.Option(
     "--mask", "-m", exists=True, dir_okay=False, readable=True,
     help="region-of-interest mask; repeat, one per stack in the same order (or none)")]
@@ -259,13 +265,11 @@ def predict(
     server: ServerOpt = DEFAULT_SERVER,
     out: Annotated[Optional[Path], typer.Option("--out", "-o", dir_okay=False,
                                                 help="write the full JSON answer here")] = None,
-    mc_samples: Annotated[Optional[int], typer.Option(min=1, max=1000, help="MC-dropout passes per slice")] = None,
-    threshold: Annotated[Optional[float], typer.Option(
-        "--threshold", callback=_positive, help="variance threshold (default: the model's)")] = None,
+    mc_samples: McSamplesOpt = None,
+    threshold: ThresholdOpt = None,
     max_expected_error: MaxExpectedOpt = None,
-    bias_correction: Annotated[bool, typer.Option("--bias-correction/--no-bias-correction",
-                                                  help="N4 bias-field correction")] = True,
-    model: Annotated[Optional[str], typer.Option(help="model name (see `svrnet models`)")] = None,
+    bias_correction: BiasCorrectionOpt = True,
+    model: ModelOpt = None,
     slice_order: Annotated[Optional[list[str]], typer.Option(
         help="acquisition order, once for every stack or once per stack: interleaved, sequential, "
              "interleaved-even-first, interleaved-odd-first, or slice indices as acquired (0,2,4,1,3); "
@@ -342,9 +346,8 @@ def reconstruct(
     resolution: Annotated[Optional[float], typer.Option(
         "--resolution", callback=_positive, help="output spacing in mm (server default 0.8)")] = None,
     svr_iterations: Annotated[Optional[int], typer.Option(min=0, help="SVR iterations (server default 3)")] = None,
-    mc_samples: Annotated[Optional[int], typer.Option(min=1, max=1000, help="MC-dropout passes per slice")] = None,
-    threshold: Annotated[Optional[float], typer.Option(
-        "--threshold", callback=_positive, help="variance threshold (default: the model's)")] = None,
+    mc_samples: McSamplesOpt = None,
+    threshold: ThresholdOpt = None,
     max_expected_error: MaxExpectedOpt = None,
     wait: Annotated[bool, typer.Option("--wait", help="wait for the job and download its results")] = False,
     out: Annotated[Optional[Path], typer.Option(
@@ -566,13 +569,11 @@ def stream(
         min=0, help="seconds between two slices (0: as fast as the answers come)")] = 0.0,
     order: Annotated[SendOrder, typer.Option(help="acquisition order: sequential, or interleaved (even "
                                                   "indices, then odd)")] = SendOrder.sequential,
-    mc_samples: Annotated[Optional[int], typer.Option(min=1, max=1000, help="MC-dropout passes per slice")] = None,
-    threshold: Annotated[Optional[float], typer.Option(
-        "--threshold", callback=_positive, help="variance threshold (default: the model's)")] = None,
+    mc_samples: McSamplesOpt = None,
+    threshold: ThresholdOpt = None,
     max_expected_error: MaxExpectedOpt = None,
-    bias_correction: Annotated[bool, typer.Option("--bias-correction/--no-bias-correction",
-                                                  help="N4 bias-field correction")] = True,
-    model: Annotated[Optional[str], typer.Option(help="model name (see `svrnet models`)")] = None,
+    bias_correction: BiasCorrectionOpt = True,
+    model: ModelOpt = None,
     json_out: Annotated[Optional[Path], typer.Option(
         "--json-out", dir_okay=False, help="write every message received here, one JSON object a line")] = None,
 ) -> None:
