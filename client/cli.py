@@ -421,6 +421,8 @@ def quality_line(quality: dict[str, Any] | None) -> str:
     if held.get("median_ncc") is not None:
         per = ", ".join(num(x) for x in held.get("per_stack_median_ncc") or [])
         line += f"; leave one stack out {num(held['median_ncc'])} (per stack {per})"
+    if quality.get("path"):
+        line += f"; path {quality['path']}"
     return line
 
 

@@ -5,11 +5,12 @@ For each motion level (``--levels``; the smooth ones and those with jumps), acqu
 validation volumes (``model_export.acquisitions``) are predicted by the shipped model through the
 server's pipeline (stack consistency, the stacks pooled), then reconstructed as a job does from the
 service's own poses (every slice included, coarse-to-fine, SVR rounds), once per ``--variants``
-(:data:`VARIANTS`: the default job and the job without one of its stages). Printed per level and
+(:data:`VARIANTS`: the full reconstruction, it without one of its stages, and ``job``: what a job
+runs, the never-worse choice of :mod:`service.reconstruction.never_worse`). Printed per level and
 variant: the mean E.D. (mm, slices with >= 20 mask pixels, network frames; against the truth,
 twin-min, and the truth in the acquisition's own frame) of the predicted and of the refined poses,
-on how many acquisitions the refined poses are worse than the predicted ones, and the seconds of
-each reconstruction. ``--atlas-frame`` adds each variant with its atlas frame re-estimated by the
+on how many acquisitions the refined poses are worse than the predicted ones, the quality report's
+leave-one-stack-out NCC (what a user sees without the truth) and the seconds of each reconstruction. ``--atlas-frame`` adds each variant with its atlas frame re-estimated by the
 network (``service/reconstruction/atlas_frame.py``). Needs ``../shared/data`` (the atlas volumes). Run:
 ``.venv/bin/python model_export/experiments/refine_bench.py [--levels mild,jumps] [--variants default,no-coarse]
 [--per-level 6] [--resolution 1.5] [--rounds 3]``.
@@ -35,6 +36,7 @@ from service.inference.estimator import OnnxPoseEstimator
 from service.inference.model_file import load_model
 from service.jobs.worker import poses_from_predict_body, starting_inclusion
 from service.reconstruction.atlas_frame import atlas_frame
+from service.reconstruction.never_worse import reconstruct_never_worse
 from service.reconstruction.pipeline import ReconstructionConfig, reconstruct
 from service.reconstruction.slices import SliceSet
 
@@ -67,6 +69,7 @@ VARIANTS: dict[str, dict] = {
     "no-anchor": {"anchor_frame": False},                # the slices' common drift kept
     "file-grids": {"stack_follow_motion_mm": float("inf")},
     "no-register": {"register": False},                  # super-resolution at the starting poses
+    "job": {},                                           # what a job runs: the never-worse paths
 }
 """Each variant's :class:`ReconstructionConfig` fields (beside the model's symmetry plane)."""
 
@@ -94,6 +97,7 @@ def main() -> None:
         framed = [f"{k}, atlas frame" for k in variants] if args.atlas_frame else []
         rows = {"predicted": [], **{k: [] for k in variants}, **{k: [] for k in framed}}
         seconds = {k: [] for k in variants}
+        held = {k: [] for k in variants}
         for a in range(args.per_level):
             vol = vols[a % len(vols)]
             stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level)
@@ -105,16 +109,21 @@ def main() -> None:
             rows["predicted"].append(errors(stacks, prepared, ss.atlas_from_voxel, plane))
             for name in variants:
                 t = time.perf_counter()
-                res = reconstruct(ss, resolution_mm=args.resolution, svr_iterations=args.rounds,
-                                  config=ReconstructionConfig(symmetry_plane_x_mm=plane, **VARIANTS[name]))
+                run = reconstruct_never_worse if name == "job" else reconstruct
+                res = run(ss, resolution_mm=args.resolution, svr_iterations=args.rounds,
+                          config=ReconstructionConfig(symmetry_plane_x_mm=plane, **VARIANTS[name]))
                 seconds[name].append(time.perf_counter() - t)
                 rows[name].append(errors(stacks, prepared, res.atlas_from_voxel_final, plane))
+                held[name].append(res.quality["leave_one_stack_out"]["median_ncc"])
+                if name == "job":
+                    print(f"  job path: {res.quality['path']} {res.quality['paths']}", flush=True)
                 if args.atlas_frame:
                     fit = atlas_frame(res.volume, est, plane)
                     rows[f"{name}, atlas frame"].append(errors(stacks, prepared,
                                                                fit.correction @ res.atlas_from_voxel_final, plane))
             print(f"{level} {a}: " + ", ".join(f"{k} {v[-1][0].mean():.2f} / {v[-1][1].mean():.2f} / "
-                                              f"{v[-1][2].mean():.2f}" for k, v in rows.items()), flush=True)
+                                              f"{v[-1][2].mean():.2f}" for k, v in rows.items())
+                  + "; leave-one-stack-out NCC " + ", ".join(f"{k} {v[-1]}" for k, v in held.items()), flush=True)
         means = {k: np.concatenate(v, axis=1).mean(axis=1) for k, v in rows.items()}
         before = np.array([r[1].mean() for r in rows["predicted"]])
         worse = {k: int(np.sum(np.array([r[1].mean() for r in rows[k]]) > before)) for k in variants}

@@ -186,7 +186,8 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     from service.geometry.twin import DEFAULT_PLANE_X_MM
     from service.preprocess.stack import split_stack
     from service.reconstruction.atlas_frame import atlas_frame, with_frame
-    from service.reconstruction.pipeline import ReconstructionConfig, reconstruct
+    from service.reconstruction.never_worse import reconstruct_never_worse
+    from service.reconstruction.pipeline import ReconstructionConfig
     from service.reconstruction.refined_poses import refined_poses_body
     from service.reconstruction.slices import SliceSet
 
@@ -225,11 +226,11 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         plane = estimator.info.symmetry_plane_x_mm
     progress("reconstructing", 0.15)
     slice_set = SliceSet.from_stacks([(u.volume, m, mats, acc) for u, m, (mats, acc) in zip(uploads, masks, poses)])
-    result = reconstruct(slice_set, resolution_mm=float(params.get("resolution_mm", 0.8)),
-                         svr_iterations=int(params.get("svr_iterations", 3)),
-                         progress=lambda stage, f: progress(stage, 0.15 + 0.8 * f),
-                         config=ReconstructionConfig(symmetry_plane_x_mm=plane,
-                                                     slice_orders=tuple(stack_orders(orders, uploads))))
+    result = reconstruct_never_worse(slice_set, resolution_mm=float(params.get("resolution_mm", 0.8)),
+                                     svr_iterations=int(params.get("svr_iterations", 3)),
+                                     progress=lambda stage, f: progress(stage, 0.15 + 0.8 * f),
+                                     config=ReconstructionConfig(symmetry_plane_x_mm=plane,
+                                                                 slice_orders=tuple(stack_orders(orders, uploads))))
     frame = None
     if params.get("atlas_frame", True):
         progress("atlas frame", 0.95)

@@ -117,7 +117,8 @@ def test_stages_are_reported_in_order(client: TestClient, case: dict) -> None:
         time.sleep(0.05)
     assert st["status"] == "succeeded", st
     known = ["queued", "starting", "reading", "reconstructing", "stack consistency", "stack registration", "slice starting poses",
-             "gaussian average", "registration 1/1", "robust weighting 1/1", "super-resolution 1/1", "atlas frame",
+             "gaussian average", "registration 1/1", "robust weighting 1/1", "super-resolution 1/1",
+             "checking starting poses", "checking slice level", "atlas frame",
              "writing"]
     order = [known.index(s) for s in stages if s in known]
     assert order == sorted(order) and len(order) >= 2

@@ -1,0 +1,99 @@
+"""A reconstruction job that never returns poses worse than those it started from.
+
+Slice-to-volume registration can diverge: under motion that jumps, or that is independent from
+slice to slice, a stack is no rigid body, and the coarse steps that treat it as one
+(:mod:`~service.reconstruction.coarse_to_fine`) move good predicted poses far away; the rounds then
+refine a scrambled volume (``model_export/experiments/refine_bench.py`` ablates each stage). Which
+path a scan needs is not known in advance, and there is no truth to ask. The quality report is the
+judge (:mod:`~service.reconstruction.quality`): how well the volume without each stack predicts
+that stack's slices, at the poses the path returns.
+
+Paths, in order:
+
+1. **the full job** (the configuration as given);
+2. **the starting poses**: robust super-resolution at the poses the job was given, no registration;
+3. **slice level only** (no coarse steps), tried only when the full job scored below the starting
+   poses and had its coarse steps on.
+
+A registered path (1 or 3) wins where its leave-one-stack-out median NCC beats the starting poses'
+by :data:`MIN_GAIN`; otherwise the starting poses do. The quality report names the winner
+(``path``) and every path's score (``paths``). A job of one stack has nothing to leave out: it keeps
+the full job.
+
+Example:
+    >>> choose({"full": 0.80, "starting_poses": 0.93, "slice_level": 0.932})
+    'starting_poses'
+    >>> choose({"full": 0.95, "starting_poses": 0.93})
+    'full'
+    >>> choose({"full": None, "starting_poses": 0.9})
+    'full'
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import replace
+
+from numpy.typing import ArrayLike
+
+from service.reconstruction.pipeline import Progress, ReconstructionConfig, ReconstructionResult, reconstruct
+from service.reconstruction.slices import SliceSet
+
+PATHS = ("full", "starting_poses", "slice_level")
+MIN_GAIN = 0.005
+"""How much better (leave-one-stack-out median NCC) a registered path must predict the stacks than
+the starting poses do to be taken. On the simulated acquisitions of ``refine_bench.py`` (mild to
+independent motion, 2 each) registration never made good starting poses better; the paths that made
+them worse by 0.1-1.2 mm scored up to 0.0033 above the starting poses, those that made them worse by
+more scored below."""
+
+
+def held_out_score(result: ReconstructionResult) -> float | None:
+    """The result's leave-one-stack-out median NCC (None: not measured, e.g. a single stack)."""
+    if result.quality is None:
+        return None
+    return result.quality["leave_one_stack_out"]["median_ncc"]
+
+
+def choose(scores: dict[str, float | None]) -> str:
+    """The registered path with the highest score where it beats the starting poses by
+    :data:`MIN_GAIN`, else the starting poses; ``full`` when it has no score (nothing to compare)."""
+    if scores.get("full") is None:
+        return "full"
+    registered = {k: v for k, v in scores.items() if v is not None and k != "starting_poses"}
+    best = max(registered, key=lambda k: (registered[k], k == "full"))
+    start = scores.get("starting_poses")
+    return best if start is None or registered[best] >= start + MIN_GAIN else "starting_poses"
+
+
+def reconstruct_never_worse(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations: int = 3,
+                            progress: Progress | None = None, cancel: Callable[[], bool] | None = None, *,
+                            bounds_mm: ArrayLike | None = None,
+                            config: ReconstructionConfig | None = None) -> ReconstructionResult:
+    """:func:`~service.reconstruction.pipeline.reconstruct` along the paths of the module, the best
+    returned; its ``quality`` says which path won (``path``) and every path's score (``paths``)."""
+    cfg = replace(config or ReconstructionConfig(), quality=True)
+    runs = [("full", cfg, 0.0, 0.8), ("starting_poses", replace(cfg, register=False), 0.8, 0.9),
+            ("slice_level", replace(cfg, coarse_to_fine=False), 0.9, 1.0)]
+    results: dict[str, ReconstructionResult] = {}
+    scores: dict[str, float | None] = {}
+    for name, run_cfg, lo, hi in runs:
+        if name == "slice_level" and (not cfg.coarse_to_fine or choose(scores) == "full" or not cfg.register):
+            break
+        if name == "starting_poses" and (svr_iterations == 0 or not cfg.register):
+            break
+        label = None if name == "full" else f"checking {name.replace('_', ' ')}"
+        part = None if progress is None else (
+            lambda stage, f, lo=lo, hi=hi, label=label: progress(label or stage, lo + (hi - lo) * f))
+        results[name] = reconstruct(slice_set, resolution_mm, svr_iterations, part, cancel, bounds_mm=bounds_mm,
+                                    config=run_cfg)
+        scores[name] = held_out_score(results[name])
+        if name == "full" and scores[name] is None:
+            break
+    best = choose(scores)
+    result = results[best]
+    result.quality = {**result.quality, "path": best, "paths": scores}
+    result.timings = {**result.timings, "all_paths": sum(r.timings.get("total", 0.0) for r in results.values())}
+    if progress is not None:
+        progress("done", 1.0)
+    return result

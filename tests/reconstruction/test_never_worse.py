@@ -1,0 +1,63 @@
+"""The never-worse job: the path whose volume predicts each stack best from the others wins."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.reconstruction import never_worse
+from service.reconstruction.pipeline import ReconstructionConfig, ReconstructionResult
+from service.reconstruction.slices import SliceSet
+
+
+def fake_result(score: float | None) -> ReconstructionResult:
+    quality = {"leave_one_stack_out": {"median_ncc": score}}
+    return ReconstructionResult(None, np.eye(4)[None], np.ones(1), np.ones(1, bool), np.ones(1),  # type: ignore[arg-type]
+                                {"total": 1.0}, quality=quality)
+
+
+def run_with(monkeypatch, scores: dict[str, float | None], config: ReconstructionConfig) -> tuple[ReconstructionResult, list]:  # noqa: ANN001
+    calls = []
+
+    def fake(slice_set, resolution_mm, svr_iterations, progress, cancel, *, bounds_mm, config):  # noqa: ANN001, ANN202
+        name = "starting_poses" if not config.register else "full" if not calls else "slice_level"
+        calls.append(name)
+        return fake_result(scores[name])
+
+    monkeypatch.setattr(never_worse, "reconstruct", fake)
+    return never_worse.reconstruct_never_worse(None, 1.0, 3, config=config), calls  # type: ignore[arg-type]
+
+
+def test_a_diverged_full_job_gives_way(monkeypatch) -> None:  # noqa: ANN001
+    result, calls = run_with(monkeypatch, {"full": 0.79, "starting_poses": 0.93, "slice_level": 0.94},
+                             ReconstructionConfig())
+    assert calls == ["full", "starting_poses", "slice_level"]
+    assert result.quality["path"] == "slice_level" and result.quality["paths"]["full"] == 0.79
+    assert result.timings["all_paths"] == 3.0
+
+
+def test_a_good_full_job_costs_one_cheap_check(monkeypatch) -> None:  # noqa: ANN001
+    result, calls = run_with(monkeypatch, {"full": 0.95, "starting_poses": 0.93, "slice_level": 0.0},
+                             ReconstructionConfig())
+    assert calls == ["full", "starting_poses"] and result.quality["path"] == "full"
+    result, calls = run_with(monkeypatch, {"full": 0.8, "starting_poses": 0.9, "slice_level": 0.85},
+                             ReconstructionConfig(coarse_to_fine=False))
+    assert calls == ["full", "starting_poses"] and result.quality["path"] == "starting_poses"
+    result, calls = run_with(monkeypatch, {"full": 0.933, "starting_poses": 0.93, "slice_level": 0.9},
+                             ReconstructionConfig())                      # better, but not by MIN_GAIN
+    assert calls == ["full", "starting_poses", "slice_level"] and result.quality["path"] == "starting_poses"
+
+
+def test_a_single_stack_keeps_the_full_job(monkeypatch) -> None:  # noqa: ANN001
+    result, calls = run_with(monkeypatch, {"full": None, "starting_poses": 0.9, "slice_level": 0.9},
+                             ReconstructionConfig())
+    assert calls == ["full"] and result.quality["path"] == "full"
+
+
+def test_on_the_phantom_the_returned_poses_are_the_winning_paths(acquisition) -> None:  # noqa: ANN001
+    ss = SliceSet.from_stacks([(v, m, t, np.ones(len(t), bool)) for (v, m), t in zip(acquisition.stacks, acquisition.truth)])
+    res = never_worse.reconstruct_never_worse(ss, 1.5, 1, config=ReconstructionConfig(sr_iterations=3,
+                                                                                      registration_iterations=5))
+    q = res.quality
+    assert q["path"] == never_worse.choose(q["paths"])
+    if q["path"] == "starting_poses":
+        assert np.allclose(res.atlas_from_voxel_final, ss.atlas_from_voxel)
