@@ -150,8 +150,7 @@ class StreamConnection:
         estimator = self.registry.get(model)
         self.model = model
         localiser = self.localisers.get() if self.localisers.localisers else None
-        self.session = StreamSession(estimator, localiser, StreamLimits(self.settings.stream_max_slices,
-                                                                        self.settings.stream_max_pixels), options)
+        self.session = StreamSession(estimator, localiser, StreamLimits.of(self.settings), options)
         info = estimator.info
         await self.send({"type": "ready", "session_id": self.session_id,
                          "model": {"name": model, "version": info.version, "backbone": info.backbone,

@@ -67,6 +67,8 @@ class Settings(BaseSettings):
                                      "code 1013 and a retry_after_s")
     stream_max_slices: int = Field(2000, ge=1, description="slices one stream session may send")
     stream_max_pixels: int = Field(1024 * 1024, ge=4, description="pixels of one streamed slice")
+    stream_max_session_mb: float = Field(256.0, gt=0, description="what one stream session's slices may hold in "
+                                         "memory together (pixels as float32)")
     stream_idle_s: float = Field(300.0, gt=0, description="a stream session silent this long is closed (code 1001)")
     stream_workers: int = Field(2, ge=1, description="slices of all stream sessions posed at once (threads)")
 

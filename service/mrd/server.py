@@ -128,7 +128,7 @@ def build_server(settings: Settings, host: str, port: int, limits: ServerLimits)
         print(f"svrnet-mrd: no localiser in {settings.localisers_dir}; MRD images carry no brain mask",
               file=sys.stderr)
         raise SystemExit(2)
-    stream_limits = StreamLimits(settings.stream_max_slices, settings.stream_max_pixels)
+    stream_limits = StreamLimits.of(settings)
     factory = session_factory(registry, localisers.get(), stream_limits)
     return MrdServer((host, port), factory, stream_limits, limits, settings.retry_after_s)
 

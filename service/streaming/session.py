@@ -39,6 +39,7 @@ from numpy.typing import NDArray
 from service.consistency.slice_order import STREAMED, SliceOrder
 from service.consistency.stage import StackPoses, consistent_poses, request_reference
 from service.core.errors import InvalidParameter
+from service.core.settings import Settings
 from service.geometry import anchors, twin
 from service.geometry.twin import DEFAULT_PLANE_X_MM
 from service.inference import acceptance
@@ -92,6 +93,13 @@ class StreamLimits:
 
     max_slices: int = 2000
     max_pixels: int = 1024 * 1024
+    max_bytes: int = 256 * 2**20
+    """What the session's slices may hold in memory together (their pixels as float32)."""
+
+    @classmethod
+    def of(cls, settings: Settings) -> "StreamLimits":
+        """The limits the ``stream_*`` settings give (``/v1/stream`` and ``svrnet-mrd`` alike)."""
+        return cls(settings.stream_max_slices, settings.stream_max_pixels, int(settings.stream_max_session_mb * 2**20))
 
 
 @dataclass(frozen=True)
@@ -245,6 +253,10 @@ class StreamSession:
                 raise InvalidParameter(f"slice.stack: stack {frame.stack!r} has ended; send a new stack under a new name")
             if sum(len(s) for s in self.stacks.values()) >= self.limits.max_slices:
                 raise InvalidParameter(f"slice: this session reached its limit of {self.limits.max_slices} slices")
+            held = sum(f.pixels.size for s in self.stacks.values() for f in s.frames.values()) * 4
+            if held + np.asarray(frame.pixels).size * 4 > self.limits.max_bytes:
+                raise InvalidParameter(f"slice: this session's slices would hold more than "
+                                       f"{self.limits.max_bytes // 2**20} MB; end it and start another")
             stack = self.stacks.get(frame.stack) or StreamedStack(frame.stack)
             stack.add(frame)
             self.stacks[frame.stack] = stack

@@ -88,3 +88,14 @@ def test_bad_slices_are_refused_and_change_nothing(case) -> None:  # noqa: ANN00
         session.add_slice(stacks[0][3])
     with pytest.raises(InvalidParameter, match="already ended"):
         session.end_stack("ax")
+
+
+def test_a_session_holds_no_more_than_its_memory_limit(case) -> None:  # noqa: ANN001
+    oracle, stacks, _ = case
+    one = stacks[0][0].pixels.size * 4
+    session = StreamSession(oracle, None, StreamLimits(max_bytes=2 * one + 1), FAST)
+    session.add_slice(stacks[0][0])
+    session.add_slice(stacks[0][1])
+    with pytest.raises(InvalidParameter, match="more than"):
+        session.add_slice(stacks[0][2])
+    assert len(session.stacks["ax"]) == 2
