@@ -69,6 +69,11 @@ VARIANTS: dict[str, dict] = {
     "no-anchor": {"anchor_frame": False},                # the slices' common drift kept
     "file-grids": {"stack_follow_motion_mm": float("inf")},
     "no-register": {"register": False},                  # super-resolution at the starting poses
+    "slice-level": {"coarse_to_fine": False},            # steps 4-5 alone, and each without one of its parts
+    "slice-level-no-folds": {"coarse_to_fine": False, "leave_out_folds": 1},
+    "slice-level-no-anchor": {"coarse_to_fine": False, "anchor_frame": False},
+    "slice-level-no-robust": {"coarse_to_fine": False, "robust": False},
+    "slice-level-fine": {"coarse_to_fine": False, "registration_subsample": 1, "registration_psf_points": 5},
     "job": {},                                           # what a job runs: the never-worse paths
 }
 """Each variant's :class:`ReconstructionConfig` fields (beside the model's symmetry plane)."""
