@@ -24,7 +24,7 @@ from service.core.settings import Settings
 from service.inference.registry import ModelRegistry
 from service.jobs.backends import open_backend
 from service.preprocess.localise import Localisers
-from service.streaming.session import background_executor
+from service.streaming.background import background_executor
 
 RETENTION_CHECK_S = 600.0
 log = logging.getLogger(__name__)

@@ -33,7 +33,8 @@ from service.api.deps import UNAUTHORIZED, api_key_ok
 from service.api.responses import error_message, pose_object, stack_message, summary_message, update_message
 from service.core.errors import InternalError, InvalidParameter, MalformedRequest, NotReady, Saturated, ServiceError, Unauthorized
 from service.streaming.frames import SliceFrame
-from service.streaming.session import SessionOptions, SliceAnswer, StreamLimits, StreamSession
+from service.streaming.options import SessionOptions, StreamLimits
+from service.streaming.session import SliceAnswer, StreamSession
 
 router = APIRouter()
 T = TypeVar("T")

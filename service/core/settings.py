@@ -70,7 +70,8 @@ class Settings(BaseSettings):
     stream_max_session_mb: float = Field(256.0, gt=0, description="what one stream session's slices may hold in "
                                          "memory together (pixels as float32)")
     stream_idle_s: float = Field(300.0, gt=0, description="a stream session silent this long is closed (code 1001)")
-    stream_workers: int = Field(2, ge=1, description="slices of all stream sessions posed at once (threads)")
+    stream_workers: int = Field(1, ge=1, description="slices of all stream sessions posed at once (threads; each "
+                                "takes up to a core from /v1/predict)")
 
     @property
     def max_decoded_bytes(self) -> int:

@@ -41,7 +41,9 @@ from service.api.responses import error_message, pose_object, stack_message, sum
 from service.core.errors import InternalError, InvalidParameter, PayloadTooLarge, ServiceError, UnusableImage
 from service.mrd.images import pixel_count, slice_from_image, with_pose
 from service.streaming.frames import SliceFrame
-from service.streaming.session import SessionOptions, StreamLimits, StreamSession, background_executor
+from service.streaming.background import background_executor
+from service.streaming.options import SessionOptions, StreamLimits
+from service.streaming.session import StreamSession
 
 log = logging.getLogger(__name__)
 

@@ -35,7 +35,8 @@ from service.core.settings import Settings
 from service.inference.registry import ModelRegistry
 from service.mrd.connection import MrdConnection, SessionFactory, refuse
 from service.preprocess.localise import Localiser, Localisers
-from service.streaming.session import SessionOptions, StreamLimits, StreamSession
+from service.streaming.options import SessionOptions, StreamLimits
+from service.streaming.session import StreamSession
 
 log = logging.getLogger(__name__)
 

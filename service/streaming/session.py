@@ -9,8 +9,9 @@ The stages are those of ``/v1/predict`` (:mod:`service.pipeline.predict`), run a
    it. N4 needs the whole stack, so this pose is of the slice as sent.
 2. **Between slices** (:meth:`StreamSession.firm_up`): the stack-consistency stage on the slices of
    the open stack received so far, their acquisition order the order they arrived in (or the
-   client's ``acquisition_index``), with the branch of the stacks already ended. Slices whose pose
-   moved by more than :data:`UPDATE_MM` (or whose accept flag changed) are returned as updates.
+   client's ``acquisition_index``), with the branch of the stacks already ended; its fit runs in the
+   stage process (:mod:`~service.streaming.background`). Slices whose pose moved by more than
+   :data:`UPDATE_MM` (or whose accept flag changed) are returned as updates.
 3. **The stack ends** (:meth:`StreamSession.end_stack`): the stack, rebuilt from its slices, goes
    through ``/v1/predict``'s whole pipeline (localisation, N4, preprocessing, inference) and, with
    the stacks ended before it and their network statistics, through the same request-level stages
@@ -26,11 +27,8 @@ firm-up); its state changes under one lock, its computations run outside it.
 
 from __future__ import annotations
 
-import json
-import os
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -39,7 +37,6 @@ from numpy.typing import NDArray
 from service.consistency.slice_order import STREAMED, SliceOrder
 from service.consistency.stage import StackPoses, consistent_poses, request_reference
 from service.core.errors import InvalidParameter
-from service.core.settings import Settings
 from service.geometry import anchors, twin
 from service.geometry.twin import DEFAULT_PLANE_X_MM
 from service.inference import acceptance
@@ -57,10 +54,11 @@ from service.pipeline.predict import (
 from service.preprocess.localise import Localisation, Localiser
 from service.preprocess.slices import preprocess_slices
 from service.preprocess.stack import split_stack
+from service.streaming.background import stage_process
 from service.streaming.coverage import Coverage, CoveredSlice, coverage
 from service.streaming.frames import SliceFrame, StreamedStack, check_frame
+from service.streaming.options import SessionOptions, StreamLimits
 
-MAX_MC_SAMPLES = 1000
 UPDATE_MM = 1.0
 """A slice whose pose moves by more than this (E.D., mm) is sent again as an update."""
 MIN_FIRM_UP_SLICES = 4
@@ -70,91 +68,6 @@ FIRM_UP_GROWTH = 0.25
 the stage's cost grows with the stack, so its total stays near linear in the slices."""
 WINDOW = 1
 """Neighbours on each side the localiser sees with a slice (when they have arrived)."""
-BACKGROUND_NICE = 10
-"""How much lower the OS priority of the threads running the stack stages is than the poses':
-a pose waits for no firm-up (on 2 cores, an equal share doubled the poses' latency)."""
-
-
-def background_executor(name: str, workers: int = 1) -> ThreadPoolExecutor:
-    """Threads for the stack stages (:meth:`StreamSession.firm_up`, :meth:`StreamSession.end_stack`),
-    each at :data:`BACKGROUND_NICE` below the process's priority (where the OS allows it)."""
-    def lower() -> None:
-        try:
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), os.getpriority(os.PRIO_PROCESS, 0)
-                           + BACKGROUND_NICE)
-        except (AttributeError, OSError):          # not Linux, or not allowed: equal priority
-            pass
-    return ThreadPoolExecutor(max_workers=workers, thread_name_prefix=name, initializer=lower)
-
-
-@dataclass(frozen=True)
-class StreamLimits:
-    """What one session may hold."""
-
-    max_slices: int = 2000
-    max_pixels: int = 1024 * 1024
-    max_bytes: int = 256 * 2**20
-    """What the session's slices may hold in memory together (their pixels as float32)."""
-
-    @classmethod
-    def of(cls, settings: Settings) -> "StreamLimits":
-        """The limits the ``stream_*`` settings give (``/v1/stream`` and ``svrnet-mrd`` alike)."""
-        return cls(settings.stream_max_slices, settings.stream_max_pixels, int(settings.stream_max_session_mb * 2**20))
-
-
-@dataclass(frozen=True)
-class SessionOptions:
-    """A session's options, as ``/v1/predict``'s form and Stream v1's ``start`` name them.
-
-    Example:
-        >>> SessionOptions.from_message({"type": "start", "mc_samples": 20}, "start").mc_samples
-        20
-        >>> SessionOptions.from_json('{"mc_samples": 0}', "config")
-        Traceback (most recent call last):
-        ...
-        service.core.errors.InvalidParameter: config.mc_samples: an integer from 1 to 1000 is required
-    """
-
-    model: str = "default"
-    mc_samples: int = 100
-    variance_threshold: float | None = None
-    max_expected_error_mm: float | None = None
-    bias_correction: bool = True
-
-    @classmethod
-    def from_json(cls, text: str, where: str) -> "SessionOptions":
-        """Options from a JSON object holding nothing else (an MRD config text); :class:`InvalidParameter`
-        names the field at fault, ``where`` the message."""
-        try:
-            given = json.loads(text)
-        except ValueError:
-            raise InvalidParameter(f"{where}: not a JSON object") from None
-        if not isinstance(given, dict):
-            raise InvalidParameter(f"{where}: not a JSON object")
-        unknown = sorted(set(given) - set(cls.__dataclass_fields__))
-        if unknown:
-            raise InvalidParameter(f"{where}: unknown options {unknown}")
-        return cls.from_message(given, where)
-
-    @classmethod
-    def from_message(cls, given: dict, where: str) -> "SessionOptions":
-        """Options from the fields of a message (others are left to the caller)."""
-        model, samples = given.get("model", "default"), given.get("mc_samples", 100)
-        if not isinstance(model, str) or not 1 <= len(model) <= 128:
-            raise InvalidParameter(f"{where}.model: a model name (string) is required")
-        if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= MAX_MC_SAMPLES:
-            raise InvalidParameter(f"{where}.mc_samples: an integer from 1 to {MAX_MC_SAMPLES} is required")
-        limits = {}
-        for name in ("variance_threshold", "max_expected_error_mm"):
-            value = given.get(name)
-            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
-                                      or not np.isfinite(value) or not value > 0):
-                raise InvalidParameter(f"{where}.{name}: a positive number (or null) is required")
-            limits[name] = None if value is None else float(value)
-        bias_correction = given.get("bias_correction", True)
-        if not isinstance(bias_correction, bool):
-            raise InvalidParameter(f"{where}.bias_correction: true or false")
-        return cls(model, samples, **limits, bias_correction=bias_correction)
 
 
 @dataclass
@@ -362,11 +275,11 @@ class StreamSession:
         usable = (np.concatenate([s.prepared.prepared.mask_fraction for s in states]) >= acceptance.MIN_MASK_FRACTION) \
             & ~est.degenerate
         shape = getattr(info, "mc_error_shape", None)
-        out = consistent_poses(est.mean, est.twin_mass, network_from_scanner, np.eye(4), usable,
-                               getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM),
-                               est.spread_mm * getattr(info, "mc_error_scale", 1.0), True, times,
-                               None if shape is None else np.asarray(shape),
-                               float(getattr(info, "mc_error_depth_gain", 0.0)), reference)
+        out = stage_process().submit(consistent_poses, est.mean, est.twin_mass, network_from_scanner, np.eye(4), usable,
+                                     getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM),
+                                     est.spread_mm * getattr(info, "mc_error_scale", 1.0), True, times,
+                                     None if shape is None else np.asarray(shape),
+                                     float(getattr(info, "mc_error_depth_gain", 0.0)), reference).result()
         if out.expected_error_mm is not None:
             out.expected_error_mm = self._with_floor(out.expected_error_mm)
         answers = []

@@ -19,7 +19,7 @@ from service.io.volume import Volume
 from service.mrd.images import image_from_slice
 from service.mrd.server import MrdServer, ServerLimits, session_factory
 from service.preprocess.localise import Localisation
-from service.streaming.session import StreamLimits
+from service.streaming.options import StreamLimits
 from tests.support.streams import KeyedOracle, frames_of, simulated_stack, teach
 
 HEADER_XML = """<?xml version="1.0" encoding="utf-8"?>

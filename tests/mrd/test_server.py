@@ -13,7 +13,7 @@ from ismrmrd.serialization import ConfigText
 
 from service.mrd.images import pose_from_meta
 from service.mrd.server import ServerLimits
-from service.streaming.session import StreamLimits
+from service.streaming.options import StreamLimits
 from tests.mrd.conftest import Case, MrdClient, mrd_header
 from tests.support.streams import true_sent
 

@@ -9,7 +9,8 @@ import pytest
 from service.core.errors import InvalidParameter
 from service.geometry import twin
 from service.streaming.frames import SliceFrame
-from service.streaming.session import SessionOptions, StreamLimits, StreamSession
+from service.streaming.options import SessionOptions, StreamLimits
+from service.streaming.session import StreamSession
 from tests.api.conftest import INFO
 from tests.support.streams import SHAPE, KeyedOracle, true_sent, two_stacks_case
 

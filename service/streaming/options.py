@@ -1,0 +1,90 @@
+"""What a stream session is asked for (its options) and what it may hold (its limits).
+
+Example:
+    >>> SessionOptions.from_message({"type": "start", "mc_samples": 20}, "start").mc_samples
+    20
+    >>> StreamLimits().max_slices
+    2000
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.core.errors import InvalidParameter
+from service.core.settings import Settings
+
+MAX_MC_SAMPLES = 1000
+
+
+@dataclass(frozen=True)
+class StreamLimits:
+    """What one session may hold."""
+
+    max_slices: int = 2000
+    max_pixels: int = 1024 * 1024
+    max_bytes: int = 256 * 2**20
+    """What the session's slices may hold in memory together (their pixels as float32)."""
+
+    @classmethod
+    def of(cls, settings: Settings) -> "StreamLimits":
+        """The limits the ``stream_*`` settings give (``/v1/stream`` and ``svrnet-mrd`` alike)."""
+        return cls(settings.stream_max_slices, settings.stream_max_pixels, int(settings.stream_max_session_mb * 2**20))
+
+
+@dataclass(frozen=True)
+class SessionOptions:
+    """A session's options, as ``/v1/predict``'s form and Stream v1's ``start`` name them.
+
+    Example:
+        >>> SessionOptions.from_message({"type": "start", "mc_samples": 20}, "start").mc_samples
+        20
+        >>> SessionOptions.from_json('{"mc_samples": 0}', "config")
+        Traceback (most recent call last):
+        ...
+        service.core.errors.InvalidParameter: config.mc_samples: an integer from 1 to 1000 is required
+    """
+
+    model: str = "default"
+    mc_samples: int = 100
+    variance_threshold: float | None = None
+    max_expected_error_mm: float | None = None
+    bias_correction: bool = True
+
+    @classmethod
+    def from_json(cls, text: str, where: str) -> "SessionOptions":
+        """Options from a JSON object holding nothing else (an MRD config text); :class:`InvalidParameter`
+        names the field at fault, ``where`` the message."""
+        try:
+            given = json.loads(text)
+        except ValueError:
+            raise InvalidParameter(f"{where}: not a JSON object") from None
+        if not isinstance(given, dict):
+            raise InvalidParameter(f"{where}: not a JSON object")
+        unknown = sorted(set(given) - set(cls.__dataclass_fields__))
+        if unknown:
+            raise InvalidParameter(f"{where}: unknown options {unknown}")
+        return cls.from_message(given, where)
+
+    @classmethod
+    def from_message(cls, given: dict, where: str) -> "SessionOptions":
+        """Options from the fields of a message (others are left to the caller)."""
+        model, samples = given.get("model", "default"), given.get("mc_samples", 100)
+        if not isinstance(model, str) or not 1 <= len(model) <= 128:
+            raise InvalidParameter(f"{where}.model: a model name (string) is required")
+        if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= MAX_MC_SAMPLES:
+            raise InvalidParameter(f"{where}.mc_samples: an integer from 1 to {MAX_MC_SAMPLES} is required")
+        limits = {}
+        for name in ("variance_threshold", "max_expected_error_mm"):
+            value = given.get(name)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
+                                      or not np.isfinite(value) or not value > 0):
+                raise InvalidParameter(f"{where}.{name}: a positive number (or null) is required")
+            limits[name] = None if value is None else float(value)
+        bias_correction = given.get("bias_correction", True)
+        if not isinstance(bias_correction, bool):
+            raise InvalidParameter(f"{where}.bias_correction: true or false")
+        return cls(model, samples, **limits, bias_correction=bias_correction)
