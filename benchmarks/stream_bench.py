@@ -12,7 +12,8 @@ order, each slice with its mask, MC-100, N4 on:
    localiser finds the brain slice by slice;
 2. **final poses**: the session's last word on each slice (its stack's ``stack`` message and the
    ``update`` messages after it) against the simulated truth (E.D., truth and twin-min) and against
-   ``POST /v1/predict`` of the same files, told the same acquisition order;
+   ``POST /v1/predict`` of the same files, told the same acquisition order (and that answer against
+   a second ``/v1/predict`` of the same files: the MC draw's own spread);
 3. **load**: ``--sessions`` sessions (threads) streaming at ``--pace`` s a slice while
    ``/v1/predict`` answers 3 stacks of 128 x 128; its wall time against the idle server's.
 
@@ -113,10 +114,11 @@ def ed(a: np.ndarray, b: np.ndarray, frame: np.ndarray, plane_x: float, twin_min
 def accuracy(levels: list[str], per_level: int, server: Server, plane_x: float, volumes: list,
              rng: np.random.Generator) -> None:
     print("\n## Final poses (mean E.D. mm; truth / twin-min) and pose latency, 128 x 128 with masks, MC-100")
-    print("| motion | stream | /v1/predict (same order) | stream vs predict | pose p50 / p95 server | round trip p95 |")
-    print("|---|---|---|---|---|---|")
+    print("| motion | stream | /v1/predict (same order) | stream vs predict | predict vs predict again "
+          "| pose p50 / p95 server | round trip p95 |")
+    print("|---|---|---|---|---|---|---|")
     for level in levels:
-        rows = {"stream": [], "stream_twin": [], "predict": [], "predict_twin": [], "between": []}
+        rows = {"stream": [], "stream_twin": [], "predict": [], "predict_twin": [], "between": [], "again": []}
         lat = {"server": [], "rtt": []}
         for i in range(per_level):
             vol = volumes[(i + levels.index(level)) % len(volumes)]
@@ -135,23 +137,26 @@ def accuracy(levels: list[str], per_level: int, server: Server, plane_x: float, 
                 order = [",".join(str(int(k)) for k in np.argsort(s.times)) for s in stacks]
                 with SVRnetClient(server.url, timeout=600) as svr:
                     body = svr.predict(files, masks, slice_order=order)
-            for s, n, st in zip(stacks, names, body["stacks"]):
+                    again = svr.predict(files, masks, slice_order=order)       # the MC draw's own spread
+            for s, n, st, st2 in zip(stacks, names, body["stacks"], again["stacks"]):
                 for k in range(s.volume.array.shape[2]):
                     frame = network_frame(s, k)
                     truth = s.atlas_from_voxel[k] @ translate([0, 0, k])
                     mine = np.array(got["last"][(n, k)]["atlas_from_voxel"])
                     theirs = np.array(st["slices"][k]["atlas_from_voxel"]) @ translate([0, 0, k])
+                    twice = np.array(st2["slices"][k]["atlas_from_voxel"]) @ translate([0, 0, k])
                     rows["stream"].append(ed(mine, truth, frame, plane_x))
                     rows["stream_twin"].append(ed(mine, truth, frame, plane_x, True))
                     rows["predict"].append(ed(theirs, truth, frame, plane_x))
                     rows["predict_twin"].append(ed(theirs, truth, frame, plane_x, True))
                     rows["between"].append(ed(mine, theirs, frame, plane_x))
+                    rows["again"].append(ed(twice, theirs, frame, plane_x))
             if got["errors"]:
                 print(f"  errors: {got['errors'][:3]}")
         m = {k: float(np.mean(v)) for k, v in rows.items()}
         print(f"| {level} ({per_level} acq., {len(rows['stream'])} slices) | {m['stream']:.2f} / {m['stream_twin']:.2f} "
               f"| {m['predict']:.2f} / {m['predict_twin']:.2f} | {m['between']:.2f} "
-              f"(|diff of means| {abs(m['stream'] - m['predict']):.2f}) "
+              f"(|diff of means| {abs(m['stream'] - m['predict']):.2f}) | {m['again']:.2f} "
               f"| {np.percentile(lat['server'], 50):.1f} / {np.percentile(lat['server'], 95):.1f} ms "
               f"| {np.percentile(lat['rtt'], 95):.1f} ms |")
 
