@@ -89,6 +89,10 @@ def main() -> None:
     ap.add_argument("--atlas-frame", action=argparse.BooleanOptionalAction, default=False,
                     help="also each variant with the reconstruction's atlas frame re-estimated by the network")
     ap.add_argument("--levels", default="mild,moderate,jumps,independent")
+    ap.add_argument("--start", choices=("predicted", "truth"), default="predicted",
+                    help="the poses the reconstruction starts from (truth: does registration keep them?)")
+    ap.add_argument("--bias", type=float, default=None, help="the simulated stacks' bias-field strength "
+                    "(default: model_export.acquisitions'; 0: none)")
     ap.add_argument("--variants", default="default", help=f"comma-separated, of {', '.join(VARIANTS)}")
     args = ap.parse_args()
     if not DEFAULT_ATLAS_ROOT.exists():
@@ -105,11 +109,14 @@ def main() -> None:
         held = {k: [] for k in variants}
         for a in range(args.per_level):
             vol = vols[a % len(vols)]
-            stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level)
+            stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level,
+                                          **({} if args.bias is None else {"bias": args.bias}))
             (results,), prepared, _ = run_acquisition(stacks, est, 100, True)
             counts = [len(r["slices"]) for r in results]
             poses = starting_inclusion(poses_from_predict_body({"stacks": results}, counts))
             masks = [np.moveaxis(p.slices.masks.transpose(0, 2, 1), 0, p.slices.slice_axis) for p in prepared]
+            if args.start == "truth":
+                poses = [(s.atlas_from_voxel, inc) for s, (_, inc) in zip(stacks, poses)]
             ss = SliceSet.from_stacks([(s.volume, m, mats, inc) for s, m, (mats, inc) in zip(stacks, masks, poses)])
             rows["predicted"].append(errors(stacks, prepared, ss.atlas_from_voxel, plane))
             for name in variants:
