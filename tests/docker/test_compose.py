@@ -30,17 +30,19 @@ def test_the_services_and_their_health_checks() -> None:
         test = service.get("healthcheck", {}).get("test")
         assert isinstance(test, list) and test[0] == "CMD" and len(test) > 1, name
     assert SERVICES["worker"]["deploy"]["replicas"] == 2
-    assert SERVICES["lb"]["ports"] == ["8000:8000"] and not any("ports" in s for s in _svrnet_services().values())
+    assert SERVICES["lb"]["ports"] == ["8000:8000"]
+    assert [n for n, s in _svrnet_services().items() if "ports" in s] == ["mrd"]     # MRD speaks TCP, not HTTP
 
 
 def test_every_command_exists() -> None:
     svrnet = _svrnet_services()
-    assert {"api-1", "api-2", "worker"} == set(svrnet)
+    assert {"api-1", "api-2", "worker", "mrd"} == set(svrnet)
     for name, service in svrnet.items():
         assert service["command"][0] in SCRIPTS, (name, service["command"])
         assert service["build"]["dockerfile"] == "docker/Dockerfile"
     assert [SERVICES[n]["command"] for n in ("api-1", "api-2")] == [["svrnet-server"]] * 2
     assert SERVICES["worker"]["command"] == ["svrnet-worker"]
+    assert SERVICES["mrd"]["command"][0] == "svrnet-mrd" and SERVICES["mrd"]["ports"] == ["9002:9002"]
     assert SERVICES["worker"]["healthcheck"]["test"][1:] == ["svrnet-worker", "--health"]
     out = io.StringIO()                               # the worker's option parser knows those options
     with contextlib.redirect_stdout(out), contextlib.suppress(SystemExit):
@@ -65,4 +67,6 @@ def test_the_load_balancer_sends_to_both_replicas() -> None:
     conf = (ROOT / "docker" / mount[0]).read_text()
     assert re.findall(r"server\s+([\w-]+):8000", conf) == ["api-1", "api-2"]
     assert re.search(r"proxy_pass\s+http://svrnet_api;", conf) and "listen 8000;" in conf
+    stream = conf[conf.index("location /v1/stream"):]                        # WebSockets pass the upgrade
+    assert "proxy_set_header Upgrade $http_upgrade;" in stream and "$connection_upgrade" in stream
     assert set(SERVICES["lb"]["depends_on"]) == {"api-1", "api-2"}
