@@ -74,6 +74,8 @@ VARIANTS: dict[str, dict] = {
     "slice-level-no-anchor": {"coarse_to_fine": False, "anchor_frame": False},
     "slice-level-no-robust": {"coarse_to_fine": False, "robust": False},
     "slice-level-fine": {"coarse_to_fine": False, "registration_subsample": 1, "registration_psf_points": 5},
+    "slice-level-prior1": {"coarse_to_fine": False, "registration_prior_sd_mm": 1.0},
+    "slice-level-prior2": {"coarse_to_fine": False, "registration_prior_sd_mm": 2.0},
     "job": {},                                           # what a job runs: the never-worse paths
 }
 """Each variant's :class:`ReconstructionConfig` fields (beside the model's symmetry plane)."""

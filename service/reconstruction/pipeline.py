@@ -122,6 +122,9 @@ class ReconstructionConfig:
         exclude_ratio: slices with potential below this fraction of the median are excluded (and
             slices whose NCC with the volume is an outlier, :func:`~service.reconstruction.robust.ncc_outliers`;
             one that started from its own predicted pose restarts once from its stack's).
+        registration_prior_sd_mm: hold each slice near its starting pose in registration, this far
+            expected (mm == degrees; :func:`~service.reconstruction.registration.register_slices`'s
+            ``prior``); ``None``: no prior.
         quality: measure the result without ground truth (:mod:`~service.reconstruction.quality`;
             its leave-one-stack-out volumes cost a few CG iterations per stack).
     """
@@ -155,6 +158,7 @@ class ReconstructionConfig:
     robust_tolerance: float = 3.0
     exclude_ratio: float = 0.5
     quality: bool = True
+    registration_prior_sd_mm: float | None = None
 
 
 @dataclass
@@ -246,14 +250,15 @@ def capture(cfg: ReconstructionConfig, round_index: int, slices: SliceSet,
 def _register(slices: SliceSet, poses: NDArray, x: NDArray, grid: Grid, model: ForwardModel | None,
               pixel_weight: NDArray, lam: float, delta: float, support: NDArray,
               cfg: ReconstructionConfig, round_index: int = 0,
-              coarse: CoarseAlignment | None = None) -> tuple[NDArray, float]:
+              coarse: CoarseAlignment | None = None, start: NDArray | None = None) -> tuple[NDArray, float]:
     """One registration stage: all slices at once, or fold by fold against leave-out volumes.
 
     Returns the registered transforms and the seconds spent re-solving leave-out volumes.
     """
     step_mm, blur_mm = capture(cfg, round_index, slices, coarse)
     kw = dict(subsample=cfg.registration_subsample, psf_points=cfg.registration_psf_points,
-              max_iterations=cfg.registration_iterations, step_mm=step_mm, blur_sigma_mm=blur_mm)
+              max_iterations=cfg.registration_iterations, step_mm=step_mm, blur_sigma_mm=blur_mm,
+              prior=start, prior_sd_mm=cfg.registration_prior_sd_mm)
     n_stacks = int(slices.stack_index.max()) + 1
     folds = min(cfg.leave_out_folds, n_stacks)
     if folds < 2 or model is None:
@@ -329,6 +334,7 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
                               orders=cfg.slice_orders)
         poses = coarse.poses.copy()
         timings["coarse"] = time.perf_counter() - t0
+    start = poses.copy()
     bounds = bounds_of(unbinned.positions(poses), cfg.margin_mm) if bounds_mm is None else bounds_mm
     grid = make_grid(resolution_mm, bounds)
     lams = list(np.geomspace(cfg.lam_first, cfg.lam, rounds)) if rounds > 1 else [cfg.lam] * rounds
@@ -359,7 +365,7 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
                     poses[restart] = coarse.stack_poses[restart]
                     restarted |= restart
                 moved, t_sr = _register(slice_set, poses, x, grid, model, pixel_weight, float(lam), delta,
-                                        support, cfg, it, coarse)
+                                        support, cfg, it, coarse, start)
                 poses = anchor_frame(slice_set, poses, moved, slice_weight) if cfg.anchor_frame else moved
                 timings["superresolution"] += t_sr
                 timings["registration"] -= t_sr

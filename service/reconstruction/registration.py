@@ -141,6 +141,15 @@ def rigid_update(centre: NDArray, omega: NDArray, translation: NDArray) -> NDArr
     return make_pose(rot, t)
 
 
+def _offset(poses: NDArray, prior: NDArray, centre: NDArray) -> NDArray[np.float64]:
+    """``[n, 6]`` each pose's rigid offset from its prior about its centre: rotation (degrees),
+    translation of the centre (mm), in the steps' metric."""
+    u = poses @ np.linalg.inv(prior)
+    omega = se3.so3_log(u[:, :3, :3]) * MM_PER_RADIAN
+    moved = np.einsum("nij,nj->ni", u[:, :3, :3], centre) + u[:, :3, 3] - centre
+    return np.concatenate([omega, moved], axis=1)
+
+
 def _kabsch(p: NDArray, q: NDArray, w: NDArray) -> NDArray[np.float64]:
     """Rigid ``4 x 4`` minimising ``sum w |R p + t - q|^2`` over points ``[N, 3]``."""
     pm = (w[:, None] * p).sum(0) / w.sum()
@@ -195,7 +204,8 @@ def register_slices(volume: NDArray, grid: Grid, slices: SliceSet, atlas_from_vo
                     active: NDArray | None = None, subsample: int = 2, psf_points: int = 3,
                     blur_sigma_mm: float | None = None, max_iterations: int = 40, step_mm: float = 1.0,
                     min_step_mm: float = 0.1, min_pixels: int = 16,
-                    max_pixels: int | None = 150_000) -> RegistrationResult:
+                    max_pixels: int | None = 150_000, prior: NDArray | None = None,
+                    prior_sd_mm: float | None = None) -> RegistrationResult:
     """Rigidly register every (active) slice to ``volume`` at once.
 
     Args:
@@ -213,6 +223,12 @@ def register_slices(volume: NDArray, grid: Grid, slices: SliceSet, atlas_from_vo
         min_pixels: slices with fewer (subsampled) pixels are not registered.
         max_pixels: the stride is raised so that at most about this many pixels are used (the cost
             of an iteration is proportional to them; ``None``: no cap).
+        prior: ``[n, 4, 4]`` transforms each slice is held near (``None``: none), with
+            ``prior_sd_mm`` its expected distance (mm == degrees): the objective becomes
+            ``NCC - w/2 |d|^2``, ``d`` the slice's rigid offset from its prior (about its centre) and
+            ``w`` the slice's own NCC curvature in translation over ``prior_sd_mm^2``: directions the
+            image constrains (translation) stay the image's, those it barely does (a thick slice's
+            tilt) stay near the prior.
 
     Returns:
         The :class:`RegistrationResult`.
@@ -236,6 +252,10 @@ def register_slices(volume: NDArray, grid: Grid, slices: SliceSet, atlas_from_vo
     damping = np.full(n, INITIAL_DAMPING)
     moving = act.copy()
     scale = np.array([MM_PER_RADIAN] * 3 + [1.0] * 3)        # (omega, t) -> (degrees, mm)
+    held = prior is not None and prior_sd_mm
+    if held:
+        weight = np.median(np.einsum("nii->ni", hess)[:, 3:], axis=1) / float(prior_sd_mm) ** 2
+        ncc = ncc - 0.5 * weight * (_offset(poses, prior, centre) ** 2).sum(1)
     it = 0
     for it in range(1, max_iterations + 1):
         live = moving & (radius >= min_step_mm)
@@ -244,6 +264,9 @@ def register_slices(volume: NDArray, grid: Grid, slices: SliceSet, atlas_from_vo
             break
         g = grad[live] / scale                                    # gradient w.r.t. scaled parameters
         h = hess[live] / scale[:, None] / scale[None, :]
+        if held:
+            g = g - weight[live, None] * _offset(poses[live], prior[live], centre[live])
+            h = h + weight[live, None, None] * np.eye(6)
         diag = np.maximum(np.einsum("nii->ni", h), 1e-12)
         lhs = h + (damping[live, None] * diag)[:, :, None] * np.eye(6)
         step = np.linalg.solve(lhs, g[..., None])[..., 0]
@@ -253,6 +276,8 @@ def register_slices(volume: NDArray, grid: Grid, slices: SliceSet, atlas_from_vo
         trial = poses.copy()
         trial[live] = rigid_update(centre[live], step[:, :3], step[:, 3:]) @ poses[live]
         ncc_t, grad_t, hess_t, centre_t = objective(trial, live)
+        if held:
+            ncc_t = ncc_t - 0.5 * weight * (_offset(trial, prior, centre_t) ** 2).sum(1)
         better = live & (ncc_t > ncc)
         worse = live & ~better
         poses[better], ncc[better] = trial[better], ncc_t[better]

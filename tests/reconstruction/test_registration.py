@@ -103,3 +103,17 @@ def test_anchor_frame_removes_common_motion_despite_a_gross_outlier(target):
     assert np.max(err[keep]) < 0.03
     assert np.max(_per_slice_error(ss, anchor_frame(ss, local, common @ local), local)) < 1e-6
     assert MM_PER_RADIAN == pytest.approx(57.2957795)
+
+
+def test_a_prior_holds_slices_near_it_in_proportion_to_its_spread(target):
+    """Started 1 mm / 1 deg off, the slices move back to the truth on their own; a tight prior at the
+    start keeps them there, a loose one lets the image win."""
+    ss, grid, ref = target
+    start = perturb(ss.atlas_from_voxel, np.random.default_rng(3), 1.0, 1.0, ss.centres())
+    free = register_slices(ref, grid, ss, start).atlas_from_voxel
+    tight = register_slices(ref, grid, ss, start, prior=start, prior_sd_mm=0.01).atlas_from_voxel
+    loose = register_slices(ref, grid, ss, start, prior=start, prior_sd_mm=20.0).atlas_from_voxel
+    before = _per_slice_error(ss, start, ss.atlas_from_voxel).mean()
+    assert _per_slice_error(ss, free, ss.atlas_from_voxel).mean() < 0.5 * before
+    assert _per_slice_error(ss, tight, start).mean() < 0.05
+    assert _per_slice_error(ss, loose, ss.atlas_from_voxel).mean() < 0.6 * before
