@@ -252,10 +252,14 @@ def register_slices(volume: NDArray, grid: Grid, slices: SliceSet, atlas_from_vo
     damping = np.full(n, INITIAL_DAMPING)
     moving = act.copy()
     scale = np.array([MM_PER_RADIAN] * 3 + [1.0] * 3)        # (omega, t) -> (degrees, mm)
-    held = prior is not None and prior_sd_mm
-    if held:
-        weight = np.median(np.einsum("nii->ni", hess)[:, 3:], axis=1) / float(prior_sd_mm) ** 2
-        ncc = ncc - 0.5 * weight * (_offset(poses, prior, centre) ** 2).sum(1)
+    held = prior is not None and bool(prior_sd_mm)
+    weight = np.median(np.einsum("nii->ni", hess)[:, 3:], axis=1) / float(prior_sd_mm) ** 2 if held else np.zeros(n)
+
+    def penalised(value: NDArray, at: NDArray, centres: NDArray) -> NDArray:
+        """The objective: the NCC less the prior's penalty (the NCC itself without a prior)."""
+        return value - 0.5 * weight * (_offset(at, prior, centres) ** 2).sum(1) if held else value
+
+    score = penalised(ncc, poses, centre)
     it = 0
     for it in range(1, max_iterations + 1):
         live = moving & (radius >= min_step_mm)
@@ -276,11 +280,10 @@ def register_slices(volume: NDArray, grid: Grid, slices: SliceSet, atlas_from_vo
         trial = poses.copy()
         trial[live] = rigid_update(centre[live], step[:, :3], step[:, 3:]) @ poses[live]
         ncc_t, grad_t, hess_t, centre_t = objective(trial, live)
-        if held:
-            ncc_t = ncc_t - 0.5 * weight * (_offset(trial, prior, centre_t) ** 2).sum(1)
-        better = live & (ncc_t > ncc)
+        score_t = penalised(ncc_t, trial, centre_t)
+        better = live & (score_t > score)
         worse = live & ~better
-        poses[better], ncc[better] = trial[better], ncc_t[better]
+        poses[better], ncc[better], score[better] = trial[better], ncc_t[better], score_t[better]
         grad[better], hess[better], centre[better] = grad_t[better], hess_t[better], centre_t[better]
         damping[better] = np.maximum(damping[better] / 3.0, 1e-6)
         damping[worse] *= 4.0
