@@ -165,11 +165,12 @@ class StreamSession:
             if frame.stack in self.ended:
                 raise InvalidParameter(f"slice.stack: stack {frame.stack!r} has ended; send a new stack under a new name")
             if sum(len(s) for s in self.stacks.values()) >= self.limits.max_slices:
-                raise InvalidParameter(f"slice: this session reached its limit of {self.limits.max_slices} slices")
+                raise InvalidParameter(f"slice: a session holds at most {self.limits.max_slices} slices; "
+                                       "end it and start another")
             held = sum(f.pixels.size for s in self.stacks.values() for f in s.frames.values()) * 4
             if held + np.asarray(frame.pixels).size * 4 > self.limits.max_bytes:
-                raise InvalidParameter(f"slice: this session's slices would hold more than "
-                                       f"{self.limits.max_bytes // 2**20} MB; end it and start another")
+                raise InvalidParameter(f"slice: a session's slices hold at most {self.limits.max_bytes / 2**20:.3g} MB "
+                                       "together; end it and start another")
             stack = self.stacks.get(frame.stack) or StreamedStack(frame.stack)
             stack.add(frame)
             self.stacks[frame.stack] = stack
