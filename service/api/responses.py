@@ -103,19 +103,13 @@ def pose_object(answer: SliceAnswer, **extra: object) -> dict:
     """A stream's ``pose`` body: the fields of a ``/v1/predict`` slice for the slice as sent, its
     stack and index, how its brain was found, and ``extra`` (e.g. ``latency_ms``)."""
     p = answer.prediction
-    body = slice_objects(StackPrediction(p.prepared, p.network_from_voxel[answer.row:answer.row + 1],
-                                         p.estimate.part(slice(answer.row, answer.row + 1)),
-                                         _row(p.poses, answer.row), p.reasons[answer.row:answer.row + 1]))[0]
+    row = slice(answer.row, answer.row + 1)
+    body = slice_objects(StackPrediction(p.prepared, p.network_from_voxel[row], p.estimate.part(row), p.poses.part(row),
+                                         p.reasons[row]))[0]
     loc = p.prepared.localisation
     body.update({"stack": answer.stack, "index": answer.index,
                  "localisation": {"method": loc.method, "confidence": round(loc.confidence, 3)}, **extra})
     return body
-
-
-def _row(out: StackPoses, k: int) -> StackPoses:
-    expected = None if out.expected_error_mm is None else out.expected_error_mm[k:k + 1]
-    return StackPoses(out.poses[k:k + 1], out.twin_mass[k:k + 1], out.twinned[k:k + 1], out.inconsistent[k:k + 1],
-                      None, expected)
 
 
 def stack_message(answer: StackAnswer) -> dict:

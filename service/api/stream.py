@@ -5,7 +5,7 @@ the order they arrive, so poses go out in the order the slices came; the stack s
 stack up in the background (one task per connection, coalescing the slices that arrive meanwhile)
 and sends ``update`` messages between the poses. Compute runs in worker threads: poses on
 ``stream_workers`` threads shared by all sessions, the stack stages on two more (firm-ups, stack
-ends) at a lower OS priority (:func:`~service.streaming.session.background_executor`), so that no
+ends) at a lower OS priority (:mod:`~service.streaming.background`), so that no
 number of sessions takes more than those cores from ``/v1/predict`` and no pose waits for a stack
 stage.
 
@@ -31,7 +31,15 @@ from starlette.websockets import WebSocketDisconnect
 
 from service.api.deps import UNAUTHORIZED, api_key_ok
 from service.api.responses import error_message, pose_object, stack_message, summary_message, update_message
-from service.core.errors import InternalError, InvalidParameter, MalformedRequest, NotReady, Saturated, ServiceError, Unauthorized
+from service.core.errors import (
+    InternalError,
+    InvalidParameter,
+    MalformedRequest,
+    NotReady,
+    Saturated,
+    ServiceError,
+    Unauthorized,
+)
 from service.streaming.frames import SliceFrame
 from service.streaming.options import SessionOptions, StreamLimits
 from service.streaming.session import SliceAnswer, StreamSession
@@ -151,7 +159,8 @@ class StreamConnection:
         estimator = self.registry.get(model)
         self.model = model
         localiser = self.localisers.get() if self.localisers.localisers else None
-        self.session = StreamSession(estimator, localiser, StreamLimits.of(self.settings), options)
+        limits = StreamLimits.of(self.settings)
+        self.session = StreamSession(estimator, localiser, limits, options)
         info = estimator.info
         await self.send({"type": "ready", "session_id": self.session_id,
                          "model": {"name": model, "version": info.version, "backbone": info.backbone,
@@ -159,9 +168,8 @@ class StreamConnection:
                          "mc_samples": options.mc_samples, "variance_threshold": self.session.threshold,
                          "max_expected_error_mm": self.session.max_expected_error_mm,
                          "localiser": localiser is not None,
-                         "limits": {"slices": self.settings.stream_max_slices,
-                                    "pixels_per_slice": self.settings.stream_max_pixels,
-                                    "idle_s": self.settings.stream_idle_s}})
+                         "limits": {"slices": limits.max_slices, "pixels_per_slice": limits.max_pixels,
+                                    "session_mb": limits.max_bytes / 2**20, "idle_s": self.settings.stream_idle_s}})
 
     async def slice(self, msg: dict) -> None:
         frame = await self.read_slice(msg)

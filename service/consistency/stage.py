@@ -53,6 +53,12 @@ class StackPoses:
     pooled: Pooled | None = None
     image_consistency: ImageConsistency | None = None
 
+    def part(self, which: slice) -> "StackPoses":
+        """The poses of the slices ``which`` alone (what a stream answers for one slice)."""
+        expected = None if self.expected_error_mm is None else self.expected_error_mm[which]
+        return StackPoses(self.poses[which], self.twin_mass[which], self.twinned[which], self.inconsistent[which],
+                          None, expected)
+
 
 def network_from_voxel(input_from_network: NDArray, slice_from_voxel: NDArray) -> NDArray[np.float64]:
     """``[n, 4, 4]`` voxel ``(i, j, k)`` of slice ``k`` -> its network frame (the service's crop/centre)."""

@@ -285,10 +285,8 @@ class StreamSession:
             out.expected_error_mm = self._with_floor(out.expected_error_mm)
         answers = []
         for i, s in enumerate(states):
-            one = StackPoses(out.poses[i:i + 1], out.twin_mass[i:i + 1], out.twinned[i:i + 1], out.inconsistent[i:i + 1],
-                             None, None if out.expected_error_mm is None else out.expected_error_mm[i:i + 1])
             answers.append(SliceAnswer(stack, s.frame.index, self._judged(s.prepared, s.network_from_voxel,
-                                                                           s.estimate, one)))
+                                                                           s.estimate, out.part(slice(i, i + 1)))))
         with self._lock:
             if stack in self.ended:
                 return []
