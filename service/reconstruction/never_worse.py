@@ -1,4 +1,4 @@
-"""A reconstruction job that never returns poses worse than those it started from.
+"""A reconstruction job that keeps the poses it started from unless registration does clearly better.
 
 Slice-to-volume registration can diverge: under motion that jumps, or that is independent from
 slice to slice, a stack is no rigid body, and the coarse steps that treat it as one
@@ -73,23 +73,22 @@ def reconstruct_never_worse(slice_set: SliceSet, resolution_mm: float = 0.8, svr
     """:func:`~service.reconstruction.pipeline.reconstruct` along the paths of the module, the best
     returned; its ``quality`` says which path won (``path``) and every path's score (``paths``)."""
     cfg = replace(config or ReconstructionConfig(), quality=True)
-    runs = [("full", cfg, 0.0, 0.8), ("starting_poses", replace(cfg, register=False), 0.8, 0.9),
-            ("slice_level", replace(cfg, coarse_to_fine=False), 0.9, 1.0)]
     results: dict[str, ReconstructionResult] = {}
     scores: dict[str, float | None] = {}
-    for name, run_cfg, lo, hi in runs:
-        if name == "slice_level" and (not cfg.coarse_to_fine or choose(scores) == "full" or not cfg.register):
-            break
-        if name == "starting_poses" and (svr_iterations == 0 or not cfg.register):
-            break
+
+    def run(name: str, run_cfg: ReconstructionConfig, lo: float, hi: float) -> None:
         label = None if name == "full" else f"checking {name.replace('_', ' ')}"
-        part = None if progress is None else (
-            lambda stage, f, lo=lo, hi=hi, label=label: progress(label or stage, lo + (hi - lo) * f))
+        part = None if progress is None else (lambda stage, f: progress(label or stage, lo + (hi - lo) * f))
         results[name] = reconstruct(slice_set, resolution_mm, svr_iterations, part, cancel, bounds_mm=bounds_mm,
                                     config=run_cfg)
         scores[name] = held_out_score(results[name])
-        if name == "full" and scores[name] is None:
-            break
+
+    run("full", cfg, 0.0, 0.8)
+    registers = cfg.register and svr_iterations > 0
+    if registers and scores["full"] is not None:
+        run("starting_poses", replace(cfg, register=False), 0.8, 0.9)
+        if cfg.coarse_to_fine and choose(scores) != "full":
+            run("slice_level", replace(cfg, coarse_to_fine=False), 0.9, 1.0)
     best = choose(scores)
     result = results[best]
     result.quality = {**result.quality, "path": best, "paths": scores}
