@@ -59,7 +59,13 @@ from service.reconstruction.registration import anchor_frame, register_slices
 from service.reconstruction.quality import held_out_ncc, judged_slices, quality_report
 from service.reconstruction.robust import ncc_outliers, robust_weights
 from service.reconstruction.slices import BIN_BELOW_FRACTION, SliceSet, inplane_bin_factors
-from service.reconstruction.superresolution import DEFAULT_DELTA_FRACTION, DEFAULT_LAMBDA, default_delta, super_resolve
+from service.reconstruction.superresolution import (
+    DEFAULT_DELTA_FRACTION,
+    DEFAULT_LAMBDA,
+    default_delta,
+    solve_without,
+    super_resolve,
+)
 
 Progress = Callable[[str, float], None]
 WIDE_CAPTURE_FRACTION = 0.5
@@ -269,9 +275,8 @@ def _register(slices: SliceSet, poses: NDArray, x: NDArray, grid: Grid, model: F
     t_sr = 0.0
     for k in range(folds):                                   # a loop over <= 3 folds, not over slices
         t0 = time.perf_counter()
-        w = np.where(fold_of_pixel == k, np.float32(0.0), pixel_weight)
-        xk = super_resolve(model, slices.values, w, x, iterations=cfg.leave_out_sr_iterations, lam=lam,
-                           delta=delta, support=support).volume
+        xk = solve_without(model, slices.values, pixel_weight, fold_of_pixel == k, x,
+                           iterations=cfg.leave_out_sr_iterations, lam=lam, delta=delta, support=support)
         t_sr += time.perf_counter() - t0
         fold = fold_of_slice == k
         moved[fold] = register_slices(xk, grid, slices, poses, active=fold, **kw).atlas_from_voxel[fold]

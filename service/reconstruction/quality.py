@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.reconstruction.forward import ForwardModel
-from service.reconstruction.superresolution import super_resolve
+from service.reconstruction.superresolution import solve_without
 
 GOOD_NCC = 0.7
 MIN_PIXEL_FRACTION = 0.2
@@ -58,8 +58,8 @@ def held_out_ncc(model: ForwardModel, values: NDArray, pixel_weight: NDArray, sl
         return out
     stack_of_pixel = np.asarray(stack_index)[slice_id]
     for s in stacks:                                    # a loop over the stacks, not the slices
-        w = np.where(stack_of_pixel == s, np.float32(0.0), pixel_weight)
-        xs = super_resolve(model, values, w, x, iterations=iterations, lam=lam, delta=delta, support=support).volume
+        xs = solve_without(model, values, pixel_weight, stack_of_pixel == s, x, iterations=iterations, lam=lam,
+                           delta=delta, support=support)
         mine = stack_index == s
         out[mine] = ncc(model.forward(xs), values)[mine]
     return out

@@ -150,3 +150,11 @@ def super_resolve(model: ForwardModel, values: NDArray, weights: NDArray, x0: ND
     if support is not None:
         x[~support] = 0.0
     return SuperResolutionResult(x, history)
+
+
+def solve_without(model: ForwardModel, values: NDArray, weights: NDArray, left_out: NDArray, x0: NDArray, *,
+                  iterations: int, lam: float, delta: float | None, support: NDArray | None) -> NDArray:
+    """The volume re-solved (warm-started from ``x0``) without the pixels ``left_out`` (``[N]`` bool):
+    what the other slices alone say, for leave-out registration and the quality report."""
+    w = np.where(left_out, np.float32(0.0), weights)
+    return super_resolve(model, values, w, x0, iterations=iterations, lam=lam, delta=delta, support=support).volume
