@@ -124,9 +124,19 @@ def stack_message(answer: StackAnswer) -> dict:
             "timing_ms": {k: round(v * 1e3, 1) for k, v in answer.timings.items()}}
 
 
-def update_message(answers: list[SliceAnswer]) -> dict:
-    """A stream's ``update``: slices of one stack whose pose moved (or whose accept flag changed)."""
-    return {"type": "update", "stack": answers[0].stack, "slices": [pose_object(a) for a in answers]}
+def update_messages(answers: list[SliceAnswer]) -> list[dict]:
+    """A stream's ``update`` messages: one per stack, its slices whose pose moved (or whose accept
+    flag changed), in the order given.
+
+    Example:
+        >>> update_messages([])
+        []
+    """
+    by_stack: dict[str, list[SliceAnswer]] = {}
+    for a in answers:
+        by_stack.setdefault(a.stack, []).append(a)
+    return [{"type": "update", "stack": stack, "slices": [pose_object(a) for a in group]}
+            for stack, group in by_stack.items()]
 
 
 def summary_message(summary: SessionSummary, **timing_ms: float) -> dict:

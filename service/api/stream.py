@@ -30,7 +30,7 @@ from fastapi import APIRouter, WebSocket
 from starlette.websockets import WebSocketDisconnect
 
 from service.api.deps import UNAUTHORIZED, api_key_ok
-from service.api.responses import error_message, pose_object, stack_message, summary_message, update_message
+from service.api.responses import error_message, pose_object, stack_message, summary_message, update_messages
 from service.core.errors import (
     InternalError,
     InvalidParameter,
@@ -238,8 +238,8 @@ class StreamConnection:
             stack = self.dirty.pop()
             try:
                 updates = await self.in_background("firm_up", self.session.firm_up, stack)
-                if updates:
-                    await self.send(update_message(updates))
+                for message in update_messages(updates):
+                    await self.send(message)
             except Exception:  # noqa: BLE001 - a background stage must not end the session; the stack's end says more
                 log.warning("stream firm-up failed", exc_info=True)
 
@@ -252,11 +252,8 @@ class StreamConnection:
     async def end_stack(self, stack: str) -> None:
         await self.settle()
         answer = await self.in_background("end_stack", self.session.end_stack, stack)
-        by_stack: dict[str, list[SliceAnswer]] = {}
-        for a in answer.updates:
-            by_stack.setdefault(a.stack, []).append(a)
-        for answers in by_stack.values():
-            await self.send(update_message(answers))
+        for message in update_messages(answer.updates):
+            await self.send(message)
         await self.send(stack_message(answer))
 
 

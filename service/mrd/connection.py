@@ -35,9 +35,9 @@ from dataclasses import dataclass, field
 from typing import Any, BinaryIO
 
 import ismrmrd
-from ismrmrd.serialization import ConfigFile, ConfigText, ISMRMRDMessageID
+from ismrmrd.serialization import ConfigText, ISMRMRDMessageID
 
-from service.api.responses import error_message, pose_object, stack_message, summary_message, update_message
+from service.api.responses import error_message, pose_object, stack_message, summary_message, update_messages
 from service.core.errors import InternalError, InvalidParameter, PayloadTooLarge, ServiceError, UnusableImage
 from service.mrd.images import pixel_count, slice_from_image, with_pose
 from service.streaming.frames import SliceFrame
@@ -48,7 +48,8 @@ from service.streaming.session import StreamSession
 log = logging.getLogger(__name__)
 
 MAX_TEXT_BYTES = 1 << 20
-"""Largest config, XML header, TEXT or meta attribute string one message may hold."""
+"""The smallest limit on one read from a client (a config, XML header, TEXT or meta string): the
+reader allows what the largest image of the pixel limit needs, and never less than this."""
 BYTES_PER_VALUE = 16
 """The widest MRD pixel (complex double): what a pixel of an announced image can cost to read."""
 IMAGE_HEADER_BYTES = ctypes.sizeof(ismrmrd.ImageHeader)
@@ -158,7 +159,7 @@ class MrdConnection:
             self.check_announced_image()
         try:
             message = next(self.incoming.deserialize(), None)
-        except (EOFError, OSError, ProtocolBroken):
+        except (EOFError, OSError):
             raise
         except PayloadTooLarge as too_large:
             raise ProtocolBroken(too_large) from None
@@ -267,8 +268,8 @@ class MrdConnection:
                 stack = self.dirty.pop()
             try:
                 updates = self.open_session().firm_up(stack)
-                if updates:
-                    self.send_text(update_message(updates))
+                for message in update_messages(updates):
+                    self.send_text(message)
             except Exception as fault:  # noqa: BLE001 - a background stage must not end the session
                 log.warning("mrd firm-up failed", extra={"error_type": type(fault).__name__})
 
@@ -290,7 +291,7 @@ class MrdConnection:
         series = self.series.pop(series_index)
         self.settle()
         try:
-            answer = self.open_session().end_stack(series.stack)
+            answer = self.stage.submit(self.open_session().end_stack, series.stack).result()   # at the stages' priority
         except ServiceError as failed:
             self.send_error(failed, series=series_index)
         except Exception as fault:  # noqa: BLE001 - as in on_image
@@ -298,11 +299,8 @@ class MrdConnection:
             self.send_error(InternalError("stack: the server failed on this series"), series=series_index)
         else:
             self.counts["stacks"] += 1
-            moved: dict[str, list] = {}
-            for update in answer.updates:                  # earlier stacks' slices that the new one moved
-                moved.setdefault(update.stack, []).append(update)
-            for updates in moved.values():
-                self.send_text(update_message(updates))
+            for message in update_messages(answer.updates):   # earlier stacks' slices that the new one moved
+                self.send_text(message)
             self.send_text(stack_message(answer))
         following = SeriesState(f"{series_index}.{series.passes + 1}", passes=series.passes + 1)
         self.series[series_index] = following
