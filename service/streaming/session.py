@@ -153,6 +153,7 @@ class StreamSession:
         self.ended: dict[str, _Ended] = {}
         self.finals: dict[str, StackPrediction] = {}
         self.compute_ms: dict[str, float] = {"slices": 0.0, "firm_up": 0.0, "end_stack": 0.0}
+        self.held_bytes = 0                     # the received slices' pixels as float32
         self._lock = threading.Lock()
 
     # -- 1. a slice arrives ------------------------------------------------------------------------------
@@ -167,13 +168,14 @@ class StreamSession:
             if sum(len(s) for s in self.stacks.values()) >= self.limits.max_slices:
                 raise InvalidParameter(f"slice: a session holds at most {self.limits.max_slices} slices; "
                                        "end it and start another")
-            held = sum(f.pixels.size for s in self.stacks.values() for f in s.frames.values()) * 4
-            if held + np.asarray(frame.pixels).size * 4 > self.limits.max_bytes:
+            size = np.asarray(frame.pixels).size * 4
+            if self.held_bytes + size > self.limits.max_bytes:
                 raise InvalidParameter(f"slice: a session's slices hold at most {self.limits.max_bytes / 2**20:.3g} MB "
                                        "together; end it and start another")
             stack = self.stacks.get(frame.stack) or StreamedStack(frame.stack)
             stack.add(frame)
             self.stacks[frame.stack] = stack
+            self.held_bytes += size
             neighbours = self._neighbours(stack, frame.index)
             fit = self.fits.get(frame.stack)
         try:
@@ -181,6 +183,7 @@ class StreamSession:
         except Exception:
             with self._lock:
                 stack.remove(frame.index)
+                self.held_bytes -= size
                 if not len(stack):
                     del self.stacks[frame.stack]
             raise
