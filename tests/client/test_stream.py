@@ -28,21 +28,25 @@ runner = CliRunner(env={"COLUMNS": "200"})
 # --- (a) the geometry of the slices, against the file ------------------------------------------------------
 
 
-def oblique_affine(spacing: tuple[float, float, float], seed: int) -> np.ndarray:
+def oblique_affine(spacing: tuple[float, float, float], seed: int, mirrored: bool = False) -> np.ndarray:
+    """An oblique affine; ``mirrored``: left-handed (its first column reversed)."""
     affine = np.eye(4)
     affine[:3, :3] = Rotation.from_rotvec(np.random.default_rng(seed).normal(size=3)).as_matrix() * spacing
+    if mirrored:
+        affine[:3, 0] *= -1.0
     affine[:3, 3] = (-40.0, 12.5, 7.0)
     return affine
 
 
+@pytest.mark.parametrize("mirrored", [False, True])
 @pytest.mark.parametrize(("spacing", "axis"), [((4.0, 1.0, 1.2), 0), ((1.0, 3.5, 1.2), 1), ((1.1, 1.0, 3.0), 2),
                                                ((2.0, 2.0, 2.0), 2), ((3.0, 1.0, 3.0), 2)])
 def test_every_pixel_of_every_slice_sits_where_the_file_puts_its_voxel(spacing: tuple[float, float, float],
-                                                                       axis: int) -> None:
+                                                                       axis: int, mirrored: bool) -> None:
     shape = (7, 6, 5)
     image = np.random.default_rng(1).normal(size=shape).astype(np.float32)
     mask = np.random.default_rng(2).random(shape) > 0.5
-    affine = oblique_affine(spacing, seed=axis)
+    affine = oblique_affine(spacing, seed=axis, mirrored=mirrored)
     got_axis, slices = scanner_slices(image, affine, mask)
     assert got_axis == axis and [s.index for s in slices] == list(range(shape[axis]))
     first, second = [ax for ax in range(3) if ax != axis]
@@ -78,6 +82,32 @@ def test_send_orders() -> None:
     assert send_order(6, "interleaved") == [0, 2, 4, 1, 3, 5] and send_order(1, "interleaved") == [0]
     with pytest.raises(ValueError, match="order"):
         send_order(3, "random")
+
+
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_the_server_rebuilds_the_file_from_the_slices_sent(axis: int) -> None:
+    """``svrnet stream``'s slices, put back together by the server's stream core: every voxel holds
+    the file's value where the file puts it in the scanner, and the slice axis comes from the file's
+    rule, which the client copies (``client.stream`` cannot import the service)."""
+    from service.preprocess.stack import slice_axis_of
+    from service.streaming.frames import SliceFrame, StreamedStack
+
+    spacing = [1.0, 1.1, 1.2]
+    spacing[axis] = 3.0
+    shape = (7, 6, 5)
+    image = np.random.default_rng(3).normal(size=shape).astype(np.float32)
+    affine = oblique_affine(tuple(spacing), seed=axis, mirrored=axis == 1)
+    got_axis, slices = scanner_slices(image, affine, None)
+    assert got_axis == axis == slice_axis_of(np.linalg.norm(affine[:3, :3], axis=0))
+    stack = StreamedStack("s")
+    for s in slices[::-1]:
+        stack.add(SliceFrame("s", s.index, s.pixels, s.scanner_from_voxel))
+    volume, _ = stack.volume()
+    ijk = np.stack(np.meshgrid(*[np.arange(n) for n in volume.array.shape], indexing="ij"), -1).reshape(-1, 3)
+    world = ijk @ volume.affine[:3, :3].T + volume.affine[:3, 3]
+    file_ijk = np.rint((world - affine[:3, 3]) @ np.linalg.inv(affine[:3, :3]).T).astype(int)
+    assert np.allclose(file_ijk @ affine[:3, :3].T + affine[:3, 3], world, atol=1e-9)
+    assert np.array_equal(volume.array[tuple(ijk.T)], image[tuple(file_ijk.T)])
 
 
 # --- (b) against a scripted server: the messages, the table, errors and exit codes ---------------------------

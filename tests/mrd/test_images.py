@@ -18,11 +18,12 @@ from service.mrd.images import (POSE_META_KEYS, SliceGeometry, check_image, imag
 FLOAT32_EPS = float(np.finfo(np.float32).eps)
 
 
-def oblique_stack(shape: tuple[int, int, int], seed: int) -> Volume:
-    """A stack with an oblique RAS affine (anisotropic pixels, thick slices) off the isocentre."""
+def oblique_stack(shape: tuple[int, int, int], seed: int, mirrored: bool = False) -> Volume:
+    """A stack with an oblique RAS affine (anisotropic pixels, thick slices) off the isocentre;
+    ``mirrored``: left-handed (the normal against read x phase, as many NIfTI stacks are)."""
     rng = np.random.default_rng(seed)
     affine = np.eye(4)
-    affine[:3, :3] = se3.so3_exp(rng.normal(size=3)) * [0.9, 1.1, 3.5]
+    affine[:3, :3] = se3.so3_exp(rng.normal(size=3)) * [0.9, 1.1, -3.5 if mirrored else 3.5]
     affine[:3, 3] = rng.uniform(-60, 60, 3)
     return Volume(rng.uniform(0, 1000, shape).astype(np.float32), affine)
 
@@ -59,9 +60,10 @@ def wire(image: ismrmrd.Image) -> ismrmrd.Image:
 SHAPES = [(7, 5, 4), (8, 6, 3), (8, 5, 3), (9, 10, 2)]   # odd/odd, even/even and mixed matrices
 
 
+@pytest.mark.parametrize("mirrored", [False, True])
 @pytest.mark.parametrize("shape", SHAPES)
-def test_geometry_maps_every_pixel_where_the_stack_affine_does(shape: tuple[int, int, int]) -> None:
-    volume = oblique_stack(shape, seed=sum(shape))
+def test_geometry_maps_every_pixel_where_the_stack_affine_does(shape: tuple[int, int, int], mirrored: bool) -> None:
+    volume = oblique_stack(shape, seed=sum(shape), mirrored=mirrored)
     nx, ny, nz = shape
     for k in range(nz):
         geometry = SliceGeometry.of_slice((nx, ny), slice_affine(volume, k))
