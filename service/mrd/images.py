@@ -125,14 +125,14 @@ class SliceGeometry:
 
     @classmethod
     def of_slice(cls, shape: tuple[int, int], scanner_from_voxel: ArrayLike) -> "SliceGeometry":
-        """The header geometry of a slice ``[x, y]`` of ``shape`` placed by a RAS ``scanner_from_voxel``."""
-        lps = frames.lps_affine_from_ras(scanner_from_voxel)
-        spacing = frames.voxel_spacing(lps)
+        """The header geometry of a slice ``[x, y]`` of ``shape`` placed by a RAS ``scanner_from_voxel``
+        (MRD's directions and pixel sizes are ITK's, :func:`~service.geometry.frames.itk_from_affine`;
+        :class:`ValueError` for a sheared one)."""
+        origin, spacing, direction = frames.itk_from_affine(scanner_from_voxel)
         nx, ny = int(shape[0]), int(shape[1])
-        directions = [tuple((lps[:3, c] / spacing[c]).tolist()) for c in range(3)]
-        centre = lps[:3, 3] + lps[:3, :2] @ [(nx - 1) / 2, (ny - 1) / 2]
+        centre = origin + direction[:, :2] @ (spacing[:2] * [(nx - 1) / 2, (ny - 1) / 2])
         return cls((nx, ny), (spacing[0] * nx, spacing[1] * ny, spacing[2]), tuple(centre.tolist()),
-                   *directions)  # type: ignore[arg-type]
+                   *(tuple(direction[:, c].tolist()) for c in range(3)))  # type: ignore[arg-type]
 
     def scanner_from_voxel(self) -> NDArray[np.float64]:
         """Voxel ``(x, y, 0, 1)`` -> scanner RAS mm.
@@ -149,12 +149,10 @@ class SliceGeometry:
         """
         nx, ny = self.matrix_size
         fov = np.asarray(self.field_of_view, dtype=np.float64)
-        columns = np.stack([np.asarray(self.read_dir) * (fov[0] / nx), np.asarray(self.phase_dir) * (fov[1] / ny),
-                            np.asarray(self.slice_dir) * fov[2]], axis=1)
-        lps = np.eye(4)
-        lps[:3, :3] = columns
-        lps[:3, 3] = np.asarray(self.position) - columns[:, :2] @ [(nx - 1) / 2, (ny - 1) / 2]
-        return frames.ras_affine_from_lps(lps)
+        spacing = np.array([fov[0] / nx, fov[1] / ny, fov[2]])
+        direction = np.stack([self.read_dir, self.phase_dir, self.slice_dir], axis=1).astype(np.float64)
+        origin = np.asarray(self.position) - direction[:, :2] @ (spacing[:2] * [(nx - 1) / 2, (ny - 1) / 2])
+        return frames.affine_from_itk(origin, spacing, direction)
 
     def write_into(self, image: ismrmrd.Image) -> None:
         """Set the geometry fields of ``image``'s header (rounded to the header's float32)."""
