@@ -228,7 +228,8 @@ class StreamConnection:
 
     def firm_up(self, stack: str) -> None:
         """Run the stack stage on ``stack`` in the background (one run at a time; slices that arrive
-        meanwhile are taken by the next run)."""
+        meanwhile are taken by the next run); ``svrnet-mrd`` keeps the same queue on a thread
+        (:meth:`service.mrd.connection.MrdConnection.firm_up`)."""
         self.dirty.add(stack)
         if self.firming is None or self.firming.done():
             self.firming = asyncio.create_task(self._firm_up_loop())

@@ -147,7 +147,8 @@ class MrdConnection:
             self.settle()
             self.stage.shutdown()
         log.info("mrd connection ended: %s", outcome,
-                 extra={"n_slices": self.counts["images"], "n_stacks": self.counts["stacks"],
+                 extra={"n_slices": self.counts["images"], "n_refused": self.counts["refused"],
+                        "n_stacks": self.counts["stacks"],
                         "duration_ms": round((time.perf_counter() - t0) * 1e3, 1)})
 
     def step(self) -> bool:
@@ -253,7 +254,9 @@ class MrdConnection:
 
     def firm_up(self, stack: str) -> None:
         """Run the stack stage on ``stack`` in this connection's background thread (one run at a time;
-        the slices that arrive meanwhile are taken by the next run); moved slices go out as updates."""
+        the slices that arrive meanwhile are taken by the next run); moved slices go out as updates.
+        The same queue as :meth:`service.api.stream.StreamConnection.firm_up`, on a thread here
+        (a connection is a thread) where the WebSocket's is a task."""
         with self.stage_lock:
             self.dirty.add(stack)
             if self.firming is None:
