@@ -53,12 +53,14 @@ def train(
     threads: int = 2,
     seed: int = 0,
     channels: Annotated[int, typer.Option(help="3: 2.5D (a slice between its neighbours); 1: 2D")] = 3,
+    init: Annotated[Optional[Path], typer.Option(help="start from this checkpoint's weights, fresh optimiser")] = None,
+    lr: float = 2e-3,
 ) -> None:
     """Train (or continue training) the localiser for a wall-clock budget; progress in ``<out>.log``."""
     from model_export.localiser.train import train as run
 
     run(data, out, minutes, width=width, depth=depth, threads=threads, seed=seed, log=Path(f"{out}.log"),
-        in_channels=channels)
+        in_channels=channels, init=init, lr=lr)
 
 
 @app.command()

@@ -50,6 +50,9 @@ from scipy.spatial.transform import Rotation
 from service.io.volume import Volume
 
 STYLES = ("train", "heldout")
+ENGAGED_SHARE = {"train": 0.3, "heldout": 0.25}
+"""Share of stacks whose head sits at or beyond the uterine wall (late pregnancy, head in the maternal
+pelvis): the scalp meets maternal tissue or the wall, with little or no amniotic fluid around it."""
 
 
 @dataclass
@@ -176,6 +179,9 @@ def _surroundings(rng: np.random.Generator, geo: StackGeometry, brain_centre: ND
     axes = rng.uniform(70, 150, 3)
     uterus_c = (brain_centre + trunk_c) / 2 + rng.normal(0, 0.15, 3) * axes
     rot = _random_rotation(rng)
+    if rng.random() < ENGAGED_SHARE[style]:      # the head low in the pelvis or against the wall: no fluid rim
+        along = np.linalg.norm(rot.T @ direction / axes)           # normalised uterine radius per mm along the body
+        uterus_c = brain_centre + direction * rng.uniform(0.8, 1.3) / along
     uterus_r = _ellipsoid_radius(pts, uterus_c, axes, rot) + wobble(0.06)
     if style == "heldout":                                      # a squarer uterus
         local = np.abs((pts - uterus_c) @ rot / axes)
@@ -292,7 +298,7 @@ def synth_stack(head: HeadModel, rng: np.random.Generator, style: str = "train",
     mask = np.zeros(image.shape, bool)
     mask[box] = inside >= 0.5
     image *= _bias(rng, image.shape, style)
-    image *= rng.uniform(0.9, 1.1, geo.slices).astype(np.float32)
+    image *= _slice_gains(rng, geo.slices)
     sigma = rng.uniform(0.005, 0.08)
     noise = rng.standard_normal(image.shape).astype(np.float32) * sigma
     if style == "train":
@@ -301,6 +307,15 @@ def synth_stack(head: HeadModel, rng: np.random.Generator, style: str = "train",
         image = np.maximum(image + noise, 0)
     affine = np.diag([geo.pixel_mm, geo.pixel_mm, geo.gap_mm, 1.0])
     return Volume((image * rng.uniform(100, 2000)).astype(np.float32), affine), mask
+
+
+def _slice_gains(rng: np.random.Generator, slices: int) -> NDArray[np.float32]:
+    """Each slice's overall gain: small changes, and for some stacks the odd and even slices of an
+    interleaved acquisition apart (spin history), by up to a third."""
+    gains = rng.uniform(0.9, 1.1, slices)
+    if rng.random() < 0.3:
+        gains[::2] *= rng.uniform(0.75, 1.33)
+    return gains.astype(np.float32)
 
 
 def _bias(rng: np.random.Generator, shape: tuple[int, ...], style: str) -> NDArray[np.float32]:

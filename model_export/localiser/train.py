@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+from scipy import ndimage
 
 from model_export.localiser.net import LocaliserNet
 
@@ -71,10 +72,30 @@ def draw_batch(shards: list[Shard], rng: np.random.Generator, batch: int, crop: 
             x, y = x[:, :, ::-1], y[:, ::-1]
         if rng.random() < 0.5:
             x = x[::-1]                                # the slice order reversed
-        x = x * rng.uniform(0.8, 1.25) ** np.sign(rng.standard_normal())
+        x = _contrast(np.ascontiguousarray(x), rng)
         xs[b, :, :x.shape[1], :x.shape[2]] = x
         ys[b, 0, :y.shape[0], :y.shape[1]] = y
     return xs, ys
+
+
+def _contrast(x: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Intensity changes the input function's percentile scaling does not undo, drawn per sample: a
+    global scale (a bright coil-side rim or fat sets the percentile and darkens the rest), a gamma, a
+    smooth multiplicative field across the crop (a head deep in the pelvis, far from the coil), and
+    the neighbours' brightness apart from the slice's (interleaved acquisitions: odd and even slices
+    differ by spin history and motion). The result stays in the input's 0..2 range."""
+    x = x * rng.uniform(0.8, 1.25) ** np.sign(rng.standard_normal())
+    if rng.random() < 0.4:
+        x = x * np.exp(rng.uniform(-0.5, 0.5, 3) * np.array([1.0, 0.0, 1.0]))[:, None, None]
+    if rng.random() < 0.3:
+        x = x * rng.uniform(0.2, 0.8)
+    if rng.random() < 0.4:
+        x = 2.0 * (np.clip(x, 0.0, 2.0) / 2.0) ** np.exp(rng.uniform(-0.5, 0.5))
+    if rng.random() < 0.5:
+        h, w = x.shape[1:]
+        field = ndimage.zoom(rng.standard_normal((3, 3)), (h / 3, w / 3), order=1, grid_mode=True, mode="nearest")
+        x = x * np.exp(rng.uniform(0.2, 0.8) * field[:h, :w])
+    return np.clip(x, 0.0, 2.0).astype(np.float32)
 
 
 def loss_fn(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -86,10 +107,12 @@ def loss_fn(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int = 4, batch: int = 16,
           crop: int = 128, lr: float = 2e-3, seed: int = 0, checkpoint_s: float = 120.0,
-          threads: int = 2, log: Path | None = None, in_channels: int = 3) -> Path:
+          threads: int = 2, log: Path | None = None, in_channels: int = 3, init: Path | None = None) -> Path:
     """Train for ``minutes`` of wall clock (resuming ``out`` if it exists); returns the checkpoint path.
 
     ``in_channels`` 3 is the 2.5D network (a slice and its neighbours), 1 the 2D one (the slice alone).
+    ``init``: a checkpoint whose weights start a new run (a fresh optimiser and learning-rate schedule;
+    fine-tuning on new data), used only when ``out`` does not exist yet.
     """
     torch.set_num_threads(threads)
     torch.manual_seed(seed)
@@ -98,6 +121,8 @@ def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int =
     net = LocaliserNet(in_channels=in_channels, width=width, depth=depth)
     opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
     step, spent = 0, 0.0
+    if init is not None and not out.exists():
+        net.load_state_dict(torch.load(init, map_location="cpu", weights_only=False)["model"])
     if out.exists():
         state = torch.load(out, map_location="cpu", weights_only=False)
         net.load_state_dict(state["model"])

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from service.core.settings import DEFAULT_LOCALISERS_DIR
 from service.io.volume import Volume, read_volume
@@ -106,3 +107,21 @@ def test_real_scan_against_its_manual_mask(localiser: Localiser, name: str, floo
 def test_real_whole_uterus_stacks_without_masks_get_one(localiser: Localiser, name: str) -> None:
     found = localiser.localise(read_volume(REAL / "bch_f0832s1" / f"{name}.nii.gz"))
     assert 60 < found.brain_volume_ml < 700 and found.slices_with_brain >= 5 and found.confidence > 0.3
+
+
+def test_holes_are_filled_slice_by_slice_not_through_the_stack() -> None:
+    from service.preprocess.localise import fill_holes_in_plane
+
+    m = np.zeros((5, 20, 20), bool)
+    m[1:4, 3:15, 3:15] = True
+    m[1:4, 7:10, 7:10] = False                      # a tube through three slices: a hole in each of them
+    m[0, 2:6, 2:6] = True
+    m[0, 3:5, 3:5] = False                          # a hole in the first slice, at the array's face
+    m[4, 10:18, 10:18] = True
+    m[4, 12:16, 18 - 1] = False                     # a notch open to the side: no hole
+    out = fill_holes_in_plane(m)
+    assert out[1:4, 7:10, 7:10].all() and out[0, 3:5, 3:5].all()
+    assert not out[4, 12:16, 17].any()
+    assert np.array_equal(out | m, out) and int(out.sum() - m.sum()) == 3 * 9 + 4
+    assert np.array_equal(out, np.stack([ndimage.binary_fill_holes(s) for s in m]))
+    assert not fill_holes_in_plane(np.zeros((3, 4, 4), bool)).any()

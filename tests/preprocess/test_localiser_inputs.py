@@ -74,3 +74,43 @@ def test_empty_or_broken_stacks_give_zeros_not_nans() -> None:
     bad[5:10, 5:10] = 7.0
     x, _ = localiser_inputs(Volume(bad, vol.affine), 2.5)
     assert np.isfinite(x).all() and x.max() > 0
+
+
+@pytest.mark.parametrize(("shape", "pixel_mm"), [((4, 320, 300), (1.125, 1.2)), ((3, 40, 56), (2.6, 3.1)), ((2, 64, 64), (0.6, 0.6))])
+def test_the_resampling_operators_compute_the_filter_and_zoom_they_replace(shape: tuple, pixel_mm: tuple) -> None:
+    """Rows @ image @ cols.T against scipy's Gaussian anti-aliasing then grid-aligned linear zoom."""
+    from scipy import ndimage
+
+    from service.geometry.sampling import FWHM_TO_SIGMA
+    from service.preprocess.localiser_inputs import _resample
+
+    images = np.random.default_rng(3).random(shape, np.float32)
+    factors = np.array(pixel_mm) / 2.5
+    sigma = [0.0] + [FWHM_TO_SIGMA * np.sqrt(max(1.0 / f ** 2 - 1.0, 0.0)) for f in factors]
+    expected = ndimage.gaussian_filter(images, sigma, mode="nearest", truncate=3.0) if max(sigma) > 0 else images
+    size = np.maximum(1, np.round(np.array(shape[1:]) * factors)).astype(int)
+    expected = ndimage.zoom(expected, (1.0, *(size / np.array(shape[1:]))), order=1, mode="nearest", grid_mode=True)
+    got = _resample(images, pixel_mm, 2.5)
+    assert got.shape == expected.shape and got.dtype == np.float32
+    assert np.abs(got - expected).max() < 1e-5
+
+
+def test_maps_go_back_to_the_stack_as_bilinear_interpolation_does() -> None:
+    from scipy import ndimage
+
+    from service.preprocess.stack import stack_from_slice_images
+
+    vol, _ = ellipsoid_stack(1.1, fov_mm=120, slices=6)
+    _, grid = localiser_inputs(vol, 2.5)
+    maps = np.zeros((6, *np.add(grid.resampled, 2 * np.array(grid.offset))), np.float32)
+    (r, c), (h, w) = grid.offset, grid.resampled
+    maps[:, r + 5:r + 30, c + 10:c + 40] = np.random.default_rng(0).random((6, 25, 30))
+    scale = np.array(grid.native) / np.array([h, w])
+    rows = (np.arange(grid.native[0]) + 0.5) / scale[0] - 0.5
+    cols = (np.arange(grid.native[1]) + 0.5) / scale[1] - 0.5
+    k, rr, cc = np.meshgrid(np.arange(6), rows, cols, indexing="ij")
+    expected = stack_from_slice_images(ndimage.map_coordinates(maps[:, r:r + h, c:c + w], [k, rr, cc], order=1,
+                                                               mode="nearest"), grid.slice_axis)
+    got = grid.to_stack(maps)
+    near = got > 0                               # only the box around the non-zero maps is interpolated
+    assert np.abs(got - expected)[near].max() < 1e-5 and np.abs(expected[~near]).max() < 1e-3

@@ -61,3 +61,16 @@ def test_training_resumes_and_the_export_computes_what_the_network_does(shards: 
     assert np.allclose(sess.run(None, {"stacks": x})[0], expected, atol=1e-4)
     loc = Localiser.load(onnx_path)
     assert loc.grid_mm == GRID_MM and loc.version == "0.0.1" and len(loc.sha256) == 64
+
+
+def test_contrast_augmentation_keeps_the_input_range_and_changes_neighbours_apart() -> None:
+    from model_export.localiser.train import _contrast
+
+    rng = np.random.default_rng(0)
+    x = np.random.default_rng(1).random((3, 32, 32)).astype(np.float32) * 1.5
+    outs = [_contrast(x.copy(), rng) for _ in range(200)]
+    assert all(o.shape == x.shape and o.dtype == np.float32 and 0 <= o.min() and o.max() <= 2 for o in outs)
+    ratios = np.array([[o[c].mean() / x[c].mean() for c in range(3)] for o in outs])
+    assert ratios.min() < 0.5 and ratios.max() > 1.2                       # brighter and darker
+    apart = np.abs(np.log(ratios[:, 0] / ratios[:, 1])) > 0.1             # a neighbour unlike its slice
+    assert 0.1 < apart.mean() < 0.7

@@ -63,3 +63,26 @@ def test_geometry_draws_cover_the_scanners_ranges() -> None:
     assert pixels.min() < 1.0 and pixels.max() > 1.5
     assert fovs.min() < 160 and fovs.max() > 380 and np.mean(fovs >= 250) > 0.8
     assert min(g.thickness_mm for g in draws) < 2.3 and max(g.thickness_mm for g in draws) > 4.2
+
+
+def test_some_heads_sit_at_the_uterine_wall_without_a_fluid_rim(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Around where the head goes (a shell 5-15 mm outside it), amniotic fluid is the rule when no
+    head is engaged and the exception when every head is."""
+    from model_export.localiser import scenes
+
+    tissue = {"fluid": 1.0, "csf": 1.0, "skull": 0.05, "scalp": 0.3, "body": 0.3, "wall": 0.3, "placenta": 0.4,
+              "fat": 0.6, "air": 0.0}
+
+    def fluid_share(engaged: float) -> float:
+        monkeypatch.setitem(scenes.ENGAGED_SHARE, "train", engaged)
+        shares = []
+        for seed in range(6):
+            rng = np.random.default_rng(seed)
+            geo = StackGeometry(1.2, 250, 3.0, 3.0, 30)
+            image = scenes._surroundings(rng, geo, np.zeros(3), 40.0, tissue, "train")
+            r = np.linalg.norm(geo.coordinates(step=2), axis=-1)
+            shell = (r > 45.0) & (r < 55.0)
+            shares.append(float((np.abs(image[shell] - 1.0) < 0.15).mean()))
+        return float(np.mean(shares))
+
+    assert fluid_share(0.0) > 0.5 and fluid_share(1.0) < 0.6 * fluid_share(0.0)
