@@ -20,6 +20,13 @@ def write_card(path: Path, onnx_path: Path, figures: dict) -> Path:
     real_rows = "\n".join(f"| `{r['stack']}` | {'x'.join(map(str, r['shape']))} | {_fmt(r['dice'])} | "
                           f"{r['ml']:.0f} | {r['confidence']:.2f} | {r['ms']:.0f} |" for r in figures["real"])
     pr = figures["poses_real"] or {}
+    what = {"brain": "the atlas's brain mask (the pose network's own definition)",
+            "skull": "everything inside the skull (as manual masks are drawn)", "localiser": "none: the localiser's, less its outer 2 mm"}
+    truth = figures.get("poses_truth") or {}
+    truth_rows = "\n".join(f"| {what.get(k, k)} | {_fmt(v['median_ed_mm'], 2)} | {_fmt(v['mean_ed_mm'], 2)} | "
+                           f"{_fmt(v['median_twin_min_mm'], 2)} | {_fmt(v['mean_twin_min_mm'], 2)} | {v['slices']} | "
+                           f"{_fmt(100 * v['empty_share'], 0)} % |" for k, v in truth.items())
+    truth_scenes = s.get("pose_scenes", 10)
     arch_rows = "\n".join(f"| {a['inputs']} | {a['width']} | {a['depth']} | {_fmt(a['heldout_median_dice'])} | "
                           f"{_fmt(a['heldout_min_dice'])} | {_fmt(a['real_median_dice'])} | {a['ms']:.0f} |"
                           for a in figures.get("architectures") or [])
@@ -51,17 +58,23 @@ Synthetic stacks only (`model_export/localiser/scenes.py`, style `train`): the 1
 `model_export.atlas.split` (CRL spatio-temporal atlas, Gholipour et al. 2017; fetal spina-bifida atlas,
 Fidon et al. 2021) put, in any orientation and with slice-to-slice motion, into generated surroundings:
 extra-axial CSF, skull, scalp; amniotic fluid, uterine wall, placenta, fetal body and limbs; the mother's
-tissues, fat and the air around her; random intensities, bias fields, slice profiles of 2–4.5 mm,
-0.9–1.6 mm pixels, 250–400 mm fields of view, Rician noise. No real scan was used for training or tuning.
+tissues, fat and the air around her; for 30 % of the stacks the head at or beyond the uterine wall (low in
+the maternal pelvis, no fluid around it); random intensities, bias fields and surface-coil fall-off,
+odd and even slices of different gain, slice profiles of 2–4.5 mm, 0.9–1.6 mm pixels, 130–400 mm fields
+of view, Rician noise. Each training sample's contrast changes again (a global scale, gamma, a smooth
+field, neighbours brighter or darker than the slice). No real scan was used for training or tuning.
 
 Licences of the data: {meta['licences']}. The model inherits the most restrictive: non-commercial research use.
 
 ## How it was made
 ```bash
-svrnet-train localiser data --out T --count 600            # seeds 0-599 (and --seed 10000, 20000, 30000 as the generator grew)
-svrnet-train localiser train --data T --out L.pt --minutes 60   # 2 CPU cores, cosine over the budget; resumable
+svrnet-train localiser data --out T0 --count 600            # 1.0.0: seeds 0-599 (and 10000, 20000, 30000 as the generator grew)
+svrnet-train localiser train --data T0 --out L1.pt --minutes 60 # 2 CPU cores, cosine over the budget; resumable
+svrnet-train localiser data --out T --count 505 --seed 40000    # 1.1.0: the generator with engaged heads and slice gains
+svrnet-train localiser train --data T --out L2.pt --minutes 60 --init L1.pt --lr 1e-3   # fine-tuned, fresh schedule
+svrnet-train localiser average L1.pt L2.pt --out L.pt --weight 0.5   # half each: weight-space ensembling (WiSE-FT)
 svrnet-train localiser data --out H --count 40 --style heldout --seed 1000000 --keep-stack
-svrnet-train localiser ship L.pt --heldout H --ablation A.json  # this card and evaluation.json
+svrnet-train localiser ship L.pt --heldout H --ablation A.json --version 1.1.0  # this card and evaluation.json
 ```
 `checkpoint.pt` beside this card is the shipped network's training state: `svrnet-train localiser train
 --out` a copy of it resumes training from there.
@@ -88,6 +101,14 @@ Poses without masks against poses with the reference masks (`/v1/predict`'s pipe
 | real scan, 3 stacks | {_fmt(pr.get('median_ed_mm'), 2)} | {_fmt(pr.get('repeat_median_ed_mm'), 2)} | {_fmt(pr.get('latency_ratio'), 2)} |
 | generated validation stacks of T2-like contrast, one at a time ({len(figures['poses_heldout'])}) | {_fmt(s['poses_heldout_median_ed_mm'], 2)} | {_fmt(s.get('poses_heldout_repeat_median_ed_mm'), 2)} | {_fmt(float(np.median([p['latency_ratio'] for p in figures['poses_heldout']])) if figures['poses_heldout'] else None, 2)} |
 
+Poses against the truth: held-out whole-uterus scenes whose slice poses are known (validation atlas
+brains, T2-like contrast, each stack alone through the pipeline; `model_export/localiser/pose_accuracy.py`),
+the brain slices of {truth_scenes} scenes' stacks:
+
+| mask | median E.D. (mm) | mean E.D. | twin-min median | twin-min mean | brain slices posed | left `empty` |
+|---|---|---|---|---|---|---|
+{truth_rows}
+
 Localiser latency (320×320×22 stack, this machine's 2 CPU cores, onnxruntime): {s['latency_ms_320x320x22']:.0f} ms.
 Generated validation stacks: median volume error {np.median([abs(r['ml'] - r['true_ml']) / r['true_ml'] for r in held]) * 100:.1f} %.
 
@@ -96,11 +117,12 @@ Generated validation stacks: median volume error {np.median([abs(r['ml'] - r['tr
 - Trained on synthetic surroundings: organs and textures unlike those generated may be taken for brain;
   the geometry step keeps one connected brain of plausible volume and reports its confidence.
 - Stacks covering only part of the head give a partial mask (what the stack shows).
-- The outermost slices of a head, where the cut shows mostly CSF and ventricles, are the ones most
-  often missed (the real sagittal stack above loses them: Dice 0.76).
-- Poses without masks differ from those with manual masks by more than two runs with the same masks
-  differ (MC draws): the masks' extent changes what the pose network sees. On single generated stacks
-  a few differ by the left-right twin (tens of mm): a single stack that cannot settle its branch.
+- A head deep in the maternal pelvis, without fluid around it and darker than the rest of the field of
+  view, is the hardest case seen; the real stacks above show how much of it is found.
+- The mask is the skull's inside, as manual masks are drawn. The pose network learnt the atlas's brain
+  masks, which leave out most extra-axial CSF: the service cuts the pose network's slices with the
+  localiser's mask less its outer 2 mm (`POSE_MASK_INSET_MM`). An uploaded mask is used as it is; one
+  that holds the CSF rim gives worse poses (the table above).
 - Gestational ages outside 21–38 weeks and severe malformations beyond the spina-bifida atlas are untested.
 """
     Path(path).write_text(text)

@@ -64,6 +64,19 @@ def train(
 
 
 @app.command()
+def average(
+    base: Annotated[Path, typer.Argument(help="the checkpoint the fine-tuning started from")],
+    tuned: Annotated[Path, typer.Argument(help="the fine-tuned checkpoint (`train --init BASE`)")],
+    out: Annotated[Path, typer.Option(help="the averaged checkpoint")],
+    weight: Annotated[float, typer.Option(help="share of the fine-tuned weights")] = 0.5,
+) -> None:
+    """Average a fine-tuned network's weights with those it started from (weight-space ensembling)."""
+    from model_export.localiser.train import average_weights
+
+    typer.echo(str(average_weights(base, tuned, out, weight)))
+
+
+@app.command()
 def ship(
     checkpoint: Path,
     heldout: Annotated[Path, typer.Option(help="shard folder of `data --style heldout --keep-stack`")],
@@ -72,6 +85,7 @@ def ship(
     grid_mm: float = GRID_MM,
     pose_stacks: Annotated[int, typer.Option(help="held-out stacks whose poses are compared without/with masks")] = 8,
     ablation: Annotated[Optional[Path], typer.Option(help="JSON of `compare`: architectures measured alike")] = None,
+    pose_scenes: Annotated[int, typer.Option(help="whole-uterus scenes of known slice poses: pose accuracy vs the truth")] = 10,
 ) -> None:
     """Export to ONNX, measure (held-out set, real scans, poses without masks) and write the card."""
     from model_export.localiser.card import write_card
@@ -80,7 +94,7 @@ def ship(
     from service.preprocess.localise import Localiser
 
     onnx_path = export_onnx(checkpoint, out / "model.onnx", grid_mm=grid_mm, version=version)
-    figures = measure(Localiser.load(onnx_path), heldout, pose_stacks)
+    figures = measure(Localiser.load(onnx_path), heldout, pose_stacks, pose_scenes=pose_scenes)
     figures["architectures"] = json.loads(ablation.read_text()) if ablation else []
     (out / "evaluation.json").write_text(json.dumps(figures, indent=1))
     write_card(out / "card.md", onnx_path, figures)

@@ -128,8 +128,13 @@ def latency_ms(localiser: Localiser, shape: tuple[int, int, int] = (320, 320, 22
     return float(np.median(times[1:]))
 
 
-def measure(localiser: Localiser, heldout: Path, pose_stacks: int = 8, root: Path = REAL_SCANS) -> dict:
-    """Every figure of the model card (see the module docstring)."""
+def measure(localiser: Localiser, heldout: Path, pose_stacks: int = 8, root: Path = REAL_SCANS,
+            pose_scenes: int = 10) -> dict:
+    """Every figure of the model card (see the module docstring); ``pose_scenes`` whole-uterus scenes
+    of known slice poses give the poses' accuracy with and without masks
+    (:func:`~model_export.localiser.pose_accuracy.pose_accuracy`)."""
+    from model_export.localiser.pose_accuracy import pose_accuracy, validation_scenes
+
     held = heldout_dice(localiser, heldout)
     real = real_scan_rows(localiser, root) if Path(root).exists() else []
     estimator = _pose_estimator()
@@ -166,4 +171,8 @@ def measure(localiser: Localiser, heldout: Path, pose_stacks: int = 8, root: Pat
         "latency_ms_320x320x22": latency_ms(localiser),
         "onnx_mb": localiser.path.stat().st_size / 2**20,
     }
-    return {"summary": summary, "heldout": held, "real": real, "poses_real": poses_real, "poses_heldout": poses_heldout}
+    truth = pose_accuracy(validation_scenes(pose_scenes), estimator, localiser) if pose_scenes else {}
+    summary["pose_scenes"] = pose_scenes
+    summary["poses_truth_median_ed_mm"] = {k: v["median_ed_mm"] for k, v in truth.items()}
+    return {"summary": summary, "heldout": held, "real": real, "poses_real": poses_real, "poses_heldout": poses_heldout,
+            "poses_truth": truth}

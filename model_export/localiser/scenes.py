@@ -63,6 +63,7 @@ class HeadModel:
     sdf: NDArray[np.float32]
     voxel_from_mm: NDArray[np.float64]       # centred brain mm -> voxel index (4 x 4)
     radius_mm: float
+    atlas_from_voxel: NDArray[np.float64] | None = None    # the atlas volume's voxel -> world (atlas mm)
 
     @classmethod
     def from_arrays(cls, image: NDArray, mask: NDArray, affine: NDArray) -> "HeadModel":
@@ -78,7 +79,7 @@ class HeadModel:
         radius = float(np.sqrt((((idx - centre) * spacing) ** 2).sum(1)).max())
         mm_from_voxel = np.diag([*spacing, 1.0])
         mm_from_voxel[:3, 3] = -centre * spacing
-        return cls(np.clip(t2, 0, 1.5), sdf, np.linalg.inv(mm_from_voxel), radius)
+        return cls(np.clip(t2, 0, 1.5), sdf, np.linalg.inv(mm_from_voxel), radius, np.asarray(affine, np.float64))
 
 
 def _random_rotation(rng: np.random.Generator) -> NDArray[np.float64]:
@@ -242,8 +243,9 @@ def _head_motion(rng: np.random.Generator, slices: int) -> tuple[NDArray, NDArra
 
 
 def _head(head: HeadModel, geo: StackGeometry, centre: NDArray, rotation: NDArray, rng: np.random.Generator,
-          tissue: dict[str, float], background: NDArray[np.float32]) -> tuple[NDArray, NDArray, tuple]:
-    """The head's intensities and brain fractions in its in-plane box of every slice (slice profile)."""
+          tissue: dict[str, float], background: NDArray[np.float32]) -> tuple[NDArray, NDArray, NDArray, tuple, tuple]:
+    """The head's intensities, skull-inside and brain fractions in its in-plane box of every slice (slice
+    profile), the box, and the head's motion (per-slice rotations and shifts)."""
     csf, skull, scalp = rng.uniform(1.0, 3.5), rng.uniform(1.5, 4.0), rng.uniform(2.0, 6.0)
     outer = csf + skull + scalp
     reach = head.radius_mm * 1.15 + outer + 10.0
@@ -254,7 +256,7 @@ def _head(head: HeadModel, geo: StackGeometry, centre: NDArray, rotation: NDArra
     rots, shifts = _head_motion(rng, geo.slices)
     gamma = rng.uniform(0.6, 1.6)
     brain_scale = tissue["fluid"] * rng.uniform(0.75, 1.05) if rng.random() > 0.15 else rng.uniform(0.2, 1.0)
-    values, inside = 0.0, 0.0
+    values, inside, brain = 0.0, 0.0, 0.0
     offsets = (np.array([-1.0, 0.0, 1.0]) * geo.thickness_mm / 3.0)
     for dz in offsets:
         p = pts + np.array([0, 0, dz], np.float32)
@@ -269,15 +271,44 @@ def _head(head: HeadModel, geo: StackGeometry, centre: NDArray, rotation: NDArra
         v = np.where(d > outer, background[box], v)
         values = values + v / len(offsets)
         inside = inside + (d <= csf) / len(offsets)
-    return values, inside, box
+        brain = brain + (d <= 0) / len(offsets)
+    return values, inside, brain, box, (rots, shifts)
+
+
+@dataclass
+class Scene:
+    """A synthetic stack and what is true of it.
+
+    Attributes:
+        volume: the stack (voxel order ``[x, y, slice]``; voxel -> stack mm).
+        mask: everything inside the skull (brain and extra-axial CSF): what the localiser learns,
+            as manual fetal brain masks are drawn.
+        brain: the atlas's own brain mask carried along (the pose network's mask definition).
+        atlas_from_voxel: ``[n, 4, 4]`` each slice's true pose, the stack's voxels -> atlas mm (the
+            frame the service's poses are given in); None when the head was scaled.
+    """
+
+    volume: Volume
+    mask: NDArray[np.bool_]
+    brain: NDArray[np.bool_]
+    atlas_from_voxel: NDArray[np.float64] | None
 
 
 def synth_stack(head: HeadModel, rng: np.random.Generator, style: str = "train",
                 random_contrast: bool | None = None) -> tuple[Volume, NDArray[np.bool_]]:
-    """One synthetic whole-uterus stack and its brain mask (voxel order ``[x, y, slice]``).
+    """One synthetic whole-uterus stack and its skull-inside mask (:func:`synth_scene`)."""
+    scene = synth_scene(head, rng, style, random_contrast)
+    return scene.volume, scene.mask
+
+
+def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
+                random_contrast: bool | None = None, rigid: bool = False) -> Scene:
+    """One synthetic whole-uterus stack, its masks and, with ``rigid`` (the head at the atlas's own
+    size, not scaled by 0.9-1.1), its slices' true atlas poses.
 
     ``random_contrast``: every tissue's intensity drawn uniformly (True) or T2-like (False); by
-    default drawn, for 20 % of the ``train`` stacks and half of the ``heldout`` ones.
+    default drawn, for 20 % of the ``train`` stacks and half of the ``heldout`` ones. The same seed
+    draws the same scene with and without ``rigid`` but for the head's size.
     """
     if style not in STYLES:
         raise ValueError(f"style must be one of {STYLES}")
@@ -288,15 +319,19 @@ def synth_stack(head: HeadModel, rng: np.random.Generator, style: str = "train",
     half_fov = geo.size * geo.pixel_mm / 2.0
     centre = np.array([*rng.uniform(-0.55, 0.55, 2) * max(half_fov - head.radius_mm, 10.0),
                        rng.uniform(-0.3, 0.3) * geo.slices * geo.gap_mm]).astype(np.float32)
-    scale = rng.uniform(0.9, 1.1)
+    scale = 1.0 if rigid else rng.uniform(0.9, 1.1)
+    if rigid:
+        rng.uniform(0.9, 1.1)                                   # the same draws after it as without
     coarse = _surroundings(rng, geo, centre, 0.8 * head.radius_mm * scale, tissue, style, head)
     background = ndimage.zoom(coarse, (2, 2, 1), order=1, grid_mode=True, mode="nearest")[:geo.size, :geo.size]
     rotation = _random_rotation(rng) / scale
-    values, inside, box = _head(head, geo, centre, rotation, rng, tissue, background)
+    values, inside, brain_fraction, box, motion = _head(head, geo, centre, rotation, rng, tissue, background)
     image = background.copy()
     image[box] = values
     mask = np.zeros(image.shape, bool)
     mask[box] = inside >= 0.5
+    brain = np.zeros(image.shape, bool)
+    brain[box] = brain_fraction >= 0.5
     image *= _bias(rng, image.shape, style)
     image *= _slice_gains(rng, geo.slices)
     sigma = rng.uniform(0.005, 0.08)
@@ -306,7 +341,26 @@ def synth_stack(head: HeadModel, rng: np.random.Generator, style: str = "train",
     else:
         image = np.maximum(image + noise, 0)
     affine = np.diag([geo.pixel_mm, geo.pixel_mm, geo.gap_mm, 1.0])
-    return Volume((image * rng.uniform(100, 2000)).astype(np.float32), affine), mask
+    truth = _slice_poses(head, geo, affine, centre, rotation, *motion) if rigid and head.atlas_from_voxel is not None \
+        else None
+    return Scene(Volume((image * rng.uniform(100, 2000)).astype(np.float32), affine), mask, brain, truth)
+
+
+def _slice_poses(head: HeadModel, geo: StackGeometry, affine: NDArray, centre: NDArray, rotation: NDArray,
+                 rots: NDArray, shifts: NDArray) -> NDArray[np.float64]:
+    """``[n, 4, 4]``: stack voxel -> atlas mm for each slice, the map :func:`_head` samples the head by
+    (a stack point ``p``, centred mm, lies at ``(p - centre - shift_k) @ rots_k @ rotation`` in the
+    head's centred mm)."""
+    stack_mm = np.eye(4)
+    stack_mm[:3, 3] = -np.array([(geo.size - 1) / 2.0 * geo.pixel_mm] * 2 + [(geo.slices - 1) / 2.0 * geo.gap_mm])
+    out = np.zeros((geo.slices, 4, 4))
+    for k in range(geo.slices):
+        head_from_stack = np.eye(4)
+        a = (rots[k] @ rotation).T
+        head_from_stack[:3, :3] = a
+        head_from_stack[:3, 3] = -a @ (centre + shifts[k])
+        out[k] = head.atlas_from_voxel @ head.voxel_from_mm @ head_from_stack @ stack_mm @ affine
+    return out
 
 
 def _slice_gains(rng: np.random.Generator, slices: int) -> NDArray[np.float32]:

@@ -159,3 +159,20 @@ def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int =
                                         "lr": opt.param_groups[0]["lr"], "shards": len(known)}) + "\n")
     save()
     return out
+
+
+def average_weights(base: Path, tuned: Path, out: Path, weight: float = 0.5) -> Path:
+    """A checkpoint whose weights are ``weight`` of ``tuned``'s and the rest ``base``'s (weight-space
+    ensembling of a fine-tuned network with the one it started from, as WiSE-FT does: the average
+    keeps what the fine-tuning added and what it forgot, at one network's cost). ``tuned`` must have
+    been fine-tuned from ``base`` (``train --init``); its training state is kept for resuming."""
+    a = torch.load(base, map_location="cpu", weights_only=False)
+    b = torch.load(tuned, map_location="cpu", weights_only=False)
+    if a["config"] != b["config"]:
+        raise ValueError(f"the two networks differ: {a['config']} and {b['config']}")
+    mixed = {k: (weight * v.float() + (1 - weight) * a["model"][k].float()).to(v.dtype) if v.is_floating_point() else v
+             for k, v in b["model"].items()}
+    torch.save({**b, "model": mixed, "averaged": {"base": Path(base).name, "tuned": Path(tuned).name,
+                                                  "weight": weight}}, out)
+    return Path(out)
+

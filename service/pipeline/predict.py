@@ -109,7 +109,7 @@ def prepare_stack(upload: StackUpload, info: ModelInfo, bias_correction: bool,
     array = n4_correct(vol, mask) if bias_correction and mask.any() else vol.array
     timings["bias_correction"] = time.perf_counter() - t
     t = time.perf_counter()
-    slices = split_stack(Volume(array, vol.affine), mask, upload.slice_axis)
+    slices = split_stack(Volume(array, vol.affine), localisation.pose_mask(vol.spacing, upload.slice_axis), upload.slice_axis)
     prepared = preprocess_slices(slices.images, slices.masks, slices.pixel_mm, info.input_size, info.pixel_spacing_mm)
     timings["preprocess"] = time.perf_counter() - t
     return PreparedStack(upload, slices, prepared, localisation, timings)

@@ -214,7 +214,7 @@ class StreamSession:
             raise InvalidParameter("slice.mask: no localiser is installed; send a mask frame with every slice")
         else:
             localisation = self._localise(frame, neighbours)
-        slices = split_stack(volume, localisation.mask, axis=2)
+        slices = split_stack(volume, localisation.pose_mask(volume.spacing, axis=2), axis=2)
         prepared = preprocess_slices(slices.images, slices.masks, slices.pixel_mm, info.input_size, info.pixel_spacing_mm)
         stack = PreparedStack(StackUpload(frame.stack, volume, slice_axis=2), slices, prepared, localisation)
         est = self.estimator.estimate(prepared.inputs, self.mc_samples)

@@ -96,7 +96,10 @@ class Case:
         self.truths: list[np.ndarray] = []
         for series, rot in enumerate((np.eye(3), Rotation.from_euler("x", 90, degrees=True).as_matrix())):
             image, mask, affine, truth = simulated_stack(seed, rot)
-            teach(self.oracle, str(series), image, mask, affine, truth)
+            # the pipeline cuts the pose network's slices with a localiser's mask less its CSF rim
+            spacing = np.sqrt((affine[:3, :3] ** 2).sum(axis=0))
+            pose_mask = Localisation.of(mask, spacing, "network", 1.0).pose_mask(spacing, axis=2)
+            teach(self.oracle, str(series), image, pose_mask.astype(mask.dtype), affine, truth)
             self.localiser.learn(image, mask)
             self.images.append([image_from_slice(f.pixels, f.scanner_from_voxel, series=series, slice_index=f.index,
                                                  image_index=f.index)

@@ -91,10 +91,10 @@ def test_noise_is_no_brain(localiser: Localiser) -> None:
 
 
 @pytest.mark.skipif(not (REAL / "mial_lausanne_t30").is_dir(), reason=f"needs the real scans at {REAL}")
-@pytest.mark.parametrize(("name", "floor"), [("axial1_lr", 0.9), ("coronal1_lr", 0.89), ("sagittal1_lr", 0.72)])
+@pytest.mark.parametrize(("name", "floor"), [("axial1_lr", 0.9), ("coronal1_lr", 0.87), ("sagittal1_lr", 0.8)])
 def test_real_scan_against_its_manual_mask(localiser: Localiser, name: str, floor: float) -> None:
-    """Floors just under the shipped model's measured Dice (card.md); the sagittal stack's outermost
-    slices are missed (0.76 against the 0.90 aimed at)."""
+    """Floors just under the shipped model's measured Dice (card.md); in the sagittal stack the part of
+    the head deep in the maternal pelvis is missed (0.83 against the 0.90 aimed at)."""
     volume = read_volume(REAL / "mial_lausanne_t30" / f"{name}.nii.gz")
     manual = read_volume(REAL / "mial_lausanne_t30" / f"{name}_brain_mask.nii.gz").array > 0
     found = localiser.localise(volume)
@@ -125,3 +125,23 @@ def test_holes_are_filled_slice_by_slice_not_through_the_stack() -> None:
     assert np.array_equal(out | m, out) and int(out.sum() - m.sum()) == 3 * 9 + 4
     assert np.array_equal(out, np.stack([ndimage.binary_fill_holes(s) for s in m]))
     assert not fill_holes_in_plane(np.zeros((3, 4, 4), bool)).any()
+
+
+def test_the_pose_network_gets_the_localisers_mask_without_its_csf_rim() -> None:
+    """An uploaded mask is used as it is; the localiser's (the skull's inside) loses its outer
+    POSE_MASK_INSET_MM in each slice's plane, whatever the slice axis, and no slice gains a pixel."""
+    from service.preprocess.localise import POSE_MASK_INSET_MM, inset_in_plane
+
+    spacing = np.array([1.2, 3.0, 1.2])                        # slices along axis 1
+    x, y, z = np.meshgrid(*[np.arange(n) * s for n, s in zip((60, 12, 60), spacing)], indexing="ij")
+    ball = (x - 36) ** 2 + ((y - 16) * 1.5) ** 2 + (z - 36) ** 2 <= 25 ** 2
+    uploaded = Localisation.of(ball, spacing, "mask", 1.0)
+    assert uploaded.pose_mask(spacing) is uploaded.mask
+    found = Localisation.of(ball, spacing, "network", 0.9)
+    inner = found.pose_mask(spacing)
+    assert not (inner & ~ball).any() and inner.sum() < ball.sum()
+    gone = ball & ~inner
+    depth = ndimage.distance_transform_edt(np.pad(ball, ((0, 0), (0, 0), (0, 0))), sampling=[1.2, 1e6, 1.2])
+    assert depth[gone].max() <= POSE_MASK_INSET_MM + 1e-6 and depth[inner].min() > POSE_MASK_INSET_MM
+    assert np.array_equal(inner, inset_in_plane(ball, spacing, POSE_MASK_INSET_MM, axis=1))
+    assert not Localisation.of(np.zeros_like(ball), spacing, "network", 0.0).pose_mask(spacing).any()

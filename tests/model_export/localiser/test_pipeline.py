@@ -74,3 +74,25 @@ def test_contrast_augmentation_keeps_the_input_range_and_changes_neighbours_apar
     assert ratios.min() < 0.5 and ratios.max() > 1.2                       # brighter and darker
     apart = np.abs(np.log(ratios[:, 0] / ratios[:, 1])) > 0.1             # a neighbour unlike its slice
     assert 0.1 < apart.mean() < 0.7
+
+
+def test_averaged_weights_lie_between_the_two_networks(tmp_path: Path) -> None:
+    from model_export.localiser.net import LocaliserNet
+    from model_export.localiser.train import average_weights
+
+    paths = []
+    for seed in (0, 1):
+        torch.manual_seed(seed)
+        net = LocaliserNet(width=4, depth=2)
+        paths.append(tmp_path / f"n{seed}.pt")
+        torch.save({"model": net.state_dict(), "config": net.config, "step": seed}, paths[-1])
+    out = average_weights(paths[0], paths[1], tmp_path / "avg.pt", weight=0.25)
+    a, b, m = (torch.load(p, weights_only=False) for p in (*paths, out))
+    key = "head.weight"
+    assert torch.allclose(m["model"][key], 0.25 * b["model"][key] + 0.75 * a["model"][key])
+    assert m["step"] == 1 and m["averaged"]["weight"] == 0.25
+    torch.manual_seed(2)
+    other = LocaliserNet(width=8, depth=2)
+    torch.save({"model": other.state_dict(), "config": other.config}, tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="differ"):
+        average_weights(paths[0], tmp_path / "other.pt", tmp_path / "bad.pt")

@@ -86,3 +86,32 @@ def test_some_heads_sit_at_the_uterine_wall_without_a_fluid_rim(monkeypatch: pyt
         return float(np.mean(shares))
 
     assert fluid_share(0.0) > 0.5 and fluid_share(1.0) < 0.6 * fluid_share(0.0)
+
+
+def test_a_rigid_scene_knows_each_slice_pose_in_the_atlas() -> None:
+    """The atlas brain mask sampled at each slice's true pose is the scene's brain in that slice; the
+    skull-inside mask holds the brain; and the head moved between slices."""
+    from scipy import ndimage
+
+    from model_export.localiser.scenes import synth_scene
+
+    image, mask, affine = phantom_brain(3)
+    affine = affine.copy()
+    affine[:3, 3] = [-40.0, 25.0, 7.0]                   # an atlas whose world origin is not its corner
+    head = HeadModel.from_arrays(image, mask, affine)
+    scene = synth_scene(head, np.random.default_rng(11), "heldout", rigid=True)
+    assert scene.atlas_from_voxel is not None and len(scene.atlas_from_voxel) == scene.volume.array.shape[2]
+    assert np.allclose(np.linalg.det(scene.atlas_from_voxel[:, :3, :3]), np.prod(scene.volume.spacing))   # rigid
+    assert (scene.brain <= scene.mask).all() and scene.mask.sum() > scene.brain.sum() > 0
+    nx, ny, n = scene.volume.array.shape
+    i, j = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
+    found = []
+    for k in np.flatnonzero(scene.brain.any((0, 1))):
+        voxel = np.stack([i.ravel(), j.ravel(), np.full(i.size, k), np.ones(i.size)])
+        atlas_voxel = np.linalg.solve(affine, scene.atlas_from_voxel[k] @ voxel)[:3]
+        sampled = ndimage.map_coordinates(mask.astype(np.float32), atlas_voxel, order=1).reshape(nx, ny) >= 0.5
+        found.append((sampled & scene.brain[:, :, k]).sum() * 2 / (sampled.sum() + scene.brain[:, :, k].sum()))
+    assert np.median(found) > 0.9, found
+    moved = np.abs(np.diff(scene.atlas_from_voxel[:, :3, 3], axis=0)).max()
+    assert moved > 0.1
+    assert synth_scene(head, np.random.default_rng(11), "heldout").atlas_from_voxel is None   # scaled: no pose

@@ -1,0 +1,114 @@
+"""Pose accuracy without masks, against the truth: whole-uterus scenes whose slice poses are known.
+
+Real scans have no true slice poses, and poses with manual masks are no truth either: the pose
+network learnt the atlas's own brain masks, and a manual mask (everything inside the skull) is
+another definition. This benchmark generates held-out whole-uterus scenes around the validation
+atlas brains (:func:`~model_export.localiser.scenes.synth_scene`, ``heldout`` style, T2-like
+contrast, the head at the atlas's size so that its slice poses are rigid) and runs each stack alone
+through ``/v1/predict``'s pipeline with three masks:
+
+* ``brain``: the atlas's brain mask carried along (what the pose network was trained with);
+* ``skull``: everything inside the skull (how manual masks are drawn, what the localiser learns);
+* ``localiser``: none uploaded; the service's localiser finds it.
+
+Every slice with brain in the truth is scored against its true pose (E.D., mm) and twin-min (the
+nearer of the truth and its left-right twin); a slice the answer calls ``empty`` is counted apart.
+
+    .venv/bin/python -m model_export.localiser.pose_accuracy --scenes 10
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+from numpy.typing import NDArray
+
+from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
+from model_export.localiser.scenes import HeadModel, Scene, synth_scene
+from service.api.responses import stack_objects
+from service.geometry import anchors, twin
+from service.io.volume import Volume
+from service.pipeline.predict import StackUpload, predict, prepare_stacks
+from service.preprocess.localise import Localiser
+
+VARIANTS = ("brain", "skull", "localiser")
+MIN_BRAIN_PIXELS = 200
+"""Slices with less true brain than this are not scored (the brain's caps: no pose network sees them well)."""
+
+
+def validation_scenes(count: int, seed: int = 2_000_000, root=DEFAULT_ATLAS_ROOT) -> list[Scene]:  # noqa: ANN001
+    """``count`` rigid held-out scenes of T2-like contrast, the validation volumes in turn."""
+    heads = [HeadModel.from_arrays(v.image, v.mask, v.affine) for v in load_volumes(split(root)[1], root)]
+    return [synth_scene(heads[i % len(heads)], np.random.default_rng(seed + i), "heldout", random_contrast=False,
+                        rigid=True) for i in range(count)]
+
+
+def _upload(scene: Scene, variant: str) -> StackUpload:
+    mask = {"brain": scene.brain, "skull": scene.mask, "localiser": None}[variant]
+    return StackUpload(f"scene-{variant}.nii.gz", scene.volume,
+                       None if mask is None else Volume(mask.astype(np.uint8), scene.volume.affine))
+
+
+def score_scene(scene: Scene, variant: str, estimator, localiser: Localiser | None = None,  # noqa: ANN001
+                mc_samples: int = 100) -> dict[str, NDArray]:
+    """Per scored slice of one scene and mask variant: E.D. and twin-min E.D. (NaN where ``empty``)."""
+    info = estimator.info
+    prepared = prepare_stacks([_upload(scene, variant)], info, True, workers=1, localiser=localiser)
+    predictions, _ = predict(prepared, estimator, mc_samples, info.variance_threshold)
+    answer = stack_objects(predictions)[0]
+    voxel_from_slice = np.linalg.inv(prepared[0].slices.slice_from_voxel)
+    truth = scene.atlas_from_voxel @ voxel_from_slice
+    scored = np.flatnonzero(scene.brain.sum(axis=(0, 1)) >= MIN_BRAIN_PIXELS)
+    plane = float(getattr(info, "symmetry_plane_x_mm", twin.DEFAULT_PLANE_X_MM))
+    ed, ed_min = np.full(len(scored), np.nan), np.full(len(scored), np.nan)
+    for i, k in enumerate(scored):
+        s = answer["slices"][k]
+        if s["reason"] == "empty":
+            continue
+        pose = np.asarray(s["atlas_from_voxel"]) @ voxel_from_slice[k]
+        ed[i] = float(anchors.ed(pose, truth[k]))
+        ed_min[i] = float(twin.twin_min_ed(pose[None], truth[k][None], plane)[0])
+    return {"ed": ed, "ed_min": ed_min}
+
+
+def pose_accuracy(scenes: list[Scene], estimator, localiser: Localiser,  # noqa: ANN001
+                  variants: tuple[str, ...] = VARIANTS, mc_samples: int = 100) -> dict[str, dict]:
+    """Per mask variant over all ``scenes``: median and mean E.D. and twin-min E.D. of the posed brain
+    slices, their count, and the share of brain slices left ``empty``."""
+    rows: dict[str, dict[str, list]] = {v: {"ed": [], "ed_min": []} for v in variants}
+    for scene in scenes:
+        for variant in variants:
+            got = score_scene(scene, variant, estimator, localiser if variant == "localiser" else None, mc_samples)
+            for key in ("ed", "ed_min"):
+                rows[variant][key].append(got[key])
+    out = {}
+    for variant, r in rows.items():
+        ed, ed_min = np.concatenate(r["ed"]), np.concatenate(r["ed_min"])
+        posed = np.isfinite(ed)
+        out[variant] = {"median_ed_mm": float(np.median(ed[posed])) if posed.any() else None,
+                        "mean_ed_mm": float(np.mean(ed[posed])) if posed.any() else None,
+                        "median_twin_min_mm": float(np.median(ed_min[posed])) if posed.any() else None,
+                        "mean_twin_min_mm": float(np.mean(ed_min[posed])) if posed.any() else None,
+                        "slices": int(posed.sum()), "empty_share": float(1 - posed.mean()) if len(ed) else None}
+    return out
+
+
+def main() -> None:
+    from model_export.localiser.evaluate import _pose_estimator
+    from service.core.settings import DEFAULT_LOCALISERS_DIR
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenes", type=int, default=10)
+    ap.add_argument("--seed", type=int, default=2_000_000)
+    ap.add_argument("--localiser", default=str(DEFAULT_LOCALISERS_DIR / "default" / "model.onnx"))
+    ap.add_argument("--variants", default=",".join(VARIANTS))
+    args = ap.parse_args()
+    result = pose_accuracy(validation_scenes(args.scenes, args.seed), _pose_estimator(), Localiser.load(args.localiser),
+                           tuple(args.variants.split(",")))
+    print(json.dumps(result, indent=1))
+
+
+if __name__ == "__main__":
+    main()
