@@ -76,8 +76,8 @@ svrnet-train localiser average L1.pt L2.pt --out L.pt --weight 0.5   # half each
 svrnet-train localiser data --out H --count 40 --style heldout --seed 1000000 --keep-stack
 svrnet-train localiser ship L.pt --heldout H --ablation A.json --version 1.1.0  # this card and evaluation.json
 ```
-`checkpoint.pt` beside this card is the shipped network's training state: `svrnet-train localiser train
---out` a copy of it resumes training from there.
+`checkpoint.pt` beside this card holds the shipped network's weights: `svrnet-train localiser train --init
+checkpoint.pt` fine-tunes from them with a fresh schedule.
 
 ## Measured
 
