@@ -257,7 +257,7 @@ class SVRnetClient:
                 max_expected_error_mm: float | None = None,
                 bias_correction: bool | None = None, model: str | None = None,
                 slice_order: str | Sequence[str] | None = None, image_consistency: bool | None = None,
-                progress: ProgressCallback | None = None) -> dict[str, Any]:
+                masks_hold_csf: bool | None = None, progress: ProgressCallback | None = None) -> dict[str, Any]:
         """``POST /v1/predict``: the atlas pose and confidence of every slice of every stack.
 
         Only the optional parameters that are given are sent; the server's defaults apply otherwise.
@@ -276,6 +276,8 @@ class SVRnetClient:
                 ``interleaved-odd-first``, or the slice indices in the order they were acquired
                 (``"0,2,4,1,3"``). Without it the server's motion model chooses.
             image_consistency: refine the poses where slices of different stacks cross (default on).
+            masks_hold_csf: the masks are the skull's inside (brain and the CSF around it, as manual
+                fetal masks are usually drawn): the pose network sees them less their outer 2 mm.
             progress: ``progress(bytes_sent, total)`` during the upload.
 
         Returns:
@@ -294,7 +296,8 @@ class SVRnetClient:
                                                    ("variance_threshold", variance_threshold),
                                                    ("max_expected_error_mm", max_expected_error_mm),
                                                    ("bias_correction", bias_correction), ("model", model),
-                                                   ("image_consistency", image_consistency))
+                                                   ("image_consistency", image_consistency),
+                                                   ("masks_hold_csf", masks_hold_csf))
                   if v is not None]
         fields += order_fields(slice_order)
         body = MultipartBody(fields, self._files(stacks, masks))
@@ -335,7 +338,8 @@ class SVRnetClient:
                     poses: Mapping[str, Any] | PathLike | None = None, *, resolution_mm: float | None = None,
                     svr_iterations: int | None = None, mc_samples: int | None = None,
                     variance_threshold: float | None = None, max_expected_error_mm: float | None = None,
-                    slice_order: str | Sequence[str] | None = None, atlas_frame: bool | None = None, progress: ProgressCallback | None = None) -> dict[str, Any]:
+                    slice_order: str | Sequence[str] | None = None, atlas_frame: bool | None = None,
+                    masks_hold_csf: bool | None = None, progress: ProgressCallback | None = None) -> dict[str, Any]:
         """``POST /v1/reconstructions``: start a slice-to-volume reconstruction job.
 
         Args:
@@ -351,6 +355,7 @@ class SVRnetClient:
             max_expected_error_mm: as for :meth:`predict`.
             slice_order: as for :meth:`predict`.
             atlas_frame: re-estimate the reconstruction's atlas frame with the model (server default true).
+            masks_hold_csf: as for :meth:`predict`.
             progress: ``progress(bytes_sent, total)`` during the upload.
 
         Returns:
@@ -367,7 +372,8 @@ class SVRnetClient:
                                                    ("mc_samples", mc_samples),
                                                    ("variance_threshold", variance_threshold),
                                                    ("max_expected_error_mm", max_expected_error_mm),
-                                                   ("atlas_frame", atlas_frame)) if v is not None]
+                                                   ("atlas_frame", atlas_frame), ("masks_hold_csf", masks_hold_csf))
+                  if v is not None]
         fields += order_fields(slice_order)
         files: list[tuple[str, str, Path | bytes, str]] = list(self._files(stacks, masks))
         if poses is not None:

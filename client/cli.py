@@ -244,6 +244,9 @@ MaxExpectedOpt = Annotated[Optional[float], typer.Option(
     "--max-expected-error", callback=_positive,
     help="accept only slices whose expected error (mm) is at most this (default: the model's)")]
 ServerOpt = Annotated[str, typer.Option("--server", envvar="SVRNET_SERVER", help="server URL")]
+MasksHoldCsfOpt = Annotated[bool, typer.Option(
+    "--masks-hold-csf", help="the masks are the skull's inside (brain and the CSF around it, as manual fetal masks "
+                             "are usually drawn): the pose network sees them less their outer 2 mm")]
 McSamplesOpt = Annotated[Optional[int], typer.Option(min=1, max=1000, help="MC-dropout passes per slice")]
 ThresholdOpt = Annotated[Optional[float], typer.Option(
     "--threshold", callback=_positive, help="variance threshold (default: the model's)")]
@@ -277,6 +280,7 @@ def predict(
     image_consistency: Annotated[bool, typer.Option(
         "--image-consistency/--no-image-consistency",
         help="refine the poses where slices of different stacks cross")] = True,
+    masks_hold_csf: MasksHoldCsfOpt = False,
 ) -> None:
     """Atlas pose and confidence of every slice of every stack (POST /v1/predict)."""
     _check_masks(stacks, mask)
@@ -288,7 +292,7 @@ def predict(
                                  max_expected_error_mm=max_expected_error,
                                  bias_correction=None if bias_correction else False, model=model,
                                  slice_order=slice_order, image_consistency=None if image_consistency else False,
-                                 progress=progress)
+                                 masks_hold_csf=True if masks_hold_csf else None, progress=progress)
         console = _stdout()
         console.print(summarise(result))
         total = (result.get("timing_ms") or {}).get("total")
@@ -363,6 +367,7 @@ def reconstruct(
         help="acquisition order, once for every stack or once per stack (as for predict)")] = None,
     atlas_frame: Annotated[bool, typer.Option("--atlas-frame/--no-atlas-frame",
                                               help="re-estimate the volume's atlas frame with the model")] = True,
+    masks_hold_csf: MasksHoldCsfOpt = False,
 ) -> None:
     """Start a reconstruction job (POST /v1/reconstructions); with --wait, follow it and download the volume."""
     _check_masks(stacks, mask)
@@ -374,7 +379,8 @@ def reconstruct(
             job = svr.reconstruct(stacks, mask, poses, resolution_mm=resolution, svr_iterations=svr_iterations,
                                   mc_samples=mc_samples, variance_threshold=threshold,
                                   max_expected_error_mm=max_expected_error, slice_order=slice_order,
-                                  atlas_frame=None if atlas_frame else False, progress=progress)
+                                  atlas_frame=None if atlas_frame else False,
+                                  masks_hold_csf=True if masks_hold_csf else None, progress=progress)
         job_id = str(job.get("job_id", ""))
         console.print(f"job {job_id} {job.get('status', 'queued')}: {job.get('status_url', '')}")
         if not wait:

@@ -74,7 +74,8 @@ async def submit(
     store = _store(request)
     job = store.create({"resolution_mm": resolution_mm, "svr_iterations": svr_iterations, "mc_samples": form.mc_samples,
                         "variance_threshold": form.variance_threshold, "max_expected_error_mm": form.max_expected_error_mm,
-                        "model": model, "slice_order": form.slice_order, "atlas_frame": atlas_frame})
+                        "model": model, "slice_order": form.slice_order, "atlas_frame": atlas_frame,
+                        "masks_hold_csf": form.masks_hold_csf})
     inputs = store.directory(job.id) / "inputs"
     inputs.mkdir()
     try:

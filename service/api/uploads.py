@@ -98,6 +98,11 @@ SLICE_ORDER_HELP = ("the stacks' acquisition order, if known: none (the motion m
                     "slice_axis) in the order they were acquired, comma-separated")
 
 
+MASKS_HOLD_CSF_HELP = ("the uploaded masks are the skull's inside (brain and the CSF around it, as manual fetal "
+                       "masks are usually drawn): the pose network then sees them less their outer 2 mm, as it "
+                       "sees the localiser's; default: tight brain masks, used as they are")
+
+
 @dataclass
 class UploadForm:
     """The fields every route that takes stacks for poses shares (``/v1/predict``,
@@ -111,6 +116,7 @@ class UploadForm:
     model: str
     slice_order: list[str]
     orders: list[SliceOrder]
+    masks_hold_csf: bool = False
 
 
 async def upload_form(
@@ -122,11 +128,12 @@ async def upload_form(
     max_expected_error_mm: Annotated[Optional[float], Form(gt=0, description=MAX_EXPECTED_ERROR_HELP)] = None,
     model: Annotated[str, Form(description="a name from GET /v1/models")] = "default",
     slice_order: Annotated[Optional[list[SliceOrderField]], Form(description=SLICE_ORDER_HELP)] = None,
+    masks_hold_csf: Annotated[bool, Form(description=MASKS_HOLD_CSF_HELP)] = False,
 ) -> UploadForm:
     """The shared fields of a request (:class:`UploadForm`); 400 naming the field that is wrong."""
     given = check_form(stacks, masks, variance_threshold, settings.max_files, max_expected_error_mm)
     return UploadForm(stacks, given, mc_samples, variance_threshold, max_expected_error_mm, model,
-                      slice_order or [], parse_orders(slice_order, len(stacks)))
+                      slice_order or [], parse_orders(slice_order, len(stacks)), masks_hold_csf)
 
 
 UploadFormDep = Annotated[UploadForm, Depends(upload_form)]
@@ -148,8 +155,10 @@ def parse_orders(values: list[str] | None, n_stacks: int) -> list[SliceOrder]:
 
 
 def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: Path,
-                  max_decoded_bytes: int = MAX_DECODED_BYTES, max_request_bytes: int | None = None) -> list[StackUpload]:
-    """Write each upload to ``directory`` and read it (blocking: run in a worker thread).
+                  max_decoded_bytes: int = MAX_DECODED_BYTES, max_request_bytes: int | None = None,
+                  masks_hold_csf: bool = False) -> list[StackUpload]:
+    """Write each upload to ``directory`` and read it (blocking: run in a worker thread); the masks
+    are the skull's inside with ``masks_hold_csf``.
 
     Each file may decode to ``max_decoded_bytes``, all of them together to ``max_request_bytes``
     (:class:`~service.io.limits.DecodeBudget`): many bombs in one request stop at the request's limit.
@@ -164,8 +173,8 @@ def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: 
     with ThreadPoolExecutor(max_workers=READ_WORKERS) as pool:
         volumes = list(pool.map(lambda job: _read(*job, budget), jobs))
     n = len(stacks)
-    return [StackUpload(jobs[i][2], volumes[i], volumes[n + i] if masks else None, jobs[n + i][2] if masks else None)
-            for i in range(n)]
+    return [StackUpload(jobs[i][2], volumes[i], volumes[n + i] if masks else None, jobs[n + i][2] if masks else None,
+                        mask_holds_csf=masks_hold_csf) for i in range(n)]
 
 
 def _read(upload: UploadFile, path: Path, name: str, budget: DecodeBudget):  # noqa: ANN202

@@ -204,7 +204,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         vol = read_upload(s, sname, budget=budget.file(sname))
         mname = _name(names, "masks", i) if m is not None else None
         mask = read_upload(m, mname, budget=budget.file(mname)) if m is not None else None
-        uploads.append(StackUpload(sname, vol, mask, mname))
+        uploads.append(StackUpload(sname, vol, mask, mname, mask_holds_csf=bool(params.get("masks_hold_csf", False))))
     poses_path = folder / "inputs" / "poses.json"
     model_file = models_dir / params.get("model", "default") / "model.onnx"
     estimator = None

@@ -60,6 +60,9 @@ class StackUpload:
     slice_axis: int | None = None
     """The axis the slices were acquired along, where known (a streamed stack); otherwise the axis
     of largest spacing."""
+    mask_holds_csf: bool = False
+    """The uploaded mask is the skull's inside (brain and extra-axial CSF), as manual fetal masks are
+    usually drawn (:attr:`~service.preprocess.localise.Localisation.holds_csf`)."""
 
 
 @dataclass
@@ -92,7 +95,7 @@ def check_mask_grid(upload: StackUpload) -> None:
 def localise(upload: StackUpload, localiser: Localiser | None = None) -> Localisation:
     """The uploaded mask, else the brain that ``localiser`` (default: the shipped one) finds."""
     if upload.mask is not None:
-        return Localisation.of(upload.mask.array, upload.volume.spacing, "mask", 1.0)
+        return Localisation.of(upload.mask.array, upload.volume.spacing, "mask", 1.0, upload.mask_holds_csf)
     return (localiser or default_localiser()).localise(upload.volume)
 
 

@@ -66,28 +66,39 @@ class Localisation:
     brain_volume_ml: float
     confidence: float
     slices_with_brain: int
+    holds_csf: bool = False
+    """The mask is the skull's inside (the brain and the extra-axial CSF around it): the localiser's
+    always, an uploaded one when the request says so (``masks_hold_csf``)."""
 
     @classmethod
-    def of(cls, mask: NDArray, spacing: NDArray, method: str, confidence: float) -> "Localisation":
-        """A mask on a stack's grid of voxel sizes ``spacing``, with its volume and slice count."""
+    def of(cls, mask: NDArray, spacing: NDArray, method: str, confidence: float,
+           holds_csf: bool | None = None) -> "Localisation":
+        """A mask on a stack's grid of voxel sizes ``spacing``, with its volume and slice count
+        (``holds_csf`` default: a localiser's mask does, an uploaded one does not)."""
         m = np.asarray(mask) > 0
         axis = slice_axis_of(spacing)
         slices = int(np.count_nonzero(np.moveaxis(m, axis, 0).reshape(m.shape[axis], -1).any(1)))
-        return cls(m, method, float(m.sum() * np.prod(spacing) / 1000.0), float(confidence), slices)
+        csf = method == "network" if holds_csf is None else bool(holds_csf)
+        return cls(m, method, float(m.sum() * np.prod(spacing) / 1000.0), float(confidence), slices, csf)
+
+    @property
+    def pose_inset_mm(self) -> float:
+        """How far inside the mask the pose network's mask lies (:meth:`pose_mask`)."""
+        return POSE_MASK_INSET_MM if self.holds_csf else 0.0
 
     def pose_mask(self, spacing: NDArray, axis: int | None = None) -> NDArray[np.bool_]:
-        """The mask the pose network's slices are cut with: an uploaded mask as it is; the localiser's
-        (everything inside the skull) without its outer :data:`POSE_MASK_INSET_MM` in the plane of the
-        slices along ``axis`` (default: the thick one), the brain as the atlas masks the pose network
-        learnt from draw it."""
-        if self.method != "network" or not self.mask.any():
+        """The mask the pose network's slices are cut with: a tight brain mask as it is; one that holds
+        the CSF around the brain (the localiser's; an upload said to) without its outer
+        :data:`POSE_MASK_INSET_MM` in the plane of the slices along ``axis`` (default: the thick one),
+        the brain as the atlas masks the pose network learnt from draw it."""
+        if not self.holds_csf or not self.mask.any():
             return self.mask
         return inset_in_plane(self.mask, np.asarray(spacing, np.float64), POSE_MASK_INSET_MM, axis)
 
     def report(self) -> dict:
         """The ``localisation`` object of a ``/v1/predict`` stack."""
         return {"method": self.method, "brain_volume_ml": round(self.brain_volume_ml, 1),
-                "confidence": round(self.confidence, 3)}
+                "confidence": round(self.confidence, 3), "pose_mask_inset_mm": self.pose_inset_mm}
 
 
 def plausibility(volume_ml: float | NDArray) -> float | NDArray:

@@ -77,9 +77,16 @@ def test_predict_says_how_each_stack_was_localised(real_client: TestClient, uter
     assert where["method"] == "network" and where["confidence"] > 0.5 and 50 < where["brain_volume_ml"] < 700
     reasons = [s["reason"] for s in without.json()["stacks"][0]["slices"]]
     assert 0 < reasons.count("empty") < len(reasons)              # slices beyond the head are empty, not all
+    assert where["pose_mask_inset_mm"] == 2.0                        # the localiser's mask holds the CSF
     files.append(("masks", (mask.name, mask.read_bytes())))
     with_mask = real_client.post("/v1/predict", files=files, data={"mc_samples": "2"})
-    assert with_mask.json()["stacks"][0]["localisation"]["method"] == "mask"
+    assert with_mask.json()["stacks"][0]["localisation"] == {**with_mask.json()["stacks"][0]["localisation"],
+                                                             "method": "mask", "pose_mask_inset_mm": 0.0}
+    said = real_client.post("/v1/predict", files=files, data={"mc_samples": "2", "masks_hold_csf": "true"})
+    assert said.status_code == 200, said.text
+    assert said.json()["stacks"][0]["localisation"]["pose_mask_inset_mm"] == 2.0
+    bad = real_client.post("/v1/predict", files=files, data={"masks_hold_csf": "perhaps"})
+    assert bad.status_code in (400, 422) and "masks_hold_csf" in bad.text
 
 
 def test_a_stack_of_noise_answers_200_with_empty_slices(real_client: TestClient, tmp_path: Path) -> None:

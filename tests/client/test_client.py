@@ -278,12 +278,13 @@ def test_upload_progress_reaches_the_total(stack_file: Path) -> None:
 
     seen: list[tuple[int, int]] = []
     mock(handler).predict([big, stack_file], bias_correction=True, model="m", image_consistency=False,
-                          progress=lambda s, t: seen.append((s, t)))
+                          masks_hold_csf=True, progress=lambda s, t: seen.append((s, t)))
     total = len(got[0].content)
     assert len(seen) > 4 and all(t == total for _, t in seen)
     assert [s for s, _ in seen] == sorted(s for s, _ in seen) and seen[0][0] == 0 and seen[-1][0] == total
     fields, files = parse_multipart(got[0])
-    assert fields == {"bias_correction": ["true"], "model": ["m"], "image_consistency": ["false"]}
+    assert fields == {"bias_correction": ["true"], "model": ["m"], "image_consistency": ["false"],
+                      "masks_hold_csf": ["true"]}
     assert [(f[0], f[1]) for f in files] == [("stacks", "big.nii"), ("stacks", "stack.nii.gz")]
     assert files[0][3] == big.read_bytes()
 
@@ -567,7 +568,7 @@ def test_cli_predict_writes_json_and_prints_a_summary(fake_cli: Callable, stack_
     fake, made = fake_cli()
     out = tmp_path / "poses.json"
     r = invoke(["predict", str(stack_file), "--out", str(out), "--mc-samples", "5", "--no-bias-correction",
-                "--no-image-consistency", "--server", "http://scanner:9000"])
+                "--no-image-consistency", "--masks-hold-csf", "--server", "http://scanner:9000"])
     assert r.exit_code == 0, r.output
     assert json.loads(out.read_text()) == PREDICT_BODY
     assert made == [("http://scanner:9000", None)]
@@ -575,7 +576,8 @@ def test_cli_predict_writes_json_and_prints_a_summary(fake_cli: Callable, stack_
     assert "median variance" in r.stdout and "abc" in r.stdout
     assert "found, 312 ml, confidence 0.93" in r.stdout
     fields, files = parse_multipart(fake.requests[0])
-    assert fields == {"mc_samples": ["5"], "bias_correction": ["false"], "image_consistency": ["false"]}
+    assert fields == {"mc_samples": ["5"], "bias_correction": ["false"], "image_consistency": ["false"],
+                      "masks_hold_csf": ["true"]}
     assert files[0][1] == "stack.nii.gz"
 
 

@@ -59,7 +59,7 @@ def test_an_uploaded_mask_is_reported_as_such() -> None:
     found = Localisation.of(mask, np.array([2.0, 2.0, 4.0]), "mask", 1.0)
     assert found.brain_volume_ml == pytest.approx(27 * 16 / 1000)
     assert found.slices_with_brain == 3
-    assert found.report() == {"method": "mask", "brain_volume_ml": 0.4, "confidence": 1.0}
+    assert found.report() == {"method": "mask", "brain_volume_ml": 0.4, "confidence": 1.0, "pose_mask_inset_mm": 0.0}
 
 
 def test_the_registry_names_what_it_lacks() -> None:
@@ -145,3 +145,18 @@ def test_the_pose_network_gets_the_localisers_mask_without_its_csf_rim() -> None
     assert depth[gone].max() <= POSE_MASK_INSET_MM + 1e-6 and depth[inner].min() > POSE_MASK_INSET_MM
     assert np.array_equal(inner, inset_in_plane(ball, spacing, POSE_MASK_INSET_MM, axis=1))
     assert not Localisation.of(np.zeros_like(ball), spacing, "network", 0.0).pose_mask(spacing).any()
+
+
+def test_an_upload_said_to_hold_the_csf_gets_the_localisers_inset() -> None:
+    from service.pipeline.predict import StackUpload, localise
+
+    spacing = np.array([1.0, 1.0, 3.0])
+    mask = np.zeros((40, 40, 6), np.uint8)
+    mask[8:32, 8:32, 1:5] = 1
+    volume = Volume(np.random.default_rng(0).random(mask.shape, np.float32), np.diag([*spacing, 1.0]))
+    tight = localise(StackUpload("s.nii.gz", volume, Volume(mask, volume.affine)))
+    rim = localise(StackUpload("s.nii.gz", volume, Volume(mask, volume.affine), mask_holds_csf=True))
+    assert tight.method == rim.method == "mask" and tight.pose_inset_mm == 0.0 and rim.pose_inset_mm == 2.0
+    assert np.array_equal(tight.pose_mask(spacing), mask > 0)
+    assert rim.pose_mask(spacing)[:, :, 2].sum() == 20 * 20 and rim.report()["pose_mask_inset_mm"] == 2.0
+
