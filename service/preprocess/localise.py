@@ -14,6 +14,9 @@
    brain-like probability the chosen brain holds, and the plausibility of its volume. A stack with
    no brain (noise, another body part) gets a low confidence; below :data:`MIN_CONFIDENCE` its mask
    is empty and its slices are ``empty``.
+4. **The pose network's mask** (:meth:`Localisation.pose_mask`): the localiser's mask is the skull's
+   inside, as manual masks are drawn; the pose network learnt the atlas's tighter brain masks, so its
+   slices are cut with the mask less its outer :data:`POSE_MASK_INSET_MM`.
 
 Example (a localiser is an ONNX file; see :class:`Localiser`):
     >>> loc = Localiser.load(DEFAULT_LOCALISERS_DIR / "default" / "model.onnx")   # doctest: +SKIP
@@ -88,7 +91,7 @@ class Localisation:
 
     def pose_mask(self, spacing: NDArray, axis: int | None = None) -> NDArray[np.bool_]:
         """The mask the pose network's slices are cut with: a tight brain mask as it is; one that holds
-        the CSF around the brain (the localiser's; an upload said to) without its outer
+        the CSF around the brain (the localiser's, or an upload the request says holds it) without its outer
         :data:`POSE_MASK_INSET_MM` in the plane of the slices along ``axis`` (default: the thick one),
         the brain as the atlas masks the pose network learnt from draw it."""
         if not self.holds_csf or not self.mask.any():
