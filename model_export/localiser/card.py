@@ -7,6 +7,8 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
+from service.preprocess.localise import POSE_MASK_INSET_MM
+
 
 def _fmt(x: float | None, digits: int = 3) -> str:
     return "—" if x is None else f"{x:.{digits}f}"
@@ -21,7 +23,8 @@ def write_card(path: Path, onnx_path: Path, figures: dict) -> Path:
                           f"{r['ml']:.0f} | {r['confidence']:.2f} | {r['ms']:.0f} |" for r in figures["real"])
     pr = figures["poses_real"] or {}
     what = {"brain": "the atlas's brain mask (the pose network's own definition)",
-            "skull": "everything inside the skull (as manual masks are drawn)", "localiser": "none: the localiser's, less its outer 2 mm"}
+            "skull": "everything inside the skull (as manual masks are drawn)",
+            "localiser": f"none: the localiser's, less its outer {POSE_MASK_INSET_MM:g} mm"}
     truth = figures.get("poses_truth") or {}
     truth_rows = "\n".join(f"| {what.get(k, k)} | {_fmt(v['median_ed_mm'], 2)} | {_fmt(v['mean_ed_mm'], 2)} | "
                            f"{_fmt(v['median_twin_min_mm'], 2)} | {_fmt(v['mean_twin_min_mm'], 2)} | {v['slices']} | "
@@ -121,7 +124,7 @@ Generated validation stacks: median volume error {np.median([abs(r['ml'] - r['tr
   view, is the hardest case seen; the real stacks above show how much of it is found.
 - The mask is the skull's inside, as manual masks are drawn. The pose network learnt the atlas's brain
   masks, which leave out most extra-axial CSF: the service cuts the pose network's slices with the
-  localiser's mask less its outer 2 mm (`POSE_MASK_INSET_MM`). An uploaded mask is used as it is; one
+  localiser's mask less its outer {POSE_MASK_INSET_MM:g} mm (`POSE_MASK_INSET_MM`). An uploaded mask is used as it is; one
   that holds the CSF rim gives worse poses (the table above).
 - Gestational ages outside 21–38 weeks and severe malformations beyond the spina-bifida atlas are untested.
 """

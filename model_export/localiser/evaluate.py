@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 
 from service.geometry import anchors
 from service.api.responses import stack_objects
+from model_export.localiser.pose_accuracy import pose_accuracy, slice_poses, validation_scenes
 from service.pipeline.predict import StackUpload, predict, prepare_stacks
 from service.io.volume import Volume, read_volume
 from service.preprocess.localise import Localiser
@@ -75,14 +76,11 @@ def real_scan_rows(localiser: Localiser, root: Path = REAL_SCANS) -> list[dict]:
 
 def _median_ed(a: list[dict], b: list[dict], prepared: list) -> tuple[float | None, int]:
     """Median E.D. (mm) between the slice poses of two answers for the same stacks, over the slices
-    neither calls ``empty``; poses compared as slice-frame -> atlas maps."""
+    neither calls ``empty``."""
     distances = []
-    for sa_stack, sb_stack, p in zip(a, b, prepared):
-        voxel_from_slice = np.linalg.inv(p.slices.slice_from_voxel)
-        for sa, sb, v in zip(sa_stack["slices"], sb_stack["slices"], voxel_from_slice):
-            if sa["reason"] != "empty" and sb["reason"] != "empty":
-                distances.append(float(anchors.ed(np.array(sa["atlas_from_voxel"]) @ v,
-                                                  np.array(sb["atlas_from_voxel"]) @ v)))
+    for sa, sb, p in zip(a, b, prepared):
+        (pa, ka), (pb, kb) = slice_poses(sa, p), slice_poses(sb, p)
+        distances += list(anchors.ed(pa[ka & kb], pb[ka & kb]))
     return (float(np.median(distances)) if distances else None), len(distances)
 
 
@@ -133,8 +131,6 @@ def measure(localiser: Localiser, heldout: Path, pose_stacks: int = 8, root: Pat
     """Every figure of the model card (see the module docstring); ``pose_scenes`` whole-uterus scenes
     of known slice poses give the poses' accuracy with and without masks
     (:func:`~model_export.localiser.pose_accuracy.pose_accuracy`)."""
-    from model_export.localiser.pose_accuracy import pose_accuracy, validation_scenes
-
     held = heldout_dice(localiser, heldout)
     real = real_scan_rows(localiser, root) if Path(root).exists() else []
     estimator = _pose_estimator()

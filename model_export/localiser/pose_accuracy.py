@@ -30,7 +30,7 @@ from model_export.localiser.scenes import HeadModel, Scene, synth_scene
 from service.api.responses import stack_objects
 from service.geometry import anchors, twin
 from service.io.volume import Volume
-from service.pipeline.predict import StackUpload, predict, prepare_stacks
+from service.pipeline.predict import PreparedStack, StackUpload, predict, prepare_stacks
 from service.preprocess.localise import Localiser
 
 VARIANTS = ("brain", "skull", "localiser")
@@ -51,25 +51,33 @@ def _upload(scene: Scene, variant: str) -> StackUpload:
                        None if mask is None else Volume(mask.astype(np.uint8), scene.volume.affine))
 
 
+def slice_poses(answer: dict, prepared: PreparedStack) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """A stack's answer (one ``stacks[]`` object of ``/v1/predict``) as slice poses ``[n, 4, 4]``
+    (slice frame -> atlas mm, the frame E.D. and the twin are defined in) and which slices it posed
+    (not ``empty``)."""
+    voxel_from_slice = np.linalg.inv(prepared.slices.slice_from_voxel)
+    poses = np.array([s["atlas_from_voxel"] for s in answer["slices"]], np.float64) @ voxel_from_slice
+    return poses, np.array([s["reason"] != "empty" for s in answer["slices"]])
+
+
 def score_scene(scene: Scene, variant: str, estimator, localiser: Localiser | None = None,  # noqa: ANN001
                 mc_samples: int = 100) -> dict[str, NDArray]:
-    """Per scored slice of one scene and mask variant: E.D. and twin-min E.D. (NaN where ``empty``)."""
+    """Per scored slice of one scene and mask variant: E.D. and twin-min E.D. (NaN where ``empty``).
+    An estimator with a ``truth`` attribute (a stand-in for the network) is told each slice's true
+    network-frame pose first, as :func:`model_export.evaluate_acquisitions.run_acquisition` does."""
     info = estimator.info
     prepared = prepare_stacks([_upload(scene, variant)], info, True, workers=1, localiser=localiser)
+    if hasattr(estimator, "truth"):
+        estimator.truth = scene.atlas_from_voxel @ np.linalg.inv(prepared[0].network_from_voxel())
     predictions, _ = predict(prepared, estimator, mc_samples, info.variance_threshold)
-    answer = stack_objects(predictions)[0]
-    voxel_from_slice = np.linalg.inv(prepared[0].slices.slice_from_voxel)
-    truth = scene.atlas_from_voxel @ voxel_from_slice
+    poses, posed = slice_poses(stack_objects(predictions)[0], prepared[0])
+    truth = scene.atlas_from_voxel @ np.linalg.inv(prepared[0].slices.slice_from_voxel)
     scored = np.flatnonzero(scene.brain.sum(axis=(0, 1)) >= MIN_BRAIN_PIXELS)
+    keep = scored[posed[scored]]
     plane = float(getattr(info, "symmetry_plane_x_mm", twin.DEFAULT_PLANE_X_MM))
     ed, ed_min = np.full(len(scored), np.nan), np.full(len(scored), np.nan)
-    for i, k in enumerate(scored):
-        s = answer["slices"][k]
-        if s["reason"] == "empty":
-            continue
-        pose = np.asarray(s["atlas_from_voxel"]) @ voxel_from_slice[k]
-        ed[i] = float(anchors.ed(pose, truth[k]))
-        ed_min[i] = float(twin.twin_min_ed(pose[None], truth[k][None], plane)[0])
+    ed[posed[scored]] = anchors.ed(poses[keep], truth[keep])
+    ed_min[posed[scored]] = twin.twin_min_ed(poses[keep], truth[keep], plane)
     return {"ed": ed, "ed_min": ed_min}
 
 

@@ -74,14 +74,11 @@ class LocaliserGrid:
 
 def _linear_operator(coords: NDArray[np.float64], n_in: int) -> sparse.csr_matrix:
     """Linear interpolation of an axis of ``n_in`` pixels at ``coords`` (pixel indices; ``nearest``
-    beyond the ends) as a sparse ``[len(coords), n_in]`` matrix."""
-    c = np.clip(coords, 0.0, n_in - 1.0)
-    left = np.minimum(np.floor(c).astype(int), max(n_in - 2, 0))
-    frac = np.where(n_in > 1, c - left, 0.0)
-    rows = np.repeat(np.arange(len(c)), 2)
-    cols = np.stack([left, np.minimum(left + 1, n_in - 1)], 1).ravel()
-    weights = np.stack([1.0 - frac, frac], 1).ravel().astype(np.float32)
-    return sparse.csr_matrix((weights, (rows, cols)), shape=(len(c), n_in))
+    beyond the ends) as a sparse ``[len(coords), n_in]`` matrix: :func:`scipy.ndimage.map_coordinates`
+    applied to the identity, as :func:`axis_operator` is made."""
+    rows, cols = np.meshgrid(np.asarray(coords, np.float64), np.arange(n_in, dtype=np.float64), indexing="ij")
+    dense = ndimage.map_coordinates(np.eye(n_in, dtype=np.float32), [rows, cols], order=1, mode="nearest")
+    return sparse.csr_matrix(dense)
 
 
 def _separable(images: NDArray[np.float32], rows: sparse.csr_matrix, cols: sparse.csr_matrix) -> NDArray[np.float32]:

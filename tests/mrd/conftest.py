@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from service.geometry.frames import voxel_spacing
 from service.inference.estimator import PoseEstimate
 from service.inference.registry import ModelRegistry
 from service.io.volume import Volume
@@ -97,7 +98,7 @@ class Case:
         for series, rot in enumerate((np.eye(3), Rotation.from_euler("x", 90, degrees=True).as_matrix())):
             image, mask, affine, truth = simulated_stack(seed, rot)
             # the pipeline cuts the pose network's slices with a localiser's mask less its CSF rim
-            spacing = np.sqrt((affine[:3, :3] ** 2).sum(axis=0))
+            spacing = voxel_spacing(affine)
             pose_mask = Localisation.of(mask, spacing, "network", 1.0).pose_mask(spacing, axis=2)
             teach(self.oracle, str(series), image, pose_mask.astype(mask.dtype), affine, truth)
             self.localiser.learn(image, mask)
