@@ -75,24 +75,59 @@ def kabsch(source: ArrayLike, target: ArrayLike, weights: ArrayLike | None = Non
         ([0.0, -1.0, 0.0, 1.0], [1.0, 2.0, 3.0])
     """
     p = np.asarray(target, dtype=np.float64)
-    s = np.broadcast_to(np.asarray(source, dtype=np.float64), p.shape)
-    w = np.ones(p.shape[:-1]) if weights is None else np.clip(np.asarray(weights, dtype=np.float64), 0.0, None)
-    w = np.broadcast_to(w, p.shape[:-1])
-    total = w.sum(-1, keepdims=True)
-    w = np.where(total > 0, w, 1.0) / np.where(total > 0, total, w.shape[-1])
+    src = np.asarray(source, dtype=np.float64)
     ok = np.all(np.isfinite(p), axis=(-1, -2), keepdims=True)
-    p = np.where(ok, p, s)                                    # non-finite predictions -> identity fit
-    # batched matrix products (BLAS), not multi-operand einsums: the MC statistics decode B x N labels
-    cs = (w[..., None, :] @ s)[..., 0, :]
-    cp = (w[..., None, :] @ p)[..., 0, :]
-    h = np.swapaxes((s - cs[..., None, :]) * w[..., None], -1, -2) @ (p - cp[..., None, :])   # [..., 3, 3]
+    p = np.where(ok, p, src)                                  # non-finite predictions -> identity fit
+    if weights is None and src.ndim == 2:
+        # shared source, equal weights (the MC statistics decode B x N labels): one broadcast product
+        cs, cp = src.mean(0), p.mean(-2)
+        h = np.matmul(((src - cs) / len(src)).T, p)                                    # [..., 3, 3]
+    else:
+        s = np.broadcast_to(src, p.shape)
+        w = np.ones(p.shape[:-1]) if weights is None else np.clip(np.asarray(weights, dtype=np.float64), 0.0, None)
+        w = np.broadcast_to(w, p.shape[:-1])
+        total = w.sum(-1, keepdims=True)
+        w = np.where(total > 0, w, 1.0) / np.where(total > 0, total, w.shape[-1])
+        cs = (w[..., None, :] @ s)[..., 0, :]
+        cp = (w[..., None, :] @ p)[..., 0, :]
+        h = np.swapaxes((s - cs[..., None, :]) * w[..., None], -1, -2) @ (p - cp[..., None, :])   # [..., 3, 3]
+    planar = src.ndim == 2 and not src[:, 2].any()
+    rot, fitted = _planar_rotation(np.swapaxes(h[..., :2, :], -1, -2)) if planar else (None, None)
+    if rot is None:
+        rot, fitted = np.zeros(h.shape), np.zeros(h.shape[:-2], bool)
+    if not fitted.all():
+        rot[~fitted] = _svd_rotation(h[~fitted])
+    return make_pose(rot, cp - (rot @ cs[..., None])[..., 0])
+
+
+def _svd_rotation(h: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The proper rotation ``R`` maximising ``tr(R h)`` for cross-covariances ``h [..., 3, 3]`` (SVD)."""
     u, _, vt = np.linalg.svd(h)
     d = np.sign(np.linalg.det(u @ vt))
     d = np.where(d == 0, 1.0, d)
     fix = np.broadcast_to(np.eye(3), h.shape).copy()
     fix[..., 2, 2] = d
-    rot = np.swapaxes(vt, -1, -2) @ fix @ np.swapaxes(u, -1, -2)   # V diag(1, 1, d) U^T
-    return make_pose(rot, cp - (rot @ cs[..., None])[..., 0])
+    return np.swapaxes(vt, -1, -2) @ fix @ np.swapaxes(u, -1, -2)   # V diag(1, 1, d) U^T
+
+
+def _planar_rotation(b: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Kabsch for a source in the plane ``z = 0``, in closed form: only the rotation's first two
+    columns act on it, and the best ones are the orthonormal polar factor ``b (b^T b)^(-1/2)`` of
+    ``b [..., 3, 2]`` (the cross-covariance's first two rows, transposed); the third is their cross
+    product (a proper rotation, as the SVD's sign correction gives). ``b^T b`` is 2 x 2, so its
+    inverse square root is explicit: no batched SVD. Returns the rotations and where ``b`` has full
+    rank (elsewhere: collinear points; the caller falls back to the SVD)."""
+    c = np.swapaxes(b, -1, -2) @ b                                           # [..., 2, 2], symmetric
+    det = c[..., 0, 0] * c[..., 1, 1] - c[..., 0, 1] ** 2
+    trace = c[..., 0, 0] + c[..., 1, 1]
+    fitted = det > 1e-12 * trace ** 2
+    root_det = np.sqrt(np.where(fitted, det, 1.0))
+    root = (c + root_det[..., None, None] * np.eye(2)) / np.sqrt(trace + 2.0 * root_det)[..., None, None]   # sqrt(c)
+    inv_root = np.stack([np.stack([root[..., 1, 1], -root[..., 0, 1]], -1),
+                         np.stack([-root[..., 1, 0], root[..., 0, 0]], -1)], -2) / root_det[..., None, None]
+    cols = b @ inv_root                                                      # [..., 3, 2] orthonormal columns
+    rot = np.concatenate([cols, np.cross(cols[..., 0], cols[..., 1])[..., None]], axis=-1)
+    return rot, fitted
 
 
 def decode(label: ArrayLike, weights: ArrayLike | None = None) -> NDArray[np.float64]:

@@ -191,13 +191,19 @@ def frechet_mean_and_variance(
     # Start from the chordal (Markley) mean: the dominant eigenvector of sum w q q^T.
     scatter = np.einsum("...n,...ni,...nj->...ij", w, q, q)
     qm = np.linalg.eigh(scatter)[1][..., :, -1]              # [..., 4]
+    # Gauss-Newton on the batch elements still moving: each stops at its own convergence.
+    flat_q, flat_w = q.reshape(-1, *q.shape[-2:]), w.reshape(-1, w.shape[-1])
+    flat_m = qm.reshape(-1, 4).copy()
+    active = np.arange(len(flat_m))
     for _ in range(max_iter):
-        tangent = _qlog(_qmul(_qconj(qm)[..., None, :], q))  # [..., N, 3]
-        step = np.einsum("...n,...ni->...i", w, tangent)
-        qm = _qmul(qm, _qexp(step))
-        qm /= np.linalg.norm(qm, axis=-1, keepdims=True)
-        if np.max(np.linalg.norm(step, axis=-1), initial=0.0) < tol:
+        if not len(active):
             break
+        tangent = _qlog(_qmul(_qconj(flat_m[active])[:, None, :], flat_q[active]))    # [A, N, 3]
+        step = np.einsum("an,ani->ai", flat_w[active], tangent)
+        moved = _qmul(flat_m[active], _qexp(step))
+        flat_m[active] = moved / np.linalg.norm(moved, axis=-1, keepdims=True)
+        active = active[np.linalg.norm(step, axis=-1) >= tol]
+    qm = flat_m.reshape(qm.shape)
     tangent = _qlog(_qmul(_qconj(qm)[..., None, :], q))
     t = x[..., :3, 3]
     tm = np.einsum("...n,...ni->...i", w, t)

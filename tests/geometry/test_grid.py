@@ -48,6 +48,21 @@ def test_kabsch_recovers_noise_free_pose_and_weights_silence_outliers() -> None:
     assert np.linalg.norm(fit - pts, axis=1).mean() < np.linalg.norm(noisy - pts, axis=1).mean() / 3
 
 
+def test_the_planar_closed_form_is_the_svd_fit() -> None:
+    """The MC statistics' path (shared planar template, equal weights: closed form) gives the SVD fit of
+    the general path, noisy labels and all; collinear ones fall back to the SVD."""
+    rng = np.random.default_rng(3)
+    lab = encodings.encode("grid", _poses(200)).reshape(200, 64, 3) + rng.normal(scale=25.0, size=(200, 64, 3))
+    lab[7] = np.linspace(0, 1, 64)[:, None] * [1.0, 2.0, 3.0]
+    closed = grid.kabsch(grid.TEMPLATE, lab)
+    general = grid.kabsch(grid.TEMPLATE, lab, np.ones((200, 64)))               # weighted: the SVD path
+    rest = np.arange(200) != 7                                                  # collinear: no unique fit
+    assert np.allclose(closed[rest], general[rest], atol=1e-9)
+    assert np.isclose(np.linalg.det(closed[7, :3, :3]), 1.0)
+    _, fitted = grid._planar_rotation(np.swapaxes(np.swapaxes(grid.TEMPLATE - grid.TEMPLATE.mean(0), 0, 1) @ lab, -1, -2)[..., :2])
+    assert not fitted[7] and fitted.sum() == 199
+
+
 def test_grid_label_is_where_the_rendered_slice_samples_the_volume() -> None:
     """Against simulated ground truth: a volume whose intensity is atlas x (then y, then z)."""
     n = 121
