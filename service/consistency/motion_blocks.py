@@ -50,6 +50,23 @@ def lever_operator(block: tuple[int, ...], z: NDArray) -> NDArray[np.float64]:
     return b
 
 
+def block_diagonal(x: NDArray, q: int) -> NDArray[np.float64]:
+    """``q`` copies of ``x [a, b]`` on the diagonal of a ``[q a, q b]`` matrix (``kron(eye(q), x)``,
+    without its outer product).
+
+    Example:
+        >>> block_diagonal(np.array([[1.0, 2.0]]), 2).tolist()
+        [[1.0, 2.0, 0.0, 0.0], [0.0, 0.0, 1.0, 2.0]]
+    """
+    if q == 1:
+        return np.asarray(x, dtype=np.float64)
+    a, b = x.shape
+    out = np.zeros((q * a, q * b))
+    for i in range(q):
+        out[i * a:(i + 1) * a, i * b:(i + 1) * b] = x
+    return out
+
+
 def whiteners(sig: NDArray, correlations: tuple[float, ...], neighbour_slices: float) -> tuple[NDArray, NDArray]:
     """Per error correlation ``r``: ``W_r`` with ``W_r E_r W_r^T = I``, ``E_r = R_r * s s^T / 3`` the
     network's errors of one coordinate (``R_r``: correlation ``r`` between neighbours in space, decaying
@@ -163,12 +180,14 @@ def posterior(blocks: list[Block], c: int, r: int, amp2: float, g2: float, k_all
         wu = np.swapaxes(bl.w[r], 0, 1) @ bl.u[c, r]
         c_inv = (wu / ev) @ wu.T                                                            # [qm, qm]
         alpha = c_inv @ bl.y
-        k_star = np.kron(np.eye(q), amp2 * k_all) @ bl.b.T                                  # cov(f, y~) [qn, qm]
+        k_star = block_diagonal(amp2 * k_all, q) @ bl.b.T                                   # cov(f, y~) [qn, qm]
         f = k_star @ alpha
-        h = bl.b @ np.kron(np.eye(q), np.ones((m, 1)))                                      # the offset, seen [qm, q]
-        gls = h.T @ c_inv @ h
-        rem = np.kron(np.eye(q), np.ones((1, n))) - h.T @ c_inv @ k_star.T                  # [q, qn]
-        full = (np.kron(np.eye(q), amp2 * k_nn) - k_star @ c_inv @ k_star.T
+        h = bl.b @ block_diagonal(np.ones((m, 1)), q)                                       # the offset, seen [qm, q]
+        hc = h.T @ c_inv
+        gls = hc @ h
+        rem = block_diagonal(np.ones((1, n)), q) - hc @ k_star.T                            # [q, qn]
+        ck = c_inv @ k_star.T
+        full = (block_diagonal(amp2 * k_nn, q) - k_star @ ck
                 + rem.T @ np.linalg.solve(gls + 1e-12 * np.eye(q), rem))                    # [qn, qn]
         sub_inv = np.linalg.inv(c_inv.reshape(q, m, q, m)[:, np.arange(m), :, np.arange(m)])   # [m, q, q]
         y_loo = bl.y.reshape(q, m).T - (sub_inv @ alpha.reshape(q, m).T[..., None])[..., 0]     # slice coordinates
