@@ -62,7 +62,8 @@ Synthetic stacks only (`model_export/localiser/scenes.py`, style `train`): the 1
 Fidon et al. 2021) put, in any orientation and with slice-to-slice motion, into generated surroundings:
 extra-axial CSF, skull, scalp; amniotic fluid, uterine wall, placenta, fetal body and limbs; the mother's
 tissues, fat and the air around her; for 30 % of the stacks the head at or beyond the uterine wall (low in
-the maternal pelvis, no fluid around it); random intensities, bias fields and surface-coil fall-off,
+the maternal pelvis, no fluid around it), for 25 % in tissue as bright and as textured as the brain behind
+a thin CSF layer and skull; random intensities, bias fields and surface-coil fall-off,
 odd and even slices of different gain, slice profiles of 2–4.5 mm, 0.9–1.6 mm pixels, 130–400 mm fields
 of view, Rician noise. Each training sample's contrast changes again (a global scale, gamma, a smooth
 field, neighbours brighter or darker than the slice). No real scan was used for training or tuning.
@@ -75,10 +76,14 @@ svrnet-train localiser data --out T0 --count 600            # 1.0.0: seeds 0-599
 svrnet-train localiser train --data T0 --out L1.pt --minutes 60 # 2 CPU cores, cosine over the budget; resumable
 svrnet-train localiser data --out T --count 505 --seed 40000    # 1.1.0: the generator with engaged heads and slice gains
 svrnet-train localiser train --data T --out L2.pt --minutes 60 --init L1.pt --lr 1e-3   # fine-tuned, fresh schedule
-svrnet-train localiser average L1.pt L2.pt --out L.pt --weight 0.5   # half each: weight-space ensembling (WiSE-FT)
+svrnet-train localiser average L1.pt L2.pt --out L11.pt --weight 0.5 # half each: weight-space ensembling (WiSE-FT)
+svrnet-train localiser data --out T3 --count 500 --seed 60000   # 1.2.0: the generator with camouflaged heads; T3 also holds T
+svrnet-train localiser train --data T3 --out L3.pt --minutes 75 --init L11.pt --lr 1e-3 --seed 3
 svrnet-train localiser data --out H --count 40 --style heldout --seed 1000000 --keep-stack
-svrnet-train localiser ship L.pt --heldout H --ablation A.json --version 1.1.0  # this card and evaluation.json
+svrnet-train localiser ship L3.pt --heldout H --ablation A.json --version 1.2.0  # this card and evaluation.json
 ```
+1.2.0 is the fine-tuned network itself: on the held-out set (which has camouflaged heads too) it did
+better than its average with 1.1.0 (weights 0.5 and 0.75), whose only gain was on one real stack.
 `checkpoint.pt` beside this card holds the shipped network's weights: `svrnet-train localiser train --init
 checkpoint.pt` fine-tunes from them with a fresh schedule.
 

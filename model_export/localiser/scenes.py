@@ -16,6 +16,10 @@ brain's shape and its setting, not one scanner's contrast.
   averaged): the atlas brain (its T2 intensities, remapped by a random gamma), then an extra-axial
   CSF layer, the skull and the scalp, all from the atlas mask's signed distance. The head takes any
   orientation and moves from slice to slice (small drift plus occasional jumps).
+* **Hard settings**: some heads sit at or beyond the uterine wall, low in the maternal pelvis
+  (:data:`ENGAGED_SHARE`); some lie in tissue as bright and as textured as the brain, behind a thin CSF
+  layer and skull (:data:`CAMOUFLAGE_SHARE`), so that neither a fluid rim nor a brain brighter than its
+  surroundings is what the network learns to look for.
 * **Acquisition**: a smooth multiplicative bias field and, for half the stacks, a surface coil's
   fall-off; slice-to-slice intensity changes; noise.
 
@@ -53,6 +57,10 @@ STYLES = ("train", "heldout")
 ENGAGED_SHARE = {"train": 0.3, "heldout": 0.25}
 """Share of stacks whose head sits at or beyond the uterine wall (late pregnancy, head in the maternal
 pelvis): the scalp meets maternal tissue or the wall, with little or no amniotic fluid around it."""
+CAMOUFLAGE_SHARE = {"train": 0.25, "heldout": 0.15}
+"""Share of stacks whose head lies in tissue as bright and as textured as the brain, as a head deep in
+the maternal pelvis does on a T2 scan: a thin CSF layer and the skull are all that tell where the brain
+ends, so the network cannot rely on a fluid rim or on the brain outshining its surroundings."""
 
 
 @dataclass
@@ -231,6 +239,30 @@ def _decoy_texture(rng: np.random.Generator, head: HeadModel, pts: NDArray, cent
     return np.clip(t2, 0, 1.2).astype(np.float32) ** rng.uniform(0.7, 1.4)
 
 
+def _camouflage(rng: np.random.Generator, geo: StackGeometry, background: NDArray[np.float32], centre: NDArray,
+                head_radius: float, level: float, style: str, decoy: HeadModel) -> NDArray[np.float32]:
+    """``background`` with the tissue around the head (a distorted ellipsoid 1.2-2x the head's
+    radius) replaced by tissue of the brain's ``level`` times 0.6-1.4, textured: the atlas interior
+    folded and tiled (``train``) or Voronoi-like cells of random intensities (``heldout``)."""
+    reach = 2.0 * head_radius + 10.0
+    lo = np.clip(np.floor((centre[:2] - reach) / geo.pixel_mm + (geo.size - 1) / 2.0), 0, geo.size).astype(int)
+    hi = np.clip(np.ceil((centre[:2] + reach) / geo.pixel_mm + (geo.size - 1) / 2.0) + 1, 0, geo.size).astype(int)
+    box = (slice(lo[0], hi[0]), slice(lo[1], hi[1]))
+    pts = geo.coordinates()[box]
+    shape = pts.shape[:3]
+    radius = _ellipsoid_radius(pts, centre, head_radius * rng.uniform(1.2, 2.0, 3), _random_rotation(rng)) \
+        + 0.15 * _smooth_noise(rng, shape, (6, 6, 3))
+    if style == "train":
+        texture = 0.4 + 1.2 * _decoy_texture(rng, decoy, pts, centre)
+    else:
+        cells = _maternal_labels(rng, shape, "heldout", int(rng.integers(3, 7)))
+        texture = rng.uniform(0.5, 1.5, int(cells.max()) + 1)[cells] * (1 + 0.2 * _smooth_noise(rng, shape, (20, 20, 5)))
+    weight = np.clip((1.0 - radius) / 0.15, 0.0, 1.0)                       # a soft edge
+    out = background.copy()
+    out[box] = (1 - weight) * background[box] + weight * level * rng.uniform(0.6, 1.4) * texture
+    return out.astype(np.float32)
+
+
 def _head_motion(rng: np.random.Generator, slices: int) -> tuple[NDArray, NDArray]:
     """Per-slice rotation ``[n, 3, 3]`` and shift ``[n, 3]`` of the head: a drift plus a few jumps."""
     sigma_deg, sigma_mm = rng.uniform(0, 6), rng.uniform(0, 4)
@@ -243,10 +275,15 @@ def _head_motion(rng: np.random.Generator, slices: int) -> tuple[NDArray, NDArra
 
 
 def _head(head: HeadModel, geo: StackGeometry, centre: NDArray, rotation: NDArray, rng: np.random.Generator,
-          tissue: dict[str, float], background: NDArray[np.float32]) -> tuple[NDArray, NDArray, NDArray, tuple, tuple]:
+          tissue: dict[str, float], background: NDArray[np.float32], brain_scale: float, gamma: float,
+          thin: bool = False) -> tuple[NDArray, NDArray, NDArray, tuple, tuple]:
     """The head's intensities, skull-inside and brain fractions in its in-plane box of every slice (slice
-    profile), the box, and the head's motion (per-slice rotations and shifts)."""
-    csf, skull, scalp = rng.uniform(1.0, 3.5), rng.uniform(1.5, 4.0), rng.uniform(2.0, 6.0)
+    profile), the box, and the head's motion (per-slice rotations and shifts); ``thin``: a thin CSF
+    layer, skull and scalp (a camouflaged head, :data:`CAMOUFLAGE_SHARE`)."""
+    if thin:
+        csf, skull, scalp = rng.uniform(0.3, 1.5), rng.uniform(1.0, 2.5), rng.uniform(0.5, 3.0)
+    else:
+        csf, skull, scalp = rng.uniform(1.0, 3.5), rng.uniform(1.5, 4.0), rng.uniform(2.0, 6.0)
     outer = csf + skull + scalp
     reach = head.radius_mm * 1.15 + outer + 10.0
     lo = np.clip(np.floor((centre[:2] - reach) / geo.pixel_mm + (geo.size - 1) / 2.0), 0, geo.size).astype(int)
@@ -254,8 +291,6 @@ def _head(head: HeadModel, geo: StackGeometry, centre: NDArray, rotation: NDArra
     box = (slice(lo[0], hi[0]), slice(lo[1], hi[1]))
     pts = geo.coordinates()[box]                                     # [bx, by, slices, 3]
     rots, shifts = _head_motion(rng, geo.slices)
-    gamma = rng.uniform(0.6, 1.6)
-    brain_scale = tissue["fluid"] * rng.uniform(0.75, 1.05) if rng.random() > 0.15 else rng.uniform(0.2, 1.0)
     values, inside, brain = 0.0, 0.0, 0.0
     offsets = (np.array([-1.0, 0.0, 1.0]) * geo.thickness_mm / 3.0)
     for dz in offsets:
@@ -325,7 +360,15 @@ def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
     coarse = _surroundings(rng, geo, centre, 0.8 * head.radius_mm * scale, tissue, style, head)
     background = ndimage.zoom(coarse, (2, 2, 1), order=1, grid_mode=True, mode="nearest")[:geo.size, :geo.size]
     rotation = _random_rotation(rng) / scale
-    values, inside, brain_fraction, box, motion = _head(head, geo, centre, rotation, rng, tissue, background)
+    brain_scale = tissue["fluid"] * rng.uniform(0.75, 1.05) if rng.random() > 0.15 else rng.uniform(0.2, 1.0)
+    gamma = rng.uniform(0.6, 1.6)
+    camouflaged = bool(rng.random() < CAMOUFLAGE_SHARE[style])
+    if camouflaged:                                       # around the brain's mean intensity
+        level = brain_scale * float(np.mean(np.power(np.clip(head.t2[head.sdf <= 0][::7], 1e-3, None), gamma)))
+        background = _camouflage(rng, geo, background, centre, head.radius_mm * scale, level, style, head)
+        tissue = {**tissue, "scalp": level * rng.uniform(0.5, 1.2)}
+    values, inside, brain_fraction, box, motion = _head(head, geo, centre, rotation, rng, tissue, background,
+                                                        brain_scale, gamma, camouflaged)
     image = background.copy()
     image[box] = values
     mask = np.zeros(image.shape, bool)

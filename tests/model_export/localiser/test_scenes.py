@@ -115,3 +115,29 @@ def test_a_rigid_scene_knows_each_slice_pose_in_the_atlas() -> None:
     moved = np.abs(np.diff(scene.atlas_from_voxel[:, :3, 3], axis=0)).max()
     assert moved > 0.1
     assert synth_scene(head, np.random.default_rng(11), "heldout").atlas_from_voxel is None   # scaled: no pose
+
+
+def test_camouflaged_heads_sit_in_tissue_as_bright_as_the_brain(head: HeadModel, monkeypatch: pytest.MonkeyPatch) -> None:
+    """With every head camouflaged, the tissue 11-15 mm outside the skull's inside is about as bright as
+    the brain; without, it is mostly amniotic fluid (T2-like contrast, no engaged heads)."""
+    from scipy import ndimage
+
+    from model_export.localiser import scenes
+
+    monkeypatch.setitem(scenes.ENGAGED_SHARE, "train", 0.0)
+
+    def ring_over_brain(share: float) -> float:
+        monkeypatch.setitem(scenes.CAMOUFLAGE_SHARE, "train", share)
+        ratios = []
+        for seed in range(6):
+            scene = scenes.synth_scene(head, np.random.default_rng(seed), "train", random_contrast=False)
+            px = float(scene.volume.spacing[0])
+            plane = np.zeros((3, 3, 3), bool)
+            plane[:, :, 1] = ndimage.generate_binary_structure(2, 1)
+            near = ndimage.binary_dilation(scene.mask, plane, iterations=int(11 / px))
+            ring = ndimage.binary_dilation(scene.mask, plane, iterations=int(15 / px)) & ~near
+            image = scene.volume.array
+            ratios.append(abs(np.log(np.median(image[ring]) / np.median(image[scene.brain]))))
+        return float(np.median(ratios))
+
+    assert ring_over_brain(1.0) < 0.35 < ring_over_brain(0.0)
