@@ -13,6 +13,7 @@ from contextlib import asynccontextmanager
 from anyio import CapacityLimiter
 from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
+from threadpoolctl import threadpool_limits
 
 from service.api import health, masks, metrics, models, openapi, predict, problems, reconstructions, stream
 from service.api.deps import MetricsAccess
@@ -36,6 +37,7 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        blas = threadpool_limits(limits=settings.blas_threads, user_api="blas") if settings.blas_threads else None
         app.state.registry = registry or ModelRegistry.from_directory(
             settings.models_dir, settings.default_model, settings.onnx_threads)
         app.state.localisers = Localisers.from_directory(settings.localisers_dir, settings.onnx_threads)
@@ -63,6 +65,8 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
             app.state.job_runner.shutdown()
             for executor in app.state.stream_stages.values():
                 executor.shutdown(wait=False, cancel_futures=True)
+            if blas is not None:
+                blas.restore_original_limits()
 
     # Swagger UI and ReDoc assets are served by the app itself: /docs works without internet access.
     app = FastAPIOffline(title="SVRnet", version="1.0.0", lifespan=lifespan,
