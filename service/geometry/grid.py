@@ -7,10 +7,11 @@ anchors (``[-h, h]^2`` at ``z = 0``, ``h = ANCHOR_HALF_SIZE_MM``), flattened row
 anchors per slice.
 
 Decoding fits the rigid transform that best maps the template onto the predicted points in the
-weighted least-squares sense (Kabsch / Umeyama without scale). The SVD's sign correction makes the
-rotation proper (det +1) whatever the noise, and because the template is planar the fit is unique
-as soon as the predicted points are not collinear; collinear or non-finite predictions decode to
-some proper rotation (never NaN).
+weighted least-squares sense (Kabsch / Umeyama without scale). Because the template is planar, the
+fit is unique as soon as the predicted points are not collinear, and it is found in closed form
+(the first two columns of the rotation are a 3 x 2 polar factor, the third their cross product:
+proper, det +1, whatever the noise); collinear or non-finite predictions go through the SVD with its
+sign correction and decode to some proper rotation (never NaN).
 
 Example:
     >>> import numpy as np
