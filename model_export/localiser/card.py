@@ -79,11 +79,13 @@ svrnet-train localiser train --data T --out L2.pt --minutes 60 --init L1.pt --lr
 svrnet-train localiser average L1.pt L2.pt --out L11.pt --weight 0.5 # half each: weight-space ensembling (WiSE-FT)
 svrnet-train localiser data --out T3 --count 500 --seed 60000   # 1.2.0: the generator with camouflaged heads; T3 also holds T
 svrnet-train localiser train --data T3 --out L3.pt --minutes 75 --init L11.pt --lr 1e-3 --seed 3
+svrnet-train localiser train --data T3 --out L4.pt --minutes 40 --init L3.pt --lr 5e-4 --seed 4  # a second round
 svrnet-train localiser data --out H --count 40 --style heldout --seed 1000000 --keep-stack
-svrnet-train localiser ship L3.pt --heldout H --ablation A.json --version 1.2.0  # this card and evaluation.json
+svrnet-train localiser ship L4.pt --heldout H --ablation A.json --version 1.2.0  # this card and evaluation.json
 ```
-1.2.0 is the fine-tuned network itself: on the held-out set (which has camouflaged heads too) it did
-better than its average with 1.1.0 (weights 0.5 and 0.75), whose only gain was on one real stack.
+1.2.0 is the fine-tuned network itself: on the held-out set (which has camouflaged heads too) the first
+round did better than its average with 1.1.0 (weights 0.5 and 0.75), whose only gain was on one real
+stack, and the second round better than the first (mean Dice 0.950 against 0.946, minimum 0.740 against 0.709).
 `checkpoint.pt` beside this card holds the shipped network's weights: `svrnet-train localiser train --init
 checkpoint.pt` fine-tunes from them with a fresh schedule.
 
