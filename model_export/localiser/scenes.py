@@ -45,6 +45,7 @@ Example:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -72,6 +73,11 @@ class HeadModel:
     voxel_from_mm: NDArray[np.float64]       # centred brain mm -> voxel index (4 x 4)
     radius_mm: float
     atlas_from_voxel: NDArray[np.float64] | None = None    # the atlas volume's voxel -> world (atlas mm)
+
+    @cached_property
+    def brain_t2(self) -> NDArray[np.float32]:
+        """A seventh of the brain's voxel intensities (what a scene's mean brain intensity is taken from)."""
+        return np.clip(self.t2[self.sdf <= 0][::7], 1e-3, None)
 
     @classmethod
     def from_arrays(cls, image: NDArray, mask: NDArray, affine: NDArray) -> "HeadModel":
@@ -136,6 +142,12 @@ class StackGeometry:
         gap = thickness * rng.uniform(0.85, 1.15)
         slices = int(np.clip(rng.uniform(60.0, 140.0) / gap, 12, 48))
         return cls(pixel, int(fov / pixel), thickness, gap, slices)
+
+    def box(self, centre: NDArray, reach_mm: float) -> tuple[slice, slice]:
+        """The in-plane pixel box within ``reach_mm`` of ``centre`` (mm, as :meth:`coordinates`)."""
+        lo = np.clip(np.floor((centre[:2] - reach_mm) / self.pixel_mm + (self.size - 1) / 2.0), 0, self.size).astype(int)
+        hi = np.clip(np.ceil((centre[:2] + reach_mm) / self.pixel_mm + (self.size - 1) / 2.0) + 1, 0, self.size).astype(int)
+        return slice(lo[0], hi[0]), slice(lo[1], hi[1])
 
     def coordinates(self, step: int = 1) -> NDArray[np.float32]:
         """``[size/step, size/step, slices, 3]`` pixel centres (mm) on a grid ``step`` times coarser in-plane."""
@@ -245,9 +257,7 @@ def _camouflage(rng: np.random.Generator, geo: StackGeometry, background: NDArra
     radius) replaced by tissue of the brain's ``level`` times 0.6-1.4, textured: the atlas interior
     folded and tiled (``train``) or Voronoi-like cells of random intensities (``heldout``)."""
     reach = 2.0 * head_radius + 10.0
-    lo = np.clip(np.floor((centre[:2] - reach) / geo.pixel_mm + (geo.size - 1) / 2.0), 0, geo.size).astype(int)
-    hi = np.clip(np.ceil((centre[:2] + reach) / geo.pixel_mm + (geo.size - 1) / 2.0) + 1, 0, geo.size).astype(int)
-    box = (slice(lo[0], hi[0]), slice(lo[1], hi[1]))
+    box = geo.box(centre, reach)
     pts = geo.coordinates()[box]
     shape = pts.shape[:3]
     radius = _ellipsoid_radius(pts, centre, head_radius * rng.uniform(1.2, 2.0, 3), _random_rotation(rng)) \
@@ -286,9 +296,7 @@ def _head(head: HeadModel, geo: StackGeometry, centre: NDArray, rotation: NDArra
         csf, skull, scalp = rng.uniform(1.0, 3.5), rng.uniform(1.5, 4.0), rng.uniform(2.0, 6.0)
     outer = csf + skull + scalp
     reach = head.radius_mm * 1.15 + outer + 10.0
-    lo = np.clip(np.floor((centre[:2] - reach) / geo.pixel_mm + (geo.size - 1) / 2.0), 0, geo.size).astype(int)
-    hi = np.clip(np.ceil((centre[:2] + reach) / geo.pixel_mm + (geo.size - 1) / 2.0) + 1, 0, geo.size).astype(int)
-    box = (slice(lo[0], hi[0]), slice(lo[1], hi[1]))
+    box = geo.box(centre, reach)
     pts = geo.coordinates()[box]                                     # [bx, by, slices, 3]
     rots, shifts = _head_motion(rng, geo.slices)
     values, inside, brain = 0.0, 0.0, 0.0
@@ -364,7 +372,7 @@ def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
     gamma = rng.uniform(0.6, 1.6)
     camouflaged = bool(rng.random() < CAMOUFLAGE_SHARE[style])
     if camouflaged:                                       # around the brain's mean intensity
-        level = brain_scale * float(np.mean(np.power(np.clip(head.t2[head.sdf <= 0][::7], 1e-3, None), gamma)))
+        level = brain_scale * float(np.mean(np.power(head.brain_t2, gamma)))
         background = _camouflage(rng, geo, background, centre, head.radius_mm * scale, level, style, head)
         tissue = {**tissue, "scalp": level * rng.uniform(0.5, 1.2)}
     values, inside, brain_fraction, box, motion = _head(head, geo, centre, rotation, rng, tissue, background,

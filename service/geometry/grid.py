@@ -92,9 +92,9 @@ def kabsch(source: ArrayLike, target: ArrayLike, weights: ArrayLike | None = Non
         cs = (w[..., None, :] @ s)[..., 0, :]
         cp = (w[..., None, :] @ p)[..., 0, :]
         h = np.swapaxes((s - cs[..., None, :]) * w[..., None], -1, -2) @ (p - cp[..., None, :])   # [..., 3, 3]
-    planar = src.ndim == 2 and not src[:, 2].any()
-    rot, fitted = _planar_rotation(np.swapaxes(h[..., :2, :], -1, -2)) if planar else (None, None)
-    if rot is None:
+    if src.ndim == 2 and not src[:, 2].any():                  # a planar source: closed form
+        rot, fitted = _planar_rotation(np.swapaxes(h[..., :2, :], -1, -2))
+    else:
         rot, fitted = np.zeros(h.shape), np.zeros(h.shape[:-2], bool)
     if not fitted.all():
         rot[~fitted] = _svd_rotation(h[~fitted])
