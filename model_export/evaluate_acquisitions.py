@@ -28,7 +28,7 @@ from service.inference.estimator import PoseEstimate, statistics
 from service.inference.model_file import ModelInfo
 from service.consistency.slice_order import SliceOrder
 from service.api.responses import stack_objects
-from service.pipeline.predict import PreparedStack, StackUpload, predict, prepare_stacks
+from service.pipeline.predict import PreparedStack, StackPrediction, StackUpload, predict, prepare_stacks
 
 ERROR_MM = 10.0
 DISTINGUISHABLE_MM = 20.0
@@ -98,28 +98,30 @@ def prepare_acquisition(stacks: list[SimulatedStack], info: ModelInfo, bias_corr
 
 def run_acquisition(stacks: list[SimulatedStack], estimator, mc_samples: int = 100,  # noqa: ANN001
                     bias_correction: bool = True, orders: tuple[str | None, ...] = (None,),
-                    ) -> tuple[list[list[dict]], list[PreparedStack], list[NDArray]]:
+                    ) -> tuple[list[list[StackPrediction]], list[PreparedStack], list[NDArray]]:
     """Predict one acquisition as the server would, once per ``orders`` (``slice_order`` values;
-    ``None``: not given) from one network pass; returns the stack results per order, the prepared
-    stacks and each stack's true network-frame poses."""
+    ``None``: not given) from one network pass; returns the stacks' predictions per order
+    (:func:`~service.api.responses.stack_objects` writes their answers), the prepared stacks and each
+    stack's true network-frame poses."""
     prepared, truth = prepare_acquisition(stacks, estimator.info, bias_correction)
     if hasattr(estimator, "truth"):
         estimator.truth = np.concatenate(truth)
     once = _Reused(estimator)
-    results = [stack_objects(predict(prepared, once, mc_samples, estimator.info.variance_threshold,
-                                     orders=None if order is None else [SliceOrder.parse(order)])[0]) for order in orders]
-    return results, prepared, truth
+    predictions = [predict(prepared, once, mc_samples, estimator.info.variance_threshold,
+                           orders=None if order is None else [SliceOrder.parse(order)])[0] for order in orders]
+    return predictions, prepared, truth
 
 
-def score(results: list[dict], prepared: list[PreparedStack], truth: list[NDArray], stacks: list[SimulatedStack],
-          plane_x_mm: float, into: Scored) -> None:
+def score(predictions: list[StackPrediction], prepared: list[PreparedStack], truth: list[NDArray],
+          stacks: list[SimulatedStack], plane_x_mm: float, into: Scored) -> None:
     """Add one acquisition's per-slice errors to ``into``, with where each lies: its components
     against the nearer of the truth and twin (tilt, twist, centre, along the normal), its depth in
     the stack (0 centre, 1 the outermost slice with >= :data:`MIN_MASK_PIXELS`) and its place in the
-    acquisition (0 first, 1 last)."""
+    acquisition (0 first, 1 last); and what the service knows of each slice besides its answer
+    (:func:`slice_evidence`)."""
     from model_export.evaluate import error_components
 
-    for res, p, true, sim in zip(results, prepared, truth, stacks):
+    for res, pred, p, true, sim in zip(stack_objects(predictions), predictions, prepared, truth, stacks):
         inv = np.linalg.inv(p.network_from_voxel())
         final = np.array([s["atlas_from_voxel"] for s in res["slices"]]) @ inv
         network = np.array([s["network_atlas_from_voxel"] for s in res["slices"]]) @ inv
@@ -150,7 +152,20 @@ def score(results: list[dict], prepared: list[PreparedStack], truth: list[NDArra
                  branch_decided=np.full(n, bool(stage.get("branch_decided"))),
                  tilt_deg=parts["tilt_deg"], twist_deg=parts["twist_deg"], centre_mm=parts["centre_mm"],
                  off_plane_mm=parts["off_plane_mm"], depth=np.abs(k - mid) / half,
-                 time=(times - times.min()) / max(float(np.ptp(times)), 1.0))
+                 time=(times - times.min()) / max(float(np.ptp(times)), 1.0), **slice_evidence(pred))
+
+
+def slice_evidence(prediction: StackPrediction) -> dict[str, NDArray]:
+    """Per slice of one stack, what the service knows besides its answer (NaN where a stage did not
+    run): the network's MC mass on the other twin, the stage's expected E.D. before the image
+    refinement, and the image mismatch left after it over the request's median."""
+    n = len(prediction.poses.poses)
+    ic = prediction.poses.image_consistency
+    nan = np.full(n, np.nan)
+    return {"twin_mass": np.asarray(prediction.poses.twin_mass, np.float64),
+            "inconsistent": np.asarray(prediction.poses.inconsistent, bool),
+            "expected_stage": nan if ic is None or ic.expected_before_mm is None else ic.expected_before_mm,
+            "mismatch": nan if ic is None or ic.slice_mismatch is None else ic.slice_mismatch}
 
 
 def rigid_poses(report: dict, scanner_from_voxel: NDArray, voxel_from_network: NDArray) -> NDArray | None:
@@ -234,8 +249,8 @@ def evaluate_acquisitions(volumes: list, estimator, rng: np.random.Generator, le
         for vol in volumes:
             for _ in range(per_volume):
                 stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level, **sim)
-                results, prepared, truth = run_acquisition(stacks, estimator, mc_samples, bias_correction, orders)
-                for res, sc in zip(results, scored):
+                predictions, prepared, truth = run_acquisition(stacks, estimator, mc_samples, bias_correction, orders)
+                for res, sc in zip(predictions, scored):
                     score(res, prepared, truth, stacks, plane, sc)
         for order, sc in zip(orders, scored):
             row = level if order is None else f"{level}, told {order}"

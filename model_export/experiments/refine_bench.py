@@ -30,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from model_export.acquisitions import simulate_acquisition
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, run_acquisition
+from service.api.responses import stack_objects
 from service.geometry import se3, twin
 from service.geometry.anchors import ed
 from service.inference.estimator import OnnxPoseEstimator
@@ -113,7 +114,8 @@ def main() -> None:
             vol = vols[a % len(vols)]
             stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level,
                                           **({} if args.bias is None else {"bias": args.bias}))
-            (results,), prepared, _ = run_acquisition(stacks, est, 100, True)
+            (predictions,), prepared, _ = run_acquisition(stacks, est, 100, True)
+            results = stack_objects(predictions)
             counts = [len(r["slices"]) for r in results]
             poses = starting_inclusion(poses_from_predict_body({"stacks": results}, counts))
             masks = [np.moveaxis(p.slices.masks.transpose(0, 2, 1), 0, p.slices.slice_axis) for p in prepared]

@@ -52,7 +52,6 @@ from service.geometry import se3, twin  # noqa: E402
 from service.geometry.anchors import ed  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator, PoseEstimate  # noqa: E402
 from service.inference.model_file import load_model  # noqa: E402
-from service.api.responses import stack_objects  # noqa: E402
 from service.pipeline.predict import predict  # noqa: E402
 
 
@@ -186,8 +185,8 @@ def main() -> None:
                                 for i, p in enumerate(prepared)])
         for name, row in rows.items():
             orders = told[name](stacks) if name in told else None
-            res = stack_objects(predict(prepared, Fixed(info, row(est, truth_all, stack, edit_rng)), 100,
-                                        info.variance_threshold, orders=orders)[0])
+            res = predict(prepared, Fixed(info, row(est, truth_all, stack, edit_rng)), 100,
+                          info.variance_threshold, orders=orders)[0]
             score(res, prepared, truth, stacks, plane, scored[name])
     print(f"{args.level} motion, the validation volumes x {args.per_volume} acquisitions; mean E.D. (mm) over "
           f"slices with >= {MIN_MASK_PIXELS} mask pixels")

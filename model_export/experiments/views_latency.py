@@ -16,7 +16,6 @@ import numpy as np  # noqa: E402
 from model_export.atlas import load_volumes, split, DEFAULT_ATLAS_ROOT  # noqa: E402
 from model_export.acquisitions import simulate_acquisition  # noqa: E402
 from model_export.evaluate_acquisitions import prepare_acquisition, score, Scored, summarise  # noqa: E402
-from service.api.responses import stack_objects  # noqa: E402
 from service.pipeline.predict import predict  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
 from service.inference.model_file import load_model  # noqa: E402
@@ -42,7 +41,7 @@ def main(levels: str, per_volume: int) -> None:
                 for v, e in ests.items():
                     preds, t = predict(prepared, e, 100, e.info.variance_threshold)
                     tm[v] += t["inference"]
-                    score(stack_objects(preds), prepared, truth, stacks, e.info.symmetry_plane_x_mm, sc[v])
+                    score(preds, prepared, truth, stacks, e.info.symmetry_plane_x_mm, sc[v])
         for v in ests:
             s = summarise(sc[v])
             print(f"{level:9s} views {v}: ED {s['ed']['mean']:.3f} twin-min {s['ed_min']['mean']:.3f} median {s['ed']['median']:.3f} | inference {1000 * tm[v] / n:.2f} ms/slice")

@@ -177,6 +177,20 @@ def follow_neighbours(final: NDArray, start: NDArray, checked: NDArray, stack_of
     return out
 
 
+def relative_mismatch(mismatch: list[NDArray]) -> list[NDArray[np.float64]]:
+    """Each slice's remaining image mismatch over the request's median (NaN: on no line, or no slice
+    of the request on one).
+
+    Example:
+        >>> [m.tolist() for m in relative_mismatch([np.array([1.0, 4.0, np.nan]), np.array([2.0])])]
+        [[0.5, 2.0, nan], [1.0]]
+    """
+    every = np.concatenate(mismatch) if mismatch else np.zeros(0)
+    ref = float(np.nanmedian(every)) if np.isfinite(every).any() else np.nan
+    return [np.maximum(np.asarray(m, np.float64), 0.0) / max(ref, 1e-12) if np.isfinite(ref)
+            else np.full(len(m), np.nan) for m in mismatch]
+
+
 def expected_after(expected_error_mm: list[NDArray], mismatch: list[NDArray]) -> list[NDArray[np.float64]]:
     """Each slice's expected E.D. after :func:`refine`, from the stage's (``expected_error_mm``) and the
     slice's remaining image mismatch relative to the request's median (:data:`REFINED_GAIN`,
@@ -186,11 +200,9 @@ def expected_after(expected_error_mm: list[NDArray], mismatch: list[NDArray]) ->
         >>> [e.round(2).tolist() for e in expected_after([np.array([4.0, 4.0, 4.0])], [np.array([1.0, 4.0, np.nan])])]
         [[1.64, 3.29, 7.6]]
     """
-    every = np.concatenate([m for m in mismatch]) if mismatch else np.zeros(0)
-    ref = float(np.nanmedian(every)) if np.isfinite(every).any() else np.nan
     out = []
-    for e, m in zip(expected_error_mm, mismatch):
-        ratio = np.sqrt(np.maximum(m, 0.0) / max(ref, 1e-12)) if np.isfinite(ref) else np.full(len(m), np.nan)
+    for e, m in zip(expected_error_mm, relative_mismatch(mismatch)):
+        ratio = np.sqrt(m)
         out.append(np.where(np.isfinite(ratio), REFINED_GAIN * e * ratio, UNCHECKED_GAIN * np.asarray(e, np.float64)))
     return out
 

@@ -121,31 +121,63 @@ def candidate_pairs(atlas_from_slice: NDArray, stack_of: NDArray, free: NDArray)
     return np.stack([a[keep], b[keep]], axis=1)
 
 
+CROP_MARGIN_MM = 15.0
+"""The images are kept this far beyond the union of a stack's brain masks (in-plane): the widest
+smoothing (3 mm, three sigmas) and the points' moves stay inside it, so the crop changes no value
+the image term samples."""
+
+
 @dataclass
 class BlockedStack:
     """A stack's images scaled by its median brain intensity, and its masks, averaged over blocks of
-    ``factors`` pixels (pixels finer than ~1 mm: the finest pass smooths at 0.9 mm anyway); worked
-    out once per request and shared by the passes."""
+    ``factors`` pixels (pixels finer than ~1 mm: the finest pass smooths at 0.9 mm anyway) and cut
+    to its brain's in-plane box plus :data:`CROP_MARGIN_MM` (a whole-uterus slice of 320 x 320
+    pixels holds the brain in a tenth of them); worked out once per request and shared by the passes.
+
+    ``origin`` is the first original pixel ``(row, column)`` the blocks start at (a multiple of
+    ``factors``), ``shape`` the original slices' ``(H, W)``.
+
+    Example (a 64 x 64 slice whose brain is a 4 x 4 square, 1 mm pixels: 15 mm around it kept):
+        >>> import numpy as np
+        >>> m = np.zeros((1, 64, 64), bool); m[0, 30:34, 30:34] = True
+        >>> b = BlockedStack.of(StackImages(np.ones((1, 64, 64), np.float32), m, (1.0, 1.0), np.eye(4)[None], np.ones(1, bool)))
+        >>> b.images.shape, b.origin
+        ((1, 34, 34), (15, 15))
+    """
 
     images: NDArray[np.float32]
     masks: NDArray[np.float32]
     factors: tuple[int, int]
+    origin: tuple[int, int] = (0, 0)
+    shape: tuple[int, int] | None = None
 
     @classmethod
     def of(cls, s: StackImages) -> "BlockedStack":
         brain = s.images[s.masks]
         scale = float(np.median(brain)) if brain.size else 1.0
         f = (max(1, round(1.0 / s.pixel_mm[0])), max(1, round(1.0 / s.pixel_mm[1])))
-        return cls(_blocks(s.images.astype(np.float32) / max(scale, 1e-6), f), _blocks(s.masks.astype(np.float32), f), f)
+        h, w = s.images.shape[1:]
+        box = [slice(0, h), slice(0, w)]
+        found = s.masks.any(axis=0)
+        if found.any():
+            for axis in (0, 1):
+                hit = np.flatnonzero(found.any(axis=1 - axis))
+                margin = int(np.ceil(CROP_MARGIN_MM / s.pixel_mm[axis]))
+                lo = int(max(hit[0] - margin, 0) // f[axis] * f[axis])
+                box[axis] = slice(lo, int(min(hit[-1] + margin + 1, (h, w)[axis])))
+        images, masks = s.images[:, box[0], box[1]], s.masks[:, box[0], box[1]]
+        return cls(_blocks(images.astype(np.float32) / max(scale, 1e-6), f), _blocks(masks.astype(np.float32), f), f,
+                   (box[0].start, box[1].start), (h, w))
 
 
 class SampledStack:
     """A stack's smoothed, scaled images and masks, sampled at atlas points (bilinear)."""
 
     def __init__(self, s: StackImages, sigma_mm: float, blocked: BlockedStack | None = None) -> None:
-        n, h, w = s.images.shape
         blocked = blocked or BlockedStack.of(s)
         images, masks, f = blocked.images, blocked.masks, blocked.factors
+        h, w = blocked.shape or s.images.shape[1:]
+        r0, c0 = blocked.origin
         pixel = (s.pixel_mm[0] * f[0], s.pixel_mm[1] * f[1])
         self.images = ndimage.gaussian_filter(images, (0.0, sigma_mm / pixel[0], sigma_mm / pixel[1]))
         self.masks = ndimage.gaussian_filter(masks, (0.0, 1.0, 1.0))
@@ -154,9 +186,9 @@ class SampledStack:
         self.masks_flat = np.pad(self.masks, pad).ravel()
         self.gradient_flat = [np.pad(g, pad).ravel() for g in np.gradient(self.images, axis=(1, 2))]
         self.padded = (images.shape[1] + 2, images.shape[2] + 2)
-        # block (r', c') is centred on the original pixel (f r' + (f - 1) / 2, ...)
-        self.pixel_from_slice = np.array([[0.0, 1.0 / pixel[0], 0.0, ((h - 1) / 2.0 - (f[0] - 1) / 2.0) / f[0]],   # row
-                                          [1.0 / pixel[1], 0.0, 0.0, ((w - 1) / 2.0 - (f[1] - 1) / 2.0) / f[1]]])  # column
+        # block (r', c') is centred on the original pixel (r0 + f r' + (f - 1) / 2, ...)
+        self.pixel_from_slice = np.array([[0.0, 1.0 / pixel[0], 0.0, ((h - 1) / 2.0 - r0 - (f[0] - 1) / 2.0) / f[0]],   # row
+                                          [1.0 / pixel[1], 0.0, 0.0, ((w - 1) / 2.0 - c0 - (f[1] - 1) / 2.0) / f[1]]])  # column
 
     def line_pixels(self, slice_from_atlas: NDArray, line: NDArray) -> NDArray[np.float64]:
         """``[M, 2, 2]`` (row, column) of two atlas points ``line`` ``[M, 2, 3]`` in slices whose

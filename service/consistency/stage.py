@@ -38,6 +38,8 @@ class ImageConsistency:
     median_move_mm: float
     mismatch_before: float                    # the image term per weighted point (NaN: none)
     mismatch_after: float
+    slice_mismatch: NDArray[np.float64] | None = None       # [n] each slice's image term after, over the request's median (NaN: on no line)
+    expected_before_mm: NDArray[np.float64] | None = None   # [n] each slice's expected E.D. before the refinement
 
 
 @dataclass

@@ -23,7 +23,7 @@ from itertools import pairwise
 
 import numpy as np
 
-from service.consistency.image_refinement import expected_after, refine
+from service.consistency.image_refinement import expected_after, refine, relative_mismatch
 from service.consistency.intersections import StackImages
 from service.consistency.slice_order import FROM_FILE, SliceOrder, per_stack
 from service.consistency.stage import (
@@ -215,6 +215,7 @@ def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPos
                 else np.full(len(outs[i].poses), np.nan) for i in take]
     ref = refine(images, [outs[i].poses for i in take], expected)
     after = expected_after(expected, ref.mismatch)
+    median = relative_mismatch(ref.mismatch)
     for j, i in enumerate(take):
         outs[i].poses = ref.poses[j]
         if outs[i].expected_error_mm is not None:
@@ -222,7 +223,8 @@ def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPos
         moved = ref.moved_mm[j][images[j].active]
         outs[i].image_consistency = ImageConsistency(len(take), ref.pairs, int(images[j].active.sum()),
                                                      float(np.median(moved)) if len(moved) else 0.0,
-                                                     float(ref.cost_before), float(ref.cost_after))
+                                                     float(ref.cost_before), float(ref.cost_after),
+                                                     median[j], expected[j])
 
 
 def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples: int,

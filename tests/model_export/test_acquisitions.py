@@ -102,13 +102,14 @@ def test_the_stages_rigid_placement_is_the_stacks_true_mean_placement() -> None:
     placement, composed with the file's geometry and the service's crop, lands every slice where the
     stack's true mean placement puts it: the composition behind ``fitted_motion_mm``."""
     from model_export.evaluate_acquisitions import rigid_poses, run_acquisition
+    from service.api.responses import stack_objects
     from service.geometry import anchors, se3, twin
 
     img, mask, aff = BRAIN
     stacks = simulate_acquisition(img, mask, aff, np.random.default_rng(4), "mild", size=64, pixel_mm=1.6)
     est = NoisyTwinEstimator(INFO, np.random.default_rng(5), noise_deg=1.0, noise_mm=1.0, other_twin_fraction=0.0)
-    (results,), prepared, truth = run_acquisition(stacks, est, mc_samples=20, bias_correction=False)
-    for res, p, sim, true in zip(results, prepared, stacks, truth):
+    (predictions,), prepared, truth = run_acquisition(stacks, est, mc_samples=20, bias_correction=False)
+    for res, p, sim, true in zip(stack_objects(predictions), prepared, stacks, truth):
         rigid = rigid_poses(res["consistency"], sim.volume.affine, np.linalg.inv(p.network_from_voxel()))
         assert rigid is not None
         atlas_from_scanner = sim.atlas_from_voxel @ np.linalg.inv(sim.volume.affine)
