@@ -1,14 +1,16 @@
 """How well can a slice's final error be predicted? AUROC of scores for E.D. > 10 mm, per motion level.
 
-Reads the per-slice columns that ``svrnet-train evaluate --acquisitions --slices FILE.npz`` writes
-and ranks every score the service has (the MC variance, ``expected_error_mm``, how far the stage
-moved the slice, the motion it fitted, depth and time in the stack) against two the service cannot
-have: the network's own true error and the slice's true motion (oracles: an upper reference for what
-per-slice information can do). A logistic combination of the service's scores, cross-validated by
-stack (no stack in its own training fold), shows what a learned predictor would add.
+Reads the per-slice columns that ``svrnet-train calibrate-acceptance --slices FILE.npz`` (or
+``evaluate --acquisitions --slices``) writes and ranks every score the service has (the MC variance,
+``expected_error_mm``, the stage's expected error before the image refinement, the image mismatch
+left after it, the MC mass on the other twin, how far the stages moved the slice, the motion the
+stage fitted, depth and time in the stack) against two the service cannot have: the network's own
+true error and the slice's true motion (oracles: an upper reference for what per-slice information
+can do). A logistic combination of the service's scores, cross-validated by stack (no stack in its
+own training fold), shows what a learned predictor would add.
 
-    .venv/bin/svrnet-train evaluate service/models/default/model.onnx --acquisitions --per-volume 2 \\
-        --told interleaved --report model_export/reports/acquisitions-default.md --slices /tmp/slices.npz
+    .venv/bin/svrnet-train calibrate-acceptance service/models/default/model.onnx --no-write \\
+        --report /tmp/acceptance.md --slices /tmp/slices.npz
     .venv/bin/python model_export/experiments/error_predictors.py /tmp/slices.npz
 """
 
@@ -25,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from model_export.calibrate import auroc  # noqa: E402
 from model_export.evaluate_acquisitions import ERROR_MM, MIN_MASK_PIXELS  # noqa: E402
 
-SERVICE = ("variance", "expected", "moved_mm", "fitted_motion_mm", "depth", "time")
+SERVICE = ("variance", "expected", "expected_stage", "mismatch", "twin_mass", "moved_mm", "fitted_motion_mm", "depth", "time")
 ORACLE = ("ed_network_min", "motion_mm")
 
 

@@ -64,6 +64,12 @@ def test_pipeline_with_a_twin_confused_estimator_per_motion_level(tmp_path) -> N
         fitted = {lv: np.median(cols[f"{lv}/fitted_motion_mm"]) for lv in ("mild", "moderate")}
         assert fitted["mild"] < fitted["moderate"] < 2 * motion["moderate"], (fitted, motion)
         assert np.isnan(cols["extreme/fitted_motion_mm"]).all()                    # undecidable: no rigid fit
+        # what the service knows of each slice: the image refinement ran at mild motion, not at extreme
+        checked = np.isfinite(cols["mild/mismatch"])
+        assert checked.mean() > 0.5 and 0.5 < np.nanmedian(cols["mild/mismatch"]) < 2.0   # over each request's median
+        assert np.all(cols["mild/expected_stage"][checked] > 0)
+        assert np.isnan(cols["extreme/mismatch"]).all() and np.isnan(cols["extreme/expected_stage"]).all()
+        assert np.all((cols["mild/twin_mass"] >= 0) & (cols["mild/twin_mass"] <= 1))
     report = markdown(out, "phantom")
     assert report.count("| mild, told interleaved |") == 2 and "along the normal" in report
     ex = out["extreme"]
