@@ -43,7 +43,7 @@ GOOD_MM, BAD_MM = 5.0, 10.0
 MAX_BAD_ACCEPTED = 0.10
 GOOD_VARIANCE_QUANTILE = 99.5
 FLOORS_MM = np.arange(0.0, 4.01, 0.1)
-LIMITS_MM = np.arange(2.0, 12.01, 0.25)
+LIMITS_MM = np.arange(2.0, 12.001, 0.1)
 OTHER_REASONS = (acceptance.EMPTY, acceptance.DEGENERATE, acceptance.OUTSIDE, acceptance.INCONSISTENT)
 
 

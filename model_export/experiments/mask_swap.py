@@ -1,0 +1,94 @@
+"""Which stack's localisation moves a request's poses: the real scan with one mask swapped at a time.
+
+The real scan (``mial_lausanne_t30``, three stacks with manual masks) runs through ``/v1/predict``'s
+pipeline (every stage on) with the manual masks, then with the localiser's mask in place of the
+manual one for one stack at a time, for all three, and for each stack alone in its own request. Each
+variant's poses are compared slice by slice with those of the manual masks (median E.D. per stack,
+over the slices both pose); two runs with the manual masks give the floor (other MC-dropout draws).
+Both masks are treated alike (``masks_hold_csf``: the 2 mm inset on both), so what differs is the
+mask's extent alone.
+
+A stack whose own poses agree when it is alone, and whose swap moves the other stacks too, acts
+through the request's pooled placement (docs/consistency.md).
+
+    .venv/bin/python model_export/experiments/mask_swap.py [--localiser M]   # needs ../shared/data/real_scans
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, dice  # noqa: E402
+from model_export.localiser.pose_accuracy import slice_poses  # noqa: E402
+from service.api.responses import stack_objects  # noqa: E402
+from service.core.settings import DEFAULT_LOCALISERS_DIR  # noqa: E402
+from service.geometry import anchors  # noqa: E402
+from service.io.volume import Volume, read_volume  # noqa: E402
+from service.pipeline.predict import StackUpload, predict, prepare_stacks  # noqa: E402
+from service.preprocess.localise import Localiser  # noqa: E402
+
+
+def answer(uploads: list[StackUpload], estimator) -> tuple[list[dict], list]:  # noqa: ANN001
+    prepared = prepare_stacks(uploads, estimator.info, True, workers=2)
+    return stack_objects(predict(prepared, estimator, 100, estimator.info.variance_threshold)[0]), prepared
+
+
+def median_ed(a: tuple[list[dict], list], b: tuple[list[dict], list], which: list[int]) -> list[float]:
+    """Per stack ``which[j]`` (the ``j``-th answer of ``a`` and ``b``): median E.D. over the slices both pose."""
+    out = []
+    for j in range(len(which)):
+        (pa, ka), (pb, kb) = slice_poses(a[0][j], a[1][j]), slice_poses(b[0][j], b[1][j])
+        both = ka & kb
+        out.append(float(np.median(anchors.ed(pa[both], pb[both]))) if both.any() else float("nan"))
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--localiser", type=Path, default=DEFAULT_LOCALISERS_DIR / "default" / "model.onnx")
+    ap.add_argument("--scan", type=Path, default=REAL_SCANS / "mial_lausanne_t30")
+    args = ap.parse_args()
+    manual = sorted(args.scan.glob("*_brain_mask.nii.gz"))
+    if not manual:
+        sys.exit(f"needs stacks with manual masks in {args.scan}")
+    estimator, localiser = _pose_estimator(), Localiser.load(args.localiser)
+    stacks = [(m.name.replace("_brain_mask.nii.gz", ""), read_volume(Path(str(m).replace("_brain_mask", ""))),
+               read_volume(m)) for m in manual]
+    found = [localiser.localise(v).mask for _, v, _ in stacks]
+    names = [n for n, _, _ in stacks]
+    print(f"localiser {localiser.version}; Dice " + ", ".join(
+        f"{n} {dice(f, m.array > 0):.3f}" for (n, _, m), f in zip(stacks, found)))
+
+    def uploads(which: str, only: list[int]) -> list[StackUpload]:
+        """``which[i]``: ``m`` the manual mask for stack ``i``, ``l`` the localiser's."""
+        return [StackUpload(names[i], stacks[i][1], stacks[i][2] if which[i] == "m"
+                            else Volume(found[i].astype(np.uint8), stacks[i][1].affine), mask_holds_csf=True)
+                for i in only]
+
+    every = list(range(len(stacks)))
+    reference, again = answer(uploads("m" * len(every), every), estimator), answer(uploads("m" * len(every), every), estimator)
+    print("| variant | " + " | ".join(names) + " |\n|---|" + "---|" * len(names))
+    print("| manual masks again (the floor) | " + " | ".join(f"{x:.1f}" for x in median_ed(reference, again, every)) + " |")
+    for i in every:
+        which = "".join("l" if j == i else "m" for j in every)
+        row = median_ed(reference, answer(uploads(which, every), estimator), every)
+        print(f"| the localiser's mask for {names[i]} | " + " | ".join(f"{x:.1f}" for x in row) + " |")
+    row = median_ed(reference, answer(uploads("l" * len(every), every), estimator), every)
+    print("| the localiser's masks for all | " + " | ".join(f"{x:.1f}" for x in row) + " |")
+    alone = []
+    for i in every:
+        ref = answer(uploads("m" * len(every), [i]), estimator)
+        alone.append((median_ed(ref, answer(uploads("m" * len(every), [i]), estimator), [i])[0],
+                      median_ed(ref, answer(uploads("l" * len(every), [i]), estimator), [i])[0]))
+    print("| each stack alone: manual again / the localiser's | "
+          + " | ".join(f"{a:.1f} / {b:.1f}" for a, b in alone) + " |")
+
+
+if __name__ == "__main__":
+    main()
