@@ -30,10 +30,7 @@ from service.preprocess.stack import mask_box
 
 MARGIN_MM = 20.0
 FIT_SPACING_MM = 8.0
-ITERATIONS = 20
-"""N4's iterations per fitting level at most. On the brain's region at 8 mm the fit mostly converges
-before this; each iteration costs the same whatever the image size, and the later ones change the
-network's inputs by a fraction of one grey level (docs/benchmarks.md)."""
+ITERATIONS = 50
 LEVELS = 2
 
 
