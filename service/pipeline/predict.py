@@ -215,7 +215,7 @@ def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPos
                 else np.full(len(outs[i].poses), np.nan) for i in take]
     ref = refine(images, [outs[i].poses for i in take], expected)
     after = expected_after(expected, ref.mismatch)
-    median = relative_mismatch(ref.mismatch)
+    relative = relative_mismatch(ref.mismatch)
     for j, i in enumerate(take):
         outs[i].poses = ref.poses[j]
         if outs[i].expected_error_mm is not None:
@@ -224,7 +224,7 @@ def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPos
         outs[i].image_consistency = ImageConsistency(len(take), ref.pairs, int(images[j].active.sum()),
                                                      float(np.median(moved)) if len(moved) else 0.0,
                                                      float(ref.cost_before), float(ref.cost_after),
-                                                     median[j], expected[j])
+                                                     relative[j], expected[j])
 
 
 def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples: int,
