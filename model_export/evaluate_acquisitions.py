@@ -163,7 +163,6 @@ def slice_evidence(prediction: StackPrediction) -> dict[str, NDArray]:
     ic = prediction.poses.image_consistency
     nan = np.full(n, np.nan)
     return {"twin_mass": np.asarray(prediction.poses.twin_mass, np.float64),
-            "inconsistent": np.asarray(prediction.poses.inconsistent, bool),
             "expected_stage": nan if ic is None or ic.expected_before_mm is None else ic.expected_before_mm,
             "mismatch": nan if ic is None or ic.slice_mismatch is None else ic.slice_mismatch}
 

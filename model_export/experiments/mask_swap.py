@@ -24,11 +24,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, dice  # noqa: E402
-from model_export.localiser.pose_accuracy import slice_poses  # noqa: E402
+from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, dice, median_ed  # noqa: E402
 from service.api.responses import stack_objects  # noqa: E402
 from service.core.settings import DEFAULT_LOCALISERS_DIR  # noqa: E402
-from service.geometry import anchors  # noqa: E402
 from service.io.volume import Volume, read_volume  # noqa: E402
 from service.pipeline.predict import StackUpload, predict, prepare_stacks  # noqa: E402
 from service.preprocess.localise import Localiser  # noqa: E402
@@ -39,14 +37,10 @@ def answer(uploads: list[StackUpload], estimator) -> tuple[list[dict], list]:  #
     return stack_objects(predict(prepared, estimator, 100, estimator.info.variance_threshold)[0]), prepared
 
 
-def median_ed(a: tuple[list[dict], list], b: tuple[list[dict], list], which: list[int]) -> list[float]:
-    """Per stack ``which[j]`` (the ``j``-th answer of ``a`` and ``b``): median E.D. over the slices both pose."""
-    out = []
-    for j in range(len(which)):
-        (pa, ka), (pb, kb) = slice_poses(a[0][j], a[1][j]), slice_poses(b[0][j], b[1][j])
-        both = ka & kb
-        out.append(float(np.median(anchors.ed(pa[both], pb[both]))) if both.any() else float("nan"))
-    return out
+def per_stack(a: tuple[list[dict], list], b: tuple[list[dict], list], stacks: int) -> list[float]:
+    """Per stack of two answers to the same stacks: the median E.D. over the slices both pose."""
+    out = [median_ed([a[0][j]], [b[0][j]], [a[1][j]])[0] for j in range(stacks)]
+    return [float("nan") if x is None else x for x in out]
 
 
 def main() -> None:
@@ -74,18 +68,18 @@ def main() -> None:
     every = list(range(len(stacks)))
     reference, again = answer(uploads("m" * len(every), every), estimator), answer(uploads("m" * len(every), every), estimator)
     print("| variant | " + " | ".join(names) + " |\n|---|" + "---|" * len(names))
-    print("| manual masks again (the floor) | " + " | ".join(f"{x:.1f}" for x in median_ed(reference, again, every)) + " |")
+    print("| manual masks again (the floor) | " + " | ".join(f"{x:.1f}" for x in per_stack(reference, again, len(every))) + " |")
     for i in every:
         which = "".join("l" if j == i else "m" for j in every)
-        row = median_ed(reference, answer(uploads(which, every), estimator), every)
+        row = per_stack(reference, answer(uploads(which, every), estimator), len(every))
         print(f"| the localiser's mask for {names[i]} | " + " | ".join(f"{x:.1f}" for x in row) + " |")
-    row = median_ed(reference, answer(uploads("l" * len(every), every), estimator), every)
+    row = per_stack(reference, answer(uploads("l" * len(every), every), estimator), len(every))
     print("| the localiser's masks for all | " + " | ".join(f"{x:.1f}" for x in row) + " |")
     alone = []
     for i in every:
         ref = answer(uploads("m" * len(every), [i]), estimator)
-        alone.append((median_ed(ref, answer(uploads("m" * len(every), [i]), estimator), [i])[0],
-                      median_ed(ref, answer(uploads("l" * len(every), [i]), estimator), [i])[0]))
+        alone.append((per_stack(ref, answer(uploads("m" * len(every), [i]), estimator), 1)[0],
+                      per_stack(ref, answer(uploads("l" * len(every), [i]), estimator), 1)[0]))
     print("| each stack alone: manual again / the localiser's | "
           + " | ".join(f"{a:.1f} / {b:.1f}" for a, b in alone) + " |")
 

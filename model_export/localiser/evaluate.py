@@ -74,7 +74,7 @@ def real_scan_rows(localiser: Localiser, root: Path = REAL_SCANS) -> list[dict]:
     return rows
 
 
-def _median_ed(a: list[dict], b: list[dict], prepared: list) -> tuple[float | None, int]:
+def median_ed(a: list[dict], b: list[dict], prepared: list) -> tuple[float | None, int]:
     """Median E.D. (mm) between the slice poses of two answers for the same stacks, over the slices
     neither calls ``empty``."""
     distances = []
@@ -98,8 +98,8 @@ def pose_agreement(uploads_with_masks: list[StackUpload], localiser: Localiser, 
     with_masks, prepared, t_masks = run(uploads_with_masks)
     without, _, t_without = run([StackUpload(u.filename, u.volume) for u in uploads_with_masks])
     again, _, t_again = run(uploads_with_masks)
-    ed, n = _median_ed(with_masks, without, prepared)
-    floor, _ = _median_ed(with_masks, again, prepared)
+    ed, n = median_ed(with_masks, without, prepared)
+    floor, _ = median_ed(with_masks, again, prepared)
     t_masks = min(t_masks, t_again)
     return {"median_ed_mm": ed, "repeat_median_ed_mm": floor, "slices": n, "latency_ratio": t_without / t_masks,
             "seconds_with_masks": t_masks, "seconds_without": t_without}

@@ -11,7 +11,8 @@ together: the result is put back in the frame of the stage's poses. Slices on no
 stack's nearest checked slices; each slice's expected error follows its remaining mismatch.
 
 Example:
-    >>> [e.round(2).tolist() for e in expected_after([np.array([4.0, 4.0, 4.0])], [np.array([1.0, 4.0, np.nan])])]
+    >>> relative = relative_mismatch([np.array([1.0, 4.0, np.nan])])             # over the median, 2.5
+    >>> [e.round(2).tolist() for e in expected_after([np.array([4.0, 4.0, 4.0])], relative)]
     [[1.64, 3.29, 7.6]]
 """
 
@@ -191,20 +192,17 @@ def relative_mismatch(mismatch: list[NDArray]) -> list[NDArray[np.float64]]:
             else np.full(len(m), np.nan) for m in mismatch]
 
 
-def expected_after(expected_error_mm: list[NDArray], mismatch: list[NDArray]) -> list[NDArray[np.float64]]:
+def expected_after(expected_error_mm: list[NDArray], relative: list[NDArray]) -> list[NDArray[np.float64]]:
     """Each slice's expected E.D. after :func:`refine`, from the stage's (``expected_error_mm``) and the
-    slice's remaining image mismatch relative to the request's median (:data:`REFINED_GAIN`,
-    :data:`UNCHECKED_GAIN`).
+    slice's remaining image mismatch over the request's median (``relative``, :func:`relative_mismatch`;
+    :data:`REFINED_GAIN`, :data:`UNCHECKED_GAIN`).
 
     Example:
-        >>> [e.round(2).tolist() for e in expected_after([np.array([4.0, 4.0, 4.0])], [np.array([1.0, 4.0, np.nan])])]
-        [[1.64, 3.29, 7.6]]
+        >>> [e.round(2).tolist() for e in expected_after([np.array([4.0, 4.0, 4.0])], [np.array([0.25, 1.0, np.nan])])]
+        [[1.3, 2.6, 7.6]]
     """
-    out = []
-    for e, m in zip(expected_error_mm, relative_mismatch(mismatch)):
-        ratio = np.sqrt(m)
-        out.append(np.where(np.isfinite(ratio), REFINED_GAIN * e * ratio, UNCHECKED_GAIN * np.asarray(e, np.float64)))
-    return out
+    return [np.where(np.isfinite(m), REFINED_GAIN * e * np.sqrt(m), UNCHECKED_GAIN * np.asarray(e, np.float64))
+            for e, m in zip(expected_error_mm, relative)]
 
 
 def _gauss_newton(residual, jacobian, x: NDArray, prior: NDArray, iterations: int) -> NDArray[np.float64]:  # noqa: ANN001

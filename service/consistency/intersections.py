@@ -135,7 +135,7 @@ class BlockedStack:
     pixels holds the brain in a tenth of them); worked out once per request and shared by the passes.
 
     ``origin`` is the first original pixel ``(row, column)`` the blocks start at (a multiple of
-    ``factors``), ``shape`` the original slices' ``(H, W)``.
+    ``factors``).
 
     Example (a 64 x 64 slice whose brain is a 4 x 4 square, 1 mm pixels: 15 mm around it kept):
         >>> import numpy as np
@@ -148,8 +148,7 @@ class BlockedStack:
     images: NDArray[np.float32]
     masks: NDArray[np.float32]
     factors: tuple[int, int]
-    origin: tuple[int, int] = (0, 0)
-    shape: tuple[int, int] | None = None
+    origin: tuple[int, int]
 
     @classmethod
     def of(cls, s: StackImages) -> "BlockedStack":
@@ -167,7 +166,7 @@ class BlockedStack:
                 box[axis] = slice(lo, int(min(hit[-1] + margin + 1, (h, w)[axis])))
         images, masks = s.images[:, box[0], box[1]], s.masks[:, box[0], box[1]]
         return cls(_blocks(images.astype(np.float32) / max(scale, 1e-6), f), _blocks(masks.astype(np.float32), f), f,
-                   (box[0].start, box[1].start), (h, w))
+                   (box[0].start, box[1].start))
 
 
 class SampledStack:
@@ -176,7 +175,7 @@ class SampledStack:
     def __init__(self, s: StackImages, sigma_mm: float, blocked: BlockedStack | None = None) -> None:
         blocked = blocked or BlockedStack.of(s)
         images, masks, f = blocked.images, blocked.masks, blocked.factors
-        h, w = blocked.shape or s.images.shape[1:]
+        h, w = s.images.shape[1:]
         r0, c0 = blocked.origin
         pixel = (s.pixel_mm[0] * f[0], s.pixel_mm[1] * f[1])
         self.images = ndimage.gaussian_filter(images, (0.0, sigma_mm / pixel[0], sigma_mm / pixel[1]))

@@ -214,8 +214,8 @@ def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPos
     expected = [outs[i].expected_error_mm if outs[i].expected_error_mm is not None
                 else np.full(len(outs[i].poses), np.nan) for i in take]
     ref = refine(images, [outs[i].poses for i in take], expected)
-    after = expected_after(expected, ref.mismatch)
     relative = relative_mismatch(ref.mismatch)
+    after = expected_after(expected, relative)
     for j, i in enumerate(take):
         outs[i].poses = ref.poses[j]
         if outs[i].expected_error_mm is not None:

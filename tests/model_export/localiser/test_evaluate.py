@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from model_export.localiser.evaluate import _median_ed, dice
+from model_export.localiser.evaluate import median_ed, dice
 from service.geometry.pose import make_pose
 from service.io.volume import Volume
 from service.preprocess.stack import split_stack
@@ -32,7 +32,7 @@ def test_the_ed_between_answers_is_the_offset_of_their_slice_poses() -> None:
         return {"slices": [{"reason": "empty" if k == empty else None,
                             "atlas_from_voxel": (p @ slices.slice_from_voxel[k]).tolist()} for k, p in enumerate(ps)]}
     prepared = [SimpleNamespace(slices=slices)]
-    same, n = _median_ed([answer(poses)], [answer(poses)], prepared)
+    same, n = median_ed([answer(poses)], [answer(poses)], prepared)
     assert n == 5 and same < 1e-9
-    moved, n = _median_ed([answer(poses)], [answer([shift @ p for p in poses], empty=2)], prepared)
+    moved, n = median_ed([answer(poses)], [answer([shift @ p for p in poses], empty=2)], prepared)
     assert n == 4 and abs(moved - 5.0) < 1e-9
