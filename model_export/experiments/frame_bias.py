@@ -1,0 +1,147 @@
+"""What the pose error of a held-out brain is made of: its acquisition's common frame, and whether
+that frame is the brain's own (the same in every acquisition) or noise.
+
+Part 1. For each validation volume, ``--per-volume`` acquisitions per motion level are predicted
+through ``/v1/predict``'s pipeline (masks given, every stage on). Per acquisition: the mean E.D.
+of its posed slices against the truth (on the nearer twin), the common frame ``F`` of its errors (the
+Fréchet mean of ``P_k T_k^-1`` about the brain's centre: rotation vector, degrees, and shift, mm)
+and the mean E.D. left once ``F`` is undone (the error a reconstruction's slice registration can
+act on). Per volume: the mean and spread of ``F`` over its acquisitions. A mean far larger than the
+spread is the brain's own frame offset, which no number of slices or acquisitions averages away.
+
+Part 2. Where a brain's neighbours put it. Each validation brain is registered rigidly (SimpleITK,
+correlation on the skull-stripped images, started at the identity: all volumes share the atlas
+space) to the two training brains nearest in age of each population. The registration implies
+the frame a network trained on those brains would see the held-out brain in: ``M^-1`` about its
+centre, ``M`` the registration (neighbour -> held-out brain). Printed beside part 1's mean frame.
+
+    .venv/bin/python model_export/experiments/frame_bias.py [--levels mild,jumps] [--per-volume 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+import SimpleITK as sitk
+from numpy.typing import NDArray
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from model_export.acquisitions import simulate_acquisition  # noqa: E402
+from model_export.atlas import DEFAULT_ATLAS_ROOT, VALIDATION_VOLUMES, AtlasVolume, load_volumes  # noqa: E402
+from model_export.evaluate_acquisitions import run_acquisition  # noqa: E402
+from model_export.localiser.evaluate import _pose_estimator  # noqa: E402
+from service.api.responses import stack_objects  # noqa: E402
+from service.geometry import anchors, se3, twin  # noqa: E402
+from service.geometry.frames import ras_transform_from_lps  # noqa: E402
+from service.geometry.pose import translate  # noqa: E402
+from service.io.volume import Volume, to_sitk  # noqa: E402
+
+
+def common_frame(final: NDArray, truth: NDArray, centre: NDArray) -> tuple[NDArray, NDArray]:
+    """The acquisition's common error ``F`` (about ``centre``) of poses ``final`` against ``truth``
+    ``[n, 4, 4]``, and each slice's E.D. once it is undone."""
+    about = translate(centre)
+    frame = se3.frechet_mean(se3.inverse(about)[None] @ final @ se3.inverse(truth) @ about[None])
+    undone = se3.inverse(about @ frame @ se3.inverse(about))[None] @ final
+    return frame, anchors.ed(undone, truth)
+
+
+def as_row(frame: NDArray) -> NDArray[np.float64]:
+    """``[6]`` rotation vector (degrees) and shift (mm) of a frame about the brain's centre."""
+    return np.r_[np.degrees(se3.so3_log(frame[:3, :3])), frame[:3, 3]]
+
+
+def acquisition_frames(volume: AtlasVolume, estimator, level: str, count: int,  # noqa: ANN001
+                       rng: np.random.Generator) -> list[tuple[float, float, NDArray]]:
+    """Per acquisition: mean E.D. against the truth (nearer twin), mean E.D. with the common frame
+    undone, and the frame (:func:`as_row`)."""
+    plane = estimator.info.symmetry_plane_x_mm
+    out = []
+    for _ in range(count):
+        stacks = simulate_acquisition(volume.image, volume.mask, volume.affine, rng, level)
+        predictions, prepared, truth = run_acquisition(stacks, estimator)
+        finals, trues = [], []
+        for res, p, true in zip(stack_objects(predictions[0]), prepared, truth):
+            final = np.array([s["atlas_from_voxel"] for s in res["slices"]]) @ np.linalg.inv(p.network_from_voxel())
+            posed = np.array([s["reason"] != "empty" for s in res["slices"]])
+            tw = twin.twin(true, plane)
+            nearer = np.where((anchors.ed(final, true) <= anchors.ed(final, tw))[:, None, None], true, tw)
+            finals.append(final[posed])
+            trues.append(nearer[posed])
+        final, true = np.concatenate(finals), np.concatenate(trues)
+        frame, left = common_frame(final, true, volume.centre)
+        out.append((float(anchors.ed(final, true).mean()), float(left.mean()), as_row(frame)))
+    return out
+
+
+def register_rigid(fixed: AtlasVolume, moving: AtlasVolume) -> NDArray[np.float64]:
+    """``4 x 4`` atlas RAS: rigid registration of ``moving``'s brain to ``fixed``'s (a point of ``fixed`` ->
+    the same anatomy in ``moving``), correlation metric, 4-2-1 pyramid, from the identity."""
+    f, m = (sitk.Cast(to_sitk(Volume(v.image * (v.mask > 0.5), v.affine)), sitk.sitkFloat32) for v in (fixed, moving))
+    start = sitk.Euler3DTransform()
+    start.SetCenter([-moving.centre[0], -moving.centre[1], moving.centre[2]])            # RAS -> LPS
+    reg = sitk.ImageRegistrationMethod()
+    reg.SetMetricAsCorrelation()
+    reg.SetMetricSamplingStrategy(reg.RANDOM)
+    reg.SetMetricSamplingPercentage(0.1, 1)
+    reg.SetInterpolator(sitk.sitkLinear)
+    reg.SetOptimizerAsRegularStepGradientDescent(1.0, 1e-4, 200, relaxationFactor=0.5)
+    reg.SetOptimizerScalesFromPhysicalShift()
+    reg.SetShrinkFactorsPerLevel([4, 2, 1])
+    reg.SetSmoothingSigmasPerLevel([2.0, 1.0, 0.5])
+    reg.SmoothingSigmasAreSpecifiedInPhysicalUnitsOn()
+    reg.SetInitialTransform(start, inPlace=False)
+    tx = reg.Execute(f, m)
+    tx = tx.GetNthTransform(0) if isinstance(tx, sitk.CompositeTransform) else tx
+    tx = sitk.Euler3DTransform(tx)
+    lps = np.eye(4)
+    lps[:3, :3] = np.reshape(tx.GetMatrix(), (3, 3))
+    c, t = np.array(tx.GetCenter()), np.array(tx.GetTranslation())
+    lps[:3, 3] = t + c - lps[:3, :3] @ c
+    return ras_transform_from_lps(lps)
+
+
+def age(name: str) -> int:
+    return int(re.findall(r"\d+", name)[0])
+
+
+def fmt(row: NDArray) -> str:
+    return f"rot ({', '.join(f'{x:+.1f}' for x in row[:3])})°  shift ({', '.join(f'{x:+.1f}' for x in row[3:])}) mm"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--levels", default="mild,jumps")
+    ap.add_argument("--per-volume", type=int, default=3)
+    ap.add_argument("--seed", type=int, default=3)
+    args = ap.parse_args()
+    every = load_volumes(None, DEFAULT_ATLAS_ROOT)
+    held_out = [v for v in every if v.name in VALIDATION_VOLUMES]
+    estimator, rng = _pose_estimator(), np.random.default_rng(args.seed)
+    means: dict[str, list[NDArray]] = {}
+    for level in args.levels.split(","):
+        print(f"\n## {level}\n\n| volume | mean E.D. | frame undone | frame's mean over acquisitions | its spread (sd) |\n|---|---|---|---|---|")
+        for v in held_out:
+            rows = acquisition_frames(v, estimator, level, args.per_volume, rng)
+            frames = np.array([r[2] for r in rows])
+            means.setdefault(v.name, []).append(frames.mean(axis=0))
+            print(f"| {v.name} | {np.mean([r[0] for r in rows]):.2f} | {np.mean([r[1] for r in rows]):.2f} "
+                  f"| {fmt(frames.mean(axis=0))} | {fmt(frames.std(axis=0, ddof=1))} |", flush=True)
+    print("\n## Where the nearest training brains put each held-out brain\n\n| volume | frame (mean of part 1) | "
+          "by | implied frame |\n|---|---|---|---|")
+    for v in held_out:
+        others = sorted((o for o in every if o.name not in VALIDATION_VOLUMES), key=lambda o: abs(age(o.name) - age(v.name)))
+        for population in ("crl_sta", "spina_bifida_cc0"):
+            for o in [o for o in others if o.population == population][:2]:
+                about = translate(v.centre)
+                implied = se3.inverse(about) @ np.linalg.inv(register_rigid(o, v)) @ about
+                print(f"| {v.name} | {fmt(np.mean(means[v.name], axis=0))} | {o.name} | {fmt(as_row(implied))} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,106 @@
+"""Where a real scan's poses with and without masks part: stage by stage, slice by slice.
+
+The real scan (``mial_lausanne_t30``) is prepared twice with the manual masks and twice with the
+localiser's (both with the 2 mm inset, ``masks_hold_csf``), each preparation's slices through the
+network once. The same network statistics then go through ``/v1/predict``'s stages three times:
+none (the network's poses), the stack-consistency stage with the request's pooling, and every
+stage (image consistency too). Per pair of runs and stage: the median E.D. per stack between the
+two answers' slice poses. Manual against manual is the floor (other MC draws); localiser against
+localiser, the localiser's own; manual against localiser, the gap the localisation issue's
+target is about. Then what the stack stage estimated of each run (the network's per-slice noise,
+its branch) and, with ``--slices``, each slice's mask agreement beside its network poses' distance.
+
+    .venv/bin/python model_export/experiments/pose_stages.py [--slices]   # needs ../shared/data/real_scans
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, dice, median_ed  # noqa: E402
+from model_export.localiser.pose_accuracy import slice_poses  # noqa: E402
+from service.api.responses import stack_objects  # noqa: E402
+from service.core.settings import DEFAULT_LOCALISERS_DIR  # noqa: E402
+from service.geometry import anchors, twin  # noqa: E402
+from service.io.volume import Volume, read_volume  # noqa: E402
+from service.pipeline.predict import StackUpload, estimate_stacks, predict_from_estimates, prepare_stacks  # noqa: E402
+from service.preprocess.localise import Localiser  # noqa: E402
+
+STAGES = {"network": (False, False), "stack stage, pooled": (True, False), "every stage": (True, True)}
+
+
+def run(uploads: list[StackUpload], estimator) -> tuple[dict, list, list]:  # noqa: ANN001
+    """One preparation and network pass; each stage's answers, the prepared stacks and the predictions
+    of the stack stage."""
+    info = estimator.info
+    prepared = prepare_stacks(uploads, info, True, workers=2)
+    parts, _ = estimate_stacks(prepared, estimator, 100)
+    answers, staged = {}, None
+    for stage, (stack, image) in STAGES.items():
+        predictions, _ = predict_from_estimates(prepared, copy.deepcopy(parts), info, info.variance_threshold,
+                                                stack, None, image)
+        answers[stage] = stack_objects(predictions)
+        staged = predictions if stack and not image else staged
+    return answers, prepared, staged
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scan", type=Path, default=REAL_SCANS / "mial_lausanne_t30")
+    ap.add_argument("--slices", action="store_true", help="each slice of the first pair manual/localiser")
+    args = ap.parse_args()
+    manual = sorted(args.scan.glob("*_brain_mask.nii.gz"))
+    if not manual:
+        sys.exit(f"needs stacks with manual masks in {args.scan}")
+    estimator = _pose_estimator()
+    localiser = Localiser.load(DEFAULT_LOCALISERS_DIR / "default" / "model.onnx")
+    names = [m.name.replace("_brain_mask.nii.gz", "") for m in manual]
+    volumes = [read_volume(Path(str(m).replace("_brain_mask", ""))) for m in manual]
+    masks = [read_volume(m).array > 0 for m in manual]
+    found = [localiser.localise(v).mask for v in volumes]
+    print("Dice of the localiser's masks: " + ", ".join(f"{n} {dice(f, m):.3f}" for n, f, m in zip(names, found, masks)))
+
+    def uploads(kind: str) -> list[StackUpload]:
+        return [StackUpload(n, v, Volume((m if kind == "manual" else f).astype(np.uint8), v.affine), mask_holds_csf=True)
+                for n, v, m, f in zip(names, volumes, masks, found)]
+
+    runs = {key: run(uploads(key.split()[0]), estimator) for key in ("manual 1", "manual 2", "localiser 1", "localiser 2")}
+    print("\nMedian E.D. (mm) per stack (" + " / ".join(names) + ") between two runs' answers:\n")
+    print("| runs | " + " | ".join(STAGES) + " |\n|---|" + "---|" * len(STAGES))
+    for a, b in (("manual 1", "manual 2"), ("localiser 1", "localiser 2"), ("manual 1", "localiser 1"),
+                 ("manual 2", "localiser 2")):
+        cells = [" / ".join(f"{median_ed([runs[a][0][s][j]], [runs[b][0][s][j]], [runs[a][1][j]])[0]:.1f}"
+                            for j in range(len(names))) for s in STAGES]
+        print(f"| {a} vs {b} | " + " | ".join(cells) + " |")
+    print("\nThe stack stage per run and stack: the network's per-slice noise it estimated (mm), whether the stack "
+          "decided its left-right branch (its margin), slices it flagged inconsistent:\n")
+    for key, (_, _, staged) in runs.items():
+        print(f"- {key}: " + "; ".join(
+            f"{n} noise {p.poses.fit.noise_mm:.1f}, branch {'decided' if p.poses.fit.branch_decided else 'from the request'}"
+            f" ({p.poses.fit.branch_margin:.2f}), {int(p.poses.fit.inconsistent.sum())} inconsistent"
+            for n, p in zip(names, staged)))
+    if args.slices:
+        a, b = runs["manual 1"], runs["localiser 1"]
+        for j, n in enumerate(names):
+            pa, ka = slice_poses(a[0]["network"][j], a[1][j])
+            pb, kb = slice_poses(b[0]["network"][j], a[1][j])
+            ed, ed_min = anchors.ed(pa, pb), twin.twin_min_ed(pa, pb)
+            print(f"\n{n}: slice, mask pixels manual / localiser, Dice, centroid shift (mm), network poses' E.D. / twin-min (mm)")
+            for k in range(masks[j].shape[2]):
+                m, f = masks[j][..., k], found[j][..., k]
+                shift = np.linalg.norm((np.argwhere(m).mean(0) - np.argwhere(f).mean(0)) * volumes[j].spacing[:2]) \
+                    if m.any() and f.any() else float("nan")
+                mark = "" if ka[k] and kb[k] else " (empty in one)"
+                print(f"  {k:2d}  {int(m.sum()):5d} / {int(f.sum()):5d}  {dice(f, m):.2f}  {shift:5.1f}  "
+                      f"{ed[k]:6.1f} / {ed_min[k]:6.1f}{mark}")
+
+
+if __name__ == "__main__":
+    main()
