@@ -14,7 +14,10 @@ brain's shape and its setting, not one scanner's contrast.
   network must learn the head's shape and setting (skull, CSF rim, size).
 * **The fetal head** at the stack's own resolution, with the slice profile (three sub-planes
   averaged): the atlas brain (its T2 intensities, remapped by a random gamma), then an extra-axial
-  CSF layer, the skull and the scalp, all from the atlas mask's signed distance. The head takes any
+  CSF layer, the skull and the scalp, all from the atlas mask's signed distance. Most heads
+  (:data:`FACE_SHARE`) also have a face below the frontal lobes (two bright, fluid-filled eyes in
+  textured soft tissue) and a neck leaving the skull base towards the trunk: on a T2 scan the eyes
+  in textured tissue, right under the brain, look much like a piece of it. The head takes any
   orientation and moves from slice to slice (small drift plus occasional jumps).
 * **Hard settings**: some heads sit at or beyond the uterine wall, low in the maternal pelvis
   (:data:`ENGAGED_SHARE`); some lie in tissue as bright and as textured as the brain, behind a thin CSF
@@ -62,6 +65,11 @@ CAMOUFLAGE_SHARE = {"train": 0.25, "heldout": 0.15}
 """Share of stacks whose head lies in tissue as bright and as textured as the brain, as a head deep in
 the maternal pelvis does on a T2 scan: a thin CSF layer and the skull are all that tell where the brain
 ends, so the network cannot rely on a fluid rim or on the brain outshining its surroundings."""
+FACE_SHARE = {"train": 0.8, "heldout": 0.8}
+"""Share of heads drawn with a face (eyes in soft tissue below the frontal lobes) and a neck towards the
+trunk; the rest are the bare skull, scalp and a trunk in any direction."""
+NECK_AXIS = np.array([0.0, -0.3, -1.0]) / np.hypot(0.3, 1.0)
+"""The neck's direction in the head's atlas frame (RAS: down and a little back)."""
 
 
 @dataclass
@@ -79,6 +87,13 @@ class HeadModel:
         """A seventh of the brain's voxel intensities (what a scene's mean brain intensity is taken from)."""
         return np.clip(self.t2[self.sdf <= 0][::7], 1e-3, None)
 
+    @cached_property
+    def half_extent_mm(self) -> NDArray[np.float64]:
+        """``[3]`` half the brain's extent along the atlas axes (x right, y anterior, z superior), mm."""
+        idx = np.argwhere(self.sdf <= 0)
+        mm = (idx - self.voxel_from_mm[:3, 3]) / np.diag(self.voxel_from_mm)[:3]
+        return (mm.max(0) - mm.min(0)) / 2.0
+
     @classmethod
     def from_arrays(cls, image: NDArray, mask: NDArray, affine: NDArray) -> "HeadModel":
         """From an atlas image, its brain mask and its voxel -> mm affine."""
@@ -94,6 +109,79 @@ class HeadModel:
         mm_from_voxel = np.diag([*spacing, 1.0])
         mm_from_voxel[:3, 3] = -centre * spacing
         return cls(np.clip(t2, 0, 1.5), sdf, np.linalg.inv(mm_from_voxel), radius, np.asarray(affine, np.float64))
+
+
+@dataclass
+class Face:
+    """A face and a neck in the head's own frame (atlas axes, mm from the brain's centre), drawn
+    outside the skull: two fluid-filled eyes below the frontal lobes in textured soft tissue, and a
+    neck leaving the skull base (a dark vertebral column at its back) along :data:`NECK_AXIS`."""
+
+    eyes: NDArray[np.float64]          # [2, 3] centres
+    eye_radius: float
+    eye_level: float
+    tissue_centre: NDArray[np.float64]
+    tissue_axes: NDArray[np.float64]
+    tissue_level: float
+    neck_start: NDArray[np.float64]
+    neck_radius: float
+    neck_length: float
+    spine_level: float
+    waves: NDArray[np.float64]         # [w, 3] wave vectors of the soft tissue's texture (rad / mm)
+    phases: NDArray[np.float64]
+    amplitude: float
+    cells: bool                        # the texture as patches (``heldout``) rather than waves
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator, head: HeadModel, tissue: dict[str, float], brain_level: float,
+             outside_mm: float, style: str) -> "Face":
+        """A face for ``head``; ``outside_mm``: the skull's outer surface (signed distance from the brain)."""
+        hx, hy, hz = head.half_extent_mm
+        radius = rng.uniform(0.13, 0.18) * hy
+        side = rng.uniform(0.32, 0.45) * hx
+        centre = np.array([0.0, rng.uniform(0.55, 0.75) * hy, -rng.uniform(0.45, 0.7) * hz])
+        away = np.array([0.0, 0.2, -1.0]) / np.hypot(0.2, 1.0)
+        for _ in range(60):                                        # below the skull, not in the brain
+            eyes = centre + np.array([[-side, 0.0, 0.0], [side, 0.0, 0.0]])
+            vox = eyes @ head.voxel_from_mm[:3, :3].T + head.voxel_from_mm[:3, 3]
+            if ndimage.map_coordinates(head.sdf, vox.T, order=1, mode="nearest").min() >= outside_mm + 0.6 * radius:
+                break
+            centre = centre + away
+        level = tissue["body"] * rng.uniform(0.8, 1.5) if rng.random() < 0.5 else brain_level * rng.uniform(0.6, 1.2)
+        count = 6
+        directions = rng.normal(size=(count, 3))
+        directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+        return cls(eyes, radius, tissue["fluid"] * rng.uniform(0.85, 1.05),
+                   np.array([0.0, rng.uniform(0.5, 0.7) * hy, -rng.uniform(0.6, 0.8) * hz]),
+                   np.array([rng.uniform(0.6, 0.8) * hx, rng.uniform(0.45, 0.6) * hy, rng.uniform(0.45, 0.6) * hz]),
+                   level, np.array([0.0, -0.35 * hy, -0.55 * hz]), rng.uniform(0.45, 0.65) * hx,
+                   rng.uniform(0.6, 1.0) * hz, tissue["skull"],
+                   directions * (2 * np.pi / rng.uniform(4.0, 14.0, (count, 1))), rng.uniform(0, 2 * np.pi, count),
+                   rng.uniform(0.1, 0.35), style == "heldout")
+
+    @property
+    def reach_mm(self) -> float:
+        """How far from the brain's centre the face and neck reach."""
+        ends = [np.linalg.norm(self.tissue_centre) + self.tissue_axes.max(),
+                np.linalg.norm(self.neck_start + NECK_AXIS * self.neck_length) + self.neck_radius]
+        return float(max(ends))
+
+    def render(self, local: NDArray) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+        """Intensities at head-frame points ``local [..., 3]`` and where the face or neck is."""
+        texture = np.sin(local @ self.waves.T + self.phases).mean(-1)
+        if self.cells:
+            texture = np.tanh(4.0 * texture)
+        soft = self.tissue_level * (1.0 + self.amplitude * texture)
+        along = (local - self.neck_start) @ NECK_AXIS
+        across = local - self.neck_start - along[..., None] * NECK_AXIS
+        neck = (along >= -self.neck_radius) & (along <= self.neck_length) \
+            & (np.linalg.norm(across, axis=-1) <= self.neck_radius)
+        back = across + np.array([0.0, 0.4 * self.neck_radius, 0.0])        # the column at the neck's back
+        spine = neck & (np.linalg.norm(back - (back @ NECK_AXIS)[..., None] * NECK_AXIS, axis=-1) < 0.2 * self.neck_radius)
+        tissue = (((local - self.tissue_centre) / self.tissue_axes) ** 2).sum(-1) <= 1.0
+        eye = np.min(np.linalg.norm(local[..., None, :] - self.eyes, axis=-1), axis=-1) <= self.eye_radius
+        values = np.where(eye, self.eye_level, np.where(spine, self.spine_level, soft))
+        return values.astype(np.float32), eye | tissue | neck
 
 
 def _random_rotation(rng: np.random.Generator) -> NDArray[np.float64]:
@@ -171,8 +259,10 @@ def _maternal_labels(rng: np.random.Generator, shape: tuple[int, ...], style: st
 
 
 def _surroundings(rng: np.random.Generator, geo: StackGeometry, brain_centre: NDArray, head_radius: float,
-                  tissue: dict[str, float], style: str, decoy: HeadModel | None = None) -> NDArray[np.float32]:
-    """The scene without the head, on the half-resolution grid ``[n, n, slices]``."""
+                  tissue: dict[str, float], style: str, decoy: HeadModel | None = None,
+                  neck: NDArray | None = None) -> NDArray[np.float32]:
+    """The scene without the head, on the half-resolution grid ``[n, n, slices]``; ``neck``: the
+    direction (stack frame) the fetal trunk lies in from the head, roughly (default any)."""
     pts = geo.coordinates(step=2)
     shape = pts.shape[:3]
     def wobble(amount: float) -> NDArray[np.float32]:
@@ -193,6 +283,8 @@ def _surroundings(rng: np.random.Generator, geo: StackGeometry, brain_centre: ND
     image = np.where(body_r > 1, tissue["air"], image)
     # the fetal body beside the head (its near end at the head), and a few limbs
     direction = rng.normal(size=3)
+    if neck is not None:
+        direction = neck + 0.3 * direction / np.linalg.norm(direction)
     direction /= np.linalg.norm(direction)
     length = rng.uniform(1.0, 2.0) * head_radius
     trunk_c = brain_centre + direction * (head_radius + rng.uniform(0.7, 1.0) * length)
@@ -284,18 +376,25 @@ def _head_motion(rng: np.random.Generator, slices: int) -> tuple[NDArray, NDArra
     return Rotation.from_rotvec(np.deg2rad(rotvec - rotvec.mean(0))).as_matrix(), shift - shift.mean(0)
 
 
+def head_layers(rng: np.random.Generator, thin: bool = False) -> tuple[float, float, float]:
+    """The CSF, skull and scalp thicknesses of a head (mm); ``thin`` for a camouflaged head."""
+    if thin:
+        return rng.uniform(0.3, 1.5), rng.uniform(1.0, 2.5), rng.uniform(0.5, 3.0)
+    return rng.uniform(1.0, 3.5), rng.uniform(1.5, 4.0), rng.uniform(2.0, 6.0)
+
+
 def _head(head: HeadModel, geo: StackGeometry, centre: NDArray, rotation: NDArray, rng: np.random.Generator,
           tissue: dict[str, float], background: NDArray[np.float32], brain_scale: float, gamma: float,
-          thin: bool = False) -> tuple[NDArray, NDArray, NDArray, tuple, tuple]:
+          thin: bool = False, face: Face | None = None, layers: tuple[float, float, float] | None = None,
+          ) -> tuple[NDArray, NDArray, NDArray, tuple, tuple]:
     """The head's intensities, skull-inside and brain fractions in its in-plane box of every slice (slice
     profile), the box, and the head's motion (per-slice rotations and shifts); ``thin``: a thin CSF
-    layer, skull and scalp (a camouflaged head, :data:`CAMOUFLAGE_SHARE`)."""
-    if thin:
-        csf, skull, scalp = rng.uniform(0.3, 1.5), rng.uniform(1.0, 2.5), rng.uniform(0.5, 3.0)
-    else:
-        csf, skull, scalp = rng.uniform(1.0, 3.5), rng.uniform(1.5, 4.0), rng.uniform(2.0, 6.0)
+    layer, skull and scalp (a camouflaged head, :data:`CAMOUFLAGE_SHARE`); ``face``: drawn outside the
+    skull, in place of the scalp and the surroundings; ``layers``: the CSF, skull and scalp
+    thicknesses (mm; default drawn, :func:`head_layers`)."""
+    csf, skull, scalp = layers if layers is not None else head_layers(rng, thin)
     outer = csf + skull + scalp
-    reach = head.radius_mm * 1.15 + outer + 10.0
+    reach = max(head.radius_mm * 1.15, face.reach_mm if face is not None else 0.0) + outer + 10.0
     box = geo.box(centre, reach)
     pts = geo.coordinates()[box]                                     # [bx, by, slices, 3]
     rots, shifts = _head_motion(rng, geo.slices)
@@ -312,6 +411,9 @@ def _head(head: HeadModel, geo: StackGeometry, centre: NDArray, rotation: NDArra
         v = np.where(d > csf, tissue["skull"], v)
         v = np.where(d > csf + skull, tissue["scalp"], v)
         v = np.where(d > outer, background[box], v)
+        if face is not None:
+            shown, where = face.render(local)
+            v = np.where(where & (d > csf + skull), shown, v)
         values = values + v / len(offsets)
         inside = inside + (d <= csf) / len(offsets)
         brain = brain + (d <= 0) / len(offsets)
@@ -365,18 +467,23 @@ def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
     scale = 1.0 if rigid else rng.uniform(0.9, 1.1)
     if rigid:
         rng.uniform(0.9, 1.1)                                   # the same draws after it as without
-    coarse = _surroundings(rng, geo, centre, 0.8 * head.radius_mm * scale, tissue, style, head)
+    rotation = _random_rotation(rng) / scale                    # head frame -> stack frame: rotation @ v
+    with_face = bool(rng.random() < FACE_SHARE[style])
+    neck = rotation @ NECK_AXIS / np.linalg.norm(rotation @ NECK_AXIS) if with_face else None
+    coarse = _surroundings(rng, geo, centre, 0.8 * head.radius_mm * scale, tissue, style, head, neck)
     background = ndimage.zoom(coarse, (2, 2, 1), order=1, grid_mode=True, mode="nearest")[:geo.size, :geo.size]
-    rotation = _random_rotation(rng) / scale
     brain_scale = tissue["fluid"] * rng.uniform(0.75, 1.05) if rng.random() > 0.15 else rng.uniform(0.2, 1.0)
     gamma = rng.uniform(0.6, 1.6)
+    level = brain_scale * float(np.mean(np.power(head.brain_t2, gamma)))       # the brain's mean intensity
     camouflaged = bool(rng.random() < CAMOUFLAGE_SHARE[style])
-    if camouflaged:                                       # around the brain's mean intensity
-        level = brain_scale * float(np.mean(np.power(head.brain_t2, gamma)))
+    if camouflaged:
         background = _camouflage(rng, geo, background, centre, head.radius_mm * scale, level, style, head)
         tissue = {**tissue, "scalp": level * rng.uniform(0.5, 1.2)}
+    layers = head_layers(rng, camouflaged)
+    face_rng = np.random.default_rng(int(rng.integers(2**31)))     # the same draws after it, with a face or not
+    face = Face.draw(face_rng, head, tissue, level, layers[0] + layers[1], style) if with_face else None
     values, inside, brain_fraction, box, motion = _head(head, geo, centre, rotation, rng, tissue, background,
-                                                        brain_scale, gamma, camouflaged)
+                                                        brain_scale, gamma, camouflaged, face, layers)
     image = background.copy()
     image[box] = values
     mask = np.zeros(image.shape, bool)

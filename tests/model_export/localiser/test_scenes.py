@@ -141,3 +141,38 @@ def test_camouflaged_heads_sit_in_tissue_as_bright_as_the_brain(head: HeadModel,
         return float(np.median(ratios))
 
     assert ring_over_brain(1.0) < 0.35 < ring_over_brain(0.0)
+
+
+def test_a_face_lies_in_front_of_and_below_the_brain_outside_the_skull(head: HeadModel) -> None:
+    """The eyes: a left-right pair in front of and below the brain's centre, outside the skull's
+    outer surface, rendered at the fluid-bright eye level inside the face."""
+    from scipy import ndimage
+
+    from model_export.localiser import scenes
+
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        tissue = scenes._intensities(rng, False)
+        face = scenes.Face.draw(rng, head, tissue, 0.5, 5.0, "train")
+        assert (face.eyes[:, 1] > 0).all() and (face.eyes[:, 2] < 0).all()
+        assert np.isclose(face.eyes[0, 0], -face.eyes[1, 0]) and face.eyes[1, 0] > 0
+        vox = face.eyes @ head.voxel_from_mm[:3, :3].T + head.voxel_from_mm[:3, 3]
+        assert (ndimage.map_coordinates(head.sdf, vox.T, order=1) >= 5.0 + 0.6 * face.eye_radius - 1e-3).all()
+        values, where = face.render(face.eyes)
+        assert where.all() and np.allclose(values, face.eye_level) and face.eye_level > 0.5
+        assert face.reach_mm > head.radius_mm * 0.8
+
+
+def test_a_scene_with_a_face_has_it_outside_the_mask_and_the_same_mask(head: HeadModel, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The face changes the image outside the skull only: the same seed with and without faces gives
+    the same skull-inside mask, and images that differ outside it."""
+    from model_export.localiser import scenes
+
+    for seed in range(3):
+        monkeypatch.setitem(scenes.FACE_SHARE, "train", 1.0)
+        with_face = scenes.synth_scene(head, np.random.default_rng(seed), "train", random_contrast=False)
+        monkeypatch.setitem(scenes.FACE_SHARE, "train", 0.0)
+        without = scenes.synth_scene(head, np.random.default_rng(seed), "train", random_contrast=False)
+        assert with_face.mask.shape == without.mask.shape
+        assert np.array_equal(with_face.mask, without.mask)
+        assert not np.allclose(with_face.volume.array[~with_face.mask], without.volume.array[~without.mask])
