@@ -10,7 +10,7 @@ localiser, the localiser's own; manual against localiser, the gap the localisati
 target is about. Then what the stack stage estimated of each run (the network's per-slice noise,
 its branch) and, with ``--slices``, each slice's mask agreement beside its network poses' distance.
 
-    .venv/bin/python model_export/experiments/pose_stages.py [--slices]   # needs ../shared/data/real_scans
+    .venv/bin/python model_export/experiments/pose_stages.py [--localiser M] [--slices]   # needs ../shared/data/real_scans
 """
 
 from __future__ import annotations
@@ -54,13 +54,14 @@ def run(uploads: list[StackUpload], estimator) -> tuple[dict, list, list]:  # no
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scan", type=Path, default=REAL_SCANS / "mial_lausanne_t30")
+    ap.add_argument("--localiser", type=Path, default=DEFAULT_LOCALISERS_DIR / "default" / "model.onnx")
     ap.add_argument("--slices", action="store_true", help="each slice of the first pair manual/localiser")
     args = ap.parse_args()
     manual = sorted(args.scan.glob("*_brain_mask.nii.gz"))
     if not manual:
         sys.exit(f"needs stacks with manual masks in {args.scan}")
     estimator = _pose_estimator()
-    localiser = Localiser.load(DEFAULT_LOCALISERS_DIR / "default" / "model.onnx")
+    localiser = Localiser.load(args.localiser)
     names = [m.name.replace("_brain_mask.nii.gz", "") for m in manual]
     volumes = [read_volume(Path(str(m).replace("_brain_mask", ""))) for m in manual]
     masks = [read_volume(m).array > 0 for m in manual]
