@@ -69,10 +69,8 @@ def acquisition_frames(volume: AtlasVolume, estimator, level: str, count: int,  
         for res, p, true in zip(stack_objects(predictions[0]), prepared, truth):
             final = np.array([s["atlas_from_voxel"] for s in res["slices"]]) @ np.linalg.inv(p.network_from_voxel())
             posed = np.array([s["reason"] != "empty" for s in res["slices"]])
-            tw = twin.twin(true, plane)
-            nearer = np.where((anchors.ed(final, true) <= anchors.ed(final, tw))[:, None, None], true, tw)
             finals.append(final[posed])
-            trues.append(nearer[posed])
+            trues.append(twin.nearer(final, true, plane)[posed])
         final, true = np.concatenate(finals), np.concatenate(trues)
         frame, left = common_frame(final, true, volume.centre)
         out.append((float(anchors.ed(final, true).mean()), float(left.mean()), as_row(frame)))
