@@ -20,14 +20,12 @@ import argparse
 import sys
 from pathlib import Path
 
-import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, dice, median_ed  # noqa: E402
+from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, csf_mask_upload, dice, masked_stacks, median_ed  # noqa: E402
 from service.api.responses import stack_objects  # noqa: E402
 from service.core.settings import DEFAULT_LOCALISERS_DIR  # noqa: E402
-from service.io.volume import Volume, read_volume  # noqa: E402
 from service.pipeline.predict import StackUpload, predict, prepare_stacks  # noqa: E402
 from service.preprocess.localise import Localiser  # noqa: E402
 
@@ -48,24 +46,18 @@ def main() -> None:
     ap.add_argument("--localiser", type=Path, default=DEFAULT_LOCALISERS_DIR / "default" / "model.onnx")
     ap.add_argument("--scan", type=Path, default=REAL_SCANS / "mial_lausanne_t30")
     args = ap.parse_args()
-    manual = sorted(args.scan.glob("*_brain_mask.nii.gz"))
-    if not manual:
-        sys.exit(f"needs stacks with manual masks in {args.scan}")
     estimator, localiser = _pose_estimator(), Localiser.load(args.localiser)
-    stacks = [(m.name.replace("_brain_mask.nii.gz", ""), read_volume(Path(str(m).replace("_brain_mask", ""))),
-               read_volume(m)) for m in manual]
-    found = [localiser.localise(v).mask for _, v, _ in stacks]
-    names = [n for n, _, _ in stacks]
+    names, volumes, manual, found = masked_stacks(args.scan, localiser)
+    if not names:
+        sys.exit(f"needs stacks with manual masks in {args.scan}")
     print(f"localiser {localiser.version}; Dice " + ", ".join(
-        f"{n} {dice(f, m.array > 0):.3f}" for (n, _, m), f in zip(stacks, found)))
+        f"{n} {dice(f, m):.3f}" for n, f, m in zip(names, found, manual)))
 
     def uploads(which: str, only: list[int]) -> list[StackUpload]:
         """``which[i]``: ``m`` the manual mask for stack ``i``, ``l`` the localiser's."""
-        return [StackUpload(names[i], stacks[i][1], stacks[i][2] if which[i] == "m"
-                            else Volume(found[i].astype(np.uint8), stacks[i][1].affine), mask_holds_csf=True)
-                for i in only]
+        return [csf_mask_upload(names[i], volumes[i], manual[i] if which[i] == "m" else found[i]) for i in only]
 
-    every = list(range(len(stacks)))
+    every = list(range(len(names)))
     reference, again = answer(uploads("m" * len(every), every), estimator), answer(uploads("m" * len(every), every), estimator)
     print("| variant | " + " | ".join(names) + " |\n|---|" + "---|" * len(names))
     print("| manual masks again (the floor) | " + " | ".join(f"{x:.1f}" for x in per_stack(reference, again, len(every))) + " |")

@@ -24,12 +24,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, dice, median_ed  # noqa: E402
+from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, csf_mask_upload, dice, masked_stacks, median_ed  # noqa: E402
 from model_export.localiser.pose_accuracy import slice_poses  # noqa: E402
 from service.api.responses import stack_objects  # noqa: E402
 from service.core.settings import DEFAULT_LOCALISERS_DIR  # noqa: E402
 from service.geometry import anchors, twin  # noqa: E402
-from service.io.volume import Volume, read_volume  # noqa: E402
 from service.pipeline.predict import StackUpload, estimate_stacks, predict_from_estimates, prepare_stacks  # noqa: E402
 from service.preprocess.localise import Localiser  # noqa: E402
 
@@ -57,20 +56,14 @@ def main() -> None:
     ap.add_argument("--localiser", type=Path, default=DEFAULT_LOCALISERS_DIR / "default" / "model.onnx")
     ap.add_argument("--slices", action="store_true", help="each slice of the first pair manual/localiser")
     args = ap.parse_args()
-    manual = sorted(args.scan.glob("*_brain_mask.nii.gz"))
-    if not manual:
-        sys.exit(f"needs stacks with manual masks in {args.scan}")
     estimator = _pose_estimator()
-    localiser = Localiser.load(args.localiser)
-    names = [m.name.replace("_brain_mask.nii.gz", "") for m in manual]
-    volumes = [read_volume(Path(str(m).replace("_brain_mask", ""))) for m in manual]
-    masks = [read_volume(m).array > 0 for m in manual]
-    found = [localiser.localise(v).mask for v in volumes]
+    names, volumes, masks, found = masked_stacks(args.scan, Localiser.load(args.localiser))
+    if not names:
+        sys.exit(f"needs stacks with manual masks in {args.scan}")
     print("Dice of the localiser's masks: " + ", ".join(f"{n} {dice(f, m):.3f}" for n, f, m in zip(names, found, masks)))
 
     def uploads(kind: str) -> list[StackUpload]:
-        return [StackUpload(n, v, Volume((m if kind == "manual" else f).astype(np.uint8), v.affine), mask_holds_csf=True)
-                for n, v, m, f in zip(names, volumes, masks, found)]
+        return [csf_mask_upload(n, v, m if kind == "manual" else f) for n, v, m, f in zip(names, volumes, masks, found)]
 
     runs = {key: run(uploads(key.split()[0]), estimator) for key in ("manual 1", "manual 2", "localiser 1", "localiser 2")}
     print("\nMedian E.D. (mm) per stack (" + " / ".join(names) + ") between two runs' answers:\n")

@@ -74,6 +74,19 @@ def real_scan_rows(localiser: Localiser, root: Path = REAL_SCANS) -> list[dict]:
     return rows
 
 
+def masked_stacks(scan: Path, localiser: Localiser) -> tuple[list[str], list[Volume], list[NDArray], list[NDArray]]:
+    """The stacks of a real ``scan`` folder that have a manual mask (``*_brain_mask.nii.gz``): their
+    names, volumes, manual masks and the localiser's masks (boolean, on each stack's grid)."""
+    manual = sorted(Path(scan).glob("*_brain_mask.nii.gz"))
+    names = [m.name.replace("_brain_mask.nii.gz", "") for m in manual]
+    volumes = [read_volume(m.with_name(f"{n}.nii.gz")) for m, n in zip(manual, names)]
+    return names, volumes, [read_volume(m).array > 0 for m in manual], [localiser.localise(v).mask for v in volumes]
+
+
+def csf_mask_upload(name: str, volume: Volume, mask: NDArray) -> StackUpload:
+    """A stack with a skull-inside mask, as ``/v1/predict`` gets it with ``masks_hold_csf``."""
+    return StackUpload(name, volume, Volume(np.asarray(mask).astype(np.uint8), volume.affine), mask_holds_csf=True)
+
 def median_ed(a: list[dict], b: list[dict], prepared: list) -> tuple[float | None, int]:
     """Median E.D. (mm) between the slice poses of two answers for the same stacks, over the slices
     neither calls ``empty``."""
