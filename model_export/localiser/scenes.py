@@ -89,7 +89,8 @@ class HeadModel:
 
     @cached_property
     def half_extent_mm(self) -> NDArray[np.float64]:
-        """``[3]`` half the brain's extent along the atlas axes (x right, y anterior, z superior), mm."""
+        """``[3]`` half the brain's extent along the head model's axes, mm: its volume's voxel axes, which
+        are the atlas's (x right, y anterior, z superior) for the shared atlases (diagonal affines)."""
         idx = np.argwhere(self.sdf <= 0)
         mm = (idx - self.voxel_from_mm[:3, 3]) / np.diag(self.voxel_from_mm)[:3]
         return (mm.max(0) - mm.min(0)) / 2.0

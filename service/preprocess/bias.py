@@ -31,6 +31,7 @@ from service.preprocess.stack import mask_box
 MARGIN_MM = 20.0
 FIT_SPACING_MM = 8.0
 ITERATIONS = 50
+"""N4's iterations per fitting level at most (a cap of 20 changed the poses measurably: docs/benchmarks.md)."""
 LEVELS = 2
 
 

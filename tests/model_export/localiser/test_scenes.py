@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from model_export.localiser.scenes import HeadModel, StackGeometry, synth_stack
+from model_export.localiser.scenes import HeadModel, StackGeometry, synth_scene, synth_stack
 from tests.support.phantoms import phantom_brain
 
 
@@ -176,3 +176,37 @@ def test_a_scene_with_a_face_has_it_outside_the_mask_and_the_same_mask(head: Hea
         assert with_face.mask.shape == without.mask.shape
         assert np.array_equal(with_face.mask, without.mask)
         assert not np.allclose(with_face.volume.array[~with_face.mask], without.volume.array[~without.mask])
+
+
+def test_a_rigid_scene_shows_its_eyes_where_its_true_poses_put_them(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The face's eye centres (head frame) carried through the atlas and a rigid scene's true slice
+    poses into the stack land on fluid-bright eyes: brighter than the face between them. This checks
+    the face's frame (the head model's) against the frame the scene's truth is written in."""
+    from model_export.localiser import scenes
+
+    image, mask, affine = phantom_brain(3)
+    head = HeadModel.from_arrays(image, mask, affine)
+    monkeypatch.setitem(scenes.FACE_SHARE, "train", 1.0)
+    monkeypatch.setitem(scenes.ENGAGED_SHARE, "train", 0.0)
+    monkeypatch.setitem(scenes.CAMOUFLAGE_SHARE, "train", 0.0)
+    drawn = []
+    original = scenes.Face.draw.__func__
+    monkeypatch.setattr(scenes.Face, "draw", classmethod(lambda cls, *a: drawn.append(original(cls, *a)) or drawn[-1]))
+    atlas_from_head = head.atlas_from_voxel @ head.voxel_from_mm
+
+    def value(scene: scenes.Scene, head_point: np.ndarray) -> float:
+        """The stack's intensity at a head-frame point, in the slice whose true pose holds it (NaN: none)."""
+        vox = np.einsum("kij,j->ki", np.linalg.inv(scene.atlas_from_voxel), atlas_from_head @ np.r_[head_point, 1.0])
+        k = int(np.argmin(np.abs(vox[:, 2] - np.arange(len(vox)))))
+        i, j = np.round(vox[k, :2]).astype(int)
+        shape = scene.volume.array.shape
+        return float(scene.volume.array[i, j, k]) if abs(vox[k, 2] - k) < 0.5 and 0 <= i < shape[0] \
+            and 0 <= j < shape[1] else np.nan
+
+    brighter = []
+    for seed in range(6):
+        scene = synth_scene(head, np.random.default_rng(seed), "train", random_contrast=False, rigid=True)
+        face = drawn[-1]
+        between = value(scene, face.eyes.mean(axis=0))
+        brighter += [value(scene, eye) > between for eye in face.eyes if np.isfinite(value(scene, eye) - between)]
+    assert len(brighter) >= 4 and np.mean(brighter) >= 0.8, brighter
