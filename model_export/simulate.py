@@ -10,7 +10,10 @@ slice preprocessing (:func:`service.preprocess.slices.preprocess_slices`):
    PyTorch (``grid_sample``); brain size varies by +-10 % (the atlas is sampled with pixels ``1/k``
    smaller than declared, which is a brain ``k`` times larger);
 3. smooth multiplicative bias, gamma, occasional signal voids, Rician noise; the mask is perturbed
-   (blurred and re-thresholded) like an imperfect localisation;
+   (blurred and re-thresholded) like an imperfect localisation and, for a share of the slices
+   (``mask_wobble_share``), its boundary moved in and out by a smooth random field of up to
+   ``mask_wobble_px`` pixels: the bites and bulges of a learned localiser's mask (a missed lobe, the
+   eyes below the frontal lobes);
 4. mask, 1/99 % rescale to 0-255, resample to the model grid centred on the mask centroid; the label
    is the atlas pose of the CENTRED slice (the label moves with the crop).
 """
@@ -58,6 +61,9 @@ class SimulationConfig:
     void_probability: float = 0.1
     mask_threshold: tuple[float, float] = (0.3, 0.7)
     mask_blur_px: float = 1.5
+    mask_wobble_share: float = 0.0
+    mask_wobble_px: tuple[float, float] = (0.0, 0.0)
+    mask_wobble_cells_px: float = 12.0
     sampling: str = "random"
     inplane_range: float = 2 * np.pi
     tz_fraction: float = FULL_EXTENT_TZ_FRACTION
@@ -72,6 +78,41 @@ class SimulationConfig:
                     mask_threshold=(0.5, 0.5), tz_fraction=iterators.TZ_FRACTION)
         base.update(overrides)
         return cls(**base)  # type: ignore[arg-type]
+
+
+def wobble_masks(masks: NDArray[np.bool_], config: SimulationConfig, rng: np.random.Generator) -> NDArray[np.bool_]:
+    """``masks [B, H, W]`` with the boundary of a ``config.mask_wobble_share`` of them moved by a smooth
+    field: each pixel is kept where its signed distance to the boundary (px, < 0 inside) is below
+    ``a * f``, ``f`` smooth unit-variance noise of ``mask_wobble_cells_px`` correlation and ``a``
+    drawn from ``mask_wobble_px`` per slice. The largest piece is kept, its holes filled.
+
+    Example:
+        >>> m = np.zeros((1, 64, 64), bool); m[0, 16:48, 16:48] = True
+        >>> cfg = SimulationConfig(mask_wobble_share=1.0, mask_wobble_px=(4.0, 4.0))
+        >>> w = wobble_masks(m, cfg, np.random.default_rng(0))
+        >>> bool((w != m).any()), bool(w[0, 32, 32])
+        (True, True)
+    """
+    which = np.flatnonzero(rng.random(len(masks)) < config.mask_wobble_share)
+    if which.size == 0 or config.mask_wobble_px[1] <= 0:
+        return masks
+    out = masks.copy()
+    noise = ndimage.gaussian_filter(rng.standard_normal((which.size, *masks.shape[1:])),
+                                    (0.0, config.mask_wobble_cells_px, config.mask_wobble_cells_px))
+    noise /= np.maximum(noise.reshape(which.size, -1).std(1), 1e-9)[:, None, None]
+    amplitude = rng.uniform(*config.mask_wobble_px, size=which.size)
+    for j, i in enumerate(which):
+        m = masks[i]
+        if not m.any() or m.all():
+            continue
+        signed = ndimage.distance_transform_edt(~m) - ndimage.distance_transform_edt(m)
+        moved = signed < amplitude[j] * noise[j]
+        labels, n = ndimage.label(moved)
+        if n == 0:
+            continue
+        largest = labels == 1 + int(np.argmax(ndimage.sum_labels(moved, labels, range(1, n + 1))))
+        out[i] = ndimage.binary_fill_holes(largest)
+    return out
 
 
 @dataclass
@@ -197,7 +238,7 @@ class SliceSimulator:
         img = np.sqrt((img + sd * rng.normal(size=img.shape)) ** 2 + (sd * rng.normal(size=img.shape)) ** 2)
         soft = ndimage.gaussian_filter(mask, (0.0, c.mask_blur_px, c.mask_blur_px))
         mask = soft > rng.uniform(*c.mask_threshold, size=(b, 1, 1))
-        return img.astype(np.float32), mask
+        return img.astype(np.float32), wobble_masks(mask, c, rng)
 
     def simulate(self, index: int, n: int, rng: np.random.Generator) -> SliceBatch:
         """``n`` preprocessed slices from volume ``index`` with one acquisition setting."""

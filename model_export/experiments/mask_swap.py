@@ -44,9 +44,10 @@ def per_stack(a: tuple[list[dict], list], b: tuple[list[dict], list], stacks: in
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--localiser", type=Path, default=DEFAULT_LOCALISERS_DIR / "default" / "model.onnx")
+    ap.add_argument("--model", type=Path, help="the pose model (default: the shipped one)")
     ap.add_argument("--scan", type=Path, default=REAL_SCANS / "mial_lausanne_t30")
     args = ap.parse_args()
-    estimator, localiser = _pose_estimator(), Localiser.load(args.localiser)
+    estimator, localiser = _pose_estimator(args.model), Localiser.load(args.localiser)
     names, volumes, manual, found = masked_stacks(args.scan, localiser)
     if not names:
         sys.exit(f"needs stacks with manual masks in {args.scan}")

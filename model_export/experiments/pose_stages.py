@@ -54,9 +54,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scan", type=Path, default=REAL_SCANS / "mial_lausanne_t30")
     ap.add_argument("--localiser", type=Path, default=DEFAULT_LOCALISERS_DIR / "default" / "model.onnx")
+    ap.add_argument("--model", type=Path, help="the pose model (default: the shipped one)")
     ap.add_argument("--slices", action="store_true", help="each slice of the first pair manual/localiser")
     args = ap.parse_args()
-    estimator = _pose_estimator()
+    estimator = _pose_estimator(args.model)
     names, volumes, masks, found = masked_stacks(args.scan, Localiser.load(args.localiser))
     if not names:
         sys.exit(f"needs stacks with manual masks in {args.scan}")

@@ -118,12 +118,12 @@ def pose_agreement(uploads_with_masks: list[StackUpload], localiser: Localiser, 
             "seconds_with_masks": t_masks, "seconds_without": t_without}
 
 
-def _pose_estimator():  # noqa: ANN202 - the service's default pose model
+def _pose_estimator(model: Path | None = None):  # noqa: ANN202 - the service's default pose model
     from service.core.settings import DEFAULT_MODELS_DIR
     from service.inference.estimator import OnnxPoseEstimator
     from service.inference.model_file import load_model
 
-    return OnnxPoseEstimator(load_model(DEFAULT_MODELS_DIR / "default" / "model.onnx"))
+    return OnnxPoseEstimator(load_model(model or DEFAULT_MODELS_DIR / "default" / "model.onnx"))
 
 
 def latency_ms(localiser: Localiser, shape: tuple[int, int, int] = (320, 320, 22), pixel_mm: float = 1.125,

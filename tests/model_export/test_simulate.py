@@ -6,9 +6,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy import ndimage
 
 from model_export.atlas import load_volumes, split
-from model_export.simulate import Acquisition, SimulationConfig, SliceSimulator, sample_slices_torch
+from model_export.simulate import Acquisition, SimulationConfig, SliceSimulator, sample_slices_torch, wobble_masks
 from service.geometry import iterators, sampling
 from service.preprocess.intensity import rescale_0_255
 
@@ -68,3 +69,19 @@ def test_batches_have_labels_and_realistic_ranges(phantom_atlas: Path) -> None:
     r = b.poses[:, :3, :3]
     np.testing.assert_allclose(np.linalg.det(r), 1.0, atol=1e-9)
     assert (b.thickness_mm >= 2.0).all() and (b.thickness_mm <= 4.5).all()
+
+
+def test_wobbled_masks_move_the_boundary_by_up_to_their_amplitude_and_stay_one_piece() -> None:
+    yy, xx = np.mgrid[:96, :96]
+    disk = (yy - 48) ** 2 + (xx - 48) ** 2 <= 30 ** 2
+    masks = np.repeat(disk[None], 40, axis=0)
+    cfg = SimulationConfig(mask_wobble_share=0.5, mask_wobble_px=(6.0, 6.0))
+    out = wobble_masks(masks, cfg, np.random.default_rng(3))
+    changed = (out != masks).any(axis=(1, 2))
+    assert 10 <= changed.sum() <= 30                      # about half the slices
+    for m in out[changed]:
+        assert ndimage.label(m)[1] == 1
+        radius = np.hypot(*(np.argwhere(m & ~ndimage.binary_erosion(m)) - 48).T)
+        assert radius.min() < 28 or radius.max() > 32      # bites or bulges of a few pixels
+        assert 30 - 6 * 4.5 < radius.min() and radius.max() < 30 + 6 * 4.5 + 1
+    np.testing.assert_array_equal(wobble_masks(masks, SimulationConfig(), np.random.default_rng(3)), masks)
