@@ -13,7 +13,10 @@ slice preprocessing (:func:`service.preprocess.slices.preprocess_slices`):
    (blurred and re-thresholded) like an imperfect localisation and, for a share of the slices
    (``mask_wobble_share``), its boundary moved in and out by a smooth random field of up to
    ``mask_wobble_px`` pixels: the bites and bulges of a learned localiser's mask (a missed lobe, the
-   eyes below the frontal lobes);
+   eyes below the frontal lobes); a share of the slices (``surroundings_share``) shows a head's
+   surroundings outside the brain instead of the skull-stripped atlas's black (a CSF layer, the
+   skull, the scalp and textured tissue with fluid pockets, by the 3D distance to the brain), so
+   a mask larger than the brain shows what it would show in a scan;
 4. mask, 1/99 % rescale to 0-255, resample to the model grid centred on the mask centroid; the label
    is the atlas pose of the CENTRED slice (the label moves with the crop).
 """
@@ -36,6 +39,11 @@ from service.preprocess.slices import preprocess_slices
 
 PSF_POINTS = 5
 """Through-plane Gaussian quadrature points (+-2 sigma) of the simulated thick-slice PSF."""
+
+
+DISTANCE_PAD_MM = 20.0
+"""How far round an atlas's crop its brain's distance map is computed; beyond it the map is held
+(every layer of :func:`dress` lies within 13.5 mm of the brain)."""
 
 
 FULL_EXTENT_TZ_FRACTION = 0.47
@@ -64,6 +72,7 @@ class SimulationConfig:
     mask_wobble_share: float = 0.0
     mask_wobble_px: tuple[float, float] = (0.0, 0.0)
     mask_wobble_cells_px: float = 12.0
+    surroundings_share: float = 0.0
     sampling: str = "random"
     inplane_range: float = 2 * np.pi
     tz_fraction: float = FULL_EXTENT_TZ_FRACTION
@@ -115,6 +124,51 @@ def wobble_masks(masks: NDArray[np.bool_], config: SimulationConfig, rng: np.ran
     return out
 
 
+def dress(images: NDArray[np.float32], brain: NDArray[np.float32], distance_mm: NDArray[np.float32],
+          rng: np.random.Generator, share: float, blur_px: float = 0.0) -> NDArray[np.float32]:
+    """Skull-stripped slices ``images [B, H, W]`` with a head's surroundings drawn outside the brain
+    on a ``share`` of them: by the brain's signed distance ``distance_mm`` (< 0 inside), a CSF layer
+    (0.5-3.5 mm, as bright as the brain's brightest), the skull (1-4 mm, dark), the scalp (1-6 mm)
+    and beyond, textured soft tissue with fluid pockets; levels relative to each slice's brain (its
+    99th percentile inside ``brain`` > 0.5), blended by ``1 - brain`` (the brain's partial volume)
+    and blurred in-plane by ``blur_px`` like the acquisition.
+
+    Example:
+        >>> yy, xx = np.mgrid[:48, :48]
+        >>> d = (np.hypot(yy - 24, xx - 24) - 12.0)[None].astype(np.float32)          # a disc of 12 px
+        >>> brain = (d < 0).astype(np.float32); img = 100.0 * brain
+        >>> out = dress(img, brain, d, np.random.default_rng(0), share=1.0)
+        >>> bool(np.all(out[d < 0] == 100.0)), bool(out[0, 24, 37] > 50.0), bool(out[0, 0, 0] > 0.0)
+        (True, True, True)
+    """
+    which = np.flatnonzero(rng.random(len(images)) < share)
+    out = np.array(images, dtype=np.float32, copy=True)
+    if not which.size:
+        return out
+    shape = (which.size, *images.shape[1:])
+    layers = np.cumsum(rng.uniform([0.5, 1.0, 1.0], [3.5, 4.0, 6.0], size=(which.size, 3)), axis=1)[:, :, None, None]
+    levels = rng.uniform([0.7, 0.0, 0.2, 0.1, 0.7], [1.3, 0.25, 0.8, 1.0, 1.3], size=(which.size, 5))[:, :, None, None]
+    cells = rng.uniform(2.0, 8.0)
+    texture = ndimage.gaussian_filter(rng.standard_normal(shape), (0.0, cells, cells))
+    texture /= np.maximum(texture.reshape(which.size, -1).std(1), 1e-9)[:, None, None]
+    coarse = (which.size, *(-(-np.array(shape[1:]) // 4)))              # fluid pockets: 4x coarser, then up
+    pockets = ndimage.gaussian_filter(rng.standard_normal(coarse), (0.0, 0.75 * cells, 0.75 * cells))
+    pockets = F.interpolate(torch.from_numpy(pockets[:, None]), scale_factor=4, mode="bilinear",
+                            align_corners=False)[:, 0, :shape[1], :shape[2]].numpy()
+    pockets /= np.maximum(pockets.reshape(which.size, -1).std(1), 1e-9)[:, None, None]
+    tissue = levels[:, 3] * (1.0 + rng.uniform(0.1, 0.5, (which.size, 1, 1)) * texture)
+    tissue = np.where(pockets > rng.uniform(0.8, 3.0, (which.size, 1, 1)), levels[:, 4], tissue)
+    d = distance_mm[which]
+    around = np.where(d < layers[:, 0], levels[:, 0], np.where(d < layers[:, 1], levels[:, 1],
+                      np.where(d < layers[:, 2], levels[:, 2], tissue)))
+    if blur_px > 0:
+        around = ndimage.gaussian_filter(around, (0.0, blur_px, blur_px))
+    inside = brain[which] > 0.5
+    ref = np.array([np.percentile(im[m], 99.0) if m.any() else 0.0 for im, m in zip(images[which], inside)])
+    out[which] = images[which] + (1.0 - np.clip(brain[which], 0.0, 1.0)) * np.maximum(around, 0.0) * ref[:, None, None]
+    return out
+
+
 @dataclass
 class SliceBatch:
     """Network inputs with their labels and the acquisition that made them."""
@@ -126,7 +180,8 @@ class SliceBatch:
 
 
 def sample_slices_torch(volume: torch.Tensor, affine: NDArray, poses: NDArray, size: int, pixel_mm: float,
-                        offsets_mm: NDArray | None = None, weights: NDArray | None = None) -> torch.Tensor:
+                        offsets_mm: NDArray | None = None, weights: NDArray | None = None,
+                        padding_mode: str = "zeros") -> torch.Tensor:
     """Trilinear slices ``[B, C, L, L]`` of ``volume [1, C, I, J, K]`` at ``poses``, optionally PSF-weighted.
 
     The same forward model as :func:`service.geometry.sampling.sample_slices` (whose tests pin it
@@ -147,7 +202,7 @@ def sample_slices_torch(volume: torch.Tensor, affine: NDArray, poses: NDArray, s
     z = torch.from_numpy(np.asarray(offsets_mm, dtype=np.float32))                      # plane: [B, L, L, 3]
     shift = z[None, :, None] * lin_t[:, None, :, 2] + lin_t[:, None, :, 3]                # [B, O, 3]
     grid = (plane[:, None] + shift[:, :, None, None, :]).reshape(1, -1, size, size, 3)
-    out = F.grid_sample(volume, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+    out = F.grid_sample(volume, grid, mode="bilinear", padding_mode=padding_mode, align_corners=True)
     out = out.reshape(volume.shape[1], len(poses), len(offsets_mm), size, size)
     w = torch.from_numpy(np.asarray(weights, dtype=np.float32))
     return torch.einsum("cbors,o->bcrs", out, w)
@@ -164,6 +219,7 @@ class Acquisition:
     thickness_mm: float
     scale: float                        # brain size factor k (atlas sampled at pixel_mm / k)
     volume: str
+    distance_mm: NDArray[np.float32] | None = None     # signed distance to the brain (surroundings)
 
 
 class SliceSimulator:
@@ -175,6 +231,7 @@ class SliceSimulator:
         self._tensors = [(torch.from_numpy(v.image)[None, None], torch.from_numpy(v.mask)[None, None])
                          for v in volumes]
         self._grids: dict[str, NDArray] = {}
+        self._distances: dict[int, tuple[torch.Tensor, NDArray]] = {}
 
     # ---- poses ------------------------------------------------------------------------------
     def _rotations(self, n: int, rng: np.random.Generator) -> NDArray:
@@ -217,10 +274,34 @@ class SliceSimulator:
         s = sampling.INPLANE_FWHM_FACTOR * sampling.FWHM_TO_SIGMA   # in acquisition pixels
         return ndimage.gaussian_filter(img, (0.0, s, s), mode="constant"), msk
 
-    def corrupt(self, img: NDArray, mask: NDArray, rng: np.random.Generator) -> tuple[NDArray, NDArray]:
-        """Bias, gamma, signal voids, Rician noise; an imperfect mask."""
+    def distance(self, index: int, poses: NDArray, acq_pixel_mm: float, scale: float = 1.0) -> NDArray[np.float32]:
+        """``[B, H, H]`` the signed distance (atlas mm, < 0 inside) to volume ``index``'s brain on the
+        centre planes :meth:`acquire` samples; the distance map is padded by :data:`DISTANCE_PAD_MM`
+        round the atlas's crop and held beyond it."""
+        if index not in self._distances:
+            vol = self.volumes[index]
+            spacing = np.sqrt((vol.affine[:3, :3] ** 2).sum(0))
+            pad = np.ceil(DISTANCE_PAD_MM / spacing).astype(int)
+            inside = np.pad(vol.mask > 0.5, [(p, p) for p in pad])
+            signed = (ndimage.distance_transform_edt(~inside, sampling=spacing)
+                      - ndimage.distance_transform_edt(inside, sampling=spacing)).astype(np.float32)
+            affine = vol.affine.copy()
+            affine[:3, 3] -= vol.affine[:3, :3] @ pad
+            self._distances[index] = (torch.from_numpy(signed)[None, None], affine)
+        signed, affine = self._distances[index]
+        h = int(np.ceil(self.config.fov_mm / acq_pixel_mm / 2.0)) * 2
+        out = sample_slices_torch(signed, affine, poses, h, acq_pixel_mm / scale, padding_mode="border")
+        return out[:, 0].numpy()
+
+    def corrupt(self, img: NDArray, mask: NDArray, rng: np.random.Generator,
+                distance_mm: NDArray | None = None) -> tuple[NDArray, NDArray]:
+        """Surroundings (with ``distance_mm``, :func:`dress`), bias, gamma, signal voids, Rician
+        noise; an imperfect mask."""
         c = self.config
         b, h, _ = img.shape
+        if distance_mm is not None and c.surroundings_share > 0:
+            blur = sampling.INPLANE_FWHM_FACTOR * sampling.FWHM_TO_SIGMA
+            img = dress(img, mask, distance_mm, rng, c.surroundings_share, blur)
         u = np.linspace(-1.0, 1.0, h)
         yy, xx = np.meshgrid(u, u, indexing="ij")
         basis = np.stack([xx, yy, xx * xx, yy * yy, xx * yy])                       # [5, H, H]
@@ -249,11 +330,12 @@ class SliceSimulator:
         thick = float(rng.uniform(*c.thickness_mm))
         k = float(rng.uniform(*c.brain_scale))
         img, mask = self.acquire(index, poses, acq, thick, k)
-        return self.finish(Acquisition(img, mask, poses, acq, thick, k, vol.name), rng)
+        distance = self.distance(index, poses, acq, k) if c.surroundings_share > 0 else None
+        return self.finish(Acquisition(img, mask, poses, acq, thick, k, vol.name, distance), rng)
 
     def finish(self, acq: "Acquisition", rng: np.random.Generator) -> SliceBatch:
         """Corrupt an acquisition (fresh draws every call) and preprocess it as the service does."""
-        img, mask = self.corrupt(acq.images, acq.masks, rng)
+        img, mask = self.corrupt(acq.images, acq.masks, rng, acq.distance_mm)
         prep = preprocess_slices(img, mask, (acq.pixel_mm, acq.pixel_mm), self.config.size, self.config.pixel_mm)
         labels = sampling.recentre(acq.poses, prep.centroid_mm / acq.scale)
         keep = prep.mask_fraction >= self.config.min_mask_fraction

@@ -76,7 +76,8 @@ def fresh_acquisition(simulator: SliceSimulator, rng: np.random.Generator,
     acq, thick, k = (float(rng.uniform(*c.acq_pixel_mm)), float(rng.uniform(*c.thickness_mm)),
                      float(rng.uniform(*c.brain_scale)))
     img, mask = simulator.acquire(i, poses, acq, thick, k)
-    return Acquisition(img, mask, poses, acq, thick, k, simulator.volumes[i].name)
+    distance = simulator.distance(i, poses, acq, k) if c.surroundings_share > 0 else None
+    return Acquisition(img, mask, poses, acq, thick, k, simulator.volumes[i].name, distance)
 
 
 def validation_set(names: list[str], root: Path, per_volume: int, seed: int = 12345,

@@ -3,14 +3,16 @@
 A learned localiser's mask differs from the manual one by a few pixels all round and, on some slices,
 by a missing or an extra piece (a lobe lying in textured tissue, the eyes below the frontal lobes).
 This script cuts the same simulated slices of the validation volumes (3 mm, 1.1 mm pixels, moderate
-noise) and feeds the network each slice with its true mask and with edited masks: dilated or eroded
+noise; with ``--surroundings``, a head's CSF, skull, scalp and tissue outside the brain instead of the
+skull-stripped atlas's black, :func:`~model_export.simulate.dress`, so that a mask larger than the brain
+shows what it would in a scan) and feeds the network each slice with its true mask and with edited masks: dilated or eroded
 by 2 px, a disc of 8 px bitten out of or added at a random point of the outline, and the training
 simulation's smooth boundary wobble (``mask_wobble_px`` up to 6 px, :func:`~model_export.simulate.wobble_masks`).
 For each model and variant it prints the twin-min E.D. against the truth (median, mean, share over
 10 mm) and the per-slice change of that error from the true mask's (median absolute).
 
     .venv/bin/python model_export/experiments/mask_sensitivity.py service/models/default/model.onnx [B.onnx ...]
-        [--per-volume 40] [--mc 20]
+        [--per-volume 40] [--mc 20] [--surroundings]
 """
 
 from __future__ import annotations
@@ -79,18 +81,22 @@ def main() -> None:
     ap.add_argument("--mc", type=int, default=20)
     ap.add_argument("--root", type=Path, default=DEFAULT_ATLAS_ROOT)
     ap.add_argument("--seed", type=int, default=5)
+    ap.add_argument("--surroundings", action="store_true", help="a head's surroundings outside the brain")
     args = ap.parse_args()
     _, names = split(args.root)
     volumes = load_volumes(names, args.root)
     models = [load_model(p) for p in args.models]
     info = models[0].info
-    simulator = SliceSimulator(volumes, SimulationConfig.validation(size=info.input_size, pixel_mm=info.pixel_spacing_mm))
+    config = SimulationConfig.validation(size=info.input_size, pixel_mm=info.pixel_spacing_mm,
+                                         surroundings_share=1.0 if args.surroundings else 0.0)
+    simulator = SliceSimulator(volumes, config)
     rng = np.random.default_rng(args.seed)
     errors: dict[tuple[int, str], list[NDArray]] = {}
     for index, volume in enumerate(volumes):
         poses = simulator.sample_poses(volume, args.per_volume, rng)
         images, masks = simulator.acquire(index, poses, PIXEL_MM, THICKNESS_MM, 1.0)
-        images, _ = simulator.corrupt(images, masks, rng)
+        distance = simulator.distance(index, poses, PIXEL_MM) if args.surroundings else None
+        images, _ = simulator.corrupt(images, masks, rng, distance)
         for name, edited in variants(masks > 0.5, rng).items():
             prep = preprocess_slices(images, edited, (PIXEL_MM, PIXEL_MM), info.input_size, info.pixel_spacing_mm)
             truth = sampling.recentre(poses, prep.centroid_mm)
@@ -98,7 +104,8 @@ def main() -> None:
                 labels = OnnxPoseEstimator(model).sample_labels(prep.inputs, args.mc)
                 mean = statistics(labels, model.info.label_type, model.info.symmetry_plane_x_mm).mean
                 errors.setdefault((m, name), []).append(pose_errors(mean, truth, model.info.symmetry_plane_x_mm)["ed_twin_mm"])
-    print(f"{len(volumes)} validation volumes x {args.per_volume} slices, MC {args.mc}; twin-min E.D. (mm)")
+    print(f"{len(volumes)} validation volumes x {args.per_volume} slices, MC {args.mc}, "
+          f"{'surroundings' if args.surroundings else 'black'} outside the brain; twin-min E.D. (mm)")
     print("| model | mask | median | mean | > 10 mm | median change |\n|---|---|---|---|---|---|")
     for m, path in enumerate(args.models):
         base = np.concatenate(errors[(m, "true")])

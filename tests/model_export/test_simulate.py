@@ -9,7 +9,7 @@ import torch
 from scipy import ndimage
 
 from model_export.atlas import load_volumes, split
-from model_export.simulate import Acquisition, SimulationConfig, SliceSimulator, sample_slices_torch, wobble_masks
+from model_export.simulate import Acquisition, SimulationConfig, SliceSimulator, dress, sample_slices_torch, wobble_masks
 from service.geometry import iterators, sampling
 from service.preprocess.intensity import rescale_0_255
 
@@ -85,3 +85,24 @@ def test_wobbled_masks_move_the_boundary_by_up_to_their_amplitude_and_stay_one_p
         assert radius.min() < 28 or radius.max() > 32      # bites or bulges of a few pixels
         assert 30 - 6 * 4.5 < radius.min() and radius.max() < 30 + 6 * 4.5 + 1
     np.testing.assert_array_equal(wobble_masks(masks, SimulationConfig(), np.random.default_rng(3)), masks)
+
+
+def test_dressed_slices_keep_the_brain_and_show_csf_skull_and_tissue_by_distance(phantom_atlas: Path) -> None:
+    vol = load_volumes(["STA30"], phantom_atlas)[0]
+    sim = SliceSimulator([vol], SimulationConfig(surroundings_share=1.0))
+    rng = np.random.default_rng(2)
+    poses = iterators.random_poses(4, rng, tz_max_mm=5.0, centre=vol.centre)
+    img, mask = sim.acquire(0, poses, 1.2, 2.0)
+    distance = sim.distance(0, poses, 1.2)
+    assert np.all(distance[mask > 0.99] < 0.6) and np.all(distance[mask < 0.01] > -0.6)
+    assert distance.max() > 15.0                          # beyond the atlas's tight crop, held there
+    dressed = dress(img, mask, distance, np.random.default_rng(0), share=1.0)
+    inside = mask >= 1.0
+    np.testing.assert_array_equal(dressed[inside], img[inside])
+    added = dressed - img
+    for k in range(4):
+        csf = added[k][(distance[k] > 0.2) & (distance[k] < 0.5)].mean()     # within every CSF layer
+        skull_window = added[k][(distance[k] > 0.5) & (distance[k] < 4.5)]  # holds >= 1 mm of skull
+        far = distance[k] > 14.0                                              # beyond every layer: tissue
+        assert skull_window.min() < 0.5 * csf
+        assert dressed[k][far].mean() > 10.0 and img[k][far].max() < 1e-6
