@@ -12,7 +12,7 @@ slice preprocessing (:func:`service.preprocess.slices.preprocess_slices`):
 3. smooth multiplicative bias, gamma, occasional signal voids, Rician noise; the mask is perturbed
    (blurred and re-thresholded) like an imperfect localisation and, for a share of the slices
    (``mask_wobble_share``), its boundary moved in and out by a smooth random field of up to
-   ``mask_wobble_px`` pixels: the bites and bulges of a learned localiser's mask (a missed lobe, the
+   ``mask_wobble_px`` pixels about an offset drawn from ``mask_offset_px``: the bites and bulges of a learned localiser's mask (a missed lobe, the
    eyes below the frontal lobes); a share of the slices (``surroundings_share``) shows a head's
    surroundings outside the brain instead of the skull-stripped atlas's black (a CSF layer, the
    skull, the scalp and textured tissue with fluid pockets, by the 3D distance to the brain), so
@@ -72,6 +72,7 @@ class SimulationConfig:
     mask_wobble_share: float = 0.0
     mask_wobble_px: tuple[float, float] = (0.0, 0.0)
     mask_wobble_cells_px: float = 12.0
+    mask_offset_px: tuple[float, float] = (0.0, 0.0)
     surroundings_share: float = 0.0
     sampling: str = "random"
     inplane_range: float = 2 * np.pi
@@ -92,8 +93,9 @@ class SimulationConfig:
 def wobble_masks(masks: NDArray[np.bool_], config: SimulationConfig, rng: np.random.Generator) -> NDArray[np.bool_]:
     """``masks [B, H, W]`` with the boundary of a ``config.mask_wobble_share`` of them moved by a smooth
     field: each pixel is kept where its signed distance to the boundary (px, < 0 inside) is below
-    ``a * f``, ``f`` smooth unit-variance noise of ``mask_wobble_cells_px`` correlation and ``a``
-    drawn from ``mask_wobble_px`` per slice. The largest piece is kept, its holes filled.
+    ``o + a * f``, ``f`` smooth unit-variance noise of ``mask_wobble_cells_px`` correlation, ``a``
+    drawn from ``mask_wobble_px`` and ``o`` (a dilation when positive) from ``mask_offset_px`` per
+    slice. The largest piece is kept, its holes filled.
 
     Example:
         >>> m = np.zeros((1, 64, 64), bool); m[0, 16:48, 16:48] = True
@@ -103,19 +105,20 @@ def wobble_masks(masks: NDArray[np.bool_], config: SimulationConfig, rng: np.ran
         (True, True)
     """
     which = np.flatnonzero(rng.random(len(masks)) < config.mask_wobble_share)
-    if which.size == 0 or config.mask_wobble_px[1] <= 0:
+    if which.size == 0 or (config.mask_wobble_px[1] <= 0 and not any(config.mask_offset_px)):
         return masks
     out = masks.copy()
     noise = ndimage.gaussian_filter(rng.standard_normal((which.size, *masks.shape[1:])),
                                     (0.0, config.mask_wobble_cells_px, config.mask_wobble_cells_px))
     noise /= np.maximum(noise.reshape(which.size, -1).std(1), 1e-9)[:, None, None]
     amplitude = rng.uniform(*config.mask_wobble_px, size=which.size)
+    offset = rng.uniform(*config.mask_offset_px, size=which.size)
     for j, i in enumerate(which):
         m = masks[i]
         if not m.any() or m.all():
             continue
         signed = ndimage.distance_transform_edt(~m) - ndimage.distance_transform_edt(m)
-        moved = signed < amplitude[j] * noise[j]
+        moved = signed < offset[j] + amplitude[j] * noise[j]
         labels, n = ndimage.label(moved)
         if n == 0:
             continue

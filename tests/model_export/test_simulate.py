@@ -106,3 +106,13 @@ def test_dressed_slices_keep_the_brain_and_show_csf_skull_and_tissue_by_distance
         far = distance[k] > 14.0                                              # beyond every layer: tissue
         assert skull_window.min() < 0.5 * csf
         assert dressed[k][far].mean() > 10.0 and img[k][far].max() < 1e-6
+
+
+def test_an_offset_dilates_wobbled_masks_by_about_its_size() -> None:
+    yy, xx = np.mgrid[:96, :96]
+    disk = (yy - 48) ** 2 + (xx - 48) ** 2 <= 30 ** 2
+    masks = np.repeat(disk[None], 8, axis=0)
+    out = wobble_masks(masks, SimulationConfig(mask_wobble_share=1.0, mask_offset_px=(3.0, 3.0)),
+                       np.random.default_rng(0))
+    radius = np.sqrt(out.sum(axis=(1, 2)) / np.pi)
+    np.testing.assert_allclose(radius, 33.0, atol=0.6)
