@@ -30,8 +30,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, csf_mask_upload, dice, masked_stacks, median_ed  # noqa: E402
 from model_export.experiments.frame_bias import as_row, common_frame  # noqa: E402
+from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, csf_mask_upload, dice, masked_stacks, median_ed  # noqa: E402
 from model_export.localiser.pose_accuracy import slice_poses  # noqa: E402
 from service.api.responses import stack_objects  # noqa: E402
 from service.core.settings import DEFAULT_LOCALISERS_DIR  # noqa: E402
@@ -125,8 +125,8 @@ def oracle_masks(found: np.ndarray, manual: np.ndarray, below: float) -> np.ndar
     Example:
         >>> m = np.zeros((4, 4, 2), bool); m[1:3, 1:3] = True
         >>> f = m.copy(); f[..., 1] = False
-        >>> oracle_masks(f, m, 0.8)[..., 1].sum(), oracle_masks(f, m, 0.0)[..., 1].sum()
-        (np.int64(4), np.int64(0))
+        >>> int(oracle_masks(f, m, 0.8)[..., 1].sum()), int(oracle_masks(f, m, 0.0)[..., 1].sum())
+        (4, 0)
     """
     out = found.copy()
     for k in range(found.shape[-1]):
