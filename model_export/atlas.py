@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import ndimage
 
 DEFAULT_ATLAS_ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "fetal_atlas"
 ATLAS_ID = "fetal-atlas-ras-0.8mm-135x189x155"
@@ -27,6 +28,20 @@ POPULATIONS = {
     "spina_bifida_cc0": "Fetal spina bifida atlas (Fidon et al. 2021), CC0 1.0",
 }
 VALIDATION_VOLUMES = ("STA24", "STA31", "STA36", "SB_GA22_notoperated", "SB_GA29_operated")
+
+
+def signed_distance(inside: NDArray, spacing: NDArray | None = None) -> NDArray[np.float32]:
+    """Each voxel's Euclidean distance to the boundary of the boolean mask ``inside`` (in units of
+    ``spacing``, default voxels), negative inside: how far outside (or how deep inside) the brain.
+
+    Example:
+        >>> m = np.zeros(7, bool); m[2:5] = True
+        >>> signed_distance(m).tolist()
+        [2.0, 1.0, -1.0, -2.0, -1.0, 1.0, 2.0]
+    """
+    inside = np.asarray(inside, bool)
+    return (ndimage.distance_transform_edt(~inside, sampling=spacing)
+            - ndimage.distance_transform_edt(inside, sampling=spacing)).astype(np.float32)
 
 
 @dataclass

@@ -31,7 +31,7 @@ import torch.nn.functional as F
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from model_export.atlas import AtlasVolume
+from model_export.atlas import AtlasVolume, signed_distance
 from service.geometry import iterators, sampling
 from service.geometry.pose import make_pose, slice_pixel_coordinates
 from service.preprocess.slices import preprocess_slices
@@ -117,8 +117,7 @@ def wobble_masks(masks: NDArray[np.bool_], config: SimulationConfig, rng: np.ran
         m = masks[i]
         if not m.any() or m.all():
             continue
-        signed = ndimage.distance_transform_edt(~m) - ndimage.distance_transform_edt(m)
-        moved = signed < offset[j] + amplitude[j] * noise[j]
+        moved = signed_distance(m) < offset[j] + amplitude[j] * noise[j]
         labels, n = ndimage.label(moved)
         if n == 0:
             continue
@@ -286,11 +285,9 @@ class SliceSimulator:
             spacing = np.sqrt((vol.affine[:3, :3] ** 2).sum(0))
             pad = np.ceil(DISTANCE_PAD_MM / spacing).astype(int)
             inside = np.pad(vol.mask > 0.5, [(p, p) for p in pad])
-            signed = (ndimage.distance_transform_edt(~inside, sampling=spacing)
-                      - ndimage.distance_transform_edt(inside, sampling=spacing)).astype(np.float32)
             affine = vol.affine.copy()
             affine[:3, 3] -= vol.affine[:3, :3] @ pad
-            self._distances[index] = (torch.from_numpy(signed)[None, None], affine)
+            self._distances[index] = (torch.from_numpy(signed_distance(inside, spacing))[None, None], affine)
         signed, affine = self._distances[index]
         h = int(np.ceil(self.config.fov_mm / acq_pixel_mm / 2.0)) * 2
         out = sample_slices_torch(signed, affine, poses, h, acq_pixel_mm / scale, padding_mode="border")

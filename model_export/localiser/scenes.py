@@ -55,6 +55,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
+from model_export.atlas import signed_distance
 from service.io.volume import Volume
 
 STYLES = ("train", "heldout")
@@ -100,8 +101,7 @@ class HeadModel:
         """From an atlas image, its brain mask and its voxel -> mm affine."""
         inside = np.asarray(mask) > 0.5
         spacing = np.sqrt((np.asarray(affine)[:3, :3] ** 2).sum(0))
-        sdf = (ndimage.distance_transform_edt(~inside, sampling=spacing)
-               - ndimage.distance_transform_edt(inside, sampling=spacing)).astype(np.float32)
+        sdf = signed_distance(inside, spacing)
         t2 = np.where(inside, image, 0.0).astype(np.float32)
         t2 /= max(float(np.percentile(t2[inside], 99.0)), 1e-6)
         idx = np.argwhere(inside)
