@@ -41,6 +41,9 @@ PSF_POINTS = 5
 """Through-plane Gaussian quadrature points (+-2 sigma) of the simulated thick-slice PSF."""
 
 
+INPLANE_SIGMA_PX = sampling.INPLANE_FWHM_FACTOR * sampling.FWHM_TO_SIGMA
+"""The acquisition's in-plane blur (Gaussian sigma, acquisition pixels), of the slices and of the
+surroundings drawn round them."""
 DISTANCE_PAD_MM = 20.0
 """How far round an atlas's crop its brain's distance map is computed; beyond it the map is held
 (every layer of :func:`dress` lies within 13.5 mm of the brain)."""
@@ -273,8 +276,7 @@ class SliceSimulator:
         img = sample_slices_torch(image, vol.affine, poses, h, acq_pixel_mm / scale, offsets,
                                   weights / weights.sum())[:, 0].numpy()
         msk = sample_slices_torch(mask, vol.affine, poses, h, acq_pixel_mm / scale)[:, 0].numpy()
-        s = sampling.INPLANE_FWHM_FACTOR * sampling.FWHM_TO_SIGMA   # in acquisition pixels
-        return ndimage.gaussian_filter(img, (0.0, s, s), mode="constant"), msk
+        return ndimage.gaussian_filter(img, (0.0, INPLANE_SIGMA_PX, INPLANE_SIGMA_PX), mode="constant"), msk
 
     def distance(self, index: int, poses: NDArray, acq_pixel_mm: float, scale: float = 1.0) -> NDArray[np.float32]:
         """``[B, H, H]`` the signed distance (atlas mm, < 0 inside) to volume ``index``'s brain on the
@@ -300,8 +302,7 @@ class SliceSimulator:
         c = self.config
         b, h, _ = img.shape
         if distance_mm is not None and c.surroundings_share > 0:
-            blur = sampling.INPLANE_FWHM_FACTOR * sampling.FWHM_TO_SIGMA
-            img = dress(img, mask, distance_mm, rng, c.surroundings_share, blur)
+            img = dress(img, mask, distance_mm, rng, c.surroundings_share, INPLANE_SIGMA_PX)
         u = np.linspace(-1.0, 1.0, h)
         yy, xx = np.meshgrid(u, u, indexing="ij")
         basis = np.stack([xx, yy, xx * xx, yy * yy, xx * yy])                       # [5, H, H]
@@ -321,8 +322,9 @@ class SliceSimulator:
         mask = soft > rng.uniform(*c.mask_threshold, size=(b, 1, 1))
         return img.astype(np.float32), wobble_masks(mask, c, rng)
 
-    def simulate(self, index: int, n: int, rng: np.random.Generator) -> SliceBatch:
-        """``n`` preprocessed slices from volume ``index`` with one acquisition setting."""
+    def acquisition(self, index: int, n: int, rng: np.random.Generator) -> "Acquisition":
+        """``n`` clean thick slices of volume ``index`` at random poses with one random acquisition
+        setting (pixel size, thickness, brain scale), with the brain's distance where surroundings are drawn."""
         c = self.config
         vol = self.volumes[index]
         poses = self.sample_poses(vol, n, rng)
@@ -331,7 +333,11 @@ class SliceSimulator:
         k = float(rng.uniform(*c.brain_scale))
         img, mask = self.acquire(index, poses, acq, thick, k)
         distance = self.distance(index, poses, acq, k) if c.surroundings_share > 0 else None
-        return self.finish(Acquisition(img, mask, poses, acq, thick, k, vol.name, distance), rng)
+        return Acquisition(img, mask, poses, acq, thick, k, vol.name, distance)
+
+    def simulate(self, index: int, n: int, rng: np.random.Generator) -> SliceBatch:
+        """``n`` preprocessed slices from volume ``index`` with one acquisition setting."""
+        return self.finish(self.acquisition(index, n, rng), rng)
 
     def finish(self, acq: "Acquisition", rng: np.random.Generator) -> SliceBatch:
         """Corrupt an acquisition (fresh draws every call) and preprocess it as the service does."""

@@ -70,14 +70,7 @@ class SliceStream(IterableDataset):
 def fresh_acquisition(simulator: SliceSimulator, rng: np.random.Generator,
                       n: int = SLICES_PER_ACQUISITION) -> Acquisition:
     """Clean thick slices of a random volume with one random acquisition setting."""
-    i = int(rng.integers(len(simulator.volumes)))
-    c = simulator.config
-    poses = simulator.sample_poses(simulator.volumes[i], n, rng)
-    acq, thick, k = (float(rng.uniform(*c.acq_pixel_mm)), float(rng.uniform(*c.thickness_mm)),
-                     float(rng.uniform(*c.brain_scale)))
-    img, mask = simulator.acquire(i, poses, acq, thick, k)
-    distance = simulator.distance(i, poses, acq, k) if c.surroundings_share > 0 else None
-    return Acquisition(img, mask, poses, acq, thick, k, simulator.volumes[i].name, distance)
+    return simulator.acquisition(int(rng.integers(len(simulator.volumes))), n, rng)
 
 
 def validation_set(names: list[str], root: Path, per_volume: int, seed: int = 12345,
