@@ -87,6 +87,7 @@ def csf_mask_upload(name: str, volume: Volume, mask: NDArray) -> StackUpload:
     """A stack with a skull-inside mask, as ``/v1/predict`` gets it with ``masks_hold_csf``."""
     return StackUpload(name, volume, Volume(np.asarray(mask).astype(np.uint8), volume.affine), mask_holds_csf=True)
 
+
 def median_ed(a: list[dict], b: list[dict], prepared: list) -> tuple[float | None, int]:
     """Median E.D. (mm) between the slice poses of two answers for the same stacks, over the slices
     neither calls ``empty``."""
