@@ -116,3 +116,28 @@ def test_an_offset_dilates_wobbled_masks_by_about_its_size() -> None:
                        np.random.default_rng(0))
     radius = np.sqrt(out.sum(axis=(1, 2)) / np.pi)
     np.testing.assert_allclose(radius, 33.0, atol=0.6)
+
+
+def test_the_padded_distance_map_samples_the_brains_own_distance_at_each_pixels_atlas_point(phantom_atlas: Path) -> None:
+    """Each slice pixel, carried to atlas mm by its pose and to the unpadded volume's voxels by the
+    atlas's affine, has there (trilinear) the signed distance the simulator sampled from its padded
+    map: the padded map's affine is the crop's, moved by the pad."""
+    from scipy import ndimage as nd
+
+    from model_export.atlas import signed_distance
+    from service.geometry.pose import slice_pixel_coordinates
+
+    vol = load_volumes(["STA30"], phantom_atlas)[0]
+    sim = SliceSimulator([vol], SimulationConfig(surroundings_share=1.0))
+    poses = iterators.random_poses(3, np.random.default_rng(4), tz_max_mm=5.0, centre=vol.centre)
+    distance = sim.distance(0, poses, 1.3)
+    size = distance.shape[1]
+    xy = slice_pixel_coordinates(size, 1.3)
+    plane = np.concatenate([xy, np.zeros((size, size, 1)), np.ones((size, size, 1))], axis=-1)     # [L, L, 4]
+    voxel = np.einsum("ij,bjk,rck->brci", np.linalg.inv(vol.affine), poses, plane)[..., :3]
+    spacing = np.sqrt((vol.affine[:3, :3] ** 2).sum(0))
+    own = nd.map_coordinates(signed_distance(vol.mask > 0.5, spacing), np.moveaxis(voxel, -1, 0), order=1, mode="nearest")
+    inside_crop = np.all((voxel > 1) & (voxel < np.array(vol.mask.shape) - 2), axis=-1)
+    near_brain = inside_crop & (own < 2.0)          # within the crop, where the crop cuts no distance short
+    assert near_brain.sum() > 100
+    np.testing.assert_allclose(distance[near_brain], own[near_brain], atol=0.05)
