@@ -105,9 +105,36 @@ class Block:
 
 
 def decompose(yv: NDArray, sig: NDArray, shape: NDArray, z: NDArray, cv: NDArray, correlations: tuple[float, ...],
-              neighbour_slices: float) -> list[Block]:
+              neighbour_slices: float, memo: dict | None = None) -> list[Block]:
     """The blocks of the voting slices' coordinates ``yv [m, 6]`` (stack frame), their errors
-    ``sig * sqrt(shape[:, d])`` in slice coordinates, offsets ``z [m]`` and motion correlations ``cv [c, m, m]``."""
+    ``sig * sqrt(shape[:, d])`` in slice coordinates, offsets ``z [m]`` and motion correlations ``cv [c, m, m]``.
+
+    The eigendecompositions depend on everything but ``yv``: with ``memo`` (a dict the caller keeps),
+    a second call with the same errors, offsets and correlations (a stack's final fit, whose votes
+    and branches the earlier fit left as they were, or chose on the same votes) reuses them and only
+    projects its own ``yv``.
+    """
+    key = None if memo is None else (np.asarray(sig, np.float64).tobytes(), np.asarray(shape, np.float64).tobytes(),
+                                     np.asarray(z, np.float64).tobytes(), np.asarray(cv, np.float64).tobytes(),
+                                     tuple(correlations), neighbour_slices)
+    if memo is not None and key in memo:
+        return [_project(bl, yv) for bl in memo[key]]
+    blocks = _factorise(yv, sig, shape, z, cv, correlations, neighbour_slices)
+    if memo is not None:
+        memo[key] = blocks
+    return blocks
+
+
+def _project(bl: Block, yv: NDArray) -> Block:
+    """``bl`` (its factorisation) with the observations ``yv [m, 6]`` instead of its own."""
+    y = bl.b @ yv[:, list(bl.coords)].T.reshape(-1)
+    yt = (np.swapaxes(bl.u, -1, -2) @ (bl.w @ y)[None, :, :, None])[..., 0]
+    return Block(bl.coords, bl.b, bl.w, bl.logdet, bl.lam, bl.u, y, yt)
+
+
+def _factorise(yv: NDArray, sig: NDArray, shape: NDArray, z: NDArray, cv: NDArray, correlations: tuple[float, ...],
+               neighbour_slices: float) -> list[Block]:
+    """:func:`decompose` without a memo."""
     m = len(sig)
     cache: dict[bytes, tuple[NDArray, NDArray]] = {}
     out = []
@@ -128,9 +155,7 @@ def decompose(yv: NDArray, sig: NDArray, shape: NDArray, z: NDArray, cv: NDArray
             prior[:, i * m:(i + 1) * m, i * m:(i + 1) * m] = cv
         wb = w @ b                                                                          # [r, qm, qm]
         lam, u = np.linalg.eigh(wb[None] @ prior[:, None] @ np.swapaxes(wb, 1, 2)[None] + JITTER * np.eye(q * m))
-        y = b @ yv[:, list(coords)].T.reshape(-1)
-        yt = (np.swapaxes(u, -1, -2) @ (w @ y)[None, :, :, None])[..., 0]
-        out.append(Block(coords, b, w, logdet, np.maximum(lam, 0.0), u, y, yt))
+        out.append(_project(Block(coords, b, w, logdet, np.maximum(lam, 0.0), u, np.zeros(0), np.zeros(0)), yv))
     return out
 
 

@@ -146,7 +146,7 @@ def _correlations(times: dict[str, NDArray], lengths: tuple[float, ...]) -> tupl
 
 def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dict[str, NDArray],
                centre: NDArray, grid: Grid = Grid(), axes: NDArray | None = None,
-               noise_shape: NDArray | None = None, lever_mm: NDArray | None = None) -> MotionFit:
+               noise_shape: NDArray | None = None, lever_mm: NDArray | None = None, memo: dict | None = None) -> MotionFit:
     """Choose and apply the motion model of one stack (see the module docstring).
 
     The covariance of the voting slices' coordinates is ``a^2 K + g^2 E_r`` (motion plus network
@@ -177,6 +177,8 @@ def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dic
         lever_mm: ``[n]`` each slice origin's offset from ``centre`` along the normal (mm): the errors
             are then independent in the slices' own coordinates, where a tilt and an in-plane shift
             of the centre are one error (:mod:`service.consistency.motion_blocks`); default 0.
+        memo: a dict kept between fits of one stack: a fit with the same errors, times and grid
+            as an earlier one reuses its eigendecompositions (:func:`~service.consistency.motion_blocks.decompose`).
     """
     q = np.eye(3) if axes is None else np.asarray(axes, dtype=np.float64)
     y = to_coordinates(proposals, rigid, centre)
@@ -188,7 +190,7 @@ def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dic
                             (len(y), 6))[vote]                                              # [m, 6]
     combos, corr = _correlations(times, grid.lengths)
     cv = corr[:, vote][:, :, vote]                                                          # [c, m, m]
-    blocks = decompose(y[vote], noise, shape, z[vote], cv, grid.error_correlations, ERROR_CORRELATION_SLICES)
+    blocks = decompose(y[vote], noise, shape, z[vote], cv, grid.error_correlations, ERROR_CORRELATION_SLICES, memo)
     amps = np.asarray(grid.amplitudes_mm, dtype=np.float64) ** 2
     scales = np.asarray(grid.noise_scales, dtype=np.float64) ** 2
     nll = block_nll(blocks, amps, scales)                                                   # [c, r, a, g]

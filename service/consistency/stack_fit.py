@@ -242,7 +242,8 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     # a slice far from the rigid fit may just have moved: every usable slice is weighed again by
     # how well the others predict it, in units of the spread both errors explain
     votes = _votes(ed(motion.loo @ inv_n, own), motion, sig, use)
-    motion = fit_motion(chosen, s, votes, orders, centre, **shape)
+    memo: dict = {}                        # the final fit reuses this one's eigendecompositions where its votes are these
+    motion = fit_motion(chosen, s, votes, orders, centre, memo=memo, **shape)
     first = branch
     branch = _branch(ed((motion.loo @ inv_n)[:, None], cand))
     margin = _branch_margin(proposals, cand, branch, inv_n, w, inliers)
@@ -273,7 +274,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
         return StackFit(p.copy(), np.zeros(n, bool), np.zeros(n, bool), r_loo, False, s, fraction, motion.order,
                         motion.length, network_mm, model_mm)
     final_votes = np.where(use & ~inconsistent, np.where(np.isfinite(votes), votes, sig), NO_VOTE)
-    final = fit_motion(chosen, s, final_votes, orders, centre, **shape)     # every model again, averaged
+    final = fit_motion(chosen, s, final_votes, orders, centre, memo=memo, **shape)   # every model again, averaged
     return StackFit(final.poses @ inv_n, branch == 1, inconsistent, r_loo, True, final.placement, fraction, final.order,
                     final.length, network_mm, model_mm, margin, final.sd_mm, final.placement_sd_mm, centre,
                     final.placement_cov, by_request)

@@ -47,6 +47,8 @@ from service.preprocess.slices import PreparedSlices, preprocess_slices
 from service.preprocess.stack import StackSlices, slice_axis_of, split_stack
 
 GRID_TOLERANCE_MM = 1e-3
+STAGE_WORKERS = 2
+"""Stacks through the stack-consistency stage at a time (threads: its eigendecompositions release the GIL)."""
 
 
 @dataclass
@@ -276,12 +278,15 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
     frames = [s.network_from_voxel() for s in prepared]
     shape = getattr(info, "mc_error_shape", None)
     gain = float(getattr(info, "mc_error_depth_gain", 0.0))
-    outs = [stack_poses(e, s, nfv, stack_consistency, plane_x_mm, e.spread_mm * scale, order, shape, gain)
-            for e, s, nfv, order in zip(parts, prepared, frames, orders)]
-    reference = request_reference(outs) if stack_consistency else None
-    if reference is not None:              # a stack that did not decide its branch takes the others' word
-        outs = [stack_poses(e, s, nfv, True, plane_x_mm, e.spread_mm * scale, order, shape, gain, reference)
-                if undecided(out) else out for e, s, nfv, order, out in zip(parts, prepared, frames, orders, outs)]
+    with ThreadPoolExecutor(max_workers=max(1, min(STAGE_WORKERS, len(prepared)))) as pool:   # LAPACK frees the GIL
+        outs = list(pool.map(lambda e, s, nfv, order: stack_poses(e, s, nfv, stack_consistency, plane_x_mm,
+                                                                  e.spread_mm * scale, order, shape, gain),
+                             parts, prepared, frames, orders))
+        reference = request_reference(outs) if stack_consistency else None
+        if reference is not None:          # a stack that did not decide its branch takes the others' word
+            outs = list(pool.map(lambda e, s, nfv, order, out: stack_poses(
+                e, s, nfv, True, plane_x_mm, e.spread_mm * scale, order, shape, gain, reference)
+                if undecided(out) else out, parts, prepared, frames, orders, outs))
     if stack_consistency:
         pool_request(outs)
     timings["stack_consistency"] = time.perf_counter() - t

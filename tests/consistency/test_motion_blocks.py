@@ -66,6 +66,29 @@ def test_the_blocks_likelihood_is_the_dense_gaussians() -> None:
             np.testing.assert_allclose(got[i, j], want, rtol=1e-4)
 
 
+def test_a_memo_reuses_the_factorisation_for_other_observations_only() -> None:
+    """With a memo, a second call with the same errors, offsets and correlations reuses the
+    eigendecompositions and gives what a fresh call gives for its own observations; other errors
+    factorise anew."""
+    rng = np.random.default_rng(6)
+    m = 8
+    t = np.arange(m, dtype=float)
+    k = np.stack([np.exp(-0.5 * ((t[:, None] - t[None]) / length) ** 2) for length in (1.0, 3.0)])
+    z, sig, shape = rng.uniform(-1, 1, m), rng.uniform(3, 9, m), rng.uniform(0.1, 3.0, (m, 6))
+    y1, y2 = rng.normal(0, 5, (m, 6)), rng.normal(0, 5, (m, 6))
+    memo: dict = {}
+    first = decompose(y1, sig, shape, z, k, (0.0, 0.5), 1.5, memo)
+    again = decompose(y2, sig, shape, z, k, (0.0, 0.5), 1.5, memo)
+    fresh = decompose(y2, sig, shape, z, k, (0.0, 0.5), 1.5)
+    assert len(memo) == 1 and all(a.u is f.u for a, f in zip(again, first))
+    for a, f in zip(again, fresh):
+        np.testing.assert_allclose(a.yt, f.yt, atol=1e-9)
+        np.testing.assert_allclose(a.y, f.y)
+    np.testing.assert_allclose(nll(again, np.array([4.0]), np.array([1.0])), nll(fresh, np.array([4.0]), np.array([1.0])))
+    decompose(y2, sig * 1.5, shape, z, k, (0.0, 0.5), 1.5, memo)
+    assert len(memo) == 2
+
+
 def test_leave_one_out_is_the_fit_without_the_slice() -> None:
     """With independent errors, what the others predict for a slice (``loo``) is the pose a fit in
     which it does not vote gives it: the closed form over a coupled block equals refitting."""
