@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import sparse
+from scipy import linalg, sparse
 
 from service.consistency.intersections import BlockedStack, ImageTerm, SampledStack, StackImages, candidate_pairs, lines
 from service.geometry import se3
@@ -134,9 +134,9 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
             current = poses_at(params)
             return image_jacobian(term, current @ network_from_slice, current, col, noise)
 
-        costs.append(_mean_square(residual(x), term.sw))
-        x = _gauss_newton(residual, jac, x, prior, iterations)
         r = residual(x)
+        costs.append(_mean_square(r, term.sw))
+        x, r = _gauss_newton(residual, jac, x, prior, iterations, r)
         costs.append(_mean_square(r, term.sw))
         mismatch = _per_slice(r, term.sw, term.pairs[term.pair_of], len(p0))
     final = atlas_from_slice(x) @ se3.inverse(network_from_slice)
@@ -205,24 +205,31 @@ def expected_after(expected_error_mm: list[NDArray], relative: list[NDArray]) ->
             for e, m in zip(expected_error_mm, relative)]
 
 
-def _gauss_newton(residual, jacobian, x: NDArray, prior: NDArray, iterations: int) -> NDArray[np.float64]:  # noqa: ANN001
+def _gauss_newton(residual, jacobian, x: NDArray, prior: NDArray, iterations: int,  # noqa: ANN001
+                  r: NDArray | None = None) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Levenberg-Marquardt on the soft-L1 image residuals plus the Gaussian prior ``x / prior``
-    (IRLS weights; ``jacobian(x)`` the residuals' sparse Jacobian)."""
+    (IRLS weights; ``jacobian(x)`` the residuals' sparse CSR Jacobian; ``r`` the residuals at ``x``
+    where known). Returns the parameters and their residuals.
+
+    The damped normal matrix is symmetric positive definite (the prior's diagonal alone makes it
+    so): it is solved by Cholesky."""
 
     def cost(r: NDArray, params: NDArray) -> float:
         return float(np.sum(2.0 * (np.sqrt(1.0 + r ** 2) - 1.0)) + np.sum((params / prior) ** 2))
 
-    r = residual(x)
+    r = residual(x) if r is None else r
     c = cost(r, x)
     mu = 1e-3
     for _ in range(iterations):
         jac = jacobian(x)
         omega = 1.0 / np.sqrt(1.0 + r ** 2)                                 # IRLS weights of the soft-L1 loss
-        jw = jac.multiply(omega[:, None]).tocsr()
+        jw = jac.copy()
+        jw.data *= np.repeat(omega, np.diff(jac.indptr))                    # rows scaled, the pattern kept
         hess = (jac.T @ jw).toarray() + np.diag(1.0 / prior.ravel() ** 2)
         grad = jw.T @ r + (x / prior ** 2).ravel()
         while True:
-            step = np.linalg.solve(hess + mu * np.diag(np.diag(hess)), -grad)
+            step = linalg.cho_solve(linalg.cho_factor(hess + mu * np.diag(np.diag(hess)), check_finite=False),
+                                    -grad, check_finite=False)
             trial = x + step.reshape(x.shape)
             r_trial = residual(trial)
             c_trial = cost(r_trial, trial)
@@ -233,10 +240,10 @@ def _gauss_newton(residual, jacobian, x: NDArray, prior: NDArray, iterations: in
                 break
             mu *= 10.0
             if mu > 1e6:
-                return x
+                return x, r
         if done:
             break
-    return x
+    return x, r
 
 
 def _prior_sd(sd_mm: NDArray) -> NDArray[np.float64]:

@@ -149,6 +149,13 @@ class BlockedStack:
     masks: NDArray[np.float32]
     factors: tuple[int, int]
     origin: tuple[int, int]
+    smoothed_masks: NDArray[np.float32] | None = None
+    """The masks smoothed by one block (every pass samples the same; worked out on first use)."""
+
+    def masks_smoothed(self) -> NDArray[np.float32]:
+        if self.smoothed_masks is None:
+            self.smoothed_masks = ndimage.gaussian_filter(self.masks, (0.0, 1.0, 1.0))
+        return self.smoothed_masks
 
     @classmethod
     def of(cls, s: StackImages) -> "BlockedStack":
@@ -179,7 +186,7 @@ class SampledStack:
         r0, c0 = blocked.origin
         pixel = (s.pixel_mm[0] * f[0], s.pixel_mm[1] * f[1])
         self.images = ndimage.gaussian_filter(images, (0.0, sigma_mm / pixel[0], sigma_mm / pixel[1]))
-        self.masks = ndimage.gaussian_filter(masks, (0.0, 1.0, 1.0))
+        self.masks = blocked.masks_smoothed()
         pad = ((0, 0), (1, 1), (1, 1))                                      # a zero border: bilinear fades to 0
         self.images_flat = np.pad(self.images, pad).ravel()
         self.masks_flat = np.pad(self.masks, pad).ravel()
@@ -198,14 +205,23 @@ class SampledStack:
     def sample(self, which: NDArray, rc: NDArray, masks: bool = False) -> NDArray[np.float32]:
         """Values of slices ``which`` ``[P]`` at pixels ``rc`` ``[P, 2]`` (bilinear; 0 beyond the
         image, fading over its border pixel)."""
-        return self._bilinear(self.masks_flat if masks else self.images_flat, *self._cells(which, rc))
+        return self.sample_cells(self.cells(which, rc), masks)
 
     def sample_gradient(self, which: NDArray, rc: NDArray) -> NDArray[np.float32]:
         """``[P, 2]`` the smoothed image's derivatives along rows and columns (per pixel) there."""
-        cells = self._cells(which, rc)
+        return self.gradient_cells(self.cells(which, rc))
+
+    def sample_cells(self, cells: tuple[NDArray, ...], masks: bool = False) -> NDArray[np.float32]:
+        """:meth:`sample` at the :meth:`cells` of some points."""
+        return self._bilinear(self.masks_flat if masks else self.images_flat, *cells)
+
+    def gradient_cells(self, cells: tuple[NDArray, ...]) -> NDArray[np.float32]:
+        """:meth:`sample_gradient` at the :meth:`cells` of some points."""
         return np.stack([self._bilinear(g, *cells) for g in self.gradient_flat], axis=1)
 
-    def _cells(self, which: NDArray, rc: NDArray) -> tuple[NDArray, ...]:
+    def cells(self, which: NDArray, rc: NDArray) -> tuple[NDArray, ...]:
+        """Where points fall among the pixels: the flat index of each one's top-left pixel, its
+        fractions along rows and columns, and whether it lies inside the image."""
         h, w = self.padded
         r, c = rc[:, 0] + 1.0, rc[:, 1] + 1.0
         inside = (r >= 0) & (r < h - 1) & (c >= 0) & (c < w - 1)
@@ -265,6 +281,7 @@ class ImageTerm:
     def _index(self) -> None:
         """Per (role, stack): the pairs whose slice in that role is of that stack, and their points
         (what :meth:`values` gathers, worked out once per point set)."""
+        self._last = None
         self.groups = []
         for role in (0, 1):
             g = self.pairs[:, role]
@@ -278,33 +295,41 @@ class ImageTerm:
                 self.groups.append((role, s, mine, g[mine], rows, where[self.pair_of[rows]],
                                     self.local[g[self.pair_of[rows]]], self.t[self.t_of[rows]][:, None]))
 
-    def _where(self, atlas_from_slice: NDArray):  # noqa: ANN202 - a generator of tuples
-        """Per (role, stack) group: the stack, the group's rows, their slices (global and in the
-        stack) and their pixels ``[P_s, 2]`` in those slices."""
+    def _where(self, atlas_from_slice: NDArray) -> tuple[NDArray, list[tuple]]:
+        """Each pair's line (its base point and the point 1 mm along it, ``[M, 2, 3]``) and, per
+        (role, stack) group: the stack, the group's rows, their slices (global) and where their
+        points fall among those slices' pixels (:meth:`SampledStack.cells`). The last poses' answer
+        is kept: the Jacobian at a pose set follows the residuals at the same poses."""
+        if self._last is not None and np.array_equal(self._last[0], atlas_from_slice):
+            return self._last[1], self._last[2]
         line = pair_points(atlas_from_slice, atlas_from_slice, self.pairs, np.array([0.0, 1.0]))   # base, base + d
         inv = se3.inverse(atlas_from_slice)
+        sites = []
         for role, s, mine, g, rows, pos, k, t in self.groups:
-            ends = self.sampled[s].line_pixels(inv[g], line[mine])[pos]            # [P_s, 2, 2]
-            yield role, self.sampled[s], rows, g[pos], k, ends[:, 0] + t * (ends[:, 1] - ends[:, 0])
+            st = self.sampled[s]
+            ends = st.line_pixels(inv[g], line[mine])[pos]                         # [P_s, 2, 2]
+            sites.append((role, st, rows, g[pos], st.cells(k, ends[:, 0] + t * (ends[:, 1] - ends[:, 0]))))
+        self._last = (np.array(atlas_from_slice, copy=True), line, sites)
+        return line, sites
 
     def points(self, atlas_from_slice: NDArray) -> NDArray[np.float64]:
         """``[P, 3]`` each point in the atlas."""
-        line = pair_points(atlas_from_slice, atlas_from_slice, self.pairs, np.array([0.0, 1.0]))[self.pair_of]
+        line = self._where(atlas_from_slice)[0][self.pair_of]
         return line[:, 0] + self.t[self.t_of][:, None] * (line[:, 1] - line[:, 0])
 
     def values(self, atlas_from_slice: NDArray, masks: bool = False) -> NDArray[np.float32]:
         """``[2, P]`` both slices' values at each point (images, or masks)."""
         out = np.zeros((2, len(self.pair_of)), np.float32)
-        for role, st, rows, _, k, rc in self._where(atlas_from_slice):
-            out[role, rows] = st.sample(k, rc, masks)
+        for role, st, rows, _, cells in self._where(atlas_from_slice)[1]:
+            out[role, rows] = st.sample_cells(cells, masks)
         return out
 
     def gradients(self, atlas_from_slice: NDArray) -> NDArray[np.float64]:
         """``[2, P, 3]`` both slices' image gradients at each point (per atlas mm, in each slice's
         plane): what the residuals' derivatives need besides the geometry."""
         grad = np.zeros((2, len(self.pair_of), 3))
-        for role, st, rows, slices, k, rc in self._where(atlas_from_slice):
-            gp = st.sample_gradient(k, rc)                                        # per pixel (row, col)
+        for role, st, rows, slices, cells in self._where(atlas_from_slice)[1]:
+            gp = st.gradient_cells(cells)                                         # per pixel (row, col)
             in_plane = gp[:, :1] * st.pixel_from_slice[0, :3] + gp[:, 1:] * st.pixel_from_slice[1, :3]
             grad[role, rows] = np.einsum("pij,pj->pi", atlas_from_slice[slices, :3, :3], in_plane)
         return grad
