@@ -18,6 +18,8 @@ Example:
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,6 +49,8 @@ MIN_LINE_WEIGHT = 1.0
 """A pair takes part when its line crosses both brains over this many points' worth (mask weights)."""
 TOLERANCE = 1e-2
 """A pass ends when an iteration lowers the objective by less than this fraction."""
+SMOOTHING_WORKERS = 2
+"""Stacks smoothed at a time (threads) before the passes."""
 
 
 @dataclass
@@ -116,11 +120,10 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
     costs: list[float] = []
     used = 0
     mismatch = np.full(len(p0), np.nan)
-    blocked = [BlockedStack.of(s) for s in stacks]
-    for sigma in sigmas_mm:
+    for sigma, smoothed in _smoothed_passes(stacks, sigmas_mm):
         step = max(spacing_mm, sigma)                                   # a smoother pass needs fewer points
         t = np.arange(-radius, radius + 1e-9, step)
-        term = ImageTerm([SampledStack(s, sigma, b) for s, b in zip(stacks, blocked)], stack_of, local, pairs, t)
+        term = ImageTerm(smoothed, stack_of, local, pairs, t)
         w = np.clip(np.prod(term.values(atlas_from_slice(x), masks=True), axis=0), 0.0, 1.0).astype(np.float64)
         term.select(w, min_weight=MIN_LINE_WEIGHT)
         if not len(term.pair_of):
@@ -151,6 +154,15 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
     cut = lambda a: [a[i:j] for i, j in zip(bounds[:-1], bounds[1:])]  # noqa: E731
     return Refinement(cut(final), cut(moved), used, costs[0] if costs else np.nan, costs[-1] if costs else np.nan,
                       cut(mismatch))
+
+
+def _smoothed_passes(stacks: list[StackImages], sigmas_mm: tuple[float, ...]) -> Iterator[tuple[float, list[SampledStack]]]:
+    """Each pass's smoothing and the stacks smoothed by it, :data:`SMOOTHING_WORKERS` stacks at a
+    time (the filters release the GIL); one pass's images at a time are kept."""
+    with ThreadPoolExecutor(max_workers=SMOOTHING_WORKERS) as pool:
+        blocked = list(pool.map(BlockedStack.of, stacks))
+        for sigma in sigmas_mm:
+            yield sigma, list(pool.map(lambda sb: SampledStack(sb[0], sigma, sb[1]), zip(stacks, blocked)))
 
 
 def follow_neighbours(final: NDArray, start: NDArray, checked: NDArray, stack_of: NDArray,
