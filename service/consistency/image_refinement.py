@@ -32,10 +32,15 @@ from service.geometry.anchors import ed
 
 ANCHOR_RADIUS_MM = 40.0
 """Rotation errors are weighed as the shift they make this far from a slice's centre."""
-SIGMAS_MM = (3.0, 0.9)
-"""In-plane smoothing of the passes: coarse, then about a 3 mm slice's own profile across its plane
-(3 / sqrt(12) mm), so that two crossing thick slices see the same blur (at the true poses of a
-noise-free phantom the refinement then hardly moves them)."""
+PASSES_MM: tuple[tuple[float, float], ...] = ((4.5, 9.0), (3.0, 3.0), (0.9, 2.0))
+"""Each pass's in-plane smoothing and the spacing of its points along the lines (mm), coarse to
+fine. The finest smoothing is about a 3 mm slice's own profile across its plane (3 / sqrt(12) mm),
+so that two crossing thick slices see the same blur (at the true poses of a noise-free phantom the
+refinement then hardly moves them); the coarse passes bring slices that moved far within reach of
+the finer ones: under jumping and independent motion the 4.5 mm pass, its points two sigmas
+apart, leaves fewer slices far off. Smoothing in the plane only, a coarse pass's optimum lies off
+the truth (the two slices' 3D blurs differ); a 6 mm pass puts it beyond the reach of the finest
+one (docs/consistency.md)."""
 REFINED_GAIN = 0.65
 """A refined slice's expected E.D.: this times the stage's, times the square root of its remaining
 mismatch over the request's median (:func:`expected_after`; fitted on simulated moderate
@@ -66,7 +71,7 @@ class Refinement:
 
 
 def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: list[NDArray], *,
-           sigmas_mm: tuple[float, ...] = SIGMAS_MM, spacing_mm: float = 2.0, noise: float = 0.15,
+           passes_mm: tuple[tuple[float, float], ...] = PASSES_MM, noise: float = 0.15,
            prior_weight: float = 1.0, iterations: int = 8) -> Refinement:
     """Refine every free slice's pose so that slices of different stacks agree where they cross.
 
@@ -74,8 +79,7 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
         stacks: each stack's images (:class:`StackImages`).
         poses: each stack's poses ``[n, 4, 4]`` (network frame -> atlas), the stage's output.
         expected_error_mm: each stack's expected E.D. per slice ``[n]`` (the prior's scale; non-finite: 10 mm).
-        sigmas_mm: in-plane smoothing of each pass, coarse to fine.
-        spacing_mm: spacing of the points along each intersection line.
+        passes_mm: each pass's in-plane smoothing and spacing of the points along the lines, coarse to fine.
         noise: the intensity difference (in units of a stack's median brain intensity) that counts
             as one standard deviation; the soft-L1 loss turns linear beyond it.
         prior_weight: multiplies the prior's residuals (1: the stage's expected errors as they are).
@@ -120,8 +124,7 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
     costs: list[float] = []
     used = 0
     mismatch = np.full(len(p0), np.nan)
-    for sigma, smoothed in _smoothed_passes(stacks, sigmas_mm):
-        step = max(spacing_mm, sigma)                                   # a smoother pass needs fewer points
+    for (_, step), smoothed in zip(passes_mm, _smoothed_passes(stacks, [p[0] for p in passes_mm])):
         t = np.arange(-radius, radius + 1e-9, step)
         term = ImageTerm(smoothed, stack_of, local, pairs, t)
         w = np.clip(np.prod(term.values(atlas_from_slice(x), masks=True), axis=0), 0.0, 1.0).astype(np.float64)
@@ -156,13 +159,13 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
                       cut(mismatch))
 
 
-def _smoothed_passes(stacks: list[StackImages], sigmas_mm: tuple[float, ...]) -> Iterator[tuple[float, list[SampledStack]]]:
-    """Each pass's smoothing and the stacks smoothed by it, :data:`SMOOTHING_WORKERS` stacks at a
+def _smoothed_passes(stacks: list[StackImages], sigmas_mm: list[float]) -> Iterator[list[SampledStack]]:
+    """The stacks smoothed by each of ``sigmas_mm`` in turn, :data:`SMOOTHING_WORKERS` stacks at a
     time (the filters release the GIL); one pass's images at a time are kept."""
     with ThreadPoolExecutor(max_workers=SMOOTHING_WORKERS) as pool:
         blocked = list(pool.map(BlockedStack.of, stacks))
         for sigma in sigmas_mm:
-            yield sigma, list(pool.map(lambda sb: SampledStack(sb[0], sigma, sb[1]), zip(stacks, blocked)))
+            yield list(pool.map(lambda sb: SampledStack(sb[0], sigma, sb[1]), zip(stacks, blocked)))
 
 
 def follow_neighbours(final: NDArray, start: NDArray, checked: NDArray, stack_of: NDArray,

@@ -58,7 +58,7 @@ def test_disturbed_poses_are_refined_towards_the_truth(acquisition) -> None:  # 
                          np.concatenate([t[k] for t, k in zip(truth, keep)]))
     assert out.pairs > 100 and out.cost_after < 0.5 * out.cost_before
     print(f"own-frame E.D. {before.mean():.2f} -> {after.mean():.2f} mm")
-    assert after.mean() < 0.35 * before.mean(), (before.mean(), after.mean())      # measured: 4.99 -> 1.47 mm
+    assert after.mean() < 0.35 * before.mean(), (before.mean(), after.mean())      # measured: 4.99 -> 1.73 mm
     # the request's frame stays where the disturbed poses put it (the images cannot see it)
     frame_before = se3.frechet_mean(np.concatenate(truth) @ se3.inverse(np.concatenate(start)), np.ones(sum(map(len, truth))))
     frame_after = se3.frechet_mean(np.concatenate(truth) @ se3.inverse(np.concatenate(out.poses)), np.ones(sum(map(len, truth))))

@@ -1,0 +1,144 @@
+"""The stages after the network, in variants, on the same cached network outputs: exact comparisons.
+
+The network's MC draws move a request's figures by tenths of a millimetre from run to run, as much
+as most changes of the stages do. So this script runs the network once per simulated acquisition
+(every held-out volume, ``--per-volume`` acquisitions per motion level, ``--seed``), keeps the
+prepared stacks and the network's estimates in ``--cache``, and sends the same estimates through
+``/v1/predict``'s stages (:func:`~service.pipeline.predict.predict_from_estimates`) once per
+variant. A variant is ``base`` or a ``;``-separated list of overrides:
+
+* ``consistency.stack_fit.OUTLIER_K=2.0``: a module constant under ``service.`` (a Python literal);
+* ``refine:passes_mm=((3.0, 3.0), (0.9, 2.0))``: a keyword of the image refinement
+  (:func:`~service.consistency.image_refinement.refine`).
+
+Per motion level it prints the mean E.D. against the truth and twin-min, the median E.D. once the
+acquisition's common rigid offset is undone (what the images can tell: "frame-free"), the share of
+slices under 5 mm and over 10 mm accepted (and how many are over 10 mm), and the variant's time.
+Slices with at least 20 mask pixels count, as in the evaluation. A cache made again holds other MC
+draws: its figures differ from another cache's by tenths of a millimetre, the variants within one
+cache are compared exactly.
+
+    .venv/bin/python model_export/experiments/stage_variants.py --cache /tmp/stages-21.pkl --seed 21 \\
+        base "refine:passes_mm=((3.0, 3.0), (0.9, 2.0))"                  # needs ../shared/data
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import importlib
+import pickle
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from model_export.acquisitions import MOTION_LEVELS, simulate_acquisition  # noqa: E402
+from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
+from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, prepare_acquisition  # noqa: E402
+from service.geometry import se3, twin  # noqa: E402
+from service.geometry.anchors import ed  # noqa: E402
+from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
+from service.inference.model_file import load_model  # noqa: E402
+import service.pipeline.predict as pipeline  # noqa: E402
+
+
+def build(model: Path, root: Path, levels: list[str], per_volume: int, seed: int) -> tuple:
+    """``(info, [(level, prepared stacks, estimates per stack, true poses per stack), ...])``."""
+    loaded = load_model(model)
+    estimator = OnnxPoseEstimator(loaded)
+    volumes = load_volumes(split(root)[1], root)
+    rng = np.random.default_rng(seed)
+    cases = []
+    for level in levels:
+        for vol in volumes * per_volume:
+            prepared, truth = prepare_acquisition(simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level),
+                                                  loaded.info)
+            parts, _ = pipeline.estimate_stacks(prepared, estimator, 100)
+            cases.append((level, prepared, parts, truth))
+    return loaded.info, cases
+
+
+def overridden(variant: str) -> list[tuple[object, str, object]]:
+    """Apply ``variant``'s overrides; returns what to put back."""
+    saved: list[tuple[object, str, object]] = []
+    if variant == "base":
+        return saved
+    for item in variant.split(";"):
+        name, value = (s.strip() for s in item.split("=", 1))
+        if name.startswith("refine:"):
+            saved.append((pipeline, "refine", pipeline.refine))
+            pipeline.refine = functools.partial(pipeline.refine, **{name[len("refine:"):]: eval(value)})  # noqa: S307
+            continue
+        module, constant = name.rsplit(".", 1)
+        target = importlib.import_module(f"service.{module}")
+        saved.append((target, constant, getattr(target, constant)))
+        setattr(target, constant, eval(value))                                                     # noqa: S307
+    return saved
+
+
+def frame_free(poses: np.ndarray, truth: np.ndarray, plane: float) -> np.ndarray:
+    """E.D. of each pose from the nearer of its truth and twin once the one rigid map taking the
+    acquisition's poses to those is applied."""
+    tw = twin.twin(truth, plane)
+    near = np.where((ed(poses, truth) <= ed(poses, tw))[:, None, None], truth, tw)
+    frame = se3.frechet_mean(near @ se3.inverse(poses), np.ones(len(poses)))
+    return ed(frame @ poses, near)
+
+
+def run(info, cases: list, variant: str) -> str:  # noqa: ANN001
+    """One variant over every cached acquisition: a line per motion level."""
+    saved = overridden(variant)
+    columns: dict[str, dict[str, list]] = defaultdict(lambda: defaultdict(list))
+    start = time.perf_counter()
+    try:
+        for level, prepared, parts, truth in cases:
+            predictions, _ = pipeline.predict_from_estimates(prepared, parts, info, info.variance_threshold)
+            keep = [p.prepared.prepared.mask_pixels >= MIN_MASK_PIXELS for p in predictions]
+            poses = np.concatenate([p.poses.poses[k] for p, k in zip(predictions, keep)])
+            true = np.concatenate([t[k] for t, k in zip(truth, keep)])
+            col = columns[level]
+            col["ed"].append(ed(poses, true))
+            col["twin_min"].append(twin.twin_min_ed(poses, true, info.symmetry_plane_x_mm))
+            col["frame_free"].append(frame_free(poses, true, info.symmetry_plane_x_mm))
+            col["accepted"].append(np.concatenate([np.array([r is None for r in p.reasons])[k]
+                                                   for p, k in zip(predictions, keep)]))
+    finally:
+        for target, name, value in saved:
+            setattr(target, name, value)
+    lines = [f"{variant}  ({time.perf_counter() - start:.0f} s)"]
+    for level, col in columns.items():
+        e, t, f, a = (np.concatenate(col[k]) for k in ("ed", "twin_min", "frame_free", "accepted"))
+        good, bad = e < 5, e > 10
+        bad_accepted = f"{100 * a[bad].mean():.0f} %" if bad.any() else "-"
+        lines.append(f"  {level:12s} E.D. {e.mean():.2f} / twin-min {t.mean():.2f} mm, frame-free median {np.median(f):.2f} mm;"
+                     f" accepted: {100 * a[good].mean():.0f} % of < 5 mm, {bad_accepted} of > 10 mm ({bad.sum()} slices)")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("variants", nargs="*", default=["base"])
+    ap.add_argument("--cache", type=Path, required=True, help="the network's outputs (a pickle; made when absent)")
+    ap.add_argument("--model", type=Path, default=Path("service/models/default/model.onnx"))
+    ap.add_argument("--root", type=Path, default=DEFAULT_ATLAS_ROOT)
+    ap.add_argument("--levels", default="mild,moderate,jumps,independent",
+                    help=f"of {', '.join(MOTION_LEVELS)} (extreme motion leaves every stack undecidable: the stages change nothing)")
+    ap.add_argument("--per-volume", type=int, default=2)
+    ap.add_argument("--seed", type=int, default=21)
+    args = ap.parse_args()
+    if not args.cache.exists():
+        with open(args.cache, "wb") as f:
+            pickle.dump(build(args.model, args.root, args.levels.split(","), args.per_volume, args.seed), f)
+    with open(args.cache, "rb") as f:
+        info, cases = pickle.load(f)                                                               # noqa: S301 - our own file
+    for variant in args.variants:
+        print(run(info, cases, variant), flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,36 @@
+"""The stage-variants experiment's two pieces of logic: overrides that are put back, and the
+frame-free error against an offset simulated here."""
+
+from __future__ import annotations
+
+import numpy as np
+
+import service.consistency.stack_fit as stack_fit
+import service.pipeline.predict as pipeline
+from model_export.experiments.stage_variants import frame_free, overridden
+from service.geometry import se3
+from service.geometry.twin import DEFAULT_PLANE_X_MM
+
+
+def test_overrides_apply_and_are_put_back() -> None:
+    k, refine = stack_fit.OUTLIER_K, pipeline.refine
+    saved = overridden("consistency.stack_fit.OUTLIER_K=2.0; refine:noise=0.1")
+    assert stack_fit.OUTLIER_K == 2.0 and pipeline.refine.keywords == {"noise": 0.1}
+    for target, name, value in saved:
+        setattr(target, name, value)
+    assert stack_fit.OUTLIER_K == k and pipeline.refine is refine
+    assert overridden("base") == []
+
+
+def test_a_common_offset_is_frame_free_and_a_slice_error_is_not() -> None:
+    """Poses all moved by one rigid map score 0 frame-free (they are that far from the truth); one slice
+    moved on its own keeps its move."""
+    rng = np.random.default_rng(1)
+    truth = se3.exp(np.concatenate([rng.normal(0, 0.3, (12, 3)), rng.normal(0, 15, (12, 3))], axis=1))
+    truth[:, 0, 3] += 30.0                                        # away from the mid-sagittal plane: no twin nearer
+    offset = se3.exp(np.array([0.04, -0.03, 0.02, 2.0, -1.0, 1.5]))
+    moved = offset @ truth
+    assert frame_free(moved, truth, DEFAULT_PLANE_X_MM).max() < 1e-6
+    moved[3] = moved[3] @ se3.exp(np.array([0.0, 0.0, 0.0, 0.0, 0.0, 6.0]))
+    left = frame_free(moved, truth, DEFAULT_PLANE_X_MM)
+    assert left[3] > 4.0 and np.median(left) < 1.0
