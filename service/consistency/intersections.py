@@ -150,9 +150,10 @@ class BlockedStack:
     factors: tuple[int, int]
     origin: tuple[int, int]
     smoothed_masks: NDArray[np.float32] | None = None
-    """The masks smoothed by one block (every pass samples the same; worked out on first use)."""
 
     def masks_smoothed(self) -> NDArray[np.float32]:
+        """The masks smoothed by one block: what every pass samples as the points' weights (worked
+        out on the first pass, kept for the others)."""
         if self.smoothed_masks is None:
             self.smoothed_masks = ndimage.gaussian_filter(self.masks, (0.0, 1.0, 1.0))
         return self.smoothed_masks
