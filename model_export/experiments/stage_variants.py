@@ -8,7 +8,7 @@ prepared stacks and the network's estimates in ``--cache``, and sends the same e
 variant. A variant is ``base`` or a ``;``-separated list of overrides:
 
 * ``consistency.stack_fit.OUTLIER_K=2.0``: a module constant under ``service.`` (a Python literal);
-* ``refine:passes_mm=((3.0, 3.0), (0.9, 2.0))``: a keyword of the image refinement
+* ``refine:passes=((3.0, 3.0, None), (0.9, 2.0, None))``: a keyword of the image refinement
   (:func:`~service.consistency.image_refinement.refine`).
 
 Per motion level it prints the mean E.D. against the truth and twin-min, the median E.D. once the
@@ -19,7 +19,7 @@ draws: its figures differ from another cache's by tenths of a millimetre, the va
 cache are compared exactly.
 
     .venv/bin/python model_export/experiments/stage_variants.py --cache /tmp/stages-21.pkl --seed 21 \\
-        base "refine:passes_mm=((3.0, 3.0), (0.9, 2.0))"                  # needs ../shared/data
+        base "refine:passes=((3.0, 3.0, None), (0.9, 2.0, None))"                  # needs ../shared/data
 """
 
 from __future__ import annotations

@@ -32,15 +32,18 @@ from service.geometry.anchors import ed
 
 ANCHOR_RADIUS_MM = 40.0
 """Rotation errors are weighed as the shift they make this far from a slice's centre."""
-PASSES_MM: tuple[tuple[float, float], ...] = ((4.5, 9.0), (3.0, 3.0), (0.9, 2.0))
-"""Each pass's in-plane smoothing and the spacing of its points along the lines (mm), coarse to
-fine. The finest smoothing is about a 3 mm slice's own profile across its plane (3 / sqrt(12) mm),
-so that two crossing thick slices see the same blur (at the true poses of a noise-free phantom the
-refinement then hardly moves them); the coarse passes bring slices that moved far within reach of
-the finer ones: under jumping and independent motion the 4.5 mm pass, its points two sigmas
-apart, leaves fewer slices far off. Smoothing in the plane only, a coarse pass's optimum lies off
-the truth (the two slices' 3D blurs differ); a 6 mm pass puts it beyond the reach of the finest
-one (docs/consistency.md)."""
+COARSE_POINTS = 8_000
+"""Points of the coarsest pass at most: it only brings slices within reach of the finer passes."""
+PASSES: tuple[tuple[float, float, int | None], ...] = ((4.5, 9.0, COARSE_POINTS), (3.0, 3.0, None), (0.9, 2.0, None))
+"""Each pass's in-plane smoothing and spacing of its points along the lines (mm), and its points at
+most (None: :data:`~service.consistency.intersections.MAX_POINTS`), coarse to fine. The finest
+smoothing is about a 3 mm slice's own profile across its plane (3 / sqrt(12) mm), so that two
+crossing thick slices see the same blur (at the true poses of a noise-free phantom the refinement
+then hardly moves them). The coarser passes bring slices that moved far within reach of the finer
+ones: under jumping and independent motion the 4.5 mm pass, its points two sigmas apart, leaves
+fewer slices far off. Smoothing in the plane only, a coarse pass's optimum lies off the truth (the
+two slices' 3D blurs differ): a 6 mm pass puts it beyond the finest pass's reach
+(docs/consistency.md)."""
 REFINED_GAIN = 0.65
 """A refined slice's expected E.D.: this times the stage's, times the square root of its remaining
 mismatch over the request's median (:func:`expected_after`; fitted on simulated moderate
@@ -71,7 +74,7 @@ class Refinement:
 
 
 def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: list[NDArray], *,
-           passes_mm: tuple[tuple[float, float], ...] = PASSES_MM, noise: float = 0.15,
+           passes: tuple[tuple[float, float, int | None], ...] = PASSES, noise: float = 0.15,
            prior_weight: float = 1.0, iterations: int = 8) -> Refinement:
     """Refine every free slice's pose so that slices of different stacks agree where they cross.
 
@@ -79,7 +82,8 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
         stacks: each stack's images (:class:`StackImages`).
         poses: each stack's poses ``[n, 4, 4]`` (network frame -> atlas), the stage's output.
         expected_error_mm: each stack's expected E.D. per slice ``[n]`` (the prior's scale; non-finite: 10 mm).
-        passes_mm: each pass's in-plane smoothing and spacing of the points along the lines, coarse to fine.
+        passes: each pass's in-plane smoothing and spacing of the points along the lines (mm), and its
+            points at most (None: :data:`~service.consistency.intersections.MAX_POINTS`), coarse to fine.
         noise: the intensity difference (in units of a stack's median brain intensity) that counts
             as one standard deviation; the soft-L1 loss turns linear beyond it.
         prior_weight: multiplies the prior's residuals (1: the stage's expected errors as they are).
@@ -124,11 +128,11 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
     costs: list[float] = []
     used = 0
     mismatch = np.full(len(p0), np.nan)
-    for (_, step), smoothed in zip(passes_mm, _smoothed_passes(stacks, [p[0] for p in passes_mm])):
+    for (_, step, budget), smoothed in zip(passes, _smoothed_passes(stacks, [p[0] for p in passes])):
         t = np.arange(-radius, radius + 1e-9, step)
         term = ImageTerm(smoothed, stack_of, local, pairs, t)
         w = np.clip(np.prod(term.values(atlas_from_slice(x), masks=True), axis=0), 0.0, 1.0).astype(np.float64)
-        term.select(w, min_weight=MIN_LINE_WEIGHT)
+        term.select(w, min_weight=MIN_LINE_WEIGHT, max_points=budget)
         if not len(term.pair_of):
             break
         used = len(term.pairs)

@@ -264,16 +264,18 @@ class ImageTerm:
         self.sw = np.ones(len(self.pair_of))
         self._index()
 
-    def select(self, w: NDArray, min_weight: float) -> None:
+    def select(self, w: NDArray, min_weight: float, max_points: int | None = None) -> None:
         """Keep the points of pairs whose lines cross both brains over ``min_weight`` points' worth,
-        where both masks are (nearly) nonzero; weights fixed from here on."""
+        where both masks are (nearly) nonzero, at most ``max_points`` (default :data:`MAX_POINTS`;
+        whole lines); weights fixed from here on."""
+        max_points = MAX_POINTS if max_points is None else max_points
         total = np.bincount(self.pair_of, weights=w, minlength=len(self.pairs))
         keep = (w > 1e-3) & (total[self.pair_of] >= min_weight)
         count = np.bincount(self.pair_of[keep], minlength=len(self.pairs))
-        if count.sum() > MAX_POINTS:               # many stacks: a fixed random share of the pairs, whole lines
+        if count.sum() > max_points:               # many stacks: a fixed random share of the pairs, whole lines
             order = np.random.default_rng(0).permutation(len(self.pairs))
             chosen = np.zeros(len(self.pairs), bool)
-            chosen[order[np.cumsum(count[order]) <= MAX_POINTS]] = True
+            chosen[order[np.cumsum(count[order]) <= max_points]] = True
             keep &= chosen[self.pair_of]
         used, pair_of = np.unique(self.pair_of[keep], return_inverse=True)
         self.pairs, self.pair_of, self.t_of, self.sw = self.pairs[used], pair_of, self.t_of[keep], np.sqrt(w[keep])
