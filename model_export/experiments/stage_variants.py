@@ -40,7 +40,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from model_export.acquisitions import MOTION_LEVELS, simulate_acquisition  # noqa: E402
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, prepare_acquisition  # noqa: E402
-from service.geometry import se3, twin  # noqa: E402
+from model_export.experiments.frame_bias import common_frame  # noqa: E402
+from service.geometry import twin  # noqa: E402
 from service.geometry.anchors import ed  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
 from service.inference.model_file import load_model  # noqa: E402
@@ -82,12 +83,10 @@ def overridden(variant: str) -> list[tuple[object, str, object]]:
 
 
 def frame_free(poses: np.ndarray, truth: np.ndarray, plane: float) -> np.ndarray:
-    """E.D. of each pose from the nearer of its truth and twin once the one rigid map taking the
-    acquisition's poses to those is applied."""
-    tw = twin.twin(truth, plane)
-    near = np.where((ed(poses, truth) <= ed(poses, tw))[:, None, None], truth, tw)
-    frame = se3.frechet_mean(near @ se3.inverse(poses), np.ones(len(poses)))
-    return ed(frame @ poses, near)
+    """E.D. of each pose from the nearer of its truth and twin once the acquisition's common error
+    (:func:`~model_export.experiments.frame_bias.common_frame`, about the slices' centre) is undone."""
+    near = twin.nearer(poses, truth, plane)
+    return common_frame(poses, near, near[:, :3, 3].mean(axis=0))[1]
 
 
 def run(info, cases: list, variant: str) -> str:  # noqa: ANN001

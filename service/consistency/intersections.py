@@ -123,7 +123,7 @@ def candidate_pairs(atlas_from_slice: NDArray, stack_of: NDArray, free: NDArray)
 
 CROP_MARGIN_MM = 15.0
 """The images are kept this far beyond the union of a stack's brain masks (in-plane): the widest
-smoothing (3 mm, three sigmas) and the points' moves stay inside it, so the crop changes no value
+smoothing (4.5 mm, three sigmas) and the points' moves stay inside it, so the crop changes no value
 the image term samples."""
 
 
@@ -147,16 +147,9 @@ class BlockedStack:
 
     images: NDArray[np.float32]
     masks: NDArray[np.float32]
+    """The masks averaged over blocks, then smoothed by one block: the points' weights in every pass."""
     factors: tuple[int, int]
     origin: tuple[int, int]
-    smoothed_masks: NDArray[np.float32] | None = None
-
-    def masks_smoothed(self) -> NDArray[np.float32]:
-        """The masks smoothed by one block: what every pass samples as the points' weights (worked
-        out on the first pass, kept for the others)."""
-        if self.smoothed_masks is None:
-            self.smoothed_masks = ndimage.gaussian_filter(self.masks, (0.0, 1.0, 1.0))
-        return self.smoothed_masks
 
     @classmethod
     def of(cls, s: StackImages) -> "BlockedStack":
@@ -173,7 +166,8 @@ class BlockedStack:
                 lo = int(max(hit[0] - margin, 0) // f[axis] * f[axis])
                 box[axis] = slice(lo, int(min(hit[-1] + margin + 1, (h, w)[axis])))
         images, masks = s.images[:, box[0], box[1]], s.masks[:, box[0], box[1]]
-        return cls(_blocks(images.astype(np.float32) / max(scale, 1e-6), f), _blocks(masks.astype(np.float32), f), f,
+        return cls(_blocks(images.astype(np.float32) / max(scale, 1e-6), f),
+                   ndimage.gaussian_filter(_blocks(masks.astype(np.float32), f), (0.0, 1.0, 1.0)), f,
                    (box[0].start, box[1].start))
 
 
@@ -182,12 +176,12 @@ class SampledStack:
 
     def __init__(self, s: StackImages, sigma_mm: float, blocked: BlockedStack | None = None) -> None:
         blocked = blocked or BlockedStack.of(s)
-        images, masks, f = blocked.images, blocked.masks, blocked.factors
+        images, f = blocked.images, blocked.factors
         h, w = s.images.shape[1:]
         r0, c0 = blocked.origin
         pixel = (s.pixel_mm[0] * f[0], s.pixel_mm[1] * f[1])
         self.images = ndimage.gaussian_filter(images, (0.0, sigma_mm / pixel[0], sigma_mm / pixel[1]))
-        self.masks = blocked.masks_smoothed()
+        self.masks = blocked.masks
         pad = ((0, 0), (1, 1), (1, 1))                                      # a zero border: bilinear fades to 0
         self.images_flat = np.pad(self.images, pad).ravel()
         self.masks_flat = np.pad(self.masks, pad).ravel()
