@@ -122,9 +122,10 @@ def candidate_pairs(atlas_from_slice: NDArray, stack_of: NDArray, free: NDArray)
 
 
 CROP_MARGIN_MM = 15.0
-"""The images are kept this far beyond the union of a stack's brain masks (in-plane): the widest
-smoothing (4.5 mm, three sigmas) and the points' moves stay inside it, so the crop changes no value
-the image term samples."""
+"""The images are kept this far beyond the union of a stack's brain masks (in-plane): the points'
+moves and three sigmas of the widest smoothing (4.5 mm) stay inside it, so the crop changes the
+finer passes' values not at all and the coarsest pass's through the Gaussian's tails beyond three
+sigmas only (0.3 % of its weight)."""
 
 
 @dataclass
