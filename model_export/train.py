@@ -20,6 +20,7 @@ import csv
 import json
 import os
 import time
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -75,6 +76,11 @@ class TrainConfig:
     val_volumes: list[str] | None = None
     simulation: dict = field(default_factory=dict)
     init_from: dict | None = None
+
+
+HOST_FIELDS = frozenset({"device", "workers", "threads", "max_minutes", "init_from"})
+"""The fields a new stage (``main --init``) does not take from the checkpoint it starts from: they
+describe the host and the run, not the network or its training."""
 
 
 def resolve_device(name: str) -> torch.device:
@@ -224,6 +230,8 @@ def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resu
         prev = torch.load(init, map_location="cpu", weights_only=False)
         whole = _load_init(model, prev, init)
         if not whole:
+            warnings.warn(f"--init {init}: its network has {prev['model_config'].get('label_type')} labels, this "
+                          f"stage {cfg.label_type}: only the trunk is loaded and the head starts afresh", stacklevel=2)
             model.set_label_normalisation(torch.from_numpy(
                 label_sample(cfg.train_volumes, cfg.label_type, root, sim, cfg.seed)).float())
         history = prior_history(prev)
@@ -371,12 +379,14 @@ def plot_log(log_path: Path, png: Path) -> None:
 def main(argv: list[str] | None = None) -> Path:
     """``python -m model_export.train``: the same training with numpy, scipy and torch only (no typer).
 
-    For a bare GPU host. Any :class:`TrainConfig` field is set as ``field=value`` (JSON values); with
-    ``--resume`` the run's own configuration is the starting point, so only changes need naming.
+    For a bare GPU host. Any :class:`TrainConfig` field is set as ``field=value`` (JSON values). With
+    ``--resume`` the run's own configuration is the starting point, with ``--init`` the configuration
+    of the stage that wrote the checkpoint (all but :data:`HOST_FIELDS`), so only changes need naming:
+    a new stage keeps the network, its labels and its loss unless a field says otherwise.
 
     Example:
         python -m model_export.train --out $OUT/run --root data/packed --init service/models/default/checkpoint.pt \\
-            device=auto workers=14 loss='"min"' steps=20000 max_minutes=8.5
+            device=auto workers=14 steps=9000 max_minutes=6.5 simulation='{"surroundings_share": 0.6}'
     """
     import argparse
 
@@ -396,9 +406,10 @@ def main(argv: list[str] | None = None) -> Path:
             values[key] = json.loads(raw)
         except json.JSONDecodeError:
             values[key] = raw                      # a bare string: loss=min
-    if args.resume is not None:
-        saved = torch.load(args.resume, map_location="cpu", weights_only=False)["config"]
-        values = {**{k: v for k, v in saved.items() if k in TrainConfig.__dataclass_fields__}, **values}
+    if args.resume is not None or args.init is not None:
+        saved = torch.load(args.resume or args.init, map_location="cpu", weights_only=False)["config"]
+        keep = TrainConfig.__dataclass_fields__.keys() - (set() if args.resume is not None else HOST_FIELDS)
+        values = {**{k: v for k, v in saved.items() if k in keep}, **values}
     if "lr_milestones" in values:
         values["lr_milestones"] = tuple(values["lr_milestones"])
     best = train(TrainConfig(**values), args.out, args.root, resume=args.resume, init=args.init, progress=False)

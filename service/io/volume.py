@@ -1,5 +1,8 @@
 """A volume in the project's convention, and reading/writing it through SimpleITK.
 
+SimpleITK is imported where a file is read or written, so the volume itself (and the training
+simulation that uses it) runs on a host without SimpleITK, such as a bare GPU machine.
+
 Arrays are indexed ``[i, j, k]`` (NIfTI voxel order, x fastest on disk); the affine maps voxel
 indices to world RAS mm. SimpleITK's ``[k, j, i]`` array order and LPS frame are converted here and
 in :mod:`service.geometry.frames`, nowhere else.
@@ -18,11 +21,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import SimpleITK as sitk
 from numpy.typing import NDArray
 
 from service.geometry import frames
+
+if TYPE_CHECKING:
+    import SimpleITK as sitk
 
 
 @dataclass
@@ -43,6 +50,7 @@ class Volume:
 
 def from_sitk(image: sitk.Image) -> Volume:
     """Convert a 3D SimpleITK image (LPS, array ``[k, j, i]``) to a :class:`Volume`."""
+    import SimpleITK as sitk
     arr = sitk.GetArrayFromImage(image).transpose(2, 1, 0)
     aff = frames.affine_from_itk(image.GetOrigin(), image.GetSpacing(), image.GetDirection())
     return Volume(arr, aff)
@@ -50,6 +58,7 @@ def from_sitk(image: sitk.Image) -> Volume:
 
 def to_sitk(volume: Volume) -> sitk.Image:
     """Convert a :class:`Volume` to a SimpleITK image (LPS)."""
+    import SimpleITK as sitk
     image = sitk.GetImageFromArray(np.ascontiguousarray(np.asarray(volume.array).transpose(2, 1, 0)))
     origin, spacing, direction = frames.itk_from_affine(volume.affine)
     image.SetOrigin(tuple(float(x) for x in origin))
@@ -60,9 +69,11 @@ def to_sitk(volume: Volume) -> sitk.Image:
 
 def read_volume(path: str | Path) -> Volume:
     """Read a NIfTI/NRRD/MHA file (any format SimpleITK reads) as a :class:`Volume`."""
+    import SimpleITK as sitk
     return from_sitk(sitk.ReadImage(str(path)))
 
 
 def write_volume(volume: Volume, path: str | Path) -> None:
     """Write a :class:`Volume`; the format follows the file name (``.nii.gz``, ``.nrrd``, ``.mha``)."""
+    import SimpleITK as sitk
     sitk.WriteImage(to_sitk(volume), str(path), useCompression=True)

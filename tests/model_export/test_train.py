@@ -93,7 +93,8 @@ def test_training_compounds_on_any_device(device: str, packed: Path, tmp_path: P
     assert first["val_twin_ed_mm"] <= first["val_ed_mm"]
     # A new stage with another label and loss, stopped by its wall-clock budget after one step...
     stage = _tiny(device=device, label_type="grid", loss="invariant", steps=3, max_minutes=0.0)
-    train(stage, tmp_path / "b", packed, init=tmp_path / "a" / "last.pt", progress=False)
+    with pytest.warns(UserWarning, match="only the trunk"):
+        train(stage, tmp_path / "b", packed, init=tmp_path / "a" / "last.pt", progress=False)
     stopped = torch.load(tmp_path / "b" / "last.pt", weights_only=False)
     assert stopped["step"] == 1 and stopped["config"]["init_from"]["whole_network"] is False
     # ... and resumed to its end: one segment per run folder, totals over both stages.
@@ -128,5 +129,20 @@ def test_module_entry_point_trains_without_typer_rich_or_matplotlib(packed: Path
     main(["--out", str(tmp_path / "m2"), "--root", str(packed), "--resume", str(tmp_path / "m" / "last.pt"), "steps=3"])
     again = torch.load(tmp_path / "m2" / "last.pt", weights_only=False)
     assert again["step"] == 3 and again["config"]["loss"] == "min" and len(again["history"]) == 2
+    # A new stage from a checkpoint keeps its network, labels and loss; the host's fields are this run's.
+    main(["--out", str(tmp_path / "m3"), "--root", str(packed), "--init", str(tmp_path / "m" / "last.pt"),
+          "steps=1", "workers=0", 'simulation={"size": 48, "pixel_mm": 2.5, "surroundings_share": 0.5}'])
+    stage = torch.load(tmp_path / "m3" / "last.pt", weights_only=False)
+    assert stage["config"]["init_from"]["whole_network"] is True and stage["config"]["loss"] == "min"
+    assert stage["config"]["width"] == 0.25 and stage["simulation"]["surroundings_share"] == 0.5
     with pytest.raises(SystemExit):
         main(["--out", str(tmp_path / "x"), "nonsense=1"])
+
+
+def test_training_modules_import_without_the_service_stack() -> None:
+    """A GPU host has numpy, scipy and torch, not SimpleITK or the web stack: the training imports none."""
+    blocked = ("SimpleITK", "pydantic", "fastapi", "starlette", "typer", "pydantic_settings", "redis", "rq")
+    code = ("import sys\n" + "".join(f"sys.modules[{n!r}] = None\n" for n in blocked) +
+            "import model_export.train, model_export.stream, model_export.simulate\nprint('ok')")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.stdout.strip() == "ok", out.stderr[-2000:]
