@@ -172,7 +172,7 @@ def calibrate_spread(
 def calibrate_acceptance(
     model: Path,
     root: Root = DEFAULT_ATLAS_ROOT,
-    per_volume: Annotated[int, typer.Option(help="acquisitions per validation volume and motion level")] = 3,
+    per_volume: Annotated[int, typer.Option(help="acquisitions per validation volume and motion level")] = 8,
     report: Path = Path("model_export/reports/acceptance.md"),
     write: Annotated[bool, typer.Option(help="write expected_error_floor_mm, variance_threshold and "
                                              "max_expected_error_mm into the model's metadata")] = True,
@@ -277,11 +277,11 @@ def ship(
                "train_volumes_text": f"{len(ck['config']['train_volumes'])} atlas volumes: "
                                      + ", ".join(ck["config"]["train_volumes"])}
     from model_export.atlas import load_volumes, split
-    from model_export.calibrate_acceptance import measure, markdown as acceptance_markdown
+    from model_export.calibrate_acceptance import PER_VOLUME, measure, markdown as acceptance_markdown
     from model_export.spread import write_metadata
     from service.inference.estimator import OnnxPoseEstimator
 
-    flags = measure(OnnxPoseEstimator(load_model(onnx_path)), load_volumes(split(root)[1], root), per_volume=3)
+    flags = measure(OnnxPoseEstimator(load_model(onnx_path)), load_volumes(split(root)[1], root), per_volume=PER_VOLUME)
     write_metadata(onnx_path, {k: f"{flags[k]:.4g}" for k in
                                ("expected_error_floor_mm", "variance_threshold", "max_expected_error_mm")})
     info = load_model(onnx_path).info.metadata
