@@ -285,14 +285,21 @@ def _mean_square(r: NDArray, sw: NDArray) -> float:
 
 
 def _brain_radius(s: StackImages) -> float:
-    """The largest distance (mm) of a brain pixel from its slice's network origin, over the stack."""
-    k, r, c = np.nonzero(s.masks)
-    if not len(k):
+    """The largest distance (mm) of a brain pixel from its slice's network origin, over the stack.
+
+    Along a row, the farthest brain pixel from any point is the row's first or last one, so only
+    those two per row and slice are measured."""
+    masks = np.asarray(s.masks, bool)
+    rows = masks.any(axis=2)                                                  # [n, H]
+    if not rows.any():
         return 0.0
-    h, w = s.masks.shape[1:]
-    x = (c - (w - 1) / 2.0) * s.pixel_mm[1] - s.slice_from_network[k, 0, 3]
-    y = (r - (h - 1) / 2.0) * s.pixel_mm[0] - s.slice_from_network[k, 1, 3]
-    return float(np.sqrt(x ** 2 + y ** 2).max())
+    n, h, w = masks.shape
+    first = np.argmax(masks, axis=2)
+    last = w - 1 - np.argmax(masks[:, :, ::-1], axis=2)
+    y = (np.arange(h) - (h - 1) / 2.0) * s.pixel_mm[0] - s.slice_from_network[:, 1, 3][:, None]
+    ends = np.stack([first, last])                                            # [2, n, H]
+    x = (ends - (w - 1) / 2.0) * s.pixel_mm[1] - s.slice_from_network[:, 0, 3][None, :, None]
+    return float(np.sqrt(x ** 2 + y[None] ** 2)[:, rows].max())
 
 
 def image_jacobian(term: ImageTerm, atlas_from_slice: NDArray, poses: NDArray, col: NDArray,

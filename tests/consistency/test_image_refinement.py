@@ -7,7 +7,7 @@ import pytest
 
 from model_export.acquisitions import simulate_acquisition
 from model_export.evaluate_acquisitions import prepare_acquisition
-from service.consistency.image_refinement import follow_neighbours, refine
+from service.consistency.image_refinement import _brain_radius, follow_neighbours, refine
 from service.consistency.intersections import StackImages
 from service.geometry import se3
 from service.geometry.anchors import ed
@@ -141,3 +141,20 @@ def test_the_analytic_jacobian_agrees_with_finite_differences(acquisition) -> No
     error = np.linalg.norm(analytic[:, columns] - differences[:, columns], axis=0) / np.linalg.norm(differences[:, columns], axis=0)
     assert np.median(error) < 0.12 and np.percentile(error, 95) < 0.25, (np.median(error), np.percentile(error, 95))
     assert np.count_nonzero(analytic[:, np.abs(differences).sum(0) == 0]) == 0
+
+
+def test_the_brain_radius_is_the_farthest_brain_pixel_from_its_slice_origin() -> None:
+    """Measured on each row's two end pixels; the same as over every brain pixel."""
+    rng = np.random.default_rng(4)
+    for _ in range(50):
+        n, h, w = (int(v) for v in rng.integers(1, 12, 3))
+        masks = rng.random((n, h, w)) < rng.uniform(0.0, 0.3)
+        slice_from_network = np.tile(np.eye(4), (n, 1, 1))
+        slice_from_network[:, :2, 3] = rng.normal(0.0, 5.0, (n, 2))
+        pixel = (float(rng.uniform(0.5, 2.0)), float(rng.uniform(0.5, 2.0)))
+        stack = StackImages(np.zeros((n, h, w), np.float32), masks, pixel, slice_from_network, np.ones(n, bool))
+        k, r, c = np.nonzero(masks)
+        x = (c - (w - 1) / 2.0) * pixel[1] - slice_from_network[k, 0, 3]
+        y = (r - (h - 1) / 2.0) * pixel[0] - slice_from_network[k, 1, 3]
+        want = float(np.hypot(x, y).max()) if len(k) else 0.0
+        assert _brain_radius(stack) == pytest.approx(want, abs=1e-9)
