@@ -4,10 +4,10 @@ The field is smooth, so it is fitted on an image shrunk in-plane (x4, and to pix
 8 mm; the few slices of a stack are kept) and restricted to the region around the brain (the mask's
 bounding box plus a margin), on two fitting levels (a third, with twice the control points, fits a
 field finer than the brain's extent needs). The fit is N4 in numpy
-(:func:`~service.preprocess.n4.n4_log_field`: ITK's algorithm, the same field to 2e-4 in log
-intensity, without ITK's fixed cost per iteration, which dominates on a fit image of a few thousand
-voxels); SimpleITK crops, shrinks, thresholds the fit mask (Otsu) and interpolates the fitted log
-field linearly onto the full-resolution grid of the region, where it is divided out. Outside the
+(:func:`~service.preprocess.n4.n4_log_field`: ITK's algorithm and ITK's field, without ITK's fixed
+cost per iteration, which dominates on a fit image of a few thousand voxels); SimpleITK shrinks,
+thresholds the fit mask (Otsu) and interpolates the fitted log field linearly onto the
+full-resolution grid of the region, where it is divided out. Outside the
 region the image is left as it is (it is masked out later anyway).
 
 Example:

@@ -2,9 +2,9 @@
 :mod:`service.preprocess.bias`.
 
 The service fits the bias field on an image shrunk to pixels of 8 mm or more (a few thousand
-voxels). There ITK's filter spends about 3 ms an iteration on fixed per-iteration work, and N4
-needs about 50 iterations to converge: some 170 ms a stack. The same algorithm on a few thousand
-points costs well under a millisecond an iteration in numpy. Each iteration, as in ITK's
+voxels). On such an image ITK's filter spends its time on fixed work per iteration, not on the
+voxels, and N4 takes dozens of iterations to converge; the same algorithm written as small dense
+contractions costs a fraction of that (docs/benchmarks.md). Each iteration, as in ITK's
 ``N4BiasFieldCorrectionImageFilter``:
 
 1. the log image less the current log field is sharpened: its histogram (200 bins, triangular
