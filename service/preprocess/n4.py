@@ -127,14 +127,14 @@ def n4_log_field(image: NDArray, mask: NDArray, iterations: tuple[int, ...] = (5
     """The log bias field of ``image`` (3D, positive inside ``mask``) on its whole grid.
 
     Args:
-        image: intensities; only those inside ``mask`` (and positive) are fitted.
+        image: intensities; only those inside ``mask`` (positive and finite) are fitted.
         mask: the voxels the fit uses.
         iterations: the most iterations per fitting level; one level per entry.
         control_points: control points per axis at the first level (the mesh doubles per level).
         threshold: a level ends when the field's change has a coefficient of variation under this.
     """
     image = np.asarray(image, np.float64)
-    mask = np.asarray(mask, bool) & (image > 0)
+    mask = np.asarray(mask, bool) & (image > 0) & np.isfinite(image)
     field = np.zeros(image.shape)
     if mask.sum() < 2:
         return field

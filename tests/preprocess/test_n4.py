@@ -52,5 +52,15 @@ def test_sharpening_narrows_a_blurred_histogram_and_keeps_its_centre() -> None:
 
 def test_an_empty_or_flat_fit_gives_a_flat_field() -> None:
     assert not n4_log_field(np.ones((6, 6, 4)), np.zeros((6, 6, 4), bool)).any()
+    assert not n4_log_field(np.full((1, 1, 1), 5.0), np.ones((1, 1, 1), bool)).any()
     flat = n4_log_field(np.full((8, 8, 5), 50.0), np.ones((8, 8, 5), bool))
     assert np.isfinite(flat).all() and np.ptp(flat) < 1e-6
+
+
+def test_voxels_that_are_not_finite_or_positive_are_left_out_of_the_fit() -> None:
+    image, mask, _ = _tissue((12, 14, 6), 5)
+    clean = n4_log_field(image, mask)
+    spoilt = image.copy()
+    spoilt[6, 7, 3], spoilt[5, 7, 3], spoilt[6, 6, 3] = np.inf, np.nan, -4.0
+    field = n4_log_field(spoilt, mask)
+    assert np.isfinite(field).all() and np.abs(field - clean).max() < 0.05
