@@ -172,7 +172,8 @@ def calibrate_spread(
 def calibrate_acceptance(
     model: Path,
     root: Root = DEFAULT_ATLAS_ROOT,
-    per_volume: Annotated[int, typer.Option(help="acquisitions per validation volume and motion level")] = 8,
+    per_volume: Annotated[Optional[int], typer.Option(help="acquisitions per validation volume and motion level "
+                                                           "(default: calibrate_acceptance.PER_VOLUME)")] = None,
     report: Path = Path("model_export/reports/acceptance.md"),
     write: Annotated[bool, typer.Option(help="write expected_error_floor_mm, variance_threshold and "
                                              "max_expected_error_mm into the model's metadata")] = True,
@@ -182,13 +183,13 @@ def calibrate_acceptance(
     """Calibrate the accept flags on the pipeline's final poses over simulated acquisitions of the
     validation volumes at every motion level (mild, moderate, jumps, independent)."""
     from model_export.atlas import load_volumes, split
-    from model_export.calibrate_acceptance import markdown, measure
+    from model_export.calibrate_acceptance import PER_VOLUME, markdown, measure
     from model_export.spread import write_metadata
     from service.inference.estimator import OnnxPoseEstimator
     from service.inference.model_file import load_model
 
-    result = measure(OnnxPoseEstimator(load_model(model)), load_volumes(split(root)[1], root), per_volume, seed,
-                     slices=slices)
+    result = measure(OnnxPoseEstimator(load_model(model)), load_volumes(split(root)[1], root),
+                     per_volume or PER_VOLUME, seed, slices=slices)
     report.parent.mkdir(parents=True, exist_ok=True)
     report.write_text(markdown(result, f"Accept flags of {model}"))
     if write:

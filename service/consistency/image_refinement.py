@@ -293,7 +293,7 @@ def _brain_radius(s: StackImages) -> float:
     rows = masks.any(axis=2)                                                  # [n, H]
     if not rows.any():
         return 0.0
-    n, h, w = masks.shape
+    h, w = masks.shape[1:]
     first = np.argmax(masks, axis=2)
     last = w - 1 - np.argmax(masks[:, :, ::-1], axis=2)
     y = (np.arange(h) - (h - 1) / 2.0) * s.pixel_mm[0] - s.slice_from_network[:, 1, 3][:, None]

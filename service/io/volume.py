@@ -46,6 +46,20 @@ class Volume:
         """Voxel sizes along ``i, j, k`` (mm)."""
         return frames.voxel_spacing(self.affine)
 
+    def region(self, box: tuple[slice, slice, slice]) -> "Volume":
+        """The voxels of ``box`` (unit-step slices) where they lie: the affine's origin moves to the
+        box's first voxel.
+
+        Example:
+            >>> v = Volume(np.arange(24.0).reshape(2, 3, 4), np.diag([2.0, 3.0, 4.0, 1.0]))
+            >>> r = v.region((slice(1, 2), slice(0, 3), slice(2, 4)))
+            >>> r.array.shape, r.affine[:3, 3].tolist()
+            ((1, 3, 2), [2.0, 0.0, 8.0])
+        """
+        affine = np.array(self.affine, dtype=np.float64)
+        affine[:3, 3] += affine[:3, :3] @ [b.start or 0 for b in box]
+        return Volume(np.asarray(self.array)[box], affine)
+
 
 def from_sitk(image: sitk.Image) -> Volume:
     """Convert a 3D SimpleITK image (LPS, array ``[k, j, i]``) to a :class:`Volume`."""

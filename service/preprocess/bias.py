@@ -55,9 +55,8 @@ def n4_correct(volume: Volume, mask: NDArray | None = None, *, shrink: int = 4, 
     arr = np.asarray(volume.array, dtype=np.float32)
     box = None if mask is None else mask_box(np.asarray(mask, bool), np.ceil(margin_mm / volume.spacing).astype(int))
     box = box or tuple(slice(0, n) for n in arr.shape)
-    affine = np.array(volume.affine, dtype=np.float64)
-    affine[:3, 3] += affine[:3, :3] @ [b.start for b in box]            # the region's first voxel
-    image = to_sitk(Volume(np.maximum(arr[box], 0.0), affine))           # float32, the region only
+    region = volume.region(box)
+    image = to_sitk(Volume(np.maximum(np.asarray(region.array, np.float32), 0.0), region.affine))
     sp = np.asarray(image.GetSpacing())
     target = max(shrink * min(sp), fit_spacing_mm)
     factors = [max(1, int(round(target / s))) for s in sp]                    # keep thick-slice axis

@@ -100,9 +100,9 @@ def sharpen(values: NDArray[np.float64], bins: int = BINS, fwhm: float = FWHM,
     lo, hi = float(values.min()), float(values.max())
     slope = (hi - lo) / (bins - 1) if hi > lo else 1.0
     c = (values - lo) / slope
-    i = np.minimum(np.floor(c).astype(np.intp), bins - 1)
+    i = np.minimum(np.floor(c).astype(np.intp), bins - 2)       # the top value: bin bins-2 with weight 0
     f = c - i
-    hist = np.bincount(i, 1 - f, bins) + np.bincount(np.minimum(i + 1, bins - 1), np.where(i < bins - 1, f, 0), bins)
+    hist = np.bincount(i, 1 - f, bins) + np.bincount(i + 1, f, bins)
     padded = 2 ** (int(np.ceil(np.log2(bins))) + 1)
     offset = (padded - bins) // 2
     v = np.zeros(padded)
@@ -118,8 +118,7 @@ def sharpen(values: NDArray[np.float64], bins: int = BINS, fwhm: float = FWHM,
     denominator = np.fft.ifft(np.fft.fft(u) * ff).real
     with np.errstate(divide="ignore", invalid="ignore"):
         e = np.nan_to_num(numerator / denominator, nan=0.0, posinf=0.0, neginf=0.0)[offset:offset + bins]
-    last = i >= bins - 1
-    return np.where(last, e[-1], e[np.minimum(i, bins - 2)] + (e[np.minimum(i + 1, bins - 1)] - e[np.minimum(i, bins - 2)]) * f)
+    return e[i] + (e[i + 1] - e[i]) * f
 
 
 def n4_log_field(image: NDArray, mask: NDArray, iterations: tuple[int, ...] = (50, 50), control_points: int = 4,

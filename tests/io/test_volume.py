@@ -9,7 +9,7 @@ import pytest
 import SimpleITK as sitk
 
 from service.geometry import frames, se3
-from service.io.volume import Volume, read_volume, write_volume
+from service.io.volume import Volume, read_volume, to_sitk, write_volume
 
 nib = pytest.importorskip("nibabel", reason="nibabel (dev extra) not installed")
 
@@ -61,3 +61,23 @@ def test_world_transform_conjugation() -> None:
     moved_lps = t_lps @ (frames.LPS_FROM_RAS @ p_ras)
     np.testing.assert_allclose(frames.RAS_FROM_LPS @ moved_lps, t_ras @ p_ras)
     assert np.isclose(np.linalg.det(t_ras[:3, :3]), 1.0)
+
+
+def test_a_region_keeps_every_voxel_where_it_lies_in_the_world_and_in_simpleitk() -> None:
+    """Ground truth: the world point of voxel ``lo + v`` of the whole volume, and ITK's own
+    RegionOfInterest of the whole image (an oblique affine, RAS against ITK's LPS)."""
+    rng = np.random.default_rng(6)
+    vol = Volume(rng.random((30, 26, 9)).astype(np.float32), oblique_affine())
+    box = (slice(4, 21), slice(7, 26), slice(2, 6))
+    region = vol.region(box)
+    lo = np.array([b.start for b in box])
+    voxels = np.stack([rng.integers(0, n, 20) for n in region.array.shape], axis=1)
+    np.testing.assert_allclose((region.affine @ np.c_[voxels, np.ones(20)].T)[:3],
+                               (vol.affine @ np.c_[voxels + lo, np.ones(20)].T)[:3], atol=1e-9)
+    np.testing.assert_array_equal(region.array, vol.array[box])
+    ours = to_sitk(region)
+    itk = sitk.RegionOfInterest(to_sitk(vol), [int(b.stop - b.start) for b in box], [int(b.start) for b in box])
+    np.testing.assert_allclose(ours.GetOrigin(), itk.GetOrigin(), atol=1e-9)
+    np.testing.assert_allclose(ours.GetDirection(), itk.GetDirection(), atol=1e-12)
+    np.testing.assert_allclose(ours.GetSpacing(), itk.GetSpacing(), atol=1e-12)
+    np.testing.assert_array_equal(sitk.GetArrayFromImage(ours), sitk.GetArrayFromImage(itk))
