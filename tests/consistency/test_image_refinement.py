@@ -136,7 +136,7 @@ def test_the_analytic_jacobian_agrees_with_finite_differences(acquisition) -> No
         dx = np.zeros(x.size)
         dx[c] = steps[c % 6]
         differences[:, c] = (residual(dx.reshape(x.shape)) - r0) / steps[c % 6]
-    analytic = image_jacobian(term, atlas, poses, col, 0.15).toarray()
+    analytic = image_jacobian(term, atlas, poses, col, 0.15).sparse().toarray()
     columns = np.flatnonzero((np.arange(analytic.shape[1]) % 6 != 2) & (np.abs(differences).sum(0) > 0))
     error = np.linalg.norm(analytic[:, columns] - differences[:, columns], axis=0) / np.linalg.norm(differences[:, columns], axis=0)
     assert np.median(error) < 0.12 and np.percentile(error, 95) < 0.25, (np.median(error), np.percentile(error, 95))
@@ -158,3 +158,23 @@ def test_the_brain_radius_is_the_farthest_brain_pixel_from_its_slice_origin() ->
         y = (r - (h - 1) / 2.0) * pixel[0] - slice_from_network[k, 1, 3]
         want = float(np.hypot(x, y).max()) if len(k) else 0.0
         assert _brain_radius(stack) == pytest.approx(want, abs=1e-9)
+
+
+def test_the_normal_equations_assembled_pair_by_pair_equal_the_sparse_products() -> None:
+    """``J^T W J`` and ``J^T W r`` from each pair's blocks, against the sparse Jacobian's products,
+    with pairs of several points, single points, and slices that keep their poses (column -1)."""
+    from service.consistency.image_refinement import PointJacobian
+
+    rng = np.random.default_rng(7)
+    counts = rng.integers(1, 9, 40)
+    pair_of = np.repeat(np.arange(len(counts)), counts)
+    place = np.concatenate([rng.permutation(12)[:c] for c in counts])         # places along a line, gaps between
+    slices = rng.integers(-1, 12, (len(counts), 2))
+    slices[:, 1] = np.where(slices[:, 1] == slices[:, 0], (slices[:, 0] + 1) % 12, slices[:, 1])
+    jac = PointJacobian(rng.normal(size=(len(pair_of), 2, 6)), slices[pair_of], pair_of, place, 72)
+    w, r = rng.uniform(0.1, 1.0, len(pair_of)), rng.normal(size=len(pair_of))
+    hess, grad = jac.normal(w, r)
+    dense = jac.sparse().toarray()
+    np.testing.assert_allclose(hess, dense.T @ (w[:, None] * dense), atol=1e-10)
+    np.testing.assert_allclose(grad, dense.T @ (w * r), atol=1e-10)
+    assert not dense[:, :6][(slices[pair_of] == 0).sum(1) == 0].any()         # slice 0's columns: its pairs only
