@@ -26,8 +26,8 @@ def masks_archive(uploads: list, localiser: Localiser, directory: Path) -> bytes
     report = []
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
-        for upload, stem in zip(uploads, unique_stems([u.filename for u in uploads])):
-            found = localiser.localise(upload.volume)
+        located = localiser.localise_many([u.volume for u in uploads])
+        for upload, stem, found in zip(uploads, unique_stems([u.filename for u in uploads]), located):
             path = directory / f"{stem}_mask.nii.gz"
             write_volume(Volume(found.mask.astype("uint8"), upload.volume.affine), path)
             archive.write(path, path.name)

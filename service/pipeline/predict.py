@@ -102,14 +102,15 @@ def localise(upload: StackUpload, localiser: Localiser | None = None) -> Localis
 
 
 def prepare_stack(upload: StackUpload, info: ModelInfo, bias_correction: bool,
-                  localiser: Localiser | None = None) -> PreparedStack:
-    """Localise, bias-correct, split and preprocess one stack (runs in a worker thread)."""
+                  localiser: Localiser | None = None, found: tuple[Localisation, float] | None = None) -> PreparedStack:
+    """Localise, bias-correct, split and preprocess one stack (runs in a worker thread); ``found``:
+    its localisation and the seconds it took, where the caller localised it already."""
     timings: dict[str, float] = {}
     vol = upload.volume
     t = time.perf_counter()
-    localisation = localise(upload, localiser)
+    localisation = found[0] if found is not None else localise(upload, localiser)
     mask = localisation.mask
-    timings["localisation"] = time.perf_counter() - t
+    timings["localisation"] = found[1] if found is not None else time.perf_counter() - t
     t = time.perf_counter()
     array = n4_correct(vol, mask) if bias_correction and mask.any() else vol.array
     timings["bias_correction"] = time.perf_counter() - t
@@ -120,14 +121,33 @@ def prepare_stack(upload: StackUpload, info: ModelInfo, bias_correction: bool,
     return PreparedStack(upload, slices, prepared, localisation, timings)
 
 
+def localise_uploads(uploads: list[StackUpload], localiser: Localiser | None = None) -> list[tuple[Localisation, float] | None]:
+    """Each upload without a mask localised, all of them in shared network calls
+    (:meth:`~service.preprocess.localise.Localiser.localise_many`), with its share of the time (by
+    voxels); None for uploads with a mask."""
+    missing = [i for i, u in enumerate(uploads) if u.mask is None]
+    found: list[tuple[Localisation, float] | None] = [None] * len(uploads)
+    if not missing:
+        return found
+    t = time.perf_counter()
+    located = (localiser or default_localiser()).localise_many([uploads[i].volume for i in missing])
+    seconds = time.perf_counter() - t
+    sizes = np.array([uploads[i].volume.array.size for i in missing], np.float64)
+    for i, loc, share in zip(missing, located, sizes / sizes.sum()):
+        found[i] = (loc, seconds * float(share))
+    return found
+
+
 def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction: bool,
                    workers: int = 2, localiser: Localiser | None = None) -> list[PreparedStack]:
     """:func:`prepare_stack` for every stack, ``workers`` stacks at a time (N4 releases the GIL);
-    stacks without a mask are localised by ``localiser`` (default: the shipped one)."""
+    stacks without a mask are localised first, together (:func:`localise_uploads`), by ``localiser``
+    (default: the shipped one)."""
     for u in uploads:
         check_mask_grid(u)
+    found = localise_uploads(uploads, localiser)
     with ThreadPoolExecutor(max_workers=max(1, min(workers, len(uploads)))) as pool:
-        return list(pool.map(lambda u: prepare_stack(u, info, bias_correction, localiser), uploads))
+        return list(pool.map(lambda u, f: prepare_stack(u, info, bias_correction, localiser, f), uploads, found))
 
 
 def stack_poses(est: PoseEstimate, prepared: PreparedStack, net_from_vox: np.ndarray,

@@ -84,6 +84,24 @@ def test_the_shipped_localiser_finds_the_brain_of_a_generated_whole_uterus_stack
     assert np.median(scores) > 0.8, scores
 
 
+def test_stacks_localised_together_get_what_each_gets_alone(localiser: Localiser) -> None:
+    """The request's stacks share the network's calls (grids of two sizes, batches that cross stacks):
+    every mask and confidence is what the stack gets on its own."""
+    from model_export.localiser.scenes import HeadModel, synth_stack
+    from tests.support.phantoms import phantom_brain
+
+    image, mask, affine = phantom_brain(11)
+    head = HeadModel.from_arrays(image, mask, affine)
+    volumes = [synth_stack(head, np.random.default_rng(200 + seed), "heldout")[0] for seed in range(3)]
+    noise = np.random.default_rng(0).random((96, 80, 7), np.float32) * 500
+    volumes.insert(1, Volume(noise, np.diag([1.2, 1.2, 3.0, 1.0])))
+    assert len({localiser.probabilities(v)[0].shape[1:] for v in volumes}) > 1
+    together = localiser.localise_many(volumes)
+    for v, found in zip(volumes, together):
+        alone = localiser.localise(v)
+        assert np.array_equal(found.mask, alone.mask) and found.confidence == pytest.approx(alone.confidence, abs=1e-6)
+
+
 def test_noise_is_no_brain(localiser: Localiser) -> None:
     noise = np.random.default_rng(0).random((256, 256, 30), np.float32) * 500
     found = localiser.localise(Volume(noise, np.diag([1.2, 1.2, 3.0, 1.0])))
