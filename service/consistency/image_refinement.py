@@ -29,7 +29,7 @@ from scipy import linalg, sparse
 from service.consistency.image_jacobian import PointJacobian, image_jacobian
 from service.consistency.intersections import BlockedStack, ImageTerm, SampledStack, StackImages, candidate_pairs
 from service.geometry import se3
-from service.geometry.anchors import ed
+from service.geometry.anchors import ed, twist_spread_mm
 
 ANCHOR_RADIUS_MM = 40.0
 """Rotation errors are weighed as the shift they make this far from a slice's centre."""
@@ -46,9 +46,14 @@ fewer slices far off. Smoothing in the plane only, a coarse pass's optimum lies 
 two slices' 3D blurs differ): a 6 mm pass puts it beyond the finest pass's reach
 (docs/consistency.md)."""
 REFINED_GAIN = 0.65
-"""A refined slice's expected E.D.: this times the stage's, times the square root of its remaining
-mismatch over the request's median (:func:`expected_after`; fitted on simulated moderate
-acquisitions, docs/consistency.md)."""
+"""A refined slice's expected E.D. from the stage's: this times the stage's, times the square root of
+its remaining mismatch over the request's median (:func:`expected_after`; fitted on simulated
+moderate acquisitions, docs/consistency.md)."""
+SPREAD_GAIN = 2.0
+"""A refined slice's expected E.D. from the images: this times its Laplace spread
+(:func:`laplace_spread_mm`). The spread understates the error (neighbouring points of a line are
+correlated, the noise scale is nominal): RMS E.D. / RMS spread is 1.9-2.4 on simulated acquisitions
+(docs/consistency.md)."""
 UNCHECKED_GAIN = 1.9
 """A slice on no line (the brain's caps): this times the stage's expected E.D. (the stage
 under-states them, and the rest of their stack moved)."""
@@ -72,6 +77,7 @@ class Refinement:
     cost_before: float                    # the image term per weighted point, before / after
     cost_after: float
     mismatch: list[NDArray[np.float64]]   # per stack [n]: each slice's image term per weighted point, after (NaN: none)
+    spread_mm: list[NDArray[np.float64]] | None = None   # per stack [n]: each refined slice's Laplace spread (NaN: not refined)
 
 
 def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: list[NDArray], *,
@@ -150,6 +156,12 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
         x, r = _gauss_newton(residual, jac, x, prior, iterations, r)
         costs.append(_mean_square(r, term.sw))
         mismatch = _per_slice(r, term.sw, term.pairs[term.pair_of], len(p0))
+    spread = np.full(len(p0), np.nan)
+    if costs:                                    # the last pass's curvature at its optimum
+        omega = 1.0 / np.sqrt(1.0 + r ** 2)
+        hess = jac(x).normal(omega, r)[0]
+        hess[np.diag_indices_from(hess)] += 1.0 / prior.ravel() ** 2
+        spread[free] = laplace_spread_mm(hess)
     final = atlas_from_slice(x) @ se3.inverse(network_from_slice)
     checked = np.isfinite(mismatch)
     if not checked.any():
@@ -161,7 +173,7 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
     moved = ed(final, p0)
     cut = lambda a: [a[i:j] for i, j in zip(bounds[:-1], bounds[1:])]  # noqa: E731
     return Refinement(cut(final), cut(moved), used, costs[0] if costs else np.nan, costs[-1] if costs else np.nan,
-                      cut(mismatch))
+                      cut(mismatch), cut(spread))
 
 
 def _smoothed_passes(stacks: list[StackImages], sigmas_mm: list[float]) -> Iterator[list[SampledStack]]:
@@ -212,17 +224,47 @@ def relative_mismatch(mismatch: list[NDArray]) -> list[NDArray[np.float64]]:
             else np.full(len(m), np.nan) for m in mismatch]
 
 
-def expected_after(expected_error_mm: list[NDArray], relative: list[NDArray]) -> list[NDArray[np.float64]]:
-    """Each slice's expected E.D. after :func:`refine`, from the stage's (``expected_error_mm``) and the
-    slice's remaining image mismatch over the request's median (``relative``, :func:`relative_mismatch`;
-    :data:`REFINED_GAIN`, :data:`UNCHECKED_GAIN`).
+def expected_after(expected_error_mm: list[NDArray], relative: list[NDArray],
+                   spread_mm: list[NDArray] | None = None) -> list[NDArray[np.float64]]:
+    """Each slice's expected E.D. after :func:`refine`.
+
+    Two estimates meet: the stage's expected error, scaled by the slice's remaining image mismatch
+    over the request's median (``relative``, :func:`relative_mismatch`; :data:`REFINED_GAIN`), and
+    what the images themselves allow, :data:`SPREAD_GAIN` times the slice's Laplace spread
+    (``spread_mm``, :class:`Refinement`). The first knows how far the stage was off and how well the
+    images agree now, the second how firmly the images hold the slice where it is; their geometric
+    mean ranks and scales the errors better than either (docs/consistency.md). A slice without a
+    spread keeps the first; a slice on no line gets :data:`UNCHECKED_GAIN` times the stage's.
 
     Example:
         >>> [e.round(2).tolist() for e in expected_after([np.array([4.0, 4.0, 4.0])], [np.array([0.25, 1.0, np.nan])])]
         [[1.3, 2.6, 7.6]]
+        >>> [e.round(2).tolist() for e in expected_after([np.array([4.0])], [np.array([1.0])], [np.array([0.65])])]
+        [[1.84]]
     """
-    return [np.where(np.isfinite(m), REFINED_GAIN * e * np.sqrt(m), UNCHECKED_GAIN * np.asarray(e, np.float64))
-            for e, m in zip(expected_error_mm, relative)]
+    spread_mm = spread_mm or [np.full(len(e), np.nan) for e in expected_error_mm]
+    out = []
+    for e, m, s in zip(expected_error_mm, relative, spread_mm):
+        e = np.asarray(e, np.float64)
+        stage = np.where(np.isfinite(m), REFINED_GAIN * e * np.sqrt(m), UNCHECKED_GAIN * e)
+        images = np.isfinite(m) & np.isfinite(s)
+        out.append(np.where(images, np.sqrt(stage * SPREAD_GAIN * np.where(images, s, 1.0)), stage))
+    return out
+
+
+def laplace_spread_mm(hess: NDArray) -> NDArray[np.float64]:
+    """``[F]`` each free slice's spread (mm, on the E.D.'s scale) under the Laplace approximation of the
+    refinement at its optimum: the ``6 x 6`` diagonal blocks of the inverse of the Gauss-Newton
+    Hessian ``hess [6F, 6F]`` (image term and prior) as anchor-point displacements
+    (:func:`~service.geometry.anchors.twist_spread_mm`).
+
+    Example (one slice held to 1 mm^2 per translation, 1e-4 rad^2 per rotation: sqrt(3 + 0.96) mm):
+        >>> round(float(laplace_spread_mm(np.diag([1e4, 1e4, 1e4, 1.0, 1.0, 1.0]))[0]), 2)
+        1.99
+    """
+    f = len(hess) // 6
+    inv = linalg.cho_solve(linalg.cho_factor(hess, check_finite=False), np.eye(len(hess)), check_finite=False)
+    return twist_spread_mm(inv.reshape(f, 6, f, 6)[np.arange(f), :, np.arange(f), :])
 
 
 def _gauss_newton(residual, jacobian, x: NDArray, prior: NDArray, iterations: int,  # noqa: ANN001

@@ -237,7 +237,7 @@ def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPos
                 else np.full(len(outs[i].poses), np.nan) for i in take]
     ref = refine(images, [outs[i].poses for i in take], expected)
     relative = relative_mismatch(ref.mismatch)
-    after = expected_after(expected, relative)
+    after = expected_after(expected, relative, ref.spread_mm)
     for j, i in enumerate(take):
         outs[i].poses = ref.poses[j]
         if outs[i].expected_error_mm is not None:

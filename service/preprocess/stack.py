@@ -54,11 +54,12 @@ def mask_box(mask: NDArray, margin: NDArray | list[int]) -> tuple[slice, ...] | 
         >>> mask_box(m, [1, 2])
         (slice(1, 4, None), slice(1, 7, None))
     """
-    idx = np.argwhere(mask)
-    if not len(idx):
+    m = np.asarray(mask, bool)
+    hits = [np.flatnonzero(m.any(axis=tuple(a for a in range(m.ndim) if a != axis))) for axis in range(m.ndim)]
+    if not all(len(h) for h in hits):
         return None
-    lo = np.maximum(idx.min(0) - np.asarray(margin), 0)
-    hi = np.minimum(idx.max(0) + np.asarray(margin) + 1, mask.shape)
+    lo = np.maximum(np.array([h[0] for h in hits]) - np.asarray(margin), 0)
+    hi = np.minimum(np.array([h[-1] for h in hits]) + np.asarray(margin) + 1, m.shape)
     return tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.consistency.image_refinement import _brain_radius, follow_neighbours, refine
+from service.consistency.image_refinement import _brain_radius, expected_after, follow_neighbours, laplace_spread_mm, refine
 from service.consistency.intersections import StackImages
 from service.geometry import se3
 from service.geometry.anchors import ed
@@ -86,3 +86,42 @@ def test_the_brain_radius_is_the_farthest_brain_pixel_from_its_slice_origin() ->
         y = (r - (h - 1) / 2.0) * pixel[0] - slice_from_network[k, 1, 3]
         want = float(np.hypot(x, y).max()) if len(k) else 0.0
         assert _brain_radius(stack) == pytest.approx(want, abs=1e-9)
+
+
+def test_the_laplace_spread_reads_each_slices_block_of_the_inverse_hessian() -> None:
+    """Against the explicit inverse of a random coupled Hessian (slices tied to each other, as
+    crossing lines tie them): each slice's spread from its own 6 x 6 block, not a neighbour's."""
+    from service.geometry.anchors import twist_spread_mm
+
+    rng = np.random.default_rng(2)
+    root = rng.normal(size=(30, 30)) * np.tile([0.02, 0.02, 0.02, 1.0, 1.0, 1.0], 5)[None]
+    hess = root.T @ root + np.diag(np.tile([400.0, 400.0, 400.0, 0.5, 0.5, 0.5], 5))
+    inv = np.linalg.inv(hess)
+    want = [float(twist_spread_mm(inv[6 * k:6 * k + 6, 6 * k:6 * k + 6])) for k in range(5)]
+    np.testing.assert_allclose(laplace_spread_mm(hess), want, rtol=1e-8)
+    assert len(set(np.round(want, 6))) == 5
+
+
+def test_refined_slices_get_a_spread_that_grows_with_less_image_evidence(acquisition) -> None:  # noqa: ANN001
+    """Every refined slice gets a finite spread, a slice that takes no part none; and a louder image
+    noise scale (each point worth less) widens every spread."""
+    images, truth = acquisition
+    start = disturbed(truth, 1.0, 1.0, seed=2)
+    expected = [np.full(len(t), 4.0) for t in truth]
+    quiet, loud = (refine(images, start, expected, noise=n) for n in (0.15, 0.6))
+    for s, m, img in zip(quiet.spread_mm, quiet.mismatch, images):
+        small = img.masks.reshape(len(img.masks), -1).sum(1) < 20
+        assert np.isfinite(s[np.isfinite(m)]).all() and np.isnan(s[small]).all()
+    a, b = np.concatenate(quiet.spread_mm), np.concatenate(loud.spread_mm)
+    both = np.isfinite(a) & np.isfinite(b)
+    assert both.sum() > 50 and np.median(b[both] / a[both]) > 1.5
+
+
+def test_the_expected_error_after_refinement_meets_the_images_halfway() -> None:
+    """The geometric mean of the stage's estimate and the images' spread where both exist; the stage's
+    alone without a spread; a slice on no line keeps the unchecked gain."""
+    from service.consistency.image_refinement import REFINED_GAIN, SPREAD_GAIN, UNCHECKED_GAIN
+
+    out = expected_after([np.array([4.0, 4.0, 4.0])], [np.array([1.0, 1.0, np.nan])], [np.array([0.5, np.nan, 0.5])])[0]
+    assert out[0] == pytest.approx(np.sqrt(REFINED_GAIN * 4.0 * SPREAD_GAIN * 0.5))
+    assert out[1] == pytest.approx(REFINED_GAIN * 4.0) and out[2] == pytest.approx(UNCHECKED_GAIN * 4.0)

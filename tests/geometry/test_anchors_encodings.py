@@ -71,3 +71,17 @@ def test_quaternion_decode_normalises_and_is_wxyz() -> None:
 def test_unknown_label_type() -> None:
     with pytest.raises(ValueError, match="anchor"):
         encodings.get("matrix")
+
+
+def test_the_twist_spread_is_the_rms_anchor_displacement_of_sampled_perturbations() -> None:
+    """``twist_spread_mm`` against perturbations drawn from the covariance: the RMS distance each
+    anchor moves under ``P exp(d)`` (small twists, where the linear lever is exact to a percent)."""
+    rng = np.random.default_rng(5)
+    root = rng.normal(size=(6, 6)) * np.array([0.01, 0.01, 0.01, 0.8, 0.8, 0.8])[:, None]
+    cov = root @ root.T                                                    # correlated rotation and shift
+    pose = se3.exp(rng.normal(size=6) * [0.5, 0.5, 0.5, 20, 20, 20])
+    d = rng.multivariate_normal(np.zeros(6), cov, size=20000)
+    moved = anchors.encode(pose @ se3.exp(d)).reshape(-1, 3, 3) - anchors.encode(pose).reshape(1, 3, 3)
+    sampled = np.sqrt(np.mean(np.sum(moved ** 2, axis=-1)))
+    assert anchors.twist_spread_mm(cov) == pytest.approx(sampled, rel=0.02)
+    assert anchors.twist_spread_mm(np.stack([cov, 4 * cov])) == pytest.approx([sampled, 2 * sampled], rel=0.02)
