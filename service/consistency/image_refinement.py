@@ -24,7 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import linalg, sparse
+from scipy import linalg
+from scipy.linalg import lapack
 
 from service.consistency.image_jacobian import PointJacobian, image_jacobian
 from service.consistency.intersections import BlockedStack, ImageTerm, SampledStack, StackImages, candidate_pairs
@@ -263,8 +264,10 @@ def laplace_spread_mm(hess: NDArray) -> NDArray[np.float64]:
         1.99
     """
     f = len(hess) // 6
-    inv = linalg.cho_solve(linalg.cho_factor(hess, check_finite=False), np.eye(len(hess)), check_finite=False)
-    return twist_spread_mm(inv.reshape(f, 6, f, 6)[np.arange(f), :, np.arange(f), :])
+    factor, _ = linalg.cho_factor(hess, lower=False, check_finite=False)
+    upper, _ = lapack.dpotri(factor, lower=0)                                # the inverse's upper triangle
+    blocks = np.triu(upper.reshape(f, 6, f, 6)[np.arange(f), :, np.arange(f), :])
+    return twist_spread_mm(blocks + np.swapaxes(np.triu(blocks, 1), 1, 2))
 
 
 def _gauss_newton(residual, jacobian, x: NDArray, prior: NDArray, iterations: int,  # noqa: ANN001
