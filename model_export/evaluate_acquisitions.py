@@ -158,13 +158,15 @@ def score(predictions: list[StackPrediction], prepared: list[PreparedStack], tru
 def slice_evidence(prediction: StackPrediction) -> dict[str, NDArray]:
     """Per slice of one stack, what the service knows besides its answer (NaN where a stage did not
     run): the network's MC mass on the other twin, the stage's expected E.D. before the image
-    refinement, and the image mismatch left after it over the request's median."""
+    refinement, the image mismatch left after it over the request's median, and the refined pose's
+    Laplace spread."""
     n = len(prediction.poses.poses)
     ic = prediction.poses.image_consistency
     nan = np.full(n, np.nan)
     return {"twin_mass": np.asarray(prediction.poses.twin_mass, np.float64),
             "expected_stage": nan if ic is None or ic.expected_before_mm is None else ic.expected_before_mm,
-            "mismatch": nan if ic is None or ic.slice_mismatch is None else ic.slice_mismatch}
+            "mismatch": nan if ic is None or ic.slice_mismatch is None else ic.slice_mismatch,
+            "spread": nan if ic is None or ic.slice_spread_mm is None else ic.slice_spread_mm}
 
 
 def rigid_poses(report: dict, scanner_from_voxel: NDArray, voxel_from_network: NDArray) -> NDArray | None:

@@ -3,10 +3,10 @@
 Reads the per-slice columns that ``svrnet-train calibrate-acceptance --slices FILE.npz`` (or
 ``evaluate --acquisitions --slices``) writes and ranks every score the service has (the MC variance,
 ``expected_error_mm``, the stage's expected error before the image refinement, the image mismatch
-left after it, the MC mass on the other twin, how far the stages moved the slice, the motion the
-stage fitted, depth and time in the stack) against two the service cannot have: the network's own
-true error and the slice's true motion (oracles: an upper reference for what per-slice information
-can do). A logistic combination of the service's scores, cross-validated by stack (no stack in its
+left after it, the refined pose's Laplace spread, the MC mass on the other twin, how far the stages
+moved the slice, the motion the stage fitted, depth and time in the stack) against two the service
+cannot have: the network's own true error and the slice's true motion (oracles: an upper reference
+for what per-slice information can do). A logistic combination of the service's scores, cross-validated by stack (no stack in its
 own training fold), shows what a learned predictor would add.
 
     .venv/bin/svrnet-train calibrate-acceptance service/models/default/model.onnx --no-write \\
@@ -27,12 +27,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from model_export.calibrate import auroc  # noqa: E402
 from model_export.evaluate_acquisitions import ERROR_MM, MIN_MASK_PIXELS  # noqa: E402
 
-SERVICE = ("variance", "expected", "expected_stage", "mismatch", "twin_mass", "moved_mm", "fitted_motion_mm", "depth", "time")
+SERVICE = ("variance", "expected", "expected_stage", "mismatch", "spread", "twin_mass", "moved_mm", "fitted_motion_mm", "depth",
+           "time")
 ORACLE = ("ed_network_min", "motion_mm")
 
 
 def _feature(cols: dict[str, np.ndarray], key: str) -> np.ndarray:
-    v = np.asarray(cols[key], dtype=np.float64)
+    """One score per slice, NaN as 0 and infinity above every finite value (a column the file lacks,
+    such as ``spread`` in files written before it was kept: all 0)."""
+    v = np.asarray(cols.get(key, np.full(len(cols["ed"]), np.nan)), dtype=np.float64)
     big = np.nanmax(np.where(np.isfinite(v), v, np.nan)) if np.isfinite(v).any() else 0.0
     return np.nan_to_num(v, nan=0.0, posinf=10 * big + 1)
 

@@ -40,6 +40,7 @@ class ImageConsistency:
     mismatch_after: float
     slice_mismatch: NDArray[np.float64] | None = None       # [n] each slice's image term after, over the request's median (NaN: on no line)
     expected_before_mm: NDArray[np.float64] | None = None   # [n] each slice's expected E.D. before the refinement
+    slice_spread_mm: NDArray[np.float64] | None = None      # [n] each refined slice's Laplace spread (NaN: not refined)
 
 
 @dataclass

@@ -69,6 +69,7 @@ def test_pipeline_with_a_twin_confused_estimator_per_motion_level(tmp_path) -> N
         assert checked.mean() > 0.5 and 0.5 < np.nanmedian(cols["mild/mismatch"]) < 2.0   # over each request's median
         assert np.all(cols["mild/expected_stage"][checked] > 0)
         assert np.isnan(cols["extreme/mismatch"]).all() and np.isnan(cols["extreme/expected_stage"]).all()
+        assert np.all(cols["mild/spread"][checked] > 0) and np.isnan(cols["extreme/spread"]).all()   # the Laplace spread
         assert np.all((cols["mild/twin_mass"] >= 0) & (cols["mild/twin_mass"] <= 1))
     report = markdown(out, "phantom")
     assert report.count("| mild, told interleaved |") == 2 and "along the normal" in report
