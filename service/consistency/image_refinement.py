@@ -8,7 +8,8 @@ show, and the slices' images can (:mod:`service.consistency.intersections`). The
 plus ``sum_k |d_k / s_k|^2``, the stage's expected error as a Gaussian prior, by Levenberg-Marquardt
 in passes from coarse to fine in-plane smoothing. The images do not see a rigid move of all slices
 together: the result is put back in the frame of the stage's poses. Slices on no line follow their
-stack's nearest checked slices; each slice's expected error follows its remaining mismatch.
+stack's nearest checked slices; each slice's expected error follows its remaining mismatch and how
+firmly the images hold it (its Laplace spread at the optimum, :func:`expected_after`).
 
 Example:
     >>> relative = relative_mismatch([np.array([1.0, 4.0, np.nan])])             # over the median, 2.5
