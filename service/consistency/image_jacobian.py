@@ -29,22 +29,24 @@ from service.geometry import se3
 @dataclass
 class PointJacobian:
     """The image residuals' derivatives, two blocks per point: by the twist of each of the point's
-    pair's two slices (``values [P, 2, 6]``), in the columns ``6 cols + (0..5)`` (``cols [P, 2]``; -1:
-    a slice that keeps its pose). Every residual depends on two slices only, so the normal equations
-    are assembled pair by pair (:meth:`normal`), with no sparse matrix."""
+    pair's two slices (``values [P, 2, 6]``), in the columns ``6 c + (0..5)`` of the pair's slices'
+    free columns ``c = pair_cols[pair_of]`` (``pair_cols [M, 2]``; -1: a slice that keeps its pose).
+    Every residual depends on two slices only, so the normal equations are assembled pair by pair
+    (:meth:`normal`), with no sparse matrix."""
 
     values: NDArray[np.float64]
-    cols: NDArray[np.int64]
+    pair_cols: NDArray[np.int64]          # [M, 2] each pair's slices' free columns
     pair_of: NDArray[np.int64]            # [P] each point's pair
     place: NDArray[np.int64]              # [P] its place along the pair's line (unique within a pair)
     n_params: int
 
     def sparse(self) -> sparse.csr_matrix:
         """``[P, n_params]`` the same derivatives as a sparse matrix."""
-        ok = self.cols >= 0                                                   # [P, 2]
+        cols = self.pair_cols[self.pair_of]                                   # [P, 2]
+        ok = cols >= 0
         rows = np.repeat(np.nonzero(ok)[0], 6)
-        cols = (6 * self.cols[ok][:, None] + np.arange(6)).ravel()
-        return sparse.csr_matrix((self.values[ok].ravel(), (rows, cols)), shape=(len(self.values), self.n_params))
+        return sparse.csr_matrix((self.values[ok].ravel(), (rows, (6 * cols[ok][:, None] + np.arange(6)).ravel())),
+                                 shape=(len(self.values), self.n_params))
 
     def normal(self, weights: NDArray, r: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """``J^T W J`` (dense, ``[n_params, n_params]``) and ``J^T W r`` for point weights ``weights [P]``.
@@ -61,22 +63,18 @@ class PointJacobian:
             >>> bool(np.allclose(h, 2.0 * dense.T @ dense)), bool(np.allclose(g, dense[0]))
             (True, True)
         """
-        n, count = self.n_params, len(self.values)
+        n, count, pairs = self.n_params, len(self.values), len(self.pair_cols)
         if not count:
             return np.zeros((n, n)), np.zeros(n)
-        v = np.where((self.cols >= 0)[..., None], self.values, 0.0).reshape(count, 12)
-        pairs = int(self.pair_of.max()) + 1
+        v = np.where((self.pair_cols[self.pair_of] >= 0)[..., None], self.values, 0.0).reshape(count, 12)
         lined = np.zeros((pairs, int(self.place.max()) + 1, 12))
         lined[self.pair_of, self.place] = v
         weighed = np.zeros_like(lined)
         weighed[self.pair_of, self.place] = v * weights[:, None]
         blocks = np.swapaxes(weighed, 1, 2) @ lined                               # [M, 12, 12]
-        first = np.zeros(pairs, np.int64)
-        first[self.pair_of[::-1]] = np.arange(count)[::-1]                        # a point of each pair
-        index = (6 * np.maximum(self.cols[first], 0)[:, :, None] + np.arange(6)).reshape(pairs, 12)
+        index = (6 * np.maximum(self.pair_cols, 0)[:, :, None] + np.arange(6)).reshape(pairs, 12)
         hess = np.bincount((index[:, :, None] * n + index[:, None, :]).ravel(), blocks.ravel(), n * n).reshape(n, n)
-        cols = (6 * np.maximum(self.cols, 0)[:, :, None] + np.arange(6)).reshape(count, 12)
-        grad = np.bincount(cols.ravel(), (v * (weights * r)[:, None]).ravel(), n)
+        grad = np.bincount(index[self.pair_of].ravel(), (v * (weights * r)[:, None]).ravel(), n)
         return hess, grad
 
 
@@ -122,4 +120,4 @@ def image_jacobian(term: ImageTerm, atlas_from_slice: NDArray, poses: NDArray, c
         values[:, role, :3] = y[:, :3] + tt[:, None] * y[:, 3:6] + sign * np.cross(lever, own)
         values[:, role, 3:] = y[:, 6:] + sign * own
     values *= (term.sw / noise)[:, None, None]
-    return PointJacobian(values, col[pairs[j]], np.asarray(j), term.t_of, 6 * int((col >= 0).sum()))
+    return PointJacobian(values, col[pairs], np.asarray(j), term.t_of, 6 * int((col >= 0).sum()))

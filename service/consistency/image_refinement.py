@@ -79,7 +79,7 @@ class Refinement:
     cost_before: float                    # the image term per weighted point, before / after
     cost_after: float
     mismatch: list[NDArray[np.float64]]   # per stack [n]: each slice's image term per weighted point, after (NaN: none)
-    spread_mm: list[NDArray[np.float64]] | None = None   # per stack [n]: each refined slice's Laplace spread (NaN: not refined)
+    spread_mm: list[NDArray[np.float64]]  # per stack [n]: each refined slice's Laplace spread (mm; NaN: not refined)
 
 
 def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: list[NDArray], *,
@@ -105,7 +105,7 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
     sizes = [len(p) for p in poses]
     bounds = np.cumsum([0, *sizes])
     unchanged = Refinement([p.copy() for p in poses], [np.zeros(n) for n in sizes], 0, np.nan, np.nan,
-                           [np.full(n, np.nan) for n in sizes])
+                           [np.full(n, np.nan) for n in sizes], [np.full(n, np.nan) for n in sizes])
     if len(stacks) < 2:
         return unchanged
     stack_of = np.repeat(np.arange(len(stacks)), sizes)
@@ -158,16 +158,12 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
         x, r = _gauss_newton(residual, jac, x, prior, iterations, r)
         costs.append(_mean_square(r, term.sw))
         mismatch = _per_slice(r, term.sw, term.pairs[term.pair_of], len(p0))
-    spread = np.full(len(p0), np.nan)
-    if costs:                                    # the last pass's curvature at its optimum
-        omega = 1.0 / np.sqrt(1.0 + r ** 2)
-        hess = jac(x).normal(omega, r)[0]
-        hess[np.diag_indices_from(hess)] += 1.0 / prior.ravel() ** 2
-        spread[free] = laplace_spread_mm(hess)
     final = atlas_from_slice(x) @ se3.inverse(network_from_slice)
     checked = np.isfinite(mismatch)
     if not checked.any():
         return unchanged
+    spread = np.full(len(p0), np.nan)
+    spread[free] = laplace_spread_mm(_normal_equations(jac(x), x, r, prior)[0])   # the last pass, at its optimum
     final = follow_neighbours(final, p0, checked, stack_of, local)
     # The images do not see the request's frame; it goes back where the stage's poses put it.
     frame = se3.frechet_mean(p0[checked] @ se3.inverse(final[checked]), 1.0 / np.maximum(sd[checked], 0.5) ** 2)
@@ -287,10 +283,7 @@ def _gauss_newton(residual, jacobian, x: NDArray, prior: NDArray, iterations: in
     c = cost(r, x)
     mu = 1e-3
     for _ in range(iterations):
-        omega = 1.0 / np.sqrt(1.0 + r ** 2)                                 # IRLS weights of the soft-L1 loss
-        hess, grad = jacobian(x).normal(omega, r)
-        hess[np.diag_indices_from(hess)] += 1.0 / prior.ravel() ** 2
-        grad += (x / prior ** 2).ravel()
+        hess, grad = _normal_equations(jacobian(x), x, r, prior)
         while True:
             step = linalg.cho_solve(linalg.cho_factor(hess + mu * np.diag(np.diag(hess)), check_finite=False),
                                     -grad, check_finite=False)
@@ -308,6 +301,14 @@ def _gauss_newton(residual, jacobian, x: NDArray, prior: NDArray, iterations: in
         if done:
             break
     return x, r
+
+
+def _normal_equations(jac: PointJacobian, x: NDArray, r: NDArray, prior: NDArray) -> tuple[NDArray, NDArray]:
+    """The Gauss-Newton normal matrix and gradient of the objective at ``x``: the soft-L1 image term
+    through its IRLS weights ``1 / sqrt(1 + r^2)`` plus the Gaussian prior ``x / prior``."""
+    hess, grad = jac.normal(1.0 / np.sqrt(1.0 + r ** 2), r)
+    hess[np.diag_indices_from(hess)] += 1.0 / prior.ravel() ** 2
+    return hess, grad + (x / prior ** 2).ravel()
 
 
 def _prior_sd(sd_mm: NDArray) -> NDArray[np.float64]:

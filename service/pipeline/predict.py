@@ -246,8 +246,7 @@ def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPos
         outs[i].image_consistency = ImageConsistency(len(take), ref.pairs, int(images[j].active.sum()),
                                                      float(np.median(moved)) if len(moved) else 0.0,
                                                      float(ref.cost_before), float(ref.cost_after),
-                                                     relative[j], expected[j],
-                                                     None if ref.spread_mm is None else ref.spread_mm[j])
+                                                     relative[j], expected[j], ref.spread_mm[j])
 
 
 def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples: int,
