@@ -19,6 +19,7 @@ import typer
 
 from model_export.atlas import DEFAULT_ATLAS_ROOT
 from model_export.localiser.cli import app as localiser_app
+from service.inference.views import SHIPPED_VIEWS
 
 app = typer.Typer(add_completion=False, help=__doc__, no_args_is_help=True)
 app.add_typer(localiser_app, name="localiser", help="the brain localiser: synthetic data, training, shipping")
@@ -99,7 +100,8 @@ def export(
 
 
 @app.command()
-def calibrate(checkpoint: Path, root: Root = DEFAULT_ATLAS_ROOT, mc_samples: int = 100, tta_views: int = 8) -> None:
+def calibrate(checkpoint: Path, root: Root = DEFAULT_ATLAS_ROOT, mc_samples: int = 100,
+              tta_views: int = SHIPPED_VIEWS) -> None:
     """Choose the variance threshold on the validation volumes; print AUROC and the chosen value."""
     from model_export.calibrate import calibrate as run
 
@@ -158,14 +160,9 @@ def calibrate_spread(
     """Measure how the model's MC spread relates to its twin-min error (mc_error_scale), and the error's
     shape over the six coordinates of a slice (mc_error_shape) and its growth towards a stack's outer
     slices (mc_error_depth_gain); store them."""
-    from model_export.spread import measure_error_scale, measure_error_shape, write_metadata
+    from model_export.spread import calibrate_spread as run
 
-    result = measure_error_scale(model, root, per_volume) | measure_error_shape(model, root)
-    if write:
-        write_metadata(model, {"mc_error_scale": f"{result['mc_error_scale']:.3f}",
-                               "mc_error_shape": ",".join(f"{x:.3f}" for x in result["mc_error_shape"]),
-                               "mc_error_depth_gain": f"{result['mc_error_depth_gain']:.2f}"})
-    typer.echo(json.dumps(result, indent=2))
+    typer.echo(json.dumps(run(model, root, per_volume, write), indent=2))
 
 
 @app.command("calibrate-acceptance")
@@ -250,10 +247,11 @@ def ship(
     report: Path = Path("model_export/reports/default.md"),
     root: Root = DEFAULT_ATLAS_ROOT,
     tta_views: Annotated[int, typer.Option(help="test-time views the MC samples are shared among: 1, 4 "
-                                                "(rotations) or 8 (rotations and flips)")] = 8,
+                                                "(rotations) or 8 (rotations and flips)")] = SHIPPED_VIEWS,
 ) -> None:
-    """Calibrate, export, evaluate and write the model card: the folder the service loads (the accept
-    flags calibrated on the pipeline's final poses, as `calibrate-acceptance` does)."""
+    """Calibrate, export, evaluate and write the model card: the folder the service loads (the MC
+    spread's expected error calibrated as `calibrate-spread` does, then the accept flags on the
+    pipeline's final poses, as `calibrate-acceptance` does)."""
     import shutil
 
     from model_export.calibrate import calibrate as run_calibration
@@ -268,6 +266,9 @@ def ship(
     onnx_path = export_checkpoint(checkpoint, out / "model.onnx", name=name, version=version,
                                   variance_threshold=cal["threshold"], extra={"tta_views": tta_views})
     shutil.copyfile(checkpoint, out / "checkpoint.pt")
+    from model_export.spread import calibrate_spread as run_spread
+
+    typer.echo(f"spread calibrated: {json.dumps(run_spread(onnx_path, root))}")
     evaluation = run_evaluation(onnx_path, report, root)
     from model_export.train import prior_history, totals
 
@@ -291,6 +292,7 @@ def ship(
                report_path=str(report), onnx_bytes=onnx_path.stat().st_size)
     card = out / "card.md"
     card.write_text(card.read_text() + "\n" + acceptance_markdown(flags, "Accept flags").replace("# Accept", "## Accept", 1))
+    (report.parent / "acceptance.md").write_text(acceptance_markdown(flags, f"Accept flags of {onnx_path}"))
     (out / "calibration.json").write_text(json.dumps(cal))
     typer.echo(json.dumps(evaluation, indent=2))
 

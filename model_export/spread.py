@@ -92,6 +92,19 @@ def measure_error_shape(model_path: Path, root: Path = DEFAULT_ATLAS_ROOT, per_v
             "mc_error_depth_gain": depth_gain(coords, spread, depth)}
 
 
+def calibrate_spread(model_path: Path, root: Path = DEFAULT_ATLAS_ROOT, per_volume: int = 60,
+                     write: bool = True) -> dict[str, object]:
+    """Measure the model's ``mc_error_scale`` (:func:`measure_error_scale`), ``mc_error_shape`` and
+    ``mc_error_depth_gain`` (:func:`measure_error_shape`) and, with ``write``, store them in its metadata:
+    what every later stage's expected error, and so the accept flags, are calibrated on."""
+    result = measure_error_scale(model_path, root, per_volume) | measure_error_shape(model_path, root)
+    if write:
+        write_metadata(model_path, {"mc_error_scale": f"{result['mc_error_scale']:.3f}",
+                                    "mc_error_shape": ",".join(f"{x:.3f}" for x in result["mc_error_shape"]),
+                                    "mc_error_depth_gain": f"{result['mc_error_depth_gain']:.2f}"})
+    return result
+
+
 def write_metadata(model_path: Path, updates: dict[str, object]) -> None:
     """Set ``updates`` in the ONNX file's metadata (values as strings), the graph untouched."""
     proto = onnx.load(str(model_path))

@@ -1,0 +1,66 @@
+"""`svrnet-train ship`'s order of work, with every measurement stubbed (no atlas, no torch run)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+
+def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The accept flags are measured on the expected error, so the spread's calibration (which sets
+    ``mc_error_scale``) comes first; the acceptance report is written beside the evaluation report."""
+    import model_export.atlas as atlas
+    import model_export.calibrate as calibrate
+    import model_export.calibrate_acceptance as acceptance
+    import model_export.card as card
+    import model_export.evaluate as evaluate
+    import model_export.packaging as packaging
+    import model_export.spread as spread
+    import model_export.train as train
+    import service.inference.estimator as estimator
+    import service.inference.model_file as model_file
+    from model_export.cli import app
+    from service.inference.views import SHIPPED_VIEWS
+
+    calls: list[str] = []
+    views: list[int] = []
+
+    def export(checkpoint: Path, output: Path, **kw: object) -> Path:
+        views.append(kw["extra"]["tta_views"])
+        output.write_bytes(b"onnx")
+        return output
+
+    class Loaded:
+        info = type("Info", (), {"metadata": {}})()
+
+    monkeypatch.setattr(calibrate, "calibrate", lambda *a, **k: calls.append("threshold") or {"threshold": 50.0, "auroc": 0.8})
+    monkeypatch.setattr(packaging, "export_checkpoint", export)
+    monkeypatch.setattr(packaging, "load_checkpoint", lambda p: (None, {"train_seconds": 1.0, "samples_seen": 1, "step": 1,
+                                                                       "config": {"train_volumes": []}}))
+    monkeypatch.setattr(spread, "calibrate_spread", lambda *a, **k: calls.append("spread") or {"mc_error_scale": 0.7})
+    monkeypatch.setattr(spread, "write_metadata", lambda *a, **k: calls.append("flags written"))
+    monkeypatch.setattr(evaluate, "evaluate", lambda *a, **k: calls.append("evaluate") or {})
+    monkeypatch.setattr(train, "prior_history", lambda ck: [])
+    monkeypatch.setattr(train, "totals", lambda history: {})
+    monkeypatch.setattr(atlas, "split", lambda root: ([], []))
+    monkeypatch.setattr(atlas, "load_volumes", lambda names, root: [])
+    monkeypatch.setattr(acceptance, "measure", lambda *a, **k: calls.append("acceptance") or
+                        {"expected_error_floor_mm": 2.0, "variance_threshold": 480.0, "max_expected_error_mm": 4.0})
+    monkeypatch.setattr(acceptance, "markdown", lambda flags, title: f"# {title}\n")
+    monkeypatch.setattr(estimator, "OnnxPoseEstimator", lambda model: None)
+    monkeypatch.setattr(model_file, "load_model", lambda path: Loaded())
+    monkeypatch.setattr(card, "write_card", lambda out, **kw: out.write_text("# card\n"))
+    checkpoint = tmp_path / "run.pt"
+    checkpoint.write_bytes(b"weights")
+    report = tmp_path / "reports" / "default.md"
+    report.parent.mkdir()
+
+    result = CliRunner().invoke(app, ["ship", str(checkpoint), "--out", str(tmp_path / "model"), "--report", str(report)])
+
+    assert result.exit_code == 0, result.output
+    assert calls == ["threshold", "spread", "evaluate", "acceptance", "flags written"]
+    assert views == [SHIPPED_VIEWS]
+    assert (report.parent / "acceptance.md").read_text().startswith("# Accept flags of")
+    assert "## Accept flags" in (tmp_path / "model" / "card.md").read_text()
