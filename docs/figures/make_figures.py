@@ -16,10 +16,16 @@ fissure, a cortical ribbon, lateral ventricles, a cerebellum); its coordinates a
 Run from the repository root (a few seconds on two CPU cores)::
 
     .venv/bin/python docs/figures/make_figures.py
+
+Figures of a real scan show a reconstruction job's volume (the job's own output file; the scan is not
+in the repository)::
+
+    .venv/bin/python docs/figures/make_figures.py --real recon.nii.gz [--name real_scan_reconstruction.png]
 """
 
 from __future__ import annotations
 
+import argparse
 import io
 import os
 from dataclasses import dataclass
@@ -338,8 +344,31 @@ def figure_reconstruction(phantom: Phantom, stacks: list[Stack], path: Path) -> 
     save_png(figure, path)
 
 
+def figure_real_scan(recon: Path, path: Path) -> None:
+    """The three mid-planes of a reconstruction job's volume (:func:`service.reconstruction.preview.mid_planes`:
+    neurological convention), larger than the job's own preview."""
+    from service.io.volume import read_volume
+    from service.reconstruction.preview import mid_planes
+
+    panels = mid_planes(read_volume(recon))
+    figure, axes = plt.subplots(1, 3, figsize=(10.5, 3.8), gridspec_kw={"width_ratios": [p.width for p in panels]})
+    for ax, panel, name in zip(axes, panels, ("sagittal", "coronal", "axial")):
+        ax.imshow(np.asarray(panel), cmap="gray", vmin=0, vmax=255, interpolation="bilinear")
+        ax.set_title(name, fontsize=10)
+        ax.axis("off")
+    figure.tight_layout()
+    save_png(figure, path)
+
+
 def main() -> None:
-    """Draw both figures into this script's folder."""
+    """Draw the phantom's figures into this script's folder; with ``--real RECON``, the real scan's."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--real", type=Path, help="a reconstruction job's volume (NIfTI): draw its figure only")
+    parser.add_argument("--name", default="real_scan_reconstruction.png", help="the real scan's figure's file name")
+    args = parser.parse_args()
+    if args.real is not None:
+        figure_real_scan(args.real, HERE / args.name)
+        return
     rng = np.random.default_rng(2026)
     phantom = make_phantom()
     stacks = [acquire(phantom, axis, rng) for axis in (2, 1, 0)]
