@@ -69,6 +69,8 @@ ends, so the network cannot rely on a fluid rim or on the brain outshining its s
 FACE_SHARE = {"train": 0.8, "heldout": 0.8}
 """Share of heads drawn with a face (eyes in soft tissue below the frontal lobes) and a neck towards the
 trunk; the rest are the bare skull, scalp and a trunk in any direction."""
+BRAIN_LIKE_FACE_SHARE = {"train": 0.0, "heldout": 0.5}
+"""Share of faces whose soft tissue is as bright as the brain (the rest: as bright as the fetal body)."""
 NECK_AXIS = np.array([0.0, -0.3, -1.0]) / np.hypot(0.3, 1.0)
 """The neck's direction in the head's atlas frame (RAS: down and a little back)."""
 
@@ -148,7 +150,8 @@ class Face:
             if ndimage.map_coordinates(head.sdf, vox.T, order=1, mode="nearest").min() >= outside_mm + 0.6 * radius:
                 break
             centre = centre + away
-        level = tissue["body"] * rng.uniform(0.8, 1.5) if rng.random() < 0.5 else brain_level * rng.uniform(0.6, 1.2)
+        brain_like = rng.random() >= 1.0 - BRAIN_LIKE_FACE_SHARE[style]      # the upper draws: seeds keep their faces
+        level = brain_level * rng.uniform(0.6, 1.2) if brain_like else tissue["body"] * rng.uniform(0.8, 1.5)
         count = 6
         directions = rng.normal(size=(count, 3))
         directions /= np.linalg.norm(directions, axis=1, keepdims=True)

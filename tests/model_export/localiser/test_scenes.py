@@ -163,6 +163,26 @@ def test_a_face_lies_in_front_of_and_below_the_brain_outside_the_skull(head: Hea
         assert face.reach_mm > head.radius_mm * 0.8
 
 
+def test_training_faces_are_as_bright_as_the_body_and_held_out_ones_also_as_the_brain(head: HeadModel) -> None:
+    """Training faces take the fetal body's tissue level (so that brain-like tissue beside a head is
+    never taught to be a face); held-out faces also take the brain's, half of the time."""
+    from model_export.localiser import scenes
+
+    def brain_like(style: str) -> list[bool]:
+        out = []
+        for seed in range(40):
+            rng = np.random.default_rng(seed)
+            tissue = scenes._intensities(rng, False)
+            tissue["body"] = 0.2                                       # far below the brain's level
+            face = scenes.Face.draw(rng, head, tissue, 0.8, 5.0, style)
+            assert 0.2 * 0.8 <= face.tissue_level <= 0.8 * 1.2
+            out.append(face.tissue_level > 0.2 * 1.5)
+        return out
+
+    assert not any(brain_like("train"))
+    assert 0.25 < np.mean(brain_like("heldout")) < 0.75
+
+
 def test_a_scene_with_a_face_has_it_outside_the_mask_and_the_same_mask(head: HeadModel, monkeypatch: pytest.MonkeyPatch) -> None:
     """The face changes the image outside the skull only: the same seed with and without faces gives
     the same skull-inside mask, and images that differ outside it."""
