@@ -133,6 +133,20 @@ def measure(estimator, volumes: list, per_volume: int, seed: int = 1, levels: tu
         return calibrate(level_columns(npz, levels))
 
 
+FLAGS = ("expected_error_floor_mm", "variance_threshold", "max_expected_error_mm")
+"""What :func:`calibrate` chooses, under the names of the model's metadata the service reads."""
+
+
+def flag_metadata(result: dict) -> dict[str, str]:
+    """The calibrated :data:`FLAGS` of ``result`` as metadata values (4 significant digits).
+
+    Example:
+        >>> flag_metadata({"expected_error_floor_mm": 2.1234, "variance_threshold": 484.47, "max_expected_error_mm": 4.2})
+        {'expected_error_floor_mm': '2.123', 'variance_threshold': '484.5', 'max_expected_error_mm': '4.2'}
+    """
+    return {k: f"{result[k]:.4g}" for k in FLAGS}
+
+
 def trade_off(by_level: dict[str, dict[str, NDArray]], floor_mm: float, variance_threshold: float,
               limits_mm: tuple[float, ...] = (3.0, 4.0, 5.0, 6.0, 8.0)) -> dict[float, dict[str, tuple[float, float]]]:
     """For each limit, each level's share of good and of bad slices accepted (what a request's

@@ -180,7 +180,7 @@ def calibrate_acceptance(
     """Calibrate the accept flags on the pipeline's final poses over simulated acquisitions of the
     validation volumes at every motion level (mild, moderate, jumps, independent)."""
     from model_export.atlas import load_volumes, split
-    from model_export.calibrate_acceptance import PER_VOLUME, markdown, measure
+    from model_export.calibrate_acceptance import PER_VOLUME, flag_metadata, markdown, measure
     from model_export.spread import write_metadata
     from service.inference.estimator import OnnxPoseEstimator
     from service.inference.model_file import load_model
@@ -190,8 +190,7 @@ def calibrate_acceptance(
     report.parent.mkdir(parents=True, exist_ok=True)
     report.write_text(markdown(result, f"Accept flags of {model}"))
     if write:
-        write_metadata(model, {k: f"{result[k]:.4g}" for k in
-                               ("expected_error_floor_mm", "variance_threshold", "max_expected_error_mm")})
+        write_metadata(model, flag_metadata(result))
     typer.echo(json.dumps(result, indent=2))
 
 
@@ -279,13 +278,12 @@ def ship(
                "train_volumes_text": f"{len(ck['config']['train_volumes'])} atlas volumes: "
                                      + ", ".join(ck["config"]["train_volumes"])}
     from model_export.atlas import load_volumes, split
-    from model_export.calibrate_acceptance import PER_VOLUME, measure, markdown as acceptance_markdown
+    from model_export.calibrate_acceptance import PER_VOLUME, flag_metadata, measure, markdown as acceptance_markdown
     from model_export.spread import write_metadata
     from service.inference.estimator import OnnxPoseEstimator
 
     flags = measure(OnnxPoseEstimator(load_model(onnx_path)), load_volumes(split(root)[1], root), per_volume=PER_VOLUME)
-    write_metadata(onnx_path, {k: f"{flags[k]:.4g}" for k in
-                               ("expected_error_floor_mm", "variance_threshold", "max_expected_error_mm")})
+    write_metadata(onnx_path, flag_metadata(flags))
     info = load_model(onnx_path).info.metadata
     write_card(out / "card.md", info=info, train_summary=summary, train_config=ck["config"], calibration=cal,
                evaluation=evaluation, comparison=load_json(comparison) if comparison else None,
