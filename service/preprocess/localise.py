@@ -57,6 +57,15 @@ MIN_CONFIDENCE = 0.15
 BATCH_SLICES = 8
 """Slices per onnxruntime call of the localiser: on two cores a handful of 144 x 144 slices a call runs
 faster per slice than a whole stack at once (the activations stay in cache)."""
+WAIST_SHARE = 0.15
+"""A slice of the brain's component whose area is under this share of the component's largest slice
+on each side of it is a waist: a thin bridge into a neighbouring structure (:func:`cut_at_waists`)."""
+WAIST_OVERLAP = 0.5
+"""A thin slice is a waist only where the slices on either side of it overlap by less than this share
+of the smaller: a brain's poor slice lies between two slices of one brain, a bridge between two objects."""
+TAIL_SHARE = 0.35
+"""What lies beyond a waist is cut off when it holds less than this share of the component's
+probability mass; a larger part on each side is the brain itself, split by a poor slice."""
 POSE_MASK_INSET_MM = 2.0
 """How far inside the localiser's mask (the skull's inside) the pose network's mask lies: the pose
 network learnt the atlas's brain masks, which leave out most of the extra-axial CSF around the brain
@@ -147,6 +156,53 @@ def fill_holes_in_plane(mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
     return out
 
 
+def cut_at_waists(component: NDArray[np.bool_], prob: NDArray[np.float32]) -> NDArray[np.bool_]:
+    """A 3D component of per-slice maps ``[n, H, W]`` without what hangs on to it through a waist.
+
+    A brain's area grows from one cap to its widest slice and shrinks to the other cap. A component
+    whose area falls, at some slice, under :data:`WAIST_SHARE` of its largest slice on each side holds
+    two objects joined by a thin bridge (the brain leaking into the fetal neck and body, or into the
+    amniotic fluid, across one slice), where the slices on either side of it do not overlap
+    (:data:`WAIST_OVERLAP`; a poor slice of a brain lies between two overlapping ones). The part with most probability mass between waists is the
+    brain; everything beyond a waist on either side, the waist included, is cut off when it holds under
+    :data:`TAIL_SHARE` of the mass (a poor slice through the middle of a brain leaves two large parts
+    and cuts nothing). What stays is the largest-mass 3D component of the rest.
+
+    Example (a brain of 6 slices, a 2-pixel bridge, then a 3-slice blob beside it: the blob is cut off):
+        >>> c = np.zeros((10, 12, 12), bool); c[0:6, 1:7, 1:7] = True; c[6, 6, 6:8] = True; c[7:10, 6:11, 6:11] = True
+        >>> out = cut_at_waists(c, np.where(c, 0.9, 0.0).astype(np.float32))
+        >>> out.reshape(10, -1).sum(1).tolist()
+        [36, 36, 36, 36, 36, 36, 0, 0, 0, 0]
+    """
+    area = component.reshape(len(component), -1).sum(1)
+    mass = np.where(component, prob, 0.0).reshape(len(component), -1).sum(1)
+    rows = np.nonzero(area)[0]
+    if len(rows) < 3:
+        return component
+    lo, hi = rows[0], rows[-1]
+    before = np.maximum.accumulate(area[lo:hi + 1])
+    after = np.maximum.accumulate(area[lo:hi + 1][::-1])[::-1]
+    inner = np.arange(lo + 1, hi)
+    thin = inner[area[inner] < WAIST_SHARE * np.minimum(before[inner - lo - 1], after[inner - lo + 1])]
+    across = np.array([(component[k - 1] & component[k + 1]).sum() for k in thin])
+    waists = thin[across < WAIST_OVERLAP * np.maximum(np.minimum(area[thin - 1], area[thin + 1]), 1)]
+    if not len(waists):
+        return component
+    edges = np.concatenate([[lo - 1], waists, [hi + 1]])
+    parts = [(a + 1, b) for a, b in zip(edges[:-1], edges[1:]) if b > a + 1]        # slices between waists
+    core = max(parts, key=lambda ab: mass[ab[0]:ab[1]].sum())
+    keep_from = core[0] if mass[:core[0]].sum() < TAIL_SHARE * mass.sum() else 0
+    keep_to = core[1] if mass[core[1]:].sum() < TAIL_SHARE * mass.sum() else len(component)
+    if (keep_from, keep_to) == (0, len(component)):
+        return component
+    kept = np.zeros_like(component)
+    kept[keep_from:keep_to] = component[keep_from:keep_to]
+    labels, n = ndimage.label(kept, structure=np.ones((3, 3, 3), bool))
+    if n <= 1:
+        return kept
+    return labels == int(np.argmax(ndimage.sum_labels(prob, labels, np.arange(1, n + 1)))) + 1
+
+
 def inset_in_plane(mask: NDArray, spacing: NDArray, inset_mm: float, axis: int | None = None) -> NDArray[np.bool_]:
     """``mask`` without the pixels within ``inset_mm`` of its outside, in the plane of each slice along
     ``axis`` (default: the thick one), by exact Euclidean distances on the voxel sizes ``spacing``.
@@ -191,7 +247,7 @@ def brain_from_probabilities(prob: NDArray[np.float32], voxel_ml: float) -> tupl
     mass = ndimage.sum_labels(prob, labels, ids)
     volume_of = np.bincount(labels.ravel(), minlength=n + 1)[1:] * voxel_ml
     best = int(np.argmax(mass * plausibility(volume_of) + 1e-6 * mass)) + 1
-    brain = fill_holes_in_plane(labels == best)
+    brain = fill_holes_in_plane(cut_at_waists(labels == best, prob))
     volume_ml = float(brain.sum() * voxel_ml)
     if volume_ml < MIN_BRAIN_ML:
         return np.zeros(prob.shape, bool), 0.0

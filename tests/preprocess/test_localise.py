@@ -11,7 +11,8 @@ from scipy import ndimage
 
 from service.core.settings import DEFAULT_LOCALISERS_DIR
 from service.io.volume import Volume, read_volume
-from service.preprocess.localise import Localisation, Localiser, Localisers, brain_from_probabilities, plausibility
+from service.preprocess.localise import (Localisation, Localiser, Localisers, brain_from_probabilities, cut_at_waists,
+                                        plausibility)
 from tests.conftest import SHARED_DATA
 
 REAL = SHARED_DATA / "real_scans"
@@ -34,6 +35,32 @@ def test_the_geometry_keeps_one_connected_brain_with_its_holes_filled() -> None:
     brain, confidence = brain_from_probabilities(p, voxel_ml=0.1)             # 240 ml: plausible
     assert brain[3, 13, 13] and not brain[2, 32, 32]
     assert brain.sum() == 6 * 20 * 20 and 0.8 < confidence < 0.9          # 0.9 sure, 97 % of the mass
+
+
+def _ellipsoid_brain(n: int = 16, size: int = 48) -> np.ndarray:
+    """Per-slice maps of an ellipsoidal brain filling slices 1..n-2 (0.9 inside)."""
+    k, r, c = np.mgrid[:n, :size, :size]
+    inside = ((k - (n - 1) / 2) / ((n - 1) / 2)) ** 2 + ((r - 20) / 14) ** 2 + ((c - 20) / 14) ** 2 < 1
+    return np.where(inside, 0.9, 0.0).astype(np.float32)
+
+
+def test_a_brain_leaking_through_a_thin_bridge_loses_what_lies_beyond_it() -> None:
+    p = _ellipsoid_brain(24)
+    p[16:] = 0.0                                                    # the brain ends at slice 15
+    p[16, 32:35, 32:35] = 0.8                                       # a bridge of one slice, then a blob beside it
+    p[17:22, 33:46, 33:46] = 0.8                                    # (the fetal neck and body, say)
+    brain, _ = brain_from_probabilities(p, voxel_ml=0.1)
+    assert brain[:16].sum() == (p[:16] >= 0.5).sum() and not brain[16:].any()
+    whole = brain_from_probabilities(p, voxel_ml=0.1)[0] | (p >= 0.5)
+    assert cut_at_waists(whole, p).sum() == brain.sum()
+
+
+def test_a_poor_slice_through_the_middle_of_a_brain_cuts_nothing() -> None:
+    p = _ellipsoid_brain(24)
+    p[6] = np.where(p[6] > 0, 0.0, 0.0)                             # a slice the network barely sees
+    p[6, 18:21, 18:21] = 0.9
+    component = p >= 0.5
+    assert np.array_equal(cut_at_waists(component, p), component)  # its neighbours overlap: one brain
 
 
 def test_no_brain_or_an_implausible_one_gives_a_low_confidence() -> None:
@@ -125,6 +152,15 @@ def test_real_scan_against_its_manual_mask(localiser: Localiser, name: str, floo
 def test_real_whole_uterus_stacks_without_masks_get_one(localiser: Localiser, name: str) -> None:
     found = localiser.localise(read_volume(REAL / "bch_f0832s1" / f"{name}.nii.gz"))
     assert 60 < found.brain_volume_ml < 700 and found.slices_with_brain >= 5 and found.confidence > 0.3
+
+
+@pytest.mark.skipif(not (REAL / "bch_f0832s1").is_dir(), reason=f"needs the real scans at {REAL}")
+def test_a_real_brain_leaking_into_the_fetal_body_is_cut_at_the_waist(localiser: Localiser) -> None:
+    """fetus_03's brain component runs on, through one thin slice, into scattered fetal-body tissue
+    over its last six slices; the waist rule ends the brain before them."""
+    found = localiser.localise(read_volume(REAL / "bch_f0832s1" / "fetus_03.nii.gz"))
+    per_slice = found.mask.reshape(-1, found.mask.shape[2]).sum(0)
+    assert per_slice[:37].all() and not per_slice[38:].any()
 
 
 def test_holes_are_filled_slice_by_slice_not_through_the_stack() -> None:
