@@ -42,7 +42,7 @@ from service.core.onnx import file_sha256, session_options
 from service.core.settings import DEFAULT_LOCALISERS_DIR
 from service.io.volume import Volume
 from service.preprocess.localiser_inputs import LocaliserGrid, localiser_inputs
-from service.preprocess.stack import slice_axis_of
+from service.preprocess.stack import mask_box, slice_axis_of
 
 log = logging.getLogger(__name__)
 
@@ -239,21 +239,21 @@ def brain_from_probabilities(prob: NDArray[np.float32], voxel_ml: float) -> tupl
         >>> int(brain.sum()), bool(brain[2, 16, 16]), round(conf, 2)
         (256, False, 0.93)
     """
-    above = prob >= THRESHOLD
-    labels, n = ndimage.label(above, structure=np.ones((3, 3, 3), bool))
-    if n == 0:
-        return np.zeros(prob.shape, bool), 0.0
-    ids = np.arange(1, n + 1)
-    mass = ndimage.sum_labels(prob, labels, ids)
+    out = np.zeros(prob.shape, bool)
+    box = mask_box(prob >= THRESHOLD, [0, 0, 0])             # every component lies inside it
+    if box is None:
+        return out, 0.0
+    p = prob[box]
+    labels, n = ndimage.label(p >= THRESHOLD, structure=np.ones((3, 3, 3), bool))
+    mass = np.bincount(labels.ravel(), weights=p.ravel(), minlength=n + 1)[1:]
     volume_of = np.bincount(labels.ravel(), minlength=n + 1)[1:] * voxel_ml
     best = int(np.argmax(mass * plausibility(volume_of) + 1e-6 * mass)) + 1
-    brain = fill_holes_in_plane(cut_at_waists(labels == best, prob))
+    brain = fill_holes_in_plane(cut_at_waists(labels == best, p))
     volume_ml = float(brain.sum() * voxel_ml)
     if volume_ml < MIN_BRAIN_ML:
-        return np.zeros(prob.shape, bool), 0.0
-    sureness = float(prob[brain].mean())
-    share = float(mass[best - 1] / mass.sum())
-    return brain, sureness * share * plausibility(volume_ml)
+        return out, 0.0
+    out[box] = brain
+    return out, float(p[brain].mean()) * float(mass[best - 1] / mass.sum()) * plausibility(volume_ml)
 
 
 @dataclass
@@ -314,8 +314,10 @@ class Localiser:
         brain, confidence = brain_from_probabilities(prob, voxel_ml)
         if not brain.any() or confidence < MIN_CONFIDENCE:
             return Localisation.of(np.zeros(volume.array.shape, bool), volume.spacing, "network", confidence)
-        near = ndimage.binary_dilation(brain, structure=np.ones((1, 3, 3), bool))
-        kept = np.where(near, np.maximum(prob, brain.astype(np.float32)), 0.0)
+        box = mask_box(brain, [0, 1, 1])                     # the brain and the ring of pixels around it
+        near = ndimage.binary_dilation(brain[box], structure=np.ones((1, 3, 3), bool))
+        kept = np.zeros_like(prob)
+        kept[box] = np.where(near, np.maximum(prob[box], brain[box].astype(np.float32)), 0.0)
         return Localisation.of(grid.to_stack(kept) >= THRESHOLD, volume.spacing, "network", confidence)
 
     def localise_slice(self, volume: Volume, which: int) -> Localisation:
