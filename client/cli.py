@@ -48,6 +48,7 @@ from typing import TYPE_CHECKING, Annotated, Any, Optional
 
 import httpx
 import typer
+from rich import box
 from rich.console import Console
 from rich.progress import (BarColumn, DownloadColumn, Progress, SpinnerColumn, TaskProgressColumn, TextColumn,
                            TimeElapsedColumn, TransferSpeedColumn)
@@ -213,6 +214,11 @@ def _write_json(path: Path, body: Any) -> None:
     path.write_text(json.dumps(body, indent=2) + "\n")
 
 
+NAME_WIDTH = 18
+"""Stack file names up to this long stay on one line of the summary table; longer ones fold, so that
+every column fits an 80-column terminal."""
+
+
 def summarise(result: dict[str, Any]) -> Table:
     """The per-stack summary table of a ``/v1/predict`` body."""
     model = result.get("model") or {}
@@ -220,11 +226,19 @@ def summarise(result: dict[str, Any]) -> Table:
     title = (f"model {model.get('name', '?')} {model.get('version', '')} · mc_samples {result.get('mc_samples')} · "
              f"accepted: expected error <= {'-' if limit is None else f'{limit:.3g} mm'}, "
              f"variance <= {'-' if threshold is None else f'{threshold:.4g}'}")
-    table = Table(title=title, title_justify="left")
-    for col, just in (("#", "right"), ("stack", "left"), ("brain", "left"), ("slices", "right"), ("accepted", "right"),
-                      ("rejected (by reason)", "left"), ("median expected error", "right"), ("median variance", "right")):
-        table.add_column(col, justify=just)  # type: ignore[arg-type]
-    for i, stack in enumerate(result.get("stacks") or []):
+    table = Table(title=title, title_justify="left", caption_justify="left", box=box.SIMPLE_HEAD, pad_edge=False,
+                  collapse_padding=True,
+                  caption="brain: the uploaded mask, or the volume the localiser found (its confidence); "
+                          "expected error, variance: the stack's medians")
+    stacks = result.get("stacks") or []
+    name_width = min(max([len(str(s.get("filename", ""))) for s in stacks] + [5]), NAME_WIDTH)
+    for col, just in (("stack", "left"), ("brain", "left"), ("accepted", "right"), ("rejected (by reason)", "left"),
+                      ("expected error", "right"), ("variance", "right")):
+        # names up to NAME_WIDTH stay whole (the other columns wrap first), longer ones fold; no cell is cut short
+        table.add_column(col, justify=just, overflow="fold", no_wrap=col == "stack" and name_width < NAME_WIDTH,  # type: ignore[arg-type]
+                         min_width={"stack": name_width, "rejected (by reason)": 19}.get(col),
+                         max_width=None if col in ("stack", "rejected (by reason)") else 8)
+    for stack in stacks:
         slices = stack.get("slices") or []
         accepted = sum(1 for s in slices if s.get("accepted"))
         reasons = Counter(s.get("reason") or "unknown" for s in slices if not s.get("accepted"))
@@ -232,8 +246,8 @@ def summarise(result: dict[str, Any]) -> Table:
         expected = [s["expected_error_mm"] for s in slices if s.get("expected_error_mm") is not None]
         where = stack.get("localisation") or {}
         brain = "mask" if where.get("method") == "mask" else \
-            f"found, {where.get('brain_volume_ml', 0):.0f} ml, confidence {where.get('confidence', 0):.2f}" if where else "-"
-        table.add_row(str(stack.get("index", i)), str(stack.get("filename", "")), brain, str(len(slices)), str(accepted),
+            f"{where.get('brain_volume_ml', 0):.0f} ml ({where.get('confidence', 0):.2f})" if where else "-"
+        table.add_row(str(stack.get("filename", "")), brain, f"{accepted} of {len(slices)}",
                       ", ".join(f"{k} {v}" for k, v in sorted(reasons.items())) or "-",
                       f"{statistics.median(expected):.1f} mm" if expected else "-",
                       f"{statistics.median(variances):.4g}" if variances else "-")

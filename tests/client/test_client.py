@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import email
 import email.policy
+import io
 import json
 import re
 import socket
@@ -573,12 +574,33 @@ def test_cli_predict_writes_json_and_prints_a_summary(fake_cli: Callable, stack_
     assert json.loads(out.read_text()) == PREDICT_BODY
     assert made == [("http://scanner:9000", None)]
     assert "stack.nii.gz" in r.stdout and "empty 1, high_variance 1" in r.stdout and "3" in r.stdout
-    assert "median variance" in r.stdout and "abc" in r.stdout
-    assert "found, 312 ml, confidence 0.93" in r.stdout
+    assert "variance" in r.stdout and "the stack's medians" in r.stdout and "abc" in r.stdout
+    assert "312 ml" in r.stdout and "(0.93)" in r.stdout and "2 of 4" in r.stdout
     fields, files = parse_multipart(fake.requests[0])
     assert fields == {"mc_samples": ["5"], "bias_correction": ["false"], "image_consistency": ["false"],
                       "masks_hold_csf": ["true"]}
     assert files[0][1] == "stack.nii.gz"
+
+
+@pytest.mark.parametrize("name", ["axial1_lr.nii.gz", "sub-000_ses-01_T2w_haste_coronal_run-2.nii.gz"])
+def test_the_summary_fits_an_80_column_terminal_and_cuts_no_cell_short(name: str) -> None:
+    from rich.console import Console
+
+    stack = PREDICT_BODY["stacks"][0]
+    reasons = ["empty", "high_expected_error", "outside_atlas", "inconsistent_with_stack"]
+    body = {**PREDICT_BODY, "max_expected_error_mm": 4.2, "stacks": [
+        {**stack, "filename": name, "slices": [{"index": i, "accepted": False, "reason": reasons[i % 4],
+                                                "expected_error_mm": 50.0, "geodesic_variance": 123.0}
+                                               for i in range(40)]}] * 2}
+    console = Console(width=80, record=True, file=io.StringIO())
+    console.print(cli.summarise(body))
+    text = console.export_text()
+    assert max(len(line) for line in text.splitlines()) <= 80 and "…" not in text
+    assert "0 of 40" in text and "50.0 mm" in text and "123" in text and "312 ml" in text and "variance" in text
+    if len(name) <= cli.NAME_WIDTH:
+        assert name in text                                       # a usual name stays whole
+    else:                                                         # a long one folds, nothing of it dropped
+        assert all(name[i:i + cli.NAME_WIDTH] in text for i in range(0, len(name), cli.NAME_WIDTH))
 
 
 def test_cli_masks_writes_the_masks_and_nothing_outside(fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
