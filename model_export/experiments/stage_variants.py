@@ -11,6 +11,7 @@ variant. A variant is ``base`` or a ``;``-separated list of overrides:
 * ``refine:passes=((3.0, 3.0, None), (0.9, 2.0, None))``: a keyword of the image refinement
   (:func:`~service.consistency.image_refinement.refine`).
 
+``--void`` puts a dark ball in every acquisition (:func:`~model_export.experiments.scanner_sweep.with_void`).
 Per motion level it prints the mean E.D. against the truth and twin-min, the median E.D. once the
 acquisition's common rigid offset is undone (what the images can tell: "frame-free"), the share of
 slices under 5 mm and over 10 mm accepted (and how many are over 10 mm), and the variant's time.
@@ -41,6 +42,7 @@ from model_export.acquisitions import MOTION_LEVELS, simulate_acquisition  # noq
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, prepare_acquisition  # noqa: E402
 from model_export.experiments.frame_bias import common_frame  # noqa: E402
+from model_export.experiments.scanner_sweep import with_void  # noqa: E402
 from service.geometry import twin  # noqa: E402
 from service.geometry.anchors import ed  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
@@ -48,7 +50,7 @@ from service.inference.model_file import load_model  # noqa: E402
 import service.pipeline.predict as pipeline  # noqa: E402
 
 
-def build(model: Path, root: Path, levels: list[str], per_volume: int, seed: int) -> tuple:
+def build(model: Path, root: Path, levels: list[str], per_volume: int, seed: int, void: bool = False) -> tuple:
     """``(info, [(level, prepared stacks, estimates per stack, true poses per stack), ...])``."""
     loaded = load_model(model)
     estimator = OnnxPoseEstimator(loaded)
@@ -57,8 +59,8 @@ def build(model: Path, root: Path, levels: list[str], per_volume: int, seed: int
     cases = []
     for level in levels:
         for vol in volumes * per_volume:
-            prepared, truth = prepare_acquisition(simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level),
-                                                  loaded.info)
+            stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level)
+            prepared, truth = prepare_acquisition(with_void(stacks, rng) if void else stacks, loaded.info)
             parts, _ = pipeline.estimate_stacks(prepared, estimator, 100)
             cases.append((level, prepared, parts, truth))
     return loaded.info, cases
@@ -129,10 +131,11 @@ def main() -> None:
                     help=f"of {', '.join(MOTION_LEVELS)} (extreme motion leaves every stack undecidable: the stages change nothing)")
     ap.add_argument("--per-volume", type=int, default=2)
     ap.add_argument("--seed", type=int, default=21)
+    ap.add_argument("--void", action="store_true", help="a dark ball in every acquisition (scanner_sweep.with_void)")
     args = ap.parse_args()
     if not args.cache.exists():
         with open(args.cache, "wb") as f:
-            pickle.dump(build(args.model, args.root, args.levels.split(","), args.per_volume, args.seed), f)
+            pickle.dump(build(args.model, args.root, args.levels.split(","), args.per_volume, args.seed, args.void), f)
     with open(args.cache, "rb") as f:
         info, cases = pickle.load(f)                                                               # noqa: S301 - our own file
     for variant in args.variants:

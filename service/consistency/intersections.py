@@ -121,6 +121,13 @@ def candidate_pairs(atlas_from_slice: NDArray, stack_of: NDArray, free: NDArray)
     return np.stack([a[keep], b[keep]], axis=1)
 
 
+SHADING_SCALE_MM = 6.0
+"""The in-plane reach (Gaussian sigma, mm) of a slice's local brain mean (:func:`shading`); None: no
+shading correction."""
+SHADING_RANGE = (0.8, 1.25)
+"""The local brain mean, over the stack's median, that counts as anatomy (:func:`shading`): on
+noise-free atlas brains at their true poses the refinement then moves the slices no further than
+without the correction (docs/consistency.md)."""
 CROP_MARGIN_MM = 15.0
 """The images are kept this far beyond the union of a stack's brain masks (in-plane): the points'
 moves and three sigmas of the widest smoothing (4.5 mm) stay inside it, so the crop changes the
@@ -167,9 +174,36 @@ class BlockedStack:
                 lo = int(max(hit[0] - margin, 0) // f[axis] * f[axis])
                 box[axis] = slice(lo, int(min(hit[-1] + margin + 1, (h, w)[axis])))
         images, masks = s.images[:, box[0], box[1]], s.masks[:, box[0], box[1]]
-        return cls(_blocks(images.astype(np.float32) / max(scale, 1e-6), f),
+        images = images.astype(np.float32) / max(scale, 1e-6)
+        if SHADING_SCALE_MM:
+            images = images / shading(images, masks, s.pixel_mm)
+        return cls(_blocks(images, f),
                    ndimage.gaussian_filter(_blocks(masks.astype(np.float32), f), (0.0, 1.0, 1.0)), f,
                    (box[0].start, box[1].start))
+
+
+def shading(images: NDArray[np.float32], masks: NDArray, pixel_mm: tuple[float, float]) -> NDArray[np.float32]:
+    """The shading of each slice ``images [n, H, W]`` (scaled by their stack's median brain intensity)
+    that the image term divides out: its local brain mean within :data:`SHADING_SCALE_MM` (a Gaussian
+    average over the brain ``masks``), where that mean lies outside :data:`SHADING_RANGE`, by as much
+    as it lies outside; 1 elsewhere.
+
+    What N4 leaves of a dark ball (3 T dielectric shading) or a coil's falloff sits still in the
+    scanner while the fetus moves, so two crossing slices see it at different places of the brain and
+    their intensities disagree where their poses are right. A brain's own contrast varies its local
+    mean too, but less: only what lies beyond that is taken out.
+
+    Example (a slice whose left half is 0.5 x as bright: its shading there is about 0.63; the right is 1):
+        >>> img = np.ones((1, 20, 40), np.float32); img[:, :, :20] = 0.5
+        >>> s = shading(img, np.ones(img.shape, bool), (1.0, 1.0))
+        >>> round(float(s[0, 10, 5]), 2), float(s[0, 10, 35])
+        (0.63, 1.0)
+    """
+    sigma = (0.0, SHADING_SCALE_MM / pixel_mm[0], SHADING_SCALE_MM / pixel_mm[1])
+    m = masks.astype(np.float32)
+    weight = ndimage.gaussian_filter(m, sigma)
+    local = np.where(weight > 0.05, ndimage.gaussian_filter(images * m, sigma) / np.maximum(weight, 1e-6), 1.0)
+    return np.maximum(local / np.clip(local, *SHADING_RANGE), 0.1).astype(np.float32)      # never a blow-up of noise
 
 
 class SampledStack:
