@@ -174,18 +174,17 @@ class BlockedStack:
                 lo = int(max(hit[0] - margin, 0) // f[axis] * f[axis])
                 box[axis] = slice(lo, int(min(hit[-1] + margin + 1, (h, w)[axis])))
         images, masks = s.images[:, box[0], box[1]], s.masks[:, box[0], box[1]]
-        images = images.astype(np.float32) / max(scale, 1e-6)
-        if SHADING_SCALE_MM:
-            images = images / shading(images, masks, s.pixel_mm)
-        return cls(_blocks(images, f),
-                   ndimage.gaussian_filter(_blocks(masks.astype(np.float32), f), (0.0, 1.0, 1.0)), f,
-                   (box[0].start, box[1].start))
+        images = _blocks(images.astype(np.float32) / max(scale, 1e-6), f)
+        masks = _blocks(masks.astype(np.float32), f)
+        if SHADING_SCALE_MM:                                   # on the blocks: the same smooth mean, a quarter of the work
+            images = images / shading(images, masks, (s.pixel_mm[0] * f[0], s.pixel_mm[1] * f[1]))
+        return cls(images, ndimage.gaussian_filter(masks, (0.0, 1.0, 1.0)), f, (box[0].start, box[1].start))
 
 
 def shading(images: NDArray[np.float32], masks: NDArray, pixel_mm: tuple[float, float]) -> NDArray[np.float32]:
     """The shading of each slice ``images [n, H, W]`` (scaled by their stack's median brain intensity)
     that the image term divides out: its local brain mean within :data:`SHADING_SCALE_MM` (a Gaussian
-    average over the brain ``masks``), where that mean lies outside :data:`SHADING_RANGE`, by as much
+    average weighed by the brain ``masks``, 0..1), where that mean lies outside :data:`SHADING_RANGE`, by as much
     as it lies outside; 1 elsewhere.
 
     What N4 leaves of a dark ball (3 T dielectric shading) or a coil's falloff sits still in the
@@ -200,9 +199,9 @@ def shading(images: NDArray[np.float32], masks: NDArray, pixel_mm: tuple[float, 
         (0.63, 1.0)
     """
     sigma = (0.0, SHADING_SCALE_MM / pixel_mm[0], SHADING_SCALE_MM / pixel_mm[1])
-    m = masks.astype(np.float32)
-    weight = ndimage.gaussian_filter(m, sigma)
-    local = np.where(weight > 0.05, ndimage.gaussian_filter(images * m, sigma) / np.maximum(weight, 1e-6), 1.0)
+    m = np.asarray(masks, np.float32)
+    weight = ndimage.gaussian_filter(m, sigma, truncate=3.0)
+    local = np.where(weight > 0.05, ndimage.gaussian_filter(images * m, sigma, truncate=3.0) / np.maximum(weight, 1e-6), 1.0)
     return np.maximum(local / np.clip(local, *SHADING_RANGE), 0.1).astype(np.float32)      # never a blow-up of noise
 
 
