@@ -184,8 +184,8 @@ class BlockedStack:
 def shading(images: NDArray[np.float32], masks: NDArray, pixel_mm: tuple[float, float]) -> NDArray[np.float32]:
     """The shading of each slice ``images [n, H, W]`` (scaled by their stack's median brain intensity)
     that the image term divides out: its local brain mean within :data:`SHADING_SCALE_MM` (a Gaussian
-    average weighed by the brain ``masks``, 0..1), where that mean lies outside :data:`SHADING_RANGE`, by as much
-    as it lies outside; 1 elsewhere.
+    average weighed by the brain ``masks``, 0..1), where that mean lies outside
+    :data:`SHADING_RANGE`, by as much as it lies outside; 1 elsewhere.
 
     What N4 leaves of a dark ball (3 T dielectric shading) or a coil's falloff sits still in the
     scanner while the fetus moves, so two crossing slices see it at different places of the brain and
@@ -201,8 +201,9 @@ def shading(images: NDArray[np.float32], masks: NDArray, pixel_mm: tuple[float, 
     sigma = (0.0, SHADING_SCALE_MM / pixel_mm[0], SHADING_SCALE_MM / pixel_mm[1])
     m = np.asarray(masks, np.float32)
     weight = ndimage.gaussian_filter(m, sigma, truncate=3.0)
-    local = np.where(weight > 0.05, ndimage.gaussian_filter(images * m, sigma, truncate=3.0) / np.maximum(weight, 1e-6), 1.0)
-    return np.maximum(local / np.clip(local, *SHADING_RANGE), 0.1).astype(np.float32)      # never a blow-up of noise
+    mean = ndimage.gaussian_filter(images * m, sigma, truncate=3.0) / np.maximum(weight, 1e-6)
+    local = np.where(weight > 0.05, mean, 1.0)
+    return np.maximum(local / np.clip(local, *SHADING_RANGE), 0.1).astype(np.float32)   # no blow-up of noise
 
 
 class SampledStack:

@@ -163,10 +163,11 @@ def cut_at_waists(component: NDArray[np.bool_], prob: NDArray[np.float32]) -> ND
     whose area falls, at some slice, under :data:`WAIST_SHARE` of its largest slice on each side holds
     two objects joined by a thin bridge (the brain leaking into the fetal neck and body, or into the
     amniotic fluid, across one slice), where the slices on either side of it do not overlap
-    (:data:`WAIST_OVERLAP`; a poor slice of a brain lies between two overlapping ones). The part with most probability mass between waists is the
-    brain; everything beyond a waist on either side, the waist included, is cut off when it holds under
-    :data:`TAIL_SHARE` of the mass (a poor slice through the middle of a brain leaves two large parts
-    and cuts nothing). What stays is the largest-mass 3D component of the rest.
+    (:data:`WAIST_OVERLAP`; a poor slice of a brain lies between two overlapping ones). The part
+    with most probability mass between waists is the brain; everything beyond a waist on either
+    side, the waist included, is cut off when it holds under :data:`TAIL_SHARE` of the mass (a poor
+    slice through the middle of a brain leaves two large parts and cuts nothing). What stays is the
+    largest-mass 3D component of the rest.
 
     Example (a brain of 6 slices, a 2-pixel bridge, then a 3-slice blob beside it: the blob is cut off):
         >>> c = np.zeros((10, 12, 12), bool); c[0:6, 1:7, 1:7] = True; c[6, 6, 6:8] = True; c[7:10, 6:11, 6:11] = True
