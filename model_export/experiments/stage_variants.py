@@ -11,10 +11,12 @@ variant. A variant is ``base`` or a ``;``-separated list of overrides:
 * ``refine:passes=((3.0, 3.0, None), (0.9, 2.0, None))``: a keyword of the image refinement
   (:func:`~service.consistency.image_refinement.refine`).
 
-``--void`` puts a dark ball in every acquisition (:func:`~model_export.experiments.scanner_sweep.with_void`).
+``--void`` puts a dark ball in every acquisition (:func:`~model_export.experiments.scanner_sweep.with_void`);
+``--alone`` sends each stack as a request of its own (a single-stack request, or a stream's first stack).
 Per motion level it prints the mean E.D. against the truth and twin-min, the median E.D. once the
 acquisition's common rigid offset is undone (what the images can tell: "frame-free"), the share of
-slices under 5 mm and over 10 mm accepted (and how many are over 10 mm), and the variant's time.
+slices under 5 mm and over 10 mm accepted (and how many are over 10 mm), RMS E.D. over RMS
+``expected_error_mm``, and the variant's time.
 Slices with at least 20 mask pixels count, as in the evaluation. A cache made again holds other MC
 draws: its figures differ from another cache's by tenths of a millimetre, the variants within one
 cache are compared exactly.
@@ -91,14 +93,21 @@ def frame_free(poses: np.ndarray, truth: np.ndarray, plane: float) -> np.ndarray
     return common_frame(poses, near, near[:, :3, 3].mean(axis=0))[1]
 
 
-def run(info, cases: list, variant: str) -> str:  # noqa: ANN001
-    """One variant over every cached acquisition: a line per motion level."""
+def requests(prepared: list, parts: list, alone: bool) -> list[tuple[list, list]]:
+    """The acquisition as one request, or (``alone``) each stack as a request of its own."""
+    return [([p], [e]) for p, e in zip(prepared, parts)] if alone else [(prepared, parts)]
+
+
+def run(info, cases: list, variant: str, alone: bool = False) -> str:  # noqa: ANN001
+    """One variant over every cached acquisition (``alone``: each stack sent on its own): a line per
+    motion level."""
     saved = overridden(variant)
     columns: dict[str, dict[str, list]] = defaultdict(lambda: defaultdict(list))
     start = time.perf_counter()
     try:
         for level, prepared, parts, truth in cases:
-            predictions, _ = pipeline.predict_from_estimates(prepared, parts, info, info.variance_threshold)
+            predictions = [p for request in requests(prepared, parts, alone)
+                           for p in pipeline.predict_from_estimates(*request, info, info.variance_threshold)[0]]
             keep = [p.prepared.prepared.mask_pixels >= MIN_MASK_PIXELS for p in predictions]
             poses = np.concatenate([p.poses.poses[k] for p, k in zip(predictions, keep)])
             true = np.concatenate([t[k] for t, k in zip(truth, keep)])
@@ -108,16 +117,20 @@ def run(info, cases: list, variant: str) -> str:  # noqa: ANN001
             col["frame_free"].append(frame_free(poses, true, info.symmetry_plane_x_mm))
             col["accepted"].append(np.concatenate([np.array([r is None for r in p.reasons])[k]
                                                    for p, k in zip(predictions, keep)]))
+            col["expected"].append(np.concatenate([np.full(k.sum(), np.nan) if p.poses.expected_error_mm is None
+                                                   else p.poses.expected_error_mm[k] for p, k in zip(predictions, keep)]))
     finally:
         for target, name, value in saved:
             setattr(target, name, value)
     lines = [f"{variant}  ({time.perf_counter() - start:.0f} s)"]
     for level, col in columns.items():
-        e, t, f, a = (np.concatenate(col[k]) for k in ("ed", "twin_min", "frame_free", "accepted"))
-        good, bad = e < 5, e > 10
+        e, t, f, a, x = (np.concatenate(col[k]) for k in ("ed", "twin_min", "frame_free", "accepted", "expected"))
+        good, bad, known = e < 5, e > 10, np.isfinite(x)
         bad_accepted = f"{100 * a[bad].mean():.0f} %" if bad.any() else "-"
+        rms = np.sqrt(np.mean(e[known] ** 2) / np.mean(x[known] ** 2)) if known.any() else np.nan
         lines.append(f"  {level:12s} E.D. {e.mean():.2f} / twin-min {t.mean():.2f} mm, frame-free median {np.median(f):.2f} mm;"
-                     f" accepted: {100 * a[good].mean():.0f} % of < 5 mm, {bad_accepted} of > 10 mm ({bad.sum()} slices)")
+                     f" accepted: {100 * a[good].mean():.0f} % of < 5 mm, {bad_accepted} of > 10 mm ({bad.sum()} slices);"
+                     f" RMS E.D. / RMS expected {rms:.2f}")
     return "\n".join(lines)
 
 
@@ -132,6 +145,7 @@ def main() -> None:
     ap.add_argument("--per-volume", type=int, default=2)
     ap.add_argument("--seed", type=int, default=21)
     ap.add_argument("--void", action="store_true", help="a dark ball in every acquisition (scanner_sweep.with_void)")
+    ap.add_argument("--alone", action="store_true", help="each stack sent on its own, not with its acquisition's others")
     args = ap.parse_args()
     if not args.cache.exists():
         with open(args.cache, "wb") as f:
@@ -139,7 +153,7 @@ def main() -> None:
     with open(args.cache, "rb") as f:
         info, cases = pickle.load(f)                                                               # noqa: S301 - our own file
     for variant in args.variants:
-        print(run(info, cases, variant), flush=True)
+        print(run(info, cases, variant, args.alone), flush=True)
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@ import numpy as np
 
 import service.consistency.stack_fit as stack_fit
 import service.pipeline.predict as pipeline
-from model_export.experiments.stage_variants import frame_free, overridden
+from model_export.experiments.stage_variants import frame_free, overridden, requests
 from service.geometry import se3
 from service.geometry.twin import DEFAULT_PLANE_X_MM
 
@@ -34,3 +34,9 @@ def test_a_common_offset_is_frame_free_and_a_slice_error_is_not() -> None:
     moved[3] = moved[3] @ se3.exp(np.array([0.0, 0.0, 0.0, 0.0, 0.0, 6.0]))
     left = frame_free(moved, truth, DEFAULT_PLANE_X_MM)
     assert left[3] > 4.0 and np.median(left) < 1.0
+
+
+def test_alone_sends_each_stack_as_its_own_request() -> None:
+    prepared, parts = ["ax", "cor", "sag"], [1, 2, 3]
+    assert requests(prepared, parts, alone=False) == [(prepared, parts)]
+    assert requests(prepared, parts, alone=True) == [(["ax"], [1]), (["cor"], [2]), (["sag"], [3])]
