@@ -231,12 +231,12 @@ def summarise(result: dict[str, Any]) -> Table:
                   caption="brain: the uploaded mask, or the volume the localiser found (its confidence); "
                           "expected error, variance: the stack's medians")
     stacks = result.get("stacks") or []
-    name_width = min(max([len(str(s.get("filename", ""))) for s in stacks] + [5]), NAME_WIDTH)
+    longest = max([len(str(s.get("filename", ""))) for s in stacks] + [5])
     for col, just in (("stack", "left"), ("brain", "left"), ("accepted", "right"), ("rejected (by reason)", "left"),
                       ("expected error", "right"), ("variance", "right")):
         # names up to NAME_WIDTH stay whole (the other columns wrap first), longer ones fold; no cell is cut short
-        table.add_column(col, justify=just, overflow="fold", no_wrap=col == "stack" and name_width < NAME_WIDTH,  # type: ignore[arg-type]
-                         min_width={"stack": name_width, "rejected (by reason)": 19}.get(col),
+        table.add_column(col, justify=just, overflow="fold", no_wrap=col == "stack" and longest <= NAME_WIDTH,  # type: ignore[arg-type]
+                         min_width={"stack": min(longest, NAME_WIDTH), "rejected (by reason)": 19}.get(col),
                          max_width=None if col in ("stack", "rejected (by reason)") else 8)
     for stack in stacks:
         slices = stack.get("slices") or []

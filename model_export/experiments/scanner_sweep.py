@@ -29,26 +29,25 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.acquisitions import SimulatedStack, simulate_acquisition  # noqa: E402
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
-from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, run_acquisition  # noqa: E402
-from service.api.responses import stack_objects  # noqa: E402
-from service.geometry import twin  # noqa: E402
-from service.geometry.anchors import ed  # noqa: E402
+from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, Scored, run_acquisition, score  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
 from service.inference.model_file import load_model  # noqa: E402
 from service.io.volume import Volume  # noqa: E402
 
 FOV_MM = 128.0
-SETTINGS: dict[str, dict[str, float]] = {
-    "1.0 mm pixels, 3 mm slices (the benchmarks')": {"pixel_mm": 1.0, "thickness_mm": 3.0, "gap_mm": 3.0},
-    "0.5 mm pixels": {"pixel_mm": 0.5, "thickness_mm": 3.0, "gap_mm": 3.0},
-    "0.8 mm pixels": {"pixel_mm": 0.8, "thickness_mm": 3.0, "gap_mm": 3.0},
-    "1.25 mm pixels": {"pixel_mm": 1.25, "thickness_mm": 3.0, "gap_mm": 3.0},
-    "1.6 mm pixels": {"pixel_mm": 1.6, "thickness_mm": 3.0, "gap_mm": 3.0},
-    "2 mm slices": {"pixel_mm": 1.0, "thickness_mm": 2.0, "gap_mm": 2.0},
-    "4.5 mm slices": {"pixel_mm": 1.0, "thickness_mm": 4.5, "gap_mm": 4.5},
-    "4 mm slices 2 mm apart": {"pixel_mm": 1.0, "thickness_mm": 4.0, "gap_mm": 2.0},
-    "a signal void in the brain (below)": {"pixel_mm": 1.0, "thickness_mm": 3.0, "gap_mm": 3.0, "void": 1.0},
+THREE_MM = {"thickness_mm": 3.0, "gap_mm": 3.0}
+SETTINGS: dict[str, tuple[dict[str, float], bool]] = {
+    "1.0 mm pixels, 3 mm slices (the benchmarks')": ({"pixel_mm": 1.0, **THREE_MM}, False),
+    "0.5 mm pixels": ({"pixel_mm": 0.5, **THREE_MM}, False),
+    "0.8 mm pixels": ({"pixel_mm": 0.8, **THREE_MM}, False),
+    "1.25 mm pixels": ({"pixel_mm": 1.25, **THREE_MM}, False),
+    "1.6 mm pixels": ({"pixel_mm": 1.6, **THREE_MM}, False),
+    "2 mm slices": ({"pixel_mm": 1.0, "thickness_mm": 2.0, "gap_mm": 2.0}, False),
+    "4.5 mm slices": ({"pixel_mm": 1.0, "thickness_mm": 4.5, "gap_mm": 4.5}, False),
+    "4 mm slices 2 mm apart": ({"pixel_mm": 1.0, "thickness_mm": 4.0, "gap_mm": 2.0}, False),
+    "a signal void in the brain (with_void)": ({"pixel_mm": 1.0, **THREE_MM}, True),
 }
+"""Each setting's :func:`simulate_acquisition` keywords, and whether :func:`with_void` darkens it."""
 VOID_RADIUS_MM, VOID_OFFSET_MM, VOID_GAIN = 25.0, 15.0, 0.4
 """A dark ball in the scanner, as 3 T dielectric shading leaves one in some real stacks (a real
 whole-uterus stack of another site shows the head 0.35-0.5x its median over a third of the brain):
@@ -75,26 +74,22 @@ def sweep(estimator, volumes: list, level: str, per_volume: int, seed: int,  # n
           only: set[int] | None = None) -> list[str]:
     """One line per setting: the same volumes and random draws for each."""
     lines = []
-    for i, (name, setting) in enumerate(SETTINGS.items(), 1):
+    for i, (name, (geometry, void)) in enumerate(SETTINGS.items(), 1):
         if only and i not in only:
             continue
-        errors, twin_min, accepted = [], [], []
+        scored = Scored()
         start = time.perf_counter()
         for a, vol in enumerate(volumes * per_volume):
             rng = np.random.default_rng([seed, a])         # each acquisition's draws start alike in every setting
-            geometry = {k: v for k, v in setting.items() if k != "void"}
             stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level,
-                                          size=int(round(FOV_MM / setting["pixel_mm"])), **geometry)
-            if setting.get("void"):
+                                          size=int(round(FOV_MM / geometry["pixel_mm"])), **geometry)
+            if void:
                 stacks = with_void(stacks, rng)
             (predictions,), prepared, truth = run_acquisition(stacks, estimator)
-            for res, p, true in zip(stack_objects(predictions), prepared, truth):
-                keep = p.prepared.mask_pixels >= MIN_MASK_PIXELS
-                final = np.array([s["atlas_from_voxel"] for s in res["slices"]]) @ np.linalg.inv(p.network_from_voxel())
-                errors.append(ed(final, true)[keep])
-                twin_min.append(twin.twin_min_ed(final, true, estimator.info.symmetry_plane_x_mm)[keep])
-                accepted.append(np.array([s["accepted"] for s in res["slices"]])[keep])
-        e, t, a = np.concatenate(errors), np.concatenate(twin_min), np.concatenate(accepted)
+            score(predictions, prepared, truth, stacks, estimator.info.symmetry_plane_x_mm, scored)
+        keep = scored.array("mask_pixels") >= MIN_MASK_PIXELS
+        e, t, a = (scored.array(k)[keep] for k in ("ed", "ed_min", "accepted"))
+        a = a.astype(bool)
         bad = f"{100 * a[e > 10].mean():.0f} % ({(e > 10).sum()})" if (e > 10).any() else "- (0)"
         lines.append(f"| {name} | {e.mean():.2f} / {t.mean():.2f} mm | {np.median(e):.2f} mm | {len(e)} | "
                      f"{100 * a[e < 5].mean():.0f} % | {bad} | {time.perf_counter() - start:.0f} s |")

@@ -42,6 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.acquisitions import MOTION_LEVELS, simulate_acquisition  # noqa: E402
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
+from model_export.calibrate_acceptance import rms  # noqa: E402
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, prepare_acquisition  # noqa: E402
 from model_export.experiments.frame_bias import common_frame  # noqa: E402
 from model_export.experiments.scanner_sweep import with_void  # noqa: E402
@@ -127,10 +128,10 @@ def run(info, cases: list, variant: str, alone: bool = False) -> str:  # noqa: A
         e, t, f, a, x = (np.concatenate(col[k]) for k in ("ed", "twin_min", "frame_free", "accepted", "expected"))
         good, bad, known = e < 5, e > 10, np.isfinite(x)
         bad_accepted = f"{100 * a[bad].mean():.0f} %" if bad.any() else "-"
-        rms = np.sqrt(np.mean(e[known] ** 2) / np.mean(x[known] ** 2)) if known.any() else np.nan
+        ratio = rms(e[known]) / rms(x[known]) if known.any() else np.nan
         lines.append(f"  {level:12s} E.D. {e.mean():.2f} / twin-min {t.mean():.2f} mm, frame-free median {np.median(f):.2f} mm;"
                      f" accepted: {100 * a[good].mean():.0f} % of < 5 mm, {bad_accepted} of > 10 mm ({bad.sum()} slices);"
-                     f" RMS E.D. / RMS expected {rms:.2f}")
+                     f" RMS E.D. / RMS expected {ratio:.2f}")
     return "\n".join(lines)
 
 

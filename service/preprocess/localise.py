@@ -241,11 +241,12 @@ def brain_from_probabilities(prob: NDArray[np.float32], voxel_ml: float) -> tupl
         (256, False, 0.93)
     """
     out = np.zeros(prob.shape, bool)
-    box = mask_box(prob >= THRESHOLD, [0, 0, 0])             # every component lies inside it
+    above = prob >= THRESHOLD
+    box = mask_box(above, [0, 0, 0])                          # every component lies inside it
     if box is None:
         return out, 0.0
     p = prob[box]
-    labels, n = ndimage.label(p >= THRESHOLD, structure=np.ones((3, 3, 3), bool))
+    labels, n = ndimage.label(above[box], structure=np.ones((3, 3, 3), bool))
     mass = np.bincount(labels.ravel(), weights=p.ravel(), minlength=n + 1)[1:]
     volume_of = np.bincount(labels.ravel(), minlength=n + 1)[1:] * voxel_ml
     best = int(np.argmax(mass * plausibility(volume_of) + 1e-6 * mass)) + 1
