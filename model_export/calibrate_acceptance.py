@@ -6,6 +6,11 @@ server runs (:func:`~model_export.evaluate_acquisitions.evaluate_acquisitions`),
 expected-error floor at 0 and no expected-error limit. From every slice's final E.D. (against the
 truth), its expected error, its variance and the other reasons it may be rejected for:
 
+0. ``twin_risk_logit``: the chance that a slice of a stack whose branch the stage decided sits
+   on its mirror twin (nearer the twin than the truth), as a logistic in its distance to the twin
+   (:func:`fit_twin_risk`, over the :data:`TARGET_LEVELS`); each such slice's expected error then
+   grows by that chance times its squared distance to the twin, as the service adds it
+   (:func:`~service.pipeline.predict.add_unseen_errors`);
 1. ``expected_error_floor_mm``: the error no stage sees (the request's placement in the atlas
    frame), added in quadrature to every slice's expected error; chosen so that RMS E.D. / RMS
    expected error is nearest 1 at every level (the largest ``|log ratio|`` smallest);
@@ -34,6 +39,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, evaluate_acquisitions
+from service.geometry import twin
 from service.inference import acceptance
 
 LEVELS = ("mild", "moderate", "jumps", "independent")
@@ -48,6 +54,8 @@ jumping motion. With 15 per level (30–60 such slices, one slice 2–3 % of the
 0.8 mm between runs of the same acquisitions with other MC draws."""
 FLOORS_MM = np.arange(0.0, 4.01, 0.1)
 LIMITS_MM = np.arange(2.0, 12.001, 0.1)
+MIN_TWIN_SLICES = 10
+"""Slices on their twin needed to fit :func:`fit_twin_risk` (fewer: no twin risk)."""
 OTHER_REASONS = (acceptance.EMPTY, acceptance.DEGENERATE, acceptance.OUTSIDE, acceptance.INCONSISTENT)
 
 
@@ -55,6 +63,53 @@ def rms(x: NDArray) -> float:
     x = np.asarray(x, dtype=np.float64)
     x = x[np.isfinite(x)]
     return float(np.sqrt(np.mean(x ** 2))) if len(x) else float("nan")
+
+
+def fit_twin_risk(distance_mm: NDArray, on_twin: NDArray, iterations: int = 50) -> tuple[float, float]:
+    """``(a, b)`` of the logistic ``P(on twin) = 1 / (1 + exp(-(a + b d)))`` by maximum likelihood
+    (Newton's method); a slope that comes out positive is set to 0 (the chance then a constant).
+
+    Example:
+        >>> rng = np.random.default_rng(0)
+        >>> d = rng.uniform(0.0, 60.0, 20000)
+        >>> on = rng.random(20000) < 1.0 / (1.0 + np.exp(-(-1.0 - 0.1 * d)))
+        >>> [round(v, 1) for v in fit_twin_risk(d, on)]
+        [-1.0, -0.1]
+    """
+    x = np.stack([np.ones(len(distance_mm)), np.asarray(distance_mm, np.float64)], axis=1)
+    y = np.asarray(on_twin, np.float64)
+    w = np.array([np.log(max(y.mean(), 1e-6) / max(1.0 - y.mean(), 1e-6)), 0.0])
+    for _ in range(iterations):
+        p = 1.0 / (1.0 + np.exp(-(x @ w)))
+        hess = (x * (p * (1.0 - p))[:, None]).T @ x + 1e-9 * np.eye(2)
+        step = np.linalg.solve(hess, x.T @ (y - p))
+        w = w + step
+        if np.abs(step).max() < 1e-9:
+            break
+    if w[1] > 0:
+        w = np.array([np.log(max(y.mean(), 1e-6) / max(1.0 - y.mean(), 1e-6)), 0.0])
+    return float(w[0]), float(w[1])
+
+
+def choose_twin_risk(by_level: dict[str, dict[str, NDArray]]) -> tuple[float, float] | None:
+    """:func:`fit_twin_risk` over the :data:`TARGET_LEVELS`' slices of stacks the stage decided (None
+    without a ``twin_mm`` column or with fewer than :data:`MIN_TWIN_SLICES` slices on their twin)."""
+    cols = [c for k, c in by_level.items() if k in TARGET_LEVELS and "twin_mm" in c]
+    if not cols:
+        return None
+    decided = np.concatenate([c["decidable"].astype(bool) for c in cols])
+    d = np.concatenate([c["twin_mm"] for c in cols])[decided]
+    on_twin = np.concatenate([c["ed"] > c["ed_min"] for c in cols])[decided]
+    return fit_twin_risk(d, on_twin) if on_twin.sum() >= MIN_TWIN_SLICES else None
+
+
+def with_twin_risk(columns: dict[str, NDArray], logit: tuple[float, float] | None) -> dict[str, NDArray]:
+    """``columns`` with each decided slice's expected error grown by its twin risk (as the service does)."""
+    if logit is None or "twin_mm" not in columns:
+        return columns
+    d = columns["twin_mm"]
+    extra = np.where(columns["decidable"].astype(bool), twin.twin_risk(d, logit) * d ** 2, 0.0)
+    return {**columns, "expected": np.sqrt(columns["expected"] ** 2 + extra)}
 
 
 def choose_floor(ed: dict[str, NDArray], expected: dict[str, NDArray]) -> float:
@@ -84,7 +139,9 @@ def rates(columns: dict[str, NDArray], ok: NDArray) -> dict[str, float]:
 
 
 def calibrate(by_level: dict[str, dict[str, NDArray]]) -> dict:
-    """The three settings (module docstring) from each level's slice columns, and how they do per level."""
+    """The four settings (module docstring) from each level's slice columns, and how they do per level."""
+    logit = choose_twin_risk(by_level)
+    by_level = {k: with_twin_risk(c, logit) for k, c in by_level.items()}
     floor = choose_floor({k: c["ed"] for k, c in by_level.items()}, {k: c["expected"] for k, c in by_level.items()})
     good_var = np.concatenate([c["variance"][c["ed"] < GOOD_MM] for c in by_level.values()])
     variance_threshold = float(np.percentile(good_var[np.isfinite(good_var)], GOOD_VARIANCE_QUANTILE))
@@ -103,7 +160,8 @@ def calibrate(by_level: dict[str, dict[str, NDArray]]) -> dict:
                      "rms_ed_over_rms_expected": rms(c["ed"]) / rms(np.hypot(c["expected"], floor)),
                      "rms_ed_over_rms_expected_before": rms(c["ed"]) / rms(c["expected"]),
                      **rates(c, accepted(c, floor, variance_threshold, limit))}
-    return {"expected_error_floor_mm": floor, "variance_threshold": variance_threshold, "max_expected_error_mm": limit,
+    return {"twin_risk_logit": None if logit is None else list(logit),
+            "expected_error_floor_mm": floor, "variance_threshold": variance_threshold, "max_expected_error_mm": limit,
             "limit_meets_target": bool(len(feasible)), "levels": levels,
             "trade_off": {f"{t:g}": v for t, v in trade_off(by_level, floor, variance_threshold).items()}}
 
@@ -114,7 +172,8 @@ def level_columns(npz: Path, levels: tuple[str, ...]) -> dict[str, dict[str, NDA
         out = {}
         for lv in levels:
             keep = f[f"{lv}/mask_pixels"] >= MIN_MASK_PIXELS
-            out[lv] = {key: f[f"{lv}/{key}"][keep] for key in ("ed", "ed_min", "expected", "variance", "reason")}
+            out[lv] = {key: f[f"{lv}/{key}"][keep] for key in ("ed", "ed_min", "expected", "variance", "reason",
+                                                             "twin_mm", "decidable") if f"{lv}/{key}" in f}
             out[lv]["expected"] = np.where(np.isinf(out[lv]["expected"]), np.nan, out[lv]["expected"])
     return out
 
@@ -125,7 +184,7 @@ def measure(estimator, volumes: list, per_volume: int, seed: int = 1, levels: tu
     floor and limit switched off while they are measured; ``slices``: keep every slice's columns
     there (``.npz``, as :func:`~model_export.evaluate_acquisitions.evaluate_acquisitions` writes them)."""
     estimator = copy(estimator)                  # the caller's keeps its calibration
-    estimator.info = replace(estimator.info, expected_error_floor_mm=0.0, max_expected_error_mm=None)
+    estimator.info = replace(estimator.info, expected_error_floor_mm=0.0, max_expected_error_mm=None, twin_risk_logit=None)
     with tempfile.TemporaryDirectory() as tmp:
         npz = slices or Path(tmp) / "slices.npz"
         evaluate_acquisitions(volumes, estimator, np.random.default_rng(seed), levels=levels, per_volume=per_volume,
@@ -133,18 +192,25 @@ def measure(estimator, volumes: list, per_volume: int, seed: int = 1, levels: tu
         return calibrate(level_columns(npz, levels))
 
 
-FLAGS = ("expected_error_floor_mm", "variance_threshold", "max_expected_error_mm")
+FLAGS = ("twin_risk_logit", "expected_error_floor_mm", "variance_threshold", "max_expected_error_mm")
 """What :func:`calibrate` chooses, under the names of the model's metadata the service reads."""
 
 
 def flag_metadata(result: dict) -> dict[str, str]:
-    """The calibrated :data:`FLAGS` of ``result`` as metadata values (4 significant digits).
+    """The calibrated :data:`FLAGS` of ``result`` as metadata values (4 significant digits; the twin
+    risk's two coefficients comma-separated, empty where none was fitted).
 
     Example:
-        >>> flag_metadata({"expected_error_floor_mm": 2.1234, "variance_threshold": 484.47, "max_expected_error_mm": 4.2})
-        {'expected_error_floor_mm': '2.123', 'variance_threshold': '484.5', 'max_expected_error_mm': '4.2'}
+        >>> flag_metadata({"twin_risk_logit": [-1.234, -0.13579], "expected_error_floor_mm": 2.1234,
+        ...                "variance_threshold": 484.47, "max_expected_error_mm": 4.2})
+        {'twin_risk_logit': '-1.234,-0.1358', 'expected_error_floor_mm': '2.123', 'variance_threshold': '484.5', 'max_expected_error_mm': '4.2'}
     """
-    return {k: f"{result[k]:.4g}" for k in FLAGS}
+    def text(value: object) -> str:
+        if value is None:
+            return ""
+        return ",".join(f"{v:.4g}" for v in value) if isinstance(value, (list, tuple)) else f"{value:.4g}"
+
+    return {k: text(result.get(k)) for k in FLAGS}
 
 
 def trade_off(by_level: dict[str, dict[str, NDArray]], floor_mm: float, variance_threshold: float,
@@ -161,6 +227,14 @@ def trade_off(by_level: dict[str, dict[str, NDArray]], floor_mm: float, variance
     return out
 
 
+def _logit_text(logit: list[float] | None) -> str:
+    """The twin risk's curve in words, with its chance at a few distances."""
+    if logit is None:
+        return "none fitted"
+    at = ", ".join(f"{d} mm {float(twin.twin_risk(d, tuple(logit))):.1%}" for d in (5, 10, 20, 40))
+    return f"logit {logit[0]:.3f} {logit[1]:+.4f} d (chance on the twin at {at})"
+
+
 def _share(x: float) -> str:
     """A share as a percentage; ``-`` where there was nothing to count."""
     return f"{x:.0%}" if np.isfinite(x) else "-"
@@ -169,6 +243,7 @@ def _share(x: float) -> str:
 def markdown(result: dict, title: str) -> str:
     """The calibration's report: the settings, then per level the accuracy and what the flags accept."""
     rows = [f"# {title}", "",
+            f"- twin risk: {_logit_text(result.get('twin_risk_logit'))}",
             f"- expected-error floor: {result['expected_error_floor_mm']:.1f} mm (in quadrature)",
             f"- variance threshold: {result['variance_threshold']:.1f} ({GOOD_VARIANCE_QUANTILE} % of slices with E.D. < 5 mm under it)",
             f"- max expected error: {result['max_expected_error_mm']:.2f} mm "

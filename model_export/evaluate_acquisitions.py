@@ -115,7 +115,8 @@ def run_acquisition(stacks: list[SimulatedStack], estimator, mc_samples: int = 1
 def score(predictions: list[StackPrediction], prepared: list[PreparedStack], truth: list[NDArray],
           stacks: list[SimulatedStack], plane_x_mm: float, into: Scored) -> None:
     """Add one acquisition's per-slice errors to ``into``, with where each lies: its components
-    against the nearer of the truth and twin (tilt, twist, centre, along the normal), its depth in
+    against the nearer of the truth and twin (tilt, twist, centre, along the normal), its distance
+    to its own twin, its depth in
     the stack (0 centre, 1 the outermost slice with >= :data:`MIN_MASK_PIXELS`) and its place in the
     acquisition (0 first, 1 last); and what the service knows of each slice besides its answer
     (:func:`slice_evidence`)."""
@@ -139,6 +140,7 @@ def score(predictions: list[StackPrediction], prepared: list[PreparedStack], tru
         rigid = rigid_poses(stage, sim.volume.affine, inv)
         fitted = ed(final, rigid) if rigid is not None else np.full(n, np.nan)
         into.add(ed=e, ed_min=np.minimum(e, e_tw), ed_network=ed(network, true), moved_mm=ed(final, network),
+                 twin_mm=twin.twin_distance_mm(final, plane_x_mm),
                  motion_mm=true_motion_mm(sim.atlas_from_voxel, sim.volume.affine, true), fitted_motion_mm=fitted,
                  stack=np.full(n, len(into.columns["ed"])),
                  ed_network_min=twin.twin_min_ed(network, true, plane_x_mm),

@@ -39,7 +39,10 @@ class SliceResult(BaseModel):
     expected_error_mm: Optional[float] = Field(
         None, description="expected E.D. (mm) of the returned pose: the stack model's posterior spread where the "
                           "stack is consistent (scaled by the slice's remaining image mismatch where image "
-                          "consistency refined it), else the MC spread times the model's calibration (mc_error_scale)")
+                          "consistency refined it), else the MC spread times the model's calibration (mc_error_scale); "
+                          "plus what no stage sees: the request's placement in the atlas (the model's floor) and, "
+                          "where the stack decided its left-right branch, the chance that the slice sits on its "
+                          "mirror twin times its squared distance to it")
 
 
 class ImageConsistency(BaseModel):

@@ -108,6 +108,36 @@ def twin_min_ed(pred: ArrayLike, true: ArrayLike, plane_x_mm: float = DEFAULT_PL
     return np.minimum(anchors.ed(pred, true), anchors.ed(pred, twin(true, plane_x_mm)))
 
 
+def twin_distance_mm(poses: ArrayLike, plane_x_mm: float = DEFAULT_PLANE_X_MM) -> NDArray[np.float64]:
+    """``[...]`` the E.D. between each pose and its own twin: how far a slice moves if it belongs to
+    the other hemisphere (small near the mid-sagittal plane, where the two are nearly one pose).
+
+    Example:
+        >>> import numpy as np
+        >>> sagittal = np.array([[0.0, 0, 1, 0], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]])   # normal along x
+        >>> lateral = sagittal.copy(); lateral[0, 3] = 6.0                                  # 6 mm off the plane
+        >>> twin_distance_mm(np.stack([sagittal, lateral])).round(3).tolist()
+        [0.0, 12.0]
+    """
+    from service.geometry import anchors
+
+    p = np.asarray(poses, dtype=np.float64)
+    return anchors.ed(p, twin(p, plane_x_mm))
+
+
+def twin_risk(distance_mm: ArrayLike, logit: tuple[float, float]) -> NDArray[np.float64]:
+    """The chance that a slice sits on its twin, from its distance to it (:func:`twin_distance_mm`):
+    ``1 / (1 + exp(-(a + b d)))`` with ``logit = (a, b)``, a model's calibration
+    (``twin_risk_logit``; ``b < 0``: the nearer the mid-sagittal plane, the likelier).
+
+    Example:
+        >>> twin_risk(np.array([0.0, 10.0]), (-1.0, -0.1)).round(3).tolist()
+        [0.269, 0.119]
+    """
+    a, b = logit
+    return 1.0 / (1.0 + np.exp(-(a + b * np.asarray(distance_mm, dtype=np.float64))))
+
+
 def nearer(pred: ArrayLike, true: ArrayLike, plane_x_mm: float = DEFAULT_PLANE_X_MM) -> NDArray[np.float64]:
     """``[..., 4, 4]`` per pose, ``true`` or its twin, whichever is nearer to ``pred`` (E.D.; ``true`` on a tie):
     the reference a mirror-invariant error is measured against (:func:`twin_min_ed`).

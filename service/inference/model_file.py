@@ -49,6 +49,10 @@ class ModelInfo:
     expected_error_floor_mm: float = 0.0
     """Calibration: the part of every returned pose's error that no stage sees (the request's
     placement in the atlas frame); added in quadrature to each slice's expected error."""
+    twin_risk_logit: tuple[float, float] | None = None
+    """Calibration: ``(a, b)``, the chance that a slice of a stack whose left-right branch the stage
+    decided sits on its mirror twin, ``1 / (1 + exp(-(a + b d)))`` at distance ``d`` (mm) from it
+    (:func:`service.geometry.twin.twin_risk`); None (not calibrated): no such risk is added."""
     max_expected_error_mm: float | None = None
     """Calibration: the default ``max_expected_error_mm`` of the accept flag (``high_expected_error``);
     None (not calibrated): slices are judged by their variance alone unless a request sets it."""
@@ -71,6 +75,7 @@ class ModelInfo:
                 mc_error_depth_gain=float(meta.get("mc_error_depth_gain", 0.0)),
                 expected_error_floor_mm=float(meta.get("expected_error_floor_mm", 0.0)),
                 max_expected_error_mm=float(meta["max_expected_error_mm"]) if meta.get("max_expected_error_mm") else None,
+                twin_risk_logit=_logit(meta.get("twin_risk_logit", "")),
                 metadata=dict(meta),
             )
         except (KeyError, ValueError) as exc:
@@ -85,6 +90,17 @@ def _shape(text: str) -> tuple[float, ...] | None:
     if len(shape) != 6 or not all(x > 0 for x in shape):
         raise ValueError(f"mc_error_shape must be six positive numbers, not {text!r}")
     return shape
+
+
+def _logit(text: str) -> tuple[float, float] | None:
+    """``twin_risk_logit`` from its metadata text (two comma-separated numbers, the slope not
+    positive; absent: None)."""
+    if not text:
+        return None
+    a, b = (float(x) for x in text.split(","))
+    if not (np.isfinite(a) and np.isfinite(b) and b <= 0):
+        raise ValueError(f"twin_risk_logit must be two finite numbers, the second <= 0, not {text!r}")
+    return a, b
 
 
 @dataclass

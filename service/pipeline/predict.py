@@ -36,7 +36,7 @@ from service.consistency.stage import (
     undecided,
 )
 from service.core.errors import InvalidParameter, UnusableImage
-from service.geometry.twin import DEFAULT_PLANE_X_MM
+from service.geometry.twin import DEFAULT_PLANE_X_MM, twin_distance_mm, twin_risk
 from service.inference import acceptance
 from service.inference.estimator import PoseEstimate, PoseEstimator
 from service.inference.model_file import ModelInfo
@@ -196,6 +196,33 @@ def judge(prepared: PreparedStack, estimate: PoseEstimate, out: StackPoses, thre
                               max_expected_error_mm)
 
 
+def add_unseen_errors(out: StackPoses, info: ModelInfo) -> None:
+    """Add to each returned pose's expected error (in place) what no stage sees.
+
+    * The request's placement in the atlas frame: the model's ``expected_error_floor_mm``, in quadrature.
+    * In a stack whose left-right branch the stage decided, the chance that a slice sits on its
+      mirror twin all the same: near the mid-sagittal plane a slice and its twin show one image,
+      and a sudden move of the fetus can put a slice's stack-mates' prediction nearer its twin. The
+      model's ``twin_risk_logit`` gives that chance ``p`` from the slice's distance ``d`` to its twin
+      (:func:`~service.geometry.twin.twin_risk`); the expected squared error grows by ``p d^2``.
+      Where the stage did not decide the stack, the poses are the network's and nothing is added.
+
+    Example (no twin risk calibrated: the floor alone):
+        >>> from types import SimpleNamespace
+        >>> out = SimpleNamespace(expected_error_mm=np.array([3.0]), fit=None, poses=np.eye(4)[None])
+        >>> add_unseen_errors(out, SimpleNamespace(expected_error_floor_mm=4.0)); out.expected_error_mm.tolist()
+        [5.0]
+    """
+    if out.expected_error_mm is None:
+        return
+    variance = np.asarray(out.expected_error_mm, np.float64) ** 2 + float(getattr(info, "expected_error_floor_mm", 0.0)) ** 2
+    logit = getattr(info, "twin_risk_logit", None)
+    if logit is not None and out.fit is not None and out.fit.decidable:
+        d = twin_distance_mm(out.poses, getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM))
+        variance = variance + twin_risk(d, logit) * d ** 2
+    out.expected_error_mm = np.sqrt(variance)
+
+
 def stack_orders(orders: list[SliceOrder] | None, uploads: list[StackUpload]) -> list[SliceOrder]:
     """One acquisition order per stack (:func:`~service.consistency.slice_order.per_stack`), each
     fitting its stack's slice count (:class:`InvalidParameter` naming the field and the file
@@ -314,10 +341,8 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
     if stack_consistency and image_consistency:
         refine_where_stacks_cross(prepared, outs, [~e.degenerate for e in parts])
     timings["image_consistency"] = time.perf_counter() - t
-    floor = float(getattr(info, "expected_error_floor_mm", 0.0))
     results = []
     for s, e, nfv, out in zip(prepared, parts, frames, outs):
-        if out.expected_error_mm is not None:              # what no stage sees: the request's placement
-            out.expected_error_mm = np.hypot(out.expected_error_mm, floor)
+        add_unseen_errors(out, info)
         results.append(StackPrediction(s, nfv, e, out, judge(s, e, out, threshold, max_expected_error_mm)))
     return results, timings

@@ -46,6 +46,7 @@ from service.pipeline.predict import (
     PreparedStack,
     StackPrediction,
     StackUpload,
+    add_unseen_errors,
     estimate_stacks,
     judge,
     predict_from_estimates,
@@ -242,13 +243,10 @@ class StreamSession:
             other = twin.twin(pose[0], plane)
             if anchors.ed(other, predicted) < anchors.ed(pose[0], predicted):
                 pose[0], mass, twinned = other, 1.0 - mass, np.ones(1, bool)
-        expected = self._with_floor(est.spread_mm * getattr(info, "mc_error_scale", 1.0))
-        out = StackPoses(pose, mass, twinned, np.zeros(1, bool), None, expected)
+        out = StackPoses(pose, mass, twinned, np.zeros(1, bool), None, est.spread_mm * getattr(info, "mc_error_scale", 1.0))
+        add_unseen_errors(out, info)
         return SliceAnswer(state.frame.stack, state.frame.index, self._judged(state.prepared, state.network_from_voxel,
                                                                                est, out))
-
-    def _with_floor(self, expected: NDArray) -> NDArray:
-        return np.hypot(expected, float(getattr(self.estimator.info, "expected_error_floor_mm", 0.0)))
 
     def _judged(self, prepared: PreparedStack, network_from_voxel: NDArray, est: PoseEstimate,
                 out: StackPoses) -> StackPrediction:
@@ -284,8 +282,7 @@ class StreamSession:
                                      est.spread_mm * getattr(info, "mc_error_scale", 1.0), True, times,
                                      None if shape is None else np.asarray(shape),
                                      float(getattr(info, "mc_error_depth_gain", 0.0)), reference).result()
-        if out.expected_error_mm is not None:
-            out.expected_error_mm = self._with_floor(out.expected_error_mm)
+        add_unseen_errors(out, info)
         answers = []
         for i, s in enumerate(states):
             answers.append(SliceAnswer(stack, s.frame.index, self._judged(s.prepared, s.network_from_voxel,

@@ -108,3 +108,23 @@ def test_measure_plane_x_refuses_an_oblique_grid() -> None:
     aff[:3, :3] = se3.so3_exp(np.array([0.0, 0.0, 0.3]))
     with pytest.raises(ValueError, match="not aligned"):
         twin.measure_plane_x(np.zeros((8, 8, 8)), aff)
+
+
+def test_twin_distance_is_the_ed_to_the_twin_and_grows_off_the_plane() -> None:
+    """A pose's distance to its twin is its E.D. to it, the same seen from the twin; a sagittal slice
+    ``s`` mm off the plane is ``2 s`` from its twin (the same orientation, mirrored position)."""
+    rng = np.random.default_rng(5)
+    poses = se3.exp(np.concatenate([rng.normal(scale=1.0, size=(20, 3)), rng.normal(scale=20.0, size=(20, 3))], 1))
+    d = twin.twin_distance_mm(poses, PLANE_X)
+    np.testing.assert_allclose(d, anchors.ed(poses, twin.twin(poses, PLANE_X)))
+    np.testing.assert_allclose(twin.twin_distance_mm(twin.twin(poses, PLANE_X), PLANE_X), d, atol=1e-9)
+    sagittal = np.stack([make_pose(np.array([[0.0, 0, 1], [1, 0, 0], [0, 1, 0]]), [PLANE_X + s, 4.0, -7.0])
+                         for s in (0.0, 3.0, -10.0)])
+    np.testing.assert_allclose(twin.twin_distance_mm(sagittal, PLANE_X), [0.0, 6.0, 20.0], atol=1e-9)
+
+
+def test_twin_risk_falls_with_the_distance_and_is_the_logistic() -> None:
+    d = np.array([0.0, 5.0, 20.0, 80.0])
+    p = twin.twin_risk(d, (-1.2, -0.13))
+    assert np.all(np.diff(p) < 0) and p[-1] < 1e-4
+    np.testing.assert_allclose(np.log(p / (1 - p)), -1.2 - 0.13 * d)

@@ -34,3 +34,33 @@ def test_the_floor_makes_the_expected_error_honest_and_the_limit_keeps_bad_slice
     good_variance = np.concatenate([c["variance"][c["ed"] < 5] for c in by_level.values()])
     assert (good_variance <= out["variance_threshold"]).mean() >= 0.99         # good poses pass the variance
     assert set(out["trade_off"]) == {"3", "4", "5", "6", "8"}
+
+
+def with_twins(rng: np.random.Generator, columns: dict[str, np.ndarray], logit: tuple[float, float]) -> dict[str, np.ndarray]:
+    """``columns`` of decided stacks whose slices sit on their twin with the chance ``logit`` gives at
+    their distance to it (0-60 mm): those slices' truth error grows by that distance, unseen by their
+    expected error."""
+    n = len(columns["ed"])
+    d = rng.uniform(0.0, 60.0, n)
+    on = rng.random(n) < 1.0 / (1.0 + np.exp(-(logit[0] + logit[1] * d)))
+    ed = np.where(on, np.hypot(columns["ed"], d), columns["ed"])
+    return {**columns, "ed": ed, "ed_min": np.minimum(ed, columns["ed"]), "twin_mm": d, "decidable": np.ones(n, bool)}
+
+
+def test_the_twin_risk_is_found_again_and_lets_the_limit_pass_more_good_slices() -> None:
+    """Slices near the mid-sagittal plane that sit on their twin (a logistic in their distance to it)
+    are bad slices with a small expected error. The calibration finds the logistic again; with it
+    those slices' expected errors grow, the limit keeps them out and passes more good slices than a
+    calibration that does not know the twin's distance."""
+    rng = np.random.default_rng(1)
+    logit = (-1.0, -0.12)
+    by_level = {k: with_twins(rng, level(rng, 3000, s, 2.0), logit) for k, s in (("mild", 1.0), ("moderate", 2.0), ("jumps", 2.5))}
+    out = calibrate(by_level)
+    a, b = out["twin_risk_logit"]
+    assert abs(a - logit[0]) < 0.3 and abs(b - logit[1]) < 0.03, out["twin_risk_logit"]
+    assert out["limit_meets_target"]
+    blind = calibrate({k: {c: v for c, v in cols.items() if c not in ("twin_mm", "decidable")} for k, cols in by_level.items()})
+    assert blind["twin_risk_logit"] is None
+    for k in by_level:
+        assert out["levels"][k]["bad_accepted"] <= MAX_BAD_ACCEPTED
+        assert out["levels"][k]["good_accepted"] > blind["levels"][k]["good_accepted"] + 0.02, (k, out["levels"][k], blind["levels"][k])
