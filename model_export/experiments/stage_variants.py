@@ -19,7 +19,8 @@ slices under 5 mm and over 10 mm accepted (and how many are over 10 mm), RMS E.D
 ``expected_error_mm``, and the variant's time.
 Slices with at least 20 mask pixels count, as in the evaluation. A cache made again holds other MC
 draws: its figures differ from another cache's by tenths of a millimetre, the variants within one
-cache are compared exactly.
+cache are compared exactly. The cached outputs are judged with ``--model``'s calibration as it is
+now (its accept flags, expected-error calibration), not the one they were cached with.
 
     .venv/bin/python model_export/experiments/stage_variants.py --cache /tmp/stages-21.pkl --seed 21 \\
         base "refine:passes=((3.0, 3.0, None), (0.9, 2.0, None))"                  # needs ../shared/data
@@ -34,6 +35,7 @@ import pickle
 import sys
 import time
 from collections import defaultdict
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -49,7 +51,7 @@ from model_export.experiments.scanner_sweep import with_void  # noqa: E402
 from service.geometry import twin  # noqa: E402
 from service.geometry.anchors import ed  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
-from service.inference.model_file import load_model  # noqa: E402
+from service.inference.model_file import ModelInfo, load_model  # noqa: E402
 import service.pipeline.predict as pipeline  # noqa: E402
 
 
@@ -67,6 +69,17 @@ def build(model: Path, root: Path, levels: list[str], per_volume: int, seed: int
             parts, _ = pipeline.estimate_stacks(prepared, estimator, 100)
             cases.append((level, prepared, parts, truth))
     return loaded.info, cases
+
+
+CALIBRATION = ("variance_threshold", "mc_error_scale", "mc_error_shape", "mc_error_depth_gain", "twin_risk_logit",
+               "expected_error_floor_mm", "max_expected_error_mm")
+"""The model metadata its calibrations write (a cache keeps the network's outputs, not its calibration)."""
+
+
+def calibrated_as(info: ModelInfo, model: ModelInfo) -> ModelInfo:
+    """``info`` (a cache's) with ``model``'s calibration: the cached network outputs judged as the
+    model judges them now."""
+    return replace(info, **{k: getattr(model, k) for k in CALIBRATION})
 
 
 def overridden(variant: str) -> list[tuple[object, str, object]]:
@@ -153,6 +166,7 @@ def main() -> None:
             pickle.dump(build(args.model, args.root, args.levels.split(","), args.per_volume, args.seed, args.void), f)
     with open(args.cache, "rb") as f:
         info, cases = pickle.load(f)                                                               # noqa: S301 - our own file
+    info = calibrated_as(info, load_model(args.model).info)
     for variant in args.variants:
         print(run(info, cases, variant, args.alone), flush=True)
 

@@ -1,5 +1,5 @@
-"""The stage-variants experiment's two pieces of logic: overrides that are put back, and the
-frame-free error against an offset simulated here."""
+"""The stage-variants experiment's pieces of logic: overrides that are put back, the frame-free
+error against an offset simulated here, and the model's calibration over a cache's."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import numpy as np
 
 import service.consistency.stack_fit as stack_fit
 import service.pipeline.predict as pipeline
-from model_export.experiments.stage_variants import frame_free, overridden, requests
+from model_export.experiments.stage_variants import CALIBRATION, calibrated_as, frame_free, overridden, requests
 from service.geometry import se3
 from service.geometry.twin import DEFAULT_PLANE_X_MM
 
@@ -40,3 +40,16 @@ def test_alone_sends_each_stack_as_its_own_request() -> None:
     prepared, parts = ["ax", "cor", "sag"], [1, 2, 3]
     assert requests(prepared, parts, alone=False) == [(prepared, parts)]
     assert requests(prepared, parts, alone=True) == [(["ax"], [1]), (["cor"], [2]), (["sag"], [3])]
+
+
+def test_a_caches_info_takes_the_models_calibration_and_keeps_the_rest() -> None:
+    from dataclasses import replace
+
+    from service.inference.model_file import ModelInfo
+
+    cached = ModelInfo("m", "1", "compact", "grid", 96, 1.25, 48.0, 0.25, "atlas", "", "old-sha")
+    model = replace(cached, sha256="new-sha", variance_threshold=485.2, twin_risk_logit=(-1.2, -0.16),
+                    expected_error_floor_mm=2.1, max_expected_error_mm=4.2)
+    judged = calibrated_as(cached, model)
+    assert all(getattr(judged, k) == getattr(model, k) for k in CALIBRATION)
+    assert judged.sha256 == "old-sha" and judged.variance_threshold == 485.2
