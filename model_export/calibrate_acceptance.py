@@ -6,18 +6,18 @@ server runs (:func:`~model_export.evaluate_acquisitions.evaluate_acquisitions`),
 expected-error floor at 0 and no expected-error limit. From every slice's final E.D. (against the
 truth), its expected error, its variance and the other reasons it may be rejected for:
 
-0. ``twin_risk_logit``: the chance that a slice of a stack whose branch the stage decided sits
+1. ``twin_risk_logit``: the chance that a slice of a stack whose branch the stage decided sits
    on its mirror twin (nearer the twin than the truth), as a logistic in its distance to the twin
    (:func:`fit_twin_risk`, over the :data:`TARGET_LEVELS`); each such slice's expected error then
    grows by that chance times its squared distance to the twin, as the service adds it
    (:func:`~service.pipeline.predict.add_unseen_errors`);
-1. ``expected_error_floor_mm``: the error no stage sees (the request's placement in the atlas
+2. ``expected_error_floor_mm``: the error no stage sees (the request's placement in the atlas
    frame), added in quadrature to every slice's expected error; chosen so that RMS E.D. / RMS
    expected error is nearest 1 at every level (the largest ``|log ratio|`` smallest);
-2. ``variance_threshold``: the :data:`GOOD_VARIANCE_QUANTILE` quantile of the variance of the slices
+3. ``variance_threshold``: the :data:`GOOD_VARIANCE_QUANTILE` quantile of the variance of the slices
    whose E.D. is under :data:`GOOD_MM`: the network's spread for one slice alone does not reject a
    good fused pose;
-3. ``max_expected_error_mm``: the largest limit under which at most :data:`MAX_BAD_ACCEPTED` of the
+4. ``max_expected_error_mm``: the largest limit under which at most :data:`MAX_BAD_ACCEPTED` of the
    slices whose E.D. exceeds :data:`BAD_MM` are accepted at every level of :data:`TARGET_LEVELS`
    (every other reason applied too); where no limit does that, the one that accepts the fewest.
 
@@ -181,7 +181,7 @@ def level_columns(npz: Path, levels: tuple[str, ...]) -> dict[str, dict[str, NDA
 def measure(estimator, volumes: list, per_volume: int, seed: int = 1, levels: tuple[str, ...] = LEVELS,  # noqa: ANN001
             slices: Path | None = None) -> dict:
     """:func:`calibrate` on acquisitions of ``volumes`` through the pipeline, the estimator's own
-    floor and limit switched off while they are measured; ``slices``: keep every slice's columns
+    floor, limit and twin risk switched off while they are measured; ``slices``: keep every slice's columns
     there (``.npz``, as :func:`~model_export.evaluate_acquisitions.evaluate_acquisitions` writes them)."""
     estimator = copy(estimator)                  # the caller's keeps its calibration
     estimator.info = replace(estimator.info, expected_error_floor_mm=0.0, max_expected_error_mm=None, twin_risk_logit=None)

@@ -116,10 +116,9 @@ def score(predictions: list[StackPrediction], prepared: list[PreparedStack], tru
           stacks: list[SimulatedStack], plane_x_mm: float, into: Scored) -> None:
     """Add one acquisition's per-slice errors to ``into``, with where each lies: its components
     against the nearer of the truth and twin (tilt, twist, centre, along the normal), its distance
-    to its own twin, its depth in
-    the stack (0 centre, 1 the outermost slice with >= :data:`MIN_MASK_PIXELS`) and its place in the
-    acquisition (0 first, 1 last); and what the service knows of each slice besides its answer
-    (:func:`slice_evidence`)."""
+    to its own twin, its depth in the stack (0 centre, 1 the outermost slice with >=
+    :data:`MIN_MASK_PIXELS`) and its place in the acquisition (0 first, 1 last); and what the
+    service knows of each slice besides its answer (:func:`slice_evidence`)."""
     from model_export.evaluate import error_components
 
     for res, pred, p, true, sim in zip(stack_objects(predictions), predictions, prepared, truth, stacks):
