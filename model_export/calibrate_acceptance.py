@@ -6,7 +6,7 @@ server runs (:func:`~model_export.evaluate_acquisitions.evaluate_acquisitions`),
 expected-error floor at 0 and no expected-error limit. From every slice's final E.D. (against the
 truth), its expected error, its variance and the other reasons it may be rejected for:
 
-1. ``twin_risk_logit``: the chance that a slice of a stack whose branch the stage decided sits
+1. ``twin_risk_logit``: the chance that a slice of a stack the stage found consistent sits
    on its mirror twin (nearer the twin than the truth), as a logistic in its distance to the twin
    (:func:`fit_twin_risk`, over the :data:`TARGET_LEVELS`); each such slice's expected error then
    grows by that chance times its squared distance to the twin, as the service adds it
@@ -65,35 +65,58 @@ def rms(x: NDArray) -> float:
     return float(np.sqrt(np.mean(x ** 2))) if len(x) else float("nan")
 
 
-def fit_twin_risk(distance_mm: NDArray, on_twin: NDArray, iterations: int = 50) -> tuple[float, float]:
-    """``(a, b)`` of the logistic ``P(on twin) = 1 / (1 + exp(-(a + b d)))`` by maximum likelihood
-    (Newton's method); a slope that comes out positive is set to 0 (the chance then a constant).
+RIDGE = 1e-3
+"""L2 penalty on the twin risk's two coefficients: keeps the fit finite where the slices on their
+twin and the others are separable by distance."""
+
+
+def fit_twin_risk(distance_mm: NDArray, on_twin: NDArray, iterations: int = 100) -> tuple[float, float] | None:
+    """``(a, b)`` of the logistic ``P(on twin) = 1 / (1 + exp(-(a + b d)))`` by penalised maximum
+    likelihood (Newton's method, :data:`RIDGE`; slices with a non-finite distance left out). None
+    where the chance does not fall with the distance (``b >= 0``), the fit does not converge, or
+    no slice sits on its twin.
 
     Example:
         >>> rng = np.random.default_rng(0)
         >>> d = rng.uniform(0.0, 60.0, 20000)
-        >>> on = rng.random(20000) < 1.0 / (1.0 + np.exp(-(-1.0 - 0.1 * d)))
+        >>> on = rng.random(20000) < twin.twin_risk(d, (-1.0, -0.1))
         >>> [round(v, 1) for v in fit_twin_risk(d, on)]
         [-1.0, -0.1]
+        >>> fit_twin_risk(d, d > 30.0) is None                  # the chance grows with the distance
+        True
     """
-    x = np.stack([np.ones(len(distance_mm)), np.asarray(distance_mm, np.float64)], axis=1)
-    y = np.asarray(on_twin, np.float64)
-    w = np.array([np.log(max(y.mean(), 1e-6) / max(1.0 - y.mean(), 1e-6)), 0.0])
+    d = np.asarray(distance_mm, np.float64)
+    ok = np.isfinite(d)
+    x = np.stack([np.ones(int(ok.sum())), d[ok]], axis=1)
+    y = np.asarray(on_twin, np.float64)[ok]
+    if not 0.0 < y.sum() < len(y):
+        return None
+    w = np.array([np.log(y.mean() / (1.0 - y.mean())), 0.0])
     for _ in range(iterations):
-        p = 1.0 / (1.0 + np.exp(-(x @ w)))
-        hess = (x * (p * (1.0 - p))[:, None]).T @ x + 1e-9 * np.eye(2)
-        step = np.linalg.solve(hess, x.T @ (y - p))
+        p = twin.twin_risk(d[ok], (w[0], w[1]))
+        hess = (x * (p * (1.0 - p))[:, None]).T @ x + RIDGE * np.eye(2)
+        step = np.linalg.solve(hess, x.T @ (y - p) - RIDGE * w)
         w = w + step
         if np.abs(step).max() < 1e-9:
             break
-    if w[1] > 0:
-        w = np.array([np.log(max(y.mean(), 1e-6) / max(1.0 - y.mean(), 1e-6)), 0.0])
-    return float(w[0]), float(w[1])
+    else:
+        return None
+    return (float(w[0]), float(w[1])) if w[1] < 0 and np.all(np.isfinite(w)) else None
 
 
 def choose_twin_risk(by_level: dict[str, dict[str, NDArray]]) -> tuple[float, float] | None:
-    """:func:`fit_twin_risk` over the :data:`TARGET_LEVELS`' slices of stacks the stage decided (None
-    without a ``twin_mm`` column or with fewer than :data:`MIN_TWIN_SLICES` slices on their twin)."""
+    """:func:`fit_twin_risk` over the :data:`TARGET_LEVELS`' slices of stacks the stage found
+    consistent (``decidable``), those nearer their twin than their truth counted as on it (None
+    without a ``twin_mm`` column or with fewer than :data:`MIN_TWIN_SLICES` slices on their twin).
+
+    Example (one level, 40 slices 2-80 mm from their twins, the 12 nearest on it):
+        >>> c = {"twin_mm": np.linspace(2.0, 80.0, 40), "decidable": np.ones(40, bool),
+        ...      "ed": np.r_[np.full(12, 3.0), np.ones(28)], "ed_min": np.ones(40)}
+        >>> a, b = choose_twin_risk({"mild": c}); b < 0
+        True
+        >>> choose_twin_risk({"mild": {**c, "decidable": np.arange(40) >= 5}}) is None   # 7 on it: too few
+        True
+    """
     cols = [c for k, c in by_level.items() if k in TARGET_LEVELS and "twin_mm" in c]
     if not cols:
         return None
@@ -104,11 +127,17 @@ def choose_twin_risk(by_level: dict[str, dict[str, NDArray]]) -> tuple[float, fl
 
 
 def with_twin_risk(columns: dict[str, NDArray], logit: tuple[float, float] | None) -> dict[str, NDArray]:
-    """``columns`` with each decided slice's expected error grown by its twin risk (as the service does)."""
+    """``columns`` with the expected error of each slice of a consistent stack grown by what its twin
+    adds (:func:`~service.geometry.twin.twin_variance`, as the service adds it).
+
+    Example:
+        >>> c = {"expected": np.array([3.0, 3.0]), "twin_mm": np.array([10.0, 10.0]), "decidable": np.array([True, False])}
+        >>> with_twin_risk(c, (-1.0, -0.1))["expected"].round(2).tolist()                  # sqrt(9 + 11.92)
+        [4.57, 3.0]
+    """
     if logit is None or "twin_mm" not in columns:
         return columns
-    d = columns["twin_mm"]
-    extra = np.where(columns["decidable"].astype(bool), twin.twin_risk(d, logit) * d ** 2, 0.0)
+    extra = np.where(columns["decidable"].astype(bool), twin.twin_variance(columns["twin_mm"], logit), 0.0)
     return {**columns, "expected": np.sqrt(columns["expected"] ** 2 + extra)}
 
 

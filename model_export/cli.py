@@ -172,8 +172,8 @@ def calibrate_acceptance(
     per_volume: Annotated[Optional[int], typer.Option(help="acquisitions per validation volume and motion level "
                                                            "(default: calibrate_acceptance.PER_VOLUME)")] = None,
     report: Path = Path("model_export/reports/acceptance.md"),
-    write: Annotated[bool, typer.Option(help="write expected_error_floor_mm, variance_threshold and "
-                                             "max_expected_error_mm into the model's metadata")] = True,
+    write: Annotated[bool, typer.Option(help="write twin_risk_logit, expected_error_floor_mm, variance_threshold "
+                                             "and max_expected_error_mm into the model's metadata")] = True,
     seed: int = 1,
     slices: Annotated[Optional[Path], typer.Option(help="also keep every slice's columns here (.npz)")] = None,
 ) -> None:

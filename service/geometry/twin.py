@@ -138,6 +138,18 @@ def twin_risk(distance_mm: ArrayLike, logit: tuple[float, float]) -> NDArray[np.
     return 1.0 / (1.0 + np.exp(-(a + b * np.asarray(distance_mm, dtype=np.float64))))
 
 
+def twin_variance(distance_mm: ArrayLike, logit: tuple[float, float]) -> NDArray[np.float64]:
+    """What the twin adds to a slice's expected squared E.D. (mm^2): its chance of sitting on its
+    twin (:func:`twin_risk`) times its squared distance to it; a slice on the plane adds nothing.
+
+    Example:
+        >>> twin_variance(np.array([0.0, 10.0]), (-1.0, -0.1)).round(2).tolist()
+        [0.0, 11.92]
+    """
+    d = np.asarray(distance_mm, dtype=np.float64)
+    return twin_risk(d, logit) * d ** 2
+
+
 def nearer(pred: ArrayLike, true: ArrayLike, plane_x_mm: float = DEFAULT_PLANE_X_MM) -> NDArray[np.float64]:
     """``[..., 4, 4]`` per pose, ``true`` or its twin, whichever is nearer to ``pred`` (E.D.; ``true`` on a tie):
     the reference a mirror-invariant error is measured against (:func:`twin_min_ed`).

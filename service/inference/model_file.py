@@ -50,8 +50,8 @@ class ModelInfo:
     """Calibration: the part of every returned pose's error that no stage sees (the request's
     placement in the atlas frame); added in quadrature to each slice's expected error."""
     twin_risk_logit: tuple[float, float] | None = None
-    """Calibration: ``(a, b)``, the chance that a slice of a stack whose left-right branch the stage
-    decided sits on its mirror twin, ``1 / (1 + exp(-(a + b d)))`` at distance ``d`` (mm) from it
+    """Calibration: ``(a, b)``, the chance that a slice of a stack the stage found consistent sits
+    on its mirror twin, ``1 / (1 + exp(-(a + b d)))`` at distance ``d`` (mm) from it
     (:func:`service.geometry.twin.twin_risk`); None (not calibrated): no such risk is added."""
     max_expected_error_mm: float | None = None
     """Calibration: the default ``max_expected_error_mm`` of the accept flag (``high_expected_error``);
@@ -93,13 +93,18 @@ def _shape(text: str) -> tuple[float, ...] | None:
 
 
 def _logit(text: str) -> tuple[float, float] | None:
-    """``twin_risk_logit`` from its metadata text (two comma-separated numbers, the slope not
-    positive; absent: None)."""
+    """``twin_risk_logit`` from its metadata text (two comma-separated finite numbers, the slope
+    negative; absent or empty: None).
+
+    Example:
+        >>> _logit("-0.58,-0.186"), _logit("")
+        ((-0.58, -0.186), None)
+    """
     if not text:
         return None
     a, b = (float(x) for x in text.split(","))
-    if not (np.isfinite(a) and np.isfinite(b) and b <= 0):
-        raise ValueError(f"twin_risk_logit must be two finite numbers, the second <= 0, not {text!r}")
+    if not (np.isfinite(a) and np.isfinite(b) and b < 0):
+        raise ValueError(f"twin_risk_logit must be two finite numbers, the second < 0, not {text!r}")
     return a, b
 
 

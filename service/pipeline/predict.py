@@ -36,7 +36,7 @@ from service.consistency.stage import (
     undecided,
 )
 from service.core.errors import InvalidParameter, UnusableImage
-from service.geometry.twin import DEFAULT_PLANE_X_MM, twin_distance_mm, twin_risk
+from service.geometry.twin import DEFAULT_PLANE_X_MM, twin_distance_mm, twin_variance
 from service.inference import acceptance
 from service.inference.estimator import PoseEstimate, PoseEstimator
 from service.inference.model_file import ModelInfo
@@ -200,18 +200,22 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo) -> None:
     """Add to each returned pose's expected error (in place) what no stage sees.
 
     * The request's placement in the atlas frame: the model's ``expected_error_floor_mm``, in quadrature.
-    * In a stack whose left-right branch the stage decided, the chance that a slice sits on its
-      mirror twin all the same: near the mid-sagittal plane a slice and its twin show one image,
-      and a sudden move of the fetus can put a slice's stack-mates' prediction nearer its twin. The
-      model's ``twin_risk_logit`` gives that chance ``p`` from the slice's distance ``d`` to its twin
-      (:func:`~service.geometry.twin.twin_risk`); the expected squared error grows by ``p d^2``.
-      Where the stage did not decide the stack, the poses are the network's and nothing is added.
+    * In a stack the stage found consistent (each slice's branch set by its stack-mates), the chance
+      that a slice sits on its mirror twin all the same: near the mid-sagittal plane a slice and its
+      twin show one image, and a sudden move of the fetus can put a slice's stack-mates' prediction
+      nearer its twin. The model's ``twin_risk_logit`` gives that chance ``p`` from the slice's
+      distance ``d`` to its twin; the expected squared error grows by ``p d^2``
+      (:func:`~service.geometry.twin.twin_variance`). Where the stage found no consistent stack
+      (and for a streamed slice answered before its stack is fitted), the poses are the network's
+      and nothing is added: the calibration knows no such case.
 
-    Example (no twin risk calibrated: the floor alone):
+    Example (a sagittal slice 5 mm off the plane, 10 mm from its twin, in a consistent stack):
         >>> from types import SimpleNamespace
-        >>> out = SimpleNamespace(expected_error_mm=np.array([3.0]), fit=None, poses=np.eye(4)[None])
-        >>> add_unseen_errors(out, SimpleNamespace(expected_error_floor_mm=4.0)); out.expected_error_mm.tolist()
-        [5.0]
+        >>> pose = np.array([[0.0, 0, 1, 5], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]])
+        >>> out = SimpleNamespace(expected_error_mm=np.array([3.0]), fit=SimpleNamespace(decidable=True), poses=pose[None])
+        >>> info = SimpleNamespace(expected_error_floor_mm=4.0, twin_risk_logit=(-1.0, -0.1))
+        >>> add_unseen_errors(out, info); out.expected_error_mm.round(2).tolist()       # sqrt(9 + 16 + 11.92)
+        [6.08]
     """
     if out.expected_error_mm is None:
         return
@@ -219,7 +223,7 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo) -> None:
     logit = getattr(info, "twin_risk_logit", None)
     if logit is not None and out.fit is not None and out.fit.decidable:
         d = twin_distance_mm(out.poses, getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM))
-        variance = variance + twin_risk(d, logit) * d ** 2
+        variance = variance + twin_variance(d, logit)
     out.expected_error_mm = np.sqrt(variance)
 
 

@@ -24,7 +24,7 @@ def _stack(offsets_mm: list[float], decidable: bool | None) -> StackPoses:
 def test_a_decided_stack_adds_each_slices_twin_risk_times_its_squared_distance_to_the_twin() -> None:
     """Sagittal slices 0, 5 and 30 mm off the plane are 0, 10 and 60 mm from their twins: the first
     gains nothing beyond the floor, the second its chance on the twin times 100 mm^2 (enough to pass
-    a 4.2 mm limit no longer), the third less (its chance falls faster than its squared distance grows)."""
+    a 4.5 mm limit no longer), the third less (its chance falls faster than its squared distance grows)."""
     info = SimpleNamespace(expected_error_floor_mm=2.0, twin_risk_logit=(-1.0, -0.1), symmetry_plane_x_mm=0.0)
     out = _stack([0.0, 5.0, 30.0], decidable=True)
     add_unseen_errors(out, info)
