@@ -87,13 +87,13 @@ def fit_twin_risk(distance_mm: NDArray, on_twin: NDArray, iterations: int = 100)
     """
     d = np.asarray(distance_mm, np.float64)
     ok = np.isfinite(d)
-    x = np.stack([np.ones(int(ok.sum())), d[ok]], axis=1)
-    y = np.asarray(on_twin, np.float64)[ok]
+    d, y = d[ok], np.asarray(on_twin, np.float64)[ok]
+    x = np.stack([np.ones(len(d)), d], axis=1)
     if not 0.0 < y.sum() < len(y):
         return None
     w = np.array([np.log(y.mean() / (1.0 - y.mean())), 0.0])
     for _ in range(iterations):
-        p = twin.twin_risk(d[ok], (w[0], w[1]))
+        p = twin.twin_risk(d, (w[0], w[1]))
         hess = (x * (p * (1.0 - p))[:, None]).T @ x + RIDGE * np.eye(2)
         step = np.linalg.solve(hess, x.T @ (y - p) - RIDGE * w)
         w = w + step
@@ -264,7 +264,7 @@ def _logit_text(logit: list[float] | None) -> str:
     return f"logit {logit[0]:.3f} {logit[1]:+.4f} d (chance on the twin at {at})"
 
 
-def _share(x: float) -> str:
+def share(x: float) -> str:
     """A share as a percentage; ``-`` where there was nothing to count."""
     return f"{x:.0%}" if np.isfinite(x) else "-"
 
@@ -283,12 +283,12 @@ def markdown(result: dict, title: str) -> str:
             "|---|---|---|---|---|---|---|"]
     for k, v in result["levels"].items():
         rows.append(f"| {k} | {v['slices']} | {v['ed_mean']:.2f} / {v['ed_twin_min_mean']:.2f} | "
-                    f"{v['rms_ed_over_rms_expected']:.2f} ({v['rms_ed_over_rms_expected_before']:.2f}) | {_share(v['accepted'])} | "
-                    f"{_share(v['good_accepted'])} / {_share(v['good_accepted_twin_min'])} | "
-                    f"{_share(v['bad_accepted'])} / {_share(v['bad_accepted_twin_min'])} "
+                    f"{v['rms_ed_over_rms_expected']:.2f} ({v['rms_ed_over_rms_expected_before']:.2f}) | {share(v['accepted'])} | "
+                    f"{share(v['good_accepted'])} / {share(v['good_accepted_twin_min'])} | "
+                    f"{share(v['bad_accepted'])} / {share(v['bad_accepted_twin_min'])} "
                     f"({v['bad_slices']} / {v['bad_slices_twin_min']}) |")
     rows += ["", "What other limits accept (`max_expected_error_mm`; E.D. < 5 mm / E.D. > 10 mm accepted, against the truth):",
              "", "| limit (mm) | " + " | ".join(result["levels"]) + " |", "|---|" + "---|" * len(result["levels"])]
     for limit, row in result["trade_off"].items():
-        rows.append(f"| {limit} | " + " | ".join(f"{_share(g)} / {_share(b)}" for g, b in row.values()) + " |")
+        rows.append(f"| {limit} | " + " | ".join(f"{share(g)} / {share(b)}" for g, b in row.values()) + " |")
     return "\n".join(rows) + "\n"

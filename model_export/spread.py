@@ -92,6 +92,10 @@ def measure_error_shape(model_path: Path, root: Path = DEFAULT_ATLAS_ROOT, per_v
             "mc_error_depth_gain": depth_gain(coords, spread, depth)}
 
 
+SPREAD_FLAGS = ("mc_error_scale", "mc_error_shape", "mc_error_depth_gain")
+"""What :func:`calibrate_spread` writes, under the names of the model's metadata the service reads."""
+
+
 def calibrate_spread(model_path: Path, root: Path = DEFAULT_ATLAS_ROOT, per_volume: int = 60,
                      write: bool = True) -> dict[str, object]:
     """Measure the model's ``mc_error_scale`` (:func:`measure_error_scale`), ``mc_error_shape`` and

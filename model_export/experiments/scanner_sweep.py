@@ -29,6 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.acquisitions import SimulatedStack, simulate_acquisition  # noqa: E402
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
+from model_export.calibrate_acceptance import rates, share  # noqa: E402
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, Scored, run_acquisition, score  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
 from service.inference.model_file import load_model  # noqa: E402
@@ -89,10 +90,10 @@ def sweep(estimator, volumes: list, level: str, per_volume: int, seed: int,  # n
             score(predictions, prepared, truth, stacks, estimator.info.symmetry_plane_x_mm, scored)
         keep = scored.array("mask_pixels") >= MIN_MASK_PIXELS
         e, t, a = (scored.array(k)[keep] for k in ("ed", "ed_min", "accepted"))
-        a = a.astype(bool)
-        bad = f"{100 * a[e > 10].mean():.0f} % ({(e > 10).sum()})" if (e > 10).any() else "- (0)"
+        shares = rates({"ed": e, "ed_min": t}, a.astype(bool))
         lines.append(f"| {name} | {e.mean():.2f} / {t.mean():.2f} mm | {np.median(e):.2f} mm | {len(e)} | "
-                     f"{100 * a[e < 5].mean():.0f} % | {bad} | {time.perf_counter() - start:.0f} s |")
+                     f"{share(shares['good_accepted'])} | {share(shares['bad_accepted'])} ({shares['bad_slices']}) | "
+                     f"{time.perf_counter() - start:.0f} s |")
         print(lines[-1], flush=True)
     return lines
 

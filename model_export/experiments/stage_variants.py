@@ -44,10 +44,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.acquisitions import MOTION_LEVELS, simulate_acquisition  # noqa: E402
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
-from model_export.calibrate_acceptance import rms  # noqa: E402
+from model_export.calibrate_acceptance import FLAGS, rates, rms, share  # noqa: E402
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, prepare_acquisition  # noqa: E402
 from model_export.experiments.frame_bias import common_frame  # noqa: E402
 from model_export.experiments.scanner_sweep import with_void  # noqa: E402
+from model_export.spread import SPREAD_FLAGS  # noqa: E402
 from service.geometry import twin  # noqa: E402
 from service.geometry.anchors import ed  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
@@ -71,8 +72,7 @@ def build(model: Path, root: Path, levels: list[str], per_volume: int, seed: int
     return loaded.info, cases
 
 
-CALIBRATION = ("variance_threshold", "mc_error_scale", "mc_error_shape", "mc_error_depth_gain", "twin_risk_logit",
-               "expected_error_floor_mm", "max_expected_error_mm")
+CALIBRATION = (*SPREAD_FLAGS, *FLAGS)
 """The model metadata its calibrations write (a cache keeps the network's outputs, not its calibration)."""
 
 
@@ -139,12 +139,11 @@ def run(info, cases: list, variant: str, alone: bool = False) -> str:  # noqa: A
     lines = [f"{variant}  ({time.perf_counter() - start:.0f} s)"]
     for level, col in columns.items():
         e, t, f, a, x = (np.concatenate(col[k]) for k in ("ed", "twin_min", "frame_free", "accepted", "expected"))
-        good, bad, known = e < 5, e > 10, np.isfinite(x)
-        bad_accepted = f"{100 * a[bad].mean():.0f} %" if bad.any() else "-"
+        shares, known = rates({"ed": e, "ed_min": t}, a), np.isfinite(x)
         ratio = rms(e[known]) / rms(x[known]) if known.any() else np.nan
         lines.append(f"  {level:12s} E.D. {e.mean():.2f} / twin-min {t.mean():.2f} mm, frame-free median {np.median(f):.2f} mm;"
-                     f" accepted: {100 * a[good].mean():.0f} % of < 5 mm, {bad_accepted} of > 10 mm ({bad.sum()} slices);"
-                     f" RMS E.D. / RMS expected {ratio:.2f}")
+                     f" accepted: {share(shares['good_accepted'])} of < 5 mm, {share(shares['bad_accepted'])} of > 10 mm"
+                     f" ({shares['bad_slices']} slices); RMS E.D. / RMS expected {ratio:.2f}")
     return "\n".join(lines)
 
 

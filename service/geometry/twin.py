@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.special import expit
 
 DEFAULT_PLANE_X_MM = 0.0
 """The mid-sagittal plane assumed for models whose metadata does not name one (atlas RAS mm)."""
@@ -135,7 +136,7 @@ def twin_risk(distance_mm: ArrayLike, logit: tuple[float, float]) -> NDArray[np.
         [0.269, 0.119]
     """
     a, b = logit
-    return 1.0 / (1.0 + np.exp(-(a + b * np.asarray(distance_mm, dtype=np.float64))))
+    return expit(a + b * np.asarray(distance_mm, dtype=np.float64))
 
 
 def twin_variance(distance_mm: ArrayLike, logit: tuple[float, float]) -> NDArray[np.float64]:
