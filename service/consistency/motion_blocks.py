@@ -173,14 +173,14 @@ def nll(blocks: list[Block], amps: NDArray, scales: NDArray) -> NDArray[np.float
 
 @dataclass
 class Posterior:
-    """One model's posterior over all ``n`` slices (stack coordinates unless said).
+    """The posteriors of ``k`` models over all ``n`` slices (stack coordinates unless said).
 
     Attributes:
-        mean: ``[n, 6]`` the motion at each slice.
-        cov: ``[6, n, n]`` its covariance per coordinate (the rigid fit's uncertainty included).
-        slice_var: ``[n, 6]`` its variance in each slice's own coordinates.
-        loo: ``[m, 6]`` what the other voting slices predict for each voting slice.
-        loo_var: ``[m, 6]`` that prediction's variance in slice coordinates (less the slice's own error).
+        mean: ``[k, n, 6]`` the motion at each slice.
+        cov: ``[k, 6, n, n]`` its covariance per coordinate (the rigid fit's uncertainty included).
+        slice_var: ``[k, n, 6]`` its variance in each slice's own coordinates.
+        loo: ``[k, m, 6]`` what the other voting slices predict for each voting slice.
+        loo_var: ``[k, m, 6]`` that prediction's variance in slice coordinates (less the slice's own error).
     """
 
     mean: NDArray
@@ -190,45 +190,70 @@ class Posterior:
     loo_var: NDArray
 
 
-def posterior(blocks: list[Block], c: int, r: int, amp2: float, g2: float, k_all: NDArray, k_nn: NDArray,
-              z_all: NDArray, z_vote: NDArray, noise_var: NDArray) -> Posterior:
-    """The posterior of one model: kernel ``c`` (``k_all [n, m]``, ``k_nn [n, n]`` its correlations),
-    error correlation ``r``, amplitude ``amp2`` (a^2), noise scale ``g2`` (g^2); ``noise_var [m, 6]``
-    the voting slices' error variances per coordinate (before ``g2``). Universal kriging: the rigid
-    fit the coordinates are taken at is an estimate too (its GLS variance is added)."""
-    n, m = k_all.shape
-    mean, cov = np.zeros((n, 6)), np.zeros((6, n, n))
-    slice_var, loo, loo_var = np.zeros((n, 6)), np.zeros((m, 6)), np.zeros((m, 6))
+def _batched_block_diagonal(x: NDArray, q: int) -> NDArray[np.float64]:
+    """:func:`block_diagonal` of each ``x[i] [a, b]``: ``[k, q a, q b]``."""
+    k, a, b = x.shape
+    out = np.zeros((k, q * a, q * b))
+    for i in range(q):
+        out[:, i * a:(i + 1) * a, i * b:(i + 1) * b] = x
+    return out
+
+
+def posterior(blocks: list[Block], c: NDArray, r: NDArray, amp2: NDArray, g2: NDArray, k_all: NDArray,
+              k_nn: NDArray, z_all: NDArray, z_vote: NDArray, noise_var: NDArray) -> Posterior:
+    """The posteriors of ``k`` models at once: model ``i`` has kernel ``c[i]`` (``k_all[i] [n, m]``,
+    ``k_nn[i] [n, n]`` its correlations), error correlation ``r[i]``, amplitude ``amp2[i]`` (a^2) and
+    noise scale ``g2[i]`` (g^2); ``noise_var [m, 6]`` the voting slices' error variances per
+    coordinate (before ``g2``). Universal kriging: the rigid fit the coordinates are taken at is an
+    estimate too (its GLS variance is added). One batched product per step serves every model of
+    the grid's average (the matrices are small: the work is the calls).
+
+    Example (one model, two voting slices, every coordinate its own block):
+        >>> rng = np.random.default_rng(0)
+        >>> sig, z, kern = np.ones(2), np.zeros(2), np.exp(-0.5 * np.subtract.outer(np.arange(2.0), np.arange(2.0)) ** 2)
+        >>> bl = decompose(rng.normal(size=(2, 6)), sig, np.ones((2, 6)), z, kern[None], (0.0,), 1.5)
+        >>> p = posterior(bl, np.array([0]), np.array([0]), np.array([4.0]), np.array([1.0]), kern[None], kern[None], z, z, np.ones((2, 6)) / 3)
+        >>> p.mean.shape, p.cov.shape, p.loo.shape
+        ((1, 2, 6), (1, 6, 2, 2), (1, 2, 6))
+    """
+    c, r = np.asarray(c, np.intp), np.asarray(r, np.intp)
+    amp2, g2 = np.asarray(amp2, np.float64), np.asarray(g2, np.float64)
+    k, (n, m) = len(c), k_all.shape[1:]
+    mean, cov = np.zeros((k, n, 6)), np.zeros((k, 6, n, n))
+    slice_var, loo, loo_var = np.zeros((k, n, 6)), np.zeros((k, m, 6)), np.zeros((k, m, 6))
+    kern_all, kern_nn = amp2[:, None, None] * k_all, amp2[:, None, None] * k_nn
     for bl in blocks:
         q = len(bl.coords)
-        ev = amp2 * bl.lam[c, r] + g2
-        wu = np.swapaxes(bl.w[r], 0, 1) @ bl.u[c, r]
-        c_inv = (wu / ev) @ wu.T                                                            # [qm, qm]
-        alpha = c_inv @ bl.y
-        k_star = block_diagonal(amp2 * k_all, q) @ bl.b.T                                   # cov(f, y~) [qn, qm]
-        f = k_star @ alpha
+        ev = amp2[:, None] * bl.lam[c, r] + g2[:, None]                                    # [k, qm]
+        wu = np.swapaxes(bl.w[r], 1, 2) @ bl.u[c, r]                                        # [k, qm, qm]
+        c_inv = (wu / ev[:, None, :]) @ np.swapaxes(wu, 1, 2)
+        alpha = (c_inv @ bl.y[:, None])[..., 0]                                             # [k, qm]
+        k_star = _batched_block_diagonal(kern_all, q) @ bl.b.T                              # cov(f, y~) [k, qn, qm]
+        f = (k_star @ alpha[..., None])[..., 0]
         h = bl.b @ block_diagonal(np.ones((m, 1)), q)                                       # the offset, seen [qm, q]
-        hc = h.T @ c_inv
+        hc = h.T @ c_inv                                                                    # [k, q, qm]
         gls = hc @ h
-        rem = block_diagonal(np.ones((1, n)), q) - hc @ k_star.T                            # [q, qn]
-        ck = c_inv @ k_star.T
-        full = (block_diagonal(amp2 * k_nn, q) - k_star @ ck
-                + rem.T @ np.linalg.solve(gls + 1e-12 * np.eye(q), rem))                    # [qn, qn]
-        sub_inv = np.linalg.inv(c_inv.reshape(q, m, q, m)[:, np.arange(m), :, np.arange(m)])   # [m, q, q]
-        y_loo = bl.y.reshape(q, m).T - (sub_inv @ alpha.reshape(q, m).T[..., None])[..., 0]     # slice coordinates
-        var_n = np.diagonal(full).reshape(q, n).T                                           # [n, q]
+        k_star_t = np.swapaxes(k_star, 1, 2)
+        rem = block_diagonal(np.ones((1, n)), q) - hc @ k_star_t                            # [k, q, qn]
+        full = (_batched_block_diagonal(kern_nn, q) - k_star @ (c_inv @ k_star_t)
+                + np.swapaxes(rem, 1, 2) @ np.linalg.solve(gls + 1e-12 * np.eye(q), rem))   # [k, qn, qn]
+        sub = np.moveaxis(np.diagonal(c_inv.reshape(k, q, m, q, m), axis1=2, axis2=4), -1, 1)   # [k, m, q, q]
+        sub_inv = np.linalg.inv(sub)
+        y_loo = bl.y.reshape(q, m).T - (sub_inv @ np.swapaxes(alpha.reshape(k, q, m), 1, 2)[..., None])[..., 0]
+        var_n = np.swapaxes(np.diagonal(full, axis1=1, axis2=2).reshape(k, q, n), 1, 2)    # [k, n, q]
+        sub_var = np.diagonal(sub_inv, axis1=2, axis2=3)                                    # [k, m, q]
         for i, d in enumerate(bl.coords):
-            mean[:, d] = f[i * n:(i + 1) * n]
-            cov[d] = full[i * n:(i + 1) * n, i * n:(i + 1) * n]
-            slice_var[:, d] = var_n[:, i]
-            loo_var[:, d] = np.diagonal(sub_inv, axis1=1, axis2=2)[:, i] - g2 * noise_var[:, d]
-            loo[:, d] = y_loo[:, i]
+            mean[:, :, d] = f[:, i * n:(i + 1) * n]
+            cov[:, d] = full[:, i * n:(i + 1) * n, i * n:(i + 1) * n]
+            slice_var[:, :, d] = var_n[:, :, i]
+            loo_var[:, :, d] = sub_var[:, :, i] - g2[:, None] * noise_var[:, d]
+            loo[:, :, d] = y_loo[:, :, i]
         sign = LEVER_SIGN.get(bl.coords)
         if sign is not None:                      # the translation seen at the slice: t + s z r
             rot, tra = bl.coords
-            cross = np.diagonal(full[n:, :n])
-            slice_var[:, tra] += z_all ** 2 * var_n[:, 0] + 2.0 * sign * z_all * cross
-            loo[:, tra] -= sign * z_vote * loo[:, rot]                                      # back to the stack's
+            cross = np.diagonal(full[:, n:, :n], axis1=1, axis2=2)                          # [k, n]
+            slice_var[:, :, tra] += z_all ** 2 * var_n[:, :, 0] + 2.0 * sign * z_all * cross
+            loo[:, :, tra] -= sign * z_vote * loo[:, :, rot]                                # back to the stack's
     return Posterior(mean, cov, slice_var, loo, loo_var)
 
 

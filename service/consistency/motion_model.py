@@ -198,28 +198,22 @@ def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dic
     order, length = combos[ci]
     noise_var = shape * noise[:, None] ** 2 / 3.0
 
-    def one(c: int, r: int, a: int, g: int) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray]:
-        """Posterior mean ``[n, 6]``, covariance ``[n, n]`` (the mean over the coordinates), variance in
-        the slices' coordinates ``[n]``, leave-one-out means ``[n, 6]`` and variances ``[n]``."""
-        p = posterior(blocks, c, r, amps[a], scales[g], corr[c][:, vote], corr[c], z, z[vote], noise_var)
-        loo_y, loo_var = p.mean.copy(), p.slice_var.mean(-1)
-        loo_y[vote], loo_var[vote] = p.loo, p.loo_var.mean(-1)
-        return p.mean, p.cov.mean(0), p.slice_var.mean(-1), loo_y, loo_var
-
-    if nll.size > 1:                         # Bayesian model averaging over the grid
-        weight = np.exp(-(nll - nll.min()))
-        weight /= weight.sum()
-        picked = np.argwhere((weight >= MIN_MODEL_WEIGHT) | (weight == weight.max()))   # the most likely always
-        posts, covs, svars, loos, loo_vars = (np.stack(x) for x in zip(*(one(*idx) for idx in picked)))
-        wts = weight[tuple(picked.T)] / weight[tuple(picked.T)].sum()
-        post = np.einsum("k,knd->nd", wts, posts)
-        loo_y = np.einsum("k,knd->nd", wts, loos)
-        d, dl = posts - post[None], loos - loo_y[None]                       # each model's departure
-        post_cov = np.einsum("k,knm->nm", wts, covs) + np.einsum("k,knd,kmd->nm", wts, d, d) / 6.0
-        slice_var = np.einsum("k,kn->n", wts, svars + (to_slices(d, z) ** 2).mean(-1))
-        loo_var = np.einsum("k,kn->n", wts, loo_vars + (to_slices(dl, z) ** 2).mean(-1))
-    else:
-        post, post_cov, slice_var, loo_y, loo_var = one(ci, ri, ai, gi)
+    # Bayesian model averaging over the grid: every model of weight >= MIN_MODEL_WEIGHT, the most likely always.
+    weight = np.exp(-(nll - nll.min()))
+    weight /= weight.sum()
+    picked = np.argwhere((weight >= MIN_MODEL_WEIGHT) | (weight == weight.max()))          # [k, 4]: (c, r, a, g)
+    cs, rs, ais, gis = picked.T
+    p = posterior(blocks, cs, rs, amps[ais], scales[gis], corr[cs][:, :, vote], corr[cs], z, z[vote], noise_var)
+    posts, covs, svars = p.mean, p.cov.mean(1), p.slice_var.mean(-1)                       # [k, n, 6], [k, n, n], [k, n]
+    loos, loo_vars = posts.copy(), svars.copy()
+    loos[:, vote], loo_vars[:, vote] = p.loo, p.loo_var.mean(-1)
+    wts = weight[tuple(picked.T)] / weight[tuple(picked.T)].sum()
+    post = np.einsum("k,knd->nd", wts, posts)
+    loo_y = np.einsum("k,knd->nd", wts, loos)
+    d, dl = posts - post[None], loos - loo_y[None]                                          # each model's departure
+    post_cov = np.einsum("k,knm->nm", wts, covs) + np.einsum("k,knd,kmd->nm", wts, d, d) / 6.0
+    slice_var = np.einsum("k,kn->n", wts, svars + (to_slices(d, z) ** 2).mean(-1))
+    loo_var = np.einsum("k,kn->n", wts, loo_vars + (to_slices(dl, z) ** 2).mean(-1))
     post = np.concatenate([post[:, :3] @ q.T, post[:, 3:] @ q.T], axis=1)                   # back to scanner axes
     loo_y = np.concatenate([loo_y[:, :3] @ q.T, loo_y[:, 3:] @ q.T], axis=1)
     placement = from_coordinates(post.mean(axis=0, keepdims=True), rigid, centre)[0]
