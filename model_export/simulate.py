@@ -30,6 +30,7 @@ import torch
 import torch.nn.functional as F
 from numpy.typing import NDArray
 from scipy import ndimage
+from scipy.special import expit
 
 from model_export.atlas import AtlasVolume, signed_distance
 from service.geometry import iterators, sampling
@@ -70,6 +71,10 @@ class SimulationConfig:
     bias: float = 0.35
     gamma: tuple[float, float] = (0.75, 1.35)
     void_probability: float = 0.1
+    shading_ball_probability: float = 0.0
+    shading_ball_radius_mm: tuple[float, float] = (8.0, 30.0)
+    shading_ball_gain: tuple[float, float] = (0.3, 0.7)
+    shading_ball_edge_mm: tuple[float, float] = (1.0, 4.0)
     mask_threshold: tuple[float, float] = (0.3, 0.7)
     mask_blur_px: float = 1.5
     mask_wobble_share: float = 0.0
@@ -91,6 +96,37 @@ class SimulationConfig:
                     mask_threshold=(0.5, 0.5), tz_fraction=iterators.TZ_FRACTION)
         base.update(overrides)
         return cls(**base)  # type: ignore[arg-type]
+
+
+def shading_ball(b: int, h: int, config: SimulationConfig, rng: np.random.Generator) -> NDArray[np.float64]:
+    """``[b, h, h]`` gains: in a ``config.shading_ball_probability`` share of the slices, the cross-section
+    of a dark ball that sits still in the scanner (what N4 leaves of 3 T dielectric shading): a disc of
+    ``shading_ball_radius_mm`` about a point within 30 mm of the brain's centre, its signal times
+    ``shading_ball_gain``, with a logistic edge of ``shading_ball_edge_mm``; 1 elsewhere. The
+    Gaussian ``void_probability`` blobs are smaller and softer than such a ball.
+
+    Example:
+        >>> g = shading_ball(4, 96, SimulationConfig(shading_ball_probability=1.0), np.random.default_rng(0))
+        >>> g.shape, bool(g.min() < 0.75), float(g.max()) <= 1.0
+        ((4, 96, 96), True, True)
+    """
+    gain = np.ones((b, h, h))
+    if config.shading_ball_probability <= 0.0:          # no draw: the other draws stay as they were
+        return gain
+    dark = rng.random(b) < config.shading_ball_probability
+    if not dark.any():
+        return gain
+    k = int(dark.sum())
+    half_mm = config.size * config.pixel_mm / 2.0
+    u = np.linspace(-half_mm, half_mm, h)
+    yy, xx = np.meshgrid(u, u, indexing="ij")
+    cy, cx = rng.uniform(-30.0, 30.0, size=(2, k, 1, 1))
+    radius = rng.uniform(*config.shading_ball_radius_mm, size=(k, 1, 1))
+    floor = rng.uniform(*config.shading_ball_gain, size=(k, 1, 1))
+    edge = rng.uniform(*config.shading_ball_edge_mm, size=(k, 1, 1))
+    r = np.hypot(xx - cx, yy - cy)
+    gain[dark] = floor + (1.0 - floor) * expit((r - radius) / edge)
+    return gain
 
 
 def wobble_masks(masks: NDArray[np.bool_], config: SimulationConfig, rng: np.random.Generator) -> NDArray[np.bool_]:
@@ -308,6 +344,7 @@ class SliceSimulator:
         basis = np.stack([xx, yy, xx * xx, yy * yy, xx * yy])                       # [5, H, H]
         coef = rng.normal(scale=c.bias / 2.0, size=(b, 5))
         img = img * np.exp(np.einsum("bk,khw->bhw", coef, basis))
+        img = img * shading_ball(b, h, c, rng)
         scale = np.maximum(np.percentile(img.reshape(b, -1), 99.5, axis=1), 1e-6)[:, None, None]
         img = np.clip(img / scale, 0.0, None) ** rng.uniform(*c.gamma, size=(b, 1, 1))
         voids = rng.random(b) < c.void_probability

@@ -10,9 +10,10 @@ own seed, so that its first stack's placement and motion are alike in every sett
 follow the image sizes).
 
 Also a signal void: a dark ball in the brain (:func:`with_void`), which the acquisition simulations
-never make.
+never make; its slices are split by the share of their brain it darkened (:func:`void_split`), the
+network's own twin-min E.D. beside the final one, which tells the network's part from the stages'.
 
-    .venv/bin/python model_export/experiments/scanner_sweep.py [--levels mild,jumps] [--per-volume 2] [--only 1,9]   # needs ../shared/data
+    .venv/bin/python model_export/experiments/scanner_sweep.py [--levels mild,jumps] [--per-volume 2] [--only 1,9] [--model M]   # needs ../shared/data
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import NDArray
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
@@ -71,6 +73,46 @@ def with_void(stacks: list[SimulatedStack], rng: np.random.Generator) -> list[Si
     return out
 
 
+DARK_GAIN = 0.7
+"""A voxel the void darkened to under this fraction of its signal counts as darkened."""
+DARK_SHARES = (0.0, 0.3)
+"""The void's split of the slices: none of the brain darkened, under 30 % of it, 30 % or more."""
+
+
+def darkened_share(clean: list[SimulatedStack], dark: list[SimulatedStack]) -> list[NDArray]:
+    """Per slice of each stack, the share of its brain voxels that :func:`with_void` darkened to under
+    :data:`DARK_GAIN` of their signal (slices without brain: 0).
+
+    Example (one stack whose first slice lies in the ball, the second outside):
+        >>> m = Volume(np.ones((2, 2, 2), np.uint8), np.eye(4))
+        >>> clean = SimulatedStack(Volume(np.ones((2, 2, 2), np.float32), np.eye(4)), m, np.eye(4)[None], "axial", np.arange(2), "mild")
+        >>> dark = replace(clean, volume=Volume(np.array([[[0.4, 1.0]] * 2] * 2, np.float32), np.eye(4)))
+        >>> darkened_share([clean], [dark])[0].tolist()
+        [1.0, 0.0]
+    """
+    out = []
+    for c, d in zip(clean, dark):
+        brain = c.mask.array > 0
+        darkened = brain & (d.volume.array < DARK_GAIN * c.volume.array)
+        out.append(darkened.sum(axis=(0, 1)) / np.maximum(brain.sum(axis=(0, 1)), 1))
+    return out
+
+
+def void_split(scored: Scored, share: NDArray, keep: NDArray) -> str:
+    """One line: the network's twin-min E.D. and the final E.D. of the slices by how much of their
+    brain the void darkened (:data:`DARK_SHARES`), and how many over 10 mm are accepted."""
+    net, final, accepted = (scored.array(k) for k in ("ed_network_min", "ed", "accepted"))
+    parts = []
+    for name, g in (("none darkened", share <= DARK_SHARES[0]),
+                    (f"under {DARK_SHARES[1]:.0%}", (share > DARK_SHARES[0]) & (share < DARK_SHARES[1])),
+                    (f"{DARK_SHARES[1]:.0%} or more", share >= DARK_SHARES[1])):
+        g = g & keep
+        bad = g & (final > 10.0)
+        parts.append(f"{name} ({g.sum()}): network {net[g].mean():.2f}, final {final[g].mean():.2f} mm, "
+                     f"{(bad & accepted.astype(bool)).sum()} of {bad.sum()} over 10 mm accepted")
+    return "  slices by the void's share of their brain: " + "; ".join(parts)
+
+
 def sweep(estimator, volumes: list, level: str, per_volume: int, seed: int,  # noqa: ANN001
           only: set[int] | None = None) -> list[str]:
     """One line per setting: the same volumes and random draws for each."""
@@ -78,14 +120,15 @@ def sweep(estimator, volumes: list, level: str, per_volume: int, seed: int,  # n
     for i, (name, (geometry, void)) in enumerate(SETTINGS.items(), 1):
         if only and i not in only:
             continue
-        scored = Scored()
+        scored, darkened = Scored(), []
         start = time.perf_counter()
         for a, vol in enumerate(volumes * per_volume):
             rng = np.random.default_rng([seed, a])         # each acquisition's draws start alike in every setting
             stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level,
                                           size=int(round(FOV_MM / geometry["pixel_mm"])), **geometry)
             if void:
-                stacks = with_void(stacks, rng)
+                clean, stacks = stacks, with_void(stacks, rng)
+                darkened += darkened_share(clean, stacks)
             (predictions,), prepared, truth = run_acquisition(stacks, estimator)
             score(predictions, prepared, truth, stacks, estimator.info.symmetry_plane_x_mm, scored)
         keep = scored.array("mask_pixels") >= MIN_MASK_PIXELS
@@ -95,6 +138,8 @@ def sweep(estimator, volumes: list, level: str, per_volume: int, seed: int,  # n
                      f"{share(shares['good_accepted'])} | {share(shares['bad_accepted'])} ({shares['bad_slices']}) | "
                      f"{time.perf_counter() - start:.0f} s |")
         print(lines[-1], flush=True)
+        if void:
+            print(void_split(scored, np.concatenate(darkened), keep), flush=True)
     return lines
 
 

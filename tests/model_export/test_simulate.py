@@ -9,7 +9,15 @@ import torch
 from scipy import ndimage
 
 from model_export.atlas import load_volumes, split
-from model_export.simulate import Acquisition, SimulationConfig, SliceSimulator, dress, sample_slices_torch, wobble_masks
+from model_export.simulate import (
+    Acquisition,
+    SimulationConfig,
+    SliceSimulator,
+    dress,
+    sample_slices_torch,
+    shading_ball,
+    wobble_masks,
+)
 from service.geometry import iterators, sampling
 from service.preprocess.intensity import rescale_0_255
 
@@ -141,3 +149,19 @@ def test_the_padded_distance_map_samples_the_brains_own_distance_at_each_pixels_
     near_brain = inside_crop & (own < 2.0)          # within the crop, where the crop cuts no distance short
     assert near_brain.sum() > 100
     np.testing.assert_allclose(distance[near_brain], own[near_brain], atol=0.05)
+
+
+def test_shading_ball_darkens_a_disc_as_drawn_and_costs_no_draw_when_off() -> None:
+    cfg = SimulationConfig(size=96, pixel_mm=1.25, shading_ball_probability=1.0, shading_ball_radius_mm=(20.0, 20.0),
+                           shading_ball_gain=(0.4, 0.4), shading_ball_edge_mm=(1.0, 1.0))
+    gain = shading_ball(6, 96, cfg, np.random.default_rng(0))
+    px = 120.0 / 95                                                   # the grid's spacing over 120 mm
+    for g in gain:
+        dark = g < 0.7
+        assert abs(g.min() - 0.4) < 0.01 and g.max() > 0.99
+        assert abs(np.sqrt(dark.sum() / np.pi) * px - 20.0) < 2.0       # a disc of 20 mm radius
+        centre = (np.argwhere(dark).mean(axis=0) - 47.5) * px
+        assert np.abs(centre).max() <= 30.0 + px                        # about a point near the brain's centre
+    a, b = np.random.default_rng(3), np.random.default_rng(3)
+    assert np.all(shading_ball(4, 32, SimulationConfig(), a) == 1.0)    # off by default
+    assert a.random() == b.random()                                     # and the stream of draws untouched
