@@ -51,8 +51,8 @@ def lever_operator(block: tuple[int, ...], z: NDArray) -> NDArray[np.float64]:
 
 
 def block_diagonal(x: NDArray, q: int) -> NDArray[np.float64]:
-    """``q`` copies of ``x [a, b]`` on the diagonal of a ``[q a, q b]`` matrix (``kron(eye(q), x)``,
-    without its outer product).
+    """``q`` copies of ``x [..., a, b]`` on the diagonal of a ``[..., q a, q b]`` matrix (``kron(eye(q), x)``
+    of each matrix of a batch, without its outer product).
 
     Example:
         >>> block_diagonal(np.array([[1.0, 2.0]]), 2).tolist()
@@ -60,10 +60,10 @@ def block_diagonal(x: NDArray, q: int) -> NDArray[np.float64]:
     """
     if q == 1:
         return np.asarray(x, dtype=np.float64)
-    a, b = x.shape
-    out = np.zeros((q * a, q * b))
+    *lead, a, b = x.shape
+    out = np.zeros((*lead, q * a, q * b))
     for i in range(q):
-        out[i * a:(i + 1) * a, i * b:(i + 1) * b] = x
+        out[..., i * a:(i + 1) * a, i * b:(i + 1) * b] = x
     return out
 
 
@@ -190,15 +190,6 @@ class Posterior:
     loo_var: NDArray
 
 
-def _batched_block_diagonal(x: NDArray, q: int) -> NDArray[np.float64]:
-    """:func:`block_diagonal` of each ``x[i] [a, b]``: ``[k, q a, q b]``."""
-    k, a, b = x.shape
-    out = np.zeros((k, q * a, q * b))
-    for i in range(q):
-        out[:, i * a:(i + 1) * a, i * b:(i + 1) * b] = x
-    return out
-
-
 def posterior(blocks: list[Block], c: NDArray, r: NDArray, amp2: NDArray, g2: NDArray, k_all: NDArray,
               k_nn: NDArray, z_all: NDArray, z_vote: NDArray, noise_var: NDArray) -> Posterior:
     """The posteriors of ``k`` models at once: model ``i`` has kernel ``c[i]`` (``k_all[i] [n, m]``,
@@ -228,14 +219,14 @@ def posterior(blocks: list[Block], c: NDArray, r: NDArray, amp2: NDArray, g2: ND
         wu = np.swapaxes(bl.w[r], 1, 2) @ bl.u[c, r]                                        # [k, qm, qm]
         c_inv = (wu / ev[:, None, :]) @ np.swapaxes(wu, 1, 2)
         alpha = (c_inv @ bl.y[:, None])[..., 0]                                             # [k, qm]
-        k_star = _batched_block_diagonal(kern_all, q) @ bl.b.T                              # cov(f, y~) [k, qn, qm]
+        k_star = block_diagonal(kern_all, q) @ bl.b.T                                       # cov(f, y~) [k, qn, qm]
         f = (k_star @ alpha[..., None])[..., 0]
         h = bl.b @ block_diagonal(np.ones((m, 1)), q)                                       # the offset, seen [qm, q]
         hc = h.T @ c_inv                                                                    # [k, q, qm]
         gls = hc @ h
         k_star_t = np.swapaxes(k_star, 1, 2)
         rem = block_diagonal(np.ones((1, n)), q) - hc @ k_star_t                            # [k, q, qn]
-        full = (_batched_block_diagonal(kern_nn, q) - k_star @ (c_inv @ k_star_t)
+        full = (block_diagonal(kern_nn, q) - k_star @ (c_inv @ k_star_t)
                 + np.swapaxes(rem, 1, 2) @ np.linalg.solve(gls + 1e-12 * np.eye(q), rem))   # [k, qn, qn]
         sub = np.moveaxis(np.diagonal(c_inv.reshape(k, q, m, q, m), axis1=2, axis2=4), -1, 1)   # [k, m, q, q]
         sub_inv = np.linalg.inv(sub)
