@@ -86,16 +86,29 @@ def export(
     name: str = "default",
     version: str = "0.1.0",
     threshold: Annotated[Optional[float], typer.Option(help="variance threshold (default: calibrate now)")] = None,
+    calibration_from: Annotated[Optional[Path], typer.Option(
+        help="a model whose calibration (spread and accept flags) the export takes over, for paired comparisons "
+             "of a fine-tuned network before it is recalibrated")] = None,
     root: Root = DEFAULT_ATLAS_ROOT,
 ) -> None:
     """Export a checkpoint to ONNX (MC dropout kept stochastic) with its metadata."""
     from model_export.calibrate import calibrate as run_calibration
+    from model_export.calibrate_acceptance import FLAGS
     from model_export.export import count_random_nodes
     from model_export.packaging import export_checkpoint
+    from model_export.spread import SPREAD_FLAGS, write_metadata
+    from service.inference.model_file import load_model
 
+    calibration = {}
+    if calibration_from is not None:
+        meta = load_model(calibration_from).info.metadata
+        calibration = {k: meta[k] for k in (*SPREAD_FLAGS, *FLAGS) if k in meta}
+        threshold = float(meta["variance_threshold"])
     if threshold is None:
         threshold = run_calibration(checkpoint, root)["threshold"]
     path = export_checkpoint(checkpoint, output, name=name, version=version, variance_threshold=threshold)
+    if calibration:
+        write_metadata(path, calibration)
     typer.echo(f"wrote {path} ({count_random_nodes(path)} random nodes, variance threshold {threshold:.3g})")
 
 

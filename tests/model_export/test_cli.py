@@ -64,3 +64,43 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
     assert views == [SHIPPED_VIEWS]
     assert (report.parent / "acceptance.md").read_text().startswith("# Accept flags of")
     assert "## Accept flags" in (tmp_path / "model" / "card.md").read_text()
+
+
+def test_export_takes_over_another_models_calibration(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``export --calibration-from`` writes the other model's spread and accept-flag settings and
+    calibrates nothing; the network and its own facts stay the checkpoint's."""
+    import torch
+
+    import model_export.calibrate as calibrate
+    import model_export.packaging as packaging
+    from model_export.calibrate_acceptance import FLAGS
+    from model_export.cli import app
+    from model_export.export import build_metadata, export_onnx
+    from model_export.model import SVRNet
+    from model_export.spread import SPREAD_FLAGS
+    from service.inference.model_file import load_model
+
+    torch.manual_seed(0)
+    model = SVRNet("compact", 0.25, "anchor", 64, hidden=16, dropout=0.5).eval()
+
+    def own(checkpoint: Path, output: Path, **kw: float) -> Path:
+        meta = build_metadata(model, name="tuned", version="0.0.2", pixel_mm=2.0, variance_threshold=kw["variance_threshold"],
+                              atlas_id="phantom", training_data="none", licences="n/a")
+        return export_onnx(model, output, meta)
+
+    source_meta = build_metadata(model, name="shipped", version="1.0.0", pixel_mm=2.0, variance_threshold=123.0,
+                                 atlas_id="phantom", training_data="none", licences="n/a")
+    source_meta.update(mc_error_scale="0.7", mc_error_shape="1,2,1,1,1,3", mc_error_depth_gain="0.25",
+                       expected_error_floor_mm="2.2", max_expected_error_mm="4.5", twin_risk_logit="-0.5,-0.2")
+    source = export_onnx(model, tmp_path / "shipped.onnx", source_meta)
+    monkeypatch.setattr(calibrate, "calibrate", lambda *a, **k: pytest.fail("calibrated although told not to"))
+    monkeypatch.setattr(packaging, "export_checkpoint", own)
+    out = tmp_path / "tuned.onnx"
+
+    result = CliRunner().invoke(app, ["export", str(tmp_path / "run.pt"), str(out), "--calibration-from", str(source)])
+
+    assert result.exit_code == 0, result.output
+    got, want = load_model(out).info, load_model(source).info
+    for key in (*SPREAD_FLAGS, *FLAGS):
+        assert getattr(got, key) == getattr(want, key), key
+    assert got.variance_threshold == 123.0 and got.metadata["name"] == "tuned"
