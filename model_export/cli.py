@@ -93,16 +93,15 @@ def export(
 ) -> None:
     """Export a checkpoint to ONNX (MC dropout kept stochastic) with its metadata."""
     from model_export.calibrate import calibrate as run_calibration
-    from model_export.calibrate_acceptance import FLAGS
     from model_export.export import count_random_nodes
-    from model_export.packaging import export_checkpoint
-    from model_export.spread import SPREAD_FLAGS, write_metadata
+    from model_export.packaging import CALIBRATION, export_checkpoint
+    from model_export.spread import write_metadata
     from service.inference.model_file import load_model
 
     calibration = {}
     if calibration_from is not None:
         meta = load_model(calibration_from).info.metadata
-        calibration = {k: meta[k] for k in (*SPREAD_FLAGS, *FLAGS) if k in meta}
+        calibration = {k: meta[k] for k in CALIBRATION if k in meta}
         threshold = float(meta["variance_threshold"])
     if threshold is None:
         threshold = run_calibration(checkpoint, root)["threshold"]

@@ -7,8 +7,14 @@ from pathlib import Path
 import torch
 
 from model_export.atlas import ATLAS_ID, POPULATIONS
+from model_export.calibrate_acceptance import FLAGS
 from model_export.export import build_metadata, export_onnx
 from model_export.model import SVRNet
+from model_export.spread import SPREAD_FLAGS
+
+CALIBRATION = (*SPREAD_FLAGS, *FLAGS)
+"""A model's calibrated metadata: the spread's (``calibrate-spread``), then the accept flags'
+(``calibrate-acceptance``); the rest of its metadata is the network's own."""
 
 
 def load_checkpoint(path: Path) -> tuple[SVRNet, dict]:

@@ -44,11 +44,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.acquisitions import MOTION_LEVELS, simulate_acquisition  # noqa: E402
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
-from model_export.calibrate_acceptance import FLAGS, rates, rms, share  # noqa: E402
+from model_export.calibrate_acceptance import rates, rms, share  # noqa: E402
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, prepare_acquisition  # noqa: E402
 from model_export.experiments.frame_bias import common_frame  # noqa: E402
 from model_export.experiments.scanner_sweep import with_void  # noqa: E402
-from model_export.spread import SPREAD_FLAGS  # noqa: E402
+from model_export.packaging import CALIBRATION  # noqa: E402
 from service.geometry import twin  # noqa: E402
 from service.geometry.anchors import ed  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
@@ -72,13 +72,10 @@ def build(model: Path, root: Path, levels: list[str], per_volume: int, seed: int
     return loaded.info, cases
 
 
-CALIBRATION = (*SPREAD_FLAGS, *FLAGS)
-"""The model metadata its calibrations write (a cache keeps the network's outputs, not its calibration)."""
-
-
 def calibrated_as(info: ModelInfo, model: ModelInfo) -> ModelInfo:
-    """``info`` (a cache's) with ``model``'s calibration: the cached network outputs judged as the
-    model judges them now."""
+    """``info`` (a cache's) with ``model``'s calibration (:data:`~model_export.packaging.CALIBRATION`;
+    a cache keeps the network's outputs, not its calibration): the cached network outputs judged as
+    the model judges them now."""
     return replace(info, **{k: getattr(model, k) for k in CALIBRATION})
 
 

@@ -73,11 +73,10 @@ def test_export_takes_over_another_models_calibration(tmp_path: Path, monkeypatc
 
     import model_export.calibrate as calibrate
     import model_export.packaging as packaging
-    from model_export.calibrate_acceptance import FLAGS
     from model_export.cli import app
     from model_export.export import build_metadata, export_onnx
     from model_export.model import SVRNet
-    from model_export.spread import SPREAD_FLAGS
+    from model_export.packaging import CALIBRATION
     from service.inference.model_file import load_model
 
     torch.manual_seed(0)
@@ -101,6 +100,6 @@ def test_export_takes_over_another_models_calibration(tmp_path: Path, monkeypatc
 
     assert result.exit_code == 0, result.output
     got, want = load_model(out).info, load_model(source).info
-    for key in (*SPREAD_FLAGS, *FLAGS):
+    for key in CALIBRATION:
         assert getattr(got, key) == getattr(want, key), key
     assert got.variance_threshold == 123.0 and got.metadata["name"] == "tuned"

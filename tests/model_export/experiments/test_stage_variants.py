@@ -7,7 +7,8 @@ import numpy as np
 
 import service.consistency.stack_fit as stack_fit
 import service.pipeline.predict as pipeline
-from model_export.experiments.stage_variants import CALIBRATION, calibrated_as, frame_free, overridden, requests
+from model_export.experiments.stage_variants import calibrated_as, frame_free, overridden, requests
+from model_export.packaging import CALIBRATION
 from service.geometry import se3
 from service.geometry.twin import DEFAULT_PLANE_X_MM
 
