@@ -18,14 +18,14 @@ Validation (each failure raises with the file's name, never a tag value):
 
 from __future__ import annotations
 
-import gzip
-from dataclasses import replace
 import tempfile
 import zlib
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
+from isal import igzip, isal_zlib
 
 from service.core.errors import ServiceError, UnsupportedFile, UnusableImage
 from service.io.archive import read_dicom_zip
@@ -37,6 +37,8 @@ from service.io.volume import Volume, from_sitk
 SUFFIX_BY_KIND = {"nifti": ".nii", "nifti-gz": ".nii.gz", "nrrd": ".nrrd", "mha": ".mha"}
 MAX_DECODED_BYTES = 128 * 2**20
 IMAGE_IO = {"nifti": "NiftiImageIO", "nrrd": "NrrdImageIO", "mha": "MetaImageIO"}
+GZIP_ERRORS = (OSError, EOFError, zlib.error, isal_zlib.error)
+"""What a truncated, corrupt or non-gzip stream raises while it is inflated."""
 
 
 def sniff(path: Path) -> str:
@@ -46,9 +48,9 @@ def sniff(path: Path) -> str:
         head = f.read(1024)
     if head[:2] == b"\x1f\x8b":
         try:
-            with gzip.open(path, "rb") as g:
+            with igzip.open(path, "rb") as g:
                 inner = g.read(352)
-        except (OSError, EOFError, zlib.error):
+        except GZIP_ERRORS:
             return "unknown"
         return "nifti-gz" if _is_nifti(inner) else "unknown"
     if _is_nifti(head):
@@ -121,9 +123,12 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
 
 def _gunzip(path: Path, out: Path, budget: FileBudget) -> Path:
     """Decode a gzip file to ``out``, charging ``budget`` as it inflates (a NIfTI-1 header that declares
-    too much is refused before anything else is inflated); truncated or corrupt streams are 415."""
+    too much is refused before anything else is inflated); truncated or corrupt streams are 415.
+
+    ISA-L's inflate (``isal.igzip``, the ``gzip`` module's interface) decodes faster than
+    zlib's, a share of every request that uploads ``.nii.gz``."""
     try:
-        with gzip.open(path, "rb") as src, open(out, "wb") as dst:
+        with igzip.open(path, "rb") as src, open(out, "wb") as dst:
             head = src.read(352)
             if _nifti1_values(head) * 4 > budget.limit:
                 raise budget.too_large("its voxel data decode")
@@ -132,7 +137,7 @@ def _gunzip(path: Path, out: Path, budget: FileBudget) -> Path:
             while chunk := src.read(1 << 22):   # to the end: a truncated stream or a bad CRC raises here
                 budget.inflate(len(chunk))
                 dst.write(chunk)
-    except (OSError, EOFError, zlib.error) as exc:
+    except GZIP_ERRORS as exc:
         raise UnsupportedFile(f"{budget.filename}: truncated or corrupt gzip stream") from exc
     return out
 
