@@ -18,6 +18,7 @@ Validation (each failure raises with the file's name, never a tag value):
 
 from __future__ import annotations
 
+import gzip
 import tempfile
 import zlib
 from dataclasses import replace
@@ -48,7 +49,7 @@ def sniff(path: Path) -> str:
         head = f.read(1024)
     if head[:2] == b"\x1f\x8b":
         try:
-            with igzip.open(path, "rb") as g:
+            with gzip.open(path, "rb") as g:   # the first bytes of a stream even when it is truncated
                 inner = g.read(352)
         except GZIP_ERRORS:
             return "unknown"
