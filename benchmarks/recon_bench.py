@@ -50,7 +50,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from service.geometry import sampling, se3  # noqa: E402
+from model_export.volume_metrics import volume_psnr_ncc  # noqa: E402
+from service.geometry import se3  # noqa: E402
 from service.geometry.pose import make_pose  # noqa: E402
 from service.io.volume import Volume, read_volume  # noqa: E402
 from service.reconstruction.pipeline import ReconstructionConfig, reconstruct  # noqa: E402
@@ -102,23 +103,8 @@ def make_data(seed: int = 0, n_stacks: int = 3, size: int = 128, n_slices: int =
 
 
 def evaluate(result, img, msk, aff, frame: np.ndarray | None = None) -> tuple[float, float]:  # noqa: ANN001
-    """PSNR (dB; peak = max of the truth in the mask) after a linear intensity fit, and NCC, in the brain mask.
-
-    ``frame`` (``4 x 4``, truth atlas -> reconstruction frame): compare after undoing a common offset.
-    """
-    grid = result.grid
-    ijk = np.stack(np.meshgrid(*[np.arange(s) for s in grid.shape], indexing="ij"), -1).reshape(-1, 3)
-    pts = ijk @ grid.affine[:3, :3].T + grid.affine[:3, 3]
-    ref = sampling.sample_points(img, aff, pts)
-    inside = sampling.sample_points(msk, aff, pts) > 0.5
-    vol = result.volume.array.reshape(-1)
-    if frame is not None:
-        vol = sampling.sample_points(result.volume.array, result.volume.affine, pts @ frame[:3, :3].T + frame[:3, 3])
-    x = vol[inside].astype(np.float64)
-    y = ref[inside].astype(np.float64)
-    a, b = np.polyfit(x, y, 1)
-    psnr = 10 * np.log10(y.max() ** 2 / np.mean((a * x + b - y) ** 2))
-    return float(psnr), float(np.corrcoef(x, y)[0, 1])
+    """PSNR (dB) and NCC of a reconstruction in the truth's brain mask (``frame``: after undoing a common offset)."""
+    return volume_psnr_ncc(result.volume, result.grid, img, msk, aff, frame)
 
 
 def pose_error(ss: SliceSet, estimate: np.ndarray, truth: np.ndarray) -> float:

@@ -4,7 +4,7 @@ what each stage of the job does to them (ablations).
 For each motion level (``--levels``; the smooth ones and those with jumps), acquisitions of the
 validation volumes (``model_export.acquisitions``) are predicted by the shipped model through the
 server's pipeline (stack consistency, the stacks pooled), then reconstructed as a job does from the
-service's own poses (every slice included, coarse-to-fine, SVR rounds), once per ``--variants``
+service's own poses (the accepted slices, or every slice: ``--start-shares``; coarse-to-fine, SVR rounds), once per ``--variants``
 (:data:`VARIANTS`: the full reconstruction, it without one of its stages, and ``job``: what a job
 runs, the never-worse choice of :mod:`service.reconstruction.never_worse`). Printed per level and
 variant: the mean E.D. (mm, slices with >= 20 mask pixels, network frames; against the truth,
@@ -30,12 +30,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from model_export.acquisitions import simulate_acquisition
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, run_acquisition
+from model_export.volume_metrics import volume_psnr_ncc
 from service.api.responses import stack_objects
 from service.geometry import se3, twin
 from service.geometry.anchors import ed
 from service.inference.estimator import OnnxPoseEstimator
 from service.inference.model_file import load_model
-from service.jobs.worker import poses_from_predict_body, starting_inclusion
+from service.jobs.worker import MIN_ACCEPTED_SHARE, posed_slices, poses_from_predict_body, starting_inclusion
 from service.reconstruction.atlas_frame import atlas_frame
 from service.reconstruction.never_worse import reconstruct_never_worse
 from service.reconstruction.pipeline import ReconstructionConfig, reconstruct
@@ -96,6 +97,9 @@ def main() -> None:
                     help="the poses the reconstruction starts from (truth: does registration keep them?)")
     ap.add_argument("--bias", type=float, default=None, help="the simulated stacks' bias-field strength "
                     "(default: model_export.acquisitions'; 0: none)")
+    ap.add_argument("--start-shares", default=str(MIN_ACCEPTED_SHARE),
+                    help="comma-separated: each reconstructs from the same prediction, starting from the accepted "
+                         "slices when this share of the posed ones is accepted (above 1: from every slice)")
     ap.add_argument("--variants", default="default", help=f"comma-separated, of {', '.join(VARIANTS)}")
     args = ap.parse_args()
     if not DEFAULT_ATLAS_ROOT.exists():
@@ -104,12 +108,14 @@ def main() -> None:
     plane = est.info.symmetry_plane_x_mm
     vols = load_volumes(split(DEFAULT_ATLAS_ROOT)[1], DEFAULT_ATLAS_ROOT)
     rng = np.random.default_rng(args.seed)
-    variants = args.variants.split(",")
+    shares = [float(x) for x in args.start_shares.split(",")]
+    variants = [f"{v}@{sh:g}" if len(shares) > 1 else v for v in args.variants.split(",") for sh in shares]
     for level in args.levels.split(","):
         framed = [f"{k}, atlas frame" for k in variants] if args.atlas_frame else []
         rows = {"predicted": [], **{k: [] for k in variants}, **{k: [] for k in framed}}
         seconds = {k: [] for k in variants}
         held = {k: [] for k in variants}
+        psnr = {k: [] for k in variants}
         for a in range(args.per_level):
             vol = vols[a % len(vols)]
             stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level,
@@ -117,34 +123,41 @@ def main() -> None:
             (predictions,), prepared, _ = run_acquisition(stacks, est, 100, True)
             results = stack_objects(predictions)
             counts = [len(r["slices"]) for r in results]
-            poses = starting_inclusion(poses_from_predict_body({"stacks": results}, counts))
+            predicted = poses_from_predict_body({"stacks": results}, counts)
             masks = [np.moveaxis(p.slices.masks.transpose(0, 2, 1), 0, p.slices.slice_axis) for p in prepared]
-            if args.start == "truth":
-                poses = [(s.atlas_from_voxel, inc) for s, (_, inc) in zip(stacks, poses)]
-            ss = SliceSet.from_stacks([(s.volume, m, mats, inc) for s, m, (mats, inc) in zip(stacks, masks, poses)])
-            rows["predicted"].append(errors(stacks, prepared, ss.atlas_from_voxel, plane))
             for name in variants:
+                variant, _, share = name.partition("@")
+                poses = starting_inclusion(predicted, posed_slices({"stacks": results}), float(share or shares[0]))
+                if args.start == "truth":
+                    poses = [(s.atlas_from_voxel, inc) for s, (_, inc) in zip(stacks, poses)]
+                ss = SliceSet.from_stacks([(s.volume, m, mats, inc) for s, m, (mats, inc) in zip(stacks, masks, poses)])
+                if name == variants[0]:
+                    rows["predicted"].append(errors(stacks, prepared, ss.atlas_from_voxel, plane))
                 t = time.perf_counter()
-                run = reconstruct_never_worse if name == "job" else reconstruct
+                run = reconstruct_never_worse if variant == "job" else reconstruct
                 res = run(ss, resolution_mm=args.resolution, svr_iterations=args.rounds,
-                          config=ReconstructionConfig(symmetry_plane_x_mm=plane, **VARIANTS[name]))
+                          config=ReconstructionConfig(symmetry_plane_x_mm=plane, **VARIANTS[variant]))
                 seconds[name].append(time.perf_counter() - t)
                 rows[name].append(errors(stacks, prepared, res.atlas_from_voxel_final, plane))
                 held[name].append(res.quality["leave_one_stack_out"]["median_ncc"])
-                if name == "job":
-                    print(f"  job path: {res.quality['path']} {res.quality['paths']}", flush=True)
+                psnr[name].append(volume_psnr_ncc(res.volume, res.grid, vol.image, vol.mask, vol.affine)[0])
+                if variant == "job":
+                    print(f"  {name} path: {res.quality['path']} {res.quality['paths']}; "
+                          f"{int(ss.include.sum())} slices start included", flush=True)
                 if args.atlas_frame:
                     fit = atlas_frame(res.volume, est, plane)
                     rows[f"{name}, atlas frame"].append(errors(stacks, prepared,
                                                                fit.correction @ res.atlas_from_voxel_final, plane))
             print(f"{level} {a}: " + ", ".join(f"{k} {v[-1][0].mean():.2f} / {v[-1][1].mean():.2f} / "
                                               f"{v[-1][2].mean():.2f}" for k, v in rows.items())
-                  + "; leave-one-stack-out NCC " + ", ".join(f"{k} {v[-1]}" for k, v in held.items()), flush=True)
+                  + "; leave-one-stack-out NCC " + ", ".join(f"{k} {v[-1]}" for k, v in held.items())
+                  + "; PSNR as placed " + ", ".join(f"{k} {v[-1]:.2f} dB" for k, v in psnr.items()), flush=True)
         means = {k: np.concatenate(v, axis=1).mean(axis=1) for k, v in rows.items()}
         before = np.array([r[1].mean() for r in rows["predicted"]])
         worse = {k: int(np.sum(np.array([r[1].mean() for r in rows[k]]) > before)) for k in variants}
         summary = ", ".join(f"{k} {m[0]:.2f} / {m[1]:.2f} / {m[2]:.2f} mm" for k, m in means.items())
         times = ", ".join(f"{k} {np.mean(v):.1f} s" for k, v in seconds.items())
+        summary += "; PSNR as placed " + ", ".join(f"{k} {np.mean(v):.2f} dB" for k, v in psnr.items())
         print(f"== {level} ({args.per_level} acquisitions, {args.resolution} mm, {args.rounds} rounds; mean E.D. "
               f"against the truth / twin-min / the truth in the acquisition's own frame): {summary}; "
               f"acquisitions worse than predicted (twin-min): {worse}; reconstruction {times}", flush=True)

@@ -77,20 +77,41 @@ def predicted_poses(uploads: list, estimator, mc_samples: int = 100,  # noqa: AN
     for these uploads, ``include`` is :func:`starting_inclusion`.
     """
     body, masks = predicted_body(uploads, estimator, mc_samples, variance_threshold)
-    return starting_inclusion(poses_from_predict_body(body, [len(r["slices"]) for r in body["stacks"]])), masks
+    poses = poses_from_predict_body(body, [len(r["slices"]) for r in body["stacks"]])
+    return starting_inclusion(poses, posed_slices(body)), masks
 
 
-def starting_inclusion(poses: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[np.ndarray, np.ndarray]]:
-    """With the service's own poses every slice starts included, whatever its ``accepted`` flag (which
-    the job's report keeps): the reconstruction's stack fit and robust exclusion reject bad slices
-    better than the variance threshold does (docs/reconstruction.md, "What a job does"). Poses a
+MIN_ACCEPTED_SHARE = 0.3
+"""A job starts from the accepted slices alone when at least this share of the request's posed slices
+(those not ``empty``) is accepted; below it, from every slice."""
+
+
+def starting_inclusion(poses: list[tuple[np.ndarray, np.ndarray]], posed: list[np.ndarray] | None = None,
+                       min_share: float = MIN_ACCEPTED_SHARE) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Which of the service's own poses a job starts from: the accepted slices (``accepted`` judges the
+    returned pose by its calibrated expected error, so a slice it rejects is more often misplaced than
+    not), unless fewer than ``min_share`` of the ``posed`` slices (default: every slice) are accepted:
+    then every slice, and the reconstruction's stack fit and robust statistics judge them. Poses a
     client uploads keep the client's flags.
 
-    Example:
-        >>> [inc.tolist() for _, inc in starting_inclusion([(np.zeros((3, 4, 4)), np.array([True, False, False]))])]
+    Example (two of three accepted: those two; one of three under a share of 0.5: all three):
+        >>> poses = [(np.zeros((3, 4, 4)), np.array([True, True, False]))]
+        >>> [inc.tolist() for _, inc in starting_inclusion(poses)]
+        [[True, True, False]]
+        >>> [inc.tolist() for _, inc in starting_inclusion([(np.zeros((3, 4, 4)), np.array([True, False, False]))], min_share=0.5)]
         [[True, True, True]]
     """
+    posed = posed if posed is not None else [np.ones(len(acc), bool) for _, acc in poses]
+    n_posed = sum(int(np.sum(p)) for p in posed)
+    n_accepted = sum(int(np.sum(acc & p)) for (_, acc), p in zip(poses, posed))
+    if n_posed and n_accepted >= min_share * n_posed:
+        return [(mats, acc.copy()) for mats, acc in poses]
     return [(mats, np.ones(len(mats), dtype=bool)) for mats, _ in poses]
+
+
+def posed_slices(body: dict) -> list[np.ndarray]:
+    """Per stack of a ``/v1/predict`` body, which slices were posed (not ``empty``)."""
+    return [np.array([s.get("reason") != "empty" for s in st["slices"]]) for st in body["stacks"]]
 
 
 def predicted_body(uploads: list, estimator, mc_samples: int = 100,  # noqa: ANN001
@@ -222,7 +243,8 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         estimator = OnnxPoseEstimator(load_model(model_file, threads=1))
         body, masks = predicted_body(uploads, estimator, int(params.get("mc_samples", 100)),
                                      params.get("variance_threshold"), orders, params.get("max_expected_error_mm"))
-        poses = starting_inclusion(poses_from_predict_body(body, [len(r["slices"]) for r in body["stacks"]]))
+        poses = starting_inclusion(poses_from_predict_body(body, [len(r["slices"]) for r in body["stacks"]]),
+                                   posed_slices(body))
         plane = estimator.info.symmetry_plane_x_mm
     progress("reconstructing", 0.15)
     slice_set = SliceSet.from_stacks([(u.volume, m, mats, acc) for u, m, (mats, acc) in zip(uploads, masks, poses)])

@@ -1,0 +1,44 @@
+"""Which of the service's own poses a reconstruction job starts from (:func:`starting_inclusion`)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.jobs.worker import MIN_ACCEPTED_SHARE, posed_slices, starting_inclusion
+
+
+def _poses(*accepted: list[bool]) -> list[tuple[np.ndarray, np.ndarray]]:
+    return [(np.tile(np.eye(4), (len(a), 1, 1)), np.array(a)) for a in accepted]
+
+
+def _body(*reasons: list[str | None]) -> dict:
+    return {"stacks": [{"slices": [{"reason": r} for r in rs]} for rs in reasons]}
+
+
+def test_a_request_with_enough_accepted_slices_starts_from_those_alone() -> None:
+    poses = _poses([True, True, False, True], [False, False, False])      # 3 of 7: over the default share
+    assert 3 / 7 >= MIN_ACCEPTED_SHARE
+    start = starting_inclusion(poses)
+    assert [inc.tolist() for _, inc in start] == [[True, True, False, True], [False, False, False]]
+    assert all(np.array_equal(m, p) for (m, _), (p, _) in zip(start, poses))
+
+
+def test_a_request_with_too_few_accepted_slices_starts_from_every_slice() -> None:
+    start = starting_inclusion(_poses([True, False, False, False], [False, False, False]))      # 1 of 7
+    assert [inc.tolist() for _, inc in start] == [[True] * 4, [True] * 3]
+
+
+def test_empty_slices_do_not_count_towards_the_share() -> None:
+    poses = _poses([True, False, False, False, False])
+    body = _body([None, "empty", "empty", "empty", "high_expected_error"])
+    posed = posed_slices(body)
+    assert posed[0].tolist() == [True, False, False, False, True]
+    assert [inc.tolist() for _, inc in starting_inclusion(poses, posed)] == [[True, False, False, False, False]]
+    assert [inc.tolist() for _, inc in starting_inclusion(poses)] == [[True] * 5]        # 1 of 5 counted
+
+
+def test_the_flags_are_copied_not_shared() -> None:
+    poses = _poses([True, True, False])
+    start = starting_inclusion(poses)
+    start[0][1][0] = False
+    assert poses[0][1].tolist() == [True, True, False]
