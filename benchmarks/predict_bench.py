@@ -4,12 +4,15 @@ and the ratio to a previous version measured in the same run.
 Scenarios (stacks cut from an atlas volume at three orthogonal orientations with motion, masks
 uploaded, N4 on, 100 MC samples, every stage on), each also without ``image_consistency``:
   A. three stacks of 128 x 128 x 35 (target <= 1 s);
-  B. six stacks of 320 x 320 x 22 (target <= 2 s).
+  B. six stacks of 320 x 320 x 22 (target <= 2 s);
+  R. with ``--real DIR``: a real scan's stacks and manual masks (``NAME.nii.gz`` beside
+     ``NAME_brain_mask.nii.gz``, sent with ``masks_hold_csf``), and the same stacks without masks (the
+     localiser's), target <= 2 s with masks and <= 1.3 x that without.
 
 ``--baseline REV`` serves the same scenarios from a git worktree of ``REV`` (its code and its
 shipped models) on a second port and prints each scenario's wall time beside it, as a ratio.
 
-    .venv/bin/python benchmarks/predict_bench.py [--baseline HEAD~3] [--model-dir service/models]
+    .venv/bin/python benchmarks/predict_bench.py [--baseline HEAD~3] [--model-dir service/models] [--real DIR]
 """
 
 from __future__ import annotations
@@ -76,8 +79,16 @@ def peak_rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def run(client: httpx.Client, stacks: list[tuple[Path, Path]], repeats: int = 3, **form: str) -> tuple[float, dict]:
-    files = [("stacks", (p.name, p.read_bytes())) for p, _ in stacks] + [("masks", (m.name, m.read_bytes())) for _, m in stacks]
+def real_scan(folder: Path) -> list[tuple[Path, Path]]:
+    """A real scan's ``(stack, manual mask)`` files: every ``*_brain_mask.nii.gz`` of ``folder`` and its stack."""
+    masks = sorted(Path(folder).glob("*_brain_mask.nii.gz"))
+    return [(m.with_name(m.name.replace("_brain_mask", "")), m) for m in masks]
+
+
+def run(client: httpx.Client, stacks: list[tuple[Path, Path]], repeats: int = 3, masks: bool = True,
+        **form: str) -> tuple[float, dict]:
+    files = [("stacks", (p.name, p.read_bytes())) for p, _ in stacks]
+    files += [("masks", (m.name, m.read_bytes())) for _, m in stacks] if masks else []
     best, timing = float("inf"), {}
     for _ in range(repeats):
         t0 = time.perf_counter()
@@ -111,8 +122,10 @@ def wait_ready(client: httpx.Client) -> None:
     raise RuntimeError("the server did not become ready")
 
 
-def measure(root: Path, model_dir: Path, scenarios: list[list[tuple[Path, Path]]]) -> tuple[dict, float]:
-    """Best-of-3 wall time and server stage timings per (scenario, image_consistency), and the peak RSS."""
+def measure(root: Path, model_dir: Path, scenarios: list[list[tuple[Path, Path]]],
+            real: list[tuple[Path, Path]] | None = None) -> tuple[dict, float]:
+    """Best-of-3 wall time and server stage timings per (scenario, image_consistency), the real scan's
+    with and without masks (every stage on), and the peak RSS."""
     server, port = start_server(root, model_dir)
     out = {}
     try:
@@ -121,6 +134,11 @@ def measure(root: Path, model_dir: Path, scenarios: list[list[tuple[Path, Path]]
             for (name, _), stacks in zip(SCENARIOS, scenarios):
                 for image in ("true", "false"):
                     out[name, image] = run(client, stacks, image_consistency=image)
+            if real:
+                for masks in (True, False, True):           # masks again: the best of six against three
+                    wall, timing = run(client, real, masks=masks, masks_hold_csf="true" if masks else "false")
+                    if ("real", masks) not in out or wall < out["real", masks][0]:
+                        out["real", masks] = (wall, timing)
         return out, peak_rss_mb(server.pid)
     finally:
         server.terminate()
@@ -131,19 +149,21 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--model-dir", default=str(ROOT / "service" / "models"))
     ap.add_argument("--baseline", help="a git revision to compare with, in the same run")
+    ap.add_argument("--real", type=Path, help="a real scan's folder: NAME.nii.gz and NAME_brain_mask.nii.gz")
     args = ap.parse_args()
+    real = real_scan(args.real) if args.real else None
     with tempfile.TemporaryDirectory() as tmp:
         (Path(tmp) / "b").mkdir()
         scenarios = [make_stacks(Path(tmp), 3, 128, 35, 1.1), make_stacks(Path(tmp) / "b", 6, 320, 22, 0.55)]
         print(f"source: {brain()[3]}")
-        now, rss = measure(ROOT, Path(args.model_dir), scenarios)
+        now, rss = measure(ROOT, Path(args.model_dir), scenarios, real)
         before = None
         if args.baseline:
             tree = Path(tmp) / "baseline"
             subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), args.baseline],
                            check=True, capture_output=True)
             try:
-                before, _ = measure(tree, tree / "service" / "models", scenarios)
+                before, _ = measure(tree, tree / "service" / "models", scenarios, real)
             finally:
                 subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False)
     for name, target in SCENARIOS:
@@ -157,6 +177,16 @@ def main() -> None:
                   + ", ".join(f"{k} {v:.0f} ({v / total:.0%})" for k, v in t.items() if k != "total")
                   + f"; total {t['total']:.0f}")
         print(f"   image consistency costs x{now[name, 'true'][0] / now[name, 'false'][0]:.2f} of the request without it")
+    if real:
+        for masks in (True, False):
+            wall, t = now["real", masks]
+            ratio = f"; {before['real', masks][0]:.2f} s at {args.baseline}: x{wall / before['real', masks][0]:.2f}" \
+                if before else ""
+            print(f"R: {len(real)} real stacks ({args.real.name}) {'with their manual masks' if masks else 'without masks'}: "
+                  f"{wall:.2f} s wall over HTTP{ratio}")
+            print("   server stages, ms: " + ", ".join(f"{k} {v:.0f}" for k, v in t.items()))
+        print(f"   without masks x{now['real', False][0] / now['real', True][0]:.2f} the time with them "
+              "(targets: <= 2 s with masks, <= 1.3 x without)")
     print(f"peak RSS of the server: {rss:.0f} MB (target <= 2048 MB)")
     print("localisation and N4 are summed over the stacks prepared in parallel; preprocess is the wall time of "
           "preparing them all")
