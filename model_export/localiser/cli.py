@@ -107,13 +107,16 @@ def compare(
     heldout: Annotated[Path, typer.Option(help="shard folder of `data --style heldout --keep-stack`")],
     out: Annotated[Path, typer.Option(help="JSON rows for `ship --ablation`")],
     grid_mm: float = GRID_MM,
+    real_scans: Annotated[Optional[list[Path]], typer.Option(
+        help="folders of real scans (SCAN/NAME.nii.gz beside SCAN/NAME_brain_mask.nii.gz); repeat; "
+             "default ../shared/data/real_scans (tools/fetch_real_scan.py fetches one more)")] = None,
 ) -> None:
     """Dice of each checkpoint on the held-out set and the real scans: the architecture chosen by measurement."""
     import tempfile
 
     import numpy as np
 
-    from model_export.localiser.evaluate import heldout_dice, latency_ms, real_scan_rows
+    from model_export.localiser.evaluate import REAL_SCANS, heldout_dice, latency_ms, real_scan_rows
     from model_export.localiser.export import export_onnx, load_checkpoint
     from service.preprocess.localise import Localiser
 
@@ -122,10 +125,14 @@ def compare(
         onnx_path = export_onnx(ckpt, Path(tempfile.mkdtemp()) / "model.onnx", grid_mm=grid_mm, version=ckpt.stem)
         loc = Localiser.load(onnx_path)
         held = [r["dice"] for r in heldout_dice(loc, heldout)]
-        real = [r["dice"] for r in real_scan_rows(loc) if r["dice"] is not None]
+        stacks = [r for root in (real_scans or [REAL_SCANS]) for r in real_scan_rows(loc, root)]
+        real = [r["dice"] for r in stacks if r["dice"] is not None]
         config = load_checkpoint(ckpt).config
         rows.append({"checkpoint": ckpt.name, "inputs": "2.5D" if config["in_channels"] == 3 else "2D", **config,
                      "heldout_median_dice": float(np.median(held)), "heldout_min_dice": float(np.min(held)),
-                     "real_median_dice": float(np.median(real)) if real else None, "ms": latency_ms(loc)})
+                     "real_median_dice": float(np.median(real)) if real else None,
+                     "real_min_dice": float(np.min(real)) if real else None,
+                     "real_dice": {r["stack"]: round(r["dice"], 3) for r in stacks if r["dice"] is not None},
+                     "ms": latency_ms(loc)})
         typer.echo(json.dumps(rows[-1]))
     out.write_text(json.dumps(rows, indent=1))

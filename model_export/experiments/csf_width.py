@@ -1,0 +1,56 @@
+"""Does the localiser follow the skull, or a CSF layer of the width it was trained on?
+
+Generated whole-uterus scenes of the validation brains (held-out style, T2-like contrast), each drawn
+again with its extra-axial CSF layer set to each of ``--widths`` (mm; the training scenes draw
+1–3.5 mm) and everything else the same; printed per width: the localiser's Dice against the
+skull-inside truth and its found / true volume (median over the scenes). A localiser that stops at a
+fixed distance from the brain loses volume as the layer widens.
+
+    .venv/bin/python model_export/experiments/csf_width.py [--model M] [--scenes 12] [--widths 1.5,3,5,7]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+import model_export.localiser.scenes as scenes  # noqa: E402
+from model_export.atlas import DEFAULT_ATLAS_ROOT, VALIDATION_VOLUMES, load_volumes  # noqa: E402
+from model_export.localiser.evaluate import dice  # noqa: E402
+from service.preprocess.localise import Localiser, default_localiser  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--model", type=Path, help="a localiser ONNX file (default: the shipped one)")
+    ap.add_argument("--scenes", type=int, default=12)
+    ap.add_argument("--widths", default="1.5,3,5,7")
+    args = ap.parse_args()
+    if not DEFAULT_ATLAS_ROOT.exists():
+        sys.exit(f"needs the atlas volumes at {DEFAULT_ATLAS_ROOT}")
+    localiser = Localiser.load(args.model) if args.model else default_localiser()
+    heads = [scenes.HeadModel.from_arrays(v.image, v.mask, v.affine) for v in load_volumes(list(VALIDATION_VOLUMES))]
+    drawn = scenes.head_layers
+    for width in (float(w) for w in args.widths.split(",")):
+        scenes.head_layers = lambda rng, thin=False, width=width: (width, *drawn(rng, thin)[1:])
+        try:
+            rows = []
+            for seed in range(args.scenes):
+                scene = scenes.synth_scene(heads[seed % len(heads)], np.random.default_rng(1000 + seed), "heldout",
+                                           random_contrast=False)
+                found = localiser.localise(scene.volume).mask
+                rows.append((dice(found, scene.mask), found.sum() / max(scene.mask.sum(), 1)))
+        finally:
+            scenes.head_layers = drawn
+        d, v = np.array(rows).T
+        print(f"CSF layer {width:g} mm: Dice median {np.median(d):.3f} (min {d.min():.3f}); "
+              f"found / true volume median {np.median(v):.2f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,92 @@
+"""A real scan's poses without masks against those with its manual masks, split into the common
+rigid move of the whole answer (the atlas frame the request settles in) and what is left per stack.
+
+Real scans have no true poses; two answers for the same stacks can still be compared. A scan folder
+holds ``NAME.nii.gz`` beside ``NAME_brain_mask.nii.gz`` (the manual mask, sent with
+``masks_hold_csf``). Both answers go through ``/v1/predict``'s pipeline (every stage, MC 100). Printed
+per stack: the median E.D. between the two answers over the slices both pose, the accepted slices of
+each, the localiser's confidence, then per-slice distances (``M``: posed with the manual mask only,
+``L``: with the localiser's only, ``*``: accepted without masks); then the common rigid offset,
+fitted robustly (a Fréchet mean over every slice both pose, refitted on those within 2.5 x the median
+distance of the first fit) over the slices both answers accept, and the median E.D. per stack once
+it is undone, over those slices (the poses a user would take from either answer).
+
+    .venv/bin/python model_export/experiments/real_scan_poses.py [SCAN_FOLDER] [--localiser M] [--stacks A,B]
+        [--no-image-consistency]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator  # noqa: E402
+from model_export.localiser.pose_accuracy import slice_poses  # noqa: E402
+from service.api.responses import stack_objects  # noqa: E402
+from service.geometry import anchors, se3  # noqa: E402
+from service.io.volume import read_volume  # noqa: E402
+from service.pipeline.predict import StackUpload, predict, prepare_stacks  # noqa: E402
+from service.preprocess.localise import Localiser, default_localiser  # noqa: E402
+
+
+def common_offset(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The rigid ``4 x 4`` atlas move ``G`` with ``a ~ G b`` over slice poses ``[n, 4, 4]``: a Fréchet
+    mean, refitted on the slices within 2.5 x the median E.D. left by the first fit."""
+    g = se3.frechet_mean(a @ se3.inverse(b), np.ones(len(a)))
+    d = anchors.ed(a, g @ b)
+    keep = d <= 2.5 * np.median(d)
+    return se3.frechet_mean(a[keep] @ se3.inverse(b[keep]), np.ones(int(keep.sum())))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("scan", type=Path, nargs="?", default=REAL_SCANS / "mial_lausanne_t30")
+    ap.add_argument("--localiser", type=Path, help="a localiser ONNX file (default: the shipped one)")
+    ap.add_argument("--stacks", help="comma-separated names: these stacks alone (default: every masked one)")
+    ap.add_argument("--no-image-consistency", action="store_true", help="both answers without the image stage")
+    args = ap.parse_args()
+    localiser = Localiser.load(args.localiser) if args.localiser else default_localiser()
+    estimator = _pose_estimator()
+    names = args.stacks.split(",") if args.stacks else \
+        sorted(m.name.replace("_brain_mask.nii.gz", "") for m in args.scan.glob("*_brain_mask.nii.gz"))
+    volumes = {n: read_volume(args.scan / f"{n}.nii.gz") for n in names}
+    manual = {n: read_volume(args.scan / f"{n}_brain_mask.nii.gz") for n in names}
+
+    def answer(with_masks: bool) -> tuple[list[dict], list]:
+        uploads = [StackUpload(n, volumes[n], manual[n] if with_masks else None, f"{n}_brain_mask" if with_masks else None,
+                               mask_holds_csf=with_masks) for n in names]
+        prepared = prepare_stacks(uploads, estimator.info, True, workers=2, localiser=localiser)
+        predictions, _ = predict(prepared, estimator, 100, estimator.info.variance_threshold,
+                                 image_consistency=not args.no_image_consistency)
+        return stack_objects(predictions), prepared
+
+    (with_masks, prepared), (without, _) = answer(True), answer(False)
+    pairs = []
+    for name, sa, sb, p in zip(names, with_masks, without, prepared):
+        (xa, ka), (xb, kb) = slice_poses(sa, p), slice_poses(sb, p)
+        d = anchors.ed(xa, xb)
+        both = ka & kb
+        usable = both & np.array([x["accepted"] and y["accepted"] for x, y in zip(sa["slices"], sb["slices"])])
+        pairs.append((xa[usable], xb[usable]))
+        accepted = [sum(s["accepted"] for s in st["slices"]) for st in (sa, sb)]
+        marks = [f"{k}:" + ("-" if not (ka[k] or kb[k]) else "M" if not kb[k] else "L" if not ka[k] else f"{d[k]:.0f}")
+                 + ("*" if sb["slices"][k]["accepted"] else "") for k in range(len(d))]
+        print(f"{name}: median {np.median(d[both]):.1f} mm over {both.sum()} slices; accepted with masks "
+              f"{accepted[0]}, without {accepted[1]}; localiser confidence {sb['localisation']['confidence']:.2f}")
+        print("   " + " ".join(marks))
+    a, b = np.concatenate([x for x, _ in pairs]), np.concatenate([y for _, y in pairs])
+    g = common_offset(a, b)
+    angle = np.degrees(np.linalg.norm(se3.so3_log(g[:3, :3])))
+    left = [f"{np.median(anchors.ed(x, g @ y)):.2f}" if len(x) else "-" for x, y in pairs]
+    print(f"slices both answers accept: {len(a)}; between them median {np.median(anchors.ed(a, b)):.2f} mm; "
+          f"common offset {np.linalg.norm(g[:3, 3]):.2f} mm / {angle:.2f} deg; median E.D. once undone "
+          f"{np.median(anchors.ed(a, g @ b)):.2f} mm (per stack " + ", ".join(left) + ")")
+
+
+if __name__ == "__main__":
+    main()
