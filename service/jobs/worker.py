@@ -89,8 +89,8 @@ MIN_ACCEPTED_SHARE = 0.3
 def starting_inclusion(poses: list[tuple[np.ndarray, np.ndarray]], posed: list[np.ndarray] | None = None,
                        min_share: float = MIN_ACCEPTED_SHARE) -> list[tuple[np.ndarray, np.ndarray]]:
     """Which of the service's own poses a job starts from: the accepted slices (``accepted`` judges the
-    returned pose by its calibrated expected error, so a slice it rejects is more often misplaced than
-    not), unless fewer than ``min_share`` of the ``posed`` slices (default: every slice) are accepted:
+    returned pose by its calibrated expected error: the slices it rejects hold most of the misplaced
+    ones), unless fewer than ``min_share`` of the ``posed`` slices (default: every slice) are accepted:
     then every slice, and the reconstruction's stack fit and robust statistics judge them. Poses a
     client uploads keep the client's flags.
 
