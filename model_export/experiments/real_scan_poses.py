@@ -80,6 +80,9 @@ def main() -> None:
               f"{accepted[0]}, without {accepted[1]}; localiser confidence {sb['localisation']['confidence']:.2f}")
         print("   " + " ".join(marks))
     a, b = np.concatenate([x for x, _ in pairs]), np.concatenate([y for _, y in pairs])
+    if not len(a):
+        print("no slice is accepted in both answers")
+        return
     g = common_offset(a, b)
     angle = np.degrees(np.linalg.norm(se3.so3_log(g[:3, :3])))
     left = [f"{np.median(anchors.ed(x, g @ y)):.2f}" if len(x) else "-" for x, y in pairs]

@@ -113,7 +113,9 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
     p0 = np.concatenate(poses)
     network_from_slice = se3.inverse(np.concatenate([s.slice_from_network for s in stacks]))
     pixels = np.concatenate([s.masks.reshape(len(s.masks), -1).sum(axis=1) for s in stacks])
-    free = (pixels >= MIN_BRAIN_PIXELS) & np.concatenate([s.active for s in stacks])
+    taking_part = (pixels >= MIN_BRAIN_PIXELS) & np.concatenate([s.active for s in stacks])
+    anchored = taking_part & np.repeat([s.fixed for s in stacks], sizes)
+    free = taking_part & ~anchored
     if not free.any():
         return unchanged
     col = -np.ones(len(p0), int)
@@ -131,7 +133,8 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
     def atlas_from_slice(params: NDArray) -> NDArray:
         return poses_at(params) @ network_from_slice
 
-    pairs = candidate_pairs(atlas_from_slice(x), stack_of, free)
+    pairs = candidate_pairs(atlas_from_slice(x), stack_of, taking_part)
+    pairs = pairs[free[pairs[:, 0]] | free[pairs[:, 1]]]                    # not two fixed partners
     if not len(pairs):
         return unchanged
     costs: list[float] = []
@@ -165,9 +168,10 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
     spread = np.full(len(p0), np.nan)
     spread[free] = laplace_spread_mm(_normal_equations(jac(x), x, r, prior)[0])   # the last pass, at its optimum
     final = follow_neighbours(final, p0, checked, stack_of, local)
-    # The images do not see the request's frame; it goes back where the stage's poses put it.
-    frame = se3.frechet_mean(p0[checked] @ se3.inverse(final[checked]), 1.0 / np.maximum(sd[checked], 0.5) ** 2)
-    final = frame @ final
+    if not anchored.any():
+        # The images do not see the request's frame; it goes back where the stage's poses put it.
+        frame = se3.frechet_mean(p0[checked] @ se3.inverse(final[checked]), 1.0 / np.maximum(sd[checked], 0.5) ** 2)
+        final = frame @ final
     moved = ed(final, p0)
     cut = lambda a: [a[i:j] for i, j in zip(bounds[:-1], bounds[1:])]  # noqa: E731
     return Refinement(cut(final), cut(moved), used, costs[0] if costs else np.nan, costs[-1] if costs else np.nan,

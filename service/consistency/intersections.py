@@ -55,6 +55,8 @@ class StackImages:
         active: ``[n]`` slices that take part (their poses move); the others, and slices with
             fewer than :data:`~service.consistency.image_refinement.MIN_BRAIN_PIXELS` brain
             pixels, keep their poses and do not take part.
+        fixed: the stack's active slices take part as fixed partners: the other stacks' slices
+            are refined against them, they keep their poses.
     """
 
     images: NDArray[np.float32]
@@ -62,6 +64,7 @@ class StackImages:
     pixel_mm: tuple[float, float]
     slice_from_network: NDArray[np.float64]
     active: NDArray[np.bool_]
+    fixed: bool = False
 
 
 @dataclass
@@ -109,8 +112,8 @@ def pair_points(atlas_from_slice_a: NDArray, atlas_from_slice_b: NDArray, pairs:
 
 
 def candidate_pairs(atlas_from_slice: NDArray, stack_of: NDArray, free: NDArray) -> NDArray[np.int64]:
-    """``[M, 2]`` pairs of free slices of different stacks (first of the lower stack) whose planes
-    cross at :data:`MIN_SINE` or more."""
+    """``[M, 2]`` pairs of slices of different stacks that take part (``free``; first of the lower
+    stack) whose planes cross at :data:`MIN_SINE` or more."""
     idx = np.flatnonzero(free)
     a, b = np.meshgrid(idx, idx, indexing="ij")
     a, b = a.ravel(), b.ravel()

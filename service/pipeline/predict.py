@@ -255,26 +255,48 @@ def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPos
     """Refine the poses of the request's settled stacks where their slices cross
     (:func:`~service.consistency.image_refinement.refine`), in place; each such stack's
     ``image_consistency`` says what it did. A stack takes part when the stage found it consistent and
-    its left-right branch is decided (by its own slices or by the request): a stack that may be the
-    mirror image of the others would pull them towards it. Needs two such stacks. Of their slices,
-    those with a ``proper`` network pose that the stage did not flag as inconsistent take part."""
+    its left-right branch is decided: a stack that may be the mirror image of the others would pull
+    them towards it. Of their slices, those with a ``proper`` network pose that the stage did not
+    flag as inconsistent take part.
+
+    The stacks that decided their branch by their own slices are refined together first (when two
+    or more did); a stack whose branch only the request decided is then refined against them as
+    fixed partners, and its slices keep at least the stage's expected error: it is the less certain,
+    and a stack whose localisation went wrong (a mask that runs on into the fetal body) would
+    otherwise pull the others its way, or be pulled into a false agreement with them."""
     take = [i for i, o in enumerate(outs) if o.fit is not None and o.fit.decidable
             and (o.fit.branch_decided or o.fit.branch_from_request)]
     if len(take) < 2:
         return
+    own = [i for i in take if outs[i].fit.branch_decided]
+    if len(own) < 2:
+        _refine_stacks(prepared, outs, proper, take, [])
+        return
+    _refine_stacks(prepared, outs, proper, own, [])
+    if len(own) < len(take):
+        _refine_stacks(prepared, outs, proper, [i for i in take if i not in own], own)
+
+
+def _refine_stacks(prepared: list[PreparedStack], outs: list[StackPoses], proper: list[np.ndarray],
+                   moving: list[int], partners: list[int]) -> None:
+    """:func:`refine` the stacks ``moving`` (indices into the request) with the stacks ``partners`` as
+    fixed partners; sets the moving stacks' poses, expected errors (with partners: never below the
+    stage's) and ``image_consistency``."""
+    which = moving + partners
     images = [StackImages(prepared[i].slices.images, prepared[i].slices.masks, prepared[i].slices.pixel_mm,
-                          prepared[i].prepared.input_from_network(), proper[i] & ~outs[i].inconsistent) for i in take]
+                          prepared[i].prepared.input_from_network(), proper[i] & ~outs[i].inconsistent,
+                          fixed=i in partners) for i in which]
     expected = [outs[i].expected_error_mm if outs[i].expected_error_mm is not None
-                else np.full(len(outs[i].poses), np.nan) for i in take]
-    ref = refine(images, [outs[i].poses for i in take], expected)
+                else np.full(len(outs[i].poses), np.nan) for i in which]
+    ref = refine(images, [outs[i].poses for i in which], expected)
     relative = relative_mismatch(ref.mismatch)
     after = expected_after(expected, relative, ref.spread_mm)
-    for j, i in enumerate(take):
+    for j, i in enumerate(moving):
         outs[i].poses = ref.poses[j]
         if outs[i].expected_error_mm is not None:
-            outs[i].expected_error_mm = after[j]
+            outs[i].expected_error_mm = np.fmax(after[j], expected[j]) if partners else after[j]
         moved = ref.moved_mm[j][images[j].active]
-        outs[i].image_consistency = ImageConsistency(len(take), ref.pairs, int(images[j].active.sum()),
+        outs[i].image_consistency = ImageConsistency(len(which), ref.pairs, int(images[j].active.sum()),
                                                      float(np.median(moved)) if len(moved) else 0.0,
                                                      float(ref.cost_before), float(ref.cost_after),
                                                      relative[j], expected[j], ref.spread_mm[j])

@@ -166,3 +166,19 @@ def test_the_expected_error_after_refinement_meets_the_images_halfway() -> None:
     out = expected_after([np.array([4.0, 4.0, 4.0])], [np.array([1.0, 1.0, np.nan])], [np.array([0.5, np.nan, 0.5])])[0]
     assert out[0] == pytest.approx(np.sqrt(REFINED_GAIN * 4.0 * SPREAD_GAIN * 0.5))
     assert out[1] == pytest.approx(REFINED_GAIN * 4.0) and out[2] == pytest.approx(UNCHECKED_GAIN * 4.0)
+
+
+def test_a_stack_refined_against_fixed_partners_moves_to_them_and_they_stay(acquisition) -> None:  # noqa: ANN001
+    """Two stacks at their true poses as fixed partners, the third moved as a whole by 4 mm / 3° and
+    per slice: the partners keep their poses exactly, the third comes back to them (its whole-stack
+    offset included: the partners fix the frame, so nothing is put back)."""
+    images, truth = acquisition
+    offset = se3.exp(np.array([0.05, 0.0, 0.0, 4.0, 0.0, 0.0]))
+    start = [truth[0], truth[1], offset @ disturbed(truth[2:], 1.0, 1.0, seed=2)[0]]
+    stacks = [replace(images[0], fixed=True), replace(images[1], fixed=True), images[2]]
+    out = refine(stacks, start, [np.full(len(t), 5.0) for t in start])
+    assert max(np.abs(out.poses[i] - truth[i]).max() for i in (0, 1)) < 1e-9
+    keep = images[2].masks.reshape(len(truth[2]), -1).sum(1) >= 60
+    before, after = ed(start[2][keep], truth[2][keep]).mean(), ed(out.poses[2][keep], truth[2][keep]).mean()
+    print(f"moving stack E.D. {before:.2f} -> {after:.2f} mm")
+    assert after < 0.5 * before, (before, after)
