@@ -88,7 +88,9 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
     """Refine every free slice's pose so that slices of different stacks agree where they cross.
 
     Args:
-        stacks: each stack's images (:class:`StackImages`).
+        stacks: each stack's images (:class:`StackImages`); a stack marked ``fixed`` takes part as
+            a fixed partner: the others are refined against it, and since it holds the frame,
+            nothing is put back in the stage's frame.
         poses: each stack's poses ``[n, 4, 4]`` (network frame -> atlas), the stage's output.
         expected_error_mm: each stack's expected E.D. per slice ``[n]`` (the prior's scale; non-finite: 10 mm).
         passes: each pass's in-plane smoothing and spacing of the points along the lines (mm), and its
