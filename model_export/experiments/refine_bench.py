@@ -36,7 +36,7 @@ from service.geometry import se3, twin
 from service.geometry.anchors import ed
 from service.inference.estimator import OnnxPoseEstimator
 from service.inference.model_file import load_model
-from service.jobs.worker import MIN_ACCEPTED_SHARE, posed_slices, poses_from_predict_body, starting_inclusion
+from service.jobs.worker import MIN_ACCEPTED_SHARE, starting_poses
 from service.reconstruction.atlas_frame import atlas_frame
 from service.reconstruction.never_worse import reconstruct_never_worse
 from service.reconstruction.pipeline import ReconstructionConfig, reconstruct
@@ -121,13 +121,11 @@ def main() -> None:
             stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level,
                                           **({} if args.bias is None else {"bias": args.bias}))
             (predictions,), prepared, _ = run_acquisition(stacks, est, 100, True)
-            results = stack_objects(predictions)
-            counts = [len(r["slices"]) for r in results]
-            predicted = poses_from_predict_body({"stacks": results}, counts)
+            body = {"stacks": stack_objects(predictions)}
             masks = [np.moveaxis(p.slices.masks.transpose(0, 2, 1), 0, p.slices.slice_axis) for p in prepared]
             for name in variants:
                 variant, _, share = name.partition("@")
-                poses = starting_inclusion(predicted, posed_slices({"stacks": results}), float(share or shares[0]))
+                poses = starting_poses(body, float(share or shares[0]))
                 if args.start == "truth":
                     poses = [(s.atlas_from_voxel, inc) for s, (_, inc) in zip(stacks, poses)]
                 ss = SliceSet.from_stacks([(s.volume, m, mats, inc) for s, m, (mats, inc) in zip(stacks, masks, poses)])

@@ -26,6 +26,7 @@ import numpy as np
 
 from service.consistency.slice_order import SliceOrder, per_stack
 from service.core.errors import Cancelled, ServiceError
+from service.inference.acceptance import EMPTY
 from service.jobs.store import JobStore
 
 log = logging.getLogger(__name__)
@@ -74,11 +75,10 @@ def predicted_poses(uploads: list, estimator, mc_samples: int = 100,  # noqa: AN
                     variance_threshold: float | None = None) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[np.ndarray]]:
     """The reconstruction's start from the service's own prediction: ``[(atlas_from_voxel, include)]``
     and the brain masks (on each stack's grid) per stack; the poses are those ``/v1/predict`` answers
-    for these uploads, ``include`` is :func:`starting_inclusion`.
+    for these uploads, ``include`` is :func:`starting_inclusion` (:func:`starting_poses`).
     """
     body, masks = predicted_body(uploads, estimator, mc_samples, variance_threshold)
-    poses = poses_from_predict_body(body, [len(r["slices"]) for r in body["stacks"]])
-    return starting_inclusion(poses, posed_slices(body)), masks
+    return starting_poses(body), masks
 
 
 MIN_ACCEPTED_SHARE = 0.3
@@ -111,7 +111,14 @@ def starting_inclusion(poses: list[tuple[np.ndarray, np.ndarray]], posed: list[n
 
 def posed_slices(body: dict) -> list[np.ndarray]:
     """Per stack of a ``/v1/predict`` body, which slices were posed (not ``empty``)."""
-    return [np.array([s.get("reason") != "empty" for s in st["slices"]]) for st in body["stacks"]]
+    return [np.array([s.get("reason") != EMPTY for s in st["slices"]]) for st in body["stacks"]]
+
+
+def starting_poses(body: dict, min_share: float = MIN_ACCEPTED_SHARE) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``(atlas_from_voxel, include)`` per stack that a job starts from, given the service's own
+    ``/v1/predict`` body (:func:`poses_from_predict_body`, :func:`starting_inclusion`)."""
+    poses = poses_from_predict_body(body, [len(st["slices"]) for st in body["stacks"]])
+    return starting_inclusion(poses, posed_slices(body), min_share)
 
 
 def predicted_body(uploads: list, estimator, mc_samples: int = 100,  # noqa: ANN001
@@ -243,8 +250,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         estimator = OnnxPoseEstimator(load_model(model_file, threads=1))
         body, masks = predicted_body(uploads, estimator, int(params.get("mc_samples", 100)),
                                      params.get("variance_threshold"), orders, params.get("max_expected_error_mm"))
-        poses = starting_inclusion(poses_from_predict_body(body, [len(r["slices"]) for r in body["stacks"]]),
-                                   posed_slices(body))
+        poses = starting_poses(body)
         plane = estimator.info.symmetry_plane_x_mm
     progress("reconstructing", 0.15)
     slice_set = SliceSet.from_stacks([(u.volume, m, mats, acc) for u, m, (mats, acc) in zip(uploads, masks, poses)])

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.jobs.worker import MIN_ACCEPTED_SHARE, posed_slices, starting_inclusion
+from service.jobs.worker import MIN_ACCEPTED_SHARE, posed_slices, starting_inclusion, starting_poses
 
 
 def _poses(*accepted: list[bool]) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -42,3 +42,11 @@ def test_the_flags_are_copied_not_shared() -> None:
     start = starting_inclusion(poses)
     start[0][1][0] = False
     assert poses[0][1].tolist() == [True, True, False]
+
+
+def test_a_predict_body_gives_the_poses_and_the_accepted_start() -> None:
+    body = {"stacks": [{"slices": [{"atlas_from_voxel": np.eye(4).tolist(), "accepted": a, "reason": r}
+                                   for a, r in ((True, None), (False, "empty"), (False, "high_expected_error"))]}]}
+    (mats, include), = starting_poses(body)
+    assert mats.shape == (3, 4, 4) and include.tolist() == [True, False, False]       # 1 of 2 posed accepted
+    assert starting_poses(body, min_share=0.6)[0][1].tolist() == [True, True, True]
