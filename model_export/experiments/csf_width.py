@@ -19,9 +19,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-import model_export.localiser.scenes as scenes  # noqa: E402
 from model_export.atlas import DEFAULT_ATLAS_ROOT, VALIDATION_VOLUMES, load_volumes  # noqa: E402
 from model_export.localiser.evaluate import dice  # noqa: E402
+from model_export.localiser.scenes import HeadModel, synth_scene  # noqa: E402
 from service.preprocess.localise import Localiser, default_localiser  # noqa: E402
 
 
@@ -34,19 +34,14 @@ def main() -> None:
     if not DEFAULT_ATLAS_ROOT.exists():
         sys.exit(f"needs the atlas volumes at {DEFAULT_ATLAS_ROOT}")
     localiser = Localiser.load(args.model) if args.model else default_localiser()
-    heads = [scenes.HeadModel.from_arrays(v.image, v.mask, v.affine) for v in load_volumes(list(VALIDATION_VOLUMES))]
-    drawn = scenes.head_layers
+    heads = [HeadModel.from_arrays(v.image, v.mask, v.affine) for v in load_volumes(list(VALIDATION_VOLUMES))]
     for width in (float(w) for w in args.widths.split(",")):
-        scenes.head_layers = lambda rng, thin=False, width=width: (width, *drawn(rng, thin)[1:])
-        try:
-            rows = []
-            for seed in range(args.scenes):
-                scene = scenes.synth_scene(heads[seed % len(heads)], np.random.default_rng(1000 + seed), "heldout",
-                                           random_contrast=False)
-                found = localiser.localise(scene.volume).mask
-                rows.append((dice(found, scene.mask), found.sum() / max(scene.mask.sum(), 1)))
-        finally:
-            scenes.head_layers = drawn
+        rows = []
+        for seed in range(args.scenes):
+            scene = synth_scene(heads[seed % len(heads)], np.random.default_rng(1000 + seed), "heldout",
+                                random_contrast=False, csf_mm=width)
+            found = localiser.localise(scene.volume).mask
+            rows.append((dice(found, scene.mask), found.sum() / max(scene.mask.sum(), 1)))
         d, v = np.array(rows).T
         print(f"CSF layer {width:g} mm: Dice median {np.median(d):.3f} (min {d.min():.3f}); "
               f"found / true volume median {np.median(v):.2f}", flush=True)

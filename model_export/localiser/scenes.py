@@ -451,9 +451,10 @@ def synth_stack(head: HeadModel, rng: np.random.Generator, style: str = "train",
 
 
 def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
-                random_contrast: bool | None = None, rigid: bool = False) -> Scene:
+                random_contrast: bool | None = None, rigid: bool = False, csf_mm: float | None = None) -> Scene:
     """One synthetic whole-uterus stack, its masks and, with ``rigid`` (the head at the atlas's own
-    size, not scaled by 0.9-1.1), its slices' true atlas poses.
+    size, not scaled by 0.9-1.1), its slices' true atlas poses. ``csf_mm``: the extra-axial CSF
+    layer this thick instead of drawn (:func:`head_layers`; the other draws stay the same).
 
     ``random_contrast``: every tissue's intensity drawn uniformly (True) or T2-like (False); by
     default drawn, for 20 % of the ``train`` stacks and half of the ``heldout`` ones. The same seed
@@ -484,6 +485,8 @@ def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
         background = _camouflage(rng, geo, background, centre, head.radius_mm * scale, level, style, head)
         tissue = {**tissue, "scalp": level * rng.uniform(0.5, 1.2)}
     layers = head_layers(rng, camouflaged)
+    if csf_mm is not None:
+        layers = (float(csf_mm), *layers[1:])
     face_rng = np.random.default_rng(int(rng.integers(2**31)))     # the same draws after it, with a face or not
     face = Face.draw(face_rng, head, tissue, level, layers[0] + layers[1], style) if with_face else None
     values, inside, brain_fraction, box, motion = _head(head, geo, centre, rotation, rng, tissue, background,

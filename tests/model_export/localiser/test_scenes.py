@@ -230,3 +230,11 @@ def test_a_rigid_scene_shows_its_eyes_where_its_true_poses_put_them(monkeypatch:
         between = value(scene, face.eyes.mean(axis=0))
         brighter += [value(scene, eye) > between for eye in face.eyes if np.isfinite(value(scene, eye) - between)]
     assert len(brighter) >= 4 and np.mean(brighter) >= 0.8, brighter
+
+
+def test_a_wider_csf_layer_widens_the_skull_inside_and_changes_nothing_else(head: HeadModel) -> None:
+    """The same seed with the CSF layer set to 1 and to 6 mm: the same brain, a larger skull-inside mask."""
+    thin = synth_scene(head, np.random.default_rng(7), "heldout", random_contrast=False, csf_mm=1.0)
+    wide = synth_scene(head, np.random.default_rng(7), "heldout", random_contrast=False, csf_mm=6.0)
+    assert np.array_equal(thin.brain, wide.brain)
+    assert wide.mask.sum() > 1.2 * thin.mask.sum() and np.all(wide.mask[thin.mask])
