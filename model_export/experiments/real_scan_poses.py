@@ -25,22 +25,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
+from model_export.experiments.frame_bias import common_frame  # noqa: E402
 from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator  # noqa: E402
 from model_export.localiser.pose_accuracy import slice_poses  # noqa: E402
 from service.api.responses import stack_objects  # noqa: E402
 from service.geometry import anchors, se3  # noqa: E402
+from service.inference.acceptance import ATLAS_CENTRE_MM  # noqa: E402
 from service.io.volume import read_volume  # noqa: E402
 from service.pipeline.predict import StackUpload, predict, prepare_stacks  # noqa: E402
 from service.preprocess.localise import Localiser, default_localiser  # noqa: E402
-
-
-def common_offset(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The rigid ``4 x 4`` atlas move ``G`` with ``a ~ G b`` over slice poses ``[n, 4, 4]``: a Fréchet
-    mean, refitted on the slices within 2.5 x the median E.D. left by the first fit."""
-    g = se3.frechet_mean(a @ se3.inverse(b), np.ones(len(a)))
-    d = anchors.ed(a, g @ b)
-    keep = d <= 2.5 * np.median(d)
-    return se3.frechet_mean(a[keep] @ se3.inverse(b[keep]), np.ones(int(keep.sum())))
 
 
 def main() -> None:
@@ -83,12 +76,13 @@ def main() -> None:
     if not len(a):
         print("no slice is accepted in both answers")
         return
-    g = common_offset(a, b)
-    angle = np.degrees(np.linalg.norm(se3.so3_log(g[:3, :3])))
-    left = [f"{np.median(anchors.ed(x, g @ y)):.2f}" if len(x) else "-" for x, y in pairs]
+    frame, left = common_frame(b, a, ATLAS_CENTRE_MM)                # the no-mask answer against the manual one
+    angle = np.degrees(np.linalg.norm(se3.so3_log(frame[:3, :3])))
+    per_stack = np.split(left, np.cumsum([len(x) for x, _ in pairs])[:-1])
     print(f"slices both answers accept: {len(a)}; between them median {np.median(anchors.ed(a, b)):.2f} mm; "
-          f"common offset {np.linalg.norm(g[:3, 3]):.2f} mm / {angle:.2f} deg; median E.D. once undone "
-          f"{np.median(anchors.ed(a, g @ b)):.2f} mm (per stack " + ", ".join(left) + ")")
+          f"common offset {np.linalg.norm(frame[:3, 3]):.2f} mm / {angle:.2f} deg about the brain's centre; "
+          f"median E.D. once undone {np.median(left):.2f} mm (per stack "
+          + ", ".join(f"{np.median(d):.2f}" if len(d) else "-" for d in per_stack) + ")")
 
 
 if __name__ == "__main__":
