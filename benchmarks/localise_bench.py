@@ -25,7 +25,8 @@ from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, pose_ag
 from service.core.settings import DEFAULT_LOCALISERS_DIR  # noqa: E402
 from service.pipeline.predict import StackUpload  # noqa: E402
 from service.io.volume import Volume, read_volume  # noqa: E402
-from service.preprocess.localise import Localiser, brain_from_probabilities  # noqa: E402
+from service.preprocess.brain_shape import brain_from_probabilities  # noqa: E402
+from service.preprocess.localise import Localiser  # noqa: E402
 from service.preprocess.localiser_inputs import localiser_inputs  # noqa: E402
 
 SIZES = [((320, 320, 22), 1.125, 3.3), ((256, 256, 40), 1.17, 3.0), ((512, 512, 30), 0.7, 4.0), ((192, 192, 25), 1.6, 3.0)]
@@ -48,7 +49,7 @@ def stage_times(loc: Localiser) -> None:
         name = loc.session.get_inputs()[0].name
         t_net, logits = timed(lambda: loc.session.run(None, {name: x})[0][:, 0])
         prob = 1 / (1 + np.exp(-logits))
-        t_geo, _ = timed(lambda: brain_from_probabilities(prob, loc.grid_mm ** 2 * thick / 1e3))
+        t_geo, _ = timed(lambda: brain_from_probabilities(prob, loc.grid_mm ** 2 * thick / 1e3, loc.grid_mm))
         t_all, _ = timed(lambda: loc.localise(vol))
         print(f"{'x'.join(map(str, shape)):>14} {pixel:>6.2f} {t_in:>10.0f} {t_net:>11.0f} {t_geo:>12.0f} {t_all:>9.0f}")
 

@@ -6,10 +6,10 @@
    probability of lying inside the fetal skull. It is trained on synthetic whole-uterus stacks only
    (atlas brains in generated surroundings; ``model_export.localiser``), so no scanner's contrast,
    pixel size or field of view is special to it.
-2. **The geometry** settles the answer (:func:`brain_from_probabilities`), on the network's grid:
-   one 3D connected brain (the component with most probability, weighed by how plausible its
-   volume is for 20-40 weeks), its in-plane holes filled; then the probabilities inside that brain are
-   brought back to the stack's own grid and cut at 0.5.
+2. **The geometry** settles the answer (:mod:`service.preprocess.brain_shape`), on the network's
+   grid: one 3D connected brain of a plausible volume for 20-40 weeks, without what hangs on to it
+   through a waist or what a slice adds beyond its neighbours, its in-plane holes filled; then the
+   probabilities inside that brain are brought back to the stack's own grid and cut at 0.5.
 3. **The confidence** (0..1) multiplies how sure the network is inside the brain, the share of all
    brain-like probability the chosen brain holds, and the plausibility of its volume. A stack with
    no brain (noise, another body part) gets a low confidence; below :data:`MIN_CONFIDENCE` its mask
@@ -41,15 +41,12 @@ from service.core.errors import NotFound
 from service.core.onnx import file_sha256, session_options
 from service.core.settings import DEFAULT_LOCALISERS_DIR
 from service.io.volume import Volume
+from service.preprocess.brain_shape import THRESHOLD, brain_from_probabilities
 from service.preprocess.localiser_inputs import LocaliserGrid, localiser_inputs
 from service.preprocess.stack import mask_box, slice_axis_of
 
 log = logging.getLogger(__name__)
 
-PLAUSIBLE_ML = (30.0, 700.0)
-"""Intracranial volumes of 20-40 weeks' gestation (brain and extra-axial CSF), with a margin."""
-MIN_BRAIN_ML = 5.0
-THRESHOLD = 0.5
 MIN_SLICE_AREA_MM2 = 100.0
 """A slice's brain region smaller than this is not taken for a brain (:meth:`Localiser.localise_slice`)."""
 MIN_CONFIDENCE = 0.15
@@ -57,15 +54,6 @@ MIN_CONFIDENCE = 0.15
 BATCH_SLICES = 8
 """Slices per onnxruntime call of the localiser: on two cores a handful of 144 x 144 slices a call runs
 faster per slice than a whole stack at once (the activations stay in cache)."""
-WAIST_SHARE = 0.15
-"""A slice of the brain's component whose area is under this share of the component's largest slice
-on each side of it is a waist: a thin bridge into a neighbouring structure (:func:`cut_at_waists`)."""
-WAIST_OVERLAP = 0.5
-"""A thin slice is a waist only where the slices on either side of it overlap by less than this share
-of the smaller: a brain's poor slice lies between two slices of one brain, a bridge between two objects."""
-TAIL_SHARE = 0.35
-"""What lies beyond a waist is cut off when it holds less than this share of the component's
-probability mass; a larger part on each side is the brain itself, split by a poor slice."""
 POSE_MASK_INSET_MM = 2.0
 """How far inside the localiser's mask (the skull's inside) the pose network's mask lies: the pose
 network learnt the atlas's brain masks, which leave out most of the extra-axial CSF around the brain
@@ -116,94 +104,6 @@ class Localisation:
                 "confidence": round(self.confidence, 3), "pose_mask_inset_mm": self.pose_inset_mm}
 
 
-def plausibility(volume_ml: float | NDArray) -> float | NDArray:
-    """1 inside :data:`PLAUSIBLE_ML`, falling off linearly in log-volume to 0 at a factor of 3 outside
-    (element-wise for an array).
-
-    Example:
-        >>> plausibility(300.0), plausibility(10.0), round(plausibility(2100.0), 2)
-        (1.0, 0.0, 0.0)
-    """
-    lo, hi = PLAUSIBLE_ML
-    v = np.maximum(np.asarray(volume_ml, np.float64), 1e-9)
-    out = np.clip(1.0 - np.maximum(np.maximum(np.log(lo / v), np.log(v / hi)), 0.0) / np.log(3.0), 0.0, 1.0)
-    return float(out) if out.ndim == 0 else out
-
-
-_IN_PLANE = np.zeros((3, 3, 3), bool)
-_IN_PLANE[1] = ndimage.generate_binary_structure(2, 1)
-
-
-def fill_holes_in_plane(mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
-    """Each slice ``mask[k]`` with its 2D holes filled, in one pass over the mask's bounding box: an
-    in-plane structuring element on the box padded by an empty slice at each end (so the end slices'
-    faces are not taken for the outside).
-
-    Example (a ring in the middle slice is filled; the column through all three slices is no hole):
-        >>> m = np.zeros((3, 7, 7), bool); m[1, 1:6, 1:6] = True; m[1, 3, 3] = False; m[:, 5, 5] = True
-        >>> out = fill_holes_in_plane(m)
-        >>> bool(out[1, 3, 3]), int(out.sum() - m.sum())
-        (True, 1)
-    """
-    found = np.argwhere(mask)
-    if len(found) == 0:
-        return np.zeros(mask.shape, bool)
-    lo, hi = found.min(0), found.max(0) + 1
-    box = tuple(slice(a, b) for a, b in zip(lo, hi))
-    padded = np.pad(mask[box], ((1, 1), (1, 1), (1, 1)))
-    out = np.zeros(mask.shape, bool)
-    out[box] = ndimage.binary_fill_holes(padded, structure=_IN_PLANE)[1:-1, 1:-1, 1:-1]
-    return out
-
-
-def cut_at_waists(component: NDArray[np.bool_], prob: NDArray[np.float32]) -> NDArray[np.bool_]:
-    """A 3D component of per-slice maps ``[n, H, W]`` without what hangs on to it through a waist.
-
-    A brain's area grows from one cap to its widest slice and shrinks to the other cap. A component
-    whose area falls, at some slice, under :data:`WAIST_SHARE` of its largest slice on each side holds
-    two objects joined by a thin bridge (the brain leaking into the fetal neck and body, or into the
-    amniotic fluid, across one slice), where the slices on either side of it do not overlap
-    (:data:`WAIST_OVERLAP`; a poor slice of a brain lies between two overlapping ones). The part
-    with most probability mass between waists is the brain; everything beyond a waist on either
-    side, the waist included, is cut off when it holds under :data:`TAIL_SHARE` of the mass (a poor
-    slice through the middle of a brain leaves two large parts and cuts nothing). What stays is the
-    largest-mass 3D component of the rest.
-
-    Example (a brain of 6 slices, a 2-pixel bridge, then a 3-slice blob beside it: the blob is cut off):
-        >>> c = np.zeros((10, 12, 12), bool); c[0:6, 1:7, 1:7] = True; c[6, 6, 6:8] = True; c[7:10, 6:11, 6:11] = True
-        >>> out = cut_at_waists(c, np.where(c, 0.9, 0.0).astype(np.float32))
-        >>> out.reshape(10, -1).sum(1).tolist()
-        [36, 36, 36, 36, 36, 36, 0, 0, 0, 0]
-    """
-    area = component.reshape(len(component), -1).sum(1)
-    mass = np.where(component, prob, 0.0).reshape(len(component), -1).sum(1)
-    rows = np.nonzero(area)[0]
-    if len(rows) < 3:
-        return component
-    lo, hi = rows[0], rows[-1]
-    before = np.maximum.accumulate(area[lo:hi + 1])
-    after = np.maximum.accumulate(area[lo:hi + 1][::-1])[::-1]
-    inner = np.arange(lo + 1, hi)
-    thin = inner[area[inner] < WAIST_SHARE * np.minimum(before[inner - lo - 1], after[inner - lo + 1])]
-    across = np.array([(component[k - 1] & component[k + 1]).sum() for k in thin])
-    waists = thin[across < WAIST_OVERLAP * np.maximum(np.minimum(area[thin - 1], area[thin + 1]), 1)]
-    if not len(waists):
-        return component
-    edges = np.concatenate([[lo - 1], waists, [hi + 1]])
-    parts = [(a + 1, b) for a, b in zip(edges[:-1], edges[1:]) if b > a + 1]        # slices between waists
-    core = max(parts, key=lambda ab: mass[ab[0]:ab[1]].sum())
-    keep_from = core[0] if mass[:core[0]].sum() < TAIL_SHARE * mass.sum() else 0
-    keep_to = core[1] if mass[core[1]:].sum() < TAIL_SHARE * mass.sum() else len(component)
-    if (keep_from, keep_to) == (0, len(component)):
-        return component
-    kept = np.zeros_like(component)
-    kept[keep_from:keep_to] = component[keep_from:keep_to]
-    labels, n = ndimage.label(kept, structure=np.ones((3, 3, 3), bool))
-    if n <= 1:
-        return kept
-    return labels == int(np.argmax(ndimage.sum_labels(prob, labels, np.arange(1, n + 1)))) + 1
-
-
 def inset_in_plane(mask: NDArray, spacing: NDArray, inset_mm: float, axis: int | None = None) -> NDArray[np.bool_]:
     """``mask`` without the pixels within ``inset_mm`` of its outside, in the plane of each slice along
     ``axis`` (default: the thick one), by exact Euclidean distances on the voxel sizes ``spacing``.
@@ -228,34 +128,6 @@ def inset_in_plane(mask: NDArray, spacing: NDArray, inset_mm: float, axis: int |
     out = np.zeros_like(mask)
     out[box] = mask[box] & (distance > inset_mm)
     return out
-
-
-def brain_from_probabilities(prob: NDArray[np.float32], voxel_ml: float) -> tuple[NDArray[np.bool_], float]:
-    """The brain's 3D component in per-slice probability maps ``[n, H, W]`` (``voxel_ml`` the volume of
-    one grid voxel) and the confidence in it.
-
-    Example (two blobs: the larger, surer one wins; the small one is dropped):
-        >>> p = np.zeros((6, 20, 20), np.float32); p[1:5, 2:10, 2:10] = 0.95; p[2:3, 15:18, 15:18] = 0.6
-        >>> brain, conf = brain_from_probabilities(p, voxel_ml=1.0)
-        >>> int(brain.sum()), bool(brain[2, 16, 16]), round(conf, 2)
-        (256, False, 0.93)
-    """
-    out = np.zeros(prob.shape, bool)
-    above = prob >= THRESHOLD
-    box = mask_box(above, [0, 0, 0])                          # every component lies inside it
-    if box is None:
-        return out, 0.0
-    p = prob[box]
-    labels, n = ndimage.label(above[box], structure=np.ones((3, 3, 3), bool))
-    mass = np.bincount(labels.ravel(), weights=p.ravel(), minlength=n + 1)[1:]
-    volume_of = np.bincount(labels.ravel(), minlength=n + 1)[1:] * voxel_ml
-    best = int(np.argmax(mass * plausibility(volume_of) + 1e-6 * mass)) + 1
-    brain = fill_holes_in_plane(cut_at_waists(labels == best, p))
-    volume_ml = float(brain.sum() * voxel_ml)
-    if volume_ml < MIN_BRAIN_ML:
-        return out, 0.0
-    out[box] = brain
-    return out, float(p[brain].mean()) * float(mass[best - 1] / mass.sum()) * plausibility(volume_ml)
 
 
 @dataclass
@@ -313,7 +185,7 @@ class Localiser:
         back on the stack's grid."""
         axis = slice_axis_of(volume.spacing)
         voxel_ml = self.grid_mm ** 2 * float(volume.spacing[axis]) / 1000.0
-        brain, confidence = brain_from_probabilities(prob, voxel_ml)
+        brain, confidence = brain_from_probabilities(prob, voxel_ml, self.grid_mm)
         if not brain.any() or confidence < MIN_CONFIDENCE:
             return Localisation.of(np.zeros(volume.array.shape, bool), volume.spacing, "network", confidence)
         box = mask_box(brain, [0, 1, 1])                     # the brain and the ring of pixels around it

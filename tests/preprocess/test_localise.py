@@ -11,8 +11,7 @@ from scipy import ndimage
 
 from service.core.settings import DEFAULT_LOCALISERS_DIR
 from service.io.volume import Volume, read_volume
-from service.preprocess.localise import (Localisation, Localiser, Localisers, brain_from_probabilities, cut_at_waists,
-                                        plausibility)
+from service.preprocess.localise import Localisation, Localiser, Localisers
 from tests.conftest import SHARED_DATA
 
 REAL = SHARED_DATA / "real_scans"
@@ -25,59 +24,6 @@ def dice(a: np.ndarray, b: np.ndarray) -> float:
 @pytest.fixture(scope="module")
 def localiser() -> Localiser:
     return Localiser.load(DEFAULT_LOCALISERS_DIR / "default" / "model.onnx")
-
-
-def test_the_geometry_keeps_one_connected_brain_with_its_holes_filled() -> None:
-    p = np.zeros((8, 40, 40), np.float32)
-    p[1:7, 5:25, 5:25] = 0.9
-    p[3, 12:16, 12:16] = 0.1                                       # a hole (a dark ventricle, say)
-    p[2:4, 30:36, 30:36] = 0.8                                     # a smaller, separate blob
-    brain, confidence = brain_from_probabilities(p, voxel_ml=0.1)             # 240 ml: plausible
-    assert brain[3, 13, 13] and not brain[2, 32, 32]
-    assert brain.sum() == 6 * 20 * 20 and 0.8 < confidence < 0.9          # 0.9 sure, 97 % of the mass
-
-
-def _ellipsoid_brain(n: int = 16, size: int = 48) -> np.ndarray:
-    """Per-slice maps of an ellipsoidal brain filling slices 1..n-2 (0.9 inside)."""
-    k, r, c = np.mgrid[:n, :size, :size]
-    inside = ((k - (n - 1) / 2) / ((n - 1) / 2)) ** 2 + ((r - 20) / 14) ** 2 + ((c - 20) / 14) ** 2 < 1
-    return np.where(inside, 0.9, 0.0).astype(np.float32)
-
-
-def test_a_brain_leaking_through_a_thin_bridge_loses_what_lies_beyond_it() -> None:
-    p = _ellipsoid_brain(24)
-    p[16:] = 0.0                                                    # the brain ends at slice 15
-    p[16, 32:35, 32:35] = 0.8                                       # a bridge of one slice, then a blob beside it
-    p[17:22, 33:46, 33:46] = 0.8                                    # (the fetal neck and body, say)
-    brain, _ = brain_from_probabilities(p, voxel_ml=0.1)
-    assert brain[:16].sum() == (p[:16] >= 0.5).sum() and not brain[16:].any()
-    whole = brain_from_probabilities(p, voxel_ml=0.1)[0] | (p >= 0.5)
-    assert cut_at_waists(whole, p).sum() == brain.sum()
-
-
-def test_a_poor_slice_through_the_middle_of_a_brain_cuts_nothing() -> None:
-    p = _ellipsoid_brain(24)
-    p[6] = np.where(p[6] > 0, 0.0, 0.0)                             # a slice the network barely sees
-    p[6, 18:21, 18:21] = 0.9
-    component = p >= 0.5
-    assert np.array_equal(cut_at_waists(component, p), component)  # its neighbours overlap: one brain
-
-
-def test_no_brain_or_an_implausible_one_gives_a_low_confidence() -> None:
-    brain, confidence = brain_from_probabilities(np.full((5, 20, 20), 0.2, np.float32), voxel_ml=1.0)
-    assert not brain.any() and confidence == 0.0
-    everything = np.full((20, 60, 60), 0.95, np.float32)          # 72 l: no fetal brain is that large
-    _, confidence = brain_from_probabilities(everything, voxel_ml=1.0)
-    assert confidence == 0.0
-    tiny = np.zeros((5, 20, 20), np.float32)
-    tiny[2, 5:7, 5:7] = 0.99                                       # 4 ml
-    assert brain_from_probabilities(tiny, voxel_ml=1.0)[0].sum() == 0
-
-
-def test_plausible_volumes_span_the_second_and_third_trimester() -> None:
-    assert plausibility(60.0) == plausibility(450.0) == 1.0
-    assert 0 < plausibility(20.0) < 1 and 0 < plausibility(1200.0) < 1
-    assert plausibility(5.0) == plausibility(5000.0) == 0.0
 
 
 def test_an_uploaded_mask_is_reported_as_such() -> None:
@@ -161,24 +107,6 @@ def test_a_real_brain_leaking_into_the_fetal_body_is_cut_at_the_waist(localiser:
     found = localiser.localise(read_volume(REAL / "bch_f0832s1" / "fetus_03.nii.gz"))
     per_slice = found.mask.reshape(-1, found.mask.shape[2]).sum(0)
     assert per_slice[:37].all() and not per_slice[38:].any()
-
-
-def test_holes_are_filled_slice_by_slice_not_through_the_stack() -> None:
-    from service.preprocess.localise import fill_holes_in_plane
-
-    m = np.zeros((5, 20, 20), bool)
-    m[1:4, 3:15, 3:15] = True
-    m[1:4, 7:10, 7:10] = False                      # a tube through three slices: a hole in each of them
-    m[0, 2:6, 2:6] = True
-    m[0, 3:5, 3:5] = False                          # a hole in the first slice, at the array's face
-    m[4, 10:18, 10:18] = True
-    m[4, 12:16, 18 - 1] = False                     # a notch open to the side: no hole
-    out = fill_holes_in_plane(m)
-    assert out[1:4, 7:10, 7:10].all() and out[0, 3:5, 3:5].all()
-    assert not out[4, 12:16, 17].any()
-    assert np.array_equal(out | m, out) and int(out.sum() - m.sum()) == 3 * 9 + 4
-    assert np.array_equal(out, np.stack([ndimage.binary_fill_holes(s) for s in m]))
-    assert not fill_holes_in_plane(np.zeros((3, 4, 4), bool)).any()
 
 
 def test_the_pose_network_gets_the_localisers_mask_without_its_csf_rim() -> None:

@@ -1,0 +1,367 @@
+"""The brain in a localiser's probability maps: the stack's geometry settles what the network saw.
+
+A fetal head is one convex object: its cross-sections grow from one cap to the widest slice and shrink
+to the other, each slice much like its neighbours. What the network takes for brain beyond that is
+cut away, on the network's grid of per-slice maps ``[n, H, W]``:
+
+1. the 3D connected component with most probability, weighed by how plausible its volume is for 20-40
+   weeks (:func:`plausibility`);
+2. what hangs on to it through a waist: a thin bridge of one or more slices into the fetal neck, body
+   or face (:func:`cut_at_waists`);
+3. what a slice adds in its own plane beyond its neighbours: a sagittal slice that runs on from the
+   head into the fetal trunk (:func:`trim_outlier_slices`);
+4. its in-plane holes filled (:func:`fill_holes_in_plane`).
+
+Example (a brain of 6 slices whose slice 3 also holds a blob beside the head: the blob is trimmed):
+    >>> p = np.zeros((8, 30, 30), np.float32); p[1:7, 4:14, 4:14] = 0.9; p[3, 4:14, 14:28] = 0.8
+    >>> brain, _ = brain_from_probabilities(p, voxel_ml=0.01, grid_mm=2.5)
+    >>> brain.reshape(8, -1).sum(1).tolist()
+    [0, 100, 100, 120, 100, 100, 100, 0]
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from service.preprocess.stack import mask_box
+
+PLAUSIBLE_ML = (30.0, 700.0)
+"""Intracranial volumes of 20-40 weeks' gestation (brain and extra-axial CSF), with a margin."""
+MIN_BRAIN_ML = 5.0
+THRESHOLD = 0.5
+WAIST_SHARE = 0.15
+"""A slice of the brain's component whose area is under this share of the component's largest slice
+on each side of it is a waist: a thin bridge into a neighbouring structure (:func:`cut_at_waists`)."""
+WAIST_OVERLAP = 0.5
+"""A thin slice is a waist only where the slices on either side of it overlap by less than this share
+of the smaller: a brain's poor slice lies between two slices of one brain, a bridge between two objects."""
+VALLEY_SHARE = 0.3
+"""Two or more neighbouring slices, each under this share of the component's largest slice on each side,
+are a bridge whatever their overlap, cut at its narrowest slice: a poor slice of a brain comes alone
+(its neighbours are acquired at other times), a run of small slices between two large parts joins two
+objects (the fetal neck; the face below the brain)."""
+OUTLIER_AREA = 1.5
+"""A slice whose area exceeds this times the median of its component's nearest slices (two on each
+side) has run on into its surroundings in its own plane (:func:`trim_outlier_slices`); a head's
+cross-sections change far less from one slice to the next."""
+OUTLIER_MARGIN_MM = 5.0
+"""Such a slice keeps only what lies within this distance of its nearest regular slices' regions."""
+HEAD_ELLIPSE_SUPPORT = 0.6
+"""A slice's region is cut to its head's ellipse (:func:`trim_to_head_ellipses`) only where the
+region's outline follows that ellipse over this share of its perimeter: the skull's arc is most of
+it, and a slice whose outline is no ellipse (the skull base) is left as it is."""
+HEAD_ELLIPSE_MARGIN_MM = 3.0
+"""What lies further than this outside a slice's head ellipse is cut (when it is over
+:data:`HEAD_ELLIPSE_MIN_CUT` of the region)."""
+HEAD_ELLIPSE_MIN_CUT = 0.08
+"""A region loses what lies outside its head ellipse only when that is over this share of it."""
+HEAD_ELLIPSE_TOLERANCE_MM = 3.0
+"""An outline pixel within this distance of an ellipse supports it."""
+MOMENT_ELLIPSE_SPILL = 0.005
+"""A slice is left as it is, without a search, where no more than this share of it lies beyond the
+margin of the ellipse of its own second moments: it is about an ellipse already (most slices)."""
+HEAD_ELLIPSE_TRIES = 300
+"""Ellipses through five outline pixels drawn at random per slice (a fixed seed): with half the
+outline on the skull, some draw lies on it alone."""
+TAIL_SHARE = 0.35
+"""What lies beyond a waist is cut off when it holds less than this share of the component's
+probability mass; a larger part on each side is the brain itself, split by a poor slice."""
+
+
+def plausibility(volume_ml: float | NDArray) -> float | NDArray:
+    """1 inside :data:`PLAUSIBLE_ML`, falling off linearly in log-volume to 0 at a factor of 3 outside
+    (element-wise for an array).
+
+    Example:
+        >>> plausibility(300.0), plausibility(10.0), round(plausibility(2100.0), 2)
+        (1.0, 0.0, 0.0)
+    """
+    lo, hi = PLAUSIBLE_ML
+    v = np.maximum(np.asarray(volume_ml, np.float64), 1e-9)
+    out = np.clip(1.0 - np.maximum(np.maximum(np.log(lo / v), np.log(v / hi)), 0.0) / np.log(3.0), 0.0, 1.0)
+    return float(out) if out.ndim == 0 else out
+
+
+_IN_PLANE = np.zeros((3, 3, 3), bool)
+_IN_PLANE[1] = ndimage.generate_binary_structure(2, 1)
+
+
+def fill_holes_in_plane(mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """Each slice ``mask[k]`` with its 2D holes filled, in one pass over the mask's bounding box: an
+    in-plane structuring element on the box padded by an empty slice at each end (so the end slices'
+    faces are not taken for the outside).
+
+    Example (a ring in the middle slice is filled; the column through all three slices is no hole):
+        >>> m = np.zeros((3, 7, 7), bool); m[1, 1:6, 1:6] = True; m[1, 3, 3] = False; m[:, 5, 5] = True
+        >>> out = fill_holes_in_plane(m)
+        >>> bool(out[1, 3, 3]), int(out.sum() - m.sum())
+        (True, 1)
+    """
+    found = np.argwhere(mask)
+    if len(found) == 0:
+        return np.zeros(mask.shape, bool)
+    lo, hi = found.min(0), found.max(0) + 1
+    box = tuple(slice(a, b) for a, b in zip(lo, hi))
+    padded = np.pad(mask[box], ((1, 1), (1, 1), (1, 1)))
+    out = np.zeros(mask.shape, bool)
+    out[box] = ndimage.binary_fill_holes(padded, structure=_IN_PLANE)[1:-1, 1:-1, 1:-1]
+    return out
+
+
+def cut_at_waists(component: NDArray[np.bool_], prob: NDArray[np.float32]) -> NDArray[np.bool_]:
+    """A 3D component of per-slice maps ``[n, H, W]`` without what hangs on to it through a waist.
+
+    A brain's area grows from one cap to its widest slice and shrinks to the other cap. A component
+    whose area falls, at some slice, under :data:`WAIST_SHARE` of its largest slice on each side holds
+    two objects joined by a thin bridge (the brain leaking into the fetal neck and body, or into the
+    amniotic fluid, across one slice), where the slices on either side of it do not overlap
+    (:data:`WAIST_OVERLAP`; a poor slice of a brain lies between two overlapping ones), or at the
+    narrowest of two or more neighbouring small slices (:data:`VALLEY_SHARE`: a longer bridge). The part
+    with most probability mass between waists is the brain; everything beyond a waist on either
+    side, the waist included, is cut off when it holds under :data:`TAIL_SHARE` of the mass (a poor
+    slice through the middle of a brain leaves two large parts and cuts nothing). What stays is the
+    largest-mass 3D component of the rest.
+
+    Example (a brain of 6 slices, a 2-pixel bridge, then a 3-slice blob beside it: the blob is cut off):
+        >>> c = np.zeros((10, 12, 12), bool); c[0:6, 1:7, 1:7] = True; c[6, 6, 6:8] = True; c[7:10, 6:11, 6:11] = True
+        >>> out = cut_at_waists(c, np.where(c, 0.9, 0.0).astype(np.float32))
+        >>> out.reshape(10, -1).sum(1).tolist()
+        [36, 36, 36, 36, 36, 36, 0, 0, 0, 0]
+    """
+    area = component.reshape(len(component), -1).sum(1)
+    mass = np.where(component, prob, 0.0).reshape(len(component), -1).sum(1)
+    rows = np.nonzero(area)[0]
+    if len(rows) < 3:
+        return component
+    lo, hi = rows[0], rows[-1]
+    before = np.maximum.accumulate(area[lo:hi + 1])
+    after = np.maximum.accumulate(area[lo:hi + 1][::-1])[::-1]
+    inner = np.arange(lo + 1, hi)
+    largest = np.minimum(before[inner - lo - 1], after[inner - lo + 1])      # on each side
+    thin = inner[area[inner] < WAIST_SHARE * largest]
+    across = np.array([(component[k - 1] & component[k + 1]).sum() for k in thin])
+    waists = thin[across < WAIST_OVERLAP * np.maximum(np.minimum(area[thin - 1], area[thin + 1]), 1)]
+    waists = np.union1d(waists, valleys(inner[area[inner] < VALLEY_SHARE * largest], area))
+    if not len(waists):
+        return component
+    edges = np.concatenate([[lo - 1], waists, [hi + 1]])
+    parts = [(a + 1, b) for a, b in zip(edges[:-1], edges[1:]) if b > a + 1]        # slices between waists
+    core = max(parts, key=lambda ab: mass[ab[0]:ab[1]].sum())
+    keep_from = core[0] if mass[:core[0]].sum() < TAIL_SHARE * mass.sum() else 0
+    keep_to = core[1] if mass[core[1]:].sum() < TAIL_SHARE * mass.sum() else len(component)
+    if (keep_from, keep_to) == (0, len(component)):
+        return component
+    kept = np.zeros_like(component)
+    kept[keep_from:keep_to] = component[keep_from:keep_to]
+    return largest_mass(kept, prob)
+
+
+def valleys(small: NDArray, area: NDArray) -> NDArray[np.int64]:
+    """The narrowest slice of each run of two or more neighbours in ``small`` (sorted slice indices;
+    ``area`` per slice): where a bridge of several small slices is thinnest.
+
+    Example:
+        >>> valleys(np.array([3, 6, 7, 8, 11, 12]), np.array([9, 9, 9, 5, 9, 9, 4, 2, 3, 9, 9, 6, 7, 9])).tolist()
+        [7, 11]
+    """
+    small = np.asarray(small, np.int64)
+    runs = np.split(small, np.flatnonzero(np.diff(small) > 1) + 1)
+    return np.array([r[np.argmin(area[r])] for r in runs if len(r) >= 2], np.int64)
+
+
+def trim_outlier_slices(component: NDArray[np.bool_], grid_mm: float) -> NDArray[np.bool_]:
+    """A component of per-slice maps ``[n, H, W]`` whose outlying slices keep only what lies near their
+    neighbours.
+
+    A slice whose area exceeds :data:`OUTLIER_AREA` times the median of its nearest slices (two on
+    each side, within the component) holds more than the head: along a sagittal slice the brain runs
+    on into the fetal trunk through a neck as wide as itself, which no waist shows. Such a slice keeps
+    what lies within :data:`OUTLIER_MARGIN_MM` (pixels of ``grid_mm``) of the regions of its
+    nearest regular slices on either side.
+
+    Example (slice 3 of a square brain runs on to the right: it keeps the square and 2 pixels more):
+        >>> c = np.zeros((7, 30, 40), bool); c[:, 5:15, 5:15] = True; c[3, 5:15, 15:38] = True
+        >>> trim_outlier_slices(c, grid_mm=2.5)[3].any(0).nonzero()[0][[0, -1]].tolist()
+        [5, 16]
+    """
+    area = component.reshape(len(component), -1).sum(1)
+    if np.count_nonzero(area) < 5:
+        return component
+    n = len(area)
+    outlier = np.zeros(n, bool)
+    for k in np.flatnonzero(area):
+        near = [j for j in (k - 2, k - 1, k + 1, k + 2) if 0 <= j < n and area[j] > 0]
+        outlier[k] = len(near) >= 2 and area[k] > OUTLIER_AREA * np.median(area[near])
+    if not outlier.any():
+        return component
+    regular = np.flatnonzero((area > 0) & ~outlier)
+    radius = max(1, int(round(OUTLIER_MARGIN_MM / grid_mm)))
+    disk = np.hypot(*np.mgrid[-radius:radius + 1, -radius:radius + 1]) <= radius
+    out = component.copy()
+    for k in np.flatnonzero(outlier):
+        below, above = regular[regular < k], regular[regular > k]
+        guides = ([below[-1]] if len(below) else []) + ([above[0]] if len(above) else [])
+        if guides:
+            out[k] &= ndimage.binary_dilation(component[guides].any(0), structure=disk)
+    return out
+
+
+def conics(points: NDArray) -> NDArray[np.float64]:
+    """The conics ``a x^2 + b xy + c y^2 + d x + e y + f = 0`` through each set of five points
+    ``[..., 5, 2]`` (their coefficients: the design matrix's signed 5 x 5 minors), or nearest a set of
+    more points by least squares (``[m, 2]``, m > 5); ``[..., 6]`` of unit norm.
+
+    Example (the circle of radius 2 about the origin, up to sign and scale):
+        >>> t = np.linspace(0, 2 * np.pi, 5, endpoint=False)
+        >>> q = conics(np.stack([2 * np.cos(t), 2 * np.sin(t)], 1))
+        >>> (q / q[0]).round(6).tolist() == [1.0, 0.0, 1.0, 0.0, 0.0, -4.0]
+        True
+    """
+    x, y = points[..., 0], points[..., 1]
+    design = np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=-1)
+    if design.shape[-2] > 5:
+        return np.linalg.svd(design)[2][..., -1, :]
+    minors = np.linalg.det(np.stack([np.delete(design, i, axis=-1) for i in range(6)], axis=-3))
+    q = minors * np.array([1.0, -1.0, 1.0, -1.0, 1.0, -1.0])
+    return q / np.maximum(np.linalg.norm(q, axis=-1, keepdims=True), 1e-300)
+
+
+def ellipse_of(conic: NDArray) -> tuple[NDArray, NDArray, NDArray] | None:
+    """A conic's centre, semi-axes and axes (columns), or None when it is no real ellipse."""
+    a, b, c, d, e, f = conic
+    quad = np.array([[a, b / 2], [b / 2, c]])
+    if b * b - 4 * a * c >= 0:
+        return None
+    centre = np.linalg.solve(2 * quad, [-d, -e])
+    level = -(centre @ quad @ centre + d * centre[0] + e * centre[1] + f)
+    w, axes = np.linalg.eigh(quad / level)
+    if np.any(w <= 0):
+        return None
+    return centre, 1.0 / np.sqrt(w), axes
+
+
+def _sampson(conic: NDArray, points: NDArray) -> NDArray[np.float64]:
+    """``[K, m]``: each point's first-order distance from each of the conics ``[K, 6]``."""
+    x, y = points[:, 0], points[:, 1]
+    one, zero = np.ones_like(x), np.zeros_like(x)
+    value = np.stack([x * x, x * y, y * y, x, y, one], 1) @ conic.T                 # [m, K]
+    gx = np.stack([2 * x, y, zero, one, zero, zero], 1) @ conic.T
+    gy = np.stack([zero, x, 2 * y, zero, one, zero], 1) @ conic.T
+    return (np.abs(value) / np.maximum(np.hypot(gx, gy), 1e-12)).T
+
+
+def head_ellipse(region: NDArray[np.bool_], grid_mm: float, rng: np.random.Generator,
+                 ) -> tuple[tuple[NDArray, NDArray, NDArray], float] | None:
+    """The ellipse that most of a slice's outline follows, and the share of its perimeter the
+    outline supports; None for a region too small or an outline no ellipse follows.
+
+    RANSAC: ellipses through :data:`HEAD_ELLIPSE_TRIES` random sets of five outline pixels; the one
+    with most outline pixels within :data:`HEAD_ELLIPSE_TOLERANCE_MM` is refitted to them. What ran
+    on beyond the skull (the fetal neck, the face) adds outline off that ellipse and does not move it.
+    """
+    outline = region & ~ndimage.binary_erosion(region)
+    pixels = np.argwhere(outline).astype(np.float64)
+    if len(pixels) < 20:
+        return None
+    mean = pixels.mean(0)
+    scale = float(np.sqrt(((pixels - mean) ** 2).sum(1).mean()))          # conditioned: about unit radius
+    points = (pixels - mean) / scale
+    tol = HEAD_ELLIPSE_TOLERANCE_MM / grid_mm / scale
+    drawn = conics(points[rng.integers(0, len(points), (HEAD_ELLIPSE_TRIES, 5))])
+    is_ellipse = drawn[:, 1] ** 2 - 4 * drawn[:, 0] * drawn[:, 2] < 0
+    near = _sampson(drawn, points) < tol
+    best = int(np.argmax(np.where(is_ellipse, near.sum(1), -1)))
+    if near[best].sum() < 6:
+        return None
+    fit = ellipse_of(conics(points[near[best]])) or ellipse_of(drawn[best])
+    if fit is None:
+        return None
+    centre, semi, axes = mean + scale * fit[0], scale * fit[1], fit[2]
+    t = np.linspace(0.0, 2 * np.pi, 72, endpoint=False)
+    rim = np.round(centre + np.stack([semi[0] * np.cos(t), semi[1] * np.sin(t)], 1) @ axes.T).astype(int)
+    inside = np.all((rim >= 0) & (rim < region.shape), axis=1)
+    gap = ndimage.distance_transform_edt(~outline)
+    supported = gap[tuple(np.clip(rim, 0, np.array(region.shape) - 1).T)] <= HEAD_ELLIPSE_TOLERANCE_MM / grid_mm + 0.5
+    return (centre, semi, axes), float(np.mean(inside & supported))
+
+
+def trim_to_head_ellipses(component: NDArray[np.bool_], grid_mm: float) -> NDArray[np.bool_]:
+    """Each slice of a component ``[n, H, W]`` without what lies well outside its head's ellipse.
+
+    Every plane cuts a skull in about an ellipse. Where a slice's outline follows one
+    (:func:`head_ellipse`, over :data:`HEAD_ELLIPSE_SUPPORT` of its perimeter) and over
+    :data:`HEAD_ELLIPSE_MIN_CUT` of the region lies more than :data:`HEAD_ELLIPSE_MARGIN_MM` outside
+    it, that part goes: the fetal neck or face the region ran on into, in its own plane.
+
+    Example (a disc of radius 12 px with a 20 px bar running off it: the bar goes, the disc stays):
+        >>> r, c = np.mgrid[:60, :60]; disc = np.hypot(r - 25, c - 25) <= 12
+        >>> bar = (abs(r - 25) <= 3) & (c > 30) & (c < 57)
+        >>> out = trim_to_head_ellipses((disc | bar)[None], grid_mm=2.5)[0]
+        >>> bool(out[disc].all()), int((out & ~disc).sum()) < 0.1 * int((bar & ~disc).sum())
+        (True, True)
+    """
+    rng = np.random.default_rng(0)
+    margin = HEAD_ELLIPSE_MARGIN_MM / grid_mm
+
+    def outside(pixels: NDArray, centre: NDArray, semi: NDArray, axes: NDArray) -> NDArray[np.bool_]:
+        u = (pixels - centre) @ axes
+        return np.hypot(u[:, 0] / (semi[0] + margin), u[:, 1] / (semi[1] + margin)) > 1.0
+
+    out = component.copy()
+    for k in np.flatnonzero(component.reshape(len(component), -1).any(1)):
+        pixels = np.argwhere(component[k]).astype(np.float64)
+        if len(pixels) < 3:
+            continue
+        w, axes = np.linalg.eigh(np.cov(pixels.T))                      # the ellipse of the same moments
+        if outside(pixels, pixels.mean(0), 2.0 * np.sqrt(np.maximum(w, 0.0)), axes).mean() <= MOMENT_ELLIPSE_SPILL:
+            continue                                                    # the region is about an ellipse already
+        fit = head_ellipse(component[k], grid_mm, rng)
+        if fit is None or fit[1] < HEAD_ELLIPSE_SUPPORT:
+            continue
+        cut = outside(pixels, *fit[0])
+        if cut.mean() > HEAD_ELLIPSE_MIN_CUT:
+            out[k][tuple(pixels[cut].astype(int).T)] = False
+    return out
+
+
+def largest_mass(mask: NDArray[np.bool_], prob: NDArray[np.float32]) -> NDArray[np.bool_]:
+    """The 3D connected component of ``mask`` with most probability mass."""
+    labels, n = ndimage.label(mask, structure=np.ones((3, 3, 3), bool))
+    if n <= 1:
+        return mask
+    return labels == int(np.argmax(ndimage.sum_labels(prob, labels, np.arange(1, n + 1)))) + 1
+
+
+def brain_from_probabilities(prob: NDArray[np.float32], voxel_ml: float, grid_mm: float = 2.5,
+                             ) -> tuple[NDArray[np.bool_], float]:
+    """The brain's 3D component in per-slice probability maps ``[n, H, W]`` (``voxel_ml`` the volume of
+    one grid voxel, ``grid_mm`` its in-plane size) and the confidence in it.
+
+    Example (two blobs: the larger, surer one wins; the small one is dropped):
+        >>> p = np.zeros((6, 20, 20), np.float32); p[1:5, 2:10, 2:10] = 0.95; p[2:3, 15:18, 15:18] = 0.6
+        >>> brain, conf = brain_from_probabilities(p, voxel_ml=1.0)
+        >>> int(brain.sum()), bool(brain[2, 16, 16]), round(conf, 2)
+        (256, False, 0.93)
+    """
+    out = np.zeros(prob.shape, bool)
+    above = prob >= THRESHOLD
+    box = mask_box(above, [0, 0, 0])                          # every component lies inside it
+    if box is None:
+        return out, 0.0
+    p = prob[box]
+    labels, n = ndimage.label(above[box], structure=np.ones((3, 3, 3), bool))
+    mass = np.bincount(labels.ravel(), weights=p.ravel(), minlength=n + 1)[1:]
+    volume_of = np.bincount(labels.ravel(), minlength=n + 1)[1:] * voxel_ml
+    best = int(np.argmax(mass * plausibility(volume_of) + 1e-6 * mass)) + 1
+    brain = cut_at_waists(labels == best, p)
+    brain = trim_to_head_ellipses(trim_outlier_slices(brain, grid_mm), grid_mm)
+    brain = fill_holes_in_plane(largest_mass(brain, p))
+    volume_ml = float(brain.sum() * voxel_ml)
+    if volume_ml < MIN_BRAIN_ML:
+        return out, 0.0
+    out[box] = brain
+    return out, float(p[brain].mean()) * float(mass[best - 1] / mass.sum()) * plausibility(volume_ml)
+
+

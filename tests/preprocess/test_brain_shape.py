@@ -1,0 +1,127 @@
+"""The brain's geometry in a localiser's probability maps (service.preprocess.brain_shape), on
+generated maps: one component, waists, slices that run on, holes, the volume's plausibility."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from service.preprocess.brain_shape import (brain_from_probabilities, cut_at_waists, fill_holes_in_plane, plausibility,
+                                            trim_outlier_slices, trim_to_head_ellipses)
+
+
+def test_the_geometry_keeps_one_connected_brain_with_its_holes_filled() -> None:
+    p = np.zeros((8, 40, 40), np.float32)
+    disc = np.hypot(*np.mgrid[-15:25, -15:25]) <= 11
+    p[1:7, disc] = 0.9
+    p[3, 12:16, 12:16] = 0.1                                       # a hole (a dark ventricle, say)
+    p[2:4, 30:36, 30:36] = 0.8                                     # a smaller, separate blob
+    brain, confidence = brain_from_probabilities(p, voxel_ml=0.1)             # 230 ml: plausible
+    assert brain[3, 13, 13] and not brain[2, 32, 32]
+    assert brain.sum() == 6 * disc.sum() and 0.8 < confidence < 0.9       # 0.9 sure, 97 % of the mass
+
+
+def _ellipsoid_brain(n: int = 16, size: int = 48) -> np.ndarray:
+    """Per-slice maps of an ellipsoidal brain filling slices 1..n-2 (0.9 inside)."""
+    k, r, c = np.mgrid[:n, :size, :size]
+    inside = ((k - (n - 1) / 2) / ((n - 1) / 2)) ** 2 + ((r - 20) / 14) ** 2 + ((c - 20) / 14) ** 2 < 1
+    return np.where(inside, 0.9, 0.0).astype(np.float32)
+
+
+def test_a_brain_leaking_through_a_thin_bridge_loses_what_lies_beyond_it() -> None:
+    p = _ellipsoid_brain(24)
+    p[16:] = 0.0                                                    # the brain ends at slice 15
+    p[16, 32:35, 32:35] = 0.8                                       # a bridge of one slice, then a blob beside it
+    p[17:22, 33:46, 33:46] = 0.8                                    # (the fetal neck and body, say)
+    brain, _ = brain_from_probabilities(p, voxel_ml=0.1)
+    assert brain[:16].sum() == (p[:16] >= 0.5).sum() and not brain[16:].any()
+    whole = brain_from_probabilities(p, voxel_ml=0.1)[0] | (p >= 0.5)
+    assert cut_at_waists(whole, p).sum() == brain.sum()
+
+
+def test_a_poor_slice_through_the_middle_of_a_brain_cuts_nothing() -> None:
+    p = _ellipsoid_brain(24)
+    p[6] = np.where(p[6] > 0, 0.0, 0.0)                             # a slice the network barely sees
+    p[6, 18:21, 18:21] = 0.9
+    component = p >= 0.5
+    assert np.array_equal(cut_at_waists(component, p), component)  # its neighbours overlap: one brain
+
+
+def test_no_brain_or_an_implausible_one_gives_a_low_confidence() -> None:
+    brain, confidence = brain_from_probabilities(np.full((5, 20, 20), 0.2, np.float32), voxel_ml=1.0)
+    assert not brain.any() and confidence == 0.0
+    everything = np.full((20, 60, 60), 0.95, np.float32)          # 72 l: no fetal brain is that large
+    _, confidence = brain_from_probabilities(everything, voxel_ml=1.0)
+    assert confidence == 0.0
+    tiny = np.zeros((5, 20, 20), np.float32)
+    tiny[2, 5:7, 5:7] = 0.99                                       # 4 ml
+    assert brain_from_probabilities(tiny, voxel_ml=1.0)[0].sum() == 0
+
+
+def test_plausible_volumes_span_the_second_and_third_trimester() -> None:
+    assert plausibility(60.0) == plausibility(450.0) == 1.0
+    assert 0 < plausibility(20.0) < 1 and 0 < plausibility(1200.0) < 1
+    assert plausibility(5.0) == plausibility(5000.0) == 0.0
+
+
+def test_holes_are_filled_slice_by_slice_not_through_the_stack() -> None:
+    m = np.zeros((5, 20, 20), bool)
+    m[1:4, 3:15, 3:15] = True
+    m[1:4, 7:10, 7:10] = False                      # a tube through three slices: a hole in each of them
+    m[0, 2:6, 2:6] = True
+    m[0, 3:5, 3:5] = False                          # a hole in the first slice, at the array's face
+    m[4, 10:18, 10:18] = True
+    m[4, 12:16, 18 - 1] = False                     # a notch open to the side: no hole
+    out = fill_holes_in_plane(m)
+    assert out[1:4, 7:10, 7:10].all() and out[0, 3:5, 3:5].all()
+    assert not out[4, 12:16, 17].any()
+    assert np.array_equal(out | m, out) and int(out.sum() - m.sum()) == 3 * 9 + 4
+    assert np.array_equal(out, np.stack([ndimage.binary_fill_holes(s) for s in m]))
+    assert not fill_holes_in_plane(np.zeros((3, 4, 4), bool)).any()
+
+
+def test_a_bridge_of_several_small_slices_is_a_waist_though_they_overlap() -> None:
+    """The face below a brain, joined to it through four small slices that overlap one another (and
+    the large slices on either side): each bridge slice's neighbours overlap, the run of them is
+    still a bridge, cut at its narrowest slice (all alike: the first)."""
+    p = np.zeros((28, 48, 48), np.float32)
+    p[12:] = _ellipsoid_brain(18)[:16]                              # the brain from slice 13 on
+    p[9:13, 20:24, 18:22] = 0.8                                     # slices 9-12: a narrow bridge
+    p[2:9, 12:30, 10:28] = 0.8                                      # slices 2-8: the face, as wide as the brain
+    whole = (p >= 0.5) & (ndimage.label(p >= 0.5, structure=np.ones((3, 3, 3)))[0] == 1)
+    assert whole[2:9].any() and whole[13:].any()                    # one component
+    kept = cut_at_waists(whole, p)
+    assert not kept[:10].any() and np.array_equal(kept[10:], whole[10:])   # cut at the bridge's first slice
+
+
+def test_two_poor_slices_through_the_middle_of_a_brain_cut_nothing() -> None:
+    p = _ellipsoid_brain(24)
+    p[10:12] = 0.0
+    p[10:12, 18:21, 18:21] = 0.9                                    # two slices the network barely sees
+    component = p >= 0.5
+    assert np.array_equal(cut_at_waists(component, p), component)  # both sides hold most of the brain
+
+
+def test_a_slice_that_runs_on_into_the_trunk_keeps_only_the_head() -> None:
+    """Sagittal slices through the neck: two of them run on into the fetal body through a neck as wide
+    as the head (no waist); they keep what lies near their neighbours' heads."""
+    p = _ellipsoid_brain(20, size=80)
+    head = p >= 0.5
+    p[9:11, 14:26, 20:75] = 0.8                                     # the neck and trunk, beside the head
+    brain, _ = brain_from_probabilities(p, voxel_ml=0.01, grid_mm=2.5)
+    assert not brain[:, :, 40:].any()                               # the trunk is gone
+    assert brain[head].all() and (brain & ~head).sum() < 0.03 * head.sum()
+    assert np.array_equal(trim_outlier_slices(head, 2.5), head)     # a head alone is left as it is
+
+
+def test_slices_that_run_on_together_lose_what_lies_outside_their_head_ellipse() -> None:
+    """Four neighbouring slices run on into the neck together (no slice is an outlier among its
+    neighbours): each keeps its head's ellipse; the head alone keeps all but a sliver."""
+    p = _ellipsoid_brain(20, size=80)
+    head = p >= 0.5
+    p[7:12, 16:24, 20:60] = np.maximum(p[7:12, 16:24, 20:60], 0.8)  # a neck 20 mm wide, 100 mm long
+    component = p >= 0.5
+    assert np.array_equal(trim_outlier_slices(component, 2.5), component)
+    trimmed = trim_to_head_ellipses(component, 2.5)
+    assert not trimmed[:, :, 40:].any() and trimmed[head].mean() > 0.99
+    assert (trim_to_head_ellipses(head, 2.5) ^ head).sum() < 0.01 * head.sum()
