@@ -80,6 +80,10 @@ class StackConsistency(BaseModel):
         False, description="the stack did not decide its left-right branch; the request's stacks that did "
                            "decided it (the branch whose rigid fit lies nearer to theirs: the stacks share the "
                            "scanner frame)")
+    branch_agrees_with_request: bool = Field(
+        False, description="the request decided the branch and the stack sits with the request's stacks on it (its "
+                           "twin far from them): it is pooled and refined with them, like a stack that decided "
+                           "its branch itself")
     pooled_atlas_from_scanner: Optional[Mat] = Field(
         None, description="4x4: the stack's position after pooling it with the request's other stacks that decided "
                           "their left-right branch (the returned poses use it); null when not pooled")

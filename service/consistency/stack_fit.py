@@ -79,6 +79,12 @@ MEAN_TOL_RAD = 1e-7
 BRANCH_MARGIN_MM = 5.0
 MIN_STACK_BRANCH_MARGIN = 1.5
 """A stack whose twin fits a rigid stack less than this many times worse has not decided its branch."""
+REQUEST_AGREEMENT_MM = 15.0
+"""A stack whose branch the request decided agrees with the request where its rigid fit on that branch
+lies within this mean E.D. of the request's reference (the fetus's move between two stacks) and its
+twin at least :data:`REQUEST_MARGIN` times as far; a stack that fits the request on neither branch
+(a mask that runs on into the fetal body) does not."""
+REQUEST_MARGIN = 3.0
 MIN_NOISE_MM = 0.01
 """Floor of a pose's expected error (mm), so an exact oracle still has a finite weight."""
 FIRST_GRID = Grid(error_correlations=(0.5,))
@@ -114,6 +120,8 @@ class StackFit:
         placement_cov: ``[n]`` covariance of each slice's error with the placement's (mm^2 per coordinate).
         branch_from_request: the branch was not decided by this stack but by the request's other
             stacks (the ``reference`` of :func:`fit_stack`).
+        request_distance_mm: with ``branch_from_request``, the mean E.D. of the stack's rigid fit on
+            the branch taken, and on the other, from the reference (``[taken, other]``).
     """
 
     poses: NDArray[np.float64]
@@ -133,11 +141,25 @@ class StackFit:
     centre: NDArray[np.float64] | None = None
     placement_cov: NDArray[np.float64] | None = None
     branch_from_request: bool = False
+    request_distance_mm: tuple[float, float] = (float("nan"), float("nan"))
 
     @property
     def branch_decided(self) -> bool:
         """The stack's left-right branch is decided by its slices' order along the normal."""
         return bool(self.decidable and self.branch_margin >= MIN_STACK_BRANCH_MARGIN)
+
+    @property
+    def agrees_with_request(self) -> bool:
+        """The request decided the stack's branch, and the stack sits where the request's stacks do on
+        it and far from them on its twin (:data:`REQUEST_AGREEMENT_MM`, :data:`REQUEST_MARGIN`)."""
+        taken, other = self.request_distance_mm
+        return bool(self.decidable and self.branch_from_request and taken <= REQUEST_AGREEMENT_MM
+                    and other >= REQUEST_MARGIN * taken)
+
+    @property
+    def branch_known(self) -> bool:
+        """The branch is decided by the stack itself, or by the request with the stack agreeing."""
+        return self.branch_decided or self.agrees_with_request
 
 
 def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLike | None = None,
@@ -252,7 +274,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
         fits = [se3.frechet_mean(proposals[on, b], np.maximum(w, 1e-12), tol=MEAN_TOL_RAD) for b in (branch, 1 - branch)]
         far = [float(ed(f @ inv_n[use], np.asarray(reference, dtype=np.float64) @ inv_n[use]).mean()) for f in fits]
         if far[1] < far[0]:
-            branch, margin, s = 1 - branch, 1.0 / margin, fits[1]
+            branch, margin, s, far = 1 - branch, 1.0 / margin, fits[1], far[::-1]
     elif margin < 1.0:                     # the whole stack's twin is the better rigid stack: take it
         branch, margin = 1 - branch, 1.0 / max(margin, 1e-12)
         s = se3.frechet_mean(proposals[on, branch], np.maximum(w, 1e-12), tol=MEAN_TOL_RAD)
@@ -277,7 +299,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     final = fit_motion(chosen, s, final_votes, orders, centre, memo=memo, **shape)   # every model again, averaged
     return StackFit(final.poses @ inv_n, branch == 1, inconsistent, r_loo, True, final.placement, fraction, final.order,
                     final.length, network_mm, model_mm, margin, final.sd_mm, final.placement_sd_mm, centre,
-                    final.placement_cov, by_request)
+                    final.placement_cov, by_request, (far[0], far[1]) if by_request else (np.nan, np.nan))
 
 
 def _branch_margin(proposals: NDArray, cand: NDArray, branch: NDArray, inv_n: NDArray, w: NDArray,

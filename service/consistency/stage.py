@@ -116,13 +116,14 @@ def request_reference(outs: list[StackPoses]) -> NDArray[np.float64] | None:
 def pool_request(outs: list[StackPoses]) -> None:
     """Pool the placements of a request's stacks (:mod:`service.consistency.cross_stack`), in place.
 
-    Only stacks that decided their left-right branch take part (a stack that may be the mirror image
+    Only stacks whose left-right branch is known take part: decided by their own slices, or by the
+    request where they agree with it (``StackFit.branch_known``; a stack that may be the mirror image
     of the others would only add spread). A stack's placement is where its motion model puts it on
     average over its acquisition (not its robust rigid fit, which sits off that mean where the fetus
     moved, and would pool a position the stack never had). Each such
     stack's poses move with its pooled placement, and their ``expected_error_mm`` follows
     (:func:`pooled_expected_error_mm`); its ``pooled`` says where it went."""
-    which = [i for i, o in enumerate(outs) if o.fit is not None and o.fit.branch_decided and o.fit.centre is not None
+    which = [i for i, o in enumerate(outs) if o.fit is not None and o.fit.branch_known and o.fit.centre is not None
              and o.fit.atlas_from_scanner is not None and np.isfinite(o.fit.placement_sd_mm)]
     if len(which) < 2:
         return

@@ -259,16 +259,17 @@ def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPos
     them towards it. Of their slices, those with a ``proper`` network pose that the stage did not
     flag as inconsistent take part.
 
-    The stacks that decided their branch by their own slices are refined together first (when two
-    or more did); a stack whose branch only the request decided is then refined against them as
-    fixed partners, and its slices keep at least the stage's expected error: it is the less certain,
-    and a stack whose localisation went wrong (a mask that runs on into the fetal body) would
-    otherwise pull the others its way, or be pulled into a false agreement with them."""
+    The stacks whose branch is known (``StackFit.branch_known``: decided by their own slices, or by
+    the request where they sit with its stacks) are refined together first (when two or more are); a
+    stack whose branch the request decided but that fits it on neither branch is then refined against
+    them as fixed partners, and its slices keep at least the stage's expected error: it is the less
+    certain, and a stack whose localisation went wrong (a mask that runs on into the fetal body)
+    would otherwise pull the others its way, or be pulled into a false agreement with them."""
     take = [i for i, o in enumerate(outs) if o.fit is not None and o.fit.decidable
             and (o.fit.branch_decided or o.fit.branch_from_request)]
     if len(take) < 2:
         return
-    own = [i for i in take if outs[i].fit.branch_decided]
+    own = [i for i in take if outs[i].fit.branch_known]
     if len(own) < 2:
         _refine_stacks(prepared, outs, proper, take, [])
         return

@@ -218,3 +218,26 @@ def test_a_stack_that_cannot_tell_its_branch_takes_the_requests_word(monkeypatch
     assert not mirrored.twinned.any()
     alone = fit_stack(poses, nk)
     assert not alone.branch_from_request
+
+
+def test_a_stack_agrees_with_the_request_only_where_it_sits_with_its_stacks(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A stack whose branch the request decides agrees with the request when its rigid fit on the
+    branch taken lies near the request's placement and its twin far from it; placed 40 mm away (a
+    mask run on into the fetal body), it fits the request on neither branch and does not."""
+    import service.consistency.stack_fit as stack_fit_module
+    from service.geometry.pose import translate
+
+    monkeypatch.setattr(stack_fit_module, "MIN_STACK_BRANCH_MARGIN", 1e9)
+    rng = np.random.default_rng(31)
+    truth, nk = stack(rng, "mild")
+    poses = truth @ se3.exp(rng.normal(0, 1, (len(truth), 6)) * NOISE * 0.3)
+    placement = se3.frechet_mean(truth @ nk)
+    near = fit_stack(poses, nk, reference=placement)
+    taken, other = near.request_distance_mm
+    assert near.branch_from_request and near.agrees_with_request and near.branch_known and not near.branch_decided
+    assert taken < 5.0 and other > 3 * taken
+    far = fit_stack(poses, nk, reference=translate([40.0, 0.0, 0.0]) @ placement)
+    assert far.branch_from_request and not far.agrees_with_request and not far.branch_known
+    assert far.request_distance_mm[0] > stack_fit_module.REQUEST_AGREEMENT_MM
+    alone = fit_stack(poses, nk)
+    assert not alone.agrees_with_request and np.isnan(alone.request_distance_mm).all()

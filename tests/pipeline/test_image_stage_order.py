@@ -10,9 +10,11 @@ from service.pipeline import predict
 
 
 def _outs(*kinds: str) -> list[SimpleNamespace]:
-    """Stage outputs: ``own`` (branch decided by the stack), ``request`` (by the request), ``none``."""
+    """Stage outputs: ``own`` (branch decided by the stack), ``request`` (by the request, the stack
+    fitting it on neither branch), ``agrees`` (by the request, the stack sitting with its stacks), ``none``."""
     return [SimpleNamespace(fit=SimpleNamespace(decidable=k != "none", branch_decided=k == "own",
-                                                branch_from_request=k == "request")) for k in kinds]
+                                                branch_from_request=k in ("request", "agrees"),
+                                                branch_known=k in ("own", "agrees"))) for k in kinds]
 
 
 @pytest.fixture
@@ -33,3 +35,9 @@ def test_with_fewer_than_two_self_decided_stacks_all_are_refined_together(calls)
     predict.refine_where_stacks_cross([None] * 3, _outs("own", "own", "none"), [None] * 3)
     predict.refine_where_stacks_cross([None] * 2, _outs("own", "none"), [None] * 2)
     assert calls == [([0, 1, 2], []), ([0, 1], [])]
+
+
+def test_a_stack_that_agrees_with_the_request_is_refined_with_the_self_decided_ones(calls) -> None:  # noqa: ANN001
+    predict.refine_where_stacks_cross([None] * 4, _outs("own", "agrees", "request", "own"), [None] * 4)
+    predict.refine_where_stacks_cross([None] * 2, _outs("own", "agrees"), [None] * 2)
+    assert calls == [([0, 1, 3], []), ([2], [0, 1, 3]), ([0, 1], [])]
