@@ -84,7 +84,7 @@ class Refinement:
 
 def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: list[NDArray], *,
            passes: tuple[tuple[float, float, int | None], ...] = PASSES, noise: float = 0.15,
-           prior_weight: float = 1.0, iterations: int = 8) -> Refinement:
+           prior_weight: float = 1.0, iterations: int = 8, smoothed: dict | None = None) -> Refinement:
     """Refine every free slice's pose so that slices of different stacks agree where they cross.
 
     Args:
@@ -99,6 +99,8 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
             as one standard deviation; the soft-L1 loss turns linear beyond it.
         prior_weight: multiplies the prior's residuals (1: the stage's expected errors as they are).
         iterations: Gauss-Newton iterations per pass.
+        smoothed: where the stacks' smoothed images are kept for a later refinement of the same
+            images (a dict, filled here; :func:`_smoothed_passes`), e.g. a request's second step.
 
     Returns:
         :class:`Refinement`; a request with fewer than two stacks, or no crossing pairs, comes back
@@ -142,7 +144,7 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
     costs: list[float] = []
     used = 0
     mismatch = np.full(len(p0), np.nan)
-    for (_, step, budget), smoothed in zip(passes, _smoothed_passes(stacks, [p[0] for p in passes])):
+    for (_, step, budget), smoothed in zip(passes, _smoothed_passes(stacks, [p[0] for p in passes], smoothed)):
         t = np.arange(-radius, radius + 1e-9, step)
         term = ImageTerm(smoothed, stack_of, local, pairs, t)
         w = np.clip(np.prod(term.values(atlas_from_slice(x), masks=True), axis=0), 0.0, 1.0).astype(np.float64)
@@ -180,13 +182,23 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
                       cut(mismatch), cut(spread))
 
 
-def _smoothed_passes(stacks: list[StackImages], sigmas_mm: list[float]) -> Iterator[list[SampledStack]]:
+def _smoothed_passes(stacks: list[StackImages], sigmas_mm: list[float],
+                     kept: dict | None = None) -> Iterator[list[SampledStack]]:
     """The stacks smoothed by each of ``sigmas_mm`` in turn, :data:`SMOOTHING_WORKERS` stacks at a
-    time (the filters release the GIL); one pass's images at a time are kept."""
+    time (the filters release the GIL). One pass's images at a time are kept; with ``kept``
+    (``{(id of a stack's images, sigma): SampledStack}``) all of them, and a later refinement of the
+    same images finds them there."""
+    store = {} if kept is None else kept
+    key = lambda s, sigma: (id(s.images), sigma)  # noqa: E731
     with ThreadPoolExecutor(max_workers=SMOOTHING_WORKERS) as pool:
-        blocked = list(pool.map(BlockedStack.of, stacks))
+        missing = [s for s in stacks if any(key(s, sigma) not in store for sigma in sigmas_mm)]
+        blocked = dict(zip(map(id, missing), pool.map(BlockedStack.of, missing)))
         for sigma in sigmas_mm:
-            yield list(pool.map(lambda sb: SampledStack(sb[0], sigma, sb[1]), zip(stacks, blocked)))
+            new = [s for s in stacks if key(s, sigma) not in store]
+            store.update(zip([key(s, sigma) for s in new], pool.map(lambda s: SampledStack(s, sigma, blocked[id(s)]), new)))
+            yield [store[key(s, sigma)] for s in stacks]
+            if kept is None:
+                store.clear()
 
 
 def follow_neighbours(final: NDArray, start: NDArray, checked: NDArray, stack_of: NDArray,

@@ -270,26 +270,26 @@ def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPos
     if len(take) < 2:
         return
     own = [i for i in take if outs[i].fit.branch_known]
-    if len(own) < 2:
+    if len(own) < 2 or len(own) == len(take):
         _refine_stacks(prepared, outs, proper, take, [])
         return
-    _refine_stacks(prepared, outs, proper, own, [])
-    if len(own) < len(take):
-        _refine_stacks(prepared, outs, proper, [i for i in take if i not in own], own)
+    smoothed: dict = {}                            # the partners' images, smoothed once for both steps
+    _refine_stacks(prepared, outs, proper, own, [], smoothed)
+    _refine_stacks(prepared, outs, proper, [i for i in take if i not in own], own, smoothed)
 
 
 def _refine_stacks(prepared: list[PreparedStack], outs: list[StackPoses], proper: list[np.ndarray],
-                   moving: list[int], partners: list[int]) -> None:
+                   moving: list[int], partners: list[int], smoothed: dict | None = None) -> None:
     """:func:`refine` the stacks ``moving`` (indices into the request) with the stacks ``partners`` as
     fixed partners; sets the moving stacks' poses, expected errors (with partners: never below the
-    stage's) and ``image_consistency``."""
+    stage's) and ``image_consistency``. ``smoothed``: :func:`refine`'s store of smoothed images."""
     which = moving + partners
     images = [StackImages(prepared[i].slices.images, prepared[i].slices.masks, prepared[i].slices.pixel_mm,
                           prepared[i].prepared.input_from_network(), proper[i] & ~outs[i].inconsistent,
                           fixed=i in partners) for i in which]
     expected = [outs[i].expected_error_mm if outs[i].expected_error_mm is not None
                 else np.full(len(outs[i].poses), np.nan) for i in which]
-    ref = refine(images, [outs[i].poses for i in which], expected)
+    ref = refine(images, [outs[i].poses for i in which], expected, smoothed=smoothed)
     relative = relative_mismatch(ref.mismatch)
     after = expected_after(expected, relative, ref.spread_mm)
     for j, i in enumerate(moving):

@@ -182,3 +182,30 @@ def test_a_stack_refined_against_fixed_partners_moves_to_them_and_they_stay(acqu
     before, after = ed(start[2][keep], truth[2][keep]).mean(), ed(out.poses[2][keep], truth[2][keep]).mean()
     print(f"moving stack E.D. {before:.2f} -> {after:.2f} mm")
     assert after < 0.5 * before, (before, after)
+
+
+def test_a_second_refinement_of_the_same_images_reuses_their_smoothing(acquisition, monkeypatch) -> None:  # noqa: ANN001
+    """A request's two steps share one store of smoothed images: the second step smooths only what
+    the first did not, and its poses are those it gets when it smooths everything itself."""
+    import service.consistency.image_refinement as refinement
+
+    images, truth = acquisition
+    start = disturbed(truth, 1.0, 1.0, seed=5)
+    errors = [np.full(len(t), 5.0) for t in truth]
+    made: list[int] = []
+    real = refinement.SampledStack
+
+    def counted(s, sigma, blocked=None):  # noqa: ANN001, ANN202
+        made.append(id(s.images))
+        return real(s, sigma, blocked)
+
+    monkeypatch.setattr(refinement, "SampledStack", counted)
+    store: dict = {}
+    refine(images[:2], start[:2], errors[:2], smoothed=store)
+    assert len(made) == 2 * len(refinement.PASSES) and len(store) == len(made)
+    made.clear()
+    second = [replace(images[0], fixed=True), replace(images[1], fixed=True), images[2]]
+    shared = refine(second, start, errors, smoothed=store)
+    assert made == [id(images[2].images)] * len(refinement.PASSES)                # only the new stack
+    alone = refine(second, start, errors)
+    assert all(np.array_equal(a, b) for a, b in zip(shared.poses, alone.poses))

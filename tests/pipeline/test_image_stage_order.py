@@ -20,7 +20,7 @@ def _outs(*kinds: str) -> list[SimpleNamespace]:
 @pytest.fixture
 def calls(monkeypatch: pytest.MonkeyPatch) -> list[tuple[list[int], list[int]]]:
     seen: list[tuple[list[int], list[int]]] = []
-    monkeypatch.setattr(predict, "_refine_stacks", lambda prepared, outs, proper, moving, partners:
+    monkeypatch.setattr(predict, "_refine_stacks", lambda prepared, outs, proper, moving, partners, smoothed=None:
                         seen.append((list(moving), list(partners))))
     return seen
 
