@@ -8,8 +8,9 @@ cut away, on the network's grid of per-slice maps ``[n, H, W]``:
    weeks (:func:`plausibility`);
 2. what hangs on to it through a waist: a thin bridge of one or more slices into the fetal neck, body
    or face (:func:`cut_at_waists`);
-3. what a slice adds in its own plane beyond its neighbours: a sagittal slice that runs on from the
-   head into the fetal trunk (:func:`trim_outlier_slices`);
+3. what a slice adds in its own plane beyond its neighbours (:func:`trim_outlier_slices`: a sagittal
+   slice that runs on from the head into the fetal trunk) or beyond the ellipse its outline follows
+   (:func:`trim_to_head_ellipses`: neighbouring slices that run on together);
 4. its in-plane holes filled (:func:`fill_holes_in_plane`).
 
 Example (a brain of 6 slices whose slice 3 also holds a blob beside the head: the blob is trimmed):
@@ -236,6 +237,8 @@ def ellipse_of(conic: NDArray) -> tuple[NDArray, NDArray, NDArray] | None:
         return None
     centre = np.linalg.solve(2 * quad, [-d, -e])
     level = -(centre @ quad @ centre + d * centre[0] + e * centre[1] + f)
+    if abs(level) < 1e-12:                                   # a single point
+        return None
     w, axes = np.linalg.eigh(quad / level)
     if np.any(w <= 0):
         return None
