@@ -188,17 +188,22 @@ def calibrate_acceptance(
                                              "and max_expected_error_mm into the model's metadata")] = True,
     seed: int = 1,
     slices: Annotated[Optional[Path], typer.Option(help="also keep every slice's columns here (.npz)")] = None,
+    columns: Annotated[Optional[Path], typer.Option(
+        help="calibrate from the slice columns a previous run kept (--slices) instead of measuring again")] = None,
 ) -> None:
     """Calibrate the accept flags on the pipeline's final poses over simulated acquisitions of the
     validation volumes at every motion level (mild, moderate, jumps, independent)."""
     from model_export.atlas import load_volumes, split
-    from model_export.calibrate_acceptance import PER_VOLUME, flag_metadata, markdown, measure
+    from model_export.calibrate_acceptance import LEVELS, PER_VOLUME, calibrate, flag_metadata, level_columns, markdown, measure
     from model_export.spread import write_metadata
     from service.inference.estimator import OnnxPoseEstimator
     from service.inference.model_file import load_model
 
-    result = measure(OnnxPoseEstimator(load_model(model)), load_volumes(split(root)[1], root),
-                     per_volume or PER_VOLUME, seed, slices=slices)
+    if columns is not None:
+        result = calibrate(level_columns(columns, LEVELS))
+    else:
+        result = measure(OnnxPoseEstimator(load_model(model)), load_volumes(split(root)[1], root),
+                         per_volume or PER_VOLUME, seed, slices=slices)
     report.parent.mkdir(parents=True, exist_ok=True)
     report.write_text(markdown(result, f"Accept flags of {model}"))
     if write:

@@ -67,3 +67,21 @@ def test_the_twin_risk_is_found_again_and_lets_the_limit_pass_more_good_slices()
     for k in by_level:
         assert out["levels"][k]["bad_accepted"] <= MAX_BAD_ACCEPTED
         assert out["levels"][k]["good_accepted"] > blind["levels"][k]["good_accepted"] + 0.02, (k, out["levels"][k], blind["levels"][k])
+
+
+def test_a_level_with_a_handful_of_bad_slices_does_not_decide_the_limit() -> None:
+    """Mild motion with three bad slices, one of them with a small expected error: it alone would
+    pull the limit down to where a third of the bad slices are rejected; it is reported, not judged."""
+    from model_export.calibrate_acceptance import BAD_MM, MIN_BAD_SLICES
+
+    rng = np.random.default_rng(2)
+    by_level = {"mild": level(rng, 600, 1.0, 2.0), "moderate": level(rng, 600, 6.0, 2.0),
+                "jumps": level(rng, 600, 6.0, 2.0)}
+    mild = by_level["mild"]
+    mild["ed"][:3], mild["ed_min"][:3], mild["expected"][:3], mild["reason"][:3] = 12.0, 12.0, [1.0, 6.0, 8.0], ""
+    assert (mild["ed"] > BAD_MM).sum() == 3 < MIN_BAD_SLICES
+    out = calibrate(by_level)
+    assert out["judged_levels"] == ["moderate", "jumps"] and out["limit_meets_target"]
+    assert out["levels"]["mild"]["bad_accepted"] > MAX_BAD_ACCEPTED                  # reported as it is
+    alone = calibrate({"mild": mild})
+    assert alone["judged_levels"] == ["mild"] and alone["max_expected_error_mm"] < out["max_expected_error_mm"]

@@ -103,3 +103,27 @@ def test_export_takes_over_another_models_calibration(tmp_path: Path, monkeypatc
     for key in CALIBRATION:
         assert getattr(got, key) == getattr(want, key), key
     assert got.variance_threshold == 123.0 and got.metadata["name"] == "tuned"
+
+
+def test_the_accept_flags_are_calibrated_again_from_kept_slice_columns(tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--columns`` calibrates from the columns a previous run kept, measuring nothing."""
+    import numpy as np
+
+    import model_export.calibrate_acceptance as acceptance
+    from model_export.cli import app
+    from tests.model_export.test_calibrate_acceptance import level
+
+    monkeypatch.setattr(acceptance, "measure", lambda *a, **k: pytest.fail("measured again"))
+    rng = np.random.default_rng(3)
+    kept = {}
+    for name, scale in (("mild", 1.0), ("moderate", 5.0), ("jumps", 6.0), ("independent", 6.0)):
+        columns = level(rng, 400, scale, 2.0)
+        kept.update({f"{name}/{k}": v for k, v in columns.items()})
+        kept[f"{name}/mask_pixels"] = np.full(400, 500)
+    np.savez(tmp_path / "slices.npz", **kept)
+    report = tmp_path / "acceptance.md"
+    result = CliRunner().invoke(app, ["calibrate-acceptance", str(tmp_path / "model.onnx"), "--no-write",
+                                      "--columns", str(tmp_path / "slices.npz"), "--report", str(report)])
+    assert result.exit_code == 0, result.output
+    assert "max expected error" in report.read_text() and '"judged_levels"' in result.output
