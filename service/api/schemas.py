@@ -85,8 +85,9 @@ class StackConsistency(BaseModel):
                            "twin far from them): it is pooled and refined with them, like a stack that decided "
                            "its branch itself")
     pooled_atlas_from_scanner: Optional[Mat] = Field(
-        None, description="4x4: the stack's position after pooling it with the request's other stacks that decided "
-                          "their left-right branch (the returned poses use it); null when not pooled")
+        None, description="4x4: the stack's position after pooling it with the request's other stacks whose "
+                          "left-right branch is known (decided by themselves, or agreeing with the request; the "
+                          "returned poses use it); null when not pooled")
     stacks_pooled: Optional[int] = Field(None, description="stacks of the request pooled (null: this one was not)")
     between_stacks_sd_mm: Optional[float] = Field(
         None, description="spread of the fetus's position between the pooled stacks beyond their fits' errors "

@@ -144,9 +144,9 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
     costs: list[float] = []
     used = 0
     mismatch = np.full(len(p0), np.nan)
-    for (_, step, budget), smoothed in zip(passes, _smoothed_passes(stacks, [p[0] for p in passes], smoothed)):
+    for (_, step, budget), sampled in zip(passes, _smoothed_passes(stacks, [p[0] for p in passes], smoothed)):
         t = np.arange(-radius, radius + 1e-9, step)
-        term = ImageTerm(smoothed, stack_of, local, pairs, t)
+        term = ImageTerm(sampled, stack_of, local, pairs, t)
         w = np.clip(np.prod(term.values(atlas_from_slice(x), masks=True), axis=0), 0.0, 1.0).astype(np.float64)
         term.select(w, min_weight=MIN_LINE_WEIGHT, max_points=budget)
         if not len(term.pair_of):
@@ -185,9 +185,9 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
 def _smoothed_passes(stacks: list[StackImages], sigmas_mm: list[float],
                      kept: dict | None = None) -> Iterator[list[SampledStack]]:
     """The stacks smoothed by each of ``sigmas_mm`` in turn, :data:`SMOOTHING_WORKERS` stacks at a
-    time (the filters release the GIL). One pass's images at a time are kept; with ``kept``
-    (``{(id of a stack's images, sigma): SampledStack}``) all of them, and a later refinement of the
-    same images finds them there."""
+    time (the filters release the GIL). One pass's images at a time are kept; with ``kept`` all of
+    them (``{(id of a stack's images, sigma): (the images, SampledStack)}``: holding the images, the
+    store keeps their ids from being reused), and a later refinement of the same images finds them."""
     store = {} if kept is None else kept
     key = lambda s, sigma: (id(s.images), sigma)  # noqa: E731
     with ThreadPoolExecutor(max_workers=SMOOTHING_WORKERS) as pool:
@@ -195,8 +195,9 @@ def _smoothed_passes(stacks: list[StackImages], sigmas_mm: list[float],
         blocked = dict(zip(map(id, missing), pool.map(BlockedStack.of, missing)))
         for sigma in sigmas_mm:
             new = [s for s in stacks if key(s, sigma) not in store]
-            store.update(zip([key(s, sigma) for s in new], pool.map(lambda s: SampledStack(s, sigma, blocked[id(s)]), new)))
-            yield [store[key(s, sigma)] for s in stacks]
+            made = pool.map(lambda s: SampledStack(s, sigma, blocked[id(s)]), new)
+            store.update({key(s, sigma): (s.images, m) for s, m in zip(new, made)})
+            yield [store[key(s, sigma)][1] for s in stacks]
             if kept is None:
                 store.clear()
 
