@@ -104,7 +104,7 @@ def make_data(seed: int = 0, n_stacks: int = 3, size: int = 128, n_slices: int =
 
 def evaluate(result, img, msk, aff, frame: np.ndarray | None = None) -> tuple[float, float]:  # noqa: ANN001
     """PSNR (dB) and NCC of a reconstruction in the truth's brain mask (``frame``: after undoing a common offset)."""
-    return volume_psnr_ncc(result.volume, result.grid, img, msk, aff, frame)
+    return volume_psnr_ncc(result.volume, img, msk, aff, frame)
 
 
 def pose_error(ss: SliceSet, estimate: np.ndarray, truth: np.ndarray) -> float:

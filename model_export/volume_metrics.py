@@ -3,9 +3,8 @@
 Example (a volume that is the truth itself, on the truth's own grid: NCC 1):
     >>> import numpy as np
     >>> from service.io.volume import Volume
-    >>> from service.reconstruction.grid import Grid
     >>> img = np.random.default_rng(0).random((12, 12, 12)).astype(np.float32); aff = np.eye(4)
-    >>> psnr, ncc = volume_psnr_ncc(Volume(img, aff), Grid(aff, img.shape), img, np.ones(img.shape, bool), aff)
+    >>> psnr, ncc = volume_psnr_ncc(Volume(img, aff), img, np.ones(img.shape, bool), aff)
     >>> round(ncc, 6), psnr > 60
     (1.0, True)
 """
@@ -19,20 +18,19 @@ from service.geometry import sampling
 from service.io.volume import Volume
 
 
-def volume_psnr_ncc(volume: Volume, grid, img: NDArray, msk: NDArray, aff: NDArray,  # noqa: ANN001
+def volume_psnr_ncc(volume: Volume, img: NDArray, msk: NDArray, aff: NDArray,
                     frame: NDArray | None = None) -> tuple[float, float]:
     """PSNR (dB; peak: the truth's maximum in its mask) after a linear intensity fit, and NCC, at the
-    reconstruction ``grid``'s voxels inside the truth's brain mask.
+    reconstruction's voxels inside the truth's brain mask.
 
     Args:
-        volume: the reconstruction (its array on ``grid``, its affine: voxel -> atlas mm).
-        grid: the reconstruction's grid (``shape``, ``affine``).
+        volume: the reconstruction (its affine: voxel -> atlas mm).
         img, msk, aff: the truth's image, brain mask and voxel -> atlas mm affine.
         frame: ``4 x 4`` truth atlas -> reconstruction frame; given, the volume is compared after
             undoing that common offset (the frame a reconstruction inherits from its starting poses).
     """
-    ijk = np.stack(np.meshgrid(*[np.arange(s) for s in grid.shape], indexing="ij"), -1).reshape(-1, 3)
-    pts = ijk @ grid.affine[:3, :3].T + grid.affine[:3, 3]
+    ijk = np.stack(np.meshgrid(*[np.arange(s) for s in volume.array.shape], indexing="ij"), -1).reshape(-1, 3)
+    pts = ijk @ volume.affine[:3, :3].T + volume.affine[:3, 3]
     ref = sampling.sample_points(img, aff, pts)
     inside = sampling.sample_points(msk, aff, pts) > 0.5
     values = volume.array.reshape(-1)

@@ -138,7 +138,7 @@ def main() -> None:
                 seconds[name].append(time.perf_counter() - t)
                 rows[name].append(errors(stacks, prepared, res.atlas_from_voxel_final, plane))
                 held[name].append(res.quality["leave_one_stack_out"]["median_ncc"])
-                psnr[name].append(volume_psnr_ncc(res.volume, res.grid, vol.image, vol.mask, vol.affine)[0])
+                psnr[name].append(volume_psnr_ncc(res.volume, vol.image, vol.mask, vol.affine)[0])
                 if variant == "job":
                     print(f"  {name} path: {res.quality['path']} {res.quality['paths']}; "
                           f"{int(ss.include.sum())} slices start included", flush=True)
