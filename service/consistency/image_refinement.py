@@ -84,7 +84,8 @@ class Refinement:
 
 def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: list[NDArray], *,
            passes: tuple[tuple[float, float, int | None], ...] = PASSES, noise: float = 0.15,
-           prior_weight: float = 1.0, iterations: int = 8, smoothed: dict | None = None) -> Refinement:
+           prior_weight: float = 1.0, iterations: int = 8,
+           smoothed: list[dict[float, SampledStack]] | None = None) -> Refinement:
     """Refine every free slice's pose so that slices of different stacks agree where they cross.
 
     Args:
@@ -99,8 +100,8 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
             as one standard deviation; the soft-L1 loss turns linear beyond it.
         prior_weight: multiplies the prior's residuals (1: the stage's expected errors as they are).
         iterations: Gauss-Newton iterations per pass.
-        smoothed: where the stacks' smoothed images are kept for a later refinement of the same
-            images (a dict, filled here; :func:`_smoothed_passes`), e.g. a request's second step.
+        smoothed: per stack, its smoothed images by sigma, kept for a later refinement of the same
+            stacks (filled here; :func:`_smoothed_passes`): a request's second step.
 
     Returns:
         :class:`Refinement`; a request with fewer than two stacks, or no crossing pairs, comes back
@@ -183,23 +184,22 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
 
 
 def _smoothed_passes(stacks: list[StackImages], sigmas_mm: list[float],
-                     kept: dict | None = None) -> Iterator[list[SampledStack]]:
+                     kept: list[dict[float, SampledStack]] | None = None) -> Iterator[list[SampledStack]]:
     """The stacks smoothed by each of ``sigmas_mm`` in turn, :data:`SMOOTHING_WORKERS` stacks at a
-    time (the filters release the GIL). One pass's images at a time are kept; with ``kept`` all of
-    them (``{(id of a stack's images, sigma): (the images, SampledStack)}``: holding the images, the
-    store keeps their ids from being reused), and a later refinement of the same images finds them."""
-    store = {} if kept is None else kept
-    key = lambda s, sigma: (id(s.images), sigma)  # noqa: E731
+    time (the filters release the GIL). One pass's images at a time are kept; with ``kept`` (per
+    stack, its smoothed images by sigma) all of them, and what is there already is not made again."""
+    store = kept if kept is not None else [{} for _ in stacks]
     with ThreadPoolExecutor(max_workers=SMOOTHING_WORKERS) as pool:
-        missing = [s for s in stacks if any(key(s, sigma) not in store for sigma in sigmas_mm)]
-        blocked = dict(zip(map(id, missing), pool.map(BlockedStack.of, missing)))
+        missing = [i for i, k in enumerate(store) if any(sigma not in k for sigma in sigmas_mm)]
+        blocked = dict(zip(missing, pool.map(BlockedStack.of, [stacks[i] for i in missing])))
         for sigma in sigmas_mm:
-            new = [s for s in stacks if key(s, sigma) not in store]
-            made = pool.map(lambda s: SampledStack(s, sigma, blocked[id(s)]), new)
-            store.update({key(s, sigma): (s.images, m) for s, m in zip(new, made)})
-            yield [store[key(s, sigma)][1] for s in stacks]
+            new = [i for i, k in enumerate(store) if sigma not in k]
+            for i, made in zip(new, pool.map(lambda i: SampledStack(stacks[i], sigma, blocked[i]), new)):
+                store[i][sigma] = made
+            yield [k[sigma] for k in store]
             if kept is None:
-                store.clear()
+                for k in store:
+                    del k[sigma]
 
 
 def follow_neighbours(final: NDArray, start: NDArray, checked: NDArray, stack_of: NDArray,

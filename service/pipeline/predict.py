@@ -255,8 +255,8 @@ def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPos
     """Refine the poses of the request's settled stacks where their slices cross
     (:func:`~service.consistency.image_refinement.refine`), in place; each such stack's
     ``image_consistency`` says what it did. A stack takes part when the stage found it consistent and
-    its left-right branch is decided: a stack that may be the mirror image of the others would pull
-    them towards it. Of their slices, those with a ``proper`` network pose that the stage did not
+    its left-right branch is decided (by its own slices or by the request): a stack that may be the
+    mirror image of the others would pull them towards it. Of their slices, those with a ``proper`` network pose that the stage did not
     flag as inconsistent take part.
 
     The stacks whose branch is known (``StackFit.branch_known``: decided by their own slices, or by
@@ -273,23 +273,25 @@ def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPos
     if len(own) < 2 or len(own) == len(take):
         _refine_stacks(prepared, outs, proper, take, [])
         return
-    smoothed: dict = {}                            # the partners' images, smoothed once for both steps
+    smoothed: dict[int, dict] = {i: {} for i in take}          # per stack: smoothed once for both steps
     _refine_stacks(prepared, outs, proper, own, [], smoothed)
     _refine_stacks(prepared, outs, proper, [i for i in take if i not in own], own, smoothed)
 
 
 def _refine_stacks(prepared: list[PreparedStack], outs: list[StackPoses], proper: list[np.ndarray],
-                   moving: list[int], partners: list[int], smoothed: dict | None = None) -> None:
+                   moving: list[int], partners: list[int], smoothed: dict[int, dict] | None = None) -> None:
     """:func:`refine` the stacks ``moving`` (indices into the request) with the stacks ``partners`` as
     fixed partners; sets the moving stacks' poses, expected errors (with partners: never below the
-    stage's) and ``image_consistency``. ``smoothed``: :func:`refine`'s store of smoothed images."""
+    stage's) and ``image_consistency``. ``smoothed``: per stack (request index), :func:`refine`'s
+    store of its smoothed images."""
     which = moving + partners
     images = [StackImages(prepared[i].slices.images, prepared[i].slices.masks, prepared[i].slices.pixel_mm,
                           prepared[i].prepared.input_from_network(), proper[i] & ~outs[i].inconsistent,
                           fixed=i in partners) for i in which]
     expected = [outs[i].expected_error_mm if outs[i].expected_error_mm is not None
                 else np.full(len(outs[i].poses), np.nan) for i in which]
-    ref = refine(images, [outs[i].poses for i in which], expected, smoothed=smoothed)
+    ref = refine(images, [outs[i].poses for i in which], expected,
+                 smoothed=None if smoothed is None else [smoothed[i] for i in which])
     relative = relative_mismatch(ref.mismatch)
     after = expected_after(expected, relative, ref.spread_mm)
     for j, i in enumerate(moving):
