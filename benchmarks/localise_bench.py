@@ -21,7 +21,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, pose_agreement  # noqa: E402
+from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, masked_files, pose_agreement  # noqa: E402
 from service.core.settings import DEFAULT_LOCALISERS_DIR  # noqa: E402
 from service.pipeline.predict import StackUpload  # noqa: E402
 from service.io.volume import Volume, read_volume  # noqa: E402
@@ -57,9 +57,8 @@ def stage_times(loc: Localiser) -> None:
 def uploads() -> tuple[list[StackUpload], str]:
     real = REAL_SCANS / "mial_lausanne_t30"
     if real.is_dir():
-        masks = sorted(real.glob("*_brain_mask.nii.gz"))
-        return [StackUpload(m.name.replace("_brain_mask", ""), read_volume(Path(str(m).replace("_brain_mask", ""))),
-                            read_volume(m)) for m in masks], "real scan mial_lausanne_t30, manual masks"
+        return [StackUpload(name, read_volume(stack), read_volume(mask)) for name, stack, mask in masked_files(real)], \
+            "real scan mial_lausanne_t30, manual masks"
     from model_export.localiser.scenes import HeadModel, synth_stack
     from tests.support.phantoms import phantom_brain
 

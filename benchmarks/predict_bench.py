@@ -32,6 +32,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from model_export.localiser.evaluate import masked_files  # noqa: E402
 from service.geometry import se3  # noqa: E402
 from service.io.volume import Volume, read_volume, write_volume  # noqa: E402
 from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine  # noqa: E402
@@ -77,12 +78,6 @@ def peak_rss_mb(pid: int) -> float:
         if line.startswith("VmHWM"):
             return int(line.split()[1]) / 1024
     return float("nan")
-
-
-def real_scan(folder: Path) -> list[tuple[Path, Path]]:
-    """A real scan's ``(stack, manual mask)`` files: every ``*_brain_mask.nii.gz`` of ``folder`` and its stack."""
-    masks = sorted(Path(folder).glob("*_brain_mask.nii.gz"))
-    return [(m.with_name(m.name.replace("_brain_mask", "")), m) for m in masks]
 
 
 def run(client: httpx.Client, stacks: list[tuple[Path, Path]], repeats: int = 3, masks: bool = True,
@@ -151,7 +146,7 @@ def main() -> None:
     ap.add_argument("--baseline", help="a git revision to compare with, in the same run")
     ap.add_argument("--real", type=Path, help="a real scan's folder: NAME.nii.gz and NAME_brain_mask.nii.gz")
     args = ap.parse_args()
-    real = real_scan(args.real) if args.real else None
+    real = [(stack, mask) for _, stack, mask in masked_files(args.real)] if args.real else None
     with tempfile.TemporaryDirectory() as tmp:
         (Path(tmp) / "b").mkdir()
         scenarios = [make_stacks(Path(tmp), 3, 128, 35, 1.1), make_stacks(Path(tmp) / "b", 6, 320, 22, 0.55)]

@@ -6,10 +6,11 @@ holds ``NAME.nii.gz`` beside ``NAME_brain_mask.nii.gz`` (the manual mask, sent w
 ``masks_hold_csf``). Both answers go through ``/v1/predict``'s pipeline (every stage, MC 100). Printed
 per stack: the median E.D. between the two answers over the slices both pose, the accepted slices of
 each, the localiser's confidence, then per-slice distances (``M``: posed with the manual mask only,
-``L``: with the localiser's only, ``*``: accepted without masks); then the common rigid offset,
-fitted robustly (a Fréchet mean over every slice both pose, refitted on those within 2.5 x the median
-distance of the first fit) over the slices both answers accept, and the median E.D. per stack once
-it is undone, over those slices (the poses a user would take from either answer).
+``L``: with the localiser's only, ``*``: accepted without masks); then the common rigid offset (the
+Fréchet mean of the two answers' differences about the brain's centre,
+:func:`~model_export.experiments.frame_bias.common_frame`) over the slices both answers accept, and
+the median E.D. per stack once it is undone, over those slices (the poses a user would take from
+either answer).
 
     .venv/bin/python model_export/experiments/real_scan_poses.py [SCAN_FOLDER] [--localiser M] [--stacks A,B]
         [--no-image-consistency]
@@ -26,7 +27,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.experiments.frame_bias import common_frame  # noqa: E402
-from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator  # noqa: E402
+from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, masked_files  # noqa: E402
 from model_export.localiser.pose_accuracy import slice_poses  # noqa: E402
 from service.api.responses import stack_objects  # noqa: E402
 from service.geometry import anchors, se3  # noqa: E402
@@ -45,10 +46,10 @@ def main() -> None:
     args = ap.parse_args()
     localiser = Localiser.load(args.localiser) if args.localiser else default_localiser()
     estimator = _pose_estimator()
-    names = args.stacks.split(",") if args.stacks else \
-        sorted(m.name.replace("_brain_mask.nii.gz", "") for m in args.scan.glob("*_brain_mask.nii.gz"))
-    volumes = {n: read_volume(args.scan / f"{n}.nii.gz") for n in names}
-    manual = {n: read_volume(args.scan / f"{n}_brain_mask.nii.gz") for n in names}
+    files = {n: (stack, mask) for n, stack, mask in masked_files(args.scan)}
+    names = args.stacks.split(",") if args.stacks else list(files)
+    volumes = {n: read_volume(files[n][0]) for n in names}
+    manual = {n: read_volume(files[n][1]) for n in names}
 
     def answer(with_masks: bool) -> tuple[list[dict], list]:
         uploads = [StackUpload(n, volumes[n], manual[n] if with_masks else None, f"{n}_brain_mask" if with_masks else None,

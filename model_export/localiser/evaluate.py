@@ -63,7 +63,7 @@ def real_scan_rows(localiser: Localiser, root: Path = REAL_SCANS) -> list[dict]:
         if "mask" in path.name:
             continue
         volume = read_volume(path)
-        manual = path.with_name(path.name.replace(".nii.gz", "_brain_mask.nii.gz"))
+        manual = path.with_name(path.name.replace(".nii.gz", MASK_SUFFIX))
         t = time.perf_counter()
         found = localiser.localise(volume)
         ms = (time.perf_counter() - t) * 1e3
@@ -74,13 +74,24 @@ def real_scan_rows(localiser: Localiser, root: Path = REAL_SCANS) -> list[dict]:
     return rows
 
 
+MASK_SUFFIX = "_brain_mask.nii.gz"
+"""A real scan's manual mask of stack ``NAME.nii.gz`` is ``NAME_brain_mask.nii.gz`` beside it."""
+
+
+def masked_files(scan: Path) -> list[tuple[str, Path, Path]]:
+    """``(name, stack file, manual mask file)`` of every stack of a real ``scan`` folder that has a
+    manual mask, by name (none when the folder is absent)."""
+    masks = sorted(Path(scan).glob(f"*{MASK_SUFFIX}"))
+    return [(m.name[:-len(MASK_SUFFIX)], m.with_name(m.name.replace(MASK_SUFFIX, ".nii.gz")), m) for m in masks]
+
+
 def masked_stacks(scan: Path, localiser: Localiser) -> tuple[list[str], list[Volume], list[NDArray], list[NDArray]]:
     """The stacks of a real ``scan`` folder that have a manual mask (``*_brain_mask.nii.gz``): their
     names, volumes, manual masks and the localiser's masks (boolean, on each stack's grid)."""
-    manual = sorted(Path(scan).glob("*_brain_mask.nii.gz"))
-    names = [m.name.replace("_brain_mask.nii.gz", "") for m in manual]
-    volumes = [read_volume(m.with_name(f"{n}.nii.gz")) for m, n in zip(manual, names)]
-    return names, volumes, [read_volume(m).array > 0 for m in manual], [localiser.localise(v).mask for v in volumes]
+    files = masked_files(scan)
+    volumes = [read_volume(stack) for _, stack, _ in files]
+    return ([n for n, _, _ in files], volumes, [read_volume(m).array > 0 for _, _, m in files],
+            [localiser.localise(v).mask for v in volumes])
 
 
 def csf_mask_upload(name: str, volume: Volume, mask: NDArray) -> StackUpload:
@@ -159,8 +170,8 @@ def measure(localiser: Localiser, heldout: Path, pose_stacks: int = 8, root: Pat
             volume = Volume(z["stack"].astype(np.float32), z["affine"])
             poses_heldout.append(pose_agreement(
                 [StackUpload(path.stem, volume, Volume(z["mask"].astype(np.uint8), z["affine"]))], localiser, estimator))
-    manual = sorted(Path(root).glob("*/*_brain_mask.nii.gz")) if Path(root).exists() else []
-    uploads = [StackUpload(m.name, read_volume(Path(str(m).replace("_brain_mask", ""))), read_volume(m)) for m in manual]
+    manual = [f for scan in sorted(Path(root).glob("*/")) for f in masked_files(scan)]
+    uploads = [StackUpload(m.name, read_volume(stack), read_volume(m)) for _, stack, m in manual]
     poses_real = pose_agreement(uploads, localiser, estimator) if uploads else None
     held_dice = [r["dice"] for r in held]
     real_dice = [r["dice"] for r in real if r["dice"] is not None]

@@ -36,3 +36,13 @@ def test_the_ed_between_answers_is_the_offset_of_their_slice_poses() -> None:
     assert n == 5 and same < 1e-9
     moved, n = median_ed([answer(poses)], [answer([shift @ p for p in poses], empty=2)], prepared)
     assert n == 4 and abs(moved - 5.0) < 1e-9
+
+
+def test_a_scan_folder_pairs_each_stack_with_its_manual_mask(tmp_path) -> None:  # noqa: ANN001
+    from model_export.localiser.evaluate import masked_files
+
+    for name in ("b.nii.gz", "b_brain_mask.nii.gz", "a.nii.gz", "a_brain_mask.nii.gz", "c.nii.gz"):
+        (tmp_path / name).write_bytes(b"")
+    assert masked_files(tmp_path) == [("a", tmp_path / "a.nii.gz", tmp_path / "a_brain_mask.nii.gz"),
+                                      ("b", tmp_path / "b.nii.gz", tmp_path / "b_brain_mask.nii.gz")]   # c has no mask
+    assert masked_files(tmp_path / "absent") == []
