@@ -38,11 +38,19 @@ on each side of it is a waist: a thin bridge into a neighbouring structure (:fun
 WAIST_OVERLAP = 0.5
 """A thin slice is a waist only where the slices on either side of it overlap by less than this share
 of the smaller: a brain's poor slice lies between two slices of one brain, a bridge between two objects."""
+CAP_GROWTH = 1.25
+"""A thin slice whose neighbours overlap is still a waist where what lies beyond it (the side with less
+mass) has a slice wider than this times the slice on its other side: a brain's area rises to one
+widest slice and falls, so a cap beyond a poor slice narrows, and a face beyond a skull base does not."""
 VALLEY_SHARE = 0.3
 """Two or more neighbouring slices, each under this share of the component's largest slice on each side,
 are a bridge whatever their overlap, cut at its narrowest slice: a poor slice of a brain comes alone
 (its neighbours are acquired at other times), a run of small slices between two large parts joins two
 objects (the fetal neck; the face below the brain)."""
+END_DIP = 0.5
+"""At either end of a component, a run of small slices (each under :data:`VALLEY_SHARE` of the largest)
+is a bridge to something else where its narrowest slice is under this share of a slice beyond it: a
+brain's cap narrows to its last slice, bits of a fetal body beyond it do not (:func:`end_dips`)."""
 OUTLIER_AREA = 1.5
 """A slice whose area exceeds this times the median of its component's nearest slices (two on each
 side) has run on into its surroundings in its own plane (:func:`trim_outlier_slices`); a head's
@@ -118,8 +126,10 @@ def cut_at_waists(component: NDArray[np.bool_], prob: NDArray[np.float32]) -> ND
     whose area falls, at some slice, under :data:`WAIST_SHARE` of its largest slice on each side holds
     two objects joined by a thin bridge (the brain leaking into the fetal neck and body, or into the
     amniotic fluid, across one slice), where the slices on either side of it do not overlap
-    (:data:`WAIST_OVERLAP`; a poor slice of a brain lies between two overlapping ones), or at the
-    narrowest of two or more neighbouring small slices (:data:`VALLEY_SHARE`: a longer bridge). The part
+    (:data:`WAIST_OVERLAP`; a poor slice of a brain lies between two overlapping ones) or what lies
+    beyond it widens again (:func:`widens_beyond`: a face beyond the skull base), or at the
+    narrowest of two or more neighbouring small slices (:data:`VALLEY_SHARE`: a longer bridge), or
+    at the narrowest of the small slices at an end where wider ones follow (:func:`end_dips`). The part
     with most probability mass between waists is the brain; everything beyond a waist on either
     side, the waist included, is cut off when it holds under :data:`TAIL_SHARE` of the mass (a poor
     slice through the middle of a brain leaves two large parts and cuts nothing). What stays is the
@@ -144,7 +154,10 @@ def cut_at_waists(component: NDArray[np.bool_], prob: NDArray[np.float32]) -> ND
     thin = inner[area[inner] < WAIST_SHARE * largest]
     across = np.array([(component[k - 1] & component[k + 1]).sum() for k in thin])
     waists = thin[across < WAIST_OVERLAP * np.maximum(np.minimum(area[thin - 1], area[thin + 1]), 1)]
-    waists = np.union1d(waists, valleys(inner[area[inner] < VALLEY_SHARE * largest], area))
+    rising = thin[np.array([widens_beyond(k, area, mass) for k in thin], bool)]
+    waists = np.union1d(waists, narrowest_of_runs(rising, area, 1))
+    waists = np.union1d(waists, narrowest_of_runs(inner[area[inner] < VALLEY_SHARE * largest], area, 2))
+    waists = np.union1d(waists, end_dips(area[lo:hi + 1]) + lo)
     if not len(waists):
         return component
     edges = np.concatenate([[lo - 1], waists, [hi + 1]])
@@ -159,17 +172,62 @@ def cut_at_waists(component: NDArray[np.bool_], prob: NDArray[np.float32]) -> ND
     return largest_mass(kept, prob)
 
 
-def valleys(small: NDArray, area: NDArray) -> NDArray[np.int64]:
-    """The narrowest slice of each run of two or more neighbours in ``small`` (sorted slice indices;
-    ``area`` per slice): where a bridge of several small slices is thinnest.
+def widens_beyond(k: int, area: NDArray, mass: NDArray) -> bool:
+    """Whether, beyond slice ``k`` (on the side with less ``mass``), some slice is over
+    :data:`CAP_GROWTH` times as wide as the slice next to ``k`` on the other side: the profile of
+    ``area`` rises again past ``k``, which no cap of a brain does.
+
+    Example (a face, 3 slices of 30-40 pixels, beyond a thin slice, then a skull base of 16):
+        >>> area = np.array([36, 22, 37, 3, 16, 30, 40, 50, 55, 50, 40, 30])
+        >>> bool(widens_beyond(3, area, area)), bool(widens_beyond(3, np.minimum(area, 12), np.minimum(area, 12)))
+        (True, False)
+    """
+    before, after = float(mass[:k].sum()), float(mass[k + 1:].sum())
+    beyond, other = (area[:k], area[k + 1]) if before < after else (area[k + 1:], area[k - 1])
+    return bool(len(beyond)) and float(beyond.max()) > CAP_GROWTH * float(other)
+
+
+def narrowest_of_runs(small: NDArray, area: NDArray, min_run: int) -> NDArray[np.int64]:
+    """The narrowest slice (the first of equals) of each run of ``min_run`` or more neighbours in
+    ``small`` (sorted slice indices; ``area`` per slice): where a bridge of small slices is thinnest.
 
     Example:
-        >>> valleys(np.array([3, 6, 7, 8, 11, 12]), np.array([9, 9, 9, 5, 9, 9, 4, 2, 3, 9, 9, 6, 7, 9])).tolist()
-        [7, 11]
+        >>> small, area = np.array([3, 6, 7, 8, 11, 12]), np.array([9, 9, 9, 5, 9, 9, 4, 2, 3, 9, 9, 6, 7, 9])
+        >>> narrowest_of_runs(small, area, 2).tolist(), narrowest_of_runs(small, area, 1).tolist()
+        ([7, 11], [3, 7, 11])
     """
     small = np.asarray(small, np.int64)
+    if not len(small):
+        return small
     runs = np.split(small, np.flatnonzero(np.diff(small) > 1) + 1)
-    return np.array([r[np.argmin(area[r])] for r in runs if len(r) >= 2], np.int64)
+    return np.array([r[np.argmin(area[r])] for r in runs if len(r) >= min_run], np.int64)
+
+
+def end_dips(area: NDArray) -> NDArray[np.int64]:
+    """Slices (indices into ``area``, one component's area per slice from its first slice to its last)
+    where a small end run dips: at each end, the run of slices under :data:`VALLEY_SHARE` of the
+    largest slice, when its narrowest slice is under :data:`END_DIP` of a slice beyond it (towards
+    the end). A cap that narrows to its last slice has no dip.
+
+    Example (a brain whose last slices are 5, 2, 5, 4 pixels: the dip at 2 is a bridge; the first
+    end narrows as a cap does):
+        >>> end_dips(np.array([3, 8, 20, 20, 20, 5, 2, 5, 4])).tolist()
+        [6]
+    """
+    area = np.asarray(area, np.float64)
+    small = area < VALLEY_SHARE * area.max()
+    dips = []
+    for order in (np.arange(len(area)), np.arange(len(area))[::-1]):     # towards the last, the first
+        inner = np.flatnonzero(~small[order])
+        if not len(inner):
+            continue
+        run = order[inner[-1] + 1:]
+        if len(run) < 2:
+            continue
+        k = int(np.argmin(area[run]))
+        if area[run[k]] < END_DIP * area[run[k + 1:]].max(initial=0.0):
+            dips.append(int(run[k]))
+    return np.array(sorted(dips), np.int64)
 
 
 def trim_outlier_slices(component: NDArray[np.bool_], grid_mm: float) -> NDArray[np.bool_]:

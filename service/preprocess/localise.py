@@ -5,7 +5,10 @@
    (:func:`~service.preprocess.localiser_inputs.localiser_inputs`) and gives each pixel's
    probability of lying inside the fetal skull. It is trained on synthetic whole-uterus stacks only
    (atlas brains in generated surroundings; ``model_export.localiser``), so no scanner's contrast,
-   pixel size or field of view is special to it.
+   pixel size or field of view is special to it. Each slice is also seen mirrored, and the two
+   answers' logits averaged: a stack written with one axis reversed gets the same mask, and
+   what the network decides by a narrow margin at the brain's edge (a face, a neck as wide as
+   the head) is decided the same way for every scanner's sampling of it.
 2. **The geometry** settles the answer (:mod:`service.preprocess.brain_shape`), on the network's
    grid: one 3D connected brain of a plausible volume for 20-40 weeks, without what hangs on to it
    through a waist or what a slice adds beyond its neighbours, its in-plane holes filled; then the
@@ -139,6 +142,8 @@ class Localiser:
     grid_mm: float
     version: str
     sha256: str
+    mirrored: bool = True
+    """Average each slice's logits with those of its mirror image (one more network pass a slice)."""
 
     @classmethod
     def load(cls, path: Path, threads: int = 0) -> "Localiser":
@@ -164,12 +169,23 @@ class Localiser:
             x = np.concatenate([inputs[i][0] for i in which])
             if feed.shape[1] == 1:                              # a 2D localiser: the slice alone
                 x = np.ascontiguousarray(x[:, 1:2])
-            logits = np.concatenate([self.session.run(None, {feed.name: x[k:k + BATCH_SLICES]})[0][:, 0]
-                                     for k in range(0, len(x), BATCH_SLICES)]) if len(x) else np.zeros((0, *size))
+            logits = self._logits(feed.name, x) if len(x) else np.zeros((0, *size), np.float32)
             ends = np.cumsum([0] + [len(inputs[i][0]) for i in which])
             for i, a, b in zip(which, ends[:-1], ends[1:]):
                 out[i] = 1.0 / (1.0 + np.exp(-logits[a:b]))
         return [(prob, grid) for prob, (_, grid) in zip(out, inputs)]
+
+    def _logits(self, name: str, x: NDArray[np.float32]) -> NDArray[np.float32]:
+        """The network's logits ``[n, H, W]`` for inputs ``[n, c, H, W]``, in batches of
+        :data:`BATCH_SLICES`; with :attr:`mirrored`, averaged with those of the inputs mirrored along
+        ``W`` (mirrored back)."""
+        def run(inputs: NDArray[np.float32]) -> NDArray[np.float32]:
+            return np.concatenate([self.session.run(None, {name: inputs[k:k + BATCH_SLICES]})[0][:, 0]
+                                   for k in range(0, len(inputs), BATCH_SLICES)])
+        logits = run(x)
+        if self.mirrored:
+            logits = 0.5 * (logits + run(np.ascontiguousarray(x[..., ::-1]))[..., ::-1])
+        return logits
 
     def localise(self, volume: Volume) -> Localisation:
         """The brain mask of ``volume`` on its own grid, its volume and the confidence."""

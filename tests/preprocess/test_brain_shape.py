@@ -94,6 +94,24 @@ def test_a_bridge_of_several_small_slices_is_a_waist_though_they_overlap() -> No
     assert not kept[:10].any() and np.array_equal(kept[10:], whole[10:])   # cut at the bridge's first slice
 
 
+def test_bits_of_a_body_beyond_a_brains_last_slice_are_cut_and_a_narrowing_cap_is_not() -> None:
+    """A brain whose component runs on, past a slice of a few pixels, through small bits of a fetal
+    body that do not narrow towards the stack's end: cut at the dip. The brain alone, whose caps
+    narrow to their last slices, keeps every slice."""
+    brain = _ellipsoid_brain(24)
+    assert np.array_equal(cut_at_waists(brain >= 0.5, brain), brain >= 0.5)
+    p = np.zeros((30, 48, 48), np.float32)
+    p[:24] = brain
+    last = int(np.flatnonzero((brain >= 0.5).any(axis=(1, 2)))[-1])
+    p[last + 1, 22:24, 22:24] = 0.7                                 # a dip of 4 pixels
+    for k, (r, c) in enumerate([(20, 20), (21, 23), (23, 21), (22, 24)]):
+        p[last + 2 + k, r:r + 4, c:c + 4] = 0.7                     # bits of 16 pixels, wandering
+    component = (p >= 0.5) & (ndimage.label(p >= 0.5, structure=np.ones((3, 3, 3)))[0] == 1)
+    assert component[last + 5].any()                                # one component
+    kept = cut_at_waists(component, p)
+    assert np.array_equal(kept[:last + 1], component[:last + 1]) and not kept[last + 1:].any()
+
+
 def test_two_poor_slices_through_the_middle_of_a_brain_cut_nothing() -> None:
     p = _ellipsoid_brain(24)
     p[10:12] = 0.0
