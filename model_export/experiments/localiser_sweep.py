@@ -10,7 +10,8 @@ the Dice against the rewritten mask, per stack and as the median and minimum per
 * ``slice-axis-first``, ``x-reversed``: the same voxels stored in another order, the header saying so;
 * ``px0.7``, ``px1.6``, ``px2.0``: in-plane pixels of that size (anti-aliased when coarser);
 * ``fov250``, ``fov420``: the field of view cut to 250 mm about its centre (where the brain stays
-  in it) or widened to 420 mm with background;
+  in it) or widened to 420 mm with background; ``cropped``: cut to the head, the manual mask's
+  box and 15 mm (a stack cropped before it is sent, as other pipelines do);
 * ``gamma0.6``, ``gamma1.6``: another contrast; ``noise``: Rician noise of 6 % of the bright end;
   ``shading``: a smooth field over a factor of 3 across the field of view; ``scale1e3``: another
   intensity range;
@@ -97,6 +98,13 @@ def rewrites(volume: Volume, mask: NDArray[np.bool_], rng: np.random.Generator) 
         box[a] = slice(start, start + n)
     if mask[tuple(box)].sum() > 0.95 * mask.sum():
         yield "fov250", volume.region(tuple(box)), mask[tuple(box)]
+    found = np.argwhere(mask)
+    if len(found):
+        head = [slice(None)] * 3
+        for a in plane:
+            margin = int(round(15 / volume.spacing[a]))
+            head[a] = slice(max(0, found[:, a].min() - margin), found[:, a].max() + 1 + margin)
+        yield "cropped", volume.region(tuple(head)), mask[tuple(head)]
     pad = [(0, 0)] * 3
     for a in plane:
         p = max(0, int(round((420 / volume.spacing[a] - image.shape[a]) / 2)))

@@ -1,0 +1,69 @@
+"""The localiser sweep's rewrites: other files of the same scan keep every voxel where it was in the world."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from model_export.experiments.localiser_sweep import in_plane_pixels, reordered, reversed_axis, rewrites
+from service.io.volume import Volume
+from service.preprocess.stack import slice_axis_of
+from tests.support.phantoms import stack_affine
+
+OBLIQUE = np.array([[0.8, -0.6, 0.0], [0.6, 0.8, 0.0], [0.0, 0.0, 1.0]]) @ np.array(
+    [[1.0, 0.0, 0.0], [0.0, 0.96, -0.28], [0.0, 0.28, 0.96]])
+
+
+def _ball_stack(axis: int = 2) -> tuple[Volume, np.ndarray, np.ndarray]:
+    """An oblique stack of 1.2 mm pixels and 3 mm slices holding a ball about a known world point:
+    the stack, its ball mask and the point."""
+    shape = [90, 80, 90]
+    shape[axis] = 24
+    affine = stack_affine(axis, OBLIQUE, 1.2, 3.0, tuple(shape))
+    idx = np.indices(shape).reshape(3, -1).T
+    world = idx @ affine[:3, :3].T + affine[:3, 3]
+    centre = world.mean(axis=0) + np.array([6.0, -4.0, 3.0])
+    inside = (np.linalg.norm(world - centre, axis=1) < 30.0).reshape(shape)
+    image = np.where(inside, 200.0, 40.0).astype(np.float32)
+    return Volume(image, affine), inside, centre
+
+
+def _centroid(volume: Volume, mask: np.ndarray) -> np.ndarray:
+    idx = np.argwhere(mask)
+    return (idx @ volume.affine[:3, :3].T + volume.affine[:3, 3]).mean(axis=0)
+
+
+def test_stored_otherwise_the_stack_and_its_mask_stay_in_place() -> None:
+    volume, mask, centre = _ball_stack(axis=1)
+    assert np.linalg.norm(_centroid(volume, mask) - centre) < 0.5
+    for v, m in [reordered(volume, mask, (1, 0, 2)), reversed_axis(volume, mask, 0), reversed_axis(volume, mask, 2)]:
+        np.testing.assert_allclose(_centroid(v, m), _centroid(volume, mask), atol=1e-6)
+        # every voxel of the new file holds what the old file held at that world point
+        probe = np.array([[3, 5, 7], [20, 10, 4]])
+        world = probe @ v.affine[:3, :3].T + v.affine[:3, 3]
+        old = np.rint(np.linalg.solve(volume.affine[:3, :3], (world - volume.affine[:3, 3]).T).T).astype(int)
+        assert [v.array[tuple(p)] for p in probe] == [volume.array[tuple(o)] for o in old]
+
+
+def test_other_pixel_sizes_keep_the_field_of_view_and_the_ball() -> None:
+    volume, mask, centre = _ball_stack(axis=2)
+    for pixel_mm in (0.7, 2.0):
+        v, m = in_plane_pixels(volume, mask, pixel_mm)
+        np.testing.assert_allclose(v.spacing[:2], pixel_mm, rtol=0.03)
+        assert v.spacing[2] == volume.spacing[2] and v.array.shape[2] == volume.array.shape[2]
+        first, last = v.affine @ [0, 0, 0, 1], v.affine @ [*(np.array(v.array.shape) - 1), 1]
+        np.testing.assert_allclose(first, volume.affine @ [0, 0, 0, 1], atol=1e-6)
+        np.testing.assert_allclose(last, volume.affine @ [*(np.array(volume.array.shape) - 1), 1], atol=1e-6)
+        assert np.linalg.norm(_centroid(v, m) - centre) < 0.6
+        assert abs(m.sum() * np.prod(v.spacing) - mask.sum() * np.prod(volume.spacing)) < 0.03 * mask.sum() * np.prod(volume.spacing)
+
+
+def test_every_rewrite_keeps_the_mask_on_the_stacks_grid_and_the_brain_in_view() -> None:
+    volume, mask, centre = _ball_stack(axis=0)
+    names = []
+    for name, v, m in rewrites(volume, mask, np.random.default_rng(0)):
+        names.append(name)
+        assert v.array.shape == m.shape and m.any(), name
+        assert slice_axis_of(v.spacing) in range(3)
+        if name != "every2nd":
+            assert np.linalg.norm(_centroid(v, m) - centre) < 0.6, name
+    assert {"base", "x-reversed", "px2.0", "cropped", "fov420", "noise", "every2nd"} <= set(names)
