@@ -7,7 +7,8 @@ For a stack (any orientation, any in-plane pixel size, whole uterus or cropped),
    clipped to 0..2), so that no scanner's units matter;
 3. resample every slice to square pixels of ``grid_mm`` (the model's; Gaussian anti-aliasing first,
    so a 0.5 mm and a 1.5 mm acquisition look alike), its field of view kept;
-4. pad with zeros to a multiple of :data:`PAD_MULTIPLE` on each side, centred;
+4. pad with zeros to a multiple of :data:`PAD_MULTIPLE` on each side, and to at least
+   :data:`MIN_GRID_PX`, centred;
 5. stack each slice with its two neighbours along the slice axis as three channels (2.5D; the end
    slices repeat themselves).
 
@@ -18,8 +19,8 @@ Example:
     >>> from service.io.volume import Volume
     >>> vol = Volume(np.random.default_rng(0).random((100, 80, 6), np.float32), np.diag([1.25, 1.25, 3.0, 1.0]))
     >>> x, grid = localiser_inputs(vol, grid_mm=2.5)
-    >>> x.shape                                       # 6 slices, 3 channels, 80 x 50 px padded to 16s
-    (6, 3, 48, 64)
+    >>> x.shape                                       # 6 slices, 3 channels, 40 x 50 px padded to 64
+    (6, 3, 64, 64)
     >>> grid.to_stack(x[:, 1]).shape == vol.array.shape
     True
 """
@@ -38,6 +39,11 @@ from service.io.volume import Volume
 from service.preprocess.stack import slice_axis_of, slice_images, stack_from_slice_images
 
 PAD_MULTIPLE = 16
+MIN_GRID_PX = 64
+"""Slices are padded to at least this many grid pixels a side (160 mm at 2.5 mm): a stack cropped to
+the head before it is sent keeps the canvas the network learnt on (fields of view of 130-400 mm),
+which it needs to see the head's poles; every field of view of the training scenes is padded
+to this size or more anyway."""
 PERCENTILE = 99.5
 
 
@@ -124,9 +130,10 @@ def _resample(images: NDArray[np.float32], pixel_mm: tuple[float, float], grid_m
 
 
 def _pad(small: NDArray[np.float32]) -> tuple[NDArray[np.float32], tuple[int, int]]:
-    """Zero-pad ``[n, h, w]`` to multiples of :data:`PAD_MULTIPLE`, centred; returns it and its offset."""
+    """Zero-pad ``[n, h, w]`` to multiples of :data:`PAD_MULTIPLE` and at least :data:`MIN_GRID_PX`,
+    centred; returns it and its offset."""
     h, w = small.shape[1:]
-    hp, wp = -(-h // PAD_MULTIPLE) * PAD_MULTIPLE, -(-w // PAD_MULTIPLE) * PAD_MULTIPLE
+    hp, wp = (max(-(-n // PAD_MULTIPLE) * PAD_MULTIPLE, MIN_GRID_PX) for n in (h, w))
     r, c = (hp - h) // 2, (wp - w) // 2
     padded = np.zeros((len(small), hp, wp), np.float32)
     padded[:, r:r + h, c:c + w] = small

@@ -81,6 +81,32 @@ def test_a_stack_written_with_an_axis_reversed_gets_the_same_mask(localiser: Loc
     assert apart(one_pass.probabilities(volume)[0], one_pass.probabilities(flipped)[0]) > 0.05
 
 
+def test_a_stack_cropped_to_the_head_before_it_is_sent_is_localised(localiser: Localiser) -> None:
+    """Other pipelines send stacks cut to the head (here its box and 15 mm: a field of view of about
+    100 mm, under the network's 160 mm canvas, to which it is padded)."""
+    from model_export.localiser.scenes import HeadModel, synth_stack
+    from service.preprocess.localiser_inputs import MIN_GRID_PX, localiser_inputs
+    from tests.support.phantoms import phantom_brain
+
+    image, mask, affine = phantom_brain(11)
+    head = HeadModel.from_arrays(image, mask, affine)
+    scores = []
+    for seed in range(3):
+        volume, truth = synth_stack(head, np.random.default_rng(300 + seed), "heldout")
+        axis = int(np.argmax(volume.spacing))
+        found = np.argwhere(truth)
+        box = [slice(None)] * 3
+        for a in range(3):
+            if a != axis:
+                margin = int(round(15 / volume.spacing[a]))
+                box[a] = slice(max(0, found[:, a].min() - margin), found[:, a].max() + 1 + margin)
+        cropped, cropped_truth = volume.region(tuple(box)), truth[tuple(box)]
+        x, _ = localiser_inputs(cropped, localiser.grid_mm)
+        assert min(x.shape[2:]) >= MIN_GRID_PX
+        scores.append(dice(localiser.localise(cropped).mask, cropped_truth))
+    assert np.median(scores) > 0.85, scores
+
+
 def test_stacks_localised_together_get_what_each_gets_alone(localiser: Localiser) -> None:
     """The request's stacks share the network's calls (grids of two sizes, batches that cross stacks):
     every mask and confidence is what the stack gets on its own."""
