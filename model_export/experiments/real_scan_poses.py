@@ -13,7 +13,7 @@ the median E.D. per stack once it is undone, over those slices (the poses a user
 either answer).
 
     .venv/bin/python model_export/experiments/real_scan_poses.py [SCAN_FOLDER] [--localiser M] [--stacks A,B]
-        [--no-image-consistency]
+        [--no-image-consistency] [--repeats N]
 """
 
 from __future__ import annotations
@@ -32,36 +32,40 @@ from model_export.localiser.pose_accuracy import slice_poses  # noqa: E402
 from service.api.responses import stack_objects  # noqa: E402
 from service.geometry import anchors, se3  # noqa: E402
 from service.inference.acceptance import ATLAS_CENTRE_MM  # noqa: E402
-from service.io.volume import read_volume  # noqa: E402
+from service.io.volume import Volume, read_volume  # noqa: E402
 from service.pipeline.predict import StackUpload, predict, prepare_stacks  # noqa: E402
 from service.preprocess.localise import Localiser, default_localiser  # noqa: E402
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("scan", type=Path, nargs="?", default=REAL_SCANS / "mial_lausanne_t30")
-    ap.add_argument("--localiser", type=Path, help="a localiser ONNX file (default: the shipped one)")
-    ap.add_argument("--stacks", help="comma-separated names: these stacks alone (default: every masked one)")
-    ap.add_argument("--no-image-consistency", action="store_true", help="both answers without the image stage")
-    args = ap.parse_args()
-    localiser = Localiser.load(args.localiser) if args.localiser else default_localiser()
-    estimator = _pose_estimator()
-    files = {n: (stack, mask) for n, stack, mask in masked_files(args.scan)}
-    names = args.stacks.split(",") if args.stacks else list(files)
-    volumes = {n: read_volume(files[n][0]) for n in names}
-    manual = {n: read_volume(files[n][1]) for n in names}
+def answer(volumes: dict[str, Volume], manual: dict[str, Volume] | None, localiser: Localiser, estimator,  # noqa: ANN001
+           image_consistency: bool = True) -> tuple[list[dict], list]:
+    """``/v1/predict``'s answer (its ``stacks`` objects) and the prepared stacks for the named
+    ``volumes``: with their ``manual`` masks (sent with ``masks_hold_csf``), or without masks."""
+    names = list(volumes)
+    uploads = [StackUpload(n, volumes[n], manual[n] if manual else None, f"{n}_brain_mask" if manual else None,
+                           mask_holds_csf=bool(manual)) for n in names]
+    prepared = prepare_stacks(uploads, estimator.info, True, workers=2, localiser=localiser)
+    predictions, _ = predict(prepared, estimator, 100, estimator.info.variance_threshold,
+                             image_consistency=image_consistency)
+    return stack_objects(predictions), prepared
 
-    def answer(with_masks: bool) -> tuple[list[dict], list]:
-        uploads = [StackUpload(n, volumes[n], manual[n] if with_masks else None, f"{n}_brain_mask" if with_masks else None,
-                               mask_holds_csf=with_masks) for n in names]
-        prepared = prepare_stacks(uploads, estimator.info, True, workers=2, localiser=localiser)
-        predictions, _ = predict(prepared, estimator, 100, estimator.info.variance_threshold,
-                                 image_consistency=not args.no_image_consistency)
-        return stack_objects(predictions), prepared
 
-    (with_masks, prepared), (without, _) = answer(True), answer(False)
+def read_scan(scan: Path, stacks: str | None = None) -> tuple[dict[str, Volume], dict[str, Volume]]:
+    """The stacks of a real ``scan`` folder that have manual masks (or those of ``stacks``, comma-
+    separated names), and their masks, by name."""
+    files = {n: (stack, mask) for n, stack, mask in masked_files(scan)}
+    names = stacks.split(",") if stacks else list(files)
+    return {n: read_volume(files[n][0]) for n in names}, {n: read_volume(files[n][1]) for n in names}
+
+
+def compare(volumes: dict[str, Volume], manual: dict[str, Volume], localiser: Localiser, estimator,  # noqa: ANN001
+            image_consistency: bool = True) -> dict[str, float] | None:
+    """One answer with the manual masks and one without, printed per stack and as a whole; returns
+    the whole's figures (None when no slice is accepted in both)."""
+    (with_masks, prepared), (without, _) = [answer(volumes, m, localiser, estimator, image_consistency)
+                                            for m in (manual, None)]
     pairs = []
-    for name, sa, sb, p in zip(names, with_masks, without, prepared):
+    for name, sa, sb, p in zip(volumes, with_masks, without, prepared):
         (xa, ka), (xb, kb) = slice_poses(sa, p), slice_poses(sb, p)
         d = anchors.ed(xa, xb)
         both = ka & kb
@@ -76,14 +80,36 @@ def main() -> None:
     a, b = np.concatenate([x for x, _ in pairs]), np.concatenate([y for _, y in pairs])
     if not len(a):
         print("no slice is accepted in both answers")
-        return
+        return None
     frame, left = common_frame(b, a, ATLAS_CENTRE_MM)                # the no-mask answer against the manual one
     angle = np.degrees(np.linalg.norm(se3.so3_log(frame[:3, :3])))
     per_stack = np.split(left, np.cumsum([len(x) for x, _ in pairs])[:-1])
-    print(f"slices both answers accept: {len(a)}; between them median {np.median(anchors.ed(a, b)):.2f} mm; "
-          f"common offset {np.linalg.norm(frame[:3, 3]):.2f} mm / {angle:.2f} deg about the brain's centre; "
-          f"median E.D. once undone {np.median(left):.2f} mm (per stack "
+    out = {"slices": len(a), "median_ed_mm": float(np.median(anchors.ed(a, b))), "offset_mm": float(np.linalg.norm(frame[:3, 3])),
+           "offset_deg": float(angle), "undone_mm": float(np.median(left)), "stacks_in": sum(len(d) > 0 for d in per_stack)}
+    print(f"slices both answers accept: {len(a)}; between them median {out['median_ed_mm']:.2f} mm; "
+          f"common offset {out['offset_mm']:.2f} mm / {angle:.2f} deg about the brain's centre; "
+          f"median E.D. once undone {out['undone_mm']:.2f} mm (per stack "
           + ", ".join(f"{np.median(d):.2f}" if len(d) else "-" for d in per_stack) + ")")
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("scan", type=Path, nargs="?", default=REAL_SCANS / "mial_lausanne_t30")
+    ap.add_argument("--localiser", type=Path, help="a localiser ONNX file (default: the shipped one)")
+    ap.add_argument("--stacks", help="comma-separated names: these stacks alone (default: every masked one)")
+    ap.add_argument("--no-image-consistency", action="store_true", help="both answers without the image stage")
+    ap.add_argument("--repeats", type=int, default=1, help="pairs of answers (other MC draws); then their range")
+    args = ap.parse_args()
+    localiser = Localiser.load(args.localiser) if args.localiser else default_localiser()
+    estimator = _pose_estimator()
+    volumes, manual = read_scan(args.scan, args.stacks)
+    runs = [compare(volumes, manual, localiser, estimator, not args.no_image_consistency) for _ in range(args.repeats)]
+    runs = [r for r in runs if r]
+    if len(runs) > 1:
+        print(f"over {len(runs)} pairs: " + "; ".join(
+            f"{k} {np.median([r[k] for r in runs]):.2f} ({min(r[k] for r in runs):.2f}-{max(r[k] for r in runs):.2f})"
+            for k in runs[0]))
 
 
 if __name__ == "__main__":
