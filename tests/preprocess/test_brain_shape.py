@@ -7,7 +7,8 @@ import numpy as np
 from scipy import ndimage
 
 from service.preprocess.brain_shape import (brain_from_probabilities, cut_at_waists, fill_holes_in_plane, plausibility,
-                                            trim_outlier_slices, trim_to_head_ellipses)
+                                            trim_outlier_slices)
+from tests.support.phantoms import ellipsoid_brain_maps
 
 
 def test_the_geometry_keeps_one_connected_brain_with_its_holes_filled() -> None:
@@ -21,15 +22,8 @@ def test_the_geometry_keeps_one_connected_brain_with_its_holes_filled() -> None:
     assert brain.sum() == 6 * disc.sum() and 0.8 < confidence < 0.9       # 0.9 sure, 97 % of the mass
 
 
-def _ellipsoid_brain(n: int = 16, size: int = 48) -> np.ndarray:
-    """Per-slice maps of an ellipsoidal brain filling slices 1..n-2 (0.9 inside)."""
-    k, r, c = np.mgrid[:n, :size, :size]
-    inside = ((k - (n - 1) / 2) / ((n - 1) / 2)) ** 2 + ((r - 20) / 14) ** 2 + ((c - 20) / 14) ** 2 < 1
-    return np.where(inside, 0.9, 0.0).astype(np.float32)
-
-
 def test_a_brain_leaking_through_a_thin_bridge_loses_what_lies_beyond_it() -> None:
-    p = _ellipsoid_brain(24)
+    p = ellipsoid_brain_maps(24)
     p[16:] = 0.0                                                    # the brain ends at slice 15
     p[16, 32:35, 32:35] = 0.8                                       # a bridge of one slice, then a blob beside it
     p[17:22, 33:46, 33:46] = 0.8                                    # (the fetal neck and body, say)
@@ -40,7 +34,7 @@ def test_a_brain_leaking_through_a_thin_bridge_loses_what_lies_beyond_it() -> No
 
 
 def test_a_poor_slice_through_the_middle_of_a_brain_cuts_nothing() -> None:
-    p = _ellipsoid_brain(24)
+    p = ellipsoid_brain_maps(24)
     p[6] = np.where(p[6] > 0, 0.0, 0.0)                             # a slice the network barely sees
     p[6, 18:21, 18:21] = 0.9
     component = p >= 0.5
@@ -85,7 +79,7 @@ def test_a_bridge_of_several_small_slices_is_a_waist_though_they_overlap() -> No
     the large slices on either side): each bridge slice's neighbours overlap, the run of them is
     still a bridge, cut at its narrowest slice (all alike: the first)."""
     p = np.zeros((28, 48, 48), np.float32)
-    p[12:] = _ellipsoid_brain(18)[:16]                              # the brain from slice 13 on
+    p[12:] = ellipsoid_brain_maps(18)[:16]                              # the brain from slice 13 on
     p[9:13, 20:24, 18:22] = 0.8                                     # slices 9-12: a narrow bridge
     p[2:9, 12:30, 10:28] = 0.8                                      # slices 2-8: the face, as wide as the brain
     whole = (p >= 0.5) & (ndimage.label(p >= 0.5, structure=np.ones((3, 3, 3)))[0] == 1)
@@ -98,7 +92,7 @@ def test_bits_of_a_body_beyond_a_brains_last_slice_are_cut_and_a_narrowing_cap_i
     """A brain whose component runs on, past a slice of a few pixels, through small bits of a fetal
     body that do not narrow towards the stack's end: cut at the dip. The brain alone, whose caps
     narrow to their last slices, keeps every slice."""
-    brain = _ellipsoid_brain(24)
+    brain = ellipsoid_brain_maps(24)
     assert np.array_equal(cut_at_waists(brain >= 0.5, brain), brain >= 0.5)
     p = np.zeros((30, 48, 48), np.float32)
     p[:24] = brain
@@ -113,7 +107,7 @@ def test_bits_of_a_body_beyond_a_brains_last_slice_are_cut_and_a_narrowing_cap_i
 
 
 def test_two_poor_slices_through_the_middle_of_a_brain_cut_nothing() -> None:
-    p = _ellipsoid_brain(24)
+    p = ellipsoid_brain_maps(24)
     p[10:12] = 0.0
     p[10:12, 18:21, 18:21] = 0.9                                    # two slices the network barely sees
     component = p >= 0.5
@@ -123,23 +117,10 @@ def test_two_poor_slices_through_the_middle_of_a_brain_cut_nothing() -> None:
 def test_a_slice_that_runs_on_into_the_trunk_keeps_only_the_head() -> None:
     """Sagittal slices through the neck: two of them run on into the fetal body through a neck as wide
     as the head (no waist); they keep what lies near their neighbours' heads."""
-    p = _ellipsoid_brain(20, size=80)
+    p = ellipsoid_brain_maps(20, size=80)
     head = p >= 0.5
     p[9:11, 14:26, 20:75] = 0.8                                     # the neck and trunk, beside the head
     brain, _ = brain_from_probabilities(p, voxel_ml=0.01, grid_mm=2.5)
     assert not brain[:, :, 40:].any()                               # the trunk is gone
     assert brain[head].all() and (brain & ~head).sum() < 0.03 * head.sum()
     assert np.array_equal(trim_outlier_slices(head, 2.5), head)     # a head alone is left as it is
-
-
-def test_slices_that_run_on_together_lose_what_lies_outside_their_head_ellipse() -> None:
-    """Four neighbouring slices run on into the neck together (no slice is an outlier among its
-    neighbours): each keeps its head's ellipse; the head alone keeps all but a sliver."""
-    p = _ellipsoid_brain(20, size=80)
-    head = p >= 0.5
-    p[7:12, 16:24, 20:60] = np.maximum(p[7:12, 16:24, 20:60], 0.8)  # a neck 20 mm wide, 100 mm long
-    component = p >= 0.5
-    assert np.array_equal(trim_outlier_slices(component, 2.5), component)
-    trimmed = trim_to_head_ellipses(component, 2.5)
-    assert not trimmed[:, :, 40:].any() and trimmed[head].mean() > 0.99
-    assert (trim_to_head_ellipses(head, 2.5) ^ head).sum() < 0.01 * head.sum()

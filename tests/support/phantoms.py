@@ -98,3 +98,11 @@ def mirror_symmetric_volume(plane_x: float = 1.5) -> tuple[np.ndarray, np.ndarra
             vol += amp * np.exp(-np.sum(d * d, -1) / 40.0)
     vol += 0.02 * xyz[..., 1] + 0.01 * xyz[..., 2]  # breaks any other symmetry
     return vol.astype(np.float32), aff
+
+
+def ellipsoid_brain_maps(n: int = 16, size: int = 48) -> np.ndarray:
+    """A localiser's per-slice probability maps ``[n, size, size]`` of an ellipsoidal brain filling
+    slices 1..n-2 (0.9 inside)."""
+    k, r, c = np.mgrid[:n, :size, :size]
+    inside = ((k - (n - 1) / 2) / ((n - 1) / 2)) ** 2 + ((r - 20) / 14) ** 2 + ((c - 20) / 14) ** 2 < 1
+    return np.where(inside, 0.9, 0.0).astype(np.float32)
