@@ -7,7 +7,8 @@ script takes every real stack with a manual mask (``NAME_brain_mask.nii.gz`` bes
 the Dice against the rewritten mask, per stack and as the median and minimum per rewrite:
 
 * ``base``: the file as it is;
-* ``slice-axis-first``, ``x-reversed``: the same voxels stored in another order, the header saying so;
+* ``slice-axis-first``, ``x-reversed``, ``y-reversed``: the same voxels stored in another order
+  (the slice axis first; the first or the second in-plane axis last to first), the header saying so;
 * ``px0.7``, ``px1.6``, ``px2.0``: in-plane pixels of that size (anti-aliased when coarser);
 * ``fov250``, ``fov420``: the field of view cut to 250 mm about its centre (where the brain stays
   in it) or widened to 420 mm with background; ``cropped``: cut to the head, the manual mask's
@@ -86,11 +87,12 @@ def rewrites(volume: Volume, mask: NDArray[np.bool_], rng: np.random.Generator) 
     yield "base", volume, mask
     axis = slice_axis_of(volume.spacing)
     yield ("slice-axis-first", *reordered(volume, mask, (axis, *[a for a in range(3) if a != axis])))
-    yield ("x-reversed", *reversed_axis(volume, mask, 0 if axis != 0 else 1))
+    plane = [a for a in range(3) if a != axis]
+    yield ("x-reversed", *reversed_axis(volume, mask, plane[0]))
+    yield ("y-reversed", *reversed_axis(volume, mask, plane[1]))
     for pixel_mm in (0.7, 1.6, 2.0):
         yield (f"px{pixel_mm}", *in_plane_pixels(volume, mask, pixel_mm))
     image = volume.array.astype(np.float32)
-    plane = [a for a in range(3) if a != axis]
     box = [slice(None)] * 3
     for a in plane:
         n = int(round(250 / volume.spacing[a]))

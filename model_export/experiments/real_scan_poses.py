@@ -32,13 +32,14 @@ from model_export.localiser.pose_accuracy import slice_poses  # noqa: E402
 from service.api.responses import stack_objects  # noqa: E402
 from service.geometry import anchors, se3  # noqa: E402
 from service.inference.acceptance import ATLAS_CENTRE_MM  # noqa: E402
+from service.inference.estimator import PoseEstimator  # noqa: E402
 from service.io.volume import Volume, read_volume  # noqa: E402
 from service.pipeline.predict import StackUpload, predict, prepare_stacks  # noqa: E402
 from service.preprocess.localise import Localiser, default_localiser  # noqa: E402
 
 
-def answer(volumes: dict[str, Volume], manual: dict[str, Volume] | None, localiser: Localiser, estimator,  # noqa: ANN001
-           image_consistency: bool = True) -> tuple[list[dict], list]:
+def answer(volumes: dict[str, Volume], manual: dict[str, Volume] | None, localiser: Localiser,
+           estimator: PoseEstimator, image_consistency: bool = True) -> tuple[list[dict], list]:
     """``/v1/predict``'s answer (its ``stacks`` objects) and the prepared stacks for the named
     ``volumes``: with their ``manual`` masks (sent with ``masks_hold_csf``), or without masks."""
     names = list(volumes)
@@ -58,8 +59,8 @@ def read_scan(scan: Path, stacks: str | None = None) -> tuple[dict[str, Volume],
     return {n: read_volume(files[n][0]) for n in names}, {n: read_volume(files[n][1]) for n in names}
 
 
-def compare(volumes: dict[str, Volume], manual: dict[str, Volume], localiser: Localiser, estimator,  # noqa: ANN001
-            image_consistency: bool = True) -> dict[str, float] | None:
+def compare(volumes: dict[str, Volume], manual: dict[str, Volume], localiser: Localiser,
+            estimator: PoseEstimator, image_consistency: bool = True) -> dict[str, float] | None:
     """One answer with the manual masks and one without, printed per stack and as a whole; returns
     the whole's figures (None when no slice is accepted in both)."""
     (with_masks, prepared), (without, _) = [answer(volumes, m, localiser, estimator, image_consistency)

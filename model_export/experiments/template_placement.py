@@ -22,6 +22,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import NDArray
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
@@ -49,7 +50,7 @@ def splatted(answers: list[list[dict]], which: int, volumes: dict[str, Volume], 
     return Volume(average.volume, grid.affine), int(slices.include.sum())
 
 
-def register(moving: Volume, template: Volume, template_mask: np.ndarray) -> tuple[float, float, float]:
+def register(moving: Volume, template: Volume, template_mask: NDArray[np.bool_]) -> tuple[float, float, float]:
     """Rigid registration of ``moving`` to the brain-masked ``template``: (correlation reached,
     rotation in degrees, shift of the template brain's centre in mm)."""
     import SimpleITK as sitk

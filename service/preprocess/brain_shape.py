@@ -40,10 +40,11 @@ on each side of it is a waist: a thin bridge into a neighbouring structure (:fun
 WAIST_OVERLAP = 0.5
 """A thin slice is a waist only where the slices on either side of it overlap by less than this share
 of the smaller: a brain's poor slice lies between two slices of one brain, a bridge between two objects."""
-CAP_GROWTH = 1.25
+CAP_GROWTH = 1.2
 """A thin slice whose neighbours overlap is still a waist where what lies beyond it (the side with less
-mass) has a slice wider than this times the slice on its other side: a brain's area rises to one
-widest slice and falls, so a cap beyond a poor slice narrows, and a face beyond a skull base does not."""
+mass) has a slice wider than this times the two slices past it on the other side: a brain's area
+rises to one widest slice and falls, so a cap beyond a poor slice narrows, and a face beyond a skull
+base does not (two slices, so that a partly seen slice beside a poor one does not make a cap look wide)."""
 VALLEY_SHARE = 0.3
 """Two or more neighbouring slices, each under this share of the component's largest slice on each side,
 are a bridge whatever their overlap, cut at its narrowest slice: a poor slice of a brain comes alone
@@ -159,17 +160,18 @@ def cut_at_waists(component: NDArray[np.bool_], prob: NDArray[np.float32]) -> ND
 
 def widens_beyond(k: int, area: NDArray, mass: NDArray) -> bool:
     """Whether, beyond slice ``k`` (on the side with less ``mass``), some slice is over
-    :data:`CAP_GROWTH` times as wide as the slice next to ``k`` on the other side: the profile of
-    ``area`` rises again past ``k``, which no cap of a brain does.
+    :data:`CAP_GROWTH` times as wide as the wider of the two slices past ``k`` on the other side: the
+    profile of ``area`` rises again past ``k``, which no cap of a brain does.
 
-    Example (a face, 3 slices of 30-40 pixels, beyond a thin slice, then a skull base of 16):
-        >>> area = np.array([36, 22, 37, 3, 16, 30, 40, 50, 55, 50, 40, 30])
+    Example (a face of three slices, 22-37 pixels, beyond a thin slice, then a skull base of 16 and
+    25 pixels; the same with the face at most 12 pixels wide):
+        >>> area = np.array([36, 22, 37, 3, 16, 25, 40, 50, 55, 50, 40, 30])
         >>> bool(widens_beyond(3, area, area)), bool(widens_beyond(3, np.minimum(area, 12), np.minimum(area, 12)))
         (True, False)
     """
     before, after = float(mass[:k].sum()), float(mass[k + 1:].sum())
-    beyond, other = (area[:k], area[k + 1]) if before < after else (area[k + 1:], area[k - 1])
-    return bool(len(beyond)) and float(beyond.max()) > CAP_GROWTH * float(other)
+    beyond, other = (area[:k], area[k + 1:k + 3]) if before < after else (area[k + 1:], area[max(k - 2, 0):k])
+    return bool(len(beyond)) and float(beyond.max()) > CAP_GROWTH * float(other.max())
 
 
 def narrowest_of_runs(small: NDArray, area: NDArray, min_run: int) -> NDArray[np.int64]:
@@ -191,15 +193,18 @@ def narrowest_of_runs(small: NDArray, area: NDArray, min_run: int) -> NDArray[np
 def end_dips(area: NDArray) -> NDArray[np.int64]:
     """Slices (indices into ``area``, one component's area per slice from its first slice to its last)
     where a small end run dips: at each end, the run of slices under :data:`VALLEY_SHARE` of the
-    largest slice, when its narrowest slice is under :data:`END_DIP` of a slice beyond it (towards
-    the end). A cap that narrows to its last slice has no dip.
+    largest slice, when two or more slices lie beyond its narrowest slice (towards the end) and one
+    of them is over 1 / :data:`END_DIP` times as wide. A cap that narrows to its last slice has no
+    dip, nor one whose last slice alone is wider than a poor slice before it.
 
-    Example (a brain whose last slices are 5, 2, 5, 4 pixels: the dip at 2 is a bridge; the first
-    end narrows as a cap does):
+    Example (a brain whose last slices are 5, 2, 5, 4 pixels: the dip at 2 is a bridge; its first
+    slices, 3 and 8 pixels, are no run of small slices):
         >>> end_dips(np.array([3, 8, 20, 20, 20, 5, 2, 5, 4])).tolist()
         [6]
     """
     area = np.asarray(area, np.float64)
+    if not len(area):
+        return np.zeros(0, np.int64)
     small = area < VALLEY_SHARE * area.max()
     dips = []
     for order in (np.arange(len(area)), np.arange(len(area))[::-1]):     # towards the last, the first
@@ -210,7 +215,7 @@ def end_dips(area: NDArray) -> NDArray[np.int64]:
         if len(run) < 2:
             continue
         k = int(np.argmin(area[run]))
-        if area[run[k]] < END_DIP * area[run[k + 1:]].max(initial=0.0):
+        if len(run) - k > 2 and area[run[k]] < END_DIP * area[run[k + 1:]].max():
             dips.append(int(run[k]))
     return np.array(sorted(dips), np.int64)
 

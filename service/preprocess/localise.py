@@ -5,10 +5,11 @@
    (:func:`~service.preprocess.localiser_inputs.localiser_inputs`) and gives each pixel's
    probability of lying inside the fetal skull. It is trained on synthetic whole-uterus stacks only
    (atlas brains in generated surroundings; ``model_export.localiser``), so no scanner's contrast,
-   pixel size or field of view is special to it. Each slice is also seen mirrored, and the two
-   answers' logits averaged: a stack written with one axis reversed gets the same mask, and
-   what the network decides by a narrow margin at the brain's edge (a face, a neck as wide as
-   the head) is decided the same way for every scanner's sampling of it.
+   pixel size or field of view is special to it. Each slice is also seen mirrored along its first
+   in-plane axis (the grid's ``W``), and the two answers' logits averaged: a stack written with that
+   axis reversed gets the same mask (where the grid's padding is even on both sides), and what the
+   network decides by a narrow margin at the brain's edge (a face, a neck as wide as the head) is
+   decided alike for every sampling a scanner makes of it.
 2. **The geometry** settles the answer (:mod:`service.preprocess.brain_shape`), on the network's
    grid: one 3D connected brain of a plausible volume for 20-40 weeks, without what hangs on to it
    through a waist or what a slice adds beyond its neighbours, its in-plane holes filled; then the

@@ -106,6 +106,39 @@ def test_bits_of_a_body_beyond_a_brains_last_slice_are_cut_and_a_narrowing_cap_i
     assert np.array_equal(kept[:last + 1], component[:last + 1]) and not kept[last + 1:].any()
 
 
+def test_a_face_past_the_skull_base_is_cut_though_the_slices_beside_the_thin_one_overlap() -> None:
+    """A face of three slices as wide as the brain's middle, past a thin slice, then a narrow skull
+    base that lies inside the face's outline (so the slices beside the thin one overlap): the
+    component widens again past the thin slice, which no cap does: cut there."""
+    p = np.zeros((26, 48, 48), np.float32)
+    p[8:] = ellipsoid_brain_maps(20)[1:19]                          # the brain from slice 8 on
+    p[4:7, 10:30, 8:28] = 0.8                                       # slices 4-6: the face
+    p[7, 18:21, 16:19] = 0.8                                        # slice 7: thin, inside both
+    component = (p >= 0.5) & (ndimage.label(p >= 0.5, structure=np.ones((3, 3, 3)))[0] == 1)
+    assert component[4].any() and (component[6] & component[8]).sum() == component[8].sum()
+    kept = cut_at_waists(component, p)
+    assert not kept[:8].any() and np.array_equal(kept[8:], component[8:])
+
+
+def test_a_poor_slice_beside_a_partly_seen_one_keeps_its_cap() -> None:
+    """A poor slice, and the slice after it seen in part: the cap before them narrows away from
+    them, as caps do, and is kept, as is a cap past a poor slice second from the end."""
+    for k in (5, 8):
+        p = ellipsoid_brain_maps(24)
+        p[k] = 0.0
+        p[k, 18:21, 18:21] = 0.9
+        inside = np.argwhere(p[k + 1] > 0)
+        p[k + 1] = 0.0
+        p[k + 1][tuple(inside[: int(0.6 * len(inside))].T)] = 0.9
+        component = p >= 0.5
+        assert np.array_equal(cut_at_waists(component, p), component), k
+    p = ellipsoid_brain_maps(24)
+    p[21] = 0.0
+    p[21, 20, 20] = 0.9                                             # second from the last slice (22)
+    component = (p >= 0.5) & (ndimage.label(p >= 0.5, structure=np.ones((3, 3, 3)))[0] == 1)
+    assert np.array_equal(cut_at_waists(component, p), component)
+
+
 def test_two_poor_slices_through_the_middle_of_a_brain_cut_nothing() -> None:
     p = ellipsoid_brain_maps(24)
     p[10:12] = 0.0

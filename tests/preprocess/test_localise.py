@@ -58,9 +58,10 @@ def test_the_shipped_localiser_finds_the_brain_of_a_generated_whole_uterus_stack
 
 
 def test_a_stack_written_with_an_axis_reversed_gets_the_same_mask(localiser: Localiser) -> None:
-    """The network sees each slice and its mirror image: a file whose first in-plane axis runs the
-    other way (its header saying so) gets the same brain, voxel for voxel once turned back; one pass
-    alone does not."""
+    """The network sees each slice and its mirror image along the grid's W axis (the stack's first
+    in-plane voxel axis): a file whose first in-plane axis runs the other way (its header saying so)
+    gets the same brain, voxel for voxel once turned back, where the grid's padding is even on both
+    sides (as here); one pass alone does not."""
     from model_export.localiser.scenes import HeadModel, synth_stack
     from tests.support.phantoms import phantom_brain
 
@@ -70,8 +71,8 @@ def test_a_stack_written_with_an_axis_reversed_gets_the_same_mask(localiser: Loc
     flipped_affine[:3, 3] += flipped_affine[:3, 0] * (volume.array.shape[0] - 1)
     flipped_affine[:3, 0] *= -1
     flipped = Volume(np.ascontiguousarray(volume.array[::-1]), flipped_affine)
-    def apart(a: np.ndarray, b: np.ndarray) -> float:      # b turned back along either in-plane axis
-        return float(min(np.abs(a - b[:, :, ::-1]).max(), np.abs(a - b[:, ::-1]).max()))
+    def apart(a: np.ndarray, b: np.ndarray) -> float:      # b turned back along the grid's W axis
+        return float(np.abs(a - b[:, :, ::-1]).max())
 
     assert localiser.mirrored
     assert apart(localiser.probabilities(volume)[0], localiser.probabilities(flipped)[0]) < 0.01
@@ -83,7 +84,8 @@ def test_a_stack_written_with_an_axis_reversed_gets_the_same_mask(localiser: Loc
 
 def test_a_stack_cropped_to_the_head_before_it_is_sent_is_localised(localiser: Localiser) -> None:
     """Other pipelines send stacks cut to the head (here its box and 15 mm: a field of view of about
-    100 mm, under the network's 160 mm canvas, to which it is padded)."""
+    100 mm, padded to the network's 160 mm canvas): the brain is found in two of three such stacks
+    with a Dice over 0.9."""
     from model_export.localiser.scenes import HeadModel, synth_stack
     from service.preprocess.localiser_inputs import MIN_GRID_PX, localiser_inputs
     from tests.support.phantoms import phantom_brain
@@ -104,7 +106,7 @@ def test_a_stack_cropped_to_the_head_before_it_is_sent_is_localised(localiser: L
         x, _ = localiser_inputs(cropped, localiser.grid_mm)
         assert min(x.shape[2:]) >= MIN_GRID_PX
         scores.append(dice(localiser.localise(cropped).mask, cropped_truth))
-    assert np.median(scores) > 0.85, scores
+    assert sorted(scores)[1] > 0.9, scores
 
 
 def test_stacks_localised_together_get_what_each_gets_alone(localiser: Localiser) -> None:
