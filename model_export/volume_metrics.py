@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.geometry import sampling
+from service.geometry.pose import apply
 from service.io.volume import Volume
 
 
@@ -30,7 +31,7 @@ def volume_psnr_ncc(volume: Volume, img: NDArray, msk: NDArray, aff: NDArray,
             undoing that common offset (the frame a reconstruction inherits from its starting poses).
     """
     ijk = np.stack(np.meshgrid(*[np.arange(s) for s in volume.array.shape], indexing="ij"), -1).reshape(-1, 3)
-    pts = ijk @ volume.affine[:3, :3].T + volume.affine[:3, 3]
+    pts = apply(volume.affine, ijk)
     ref = sampling.sample_points(img, aff, pts)
     inside = sampling.sample_points(msk, aff, pts) > 0.5
     values = volume.array.reshape(-1)

@@ -171,7 +171,7 @@ def measure(localiser: Localiser, heldout: Path, pose_stacks: int = 8, root: Pat
             poses_heldout.append(pose_agreement(
                 [StackUpload(path.stem, volume, Volume(z["mask"].astype(np.uint8), z["affine"]))], localiser, estimator))
     manual = [f for scan in sorted(Path(root).glob("*/")) for f in masked_files(scan)]
-    uploads = [StackUpload(m.name, read_volume(stack), read_volume(m)) for _, stack, m in manual]
+    uploads = [StackUpload(name, read_volume(stack), read_volume(m)) for name, stack, m in manual]
     poses_real = pose_agreement(uploads, localiser, estimator) if uploads else None
     held_dice = [r["dice"] for r in held]
     real_dice = [r["dice"] for r in real if r["dice"] is not None]

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from service.io.volume import Volume
-from service.preprocess.localiser_inputs import PAD_MULTIPLE, localiser_inputs, target_maps
+from service.preprocess.localiser_inputs import MIN_GRID_PX, PAD_MULTIPLE, localiser_inputs, target_maps
 
 
 def ellipsoid_stack(pixel_mm: float, fov_mm: float = 300.0, thickness_mm: float = 3.0, slices: int = 30,
@@ -43,6 +43,19 @@ def test_a_mask_goes_to_the_grid_and_back_unchanged() -> None:
     assert back.shape == brain.shape
     dice = 2 * (back & brain).sum() / (back.sum() + brain.sum())
     assert dice > 0.97, dice
+
+
+def test_a_stack_cropped_to_the_head_is_padded_to_the_canvas_and_maps_back() -> None:
+    """110 mm of field of view (44 grid pixels) are padded to MIN_GRID_PX: the target stays on the
+    image's brain in the padded grid, and the mask comes back to the stack unchanged."""
+    vol, brain = ellipsoid_stack(1.1, fov_mm=110.0, centre_mm=(0.0, 0.0, 5.0))
+    x, grid = localiser_inputs(vol, 2.5)
+    target = target_maps(brain, vol, 2.5)
+    assert grid.resampled == (44, 44) and x.shape[2:] == (MIN_GRID_PX, MIN_GRID_PX) == target.shape[1:]
+    inside, outside = x[:, 1][target > 0.9], x[:, 1][(target < 0.1) & (x[:, 1] > 0)]
+    assert inside.min() > 0.9 and outside.max() < 0.5                  # the brain (300) is where the target is
+    back = grid.to_stack(target) >= 0.5
+    assert 2 * (back & brain).sum() / (back.sum() + brain.sum()) > 0.97
 
 
 def test_the_network_sees_the_same_picture_at_any_pixel_size() -> None:

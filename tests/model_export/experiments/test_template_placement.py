@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from service.geometry import se3
-from service.geometry.pose import make_pose
+from service.geometry.pose import apply, make_pose
 from service.io.volume import Volume
 from tests.support.phantoms import phantom_brain
 
@@ -17,7 +17,7 @@ def test_a_brain_moved_by_a_known_rigid_transform_needs_that_correction() -> Non
     from model_export.experiments.template_placement import register
 
     image, mask, affine = phantom_brain(3)
-    centre = (np.argwhere(mask).mean(axis=0) @ affine[:3, :3].T) + affine[:3, 3]
+    centre = apply(affine, np.argwhere(mask).mean(axis=0))
     rotation = se3.so3_exp(np.radians([4.0, -3.0, 2.0]))
     shift = np.array([2.0, -1.5, 1.0])
     about_centre = make_pose(np.eye(3), centre) @ make_pose(rotation, shift) @ make_pose(np.eye(3), -centre)
