@@ -406,10 +406,13 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
     quality, held_out = None, None
     if cfg.quality:
         t0 = time.perf_counter()
-        held_out = held_out_ncc(model, slice_set.values, pixel_weight, sid, slice_set.stack_index, x,
+        held_out = held_out_ncc(model, slice_set.values, pixel_weight, sid, slice_set.stack_index,
+                                lambda w: gaussian_average(slice_set, poses, grid, sigma_mm=cfg.ga_sigma_mm,
+                                                           pixel_weight=w).volume,
                                 lambda sim, val: slice_ncc(sim, val, sid, n), float(lams[-1] if lams else cfg.lam),
                                 default_delta(x, support, cfg.delta_fraction), support)
-        quality = quality_report(ncc, held_out, judged_slices(included, counts), slice_set.stack_index)
+        quality = quality_report(ncc, held_out, judged_slices(included, counts), slice_set.stack_index,
+                                 judged)
         timings["quality"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
     if progress is not None:

@@ -6,13 +6,17 @@ Two measures, both from the acquired slices themselves:
 * **agreement**: each slice against the volume simulated at its refined pose through the
   acquisition model (its NCC). A slice that sits where it was acquired looks like the volume there.
   Reported: the median over the judged slices and the fraction above :data:`GOOD_NCC`.
-* **leave one stack out**: the volume re-solved without one stack's pixels (warm-started, a few
-  conjugate-gradient iterations), each slice of that stack against it. A volume that only echoes its
-  own slices, or stacks that disagree, score well on agreement and badly here: it measures whether
-  the stacks predict each other. Reported: the median per stack and over all slices.
+* **leave one stack out**: the volume solved without one stack's pixels, each slice of that stack
+  against it. The solve starts from the Gaussian average of the other stacks, not from the full
+  volume: a few conjugate-gradient iterations from the full volume keep the left-out stack's imprint
+  wherever no other stack reaches, and slices piled where only their own stack lies then predict
+  themselves. A volume that only echoes its own slices, or stacks that disagree, score well on
+  agreement and badly here: it measures whether the stacks predict each other. Reported: the median
+  per stack and over all slices.
 
-A slice is judged when it was used and has at least :data:`MIN_PIXEL_FRACTION` of the median
-slice's pixels (an edge slice of a few pixels says little).
+A slice is judged when it has at least :data:`MIN_PIXEL_FRACTION` of the median slice's pixels (an
+edge slice of a few pixels says little) and was used: for agreement, in the volume; for leaving
+a stack out, given to the job, so that a path that drops slices is judged on them too.
 
 Example (a volume that predicts its slices perfectly, and one slice that does not):
     >>> import numpy as np
@@ -34,7 +38,8 @@ from service.reconstruction.superresolution import solve_without
 
 GOOD_NCC = 0.7
 MIN_PIXEL_FRACTION = 0.2
-HELD_OUT_ITERATIONS = 4
+HELD_OUT_ITERATIONS = 8
+"""Conjugate-gradient iterations of each leave-one-stack-out solve, from the other stacks' average."""
 
 
 def judged_slices(use: NDArray, pixel_counts: NDArray) -> NDArray[np.bool_]:
@@ -47,10 +52,13 @@ def judged_slices(use: NDArray, pixel_counts: NDArray) -> NDArray[np.bool_]:
 
 
 def held_out_ncc(model: ForwardModel, values: NDArray, pixel_weight: NDArray, slice_id: NDArray,
-                 stack_index: NDArray, x: NDArray, ncc: Callable[[NDArray, NDArray], NDArray], lam: float,
-                 delta: float, support: NDArray | None, iterations: int = HELD_OUT_ITERATIONS) -> NDArray[np.float64]:
+                 stack_index: NDArray, start: Callable[[NDArray], NDArray],
+                 ncc: Callable[[NDArray, NDArray], NDArray], lam: float, delta: float, support: NDArray | None,
+                 iterations: int = HELD_OUT_ITERATIONS) -> NDArray[np.float64]:
     """``[n]``: each slice's NCC against the volume solved without its stack's pixels (NaN where
-    the stack is the only one). ``ncc(simulated, values)`` gives the per-slice NCC of pixel vectors."""
+    the stack is the only one). ``start(weights)`` gives the volume the solve starts from, given the
+    pixel weights without the stack (the other stacks' Gaussian average); ``ncc(simulated, values)``
+    gives the per-slice NCC of pixel vectors."""
     n = len(stack_index)
     out = np.full(n, np.nan)
     stacks = np.unique(stack_index)
@@ -58,7 +66,9 @@ def held_out_ncc(model: ForwardModel, values: NDArray, pixel_weight: NDArray, sl
         return out
     stack_of_pixel = np.asarray(stack_index)[slice_id]
     for s in stacks:                                    # a loop over the stacks, not the slices
-        xs = solve_without(model, values, pixel_weight, stack_of_pixel == s, x, iterations=iterations, lam=lam,
+        left_out = stack_of_pixel == s
+        x0 = start(np.where(left_out, np.float32(0.0), pixel_weight))
+        xs = solve_without(model, values, pixel_weight, left_out, x0, iterations=iterations, lam=lam,
                            delta=delta, support=support)
         mine = stack_index == s
         out[mine] = ncc(model.forward(xs), values)[mine]
@@ -71,9 +81,12 @@ def _median(x: NDArray) -> float | None:
     return round(float(np.median(x)), 4) if x.size else None
 
 
-def quality_report(ncc: NDArray, held_out: NDArray, judged: NDArray, stack_index: NDArray) -> dict:
-    """The ``quality`` object of a job's report (see the module)."""
+def quality_report(ncc: NDArray, held_out: NDArray, judged: NDArray, stack_index: NDArray,
+                   held_out_judged: NDArray | None = None) -> dict:
+    """The ``quality`` object of a job's report (see the module): agreement over the ``judged``
+    slices, leaving a stack out over ``held_out_judged`` (default: the same slices)."""
     judged = np.asarray(judged, bool)
+    held_judged = judged if held_out_judged is None else np.asarray(held_out_judged, bool)
     c = np.asarray(ncc, np.float64)[judged]
     c = c[np.isfinite(c)]
     h = np.asarray(held_out, np.float64)
@@ -83,7 +96,7 @@ def quality_report(ncc: NDArray, held_out: NDArray, judged: NDArray, stack_index
         "median_ncc": _median(c),
         "fraction_ncc_above_0_7": round(float(np.mean(c > GOOD_NCC)), 4) if c.size else None,
         "leave_one_stack_out": {
-            "median_ncc": _median(h[judged]),
-            "per_stack_median_ncc": [_median(h[judged & (stack_index == s)]) for s in stacks],
+            "median_ncc": _median(h[held_judged]),
+            "per_stack_median_ncc": [_median(h[held_judged & (stack_index == s)]) for s in stacks],
         },
     }

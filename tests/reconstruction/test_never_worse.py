@@ -28,7 +28,7 @@ def run_with(monkeypatch, scores: dict[str, float | None], config: Reconstructio
 
 
 def test_a_diverged_full_job_gives_way(monkeypatch) -> None:  # noqa: ANN001
-    result, calls = run_with(monkeypatch, {"full": 0.79, "starting_poses": 0.93, "slice_level": 0.94},
+    result, calls = run_with(monkeypatch, {"full": 0.79, "starting_poses": 0.93, "slice_level": 0.95},
                              ReconstructionConfig())
     assert calls == ["full", "starting_poses", "slice_level"]
     assert result.quality["path"] == "slice_level" and result.quality["paths"]["full"] == 0.79
@@ -42,9 +42,17 @@ def test_a_good_full_job_costs_one_cheap_check(monkeypatch) -> None:  # noqa: AN
     result, calls = run_with(monkeypatch, {"full": 0.8, "starting_poses": 0.9, "slice_level": 0.85},
                              ReconstructionConfig(coarse_to_fine=False))
     assert calls == ["full", "starting_poses"] and result.quality["path"] == "starting_poses"
-    result, calls = run_with(monkeypatch, {"full": 0.933, "starting_poses": 0.93, "slice_level": 0.9},
-                             ReconstructionConfig())                      # better, but not by MIN_GAIN
+    result, calls = run_with(monkeypatch, {"full": 0.94, "starting_poses": 0.93, "slice_level": 0.9},
+                             ReconstructionConfig())                      # better, but by too little
     assert calls == ["full", "starting_poses", "slice_level"] and result.quality["path"] == "starting_poses"
+
+
+def test_the_gain_asked_for_grows_with_the_starting_mismatch() -> None:
+    # 1.25 x less mismatch: from 0.95, 0.96 is enough; from 0.5, 0.55 is not and 0.6 is.
+    assert never_worse.choose({"full": 0.961, "starting_poses": 0.95}) == "full"
+    assert never_worse.choose({"full": 0.957, "starting_poses": 0.95}) == "starting_poses"
+    assert never_worse.choose({"full": 0.55, "starting_poses": 0.5}) == "starting_poses"
+    assert never_worse.choose({"full": 0.61, "starting_poses": 0.5, "slice_level": 0.58}) == "full"
 
 
 def test_a_single_stack_keeps_the_full_job(monkeypatch) -> None:  # noqa: ANN001

@@ -7,6 +7,7 @@ import numpy as np
 
 from service.geometry.pose import translate
 from service.reconstruction.pipeline import ReconstructionConfig, reconstruct
+from service.reconstruction.quality import quality_report
 from service.reconstruction.slices import SliceSet
 
 FAST = ReconstructionConfig(register=False, sr_iterations=4)
@@ -37,3 +38,27 @@ def test_quality_can_be_off(acquisition) -> None:  # noqa: ANN001
     assert res.quality is None and res.held_out_ncc is None
     single = reconstruct(ss, resolution_mm=2.0, svr_iterations=0)
     assert single.quality["leave_one_stack_out"]["median_ncc"] is None        # one stack: nothing to leave out
+
+
+def test_a_stack_placed_where_no_other_stack_reaches_does_not_predict_itself(acquisition) -> None:  # noqa: ANN001
+    # Solved from the full volume, the left-out stack's imprint stays wherever no other stack reaches,
+    # and its slices predict themselves there; solved from the other stacks' average, they do not.
+    placed = [(vol, mask, t, np.ones(len(t), bool)) for (vol, mask), t in zip(acquisition.stacks, acquisition.truth)]
+    vol, mask, t, use = placed[1]
+    placed[1] = (vol, mask, translate([90.0, 0.0, 0.0]) @ t, use)           # beyond the others' field of view
+    res = reconstruct(SliceSet.from_stacks(placed), resolution_mm=2.0, svr_iterations=1, config=FAST)
+    assert res.quality["median_ncc"] > 0.8                                   # every stack agrees with itself
+    held = res.quality["leave_one_stack_out"]["per_stack_median_ncc"]
+    assert held[1] < 0.2 < 0.8 < min(held[0], held[2]), held
+
+
+def test_slices_a_path_dropped_still_count_when_a_stack_is_left_out() -> None:
+    ncc = np.array([0.95, 0.9, 0.92, 0.93])
+    held = np.array([0.9, 0.2, 0.88, 0.1])                 # the second and fourth fit nothing
+    in_volume = np.array([True, False, True, False])       # the path dropped them
+    given = np.ones(4, bool)                               # the job was given all four
+    stacks = np.array([0, 0, 1, 1])
+    r = quality_report(ncc, held, in_volume, stacks, given)
+    assert r["judged_slices"] == 2 and r["median_ncc"] == 0.935
+    assert r["leave_one_stack_out"]["per_stack_median_ncc"] == [0.55, 0.49]
+    assert quality_report(ncc, held, in_volume, stacks)["leave_one_stack_out"]["median_ncc"] == 0.89
