@@ -11,7 +11,9 @@ variant: the mean E.D. (mm, slices with >= 20 mask pixels, network frames; again
 twin-min, and the truth in the acquisition's own frame) of the predicted and of the refined poses,
 on how many acquisitions the refined poses are worse than the predicted ones, the quality report's
 leave-one-stack-out NCC (what a user sees without the truth) and the seconds of each reconstruction. ``--atlas-frame`` adds each variant with its atlas frame re-estimated by the
-network (``service/reconstruction/atlas_frame.py``). Needs ``../shared/data`` (the atlas volumes). Run:
+network (``service/reconstruction/atlas_frame.py``); ``--midline`` adds twin-min against the truth moved so
+that the brain's own midline lies on the atlas plane (a brain off that plane has no mirror twin in a
+symmetric atlas space: ``frame_bias.py``, part 3). Needs ``../shared/data`` (the atlas volumes). Run:
 ``.venv/bin/python model_export/experiments/refine_bench.py [--levels mild,jumps] [--variants default,no-coarse]
 [--per-level 6] [--resolution 1.5] [--rounds 3]``.
 """
@@ -30,10 +32,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from model_export.acquisitions import simulate_acquisition
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, run_acquisition
+from model_export.experiments.frame_bias import midline_offset
 from model_export.volume_metrics import volume_psnr_ncc
 from service.api.responses import stack_objects
 from service.geometry import se3, twin
 from service.geometry.anchors import ed
+from service.geometry.pose import translate
 from service.inference.estimator import OnnxPoseEstimator
 from service.inference.model_file import load_model
 from service.jobs.worker import MIN_ACCEPTED_SHARE, starting_poses
@@ -43,11 +47,14 @@ from service.reconstruction.pipeline import ReconstructionConfig, reconstruct
 from service.reconstruction.slices import SliceSet
 
 
-def errors(stacks, prepared, poses, plane_x_mm: float) -> np.ndarray:
+def errors(stacks, prepared, poses, plane_x_mm: float, midline: np.ndarray | None = None) -> np.ndarray:
     """``[3, N]`` E.D. of ``poses`` (``atlas_from_voxel``, all stacks) against the truth, twin-min
     (the nearer of the truth and its left-right twin), and against the truth once the
     acquisition's common frame error is taken out (one rigid atlas -> atlas map for all its slices:
-    what the reconstruction keeps as its frame), in network frames."""
+    what the reconstruction keeps as its frame), in network frames. With ``midline`` (the atlas ->
+    atlas map that brings the brain's own midline onto the atlas plane,
+    :func:`~model_export.experiments.frame_bias.midline_offset` about its centre), a fourth row:
+    twin-min against the truth so placed."""
     pose, true = [], []
     off = 0
     for s, p in zip(stacks, prepared):
@@ -59,7 +66,10 @@ def errors(stacks, prepared, poses, plane_x_mm: float) -> np.ndarray:
         off += n
     pose, true = np.concatenate(pose), np.concatenate(true)
     frame = se3.frechet_mean(true @ se3.inverse(pose), np.ones(len(pose)))
-    return np.stack([ed(pose, true), twin.twin_min_ed(pose, true, plane_x_mm), ed(frame @ pose, true)])
+    rows = [ed(pose, true), twin.twin_min_ed(pose, true, plane_x_mm), ed(frame @ pose, true)]
+    if midline is not None:
+        rows.append(twin.twin_min_ed(pose, midline @ true, plane_x_mm))
+    return np.stack(rows)
 
 
 VARIANTS: dict[str, dict] = {
@@ -101,6 +111,8 @@ def main() -> None:
                     help="comma-separated: each reconstructs from the same prediction, starting from the accepted "
                          "slices when this share of the posed ones is accepted (above 1: from every slice)")
     ap.add_argument("--variants", default="default", help=f"comma-separated, of {', '.join(VARIANTS)}")
+    ap.add_argument("--midline", action="store_true", help="also twin-min against the truth moved so that the "
+                    "brain's own midline lies on the atlas plane (frame_bias.py's part 3)")
     args = ap.parse_args()
     if not DEFAULT_ATLAS_ROOT.exists():
         sys.exit(f"needs the atlas volumes at {DEFAULT_ATLAS_ROOT}")
@@ -110,6 +122,7 @@ def main() -> None:
     rng = np.random.default_rng(args.seed)
     shares = [float(x) for x in args.start_shares.split(",")]
     variants = [f"{v}@{sh:g}" if len(shares) > 1 else v for v in args.variants.split(",") for sh in shares]
+    midlines: dict[str, np.ndarray] = {}
     for level in args.levels.split(","):
         framed = [f"{k}, atlas frame" for k in variants] if args.atlas_frame else []
         rows = {"predicted": [], **{k: [] for k in variants}, **{k: [] for k in framed}}
@@ -121,6 +134,10 @@ def main() -> None:
             stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level,
                                           **({} if args.bias is None else {"bias": args.bias}))
             (predictions,), prepared, _ = run_acquisition(stacks, est, 100, True)
+            if args.midline and vol.name not in midlines:
+                about = translate(vol.centre)
+                midlines[vol.name] = about @ midline_offset(vol) @ se3.inverse(about)
+            mid = midlines.get(vol.name)
             body = {"stacks": stack_objects(predictions)}
             masks = [np.moveaxis(p.slices.masks.transpose(0, 2, 1), 0, p.slices.slice_axis) for p in prepared]
             for name in variants:
@@ -130,13 +147,13 @@ def main() -> None:
                     poses = [(s.atlas_from_voxel, inc) for s, (_, inc) in zip(stacks, poses)]
                 ss = SliceSet.from_stacks([(s.volume, m, mats, inc) for s, m, (mats, inc) in zip(stacks, masks, poses)])
                 if name == variants[0]:
-                    rows["predicted"].append(errors(stacks, prepared, ss.atlas_from_voxel, plane))
+                    rows["predicted"].append(errors(stacks, prepared, ss.atlas_from_voxel, plane, mid))
                 t = time.perf_counter()
                 run = reconstruct_never_worse if variant == "job" else reconstruct
                 res = run(ss, resolution_mm=args.resolution, svr_iterations=args.rounds,
                           config=ReconstructionConfig(symmetry_plane_x_mm=plane, **VARIANTS[variant]))
                 seconds[name].append(time.perf_counter() - t)
-                rows[name].append(errors(stacks, prepared, res.atlas_from_voxel_final, plane))
+                rows[name].append(errors(stacks, prepared, res.atlas_from_voxel_final, plane, mid))
                 held[name].append(res.quality["leave_one_stack_out"]["median_ncc"])
                 psnr[name].append(volume_psnr_ncc(res.volume, vol.image, vol.mask, vol.affine)[0])
                 if variant == "job":
@@ -145,19 +162,21 @@ def main() -> None:
                 if args.atlas_frame:
                     fit = atlas_frame(res.volume, est, plane)
                     rows[f"{name}, atlas frame"].append(errors(stacks, prepared,
-                                                               fit.correction @ res.atlas_from_voxel_final, plane))
-            print(f"{level} {a}: " + ", ".join(f"{k} {v[-1][0].mean():.2f} / {v[-1][1].mean():.2f} / "
-                                              f"{v[-1][2].mean():.2f}" for k, v in rows.items())
+                                                               fit.correction @ res.atlas_from_voxel_final, plane,
+                                                               mid))
+            print(f"{level} {a}: " + ", ".join(f"{k} " + " / ".join(f"{r.mean():.2f}" for r in v[-1])
+                                              for k, v in rows.items())
                   + "; leave-one-stack-out NCC " + ", ".join(f"{k} {v[-1]}" for k, v in held.items())
                   + "; PSNR as placed " + ", ".join(f"{k} {v[-1]:.2f} dB" for k, v in psnr.items()), flush=True)
         means = {k: np.concatenate(v, axis=1).mean(axis=1) for k, v in rows.items()}
         before = np.array([r[1].mean() for r in rows["predicted"]])
         worse = {k: int(np.sum(np.array([r[1].mean() for r in rows[k]]) > before)) for k in variants}
-        summary = ", ".join(f"{k} {m[0]:.2f} / {m[1]:.2f} / {m[2]:.2f} mm" for k, m in means.items())
+        summary = ", ".join(f"{k} " + " / ".join(f"{x:.2f}" for x in m) + " mm" for k, m in means.items())
         times = ", ".join(f"{k} {np.mean(v):.1f} s" for k, v in seconds.items())
         summary += "; PSNR as placed " + ", ".join(f"{k} {np.mean(v):.2f} dB" for k, v in psnr.items())
         print(f"== {level} ({args.per_level} acquisitions, {args.resolution} mm, {args.rounds} rounds; mean E.D. "
-              f"against the truth / twin-min / the truth in the acquisition's own frame): {summary}; "
+              f"against the truth / twin-min / the truth in the acquisition's own frame"
+              f"{' / twin-min against the midline-placed truth' if args.midline else ''}): {summary}; "
               f"acquisitions worse than predicted (twin-min): {worse}; reconstruction {times}", flush=True)
 
 

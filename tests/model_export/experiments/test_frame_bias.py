@@ -1,13 +1,15 @@
-"""The frame-bias experiment's geometry: the common frame of an acquisition's errors, and the rigid
-registration that says where a brain's neighbours put it, against transforms simulated here."""
+"""The frame-bias experiment's geometry: the common frame of an acquisition's errors, the rigid
+registration that says where a brain's neighbours put it, and a brain's midline against the atlas
+plane, against transforms simulated here."""
 
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage
 
 from model_export.atlas import AtlasVolume
-from model_export.experiments.frame_bias import as_row, common_frame, register_rigid
-from service.geometry import se3
+from model_export.experiments.frame_bias import as_row, common_frame, midline_offset, register_rigid
+from service.geometry import se3, twin
 from service.geometry.pose import make_pose, translate
 from tests.support.phantoms import phantom_brain
 
@@ -38,3 +40,31 @@ def test_registration_recovers_a_brain_moved_by_a_known_rigid_transform() -> Non
     error = se3.inverse(found) @ p
     assert np.degrees(np.linalg.norm(se3.so3_log(error[:3, :3]))) < 0.5
     assert np.linalg.norm(error[:3, :3] @ fixed.centre + error[:3, 3] - fixed.centre) < 0.5
+
+
+def symmetric_brain() -> AtlasVolume:
+    """The phantom brain made mirror-symmetric about the atlas plane ``x = 0`` (its centre lies on it)."""
+    image, mask, affine = phantom_brain(3)
+    to_voxel = np.linalg.inv(affine) @ twin.mirror(0.0) @ affine
+    mirrored = [ndimage.affine_transform(a, to_voxel[:3, :3], to_voxel[:3, 3], order=1) for a in (image, mask)]
+    return AtlasVolume("symmetric", "test", 0.5 * (image + mirrored[0]), (mask + mirrored[1] > 1.0).astype(np.float32),
+                       affine)
+
+
+def moved(volume: AtlasVolume, rot_deg: list[float], shift_mm: list[float]) -> tuple[AtlasVolume, np.ndarray]:
+    """``volume`` moved in the world by a rigid ``g`` about its centre; returns it and ``g``."""
+    g = make_pose(se3.so3_exp(np.radians(rot_deg)), shift_mm)
+    about = translate(volume.centre)
+    return AtlasVolume("moved", "test", volume.image, volume.mask, about @ g @ se3.inverse(about) @ volume.affine), g
+
+
+def test_a_brain_moved_off_the_atlas_plane_is_brought_back_by_its_midline_offset() -> None:
+    """A symmetric brain moved by ``g`` (a shift along x, turns about y and z: what a mirror sees) has
+    midline offset ``g^-1``; moved along the plane (a turn about x, shifts in y and z), none."""
+    brain = symmetric_brain()
+    off, g = moved(brain, [0.0, 3.0, -2.0], [2.0, 0.0, 0.0])
+    error = midline_offset(off) @ g
+    assert np.degrees(np.linalg.norm(se3.so3_log(error[:3, :3]))) < 0.5 and np.linalg.norm(error[:3, 3]) < 0.3
+    along, _ = moved(brain, [4.0, 0.0, 0.0], [0.0, 3.0, -2.0])
+    h = midline_offset(along)
+    assert np.degrees(np.linalg.norm(se3.so3_log(h[:3, :3]))) < 0.5 and np.linalg.norm(h[:3, 3]) < 0.3
