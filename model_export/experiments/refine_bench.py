@@ -53,7 +53,7 @@ def errors(stacks, prepared, poses, plane_x_mm: float, midline: np.ndarray | Non
     acquisition's common frame error is taken out (one rigid atlas -> atlas map for all its slices:
     what the reconstruction keeps as its frame), in network frames. With ``midline`` (the atlas ->
     atlas map that brings the brain's own midline onto the atlas plane,
-    :func:`~model_export.experiments.frame_bias.midline_offset` about its centre), a fourth row:
+    :func:`~model_export.experiments.frame_bias.midline_offset` about its centre), ``[4, N]``: also
     twin-min against the truth so placed."""
     pose, true = [], []
     off = 0

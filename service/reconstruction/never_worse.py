@@ -46,10 +46,10 @@ MIN_MISMATCH_RATIO = 1.15
 """How many times smaller than the starting poses' a registered path's leave-one-stack-out mismatch
 (1 - median NCC) must be for it to be taken: the score's noise grows with the mismatch, so the gain
 asked for does too (0.0065 from 0.95, 0.065 from 0.5). On the simulated acquisitions of
-``refine_bench.py`` a registered path that made mild to independent motion's poses worse reduced
-the mismatch by up to 1.09 x, and the slice level that brings extreme motion's slices from about
-6 mm to 2-3 mm (twin-min) by 2.2-3.0 x; on the shared real scan with its masks the full job
-reduces it 1.27 x."""
+``refine_bench.py`` (two sets, 40 acquisitions) a registered path at mild to independent motion,
+which never made the poses better and sometimes worse, reduced the mismatch by up to 1.09 x; the
+slice level that brings extreme motion's slices from about 6-7 mm to 3 mm (twin-min) by 1.9-3.3 x;
+on the shared real scan with its masks the full job reduces it 1.27 x."""
 
 
 def held_out_score(result: ReconstructionResult) -> float | None:
