@@ -65,11 +65,32 @@ def errors(stacks, prepared, poses, plane_x_mm: float, midline: np.ndarray | Non
         true.append((s.atlas_from_voxel @ inv)[keep])
         off += n
     pose, true = np.concatenate(pose), np.concatenate(true)
-    frame = se3.frechet_mean(true @ se3.inverse(pose), np.ones(len(pose)))
+    frame = common_frame(pose, true)
     rows = [ed(pose, true), twin.twin_min_ed(pose, true, plane_x_mm), ed(frame @ pose, true)]
     if midline is not None:
         rows.append(twin.twin_min_ed(pose, midline @ true, plane_x_mm))
     return np.stack(rows)
+
+
+def common_frame(pose: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """The acquisition's common frame error: the atlas -> atlas map from where ``pose`` puts the
+    slices to where ``true`` does (Fréchet mean of ``true pose^-1``)."""
+    return se3.frechet_mean(true @ se3.inverse(pose), np.ones(len(pose)))
+
+
+def psnrs(res, vol, stacks, prepared, mid: np.ndarray | None) -> list[float]:  # noqa: ANN001
+    """The volume's PSNR against the truth as placed, frame-free (the frame its poses share undone),
+    and with ``mid`` against the truth placed with its midline on the atlas plane."""
+    voxel_from_network = np.concatenate([np.linalg.inv(p.network_from_voxel()) for p in prepared])
+    pose = res.atlas_from_voxel_final @ voxel_from_network
+    true = np.concatenate([s.atlas_from_voxel for s in stacks]) @ voxel_from_network
+    used = res.included
+    out = [volume_psnr_ncc(res.volume, vol.image, vol.mask, vol.affine)[0],
+           volume_psnr_ncc(res.volume, vol.image, vol.mask, vol.affine,
+                           frame=se3.inverse(common_frame(pose[used], true[used])))[0]]
+    if mid is not None:
+        out.append(volume_psnr_ncc(res.volume, vol.image, vol.mask, vol.affine, frame=mid)[0])
+    return out
 
 
 VARIANTS: dict[str, dict] = {
@@ -155,7 +176,7 @@ def main() -> None:
                 seconds[name].append(time.perf_counter() - t)
                 rows[name].append(errors(stacks, prepared, res.atlas_from_voxel_final, plane, mid))
                 held[name].append(res.quality["leave_one_stack_out"]["median_ncc"])
-                psnr[name].append(volume_psnr_ncc(res.volume, vol.image, vol.mask, vol.affine)[0])
+                psnr[name].append(psnrs(res, vol, stacks, prepared, mid))
                 if variant == "job":
                     print(f"  {name} path: {res.quality['path']} {res.quality['paths']}; "
                           f"{int(ss.include.sum())} slices start included", flush=True)
@@ -167,13 +188,16 @@ def main() -> None:
             print(f"{level} {a}: " + ", ".join(f"{k} " + " / ".join(f"{r.mean():.2f}" for r in v[-1])
                                               for k, v in rows.items())
                   + "; leave-one-stack-out NCC " + ", ".join(f"{k} {v[-1]}" for k, v in held.items())
-                  + "; PSNR as placed " + ", ".join(f"{k} {v[-1]:.2f} dB" for k, v in psnr.items()), flush=True)
+                  + "; PSNR " + ", ".join(f"{k} " + " / ".join(f"{x:.2f}" for x in v[-1]) + " dB"
+                                          for k, v in psnr.items()), flush=True)
         means = {k: np.concatenate(v, axis=1).mean(axis=1) for k, v in rows.items()}
         before = np.array([r[1].mean() for r in rows["predicted"]])
         worse = {k: int(np.sum(np.array([r[1].mean() for r in rows[k]]) > before)) for k in variants}
         summary = ", ".join(f"{k} " + " / ".join(f"{x:.2f}" for x in m) + " mm" for k, m in means.items())
         times = ", ".join(f"{k} {np.mean(v):.1f} s" for k, v in seconds.items())
-        summary += "; PSNR as placed " + ", ".join(f"{k} {np.mean(v):.2f} dB" for k, v in psnr.items())
+        summary += ("; PSNR as placed / frame-free" + (" / against the midline-placed truth" if args.midline else "")
+                    + " " + ", ".join(f"{k} " + " / ".join(f"{x:.2f}" for x in np.mean(v, axis=0)) + " dB"
+                                      for k, v in psnr.items()))
         print(f"== {level} ({args.per_level} acquisitions, {args.resolution} mm, {args.rounds} rounds; mean E.D. "
               f"against the truth / twin-min / the truth in the acquisition's own frame"
               f"{' / twin-min against the midline-placed truth' if args.midline else ''}): {summary}; "

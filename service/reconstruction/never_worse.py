@@ -12,8 +12,9 @@ Paths, in order:
 
 1. **the full job** (the configuration as given);
 2. **the starting poses**: robust super-resolution at the poses the job was given, no registration;
-3. **slice level only** (no coarse steps), tried only when the full job had its coarse steps on
-   and did not win against the starting poses.
+3. **slice level only** (no coarse steps), when the full job has its coarse steps on. It is tried
+   even where the full job beats the starting poses: at extreme motion the coarse steps can scramble
+   the slices and still score above poses that far off, while the slice level scores higher still.
 
 A registered path (1 or 3) wins where its leave-one-stack-out mismatch (1 - the median NCC) is at
 most the starting poses' over :data:`MIN_MISMATCH_RATIO`; otherwise the starting poses do. The
@@ -88,12 +89,13 @@ def reconstruct_never_worse(slice_set: SliceSet, resolution_mm: float = 0.8, svr
                                     config=run_cfg)
         scores[name] = held_out_score(results[name])
 
-    run("full", cfg, 0.0, 0.8)
     registers = cfg.register and svr_iterations > 0
+    slice_level = registers and cfg.coarse_to_fine
+    run("full", cfg, 0.0, 0.5 if slice_level else 0.85)
     if registers and scores["full"] is not None:
-        run("starting_poses", replace(cfg, register=False), 0.8, 0.9)
-        if cfg.coarse_to_fine and choose(scores) != "full":
-            run("slice_level", replace(cfg, coarse_to_fine=False), 0.9, 1.0)
+        run("starting_poses", replace(cfg, register=False), *((0.5, 0.6) if slice_level else (0.85, 1.0)))
+        if slice_level:
+            run("slice_level", replace(cfg, coarse_to_fine=False), 0.6, 1.0)
     best = choose(scores)
     result = results[best]
     result.quality = {**result.quality, "path": best, "paths": scores}

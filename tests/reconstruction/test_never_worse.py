@@ -35,10 +35,13 @@ def test_a_diverged_full_job_gives_way(monkeypatch) -> None:  # noqa: ANN001
     assert result.timings["all_paths"] == 3.0
 
 
-def test_a_good_full_job_costs_one_cheap_check(monkeypatch) -> None:  # noqa: ANN001
+def test_every_path_is_tried_and_the_best_registered_one_must_clearly_win(monkeypatch) -> None:  # noqa: ANN001
     result, calls = run_with(monkeypatch, {"full": 0.95, "starting_poses": 0.93, "slice_level": 0.0},
                              ReconstructionConfig())
-    assert calls == ["full", "starting_poses"] and result.quality["path"] == "full"
+    assert calls == ["full", "starting_poses", "slice_level"] and result.quality["path"] == "full"
+    result, calls = run_with(monkeypatch, {"full": 0.62, "starting_poses": 0.47, "slice_level": 0.81},
+                             ReconstructionConfig())                      # the full job beat the start, the slices beat it
+    assert calls == ["full", "starting_poses", "slice_level"] and result.quality["path"] == "slice_level"
     result, calls = run_with(monkeypatch, {"full": 0.8, "starting_poses": 0.9, "slice_level": 0.85},
                              ReconstructionConfig(coarse_to_fine=False))
     assert calls == ["full", "starting_poses"] and result.quality["path"] == "starting_poses"
