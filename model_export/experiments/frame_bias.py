@@ -30,13 +30,10 @@ from __future__ import annotations
 import argparse
 import re
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-import SimpleITK as sitk
 from numpy.typing import NDArray
-from scipy import ndimage
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
@@ -46,9 +43,9 @@ from model_export.evaluate_acquisitions import run_acquisition  # noqa: E402
 from model_export.localiser.evaluate import _pose_estimator  # noqa: E402
 from service.api.responses import stack_objects  # noqa: E402
 from service.geometry import anchors, se3, twin  # noqa: E402
-from service.geometry.frames import ras_transform_from_lps  # noqa: E402
 from service.geometry.pose import make_pose, translate  # noqa: E402
-from service.io.volume import Volume, to_sitk  # noqa: E402
+from service.io.volume import Volume  # noqa: E402
+from service.reconstruction import midline  # noqa: E402
 
 
 def common_frame(final: NDArray, truth: NDArray, centre: NDArray) -> tuple[NDArray, NDArray]:
@@ -88,44 +85,16 @@ def acquisition_frames(volume: AtlasVolume, estimator, level: str, count: int,  
 
 def register_rigid(fixed: AtlasVolume, moving: AtlasVolume) -> NDArray[np.float64]:
     """``4 x 4`` atlas RAS: rigid registration of ``moving``'s brain to ``fixed``'s (a point of ``fixed`` ->
-    the same anatomy in ``moving``), correlation metric, 4-2-1 pyramid, from the identity."""
-    f, m = (sitk.Cast(to_sitk(Volume(v.image * (v.mask > 0.5), v.affine)), sitk.sitkFloat32) for v in (fixed, moving))
-    start = sitk.Euler3DTransform()
-    start.SetCenter([-moving.centre[0], -moving.centre[1], moving.centre[2]])            # RAS -> LPS
-    reg = sitk.ImageRegistrationMethod()
-    reg.SetMetricAsCorrelation()
-    reg.SetMetricSamplingStrategy(reg.RANDOM)
-    reg.SetMetricSamplingPercentage(0.1, 1)
-    reg.SetInterpolator(sitk.sitkLinear)
-    reg.SetOptimizerAsRegularStepGradientDescent(1.0, 1e-4, 200, relaxationFactor=0.5, gradientMagnitudeTolerance=1e-8)
-    reg.SetOptimizerScalesFromPhysicalShift()
-    reg.SetShrinkFactorsPerLevel([4, 2, 1])
-    reg.SetSmoothingSigmasPerLevel([2.0, 1.0, 0.5])
-    reg.SmoothingSigmasAreSpecifiedInPhysicalUnitsOn()
-    reg.SetInitialTransform(start, inPlace=False)
-    tx = reg.Execute(f, m)
-    tx = tx.GetNthTransform(0) if isinstance(tx, sitk.CompositeTransform) else tx
-    tx = sitk.Euler3DTransform(tx)
-    lps = np.eye(4)
-    lps[:3, :3] = np.reshape(tx.GetMatrix(), (3, 3))
-    c, t = np.array(tx.GetCenter()), np.array(tx.GetTranslation())
-    lps[:3, 3] = t + c - lps[:3, :3] @ c
-    return ras_transform_from_lps(lps)
+    the same anatomy in ``moving``; :func:`service.reconstruction.midline.register_rigid`)."""
+    return midline.register_rigid(Volume(fixed.image, fixed.affine), Volume(moving.image, moving.affine),
+                                  fixed.mask, moving.mask, moving.centre)
 
 
 def midline_offset(volume: AtlasVolume) -> NDArray[np.float64]:
     """``4 x 4`` (about the brain's centre, atlas RAS) that brings the brain's own mid-sagittal plane
-    onto the atlas's ``x = 0``: half its rigid registration onto its mirror image (Part 3).
-
-    A brain ``G`` away from a symmetric position is its own mirror image ``G^-2`` away (a mirror across
-    ``x = 0`` reverses an x shift and turns about y and z), so half the registration is ``G^-1``
-    (exactly for a shift or a turn alone; combined, to within their product: 0.1 mm for 3 deg and 2 mm)."""
-    to_voxel = np.linalg.inv(volume.affine) @ twin.mirror(twin.DEFAULT_PLANE_X_MM) @ volume.affine
-    mirrored = replace(volume, image=ndimage.affine_transform(volume.image, to_voxel[:3, :3], to_voxel[:3, 3], order=1),
-                       mask=ndimage.affine_transform(volume.mask.astype(np.float32), to_voxel[:3, :3],
-                                                     to_voxel[:3, 3], order=1))
-    about = translate(volume.centre)
-    return se3.exp(0.5 * se3.log(se3.inverse(about) @ register_rigid(volume, mirrored) @ about))
+    onto the atlas's: half its rigid registration onto its mirror image (Part 3;
+    :func:`service.reconstruction.midline.midline_offset`)."""
+    return midline.midline_offset(Volume(volume.image, volume.affine), volume.mask, twin.DEFAULT_PLANE_X_MM)[0]
 
 
 def age(name: str) -> int:

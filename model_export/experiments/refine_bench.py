@@ -11,7 +11,8 @@ variant: the mean E.D. (mm, slices with >= 20 mask pixels, network frames; again
 twin-min, and the truth in the acquisition's own frame) of the predicted and of the refined poses,
 on how many acquisitions the refined poses are worse than the predicted ones, the quality report's
 leave-one-stack-out NCC (what a user sees without the truth) and the seconds of each reconstruction. ``--atlas-frame`` adds each variant with its atlas frame re-estimated by the
-network (``service/reconstruction/atlas_frame.py``); ``--midline`` adds twin-min against the truth moved so
+network (``service/reconstruction/atlas_frame.py``), and then with its midline put on the atlas plane
+(``service/reconstruction/midline.py``), as a job does; ``--midline`` adds twin-min against the truth moved so
 that the brain's own midline lies on the atlas plane (a brain off that plane has no mirror twin in a
 symmetric atlas space: ``frame_bias.py``, part 3). Needs ``../shared/data`` (the atlas volumes). Run:
 ``.venv/bin/python model_export/experiments/refine_bench.py [--levels mild,jumps] [--variants default,no-coarse]
@@ -41,7 +42,8 @@ from service.geometry.pose import translate
 from service.inference.estimator import OnnxPoseEstimator
 from service.inference.model_file import load_model
 from service.jobs.worker import MIN_ACCEPTED_SHARE, starting_poses
-from service.reconstruction.atlas_frame import atlas_frame
+from service.reconstruction.atlas_frame import atlas_frame, with_frame
+from service.reconstruction.midline import midline_fit
 from service.reconstruction.never_worse import reconstruct_never_worse
 from service.reconstruction.pipeline import ReconstructionConfig, reconstruct
 from service.reconstruction.slices import SliceSet
@@ -145,7 +147,7 @@ def main() -> None:
     variants = [f"{v}@{sh:g}" if len(shares) > 1 else v for v in args.variants.split(",") for sh in shares]
     midlines: dict[str, np.ndarray] = {}
     for level in args.levels.split(","):
-        framed = [f"{k}, atlas frame" for k in variants] if args.atlas_frame else []
+        framed = [f"{k}, atlas frame{m}" for k in variants for m in ("", " and midline")] if args.atlas_frame else []
         rows = {"predicted": [], **{k: [] for k in variants}, **{k: [] for k in framed}}
         seconds = {k: [] for k in variants}
         held = {k: [] for k in variants}
@@ -181,10 +183,12 @@ def main() -> None:
                     print(f"  {name} path: {res.quality['path']} {res.quality['paths']}; "
                           f"{int(ss.include.sum())} slices start included", flush=True)
                 if args.atlas_frame:
-                    fit = atlas_frame(res.volume, est, plane)
-                    rows[f"{name}, atlas frame"].append(errors(stacks, prepared,
-                                                               fit.correction @ res.atlas_from_voxel_final, plane,
-                                                               mid))
+                    framed_res = with_frame(res, atlas_frame(res.volume, est, plane))
+                    rows[f"{name}, atlas frame"].append(errors(stacks, prepared, framed_res.atlas_from_voxel_final,
+                                                               plane, mid))
+                    centred = with_frame(framed_res, midline_fit(framed_res.volume, plane))
+                    rows[f"{name}, atlas frame and midline"].append(errors(stacks, prepared,
+                                                                           centred.atlas_from_voxel_final, plane, mid))
             print(f"{level} {a}: " + ", ".join(f"{k} " + " / ".join(f"{r.mean():.2f}" for r in v[-1])
                                               for k, v in rows.items())
                   + "; leave-one-stack-out NCC " + ", ".join(f"{k} {v[-1]}" for k, v in held.items())

@@ -42,6 +42,7 @@ from service.preprocess.slices import preprocess_slices
 
 if TYPE_CHECKING:                      # the estimator is handed in; nothing of inference runs here
     from service.inference.estimator import PoseEstimator
+    from service.reconstruction.midline import MidlineFit
     from service.reconstruction.pipeline import ReconstructionResult
 
 SLICES = 256
@@ -83,8 +84,9 @@ class FrameFit:
                 "spread_mm": round(self.spread_mm, 3) if np.isfinite(self.spread_mm) else None}
 
 
-def with_frame(result: ReconstructionResult, fit: FrameFit) -> ReconstructionResult:
-    """``result`` moved by the fit's correction: the volume's affine and every refined pose, so each
+def with_frame(result: ReconstructionResult, fit: FrameFit | MidlineFit) -> ReconstructionResult:
+    """``result`` moved by the fit's correction (this module's, or the midline's of
+    :mod:`~service.reconstruction.midline`): the volume's affine and every refined pose, so each
     voxel and each slice pixel keep their relation (no resampling)."""
     if not fit.applied:
         return result

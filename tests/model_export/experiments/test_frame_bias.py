@@ -5,13 +5,12 @@ plane, against transforms simulated here."""
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 
 from model_export.atlas import AtlasVolume
 from model_export.experiments.frame_bias import as_row, common_frame, midline_offset, register_rigid
-from service.geometry import se3, twin
+from service.geometry import se3
 from service.geometry.pose import make_pose, translate
-from tests.support.phantoms import phantom_brain
+from tests.support.phantoms import phantom_brain, symmetric_phantom_brain
 
 
 def test_a_common_error_about_the_centre_is_found_and_undone() -> None:
@@ -43,12 +42,8 @@ def test_registration_recovers_a_brain_moved_by_a_known_rigid_transform() -> Non
 
 
 def symmetric_brain() -> AtlasVolume:
-    """The phantom brain made mirror-symmetric about the atlas plane ``x = 0`` (its centre lies on it)."""
-    image, mask, affine = phantom_brain(3)
-    to_voxel = np.linalg.inv(affine) @ twin.mirror(0.0) @ affine
-    mirrored = [ndimage.affine_transform(a, to_voxel[:3, :3], to_voxel[:3, 3], order=1) for a in (image, mask)]
-    return AtlasVolume("symmetric", "test", 0.5 * (image + mirrored[0]), (mask + mirrored[1] > 1.0).astype(np.float32),
-                       affine)
+    """The phantom brain made mirror-symmetric about the atlas plane ``x = 0``."""
+    return AtlasVolume("symmetric", "test", *symmetric_phantom_brain(3))
 
 
 def moved(volume: AtlasVolume, rot_deg: list[float], shift_mm: list[float]) -> tuple[AtlasVolume, np.ndarray]:
