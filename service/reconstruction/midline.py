@@ -115,7 +115,10 @@ def midline_fit(volume: Volume, plane_x_mm: float) -> MidlineFit:
     if positive.size < 1000:
         return MidlineFit(np.eye(4), False)
     mask = (arr > BRAIN_FRACTION * float(np.percentile(positive, 99))).astype(np.float32)
-    half, centre = midline_offset(volume, mask, plane_x_mm)
+    try:
+        half, centre = midline_offset(volume, mask, plane_x_mm)
+    except RuntimeError:                # ITK gives up (e.g. too few voxels overlap): nothing to apply
+        return MidlineFit(np.eye(4), False)
     rotation = float(np.degrees(np.linalg.norm(se3.so3_log(half[:3, :3]))))
     shift = float(np.linalg.norm(half[:3, 3]))
     applied = rotation <= MAX_ROTATION_DEG and shift <= MAX_SHIFT_MM

@@ -8,6 +8,7 @@ import numpy as np
 from service.geometry import se3
 from service.geometry.pose import make_pose, translate
 from service.io.volume import Volume
+from service.reconstruction import midline
 from service.reconstruction.midline import MAX_ROTATION_DEG, midline_fit
 from tests.support.phantoms import symmetric_phantom_brain
 
@@ -45,3 +46,13 @@ def test_an_implausible_correction_is_reported_not_applied() -> None:
     fit = midline_fit(volume, plane_x_mm=0.0)
     assert not fit.applied and fit.rotation_deg > MAX_ROTATION_DEG and np.array_equal(fit.correction, np.eye(4))
     assert not midline_fit(Volume(np.zeros((8, 8, 8), np.float32), np.eye(4)), 0.0).applied
+
+
+def test_a_registration_that_gives_up_leaves_the_volume_as_it_is(monkeypatch) -> None:  # noqa: ANN001
+    def gives_up(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        raise RuntimeError("All samples map outside moving image buffer")
+
+    monkeypatch.setattr(midline, "register_rigid", gives_up)
+    volume, _ = moved([0.0, 3.0, 0.0], [0.0, 0.0, 0.0])
+    fit = midline.midline_fit(volume, plane_x_mm=0.0)
+    assert not fit.applied and np.array_equal(fit.correction, np.eye(4))
