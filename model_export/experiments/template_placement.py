@@ -34,6 +34,7 @@ from service.io.volume import Volume, to_sitk  # noqa: E402
 from service.preprocess.localise import Localiser, default_localiser  # noqa: E402
 from service.reconstruction.gaussian_average import gaussian_average  # noqa: E402
 from service.reconstruction.grid import Grid  # noqa: E402
+from service.reconstruction.midline import registration_method  # noqa: E402
 from service.reconstruction.slices import SliceSet  # noqa: E402
 
 
@@ -61,16 +62,7 @@ def register(moving: Volume, template: Volume, template_mask: NDArray[np.bool_])
     centre = np.argwhere(template_mask).mean(axis=0)
     transform = sitk.Euler3DTransform()
     transform.SetCenter(fixed.TransformContinuousIndexToPhysicalPoint([float(c) for c in centre]))
-    method = sitk.ImageRegistrationMethod()
-    method.SetMetricAsCorrelation()
-    method.SetMetricSamplingStrategy(method.RANDOM)
-    method.SetMetricSamplingPercentage(0.2, 1)
-    method.SetInterpolator(sitk.sitkLinear)
-    method.SetOptimizerAsRegularStepGradientDescent(1.0, 1e-4, 300, relaxationFactor=0.7, gradientMagnitudeTolerance=1e-8)
-    method.SetOptimizerScalesFromPhysicalShift()
-    method.SetShrinkFactorsPerLevel([4, 2, 1])
-    method.SetSmoothingSigmasPerLevel([2, 1, 0])
-    method.SmoothingSigmasAreSpecifiedInPhysicalUnitsOn()
+    method = registration_method(sampling=0.2, iterations=300, relaxation=0.7, finest_sigma_mm=0.0)
     method.SetInitialTransform(transform, inPlace=True)
     method.Execute(fixed, image)
     rotation = np.array(transform.GetMatrix()).reshape(3, 3)

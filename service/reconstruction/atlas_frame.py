@@ -39,10 +39,10 @@ from service.geometry.anchors import ed
 from service.geometry.pose import make_pose, translate
 from service.io.volume import Volume
 from service.preprocess.slices import preprocess_slices
+from service.reconstruction.midline import FrameCorrection
 
 if TYPE_CHECKING:                      # the estimator is handed in; nothing of inference runs here
     from service.inference.estimator import PoseEstimator
-    from service.reconstruction.midline import MidlineFit
     from service.reconstruction.pipeline import ReconstructionResult
 
 SLICES = 256
@@ -59,32 +59,24 @@ MAX_SHIFT_MM = 20.0
 
 
 @dataclass
-class FrameFit:
-    """The re-estimated frame.
+class FrameFit(FrameCorrection):
+    """The re-estimated frame (:class:`~service.reconstruction.midline.FrameCorrection`), and
 
     Attributes:
-        correction: ``4 x 4`` atlas <- the reconstruction's frame (identity when not applied).
-        applied: whether ``correction`` is to be applied (enough slices, a plausible size).
         slices: slices that voted.
-        rotation_deg, shift_mm: the correction's rotation and its shift of the brain's centre.
         spread_mm: robust spread of the per-slice estimates (E.D. of the anchor points, MAD-based).
     """
 
-    correction: NDArray[np.float64]
-    applied: bool
     slices: int = 0
-    rotation_deg: float = 0.0
-    shift_mm: float = 0.0
     spread_mm: float = float("nan")
 
     def report(self) -> dict:
         """The job report's ``atlas_frame`` object."""
-        return {"applied": self.applied, "slices": self.slices, "rotation_deg": round(self.rotation_deg, 3),
-                "shift_mm": round(self.shift_mm, 3),
+        return {**super().report(), "slices": self.slices,
                 "spread_mm": round(self.spread_mm, 3) if np.isfinite(self.spread_mm) else None}
 
 
-def with_frame(result: ReconstructionResult, fit: FrameFit | MidlineFit) -> ReconstructionResult:
+def with_frame(result: ReconstructionResult, fit: FrameCorrection) -> ReconstructionResult:
     """``result`` moved by the fit's correction (this module's, or the midline's of
     :mod:`~service.reconstruction.midline`): the volume's affine and every refined pose, so each
     voxel and each slice pixel keep their relation (no resampling)."""
@@ -126,7 +118,7 @@ def atlas_frame(volume: Volume, estimator: PoseEstimator | None, plane_x_mm: flo
     prep = preprocess_slices(images, masks, (pixel_mm, pixel_mm), int(info.input_size), pixel_mm)
     keep = prep.mask_fraction >= MIN_MASK_FRACTION
     if keep.sum() < MIN_SLICES:
-        return FrameFit(np.eye(4), False, int(keep.sum()))
+        return FrameFit(np.eye(4), False, slices=int(keep.sum()))
     cut = sampling.recentre(poses, prep.centroid_mm)[keep]
     est = estimator.estimate(prep.inputs[keep], mc_samples)
     net = np.asarray(est.mean, dtype=np.float64)
@@ -144,5 +136,5 @@ def atlas_frame(volume: Volume, estimator: PoseEstimator | None, plane_x_mm: flo
     shift = float(np.linalg.norm(frame[:3, 3]))
     applied = rotation <= MAX_ROTATION_DEG and shift <= MAX_SHIFT_MM
     correction = about @ frame @ se3.inverse(about) if applied else np.eye(4)
-    return FrameFit(correction, applied, int(keep.sum()), rotation, shift,
-                    float(1.4826 * np.median(ed(each, frame[None]))))
+    return FrameFit(correction, applied, rotation, shift, slices=int(keep.sum()),
+                    spread_mm=float(1.4826 * np.median(ed(each, frame[None]))))

@@ -44,8 +44,8 @@ BRAIN_FRACTION = 0.05
 
 
 @dataclass
-class MidlineFit:
-    """The move that puts a volume's own mid-sagittal plane on the atlas plane.
+class FrameCorrection:
+    """A rigid move of a reconstruction and of every refined pose with it.
 
     Attributes:
         correction: ``4 x 4`` atlas <- the volume's frame (identity when not applied).
@@ -59,29 +59,40 @@ class MidlineFit:
     shift_mm: float = 0.0
 
     def report(self) -> dict:
-        """The job report's ``midline`` object."""
+        """The job report's object for this step (``midline``)."""
         return {"applied": self.applied, "rotation_deg": round(self.rotation_deg, 3), "shift_mm": round(self.shift_mm, 3)}
+
+
+def registration_method(sampling: float = 0.1, iterations: int = 200, relaxation: float = 0.5,
+                        finest_sigma_mm: float = 0.5) -> sitk.ImageRegistrationMethod:
+    """SimpleITK's registration as this project uses it: correlation on a random ``sampling`` of the
+    voxels, linear interpolation, a 4-2-1 pyramid (smoothing 2, 1 and ``finest_sigma_mm`` mm), and
+    regular-step gradient descent that stops on its step (1e-4), not on ITK's default gradient
+    tolerance, which stops turns short (a 3 deg turn found as 1.7). The caller sets the transform."""
+    reg = sitk.ImageRegistrationMethod()
+    reg.SetMetricAsCorrelation()
+    reg.SetMetricSamplingStrategy(reg.RANDOM)
+    reg.SetMetricSamplingPercentage(sampling, 1)
+    reg.SetInterpolator(sitk.sitkLinear)
+    reg.SetOptimizerAsRegularStepGradientDescent(1.0, 1e-4, iterations, relaxationFactor=relaxation,
+                                                 gradientMagnitudeTolerance=1e-8)
+    reg.SetOptimizerScalesFromPhysicalShift()
+    reg.SetShrinkFactorsPerLevel([4, 2, 1])
+    reg.SetSmoothingSigmasPerLevel([2.0, 1.0, finest_sigma_mm])
+    reg.SmoothingSigmasAreSpecifiedInPhysicalUnitsOn()
+    return reg
 
 
 def register_rigid(fixed: Volume, moving: Volume, fixed_mask: NDArray, moving_mask: NDArray,
                    centre_mm: NDArray) -> NDArray[np.float64]:
     """``4 x 4`` atlas RAS: the rigid map from a point of ``fixed`` to the same anatomy in ``moving``
-    (correlation of the masked images, a 4-2-1 pyramid, from the identity about ``centre_mm``; the
-    optimiser stops on its step, not on ITK's gradient tolerance, which stops turns short)."""
+    (correlation of the masked images, :func:`registration_method`, from the identity about
+    ``centre_mm``)."""
     f, m = (sitk.Cast(to_sitk(Volume(v.array * (k > 0.5), v.affine)), sitk.sitkFloat32)
             for v, k in ((fixed, fixed_mask), (moving, moving_mask)))
     start = sitk.Euler3DTransform()
     start.SetCenter([-float(centre_mm[0]), -float(centre_mm[1]), float(centre_mm[2])])     # RAS -> LPS
-    reg = sitk.ImageRegistrationMethod()
-    reg.SetMetricAsCorrelation()
-    reg.SetMetricSamplingStrategy(reg.RANDOM)
-    reg.SetMetricSamplingPercentage(0.1, 1)
-    reg.SetInterpolator(sitk.sitkLinear)
-    reg.SetOptimizerAsRegularStepGradientDescent(1.0, 1e-4, 200, relaxationFactor=0.5, gradientMagnitudeTolerance=1e-8)
-    reg.SetOptimizerScalesFromPhysicalShift()
-    reg.SetShrinkFactorsPerLevel([4, 2, 1])
-    reg.SetSmoothingSigmasPerLevel([2.0, 1.0, 0.5])
-    reg.SmoothingSigmasAreSpecifiedInPhysicalUnitsOn()
+    reg = registration_method()
     reg.SetInitialTransform(start, inPlace=False)
     tx = reg.Execute(f, m)
     tx = sitk.Euler3DTransform(tx.GetNthTransform(0) if isinstance(tx, sitk.CompositeTransform) else tx)
@@ -108,19 +119,19 @@ def midline_offset(volume: Volume, mask: NDArray, plane_x_mm: float) -> tuple[ND
     return se3.exp(0.5 * se3.log(se3.inverse(about) @ onto @ about)), centre
 
 
-def midline_fit(volume: Volume, plane_x_mm: float) -> MidlineFit:
+def midline_fit(volume: Volume, plane_x_mm: float) -> FrameCorrection:
     """The correction that puts a reconstruction's midline on the atlas plane (see the module)."""
     arr = np.asarray(volume.array, dtype=np.float32)
     positive = arr[arr > 0]
     if positive.size < 1000:
-        return MidlineFit(np.eye(4), False)
+        return FrameCorrection(np.eye(4), False)
     mask = (arr > BRAIN_FRACTION * float(np.percentile(positive, 99))).astype(np.float32)
     try:
         half, centre = midline_offset(volume, mask, plane_x_mm)
     except RuntimeError:                # ITK gives up (e.g. too few voxels overlap): nothing to apply
-        return MidlineFit(np.eye(4), False)
+        return FrameCorrection(np.eye(4), False)
     rotation = float(np.degrees(np.linalg.norm(se3.so3_log(half[:3, :3]))))
     shift = float(np.linalg.norm(half[:3, 3]))
     applied = rotation <= MAX_ROTATION_DEG and shift <= MAX_SHIFT_MM
     correction = translate(centre) @ half @ se3.inverse(translate(centre)) if applied else np.eye(4)
-    return MidlineFit(correction, applied, rotation, shift)
+    return FrameCorrection(correction, applied, rotation, shift)
