@@ -1,6 +1,6 @@
 """Slice-to-volume reconstruction (SVR) in atlas space from per-slice ``atlas_from_voxel`` transforms.
 
-numpy/scipy only (no torch): it runs inside the service's job workers. Every stage is vectorised
+numpy/scipy (and SimpleITK's registration), no torch: it runs inside the service's job workers. Every stage is vectorised
 over all pixels of all slices.
 
 Modules:
@@ -15,6 +15,10 @@ Modules:
     * :mod:`~service.reconstruction.stack_registration` -- stack-to-stack registration, 4 -> 2 -> 1 mm;
     * :mod:`~service.reconstruction.coarse_to_fine` -- the coarse steps and each slice's starting pose;
     * :mod:`~service.reconstruction.pipeline` -- :func:`reconstruct`, the whole loop;
+    * :mod:`~service.reconstruction.quality` -- the quality report without ground truth;
+    * :mod:`~service.reconstruction.never_worse` -- the paths a job tries, the best one kept;
+    * :mod:`~service.reconstruction.atlas_frame` -- the atlas frame re-estimated by the network;
+    * :mod:`~service.reconstruction.midline` -- the brain's own midline put on the atlas plane;
     * :mod:`~service.reconstruction.refined_poses` -- refined poses in the ``/v1/predict`` schema;
     * :mod:`~service.reconstruction.export` -- volume, ITK ``.tfm`` transforms, listing, JSON report;
     * :mod:`~service.reconstruction.preview` -- PNG of three orthogonal mid-planes.
