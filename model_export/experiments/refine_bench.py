@@ -151,7 +151,7 @@ def main() -> None:
         rows = {"predicted": [], **{k: [] for k in variants}, **{k: [] for k in framed}}
         seconds = {k: [] for k in variants}
         held = {k: [] for k in variants}
-        psnr = {k: [] for k in variants}
+        psnr = {k: [] for k in [*variants, *framed]}
         for a in range(args.per_level):
             vol = vols[a % len(vols)]
             stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level,
@@ -184,11 +184,11 @@ def main() -> None:
                           f"{int(ss.include.sum())} slices start included", flush=True)
                 if args.atlas_frame:
                     framed_res = with_frame(res, atlas_frame(res.volume, est, plane))
-                    rows[f"{name}, atlas frame"].append(errors(stacks, prepared, framed_res.atlas_from_voxel_final,
-                                                               plane, mid))
                     centred = with_frame(framed_res, midline_fit(framed_res.volume, plane))
-                    rows[f"{name}, atlas frame and midline"].append(errors(stacks, prepared,
-                                                                           centred.atlas_from_voxel_final, plane, mid))
+                    for label, moved in ((f"{name}, atlas frame", framed_res),
+                                         (f"{name}, atlas frame and midline", centred)):
+                        rows[label].append(errors(stacks, prepared, moved.atlas_from_voxel_final, plane, mid))
+                        psnr[label].append(psnrs(moved, vol, stacks, prepared, mid))
             print(f"{level} {a}: " + ", ".join(f"{k} " + " / ".join(f"{r.mean():.2f}" for r in v[-1])
                                               for k, v in rows.items())
                   + "; leave-one-stack-out NCC " + ", ".join(f"{k} {v[-1]}" for k, v in held.items())
