@@ -44,7 +44,7 @@ from service.inference.model_file import load_model
 from service.jobs.worker import MIN_ACCEPTED_SHARE, starting_poses
 from service.reconstruction.atlas_frame import atlas_frame, with_frame
 from service.reconstruction.midline import midline_fit
-from service.reconstruction.never_worse import reconstruct_never_worse
+from service.reconstruction.never_worse import held_out_score, reconstruct_never_worse
 from service.reconstruction.pipeline import ReconstructionConfig, reconstruct
 from service.reconstruction.slices import SliceSet
 
@@ -81,18 +81,19 @@ def common_frame(pose: np.ndarray, true: np.ndarray) -> np.ndarray:
 
 
 def psnrs(res, vol, stacks, prepared, mid: np.ndarray | None) -> list[float]:  # noqa: ANN001
-    """The volume's PSNR against the truth as placed, frame-free (the frame its poses share undone),
-    and with ``mid`` against the truth placed with its midline on the atlas plane."""
+    """The volume's PSNR (dB) against the truth as placed, frame-free (the frame its poses share
+    undone), with ``mid`` against the truth placed with its midline on the atlas plane, and last its
+    NCC as placed."""
     voxel_from_network = np.concatenate([np.linalg.inv(p.network_from_voxel()) for p in prepared])
     pose = res.atlas_from_voxel_final @ voxel_from_network
     true = np.concatenate([s.atlas_from_voxel for s in stacks]) @ voxel_from_network
     used = res.included
-    out = [volume_psnr_ncc(res.volume, vol.image, vol.mask, vol.affine)[0],
-           volume_psnr_ncc(res.volume, vol.image, vol.mask, vol.affine,
-                           frame=se3.inverse(common_frame(pose[used], true[used])))[0]]
+    placed = volume_psnr_ncc(res.volume, vol.image, vol.mask, vol.affine)
+    out = [placed[0], volume_psnr_ncc(res.volume, vol.image, vol.mask, vol.affine,
+                                      frame=se3.inverse(common_frame(pose[used], true[used])))[0]]
     if mid is not None:
         out.append(volume_psnr_ncc(res.volume, vol.image, vol.mask, vol.affine, frame=mid)[0])
-    return out
+    return [*out, placed[1]]
 
 
 VARIANTS: dict[str, dict] = {
@@ -184,7 +185,7 @@ def main() -> None:
                           f"{int(ss.include.sum())} slices start included", flush=True)
                 if args.atlas_frame:
                     framed_res = with_frame(res, atlas_frame(res.volume, est, plane))
-                    centred = with_frame(framed_res, midline_fit(framed_res.volume, plane))
+                    centred = with_frame(framed_res, midline_fit(framed_res.volume, plane, held_out_score(res)))
                     for label, moved in ((f"{name}, atlas frame", framed_res),
                                          (f"{name}, atlas frame and midline", centred)):
                         rows[label].append(errors(stacks, prepared, moved.atlas_from_voxel_final, plane, mid))
@@ -192,16 +193,17 @@ def main() -> None:
             print(f"{level} {a}: " + ", ".join(f"{k} " + " / ".join(f"{r.mean():.2f}" for r in v[-1])
                                               for k, v in rows.items())
                   + "; leave-one-stack-out NCC " + ", ".join(f"{k} {v[-1]}" for k, v in held.items())
-                  + "; PSNR " + ", ".join(f"{k} " + " / ".join(f"{x:.2f}" for x in v[-1]) + " dB"
-                                          for k, v in psnr.items()), flush=True)
+                  + "; PSNR, NCC " + ", ".join(f"{k} " + " / ".join(f"{x:.2f}" for x in v[-1])
+                                               for k, v in psnr.items()), flush=True)
         means = {k: np.concatenate(v, axis=1).mean(axis=1) for k, v in rows.items()}
         before = np.array([r[1].mean() for r in rows["predicted"]])
         worse = {k: int(np.sum(np.array([r[1].mean() for r in rows[k]]) > before)) for k in variants}
         summary = ", ".join(f"{k} " + " / ".join(f"{x:.2f}" for x in m) + " mm" for k, m in means.items())
         times = ", ".join(f"{k} {np.mean(v):.1f} s" for k, v in seconds.items())
-        summary += ("; PSNR as placed / frame-free" + (" / against the midline-placed truth" if args.midline else "")
-                    + " " + ", ".join(f"{k} " + " / ".join(f"{x:.2f}" for x in np.mean(v, axis=0)) + " dB"
-                                      for k, v in psnr.items()))
+        summary += ("; PSNR (dB) as placed / frame-free"
+                    + (" / against the midline-placed truth" if args.midline else "")
+                    + " / NCC as placed " + ", ".join(f"{k} " + " / ".join(f"{x:.2f}" for x in np.mean(v, axis=0))
+                                                      for k, v in psnr.items()))
         print(f"== {level} ({args.per_level} acquisitions, {args.resolution} mm, {args.rounds} rounds; mean E.D. "
               f"against the truth / twin-min / the truth in the acquisition's own frame"
               f"{' / twin-min against the midline-placed truth' if args.midline else ''}): {summary}; "

@@ -215,7 +215,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     from service.preprocess.stack import split_stack
     from service.reconstruction.atlas_frame import atlas_frame, with_frame
     from service.reconstruction.midline import midline_fit
-    from service.reconstruction.never_worse import reconstruct_never_worse
+    from service.reconstruction.never_worse import held_out_score, reconstruct_never_worse
     from service.reconstruction.pipeline import ReconstructionConfig
     from service.reconstruction.refined_poses import refined_poses_body
     from service.reconstruction.slices import SliceSet
@@ -268,11 +268,12 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         frame = atlas_frame(result.volume, estimator, plane, mc_samples=int(params.get("mc_samples", 100)))
         result = with_frame(result, frame)
         progress("midline", 0.96)
-        midline = midline_fit(result.volume, plane)
+        midline = midline_fit(result.volume, plane, held_out_score(result))
         result = with_frame(result, midline)
     progress("writing", 0.97)
     report = write_outputs(result, slice_set, folder / "outputs",
-                           extra=None if frame is None else {"atlas_frame": frame.report(), "midline": midline.report()})
+                           extra=None if frame is None else {"atlas_frame": frame.report(),
+                                                             "midline": midline.report()})
     frames = [split_stack(u.volume, np.ones(u.volume.array.shape, bool)).slice_from_voxel for u in uploads]
     refined = refined_poses_body(body, result.atlas_from_voxel_final, frames, included=result.included,
                                  weight=result.slice_weight, ncc=result.ncc, reasons=result.exclusion_reason,

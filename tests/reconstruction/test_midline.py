@@ -4,6 +4,7 @@ sees, leaves alone one it cannot see, and is not applied where it would be impla
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from service.geometry import se3
 from service.geometry.pose import make_pose, translate
@@ -55,4 +56,12 @@ def test_a_registration_that_gives_up_leaves_the_volume_as_it_is(monkeypatch) ->
     monkeypatch.setattr(midline, "register_rigid", gives_up)
     volume, _ = moved([0.0, 3.0, 0.0], [0.0, 0.0, 0.0])
     fit = midline.midline_fit(volume, plane_x_mm=0.0)
+    assert not fit.applied and np.array_equal(fit.correction, np.eye(4))
+
+
+def test_a_volume_whose_stacks_do_not_predict_each_other_is_not_turned(monkeypatch) -> None:  # noqa: ANN001
+    volume, _ = moved([0.0, 3.0, 0.0], [0.0, 0.0, 0.0])
+    assert midline_fit(volume, 0.0, held_out_ncc=0.9).applied
+    monkeypatch.setattr(midline, "register_rigid", lambda *a, **k: pytest.fail("no registration is needed"))
+    fit = midline_fit(volume, 0.0, held_out_ncc=midline.MIN_HELD_OUT_NCC - 0.3)
     assert not fit.applied and np.array_equal(fit.correction, np.eye(4))
