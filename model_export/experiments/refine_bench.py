@@ -57,26 +57,28 @@ def errors(stacks, prepared, poses, plane_x_mm: float, midline: np.ndarray | Non
     atlas map that brings the brain's own midline onto the atlas plane,
     :func:`~model_export.experiments.frame_bias.midline_offset` about its centre), ``[4, N]``: also
     twin-min against the truth so placed."""
-    pose, true = [], []
-    off = 0
-    for s, p in zip(stacks, prepared):
-        n = len(s.atlas_from_voxel)
-        inv = np.linalg.inv(p.network_from_voxel())
-        keep = p.prepared.mask_pixels >= MIN_MASK_PIXELS
-        pose.append((poses[off:off + n] @ inv)[keep])
-        true.append((s.atlas_from_voxel @ inv)[keep])
-        off += n
-    pose, true = np.concatenate(pose), np.concatenate(true)
-    frame = common_frame(pose, true)
+    voxel_from_network = np.concatenate([np.linalg.inv(p.network_from_voxel()) for p in prepared])
+    keep = np.concatenate([p.prepared.mask_pixels >= MIN_MASK_PIXELS for p in prepared])
+    pose, true = network_poses(stacks, poses, voxel_from_network)
+    pose, true = pose[keep], true[keep]
+    frame = to_truth_frame(pose, true)
     rows = [ed(pose, true), twin.twin_min_ed(pose, true, plane_x_mm), ed(frame @ pose, true)]
     if midline is not None:
         rows.append(twin.twin_min_ed(pose, midline @ true, plane_x_mm))
     return np.stack(rows)
 
 
-def common_frame(pose: np.ndarray, true: np.ndarray) -> np.ndarray:
-    """The acquisition's common frame error: the atlas -> atlas map from where ``pose`` puts the
-    slices to where ``true`` does (Fréchet mean of ``true pose^-1``)."""
+def network_poses(stacks, poses: np.ndarray,  # noqa: ANN001
+                  voxel_from_network: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(pose, true)`` ``[N, 4, 4]``: ``poses`` (``atlas_from_voxel``, all stacks) and the simulated truth,
+    both in network frames."""
+    return poses @ voxel_from_network, np.concatenate([s.atlas_from_voxel for s in stacks]) @ voxel_from_network
+
+
+def to_truth_frame(pose: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """The acquisition's common frame error, as the atlas -> atlas map from where ``pose`` puts the
+    slices to where ``true`` does (Fréchet mean of ``true pose^-1``; ``frame_bias.common_frame`` is
+    its inverse, about the brain's centre)."""
     return se3.frechet_mean(true @ se3.inverse(pose), np.ones(len(pose)))
 
 
@@ -85,12 +87,11 @@ def psnrs(res, vol, stacks, prepared, mid: np.ndarray | None) -> list[float]:  #
     undone), with ``mid`` against the truth placed with its midline on the atlas plane, and last its
     NCC as placed."""
     voxel_from_network = np.concatenate([np.linalg.inv(p.network_from_voxel()) for p in prepared])
-    pose = res.atlas_from_voxel_final @ voxel_from_network
-    true = np.concatenate([s.atlas_from_voxel for s in stacks]) @ voxel_from_network
+    pose, true = network_poses(stacks, res.atlas_from_voxel_final, voxel_from_network)
     used = res.included
     placed = volume_psnr_ncc(res.volume, vol.image, vol.mask, vol.affine)
     out = [placed[0], volume_psnr_ncc(res.volume, vol.image, vol.mask, vol.affine,
-                                      frame=se3.inverse(common_frame(pose[used], true[used])))[0]]
+                                      frame=se3.inverse(to_truth_frame(pose[used], true[used])))[0]]
     if mid is not None:
         out.append(volume_psnr_ncc(res.volume, vol.image, vol.mask, vol.affine, frame=mid)[0])
     return [*out, placed[1]]
