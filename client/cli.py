@@ -430,6 +430,8 @@ def quality_line(quality: dict[str, Any] | None) -> str:
         >>> quality_line({"judged_slices": 80, "median_ncc": 0.91, "fraction_ncc_above_0_7": 0.95,
         ...               "leave_one_stack_out": {"median_ncc": 0.84, "per_stack_median_ncc": [0.86, 0.8, 0.85]}})
         'quality: slices vs volume median NCC 0.91, 95% above 0.7 (80 slices); leave one stack out 0.84 (per stack 0.86, 0.80, 0.85)'
+        >>> quality_line({"judged_slices": 80, "path": "slice_level", "further_passes": {"scores": [0.85, 0.86], "kept": 1}})
+        'quality: slices vs volume median NCC -, - above 0.7 (80 slices); path slice_level + 1 further slice-level pass'
     """
     if not quality:
         return ""
@@ -442,7 +444,8 @@ def quality_line(quality: dict[str, Any] | None) -> str:
         per = ", ".join(num(x) for x in held.get("per_stack_median_ncc") or [])
         line += f"; leave one stack out {num(held['median_ncc'])} (per stack {per})"
     if quality.get("path"):
-        line += f"; path {quality['path']}"
+        kept = (quality.get("further_passes") or {}).get("kept") or 0
+        line += f"; path {quality['path']}" + (f" + {kept} further slice-level pass{'es' if kept > 1 else ''}" if kept else "")
     return line
 
 

@@ -118,7 +118,7 @@ def test_stages_are_reported_in_order(client: TestClient, case: dict) -> None:
     assert st["status"] == "succeeded", st
     known = ["queued", "starting", "reading", "reconstructing", "stack consistency", "stack registration", "slice starting poses",
              "gaussian average", "registration 1/1", "robust weighting 1/1", "super-resolution 1/1",
-             "checking starting poses", "checking slice level", "atlas frame", "midline",
+             "checking starting poses", "checking slice level", "further slice-level pass", "atlas frame", "midline",
              "writing"]
     order = [known.index(s) for s in stages if s in known]
     assert order == sorted(order) and len(order) >= 2
