@@ -8,7 +8,9 @@ whatever the outcome -- and, once done, ``outputs/`` (``volume.nii.gz``, ``previ
 Stages (the job's ``stage``, with ``progress`` in 0..1): ``reading``, ``predicting poses`` (without
 uploaded poses), then those of the reconstruction -- ``stack consistency``, ``stack registration``,
 ``slice starting poses``, ``gaussian average``, then per round ``registration k/K``,
-``robust weighting k/K``, ``super-resolution k/K`` -- and ``writing``. :func:`run_job` is what a
+``robust weighting k/K``, ``super-resolution k/K``; ``checking starting poses``, ``checking slice
+level`` and ``further slice-level pass`` (:mod:`~service.reconstruction.never_worse`) -- ``atlas
+frame``, ``midline`` and ``writing``. :func:`run_job` is what a
 worker process executes; it claims the job atomically,
 reports stage and progress to the store, checks for cancellation between stages, and records any
 failure with its reason. The back-ends run it: :mod:`service.jobs.local_runner` (the

@@ -14,19 +14,21 @@ Paths, in order:
 2. **the starting poses**: robust super-resolution at the poses the job was given, no registration;
 3. **slice level only** (no coarse steps), when the full job has its coarse steps on. It is tried
    even where the full job beats the starting poses: at extreme motion the coarse steps can scramble
-   the slices and still score above poses that far off, while the slice level scores higher still.
-
-A registered path (1 or 3) wins where its leave-one-stack-out mismatch (1 - the median NCC) is at
-most the starting poses' over :data:`MIN_MISMATCH_RATIO`; otherwise the starting poses do. The
-quality report names the winner (``path``) and every path's score (``paths``). A job of one stack
-has nothing to leave out: it keeps the full job.
-
-4. **Further slice-level passes** (at most :data:`MAX_FURTHER_PASSES`), where a registered path
+   the slices and still score above poses that far off, while the slice level scores higher still;
+4. **further slice-level passes** (at most :data:`MAX_FURTHER_PASSES`), where a registered path
    won: the slice level again, from the poses the last kept pass returned. Registration under
    large motion has not converged after one pass (its trust region moves each slice a few mm a
-   round), and a pass that starts nearer the answer gets further. Each is kept by the same rule,
-   its mismatch :data:`MIN_MISMATCH_RATIO` times below that of the pass it started from; the first
-   that is not ends them. The report's ``further_passes`` gives their scores and how many were kept.
+   round), and a pass that starts nearer the answer gets further. A further pass has no coarse
+   step, so no slice restarts from its stack's pose and no round widens its trust radius.
+
+A registered path (1 or 3) wins where its leave-one-stack-out mismatch (1 - the median NCC) is at
+most the starting poses' over :data:`MIN_MISMATCH_RATIO`; otherwise the starting poses do. A
+further pass is kept by the same rule against the pass it started from; the first that is not ends
+them. The quality report names the winner (``path``), every path's score (``paths``) and the
+further passes' scores and how many were kept (``further_passes``); its other fields describe the
+result returned, the last kept pass. A slice the winner's stack fit found inconsistent with its
+stack keeps that verdict (``stack_outlier``) in a kept pass that leaves it out. A job of one stack
+has nothing to leave out: it keeps the full job.
 
 Example:
     >>> choose({"full": 0.80, "starting_poses": 0.93, "slice_level": 0.935})
@@ -46,7 +48,13 @@ from dataclasses import replace
 
 from numpy.typing import ArrayLike
 
-from service.reconstruction.pipeline import Progress, ReconstructionConfig, ReconstructionResult, reconstruct
+from service.reconstruction.pipeline import (
+    Progress,
+    ReconstructionConfig,
+    ReconstructionResult,
+    exclusion_reasons,
+    reconstruct,
+)
 from service.reconstruction.slices import SliceSet
 
 PATHS = ("full", "starting_poses", "slice_level")
@@ -65,7 +73,7 @@ MAX_FURTHER_PASSES = 2
 in its own orientation) the first cut the held-out mismatch 1.19-1.45 x and the slices' twin-min
 error 2.40-3.28 -> 2.08-2.84 mm, the second 1.04-1.15 x (kept once, 2.84 -> 2.66 mm), a third
 under 1.02 x; at mild motion, from the starting poses, none cut it (registration made those
-poses worse: 1.72-2.67 -> 1.75-2.85 mm)."""
+poses worse: 1.72-2.67 -> 1.75-2.85 mm after one pass, 1.78-2.93 after two)."""
 
 
 def held_out_score(result: ReconstructionResult) -> float | None:
@@ -101,8 +109,10 @@ def reconstruct_never_worse(slice_set: SliceSet, resolution_mm: float = 0.8, svr
                             progress: Progress | None = None, cancel: Callable[[], bool] | None = None, *,
                             bounds_mm: ArrayLike | None = None,
                             config: ReconstructionConfig | None = None) -> ReconstructionResult:
-    """:func:`~service.reconstruction.pipeline.reconstruct` along the paths of the module, the best
-    returned; its ``quality`` says which path won (``path``) and every path's score (``paths``)."""
+    """:func:`~service.reconstruction.pipeline.reconstruct` along the paths of the module: the
+    winner, or its last kept further pass, is returned; its ``quality`` says which path won
+    (``path``), every path's score (``paths``) and what the further passes did (``further_passes``:
+    their ``scores`` and how many were ``kept``); ``timings["all_paths"]`` is every path's and pass's."""
     cfg = replace(config or ReconstructionConfig(), quality=True)
     results: dict[str, ReconstructionResult] = {}
     scores: dict[str, float | None] = {}
@@ -140,6 +150,9 @@ def reconstruct_never_worse(slice_set: SliceSet, resolution_mm: float = 0.8, svr
             if score is None or not clearly_better(score, held_out_score(result)):
                 break
             result, kept = again, kept + 1
+    if kept and results[best].coarse is not None:       # the winner's stack fit still judges its slices
+        result.coarse = results[best].coarse
+        result.exclusion_reason = exclusion_reasons(slice_set.include, result.included, result.coarse.fit.inlier)
     result.quality = {**result.quality, "path": best, "paths": scores,
                       "further_passes": {"scores": further, "kept": kept}}
     result.timings = {**result.timings, "all_paths": seconds}

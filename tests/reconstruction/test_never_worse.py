@@ -10,37 +10,57 @@ from service.io.volume import Volume
 from service.reconstruction.slices import SliceSet
 
 
-def fake_result(score: float | None) -> ReconstructionResult:
-    quality = {"leave_one_stack_out": {"median_ncc": score}}
-    return ReconstructionResult(None, np.eye(4)[None], np.ones(1), np.ones(1, bool), np.ones(1),  # type: ignore[arg-type]
-                                {"total": 1.0}, quality=quality)
+N_SLICES = 6
+
+
+def fake_result(score: float | None, index: int, included: np.ndarray | None = None,
+                coarse: object | None = None) -> ReconstructionResult:
+    """A reconstruction's result scoring ``score``, every slice moved ``index`` mm along x (which call made it)."""
+    poses = np.repeat(np.eye(4)[None], N_SLICES, 0)
+    poses[:, 0, 3] = index
+    inc = np.ones(N_SLICES, bool) if included is None else included
+    return ReconstructionResult(None, poses, inc.astype(float), inc, np.ones(N_SLICES),  # type: ignore[arg-type]
+                                {"total": 1.0}, exclusion_reason=[None if i else "residual_outlier" for i in inc],
+                                coarse=coarse, quality={"leave_one_stack_out": {"median_ncc": score}})
 
 
 def tiny_slice_set() -> SliceSet:
-    vol = Volume(np.ones((12, 12, 6), np.float32), np.diag([1.0, 1.0, 2.0, 1.0]))
-    return SliceSet.from_stacks([(vol, None, np.repeat(vol.affine[None], 6, 0), np.ones(6, bool))])
+    vol = Volume(np.ones((12, 12, N_SLICES), np.float32), np.diag([1.0, 1.0, 2.0, 1.0]))
+    return SliceSet.from_stacks([(vol, None, np.repeat(vol.affine[None], N_SLICES, 0), np.ones(N_SLICES, bool))])
 
 
-def run_with(monkeypatch, scores: dict, job: ReconstructionConfig) -> tuple[ReconstructionResult, list]:  # noqa: ANN001
+def run_with(monkeypatch, scores: dict, job: ReconstructionConfig, progress: list | None = None,  # noqa: ANN001
+             made: dict | None = None) -> tuple[ReconstructionResult, list]:
     """The job with every reconstruction faked: each path scores ``scores[path]``; further slice-level
-    passes score ``scores["further"]`` in turn (None once they run out)."""
+    passes score ``scores["further"]`` in turn (None once they run out). Returns the result and the
+    calls: ``(name, x of the poses it started from, its coarse_to_fine)``. ``made``: per path, the
+    result to return (``"further"``: a list, one a pass; default :func:`fake_result`)."""
     calls = []
     further = list(scores.get("further", []))
 
     def fake(slice_set, resolution_mm, svr_iterations, progress, cancel, *, bounds_mm, config):  # noqa: ANN001, ANN202
+        names = [c[0] for c in calls]
         if not calls:
             name = "full"
         elif not config.register:
             name = "starting_poses"
-        elif job.coarse_to_fine and "slice_level" not in calls:
+        elif job.coarse_to_fine and "slice_level" not in names:
             name = "slice_level"
         else:
             name = "further"
-        calls.append(name)
-        return fake_result(further.pop(0) if name == "further" and further else None if name == "further" else scores[name])
+        assert slice_set.include.all() and len(slice_set.atlas_from_voxel) == N_SLICES
+        calls.append((name, float(slice_set.atlas_from_voxel[0, 0, 3]), config.coarse_to_fine))
+        if progress is not None:
+            progress("registration 1/3", 0.5)
+        if made and name in made:
+            return made[name].pop(0) if name == "further" else made[name]
+        score = (further.pop(0) if further else None) if name == "further" else scores[name]
+        return fake_result(score, len(calls))
 
     monkeypatch.setattr(never_worse, "reconstruct", fake)
-    return never_worse.reconstruct_never_worse(tiny_slice_set(), 1.0, 3, config=job), calls
+    report = None if progress is None else (lambda stage, f: progress.append((stage, f)))
+    return never_worse.reconstruct_never_worse(tiny_slice_set(), 1.0, 3, report, config=job), \
+        [c[0] for c in calls] if made is None and progress is None else calls
 
 
 def test_a_diverged_full_job_gives_way(monkeypatch) -> None:  # noqa: ANN001
@@ -97,6 +117,44 @@ def test_further_slice_level_passes_are_kept_while_each_clearly_improves(monkeyp
     assert result.quality["leave_one_stack_out"]["median_ncc"] == 0.9
 
 
+def test_a_further_pass_starts_from_the_last_kept_poses_without_coarse_steps(monkeypatch) -> None:  # noqa: ANN001
+    progress: list = []
+    result, calls = run_with(monkeypatch, {"full": 0.62, "starting_poses": 0.47, "slice_level": 0.81,
+                                           "further": [0.85, 0.86]}, ReconstructionConfig(), progress)
+    # calls 1-3 the paths (the slice level, call 3, wins); call 4 starts from its poses (x = 3),
+    # call 5 from call 4's, which was kept (x = 4); neither has the coarse steps.
+    assert calls[3:] == [("further", 3.0, False), ("further", 4.0, False)]
+    assert result.atlas_from_voxel_final[0, 0, 3] == 4.0                  # the last kept pass is returned
+    fractions = [f for _, f in progress]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0
+    further = [f for stage, f in progress if stage == "further slice-level pass"]
+    assert len(further) == 2 and all(0.85 <= f <= 1.0 for f in further)   # one report a pass, after the paths
+
+
+def test_where_the_full_job_wins_without_a_slice_level_path_it_is_passed_on(monkeypatch) -> None:  # noqa: ANN001
+    progress: list = []
+    result, calls = run_with(monkeypatch, {"full": 0.95, "starting_poses": 0.9, "further": [0.96, 0.962]},
+                             ReconstructionConfig(coarse_to_fine=False), progress)
+    assert [c[0] for c in calls] == ["full", "starting_poses", "further", "further"]
+    assert calls[2][1] == 1.0 and result.quality["further_passes"] == {"scores": [0.96, 0.962], "kept": 1}
+    fractions = [f for _, f in progress]
+    assert fractions == sorted(fractions)
+
+
+def test_a_kept_pass_keeps_the_winners_stack_outliers(monkeypatch) -> None:  # noqa: ANN001
+    from types import SimpleNamespace
+
+    inlier = np.array([True, True, False, True, True, True])
+    coarse = SimpleNamespace(fit=SimpleNamespace(inlier=inlier))
+    left_out = np.array([True, True, False, False, True, True])        # the pass leaves out slices 2 and 3
+    made = {"full": fake_result(0.95, 1, coarse=coarse), "further": [fake_result(0.96, 4, left_out)]}
+    monkeypatch.setattr(never_worse, "MAX_FURTHER_PASSES", 1)
+    result, _ = run_with(monkeypatch, {"full": 0.95, "starting_poses": 0.9, "slice_level": 0.0},
+                         ReconstructionConfig(), made=made)
+    assert result.quality["further_passes"]["kept"] == 1 and result.coarse is coarse
+    assert result.exclusion_reason == [None, None, "stack_outlier", "residual_outlier", None, None]
+
+
 def test_no_further_pass_where_the_starting_poses_win(monkeypatch) -> None:  # noqa: ANN001
     result, calls = run_with(monkeypatch, {"full": 0.935, "starting_poses": 0.93, "slice_level": 0.9,
                                            "further": [0.99]}, ReconstructionConfig())
@@ -104,11 +162,15 @@ def test_no_further_pass_where_the_starting_poses_win(monkeypatch) -> None:  # n
     assert result.quality["further_passes"] == {"scores": [], "kept": 0}
 
 
-def test_on_the_phantom_the_returned_poses_are_the_winning_paths(acquisition) -> None:  # noqa: ANN001
+def test_on_the_phantom_the_result_is_the_winner_or_its_last_kept_pass(acquisition) -> None:  # noqa: ANN001
     ss = SliceSet.from_stacks([(v, m, t, np.ones(len(t), bool)) for (v, m), t in zip(acquisition.stacks, acquisition.truth)])
     res = never_worse.reconstruct_never_worse(ss, 1.5, 1, config=ReconstructionConfig(sr_iterations=3,
                                                                                       registration_iterations=5))
     q = res.quality
     assert q["path"] == never_worse.choose(q["paths"])
+    further = q["further_passes"]
+    assert further["kept"] <= len(further["scores"]) <= never_worse.MAX_FURTHER_PASSES
+    returned = further["scores"][further["kept"] - 1] if further["kept"] else q["paths"][q["path"]]
+    assert q["leave_one_stack_out"]["median_ncc"] == returned
     if q["path"] == "starting_poses":
-        assert np.allclose(res.atlas_from_voxel_final, ss.atlas_from_voxel)
+        assert np.allclose(res.atlas_from_voxel_final, ss.atlas_from_voxel) and not further["scores"]
