@@ -445,7 +445,9 @@ def quality_line(quality: dict[str, Any] | None) -> str:
         line += f"; leave one stack out {num(held['median_ncc'])} (per stack {per})"
     if quality.get("path"):
         kept = (quality.get("further_passes") or {}).get("kept") or 0
-        line += f"; path {quality['path']}" + (f" + {kept} further slice-level pass{'es' if kept > 1 else ''}" if kept else "")
+        line += f"; path {quality['path']}"
+        if kept:
+            line += f" + {kept} further slice-level pass{'es' if kept > 1 else ''}"
     return line
 
 

@@ -96,7 +96,8 @@ def choose(scores: dict[str, float | None]) -> str:
 
 
 def clearly_better(score: float, than: float) -> bool:
-    """Whether held-out median NCC ``score`` leaves at most ``1 / MIN_MISMATCH_RATIO`` of the mismatch of ``than``.
+    """Whether held-out median NCC ``score`` leaves at most ``1 / MIN_MISMATCH_RATIO`` of the
+    mismatch (1 - NCC) of ``than``.
 
     Example:
         >>> clearly_better(0.957, 0.95), clearly_better(0.955, 0.95)
