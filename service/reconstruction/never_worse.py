@@ -15,8 +15,8 @@ Paths, in order:
 3. **slice level only** (no coarse steps), when the full job has its coarse steps on. It is tried
    even where the full job beats the starting poses: at extreme motion the coarse steps can scramble
    the slices and still score above poses that far off, while the slice level scores higher still;
-4. **further slice-level passes** (at most :data:`MAX_FURTHER_PASSES`), where a registered path
-   won: the slice level again, from the poses the last kept pass returned. Registration under
+4. **further slice-level passes** (:data:`MAX_FURTHER_PASSES`), where a registered path won:
+   the slice level again, from the poses the last kept pass returned. Registration under
    large motion has not converged after one pass (its trust region moves each slice a few mm a
    round), and a pass that starts nearer the answer gets further. A further pass has no coarse
    step, so no slice restarts from its stack's pose and no round widens its trust radius.
@@ -68,12 +68,13 @@ slice level that brings extreme motion's slices from about 6-7 mm to 3 mm (twin-
 on the shared real scan with its masks the full job reduces it 1.27 x."""
 
 
-MAX_FURTHER_PASSES = 2
+MAX_FURTHER_PASSES = 1
 """Slice-level passes tried after a registered path wins. On simulated extreme motion (every slice
 in its own orientation) the first cut the held-out mismatch 1.19-1.45 x and the slices' twin-min
-error 2.40-3.28 -> 2.08-2.84 mm, the second 1.04-1.15 x (kept once, 2.84 -> 2.66 mm), a third
-under 1.02 x; at mild motion, from the starting poses, none cut it (registration made those
-poses worse: 1.72-2.67 -> 1.75-2.85 mm after one pass, 1.78-2.93 after two)."""
+error 2.40-3.28 -> 2.08-2.84 mm; a second cut it 1.04-1.15 x, which the rule kept in none of six
+acquisitions (at 1.5 and 0.8 mm), at 10-30 s each for three stacks of 128 x 128 at 0.8 mm. At mild
+motion, from the starting poses, no pass cut it (registration made those poses worse: 1.72-2.67 ->
+1.75-2.85 mm): hence only after a registered path has won."""
 
 
 def held_out_score(result: ReconstructionResult) -> float | None:

@@ -83,6 +83,10 @@ class ReconstructionConfig:
             proportion to the pixels (real size: 1.4 M pixels -> 0.36 M).
         bin_below_fraction: see ``inplane_binning``.
         margin_mm: margin around the pixels' bounding box when no field of view is given.
+        fov_growth_mm: when no field of view is given, it reaches at most this much beyond the
+            pixels' box at the starting poses (and ``margin_mm``), whatever the coarse step did: a
+            coarse step that scrambles slices (extreme motion) would otherwise spread them over a
+            grid several times the brain's, and every later stage, its time and its memory, with it.
         ga_sigma_mm: Gaussian-average smoothing (default: ``gaussian_average.default_sigma_mm``).
         register: run slice-to-volume registration in each round (False: super-resolution only).
         leave_out_folds: register the slices of each fold of stacks (stack index modulo this many
@@ -138,6 +142,7 @@ class ReconstructionConfig:
     inplane_binning: bool = True
     bin_below_fraction: float = BIN_BELOW_FRACTION
     margin_mm: float = 5.0
+    fov_growth_mm: float = 30.0
     ga_sigma_mm: float | None = None
     register: bool = True
     leave_out_folds: int = 3
@@ -340,7 +345,13 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
         poses = coarse.poses.copy()
         timings["coarse"] = time.perf_counter() - t0
     start = poses.copy()
-    bounds = bounds_of(unbinned.positions(poses), cfg.margin_mm) if bounds_mm is None else bounds_mm
+    bounds = bounds_mm
+    if bounds is None:
+        bounds = bounds_of(unbinned.positions(poses), cfg.margin_mm)
+        reach = bounds_of(unbinned.positions(unbinned.atlas_from_voxel), cfg.margin_mm + cfg.fov_growth_mm)
+        bounds = np.stack([np.maximum(bounds[0], reach[0]), np.minimum(bounds[1], reach[1])])
+        if np.any(bounds[1] <= bounds[0]):             # every slice moved out of reach: where they started
+            bounds = reach
     grid = make_grid(resolution_mm, bounds)
     lams = list(np.geomspace(cfg.lam_first, cfg.lam, rounds)) if rounds > 1 else [cfg.lam] * rounds
     if rounds:

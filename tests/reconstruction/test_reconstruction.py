@@ -94,6 +94,30 @@ def test_single_stack_and_given_field_of_view(acquisition):
     assert np.isfinite(result.volume.array).all() and result.volume.array.max() > 0
 
 
+def test_the_field_of_view_grows_at_most_so_far_beyond_the_starting_poses(acquisition, monkeypatch):
+    """A coarse step that throws slices 200 mm away (it scrambles them under extreme motion) does not
+    stretch the grid, and every stage's time and memory with it, beyond ``fov_growth_mm``."""
+    import service.reconstruction.pipeline as pipeline
+    from service.geometry.pose import translate
+
+    ss = SliceSet.from_stacks([(v, m, t, np.ones(len(t), bool)) for (v, m), t in zip(acquisition.stacks, acquisition.truth)])
+    real = pipeline.coarse_align
+
+    def scrambled(slice_set, poses, **kw):  # noqa: ANN001, ANN202
+        out = real(slice_set, poses, **kw)
+        out.poses[::4] = translate([200.0, 0.0, 0.0]) @ out.poses[::4]
+        return out
+
+    monkeypatch.setattr(pipeline, "coarse_align", scrambled)
+    cfg = ReconstructionConfig(sr_iterations=2, registration_iterations=3, fov_growth_mm=20.0)
+    result = reconstruct(ss, resolution_mm=2.0, svr_iterations=1, config=cfg)
+    start = ss.positions(ss.atlas_from_voxel)
+    corners = result.grid.affine[:3, 3], result.grid.affine[:3, 3] + 2.0 * (np.array(result.grid.shape) - 1)
+    assert np.all(corners[1] <= start.max(axis=0) + cfg.margin_mm + 20.0 + 2.0)      # not 200 mm on
+    assert np.all(corners[0] >= start.min(axis=0) - cfg.margin_mm - 20.0 - 2.0)
+    assert np.isfinite(result.volume.array).all() and result.volume.array.max() > 0
+
+
 def test_no_usable_slice_is_an_error(acquisition):
     vol, mask = acquisition.stacks[0]
     ss = SliceSet.from_stacks([(vol, mask, acquisition.truth[0], np.zeros(len(acquisition.truth[0]), bool))])
