@@ -43,7 +43,7 @@ from model_export.evaluate_acquisitions import run_acquisition  # noqa: E402
 from model_export.localiser.evaluate import _pose_estimator  # noqa: E402
 from service.api.responses import stack_objects  # noqa: E402
 from service.geometry import anchors, se3, twin  # noqa: E402
-from service.geometry.pose import make_pose, translate  # noqa: E402
+from service.geometry.pose import about_centre, make_pose, translate  # noqa: E402
 from service.io.volume import Volume  # noqa: E402
 from service.reconstruction import midline  # noqa: E402
 
@@ -53,7 +53,7 @@ def common_frame(final: NDArray, truth: NDArray, centre: NDArray) -> tuple[NDArr
     ``[n, 4, 4]``, and each slice's E.D. once it is undone."""
     about = translate(centre)
     frame = se3.frechet_mean(se3.inverse(about)[None] @ final @ se3.inverse(truth) @ about[None])
-    undone = se3.inverse(about @ frame @ se3.inverse(about))[None] @ final
+    undone = se3.inverse(about_centre(frame, centre))[None] @ final
     return frame, anchors.ed(undone, truth)
 
 

@@ -38,7 +38,7 @@ from model_export.volume_metrics import volume_psnr_ncc
 from service.api.responses import stack_objects
 from service.geometry import se3, twin
 from service.geometry.anchors import ed
-from service.geometry.pose import translate
+from service.geometry.pose import about_centre
 from service.inference.estimator import OnnxPoseEstimator
 from service.inference.model_file import load_model
 from service.jobs.worker import MIN_ACCEPTED_SHARE, starting_poses
@@ -57,9 +57,8 @@ def errors(stacks, prepared, poses, plane_x_mm: float, midline: np.ndarray | Non
     atlas map that brings the brain's own midline onto the atlas plane,
     :func:`~model_export.experiments.frame_bias.midline_offset` about its centre), ``[4, N]``: also
     twin-min against the truth so placed."""
-    voxel_from_network = np.concatenate([np.linalg.inv(p.network_from_voxel()) for p in prepared])
     keep = np.concatenate([p.prepared.mask_pixels >= MIN_MASK_PIXELS for p in prepared])
-    pose, true = network_poses(stacks, poses, voxel_from_network)
+    pose, true = network_poses(stacks, prepared, poses)
     pose, true = pose[keep], true[keep]
     frame = to_truth_frame(pose, true)
     rows = [ed(pose, true), twin.twin_min_ed(pose, true, plane_x_mm), ed(frame @ pose, true)]
@@ -68,10 +67,10 @@ def errors(stacks, prepared, poses, plane_x_mm: float, midline: np.ndarray | Non
     return np.stack(rows)
 
 
-def network_poses(stacks, poses: np.ndarray,  # noqa: ANN001
-                  voxel_from_network: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def network_poses(stacks, prepared, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # noqa: ANN001
     """``(pose, true)`` ``[N, 4, 4]``: ``poses`` (``atlas_from_voxel``, all stacks) and the simulated truth,
-    both in network frames."""
+    both in the network frames of the ``prepared`` stacks."""
+    voxel_from_network = np.concatenate([np.linalg.inv(p.network_from_voxel()) for p in prepared])
     return poses @ voxel_from_network, np.concatenate([s.atlas_from_voxel for s in stacks]) @ voxel_from_network
 
 
@@ -86,8 +85,7 @@ def psnrs(res, vol, stacks, prepared, mid: np.ndarray | None) -> list[float]:  #
     """The volume's PSNR (dB) against the truth as placed, frame-free (the frame its poses share
     undone), with ``mid`` against the truth placed with its midline on the atlas plane, and last its
     NCC as placed."""
-    voxel_from_network = np.concatenate([np.linalg.inv(p.network_from_voxel()) for p in prepared])
-    pose, true = network_poses(stacks, res.atlas_from_voxel_final, voxel_from_network)
+    pose, true = network_poses(stacks, prepared, res.atlas_from_voxel_final)
     used = res.included
     placed = volume_psnr_ncc(res.volume, vol.image, vol.mask, vol.affine)
     out = [placed[0], volume_psnr_ncc(res.volume, vol.image, vol.mask, vol.affine,
@@ -160,8 +158,7 @@ def main() -> None:
                                           **({} if args.bias is None else {"bias": args.bias}))
             (predictions,), prepared, _ = run_acquisition(stacks, est, 100, True)
             if args.midline and vol.name not in midlines:
-                about = translate(vol.centre)
-                midlines[vol.name] = about @ midline_offset(vol) @ se3.inverse(about)
+                midlines[vol.name] = about_centre(midline_offset(vol), vol.centre)
             mid = midlines.get(vol.name)
             body = {"stacks": stack_objects(predictions)}
             masks = [np.moveaxis(p.slices.masks.transpose(0, 2, 1), 0, p.slices.slice_axis) for p in prepared]

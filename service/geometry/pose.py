@@ -55,6 +55,19 @@ def translate(offset: ArrayLike) -> NDArray[np.float64]:
     return make_pose(np.broadcast_to(np.eye(3), off.shape[:-1] + (3, 3)), off)
 
 
+def about_centre(transform: ArrayLike, centre: ArrayLike) -> NDArray[np.float64]:
+    """A rigid ``transform`` written about the point ``centre`` (its rotation turns about it, its shift
+    moves it) as a map of atlas points: ``T(centre) transform T(centre)^-1``.
+
+    Example (a quarter turn about z written about (10, 0, 0) leaves that point where it is):
+        >>> quarter = make_pose([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], [0.0, 0.0, 0.0])
+        >>> apply(about_centre(quarter, [10.0, 0.0, 0.0]), [[10.0, 0.0, 0.0], [11.0, 0.0, 0.0]]).round(6).tolist()
+        [[10.0, 0.0, 0.0], [10.0, 1.0, 0.0]]
+    """
+    c = np.asarray(centre, dtype=np.float64)
+    return translate(c) @ np.asarray(transform, dtype=np.float64) @ translate(-c)
+
+
 def apply(transform: ArrayLike, points: ArrayLike) -> NDArray[np.float64]:
     """Apply ``[..., 4, 4]`` transforms to points ``[..., 3]`` (broadcasting)."""
     m = np.asarray(transform, dtype=np.float64)

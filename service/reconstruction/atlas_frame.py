@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 
 from service.geometry import iterators, sampling, se3, twin
 from service.geometry.anchors import ed
-from service.geometry.pose import make_pose, translate
+from service.geometry.pose import about_centre, make_pose, translate
 from service.io.volume import Volume
 from service.preprocess.slices import preprocess_slices
 from service.reconstruction.midline import FrameCorrection
@@ -135,6 +135,6 @@ def atlas_frame(volume: Volume, estimator: PoseEstimator | None, plane_x_mm: flo
     rotation = float(np.degrees(np.linalg.norm(se3.so3_log(frame[:3, :3]))))
     shift = float(np.linalg.norm(frame[:3, 3]))
     applied = rotation <= MAX_ROTATION_DEG and shift <= MAX_SHIFT_MM
-    correction = about @ frame @ se3.inverse(about) if applied else np.eye(4)
+    correction = about_centre(frame, centre) if applied else np.eye(4)
     return FrameFit(correction, applied, rotation, shift, slices=int(keep.sum()),
                     spread_mm=float(1.4826 * np.median(ed(each, frame[None]))))

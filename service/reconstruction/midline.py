@@ -36,7 +36,7 @@ from scipy import ndimage
 
 from service.geometry import se3, twin
 from service.geometry.frames import ras_transform_from_lps
-from service.geometry.pose import translate
+from service.geometry.pose import about_centre, translate
 from service.io.volume import Volume, to_sitk
 
 MAX_ROTATION_DEG = 10.0
@@ -141,5 +141,5 @@ def midline_fit(volume: Volume, plane_x_mm: float, held_out_ncc: float | None = 
     rotation = float(np.degrees(np.linalg.norm(se3.so3_log(half[:3, :3]))))
     shift = float(np.linalg.norm(half[:3, 3]))
     applied = rotation <= MAX_ROTATION_DEG and shift <= MAX_SHIFT_MM
-    correction = translate(centre) @ half @ se3.inverse(translate(centre)) if applied else np.eye(4)
+    correction = about_centre(half, centre) if applied else np.eye(4)
     return FrameCorrection(correction, applied, rotation, shift)

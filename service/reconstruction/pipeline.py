@@ -345,9 +345,8 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
         poses = coarse.poses.copy()
         timings["coarse"] = time.perf_counter() - t0
     start = poses.copy()
-    bounds = bounds_mm
-    if bounds is None:
-        bounds = bounds_of(unbinned.positions(poses), cfg.margin_mm)
+    bounds = bounds_of(unbinned.positions(poses), cfg.margin_mm) if bounds_mm is None else bounds_mm
+    if bounds_mm is None and coarse is not None:       # the coarse step moved the slices: not too far
         reach = bounds_of(unbinned.positions(unbinned.atlas_from_voxel), cfg.margin_mm + cfg.fov_growth_mm)
         bounds = np.stack([np.maximum(bounds[0], reach[0]), np.minimum(bounds[1], reach[1])])
         if np.any(bounds[1] <= bounds[0]):             # every slice moved out of reach: where they started

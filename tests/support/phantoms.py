@@ -29,7 +29,6 @@ def phantom_brain(seed: int, shape: tuple[int, int, int] = (56, 64, 56), spacing
     return img, mask.astype(np.float32), aff
 
 
-
 def symmetric_phantom_brain(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`phantom_brain` made mirror-symmetric about the atlas plane ``x = 0`` (its centre lies on
     it): the mean of the image and its mirror image, the mask where both masks are."""
@@ -38,6 +37,7 @@ def symmetric_phantom_brain(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarr
     image, mask, affine = phantom_brain(seed)
     return (0.5 * (image + mirror_image(image, affine, 0.0)),
             ((mask + mirror_image(mask, affine, 0.0)) > 1.0).astype(np.float32), affine)
+
 
 def stack_affine(slice_axis: int, rotation: np.ndarray, inplane_mm: float = 1.2, thickness_mm: float = 3.0,
                  shape: tuple[int, int, int] = (64, 64, 24), centre_mm=(0.0, 3.0, 8.0)) -> np.ndarray:
