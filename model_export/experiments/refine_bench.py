@@ -112,8 +112,11 @@ VARIANTS: dict[str, dict] = {
     "slice-level-prior1": {"coarse_to_fine": False, "registration_prior_sd_mm": 1.0},
     "slice-level-prior2": {"coarse_to_fine": False, "registration_prior_sd_mm": 2.0},
     "job": {},                                           # what a job runs: the never-worse paths
+    "job-one-resolution": {},                            # the same, its paths at the output resolution
 }
 """Each variant's :class:`ReconstructionConfig` fields (beside the model's symmetry plane)."""
+JOBS: dict[str, dict] = {"job": {}, "job-one-resolution": {"path_resolution_mm": None}}
+"""The variants that run a job's paths (:func:`reconstruct_never_worse`), and its keywords."""
 
 
 def main() -> None:
@@ -171,14 +174,16 @@ def main() -> None:
                 if name == variants[0]:
                     rows["predicted"].append(errors(stacks, prepared, ss.atlas_from_voxel, plane, mid))
                 t = time.perf_counter()
-                run = reconstruct_never_worse if variant == "job" else reconstruct
-                res = run(ss, resolution_mm=args.resolution, svr_iterations=args.rounds,
-                          config=ReconstructionConfig(symmetry_plane_x_mm=plane, **VARIANTS[variant]))
+                config = ReconstructionConfig(symmetry_plane_x_mm=plane, **VARIANTS[variant])
+                if variant in JOBS:
+                    res = reconstruct_never_worse(ss, args.resolution, args.rounds, config=config, **JOBS[variant])
+                else:
+                    res = reconstruct(ss, resolution_mm=args.resolution, svr_iterations=args.rounds, config=config)
                 seconds[name].append(time.perf_counter() - t)
                 rows[name].append(errors(stacks, prepared, res.atlas_from_voxel_final, plane, mid))
                 held[name].append(res.quality["leave_one_stack_out"]["median_ncc"])
                 psnr[name].append(psnrs(res, vol, stacks, prepared, mid))
-                if variant == "job":
+                if variant in JOBS:
                     print(f"  {name} path: {res.quality['path']} {res.quality['paths']}; "
                           f"{int(ss.include.sum())} slices start included", flush=True)
                 if args.atlas_frame:

@@ -9,8 +9,8 @@ Stages (the job's ``stage``, with ``progress`` in 0..1): ``reading``, ``predicti
 uploaded poses), then those of the reconstruction -- ``stack consistency``, ``stack registration``,
 ``slice starting poses``, ``gaussian average``, then per round ``registration k/K``,
 ``robust weighting k/K``, ``super-resolution k/K``; ``checking starting poses``, ``checking slice
-level`` and ``further slice-level pass`` (:mod:`~service.reconstruction.never_worse`) -- ``atlas
-frame``, ``midline`` and ``writing``. :func:`run_job` is what a
+level``, ``further slice-level pass`` and ``volume at the output resolution``
+(:mod:`~service.reconstruction.never_worse`) -- ``atlas frame``, ``midline`` and ``writing``. :func:`run_job` is what a
 worker process executes; it claims the job atomically,
 reports stage and progress to the store, checks for cancellation between stages, and records any
 failure with its reason. The back-ends run it: :mod:`service.jobs.local_runner` (the

@@ -21,12 +21,19 @@ Paths, in order:
    round), and a pass that starts nearer the answer gets further. A further pass has no coarse
    step, so no slice restarts from its stack's pose and no round widens its trust radius.
 
+Where the job asks for a volume finer than :data:`PATH_RESOLUTION_MM`, the paths and passes run at
+that resolution (they decide where the slices go, and a 1.5 mm grid holds a sixth of the voxels of
+a 0.8 mm one), and one more pass solves the volume at the
+resolution asked for (:func:`at_output_resolution`): the slice level again from the chosen poses
+where a registered path won, else the robust super-resolution at the starting poses.
+
 A registered path (1 or 3) wins where its leave-one-stack-out mismatch (1 - the median NCC) is at
 most the starting poses' over :data:`MIN_MISMATCH_RATIO`; otherwise the starting poses do. A
 further pass is kept by the same rule against the pass it started from; the first that is not ends
 them. The quality report names the winner (``path``), every path's score (``paths``) and the
-further passes' scores and how many were kept (``further_passes``); its other fields describe the
-result returned, the last kept pass. A slice the winner's stack fit found inconsistent with its
+further passes' scores and how many were kept (``further_passes``), the paths' resolution
+(``path_resolution_mm``) and, where the output pass ran, what it did (``output_pass``); its other
+fields describe the result returned. A slice the winner's stack fit found inconsistent with its
 stack keeps that verdict (``stack_outlier``) in a kept pass that leaves it out. A job of one stack
 has nothing to leave out: it keeps the full job.
 
@@ -46,8 +53,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import replace
 
+import numpy as np
 from numpy.typing import ArrayLike
 
+from service.reconstruction.grid import bounds_of
 from service.reconstruction.pipeline import (
     Progress,
     ReconstructionConfig,
@@ -75,6 +84,12 @@ error 2.40-3.28 -> 2.08-2.84 mm; a second cut it 1.04-1.15 x, which the rule kep
 acquisitions (at 1.5 and 0.8 mm), at 10-30 s each for three stacks of 128 x 128 at 0.8 mm. At mild
 motion, from the starting poses, no pass cut it (registration made those poses worse: 1.72-2.67 ->
 1.75-2.85 mm): hence only after a registered path has won."""
+
+PATH_RESOLUTION_MM = 1.5
+"""The resolution the paths and further passes run at when the job asks for a finer volume (the
+volume returned is solved at the finer one, at the poses they chose)."""
+OUTPUT_SHARE = 0.7
+"""The share of a job's progress the paths take when the volume is then solved at a finer resolution."""
 
 
 def held_out_score(result: ReconstructionResult) -> float | None:
@@ -109,24 +124,31 @@ def clearly_better(score: float, than: float) -> bool:
 
 def reconstruct_never_worse(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations: int = 3,
                             progress: Progress | None = None, cancel: Callable[[], bool] | None = None, *,
-                            bounds_mm: ArrayLike | None = None,
-                            config: ReconstructionConfig | None = None) -> ReconstructionResult:
+                            bounds_mm: ArrayLike | None = None, config: ReconstructionConfig | None = None,
+                            path_resolution_mm: float | None = PATH_RESOLUTION_MM) -> ReconstructionResult:
     """:func:`~service.reconstruction.pipeline.reconstruct` along the paths of the module: the
     winner, or its last kept further pass, is returned; its ``quality`` says which path won
-    (``path``), every path's score (``paths``) and what the further passes did (``further_passes``:
-    their ``scores`` and how many were ``kept``); ``timings["all_paths"]`` is every path's and pass's."""
+    (``path``), every path's score (``paths``), what the further passes did (``further_passes``:
+    their ``scores`` and how many were ``kept``) and the resolution they ran at
+    (``path_resolution_mm``); ``timings["all_paths"]`` is every path's and pass's.
+
+    The paths run at ``path_resolution_mm`` where that is coarser than ``resolution_mm`` (None: at
+    ``resolution_mm``); the volume returned is then solved at ``resolution_mm``, at the poses they
+    chose, without registration (:func:`at_output_resolution`)."""
     cfg = replace(config or ReconstructionConfig(), quality=True)
     results: dict[str, ReconstructionResult] = {}
     scores: dict[str, float | None] = {}
+    registers = cfg.register and svr_iterations > 0
+    working = max(resolution_mm, path_resolution_mm or 0.0) if registers else resolution_mm
+    share = 1.0 if working == resolution_mm else OUTPUT_SHARE
 
     def run(name: str, run_cfg: ReconstructionConfig, lo: float, hi: float) -> None:
         label = None if name == "full" else f"checking {name.replace('_', ' ')}"
-        part = None if progress is None else (lambda stage, f: progress(label or stage, lo + (hi - lo) * f))
-        results[name] = reconstruct(slice_set, resolution_mm, svr_iterations, part, cancel, bounds_mm=bounds_mm,
+        part = None if progress is None else (lambda stage, f: progress(label or stage, share * (lo + (hi - lo) * f)))
+        results[name] = reconstruct(slice_set, working, svr_iterations, part, cancel, bounds_mm=bounds_mm,
                                     config=run_cfg)
         scores[name] = held_out_score(results[name])
 
-    registers = cfg.register and svr_iterations > 0
     slice_level = registers and cfg.coarse_to_fine
     run("full", cfg, 0.0, 0.45 if slice_level else 0.75)
     if registers and scores["full"] is not None:
@@ -142,9 +164,9 @@ def reconstruct_never_worse(slice_set: SliceSet, resolution_mm: float = 0.8, svr
         again_cfg = replace(cfg, coarse_to_fine=False)
         for k in range(MAX_FURTHER_PASSES):
             lo = 0.85 + 0.15 * k / MAX_FURTHER_PASSES
-            part = None if progress is None else (
-                lambda stage, f, lo=lo: progress("further slice-level pass", lo + 0.15 / MAX_FURTHER_PASSES * f))
-            again = reconstruct(replace(slice_set, atlas_from_voxel=result.atlas_from_voxel_final), resolution_mm,
+            part = None if progress is None else (lambda stage, f, lo=lo: progress(
+                "further slice-level pass", share * (lo + 0.15 / MAX_FURTHER_PASSES * f)))
+            again = reconstruct(replace(slice_set, atlas_from_voxel=result.atlas_from_voxel_final), working,
                                 svr_iterations, part, cancel, bounds_mm=bounds_mm, config=again_cfg)
             seconds += again.timings.get("total", 0.0)
             score = held_out_score(again)
@@ -152,12 +174,55 @@ def reconstruct_never_worse(slice_set: SliceSet, resolution_mm: float = 0.8, svr
             if score is None or not clearly_better(score, held_out_score(result)):
                 break
             result, kept = again, kept + 1
-    if kept and results[best].coarse is not None:       # the winner's stack fit still judges its slices
+    if working != resolution_mm:
+        part = None if progress is None else (
+            lambda stage, f: progress("volume at the output resolution", share + (1.0 - share) * f))
+        result, output_pass = at_output_resolution(slice_set, result, registers and best != "starting_poses",
+                                                   resolution_mm, svr_iterations, part, cancel, bounds_mm, cfg)
+        seconds += result.timings.get("total", 0.0)
+    if (kept or working != resolution_mm) and results[best].coarse is not None:   # the winner's stack fit still judges
         result.coarse = results[best].coarse
         result.exclusion_reason = exclusion_reasons(slice_set.include, result.included, result.coarse.fit.inlier)
     result.quality = {**result.quality, "path": best, "paths": scores,
-                      "further_passes": {"scores": further, "kept": kept}}
+                      "further_passes": {"scores": further, "kept": kept}, "path_resolution_mm": working,
+                      **({"output_pass": output_pass} if working != resolution_mm else {})}
     result.timings = {**result.timings, "all_paths": seconds}
     if progress is not None:
         progress("done", 1.0)
     return result
+
+
+def at_output_resolution(slice_set: SliceSet, chosen: ReconstructionResult, registered: bool, resolution_mm: float,
+                         svr_iterations: int, progress: Progress | None, cancel: Callable[[], bool] | None,
+                         bounds_mm: ArrayLike | None, config: ReconstructionConfig) -> tuple[ReconstructionResult, dict]:
+    """The volume at ``resolution_mm`` from the poses of ``chosen`` (the paths' result at a coarser
+    resolution), and what its pass did (``{"tried", "score", "kept"}``).
+
+    Where a registered path won (``registered``), a slice-level pass at ``resolution_mm`` (the
+    registration sees the finer volume's detail and takes the slices a little further); it is kept
+    unless its leave-one-stack-out mismatch is :data:`MIN_MISMATCH_RATIO` times that of ``chosen``,
+    and then, as where the starting poses won, the volume is the robust super-resolution at the
+    chosen poses without registration. Its slice weights, exclusions and quality report are
+    measured on the volume returned. Its field of view is ``bounds_mm``, else the pixels' box at
+    the chosen poses (and the margin), as the paths draw it, within the field of view of ``chosen``."""
+    poses = chosen.atlas_from_voxel_final
+    if bounds_mm is None:
+        box = bounds_of(slice_set.positions(poses), config.margin_mm)
+        lower = chosen.grid.affine[:3, 3]
+        upper = lower + (np.array(chosen.grid.shape) - 1) * chosen.grid.spacing
+        bounds_mm = np.stack([np.maximum(box[0], lower), np.minimum(box[1], upper)])
+
+    def solve(run_cfg: ReconstructionConfig, lo: float, hi: float) -> ReconstructionResult:
+        part = None if progress is None else (lambda stage, f: progress(stage, lo + (hi - lo) * f))
+        return reconstruct(replace(slice_set, atlas_from_voxel=poses), resolution_mm, svr_iterations, part, cancel,
+                           bounds_mm=bounds_mm, config=run_cfg)
+
+    if not registered:
+        return solve(replace(config, register=False), 0.0, 1.0), {"tried": False, "score": None, "kept": False}
+    fine = solve(replace(config, coarse_to_fine=False), 0.0, 0.8)
+    score, before = held_out_score(fine), held_out_score(chosen)
+    if score is None or before is None or not clearly_better(before, score):
+        return fine, {"tried": True, "score": score, "kept": True}
+    plain = solve(replace(config, register=False), 0.8, 1.0)
+    plain.timings["total"] = plain.timings.get("total", 0.0) + fine.timings.get("total", 0.0)
+    return plain, {"tried": True, "score": score, "kept": False}

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.reconstruction import never_worse
-from service.reconstruction.pipeline import ReconstructionConfig, ReconstructionResult
 from service.io.volume import Volume
+from service.reconstruction import never_worse
+from service.reconstruction.grid import make_grid
+from service.reconstruction.pipeline import ReconstructionConfig, ReconstructionResult
 from service.reconstruction.slices import SliceSet
 
 
@@ -20,8 +21,9 @@ def fake_result(score: float | None, index: int, included: np.ndarray | None = N
     poses[:, 0, 3] = index
     inc = np.ones(N_SLICES, bool) if included is None else included
     return ReconstructionResult(None, poses, inc.astype(float), inc, np.ones(N_SLICES),  # type: ignore[arg-type]
-                                {"total": 1.0}, exclusion_reason=[None if i else "residual_outlier" for i in inc],
-                                coarse=coarse, quality={"leave_one_stack_out": {"median_ncc": score}})
+                                {"total": 1.0}, make_grid(1.5, [[-30.0, -21, -3], [30, 21, 3]]),
+                                [None if i else "residual_outlier" for i in inc], coarse,
+                                {"leave_one_stack_out": {"median_ncc": score}})
 
 
 def tiny_slice_set() -> SliceSet:
@@ -30,17 +32,23 @@ def tiny_slice_set() -> SliceSet:
 
 
 def run_with(monkeypatch, scores: dict, job: ReconstructionConfig, progress: list | None = None,  # noqa: ANN001
-             made: dict | None = None) -> tuple[ReconstructionResult, list]:
+             made: dict | None = None, resolution_mm: float = 1.0, path_resolution_mm: float | None = None,
+             log: list | None = None) -> tuple[ReconstructionResult, list]:
     """The job with every reconstruction faked: each path scores ``scores[path]``; further slice-level
-    passes score ``scores["further"]`` in turn (None once they run out). Returns the result and the
-    calls: ``(name, x of the poses it started from, its coarse_to_fine)``. ``made``: per path, the
-    result to return (``"further"``: a list, one a pass; default :func:`fake_result`)."""
+    passes score ``scores["further"]`` in turn (None once they run out); the passes at the output
+    resolution (calls at ``resolution_mm`` below ``path_resolution_mm``) are given by ``made["output"]``.
+    Returns the result and the calls: ``(name, x of the poses it started from, its coarse_to_fine)``.
+    ``made``: per path, the result to return (``"further"`` and ``"output"``: a list, one a pass;
+    default :func:`fake_result`); ``log`` collects each call's ``(name, resolution, bounds, register,
+    coarse_to_fine)``."""
     calls = []
     further = list(scores.get("further", []))
 
-    def fake(slice_set, resolution_mm, svr_iterations, progress, cancel, *, bounds_mm, config):  # noqa: ANN001, ANN202
+    def fake(slice_set, resolution, svr_iterations, progress, cancel, *, bounds_mm, config):  # noqa: ANN001, ANN202
         names = [c[0] for c in calls]
-        if not calls:
+        if calls and path_resolution_mm is not None and resolution < path_resolution_mm:
+            name = "output"
+        elif not calls:
             name = "full"
         elif not config.register:
             name = "starting_poses"
@@ -50,16 +58,19 @@ def run_with(monkeypatch, scores: dict, job: ReconstructionConfig, progress: lis
             name = "further"
         assert slice_set.include.all() and len(slice_set.atlas_from_voxel) == N_SLICES
         calls.append((name, float(slice_set.atlas_from_voxel[0, 0, 3]), config.coarse_to_fine))
+        if log is not None:
+            log.append((name, resolution, bounds_mm, config.register, config.coarse_to_fine))
         if progress is not None:
             progress("registration 1/3", 0.5)
         if made and name in made:
-            return made[name].pop(0) if name == "further" else made[name]
+            return made[name].pop(0) if name in ("further", "output") else made[name]
         score = (further.pop(0) if further else None) if name == "further" else scores[name]
         return fake_result(score, len(calls))
 
     monkeypatch.setattr(never_worse, "reconstruct", fake)
     report = None if progress is None else (lambda stage, f: progress.append((stage, f)))
-    return never_worse.reconstruct_never_worse(tiny_slice_set(), 1.0, 3, report, config=job), \
+    return never_worse.reconstruct_never_worse(tiny_slice_set(), resolution_mm, 3, report, config=job,
+                                               path_resolution_mm=path_resolution_mm), \
         [c[0] for c in calls] if made is None and progress is None else calls
 
 
@@ -163,6 +174,74 @@ def test_no_further_pass_where_the_starting_poses_win(monkeypatch) -> None:  # n
                                            "further": [0.99]}, ReconstructionConfig())
     assert calls == ["full", "starting_poses", "slice_level"] and result.quality["path"] == "starting_poses"
     assert result.quality["further_passes"] == {"scores": [], "kept": 0}
+
+
+def test_paths_run_at_the_path_resolution_and_the_volume_at_the_output_one(monkeypatch) -> None:  # noqa: ANN001
+    from types import SimpleNamespace
+
+    inlier = np.array([True, True, False, True, True, True])
+    coarse = SimpleNamespace(fit=SimpleNamespace(inlier=inlier))
+    left_out = np.array([True, True, False, True, True, False])          # the output volume leaves out 2 and 5
+    made = {"full": fake_result(0.62, 1, coarse=coarse), "output": [fake_result(0.68, 9, left_out)]}
+    progress: list = []
+    log: list = []
+    result, calls = run_with(monkeypatch, {"full": 0.62, "starting_poses": 0.47, "slice_level": 0.0,
+                                           "further": [0.7]}, ReconstructionConfig(), progress, made,
+                             resolution_mm=0.8, path_resolution_mm=1.5, log=log)
+    names = [c[0] for c in calls]
+    assert names == ["full", "starting_poses", "slice_level", "further", "output"]
+    assert [r for _, r, *_ in log] == [1.5] * 4 + [0.8]
+    # a registered path won: the output pass is the slice level (registration, no coarse steps) from
+    # the kept further pass's poses (call 4: x = 4); its field of view is the pixels' box there (12 x
+    # 12 pixels of 1 mm from x = 4, a 5 mm margin) within the field of view that pass had (z: +-3 mm)
+    assert calls[-1][1] == 4.0 and log[-1][3:] == (True, False)
+    assert np.allclose(log[-1][2], [[-1.0, -5, -3], [20, 16, 3]])
+    q = result.quality
+    assert q["path"] == "full" and q["paths"]["full"] == 0.62 and q["path_resolution_mm"] == 1.5
+    assert q["further_passes"] == {"scores": [0.7], "kept": 1}
+    assert q["output_pass"] == {"tried": True, "score": 0.68, "kept": True}   # a little worse than 0.7: kept
+    assert q["leave_one_stack_out"]["median_ncc"] == 0.68                   # measured on the volume returned
+    assert result.coarse is coarse
+    assert result.exclusion_reason == [None, None, "stack_outlier", None, None, "residual_outlier"]
+    fractions = [f for _, f in progress]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0
+    share = never_worse.OUTPUT_SHARE
+    assert [f for stage, f in progress if stage == "volume at the output resolution"] == [share + (1 - share) * 0.8 * 0.5]
+
+
+def test_an_output_pass_that_does_clearly_worse_gives_way_to_the_chosen_poses(monkeypatch) -> None:  # noqa: ANN001
+    made = {"output": [fake_result(0.6, 9), fake_result(0.75, 10)]}
+    log: list = []
+    result, calls = run_with(monkeypatch, {"full": 0.7, "starting_poses": 0.47, "slice_level": 0.0},
+                             ReconstructionConfig(), made=made, resolution_mm=0.8, path_resolution_mm=1.5, log=log)
+    assert [c[0] for c in calls] == ["full", "starting_poses", "slice_level", "further", "output", "output"]
+    assert [entry[3] for entry in log[-2:]] == [True, False] and calls[-1][1] == 1.0   # at the full job's poses
+    assert result.quality["output_pass"] == {"tried": True, "score": 0.6, "kept": False}
+    assert result.quality["leave_one_stack_out"]["median_ncc"] == 0.75
+    assert result.timings["all_paths"] == 6.0
+
+
+def test_where_the_starting_poses_win_the_output_volume_registers_nothing(monkeypatch) -> None:  # noqa: ANN001
+    log: list = []
+    result, calls = run_with(monkeypatch, {"full": 0.9, "starting_poses": 0.93, "slice_level": 0.9},
+                             ReconstructionConfig(), made={"output": [fake_result(0.94, 9)]}, resolution_mm=0.8,
+                             path_resolution_mm=1.5, log=log)
+    assert [c[0] for c in calls] == ["full", "starting_poses", "slice_level", "output"]
+    assert log[-1][1] == 0.8 and log[-1][3] is False and calls[-1][1] == 2.0       # the starting-poses path's
+    assert result.quality["output_pass"] == {"tried": False, "score": None, "kept": False}
+
+
+def test_no_second_resolution_without_registration_or_when_the_output_is_coarse_enough(monkeypatch) -> None:  # noqa: ANN001
+    log: list = []
+    run_with(monkeypatch, {"full": 0.9}, ReconstructionConfig(register=False), resolution_mm=0.8,
+             path_resolution_mm=1.5, log=log)
+    assert [(n, r) for n, r, *_ in log] == [("full", 0.8)]
+    log.clear()
+    result, _ = run_with(monkeypatch, {"full": 0.95, "starting_poses": 0.9, "slice_level": 0.0},
+                         ReconstructionConfig(), resolution_mm=2.0, path_resolution_mm=1.5, log=log)
+    assert [n for n, *_ in log] == ["full", "starting_poses", "slice_level", "further"]
+    assert {r for _, r, *_ in log} == {2.0} and result.quality["path_resolution_mm"] == 2.0
+    assert "output_pass" not in result.quality
 
 
 def test_on_the_phantom_the_result_is_the_winner_or_its_last_kept_pass(acquisition) -> None:  # noqa: ANN001
