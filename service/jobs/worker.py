@@ -10,10 +10,10 @@ uploaded poses), then those of the reconstruction -- ``stack consistency``, ``st
 ``slice starting poses``, ``gaussian average``, then per round ``registration k/K``,
 ``robust weighting k/K``, ``super-resolution k/K``; ``checking starting poses``, ``checking slice
 level``, ``further slice-level pass`` and ``volume at the output resolution``
-(:mod:`~service.reconstruction.never_worse`) -- ``atlas frame``, ``midline`` and ``writing``. :func:`run_job` is what a
-worker process executes; it claims the job atomically,
-reports stage and progress to the store, checks for cancellation between stages, and records any
-failure with its reason. The back-ends run it: :mod:`service.jobs.local_runner` (the
+(:mod:`~service.reconstruction.never_worse`) -- ``atlas frame``, ``midline`` and ``writing``.
+:func:`run_job` is what a worker process executes; it claims the job atomically, reports stage and
+progress to the store, checks for cancellation between stages, and records any failure with its
+reason. The back-ends run it: :mod:`service.jobs.local_runner` (the
 embedded process pool) and :mod:`service.jobs.rq_runner` (workers on a Redis queue).
 """
 

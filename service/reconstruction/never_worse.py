@@ -23,9 +23,10 @@ Paths, in order:
 
 Where the job asks for a volume finer than :data:`PATH_RESOLUTION_MM`, the paths and passes run at
 that resolution (they decide where the slices go, and a 1.5 mm grid holds a sixth of the voxels of
-a 0.8 mm one), and one more pass solves the volume at the
-resolution asked for (:func:`at_output_resolution`): the slice level again from the chosen poses
-where a registered path won, else the robust super-resolution at the starting poses.
+a 0.8 mm one), and one more pass solves the volume at the resolution asked for
+(:func:`at_output_resolution`): the slice level again from the chosen poses where a registered path
+won, else the robust super-resolution at the starting poses; a choice the starting poses won by a
+small margin is made again there.
 
 A registered path (1 or 3) wins where its leave-one-stack-out mismatch (1 - the median NCC) is at
 most the starting poses' over :data:`MIN_MISMATCH_RATIO`; otherwise the starting poses do. A
@@ -138,8 +139,8 @@ def reconstruct_never_worse(slice_set: SliceSet, resolution_mm: float = 0.8, svr
     (``path_resolution_mm``); ``timings["all_paths"]`` is every path's and pass's.
 
     The paths run at ``path_resolution_mm`` where that is coarser than ``resolution_mm`` (None: at
-    ``resolution_mm``); the volume returned is then solved at ``resolution_mm``, at the poses they
-    chose, without registration (:func:`at_output_resolution`)."""
+    ``resolution_mm``); the volume returned is then solved at ``resolution_mm``
+    (:func:`at_output_resolution`), and ``quality`` says what that pass did (``output_pass``)."""
     cfg = replace(config or ReconstructionConfig(), quality=True)
     results: dict[str, ReconstructionResult] = {}
     scores: dict[str, float | None] = {}

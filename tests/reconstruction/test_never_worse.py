@@ -206,7 +206,8 @@ def test_paths_run_at_the_path_resolution_and_the_volume_at_the_output_one(monke
     fractions = [f for _, f in progress]
     assert fractions == sorted(fractions) and fractions[-1] == 1.0
     share = never_worse.OUTPUT_SHARE
-    assert [f for stage, f in progress if stage == "volume at the output resolution"] == [share + (1 - share) * 0.8 * 0.5]
+    output = [f for stage, f in progress if stage == "volume at the output resolution"]
+    assert output == [share + (1 - share) * 0.8 * 0.5]
 
 
 def test_an_output_pass_that_does_clearly_worse_gives_way_to_the_chosen_poses(monkeypatch) -> None:  # noqa: ANN001
@@ -254,7 +255,7 @@ def test_an_undecided_choice_is_made_again_at_the_output_resolution(monkeypatch)
     assert [e[0] for e in log] == ["full", "starting_poses", "slice_level", "output"]     # 1.06 x: decided
 
 
-def test_no_second_resolution_without_registration_or_when_the_output_is_coarse_enough(monkeypatch) -> None:  # noqa: ANN001
+def test_one_resolution_without_registration_or_for_a_coarse_volume(monkeypatch) -> None:  # noqa: ANN001
     log: list = []
     run_with(monkeypatch, {"full": 0.9}, ReconstructionConfig(register=False), resolution_mm=0.8,
              path_resolution_mm=1.5, log=log)
