@@ -210,8 +210,10 @@ def at_output_resolution(slice_set: SliceSet, results: dict[str, ReconstructionR
     ``score``, ``kept`` and, where it was judged against the starting poses, ``against``).
 
     * A registered path won: the slice level again at ``resolution_mm`` from its poses (the
-      registration sees the finer volume's detail), kept unless its leave-one-stack-out mismatch is
-      :data:`MIN_MISMATCH_RATIO` times that of ``chosen``; else the robust super-resolution at those poses.
+      registration sees the finer volume's detail). Where its leave-one-stack-out mismatch is
+      :data:`MIN_MISMATCH_RATIO` times that of ``chosen``, the robust super-resolution at those poses
+      is solved too, and the pass is kept unless that volume does clearly better at the same
+      resolution (scores of two resolutions are not alike: see :data:`UNDECIDED_RATIO`).
     * The starting poses won, but a registered path cut their mismatch by at least
       :data:`UNDECIDED_RATIO`: a coarse grid shows a pose's gain less (its volumes are blurrier), so
       the choice is made again at ``resolution_mm``, by the same rule, between the starting poses'
@@ -240,8 +242,11 @@ def at_output_resolution(slice_set: SliceSet, results: dict[str, ReconstructionR
         if score is None or before is None or not clearly_better(before, score):
             return fine, best, {"tried": True, "score": score, "kept": True}
         plain = solve(chosen, False, 0.8, 1.0)
-        plain.timings["total"] = plain.timings.get("total", 0.0) + fine.timings.get("total", 0.0)
-        return plain, best, {"tried": True, "score": score, "kept": False}
+        against = held_out_score(plain)
+        kept = against is None or not clearly_better(against, score)
+        out = fine if kept else plain
+        out.timings["total"] = fine.timings.get("total", 0.0) + plain.timings.get("total", 0.0)
+        return out, best, {"tried": True, "score": score, "kept": kept, "against": against}
     start = scores["starting_poses"]
     registered = {k: v for k, v in scores.items() if v is not None and k != "starting_poses"}
     contender = max(registered, key=lambda k: registered[k], default=None)

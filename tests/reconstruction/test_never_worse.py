@@ -210,16 +210,22 @@ def test_paths_run_at_the_path_resolution_and_the_volume_at_the_output_one(monke
     assert output == [share + (1 - share) * 0.8 * 0.5]
 
 
-def test_an_output_pass_that_does_clearly_worse_gives_way_to_the_chosen_poses(monkeypatch) -> None:  # noqa: ANN001
+def test_an_output_pass_gives_way_where_the_chosen_poses_do_clearly_better_at_its_resolution(monkeypatch) -> None:  # noqa: ANN001
     made = {"output": [fake_result(0.6, 9), fake_result(0.75, 10)]}
     log: list = []
     result, calls = run_with(monkeypatch, {"full": 0.7, "starting_poses": 0.47, "slice_level": 0.0},
                              ReconstructionConfig(), made=made, resolution_mm=0.8, path_resolution_mm=1.5, log=log)
     assert [c[0] for c in calls] == ["full", "starting_poses", "slice_level", "further", "output", "output"]
     assert [entry[3] for entry in log[-2:]] == [True, False] and calls[-1][1] == 1.0   # at the full job's poses
-    assert result.quality["output_pass"] == {"tried": True, "score": 0.6, "kept": False}
+    assert result.quality["output_pass"] == {"tried": True, "score": 0.6, "kept": False, "against": 0.75}
     assert result.quality["leave_one_stack_out"]["median_ncc"] == 0.75
     assert result.timings["all_paths"] == 6.0
+    # judged at the output resolution, the pass is not clearly worse than the chosen poses' volume there
+    made = {"output": [fake_result(0.6, 9), fake_result(0.61, 10)]}
+    result, _ = run_with(monkeypatch, {"full": 0.7, "starting_poses": 0.47, "slice_level": 0.0},
+                         ReconstructionConfig(), made=made, resolution_mm=0.8, path_resolution_mm=1.5)
+    assert result.quality["output_pass"] == {"tried": True, "score": 0.6, "kept": True, "against": 0.61}
+    assert result.quality["leave_one_stack_out"]["median_ncc"] == 0.6
 
 
 def test_where_the_starting_poses_win_the_output_volume_registers_nothing(monkeypatch) -> None:  # noqa: ANN001
