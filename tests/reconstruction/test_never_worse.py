@@ -210,7 +210,8 @@ def test_paths_run_at_the_path_resolution_and_the_volume_at_the_output_one(monke
     assert output == [share + (1 - share) * 0.8 * 0.5]
 
 
-def test_an_output_pass_gives_way_where_the_chosen_poses_do_clearly_better_at_its_resolution(monkeypatch) -> None:  # noqa: ANN001
+def test_an_output_pass_gives_way_where_the_chosen_poses_do_clearly_better_at_its_resolution(
+        monkeypatch) -> None:  # noqa: ANN001
     made = {"output": [fake_result(0.6, 9), fake_result(0.75, 10)]}
     log: list = []
     result, calls = run_with(monkeypatch, {"full": 0.7, "starting_poses": 0.47, "slice_level": 0.0},
