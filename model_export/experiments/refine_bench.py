@@ -184,7 +184,8 @@ def main() -> None:
                 held[name].append(res.quality["leave_one_stack_out"]["median_ncc"])
                 psnr[name].append(psnrs(res, vol, stacks, prepared, mid))
                 if variant in JOBS:
-                    print(f"  {name} path: {res.quality['path']} {res.quality['paths']}; "
+                    print(f"  {name} path: {res.quality['path']} {res.quality['paths']}, output pass "
+                          f"{res.quality.get('output_pass')}; "
                           f"{int(ss.include.sum())} slices start included", flush=True)
                 if args.atlas_frame:
                     framed_res = with_frame(res, atlas_frame(res.volume, est, plane))

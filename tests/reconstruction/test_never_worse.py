@@ -31,6 +31,12 @@ def tiny_slice_set() -> SliceSet:
     return SliceSet.from_stacks([(vol, None, np.repeat(vol.affine[None], N_SLICES, 0), np.ones(N_SLICES, bool))])
 
 
+def truth_slice_set(acquisition) -> SliceSet:  # noqa: ANN001
+    """The phantom acquisition's slices at their true poses."""
+    return SliceSet.from_stacks([(v, m, t, np.ones(len(t), bool))
+                                 for (v, m), t in zip(acquisition.stacks, acquisition.truth)])
+
+
 def run_with(monkeypatch, scores: dict, job: ReconstructionConfig, progress: list | None = None,  # noqa: ANN001
              made: dict | None = None, resolution_mm: float = 1.0, path_resolution_mm: float | None = None,
              log: list | None = None) -> tuple[ReconstructionResult, list]:
@@ -276,7 +282,7 @@ def test_one_resolution_without_registration_or_for_a_coarse_volume(monkeypatch)
 
 
 def test_on_the_phantom_the_result_is_the_winner_or_its_last_kept_pass(acquisition) -> None:  # noqa: ANN001
-    ss = SliceSet.from_stacks([(v, m, t, np.ones(len(t), bool)) for (v, m), t in zip(acquisition.stacks, acquisition.truth)])
+    ss = truth_slice_set(acquisition)
     res = never_worse.reconstruct_never_worse(ss, 1.5, 1, config=ReconstructionConfig(sr_iterations=3,
                                                                                       registration_iterations=5))
     q = res.quality
@@ -287,3 +293,15 @@ def test_on_the_phantom_the_result_is_the_winner_or_its_last_kept_pass(acquisiti
     assert q["leave_one_stack_out"]["median_ncc"] == returned
     if q["path"] == "starting_poses":
         assert np.allclose(res.atlas_from_voxel_final, ss.atlas_from_voxel) and not further["scores"]
+
+
+def test_on_the_phantom_a_finer_volume_is_solved_from_the_coarse_paths(acquisition) -> None:  # noqa: ANN001
+    ss = truth_slice_set(acquisition)
+    res = never_worse.reconstruct_never_worse(ss, 1.5, 1, config=ReconstructionConfig(sr_iterations=3,
+                                                                                      registration_iterations=5),
+                                              path_resolution_mm=2.5)
+    q = res.quality
+    assert np.allclose(res.volume.spacing, 1.5) and q["path_resolution_mm"] == 2.5
+    assert q["path"] in never_worse.PATHS and set(q["output_pass"]) >= {"tried", "score", "kept"}
+    if q["output_pass"]["kept"]:                          # the volume returned is the pass's own
+        assert q["leave_one_stack_out"]["median_ncc"] == q["output_pass"]["score"]
