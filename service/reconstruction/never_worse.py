@@ -231,6 +231,8 @@ def at_output_resolution(slice_set: SliceSet, results: dict[str, ReconstructionR
             lower = source.grid.affine[:3, 3]
             upper = lower + (np.array(source.grid.shape) - 1) * source.grid.spacing
             bounds = np.stack([np.maximum(box[0], lower), np.minimum(box[1], upper)])
+            if np.any(bounds[1] <= bounds[0]):         # its slices lie beyond that path's grid: the grid
+                bounds = np.stack([lower, upper])
         part = None if progress is None else (lambda stage, f: progress(stage, lo + (hi - lo) * f))
         run_cfg = replace(config, coarse_to_fine=False) if register else replace(config, register=False)
         return reconstruct(replace(slice_set, atlas_from_voxel=poses), resolution_mm, svr_iterations, part, cancel,

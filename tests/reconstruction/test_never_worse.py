@@ -305,3 +305,11 @@ def test_on_the_phantom_a_finer_volume_is_solved_from_the_coarse_paths(acquisiti
     assert q["path"] in never_worse.PATHS and set(q["output_pass"]) >= {"tried", "score", "kept"}
     if q["output_pass"]["kept"]:                          # the volume returned is the pass's own
         assert q["leave_one_stack_out"]["median_ncc"] == q["output_pass"]["score"]
+
+
+def test_an_output_volume_whose_slices_lie_beyond_the_paths_grid_keeps_that_grid(monkeypatch) -> None:  # noqa: ANN001
+    log: list = []
+    made = {"full": fake_result(0.62, 100), "output": [fake_result(0.7, 9)]}      # every pixel at x >= 100 mm
+    run_with(monkeypatch, {"full": 0.62, "starting_poses": 0.47, "slice_level": 0.0}, ReconstructionConfig(),
+             made=made, resolution_mm=0.8, path_resolution_mm=1.5, log=log)
+    assert log[-1][0] == "output" and np.allclose(log[-1][2], [[-30.0, -21, -3], [30, 21, 3]])
