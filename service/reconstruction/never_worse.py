@@ -36,7 +36,8 @@ further passes' scores and how many were kept (``further_passes``), the paths' r
 (``path_resolution_mm``) and, where the output pass ran, what it did (``output_pass``); its other
 fields describe the result returned. A slice the winner's stack fit found inconsistent with its
 stack keeps that verdict (``stack_outlier``) in a kept pass that leaves it out. A job of one stack
-has nothing to leave out: it keeps the full job.
+has nothing to leave out: it keeps the full job (and, at a finer output resolution, the slice level
+from its poses, unjudged).
 
 Example:
     >>> choose({"full": 0.80, "starting_poses": 0.93, "slice_level": 0.935})
@@ -163,7 +164,7 @@ def reconstruct_never_worse(slice_set: SliceSet, resolution_mm: float = 0.8, svr
             run("slice_level", replace(cfg, coarse_to_fine=False), 0.55, 0.85)
     best = choose(scores)
     result = results[best]
-    seconds = sum(r.timings.get("total", 0.0) for r in results.values())
+    seconds = _seconds(*results.values())
     further: list[float | None] = []
     kept = 0
     if registers and best != "starting_poses" and scores[best] is not None:
@@ -184,9 +185,10 @@ def reconstruct_never_worse(slice_set: SliceSet, resolution_mm: float = 0.8, svr
     if working != resolution_mm:
         part = None if progress is None else (
             lambda stage, f: progress("volume at the output resolution", share + (1.0 - share) * f))
-        result, best, output_pass = at_output_resolution(slice_set, results, scores, best, result, resolution_mm,
-                                                         svr_iterations, part, cancel, bounds_mm, cfg)
-        seconds += result.timings.get("total", 0.0)
+        result, best, output_pass, spent = at_output_resolution(slice_set, results, scores, best, result,
+                                                                resolution_mm, svr_iterations, part, cancel,
+                                                                bounds_mm, cfg)
+        seconds += spent
     if (kept or output_pass is not None) and results[best].coarse is not None:   # the winner's stack fit still judges
         result.coarse = results[best].coarse
         result.exclusion_reason = exclusion_reasons(slice_set.include, result.included, result.coarse.fit.inlier)
@@ -203,11 +205,12 @@ def at_output_resolution(slice_set: SliceSet, results: dict[str, ReconstructionR
                          scores: dict[str, float | None], best: str, chosen: ReconstructionResult,
                          resolution_mm: float, svr_iterations: int, progress: Progress | None,
                          cancel: Callable[[], bool] | None, bounds_mm: ArrayLike | None,
-                         config: ReconstructionConfig) -> tuple[ReconstructionResult, str, dict]:
+                         config: ReconstructionConfig) -> tuple[ReconstructionResult, str, dict, float]:
     """The volume at ``resolution_mm`` after the paths ran at a coarser one (``results`` and their
     ``scores``; ``best`` the path they chose, ``chosen`` its result or its last kept further pass);
-    returns it, the path it follows and what the output pass did (``output_pass``: ``tried``,
-    ``score``, ``kept`` and, where it was judged against the starting poses, ``against``).
+    returns it, the path it follows, what the output pass did (``output_pass``: ``tried``,
+    ``score``, ``kept`` and, where it was judged against another volume, ``against``: that volume's
+    score) and the seconds its solves took.
 
     * A registered path won: the slice level again at ``resolution_mm`` from its poses (the
       registration sees the finer volume's detail). Where its leave-one-stack-out mismatch is
@@ -242,22 +245,26 @@ def at_output_resolution(slice_set: SliceSet, results: dict[str, ReconstructionR
         fine = solve(chosen, True, 0.0, 0.8)
         score, before = held_out_score(fine), held_out_score(chosen)
         if score is None or before is None or not clearly_better(before, score):
-            return fine, best, {"tried": True, "score": score, "kept": True}
+            return fine, best, {"tried": True, "score": score, "kept": True}, _seconds(fine)
         plain = solve(chosen, False, 0.8, 1.0)
         against = held_out_score(plain)
         kept = against is None or not clearly_better(against, score)
-        out = fine if kept else plain
-        out.timings["total"] = fine.timings.get("total", 0.0) + plain.timings.get("total", 0.0)
-        return out, best, {"tried": True, "score": score, "kept": kept, "against": against}
+        return (fine if kept else plain), best, {"tried": True, "score": score, "kept": kept, "against": against}, \
+            _seconds(fine, plain)
     start = scores["starting_poses"]
     registered = {k: v for k, v in scores.items() if v is not None and k != "starting_poses"}
     contender = max(registered, key=lambda k: registered[k], default=None)
     if contender is None or start is None or (1.0 - registered[contender]) * UNDECIDED_RATIO > 1.0 - start:
-        return solve(chosen, False, 0.0, 1.0), best, {"tried": False, "score": None, "kept": False}
+        plain = solve(chosen, False, 0.0, 1.0)
+        return plain, best, {"tried": False, "score": None, "kept": False}, _seconds(plain)
     plain = solve(chosen, False, 0.0, 0.3)
     fine = solve(results[contender], True, 0.3, 1.0)
     score, against = held_out_score(fine), held_out_score(plain)
     kept = score is not None and against is not None and clearly_better(score, against)
-    out = fine if kept else plain
-    out.timings["total"] = fine.timings.get("total", 0.0) + plain.timings.get("total", 0.0)
-    return out, contender if kept else best, {"tried": True, "score": score, "kept": kept, "against": against}
+    return (fine if kept else plain), (contender if kept else best), \
+        {"tried": True, "score": score, "kept": kept, "against": against}, _seconds(fine, plain)
+
+
+def _seconds(*results: ReconstructionResult) -> float:
+    """The seconds ``results`` took, together."""
+    return sum(r.timings.get("total", 0.0) for r in results)

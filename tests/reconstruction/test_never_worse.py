@@ -39,7 +39,7 @@ def truth_slice_set(acquisition) -> SliceSet:  # noqa: ANN001
 
 def run_with(monkeypatch, scores: dict, job: ReconstructionConfig, progress: list | None = None,  # noqa: ANN001
              made: dict | None = None, resolution_mm: float = 1.0, path_resolution_mm: float | None = None,
-             log: list | None = None) -> tuple[ReconstructionResult, list]:
+             log: list | None = None, bounds_mm: list | None = None) -> tuple[ReconstructionResult, list]:
     """The job with every reconstruction faked: each path scores ``scores[path]``; further slice-level
     passes score ``scores["further"]`` in turn (None once they run out); the passes at the output
     resolution (calls at ``resolution_mm`` below ``path_resolution_mm``) are given by ``made["output"]``.
@@ -76,7 +76,7 @@ def run_with(monkeypatch, scores: dict, job: ReconstructionConfig, progress: lis
     monkeypatch.setattr(never_worse, "reconstruct", fake)
     report = None if progress is None else (lambda stage, f: progress.append((stage, f)))
     return never_worse.reconstruct_never_worse(tiny_slice_set(), resolution_mm, 3, report, config=job,
-                                               path_resolution_mm=path_resolution_mm), \
+                                               path_resolution_mm=path_resolution_mm, bounds_mm=bounds_mm), \
         [c[0] for c in calls] if made is None and progress is None else calls
 
 
@@ -218,10 +218,20 @@ def test_paths_run_at_the_path_resolution_and_the_volume_at_the_output_one(monke
 
 def test_an_output_pass_gives_way_where_the_chosen_poses_do_clearly_better_at_its_resolution(
         monkeypatch) -> None:  # noqa: ANN001
-    made = {"output": [fake_result(0.6, 9), fake_result(0.75, 10)]}
+    from types import SimpleNamespace
+
+    coarse = SimpleNamespace(fit=SimpleNamespace(inlier=np.array([True, False, True, True, True, True])))
+    left_out = np.array([True, False, True, True, True, True])
+    made = {"full": fake_result(0.7, 1, coarse=coarse),
+            "output": [fake_result(0.6, 9), fake_result(0.75, 10, left_out)]}
     log: list = []
+    progress: list = []
     result, calls = run_with(monkeypatch, {"full": 0.7, "starting_poses": 0.47, "slice_level": 0.0},
-                             ReconstructionConfig(), made=made, resolution_mm=0.8, path_resolution_mm=1.5, log=log)
+                             ReconstructionConfig(), progress, made, resolution_mm=0.8, path_resolution_mm=1.5,
+                             log=log)
+    fractions = [f for _, f in progress]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0
+    assert result.coarse is coarse and result.exclusion_reason[1] == "stack_outlier"   # no further pass kept
     assert [c[0] for c in calls] == ["full", "starting_poses", "slice_level", "further", "output", "output"]
     assert [entry[3] for entry in log[-2:]] == [True, False] and calls[-1][1] == 1.0   # at the full job's poses
     assert result.quality["output_pass"] == {"tried": True, "score": 0.6, "kept": False, "against": 0.75}
@@ -253,8 +263,11 @@ def test_an_undecided_choice_is_made_again_at_the_output_resolution(monkeypatch)
     for fine, path in ((0.95, "full"), (0.935, "starting_poses")):
         log: list = []
         made = {"output": [fake_result(0.93, 9), fake_result(fine, 10)]}
-        result, calls = run_with(monkeypatch, scores, ReconstructionConfig(), made=made, resolution_mm=0.8,
+        progress: list = []
+        result, calls = run_with(monkeypatch, scores, ReconstructionConfig(), progress, made, resolution_mm=0.8,
                                  path_resolution_mm=1.5, log=log)
+        fractions = [f for _, f in progress]
+        assert fractions == sorted(fractions) and result.timings["all_paths"] == 5.0
         assert [c[0] for c in calls] == ["full", "starting_poses", "slice_level", "output", "output"]
         assert (calls[-2][1], log[-2][3]) == (2.0, False)                  # the starting poses' volume
         assert (calls[-1][1], *log[-1][3:]) == (1.0, True, False)           # the full job's poses, slice level
@@ -313,3 +326,12 @@ def test_an_output_volume_whose_slices_lie_beyond_the_paths_grid_keeps_that_grid
     run_with(monkeypatch, {"full": 0.62, "starting_poses": 0.47, "slice_level": 0.0}, ReconstructionConfig(),
              made=made, resolution_mm=0.8, path_resolution_mm=1.5, log=log)
     assert log[-1][0] == "output" and np.allclose(log[-1][2], [[-30.0, -21, -3], [30, 21, 3]])
+
+
+def test_a_field_of_view_given_is_the_output_volumes_too(monkeypatch) -> None:  # noqa: ANN001
+    log: list = []
+    bounds = [[-10.0, -10, -10], [10, 10, 10]]
+    run_with(monkeypatch, {"full": 0.9, "starting_poses": 0.93, "slice_level": 0.9}, ReconstructionConfig(),
+             made={"output": [fake_result(0.94, 9)]}, resolution_mm=0.8, path_resolution_mm=1.5, log=log,
+             bounds_mm=bounds)
+    assert [e[2] for e in log] == [bounds] * 4
