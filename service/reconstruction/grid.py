@@ -49,6 +49,12 @@ class Grid:
         return np.linalg.norm(self.affine[:3, :3], axis=0)
 
     @property
+    def bounds_mm(self) -> NDArray[np.float64]:
+        """``[[lower], [upper]]``: the atlas positions of the first and the last voxel centre."""
+        lower = self.affine[:3, 3]
+        return np.stack([lower, lower + (np.array(self.shape) - 1) * self.spacing])
+
+    @property
     def size(self) -> int:
         """Number of voxels."""
         return int(np.prod(self.shape))
@@ -89,6 +95,21 @@ def bounds_of(points: ArrayLike, margin_mm: float) -> NDArray[np.float64]:
     """``[[lower], [upper]]`` bounding box of points ``[N, 3]`` enlarged by ``margin_mm`` on each side."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     return np.stack([p.min(axis=0) - margin_mm, p.max(axis=0) + margin_mm])
+
+
+def bounds_within(bounds_mm: ArrayLike, limit_mm: ArrayLike) -> NDArray[np.float64]:
+    """The part of the box ``bounds_mm`` inside the box ``limit_mm`` (both ``[[lower], [upper]]``);
+    ``limit_mm`` itself where they do not overlap.
+
+    Example:
+        >>> bounds_within([[0.0, 0, 0], [10, 10, 10]], [[5.0, -5, 0], [20, 5, 10]]).tolist()
+        [[5.0, 0.0, 0.0], [10.0, 5.0, 10.0]]
+        >>> bounds_within([[0.0, 0, 0], [1, 1, 1]], [[5.0, 5, 5], [6, 6, 6]]).tolist()
+        [[5.0, 5.0, 5.0], [6.0, 6.0, 6.0]]
+    """
+    box, limit = np.asarray(bounds_mm, np.float64), np.asarray(limit_mm, np.float64)
+    out = np.stack([np.maximum(box[0], limit[0]), np.minimum(box[1], limit[1])])
+    return limit.copy() if np.any(out[1] <= out[0]) else out
 
 
 def _corners(coords: NDArray, shape: tuple[int, int, int]) -> tuple[NDArray, NDArray, NDArray]:

@@ -55,10 +55,9 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import replace
 
-import numpy as np
 from numpy.typing import ArrayLike
 
-from service.reconstruction.grid import bounds_of
+from service.reconstruction.grid import bounds_of, bounds_within
 from service.reconstruction.pipeline import (
     Progress,
     ReconstructionConfig,
@@ -112,21 +111,26 @@ def choose(scores: dict[str, float | None]) -> str:
     (nothing to compare)."""
     if scores.get("full") is None:
         return "full"
-    registered = {k: v for k, v in scores.items() if v is not None and k != "starting_poses"}
-    best = max(registered, key=lambda k: (registered[k], k == "full"))
+    best = best_registered(scores)
     start = scores.get("starting_poses")
-    return best if start is None or clearly_better(registered[best], start) else "starting_poses"
+    return best if start is None or clearly_better(scores[best], start) else "starting_poses"
 
 
-def clearly_better(score: float, than: float) -> bool:
-    """Whether held-out median NCC ``score`` leaves at most ``1 / MIN_MISMATCH_RATIO`` of the
-    mismatch (1 - NCC) of ``than``.
+def best_registered(scores: dict[str, float | None]) -> str | None:
+    """The registered path with the highest score (``full`` on a tie; None: none has a score)."""
+    registered = {k: v for k, v in scores.items() if v is not None and k != "starting_poses"}
+    return max(registered, key=lambda k: (registered[k], k == "full"), default=None)
+
+
+def clearly_better(score: float, than: float, ratio: float = MIN_MISMATCH_RATIO) -> bool:
+    """Whether held-out median NCC ``score`` leaves at most ``1 / ratio`` of the mismatch (1 - NCC)
+    of ``than``.
 
     Example:
         >>> clearly_better(0.957, 0.95), clearly_better(0.955, 0.95)
         (True, False)
     """
-    return (1.0 - score) * MIN_MISMATCH_RATIO <= 1.0 - than
+    return (1.0 - score) * ratio <= 1.0 - than
 
 
 def reconstruct_never_worse(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations: int = 3,
@@ -228,14 +232,8 @@ def at_output_resolution(slice_set: SliceSet, results: dict[str, ReconstructionR
     it, within the field of view of the path the poses come from."""
     def solve(source: ReconstructionResult, register: bool, lo: float, hi: float) -> ReconstructionResult:
         poses = source.atlas_from_voxel_final
-        bounds = bounds_mm
-        if bounds is None:
-            box = bounds_of(slice_set.positions(poses), config.margin_mm)
-            lower = source.grid.affine[:3, 3]
-            upper = lower + (np.array(source.grid.shape) - 1) * source.grid.spacing
-            bounds = np.stack([np.maximum(box[0], lower), np.minimum(box[1], upper)])
-            if np.any(bounds[1] <= bounds[0]):         # its slices lie beyond that path's grid: the grid
-                bounds = np.stack([lower, upper])
+        bounds = bounds_mm if bounds_mm is not None else \
+            bounds_within(bounds_of(slice_set.positions(poses), config.margin_mm), source.grid.bounds_mm)
         part = None if progress is None else (lambda stage, f: progress(stage, lo + (hi - lo) * f))
         run_cfg = replace(config, coarse_to_fine=False) if register else replace(config, register=False)
         return reconstruct(replace(slice_set, atlas_from_voxel=poses), resolution_mm, svr_iterations, part, cancel,
@@ -251,10 +249,8 @@ def at_output_resolution(slice_set: SliceSet, results: dict[str, ReconstructionR
         kept = against is None or not clearly_better(against, score)
         return (fine if kept else plain), best, {"tried": True, "score": score, "kept": kept, "against": against}, \
             _seconds(fine, plain)
-    start = scores["starting_poses"]
-    registered = {k: v for k, v in scores.items() if v is not None and k != "starting_poses"}
-    contender = max(registered, key=lambda k: registered[k], default=None)
-    if contender is None or start is None or (1.0 - registered[contender]) * UNDECIDED_RATIO > 1.0 - start:
+    start, contender = scores["starting_poses"], best_registered(scores)
+    if contender is None or start is None or not clearly_better(scores[contender], start, UNDECIDED_RATIO):
         plain = solve(chosen, False, 0.0, 1.0)
         return plain, best, {"tried": False, "score": None, "kept": False}, _seconds(plain)
     plain = solve(chosen, False, 0.0, 0.3)

@@ -54,7 +54,7 @@ from service.io.volume import Volume
 from service.reconstruction.coarse_to_fine import START_OWN, CoarseAlignment, coarse_align
 from service.reconstruction.forward import ForwardModel, inplane_sigma_mm
 from service.reconstruction.gaussian_average import gaussian_average
-from service.reconstruction.grid import Grid, bounds_of, make_grid
+from service.reconstruction.grid import Grid, bounds_of, bounds_within, make_grid
 from service.reconstruction.registration import anchor_frame, register_slices
 from service.reconstruction.quality import held_out_ncc, judged_slices, quality_report
 from service.reconstruction.robust import ncc_outliers, robust_weights
@@ -348,9 +348,7 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
     bounds = bounds_of(unbinned.positions(poses), cfg.margin_mm) if bounds_mm is None else bounds_mm
     if bounds_mm is None and coarse is not None:       # the coarse step moved the slices: not too far
         reach = bounds_of(unbinned.positions(unbinned.atlas_from_voxel), cfg.margin_mm + cfg.fov_growth_mm)
-        bounds = np.stack([np.maximum(bounds[0], reach[0]), np.minimum(bounds[1], reach[1])])
-        if np.any(bounds[1] <= bounds[0]):             # every slice moved out of reach: where they started
-            bounds = reach
+        bounds = bounds_within(bounds, reach)          # every slice moved out of reach: where they started
     grid = make_grid(resolution_mm, bounds)
     lams = list(np.geomspace(cfg.lam_first, cfg.lam, rounds)) if rounds > 1 else [cfg.lam] * rounds
     if rounds:
