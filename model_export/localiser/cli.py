@@ -55,12 +55,15 @@ def train(
     channels: Annotated[int, typer.Option(help="3: 2.5D (a slice between its neighbours); 1: 2D")] = 3,
     init: Annotated[Optional[Path], typer.Option(help="start from this checkpoint's weights, fresh optimiser")] = None,
     lr: float = 2e-3,
+    teacher: Annotated[Optional[Path], typer.Option(help="distil: learn this checkpoint's mirrored-pass logits")] = None,
+    teacher_weight: Annotated[float, typer.Option(help="the teacher's share of the loss (the rest: the true mask)")] = 0.7,
 ) -> None:
-    """Train (or continue training) the localiser for a wall-clock budget; progress in ``<out>.log``."""
+    """Train (or continue training) the localiser for a wall-clock budget; progress in ``<out>.log``.
+    With ``--init`` of another width the network starts from that one's strongest channels."""
     from model_export.localiser.train import train as run
 
     run(data, out, minutes, width=width, depth=depth, threads=threads, seed=seed, log=Path(f"{out}.log"),
-        in_channels=channels, init=init, lr=lr)
+        in_channels=channels, init=init, lr=lr, teacher=teacher, teacher_weight=teacher_weight)
 
 
 @app.command()
@@ -86,6 +89,8 @@ def ship(
     pose_stacks: Annotated[int, typer.Option(help="held-out stacks whose poses are compared without/with masks")] = 8,
     ablation: Annotated[Optional[Path], typer.Option(help="JSON of `compare`: architectures measured alike")] = None,
     pose_scenes: Annotated[int, typer.Option(help="whole-uterus scenes of known slice poses: pose accuracy vs the truth")] = 10,
+    mirrored_pass: Annotated[str, typer.Option(help="run: the service adds the mirror-image pass; learnt: a "
+                                               "network distilled from it (`train --teacher`) runs once")] = "run",
 ) -> None:
     """Export to ONNX, measure (held-out set, real scans, poses without masks) and write the card."""
     from model_export.localiser.card import write_card
@@ -93,7 +98,10 @@ def ship(
     from model_export.localiser.export import export_onnx
     from service.preprocess.localise import Localiser
 
-    onnx_path = export_onnx(checkpoint, out / "model.onnx", grid_mm=grid_mm, version=version)
+    if mirrored_pass not in ("run", "learnt"):
+        raise typer.BadParameter("run or learnt", param_hint="--mirrored-pass")
+    onnx_path = export_onnx(checkpoint, out / "model.onnx", grid_mm=grid_mm, version=version,
+                            extra={"mirrored_pass": mirrored_pass})
     figures = measure(Localiser.load(onnx_path), heldout, pose_stacks, pose_scenes=pose_scenes)
     figures["architectures"] = json.loads(ablation.read_text()) if ablation else []
     (out / "evaluation.json").write_text(json.dumps(figures, indent=1))
@@ -110,6 +118,8 @@ def compare(
     real_scans: Annotated[Optional[list[Path]], typer.Option(
         help="folders of real scans (SCAN/NAME.nii.gz beside SCAN/NAME_brain_mask.nii.gz); repeat; "
              "default ../shared/data/real_scans (tools/fetch_real_scan.py fetches one more)")] = None,
+    mirrored: Annotated[Optional[bool], typer.Option(
+        "--mirrored/--single-pass", help="with or without the mirror-image pass (default: both, one row each)")] = None,
 ) -> None:
     """Dice of each checkpoint on the held-out set and the real scans: the architecture chosen by measurement."""
     import tempfile
@@ -123,16 +133,21 @@ def compare(
     rows = []
     for ckpt in checkpoints:
         onnx_path = export_onnx(ckpt, Path(tempfile.mkdtemp()) / "model.onnx", grid_mm=grid_mm, version=ckpt.stem)
-        loc = Localiser.load(onnx_path)
-        held = [r["dice"] for r in heldout_dice(loc, heldout)]
-        stacks = [r for root in (real_scans or [REAL_SCANS]) for r in real_scan_rows(loc, root)]
-        real = [r["dice"] for r in stacks if r["dice"] is not None]
         config = load_checkpoint(ckpt).config
-        rows.append({"checkpoint": ckpt.name, "inputs": "2.5D" if config["in_channels"] == 3 else "2D", **config,
-                     "heldout_median_dice": float(np.median(held)), "heldout_min_dice": float(np.min(held)),
-                     "real_median_dice": float(np.median(real)) if real else None,
-                     "real_min_dice": float(np.min(real)) if real else None,
-                     "real_dice": {r["stack"]: round(r["dice"], 3) for r in stacks if r["dice"] is not None},
-                     "ms": latency_ms(loc)})
-        typer.echo(json.dumps(rows[-1]))
+        for passes in ([True, False] if mirrored is None else [mirrored]):
+            loc = Localiser.load(onnx_path)
+            loc.mirrored = passes
+            held = [r["dice"] for r in heldout_dice(loc, heldout)]
+            stacks = [r for root in (real_scans or [REAL_SCANS]) for r in real_scan_rows(loc, root)]
+            real = [r["dice"] for r in stacks if r["dice"] is not None]
+            rows.append({"checkpoint": ckpt.name, "inputs": "2.5D" if config["in_channels"] == 3 else "2D", **config,
+                         "mirrored": passes,
+                         "heldout_median_dice": float(np.median(held)), "heldout_min_dice": float(np.min(held)),
+                         "heldout_mean_dice": float(np.mean(held)),
+                         "real_median_dice": float(np.median(real)) if real else None,
+                         "real_min_dice": float(np.min(real)) if real else None,
+                         "real_dice": {r["stack"]: round(r["dice"], 3) for r in stacks if r["dice"] is not None},
+                         "real_ml": {r["stack"]: round(r["ml"]) for r in stacks if r["dice"] is None},
+                         "ms": latency_ms(loc)})
+            typer.echo(json.dumps(rows[-1]))
     out.write_text(json.dumps(rows, indent=1))

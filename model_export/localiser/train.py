@@ -21,6 +21,8 @@ import torch
 import torch.nn.functional as F
 from scipy import ndimage
 
+from model_export.localiser.distil import distillation_loss, mirrored_logits, pruned
+from model_export.localiser.export import load_checkpoint
 from model_export.localiser.net import LocaliserNet
 
 
@@ -107,12 +109,16 @@ def loss_fn(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int = 4, batch: int = 16,
           crop: int = 128, lr: float = 2e-3, seed: int = 0, checkpoint_s: float = 120.0,
-          threads: int = 2, log: Path | None = None, in_channels: int = 3, init: Path | None = None) -> Path:
+          threads: int = 2, log: Path | None = None, in_channels: int = 3, init: Path | None = None,
+          teacher: Path | None = None, teacher_weight: float = 0.7) -> Path:
     """Train for ``minutes`` of wall clock (resuming ``out`` if it exists); returns the checkpoint path.
 
     ``in_channels`` 3 is the 2.5D network (a slice and its neighbours), 1 the 2D one (the slice alone).
     ``init``: a checkpoint whose weights start a new run (a fresh optimiser and learning-rate schedule;
-    fine-tuning on new data), used only when ``out`` does not exist yet.
+    fine-tuning on new data), used only when ``out`` does not exist yet; a checkpoint of another width
+    starts the network from its strongest channels (:func:`~model_export.localiser.distil.pruned`).
+    ``teacher``: a checkpoint whose mirrored-pass logits the network learns, ``teacher_weight`` of the
+    loss (:func:`~model_export.localiser.distil.distillation_loss`); the rest is the true mask's.
     """
     torch.set_num_threads(threads)
     torch.manual_seed(seed)
@@ -122,7 +128,12 @@ def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int =
     opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
     step, spent = 0, 0.0
     if init is not None and not out.exists():
-        net.load_state_dict(torch.load(init, map_location="cpu", weights_only=False)["model"])
+        start_net = load_checkpoint(init)
+        if start_net.config == net.config:
+            net.load_state_dict(start_net.state_dict())
+        else:
+            net.load_state_dict(pruned(start_net, width).state_dict())
+    teacher_net = load_checkpoint(teacher) if teacher is not None else None
     if out.exists():
         state = torch.load(out, map_location="cpu", weights_only=False)
         net.load_state_dict(state["model"])
@@ -144,7 +155,11 @@ def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int =
             g["lr"] = lr * 0.5 * (1 + np.cos(np.pi * min(elapsed / budget, 1.0)))
         x, y = draw_batch(list(known.values()), rng, batch, crop)
         x = x if in_channels == 3 else x[:, 1:2]
-        loss = loss_fn(net(torch.from_numpy(x)), torch.from_numpy(y))
+        x, y = torch.from_numpy(x), torch.from_numpy(y)
+        if teacher_net is None:
+            loss = loss_fn(net(x), y)
+        else:
+            loss = distillation_loss(net(x), mirrored_logits(teacher_net, x), y, teacher_weight, loss_fn)
         opt.zero_grad()
         loss.backward()
         opt.step()

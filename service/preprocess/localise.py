@@ -9,7 +9,8 @@
    in-plane axis (the grid's ``W``), and the two answers' logits averaged: a stack written with that
    axis reversed gets the same mask (where the grid's padding is even on both sides), and what the
    network decides by a narrow margin at the brain's edge (a face, a neck as wide as the head) is
-   decided alike for every sampling a scanner makes of it.
+   decided alike for every sampling a scanner makes of it. A network distilled from that average
+   (``model_export.localiser.distil``; metadata ``mirrored_pass: learnt``) gives it in one pass.
 2. **The geometry** settles the answer (:mod:`service.preprocess.brain_shape`), on the network's
    grid: one 3D connected brain of a plausible volume for 20-40 weeks, without what hangs on to it
    through a waist or what a slice adds beyond its neighbours, its in-plane holes filled; then the
@@ -144,7 +145,8 @@ class Localiser:
     version: str
     sha256: str
     mirrored: bool = True
-    """Average each slice's logits with those of its mirror image (one more network pass a slice)."""
+    """Average each slice's logits with those of its mirror image (one more network pass a slice). A
+    network that learnt that average (metadata ``mirrored_pass`` ``"learnt"``) runs once."""
 
     @classmethod
     def load(cls, path: Path, threads: int = 0) -> "Localiser":
@@ -152,7 +154,8 @@ class Localiser:
         path = Path(path)
         sess = ort.InferenceSession(str(path), session_options(threads), providers=["CPUExecutionProvider"])
         meta = sess.get_modelmeta().custom_metadata_map
-        return cls(path, sess, float(meta["grid_mm"]), meta.get("version", "unknown"), file_sha256(path))
+        return cls(path, sess, float(meta["grid_mm"]), meta.get("version", "unknown"), file_sha256(path),
+                   mirrored=meta.get("mirrored_pass", "run") != "learnt")
 
     def probabilities(self, volume: Volume) -> tuple[NDArray[np.float32], LocaliserGrid]:
         """Per-slice brain probabilities on the network grid ``[n, Hp, Wp]`` and that grid."""

@@ -10,20 +10,10 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from model_export.localiser.dataset import generate
 from model_export.localiser.export import export_onnx, load_checkpoint
 from model_export.localiser.train import draw_batch, load_shards, train
 from service.preprocess.localise import Localiser
-
-GRID_MM = 4.0                        # coarse: small shards, fast tests
-
-
-@pytest.fixture(scope="module")
-def shards(phantom_atlas: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("shards")
-    names = generate(out, ["STA30"], 2, "train", GRID_MM, first_seed=0, workers=1, keep_stack=True, root=phantom_atlas)
-    assert sorted(names) == ["train-000000.npz", "train-000001.npz"]
-    return out
+from tests.model_export.localiser.conftest import GRID_MM
 
 
 def test_a_shard_is_the_service_input_and_its_target(shards: Path) -> None:
