@@ -24,6 +24,8 @@ Example:
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -82,7 +84,8 @@ def mirrored_logits(teacher: LocaliserNet, x: torch.Tensor) -> torch.Tensor:
 
 
 def distillation_loss(logits: torch.Tensor, teacher_logits: torch.Tensor, target: torch.Tensor,
-                      teacher_weight: float, loss_fn) -> torch.Tensor:  # noqa: ANN001
+                      teacher_weight: float, loss_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+                      ) -> torch.Tensor:
     """``teacher_weight`` x BCE against the teacher's probabilities + the rest x ``loss_fn`` against
     the true brain fraction."""
     soft = F.binary_cross_entropy_with_logits(logits, torch.sigmoid(teacher_logits))
