@@ -85,7 +85,7 @@ def main() -> None:
               f"(median), mm: in the volume {before[inside].mean():.2f} -> {after[inside].mean():.2f}, left out "
               f"{before[out].mean():.2f} ({np.median(before[out]):.2f}) -> {after[out].mean():.2f}; left out and "
               f"registered {registered[out].mean():.2f} ({np.median(registered[out]):.2f}), "
-              f"{int((registered - after)[out].__gt__(2).sum())} of {int(out.sum())} more than 2 mm worse, NCC rose "
+              f"{int(((registered - after)[out] > 2).sum())} of {int(out.sum())} more than 2 mm worse, NCC rose "
               f"for {rose:.0%}", flush=True)
 
 

@@ -134,8 +134,8 @@ def compare(
     for ckpt in checkpoints:
         onnx_path = export_onnx(ckpt, Path(tempfile.mkdtemp()) / "model.onnx", grid_mm=grid_mm, version=ckpt.stem)
         config = load_checkpoint(ckpt).config
+        loc = Localiser.load(onnx_path)
         for passes in ([True, False] if mirrored is None else [mirrored]):
-            loc = Localiser.load(onnx_path)
             loc.mirrored = passes
             held = [r["dice"] for r in heldout_dice(loc, heldout)]
             stacks = [r for root in (real_scans or [REAL_SCANS]) for r in real_scan_rows(loc, root)]

@@ -1,0 +1,33 @@
+"""A grid's box in atlas mm is where its affine puts its first and last voxel centres, and holds the
+box it was made for; a box is cut to a limit, or falls back to the limit where they do not meet."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.geometry.pose import apply
+from service.reconstruction.grid import bounds_within, make_grid
+
+
+def test_a_grids_box_is_its_corner_voxels_in_atlas_space_and_holds_the_box_asked_for() -> None:
+    asked = np.array([[-31.3, 12.0, -4.4], [28.9, 40.5, 37.1]])
+    grid = make_grid(0.8, asked)
+    corners = apply(grid.affine, np.array([[0.0, 0.0, 0.0], np.array(grid.shape, float) - 1]))
+    assert np.allclose(grid.bounds_mm, corners)
+    assert np.all(grid.bounds_mm[0] <= asked[0] + 0.8) and np.all(grid.bounds_mm[1] >= asked[1] - 0.8)
+    again = make_grid(0.8, grid.bounds_mm)                    # a grid made from its own box is itself
+    assert again.shape == grid.shape and np.allclose(again.affine, grid.affine)
+
+
+def test_a_box_is_cut_to_its_limit_and_falls_back_to_it_where_they_do_not_meet() -> None:
+    rng = np.random.default_rng(4)
+    for _ in range(50):
+        box = np.sort(rng.uniform(-50, 50, (2, 3)), axis=0)
+        limit = np.sort(rng.uniform(-50, 50, (2, 3)), axis=0)
+        out = bounds_within(box, limit)
+        meet = np.all(np.maximum(box[0], limit[0]) < np.minimum(box[1], limit[1]))
+        if meet:
+            assert np.all(out[0] >= box[0]) and np.all(out[1] <= box[1])
+            assert np.all(out[0] >= limit[0]) and np.all(out[1] <= limit[1])
+        else:
+            assert np.array_equal(out, limit)
