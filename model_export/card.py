@@ -145,6 +145,7 @@ def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict
 | output space | atlas `{info['atlas_id']}` (RAS mm of `shared/data/fetal_atlas`) |
 | variance threshold | {float(info['variance_threshold']):.4g} (calibrated, see below) |
 | test-time views | {_views_text(info)} |
+| arithmetic | {info.get('quantised', 'float32')} |
 | file | `model.onnx` ({onnx_bytes / 1e6:.1f} MB), `checkpoint.pt` (the next training run starts from it: `svrnet-train train --init`) |
 | commit | {info['commit']} |
 

@@ -6,6 +6,7 @@ Examples:
     svrnet-train calibrate runs/default/best.pt
     svrnet-train calibrate-acceptance service/models/default/model.onnx
     svrnet-train evaluate service/models/default/model.onnx --report model_export/reports/default.md
+    svrnet-train quantise service/models/default/model.onnx /tmp/model-int8.onnx
     svrnet-train localiser --help
 """
 
@@ -254,6 +255,23 @@ def compare(
 
 
 @app.command()
+def quantise(
+    source: Path,
+    output: Path,
+    slices: Annotated[int, typer.Option(help="simulated training slices that calibrate the activation ranges")] = 1024,
+    seed: int = 0,
+    root: Root = DEFAULT_ATLAS_ROOT,
+) -> None:
+    """Write a model with int8 convolutions (head and MC dropout float), metadata and calibration kept."""
+    from model_export.quantise import calibration_slices, quantise as run
+    from service.inference.model_file import load_model
+
+    info = load_model(source).info
+    path = run(source, output, calibration_slices(slices, seed, root, info.input_size, info.pixel_spacing_mm))
+    typer.echo(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB; {source.stat().st_size / 1e6:.1f} MB before)")
+
+
+@app.command()
 def ship(
     checkpoint: Path,
     out: Annotated[Path, typer.Option(help="model folder the service reads")] = Path("service/models/default"),
@@ -264,6 +282,8 @@ def ship(
     root: Root = DEFAULT_ATLAS_ROOT,
     tta_views: Annotated[int, typer.Option(help="test-time views the MC samples are shared among: 1, 4 "
                                                 "(rotations) or 8 (rotations and flips)")] = SHIPPED_VIEWS,
+    int8: Annotated[bool, typer.Option("--int8/--float", help="int8 convolutions (`quantise`) before the "
+                                                              "calibrations, which then measure the file served")] = True,
 ) -> None:
     """Calibrate, export, evaluate and write the model card: the folder the service loads (the MC
     spread's expected error calibrated as `calibrate-spread` does, then the accept flags on the
@@ -281,6 +301,11 @@ def ship(
     typer.echo(f"calibrated variance threshold {cal['threshold']:.4g} (AUROC {cal['auroc']:.3f})")
     onnx_path = export_checkpoint(checkpoint, out / "model.onnx", name=name, version=version,
                                   variance_threshold=cal["threshold"], extra={"tta_views": tta_views})
+    if int8:
+        from model_export.quantise import calibration_slices, quantise as run_quantise
+
+        info = load_model(onnx_path).info
+        run_quantise(onnx_path, onnx_path, calibration_slices(root=root, size=info.input_size, pixel_mm=info.pixel_spacing_mm))
     shutil.copyfile(checkpoint, out / "checkpoint.pt")
     from model_export.spread import calibrate_spread as run_spread
 

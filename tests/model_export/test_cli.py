@@ -10,13 +10,15 @@ from typer.testing import CliRunner
 
 def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The accept flags are measured on the expected error, so the spread's calibration (which sets
-    ``mc_error_scale``) comes first; the acceptance report is written beside the evaluation report."""
+    ``mc_error_scale``) comes first; both measure the int8 file the service will run, so quantising
+    comes before them; the acceptance report is written beside the evaluation report."""
     import model_export.atlas as atlas
     import model_export.calibrate as calibrate
     import model_export.calibrate_acceptance as acceptance
     import model_export.card as card
     import model_export.evaluate as evaluate
     import model_export.packaging as packaging
+    import model_export.quantise as quantise
     import model_export.spread as spread
     import model_export.train as train
     import service.inference.estimator as estimator
@@ -33,12 +35,14 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
         return output
 
     class Loaded:
-        info = type("Info", (), {"metadata": {}})()
+        info = type("Info", (), {"metadata": {}, "input_size": 96, "pixel_spacing_mm": 1.25})()
 
     monkeypatch.setattr(calibrate, "calibrate", lambda *a, **k: calls.append("threshold") or {"threshold": 50.0, "auroc": 0.8})
     monkeypatch.setattr(packaging, "export_checkpoint", export)
     monkeypatch.setattr(packaging, "load_checkpoint", lambda p: (None, {"train_seconds": 1.0, "samples_seen": 1, "step": 1,
                                                                        "config": {"train_volumes": []}}))
+    monkeypatch.setattr(quantise, "calibration_slices", lambda **k: calls.append(f"slices {k['size']}") or "slices")
+    monkeypatch.setattr(quantise, "quantise", lambda src, out, slices: calls.append(f"int8 {slices}") or out)
     monkeypatch.setattr(spread, "calibrate_spread", lambda *a, **k: calls.append("spread") or {"mc_error_scale": 0.7})
     monkeypatch.setattr(spread, "write_metadata", lambda *a, **k: calls.append("flags written"))
     monkeypatch.setattr(evaluate, "evaluate", lambda *a, **k: calls.append("evaluate") or {})
@@ -60,7 +64,7 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
     result = CliRunner().invoke(app, ["ship", str(checkpoint), "--out", str(tmp_path / "model"), "--report", str(report)])
 
     assert result.exit_code == 0, result.output
-    assert calls == ["threshold", "spread", "evaluate", "acceptance", "flags written"]
+    assert calls == ["threshold", "slices 96", "int8 slices", "spread", "evaluate", "acceptance", "flags written"]
     assert views == [SHIPPED_VIEWS]
     assert (report.parent / "acceptance.md").read_text().startswith("# Accept flags of")
     assert "## Accept flags" in (tmp_path / "model" / "card.md").read_text()
