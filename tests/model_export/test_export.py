@@ -11,6 +11,7 @@ import torch
 
 from model_export.export import build_metadata, count_random_nodes, export_onnx
 from model_export.model import SVRNet
+from tests.model_export.conftest import tiny_pose_model
 from service.geometry import encodings
 from service.inference.estimator import OnnxPoseEstimator
 from service.inference.model_file import load_model
@@ -21,14 +22,7 @@ SIZE = 64
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory: pytest.TempPathFactory) -> tuple[SVRNet, Path]:
     torch.manual_seed(0)
-    model = SVRNet("compact", 0.25, "anchor", SIZE, hidden=64, dropout=0.5)
-    # Non-trivial BatchNorm statistics, so that exporting BN in training mode would be caught.
-    model.train()
-    with torch.no_grad():
-        for _ in range(3):
-            model.features(torch.rand(16, 1, SIZE, SIZE) * 255)
-    model.set_label_normalisation(torch.randn(100, 9) * 40 + 5)
-    model.eval()
+    model = tiny_pose_model(SIZE, [torch.rand(16, 1, SIZE, SIZE) * 255 for _ in range(3)])
     meta = build_metadata(model, name="tiny", version="0.0.1", pixel_mm=2.0, variance_threshold=12.5,
                           atlas_id="phantom", training_data="none", licences="n/a")
     path = export_onnx(model, tmp_path_factory.mktemp("onnx") / "tiny.onnx", meta)

@@ -10,10 +10,10 @@ import pytest
 import torch
 
 from model_export.export import build_metadata, count_random_nodes, export_onnx
-from model_export.model import SVRNet
 from model_export.quantise import FLOAT_CONVS, calibration_slices, quantise
 from service.geometry import anchors, encodings
 from service.inference.model_file import load_model
+from tests.model_export.conftest import tiny_pose_model
 
 SIZE = 64
 
@@ -30,14 +30,8 @@ def phantom_slices(n: int, seed: int) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def pair(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    torch.manual_seed(0)
-    model = SVRNet("compact", 0.25, "anchor", SIZE, hidden=64, dropout=0.5)
-    model.train()
-    with torch.no_grad():
-        for _ in range(3):
-            model.features(torch.from_numpy(phantom_slices(16, 1)))
-    model.set_label_normalisation(torch.randn(100, 9) * 40 + 5)
-    meta = build_metadata(model.eval(), name="tiny", version="0.0.1", pixel_mm=2.0, variance_threshold=12.5,
+    model = tiny_pose_model(SIZE, [torch.from_numpy(phantom_slices(16, 1))] * 3)
+    meta = build_metadata(model, name="tiny", version="0.0.1", pixel_mm=2.0, variance_threshold=12.5,
                           atlas_id="phantom", training_data="none", licences="n/a", extra={"max_expected_error_mm": 4.5})
     folder = tmp_path_factory.mktemp("quantise")
     source = export_onnx(model, folder / "fp32.onnx", meta)
