@@ -262,7 +262,8 @@ def quantise(
     seed: int = 0,
     root: Root = DEFAULT_ATLAS_ROOT,
 ) -> None:
-    """Write a model with int8 convolutions (head and MC dropout float), metadata and calibration kept."""
+    """Write a model with int8 convolutions (head and MC dropout float), its metadata kept; then run
+    `calibrate-acceptance` on it: the accept flags are calibrated on the poses of the file served."""
     from model_export.quantise import calibration_slices, quantise as run
     from service.inference.model_file import load_model
 

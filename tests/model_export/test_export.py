@@ -11,10 +11,10 @@ import torch
 
 from model_export.export import build_metadata, count_random_nodes, export_onnx
 from model_export.model import SVRNet
-from tests.model_export.conftest import tiny_pose_model
 from service.geometry import encodings
 from service.inference.estimator import OnnxPoseEstimator
 from service.inference.model_file import load_model
+from tests.model_export.conftest import tiny_pose_model
 
 SIZE = 64
 
