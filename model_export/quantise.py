@@ -53,6 +53,8 @@ def calibration_slices(count: int = CALIBRATION_SLICES, seed: int = 0, root: Pat
     parts, have = [], 0
     while have < count:
         batch = simulator.batch(min(BATCH, count - have), rng).inputs
+        if not len(batch):
+            raise ValueError(f"calibration_slices: no slice of {root} keeps enough of its brain mask")
         parts.append(batch)
         have += len(batch)
     x = np.concatenate(parts)[:count].astype(np.float32)

@@ -42,6 +42,7 @@ from service.geometry.pose import about_centre
 from service.inference.estimator import OnnxPoseEstimator
 from service.inference.model_file import load_model
 from service.jobs.worker import MIN_ACCEPTED_SHARE, starting_poses
+from service.preprocess.stack import stack_from_slice_images
 from service.reconstruction.atlas_frame import atlas_frame, with_frame
 from service.reconstruction.midline import midline_fit
 from service.reconstruction.never_worse import held_out_score, reconstruct_never_worse
@@ -164,7 +165,7 @@ def main() -> None:
                 midlines[vol.name] = about_centre(midline_offset(vol), vol.centre)
             mid = midlines.get(vol.name)
             body = {"stacks": stack_objects(predictions)}
-            masks = [np.moveaxis(p.slices.masks.transpose(0, 2, 1), 0, p.slices.slice_axis) for p in prepared]
+            masks = [stack_from_slice_images(p.slices.masks, p.slices.slice_axis) for p in prepared]
             for name in variants:
                 variant, _, share = name.partition("@")
                 poses = starting_poses(body, float(share or shares[0]))

@@ -128,11 +128,7 @@ def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int =
     opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
     step, spent = 0, 0.0
     if init is not None and not out.exists():
-        start_net = load_checkpoint(init)
-        if start_net.config == net.config:
-            net.load_state_dict(start_net.state_dict())
-        else:
-            net.load_state_dict(pruned(start_net, width).state_dict())
+        net.load_state_dict(pruned(load_checkpoint(init), width).state_dict())     # the identity at its own width
     teacher_net = load_checkpoint(teacher) if teacher is not None else None
     if out.exists():
         state = torch.load(out, map_location="cpu", weights_only=False)

@@ -30,6 +30,7 @@ from service.consistency.slice_order import SliceOrder, per_stack
 from service.core.errors import Cancelled, ServiceError
 from service.inference.acceptance import EMPTY
 from service.jobs.store import JobStore
+from service.preprocess.stack import stack_from_slice_images
 
 log = logging.getLogger(__name__)
 
@@ -137,7 +138,7 @@ def predicted_body(uploads: list, estimator, mc_samples: int = 100,  # noqa: ANN
     prepared = prepare_stacks(uploads, info, bias_correction=True, workers=1)
     max_expected = max_expected_error_mm or info.max_expected_error_mm
     predictions, _ = predict(prepared, estimator, mc_samples, threshold, orders=orders, max_expected_error_mm=max_expected)
-    masks = [np.moveaxis(p.slices.masks.transpose(0, 2, 1), 0, p.slices.slice_axis) for p in prepared]
+    masks = [stack_from_slice_images(p.slices.masks, p.slices.slice_axis) for p in prepared]
     model = {"name": info.name, "version": info.version, "backbone": info.backbone,
              "sha256": info.sha256}
     return {"model": model, "mc_samples": mc_samples, "variance_threshold": threshold,

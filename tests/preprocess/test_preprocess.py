@@ -10,7 +10,7 @@ from service.io.volume import Volume
 from service.preprocess.bias import n4_correct
 from service.preprocess.intensity import rescale_0_255
 from service.preprocess.slices import preprocess_slices, sample_grid
-from service.preprocess.stack import slice_axis_of, split_stack
+from service.preprocess.stack import slice_axis_of, slice_images, split_stack, stack_from_slice_images
 from tests.support.phantoms import phantom_brain
 
 
@@ -55,6 +55,17 @@ def test_split_stack_is_vectorised_and_right_handed() -> None:
     np.testing.assert_array_equal(s.images[2], vol.array[:, :, 2].T)
     world_from_slice = aff @ np.linalg.inv(s.slice_from_voxel[2])
     assert np.linalg.det(world_from_slice[:3, :3]) == pytest.approx(1.0)   # a rigid map
+
+
+def test_slice_masks_go_back_to_the_stacks_voxels_along_any_slice_axis() -> None:
+    mask = np.random.default_rng(1).random((6, 7, 8)) > 0.5
+    for axis in range(3):
+        spacing = [1.0, 1.0, 1.0]
+        spacing[axis] = 3.0
+        s = split_stack(Volume(mask.astype(np.float32), np.diag(spacing + [1.0])), mask)
+        assert s.slice_axis == axis
+        np.testing.assert_array_equal(stack_from_slice_images(s.masks, s.slice_axis), mask)
+        np.testing.assert_array_equal(stack_from_slice_images(slice_images(mask, np.eye(4), axis)[0], axis), mask)
 
 
 def biased_phantom(strength: float = 0.5) -> tuple[Volume, np.ndarray, np.ndarray]:
