@@ -57,13 +57,15 @@ def train(
     lr: float = 2e-3,
     teacher: Annotated[Optional[Path], typer.Option(help="distil: learn this checkpoint's mirrored-pass logits")] = None,
     teacher_weight: Annotated[float, typer.Option(help="the teacher's share of the loss (the rest: the true mask)")] = 0.7,
+    freeze_norm: Annotated[bool, typer.Option(help="batch norm at its running statistics (a fine-tune trains as the "
+                                                   "service runs it)")] = False,
 ) -> None:
     """Train (or continue training) the localiser for a wall-clock budget; progress in ``<out>.log``.
     With ``--init`` of another width the network starts from that one's strongest channels."""
     from model_export.localiser.train import train as run
 
     run(data, out, minutes, width=width, depth=depth, threads=threads, seed=seed, log=Path(f"{out}.log"),
-        in_channels=channels, init=init, lr=lr, teacher=teacher, teacher_weight=teacher_weight)
+        in_channels=channels, init=init, lr=lr, teacher=teacher, teacher_weight=teacher_weight, freeze_norm=freeze_norm)
 
 
 @app.command()

@@ -110,7 +110,7 @@ def loss_fn(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int = 4, batch: int = 16,
           crop: int = 128, lr: float = 2e-3, seed: int = 0, checkpoint_s: float = 120.0,
           threads: int = 2, log: Path | None = None, in_channels: int = 3, init: Path | None = None,
-          teacher: Path | None = None, teacher_weight: float = 0.7) -> Path:
+          teacher: Path | None = None, teacher_weight: float = 0.7, freeze_norm: bool = False) -> Path:
     """Train for ``minutes`` of wall clock (resuming ``out`` if it exists); returns the checkpoint path.
 
     ``in_channels`` 3 is the 2.5D network (a slice and its neighbours), 1 the 2D one (the slice alone).
@@ -119,6 +119,10 @@ def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int =
     starts the network from its strongest channels (:func:`~model_export.localiser.distil.pruned`).
     ``teacher``: a checkpoint whose mirrored-pass logits the network learns, ``teacher_weight`` of the
     loss (:func:`~model_export.localiser.distil.distillation_loss`); the rest is the true mask's.
+    ``freeze_norm``: the batch-norm layers normalise with the running statistics they start with and
+    keep them (their scales and shifts still learn), so the network trains as it runs in the service;
+    in training mode a fine-tune normalises each crop by its own batch and moves the statistics the
+    exported network uses.
     """
     torch.set_num_threads(threads)
     torch.manual_seed(seed)
@@ -144,6 +148,10 @@ def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int =
                     "step": step, "spent_s": time.perf_counter() - start, "shards": len(known)}, out)
 
     net.train()
+    if freeze_norm:
+        for module in net.modules():
+            if isinstance(module, torch.nn.modules.batchnorm._BatchNorm):
+                module.eval()
     while (elapsed := time.perf_counter() - start) < budget:
         if step % 200 == 0 or not known:
             load_shards(data, known)
