@@ -73,6 +73,24 @@ def test_a_distilled_run_trains_a_narrower_network(shards: Path, tmp_path: Path)
     assert np.isfinite([float(v.float().abs().sum()) for v in state["model"].values()]).all()
 
 
+def test_a_fine_tune_with_frozen_norm_keeps_the_running_statistics(shards: Path, tmp_path: Path) -> None:
+    from model_export.localiser.train import train
+
+    start = tmp_path / "start.pt"
+    train(shards, start, 0.02, width=4, depth=2, batch=4, crop=32, threads=1)
+    stats = lambda path: {k: v for k, v in torch.load(path, weights_only=False)["model"].items()  # noqa: E731
+                          if k.endswith(("running_mean", "running_var"))}
+    moved = {}
+    for freeze in (True, False):
+        out = tmp_path / f"tuned-{freeze}.pt"
+        train(shards, out, 0.01, width=4, depth=2, batch=4, crop=32, threads=1, init=start, lr=1e-3,
+              teacher=start, teacher_weight=1.0, freeze_norm=freeze)
+        before, after = stats(start), stats(out)
+        assert torch.load(out, weights_only=False)["step"] > 0
+        moved[freeze] = max(float((after[k] - before[k]).abs().max()) for k in before)
+    assert moved[True] == 0.0 and moved[False] > 1e-4
+
+
 def test_a_network_that_learnt_the_mirrored_pass_runs_once_in_the_service(tmp_path: Path) -> None:
     from model_export.localiser.export import export_onnx
     from service.preprocess.localise import Localiser
