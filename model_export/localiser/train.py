@@ -150,7 +150,7 @@ def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int =
     net.train()
     if freeze_norm:
         for module in net.modules():
-            if isinstance(module, torch.nn.modules.batchnorm._BatchNorm):
+            if isinstance(module, torch.nn.BatchNorm2d):
                 module.eval()
     while (elapsed := time.perf_counter() - start) < budget:
         if step % 200 == 0 or not known:
