@@ -264,11 +264,9 @@ def quantise(
 ) -> None:
     """Write a model with int8 convolutions (head and MC dropout float), its metadata kept; then run
     `calibrate-acceptance` on it: the accept flags are calibrated on the poses of the file served."""
-    from model_export.quantise import calibration_slices, quantise as run
-    from service.inference.model_file import load_model
+    from model_export.quantise import quantise_model
 
-    info = load_model(source).info
-    path = run(source, output, calibration_slices(slices, seed, root, info.input_size, info.pixel_spacing_mm))
+    path = quantise_model(source, output, slices, seed, root)
     typer.echo(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB; {source.stat().st_size / 1e6:.1f} MB before)")
 
 
@@ -303,10 +301,9 @@ def ship(
     onnx_path = export_checkpoint(checkpoint, out / "model.onnx", name=name, version=version,
                                   variance_threshold=cal["threshold"], extra={"tta_views": tta_views})
     if int8:
-        from model_export.quantise import calibration_slices, quantise as run_quantise
+        from model_export.quantise import quantise_model
 
-        info = load_model(onnx_path).info
-        run_quantise(onnx_path, onnx_path, calibration_slices(root=root, size=info.input_size, pixel_mm=info.pixel_spacing_mm))
+        quantise_model(onnx_path, onnx_path, root=root)
     shutil.copyfile(checkpoint, out / "checkpoint.pt")
     from model_export.spread import calibrate_spread as run_spread
 

@@ -36,6 +36,7 @@ from onnxruntime.quantization.shape_inference import quant_pre_process
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
 from model_export.export import INPUT_PASSES, INPUT_SLICES, count_random_nodes
 from model_export.simulate import SimulationConfig, SliceSimulator
+from service.inference.model_file import load_model
 
 CALIBRATION_SLICES = 1024
 FLOAT_CONVS = 2
@@ -57,8 +58,15 @@ def calibration_slices(count: int = CALIBRATION_SLICES, seed: int = 0, root: Pat
             raise ValueError(f"calibration_slices: no slice of {root} keeps enough of its brain mask")
         parts.append(batch)
         have += len(batch)
-    x = np.concatenate(parts)[:count].astype(np.float32)
-    return x[:, None] if x.ndim == 3 else x
+    return np.concatenate(parts)[:count, None].astype(np.float32)
+
+
+def quantise_model(source: Path, out: Path, count: int = CALIBRATION_SLICES, seed: int = 0,
+                   root: Path = DEFAULT_ATLAS_ROOT) -> Path:
+    """:func:`quantise` with ``count`` :func:`calibration_slices` on the grid ``source``'s metadata gives."""
+    info = load_model(source).info
+    return quantise(source, out, calibration_slices(count=count, seed=seed, root=root, size=info.input_size,
+                                                    pixel_mm=info.pixel_spacing_mm))
 
 
 class _Slices(CalibrationDataReader):

@@ -1,16 +1,12 @@
-"""Phantom atlas: small synthetic 'brains' laid out like ../shared/data/fetal_atlas (fixed seeds); a
-tiny untrained pose network with non-trivial batch-norm statistics."""
+"""Phantom atlas: small synthetic 'brains' laid out like ../shared/data/fetal_atlas (fixed seeds)."""
 
 from __future__ import annotations
 
-from collections.abc import Iterable
 from pathlib import Path
 
 import pytest
-import torch
 
 from model_export.atlas import VALIDATION_VOLUMES
-from model_export.model import SVRNet
 from service.io.volume import Volume, write_volume
 from tests.support.phantoms import phantom_brain
 
@@ -28,16 +24,3 @@ def phantom_atlas(tmp_path_factory: pytest.TempPathFactory) -> Path:
         write_volume(Volume(img, aff), root / folder / f"{name}_T2.nii.gz")
         write_volume(Volume(mask, aff), root / folder / f"{name}_mask.nii.gz")
     return root
-
-
-def tiny_pose_model(size: int, batches: Iterable[torch.Tensor]) -> SVRNet:
-    """A width-0.25 ``compact`` anchor network (eval mode) whose batch norms saw ``batches`` (so that
-    exporting batch norm in training mode, or a quantiser's calibration, would show)."""
-    torch.manual_seed(0)
-    model = SVRNet("compact", 0.25, "anchor", size, hidden=64, dropout=0.5)
-    model.train()
-    with torch.no_grad():
-        for x in batches:
-            model.features(x)
-    model.set_label_normalisation(torch.randn(100, 9) * 40 + 5)
-    return model.eval()

@@ -55,6 +55,7 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
     monkeypatch.setattr(acceptance, "markdown", lambda flags, title: f"# {title}\n")
     monkeypatch.setattr(estimator, "OnnxPoseEstimator", lambda model: None)
     monkeypatch.setattr(model_file, "load_model", lambda path: Loaded())
+    monkeypatch.setattr(quantise, "load_model", lambda path: Loaded())
     monkeypatch.setattr(card, "write_card", lambda out, **kw: out.write_text("# card\n"))
     checkpoint = tmp_path / "run.pt"
     checkpoint.write_bytes(b"weights")

@@ -14,7 +14,7 @@ from model_export.model import SVRNet
 from service.geometry import encodings
 from service.inference.estimator import OnnxPoseEstimator
 from service.inference.model_file import load_model
-from tests.model_export.conftest import tiny_pose_model
+from tests.support.pose_models import tiny_pose_model
 
 SIZE = 64
 

@@ -13,7 +13,7 @@ from model_export.export import build_metadata, count_random_nodes, export_onnx
 from model_export.quantise import FLOAT_CONVS, calibration_slices, quantise
 from service.geometry import anchors, encodings
 from service.inference.model_file import load_model
-from tests.model_export.conftest import tiny_pose_model
+from tests.support.pose_models import tiny_pose_model
 
 SIZE = 64
 
