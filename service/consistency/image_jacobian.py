@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import sparse
 
-from service.consistency.intersections import ImageTerm, lines
+from service.consistency.intersections import ImageTerm, for_both_roles, lines
 from service.geometry import se3
 
 
@@ -101,7 +101,9 @@ def image_jacobian(term: ImageTerm, atlas_from_slice: NDArray, poses: NDArray, c
     perp = (np.eye(3) - d[:, :, None] * d[:, None, :]) / ln.size[:, None, None]
     differ = grad[0] - grad[1]
     values = np.zeros((len(j), 2, 6))
-    for role, (n, o) in enumerate(((na, oa), (nb, ob))):
+
+    def derive(role: int) -> None:
+        n, o = (na, oa) if role == 0 else (nb, ob)
         dd = perp @ se3.hat(nb) @ se3.hat(na) if role == 0 else -perp @ se3.hat(na) @ se3.hat(nb)        # d(d)/dw
         q = np.einsum("mji,mj->mi", dd, m - p)
         c_own, c_line = inv[:, :, role], inv[:, :, 2]
@@ -119,5 +121,7 @@ def image_jacobian(term: ImageTerm, atlas_from_slice: NDArray, poses: NDArray, c
         sign = -1.0 if role == 0 else 1.0
         values[:, role, :3] = y[:, :3] + tt[:, None] * y[:, 3:6] + sign * np.cross(lever, own)
         values[:, role, 3:] = y[:, 6:] + sign * own
+
+    for_both_roles(derive)
     values *= (term.sw / noise)[:, None, None]
     return PointJacobian(values, col[pairs], np.asarray(j), term.t_of, 6 * int((col >= 0).sum()))

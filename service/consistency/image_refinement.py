@@ -29,7 +29,8 @@ from scipy import linalg
 from scipy.linalg import lapack
 
 from service.consistency.image_jacobian import PointJacobian, image_jacobian
-from service.consistency.intersections import BlockedStack, ImageTerm, SampledStack, StackImages, candidate_pairs
+from service.consistency.intersections import ImageTerm, candidate_pairs
+from service.consistency.slice_images import BlockedStack, SampledStack, StackImages
 from service.geometry import se3
 from service.geometry.anchors import ed, twist_spread_mm
 
@@ -147,9 +148,8 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
     mismatch = np.full(len(p0), np.nan)
     for (_, step, budget), sampled in zip(passes, _smoothed_passes(stacks, [p[0] for p in passes], smoothed)):
         t = np.arange(-radius, radius + 1e-9, step)
-        term = ImageTerm(sampled, stack_of, local, pairs, t)
-        w = np.clip(np.prod(term.values(atlas_from_slice(x), masks=True), axis=0), 0.0, 1.0).astype(np.float64)
-        term.select(w, min_weight=MIN_LINE_WEIGHT, max_points=budget)
+        term = ImageTerm(sampled, stack_of, local, pairs, t, atlas_from_slice(x))
+        term.select_in_masks(atlas_from_slice(x), MIN_LINE_WEIGHT, budget)
         if not len(term.pair_of):
             break
         used = len(term.pairs)

@@ -24,7 +24,7 @@ from itertools import pairwise
 import numpy as np
 
 from service.consistency.image_refinement import expected_after, refine, relative_mismatch
-from service.consistency.intersections import StackImages
+from service.consistency.slice_images import StackImages
 from service.consistency.slice_order import FROM_FILE, SliceOrder, per_stack
 from service.consistency.stage import (
     ImageConsistency,

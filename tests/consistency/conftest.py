@@ -7,7 +7,7 @@ import pytest
 
 from model_export.acquisitions import simulate_acquisition
 from model_export.evaluate_acquisitions import prepare_acquisition
-from service.consistency.intersections import StackImages
+from service.consistency.slice_images import StackImages
 from service.geometry import se3
 from tests.api.conftest import INFO
 from tests.support.phantoms import phantom_brain

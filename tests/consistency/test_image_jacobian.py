@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 
 from service.consistency.image_jacobian import PointJacobian, image_jacobian
-from service.consistency.intersections import ImageTerm, SampledStack, candidate_pairs
+from service.consistency.intersections import ImageTerm, candidate_pairs
+from service.consistency.slice_images import SampledStack
 from service.geometry import se3
 from tests.consistency.conftest import disturbed
 

@@ -7,9 +7,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from service.consistency import intersections
+from service.consistency import slice_images
 from service.consistency.image_refinement import _brain_radius, expected_after, follow_neighbours, laplace_spread_mm, refine
-from service.consistency.intersections import StackImages
+from service.consistency.slice_images import StackImages
 from service.geometry import se3
 from service.geometry.anchors import ed
 from service.geometry.pose import translate
@@ -65,7 +65,7 @@ def test_a_dark_ball_fixed_in_the_scanner_pulls_crossing_slices_apart_less(acqui
         return float(own_frame_ed(np.concatenate([p[k] for p, k in zip(out.poses, keep)]), true).mean())
 
     corrected = drift()
-    monkeypatch.setattr(intersections, "SHADING_SCALE_MM", None)
+    monkeypatch.setattr(slice_images, "SHADING_SCALE_MM", None)
     print(f"own-frame E.D. from the truth: {corrected:.2f} mm corrected, {drift():.2f} mm not")
     assert corrected < 0.85 * drift()                             # measured: 6.23 against 8.21 mm
 
@@ -84,7 +84,7 @@ def test_true_poses_of_clean_thick_slices_stay(size: int, pixel_mm: float, monke
         return float(np.median(moved[moved > 0]))
 
     with_shading = median_move()
-    monkeypatch.setattr(intersections, "SHADING_SCALE_MM", None)
+    monkeypatch.setattr(slice_images, "SHADING_SCALE_MM", None)
     assert median_move() < 0.2
     # dividing out shading takes some of the phantom's coarse contrast, which differs between crossing
     # planes (measured 0.58 mm; noise-free atlas brains: 0.05-0.09 mm with and without it)

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from service.consistency.intersections import pair_points
+from service.consistency.intersections import ImageTerm, candidate_pairs, pair_points
+from service.consistency.slice_images import SampledStack, StackImages
 from service.geometry import se3
 from service.geometry.pose import make_pose
+from tests.consistency.conftest import disturbed
 
 
 def test_line_points_lie_on_both_planes() -> None:
@@ -25,9 +28,9 @@ def test_a_pass_keeps_whole_lines_within_its_point_budget(monkeypatch) -> None: 
     import service.consistency.intersections as module
 
     monkeypatch.setattr(module, "MAX_POINTS", 100)
-    stack = module.StackImages(np.ones((4, 8, 8), np.float32), np.ones((4, 8, 8), bool), (1.0, 1.0),
-                               np.repeat(np.eye(4)[None], 4, 0), np.ones(4, bool))
-    sampled = [module.SampledStack(stack, 1.0)] * 2
+    stack = StackImages(np.ones((4, 8, 8), np.float32), np.ones((4, 8, 8), bool), (1.0, 1.0),
+                        np.repeat(np.eye(4)[None], 4, 0), np.ones(4, bool))
+    sampled = [SampledStack(stack, 1.0)] * 2
     pairs = np.array([[a, b] for a in range(4) for b in range(4, 8)])             # 16 pairs, 2 stacks
     term = module.ImageTerm(sampled, np.repeat([0, 1], 4), np.tile(np.arange(4), 2), pairs, np.arange(20.0))
     w = np.ones(len(term.pair_of))
@@ -38,27 +41,25 @@ def test_a_pass_keeps_whole_lines_within_its_point_budget(monkeypatch) -> None: 
     assert len(term.pairs) == 6 and set(map(tuple, term.pairs)) <= set(map(tuple, pairs))
 
 
-def test_a_stack_cut_to_its_brain_samples_as_the_whole_slices_do(monkeypatch) -> None:  # noqa: ANN001
-    """Cropping to the brain's box plus its margin (blocks of 2 x 2 fine pixels, an odd offset)
-    changes no value or gradient the image term samples in and around the brain."""
-    import service.consistency.intersections as module
-
-    rng = np.random.default_rng(3)
-    n, h, w = 3, 200, 180
-    images = (1.0 + rng.random((n, h, w))).astype(np.float32)
-    masks = np.zeros((n, h, w), bool)
-    masks[:, 83:121, 61:110] = True
-    stack = module.StackImages(images, masks, (0.5, 0.55), np.repeat(np.eye(4)[None], n, 0), np.ones(n, bool))
-    cut = module.SampledStack(stack, 3.0)
-    monkeypatch.setattr(module, "CROP_MARGIN_MM", 1e6)
-    whole = module.SampledStack(stack, 3.0)
-    assert cut.images.size < whole.images.size / 3
-    inside = np.argwhere(masks[0])[::37]
-    mm = np.column_stack([(inside[:, 1] - (w - 1) / 2) * 0.55, (inside[:, 0] - (h - 1) / 2) * 0.5,
-                          np.zeros(len(inside)), np.ones(len(inside))])          # slice mm of brain pixels
-    which = np.arange(len(inside)) % n
-    rc_cut = (cut.pixel_from_slice @ mm.T).T
-    rc_whole = (whole.pixel_from_slice @ mm.T).T
-    assert np.allclose(cut.sample(which, rc_cut), whole.sample(which, rc_whole), atol=1e-5)
-    assert np.allclose(cut.sample_gradient(which, rc_cut), whole.sample_gradient(which, rc_whole), atol=1e-5)
-    assert np.allclose(cut.sample(which, rc_cut, masks=True), whole.sample(which, rc_whole, masks=True), atol=1e-6)
+@pytest.mark.parametrize("budget", [500, 3_000, 10**6])
+def test_choosing_points_in_the_masks_keeps_what_every_points_weight_would(acquisition, budget: int) -> None:  # noqa: ANN001
+    """A term made at the poses holds only the points inside both slices' mask boxes, and
+    ``select_in_masks`` samples the masks of only the pairs the budget reaches; together they keep
+    exactly the points :meth:`select` keeps from every point's mask weight (the same pairs, points
+    and weights), at a budget that binds hard, one that binds a little, and none."""
+    images, truth = acquisition
+    poses = np.concatenate(disturbed(truth, 3.0, 3.0, seed=2))
+    stack_of = np.repeat(np.arange(3), [len(t) for t in truth])
+    local = np.concatenate([np.arange(len(t)) for t in truth])
+    atlas = poses @ se3.inverse(np.concatenate([s.slice_from_network for s in images]))
+    pairs = candidate_pairs(atlas, stack_of, np.ones(len(poses), bool))
+    sampled = [SampledStack(s, 3.0) for s in images]
+    every = ImageTerm(sampled, stack_of, local, pairs, np.arange(-70.0, 70.1, 2.0))
+    every.select(np.clip(np.prod(every.values(atlas, masks=True), axis=0), 0, 1).astype(float), 1.0, budget)
+    chosen = ImageTerm(sampled, stack_of, local, pairs, np.arange(-70.0, 70.1, 2.0), atlas)
+    assert len(chosen.pair_of) < 0.8 * len(np.arange(-70.0, 70.1, 2.0)) * len(pairs)        # the boxes leave points out
+    chosen.select_in_masks(atlas, 1.0, budget)
+    assert 0 < len(chosen.pair_of) <= budget
+    assert np.array_equal(chosen.pairs, every.pairs) and np.array_equal(chosen.pair_of, every.pair_of)
+    assert np.array_equal(chosen.t_of, every.t_of) and np.allclose(chosen.sw, every.sw)
+    assert np.array_equal(chosen.residuals(atlas), every.residuals(atlas))
