@@ -22,7 +22,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import sparse
 
-from service.consistency.intersections import ImageTerm, for_both_roles, lines
+from service.consistency.intersections import ImageTerm, lines
+from service.consistency.threads import two_threads
 from service.geometry import se3
 
 
@@ -122,6 +123,6 @@ def image_jacobian(term: ImageTerm, atlas_from_slice: NDArray, poses: NDArray, c
         values[:, role, :3] = y[:, :3] + tt[:, None] * y[:, 3:6] + sign * np.cross(lever, own)
         values[:, role, 3:] = y[:, 6:] + sign * own
 
-    for_both_roles(derive)
+    two_threads(derive)                                                    # the pairs' first and second slices
     values *= (term.sw / noise)[:, None, None]
     return PointJacobian(values, col[pairs], np.asarray(j), term.t_of, 6 * int((col >= 0).sum()))

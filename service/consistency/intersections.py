@@ -26,18 +26,14 @@ Example:
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
 from service.consistency.slice_images import Cells, SampledStack, SampledStacks
+from service.consistency.threads import two_threads
 from service.geometry import se3
-
-T = TypeVar("T")
 
 MIN_SINE = np.sin(np.radians(30.0))
 """Pairs whose planes meet at less than this angle are left out (their line is ill-placed)."""
@@ -110,23 +106,13 @@ BOX_MARGIN_PX = 1.5
 a bilinear sample reads the pixels up to one away, and the margin's rest covers rounding."""
 
 
-ROLE_WORKERS = 2
-"""Threads that work on the two slices of the pairs side by side: a pass's arrays over its points
-are long enough for numpy to do them outside the GIL."""
-_ROLES = ThreadPoolExecutor(max_workers=ROLE_WORKERS, thread_name_prefix="image-term")
-
-
-def for_both_roles(work: Callable[[int], T]) -> list[T]:
-    """``[work(0), work(1)]``, side by side: the first and the second slice of every pair."""
-    return list(_ROLES.map(work, (0, 1)))
-
-
 class ImageTerm:
     """The image residuals of one pass: both slices' values at the chosen points of each pair's line.
 
     Every point of every pair is found and sampled in one set of array operations per role (the
     pair's first or second slice, :func:`for_both_roles`), whatever stack its slice is of
-    (:class:`~service.consistency.slice_images.SampledStacks`). The points' places among the pixels
+    (:class:`~service.consistency.slice_images.SampledStacks`), the two side by side
+    (:func:`~service.consistency.threads.two_threads`). The points' places among the pixels
     at the last poses asked for are kept: the Jacobian at a set of poses follows the residuals at
     the same poses."""
 
@@ -248,7 +234,7 @@ class ImageTerm:
             slices = g[self.pair_of]
             return slices, self.stacks.cells(self.stack_of[slices], self.local[slices], rc)
 
-        sites = for_both_roles(site)
+        sites = two_threads(site)
         self._last = (np.array(atlas_from_slice, copy=True), line, sites)
         return line, sites
 
@@ -261,7 +247,7 @@ class ImageTerm:
         """``[2, P]`` both slices' values at each point (images, or masks)."""
         sites = self._where(atlas_from_slice)[1]
         flat = self.stacks.masks if masks else self.stacks.images
-        return np.stack(for_both_roles(lambda role: self.stacks.sample(flat, sites[role][1])))
+        return np.stack(two_threads(lambda role: self.stacks.sample(flat, sites[role][1])))
 
     def gradients(self, atlas_from_slice: NDArray) -> NDArray[np.float64]:
         """``[2, P, 3]`` both slices' image gradients at each point (per atlas mm, in each slice's
@@ -275,7 +261,7 @@ class ImageTerm:
             rows, cols = self.stacks.sample(self.stacks.gradient_rows, cells), self.stacks.sample(self.stacks.gradient_cols, cells)
             return rows[:, None] * along[slices, :, 0] + cols[:, None] * along[slices, :, 1]
 
-        return np.stack(for_both_roles(gradient))
+        return np.stack(two_threads(gradient))
 
     def residuals(self, atlas_from_slice: NDArray) -> NDArray[np.float64]:
         va, vb = self.values(atlas_from_slice)

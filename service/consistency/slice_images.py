@@ -19,12 +19,14 @@ Example (two stacks of one 4 x 4 slice each; the second slice's centre pixel, bi
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
+
+from service.consistency.threads import two_threads
 
 
 @dataclass
@@ -90,6 +92,11 @@ class BlockedStack:
     """The masks averaged over blocks, then smoothed by one block: the points' weights in every pass."""
     factors: tuple[int, int]
     origin: tuple[int, int]
+    support: NDArray[np.float64] = field(init=False)
+    """``[n, 2, 2]`` each slice's box of nonzero ``masks`` (:func:`_support_boxes`)."""
+
+    def __post_init__(self) -> None:
+        self.support = _support_boxes(self.masks)
 
     @classmethod
     def of(cls, s: StackImages) -> "BlockedStack":
@@ -139,8 +146,7 @@ def shading(images: NDArray[np.float32], masks: NDArray, pixel_mm: tuple[float, 
 
 
 class SampledStack:
-    """A stack's smoothed, scaled images, their gradients and its masks as one pass samples them
-    (:class:`SampledStacks`): zero-padded by a pixel and flattened."""
+    """A stack's smoothed, scaled images and its masks as one pass samples them (:class:`SampledStacks`)."""
 
     def __init__(self, s: StackImages, sigma_mm: float, blocked: BlockedStack | None = None) -> None:
         blocked = blocked or BlockedStack.of(s)
@@ -150,12 +156,8 @@ class SampledStack:
         pixel = (s.pixel_mm[0] * f[0], s.pixel_mm[1] * f[1])
         self.images = ndimage.gaussian_filter(images, (0.0, sigma_mm / pixel[0], sigma_mm / pixel[1]))
         self.masks = blocked.masks
-        self.support = _support_boxes(self.masks)
-        pad = ((0, 0), (1, 1), (1, 1))                                      # a zero border: bilinear fades to 0
-        self.images_flat = np.pad(self.images, pad).ravel()
-        self.masks_flat = np.pad(self.masks, pad).ravel()
-        self.gradient_flat = [np.pad(g, pad).ravel() for g in np.gradient(self.images, axis=(1, 2))]   # rows, columns
-        self.padded = (images.shape[1] + 2, images.shape[2] + 2)
+        self.support = blocked.support
+        self.padded = (images.shape[1] + 2, images.shape[2] + 2)                # a zero border: bilinear fades to 0
         # block (r', c') is centred on the original pixel (r0 + f r' + (f - 1) / 2, ...)
         self.pixel_from_slice = np.array([[0.0, 1.0 / pixel[0], 0.0, ((h - 1) / 2.0 - r0 - (f[0] - 1) / 2.0) / f[0]],   # row
                                           [1.0 / pixel[1], 0.0, 0.0, ((w - 1) / 2.0 - c0 - (f[1] - 1) / 2.0) / f[1]]])  # column
@@ -222,15 +224,23 @@ class SampledStacks:
     """
 
     def __init__(self, stacks: list[SampledStack]) -> None:
-        self.images = np.concatenate([s.images_flat for s in stacks])
-        self.masks = np.concatenate([s.masks_flat for s in stacks])
-        self.gradient_rows = np.concatenate([s.gradient_flat[0] for s in stacks])
-        self.gradient_cols = np.concatenate([s.gradient_flat[1] for s in stacks])
+        shapes = [(len(s.images), *s.padded) for s in stacks]
+        sizes = [n * h * w for n, h, w in shapes]
         self.padded = np.array([s.padded for s in stacks], np.int64)              # [S, 2]
-        self.base = np.cumsum([0] + [s.images_flat.size for s in stacks[:-1]])     # each stack's first value
+        self.base = np.cumsum([0] + sizes[:-1])                                  # each stack's first value
         self.pixel_from_slice = np.stack([s.pixel_from_slice for s in stacks])
         self.support = np.concatenate([s.support for s in stacks])
         self.first_slice = np.cumsum([0] + [len(s.images) for s in stacks[:-1]])
+        self.images, self.masks, self.gradient_rows, self.gradient_cols = (np.empty(sum(sizes), np.float32) for _ in range(4))
+
+        def fill(half: int) -> None:                                             # every other stack, one a thread
+            for i in range(half, len(stacks), 2):
+                part = lambda flat: flat[self.base[i]:self.base[i] + sizes[i]].reshape(shapes[i])  # noqa: E731
+                _pad_into(part(self.images), stacks[i].images)
+                _pad_into(part(self.masks), stacks[i].masks)
+                _gradients_into(part(self.gradient_rows), part(self.gradient_cols), stacks[i].images)
+
+        two_threads(fill)
 
     def cells(self, stack: NDArray, local: NDArray, rc: NDArray) -> Cells:
         """The :class:`Cells` of points at pixels ``rc [P, 2]`` (row, column) of slices ``local [P]``
@@ -250,3 +260,38 @@ class SampledStacks:
         top = flat[i] + cells.fc * (flat[i + 1] - flat[i])
         bottom = flat[b] + cells.fc * (flat[b + 1] - flat[b])
         return np.where(cells.inside, top + cells.fr * (bottom - top), 0.0).astype(np.float32)
+
+
+def _pad_into(out: NDArray, images: NDArray) -> None:
+    """``images [n, h, w]`` into ``out [n, h + 2, w + 2]`` with a border of zeros."""
+    _zero_border(out)
+    out[:, 1:-1, 1:-1] = images
+
+
+def _zero_border(out: NDArray) -> None:
+    out[:, 0], out[:, -1], out[:, :, 0], out[:, :, -1] = 0, 0, 0, 0
+
+
+def _gradients_into(rows: NDArray, cols: NDArray, images: NDArray) -> None:
+    """``np.gradient(images, axis=(1, 2))`` (central differences, one-sided at the edges) into ``rows``
+    and ``cols`` ``[n, h + 2, w + 2]`` with a border of zeros, made in place.
+
+    Example:
+        >>> img = np.arange(12, dtype=np.float32).reshape(1, 3, 4) ** 2
+        >>> rows, cols = np.empty((2, 1, 5, 6), np.float32)
+        >>> _gradients_into(rows, cols, img)
+        >>> expected = np.gradient(img, axis=(1, 2))
+        >>> bool(np.array_equal(rows[:, 1:-1, 1:-1], expected[0]) and np.array_equal(cols[:, 1:-1, 1:-1], expected[1]))
+        True
+    """
+    for out, axis in ((rows, 1), (cols, 2)):
+        _zero_border(out)
+        f = np.moveaxis(images, axis, 1)
+        g = np.moveaxis(out[:, 1:-1, 1:-1], axis, 1)
+        if f.shape[1] < 2:                                                       # no neighbour to differ from
+            g[...] = 0
+            continue
+        np.subtract(f[:, 2:], f[:, :-2], out=g[:, 1:-1])
+        g[:, 1:-1] /= 2.0
+        np.subtract(f[:, 1], f[:, 0], out=g[:, 0])
+        np.subtract(f[:, -1], f[:, -2], out=g[:, -1])
