@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 from scipy import sparse
 
 from service.consistency.intersections import ImageTerm, lines
-from service.consistency.threads import two_threads
+from service.core.threads import two_threads
 from service.geometry import se3
 
 

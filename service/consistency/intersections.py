@@ -32,7 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.consistency.slice_images import Cells, SampledStack, SampledStacks
-from service.consistency.threads import two_threads
+from service.core.threads import two_threads
 from service.geometry import se3
 
 MIN_SINE = np.sin(np.radians(30.0))
@@ -112,7 +112,7 @@ class ImageTerm:
     Every point of every pair is found and sampled in one set of array operations per role (the
     pair's first or second slice, :func:`for_both_roles`), whatever stack its slice is of
     (:class:`~service.consistency.slice_images.SampledStacks`), the two side by side
-    (:func:`~service.consistency.threads.two_threads`). The points' places among the pixels
+    (:func:`~service.core.threads.two_threads`). The points' places among the pixels
     at the last poses asked for are kept: the Jacobian at a set of poses follows the residuals at
     the same poses."""
 

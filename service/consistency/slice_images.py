@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from service.consistency.threads import two_threads
+from service.core.threads import two_threads
 
 
 @dataclass

@@ -14,9 +14,14 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from service.core.threads import two_threads
 from service.geometry import anchors, encodings, se3, twin
 from service.inference.model_file import LoadedModel, ModelInfo
 from service.inference.views import sample_views
+
+
+MIN_SLICES_PER_THREAD = 8
+"""Fewer slices than twice this are reduced in one thread (a streamed slice, a short stack)."""
 
 
 @dataclass
@@ -61,6 +66,19 @@ class PoseEstimator(Protocol):
 
 
 def statistics(labels: NDArray, label_type: str, plane_x_mm: float = twin.DEFAULT_PLANE_X_MM) -> PoseEstimate:
+    """Decode MC labels ``[B, N, D]`` and reduce them to :class:`PoseEstimate`, twin-aware
+    (:func:`slice_statistics`), the two halves of the slices side by side in two threads."""
+    half = len(labels) // 2
+    if half < MIN_SLICES_PER_THREAD:
+        return slice_statistics(labels, label_type, plane_x_mm)
+    first, second = two_threads(lambda h: slice_statistics(labels[:half] if h == 0 else labels[half:], label_type, plane_x_mm))
+    return PoseEstimate(*(np.concatenate([a, b]) for a, b in ((first.mean, second.mean), (first.variance, second.variance),
+                                                              (first.degenerate, second.degenerate),
+                                                              (first.twin_mass, second.twin_mass),
+                                                              (first.spread_mm, second.spread_mm))))
+
+
+def slice_statistics(labels: NDArray, label_type: str, plane_x_mm: float = twin.DEFAULT_PLANE_X_MM) -> PoseEstimate:
     """Decode MC labels ``[B, N, D]`` and reduce them to :class:`PoseEstimate`, twin-aware.
 
     The samples of each slice are put on one branch first (a sample and its left-right twin

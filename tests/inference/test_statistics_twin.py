@@ -39,3 +39,16 @@ def test_the_majority_branch_wins_and_the_spread_is_in_mm() -> None:
     tw = twin.twin(truth, 0.7)
     assert np.abs(est.mean[:, :3, 3] - tw[:, :3, 3]).max() < 1.0
     assert np.all((est.spread_mm > 1.0) & (est.spread_mm < 4.0))
+
+
+def test_a_request_reduced_in_two_halves_equals_it_reduced_whole() -> None:
+    """:func:`statistics` splits the slices between two threads: every field equals the one-thread
+    reduction's, slice for slice (41 slices: halves of 20 and 21)."""
+    from service.inference.estimator import slice_statistics
+
+    rng = np.random.default_rng(2)
+    _, samples = cloud(rng, 41, 50, 0.2)
+    labels = anchors.encode(samples)
+    both, whole = statistics(labels, "anchor", 0.7), slice_statistics(labels, "anchor", 0.7)
+    for name in ("mean", "variance", "degenerate", "twin_mass", "spread_mm"):
+        assert np.array_equal(getattr(both, name), getattr(whole, name)), name

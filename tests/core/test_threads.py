@@ -1,0 +1,30 @@
+"""The shared two-thread pool."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from service.core.threads import two_threads
+
+
+def test_two_threads_answers_in_order_and_runs_both_halves_at_once() -> None:
+    """Each half waits for the other to start: one thread at a time would never finish."""
+    both = threading.Barrier(2, timeout=10)
+
+    def work(half: int) -> int:
+        both.wait()
+        return half + 10
+
+    assert two_threads(work) == [10, 11]
+
+
+def test_an_error_in_either_half_reaches_the_caller() -> None:
+    def work(half: int) -> int:
+        if half == 1:
+            raise ValueError("second half")
+        return half
+
+    with pytest.raises(ValueError, match="second half"):
+        two_threads(work)
