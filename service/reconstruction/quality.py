@@ -97,6 +97,7 @@ def quality_report(ncc: NDArray, held_out: NDArray, judged: NDArray, stack_index
         "fraction_ncc_above_0_7": round(float(np.mean(c > GOOD_NCC)), 4) if c.size else None,
         "leave_one_stack_out": {
             "median_ncc": _median(h[held_judged]),
+            "slices": int(np.isfinite(h[held_judged]).sum()),
             "per_stack_median_ncc": [_median(h[held_judged & (stack_index == s)]) for s in stacks],
         },
     }

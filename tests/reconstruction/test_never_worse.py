@@ -113,6 +113,20 @@ def test_the_gain_asked_for_grows_with_the_starting_mismatch() -> None:
     assert never_worse.choose({"full": 0.61, "starting_poses": 0.5, "slice_level": 0.58}) == "full"
 
 
+def test_a_score_over_few_slices_must_win_by_more(monkeypatch) -> None:  # noqa: ANN001
+    """The full path cuts the mismatch 1.17 x (0.796 -> 0.825): enough over 60 held-out slices or
+    more, not over 28 (1.23 x asked); the job counts them on the starting poses' volume."""
+    for slices, path in ((None, "full"), (60, "full"), (28, "starting_poses")):
+        made = {name: fake_result(score, i) for i, (name, score) in
+                enumerate((("full", 0.825), ("starting_poses", 0.796), ("slice_level", 0.8)))}
+        for r in made.values():
+            r.quality["leave_one_stack_out"]["slices"] = slices
+        made["further"] = [fake_result(None, 9)]
+        result, _ = run_with(monkeypatch, {}, ReconstructionConfig(), made=made)
+        assert result.quality["path"] == path, slices
+    assert never_worse.required_ratio(28) > 0.204 / 0.175 > never_worse.required_ratio(51) > never_worse.MIN_MISMATCH_RATIO
+
+
 def test_a_single_stack_keeps_the_full_job(monkeypatch) -> None:  # noqa: ANN001
     result, calls = run_with(monkeypatch, {"full": None, "starting_poses": 0.9, "slice_level": 0.9},
                              ReconstructionConfig())

@@ -61,4 +61,6 @@ def test_slices_a_path_dropped_still_count_when_a_stack_is_left_out() -> None:
     r = quality_report(ncc, held, in_volume, stacks, given)
     assert r["judged_slices"] == 2 and r["median_ncc"] == 0.935
     assert r["leave_one_stack_out"]["per_stack_median_ncc"] == [0.55, 0.49]
+    assert r["leave_one_stack_out"]["slices"] == 4                      # what the job's choice weighs its score by
     assert quality_report(ncc, held, in_volume, stacks)["leave_one_stack_out"]["median_ncc"] == 0.89
+    assert quality_report(ncc, held, in_volume, stacks)["leave_one_stack_out"]["slices"] == 2
