@@ -11,8 +11,8 @@ geometry of those lines and the image term of :mod:`service.consistency.image_re
         w_i (I_a(x_i) - I_b(x_i))^2 / sigma^2
 
 ``I_a`` is slice ``a``'s image (bias-corrected, scaled by its stack's median brain intensity,
-smoothed in-plane: :mod:`service.consistency.slice_images`), sampled bilinearly; ``w_i`` the product of both slices' brain masks at ``x_i``,
-fixed once chosen (a weight that followed the poses would reward moving the lines out of the brain).
+smoothed in-plane: :mod:`service.consistency.slice_images`), sampled bilinearly; ``w_i`` the
+product of both slices' brain masks at ``x_i``, fixed once chosen (a weight that followed the poses would reward moving the lines out of the brain).
 
 Example:
     >>> import numpy as np
@@ -131,7 +131,7 @@ class ImageTerm:
         self.pair_of = np.repeat(np.arange(len(pairs)), count)
         self.t_of = first[self.pair_of] + np.arange(len(self.pair_of)) - np.repeat(np.cumsum(count) - count, count)
         self.sw = np.ones(len(self.pair_of))
-        self._rank = np.empty(len(pairs), np.int64)                  # each pair's place in the budget's fixed random order
+        self._rank = np.empty(len(pairs), np.int64)             # each pair's place in the budget's fixed random order
         self._rank[np.random.default_rng(0).permutation(len(pairs))] = np.arange(len(pairs))
         self._last: tuple | None = None
 
@@ -258,7 +258,8 @@ class ImageTerm:
 
         def gradient(role: int) -> NDArray[np.float64]:
             slices, cells = sites[role]
-            rows, cols = self.stacks.sample(self.stacks.gradient_rows, cells), self.stacks.sample(self.stacks.gradient_cols, cells)
+            rows = self.stacks.sample(self.stacks.gradient_rows, cells)
+            cols = self.stacks.sample(self.stacks.gradient_cols, cells)
             return rows[:, None] * along[slices, :, 0] + cols[:, None] * along[slices, :, 1]
 
         return np.stack(two_threads(gradient))

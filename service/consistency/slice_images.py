@@ -231,7 +231,8 @@ class SampledStacks:
         self.pixel_from_slice = np.stack([s.pixel_from_slice for s in stacks])
         self.support = np.concatenate([s.support for s in stacks])
         self.first_slice = np.cumsum([0] + [len(s.images) for s in stacks[:-1]])
-        self.images, self.masks, self.gradient_rows, self.gradient_cols = (np.empty(sum(sizes), np.float32) for _ in range(4))
+        self.images, self.masks, self.gradient_rows, self.gradient_cols = (np.empty(sum(sizes), np.float32)
+                                                                            for _ in range(4))
 
         def fill(half: int) -> None:                                             # every other stack, one a thread
             for i in range(half, len(stacks), 2):

@@ -71,11 +71,10 @@ def statistics(labels: NDArray, label_type: str, plane_x_mm: float = twin.DEFAUL
     half = len(labels) // 2
     if half < MIN_SLICES_PER_THREAD:
         return slice_statistics(labels, label_type, plane_x_mm)
-    first, second = two_threads(lambda h: slice_statistics(labels[:half] if h == 0 else labels[half:], label_type, plane_x_mm))
-    return PoseEstimate(*(np.concatenate([a, b]) for a, b in ((first.mean, second.mean), (first.variance, second.variance),
-                                                              (first.degenerate, second.degenerate),
-                                                              (first.twin_mass, second.twin_mass),
-                                                              (first.spread_mm, second.spread_mm))))
+    first, second = two_threads(lambda h: slice_statistics(labels[:half] if h == 0 else labels[half:], label_type,
+                                                           plane_x_mm))
+    return PoseEstimate(*(np.concatenate([getattr(first, name), getattr(second, name)])
+                          for name in ("mean", "variance", "degenerate", "twin_mass", "spread_mm")))
 
 
 def slice_statistics(labels: NDArray, label_type: str, plane_x_mm: float = twin.DEFAULT_PLANE_X_MM) -> PoseEstimate:

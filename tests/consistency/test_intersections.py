@@ -42,7 +42,7 @@ def test_a_pass_keeps_whole_lines_within_its_point_budget(monkeypatch) -> None: 
 
 
 @pytest.mark.parametrize("budget", [500, 3_000, 10**6])
-def test_choosing_points_in_the_masks_keeps_what_every_points_weight_would(acquisition, budget: int) -> None:  # noqa: ANN001
+def test_points_chosen_in_the_masks_are_those_every_points_weight_chooses(acquisition, budget: int) -> None:  # noqa: ANN001
     """A term made at the poses holds only the points inside both slices' mask boxes, and
     ``select_in_masks`` samples the masks of only the pairs the budget reaches; together they keep
     exactly the points :meth:`select` keeps from every point's mask weight (the same pairs, points

@@ -26,11 +26,13 @@ def test_a_stack_cut_to_its_brain_samples_as_the_whole_slices_do(monkeypatch) ->
     mm = np.column_stack([(inside[:, 1] - (w - 1) / 2) * 0.55, (inside[:, 0] - (h - 1) / 2) * 0.5,
                           np.zeros(len(inside)), np.ones(len(inside))])          # slice mm of brain pixels
     which = np.arange(len(inside)) % n
-    cut_cells = module.SampledStacks([cut]).cells(np.zeros(len(which), int), which, (cut.pixel_from_slice @ mm.T).T)
-    whole_cells = module.SampledStacks([whole]).cells(np.zeros(len(which), int), which, (whole.pixel_from_slice @ mm.T).T)
+    first = np.zeros(len(which), int)
+    cut_all, whole_all = module.SampledStacks([cut]), module.SampledStacks([whole])
+    cut_cells = cut_all.cells(first, which, (cut.pixel_from_slice @ mm.T).T)
+    whole_cells = whole_all.cells(first, which, (whole.pixel_from_slice @ mm.T).T)
     for name, atol in (("images", 1e-5), ("gradient_rows", 1e-5), ("gradient_cols", 1e-5), ("masks", 1e-6)):
-        assert np.allclose(module.SampledStacks.sample(getattr(module.SampledStacks([cut]), name), cut_cells),
-                           module.SampledStacks.sample(getattr(module.SampledStacks([whole]), name), whole_cells), atol=atol), name
+        assert np.allclose(cut_all.sample(getattr(cut_all, name), cut_cells),
+                           whole_all.sample(getattr(whole_all, name), whole_cells), atol=atol), name
 
 
 def test_stacks_side_by_side_sample_as_each_stack_alone() -> None:
@@ -43,7 +45,8 @@ def test_stacks_side_by_side_sample_as_each_stack_alone() -> None:
         masks = np.zeros((n, h, w), bool)
         masks[:, h // 4: 3 * h // 4, w // 4: 3 * w // 4] = True
         images = (1.0 + rng.random((n, h, w))).astype(np.float32)
-        stacks.append(SampledStack(StackImages(images, masks, (mm, mm), np.repeat(np.eye(4)[None], n, 0), np.ones(n, bool)), 2.0))
+        stack = StackImages(images, masks, (mm, mm), np.repeat(np.eye(4)[None], n, 0), np.ones(n, bool))
+        stacks.append(SampledStack(stack, 2.0))
     together = SampledStacks(stacks)
     stack = rng.integers(0, 3, 400)
     local = np.array([rng.integers(0, len(stacks[s].images)) for s in stack])
