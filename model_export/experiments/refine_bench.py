@@ -189,7 +189,8 @@ def main() -> None:
                           f"{res.quality.get('output_pass')}; "
                           f"{int(ss.include.sum())} slices start included", flush=True)
                 if args.atlas_frame:
-                    framed_res = with_frame(res, atlas_frame(res.volume, est, plane))
+                    frame = atlas_frame(res.volume, est, plane, held_out_ncc=held_out_score(res))
+                    framed_res = with_frame(res, frame)
                     centred = with_frame(framed_res, midline_fit(framed_res.volume, plane, held_out_score(res)))
                     for label, moved in ((f"{name}, atlas frame", framed_res),
                                          (f"{name}, atlas frame and midline", centred)):

@@ -268,7 +268,8 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         progress("atlas frame", 0.95)
         if estimator is None and model_file.exists():
             estimator = OnnxPoseEstimator(load_model(model_file, threads=1))
-        frame = atlas_frame(result.volume, estimator, plane, mc_samples=int(params.get("mc_samples", 100)))
+        frame = atlas_frame(result.volume, estimator, plane, mc_samples=int(params.get("mc_samples", 100)),
+                            held_out_ncc=held_out_score(result))
         result = with_frame(result, frame)
         progress("midline", 0.96)
         midline = midline_fit(result.volume, plane, held_out_score(result))

@@ -80,6 +80,17 @@ def test_an_implausible_correction_is_reported_not_applied(brain: Volume, monkey
     assert fit.report()["applied"] is False
 
 
+def test_no_frame_is_sought_where_the_stacks_do_not_predict_each_other(brain: Volume) -> None:
+    """A job whose leave-one-stack-out NCC is under the midline's floor gets no frame step: the
+    estimator is never asked."""
+    class Unasked(Oracle):
+        def estimate(self, inputs: np.ndarray, mc_samples: int) -> PoseEstimate:
+            raise AssertionError("the frame step posed slices of an incoherent volume")
+
+    fit = af.atlas_frame(brain, Unasked(0.0, 0.0), 0.0, n_slices=48, held_out_ncc=0.42)
+    assert not fit.applied and np.array_equal(fit.correction, np.eye(4)) and fit.report()["applied"] is False
+
+
 def test_the_correction_moves_the_volume_and_every_slice_together() -> None:
     """``with_frame``: after the correction a slice pixel and the volume voxel it was reconstructed
     from still coincide, both now where the correction puts them in the atlas."""
