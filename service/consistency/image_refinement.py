@@ -217,13 +217,17 @@ def follow_neighbours(final: NDArray, start: NDArray, checked: NDArray, stack_of
     """
     out = final.copy()
     correction = final @ se3.inverse(start)
+    moved, sides = [], []
     for g in np.flatnonzero(~checked):
         mine = np.flatnonzero(checked & (stack_of == stack_of[g]))
         if not len(mine):
             continue
         below, above = mine[index[mine] < index[g]], mine[index[mine] > index[g]]
         near = [side[np.argmin(np.abs(index[side] - index[g]))] for side in (below, above) if len(side)]
-        out[g] = se3.frechet_mean(correction[near], np.ones(len(near))) @ start[g]
+        moved.append(g)
+        sides.append(near * (3 - len(near)))                  # one neighbour: its correction twice
+    if moved:                                                 # all the means in one batched call
+        out[moved] = se3.frechet_mean(correction[np.array(sides)]) @ start[moved]
     return out
 
 
