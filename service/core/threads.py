@@ -12,15 +12,20 @@ Example:
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar
 
 T = TypeVar("T")
 
-_POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix="arrays")
+_PREFIX = "svrnet-arrays"
+_POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix=_PREFIX)
 
 
 def two_threads(work: Callable[[int], T]) -> list[T]:
-    """``[work(0), work(1)]``, side by side in two threads."""
+    """``[work(0), work(1)]``, side by side in two threads; one after the other when called from
+    the pool's own threads (work that waited there for the pool would wait for itself)."""
+    if threading.current_thread().name.startswith(_PREFIX):
+        return [work(0), work(1)]
     return list(_POOL.map(work, (0, 1)))

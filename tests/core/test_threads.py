@@ -28,3 +28,11 @@ def test_an_error_in_either_half_reaches_the_caller() -> None:
 
     with pytest.raises(ValueError, match="second half"):
         two_threads(work)
+
+
+def test_work_in_the_pool_that_asks_the_pool_again_runs_inline() -> None:
+    """Both pool threads busy with work that itself splits in two: it must not wait for itself."""
+    def inner(half: int) -> int:
+        return half
+
+    assert two_threads(lambda outer: two_threads(inner)) == [[0, 1], [0, 1]]
