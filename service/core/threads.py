@@ -3,7 +3,7 @@
 numpy does long array operations outside the GIL, so work over tens of thousands of values (the
 image term's points, the MC samples of half a request's slices) runs side by side on two cores;
 work over a few thousand values does not gain. One pool serves every request: a request's work
-waits for the pool rather than starting threads of its own.
+waits for the pool rather than starting threads of its own. A forked child starts its own.
 
 Example:
     >>> two_threads(lambda half: half * 10)
@@ -12,6 +12,7 @@ Example:
 
 from __future__ import annotations
 
+import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -21,6 +22,16 @@ T = TypeVar("T")
 
 _PREFIX = "svrnet-arrays"
 _POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix=_PREFIX)
+
+
+def _fresh_pool_after_fork() -> None:
+    """A forked process (an RQ work horse) holds the parent's pool without its threads: work sent
+    there would never run. The child starts a pool of its own."""
+    global _POOL
+    _POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix=_PREFIX)
+
+
+os.register_at_fork(after_in_child=_fresh_pool_after_fork)
 
 
 def two_threads(work: Callable[[int], T]) -> list[T]:

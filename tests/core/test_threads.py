@@ -36,3 +36,20 @@ def test_work_in_the_pool_that_asks_the_pool_again_runs_inline() -> None:
         return half
 
     assert two_threads(lambda outer: two_threads(inner)) == [[0, 1], [0, 1]]
+
+
+def test_a_forked_child_gets_a_pool_of_its_own() -> None:
+    """The parent's pool threads do not survive a fork (an RQ work horse): the child's work must
+    still run, not wait for threads that are not there."""
+    import multiprocessing
+
+    assert two_threads(lambda half: half) == [0, 1]                  # the parent's pool has its threads
+    ctx = multiprocessing.get_context("fork")
+    answers = ctx.Queue()
+    child = ctx.Process(target=lambda: answers.put(two_threads(lambda half: half * 2)))
+    child.start()
+    child.join(20)
+    if child.is_alive():
+        child.kill()
+        pytest.fail("the forked child's work never ran")
+    assert answers.get(timeout=5) == [0, 2] and child.exitcode == 0
