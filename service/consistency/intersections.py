@@ -110,11 +110,11 @@ class ImageTerm:
     """The image residuals of one pass: both slices' values at the chosen points of each pair's line.
 
     Every point of every pair is found and sampled in one set of array operations per role (the
-    pair's first or second slice, :func:`for_both_roles`), whatever stack its slice is of
-    (:class:`~service.consistency.slice_images.SampledStacks`), the two side by side
-    (:func:`~service.core.threads.two_threads`). The points' places among the pixels
-    at the last poses asked for are kept: the Jacobian at a set of poses follows the residuals at
-    the same poses."""
+    pair's first or second slice), whatever stack its slice is of
+    (:class:`~service.consistency.slice_images.SampledStacks`), the two roles side by side
+    (:func:`~service.core.threads.two_threads`). The points' places among the pixels at the last
+    poses asked for are kept: the Jacobian at a set of poses follows the residuals at the same
+    poses."""
 
     def __init__(self, sampled: list[SampledStack], stack_of: NDArray, local: NDArray, pairs: NDArray, t: NDArray,
                  atlas_from_slice: NDArray | None = None) -> None:
