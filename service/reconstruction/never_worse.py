@@ -50,7 +50,7 @@ Example:
     >>> choose({"full": None, "starting_poses": 0.9})
     'full'
     >>> scores = {"full": 0.8248, "starting_poses": 0.7958}               # 1.17 x less mismatch
-    >>> choose(scores), choose(scores, slices=28)
+    >>> choose(scores), choose(scores, required_ratio(slices=28))
     ('full', 'starting_poses')
 """
 
@@ -102,9 +102,9 @@ motion, from the starting poses, no pass cut it (registration made those poses w
 PATH_RESOLUTION_MM = 1.5
 """The resolution the paths and further passes run at when the job asks for a finer volume (the
 volume returned is solved at the finer one, at the poses they chose)."""
-UNDECIDED_RATIO = MIN_MISMATCH_RATIO ** 0.5
+UNDECIDED_POWER = 0.5
 """Where the starting poses won at the paths' resolution but a registered path cut their mismatch at
-least this many times, the choice is made again at the output resolution
+least the ratio asked to this power, the choice is made again at the output resolution
 (:func:`at_output_resolution`): a coarse grid compresses the ratio (on the shared real scan the full
 path's is about its square root at 1.5 mm of what it is at 0.8 mm)."""
 OUTPUT_SHARE = 0.7
@@ -139,15 +139,15 @@ def required_ratio(slices: int | None, ratio: float = MIN_MISMATCH_RATIO) -> flo
     return float(ratio ** np.sqrt(REFERENCE_SLICES / slices))
 
 
-def choose(scores: dict[str, float | None], slices: int | None = None) -> str:
-    """The registered path with the highest score where its mismatch is :func:`required_ratio`
-    times smaller than the starting poses' (scores over ``slices`` held-out slices), else the
+def choose(scores: dict[str, float | None], ratio: float = MIN_MISMATCH_RATIO) -> str:
+    """The registered path with the highest score where its mismatch is ``ratio`` times smaller
+    than the starting poses' (:func:`required_ratio` of the slices the scores rest on), else the
     starting poses; ``full`` when it has no score (nothing to compare)."""
     if scores.get("full") is None:
         return "full"
     best = best_registered(scores)
     start = scores.get("starting_poses")
-    return best if start is None or clearly_better(scores[best], start, slices=slices) else "starting_poses"
+    return best if start is None or clearly_better(scores[best], start, ratio) else "starting_poses"
 
 
 def best_registered(scores: dict[str, float | None]) -> str | None:
@@ -156,16 +156,15 @@ def best_registered(scores: dict[str, float | None]) -> str | None:
     return max(registered, key=lambda k: (registered[k], k == "full"), default=None)
 
 
-def clearly_better(score: float, than: float, ratio: float = MIN_MISMATCH_RATIO, slices: int | None = None) -> bool:
+def clearly_better(score: float, than: float, ratio: float = MIN_MISMATCH_RATIO) -> bool:
     """Whether held-out median NCC ``score`` leaves at most ``1 / ratio`` of the mismatch (1 - NCC)
-    of ``than``, ``ratio`` raised for scores over fewer than :data:`REFERENCE_SLICES` ``slices``
-    (:func:`required_ratio`).
+    of ``than``.
 
     Example:
-        >>> clearly_better(0.957, 0.95), clearly_better(0.955, 0.95), clearly_better(0.957, 0.95, slices=20)
+        >>> clearly_better(0.957, 0.95), clearly_better(0.955, 0.95), clearly_better(0.957, 0.95, required_ratio(20))
         (True, False, False)
     """
-    return (1.0 - score) * required_ratio(slices, ratio) <= 1.0 - than
+    return (1.0 - score) * ratio <= 1.0 - than
 
 
 def reconstruct_never_worse(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations: int = 3,
@@ -201,8 +200,9 @@ def reconstruct_never_worse(slice_set: SliceSet, resolution_mm: float = 0.8, svr
         run("starting_poses", replace(cfg, register=False), *((0.45, 0.55) if slice_level else (0.75, 0.85)))
         if slice_level:
             run("slice_level", replace(cfg, coarse_to_fine=False), 0.55, 0.85)
-    slices = held_out_slices(results.get("starting_poses") or results["full"])
-    best = choose(scores, slices)
+    counted = results["starting_poses"] if "starting_poses" in results else results["full"]
+    ratio = required_ratio(held_out_slices(counted))         # what a path must gain, over the slices scored
+    best = choose(scores, ratio)
     result = results[best]
     seconds = _seconds(*results.values())
     further: list[float | None] = []
@@ -218,7 +218,7 @@ def reconstruct_never_worse(slice_set: SliceSet, resolution_mm: float = 0.8, svr
             seconds += again.timings.get("total", 0.0)
             score = held_out_score(again)
             further.append(score)
-            if score is None or not clearly_better(score, held_out_score(result), slices=slices):
+            if score is None or not clearly_better(score, held_out_score(result), ratio):
                 break
             result, kept = again, kept + 1
     output_pass = None
@@ -227,7 +227,7 @@ def reconstruct_never_worse(slice_set: SliceSet, resolution_mm: float = 0.8, svr
             lambda stage, f: progress("volume at the output resolution", share + (1.0 - share) * f))
         result, best, output_pass, spent = at_output_resolution(slice_set, results, scores, best, result,
                                                                 resolution_mm, svr_iterations, part, cancel,
-                                                                bounds_mm, cfg, slices)
+                                                                bounds_mm, cfg, ratio)
         seconds += spent
     if (kept or output_pass is not None) and results[best].coarse is not None:   # the winner's stack fit still judges
         result.coarse = results[best].coarse
@@ -245,24 +245,24 @@ def at_output_resolution(slice_set: SliceSet, results: dict[str, ReconstructionR
                          scores: dict[str, float | None], best: str, chosen: ReconstructionResult,
                          resolution_mm: float, svr_iterations: int, progress: Progress | None,
                          cancel: Callable[[], bool] | None, bounds_mm: ArrayLike | None,
-                         config: ReconstructionConfig, slices: int | None = None,
+                         config: ReconstructionConfig, ratio: float = MIN_MISMATCH_RATIO,
                          ) -> tuple[ReconstructionResult, str, dict, float]:
     """The volume at ``resolution_mm`` after the paths ran at a coarser one (``results`` and their
     ``scores``; ``best`` the path they chose, ``chosen`` its result or its last kept further pass);
     returns it, the path it follows, what the output pass did (``output_pass``: ``tried``,
     ``score``, ``kept`` and, where it was judged against another volume, ``against``: that volume's
-    score) and the seconds its solves took. ``slices``: how many slices the scores rest on
+    score) and the seconds its solves took. ``ratio``: the mismatch ratio a volume must gain
     (:func:`required_ratio`).
 
     * A registered path won: the slice level again at ``resolution_mm`` from its poses (the
       registration sees the finer volume's detail). Where its leave-one-stack-out mismatch is
-      :data:`MIN_MISMATCH_RATIO` times that of ``chosen``, the robust super-resolution at those poses
-      is solved too, and the pass is kept unless that volume does clearly better at the same
-      resolution (scores of two resolutions are not alike: see :data:`UNDECIDED_RATIO`).
-    * The starting poses won, but a registered path cut their mismatch by at least
-      :data:`UNDECIDED_RATIO`: a coarse grid shows a pose's gain less (its volumes are blurrier), so
-      the choice is made again at ``resolution_mm``, by the same rule, between the starting poses'
-      volume and that path's slice level from its poses.
+      ``ratio`` times that of ``chosen``, the robust super-resolution at those poses is solved
+      too, and the pass is kept unless that volume does clearly better at the same resolution
+      (scores of two resolutions are not alike: see :data:`UNDECIDED_POWER`).
+    * The starting poses won, but a registered path cut their mismatch by at least ``ratio`` to
+      the power :data:`UNDECIDED_POWER`: a coarse grid shows a pose's gain less (its volumes are
+      blurrier), so the choice is made again at ``resolution_mm``, by the same rule, between the
+      starting poses' volume and that path's slice level from its poses.
     * Otherwise: the robust super-resolution at the starting poses.
 
     Each volume's slice weights, exclusions and quality report are measured on it. Its field of
@@ -280,21 +280,21 @@ def at_output_resolution(slice_set: SliceSet, results: dict[str, ReconstructionR
     if best != "starting_poses":
         fine = solve(chosen, True, 0.0, 0.8)
         score, before = held_out_score(fine), held_out_score(chosen)
-        if score is None or before is None or not clearly_better(before, score, slices=slices):
+        if score is None or before is None or not clearly_better(before, score, ratio):
             return fine, best, {"tried": True, "score": score, "kept": True}, _seconds(fine)
         plain = solve(chosen, False, 0.8, 1.0)
         against = held_out_score(plain)
-        kept = against is None or not clearly_better(against, score, slices=slices)
+        kept = against is None or not clearly_better(against, score, ratio)
         return (fine if kept else plain), best, {"tried": True, "score": score, "kept": kept, "against": against}, \
             _seconds(fine, plain)
     start, contender = scores["starting_poses"], best_registered(scores)
-    if contender is None or start is None or not clearly_better(scores[contender], start, UNDECIDED_RATIO, slices):
+    if contender is None or start is None or not clearly_better(scores[contender], start, ratio ** UNDECIDED_POWER):
         plain = solve(chosen, False, 0.0, 1.0)
         return plain, best, {"tried": False, "score": None, "kept": False}, _seconds(plain)
     plain = solve(chosen, False, 0.0, 0.3)
     fine = solve(results[contender], True, 0.3, 1.0)
     score, against = held_out_score(fine), held_out_score(plain)
-    kept = score is not None and against is not None and clearly_better(score, against, slices=slices)
+    kept = score is not None and against is not None and clearly_better(score, against, ratio)
     return (fine if kept else plain), (contender if kept else best), \
         {"tried": True, "score": score, "kept": kept, "against": against}, _seconds(fine, plain)
 
