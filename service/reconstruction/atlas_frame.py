@@ -19,7 +19,7 @@ slices of the upload (a few dozen per stack, motion-corrupted) could not. A corr
 :data:`MAX_ROTATION_DEG` / :data:`MAX_SHIFT_MM` is reported and not applied (the reconstruction
 itself is then unlikely to be a brain the network knows), and none is sought where the job's
 stacks do not predict each other (leave-one-stack-out median NCC under
-:data:`~service.reconstruction.midline.MIN_HELD_OUT_NCC`, as for the midline): slices re-cut from
+:func:`~service.reconstruction.midline.incoherent`, as for the midline): slices re-cut from
 a volume that is no coherent brain pose it nowhere in particular (on a simulated acquisition with
 jumps whose job started from 15 slices, held-out 0.42, the frame moved its poses 5.80 -> 6.52 mm).
 
@@ -43,7 +43,7 @@ from service.geometry.anchors import ed
 from service.geometry.pose import about_centre, make_pose, translate
 from service.io.volume import Volume
 from service.preprocess.slices import preprocess_slices
-from service.reconstruction.midline import MIN_HELD_OUT_NCC, FrameCorrection
+from service.reconstruction.midline import FrameCorrection, incoherent
 
 if TYPE_CHECKING:                      # the estimator is handed in; nothing of inference runs here
     from service.inference.estimator import PoseEstimator
@@ -113,7 +113,7 @@ def atlas_frame(volume: Volume, estimator: PoseEstimator | None, plane_x_mm: flo
     applied; ``held_out_ncc``: the job's leave-one-stack-out median NCC (None: not measured)."""
     arr = np.asarray(volume.array, dtype=np.float32)
     positive = arr[arr > 0]
-    if estimator is None or positive.size < 1000 or (held_out_ncc is not None and held_out_ncc < MIN_HELD_OUT_NCC):
+    if estimator is None or positive.size < 1000 or incoherent(held_out_ncc):
         return FrameFit(np.eye(4), False)
     mask = arr > 0.05 * float(np.percentile(positive, 99))
     info = estimator.info

@@ -49,6 +49,17 @@ BRAIN_FRACTION = 0.05
 """Voxels above this fraction of the 99th intensity percentile are the brain (as the atlas frame's)."""
 
 
+def incoherent(held_out_ncc: float | None) -> bool:
+    """Whether a job's stacks do not predict each other (leave-one-stack-out median NCC under
+    :data:`MIN_HELD_OUT_NCC`; None: not measured, e.g. one stack): no frame step trusts its volume.
+
+    Example:
+        >>> incoherent(0.42), incoherent(0.9), incoherent(None)
+        (True, False, False)
+    """
+    return held_out_ncc is not None and held_out_ncc < MIN_HELD_OUT_NCC
+
+
 @dataclass
 class FrameCorrection:
     """A rigid move of a reconstruction and of every refined pose with it.
@@ -131,7 +142,7 @@ def midline_fit(volume: Volume, plane_x_mm: float, held_out_ncc: float | None = 
     ``held_out_ncc``: the job's leave-one-stack-out median NCC (None: not measured, e.g. one stack)."""
     arr = np.asarray(volume.array, dtype=np.float32)
     positive = arr[arr > 0]
-    if positive.size < 1000 or (held_out_ncc is not None and held_out_ncc < MIN_HELD_OUT_NCC):
+    if positive.size < 1000 or incoherent(held_out_ncc):
         return FrameCorrection(np.eye(4), False)
     mask = (arr > BRAIN_FRACTION * float(np.percentile(positive, 99))).astype(np.float32)
     try:
