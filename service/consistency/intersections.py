@@ -163,12 +163,9 @@ class ImageTerm:
         """``[M]`` twice: the interval of ``t`` (mm) where each pair's line lies within both its
         slices' mask boxes (widened by :data:`BOX_MARGIN_PX`; empty: lo > hi). A line's pixel in a
         slice is linear in ``t``: it stays inside the box between where it enters and leaves it."""
-        line = pair_points(atlas_from_slice, atlas_from_slice, self.pairs, np.array([0.0, 1.0]))   # base, base + d
-        inv = se3.inverse(atlas_from_slice)
         lo, hi = np.full(len(self.pairs), -np.inf), np.full(len(self.pairs), np.inf)
-        for role in (0, 1):
+        for role, ends in enumerate(self._line_ends(atlas_from_slice)[1]):
             g = self.pairs[:, role]
-            ends = self._line_pixels(g, line, inv)                             # [M, 2 (t = 0, 1), 2 (row, col)]
             box = self.stacks.support[self.stacks.first_slice[self.stack_of[g]] + self.local[g]]   # [M, 2, 2]
             start, slope = ends[:, 0], ends[:, 1] - ends[:, 0]
             low, high = box[:, :, 0] - BOX_MARGIN_PX, box[:, :, 1] + BOX_MARGIN_PX
@@ -181,12 +178,19 @@ class ImageTerm:
             lo, hi = np.maximum(lo, enter.max(axis=1)), np.minimum(hi, leave.min(axis=1))
         return lo, hi
 
-    def _line_pixels(self, slices: NDArray, line: NDArray, slice_from_atlas: NDArray) -> NDArray[np.float64]:
-        """``[M, 2, 2]`` (row, column) of each pair's two line points ``line [M, 2, 3]`` in its
-        slice ``slices [M]`` (``slice_from_atlas``: every slice's pose, inverted)."""
-        pixel_from_atlas = np.einsum("mij,mjk->mik", self.stacks.pixel_from_slice[self.stack_of[slices]],
-                                     slice_from_atlas[slices])                  # [M, 2, 4]
-        return np.einsum("mij,mej->mei", pixel_from_atlas[:, :, :3], line) + pixel_from_atlas[:, None, :, 3]
+    def _line_ends(self, atlas_from_slice: NDArray) -> tuple[NDArray[np.float64], list[NDArray[np.float64]]]:
+        """Each pair's line (its base point and the point 1 mm along it, ``[M, 2, 3]``) and, per
+        role, where those two points fall in that slice's pixels (``[M, 2, 2]``: row, column): a
+        line's pixel in a slice is linear in ``t`` between them."""
+        line = pair_points(atlas_from_slice, atlas_from_slice, self.pairs, np.array([0.0, 1.0]))
+        slice_from_atlas = se3.inverse(atlas_from_slice)
+        ends = []
+        for role in (0, 1):
+            g = self.pairs[:, role]
+            pixel_from_atlas = np.einsum("mij,mjk->mik", self.stacks.pixel_from_slice[self.stack_of[g]],
+                                         slice_from_atlas[g])                   # [M, 2, 4]
+            ends.append(np.einsum("mij,mej->mei", pixel_from_atlas[:, :, :3], line) + pixel_from_atlas[:, None, :, 3])
+        return line, ends
 
     def _keep(self, keep: NDArray, sw: NDArray | None = None) -> None:
         """Keep the points ``keep`` (and the pairs that still have one); ``sw``: their weights' square roots."""
@@ -223,14 +227,12 @@ class ImageTerm:
         each point's slice and where it falls among that slice's pixels (:class:`Cells`)."""
         if self._last is not None and np.array_equal(self._last[0], atlas_from_slice):
             return self._last[1], self._last[2]
-        line = pair_points(atlas_from_slice, atlas_from_slice, self.pairs, np.array([0.0, 1.0]))
-        inv = se3.inverse(atlas_from_slice)
+        line, ends = self._line_ends(atlas_from_slice)
         t = self.t[self.t_of][:, None]
 
         def site(role: int) -> tuple[NDArray, Cells]:
-            g = self.pairs[:, role]
-            ends = self._line_pixels(g, line, inv)
-            rc = ends[:, 0][self.pair_of] + t * (ends[:, 1] - ends[:, 0])[self.pair_of]
+            g, e = self.pairs[:, role], ends[role]
+            rc = e[:, 0][self.pair_of] + t * (e[:, 1] - e[:, 0])[self.pair_of]
             slices = g[self.pair_of]
             return slices, self.stacks.cells(self.stack_of[slices], self.local[slices], rc)
 
