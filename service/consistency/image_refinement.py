@@ -225,7 +225,7 @@ def follow_neighbours(final: NDArray, start: NDArray, checked: NDArray, stack_of
         below, above = mine[index[mine] < index[g]], mine[index[mine] > index[g]]
         near = [side[np.argmin(np.abs(index[side] - index[g]))] for side in (below, above) if len(side)]
         moved.append(g)
-        sides.append(near * (3 - len(near)))                  # one neighbour: its correction twice
+        sides.append(near if len(near) == 2 else near * 2)    # one neighbour: its correction twice
     if moved:                                                 # all the means in one batched call
         out[moved] = se3.frechet_mean(correction[np.array(sides)]) @ start[moved]
     return out

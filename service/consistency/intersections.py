@@ -256,7 +256,8 @@ class ImageTerm:
         plane): what the residuals' derivatives need besides the geometry."""
         sites = self._where(atlas_from_slice)[1]
         along = atlas_from_slice[:, :3, :3] @ np.swapaxes(self.stacks.pixel_from_slice[self.stack_of][:, :, :3], 1, 2)
-        # [N, 3, 2]: the atlas direction of a step along a slice's rows and columns (per pixel)
+        # [N, 3, 2]: the atlas gradient of each slice's row and column coordinate (pixels per mm): a
+        # point's image gradient is its two pixel derivatives along them
 
         def gradient(role: int) -> NDArray[np.float64]:
             slices, cells = sites[role]

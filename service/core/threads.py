@@ -21,16 +21,20 @@ from typing import TypeVar
 T = TypeVar("T")
 
 _PREFIX = "svrnet-arrays"
-_POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix=_PREFIX)
+
+
+def _new_pool() -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(max_workers=2, thread_name_prefix=_PREFIX)
 
 
 def _fresh_pool_after_fork() -> None:
     """A forked process (an RQ work horse) holds the parent's pool without its threads: work sent
     there would never run. The child starts a pool of its own."""
     global _POOL
-    _POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix=_PREFIX)
+    _POOL = _new_pool()
 
 
+_POOL = _new_pool()
 os.register_at_fork(after_in_child=_fresh_pool_after_fork)
 
 
