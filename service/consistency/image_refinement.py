@@ -148,8 +148,9 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
     mismatch = np.full(len(p0), np.nan)
     for (_, step, budget), sampled in zip(passes, _smoothed_passes(stacks, [p[0] for p in passes], smoothed)):
         t = np.arange(-radius, radius + 1e-9, step)
-        term = ImageTerm(sampled, stack_of, local, pairs, t, atlas_from_slice(x))
-        term.select_in_masks(atlas_from_slice(x), MIN_LINE_WEIGHT, budget)
+        start = atlas_from_slice(x)
+        term = ImageTerm(sampled, stack_of, local, pairs, t, start)
+        term.select_in_masks(start, MIN_LINE_WEIGHT, budget)
         if not len(term.pair_of):
             break
         used = len(term.pairs)

@@ -24,6 +24,10 @@ MIN_SLICES_PER_THREAD = 8
 """Fewer slices than twice this are reduced in one thread (a streamed slice, a short stack)."""
 
 
+PER_SLICE = ("mean", "variance", "degenerate", "twin_mass", "spread_mm")
+""":class:`PoseEstimate`'s per-slice fields, in order."""
+
+
 @dataclass
 class PoseEstimate:
     """Per-slice statistics of the MC samples.
@@ -53,8 +57,12 @@ class PoseEstimate:
 
     def part(self, which: slice) -> "PoseEstimate":
         """The statistics of the slices ``which`` (one stack of a request)."""
-        return PoseEstimate(self.mean[which], self.variance[which], self.degenerate[which], self.twin_mass[which],
-                            self.spread_mm[which])
+        return PoseEstimate(*(getattr(self, name)[which] for name in PER_SLICE))
+
+    @classmethod
+    def joined(cls, parts: list["PoseEstimate"]) -> "PoseEstimate":
+        """The statistics of ``parts``' slices, one part after the other (:meth:`part` undone)."""
+        return cls(*(np.concatenate([getattr(p, name) for p in parts]) for name in PER_SLICE))
 
 
 class PoseEstimator(Protocol):
@@ -71,10 +79,8 @@ def statistics(labels: NDArray, label_type: str, plane_x_mm: float = twin.DEFAUL
     half = len(labels) // 2
     if half < MIN_SLICES_PER_THREAD:
         return slice_statistics(labels, label_type, plane_x_mm)
-    first, second = two_threads(lambda h: slice_statistics(labels[:half] if h == 0 else labels[half:], label_type,
-                                                           plane_x_mm))
-    return PoseEstimate(*(np.concatenate([getattr(first, name), getattr(second, name)])
-                          for name in ("mean", "variance", "degenerate", "twin_mass", "spread_mm")))
+    return PoseEstimate.joined(two_threads(lambda h: slice_statistics(labels[:half] if h == 0 else labels[half:],
+                                                                      label_type, plane_x_mm)))
 
 
 def slice_statistics(labels: NDArray, label_type: str, plane_x_mm: float = twin.DEFAULT_PLANE_X_MM) -> PoseEstimate:
