@@ -101,8 +101,9 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
             as one standard deviation; the soft-L1 loss turns linear beyond it.
         prior_weight: multiplies the prior's residuals (1: the stage's expected errors as they are).
         iterations: Gauss-Newton iterations per pass.
-        smoothed: per stack, its smoothed images by sigma, kept for a later refinement of the same
-            stacks (filled here; :func:`_smoothed_passes`): a request's second step.
+        smoothed: per stack, its smoothed images by sigma: what is there is used (:func:`smooth_ahead`),
+            what is missing is made and kept, for a later refinement of the same stacks (a
+            request's second step).
 
     Returns:
         :class:`Refinement`; a request with fewer than two stacks, or no crossing pairs, comes back
@@ -182,6 +183,18 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
     cut = lambda a: [a[i:j] for i, j in zip(bounds[:-1], bounds[1:])]  # noqa: E731
     return Refinement(cut(final), cut(moved), used, costs[0] if costs else np.nan, costs[-1] if costs else np.nan,
                       cut(mismatch), cut(spread))
+
+
+def smooth_ahead(stacks: list[StackImages], passes: tuple[tuple[float, float, int | None], ...] = PASSES,
+                 ) -> list[dict[float, SampledStack]]:
+    """Every pass's smoothed images of ``stacks`` (per stack, by sigma): :func:`refine`'s
+    ``smoothed``, made before it runs. They depend on the slices' images and masks alone, not on
+    their poses or on which slices take part, so a caller can make them while the poses are still
+    being worked out (the request's stack stage leaves most of a core idle)."""
+    store: list[dict[float, SampledStack]] = [{} for _ in stacks]
+    for _ in _smoothed_passes(stacks, [p[0] for p in passes], store):
+        pass
+    return store
 
 
 def _smoothed_passes(stacks: list[StackImages], sigmas_mm: list[float],

@@ -23,8 +23,8 @@ from itertools import pairwise
 
 import numpy as np
 
-from service.consistency.image_refinement import expected_after, refine, relative_mismatch
-from service.consistency.slice_images import StackImages
+from service.consistency.image_refinement import expected_after, refine, relative_mismatch, smooth_ahead
+from service.consistency.slice_images import SampledStack, StackImages
 from service.consistency.slice_order import FROM_FILE, SliceOrder, per_stack
 from service.consistency.stage import (
     ImageConsistency,
@@ -253,7 +253,8 @@ def stack_orders(orders: list[SliceOrder] | None, uploads: list[StackUpload]) ->
     return out
 
 
-def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPoses], proper: list[np.ndarray]) -> None:
+def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPoses], proper: list[np.ndarray],
+                              smoothed: list[dict[float, SampledStack]] | None = None) -> None:
     """Refine the poses of the request's settled stacks where their slices cross
     (:func:`~service.consistency.image_refinement.refine`), in place; each such stack's
     ``image_consistency`` says what it did. A stack takes part when the stage found it consistent and
@@ -266,18 +267,36 @@ def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPos
     stack whose branch the request decided but that fits it on neither branch is then refined against
     them as fixed partners, and its slices keep at least the stage's expected error: it is the less
     certain, and a stack whose localisation went wrong (a mask that runs on into the fetal body)
-    would otherwise pull the others its way, or be pulled into a false agreement with them."""
+    would otherwise pull the others its way, or be pulled into a false agreement with them.
+
+    ``smoothed``: per stack of the request, its smoothed images made ahead (:func:`smooth_images_ahead`);
+    otherwise they are made here, once for both steps."""
     take = [i for i, o in enumerate(outs) if o.fit is not None and o.fit.decidable
             and (o.fit.branch_decided or o.fit.branch_from_request)]
     if len(take) < 2:
         return
     own = [i for i in take if outs[i].fit.branch_known]
+    store = dict(enumerate(smoothed)) if smoothed is not None else {i: {} for i in take}
     if len(own) < 2 or len(own) == len(take):
-        _refine_stacks(prepared, outs, proper, take, [])
+        _refine_stacks(prepared, outs, proper, take, [], store if smoothed is not None else None)
         return
-    smoothed: dict[int, dict] = {i: {} for i in take}          # per stack: smoothed once for both steps
-    _refine_stacks(prepared, outs, proper, own, [], smoothed)
-    _refine_stacks(prepared, outs, proper, [i for i in take if i not in own], own, smoothed)
+    _refine_stacks(prepared, outs, proper, own, [], store)
+    _refine_stacks(prepared, outs, proper, [i for i in take if i not in own], own, store)
+
+
+def stack_images(prepared: PreparedStack, active: np.ndarray | None = None, fixed: bool = False) -> StackImages:
+    """A prepared stack's slices as the image stage sees them; ``active`` (default: all) the slices
+    that take part."""
+    s = prepared.slices
+    active = np.ones(len(s.images), bool) if active is None else active
+    return StackImages(s.images, s.masks, s.pixel_mm, prepared.prepared.input_from_network(), active, fixed=fixed)
+
+
+def smooth_images_ahead(prepared: list[PreparedStack]) -> list[dict[float, SampledStack]]:
+    """Every image-stage pass's smoothed images of every stack of the request
+    (:func:`~service.consistency.image_refinement.smooth_ahead`): they need neither the poses nor the
+    stage's verdicts, so :func:`predict_from_estimates` makes them beside the stack stage."""
+    return smooth_ahead([stack_images(p) for p in prepared])
 
 
 def _refine_stacks(prepared: list[PreparedStack], outs: list[StackPoses], proper: list[np.ndarray],
@@ -287,9 +306,7 @@ def _refine_stacks(prepared: list[PreparedStack], outs: list[StackPoses], proper
     stage's) and ``image_consistency``. ``smoothed``: per stack (request index), :func:`refine`'s
     store of its smoothed images."""
     which = moving + partners
-    images = [StackImages(prepared[i].slices.images, prepared[i].slices.masks, prepared[i].slices.pixel_mm,
-                          prepared[i].prepared.input_from_network(), proper[i] & ~outs[i].inconsistent,
-                          fixed=i in partners) for i in which]
+    images = [stack_images(prepared[i], proper[i] & ~outs[i].inconsistent, fixed=i in partners) for i in which]
     expected = [outs[i].expected_error_mm if outs[i].expected_error_mm is not None
                 else np.full(len(outs[i].poses), np.nan) for i in which]
     ref = refine(images, [outs[i].poses for i in which], expected,
@@ -356,6 +373,10 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
     frames = [s.network_from_voxel() for s in prepared]
     shape = getattr(info, "mc_error_shape", None)
     gain = float(getattr(info, "mc_error_depth_gain", 0.0))
+    refining = stack_consistency and image_consistency and len(prepared) > 1
+    ahead = ThreadPoolExecutor(max_workers=1)
+    smoothed = ahead.submit(smooth_images_ahead, prepared) if refining else None
+    ahead.shutdown(wait=False)
     with ThreadPoolExecutor(max_workers=max(1, min(STAGE_WORKERS, len(prepared)))) as pool:   # LAPACK frees the GIL
         outs = list(pool.map(lambda e, s, nfv, order: stack_poses(e, s, nfv, stack_consistency, plane_x_mm,
                                                                   e.spread_mm * scale, order, shape, gain),
@@ -369,8 +390,8 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
         pool_request(outs)
     timings["stack_consistency"] = time.perf_counter() - t
     t = time.perf_counter()
-    if stack_consistency and image_consistency:
-        refine_where_stacks_cross(prepared, outs, [~e.degenerate for e in parts])
+    if refining:
+        refine_where_stacks_cross(prepared, outs, [~e.degenerate for e in parts], smoothed.result())
     timings["image_consistency"] = time.perf_counter() - t
     results = []
     for s, e, nfv, out in zip(prepared, parts, frames, outs):

@@ -6,8 +6,9 @@ bounding box plus a margin), on two fitting levels (a third, with twice the cont
 field finer than the brain's extent needs). The fit is N4 in numpy
 (:func:`~service.preprocess.n4.n4_log_field`: ITK's algorithm and ITK's field, without ITK's fixed
 cost per iteration, which dominates on a fit image of a few thousand voxels); SimpleITK shrinks,
-thresholds the fit mask (Otsu) and interpolates the fitted log field linearly onto the
-full-resolution grid of the region, where it is divided out. Outside the
+thresholds the fit mask (Otsu); the fitted log field is interpolated linearly onto the
+full-resolution grid of the region (:func:`upsample_linear`: the two grids share their axes, so
+the trilinear interpolation is three small matrix products), where it is divided out. Outside the
 region the image is left as it is (it is masked out later anyway).
 
 Example:
@@ -67,11 +68,38 @@ def n4_correct(volume: Volume, mask: NDArray | None = None, *, shrink: int = 4, 
         fit_mask = small > 0
     field = n4_log_field(sitk.GetArrayViewFromImage(small), sitk.GetArrayViewFromImage(fit_mask) > 0,
                          (iterations,) * levels)
-    small_field = sitk.GetImageFromArray(field.astype(np.float32))
-    small_field.CopyInformation(small)
-    log_field = sitk.Resample(small_field, image, sitk.Transform(), sitk.sitkLinear, 0.0, sitk.sitkFloat32,
-                              useNearestNeighborExtrapolator=True)
-    log_field = sitk.GetArrayFromImage(log_field).transpose(2, 1, 0)
+    log_field = upsample_linear(field.transpose(2, 1, 0), continuous_indices(small, image))
     out = arr.copy()
-    out[box] = arr[box] / np.exp(log_field).astype(np.float32)
+    out[box] = arr[box] / np.exp(log_field)
     return out
+
+
+def continuous_indices(coarse: sitk.Image, fine: sitk.Image) -> list[NDArray[np.float64]]:
+    """Per axis ``(x, y, z)``, where each of ``fine``'s voxel indices lies in ``coarse``'s continuous
+    index, for two images of one orientation (a shrunk image and its source: their axes coincide)."""
+    origin = np.asarray(coarse.TransformPhysicalPointToContinuousIndex(fine.GetOrigin()))
+    step = np.asarray(fine.GetSpacing()) / np.asarray(coarse.GetSpacing())
+    return [origin[a] + step[a] * np.arange(n) for a, n in enumerate(fine.GetSize())]
+
+
+def upsample_linear(values: NDArray, at: list[NDArray]) -> NDArray[np.float32]:
+    """``values [X, Y, Z]`` interpolated trilinearly at the continuous indices ``at`` (one array per
+    axis; the result is their outer grid), the nearest value outside the grid: what ITK's linear
+    interpolator with nearest-neighbour extrapolation gives, as one 1D interpolation per axis.
+
+    Example (a ramp along x, sampled between its pixels and beyond its end):
+        >>> v = np.arange(3.0)[:, None, None] * np.ones((3, 1, 1))
+        >>> upsample_linear(v, [np.array([0.5, 1.25, 4.0]), np.zeros(1), np.zeros(1)])[:, 0, 0].tolist()
+        [0.5, 1.25, 2.0]
+    """
+    out = np.asarray(values, np.float64)
+    for axis, c in enumerate(at):
+        n = out.shape[axis]
+        c = np.clip(c, 0.0, n - 1)
+        lo = np.minimum(np.floor(c).astype(np.intp), max(n - 2, 0))
+        weights = np.zeros((len(c), n))
+        rows = np.arange(len(c))
+        np.add.at(weights, (rows, lo), 1.0 - (c - lo))
+        np.add.at(weights, (rows, np.minimum(lo + 1, n - 1)), c - lo)
+        out = np.moveaxis(np.tensordot(weights, out, axes=([1], [axis])), 0, axis)
+    return out.astype(np.float32)

@@ -209,3 +209,26 @@ def test_a_second_refinement_of_the_same_images_reuses_their_smoothing(acquisiti
     assert made == [id(images[2].images)] * len(refinement.PASSES)                # only the new stack
     alone = refine(second, start, errors)
     assert all(np.array_equal(a, b) for a, b in zip(shared.poses, alone.poses))
+
+
+def test_images_smoothed_ahead_give_the_refinement_it_gets_when_it_smooths_them_itself(acquisition, monkeypatch) -> None:  # noqa: ANN001
+    """The smoothing depends on the images and masks only: made ahead for every stack with every
+    slice active (as the pipeline makes them beside the stack stage), then used by a refinement in
+    which some slices take no part and one stack is a fixed partner, it gives the very poses of a
+    refinement that smooths for itself, and nothing is smoothed again."""
+    import service.consistency.image_refinement as refinement
+
+    images, truth = acquisition
+    start = disturbed(truth, 1.5, 1.5, seed=7)
+    errors = [np.full(len(t), 5.0) for t in truth]
+    every = [replace(s, active=np.ones(len(s.images), bool), fixed=False) for s in images]
+    store = refinement.smooth_ahead(every)
+    assert [sorted(k) for k in store] == [sorted(p[0] for p in refinement.PASSES)] * len(images)
+    some = np.arange(len(images[0].images)) % 4 != 0
+    used = [replace(images[0], active=some), images[1], replace(images[2], fixed=True)]
+    monkeypatch.setattr(refinement, "SampledStack", lambda *a: pytest.fail("smoothed again"))
+    ahead = refine(used, start, errors, smoothed=store)
+    monkeypatch.undo()
+    alone = refine(used, start, errors)
+    assert all(np.array_equal(a, b) for a, b in zip(ahead.poses, alone.poses))
+    assert not all(np.array_equal(a, b) for a, b in zip(ahead.poses, start))

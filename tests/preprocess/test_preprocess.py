@@ -7,7 +7,7 @@ import pytest
 from scipy import ndimage
 
 from service.io.volume import Volume
-from service.preprocess.bias import n4_correct
+from service.preprocess.bias import continuous_indices, n4_correct, upsample_linear
 from service.preprocess.intensity import rescale_0_255
 from service.preprocess.slices import preprocess_slices, sample_grid
 from service.preprocess.stack import slice_axis_of, slice_images, split_stack, stack_from_slice_images
@@ -87,6 +87,34 @@ def test_n4_removes_a_smooth_bias_field_and_the_shrunk_fit_equals_the_full_resol
     full = n4_correct(vol, mask, shrink=1, fit_spacing_mm=0.0)
     assert cv(fast) < 0.6 * cv(vol.array)
     assert np.corrcoef(fast[mask], full[mask])[0, 1] > 0.98
+
+
+def test_the_field_is_upsampled_as_itk_resamples_it_linearly_within_the_coarse_grid() -> None:
+    """The separable upsampling equals ITK's linear resampling of a shrunk image onto its oblique
+    source grid wherever the source voxel lies within the coarse grid; beyond it, the value is the
+    linear interpolant's at the nearest point of the grid (continuous, where ITK switches to the nearest
+    coarse voxel in every axis)."""
+    import SimpleITK as sitk
+    rng = np.random.default_rng(3)
+    fine = sitk.GetImageFromArray(np.zeros((9, 70, 64), np.float32))
+    fine.SetSpacing((0.55, 0.6, 3.5))
+    fine.SetOrigin((3.0, -2.0, 5.0))
+    q = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    fine.SetDirection(tuple((q * np.sign(np.linalg.det(q))).ravel()))
+    coarse = sitk.Shrink(fine, [15, 13, 1])
+    values = rng.random(sitk.GetArrayViewFromImage(coarse).shape).astype(np.float32)
+    field = sitk.GetImageFromArray(values)
+    field.CopyInformation(coarse)
+    itk = sitk.GetArrayFromImage(sitk.Resample(field, fine, sitk.Transform(), sitk.sitkLinear, 0.0, sitk.sitkFloat32,
+                                               useNearestNeighborExtrapolator=True)).transpose(2, 1, 0)
+    at = continuous_indices(coarse, fine)
+    ours = upsample_linear(values.transpose(2, 1, 0), at)
+    inside = [(c >= -0.5) & (c < n - 0.5) for c, n in zip(at, coarse.GetSize())]
+    grid = np.ix_(*inside)
+    assert all(k.sum() < len(k) for k in inside[:2])                 # the test reaches beyond the grid
+    np.testing.assert_allclose(ours[grid], itk[grid], atol=1e-6)
+    clamped = [np.clip(c, 0, n - 1) for c, n in zip(at, coarse.GetSize())]
+    np.testing.assert_allclose(ours, upsample_linear(values.transpose(2, 1, 0), clamped), atol=1e-7)
 
 
 def test_the_inputs_do_not_depend_on_the_empty_field_of_view_around_the_masks() -> None:
