@@ -43,6 +43,7 @@ from service.inference.model_file import ModelInfo
 from service.io.volume import Volume
 from service.preprocess.bias import n4_correct
 from service.preprocess.localise import Localisation, Localiser, default_localiser
+from service.preprocess.localiser_inputs import LocaliserGrid
 from service.preprocess.slices import PreparedSlices, preprocess_slices
 from service.preprocess.stack import StackSlices, slice_axis_of, split_stack
 
@@ -142,14 +143,34 @@ def localise_uploads(uploads: list[StackUpload], localiser: Localiser | None = N
 
 def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction: bool,
                    workers: int = 2, localiser: Localiser | None = None) -> list[PreparedStack]:
-    """:func:`prepare_stack` for every stack, ``workers`` stacks at a time (N4 releases the GIL);
-    stacks without a mask are localised first, together (:func:`localise_uploads`), by ``localiser``
-    (default: the shipped one)."""
+    """:func:`prepare_stack` for every stack, ``workers`` stacks at a time (N4 releases the GIL).
+
+    The stacks without a mask go through ``localiser``'s network (default: the shipped one) one
+    after the other, here; each goes on to the workers as soon as its probabilities are there, so
+    that its geometry, N4 and slices are worked out beside the next stack's network passes (the
+    network runs on both cores, the rest mostly on one). Stacks with a mask start at once."""
     for u in uploads:
         check_mask_grid(u)
-    found = localise_uploads(uploads, localiser)
     with ThreadPoolExecutor(max_workers=max(1, min(workers, len(uploads)))) as pool:
-        return list(pool.map(lambda u, f: prepare_stack(u, info, bias_correction, localiser, f), uploads, found))
+        futures = [pool.submit(prepare_stack, u, info, bias_correction) if u.mask is not None else None
+                   for u in uploads]
+        for i, u in enumerate(uploads):
+            if u.mask is None:
+                loc = localiser or default_localiser()
+                t = time.perf_counter()
+                found = loc.probabilities(u.volume)
+                futures[i] = pool.submit(_settle_and_prepare, u, info, bias_correction, loc, found,
+                                         time.perf_counter() - t)
+        return [f.result() for f in futures]
+
+
+def _settle_and_prepare(upload: StackUpload, info: ModelInfo, bias_correction: bool, localiser: Localiser,
+                        found: tuple[np.ndarray, LocaliserGrid], seconds: float) -> PreparedStack:
+    """:func:`prepare_stack` of a stack whose localiser probabilities ``found`` took ``seconds``: its
+    brain settled (:meth:`~service.preprocess.localise.Localiser.settle`), then the rest."""
+    t = time.perf_counter()
+    localisation = localiser.settle(upload.volume, *found)
+    return prepare_stack(upload, info, bias_correction, localiser, (localisation, seconds + time.perf_counter() - t))
 
 
 def stack_poses(est: PoseEstimate, prepared: PreparedStack, net_from_vox: np.ndarray,

@@ -198,11 +198,11 @@ class Localiser:
     def localise_many(self, volumes: list[Volume]) -> list[Localisation]:
         """:meth:`localise` for each of ``volumes``, the network run on their slices together
         (:meth:`probabilities_of`)."""
-        return [self._settle(v, prob, grid) for v, (prob, grid) in zip(volumes, self.probabilities_of(volumes))]
+        return [self.settle(v, prob, grid) for v, (prob, grid) in zip(volumes, self.probabilities_of(volumes))]
 
-    def _settle(self, volume: Volume, prob: NDArray[np.float32], grid: LocaliserGrid) -> Localisation:
-        """The stack's geometry on its network probabilities: one brain (:func:`brain_from_probabilities`),
-        back on the stack's grid."""
+    def settle(self, volume: Volume, prob: NDArray[np.float32], grid: LocaliserGrid) -> Localisation:
+        """The stack's geometry on its network probabilities (:meth:`probabilities`): one brain
+        (:func:`brain_from_probabilities`), back on the stack's grid."""
         axis = slice_axis_of(volume.spacing)
         voxel_ml = self.grid_mm ** 2 * float(volume.spacing[axis]) / 1000.0
         brain, confidence = brain_from_probabilities(prob, voxel_ml, self.grid_mm)
