@@ -297,10 +297,11 @@ def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPos
     if len(take) < 2:
         return
     own = [i for i in take if outs[i].fit.branch_known]
-    store = dict(enumerate(smoothed)) if smoothed is not None else {i: {} for i in take}
+    store = None if smoothed is None else dict(enumerate(smoothed))
     if len(own) < 2 or len(own) == len(take):
-        _refine_stacks(prepared, outs, proper, take, [], store if smoothed is not None else None)
+        _refine_stacks(prepared, outs, proper, take, [], store)
         return
+    store = {i: {} for i in take} if store is None else store          # smoothed once for both steps
     _refine_stacks(prepared, outs, proper, own, [], store)
     _refine_stacks(prepared, outs, proper, [i for i in take if i not in own], own, store)
 
@@ -395,9 +396,11 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
     shape = getattr(info, "mc_error_shape", None)
     gain = float(getattr(info, "mc_error_depth_gain", 0.0))
     refining = stack_consistency and image_consistency and len(prepared) > 1
-    ahead = ThreadPoolExecutor(max_workers=1)
-    smoothed = ahead.submit(smooth_images_ahead, prepared) if refining else None
-    ahead.shutdown(wait=False)
+    smoothed = None
+    if refining:                                # on a thread of its own, beside the stack stage
+        ahead = ThreadPoolExecutor(max_workers=1)
+        smoothed = ahead.submit(smooth_images_ahead, prepared)
+        ahead.shutdown(wait=False)
     with ThreadPoolExecutor(max_workers=max(1, min(STAGE_WORKERS, len(prepared)))) as pool:   # LAPACK frees the GIL
         outs = list(pool.map(lambda e, s, nfv, order: stack_poses(e, s, nfv, stack_consistency, plane_x_mm,
                                                                   e.spread_mm * scale, order, shape, gain),

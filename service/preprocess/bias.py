@@ -84,8 +84,9 @@ def continuous_indices(coarse: sitk.Image, fine: sitk.Image) -> list[NDArray[np.
 
 def upsample_linear(values: NDArray, at: list[NDArray]) -> NDArray[np.float32]:
     """``values [X, Y, Z]`` interpolated trilinearly at the continuous indices ``at`` (one array per
-    axis; the result is their outer grid), the nearest value outside the grid: what ITK's linear
-    interpolator with nearest-neighbour extrapolation gives, as one 1D interpolation per axis.
+    axis; the result is their outer grid), as one 1D interpolation per axis. Within the grid this is
+    ITK's linear interpolator; beyond it, the value at the nearest point of the grid (continuous,
+    where ITK's nearest-neighbour extrapolation jumps to the nearest voxel in every axis).
 
     Example (a ramp along x, sampled between its pixels and beyond its end):
         >>> v = np.arange(3.0)[:, None, None] * np.ones((3, 1, 1))
