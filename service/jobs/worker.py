@@ -241,14 +241,14 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     model_file = models_dir / params.get("model", "default") / "model.onnx"
     estimator = None
     if poses_path.exists():
-        from service.pipeline.predict import localise, localise_uploads
+        from service.pipeline.predict import localise_uploads
         from service.preprocess.stack import slice_axis_of
 
         counts = [u.volume.array.shape[slice_axis_of(u.volume.spacing)] for u in uploads]
         body = json.loads(poses_path.read_text())
         poses = poses_from_predict_body(body, counts)
         plane = DEFAULT_PLANE_X_MM
-        masks = [localise(u).mask if f is None else f[0].mask for u, f in zip(uploads, localise_uploads(uploads))]
+        masks = [found.mask for found in localise_uploads(uploads)]
     else:
         progress("predicting poses", 0.05)
         estimator = OnnxPoseEstimator(load_model(model_file, threads=1))

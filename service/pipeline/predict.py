@@ -124,21 +124,14 @@ def prepare_stack(upload: StackUpload, info: ModelInfo, bias_correction: bool,
     return PreparedStack(upload, slices, prepared, localisation, timings)
 
 
-def localise_uploads(uploads: list[StackUpload], localiser: Localiser | None = None) -> list[tuple[Localisation, float] | None]:
-    """Each upload without a mask localised, all of them in shared network calls
-    (:meth:`~service.preprocess.localise.Localiser.localise_many`), with its share of the time (by
-    voxels); None for uploads with a mask."""
+def localise_uploads(uploads: list[StackUpload], localiser: Localiser | None = None) -> list[Localisation]:
+    """Each upload's localisation: its mask, else the brain ``localiser`` (default: the shipped one)
+    finds, the uploads without a mask in shared network calls
+    (:meth:`~service.preprocess.localise.Localiser.localise_many`)."""
     missing = [i for i, u in enumerate(uploads) if u.mask is None]
-    found: list[tuple[Localisation, float] | None] = [None] * len(uploads)
-    if not missing:
-        return found
-    t = time.perf_counter()
-    located = (localiser or default_localiser()).localise_many([uploads[i].volume for i in missing])
-    seconds = time.perf_counter() - t
-    sizes = np.array([uploads[i].volume.array.size for i in missing], np.float64)
-    for i, loc, share in zip(missing, located, sizes / sizes.sum()):
-        found[i] = (loc, seconds * float(share))
-    return found
+    located = dict(zip(missing, (localiser or default_localiser()).localise_many([uploads[i].volume for i in missing])
+                       if missing else []))
+    return [located[i] if i in located else localise(u) for i, u in enumerate(uploads)]
 
 
 def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction: bool,
