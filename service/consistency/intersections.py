@@ -164,7 +164,7 @@ class ImageTerm:
         slices' mask boxes (widened by :data:`BOX_MARGIN_PX`; empty: lo > hi). A line's pixel in a
         slice is linear in ``t``: it stays inside the box between where it enters and leaves it."""
         lo, hi = np.full(len(self.pairs), -np.inf), np.full(len(self.pairs), np.inf)
-        for role, ends in enumerate(self._line_ends(atlas_from_slice)[1]):
+        for role, ends in enumerate(self._line_ends(atlas_from_slice)):
             g = self.pairs[:, role]
             box = self.stacks.support[self.stacks.first_slice[self.stack_of[g]] + self.local[g]]   # [M, 2, 2]
             start, slope = ends[:, 0], ends[:, 1] - ends[:, 0]
@@ -178,10 +178,10 @@ class ImageTerm:
             lo, hi = np.maximum(lo, enter.max(axis=1)), np.minimum(hi, leave.min(axis=1))
         return lo, hi
 
-    def _line_ends(self, atlas_from_slice: NDArray) -> tuple[NDArray[np.float64], list[NDArray[np.float64]]]:
-        """Each pair's line (its base point and the point 1 mm along it, ``[M, 2, 3]``) and, per
-        role, where those two points fall in that slice's pixels (``[M, 2, 2]``: row, column): a
-        line's pixel in a slice is linear in ``t`` between them."""
+    def _line_ends(self, atlas_from_slice: NDArray) -> list[NDArray[np.float64]]:
+        """Per role, where each pair's line's base point and the point 1 mm along it fall in that
+        slice's pixels (``[M, 2, 2]``: row, column): a line's pixel in a slice is linear in ``t``
+        between them."""
         line = pair_points(atlas_from_slice, atlas_from_slice, self.pairs, np.array([0.0, 1.0]))
         slice_from_atlas = se3.inverse(atlas_from_slice)
         ends = []
@@ -190,7 +190,7 @@ class ImageTerm:
             pixel_from_atlas = np.einsum("mij,mjk->mik", self.stacks.pixel_from_slice[self.stack_of[g]],
                                          slice_from_atlas[g])                   # [M, 2, 4]
             ends.append(np.einsum("mij,mej->mei", pixel_from_atlas[:, :, :3], line) + pixel_from_atlas[:, None, :, 3])
-        return line, ends
+        return ends
 
     def _keep(self, keep: NDArray, sw: NDArray | None = None) -> None:
         """Keep the points ``keep`` (and the pairs that still have one); ``sw``: their weights' square roots."""
@@ -222,12 +222,11 @@ class ImageTerm:
         total = np.bincount(self.pair_of, weights=w, minlength=len(self.pairs))
         return (w > 1e-3) & (total[self.pair_of] >= min_weight)
 
-    def _where(self, atlas_from_slice: NDArray) -> tuple[NDArray, list[tuple[NDArray, Cells]]]:
-        """Each pair's line (its base point and the point 1 mm along it, ``[M, 2, 3]``) and, per role,
-        each point's slice and where it falls among that slice's pixels (:class:`Cells`)."""
+    def _where(self, atlas_from_slice: NDArray) -> list[tuple[NDArray, Cells]]:
+        """Per role, each point's slice and where it falls among that slice's pixels (:class:`Cells`)."""
         if self._last is not None and np.array_equal(self._last[0], atlas_from_slice):
-            return self._last[1], self._last[2]
-        line, ends = self._line_ends(atlas_from_slice)
+            return self._last[1]
+        ends = self._line_ends(atlas_from_slice)
         t = self.t[self.t_of][:, None]
 
         def site(role: int) -> tuple[NDArray, Cells]:
@@ -237,24 +236,19 @@ class ImageTerm:
             return slices, self.stacks.cells(self.stack_of[slices], self.local[slices], rc)
 
         sites = two_threads(site)
-        self._last = (np.array(atlas_from_slice, copy=True), line, sites)
-        return line, sites
-
-    def points(self, atlas_from_slice: NDArray) -> NDArray[np.float64]:
-        """``[P, 3]`` each point in the atlas."""
-        line = self._where(atlas_from_slice)[0][self.pair_of]
-        return line[:, 0] + self.t[self.t_of][:, None] * (line[:, 1] - line[:, 0])
+        self._last = (np.array(atlas_from_slice, copy=True), sites)
+        return sites
 
     def values(self, atlas_from_slice: NDArray, masks: bool = False) -> NDArray[np.float32]:
         """``[2, P]`` both slices' values at each point (images, or masks)."""
-        sites = self._where(atlas_from_slice)[1]
+        sites = self._where(atlas_from_slice)
         flat = self.stacks.masks if masks else self.stacks.images
         return np.stack(two_threads(lambda role: self.stacks.sample(flat, sites[role][1])))
 
     def gradients(self, atlas_from_slice: NDArray) -> NDArray[np.float64]:
         """``[2, P, 3]`` both slices' image gradients at each point (per atlas mm, in each slice's
         plane): what the residuals' derivatives need besides the geometry."""
-        sites = self._where(atlas_from_slice)[1]
+        sites = self._where(atlas_from_slice)
         along = atlas_from_slice[:, :3, :3] @ np.swapaxes(self.stacks.pixel_from_slice[self.stack_of][:, :, :3], 1, 2)
         # [N, 3, 2]: the atlas gradient of each slice's row and column coordinate (pixels per mm): a
         # point's image gradient is its two pixel derivatives along them

@@ -51,7 +51,7 @@ GRID_TOLERANCE_MM = 1e-3
 STAGE_WORKERS = 3
 """Stacks through the stack-consistency stage at a time (threads: its eigendecompositions release the
 GIL). Three, on two cores: a request of three stacks (the usual) has none left to wait for the
-others (the benchmark's A: 178 -> 154 ms; six stacks 252 -> 243 ms, six threads 298 ms)."""
+others (docs/benchmarks.md)."""
 
 
 @dataclass
@@ -128,10 +128,9 @@ def localise_uploads(uploads: list[StackUpload], localiser: Localiser | None = N
     """Each upload's localisation: its mask, else the brain ``localiser`` (default: the shipped one)
     finds, the uploads without a mask in shared network calls
     (:meth:`~service.preprocess.localise.Localiser.localise_many`)."""
-    missing = [i for i, u in enumerate(uploads) if u.mask is None]
-    located = dict(zip(missing, (localiser or default_localiser()).localise_many([uploads[i].volume for i in missing])
-                       if missing else []))
-    return [located[i] if i in located else localise(u) for i, u in enumerate(uploads)]
+    missing = [u.volume for u in uploads if u.mask is None]
+    found = iter((localiser or default_localiser()).localise_many(missing) if missing else [])
+    return [localise(u) if u.mask is not None else next(found) for u in uploads]
 
 
 def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction: bool,
@@ -163,7 +162,7 @@ def _settle_and_prepare(upload: StackUpload, info: ModelInfo, bias_correction: b
     brain settled (:meth:`~service.preprocess.localise.Localiser.settle`), then the rest."""
     t = time.perf_counter()
     localisation = localiser.settle(upload.volume, *found)
-    return prepare_stack(upload, info, bias_correction, localiser, (localisation, seconds + time.perf_counter() - t))
+    return prepare_stack(upload, info, bias_correction, found=(localisation, seconds + time.perf_counter() - t))
 
 
 def stack_poses(est: PoseEstimate, prepared: PreparedStack, net_from_vox: np.ndarray,

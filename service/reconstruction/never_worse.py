@@ -84,11 +84,9 @@ on the shared real scan with its masks the full job reduces it 1.27 x."""
 
 REFERENCE_SLICES = 60
 """The held-out slices at which a job's score is judged by :data:`MIN_MISMATCH_RATIO` as it is: the
-sets it was chosen on start from 50-100 slices. A median over fewer is noisier (as one over the
-square root of their number), and a path asks for more (:func:`required_ratio`). On one
-acquisition at moderate motion started from 28 slices, the full path cut the mismatch 1.17 x and
-its poses were worse than its start (3.79 -> 4.77 mm); with 51, the slice level cut it 1.28 x and
-its poses were better (6.60 -> 6.45 mm): 1.23 x is asked of the first, 1.16 x of the second."""
+sets it was chosen on start from about this many slices. A median over fewer is noisier (as one
+over the square root of their number), so a path asks for more (:func:`required_ratio`; the
+acquisitions it was judged on: docs/reconstruction.md)."""
 
 
 MAX_FURTHER_PASSES = 1
