@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from websockets.exceptions import ConnectionClosed, InvalidStatus, InvalidURI, WebSocketException
 from websockets.sync.client import ClientConnection, connect
 
-from client._client import _USER_AGENT as USER_AGENT
+from client.transport import USER_AGENT
 from client._client import DEFAULT_SERVER
 from client.errors import (Busy, ConnectionFailed, SVRnetError, UnsupportedFile, UnusableInput,
                            error_class_for_status)

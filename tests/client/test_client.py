@@ -1,5 +1,6 @@
-"""The thin client and the ``svrnet`` CLI: against the real app in-process, over real HTTP (uvicorn),
-and against ``httpx.MockTransport`` fakes of the contract (retries, reconstruction jobs, exit codes).
+"""The thin client: against the real app in-process, over real HTTP (uvicorn), and against
+``httpx.MockTransport`` fakes of the contract (retries, errors, reconstruction jobs); the CLI's own
+tests are in ``test_cli.py``.
 
 The oracle estimator is defined here rather than imported from ``tests/api/conftest.py`` so that this
 file does not import torch (``tests/api/conftest.py`` builds a tiny exported model with it).
@@ -7,11 +8,7 @@ file does not import torch (``tests/api/conftest.py`` builds a tiny exported mod
 
 from __future__ import annotations
 
-import email
-import email.policy
-import io
 import json
-import re
 import socket
 import subprocess
 import sys
@@ -25,10 +22,7 @@ import httpx
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from typer.testing import CliRunner
 
-import client._client as client_module
-import client.cli as cli
 from client import (BadRequest, Busy, Conflict, ConnectionFailed, JobFailed, NotFound, ServerError, SVRnetClient,
                     SVRnetError, Unauthorized, UnsupportedFile, UnusableInput, WaitTimeout)
 from client.errors import error_from_response
@@ -38,6 +32,7 @@ from service.inference.model_file import ModelInfo
 from service.inference.registry import ModelRegistry
 from service.io.volume import Volume, write_volume
 from service.main import create_app
+from tests.support.client_fakes import FakeJobs, parse_multipart, problem
 
 REPO = Path(__file__).resolve().parents[2]
 INFO = ModelInfo(name="oracle", version="0", backbone="oracle", label_type="anchor", input_size=64,
@@ -69,62 +64,10 @@ def make_test_client(**settings: object) -> TestClient:
     return TestClient(app, raise_server_exceptions=False)
 
 
-@pytest.fixture(autouse=True)
-def _no_ambient_config(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.delenv("SVRNET_API_KEY", raising=False)
-    monkeypatch.delenv("SVRNET_SERVER", raising=False)
-
-
-@pytest.fixture
-def no_sleep(monkeypatch: pytest.MonkeyPatch) -> list[float]:
-    """Record the client's retry/poll sleeps instead of sleeping."""
-    slept: list[float] = []
-    monkeypatch.setattr(client_module, "_sleep", slept.append)
-    return slept
-
-
-@pytest.fixture
-def stack_file(tmp_path: Path) -> Path:
-    data = np.random.default_rng(0).random((24, 24, 6)).astype(np.float32) * 100
-    path = tmp_path / "stack.nii.gz"
-    write_volume(Volume(data, np.diag([1.0, 1.0, 3.0, 1.0])), path)
-    return path
-
-
-@pytest.fixture
-def mask_file(tmp_path: Path) -> Path:
-    mask = np.zeros((24, 24, 6), np.uint8)
-    mask[6:18, 6:18, :] = 1
-    path = tmp_path / "stack_mask.nii.gz"
-    write_volume(Volume(mask, np.diag([1.0, 1.0, 3.0, 1.0])), path)
-    return path
-
-
 @pytest.fixture
 def app_client() -> Iterator[TestClient]:
     with make_test_client() as tc:
         yield tc
-
-
-def parse_multipart(request: httpx.Request) -> tuple[dict[str, list[str]], list[tuple[str, str, str, bytes]]]:
-    """(form fields, [(field, filename, content type, bytes)]) of a multipart request, via the stdlib."""
-    head = f"Content-Type: {request.headers['content-type']}\r\nMIME-Version: 1.0\r\n\r\n".encode()
-    msg = email.message_from_bytes(head + request.content, policy=email.policy.HTTP)
-    assert msg.is_multipart()
-    fields: dict[str, list[str]] = {}
-    files = []
-    for part in msg.iter_parts():
-        name = part.get_param("name", header="content-disposition")
-        payload = part.get_payload(decode=True)
-        if part.get_filename() is None:
-            fields.setdefault(name, []).append(payload.decode())
-        else:
-            files.append((name, part.get_filename(), part.get_content_type(), payload))
-    return fields, files
-
-
-def problem(status: int, detail: str, title: str = "Problem") -> dict[str, Any]:
-    return {"type": "about:blank", "title": title, "status": status, "detail": detail, "request_id": "rid-1"}
 
 
 # --- (a) the real app, in process ----------------------------------------------------------------------------
@@ -390,53 +333,6 @@ def test_api_key_header_and_non_json_server_error() -> None:
 # --- (c) reconstruction jobs against a fake of the contract ----------------------------------------------------
 
 
-class FakeJobs:
-    """The contract's reconstruction routes: each status poll moves a job queued -> running -> succeeded."""
-
-    VOLUME = b"\x1f\x8b fake nifti volume" * 1000
-    PREVIEW = b"\x89PNG fake"
-
-    def __init__(self, outcome: str = "succeeded") -> None:
-        self.outcome = outcome
-        self.jobs: dict[str, dict[str, Any]] = {}
-        self.uploads: list[tuple[dict, list]] = []
-
-    def __call__(self, request: httpx.Request) -> httpx.Response:
-        path, method = request.url.path, request.method
-        if path == "/v1/reconstructions" and method == "POST":
-            self.uploads.append(parse_multipart(request))
-            job_id = f"job{len(self.jobs) + 1}"
-            self.jobs[job_id] = {"job_id": job_id, "status": "queued", "stage": "queued", "progress": 0.0,
-                                 "error": None, "created_at": "t0", "updated_at": "t0", "result_url": None,
-                                 "preview_url": None, "report": None, "polls": 0}
-            url = f"/v1/reconstructions/{job_id}"
-            return httpx.Response(202, headers={"Location": url},
-                                  json={"job_id": job_id, "status": "queued", "status_url": url})
-        m = re.fullmatch(r"/v1/reconstructions/([^/]+)(/volume|/preview\.png|/poses)?", path)
-        if not m or m.group(1) not in self.jobs:
-            return httpx.Response(404, json=problem(404, f"job: unknown job {m.group(1) if m else path}"))
-        job = self.jobs[m.group(1)]
-        if method == "DELETE" and not m.group(2):
-            del self.jobs[m.group(1)]
-            return httpx.Response(204)
-        if m.group(2):
-            if job["status"] != "succeeded":
-                return httpx.Response(409, json=problem(409, f"job {job['job_id']} is {job['status']}"))
-            if m.group(2) == "/poses":
-                return httpx.Response(200, json=dict(PREDICT_BODY, refined_by={"job_id": job["job_id"]}))
-            return httpx.Response(200, content=self.VOLUME if m.group(2) == "/volume" else self.PREVIEW)
-        job["polls"] += 1
-        if job["polls"] == 2:
-            job.update(status="running", stage="svr", progress=0.5)
-        elif job["polls"] >= 3 and self.outcome == "succeeded":
-            job.update(status="succeeded", stage="done", progress=1.0,
-                       result_url=f"/v1/reconstructions/{job['job_id']}/volume",
-                       preview_url=f"/v1/reconstructions/{job['job_id']}/preview.png", report={"slices": []})
-        elif job["polls"] >= 3 and self.outcome != "running":
-            job.update(status=self.outcome, error="SVR diverged" if self.outcome == "failed" else None)
-        return httpx.Response(200, json={k: v for k, v in job.items() if k != "polls"})
-
-
 def test_job_flow(stack_file: Path, mask_file: Path, tmp_path: Path, no_sleep: list[float]) -> None:
     fake = FakeJobs()
     svr = mock(fake)
@@ -486,221 +382,6 @@ def test_wait_times_out() -> None:
     assert e.value.job["status"] == "running"
 
 
-# --- (d) the CLI ---------------------------------------------------------------------------------------------
-
-
-PREDICT_BODY = {
-    "request_id": "abc", "model": {"name": "default", "version": "1", "backbone": "b", "sha256": "0" * 64},
-    "mc_samples": 5, "variance_threshold": 10.0, "timing_ms": {"total": 12.0},
-    "stacks": [{"index": 0, "filename": "stack.nii.gz", "shape": [24, 24, 4], "spacing_mm": [1, 1, 3],
-                "slice_axis": 2, "slices": [
-                    {"index": 0, "accepted": True, "reason": None, "geodesic_variance": 1.0},
-                    {"index": 1, "accepted": True, "reason": None, "geodesic_variance": 3.0},
-                    {"index": 2, "accepted": False, "reason": "high_variance", "geodesic_variance": 40.0},
-                    {"index": 3, "accepted": False, "reason": "empty", "geodesic_variance": None}],
-                "localisation": {"method": "network", "brain_volume_ml": 312.4, "confidence": 0.93}}],
-}
-
-
-def masks_archive() -> bytes:
-    """What /v1/masks answers, plus a member that names a path (never written)."""
-    import io
-    import zipfile
-
-    buffer = io.BytesIO()
-    with zipfile.ZipFile(buffer, "w") as z:
-        z.writestr("stack_mask.nii.gz", b"mask bytes")
-        z.writestr("../escape.json", b"{}")
-        z.writestr("report.json", json.dumps({"stacks": [{"filename": "stack.nii.gz", "mask": "stack_mask.nii.gz",
-                                                          "brain_volume_ml": 301.0, "confidence": 0.91,
-                                                          "slices_with_brain": 17}]}))
-    return buffer.getvalue()
-
-
-class FakeServer:
-    """/v1/predict and /v1/models with an optional key, plus the job routes; ``mode`` forces failures."""
-
-    def __init__(self, key: str | None = None, mode: str = "ok", jobs: str = "succeeded") -> None:
-        self.key, self.mode = key, mode
-        self.jobs = FakeJobs(jobs)
-        self.requests: list[httpx.Request] = []
-
-    def __call__(self, request: httpx.Request) -> httpx.Response:
-        self.requests.append(request)
-        if self.mode == "down":
-            raise httpx.ConnectError("[Errno 111] Connection refused", request=request)
-        if self.key and request.headers.get("authorization") != f"Bearer {self.key}":
-            return httpx.Response(401, json=problem(401, "Authorization: a valid API key is required"))
-        if self.mode == "422":
-            return httpx.Response(422, json=problem(422, "stacks: flat.nii.gz is a 2D image", "Unusable image"))
-        if request.url.path == "/v1/predict":
-            return httpx.Response(200, json=PREDICT_BODY)
-        if request.url.path == "/v1/masks":
-            return httpx.Response(200, content=masks_archive(), headers={"content-type": "application/zip"})
-        if request.url.path == "/v1/models":
-            return httpx.Response(200, json=[{"name": "default", "version": "1", "backbone": "b",
-                                              "sha256": "0" * 64, "input_size": 128, "spacing_mm": 0.8,
-                                              "label_type": "anchor", "variance_threshold": 10.0,
-                                              "trained_on": "atlas"}])
-        return self.jobs(request)
-
-
-@pytest.fixture
-def fake_cli(monkeypatch: pytest.MonkeyPatch, no_sleep: list[float]) -> Callable[..., tuple[FakeServer, list]]:
-    def install(**kwargs: Any) -> tuple[FakeServer, list]:
-        fake = FakeServer(**kwargs)
-        made: list[tuple[str, str | None]] = []
-
-        def factory(server: str, api_key: str | None) -> SVRnetClient:
-            made.append((server, api_key))
-            return SVRnetClient(server, api_key=api_key, transport=httpx.MockTransport(fake), retries=1)
-
-        monkeypatch.setattr(cli, "make_client", factory)
-        return fake, made
-
-    return install
-
-
-def invoke(args: list[str], **env: str) -> Any:
-    return CliRunner().invoke(cli.app, args, env={"COLUMNS": "200", **env})
-
-
-def test_cli_predict_writes_json_and_prints_a_summary(fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
-    fake, made = fake_cli()
-    out = tmp_path / "poses.json"
-    r = invoke(["predict", str(stack_file), "--out", str(out), "--mc-samples", "5", "--no-bias-correction",
-                "--no-image-consistency", "--masks-hold-csf", "--server", "http://scanner:9000"])
-    assert r.exit_code == 0, r.output
-    assert json.loads(out.read_text()) == PREDICT_BODY
-    assert made == [("http://scanner:9000", None)]
-    assert "stack.nii.gz" in r.stdout and "empty 1, high_variance 1" in r.stdout and "3" in r.stdout
-    assert "variance" in r.stdout and "the stack's medians" in r.stdout and "abc" in r.stdout
-    assert "312 ml" in r.stdout and "(0.93)" in r.stdout and "2 of 4" in r.stdout
-    fields, files = parse_multipart(fake.requests[0])
-    assert fields == {"mc_samples": ["5"], "bias_correction": ["false"], "image_consistency": ["false"],
-                      "masks_hold_csf": ["true"]}
-    assert files[0][1] == "stack.nii.gz"
-
-
-@pytest.mark.parametrize("name", ["axial1_lr.nii.gz", "sub-000_ses-01_T2w_haste_coronal_run-2.nii.gz"])
-def test_the_summary_fits_an_80_column_terminal_and_cuts_no_cell_short(name: str) -> None:
-    from rich.console import Console
-
-    stack = PREDICT_BODY["stacks"][0]
-    reasons = ["empty", "high_expected_error", "outside_atlas", "inconsistent_with_stack"]
-    body = {**PREDICT_BODY, "max_expected_error_mm": 4.2, "stacks": [
-        {**stack, "filename": name, "slices": [{"index": i, "accepted": False, "reason": reasons[i % 4],
-                                                "expected_error_mm": 50.0, "geodesic_variance": 123.0}
-                                               for i in range(40)]}] * 2}
-    console = Console(width=80, record=True, file=io.StringIO())
-    console.print(cli.summarise(body))
-    text = console.export_text()
-    assert max(len(line) for line in text.splitlines()) <= 80 and "…" not in text
-    assert "0 of 40" in text and "50.0 mm" in text and "123" in text and "312 ml" in text and "variance" in text
-    if len(name) <= cli.NAME_WIDTH:
-        assert name in text                                       # a usual name stays whole
-    else:                                                         # a long one folds, nothing of it dropped
-        assert all(name[i:i + cli.NAME_WIDTH] in text for i in range(0, len(name), cli.NAME_WIDTH))
-
-
-def test_cli_masks_writes_the_masks_and_nothing_outside(fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
-    fake, _ = fake_cli()
-    out = tmp_path / "deep" / "masks"
-    r = invoke(["masks", str(stack_file), "--out-dir", str(out), "--model", "default"])
-    assert r.exit_code == 0, r.output
-    assert sorted(p.name for p in out.iterdir()) == ["report.json", "stack_mask.nii.gz"]
-    assert not (tmp_path / "deep" / "escape.json").exists()
-    assert (out / "stack_mask.nii.gz").read_bytes() == b"mask bytes"
-    assert "stack_mask.nii.gz" in r.stdout and "0.91" in r.stdout and "301" in r.stdout
-    fields, files = parse_multipart(fake.requests[0])
-    assert fake.requests[0].url.path == "/v1/masks" and fields == {"model": ["default"]}
-    assert [f[:2] for f in files] == [("stacks", "stack.nii.gz")]
-
-
-def test_cli_sends_each_slice_order_as_one_field(fake_cli: Callable, stack_file: Path) -> None:
-    fake, _ = fake_cli()
-    r = invoke(["predict", str(stack_file), str(stack_file), "--slice-order", "interleaved",
-                "--slice-order", "0,2,4,1,3,5"])
-    assert r.exit_code == 0, r.output
-    fields, _ = parse_multipart(fake.requests[0])
-    assert fields == {"slice_order": ["interleaved", "0,2,4,1,3,5"]}
-
-
-def test_cli_server_and_key_from_the_environment(fake_cli: Callable) -> None:
-    fake, made = fake_cli(key="k")
-    r = invoke(["models"], SVRNET_SERVER="http://env:1234", SVRNET_API_KEY="k")
-    assert r.exit_code == 0, r.output
-    assert made == [("http://env:1234", "k")] and "default" in r.stdout and "atlas" in r.stdout
-
-
-@pytest.mark.parametrize(("kwargs", "args", "code", "needle"), [
-    ({"mode": "down"}, ["models"], 3, "Connection refused"),
-    ({"key": "k"}, ["models"], 4, "API key"),
-    ({"mode": "422"}, ["predict", "STACK"], 5, "flat.nii.gz"),
-    ({}, ["status", "nojob"], 6, "nojob"),
-])
-def test_cli_exit_codes(fake_cli: Callable, stack_file: Path, kwargs: dict, args: list[str], code: int,
-                        needle: str) -> None:
-    fake_cli(**kwargs)
-    r = invoke([str(stack_file) if a == "STACK" else a for a in args])
-    assert r.exit_code == code, r.output
-    assert r.stderr.startswith("error: ") and needle in r.stderr and len(r.stderr.strip().splitlines()) == 1
-    assert "Traceback" not in r.output and r.stdout == ""
-
-
-def test_cli_usage_errors_and_help(fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
-    fake, _ = fake_cli()
-    assert invoke(["predict", str(stack_file), str(stack_file), "--mask", str(stack_file)]).exit_code == 2
-    assert invoke(["predict", str(tmp_path / "missing.nii.gz")]).exit_code == 2
-    assert invoke(["predict", str(stack_file), "--threshold", "0"]).exit_code == 2
-    for args in (["status", " "], ["cancel", ""], ["reconstruct", str(stack_file), "--out", str(tmp_path / "no" / "r.nii.gz")],
-                 ["predict", str(stack_file), "--out", str(tmp_path / "no" / "p.json")]):
-        r = invoke(args)
-        assert r.exit_code == 2 and "Traceback" not in r.output, (args, r.output)
-    assert not fake.requests                                  # refused before anything was uploaded
-    help_text = invoke(["--help"]).stdout
-    assert "Exit codes" in help_text and "3 connection failed" in help_text and "10 conflict" in help_text
-    assert "Exit codes" in invoke(["predict", "--help"]).stdout
-    assert "Exit codes:" in cli.__doc__
-
-
-def test_cli_reconstruct_wait_downloads(fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
-    fake, _ = fake_cli()
-    poses = tmp_path / "poses.json"
-    poses.write_text(json.dumps(PREDICT_BODY))
-    out, preview, refined = tmp_path / "recon.nii.gz", tmp_path / "preview.png", tmp_path / "refined.json"
-    r = invoke(["reconstruct", str(stack_file), "--poses", str(poses), "--resolution", "0.8", "--svr-iterations",
-                "2", "--wait", "--poll", "0.05", "--out", str(out), "--preview", str(preview),
-                "--poses-out", str(refined), "--no-atlas-frame", "--slice-order", "interleaved"])
-    assert r.exit_code == 0, r.output
-    assert out.read_bytes() == FakeJobs.VOLUME and preview.read_bytes() == FakeJobs.PREVIEW
-    assert json.loads(refined.read_text())["refined_by"] == {"job_id": "job1"}
-    assert "job1" in r.stdout and "succeeded" in r.stdout
-    fields, files = fake.jobs.uploads[0]
-    assert fields == {"resolution_mm": ["0.8"], "svr_iterations": ["2"], "atlas_frame": ["false"],
-                      "slice_order": ["interleaved"]} and files[-1][0] == "poses"
-
-
-def test_cli_reconstruct_without_wait_and_failed_job(fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
-    fake_cli()
-    r = invoke(["reconstruct", str(stack_file)])
-    assert r.exit_code == 0 and "svrnet status job1" in r.stdout
-    fake_cli(jobs="failed")
-    r = invoke(["reconstruct", str(stack_file), "--wait", "--poll", "0.05", "--out", str(tmp_path / "x.nii.gz")])
-    assert r.exit_code == 8 and "SVR diverged" in r.stderr and not (tmp_path / "x.nii.gz").exists()
-
-
-def test_cli_status_cancel_and_conflict(fake_cli: Callable, stack_file: Path) -> None:
-    fake, _ = fake_cli()
-    assert invoke(["reconstruct", str(stack_file)]).exit_code == 0
-    r = invoke(["status", "job1"])
-    assert r.exit_code == 0 and "queued" in r.stdout
-    r = invoke(["status", "job1", "--json"])
-    assert r.exit_code == 0 and json.loads(r.stdout)["job_id"] == "job1"
-    assert invoke(["cancel", "job1"]).exit_code == 0
-    assert invoke(["cancel", "job1"]).exit_code == 6
-
-
 # --- (e) the client stays thin ------------------------------------------------------------------------------
 
 
@@ -712,9 +393,3 @@ def test_import_client_pulls_in_nothing_heavy() -> None:
     done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == ""
-
-
-def test_cli_timeout_from_the_environment(stack_file: Path) -> None:
-    r = invoke(["models", "--server", "http://127.0.0.1:9"], SVRNET_TIMEOUT="soon")
-    assert r.exit_code == 2 and "SVRNET_TIMEOUT" in r.output
-    assert cli.make_client("http://x", None)._http.timeout.read == 300.0

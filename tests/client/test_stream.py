@@ -19,6 +19,7 @@ from typer.testing import CliRunner
 from websockets.sync.server import ServerConnection, serve
 
 import client.cli as cli
+import client.exits as exits
 from client.errors import UnusableInput
 from client.stream import read_stack, scanner_slices, send_order
 
@@ -215,7 +216,7 @@ def test_a_refused_session_exits_with_the_clients_codes(stack_file: Path, answer
 
     with scripted_server(handler) as url:
         result = runner.invoke(cli.app, ["stream", str(stack_file), "--server", url])
-    assert result.exit_code == {1013: cli.EXIT_BUSY, 1008: cli.EXIT_UNAUTHORIZED}[code], result.output
+    assert result.exit_code == {1013: exits.EXIT_BUSY, 1008: exits.EXIT_UNAUTHORIZED}[code], result.output
     assert answer["detail"] in " ".join(result.output.split())
 
 
@@ -224,7 +225,7 @@ def test_no_server_exits_with_connection_failed(stack_file: Path) -> None:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     result = runner.invoke(cli.app, ["stream", str(stack_file), "--server", f"http://127.0.0.1:{port}"])
-    assert result.exit_code == cli.EXIT_CONNECTION and "cannot open ws://127.0.0.1" in result.output
+    assert result.exit_code == exits.EXIT_CONNECTION and "cannot open ws://127.0.0.1" in result.output
 
 
 # --- (c) end to end: a real svrnet-server with the shipped model ---------------------------------------------------

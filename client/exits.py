@@ -1,0 +1,89 @@
+"""Exit codes of ``svrnet`` and how a client error becomes one: one red line on stderr, never a traceback.
+
+Each :class:`~client.errors.SVRnetError` kind has a documented exit code (:data:`EXIT_CODES`); the
+commands run inside :func:`errors`, which prints the error and ends the process with its code.
+
+Example:
+    >>> from client.errors import Busy
+    >>> exit_code_for(Busy("503: the server is busy", status=503)) == EXIT_BUSY
+    True
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import typer
+from rich.console import Console
+
+from client.errors import (BadRequest, Busy, Conflict, ConnectionFailed, JobFailed, NotFound, PayloadTooLarge,
+                           ServerError, SVRnetError, Unauthorized, UnsupportedFile, UnusableInput, WaitTimeout)
+
+EXIT_OK, EXIT_UNEXPECTED, EXIT_USAGE = 0, 1, 2
+EXIT_CONNECTION, EXIT_UNAUTHORIZED, EXIT_BAD_INPUT, EXIT_NOT_FOUND = 3, 4, 5, 6
+EXIT_BUSY, EXIT_JOB_FAILED, EXIT_SERVER, EXIT_CONFLICT, EXIT_TIMEOUT = 7, 8, 9, 10, 11
+
+EXIT_CODES: list[tuple[type[SVRnetError] | tuple[type[SVRnetError], ...], int]] = [
+    (ConnectionFailed, EXIT_CONNECTION),
+    (Unauthorized, EXIT_UNAUTHORIZED),
+    ((BadRequest, PayloadTooLarge, UnsupportedFile, UnusableInput), EXIT_BAD_INPUT),
+    (NotFound, EXIT_NOT_FOUND),
+    (Busy, EXIT_BUSY),
+    (JobFailed, EXIT_JOB_FAILED),
+    (ServerError, EXIT_SERVER),
+    (Conflict, EXIT_CONFLICT),
+    (WaitTimeout, EXIT_TIMEOUT),
+]
+
+EXIT_HELP = (
+    "Exit codes: 0 ok · 1 unexpected error · 2 usage · 3 connection failed · 4 unauthorized · "
+    "5 bad input (400/413/415/422) · 6 not found · 7 busy (429/503 after retries) · "
+    "8 job failed/cancelled · 9 server error (5xx) · 10 conflict (409) · 11 timed out waiting."
+)
+
+
+def exit_code_for(error: BaseException) -> int:
+    """The documented exit code of a client error.
+
+    Example:
+        >>> exit_code_for(UnusableInput("stacks: flat.nii.gz is 2D", status=422))
+        5
+    """
+    for kinds, code in EXIT_CODES:
+        if isinstance(error, kinds):
+            return code
+    return EXIT_UNEXPECTED
+
+
+def stdout() -> Console:
+    """The console commands print their results on."""
+    return Console(highlight=False)
+
+
+def stderr() -> Console:
+    """The console errors go to."""
+    return Console(stderr=True, highlight=False)
+
+
+def fail(message: str, code: int) -> None:
+    """Print ``message`` as one red line on stderr and end the command with exit ``code``."""
+    stderr().print(f"error: {message}", style="bold red", markup=False, soft_wrap=True)
+    raise typer.Exit(code)
+
+
+@contextmanager
+def errors() -> Iterator[None]:
+    """Client errors -> one red line on stderr and the documented exit code; never a traceback."""
+    try:
+        yield
+    except (typer.Exit, typer.Abort, typer.BadParameter):   # typer's own ending: its exit code stands
+        raise
+    except SVRnetError as e:
+        fail(" ".join(str(e).split()), exit_code_for(e))
+    except KeyboardInterrupt:
+        fail("interrupted", 130)
+    except OSError as e:
+        fail(f"{type(e).__name__}: {e}", EXIT_UNEXPECTED)
+    except Exception as e:  # noqa: BLE001 - the CLI promises no tracebacks
+        fail(f"unexpected {type(e).__name__}: {e}", EXIT_UNEXPECTED)

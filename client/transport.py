@@ -1,0 +1,178 @@
+"""The client's HTTP plumbing: headers, retries with backoff, errors as typed exceptions, downloads.
+
+:class:`Transport` sends one request of the API v1 and returns a successful response or raises the
+:class:`~client.errors.SVRnetError` subclass its status means; :class:`~client.SVRnetClient` builds the
+API's calls on it. Only httpx and the standard library are used.
+
+Example (a fake server that is busy once):
+    >>> import httpx
+    >>> answers = iter([httpx.Response(503, headers={"Retry-After": "0"}), httpx.Response(200, json={"ok": 1})])
+    >>> t = Transport("http://svr", transport=httpx.MockTransport(lambda request: next(answers)))
+    >>> t._send("GET", "/v1/health").json()
+    {'ok': 1}
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Self, Union
+
+import httpx
+
+from client.errors import ConnectionFailed, SVRnetError, error_from_response, parse_retry_after
+from client.multipart import CHUNK, MultipartBody, ProgressCallback
+
+PathLike = Union[str, "os.PathLike[str]"]
+
+DEFAULT_SERVER = "http://127.0.0.1:8000"
+DEFAULT_TIMEOUT = httpx.Timeout(connect=5.0, read=300.0, write=300.0, pool=5.0)
+MAX_RETRY_SLEEP_S = 30.0
+_NO_RETRY_TRANSPORT = (httpx.ReadTimeout, httpx.WriteTimeout, httpx.UnsupportedProtocol)
+
+try:
+    from importlib.metadata import version as _version
+
+    USER_AGENT = f"svrnet-client/{_version('svrnet')}"
+except Exception:  # noqa: BLE001 - not installed as a distribution
+    USER_AGENT = "svrnet-client"
+
+
+def sleep(seconds: float) -> None:
+    """``time.sleep``; a seam for tests."""
+    time.sleep(seconds)
+
+
+class Transport:
+    """Requests to one server with the client's headers and retry policy (see :class:`~client.SVRnetClient`
+    for the arguments)."""
+
+    def __init__(self, base_url: str = DEFAULT_SERVER, api_key: str | None = None,
+                 timeout: httpx.Timeout | float | None = DEFAULT_TIMEOUT, retries: int = 3,
+                 transport: httpx.BaseTransport | None = None, *, http: httpx.Client | None = None,
+                 backoff_s: float = 0.5) -> None:
+        if retries < 0:
+            raise ValueError("retries must be >= 0")
+        self.api_key = api_key if api_key is not None else (os.environ.get("SVRNET_API_KEY") or None)
+        self.retries = retries
+        self.backoff_s = backoff_s
+        self._owns_http = http is None
+        self._http = http if http is not None else httpx.Client(base_url=base_url, timeout=timeout,
+                                                                 transport=transport)
+        self.base_url = str(self._http.base_url)
+
+    # -- lifecycle -----------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Close the connection pool (not that of an ``http`` client passed in)."""
+        if self._owns_http:
+            self._http.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.base_url!r}, api_key={'***' if self.api_key else None})"
+
+    # -- plumbing ------------------------------------------------------------------------------
+
+    def _headers(self, extra: Mapping[str, str] | None = None) -> dict[str, str]:
+        headers = {"User-Agent": USER_AGENT}
+        if self.api_key:
+            headers["Authorization"] = f"Bearer {self.api_key}"
+        headers.update(extra or {})
+        return headers
+
+    def _sleep_for(self, attempt: int, retry_after: float | None) -> float:
+        delay = retry_after if retry_after is not None else self.backoff_s * 2 ** attempt
+        return min(max(delay, 0.0), MAX_RETRY_SLEEP_S)
+
+    def _send(self, method: str, path: str, *, body: MultipartBody | None = None,
+              progress: ProgressCallback | None = None, stream: bool = False,
+              params: Mapping[str, str] | None = None) -> httpx.Response:
+        """Send with retries; returns a successful response (still open when ``stream``), or raises."""
+        idempotent = method in ("GET", "HEAD")
+        for attempt in range(self.retries + 1):
+            extra = None
+            content = None
+            if body is not None:
+                extra = {"Content-Type": body.content_type, "Content-Length": str(body.total)}
+                content = body.chunks(progress)
+            try:
+                request = self._http.build_request(method, path, content=content, headers=self._headers(extra),
+                                                   params=params)
+                response = self._http.send(request, stream=True)
+            except httpx.TransportError as exc:
+                if idempotent and attempt < self.retries and not isinstance(exc, _NO_RETRY_TRANSPORT):
+                    sleep(self._sleep_for(attempt, None))
+                    continue
+                raise self._transport_error(method, path, exc) from exc
+            except httpx.InvalidURL as exc:
+                raise ConnectionFailed(f"{method} {path}: invalid URL: {exc}") from exc
+            if response.status_code in (429, 503):
+                response.read()
+                response.close()
+                retry_after = parse_retry_after(response.headers.get("retry-after"))
+                # An upload is sent again only when the server said when (its refusals come before
+                # any job exists); a wait longer than the cap is the caller's decision, not ours.
+                retryable = idempotent or retry_after is not None
+                if attempt < self.retries and retryable and (retry_after or 0.0) <= MAX_RETRY_SLEEP_S:
+                    sleep(self._sleep_for(attempt, retry_after))
+                    continue
+                raise error_from_response(response)
+            if not response.is_success:              # 4xx/5xx, and redirects (never followed)
+                response.read()
+                response.close()
+                raise error_from_response(response)
+            if not stream:
+                try:
+                    response.read()
+                except httpx.TransportError as exc:
+                    raise self._transport_error(method, path, exc) from exc
+                finally:
+                    response.close()
+            return response
+        raise AssertionError("unreachable")  # pragma: no cover
+
+    def _url(self, path: str) -> str:
+        return str(self._http.base_url).rstrip("/") + "/" + path.lstrip("/")
+
+    def _transport_error(self, method: str, path: str, exc: Exception) -> ConnectionFailed:
+        reason = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+        return ConnectionFailed(f"{method} {self._url(path)}: {reason}", title="Connection failed")
+
+    @staticmethod
+    def _json(response: httpx.Response) -> Any:
+        try:
+            return response.json()
+        except ValueError as exc:
+            raise SVRnetError(f"the server answered {response.status_code} with a body that is not JSON",
+                              status=response.status_code,
+                              request_id=response.headers.get("x-request-id")) from exc
+
+    def _download(self, path: str, out_path: PathLike, progress: ProgressCallback | None) -> Path:
+        out = Path(out_path)
+        tmp = out.with_name(f".{out.name}.part-{secrets.token_hex(4)}")
+        response = self._send("GET", path, stream=True)
+        try:
+            total = int(response.headers.get("content-length") or 0)
+            done = 0
+            with open(tmp, "wb") as fh:
+                for data in response.iter_bytes(CHUNK):
+                    fh.write(data)
+                    done += len(data)
+                    if progress is not None:
+                        progress(done, total or done)
+            os.replace(tmp, out)
+        except httpx.TransportError as exc:
+            raise self._transport_error("GET", path, exc) from exc
+        finally:
+            response.close()
+            tmp.unlink(missing_ok=True)
+        return out

@@ -1,0 +1,181 @@
+"""The ``svrnet`` CLI against ``httpx.MockTransport`` fakes of the contract: what each command prints and
+writes, its exit codes, and what it refuses before uploading anything."""
+
+from __future__ import annotations
+
+import io
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from typer.testing import CliRunner
+
+import client.cli as cli
+import client.views as views
+from client import SVRnetClient
+from tests.support.client_fakes import PREDICT_BODY, FakeJobs, FakeServer, parse_multipart
+
+
+@pytest.fixture
+def fake_cli(monkeypatch: pytest.MonkeyPatch, no_sleep: list[float]) -> Callable[..., tuple[FakeServer, list]]:
+    def install(**kwargs: Any) -> tuple[FakeServer, list]:
+        fake = FakeServer(**kwargs)
+        made: list[tuple[str, str | None]] = []
+
+        def factory(server: str, api_key: str | None) -> SVRnetClient:
+            made.append((server, api_key))
+            return SVRnetClient(server, api_key=api_key, transport=httpx.MockTransport(fake), retries=1)
+
+        monkeypatch.setattr(cli, "make_client", factory)
+        return fake, made
+
+    return install
+
+
+def invoke(args: list[str], **env: str) -> Any:
+    return CliRunner().invoke(cli.app, args, env={"COLUMNS": "200", **env})
+
+
+def test_cli_predict_writes_json_and_prints_a_summary(fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
+    fake, made = fake_cli()
+    out = tmp_path / "poses.json"
+    r = invoke(["predict", str(stack_file), "--out", str(out), "--mc-samples", "5", "--no-bias-correction",
+                "--no-image-consistency", "--masks-hold-csf", "--server", "http://scanner:9000"])
+    assert r.exit_code == 0, r.output
+    assert json.loads(out.read_text()) == PREDICT_BODY
+    assert made == [("http://scanner:9000", None)]
+    assert "stack.nii.gz" in r.stdout and "empty 1, high_variance 1" in r.stdout and "3" in r.stdout
+    assert "variance" in r.stdout and "the stack's medians" in r.stdout and "abc" in r.stdout
+    assert "312 ml" in r.stdout and "(0.93)" in r.stdout and "2 of 4" in r.stdout
+    fields, files = parse_multipart(fake.requests[0])
+    assert fields == {"mc_samples": ["5"], "bias_correction": ["false"], "image_consistency": ["false"],
+                      "masks_hold_csf": ["true"]}
+    assert files[0][1] == "stack.nii.gz"
+
+
+@pytest.mark.parametrize("name", ["axial1_lr.nii.gz", "sub-000_ses-01_T2w_haste_coronal_run-2.nii.gz"])
+def test_the_summary_fits_an_80_column_terminal_and_cuts_no_cell_short(name: str) -> None:
+    from rich.console import Console
+
+    stack = PREDICT_BODY["stacks"][0]
+    reasons = ["empty", "high_expected_error", "outside_atlas", "inconsistent_with_stack"]
+    body = {**PREDICT_BODY, "max_expected_error_mm": 4.2, "stacks": [
+        {**stack, "filename": name, "slices": [{"index": i, "accepted": False, "reason": reasons[i % 4],
+                                                "expected_error_mm": 50.0, "geodesic_variance": 123.0}
+                                               for i in range(40)]}] * 2}
+    console = Console(width=80, record=True, file=io.StringIO())
+    console.print(views.summarise(body))
+    text = console.export_text()
+    assert max(len(line) for line in text.splitlines()) <= 80 and "…" not in text
+    assert "0 of 40" in text and "50.0 mm" in text and "123" in text and "312 ml" in text and "variance" in text
+    if len(name) <= views.NAME_WIDTH:
+        assert name in text                                       # a usual name stays whole
+    else:                                                         # a long one folds, nothing of it dropped
+        assert all(name[i:i + views.NAME_WIDTH] in text for i in range(0, len(name), views.NAME_WIDTH))
+
+
+def test_cli_masks_writes_the_masks_and_nothing_outside(fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
+    fake, _ = fake_cli()
+    out = tmp_path / "deep" / "masks"
+    r = invoke(["masks", str(stack_file), "--out-dir", str(out), "--model", "default"])
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in out.iterdir()) == ["report.json", "stack_mask.nii.gz"]
+    assert not (tmp_path / "deep" / "escape.json").exists()
+    assert (out / "stack_mask.nii.gz").read_bytes() == b"mask bytes"
+    assert "stack_mask.nii.gz" in r.stdout and "0.91" in r.stdout and "301" in r.stdout
+    fields, files = parse_multipart(fake.requests[0])
+    assert fake.requests[0].url.path == "/v1/masks" and fields == {"model": ["default"]}
+    assert [f[:2] for f in files] == [("stacks", "stack.nii.gz")]
+
+
+def test_cli_sends_each_slice_order_as_one_field(fake_cli: Callable, stack_file: Path) -> None:
+    fake, _ = fake_cli()
+    r = invoke(["predict", str(stack_file), str(stack_file), "--slice-order", "interleaved",
+                "--slice-order", "0,2,4,1,3,5"])
+    assert r.exit_code == 0, r.output
+    fields, _ = parse_multipart(fake.requests[0])
+    assert fields == {"slice_order": ["interleaved", "0,2,4,1,3,5"]}
+
+
+def test_cli_server_and_key_from_the_environment(fake_cli: Callable) -> None:
+    fake, made = fake_cli(key="k")
+    r = invoke(["models"], SVRNET_SERVER="http://env:1234", SVRNET_API_KEY="k")
+    assert r.exit_code == 0, r.output
+    assert made == [("http://env:1234", "k")] and "default" in r.stdout and "atlas" in r.stdout
+
+
+@pytest.mark.parametrize(("kwargs", "args", "code", "needle"), [
+    ({"mode": "down"}, ["models"], 3, "Connection refused"),
+    ({"key": "k"}, ["models"], 4, "API key"),
+    ({"mode": "422"}, ["predict", "STACK"], 5, "flat.nii.gz"),
+    ({}, ["status", "nojob"], 6, "nojob"),
+])
+def test_cli_exit_codes(fake_cli: Callable, stack_file: Path, kwargs: dict, args: list[str], code: int,
+                        needle: str) -> None:
+    fake_cli(**kwargs)
+    r = invoke([str(stack_file) if a == "STACK" else a for a in args])
+    assert r.exit_code == code, r.output
+    assert r.stderr.startswith("error: ") and needle in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert "Traceback" not in r.output and r.stdout == ""
+
+
+def test_cli_usage_errors_and_help(fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
+    fake, _ = fake_cli()
+    assert invoke(["predict", str(stack_file), str(stack_file), "--mask", str(stack_file)]).exit_code == 2
+    assert invoke(["predict", str(tmp_path / "missing.nii.gz")]).exit_code == 2
+    assert invoke(["predict", str(stack_file), "--threshold", "0"]).exit_code == 2
+    for args in (["status", " "], ["cancel", ""], ["reconstruct", str(stack_file), "--out", str(tmp_path / "no" / "r.nii.gz")],
+                 ["predict", str(stack_file), "--out", str(tmp_path / "no" / "p.json")]):
+        r = invoke(args)
+        assert r.exit_code == 2 and "Traceback" not in r.output, (args, r.output)
+    assert not fake.requests                                  # refused before anything was uploaded
+    help_text = invoke(["--help"]).stdout
+    assert "Exit codes" in help_text and "3 connection failed" in help_text and "10 conflict" in help_text
+    assert "Exit codes" in invoke(["predict", "--help"]).stdout
+    assert "Exit codes:" in cli.__doc__
+
+
+def test_cli_reconstruct_wait_downloads(fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
+    fake, _ = fake_cli()
+    poses = tmp_path / "poses.json"
+    poses.write_text(json.dumps(PREDICT_BODY))
+    out, preview, refined = tmp_path / "recon.nii.gz", tmp_path / "preview.png", tmp_path / "refined.json"
+    r = invoke(["reconstruct", str(stack_file), "--poses", str(poses), "--resolution", "0.8", "--svr-iterations",
+                "2", "--wait", "--poll", "0.05", "--out", str(out), "--preview", str(preview),
+                "--poses-out", str(refined), "--no-atlas-frame", "--slice-order", "interleaved"])
+    assert r.exit_code == 0, r.output
+    assert out.read_bytes() == FakeJobs.VOLUME and preview.read_bytes() == FakeJobs.PREVIEW
+    assert json.loads(refined.read_text())["refined_by"] == {"job_id": "job1"}
+    assert "job1" in r.stdout and "succeeded" in r.stdout
+    fields, files = fake.jobs.uploads[0]
+    assert fields == {"resolution_mm": ["0.8"], "svr_iterations": ["2"], "atlas_frame": ["false"],
+                      "slice_order": ["interleaved"]} and files[-1][0] == "poses"
+
+
+def test_cli_reconstruct_without_wait_and_failed_job(fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
+    fake_cli()
+    r = invoke(["reconstruct", str(stack_file)])
+    assert r.exit_code == 0 and "svrnet status job1" in r.stdout
+    fake_cli(jobs="failed")
+    r = invoke(["reconstruct", str(stack_file), "--wait", "--poll", "0.05", "--out", str(tmp_path / "x.nii.gz")])
+    assert r.exit_code == 8 and "SVR diverged" in r.stderr and not (tmp_path / "x.nii.gz").exists()
+
+
+def test_cli_status_cancel_and_conflict(fake_cli: Callable, stack_file: Path) -> None:
+    fake, _ = fake_cli()
+    assert invoke(["reconstruct", str(stack_file)]).exit_code == 0
+    r = invoke(["status", "job1"])
+    assert r.exit_code == 0 and "queued" in r.stdout
+    r = invoke(["status", "job1", "--json"])
+    assert r.exit_code == 0 and json.loads(r.stdout)["job_id"] == "job1"
+    assert invoke(["cancel", "job1"]).exit_code == 0
+    assert invoke(["cancel", "job1"]).exit_code == 6
+
+
+def test_cli_timeout_from_the_environment(stack_file: Path) -> None:
+    r = invoke(["models", "--server", "http://127.0.0.1:9"], SVRNET_TIMEOUT="soon")
+    assert r.exit_code == 2 and "SVRNET_TIMEOUT" in r.output
+    assert cli.make_client("http://x", None)._http.timeout.read == 300.0

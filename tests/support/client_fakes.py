@@ -1,0 +1,135 @@
+"""Fakes of the HTTP API v1 contract for the client's tests: ``/v1/predict``, ``/v1/masks``, ``/v1/models``
+and the reconstruction routes, served through ``httpx.MockTransport`` (no server, no torch)."""
+
+from __future__ import annotations
+
+import email
+import email.policy
+import io
+import json
+import re
+import zipfile
+from typing import Any
+
+import httpx
+
+
+def parse_multipart(request: httpx.Request) -> tuple[dict[str, list[str]], list[tuple[str, str, str, bytes]]]:
+    """(form fields, [(field, filename, content type, bytes)]) of a multipart request, via the stdlib."""
+    head = f"Content-Type: {request.headers['content-type']}\r\nMIME-Version: 1.0\r\n\r\n".encode()
+    msg = email.message_from_bytes(head + request.content, policy=email.policy.HTTP)
+    assert msg.is_multipart()
+    fields: dict[str, list[str]] = {}
+    files = []
+    for part in msg.iter_parts():
+        name = part.get_param("name", header="content-disposition")
+        payload = part.get_payload(decode=True)
+        if part.get_filename() is None:
+            fields.setdefault(name, []).append(payload.decode())
+        else:
+            files.append((name, part.get_filename(), part.get_content_type(), payload))
+    return fields, files
+
+
+def problem(status: int, detail: str, title: str = "Problem") -> dict[str, Any]:
+    return {"type": "about:blank", "title": title, "status": status, "detail": detail, "request_id": "rid-1"}
+
+
+PREDICT_BODY = {
+    "request_id": "abc", "model": {"name": "default", "version": "1", "backbone": "b", "sha256": "0" * 64},
+    "mc_samples": 5, "variance_threshold": 10.0, "timing_ms": {"total": 12.0},
+    "stacks": [{"index": 0, "filename": "stack.nii.gz", "shape": [24, 24, 4], "spacing_mm": [1, 1, 3],
+                "slice_axis": 2, "slices": [
+                    {"index": 0, "accepted": True, "reason": None, "geodesic_variance": 1.0},
+                    {"index": 1, "accepted": True, "reason": None, "geodesic_variance": 3.0},
+                    {"index": 2, "accepted": False, "reason": "high_variance", "geodesic_variance": 40.0},
+                    {"index": 3, "accepted": False, "reason": "empty", "geodesic_variance": None}],
+                "localisation": {"method": "network", "brain_volume_ml": 312.4, "confidence": 0.93}}],
+}
+
+
+def masks_archive() -> bytes:
+    """What /v1/masks answers, plus a member that names a path (never written)."""
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as z:
+        z.writestr("stack_mask.nii.gz", b"mask bytes")
+        z.writestr("../escape.json", b"{}")
+        z.writestr("report.json", json.dumps({"stacks": [{"filename": "stack.nii.gz", "mask": "stack_mask.nii.gz",
+                                                          "brain_volume_ml": 301.0, "confidence": 0.91,
+                                                          "slices_with_brain": 17}]}))
+    return buffer.getvalue()
+
+
+class FakeServer:
+    """/v1/predict and /v1/models with an optional key, plus the job routes; ``mode`` forces failures."""
+
+    def __init__(self, key: str | None = None, mode: str = "ok", jobs: str = "succeeded") -> None:
+        self.key, self.mode = key, mode
+        self.jobs = FakeJobs(jobs)
+        self.requests: list[httpx.Request] = []
+
+    def __call__(self, request: httpx.Request) -> httpx.Response:
+        self.requests.append(request)
+        if self.mode == "down":
+            raise httpx.ConnectError("[Errno 111] Connection refused", request=request)
+        if self.key and request.headers.get("authorization") != f"Bearer {self.key}":
+            return httpx.Response(401, json=problem(401, "Authorization: a valid API key is required"))
+        if self.mode == "422":
+            return httpx.Response(422, json=problem(422, "stacks: flat.nii.gz is a 2D image", "Unusable image"))
+        if request.url.path == "/v1/predict":
+            return httpx.Response(200, json=PREDICT_BODY)
+        if request.url.path == "/v1/masks":
+            return httpx.Response(200, content=masks_archive(), headers={"content-type": "application/zip"})
+        if request.url.path == "/v1/models":
+            return httpx.Response(200, json=[{"name": "default", "version": "1", "backbone": "b",
+                                              "sha256": "0" * 64, "input_size": 128, "spacing_mm": 0.8,
+                                              "label_type": "anchor", "variance_threshold": 10.0,
+                                              "trained_on": "atlas"}])
+        return self.jobs(request)
+
+
+class FakeJobs:
+    """The contract's reconstruction routes: each status poll moves a job queued -> running -> succeeded."""
+
+    VOLUME = b"\x1f\x8b fake nifti volume" * 1000
+    PREVIEW = b"\x89PNG fake"
+
+    def __init__(self, outcome: str = "succeeded") -> None:
+        self.outcome = outcome
+        self.jobs: dict[str, dict[str, Any]] = {}
+        self.uploads: list[tuple[dict, list]] = []
+
+    def __call__(self, request: httpx.Request) -> httpx.Response:
+        path, method = request.url.path, request.method
+        if path == "/v1/reconstructions" and method == "POST":
+            self.uploads.append(parse_multipart(request))
+            job_id = f"job{len(self.jobs) + 1}"
+            self.jobs[job_id] = {"job_id": job_id, "status": "queued", "stage": "queued", "progress": 0.0,
+                                 "error": None, "created_at": "t0", "updated_at": "t0", "result_url": None,
+                                 "preview_url": None, "report": None, "polls": 0}
+            url = f"/v1/reconstructions/{job_id}"
+            return httpx.Response(202, headers={"Location": url},
+                                  json={"job_id": job_id, "status": "queued", "status_url": url})
+        m = re.fullmatch(r"/v1/reconstructions/([^/]+)(/volume|/preview\.png|/poses)?", path)
+        if not m or m.group(1) not in self.jobs:
+            return httpx.Response(404, json=problem(404, f"job: unknown job {m.group(1) if m else path}"))
+        job = self.jobs[m.group(1)]
+        if method == "DELETE" and not m.group(2):
+            del self.jobs[m.group(1)]
+            return httpx.Response(204)
+        if m.group(2):
+            if job["status"] != "succeeded":
+                return httpx.Response(409, json=problem(409, f"job {job['job_id']} is {job['status']}"))
+            if m.group(2) == "/poses":
+                return httpx.Response(200, json=dict(PREDICT_BODY, refined_by={"job_id": job["job_id"]}))
+            return httpx.Response(200, content=self.VOLUME if m.group(2) == "/volume" else self.PREVIEW)
+        job["polls"] += 1
+        if job["polls"] == 2:
+            job.update(status="running", stage="svr", progress=0.5)
+        elif job["polls"] >= 3 and self.outcome == "succeeded":
+            job.update(status="succeeded", stage="done", progress=1.0,
+                       result_url=f"/v1/reconstructions/{job['job_id']}/volume",
+                       preview_url=f"/v1/reconstructions/{job['job_id']}/preview.png", report={"slices": []})
+        elif job["polls"] >= 3 and self.outcome != "running":
+            job.update(status=self.outcome, error="SVR diverged" if self.outcome == "failed" else None)
+        return httpx.Response(200, json={k: v for k, v in job.items() if k != "polls"})
