@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from model_export.localiser import surroundings
 from model_export.localiser.scenes import HeadModel, StackGeometry, synth_scene, synth_stack
 from tests.support.phantoms import phantom_brain
 
@@ -68,18 +69,16 @@ def test_geometry_draws_cover_the_scanners_ranges() -> None:
 def test_some_heads_sit_at_the_uterine_wall_without_a_fluid_rim(monkeypatch: pytest.MonkeyPatch) -> None:
     """Around where the head goes (a shell 5-15 mm outside it), amniotic fluid is the rule when no
     head is engaged and the exception when every head is."""
-    from model_export.localiser import scenes
-
     tissue = {"fluid": 1.0, "csf": 1.0, "skull": 0.05, "scalp": 0.3, "body": 0.3, "wall": 0.3, "placenta": 0.4,
               "fat": 0.6, "air": 0.0}
 
     def fluid_share(engaged: float) -> float:
-        monkeypatch.setitem(scenes.ENGAGED_SHARE, "train", engaged)
+        monkeypatch.setitem(surroundings.ENGAGED_SHARE, "train", engaged)
         shares = []
         for seed in range(6):
             rng = np.random.default_rng(seed)
             geo = StackGeometry(1.2, 250, 3.0, 3.0, 30)
-            image = scenes._surroundings(rng, geo, np.zeros(3), 40.0, tissue, "train")
+            image = surroundings.draw_surroundings(rng, geo, np.zeros(3), 40.0, tissue, "train")
             r = np.linalg.norm(geo.coordinates(step=2), axis=-1)
             shell = (r > 45.0) & (r < 55.0)
             shares.append(float((np.abs(image[shell] - 1.0) < 0.15).mean()))
@@ -124,7 +123,7 @@ def test_camouflaged_heads_sit_in_tissue_as_bright_as_the_brain(head: HeadModel,
 
     from model_export.localiser import scenes
 
-    monkeypatch.setitem(scenes.ENGAGED_SHARE, "train", 0.0)
+    monkeypatch.setitem(surroundings.ENGAGED_SHARE, "train", 0.0)
 
     def ring_over_brain(share: float) -> float:
         monkeypatch.setitem(scenes.CAMOUFLAGE_SHARE, "train", share)
@@ -152,7 +151,7 @@ def test_a_face_lies_in_front_of_and_below_the_brain_outside_the_skull(head: Hea
 
     for seed in range(4):
         rng = np.random.default_rng(seed)
-        tissue = scenes._intensities(rng, False)
+        tissue = surroundings.intensities(rng, False)
         face = scenes.Face.draw(rng, head, tissue, 0.5, 5.0, "train")
         assert (face.eyes[:, 1] > 0).all() and (face.eyes[:, 2] < 0).all()
         assert np.isclose(face.eyes[0, 0], -face.eyes[1, 0]) and face.eyes[1, 0] > 0
@@ -172,7 +171,7 @@ def test_training_faces_are_as_bright_as_the_body_and_held_out_ones_also_as_the_
         out = []
         for seed in range(40):
             rng = np.random.default_rng(seed)
-            tissue = scenes._intensities(rng, False)
+            tissue = surroundings.intensities(rng, False)
             tissue["body"] = 0.2                                       # far below the brain's level
             face = scenes.Face.draw(rng, head, tissue, 0.8, 5.0, style)
             assert 0.2 * 0.8 <= face.tissue_level <= 0.8 * 1.2
@@ -207,7 +206,7 @@ def test_a_rigid_scene_shows_its_eyes_where_its_true_poses_put_them(monkeypatch:
     image, mask, affine = phantom_brain(3)
     head = HeadModel.from_arrays(image, mask, affine)
     monkeypatch.setitem(scenes.FACE_SHARE, "train", 1.0)
-    monkeypatch.setitem(scenes.ENGAGED_SHARE, "train", 0.0)
+    monkeypatch.setitem(surroundings.ENGAGED_SHARE, "train", 0.0)
     monkeypatch.setitem(scenes.CAMOUFLAGE_SHARE, "train", 0.0)
     drawn = []
     original = scenes.Face.draw.__func__
