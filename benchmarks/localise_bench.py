@@ -23,7 +23,7 @@ sys.path.insert(0, str(ROOT))
 
 from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, masked_files, pose_agreement  # noqa: E402
 from service.core.settings import DEFAULT_LOCALISERS_DIR  # noqa: E402
-from service.pipeline.predict import StackUpload  # noqa: E402
+from service.pipeline.prepare import StackUpload  # noqa: E402
 from service.io.volume import Volume, read_volume  # noqa: E402
 from service.preprocess.brain_shape import brain_from_probabilities  # noqa: E402
 from service.preprocess.localise import Localiser  # noqa: E402

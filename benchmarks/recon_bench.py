@@ -234,7 +234,7 @@ def main() -> None:
     if "6" in args.only and args.model.exists():
         from service.inference.estimator import OnnxPoseEstimator
         from service.inference.model_file import load_model
-        from service.pipeline.predict import StackUpload
+        from service.pipeline.prepare import StackUpload
         from service.jobs.worker import predicted_poses
 
         t1 = time.perf_counter()

@@ -309,7 +309,7 @@ def ship(
 
     typer.echo(f"spread calibrated: {json.dumps(run_spread(onnx_path, root))}")
     evaluation = run_evaluation(onnx_path, report, root)
-    from model_export.train import prior_history, totals
+    from model_export.training_record import prior_history, totals
 
     _, ck = load_checkpoint(checkpoint)
     summary = {"train_seconds": ck["train_seconds"], "samples_seen": ck["samples_seen"], "steps": ck["step"],

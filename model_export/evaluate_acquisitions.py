@@ -2,7 +2,7 @@
 
 For each motion level (:data:`model_export.acquisitions.MOTION_LEVELS`) and each volume, an
 acquisition is simulated with exact per-slice truth, prepared by the service's own
-:func:`~service.pipeline.predict.prepare_stacks` (uploaded masks, N4 as the server does) and
+:func:`~service.pipeline.prepare.prepare_stacks` (uploaded masks, N4 as the server does) and
 predicted by :func:`~service.pipeline.predict.predict` with stack consistency on. Every pose is
 scored twice: against the truth and twin-min (the nearer of the truth and its left-right twin),
 for the network's own poses and for the stack-consistent ones.
@@ -28,7 +28,8 @@ from service.inference.estimator import PoseEstimate, statistics
 from service.inference.model_file import ModelInfo
 from service.consistency.slice_order import SliceOrder
 from service.api.responses import stack_objects
-from service.pipeline.predict import PreparedStack, StackPrediction, StackUpload, predict, prepare_stacks
+from service.pipeline.predict import StackPrediction, predict
+from service.pipeline.prepare import PreparedStack, StackUpload, prepare_stacks
 
 ERROR_MM = 10.0
 DISTINGUISHABLE_MM = 20.0

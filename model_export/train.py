@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import time
 import warnings
 from dataclasses import asdict, dataclass, field
@@ -33,14 +32,11 @@ from model_export.losses import check_label_type, point_loss
 from model_export.model import SVRNet, multi_loss
 from model_export.simulate import SimulationConfig
 from model_export.stream import SliceStream, label_sample, validation_set
+from model_export.training_record import hardware, plot_log, prior_history, totals
 from service.geometry import anchors, encodings, se3
 from service.geometry.twin import POINT_LABELS, twin
 
-__all__ = ["TrainConfig", "train", "stream_seed", "predict_poses", "pose_errors", "validation_set", "totals", "hardware"]
-
-UNRECORDED_HARDWARE = "not recorded"
-"""The hardware of a training segment whose checkpoint does not record it (see :func:`prior_history`)."""
-
+__all__ = ["TrainConfig", "train", "stream_seed", "predict_poses", "pose_errors", "validation_set"]
 
 @dataclass
 class TrainConfig:
@@ -90,29 +86,6 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def hardware(device: torch.device) -> str:
-    """A short description of what trains: the GPU's name, or the CPU's core count."""
-    if device.type == "cuda":
-        return torch.cuda.get_device_name(device)
-    return f"CPU, {os.cpu_count()} cores"
-
-
-def totals(history: list[dict]) -> dict:
-    """Samples and hours over all training segments, overall and per hardware.
-
-    Example:
-        >>> totals([{"hardware": "a", "samples": 10, "seconds": 3600}, {"hardware": "b", "samples": 5, "seconds": 0}])
-        {'samples': 15, 'hours': 1.0, 'by_hardware': {'a': {'samples': 10, 'hours': 1.0}, 'b': {'samples': 5, 'hours': 0.0}}}
-    """
-    by: dict[str, dict] = {}
-    for seg in history:
-        d = by.setdefault(seg["hardware"], {"samples": 0, "hours": 0.0})
-        d["samples"] += int(seg["samples"])
-        d["hours"] += seg["seconds"] / 3600
-    return {"samples": sum(d["samples"] for d in by.values()), "hours": sum(d["hours"] for d in by.values()),
-            "by_hardware": by}
-
-
 def stream_seed(seed: int, samples_seen: int) -> int:
     """The training stream's seed for a run that starts (or resumes) after ``samples_seen`` samples.
 
@@ -124,29 +97,6 @@ def stream_seed(seed: int, samples_seen: int) -> int:
         (True, False)
     """
     return int(np.random.SeedSequence([seed, samples_seen]).generate_state(1)[0])
-
-
-def prior_history(ck: dict) -> list[dict]:
-    """The training segments behind a checkpoint, stating only what it records.
-
-    A run records its own segment, with its ``run`` folder and its hardware. A checkpoint without a
-    ``history`` records only its totals: they make one segment whose hardware is
-    :data:`UNRECORDED_HARDWARE`, and a later checkpoint carries that segment on (the one without
-    ``run``), so such a segment's hardware is read as unrecorded whatever label it carries.
-
-    Example:
-        >>> [seg["hardware"] for seg in prior_history({"samples_seen": 10, "train_seconds": 1.0})]
-        ['not recorded']
-        >>> [seg["hardware"] for seg in prior_history({"history": [{"hardware": "a label", "samples": 10},
-        ...                                                        {"hardware": "CPU, 2 cores", "run": "r"}]})]
-        ['not recorded', 'CPU, 2 cores']
-    """
-    if ck.get("history"):
-        return [seg if "run" in seg else {**seg, "hardware": UNRECORDED_HARDWARE} for seg in ck["history"]]
-    cfg = ck.get("config", {})
-    return [{"hardware": UNRECORDED_HARDWARE, "device": "cpu", "samples": int(ck.get("samples_seen", 0)),
-             "seconds": float(ck.get("train_seconds", 0.0)), "steps": int(ck.get("step", 0)),
-             "label_type": cfg.get("label_type", "anchor"), "loss": cfg.get("loss", "l2")}]
 
 
 @torch.no_grad()
@@ -348,32 +298,6 @@ def _progress_bar(progress: bool):  # noqa: ANN202 - rich's Progress, or a silen
         return Silent()
     return Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                     TextColumn("{task.fields[info]}"), TimeRemainingColumn())
-
-
-def plot_log(log_path: Path, png: Path) -> None:
-    """Loss and validation E.D. curves (truth and twin-min) from a training log (skipped without matplotlib)."""
-    try:
-        import matplotlib
-    except ImportError:
-        return
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    rows = list(csv.DictReader(open(log_path)))
-    if not rows:
-        return
-    fig, ax = plt.subplots(1, 2, figsize=(10, 3.5))
-    ax[0].plot([int(r["samples"]) for r in rows], [float(r["loss"]) for r in rows])
-    ax[0].set(xlabel="samples (total)", ylabel="loss (normalised)", yscale="log", title="training loss")
-    val = [r for r in rows if r["val_ed_mm"]]
-    ax[1].plot([int(r["samples"]) for r in val], [float(r["val_ed_mm"]) for r in val], "o-", label="E.D.")
-    ax[1].plot([int(r["samples"]) for r in val], [float(r["val_twin_ed_mm"]) for r in val], "s-", label="twin-min E.D.")
-    ax[1].set(xlabel="samples (total)", ylabel="mm", title="validation mean anchor E.D.")
-    ax[1].legend()
-    fig.tight_layout()
-    fig.savefig(png, dpi=100)
-    plt.close(fig)
 
 
 def main(argv: list[str] | None = None) -> Path:

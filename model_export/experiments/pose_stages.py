@@ -36,7 +36,8 @@ from model_export.localiser.pose_accuracy import slice_poses  # noqa: E402
 from service.api.responses import stack_objects  # noqa: E402
 from service.core.settings import DEFAULT_LOCALISERS_DIR  # noqa: E402
 from service.geometry import anchors, twin  # noqa: E402
-from service.pipeline.predict import StackUpload, estimate_stacks, predict_from_estimates, prepare_stacks  # noqa: E402
+from service.pipeline.predict import estimate_stacks, predict_from_estimates  # noqa: E402
+from service.pipeline.prepare import StackUpload, prepare_stacks  # noqa: E402
 from service.preprocess.localise import Localiser  # noqa: E402
 
 STAGES = {"network": (False, False), "stack stage, pooled": (True, False), "every stage": (True, True)}

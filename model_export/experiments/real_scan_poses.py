@@ -34,7 +34,8 @@ from service.geometry import anchors, se3  # noqa: E402
 from service.inference.acceptance import ATLAS_CENTRE_MM  # noqa: E402
 from service.inference.estimator import PoseEstimator  # noqa: E402
 from service.io.volume import Volume, read_volume  # noqa: E402
-from service.pipeline.predict import StackUpload, predict, prepare_stacks  # noqa: E402
+from service.pipeline.predict import predict  # noqa: E402
+from service.pipeline.prepare import StackUpload, prepare_stacks  # noqa: E402
 from service.preprocess.localise import Localiser, default_localiser  # noqa: E402
 
 

@@ -27,7 +27,8 @@ from numpy.typing import NDArray
 from service.geometry import anchors
 from service.api.responses import stack_objects
 from model_export.localiser.pose_accuracy import pose_accuracy, slice_poses, validation_scenes
-from service.pipeline.predict import StackUpload, predict, prepare_stacks
+from service.pipeline.predict import predict
+from service.pipeline.prepare import StackUpload, prepare_stacks
 from service.io.volume import Volume, read_volume
 from service.preprocess.localise import Localiser
 

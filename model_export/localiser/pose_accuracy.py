@@ -30,7 +30,8 @@ from model_export.localiser.scenes import HeadModel, Scene, synth_scene
 from service.api.responses import stack_objects
 from service.geometry import anchors, twin
 from service.io.volume import Volume
-from service.pipeline.predict import PreparedStack, StackUpload, predict, prepare_stacks
+from service.pipeline.predict import predict
+from service.pipeline.prepare import PreparedStack, StackUpload, prepare_stacks
 from service.preprocess.localise import Localiser
 
 VARIANTS = ("brain", "skull", "localiser")

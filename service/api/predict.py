@@ -13,7 +13,7 @@ from service.api.responses import stack_objects
 from service.api.schemas import UPLOAD_ERRORS, PredictResponse
 from service.api.uploads import UploadFormDep, known_fields, save_and_read, upload_directory
 from service.pipeline.predict import predict as run_prediction
-from service.pipeline.predict import prepare_stacks
+from service.pipeline.prepare import prepare_stacks
 
 router = APIRouter(prefix="/v1", tags=["prediction"], dependencies=[ApiKey])
 

@@ -13,7 +13,8 @@ from fastapi.responses import FileResponse
 from service.api.deps import ApiKey, RegistryDep, SettingsDep, SlotDep, queue_full
 from service.api.schemas import UPLOAD_ERRORS, problem_responses
 from service.api.uploads import UploadFormDep, known_fields, save_and_read
-from service.pipeline.predict import check_mask_grid, stack_orders
+from service.pipeline.predict import stack_orders
+from service.pipeline.prepare import check_mask_grid
 from service.core.errors import Conflict, InvalidParameter, NotFound
 from service.jobs.store import Job, JobStore
 from service.jobs.worker import poses_from_predict_body

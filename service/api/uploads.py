@@ -22,7 +22,7 @@ from service.api.deps import SettingsDep
 from service.consistency.slice_order import MAX_TEXT, PATTERN, SliceOrder, per_stack
 from service.core.errors import InvalidParameter
 from service.core.names import clean_name
-from service.pipeline.predict import StackUpload
+from service.pipeline.prepare import StackUpload
 from service.io.limits import DecodeBudget
 from service.io.readers import MAX_DECODED_BYTES, read_upload
 

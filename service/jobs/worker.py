@@ -131,7 +131,8 @@ def predicted_body(uploads: list, estimator, mc_samples: int = 100,  # noqa: ANN
     the service's own prediction, and the brain masks per stack; ``orders``: the stacks'
     acquisition orders (:class:`~service.consistency.slice_order.SliceOrder`), if known."""
     from service.api.responses import stack_objects
-    from service.pipeline.predict import predict, prepare_stacks
+    from service.pipeline.predict import predict
+    from service.pipeline.prepare import prepare_stacks
 
     info = estimator.info
     threshold = variance_threshold or info.variance_threshold
@@ -210,7 +211,8 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
              attempt: int) -> None:
     from service.inference.estimator import OnnxPoseEstimator
     from service.inference.model_file import load_model
-    from service.pipeline.predict import StackUpload, stack_orders
+    from service.pipeline.predict import stack_orders
+    from service.pipeline.prepare import StackUpload
     from service.io.limits import DecodeBudget
     from service.io.readers import read_upload
     from service.reconstruction.export import write_outputs
@@ -241,7 +243,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     model_file = models_dir / params.get("model", "default") / "model.onnx"
     estimator = None
     if poses_path.exists():
-        from service.pipeline.predict import localise_uploads
+        from service.pipeline.prepare import localise_uploads
         from service.preprocess.stack import slice_axis_of
 
         counts = [u.volume.array.shape[slice_axis_of(u.volume.spacing)] for u in uploads]

@@ -63,13 +63,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from service.reconstruction.grid import bounds_of, bounds_within
-from service.reconstruction.pipeline import (
-    Progress,
-    ReconstructionConfig,
-    ReconstructionResult,
-    exclusion_reasons,
-    reconstruct,
-)
+from service.reconstruction.pipeline import Progress, ReconstructionConfig, ReconstructionResult, reconstruct
+from service.reconstruction.quality import exclusion_reasons
 from service.reconstruction.slices import SliceSet
 
 PATHS = ("full", "starting_poses", "slice_level")

@@ -101,3 +101,34 @@ def quality_report(ncc: NDArray, held_out: NDArray, judged: NDArray, stack_index
             "per_stack_median_ncc": [_median(h[held_judged & (stack_index == s)]) for s in stacks],
         },
     }
+
+
+def exclusion_reasons(include: NDArray, included: NDArray, stack_inlier: NDArray | None) -> list[str | None]:
+    """Per slice: ``None`` (in the volume), ``"not_used"``, ``"stack_outlier"`` or ``"residual_outlier"``.
+
+    Example:
+        >>> exclusion_reasons(np.array([1, 1, 1, 0], bool), np.array([1, 0, 0, 0], bool),
+        ...                   np.array([1, 1, 0, 0], bool))
+        [None, 'residual_outlier', 'stack_outlier', 'not_used']
+    """
+    inlier = np.ones(len(include), bool) if stack_inlier is None else np.asarray(stack_inlier, bool)
+    return [None if inc else "not_used" if not use else "residual_outlier" if ok else "stack_outlier"
+            for use, inc, ok in zip(np.asarray(include, bool).tolist(), np.asarray(included, bool).tolist(),
+                                    inlier.tolist())]
+
+
+def slice_ncc(simulated: NDArray, values: NDArray, slice_id: NDArray, n_slices: int) -> NDArray[np.float64]:
+    """Per-slice normalised cross-correlation ``[n]`` of two pixel vectors (NaN for slices without pixels)."""
+    sid = np.asarray(slice_id)
+    cnt = np.bincount(sid, minlength=n_slices).astype(np.float64)
+    a = np.asarray(simulated, np.float64)
+    b = np.asarray(values, np.float64)
+    ac = a - (np.bincount(sid, a, n_slices) / np.maximum(cnt, 1))[sid]
+    bc = b - (np.bincount(sid, b, n_slices) / np.maximum(cnt, 1))[sid]
+    num = np.bincount(sid, ac * bc, n_slices)
+    den = np.sqrt(np.bincount(sid, ac * ac, n_slices) * np.bincount(sid, bc * bc, n_slices))
+    out = np.full(n_slices, np.nan)
+    ok = (cnt > 0) & (den > 0)
+    out[ok] = num[ok] / den[ok]
+    out[(cnt > 0) & ~(den > 0)] = 0.0
+    return out

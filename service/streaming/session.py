@@ -42,16 +42,8 @@ from service.geometry.twin import DEFAULT_PLANE_X_MM
 from service.inference import acceptance
 from service.inference.estimator import PoseEstimate, PoseEstimator
 from service.io.volume import Volume
-from service.pipeline.predict import (
-    PreparedStack,
-    StackPrediction,
-    StackUpload,
-    add_unseen_errors,
-    estimate_stacks,
-    judge,
-    predict_from_estimates,
-    prepare_stack,
-)
+from service.pipeline.predict import StackPrediction, add_unseen_errors, estimate_stacks, judge, predict_from_estimates
+from service.pipeline.prepare import PreparedStack, StackUpload, prepare_stack
 from service.preprocess.localise import Localisation, Localiser
 from service.preprocess.slices import preprocess_slices
 from service.preprocess.stack import split_stack

@@ -52,7 +52,7 @@ def test_card_states_the_head_the_criterion_and_a_second_stage(tmp_path: Path) -
 
 
 def test_card_gives_both_errors_and_the_totals_per_hardware(tmp_path: Path) -> None:
-    from model_export.train import totals
+    from model_export.training_record import totals
 
     cal = dict(threshold=3.0, auroc=0.8, error_mm=10.0, criterion_mm=10.0, auroc_criterion=0.8, n_slices=600,
                bad_fraction=0.5, accepted_fraction=0.5, ed_accepted_mean_mm=8.0, ed_rejected_mean_mm=20.0,

@@ -13,7 +13,8 @@ import torch
 from model_export.atlas import load_volumes, pack
 from model_export.model import SVRNet
 from model_export.stream import validation_set
-from model_export.train import UNRECORDED_HARDWARE, TrainConfig, _load_init, pose_errors, prior_history, totals, train
+from model_export.train import TrainConfig, _load_init, pose_errors, train
+from model_export.training_record import UNRECORDED_HARDWARE, prior_history, totals
 from service.geometry import iterators, twin
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])

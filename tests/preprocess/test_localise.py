@@ -183,7 +183,7 @@ def test_the_pose_network_gets_the_localisers_mask_without_its_csf_rim() -> None
 
 
 def test_an_upload_said_to_hold_the_csf_gets_the_localisers_inset() -> None:
-    from service.pipeline.predict import StackUpload, localise
+    from service.pipeline.prepare import StackUpload, localise
 
     spacing = np.array([1.0, 1.0, 3.0])
     mask = np.zeros((40, 40, 6), np.uint8)

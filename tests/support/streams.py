@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from service.inference.estimator import PoseEstimate
 from service.io.volume import Volume
-from service.pipeline.predict import StackUpload, prepare_stack
+from service.pipeline.prepare import StackUpload, prepare_stack
 from service.streaming.frames import SliceFrame
 from tests.api.conftest import INFO
 from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine

@@ -9,7 +9,7 @@ import pytest
 from service.core.settings import DEFAULT_MODELS_DIR
 from service.inference.model_file import load_model
 from service.io.volume import Volume
-from service.pipeline.predict import StackUpload, localise, localise_uploads, prepare_stack, prepare_stacks
+from service.pipeline.prepare import StackUpload, localise, localise_uploads, prepare_stack, prepare_stacks
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,68 @@
+"""What ``/v1/predict`` answers on the real scans of ``../shared/data/real_scans``: per stack, the
+slices accepted of those with a brain and their median ``expected_error_mm``, for the shared scan
+without masks, with its manual masks, each stack alone with its manual mask, and the stacks of
+another site without masks (docs/accuracy.md, "Real scans"). Each row is one request through the
+app in process (N4, 100 MC samples, every stage, the default accept flags); ``--repeats`` requests
+show how far the MC draws move the counts.
+
+    .venv/bin/python model_export/experiments/real_scan_answers.py [--repeats 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from fastapi.testclient import TestClient  # noqa: E402
+
+from service.main import create_app  # noqa: E402
+
+REAL_SCANS = Path(__file__).resolve().parents[3] / "shared" / "data" / "real_scans"
+SHARED = ("mial_lausanne_t30", ["axial1_lr", "coronal1_lr", "sagittal1_lr"])
+OTHER_SITE = ("bch_f0832s1", ["fetus_03", "fetus_04"])
+
+
+def files_of(folder: Path, names: list[str], masks: bool) -> list[tuple[str, tuple[str, bytes]]]:
+    """The multipart files of a request: the stacks, and their ``NAME_brain_mask`` files with ``masks``."""
+    files = [("stacks", (f"{n}.nii.gz", (folder / f"{n}.nii.gz").read_bytes())) for n in names]
+    if masks:
+        files += [("masks", (f"{n}.nii.gz", (folder / f"{n}_brain_mask.nii.gz").read_bytes())) for n in names]
+    return files
+
+
+def answer_row(client: TestClient, folder: Path, names: list[str], masks: bool) -> str:
+    """One request's stacks: accepted of the slices with a brain (median expected error)."""
+    r = client.post("/v1/predict", files=files_of(folder, names, masks), data={"mc_samples": "100"})
+    r.raise_for_status()
+    cells = []
+    for stack in r.json()["stacks"]:
+        brain = [s for s in stack["slices"] if s["reason"] != "empty"]
+        expected = np.median([s["expected_error_mm"] for s in brain]) if brain else float("nan")
+        cells.append(f"{sum(s['accepted'] for s in brain)} of {len(brain)} ({expected:.1f} mm)")
+    return ", ".join(cells)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--repeats", type=int, default=2)
+    args = ap.parse_args()
+    shared, other = REAL_SCANS / SHARED[0], REAL_SCANS / OTHER_SITE[0]
+    if not shared.is_dir():
+        sys.exit(f"needs the real scans at {REAL_SCANS}")
+    with TestClient(create_app()) as client:
+        for _ in range(args.repeats):
+            print("shared scan, localiser:", answer_row(client, shared, SHARED[1], False), flush=True)
+            print("shared scan, manual masks:", answer_row(client, shared, SHARED[1], True), flush=True)
+            print("each stack alone, manual mask:",
+                  "; ".join(answer_row(client, shared, [n], True) for n in SHARED[1]), flush=True)
+            if other.is_dir():
+                print("other site, localiser:", answer_row(client, other, OTHER_SITE[1], False), flush=True)
+
+
+if __name__ == "__main__":
+    main()

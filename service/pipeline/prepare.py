@@ -1,0 +1,150 @@
+"""Preparing a request's stacks: each upload's mask or localised brain, N4, and its slices as the network
+sees them (:func:`prepare_stacks`); :mod:`service.pipeline.predict` poses them.
+
+Stacks with a mask go to worker threads at once; the others first through the localiser's network,
+one after the other, each then settled, corrected and sliced on a worker beside the next one's
+network passes.
+
+Example (a stack with its mask, prepared without N4):
+    >>> import numpy as np
+    >>> from service.inference.model_file import ModelInfo
+    >>> vol = Volume(np.random.default_rng(0).random((32, 32, 4), np.float32), np.diag([1.0, 1.0, 3.0, 1.0]))
+    >>> box = np.zeros((32, 32, 4), np.uint8); box[8:24, 8:24] = 1
+    >>> info = ModelInfo(name="m", version="0", backbone="b", label_type="anchor", input_size=32,
+    ...                  pixel_spacing_mm=1.0, variance_threshold=1.0, dropout_p=0.1, atlas_id="a",
+    ...                  trained_on="-", sha256="0" * 64)
+    >>> [stack] = prepare_stacks([StackUpload("s.nii.gz", vol, Volume(box, vol.affine))], info, False)
+    >>> stack.localisation.method, stack.prepared.inputs.shape
+    ('mask', (4, 32, 32))
+"""
+
+from __future__ import annotations
+
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from service.consistency.stage import network_from_voxel
+from service.core.errors import UnusableImage
+from service.inference.model_file import ModelInfo
+from service.io.volume import Volume
+from service.preprocess.bias import n4_correct
+from service.preprocess.localise import Localisation, Localiser, default_localiser
+from service.preprocess.localiser_inputs import LocaliserGrid
+from service.preprocess.slices import PreparedSlices, preprocess_slices
+from service.preprocess.stack import StackSlices, split_stack
+
+GRID_TOLERANCE_MM = 1e-3
+
+
+@dataclass
+class StackUpload:
+    """A read stack, its optional mask, and the names to report them by."""
+
+    filename: str
+    volume: Volume
+    mask: Volume | None = None
+    mask_filename: str | None = None
+    slice_axis: int | None = None
+    """The axis the slices were acquired along, where known (a streamed stack); otherwise the axis
+    of largest spacing."""
+    mask_holds_csf: bool = False
+    """The uploaded mask is the skull's inside (brain and extra-axial CSF), as manual fetal masks are
+    usually drawn (:attr:`~service.preprocess.localise.Localisation.holds_csf`)."""
+
+
+@dataclass
+class PreparedStack:
+    upload: StackUpload
+    slices: StackSlices
+    prepared: PreparedSlices
+    localisation: Localisation
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def network_from_voxel(self) -> np.ndarray:
+        """``[n, 4, 4]`` voxel ``(i, j, k)`` of slice ``k`` -> its network frame (the service's crop/centre)."""
+        return network_from_voxel(self.prepared.input_from_network(), self.slices.slice_from_voxel)
+
+
+def check_mask_grid(upload: StackUpload) -> None:
+    """The mask must be on exactly the stack's grid (shape and voxel -> world map)."""
+    if upload.mask is None:
+        return
+    name = upload.mask_filename or "mask"
+    if upload.mask.array.shape != upload.volume.array.shape:
+        raise UnusableImage(f"masks: {name} has shape {list(upload.mask.array.shape)} but its stack "
+                            f"{upload.filename} has {list(upload.volume.array.shape)}")
+    corners = np.array([[0, 0, 0, 1], [*np.array(upload.volume.array.shape) - 1, 1]], dtype=np.float64).T
+    if np.abs(upload.mask.affine @ corners - upload.volume.affine @ corners).max() > GRID_TOLERANCE_MM:
+        raise UnusableImage(f"masks: {name} is not on the grid of its stack {upload.filename} "
+                            "(different origin, spacing or orientation)")
+
+
+def localise(upload: StackUpload, localiser: Localiser | None = None) -> Localisation:
+    """The uploaded mask, else the brain that ``localiser`` (default: the shipped one) finds."""
+    if upload.mask is not None:
+        return Localisation.of(upload.mask.array, upload.volume.spacing, "mask", 1.0, upload.mask_holds_csf)
+    return (localiser or default_localiser()).localise(upload.volume)
+
+
+def prepare_stack(upload: StackUpload, info: ModelInfo, bias_correction: bool,
+                  localiser: Localiser | None = None, found: tuple[Localisation, float] | None = None) -> PreparedStack:
+    """Localise, bias-correct, split and preprocess one stack (runs in a worker thread); ``found``:
+    its localisation and the seconds it took, where the caller localised it already."""
+    timings: dict[str, float] = {}
+    vol = upload.volume
+    t = time.perf_counter()
+    localisation = found[0] if found is not None else localise(upload, localiser)
+    mask = localisation.mask
+    timings["localisation"] = found[1] if found is not None else time.perf_counter() - t
+    t = time.perf_counter()
+    array = n4_correct(vol, mask) if bias_correction and mask.any() else vol.array
+    timings["bias_correction"] = time.perf_counter() - t
+    t = time.perf_counter()
+    slices = split_stack(Volume(array, vol.affine), localisation.pose_mask(vol.spacing, upload.slice_axis), upload.slice_axis)
+    prepared = preprocess_slices(slices.images, slices.masks, slices.pixel_mm, info.input_size, info.pixel_spacing_mm)
+    timings["preprocess"] = time.perf_counter() - t
+    return PreparedStack(upload, slices, prepared, localisation, timings)
+
+
+def localise_uploads(uploads: list[StackUpload], localiser: Localiser | None = None) -> list[Localisation]:
+    """Each upload's localisation: its mask, else the brain ``localiser`` (default: the shipped one)
+    finds, the uploads without a mask in shared network calls
+    (:meth:`~service.preprocess.localise.Localiser.localise_many`)."""
+    missing = [u.volume for u in uploads if u.mask is None]
+    found = iter((localiser or default_localiser()).localise_many(missing) if missing else [])
+    return [localise(u) if u.mask is not None else next(found) for u in uploads]
+
+
+def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction: bool,
+                   workers: int = 2, localiser: Localiser | None = None) -> list[PreparedStack]:
+    """:func:`prepare_stack` for every stack, ``workers`` stacks at a time (N4 releases the GIL).
+
+    The stacks without a mask go through ``localiser``'s network (default: the shipped one) one
+    after the other, here; each goes on to the workers as soon as its probabilities are there, so
+    that its geometry, N4 and slices are worked out beside the next stack's network passes (the
+    network runs on both cores, the rest mostly on one). Stacks with a mask start at once."""
+    for u in uploads:
+        check_mask_grid(u)
+    with ThreadPoolExecutor(max_workers=max(1, min(workers, len(uploads)))) as pool:
+        futures = [pool.submit(prepare_stack, u, info, bias_correction) if u.mask is not None else None
+                   for u in uploads]
+        for i, u in enumerate(uploads):
+            if u.mask is None:
+                loc = localiser or default_localiser()
+                t = time.perf_counter()
+                found = loc.probabilities(u.volume)
+                futures[i] = pool.submit(_settle_and_prepare, u, info, bias_correction, loc, found,
+                                         time.perf_counter() - t)
+        return [f.result() for f in futures]
+
+
+def _settle_and_prepare(upload: StackUpload, info: ModelInfo, bias_correction: bool, localiser: Localiser,
+                        found: tuple[np.ndarray, LocaliserGrid], seconds: float) -> PreparedStack:
+    """:func:`prepare_stack` of a stack whose localiser probabilities ``found`` took ``seconds``: its
+    brain settled (:meth:`~service.preprocess.localise.Localiser.settle`), then the rest."""
+    t = time.perf_counter()
+    localisation = localiser.settle(upload.volume, *found)
+    return prepare_stack(upload, info, bias_correction, found=(localisation, seconds + time.perf_counter() - t))
