@@ -1,7 +1,8 @@
 """What ``svrnet`` shows: the tables and lines its commands print, built from the API's JSON bodies.
 
-Nothing here talks to a server or reads a file: each function takes a response body (a dict) and
-returns a :class:`rich.table.Table` or a line of text, so the CLI's output is tested on bodies alone.
+Nothing here talks to a server or reads a file: each table or line is built from a response body (a
+dict), so the CLI's output is tested on bodies alone; :func:`upload_bar` is the progress bar an upload
+feeds.
 
 Example:
     >>> coverage_text({"brain_fraction": 0.5, "gaps": []})
@@ -248,7 +249,7 @@ def upload_bar(console: Console, label: str) -> Iterator[Callable[[int, int], No
         yield update
 
 
-def masks_table(report: dict[str, Any], out_dir: Any) -> Table:
+def masks_table(report: dict[str, Any], out_dir: object) -> Table:
     """The table of ``svrnet masks``: one row per stack of a ``/v1/masks`` report."""
     table = Table(title=f"brain masks in {out_dir}", title_justify="left")
     for col, just in (("stack", "left"), ("mask", "left"), ("volume (ml)", "right"), ("confidence", "right"),
