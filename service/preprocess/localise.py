@@ -14,14 +14,16 @@
 2. **The geometry** settles the answer (:mod:`service.preprocess.brain_shape`), on the network's
    grid: one 3D connected brain of a plausible volume for 20-40 weeks, without what hangs on to it
    through a waist or what a slice adds beyond its neighbours, its in-plane holes filled; then the
-   probabilities inside that brain are brought back to the stack's own grid and cut at 0.5.
+   probabilities inside that brain are brought back to the stack's own grid and cut at 0.4
+   (:data:`~service.preprocess.brain_shape.MASK_THRESHOLD`).
 3. **The confidence** (0..1) multiplies how sure the network is inside the brain, the share of all
    brain-like probability the chosen brain holds, and the plausibility of its volume. A stack with
    no brain (noise, another body part) gets a low confidence; below :data:`MIN_CONFIDENCE` its mask
    is empty and its slices are ``empty``.
 4. **The pose network's mask** (:meth:`Localisation.pose_mask`): the localiser's mask is the skull's
    inside, as manual masks are drawn; the pose network learnt the atlas's tighter brain masks, so its
-   slices are cut with the mask less its outer :data:`POSE_MASK_INSET_MM`.
+   slices are cut with the mask less its outer :data:`POSE_MASK_INSET_MM` (the localiser's mask as
+   cut at :data:`~service.preprocess.brain_shape.THRESHOLD`, :attr:`Localisation.pose_region`).
 
 Example (a localiser is an ONNX file; see :class:`Localiser`):
     >>> loc = Localiser.load(DEFAULT_LOCALISERS_DIR / "default" / "model.onnx")   # doctest: +SKIP
@@ -46,7 +48,7 @@ from service.core.errors import NotFound
 from service.core.onnx import file_sha256, session_options
 from service.core.settings import DEFAULT_LOCALISERS_DIR
 from service.io.volume import Volume
-from service.preprocess.brain_shape import THRESHOLD, brain_from_probabilities
+from service.preprocess.brain_shape import MASK_THRESHOLD, THRESHOLD, brain_from_probabilities
 from service.preprocess.localiser_inputs import LocaliserGrid, localiser_inputs
 from service.preprocess.stack import mask_box, slice_axis_of
 
@@ -77,17 +79,22 @@ class Localisation:
     holds_csf: bool = False
     """The mask is the skull's inside (the brain and the extra-axial CSF around it): the localiser's
     always, an uploaded one when the request says so (``masks_hold_csf``)."""
+    pose_region: NDArray[np.bool_] | None = None
+    """Where the pose network's mask starts from, where it differs from :attr:`mask`: the localiser's
+    probabilities cut at :data:`~service.preprocess.brain_shape.THRESHOLD` (the mask itself is cut
+    lower, as manual masks are drawn; the pose network learnt on the cut it has always had)."""
 
     @classmethod
     def of(cls, mask: NDArray, spacing: NDArray, method: str, confidence: float,
-           holds_csf: bool | None = None) -> "Localisation":
+           holds_csf: bool | None = None, pose_region: NDArray | None = None) -> "Localisation":
         """A mask on a stack's grid of voxel sizes ``spacing``, with its volume and slice count
         (``holds_csf`` default: a localiser's mask does, an uploaded one does not)."""
         m = np.asarray(mask) > 0
         axis = slice_axis_of(spacing)
         slices = int(np.count_nonzero(np.moveaxis(m, axis, 0).reshape(m.shape[axis], -1).any(1)))
         csf = method == "network" if holds_csf is None else bool(holds_csf)
-        return cls(m, method, float(m.sum() * np.prod(spacing) / 1000.0), float(confidence), slices, csf)
+        region = None if pose_region is None else np.asarray(pose_region) > 0
+        return cls(m, method, float(m.sum() * np.prod(spacing) / 1000.0), float(confidence), slices, csf, region)
 
     @property
     def pose_inset_mm(self) -> float:
@@ -98,10 +105,12 @@ class Localisation:
         """The mask the pose network's slices are cut with: a tight brain mask as it is; one that holds
         the CSF around the brain (the localiser's, or an upload the request says holds it) without its outer
         :data:`POSE_MASK_INSET_MM` in the plane of the slices along ``axis`` (default: the thick one),
-        the brain as the atlas masks the pose network learnt from draw it."""
-        if not self.holds_csf or not self.mask.any():
-            return self.mask
-        return inset_in_plane(self.mask, np.asarray(spacing, np.float64), POSE_MASK_INSET_MM, axis)
+        the brain as the atlas masks the pose network learnt from draw it; the localiser's from its
+        :attr:`pose_region`."""
+        region = self.mask if self.pose_region is None else self.pose_region
+        if not self.holds_csf or not region.any():
+            return region
+        return inset_in_plane(region, np.asarray(spacing, np.float64), POSE_MASK_INSET_MM, axis)
 
     def report(self) -> dict:
         """The ``localisation`` object of a ``/v1/predict`` stack."""
@@ -212,7 +221,9 @@ class Localiser:
         near = ndimage.binary_dilation(brain[box], structure=np.ones((1, 3, 3), bool))
         kept = np.zeros_like(prob)
         kept[box] = np.where(near, np.maximum(prob[box], brain[box].astype(np.float32)), 0.0)
-        return Localisation.of(grid.to_stack(kept) >= THRESHOLD, volume.spacing, "network", confidence)
+        probability = grid.to_stack(kept)
+        return Localisation.of(probability >= MASK_THRESHOLD, volume.spacing, "network", confidence,
+                               pose_region=probability >= THRESHOLD)
 
     def localise_slice(self, volume: Volume, which: int) -> Localisation:
         """The brain in slice ``which`` of ``volume`` (a few neighbouring slices of a stack that is still
@@ -235,12 +246,13 @@ class Localiser:
             return Localisation.of(empty.mask, volume.spacing, "network", confidence)
         maps = np.zeros_like(prob)
         maps[which] = np.where(ndimage.binary_dilation(best, iterations=1), np.maximum(p, ndimage.binary_fill_holes(best)), 0.0)
-        mask = grid.to_stack(maps) >= THRESHOLD
-        only = np.zeros(volume.array.shape, bool)
+        probability = grid.to_stack(maps)
         keep = [slice(None)] * 3
         keep[axis] = which
-        only[tuple(keep)] = mask[tuple(keep)]
-        return Localisation.of(only, volume.spacing, "network", confidence)
+        only, core = np.zeros(volume.array.shape, bool), np.zeros(volume.array.shape, bool)
+        only[tuple(keep)] = probability[tuple(keep)] >= MASK_THRESHOLD
+        core[tuple(keep)] = probability[tuple(keep)] >= THRESHOLD
+        return Localisation.of(only, volume.spacing, "network", confidence, pose_region=core)
 
 @functools.cache
 def default_localiser() -> Localiser:

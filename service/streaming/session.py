@@ -223,7 +223,8 @@ class StreamSession:
         else:
             k, window = 0, Volume(np.asarray(frame.pixels, np.float32)[..., None], frame.scanner_from_voxel)
         found = self.localiser.localise_slice(window, k)
-        return replace(found, mask=found.mask[:, :, k:k + 1])
+        region = None if found.pose_region is None else found.pose_region[:, :, k:k + 1]
+        return replace(found, mask=found.mask[:, :, k:k + 1], pose_region=region)
 
     def _alone(self, state: _Slice, fit: StackPoses | None) -> SliceAnswer:
         """The slice's own pose; on the branch of its stack's model where that model decided it."""

@@ -182,6 +182,29 @@ def test_the_pose_network_gets_the_localisers_mask_without_its_csf_rim() -> None
     assert not Localisation.of(np.zeros_like(ball), spacing, "network", 0.0).pose_mask(spacing).any()
 
 
+def test_the_mask_is_cut_lower_than_the_region_the_pose_network_starts_from(localiser: Localiser) -> None:
+    """The localiser's mask holds its pose region and more (cut at MASK_THRESHOLD, not THRESHOLD); the
+    pose network's mask is the pose region less its rim, with nothing of the mask's extra; a slice
+    localised alone keeps the two cuts too."""
+    from model_export.localiser.scenes import HeadModel, synth_stack
+    from service.preprocess.brain_shape import MASK_THRESHOLD, THRESHOLD
+    from service.preprocess.localise import POSE_MASK_INSET_MM, inset_in_plane
+    from tests.support.phantoms import phantom_brain
+
+    assert MASK_THRESHOLD < THRESHOLD
+    image, mask, affine = phantom_brain(11)
+    volume, _ = synth_stack(HeadModel.from_arrays(image, mask, affine), np.random.default_rng(100), "heldout")
+    found = localiser.localise(volume)
+    assert found.pose_region is not None and found.pose_region.any()
+    assert not (found.pose_region & ~found.mask).any() and found.mask.sum() > found.pose_region.sum()
+    assert np.array_equal(found.pose_mask(volume.spacing),
+                          inset_in_plane(found.pose_region, volume.spacing, POSE_MASK_INSET_MM))
+    k = int(np.argmax(found.mask.sum(axis=(0, 1))))
+    alone = localiser.localise_slice(volume, k)
+    assert not (alone.pose_region & ~alone.mask).any() and alone.mask.sum() >= alone.pose_region.sum() > 0
+    assert not alone.mask[:, :, np.arange(volume.array.shape[2]) != k].any()
+
+
 def test_an_upload_said_to_hold_the_csf_gets_the_localisers_inset() -> None:
     from service.pipeline.prepare import StackUpload, localise
 
