@@ -9,7 +9,9 @@ cut away, on the network's grid of per-slice maps ``[n, H, W]``:
 2. what hangs on to it through a waist: a thin bridge of one or more slices into the fetal neck, body
    or face, or a dip past which the component widens again (:func:`cut_at_waists`);
 3. what a slice adds in its own plane beyond its neighbours (:func:`trim_outlier_slices`: a sagittal
-   slice that runs on from the head into the fetal trunk) or beyond the ellipse its outline follows
+   slice that runs on from the head into the fetal trunk), beyond its neighbour nearer the brain's
+   middle where it is wider than that neighbour (:func:`trim_growing_caps`: the face beside the frontal
+   lobes in the last slices of a coronal stack) or beyond the ellipse its outline follows
    (:func:`~service.preprocess.head_ellipses.trim_to_head_ellipses`: neighbouring slices that run on
    together);
 4. its in-plane holes filled (:func:`fill_holes_in_plane`).
@@ -51,7 +53,8 @@ CAP_GROWTH = 1.2
 """A thin slice whose neighbours overlap is still a waist where what lies beyond it (the side with less
 mass) has a slice wider than this times the two slices past it on the other side: a brain's area
 rises to one widest slice and falls, so a cap beyond a poor slice narrows, and a face beyond a skull
-base does not (two slices, so that a partly seen slice beside a poor one does not make a cap look wide)."""
+base does not (two slices, so that a partly seen slice beside a poor one does not make a cap look wide).
+A cap's slice wider than this times its neighbour nearer the middle is trimmed (:func:`trim_growing_caps`)."""
 VALLEY_SHARE = 0.3
 """Two or more neighbouring slices, each under this share of the component's largest slice on each side,
 are a bridge whatever their overlap, cut at its narrowest slice: a poor slice of a brain comes alone
@@ -66,7 +69,8 @@ OUTLIER_AREA = 1.5
 side) has run on into its surroundings in its own plane (:func:`trim_outlier_slices`); a head's
 cross-sections change far less from one slice to the next."""
 OUTLIER_MARGIN_MM = 5.0
-"""Such a slice keeps only what lies within this distance of its nearest regular slices' regions."""
+"""Such a slice keeps only what lies within this distance of its nearest regular slices' regions; so does
+a cap's slice wider than its inner neighbour (:func:`trim_growing_caps`)."""
 TAIL_SHARE = 0.35
 """What lies beyond a waist is cut off when it holds less than this share of the component's
 probability mass; a larger part on each side is the brain itself, split by a poor slice."""
@@ -264,6 +268,42 @@ def trim_outlier_slices(component: NDArray[np.bool_], grid_mm: float) -> NDArray
     return out
 
 
+def trim_growing_caps(component: NDArray[np.bool_], grid_mm: float) -> NDArray[np.bool_]:
+    """A component of per-slice maps ``[n, H, W]`` whose slices on either side of its middle (the
+    area-weighted mean slice: a head's widest) keep, where they are wider than :data:`CAP_GROWTH`
+    times their neighbour nearer the middle, only what lies within :data:`OUTLIER_MARGIN_MM` of that
+    neighbour's region (as trimmed), slice by slice outwards.
+
+    A head's cross-sections shrink from its widest slice to either cap; a slice past it that grows
+    again holds something beside the head in its own plane, as the face does beside the frontal
+    lobes in a coronal stack's last slices, where no waist parts them. The margin leaves the few
+    millimetres a head moves between two slices.
+
+    Example (slices 0-6 of a brain that narrows to slice 6, whose slice 5 also holds a face beside it):
+        >>> c = np.zeros((7, 30, 40), bool)
+        >>> for k, half in enumerate([6, 8, 9, 9, 8, 6, 4]): c[k, 15 - half:15 + half, 15 - half:15 + half] = True
+        >>> c[5, 9:21, 21:36] = True
+        >>> out = trim_growing_caps(c, grid_mm=2.5)
+        >>> int(c[5].sum()), int(out[5].sum()), bool(out[5, :, 30:].any())
+        (324, 192, False)
+    """
+    area = component.reshape(len(component), -1).sum(1)
+    if np.count_nonzero(area) < 5:
+        return component
+    radius = max(1, int(round(OUTLIER_MARGIN_MM / grid_mm)))
+    disk = np.hypot(*np.mgrid[-radius:radius + 1, -radius:radius + 1]) <= radius
+    out = component.copy()
+    middle = int(round(float(np.arange(len(area)) @ area / area.sum())))     # the widest slices' place,
+    for step in (1, -1):                                                      # whatever lies beside a cap
+        k = middle + step
+        while 0 <= k < len(out) and out[k].any():
+            inner = out[k - step]
+            if out[k].sum() > CAP_GROWTH * inner.sum():
+                out[k] &= ndimage.binary_dilation(inner, structure=disk)
+            k += step
+    return out
+
+
 def largest_mass(mask: NDArray[np.bool_], prob: NDArray[np.float32]) -> NDArray[np.bool_]:
     """The 3D connected component of ``mask`` with most probability mass."""
     labels, n = ndimage.label(mask, structure=np.ones((3, 3, 3), bool))
@@ -294,7 +334,7 @@ def brain_from_probabilities(prob: NDArray[np.float32], voxel_ml: float, grid_mm
     volume_of = np.bincount(labels.ravel(), minlength=n + 1)[1:] * voxel_ml
     best = int(np.argmax(mass * plausibility(volume_of) + 1e-6 * mass)) + 1
     brain = cut_at_waists(labels == best, p)
-    brain = trim_to_head_ellipses(trim_outlier_slices(brain, grid_mm), grid_mm)
+    brain = trim_to_head_ellipses(trim_growing_caps(trim_outlier_slices(brain, grid_mm), grid_mm), grid_mm)
     brain = fill_holes_in_plane(largest_mass(brain, p))
     volume_ml = float(brain.sum() * voxel_ml)
     if volume_ml < MIN_BRAIN_ML:
