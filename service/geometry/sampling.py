@@ -17,13 +17,27 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import ndimage
+from scipy import ndimage, sparse
 
 from service.geometry.pose import apply, make_pose, slice_pixel_coordinates
 
 FWHM_TO_SIGMA = 1.0 / (2.0 * np.sqrt(2.0 * np.log(2.0)))
 INPLANE_FWHM_FACTOR = 1.2
 """In-plane PSF FWHM as a multiple of the acquisition pixel size (Kainz et al. 2015)."""
+
+
+def linear_operator(coords: ArrayLike, n_in: int, dtype: type = np.float32) -> sparse.csr_matrix:
+    """Linear interpolation of an axis of ``n_in`` samples at ``coords`` (indices; the nearest sample
+    beyond the ends) as a sparse ``[len(coords), n_in]`` matrix: :func:`scipy.ndimage.map_coordinates`
+    applied to the identity, so that a grid is resampled axis by axis with one product per axis.
+
+    Example:
+        >>> linear_operator([0.25, 1.0, 3.0], 3).toarray().tolist()
+        [[0.75, 0.25, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    """
+    rows, cols = np.meshgrid(np.asarray(coords, np.float64), np.arange(n_in, dtype=np.float64), indexing="ij")
+    dense = ndimage.map_coordinates(np.eye(n_in, dtype=dtype), [rows, cols], order=1, mode="nearest")
+    return sparse.csr_matrix(dense)
 
 
 def slice_points(poses: ArrayLike, size: int, pixel_mm: float, offset_mm: float = 0.0) -> NDArray:

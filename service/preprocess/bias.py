@@ -28,6 +28,7 @@ import numpy as np
 import SimpleITK as sitk
 from numpy.typing import NDArray
 
+from service.geometry.sampling import linear_operator
 from service.io.volume import Volume, to_sitk
 from service.preprocess.n4 import n4_log_field
 from service.preprocess.stack import mask_box
@@ -84,9 +85,10 @@ def continuous_indices(coarse: sitk.Image, fine: sitk.Image) -> list[NDArray[np.
 
 def upsample_linear(values: NDArray, at: list[NDArray]) -> NDArray[np.float32]:
     """``values [X, Y, Z]`` interpolated trilinearly at the continuous indices ``at`` (one array per
-    axis; the result is their outer grid), as one 1D interpolation per axis. Within the grid this is
-    ITK's linear interpolator; beyond it, the value at the nearest point of the grid (continuous,
-    where ITK's nearest-neighbour extrapolation jumps to the nearest voxel in every axis).
+    axis; the result is their outer grid), as one 1D interpolation per axis
+    (:func:`~service.geometry.sampling.linear_operator`). Within the grid this is ITK's linear
+    interpolator; beyond it, the value at the nearest point of the grid (continuous, where ITK's
+    nearest-neighbour extrapolation jumps to the nearest voxel in every axis).
 
     Example (a ramp along x, sampled between its pixels and beyond its end):
         >>> v = np.arange(3.0)[:, None, None] * np.ones((3, 1, 1))
@@ -95,12 +97,7 @@ def upsample_linear(values: NDArray, at: list[NDArray]) -> NDArray[np.float32]:
     """
     out = np.asarray(values, np.float64)
     for axis, c in enumerate(at):
-        n = out.shape[axis]
-        c = np.clip(c, 0.0, n - 1)
-        lo = np.minimum(np.floor(c).astype(np.intp), max(n - 2, 0))
-        weights = np.zeros((len(c), n))
-        rows = np.arange(len(c))
-        np.add.at(weights, (rows, lo), 1.0 - (c - lo))
-        np.add.at(weights, (rows, np.minimum(lo + 1, n - 1)), c - lo)
-        out = np.moveaxis(np.tensordot(weights, out, axes=([1], [axis])), 0, axis)
+        moved = np.moveaxis(out, axis, 0)
+        along = linear_operator(c, len(moved), np.float64) @ moved.reshape(len(moved), -1)
+        out = np.moveaxis(along.reshape(len(c), *moved.shape[1:]), 0, axis)
     return out.astype(np.float32)

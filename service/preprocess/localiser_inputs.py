@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage, sparse
 
-from service.geometry.sampling import FWHM_TO_SIGMA
+from service.geometry.sampling import FWHM_TO_SIGMA, linear_operator
 from service.io.volume import Volume
 from service.preprocess.stack import slice_axis_of, slice_images, stack_from_slice_images
 
@@ -72,19 +72,10 @@ class LocaliserGrid:
         scale = np.array(self.native) / np.array([h, w])             # native pixels per network pixel
         lo = np.maximum(np.floor((nonzero.min(0) - 1) * scale).astype(int), 0)
         hi = np.minimum(np.ceil((nonzero.max(0) + 2) * scale).astype(int), self.native)
-        rows = _linear_operator((np.arange(lo[0], hi[0]) + 0.5) / scale[0] - 0.5, h)
-        cols = _linear_operator((np.arange(lo[1], hi[1]) + 0.5) / scale[1] - 0.5, w)
+        rows = linear_operator((np.arange(lo[0], hi[0]) + 0.5) / scale[0] - 0.5, h)
+        cols = linear_operator((np.arange(lo[1], hi[1]) + 0.5) / scale[1] - 0.5, w)
         native[:, lo[0]:hi[0], lo[1]:hi[1]] = _separable(np.ascontiguousarray(core), rows, cols)
         return stack_from_slice_images(native, self.slice_axis)
-
-
-def _linear_operator(coords: NDArray[np.float64], n_in: int) -> sparse.csr_matrix:
-    """Linear interpolation of an axis of ``n_in`` pixels at ``coords`` (pixel indices; ``nearest``
-    beyond the ends) as a sparse ``[len(coords), n_in]`` matrix: :func:`scipy.ndimage.map_coordinates`
-    applied to the identity, as :func:`axis_operator` is made."""
-    rows, cols = np.meshgrid(np.asarray(coords, np.float64), np.arange(n_in, dtype=np.float64), indexing="ij")
-    dense = ndimage.map_coordinates(np.eye(n_in, dtype=np.float32), [rows, cols], order=1, mode="nearest")
-    return sparse.csr_matrix(dense)
 
 
 def _separable(images: NDArray[np.float32], rows: sparse.csr_matrix, cols: sparse.csr_matrix) -> NDArray[np.float32]:
