@@ -101,6 +101,14 @@ class Localisation:
         """How far inside the mask the pose network's mask lies (:meth:`pose_mask`)."""
         return POSE_MASK_INSET_MM if self.holds_csf else 0.0
 
+    @classmethod
+    def found(cls, probability: NDArray, spacing: NDArray, confidence: float) -> "Localisation":
+        """The localiser's answer from its brain probabilities on the stack's grid: the mask cut at
+        :data:`~service.preprocess.brain_shape.MASK_THRESHOLD`, its :attr:`pose_region` at
+        :data:`~service.preprocess.brain_shape.THRESHOLD`."""
+        return cls.of(probability >= MASK_THRESHOLD, spacing, "network", confidence,
+                      pose_region=probability >= THRESHOLD)
+
     def pose_mask(self, spacing: NDArray, axis: int | None = None) -> NDArray[np.bool_]:
         """The mask the pose network's slices are cut with: a tight brain mask as it is; one that holds
         the CSF around the brain (the localiser's, or an upload the request says holds it) without its outer
@@ -221,9 +229,7 @@ class Localiser:
         near = ndimage.binary_dilation(brain[box], structure=np.ones((1, 3, 3), bool))
         kept = np.zeros_like(prob)
         kept[box] = np.where(near, np.maximum(prob[box], brain[box].astype(np.float32)), 0.0)
-        probability = grid.to_stack(kept)
-        return Localisation.of(probability >= MASK_THRESHOLD, volume.spacing, "network", confidence,
-                               pose_region=probability >= THRESHOLD)
+        return Localisation.found(grid.to_stack(kept), volume.spacing, confidence)
 
     def localise_slice(self, volume: Volume, which: int) -> Localisation:
         """The brain in slice ``which`` of ``volume`` (a few neighbouring slices of a stack that is still
@@ -235,7 +241,6 @@ class Localiser:
         prob, grid = self.probabilities(volume)
         p = prob[which]
         labels, n = ndimage.label(p >= THRESHOLD)
-        axis = slice_axis_of(volume.spacing)
         empty = Localisation.of(np.zeros(volume.array.shape, bool), volume.spacing, "network", 0.0)
         if n == 0:
             return empty
@@ -246,13 +251,8 @@ class Localiser:
             return Localisation.of(empty.mask, volume.spacing, "network", confidence)
         maps = np.zeros_like(prob)
         maps[which] = np.where(ndimage.binary_dilation(best, iterations=1), np.maximum(p, ndimage.binary_fill_holes(best)), 0.0)
-        probability = grid.to_stack(maps)
-        keep = [slice(None)] * 3
-        keep[axis] = which
-        only, core = np.zeros(volume.array.shape, bool), np.zeros(volume.array.shape, bool)
-        only[tuple(keep)] = probability[tuple(keep)] >= MASK_THRESHOLD
-        core[tuple(keep)] = probability[tuple(keep)] >= THRESHOLD
-        return Localisation.of(only, volume.spacing, "network", confidence, pose_region=core)
+        return Localisation.found(grid.to_stack(maps), volume.spacing, confidence)     # slice by slice: only `which`
+
 
 @functools.cache
 def default_localiser() -> Localiser:
