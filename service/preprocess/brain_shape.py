@@ -231,6 +231,12 @@ def end_dips(area: NDArray) -> NDArray[np.int64]:
     return np.array(sorted(dips), np.int64)
 
 
+def _margin_disk(grid_mm: float) -> NDArray[np.bool_]:
+    """The in-plane disk of radius :data:`OUTLIER_MARGIN_MM` (pixels of ``grid_mm``, at least one)."""
+    radius = max(1, int(round(OUTLIER_MARGIN_MM / grid_mm)))
+    return np.hypot(*np.mgrid[-radius:radius + 1, -radius:radius + 1]) <= radius
+
+
 def trim_outlier_slices(component: NDArray[np.bool_], grid_mm: float) -> NDArray[np.bool_]:
     """A component of per-slice maps ``[n, H, W]`` whose outlying slices keep only what lies near their
     neighbours.
@@ -257,8 +263,7 @@ def trim_outlier_slices(component: NDArray[np.bool_], grid_mm: float) -> NDArray
     if not outlier.any():
         return component
     regular = np.flatnonzero((area > 0) & ~outlier)
-    radius = max(1, int(round(OUTLIER_MARGIN_MM / grid_mm)))
-    disk = np.hypot(*np.mgrid[-radius:radius + 1, -radius:radius + 1]) <= radius
+    disk = _margin_disk(grid_mm)
     out = component.copy()
     for k in np.flatnonzero(outlier):
         below, above = regular[regular < k], regular[regular > k]
@@ -290,8 +295,7 @@ def trim_growing_caps(component: NDArray[np.bool_], grid_mm: float) -> NDArray[n
     area = component.reshape(len(component), -1).sum(1)
     if np.count_nonzero(area) < 5:
         return component
-    radius = max(1, int(round(OUTLIER_MARGIN_MM / grid_mm)))
-    disk = np.hypot(*np.mgrid[-radius:radius + 1, -radius:radius + 1]) <= radius
+    disk = _margin_disk(grid_mm)
     out = component.copy()
     middle = int(round(float(np.arange(len(area)) @ area / area.sum())))     # the widest slices' place,
     for step in (1, -1):                                                      # whatever lies beside a cap
