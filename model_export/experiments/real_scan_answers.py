@@ -1,6 +1,7 @@
 """What ``/v1/predict`` answers on the real scans of ``../shared/data/real_scans``: per stack, the
 slices accepted of those with a brain and their median ``expected_error_mm``, for the shared scan
-without masks, with its manual masks, each stack alone with its manual mask, and the stacks of
+without masks, with its manual masks (sent as they are: no `masks_hold_csf`), each stack alone with
+its manual mask, and the stacks of
 another site without masks (docs/accuracy.md, "Real scans"). Each row is one request through the
 app in process (N4, 100 MC samples, every stage, the default accept flags); ``--repeats`` requests
 show how far the MC draws move the counts.
@@ -20,18 +21,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from fastapi.testclient import TestClient  # noqa: E402
 
+from model_export.localiser.evaluate import MASK_SUFFIX, REAL_SCANS  # noqa: E402
 from service.main import create_app  # noqa: E402
 
-REAL_SCANS = Path(__file__).resolve().parents[3] / "shared" / "data" / "real_scans"
 SHARED = ("mial_lausanne_t30", ["axial1_lr", "coronal1_lr", "sagittal1_lr"])
 OTHER_SITE = ("bch_f0832s1", ["fetus_03", "fetus_04"])
 
 
 def files_of(folder: Path, names: list[str], masks: bool) -> list[tuple[str, tuple[str, bytes]]]:
-    """The multipart files of a request: the stacks, and their ``NAME_brain_mask`` files with ``masks``."""
+    """The multipart files of a request: the stacks, and their manual masks (``NAME`` + :data:`MASK_SUFFIX`)
+    with ``masks``."""
     files = [("stacks", (f"{n}.nii.gz", (folder / f"{n}.nii.gz").read_bytes())) for n in names]
     if masks:
-        files += [("masks", (f"{n}.nii.gz", (folder / f"{n}_brain_mask.nii.gz").read_bytes())) for n in names]
+        files += [("masks", (f"{n}.nii.gz", (folder / f"{n}{MASK_SUFFIX}").read_bytes())) for n in names]
     return files
 
 
