@@ -2,8 +2,8 @@
 slices accepted of those with a brain and their median ``expected_error_mm``, for the shared scan
 without masks, with its manual masks (sent as they are: no ``masks_hold_csf``), each stack alone
 with its manual mask, and the stacks of another site without masks (docs/accuracy.md, "Real
-scans"). Each row is one request through the app in process (N4, 100 MC samples, every stage, the default accept flags); ``--repeats`` requests
-show how far the MC draws move the counts.
+scans"). Each row is one request through the app in process (N4, 100 MC samples, every stage, the
+default accept flags); ``--repeats`` requests show how far the MC draws move the counts.
 
     .venv/bin/python model_export/experiments/real_scan_answers.py [--repeats 2]
 """
