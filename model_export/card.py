@@ -131,6 +131,19 @@ def _views_text(info: dict) -> str:
             "(`service/inference/views.py`)")
 
 
+def draws_text(info: dict) -> str:
+    """The card's row on where the MC-dropout draws come from.
+
+    Example:
+        >>> draws_text({"mc_seed": "0"})[:48]
+        'fixed (seed 0): pass k of view v always drops th'
+    """
+    if "mc_seed" not in info:
+        return "drawn afresh in the graph at every call (onnxruntime `RandomUniformLike`)"
+    return (f"fixed (seed {info['mc_seed']}): pass k of view v always drops the same units, fed by the service "
+            "(`svrnet-train fix-draws`); a slice gets the same samples in every request, batch or stream")
+
+
 def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict, calibration: dict,
                evaluation: dict, comparison: list[dict] | None, report_path: str, onnx_bytes: int) -> Path:
     """Write ``card.md`` with training cost, validation accuracy, calibration and the backbone table."""
@@ -146,6 +159,7 @@ def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict
 | variance threshold | {float(info['variance_threshold']):.4g} (calibrated, see below) |
 | test-time views | {_views_text(info)} |
 | arithmetic | {info.get('quantised', 'float32')} |
+| MC draws | {draws_text(info)} |
 | file | `model.onnx` ({onnx_bytes / 1e6:.1f} MB), `checkpoint.pt` (the next training run starts from it: `svrnet-train train --init`) |
 | commit | {info['commit']} |
 

@@ -112,6 +112,21 @@ def export(
     typer.echo(f"wrote {path} ({count_random_nodes(path)} random nodes, variance threshold {threshold:.3g})")
 
 
+@app.command("fix-draws")
+def fix_draws(source: Path, output: Annotated[Optional[Path], typer.Argument(help="default: SOURCE itself")] = None,
+              seed: int = 0) -> None:
+    """Rewrite a model so that the service feeds its MC-dropout draws from SEED (a fixed ensemble: one
+    request, one answer); its metadata, calibrations included, are kept."""
+    import shutil
+
+    from model_export.export import fix_draws as rewrite
+
+    out = output or source
+    if out != source:
+        shutil.copyfile(source, out)
+    typer.echo(f"wrote {out}: {rewrite(out, seed)} dropout layers fed from seed {seed}")
+
+
 @app.command()
 def calibrate(checkpoint: Path, root: Root = DEFAULT_ATLAS_ROOT, mc_samples: int = 100,
               tta_views: int = SHIPPED_VIEWS) -> None:

@@ -24,6 +24,7 @@ import torch
 from model_export.model import MCExport, SVRNet
 from service.geometry.anchors import ANCHOR_HALF_SIZE_MM
 from service.geometry.twin import DEFAULT_PLANE_X_MM
+from service.inference.model_file import DEFAULT_MC_SEED, DRAWS_PREFIX
 
 INPUT_SLICES, INPUT_PASSES, OUTPUT_LABELS = "slices", "passes", "labels"
 INTENSITY_CONVENTION = ("0-255: N4-corrected slice, masked, clipped to the 1st/99th percentile inside the mask "
@@ -81,6 +82,37 @@ def export_onnx(model: SVRNet, path: Path, metadata: dict[str, str], opset: int 
     onnx.checker.check_model(proto)
     onnx.save(proto, str(path))
     return path
+
+
+def fix_draws(path: Path, seed: int = DEFAULT_MC_SEED) -> int:
+    """Rewrite the model at ``path`` so that its dropout draws are inputs: each ``RandomUniformLike``
+    node becomes the input ``dropout_uniform_<k> [1, samples, F]``
+    (:data:`~service.inference.model_file.DRAWS_PREFIX`), which the service fills from ``seed``
+    (metadata ``mc_seed``, :meth:`~service.inference.model_file.LoadedModel.draws`). The dropout
+    stays Monte Carlo; its draws become a fixed ensemble of sub-networks, so one request gives one
+    answer. The rest of the graph and its metadata are kept; returns the number of nodes replaced.
+    """
+    proto = onnx.load(str(path))
+    graph = proto.graph
+    shapes = {v.name: v for v in onnx.shape_inference.infer_shapes(proto).graph.value_info}
+    random = [n for n in graph.node if n.op_type == "RandomUniformLike"]
+    for k, node in enumerate(random):
+        units = shapes[node.output[0]].type.tensor_type.shape.dim[-1].dim_value
+        if not units:
+            raise ValueError(f"{path}: the width of dropout layer {k} is not fixed in the graph")
+        name = f"{DRAWS_PREFIX}{k}"
+        graph.input.append(onnx.helper.make_tensor_value_info(name, onnx.TensorProto.FLOAT, [1, "samples", units]))
+        for consumer in graph.node:
+            consumer.input[:] = [name if x == node.output[0] else x for x in consumer.input]
+        graph.node.remove(node)
+    meta = {p.key: p.value for p in proto.metadata_props}
+    meta.update({"mc_seed": str(seed), "mc_draws": "fixed: dropout_uniform_<k> inputs, filled from mc_seed"})
+    del proto.metadata_props[:]
+    for key, value in meta.items():
+        proto.metadata_props.add(key=key, value=value)
+    onnx.checker.check_model(proto)
+    onnx.save(proto, str(path))
+    return len(random)
 
 
 def count_random_nodes(path: Path) -> int:

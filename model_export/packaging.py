@@ -8,7 +8,7 @@ import torch
 
 from model_export.atlas import ATLAS_ID, POPULATIONS
 from model_export.calibrate_acceptance import FLAGS
-from model_export.export import build_metadata, export_onnx
+from model_export.export import build_metadata, fix_draws, export_onnx
 from model_export.model import SVRNet
 from model_export.spread import SPREAD_FLAGS
 
@@ -28,7 +28,8 @@ def load_checkpoint(path: Path) -> tuple[SVRNet, dict]:
 
 def export_checkpoint(checkpoint: Path, output: Path, *, name: str, version: str,
                       variance_threshold: float, extra: dict | None = None) -> Path:
-    """Export a training checkpoint to ONNX with the metadata the service reads."""
+    """Export a training checkpoint to ONNX with the metadata the service reads, its dropout draws
+    fed by the service (:func:`~model_export.export.fix_draws`)."""
     model, ck = load_checkpoint(checkpoint)
     cfg = ck["config"]
     training = (f"{len(cfg['train_volumes'])} atlas volumes ({', '.join(cfg['train_volumes'])}); "
@@ -40,4 +41,6 @@ def export_checkpoint(checkpoint: Path, output: Path, *, name: str, version: str
         extra={"train_steps": ck["step"], "samples_seen": ck["samples_seen"],
                "train_loss": cfg.get("loss", "l2"), **(extra or {})},
     )
-    return export_onnx(model, output, meta)
+    path = export_onnx(model, output, meta)
+    fix_draws(path)
+    return path

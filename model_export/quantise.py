@@ -70,14 +70,17 @@ def quantise_model(source: Path, out: Path, count: int = CALIBRATION_SLICES, see
 
 
 class _Slices(CalibrationDataReader):
-    """Feeds the calibration slices to onnxruntime's calibrator in batches, each with one MC pass."""
+    """Feeds the calibration slices to onnxruntime's calibrator in batches, each with one MC pass (and
+    its dropout draws, for a model that takes them as inputs)."""
 
-    def __init__(self, slices: NDArray[np.float32]) -> None:
+    def __init__(self, slices: NDArray[np.float32], draws: dict[str, NDArray[np.float32]]) -> None:
         self._batches: Iterator[NDArray[np.float32]] = iter(np.array_split(slices, max(1, len(slices) // BATCH)))
+        self._draws = draws
 
     def get_next(self) -> dict[str, NDArray[np.float32]] | None:
         x = next(self._batches, None)
-        return None if x is None else {INPUT_SLICES: np.ascontiguousarray(x), INPUT_PASSES: np.ones(1, np.float32)}
+        return None if x is None else {INPUT_SLICES: np.ascontiguousarray(x), INPUT_PASSES: np.ones(1, np.float32),
+                                       **self._draws}
 
 
 def quantise(source: Path, out: Path, slices: NDArray[np.float32], float_convs: int = FLOAT_CONVS) -> Path:
@@ -86,19 +89,20 @@ def quantise(source: Path, out: Path, slices: NDArray[np.float32], float_convs: 
 
     Raises:
         ValueError: ``source`` is quantised already, or the quantised graph lost dropout's random nodes
-            (MC dropout would stop being stochastic).
+            or draw inputs (MC dropout would stop being stochastic).
     """
     source, out = Path(source), Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     meta = {p.key: p.value for p in onnx.load(str(source)).metadata_props}
     if "quantised" in meta:
         raise ValueError(f"{source} is quantised already ({meta['quantised']})")
-    random_nodes = count_random_nodes(source)
+    random_nodes, draws = count_random_nodes(source), load_model(source).draw_inputs
     with tempfile.TemporaryDirectory() as tmp:
         prepared = Path(tmp) / "prepared.onnx"
         quant_pre_process(str(source), str(prepared), skip_symbolic_shape=True)
         convs = [n.name for n in onnx.load(str(prepared)).graph.node if n.op_type == "Conv"]
-        quantize_static(str(prepared), str(out), _Slices(slices), quant_format=QuantFormat.QDQ, per_channel=True,
+        reader = _Slices(slices, load_model(source).draws(1))
+        quantize_static(str(prepared), str(out), reader, quant_format=QuantFormat.QDQ, per_channel=True,
                         op_types_to_quantize=["Conv"], nodes_to_exclude=convs[:float_convs],
                         activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
                         calibrate_method=CalibrationMethod.MinMax, reduce_range=True)
@@ -110,6 +114,6 @@ def quantise(source: Path, out: Path, slices: NDArray[np.float32], float_convs: 
     for k, v in meta.items():
         proto.metadata_props.add(key=k, value=v)
     onnx.save(proto, str(out))
-    if count_random_nodes(out) != random_nodes:
-        raise ValueError(f"{out}: quantisation removed dropout's random nodes")
+    if count_random_nodes(out) != random_nodes or load_model(out).draw_inputs != draws:
+        raise ValueError(f"{out}: quantisation removed dropout's random nodes or draw inputs")
     return out

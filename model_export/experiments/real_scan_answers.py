@@ -3,7 +3,8 @@ slices accepted of those with a brain and their median ``expected_error_mm``, fo
 without masks, with its manual masks (sent as they are: no ``masks_hold_csf``), each stack alone
 with its manual mask, and the stacks of another site without masks (docs/accuracy.md, "Real
 scans"). Each row is one request through the app in process (N4, 100 MC samples, every stage, the
-default accept flags); ``--repeats`` requests show how far the MC draws move the counts.
+default accept flags). A model with fixed draws answers a request again as it did
+(docs/training.md, "Export and MC dropout"); ``--repeats`` sends each request again, which checks that.
 
     .venv/bin/python model_export/experiments/real_scan_answers.py [--repeats 2]
 """
@@ -50,7 +51,7 @@ def answer_row(client: TestClient, folder: Path, names: list[str], masks: bool) 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--repeats", type=int, default=1)
     args = ap.parse_args()
     shared, other = REAL_SCANS / SHARED[0], REAL_SCANS / OTHER_SITE[0]
     if not shared.is_dir():

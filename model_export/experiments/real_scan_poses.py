@@ -3,7 +3,8 @@ rigid move of the whole answer (the atlas frame the request settles in) and what
 
 Real scans have no true poses; two answers for the same stacks can still be compared. A scan folder
 holds ``NAME.nii.gz`` beside ``NAME_brain_mask.nii.gz`` (the manual mask, sent with
-``masks_hold_csf``). Both answers go through ``/v1/predict``'s pipeline (every stage, MC 100). Printed
+``masks_hold_csf``). Both answers go through ``/v1/predict``'s pipeline (every stage, MC 100) with
+the same MC draws (a model with fixed draws), so only the masks separate them. Printed
 per stack: the median E.D. between the two answers over the slices both pose, the accepted slices of
 each, the localiser's confidence, then per-slice distances (``M``: posed with the manual mask only,
 ``L``: with the localiser's only, ``*``: accepted without masks); then the common rigid offset (the
@@ -32,7 +33,7 @@ from model_export.localiser.pose_accuracy import slice_poses  # noqa: E402
 from service.api.responses import stack_objects  # noqa: E402
 from service.geometry import anchors, se3  # noqa: E402
 from service.inference.acceptance import ATLAS_CENTRE_MM  # noqa: E402
-from service.inference.estimator import PoseEstimator  # noqa: E402
+from service.inference.estimator import OnnxPoseEstimator, PoseEstimator  # noqa: E402
 from service.io.volume import Volume, read_volume  # noqa: E402
 from service.pipeline.predict import predict  # noqa: E402
 from service.pipeline.prepare import StackUpload, prepare_stacks  # noqa: E402
@@ -101,12 +102,15 @@ def main() -> None:
     ap.add_argument("--localiser", type=Path, help="a localiser ONNX file (default: the shipped one)")
     ap.add_argument("--stacks", help="comma-separated names: these stacks alone (default: every masked one)")
     ap.add_argument("--no-image-consistency", action="store_true", help="both answers without the image stage")
-    ap.add_argument("--repeats", type=int, default=1, help="pairs of answers (other MC draws); then their range")
+    ap.add_argument("--repeats", type=int, default=1,
+                    help="pairs of answers, each pair with the draws of the model's seed + 0, 1, ...; then their range")
     args = ap.parse_args()
     localiser = Localiser.load(args.localiser) if args.localiser else default_localiser()
     estimator = _pose_estimator()
     volumes, manual = read_scan(args.scan, args.stacks)
-    runs = [compare(volumes, manual, localiser, estimator, not args.no_image_consistency) for _ in range(args.repeats)]
+    seeded = [estimator if r == 0 or estimator.model.mc_seed is None
+              else OnnxPoseEstimator(estimator.model.with_seed(estimator.model.mc_seed + r)) for r in range(args.repeats)]
+    runs = [compare(volumes, manual, localiser, e, not args.no_image_consistency) for e in seeded]
     runs = [r for r in runs if r]
     if len(runs) > 1:
         print(f"over {len(runs)} pairs: " + "; ".join(

@@ -114,15 +114,22 @@ class OnnxPoseEstimator:
 
     def sample_labels(self, inputs: NDArray[np.float32], mc_samples: int) -> NDArray:
         """Labels ``[B, N, D]`` of the slices, the ``N = mc_samples`` samples shared among the model's
-        test-time views (``info.tta_views``); ``mc_samples = 0``: one deterministic pass per view."""
-        return sample_views(self.run, inputs, mc_samples, self.info.label_type, self.info.symmetry_plane_x_mm,
+        test-time views (``info.tta_views``), each view with its own dropout draws;
+        ``mc_samples = 0``: one deterministic pass per view."""
+        views = lambda x, n: self.run(x, n, group=len(inputs))  # noqa: E731 - the views come as groups of B rows
+        return sample_views(views, inputs, mc_samples, self.info.label_type, self.info.symmetry_plane_x_mm,
                             self.info.tta_views)
 
-    def run(self, inputs: NDArray[np.float32], mc_samples: int) -> NDArray[np.float32]:
-        """Raw labels ``[B, N, D]`` of one view; ``mc_samples = 0`` gives one deterministic pass (N = 1)."""
+    def run(self, inputs: NDArray[np.float32], mc_samples: int, group: int | None = None) -> NDArray[np.float32]:
+        """Raw labels ``[B, N, D]``; ``mc_samples = 0`` gives one deterministic pass (N = 1). Rows come
+        in groups of ``group`` (default: one group), group ``g`` with dropout draws ``g``
+        (:meth:`~service.inference.model_file.LoadedModel.draws`), in calls of at most
+        :attr:`batch_slices` rows."""
         passes = np.ones(mc_samples, np.float32) if mc_samples > 0 else np.zeros(1, np.float32)
         x = np.asarray(inputs, dtype=np.float32)
-        chunks = [self.model.run(x[i:i + self.batch_slices], passes) for i in range(0, len(x), self.batch_slices)]
+        group = max(int(group or len(x)), 1)
+        chunks = [self.model.run(x[i:min(i + self.batch_slices, g + group)], passes, g // group)
+                  for g in range(0, len(x), group) for i in range(g, min(g + group, len(x)), self.batch_slices)]
         return np.concatenate(chunks) if chunks else np.zeros((0, len(passes), 0), np.float32)
 
     def estimate(self, inputs: NDArray[np.float32], mc_samples: int) -> PoseEstimate:

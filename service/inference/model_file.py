@@ -19,6 +19,13 @@ from service.core.onnx import file_sha256, session_options
 from service.geometry.twin import DEFAULT_PLANE_X_MM
 
 INPUT_SLICES, INPUT_PASSES, OUTPUT_LABELS = "slices", "passes", "labels"
+DRAWS_PREFIX = "dropout_uniform_"
+"""Inputs ``dropout_uniform_<k> [1, N, F]`` of a model whose MC-dropout draws are fed, not drawn in
+the graph: the uniform numbers the ``k``-th dropout layer's masks are cut from (``>= p`` keeps a
+unit), one row per pass, shared by the slices of a call (``model_export.export.fix_draws``)."""
+DEFAULT_MC_SEED = 0
+MIN_DRAWN_PASSES = 128
+"""Passes drawn at least, per draw: a request's passes are a prefix of them."""
 
 
 @dataclass(frozen=True)
@@ -110,18 +117,54 @@ def _logit(text: str) -> tuple[float, float] | None:
 
 @dataclass
 class LoadedModel:
-    """A model file with its session; :meth:`run` returns labels ``[B, N, D]``."""
+    """A model file with its session; :meth:`run` returns labels ``[B, N, D]``.
+
+    A model with :data:`DRAWS_PREFIX` inputs gets its dropout draws from :meth:`draws`: a fixed
+    ensemble of sub-networks per ``draw`` (the metadata's ``mc_seed``), so the same slice always gets
+    the same samples, in any request, batch or stream. An older model draws in the graph."""
 
     path: Path
     info: ModelInfo
     session: ort.InferenceSession
+    draw_inputs: list[tuple[str, int]] = field(default_factory=list)
+    """The dropout draws' inputs, by name, and the units of each layer (``F``)."""
+    mc_seed: int | None = None
+    """The seed of the fixed dropout draws; None where the graph draws its own."""
+    _draws: dict[int, tuple[int, dict[str, NDArray[np.float32]]]] = field(default_factory=dict, repr=False)
 
-    def run(self, slices: NDArray[np.float32], passes: NDArray[np.float32]) -> NDArray[np.float32]:
-        """Run the graph on network inputs ``[B, L, L]`` (or ``[B, 1, L, L]``) for ``passes [N]``."""
+    def with_seed(self, seed: int) -> "LoadedModel":
+        """The same model and session with the draws of ``seed`` (another fixed ensemble: experiments
+        that ask how far the MC draws move an answer)."""
+        return LoadedModel(self.path, self.info, self.session, self.draw_inputs,
+                           seed if self.draw_inputs else None)
+
+    def draws(self, n: int, draw: int = 0) -> dict[str, NDArray[np.float32]]:
+        """The dropout inputs for ``n`` passes of ensemble ``draw`` (each test-time view has its own):
+        uniform numbers from ``(mc_seed, layer, draw)``; the first ``n`` passes are the same for any
+        ``n`` (numpy fills the rows in order).
+
+        Example (a model file at hand):
+            >>> m = load_model(Path("service/models/default/model.onnx"))          # doctest: +SKIP
+            >>> bool((m.draws(5)["dropout_uniform_0"] == m.draws(13)["dropout_uniform_0"][:, :5]).all())  # doctest: +SKIP
+            True
+        """
+        kept = self._draws.get(draw)
+        if kept is None or kept[0] < n:                   # one bank per draw, grown to the most passes asked
+            most = max(n, MIN_DRAWN_PASSES)
+            kept = (most, {name: np.random.default_rng([self.mc_seed, k, draw]).random((1, most, units), np.float32)
+                           for k, (name, units) in enumerate(self.draw_inputs)})
+            self._draws[draw] = kept
+        return {name: bank[:, :n] for name, bank in kept[1].items()}
+
+    def run(self, slices: NDArray[np.float32], passes: NDArray[np.float32], draw: int = 0) -> NDArray[np.float32]:
+        """Run the graph on network inputs ``[B, L, L]`` (or ``[B, 1, L, L]``) for ``passes [N]``, with
+        dropout draws ``draw`` (:meth:`draws`)."""
         x = np.asarray(slices, dtype=np.float32)
         if x.ndim == 3:
             x = x[:, None]
-        return self.session.run([OUTPUT_LABELS], {INPUT_SLICES: x, INPUT_PASSES: np.asarray(passes, np.float32)})[0]
+        passes = np.asarray(passes, np.float32)
+        feed = {INPUT_SLICES: x, INPUT_PASSES: passes, **self.draws(len(passes), draw)}
+        return self.session.run([OUTPUT_LABELS], feed)[0]
 
 
 def load_model(path: Path, threads: int = 0) -> LoadedModel:
@@ -129,4 +172,6 @@ def load_model(path: Path, threads: int = 0) -> LoadedModel:
     path = Path(path)
     sess = ort.InferenceSession(str(path), session_options(threads), providers=["CPUExecutionProvider"])
     meta = sess.get_modelmeta().custom_metadata_map
-    return LoadedModel(path, ModelInfo.from_metadata(meta, file_sha256(path)), sess)
+    draws = [(i.name, int(i.shape[-1])) for i in sess.get_inputs() if i.name.startswith(DRAWS_PREFIX)]
+    seed = int(meta.get("mc_seed", DEFAULT_MC_SEED)) if draws else None
+    return LoadedModel(path, ModelInfo.from_metadata(meta, file_sha256(path)), sess, draws, seed)

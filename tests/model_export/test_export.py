@@ -9,7 +9,7 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from model_export.export import build_metadata, count_random_nodes, export_onnx
+from model_export.export import build_metadata, count_random_nodes, export_onnx, fix_draws
 from model_export.model import SVRNet
 from service.geometry import encodings
 from service.inference.estimator import OnnxPoseEstimator
@@ -89,6 +89,49 @@ def test_seeded_runs_are_reproducible_while_successive_runs_differ(exported: tup
     b1 = load_model(exported[1]).run(x, np.ones(5, np.float32))
     np.testing.assert_array_equal(a1, b1)
     assert np.abs(a1 - a2).max() > 1e-3
+
+
+@pytest.fixture(scope="module")
+def fixed(exported: tuple[SVRNet, Path]) -> Path:
+    """The tiny model with its dropout draws fed by the service (seed 3)."""
+    path = exported[1].with_name("tiny-fixed.onnx")
+    path.write_bytes(exported[1].read_bytes())
+    assert fix_draws(path, seed=3) == 2
+    return path
+
+
+def test_fixed_draws_compute_what_pytorch_computes_with_the_same_draws(exported: tuple[SVRNet, Path], fixed: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    model, m = exported[0], load_model(fixed)
+    assert count_random_nodes(fixed) == 0 and [n for n, _ in m.draw_inputs] == ["dropout_uniform_0", "dropout_uniform_1"]
+    x = inputs(3, seed=5)
+    draws = m.draws(6, draw=2)
+    got = m.run(x, np.ones(6, np.float32), draw=2)
+    fed = iter(torch.from_numpy(np.array(a)) for a in draws.values())         # the head's layers, in order
+    monkeypatch.setattr(torch, "rand_like", lambda like: next(fed).reshape(like.shape))
+    with torch.no_grad():
+        ref = model.eval().mc_forward(torch.from_numpy(x), torch.ones(6)).numpy()
+    np.testing.assert_allclose(got, ref, atol=1e-4, rtol=1e-5)
+    assert np.std(got, axis=1).min() > 1e-3                                     # still Monte Carlo
+
+
+def test_fixed_draws_give_a_slice_one_answer_in_any_request(exported: tuple[SVRNet, Path], fixed: Path) -> None:
+    m = load_model(fixed)
+    assert m.mc_seed == 3 and m.info.metadata["version"] == load_model(exported[1]).info.metadata["version"]
+    x = inputs(9, seed=6)[:, 0]
+    est = OnnxPoseEstimator(m, batch_slices=4)
+    whole, again, part = est.sample_labels(x, 20), est.sample_labels(x, 20), est.sample_labels(x[5:7], 20)
+    np.testing.assert_array_equal(whole, again)
+    np.testing.assert_array_equal(whole[5:7], part)                              # batch, stream: the same samples
+    # The first n passes of a longer draw are the draw of n; each draw (a test-time view) is its own.
+    np.testing.assert_array_equal(m.draws(5)["dropout_uniform_1"], m.draws(300)["dropout_uniform_1"][:, :5])
+    assert not np.array_equal(m.draws(5, draw=0)["dropout_uniform_0"], m.draws(5, draw=1)["dropout_uniform_0"])
+    fresh = OnnxPoseEstimator(load_model(fixed)).estimate(x, 20)                # another process, the same answer
+    np.testing.assert_array_equal(fresh.mean, est.estimate(x, 20).mean)
+    other = m.with_seed(4)                                                       # another ensemble, on request
+    assert other.mc_seed == 4 and other.session is m.session
+    assert np.abs(OnnxPoseEstimator(other).sample_labels(x, 20) - whole).max() > 1e-3
+    np.testing.assert_array_equal(OnnxPoseEstimator(other.with_seed(3)).sample_labels(x, 20), whole)
 
 
 def test_decoded_outputs_are_proper_rotations(exported: tuple[SVRNet, Path]) -> None:

@@ -9,7 +9,7 @@ import onnx
 import pytest
 import torch
 
-from model_export.export import build_metadata, count_random_nodes, export_onnx
+from model_export.export import build_metadata, count_random_nodes, export_onnx, fix_draws
 from model_export.quantise import FLOAT_CONVS, calibration_slices, quantise
 from service.geometry import anchors, encodings
 from service.inference.model_file import load_model
@@ -72,6 +72,16 @@ def test_poses_stay_near_the_float_model_and_mc_stays_stochastic(pair: tuple[Pat
     assert np.median(moved) < 0.1 * np.median(spread)
     mc = int8.run(x[:4], np.ones(20, np.float32))
     assert mc.shape[:2] == (4, 20) and np.std(mc, axis=1).min() > 0    # every slice's samples differ
+
+
+def test_a_model_with_fixed_draws_quantises_and_keeps_them(pair: tuple[Path, Path], tmp_path: Path) -> None:
+    source = tmp_path / "fixed.onnx"
+    source.write_bytes(pair[0].read_bytes())
+    fix_draws(source)
+    out = load_model(quantise(source, tmp_path / "fixed-int8.onnx", phantom_slices(32, 5)))
+    assert out.draw_inputs == load_model(source).draw_inputs and out.mc_seed == 0
+    x = phantom_slices(4, 6)
+    np.testing.assert_array_equal(out.run(x, np.ones(8, np.float32)), out.run(x, np.ones(8, np.float32)))
 
 
 def test_calibration_slices_are_the_training_slices_on_the_model_grid(phantom_atlas: Path) -> None:
