@@ -11,7 +11,7 @@ import pytest
 import torch
 from fastapi.testclient import TestClient
 
-from model_export.export import build_metadata, export_onnx
+from model_export.export import build_metadata, export_onnx, fix_draws
 from model_export.model import SVRNet
 from service.core.settings import Settings
 from service.inference.estimator import OnnxPoseEstimator, PoseEstimate
@@ -44,13 +44,16 @@ class OracleEstimator:
 
 @pytest.fixture(scope="session")
 def tiny_model_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A small exported SVRnet (random weights, 64 px at 2 mm) with real MC dropout."""
+    """A small exported SVRnet (random weights, 64 px at 2 mm) with real MC dropout, its draws fed by
+    the service as a shipped model's are."""
     torch.manual_seed(0)
     model = SVRNet("compact", 0.25, "anchor", 64, hidden=32).eval()
     model.set_label_normalisation(torch.randn(50, 9) * 40)
     meta = build_metadata(model, name="tiny", version="0.0.1", pixel_mm=2.0, variance_threshold=1e9,
                           atlas_id="phantom", training_data="none", licences="n/a")
-    return export_onnx(model, tmp_path_factory.mktemp("models") / "tiny" / "model.onnx", meta)
+    path = export_onnx(model, tmp_path_factory.mktemp("models") / "tiny" / "model.onnx", meta)
+    fix_draws(path)
+    return path
 
 
 def make_client(registry: ModelRegistry, **settings: object) -> TestClient:

@@ -60,6 +60,10 @@ def test_real_exported_model_through_the_whole_path(real_client: TestClient, pha
     # N4 on (default) and off give results for the same slices.
     r2 = upload(real_client, stack, mask, mc_samples="5", bias_correction="false")
     assert r2.status_code == 200 and len(r2.json()["stacks"][0]["slices"]) == n
+    # The model's fixed draws: the same request, the same answer.
+    again = upload(real_client, stack, mask, mc_samples="20").json()["stacks"][0]["slices"]
+    assert [(s["rotation"], s["translation_mm"], s["expected_error_mm"], s["accepted"]) for s in again] == \
+        [(s["rotation"], s["translation_mm"], s["expected_error_mm"], s["accepted"]) for s in slices]
 
 
 def test_models_health_ready_metrics(real_client: TestClient, phantom_files) -> None:
