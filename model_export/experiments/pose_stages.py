@@ -5,7 +5,8 @@ localiser's (both with the 2 mm inset, ``masks_hold_csf``), each preparation's s
 network once. The same network statistics then go through ``/v1/predict``'s stages three times:
 none (the network's poses), the stack-consistency stage with the request's pooling, and every
 stage (image consistency too). Per pair of runs and stage: the median E.D. per stack between the
-two answers' slice poses. Manual against manual is the floor (other MC draws); localiser against
+two answers' slice poses. Manual against manual is the floor (zero with a model's fixed draws;
+other MC draws with one that draws in its graph); localiser against
 localiser, the localiser's own; manual against localiser, the gap the localisation issue's
 target is about. Each manual-localiser pair's difference is then split into one rigid offset of
 the whole stack (about the atlas origin: a stack tilted as a whole) and what is left with it undone.

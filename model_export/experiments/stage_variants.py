@@ -1,7 +1,7 @@
 """The stages after the network, in variants, on the same cached network outputs: exact comparisons.
 
-The network's MC draws move a request's figures by tenths of a millimetre from run to run, as much
-as most changes of the stages do. So this script runs the network once per simulated acquisition
+Another ensemble of MC draws moves a request's figures by tenths of a millimetre, as much as most
+changes of the stages do. So this script runs the network once per simulated acquisition
 (every held-out volume, ``--per-volume`` acquisitions per motion level, ``--seed``), keeps the
 prepared stacks and the network's estimates in ``--cache``, and sends the same estimates through
 ``/v1/predict``'s stages (:func:`~service.pipeline.predict.predict_from_estimates`) once per
@@ -17,9 +17,10 @@ Per motion level it prints the mean E.D. against the truth and twin-min, the med
 acquisition's common rigid offset is undone (what the images can tell: "frame-free"), the share of
 slices under 5 mm and over 10 mm accepted (and how many are over 10 mm), RMS E.D. over RMS
 ``expected_error_mm``, and the variant's time.
-Slices with at least 20 mask pixels count, as in the evaluation. A cache made again holds other MC
-draws: its figures differ from another cache's by tenths of a millimetre, the variants within one
-cache are compared exactly. The cached outputs are judged with ``--model``'s calibration as it is
+Slices with at least 20 mask pixels count, as in the evaluation. A cache made again with a model of
+fixed draws holds the same draws; made with a model of another seed (or one that draws in its
+graph) its figures differ by tenths of a millimetre; the variants within one cache are compared
+exactly. The cached outputs are judged with ``--model``'s calibration as it is
 now (its accept flags, expected-error calibration), not the one they were cached with.
 
     .venv/bin/python model_export/experiments/stage_variants.py --cache /tmp/stages-21.pkl --seed 21 \\
