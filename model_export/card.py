@@ -141,7 +141,7 @@ def draws_text(info: dict) -> str:
     if "mc_seed" not in info:
         return "drawn afresh in the graph at every call (onnxruntime `RandomUniformLike`)"
     return (f"fixed (seed {info['mc_seed']}): pass k of view v always drops the same units, fed by the service "
-            "(`svrnet-train fix-draws`); a slice gets the same samples in every request, batch or stream")
+            "(`svrnet-train fix-draws`); a slice's network input gets the same samples in any call, and a request one answer")
 
 
 def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict, calibration: dict,

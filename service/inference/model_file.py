@@ -120,8 +120,8 @@ class LoadedModel:
     """A model file with its session; :meth:`run` returns labels ``[B, N, D]``.
 
     A model with :data:`DRAWS_PREFIX` inputs gets its dropout draws from :meth:`draws`: a fixed
-    ensemble of sub-networks per ``draw`` (the metadata's ``mc_seed``), so the same slice always gets
-    the same samples, in any request, batch or stream. An older model draws in the graph."""
+    ensemble of sub-networks per ``draw`` (the metadata's ``mc_seed``), so a network input gets the
+    same samples whichever call it comes in, alone or among others. An older model draws in the graph."""
 
     path: Path
     info: ModelInfo
