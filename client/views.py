@@ -41,7 +41,7 @@ def summarise(result: dict[str, Any]) -> Table:
     table = Table(title=title, title_justify="left", caption_justify="left", box=box.SIMPLE_HEAD, pad_edge=False,
                   collapse_padding=True,
                   caption="brain: the uploaded mask, or the volume the localiser found (its confidence); "
-                          "expected error, variance: the stack's medians")
+                          "expected error, variance: the stack's medians over its slices with brain")
     stacks = result.get("stacks") or []
     longest = max([len(str(s.get("filename", ""))) for s in stacks] + [5])
     for col, just in (("stack", "left"), ("brain", "left"), ("accepted", "right"), ("rejected (by reason)", "left"),
@@ -54,12 +54,13 @@ def summarise(result: dict[str, Any]) -> Table:
         slices = stack.get("slices") or []
         accepted = sum(1 for s in slices if s.get("accepted"))
         reasons = Counter(s.get("reason") or "unknown" for s in slices if not s.get("accepted"))
-        variances = [s["geodesic_variance"] for s in slices if s.get("geodesic_variance") is not None]
-        expected = [s["expected_error_mm"] for s in slices if s.get("expected_error_mm") is not None]
+        brain = [s for s in slices if s.get("reason") != "empty"]     # an empty slice's pose says nothing
+        variances = [s["geodesic_variance"] for s in brain if s.get("geodesic_variance") is not None]
+        expected = [s["expected_error_mm"] for s in brain if s.get("expected_error_mm") is not None]
         where = stack.get("localisation") or {}
-        brain = "mask" if where.get("method") == "mask" else \
+        found = "mask" if where.get("method") == "mask" else \
             f"{where.get('brain_volume_ml', 0):.0f} ml ({where.get('confidence', 0):.2f})" if where else "-"
-        table.add_row(str(stack.get("filename", "")), brain, f"{accepted} of {len(slices)}",
+        table.add_row(str(stack.get("filename", "")), found, f"{accepted} of {len(slices)}",
                       ", ".join(f"{k} {v}" for k, v in sorted(reasons.items())) or "-",
                       f"{statistics.median(expected):.1f} mm" if expected else "-",
                       f"{statistics.median(variances):.4g}" if variances else "-")

@@ -77,6 +77,18 @@ def test_the_summary_fits_an_80_column_terminal_and_cuts_no_cell_short(name: str
         assert all(name[i:i + views.NAME_WIDTH] in text for i in range(0, len(name), views.NAME_WIDTH))
 
 
+def test_the_summary_medians_leave_out_empty_slices() -> None:
+    from rich.console import Console
+
+    stack = {**PREDICT_BODY["stacks"][0], "slices": [
+        {"index": i, "accepted": False, "reason": "empty" if i < 6 else "high_expected_error",
+         "expected_error_mm": 60.0 if i < 6 else 7.5, "geodesic_variance": 900.0 if i < 6 else 40.0} for i in range(10)]}
+    console = Console(width=100, record=True, file=io.StringIO())
+    console.print(views.summarise({**PREDICT_BODY, "stacks": [stack]}))
+    text = console.export_text()
+    assert "7.5 mm" in text and "60.0" not in text and " 40 " in text and "900" not in text and "0 of 10" in text
+
+
 def test_cli_masks_writes_the_masks_and_nothing_outside(fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
     fake, _ = fake_cli()
     out = tmp_path / "deep" / "masks"
