@@ -251,11 +251,14 @@ def upload_bar(console: Console, label: str) -> Iterator[Callable[[int, int], No
 
 
 def masks_table(report: dict[str, Any], out_dir: object) -> Table:
-    """The table of ``svrnet masks``: one row per stack of a ``/v1/masks`` report."""
-    table = Table(title=f"brain masks in {out_dir}", title_justify="left")
-    for col, just in (("stack", "left"), ("mask", "left"), ("volume (ml)", "right"), ("confidence", "right"),
-                      ("slices with brain", "right")):
-        table.add_column(col, justify=just)  # type: ignore[arg-type]
+    """The table of ``svrnet masks``: one row per stack of a ``/v1/masks`` report. File names fold
+    rather than being cut short, so that the table fits an 80-column terminal."""
+    table = Table(title=f"brain masks in {out_dir}", title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False,
+                  collapse_padding=True, caption_justify="left",
+                  caption="brain: its volume and the localiser's confidence; slices: those with brain")
+    for col, just in (("stack", "left"), ("mask", "left"), ("brain (ml)", "right"), ("confidence", "right"),
+                      ("slices", "right")):
+        table.add_column(col, justify=just, overflow="fold")  # type: ignore[arg-type]
     for row in report.get("stacks") or []:
         table.add_row(str(row.get("filename", "")), str(row.get("mask", "")),
                       f"{row.get('brain_volume_ml', 0):.0f}", f"{row.get('confidence', 0):.2f}",

@@ -89,6 +89,19 @@ def test_the_summary_medians_leave_out_empty_slices() -> None:
     assert "7.5 mm" in text and "60.0" not in text and " 40 " in text and "900" not in text and "0 of 10" in text
 
 
+def test_the_masks_table_fits_an_80_column_terminal_and_cuts_no_name_short() -> None:
+    from rich.console import Console
+
+    name = "sub-000_ses-01_T2w_haste_coronal_run-2.nii.gz"
+    row = {"filename": name, "mask": name.replace(".nii.gz", "_mask.nii.gz"), "brain_volume_ml": 301.4,
+           "confidence": 0.91, "slices_with_brain": 17}
+    console = Console(width=80, record=True, file=io.StringIO())
+    console.print(views.masks_table({"stacks": [row, row]}, "/data/masks"))
+    text = console.export_text()
+    assert max(len(line) for line in text.splitlines()) <= 80 and "…" not in text
+    assert text.count("run-2") == 4 and "301" in text and "0.91" in text      # both names of both rows, to the end
+
+
 def test_cli_masks_writes_the_masks_and_nothing_outside(fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
     fake, _ = fake_cli()
     out = tmp_path / "deep" / "masks"
