@@ -162,11 +162,14 @@ class StreamView:
                            f"coverage {coverage_text(message.get('coverage'))}", markup=False)
 
     def table(self, rows: list[dict[str, Any]], title: str | None = None) -> Table:
-        table = Table(title=title, title_justify="left")
-        for col, just in (("stack", "left"), ("index", "right"), ("accepted", "left"),
-                          ("expected error", "right"), ("translation (mm)", "right"), ("latency", "right"),
-                          ("updated", "left")):
-            table.add_column(col, justify=just)  # type: ignore[arg-type]
+        """Poses as rows that fit an 80-column terminal (stack names fold; nothing is cut short)."""
+        table = Table(title=title, title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True,
+                      caption="#: slice index, * its pose updated by later slices; translation: atlas mm",
+                      caption_justify="left")
+        for col, just in (("stack", "left"), ("#", "right"), ("accepted", "left"), ("expected error", "right"),
+                          ("translation", "right"), ("latency", "right")):
+            table.add_column(col, justify=just, overflow="fold",  # type: ignore[arg-type]
+                             max_width=14 if col == "stack" else None, no_wrap=col in ("accepted", "translation"))
         for row in rows:
             table.add_row(*pose_cells(row))
         return table
@@ -191,19 +194,20 @@ def sent_label(sent: Sent) -> str:
 
 
 def pose_cells(row: dict[str, Any]) -> list[str]:
-    """A pose's cells in ``svrnet stream``'s table.
+    """A pose's cells in ``svrnet stream``'s table (the index marked ``*`` once a later slice updated
+    the pose; the translation to the millimetre: the JSON output has it in full).
 
     Example:
         >>> pose_cells({"stack": "ax", "index": 3, "accepted": False, "reason": "high_expected_error",
-        ...             "expected_error_mm": 7.25, "translation_mm": [1, -2.5, 30], "latency_ms": 21.4})
-        ['ax', '3', '✗ high_expected_error', '7.2 mm', '(1.0, -2.5, 30.0)', '21 ms', '']
+        ...             "expected_error_mm": 7.25, "translation_mm": [1, -2.5, 30], "latency_ms": 21.4, "updated": True})
+        ['ax', '3*', '✗ high_expected_error', '7.2 mm', '(1, -2, 30)', '21 ms']
     """
     expected, translation, latency = row.get("expected_error_mm"), row.get("translation_mm"), row.get("latency_ms")
-    return [str(row.get("stack", "")), str(row.get("index", "")),
+    return [str(row.get("stack", "")), f"{row.get('index', '')}{'*' if row.get('updated') else ''}",
             "✓" if row.get("accepted") else f"✗ {row.get('reason') or ''}".rstrip(),
             "-" if expected is None else f"{expected:.1f} mm",
-            "-" if not translation else "(" + ", ".join(f"{v:.1f}" for v in translation) + ")",
-            "-" if latency is None else f"{latency:.0f} ms", "updated" if row.get("updated") else ""]
+            "-" if not translation else "(" + ", ".join(f"{v:.0f}" for v in translation) + ")",
+            "-" if latency is None else f"{latency:.0f} ms"]
 
 
 def reacquire_text(reacquire: list[dict[str, Any]] | None) -> str:

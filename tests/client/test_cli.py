@@ -102,6 +102,19 @@ def test_the_masks_table_fits_an_80_column_terminal_and_cuts_no_name_short() -> 
     assert text.count("run-2") == 4 and "301" in text and "0.91" in text      # both names of both rows, to the end
 
 
+def test_the_stream_table_fits_an_80_column_terminal_and_cuts_no_cell_short() -> None:
+    from rich.console import Console
+
+    console = Console(width=80, record=True, file=io.StringIO())
+    rows = [{"stack": "sub-000_ses-01_T2w_haste_coronal_run-2", "index": i, "accepted": i % 2 == 0,
+             "reason": None if i % 2 == 0 else "inconsistent_with_stack", "expected_error_mm": 12.25,
+             "translation_mm": [-101.4, -40.5, -14.6], "latency_ms": 157.0, "updated": i == 3} for i in range(4)]
+    console.print(views.StreamView(console).table(rows, "stack cor: final poses"))
+    text = console.export_text()
+    assert max(len(line) for line in text.splitlines()) <= 80 and "…" not in text
+    assert text.count("✗ inconsistent_with_stack") == 2 and text.count("(-101, -40, -15)") == 4 and "3*" in text
+
+
 def test_cli_masks_writes_the_masks_and_nothing_outside(fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
     fake, _ = fake_cli()
     out = tmp_path / "deep" / "masks"
