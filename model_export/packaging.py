@@ -8,7 +8,7 @@ import torch
 
 from model_export.atlas import ATLAS_ID, POPULATIONS
 from model_export.calibrate_acceptance import FLAGS
-from model_export.export import build_metadata, fix_draws, export_onnx
+from model_export.export import build_metadata, export_onnx, fix_draws
 from model_export.model import SVRNet
 from model_export.spread import SPREAD_FLAGS
 

@@ -24,6 +24,7 @@ DRAWS_PREFIX = "dropout_uniform_"
 the graph: the uniform numbers the ``k``-th dropout layer's masks are cut from (``>= p`` keeps a
 unit), one row per pass, shared by the slices of a call (``model_export.export.fix_draws``)."""
 DEFAULT_MC_SEED = 0
+"""The seed of a model whose metadata name none (``mc_seed``)."""
 MIN_DRAWN_PASSES = 128
 """Passes drawn at least, per draw: a request's passes are a prefix of them."""
 
