@@ -142,6 +142,8 @@ class ModelDescription(BaseModel):
     variance_threshold: float
     max_expected_error_mm: Optional[float] = None
     trained_on: str
+    mc_seed: Optional[int] = Field(None, description="the seed of the model's fixed MC-dropout draws (one answer per "
+                                                     "request); null where every call draws afresh")
 
 
 class Problem(BaseModel):

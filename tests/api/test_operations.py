@@ -71,6 +71,7 @@ def test_models_health_ready_metrics(real_client: TestClient, phantom_files) -> 
     assert models[0]["name"] == "default" and models[0]["input_size"] == 64 and models[0]["label_type"] == "anchor"
     assert set(models[0]) >= {"name", "version", "backbone", "sha256", "input_size", "spacing_mm", "label_type",
                               "variance_threshold", "trained_on"}
+    assert models[0]["mc_seed"] == 0                                   # the tiny model's fixed draws
     assert real_client.get("/healthz").json() == {"status": "ok"}
     assert real_client.get("/readyz").status_code == 200
     upload(real_client, *phantom_files[:2], mc_samples="2")
