@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.jobs.worker import MIN_ACCEPTED_SHARE, posed_slices, starting_inclusion, starting_poses
+from service.jobs.worker import MIN_ACCEPTED_SHARE, MIN_ACCEPTED_SLICES, posed_slices, starting_inclusion, starting_poses
 
 
 def _poses(*accepted: list[bool]) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -18,7 +18,7 @@ def _body(*reasons: list[str | None]) -> dict:
 def test_a_request_with_enough_accepted_slices_starts_from_those_alone() -> None:
     poses = _poses([True, True, False, True], [False, False, False])      # 3 of 7: over the default share
     assert 3 / 7 >= MIN_ACCEPTED_SHARE
-    start = starting_inclusion(poses)
+    start = starting_inclusion(poses, min_slices=3)
     assert [inc.tolist() for _, inc in start] == [[True, True, False, True], [False, False, False]]
     assert all(np.array_equal(m, p) for (m, _), (p, _) in zip(start, poses))
 
@@ -33,13 +33,14 @@ def test_empty_slices_do_not_count_towards_the_share() -> None:
     body = _body([None, "empty", "empty", "empty", "high_expected_error"])
     posed = posed_slices(body)
     assert posed[0].tolist() == [True, False, False, False, True]
-    assert [inc.tolist() for _, inc in starting_inclusion(poses, posed)] == [[True, False, False, False, False]]
+    assert [inc.tolist() for _, inc in starting_inclusion(poses, posed, min_slices=1)] == [[True, False, False, False, False]]
     assert [inc.tolist() for _, inc in starting_inclusion(poses)] == [[True] * 5]        # 1 of 5 counted
 
 
 def test_the_flags_are_copied_not_shared() -> None:
     poses = _poses([True, True, False])
-    start = starting_inclusion(poses)
+    start = starting_inclusion(poses, min_slices=2)
+    assert start[0][1].tolist() == [True, True, False]
     start[0][1][0] = False
     assert poses[0][1].tolist() == [True, True, False]
 
@@ -47,6 +48,14 @@ def test_the_flags_are_copied_not_shared() -> None:
 def test_a_predict_body_gives_the_poses_and_the_accepted_start() -> None:
     body = {"stacks": [{"slices": [{"atlas_from_voxel": np.eye(4).tolist(), "accepted": a, "reason": r}
                                    for a, r in ((True, None), (False, "empty"), (False, "high_expected_error"))]}]}
-    (mats, include), = starting_poses(body)
+    (mats, include), = starting_poses(body, min_slices=1)
     assert mats.shape == (3, 4, 4) and include.tolist() == [True, False, False]       # 1 of 2 posed accepted
-    assert starting_poses(body, min_share=0.6)[0][1].tolist() == [True, True, True]
+    assert starting_poses(body, min_share=0.6, min_slices=1)[0][1].tolist() == [True, True, True]
+    assert starting_poses(body)[0][1].tolist() == [True, True, True]                  # 1 slice: too few
+
+
+def test_too_few_accepted_slices_start_every_slice_whatever_their_share() -> None:
+    few = [True] * (MIN_ACCEPTED_SLICES - 1) + [False] * 20                     # 29 of 49: over the share
+    assert [inc.tolist() for _, inc in starting_inclusion(_poses(few))] == [[True] * 49]
+    enough = [True] * MIN_ACCEPTED_SLICES + [False] * 20
+    assert [inc.tolist() for _, inc in starting_inclusion(_poses(enough))] == [enough]
