@@ -61,6 +61,25 @@ def build_metadata(model: SVRNet, *, name: str, version: str, pixel_mm: float, v
     return {k: str(v) for k, v in meta.items()}
 
 
+def metadata_of(proto: onnx.ModelProto) -> dict[str, str]:
+    """A model's metadata entries (``metadata_props``) as a dict."""
+    return {p.key: p.value for p in proto.metadata_props}
+
+
+def set_metadata(proto: onnx.ModelProto, metadata: dict[str, object]) -> None:
+    """Replace a model's metadata entries with ``metadata`` (values as strings).
+
+    Example:
+        >>> proto = onnx.ModelProto()
+        >>> set_metadata(proto, {"a": 1}); set_metadata(proto, {**metadata_of(proto), "b": "x"})
+        >>> metadata_of(proto)
+        {'a': '1', 'b': 'x'}
+    """
+    del proto.metadata_props[:]
+    for key, value in metadata.items():
+        proto.metadata_props.add(key=key, value=str(value))
+
+
 def export_onnx(model: SVRNet, path: Path, metadata: dict[str, str], opset: int = 17) -> Path:
     """Export ``model`` (put in eval mode) with MC dropout kept stochastic; writes ``metadata``."""
     model = model.eval()
@@ -76,9 +95,7 @@ def export_onnx(model: SVRNet, path: Path, metadata: dict[str, str], opset: int 
         opset_version=opset, dynamo=False, do_constant_folding=True,
     )
     proto = onnx.load(str(path))
-    del proto.metadata_props[:]
-    for k, v in metadata.items():
-        proto.metadata_props.add(key=k, value=v)
+    set_metadata(proto, metadata)
     onnx.checker.check_model(proto)
     onnx.save(proto, str(path))
     return path
@@ -105,11 +122,8 @@ def fix_draws(path: Path, seed: int = DEFAULT_MC_SEED) -> int:
         for consumer in graph.node:
             consumer.input[:] = [name if x == node.output[0] else x for x in consumer.input]
         graph.node.remove(node)
-    meta = {p.key: p.value for p in proto.metadata_props}
-    meta.update({"mc_seed": str(seed), "mc_draws": "fixed: dropout_uniform_<k> inputs, filled from mc_seed"})
-    del proto.metadata_props[:]
-    for key, value in meta.items():
-        proto.metadata_props.add(key=key, value=value)
+    set_metadata(proto, {**metadata_of(proto), "mc_seed": seed,
+                         "mc_draws": "fixed: dropout_uniform_<k> inputs, filled from mc_seed"})
     onnx.checker.check_model(proto)
     onnx.save(proto, str(path))
     return len(random)

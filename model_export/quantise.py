@@ -34,7 +34,7 @@ from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, Q
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
-from model_export.export import INPUT_PASSES, INPUT_SLICES, count_random_nodes
+from model_export.export import INPUT_PASSES, INPUT_SLICES, count_random_nodes, metadata_of, set_metadata
 from model_export.simulate import SimulationConfig, SliceSimulator
 from service.inference.model_file import load_model
 
@@ -93,15 +93,15 @@ def quantise(source: Path, out: Path, slices: NDArray[np.float32], float_convs: 
     """
     source, out = Path(source), Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    meta = {p.key: p.value for p in onnx.load(str(source)).metadata_props}
+    meta = metadata_of(onnx.load(str(source)))
     if "quantised" in meta:
         raise ValueError(f"{source} is quantised already ({meta['quantised']})")
-    random_nodes, draws = count_random_nodes(source), load_model(source).draw_inputs
+    random_nodes, model = count_random_nodes(source), load_model(source)
     with tempfile.TemporaryDirectory() as tmp:
         prepared = Path(tmp) / "prepared.onnx"
         quant_pre_process(str(source), str(prepared), skip_symbolic_shape=True)
         convs = [n.name for n in onnx.load(str(prepared)).graph.node if n.op_type == "Conv"]
-        reader = _Slices(slices, load_model(source).draws(1))
+        reader = _Slices(slices, model.draws(1))
         quantize_static(str(prepared), str(out), reader, quant_format=QuantFormat.QDQ, per_channel=True,
                         op_types_to_quantize=["Conv"], nodes_to_exclude=convs[:float_convs],
                         activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
@@ -110,10 +110,8 @@ def quantise(source: Path, out: Path, slices: NDArray[np.float32], float_convs: 
                          f"per-channel weights, activation ranges of {len(slices)} simulated training slices); "
                          "head and dropout float32")
     proto = onnx.load(str(out))
-    del proto.metadata_props[:]
-    for k, v in meta.items():
-        proto.metadata_props.add(key=k, value=v)
+    set_metadata(proto, meta)
     onnx.save(proto, str(out))
-    if count_random_nodes(out) != random_nodes or load_model(out).draw_inputs != draws:
+    if count_random_nodes(out) != random_nodes or load_model(out).draw_inputs != model.draw_inputs:
         raise ValueError(f"{out}: quantisation removed dropout's random nodes or draw inputs")
     return out

@@ -29,6 +29,7 @@ import onnx
 from model_export.acquisitions import simulate_acquisition
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, prepare_acquisition
+from model_export.export import metadata_of, set_metadata
 from model_export.simulate import SimulationConfig
 from model_export.train import validation_set
 from service.consistency.error_shape import depth_gain, error_coordinates, error_shape, relative_depth
@@ -117,9 +118,5 @@ def calibrate_spread(model_path: Path, root: Path = DEFAULT_ATLAS_ROOT, per_volu
 def write_metadata(model_path: Path, updates: dict[str, object]) -> None:
     """Set ``updates`` in the ONNX file's metadata (values as strings), the graph untouched."""
     proto = onnx.load(str(model_path))
-    props = {p.key: p.value for p in proto.metadata_props}
-    props.update({k: str(v) for k, v in updates.items()})
-    del proto.metadata_props[:]
-    for k, v in props.items():
-        proto.metadata_props.add(key=k, value=v)
+    set_metadata(proto, {**metadata_of(proto), **updates})
     onnx.save(proto, str(model_path))
