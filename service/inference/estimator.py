@@ -128,8 +128,11 @@ class OnnxPoseEstimator:
         passes = np.ones(mc_samples, np.float32) if mc_samples > 0 else np.zeros(1, np.float32)
         x = np.asarray(inputs, dtype=np.float32)
         group = max(int(group or len(x)), 1)
-        chunks = [self.model.run(x[i:min(i + self.batch_slices, g + group)], passes, g // group)
-                  for g in range(0, len(x), group) for i in range(g, min(g + group, len(x)), self.batch_slices)]
+        chunks = []
+        for draw, start in enumerate(range(0, len(x), group)):
+            rows = x[start:start + group]
+            chunks += [self.model.run(rows[i:i + self.batch_slices], passes, draw)
+                       for i in range(0, len(rows), self.batch_slices)]
         return np.concatenate(chunks) if chunks else np.zeros((0, len(passes), 0), np.float32)
 
     def estimate(self, inputs: NDArray[np.float32], mc_samples: int) -> PoseEstimate:

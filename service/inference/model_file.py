@@ -67,6 +67,9 @@ class ModelInfo:
     tta_views: int = 1
     """Test-time views the MC samples are shared among (:mod:`service.inference.views`); the variance
     threshold and ``mc_error_scale`` were calibrated with them."""
+    mc_seed: int | None = None
+    """The seed of the model's fixed MC-dropout draws (metadata ``mc_seed``, written with its
+    :data:`DRAWS_PREFIX` inputs); None: the graph draws its own at every call."""
     metadata: dict[str, str] = field(default_factory=dict, repr=False)
 
     @classmethod
@@ -84,6 +87,7 @@ class ModelInfo:
                 expected_error_floor_mm=float(meta.get("expected_error_floor_mm", 0.0)),
                 max_expected_error_mm=float(meta["max_expected_error_mm"]) if meta.get("max_expected_error_mm") else None,
                 twin_risk_logit=_logit(meta.get("twin_risk_logit", "")),
+                mc_seed=int(meta["mc_seed"]) if meta.get("mc_seed") else None,
                 metadata=dict(meta),
             )
         except (KeyError, ValueError) as exc:
@@ -173,6 +177,7 @@ def load_model(path: Path, threads: int = 0) -> LoadedModel:
     path = Path(path)
     sess = ort.InferenceSession(str(path), session_options(threads), providers=["CPUExecutionProvider"])
     meta = sess.get_modelmeta().custom_metadata_map
+    info = ModelInfo.from_metadata(meta, file_sha256(path))
     draws = [(i.name, int(i.shape[-1])) for i in sess.get_inputs() if i.name.startswith(DRAWS_PREFIX)]
-    seed = int(meta.get("mc_seed", DEFAULT_MC_SEED)) if draws else None
-    return LoadedModel(path, ModelInfo.from_metadata(meta, file_sha256(path)), sess, draws, seed)
+    seed = (DEFAULT_MC_SEED if info.mc_seed is None else info.mc_seed) if draws else None
+    return LoadedModel(path, info, sess, draws, seed)

@@ -54,5 +54,5 @@ class ModelRegistry:
                         "input_size": i.input_size, "spacing_mm": i.pixel_spacing_mm, "label_type": i.label_type,
                         "variance_threshold": i.variance_threshold,
                         "max_expected_error_mm": i.max_expected_error_mm, "trained_on": i.trained_on,
-                        "mc_seed": int(i.metadata["mc_seed"]) if "mc_seed" in i.metadata else None})
+                        "mc_seed": i.mc_seed})
         return out
