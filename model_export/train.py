@@ -38,6 +38,7 @@ from service.geometry.twin import POINT_LABELS, twin
 
 __all__ = ["TrainConfig", "train", "stream_seed", "predict_poses", "pose_errors", "validation_set"]
 
+
 @dataclass
 class TrainConfig:
     """Everything that defines a training run (saved in every checkpoint)."""

@@ -4,9 +4,10 @@ A model with fixed draws (``mc_seed``; docs/training.md, "Export and MC dropout"
 request with one ensemble of dropout sub-networks. Per seed of ``--seeds`` (the model's session
 reused, :meth:`~service.inference.model_file.LoadedModel.with_seed`), on ``--per-volume`` simulated
 slices of each validation volume: the twin-min mean and median E.D. of the MC-100 means (every
-test-time view), and the common rigid offset of those poses from the truth (twin-min branch, about
-the atlas centre; :func:`~model_export.experiments.frame_bias.common_frame`): a bias the ensemble
-would put on every slice. Then each seed's offset against the first seed's.
+test-time view), and the common rigid offset of those poses, each on the truth's branch
+(:func:`~service.geometry.twin.nearer`), from the truth about the atlas centre
+(:func:`~model_export.experiments.frame_bias.common_frame`): a bias the ensemble would put on every
+slice. Then each seed's offset against the first seed's.
 
     .venv/bin/python model_export/experiments/mc_seeds.py [--seeds 0,1,2,3,4] [--per-volume 60]   # needs the atlases
 """
@@ -27,7 +28,6 @@ from model_export.experiments.frame_bias import common_frame  # noqa: E402
 from model_export.simulate import SimulationConfig  # noqa: E402
 from service.core.settings import DEFAULT_MODELS_DIR  # noqa: E402
 from service.geometry import se3, twin  # noqa: E402
-from service.geometry.anchors import ed  # noqa: E402
 from service.inference.acceptance import ATLAS_CENTRE_MM  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
 from service.inference.model_file import load_model  # noqa: E402
@@ -55,9 +55,9 @@ def main() -> None:
     for seed in (int(s) for s in args.seeds.split(",")):
         mean = OnnxPoseEstimator(model.with_seed(seed)).estimate(val.inputs, 100).mean
         err = pose_errors(mean, val.poses, plane)
-        mirrored = twin.twin(mean, plane)
-        nearer = np.where((ed(mirrored, val.poses) < ed(mean, val.poses))[:, None, None], mirrored, mean)
-        frame, _ = common_frame(nearer, val.poses, ATLAS_CENTRE_MM)
+        # Each pose on the truth's branch (the pose or its twin, whichever is nearer the truth): a
+        # truth mirrored instead would turn a slice's offset into its mirror image.
+        frame, _ = common_frame(twin.nearer(val.poses, mean, plane), val.poses, ATLAS_CENTRE_MM)
         frames.append(frame)
         print(f"seed {seed}: twin-min E.D. mean {err['ed_twin_mm'].mean():.2f} mm, median "
               f"{np.median(err['ed_twin_mm']):.2f} mm; common offset from the truth {offset_text(frame)}; "
