@@ -300,7 +300,7 @@ def trim_growing_caps(component: NDArray[np.bool_], grid_mm: float) -> NDArray[n
     middle = int(round(float(np.arange(len(area)) @ area / area.sum())))     # the widest slices' place,
     for step in (1, -1):                                                      # whatever lies beside a cap
         k = middle + step
-        while 0 <= k < len(out) and out[k].any():
+        while 0 <= k < len(out) and out[k].any() and out[k - step].any():   # no empty slice to grow from
             inner = out[k - step]
             if out[k].sum() > CAP_GROWTH * inner.sum():
                 out[k] &= ndimage.binary_dilation(inner, structure=disk)

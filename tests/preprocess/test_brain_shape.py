@@ -175,3 +175,11 @@ def test_a_face_beside_the_last_slices_of_a_cap_is_trimmed_and_a_moving_head_is_
         moving[k] = np.roll(head[k], 2 * (k % 3 - 1), axis=1)             # +-2 pixels (5 mm) from slice to slice
     assert np.array_equal(trim_growing_caps(moving, 2.5), moving)
 
+
+def test_a_cap_is_not_judged_against_an_empty_slice() -> None:
+    """A component whose middle slice is empty (another rule emptied it) keeps the slices beyond it:
+    their growth over nothing says nothing."""
+    brain = ellipsoid_brain_maps(20, size=80) >= 0.5
+    brain[9:11] = False                                               # the area-weighted middle (9.5) among them
+    assert np.array_equal(trim_growing_caps(brain, 2.5), brain)
+
