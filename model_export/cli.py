@@ -92,9 +92,8 @@ def export(
              "of a fine-tuned network before it is recalibrated")] = None,
     root: Root = DEFAULT_ATLAS_ROOT,
 ) -> None:
-    """Export a checkpoint to ONNX (MC dropout kept stochastic) with its metadata."""
+    """Export a checkpoint to ONNX (MC dropout kept stochastic, its draws fed from a seed) with its metadata."""
     from model_export.calibrate import calibrate as run_calibration
-    from model_export.export import count_random_nodes
     from model_export.packaging import CALIBRATION, export_checkpoint
     from model_export.spread import write_metadata
     from service.inference.model_file import load_model
@@ -109,7 +108,9 @@ def export(
     path = export_checkpoint(checkpoint, output, name=name, version=version, variance_threshold=threshold)
     if calibration:
         write_metadata(path, calibration)
-    typer.echo(f"wrote {path} ({count_random_nodes(path)} random nodes, variance threshold {threshold:.3g})")
+    exported = load_model(path)
+    typer.echo(f"wrote {path} ({len(exported.draw_inputs)} dropout layers fed from seed {exported.mc_seed}, "
+               f"variance threshold {threshold:.3g})")
 
 
 @app.command("fix-draws")
