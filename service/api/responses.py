@@ -38,6 +38,7 @@ def slice_objects(p: StackPrediction) -> list[dict]:
     quat = r.as_quat(canonical=True, scalar_first=True)
     pts = anchors.encode(mean).reshape(-1, 3, 3)
     expected: NDArray = out.expected_error_mm if out.expected_error_mm is not None else np.full(len(mean), np.nan)
+    seen = est.estimated
     return [
         {
             "index": i, "accepted": p.reasons[i] is None, "reason": p.reasons[i],
@@ -46,7 +47,7 @@ def slice_objects(p: StackPrediction) -> list[dict]:
             "quaternion_wxyz": quat[i].tolist(), "translation_mm": mean[i, :3, 3].tolist(),
             "atlas_from_voxel": atlas_from_voxel[i].tolist(),
             "branch": "twin" if out.twinned[i] else "network", "twin_mass": float(out.twin_mass[i]),
-            "network_atlas_from_voxel": network_atlas_from_voxel[i].tolist(),
+            "network_atlas_from_voxel": network_atlas_from_voxel[i].tolist() if seen[i] else None,
             "expected_error_mm": _finite(expected[i]),
         }
         for i in range(len(mean))

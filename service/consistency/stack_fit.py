@@ -222,8 +222,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
 
     # 2. rigid fit: IRLS with Tukey weights (on residuals in units of each slice's expected error,
     #    and times its precision, when the errors are known), branches re-decided each round
-    sig = None if expected_error_mm is None else np.sqrt(np.maximum(np.asarray(expected_error_mm, dtype=np.float64) ** 2,
-                                                                      MIN_NOISE_MM ** 2))
+    sig = None if expected_error_mm is None else _noise(expected_error_mm, use)
     s = proposals[idx[h], b]
     for _ in range(IRLS_ROUNDS):
         model = s @ inv_n                                                   # [n, 4, 4]
@@ -371,6 +370,16 @@ def _votes(r_loo: NDArray, motion: MotionFit, sig: NDArray, use: NDArray) -> NDA
     z = r_loo / np.sqrt((motion.noise_scale * sig) ** 2 + motion.model_sd_mm ** 2)
     tk = se3.tukey_weights(z, 1.0) * use
     return np.where(tk > 0, sig / np.sqrt(np.maximum(tk, 1e-12)), NO_VOTE)
+
+
+def _noise(expected_error_mm: ArrayLike, use: NDArray) -> NDArray[np.float64]:
+    """Each slice's expected error as the fit's noise scale, floored at :data:`MIN_NOISE_MM`; a slice
+    that may not vote has none (an empty slice the network never saw: NaN), so it gets the largest
+    of the others', which weighs nothing where it does not vote."""
+    e = np.asarray(expected_error_mm, dtype=np.float64)
+    e = np.where(np.isfinite(e), e, np.nan)
+    floor = float(np.nanmax(e[use])) if np.isfinite(e[use]).any() else MIN_NOISE_MM
+    return np.sqrt(np.maximum(np.where(np.isfinite(e), e, floor) ** 2, MIN_NOISE_MM ** 2))
 
 
 def _precision(sig: NDArray, use: NDArray) -> NDArray:

@@ -55,9 +55,35 @@ class PoseEstimate:
         if self.spread_mm is None:
             self.spread_mm = np.zeros(len(self.mean))
 
+    @property
+    def estimated(self) -> NDArray[np.bool_]:
+        """``[B]`` the slices the network saw (:meth:`scattered` gives the others a NaN spread)."""
+        return np.isfinite(self.spread_mm)
+
     def part(self, which: slice) -> "PoseEstimate":
         """The statistics of the slices ``which`` (one stack of a request)."""
         return PoseEstimate(*(getattr(self, name)[which] for name in PER_SLICE))
+
+    @classmethod
+    def scattered(cls, seen_estimate: "PoseEstimate", seen: NDArray[np.bool_]) -> "PoseEstimate":
+        """The statistics of all ``len(seen)`` slices when only those ``seen`` went through the network
+        (``seen_estimate``, in their order): a slice not seen (no brain in it) has no pose of its own
+        (the identity), a NaN variance and spread (:attr:`estimated` is False), and is not
+        degenerate.
+
+        Example:
+            >>> one = PoseEstimate(np.eye(4)[None] * 2, np.array([3.0]), np.array([True]))
+            >>> both = PoseEstimate.scattered(one, np.array([False, True]))
+            >>> both.variance.tolist(), both.degenerate.tolist(), float(both.mean[0, 0, 0])
+            ([nan, 3.0], [False, True], 1.0)
+        """
+        seen = np.asarray(seen, bool)
+        n = len(seen)
+        out = cls(np.broadcast_to(np.eye(4), (n, 4, 4)).copy(), np.full(n, np.nan), np.zeros(n, bool),
+                  np.zeros(n), np.full(n, np.nan))
+        for name in PER_SLICE:
+            getattr(out, name)[seen] = getattr(seen_estimate, name)
+        return out
 
     @classmethod
     def joined(cls, parts: list["PoseEstimate"]) -> "PoseEstimate":
@@ -136,9 +162,18 @@ class OnnxPoseEstimator:
         return np.concatenate(chunks) if chunks else np.zeros((0, len(passes), 0), np.float32)
 
     def estimate(self, inputs: NDArray[np.float32], mc_samples: int) -> PoseEstimate:
+        """The MC statistics of every slice of ``inputs [B, L, L]``. An all-zero input (a slice with no
+        brain: everything outside the mask is 0) shows the network nothing and is not run; it gets
+        no pose (:meth:`PoseEstimate.scattered`). The others' draws do not depend on it, so their
+        statistics are those of a call with it."""
+        x = np.asarray(inputs, dtype=np.float32)
+        seen = x.reshape(len(x), -1).any(axis=1)
         t0 = time.perf_counter()
-        labels = self.sample_labels(inputs, mc_samples)
+        labels = self.sample_labels(x[seen], mc_samples) if seen.any() else None
         t1 = time.perf_counter()
-        result = statistics(labels, self.info.label_type, self.info.symmetry_plane_x_mm)
+        result = PoseEstimate(np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0, bool)) if labels is None else \
+            statistics(labels, self.info.label_type, self.info.symmetry_plane_x_mm)
+        if not seen.all():
+            result = PoseEstimate.scattered(result, seen)
         result.timings = {"inference": t1 - t0, "statistics": time.perf_counter() - t1}
         return result

@@ -183,3 +183,24 @@ def test_openapi_documents_errors_as_the_handlers_answer_them(oracle) -> None:
                 if code[0] in "45":
                     assert list(response["content"]) == ["application/problem+json"], (method, path, code)
     assert "422" in spec["paths"]["/v1/predict"]["post"]["responses"]       # unusable images
+
+
+def test_a_slice_without_brain_gets_no_network_pose(real_client: TestClient, phantom_files, tmp_path: Path) -> None:
+    """A slice whose mask is empty is ``empty``, has no network pose or variance (``null``), and still
+    gets its stack model's pose; the slices with brain keep finite ones."""
+    from service.io.volume import read_volume
+
+    stack, mask, n = phantom_files
+    m = read_volume(mask)
+    cut = np.asarray(m.array).copy()
+    cut[..., :3] = 0
+    write_volume(Volume(cut, m.affine), tmp_path / "cut.nii.gz")
+    r = upload(real_client, stack, tmp_path / "cut.nii.gz", mc_samples="20")
+    assert r.status_code == 200, r.text
+    slices = r.json()["stacks"][0]["slices"]
+    assert len(slices) == n
+    for s in slices[:3]:
+        assert s["reason"] == "empty" and s["geodesic_variance"] is None and s["network_atlas_from_voxel"] is None
+        assert np.isfinite(np.array(s["atlas_from_voxel"])).all()
+    for s in slices[3:]:
+        assert s["geodesic_variance"] > 0 and s["network_atlas_from_voxel"] is not None

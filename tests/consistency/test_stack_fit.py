@@ -141,6 +141,26 @@ def test_the_whole_stack_on_its_twin_is_put_back() -> None:
     assert fit.twinned.all() and ed(fit.poses, truth).mean() < 5.0
 
 
+def test_slices_the_network_never_saw_take_the_stack_model_whatever_their_placeholders() -> None:
+    """An empty slice is not run (the estimator gives it the identity and a NaN spread): the fit is the
+    one it makes when those slices carry any other junk, and they get the stack model's pose and a
+    finite expected error."""
+    rng = np.random.default_rng(5)
+    truth, nk = stack(rng, "mild")
+    poses = truth @ se3.exp(rng.normal(0, 1, (len(truth), 6)) * NOISE * 0.3)
+    usable = np.ones(len(truth), bool)
+    usable[:4] = False
+    sd = np.full(len(poses), 4.0)
+    junk = fit_stack(np.concatenate([se3.exp(rng.normal(0, 1, (4, 6)) * [2, 2, 2, 50, 50, 50]), poses[4:]]), nk, usable,
+                     expected_error_mm=np.where(usable, sd, 40.0))
+    poses[:4] = np.eye(4)
+    sd[:4] = np.nan
+    fit = fit_stack(poses, nk, usable, expected_error_mm=sd)
+    assert fit.decidable and not fit.inconsistent[:4].any()
+    assert ed(fit.poses[:4], truth[:4]).max() < 10.0 and np.isfinite(fit.expected_error_mm).all()
+    assert ed(fit.poses, junk.poses).max() < 0.5
+
+
 def test_the_expected_error_of_the_returned_poses_is_honest_and_ranks_them() -> None:
     # the outer slices of a stack are where a network is lost, and its spread says so
     rng = np.random.default_rng(19)

@@ -1,0 +1,42 @@
+"""The ONNX estimator: a slice with nothing in it is not run, and the others do not notice."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from service.inference.estimator import OnnxPoseEstimator, PoseEstimate, statistics
+from service.inference.model_file import load_model
+from tests.api.conftest import tiny_model_path  # noqa: F401 - fixture
+
+
+@pytest.mark.parametrize("views", [1, 8])
+def test_an_all_zero_input_is_not_run_and_the_others_get_what_they_get_beside_it(tiny_model_path, views: int) -> None:  # noqa: ANN001, F811
+    est = OnnxPoseEstimator(load_model(tiny_model_path))
+    est.info = dataclasses.replace(est.info, tta_views=views)
+    size = est.info.input_size
+    x = np.random.default_rng(1).uniform(0, 255, (5, size, size)).astype(np.float32)
+    x[[1, 4]] = 0.0
+    run_rows = []
+    model_run = est.model.run
+    est.model.run = lambda rows, *a: (run_rows.append(len(rows)), model_run(rows, *a))[1]  # count the rows run
+    out = est.estimate(x, 16)
+    assert sum(run_rows) == 3 * views                        # the two empty slices never reach the network
+    assert out.estimated.tolist() == [True, False, True, True, False]
+    assert np.isnan(out.variance[[1, 4]]).all() and np.isnan(out.spread_mm[[1, 4]]).all()
+    assert not out.degenerate[[1, 4]].any()
+    # every slice run, the empty ones included (as the estimator did before it skipped them): the same
+    # statistics for the slices with content, because the draws belong to the views, not to the rows
+    full = statistics(est.sample_labels(x, 16), est.info.label_type, est.info.symmetry_plane_x_mm)
+    for name in ("mean", "variance", "degenerate", "twin_mass", "spread_mm"):
+        np.testing.assert_allclose(getattr(out, name)[out.estimated], getattr(full, name)[out.estimated], rtol=1e-6, atol=1e-6)
+
+
+def test_a_request_of_empty_slices_only_runs_nothing(tiny_model_path) -> None:  # noqa: ANN001, F811
+    est = OnnxPoseEstimator(load_model(tiny_model_path))
+    size = est.info.input_size
+    out = est.estimate(np.zeros((3, size, size), np.float32), 10)
+    assert isinstance(out, PoseEstimate) and len(out.mean) == 3 and not out.estimated.any()
+    np.testing.assert_array_equal(out.mean, np.broadcast_to(np.eye(4), (3, 4, 4)))
