@@ -57,7 +57,9 @@ class NoisyTwinEstimator:
         samples = centre[:, None] @ se3.exp(self.rng.normal(0, 1, (n, mc_samples, 6)) * self.sigma)
         flip = self.rng.random((n, mc_samples)) < self.other
         samples = np.where(flip[..., None, None], twin.twin(samples, plane), samples)
-        return statistics(anchors.encode(samples), "anchor", plane)
+        est = statistics(anchors.encode(samples), "anchor", plane)
+        seen = np.asarray(inputs).reshape(n, -1).any(axis=1)      # as the network: an empty slice gets no pose
+        return est if seen.all() else PoseEstimate.scattered(est.part(seen), seen)
 
 
 class Scored:
@@ -125,7 +127,9 @@ def score(predictions: list[StackPrediction], prepared: list[PreparedStack], tru
     for res, pred, p, true, sim in zip(stack_objects(predictions), predictions, prepared, truth, stacks):
         inv = np.linalg.inv(p.network_from_voxel())
         final = np.array([s["atlas_from_voxel"] for s in res["slices"]]) @ inv
-        network = np.array([s["network_atlas_from_voxel"] for s in res["slices"]]) @ inv
+        unseen = np.full((4, 4), np.nan)                # an empty slice is not shown to the network
+        network = np.array([unseen if s["network_atlas_from_voxel"] is None else s["network_atlas_from_voxel"]
+                            for s in res["slices"]]) @ inv
         tw = twin.twin(true, plane_x_mm)
         e, e_tw = ed(final, true), ed(final, tw)
         stage = res["consistency"] or {}

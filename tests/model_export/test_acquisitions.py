@@ -58,7 +58,9 @@ def test_pipeline_with_a_twin_confused_estimator_per_motion_level(tmp_path) -> N
             keep = cols[f"{row}/mask_pixels"] >= 20
             assert keep.sum() == out[row]["slices"] and cols[f"{row}/ed"][keep].mean() == out[row]["ed"]["mean"]
             assert len(np.unique(cols[f"{row}/stack"])) == 3 * 2                  # 3 stacks x 2 acquisitions
-            assert np.all(cols[f"{row}/moved_mm"] >= 0)
+            assert np.all(cols[f"{row}/moved_mm"][keep] >= 0)
+            # a slice with nothing in it has no network pose to have moved from (the estimator skips it)
+            assert np.isnan(cols[f"{row}/moved_mm"][cols[f"{row}/mask_pixels"] == 0]).all()
         motion = {lv: np.median(cols[f"{lv}/motion_mm"]) for lv in ("mild", "moderate", "extreme")}
         assert 0 < motion["mild"] < motion["moderate"] < motion["extreme"], motion
         fitted = {lv: np.median(cols[f"{lv}/fitted_motion_mm"]) for lv in ("mild", "moderate")}
