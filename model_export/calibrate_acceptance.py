@@ -201,15 +201,27 @@ def calibrate(by_level: dict[str, dict[str, NDArray]]) -> dict:
             "trade_off": {f"{t:g}": v for t, v in trade_off(by_level, floor, variance_threshold).items()}}
 
 
-def level_columns(npz: Path, levels: tuple[str, ...]) -> dict[str, dict[str, NDArray]]:
-    """Each level's per-slice columns (slices with brain) from an ``evaluate_acquisitions`` ``.npz``."""
-    with np.load(npz) as f:
-        out = {}
-        for lv in levels:
-            keep = f[f"{lv}/mask_pixels"] >= MIN_MASK_PIXELS
-            out[lv] = {key: f[f"{lv}/{key}"][keep] for key in ("ed", "ed_min", "expected", "variance", "reason",
-                                                             "twin_mm", "decidable") if f"{lv}/{key}" in f}
-            out[lv]["expected"] = np.where(np.isinf(out[lv]["expected"]), np.nan, out[lv]["expected"])
+def level_columns(npz: Path | list[Path], levels: tuple[str, ...]) -> dict[str, dict[str, NDArray]]:
+    """Each level's per-slice columns (slices with brain) from an ``evaluate_acquisitions`` ``.npz``;
+    from several, their slices pooled (a level that a file does not hold comes from the others):
+    more acquisitions, fewer slices over :data:`BAD_MM` that a limit tips on alone."""
+    files = [Path(npz)] if isinstance(npz, (str, Path)) else [Path(p) for p in npz]
+    parts: dict[str, list[dict[str, NDArray]]] = {lv: [] for lv in levels}
+    for path in files:
+        with np.load(path) as f:
+            for lv in levels:
+                if f"{lv}/mask_pixels" not in f:
+                    continue
+                keep = f[f"{lv}/mask_pixels"] >= MIN_MASK_PIXELS
+                parts[lv].append({key: f[f"{lv}/{key}"][keep] for key in ("ed", "ed_min", "expected", "variance", "reason",
+                                                                       "twin_mm", "decidable") if f"{lv}/{key}" in f})
+    out = {}
+    for lv, found in parts.items():
+        if not found:
+            continue
+        keys = set.intersection(*(set(c) for c in found))
+        out[lv] = {key: np.concatenate([c[key] for c in found]) for key in sorted(keys)}
+        out[lv]["expected"] = np.where(np.isinf(out[lv]["expected"]), np.nan, out[lv]["expected"])
     return out
 
 

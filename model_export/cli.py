@@ -205,8 +205,9 @@ def calibrate_acceptance(
                                              "and max_expected_error_mm into the model's metadata")] = True,
     seed: int = 1,
     slices: Annotated[Optional[Path], typer.Option(help="also keep every slice's columns here (.npz)")] = None,
-    columns: Annotated[Optional[Path], typer.Option(
-        help="calibrate from the slice columns a previous run kept (--slices) instead of measuring again")] = None,
+    columns: Annotated[Optional[list[Path]], typer.Option(
+        help="calibrate from the slice columns previous runs kept (--slices) instead of measuring again; "
+             "given several times, their slices pooled")] = None,
 ) -> None:
     """Calibrate the accept flags on the pipeline's final poses over simulated acquisitions of the
     validation volumes at every motion level (mild, moderate, jumps, independent)."""
@@ -216,7 +217,7 @@ def calibrate_acceptance(
     from service.inference.estimator import OnnxPoseEstimator
     from service.inference.model_file import load_model
 
-    if columns is not None:
+    if columns:
         result = calibrate(level_columns(columns, LEVELS))
     else:
         result = measure(OnnxPoseEstimator(load_model(model)), load_volumes(split(root)[1], root),

@@ -11,6 +11,8 @@ variant. A variant is ``base`` or a ``;``-separated list of overrides:
 * ``refine:passes=((3.0, 3.0, None), (0.9, 2.0, None))``: a keyword of the image refinement
   (:func:`~service.consistency.image_refinement.refine`).
 
+``--columns OUT.npz`` writes every cached slice's columns for ``svrnet-train calibrate-acceptance
+--columns`` (a second set of acquisitions pooled with the first).
 ``--void`` puts a dark ball in every acquisition (:func:`~model_export.experiments.scanner_sweep.with_void`);
 ``--alone`` sends each stack as a request of its own (a single-stack request, or a stream's first stack).
 Per motion level it prints the mean E.D. against the truth and twin-min, the median E.D. once the
@@ -145,6 +147,30 @@ def run(info, cases: list, variant: str, alone: bool = False) -> str:  # noqa: A
     return "\n".join(lines)
 
 
+def write_columns(info: ModelInfo, cases: list, path: Path) -> None:
+    """Every cached slice's columns as :func:`~model_export.calibrate_acceptance.level_columns` reads
+    them (``<level>/<column>``), the calibration switched off as ``calibrate-acceptance`` measures
+    (no floor, limit or twin risk): a second set of acquisitions for ``calibrate-acceptance
+    --columns A.npz --columns B.npz``."""
+    measuring = replace(info, expected_error_floor_mm=0.0, max_expected_error_mm=None, twin_risk_logit=None)
+    plane = info.symmetry_plane_x_mm
+    columns: dict[str, list] = defaultdict(list)
+    for level, prepared, parts, truth in cases:
+        for p, true in zip(pipeline.predict_from_estimates(prepared, parts, measuring, measuring.variance_threshold)[0],
+                           truth):
+            e, e_twin = ed(p.poses.poses, true), ed(p.poses.poses, twin.twin(true, plane))
+            expected = p.poses.expected_error_mm if p.poses.expected_error_mm is not None else np.full(len(e), np.inf)
+            for key, value in (("ed", e), ("ed_min", np.minimum(e, e_twin)),
+                               ("expected", np.where(np.isfinite(expected), expected, np.inf)),
+                               ("variance", np.where(np.isfinite(p.estimate.variance), p.estimate.variance, np.inf)),
+                               ("reason", np.array([r or "" for r in p.reasons])),
+                               ("twin_mm", twin.twin_distance_mm(p.poses.poses, plane)),
+                               ("decidable", np.full(len(e), p.poses.fit is not None and p.poses.fit.decidable)),
+                               ("mask_pixels", p.prepared.prepared.mask_pixels)):
+                columns[f"{level}/{key}"].append(value)
+    np.savez_compressed(path, **{k: np.concatenate(v) for k, v in columns.items()})
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("variants", nargs="*", default=["base"])
@@ -157,6 +183,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=21)
     ap.add_argument("--void", action="store_true", help="a dark ball in every acquisition (scanner_sweep.with_void)")
     ap.add_argument("--alone", action="store_true", help="each stack sent on its own, not with its acquisition's others")
+    ap.add_argument("--columns", type=Path, help="write every slice's columns here (.npz) for calibrate-acceptance --columns")
     args = ap.parse_args()
     if not args.cache.exists():
         with open(args.cache, "wb") as f:
@@ -164,6 +191,8 @@ def main() -> None:
     with open(args.cache, "rb") as f:
         info, cases = pickle.load(f)                                                               # noqa: S301 - our own file
     info = calibrated_as(info, load_model(args.model).info)
+    if args.columns:
+        write_columns(info, cases, args.columns)
     for variant in args.variants:
         print(run(info, cases, variant, args.alone), flush=True)
 

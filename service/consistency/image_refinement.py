@@ -14,7 +14,7 @@ firmly the images hold it (its Laplace spread at the optimum, :func:`expected_af
 Example:
     >>> relative = relative_mismatch([np.array([1.0, 4.0, np.nan])])             # over the median, 2.5
     >>> [e.round(2).tolist() for e in expected_after([np.array([4.0, 4.0, 4.0])], relative)]
-    [[1.64, 3.29, 7.6]]
+    [[1.04, 4.16, 7.6]]
 """
 
 from __future__ import annotations
@@ -49,9 +49,15 @@ fewer slices far off. Smoothing in the plane only, a coarse pass's optimum lies 
 two slices' 3D blurs differ): a 6 mm pass puts it beyond the finest pass's reach
 (docs/consistency.md)."""
 REFINED_GAIN = 0.65
-"""A refined slice's expected E.D. from the stage's: this times the stage's, times the square root of
-its remaining mismatch over the request's median (:func:`expected_after`; fitted on simulated
-moderate acquisitions, docs/consistency.md)."""
+"""A refined slice's expected E.D. from the stage's: this times the stage's, times its remaining
+mismatch over the request's median to the :data:`MISMATCH_POWER` (:func:`expected_after`; fitted on
+simulated moderate acquisitions, docs/consistency.md)."""
+MISMATCH_POWER = 1.0
+"""How the stage's estimate of a refined slice follows the slice's remaining mismatch (relative to the
+request's median): in proportion. A slice the images pin down after motion the stage could not
+model (a jump) then loses the stage's over-estimate, and one they still disagree with keeps it: at
+the same share of slices over 10 mm accepted, the accept flags keep more of the good slices than
+with the square root (docs/accuracy.md, "Accept flags")."""
 SPREAD_GAIN = 2.0
 """A refined slice's expected E.D. from the images: this times its Laplace spread
 (:func:`laplace_spread_mm`). The spread understates the error (neighbouring points of a line are
@@ -264,7 +270,8 @@ def expected_after(expected_error_mm: list[NDArray], relative: list[NDArray],
     """Each slice's expected E.D. after :func:`refine`.
 
     Two estimates meet: the stage's expected error, scaled by the slice's remaining image mismatch
-    over the request's median (``relative``, :func:`relative_mismatch`; :data:`REFINED_GAIN`), and
+    over the request's median (``relative``, :func:`relative_mismatch`; :data:`REFINED_GAIN`,
+    :data:`MISMATCH_POWER`), and
     what the images themselves allow, :data:`SPREAD_GAIN` times the slice's Laplace spread
     (``spread_mm``, :class:`Refinement`). The first knows how far the stage was off and how well the
     images agree now, the second how firmly the images hold the slice where it is; their geometric
@@ -273,7 +280,7 @@ def expected_after(expected_error_mm: list[NDArray], relative: list[NDArray],
 
     Example:
         >>> [e.round(2).tolist() for e in expected_after([np.array([4.0, 4.0, 4.0])], [np.array([0.25, 1.0, np.nan])])]
-        [[1.3, 2.6, 7.6]]
+        [[0.65, 2.6, 7.6]]
         >>> [e.round(2).tolist() for e in expected_after([np.array([4.0])], [np.array([1.0])], [np.array([0.65])])]
         [[1.84]]
     """
@@ -281,7 +288,8 @@ def expected_after(expected_error_mm: list[NDArray], relative: list[NDArray],
     out = []
     for e, m, s in zip(expected_error_mm, relative, spread_mm):
         e = np.asarray(e, np.float64)
-        stage = np.where(np.isfinite(m), REFINED_GAIN * e * np.sqrt(m), UNCHECKED_GAIN * e)
+        stage = np.where(np.isfinite(m), REFINED_GAIN * e * np.where(np.isfinite(m), m, 1.0) ** MISMATCH_POWER,
+                         UNCHECKED_GAIN * e)
         images = np.isfinite(m) & np.isfinite(s)
         out.append(np.where(images, np.sqrt(stage * SPREAD_GAIN * np.where(images, s, 1.0)), stage))
     return out

@@ -85,3 +85,29 @@ def test_a_level_with_a_handful_of_bad_slices_does_not_decide_the_limit() -> Non
     assert out["levels"]["mild"]["bad_accepted"] > MAX_BAD_ACCEPTED                  # reported as it is
     alone = calibrate({"mild": mild})
     assert alone["judged_levels"] == ["mild"] and alone["max_expected_error_mm"] < out["max_expected_error_mm"]
+
+
+def test_the_columns_of_several_runs_are_pooled_level_by_level(tmp_path) -> None:  # noqa: ANN001
+    """``--columns`` given twice: each level's slices with brain from both files; a level one file
+    lacks comes from the other alone."""
+    from model_export.calibrate_acceptance import level_columns
+
+    def write(path, levels, n, offset):  # noqa: ANN001, ANN202
+        cols = {}
+        for lv in levels:
+            cols[f"{lv}/ed"] = np.arange(n, dtype=float) + offset
+            cols[f"{lv}/expected"] = np.full(n, np.inf)
+            cols[f"{lv}/mask_pixels"] = np.where(np.arange(n) % 2 == 0, 100, 0)      # every other slice has brain
+            for key in ("ed_min", "variance", "twin_mm"):
+                cols[f"{lv}/{key}"] = np.ones(n)
+            cols[f"{lv}/reason"] = np.array([""] * n)
+            cols[f"{lv}/decidable"] = np.ones(n, bool)
+        np.savez(path, **cols)
+
+    write(tmp_path / "a.npz", ("mild", "independent"), 6, 0.0)
+    write(tmp_path / "b.npz", ("mild",), 4, 100.0)
+    out = level_columns([tmp_path / "a.npz", tmp_path / "b.npz"], ("mild", "independent", "jumps"))
+    assert set(out) == {"mild", "independent"}
+    assert out["mild"]["ed"].tolist() == [0.0, 2.0, 4.0, 100.0, 102.0]
+    assert out["independent"]["ed"].tolist() == [0.0, 2.0, 4.0] and np.isnan(out["mild"]["expected"]).all()
+    assert level_columns(tmp_path / "b.npz", ("mild",))["mild"]["ed"].tolist() == [100.0, 102.0]

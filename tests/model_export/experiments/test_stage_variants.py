@@ -54,3 +54,40 @@ def test_a_caches_info_takes_the_models_calibration_and_keeps_the_rest() -> None
     judged = calibrated_as(cached, model)
     assert all(getattr(judged, k) == getattr(model, k) for k in CALIBRATION)
     assert judged.sha256 == "old-sha" and judged.variance_threshold == 485.2
+
+
+def test_the_cached_slices_columns_are_written_as_calibrate_acceptance_reads_them(tmp_path, monkeypatch) -> None:  # noqa: ANN001
+    """``--columns``: each slice's error, expected error and reason under ``<level>/<column>``, measured
+    with the calibration switched off; ``level_columns`` keeps the slices with brain."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from model_export.calibrate_acceptance import level_columns
+    from model_export.experiments.stage_variants import write_columns
+    from service.inference.model_file import ModelInfo
+
+    truth = np.repeat(np.eye(4)[None], 4, axis=0)
+    truth[:, 0, 3] = 30.0
+    poses = truth.copy()
+    poses[:, 1, 3] += [1.0, 2.0, 12.0, 0.0]                        # E.D. 1, 2, 12 mm; the last slice empty
+    seen = {}
+
+    def predict_from_estimates(prepared, parts, info, threshold):  # noqa: ANN001, ANN202
+        seen["info"] = info
+        fit = SimpleNamespace(decidable=True)
+        p = SimpleNamespace(poses=SimpleNamespace(poses=poses, expected_error_mm=np.array([1.5, 2.5, np.nan, 3.0]), fit=fit),
+                            estimate=SimpleNamespace(variance=np.array([1.0, 2.0, 3.0, np.nan])),
+                            reasons=[None, None, "high_variance", "empty"],
+                            prepared=SimpleNamespace(prepared=SimpleNamespace(mask_pixels=np.array([50, 50, 50, 0]))))
+        return [p], {}
+
+    monkeypatch.setattr(pipeline, "predict_from_estimates", predict_from_estimates)
+    info = replace(ModelInfo("m", "1", "compact", "grid", 96, 1.25, 48.0, 0.25, "atlas", "", "sha"),
+                   expected_error_floor_mm=0.9, max_expected_error_mm=4.5, twin_risk_logit=(-1.2, -0.1))
+    write_columns(info, [("moderate", ["stack"], ["estimate"], [truth])], tmp_path / "b.npz")
+    assert seen["info"].expected_error_floor_mm == 0.0 and seen["info"].max_expected_error_mm is None
+    assert seen["info"].twin_risk_logit is None
+    cols = level_columns(tmp_path / "b.npz", ("moderate", "jumps"))["moderate"]
+    np.testing.assert_allclose(cols["ed"], [1.0, 2.0, 12.0], atol=1e-9)
+    assert np.isnan(cols["expected"][2]) and cols["reason"].tolist() == ["", "", "high_variance"]
+    assert cols["decidable"].all() and (cols["twin_mm"] > 0).all()
