@@ -42,6 +42,7 @@ from numpy.typing import NDArray
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, evaluate_acquisitions
 from service.geometry import twin
 from service.inference import acceptance
+from service.inference.model_file import ModelInfo
 
 LEVELS = ("mild", "moderate", "jumps", "independent")
 TARGET_LEVELS = ("mild", "moderate", "jumps")
@@ -225,13 +226,19 @@ def level_columns(npz: Path | list[Path], levels: tuple[str, ...]) -> dict[str, 
     return out
 
 
+def measuring(info: ModelInfo) -> ModelInfo:
+    """``info`` with its floor, limit and twin risk switched off: the expected errors and flags as
+    they are measured for :func:`calibrate` (which chooses those three)."""
+    return replace(info, expected_error_floor_mm=0.0, max_expected_error_mm=None, twin_risk_logit=None)
+
+
 def measure(estimator, volumes: list, per_volume: int, seed: int = 1, levels: tuple[str, ...] = LEVELS,  # noqa: ANN001
             slices: Path | None = None) -> dict:
     """:func:`calibrate` on acquisitions of ``volumes`` through the pipeline, the estimator's own
     floor, limit and twin risk switched off while they are measured; ``slices``: keep every slice's columns
     there (``.npz``, as :func:`~model_export.evaluate_acquisitions.evaluate_acquisitions` writes them)."""
     estimator = copy(estimator)                  # the caller's keeps its calibration
-    estimator.info = replace(estimator.info, expected_error_floor_mm=0.0, max_expected_error_mm=None, twin_risk_logit=None)
+    estimator.info = measuring(estimator.info)
     with tempfile.TemporaryDirectory() as tmp:
         npz = slices or Path(tmp) / "slices.npz"
         evaluate_acquisitions(volumes, estimator, np.random.default_rng(seed), levels=levels, per_volume=per_volume,

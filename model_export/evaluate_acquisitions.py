@@ -24,7 +24,7 @@ from numpy.typing import ArrayLike, NDArray
 from model_export.acquisitions import MOTION_LEVELS, SimulatedStack, simulate_acquisition
 from service.geometry import anchors, se3, twin
 from service.geometry.anchors import ed
-from service.inference.estimator import PoseEstimate, statistics
+from service.inference.estimator import PoseEstimate, shown, statistics
 from service.inference.model_file import ModelInfo
 from service.consistency.slice_order import SliceOrder
 from service.api.responses import stack_objects
@@ -58,7 +58,7 @@ class NoisyTwinEstimator:
         flip = self.rng.random((n, mc_samples)) < self.other
         samples = np.where(flip[..., None, None], twin.twin(samples, plane), samples)
         est = statistics(anchors.encode(samples), "anchor", plane)
-        seen = np.asarray(inputs).reshape(n, -1).any(axis=1)      # as the network: an empty slice gets no pose
+        seen = shown(inputs)                                      # as the network: an empty slice gets no pose
         return est if seen.all() else PoseEstimate.scattered(est.part(seen), seen)
 
 

@@ -47,7 +47,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.acquisitions import MOTION_LEVELS, simulate_acquisition  # noqa: E402
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
-from model_export.calibrate_acceptance import rates, rms, share  # noqa: E402
+from model_export.calibrate_acceptance import measuring, rates, rms, share  # noqa: E402
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, prepare_acquisition  # noqa: E402
 from model_export.experiments.frame_bias import common_frame  # noqa: E402
 from model_export.experiments.scanner_sweep import with_void  # noqa: E402
@@ -152,11 +152,11 @@ def write_columns(info: ModelInfo, cases: list, path: Path) -> None:
     them (``<level>/<column>``), the calibration switched off as ``calibrate-acceptance`` measures
     (no floor, limit or twin risk): a second set of acquisitions for ``calibrate-acceptance
     --columns A.npz --columns B.npz``."""
-    measuring = replace(info, expected_error_floor_mm=0.0, max_expected_error_mm=None, twin_risk_logit=None)
+    measured = measuring(info)
     plane = info.symmetry_plane_x_mm
     columns: dict[str, list] = defaultdict(list)
     for level, prepared, parts, truth in cases:
-        for p, true in zip(pipeline.predict_from_estimates(prepared, parts, measuring, measuring.variance_threshold)[0],
+        for p, true in zip(pipeline.predict_from_estimates(prepared, parts, measured, measured.variance_threshold)[0],
                            truth):
             e, e_twin = ed(p.poses.poses, true), ed(p.poses.poses, twin.twin(true, plane))
             expected = p.poses.expected_error_mm if p.poses.expected_error_mm is not None else np.full(len(e), np.inf)

@@ -288,8 +288,7 @@ def expected_after(expected_error_mm: list[NDArray], relative: list[NDArray],
     out = []
     for e, m, s in zip(expected_error_mm, relative, spread_mm):
         e = np.asarray(e, np.float64)
-        stage = np.where(np.isfinite(m), REFINED_GAIN * e * np.where(np.isfinite(m), m, 1.0) ** MISMATCH_POWER,
-                         UNCHECKED_GAIN * e)
+        stage = np.where(np.isfinite(m), REFINED_GAIN * e * m ** MISMATCH_POWER, UNCHECKED_GAIN * e)
         images = np.isfinite(m) & np.isfinite(s)
         out.append(np.where(images, np.sqrt(stage * SPREAD_GAIN * np.where(images, s, 1.0)), stage))
     return out

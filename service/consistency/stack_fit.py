@@ -377,9 +377,9 @@ def _noise(expected_error_mm: ArrayLike, use: NDArray) -> NDArray[np.float64]:
     that may not vote has none (an empty slice the network never saw: NaN), so it gets the largest
     of the others', which weighs nothing where it does not vote."""
     e = np.asarray(expected_error_mm, dtype=np.float64)
-    e = np.where(np.isfinite(e), e, np.nan)
-    floor = float(np.nanmax(e[use])) if np.isfinite(e[use]).any() else MIN_NOISE_MM
-    return np.sqrt(np.maximum(np.where(np.isfinite(e), e, floor) ** 2, MIN_NOISE_MM ** 2))
+    known = np.isfinite(e)
+    floor = float(e[use & known].max()) if (use & known).any() else MIN_NOISE_MM
+    return np.maximum(np.where(known, e, floor), MIN_NOISE_MM)
 
 
 def _precision(sig: NDArray, use: NDArray) -> NDArray:

@@ -91,6 +91,18 @@ class PoseEstimate:
         return cls(*(np.concatenate([getattr(p, name) for p in parts]) for name in PER_SLICE))
 
 
+def shown(inputs: NDArray) -> NDArray[np.bool_]:
+    """``[B]`` which network inputs ``[B, L, L]`` hold anything: an all-zero input (a slice with no
+    brain; everything outside the mask is 0) shows the network nothing, and is not run.
+
+    Example:
+        >>> shown(np.stack([np.zeros((2, 2)), np.eye(2)])).tolist()
+        [False, True]
+    """
+    x = np.asarray(inputs)
+    return x.reshape(len(x), -1).any(axis=1)
+
+
 class PoseEstimator(Protocol):
     """Anything that turns preprocessed slices ``[B, L, L]`` into pose estimates."""
 
@@ -162,14 +174,13 @@ class OnnxPoseEstimator:
         return np.concatenate(chunks) if chunks else np.zeros((0, len(passes), 0), np.float32)
 
     def estimate(self, inputs: NDArray[np.float32], mc_samples: int) -> PoseEstimate:
-        """The MC statistics of every slice of ``inputs [B, L, L]``. An all-zero input (a slice with no
-        brain: everything outside the mask is 0) shows the network nothing and is not run; it gets
-        no pose (:meth:`PoseEstimate.scattered`). The others' draws do not depend on it, so their
-        statistics are those of a call with it."""
+        """The MC statistics of every slice of ``inputs [B, L, L]``. An input that is not
+        :func:`shown` to the network gets no pose (:meth:`PoseEstimate.scattered`); the others'
+        draws do not depend on it, so their statistics are those of a call with it."""
         x = np.asarray(inputs, dtype=np.float32)
-        seen = x.reshape(len(x), -1).any(axis=1)
+        seen = shown(x)
         t0 = time.perf_counter()
-        labels = self.sample_labels(x[seen], mc_samples) if seen.any() else None
+        labels = self.sample_labels(x if seen.all() else x[seen], mc_samples) if seen.any() else None
         t1 = time.perf_counter()
         result = PoseEstimate(np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0, bool)) if labels is None else \
             statistics(labels, self.info.label_type, self.info.symmetry_plane_x_mm)
