@@ -32,7 +32,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.consistency.slice_images import Cells, SampledStack, SampledStacks
-from service.core.threads import two_threads
 from service.geometry import se3
 
 MIN_SINE = np.sin(np.radians(30.0))
@@ -111,9 +110,10 @@ class ImageTerm:
 
     Every point of every pair is found and sampled in one set of array operations per role (the
     pair's first or second slice), whatever stack its slice is of
-    (:class:`~service.consistency.slice_images.SampledStacks`), the two roles side by side
-    (:func:`~service.core.threads.two_threads`). The points' places among the pixels at the last
-    poses asked for are kept: the Jacobian at a set of poses follows the residuals at the same
+    (:class:`~service.consistency.slice_images.SampledStacks`), in one thread: a pass's tens of
+    thousands of points take a few milliseconds, less than handing half of them to another thread
+    gains. The points' slices are kept until the points change, and their places among the pixels
+    at the last poses asked for: the Jacobian at a set of poses follows the residuals at the same
     poses."""
 
     def __init__(self, sampled: list[SampledStack], stack_of: NDArray, local: NDArray, pairs: NDArray, t: NDArray,
@@ -134,6 +134,7 @@ class ImageTerm:
         self._rank = np.empty(len(pairs), np.int64)             # each pair's place in the budget's fixed random order
         self._rank[np.random.default_rng(0).permutation(len(pairs))] = np.arange(len(pairs))
         self._last: tuple | None = None
+        self._slices: list[tuple | None] = [None, None]
 
     def select_in_masks(self, atlas_from_slice: NDArray, min_weight: float, max_points: int | None = None) -> None:
         """:meth:`select` with the weights of the slices' masks at the poses ``atlas_from_slice``
@@ -200,6 +201,7 @@ class ImageTerm:
         self._rank = self._rank[used]
         self.sw = self.sw[keep] if sw is None else sw
         self._last = None
+        self._slices = [None, None]
 
     def select(self, w: NDArray, min_weight: float, max_points: int | None = None) -> None:
         """Keep the points of pairs whose lines cross both brains over ``min_weight`` points' worth,
@@ -227,39 +229,46 @@ class ImageTerm:
         if self._last is not None and np.array_equal(self._last[0], atlas_from_slice):
             return self._last[1]
         ends = self._line_ends(atlas_from_slice)
-        t = self.t[self.t_of][:, None]
+        t = self.t[self.t_of]
 
         def site(role: int) -> tuple[NDArray, Cells]:
-            g, e = self.pairs[:, role], ends[role]
-            rc = e[:, 0][self.pair_of] + t * (e[:, 1] - e[:, 0])[self.pair_of]
-            slices = g[self.pair_of]
-            return slices, self.stacks.cells(self.stack_of[slices], self.local[slices], rc)
+            base, slope = ends[role][:, 0].T, (ends[role][:, 1] - ends[role][:, 0]).T      # [2, M]: rows, columns
+            rows, cols = (base[k][self.pair_of] + t * slope[k][self.pair_of] for k in (0, 1))
+            slices, start, h, w = self._slices_of_points(role)
+            return slices, self.stacks.cells_from(start, h, w, rows, cols)
 
-        sites = two_threads(site)
+        sites = [site(0), site(1)]
         self._last = (np.array(atlas_from_slice, copy=True), sites)
         return sites
+
+    def _slices_of_points(self, role: int) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+        """Each point's slice in ``role``, where that slice starts in the flat arrays and its padded
+        size: the same at every pose, so kept until the points change."""
+        if self._slices[role] is None:
+            slices = self.pairs[:, role][self.pair_of]
+            stack = self.stack_of[slices]
+            h, w = self.stacks.padded[stack, 0], self.stacks.padded[stack, 1]
+            self._slices[role] = (slices, self.stacks.base[stack] + self.local[slices] * (h * w), h, w)
+        return self._slices[role]
 
     def values(self, atlas_from_slice: NDArray, masks: bool = False) -> NDArray[np.float32]:
         """``[2, P]`` both slices' values at each point (images, or masks)."""
         sites = self._where(atlas_from_slice)
         flat = self.stacks.masks if masks else self.stacks.images
-        return np.stack(two_threads(lambda role: self.stacks.sample(flat, sites[role][1])))
+        return np.stack([self.stacks.sample(flat, sites[role][1]) for role in (0, 1)])
 
-    def gradients(self, atlas_from_slice: NDArray) -> NDArray[np.float64]:
-        """``[2, P, 3]`` both slices' image gradients at each point (per atlas mm, in each slice's
-        plane): what the residuals' derivatives need besides the geometry."""
+    def gradients(self, atlas_from_slice: NDArray) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
+        """Both slices' image gradients at each point, in two factors: ``[2, P, 2]`` each point's
+        derivatives along its slice's pixel rows and columns, and ``[2, M, 3, 2]`` the atlas gradient
+        of the row and column coordinate of each pair's slice (pixels per mm). A point's image
+        gradient (per atlas mm, in its slice's plane) is ``along[role, pair] @ pixel[role, point]``:
+        what the residuals' derivatives need besides the geometry."""
         sites = self._where(atlas_from_slice)
         along = atlas_from_slice[:, :3, :3] @ np.swapaxes(self.stacks.pixel_from_slice[self.stack_of][:, :, :3], 1, 2)
-        # [N, 3, 2]: the atlas gradient of each slice's row and column coordinate (pixels per mm): a
-        # point's image gradient is its two pixel derivatives along them
-
-        def gradient(role: int) -> NDArray[np.float64]:
-            slices, cells = sites[role]
-            rows = self.stacks.sample(self.stacks.gradient_rows, cells)
-            cols = self.stacks.sample(self.stacks.gradient_cols, cells)
-            return rows[:, None] * along[slices, :, 0] + cols[:, None] * along[slices, :, 1]
-
-        return np.stack(two_threads(gradient))
+        pixel = np.stack([np.stack([self.stacks.sample(flat, sites[role][1])
+                                    for flat in (self.stacks.gradient_rows, self.stacks.gradient_cols)], axis=1)
+                          for role in (0, 1)])
+        return pixel, np.stack([along[self.pairs[:, 0]], along[self.pairs[:, 1]]])
 
     def residuals(self, atlas_from_slice: NDArray) -> NDArray[np.float64]:
         va, vb = self.values(atlas_from_slice)

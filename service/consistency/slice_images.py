@@ -247,11 +247,18 @@ class SampledStacks:
         """The :class:`Cells` of points at pixels ``rc [P, 2]`` (row, column) of slices ``local [P]``
         of stacks ``stack [P]``."""
         h, w = self.padded[stack, 0], self.padded[stack, 1]
-        r, c = rc[:, 0] + 1.0, rc[:, 1] + 1.0
+        return self.cells_from(self.base[stack] + local * (h * w), h, w, rc[:, 0], rc[:, 1])
+
+    @staticmethod
+    def cells_from(start: NDArray, h: NDArray, w: NDArray, rows: NDArray, cols: NDArray) -> Cells:
+        """:meth:`cells` of points at pixels ``(rows, cols)`` of slices that start at flat index
+        ``start [P]`` and measure ``h x w`` padded pixels (a caller that samples the same slices again
+        keeps these)."""
+        r, c = rows + 1.0, cols + 1.0
         inside = (r >= 0) & (r < h - 1) & (c >= 0) & (c < w - 1)
         r, c = np.clip(r, 0, h - 1.001), np.clip(c, 0, w - 1.001)
         r0, c0 = r.astype(np.int64), c.astype(np.int64)
-        index = self.base[stack] + local * (h * w) + r0 * w + c0
+        index = start + r0 * w + c0
         return Cells(index, index + w, (r - r0).astype(np.float32), (c - c0).astype(np.float32), inside)
 
     @staticmethod

@@ -62,7 +62,7 @@ def test_the_normal_equations_assembled_pair_by_pair_equal_the_sparse_products()
     place = np.concatenate([rng.permutation(12)[:c] for c in counts])         # places along a line, gaps between
     slices = rng.integers(-1, 12, (len(counts), 2))
     slices[:, 1] = np.where(slices[:, 1] == slices[:, 0], (slices[:, 0] + 1) % 12, slices[:, 1])
-    jac = PointJacobian(rng.normal(size=(len(pair_of), 2, 6)), slices, pair_of, place, 72)
+    jac = PointJacobian.of_points(rng.normal(size=(len(pair_of), 2, 6)), slices, pair_of, place, 72)
     w, r = rng.uniform(0.1, 1.0, len(pair_of)), rng.normal(size=len(pair_of))
     hess, grad = jac.normal(w, r)
     dense = jac.sparse().toarray()
