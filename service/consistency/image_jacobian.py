@@ -137,7 +137,7 @@ def image_jacobian(term: ImageTerm, atlas_from_slice: NDArray, poses: NDArray, c
     tt = term.t[:seen.shape[2]]                                            # each place's t
     ln = lines(atlas_from_slice, atlas_from_slice, pairs)
     na, nb, oa, ob, d, m, p = ln.na, ln.nb, ln.oa, ln.ob, ln.d, ln.m, ln.p
-    inv = np.linalg.inv(ln.lhs)                                            # columns: dp per unit of each rhs
+    inv = ln.inv                                                           # columns: dp per unit of each rhs
     perp = (np.eye(3) - d[:, :, None] * d[:, None, :]) / ln.size[:, None, None]
     lined = np.empty((len(pairs), 12, seen.shape[2]))
 

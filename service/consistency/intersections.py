@@ -48,7 +48,9 @@ class Lines:
     """The intersection line of each pair's planes (``[M, ...]``): the planes' normals ``na``, ``nb``
     and origins ``oa``, ``ob``, the line's direction ``d = cross / size`` (``cross = na x nb``), the
     midpoint ``m`` of the origins, and the line's point ``p`` nearest it (``lhs @ p = rhs``, ``lhs``
-    the rows ``na, nb, d``)."""
+    the rows ``na, nb, d``; ``inv`` its inverse, in closed form: its columns are ``nb x d``,
+    ``d x na`` over ``size``, and ``d``, as ``na`` and ``nb`` are unit vectors and ``d`` a unit
+    vector normal to both)."""
 
     na: NDArray[np.float64]
     nb: NDArray[np.float64]
@@ -58,6 +60,7 @@ class Lines:
     size: NDArray[np.float64]
     m: NDArray[np.float64]
     lhs: NDArray[np.float64]
+    inv: NDArray[np.float64]
     p: NDArray[np.float64]
 
 
@@ -73,7 +76,8 @@ def lines(atlas_from_slice_a: NDArray, atlas_from_slice_b: NDArray, pairs: NDArr
     m = 0.5 * (oa + ob)
     lhs = np.stack([na, nb, d], axis=1)                                     # [M, 3, 3]
     rhs = np.stack([np.sum(na * oa, 1), np.sum(nb * ob, 1), np.sum(d * m, 1)], axis=1)
-    return Lines(na, nb, oa, ob, d, size, m, lhs, np.linalg.solve(lhs, rhs[..., None])[..., 0])
+    inv = np.stack([np.cross(nb, d) / size[:, None], np.cross(d, na) / size[:, None], d], axis=2)
+    return Lines(na, nb, oa, ob, d, size, m, lhs, inv, (inv @ rhs[..., None])[..., 0])
 
 
 def pair_points(atlas_from_slice_a: NDArray, atlas_from_slice_b: NDArray, pairs: NDArray,
@@ -188,9 +192,8 @@ class ImageTerm:
         ends = []
         for role in (0, 1):
             g = self.pairs[:, role]
-            pixel_from_atlas = np.einsum("mij,mjk->mik", self.stacks.pixel_from_slice[self.stack_of[g]],
-                                         slice_from_atlas[g])                   # [M, 2, 4]
-            ends.append(np.einsum("mij,mej->mei", pixel_from_atlas[:, :, :3], line) + pixel_from_atlas[:, None, :, 3])
+            pixel_from_atlas = self.stacks.pixel_from_slice[self.stack_of[g]] @ slice_from_atlas[g]   # [M, 2, 4]
+            ends.append(line @ np.swapaxes(pixel_from_atlas[:, :, :3], 1, 2) + pixel_from_atlas[:, None, :, 3])
         return ends
 
     def _keep(self, keep: NDArray, sw: NDArray | None = None) -> None:
