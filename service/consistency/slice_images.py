@@ -58,6 +58,9 @@ class StackImages:
 SHADING_SCALE_MM = 6.0
 """The in-plane reach (Gaussian sigma, mm) of a slice's local brain mean (:func:`shading`); None: no
 shading correction."""
+SHADING_SIGMA_PX = 2.0
+"""The local brain mean is worked out on blocks of pixels this many to the Gaussian's sigma (or finer):
+a mean over 6 mm is as smooth on 3 mm blocks as on 1 mm pixels, at a tenth of the work."""
 SHADING_RANGE = (0.8, 1.25)
 """The local brain mean, over the stack's median, that counts as anatomy (:func:`shading`): on
 noise-free atlas brains at their true poses the refinement then moves the slices no further than
@@ -137,12 +140,34 @@ def shading(images: NDArray[np.float32], masks: NDArray, pixel_mm: tuple[float, 
         >>> round(float(s[0, 10, 5]), 2), float(s[0, 10, 35])
         (0.63, 1.0)
     """
-    sigma = (0.0, SHADING_SCALE_MM / pixel_mm[0], SHADING_SCALE_MM / pixel_mm[1])
+    f = tuple(max(1, int(SHADING_SCALE_MM / p / SHADING_SIGMA_PX)) for p in pixel_mm)
+    sigma = (0.0, SHADING_SCALE_MM / (pixel_mm[0] * f[0]), SHADING_SCALE_MM / (pixel_mm[1] * f[1]))
     m = np.asarray(masks, np.float32)
-    weight = ndimage.gaussian_filter(m, sigma, truncate=3.0)
-    mean = ndimage.gaussian_filter(images * m, sigma, truncate=3.0) / np.maximum(weight, 1e-6)
+    weight = ndimage.gaussian_filter(_blocks(m, f), sigma, truncate=3.0)
+    mean = ndimage.gaussian_filter(_blocks(images * m, f), sigma, truncate=3.0) / np.maximum(weight, 1e-6)
     local = np.where(weight > 0.05, mean, 1.0)
-    return np.maximum(local / np.clip(local, *SHADING_RANGE), 0.1).astype(np.float32)   # no blow-up of noise
+    factor = np.maximum(local / np.clip(local, *SHADING_RANGE), 0.1)    # no blow-up of noise
+    return _unblock(factor, f, images.shape[1:])
+
+
+def _unblock(blocks: NDArray, f: tuple[int, int], shape: tuple[int, int]) -> NDArray[np.float32]:
+    """``[n, h, w]`` block values back on the ``shape`` pixels they were averaged from (:func:`_blocks`):
+    linear between the blocks' centres, the nearest block beyond them and over the rows and columns
+    past the last whole block.
+
+    Example:
+        >>> _unblock(np.array([[[1.0, 3.0]]]), (1, 2), (1, 5)).tolist()
+        [[[1.0, 1.5, 2.5, 3.0, 3.0]]]
+    """
+    out = np.asarray(blocks, np.float32)
+    for axis, (factor, size) in enumerate(zip(f, shape), start=1):
+        at = np.clip((np.arange(size) + 0.5) / factor - 0.5, 0.0, out.shape[axis] - 1)
+        lo = np.floor(at).astype(np.int64)
+        hi = np.minimum(lo + 1, out.shape[axis] - 1)
+        frac = np.expand_dims((at - lo).astype(np.float32), tuple(a for a in range(out.ndim) if a != axis))
+        low = np.take(out, lo, axis=axis)
+        out = low + frac * (np.take(out, hi, axis=axis) - low)
+    return out
 
 
 class SampledStack:
