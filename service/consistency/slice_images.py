@@ -58,9 +58,11 @@ class StackImages:
 SHADING_SCALE_MM = 6.0
 """The in-plane reach (Gaussian sigma, mm) of a slice's local brain mean (:func:`shading`); None: no
 shading correction."""
-SHADING_SIGMA_PX = 2.0
-"""The local brain mean is worked out on blocks of pixels this many to the Gaussian's sigma (or finer):
-a mean over 6 mm is as smooth on 3 mm blocks as on 1 mm pixels, at a tenth of the work."""
+BLOCK_SIGMA_PX = 2.0
+"""A wide Gaussian (the shading's local mean, the coarsest pass's smoothing) is applied on blocks of
+pixels with this many blocks to its sigma, or more, and brought back linearly (:func:`_wide_gaussian`):
+an image smoothed over 4.5 or 6 mm is as smooth on 2 mm blocks as on 1 mm pixels, at a fraction of
+the work."""
 SHADING_RANGE = (0.8, 1.25)
 """The local brain mean, over the stack's median, that counts as anatomy (:func:`shading`): on
 noise-free atlas brains at their true poses the refinement then moves the slices no further than
@@ -140,14 +142,29 @@ def shading(images: NDArray[np.float32], masks: NDArray, pixel_mm: tuple[float, 
         >>> round(float(s[0, 10, 5]), 2), float(s[0, 10, 35])
         (0.63, 1.0)
     """
-    f = tuple(max(1, int(SHADING_SCALE_MM / p / SHADING_SIGMA_PX)) for p in pixel_mm)
-    sigma = (0.0, SHADING_SCALE_MM / (pixel_mm[0] * f[0]), SHADING_SCALE_MM / (pixel_mm[1] * f[1]))
+    f, sigma = _block_factors(SHADING_SCALE_MM, pixel_mm)
     m = np.asarray(masks, np.float32)
     weight = ndimage.gaussian_filter(_blocks(m, f), sigma, truncate=3.0)
     mean = ndimage.gaussian_filter(_blocks(images * m, f), sigma, truncate=3.0) / np.maximum(weight, 1e-6)
     local = np.where(weight > 0.05, mean, 1.0)
     factor = np.maximum(local / np.clip(local, *SHADING_RANGE), 0.1)    # no blow-up of noise
     return _unblock(factor, f, images.shape[1:])
+
+
+def _block_factors(sigma_mm: float, pixel_mm: tuple[float, float]) -> tuple[tuple[int, int], tuple[float, float, float]]:
+    """The blocks a Gaussian of ``sigma_mm`` is applied on (:data:`BLOCK_SIGMA_PX`) and its sigma there
+    (slice axis, rows, columns; in blocks)."""
+    f = tuple(max(1, int(sigma_mm / p / BLOCK_SIGMA_PX)) for p in pixel_mm)
+    return f, (0.0, sigma_mm / (pixel_mm[0] * f[0]), sigma_mm / (pixel_mm[1] * f[1]))
+
+
+def _wide_gaussian(images: NDArray[np.float32], sigma_mm: float, pixel_mm: tuple[float, float]) -> NDArray[np.float32]:
+    """``images [n, H, W]`` smoothed in-plane by a Gaussian of ``sigma_mm``: on blocks where it is wide
+    (:func:`_block_factors`), on the pixels otherwise."""
+    f, sigma = _block_factors(sigma_mm, pixel_mm)
+    if f == (1, 1):
+        return ndimage.gaussian_filter(images, sigma)
+    return _unblock(ndimage.gaussian_filter(_blocks(images, f), sigma), f, images.shape[1:])
 
 
 def _unblock(blocks: NDArray, f: tuple[int, int], shape: tuple[int, int]) -> NDArray[np.float32]:
@@ -179,7 +196,7 @@ class SampledStack:
         h, w = s.images.shape[1:]
         r0, c0 = blocked.origin
         pixel = (s.pixel_mm[0] * f[0], s.pixel_mm[1] * f[1])
-        self.images = ndimage.gaussian_filter(images, (0.0, sigma_mm / pixel[0], sigma_mm / pixel[1]))
+        self.images = _wide_gaussian(images, sigma_mm, pixel)
         self.masks = blocked.masks
         self.support = blocked.support
         self.padded = (images.shape[1] + 2, images.shape[2] + 2)                # a zero border: bilinear fades to 0
