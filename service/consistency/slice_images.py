@@ -153,9 +153,20 @@ def shading(images: NDArray[np.float32], masks: NDArray, pixel_mm: tuple[float, 
 
 def _block_factors(sigma_mm: float, pixel_mm: tuple[float, float]) -> tuple[tuple[int, int], tuple[float, float, float]]:
     """The blocks a Gaussian of ``sigma_mm`` is applied on (:data:`BLOCK_SIGMA_PX`) and its sigma there
-    (slice axis, rows, columns; in blocks)."""
+    (slice axis, rows, columns; in blocks). Averaging ``f`` pixels into a block and bringing blocks
+    back linearly blur by variances of ``(f^2 - 1) / 12`` and about ``f^2 / 6`` pixels^2: the
+    Gaussian on the blocks is narrower by as much, so that the three together are the Gaussian on
+    the pixels (to a few thousandths of the image's contrast at 4.5 mm on 1.1 mm pixels, a hundredth
+    without).
+
+    Example (6 mm on 1 mm pixels: blocks of 3, and 1.94 blocks rather than 2):
+        >>> f, sigma = _block_factors(6.0, (1.0, 1.0))
+        >>> f, round(float(sigma[1]), 2)
+        ((3, 3), 1.94)
+    """
     f = tuple(max(1, int(sigma_mm / p / BLOCK_SIGMA_PX)) for p in pixel_mm)
-    return f, (0.0, sigma_mm / (pixel_mm[0] * f[0]), sigma_mm / (pixel_mm[1] * f[1]))
+    px = [sigma_mm / p for p in pixel_mm]
+    return f, (0.0, *(np.sqrt(s ** 2 - ((k ** 2 - 1) / 12.0 + (k ** 2 / 6.0 if k > 1 else 0.0))) / k for s, k in zip(px, f)))
 
 
 def _wide_gaussian(images: NDArray[np.float32], sigma_mm: float, pixel_mm: tuple[float, float]) -> NDArray[np.float32]:
