@@ -161,9 +161,9 @@ def image_jacobian(term: ImageTerm, atlas_from_slice: NDArray, poses: NDArray, c
                               se3.hat((rot_t @ d[:, :, None])[:, :, 0]) @ own, own], axis=1)             # [M, 9, 3]
         # G_a = A_a P_a, G_b = A_b P_b (P a point's pixel derivatives, A its slice's ``along``)
         mine, other = (own + k, -k) if role == 0 else (own - k, k)
-        weights = np.concatenate([(mine if role == 0 else other) @ along[0],
-                                  (other if role == 0 else mine) @ along[1]], axis=2)                    # [M, 9, 4]
-        y = weights @ seen                                                 # [M, 9, L]
+        by_pixel = np.concatenate([(mine if role == 0 else other) @ along[0],
+                                   (other if role == 0 else mine) @ along[1]], axis=2)                   # [M, 9, 4]
+        y = by_pixel @ seen                                                # [M, 9, L]
         at = 6 * role
         lined[:, at:at + 3] = y[:, 0:3] + tt * y[:, 3:6]
         lined[:, at + 3:at + 6] = y[:, 6:9]

@@ -1,10 +1,11 @@
 """Two threads for a request's long array work: two halves of the slices, every other stack.
 
 numpy does long array operations outside the GIL, so work of many milliseconds a half (the MC
-samples of half a request's slices, the smoothed images of half its stacks) runs side by side on two
-cores; work of a few milliseconds (a pass of the image term over its tens of thousands of points)
-does not gain: the hand-over and the GIL between numpy's calls cost what the second core saves. One pool serves every request: a request's work
-waits for the pool rather than starting threads of its own. A forked child starts its own.
+samples of half a request's slices, a pass's padded images and gradients of every other stack) runs
+side by side on two cores; work of a few milliseconds (a pass of the image term over its tens of
+thousands of points) does not gain: the hand-over and the GIL between numpy's calls cost what the
+second core saves. One pool serves every request: a request's work waits for the pool rather than
+starting threads of its own. A forked child starts its own.
 
 Example:
     >>> two_threads(lambda half: half * 10)
