@@ -142,7 +142,7 @@ def shading(images: NDArray[np.float32], masks: NDArray, pixel_mm: tuple[float, 
         >>> round(float(s[0, 10, 5]), 2), float(s[0, 10, 35])
         (0.63, 1.0)
     """
-    f, sigma = _block_factors(SHADING_SCALE_MM, pixel_mm)
+    f, sigma = _block_factors(SHADING_SCALE_MM, pixel_mm, images.shape[1:])
     m = np.asarray(masks, np.float32)
     weight = ndimage.gaussian_filter(_blocks(m, f), sigma, truncate=3.0)
     mean = ndimage.gaussian_filter(_blocks(images * m, f), sigma, truncate=3.0) / np.maximum(weight, 1e-6)
@@ -151,9 +151,11 @@ def shading(images: NDArray[np.float32], masks: NDArray, pixel_mm: tuple[float, 
     return _unblock(factor, f, images.shape[1:])
 
 
-def _block_factors(sigma_mm: float, pixel_mm: tuple[float, float]) -> tuple[tuple[int, int], tuple[float, float, float]]:
-    """The blocks a Gaussian of ``sigma_mm`` is applied on (:data:`BLOCK_SIGMA_PX`) and its sigma there
-    (slice axis, rows, columns; in blocks). Averaging ``f`` pixels into a block and bringing blocks
+def _block_factors(sigma_mm: float, pixel_mm: tuple[float, float], shape: tuple[int, ...] = (2 ** 31, 2 ** 31),
+                   ) -> tuple[tuple[int, int], tuple[float, float, float]]:
+    """The blocks a Gaussian of ``sigma_mm`` is applied on (:data:`BLOCK_SIGMA_PX`; two at least along
+    each axis of an image of ``shape`` pixels) and its sigma there (slice axis, rows, columns; in
+    blocks). Averaging ``f`` pixels into a block and bringing blocks
     back linearly blur by variances of ``(f^2 - 1) / 12`` and about ``f^2 / 6`` pixels^2: the
     Gaussian on the blocks is narrower by as much, so that the three together are the Gaussian on
     the pixels (to a few thousandths of the image's contrast at 4.5 mm on 1.1 mm pixels, a hundredth
@@ -164,7 +166,7 @@ def _block_factors(sigma_mm: float, pixel_mm: tuple[float, float]) -> tuple[tupl
         >>> f, round(float(sigma[1]), 2)
         ((3, 3), 1.94)
     """
-    f = tuple(max(1, int(sigma_mm / p / BLOCK_SIGMA_PX)) for p in pixel_mm)
+    f = tuple(max(1, min(int(sigma_mm / p / BLOCK_SIGMA_PX), n // 2)) for p, n in zip(pixel_mm, shape))
     px = [sigma_mm / p for p in pixel_mm]
     return f, (0.0, *(np.sqrt(s ** 2 - ((k ** 2 - 1) / 12.0 + (k ** 2 / 6.0 if k > 1 else 0.0))) / k for s, k in zip(px, f)))
 
@@ -172,7 +174,7 @@ def _block_factors(sigma_mm: float, pixel_mm: tuple[float, float]) -> tuple[tupl
 def _wide_gaussian(images: NDArray[np.float32], sigma_mm: float, pixel_mm: tuple[float, float]) -> NDArray[np.float32]:
     """``images [n, H, W]`` smoothed in-plane by a Gaussian of ``sigma_mm``: on blocks where it is wide
     (:func:`_block_factors`), on the pixels otherwise."""
-    f, sigma = _block_factors(sigma_mm, pixel_mm)
+    f, sigma = _block_factors(sigma_mm, pixel_mm, images.shape[1:])
     if f == (1, 1):
         return ndimage.gaussian_filter(images, sigma)
     return _unblock(ndimage.gaussian_filter(_blocks(images, f), sigma), f, images.shape[1:])

@@ -103,3 +103,19 @@ def test_a_wide_gaussian_on_blocks_is_the_gaussian_on_the_pixels() -> None:
         module.BLOCK_SIGMA_PX = blocks
     assert np.abs(coarse - fine)[:, 20:70, 25:80].max() < 0.015
     assert np.ptp(fine[:, 20:70, 25:80]) > 0.15                                         # the shading is there
+
+
+def test_an_image_narrower_than_two_blocks_is_smoothed_on_its_pixels() -> None:
+    """A slice three pixels high keeps its shape and is smoothed along its rows on the pixels (no
+    block wider than half of it); along its 40 columns, on blocks. An image constant along the
+    columns is then exactly the Gaussian along the rows; a slice one pixel high gets a shading too."""
+    from scipy import ndimage
+
+    import service.consistency.slice_images as module
+
+    rows = np.random.default_rng(5).random((2, 3, 1)).astype(np.float32)
+    image = np.repeat(rows, 40, axis=2)
+    out = module._wide_gaussian(image, 4.5, (1.1, 1.1))
+    assert out.shape == image.shape
+    np.testing.assert_allclose(out, ndimage.gaussian_filter(image, (0, 4.5 / 1.1, 0)), atol=1e-5)
+    assert module.shading(image[:, :1], np.ones((2, 1, 40), bool), (1.1, 1.1)).shape == (2, 1, 40)
