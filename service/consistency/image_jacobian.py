@@ -127,7 +127,8 @@ def image_jacobian(term: ImageTerm, atlas_from_slice: NDArray, poses: NDArray, c
     ``b`` does; ``(w, v)`` is ``Ad(P) d`` of the twist ``d`` in the network frame of the slice's
     current pose ``P`` (``w = R d_w``, ``v = R d_v + t x w``). Along a pair's line all of this is
     linear in ``t`` and in the point's derivatives along both slices' pixel rows and columns: per
-    pair one ``9 x 4`` matrix, applied to every point of every line in one batched product. Checked
+    pair and moving slice one ``9 x 4`` matrix, applied to every point of every line in one batched
+    product. Checked
     against finite differences in the tests."""
     pixel, along = term.gradients(atlas_from_slice)
     pairs, j, place = term.pairs, term.pair_of, term.t_of

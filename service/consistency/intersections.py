@@ -48,9 +48,9 @@ class Lines:
     """The intersection line of each pair's planes (``[M, ...]``): the planes' normals ``na``, ``nb``
     and origins ``oa``, ``ob``, the line's direction ``d = cross / size`` (``cross = na x nb``), the
     midpoint ``m`` of the origins, and the line's point ``p`` nearest it (``lhs @ p = rhs``, ``lhs``
-    the rows ``na, nb, d``; ``inv`` its inverse, in closed form: its columns are ``nb x d``,
-    ``d x na`` over ``size``, and ``d``, as ``na`` and ``nb`` are unit vectors and ``d`` a unit
-    vector normal to both)."""
+    the rows ``na, nb, d``; ``inv`` its inverse, in closed form: its columns are ``nb x d`` and
+    ``d x na`` over ``size``, and ``d``, since ``d`` is a unit vector normal to both normals and the
+    determinant is ``d . (na x nb) = size``)."""
 
     na: NDArray[np.float64]
     nb: NDArray[np.float64]
