@@ -115,6 +115,34 @@ def run_acquisition(stacks: list[SimulatedStack], estimator, mc_samples: int = 1
     return predictions, prepared, truth
 
 
+def acceptance_columns(final: NDArray, true: NDArray, expected: ArrayLike, variance: ArrayLike,
+                       reasons: list[str | None], mask_pixels: NDArray, decidable: bool,
+                       plane_x_mm: float) -> dict[str, NDArray]:
+    """The per-slice columns of one stack's answer that the accept flags are calibrated on
+    (:func:`~model_export.calibrate_acceptance.level_columns` reads them): E.D. of the returned poses
+    ``final [n, 4, 4]`` against the truth and twin-min, their distance to their twin, the expected
+    error and geodesic variance (a missing one, NaN or None, as inf), the reason a slice is not
+    accepted ("" when it is), its mask pixels and whether its stack was decidable.
+
+    Example (a slice 2 mm from its truth, 30 mm off the mid-sagittal plane; no expected error):
+        >>> true = np.eye(4)[None].copy(); true[0, 0, 3] = 30.0
+        >>> final = true.copy(); final[0, 1, 3] += 2.0
+        >>> cols = acceptance_columns(final, true, [None], [1.0], [None], np.array([50]), True, 0.0)
+        >>> cols["ed"].round(6).tolist(), cols["expected"].tolist(), cols["reason"].tolist()
+        ([2.0], [inf], [''])
+    """
+    e = ed(final, true)
+    n = len(e)
+    missing = lambda values: np.array([np.nan if v is None else v for v in values], np.float64)  # noqa: E731
+    expected, variance = missing(expected), missing(variance)
+    return {"ed": e, "ed_min": np.minimum(e, ed(final, twin.twin(true, plane_x_mm))),
+            "twin_mm": twin.twin_distance_mm(final, plane_x_mm),
+            "expected": np.where(np.isfinite(expected), expected, np.inf),
+            "variance": np.where(np.isfinite(variance), variance, np.inf),
+            "reason": np.array([r or "" for r in reasons]), "mask_pixels": np.asarray(mask_pixels),
+            "decidable": np.full(n, bool(decidable))}
+
+
 def score(predictions: list[StackPrediction], prepared: list[PreparedStack], truth: list[NDArray],
           stacks: list[SimulatedStack], plane_x_mm: float, into: Scored) -> None:
     """Add one acquisition's per-slice errors to ``into``, with where each lies: its components
@@ -143,18 +171,17 @@ def score(predictions: list[StackPrediction], prepared: list[PreparedStack], tru
         # The motion the stage fitted: how far it put each slice from its rigid stack pose.
         rigid = rigid_poses(stage, sim.volume.affine, inv)
         fitted = ed(final, rigid) if rigid is not None else np.full(n, np.nan)
-        into.add(ed=e, ed_min=np.minimum(e, e_tw), ed_network=ed(network, true), moved_mm=ed(final, network),
-                 twin_mm=twin.twin_distance_mm(final, plane_x_mm),
+        into.add(**acceptance_columns(final, true, [s.get("expected_error_mm") for s in res["slices"]],
+                                      [s["geodesic_variance"] for s in res["slices"]],
+                                      [s["reason"] for s in res["slices"]], p.prepared.mask_pixels,
+                                      stage.get("decidable"), plane_x_mm),
+                 ed_network=ed(network, true), moved_mm=ed(final, network),
                  motion_mm=true_motion_mm(sim.atlas_from_voxel, sim.volume.affine, true), fitted_motion_mm=fitted,
                  stack=np.full(n, len(into.columns["ed"])),
                  ed_network_min=twin.twin_min_ed(network, true, plane_x_mm),
                  right_branch=(e <= e_tw) | (ed(true, tw) < DISTINGUISHABLE_MM),
-                 variance=[s["geodesic_variance"] or np.inf for s in res["slices"]],
-                 expected=[np.inf if s.get("expected_error_mm") is None else s["expected_error_mm"]
-                           for s in res["slices"]],
-                 accepted=[s["accepted"] for s in res["slices"]], reason=[s["reason"] or "" for s in res["slices"]],
-                 mask_pixels=p.prepared.mask_pixels,
-                 orientation=[sim.orientation] * n, decidable=np.full(n, bool(stage.get("decidable"))),
+                 accepted=[s["accepted"] for s in res["slices"]],
+                 orientation=[sim.orientation] * n,
                  branch_decided=np.full(n, bool(stage.get("branch_decided"))),
                  tilt_deg=parts["tilt_deg"], twist_deg=parts["twist_deg"], centre_mm=parts["centre_mm"],
                  off_plane_mm=parts["off_plane_mm"], depth=np.abs(k - mid) / half,

@@ -48,7 +48,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from model_export.acquisitions import MOTION_LEVELS, simulate_acquisition  # noqa: E402
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
 from model_export.calibrate_acceptance import measuring, rates, rms, share  # noqa: E402
-from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, prepare_acquisition  # noqa: E402
+from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, acceptance_columns, prepare_acquisition  # noqa: E402
 from model_export.experiments.frame_bias import common_frame  # noqa: E402
 from model_export.experiments.scanner_sweep import with_void  # noqa: E402
 from model_export.packaging import CALIBRATION  # noqa: E402
@@ -153,20 +153,15 @@ def write_columns(info: ModelInfo, cases: list, path: Path) -> None:
     (no floor, limit or twin risk): a second set of acquisitions for ``calibrate-acceptance
     --columns A.npz --columns B.npz``."""
     measured = measuring(info)
-    plane = info.symmetry_plane_x_mm
     columns: dict[str, list] = defaultdict(list)
     for level, prepared, parts, truth in cases:
         for p, true in zip(pipeline.predict_from_estimates(prepared, parts, measured, measured.variance_threshold)[0],
                            truth):
-            e, e_twin = ed(p.poses.poses, true), ed(p.poses.poses, twin.twin(true, plane))
-            expected = p.poses.expected_error_mm if p.poses.expected_error_mm is not None else np.full(len(e), np.inf)
-            for key, value in (("ed", e), ("ed_min", np.minimum(e, e_twin)),
-                               ("expected", np.where(np.isfinite(expected), expected, np.inf)),
-                               ("variance", np.where(np.isfinite(p.estimate.variance), p.estimate.variance, np.inf)),
-                               ("reason", np.array([r or "" for r in p.reasons])),
-                               ("twin_mm", twin.twin_distance_mm(p.poses.poses, plane)),
-                               ("decidable", np.full(len(e), p.poses.fit is not None and p.poses.fit.decidable)),
-                               ("mask_pixels", p.prepared.prepared.mask_pixels)):
+            expected = p.poses.expected_error_mm
+            found = acceptance_columns(p.poses.poses, true, [None] * len(true) if expected is None else expected,
+                                       p.estimate.variance, p.reasons, p.prepared.prepared.mask_pixels,
+                                       p.poses.fit is not None and p.poses.fit.decidable, info.symmetry_plane_x_mm)
+            for key, value in found.items():
                 columns[f"{level}/{key}"].append(value)
     np.savez_compressed(path, **{k: np.concatenate(v) for k, v in columns.items()})
 
