@@ -157,9 +157,9 @@ def image_jacobian(term: ImageTerm, atlas_from_slice: NDArray, poses: NDArray, c
         # shift: K3 G -+ G_own
         k = np.concatenate([rot_t @ (np.swapaxes(dp_w, 1, 2) - se3.hat(shift) @ np.swapaxes(dp_v, 1, 2)),
                             rot_t @ np.swapaxes(dd, 1, 2), rot_t @ np.swapaxes(dp_v, 1, 2)], axis=1)   # [M, 9, 3]
-        own = sign * rot_t                                                  # G_own in the slice's frame
-        own = np.concatenate([se3.hat((rot_t @ (p - shift)[:, :, None])[:, :, 0]) @ own,
-                              se3.hat((rot_t @ d[:, :, None])[:, :, 0]) @ own, own], axis=1)             # [M, 9, 3]
+        seen_own = sign * rot_t                                             # G_own in the slice's frame, signed
+        own = np.concatenate([se3.hat((rot_t @ (p - shift)[:, :, None])[:, :, 0]) @ seen_own,
+                              se3.hat((rot_t @ d[:, :, None])[:, :, 0]) @ seen_own, seen_own], axis=1)   # [M, 9, 3]
         # G_a = A_a P_a, G_b = A_b P_b (P a point's pixel derivatives, A its slice's ``along``)
         mine, other = (own + k, -k) if role == 0 else (own - k, k)
         by_pixel = np.concatenate([(mine if role == 0 else other) @ along[0],

@@ -47,10 +47,10 @@ for 15 % more time)."""
 class Lines:
     """The intersection line of each pair's planes (``[M, ...]``): the planes' normals ``na``, ``nb``
     and origins ``oa``, ``ob``, the line's direction ``d = cross / size`` (``cross = na x nb``), the
-    midpoint ``m`` of the origins, and the line's point ``p`` nearest it (``lhs @ p = rhs``, ``lhs``
-    the rows ``na, nb, d``; ``inv`` its inverse, in closed form: its columns are ``nb x d`` and
-    ``d x na`` over ``size``, and ``d``, since ``d`` is a unit vector normal to both normals and the
-    determinant is ``d . (na x nb) = size``)."""
+    midpoint ``m`` of the origins, and the line's point ``p`` nearest it: ``L p = rhs`` for ``L`` the
+    rows ``na, nb, d`` and ``rhs = (na . oa, nb . ob, d . m)``. ``inv`` is ``L``'s inverse, in closed
+    form: its columns are ``nb x d`` and ``d x na`` over ``size``, and ``d``, since ``d`` is a unit
+    vector normal to both normals and ``L``'s determinant is ``d . (na x nb) = size``."""
 
     na: NDArray[np.float64]
     nb: NDArray[np.float64]
@@ -59,7 +59,6 @@ class Lines:
     d: NDArray[np.float64]
     size: NDArray[np.float64]
     m: NDArray[np.float64]
-    lhs: NDArray[np.float64]
     inv: NDArray[np.float64]
     p: NDArray[np.float64]
 
@@ -74,10 +73,9 @@ def lines(atlas_from_slice_a: NDArray, atlas_from_slice_b: NDArray, pairs: NDArr
     size = np.maximum(np.linalg.norm(cross, axis=1), 1e-12)
     d = cross / size[:, None]
     m = 0.5 * (oa + ob)
-    lhs = np.stack([na, nb, d], axis=1)                                     # [M, 3, 3]
     rhs = np.stack([np.sum(na * oa, 1), np.sum(nb * ob, 1), np.sum(d * m, 1)], axis=1)
-    inv = np.stack([np.cross(nb, d) / size[:, None], np.cross(d, na) / size[:, None], d], axis=2)
-    return Lines(na, nb, oa, ob, d, size, m, lhs, inv, (inv @ rhs[..., None])[..., 0])
+    inv = np.stack([np.cross(nb, d) / size[:, None], np.cross(d, na) / size[:, None], d], axis=2)    # [M, 3, 3]
+    return Lines(na, nb, oa, ob, d, size, m, inv, (inv @ rhs[..., None])[..., 0])
 
 
 def pair_points(atlas_from_slice_a: NDArray, atlas_from_slice_b: NDArray, pairs: NDArray,
@@ -246,12 +244,11 @@ class ImageTerm:
 
     def _slices_of_points(self, role: int) -> tuple[NDArray, NDArray, NDArray, NDArray]:
         """Each point's slice in ``role``, where that slice starts in the flat arrays and its padded
-        size: the same at every pose, so kept until the points change."""
+        size (:meth:`~service.consistency.slice_images.SampledStacks.layout`): the same at every
+        pose, so kept until the points change."""
         if self._slices[role] is None:
             slices = self.pairs[:, role][self.pair_of]
-            stack = self.stack_of[slices]
-            h, w = self.stacks.padded[stack, 0], self.stacks.padded[stack, 1]
-            self._slices[role] = (slices, self.stacks.base[stack] + self.local[slices] * (h * w), h, w)
+            self._slices[role] = (slices, *self.stacks.layout(self.stack_of[slices], self.local[slices]))
         return self._slices[role]
 
     def values(self, atlas_from_slice: NDArray, masks: bool = False) -> NDArray[np.float32]:

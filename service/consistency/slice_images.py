@@ -153,7 +153,7 @@ def shading(images: NDArray[np.float32], masks: NDArray, pixel_mm: tuple[float, 
     return _unblock(factor, f, images.shape[1:])
 
 
-def _block_factors(sigma_mm: float, pixel_mm: tuple[float, float], shape: tuple[int, ...] = (2 ** 31, 2 ** 31),
+def _block_factors(sigma_mm: float, pixel_mm: tuple[float, float], shape: tuple[int, ...],
                    ) -> tuple[tuple[int, int], tuple[float, float, float]]:
     """The blocks a Gaussian of ``sigma_mm`` is applied on along each axis (2 pixels where its sigma
     spans :data:`BLOCK_SIGMA_PX` blocks or more and the image of ``shape`` pixels has 4 or more, else 1)
@@ -164,7 +164,7 @@ def _block_factors(sigma_mm: float, pixel_mm: tuple[float, float], shape: tuple[
     contrast at 4.5 mm on 1.1 mm pixels, 2.2 % without the correction).
 
     Example (6 mm on 1 mm pixels: blocks of 2, and 2.96 blocks rather than 3):
-        >>> f, sigma = _block_factors(6.0, (1.0, 1.0))
+        >>> f, sigma = _block_factors(6.0, (1.0, 1.0), (100, 100))
         >>> f, round(float(sigma[1]), 2)
         ((2, 2), 2.96)
     """
@@ -300,17 +300,21 @@ class SampledStacks:
 
         two_threads(fill)
 
+    def layout(self, stack: NDArray, local: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+        """Where slices ``local [P]`` of stacks ``stack [P]`` start in the flat arrays, and their padded
+        heights and widths."""
+        h, w = self.padded[stack, 0], self.padded[stack, 1]
+        return self.base[stack] + local * (h * w), h, w
+
     def cells(self, stack: NDArray, local: NDArray, rc: NDArray) -> Cells:
         """The :class:`Cells` of points at pixels ``rc [P, 2]`` (row, column) of slices ``local [P]``
         of stacks ``stack [P]``."""
-        h, w = self.padded[stack, 0], self.padded[stack, 1]
-        return self.cells_from(self.base[stack] + local * (h * w), h, w, rc[:, 0], rc[:, 1])
+        return self.cells_from(*self.layout(stack, local), rc[:, 0], rc[:, 1])
 
     @staticmethod
     def cells_from(start: NDArray, h: NDArray, w: NDArray, rows: NDArray, cols: NDArray) -> Cells:
-        """:meth:`cells` of points at pixels ``(rows, cols)`` of slices that start at flat index
-        ``start [P]`` and measure ``h x w`` padded pixels (a caller that samples the same slices again
-        keeps these)."""
+        """:meth:`cells` of points at pixels ``(rows, cols)`` of slices laid out as :meth:`layout`
+        gives (a caller that samples the same slices again keeps that)."""
         r, c = rows + 1.0, cols + 1.0
         inside = (r >= 0) & (r < h - 1) & (c >= 0) & (c < w - 1)
         r, c = np.clip(r, 0, h - 1.001), np.clip(c, 0, w - 1.001)

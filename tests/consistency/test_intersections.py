@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.consistency.intersections import ImageTerm, candidate_pairs, pair_points
+from service.consistency.intersections import ImageTerm, candidate_pairs, lines, pair_points
 from service.consistency.slice_images import SampledStack, StackImages
 from service.geometry import se3
 from service.geometry.pose import make_pose
@@ -22,6 +22,25 @@ def test_line_points_lie_on_both_planes() -> None:
         for pose in (a[i], b[j]):                                 # distance to each plane ~ 0
             assert np.abs((p - pose[:3, 3]) @ pose[:3, 2]).max() < 1e-9
         assert np.allclose(np.linalg.norm(np.diff(p, axis=0), axis=1), 5.0)      # evenly spaced along the line
+
+
+def test_the_lines_closed_form_inverse_and_nearest_point_against_simulated_planes() -> None:
+    """Random slice poses (planes from 30 to 90 degrees apart, as candidate pairs are): ``inv`` is the
+    inverse of the rows ``na, nb, d``, and ``p`` lies on both planes, nearest the origins' midpoint
+    of all the line's points (the line moved along itself by 1 mm is further from it)."""
+    rng = np.random.default_rng(4)
+    poses = se3.exp(np.concatenate([rng.normal(0, 1.0, (40, 3)), rng.normal(0, 20.0, (40, 3))], axis=1))
+    pairs = candidate_pairs(poses, np.arange(40) % 2, np.ones(40, bool))
+    assert len(pairs) > 50
+    ln = lines(poses, poses, pairs)
+    rows = np.stack([ln.na, ln.nb, ln.d], axis=1)
+    np.testing.assert_allclose(rows @ ln.inv, np.broadcast_to(np.eye(3), rows.shape), atol=1e-9)
+    on_a = np.einsum("mi,mi->m", ln.na, ln.p - ln.oa)
+    on_b = np.einsum("mi,mi->m", ln.nb, ln.p - ln.ob)
+    np.testing.assert_allclose(np.stack([on_a, on_b]), 0.0, atol=1e-9)
+    here = np.linalg.norm(ln.p - ln.m, axis=1)
+    for shift in (-1.0, 1.0):
+        assert (np.linalg.norm(ln.p + shift * ln.d - ln.m, axis=1) > here).all()
 
 
 def test_a_pass_keeps_whole_lines_within_its_point_budget(monkeypatch) -> None:  # noqa: ANN001
