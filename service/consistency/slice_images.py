@@ -192,6 +192,8 @@ def _unblock(blocks: NDArray, f: tuple[int, int], shape: tuple[int, int]) -> NDA
         [[[1.0, 1.5, 2.5, 3.0, 3.0]]]
     """
     out = np.asarray(blocks, np.float32)
+    if tuple(f) == (1, 1):                                   # no blocks: the pixels themselves
+        return out
     for axis, (factor, size) in enumerate(zip(f, shape), start=1):
         at = np.clip((np.arange(size) + 0.5) / factor - 0.5, 0.0, out.shape[axis] - 1)
         lo = np.floor(at).astype(np.int64)
