@@ -58,6 +58,13 @@ request's median): in proportion. A slice the images pin down after motion the s
 model (a jump) then loses the stage's over-estimate, and one they still disagree with keeps it: at
 the same share of slices over 10 mm accepted, the accept flags keep more of the good slices than
 with the square root (docs/accuracy.md, "Accept flags")."""
+MAX_RELATIVE_MISMATCH = 8.0
+"""The remaining mismatch over the request's median beyond which a slice's stage estimate grows no
+further (:func:`expected_after`). Past it the slice is simply lost: on simulated acquisitions its
+E.D. stops growing with the mismatch (median 15-18 mm whether 8, 16 or 40 times the median), and an
+estimate in proportion put a handful of such slices at 40-80 mm, which alone set the RMS of the
+expected errors at moderate motion (docs/consistency.md). Such slices are far over any accept limit
+either way."""
 SPREAD_GAIN = 2.0
 """A refined slice's expected E.D. from the images: this times its Laplace spread
 (:func:`laplace_spread_mm`). The spread understates the error (neighbouring points of a line are
@@ -270,8 +277,8 @@ def expected_after(expected_error_mm: list[NDArray], relative: list[NDArray],
     """Each slice's expected E.D. after :func:`refine`.
 
     Two estimates meet: the stage's expected error, scaled by the slice's remaining image mismatch
-    over the request's median (``relative``, :func:`relative_mismatch`; :data:`REFINED_GAIN`,
-    :data:`MISMATCH_POWER`), and
+    over the request's median (``relative``, :func:`relative_mismatch`, at most
+    :data:`MAX_RELATIVE_MISMATCH`; :data:`REFINED_GAIN`, :data:`MISMATCH_POWER`), and
     what the images themselves allow, :data:`SPREAD_GAIN` times the slice's Laplace spread
     (``spread_mm``, :class:`Refinement`). The first knows how far the stage was off and how well the
     images agree now, the second how firmly the images hold the slice where it is; their geometric
@@ -283,12 +290,15 @@ def expected_after(expected_error_mm: list[NDArray], relative: list[NDArray],
         [[0.65, 2.6, 7.6]]
         >>> [e.round(2).tolist() for e in expected_after([np.array([4.0])], [np.array([1.0])], [np.array([0.65])])]
         [[1.84]]
+        >>> [e.round(2).tolist() for e in expected_after([np.array([4.0, 4.0])], [np.array([8.0, 40.0])])]   # lost alike
+        [[20.8, 20.8]]
     """
     spread_mm = spread_mm or [np.full(len(e), np.nan) for e in expected_error_mm]
     out = []
     for e, m, s in zip(expected_error_mm, relative, spread_mm):
         e = np.asarray(e, np.float64)
-        stage = np.where(np.isfinite(m), REFINED_GAIN * e * m ** MISMATCH_POWER, UNCHECKED_GAIN * e)
+        stage = np.where(np.isfinite(m), REFINED_GAIN * e * np.minimum(m, MAX_RELATIVE_MISMATCH) ** MISMATCH_POWER,
+                         UNCHECKED_GAIN * e)
         images = np.isfinite(m) & np.isfinite(s)
         out.append(np.where(images, np.sqrt(stage * SPREAD_GAIN * np.where(images, s, 1.0)), stage))
     return out

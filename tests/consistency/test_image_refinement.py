@@ -168,6 +168,21 @@ def test_the_expected_error_after_refinement_meets_the_images_halfway() -> None:
     assert out[1] == pytest.approx(REFINED_GAIN * 4.0) and out[2] == pytest.approx(UNCHECKED_GAIN * 4.0)
 
 
+def test_the_stage_estimate_follows_the_mismatch_up_to_its_limit_only() -> None:
+    """Below :data:`MAX_RELATIVE_MISMATCH` the stage's estimate grows in proportion to the mismatch;
+    beyond it a slice is lost and every further mismatch gives the same estimate, with and without
+    the images' spread."""
+    from service.consistency.image_refinement import MAX_RELATIVE_MISMATCH, REFINED_GAIN
+
+    cap = MAX_RELATIVE_MISMATCH
+    m = np.array([0.5 * cap, cap, 2.0 * cap, 10.0 * cap])
+    alone = expected_after([np.full(4, 3.0)], [m])[0]
+    assert alone[:2] == pytest.approx(REFINED_GAIN * 3.0 * m[:2])
+    assert alone[2] == alone[3] == pytest.approx(alone[1])
+    spread = expected_after([np.full(4, 3.0)], [m], [np.full(4, 1.5)])[0]
+    assert spread[1] == pytest.approx(np.sqrt(2.0) * spread[0]) and spread[3] == pytest.approx(spread[1])
+
+
 def test_a_stack_refined_against_fixed_partners_moves_to_them_and_they_stay(acquisition) -> None:  # noqa: ANN001
     """Two stacks at their true poses as fixed partners, the third moved as a whole by 4 mm / 3° and
     per slice: the partners keep their poses exactly, the third comes back to them (its whole-stack
