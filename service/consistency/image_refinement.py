@@ -61,10 +61,9 @@ with the square root (docs/accuracy.md, "Accept flags")."""
 MAX_RELATIVE_MISMATCH = 8.0
 """The remaining mismatch over the request's median beyond which a slice's stage estimate grows no
 further (:func:`expected_after`). Past it the slice is simply lost: on simulated acquisitions its
-E.D. stops growing with the mismatch (median 15-18 mm whether 8, 16 or 40 times the median), and an
-estimate in proportion put a handful of such slices at 40-80 mm, which alone set the RMS of the
-expected errors at moderate motion (docs/consistency.md). Such slices are far over any accept limit
-either way."""
+E.D. no longer grows with the mismatch (docs/consistency.md), and an estimate in proportion
+over-states a few such slices several times over, enough to set the RMS of a request's expected
+errors. Such slices are far over any accept limit either way."""
 SPREAD_GAIN = 2.0
 """A refined slice's expected E.D. from the images: this times its Laplace spread
 (:func:`laplace_spread_mm`). The spread understates the error (neighbouring points of a line are
