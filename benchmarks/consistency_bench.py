@@ -18,6 +18,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from service.consistency import fit_stack  # noqa: E402
+from service.core.machine import cpu_description  # noqa: E402
 from service.geometry import anchors, se3  # noqa: E402
 from service.inference.estimator import statistics  # noqa: E402
 from benchmarks.se3_bench import best_of  # noqa: E402
@@ -28,6 +29,7 @@ SHAPE = np.array([3.84, 0.53, 0.18, 0.03, 0.13, 1.30]) / 1.0016      # a model's
 
 
 def main() -> None:
+    print(f"machine: {cpu_description()}")
     rng = np.random.default_rng(0)
     for n_stacks, n_slices in ((6, 22), (3, 40), (3, 80)):
         cases = []

@@ -33,6 +33,7 @@ import psutil
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from service.core.machine import cpu_description  # noqa: E402
 from service.io.volume import Volume, write_volume  # noqa: E402
 from tests.support import corpus  # noqa: E402
 from tests.support.live_server import Server  # noqa: E402
@@ -156,11 +157,12 @@ def main() -> None:
             left = server.leftovers()
         finally:
             server.kill_group()
-    report = {"idle_rss_mb": round(idle / 2**20), "single_uploads": singles, "concurrent": load,
-              "healthy_after": alive, "processes_left_after_sigterm": len(left)}
+    report = {"machine": cpu_description(), "idle_rss_mb": round(idle / 2**20), "single_uploads": singles,
+              "concurrent": load, "healthy_after": alive, "processes_left_after_sigterm": len(left)}
     if args.json:
         print(json.dumps(report, indent=2))
         return
+    print(f"machine: {report['machine']}")
     print(f"server idle RSS: {report['idle_rss_mb']} MB")
     print(f"{'upload':32} {'bytes':>10} {'status':>6} {'seconds':>8} {'peak RSS MB':>12}")
     for row in singles:

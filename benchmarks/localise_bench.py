@@ -22,6 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, masked_files, pose_agreement  # noqa: E402
+from service.core.machine import cpu_description  # noqa: E402
 from service.core.settings import DEFAULT_LOCALISERS_DIR  # noqa: E402
 from service.pipeline.prepare import StackUpload  # noqa: E402
 from service.io.volume import Volume, read_volume  # noqa: E402
@@ -71,6 +72,7 @@ def uploads() -> tuple[list[StackUpload], str]:
 
 
 def main() -> None:
+    print(f"machine: {cpu_description()}")
     loc = Localiser.load(DEFAULT_LOCALISERS_DIR / "default" / "model.onnx")
     print(f"localiser {loc.version}, grid {loc.grid_mm} mm")
     stage_times(loc)

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from service.core.machine import cpu_description
 from service.inference.model_file import load_model
 
 DEFAULT = Path(__file__).resolve().parents[1] / "service" / "models" / "default" / "model.onnx"
@@ -33,6 +34,7 @@ def _timed(fn) -> float:
 
 
 def main(path: Path = DEFAULT, n_slices: int = 128, batch: int = 64, mc: int = 100) -> None:
+    print(f"machine: {cpu_description()}")
     model = load_model(path)
     size = model.info.input_size
     x = (np.random.default_rng(0).random((n_slices, 1, size, size)) * 255).astype(np.float32)

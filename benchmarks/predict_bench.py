@@ -33,6 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from model_export.localiser.evaluate import masked_files  # noqa: E402
+from service.core.machine import cpu_description  # noqa: E402
 from service.geometry import se3  # noqa: E402
 from service.io.volume import Volume, read_volume, write_volume  # noqa: E402
 from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine  # noqa: E402
@@ -146,6 +147,7 @@ def main() -> None:
     ap.add_argument("--baseline", help="a git revision to compare with, in the same run")
     ap.add_argument("--real", type=Path, help="a real scan's folder: NAME.nii.gz and NAME_brain_mask.nii.gz")
     args = ap.parse_args()
+    print(f"machine: {cpu_description()}")
     real = [(stack, mask) for _, stack, mask in masked_files(args.real)] if args.real else None
     with tempfile.TemporaryDirectory() as tmp:
         (Path(tmp) / "b").mkdir()

@@ -33,6 +33,7 @@ from rq.worker import Worker as RqWorker
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from service.core.machine import cpu_description  # noqa: E402
 from service.core.settings import Settings  # noqa: E402
 from service.jobs.backends import open_backend  # noqa: E402
 from tests.support.live_server import Server, Worker, completions, stop_all  # noqa: E402
@@ -147,6 +148,7 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=20)
     ap.add_argument("--latency-jobs", type=int, default=15)
     args = ap.parse_args()
+    print(f"machine: {cpu_description()}")
     root = Path(tempfile.mkdtemp(prefix="svrnet-queue-bench-"))
     files = _files(root / "case")
     server = RedisServer(root / "redis")

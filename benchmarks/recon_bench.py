@@ -51,6 +51,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from model_export.volume_metrics import volume_psnr_ncc  # noqa: E402
+from service.core.machine import cpu_description  # noqa: E402
 from service.geometry import se3  # noqa: E402
 from service.geometry.pose import make_pose  # noqa: E402
 from service.io.volume import Volume, read_volume  # noqa: E402
@@ -194,6 +195,7 @@ def main() -> None:
     ap.add_argument("--only", default="123456", help="scenarios to run (7: real size, alone)")
     ap.add_argument("--model", type=Path, default=ROOT / "service" / "models" / "default" / "model.onnx")
     args = ap.parse_args()
+    print(f"machine: {cpu_description()}")
     cfg = ReconstructionConfig(**eval(args.config, {}))  # noqa: S307 - a local benchmark option
     if args.only == "7":
         real_size(args, cfg)

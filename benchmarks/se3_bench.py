@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 
+from service.core.machine import cpu_description
 from service.geometry import se3
 from service.geometry.pose import make_pose
 
@@ -26,6 +27,7 @@ def best_of(fn, repeats: int) -> float:
 
 
 def main(n_slices: int = 150, n_samples: int = 100) -> None:
+    print(f"machine: {cpu_description()}")
     rng = np.random.default_rng(0)
     centre = se3.exp(np.concatenate([rng.normal(size=(n_slices, 1, 3)), rng.normal(scale=30, size=(n_slices, 1, 3))], -1))
     noise = make_pose(se3.so3_exp(rng.normal(scale=0.05, size=(n_slices, n_samples, 3))),

@@ -40,6 +40,7 @@ from client import SVRnetClient  # noqa: E402
 from model_export.acquisitions import SimulatedStack, simulate_acquisition  # noqa: E402
 from model_export.atlas import VALIDATION_VOLUMES, load_volumes  # noqa: E402
 from model_export.localiser.scenes import HeadModel, synth_stack  # noqa: E402
+from service.core.machine import cpu_description  # noqa: E402
 from service.geometry import anchors, twin  # noqa: E402
 from service.geometry.pose import translate  # noqa: E402
 from service.inference.model_file import load_model  # noqa: E402
@@ -229,6 +230,7 @@ def main() -> None:
     ap.add_argument("--pace", type=float, default=1.0, help="seconds between slices of a loaded session")
     ap.add_argument("--skip", default="", help="comma-separated parts to skip: accuracy, field, load")
     args = ap.parse_args()
+    print(f"machine: {cpu_description()}")
     skip = set(args.skip.split(","))
     with tempfile.TemporaryDirectory() as data:
         server = Server(Path(data), Path(data) / "server.log", max_concurrent="2",

@@ -28,6 +28,7 @@ from model_export.losses import point_loss
 from model_export.model import SVRNet
 from model_export.simulate import SimulationConfig, SliceSimulator
 from model_export.stream import fresh_acquisition
+from service.core.machine import cpu_description
 from service.geometry import encodings
 from service.preprocess.slices import preprocess_slices
 
@@ -49,6 +50,7 @@ def main() -> None:
     ap.add_argument("--label-type", default="anchor")
     ap.add_argument("--repeats", type=int, default=8)
     args = ap.parse_args()
+    print(f"machine: {cpu_description()}")
     torch.set_num_threads(1)
     names = split(args.root)[0][:4]
     sim = SliceSimulator(load_volumes(names, args.root), SimulationConfig())

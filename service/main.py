@@ -21,6 +21,7 @@ from service.api.metrics import Metrics
 from service.api.middleware import RequestContext
 from service.api.schemas import problem_responses
 from service.core import logging as service_logging
+from service.core.machine import cpu_description
 from service.core.settings import Settings
 from service.inference.registry import ModelRegistry
 from service.jobs.backends import open_backend
@@ -44,6 +45,7 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
         app.state.job_store, app.state.job_runner = open_backend(settings)
         await asyncio.to_thread(app.state.job_runner.start)
         app.state.metrics.watch_jobs(app.state.job_store, app.state.job_runner)
+        log.info("machine: %s", cpu_description())       # latency depends on it (service/core/machine.py)
 
         async def upkeep() -> None:
             # Retention everywhere; with the distributed back-end also the queue's maintenance

@@ -1,0 +1,57 @@
+"""What the machine a figure was measured on is: its CPU, the vector units the arithmetic uses, its cores.
+
+The service's latency is mostly convolutions (onnxruntime) and small linear algebra (numpy), and both
+run several times faster on one x86 CPU than another of the same core count: 256-bit units at full
+or half width, AVX-512, the VNNI dot products int8 convolutions use. A time means little without the
+machine, so the benchmarks print :func:`cpu_description` first and the server logs it at start.
+
+Example:
+    >>> text = "model name : AMD EPYC 7551\\ncpu family : 23\\nmodel : 1\\nflags : fpu sse avx avx2 fma\\n"
+    >>> describe_cpuinfo(text, cores=2)
+    'AMD EPYC 7551 (family 23, model 1), 2 cores; AVX2, FMA; no AVX-512, no VNNI'
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+from pathlib import Path
+
+CPUINFO = Path("/proc/cpuinfo")
+FEATURES = (("avx2", "AVX2"), ("fma", "FMA"), ("avx512f", "AVX-512"), ("avx_vnni", "AVX-VNNI"),
+            ("avx512_vnni", "AVX-512 VNNI"), ("amx_int8", "AMX"))
+"""The ``/proc/cpuinfo`` flags that decide which kernels onnxruntime and BLAS run, and their names."""
+
+
+def describe_cpuinfo(text: str, cores: int | None) -> str:
+    """One line from the text of ``/proc/cpuinfo`` (its first processor): name, family and model,
+    ``cores`` (the logical CPUs the process may use) and the vector features of :data:`FEATURES`."""
+    fields: dict[str, str] = {}
+    for line in text.splitlines():
+        if not line.strip():
+            if fields:
+                break                                      # the first processor only
+            continue
+        key, _, value = line.partition(":")
+        fields.setdefault(key.strip(), value.strip())
+    flags = set(fields.get("flags", "").split())
+    have = [name for flag, name in FEATURES if flag in flags]
+    missing = [name for name in ("AVX-512", "VNNI") if not any(name in h for h in have)]
+    name = fields.get("model name") or platform.processor() or "unknown CPU"
+    family = f" (family {fields['cpu family']}, model {fields.get('model', '?')})" if "cpu family" in fields else ""
+    count = "? cores" if cores is None else f"{cores} core{'s' if cores != 1 else ''}"
+    parts = [f"{name}{family}, {count}", ", ".join(have) or "no AVX2"]
+    if missing:
+        parts.append("no " + ", no ".join(missing))
+    return "; ".join(parts)
+
+
+def cpu_description() -> str:
+    """:func:`describe_cpuinfo` of this machine (its processor's name alone where there is no
+    ``/proc/cpuinfo``)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    try:
+        text = CPUINFO.read_text(errors="replace")
+    except OSError:
+        text = ""
+    return describe_cpuinfo(text, cores)

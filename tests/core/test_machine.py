@@ -1,0 +1,33 @@
+"""The machine's description that benchmarks print and the server logs."""
+
+from __future__ import annotations
+
+from service.core.machine import cpu_description, describe_cpuinfo
+
+ZEN4 = """processor\t: 0
+model name\t: AMD EPYC 9654 96-Core Processor
+cpu family\t: 25
+model\t\t: 17
+flags\t\t: fpu avx avx2 fma avx512f avx512_vnni
+
+processor\t: 1
+model name\t: another name
+cpu family\t: 1
+flags\t\t: fpu
+"""
+
+
+def test_a_cpu_with_avx512_vnni_is_named_with_its_features_from_its_first_processor() -> None:
+    line = describe_cpuinfo(ZEN4, cores=4)
+    assert line == "AMD EPYC 9654 96-Core Processor (family 25, model 17), 4 cores; AVX2, FMA, AVX-512, AVX-512 VNNI"
+
+
+def test_a_cpu_without_vector_units_says_what_it_lacks() -> None:
+    line = describe_cpuinfo("model name : old\nflags : fpu sse\n", cores=1)
+    assert line == "old, 1 core; no AVX2; no AVX-512, no VNNI"
+    assert describe_cpuinfo("model name : x\nflags : avx2 avx_vnni\n", cores=2).endswith("AVX2, AVX-VNNI; no AVX-512")
+
+
+def test_this_machine_is_described_without_error() -> None:
+    line = cpu_description()
+    assert "cores" in line and line.count(";") >= 1
