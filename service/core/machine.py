@@ -20,7 +20,9 @@ from pathlib import Path
 CPUINFO = Path("/proc/cpuinfo")
 FEATURES = (("avx2", "AVX2"), ("fma", "FMA"), ("avx512f", "AVX-512"), ("avx_vnni", "AVX-VNNI"),
             ("avx512_vnni", "AVX-512 VNNI"), ("amx_int8", "AMX"))
-"""The ``/proc/cpuinfo`` flags that decide which kernels onnxruntime and BLAS run, and their names."""
+"""The x86 ``flags`` of ``/proc/cpuinfo`` that decide which kernels onnxruntime and BLAS run, and their names."""
+ARM_FEATURES = (("asimd", "NEON"), ("asimddp", "dot product"), ("i8mm", "int8 matrix"), ("sve", "SVE"))
+"""The same for Arm CPUs (their ``Features`` line)."""
 
 
 def describe_cpuinfo(text: str, cores: int | None) -> str:
@@ -34,15 +36,20 @@ def describe_cpuinfo(text: str, cores: int | None) -> str:
             continue
         key, _, value = line.partition(":")
         fields.setdefault(key.strip(), value.strip())
-    flags = set(fields.get("flags", "").split())
-    have = [name for flag, name in FEATURES if flag in flags]
-    missing = [name for name in ("AVX-512", "VNNI") if not any(name in h for h in have)]
-    name = fields.get("model name") or platform.processor() or "unknown CPU"
+    name = fields.get("model name") or platform.processor() or platform.machine() or "unknown CPU"
     family = f" (family {fields['cpu family']}, model {fields.get('model', '?')})" if "cpu family" in fields else ""
     count = "? cores" if cores is None else f"{cores} core{'s' if cores != 1 else ''}"
-    parts = [f"{name}{family}, {count}", ", ".join(have) or "no AVX2"]
-    if missing:
-        parts.append("no " + ", no ".join(missing))
+    parts = [f"{name}{family}, {count}"]
+    if "flags" in fields:                                  # x86
+        flags = set(fields["flags"].split())
+        have = [label for flag, label in FEATURES if flag in flags]
+        missing = [label for label in ("AVX-512", "VNNI") if not any(label in h for h in have)]
+        parts.append(", ".join(have) or "no AVX2")
+        if missing:
+            parts.append("no " + ", no ".join(missing))
+    elif "Features" in fields:                             # Arm
+        flags = set(fields["Features"].split())
+        parts.append(", ".join(label for flag, label in ARM_FEATURES if flag in flags) or "no NEON")
     return "; ".join(parts)
 
 

@@ -31,3 +31,9 @@ def test_a_cpu_without_vector_units_says_what_it_lacks() -> None:
 def test_this_machine_is_described_without_error() -> None:
     line = cpu_description()
     assert "cores" in line and line.count(";") >= 1
+
+
+def test_an_arm_cpu_is_described_by_its_own_features_and_no_x86_ones() -> None:
+    text = "processor : 0\nBogoMIPS : 50.00\nFeatures : fp asimd asimddp i8mm\nCPU implementer : 0x41\n"
+    line = describe_cpuinfo(text, cores=8)
+    assert line.endswith("8 cores; NEON, dot product, int8 matrix") and "AVX" not in line
