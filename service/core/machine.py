@@ -25,9 +25,11 @@ ARM_FEATURES = (("asimd", "NEON"), ("asimddp", "dot product"), ("i8mm", "int8 ma
 """The same for Arm CPUs (their ``Features`` line)."""
 
 
-def describe_cpuinfo(text: str, cores: int | None) -> str:
-    """One line from the text of ``/proc/cpuinfo`` (its first processor): name, family and model,
-    ``cores`` (the logical CPUs the process may use) and the vector features of :data:`FEATURES`."""
+def describe_cpuinfo(text: str, cores: int | None, fallback_name: str = "unknown CPU") -> str:
+    """One line from the text of ``/proc/cpuinfo`` (its first processor): name (an Arm CPU's
+    implementer and part, ``fallback_name`` where the text names none), x86 family and model,
+    ``cores`` (the logical CPUs the process may use) and the vector features of :data:`FEATURES` (x86)
+    or :data:`ARM_FEATURES`."""
     fields: dict[str, str] = {}
     for line in text.splitlines():
         if not line.strip():
@@ -36,7 +38,9 @@ def describe_cpuinfo(text: str, cores: int | None) -> str:
             continue
         key, _, value = line.partition(":")
         fields.setdefault(key.strip(), value.strip())
-    name = fields.get("model name") or platform.processor() or platform.machine() or "unknown CPU"
+    arm = (f"Arm CPU (implementer {fields['CPU implementer']}, part {fields.get('CPU part', '?')})"
+           if "CPU implementer" in fields else None)
+    name = fields.get("model name") or arm or fallback_name
     family = f" (family {fields['cpu family']}, model {fields.get('model', '?')})" if "cpu family" in fields else ""
     count = "? cores" if cores is None else f"{cores} core{'s' if cores != 1 else ''}"
     parts = [f"{name}{family}, {count}"]
@@ -61,4 +65,4 @@ def cpu_description() -> str:
         text = CPUINFO.read_text(errors="replace")
     except OSError:
         text = ""
-    return describe_cpuinfo(text, cores)
+    return describe_cpuinfo(text, cores, platform.processor() or platform.machine() or "unknown CPU")

@@ -172,15 +172,16 @@ def test_the_stage_estimate_follows_the_mismatch_up_to_its_limit_only() -> None:
     """Below :data:`MAX_RELATIVE_MISMATCH` the stage's estimate grows in proportion to the mismatch;
     beyond it a slice is lost and every further mismatch gives the same estimate, with and without
     the images' spread."""
-    from service.consistency.image_refinement import MAX_RELATIVE_MISMATCH, REFINED_GAIN
+    from service.consistency.image_refinement import MAX_RELATIVE_MISMATCH, MISMATCH_POWER, REFINED_GAIN
 
     cap = MAX_RELATIVE_MISMATCH
     m = np.array([0.5 * cap, cap, 2.0 * cap, 10.0 * cap])
     alone = expected_after([np.full(4, 3.0)], [m])[0]
-    assert alone[:2] == pytest.approx(REFINED_GAIN * 3.0 * m[:2])
+    assert alone[:2] == pytest.approx(REFINED_GAIN * 3.0 * m[:2] ** MISMATCH_POWER)
     assert alone[2] == alone[3] == pytest.approx(alone[1])
     spread = expected_after([np.full(4, 3.0)], [m], [np.full(4, 1.5)])[0]
-    assert spread[1] == pytest.approx(np.sqrt(2.0) * spread[0]) and spread[3] == pytest.approx(spread[1])
+    assert spread[1] == pytest.approx(np.sqrt(2.0 ** MISMATCH_POWER) * spread[0])
+    assert spread[3] == pytest.approx(spread[1])
 
 
 def test_a_stack_refined_against_fixed_partners_moves_to_them_and_they_stay(acquisition) -> None:  # noqa: ANN001
