@@ -46,9 +46,9 @@ def describe_cpuinfo(text: str, cores: int | None, fallback_name: str = "unknown
     parts = [f"{name}{family}, {count}"]
     if "flags" in fields:                                  # x86
         flags = set(fields["flags"].split())
-        have = [label for flag, label in FEATURES if flag in flags]
-        missing = [label for label in ("AVX-512", "VNNI") if not any(label in h for h in have)]
-        parts.append(", ".join(have) or "no AVX2")
+        parts.append(", ".join(label for flag, label in FEATURES if flag in flags) or "no AVX2")
+        missing = [label for label, present in (("AVX-512", "avx512f" in flags),
+                                                ("VNNI", bool(flags & {"avx_vnni", "avx512_vnni"}))) if not present]
         if missing:
             parts.append("no " + ", no ".join(missing))
     elif "Features" in fields:                             # Arm
