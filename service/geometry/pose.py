@@ -72,4 +72,8 @@ def apply(transform: ArrayLike, points: ArrayLike) -> NDArray[np.float64]:
     """Apply ``[..., 4, 4]`` transforms to points ``[..., 3]`` (broadcasting)."""
     m = np.asarray(transform, dtype=np.float64)
     p = np.asarray(points, dtype=np.float64)
-    return np.einsum("...ij,...j->...i", m[..., :3, :3], p) + m[..., :3, 3]
+    if m.ndim == 2:                     # one transform: a single matrix product
+        return p @ m[:3, :3].T + m[:3, 3]
+    # many: three broadcast multiply-adds (einsum does not vectorise broadcast batches)
+    return p[..., 0, None] * m[..., :3, 0] + p[..., 1, None] * m[..., :3, 1] + p[..., 2, None] * m[..., :3, 2] \
+        + m[..., :3, 3]

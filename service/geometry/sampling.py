@@ -51,6 +51,27 @@ def slice_points(poses: ArrayLike, size: int, pixel_mm: float, offset_mm: float 
     return apply(p[:, None, None], local[None])
 
 
+def slice_voxel_coordinates(voxel_from_slice: ArrayLike, size: int, pixel_mm: float,
+                            offset_mm: float = 0.0) -> NDArray[np.float64]:
+    """Voxel coordinates ``[3, B, L, L]`` of the pixel centres of slices ``voxel_from_slice [B, 4, 4]``
+    (slice mm -> voxel indices), ``offset_mm`` along their normals: the layout
+    :func:`scipy.ndimage.map_coordinates` takes. A plane's points are its origin plus multiples of
+    its two in-plane axes, so they are summed from a row and a column of the grid (no per-point
+    matrix product).
+
+    Example:
+        >>> vfs = np.eye(4)[None]; vfs[0, :3, 3] = 10.0
+        >>> slice_voxel_coordinates(vfs, 3, 1.0)[:, 0, 0, 2].tolist()        # row 0, column 2
+        [11.0, 9.0, 10.0]
+    """
+    m = np.asarray(voxel_from_slice, dtype=np.float64)
+    idx = (np.arange(size, dtype=np.float64) - (size - 1) / 2.0) * pixel_mm
+    origin = m[:, :3, 3] + offset_mm * m[:, :3, 2]                                # [B, 3]
+    along_x = m[:, None, :3, 0] * idx[None, :, None]                              # [B, L, 3] by column
+    along_y = m[:, None, :3, 1] * idx[None, :, None]                              # [B, L, 3] by row
+    return (origin.T[:, :, None, None] + along_y.transpose(2, 0, 1)[:, :, :, None]) + along_x.transpose(2, 0, 1)[:, :, None, :]
+
+
 def sample_points(volume: ArrayLike, affine: ArrayLike, points: ArrayLike, order: int = 1) -> NDArray:
     """Interpolate ``volume`` at world points ``[..., 3]`` (zero outside the field of view)."""
     vox = apply(np.linalg.inv(np.asarray(affine, dtype=np.float64)), points)
@@ -93,14 +114,21 @@ def sample_slices(
             thickness: ``1.2 * pixel_mm``).
         order: interpolation order (1 = trilinear).
     """
-    p = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+    vfs = np.linalg.inv(np.asarray(affine, dtype=np.float64)) @ np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+    vol = np.asarray(volume, dtype=np.float32)
+
+    def plane(offset_mm: float) -> NDArray[np.float32]:
+        return ndimage.map_coordinates(vol, slice_voxel_coordinates(vfs, size, pixel_mm, offset_mm), order=order,
+                                       mode="constant", cval=0.0, prefilter=False)
+
     if thickness_mm is None:
-        out = sample_points(volume, affine, slice_points(p, size, pixel_mm), order)
+        out = plane(0.0)
     else:
         step = 0.5 * float(np.min(np.linalg.norm(np.asarray(affine)[:3, :3], axis=0)))
         offsets, weights = psf_offsets(thickness_mm, step)
-        pts = np.stack([slice_points(p, size, pixel_mm, o) for o in offsets])  # [n_psf, B, L, L, 3]
-        out = np.tensordot(weights, sample_points(volume, affine, pts, order), axes=1)
+        out = np.zeros((len(vfs), size, size))
+        for o, w in zip(offsets, weights):          # one plane at a time: memory of one, not of all
+            out += w * plane(float(o))
         if inplane_fwhm_mm is None:
             inplane_fwhm_mm = INPLANE_FWHM_FACTOR * pixel_mm
     if inplane_fwhm_mm:
