@@ -36,7 +36,7 @@ def test_a_server_stopped_mid_job_leaves_nothing_and_the_job_completes_after_res
     server = Server(tmp_path / "data", log)
     try:
         r = httpx.post(f"{server.url}/v1/reconstructions", files=files + [("poses", ("p.json", json.dumps(poses)))],
-                       data={"resolution_mm": "1.0", "svr_iterations": "3"}, timeout=60)
+                       data={"resolution_mm": "1.5", "svr_iterations": "2", "atlas_frame": "false"}, timeout=60)
         assert r.status_code == 202, r.text
         job_id = r.json()["job_id"]
         deadline = time.time() + 60
