@@ -1,0 +1,104 @@
+"""``POST /v1/reconstructions`` end to end over real HTTP: a whole job's wall time and when each
+stage began, on a real scan with and without its masks, and the ratio to another revision in the
+same run.
+
+The job is what a user gets from ``svrnet reconstruct --wait``: the stacks (and masks) uploaded, the
+poses predicted, the never-worse paths at 1.5 mm, the volume at 0.8 mm, the atlas-frame and midline
+steps, the outputs written. The stage times are when the job's ``stage`` first read so, polled every
+0.2 s (a stage shorter than that may not show).
+
+    .venv/bin/python benchmarks/job_bench.py ../shared/data/real_scans/mial_lausanne_t30 [--baseline REV]
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from model_export.localiser.evaluate import masked_files  # noqa: E402
+from predict_bench import start_server, wait_ready  # noqa: E402
+from service.core.machine import cpu_description  # noqa: E402
+
+FINAL = ("succeeded", "failed", "cancelled")
+
+
+def run_job(client: httpx.Client, files: list[tuple[Path, Path]], masks: bool) -> tuple[float, str, dict[str, float]]:
+    """One job: its wall time from upload to a final status, that status, and when each stage began (s)."""
+    upload = [("stacks", (s.name, s.read_bytes())) for s, _ in files]
+    upload += [("masks", (m.name, m.read_bytes())) for _, m in files] if masks else []
+    t0 = time.perf_counter()
+    r = client.post("/v1/reconstructions", files=upload, data={"masks_hold_csf": "true" if masks else "false"})
+    r.raise_for_status()
+    job = r.json()["job_id"]
+    began: dict[str, float] = {}
+    while True:
+        st = client.get(f"/v1/reconstructions/{job}").json()
+        began.setdefault(str(st.get("stage")), time.perf_counter() - t0)
+        if st["status"] in FINAL:
+            return time.perf_counter() - t0, st["status"], began
+        time.sleep(0.2)
+
+
+def measure(root: Path, files: list[tuple[Path, Path]]) -> dict[bool, tuple[float, str, dict[str, float]]]:
+    """A job with the masks and one without, on a server of the code under ``root`` and its models."""
+    server, port = start_server(root, root / "service" / "models")
+    try:
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=300) as client:
+            wait_ready(client)
+            return {masks: run_job(client, files, masks) for masks in (True, False)}
+    finally:
+        server.terminate()
+        server.wait(10)
+
+
+def durations(began: dict[str, float], total: float) -> dict[str, float]:
+    """Each stage's seconds: from when it began to when the next one did."""
+    names = list(began)
+    ends = [began[n] for n in names[1:]] + [total]
+    return {n: end - began[n] for n, end in zip(names, ends)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("scan", type=Path, help="a real scan's folder: NAME.nii.gz beside NAME_brain_mask.nii.gz")
+    ap.add_argument("--baseline", help="a git revision to compare with, in the same run")
+    args = ap.parse_args()
+    print(f"machine: {cpu_description()}")
+    files = [(stack, mask) for _, stack, mask in masked_files(args.scan)]
+    if not files:
+        sys.exit(f"{args.scan}: no stack with a *_brain_mask.nii.gz beside it")
+    now = measure(ROOT, files)
+    before = None
+    if args.baseline:
+        with tempfile.TemporaryDirectory() as tmp:
+            tree = Path(tmp) / "baseline"
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), args.baseline],
+                           check=True, capture_output=True)
+            try:
+                before = measure(tree, files)
+            finally:
+                subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False)
+    for masks in (True, False):
+        wall, status, began = now[masks]
+        ratio = f"; {before[masks][0]:.1f} s at {args.baseline} (x{wall / before[masks][0]:.2f})" if before else ""
+        print(f"{len(files)} stacks of {args.scan.name} {'with their masks' if masks else 'without masks'}: "
+              f"{status} in {wall:.1f} s{ratio}")
+        longest = sorted(durations(began, wall).items(), key=lambda kv: -kv[1])[:6]
+        print("   longest stages, s: " + ", ".join(f"{k} {v:.1f}" for k, v in longest))
+        if before:
+            old = durations(before[masks][2], before[masks][0])
+            print("   the same at the baseline: " + ", ".join(f"{k} {old.get(k, float('nan')):.1f}" for k, _ in longest))
+
+
+if __name__ == "__main__":
+    main()
