@@ -2,7 +2,7 @@
 
 A slice with pose ``P`` (slice mm -> atlas mm, see the package docstring) is sampled from a volume
 given as an array indexed ``[i, j, k]`` and its voxel -> world (RAS) affine. All slices of a call
-are sampled in one vectorised ``map_coordinates`` call.
+are sampled in one vectorised ``map_coordinates`` call per plane of the through-plane PSF.
 
 Example:
     >>> import numpy as np
@@ -40,17 +40,6 @@ def linear_operator(coords: ArrayLike, n_in: int, dtype: type = np.float32) -> s
     return sparse.csr_matrix(dense)
 
 
-def slice_points(poses: ArrayLike, size: int, pixel_mm: float, offset_mm: float = 0.0) -> NDArray:
-    """Atlas mm coordinates ``[B, L, L, 3]`` of the pixel centres of slices at ``poses`` ``[B, 4, 4]``.
-
-    ``offset_mm`` shifts the plane along its normal (used by the through-plane PSF).
-    """
-    p = np.asarray(poses, dtype=np.float64)
-    xy = slice_pixel_coordinates(size, pixel_mm)
-    local = np.concatenate([xy, np.full(xy.shape[:-1] + (1,), offset_mm)], axis=-1)
-    return apply(p[:, None, None], local[None])
-
-
 def slice_voxel_coordinates(voxel_from_slice: ArrayLike, size: int, pixel_mm: float,
                             offset_mm: float = 0.0) -> NDArray[np.float64]:
     """Voxel coordinates ``[3, B, L, L]`` of the pixel centres of slices ``voxel_from_slice [B, 4, 4]``
@@ -69,7 +58,8 @@ def slice_voxel_coordinates(voxel_from_slice: ArrayLike, size: int, pixel_mm: fl
     origin = m[:, :3, 3] + offset_mm * m[:, :3, 2]                                # [B, 3]
     along_x = m[:, None, :3, 0] * idx[None, :, None]                              # [B, L, 3] by column
     along_y = m[:, None, :3, 1] * idx[None, :, None]                              # [B, L, 3] by row
-    return (origin.T[:, :, None, None] + along_y.transpose(2, 0, 1)[:, :, :, None]) + along_x.transpose(2, 0, 1)[:, :, None, :]
+    rows = origin.T[:, :, None, None] + along_y.transpose(2, 0, 1)[:, :, :, None]          # [3, B, L, 1]
+    return rows + along_x.transpose(2, 0, 1)[:, :, None, :]
 
 
 def sample_points(volume: ArrayLike, affine: ArrayLike, points: ArrayLike, order: int = 1) -> NDArray:

@@ -62,6 +62,22 @@ def test_thick_slice_psf_averages_through_plane() -> None:
     assert 0.15 < thick[0, 4, 4] < 0.35
 
 
+def test_a_thick_slice_is_the_psf_weighted_sum_of_thin_slices_moved_along_its_normal() -> None:
+    """Each PSF plane lies ``offset`` mm along the slice's own normal, whatever the pose and the
+    volume's (oblique, anisotropic) affine: the thick slice equals the weighted thin slices at
+    ``P @ translate(0, 0, offset)``."""
+    rng = np.random.default_rng(4)
+    vol = rng.random((30, 34, 28)).astype(np.float32)
+    aff = np.array([[0.0, -1.2, 0.1, 20.0], [0.9, 0.0, 0.0, -15.0], [0.0, 0.2, 1.5, 4.0], [0, 0, 0, 1]])
+    poses = iterators.random_poses(4, rng, tz_max_mm=4.0, centre=aff[:3, :3] @ [15, 17, 14] + aff[:3, 3])
+    thick = sampling.sample_slices(vol, aff, poses, size=20, pixel_mm=0.8, thickness_mm=3.0, inplane_fwhm_mm=0.0)
+    offsets, weights = sampling.psf_offsets(3.0, 0.5 * float(np.min(np.linalg.norm(aff[:3, :3], axis=0))))
+    moved = [poses @ make_pose(np.eye(3), [0.0, 0.0, o]) for o in offsets]
+    want = sum(w * sampling.sample_slices(vol, aff, p, size=20, pixel_mm=0.8) for w, p in zip(weights, moved))
+    assert len(offsets) > 3 and np.abs(thick - want).max() < 1e-5
+    assert np.abs(thick - sampling.sample_slices(vol, aff, poses, size=20, pixel_mm=0.8)).max() > 0.05
+
+
 def test_mask_centroid_and_recentre_move_the_label_with_the_crop() -> None:
     rng = np.random.default_rng(1)
     mask = np.zeros((60, 60, 60), np.float32)
