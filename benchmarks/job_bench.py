@@ -5,7 +5,9 @@ same run.
 The job is what a user gets from ``svrnet reconstruct --wait``: the stacks (and masks) uploaded, the
 poses predicted, the never-worse paths at 1.5 mm, the volume at 0.8 mm, the atlas-frame and midline
 steps, the outputs written. The stage times are when the job's ``stage`` first read so, polled every
-0.2 s (a stage shorter than that may not show).
+0.2 s (a stage shorter than that may not show); the peak memory is the largest resident set of the
+server and its worker processes together seen at those polls, as their proportional set sizes
+(a page that processes share counted once in all; target <= 2 GB).
 
     .venv/bin/python benchmarks/job_bench.py ../shared/data/real_scans/mial_lausanne_t30 [--baseline REV]
 """
@@ -20,6 +22,7 @@ import time
 from pathlib import Path
 
 import httpx
+import psutil
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -32,8 +35,27 @@ from service.core.machine import cpu_description  # noqa: E402
 FINAL = ("succeeded", "failed", "cancelled")
 
 
-def run_job(client: httpx.Client, files: list[tuple[Path, Path]], masks: bool) -> tuple[float, str, dict[str, float]]:
-    """One job: its wall time from upload to a final status, that status, and when each stage began (s)."""
+def tree_rss_mb(pid: int) -> float:
+    """The memory of process ``pid`` and all its descendants (MB): the sum of their proportional set
+    sizes, so that a page a forked worker shares with the server counts once."""
+    try:
+        root = psutil.Process(pid)
+        procs = [root, *root.children(recursive=True)]
+    except psutil.NoSuchProcess:
+        return 0.0
+    total = 0
+    for p in procs:
+        try:
+            total += p.memory_full_info().pss
+        except (psutil.NoSuchProcess, psutil.AccessDenied):
+            pass
+    return total / 2**20
+
+
+def run_job(client: httpx.Client, files: list[tuple[Path, Path]], masks: bool,
+            server_pid: int) -> tuple[float, str, dict[str, float], float]:
+    """One job: its wall time from upload to a final status, that status, when each stage began (s)
+    and the peak memory of the server's process tree (MB)."""
     upload = [("stacks", (s.name, s.read_bytes())) for s, _ in files]
     upload += [("masks", (m.name, m.read_bytes())) for _, m in files] if masks else []
     t0 = time.perf_counter()
@@ -41,21 +63,23 @@ def run_job(client: httpx.Client, files: list[tuple[Path, Path]], masks: bool) -
     r.raise_for_status()
     job = r.json()["job_id"]
     began: dict[str, float] = {}
+    peak = 0.0
     while True:
         st = client.get(f"/v1/reconstructions/{job}").json()
         began.setdefault(str(st.get("stage")), time.perf_counter() - t0)
+        peak = max(peak, tree_rss_mb(server_pid))
         if st["status"] in FINAL:
-            return time.perf_counter() - t0, st["status"], began
+            return time.perf_counter() - t0, st["status"], began, peak
         time.sleep(0.2)
 
 
-def measure(root: Path, files: list[tuple[Path, Path]]) -> dict[bool, tuple[float, str, dict[str, float]]]:
+def measure(root: Path, files: list[tuple[Path, Path]]) -> dict[bool, tuple[float, str, dict[str, float], float]]:
     """A job with the masks and one without, on a server of the code under ``root`` and its models."""
     server, port = start_server(root, root / "service" / "models")
     try:
         with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=300) as client:
             wait_ready(client)
-            return {masks: run_job(client, files, masks) for masks in (True, False)}
+            return {masks: run_job(client, files, masks, server.pid) for masks in (True, False)}
     finally:
         server.terminate()
         server.wait(10)
@@ -89,10 +113,10 @@ def main() -> None:
             finally:
                 subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False)
     for masks in (True, False):
-        wall, status, began = now[masks]
+        wall, status, began, peak = now[masks]
         ratio = f"; {before[masks][0]:.1f} s at {args.baseline} (x{wall / before[masks][0]:.2f})" if before else ""
         print(f"{len(files)} stacks of {args.scan.name} {'with their masks' if masks else 'without masks'}: "
-              f"{status} in {wall:.1f} s{ratio}")
+              f"{status} in {wall:.1f} s{ratio}; peak memory of the server and its workers {peak:.0f} MB")
         longest = sorted(durations(began, wall).items(), key=lambda kv: -kv[1])[:6]
         print("   longest stages, s: " + ", ".join(f"{k} {v:.1f}" for k, v in longest))
         if before:
