@@ -25,13 +25,23 @@ def make_pose(rotation: ArrayLike, translation: ArrayLike) -> NDArray[np.float64
     return out
 
 
+def pixel_offsets_mm(size: int, pixel_mm: float) -> NDArray[np.float64]:
+    """The mm offsets ``[L]`` of the ``L`` pixel centres of a slice's row (or column) from the slice
+    frame's origin, ``(k - (L-1)/2) s``: the grid is centred on the origin.
+
+    Example:
+        >>> pixel_offsets_mm(4, 2.0).tolist()
+        [-3.0, -1.0, 1.0, 3.0]
+    """
+    return (np.arange(size, dtype=np.float64) - (size - 1) / 2.0) * pixel_mm
+
+
 def slice_pixel_coordinates(size: int, pixel_mm: float) -> NDArray[np.float64]:
     """In-plane mm coordinates ``[L, L, 2]`` (x, y) of the pixel centres of an ``L x L`` slice.
 
-    ``[r, c] -> (x, y) = ((c - (L-1)/2) s, (r - (L-1)/2) s)``.
+    ``[r, c] -> (x, y) = ((c - (L-1)/2) s, (r - (L-1)/2) s)`` (:func:`pixel_offsets_mm`).
     """
-    centre = (size - 1) / 2.0
-    idx = (np.arange(size, dtype=np.float64) - centre) * pixel_mm
+    idx = pixel_offsets_mm(size, pixel_mm)
     x = np.broadcast_to(idx[None, :], (size, size))
     y = np.broadcast_to(idx[:, None], (size, size))
     return np.stack([x, y], axis=-1)

@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage, sparse
 
-from service.geometry.pose import apply, make_pose, slice_pixel_coordinates
+from service.geometry.pose import apply, make_pose, pixel_offsets_mm, slice_pixel_coordinates
 
 FWHM_TO_SIGMA = 1.0 / (2.0 * np.sqrt(2.0 * np.log(2.0)))
 INPLANE_FWHM_FACTOR = 1.2
@@ -54,7 +54,7 @@ def slice_voxel_coordinates(voxel_from_slice: ArrayLike, size: int, pixel_mm: fl
         [11.0, 9.0, 10.0]
     """
     m = np.asarray(voxel_from_slice, dtype=np.float64)
-    idx = (np.arange(size, dtype=np.float64) - (size - 1) / 2.0) * pixel_mm
+    idx = pixel_offsets_mm(size, pixel_mm)
     origin = m[:, :3, 3] + offset_mm * m[:, :3, 2]                                # [B, 3]
     along_x = m[:, None, :3, 0] * idx[None, :, None]                              # [B, L, 3] by column
     along_y = m[:, None, :3, 1] * idx[None, :, None]                              # [B, L, 3] by row

@@ -32,7 +32,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
-from service.geometry.pose import translate
+from service.geometry.pose import pixel_offsets_mm, translate
 from service.geometry.sampling import FWHM_TO_SIGMA
 from service.preprocess.intensity import rescale_0_255
 from service.preprocess.stack import mask_box
@@ -104,7 +104,7 @@ def preprocess_slices(
     if blur:
         scaled = ndimage.gaussian_filter(scaled, (0.0, sig[0], sig[1]), mode="constant")
 
-    grid = (np.arange(size) - (size - 1) / 2.0) * s
+    grid = pixel_offsets_mm(size, s)
     cols = (cx[:, None] + grid[None, :]) / pixel_mm[1] + (w - 1) / 2.0 - c0     # [B, L], in the box
     rows = (cy[:, None] + grid[None, :]) / pixel_mm[0] + (h - 1) / 2.0 - r0     # [B, L]
     both = sample_grid(np.concatenate([scaled, m.astype(np.float32)]), np.concatenate([rows, rows]),
