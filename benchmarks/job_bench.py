@@ -15,9 +15,7 @@ server and its worker processes together seen at those polls, as their proportio
 from __future__ import annotations
 
 import argparse
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -29,7 +27,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from model_export.localiser.evaluate import masked_files  # noqa: E402
-from predict_bench import start_server, wait_ready  # noqa: E402
+from predict_bench import revision_tree, start_server, wait_ready  # noqa: E402
 from service.core.machine import cpu_description  # noqa: E402
 
 FINAL = ("succeeded", "failed", "cancelled")
@@ -104,14 +102,8 @@ def main() -> None:
     now = measure(ROOT, files)
     before = None
     if args.baseline:
-        with tempfile.TemporaryDirectory() as tmp:
-            tree = Path(tmp) / "baseline"
-            subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), args.baseline],
-                           check=True, capture_output=True)
-            try:
-                before = measure(tree, files)
-            finally:
-                subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False)
+        with revision_tree(args.baseline) as tree:
+            before = measure(tree, files)
     for masks in (True, False):
         wall, status, began, peak = now[masks]
         ratio = f"; {before[masks][0]:.1f} s at {args.baseline} (x{wall / before[masks][0]:.2f})" if before else ""

@@ -24,6 +24,8 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
@@ -107,6 +109,19 @@ def start_server(root: Path, model_dir: Path) -> tuple[subprocess.Popen, int]:
     return subprocess.Popen([sys.executable, "-c", "from service.main import run; run()"], env=env, cwd=root), port
 
 
+@contextmanager
+def revision_tree(rev: str) -> Iterator[Path]:
+    """A git worktree of revision ``rev`` (its code and its shipped models), removed afterwards."""
+    with tempfile.TemporaryDirectory() as tmp:
+        tree = Path(tmp) / "baseline"
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), rev],
+                       check=True, capture_output=True)
+        try:
+            yield tree
+        finally:
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False)
+
+
 def wait_ready(client: httpx.Client) -> None:
     for _ in range(300):
         try:
@@ -156,13 +171,8 @@ def main() -> None:
         now, rss = measure(ROOT, Path(args.model_dir), scenarios, real)
         before = None
         if args.baseline:
-            tree = Path(tmp) / "baseline"
-            subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), args.baseline],
-                           check=True, capture_output=True)
-            try:
+            with revision_tree(args.baseline) as tree:
                 before, _ = measure(tree, tree / "service" / "models", scenarios, real)
-            finally:
-                subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False)
     for name, target in SCENARIOS:
         for image in ("true", "false"):
             wall, t = now[name, image]
