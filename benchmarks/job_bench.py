@@ -51,9 +51,9 @@ def tree_rss_mb(pid: int) -> float:
 
 
 def run_job(client: httpx.Client, files: list[tuple[Path, Path]], masks: bool,
-            server_pid: int) -> tuple[float, str, dict[str, float], float]:
+            server_pid: int) -> tuple[float, str, dict[str, float], dict[str, float]]:
     """One job: its wall time from upload to a final status, that status, when each stage began (s)
-    and the peak memory of the server's process tree (MB)."""
+    and the peak memory of the server's process tree during each stage (MB)."""
     upload = [("stacks", (s.name, s.read_bytes())) for s, _ in files]
     upload += [("masks", (m.name, m.read_bytes())) for _, m in files] if masks else []
     t0 = time.perf_counter()
@@ -61,17 +61,18 @@ def run_job(client: httpx.Client, files: list[tuple[Path, Path]], masks: bool,
     r.raise_for_status()
     job = r.json()["job_id"]
     began: dict[str, float] = {}
-    peak = 0.0
+    peak: dict[str, float] = {}
     while True:
         st = client.get(f"/v1/reconstructions/{job}").json()
-        began.setdefault(str(st.get("stage")), time.perf_counter() - t0)
-        peak = max(peak, tree_rss_mb(server_pid))
+        stage = str(st.get("stage"))
+        began.setdefault(stage, time.perf_counter() - t0)
+        peak[stage] = max(peak.get(stage, 0.0), tree_rss_mb(server_pid))
         if st["status"] in FINAL:
             return time.perf_counter() - t0, st["status"], began, peak
         time.sleep(0.2)
 
 
-def measure(root: Path, files: list[tuple[Path, Path]]) -> dict[bool, tuple[float, str, dict[str, float], float]]:
+def measure(root: Path, files: list[tuple[Path, Path]]) -> dict[bool, tuple[float, str, dict[str, float], dict[str, float]]]:
     """A job with the masks and one without, on a server of the code under ``root`` and its models."""
     server, port = start_server(root, root / "service" / "models")
     try:
@@ -108,12 +109,15 @@ def main() -> None:
         wall, status, began, peak = now[masks]
         ratio = f"; {before[masks][0]:.1f} s at {args.baseline} (x{wall / before[masks][0]:.2f})" if before else ""
         print(f"{len(files)} stacks of {args.scan.name} {'with their masks' if masks else 'without masks'}: "
-              f"{status} in {wall:.1f} s{ratio}; peak memory of the server and its workers {peak:.0f} MB")
+              f"{status} in {wall:.1f} s{ratio}; peak memory of the server and its workers "
+              f"{max(peak.values()):.0f} MB")
         longest = sorted(durations(began, wall).items(), key=lambda kv: -kv[1])[:6]
         print("   longest stages, s: " + ", ".join(f"{k} {v:.1f}" for k, v in longest))
         if before:
             old = durations(before[masks][2], before[masks][0])
             print("   the same at the baseline: " + ", ".join(f"{k} {old.get(k, float('nan')):.1f}" for k, _ in longest))
+        largest = sorted(peak.items(), key=lambda kv: -kv[1])[:4]
+        print("   largest memory, MB: " + ", ".join(f"{k} {v:.0f}" for k, v in largest))
 
 
 if __name__ == "__main__":

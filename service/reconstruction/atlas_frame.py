@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import ndimage
 
 from service.geometry import iterators, sampling, se3, twin
 from service.geometry.anchors import ed
@@ -89,16 +90,33 @@ def with_frame(result: ReconstructionResult, fit: FrameCorrection) -> Reconstruc
                    atlas_from_voxel_final=fit.correction[None] @ result.atlas_from_voxel_final)
 
 
+def extent_along(points: NDArray, normals: NDArray, block: int = 16) -> tuple[NDArray, NDArray]:
+    """The least and greatest of ``points [P, 3]`` projected on each of ``normals [n, 3]``, ``[n]``
+    each, a block of normals at a time (the memory of ``P x block`` projections, not ``P x n``).
+
+    A mask's extremes along any direction lie on its surface (a voxel without a neighbour beyond it
+    along the direction), so callers pass those voxels alone.
+
+    Example:
+        >>> lo, hi = extent_along(np.array([[0.0, 0, 0], [1, 2, 3]]), np.eye(3))
+        >>> lo.tolist(), hi.tolist()
+        ([0.0, 0.0, 0.0], [1.0, 2.0, 3.0])
+    """
+    lo, hi = np.empty(len(normals)), np.empty(len(normals))
+    for start in range(0, len(normals), block):
+        along = points @ normals[start:start + block].T
+        lo[start:start + block], hi[start:start + block] = along.min(axis=0), along.max(axis=0)
+    return lo, hi
+
+
 def recut(volume: Volume, mask: NDArray, n: int, rng: np.random.Generator, size: int,
           pixel_mm: float) -> tuple[NDArray, NDArray, NDArray, NDArray]:
     """``n`` thick slices through the central part of ``mask``'s brain: images and masks
     ``[n, size, size]``, their poses ``[n, 4, 4]`` (slice mm -> the volume's world) and the brain's centre."""
-    ijk = np.argwhere(mask)
-    world = ijk @ volume.affine[:3, :3].T + volume.affine[:3, 3]
-    centre = world.mean(axis=0)
+    to_world = lambda ijk: ijk @ volume.affine[:3, :3].T + volume.affine[:3, 3]  # noqa: E731
+    centre = to_world(np.argwhere(mask)).mean(axis=0)
     rot = iterators.random_rotations(n, rng, 2 * np.pi)
-    along = (world - centre) @ rot[:, :, 2].T                                  # [points, n]
-    lo, hi = along.min(axis=0), along.max(axis=0)
+    lo, hi = extent_along(to_world(np.argwhere(mask & ~ndimage.binary_erosion(mask))) - centre, rot[:, :, 2])
     tz = (lo + hi) / 2 + rng.uniform(-1.0, 1.0, n) * CENTRAL_FRACTION / 2 * (hi - lo)
     poses = make_pose(rot, centre + rot[:, :, 2] * tz[:, None])
     images = sampling.sample_slices(volume.array, volume.affine, poses, size, pixel_mm, thickness_mm=THICKNESS_MM)

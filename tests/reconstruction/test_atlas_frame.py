@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from service.geometry import se3, twin
 from service.geometry.pose import make_pose
@@ -111,3 +112,20 @@ def test_the_correction_moves_the_volume_and_every_slice_together() -> None:
     np.testing.assert_allclose(moved.atlas_from_voxel_final[0] @ pixel, FRAME_ERROR @ slice_from_voxel @ pixel)
     np.testing.assert_allclose(moved.volume.affine @ voxel, moved.atlas_from_voxel_final[0] @ pixel, atol=1e-9)
     assert af.with_frame(result, af.FrameFit(FRAME_ERROR, False)) is result
+
+
+def test_a_masks_extent_along_any_normal_is_that_of_its_surface_voxels() -> None:
+    rng = np.random.default_rng(3)
+    mask = np.zeros((30, 30, 30), bool)
+    mask[5:25, 8:22, 10:20] = True
+    mask[12:18, 2:28, 12:16] = True                  # not convex: a bar through a box
+    mask &= rng.random(mask.shape) > 0.05            # holes inside, a ragged surface
+    points = np.argwhere(mask).astype(float)
+    surface = np.argwhere(mask & ~ndimage.binary_erosion(mask)).astype(float)
+    normals = rng.normal(size=(40, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    lo, hi = af.extent_along(surface, normals, block=7)
+    along = points @ normals.T
+    assert len(surface) < len(points)
+    np.testing.assert_allclose(lo, along.min(axis=0), atol=1e-12)
+    np.testing.assert_allclose(hi, along.max(axis=0), atol=1e-12)
