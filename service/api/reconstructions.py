@@ -90,7 +90,7 @@ async def submit(
                 raise InvalidParameter("poses: not valid JSON") from exc
             counts = [u.volume.array.shape[slice_axis_of(u.volume.spacing)] for u in uploads]
             try:
-                poses_from_predict_body(body, counts)
+                poses_from_predict_body(body, counts, [u.volume.spacing for u in uploads])
             except ValueError as exc:
                 raise InvalidParameter(str(exc)) from exc
             (inputs / "poses.json").write_text(json.dumps(body))

@@ -12,7 +12,31 @@ import sys
 import time
 
 SAFE_FIELDS = ("request_id", "route", "method", "status", "duration_ms", "n_stacks", "n_slices", "model",
-               "error_type", "job_id", "stage")
+               "error_type", "error_at", "job_id", "stage")
+
+
+def error_at(exc: BaseException) -> str:
+    """Where in the service's own code ``exc`` was raised (``module:line function`` of the innermost
+    frame under ``service/``): code, never data, so it may be logged.
+
+    Example:
+        >>> from service.reconstruction.grid import make_grid
+        >>> try:
+        ...     make_grid(-1.0, [[0.0, 0, 0], [1, 1, 1]])
+        ... except ValueError as e:
+        ...     where = error_at(e)
+        >>> where.split(":")[0], where.split()[-1]
+        ('service.reconstruction.grid', 'make_grid')
+    """
+    found = ""
+    tb = exc.__traceback__
+    while tb is not None:
+        code = tb.tb_frame.f_code
+        name = tb.tb_frame.f_globals.get("__name__", "")
+        if name == "service" or name.startswith("service."):
+            found = f"{name}:{tb.tb_lineno} {code.co_name}"
+        tb = tb.tb_next
+    return found
 
 
 class JsonFormatter(logging.Formatter):

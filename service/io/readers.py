@@ -13,7 +13,8 @@ Validation (each failure raises with the file's name, never a tag value):
 * data that decode to more than the file's or the request's budget (gzip, ZIP or DICOM bombs, many
   files at once) -> :class:`PayloadTooLarge` (413), charged while inflating and before any voxel
   array is allocated (:mod:`service.io.limits`);
-* 2D, 4D with more than one volume, empty, or non-finite values -> :class:`UnusableImage` (422).
+* 2D, 4D with more than one volume, empty, or non-finite values, a NIfTI header without voxel
+  sizes, a grid no MRI acquisition has (:mod:`service.io.grid_limits`) -> :class:`UnusableImage` (422).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from isal import igzip, isal_zlib
 from service.core.errors import ServiceError, UnsupportedFile, UnusableImage
 from service.io.archive import read_dicom_zip
 from service.io.dicom import read_dicom_file
+from service.io.grid_limits import grid_problem
 from service.io.headers import clean_header
 from service.io.limits import DecodeBudget, FileBudget
 from service.io.volume import Volume, from_sitk
@@ -96,6 +98,9 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
                     raise UnsupportedFile(f"{filename}: truncated NIfTI file (less voxel data than its header declares)")
                 if kind == "nifti" and _nifti_has_nonfinite(path):
                     raise UnusableImage(f"{filename}: contains NaN or infinite values")
+                if kind == "nifti" and (pixdim := _nifti_missing_voxel_size(path)) is not None:
+                    raise UnusableImage(f"{filename}: its NIfTI header gives no voxel size (pixdim[1:4] = {pixdim}); "
+                                        "the reader would invent 1 mm")
                 # SimpleITK reads a copy named by the sniffed content, with the reader chosen here
                 # (never by probing), and for NRRD/MHA a header rebuilt from allowed fields.
                 named = Path(tmp) / f"upload{SUFFIX_BY_KIND[kind]}"
@@ -190,6 +195,23 @@ def _nifti1_truncated(path: Path) -> bool:
     return path.stat().st_size < max(int(offset), 348) + values * bitpix // 8
 
 
+def _nifti_missing_voxel_size(path: Path) -> str | None:
+    """The voxel edges of a NIfTI-1/2 header (``pixdim[1..3]``, as text) where one of its image's axes
+    has none (zero, negative or not finite), else None. ITK puts 1 mm in its place without a word,
+    and every pose and volume would then be of a grid the file never held."""
+    with open(path, "rb") as f:
+        head = f.read(540)
+    for size, dim_at, dim_type, pixdim_at, pix_type in ((348, 40, "i2", 76, "f4"), (540, 16, "i8", 104, "f8")):
+        for endian in "<>":
+            if len(head) >= size and int(np.frombuffer(head, endian + "i4", 1, 0)[0]) == size:
+                axes = int(np.clip(np.frombuffer(head, endian + dim_type, 1, dim_at)[0], 1, 3))
+                edges = np.frombuffer(head, endian + pix_type, 4, pixdim_at)[1:1 + axes].astype(np.float64)
+                if np.all(np.isfinite(edges)) and np.all(edges > 0):
+                    return None
+                return ", ".join(f"{e:g}" for e in edges)
+    return None
+
+
 def _nifti_has_nonfinite(path: Path) -> bool:
     """Scan the raw float voxels of an uncompressed NIfTI-1 file (ITK's reader silently replaces NaN)."""
     with open(path, "rb") as f:
@@ -242,6 +264,8 @@ def validate(vol: Volume, filename: str) -> Volume:
         raise UnusableImage(f"{filename}: contains NaN or infinite values")
     if not np.isfinite(vol.affine).all() or abs(np.linalg.det(vol.affine[:3, :3])) < 1e-9:
         raise UnusableImage(f"{filename}: invalid geometry (singular voxel-to-world matrix)")
+    if (problem := grid_problem(vol.affine, a.shape)) is not None:
+        raise UnusableImage(f"{filename}: {problem}")
     return replace(vol, array=a.astype(np.float32, copy=False))
 
 

@@ -38,4 +38,5 @@ def open_backend(settings: Settings) -> tuple[JobStore, JobRunner]:
     from service.jobs.store import SqliteJobStore
 
     sqlite = SqliteJobStore(settings.data_dir)
-    return sqlite, LocalRunner(sqlite, settings.models_dir, settings.job_workers, settings.job_max_attempts)
+    return sqlite, LocalRunner(sqlite, settings.models_dir, settings.job_workers, settings.job_max_attempts,
+                               settings.log_level)

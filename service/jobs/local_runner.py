@@ -3,6 +3,12 @@
 Jobs are recovered at start (interrupted ones re-queued, see
 :meth:`~service.jobs.store.SqliteJobStore.recover`); on shutdown the workers are stopped and their
 running jobs handed back to the queue, to be re-run after a restart (as after ``kill -9``).
+
+A worker process that dies under a job (the kernel's out-of-memory killer, a signal) breaks its
+pool for good: every job of it fails with ``BrokenProcessPool``, and so would every later
+submission. The runner then starts a new pool and recovers the jobs as after a restart, with the
+lost worker as the cause: the interrupted ones run again up to ``max_attempts`` times, then fail
+saying so, and the queued ones run.
 """
 
 from __future__ import annotations
@@ -10,11 +16,13 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import threading
 import time
 from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
-from service.jobs.runner import JobRunner, watch_parent
+from service.jobs.runner import JobRunner, start_worker
 from service.jobs.store import SqliteJobStore
 from service.jobs.worker import run_job
 
@@ -29,11 +37,17 @@ def _run(data_dir: str, models_dir: str, job_id: str) -> None:
 class LocalRunner(JobRunner):
     """Submits queued jobs to a pool of ``workers`` processes (spawned, each exits with the server)."""
 
-    def __init__(self, store: SqliteJobStore, models_dir: Path, workers: int = 1, max_attempts: int = 2) -> None:
+    def __init__(self, store: SqliteJobStore, models_dir: Path, workers: int = 1, max_attempts: int = 2,
+                 log_level: str = "info") -> None:
         self.store, self.models_dir, self.max_attempts, self.workers = store, models_dir, max_attempts, workers
-        self.pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                                        initializer=watch_parent, initargs=(os.getpid(),))
+        self.log_level = log_level
+        self.lock = threading.Lock()
+        self.pool = self._new_pool()
         self.futures: dict[str, Future] = {}
+
+    def _new_pool(self) -> ProcessPoolExecutor:
+        return ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=start_worker, initargs=(os.getpid(), self.log_level))
 
     def start(self) -> list[str]:
         queued = self.store.recover(self.max_attempts)
@@ -47,7 +61,37 @@ class LocalRunner(JobRunner):
 
     def submit(self, job_id: str) -> None:
         self.store.update(job_id, submitted_at=time.time())
-        self.futures[job_id] = self.pool.submit(_run, str(self.store.data_dir), str(self.models_dir), job_id)
+        with self.lock:
+            try:
+                future = self.pool.submit(_run, str(self.store.data_dir), str(self.models_dir), job_id)
+            except BrokenProcessPool:          # broken since the last job ended: recovered below
+                future = None
+            pool = self.pool
+            if future is not None:
+                self.futures[job_id] = future
+        if future is None:
+            self._replace(pool)
+        else:
+            future.add_done_callback(lambda f: self._check(f, pool))
+
+    def _check(self, future: Future, pool: ProcessPoolExecutor) -> None:
+        """A job's future ended: if its pool broke, replace it (in a thread of its own: this callback
+        runs in the broken pool's own management thread)."""
+        if not future.cancelled() and isinstance(future.exception(), BrokenProcessPool):
+            threading.Thread(target=self._replace, args=(pool,), name="job-pool-recovery", daemon=True).start()
+
+    def _replace(self, broken: ProcessPoolExecutor) -> None:
+        """Start a new pool in place of ``broken`` (once, whichever job noticed first) and recover its
+        jobs (the module)."""
+        with self.lock:
+            if self.pool is not broken:
+                return
+            self.pool = self._new_pool()
+            broken.shutdown(wait=False, cancel_futures=True)
+        queued = self.store.recover(self.max_attempts, cause="lost worker")
+        log.warning(f"a job worker process was lost (killed, or out of memory); {len(queued)} job(s) queued again")
+        for job_id in queued:
+            self.submit(job_id)
 
     def cancel(self, job_id: str) -> None:
         future = self.futures.get(job_id)

@@ -33,7 +33,7 @@ from rq.worker import Worker
 
 from service.core.settings import Settings
 from service.jobs.redis_store import RedisJobStore
-from service.jobs.runner import JobRunner, watch_parent
+from service.jobs.runner import JobRunner, lost_worker, watch_parent
 from service.jobs.worker import TIMED_OUT, run_job
 
 log = logging.getLogger(__name__)
@@ -99,8 +99,7 @@ def failure_reason(status: str, exc_string: str, max_attempts: int) -> str:
         return TIMED_OUT
     if status == JobStatus.FINISHED:
         return "the worker ended without completing the job"
-    return (f"the worker running it was lost {max_attempts} time{'s' if max_attempts > 1 else ''} "
-            "(SVRNET_JOB_MAX_ATTEMPTS); the job was not completed")
+    return lost_worker(max_attempts)
 
 
 class RqRunner(JobRunner):

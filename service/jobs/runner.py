@@ -37,6 +37,27 @@ class JobRunner(ABC):
         """At the API's stop: the jobs handed back to the queue."""
 
 
+def lost_worker(max_attempts: int) -> str:
+    """A job's ``error`` once the workers running it were lost ``max_attempts`` times (killed, or out
+    of memory), in words with no server detail.
+
+    Example:
+        >>> lost_worker(2)
+        'the worker running it was lost 2 times (SVRNET_JOB_MAX_ATTEMPTS); the job was not completed'
+    """
+    return (f"the worker running it was lost {max_attempts} time{'s' if max_attempts > 1 else ''} "
+            "(SVRNET_JOB_MAX_ATTEMPTS); the job was not completed")
+
+
+def start_worker(parent: int, log_level: str) -> None:
+    """A pool worker process's start: the server's JSON logging (a failed job's line carries its id
+    and the kind of error) and :func:`watch_parent`."""
+    from service.core import logging as service_logging
+
+    service_logging.configure(log_level)
+    watch_parent(parent)
+
+
 def watch_parent(parent: int | None = None, interval_s: float = 0.5) -> None:
     """In a worker process: exit as soon as the process that started it is gone (even after its
     ``kill -9``), so no orphan keeps running a job that the queue will hand to another worker."""

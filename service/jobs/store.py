@@ -31,6 +31,8 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
 
+from service.jobs.runner import lost_worker
+
 STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 FINAL = ("succeeded", "failed", "cancelled")
 FIELDS = ("id", "status", "stage", "progress", "error", "params", "report", "attempts", "created_at", "updated_at",
@@ -246,18 +248,19 @@ class SqliteJobStore(JobStore):
         with self._connect() as db:
             return [r["id"] for r in db.execute("SELECT id FROM jobs WHERE status = ? ORDER BY created_at", (status,))]
 
-    def recover(self, max_attempts: int = 2) -> list[str]:
-        """After a restart: re-queue interrupted jobs (or fail them after ``max_attempts``, deleting their
+    def recover(self, max_attempts: int = 2, cause: str = "restart") -> list[str]:
+        """After a restart (or, ``cause="lost worker"``, after the worker processes running them were
+        lost): re-queue interrupted jobs (or fail them after ``max_attempts``, deleting their
         uploads); the queue."""
         now = time.time()
+        error = "interrupted by a server restart too many times" if cause == "restart" else lost_worker(max_attempts)
         with self._connect() as db:
             given_up = [r["id"] for r in db.execute(
                 "SELECT id FROM jobs WHERE status = 'running' AND attempts >= ?", (max_attempts,))]
-            db.execute("UPDATE jobs SET status = 'failed', stage = 'failed', updated_at = ?, error = "
-                       "'interrupted by a server restart too many times' WHERE status = 'running' AND attempts >= ?",
-                       (now, max_attempts))
-            db.execute("UPDATE jobs SET status = 'queued', stage = 'queued (re-run after restart)', progress = 0, "
-                       "updated_at = ? WHERE status = 'running'", (now,))
+            db.execute("UPDATE jobs SET status = 'failed', stage = 'failed', updated_at = ?, error = ? "
+                       "WHERE status = 'running' AND attempts >= ?", (now, error, max_attempts))
+            db.execute("UPDATE jobs SET status = 'queued', stage = ?, progress = 0, updated_at = ? "
+                       "WHERE status = 'running'", (f"queued (re-run after {cause})", now))
         for job_id in given_up:
             self.discard_inputs(job_id)
         return self.queued()

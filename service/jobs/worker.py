@@ -28,7 +28,9 @@ import numpy as np
 
 from service.consistency.slice_order import SliceOrder, per_stack
 from service.core.errors import Cancelled, ServiceError
+from service.core.logging import error_at
 from service.inference.acceptance import EMPTY
+from service.io.grid_limits import MAX_FIELD_OF_VIEW_MM
 from service.jobs.store import JobStore
 from service.preprocess.stack import stack_from_slice_images
 
@@ -47,8 +49,15 @@ def _stack_files(inputs: Path) -> list[tuple[Path, Path | None]]:
     return [(s, (inputs / f"mask{s.name[5:]}") if (inputs / f"mask{s.name[5:]}").exists() else None) for s in stacks]
 
 
-def poses_from_predict_body(body: dict, n_slices: list[int]) -> list[tuple[np.ndarray, np.ndarray]]:
+def poses_from_predict_body(body: dict, n_slices: list[int],
+                            spacings: list | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
     """``(atlas_from_voxel [n, 4, 4], accepted [n])`` per stack from a ``/v1/predict`` response body.
+
+    ``spacings``: each stack's voxel edges (mm, in its array's axis order), to check a client's
+    poses against: each ``atlas_from_voxel`` a rigid placement of the stack's voxels (columns of
+    those lengths, at right angles, last row 0, 0, 0, 1, within :data:`MAX_FIELD_OF_VIEW_MM` of the
+    atlas origin), and at least one slice accepted. A reconstruction's grid and its every stage
+    are sized by those poses.
 
     Raises:
         ValueError: naming what does not match the uploaded stacks.
@@ -65,13 +74,43 @@ def poses_from_predict_body(body: dict, n_slices: list[int]) -> list[tuple[np.nd
             raise ValueError(f"poses: stack {i} has {n} slices but the poses list {len(slices)}")
         try:
             mats = np.array([s["atlas_from_voxel"] for s in slices], dtype=np.float64)
-            acc = np.array([bool(s["accepted"]) for s in slices])
+            acc = [s["accepted"] for s in slices]
         except (KeyError, TypeError, ValueError, IndexError, RecursionError) as exc:
             raise ValueError(f"poses: stack {i}: each slice needs atlas_from_voxel and accepted") from exc
         if mats.shape != (n, 4, 4) or not np.isfinite(mats).all():
             raise ValueError(f"poses: stack {i}: atlas_from_voxel must be finite 4x4 matrices")
-        out.append((mats, acc))
+        if not all(isinstance(a, bool) for a in acc):
+            raise ValueError(f"poses: stack {i}: accepted must be true or false")
+        if spacings is not None and (bad := not_rigid(mats, spacings[i])) is not None:
+            raise ValueError(f"poses: stack {i}, slice {bad}: atlas_from_voxel is no rigid placement of the stack's "
+                             f"voxels ({', '.join(f'{e:.3g}' for e in spacings[i])} mm) within "
+                             f"{MAX_FIELD_OF_VIEW_MM:.0f} mm of the atlas")
+        out.append((mats, np.array(acc, bool)))
+    if spacings is not None and not any(acc.any() for _, acc in out):
+        raise ValueError("poses: no slice is accepted; a job starts from the accepted slices")
     return out
+
+
+def not_rigid(mats: np.ndarray, spacing, tolerance: float = 0.01) -> int | None:  # noqa: ANN001
+    """The index of the first of ``mats [n, 4, 4]`` that is no rigid placement of voxels of edges
+    ``spacing`` (columns of those lengths within ``tolerance`` relative, at right angles within
+    ``tolerance`` in cosine, last row 0, 0, 0, 1, translation within :data:`MAX_FIELD_OF_VIEW_MM`),
+    else None.
+
+    Example:
+        >>> good = np.diag([1.1, 1.1, 3.0, 1.0])[None].repeat(2, 0)
+        >>> bad = good.copy(); bad[1, 0, 0] = 11.0
+        >>> not_rigid(good, [1.1, 1.1, 3.0]), not_rigid(bad, [1.1, 1.1, 3.0])
+        (None, 1)
+    """
+    cols = mats[:, :3, :3]
+    lengths = np.linalg.norm(cols, axis=1)                                     # [n, 3]
+    unit = cols / np.maximum(lengths[:, None, :], 1e-12)
+    cosines = np.abs(np.einsum("nij,nik->njk", unit, unit) - np.eye(3)).max(axis=(1, 2))
+    wrong = ((np.abs(lengths / np.asarray(spacing, np.float64) - 1.0).max(axis=1) > tolerance)
+             | (cosines > tolerance) | (np.abs(mats[:, 3] - [0, 0, 0, 1]).max(axis=1) > 1e-6)
+             | (np.linalg.norm(mats[:, :3, 3], axis=1) > MAX_FIELD_OF_VIEW_MM))
+    return int(np.argmax(wrong)) if wrong.any() else None
 
 
 def predicted_poses(uploads: list, estimator, mc_samples: int = 100,  # noqa: ANN001
@@ -183,7 +222,7 @@ def run_job(store: JobStore, models_dir: Path, job_id: str, redelivered: bool = 
         log.info("job cancelled", extra={"job_id": job_id})
     except Exception as exc:  # noqa: BLE001 - every failure is recorded on the job, not lost
         store.fail(job_id, failure_reason(exc), attempt)
-        log.warning("job failed", extra={"job_id": job_id, "error_type": type(exc).__name__})
+        log.warning("job failed", extra={"job_id": job_id, "error_type": type(exc).__name__, "error_at": error_at(exc)})
     # Ended, whatever the outcome: the uploads (raw headers, the clients' file names) go now, not at
     # the retention limit. A worker stopped mid-job never gets here, so a re-run still has them.
     store.discard_inputs(job_id)
@@ -256,7 +295,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
 
         counts = [u.volume.array.shape[slice_axis_of(u.volume.spacing)] for u in uploads]
         body = json.loads(poses_path.read_text())
-        poses = poses_from_predict_body(body, counts)
+        poses = poses_from_predict_body(body, counts, [u.volume.spacing for u in uploads])
         plane = DEFAULT_PLANE_X_MM
         masks = [found.mask for found in localise_uploads(uploads)]
     else:

@@ -91,10 +91,29 @@ def make_grid(resolution_mm: float, bounds_mm: ArrayLike) -> Grid:
     return Grid(affine, tuple(int(s) for s in shape))
 
 
-def bounds_of(points: ArrayLike, margin_mm: float) -> NDArray[np.float64]:
-    """``[[lower], [upper]]`` bounding box of points ``[N, 3]`` enlarged by ``margin_mm`` on each side."""
+MAX_EXTENT_MM = 250.0
+"""The widest a reconstruction's field of view gets along an axis (mm): twice a term brain's length.
+Slices placed farther apart than that (poses a client sent, or a stage that went astray) are not
+followed: the box is cut to this extent about the median of the points, where most of them are."""
+
+
+def bounds_of(points: ArrayLike, margin_mm: float, max_extent_mm: float = MAX_EXTENT_MM) -> NDArray[np.float64]:
+    """``[[lower], [upper]]`` bounding box of points ``[N, 3]`` enlarged by ``margin_mm`` on each side,
+    at most ``max_extent_mm`` wide along an axis (there centred on the points' median).
+
+    Example:
+        >>> bounds_of([[0.0, 0, 0], [10, 4, 2]], 1.0).tolist()
+        [[-1.0, -1.0, -1.0], [11.0, 5.0, 3.0]]
+        >>> bounds_of([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [5000, 0, 0]], 1.0, max_extent_mm=100.0)[:, 0].tolist()
+        [-48.5, 51.5]
+    """
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    return np.stack([p.min(axis=0) - margin_mm, p.max(axis=0) + margin_mm])
+    box = np.stack([p.min(axis=0) - margin_mm, p.max(axis=0) + margin_mm])
+    wide = box[1] - box[0] > max_extent_mm
+    if wide.any():
+        middle = np.median(p[:, wide], axis=0)
+        box[:, wide] = np.stack([middle - max_extent_mm / 2, middle + max_extent_mm / 2])
+    return box
 
 
 def bounds_within(bounds_mm: ArrayLike, limit_mm: ArrayLike) -> NDArray[np.float64]:

@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.core.errors import InvalidParameter
+from service.io.grid_limits import grid_problem
 from service.io.volume import Volume
 
 AXIS_TOLERANCE = 1e-3
@@ -81,6 +82,8 @@ def check_frame(frame: SliceFrame, max_pixels: int) -> None:
     if lengths.min() <= 1e-6 or abs(np.linalg.det(a[:3, :3] / lengths)) < 0.5:
         raise InvalidParameter("slice.scanner_from_voxel: its columns (pixel axes and normal x thickness) must be "
                                "nonzero and not parallel")
+    if (problem := grid_problem(a, px.shape + (1,))) is not None:
+        raise InvalidParameter(f"slice.scanner_from_voxel: {problem}")
     if frame.mask is not None and np.asarray(frame.mask).shape != px.shape:
         raise InvalidParameter(f"slice.mask: shape {list(np.asarray(frame.mask).shape)} differs from the slice's "
                                f"{list(px.shape)}")

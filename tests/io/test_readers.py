@@ -171,6 +171,35 @@ def test_impossible_headers_are_read_or_refused_never_an_unexpected_error(tmp_pa
             assert vol.array.shape == (6, 7, 5)
 
 
+@pytest.mark.parametrize(("pixdim", "codes"), [((0.0, 0.0, 0.0), (0, 0)), ((np.nan, 1.0, 1.0), (0, 0)),
+                                               ((1.0, -1.0, 3.0), (1, 0)), ((0.0, 0.0, 0.0), (1, 1))])
+def test_a_nifti_header_without_voxel_sizes_is_422_not_1_mm(tmp_path: Path, pixdim: tuple, codes: tuple) -> None:
+    """ITK puts 1 mm where a header's pixdim is 0, negative or NaN, whatever its q/s-form codes say."""
+    path = tmp_path / "v.nii"
+    write_volume(Volume(np.random.default_rng(1).random((6, 7, 5)).astype(np.float32), oblique()), path)
+    raw = bytearray(path.read_bytes())
+    raw[80:92] = np.asarray(pixdim, "<f4").tobytes()
+    raw[252:256] = np.asarray(codes, "<i2").tobytes()
+    if codes[1]:
+        raw[280:328] = np.zeros(12, "<f4").tobytes()                      # an s-form of zeros
+    path.write_bytes(bytes(raw))
+    with pytest.raises(UnusableImage, match=r"mine\.nii: its NIfTI header gives no voxel size"):
+        read_upload(path, "mine.nii")
+
+
+@pytest.mark.parametrize(("spacing", "words"), [((30.0, 30.0, 3.0), "voxel size 30, 30, 3 mm"),
+                                                ((0.01, 1.0, 3.0), "voxel size 0.01, 1, 3 mm: under 0.05 mm"),
+                                                ((5.0, 5.0, 3.0), "field of view 1000 x 1005 x 15 mm")])
+def test_a_grid_no_mri_acquisition_has_is_422_before_any_stage_sizes_arrays_by_it(
+        tmp_path: Path, spacing: tuple, words: str) -> None:
+    path = tmp_path / "v.nii.gz"
+    write_volume(Volume(np.ones((200, 201, 5), np.float32), np.diag([*spacing, 1.0])), path)
+    with pytest.raises(UnusableImage, match=f"mine.nii.gz: {words}"):
+        read_upload(path, "mine.nii.gz")
+    write_volume(Volume(np.ones((200, 201, 5), np.float32), np.diag([1.0, 1.0, 3.0, 1.0])), path)
+    assert read_upload(path, "mine.nii.gz").array.shape == (200, 201, 5)
+
+
 @pytest.mark.parametrize("damage", ["orientation with 5 values", "no orientation", "empty shared groups"])
 def test_dicom_with_broken_geometry_is_415(tmp_path: Path, damage: str) -> None:
     pydicom = pytest.importorskip("pydicom")

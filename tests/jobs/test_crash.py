@@ -1,5 +1,6 @@
 """A real server stopped mid-job (SIGTERM, or kill -9) leaves no process behind, and the job
-completes after a restart. Runs ``svrnet-server``'s code under uvicorn as a subprocess, on a tiny job."""
+completes after a restart; its job worker killed mid-job is replaced, the job run again (or failed
+saying why, past its attempts). Runs ``svrnet-server``'s code under uvicorn as a subprocess, on a tiny job."""
 
 from __future__ import annotations
 
@@ -9,8 +10,10 @@ import time
 from pathlib import Path
 
 import httpx
+import psutil
 import pytest
 
+from service.jobs.runner import lost_worker
 from service.jobs.store import SqliteJobStore
 from tests.support.live_server import Server
 from tests.support.phantoms import orthogonal_stacks_case
@@ -59,6 +62,56 @@ def test_a_server_stopped_mid_job_leaves_nothing_and_the_job_completes_after_res
             time.sleep(0.3)
         assert st["status"] == "succeeded", st
         assert f"re-queued job {job_id}, attempt 2" in log.read_text()
+        server.stop(signal.SIGTERM)
+        assert not server.leftovers()
+    finally:
+        server.kill_group()
+
+
+def _job_worker(server: Server) -> psutil.Process:
+    """The server's job worker process (a spawned pool process, not multiprocessing's resource tracker)."""
+    workers = [p for p in psutil.Process(server.proc.pid).children()
+               if "spawn_main" in " ".join(p.cmdline()) and "resource_tracker" not in " ".join(p.cmdline())]
+    assert len(workers) == 1, [p.cmdline() for p in workers]
+    return workers[0]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("attempts", [2, 1])
+def test_a_job_worker_killed_mid_job_is_replaced_and_its_job_runs_again_or_fails_saying_so(
+        tmp_path: Path, job_files: tuple[list, dict], attempts: int) -> None:
+    # What the kernel's out-of-memory killer does to a worker: the pool it belonged to is broken for
+    # good, and without a new one every later job would fail and this one stay 'running'.
+    files, poses = job_files
+    log = tmp_path / "server.log"
+    server = Server(tmp_path / "data", log, job_max_attempts=str(attempts))
+    data = {"resolution_mm": "1.5", "svr_iterations": "2", "atlas_frame": "false"}
+    try:
+        r = httpx.post(f"{server.url}/v1/reconstructions", files=files + [("poses", ("p.json", json.dumps(poses)))],
+                       data=data, timeout=60)
+        job_id = r.json()["job_id"]
+        deadline = time.time() + 60
+        while (st := _status(server, job_id))["status"] == "queued" or st["stage"] in ("starting", "reading"):
+            assert time.time() < deadline, st
+            time.sleep(0.05)
+        _job_worker(server).kill()
+        deadline = time.time() + 240
+        while (st := _status(server, job_id))["status"] not in ("succeeded", "failed", "cancelled"):
+            assert time.time() < deadline, st
+            time.sleep(0.3)
+        if attempts == 2:
+            assert st["status"] == "succeeded" and st["attempts"] == 2, st
+        else:
+            assert st["status"] == "failed" and st["error"] == lost_worker(1), st
+        assert "a job worker process was lost" in log.read_text()
+        r = httpx.post(f"{server.url}/v1/reconstructions", files=files + [("poses", ("p.json", json.dumps(poses)))],
+                       data={**data, "svr_iterations": "0"}, timeout=60)
+        assert r.status_code == 202, r.text                          # the new pool takes jobs
+        deadline = time.time() + 120
+        while (st := _status(server, r.json()["job_id"]))["status"] not in ("succeeded", "failed", "cancelled"):
+            assert time.time() < deadline, st
+            time.sleep(0.3)
+        assert st["status"] == "succeeded", st
         server.stop(signal.SIGTERM)
         assert not server.leftovers()
     finally:

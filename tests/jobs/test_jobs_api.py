@@ -14,7 +14,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.inference.registry import ModelRegistry
-from service.io.volume import read_volume
+from service.io.volume import Volume, read_volume, write_volume
 from service.jobs.store import SqliteJobStore
 from tests.api.conftest import OracleEstimator, make_client, tiny_model_path  # noqa: F401 - fixture
 from tests.jobs.conftest import BACKENDS, env_of
@@ -31,14 +31,28 @@ def case(tmp_path_factory: pytest.TempPathFactory) -> dict:
     return {"files": files, "poses": body}
 
 
-def submit(client: TestClient, case: dict, poses: object = None, **data: str):  # noqa: ANN201
-    """Submit the case; ``poses``: a body (default: the true poses) or the raw text of one."""
+def submit(client: TestClient, case: dict, poses: object = None, masks: list[bytes] | None = None,
+           **data: str):  # noqa: ANN201
+    """Submit the case; ``poses``: a body (default: the true poses) or the raw text of one; ``masks``:
+    the mask files' bytes (default: the case's)."""
     text = poses if isinstance(poses, str) else json.dumps(poses or case["poses"])
     files = [("stacks", (s.name, s.read_bytes())) for s, _ in case["files"]]
-    files += [("masks", (m.name, m.read_bytes())) for _, m in case["files"]]
+    masks = masks or [m.read_bytes() for _, m in case["files"]]
+    files += [("masks", (m.name, data_)) for (_, m), data_ in zip(case["files"], masks)]
     files.append(("poses", ("poses.json", text.encode(), "application/json")))
     data = {"resolution_mm": "2.0", "svr_iterations": "1", "atlas_frame": "false", **data}   # a phantom, no brain
     return client.post("/v1/reconstructions", files=files, data=data)
+
+
+def empty_masks(case: dict) -> list[bytes]:
+    """The case's mask files with no voxel set: a job on them has no slice to reconstruct from."""
+    out = []
+    for _, m in case["files"]:
+        mask = read_volume(m)
+        path = m.parent / f"empty_{m.name}"
+        write_volume(Volume(np.zeros_like(mask.array), mask.affine), path)
+        out.append(path.read_bytes())
+    return out
 
 
 def wait(client: TestClient, job_id: str, timeout: float = 180.0) -> dict:
@@ -132,12 +146,8 @@ def test_cancel_and_failure(client: TestClient, case: dict) -> None:
     st = client.get(f"/v1/reconstructions/{job_id}").json()
     assert st["status"] == "cancelled"
     assert client.get(f"/v1/reconstructions/{job_id}/volume").status_code == 409
-    # Every slice rejected: the job fails, with its reason.
-    rejected = json.loads(json.dumps(case["poses"]))
-    for st_ in rejected["stacks"]:
-        for s in st_["slices"]:
-            s["accepted"] = False
-    job_id = submit(client, case, poses=rejected).json()["job_id"]
+    # No slice inside its mask: the job fails, with its reason.
+    job_id = submit(client, case, masks=empty_masks(case)).json()["job_id"]
     st = wait(client, job_id)
     assert st["status"] == "failed" and "no included slice" in st["error"], st
 
@@ -150,6 +160,21 @@ def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict) ->
                 "[" * 100_000 + "]" * 100_000, "{not json"):
         r = submit(client, case, poses=bad)
         assert r.status_code == 400 and "poses" in r.json()["detail"], r.text
+    # Poses no scanner gives: scaled, sheared, far away, not a rigid placement; none accepted.
+    for change, needle in ((lambda s: s["atlas_from_voxel"][0].__setitem__(0, 1e6), "stack 1, slice 2: atlas_from_voxel"),
+                           (lambda s: s["atlas_from_voxel"][0].__setitem__(3, 5e3), "within 1000 mm"),
+                           (lambda s: s["atlas_from_voxel"].__setitem__(3, [1, 2, 3, 4]), "rigid placement"),
+                           (lambda s: s.__setitem__("accepted", "no"), "accepted must be true or false")):
+        bad = json.loads(json.dumps(case["poses"]))
+        change(bad["stacks"][1]["slices"][2])
+        r = submit(client, case, poses=bad)
+        assert r.status_code == 400 and needle in r.json()["detail"], r.text
+    rejected = json.loads(json.dumps(case["poses"]))
+    for st_ in rejected["stacks"]:
+        for s in st_["slices"]:
+            s["accepted"] = False
+    r = submit(client, case, poses=rejected)
+    assert r.status_code == 400 and "no slice is accepted" in r.json()["detail"], r.text
     n_slices = len(case["poses"]["stacks"][1]["slices"])
     for order, needles in (("zigzag", ["slice_order", "interleaved-odd-first"]), (["auto", "auto"], ["2 values for 3 stacks"]),
                            (["auto", "0,1", "auto"], ["slice_order[1]", case["files"][1][0].name, f"stack of {n_slices} slices"])):

@@ -3,7 +3,6 @@ ends, whatever its outcome; only what the results need is kept."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import pytest
@@ -13,7 +12,7 @@ from service.inference.registry import ModelRegistry
 from service.jobs.store import SqliteJobStore
 from tests.api.conftest import OracleEstimator, make_client
 from tests.jobs.conftest import BACKENDS
-from tests.jobs.test_jobs_api import case, submit, wait  # noqa: F401 - fixture
+from tests.jobs.test_jobs_api import case, empty_masks, submit, wait  # noqa: F401 - fixture
 
 PATIENT = b"Doe^Jane"
 
@@ -49,11 +48,7 @@ def test_a_succeeded_job_keeps_only_its_results(client: TestClient, case: dict) 
 
 @pytest.mark.parametrize("queue_settings", BACKENDS, indirect=True)
 def test_a_failed_job_keeps_nothing_of_its_uploads(client: TestClient, case: dict) -> None:
-    rejected = json.loads(json.dumps(case["poses"]))
-    for st in rejected["stacks"]:
-        for s in st["slices"]:
-            s["accepted"] = False
-    job_id = submit(client, case, poses=rejected).json()["job_id"]
+    job_id = submit(client, case, masks=empty_masks(case)).json()["job_id"]
     assert wait(client, job_id)["status"] == "failed"
     _assert_no_upload_left(client.app.state.job_store.directory(job_id))
 

@@ -1,12 +1,13 @@
 """A grid's box in atlas mm is where its affine puts its first and last voxel centres, and holds the
-box it was made for; a box is cut to a limit, or falls back to the limit where they do not meet."""
+box it was made for; a box is cut to a limit, or falls back to the limit where they do not meet;
+a box of points is at most MAX_EXTENT_MM wide."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from service.geometry.pose import apply
-from service.reconstruction.grid import bounds_within, make_grid
+from service.reconstruction.grid import MAX_EXTENT_MM, bounds_of, bounds_within, make_grid
 
 
 def test_a_grids_box_is_its_corner_voxels_in_atlas_space_and_holds_the_box_asked_for() -> None:
@@ -31,3 +32,15 @@ def test_a_box_is_cut_to_its_limit_and_falls_back_to_it_where_they_do_not_meet()
             assert np.all(out[0] >= limit[0]) and np.all(out[1] <= limit[1])
         else:
             assert np.array_equal(out, limit)
+
+
+def test_a_few_slices_far_away_do_not_stretch_the_field_of_view() -> None:
+    rng = np.random.default_rng(5)
+    brain = rng.normal(0.0, 25.0, (5000, 3)) + [10.0, -20.0, 5.0]
+    astray = rng.uniform(-900.0, 900.0, (40, 3))                    # a few poses sent from far away
+    box = bounds_of(np.concatenate([brain, astray]), margin_mm=6.0)
+    assert np.all(box[1] - box[0] <= MAX_EXTENT_MM + 1e-9)
+    inside = np.all((brain >= box[0]) & (brain <= box[1]), axis=1)
+    assert inside.mean() > 0.999                                     # centred where the points are
+    plain = bounds_of(brain, margin_mm=6.0)                          # a brain alone keeps its own box
+    assert np.allclose(plain, [brain.min(axis=0) - 6.0, brain.max(axis=0) + 6.0])

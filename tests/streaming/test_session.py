@@ -73,6 +73,7 @@ def test_bad_slices_are_refused_and_change_nothing(case) -> None:  # noqa: ANN00
         (SliceFrame("ax", 1, first.pixels, stacks[1][1].scanner_from_voxel, first.mask), "axes differ"),
         (SliceFrame("ax", 1, first.pixels, first.scanner_from_voxel, None), "slice.mask"),
         (SliceFrame("ax", -1, first.pixels, first.scanner_from_voxel, first.mask), "negative"),
+        (SliceFrame("ax", 1, first.pixels, first.scanner_from_voxel @ np.diag([30.0, 30.0, 1.0, 1.0])), "voxel size"),
     ]
     for frame, words in bad:
         with pytest.raises(InvalidParameter, match=words):
