@@ -83,7 +83,7 @@ def poses_from_predict_body(body: dict, n_slices: list[int],
             raise ValueError(f"poses: stack {i}: accepted must be true or false")
         if spacings is not None and (bad := not_rigid(mats, spacings[i])) is not None:
             raise ValueError(f"poses: stack {i}, slice {bad}: atlas_from_voxel is no rigid placement of the stack's "
-                             f"voxels ({', '.join(f'{e:.3g}' for e in spacings[i])} mm) within "
+                             f"voxels ({', '.join(f'{e:.4g}' for e in spacings[i])} mm) within "
                              f"{MAX_FIELD_OF_VIEW_MM:.0f} mm of the atlas")
         out.append((mats, np.array(acc, bool)))
     if spacings is not None and not any(acc.any() for _, acc in out):
