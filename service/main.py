@@ -48,9 +48,11 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
         log.info("machine: %s", cpu_description())       # latency depends on it (service/core/machine.py)
 
         async def upkeep() -> None:
-            # Retention everywhere; with the distributed back-end also the queue's maintenance
-            # (re-delivering the jobs of lost workers), which every replica may do.
-            period = settings.queue_maintenance_s if settings.queue_url else RETENTION_CHECK_S
+            # Retention everywhere, and the runner's maintenance: with the distributed back-end the
+            # queue's (re-delivering the jobs of lost workers), which every replica may do; with the
+            # embedded one, stopping jobs past the job timeout (checked ten times within it).
+            period = settings.queue_maintenance_s if settings.queue_url else \
+                min(RETENTION_CHECK_S, settings.job_timeout_h * 3600 / 10)
             while True:
                 try:
                     await asyncio.to_thread(app.state.job_store.expire, settings.retention_hours * 3600)

@@ -62,7 +62,7 @@ class Settings(BaseSettings):
                             description="the RQ queue and the namespace of the job records in Redis")
     queue_maintenance_s: float = Field(15.0, gt=0, description="distributed: how often each API replica re-delivers "
                                        "the jobs of lost workers and fails those past the retry limit")
-    job_timeout_h: float = Field(6.0, gt=0, description="distributed: a job running longer is stopped and fails")
+    job_timeout_h: float = Field(6.0, gt=0, description="a job running longer is stopped and fails")
     worker_lost_after_s: int = Field(60, ge=1, description="distributed: a worker silent this long (beyond its "
                                      "heartbeat interval) is lost and its job re-delivered")
     worker_heartbeat_s: int = Field(10, ge=1, description="distributed: a busy worker's heartbeat interval")

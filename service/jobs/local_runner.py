@@ -8,7 +8,8 @@ A worker process that dies under a job (the kernel's out-of-memory killer, a sig
 pool for good: every job of it fails with ``BrokenProcessPool``, and so would every later
 submission. The runner then starts a new pool and recovers the jobs as after a restart, with the
 lost worker as the cause: the interrupted ones run again up to ``max_attempts`` times, then fail
-saying so, and the queued ones run.
+saying so, and the queued ones run. A job running longer than ``timeout_s`` is failed saying so and
+stopped the same way (:meth:`LocalRunner.maintain`): a job stops only with its process.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from pathlib import Path
 
 from service.jobs.runner import JobRunner, start_worker
 from service.jobs.store import SqliteJobStore
-from service.jobs.worker import run_job
+from service.jobs.worker import TIMED_OUT, run_job
 
 log = logging.getLogger(__name__)
 
@@ -38,9 +39,9 @@ class LocalRunner(JobRunner):
     """Submits queued jobs to a pool of ``workers`` processes (spawned, each exits with the server)."""
 
     def __init__(self, store: SqliteJobStore, models_dir: Path, workers: int = 1, max_attempts: int = 2,
-                 log_level: str = "info") -> None:
+                 log_level: str = "info", timeout_s: float = float("inf")) -> None:
         self.store, self.models_dir, self.max_attempts, self.workers = store, models_dir, max_attempts, workers
-        self.log_level = log_level
+        self.log_level, self.timeout_s = log_level, timeout_s
         self.lock = threading.Lock()
         self.pool = self._new_pool()
         self.futures: dict[str, Future] = {}
@@ -92,6 +93,22 @@ class LocalRunner(JobRunner):
         log.warning(f"a job worker process was lost (killed, or out of memory); {len(queued)} job(s) queued again")
         for job_id in queued:
             self.submit(job_id)
+
+    def maintain(self) -> None:
+        """Stop the jobs running longer than ``timeout_s``: each fails saying so (its uploads go now),
+        and the pool's processes are stopped; the pool is then replaced and any other job it was
+        running recovered (the module)."""
+        now = time.time()
+        late = [job for job in map(self.store.get, self.store.ids("running"))
+                if job is not None and job.started_at is not None and now - job.started_at > self.timeout_s]
+        for job in late:
+            self.store.fail(job.id, TIMED_OUT, job.attempts)
+            self.store.discard_inputs(job.id)
+            log.warning(f"job {job.id} ran longer than SVRNET_JOB_TIMEOUT_H and was stopped", extra={"job_id": job.id})
+        if late:
+            with self.lock:
+                for proc in list((getattr(self.pool, "_processes", None) or {}).values()):
+                    proc.kill()
 
     def cancel(self, job_id: str) -> None:
         future = self.futures.get(job_id)

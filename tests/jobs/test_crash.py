@@ -15,6 +15,7 @@ import pytest
 
 from service.jobs.runner import lost_worker
 from service.jobs.store import SqliteJobStore
+from service.jobs.worker import TIMED_OUT
 from tests.support.live_server import Server
 from tests.support.phantoms import orthogonal_stacks_case
 
@@ -112,6 +113,36 @@ def test_a_job_worker_killed_mid_job_is_replaced_and_its_job_runs_again_or_fails
             assert time.time() < deadline, st
             time.sleep(0.3)
         assert st["status"] == "succeeded", st
+        server.stop(signal.SIGTERM)
+        assert not server.leftovers()
+    finally:
+        server.kill_group()
+
+
+@pytest.mark.slow
+def test_a_job_past_the_timeout_is_stopped_and_fails_saying_so(tmp_path: Path, job_files: tuple[list, dict]) -> None:
+    files, poses = job_files
+    server = Server(tmp_path / "data", tmp_path / "server.log", job_timeout_h=str(4 / 3600))
+    try:
+        r = httpx.post(f"{server.url}/v1/reconstructions", files=files + [("poses", ("p.json", json.dumps(poses)))],
+                       data={"resolution_mm": "1.0", "svr_iterations": "3", "atlas_frame": "false"}, timeout=60)
+        job_id = r.json()["job_id"]
+        deadline = time.time() + 60
+        while (st := _status(server, job_id))["status"] == "queued":
+            assert time.time() < deadline, st
+            time.sleep(0.05)
+        worker = _job_worker(server)
+        while (st := _status(server, job_id))["status"] not in ("succeeded", "failed", "cancelled"):
+            assert time.time() < deadline, st
+            time.sleep(0.2)
+        assert st["status"] == "failed" and st["error"] == TIMED_OUT, st
+        assert not (tmp_path / "data" / "jobs" / job_id / "inputs").exists()
+        worker.wait(10)                                  # stopped with its job, and the pool replaced
+        deadline = time.time() + 10
+        while "a job worker process was lost" not in (log := (tmp_path / "server.log").read_text()):
+            assert time.time() < deadline
+            time.sleep(0.2)
+        assert f"job {job_id} ran longer than SVRNET_JOB_TIMEOUT_H" in log
         server.stop(signal.SIGTERM)
         assert not server.leftovers()
     finally:
