@@ -100,4 +100,7 @@ def run() -> None:
 
     settings = Settings()
     service_logging.configure(settings.log_level)
-    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=settings.log_level)
+    # uvicorn's own access log writes each raw request path (job ids as sent, anything a client
+    # puts in a URL); the service's JSON log records the route instead (service/api/middleware.py).
+    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=settings.log_level,
+                access_log=False)

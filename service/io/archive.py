@@ -8,6 +8,8 @@
   checked against the budget and compressed frames against the header) before GDCM sees it; a deflated
   member is handed to GDCM already inflated, so GDCM never inflates anything itself. Members that are
   not DICOM files with pixel data (a README, a DICOMDIR) are left out.
+* The series' files must make one stack (:mod:`service.io.series_geometry`: orientation, pixel spacing
+  and positions present, alike and evenly spaced), or the archive is refused (422).
 
 Every message names the client's archive and, where it is about one member, the member.
 """
@@ -29,6 +31,7 @@ from service.io.acquisition_times import order_of, seconds
 from service.io.dicom import read_dicom_file
 from service.io.dicom_guard import load_dataset
 from service.io.limits import FileBudget
+from service.io.series_geometry import Tags, series_problem
 from service.io.volume import Volume, from_sitk
 
 MAX_MEMBERS = 5000
@@ -40,6 +43,7 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget) -> Volume:
     with tempfile.TemporaryDirectory(prefix="svrnet-zip-") as tmp:
         labels: dict[str, str] = {}           # unpacked file -> "archive.zip: member" (for messages)
         times: dict[str, float | None] = {}   # unpacked file -> its acquisition time (for the order only)
+        tags: dict[str, Tags] = {}            # unpacked file -> its geometry tags (to check the series)
         try:
             with zipfile.ZipFile(path) as z:
                 members = [m for m in z.infolist() if not m.is_dir()]
@@ -50,7 +54,7 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget) -> Volume:
                 for i, m in enumerate(members):
                     label = f"{filename}: {clean_name(m.filename) or f'member {i}'}"
                     out = Path(tmp) / f"{i:05d}.dcm"
-                    if _unpack(z, m, out, budget.member(label), label, times):
+                    if _unpack(z, m, out, budget.member(label), label, times, tags):
                         labels[str(out)] = label
         except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as exc:
             raise UnsupportedFile(f"{filename}: corrupt or truncated ZIP archive") from exc
@@ -66,14 +70,17 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget) -> Volume:
         files = reader.GetGDCMSeriesFileNames(tmp, series[0])
         if len(files) == 1:
             return read_dicom_file(Path(files[0]), labels.get(files[0], filename), budget)
+        if (problem := series_problem([tags[f] for f in files])) is not None:
+            raise UnusableImage(f"{filename}: a DICOM series of {len(files)} files, but {problem}")
         reader.SetFileNames(files)
         return replace(from_sitk(reader.Execute()), acquisition_order=order_of([times.get(f) for f in files]))
 
 
 def _unpack(z: zipfile.ZipFile, member: zipfile.ZipInfo, out: Path, budget: FileBudget, label: str,
-            times: dict[str, float | None]) -> bool:
+            times: dict[str, float | None], tags: dict[str, Tags]) -> bool:
     """Inflate ``member`` to ``out`` (charged to ``budget``) and screen it; False: not a DICOM image.
-    Its acquisition time goes to ``times`` (:mod:`service.io.acquisition_times`)."""
+    Its acquisition time goes to ``times`` (:mod:`service.io.acquisition_times`), its geometry tags
+    to ``tags`` (:mod:`service.io.series_geometry`)."""
     with z.open(member) as src, open(out, "wb") as dst:
         while chunk := src.read(1 << 20):
             budget.inflate(len(chunk))
@@ -96,6 +103,7 @@ def _unpack(z: zipfile.ZipFile, member: zipfile.ZipInfo, out: Path, budget: File
         out.unlink()
         return False
     times[str(out)] = seconds(ds)
+    tags[str(out)] = (ds.get("ImagePositionPatient"), ds.get("ImageOrientationPatient"), ds.get("PixelSpacing"))
     if ds.file_meta.TransferSyntaxUID == uid.ExplicitVRLittleEndian and _was_deflated(out):
         ds.save_as(out, implicit_vr=False, little_endian=True, enforce_file_format=True)
     return True

@@ -56,7 +56,7 @@ def read_dicom_file(path: Path, filename: str, budget: FileBudget) -> Volume:
     pixels = pixels * slope + float(getattr(ds, "RescaleIntercept", 0) or 0)
     image_type = [str(t).upper() for t in getattr(ds, "ImageType", [])]
     if "MOSAIC" in image_type and NUMBER_OF_IMAGES_IN_MOSAIC in ds:
-        return _mosaic(ds, pixels)
+        return _mosaic(ds, pixels, filename)
     if pixels.ndim == 2:
         pixels = pixels[None]
     if pixels.ndim != 3:
@@ -113,14 +113,16 @@ def _multiframe(ds, pixels: np.ndarray) -> Volume:  # noqa: ANN001
                   order_of(frame_times))
 
 
-def _mosaic(ds, pixels: np.ndarray) -> Volume:  # noqa: ANN001
+def _mosaic(ds, pixels: np.ndarray, filename: str) -> Volume:  # noqa: ANN001
     n = int(ds[NUMBER_OF_IMAGES_IN_MOSAIC].value)
-    tiles_per_row = int(np.ceil(np.sqrt(n)))
     rows, cols = pixels.shape
+    tiles_per_row = int(np.ceil(np.sqrt(max(n, 1))))
     tr, tc = rows // tiles_per_row, cols // tiles_per_row
     acq = [int(x) for x in getattr(ds, "AcquisitionMatrix", []) if int(x) > 0]
     if len(acq) == 2 and acq[0] * tiles_per_row <= cols:
         tr, tc = acq[1], acq[0]
+    if n < 1 or min(tr, tc) < 2:
+        raise UnusableImage(f"{filename}: NumberOfImagesInMosaic {n} does not fit a mosaic of {rows} x {cols} pixels")
     tiles = pixels[: tr * tiles_per_row, : tc * tiles_per_row].reshape(tiles_per_row, tr, tiles_per_row, tc)
     stack = tiles.transpose(0, 2, 1, 3).reshape(-1, tr, tc)[:n]
     row_dir, col_dir = _orientation(ds)

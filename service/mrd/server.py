@@ -104,6 +104,10 @@ class MrdServer(socketserver.ThreadingTCPServer):
 
     daemon_threads = True
     allow_reuse_address = True
+    request_queue_size = 128
+    """The listen backlog: a burst of scanner connections waits for ``accept`` (socketserver's 5 made
+    the kernel reset connections of a burst far below the session slots); past the slots each gets
+    its 503 error."""
 
     def __init__(self, address: tuple[str, int], new_session: SessionFactory, stream_limits: StreamLimits,
                  limits: ServerLimits = ServerLimits(), retry_after_s: int = 2) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import multiprocessing
+import re
 import zipfile
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -95,6 +96,44 @@ def test_zipped_dicom_series_keeps_geometry(tmp_path: Path) -> None:
     vol = read_upload(z, "series.zip")
     np.testing.assert_allclose(vol.affine, aff, atol=1e-3)
     np.testing.assert_allclose(vol.array, arr, atol=0.5)
+
+
+@pytest.mark.parametrize(("damage", "words"), [
+    ("a file missing", "not evenly spaced (3, 6, 3, 3 mm"),
+    ("a file twice", "two of its files lie at one position"),
+    ("no position", "ImagePositionPatient is missing in 1 of its 6 files"),
+    ("one turned", "ImageOrientationPatient differ"),
+    ("no orientation", "ImageOrientationPatient is missing or not two unit vectors"),
+    ("pixel spacing 0", "PixelSpacing is missing or not positive in 6 of its 6 files"),
+])
+def test_a_zipped_series_that_is_no_one_stack_is_422_not_a_made_up_grid(tmp_path: Path, damage: str, words: str) -> None:
+    """GDCM stacks such files anyway, inventing a slice spacing or an orientation."""
+    import pydicom
+
+    arr = (np.random.default_rng(3).random((10, 10, 6)) * 1000).astype(np.float32).round()
+    files = _write_series(tmp_path, Volume(arr, np.diag([1.0, 1.0, 3.0, 1.0])), "1.2.3.555")
+    sets = [pydicom.dcmread(p) for p in files]
+    if damage == "a file missing":
+        sets.pop(2)
+    elif damage == "a file twice":
+        sets[3].ImagePositionPatient = sets[2].ImagePositionPatient
+    elif damage == "no position":
+        del sets[4].ImagePositionPatient
+    elif damage == "one turned":
+        sets[1].ImageOrientationPatient = [1, 0, 0, 0, 0, 1]
+    elif damage == "no orientation":
+        for d in sets:
+            d.ImageOrientationPatient = [0, 0, 0, 0, 0, 0]
+    else:
+        for d in sets:
+            d.PixelSpacing = [0, 0]
+    z = tmp_path / "series.zip"
+    with zipfile.ZipFile(z, "w") as f:
+        for k, d in enumerate(sets):
+            d.save_as(tmp_path / f"m{k}.dcm")
+            f.write(tmp_path / f"m{k}.dcm", f"m{k}.dcm")
+    with pytest.raises(UnusableImage, match=f"series.zip: a DICOM series of {len(sets)} files, but .*{re.escape(words)}"):
+        read_upload(z, "series.zip")
 
 
 @pytest.mark.parametrize(("times", "order"), [
