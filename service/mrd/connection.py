@@ -80,6 +80,11 @@ class BoundedReader:
         self.raw, self.max_read_bytes = raw, max_read_bytes
         self.last = b""
 
+    def next_message(self) -> None:
+        """A new message is awaited (a reader with a deadline per message starts it now)."""
+        if hasattr(self.raw, "next_message"):
+            self.raw.next_message()
+
     def read(self, n: int = -1) -> bytes:
         if n is None or n < 0 or n > self.max_read_bytes:
             raise PayloadTooLarge(f"message: a field of {n} bytes is over this server's limit of {self.max_read_bytes}")
@@ -153,6 +158,7 @@ class MrdConnection:
 
     def step(self) -> bool:
         """Read and answer one message; ``False`` at the client's ``CLOSE``."""
+        self.reader.next_message()
         kind = self.incoming.peek()
         if kind not in KNOWN:
             raise ProtocolBroken(InvalidParameter(f"message: unknown MRD message id {kind}"))

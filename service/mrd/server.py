@@ -27,6 +27,7 @@ import socket
 import socketserver
 import sys
 import threading
+import time
 from dataclasses import dataclass
 
 from service.core import logging as service_logging
@@ -61,6 +62,51 @@ class ServerLimits:
     idle_s: float = 300.0
 
 
+class MessageDeadlineReader:
+    """The connection's bytes with one deadline per message: from when the server waits for a
+    message (:meth:`next_message`) to its last byte, at most ``seconds``. A socket's own timeout
+    bounds each ``recv`` alone, so a client that sends a byte now and then would hold its session
+    slot for ever.
+
+    Example:
+        >>> a, b = socket.socketpair()
+        >>> _ = b.sendall(b"abcdef")
+        >>> r = MessageDeadlineReader(a, seconds=0.2)
+        >>> r.next_message(); r.read(4), r.read(2)
+        (b'abcd', b'ef')
+        >>> r.next_message(); r.read(1)
+        Traceback (most recent call last):
+        ...
+        TimeoutError: the message did not arrive within 0.2 s
+    """
+
+    def __init__(self, sock: socket.socket, seconds: float, chunk: int = 1 << 16) -> None:
+        self.sock, self.seconds, self.chunk = sock, seconds, chunk
+        self.buffer = bytearray()
+        self.deadline = time.monotonic() + seconds
+
+    def next_message(self) -> None:
+        """A new message is awaited: its deadline starts now."""
+        self.deadline = time.monotonic() + self.seconds
+
+    def read(self, n: int) -> bytes:
+        while len(self.buffer) < n:
+            left = self.deadline - time.monotonic()
+            if left <= 0:
+                raise TimeoutError(f"the message did not arrive within {self.seconds:g} s")
+            self.sock.settimeout(left)
+            try:
+                data = self.sock.recv(max(self.chunk, n - len(self.buffer)))
+            except TimeoutError:
+                raise TimeoutError(f"the message did not arrive within {self.seconds:g} s") from None
+            if not data:                                 # the client's end of the stream
+                break
+            self.buffer += data
+        out = bytes(self.buffer[:n])
+        del self.buffer[:n]
+        return out
+
+
 class MrdHandler(socketserver.StreamRequestHandler):
     """One connection: a session when a slot is free, else an error with ``retry_after_s`` and ``CLOSE``."""
 
@@ -78,7 +124,8 @@ class MrdHandler(socketserver.StreamRequestHandler):
             refuse(self.wfile, busy, retry_after_s=server.retry_after_s)
             return
         try:
-            connection = MrdConnection(self.rfile, self.wfile, server.new_session, server.stream_limits)
+            reader = MessageDeadlineReader(self.connection, server.limits.idle_s)
+            connection = MrdConnection(reader, self.wfile, server.new_session, server.stream_limits)
             connection.run()
         finally:
             server.slots.release()

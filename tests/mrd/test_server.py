@@ -5,6 +5,9 @@ poses; the summary; and errors that name the message at fault while the session 
 from __future__ import annotations
 
 import json
+import select
+import socket
+import time
 
 import ismrmrd
 import numpy as np
@@ -127,3 +130,29 @@ def test_a_silent_connection_is_closed_with_an_error(serve, silent_s: float) -> 
     client = MrdClient(server.port)
     (error,) = texts(client.wait())
     assert client.closed_by_server and "no message for too long" in error["detail"]
+
+
+
+def test_a_client_that_trickles_a_message_is_closed_like_a_silent_one(serve) -> None:  # noqa: ANN001
+    # An image's header a byte at a time, each byte well within the idle limit: the message as a
+    # whole is not, and the session slot is not held for ever.
+    server = serve(limits=ServerLimits(idle_s=1.0))
+    sock = socket.create_connection(("127.0.0.1", server.port), timeout=10)
+    t0, answered = time.monotonic(), None
+    try:
+        for byte in int(ismrmrd.serialization.ISMRMRDMessageID.IMAGE).to_bytes(2, "little") + bytes(300):
+            sock.sendall(bytes([byte]))
+            if select.select([sock], [], [], 0.1)[0]:   # the server answered: when
+                answered = time.monotonic() - t0
+                break
+            if time.monotonic() - t0 > 5:
+                break
+    except OSError:
+        pass
+    sock.settimeout(5)
+    received = b""
+    while chunk := sock.recv(1 << 16):
+        received += chunk
+    sock.close()
+    assert b"no message for too long" in received
+    assert answered is not None and answered < 3.0, f"the server kept a trickling connection open ({answered})"
