@@ -228,10 +228,13 @@ class MrdConnection:
             self.send_error(bad)
 
     def on_header(self, header: ismrmrd.xsd.ismrmrdHeader) -> None:
-        """The number of slices of each series, from the first encoding's slice limit (when given)."""
+        """The number of slices of each series, from the first encoding's slice limit (when it gives
+        one of at least two slices; an absent, empty or negative maximum says nothing, and each
+        series' stack then ends with the series)."""
         encoding = header.encoding[0] if header.encoding else None
         limit = None if encoding is None or encoding.encodingLimits is None else encoding.encodingLimits.slice
-        self.slices_per_series = None if limit is None else int(limit.maximum) + 1
+        maximum = None if limit is None else limit.maximum
+        self.slices_per_series = int(maximum) + 1 if maximum is not None and int(maximum) >= 1 else None
 
     def on_image(self, image: ismrmrd.Image) -> None:
         received = time.perf_counter()

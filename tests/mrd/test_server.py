@@ -156,3 +156,19 @@ def test_a_client_that_trickles_a_message_is_closed_like_a_silent_one(serve) -> 
     sock.close()
     assert b"no message for too long" in received
     assert answered is not None and answered < 3.0, f"the server kept a trickling connection open ({answered})"
+
+
+@pytest.mark.parametrize(("limit", "slices"), [("<maximum>19</maximum>", 20), ("", None), ("<maximum></maximum>", None),
+                                               ("<maximum>-3</maximum>", None), ("<maximum>0</maximum>", None)])
+def test_a_header_gives_the_slices_of_a_series_only_when_it_says_so(limit: str, slices: int | None) -> None:
+    # An absent, empty or negative maximum once ended a stack after every image.
+    from types import SimpleNamespace
+
+    from service.mrd.connection import MrdConnection
+    from tests.mrd.conftest import HEADER_XML
+
+    connection = SimpleNamespace(slices_per_series=-1)
+    header = ismrmrd.xsd.CreateFromDocument(HEADER_XML.replace(
+        "{slice}", f"<slice><minimum>0</minimum>{limit}<center>0</center></slice>"))   # the parser reads "" as 0
+    MrdConnection.on_header(connection, header)
+    assert connection.slices_per_series == slices
