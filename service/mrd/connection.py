@@ -172,7 +172,8 @@ class MrdConnection:
             raise ProtocolBroken(too_large) from None
         except Exception as exc:  # noqa: BLE001 - ismrmrd's parsers raise many kinds; the type is what we log
             log.info("mrd message unreadable", extra={"error_type": type(exc).__name__})
-            problem = UnusableImage(f"{ISMRMRDMessageID(kind).name.lower()}: the message could not be parsed")
+            kind_of = UnusableImage if kind == ISMRMRDMessageID.IMAGE else InvalidParameter
+            problem = kind_of(f"{ISMRMRDMessageID(kind).name.lower()}: the message could not be parsed")
             if kind in (ISMRMRDMessageID.HEADER, ISMRMRDMessageID.CONFIG_TEXT, ISMRMRDMessageID.TEXT,
                         ISMRMRDMessageID.CONFIG_FILE):
                 self.send_error(problem)            # read whole before parsing: the stream is still in step

@@ -172,3 +172,14 @@ def test_a_header_gives_the_slices_of_a_series_only_when_it_says_so(limit: str, 
         "{slice}", f"<slice><minimum>0</minimum>{limit}<center>0</center></slice>"))   # the parser reads "" as 0
     MrdConnection.on_header(connection, header)
     assert connection.slices_per_series == slices
+
+
+def test_a_text_message_that_cannot_be_parsed_is_a_bad_request_not_an_unusable_image(serve) -> None:  # noqa: ANN001
+    server = serve()
+    client = MrdClient(server.port)
+    text = b"\xff\xfe not utf-8"
+    client.writer.write(int(ismrmrd.serialization.ISMRMRDMessageID.TEXT).to_bytes(2, "little")
+                        + len(text).to_bytes(4, "little") + text)
+    client.writer.flush()
+    (error,) = [m for m in texts(client.close()) if m["type"] == "error"]
+    assert error["status"] == 400 and "text: the message could not be parsed" in error["detail"], error
