@@ -8,7 +8,7 @@
   checked against the budget and compressed frames against the header) before GDCM sees it; a deflated
   member is handed to GDCM already inflated, so GDCM never inflates anything itself. Members that are
   not DICOM files with pixel data (a README, a DICOMDIR) are left out.
-* The series' files must make one stack (:mod:`service.io.series_geometry`: orientation, pixel spacing
+* The series' files must make one stack (:mod:`service.io.acquisition_geometry`: orientation, pixel spacing
   and positions present, alike and evenly spaced), or the archive is refused (422).
 
 Every message names the client's archive and, where it is about one member, the member.
@@ -31,7 +31,7 @@ from service.io.acquisition_times import order_of, seconds
 from service.io.dicom import read_dicom_file
 from service.io.dicom_guard import load_dataset
 from service.io.limits import FileBudget
-from service.io.series_geometry import Tags, series_problem
+from service.io.acquisition_geometry import Tags, series_problem
 from service.io.volume import Volume, from_sitk
 
 MAX_MEMBERS = 5000
@@ -80,7 +80,7 @@ def _unpack(z: zipfile.ZipFile, member: zipfile.ZipInfo, out: Path, budget: File
             times: dict[str, float | None], tags: dict[str, Tags]) -> bool:
     """Inflate ``member`` to ``out`` (charged to ``budget``) and screen it; False: not a DICOM image.
     Its acquisition time goes to ``times`` (:mod:`service.io.acquisition_times`), its geometry tags
-    to ``tags`` (:mod:`service.io.series_geometry`)."""
+    to ``tags`` (:mod:`service.io.acquisition_geometry`)."""
     with z.open(member) as src, open(out, "wb") as dst:
         while chunk := src.read(1 << 20):
             budget.inflate(len(chunk))

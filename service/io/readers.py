@@ -14,7 +14,7 @@ Validation (each failure raises with the file's name, never a tag value):
   files at once) -> :class:`PayloadTooLarge` (413), charged while inflating and before any voxel
   array is allocated (:mod:`service.io.limits`);
 * 2D, 4D with more than one volume, empty, or non-finite values, a NIfTI header without voxel
-  sizes, a grid no MRI acquisition has (:mod:`service.io.grid_limits`) -> :class:`UnusableImage` (422).
+  sizes, a grid no MRI acquisition has (:mod:`service.io.acquisition_geometry`) -> :class:`UnusableImage` (422).
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from isal import igzip, isal_zlib
 from service.core.errors import ServiceError, UnsupportedFile, UnusableImage
 from service.io.archive import read_dicom_zip
 from service.io.dicom import read_dicom_file
-from service.io.grid_limits import grid_problem
+from service.io.acquisition_geometry import grid_problem
 from service.io.headers import clean_header
 from service.io.limits import DecodeBudget, FileBudget
 from service.io.volume import Volume, from_sitk

@@ -30,7 +30,7 @@ from service.consistency.slice_order import SliceOrder, per_stack
 from service.core.errors import Cancelled, ServiceError
 from service.core.logging import error_at
 from service.inference.acceptance import EMPTY
-from service.io.grid_limits import MAX_FIELD_OF_VIEW_MM
+from service.io.acquisition_geometry import MAX_FIELD_OF_VIEW_MM
 from service.jobs.store import JobStore
 from service.preprocess.stack import stack_from_slice_images
 

@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.core.errors import InvalidParameter
-from service.io.grid_limits import grid_problem
+from service.io.acquisition_geometry import grid_problem
 from service.io.volume import Volume
 
 AXIS_TOLERANCE = 1e-3

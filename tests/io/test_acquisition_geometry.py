@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from service.geometry import se3
-from service.io.grid_limits import MAX_FIELD_OF_VIEW_MM, MAX_VOXEL_MM, MIN_VOXEL_MM, grid_problem
+from service.io.acquisition_geometry import MAX_FIELD_OF_VIEW_MM, MAX_VOXEL_MM, MIN_VOXEL_MM, grid_problem
 
 
 def turned(edges: tuple[float, float, float]) -> np.ndarray:

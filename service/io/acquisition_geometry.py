@@ -1,0 +1,124 @@
+"""What geometry an acquisition can have: a stack's voxel grid, and the files of a DICOM series.
+
+**A grid** (:func:`grid_problem`). A file's header, a streamed slice's ``scanner_from_voxel`` and a
+client's ``atlas_from_voxel`` all say how large a voxel is, and every later stage sizes its arrays
+from that: the localiser resamples the whole field of view to its own pixels, a reconstruction's
+grid spans the slices' positions. A header that claims 30 mm pixels makes a 320 x 320 slice 9.6 m
+wide, and the localiser's grid of it 3,840 x 3,840 pixels a slice, however small the file. The
+limits below are far outside what fetal MRI uses (0.4-2 mm pixels, 2-6 mm slices, a 200-450 mm field
+of view) and far inside what costs the server its memory: a grid past them is not an acquisition,
+and is answered as such before any stage runs.
+
+**A DICOM series** (:func:`series_problem`). GDCM sorts a series' files along their normal and
+reads them as one volume whatever their tags say: files without a position or at one position, a
+file missing from the middle, orientations that differ from file to file, or pixel spacings of 0
+all come back as a volume with an invented slice spacing or orientation (1 mm, the identity, the
+first file's), and every pose of it is wrong. A series is taken only when every file has an
+orientation (two unit vectors at right angles), the same one, a positive pixel spacing, the same
+one, and a position, and the positions step evenly along the normal.
+
+Example:
+    >>> grid_problem(np.diag([1.1, 1.1, 3.0, 1.0]), (320, 320, 24)) is None
+    True
+    >>> grid_problem(np.diag([30.0, 30.0, 3.0, 1.0]), (320, 320, 24))
+    'voxel size 30, 30, 3 mm: beyond 20 mm along an axis, which no MRI acquisition of a fetus uses'
+    >>> grid_problem(np.diag([4.0, 4.0, 3.0, 1.0]), (320, 320, 24))
+    'field of view 1280 x 1280 x 72 mm: beyond 1000 mm along an axis, wider than any MRI scanner'
+    >>> tags = [((0.0, 0.0, 3.0 * k), (1, 0, 0, 0, 1, 0), (0.9, 0.9)) for k in range(5)]
+    >>> series_problem(tags) is None
+    True
+    >>> series_problem(tags[:2] + tags[3:])
+    'its slices are not evenly spaced (3, 6, 3 mm between neighbours): a file is missing, or it holds more than one stack'
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+MIN_VOXEL_MM = 0.05
+"""Smallest voxel edge (mm) accepted (fetal MRI: 0.3 mm pixels at the finest)."""
+MAX_VOXEL_MM = 20.0
+"""Largest voxel edge (mm) accepted (fetal MRI: slices of up to 6-8 mm, with gaps)."""
+MAX_FIELD_OF_VIEW_MM = 1000.0
+"""Largest extent of a grid along one of its axes (mm): wider than any MRI scanner's bore."""
+_ROUNDING = 1e-9
+"""A limit holds to this relative part (a turned affine's column lengths are not exact)."""
+
+
+def _mm(values: ArrayLike) -> str:
+    return ", ".join(f"{v:.3g}" for v in np.asarray(values, np.float64))
+
+
+def grid_problem(affine: ArrayLike, shape: tuple[int, ...]) -> str | None:
+    """Why the grid of ``shape`` (voxel -> world ``affine``, 4 x 4) cannot be an acquisition, or None.
+
+    The voxel edges are the lengths of the affine's first three columns; the field of view along an
+    axis is the voxel count times that edge.
+    """
+    a = np.asarray(affine, dtype=np.float64)
+    edges = np.linalg.norm(a[:3, :3], axis=0)
+    if not np.all(np.isfinite(edges)) or edges.min() < MIN_VOXEL_MM * (1 - _ROUNDING):
+        return f"voxel size {_mm(edges)} mm: under {MIN_VOXEL_MM} mm along an axis, which no MRI acquisition has"
+    if edges.max() > MAX_VOXEL_MM * (1 + _ROUNDING):
+        return f"voxel size {_mm(edges)} mm: beyond {MAX_VOXEL_MM:.0f} mm along an axis, which no MRI acquisition " \
+               "of a fetus uses"
+    extent = edges * np.asarray(shape[:3], np.float64)
+    if extent.max() > MAX_FIELD_OF_VIEW_MM * (1 + _ROUNDING):
+        return (f"field of view {' x '.join(f'{e:.0f}' for e in extent)} mm: beyond {MAX_FIELD_OF_VIEW_MM:.0f} mm "
+                "along an axis, wider than any MRI scanner")
+    return None
+
+Tags = tuple[Sequence[float] | None, Sequence[float] | None, Sequence[float] | None]
+"""One file's ``(ImagePositionPatient, ImageOrientationPatient, PixelSpacing)``; None where absent."""
+
+DIRECTION_TOLERANCE = 1e-3
+"""How far an orientation's two vectors may be from unit length and right angles, and two files'
+orientations from each other."""
+SPACING_TOLERANCE = 0.05
+"""How far (relative) a step between neighbouring slices may differ from the median step."""
+MIN_STEP_MM = 1e-3
+"""Two files nearer each other than this along the normal are at one position."""
+
+
+def _floats(values: Sequence[float] | None, n: int) -> np.ndarray | None:
+    try:
+        out = np.asarray([float(v) for v in values], np.float64) if values is not None else None
+    except (TypeError, ValueError):
+        return None
+    return out if out is not None and out.shape == (n,) and np.all(np.isfinite(out)) else None
+
+
+def series_problem(files: Sequence[Tags]) -> str | None:
+    """Why the files (their tags, :data:`Tags`) do not make one stack, or None."""
+    positions = [_floats(p, 3) for p, _, _ in files]
+    orientations = [_floats(o, 6) for _, o, _ in files]
+    spacings = [_floats(s, 2) for _, _, s in files]
+    if (missing := sum(o is None for o in orientations)) or any(
+            abs(np.linalg.norm(o[:3]) - 1) > DIRECTION_TOLERANCE or abs(np.linalg.norm(o[3:]) - 1) > DIRECTION_TOLERANCE
+            or abs(o[:3] @ o[3:]) > DIRECTION_TOLERANCE for o in orientations):
+        return f"ImageOrientationPatient is missing or not two unit vectors at right angles in " \
+               f"{missing or 'some'} of its {len(files)} files"
+    if np.abs(np.array(orientations) - orientations[0]).max() > DIRECTION_TOLERANCE:
+        return "its files' ImageOrientationPatient differ: they are not one stack"
+    if (missing := sum(s is None or s.min() <= 0 for s in spacings)):
+        return f"PixelSpacing is missing or not positive in {missing} of its {len(files)} files"
+    if np.abs(np.array(spacings) - spacings[0]).max() > DIRECTION_TOLERANCE * spacings[0].max():
+        return "its files' PixelSpacing differ: they are not one stack"
+    if (missing := sum(p is None for p in positions)):
+        return f"ImagePositionPatient is missing in {missing} of its {len(files)} files"
+    normal = np.cross(orientations[0][:3], orientations[0][3:])
+    along = np.sort(np.array(positions) @ normal)
+    steps = np.diff(along)
+    if len(steps) and steps.min() < MIN_STEP_MM:
+        return "two of its files lie at one position: it holds more than one stack, or a file twice"
+    if len(steps) and np.abs(steps - np.median(steps)).max() > SPACING_TOLERANCE * np.median(steps):
+        shown = ", ".join(f"{s:.3g}" for s in steps[:8]) + (", ..." if len(steps) > 8 else "")
+        return f"its slices are not evenly spaced ({shown} mm between neighbours): a file is missing, or it " \
+               "holds more than one stack"
+    return None
+
+
+__all__ = ["MAX_FIELD_OF_VIEW_MM", "MAX_VOXEL_MM", "MIN_VOXEL_MM", "Tags", "grid_problem", "series_problem"]
