@@ -43,6 +43,8 @@ class LocalRunner(JobRunner):
         self.store, self.models_dir, self.max_attempts, self.workers = store, models_dir, max_attempts, workers
         self.log_level, self.timeout_s = log_level, timeout_s
         self.lock = threading.Lock()
+        self.closing = False
+        """Set at shutdown: the workers stopped then are not lost ones, and no pool replaces theirs."""
         self.pool = self._new_pool()
         self.futures: dict[str, Future] = {}
 
@@ -85,7 +87,7 @@ class LocalRunner(JobRunner):
         """Start a new pool in place of ``broken`` (once, whichever job noticed first) and recover its
         jobs (the module)."""
         with self.lock:
-            if self.pool is not broken:
+            if self.pool is not broken or self.closing:
                 return
             self.pool = self._new_pool()
             broken.shutdown(wait=False, cancel_futures=True)
@@ -121,6 +123,8 @@ class LocalRunner(JobRunner):
     def shutdown(self, timeout_s: float = 10.0) -> list[str]:
         """Stop every worker process (SIGTERM, then SIGKILL after ``timeout_s``) and put the jobs they
         were running back in the queue."""
+        with self.lock:
+            self.closing = True
         processes = list((getattr(self.pool, "_processes", None) or {}).values())
         self.pool.shutdown(wait=False, cancel_futures=True)
         for proc in processes:
