@@ -27,11 +27,11 @@ from pydicom import uid
 
 from service.core.errors import PayloadTooLarge, UnsupportedFile, UnusableImage
 from service.core.names import clean_name
+from service.io.acquisition_geometry import Tags, series_problem
 from service.io.acquisition_times import order_of, seconds
 from service.io.dicom import read_dicom_file
 from service.io.dicom_guard import load_dataset
 from service.io.limits import FileBudget
-from service.io.acquisition_geometry import Tags, series_problem
 from service.io.volume import Volume, from_sitk
 
 MAX_MEMBERS = 5000

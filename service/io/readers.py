@@ -30,9 +30,9 @@ import SimpleITK as sitk
 from isal import igzip, isal_zlib
 
 from service.core.errors import ServiceError, UnsupportedFile, UnusableImage
+from service.io.acquisition_geometry import grid_problem
 from service.io.archive import read_dicom_zip
 from service.io.dicom import read_dicom_file
-from service.io.acquisition_geometry import grid_problem
 from service.io.headers import clean_header
 from service.io.limits import DecodeBudget, FileBudget
 from service.io.volume import Volume, from_sitk
