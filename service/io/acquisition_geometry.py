@@ -38,6 +38,8 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
+from service.geometry.frames import voxel_spacing
+
 MIN_VOXEL_MM = 0.05
 """Smallest voxel edge (mm) accepted (fetal MRI: 0.3 mm pixels at the finest)."""
 MAX_VOXEL_MM = 20.0
@@ -58,8 +60,7 @@ def grid_problem(affine: ArrayLike, shape: tuple[int, ...]) -> str | None:
     The voxel edges are the lengths of the affine's first three columns; the field of view along an
     axis is the voxel count times that edge.
     """
-    a = np.asarray(affine, dtype=np.float64)
-    edges = np.linalg.norm(a[:3, :3], axis=0)
+    edges = voxel_spacing(affine)
     if not np.all(np.isfinite(edges)) or edges.min() < MIN_VOXEL_MM * (1 - _ROUNDING):
         return f"voxel size {_mm(edges)} mm: under {MIN_VOXEL_MM} mm along an axis, which no MRI acquisition has"
     if edges.max() > MAX_VOXEL_MM * (1 + _ROUNDING):

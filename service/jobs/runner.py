@@ -8,6 +8,8 @@ import threading
 import time
 from abc import ABC, abstractmethod
 
+from service.core import logging as service_logging
+
 
 
 class JobRunner(ABC):
@@ -52,8 +54,6 @@ def lost_worker(max_attempts: int) -> str:
 def start_worker(parent: int, log_level: str) -> None:
     """A pool worker process's start: the server's JSON logging (a failed job's line carries its id
     and the kind of error) and :func:`watch_parent`."""
-    from service.core import logging as service_logging
-
     service_logging.configure(log_level)
     watch_parent(parent)
 

@@ -40,7 +40,7 @@ from scipy import ndimage
 
 from service.geometry import iterators, sampling, se3, twin
 from service.geometry.anchors import ed
-from service.geometry.pose import about_centre, make_pose, translate
+from service.geometry.pose import about_centre, apply, make_pose, translate
 from service.io.volume import Volume
 from service.preprocess.slices import preprocess_slices
 from service.reconstruction.midline import FrameCorrection, incoherent
@@ -113,10 +113,10 @@ def recut(volume: Volume, mask: NDArray, n: int, rng: np.random.Generator, size:
           pixel_mm: float) -> tuple[NDArray, NDArray, NDArray, NDArray]:
     """``n`` thick slices through the central part of ``mask``'s brain: images and masks
     ``[n, size, size]``, their poses ``[n, 4, 4]`` (slice mm -> the volume's world) and the brain's centre."""
-    to_world = lambda ijk: ijk @ volume.affine[:3, :3].T + volume.affine[:3, 3]  # noqa: E731
-    centre = to_world(np.argwhere(mask)).mean(axis=0)
+    centre = apply(volume.affine, np.argwhere(mask)).mean(axis=0)
     rot = iterators.random_rotations(n, rng, 2 * np.pi)
-    lo, hi = extent_along(to_world(np.argwhere(mask & ~ndimage.binary_erosion(mask))) - centre, rot[:, :, 2])
+    surface = apply(volume.affine, np.argwhere(mask & ~ndimage.binary_erosion(mask)))
+    lo, hi = extent_along(surface - centre, rot[:, :, 2])
     tz = (lo + hi) / 2 + rng.uniform(-1.0, 1.0, n) * CENTRAL_FRACTION / 2 * (hi - lo)
     poses = make_pose(rot, centre + rot[:, :, 2] * tz[:, None])
     images = sampling.sample_slices(volume.array, volume.affine, poses, size, pixel_mm, thickness_mm=THICKNESS_MM)
