@@ -90,7 +90,8 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
     for module in (health, models, predict, masks, reconstructions, stream):
         app.include_router(module.router)
     app.include_router(metrics.router, dependencies=[MetricsAccess], responses=problem_responses(401))
-    app.add_middleware(RequestContext, metrics=app.state.metrics, max_body_bytes=int(settings.max_upload_mb * 2**20))
+    app.add_middleware(RequestContext, metrics=app.state.metrics, max_body_bytes=int(settings.max_upload_mb * 2**20),
+                       idle_s=settings.upload_idle_s, timeout_s=settings.upload_timeout_s)
     return app
 
 
@@ -98,9 +99,11 @@ def run() -> None:
     """Console entry point: serve :func:`create_app` with uvicorn on ``SVRNET_HOST:SVRNET_PORT``."""
     import uvicorn
 
+    from service.api.http_protocol import with_header_deadline
+
     settings = Settings()
     service_logging.configure(settings.log_level)
     # uvicorn's own access log writes each raw request path (job ids as sent, anything a client
     # puts in a URL); the service's JSON log records the route instead (service/api/middleware.py).
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=settings.log_level,
-                access_log=False)
+                access_log=False, http=with_header_deadline(settings.header_timeout_s))

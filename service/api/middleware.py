@@ -1,7 +1,8 @@
-"""ASGI middleware: request ids, early refusals, the upload size limit, metrics and access logs."""
+"""ASGI middleware: request ids, early refusals, the upload size and time limits, metrics and access logs."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import re
@@ -13,7 +14,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from service.api.deps import early_rejection
 from service.api.metrics import Metrics
 from service.api.problems import MEDIA_TYPE, problem_body
-from service.core.errors import InternalError, PayloadTooLarge, ServiceError
+from service.core.errors import InternalError, PayloadTooLarge, RequestTimeout, ServiceError
 
 log = logging.getLogger("service.access")
 SAFE_ID = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
@@ -27,13 +28,18 @@ class RequestContext:
       (:func:`service.api.deps.early_rejection`);
     * limits the body size: 413 from ``Content-Length`` at once, or as soon as a chunked body passes
       the limit, whatever the form parser makes of the cut-off body;
+    * limits the body's time: 408 (and the connection closed) when no data comes for ``idle_s`` or the
+      body is not whole ``timeout_s`` after the request began, so a client trickling bytes holds no
+      connection for ever (the answer, once the body is in, has no such limit);
     * turns any unexpected exception into a 500 problem+json with the request id, logged by type
       only (no traceback reaches the client or the log, no patient data the log);
     * records metrics and writes one access-log line.
     """
 
-    def __init__(self, app: ASGIApp, metrics: Metrics, max_body_bytes: int) -> None:
+    def __init__(self, app: ASGIApp, metrics: Metrics, max_body_bytes: int, idle_s: float = 60.0,
+                 timeout_s: float = 900.0) -> None:
         self.app, self.metrics, self.max_body = app, metrics, max_body_bytes
+        self.idle_s, self.timeout_s = idle_s, timeout_s
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -44,7 +50,9 @@ class RequestContext:
         rid = rid if SAFE_ID.match(rid) else uuid.uuid4().hex
         scope.setdefault("state", {})["request_id"] = rid
         start = time.perf_counter()
-        state = {"code": 500, "started": False, "received": 0, "too_large": False, "replaced": False}
+        state: dict = {"code": 500, "started": False, "received": 0, "refusal": None, "replaced": False,
+                       "body_done": False}
+        body_deadline = asyncio.get_running_loop().time() + self.timeout_s
 
         async def emit(message: Message) -> None:
             if message["type"] == "http.response.start":
@@ -53,23 +61,31 @@ class RequestContext:
             await send(message)
 
         async def send_with_id(message: Message) -> None:
-            if message["type"] == "http.response.start" and state["too_large"] and not state["started"]:
-                # The body was cut off at the limit: whatever the app answers (the form parser
-                # reports a 400), the client is told 413.
+            if message["type"] == "http.response.start" and state["refusal"] and not state["started"]:
+                # The body was cut off at a limit: whatever the app answers (the form parser
+                # reports a 400), the client is told why (413, 408).
                 state["replaced"] = True
-                await self._problem(emit, rid, self._too_large())
+                await self._problem(emit, rid, state["refusal"])
                 return
             if state["replaced"]:
                 return  # the body of the app's own answer, replaced above
             await emit(message)
 
         async def limited_receive() -> Message:
-            message = await receive()
+            if state["body_done"]:                   # later calls wait for a disconnect: no limit
+                return await receive()
+            wait = min(self.idle_s, body_deadline - asyncio.get_running_loop().time())
+            try:
+                message = await asyncio.wait_for(receive(), timeout=max(wait, 0.0))
+            except asyncio.TimeoutError:
+                state["refusal"] = self._timed_out()
+                raise BodyRefused from None
             if message["type"] == "http.request":
                 state["received"] += len(message.get("body", b""))
+                state["body_done"] = not message.get("more_body", False)
                 if state["received"] > self.max_body:
-                    state["too_large"] = True
-                    raise BodyTooLarge
+                    state["refusal"] = self._too_large()
+                    raise BodyRefused
             return message
 
         app = scope.get("app")
@@ -85,9 +101,9 @@ class RequestContext:
                 await self._problem(emit, rid, self._too_large())
             else:
                 await self.app(scope, limited_receive, send_with_id)
-        except BodyTooLarge:
+        except BodyRefused:
             if not state["started"]:
-                await self._problem(emit, rid, self._too_large())
+                await self._problem(emit, rid, state["refusal"])
         except Exception as exc:  # noqa: BLE001 - the last line of defence: never a traceback
             log.error("unhandled error", extra={"request_id": rid, "error_type": type(exc).__name__})
             if not state["started"]:
@@ -103,6 +119,10 @@ class RequestContext:
     def _too_large(self) -> PayloadTooLarge:
         return PayloadTooLarge(f"the request body exceeds the limit of {self.max_body} bytes")
 
+    def _timed_out(self) -> RequestTimeout:
+        return RequestTimeout(f"the request body did not arrive in time: nothing for {self.idle_s:g} s, or not "
+                              f"whole within {self.timeout_s:g} s (SVRNET_UPLOAD_IDLE_S, SVRNET_UPLOAD_TIMEOUT_S)")
+
     @staticmethod
     async def _problem(send: Send, rid: str, error: ServiceError) -> None:
         data = json.dumps(problem_body(error.status, error.title, error.detail, error.type, rid)).encode()
@@ -112,5 +132,5 @@ class RequestContext:
         await send({"type": "http.response.body", "body": data})
 
 
-class BodyTooLarge(Exception):
-    """Raised inside the app's receive when the body passes the limit."""
+class BodyRefused(Exception):
+    """Raised inside the app's receive when the body passes a limit (its size or its time)."""

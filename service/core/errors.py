@@ -41,6 +41,14 @@ class PayloadTooLarge(ServiceError):
     status, title, type = 413, "Upload too large", "/problems/payload-too-large"
 
 
+class RequestTimeout(ServiceError):
+    """408: the request body did not arrive in time (no data for the idle limit, or not whole by the
+    upload deadline); the connection is closed after the answer."""
+
+    status, title, type = 408, "Request timeout", "/problems/request-timeout"
+    headers = {"Connection": "close"}
+
+
 class UnsupportedFile(ServiceError):
     """The file cannot be read at all (not an image, unknown format, truncated)."""
 

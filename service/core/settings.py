@@ -37,6 +37,12 @@ class Settings(BaseSettings):
     metrics_public: bool = Field(False, description="serve /metrics without an API key even when keys are "
                                  "configured (by default it needs one, like /v1/)")
     max_upload_mb: float = Field(512.0, gt=0, description="limit of one request body (413 above)")
+    header_timeout_s: float = Field(60.0, gt=0, description="a connection whose next request's headers are not "
+                                    "whole this long after it opened (or after the last answer) is closed")
+    upload_idle_s: float = Field(60.0, gt=0, description="a request body that sends nothing for this long is "
+                                 "refused (408) and its connection closed")
+    upload_timeout_s: float = Field(900.0, gt=0, description="a request body must arrive whole within this (408 "
+                                    "after): a client trickling bytes cannot hold a connection for ever")
     max_files: int = Field(32, ge=1, description="most stacks (and masks) per request")
     max_concurrent: int = Field(2, ge=1, description="requests processed at once; more get 503")
     preprocess_workers: int = Field(2, ge=1, description="stacks preprocessed in parallel")

@@ -1,0 +1,117 @@
+"""The outermost layer's limits on a request body's time: a stalled or trickling upload gets a 408
+problem+json and a closed connection; a slow but steady one, and processing after the body, do not."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from collections.abc import AsyncIterator, Callable
+from pathlib import Path
+
+import numpy as np
+
+from service.api.metrics import Metrics
+from service.api.middleware import RequestContext
+from service.inference.registry import ModelRegistry
+from tests.api.conftest import make_client
+from tests.api.test_predict_errors import nifti_bytes, stack
+
+BOUNDARY = "xx"
+
+
+def multipart(name: str, filename: str, data: bytes) -> bytes:
+    return (f"--{BOUNDARY}\r\nContent-Disposition: form-data; name=\"{name}\"; filename=\"{filename}\"\r\n"
+            f"Content-Type: application/octet-stream\r\n\r\n").encode() + data + f"\r\n--{BOUNDARY}--\r\n".encode()
+
+
+async def call(app: Callable, path: str, body: AsyncIterator[bytes]) -> tuple[int, dict[str, str], bytes]:
+    """One POST through the ASGI app, its body's chunks taken from ``body`` as the server would."""
+    sent: list[dict] = []
+    done = False
+
+    async def receive() -> dict:
+        nonlocal done
+        if done:
+            await asyncio.sleep(3600)                   # a client that neither sends nor leaves
+        try:
+            return {"type": "http.request", "body": await body.__anext__(), "more_body": True}
+        except StopAsyncIteration:
+            done = True
+            return {"type": "http.request", "body": b"", "more_body": False}
+
+    async def send(message: dict) -> None:
+        sent.append(message)
+
+    scope = {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1", "method": "POST",
+             "scheme": "http", "path": path, "raw_path": path.encode(), "query_string": b"", "root_path": "",
+             "headers": [(b"content-type", f"multipart/form-data; boundary={BOUNDARY}".encode())],
+             "client": ("127.0.0.1", 1), "server": ("testserver", 80)}
+    await asyncio.wait_for(app(scope, receive, send), 30)     # without the limits: a failure, not a hang
+    start = next(m for m in sent if m["type"] == "http.response.start")
+    headers = {k.decode(): v.decode() for k, v in start["headers"]}
+    return start["status"], headers, b"".join(m.get("body", b"") for m in sent if m["type"] == "http.response.body")
+
+
+def test_a_stalled_body_is_408_and_the_connection_closed(oracle: object) -> None:
+    async def stalls() -> AsyncIterator[bytes]:
+        yield multipart("stacks", "s.nii.gz", b"\0" * 100)[:80]
+        await asyncio.sleep(3600)
+        yield b""
+
+    with make_client(ModelRegistry({"default": oracle}), upload_idle_s=0.3) as client:
+        t0 = time.perf_counter()
+        status, headers, body = client.portal.call(call, client.app, "/v1/predict", stalls())
+    assert time.perf_counter() - t0 < 10
+    assert status == 408, body
+    assert headers["content-type"].startswith("application/problem+json")
+    assert headers["connection"] == "close" and headers["x-request-id"]
+    problem = json.loads(body)
+    assert problem["status"] == 408 and "did not arrive in time" in problem["detail"]
+    assert "SVRNET_UPLOAD_IDLE_S" in problem["detail"]
+
+
+def test_a_trickling_body_is_408_at_the_upload_deadline(oracle: object) -> None:
+    async def trickles() -> AsyncIterator[bytes]:
+        yield multipart("stacks", "s.nii.gz", b"")[:60]
+        while True:                                        # a byte every 50 ms: never idle, never whole
+            await asyncio.sleep(0.05)
+            yield b"\0"
+
+    with make_client(ModelRegistry({"default": oracle}), upload_idle_s=5, upload_timeout_s=0.6) as client:
+        t0 = time.perf_counter()
+        status, _, body = client.portal.call(call, client.app, "/v1/masks", trickles())
+    assert status == 408, body
+    assert 0.5 < time.perf_counter() - t0 < 10
+
+
+def test_a_slow_steady_upload_within_the_limits_is_answered(oracle: object, tmp_path: Path) -> None:
+    data = multipart("stacks", "s.nii.gz", nifti_bytes(stack(), tmp=tmp_path))
+
+    async def steady() -> AsyncIterator[bytes]:
+        step = len(data) // 6 + 1
+        for i in range(0, len(data), step):
+            await asyncio.sleep(0.1)
+            yield data[i:i + step]
+
+    oracle.truth = np.repeat(np.eye(4)[None], 6, axis=0)
+    with make_client(ModelRegistry({"default": oracle}), upload_idle_s=0.4, upload_timeout_s=30) as client:
+        status, _, body = client.portal.call(call, client.app, "/v1/predict", steady())
+    assert status == 200, body
+    assert len(json.loads(body)["stacks"][0]["slices"]) == 6
+
+
+def test_processing_after_the_body_has_no_time_limit() -> None:
+    async def slow_app(scope: dict, receive: Callable, send: Callable) -> None:
+        while (await receive()).get("more_body"):
+            pass
+        await asyncio.sleep(0.5)                           # longer than both limits
+        await send({"type": "http.response.start", "status": 200, "headers": []})
+        await send({"type": "http.response.body", "body": b"done"})
+
+    async def one_chunk() -> AsyncIterator[bytes]:
+        yield b"abc"
+
+    layer = RequestContext(slow_app, Metrics(), max_body_bytes=100, idle_s=0.1, timeout_s=0.2)
+    status, _, body = asyncio.run(call(layer, "/anything", one_chunk()))
+    assert (status, body) == (200, b"done")
