@@ -9,8 +9,11 @@ Only pixel data and geometry are taken, and of the frames' acquisition times onl
   orientation and pixel measures; without functional groups (rare, truncated files) the frames
   are stacked with ``SpacingBetweenSlices`` along the normal of an identity orientation.
 * Siemens mosaic (``ImageType`` contains ``MOSAIC``): ``NumberOfImagesInMosaic`` (0019,100A) tiles
-  of ``AcquisitionMatrix`` size; the position of the first tile is corrected from the mosaic's
-  top-left corner by half the size difference (as dcm2niix and nibabel do).
+  in a square of ``ceil(sqrt(n))`` tiles a side, each the mosaic's size over that (as nibabel reads
+  them; ``AcquisitionMatrix`` is the acquired matrix, smaller than the tiles at partial phase
+  resolution); the position of the first tile is corrected from the mosaic's top-left corner by half
+  the size difference (as dcm2niix and nibabel do). A count that does not divide the mosaic into
+  tiles, leaves images in the tiles after the n-th or counts an empty tile, is refused.
 """
 
 from __future__ import annotations
@@ -118,13 +121,23 @@ def _mosaic(ds, pixels: np.ndarray, filename: str) -> Volume:  # noqa: ANN001
     rows, cols = pixels.shape
     tiles_per_row = int(np.ceil(np.sqrt(max(n, 1))))
     tr, tc = rows // tiles_per_row, cols // tiles_per_row
-    acq = [int(x) for x in getattr(ds, "AcquisitionMatrix", []) if int(x) > 0]
-    if len(acq) == 2 and acq[0] * tiles_per_row <= cols:
-        tr, tc = acq[1], acq[0]
-    if n < 1 or min(tr, tc) < 2:
-        raise UnusableImage(f"{filename}: NumberOfImagesInMosaic {n} does not fit a mosaic of {rows} x {cols} pixels")
-    tiles = pixels[: tr * tiles_per_row, : tc * tiles_per_row].reshape(tiles_per_row, tr, tiles_per_row, tc)
-    stack = tiles.transpose(0, 2, 1, 3).reshape(-1, tr, tc)[:n]
+    # A Siemens mosaic is ceil(sqrt(n)) tiles of the reconstructed matrix on each side, exactly; the
+    # unused tiles after the n-th are empty. Any other layout means n is not this mosaic's count, and
+    # tiles cut at the wrong size would mix slices silently.
+    if n < 1 or min(tr, tc) < 2 or rows % tiles_per_row or cols % tiles_per_row:
+        raise UnusableImage(f"{filename}: NumberOfImagesInMosaic {n} does not fit a mosaic of {rows} x {cols} pixels "
+                            f"({tiles_per_row} x {tiles_per_row} tiles)")
+    acquired = [int(x) for x in getattr(ds, "AcquisitionMatrix", None) or [] if int(x) > 0]
+    if acquired and max(acquired) > max(tr, tc):
+        raise UnusableImage(f"{filename}: NumberOfImagesInMosaic {n} makes tiles of {tr} x {tc} pixels, smaller than "
+                            f"the acquired matrix {max(acquired)}")
+    tiles = pixels.reshape(tiles_per_row, tr, tiles_per_row, tc).transpose(0, 2, 1, 3).reshape(-1, tr, tc)
+    if np.any(tiles[n:]):
+        raise UnusableImage(f"{filename}: the mosaic holds images beyond its NumberOfImagesInMosaic {n}")
+    empty = np.flatnonzero(~tiles[:n].any(axis=(1, 2)))
+    if empty.size:
+        raise UnusableImage(f"{filename}: tile {empty[0]} of the mosaic's {n} images (NumberOfImagesInMosaic) is empty")
+    stack = tiles[:n]
     row_dir, col_dir = _orientation(ds)
     ps = [float(x) for x in ds.PixelSpacing]
     normal = np.cross(row_dir, col_dir)
