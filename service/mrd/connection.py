@@ -48,6 +48,26 @@ from service.streaming.session import StreamSession
 log = logging.getLogger(__name__)
 
 MAX_TEXT_BYTES = 1 << 20
+# The streaming core names a slice's fields as Stream v1 does; a scanner knows them by the MRD image's.
+MRD_FIELDS = {"slice.scanner_from_voxel": "image header (position, read_dir, phase_dir, slice_dir, field_of_view)",
+              "slice.shape": "image matrix_size", "slice.index": "image slice", "slice:": "image:"}
+
+
+def in_mrd_terms(error: ServiceError) -> ServiceError:
+    """``error`` with its detail naming the MRD image's fields instead of Stream v1's.
+
+    Example:
+        >>> in_mrd_terms(InvalidParameter("slice.index: -1 is negative")).detail
+        'image slice: -1 is negative'
+    """
+    for stream_name, mrd_name in MRD_FIELDS.items():
+        if error.detail.startswith(stream_name):
+            renamed = type(error).__new__(type(error))
+            renamed.__dict__.update(error.__dict__)
+            renamed.detail = mrd_name + error.detail[len(stream_name):]
+            renamed.args = (renamed.detail,)
+            return renamed
+    return error
 """The smallest limit on one read from a client (a config, XML header, TEXT or meta string): the
 reader allows what the largest image of the pixel limit needs, and never less than this."""
 BYTES_PER_VALUE = 16
@@ -248,7 +268,7 @@ class MrdConnection:
             answer = session.add_slice(SliceFrame(series.stack, int(image.slice), pixels, scanner_from_voxel))
         except ServiceError as refused:
             self.counts["refused"] += 1
-            self.send_error(refused, series=series_index, slice_index=int(image.slice))
+            self.send_error(in_mrd_terms(refused), series=series_index, slice_index=int(image.slice))
             return
         except Exception as fault:  # noqa: BLE001 - a fault of the server: the type goes to the log, the session goes on
             log.error("mrd image failed", extra={"error_type": type(fault).__name__})

@@ -183,3 +183,18 @@ def test_a_text_message_that_cannot_be_parsed_is_a_bad_request_not_an_unusable_i
     client.writer.flush()
     (error,) = [m for m in texts(client.close()) if m["type"] == "error"]
     assert error["status"] == 400 and "text: the message could not be parsed" in error["detail"], error
+
+
+def test_an_image_errors_name_the_mrd_header_fields(case: Case, serve) -> None:  # noqa: ANN001
+    """A geometry no acquisition has (30 mm pixels) is refused in the image header's own terms."""
+    server = serve()
+    client = MrdClient(server.port)
+    first = case.images[0][0]
+    nx = first.matrix_size[0]
+    huge = image_like(first, first.data)
+    huge.field_of_view = (30.0 * nx, 30.0 * first.matrix_size[1], float(first.field_of_view[2]))
+    client.send(CONFIG, huge)
+    (error,) = [m for m in texts(client.close()) if m["type"] == "error"]
+    assert error["status"] == 400 and error["slice"] == first.slice, error
+    assert error["detail"].startswith("image header (position, read_dir, phase_dir, slice_dir, field_of_view): ")
+    assert "scanner_from_voxel" not in error["detail"] and "20 mm" in error["detail"], error
