@@ -9,7 +9,9 @@ pool for good: every job of it fails with ``BrokenProcessPool``, and so would ev
 submission. The runner then starts a new pool and recovers the jobs as after a restart, with the
 lost worker as the cause: the interrupted ones run again up to ``max_attempts`` times, then fail
 saying so, and the queued ones run. A job running longer than ``timeout_s`` is failed saying so and
-stopped the same way (:meth:`LocalRunner.maintain`): a job stops only with its process.
+stopped the same way (:meth:`LocalRunner.maintain`): a job stops only with its process. So does a
+running job cancelled while no other job runs in the pool (:meth:`LocalRunner.cancel`); beside
+others it stops at its next stage, so that theirs go on.
 """
 
 from __future__ import annotations
@@ -47,6 +49,8 @@ class LocalRunner(JobRunner):
         """Set at shutdown: the workers stopped then are not lost ones, and no pool replaces theirs."""
         self.pool = self._new_pool()
         self.futures: dict[str, Future] = {}
+        self.stopped_for: str | None = None
+        """Why the runner itself stopped the pool's processes (a timed-out or cancelled job), for the log."""
 
     def _new_pool(self) -> ProcessPoolExecutor:
         return ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
@@ -91,8 +95,12 @@ class LocalRunner(JobRunner):
                 return
             self.pool = self._new_pool()
             broken.shutdown(wait=False, cancel_futures=True)
+            stopped_for, self.stopped_for = self.stopped_for, None
         queued = self.store.recover(self.max_attempts, cause="lost worker")
-        log.warning(f"a job worker process was lost (killed, or out of memory); {len(queued)} job(s) queued again")
+        if stopped_for is None:
+            log.warning(f"a job worker process was lost (killed, or out of memory); {len(queued)} job(s) queued again")
+        else:
+            log.info(f"job workers stopped for {stopped_for} and replaced; {len(queued)} job(s) queued again")
         for job_id in queued:
             self.submit(job_id)
 
@@ -108,14 +116,25 @@ class LocalRunner(JobRunner):
             self.store.discard_inputs(job.id)
             log.warning(f"job {job.id} ran longer than SVRNET_JOB_TIMEOUT_H and was stopped", extra={"job_id": job.id})
         if late:
-            with self.lock:
-                for proc in list((getattr(self.pool, "_processes", None) or {}).values()):
-                    proc.kill()
+            self._stop_workers("a timed-out job")
 
     def cancel(self, job_id: str) -> None:
+        """A job not yet started never starts; a running one stops now when it runs alone in the pool
+        (its worker processes are stopped and replaced), else at its next stage."""
         future = self.futures.get(job_id)
-        if future is not None:
-            future.cancel()            # a job not yet started never starts; a running one stops at its next stage
+        if future is None or future.cancel():
+            return
+        job = self.store.get(job_id)
+        if job is None or job.started_at is None or any(j in self.futures for j in self.store.ids("running")):
+            return
+        self._stop_workers("a cancelled job")
+
+    def _stop_workers(self, reason: str) -> None:
+        """Kill the pool's processes; the pool, broken, is replaced and its jobs recovered (:meth:`_replace`)."""
+        with self.lock:
+            self.stopped_for = reason
+            for proc in list((getattr(self.pool, "_processes", None) or {}).values()):
+                proc.kill()
 
     def stats(self) -> dict[str, float]:
         return {"workers": float(self.workers)}

@@ -139,10 +139,51 @@ def test_a_job_past_the_timeout_is_stopped_and_fails_saying_so(tmp_path: Path, j
         assert not (tmp_path / "data" / "jobs" / job_id / "inputs").exists()
         worker.wait(10)                                  # stopped with its job, and the pool replaced
         deadline = time.time() + 10
-        while "a job worker process was lost" not in (log := (tmp_path / "server.log").read_text()):
+        while "job workers stopped for a timed-out job and replaced" not in (log := (tmp_path / "server.log").read_text()):
             assert time.time() < deadline
             time.sleep(0.2)
         assert f"job {job_id} ran longer than SVRNET_JOB_TIMEOUT_H" in log
+        server.stop(signal.SIGTERM)
+        assert not server.leftovers()
+    finally:
+        server.kill_group()
+
+
+@pytest.mark.slow
+def test_a_running_job_cancelled_stops_at_once_and_the_next_job_runs(tmp_path: Path,
+                                                                     job_files: tuple[list, dict]) -> None:
+    files, poses = job_files
+    log = tmp_path / "server.log"
+    server = Server(tmp_path / "data", log)
+    upload = files + [("poses", ("p.json", json.dumps(poses)))]
+    try:
+        r = httpx.post(f"{server.url}/v1/reconstructions", files=upload,
+                       data={"resolution_mm": "1.0", "svr_iterations": "3", "atlas_frame": "false"}, timeout=60)
+        job_id = r.json()["job_id"]
+        deadline = time.time() + 60
+        while (st := _status(server, job_id))["status"] == "queued" or st["stage"] in ("starting", "reading"):
+            assert time.time() < deadline, st
+            time.sleep(0.05)
+        worker = _job_worker(server)
+        assert httpx.delete(f"{server.url}/v1/reconstructions/{job_id}", timeout=10).status_code == 204
+        t0 = time.time()
+        worker.wait(10)                                  # stopped now, not at the job's next stage
+        assert time.time() - t0 < 10
+        deadline = time.time() + 10
+        while "job workers stopped for a cancelled job and replaced" not in log.read_text():
+            assert time.time() < deadline
+            time.sleep(0.2)
+        assert "lost" not in log.read_text()
+        time.sleep(1)
+        assert _status(server, job_id)["status"] == "cancelled"
+        assert not (tmp_path / "data" / "jobs" / job_id).exists()          # nothing written after the cancel
+        r = httpx.post(f"{server.url}/v1/reconstructions", files=upload,
+                       data={"resolution_mm": "1.5", "svr_iterations": "0", "atlas_frame": "false"}, timeout=60)
+        deadline = time.time() + 120
+        while (st := _status(server, r.json()["job_id"]))["status"] not in ("succeeded", "failed", "cancelled"):
+            assert time.time() < deadline, st
+            time.sleep(0.3)
+        assert st["status"] == "succeeded" and st["attempts"] == 1, st
         server.stop(signal.SIGTERM)
         assert not server.leftovers()
     finally:
