@@ -15,6 +15,7 @@ from service.api.deps import ApiKey, LocalisersDep, SettingsDep, SlotDep
 from service.api.schemas import UPLOAD_ERRORS
 from service.api.uploads import check_form, known_fields, save_and_read, upload_directory
 from service.core.names import unique_stems
+from service.io.nifti_header import copy_transforms
 from service.io.volume import Volume, write_volume
 from service.preprocess.localise import Localiser
 
@@ -30,6 +31,8 @@ def masks_archive(uploads: list, localiser: Localiser, directory: Path) -> bytes
         for upload, stem, found in zip(uploads, unique_stems([u.filename for u in uploads]), located):
             path = directory / f"{stem}_mask.nii.gz"
             write_volume(Volume(found.mask.astype("uint8"), upload.volume.affine), path)
+            if upload.volume.nifti is not None:          # the upload's own transforms: overlays in any viewer
+                copy_transforms(path, upload.volume.nifti)
             archive.write(path, path.name)
             path.unlink()
             report.append({"filename": upload.filename, "mask": path.name, **found.report(),

@@ -35,6 +35,7 @@ from service.io.archive import read_dicom_zip
 from service.io.dicom import read_dicom_file
 from service.io.headers import clean_header
 from service.io.limits import DecodeBudget, FileBudget
+from service.io.nifti_header import read_transforms, sform_affine, sform_problem
 from service.io.volume import Volume, from_sitk
 
 SUFFIX_BY_KIND = {"nifti": ".nii", "nifti-gz": ".nii.gz", "nrrd": ".nrrd", "mha": ".mha"}
@@ -98,7 +99,11 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
                     raise UnsupportedFile(f"{filename}: truncated NIfTI file (less voxel data than its header declares)")
                 if kind == "nifti" and _nifti_has_nonfinite(path):
                     raise UnusableImage(f"{filename}: contains NaN or infinite values")
-                if kind == "nifti" and (pixdim := _nifti_missing_voxel_size(path)) is not None:
+                transforms = read_transforms(path) if kind == "nifti" else None
+                by_sform = transforms is not None and transforms.sform_code > 0
+                if by_sform and (problem := sform_problem(transforms)) is not None:
+                    raise UnusableImage(f"{filename}: {problem}")
+                if kind == "nifti" and not by_sform and (pixdim := _nifti_missing_voxel_size(path)) is not None:
                     raise UnusableImage(f"{filename}: its NIfTI header gives no voxel size (pixdim[1:4] = {pixdim}); "
                                         "the reader would invent 1 mm")
                 # SimpleITK reads a copy named by the sniffed content, with the reader chosen here
@@ -111,6 +116,9 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
                     named.symlink_to(Path(path).resolve())
                 budget.voxels(_declared_values(named, kind))
                 vol = from_sitk(_squeeze_4d(_reader(named, kind).Execute(), filename))
+                if by_sform:            # the standard's choice, with the sform's own voxel sizes (module nifti_header)
+                    vol = replace(vol, affine=sform_affine(transforms))
+                vol = replace(vol, nifti=transforms)
         elif kind == "dicom":
             vol = read_dicom_file(path, filename, budget)
         elif kind == "zip":

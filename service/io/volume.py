@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.geometry import frames
+from service.io.nifti_header import NiftiTransforms, read_transforms, sform_affine
 
 if TYPE_CHECKING:
     import SimpleITK as sitk
@@ -40,6 +41,9 @@ class Volume:
     acquisition_order: tuple[int, ...] | None = None
     """The indices ``k`` in the order the scanner acquired the slices, where the file says (a DICOM
     series' per-slice acquisition times; only their order is kept, never the times)."""
+    nifti: NiftiTransforms | None = None
+    """The transforms of the NIfTI header the volume was read from (None for other files): written
+    again into what the service returns on this grid, so that it overlays the upload in any viewer."""
 
     @property
     def spacing(self) -> NDArray[np.float64]:
@@ -81,9 +85,16 @@ def to_sitk(volume: Volume) -> sitk.Image:
 
 
 def read_volume(path: str | Path) -> Volume:
-    """Read a NIfTI/NRRD/MHA file (any format SimpleITK reads) as a :class:`Volume`."""
+    """Read a NIfTI/NRRD/MHA file (any format SimpleITK reads) as a :class:`Volume`; a NIfTI file is
+    placed by its sform whenever the sform's code is above 0, as the standard says
+    (:mod:`service.io.nifti_header`; the service's own files, the atlases)."""
     import SimpleITK as sitk
-    return from_sitk(sitk.ReadImage(str(path)))
+    volume = from_sitk(sitk.ReadImage(str(path)))
+    if str(path).endswith((".nii", ".nii.gz")) and (t := read_transforms(Path(path))) is not None:
+        volume.nifti = t
+        if t.sform_code > 0:
+            volume.affine = sform_affine(t)
+    return volume
 
 
 def write_volume(volume: Volume, path: str | Path) -> None:

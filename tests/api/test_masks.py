@@ -99,3 +99,24 @@ def test_a_stack_of_noise_answers_200_with_empty_slices(real_client: TestClient,
     assert stack["localisation"]["confidence"] < 0.3
     if stack["localisation"]["confidence"] < 0.15:               # below MIN_CONFIDENCE: no brain at all
         assert all(s["reason"] == "empty" for s in stack["slices"]) and stack["localisation"]["brain_volume_ml"] == 0
+
+
+def test_masks_of_a_nifti_upload_carry_its_transforms(real_client: TestClient, uterus_files, tmp_path: Path) -> None:
+    """A NIfTI whose sform (code 2) and qform disagree: the mask has the upload's two transforms and
+    codes, so that it overlays the stack in a viewer of either rule."""
+    nib = pytest.importorskip("nibabel")
+    source = nib.load(str(uterus_files[0]))
+    qform = source.affine.copy()
+    qform[:3, 3] += (12.0, 0.0, 0.0)
+    source.header.set_qform(qform, code=1)
+    source.header.set_sform(source.affine, code=2)
+    path = tmp_path / "sq.nii.gz"
+    nib.save(nib.Nifti1Image(np.asarray(source.dataobj), None, source.header), str(path))
+    r = post_masks(real_client, path)
+    assert r.status_code == 200, r.text
+    (tmp_path / "m.nii.gz").write_bytes(zipfile.ZipFile(io.BytesIO(r.content)).read("sq_mask.nii.gz"))
+    mask, stack = nib.load(str(tmp_path / "m.nii.gz")), nib.load(str(path))
+    assert mask.shape == stack.shape
+    for get in ("get_best_affine", "get_qform", "get_sform"):
+        np.testing.assert_allclose(getattr(mask.header, get)(), getattr(stack.header, get)(), atol=1e-4)
+    assert (int(mask.header["sform_code"]), int(mask.header["qform_code"])) == (2, 1)

@@ -210,9 +210,13 @@ def test_impossible_headers_are_read_or_refused_never_an_unexpected_error(tmp_pa
             assert vol.array.shape == (6, 7, 5)
 
 
-@pytest.mark.parametrize(("pixdim", "codes"), [((0.0, 0.0, 0.0), (0, 0)), ((np.nan, 1.0, 1.0), (0, 0)),
-                                               ((1.0, -1.0, 3.0), (1, 0)), ((0.0, 0.0, 0.0), (1, 1))])
-def test_a_nifti_header_without_voxel_sizes_is_422_not_1_mm(tmp_path: Path, pixdim: tuple, codes: tuple) -> None:
+@pytest.mark.parametrize(("pixdim", "codes", "words"), [
+    ((0.0, 0.0, 0.0), (0, 0), "its NIfTI header gives no voxel size"),
+    ((np.nan, 1.0, 1.0), (0, 0), "its NIfTI header gives no voxel size"),
+    ((1.0, -1.0, 3.0), (1, 0), "its NIfTI header gives no voxel size"),
+    ((0.0, 0.0, 0.0), (1, 1), "its NIfTI sform gives an axis no length")])    # the sform places the voxels
+def test_a_nifti_header_without_voxel_sizes_is_422_not_1_mm(tmp_path: Path, pixdim: tuple, codes: tuple,
+                                                            words: str) -> None:
     """ITK puts 1 mm where a header's pixdim is 0, negative or NaN, whatever its q/s-form codes say."""
     path = tmp_path / "v.nii"
     write_volume(Volume(np.random.default_rng(1).random((6, 7, 5)).astype(np.float32), oblique()), path)
@@ -222,7 +226,7 @@ def test_a_nifti_header_without_voxel_sizes_is_422_not_1_mm(tmp_path: Path, pixd
     if codes[1]:
         raw[280:328] = np.zeros(12, "<f4").tobytes()                      # an s-form of zeros
     path.write_bytes(bytes(raw))
-    with pytest.raises(UnusableImage, match=r"mine\.nii: its NIfTI header gives no voxel size"):
+    with pytest.raises(UnusableImage, match=rf"mine\.nii: {words}"):
         read_upload(path, "mine.nii")
 
 

@@ -1,0 +1,116 @@
+"""The geometry fields of a NIfTI-1/2 header: which transform places the voxels, read as the standard
+says, and copied into the files the service writes on an upload's grid.
+
+A NIfTI file may hold two voxel -> RAS transforms: the *qform* (a rotation as a quaternion, voxel
+sizes from ``pixdim``, an offset) and the *sform* (any affine, three rows ``srow_x/y/z``). The
+standard, nibabel and FSL place the voxels by the sform whenever ``sform_code > 0``, else by the
+qform. ITK prefers the qform when the sform's code is other than 1 and takes voxel sizes from
+``pixdim`` even where the sform says otherwise, so the same file would be placed elsewhere by the
+service than by the viewer a user checks it in. The reader therefore takes the sform's affine
+itself (:func:`sform_affine`), refuses one whose axes are not at right angles (a sheared grid no
+slice of an acquisition has), and writes both transforms of the upload, codes included, into the
+masks it returns (:func:`copy_transforms`), so that mask and stack overlay in any viewer.
+
+Example:
+    >>> import numpy as np
+    >>> head = bytearray(348); head[0:4] = (348).to_bytes(4, "little"); head[344:348] = b"n+1\\0"
+    >>> head[254:256] = (2).to_bytes(2, "little")                            # sform_code 2
+    >>> head[280:328] = np.array([[0, 0, 3, 1], [1.1, 0, 0, 2], [0, 0.9, 0, 3]], "<f4").tobytes()
+    >>> t = parse(bytes(head)); t.sform_code, sform_affine(t)[:3].tolist()
+    (2, [[0.0, 0.0, 3.0, 1.0], [1.100000023841858, 0.0, 0.0, 2.0], [0.0, 0.8999999761581421, 0.0, 3.0]])
+"""
+
+from __future__ import annotations
+
+import gzip
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+# (header size, byte offsets: pixdim, qform_code, sform_code, quatern_b, srow_x; float and code types)
+LAYOUTS = {348: dict(pixdim=76, qform_code=252, sform_code=254, quatern=256, srow=280, f="f4", code="i2"),
+           540: dict(pixdim=104, qform_code=344, sform_code=348, quatern=352, srow=400, f="f8", code="i4")}
+MAX_SHEAR_COS = 1e-3
+"""Axes of the sform further from right angles than this (cosine; 0.06 deg) are a sheared grid."""
+
+
+@dataclass(frozen=True)
+class NiftiTransforms:
+    """The geometry fields of a NIfTI header, as stored."""
+
+    qform_code: int
+    sform_code: int
+    pixdim: tuple[float, ...]
+    """``pixdim[0:4]``: qfac and the voxel edges."""
+    quatern: tuple[float, ...]
+    """``quatern_b, c, d, qoffset_x, y, z``."""
+    srow: tuple[float, ...]
+    """``srow_x, srow_y, srow_z``, row after row (12 values)."""
+
+
+def parse(head: bytes) -> NiftiTransforms | None:
+    """The geometry fields of a NIfTI-1 or -2 header (either byte order), or None for another file."""
+    for size, at in LAYOUTS.items():
+        for endian in "<>":
+            if len(head) >= size and int(np.frombuffer(head, endian + "i4", 1, 0)[0]) == size:
+                def values(offset: int, count: int, kind: str = at["f"]) -> tuple[float, ...]:
+                    return tuple(float(x) for x in np.frombuffer(head, endian + kind, count, offset))
+                return NiftiTransforms(int(values(at["qform_code"], 1, at["code"])[0]),
+                                       int(values(at["sform_code"], 1, at["code"])[0]),
+                                       values(at["pixdim"], 4), values(at["quatern"], 6), values(at["srow"], 12))
+    return None
+
+
+def read_transforms(path: Path) -> NiftiTransforms | None:
+    """:func:`parse` of the header of the NIfTI file at ``path`` (``.nii`` or gzipped)."""
+    with open(path, "rb") as f:
+        gzipped = f.read(2) == b"\x1f\x8b"
+    with (gzip.open(path, "rb") if gzipped else open(path, "rb")) as f:
+        return parse(f.read(540))
+
+
+def sform_affine(t: NiftiTransforms) -> NDArray[np.float64]:
+    """The sform as a 4 x 4 voxel -> RAS mm matrix."""
+    out = np.eye(4)
+    out[:3] = np.reshape(t.srow, (3, 4))
+    return out
+
+
+def sform_problem(t: NiftiTransforms) -> str | None:
+    """Why the sform cannot place an acquisition's voxels (not finite, an axis of no length, axes not
+    at right angles), or None."""
+    axes = sform_affine(t)[:3, :3]
+    if not np.all(np.isfinite(axes)):
+        return "its NIfTI sform holds values that are not finite"
+    lengths = np.linalg.norm(axes, axis=0)
+    if lengths.min() <= 0:
+        return "its NIfTI sform gives an axis no length"
+    cos = (axes.T @ axes) / np.outer(lengths, lengths) - np.eye(3)
+    if np.abs(cos).max() > MAX_SHEAR_COS:
+        angle = np.degrees(np.arccos(np.clip(1 - np.abs(cos).max(), -1, 1)))
+        return (f"its NIfTI sform is sheared (voxel axes {90 - angle:.2f} deg apart, not 90); resample the stack "
+                "to a grid with axes at right angles")
+    return None
+
+
+def copy_transforms(path: Path, t: NiftiTransforms) -> None:
+    """Write ``t`` into the header of the NIfTI-1 file at ``path`` (``.nii`` or ``.nii.gz``, as the
+    service writes them): both transforms and their codes, qfac and the voxel edges. Nothing else of
+    the upload's header (descriptions, names) is copied."""
+    compressed = path.name.endswith(".gz")
+    data = bytearray(gzip.decompress(path.read_bytes()) if compressed else path.read_bytes())
+    endian = "<" if int.from_bytes(data[:4], "little") == 348 else ">"
+    at = LAYOUTS[348]
+
+    def put(offset: int, values: tuple[float, ...] | list[int], kind: str = at["f"]) -> None:
+        raw = np.asarray(values, endian + kind).tobytes()
+        data[offset:offset + len(raw)] = raw
+
+    put(at["qform_code"], [t.qform_code], at["code"])
+    put(at["sform_code"], [t.sform_code], at["code"])
+    put(at["pixdim"], t.pixdim)
+    put(at["quatern"], t.quatern)
+    put(at["srow"], t.srow)
+    path.write_bytes(gzip.compress(bytes(data), compresslevel=6) if compressed else bytes(data))

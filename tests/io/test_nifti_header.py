@@ -1,0 +1,95 @@
+"""NIfTI files are placed as the standard (and nibabel, FSL) place them: by the sform whenever its code
+is above 0, with its own voxel sizes; a sheared sform is refused; masks carry the upload's transforms."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import nibabel as nib
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from service.core.errors import UnusableImage
+from service.io.nifti_header import copy_transforms, parse, read_transforms
+from service.io.readers import read_upload
+from service.io.volume import Volume, read_volume, write_volume
+
+SHAPE = (12, 10, 8)
+
+
+def sform_of(spacing: tuple[float, float, float], degrees: float, origin: tuple[float, float, float]) -> np.ndarray:
+    a = np.eye(4)
+    a[:3, :3] = Rotation.from_euler("zx", [degrees, degrees / 2], degrees=True).as_matrix() * spacing
+    a[:3, 3] = origin
+    return a
+
+
+def write(path: Path, sform: np.ndarray | None, sform_code: int, qform: np.ndarray | None, qform_code: int,
+          pixdim: tuple[float, float, float] | None = None) -> Path:
+    """A NIfTI-1 file whose header fields are exactly these (nibabel would otherwise keep them in step)."""
+    data = np.arange(np.prod(SHAPE), dtype=np.float32).reshape(SHAPE)
+    img = nib.Nifti1Image(data, None)
+    header = img.header
+    if qform is not None:
+        header.set_qform(qform, code=qform_code)
+    else:
+        header["qform_code"] = 0
+    if sform is not None:
+        header.set_sform(sform, code=sform_code)
+    else:
+        header["sform_code"] = 0
+    if pixdim is not None:
+        header["pixdim"][1:4] = pixdim
+    nib.save(img, str(path))
+    return path
+
+
+def test_an_sform_only_file_is_placed_by_the_sform_not_by_pixdim(tmp_path: Path) -> None:
+    sform = sform_of((1.1, 0.9, 3.3), 25, (-40, 12, 7))
+    for pixdim in ((1.0, 1.0, 1.0), (2.0, 2.0, 2.0), (0.0, 0.0, 0.0)):
+        path = write(tmp_path / "s.nii", sform, 1, None, 0, pixdim)
+        vol = read_upload(path, "s.nii")
+        np.testing.assert_allclose(vol.affine, sform, atol=1e-5)
+        np.testing.assert_allclose(vol.affine, nib.load(str(path)).affine, atol=1e-5)    # as nibabel, FSL
+        np.testing.assert_allclose(vol.spacing, [1.1, 0.9, 3.3], atol=1e-5)
+
+
+@pytest.mark.parametrize("sform_code", [1, 2, 3, 4])
+def test_the_sform_wins_over_a_disagreeing_qform_whatever_its_code(tmp_path: Path, sform_code: int) -> None:
+    sform = sform_of((1.1, 0.9, 3.3), 30, (-40, 12, 7))
+    qform = sform_of((1.1, 0.9, 3.3), 0, (-28, 12, 7))
+    vol = read_upload(write(tmp_path / "sq.nii", sform, sform_code, qform, 1), "sq.nii")
+    np.testing.assert_allclose(vol.affine, sform, atol=1e-5)
+    assert vol.nifti is not None and (vol.nifti.sform_code, vol.nifti.qform_code) == (sform_code, 1)
+
+
+def test_without_an_sform_the_qform_places_the_voxels(tmp_path: Path) -> None:
+    qform = sform_of((1.1, 0.9, 3.3), 40, (-28, 12, 7))
+    qform[:3, 0] *= -1                                        # left-handed: qfac -1
+    path = write(tmp_path / "q.nii.gz", None, 0, qform, 1)
+    np.testing.assert_allclose(read_upload(path, "q.nii.gz").affine, qform, atol=1e-4)
+
+
+def test_a_sheared_sform_is_refused_naming_the_shear(tmp_path: Path) -> None:
+    sform = sform_of((1.1, 0.9, 3.3), 0, (0, 0, 0))
+    sform[0, 1] = 0.2                                          # the second axis leans on the first
+    for qform in (None, sform_of((1.1, 0.9, 3.3), 0, (0, 0, 0))):
+        path = write(tmp_path / "shear.nii", sform, 1, qform, 0 if qform is None else 1)
+        with pytest.raises(UnusableImage, match="shear.nii: its NIfTI sform is sheared"):
+            read_upload(path, "shear.nii")
+
+
+def test_copied_transforms_make_a_written_file_read_as_the_upload(tmp_path: Path) -> None:
+    sform = sform_of((1.1, 0.9, 3.3), 30, (-40, 12, 7))
+    qform = sform_of((1.1, 0.9, 3.3), 0, (-28, 12, 7))
+    upload = read_upload(write(tmp_path / "sq.nii", sform, 2, qform, 1), "sq.nii")
+    out = tmp_path / "mask.nii.gz"
+    write_volume(Volume(np.ones(SHAPE, np.uint8), upload.affine), out)
+    copy_transforms(out, upload.nifti)
+    written, source = nib.load(str(out)).header, nib.load(str(tmp_path / "sq.nii")).header
+    for get in ("get_best_affine", "get_qform", "get_sform"):
+        np.testing.assert_allclose(getattr(written, get)(), getattr(source, get)(), atol=1e-5)
+    assert (int(written["sform_code"]), int(written["qform_code"])) == (2, 1)
+    assert parse(b"not a header" * 50) is None and read_transforms(tmp_path / "sq.nii") == upload.nifti
+    np.testing.assert_allclose(read_volume(out).affine, sform, atol=1e-5)         # the service's own reader too
