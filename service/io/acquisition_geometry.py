@@ -92,8 +92,11 @@ def _floats(values: Sequence[float] | None, n: int) -> np.ndarray | None:
     return out if out is not None and out.shape == (n,) and np.all(np.isfinite(out)) else None
 
 
-def series_problem(files: Sequence[Tags]) -> str | None:
-    """Why the files (their tags, :data:`Tags`) do not make one stack, or None."""
+def series_problem(files: Sequence[Tags], what: str = "files") -> str | None:
+    """Why the files (their tags, :data:`Tags`; ``what`` they are called in the answer: a series'
+    files, a multi-frame file's frames) do not make one stack, or None. A stack's slices share one
+    orientation and pixel spacing and lie evenly spaced along its normal, each straight behind the
+    last: a slice shifted within its plane would make a sheared grid."""
     positions = [_floats(p, 3) for p, _, _ in files]
     orientations = [_floats(o, 6) for _, o, _ in files]
     spacings = [_floats(s, 2) for _, _, s in files]
@@ -101,23 +104,28 @@ def series_problem(files: Sequence[Tags]) -> str | None:
             abs(np.linalg.norm(o[:3]) - 1) > DIRECTION_TOLERANCE or abs(np.linalg.norm(o[3:]) - 1) > DIRECTION_TOLERANCE
             or abs(o[:3] @ o[3:]) > DIRECTION_TOLERANCE for o in orientations):
         return f"ImageOrientationPatient is missing or not two unit vectors at right angles in " \
-               f"{missing or 'some'} of its {len(files)} files"
+               f"{missing or 'some'} of its {len(files)} {what}"
     if np.abs(np.array(orientations) - orientations[0]).max() > DIRECTION_TOLERANCE:
-        return "its files' ImageOrientationPatient differ: they are not one stack"
+        return f"its {what}' ImageOrientationPatient differ: they are not one stack"
     if (missing := sum(s is None or s.min() <= 0 for s in spacings)):
-        return f"PixelSpacing is missing or not positive in {missing} of its {len(files)} files"
+        return f"PixelSpacing is missing or not positive in {missing} of its {len(files)} {what}"
     if np.abs(np.array(spacings) - spacings[0]).max() > DIRECTION_TOLERANCE * spacings[0].max():
-        return "its files' PixelSpacing differ: they are not one stack"
+        return f"its {what}' PixelSpacing differ: they are not one stack"
     if (missing := sum(p is None for p in positions)):
-        return f"ImagePositionPatient is missing in {missing} of its {len(files)} files"
+        return f"ImagePositionPatient is missing in {missing} of its {len(files)} {what}"
     normal = np.cross(orientations[0][:3], orientations[0][3:])
     along = np.sort(np.array(positions) @ normal)
+    offsets = np.array(positions) - np.outer(np.array(positions) @ normal, normal)    # within the plane
+    if len(files) > 1 and (shift := np.linalg.norm(offsets - offsets[0], axis=1).max()) > \
+            SPACING_TOLERANCE * spacings[0].min():
+        return f"its {what} are shifted within their plane from one to the next (up to {shift:.3g} mm): a " \
+               "sheared grid, not one stack"
     steps = np.diff(along)
     if len(steps) and steps.min() < MIN_STEP_MM:
-        return "two of its files lie at one position: it holds more than one stack, or a file twice"
+        return f"two of its {what} lie at one position: it holds more than one stack, or one twice"
     if len(steps) and np.abs(steps - np.median(steps)).max() > SPACING_TOLERANCE * np.median(steps):
         shown = ", ".join(f"{s:.3g}" for s in steps[:8]) + (", ..." if len(steps) > 8 else "")
-        return f"its slices are not evenly spaced ({shown} mm between neighbours): a file is missing, or it " \
+        return f"its slices are not evenly spaced ({shown} mm between neighbours): one is missing, or it " \
                "holds more than one stack"
     return None
 

@@ -6,8 +6,13 @@ Only pixel data and geometry are taken, and of the frames' acquisition times onl
 :mod:`service.geometry.frames`):
 
 * Enhanced multi-frame: per-frame ``PlanePositionSequence`` positions, shared or per-frame
-  orientation and pixel measures; without functional groups (rare, truncated files) the frames
-  are stacked with ``SpacingBetweenSlices`` along the normal of an identity orientation.
+  orientation and pixel measures (else the file's own tags); the frames must make one stack, as a
+  zipped series' files must (:func:`~service.io.acquisition_geometry.series_problem`: one
+  orientation and pixel spacing, evenly spaced along the normal, none shifted in its plane). Without
+  per-frame positions the frames are stacked by ``SpacingBetweenSlices`` (or ``SliceThickness``)
+  along the normal of the file's ``ImageOrientationPatient`` from its ``ImagePositionPatient``; a file
+  missing any of these is refused, never given a made-up grid. The frames are ordered along the
+  slice normal, as a series' files are.
 * Siemens mosaic (``ImageType`` contains ``MOSAIC``): ``NumberOfImagesInMosaic`` (0019,100A) tiles
   in a square of ``ceil(sqrt(n))`` tiles a side, each the mosaic's size over that (as nibabel reads
   them; ``AcquisitionMatrix`` is the acquired matrix, smaller than the tiles at partial phase
@@ -25,6 +30,7 @@ from pydicom.errors import InvalidDicomError
 
 from service.core.errors import UnsupportedFile, UnusableImage
 from service.geometry import frames
+from service.io.acquisition_geometry import series_problem
 from service.io.acquisition_times import order_of, seconds
 from service.io.dicom_guard import load_dataset
 from service.io.limits import FileBudget
@@ -64,53 +70,62 @@ def read_dicom_file(path: Path, filename: str, budget: FileBudget) -> Volume:
         pixels = pixels[None]
     if pixels.ndim != 3:
         raise UnusableImage(f"{filename}: DICOM pixel data with {pixels.ndim} dimensions")
-    return _multiframe(ds, pixels)
+    return _multiframe(ds, pixels, filename)
 
 
-def _orientation(item) -> tuple[np.ndarray, np.ndarray]:  # noqa: ANN001 - a pydicom dataset
-    iop = np.asarray(item.ImageOrientationPatient, dtype=np.float64)
+def _orientation(values) -> tuple[np.ndarray, np.ndarray]:  # noqa: ANN001 - an ImageOrientationPatient value
+    iop = np.asarray(values, dtype=np.float64)
     if iop.shape != (6,) or not np.isfinite(iop).all():
         raise ValueError(f"ImageOrientationPatient holds {iop.size} values, not 6 finite numbers")
     return iop[:3], iop[3:]
 
 
-def _multiframe(ds, pixels: np.ndarray) -> Volume:  # noqa: ANN001
+def _multiframe(ds, pixels: np.ndarray, filename: str) -> Volume:  # noqa: ANN001
     shared = ds.SharedFunctionalGroupsSequence[0] if "SharedFunctionalGroupsSequence" in ds else None
     per_frame = ds.PerFrameFunctionalGroupsSequence if "PerFrameFunctionalGroupsSequence" in ds else None
 
     def group(name: str, frame: int = 0):  # noqa: ANN202
-        for source in ((per_frame[frame] if per_frame is not None else None), shared):
-            if source is not None and name in source:
+        for source in ((per_frame[frame] if per_frame is not None and frame < len(per_frame) else None), shared):
+            if source is not None and name in source and len(source[name].value):
                 return source[name].value[0]
         return None
 
-    orient, measures = group("PlaneOrientationSequence"), group("PixelMeasuresSequence")
-    if orient is not None:
-        row_dir, col_dir = _orientation(orient)
-    elif "ImageOrientationPatient" in ds:
-        row_dir, col_dir = _orientation(ds)
-    else:
-        row_dir, col_dir = np.array([1.0, 0, 0]), np.array([0.0, 1, 0])
-    src = measures if measures is not None and "PixelSpacing" in measures else ds
-    ps = [float(x) for x in getattr(src, "PixelSpacing", [1.0, 1.0])]
-    normal = np.cross(row_dir, col_dir)
-    frame_times = [seconds(ds, group("FrameContentSequence", f)) for f in range(len(pixels))]
-    positions = []
-    for f in range(len(pixels)):
-        pos = group("PlanePositionSequence", f)
-        if pos is None:
-            break
-        positions.append(np.asarray(pos.ImagePositionPatient, dtype=np.float64))
-    if len(positions) == len(pixels) and len(pixels) > 1:
+    def tag(item, name: str):  # noqa: ANN001, ANN202 - a value of the functional group, else of the file
+        return getattr(item, name, None) if item is not None and name in item else getattr(ds, name, None)
+
+    n = len(pixels)
+    placed = [group("PlanePositionSequence", f) for f in range(n)]     # a frame's own position, never the file's
+    tags = [(getattr(placed[f], "ImagePositionPatient", None),
+             tag(group("PlaneOrientationSequence", f), "ImageOrientationPatient"),
+             tag(group("PixelMeasuresSequence", f), "PixelSpacing")) for f in range(n)]
+    frame_times = [seconds(ds, group("FrameContentSequence", f)) for f in range(n)]
+    if n > 1 and any(position is not None for position, _, _ in tags):
+        # Frames placed one by one: they must make one stack, as a zipped series' files must.
+        if (problem := series_problem(tags, "frames")) is not None:
+            raise UnusableImage(f"{filename}: a multi-frame DICOM of {n} frames, but {problem}")
+        row_dir, col_dir = _orientation(tags[0][1])
+        normal = np.cross(row_dir, col_dir)
+        positions = [np.asarray(p, np.float64) for p, _, _ in tags]
         order = np.argsort([p @ normal for p in positions])
-        pixels = pixels[order]
-        positions = [positions[i] for i in order]
-        frame_times = [frame_times[i] for i in order]
-        dz = float(np.median(np.diff([p @ normal for p in positions])))
-        origin = positions[0]
+        pixels, frame_times = pixels[order], [frame_times[i] for i in order]
+        dz = float(np.median(np.diff([positions[i] @ normal for i in order])))
+        origin = positions[order[0]]
     else:
-        dz = float(getattr(ds, "SpacingBetweenSlices", None) or getattr(ds, "SliceThickness", None) or 1.0)
-        origin = np.asarray(getattr(ds, "ImagePositionPatient", [0.0, 0.0, 0.0]), dtype=np.float64)
+        # One position for the file (a single frame, or frames stacked by SpacingBetweenSlices).
+        _, orientation, spacing = tags[0]
+        position = tags[0][0] or getattr(ds, "ImagePositionPatient", None)
+        between = getattr(ds, "SpacingBetweenSlices", None) or getattr(ds, "SliceThickness", None)
+        missing = [name for name, value in (("ImagePositionPatient", position), ("ImageOrientationPatient", orientation),
+                                            ("PixelSpacing", spacing), ("SpacingBetweenSlices", between if n > 1 else 1))
+                   if value is None]
+        if missing:
+            raise UnusableImage(f"{filename}: a DICOM image without {', '.join(missing)}: its geometry is unknown")
+        if (problem := series_problem([(position, orientation, spacing)], "frames")) is not None:
+            raise UnusableImage(f"{filename}: {problem}")
+        row_dir, col_dir = _orientation(orientation)
+        normal = np.cross(row_dir, col_dir)
+        dz, origin = float(between) if n > 1 else 1.0, np.asarray(position, dtype=np.float64)
+    ps = [float(x) for x in tags[0][2]]
     lps = _lps_affine(row_dir, col_dir, normal, (ps[1], ps[0], abs(dz) or 1.0), origin)
     return Volume(np.ascontiguousarray(pixels.transpose(2, 1, 0)), frames.ras_affine_from_lps(lps),
                   order_of(frame_times))
@@ -138,7 +153,7 @@ def _mosaic(ds, pixels: np.ndarray, filename: str) -> Volume:  # noqa: ANN001
     if empty.size:
         raise UnusableImage(f"{filename}: tile {empty[0]} of the mosaic's {n} images (NumberOfImagesInMosaic) is empty")
     stack = tiles[:n]
-    row_dir, col_dir = _orientation(ds)
+    row_dir, col_dir = _orientation(getattr(ds, "ImageOrientationPatient", None))
     ps = [float(x) for x in ds.PixelSpacing]
     normal = np.cross(row_dir, col_dir)
     # ImagePositionPatient is the top-left of the whole mosaic: move to the first tile's corner.

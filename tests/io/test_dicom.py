@@ -1,0 +1,166 @@
+"""Single DICOM files: Siemens mosaics cut into their declared tiles, Enhanced multi-frame files placed
+frame by frame; any file whose frames make no one stack is refused, never given a made-up grid."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pydicom
+import pytest
+from pydicom.dataset import Dataset, FileDataset, FileMetaDataset
+from pydicom.sequence import Sequence
+from pydicom.uid import EnhancedMRImageStorage, ExplicitVRLittleEndian, MRImageStorage, generate_uid
+
+from service.core.errors import UnusableImage
+from service.geometry import frames
+from service.io.readers import read_upload
+
+
+def _dataset(path: Path, sop_class: str, pixels: np.ndarray) -> FileDataset:
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID = sop_class, generate_uid()
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds = FileDataset(str(path), {}, file_meta=meta, preamble=b"\0" * 128)
+    ds.SOPClassUID, ds.SOPInstanceUID, ds.Modality = sop_class, meta.MediaStorageSOPInstanceUID, "MR"
+    ds.Rows, ds.Columns = pixels.shape[-2:]
+    ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 0
+    ds.PixelData = np.ascontiguousarray(pixels, np.uint16).tobytes()
+    return ds
+
+
+def _mosaic_file(path: Path, slices: np.ndarray, n_declared: int, acquisition_matrix: list[int] | None) -> Path:
+    """A Siemens mosaic of ``slices`` ``[n, rows, cols]`` (ceil(sqrt(n)) tiles a side, empty tiles after
+    the last), declaring ``n_declared`` images."""
+    n, tr, tc = slices.shape
+    side = int(np.ceil(np.sqrt(n)))
+    mosaic = np.zeros((side * tr, side * tc), np.uint16)
+    for k in range(n):
+        mosaic[(k // side) * tr:(k // side + 1) * tr, (k % side) * tc:(k % side + 1) * tc] = slices[k]
+    ds = _dataset(path, MRImageStorage, mosaic)
+    ds.ImageType = ["ORIGINAL", "PRIMARY", "M", "MOSAIC"]
+    ds.PixelSpacing, ds.SliceThickness, ds.SpacingBetweenSlices = [2.0, 2.0], 3.0, 3.5
+    ds.ImageOrientationPatient, ds.ImagePositionPatient = [1, 0, 0, 0, 1, 0], [-100.0, -80.0, 10.0]
+    if acquisition_matrix is not None:
+        ds.AcquisitionMatrix = acquisition_matrix
+    ds.add_new((0x0019, 0x0010), "LO", "SIEMENS MR HEADER")
+    ds.add_new((0x0019, 0x100A), "US", n_declared)
+    pydicom.dcmwrite(str(path), ds, enforce_file_format=True)
+    return path
+
+
+def test_a_mosaic_is_cut_into_its_declared_tiles(tmp_path: Path) -> None:
+    rng = np.random.default_rng(4)
+    slices = (rng.random((10, 24, 20)) * 1000 + 100).astype(np.uint16)     # 4 x 4 tiles, 6 empty
+    vol = read_upload(_mosaic_file(tmp_path / "m.dcm", slices, 10, [20, 0, 0, 18]), "m.dcm")
+    assert vol.array.shape == (20, 24, 10)                                  # [column, row, slice]
+    np.testing.assert_array_equal(vol.array.transpose(2, 1, 0), slices.astype(np.float32))
+    np.testing.assert_allclose(vol.spacing, [2.0, 2.0, 3.5])
+
+
+@pytest.mark.parametrize(("declared", "matrix", "needle"), [
+    (2, None, "beyond its NumberOfImagesInMosaic 2"),          # 2 x 2 tiles of 48 x 40: images after the 2nd
+    (9, None, "does not fit a mosaic of 96 x 80"),             # 3 x 3 tiles: 80 / 3 pixels
+    (12, None, "tile 10 of the mosaic's 12 images"),           # the right layout, two empty tiles counted
+    (10, [40, 0, 0, 40], "smaller than the acquired matrix"),  # tiles of 24 x 20 for a 40 x 40 acquisition
+])
+def test_a_mosaic_whose_count_disagrees_with_its_tiles_is_refused(tmp_path: Path, declared: int,
+                                                                  matrix: list[int] | None, needle: str) -> None:
+    """Ten images of 24 x 20 in 4 x 4 tiles, declared otherwise: refused, never cut across tiles."""
+    slices = (np.random.default_rng(5).random((10, 24, 20)) * 1000 + 100).astype(np.uint16)
+    with pytest.raises(UnusableImage, match=needle):
+        read_upload(_mosaic_file(tmp_path / "m.dcm", slices, declared, matrix), "m.dcm")
+
+
+ROW, COL = np.array([0.8, 0.6, 0.0]), np.array([0.0, 0.0, -1.0])      # an oblique, LPS
+NORMAL = np.cross(ROW, COL)
+
+
+def _enhanced_file(path: Path, frames_: np.ndarray, positions: list, orientations: list | None = None,
+                   spacing: list | None = (1.2, 0.9), shared_orientation: list | None = None) -> Path:
+    """An Enhanced MR file of ``frames_`` ``[n, rows, cols]``: each frame's ImagePositionPatient (None: none),
+    orientation (per frame, or shared) and pixel measures (shared; None: none)."""
+    ds = _dataset(path, EnhancedMRImageStorage, frames_)
+    ds.NumberOfFrames = len(frames_)
+    shared = Dataset()
+    if spacing is not None:
+        measures = Dataset()
+        measures.PixelSpacing, measures.SliceThickness = list(spacing), 3.0
+        shared.PixelMeasuresSequence = Sequence([measures])
+    if shared_orientation is not None:
+        orient = Dataset()
+        orient.ImageOrientationPatient = list(shared_orientation)
+        shared.PlaneOrientationSequence = Sequence([orient])
+    ds.SharedFunctionalGroupsSequence = Sequence([shared])
+    items = []
+    for f, position in enumerate(positions):
+        item = Dataset()
+        if position is not None:
+            pos = Dataset()
+            pos.ImagePositionPatient = [float(x) for x in position]
+            item.PlanePositionSequence = Sequence([pos])
+        if orientations is not None:
+            orient = Dataset()
+            orient.ImageOrientationPatient = list(orientations[f])
+            item.PlaneOrientationSequence = Sequence([orient])
+        items.append(item)
+    ds.PerFrameFunctionalGroupsSequence = Sequence(items)
+    pydicom.dcmwrite(str(path), ds, enforce_file_format=True)
+    return path
+
+
+def _frames(n: int = 8) -> np.ndarray:
+    return (np.random.default_rng(6).random((n, 12, 10)) * 1000 + 100).astype(np.uint16)
+
+
+def test_an_enhanced_multiframe_is_placed_frame_by_frame_and_ordered_along_its_normal(tmp_path: Path) -> None:
+    stored_depth = [3, 0, 7, 5, 1, 6, 2, 4]
+    origin = np.array([-40.0, 20.0, 35.0])
+    positions = [origin + 3.3 * d * NORMAL for d in stored_depth]
+    pixels = _frames()
+    vol = read_upload(_enhanced_file(tmp_path / "e.dcm", pixels, positions,
+                                     shared_orientation=[*ROW, *COL]), "e.dcm")
+    lps = np.eye(4)
+    lps[:3, 0], lps[:3, 1], lps[:3, 2], lps[:3, 3] = ROW * 0.9, COL * 1.2, NORMAL * 3.3, origin
+    np.testing.assert_allclose(vol.affine, frames.ras_affine_from_lps(lps), atol=1e-6)
+    for f, d in enumerate(stored_depth):                   # depth d holds frame f, its columns along i
+        np.testing.assert_array_equal(vol.array[:, :, d], pixels[f].T.astype(np.float32))
+
+
+def _damaged(kind: str) -> dict:
+    origin = np.array([-40.0, 20.0, 35.0])
+    positions = [origin + 3.3 * d * NORMAL for d in range(8)]
+    out = {"positions": positions, "shared_orientation": [*ROW, *COL]}
+    if kind == "a frame missing":
+        out["positions"] = positions[:3] + [None] + positions[4:]
+    elif kind == "uneven":
+        out["positions"] = [p + (3.3 * NORMAL if d >= 4 else 0) for d, p in enumerate(positions)]
+    elif kind == "repeated":
+        out["positions"] = positions[:4] * 2
+    elif kind == "two orientations":
+        out["orientations"] = [[*ROW, *COL]] * 4 + [[1, 0, 0, 0, 1, 0]] * 4
+        out["shared_orientation"] = None
+    elif kind == "sheared":
+        out["positions"] = [p + d * 1.0 * ROW for d, p in enumerate(positions)]
+    elif kind == "no orientation":
+        out["shared_orientation"] = None
+    elif kind == "no pixel measures":
+        out["spacing"] = None
+    return out
+
+
+@pytest.mark.parametrize(("kind", "words"), [
+    ("a frame missing", "ImagePositionPatient is missing in 1 of its 8 frames"),
+    ("uneven", "its slices are not evenly spaced (3.3, 3.3, 3.3, 6.6"),
+    ("repeated", "two of its frames lie at one position"),
+    ("two orientations", "its frames' ImageOrientationPatient differ"),
+    ("sheared", "its frames are shifted within their plane"),
+    ("no orientation", "ImageOrientationPatient is missing or not two unit vectors"),
+    ("no pixel measures", "PixelSpacing is missing or not positive in 8 of its 8 frames"),
+])
+def test_an_enhanced_multiframe_whose_frames_make_no_one_stack_is_422(tmp_path: Path, kind: str, words: str) -> None:
+    path = _enhanced_file(tmp_path / "e.dcm", _frames(), **_damaged(kind))
+    with pytest.raises(UnusableImage, match=f"e.dcm: a multi-frame DICOM of 8 frames, but {re.escape(words)}"):
+        read_upload(path, "e.dcm")
