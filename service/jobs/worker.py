@@ -59,6 +59,9 @@ def poses_from_predict_body(body: dict, n_slices: list[int],
     atlas origin), and at least one slice accepted. A reconstruction's grid and its every stage
     are sized by those poses.
 
+    A stack's slices are matched by their ``index`` where they have one (the body's list is put in
+    that order, :func:`in_index_order`), else by their place in the list.
+
     Raises:
         ValueError: naming what does not match the uploaded stacks.
     """
@@ -72,6 +75,7 @@ def poses_from_predict_body(body: dict, n_slices: list[int],
             raise ValueError(f"poses: stack {i} has no list of slices")
         if len(slices) != n:
             raise ValueError(f"poses: stack {i} has {n} slices but the poses list {len(slices)}")
+        slices = st["slices"] = in_index_order(slices, i)
         try:
             mats = np.array([s["atlas_from_voxel"] for s in slices], dtype=np.float64)
             acc = [s["accepted"] for s in slices]
@@ -89,6 +93,22 @@ def poses_from_predict_body(body: dict, n_slices: list[int],
     if spacings is not None and not any(acc.any() for _, acc in out):
         raise ValueError("poses: no slice is accepted; a job starts from the accepted slices")
     return out
+
+
+def in_index_order(slices: list, stack: int) -> list:
+    """A stack's slices sorted by their ``index`` when they carry one (each of ``0 .. n - 1`` once); a
+    list without indices is taken in its order.
+
+    Example:
+        >>> [s["index"] for s in in_index_order([{"index": 1}, {"index": 0}], 0)]
+        [0, 1]
+    """
+    indices = [s.get("index") if isinstance(s, dict) else None for s in slices]
+    if all(k is None for k in indices):
+        return slices
+    if sorted(k for k in indices if type(k) is int) != list(range(len(slices))):
+        raise ValueError(f"poses: stack {stack}: each slice's index must be one of 0..{len(slices) - 1}, once each")
+    return sorted(slices, key=lambda s: s["index"])
 
 
 def not_rigid(mats: np.ndarray, spacing, tolerance: float = 0.01) -> int | None:  # noqa: ANN001
