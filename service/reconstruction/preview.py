@@ -1,10 +1,12 @@
-"""A PNG preview of a volume: three orthogonal mid-planes side by side.
+"""A PNG preview of a volume: three orthogonal planes of atlas space side by side.
 
-Panels (left to right): sagittal (``i`` fixed), coronal (``j`` fixed), axial (``k`` fixed), each
-through the middle of the array. For a RAS-aligned grid (what :func:`~service.reconstruction.pipeline.reconstruct`
-writes) superior is up in the first two panels and anterior up in the axial one, with the
-subject's right on the right (neurological convention). Intensities are windowed to the 1st-99th
-percentiles of the nonzero voxels; anisotropic voxels are resized to their physical aspect.
+Panels (left to right): sagittal (``x`` fixed), coronal (``y`` fixed), axial (``z`` fixed), each
+through the middle voxel of the array and cut in atlas (RAS) space through the volume's affine,
+whatever its grid's orientation: a job's volume keeps its atlas-frame and midline corrections in
+its affine (its voxels are not resampled), so its array's own mid-planes may be tilted by them.
+Superior is up in the first two panels and anterior up in the axial one, with the subject's right
+on the right (neurological convention); pixels are squares of the finest voxel edge. Intensities
+are windowed to the 1st-99th percentiles of the nonzero voxels.
 
 Example:
     >>> import numpy as np
@@ -17,10 +19,12 @@ Example:
 from __future__ import annotations
 
 import io
+import itertools
 
 import numpy as np
 from numpy.typing import NDArray
 from PIL import Image
+from scipy.ndimage import map_coordinates
 
 from service.io.volume import Volume
 
@@ -39,29 +43,37 @@ def window(array: NDArray, low: float = 1.0, high: float = 99.0) -> NDArray[np.u
     return out.astype(np.uint8)
 
 
-def _panel(plane: NDArray[np.uint8], row_mm: float, col_mm: float) -> Image.Image:
-    img = Image.fromarray(np.ascontiguousarray(plane))
-    if abs(row_mm - col_mm) > 1e-3 * max(row_mm, col_mm):
-        base = min(row_mm, col_mm)
-        size = (max(1, round(plane.shape[1] * col_mm / base)), max(1, round(plane.shape[0] * row_mm / base)))
-        img = img.resize(size, Image.BILINEAR)
-    return img
+def atlas_planes(volume: Volume) -> list[NDArray[np.uint8]]:
+    """The sagittal, coronal and axial planes of atlas space through the volume's middle voxel, over
+    the volume's extent in atlas space, in square pixels of its finest voxel edge (linear
+    interpolation; zero outside the volume). On a RAS-aligned grid of cubic voxels the pixels are
+    the voxels of the array's own mid-planes."""
+    windowed = window(volume.array)
+    affine = np.asarray(volume.affine, dtype=np.float64)
+    shape = np.array(windowed.shape)
+    step = float(volume.spacing.min())
+    corners = np.array(list(itertools.product(*[(-0.5, n - 0.5) for n in shape])))
+    world = corners @ affine[:3, :3].T + affine[:3, 3]
+    low, high = world.min(axis=0), world.max(axis=0)
+    axes = [low[d] + (np.arange(max(1, round((high[d] - low[d]) / step))) + 0.5) * step for d in range(3)]
+    centre = affine[:3, :3] @ (shape // 2) + affine[:3, 3]
+    to_voxel = np.linalg.inv(affine)
 
+    def plane(fixed: int, rows: int, columns: int) -> NDArray[np.uint8]:
+        r, c = np.meshgrid(axes[rows][::-1], axes[columns], indexing="ij")     # rows from the top down
+        points = np.empty(r.shape + (3,))
+        points[..., fixed], points[..., rows], points[..., columns] = centre[fixed], r, c
+        voxels = points @ to_voxel[:3, :3].T + to_voxel[:3, 3]
+        values = map_coordinates(windowed, np.moveaxis(voxels, -1, 0), output=np.float32, order=1, mode="constant",
+                                 cval=0.0)
+        return np.clip(np.round(values), 0, 255).astype(np.uint8)
 
-def mid_planes(volume: Volume) -> list[Image.Image]:
-    """The three mid-plane panels (sagittal, coronal, axial) as 8-bit images."""
-    vol = window(volume.array)
-    sp = volume.spacing
-    ci, cj, ck = (s // 2 for s in vol.shape)
-    sag = vol[ci, :, :].T[::-1]                  # rows: k (superior up), columns: j (anterior right)
-    cor = vol[:, cj, :].T[::-1]                  # rows: k, columns: i
-    axi = vol[:, :, ck].T[::-1]                  # rows: j (anterior up), columns: i
-    return [_panel(sag, sp[2], sp[1]), _panel(cor, sp[2], sp[0]), _panel(axi, sp[1], sp[0])]
+    return [plane(0, 2, 1), plane(1, 2, 0), plane(2, 1, 0)]
 
 
 def preview_png(volume: Volume) -> bytes:
     """PNG bytes of the three orthogonal mid-planes of ``volume`` side by side (grayscale)."""
-    panels = mid_planes(volume)
+    panels = [Image.fromarray(np.ascontiguousarray(p)) for p in atlas_planes(volume)]
     height = max(p.height for p in panels)
     width = sum(p.width for p in panels) + GAP_PX * (len(panels) - 1)
     canvas = Image.new("L", (width, height), 0)

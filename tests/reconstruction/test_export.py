@@ -10,12 +10,12 @@ import pytest
 import SimpleITK as sitk
 from PIL import Image
 
-from service.geometry import frames
+from service.geometry import frames, se3
 from service.geometry.pose import apply
 from service.io.volume import Volume, read_volume, to_sitk
 from service.reconstruction.export import scanner_from_atlas, write_outputs
 from service.reconstruction.pipeline import reconstruct
-from service.reconstruction.preview import preview_png
+from service.reconstruction.preview import atlas_planes, preview_png, window
 from tests.reconstruction.helpers import perturb
 
 
@@ -86,3 +86,35 @@ def test_preview_handles_anisotropic_and_empty_volumes():
     assert img.size == (12 + 10 + 10 + 4, 12)                 # k stretched to 12 mm of 1 mm pixels
     blank = Image.open(io.BytesIO(preview_png(Volume(np.zeros((4, 4, 4), np.float32), np.eye(4)))))
     assert np.asarray(blank).max() == 0
+
+
+def _world_object(affine: np.ndarray, shape: tuple[int, int, int]) -> Volume:
+    """A bar along atlas x and a ball above it (atlas mm about the grid's centre) sampled on ``affine``'s voxels."""
+    ijk = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1)
+    p = ijk @ affine[:3, :3].T + affine[:3, 3]
+    bar = (np.abs(p[..., 1]) < 3) & (np.abs(p[..., 2]) < 3) & (np.abs(p[..., 0]) < 20)
+    ball = np.linalg.norm(p - [0.0, 0.0, 12.0], axis=-1) < 5
+    return Volume((bar * 100.0 + ball * 200.0 + 1.0).astype(np.float32), affine)
+
+
+def test_the_preview_cuts_atlas_planes_whatever_the_grids_orientation() -> None:
+    shape = (48, 48, 48)
+    aligned = np.diag([1.0, 1.0, 1.0, 1.0])
+    aligned[:3, 3] = -23.5
+    turned = aligned.copy()
+    turned[:3, :3] = se3.so3_exp(np.radians([8.0, -6.0, 15.0]))              # a job's frame correction
+    turned[:3, 3] = -turned[:3, :3] @ [23.5, 23.5, 23.5]                       # about the same centre
+    straight, tilted = atlas_planes(_world_object(aligned, shape)), atlas_planes(_world_object(turned, shape))
+    # On an aligned grid of cubic voxels the panels are the array's own mid-planes, as laid out before.
+    w = window(_world_object(aligned, shape).array)
+    np.testing.assert_array_equal(straight[2], w[:, :, 24].T[::-1])
+    np.testing.assert_array_equal(straight[0], w[24, :, :].T[::-1])
+    # Turned by 15 deg, the same atlas planes show the same anatomy (the array's mid-plane would not).
+    for a, b in zip(straight, tilted):
+        h, w_ = min(a.shape[0], b.shape[0]), min(a.shape[1], b.shape[1])
+        ca, cb = (x[(x.shape[0] - h) // 2:][:h, (x.shape[1] - w_) // 2:][:, :w_] for x in (a, b))   # centres
+        assert np.corrcoef(ca.ravel(), cb.ravel())[0, 1] > 0.85
+    axial_rows = tilted[2].astype(float).sum(axis=1)
+    assert abs(int(np.argmax(axial_rows)) - tilted[2].shape[0] // 2) <= 2   # the bar lies along the rows' middle
+    raw_mid = window(_world_object(turned, shape).array)[:, :, 24].T[::-1]
+    assert np.corrcoef(raw_mid.ravel(), straight[2].ravel())[0, 1] < 0.85
