@@ -351,8 +351,8 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
                                                              "midline": midline.report()})
     frames = [split_stack(u.volume, np.ones(u.volume.array.shape, bool)).slice_from_voxel for u in uploads]
     refined = refined_poses_body(body, result.atlas_from_voxel_final, frames, included=result.included,
-                                 weight=result.slice_weight, ncc=result.ncc, reasons=result.exclusion_reason,
-                                 job_id=job_id)
+                                 weight=result.slice_weight, ncc=result.ncc, held_out_ncc=result.held_out_ncc,
+                                 reasons=result.exclusion_reason, job_id=job_id)
     for i, stack in enumerate(refined.get("stacks", [])):
         # Results are kept until the retention limit; the clients' file names (often patient names)
         # are not: a stack is named by its place in the upload.

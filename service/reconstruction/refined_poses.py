@@ -11,8 +11,11 @@ and every pose field is recomputed from ``T'``. Where the input body has no pose
 may upload only ``atlas_from_voxel`` and ``accepted``), the frame is the slice grid's own
 (:func:`service.preprocess.stack.split_stack`): ``T' = A' @ inverse(slice_from_voxel)``.
 
-``accepted`` and ``reason`` stay the model's (the body is a valid ``poses`` input to a new job);
-fields are added: ``included``, ``exclusion_reason``, ``weight``, ``ncc`` per slice, and
+``accepted`` and ``reason`` stay the model's (the body is a valid ``poses`` input to a new job),
+as do the other fields of the starting body (``expected_error_mm``, ``geodesic_variance``,
+``branch``, ``network_atlas_from_voxel``, each stack's ``consistency``): they describe the starting
+prediction, not the refined pose. Fields are added: ``included``, ``exclusion_reason``, ``weight``,
+``ncc`` and ``held_out_ncc`` per slice (the refined pose's own agreement with the volume), and
 ``refined_by`` at the top.
 
 Example:
@@ -62,7 +65,7 @@ def pose_fields(poses: ArrayLike) -> list[dict]:
 
 def refined_poses_body(predict_body: dict, refined: ArrayLike, slice_from_voxel: list[NDArray], *,
                        included: ArrayLike, weight: ArrayLike, ncc: ArrayLike, reasons: list[str | None],
-                       job_id: str) -> dict:
+                       job_id: str, held_out_ncc: ArrayLike | None = None) -> dict:
     """A ``/v1/predict``-shaped body with the refined poses of every slice.
 
     Args:
@@ -71,6 +74,8 @@ def refined_poses_body(predict_body: dict, refined: ArrayLike, slice_from_voxel:
         slice_from_voxel: per stack ``[n_s, 4, 4]`` voxel -> slice grid frame (used where the body has
             no pose fields).
         included, weight, ncc, reasons: per slice, from the reconstruction.
+        held_out_ncc: per slice, the NCC against the volume made without the slice's stack (None:
+            not measured; null per slice).
         job_id: the job (``refined_by``).
 
     Returns:
@@ -79,6 +84,7 @@ def refined_poses_body(predict_body: dict, refined: ArrayLike, slice_from_voxel:
     body = copy.deepcopy(predict_body)
     a_new = np.asarray(refined, dtype=np.float64)
     inc, w, c = np.asarray(included, bool), np.asarray(weight, np.float64), np.asarray(ncc, np.float64)
+    held = np.full(len(c), np.nan) if held_out_ncc is None else np.asarray(held_out_ncc, np.float64)
     start = 0
     for stack, sfv in zip(body["stacks"], slice_from_voxel):
         slices = stack["slices"]
@@ -97,7 +103,8 @@ def refined_poses_body(predict_body: dict, refined: ArrayLike, slice_from_voxel:
             i = start + k
             s.update(fields)
             s["atlas_from_voxel"] = a_new[i].tolist()
-            s.update(included=bool(inc[i]), exclusion_reason=reasons[i], weight=_num(w[i]), ncc=_num(c[i]))
+            s.update(included=bool(inc[i]), exclusion_reason=reasons[i], weight=_num(w[i]), ncc=_num(c[i]),
+                     held_out_ncc=_num(held[i]))
         start += n
     body.setdefault("request_id", job_id)
     body.setdefault("timing_ms", {})

@@ -106,6 +106,7 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
     for got, rec in zip(slices, report["slices"]):
         np.testing.assert_allclose(got["atlas_from_voxel"], rec["atlas_from_voxel"])
         assert got["included"] == rec["included"] and got["exclusion_reason"] == rec["exclusion_reason"]
+        assert (got["ncc"], got["held_out_ncc"]) == (rec["ncc"], rec["held_out_ncc"])    # as docs/reconstruction.md says
         rot = np.array(got["rotation"])
         np.testing.assert_allclose(rot @ rot.T, np.eye(3), atol=1e-9)
         assert len(got["anchor_points_mm"]) == 3 and len(got["quaternion_wxyz"]) == 4
