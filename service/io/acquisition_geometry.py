@@ -28,7 +28,7 @@ Example:
     >>> series_problem(tags) is None
     True
     >>> series_problem(tags[:2] + tags[3:])
-    'its slices are not evenly spaced (3, 6, 3 mm between neighbours): a file is missing, or it holds more than one stack'
+    'its slices are not evenly spaced (3, 6, 3 mm between neighbours): one is missing, or it holds more than one stack'
 """
 
 from __future__ import annotations
