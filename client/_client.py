@@ -192,7 +192,8 @@ class SVRnetClient(Transport):
                     svr_iterations: int | None = None, mc_samples: int | None = None,
                     variance_threshold: float | None = None, max_expected_error_mm: float | None = None,
                     slice_order: str | Sequence[str] | None = None, atlas_frame: bool | None = None,
-                    masks_hold_csf: bool | None = None, progress: ProgressCallback | None = None) -> dict[str, Any]:
+                    masks_hold_csf: bool | None = None, slice_thickness_mm: float | Sequence[float] | None = None,
+                    progress: ProgressCallback | None = None) -> dict[str, Any]:
         """``POST /v1/reconstructions``: start a slice-to-volume reconstruction job.
 
         Args:
@@ -209,6 +210,8 @@ class SVRnetClient(Transport):
             slice_order: as for :meth:`predict`.
             atlas_frame: re-estimate the reconstruction's atlas frame with the model (server default true).
             masks_hold_csf: as for :meth:`predict`.
+            slice_thickness_mm: the slices' thickness (mm), one value for every stack or one per stack
+                (server default: a DICOM file's SliceThickness, else the slice spacing).
             progress: ``progress(bytes_sent, total)`` during the upload.
 
         Returns:
@@ -228,6 +231,8 @@ class SVRnetClient(Transport):
                                                    ("atlas_frame", atlas_frame), ("masks_hold_csf", masks_hold_csf))
                   if v is not None]
         fields += order_fields(slice_order)
+        thickness = [slice_thickness_mm] if isinstance(slice_thickness_mm, (int, float)) else slice_thickness_mm or []
+        fields += [("slice_thickness_mm", form_value(float(t))) for t in thickness]
         files: list[tuple[str, str, Path | bytes, str]] = list(self._files(stacks, masks))
         if poses is not None:
             if isinstance(poses, Mapping):

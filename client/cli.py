@@ -236,6 +236,9 @@ def reconstruct(
     atlas_frame: Annotated[bool, typer.Option("--atlas-frame/--no-atlas-frame",
                                               help="re-estimate the volume's atlas frame with the model")] = True,
     masks_hold_csf: MasksHoldCsfOpt = False,
+    thickness: Annotated[Optional[list[float]], typer.Option(
+        "--thickness", help="slice thickness in mm, once for every stack or once per stack (default: a DICOM "
+        "file's SliceThickness, else the slice spacing; give it for slices with gaps or overlap)")] = None,
 ) -> None:
     """Start a reconstruction job (POST /v1/reconstructions); with --wait, follow it and download the volume."""
     _check_masks(stacks, mask)
@@ -248,7 +251,8 @@ def reconstruct(
                                   mc_samples=mc_samples, variance_threshold=threshold,
                                   max_expected_error_mm=max_expected_error, slice_order=slice_order,
                                   atlas_frame=None if atlas_frame else False,
-                                  masks_hold_csf=True if masks_hold_csf else None, progress=progress)
+                                  masks_hold_csf=True if masks_hold_csf else None, slice_thickness_mm=thickness,
+                                  progress=progress)
         job_id = str(job.get("job_id", ""))
         console.print(f"job {job_id} {job.get('status', 'queued')}: {job.get('status_url', '')}")
         if not wait:

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import json
 from datetime import datetime, timezone
-from typing import Annotated
+from typing import Annotated, Optional
 
 from anyio import to_thread
 from fastapi import APIRouter, Depends, Form, Request, Response
 from fastapi.responses import FileResponse
+from pydantic import Field
 
 from service.api.deps import ApiKey, RegistryDep, SettingsDep, SlotDep, queue_full
 from service.api.schemas import UPLOAD_ERRORS, problem_responses
@@ -16,6 +17,7 @@ from service.api.uploads import UploadFormDep, known_fields, save_and_read
 from service.pipeline.predict import stack_orders
 from service.pipeline.prepare import check_mask_grid
 from service.core.errors import Conflict, InvalidParameter, NotFound
+from service.io.acquisition_geometry import MAX_VOXEL_MM, MIN_VOXEL_MM
 from service.jobs.store import Job, JobStore
 from service.jobs.worker import poses_from_predict_body
 from service.preprocess.stack import slice_axis_of
@@ -48,6 +50,25 @@ def _job(request: Request, job_id: str) -> Job:
     return job
 
 
+ThicknessField = Annotated[float, Field(ge=MIN_VOXEL_MM, le=MAX_VOXEL_MM, allow_inf_nan=False)]
+"""One value of the ``slice_thickness_mm`` form field (mm)."""
+SLICE_THICKNESS_HELP = ("the slices' thickness (mm), the width of each slice's profile in the reconstruction: one "
+                        "value for every stack or one per stack; default: what a DICOM file states (SliceThickness), "
+                        "else the slice spacing (right for contiguous slices; give it for slices with gaps or overlap)")
+
+
+def thickness_per_stack(values: list[float] | None, n_stacks: int) -> list[float | None]:
+    """One slice thickness per stack (None: the file's, else the spacing) from the form's values, each
+    already within :data:`ThicknessField`'s bounds (:class:`InvalidParameter` naming the field for a
+    count that is neither one nor one per stack)."""
+    if not values:
+        return [None] * n_stacks
+    if len(values) not in (1, n_stacks):
+        raise InvalidParameter(f"slice_thickness_mm: {len(values)} values for {n_stacks} stacks; give one for every "
+                               "stack or one per stack")
+    return list(values) * n_stacks if len(values) == 1 else list(values)
+
+
 @router.post("", status_code=202, responses=UPLOAD_ERRORS, summary="Start a reconstruction job",
              dependencies=[Depends(known_fields("poses"))])
 async def submit(
@@ -61,6 +82,7 @@ async def submit(
     svr_iterations: Annotated[int, Form(ge=0, le=10)] = 3,
     atlas_frame: Annotated[bool, Form(description="re-estimate the reconstruction's atlas frame with the model on "
                                                   "slices re-cut from it (corrects the common error of the poses)")] = True,
+    slice_thickness_mm: Annotated[Optional[list[ThicknessField]], Form(description=SLICE_THICKNESS_HELP)] = None,
 ) -> dict:
     """Validates the files now (4xx at once), then queues the job; poll ``Location``.
 
@@ -68,6 +90,7 @@ async def submit(
     same files; without it the job predicts first.
     """
     model = registry.resolve(form.model)
+    thickness = thickness_per_stack(slice_thickness_mm, len(form.stacks))
     if (full := queue_full(request.app.state)) is not None:
         raise full
     raw = (await request.form()).get("poses")
@@ -76,7 +99,7 @@ async def submit(
     job = store.create({"resolution_mm": resolution_mm, "svr_iterations": svr_iterations, "mc_samples": form.mc_samples,
                         "variance_threshold": form.variance_threshold, "max_expected_error_mm": form.max_expected_error_mm,
                         "model": model, "slice_order": form.slice_order, "atlas_frame": atlas_frame,
-                        "masks_hold_csf": form.masks_hold_csf})
+                        "masks_hold_csf": form.masks_hold_csf, "slice_thickness_mm": thickness})
     inputs = store.directory(job.id) / "inputs"
     inputs.mkdir()
     try:

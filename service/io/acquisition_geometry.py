@@ -130,4 +130,20 @@ def series_problem(files: Sequence[Tags], what: str = "files") -> str | None:
     return None
 
 
-__all__ = ["MAX_FIELD_OF_VIEW_MM", "MAX_VOXEL_MM", "MIN_VOXEL_MM", "Tags", "grid_problem", "series_problem"]
+def stated_thickness(values: Sequence[object]) -> float | None:
+    """The slice thickness the files or frames of one stack state (DICOM ``SliceThickness``), when
+    every one states the same plausible value (within 1 %, :data:`MIN_VOXEL_MM` to
+    :data:`MAX_VOXEL_MM`); else None (unknown: the slice spacing stands in for it).
+
+    Example:
+        >>> stated_thickness(["3.0", 3.0, "3.00"]), stated_thickness([3.0, None]), stated_thickness([3.0, 4.0])
+        (3.0, None, None)
+    """
+    found = _floats(list(values), len(values)) if len(values) else None
+    if found is None or found.min() < MIN_VOXEL_MM or found.max() > MAX_VOXEL_MM or np.ptp(found) > 0.01 * found.max():
+        return None
+    return float(np.median(found))
+
+
+__all__ = ["MAX_FIELD_OF_VIEW_MM", "MAX_VOXEL_MM", "MIN_VOXEL_MM", "Tags", "grid_problem", "series_problem",
+           "stated_thickness"]

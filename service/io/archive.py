@@ -27,7 +27,7 @@ from pydicom import uid
 
 from service.core.errors import PayloadTooLarge, UnsupportedFile, UnusableImage
 from service.core.names import clean_name
-from service.io.acquisition_geometry import Tags, series_problem
+from service.io.acquisition_geometry import Tags, series_problem, stated_thickness
 from service.io.acquisition_times import order_of, seconds
 from service.io.dicom import read_dicom_file
 from service.io.dicom_guard import load_dataset
@@ -43,6 +43,7 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget) -> Volume:
     with tempfile.TemporaryDirectory(prefix="svrnet-zip-") as tmp:
         labels: dict[str, str] = {}           # unpacked file -> "archive.zip: member" (for messages)
         times: dict[str, float | None] = {}   # unpacked file -> its acquisition time (for the order only)
+        thicknesses: dict[str, object] = {}     # unpacked file -> its SliceThickness
         tags: dict[str, Tags] = {}            # unpacked file -> its geometry tags (to check the series)
         try:
             with zipfile.ZipFile(path) as z:
@@ -54,7 +55,7 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget) -> Volume:
                 for i, m in enumerate(members):
                     label = f"{filename}: {clean_name(m.filename) or f'member {i}'}"
                     out = Path(tmp) / f"{i:05d}.dcm"
-                    if _unpack(z, m, out, budget.member(label), label, times, tags):
+                    if _unpack(z, m, out, budget.member(label), label, times, tags, thicknesses):
                         labels[str(out)] = label
         except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as exc:
             raise UnsupportedFile(f"{filename}: corrupt or truncated ZIP archive") from exc
@@ -73,14 +74,15 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget) -> Volume:
         if (problem := series_problem([tags[f] for f in files])) is not None:
             raise UnusableImage(f"{filename}: a DICOM series of {len(files)} files, but {problem}")
         reader.SetFileNames(files)
-        return replace(from_sitk(reader.Execute()), acquisition_order=order_of([times.get(f) for f in files]))
+        return replace(from_sitk(reader.Execute()), acquisition_order=order_of([times.get(f) for f in files]),
+                       slice_thickness_mm=stated_thickness([thicknesses.get(f) for f in files]))
 
 
 def _unpack(z: zipfile.ZipFile, member: zipfile.ZipInfo, out: Path, budget: FileBudget, label: str,
-            times: dict[str, float | None], tags: dict[str, Tags]) -> bool:
+            times: dict[str, float | None], tags: dict[str, Tags], thicknesses: dict[str, object]) -> bool:
     """Inflate ``member`` to ``out`` (charged to ``budget``) and screen it; False: not a DICOM image.
     Its acquisition time goes to ``times`` (:mod:`service.io.acquisition_times`), its geometry tags
-    to ``tags`` (:mod:`service.io.acquisition_geometry`)."""
+    to ``tags`` (:mod:`service.io.acquisition_geometry`), its slice thickness to ``thicknesses``."""
     with z.open(member) as src, open(out, "wb") as dst:
         while chunk := src.read(1 << 20):
             budget.inflate(len(chunk))
@@ -103,6 +105,7 @@ def _unpack(z: zipfile.ZipFile, member: zipfile.ZipInfo, out: Path, budget: File
         out.unlink()
         return False
     times[str(out)] = seconds(ds)
+    thicknesses[str(out)] = ds.get("SliceThickness")
     tags[str(out)] = (ds.get("ImagePositionPatient"), ds.get("ImageOrientationPatient"), ds.get("PixelSpacing"))
     if ds.file_meta.TransferSyntaxUID == uid.ExplicitVRLittleEndian and _was_deflated(out):
         ds.save_as(out, implicit_vr=False, little_endian=True, enforce_file_format=True)

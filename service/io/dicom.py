@@ -30,7 +30,7 @@ from pydicom.errors import InvalidDicomError
 
 from service.core.errors import UnsupportedFile, UnusableImage
 from service.geometry import frames
-from service.io.acquisition_geometry import series_problem
+from service.io.acquisition_geometry import series_problem, stated_thickness
 from service.io.acquisition_times import order_of, seconds
 from service.io.dicom_guard import load_dataset
 from service.io.limits import FileBudget
@@ -127,8 +127,9 @@ def _multiframe(ds, pixels: np.ndarray, filename: str) -> Volume:  # noqa: ANN00
         dz, origin = float(between) if n > 1 else 1.0, np.asarray(position, dtype=np.float64)
     ps = [float(x) for x in tags[0][2]]
     lps = _lps_affine(row_dir, col_dir, normal, (ps[1], ps[0], abs(dz) or 1.0), origin)
+    thickness = stated_thickness([tag(group("PixelMeasuresSequence", f), "SliceThickness") for f in range(n)])
     return Volume(np.ascontiguousarray(pixels.transpose(2, 1, 0)), frames.ras_affine_from_lps(lps),
-                  order_of(frame_times))
+                  order_of(frame_times), slice_thickness_mm=thickness)
 
 
 def _mosaic(ds, pixels: np.ndarray, filename: str) -> Volume:  # noqa: ANN001
@@ -161,4 +162,5 @@ def _mosaic(ds, pixels: np.ndarray, filename: str) -> Volume:  # noqa: ANN001
     origin = origin + row_dir * ps[1] * (cols - tc) / 2.0 + col_dir * ps[0] * (rows - tr) / 2.0
     dz = float(getattr(ds, "SpacingBetweenSlices", None) or ds.SliceThickness)
     lps = _lps_affine(row_dir, col_dir, normal, (ps[1], ps[0], dz), origin)
-    return Volume(np.ascontiguousarray(stack.transpose(2, 1, 0)), frames.ras_affine_from_lps(lps))
+    return Volume(np.ascontiguousarray(stack.transpose(2, 1, 0)), frames.ras_affine_from_lps(lps),
+                  slice_thickness_mm=stated_thickness([getattr(ds, "SliceThickness", None)]))

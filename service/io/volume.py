@@ -41,6 +41,9 @@ class Volume:
     acquisition_order: tuple[int, ...] | None = None
     """The indices ``k`` in the order the scanner acquired the slices, where the file says (a DICOM
     series' per-slice acquisition times; only their order is kept, never the times)."""
+    slice_thickness_mm: float | None = None
+    """The slices' thickness where the file states it (DICOM ``SliceThickness``) or the client gave it;
+    None: unknown, and the slice spacing stands in for it (the reconstruction's slice profile)."""
     nifti: NiftiTransforms | None = None
     """The transforms of the NIfTI header the volume was read from (None for other files): written
     again into what the service returns on this grid, so that it overlays the upload in any viewer."""
@@ -62,7 +65,7 @@ class Volume:
         """
         affine = np.array(self.affine, dtype=np.float64)
         affine[:3, 3] += affine[:3, :3] @ [b.start or 0 for b in box]
-        return Volume(np.asarray(self.array)[box], affine)
+        return Volume(np.asarray(self.array)[box], affine, slice_thickness_mm=self.slice_thickness_mm)
 
 
 def from_sitk(image: sitk.Image) -> Volume:

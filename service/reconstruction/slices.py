@@ -45,7 +45,8 @@ class SliceSet:
         voxel: ``[N, 3]`` float32 voxel indices ``(i, j, k)`` of the pixels in their own stack.
         slice_id: ``[N]`` int32 index of each pixel's slice (into the per-slice arrays).
         atlas_from_voxel: ``[n, 4, 4]`` initial voxel -> atlas RAS mm transform of each slice.
-        thickness_mm: ``[n]`` slice spacing of the slice's stack (taken as the slice thickness).
+        thickness_mm: ``[n]`` slice thickness of the slice's stack (its volume's ``slice_thickness_mm``;
+            unknown: its slice spacing).
         pixel_mm: ``[n]`` mean in-plane pixel size.
         slice_axis: ``[n]`` the stack's voxel axis the slice was taken along.
         stack_index: ``[n]`` index of the slice's stack in the input list.
@@ -219,7 +220,7 @@ class SliceSet:
             parts["slice_id"].append((s_idx + offset).astype(np.int32))
             parts["mats"].append(mats)
             sp = volume.spacing
-            parts["thick"].append(np.full(n, sp[a]))
+            parts["thick"].append(np.full(n, volume.slice_thickness_mm or sp[a]))
             parts["pix"].append(np.full(n, 0.5 * (sp[p] + sp[q])))
             parts["axis"].append(np.full(n, a))
             parts["stack"].append(np.full(n, si))

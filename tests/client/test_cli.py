@@ -183,14 +183,14 @@ def test_cli_reconstruct_wait_downloads(fake_cli: Callable, stack_file: Path, tm
     out, preview, refined = tmp_path / "recon.nii.gz", tmp_path / "preview.png", tmp_path / "refined.json"
     r = invoke(["reconstruct", str(stack_file), "--poses", str(poses), "--resolution", "0.8", "--svr-iterations",
                 "2", "--wait", "--poll", "0.05", "--out", str(out), "--preview", str(preview),
-                "--poses-out", str(refined), "--no-atlas-frame", "--slice-order", "interleaved"])
+                "--poses-out", str(refined), "--no-atlas-frame", "--slice-order", "interleaved", "--thickness", "2.5"])
     assert r.exit_code == 0, r.output
     assert out.read_bytes() == FakeJobs.VOLUME and preview.read_bytes() == FakeJobs.PREVIEW
     assert json.loads(refined.read_text())["refined_by"] == {"job_id": "job1"}
     assert "job1" in r.stdout and "succeeded" in r.stdout
     fields, files = fake.jobs.uploads[0]
     assert fields == {"resolution_mm": ["0.8"], "svr_iterations": ["2"], "atlas_frame": ["false"],
-                      "slice_order": ["interleaved"]} and files[-1][0] == "poses"
+                      "slice_order": ["interleaved"], "slice_thickness_mm": ["2.5"]} and files[-1][0] == "poses"
 
 
 def test_cli_reconstruct_without_wait_and_failed_job(fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:

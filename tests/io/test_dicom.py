@@ -58,6 +58,7 @@ def test_a_mosaic_is_cut_into_its_declared_tiles(tmp_path: Path) -> None:
     assert vol.array.shape == (20, 24, 10)                                  # [column, row, slice]
     np.testing.assert_array_equal(vol.array.transpose(2, 1, 0), slices.astype(np.float32))
     np.testing.assert_allclose(vol.spacing, [2.0, 2.0, 3.5])
+    assert vol.slice_thickness_mm == 3.0
 
 
 @pytest.mark.parametrize(("declared", "matrix", "needle"), [
@@ -127,6 +128,7 @@ def test_an_enhanced_multiframe_is_placed_frame_by_frame_and_ordered_along_its_n
     np.testing.assert_allclose(vol.affine, frames.ras_affine_from_lps(lps), atol=1e-6)
     for f, d in enumerate(stored_depth):                   # depth d holds frame f, its columns along i
         np.testing.assert_array_equal(vol.array[:, :, d], pixels[f].T.astype(np.float32))
+    assert vol.slice_thickness_mm == 3.0                   # as stated (PixelMeasuresSequence), not the 3.3 mm spacing
 
 
 def _damaged(kind: str) -> dict:

@@ -96,6 +96,7 @@ def test_zipped_dicom_series_keeps_geometry(tmp_path: Path) -> None:
     vol = read_upload(z, "series.zip")
     np.testing.assert_allclose(vol.affine, aff, atol=1e-3)
     np.testing.assert_allclose(vol.array, arr, atol=0.5)
+    assert vol.slice_thickness_mm == pytest.approx(3.0)            # each file's SliceThickness
 
 
 @pytest.mark.parametrize(("damage", "words"), [

@@ -289,3 +289,21 @@ def test_cancelling_a_running_job_stops_it_and_leaves_nothing(client: TestClient
     assert st["status"] == "cancelled" and not folder.exists(), (st, folder.exists())
     # The worker is free again and serves the next job.
     assert wait(client, submit(client, case, svr_iterations="0").json()["job_id"])["status"] == "succeeded"
+
+
+@pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)     # the back-end plays no part
+def test_a_stated_slice_thickness_reaches_the_reconstruction_and_a_wrong_one_is_named(client: TestClient,
+                                                                                       case: dict) -> None:
+    n = len(case["files"])
+    for values, needle in (([2.0, 3.0], f"slice_thickness_mm: 2 values for {n} stacks"),
+                           ([0.01], "slice_thickness_mm.0: Input should be greater than or equal to 0.05"),
+                           (["nan"], "slice_thickness_mm.0: Input should be a finite number")):
+        r = submit(client, case, slice_thickness_mm=values)
+        assert r.status_code == 400 and needle in r.json()["detail"], r.text
+    r = submit(client, case, slice_thickness_mm=["4.5"])
+    assert r.status_code == 202, r.text
+    st = wait(client, r.json()["job_id"])
+    assert st["status"] == "succeeded", st
+    assert st["report"]["slice_thickness_mm"] == [4.5] * n                    # the stacks' spacing is 3 mm
+    st = wait(client, submit(client, case).json()["job_id"])
+    assert st["report"]["slice_thickness_mm"] != [4.5] * n                    # without it: the spacing
