@@ -130,6 +130,24 @@ def series_problem(files: Sequence[Tags], what: str = "files") -> str | None:
     return None
 
 
+def stacking_problem(spacing: Sequence[float], n_slices: int) -> str | None:
+    """Why a stack whose file says its slices run along its third axis (a DICOM series, a
+    multi-frame file) cannot be used as one: slices closer together than its pixels, so that the
+    axis of largest spacing, which API v1 takes as the slice axis, would be an in-plane one. None if
+    it can.
+
+    Example:
+        >>> stacking_problem([1.2, 1.2, 1.0], 30)
+        'its slices lie 1 mm apart, closer than its 1.2 mm pixels: the axis of largest spacing, the slice axis of API v1, would be an in-plane one; resample the stack to slices at least a pixel apart'
+    """
+    sp = np.asarray(spacing, np.float64)
+    if n_slices < 2 or sp[2] >= sp[:2].max() * (1 - 1e-6):
+        return None
+    return (f"its slices lie {sp[2]:.3g} mm apart, closer than its {sp[:2].max():.3g} mm pixels: the axis of largest "
+            "spacing, the slice axis of API v1, would be an in-plane one; resample the stack to slices at least a "
+            "pixel apart")
+
+
 def stated_thickness(values: Sequence[object]) -> float | None:
     """The slice thickness the files or frames of one stack state (DICOM ``SliceThickness``), when
     every one states the same plausible value (within 1 %, :data:`MIN_VOXEL_MM` to
@@ -146,4 +164,4 @@ def stated_thickness(values: Sequence[object]) -> float | None:
 
 
 __all__ = ["MAX_FIELD_OF_VIEW_MM", "MAX_VOXEL_MM", "MIN_VOXEL_MM", "Tags", "grid_problem", "series_problem",
-           "stated_thickness"]
+           "stacking_problem", "stated_thickness"]

@@ -30,7 +30,7 @@ import SimpleITK as sitk
 from isal import igzip, isal_zlib
 
 from service.core.errors import ServiceError, UnsupportedFile, UnusableImage
-from service.io.acquisition_geometry import grid_problem
+from service.io.acquisition_geometry import grid_problem, stacking_problem
 from service.io.archive import read_dicom_zip
 from service.io.dicom import read_dicom_file
 from service.io.headers import clean_header
@@ -119,10 +119,10 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
                 if by_sform:            # the standard's choice, with the sform's own voxel sizes (module nifti_header)
                     vol = replace(vol, affine=sform_affine(transforms))
                 vol = replace(vol, nifti=transforms)
-        elif kind == "dicom":
-            vol = read_dicom_file(path, filename, budget)
-        elif kind == "zip":
-            vol = read_dicom_zip(path, filename, budget)
+        elif kind in ("dicom", "zip"):
+            vol = (read_dicom_file if kind == "dicom" else read_dicom_zip)(path, filename, budget)
+            if (problem := stacking_problem(vol.spacing, vol.array.shape[2])) is not None:
+                raise UnusableImage(f"{filename}: {problem}")
         else:
             raise UnsupportedFile(f"{filename}: not a NIfTI, NRRD, MHA, DICOM or ZIP file (or truncated)")
     except ServiceError:

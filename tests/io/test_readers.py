@@ -299,3 +299,15 @@ def test_an_enhanced_multiframe_keeps_the_order_of_its_frame_times(tmp_path: Pat
     depth_of_time = {acquired_at[f]: stored_depth[f] for f in range(10)}
     assert vol.acquisition_order == tuple(depth_of_time[t] for t in range(10))
     np.testing.assert_allclose(vol.array[:, :, 0], ds.pixel_array[1].T)      # depth 0 is frame 1
+
+
+def test_a_series_of_slices_closer_than_its_pixels_is_422_not_cut_along_a_pixel_axis(tmp_path: Path) -> None:
+    """3 mm slices every 1.0 mm with 1.2 mm pixels: the axis of largest spacing would be an in-plane one."""
+    arr = (np.random.default_rng(8).random((10, 10, 12)) * 1000).astype(np.float32).round()
+    files = _write_series(tmp_path, Volume(arr, np.diag([1.2, 1.2, 1.0, 1.0])), "1.2.3.777")
+    z = tmp_path / "overlap.zip"
+    with zipfile.ZipFile(z, "w") as f:
+        for p in files:
+            f.write(p, p.name)
+    with pytest.raises(UnusableImage, match="overlap.zip: its slices lie 1 mm apart, closer than its 1.2 mm pixels"):
+        read_upload(z, "overlap.zip")
