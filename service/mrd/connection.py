@@ -48,9 +48,17 @@ from service.streaming.session import StreamSession
 log = logging.getLogger(__name__)
 
 MAX_TEXT_BYTES = 1 << 20
-# The streaming core names a slice's fields as Stream v1 does; a scanner knows them by the MRD image's.
+"""The smallest limit on one read from a client (a config, XML header, TEXT or meta string): the
+reader allows what the largest image of the pixel limit needs, and never less than this."""
+BYTES_PER_VALUE = 16
+"""The widest MRD pixel (complex double): what a pixel of an announced image can cost to read."""
+IMAGE_HEADER_BYTES = ctypes.sizeof(ismrmrd.ImageHeader)
+RAW_DATA = {ISMRMRDMessageID.ACQUISITION: "acquisition", ISMRMRDMessageID.WAVEFORM: "waveform",
+            ISMRMRDMessageID.NDARRAY: "ndarray"}
+KNOWN = {int(m) for m in ISMRMRDMessageID} - {int(ISMRMRDMessageID.UNPEEKED)}
 MRD_FIELDS = {"slice.scanner_from_voxel": "image header (position, read_dir, phase_dir, slice_dir, field_of_view)",
               "slice.shape": "image matrix_size", "slice.index": "image slice", "slice:": "image:"}
+"""The streaming core names a slice's fields as Stream v1 does; a scanner knows them by the MRD image's."""
 
 
 def in_mrd_terms(error: ServiceError) -> ServiceError:
@@ -68,14 +76,6 @@ def in_mrd_terms(error: ServiceError) -> ServiceError:
             renamed.args = (renamed.detail,)
             return renamed
     return error
-"""The smallest limit on one read from a client (a config, XML header, TEXT or meta string): the
-reader allows what the largest image of the pixel limit needs, and never less than this."""
-BYTES_PER_VALUE = 16
-"""The widest MRD pixel (complex double): what a pixel of an announced image can cost to read."""
-IMAGE_HEADER_BYTES = ctypes.sizeof(ismrmrd.ImageHeader)
-RAW_DATA = {ISMRMRDMessageID.ACQUISITION: "acquisition", ISMRMRDMessageID.WAVEFORM: "waveform",
-            ISMRMRDMessageID.NDARRAY: "ndarray"}
-KNOWN = {int(m) for m in ISMRMRDMessageID} - {int(ISMRMRDMessageID.UNPEEKED)}
 
 
 SessionFactory = Callable[[SessionOptions], StreamSession]
