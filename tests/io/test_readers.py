@@ -159,16 +159,19 @@ def test_a_zipped_series_keeps_the_order_of_its_acquisition_times(tmp_path: Path
     assert vol.acquisition_order == order
 
 
+def _zip_of(path: Path, files: list[Path]) -> Path:
+    with zipfile.ZipFile(path, "w") as f:
+        for p in files:
+            f.write(p, p.name)
+    return path
+
+
 def test_zip_with_two_series_or_none(tmp_path: Path) -> None:
     arr = np.ones((8, 8, 3), np.float32)
     files = _write_series(tmp_path, Volume(arr, np.diag([1.0, 1, 2, 1])), "1.2.3.111")
     files += _write_series(tmp_path, Volume(arr, np.diag([1.0, 1, 2, 1])), "1.2.3.222")
-    z = tmp_path / "two.zip"
-    with zipfile.ZipFile(z, "w") as f:
-        for p in files:
-            f.write(p, p.name)
     with pytest.raises(UnusableImage, match="2 DICOM series"):
-        read_upload(z, "two.zip")
+        read_upload(_zip_of(tmp_path / "two.zip", files), "two.zip")
     z2 = tmp_path / "none.zip"
     with zipfile.ZipFile(z2, "w") as f:
         f.writestr("readme.txt", "hello")
@@ -305,9 +308,5 @@ def test_a_series_of_slices_closer_than_its_pixels_is_422_not_cut_along_a_pixel_
     """3 mm slices every 1.0 mm with 1.2 mm pixels: the axis of largest spacing would be an in-plane one."""
     arr = (np.random.default_rng(8).random((10, 10, 12)) * 1000).astype(np.float32).round()
     files = _write_series(tmp_path, Volume(arr, np.diag([1.2, 1.2, 1.0, 1.0])), "1.2.3.777")
-    z = tmp_path / "overlap.zip"
-    with zipfile.ZipFile(z, "w") as f:
-        for p in files:
-            f.write(p, p.name)
     with pytest.raises(UnusableImage, match="overlap.zip: its slices lie 1 mm apart, closer than its 1.2 mm pixels"):
-        read_upload(z, "overlap.zip")
+        read_upload(_zip_of(tmp_path / "overlap.zip", files), "overlap.zip")
