@@ -20,6 +20,7 @@ from service.api.deps import MetricsAccess
 from service.api.metrics import Metrics
 from service.api.middleware import RequestContext
 from service.api.schemas import problem_responses
+from service.api.uploads import sweep_stale_uploads
 from service.core import logging as service_logging
 from service.core.machine import cpu_description
 from service.core.settings import Settings
@@ -55,6 +56,9 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
                 min(RETENTION_CHECK_S, settings.job_timeout_h * 3600 / 10)
             while True:
                 try:
+                    # Folders of requests a killed server left (uploads, decoded DICOM): an hour past
+                    # the upload deadline, no request of a live server still uses them.
+                    await asyncio.to_thread(sweep_stale_uploads, settings.tmp_dir, settings.upload_timeout_s + 3600)
                     await asyncio.to_thread(app.state.job_store.expire, settings.retention_hours * 3600)
                     await asyncio.to_thread(app.state.job_runner.maintain)
                 except Exception:  # noqa: BLE001 - a store briefly unreachable: /readyz says so; retry
@@ -105,5 +109,6 @@ def run() -> None:
     service_logging.configure(settings.log_level)
     # uvicorn's own access log writes each raw request path (job ids as sent, anything a client
     # puts in a URL); the service's JSON log records the route instead (service/api/middleware.py).
-    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=settings.log_level,
+    uvicorn.run(create_app(settings), host=settings.host, port=settings.port,
+                log_level=service_logging.server_log_level(settings.log_level),
                 access_log=False, http=with_header_deadline(settings.header_timeout_s))

@@ -12,7 +12,7 @@ from fastapi.responses import FileResponse
 from pydantic import Field
 
 from service.api.deps import ApiKey, RegistryDep, SettingsDep, SlotDep, queue_full
-from service.api.schemas import UPLOAD_ERRORS, problem_responses
+from service.api.schemas import UPLOAD_ERRORS, PredictResponse, known_only, problem_responses
 from service.api.uploads import UploadFormDep, known_fields, save_and_read
 from service.pipeline.predict import stack_orders
 from service.pipeline.prepare import check_mask_grid
@@ -116,7 +116,11 @@ async def submit(
                 poses_from_predict_body(body, counts, [u.volume.spacing for u in uploads])
             except ValueError as exc:
                 raise InvalidParameter(str(exc)) from exc
-            (inputs / "poses.json").write_text(json.dumps(body))
+            # Kept until the job ends, and the refined poses (kept for the retention time) are made
+            # from it: only the schema's fields, not whatever else a client's file holds.
+            kept = known_only(body, PredictResponse)
+            kept.pop("timing_ms", None)
+            (inputs / "poses.json").write_text(json.dumps(kept))
         for u in uploads:
             check_mask_grid(u)
     except Exception:

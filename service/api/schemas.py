@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import typing
 from typing import Literal, Optional
 
 from pydantic import BaseModel, Field
@@ -160,3 +161,34 @@ def problem_responses(*codes: int) -> dict:
 
 
 UPLOAD_ERRORS = problem_responses(400, 401, 404, 408, 413, 415, 422, 429, 503)   # the routes that take stacks
+
+
+def _model_in(annotation: object) -> type[BaseModel] | None:
+    """The pydantic model an annotation holds (itself, or inside Optional / list), if any."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    for arg in typing.get_args(annotation):
+        if (found := _model_in(arg)) is not None:
+            return found
+    return None
+
+
+def known_only(value: object, model: type[BaseModel]) -> object:
+    """``value`` (parsed JSON) with only the fields ``model`` declares, at every level of nesting, as
+    they were: what a client sends beyond the schema (a note, a patient's name) is not kept.
+
+    Example:
+        >>> known_only({"stacks": [{"index": 0, "note": "x", "slices": [{"index": 0, "who": "y"}]}], "extra": 1},
+        ...            PredictResponse)
+        {'stacks': [{'index': 0, 'slices': [{'index': 0}]}]}
+    """
+    if isinstance(value, list):
+        return [known_only(v, model) for v in value]
+    if not isinstance(value, dict):
+        return value
+    out = {}
+    for name, field in model.model_fields.items():
+        if name in value:
+            inner = _model_in(field.annotation)
+            out[name] = known_only(value[name], inner) if inner is not None else value[name]
+    return out

@@ -40,6 +40,7 @@ from service.core.errors import (
     ServiceError,
     Unauthorized,
 )
+from service.core.names import has_unsafe_characters
 from service.streaming.frames import SliceFrame
 from service.streaming.options import SessionOptions, StreamLimits
 from service.streaming.session import SliceAnswer, StreamSession
@@ -275,6 +276,8 @@ def _text(msg: dict, name: str, kind: str, default: str | None = None) -> str:
     value = msg.get(name, default)
     if not isinstance(value, str) or not 1 <= len(value) <= 128:
         raise InvalidParameter(f"{kind}.{name}: a string of 1 to 128 characters")
+    if has_unsafe_characters(value):      # echoed in every answer about it: nothing that could disguise one
+        raise InvalidParameter(f"{kind}.{name}: control, format or line-separator characters are not allowed")
     return value
 
 

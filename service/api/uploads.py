@@ -7,6 +7,7 @@ import math
 import shutil
 import tempfile
 import threading
+import time
 import typing
 from collections.abc import Awaitable, Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -32,11 +33,45 @@ READ_WORKERS = 2
 DECODING = threading.BoundedSemaphore(READ_WORKERS)
 
 
+STALE_PREFIXES = ("svrnet-req-", "svrnet-read-", "svrnet-zip-")
+"""The temporary folders of requests and readers (:func:`upload_directory`, :mod:`service.io.readers`)."""
+
+
 @contextmanager
 def upload_directory(base: Path | None) -> Iterator[Path]:
-    """A private directory for this request's files, removed afterwards whatever happens."""
+    """A private directory for this request's files, removed afterwards whatever happens; the readers
+    decode into it too, so that a process killed mid-request leaves one folder for
+    :func:`sweep_stale_uploads`."""
     with tempfile.TemporaryDirectory(prefix="svrnet-req-", dir=base) as tmp:
         yield Path(tmp)
+
+
+def sweep_stale_uploads(base: Path | None, older_than_s: float) -> int:
+    """Delete the service's temporary upload folders in ``base`` (default: the system's temporary
+    folder) untouched for over ``older_than_s``: what a server killed mid-request left behind (a live
+    request's folder is younger than its upload deadline and its processing). Returns their number.
+
+    Example:
+        >>> import os, tempfile
+        >>> base = Path(tempfile.mkdtemp()); (base / "svrnet-req-old").mkdir(); (base / "other").mkdir()
+        >>> os.utime(base / "svrnet-req-old", (0, 0)); sweep_stale_uploads(base, 3600), sorted(os.listdir(base))
+        (1, ['other'])
+    """
+    root, now, swept = Path(base or tempfile.gettempdir()), time.time(), 0
+    try:
+        entries = list(root.iterdir())
+    except OSError:
+        return 0
+    for entry in entries:
+        try:
+            stale = (entry.name.startswith(STALE_PREFIXES) and entry.is_dir() and not entry.is_symlink()
+                     and now - entry.stat().st_mtime > older_than_s)
+        except OSError:
+            continue
+        if stale:
+            shutil.rmtree(entry, ignore_errors=True)
+            swept += 1
+    return swept
 
 
 def display_name(upload: UploadFile, field: str, index: int) -> str:
@@ -182,4 +217,4 @@ def _read(upload: UploadFile, path: Path, name: str, budget: DecodeBudget):  # n
     with open(path, "wb") as f:
         shutil.copyfileobj(upload.file, f, 1 << 20)
     with DECODING:
-        return read_upload(path, name, budget=budget.file(name))
+        return read_upload(path, name, budget=budget.file(name), scratch=path.parent)

@@ -10,6 +10,7 @@ import json
 import logging
 import sys
 import time
+import warnings
 
 SAFE_FIELDS = ("request_id", "route", "method", "status", "duration_ms", "n_stacks", "n_slices", "model",
                "error_type", "error_at", "job_id", "stage")
@@ -49,11 +50,31 @@ class JsonFormatter(logging.Formatter):
         return json.dumps(out)
 
 
+QUIET = {"pydicom": logging.CRITICAL, "multipart": logging.ERROR, "python_multipart": logging.ERROR}
+"""Libraries whose messages may quote what they parse (pydicom a DICOM attribute's value, the form
+parser a body's bytes): their loggers only pass what stops them."""
+
+
 def configure(level: str = "info") -> None:
-    """Send the ``service`` loggers to stderr as JSON lines."""
+    """Send the ``service`` loggers to stderr as JSON lines; quiet the libraries that parse clients'
+    bytes (:data:`QUIET`, and pydicom's warnings, which name an attribute and may quote its value)."""
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(JsonFormatter())
     root = logging.getLogger("service")
     root.handlers[:] = [handler]
     root.setLevel(level.upper())
     root.propagate = False
+    for name, floor in QUIET.items():
+        logging.getLogger(name).setLevel(floor)
+    warnings.filterwarnings("ignore", module=r"pydicom(\.|$)")
+
+
+def server_log_level(level: str) -> str:
+    """The level for uvicorn's own loggers: never below ``info``. At ``debug`` uvicorn logs every
+    WebSocket frame (stream slices, stack names, an ``auth`` message's API key) as text.
+
+    Example:
+        >>> server_log_level("debug"), server_log_level("warning")
+        ('info', 'warning')
+    """
+    return "info" if level.lower() in ("debug", "trace") else level.lower()

@@ -21,10 +21,26 @@ MAX_NAME = 255
 IMAGE_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd", ".dcm", ".zip", ".gz")
 
 
+UNSAFE_CATEGORIES = ("Cc", "Cf", "Cs", "Co", "Cn", "Zl", "Zp")
+"""Unicode categories never echoed: controls, format characters, surrogates, private and unassigned
+code points, line and paragraph separators."""
+
+
 def clean_name(name: str) -> str:
     """``name`` without control/format/separator characters, trimmed, at most :data:`MAX_NAME` long."""
-    kept = "".join(c for c in name if unicodedata.category(c) not in ("Cc", "Cf", "Cs", "Co", "Cn", "Zl", "Zp"))
+    kept = "".join(c for c in name if unicodedata.category(c) not in UNSAFE_CATEGORIES)
     return kept.strip()[:MAX_NAME]
+
+
+def has_unsafe_characters(name: str) -> bool:
+    """Whether ``name`` holds a character :func:`clean_name` would remove (not counting white space
+    at its ends).
+
+    Example:
+        >>> has_unsafe_characters("axial 1"), has_unsafe_characters("ax\u202eial")
+        (False, True)
+    """
+    return any(unicodedata.category(c) in UNSAFE_CATEGORIES for c in name)
 
 
 def unique_stems(names: list[str]) -> list[str]:

@@ -38,9 +38,10 @@ MAX_MEMBERS = 5000
 ARCHIVE_MAGIC = (b"PK\x03\x04", b"PK\x05\x06", b"\x1f\x8b", b"BZh", b"\xfd7zXZ", b"7z\xbc\xaf", b"Rar!")
 
 
-def read_dicom_zip(path: Path, filename: str, budget: FileBudget) -> Volume:
-    """The one DICOM series inside the ZIP archive ``path`` (the client's ``filename``)."""
-    with tempfile.TemporaryDirectory(prefix="svrnet-zip-") as tmp:
+def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path | None = None) -> Volume:
+    """The one DICOM series inside the ZIP archive ``path`` (the client's ``filename``), its members
+    unpacked into a temporary folder in ``scratch`` (default: the system's)."""
+    with tempfile.TemporaryDirectory(prefix="svrnet-zip-", dir=scratch) as tmp:
         labels: dict[str, str] = {}           # unpacked file -> "archive.zip: member" (for messages)
         times: dict[str, float | None] = {}   # unpacked file -> its acquisition time (for the order only)
         thicknesses: dict[str, object] = {}     # unpacked file -> its SliceThickness

@@ -78,18 +78,22 @@ def _is_nifti(head: bytes) -> bool:
 
 
 def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_BYTES,
-                budget: FileBudget | None = None) -> Volume:
+                budget: FileBudget | None = None, scratch: Path | None = None) -> Volume:
     """Read one uploaded file as a 3D :class:`Volume`; ``filename`` is used in error messages only.
 
     ``budget`` (default: ``max_decoded_bytes`` for this file alone) is charged by every decoder as it
     decodes: gzip, ZIP members, DICOM deflate and the voxel array itself (see :mod:`service.io.limits`).
+    ``scratch``: where the decoded copies go while the file is read (a ZIP's members, a gunzipped
+    NIfTI; default: the system's temporary folder). The service passes the folder of the request or
+    job the upload belongs to, so that a process killed while reading leaves them where that
+    request's or job's own clean-up removes them.
     Whatever a parser raises on a client's bytes becomes a 4xx naming ``filename``, never a 500.
     """
     budget = budget or DecodeBudget(max_decoded_bytes).file(filename)
     try:
         kind = sniff(path)
         if kind in SUFFIX_BY_KIND:
-            with tempfile.TemporaryDirectory(prefix="svrnet-read-") as tmp:
+            with tempfile.TemporaryDirectory(prefix="svrnet-read-", dir=scratch) as tmp:
                 if kind == "nifti-gz":   # decoded once, here; the checks and SimpleITK read the plain file
                     path, kind = _gunzip(path, Path(tmp) / "decoded.nii", budget), "nifti"
                 if kind == "nifti" and _nifti_pair(path):
@@ -120,7 +124,8 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
                     vol = replace(vol, affine=sform_affine(transforms))
                 vol = replace(vol, nifti=transforms)
         elif kind in ("dicom", "zip"):
-            vol = (read_dicom_file if kind == "dicom" else read_dicom_zip)(path, filename, budget)
+            vol = read_dicom_file(path, filename, budget) if kind == "dicom" else read_dicom_zip(path, filename, budget,
+                                                                                                 scratch)
             if (problem := stacking_problem(vol.spacing, vol.array.shape[2])) is not None:
                 raise UnusableImage(f"{filename}: {problem}")
         else:

@@ -305,11 +305,11 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     budget = DecodeBudget(2**62)
     for i, (s, m) in enumerate(_stack_files(folder / "inputs")):
         sname = _name(names, "stacks", i)
-        vol = read_upload(s, sname, budget=budget.file(sname))
+        vol = read_upload(s, sname, budget=budget.file(sname), scratch=s.parent)
         if (given := (params.get("slice_thickness_mm") or [None] * (i + 1))[i]) is not None:
             vol = replace(vol, slice_thickness_mm=float(given))        # the client's word over the file's
         mname = _name(names, "masks", i) if m is not None else None
-        mask = read_upload(m, mname, budget=budget.file(mname)) if m is not None else None
+        mask = read_upload(m, mname, budget=budget.file(mname), scratch=m.parent) if m is not None else None
         uploads.append(StackUpload(sname, vol, mask, mname, mask_holds_csf=bool(params.get("masks_hold_csf", False))))
     poses_path = folder / "inputs" / "poses.json"
     model_file = models_dir / params.get("model", "default") / "model.onnx"

@@ -310,3 +310,21 @@ def test_a_series_of_slices_closer_than_its_pixels_is_422_not_cut_along_a_pixel_
     files = _write_series(tmp_path, Volume(arr, np.diag([1.2, 1.2, 1.0, 1.0])), "1.2.3.777")
     with pytest.raises(UnusableImage, match="overlap.zip: its slices lie 1 mm apart, closer than its 1.2 mm pixels"):
         read_upload(_zip_of(tmp_path / "overlap.zip", files), "overlap.zip")
+
+
+def test_a_zipped_series_is_unpacked_into_the_scratch_folder_given(tmp_path: Path, monkeypatch) -> None:
+    """The service passes the request's or job's own folder: a process killed mid-read leaves the
+    decoded DICOM files (every tag of them) where that request's or job's clean-up removes them."""
+    import service.io.archive as archive
+
+    arr = (np.random.default_rng(9).random((8, 8, 4)) * 1000).astype(np.float32).round()
+    z = _zip_of(tmp_path / "s.zip", _write_series(tmp_path, Volume(arr, np.diag([1.0, 1.0, 3.0, 1.0])), "1.2.3.888"))
+    seen: list[Path] = []
+    monkeypatch.setattr(archive.sitk.ImageSeriesReader, "GetGDCMSeriesFileNames",
+                        lambda self, folder, uid: seen.append(Path(folder)) or sorted(
+                            str(p) for p in Path(folder).rglob("*") if p.is_file()))
+    scratch = tmp_path / "job" / "inputs"
+    scratch.mkdir(parents=True)
+    read_upload(z, "s.zip", scratch=scratch)
+    assert len(seen) == 1 and seen[0].parent == scratch and seen[0].name.startswith("svrnet-zip-")
+    assert list(scratch.iterdir()) == []                     # removed again once read

@@ -307,3 +307,18 @@ def test_a_stated_slice_thickness_reaches_the_reconstruction_and_a_wrong_one_is_
     assert st["report"]["slice_thickness_mm"] == [4.5] * n                    # the stacks' spacing is 3 mm
     st = wait(client, submit(client, case).json()["job_id"])
     assert st["report"]["slice_thickness_mm"] != [4.5] * n                    # without it: the spacing
+
+
+@pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)     # the back-end plays no part
+def test_a_clients_extra_fields_in_its_poses_are_not_kept(client: TestClient, case: dict) -> None:
+    """The refined poses are kept for the retention time: only the schema's fields of the uploaded body."""
+    poses = json.loads(json.dumps(case["poses"]))
+    poses["patient"] = {"name": "ZZPATIENTZZ"}
+    poses["stacks"][0]["series_description"] = "ZZPATIENTZZ"
+    poses["stacks"][1]["slices"][0]["note"] = "ZZPATIENTZZ"
+    poses["timing_ms"] = {"ZZPATIENTZZ": 1.0}
+    job_id = submit(client, case, poses=poses).json()["job_id"]
+    st = wait(client, job_id)
+    assert st["status"] == "succeeded", st
+    refined = client.get(st["poses_url"]).text
+    assert "ZZPATIENTZZ" not in refined and json.loads(refined)["stacks"][1]["slices"][0]["atlas_from_voxel"]

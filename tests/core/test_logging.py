@@ -1,0 +1,37 @@
+"""The service's logs: JSON lines of safe fields; libraries that parse clients' bytes kept quiet."""
+
+from __future__ import annotations
+
+import json
+import logging
+import warnings
+
+import pytest
+
+from service.core import logging as service_logging
+
+
+@pytest.fixture(autouse=True)
+def _restored_logging():  # noqa: ANN202 - configure() changes process-wide state: put it back
+    loggers = [logging.getLogger(n) for n in ("service", *service_logging.QUIET)]
+    saved = [(lg.handlers[:], lg.level, lg.propagate) for lg in loggers]
+    with warnings.catch_warnings():
+        yield
+    for lg, (handlers, level, propagate) in zip(loggers, saved):
+        lg.handlers[:], lg.level, lg.propagate = handlers, level, propagate
+
+
+def test_libraries_that_quote_what_they_parse_pass_nothing_below_their_floor(capsys) -> None:  # noqa: ANN001
+    service_logging.configure("debug")
+    logging.getLogger("pydicom").warning("Value 'Doe^Jane' is not valid for VR DS")
+    logging.getLogger("service.test").info("request", extra={"route": "/v1/predict", "stack_name": "Doe_Jane.nii"})
+    with warnings.catch_warnings(record=True) as caught:
+        service_logging.configure("debug")                         # filters are set again inside catch_warnings
+        warnings.warn_explicit("The PN component length (200) exceeds 64", UserWarning, "valuerep.py", 1,
+                               module="pydicom.valuerep")
+    assert not caught
+    err = capsys.readouterr().err
+    assert "Doe" not in err
+    line = json.loads(err.strip().splitlines()[-1])
+    assert line["route"] == "/v1/predict" and "stack_name" not in line
+    assert service_logging.server_log_level("DEBUG") == "info"     # uvicorn's frames never logged
