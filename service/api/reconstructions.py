@@ -12,7 +12,7 @@ from fastapi.responses import FileResponse
 from pydantic import Field
 
 from service.api.deps import ApiKey, RegistryDep, SettingsDep, SlotDep, queue_full
-from service.api.schemas import UPLOAD_ERRORS, PredictResponse, known_only, problem_responses
+from service.api.schemas import UPLOAD_ERRORS, RefinedPoses, known_only, problem_responses
 from service.api.uploads import UploadFormDep, known_fields, save_and_read
 from service.pipeline.predict import stack_orders
 from service.pipeline.prepare import check_mask_grid
@@ -117,8 +117,9 @@ async def submit(
             except ValueError as exc:
                 raise InvalidParameter(str(exc)) from exc
             # Kept until the job ends, and the refined poses (kept for the retention time) are made
-            # from it: only the schema's fields, not whatever else a client's file holds.
-            kept = known_only(body, PredictResponse)
+            # from it: only the schema's fields (a /v1/predict body's, or a job's refined poses'),
+            # not whatever else a client's file holds.
+            kept = known_only(body, RefinedPoses)
             kept.pop("timing_ms", None)
             (inputs / "poses.json").write_text(json.dumps(kept))
         for u in uploads:

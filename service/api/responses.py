@@ -11,6 +11,8 @@ Example:
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
@@ -118,7 +120,9 @@ def stack_message(answer: StackAnswer) -> dict:
     """A stream's ``stack`` message: the stack's final poses, its consistency and localisation, the
     slices worth acquiring again and the session's coverage."""
     p = answer.prediction
-    slices = [{"stack": answer.stack, **s} for s in slice_objects(p)]
+    loc = p.prepared.localisation
+    found = {"method": loc.method, "confidence": round(loc.confidence, 3)}
+    slices = [{"stack": answer.stack, **s, "localisation": found} for s in slice_objects(p)]
     return {"type": "stack", "stack": answer.stack, "slices": slices, "consistency": stack_report(p.poses),
             "localisation": p.prepared.localisation.report(),
             "reacquire": [{"index": k, "reason": r} for k, r in answer.reacquire],
@@ -141,12 +145,16 @@ def update_messages(answers: list[SliceAnswer]) -> list[dict]:
             for stack, group in by_stack.items()]
 
 
-def summary_message(summary: SessionSummary, **timing_ms: float) -> dict:
-    """A stream's ``summary``: the session's stacks, slices, coverage and where its time went."""
+def summary_message(summary: SessionSummary, started: float, latencies_ms: list[float]) -> dict:
+    """A stream's ``summary``: the session's stacks, slices, coverage and where its time went,
+    with the session's length since ``started`` (``time.perf_counter``) and the median and 95th
+    percentile of its pose latencies (ms)."""
+    lat = np.asarray(latencies_ms, np.float64) if latencies_ms else np.zeros(1)
+    session = {"session": (time.perf_counter() - started) * 1e3, "pose_latency_p50": float(np.percentile(lat, 50)),
+               "pose_latency_p95": float(np.percentile(lat, 95))}
     return {"type": "summary", "stacks": summary.stacks, "slices": summary.slices,
             "coverage": summary.coverage.report(),
-            "timing_ms": {**{k: round(v, 1) for k, v in summary.compute_ms.items()},
-                          **{k: round(v, 1) for k, v in timing_ms.items()}}}
+            "timing_ms": {k: round(v, 1) for k, v in {**summary.compute_ms, **session}.items()}}
 
 
 def error_message(e: ServiceError, **extra: object) -> dict:

@@ -132,6 +132,31 @@ class PredictResponse(BaseModel):
     timing_ms: dict[str, float]
 
 
+class RefinedBy(BaseModel):
+    job_id: str
+    stage: str
+
+
+class RefinedSlice(SliceResult):
+    included: Optional[bool] = Field(None, description="the job reconstructed from this slice")
+    exclusion_reason: Optional[str] = None
+    weight: Optional[float] = None
+    ncc: Optional[float] = Field(None, description="NCC between the slice and the volume simulated at its pose")
+    held_out_ncc: Optional[float] = Field(None, description="the same against the volume made without its stack")
+
+
+class RefinedStack(StackResult):
+    slices: list[RefinedSlice]
+
+
+class RefinedPoses(PredictResponse):
+    """A job's refined poses (``GET /v1/reconstructions/{id}/poses``): a ``/v1/predict`` body with what
+    the job made of each slice; a valid ``poses`` input to a new job."""
+
+    stacks: list[RefinedStack]
+    refined_by: Optional[RefinedBy] = None
+
+
 class ModelDescription(BaseModel):
     name: str
     version: str

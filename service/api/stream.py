@@ -36,6 +36,7 @@ from service.core.errors import (
     InvalidParameter,
     MalformedRequest,
     NotReady,
+    RequestTimeout,
     Saturated,
     ServiceError,
     Unauthorized,
@@ -93,8 +94,8 @@ class StreamConnection:
         try:
             frame = await asyncio.wait_for(self.ws.receive(), self.settings.stream_idle_s)
         except TimeoutError:
-            await self.send(error_message(MalformedRequest(f"session: idle for {self.settings.stream_idle_s:g} s; "
-                                                           "closing")))
+            await self.send(error_message(RequestTimeout(f"session: idle for {self.settings.stream_idle_s:g} s; "
+                                                         "closing")))
             await self.ws.close(GOING_AWAY)
             raise _Closed from None
         if frame["type"] == "websocket.disconnect":
@@ -142,10 +143,7 @@ class StreamConnection:
         if kind == "end":
             await self.settle()
             summary = await self.in_background("end_stack", self.session.summary)
-            lat = np.array(self.latencies) if self.latencies else np.zeros(1)
-            await self.send(summary_message(summary, session=(time.perf_counter() - self.started) * 1e3,
-                                            pose_latency_p50=float(np.percentile(lat, 50)),
-                                            pose_latency_p95=float(np.percentile(lat, 95))))
+            await self.send(summary_message(summary, self.started, self.latencies))
             await self.ws.close(1000)
             raise _Closed
         raise InvalidParameter(f"type: unknown message type {kind!r} (auth, start, slice, end_stack, end)")

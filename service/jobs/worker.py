@@ -61,12 +61,14 @@ def poses_from_predict_body(body: dict, n_slices: list[int],
     are sized by those poses.
 
     A stack's slices are matched by their ``index`` where they have one (the body's list is put in
-    that order, :func:`in_index_order`), else by their place in the list.
+    that order, :func:`in_index_order`), else by their place in the list. Of a job's refined poses
+    (``refined_by``) the slices it reconstructed from (``included``) are the accepted ones.
 
     Raises:
         ValueError: naming what does not match the uploaded stacks.
     """
     stacks = body.get("stacks") if isinstance(body, dict) else None
+    refined = isinstance(body, dict) and isinstance(body.get("refined_by"), dict)
     if not isinstance(stacks, list) or len(stacks) != len(n_slices):
         raise ValueError(f"poses: expected results for {len(n_slices)} stacks")
     out = []
@@ -79,7 +81,9 @@ def poses_from_predict_body(body: dict, n_slices: list[int],
         slices = st["slices"] = in_index_order(slices, i)
         try:
             mats = np.array([s["atlas_from_voxel"] for s in slices], dtype=np.float64)
-            acc = [s["accepted"] for s in slices]
+            # A job's refined poses: the slices that job reconstructed from (``included``), whatever
+            # the model first said of them (a job started from every slice when too few were accepted).
+            acc = [s["included"] if refined and "included" in s else s["accepted"] for s in slices]
         except (KeyError, TypeError, ValueError, IndexError, RecursionError) as exc:
             raise ValueError(f"poses: stack {i}: each slice needs atlas_from_voxel and accepted") from exc
         if mats.shape != (n, 4, 4) or not np.isfinite(mats).all():

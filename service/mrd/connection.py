@@ -38,7 +38,8 @@ import ismrmrd
 from ismrmrd.serialization import ConfigText, ISMRMRDMessageID
 
 from service.api.responses import error_message, pose_object, stack_message, summary_message, update_messages
-from service.core.errors import InternalError, InvalidParameter, PayloadTooLarge, ServiceError, UnusableImage
+from service.core.errors import (InternalError, InvalidParameter, PayloadTooLarge, RequestTimeout, ServiceError,
+                                 UnusableImage)
 from service.mrd.images import pixel_count, slice_from_image, with_pose
 from service.streaming.frames import SliceFrame
 from service.streaming.background import background_executor
@@ -142,6 +143,7 @@ class MrdConnection:
         self.slices_per_series: int | None = None
         self.series: dict[int, SeriesState] = {}
         self.counts = {"images": 0, "refused": 0, "stacks": 0}
+        self.started, self.latencies = time.perf_counter(), []
         self.ignored: set[str] = set()
         self.broken = False
         """Whether the connection ended inside a message (its rest unread)."""
@@ -165,7 +167,7 @@ class MrdConnection:
             self.close_with(broken.error)
         except TimeoutError:
             outcome, self.broken = "idle", True
-            self.close_with(InvalidParameter("connection: no message for too long; the server closes it"))
+            self.close_with(RequestTimeout("connection: no message for too long; the server closes it"))
         except (EOFError, ConnectionError):
             outcome = "client gone"
         finally:
@@ -274,7 +276,8 @@ class MrdConnection:
             log.error("mrd image failed", extra={"error_type": type(fault).__name__})
             self.send_error(InternalError("image: the server failed on this image"), series_index, int(image.slice))
             return
-        pose = pose_object(answer, latency_ms=round((time.perf_counter() - received) * 1e3, 2))
+        self.latencies.append((time.perf_counter() - received) * 1e3)
+        pose = pose_object(answer, latency_ms=round(self.latencies[-1], 2))
         self.send(with_pose(image, pose))
         series.slices.add(int(image.slice))
         if self.slices_per_series is not None and len(series.slices) >= self.slices_per_series:
@@ -345,7 +348,7 @@ class MrdConnection:
                 self.end_series(series_index)
         self.settle()
         if self.session is not None:
-            self.send_text(summary_message(self.session.summary()))
+            self.send_text(summary_message(self.session.summary(), self.started, self.latencies))
         self.outgoing.close()
 
     # -- answers ---------------------------------------------------------------------------------------------------

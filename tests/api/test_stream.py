@@ -62,6 +62,7 @@ def test_a_session_answers_every_slice_in_order_where_the_truth_is(client, case)
             ws.send_text(json.dumps({"type": "end_stack", "stack": frames[0].stack}))
             stack = receive(ws, ("stack",))
             assert [s["index"] for s in stack["slices"]] == list(range(len(frames)))
+            assert all(s["stack"] == frames[0].stack and s["localisation"]["method"] == "mask" for s in stack["slices"])
             got = np.array([s["atlas_from_voxel"] for s in stack["slices"]])
             want = np.stack([true_sent(truth, k) for k in range(len(frames))])
             assert np.abs(got[:, :3, 3] - want[:, :3, 3]).max() < 0.5
@@ -141,3 +142,16 @@ def test_keys_and_the_session_limit(case) -> None:  # noqa: ANN001
                 with pytest.raises(WebSocketDisconnect) as closed:
                     second.receive_json()
                 assert closed.value.code == 1013
+
+
+def test_an_idle_session_is_told_so_and_closed_going_away(case) -> None:  # noqa: ANN001
+    with make_client(ModelRegistry({"default": case[0]}), stream_idle_s=0.3) as client:
+        with client.websocket_connect("/v1/stream") as ws:
+            ws.send_text(json.dumps({"type": "start", "mc_samples": 5}))
+            assert ws.receive_json()["type"] == "ready"
+            error = ws.receive_json()                                 # nothing sent for 0.3 s
+            assert error["type"] == "error" and error["status"] == 408 and "idle for 0.3 s" in error["detail"]
+            assert error["problem_type"] == "/problems/request-timeout"
+            with pytest.raises(WebSocketDisconnect) as closed:
+                ws.receive_json()
+            assert closed.value.code == 1001

@@ -322,3 +322,24 @@ def test_a_clients_extra_fields_in_its_poses_are_not_kept(client: TestClient, ca
     assert st["status"] == "succeeded", st
     refined = client.get(st["poses_url"]).text
     assert "ZZPATIENTZZ" not in refined and json.loads(refined)["stacks"][1]["slices"][0]["atlas_from_voxel"]
+
+
+@pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)     # the back-end plays no part
+def test_refined_poses_of_a_job_that_started_from_every_slice_are_a_valid_poses_input(client: TestClient,
+                                                                                     case: dict) -> None:
+    """Too few slices accepted: a job starts from all of them, and its refined poses say so by
+    ``included`` while ``accepted`` stays the model's (false)."""
+    refined = json.loads(json.dumps(case["poses"]))
+    refined["refined_by"] = {"job_id": "earlier", "stage": "slice-to-volume reconstruction"}
+    for st_ in refined["stacks"]:
+        for s in st_["slices"]:
+            s.update(accepted=False, included=True)
+    r = submit(client, case, poses=refined)
+    assert r.status_code == 202, r.text
+    assert wait(client, r.json()["job_id"])["status"] == "succeeded"
+    for s in refined["stacks"][0]["slices"]:
+        s["included"] = False
+    for st_ in refined["stacks"][1:]:
+        for s in st_["slices"]:
+            s["included"] = False
+    assert "no slice is accepted" in submit(client, case, poses=refined).json()["detail"]

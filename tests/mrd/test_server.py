@@ -59,6 +59,8 @@ def test_every_image_comes_back_in_order_with_its_true_pose(case: Case, serve) -
         assert np.linalg.norm(final[:, :3, 3] - truth[:, :3, 3], axis=1).max() < 0.5
     summary = messages[-1]
     assert summary["stacks"] == ["0", "1"] and summary["slices"] == 40
+    timing = summary["timing_ms"]                                      # as Stream v1's summary
+    assert timing["session"] > 0 and timing["pose_latency_p95"] >= timing["pose_latency_p50"] > 0
 
 
 def image_like(image: ismrmrd.Image, data: np.ndarray, **fields: object) -> ismrmrd.Image:
@@ -129,7 +131,7 @@ def test_a_silent_connection_is_closed_with_an_error(serve, silent_s: float) -> 
     server = serve(limits=ServerLimits(idle_s=silent_s))
     client = MrdClient(server.port)
     (error,) = texts(client.wait())
-    assert client.closed_by_server and "no message for too long" in error["detail"]
+    assert client.closed_by_server and "no message for too long" in error["detail"] and error["status"] == 408
 
 
 
