@@ -366,11 +366,13 @@ def cancel(
     job: Annotated[str, typer.Argument(help="job id")],
     server: ServerOpt = DEFAULT_SERVER,
 ) -> None:
-    """Cancel a queued or running job and delete its files (DELETE /v1/reconstructions/{job})."""
+    """Cancel a queued or running job and delete its files; a finished (or cancelled) job is deleted
+    (DELETE /v1/reconstructions/{job})."""
     job = _job_id(job)
     with errors(), _client(server) as svr:
+        before = str(svr.status(job).get("status", ""))
         svr.cancel(job)
-        stdout().print(f"job {job} cancelled")
+        stdout().print(f"job {job} cancelled" if before in ("queued", "running") else f"job {job} ({before}) deleted")
 
 
 @app.command(epilog=EXIT_HELP)
