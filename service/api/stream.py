@@ -80,6 +80,8 @@ class StreamConnection:
         self.firming: asyncio.Task | None = None
         self.latencies: list[float] = []
         self.started = time.perf_counter()
+        self.binaries_read = 0                      # binary frames the slice message being read has taken
+        self.orphans = 0                            # binary frames a refused slice message announced, not read
 
     async def send(self, message: dict) -> None:
         async with self.send_lock:
@@ -107,14 +109,21 @@ class StreamConnection:
             while True:
                 frame = await self.receive()
                 if frame.get("text") is None:
+                    if self.orphans:                # a refused slice's own frames: its error said it all
+                        self.orphans -= 1
+                        continue
                     size = len(frame.get("bytes") or b"")
                     await self.send(error_message(MalformedRequest(
                         f"binary frame ({size} bytes): not expected here; binary frames follow their slice message")))
                     continue
+                self.orphans, self.binaries_read, msg = 0, 0, None
                 try:
-                    await self.handle(parse(frame["text"]))
+                    msg = parse(frame["text"])
+                    await self.handle(msg)
                 except ServiceError as e:
                     log.info("stream message refused", extra={"status": e.status})
+                    if isinstance(msg, dict) and msg.get("type") == "slice":
+                        self.orphans = max(0, 1 + (msg.get("mask") is True) - self.binaries_read)
                     await self.send(error_message(e))
                 except (_Closed, WebSocketDisconnect):
                     raise
@@ -212,6 +221,8 @@ class StreamConnection:
     async def binary(self, size: int, what: str) -> bytes:
         frame = await self.receive()
         data = frame.get("bytes")
+        if data is not None:
+            self.binaries_read += 1
         if data is None:
             self.pending = frame
             raise InvalidParameter(f"slice: its {what} binary frame was due, a text frame came; the slice is dropped")

@@ -82,10 +82,8 @@ def test_bad_messages_get_an_error_naming_them_and_the_session_goes_on(client, c
     _, stacks, truths = case
     f0, f1 = stacks[0][0], stacks[0][1]
     with client.websocket_connect("/v1/stream") as ws:
-        send_slice(ws, f0)                                    # before start
+        send_slice(ws, f0)                                    # before start: one error, its two frames dropped
         assert "start message first" in ws.receive_json()["detail"]
-        ws.receive_json()                                     # its pixel frame, unexpected now
-        ws.receive_json()                                     # and its mask frame
         ws.send_text(json.dumps({"type": "start", "mc_samples": 0}))
         assert "start.mc_samples" in ws.receive_json()["detail"]
         ws.send_text(json.dumps({"type": "start", "mc_samples": 10, "bias_correction": False}))
@@ -112,6 +110,8 @@ def test_bad_messages_get_an_error_naming_them_and_the_session_goes_on(client, c
                 ws.send_bytes(data)
             err = ws.receive_json()
             assert err["type"] == "error" and err["status"] == 400 and words in err["detail"], (words, err)
+        send_slice(ws, f0, stack="a\u202eb")                  # a refused header with mask: one error, not three
+        assert "slice.stack" in ws.receive_json()["detail"]
         ws.send_bytes(b"\x01\x02")                            # a binary frame out of place
         assert "not expected" in ws.receive_json()["detail"]
         send_slice(ws, f0, dtype="uint16")                    # another dtype; the session still works
