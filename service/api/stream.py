@@ -221,11 +221,10 @@ class StreamConnection:
     async def binary(self, size: int, what: str) -> bytes:
         frame = await self.receive()
         data = frame.get("bytes")
-        if data is not None:
-            self.binaries_read += 1
         if data is None:
             self.pending = frame
             raise InvalidParameter(f"slice: its {what} binary frame was due, a text frame came; the slice is dropped")
+        self.binaries_read += 1
         if len(data) != size:
             raise InvalidParameter(f"slice: its {what} frame has {len(data)} bytes, {size} were due "
                                    "(shape x dtype size); the slice is dropped")
