@@ -120,7 +120,14 @@ async def submit(
             # from it: only the schema's fields (a /v1/predict body's, or a job's refined poses'),
             # not whatever else a client's file holds.
             kept = known_only(body, RefinedPoses)
-            kept.pop("timing_ms", None)
+            for free_text in ("request_id", "timing_ms", "model"):     # of the earlier request: the job's own go out
+                kept.pop(free_text, None)
+            for stack in kept.get("stacks", []):
+                stack.pop("filename", None)
+                (stack.get("consistency") or {}).pop("acquisition_order", None)
+                for s in stack.get("slices", []):
+                    for made_by_the_job in ("exclusion_reason", "weight", "ncc", "held_out_ncc"):
+                        s.pop(made_by_the_job, None)
             (inputs / "poses.json").write_text(json.dumps(kept))
         for u in uploads:
             check_mask_grid(u)

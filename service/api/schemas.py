@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import functools
 import typing
 from typing import Literal, Optional
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, TypeAdapter, ValidationError
 
 Vec3 = list[float]
 Mat = list[list[float]]
@@ -198,22 +199,38 @@ def _model_in(annotation: object) -> type[BaseModel] | None:
     return None
 
 
+@functools.cache
+def _adapter(annotation: object) -> TypeAdapter:
+    return TypeAdapter(annotation)
+
+
 def known_only(value: object, model: type[BaseModel]) -> object:
-    """``value`` (parsed JSON) with only the fields ``model`` declares, at every level of nesting, as
-    they were: what a client sends beyond the schema (a note, a patient's name) is not kept.
+    """``value`` (parsed JSON) with only the fields ``model`` declares, at every level of nesting, each
+    of the declared type (strictly: a field holding anything else is left out): what a client sends
+    beyond the schema (a note, a patient's name, an object where a number belongs) is not kept.
+    Fields the client leaves out stay out.
 
     Example:
-        >>> known_only({"stacks": [{"index": 0, "note": "x", "slices": [{"index": 0, "who": "y"}]}], "extra": 1},
-        ...            PredictResponse)
+        >>> known_only({"stacks": [{"index": 0, "note": "x", "slices": [{"index": 0, "who": "y"}]}], "extra": 1,
+        ...             "mc_samples": {"hidden": "x"}}, PredictResponse)
         {'stacks': [{'index': 0, 'slices': [{'index': 0}]}]}
     """
     if isinstance(value, list):
-        return [known_only(v, model) for v in value]
+        return [kept for v in value if isinstance(v, dict) and (kept := known_only(v, model)) is not None]
     if not isinstance(value, dict):
-        return value
+        return None
     out = {}
     for name, field in model.model_fields.items():
-        if name in value:
-            inner = _model_in(field.annotation)
-            out[name] = known_only(value[name], inner) if inner is not None else value[name]
+        if name not in value:
+            continue
+        inner = _model_in(field.annotation)
+        if inner is not None:
+            if isinstance(value[name], (dict, list)):
+                out[name] = known_only(value[name], inner)
+            continue
+        try:
+            _adapter(field.annotation).validate_python(value[name], strict=True)
+        except ValidationError:
+            continue
+        out[name] = value[name]
     return out

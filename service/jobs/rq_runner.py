@@ -135,7 +135,9 @@ class RqRunner(JobRunner):
             if rq_job.get_status() == JobStatus.STARTED:
                 send_stop_job_command(self.connection, job_id)
             else:
-                rq_job.cancel()
+                # Off the queue and gone: RQ's registry of cancelled jobs is never cleaned, and its
+                # record of the job would otherwise stay in Redis for good.
+                rq_job.delete(remove_from_queue=True)
         except (NoSuchJobError, InvalidJobOperation):
             pass                       # already over: the store's state is what counts
 

@@ -317,6 +317,10 @@ def test_a_clients_extra_fields_in_its_poses_are_not_kept(client: TestClient, ca
     poses["stacks"][0]["series_description"] = "ZZPATIENTZZ"
     poses["stacks"][1]["slices"][0]["note"] = "ZZPATIENTZZ"
     poses["timing_ms"] = {"ZZPATIENTZZ": 1.0}
+    poses["mc_samples"] = {"hidden": "ZZPATIENTZZ"}                          # known names, other types or free text
+    poses["request_id"], poses["model"] = "ZZPATIENTZZ", {"name": "ZZPATIENTZZ", "version": "1", "backbone": "b"}
+    poses["stacks"][0]["slices"][1]["reason"] = "ZZPATIENTZZ"
+    poses["stacks"][0]["shape"] = {"x": "ZZPATIENTZZ"}
     job_id = submit(client, case, poses=poses).json()["job_id"]
     st = wait(client, job_id)
     assert st["status"] == "succeeded", st
@@ -343,3 +347,18 @@ def test_refined_poses_of_a_job_that_started_from_every_slice_are_a_valid_poses_
         for s in st_["slices"]:
             s["included"] = False
     assert "no slice is accepted" in submit(client, case, poses=refined).json()["detail"]
+
+
+@pytest.mark.parametrize("queue_settings", ["redis"], indirect=True)
+def test_a_job_cancelled_while_queued_leaves_no_record_in_redis(case: dict, queue_settings: dict) -> None:
+    """RQ's registry of cancelled jobs is never cleaned: the job's RQ record is deleted instead."""
+    import redis
+
+    with make_client(ModelRegistry({"default": OracleEstimator()}), **queue_settings) as client:
+        job_id = submit(client, case, svr_iterations="0").json()["job_id"]      # no worker: it stays queued
+        connection = redis.Redis.from_url(queue_settings["queue_url"])
+        assert connection.exists(f"rq:job:{job_id}")
+        assert client.delete(f"/v1/reconstructions/{job_id}").status_code == 204
+        assert client.get(f"/v1/reconstructions/{job_id}").json()["status"] == "cancelled"
+        assert not connection.exists(f"rq:job:{job_id}")
+        assert not any(connection.zscore(key, job_id) is not None for key in connection.scan_iter("rq:*canceled*"))
