@@ -72,3 +72,16 @@ def itk_from_affine(affine_ras: ArrayLike) -> tuple[NDArray, NDArray, NDArray]:
 def voxel_spacing(affine: ArrayLike) -> NDArray[np.float64]:
     """Voxel sizes (mm) along i, j, k of a voxel -> world affine."""
     return np.linalg.norm(np.asarray(affine, dtype=np.float64)[:3, :3], axis=0)
+
+
+def axes_cosine(axes: ArrayLike) -> NDArray[np.float64]:
+    """The largest ``|cos|`` between two columns of each ``[..., 3, 3]`` matrix: 0 for axes at right
+    angles (a rigid placement, an acquisition's grid), up to 1 for parallel ones.
+
+    Example:
+        >>> float(axes_cosine(np.diag([1.0, 2.0, 3.0]))), round(float(axes_cosine([[1, 1, 0], [0, 1, 0], [0, 0, 1]])), 3)
+        (0.0, 0.707)
+    """
+    a = np.asarray(axes, dtype=np.float64)
+    unit = a / np.maximum(np.linalg.norm(a, axis=-2, keepdims=True), 1e-12)
+    return np.abs(np.swapaxes(unit, -1, -2) @ unit - np.eye(3)).max(axis=(-2, -1))

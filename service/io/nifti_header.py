@@ -29,9 +29,13 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-# (header size, byte offsets: pixdim, qform_code, sform_code, quatern_b, srow_x; float and code types)
-LAYOUTS = {348: dict(pixdim=76, qform_code=252, sform_code=254, quatern=256, srow=280, f="f4", code="i2"),
-           540: dict(pixdim=104, qform_code=344, sform_code=348, quatern=352, srow=400, f="f8", code="i4")}
+from service.geometry import frames
+
+# (header size, byte offsets: dim, pixdim, qform_code, sform_code, quatern_b, srow_x; dim, float and code types)
+LAYOUTS = {348: dict(dim=40, pixdim=76, qform_code=252, sform_code=254, quatern=256, srow=280, d="i2", f="f4",
+                     code="i2"),
+           540: dict(dim=16, pixdim=104, qform_code=344, sform_code=348, quatern=352, srow=400, d="i8", f="f8",
+                     code="i4")}
 MAX_SHEAR_COS = 1e-3
 """Axes of the sform further from right angles than this (cosine; 0.06 deg) are a sheared grid."""
 
@@ -48,6 +52,8 @@ class NiftiTransforms:
     """``quatern_b, c, d, qoffset_x, y, z``."""
     srow: tuple[float, ...]
     """``srow_x, srow_y, srow_z``, row after row (12 values)."""
+    axes: int = 3
+    """The image's spatial axes (``dim[0]``, 1 to 3)."""
 
 
 def parse(head: bytes) -> NiftiTransforms | None:
@@ -59,7 +65,8 @@ def parse(head: bytes) -> NiftiTransforms | None:
                     return tuple(float(x) for x in np.frombuffer(head, endian + kind, count, offset))
                 return NiftiTransforms(int(values(at["qform_code"], 1, at["code"])[0]),
                                        int(values(at["sform_code"], 1, at["code"])[0]),
-                                       values(at["pixdim"], 4), values(at["quatern"], 6), values(at["srow"], 12))
+                                       values(at["pixdim"], 4), values(at["quatern"], 6), values(at["srow"], 12),
+                                       int(np.clip(values(at["dim"], 1, at["d"])[0], 1, 3)))
     return None
 
 
@@ -78,20 +85,26 @@ def sform_affine(t: NiftiTransforms) -> NDArray[np.float64]:
     return out
 
 
+def missing_voxel_size(t: NiftiTransforms) -> str | None:
+    """The voxel edges ``pixdim[1..3]`` (as text) where one of the image's axes has none (zero,
+    negative or not finite), else None. ITK puts 1 mm in its place without a word, and every pose and
+    volume would then be of a grid the file never held; it matters where the qform places the voxels
+    (the sform carries its own sizes)."""
+    edges = np.asarray(t.pixdim[1:1 + t.axes], np.float64)
+    return None if np.all(np.isfinite(edges)) and np.all(edges > 0) else ", ".join(f"{e:g}" for e in edges)
+
+
 def sform_problem(t: NiftiTransforms) -> str | None:
     """Why the sform cannot place an acquisition's voxels (not finite, an axis of no length, axes not
     at right angles), or None."""
     axes = sform_affine(t)[:3, :3]
     if not np.all(np.isfinite(axes)):
         return "its NIfTI sform holds values that are not finite"
-    lengths = np.linalg.norm(axes, axis=0)
-    if lengths.min() <= 0:
+    if np.linalg.norm(axes, axis=0).min() <= 0:
         return "its NIfTI sform gives an axis no length"
-    cos = (axes.T @ axes) / np.outer(lengths, lengths) - np.eye(3)
-    if np.abs(cos).max() > MAX_SHEAR_COS:
-        angle = np.degrees(np.arccos(np.clip(1 - np.abs(cos).max(), -1, 1)))
-        return (f"its NIfTI sform is sheared (voxel axes {90 - angle:.2f} deg apart, not 90); resample the stack "
-                "to a grid with axes at right angles")
+    if (cos := float(frames.axes_cosine(axes))) > MAX_SHEAR_COS:
+        return (f"its NIfTI sform is sheared (voxel axes {np.degrees(np.arccos(cos)):.2f} deg apart, not 90); "
+                "resample the stack to a grid with axes at right angles")
     return None
 
 

@@ -35,8 +35,8 @@ from service.io.archive import read_dicom_zip
 from service.io.dicom import read_dicom_file
 from service.io.headers import clean_header
 from service.io.limits import DecodeBudget, FileBudget
-from service.io.nifti_header import read_transforms, sform_affine, sform_problem
-from service.io.volume import Volume, from_sitk
+from service.io.nifti_header import missing_voxel_size, read_transforms, sform_problem
+from service.io.volume import Volume, from_sitk, placed_by_header
 
 SUFFIX_BY_KIND = {"nifti": ".nii", "nifti-gz": ".nii.gz", "nrrd": ".nrrd", "mha": ".mha"}
 MAX_DECODED_BYTES = 128 * 2**20
@@ -107,7 +107,7 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
                 by_sform = transforms is not None and transforms.sform_code > 0
                 if by_sform and (problem := sform_problem(transforms)) is not None:
                     raise UnusableImage(f"{filename}: {problem}")
-                if kind == "nifti" and not by_sform and (pixdim := _nifti_missing_voxel_size(path)) is not None:
+                if transforms is not None and not by_sform and (pixdim := missing_voxel_size(transforms)) is not None:
                     raise UnusableImage(f"{filename}: its NIfTI header gives no voxel size (pixdim[1:4] = {pixdim}); "
                                         "the reader would invent 1 mm")
                 # SimpleITK reads a copy named by the sniffed content, with the reader chosen here
@@ -119,10 +119,7 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
                 else:
                     named.symlink_to(Path(path).resolve())
                 budget.voxels(_declared_values(named, kind))
-                vol = from_sitk(_squeeze_4d(_reader(named, kind).Execute(), filename))
-                if by_sform:            # the standard's choice, with the sform's own voxel sizes (module nifti_header)
-                    vol = replace(vol, affine=sform_affine(transforms))
-                vol = replace(vol, nifti=transforms)
+                vol = placed_by_header(from_sitk(_squeeze_4d(_reader(named, kind).Execute(), filename)), transforms)
         elif kind in ("dicom", "zip"):
             vol = read_dicom_file(path, filename, budget) if kind == "dicom" else read_dicom_zip(path, filename, budget,
                                                                                                  scratch)
@@ -206,23 +203,6 @@ def _nifti1_truncated(path: Path) -> bool:
     if not np.isfinite(offset) or bitpix <= 0:
         return False  # an impossible header: the reader reports it
     return path.stat().st_size < max(int(offset), 348) + values * bitpix // 8
-
-
-def _nifti_missing_voxel_size(path: Path) -> str | None:
-    """The voxel edges of a NIfTI-1/2 header (``pixdim[1..3]``, as text) where one of its image's axes
-    has none (zero, negative or not finite), else None. ITK puts 1 mm in its place without a word,
-    and every pose and volume would then be of a grid the file never held."""
-    with open(path, "rb") as f:
-        head = f.read(540)
-    for size, dim_at, dim_type, pixdim_at, pix_type in ((348, 40, "i2", 76, "f4"), (540, 16, "i8", 104, "f8")):
-        for endian in "<>":
-            if len(head) >= size and int(np.frombuffer(head, endian + "i4", 1, 0)[0]) == size:
-                axes = int(np.clip(np.frombuffer(head, endian + dim_type, 1, dim_at)[0], 1, 3))
-                edges = np.frombuffer(head, endian + pix_type, 4, pixdim_at)[1:1 + axes].astype(np.float64)
-                if np.all(np.isfinite(edges)) and np.all(edges > 0):
-                    return None
-                return ", ".join(f"{e:g}" for e in edges)
-    return None
 
 
 def _nifti_has_nonfinite(path: Path) -> bool:

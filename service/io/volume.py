@@ -18,7 +18,7 @@ Example:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -92,12 +92,18 @@ def read_volume(path: str | Path) -> Volume:
     placed by its sform whenever the sform's code is above 0, as the standard says
     (:mod:`service.io.nifti_header`; the service's own files, the atlases)."""
     import SimpleITK as sitk
-    volume = from_sitk(sitk.ReadImage(str(path)))
-    if str(path).endswith((".nii", ".nii.gz")) and (t := read_transforms(Path(path))) is not None:
-        volume.nifti = t
-        if t.sform_code > 0:
-            volume.affine = sform_affine(t)
-    return volume
+    nifti = read_transforms(Path(path)) if str(path).endswith((".nii", ".nii.gz")) else None
+    return placed_by_header(from_sitk(sitk.ReadImage(str(path))), nifti)
+
+
+def placed_by_header(volume: Volume, nifti: NiftiTransforms | None) -> Volume:
+    """``volume`` (as SimpleITK read it) placed as its NIfTI header's transforms ``nifti`` say: by the
+    sform whenever the sform's code is above 0, with the sform's own voxel sizes, as the standard,
+    nibabel and FSL do (:mod:`service.io.nifti_header`); the transforms kept with it. Other files
+    (``nifti`` None) as they were read."""
+    if nifti is None:
+        return volume
+    return replace(volume, affine=sform_affine(nifti) if nifti.sform_code > 0 else volume.affine, nifti=nifti)
 
 
 def write_volume(volume: Volume, path: str | Path) -> None:

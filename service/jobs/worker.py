@@ -30,6 +30,7 @@ import numpy as np
 from service.consistency.slice_order import SliceOrder, per_stack
 from service.core.errors import Cancelled, ServiceError
 from service.core.logging import error_at
+from service.geometry import frames
 from service.inference.acceptance import EMPTY
 from service.io.acquisition_geometry import MAX_FIELD_OF_VIEW_MM
 from service.jobs.store import JobStore
@@ -128,12 +129,10 @@ def not_rigid(mats: np.ndarray, spacing, tolerance: float = 0.01) -> int | None:
         >>> not_rigid(good, [1.1, 1.1, 3.0]), not_rigid(bad, [1.1, 1.1, 3.0])
         (None, 1)
     """
-    cols = mats[:, :3, :3]
-    lengths = np.linalg.norm(cols, axis=1)                                     # [n, 3]
-    unit = cols / np.maximum(lengths[:, None, :], 1e-12)
-    cosines = np.abs(np.einsum("nij,nik->njk", unit, unit) - np.eye(3)).max(axis=(1, 2))
+    lengths = np.linalg.norm(mats[:, :3, :3], axis=1)                          # [n, 3]
     wrong = ((np.abs(lengths / np.asarray(spacing, np.float64) - 1.0).max(axis=1) > tolerance)
-             | (cosines > tolerance) | (np.abs(mats[:, 3] - [0, 0, 0, 1]).max(axis=1) > 1e-6)
+             | (frames.axes_cosine(mats[:, :3, :3]) > tolerance)
+             | (np.abs(mats[:, 3] - [0, 0, 0, 1]).max(axis=1) > 1e-6)
              | (np.linalg.norm(mats[:, :3, 3], axis=1) > MAX_FIELD_OF_VIEW_MM))
     return int(np.argmax(wrong)) if wrong.any() else None
 
@@ -356,8 +355,8 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     report = write_outputs(result, slice_set, folder / "outputs",
                            extra=None if frame is None else {"atlas_frame": frame.report(),
                                                              "midline": midline.report()})
-    frames = [split_stack(u.volume, np.ones(u.volume.array.shape, bool)).slice_from_voxel for u in uploads]
-    refined = refined_poses_body(body, result.atlas_from_voxel_final, frames, included=result.included,
+    slice_frames = [split_stack(u.volume, np.ones(u.volume.array.shape, bool)).slice_from_voxel for u in uploads]
+    refined = refined_poses_body(body, result.atlas_from_voxel_final, slice_frames, included=result.included,
                                  weight=result.slice_weight, ncc=result.ncc, held_out_ncc=result.held_out_ncc,
                                  reasons=result.exclusion_reason, job_id=job_id)
     for i, stack in enumerate(refined.get("stacks", [])):
