@@ -99,32 +99,29 @@ def _multiframe(ds, pixels: np.ndarray, filename: str) -> Volume:  # noqa: ANN00
              tag(group("PlaneOrientationSequence", f), "ImageOrientationPatient"),
              tag(group("PixelMeasuresSequence", f), "PixelSpacing")) for f in range(n)]
     frame_times = [seconds(ds, group("FrameContentSequence", f)) for f in range(n)]
-    if n > 1 and any(position is not None for position, _, _ in tags):
-        # Frames placed one by one: they must make one stack, as a zipped series' files must.
+    by_frame = n > 1 and any(position is not None for position, _, _ in tags)
+    if by_frame:                # frames placed one by one: they must make one stack, as a series' files must
         if (problem := series_problem(tags, "frames")) is not None:
             raise UnusableImage(f"{filename}: a multi-frame DICOM of {n} frames, but {problem}")
-        row_dir, col_dir = _orientation(tags[0][1])
-        normal = np.cross(row_dir, col_dir)
-        positions = [np.asarray(p, np.float64) for p, _, _ in tags]
-        order = np.argsort([p @ normal for p in positions])
-        pixels, frame_times = pixels[order], [frame_times[i] for i in order]
-        dz = float(np.median(np.diff([positions[i] @ normal for i in order])))
-        origin = positions[order[0]]
-    else:
-        # One position for the file (a single frame, or frames stacked by SpacingBetweenSlices).
-        _, orientation, spacing = tags[0]
-        position = tags[0][0] or getattr(ds, "ImagePositionPatient", None)
+    else:                       # one position for the file: a single frame, or frames SpacingBetweenSlices apart
         between = getattr(ds, "SpacingBetweenSlices", None) or getattr(ds, "SliceThickness", None)
-        missing = [name for name, value in (("ImagePositionPatient", position), ("ImageOrientationPatient", orientation),
-                                            ("PixelSpacing", spacing), ("SpacingBetweenSlices", between if n > 1 else 1))
-                   if value is None]
+        tags[0] = (tags[0][0] or getattr(ds, "ImagePositionPatient", None), tags[0][1], tags[0][2])
+        missing = [name for name, value in zip(("ImagePositionPatient", "ImageOrientationPatient", "PixelSpacing"),
+                                               tags[0]) if value is None]
+        missing += ["SpacingBetweenSlices"] if n > 1 and between is None else []
         if missing:
             raise UnusableImage(f"{filename}: a DICOM image without {', '.join(missing)}: its geometry is unknown")
-        if (problem := series_problem([(position, orientation, spacing)], "frames")) is not None:
+        if (problem := series_problem(tags[:1], "frames")) is not None:
             raise UnusableImage(f"{filename}: {problem}")
-        row_dir, col_dir = _orientation(orientation)
-        normal = np.cross(row_dir, col_dir)
-        dz, origin = float(between) if n > 1 else 1.0, np.asarray(position, dtype=np.float64)
+    row_dir, col_dir = _orientation(tags[0][1])
+    normal = np.cross(row_dir, col_dir)
+    if by_frame:
+        along = np.array([np.asarray(p, np.float64) @ normal for p, _, _ in tags])
+        order = np.argsort(along)
+        pixels, frame_times = pixels[order], [frame_times[i] for i in order]
+        dz, origin = float(np.median(np.diff(along[order]))), np.asarray(tags[order[0]][0], np.float64)
+    else:
+        dz, origin = float(between) if n > 1 else 1.0, np.asarray(tags[0][0], np.float64)
     ps = [float(x) for x in tags[0][2]]
     lps = _lps_affine(row_dir, col_dir, normal, (ps[1], ps[0], abs(dz) or 1.0), origin)
     thickness = stated_thickness([tag(group("PixelMeasuresSequence", f), "SliceThickness") for f in range(n)])
