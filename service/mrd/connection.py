@@ -24,6 +24,7 @@ over the pixel limit, an unknown message, an unreadable image): then the error i
 
 from __future__ import annotations
 
+import copy
 import ctypes
 import json
 import logging
@@ -71,8 +72,7 @@ def in_mrd_terms(error: ServiceError) -> ServiceError:
     """
     for stream_name, mrd_name in MRD_FIELDS.items():
         if error.detail.startswith(stream_name):
-            renamed = type(error).__new__(type(error))
-            renamed.__dict__.update(error.__dict__)
+            renamed = copy.copy(error)
             renamed.detail = mrd_name + error.detail[len(stream_name):]
             renamed.args = (renamed.detail,)
             return renamed
