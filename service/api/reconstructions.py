@@ -12,7 +12,7 @@ from fastapi.responses import FileResponse
 from pydantic import Field
 
 from service.api.deps import ApiKey, RegistryDep, SettingsDep, SlotDep, queue_full
-from service.api.schemas import UPLOAD_ERRORS, RefinedPoses, known_only, problem_responses
+from service.api.schemas import UPLOAD_ERRORS, job_poses, problem_responses
 from service.api.uploads import UploadFormDep, known_fields, save_and_read
 from service.pipeline.predict import stack_orders
 from service.pipeline.prepare import check_mask_grid
@@ -116,19 +116,7 @@ async def submit(
                 poses_from_predict_body(body, counts, [u.volume.spacing for u in uploads])
             except ValueError as exc:
                 raise InvalidParameter(str(exc)) from exc
-            # Kept until the job ends, and the refined poses (kept for the retention time) are made
-            # from it: only the schema's fields (a /v1/predict body's, or a job's refined poses'),
-            # not whatever else a client's file holds.
-            kept = known_only(body, RefinedPoses)
-            for free_text in ("request_id", "timing_ms", "model"):     # of the earlier request: the job's own go out
-                kept.pop(free_text, None)
-            for stack in kept.get("stacks", []):
-                stack.pop("filename", None)
-                (stack.get("consistency") or {}).pop("acquisition_order", None)
-                for s in stack.get("slices", []):
-                    for made_by_the_job in ("exclusion_reason", "weight", "ncc", "held_out_ncc"):
-                        s.pop(made_by_the_job, None)
-            (inputs / "poses.json").write_text(json.dumps(kept))
+            (inputs / "poses.json").write_text(json.dumps(job_poses(body)))
         for u in uploads:
             check_mask_grid(u)
     except Exception:

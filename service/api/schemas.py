@@ -234,3 +234,25 @@ def known_only(value: object, model: type[BaseModel]) -> object:
             continue
         out[name] = value[name]
     return out
+
+
+def job_poses(body: dict) -> dict:
+    """What a job keeps of an uploaded ``poses`` body (until it ends; its refined poses, kept for the
+    retention time, are made from it): the typed fields of a ``/v1/predict`` body or of a job's
+    refined poses (:func:`known_only`), less the earlier request's free text (its id, model, file
+    names, acquisition order) and what the job makes again (timings, each slice's verdict).
+
+    Example:
+        >>> job_poses({"request_id": "r", "stacks": [{"filename": "Doe.nii", "slices": [{"index": 0, "ncc": 0.9}]}]})
+        {'stacks': [{'slices': [{'index': 0}]}]}
+    """
+    kept = known_only(body, RefinedPoses)
+    for earlier in ("request_id", "timing_ms", "model"):
+        kept.pop(earlier, None)
+    for stack in kept.get("stacks", []):
+        stack.pop("filename", None)
+        (stack.get("consistency") or {}).pop("acquisition_order", None)
+        for s in stack.get("slices", []):
+            for made_by_the_job in ("exclusion_reason", "weight", "ncc", "held_out_ncc"):
+                s.pop(made_by_the_job, None)
+    return kept
