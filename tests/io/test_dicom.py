@@ -59,6 +59,11 @@ def test_a_mosaic_is_cut_into_its_declared_tiles(tmp_path: Path) -> None:
     np.testing.assert_array_equal(vol.array.transpose(2, 1, 0), slices.astype(np.float32))
     np.testing.assert_allclose(vol.spacing, [2.0, 2.0, 3.5])
     assert vol.slice_thickness_mm == 3.0
+    # Siemens writes the position of a virtual image the mosaic's size, centred where each tile is:
+    # the first tile's centre lies where the mosaic's centre does (LPS (-100, -80, 10), 96 x 80 of 2 mm).
+    centre_lps = np.array([-100.0, -80.0, 10.0]) + [(80 - 1) / 2 * 2.0, (96 - 1) / 2 * 2.0, 0.0]
+    tile_centre = vol.affine @ [(20 - 1) / 2, (24 - 1) / 2, 0.0, 1.0]
+    np.testing.assert_allclose(tile_centre[:3], centre_lps * [-1, -1, 1], atol=1e-9)
 
 
 @pytest.mark.parametrize(("declared", "matrix", "needle"), [
