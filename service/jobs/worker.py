@@ -299,18 +299,20 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     from service.reconstruction.slices import SliceSet
 
     params = json.loads((folder / "inputs" / "params.json").read_text())
-    orders = per_stack([SliceOrder.parse(t) for t in params.get("slice_order") or []], len(_stack_files(folder / "inputs")))
+    files = _stack_files(folder / "inputs")
+    orders = per_stack([SliceOrder.parse(t) for t in params.get("slice_order") or []], len(files))
+    thickness = params.get("slice_thickness_mm") or [None] * len(files)       # the client's word over the file's
     progress("reading", 0.02)
     uploads = []
     names_path = folder / "inputs" / "names.json"
     names = json.loads(names_path.read_text()) if names_path.exists() else {}
     # The files passed the limits when they were submitted: re-read without a budget of their own.
     budget = DecodeBudget(2**62)
-    for i, (s, m) in enumerate(_stack_files(folder / "inputs")):
+    for i, (s, m) in enumerate(files):
         sname = _name(names, "stacks", i)
         vol = read_upload(s, sname, budget=budget.file(sname), scratch=s.parent)
-        if (given := (params.get("slice_thickness_mm") or [None] * (i + 1))[i]) is not None:
-            vol = replace(vol, slice_thickness_mm=float(given))        # the client's word over the file's
+        if thickness[i] is not None:
+            vol = replace(vol, slice_thickness_mm=float(thickness[i]))
         mname = _name(names, "masks", i) if m is not None else None
         mask = read_upload(m, mname, budget=budget.file(mname), scratch=m.parent) if m is not None else None
         uploads.append(StackUpload(sname, vol, mask, mname, mask_holds_csf=bool(params.get("masks_hold_csf", False))))
