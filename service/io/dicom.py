@@ -18,11 +18,18 @@ Only pixel data and geometry are taken, and of the frames' acquisition times onl
   them; ``AcquisitionMatrix`` is the acquired matrix, smaller than the tiles at partial phase
   resolution); the position of the first tile is corrected from the mosaic's top-left corner by half
   the size difference (as dcm2niix and nibabel do). A count that does not divide the mosaic into
-  tiles, leaves images in the tiles after the n-th or counts an empty tile, is refused.
+  tiles, leaves images in the tiles after the n-th or counts an empty tile, is refused. The tiles
+  follow one another along the Siemens CSA image header's ``SliceNormalVector`` (0029,1010; read
+  with nibabel's CSA reader, as nibabel and dcm2niix place them): the cross product of the row and
+  column directions for slices stored in ascending order, its opposite for descending ones. A
+  mosaic whose CSA header was stripped (anonymised) is taken as ascending; one whose header cannot
+  be read, or whose normal is not along the image's, is refused.
 """
 
 from __future__ import annotations
 
+import struct
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +42,10 @@ from service.io.acquisition_times import order_of, seconds
 from service.io.dicom_guard import load_dataset
 from service.io.limits import FileBudget
 from service.io.volume import Volume
+
+with warnings.catch_warnings():         # nibabel.nicom warns on import about its DICOM readers, not used here
+    warnings.simplefilter("ignore", UserWarning)
+    from nibabel.nicom import csareader
 
 NUMBER_OF_IMAGES_IN_MOSAIC = (0x0019, 0x100A)
 
@@ -153,7 +164,7 @@ def _mosaic(ds, pixels: np.ndarray, filename: str) -> Volume:  # noqa: ANN001
     stack = tiles[:n]
     row_dir, col_dir = _orientation(getattr(ds, "ImageOrientationPatient", None))
     ps = [float(x) for x in ds.PixelSpacing]
-    normal = np.cross(row_dir, col_dir)
+    normal = _mosaic_normal(ds, np.cross(row_dir, col_dir), filename)
     # ImagePositionPatient is the top-left of the whole mosaic: move to the first tile's corner.
     origin = np.asarray(ds.ImagePositionPatient, dtype=np.float64)
     origin = origin + row_dir * ps[1] * (cols - tc) / 2.0 + col_dir * ps[0] * (rows - tr) / 2.0
@@ -161,3 +172,23 @@ def _mosaic(ds, pixels: np.ndarray, filename: str) -> Volume:  # noqa: ANN001
     lps = _lps_affine(row_dir, col_dir, normal, (ps[1], ps[0], dz), origin)
     return Volume(np.ascontiguousarray(stack.transpose(2, 1, 0)), frames.ras_affine_from_lps(lps),
                   slice_thickness_mm=stated_thickness([getattr(ds, "SliceThickness", None)]))
+
+
+def _mosaic_normal(ds, image_normal: np.ndarray, filename: str) -> np.ndarray:  # noqa: ANN001
+    """The direction in which a mosaic's tiles follow one another: the CSA image header's
+    ``SliceNormalVector`` where the file has one (``image_normal`` or its opposite), else
+    ``image_normal`` (the row and column directions' cross product: slices taken as ascending)."""
+    try:
+        csa = csareader.get_csa_header(ds, "image")
+        stated = None if csa is None else csareader.get_slice_normal(csa)
+    except (csareader.CSAReadError, struct.error, AssertionError, ValueError, TypeError, KeyError) as exc:
+        raise UnusableImage(f"{filename}: the mosaic's Siemens CSA image header (0029,1010) cannot be read, so "
+                            "the order of its slices is unknown") from exc
+    if stated is None:
+        return image_normal
+    stated = np.asarray(stated, np.float64)
+    along = float(stated @ image_normal) / max(float(np.linalg.norm(stated)), 1e-12)
+    if not np.isfinite(along) or abs(along) < 0.99:                       # within about 8 degrees
+        raise UnusableImage(f"{filename}: the mosaic's CSA SliceNormalVector {np.round(stated, 4).tolist()} does "
+                            "not lie along the normal of its ImageOrientationPatient")
+    return image_normal if along > 0 else -image_normal

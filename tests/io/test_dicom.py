@@ -4,6 +4,7 @@ frame by frame; any file whose frames make no one stack is refused, never given 
 from __future__ import annotations
 
 import re
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -31,9 +32,21 @@ def _dataset(path: Path, sop_class: str, pixels: np.ndarray) -> FileDataset:
     return ds
 
 
-def _mosaic_file(path: Path, slices: np.ndarray, n_declared: int, acquisition_matrix: list[int] | None) -> Path:
+def _csa_header(tags: dict[str, list[float]]) -> bytes:
+    """A Siemens CSA2 header (``SV10``) holding ``tags`` as decimal strings, as the scanner writes them."""
+    out = b"SV10" + b"\x04\x03\x02\x01" + struct.pack("<2I", len(tags), 77)
+    for name, values in tags.items():
+        out += struct.pack("<64si4s3i", name.encode(), len(values), b"FD", 3, len(values), 77)
+        for value in values:
+            data = f"{value:.8f}".encode() + b"\0"
+            out += struct.pack("<4i", len(data), len(data), 77, len(data)) + data + b"\0" * (-len(data) % 4)
+    return out
+
+
+def _mosaic_file(path: Path, slices: np.ndarray, n_declared: int, acquisition_matrix: list[int] | None,
+                 csa: bytes | None = None) -> Path:
     """A Siemens mosaic of ``slices`` ``[n, rows, cols]`` (ceil(sqrt(n)) tiles a side, empty tiles after
-    the last), declaring ``n_declared`` images."""
+    the last), declaring ``n_declared`` images; ``csa``: its CSA image header (0029,1010)."""
     n, tr, tc = slices.shape
     side = int(np.ceil(np.sqrt(n)))
     mosaic = np.zeros((side * tr, side * tc), np.uint16)
@@ -47,6 +60,9 @@ def _mosaic_file(path: Path, slices: np.ndarray, n_declared: int, acquisition_ma
         ds.AcquisitionMatrix = acquisition_matrix
     ds.add_new((0x0019, 0x0010), "LO", "SIEMENS MR HEADER")
     ds.add_new((0x0019, 0x100A), "US", n_declared)
+    if csa is not None:
+        ds.add_new((0x0029, 0x0010), "LO", "SIEMENS CSA HEADER")
+        ds.add_new((0x0029, 0x1010), "OB", csa)
     pydicom.dcmwrite(str(path), ds, enforce_file_format=True)
     return path
 
@@ -78,6 +94,34 @@ def test_a_mosaic_whose_count_disagrees_with_its_tiles_is_refused(tmp_path: Path
     slices = (np.random.default_rng(5).random((10, 24, 20)) * 1000 + 100).astype(np.uint16)
     with pytest.raises(UnusableImage, match=needle):
         read_upload(_mosaic_file(tmp_path / "m.dcm", slices, declared, matrix), "m.dcm")
+
+
+@pytest.mark.parametrize("direction", [1.0, -1.0])
+def test_a_mosaic_s_tiles_follow_its_csa_slice_normal(tmp_path: Path, direction: float) -> None:
+    """Tile k of a mosaic lies k slice spacings from the first tile along the CSA SliceNormalVector: the
+    image's normal (LPS +z here) for ascending slices, its opposite for descending ones. Each tile holds
+    its own number, so every slice the reader returns is checked against where its tile was acquired."""
+    n = 5
+    slices = np.stack([np.full((24, 20), 100 * (k + 1), np.uint16) for k in range(n)])
+    csa = _csa_header({"SliceNormalVector": [0.0, 0.0, direction], "NumberOfImagesInMosaic": [float(n)]})
+    vol = read_upload(_mosaic_file(tmp_path / "m.dcm", slices, n, None, csa), "m.dcm")
+    first_tile = np.array([-100.0, -80.0, 10.0]) + [(60 - 20) / 2 * 2.0, (72 - 24) / 2 * 2.0, 0.0]     # LPS
+    for s in range(n):
+        k = int(vol.array[0, 0, s]) // 100 - 1                     # the tile this slice came from
+        acquired_lps = first_tile + k * 3.5 * np.array([0.0, 0.0, direction])
+        np.testing.assert_allclose((vol.affine @ [0, 0, s, 1])[:3], acquired_lps * [-1, -1, 1], atol=1e-9)
+    without = read_upload(_mosaic_file(tmp_path / "plain.dcm", slices, n, None), "plain.dcm")
+    assert np.allclose(without.affine, vol.affine) == (direction > 0)   # no CSA header: taken as ascending
+
+
+@pytest.mark.parametrize(("csa", "needle"), [
+    (_csa_header({"SliceNormalVector": [1.0, 0.0, 0.0]}), "does not lie along the normal"),
+    (b"SV10\x04\x03\x02\x01" + struct.pack("<2I", 1, 77) + b"\0" * 20, "cannot be read"),
+])
+def test_a_mosaic_whose_csa_header_contradicts_or_is_broken_is_refused(tmp_path: Path, csa: bytes, needle: str) -> None:
+    slices = (np.random.default_rng(6).random((4, 24, 20)) * 1000 + 100).astype(np.uint16)
+    with pytest.raises(UnusableImage, match=needle):
+        read_upload(_mosaic_file(tmp_path / "m.dcm", slices, 4, None, csa), "m.dcm")
 
 
 ROW, COL = np.array([0.8, 0.6, 0.0]), np.array([0.0, 0.0, -1.0])      # an oblique, LPS

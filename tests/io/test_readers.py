@@ -191,6 +191,13 @@ def test_siemens_mosaic_is_demosaiced() -> None:
     assert 0.3 < np.corrcoef(a, b)[0, 1] < 0.9999
     # The slice normal is the cross product of the DICOM row and column directions (LPS -> RAS).
     assert abs(np.linalg.det(vol.affine[:3, :3] / vol.spacing)) == pytest.approx(1.0)
+    # nibabel's reader, written independently, puts every voxel where this one does (its arrays are
+    # [row, column, slice], its world LPS).
+    import pydicom
+    from nibabel.nicom import dicomwrappers
+    theirs = dicomwrappers.wrapper_from_data(pydicom.dcmread(path))
+    np.testing.assert_array_equal(theirs.get_data(), vol.array.transpose(1, 0, 2))
+    np.testing.assert_allclose(np.diag([-1.0, -1.0, 1.0, 1.0]) @ theirs.affine, vol.affine[:, [1, 0, 2, 3]], atol=1e-6)
 
 
 def test_an_enhanced_multiframe_without_geometry_is_422_not_a_made_up_grid() -> None:
