@@ -114,6 +114,16 @@ def test_a_mosaic_s_tiles_follow_its_csa_slice_normal(tmp_path: Path, direction:
     assert np.allclose(without.affine, vol.affine) == (direction > 0)   # no CSA header: taken as ascending
 
 
+def test_a_mosaic_keeps_the_order_its_csa_times_give(tmp_path: Path) -> None:
+    """An interleaved mosaic: the CSA MosaicRefAcqTimes (ms within the repetition) give the acquisition order."""
+    slices = (np.random.default_rng(7).random((5, 24, 20)) * 1000 + 100).astype(np.uint16)
+    times = {"MosaicRefAcqTimes": [0.0, 1000.0, 250.0, 1250.0, 500.0]}
+    vol = read_upload(_mosaic_file(tmp_path / "m.dcm", slices, 5, None, _csa_header(times)), "m.dcm")
+    assert vol.acquisition_order == (0, 2, 4, 1, 3)
+    short = {"MosaicRefAcqTimes": [0.0, 1000.0]}                       # not every tile's: no order
+    assert read_upload(_mosaic_file(tmp_path / "s.dcm", slices, 5, None, _csa_header(short)), "s.dcm").acquisition_order is None
+
+
 @pytest.mark.parametrize(("csa", "needle"), [
     (_csa_header({"SliceNormalVector": [1.0, 0.0, 0.0]}), "does not lie along the normal"),
     (b"SV10\x04\x03\x02\x01" + struct.pack("<2I", 1, 77) + b"\0" * 20, "cannot be read"),
