@@ -1,6 +1,6 @@
 """Uploaded files -> :class:`Volume`, recognised by content (magic bytes), not by file name.
 
-Formats: NIfTI (``.nii``, ``.nii.gz``), NRRD, MetaImage (``.mha``), a single DICOM file (classic,
+Formats: NIfTI-1 and -2 (``.nii``, ``.nii.gz``; NIfTI-2 through nibabel), NRRD, MetaImage (``.mha``), a single DICOM file (classic,
 Enhanced multi-frame, or Siemens mosaic), or a ``.zip`` holding one DICOM series. DICOM files are
 de-identified on read: only pixel data and geometry leave this module, no tag values are logged.
 
@@ -25,6 +25,7 @@ import zlib
 from dataclasses import replace
 from pathlib import Path
 
+import nibabel
 import numpy as np
 import SimpleITK as sitk
 from isal import igzip, isal_zlib
@@ -35,7 +36,7 @@ from service.io.archive import read_dicom_zip
 from service.io.dicom import read_dicom_file
 from service.io.headers import clean_header
 from service.io.limits import DecodeBudget, FileBudget
-from service.io.nifti_header import missing_voxel_size, read_transforms, sform_problem
+from service.io.nifti_header import NiftiTransforms, missing_voxel_size, read_transforms, sform_problem
 from service.io.volume import Volume, from_sitk, placed_by_header
 
 SUFFIX_BY_KIND = {"nifti": ".nii", "nifti-gz": ".nii.gz", "nrrd": ".nrrd", "mha": ".mha"}
@@ -118,8 +119,11 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
                         clean_header(src, dst, kind, filename)
                 else:
                     named.symlink_to(Path(path).resolve())
-                budget.voxels(_declared_values(named, kind))
-                vol = placed_by_header(from_sitk(_squeeze_4d(_reader(named, kind).Execute(), filename)), transforms)
+                if kind == "nifti" and _is_nifti2(named):
+                    vol = _read_nifti2(named, filename, budget, transforms)
+                else:
+                    budget.voxels(_declared_values(named, kind))
+                    vol = placed_by_header(from_sitk(_squeeze_4d(_reader(named, kind).Execute(), filename)), transforms)
         elif kind in ("dicom", "zip"):
             vol = read_dicom_file(path, filename, budget) if kind == "dicom" else read_dicom_zip(path, filename, budget,
                                                                                                  scratch)
@@ -223,6 +227,27 @@ def _nifti_has_nonfinite(path: Path) -> bool:
     count = (size - int(offset)) // np.dtype(dtype).itemsize
     data = np.memmap(path, endian + dtype, mode="r", offset=int(offset), shape=(count,))
     return not np.isfinite(data).all()
+
+
+def _is_nifti2(path: Path) -> bool:
+    with open(path, "rb") as f:
+        return 540 in (int.from_bytes(head := f.read(4), "little"), int.from_bytes(head, "big"))
+
+
+def _read_nifti2(path: Path, filename: str, budget: FileBudget, transforms: NiftiTransforms | None) -> Volume:
+    """A NIfTI-2 file (which SimpleITK does not read) with nibabel: its declared voxels charged to
+    ``budget`` before any is read, one 3D volume, placed as for NIfTI-1 (:func:`placed_by_header`;
+    without an sform, by nibabel's qform, the standard's rule)."""
+    image = nibabel.Nifti2Image.from_filename(str(path))
+    shape = tuple(int(n) for n in image.shape)
+    budget.voxels(int(np.prod(shape, dtype=np.float64)))
+    if len(shape) < 3:
+        raise UnusableImage(f"{filename}: {len(shape)}D image; a stack of slices (3D) is required")
+    if any(n != 1 for n in shape[3:]):
+        raise UnusableImage(f"{filename}: {len(shape)}D image with {int(np.prod(shape[3:]))} volumes; "
+                            "upload one 3D stack per file")
+    array = np.asarray(image.dataobj, dtype=np.float32).reshape(shape[:3])
+    return placed_by_header(Volume(array, np.asarray(image.affine, np.float64)), transforms)
 
 
 def _squeeze_4d(image: sitk.Image, filename: str) -> sitk.Image:

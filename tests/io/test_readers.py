@@ -335,3 +335,40 @@ def test_a_zipped_series_is_unpacked_into_the_scratch_folder_given(tmp_path: Pat
     read_upload(z, "s.zip", scratch=scratch)
     assert len(seen) == 1 and seen[0].parent == scratch and seen[0].name.startswith("svrnet-zip-")
     assert list(scratch.iterdir()) == []                     # removed again once read
+
+
+@pytest.mark.parametrize("codes", [(1, 2), (1, 0)])
+def test_a_nifti2_file_is_read_as_its_nifti1_twin(tmp_path: Path, codes: tuple[int, int]) -> None:
+    """NIfTI-2 (which SimpleITK does not read) gives the voxels and placement of the same image as NIfTI-1,
+    by the sform where its code says so, else by the qform; gzipped or not."""
+    import nibabel
+    arr = (np.random.default_rng(8).random((9, 8, 6)) * 500).astype(np.int16)
+    voxel = oblique()
+    sform = voxel.copy()
+    sform[:3, 3] += [4.0, -3.0, 2.0]                                  # sform and qform disagree by a shift
+    read = {}
+    for kind, image_class in (("1", nibabel.Nifti1Image), ("2", nibabel.Nifti2Image)):
+        image = image_class(arr, None)
+        image.set_qform(voxel, code=codes[0])
+        image.set_sform(sform, code=codes[1])
+        for suffix in (".nii", ".nii.gz"):
+            path = tmp_path / f"v{kind}{suffix}"
+            nibabel.save(image, path)
+            read[kind + suffix] = read_upload(path, path.name)
+    expected = sform if codes[1] > 0 else voxel
+    for vol in read.values():
+        np.testing.assert_array_equal(vol.array, arr.astype(np.float32))
+        np.testing.assert_allclose(vol.affine, expected, atol=1e-4)
+
+
+def test_a_nifti2_file_of_several_volumes_or_truncated_is_refused(tmp_path: Path) -> None:
+    import nibabel
+    arr = np.ones((9, 8, 6, 2), np.float32)
+    nibabel.save(nibabel.Nifti2Image(arr, np.diag([1.0, 1.0, 3.0, 1.0])), tmp_path / "v4.nii")
+    with pytest.raises(UnusableImage, match="2 volumes"):
+        read_upload(tmp_path / "v4.nii", "v4.nii")
+    nibabel.save(nibabel.Nifti2Image(arr[..., 0], np.diag([1.0, 1.0, 3.0, 1.0])), tmp_path / "v.nii")
+    data = (tmp_path / "v.nii").read_bytes()
+    (tmp_path / "cut.nii").write_bytes(data[: len(data) - 100])
+    with pytest.raises(UnsupportedFile, match="cut.nii"):
+        read_upload(tmp_path / "cut.nii", "cut.nii")
