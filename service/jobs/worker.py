@@ -328,6 +328,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         poses = poses_from_predict_body(body, counts, [u.volume.spacing for u in uploads])
         plane = DEFAULT_PLANE_X_MM
         masks = [found.mask for found in localise_uploads(uploads)]
+        started_from = "uploaded_poses"
     else:
         progress("predicting poses", 0.05)
         estimator = OnnxPoseEstimator(load_model(model_file, threads=1))
@@ -335,6 +336,9 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
                                      params.get("variance_threshold"), orders, params.get("max_expected_error_mm"))
         poses = starting_poses(body)
         plane = estimator.info.symmetry_plane_x_mm
+        accepted = [np.array([bool(x.get("accepted")) for x in st["slices"]]) for st in body["stacks"]]
+        started_from = ("accepted_slices" if all(np.array_equal(inc, acc) for (_, inc), acc in zip(poses, accepted))
+                        else "every_slice")
     progress("reconstructing", 0.15)
     slice_set = SliceSet.from_stacks([(u.volume, m, mats, acc) for u, m, (mats, acc) in zip(uploads, masks, poses)])
     result = reconstruct_never_worse(slice_set, resolution_mm=float(params.get("resolution_mm", 0.8)),
@@ -354,9 +358,10 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         midline = midline_fit(result.volume, plane, held_out_score(result))
         result = with_frame(result, midline)
     progress("writing", 0.97)
-    report = write_outputs(result, slice_set, folder / "outputs",
-                           extra=None if frame is None else {"atlas_frame": frame.report(),
-                                                             "midline": midline.report()})
+    extra = {"started_from": started_from}
+    if frame is not None:
+        extra.update(atlas_frame=frame.report(), midline=midline.report())
+    report = write_outputs(result, slice_set, folder / "outputs", extra=extra)
     slice_frames = [split_stack(u.volume, np.ones(u.volume.array.shape, bool)).slice_from_voxel for u in uploads]
     refined = refined_poses_body(body, result.atlas_from_voxel_final, slice_frames, included=result.included,
                                  weight=result.slice_weight, ncc=result.ncc, held_out_ncc=result.held_out_ncc,
