@@ -8,7 +8,7 @@ PIP    := $(PY) -m pip install --disable-pip-version-check -q -c constraints.txt
 HOST   ?= 127.0.0.1
 PORT   ?= 8000
 
-.PHONY: serve test install-server install-dev bench clean
+.PHONY: serve test install-server install-dev bench cli-docs clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -30,6 +30,9 @@ serve: install-server
 test: install-dev
 	$(PY) -m pytest -q $(PYTEST_ARGS)
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict -q -d $(or $(TMPDIR),/tmp)/svrnet-site
+
+cli-docs: install-dev   # docs/cli.md, the reference of every svrnet command, from the CLI itself
+	$(PY) -m typer client.cli utils docs --name svrnet --title "Command line: svrnet" --output docs/cli.md
 
 bench: install-dev
 	$(PY) benchmarks/se3_bench.py

@@ -52,8 +52,8 @@ from rich.progress import BarColumn, Progress, SpinnerColumn, TaskProgressColumn
 
 from client._client import DEFAULT_SERVER, SVRnetClient
 from client.exits import EXIT_HELP, errors, stderr, stdout
-from client.views import (StreamView, coverage_text, job_table, masks_table, models_table, quality_line,
-                          stage_label, summarise, upload_bar)
+from client.views import (StreamView, coverage_text, job_table, masks_table, models_table, predict_hints,
+                          quality_line, stage_label, summarise, upload_bar)
 
 if TYPE_CHECKING:                     # client.stream needs numpy and nibabel: imported by `svrnet stream` only
     from client.stream import Sent
@@ -66,6 +66,7 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    rich_markup_mode=None,            # click's plain help: option names whole at any width (rich's panels cut them)
 )
 
 
@@ -87,15 +88,16 @@ def _timeout() -> httpx.Timeout:
     return httpx.Timeout(connect=5.0, read=seconds, write=seconds, pool=5.0)
 
 
-def _check_writable(*paths: Path | None) -> None:
-    """Output files must be writable BEFORE anything is uploaded (not after an hour of reconstruction)."""
-    for path in paths:
+def _check_writable(**paths: Path | None) -> None:
+    """Output files (by option name) must be writable BEFORE anything is uploaded (not after an hour of
+    reconstruction)."""
+    for option, path in paths.items():
         if path is None:
             continue
         folder = path.expanduser().resolve().parent
         if not folder.is_dir() or not os.access(folder, os.W_OK):
             raise typer.BadParameter(f"{path}: its folder {folder} does not exist or is not writable",
-                                     param_hint="--out/--preview")
+                                     param_hint=f"--{option.replace('_', '-')}")
 
 
 def _job_id(job: str) -> str:
@@ -105,8 +107,8 @@ def _job_id(job: str) -> str:
 
 
 @contextmanager
-def _client(server: str) -> Iterator[SVRnetClient]:
-    svr = make_client(server, os.environ.get("SVRNET_API_KEY") or None)
+def _client(server: str, api_key: str | None) -> Iterator[SVRnetClient]:
+    svr = make_client(server, api_key or None)
     try:
         yield svr
     finally:
@@ -133,6 +135,8 @@ MaxExpectedOpt = Annotated[Optional[float], typer.Option(
     "--max-expected-error", callback=_positive,
     help="accept only slices whose expected error (mm) is at most this (default: the model's)")]
 ServerOpt = Annotated[str, typer.Option("--server", envvar="SVRNET_SERVER", help="server URL")]
+ApiKeyOpt = Annotated[Optional[str], typer.Option("--api-key", envvar="SVRNET_API_KEY", show_default=False,
+                                                  help="API key, where the server asks for one (default $SVRNET_API_KEY)")]
 MasksHoldCsfOpt = Annotated[bool, typer.Option(
     "--masks-hold-csf", help="the masks are the skull's inside (brain and the CSF around it, as manual fetal masks "
                              "are usually drawn): the pose network sees them less their outer 2 mm")]
@@ -143,10 +147,10 @@ BiasCorrectionOpt = Annotated[bool, typer.Option("--bias-correction/--no-bias-co
                                                  help="N4 bias-field correction")]
 ModelOpt = Annotated[Optional[str], typer.Option(help="model name (see `svrnet models`)")]
 MaskOpt = Annotated[Optional[list[Path]], typer.Option(
-    "--mask", "-m", exists=True, dir_okay=False, readable=True,
+    "--mask", "-m", exists=True, dir_okay=False, readable=True, metavar="MASK",
     help="region-of-interest mask; repeat, one per stack in the same order (or none)")]
 StacksArg = Annotated[list[Path], typer.Argument(
-    exists=True, dir_okay=False, readable=True,
+    exists=True, dir_okay=False, readable=True, metavar="STACK",
     help=".nii, .nii.gz, .nrrd, .mha, .dcm or .zip of a DICOM series")]
 
 
@@ -155,6 +159,7 @@ def predict(
     stacks: StacksArg,
     mask: MaskOpt = None,
     server: ServerOpt = DEFAULT_SERVER,
+    api_key: ApiKeyOpt = None,
     out: Annotated[Optional[Path], typer.Option("--out", "-o", dir_okay=False,
                                                 help="write the full JSON answer here")] = None,
     mc_samples: McSamplesOpt = None,
@@ -173,9 +178,9 @@ def predict(
 ) -> None:
     """Atlas pose and confidence of every slice of every stack (POST /v1/predict)."""
     _check_masks(stacks, mask)
-    _check_writable(out)
+    _check_writable(out=out)
     err = stderr()
-    with errors(), _client(server) as svr:
+    with errors(), _client(server, api_key) as svr:
         with upload_bar(err, f"{len(stacks)} stack(s)") as progress:
             result = svr.predict(stacks, mask, mc_samples=mc_samples, variance_threshold=threshold,
                                  max_expected_error_mm=max_expected_error,
@@ -184,6 +189,8 @@ def predict(
                                  masks_hold_csf=True if masks_hold_csf else None, progress=progress)
         console = stdout()
         console.print(summarise(result))
+        for hint in predict_hints(result):
+            console.print(hint, style="yellow", markup=False)
         total = (result.get("timing_ms") or {}).get("total")
         console.print(f"request {result.get('request_id', '?')}"
                       + (f" · {total / 1e3:.2f} s on the server" if isinstance(total, (int, float)) else ""))
@@ -197,11 +204,12 @@ def masks(
     stacks: StacksArg,
     out_dir: Annotated[Path, typer.Option("--out-dir", "-o", file_okay=False, help="where the masks are written")],
     server: ServerOpt = DEFAULT_SERVER,
+    api_key: ApiKeyOpt = None,
     model: Annotated[Optional[str], typer.Option(help="localiser name (default: the server's)")] = None,
 ) -> None:
     """Brain masks of stacks as they leave the scanner (POST /v1/masks): one NIfTI per stack."""
     err = stderr()
-    with errors(), _client(server) as svr:
+    with errors(), _client(server, api_key) as svr:
         with upload_bar(err, f"{len(stacks)} stack(s)") as progress:
             report = svr.masks(stacks, out_dir, model=model, progress=progress)
         stdout().print(masks_table(report, out_dir))
@@ -212,6 +220,7 @@ def reconstruct(
     stacks: StacksArg,
     mask: MaskOpt = None,
     server: ServerOpt = DEFAULT_SERVER,
+    api_key: ApiKeyOpt = None,
     poses: Annotated[Optional[Path], typer.Option(
         exists=True, dir_okay=False, readable=True,
         help="JSON answer of `svrnet predict --out` for these files")] = None,
@@ -242,10 +251,10 @@ def reconstruct(
 ) -> None:
     """Start a reconstruction job (POST /v1/reconstructions); with --wait, follow it and download the volume."""
     _check_masks(stacks, mask)
-    _check_writable(out, preview, poses_out)
+    _check_writable(out=out, preview=preview, poses_out=poses_out)
     wait = wait or out is not None or preview is not None or poses_out is not None
     err, console = stderr(), stdout()
-    with errors(), _client(server) as svr:
+    with errors(), _client(server, api_key) as svr:
         with upload_bar(err, f"{len(stacks)} stack(s)") as progress:
             job = svr.reconstruct(stacks, mask, poses, resolution_mm=resolution, svr_iterations=svr_iterations,
                                   mc_samples=mc_samples, variance_threshold=threshold,
@@ -270,9 +279,13 @@ def reconstruct(
         target = out if out is not None else Path("recon.nii.gz")
         svr.download_volume(job_id, target)
         console.print(f"job {job_id} succeeded; wrote {target}")
-        quality = quality_line((done.get("report") or {}).get("quality"))
+        report = done.get("report") or {}
+        quality = quality_line(report.get("quality"))
         if quality:
             console.print(quality)
+        if report.get("started_from") == "every_slice":
+            console.print("started from every slice: too few were accepted to start from the accepted ones alone; "
+                          "judge the volume by the quality line and the preview", style="yellow", markup=False)
         if preview is not None:
             svr.download_preview(job_id, preview)
             console.print(f"wrote {preview}")
@@ -294,8 +307,7 @@ def stream(
                                                  help=".nii or .nii.gz stacks, sent one after the other")],
     mask: MaskOpt = None,
     server: ServerOpt = DEFAULT_SERVER,
-    api_key: Annotated[Optional[str], typer.Option(envvar="SVRNET_API_KEY", show_default=False,
-                                                   help="API key (default $SVRNET_API_KEY)")] = None,
+    api_key: ApiKeyOpt = None,
     pace: Annotated[float, typer.Option(
         min=0, help="seconds between two slices (0: as fast as the answers come)")] = 0.0,
     order: Annotated[SendOrder, typer.Option(help="acquisition order: sequential, or interleaved (even "
@@ -312,7 +324,7 @@ def stream(
     from client import stream as streaming
 
     _check_masks(stacks, mask)
-    _check_writable(json_out)
+    _check_writable(json_out=json_out)
     console = stdout()
     view = StreamView(console)
     with errors():
@@ -348,11 +360,12 @@ def stream(
 def status(
     job: Annotated[str, typer.Argument(help="job id")],
     server: ServerOpt = DEFAULT_SERVER,
+    api_key: ApiKeyOpt = None,
     as_json: Annotated[bool, typer.Option("--json", help="print the raw JSON")] = False,
 ) -> None:
     """Status of a reconstruction job (GET /v1/reconstructions/{job})."""
     job = _job_id(job)
-    with errors(), _client(server) as svr:
+    with errors(), _client(server, api_key) as svr:
         state = svr.status(job)
         console = stdout()
         if as_json:
@@ -365,11 +378,12 @@ def status(
 def cancel(
     job: Annotated[str, typer.Argument(help="job id")],
     server: ServerOpt = DEFAULT_SERVER,
+    api_key: ApiKeyOpt = None,
 ) -> None:
     """Cancel a queued or running job and delete its files; a finished (or cancelled) job is deleted
     (DELETE /v1/reconstructions/{job})."""
     job = _job_id(job)
-    with errors(), _client(server) as svr:
+    with errors(), _client(server, api_key) as svr:
         before = str(svr.status(job).get("status", ""))
         svr.cancel(job)
         stdout().print(f"job {job} cancelled" if before in ("queued", "running") else f"job {job} ({before}) deleted")
@@ -378,10 +392,11 @@ def cancel(
 @app.command(epilog=EXIT_HELP)
 def models(
     server: ServerOpt = DEFAULT_SERVER,
+    api_key: ApiKeyOpt = None,
     as_json: Annotated[bool, typer.Option("--json", help="print the raw JSON")] = False,
 ) -> None:
     """Models the server offers (GET /v1/models)."""
-    with errors(), _client(server) as svr:
+    with errors(), _client(server, api_key) as svr:
         listed = svr.models()
         console = stdout()
         if as_json:

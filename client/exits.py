@@ -80,7 +80,8 @@ def errors() -> Iterator[None]:
     except (typer.Exit, typer.Abort, typer.BadParameter):   # typer's own ending: its exit code stands
         raise
     except SVRnetError as e:
-        fail(" ".join(str(e).split()), exit_code_for(e))
+        hint = " (give the key with SVRNET_API_KEY or --api-key)" if isinstance(e, Unauthorized) else ""
+        fail(" ".join(str(e).split()) + hint, exit_code_for(e))
     except KeyboardInterrupt:
         fail("interrupted", 130)
     except OSError as e:

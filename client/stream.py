@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import time
+import zlib
 from collections import deque
 from collections.abc import Callable, Sequence
 from contextlib import nullcontext
@@ -149,6 +150,8 @@ def _volume(path: Path, what: str) -> tuple[NDArray, NDArray[np.float64]]:
         data = np.asanyarray(img.dataobj)
     except nib.filebasedimages.ImageFileError as e:
         raise UnsupportedFile(f"{what}: {path.name} is not a NIfTI file nibabel can read ({e})") from None
+    except (EOFError, OSError, ValueError, zlib.error) as e:          # a truncated or corrupt file
+        raise UnsupportedFile(f"{what}: {path.name} is truncated or corrupt ({type(e).__name__}: {e})") from None
     data = data.reshape(data.shape[:3]) if data.ndim > 3 and np.prod(data.shape[3:]) == 1 else data
     if data.ndim != 3:
         raise UnusableInput(f"{what}: {path.name} has shape {data.shape}; a stack is 3D")

@@ -145,6 +145,9 @@ class Transport:
 
     def _transport_error(self, method: str, path: str, exc: Exception) -> ConnectionFailed:
         reason = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+        if isinstance(exc, (httpx.ReadTimeout, httpx.WriteTimeout)):
+            reason += (" (no answer within the client's timeout: a large request on a CPU server can take longer; "
+                       "raise SVRNET_TIMEOUT, in seconds, for svrnet, or timeout= of SVRnetClient)")
         return ConnectionFailed(f"{method} {self._url(path)}: {reason}", title="Connection failed")
 
     @staticmethod

@@ -41,7 +41,7 @@ def summarise(result: dict[str, Any]) -> Table:
     table = Table(title=title, title_justify="left", caption_justify="left", box=box.SIMPLE_HEAD, pad_edge=False,
                   collapse_padding=True,
                   caption="brain: the uploaded mask, or the volume the localiser found (its confidence); "
-                          "expected error, variance: the stack's medians over its slices with brain")
+                          "accepted: of the slices with brain; expected error, variance: their medians")
     stacks = result.get("stacks") or []
     longest = max([len(str(s.get("filename", ""))) for s in stacks] + [5])
     for col, just in (("stack", "left"), ("brain", "left"), ("accepted", "right"), ("rejected (by reason)", "left"),
@@ -60,11 +60,52 @@ def summarise(result: dict[str, Any]) -> Table:
         where = stack.get("localisation") or {}
         found = "mask" if where.get("method") == "mask" else \
             f"{where.get('brain_volume_ml', 0):.0f} ml ({where.get('confidence', 0):.2f})" if where else "-"
-        table.add_row(str(stack.get("filename", "")), found, f"{accepted} of {len(slices)}",
+        table.add_row(str(stack.get("filename", "")), found, f"{accepted} of {len(brain)}",
                       ", ".join(f"{k} {v}" for k, v in sorted(reasons.items())) or "-",
                       f"{statistics.median(expected):.1f} mm" if expected else "-",
                       f"{statistics.median(variances):.4g}" if variances else "-")
     return table
+
+
+LOW_CONFIDENCE = 0.5
+"""A localiser confidence under this gets a hint to look at the mask (real stacks with a brain found
+well score about 0.7-1)."""
+
+
+def predict_hints(result: dict[str, Any]) -> list[str]:
+    """What to do about an answer with nothing usable in it: a stack without brain slices, a localiser
+    that was unsure, no slice accepted (one line each; none for a usable answer).
+
+    Example (one stack sent alone, nothing accepted):
+        >>> body = {"max_expected_error_mm": 4.5, "stacks": [{"filename": "ax.nii.gz", "localisation": {
+        ...     "method": "network", "confidence": 0.9}, "slices": [{"accepted": False, "reason": "high_expected_error"}]}]}
+        >>> print(predict_hints(body)[0])
+        no slice accepted (every one expects an error over 4.5 mm): a stack sent alone has no other stack to agree with; send all the stacks of a scan in one request
+    """
+    hints = []
+    stacks = result.get("stacks") or []
+    for stack in stacks:
+        name, where = stack.get("filename", "?"), stack.get("localisation") or {}
+        brain = [s for s in stack.get("slices") or [] if s.get("reason") != "empty"]
+        if not brain:
+            hints.append(f"{name}: no slice with brain: " + (
+                "its mask holds no brain on the stack's slices; check that it is the stack's mask"
+                if where.get("method") == "mask" else
+                "the localiser found none; upload a brain mask with --mask"))
+        elif where.get("method") == "network" and float(where.get("confidence") or 0.0) < LOW_CONFIDENCE:
+            hints.append(f"{name}: the localiser was unsure of the brain (confidence {where.get('confidence', 0):.2f}); "
+                         "check its mask with `svrnet masks`, or upload one with --mask")
+    slices = [s for st in stacks for s in st.get("slices") or [] if s.get("reason") != "empty"]
+    if slices and not any(s.get("accepted") for s in slices):
+        limit = result.get("max_expected_error_mm")
+        why = (f" (every one expects an error over {limit:.3g} mm)"
+               if limit is not None and all(s.get("reason") == "high_expected_error" for s in slices) else "")
+        hints.append(f"no slice accepted{why}: " + (
+            "a stack sent alone has no other stack to agree with; send all the stacks of a scan in one request"
+            if len(stacks) == 1 else
+            "the stacks do not agree on where their slices lie (motion beyond the model's reach, signal voids, "
+            "a contrast unlike T2), so no pose is worth using; see the reasons above"))
+    return hints
 
 
 def stage_label(state: dict[str, Any]) -> str:
@@ -87,8 +128,8 @@ def quality_line(quality: dict[str, Any] | None) -> str:
         >>> quality_line({"judged_slices": 80, "median_ncc": 0.91, "fraction_ncc_above_0_7": 0.95,
         ...               "leave_one_stack_out": {"median_ncc": 0.84, "per_stack_median_ncc": [0.86, 0.8, 0.85]}})
         'quality: slices vs volume median NCC 0.91, 95% above 0.7 (80 slices); leave one stack out 0.84 (per stack 0.86, 0.80, 0.85)'
-        >>> quality_line({"judged_slices": 80, "path": "slice_level", "further_passes": {"scores": [0.85, 0.86], "kept": 1}})
-        'quality: slices vs volume median NCC -, - above 0.7 (80 slices); path slice_level + 1 further slice-level pass'
+        >>> quality_line({"judged_slices": 80, "path": "slice_level", "further_passes": {"scores": [0.85, 0.86], "kept": 1}})[-42:]
+        'path slice_level + 1 further slice-level pass'
     """
     if not quality:
         return ""
@@ -100,6 +141,8 @@ def quality_line(quality: dict[str, Any] | None) -> str:
     if held.get("median_ncc") is not None:
         per = ", ".join(num(x) for x in held.get("per_stack_median_ncc") or [])
         line += f"; leave one stack out {num(held['median_ncc'])} (per stack {per})"
+    else:
+        line += "; leave one stack out: - (it needs two stacks or more: with one, the volume is judged by its own slices only)"
     if quality.get("path"):
         kept = (quality.get("further_passes") or {}).get("kept") or 0
         line += f"; path {quality['path']}"
@@ -285,13 +328,16 @@ def job_table(state: dict[str, Any], job: str) -> Table:
 
 
 def models_table(listed: list[dict[str, Any]]) -> Table:
-    """The table of ``svrnet models``: one row per model the server offers."""
-    table = Table()
-    for col in ("name", "version", "backbone", "label_type", "input_size", "spacing_mm", "variance_threshold",
-                "trained_on", "sha256"):
-        table.add_column(col)
+    """The table of ``svrnet models``: one row per model the server offers, with the two thresholds that
+    decide ``accepted``; it fits an 80-column terminal (the training volumes are in ``--json``)."""
+    table = Table(box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True, caption_justify="left",
+                  caption="accepted: expected error (mm) and variance at most these, unless a request says otherwise; "
+                          "the training data: --json")
+    for col in ("name", "version", "backbone", "max expected error", "variance", "sha256"):
+        table.add_column(col, overflow="fold")
     for m in listed:
-        row = [m.get(c) for c in ("name", "version", "backbone", "label_type", "input_size", "spacing_mm",
-                                  "variance_threshold", "trained_on")]
-        table.add_row(*("-" if v is None else str(v) for v in row), str(m.get("sha256", ""))[:12])
+        limit, threshold = m.get("max_expected_error_mm"), m.get("variance_threshold")
+        table.add_row(str(m.get("name", "")), str(m.get("version", "")), str(m.get("backbone", "")),
+                      "-" if limit is None else f"{limit:g} mm", "-" if threshold is None else f"{threshold:g}",
+                      str(m.get("sha256", ""))[:12])
     return table

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import math
+import re
 import shutil
 import tempfile
 import threading
@@ -17,7 +18,7 @@ from pathlib import Path
 from typing import Annotated, Optional
 
 from fastapi import Depends, File, Form, Request, UploadFile, params
-from pydantic import StringConstraints
+from pydantic import AfterValidator, StringConstraints, WithJsonSchema
 
 from service.api.deps import SettingsDep
 from service.consistency.slice_order import MAX_TEXT, PATTERN, SliceOrder, per_stack
@@ -125,8 +126,16 @@ def check_form(stacks: list[UploadFile], masks: list[UploadFile] | None, varianc
 MAX_EXPECTED_ERROR_HELP = ("slices whose pose's expected error (mm, after every stage) exceeds it are not "
                            "accepted (reason high_expected_error); default: the model's calibrated value")
 
-SliceOrderField = Annotated[str, StringConstraints(pattern=PATTERN, max_length=MAX_TEXT)]
-"""One value of the ``slice_order`` form field."""
+def _slice_order_value(value: str) -> str:
+    if not re.fullmatch(PATTERN, value):
+        raise ValueError("must be auto, interleaved, sequential, interleaved-even-first, interleaved-odd-first, "
+                         "or the slice indices in acquisition order, comma-separated (e.g. 0,2,4,1,3)")
+    return value
+
+
+SliceOrderField = Annotated[str, StringConstraints(max_length=MAX_TEXT), AfterValidator(_slice_order_value),
+                            WithJsonSchema({"type": "string", "pattern": PATTERN, "maxLength": MAX_TEXT})]
+"""One value of the ``slice_order`` form field (refused with the values it may take, not the pattern)."""
 SLICE_ORDER_HELP = ("the stacks' acquisition order, if known: none (the motion model chooses), one value for every "
                     "stack, or one per stack; each auto, interleaved (either phase), sequential, "
                     "interleaved-even-first, interleaved-odd-first, or the slice indices (0-based, along "

@@ -48,8 +48,9 @@ def test_cli_predict_writes_json_and_prints_a_summary(fake_cli: Callable, stack_
     assert json.loads(out.read_text()) == PREDICT_BODY
     assert made == [("http://scanner:9000", None)]
     assert "stack.nii.gz" in r.stdout and "empty 1, high_variance 1" in r.stdout and "3" in r.stdout
-    assert "variance" in r.stdout and "the stack's medians" in r.stdout and "abc" in r.stdout
-    assert "312 ml" in r.stdout and "(0.93)" in r.stdout and "2 of 4" in r.stdout
+    assert "variance" in r.stdout and "their medians" in r.stdout and "abc" in r.stdout
+    assert "312 ml" in r.stdout and "(0.93)" in r.stdout and "2 of 3" in r.stdout      # of the slices with brain
+    assert "no slice accepted" not in r.stdout
     fields, files = parse_multipart(fake.requests[0])
     assert fields == {"mc_samples": ["5"], "bias_correction": ["false"], "image_consistency": ["false"],
                       "masks_hold_csf": ["true"]}
@@ -70,7 +71,7 @@ def test_the_summary_fits_an_80_column_terminal_and_cuts_no_cell_short(name: str
     console.print(views.summarise(body))
     text = console.export_text()
     assert max(len(line) for line in text.splitlines()) <= 80 and "…" not in text
-    assert "0 of 40" in text and "50.0 mm" in text and "123" in text and "312 ml" in text and "variance" in text
+    assert "0 of 30" in text and "50.0 mm" in text and "123" in text and "312 ml" in text and "variance" in text
     if len(name) <= views.NAME_WIDTH:
         assert name in text                                       # a usual name stays whole
     else:                                                         # a long one folds, nothing of it dropped
@@ -86,7 +87,7 @@ def test_the_summary_medians_leave_out_empty_slices() -> None:
     console = Console(width=100, record=True, file=io.StringIO())
     console.print(views.summarise({**PREDICT_BODY, "stacks": [stack]}))
     text = console.export_text()
-    assert "7.5 mm" in text and "60.0" not in text and " 40 " in text and "900" not in text and "0 of 10" in text
+    assert "7.5 mm" in text and "60.0" not in text and " 40 " in text and "900" not in text and "0 of 4" in text
 
 
 def test_the_masks_table_fits_an_80_column_terminal_and_cuts_no_name_short() -> None:
@@ -142,7 +143,7 @@ def test_cli_server_and_key_from_the_environment(fake_cli: Callable) -> None:
     fake, made = fake_cli(key="k")
     r = invoke(["models"], SVRNET_SERVER="http://env:1234", SVRNET_API_KEY="k")
     assert r.exit_code == 0, r.output
-    assert made == [("http://env:1234", "k")] and "default" in r.stdout and "atlas" in r.stdout
+    assert made == [("http://env:1234", "k")] and "default" in r.stdout and "449" in r.stdout and "4.5 mm" in r.stdout
 
 
 @pytest.mark.parametrize(("kwargs", "args", "code", "needle"), [
@@ -218,3 +219,68 @@ def test_cli_timeout_from_the_environment(stack_file: Path) -> None:
     r = invoke(["models", "--server", "http://127.0.0.1:9"], SVRNET_TIMEOUT="soon")
     assert r.exit_code == 2 and "SVRNET_TIMEOUT" in r.output
     assert cli.make_client("http://x", None)._http.timeout.read == 300.0
+
+
+def _alone(reason: str, confidence: float = 0.9, method: str = "network") -> dict:
+    stack = PREDICT_BODY["stacks"][0]
+    return {**PREDICT_BODY, "max_expected_error_mm": 4.5, "stacks": [
+        {**stack, "localisation": {"method": method, "brain_volume_ml": 300.0, "confidence": confidence},
+         "slices": [{"index": i, "accepted": False, "reason": reason, "expected_error_mm": 6.0} for i in range(3)]}]}
+
+
+def test_an_answer_with_nothing_usable_says_what_to_do() -> None:
+    """A stack sent alone with no slice accepted, a localiser that was unsure, a stack without brain:
+    each gets its hint; a usable answer none."""
+    assert views.predict_hints(PREDICT_BODY) == []
+    alone = views.predict_hints(_alone("high_expected_error"))
+    assert len(alone) == 1 and "over 4.5 mm" in alone[0] and "send all the stacks of a scan" in alone[0]
+    two = {**_alone("inconsistent_with_stack"), "stacks": _alone("inconsistent_with_stack")["stacks"] * 2}
+    assert "do not agree" in views.predict_hints(two)[0] and "over 4.5" not in views.predict_hints(two)[0]
+    unsure = views.predict_hints(_alone("high_expected_error", confidence=0.3))
+    assert "unsure" in unsure[0] and "0.30" in unsure[0] and "svrnet masks" in unsure[0]
+    assert "no brain on the stack" in views.predict_hints(_alone("empty", method="mask"))[0]
+    assert "localiser found none" in views.predict_hints(_alone("empty", confidence=0.05))[0]
+
+
+def test_the_cli_prints_the_hints(fake_cli: Callable, stack_file: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    fake_cli()
+    monkeypatch.setattr(cli.SVRnetClient, "predict", lambda self, *a, **k: _alone("high_expected_error"))
+    r = invoke(["predict", str(stack_file)])
+    assert r.exit_code == 0 and "0 of 3" in r.stdout and "send all the stacks of a scan" in r.stdout
+
+
+def test_a_quality_line_says_when_no_stack_can_be_left_out() -> None:
+    line = views.quality_line({"judged_slices": 22, "median_ncc": 0.99, "fraction_ncc_above_0_7": 1.0,
+                               "leave_one_stack_out": None})
+    assert "leave one stack out: -" in line and "two stacks or more" in line
+
+
+def test_the_models_table_fits_an_80_column_terminal_with_its_thresholds() -> None:
+    from rich.console import Console
+
+    model = {"name": "default", "version": "2.11.0", "backbone": "compact", "variance_threshold": 449.0,
+             "max_expected_error_mm": 4.5, "sha256": "ab" * 32, "trained_on": ["STA%d" % i for i in range(23)]}
+    console = Console(width=80, record=True, file=io.StringIO())
+    console.print(views.models_table([model]))
+    text = console.export_text()
+    assert max(len(line) for line in text.splitlines()) <= 80 and "…" not in text
+    assert "default" in text and "2.11.0" in text and "4.5 mm" in text and "449" in text and "STA3" not in text
+
+
+def test_help_keeps_every_option_name_whole_at_80_columns() -> None:
+    for command in ("predict", "reconstruct", "stream", "masks"):
+        text = CliRunner().invoke(cli.app, [command, "--help"], env={"COLUMNS": "80"}).stdout
+        assert "…" not in text and max(len(line) for line in text.splitlines()) <= 80, command
+    text = CliRunner().invoke(cli.app, ["predict", "--help"], env={"COLUMNS": "80"}).stdout
+    assert "--max-expected-error" in text and "--no-image-consistency" in text and "interleaved-even-first" in text.replace("\n", "")
+
+
+def test_every_command_takes_the_api_key_and_an_unauthorised_one_says_how_to_give_it(
+        fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
+    fake, made = fake_cli(key="k")
+    assert invoke(["models", "--api-key", "k"]).exit_code == 0 and made[-1][1] == "k"
+    assert invoke(["predict", str(stack_file), "--api-key", "k"]).exit_code == 0 and made[-1][1] == "k"
+    r = invoke(["models"])
+    assert r.exit_code == 4 and "SVRNET_API_KEY or --api-key" in r.stderr
+    r = invoke(["predict", str(stack_file), "--out", str(tmp_path / "no" / "p.json")])
+    assert r.exit_code == 2 and "--out" in r.output and "--preview" not in r.output

@@ -20,7 +20,7 @@ from websockets.sync.server import ServerConnection, serve
 
 import client.cli as cli
 import client.exits as exits
-from client.errors import UnusableInput
+from client.errors import UnsupportedFile, UnusableInput
 from client.stream import read_stack, scanner_slices, send_order
 
 runner = CliRunner(env={"COLUMNS": "200"})
@@ -77,6 +77,13 @@ def test_a_file_is_read_with_its_type_and_its_mask_must_share_its_grid(tmp_path:
     assert np.array_equal(stack.slices[2].mask, image[:, 2, :] % 2 == 1)
     with pytest.raises(UnusableInput, match="differs"):
         read_stack(tmp_path / "cor.nii.gz", tmp_path / "other.nii.gz")
+    noise = np.random.default_rng(0).integers(0, 1000, (5, 4, 3, 200)).astype(np.int16).reshape(5, 4, 600)
+    nib.save(nib.Nifti1Image(noise, affine), tmp_path / "big.nii.gz")
+    data = (tmp_path / "big.nii.gz").read_bytes()
+    (tmp_path / "cut.nii.gz").write_bytes(data[: len(data) // 2])      # its voxels cut short: bad input naming it
+    for args, what in (((tmp_path / "cut.nii.gz",), "stack"), ((tmp_path / "big.nii.gz", tmp_path / "cut.nii.gz"), "mask")):
+        with pytest.raises(UnsupportedFile, match=f"{what}: cut.nii.gz is truncated or corrupt"):
+            read_stack(*args)
 
 
 def test_send_orders() -> None:

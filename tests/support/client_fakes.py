@@ -83,8 +83,8 @@ class FakeServer:
         if request.url.path == "/v1/models":
             return httpx.Response(200, json=[{"name": "default", "version": "1", "backbone": "b",
                                               "sha256": "0" * 64, "input_size": 128, "spacing_mm": 0.8,
-                                              "label_type": "anchor", "variance_threshold": 10.0,
-                                              "trained_on": "atlas"}])
+                                              "label_type": "anchor", "variance_threshold": 449.0,
+                                              "max_expected_error_mm": 4.5, "trained_on": "atlas"}])
         return self.jobs(request)
 
 
