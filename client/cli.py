@@ -136,7 +136,7 @@ MaxExpectedOpt = Annotated[Optional[float], typer.Option(
     help="accept only slices whose expected error (mm) is at most this (default: the model's)")]
 ServerOpt = Annotated[str, typer.Option("--server", envvar="SVRNET_SERVER", help="server URL")]
 ApiKeyOpt = Annotated[Optional[str], typer.Option("--api-key", envvar="SVRNET_API_KEY", show_default=False,
-                                                  help="API key, where the server asks for one (default $SVRNET_API_KEY)")]
+                                                  help="API key, where the server asks for one")]
 MasksHoldCsfOpt = Annotated[bool, typer.Option(
     "--masks-hold-csf", help="the masks are the skull's inside (brain and the CSF around it, as manual fetal masks "
                              "are usually drawn): the pose network sees them less their outer 2 mm")]
@@ -280,7 +280,7 @@ def reconstruct(
         svr.download_volume(job_id, target)
         console.print(f"job {job_id} succeeded; wrote {target}")
         report = done.get("report") or {}
-        quality = quality_line(report.get("quality"))
+        quality = quality_line(report.get("quality"), report.get("n_stacks"))
         if quality:
             console.print(quality)
         if report.get("started_from") == "every_slice":

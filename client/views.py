@@ -121,15 +121,19 @@ def stage_label(state: dict[str, Any]) -> str:
     return str(status) if not stage or stage == status else f"{status}: {stage}"
 
 
-def quality_line(quality: dict[str, Any] | None) -> str:
-    """The job report's ``quality`` in one line (empty when the job has none).
+def quality_line(quality: dict[str, Any] | None, stacks: int | None = None) -> str:
+    """The job report's ``quality`` in one line (empty when the job has none); ``stacks``: how many the
+    job had (with one, no stack can be left out, and the line says so).
 
     Example:
         >>> quality_line({"judged_slices": 80, "median_ncc": 0.91, "fraction_ncc_above_0_7": 0.95,
         ...               "leave_one_stack_out": {"median_ncc": 0.84, "per_stack_median_ncc": [0.86, 0.8, 0.85]}})
         'quality: slices vs volume median NCC 0.91, 95% above 0.7 (80 slices); leave one stack out 0.84 (per stack 0.86, 0.80, 0.85)'
-        >>> quality_line({"judged_slices": 80, "path": "slice_level", "further_passes": {"scores": [0.85, 0.86], "kept": 1}})[-42:]
+        >>> quality_line({"judged_slices": 80, "path": "slice_level", "further_passes": {"scores": [0.85, 0.86], "kept": 1}},
+        ...              stacks=3).split("; ")[-1]
         'path slice_level + 1 further slice-level pass'
+        >>> quality_line({"judged_slices": 22, "median_ncc": 0.99, "fraction_ncc_above_0_7": 1.0}, stacks=1).split("; ")[1]
+        'leave one stack out: - (one stack: the volume is judged by its own slices only)'
     """
     if not quality:
         return ""
@@ -142,7 +146,8 @@ def quality_line(quality: dict[str, Any] | None) -> str:
         per = ", ".join(num(x) for x in held.get("per_stack_median_ncc") or [])
         line += f"; leave one stack out {num(held['median_ncc'])} (per stack {per})"
     else:
-        line += "; leave one stack out: - (it needs two stacks or more: with one, the volume is judged by its own slices only)"
+        line += "; leave one stack out: -" + (" (one stack: the volume is judged by its own slices only)"
+                                              if stacks == 1 else "")
     if quality.get("path"):
         kept = (quality.get("further_passes") or {}).get("kept") or 0
         line += f"; path {quality['path']}"

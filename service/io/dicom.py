@@ -180,8 +180,8 @@ def _csa_image_header(ds, filename: str) -> dict | None:  # noqa: ANN001
     """The Siemens CSA image header (0029,1010) as nibabel reads it (``None``: the file has none)."""
     try:
         csa = csareader.get_csa_header(ds, "image")
-        if csa is not None:
-            csareader.get_slice_normal(csa)                            # three numbers, or none
+        if csa is not None and (normal := csareader.get_slice_normal(csa)) is not None:
+            np.asarray(normal, np.float64)                              # three numbers, or none
         return csa
     except (csareader.CSAReadError, struct.error, AssertionError, ValueError, TypeError, KeyError) as exc:
         raise UnusableImage(f"{filename}: the mosaic's Siemens CSA image header (0029,1010) cannot be read, so "

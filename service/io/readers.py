@@ -142,7 +142,7 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
 
 
 def _gunzip(path: Path, out: Path, budget: FileBudget) -> Path:
-    """Decode a gzip file to ``out``, charging ``budget`` as it inflates (a NIfTI-1 header that declares
+    """Decode a gzip file to ``out``, charging ``budget`` as it inflates (a NIfTI header that declares
     too much is refused before anything else is inflated); truncated or corrupt streams are 415.
 
     ISA-L's inflate (``isal.igzip``, the ``gzip`` module's interface) decodes faster than
@@ -150,7 +150,7 @@ def _gunzip(path: Path, out: Path, budget: FileBudget) -> Path:
     try:
         with igzip.open(path, "rb") as src, open(out, "wb") as dst:
             head = src.read(352)
-            if _nifti1_values(head) * 4 > budget.limit:
+            if _nifti_values(head) * 4 > budget.limit:
                 raise budget.too_large("its voxel data decode")
             budget.inflate(len(head))
             dst.write(head)
@@ -162,13 +162,15 @@ def _gunzip(path: Path, out: Path, budget: FileBudget) -> Path:
     return out
 
 
-def _nifti1_values(head: bytes) -> int:
-    """Voxel values a NIfTI-1 header declares (0 when it is not one)."""
-    if len(head) < 348 or 348 not in (int.from_bytes(head[:4], "little"), int.from_bytes(head[:4], "big")):
-        return 0
-    endian = "<" if int.from_bytes(head[:4], "little") == 348 else ">"
-    dim = np.frombuffer(head, endian + "i2", 8, 40).astype(np.int64)
-    return int(np.prod(np.clip(dim[1:1 + int(np.clip(dim[0], 1, 7))], 1, None), dtype=np.float64))
+def _nifti_values(head: bytes) -> int:
+    """Voxel values a NIfTI-1 or NIfTI-2 header declares (0 when it is neither)."""
+    sizes = int.from_bytes(head[:4], "little"), int.from_bytes(head[:4], "big")
+    for size, offset, kind in ((348, 40, "i2"), (540, 16, "i8")):
+        if len(head) >= offset + 64 and size in sizes:
+            endian = "<" if sizes[0] == size else ">"
+            dim = np.frombuffer(head, endian + kind, 8, offset).astype(np.float64)
+            return int(min(np.prod(np.clip(dim[1:1 + int(np.clip(dim[0], 1, 7))], 1, None)), 2.0 ** 62))
+    return 0
 
 
 def _reader(path: Path, kind: str) -> sitk.ImageFileReader:
@@ -198,9 +200,9 @@ def _nifti1_truncated(path: Path) -> bool:
     it without a word, filling the missing voxels)."""
     with open(path, "rb") as f:
         head = f.read(352)
-    values = _nifti1_values(head)
-    if not values:
-        return False
+    values = _nifti_values(head)
+    if not values or 348 not in (int.from_bytes(head[:4], "little"), int.from_bytes(head[:4], "big")):
+        return False                                # NIfTI-2: nibabel reports a short file itself
     endian = "<" if int.from_bytes(head[:4], "little") == 348 else ">"
     bitpix = int(np.frombuffer(head, endian + "i2", 1, 72)[0])
     offset = float(np.frombuffer(head, endian + "f4", 1, 108)[0])
@@ -236,8 +238,10 @@ def _is_nifti2(path: Path) -> bool:
 
 def _read_nifti2(path: Path, filename: str, budget: FileBudget, transforms: NiftiTransforms | None) -> Volume:
     """A NIfTI-2 file (which SimpleITK does not read) with nibabel: its declared voxels charged to
-    ``budget`` before any is read, one 3D volume, placed as for NIfTI-1 (:func:`placed_by_header`;
-    without an sform, by nibabel's qform, the standard's rule)."""
+    ``budget`` before any is read, one 3D volume of real numbers, placed as its NIfTI-1 twin is
+    (:func:`placed_by_header`: the sform when its code is above 0, else the qform when its code is,
+    else ITK's fallback for NIfTI-1, the voxel sizes along -x, -y, +z from the origin). The voxels
+    are scaled in float32, the only array beside the file's own."""
     image = nibabel.Nifti2Image.from_filename(str(path))
     shape = tuple(int(n) for n in image.shape)
     budget.voxels(int(np.prod(shape, dtype=np.float64)))
@@ -246,8 +250,19 @@ def _read_nifti2(path: Path, filename: str, budget: FileBudget, transforms: Nift
     if any(n != 1 for n in shape[3:]):
         raise UnusableImage(f"{filename}: {len(shape)}D image with {int(np.prod(shape[3:]))} volumes; "
                             "upload one 3D stack per file")
-    array = np.asarray(image.dataobj, dtype=np.float32).reshape(shape[:3])
-    return placed_by_header(Volume(array, np.asarray(image.affine, np.float64)), transforms)
+    stored = image.get_data_dtype()
+    if stored.names is not None or stored.kind not in "iuf":
+        raise UnusableImage(f"{filename}: unsupported pixel type {stored} (one real number per voxel is required)")
+    array = np.asarray(image.dataobj.get_unscaled(), dtype=np.float32).reshape(shape[:3])
+    slope, inter = image.dataobj.slope, image.dataobj.inter
+    if slope != 1.0:
+        array *= np.float32(slope)
+    if inter != 0.0:
+        array += np.float32(inter)
+    affine = np.asarray(image.affine, np.float64)
+    if transforms is not None and transforms.qform_code <= 0 and transforms.sform_code <= 0:
+        affine = np.diag([-1.0, -1.0, 1.0, 1.0]) * np.r_[np.abs(transforms.pixdim[1:4]), 1.0]
+    return placed_by_header(Volume(array, affine), transforms)
 
 
 def _squeeze_4d(image: sitk.Image, filename: str) -> sitk.Image:

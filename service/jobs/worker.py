@@ -195,6 +195,23 @@ def starting_poses(body: dict, min_share: float = MIN_ACCEPTED_SHARE,
     return starting_inclusion(poses, posed_slices(body), min_share, min_slices)
 
 
+def start_label(body: dict, poses: list[tuple[np.ndarray, np.ndarray]]) -> str:
+    """The report's ``started_from`` for a job that started from ``poses`` (:func:`starting_poses` of the
+    service's own ``body``): ``accepted_slices`` where it kept the accepted slices alone (every slice,
+    where all were accepted), else ``every_slice``.
+
+    Example (two stacks: one slice of three not accepted, and the job kept or overrode the flags):
+        >>> body = {"stacks": [{"slices": [{"accepted": True}, {"accepted": False}]}, {"slices": [{"accepted": True}]}]}
+        >>> start_label(body, [(None, np.array([True, False])), (None, np.array([True]))])
+        'accepted_slices'
+        >>> start_label(body, [(None, np.array([True, True])), (None, np.array([True]))])
+        'every_slice'
+    """
+    accepted = [np.array([bool(s.get("accepted")) for s in st["slices"]]) for st in body["stacks"]]
+    kept = all(np.array_equal(include, acc) for (_, include), acc in zip(poses, accepted))
+    return "accepted_slices" if kept else "every_slice"
+
+
 def predicted_body(uploads: list, estimator, mc_samples: int = 100,  # noqa: ANN001
                    variance_threshold: float | None = None, orders: list | None = None,
                    max_expected_error_mm: float | None = None) -> tuple[dict, list[np.ndarray]]:
@@ -336,9 +353,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
                                      params.get("variance_threshold"), orders, params.get("max_expected_error_mm"))
         poses = starting_poses(body)
         plane = estimator.info.symmetry_plane_x_mm
-        accepted = [np.array([bool(x.get("accepted")) for x in st["slices"]]) for st in body["stacks"]]
-        started_from = ("accepted_slices" if all(np.array_equal(inc, acc) for (_, inc), acc in zip(poses, accepted))
-                        else "every_slice")
+        started_from = start_label(body, poses)
     progress("reconstructing", 0.15)
     slice_set = SliceSet.from_stacks([(u.volume, m, mats, acc) for u, m, (mats, acc) in zip(uploads, masks, poses)])
     result = reconstruct_never_worse(slice_set, resolution_mm=float(params.get("resolution_mm", 0.8)),

@@ -124,8 +124,18 @@ def test_a_mosaic_keeps_the_order_its_csa_times_give(tmp_path: Path) -> None:
     assert read_upload(_mosaic_file(tmp_path / "s.dcm", slices, 5, None, _csa_header(short)), "s.dcm").acquisition_order is None
 
 
+def _csa_text(name: str, text: str) -> bytes:
+    """A CSA2 header whose one tag holds ``text`` as a string (VR ST)."""
+    data = text.encode() + b"\0"
+    return (b"SV10" + b"\x04\x03\x02\x01" + struct.pack("<2I", 1, 77)
+            + struct.pack("<64si4s3i", name.encode(), 3, b"ST", 3, 3, 77)
+            + b"".join(struct.pack("<4i", len(data), len(data), 77, len(data)) + data + b"\0" * (-len(data) % 4)
+                       for _ in range(3)))
+
+
 @pytest.mark.parametrize(("csa", "needle"), [
     (_csa_header({"SliceNormalVector": [1.0, 0.0, 0.0]}), "does not lie along the normal"),
+    (_csa_text("SliceNormalVector", "up"), "cannot be read"),
     (b"SV10\x04\x03\x02\x01" + struct.pack("<2I", 1, 77) + b"\0" * 20, "cannot be read"),
 ])
 def test_a_mosaic_whose_csa_header_contradicts_or_is_broken_is_refused(tmp_path: Path, csa: bytes, needle: str) -> None:

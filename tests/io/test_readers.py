@@ -14,6 +14,7 @@ import SimpleITK as sitk
 
 from service.core.errors import UnsupportedFile, UnusableImage
 from service.geometry import frames, se3
+from service.io.limits import DecodeBudget
 from service.io.readers import read_upload, sniff
 from service.io.volume import Volume, write_volume
 from tests.conftest import SHARED_DATA
@@ -337,10 +338,11 @@ def test_a_zipped_series_is_unpacked_into_the_scratch_folder_given(tmp_path: Pat
     assert list(scratch.iterdir()) == []                     # removed again once read
 
 
-@pytest.mark.parametrize("codes", [(1, 2), (1, 0)])
+@pytest.mark.parametrize("codes", [(1, 2), (1, 0), (0, 0)])
 def test_a_nifti2_file_is_read_as_its_nifti1_twin(tmp_path: Path, codes: tuple[int, int]) -> None:
     """NIfTI-2 (which SimpleITK does not read) gives the voxels and placement of the same image as NIfTI-1,
-    by the sform where its code says so, else by the qform; gzipped or not."""
+    by the sform where its code says so, else by the qform, else as ITK places a NIfTI-1 without
+    either; gzipped or not; scaled voxels alike."""
     import nibabel
     arr = (np.random.default_rng(8).random((9, 8, 6)) * 500).astype(np.int16)
     voxel = oblique()
@@ -351,18 +353,38 @@ def test_a_nifti2_file_is_read_as_its_nifti1_twin(tmp_path: Path, codes: tuple[i
         image = image_class(arr, None)
         image.set_qform(voxel, code=codes[0])
         image.set_sform(sform, code=codes[1])
+        image.header.set_zooms((0.8, 0.8, 3.0))                       # the voxel sizes the qform and pixdim say
+        image.header.set_slope_inter(0.5, 10.0)
         for suffix in (".nii", ".nii.gz"):
             path = tmp_path / f"v{kind}{suffix}"
             nibabel.save(image, path)
             read[kind + suffix] = read_upload(path, path.name)
-    expected = sform if codes[1] > 0 else voxel
     for vol in read.values():
-        np.testing.assert_array_equal(vol.array, arr.astype(np.float32))
-        np.testing.assert_allclose(vol.affine, expected, atol=1e-4)
+        np.testing.assert_allclose(vol.array, arr.astype(np.float32) * 0.5 + 10.0, rtol=1e-6)
+        np.testing.assert_allclose(vol.affine, read["1.nii"].affine, atol=1e-4)
+    if codes != (0, 0):
+        np.testing.assert_allclose(read["2.nii"].affine, sform if codes[1] > 0 else voxel, atol=1e-4)
 
 
-def test_a_nifti2_file_of_several_volumes_or_truncated_is_refused(tmp_path: Path) -> None:
+def test_a_nifti2_file_of_several_volumes_complex_truncated_or_too_large_is_refused(tmp_path: Path) -> None:
+    import gzip
+
     import nibabel
+
+    from service.core.errors import PayloadTooLarge
+    nibabel.save(nibabel.Nifti2Image(np.ones((9, 8, 6), np.complex64), np.diag([1.0, 1.0, 3.0, 1.0])), tmp_path / "c.nii")
+    with pytest.raises(UnusableImage, match="unsupported pixel type complex64"):
+        read_upload(tmp_path / "c.nii", "c.nii")
+    huge = nibabel.Nifti2Image(np.ones((4, 4, 4), np.float32), np.eye(4))
+    huge.header.set_data_shape((4000, 4000, 4000))                     # declares 256 GB
+    nibabel.save(nibabel.Nifti2Image(np.ones((4, 4, 4), np.float32), np.eye(4)), tmp_path / "small.nii")
+    raw = bytearray((tmp_path / "small.nii").read_bytes())
+    raw[:540] = huge.header.binaryblock
+    (tmp_path / "huge.nii.gz").write_bytes(gzip.compress(bytes(raw) + bytes(1 << 20)))
+    budget = DecodeBudget(1 << 22).file("huge.nii.gz")
+    with pytest.raises(PayloadTooLarge):
+        read_upload(tmp_path / "huge.nii.gz", "huge.nii.gz", budget=budget)
+    assert budget.inflated == 0                                         # refused from its header, nothing inflated
     arr = np.ones((9, 8, 6, 2), np.float32)
     nibabel.save(nibabel.Nifti2Image(arr, np.diag([1.0, 1.0, 3.0, 1.0])), tmp_path / "v4.nii")
     with pytest.raises(UnusableImage, match="2 volumes"):

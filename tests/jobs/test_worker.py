@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from service.jobs.worker import (MIN_ACCEPTED_SHARE, MIN_ACCEPTED_SLICES, posed_slices, poses_from_predict_body,
-                                 starting_inclusion, starting_poses)
+                                 start_label, starting_inclusion, starting_poses)
 
 
 def _poses(*accepted: list[bool]) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -90,3 +90,13 @@ def test_uploaded_poses_are_matched_to_slices_by_their_index_not_their_place() -
             s["index"] = k
         with pytest.raises(ValueError, match=r"stack 0: each slice's index must be one of 0..3, once each"):
             poses_from_predict_body({"stacks": [{"slices": bad}]}, [4], spacing)
+
+
+def test_the_report_says_which_slices_a_job_started_from() -> None:
+    """``started_from`` of a job's report, from the same rule that chose the start."""
+    body = {"stacks": [{"slices": [{"atlas_from_voxel": np.eye(4).tolist(), "accepted": a, "reason": r}
+                                   for a, r in ((True, None), (False, "empty"), (False, "high_expected_error"))]}]}
+    assert start_label(body, starting_poses(body, min_slices=1)) == "accepted_slices"
+    assert start_label(body, starting_poses(body)) == "every_slice"                    # 1 accepted: too few
+    everyone = {"stacks": [{"slices": [{**x, "accepted": True} for x in body["stacks"][0]["slices"]]}]}
+    assert start_label(everyone, starting_poses(everyone)) == "accepted_slices"        # all accepted: the same set
