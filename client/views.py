@@ -68,8 +68,8 @@ def summarise(result: dict[str, Any]) -> Table:
 
 
 LOW_CONFIDENCE = 0.5
-"""A localiser confidence under this gets a hint to look at the mask (real stacks with a brain found
-well score about 0.7-1)."""
+"""A localiser confidence under this gets a hint to look at the mask (docs/localisation.md gives the
+confidences real stacks get)."""
 
 
 def predict_hints(result: dict[str, Any]) -> list[str]:

@@ -173,7 +173,8 @@ def _mosaic(ds, pixels: np.ndarray, filename: str) -> Volume:  # noqa: ANN001
     dz = float(getattr(ds, "SpacingBetweenSlices", None) or ds.SliceThickness)
     lps = _lps_affine(row_dir, col_dir, normal, (ps[1], ps[0], dz), origin)
     return Volume(np.ascontiguousarray(stack.transpose(2, 1, 0)), frames.ras_affine_from_lps(lps),
-                  order_of(_mosaic_times(csa, n)), slice_thickness_mm=stated_thickness([getattr(ds, "SliceThickness", None)]))
+                  order_of(_mosaic_times(csa, n)),
+                  slice_thickness_mm=stated_thickness([getattr(ds, "SliceThickness", None)]))
 
 
 def _csa_image_header(ds, filename: str) -> dict | None:  # noqa: ANN001

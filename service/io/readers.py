@@ -1,8 +1,9 @@
 """Uploaded files -> :class:`Volume`, recognised by content (magic bytes), not by file name.
 
-Formats: NIfTI-1 and -2 (``.nii``, ``.nii.gz``; NIfTI-2 through nibabel), NRRD, MetaImage (``.mha``), a single DICOM file (classic,
-Enhanced multi-frame, or Siemens mosaic), or a ``.zip`` holding one DICOM series. DICOM files are
-de-identified on read: only pixel data and geometry leave this module, no tag values are logged.
+Formats: NIfTI-1 and -2 (``.nii``, ``.nii.gz``; NIfTI-2 through nibabel), NRRD, MetaImage
+(``.mha``), a single DICOM file (classic, Enhanced multi-frame, or Siemens mosaic), or a ``.zip``
+holding one DICOM series. DICOM files are de-identified on read: only pixel data and geometry leave
+this module, no tag values are logged.
 
 Validation (each failure raises with the file's name, never a tag value):
 * unreadable, truncated, unknown or inconsistent (any parser error) -> :class:`UnsupportedFile` (415);
