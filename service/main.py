@@ -27,7 +27,7 @@ from service.core.settings import Settings
 from service.inference.registry import ModelRegistry
 from service.jobs.backends import open_backend
 from service.preprocess.localise import Localisers
-from service.streaming.background import background_executor
+from service.streaming.background import background_executor, stop_stage_process
 
 RETENTION_CHECK_S = 600.0
 log = logging.getLogger(__name__)
@@ -73,6 +73,7 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
             app.state.job_runner.shutdown()
             for executor in app.state.stream_stages.values():
                 executor.shutdown(wait=False, cancel_futures=True)
+            await asyncio.to_thread(stop_stage_process)       # the streams' stack fits: no process left behind
             if blas is not None:
                 blas.restore_original_limits()
 

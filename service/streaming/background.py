@@ -49,5 +49,29 @@ def stage_process() -> ProcessPoolExecutor:
     priority; shut down when the server exits."""
     pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
                                initializer=lower_priority)
-    atexit.register(pool.shutdown, wait=False, cancel_futures=True)
+    atexit.register(stop_stage_process)
     return pool
+
+
+def stop_stage_process(timeout_s: float = 5.0) -> None:
+    """End the stage process, where one was started: its pending fits cancelled, the running one given
+    ``timeout_s`` to finish, then the process terminated, so that a server stopped by SIGTERM leaves
+    no process behind (``shutdown(wait=False)`` alone left it, and multiprocessing's resource
+    tracker with it, running after the server had gone). The next :func:`stage_process` starts a new one.
+
+    Example:
+        >>> worker = next(iter(stage_process()._processes.values())) if stage_process().submit(int).result() == 0 else None
+        >>> stop_stage_process(); worker.is_alive()
+        False
+    """
+    if not stage_process.cache_info().currsize:
+        return
+    pool = stage_process()
+    stage_process.cache_clear()
+    workers = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for worker in workers:
+        worker.join(timeout_s)
+        if worker.is_alive():
+            worker.terminate()
+            worker.join(1.0)

@@ -1,0 +1,40 @@
+"""The streams' stage process ends with the server: a server stopped (SIGTERM runs the app's lifespan
+to its end) leaves no process behind, where ``shutdown(wait=False)`` alone left it running."""
+
+from __future__ import annotations
+
+import tempfile
+
+from fastapi.testclient import TestClient
+
+from service.core.settings import Settings
+from service.inference.registry import ModelRegistry
+from service.main import create_app
+from service.streaming.background import stage_process, stop_stage_process
+from tests.api.conftest import OracleEstimator
+
+
+def _worker():  # noqa: ANN202 - the pool's one process, started by a first task
+    pool = stage_process()
+    assert pool.submit(int).result() == 0
+    return next(iter(pool._processes.values()))
+
+
+def test_the_stage_process_ends_and_a_new_one_starts_on_next_use() -> None:
+    first = _worker()
+    stop_stage_process()
+    assert not first.is_alive()
+    second = _worker()
+    assert second.pid != first.pid and second.is_alive()
+    stop_stage_process()
+    assert not second.is_alive()
+    stop_stage_process()                                                # nothing started: nothing to do
+
+
+def test_the_server_s_lifespan_ends_the_stage_process() -> None:
+    app = create_app(Settings(data_dir=tempfile.mkdtemp(prefix="svrnet-test-")),
+                     registry=ModelRegistry({"default": OracleEstimator()}))
+    with TestClient(app):
+        worker = _worker()                                               # a stream's firm-up started it
+        assert worker.is_alive()
+    assert not worker.is_alive()
