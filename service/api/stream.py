@@ -123,7 +123,10 @@ class StreamConnection:
                 except ServiceError as e:
                     log.info("stream message refused", extra={"status": e.status})
                     if isinstance(msg, dict) and msg.get("type") == "slice":
-                        self.orphans = max(0, 1 + (msg.get("mask") is True) - self.binaries_read)
+                        # its frames: the pixels, and a mask for any "mask" but absent or false (a wrong
+                        # value such as "true" most likely came with one; a count too high ends at the
+                        # next text frame, so it never swallows a message)
+                        self.orphans = max(0, 1 + (msg.get("mask") not in (None, False)) - self.binaries_read)
                     await self.send(error_message(e))
                 except (_Closed, WebSocketDisconnect):
                     raise

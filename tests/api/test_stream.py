@@ -112,6 +112,8 @@ def test_bad_messages_get_an_error_naming_them_and_the_session_goes_on(client, c
             assert err["type"] == "error" and err["status"] == 400 and words in err["detail"], (words, err)
         send_slice(ws, f0, stack="a\u202eb")                  # a refused header with mask: one error, not three
         assert "slice.stack" in ws.receive_json()["detail"]
+        send_slice(ws, f0, mask="true")                       # a wrong mask value, its two frames: one error
+        assert "slice.mask" in ws.receive_json()["detail"]
         ws.send_bytes(b"\x01\x02")                            # a binary frame out of place
         assert "not expected" in ws.receive_json()["detail"]
         send_slice(ws, f0, dtype="uint16")                    # another dtype; the session still works
