@@ -206,7 +206,8 @@ def main(argv: list[str] | None = None) -> int:
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, stop)
-    log.info("svrnet-mrd listening")
+    host, port = server.server_address[:2]
+    log.info("svrnet-mrd listening on %s:%s", host, port)
     try:
         server.serve_forever()
     except KeyboardInterrupt:
