@@ -29,7 +29,7 @@ import SimpleITK as sitk
 from numpy.typing import NDArray
 
 from service.geometry.sampling import linear_operator
-from service.io.volume import Volume, to_sitk
+from service.io.volume import Volume
 from service.preprocess.n4 import n4_log_field
 from service.preprocess.stack import mask_box
 
@@ -58,8 +58,13 @@ def n4_correct(volume: Volume, mask: NDArray | None = None, *, shrink: int = 4, 
     box = None if mask is None else mask_box(np.asarray(mask, bool), np.ceil(margin_mm / volume.spacing).astype(int))
     box = box or tuple(slice(0, n) for n in arr.shape)
     region = volume.region(box)
-    image = to_sitk(Volume(np.maximum(np.asarray(region.array, np.float32), 0.0), region.affine))
-    sp = np.asarray(image.GetSpacing())
+    # The fit works on the voxel grid alone (the field lives on the index domain): ITK's shrink picks
+    # each block's pixel by rounding a physical position, which for an even factor sits half a pixel
+    # off, so with the stack's own geometry 1e-7 mm of header rounding (float32 MRD headers) chose
+    # the other pixel. On a grid of unit spacing at the origin the pick is always the same.
+    image = sitk.GetImageFromArray(np.ascontiguousarray(np.maximum(np.asarray(region.array, np.float32), 0.0)
+                                                        .transpose(2, 1, 0)))
+    sp = np.asarray(region.spacing, np.float64)
     target = max(shrink * min(sp), fit_spacing_mm)
     factors = [max(1, int(round(target / s))) for s in sp]                    # keep thick-slice axis
     factors = [min(f, max(1, n // 4)) for f, n in zip(factors, image.GetSize())]
