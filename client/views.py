@@ -31,6 +31,11 @@ NAME_WIDTH = 18
 every column fits an 80-column terminal."""
 
 
+def with_brain(slices: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The slices of a ``/v1/predict`` stack that hold brain (not ``empty``: their pose says nothing)."""
+    return [s for s in slices if s.get("reason") != "empty"]
+
+
 def summarise(result: dict[str, Any]) -> Table:
     """The per-stack summary table of a ``/v1/predict`` body."""
     model = result.get("model") or {}
@@ -54,7 +59,7 @@ def summarise(result: dict[str, Any]) -> Table:
         slices = stack.get("slices") or []
         accepted = sum(1 for s in slices if s.get("accepted"))
         reasons = Counter(s.get("reason") or "unknown" for s in slices if not s.get("accepted"))
-        brain = [s for s in slices if s.get("reason") != "empty"]     # an empty slice's pose says nothing
+        brain = with_brain(slices)
         variances = [s["geodesic_variance"] for s in brain if s.get("geodesic_variance") is not None]
         expected = [s["expected_error_mm"] for s in brain if s.get("expected_error_mm") is not None]
         where = stack.get("localisation") or {}
@@ -86,7 +91,7 @@ def predict_hints(result: dict[str, Any]) -> list[str]:
     stacks = result.get("stacks") or []
     for stack in stacks:
         name, where = stack.get("filename", "?"), stack.get("localisation") or {}
-        brain = [s for s in stack.get("slices") or [] if s.get("reason") != "empty"]
+        brain = with_brain(stack.get("slices") or [])
         if not brain:
             hints.append(f"{name}: no slice with brain: " + (
                 "its mask holds no brain on the stack's slices; check that it is the stack's mask"
@@ -95,7 +100,7 @@ def predict_hints(result: dict[str, Any]) -> list[str]:
         elif where.get("method") == "network" and float(where.get("confidence") or 0.0) < LOW_CONFIDENCE:
             hints.append(f"{name}: the localiser was unsure of the brain (confidence {where.get('confidence', 0):.2f}); "
                          "check its mask with `svrnet masks`, or upload one with --mask")
-    slices = [s for st in stacks for s in st.get("slices") or [] if s.get("reason") != "empty"]
+    slices = with_brain([s for st in stacks for s in st.get("slices") or []])
     if slices and not any(s.get("accepted") for s in slices):
         limit = result.get("max_expected_error_mm")
         why = (f" (every one expects an error over {limit:.3g} mm)"

@@ -21,7 +21,7 @@ from fastapi import Depends, File, Form, Request, UploadFile, params
 from pydantic import AfterValidator, StringConstraints, WithJsonSchema
 
 from service.api.deps import SettingsDep
-from service.consistency.slice_order import MAX_TEXT, PATTERN, SliceOrder, per_stack
+from service.consistency.slice_order import MAX_TEXT, PATTERN, VALUES, SliceOrder, per_stack
 from service.core.errors import InvalidParameter
 from service.core.names import clean_name
 from service.pipeline.prepare import StackUpload
@@ -128,8 +128,7 @@ MAX_EXPECTED_ERROR_HELP = ("slices whose pose's expected error (mm, after every 
 
 def _slice_order_value(value: str) -> str:
     if not re.fullmatch(PATTERN, value):
-        raise ValueError("must be auto, interleaved, sequential, interleaved-even-first, interleaved-odd-first, "
-                         "or the slice indices in acquisition order, comma-separated (e.g. 0,2,4,1,3)")
+        raise ValueError(VALUES)
     return value
 
 

@@ -37,6 +37,9 @@ motion model: a Gaussian process does not see the direction of time)."""
 FAMILIES: dict[str, tuple[str, ...]] = {"auto": NAMED_ORDERS, "interleaved": NAMED_ORDERS[1:],
                                         **{name: (name,) for name in NAMED_ORDERS}}
 """What each word of the ``slice_order`` field lets the motion model choose among."""
+VALUES = (f"one of {', '.join(FAMILIES)}, or the slice indices in the order they were acquired, "
+          "comma-separated (e.g. 0,2,4,1,3)")
+"""What a ``slice_order`` value may be, in the words every refusal of one uses."""
 GIVEN = "given"
 """The name of an order given as a list of slice indices."""
 FROM_FILE = "acquisition-times"
@@ -98,8 +101,7 @@ class SliceOrder:
         try:
             sequence = tuple(int(part) for part in word.replace(" ", "").split(","))
         except ValueError:
-            raise ValueError(f"one of {', '.join(FAMILIES)}, or the slice indices in the order they were "
-                             "acquired, comma-separated (e.g. 0,2,4,1,3)") from None
+            raise ValueError(VALUES) from None
         return cls((), sequence)
 
     def times(self, n: int) -> dict[str, NDArray[np.int64]]:

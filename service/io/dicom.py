@@ -165,47 +165,42 @@ def _mosaic(ds, pixels: np.ndarray, filename: str) -> Volume:  # noqa: ANN001
     stack = tiles[:n]
     row_dir, col_dir = _orientation(getattr(ds, "ImageOrientationPatient", None))
     ps = [float(x) for x in ds.PixelSpacing]
-    csa = _csa_image_header(ds, filename)
-    normal = _mosaic_normal(csa, np.cross(row_dir, col_dir), filename)
+    stated_normal, tile_times = _csa_slices(ds, n, filename)
+    normal = _mosaic_normal(stated_normal, np.cross(row_dir, col_dir), filename)
     # ImagePositionPatient is the top-left of the whole mosaic: move to the first tile's corner.
     origin = np.asarray(ds.ImagePositionPatient, dtype=np.float64)
     origin = origin + row_dir * ps[1] * (cols - tc) / 2.0 + col_dir * ps[0] * (rows - tr) / 2.0
     dz = float(getattr(ds, "SpacingBetweenSlices", None) or ds.SliceThickness)
     lps = _lps_affine(row_dir, col_dir, normal, (ps[1], ps[0], dz), origin)
     return Volume(np.ascontiguousarray(stack.transpose(2, 1, 0)), frames.ras_affine_from_lps(lps),
-                  order_of(_mosaic_times(csa, n)),
+                  order_of(tile_times),
                   slice_thickness_mm=stated_thickness([getattr(ds, "SliceThickness", None)]))
 
 
-def _csa_image_header(ds, filename: str) -> dict | None:  # noqa: ANN001
-    """The Siemens CSA image header (0029,1010) as nibabel reads it (``None``: the file has none)."""
+def _csa_slices(ds, n: int, filename: str) -> tuple[np.ndarray | None, list[float | None]]:  # noqa: ANN001
+    """What the Siemens CSA image header (0029,1010; nibabel's reader) says of a mosaic's ``n`` tiles:
+    its ``SliceNormalVector`` (``None``: no header, or no normal in it) and each tile's acquisition
+    time within the repetition (``MosaicRefAcqTimes``, ms -> s; ``None`` where the header does not
+    give all ``n``: the order of an interleaved mosaic)."""
     try:
         csa = csareader.get_csa_header(ds, "image")
-        if csa is not None and (normal := csareader.get_slice_normal(csa)) is not None:
-            np.asarray(normal, np.float64)                              # three numbers, or none
-        return csa
+        stated = None if csa is None else csareader.get_slice_normal(csa)
+        normal = None if stated is None else np.asarray(stated, np.float64)
     except (csareader.CSAReadError, struct.error, AssertionError, ValueError, TypeError, KeyError) as exc:
         raise UnusableImage(f"{filename}: the mosaic's Siemens CSA image header (0029,1010) cannot be read, so "
                             "the order of its slices is unknown") from exc
-
-
-def _mosaic_times(csa: dict | None, n: int) -> list[float | None]:
-    """Each tile's acquisition time within the volume's repetition (the CSA ``MosaicRefAcqTimes``, ms ->
-    s; ``None`` where the header does not give all ``n``): the order of an interleaved mosaic."""
     items = ((csa or {}).get("tags", {}).get("MosaicRefAcqTimes") or {}).get("items") or []
     if len(items) < n or not all(isinstance(t, (int, float)) and np.isfinite(t) for t in items[:n]):
-        return [None] * n
-    return [float(t) / 1000.0 for t in items[:n]]
+        return normal, [None] * n
+    return normal, [float(t) / 1000.0 for t in items[:n]]
 
 
-def _mosaic_normal(csa: dict | None, image_normal: np.ndarray, filename: str) -> np.ndarray:
+def _mosaic_normal(stated: np.ndarray | None, image_normal: np.ndarray, filename: str) -> np.ndarray:
     """The direction in which a mosaic's tiles follow one another: the CSA image header's
-    ``SliceNormalVector`` where the file has one (``image_normal`` or its opposite), else
+    ``SliceNormalVector`` ``stated`` where the file has one (``image_normal`` or its opposite), else
     ``image_normal`` (the row and column directions' cross product: slices taken as ascending)."""
-    stated = None if csa is None else csareader.get_slice_normal(csa)
     if stated is None:
         return image_normal
-    stated = np.asarray(stated, np.float64)
     along = float(stated @ image_normal) / max(float(np.linalg.norm(stated)), 1e-12)
     if not np.isfinite(along) or abs(along) < 0.99:                       # within about 8 degrees
         raise UnusableImage(f"{filename}: the mosaic's CSA SliceNormalVector {np.round(stated, 4).tolist()} does "

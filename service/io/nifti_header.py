@@ -54,6 +54,8 @@ class NiftiTransforms:
     """``srow_x, srow_y, srow_z``, row after row (12 values)."""
     axes: int = 3
     """The image's spatial axes (``dim[0]``, 1 to 3)."""
+    header_size: int = 348
+    """348 for NIfTI-1, 540 for NIfTI-2."""
 
 
 def parse(head: bytes) -> NiftiTransforms | None:
@@ -66,7 +68,7 @@ def parse(head: bytes) -> NiftiTransforms | None:
                 return NiftiTransforms(int(values(at["qform_code"], 1, at["code"])[0]),
                                        int(values(at["sform_code"], 1, at["code"])[0]),
                                        values(at["pixdim"], 4), values(at["quatern"], 6), values(at["srow"], 12),
-                                       int(np.clip(values(at["dim"], 1, at["d"])[0], 1, 3)))
+                                       int(np.clip(values(at["dim"], 1, at["d"])[0], 1, 3)), size)
     return None
 
 

@@ -32,6 +32,7 @@ import SimpleITK as sitk
 from isal import igzip, isal_zlib
 
 from service.core.errors import ServiceError, UnsupportedFile, UnusableImage
+from service.geometry import frames
 from service.io.acquisition_geometry import grid_problem, stacking_problem
 from service.io.archive import read_dicom_zip
 from service.io.dicom import read_dicom_file
@@ -120,7 +121,7 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
                         clean_header(src, dst, kind, filename)
                 else:
                     named.symlink_to(Path(path).resolve())
-                if kind == "nifti" and _is_nifti2(named):
+                if transforms is not None and transforms.header_size == 540:      # NIfTI-2
                     vol = _read_nifti2(named, filename, budget, transforms)
                 else:
                     budget.voxels(_declared_values(named, kind))
@@ -232,11 +233,6 @@ def _nifti_has_nonfinite(path: Path) -> bool:
     return not np.isfinite(data).all()
 
 
-def _is_nifti2(path: Path) -> bool:
-    with open(path, "rb") as f:
-        return 540 in (int.from_bytes(head := f.read(4), "little"), int.from_bytes(head, "big"))
-
-
 def _read_nifti2(path: Path, filename: str, budget: FileBudget, transforms: NiftiTransforms | None) -> Volume:
     """A NIfTI-2 file (which SimpleITK does not read) with nibabel: its declared voxels charged to
     ``budget`` before any is read, one 3D volume of real numbers, placed as its NIfTI-1 twin is
@@ -262,7 +258,7 @@ def _read_nifti2(path: Path, filename: str, budget: FileBudget, transforms: Nift
         array += np.float32(inter)
     affine = np.asarray(image.affine, np.float64)
     if transforms is not None and transforms.qform_code <= 0 and transforms.sform_code <= 0:
-        affine = np.diag([-1.0, -1.0, 1.0, 1.0]) * np.r_[np.abs(transforms.pixdim[1:4]), 1.0]
+        affine = frames.ras_affine_from_lps(np.diag([*np.abs(transforms.pixdim[1:4]), 1.0]))
     return placed_by_header(Volume(array, affine), transforms)
 
 

@@ -47,10 +47,8 @@ def stage_process() -> ProcessPoolExecutor:
     """The process the firm-ups' stack fits run in: one for the server's life, started on first use
     (``spawn``: a fresh interpreter, nothing of the server's threads or model sessions), at a lower
     priority; shut down when the server exits."""
-    pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+    return ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
                                initializer=lower_priority)
-    atexit.register(stop_stage_process)
-    return pool
 
 
 def stop_stage_process(timeout_s: float = 5.0) -> None:
@@ -79,3 +77,6 @@ def stop_stage_process(timeout_s: float = 5.0) -> None:
         if worker.is_alive():
             worker.kill()
             worker.join(timeout_s)
+
+
+atexit.register(stop_stage_process)        # once: a no-op when no process was started
