@@ -316,6 +316,7 @@ def stream(
     threshold: ThresholdOpt = None,
     max_expected_error: MaxExpectedOpt = None,
     bias_correction: BiasCorrectionOpt = True,
+    masks_hold_csf: MasksHoldCsfOpt = False,
     model: ModelOpt = None,
     json_out: Annotated[Optional[Path], typer.Option(
         "--json-out", dir_okay=False, help="write every message received here, one JSON object a line")] = None,
@@ -340,8 +341,8 @@ def stream(
             result = streaming.stream_stacks(
                 read, server, api_key=api_key or None, mc_samples=mc_samples, variance_threshold=threshold,
                 max_expected_error_mm=max_expected_error, bias_correction=None if bias_correction else False,
-                model=model, pace_s=pace, order=order.value, on_message=on_message, json_out=json_out,
-                answer_timeout_s=_timeout().read or 300.0)
+                masks_hold_csf=True if masks_hold_csf else None, model=model, pace_s=pace, order=order.value,
+                on_message=on_message, json_out=json_out, answer_timeout_s=_timeout().read or 300.0)
         summary = result.summary or {}
         timing = summary.get("timing_ms") or {}
         p50, p95 = timing.get("pose_latency_p50"), timing.get("pose_latency_p95")

@@ -307,7 +307,7 @@ class _Session:
 def stream_stacks(stacks: Sequence[ScannerStack], server: str = DEFAULT_SERVER, *, api_key: str | None = None,
                   mc_samples: int | None = None, variance_threshold: float | None = None,
                   max_expected_error_mm: float | None = None, bias_correction: bool | None = None,
-                  model: str | None = None, pace_s: float = 0.0, order: str = "sequential",
+                  masks_hold_csf: bool | None = None, model: str | None = None, pace_s: float = 0.0, order: str = "sequential",
                   on_message: MessageCallback | None = None, json_out: str | Path | None = None,
                   answer_timeout_s: float = 300.0, max_in_flight: int = MAX_IN_FLIGHT) -> StreamResult:
     """Stream stacks in one session: ``start``, every slice of each stack then its ``end_stack``, ``end``.
@@ -324,6 +324,7 @@ def stream_stacks(stacks: Sequence[ScannerStack], server: str = DEFAULT_SERVER, 
         variance_threshold: as for ``/v1/predict`` (default: the model's).
         max_expected_error_mm: as for ``/v1/predict`` (default: the model's).
         bias_correction: N4 bias-field correction (server default true).
+        masks_hold_csf: the masks are the skull's inside, brain and CSF (server default false).
         model: the model's name (server default ``default``).
         pace_s: seconds between two slices.
         order: ``sequential`` or ``interleaved`` (even indices, then odd): the order slices go out in.
@@ -343,7 +344,8 @@ def stream_stacks(stacks: Sequence[ScannerStack], server: str = DEFAULT_SERVER, 
         SVRnetError: the server refused ``start`` or ``end`` (its error's class).
     """
     options = {"model": model, "mc_samples": mc_samples, "variance_threshold": variance_threshold,
-               "max_expected_error_mm": max_expected_error_mm, "bias_correction": bias_correction}
+               "max_expected_error_mm": max_expected_error_mm, "bias_correction": bias_correction,
+               "masks_hold_csf": masks_hold_csf}
     orders = [send_order(len(stack.slices), order) for stack in stacks]
     with (open(json_out, "w", encoding="utf-8") if json_out is not None else nullcontext()) as record, \
             _connect(stream_url(server), api_key, answer_timeout_s) as ws:

@@ -121,6 +121,26 @@ class StreamedStack:
                                    "other slices (they must lie along one normal)")
         if (frame.mask is None) != (first.mask is None):
             raise InvalidParameter(f"slice.mask: either every slice of stack {self.name!r} comes with a mask or none does")
+        self._check_place(frame, first, normal)
+
+    def _check_place(self, frame: SliceFrame, first: SliceFrame, normal: NDArray[np.float64]) -> None:
+        """A slice's index is its place along the normal: its origin lies where the slices received so
+        far put the slice of that index (evenly spaced; with one slice received, anywhere but there)."""
+        along = float((frame.scanner_from_voxel[:3, 3] - first.scanner_from_voxel[:3, 3]) @ normal)
+        others = [k for k in self.frames if k != first.index]
+        if not others:
+            if abs(along) < LINE_TOLERANCE_MM:
+                raise InvalidParameter(f"slice.scanner_from_voxel: slice {frame.index} sits where slice {first.index} "
+                                       f"of stack {self.name!r} does (each index is its own place along the normal)")
+            return
+        far = self.frames[max(others, key=lambda k: abs(k - first.index))]
+        step = float((far.scanner_from_voxel[:3, 3] - first.scanner_from_voxel[:3, 3]) @ normal) / (far.index - first.index)
+        expected = step * (frame.index - first.index)
+        if abs(along - expected) > LINE_TOLERANCE_MM:
+            raise InvalidParameter(f"slice.index: slice {frame.index} of stack {self.name!r} lies {along:.2f} mm along the "
+                                   f"normal from slice {first.index}, where the stack's slices put index {frame.index} "
+                                   f"at {expected:.2f} mm (a slice's index is its place along the normal, the slices "
+                                   "evenly spaced)")
 
     def remove(self, index: int) -> None:
         """Forget the slice ``index`` (one the service could not take after all)."""

@@ -53,6 +53,8 @@ class SessionOptions:
     variance_threshold: float | None = None
     max_expected_error_mm: float | None = None
     bias_correction: bool = True
+    masks_hold_csf: bool = False
+    """The mask frames are the skull's inside (brain and extra-axial CSF), as ``/v1/predict``'s form field."""
 
     @classmethod
     def from_json(cls, text: str, where: str) -> "SessionOptions":
@@ -84,7 +86,8 @@ class SessionOptions:
                                       or not np.isfinite(value) or not value > 0):
                 raise InvalidParameter(f"{where}.{name}: a positive number (or null) is required")
             limits[name] = None if value is None else float(value)
-        bias_correction = given.get("bias_correction", True)
-        if not isinstance(bias_correction, bool):
-            raise InvalidParameter(f"{where}.bias_correction: true or false")
-        return cls(model, samples, **limits, bias_correction=bias_correction)
+        flags = {name: given.get(name, default) for name, default in (("bias_correction", True), ("masks_hold_csf", False))}
+        for name, value in flags.items():
+            if not isinstance(value, bool):
+                raise InvalidParameter(f"{where}.{name}: true or false")
+        return cls(model, samples, **limits, **flags)

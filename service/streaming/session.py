@@ -139,6 +139,7 @@ class StreamSession:
         self.max_expected_error_mm = (getattr(info, "max_expected_error_mm", None)
                                       if options.max_expected_error_mm is None else options.max_expected_error_mm)
         self.bias_correction = options.bias_correction
+        self.masks_hold_csf = options.masks_hold_csf
         self.stacks: dict[str, StreamedStack] = {}
         self.slices: dict[str, dict[int, _Slice]] = {}
         self.fits: dict[str, StackPoses] = {}
@@ -202,7 +203,8 @@ class StreamSession:
         pixels = np.asarray(frame.pixels, dtype=np.float32)[..., None]
         volume = Volume(pixels, np.asarray(frame.scanner_from_voxel, dtype=np.float64))
         if frame.mask is not None:
-            localisation = Localisation.of(np.asarray(frame.mask, bool)[..., None], volume.spacing, "mask", 1.0)
+            localisation = Localisation.of(np.asarray(frame.mask, bool)[..., None], volume.spacing, "mask", 1.0,
+                                           holds_csf=self.masks_hold_csf)
         elif self.localiser is None:
             raise InvalidParameter("slice.mask: no localiser is installed; send a mask frame with every slice")
         else:
@@ -315,7 +317,8 @@ class StreamSession:
             order = SliceOrder((), streamed.arrival_order(), STREAMED)
             before = dict(self.ended)
         info = self.estimator.info
-        upload = StackUpload(stack, volume, mask, None if mask is None else f"{stack} (mask frames)", slice_axis=2)
+        upload = StackUpload(stack, volume, mask, None if mask is None else f"{stack} (mask frames)", slice_axis=2,
+                             mask_holds_csf=self.masks_hold_csf)
         prepared = prepare_stack(upload, info, self.bias_correction, self.localiser)
         (estimate,), timings = estimate_stacks([prepared], self.estimator, self.mc_samples)
         ended = {**before, stack: _Ended(prepared, estimate, order)}

@@ -121,6 +121,8 @@ def test_bad_messages_get_an_error_naming_them_and_the_session_goes_on(client, c
         assert pose["index"] == 0
         send_slice(ws, f1, scanner_from_voxel=stacks[1][1].scanner_from_voxel.tolist())
         assert "axes differ" in receive(ws, ("error",))["detail"]
+        send_slice(ws, f1, scanner_from_voxel=f0.scanner_from_voxel.tolist())     # its index, not its place
+        assert "slice 1 sits where slice 0" in receive(ws, ("error",))["detail"]
         ws.send_text(json.dumps({"type": "end_stack", "stack": "ax"}))
         assert "lacks" not in json.dumps(receive(ws, ("stack", "error")))
 

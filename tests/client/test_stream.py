@@ -153,7 +153,8 @@ def test_a_scripted_session_shows_poses_updates_errors_and_the_summary(stack_fil
 
     def handler(ws: ServerConnection) -> None:
         keys.append(ws.request.headers.get("Authorization"))
-        assert json.loads(ws.recv())["mc_samples"] == 10
+        start = json.loads(ws.recv())
+        assert start["mc_samples"] == 10 and start["masks_hold_csf"] is True and "bias_correction" not in start
         ws.send(json.dumps({"type": "ready", "session_id": "s1", "model": {"name": "default", "version": "1"},
                             "mc_samples": 10, "max_expected_error_mm": 5.0,
                             "limits": {"slices": 100, "pixels_per_slice": 1000, "idle_s": 30}}))
@@ -188,7 +189,8 @@ def test_a_scripted_session_shows_poses_updates_errors_and_the_summary(stack_fil
     out = tmp_path / "messages.jsonl"
     with scripted_server(handler) as url:
         result = runner.invoke(cli.app, ["stream", str(stack_file), str(cor), "--server", url, "--api-key", "k1",
-                                         "--order", "interleaved", "--mc-samples", "10", "--json-out", str(out)])
+                                         "--order", "interleaved", "--mc-samples", "10", "--masks-hold-csf",
+                                         "--json-out", str(out)])
     assert result.exit_code == 0, result.output
     assert keys == ["Bearer k1"]
     slices = [(m, f) for m, f in heard if m["type"] == "slice"]

@@ -92,6 +92,43 @@ def test_bad_slices_are_refused_and_change_nothing(case) -> None:  # noqa: ANN00
         session.end_stack("ax")
 
 
+def test_a_slice_whose_index_contradicts_its_place_is_refused_on_arrival(case) -> None:  # noqa: ANN001
+    oracle, stacks, _ = case
+    frames = stacks[0]
+    session = StreamSession(oracle, None, options=FAST)
+    session.add_slice(frames[0])
+    with pytest.raises(InvalidParameter, match="slice 1 sits where slice 0"):
+        session.add_slice(SliceFrame("ax", 1, frames[1].pixels, frames[0].scanner_from_voxel, frames[1].mask))
+    session.add_slice(frames[2])
+    swapped = SliceFrame("ax", 1, frames[1].pixels, frames[3].scanner_from_voxel, frames[1].mask)
+    with pytest.raises(InvalidParameter, match=r"slice.index: slice 1 of stack 'ax' lies .* where the stack's slices "
+                                               r"put index 1"):
+        session.add_slice(swapped)
+    assert sorted(session.stacks["ax"].frames) == [0, 2]               # the stack unchanged
+    for k in (5, 1, 3):                                                # their own places, in any order: taken
+        session.add_slice(frames[k])
+    reversed_numbering = StreamSession(oracle, None, options=FAST)     # indices may run against the normal
+    n = len(frames)
+    for k in (0, 3, 1):
+        f = frames[n - 1 - k]
+        reversed_numbering.add_slice(SliceFrame("ax", k, f.pixels, f.scanner_from_voxel, f.mask))
+
+
+def test_masks_hold_csf_sets_the_pose_mask_inset_of_mask_frames(case) -> None:  # noqa: ANN001
+    oracle, stacks, _ = case
+    frames = stacks[0]
+    for holds, inset in ((False, 0.0), (True, 2.0)):
+        session = StreamSession(oracle, None, options=SessionOptions(mc_samples=10, bias_correction=False,
+                                                                     masks_hold_csf=holds))
+        first = session.add_slice(frames[0])
+        assert first.prediction.prepared.localisation.pose_inset_mm == inset
+        for f in frames[1:]:
+            session.add_slice(f)
+        assert session.end_stack("ax").prediction.prepared.localisation.report()["pose_mask_inset_mm"] == inset
+    with pytest.raises(InvalidParameter, match="start.masks_hold_csf: true or false"):
+        SessionOptions.from_message({"masks_hold_csf": "yes"}, "start")
+
+
 def test_a_session_holds_no_more_than_its_memory_limit(case) -> None:  # noqa: ANN001
     oracle, stacks, _ = case
     one = stacks[0][0].pixels.size * 4
