@@ -321,6 +321,17 @@ class SVRnetClient(Transport):
         """
         return self._download(self._job_path(job_id, "/preview.png"), out_path, progress)
 
+    def download_transforms(self, job_id: str, out_path: PathLike,
+                            progress: ProgressCallback | None = None) -> Path:
+        """``GET /v1/reconstructions/{job_id}/transforms``: a zip of one ITK ``.tfm`` per slice (atlas
+        space -> the uploaded stack's space, LPS) and ``slice_transforms.txt``.
+
+        Example:
+            >>> SVRnetClient().download_transforms("3f2a", "transforms.zip")     # doctest: +SKIP
+            PosixPath('transforms.zip')
+        """
+        return self._download(self._job_path(job_id, "/transforms"), out_path, progress)
+
     def refined_poses(self, job_id: str) -> dict[str, Any]:
         """``GET /v1/reconstructions/{job_id}/poses``: the slice poses refined by the reconstruction.
 

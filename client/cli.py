@@ -238,6 +238,9 @@ def reconstruct(
     poses_out: Annotated[Optional[Path], typer.Option(
         "--poses-out", dir_okay=False,
         help="also write the refined slice poses (/v1/predict schema) here (implies --wait)")] = None,
+    transforms_out: Annotated[Optional[Path], typer.Option(
+        "--transforms-out", dir_okay=False,
+        help="also download the per-slice ITK transforms (.zip of .tfm files) here (implies --wait)")] = None,
     timeout: Annotated[float, typer.Option(min=0, help="seconds to wait for the job")] = 3600.0,
     poll: Annotated[float, typer.Option(min=0.05, help="seconds between status polls")] = 1.0,
     slice_order: Annotated[Optional[list[str]], typer.Option(
@@ -251,8 +254,8 @@ def reconstruct(
 ) -> None:
     """Start a reconstruction job (POST /v1/reconstructions); with --wait, follow it and download the volume."""
     _check_masks(stacks, mask)
-    _check_writable(out=out, preview=preview, poses_out=poses_out)
-    wait = wait or out is not None or preview is not None or poses_out is not None
+    _check_writable(out=out, preview=preview, poses_out=poses_out, transforms_out=transforms_out)
+    wait = wait or any(p is not None for p in (out, preview, poses_out, transforms_out))
     err, console = stderr(), stdout()
     with errors(), _client(server, api_key) as svr:
         with upload_bar(err, f"{len(stacks)} stack(s)") as progress:
@@ -292,6 +295,9 @@ def reconstruct(
         if poses_out is not None:
             _write_json(poses_out, svr.refined_poses(job_id))
             console.print(f"wrote {poses_out}")
+        if transforms_out is not None:
+            svr.download_transforms(job_id, transforms_out)
+            console.print(f"wrote {transforms_out}")
 
 
 class SendOrder(str, Enum):

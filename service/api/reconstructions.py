@@ -39,7 +39,8 @@ def _status(job: Job) -> dict:
     return {"job_id": job.id, "status": job.status, "stage": job.stage, "progress": job.progress, "error": job.error,
             "created_at": _iso(job.created_at), "updated_at": _iso(job.updated_at),
             "result_url": f"{base}/volume" if done else None, "preview_url": f"{base}/preview.png" if done else None,
-            "poses_url": f"{base}/poses" if done else None, "report": job.report, "attempts": job.attempts,
+            "poses_url": f"{base}/poses" if done else None,
+            "transforms_url": f"{base}/transforms" if done else None, "report": job.report, "attempts": job.attempts,
             "started_at": _iso(job.started_at) if job.started_at else None}
 
 
@@ -162,6 +163,16 @@ async def poses(request: Request, job_id: str) -> FileResponse:
     (``atlas_from_voxel`` and the pose fields; ``accepted``/``reason`` stay the model's), plus per slice
     ``included``, ``exclusion_reason``, ``weight``, ``ncc``. It is a valid ``poses`` input to a new job."""
     return _result(request, job_id, "poses.json", "application/json", f"{job_id}_poses.json")
+
+
+@router.get("/{job_id}/transforms", responses=problem_responses(401, 404, 409),
+            summary="Per-slice ITK transforms (.zip of transforms/*.tfm and slice_transforms.txt)",
+            response_class=FileResponse)
+async def transforms(request: Request, job_id: str) -> FileResponse:
+    """The job's ``transforms/`` folder as a zip archive: one ITK ``.tfm`` per slice (atlas LPS -> the
+    uploaded stack's LPS, the reconstruction as the fixed image) and ``slice_transforms.txt``
+    (docs/reconstruction.md, "Output files")."""
+    return _result(request, job_id, "transforms.zip", "application/zip", f"{job_id}_transforms.zip")
 
 
 @router.delete("/{job_id}", status_code=204, responses=problem_responses(401, 404), summary="Cancel a job and delete its files")

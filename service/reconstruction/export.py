@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import math
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +48,23 @@ def tfm_text(transform_lps: ArrayLike) -> str:
     params = " ".join(repr(float(v)) for v in list(m[:3, :3].ravel()) + list(m[:3, 3]))
     return (f"{TFM_HEADER}\n#Transform 0\nTransform: AffineTransform_double_3_3\n"
             f"Parameters: {params}\nFixedParameters: 0 0 0\n")
+
+
+def zip_folder(folder: Path, target: Path) -> Path:
+    """The files of ``folder`` in one zip archive ``target`` (deflated, named ``<folder>/<file>`` in
+    it, sorted), as ``GET /v1/reconstructions/{id}/transforms`` serves a job's transforms.
+
+    Example:
+        >>> import tempfile, zipfile
+        >>> d = Path(tempfile.mkdtemp()); (d / "t").mkdir(); _ = (d / "t" / "a.tfm").write_text("x")
+        >>> zipfile.ZipFile(zip_folder(d / "t", d / "t.zip")).namelist()
+        ['t/a.tfm']
+    """
+    with zipfile.ZipFile(target, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+        for path in sorted(Path(folder).iterdir()):
+            if path.is_file():
+                archive.write(path, f"{Path(folder).name}/{path.name}")
+    return target
 
 
 def write_slice_tfms(folder: Path, atlas_from_voxel: ArrayLike, slices: SliceSet) -> list[Path]:
@@ -108,6 +126,7 @@ def write_outputs(result: ReconstructionResult, slices: SliceSet, folder: str | 
     (out / "preview.png").write_bytes(preview_png(result.volume))
     tfms = write_slice_tfms(out / "transforms", result.atlas_from_voxel_final, slices)
     (out / "transforms" / "slice_transforms.txt").write_text(listing_text(result, slices))
+    zip_folder(out / "transforms", out / "transforms.zip")
     ncc = result.ncc[result.included]
     summary = {
         "n_stacks": int(slices.stack_index.max()) + 1 if slices.n_slices else 0,
@@ -126,7 +145,7 @@ def write_outputs(result: ReconstructionResult, slices: SliceSet, folder: str | 
         "affine": result.volume.affine.tolist(),
         "timings_s": {k: round(float(v), 3) for k, v in result.timings.items()},
         "files": ["volume.nii.gz", "preview.png", "report.json", "transforms/slice_transforms.txt",
-                  f"transforms/*.tfm ({len(tfms)})"],
+                  f"transforms/*.tfm ({len(tfms)})", "transforms.zip"],
     }
     mapping = "LPS, atlas (fixed) -> stack scanner space (moving); see service.reconstruction.export"
     report = dict(summary, **(extra or {}), tfm_mapping=mapping, slices=slice_records(result, slices))

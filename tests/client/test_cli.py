@@ -182,11 +182,14 @@ def test_cli_reconstruct_wait_downloads(fake_cli: Callable, stack_file: Path, tm
     poses = tmp_path / "poses.json"
     poses.write_text(json.dumps(PREDICT_BODY))
     out, preview, refined = tmp_path / "recon.nii.gz", tmp_path / "preview.png", tmp_path / "refined.json"
+    transforms = tmp_path / "transforms.zip"
     r = invoke(["reconstruct", str(stack_file), "--poses", str(poses), "--resolution", "0.8", "--svr-iterations",
                 "2", "--wait", "--poll", "0.05", "--out", str(out), "--preview", str(preview),
-                "--poses-out", str(refined), "--no-atlas-frame", "--slice-order", "interleaved", "--thickness", "2.5"])
+                "--poses-out", str(refined), "--transforms-out", str(transforms), "--no-atlas-frame", "--slice-order",
+                "interleaved", "--thickness", "2.5"])
     assert r.exit_code == 0, r.output
     assert out.read_bytes() == FakeJobs.VOLUME and preview.read_bytes() == FakeJobs.PREVIEW
+    assert transforms.read_bytes() == FakeJobs.TRANSFORMS
     assert json.loads(refined.read_text())["refined_by"] == {"job_id": "job1"}
     assert "job1" in r.stdout and "succeeded" in r.stdout
     fields, files = fake.jobs.uploads[0]

@@ -4,13 +4,16 @@ restart."""
 
 from __future__ import annotations
 
+import io
 import json
 import re
 import time
+import zipfile
 from pathlib import Path
 
 import numpy as np
 import pytest
+import SimpleITK as sitk
 from fastapi.testclient import TestClient
 
 from service.inference.registry import ModelRegistry
@@ -111,6 +114,24 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
         np.testing.assert_allclose(rot @ rot.T, np.eye(3), atol=1e-9)
         assert len(got["anchor_points_mm"]) == 3 and len(got["quaternion_wxyz"]) == 4
     assert submit(client, case, poses=body).status_code == 202
+    # The per-slice transforms: a zip of one .tfm per slice, each F A P^-1 F (docs/reconstruction.md).
+    assert st["transforms_url"] == f"/v1/reconstructions/{job_id}/transforms"
+    got = client.get(st["transforms_url"])
+    assert got.status_code == 200 and got.headers["content-type"] == "application/zip"
+    archive = zipfile.ZipFile(io.BytesIO(got.content))
+    names = archive.namelist()
+    assert len(names) == 37 and "transforms/slice_transforms.txt" in names
+    flip = np.diag([-1.0, -1.0, 1.0, 1.0])
+    for rec in report["slices"][::7]:
+        path = tmp_path / "one.tfm"
+        path.write_bytes(archive.read(f"transforms/stack{rec['stack']}_slice{rec['slice']:03d}.tfm"))
+        tfm = sitk.ReadTransform(str(path))
+        m = np.eye(4)
+        m[:3, :3] = np.reshape(tfm.GetParameters()[:9], (3, 3))
+        m[:3, 3] = tfm.GetParameters()[9:]
+        stack_affine = read_volume(case["files"][rec["stack"]][0]).affine
+        want = flip @ stack_affine @ np.linalg.inv(np.array(rec["atlas_from_voxel"])) @ flip
+        np.testing.assert_allclose(m, want, atol=1e-6)
     # Prometheus: the jobs by state and the runner's workers, as the store has them.
     metrics = client.get("/metrics").text
     assert 'svrnet_jobs{status="succeeded"} 1.0' in metrics, metrics[-2000:]

@@ -93,6 +93,7 @@ class FakeJobs:
 
     VOLUME = b"\x1f\x8b fake nifti volume" * 1000
     PREVIEW = b"\x89PNG fake"
+    TRANSFORMS = b"PK fake zip"
 
     def __init__(self, outcome: str = "succeeded") -> None:
         self.outcome = outcome
@@ -110,7 +111,7 @@ class FakeJobs:
             url = f"/v1/reconstructions/{job_id}"
             return httpx.Response(202, headers={"Location": url},
                                   json={"job_id": job_id, "status": "queued", "status_url": url})
-        m = re.fullmatch(r"/v1/reconstructions/([^/]+)(/volume|/preview\.png|/poses)?", path)
+        m = re.fullmatch(r"/v1/reconstructions/([^/]+)(/volume|/preview\.png|/poses|/transforms)?", path)
         if not m or m.group(1) not in self.jobs:
             return httpx.Response(404, json=problem(404, f"job: unknown job {m.group(1) if m else path}"))
         job = self.jobs[m.group(1)]
@@ -122,7 +123,8 @@ class FakeJobs:
                 return httpx.Response(409, json=problem(409, f"job {job['job_id']} is {job['status']}"))
             if m.group(2) == "/poses":
                 return httpx.Response(200, json=dict(PREDICT_BODY, refined_by={"job_id": job["job_id"]}))
-            return httpx.Response(200, content=self.VOLUME if m.group(2) == "/volume" else self.PREVIEW)
+            content = {"/volume": self.VOLUME, "/preview.png": self.PREVIEW, "/transforms": self.TRANSFORMS}
+            return httpx.Response(200, content=content[m.group(2)])
         job["polls"] += 1
         if job["polls"] == 2:
             job.update(status="running", stage="svr", progress=0.5)
