@@ -39,9 +39,9 @@ sys.path.insert(0, str(ROOT))
 from client import SVRnetClient  # noqa: E402
 from model_export.acquisitions import SimulatedStack, simulate_acquisition  # noqa: E402
 from model_export.atlas import VALIDATION_VOLUMES, load_volumes  # noqa: E402
+from model_export.experiments.immediate_poses import ed, network_frame  # noqa: E402
 from model_export.localiser.scenes import HeadModel, synth_stack  # noqa: E402
 from service.core.machine import cpu_description  # noqa: E402
-from service.geometry import anchors, twin  # noqa: E402
 from service.geometry.pose import translate  # noqa: E402
 from service.inference.model_file import load_model  # noqa: E402
 from service.io.volume import Volume, write_volume  # noqa: E402
@@ -97,19 +97,6 @@ def stream(url: str, stacks: list[list[tuple[dict, list[bytes]]]], pace: float =
         ws.send(json.dumps({"type": "end"}))
         summary = until("summary")
     return {"rtt": rtt, "server": server, "last": last, "errors": errors, "summary": summary}
-
-
-def network_frame(stack: SimulatedStack, k: int) -> np.ndarray:
-    """Sent voxel -> a frame at the slice's brain centroid, mm (poses compared there, as E.D. is)."""
-    idx = np.argwhere(stack.mask.array[:, :, k] > 0)
-    c = idx.mean(0) if len(idx) else (np.array(stack.mask.array.shape[:2]) - 1) / 2.0
-    sp = np.linalg.norm(stack.volume.affine[:3, :3], axis=0)
-    return translate([c[0], c[1], 0.0]) @ np.diag([1 / sp[0], 1 / sp[1], 1 / sp[2], 1.0])
-
-
-def ed(a: np.ndarray, b: np.ndarray, frame: np.ndarray, plane_x: float, twin_min: bool = False) -> float:
-    pa, pb = np.asarray(a) @ frame, np.asarray(b) @ frame
-    return float(twin.twin_min_ed(pa, pb, plane_x) if twin_min else anchors.ed(pa, pb))
 
 
 def accuracy(levels: list[str], per_level: int, server: Server, plane_x: float, volumes: list,

@@ -6,7 +6,9 @@ The stages are those of ``/v1/predict`` (:mod:`service.pipeline.predict`), run a
    localiser on the slice and its received neighbours), the service's slice preprocessing, MC-dropout
    inference and the twin-aware statistics of that slice alone. Where the stack's model has already
    decided the stack's left-right branch, the slice takes the twin nearer to where that model puts
-   it. N4 needs the whole stack, so this pose is of the slice as sent.
+   it, or that place itself where the network's answer is an outlier from it; before, its expected
+   error allows for either twin (:mod:`~service.streaming.immediate`). N4 needs the whole stack, so
+   this pose is of the slice as sent.
 2. **Between slices** (:meth:`StreamSession.firm_up`): the stack-consistency stage on the slices of
    the open stack received so far, their acquisition order the order they arrived in (or the
    client's ``acquisition_index``), with the branch of the stacks already ended; its fit runs in the
@@ -47,6 +49,7 @@ from service.pipeline.prepare import PreparedStack, StackUpload, prepare_stack
 from service.preprocess.localise import Localisation, Localiser
 from service.preprocess.slices import preprocess_slices
 from service.preprocess.stack import split_stack
+from service.streaming import immediate
 from service.streaming.background import stage_process
 from service.streaming.coverage import Coverage, CoveredSlice, coverage
 from service.streaming.frames import SliceFrame, StreamedStack, check_frame
@@ -143,6 +146,7 @@ class StreamSession:
         self.stacks: dict[str, StreamedStack] = {}
         self.slices: dict[str, dict[int, _Slice]] = {}
         self.fits: dict[str, StackPoses] = {}
+        self.spreads: dict[str, float | None] = {}       # each fit's slices about its placement (mm)
         self.firmed: dict[str, int] = {}
         self.ended: dict[str, _Ended] = {}
         self.finals: dict[str, StackPrediction] = {}
@@ -233,13 +237,21 @@ class StreamSession:
         info, est = self.estimator.info, state.estimate
         plane = getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM)
         pose, mass, twinned = est.mean.copy(), est.twin_mass.copy(), np.zeros(1, bool)
-        if fit is not None and fit.fit is not None and fit.fit.branch_decided and fit.fit.atlas_from_scanner is not None:
+        expected = est.spread_mm * getattr(info, "mc_error_scale", 1.0)
+        decided = fit is not None and fit.fit is not None and fit.fit.branch_decided and fit.fit.atlas_from_scanner is not None
+        if decided:
             predicted = fit.fit.atlas_from_scanner @ state.frame.scanner_from_voxel @ np.linalg.inv(state.network_from_voxel[0])
             other = twin.twin(pose[0], plane)
             if anchors.ed(other, predicted) < anchors.ed(pose[0], predicted):
                 pose[0], mass, twinned = other, 1.0 - mass, np.ones(1, bool)
-        out = StackPoses(pose, mass, twinned, np.zeros(1, bool), None, est.spread_mm * getattr(info, "mc_error_scale", 1.0))
+            spread = self.spreads.get(state.frame.stack)
+            if spread is not None:
+                pose[0], expected[0] = immediate.nearer_of(pose[0], float(expected[0]), predicted, spread)
+        out = StackPoses(pose, mass, twinned, np.zeros(1, bool), None, expected)
         add_unseen_errors(out, info)
+        if not decided:                                  # a slice alone cannot tell its twin
+            out.expected_error_mm = np.sqrt(out.expected_error_mm ** 2 + immediate.UNDECIDED_TWIN_CHANCE
+                                            * twin.twin_distance_mm(pose, plane) ** 2)
         return SliceAnswer(state.frame.stack, state.frame.index, self._judged(state.prepared, state.network_from_voxel,
                                                                                est, out))
 
@@ -278,6 +290,12 @@ class StreamSession:
                                      None if shape is None else np.asarray(shape),
                                      float(getattr(info, "mc_error_depth_gain", 0.0)), reference).result()
         add_unseen_errors(out, info)
+        spread = None
+        if out.fit is not None and out.fit.atlas_from_scanner is not None:
+            on_branch = np.where(out.twinned[:, None, None], twin.twin(est.mean, getattr(info, "symmetry_plane_x_mm",
+                                                                                          DEFAULT_PLANE_X_MM)), est.mean)
+            spread = immediate.placement_spread_mm(on_branch, out.fit.atlas_from_scanner, network_from_scanner,
+                                                   usable & ~out.inconsistent)
         answers = []
         for i, s in enumerate(states):
             answers.append(SliceAnswer(stack, s.frame.index, self._judged(s.prepared, s.network_from_voxel,
@@ -286,6 +304,7 @@ class StreamSession:
             if stack in self.ended:
                 return []
             self.fits[stack] = out
+            self.spreads[stack] = spread
             changed = self._changed(stack, answers)
         self.compute_ms["firm_up"] += (time.perf_counter() - t0) * 1e3
         return changed

@@ -60,6 +60,40 @@ def test_a_slice_takes_the_branch_its_stack_decided(case) -> None:  # noqa: ANN0
     assert np.allclose(got, true_sent(truths[0], 12), atol=1e-6)
 
 
+def test_an_immediate_pose_before_its_stack_decides_expects_half_its_twin_distance(case) -> None:  # noqa: ANN001
+    oracle, stacks, _ = case
+    session = StreamSession(oracle, None, options=FAST)
+    a = session.add_slice(stacks[0][0])                      # no stack model yet: either twin may be true
+    pose = a.prediction.poses.poses[a.row]
+    d = float(twin.twin_distance_mm(pose, INFO.symmetry_plane_x_mm))
+    floor = getattr(INFO, "expected_error_floor_mm", 0.0)
+    assert d > 10.0
+    assert np.isclose(a.prediction.poses.expected_error_mm[a.row], np.sqrt(0.5 ** 2 + floor ** 2 + 0.5 * d ** 2))
+
+
+def test_a_network_outlier_takes_where_its_stack_puts_it(case) -> None:  # noqa: ANN001
+    oracle, stacks, truths = case
+    session = StreamSession(oracle, None, options=FAST)
+    frames = stacks[0]
+    for k in range(12):
+        session.add_slice(frames[k])
+    session.firm_up("ax")
+    assert session.fits["ax"].fit.branch_decided and session.spreads["ax"] < 0.1     # a rigid stack: no spread
+    for h, pose in list(oracle.truth.items()):               # the network now answers 40 mm off
+        moved = pose.copy()
+        moved[:3, 3] += (40.0, 0.0, 0.0)
+        oracle.truth[h] = moved
+    far = session.add_slice(frames[12])
+    got = far.prediction.poses.poses[0] @ far.prediction.network_from_voxel[0]
+    assert np.allclose(got, true_sent(truths[0], 12), atol=1e-6)                    # the stack's placement
+    for h, pose in list(oracle.truth.items()):
+        pose[:3, 3] -= (40.0 - 0.02, 0.0, 0.0)
+    near = session.add_slice(frames[13])                      # within its error of the placement: kept
+    got = near.prediction.poses.poses[0] @ near.prediction.network_from_voxel[0]
+    assert not np.allclose(got, true_sent(truths[0], 13), atol=1e-3)
+    assert np.allclose(got, true_sent(truths[0], 13), atol=0.1)
+
+
 def test_bad_slices_are_refused_and_change_nothing(case) -> None:  # noqa: ANN001
     oracle, stacks, _ = case
     session = StreamSession(oracle, None, StreamLimits(max_slices=3, max_pixels=64 * 64), FAST)
