@@ -157,10 +157,11 @@ class SVRnetClient(Transport):
         return self._json(self._send("POST", "/v1/predict", body=body, progress=progress))
 
     def masks(self, stacks: Sequence[PathLike], out_dir: PathLike, *, model: str | None = None,
-              progress: ProgressCallback | None = None) -> dict[str, Any]:
+              margin_mm: float | None = None, progress: ProgressCallback | None = None) -> dict[str, Any]:
         """``POST /v1/masks``: the server's brain mask of every stack, written into ``out_dir``.
 
-        Each mask is ``<stem>_mask.nii.gz`` on its stack's own grid (uint8 0/1); ``report.json`` lies
+        Each mask is ``<stem>_mask.nii.gz`` on its stack's own grid (uint8 0/1), grown outward by
+        ``margin_mm`` when given (the localiser's masks are the skull's inside); ``report.json`` lies
         beside them. Only the archive's own plain file names are written, never a path it names.
 
         Returns:
@@ -171,7 +172,7 @@ class SVRnetClient(Transport):
             >>> SVRnetClient().masks(["ax.nii.gz"], "masks/")["stacks"][0]["confidence"]   # doctest: +SKIP
             0.97
         """
-        fields = [("model", model)] if model is not None else []
+        fields = [(k, v) for k, v in (("model", model), ("margin_mm", margin_mm)) if v is not None]
         body = MultipartBody(fields, self._files(stacks, None))
         response = self._send("POST", "/v1/masks", body=body, progress=progress)
         out = Path(out_dir)

@@ -206,12 +206,15 @@ def masks(
     server: ServerOpt = DEFAULT_SERVER,
     api_key: ApiKeyOpt = None,
     model: Annotated[Optional[str], typer.Option(help="localiser name (default: the server's)")] = None,
+    margin: Annotated[Optional[float], typer.Option(
+        "--margin-mm", min=0, help="grow each mask outward by this many mm (the masks are the skull's inside; "
+        "2-4 mm reaches masks drawn to its outer edge)")] = None,
 ) -> None:
     """Brain masks of stacks as they leave the scanner (POST /v1/masks): one NIfTI per stack."""
     err = stderr()
     with errors(), _client(server, api_key) as svr:
         with upload_bar(err, f"{len(stacks)} stack(s)") as progress:
-            report = svr.masks(stacks, out_dir, model=model, progress=progress)
+            report = svr.masks(stacks, out_dir, model=model, margin_mm=margin, progress=progress)
         stdout().print(masks_table(report, out_dir))
 
 

@@ -17,18 +17,27 @@ from service.api.uploads import check_form, known_fields, save_and_read, upload_
 from service.core.names import unique_stems
 from service.io.nifti_header import copy_transforms
 from service.io.volume import Volume, write_volume
-from service.preprocess.localise import Localiser
+from service.preprocess.localise import Localisation, Localiser, grown
 
 router = APIRouter(prefix="/v1", tags=["masks"], dependencies=[ApiKey])
 
 
-def masks_archive(uploads: list, localiser: Localiser, directory: Path) -> bytes:
-    """The zip of one ``<stem>_mask.nii.gz`` per stack (its own grid) and ``report.json``."""
+MAX_MARGIN_MM = 20.0
+MARGIN_HELP = ("grow each mask outward by this many mm (Euclidean, on the stack's voxel sizes): the localiser's "
+               "masks are the skull's inside; 2-4 mm reaches masks drawn to the skull's outer edge")
+
+
+def masks_archive(uploads: list, localiser: Localiser, directory: Path, margin_mm: float = 0.0) -> bytes:
+    """The zip of one ``<stem>_mask.nii.gz`` per stack (its own grid), grown by ``margin_mm``
+    (:func:`~service.preprocess.localise.grown`), and ``report.json``."""
     report = []
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
         located = localiser.localise_many([u.volume for u in uploads])
         for upload, stem, found in zip(uploads, unique_stems([u.filename for u in uploads]), located):
+            if margin_mm > 0 and found.mask.any():
+                found = Localisation.of(grown(found.mask, upload.volume.spacing, margin_mm), upload.volume.spacing,
+                                        found.method, found.confidence, found.holds_csf)
             path = directory / f"{stem}_mask.nii.gz"
             write_volume(Volume(found.mask.astype("uint8"), upload.volume.affine), path)
             if upload.volume.nifti is not None:          # the upload's own transforms: overlays in any viewer
@@ -36,7 +45,7 @@ def masks_archive(uploads: list, localiser: Localiser, directory: Path) -> bytes
             archive.write(path, path.name)
             path.unlink()
             report.append({"filename": upload.filename, "mask": path.name, **found.report(),
-                           "slices_with_brain": found.slices_with_brain})
+                           "slices_with_brain": found.slices_with_brain, "margin_mm": margin_mm})
         archive.writestr("report.json", json.dumps({"localiser": {"version": localiser.version,
                                                                   "sha256": localiser.sha256},
                                                     "stacks": report}, indent=1))
@@ -52,6 +61,7 @@ async def masks(
     _slot: SlotDep,
     stacks: Annotated[list[UploadFile], File(description="1..32 stacks, as for /v1/predict")],
     model: Annotated[str, Form(description="the localiser's name")] = "default",
+    margin_mm: Annotated[float, Form(ge=0.0, le=MAX_MARGIN_MM, allow_inf_nan=False, description=MARGIN_HELP)] = 0.0,
 ) -> Response:
     """One NIfTI mask per stack on the stack's own grid (uint8 0/1) and ``report.json``, zipped."""
     localiser = localisers.get(model)
@@ -59,6 +69,6 @@ async def masks(
     with upload_directory(settings.tmp_dir) as tmp:
         uploads = await to_thread.run_sync(save_and_read, stacks, [], tmp, settings.max_decoded_bytes,
                                            settings.max_request_decoded_bytes)
-        body = await to_thread.run_sync(masks_archive, uploads, localiser, tmp)
+        body = await to_thread.run_sync(masks_archive, uploads, localiser, tmp, margin_mm)
     return Response(body, media_type="application/zip",
                     headers={"Content-Disposition": 'attachment; filename="masks.zip"'})

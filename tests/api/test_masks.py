@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy import ndimage
 from fastapi.testclient import TestClient
 
 from model_export.localiser.scenes import HeadModel, synth_stack
@@ -54,6 +55,27 @@ def test_masks_come_back_on_each_stacks_grid_with_a_report(real_client: TestClie
     found = mask.array > 0
     assert 2 * (found & truth).sum() / (found.sum() + truth.sum()) > 0.8
     assert row["slices_with_brain"] == int(found.any(axis=(0, 1)).sum())
+
+
+def test_a_margin_grows_each_mask_by_that_distance_on_its_grid(real_client: TestClient, uterus_files,
+                                                                tmp_path: Path) -> None:
+    stack = uterus_files[0]
+    masks = {}
+    for margin in ("0", "3"):
+        r = post_masks(real_client, stack, margin_mm=margin)
+        assert r.status_code == 200, r.text
+        archive = zipfile.ZipFile(io.BytesIO(r.content))
+        (tmp_path / "m.nii.gz").write_bytes(archive.read("uterus_mask.nii.gz"))
+        masks[margin] = (read_volume(tmp_path / "m.nii.gz").array > 0, json.loads(archive.read("report.json")))
+    (plain, plain_report), (wide, wide_report) = masks["0"], masks["3"]
+    spacing = read_volume(stack).spacing
+    outside = ndimage.distance_transform_edt(~plain, sampling=spacing)
+    assert np.array_equal(wide, outside <= 3.0) and wide.sum() > 1.2 * plain.sum()
+    assert wide_report["stacks"][0]["margin_mm"] == 3.0 and plain_report["stacks"][0]["margin_mm"] == 0.0
+    assert wide_report["stacks"][0]["brain_volume_ml"] > plain_report["stacks"][0]["brain_volume_ml"]
+    for bad in ("-1", "21", "nan", "wide"):
+        r = post_masks(real_client, stack, margin_mm=bad)
+        assert r.status_code in (400, 422) and "margin_mm" in r.text, (bad, r.text)
 
 
 def test_masks_refuse_what_they_cannot_use(real_client: TestClient, uterus_files, tmp_path: Path) -> None:

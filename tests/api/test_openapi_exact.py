@@ -25,7 +25,8 @@ def test_stacks_and_masks_carry_their_limits(oracle, max_files: int) -> None:  #
         assert not [n for n, p in props.items() if {"type": "null"} in p.get("anyOf", [])], props
     masks_route = _body_schema(spec, "/v1/masks")["properties"]
     assert (masks_route["stacks"]["minItems"], masks_route["stacks"]["maxItems"]) == (1, max_files)
-    assert set(masks_route) == {"stacks", "model"}
+    assert set(masks_route) == {"stacks", "model", "margin_mm"}
+    assert (masks_route["margin_mm"]["minimum"], masks_route["margin_mm"]["maximum"]) == (0.0, 20.0)
     assert "poses" in _body_schema(spec, "/v1/reconstructions")["properties"]
     assert _body_schema(spec, "/v1/predict")["additionalProperties"] is False
 

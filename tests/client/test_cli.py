@@ -119,14 +119,14 @@ def test_the_stream_table_fits_an_80_column_terminal_and_cuts_no_cell_short() ->
 def test_cli_masks_writes_the_masks_and_nothing_outside(fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
     fake, _ = fake_cli()
     out = tmp_path / "deep" / "masks"
-    r = invoke(["masks", str(stack_file), "--out-dir", str(out), "--model", "default"])
+    r = invoke(["masks", str(stack_file), "--out-dir", str(out), "--model", "default", "--margin-mm", "2.5"])
     assert r.exit_code == 0, r.output
     assert sorted(p.name for p in out.iterdir()) == ["report.json", "stack_mask.nii.gz"]
     assert not (tmp_path / "deep" / "escape.json").exists()
     assert (out / "stack_mask.nii.gz").read_bytes() == b"mask bytes"
     assert "stack_mask.nii.gz" in r.stdout and "0.91" in r.stdout and "301" in r.stdout
     fields, files = parse_multipart(fake.requests[0])
-    assert fake.requests[0].url.path == "/v1/masks" and fields == {"model": ["default"]}
+    assert fake.requests[0].url.path == "/v1/masks" and fields == {"model": ["default"], "margin_mm": ["2.5"]}
     assert [f[:2] for f in files] == [("stacks", "stack.nii.gz")]
 
 
