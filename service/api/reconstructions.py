@@ -21,6 +21,7 @@ from service.io.acquisition_geometry import MAX_VOXEL_MM, MIN_VOXEL_MM
 from service.jobs.store import Job, JobStore
 from service.jobs.worker import poses_from_predict_body
 from service.preprocess.stack import slice_axis_of
+from service.reconstruction.export import zip_folder
 
 router = APIRouter(prefix="/v1/reconstructions", tags=["reconstruction"], dependencies=[ApiKey])
 
@@ -165,13 +166,19 @@ async def poses(request: Request, job_id: str) -> FileResponse:
     return _result(request, job_id, "poses.json", "application/json", f"{job_id}_poses.json")
 
 
-@router.get("/{job_id}/transforms", responses=problem_responses(401, 404, 409),
+@router.get("/{job_id}/transforms", responses={200: {"content": {"application/zip": {}}},
+                                                **problem_responses(401, 404, 409)},
             summary="Per-slice ITK transforms (.zip of transforms/*.tfm and slice_transforms.txt)",
             response_class=FileResponse)
 async def transforms(request: Request, job_id: str) -> FileResponse:
     """The job's ``transforms/`` folder as a zip archive: one ITK ``.tfm`` per slice (atlas LPS -> the
     uploaded stack's LPS, the reconstruction as the fixed image) and ``slice_transforms.txt``
-    (docs/reconstruction.md, "Output files")."""
+    (docs/reconstruction.md, "Output files"); made from the folder when a job written before the
+    archive existed is asked for it."""
+    job = _job(request, job_id)
+    outputs = _store(request).directory(job_id) / "outputs"
+    if job.status == "succeeded" and not (outputs / "transforms.zip").exists() and (outputs / "transforms").is_dir():
+        await to_thread.run_sync(zip_folder, outputs / "transforms", outputs / "transforms.zip")
     return _result(request, job_id, "transforms.zip", "application/zip", f"{job_id}_transforms.zip")
 
 

@@ -3,7 +3,8 @@
 A job folder holds ``inputs/`` (the uploaded stacks and masks as sent, ``params.json``, ``names.json``,
 optional ``poses.json``) while the job is queued or running -- they are deleted as soon as it ends,
 whatever the outcome -- and, once done, ``outputs/`` (``volume.nii.gz``, ``preview.png``,
-``report.json``, ``transforms/``, ``poses.json``: the refined poses in the ``/v1/predict`` schema).
+``report.json``, ``transforms/`` and ``transforms.zip``, ``poses.json``: the refined poses in the
+``/v1/predict`` schema).
 
 Stages (the job's ``stage``, with ``progress`` in 0..1): ``reading``, ``predicting poses`` (without
 uploaded poses), then those of the reconstruction -- ``stack consistency``, ``stack registration``,

@@ -1,4 +1,5 @@
-"""Writing a reconstruction: volume, preview, per-slice transforms (ITK ``.tfm`` and a text listing), report.
+"""Writing a reconstruction: volume, preview, per-slice transforms (ITK ``.tfm`` and a text listing, and
+both in ``transforms.zip``), report.
 
 Per-slice ``.tfm`` files (``transforms/stack{S}_slice{K:03d}.tfm``) hold an
 ``AffineTransform_double_3_3`` in ITK's LPS world frame with centre 0. The mapping is exactly
@@ -22,6 +23,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import threading
 import zipfile
 from pathlib import Path
 
@@ -60,11 +63,13 @@ def zip_folder(folder: Path, target: Path) -> Path:
         >>> zipfile.ZipFile(zip_folder(d / "t", d / "t.zip")).namelist()
         ['t/a.tfm']
     """
-    with zipfile.ZipFile(target, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+    partial = Path(target).with_name(f".{Path(target).name}.{os.getpid()}.{threading.get_ident()}")
+    with zipfile.ZipFile(partial, "w", compression=zipfile.ZIP_DEFLATED) as archive:
         for path in sorted(Path(folder).iterdir()):
             if path.is_file():
                 archive.write(path, f"{Path(folder).name}/{path.name}")
-    return target
+    os.replace(partial, target)                  # whole or absent: a reader never sees a partial archive
+    return Path(target)
 
 
 def write_slice_tfms(folder: Path, atlas_from_voxel: ArrayLike, slices: SliceSet) -> list[Path]:

@@ -125,7 +125,9 @@ class StreamedStack:
 
     def _check_place(self, frame: SliceFrame, first: SliceFrame, normal: NDArray[np.float64]) -> None:
         """A slice's index is its place along the normal: its origin lies where the slices received so
-        far put the slice of that index (evenly spaced; with one slice received, anywhere but there)."""
+        far put the slice of that index (evenly spaced; with one slice received, anywhere but there),
+        within :data:`LINE_TOLERANCE_MM` of each of the two slices the step comes from, as far as the
+        step is extrapolated (:meth:`volume` checks the whole stack at that tolerance)."""
         along = float((frame.scanner_from_voxel[:3, 3] - first.scanner_from_voxel[:3, 3]) @ normal)
         others = [k for k in self.frames if k != first.index]
         if not others:
@@ -136,7 +138,8 @@ class StreamedStack:
         far = self.frames[max(others, key=lambda k: abs(k - first.index))]
         step = float((far.scanner_from_voxel[:3, 3] - first.scanner_from_voxel[:3, 3]) @ normal) / (far.index - first.index)
         expected = step * (frame.index - first.index)
-        if abs(along - expected) > LINE_TOLERANCE_MM:
+        reach = abs(frame.index - first.index) / abs(far.index - first.index)     # the step's rounding, extrapolated
+        if abs(along - expected) > LINE_TOLERANCE_MM * (1.0 + 2.0 * reach):
             raise InvalidParameter(f"slice.index: slice {frame.index} of stack {self.name!r} lies {along:.2f} mm along the "
                                    f"normal from slice {first.index}, where the stack's slices put index {frame.index} "
                                    f"at {expected:.2f} mm (a slice's index is its place along the normal, the slices "

@@ -16,14 +16,14 @@ is decided. Two things follow for the immediate answer:
   further from the placement's prediction than :data:`OUTLIER_SIGMAS` times their combined expected
   error, the prediction is answered instead, expected as far off as the received slices lie from
   the placement (:func:`placement_spread_mm`: the received slices' network answers about it, the
-  stack's motion and the network's error in one figure, so that a predicted pose is not accepted on
-  the strength of a stack that moved).
+  stack's motion and the network's error in one figure), and never nearer than the answer it
+  overrules.
 
-Example (a slice whose network answer lies 40 mm from where its stack puts it, the stack's slices
-within 3 mm of their placement: the placement's pose is answered):
+Example (a slice whose network answer, expected within 2 mm, lies 40 mm from where its stack puts
+it, the stack's slices within 3 mm of their placement: the placement's pose is answered):
     >>> pose, predicted = np.eye(4), np.eye(4)
     >>> pose[0, 3] = 40.0
-    >>> chosen, expected = nearer_of(pose, 5.0, predicted, 3.0)
+    >>> chosen, expected = nearer_of(pose, 2.0, predicted, 3.0)
     >>> float(chosen[0, 3]), expected
     (0.0, 3.0)
 """
@@ -37,8 +37,7 @@ from service.geometry import anchors
 
 UNDECIDED_TWIN_CHANCE = 0.5
 """The chance that a slice answered before its stack decided its branch sits on its mirror twin: a
-slice alone cannot tell (measured on simulated acquisitions: 45-50 % of such answers lay nearer the
-twin of the truth; docs/realtime.md)."""
+slice alone cannot tell (docs/realtime.md gives the share measured on simulated acquisitions)."""
 OUTLIER_SIGMAS = 1.0
 """How many combined expected errors the network's answer may lie from the placement's prediction
 before the prediction is answered instead (:func:`nearer_of`)."""
@@ -64,8 +63,10 @@ def placement_spread_mm(network_poses: NDArray[np.float64], atlas_from_scanner: 
 
 def nearer_of(pose: NDArray[np.float64], expected_mm: float, predicted: NDArray[np.float64],
               spread_mm: float) -> tuple[NDArray[np.float64], float]:
-    """The network's ``pose`` with its ``expected_mm``, or the placement's ``predicted`` pose with the
-    stack's ``spread_mm`` where the two lie more than :data:`OUTLIER_SIGMAS` combined errors apart."""
+    """The network's ``pose`` with its ``expected_mm``, or the placement's ``predicted`` pose where the
+    two lie more than :data:`OUTLIER_SIGMAS` combined errors apart, expected as far off as the stack's
+    ``spread_mm`` and never nearer than the network answer it overrules (a sudden move of the fetus
+    makes the network right and the placement wrong, and one slice cannot tell which)."""
     if float(anchors.ed(pose, predicted)) > OUTLIER_SIGMAS * float(np.hypot(expected_mm, spread_mm)):
-        return predicted.copy(), float(spread_mm)
+        return predicted.copy(), float(max(spread_mm, expected_mm))
     return pose, float(expected_mm)

@@ -175,7 +175,7 @@ class StreamSession:
             self.stacks[frame.stack] = stack
             self.held_bytes += size
             neighbours = self._neighbours(stack, frame.index)
-            fit = self.fits.get(frame.stack)
+            fit, spread = self.fits.get(frame.stack), self.spreads.get(frame.stack)   # of one firm-up
         try:
             state = self._prepare_alone(frame, neighbours)
         except Exception:
@@ -185,7 +185,7 @@ class StreamSession:
                 if not len(stack):
                     del self.stacks[frame.stack]
             raise
-        answer = self._alone(state, fit)
+        answer = self._alone(state, fit, spread)
         with self._lock:
             self.slices.setdefault(frame.stack, {})[frame.index] = state
             state.answer = answer
@@ -232,7 +232,7 @@ class StreamSession:
         region = None if found.pose_region is None else found.pose_region[:, :, k:k + 1]
         return replace(found, mask=found.mask[:, :, k:k + 1], pose_region=region)
 
-    def _alone(self, state: _Slice, fit: StackPoses | None) -> SliceAnswer:
+    def _alone(self, state: _Slice, fit: StackPoses | None, spread: float | None) -> SliceAnswer:
         """The slice's own pose; on the branch of its stack's model where that model decided it."""
         info, est = self.estimator.info, state.estimate
         plane = getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM)
@@ -244,7 +244,6 @@ class StreamSession:
             other = twin.twin(pose[0], plane)
             if anchors.ed(other, predicted) < anchors.ed(pose[0], predicted):
                 pose[0], mass, twinned = other, 1.0 - mass, np.ones(1, bool)
-            spread = self.spreads.get(state.frame.stack)
             if spread is not None:
                 pose[0], expected[0] = immediate.nearer_of(pose[0], float(expected[0]), predicted, spread)
         out = StackPoses(pose, mass, twinned, np.zeros(1, bool), None, expected)

@@ -132,6 +132,10 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
         stack_affine = read_volume(case["files"][rec["stack"]][0]).affine
         want = flip @ stack_affine @ np.linalg.inv(np.array(rec["atlas_from_voxel"])) @ flip
         np.testing.assert_allclose(m, want, atol=1e-6)
+    zipped = client.app.state.job_store.directory(job_id) / "outputs" / "transforms.zip"
+    zipped.unlink()                                   # a job finished before the archive existed: made on request
+    again = client.get(st["transforms_url"])
+    assert again.status_code == 200 and zipfile.ZipFile(io.BytesIO(again.content)).namelist() == names
     # Prometheus: the jobs by state and the runner's workers, as the store has them.
     metrics = client.get("/metrics").text
     assert 'svrnet_jobs{status="succeeded"} 1.0' in metrics, metrics[-2000:]

@@ -8,7 +8,7 @@ import pytest
 
 from service.core.errors import InvalidParameter
 from service.geometry import twin
-from service.streaming.frames import SliceFrame
+from service.streaming.frames import SliceFrame, StreamedStack
 from service.streaming.options import SessionOptions, StreamLimits
 from service.streaming.session import StreamSession
 from tests.api.conftest import INFO
@@ -43,14 +43,19 @@ def test_each_pose_places_the_slice_as_sent_where_the_simulation_put_it(case) ->
     assert summary.coverage.brain_fraction > 0.5
 
 
-def test_a_slice_takes_the_branch_its_stack_decided(case) -> None:  # noqa: ANN001
-    oracle, stacks, truths = case
+def firmed_up(oracle: KeyedOracle, frames: list[SliceFrame]) -> tuple[StreamSession, list[SliceFrame]]:
+    """A session with the first 12 slices of ``frames`` sent and their stack's model fitted (branch decided)."""
     session = StreamSession(oracle, None, options=FAST)
-    frames = stacks[0]
     for k in range(12):
         session.add_slice(frames[k])
-    session.firm_up("ax")
-    assert session.fits["ax"].fit.branch_decided
+    session.firm_up(frames[0].stack)
+    assert session.fits[frames[0].stack].fit.branch_decided
+    return session, frames
+
+
+def test_a_slice_takes_the_branch_its_stack_decided(case) -> None:  # noqa: ANN001
+    oracle, stacks, truths = case
+    session, frames = firmed_up(oracle, stacks[0])
     # The network now answers the twin for the next slice: the stack's model puts it back.
     for h, pose in list(oracle.truth.items()):
         oracle.truth[h] = twin.twin(pose, INFO.symmetry_plane_x_mm)
@@ -73,12 +78,8 @@ def test_an_immediate_pose_before_its_stack_decides_expects_half_its_twin_distan
 
 def test_a_network_outlier_takes_where_its_stack_puts_it(case) -> None:  # noqa: ANN001
     oracle, stacks, truths = case
-    session = StreamSession(oracle, None, options=FAST)
-    frames = stacks[0]
-    for k in range(12):
-        session.add_slice(frames[k])
-    session.firm_up("ax")
-    assert session.fits["ax"].fit.branch_decided and session.spreads["ax"] < 0.1     # a rigid stack: no spread
+    session, frames = firmed_up(oracle, stacks[0])
+    assert session.spreads["ax"] < 0.1                        # a rigid stack: no spread
     for h, pose in list(oracle.truth.items()):               # the network now answers 40 mm off
         moved = pose.copy()
         moved[:3, 3] += (40.0, 0.0, 0.0)
@@ -146,6 +147,18 @@ def test_a_slice_whose_index_contradicts_its_place_is_refused_on_arrival(case) -
     for k in (0, 3, 1):
         f = frames[n - 1 - k]
         reversed_numbering.add_slice(SliceFrame("ax", k, f.pixels, f.scanner_from_voxel, f.mask))
+
+
+def test_positions_rounded_as_scanners_write_them_pass_the_arrival_check() -> None:
+    """Origins rounded to 0.01 mm, the step first seen between neighbours and extrapolated 58 slices."""
+    rotation = np.linalg.qr(np.random.default_rng(0).normal(size=(3, 3)))[0]
+    stack = StreamedStack("s")
+    for k in [0, 1] + list(range(59, 1, -1)):
+        a = np.eye(4)
+        a[:3, :3] = rotation @ np.diag([1.1, 1.1, 3.3])
+        a[:3, 3] = np.round(np.array([10.0, -20.0, 30.0]) + k * a[:3, 2], 2)
+        stack.add(SliceFrame("s", k, np.zeros((4, 4), np.float32), a))
+    assert stack.volume()[0].array.shape == (4, 4, 60)
 
 
 def test_masks_hold_csf_sets_the_pose_mask_inset_of_mask_frames(case) -> None:  # noqa: ANN001
