@@ -30,16 +30,8 @@ def outline_offsets_mm(manual: np.ndarray, found: np.ndarray, in_plane: np.ndarr
     """Signed distance (mm, in each slice's plane) of every pixel of the manual outline from the
     boundary of ``found``: positive outside it, negative inside; ``in_plane`` the voxel sizes with the
     slice axis made unreachable."""
-    axis = int(np.argmax(in_plane))
-    cross = np.zeros((3, 3, 3), bool)
-    cross[1, 1, 1] = True
-    for a in range(3):
-        if a != axis:
-            index = [1, 1, 1]
-            for side in (0, 2):
-                index[a] = side
-                cross[tuple(index)] = True
-            index[a] = 1
+    cross = ndimage.generate_binary_structure(3, 1)
+    np.moveaxis(cross, int(np.argmax(in_plane)), 0)[[0, 2]] = False     # neighbours in the slice's plane only
     edge = manual & ~ndimage.binary_erosion(manual, structure=cross)
     outside = ndimage.distance_transform_edt(~found, sampling=in_plane)
     inside = ndimage.distance_transform_edt(found, sampling=in_plane)

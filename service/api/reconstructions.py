@@ -137,8 +137,9 @@ async def status(request: Request, job_id: str) -> dict:
     return _status(_job(request, job_id))
 
 
-def _result(request: Request, job_id: str, name: str, media_type: str, download: str) -> FileResponse:
-    job = _job(request, job_id)
+def _result(request: Request, job_id: str, name: str, media_type: str, download: str,
+            job: Job | None = None) -> FileResponse:
+    job = job or _job(request, job_id)
     if job.status != "succeeded":
         raise Conflict(f"job_id: job {job_id} is {job.status}; results exist once it has succeeded")
     path = _store(request).directory(job_id) / "outputs" / name
@@ -179,7 +180,7 @@ async def transforms(request: Request, job_id: str) -> FileResponse:
     outputs = _store(request).directory(job_id) / "outputs"
     if job.status == "succeeded" and not (outputs / "transforms.zip").exists() and (outputs / "transforms").is_dir():
         await to_thread.run_sync(zip_folder, outputs / "transforms", outputs / "transforms.zip")
-    return _result(request, job_id, "transforms.zip", "application/zip", f"{job_id}_transforms.zip")
+    return _result(request, job_id, "transforms.zip", "application/zip", f"{job_id}_transforms.zip", job)
 
 
 @router.delete("/{job_id}", status_code=204, responses=problem_responses(401, 404), summary="Cancel a job and delete its files")

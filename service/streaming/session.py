@@ -283,16 +283,16 @@ class StreamSession:
         usable = (np.concatenate([s.prepared.prepared.mask_fraction for s in states]) >= acceptance.MIN_MASK_FRACTION) \
             & ~est.degenerate
         shape = getattr(info, "mc_error_shape", None)
+        plane = getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM)
         out = stage_process().submit(consistent_poses, est.mean, est.twin_mass, network_from_scanner, np.eye(4), usable,
-                                     getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM),
+                                     plane,
                                      est.spread_mm * getattr(info, "mc_error_scale", 1.0), True, times,
                                      None if shape is None else np.asarray(shape),
                                      float(getattr(info, "mc_error_depth_gain", 0.0)), reference).result()
         add_unseen_errors(out, info)
         spread = None
         if out.fit is not None and out.fit.atlas_from_scanner is not None:
-            on_branch = np.where(out.twinned[:, None, None], twin.twin(est.mean, getattr(info, "symmetry_plane_x_mm",
-                                                                                          DEFAULT_PLANE_X_MM)), est.mean)
+            on_branch = np.where(out.twinned[:, None, None], twin.twin(est.mean, plane), est.mean)
             spread = immediate.placement_spread_mm(on_branch, out.fit.atlas_from_scanner, network_from_scanner,
                                                    usable & ~out.inconsistent)
         answers = []
