@@ -13,8 +13,8 @@ PORT   ?= 8000
 $(PY):
 	$(PYTHON) -m venv $(VENV)
 
-$(VENV)/.server-installed: $(PY) pyproject.toml constraints.txt
-	$(PIP) -e ".[server]"
+$(VENV)/.server-installed: $(PY) pyproject.toml constraints.txt   # the server and the svrnet command
+	$(PIP) -e ".[server,client]"
 	touch $@
 
 $(VENV)/.dev-installed: $(PY) pyproject.toml constraints.txt

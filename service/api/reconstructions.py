@@ -19,7 +19,7 @@ from service.pipeline.prepare import check_mask_grid
 from service.core.errors import Conflict, InvalidParameter, NotFound
 from service.io.acquisition_geometry import MAX_VOXEL_MM, MIN_VOXEL_MM
 from service.jobs.store import Job, JobStore
-from service.jobs.worker import poses_from_predict_body
+from service.jobs.worker import in_upload_order, poses_from_predict_body
 from service.preprocess.stack import slice_axis_of
 from service.reconstruction.export import zip_folder
 
@@ -115,6 +115,7 @@ async def submit(
                 raise InvalidParameter("poses: not valid JSON") from exc
             counts = [u.volume.array.shape[slice_axis_of(u.volume.spacing)] for u in uploads]
             try:
+                body = in_upload_order(body, [u.filename for u in uploads])
                 poses_from_predict_body(body, counts, [u.volume.spacing for u in uploads])
             except ValueError as exc:
                 raise InvalidParameter(str(exc)) from exc

@@ -89,7 +89,8 @@ class Refinement:
     poses: list[NDArray[np.float64]]      # per stack [n, 4, 4], network frame -> atlas
     moved_mm: list[NDArray[np.float64]]   # per stack [n]: how far each slice moved (E.D.-like, mm)
     pairs: int                            # intersecting pairs used
-    cost_before: float                    # the image term per weighted point, before / after
+    cost_before: float                    # the finest pass's image term per weighted point, at the stage's
+                                          # poses / at the refined ones (one smoothing, one set of points)
     cost_after: float
     mismatch: list[NDArray[np.float64]]   # per stack [n]: each slice's image term per weighted point, after (NaN: none)
     spread_mm: list[NDArray[np.float64]]  # per stack [n]: each refined slice's Laplace spread (mm; NaN: not refined)
@@ -156,7 +157,7 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
     pairs = pairs[free[pairs[:, 0]] | free[pairs[:, 1]]]                    # not two fixed partners
     if not len(pairs):
         return unchanged
-    costs: list[float] = []
+    finest = None                         # the last pass's residuals, weights and image term at its optimum
     used = 0
     mismatch = np.full(len(p0), np.nan)
     for (_, step, budget), sampled in zip(passes, _smoothed_passes(stacks, [p[0] for p in passes], smoothed)):
@@ -175,10 +176,8 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
             current = poses_at(params)
             return image_jacobian(term, current @ network_from_slice, current, col, noise)
 
-        r = residual(x)
-        costs.append(_mean_square(r, term.sw))
-        x, r = _gauss_newton(residual, jac, x, prior, iterations, r)
-        costs.append(_mean_square(r, term.sw))
+        x, r = _gauss_newton(residual, jac, x, prior, iterations, residual(x))
+        finest = (residual, term.sw, _mean_square(r, term.sw))
         mismatch = _per_slice(r, term.sw, term.pairs[term.pair_of], len(p0))
     final = atlas_from_slice(x) @ se3.inverse(network_from_slice)
     checked = np.isfinite(mismatch)
@@ -193,7 +192,8 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
         final = frame @ final
     moved = ed(final, p0)
     cut = lambda a: [a[i:j] for i, j in zip(bounds[:-1], bounds[1:])]  # noqa: E731
-    return Refinement(cut(final), cut(moved), used, costs[0] if costs else np.nan, costs[-1] if costs else np.nan,
+    before = _mean_square(finest[0](np.zeros_like(x)), finest[1])      # the same points and smoothing
+    return Refinement(cut(final), cut(moved), used, before, finest[2],
                       cut(mismatch), cut(spread))
 
 

@@ -102,6 +102,36 @@ def poses_from_predict_body(body: dict, n_slices: list[int],
     return out
 
 
+def in_upload_order(body: dict, filenames: list[str]) -> dict:
+    """``body`` (a ``/v1/predict`` answer) with its stacks matched to the uploaded stacks by file name.
+
+    Poses sent with a job belong to the files they were computed for; two stacks of one slice count
+    and voxel size are otherwise told apart by nothing but their order. Where every stack of the
+    body names its ``filename``: the names in the uploads' order are taken as they are, the same
+    names in another order are put in the uploads' order, and other names are refused. A body
+    without file names is taken in its order.
+
+    Raises:
+        ValueError: naming the poses' stacks and the uploaded ones, when their names differ.
+
+    Example:
+        >>> body = {"stacks": [{"filename": "cor.nii.gz"}, {"filename": "ax.nii.gz"}]}
+        >>> [s["filename"] for s in in_upload_order(body, ["ax.nii.gz", "cor.nii.gz"])["stacks"]]
+        ['ax.nii.gz', 'cor.nii.gz']
+    """
+    stacks = body.get("stacks") if isinstance(body, dict) else None
+    if not isinstance(stacks, list) or len(stacks) != len(filenames):
+        return body                                      # poses_from_predict_body names the count
+    names = [s.get("filename") if isinstance(s, dict) else None for s in stacks]
+    if not all(isinstance(n, str) and n for n in names) or names == list(filenames):
+        return body
+    if sorted(names) == sorted(filenames) and len(set(names)) == len(names):
+        return {**body, "stacks": [stacks[names.index(f)] for f in filenames]}
+    raise ValueError(f"poses: they are of the stacks {', '.join(map(repr, names))}, not of the uploaded "
+                     f"{', '.join(map(repr, filenames))}; send the files the poses were computed for, under the same "
+                     "names (or poses without file names, matched by order)")
+
+
 def in_index_order(slices: list, stack: int) -> list:
     """A stack's slices sorted by their ``index`` when they carry one (each of ``0 .. n - 1`` once); a
     list without indices is taken in its order.

@@ -44,6 +44,17 @@ def test_disturbed_poses_are_refined_towards_the_truth(acquisition) -> None:  # 
     assert finite.mean() > 0.9                                  # a slice on no line has no mismatch (NaN)
 
 
+def test_the_mismatch_before_and_after_is_one_measure(acquisition) -> None:  # noqa: ANN001
+    """Before and after are the finest pass's image term at the stage's and at the refined poses:
+    refined from the truth, in noisy images, the mismatch cannot rise (a coarse pass's term, the
+    noise smoothed away, is lower than a fine one's wherever the poses are)."""
+    images, truth = acquisition
+    rng = np.random.default_rng(3)
+    noisy = [replace(s, images=(s.images * rng.normal(1.0, 0.1, s.images.shape)).astype(np.float32)) for s in images]
+    out = refine(noisy, truth, [np.full(len(t), 5.0) for t in truth])
+    assert np.isfinite(out.cost_before) and out.cost_after <= out.cost_before, (out.cost_before, out.cost_after)
+
+
 def test_a_dark_ball_fixed_in_the_scanner_pulls_crossing_slices_apart_less(acquisition, monkeypatch) -> None:  # noqa: ANN001
     """Each stack darkened to 0.4 x within 15 mm of its own point, as 3 T shading stays in the scanner
     while the fetus moves: at the true poses crossing slices disagree. Refined from the truth, the

@@ -209,6 +209,24 @@ def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict) ->
     assert not client.app.state.job_store.queued()                   # nothing left behind
 
 
+@pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)     # the back-end plays no part
+def test_poses_are_matched_to_the_uploaded_stacks_by_file_name(client: TestClient, case: dict) -> None:
+    """Poses naming their files are put in the uploads' order; poses of other files are refused, even
+    where slice counts and voxel sizes would let them pass."""
+    client.app.state.job_runner.submit = lambda job_id: None           # the stored input is what is checked
+    named = json.loads(json.dumps(case["poses"]))
+    for st_, (stack, _) in zip(named["stacks"], case["files"]):
+        st_["filename"] = stack.name
+    r = submit(client, case, poses={**named, "stacks": named["stacks"][::-1]})
+    assert r.status_code == 202, r.text
+    stored = json.loads((client.app.state.job_store.directory(r.json()["job_id"]) / "inputs" / "poses.json").read_text())
+    assert [[s["atlas_from_voxel"] for s in st_["slices"]] for st_ in stored["stacks"]] == \
+        [[s["atlas_from_voxel"] for s in st_["slices"]] for st_ in case["poses"]["stacks"]]
+    named["stacks"][1]["filename"] = "other.nii.gz"
+    r = submit(client, case, poses=named)
+    assert r.status_code == 400 and "'other.nii.gz'" in r.json()["detail"] and case["files"][1][0].name in r.json()["detail"]
+
+
 @both
 def test_delete_of_a_finished_job_removes_it_and_a_full_queue_is_429(case: dict, queue_settings: dict) -> None:
     with make_client(ModelRegistry({"default": OracleEstimator()}), max_queued_jobs=1, retry_after_s=9,
