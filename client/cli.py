@@ -30,6 +30,8 @@ Exit codes:
     9   server error (5xx)
     10  conflict (409, e.g. result asked for before the job succeeded)
     11  timed out waiting for a job (the job goes on)
+    12  nothing usable in the answer, its files written: no slice accepted (predict), a volume whose
+        stacks do not predict each other (reconstruct)
 
 Errors are one red line on stderr with the server's problem detail (and request id), never a traceback.
 """
@@ -51,9 +53,9 @@ from rich.live import Live
 from rich.progress import BarColumn, Progress, SpinnerColumn, TaskProgressColumn, TextColumn, TimeElapsedColumn
 
 from client._client import DEFAULT_SERVER, SVRnetClient
-from client.exits import EXIT_HELP, errors, stderr, stdout
+from client.exits import EXIT_HELP, EXIT_NOTHING_USABLE, errors, stderr, stdout
 from client.views import (StreamView, coverage_text, job_table, masks_table, models_table, predict_hints,
-                          quality_line, stage_label, summarise, upload_bar)
+                          quality_line, stage_label, summarise, upload_bar, usable)
 
 if TYPE_CHECKING:                     # client.stream needs numpy and nibabel: imported by `svrnet stream` only
     from client.stream import Sent
@@ -197,6 +199,8 @@ def predict(
         if out is not None:
             _write_json(out, result)
             console.print(f"wrote {out}")
+    if not usable(result):
+        raise typer.Exit(EXIT_NOTHING_USABLE)
 
 
 @app.command(epilog=EXIT_HELP)
@@ -289,6 +293,10 @@ def reconstruct(
         quality = quality_line(report.get("quality"), report.get("n_stacks"))
         if quality:
             console.print(quality)
+        if (report.get("quality") or {}).get("coherent") is False:
+            console.print("the stacks do not predict each other (leave one stack out under 0.5): the volume is no "
+                          "coherent brain; do not use it. Check the stacks' poses (svrnet predict) and masks "
+                          "(svrnet masks)", style="bold red", markup=False)
         if report.get("started_from") == "every_slice":
             console.print("started from every slice: too few were accepted to start from the accepted ones alone; "
                           "judge the volume by the quality line and the preview", style="yellow", markup=False)
@@ -301,6 +309,8 @@ def reconstruct(
         if transforms_out is not None:
             svr.download_transforms(job_id, transforms_out)
             console.print(f"wrote {transforms_out}")
+    if (report.get("quality") or {}).get("coherent") is False:
+        raise typer.Exit(EXIT_NOTHING_USABLE)
 
 
 class SendOrder(str, Enum):

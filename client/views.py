@@ -36,6 +36,17 @@ def with_brain(slices: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return [s for s in slices if s.get("reason") != "empty"]
 
 
+def usable(result: dict[str, Any]) -> bool:
+    """Whether a ``/v1/predict`` body has an accepted slice (without one, ``svrnet predict`` ends with
+    :data:`~client.exits.EXIT_NOTHING_USABLE`).
+
+    Example:
+        >>> usable({"stacks": [{"slices": [{"accepted": False}, {"accepted": True}]}]})
+        True
+    """
+    return any(s.get("accepted") for st in result.get("stacks") or [] for s in st.get("slices") or [])
+
+
 def summarise(result: dict[str, Any]) -> Table:
     """The per-stack summary table of a ``/v1/predict`` body."""
     model = result.get("model") or {}
@@ -101,6 +112,12 @@ def predict_hints(result: dict[str, Any]) -> list[str]:
             hints.append(f"{name}: the localiser was unsure of the brain (confidence {where.get('confidence', 0):.2f}); "
                          "check its mask with `svrnet masks`, or upload one with --mask")
     slices = with_brain([s for st in stacks for s in st.get("slices") or []])
+    if usable(result):
+        for stack in stacks:
+            if with_brain(stack.get("slices") or []) and not any(s.get("accepted") for s in stack.get("slices") or []):
+                hints.append(f"{stack.get('filename', '?')}: no slice accepted while the other stacks have some: its "
+                             "poses are too uncertain or disagree with the others (motion, a signal void); acquire "
+                             "it again if you need it")
     if slices and not any(s.get("accepted") for s in slices):
         limit = result.get("max_expected_error_mm")
         why = (f" (every one expects an error over {limit:.3g} mm)"

@@ -19,7 +19,7 @@ slices of the upload (a few dozen per stack, motion-corrupted) could not. A corr
 :data:`MAX_ROTATION_DEG` / :data:`MAX_SHIFT_MM` is reported and not applied (the reconstruction
 itself is then unlikely to be a brain the network knows), and none is sought where the job's
 stacks do not predict each other (leave-one-stack-out median NCC under
-:func:`~service.reconstruction.midline.incoherent`, as for the midline): slices re-cut from
+:func:`~service.reconstruction.quality.incoherent`, as for the midline): slices re-cut from
 a volume that is no coherent brain pose it nowhere in particular.
 
 Example:
@@ -43,7 +43,8 @@ from service.geometry.anchors import ed
 from service.geometry.pose import about_centre, apply, make_pose, translate
 from service.io.volume import Volume
 from service.preprocess.slices import preprocess_slices
-from service.reconstruction.midline import FrameCorrection, incoherent
+from service.reconstruction.midline import FrameCorrection
+from service.reconstruction.quality import incoherent
 
 if TYPE_CHECKING:                      # the estimator is handed in; nothing of inference runs here
     from service.inference.estimator import PoseEstimator

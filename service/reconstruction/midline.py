@@ -12,7 +12,7 @@ network's atlas frame put them (:mod:`~service.reconstruction.atlas_frame`).
 A correction beyond :data:`MAX_ROTATION_DEG` / :data:`MAX_SHIFT_MM` is reported and not applied
 (the volume is then unlikely to be a whole, symmetric-looking brain), and none is sought where the
 job's stacks do not predict each other (leave-one-stack-out median NCC under
-:data:`MIN_HELD_OUT_NCC`): a volume that is no coherent brain has no midline to trust.
+:data:`~service.reconstruction.quality.MIN_HELD_OUT_NCC`): a volume that is no coherent brain has no midline to trust.
 
 Example (a volume symmetric about the plane needs no correction):
     >>> import numpy as np
@@ -38,26 +38,12 @@ from service.geometry import se3, twin
 from service.geometry.frames import ras_transform_from_lps
 from service.geometry.pose import about_centre, translate
 from service.io.volume import Volume, to_sitk
+from service.reconstruction.quality import incoherent
 
 MAX_ROTATION_DEG = 10.0
 MAX_SHIFT_MM = 5.0
-MIN_HELD_OUT_NCC = 0.5
-"""Below this leave-one-stack-out median NCC the volume is not trusted for its midline. Simulated
-jobs score 0.87-0.95 and the real scans' 0.88-0.93; a jumping acquisition whose volume scored
-0.17 was turned the wrong way (its poses 6.1 -> 7.5 mm)."""
 BRAIN_FRACTION = 0.05
 """Voxels above this fraction of the 99th intensity percentile are the brain (as the atlas frame's)."""
-
-
-def incoherent(held_out_ncc: float | None) -> bool:
-    """Whether a job's stacks do not predict each other (leave-one-stack-out median NCC under
-    :data:`MIN_HELD_OUT_NCC`; None: not measured, e.g. one stack): no frame step trusts its volume.
-
-    Example:
-        >>> incoherent(0.42), incoherent(0.9), incoherent(None)
-        (True, False, False)
-    """
-    return held_out_ncc is not None and held_out_ncc < MIN_HELD_OUT_NCC
 
 
 @dataclass

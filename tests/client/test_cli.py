@@ -243,13 +243,27 @@ def test_an_answer_with_nothing_usable_says_what_to_do() -> None:
     assert "unsure" in unsure[0] and "0.30" in unsure[0] and "svrnet masks" in unsure[0]
     assert "no brain on the stack" in views.predict_hints(_alone("empty", method="mask"))[0]
     assert "localiser found none" in views.predict_hints(_alone("empty", confidence=0.05))[0]
+    # One stack with nothing accepted beside others that have: that stack is named.
+    none = {**_alone("high_expected_error")["stacks"][0], "filename": "coronal.nii.gz"}
+    mixed = views.predict_hints({**PREDICT_BODY, "stacks": [*PREDICT_BODY["stacks"], none]})
+    assert len(mixed) == 1 and mixed[0].startswith("coronal.nii.gz: no slice accepted while the other stacks")
 
 
 def test_the_cli_prints_the_hints(fake_cli: Callable, stack_file: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     fake_cli()
     monkeypatch.setattr(cli.SVRnetClient, "predict", lambda self, *a, **k: _alone("high_expected_error"))
     r = invoke(["predict", str(stack_file)])
-    assert r.exit_code == 0 and "0 of 3" in r.stdout and "send all the stacks of a scan" in r.stdout
+    assert r.exit_code == 12 and "0 of 3" in r.stdout and "send all the stacks of a scan" in r.stdout   # nothing usable
+
+
+def test_a_volume_that_is_no_coherent_brain_is_written_said_so_and_ends_with_its_exit_code(
+        fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
+    fake_cli(jobs="incoherent")
+    out, preview = tmp_path / "recon.nii.gz", tmp_path / "preview.png"
+    r = invoke(["reconstruct", str(stack_file), str(stack_file), "--poll", "0.05", "--out", str(out), "--preview",
+                str(preview)])
+    assert r.exit_code == 12 and "no coherent brain; do not use it" in r.stdout, r.output
+    assert out.read_bytes() == FakeJobs.VOLUME and preview.exists()            # the files are still written
 
 
 def test_a_quality_line_says_when_no_stack_can_be_left_out() -> None:

@@ -9,7 +9,7 @@ import pytest
 from service.geometry import se3
 from service.geometry.pose import make_pose, translate
 from service.io.volume import Volume
-from service.reconstruction import midline
+from service.reconstruction import midline, quality
 from service.reconstruction.midline import MAX_ROTATION_DEG, midline_fit
 from tests.support.phantoms import symmetric_phantom_brain
 
@@ -63,5 +63,5 @@ def test_a_volume_whose_stacks_do_not_predict_each_other_is_not_turned(monkeypat
     volume, _ = moved([0.0, 3.0, 0.0], [0.0, 0.0, 0.0])
     assert midline_fit(volume, 0.0, held_out_ncc=0.9).applied
     monkeypatch.setattr(midline, "register_rigid", lambda *a, **k: pytest.fail("no registration is needed"))
-    fit = midline_fit(volume, 0.0, held_out_ncc=midline.MIN_HELD_OUT_NCC - 0.3)
+    fit = midline_fit(volume, 0.0, held_out_ncc=quality.MIN_HELD_OUT_NCC - 0.3)
     assert not fit.applied and np.array_equal(fit.correction, np.eye(4))

@@ -29,6 +29,7 @@ def test_true_poses_score_high_and_a_misplaced_stack_scores_low_when_left_out(ac
     held = bad.quality["leave_one_stack_out"]["per_stack_median_ncc"]
     assert held[1] < min(held[0], held[2]) - 0.1, held
     assert bad.quality["leave_one_stack_out"]["median_ncc"] < q["leave_one_stack_out"]["median_ncc"]
+    assert q["coherent"] is True
 
 
 def test_quality_can_be_off(acquisition) -> None:  # noqa: ANN001
@@ -38,6 +39,7 @@ def test_quality_can_be_off(acquisition) -> None:  # noqa: ANN001
     assert res.quality is None and res.held_out_ncc is None
     single = reconstruct(ss, resolution_mm=2.0, svr_iterations=0)
     assert single.quality["leave_one_stack_out"]["median_ncc"] is None        # one stack: nothing to leave out
+    assert single.quality["coherent"] is None                                 # nor to judge coherence by
 
 
 def test_a_stack_placed_where_no_other_stack_reaches_does_not_predict_itself(acquisition) -> None:  # noqa: ANN001
@@ -64,3 +66,5 @@ def test_slices_a_path_dropped_still_count_when_a_stack_is_left_out() -> None:
     assert r["leave_one_stack_out"]["slices"] == 4                      # what the job's choice weighs its score by
     assert quality_report(ncc, held, in_volume, stacks)["leave_one_stack_out"]["median_ncc"] == 0.89
     assert quality_report(ncc, held, in_volume, stacks)["leave_one_stack_out"]["slices"] == 2
+    assert r["coherent"] is True                                         # 0.5, the least a coherent volume scores
+    assert quality_report(ncc, held * 0.5, in_volume, stacks, given)["coherent"] is False

@@ -89,7 +89,9 @@ class FakeServer:
 
 
 class FakeJobs:
-    """The contract's reconstruction routes: each status poll moves a job queued -> running -> succeeded."""
+    """The contract's reconstruction routes: each status poll moves a job queued -> running -> succeeded
+    (``outcome``: ``failed``, ``running`` for ever, or ``incoherent``: succeeded with a volume whose
+    stacks do not predict each other)."""
 
     VOLUME = b"\x1f\x8b fake nifti volume" * 1000
     PREVIEW = b"\x89PNG fake"
@@ -128,10 +130,15 @@ class FakeJobs:
         job["polls"] += 1
         if job["polls"] == 2:
             job.update(status="running", stage="svr", progress=0.5)
-        elif job["polls"] >= 3 and self.outcome == "succeeded":
+        elif job["polls"] >= 3 and self.outcome in ("succeeded", "incoherent"):
+            report: dict[str, Any] = {"slices": []}
+            if self.outcome == "incoherent":          # a volume whose stacks do not predict each other
+                report.update(n_stacks=2, quality={"judged_slices": 40, "median_ncc": 0.88, "fraction_ncc_above_0_7": 1.0,
+                                                   "coherent": False, "leave_one_stack_out": {
+                                                       "median_ncc": 0.13, "per_stack_median_ncc": [0.1, 0.2]}})
             job.update(status="succeeded", stage="done", progress=1.0,
                        result_url=f"/v1/reconstructions/{job['job_id']}/volume",
-                       preview_url=f"/v1/reconstructions/{job['job_id']}/preview.png", report={"slices": []})
+                       preview_url=f"/v1/reconstructions/{job['job_id']}/preview.png", report=report)
         elif job["polls"] >= 3 and self.outcome != "running":
             job.update(status=self.outcome, error="SVR diverged" if self.outcome == "failed" else None)
         return httpx.Response(200, json={k: v for k, v in job.items() if k != "polls"})
