@@ -7,7 +7,7 @@ Commands::
     svrnet reconstruct STACK... [--mask M...] [--poses poses.json] [--resolution 0.8] [--svr-iterations 3]
                        [--poses-out refined.json]
                                 [--wait] [--out recon.nii.gz] [--preview preview.png]
-    svrnet stream STACK... [--mask M...] [--pace SECONDS] [--order sequential|interleaved]
+    svrnet stream STACK... [--mask M...] [--pace SECONDS] [--slice-order ORDER]
                            [--mc-samples N] [--max-expected-error MM] [--json-out messages.jsonl]
     svrnet status JOB
     svrnet cancel JOB
@@ -43,7 +43,6 @@ import os
 from collections import Counter
 from collections.abc import Iterator
 from contextlib import contextmanager
-from enum import Enum
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Optional
 
@@ -313,13 +312,6 @@ def reconstruct(
         raise typer.Exit(EXIT_NOTHING_USABLE)
 
 
-class SendOrder(str, Enum):
-    """The acquisition order ``svrnet stream`` sends a stack's slices in."""
-
-    sequential = "sequential"
-    interleaved = "interleaved"
-
-
 @app.command(epilog=EXIT_HELP)
 def stream(
     stacks: Annotated[list[Path], typer.Argument(exists=True, dir_okay=False, readable=True,
@@ -329,8 +321,11 @@ def stream(
     api_key: ApiKeyOpt = None,
     pace: Annotated[float, typer.Option(
         min=0, help="seconds between two slices (0: as fast as the answers come)")] = 0.0,
-    order: Annotated[SendOrder, typer.Option(help="acquisition order: sequential, or interleaved (even "
-                                                  "indices, then odd)")] = SendOrder.sequential,
+    order: Annotated[Optional[list[str]], typer.Option(
+        "--slice-order", "--order",
+        help="acquisition order the slices are sent in, once for every stack or once per stack: sequential "
+             "(the default), interleaved (even indices first), interleaved-even-first, interleaved-odd-first, "
+             "or slice indices as acquired (0,2,4,1,3)")] = None,
     mc_samples: McSamplesOpt = None,
     threshold: ThresholdOpt = None,
     max_expected_error: MaxExpectedOpt = None,
@@ -352,6 +347,15 @@ def stream(
         names = Counter(st.name for st in read)
         read = [streaming.ScannerStack(f"{st.name}#{i}" if names[st.name] > 1 else st.name, st.slice_axis, st.slices)
                 for i, st in enumerate(read)]
+        orders = order or ["sequential"]
+        if len(orders) not in (1, len(read)):
+            raise typer.BadParameter(f"{len(orders)} values for {len(read)} stacks; give one for every stack or one "
+                                     "per stack", param_hint="--slice-order")
+        for st, o in zip(read, orders * len(read) if len(orders) == 1 else orders):
+            try:
+                streaming.send_order(len(st.slices), o)
+            except ValueError as e:
+                raise typer.BadParameter(f"{st.name}: {e}", param_hint="--slice-order") from None
         with Live(view.renderable(), console=console, auto_refresh=False, transient=True) as live:
             def on_message(message: dict[str, Any], answered: Sent | None) -> None:
                 view.on_message(message, answered)
@@ -360,7 +364,7 @@ def stream(
             result = streaming.stream_stacks(
                 read, server, api_key=api_key or None, mc_samples=mc_samples, variance_threshold=threshold,
                 max_expected_error_mm=max_expected_error, bias_correction=None if bias_correction else False,
-                masks_hold_csf=True if masks_hold_csf else None, model=model, pace_s=pace, order=order.value,
+                masks_hold_csf=True if masks_hold_csf else None, model=model, pace_s=pace, order=orders,
                 on_message=on_message, json_out=json_out, answer_timeout_s=_timeout().read or 300.0)
         summary = result.summary or {}
         timing = summary.get("timing_ms") or {}

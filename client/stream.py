@@ -40,7 +40,9 @@ __all__ = ["ScannerSlice", "ScannerStack", "Sent", "StreamResult", "ORDERS", "sl
            "read_stack", "send_order", "stream_url", "stream_stacks"]
 
 SENT_DTYPES = ("uint8", "int16", "uint16")   # sent as they are; any other as float32 (all little endian)
-ORDERS = ("sequential", "interleaved")
+ORDERS = ("sequential", "interleaved", "interleaved-even-first", "interleaved-odd-first")
+"""The named acquisition orders (``/v1/predict``'s ``slice_order`` words); slice indices as acquired
+(``0,2,4,1,3``) are taken too."""
 MAX_IN_FLIGHT = 4
 """Slices sent ahead of their poses at most, so that a slow server is never buried."""
 OPEN_TIMEOUT_S = 10.0
@@ -186,17 +188,28 @@ def read_stack(path: str | Path, mask_path: str | Path | None = None, name: str 
 
 
 def send_order(count: int, order: str = "sequential") -> list[int]:
-    """The slice indices of a stack of ``count`` slices in the order they are sent (acquired).
+    """The slice indices of a stack of ``count`` slices in the order they are sent (acquired): one of
+    :data:`ORDERS` (``interleaved``: even indices first) or the indices themselves, comma-separated.
 
     Example:
-        >>> send_order(5, "sequential"), send_order(5, "interleaved")
-        ([0, 1, 2, 3, 4], [0, 2, 4, 1, 3])
+        >>> send_order(5, "sequential"), send_order(5, "interleaved"), send_order(5, "interleaved-odd-first")
+        ([0, 1, 2, 3, 4], [0, 2, 4, 1, 3], [1, 3, 0, 2, 4])
+        >>> send_order(3, "2,0,1")
+        [2, 0, 1]
     """
-    if order == "sequential":
-        return list(range(count))
-    if order == "interleaved":
-        return list(range(0, count, 2)) + list(range(1, count, 2))
-    raise ValueError(f"order: {order!r} is none of {', '.join(ORDERS)}")
+    evens, odds = list(range(0, count, 2)), list(range(1, count, 2))
+    named = {"sequential": list(range(count)), "interleaved": evens + odds, "interleaved-even-first": evens + odds,
+             "interleaved-odd-first": odds + evens}
+    if order in named:
+        return named[order]
+    try:
+        indices = [int(k) for k in order.split(",")]
+    except ValueError:
+        raise ValueError(f"order: {order!r} is none of {', '.join(ORDERS)}, nor slice indices as acquired "
+                         "(0,2,4,1,3)") from None
+    if sorted(indices) != list(range(count)):
+        raise ValueError(f"order: {order!r} does not list each of the stack's {count} slices (0..{count - 1}) once")
+    return indices
 
 
 def stream_url(server: str) -> str:
@@ -307,7 +320,7 @@ class _Session:
 def stream_stacks(stacks: Sequence[ScannerStack], server: str = DEFAULT_SERVER, *, api_key: str | None = None,
                   mc_samples: int | None = None, variance_threshold: float | None = None,
                   max_expected_error_mm: float | None = None, bias_correction: bool | None = None,
-                  masks_hold_csf: bool | None = None, model: str | None = None, pace_s: float = 0.0, order: str = "sequential",
+                  masks_hold_csf: bool | None = None, model: str | None = None, pace_s: float = 0.0, order: str | Sequence[str] = "sequential",
                   on_message: MessageCallback | None = None, json_out: str | Path | None = None,
                   answer_timeout_s: float = 300.0, max_in_flight: int = MAX_IN_FLIGHT) -> StreamResult:
     """Stream stacks in one session: ``start``, every slice of each stack then its ``end_stack``, ``end``.
@@ -327,7 +340,8 @@ def stream_stacks(stacks: Sequence[ScannerStack], server: str = DEFAULT_SERVER, 
         masks_hold_csf: the masks are the skull's inside, brain and CSF (server default false).
         model: the model's name (server default ``default``).
         pace_s: seconds between two slices.
-        order: ``sequential`` or ``interleaved`` (even indices, then odd): the order slices go out in.
+        order: the order each stack's slices go out in (:func:`send_order`): one for every stack, or
+            one per stack.
         on_message: called with every message received and the message of the client it answers
             (``None`` for an ``update``).
         json_out: where every message received is written, one JSON object a line.
@@ -346,7 +360,12 @@ def stream_stacks(stacks: Sequence[ScannerStack], server: str = DEFAULT_SERVER, 
     options = {"model": model, "mc_samples": mc_samples, "variance_threshold": variance_threshold,
                "max_expected_error_mm": max_expected_error_mm, "bias_correction": bias_correction,
                "masks_hold_csf": masks_hold_csf}
-    orders = [send_order(len(stack.slices), order) for stack in stacks]
+    per_stack = [order] * len(stacks) if isinstance(order, str) else list(order)
+    if len(per_stack) == 1:
+        per_stack *= len(stacks)
+    if len(per_stack) != len(stacks):
+        raise ValueError(f"order: {len(per_stack)} orders for {len(stacks)} stacks; give one for every stack or one per stack")
+    orders = [send_order(len(stack.slices), o) for stack, o in zip(stacks, per_stack)]
     with (open(json_out, "w", encoding="utf-8") if json_out is not None else nullcontext()) as record, \
             _connect(stream_url(server), api_key, answer_timeout_s) as ws:
         session = _Session(ws, on_message, record, answer_timeout_s)

@@ -208,6 +208,10 @@ class StreamView:
                 self.console.print(f"update of stack {name}: " + ", ".join(
                     f"#{s.get('index')} {' '.join(pose_cells(s)[2:4])}" for s in message.get("slices") or []),
                     markup=False)
+                if "reacquire" in message:
+                    rows = [row for (stack, _), row in self.rows.items() if stack == name]
+                    self.console.print(f"stack {name} now: {sum(1 for r in rows if r.get('accepted'))}/{len(rows)} "
+                                       f"accepted · reacquire: {reacquire_text(message['reacquire'])}", markup=False)
         elif kind == "stack":
             self.close_stack(message)
         elif kind == "error":
@@ -227,7 +231,8 @@ class StreamView:
         self.console.print(self.table(sorted(rows, key=lambda r: r.get("index", 0)),
                                       f"stack {name}: final poses"))
         accepted = sum(1 for s in final if s.get("accepted"))
-        self.console.print(f"stack {name}: {accepted}/{len(final)} accepted · "
+        alone = " (judged alone: the next stack that crosses it can accept its slices)" if message.get("judged_alone") else ""
+        self.console.print(f"stack {name}: {accepted}/{len(final)} accepted{alone} · "
                            f"reacquire: {reacquire_text(message.get('reacquire'))} · "
                            f"coverage {coverage_text(message.get('coverage'))}", markup=False)
 

@@ -100,16 +100,31 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
     return app
 
 
-def run() -> None:
-    """Console entry point: serve :func:`create_app` with uvicorn on ``SVRNET_HOST:SVRNET_PORT``."""
+def run(argv: list[str] | None = None) -> None:
+    """Console entry point: serve :func:`create_app` with uvicorn on ``SVRNET_HOST:SVRNET_PORT``
+    (``--host`` and ``--port`` override them; ``--help`` says so and serves nothing)."""
+    import argparse
+
     import uvicorn
 
     from service.api.http_protocol import with_header_deadline
 
-    settings = Settings()
+    parser = argparse.ArgumentParser(
+        prog="svrnet-server", description="Serve the SVRnet HTTP API v1 and /v1/stream with the shipped models.",
+        epilog="Every other setting (API keys, limits, workers, models folder, job retention) is an SVRNET_* "
+               "environment variable: docs/configuration.md.")
+    parser.add_argument("--host", help="address to listen on (default: $SVRNET_HOST, else 127.0.0.1)")
+    parser.add_argument("--port", type=int, help="port to listen on (default: $SVRNET_PORT, else 8000)")
+    args = parser.parse_args(argv)
+    given = {k: v for k, v in (("host", args.host), ("port", args.port)) if v is not None}
+    try:
+        settings = Settings(**given)
+    except ValueError as exc:                                   # pydantic's ValidationError: one line, no traceback
+        parser.error(" ".join(str(exc).split()))
     service_logging.configure(settings.log_level)
     # uvicorn's own access log writes each raw request path (job ids as sent, anything a client
     # puts in a URL); the service's JSON log records the route instead (service/api/middleware.py).
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port,
                 log_level=service_logging.server_log_level(settings.log_level),
-                access_log=False, http=with_header_deadline(settings.header_timeout_s))
+                access_log=False, http=with_header_deadline(settings.header_timeout_s),
+                ws_ping_interval=settings.stream_ping_interval_s, ws_ping_timeout=settings.stream_ping_timeout_s)

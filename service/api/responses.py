@@ -125,14 +125,15 @@ def stack_message(answer: StackAnswer) -> dict:
     slices = [{"stack": answer.stack, **s, "localisation": found} for s in slice_objects(p)]
     return {"type": "stack", "stack": answer.stack, "slices": slices, "consistency": stack_report(p.poses),
             "localisation": p.prepared.localisation.report(),
-            "reacquire": [{"index": k, "reason": r} for k, r in answer.reacquire],
+            "reacquire": _reacquire(answer.reacquire), "judged_alone": answer.judged_alone,
             "coverage": answer.coverage.report(),
             "timing_ms": {k: round(v * 1e3, 1) for k, v in answer.timings.items()}}
 
 
-def update_messages(answers: list[SliceAnswer]) -> list[dict]:
+def update_messages(answers: list[SliceAnswer], reacquire_of: dict[str, list[tuple[int, str]]] | None = None) -> list[dict]:
     """A stream's ``update`` messages: one per stack, its slices whose pose moved (or whose accept
-    flag changed), in the order given.
+    flag changed), in the order given; where a stack's end moved them, with the earlier stack's
+    slices worth acquiring again now (``reacquire``, from ``reacquire_of``).
 
     Example:
         >>> update_messages([])
@@ -141,8 +142,13 @@ def update_messages(answers: list[SliceAnswer]) -> list[dict]:
     by_stack: dict[str, list[SliceAnswer]] = {}
     for a in answers:
         by_stack.setdefault(a.stack, []).append(a)
-    return [{"type": "update", "stack": stack, "slices": [pose_object(a) for a in group]}
+    return [{"type": "update", "stack": stack, "slices": [pose_object(a) for a in group],
+             **({"reacquire": _reacquire(reacquire_of[stack])} if reacquire_of and stack in reacquire_of else {})}
             for stack, group in by_stack.items()]
+
+
+def _reacquire(slices: list[tuple[int, str]]) -> list[dict]:
+    return [{"index": k, "reason": r} for k, r in slices]
 
 
 def summary_message(summary: SessionSummary, started: float, latencies_ms: list[float]) -> dict:

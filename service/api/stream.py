@@ -265,7 +265,7 @@ class StreamConnection:
     async def end_stack(self, stack: str) -> None:
         await self.settle()
         answer = await self.in_background("end_stack", self.session.end_stack, stack)
-        for message in update_messages(answer.updates):
+        for message in update_messages(answer.updates, answer.reacquire_of):
             await self.send(message)
         await self.send(stack_message(answer))
 

@@ -79,6 +79,10 @@ class Settings(BaseSettings):
     stream_max_session_mb: float = Field(256.0, gt=0, description="what one stream session's slices may hold in "
                                          "memory together (pixels as float32)")
     stream_idle_s: float = Field(300.0, gt=0, description="a stream session silent this long is closed (code 1001)")
+    stream_ping_interval_s: float = Field(20.0, gt=0, description="how often the server pings a WebSocket client")
+    stream_ping_timeout_s: float = Field(60.0, gt=0, description="a ping unanswered this long closes the connection "
+                                         "(1011): a live client on a busy 2-core host can take longer than "
+                                         "uvicorn's 20 s")
     stream_workers: int = Field(1, ge=1, description="slices of all stream sessions posed at once (threads; each "
                                 "takes up to a core from /v1/predict)")
 

@@ -335,7 +335,7 @@ class MrdConnection:
             self.send_error(InternalError("stack: the server failed on this series"), series=series_index)
         else:
             self.counts["stacks"] += 1
-            for message in update_messages(answer.updates):   # earlier stacks' slices that the new one moved
+            for message in update_messages(answer.updates, answer.reacquire_of):   # earlier stacks' slices it moved
                 self.send_text(message)
             self.send_text(stack_message(answer))
         following = SeriesState(f"{series_index}.{series.passes + 1}", passes=series.passes + 1)

@@ -87,6 +87,8 @@ class StackAnswer:
     reacquire: list[tuple[int, str]]
     coverage: Coverage
     timings: dict[str, float]
+    judged_alone: bool = False                                   # no stack had ended before it
+    reacquire_of: dict[str, list[tuple[int, str]]] = field(default_factory=dict)   # the earlier stacks' now
 
 
 @dataclass
@@ -128,6 +130,23 @@ def moved_mm(a: SliceAnswer, b: SliceAnswer, reference: NDArray) -> float:
     def pose(x: SliceAnswer) -> NDArray:
         return x.prediction.poses.poses[x.row] @ x.prediction.network_from_voxel[x.row] @ np.linalg.inv(reference)
     return float(anchors.ed(pose(a), pose(b)))
+
+
+def worth_acquiring_again(reasons: list[str | None], judged_alone: bool) -> list[tuple[int, str]]:
+    """``(index, reason)`` of the slices of a stack worth acquiring again: those not accepted, but
+    for ``empty`` ones (no brain: nothing to gain) and, for a stack judged alone (the session's
+    first), those whose only fault is their expected error: the next stack that crosses them is
+    what brings it down (the shared real scan's axial stack: 0 of 24 accepted alone, 21 once the
+    coronal stack ended).
+
+    Example:
+        >>> worth_acquiring_again([None, "empty", "high_expected_error", "inconsistent_with_stack"], True)
+        [(3, 'inconsistent_with_stack')]
+        >>> worth_acquiring_again([None, "high_expected_error"], False)
+        [(1, 'high_expected_error')]
+    """
+    waits = {acceptance.EMPTY} | ({acceptance.HIGH_EXPECTED_ERROR} if judged_alone else set())
+    return [(k, r) for k, r in enumerate(reasons) if r is not None and r not in waits]
 
 
 class StreamSession:
@@ -360,8 +379,10 @@ class StreamSession:
                 else:
                     updates += self._changed(name, answers)
             covered = self._covered()
-        reacquire = [(k, r) for k, r in enumerate(final.reasons) if r not in (None, acceptance.EMPTY)]
-        answer = StackAnswer(stack, final, updates, reacquire, coverage(covered), timings)
+        alone = len(names) == 1
+        reacquire_of = {n: worth_acquiring_again(p.reasons, alone) for n, p in zip(names, predictions)}
+        answer = StackAnswer(stack, final, updates, reacquire_of.pop(stack), coverage(covered), timings, alone,
+                             reacquire_of)
         self.compute_ms["end_stack"] += (time.perf_counter() - t0) * 1e3
         return answer
 

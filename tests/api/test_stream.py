@@ -69,6 +69,7 @@ def test_a_session_answers_every_slice_in_order_where_the_truth_is(client, case)
             assert stack["consistency"]["acquisition_order"] == "as-streamed"
             assert 0.0 < stack["coverage"]["brain_fraction"] <= 1.0
             assert all(r["reason"] for r in stack["reacquire"])
+            assert stack["judged_alone"] is (frames is stacks[0])          # the first stack had no other to cross it
         ws.send_text(json.dumps({"type": "end"}))
         summary = receive(ws, ("summary",))
         assert summary["stacks"] == ["ax", "cor"] and summary["slices"] == sum(len(f) for f in stacks)

@@ -88,8 +88,10 @@ def test_a_file_is_read_with_its_type_and_its_mask_must_share_its_grid(tmp_path:
 
 def test_send_orders() -> None:
     assert send_order(6, "interleaved") == [0, 2, 4, 1, 3, 5] and send_order(1, "interleaved") == [0]
-    with pytest.raises(ValueError, match="order"):
-        send_order(3, "random")
+    assert send_order(6, "interleaved-odd-first") == [1, 3, 5, 0, 2, 4] and send_order(3, "1, 0,2") == [1, 0, 2]
+    for bad in ("random", "0,1", "0,1,1", "0,1,3"):                 # not a word, nor each slice once
+        with pytest.raises(ValueError, match="order"):
+            send_order(3, bad)
 
 
 @pytest.mark.parametrize("axis", [0, 1, 2])
@@ -171,12 +173,15 @@ def test_a_scripted_session_shows_poses_updates_errors_and_the_summary(stack_fil
                 ws.send(json.dumps(pose(msg, accepted=not rejected, reason=reason)))
             elif msg["type"] == "end_stack":                  # cor moves a slice of ax, ended before it
                 moved = {"stack": "ax", "index": 0 if msg["stack"] == "ax" else 2}
-                ws.send(json.dumps({"type": "update", "stack": "ax", "slices": [pose(moved, expected_error_mm=1.5)]}))
+                now = {} if msg["stack"] == "ax" else {"reacquire": []}      # ax's list once cor crossed it
+                ws.send(json.dumps({"type": "update", "stack": "ax", "slices": [pose(moved, expected_error_mm=1.5)],
+                                    **now}))
                 final = (0, 2) if msg["stack"] == "ax" else (0, 1, 2, 3)
                 ws.send(json.dumps({"type": "stack", "stack": msg["stack"],
                                     "slices": [pose({"stack": msg["stack"], "index": k}) for k in final],
                                     "reacquire": [{"index": 3, "reason": "high_expected_error"}] if len(final) < 4
-                                    else [], "coverage": {"brain_fraction": 0.42, "gaps": [{"extent_mm": 9.0}]}}))
+                                    else [], "judged_alone": msg["stack"] == "ax",
+                                    "coverage": {"brain_fraction": 0.42, "gaps": [{"extent_mm": 9.0}]}}))
             elif msg["type"] == "end":
                 ws.send(json.dumps({"type": "summary", "stacks": ["ax", "cor"], "slices": 7,
                                     "coverage": {"brain_fraction": 0.42, "gaps": []},
@@ -189,13 +194,13 @@ def test_a_scripted_session_shows_poses_updates_errors_and_the_summary(stack_fil
     out = tmp_path / "messages.jsonl"
     with scripted_server(handler) as url:
         result = runner.invoke(cli.app, ["stream", str(stack_file), str(cor), "--server", url, "--api-key", "k1",
-                                         "--order", "interleaved", "--mc-samples", "10", "--masks-hold-csf",
-                                         "--json-out", str(out)])
+                                         "--slice-order", "interleaved-even-first", "--slice-order", "3,2,1,0",
+                                         "--mc-samples", "10", "--masks-hold-csf", "--json-out", str(out)])
     assert result.exit_code == 0, result.output
     assert keys == ["Bearer k1"]
     slices = [(m, f) for m, f in heard if m["type"] == "slice"]
     assert [(m["stack"], m["index"]) for m, _ in slices] == [("ax", 0), ("ax", 2), ("ax", 1), ("ax", 3),
-                                                            ("cor", 0), ("cor", 2), ("cor", 1), ("cor", 3)]
+                                                            ("cor", 3), ("cor", 2), ("cor", 1), ("cor", 0)]
     assert [m["acquisition_index"] for m, _ in slices] == [0, 1, 2, 3] * 2
     assert all(m["dtype"] == "float32" and m["shape"] == [6, 5] and len(f) == 1 and len(f[0]) == 6 * 5 * 4
                for m, f in slices)
@@ -203,7 +208,9 @@ def test_a_scripted_session_shows_poses_updates_errors_and_the_summary(stack_fil
     text = " ".join(result.output.split())
     assert "error (slice ax #1): 400 Invalid parameter: slice: made up" in text
     assert "✗ high_expected_error" in text and "updated" in text
-    assert "stack ax: 2/2 accepted · reacquire: high_expected_error #3 · coverage 42% of the brain, 1 gap" in text
+    assert ("stack ax: 2/2 accepted (judged alone: the next stack that crosses it can accept its slices) · reacquire: "
+            "high_expected_error #3 · coverage 42% of the brain, 1 gap") in text
+    assert "stack ax now: 2/3 accepted · reacquire: none" in text and "stack cor now" not in text   # #1 got an error
     assert "update of stack ax: #2 ✓ 1.5 mm" in text and "stack cor: 4/4 accepted · reacquire: none" in text
     assert ("session: 2 stack(s), 7 slices · pose latency p50 12 ms, p95 19 ms · "
             "coverage 42% of the brain, 0 gaps") in text
@@ -284,3 +291,13 @@ def test_end_to_end_against_a_real_server(tmp_path: Path) -> None:
     assert "pose_latency_p95" in summary["timing_ms"] and 0.0 <= summary["coverage"]["brain_fraction"] <= 1.0
     text = " ".join(result.output.split())
     assert "stack ax:" in text and "stack cor:" in text and "session: 2 stack(s), 24 slices" in text
+
+
+def test_a_slice_order_that_fits_no_stack_is_a_usage_error_before_anything_is_sent(stack_file: Path) -> None:
+    for orders, needle in ((["0,1"], "each of the stack's"), (["zigzag"], "slice indices as acquired"),
+                           (["sequential", "sequential"], "2 values for 1 stacks")):
+        args = ["stream", str(stack_file), "--server", "http://127.0.0.1:9"]
+        for o in orders:
+            args += ["--slice-order", o]
+        result = runner.invoke(cli.app, args, env={"COLUMNS": "200"})
+        assert result.exit_code == 2 and needle in result.output, result.output
