@@ -32,6 +32,35 @@ TERMINAL = ("succeeded", "failed", "cancelled")
 
 MAX_MASK_BYTES = 1 << 30
 """The largest archive member :meth:`SVRnetClient.masks` writes (a mask file of the server's)."""
+MAX_FOLDER_BYTES = 512 << 20
+"""The most a folder of one DICOM series may hold to be sent (zipped in memory; the server's default
+upload limit)."""
+
+
+def zipped_folder(folder: Path) -> bytes:
+    """A folder of one DICOM series as the ``.zip`` the server takes: its files (sub-folders
+    included, hidden files not), stored under their paths in it.
+
+    Raises:
+        ValueError: naming the folder, when it holds no file or more than :data:`MAX_FOLDER_BYTES`.
+
+    Example:
+        >>> import tempfile
+        >>> d = Path(tempfile.mkdtemp()); _ = (d / "IM0001.dcm").write_bytes(b"x"); _ = (d / ".DS_Store").write_bytes(b"")
+        >>> zipfile.ZipFile(io.BytesIO(zipped_folder(d))).namelist()
+        ['IM0001.dcm']
+    """
+    files = sorted(p for p in folder.rglob("*")
+                   if p.is_file() and not any(part.startswith(".") for part in p.relative_to(folder).parts))
+    if not files:
+        raise ValueError(f"stacks: the folder {folder} holds no file")
+    if sum(p.stat().st_size for p in files) > MAX_FOLDER_BYTES:
+        raise ValueError(f"stacks: the folder {folder} holds more than {MAX_FOLDER_BYTES >> 20} MB; send one series")
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as archive:
+        for p in files:
+            archive.write(p, p.relative_to(folder).as_posix())
+    return buffer.getvalue()
 
 
 class SVRnetClient(Transport):
@@ -59,7 +88,8 @@ class SVRnetClient(Transport):
     """
 
     @staticmethod
-    def _files(stacks: Sequence[PathLike], masks: Sequence[PathLike] | None) -> list[tuple[str, str, Path, str]]:
+    def _files(stacks: Sequence[PathLike], masks: Sequence[PathLike] | None) -> list[tuple[str, str, Path | bytes, str]]:
+        """The upload's file parts; a stack given as a folder (one DICOM series) goes as its ``.zip``."""
         if isinstance(stacks, (str, os.PathLike)):
             stacks = [stacks]
         if isinstance(masks, (str, os.PathLike)):
@@ -69,10 +99,13 @@ class SVRnetClient(Transport):
         masks = list(masks or [])
         if masks and len(masks) != len(stacks):
             raise ValueError(f"masks: {len(masks)} given for {len(stacks)} stacks; give none or one per stack")
-        files = []
+        files: list[tuple[str, str, Path | bytes, str]] = []
         for field, paths in (("stacks", stacks), ("masks", masks)):
             for p in paths:
                 path = Path(p)
+                if field == "stacks" and path.is_dir():
+                    files.append((field, f"{path.resolve().name}.zip", zipped_folder(path), "application/zip"))
+                    continue
                 if not path.is_file():
                     raise FileNotFoundError(f"{field}: no such file: {path}")
                 files.append((field, path.name, path, "application/octet-stream"))

@@ -141,9 +141,11 @@ ApiKeyOpt = Annotated[Optional[str], typer.Option("--api-key", envvar="SVRNET_AP
 MasksHoldCsfOpt = Annotated[bool, typer.Option(
     "--masks-hold-csf", help="the masks are the skull's inside (brain and the CSF around it, as manual fetal masks "
                              "are usually drawn): the pose network sees them less their outer 2 mm")]
-McSamplesOpt = Annotated[Optional[int], typer.Option(min=1, max=1000, help="MC-dropout passes per slice")]
+McSamplesOpt = Annotated[Optional[int], typer.Option(min=1, max=1000, help="MC-dropout passes per slice "
+                                                                           "(default: the server's, 100)")]
 ThresholdOpt = Annotated[Optional[float], typer.Option(
-    "--threshold", callback=_positive, help="variance threshold (default: the model's)")]
+    "--threshold", callback=_positive, help="geodesic-variance threshold, in the model's squared anchor-point units "
+    "(default: the model's; see `svrnet models`); a loose guard: --max-expected-error is the one to set")]
 BiasCorrectionOpt = Annotated[bool, typer.Option("--bias-correction/--no-bias-correction",
                                                  help="N4 bias-field correction")]
 ModelOpt = Annotated[Optional[str], typer.Option(help="model name (see `svrnet models`)")]
@@ -151,8 +153,8 @@ MaskOpt = Annotated[Optional[list[Path]], typer.Option(
     "--mask", "-m", exists=True, dir_okay=False, readable=True, metavar="MASK",
     help="region-of-interest mask; repeat, one per stack in the same order (or none)")]
 StacksArg = Annotated[list[Path], typer.Argument(
-    exists=True, dir_okay=False, readable=True, metavar="STACK",
-    help=".nii, .nii.gz, .nrrd, .mha, .dcm or .zip of a DICOM series")]
+    exists=True, readable=True, metavar="STACK",
+    help=".nii, .nii.gz, .nrrd, .mha, .dcm, or a DICOM series as a .zip or a folder (sent zipped)")]
 
 
 @app.command(epilog=EXIT_HELP)

@@ -86,6 +86,8 @@ def errors() -> Iterator[None]:
     except SVRnetError as e:
         hint = " (give the key with SVRNET_API_KEY or --api-key)" if isinstance(e, Unauthorized) else ""
         fail(" ".join(str(e).split()) + hint, exit_code_for(e))
+    except ValueError as e:                                # the client's own checks of its arguments, by field
+        fail(" ".join(str(e).split()), EXIT_USAGE)
     except KeyboardInterrupt:
         fail("interrupted", 130)
     except OSError as e:

@@ -38,8 +38,22 @@ def problem(status: int, title: str, detail: str, type_: str = "about:blank",
 
 
 def _field(loc: tuple) -> str:
-    parts = [str(p) for p in loc if p not in ("body", "query", "path", "header", "form")]
-    return ".".join(parts) or "request"
+    """The field a validation error is about, as the client named it (``slice_order[1]``)."""
+    out = ""
+    for p in loc:
+        if p in ("body", "query", "path", "header", "form"):
+            continue
+        out += f"[{p}]" if isinstance(p, int) else f"{'.' if out else ''}{p}"
+    return out or "request"
+
+
+def _message(error: dict) -> str:
+    """A validation error's message in the client's terms: pydantic's ``Value error,`` prefix and
+    type names left out."""
+    msg = str(error.get("msg", "invalid"))
+    if "Expected UploadFile" in msg:
+        return "must be a file part (with a filename), not a plain form value"
+    return msg.removeprefix("Value error, ")
 
 
 def _document_problems(app: FastAPI) -> None:
@@ -84,7 +98,7 @@ def install(app: FastAPI) -> None:
         errors = exc.errors()
         if any(e.get("type") in ("json_invalid", "value_error.jsondecode") for e in errors):
             return await service_error(request, MalformedRequest("the request body could not be parsed"))
-        detail = "; ".join(f"{_field(tuple(e.get('loc', ())))}: {e.get('msg', 'invalid')}" for e in errors)
+        detail = "; ".join(f"{_field(tuple(e.get('loc', ())))}: {_message(e)}" for e in errors)
         return await service_error(request, InvalidParameter(detail))
 
     @app.exception_handler(StarletteHTTPException)

@@ -94,6 +94,11 @@ def test_parameters_and_models(oracle_client: TestClient, tmp_path: Path) -> Non
         assert_problem(post(oracle_client, [("stacks", ("s.nii.gz", s))], {field: value}), 400, field)
     assert_problem(post(oracle_client, [("stacks", ("s.nii.gz", s))], {"model": "nope"}), 404, "model", "nope")
     assert_problem(post(oracle_client, []), 400, "stacks")
+    r = post(oracle_client, [], {"stacks": "s.nii.gz"})                   # a path as text, not the file
+    assert_problem(r, 400, "stacks[0]: must be a file part")
+    assert "UploadFile" not in r.text and "class" not in r.text
+    r = post(oracle_client, [("stacks", ("s.nii.gz", s))], {"slice_order": "zigzag"})
+    assert "Value error" not in r.text and "slice_order[0]" in r.json()["detail"]
 
 
 def test_a_slice_order_that_says_nothing_known_or_does_not_fit_is_400(oracle, oracle_client: TestClient,  # noqa: ANN001

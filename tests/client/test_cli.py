@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import json
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -302,3 +303,22 @@ def test_every_command_takes_the_api_key_and_an_unauthorised_one_says_how_to_giv
     assert r.exit_code == 4 and "SVRNET_API_KEY or --api-key" in r.stderr
     r = invoke(["predict", str(stack_file), "--out", str(tmp_path / "no" / "p.json")])
     assert r.exit_code == 2 and "--out" in r.output and "--preview" not in r.output
+
+
+def test_a_dicom_folder_goes_as_the_zip_the_server_takes(fake_cli: Callable, tmp_path: Path) -> None:
+    fake, _ = fake_cli()
+    series = tmp_path / "series 7"
+    (series / "sub").mkdir(parents=True)
+    (series / "IM0001.dcm").write_bytes(b"first")
+    (series / "sub" / "IM0002.dcm").write_bytes(b"second")
+    (series / ".DS_Store").write_bytes(b"finder")
+    r = invoke(["predict", str(series)])
+    assert r.exit_code == 0, r.output
+    _, files = parse_multipart(fake.requests[0])
+    (field, filename, content_type, data), = files
+    archive = zipfile.ZipFile(io.BytesIO(data))
+    assert (field, filename, content_type) == ("stacks", "series 7.zip", "application/zip")
+    assert sorted(archive.namelist()) == ["IM0001.dcm", "sub/IM0002.dcm"] and archive.read("IM0001.dcm") == b"first"
+    (tmp_path / "empty").mkdir()
+    r = invoke(["predict", str(tmp_path / "empty")])
+    assert r.exit_code == 2 and "error: stacks: the folder" in r.stderr and "holds no file" in r.stderr
