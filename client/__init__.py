@@ -8,26 +8,21 @@ Example:
     ...     poses = svr.predict(["ax.nii.gz", "cor.nii.gz"], mc_samples=100)
 """
 
-from client._client import DEFAULT_SERVER, SVRnetClient
-from client.errors import (
-    BadRequest,
-    Busy,
-    Conflict,
-    ConnectionFailed,
-    JobFailed,
-    NotFound,
-    PayloadTooLarge,
-    ServerError,
-    SVRnetError,
-    Unauthorized,
-    UnsupportedFile,
-    UnusableInput,
-    WaitTimeout,
-    error_from_response,
-)
+import importlib
+from typing import Any
 
-__all__ = [
-    "SVRnetClient", "DEFAULT_SERVER", "SVRnetError", "BadRequest", "Unauthorized", "NotFound", "Conflict",
-    "PayloadTooLarge", "UnsupportedFile", "UnusableInput", "Busy", "ServerError", "ConnectionFailed", "JobFailed",
-    "WaitTimeout", "error_from_response",
-]
+_ERRORS = ("BadRequest", "Busy", "Conflict", "ConnectionFailed", "JobFailed", "NotFound", "PayloadTooLarge",
+           "ServerError", "SVRnetError", "Unauthorized", "UnsupportedFile", "UnusableInput", "WaitTimeout",
+           "error_from_response")
+
+__all__ = ["SVRnetClient", "DEFAULT_SERVER", *_ERRORS]
+
+
+def __getattr__(name: str) -> Any:
+    """The package's names, imported when first used: ``svrnet`` (``client.launch``) can then say
+    which packages are missing instead of failing on the package's import."""
+    if name in ("SVRnetClient", "DEFAULT_SERVER"):
+        return getattr(importlib.import_module("client._client"), name)
+    if name in _ERRORS:
+        return getattr(importlib.import_module("client.errors"), name)
+    raise AttributeError(f"module 'client' has no attribute {name!r}")
