@@ -1,4 +1,5 @@
-"""Shared fixtures: the location of ``../shared/data`` and a skip when it is absent."""
+"""Shared fixtures: the location of ``../shared/data`` and a skip when it is absent; every test's
+job store in a folder of the test run's, never the user's ``~/.svrnet``."""
 
 from __future__ import annotations
 
@@ -8,6 +9,13 @@ import pytest
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 ATLAS_DIR = SHARED_DATA / "fetal_atlas"
+
+
+@pytest.fixture(autouse=True)
+def own_job_store(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``SVRNET_DATA_DIR`` for apps built from default settings: a server of the user's on the
+    default store keeps its jobs (a test app's start would otherwise find the store taken)."""
+    monkeypatch.setenv("SVRNET_DATA_DIR", str(tmp_path_factory.mktemp("svrnet-data")))
 
 
 @pytest.fixture(scope="session")

@@ -12,6 +12,12 @@ saying so, and the queued ones run. A job running longer than ``timeout_s`` is f
 stopped the same way (:meth:`LocalRunner.maintain`): a job stops only with its process. So does a
 running job cancelled while no other job runs in the pool (:meth:`LocalRunner.cancel`); beside
 others it stops at its next stage, so that theirs go on.
+
+One server owns a job store: :meth:`LocalRunner.start` locks the store's folder
+(:data:`LOCK_NAME`, an OS lock that dies with its process, ``kill -9`` included) and refuses to start
+where another server holds it. Without the lock a second server's start (another port, ``make serve``
+in a second terminal, a test run) would take the first one's running jobs for interrupted ones and
+queue them again under it. Several servers share jobs through the distributed back-end.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import sys
 import threading
 import time
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -30,6 +37,38 @@ from service.jobs.store import SqliteJobStore
 from service.jobs.worker import TIMED_OUT, run_job
 
 log = logging.getLogger(__name__)
+
+LOCK_NAME = "server.lock"
+"""The file in the store's folder whose lock says which server owns the store (its pid inside)."""
+
+
+class StoreInUse(RuntimeError):
+    """Another live server owns the job store."""
+
+
+def lock_store(data_dir: Path):  # noqa: ANN201 - an open file, or None where the OS has no flock
+    """Lock ``data_dir`` for this process (:class:`StoreInUse`, naming the owner's pid, where another
+    process holds it); the returned file keeps the lock until it is closed or the process ends."""
+    if sys.platform == "win32":
+        return None
+    import fcntl
+
+    data_dir.mkdir(parents=True, exist_ok=True)
+    handle = open(data_dir / LOCK_NAME, "a+")          # noqa: SIM115 - held for the server's life
+    try:
+        fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.seek(0)
+        owner = handle.read().strip() or "unknown"
+        handle.close()
+        raise StoreInUse(f"the job store {data_dir} belongs to another running svrnet-server (pid {owner}); give "
+                         "this server its own SVRNET_DATA_DIR, or run several servers on the distributed back-end "
+                         "(SVRNET_QUEUE_URL)") from None
+    handle.seek(0)
+    handle.truncate()
+    handle.write(str(os.getpid()))
+    handle.flush()
+    return handle
 
 
 def _run(data_dir: str, models_dir: str, job_id: str) -> None:
@@ -51,12 +90,18 @@ class LocalRunner(JobRunner):
         self.futures: dict[str, Future] = {}
         self.stopped_for: str | None = None
         """Why the runner itself stopped the pool's processes (a timed-out or cancelled job), for the log."""
+        self.owner = None
+        """The store's lock file while this runner owns the store (:func:`lock_store`)."""
+        self.started = False
+        """Whether :meth:`start` took the store (only then does :meth:`shutdown` hand jobs back)."""
 
     def _new_pool(self) -> ProcessPoolExecutor:
         return ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
                                    initializer=start_worker, initargs=(os.getpid(), self.log_level))
 
     def start(self) -> list[str]:
+        self.owner = lock_store(self.store.data_dir)
+        self.started = True
         queued = self.store.recover(self.max_attempts)
         for job_id in queued:
             job = self.store.get(job_id)
@@ -154,7 +199,10 @@ class LocalRunner(JobRunner):
             if proc.is_alive():
                 proc.kill()
                 proc.join(timeout_s)
-        handed_back = [j for j in self.store.recover(self.max_attempts) if j in self.futures]
+        handed_back = [j for j in self.store.recover(self.max_attempts) if j in self.futures] if self.started else []
         for job_id in handed_back:
             log.info(f"handed job {job_id} back to the queue", extra={"job_id": job_id})
+        if self.owner is not None:
+            self.owner.close()                         # the lock goes with it
+        self.owner, self.started = None, False
         return handed_back

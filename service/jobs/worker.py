@@ -109,7 +109,7 @@ def in_upload_order(body: dict, filenames: list[str]) -> dict:
     and voxel size are otherwise told apart by nothing but their order. Where every stack of the
     body names its ``filename``: the names in the uploads' order are taken as they are, the same
     names in another order are put in the uploads' order, and other names are refused. A body
-    without file names is taken in its order.
+    without file names, or with a job's ``stacks[i]`` in their place, is taken in its order.
 
     Raises:
         ValueError: naming the poses' stacks and the uploaded ones, when their names differ.
@@ -123,7 +123,8 @@ def in_upload_order(body: dict, filenames: list[str]) -> dict:
     if not isinstance(stacks, list) or len(stacks) != len(filenames):
         return body                                      # poses_from_predict_body names the count
     names = [s.get("filename") if isinstance(s, dict) else None for s in stacks]
-    if not all(isinstance(n, str) and n for n in names) or names == list(filenames):
+    placeholders = [f"stacks[{i}]" for i in range(len(stacks))]         # a job's refined poses keep no client name
+    if not all(isinstance(n, str) and n for n in names) or names in (list(filenames), placeholders):
         return body
     if sorted(names) == sorted(filenames) and len(set(names)) == len(names):
         return {**body, "stacks": [stacks[names.index(f)] for f in filenames]}

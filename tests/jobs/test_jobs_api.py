@@ -339,8 +339,8 @@ def test_a_stated_slice_thickness_reaches_the_reconstruction_and_a_wrong_one_is_
                                                                                        case: dict) -> None:
     n = len(case["files"])
     for values, needle in (([2.0, 3.0], f"slice_thickness_mm: 2 values for {n} stacks"),
-                           ([0.01], "slice_thickness_mm.0: Input should be greater than or equal to 0.05"),
-                           (["nan"], "slice_thickness_mm.0: Input should be a finite number")):
+                           ([0.01], "slice_thickness_mm[0]: Input should be greater than or equal to 0.05"),
+                           (["nan"], "slice_thickness_mm[0]: Input should be a finite number")):
         r = submit(client, case, slice_thickness_mm=values)
         assert r.status_code == 400 and needle in r.json()["detail"], r.text
     r = submit(client, case, slice_thickness_mm=["4.5"])

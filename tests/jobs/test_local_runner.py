@@ -1,0 +1,57 @@
+"""One server owns an embedded job store: a second one on the same folder is refused before it
+touches the first one's running jobs; the lock dies with its owner, ``kill -9`` included."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from service.jobs.local_runner import LOCK_NAME, LocalRunner, StoreInUse
+from service.jobs.store import SqliteJobStore
+
+ROOT = Path(__file__).resolve().parents[2]
+
+HOLD = """
+import sys, time
+from pathlib import Path
+from service.jobs.local_runner import LocalRunner
+from service.jobs.store import SqliteJobStore
+runner = LocalRunner(SqliteJobStore(Path(sys.argv[1])), Path(sys.argv[1]))
+runner.start()
+print("owner", flush=True)
+time.sleep(600)
+"""
+
+
+def test_a_second_server_on_the_store_is_refused_and_leaves_the_running_job_alone(tmp_path: Path) -> None:
+    store = SqliteJobStore(tmp_path)
+    first = LocalRunner(store, tmp_path)
+    first.start()
+    job = store.create({"model": "default"})
+    assert store.claim(job.id) == 1                                       # the first server runs it
+    with pytest.raises(StoreInUse, match=rf"{tmp_path}.*another running svrnet-server \(pid \d+\).*SVRNET_DATA_DIR"):
+        LocalRunner(SqliteJobStore(tmp_path), tmp_path).start()
+    assert store.get(job.id).status == "running"                         # not queued again under it
+    first.shutdown()
+    second = LocalRunner(SqliteJobStore(tmp_path), tmp_path)
+    assert second.start() == [job.id]                                   # handed back by the first, taken now
+    second.shutdown()
+
+
+def test_the_lock_dies_with_its_owner(tmp_path: Path) -> None:
+    owner = subprocess.Popen([sys.executable, "-c", HOLD, str(tmp_path)], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    try:
+        assert owner.stdout.readline().strip() == "owner"
+        assert (tmp_path / LOCK_NAME).read_text() == str(owner.pid)
+        with pytest.raises(StoreInUse, match=str(owner.pid)):
+            LocalRunner(SqliteJobStore(tmp_path), tmp_path).start()
+    finally:
+        owner.send_signal(signal.SIGKILL)
+        owner.wait(30)
+    runner = LocalRunner(SqliteJobStore(tmp_path), tmp_path)
+    runner.start()                                                        # no stale lock after kill -9
+    runner.shutdown()
