@@ -335,7 +335,8 @@ def masks_table(report: dict[str, Any], out_dir: object) -> Table:
     rather than being cut short, so that the table fits an 80-column terminal."""
     table = Table(title=f"brain masks in {out_dir}", title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False,
                   collapse_padding=True, caption_justify="left",
-                  caption="brain: its volume and the localiser's confidence; slices: those with brain")
+                  caption="brain: its volume and the localiser's confidence; slices: those the mask touches "
+                          "(`svrnet predict` calls a slice empty below 1 % of its network input)")
     for col, just in (("stack", "left"), ("mask", "left"), ("brain (ml)", "right"), ("confidence", "right"),
                       ("slices", "right")):
         table.add_column(col, justify=just, overflow="fold")  # type: ignore[arg-type]

@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import logging
 import shutil
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -347,6 +348,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     from service.reconstruction.refined_poses import refined_poses_body
     from service.reconstruction.slices import SliceSet
 
+    t0 = time.perf_counter()
     params = json.loads((folder / "inputs" / "params.json").read_text())
     files = _stack_files(folder / "inputs")
     orders = per_stack([SliceOrder.parse(t) for t in params.get("slice_order") or []], len(files))
@@ -405,6 +407,9 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         midline = midline_fit(result.volume, plane, held_out_score(result))
         result = with_frame(result, midline)
     progress("writing", 0.97)
+    # The report's timings: the winning path's stages and ``total``, every path's (``all_paths``), and
+    # the job's from its inputs to its outputs (``job``: prediction and the frame steps included).
+    result.timings = {**result.timings, "job": time.perf_counter() - t0}
     extra = {"started_from": started_from}
     if frame is not None:
         extra.update(atlas_frame=frame.report(), midline=midline.report())

@@ -99,6 +99,8 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
     report = st["report"]
     assert report and len(report["slices"]) == 36
     assert {"stack", "slice", "included", "exclusion_reason", "weight"} <= set(report["slices"][0])
+    times = report["timings_s"]
+    assert times["job"] >= times["all_paths"] >= times["total"] > 0     # the job holds its paths, they the winner
     assert client.get("/v1/reconstructions/unknown").status_code == 404
     # The refined poses, in the /v1/predict schema (a valid `poses` input to a new job).
     assert st["poses_url"] == f"/v1/reconstructions/{job_id}/poses"
