@@ -2,24 +2,32 @@
 
 The command line needs the ``client`` extra (httpx, typer, rich; numpy, nibabel and websockets for
 ``svrnet stream``). An installation without it, e.g. ``pip install ".[server]"`` alone, gets that
-said instead of a traceback.
+said instead of a traceback. :func:`run_or_name_missing` serves ``svrnet-train`` too
+(``model_export/launch.py``); it imports nothing beyond the standard library.
 """
 
 from __future__ import annotations
 
+import importlib
 import sys
 
 CLIENT_PACKAGES = ("httpx", "typer", "rich", "click", "websockets", "numpy", "nibabel")
 """What the ``client`` extra installs (and what they bring)."""
 
 
-def main() -> None:
-    """Run ``svrnet``; exit 1 with one line when a package of the ``client`` extra is missing."""
+def run_or_name_missing(module: str, packages: tuple[str, ...], missing_says: str) -> None:
+    """Run the typer ``app`` of ``module``; where importing it misses one of ``packages``, exit 1
+    with ``missing_says`` (formatted with the missing package's ``name``) instead."""
     try:
-        from client.cli import app
+        app = importlib.import_module(module).app
     except ModuleNotFoundError as missing:
-        if (missing.name or "").split(".")[0] not in CLIENT_PACKAGES:
+        if (missing.name or "").split(".")[0] not in packages:
             raise
-        sys.exit(f"svrnet: the client's packages are not installed ({missing.name} is missing): "
-                 "pip install \".[client]\" (make serve installs them)")
+        sys.exit(missing_says.format(name=missing.name))
     app()
+
+
+def main() -> None:
+    """Run ``svrnet``."""
+    run_or_name_missing("client.cli", CLIENT_PACKAGES, "svrnet: the client's packages are not installed ({name} is "
+                        "missing): pip install \".[client]\" (make serve installs them)")

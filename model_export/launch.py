@@ -6,19 +6,13 @@ without it gets that said instead of a traceback.
 
 from __future__ import annotations
 
-import sys
+from client.launch import run_or_name_missing
 
 TRAIN_PACKAGES = ("torch", "onnx", "typer", "rich", "click", "matplotlib")
 """What the ``train`` extra installs beside the server's packages."""
 
 
 def main() -> None:
-    """Run ``svrnet-train``; exit 1 with one line when a package of the ``train`` extra is missing."""
-    try:
-        from model_export.cli import app
-    except ModuleNotFoundError as missing:
-        if (missing.name or "").split(".")[0] not in TRAIN_PACKAGES:
-            raise
-        sys.exit(f"svrnet-train: the training packages are not installed ({missing.name} is missing): "
-                 "pip install -c constraints.txt \".[train]\" (make test installs them)")
-    app()
+    """Run ``svrnet-train``."""
+    run_or_name_missing("model_export.cli", TRAIN_PACKAGES, "svrnet-train: the training packages are not installed "
+                        "({name} is missing): pip install -c constraints.txt \".[train]\" (make test installs them)")
