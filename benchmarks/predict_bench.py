@@ -102,10 +102,11 @@ SCENARIOS = (("A: 3 x 128x128x35", 1.0), ("B: 6 x 320x320x22", 2.0))
 
 
 def start_server(root: Path, model_dir: Path) -> tuple[subprocess.Popen, int]:
-    """A server of the code under ``root`` serving ``model_dir``, on a free port."""
+    """A server of the code under ``root`` serving ``model_dir``, on a free port, with a job store of
+    its own (not the user's ``~/.svrnet``, which a running server of theirs owns)."""
     port = free_port()
     env = dict(os.environ, SVRNET_PORT=str(port), SVRNET_MODELS_DIR=str(model_dir), SVRNET_LOG_LEVEL="warning",
-               PYTHONPATH=str(root))
+               PYTHONPATH=str(root), SVRNET_DATA_DIR=tempfile.mkdtemp(prefix="svrnet-bench-"))
     return subprocess.Popen([sys.executable, "-c", "from service.main import run; run()"], env=env, cwd=root), port
 
 

@@ -9,11 +9,19 @@ Example:
 """
 
 import importlib
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:                     # what type checkers and IDEs see; at run time, imported on first use
+    from client._client import DEFAULT_SERVER, SVRnetClient
+    from client.errors import (BadRequest, Busy, Conflict, ConnectionFailed, JobFailed, NotFound, PayloadTooLarge,
+                               ServerError, SVRnetError, Unauthorized, UnsupportedFile, UnusableInput, WaitTimeout,
+                               error_from_response)
 
 _ERRORS = ("BadRequest", "Busy", "Conflict", "ConnectionFailed", "JobFailed", "NotFound", "PayloadTooLarge",
            "ServerError", "SVRnetError", "Unauthorized", "UnsupportedFile", "UnusableInput", "WaitTimeout",
            "error_from_response")
+
+_SUBMODULES = ("cli", "errors", "exits", "launch", "multipart", "stream", "transport", "views")
 
 __all__ = ["SVRnetClient", "DEFAULT_SERVER", *_ERRORS]
 
@@ -25,4 +33,10 @@ def __getattr__(name: str) -> Any:
         return getattr(importlib.import_module("client._client"), name)
     if name in _ERRORS:
         return getattr(importlib.import_module("client.errors"), name)
+    if name in _SUBMODULES:
+        return importlib.import_module(f"client.{name}")
     raise AttributeError(f"module 'client' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__, *_SUBMODULES})

@@ -22,7 +22,7 @@ from typing import Any
 from urllib.parse import quote
 
 from client import transport
-from client.errors import JobFailed, SVRnetError, WaitTimeout
+from client.errors import ArgumentError, JobFailed, SVRnetError, WaitTimeout
 from client.multipart import MultipartBody, ProgressCallback, form_value, order_fields
 from client.transport import DEFAULT_SERVER, DEFAULT_TIMEOUT, PathLike, Transport
 
@@ -39,10 +39,11 @@ upload limit)."""
 
 def zipped_folder(folder: Path) -> bytes:
     """A folder of one DICOM series as the ``.zip`` the server takes: its files (sub-folders
-    included, hidden files not), stored under their paths in it.
+    included; hidden files and links not, so nothing outside the folder goes), stored under their
+    paths in it.
 
     Raises:
-        ValueError: naming the folder, when it holds no file or more than :data:`MAX_FOLDER_BYTES`.
+        ArgumentError: naming the folder, when it holds no file or more than :data:`MAX_FOLDER_BYTES`.
 
     Example:
         >>> import tempfile
@@ -51,11 +52,12 @@ def zipped_folder(folder: Path) -> bytes:
         ['IM0001.dcm']
     """
     files = sorted(p for p in folder.rglob("*")
-                   if p.is_file() and not any(part.startswith(".") for part in p.relative_to(folder).parts))
+                   if p.is_file() and not p.is_symlink()
+                   and not any(part.startswith(".") for part in p.relative_to(folder).parts))
     if not files:
-        raise ValueError(f"stacks: the folder {folder} holds no file")
+        raise ArgumentError(f"stacks: the folder {folder} holds no file")
     if sum(p.stat().st_size for p in files) > MAX_FOLDER_BYTES:
-        raise ValueError(f"stacks: the folder {folder} holds more than {MAX_FOLDER_BYTES >> 20} MB; send one series")
+        raise ArgumentError(f"stacks: the folder {folder} holds more than {MAX_FOLDER_BYTES >> 20} MB; send one series")
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as archive:
         for p in files:
@@ -95,10 +97,10 @@ class SVRnetClient(Transport):
         if isinstance(masks, (str, os.PathLike)):
             masks = [masks]
         if not stacks:
-            raise ValueError("stacks: at least one file is required")
+            raise ArgumentError("stacks: at least one file is required")
         masks = list(masks or [])
         if masks and len(masks) != len(stacks):
-            raise ValueError(f"masks: {len(masks)} given for {len(stacks)} stacks; give none or one per stack")
+            raise ArgumentError(f"masks: {len(masks)} given for {len(stacks)} stacks; give none or one per stack")
         files: list[tuple[str, str, Path | bytes, str]] = []
         for field, paths in (("stacks", stacks), ("masks", masks)):
             for p in paths:

@@ -20,7 +20,7 @@ read/write timeout in seconds (default 300).
 Exit codes:
     0   success
     1   unexpected error (e.g. a local file could not be written)
-    2   usage error (bad option or argument; typer's own)
+    2   usage error (bad option or argument: typer's own, or the client's check naming it)
     3   connection failed (server unreachable, timeout)
     4   unauthorized (missing or wrong API key)
     5   bad input (400, 413, 415, 422: malformed request, too large, unreadable or unusable file)
@@ -54,7 +54,7 @@ from rich.progress import BarColumn, Progress, SpinnerColumn, TaskProgressColumn
 from client._client import DEFAULT_SERVER, SVRnetClient
 from client.exits import EXIT_HELP, EXIT_NOTHING_USABLE, errors, stderr, stdout
 from client.views import (StreamView, coverage_text, job_table, masks_table, models_table, predict_hints,
-                          quality_line, stage_label, summarise, upload_bar, usable)
+                          quality_line, reacquire_text, stage_label, summarise, upload_bar, usable)
 
 if TYPE_CHECKING:                     # client.stream needs numpy and nibabel: imported by `svrnet stream` only
     from client.stream import Sent
@@ -375,6 +375,9 @@ def stream(
                       f"pose latency p50 {'-' if p50 is None else f'{p50:.0f}'} ms, "
                       f"p95 {'-' if p95 is None else f'{p95:.0f}'} ms · "
                       f"coverage {coverage_text(summary.get('coverage'))}", markup=False)
+        for name, slices in (summary.get("reacquire") or {}).items():
+            if slices:
+                console.print(f"worth acquiring again, stack {name}: {reacquire_text(slices)}", markup=False)
         error_count = len(result.of_type("error"))
         if error_count:
             console.print(f"{error_count} error(s) from the server (above, in red)", style="red")

@@ -23,8 +23,14 @@ import httpx
 __all__ = [
     "SVRnetError", "BadRequest", "Unauthorized", "NotFound", "Conflict", "PayloadTooLarge", "UnsupportedFile",
     "UnusableInput", "Busy", "ServerError", "ConnectionFailed", "JobFailed", "WaitTimeout",
-    "error_from_response", "error_class_for_status",
+    "error_from_response", "error_class_for_status", "ArgumentError",
 ]
+
+
+class ArgumentError(ValueError):
+    """Arguments the client itself refuses before sending anything (masks that do not match the
+    stacks, a folder without files, an acquisition order that does not fit a stack): ``svrnet`` ends
+    with the usage exit code (2), naming the argument."""
 
 
 class SVRnetError(Exception):

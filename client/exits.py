@@ -17,8 +17,9 @@ from contextlib import contextmanager
 import typer
 from rich.console import Console
 
-from client.errors import (BadRequest, Busy, Conflict, ConnectionFailed, JobFailed, NotFound, PayloadTooLarge,
-                           ServerError, SVRnetError, Unauthorized, UnsupportedFile, UnusableInput, WaitTimeout)
+from client.errors import (ArgumentError, BadRequest, Busy, Conflict, ConnectionFailed, JobFailed, NotFound,
+                           PayloadTooLarge, ServerError, SVRnetError, Unauthorized, UnsupportedFile, UnusableInput,
+                           WaitTimeout)
 
 EXIT_OK, EXIT_UNEXPECTED, EXIT_USAGE = 0, 1, 2
 EXIT_CONNECTION, EXIT_UNAUTHORIZED, EXIT_BAD_INPUT, EXIT_NOT_FOUND = 3, 4, 5, 6
@@ -86,7 +87,7 @@ def errors() -> Iterator[None]:
     except SVRnetError as e:
         hint = " (give the key with SVRNET_API_KEY or --api-key)" if isinstance(e, Unauthorized) else ""
         fail(" ".join(str(e).split()) + hint, exit_code_for(e))
-    except ValueError as e:                                # the client's own checks of its arguments, by field
+    except ArgumentError as e:                             # the client's own checks of its arguments, by field
         fail(" ".join(str(e).split()), EXIT_USAGE)
     except KeyboardInterrupt:
         fail("interrupted", 130)

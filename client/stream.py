@@ -33,8 +33,8 @@ from websockets.sync.client import ClientConnection, connect
 
 from client.transport import USER_AGENT
 from client._client import DEFAULT_SERVER
-from client.errors import (Busy, ConnectionFailed, SVRnetError, UnsupportedFile, UnusableInput,
-                           error_class_for_status)
+from client.errors import (ArgumentError, Busy, ConnectionFailed, SVRnetError, UnsupportedFile,
+                           UnusableInput, error_class_for_status)
 
 __all__ = ["ScannerSlice", "ScannerStack", "Sent", "StreamResult", "ORDERS", "slice_axis_of", "scanner_slices",
            "read_stack", "send_order", "stream_url", "stream_stacks"]
@@ -198,6 +198,7 @@ def send_order(count: int, order: str = "sequential") -> list[int]:
         [2, 0, 1]
     """
     evens, odds = list(range(0, count, 2)), list(range(1, count, 2))
+    order = order.strip()
     named = {"sequential": list(range(count)), "interleaved": evens + odds, "interleaved-even-first": evens + odds,
              "interleaved-odd-first": odds + evens}
     if order in named:
@@ -205,10 +206,10 @@ def send_order(count: int, order: str = "sequential") -> list[int]:
     try:
         indices = [int(k) for k in order.split(",")]
     except ValueError:
-        raise ValueError(f"order: {order!r} is none of {', '.join(ORDERS)}, nor slice indices as acquired "
-                         "(0,2,4,1,3)") from None
+        raise ArgumentError(f"order: {order!r} is none of {', '.join(ORDERS)}, nor slice indices as acquired "
+                            "(0,2,4,1,3)") from None
     if sorted(indices) != list(range(count)):
-        raise ValueError(f"order: {order!r} does not list each of the stack's {count} slices (0..{count - 1}) once")
+        raise ArgumentError(f"order: {order!r} does not list each of the stack's {count} slices (0..{count - 1}) once")
     return indices
 
 
@@ -364,7 +365,8 @@ def stream_stacks(stacks: Sequence[ScannerStack], server: str = DEFAULT_SERVER, 
     if len(per_stack) == 1:
         per_stack *= len(stacks)
     if len(per_stack) != len(stacks):
-        raise ValueError(f"order: {len(per_stack)} orders for {len(stacks)} stacks; give one for every stack or one per stack")
+        raise ArgumentError(f"order: {len(per_stack)} orders for {len(stacks)} stacks; give one for every stack or one "
+                            "per stack")
     orders = [send_order(len(stack.slices), o) for stack, o in zip(stacks, per_stack)]
     with (open(json_out, "w", encoding="utf-8") if json_out is not None else nullcontext()) as record, \
             _connect(stream_url(server), api_key, answer_timeout_s) as ws:

@@ -205,14 +205,14 @@ class StreamView:
             for moved in message.get("slices") or []:
                 row = self.rows.setdefault((name, moved.get("index")), {"stack": name})
                 row.update({k: v for k, v in moved.items() if k != "latency_ms"}, updated=True)
-            if name in self.finished:
+            if name in self.finished and message.get("slices"):
                 self.console.print(f"update of stack {name}: " + ", ".join(
                     f"#{s.get('index')} {' '.join(pose_cells(s)[2:4])}" for s in message.get("slices") or []),
                     markup=False)
-                if "reacquire" in message:
-                    rows = [row for (stack, _), row in self.rows.items() if stack == name]
-                    self.console.print(f"stack {name} now: {sum(1 for r in rows if r.get('accepted'))}/{len(rows)} "
-                                       f"accepted · reacquire: {reacquire_text(message['reacquire'])}", markup=False)
+            if name in self.finished and "reacquire" in message:
+                rows = [row for (stack, _), row in self.rows.items() if stack == name]
+                self.console.print(f"stack {name} now: {sum(1 for r in rows if r.get('accepted'))}/{len(rows)} "
+                                   f"accepted · reacquire: {reacquire_text(message['reacquire'])}", markup=False)
         elif kind == "stack":
             self.close_stack(message)
         elif kind == "error":

@@ -121,6 +121,15 @@ def run(argv: list[str] | None = None) -> None:
         settings = Settings(**given)
     except ValueError as exc:                                   # pydantic's ValidationError: one line, no traceback
         parser.error(" ".join(str(exc).split()))
+    if not settings.queue_url:                                  # the embedded store: one server owns it
+        from service.jobs.local_runner import StoreInUse, lock_store
+
+        try:
+            held = lock_store(settings.data_dir)
+        except StoreInUse as exc:
+            parser.exit(1, f"svrnet-server: {exc}\n")
+        if held is not None:
+            held.close()                                        # the server's job runner takes it at start
     service_logging.configure(settings.log_level)
     # uvicorn's own access log writes each raw request path (job ids as sent, anything a client
     # puts in a URL); the service's JSON log records the route instead (service/api/middleware.py).

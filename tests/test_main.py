@@ -23,3 +23,19 @@ def test_help_serves_nothing_and_options_override_the_environment(monkeypatch: p
     with pytest.raises(SystemExit) as end:
         main.run(["--port", "0"])
     assert end.value.code == 2 and "port" in capsys.readouterr().err and len(served) == 2
+
+
+def test_a_second_server_on_a_store_in_use_is_refused_in_one_line(tmp_path, monkeypatch: pytest.MonkeyPatch,  # noqa: ANN001
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    from service.jobs.local_runner import lock_store
+
+    monkeypatch.setattr("uvicorn.run", lambda app, **kw: pytest.fail("served beside the store's owner"))
+    monkeypatch.setenv("SVRNET_DATA_DIR", str(tmp_path))
+    held = lock_store(tmp_path)                                          # the running server's
+    try:
+        with pytest.raises(SystemExit) as end:
+            main.run([])
+    finally:
+        held.close()
+    err = capsys.readouterr().err
+    assert end.value.code == 1 and "belongs to another running svrnet-server" in err and "Traceback" not in err

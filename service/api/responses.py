@@ -132,18 +132,22 @@ def stack_message(answer: StackAnswer) -> dict:
 
 def update_messages(answers: list[SliceAnswer], reacquire_of: dict[str, list[tuple[int, str]]] | None = None) -> list[dict]:
     """A stream's ``update`` messages: one per stack, its slices whose pose moved (or whose accept
-    flag changed), in the order given; where a stack's end moved them, with the earlier stack's
-    slices worth acquiring again now (``reacquire``, from ``reacquire_of``).
+    flag changed), in the order given; and for each ended stack whose list of slices worth
+    acquiring again a later stack's end changed (``reacquire_of``), that list now (``reacquire``),
+    with the slices that moved or none.
 
-    Example:
-        >>> update_messages([])
-        []
+    Example (an earlier stack's list changed, none of its slices moved):
+        >>> update_messages([], {"ax": [(3, "high_expected_error")]})
+        [{'type': 'update', 'stack': 'ax', 'slices': [], 'reacquire': [{'index': 3, 'reason': 'high_expected_error'}]}]
     """
+    reacquire_of = reacquire_of or {}
     by_stack: dict[str, list[SliceAnswer]] = {}
     for a in answers:
         by_stack.setdefault(a.stack, []).append(a)
+    for stack in reacquire_of:
+        by_stack.setdefault(stack, [])
     return [{"type": "update", "stack": stack, "slices": [pose_object(a) for a in group],
-             **({"reacquire": _reacquire(reacquire_of[stack])} if reacquire_of and stack in reacquire_of else {})}
+             **({"reacquire": _reacquire(reacquire_of[stack])} if stack in reacquire_of else {})}
             for stack, group in by_stack.items()]
 
 
@@ -160,6 +164,7 @@ def summary_message(summary: SessionSummary, started: float, latencies_ms: list[
                "pose_latency_p95": float(np.percentile(lat, 95))}
     return {"type": "summary", "stacks": summary.stacks, "slices": summary.slices,
             "coverage": summary.coverage.report(),
+            "reacquire": {stack: _reacquire(slices) for stack, slices in summary.reacquire.items()},
             "timing_ms": {k: round(v, 1) for k, v in {**summary.compute_ms, **session}.items()}}
 
 

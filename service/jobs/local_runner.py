@@ -64,6 +64,10 @@ def lock_store(data_dir: Path):  # noqa: ANN201 - an open file, or None where th
         raise StoreInUse(f"the job store {data_dir} belongs to another running svrnet-server (pid {owner}); give "
                          "this server its own SVRNET_DATA_DIR, or run several servers on the distributed back-end "
                          "(SVRNET_QUEUE_URL)") from None
+    except OSError as exc:                             # a file system without locks (some network mounts)
+        handle.close()
+        log.warning(f"the job store's folder cannot be locked ({exc.strerror}); run one server on it")
+        return None
     handle.seek(0)
     handle.truncate()
     handle.write(str(os.getpid()))

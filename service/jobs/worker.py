@@ -106,32 +106,40 @@ def poses_from_predict_body(body: dict, n_slices: list[int],
 def in_upload_order(body: dict, filenames: list[str]) -> dict:
     """``body`` (a ``/v1/predict`` answer) with its stacks matched to the uploaded stacks by file name.
 
-    Poses sent with a job belong to the files they were computed for; two stacks of one slice count
-    and voxel size are otherwise told apart by nothing but their order. Where every stack of the
-    body names its ``filename``: the names in the uploads' order are taken as they are, the same
-    names in another order are put in the uploads' order, and other names are refused. A body
-    without file names, or with a job's ``stacks[i]`` in their place, is taken in its order.
+    Poses belong to the files they were computed for; two stacks of one slice count and voxel size
+    are otherwise told apart by nothing but their order. A body without file names, or with a job's
+    ``stacks[i]`` in their place, is taken in its order; so are names that equal the uploads' in
+    their order. Distinct names in another order are put in the uploads' order (each stack's
+    ``index`` with them). Anything else is refused: names that differ from the uploads', names on
+    some stacks only, and repeated names in another order (which stack is which cannot be told).
 
     Raises:
-        ValueError: naming the poses' stacks and the uploaded ones, when their names differ.
+        ValueError: naming the poses' stacks and the uploaded ones.
 
     Example:
-        >>> body = {"stacks": [{"filename": "cor.nii.gz"}, {"filename": "ax.nii.gz"}]}
-        >>> [s["filename"] for s in in_upload_order(body, ["ax.nii.gz", "cor.nii.gz"])["stacks"]]
-        ['ax.nii.gz', 'cor.nii.gz']
+        >>> body = {"stacks": [{"index": 0, "filename": "cor.nii.gz"}, {"index": 1, "filename": "ax.nii.gz"}]}
+        >>> [(s["index"], s["filename"]) for s in in_upload_order(body, ["ax.nii.gz", "cor.nii.gz"])["stacks"]]
+        [(0, 'ax.nii.gz'), (1, 'cor.nii.gz')]
     """
     stacks = body.get("stacks") if isinstance(body, dict) else None
     if not isinstance(stacks, list) or len(stacks) != len(filenames):
         return body                                      # poses_from_predict_body names the count
     names = [s.get("filename") if isinstance(s, dict) else None for s in stacks]
     placeholders = [f"stacks[{i}]" for i in range(len(stacks))]         # a job's refined poses keep no client name
-    if not all(isinstance(n, str) and n for n in names) or names in (list(filenames), placeholders):
+    if all(n is None for n in names) or names in (list(filenames), placeholders):
         return body
-    if sorted(names) == sorted(filenames) and len(set(names)) == len(names):
-        return {**body, "stacks": [stacks[names.index(f)] for f in filenames]}
-    raise ValueError(f"poses: they are of the stacks {', '.join(map(repr, names))}, not of the uploaded "
-                     f"{', '.join(map(repr, filenames))}; send the files the poses were computed for, under the same "
-                     "names (or poses without file names, matched by order)")
+    listed = f"{', '.join(map(repr, names))}, not of the uploaded {', '.join(map(repr, filenames))}"
+    if not all(isinstance(n, str) and n for n in names):
+        raise ValueError(f"poses: some stacks have no filename ({listed}); name every stack or none")
+    if sorted(names) != sorted(filenames):
+        raise ValueError(f"poses: they are of the stacks {listed}; send the files the poses were computed for, under "
+                         "the same names (or poses without file names, matched by order)")
+    if len(set(names)) < len(names):
+        raise ValueError(f"poses: file names repeat ({listed}), so they cannot tell which stack is which; send the "
+                         "stacks in the order /v1/predict had them")
+    ordered = [stacks[names.index(f)] for f in filenames]
+    return {**body, "stacks": [{**st, "index": k} if isinstance(st, dict) and "index" in st else st
+                               for k, st in enumerate(ordered)]}
 
 
 def in_index_order(slices: list, stack: int) -> list:
@@ -408,7 +416,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         result = with_frame(result, midline)
     progress("writing", 0.97)
     # The report's timings: the winning path's stages and ``total``, every path's (``all_paths``), and
-    # the job's from its inputs to its outputs (``job``: prediction and the frame steps included).
+    # the job's up to the writing of its outputs (``job``: prediction and the frame steps included).
     result.timings = {**result.timings, "job": time.perf_counter() - t0}
     extra = {"started_from": started_from}
     if frame is not None:

@@ -88,7 +88,7 @@ class StackAnswer:
     coverage: Coverage
     timings: dict[str, float]
     judged_alone: bool = False                                   # no stack had ended before it
-    reacquire_of: dict[str, list[tuple[int, str]]] = field(default_factory=dict)   # the earlier stacks' now
+    reacquire_of: dict[str, list[tuple[int, str]]] = field(default_factory=dict)   # earlier stacks' lists that changed
 
 
 @dataclass
@@ -97,6 +97,7 @@ class SessionSummary:
     coverage: Coverage
     slices: int
     compute_ms: dict[str, float]
+    reacquire: dict[str, list[tuple[int, str]]] = field(default_factory=dict)   # each ended stack's, final
 
 
 @dataclass
@@ -169,6 +170,7 @@ class StreamSession:
         self.firmed: dict[str, int] = {}
         self.ended: dict[str, _Ended] = {}
         self.finals: dict[str, StackPrediction] = {}
+        self.reacquire_sent: dict[str, list[tuple[int, str]]] = {}   # each ended stack's list as last sent
         self.compute_ms: dict[str, float] = {"slices": 0.0, "firm_up": 0.0, "end_stack": 0.0}
         self.held_bytes = 0                     # the received slices' pixels as float32
         self._lock = threading.Lock()
@@ -379,10 +381,11 @@ class StreamSession:
                 else:
                     updates += self._changed(name, answers)
             covered = self._covered()
-        alone = len(names) == 1
-        reacquire_of = {n: worth_acquiring_again(p.reasons, alone) for n, p in zip(names, predictions)}
-        answer = StackAnswer(stack, final, updates, reacquire_of.pop(stack), coverage(covered), timings, alone,
-                             reacquire_of)
+            alone = len(names) == 1
+            lists = {n: worth_acquiring_again(p.reasons, alone) for n, p in zip(names, predictions)}
+            changed = {n: r for n, r in lists.items() if n != stack and r != self.reacquire_sent.get(n)}
+            self.reacquire_sent.update(lists)
+        answer = StackAnswer(stack, final, updates, lists[stack], coverage(covered), timings, alone, changed)
         self.compute_ms["end_stack"] += (time.perf_counter() - t0) * 1e3
         return answer
 
@@ -407,4 +410,5 @@ class StreamSession:
         with self._lock:
             names = list(self.stacks)
             n = sum(len(s) for s in self.stacks.values())
-        return SessionSummary(names, self.coverage(), n, dict(self.compute_ms))
+            final = {k: worth_acquiring_again(p.reasons, False) for k, p in self.finals.items()}   # nothing more comes
+        return SessionSummary(names, self.coverage(), n, dict(self.compute_ms), final)

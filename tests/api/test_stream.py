@@ -73,6 +73,7 @@ def test_a_session_answers_every_slice_in_order_where_the_truth_is(client, case)
         ws.send_text(json.dumps({"type": "end"}))
         summary = receive(ws, ("summary",))
         assert summary["stacks"] == ["ax", "cor"] and summary["slices"] == sum(len(f) for f in stacks)
+        assert set(summary["reacquire"]) == {"ax", "cor"}                   # each stack's final list
         assert summary["timing_ms"]["pose_latency_p95"] >= summary["timing_ms"]["pose_latency_p50"]
         with pytest.raises(WebSocketDisconnect) as closed:
             ws.receive_json()

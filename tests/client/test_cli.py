@@ -312,6 +312,8 @@ def test_a_dicom_folder_goes_as_the_zip_the_server_takes(fake_cli: Callable, tmp
     (series / "IM0001.dcm").write_bytes(b"first")
     (series / "sub" / "IM0002.dcm").write_bytes(b"second")
     (series / ".DS_Store").write_bytes(b"finder")
+    (tmp_path / "secret.txt").write_bytes(b"not of the series")
+    (series / "link.dcm").symlink_to(tmp_path / "secret.txt")                 # nothing outside the folder goes
     r = invoke(["predict", str(series)])
     assert r.exit_code == 0, r.output
     _, files = parse_multipart(fake.requests[0])

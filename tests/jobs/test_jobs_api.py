@@ -224,9 +224,12 @@ def test_poses_are_matched_to_the_uploaded_stacks_by_file_name(client: TestClien
     stored = json.loads((client.app.state.job_store.directory(r.json()["job_id"]) / "inputs" / "poses.json").read_text())
     assert [[s["atlas_from_voxel"] for s in st_["slices"]] for st_ in stored["stacks"]] == \
         [[s["atlas_from_voxel"] for s in st_["slices"]] for st_ in case["poses"]["stacks"]]
-    named["stacks"][1]["filename"] = "other.nii.gz"
-    r = submit(client, case, poses=named)
-    assert r.status_code == 400 and "'other.nii.gz'" in r.json()["detail"] and case["files"][1][0].name in r.json()["detail"]
+    for change, needle in ((lambda st: st.__setitem__("filename", "other.nii.gz"), "'other.nii.gz'"),
+                           (lambda st: st.pop("filename"), "name every stack or none")):
+        bad = json.loads(json.dumps(named))
+        change(bad["stacks"][1])
+        r = submit(client, case, poses={**bad, "stacks": bad["stacks"][::-1]})
+        assert r.status_code == 400 and needle in r.json()["detail"], r.text
 
 
 @both

@@ -100,3 +100,17 @@ def test_the_report_says_which_slices_a_job_started_from() -> None:
     assert start_label(body, starting_poses(body)) == "every_slice"                    # 1 accepted: too few
     everyone = {"stacks": [{"slices": [{**x, "accepted": True} for x in body["stacks"][0]["slices"]]}]}
     assert start_label(everyone, starting_poses(everyone)) == "accepted_slices"        # all accepted: the same set
+
+
+def test_poses_named_alike_are_matched_only_where_their_order_says_which_is_which() -> None:
+    from service.jobs.worker import in_upload_order
+
+    body = {"stacks": [{"index": 0, "filename": "t2.nii.gz", "slices": 1}, {"index": 1, "filename": "t2.nii.gz",
+                                                                            "slices": 2}, {"index": 2, "filename": "x"}]}
+    assert in_upload_order(body, ["t2.nii.gz", "t2.nii.gz", "x"]) is body                  # as /v1/predict had them
+    with pytest.raises(ValueError, match="repeat"):
+        in_upload_order(body, ["t2.nii.gz", "x", "t2.nii.gz"])
+    with pytest.raises(ValueError, match="name every stack or none"):
+        in_upload_order({"stacks": [{"filename": 7}, {"filename": "x"}]}, ["x", "y"])
+    placeholders = {"stacks": [{"filename": "stacks[0]"}, {"filename": "stacks[1]"}]}
+    assert in_upload_order(placeholders, ["b", "a"]) is placeholders                      # a job's own poses

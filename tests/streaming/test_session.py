@@ -185,3 +185,24 @@ def test_a_session_holds_no_more_than_its_memory_limit(case) -> None:  # noqa: A
     with pytest.raises(InvalidParameter, match="hold at most 0.0313 MB together"):
         session.add_slice(stacks[0][2])
     assert len(session.stacks["ax"]) == 2
+
+
+def test_a_stack_judged_alone_waits_for_the_next_and_no_slice_to_reacquire_is_lost(case) -> None:  # noqa: ANN001
+    """Every slice over a tiny expected-error limit: the first stack's end lists none of them (the next
+    stack may bring their errors down), a one-stack session's summary lists them all, and the second
+    stack's end sends the first one's list as it is then, whether or not its slices moved."""
+    oracle, stacks, _ = case
+    strict = SessionOptions(mc_samples=10, bias_correction=False, max_expected_error_mm=1e-3)
+    session = StreamSession(oracle, None, options=strict)
+    for f in stacks[0]:
+        session.add_slice(f)
+    first = session.end_stack("ax")
+    waiting = [k for k, r in enumerate(first.prediction.reasons) if r == "high_expected_error"]
+    assert first.judged_alone and waiting and not any(k in waiting for k, _ in first.reacquire)
+    assert [k for k, r in session.summary().reacquire["ax"] if r == "high_expected_error"] == waiting
+    for f in stacks[1]:
+        session.add_slice(f)
+    second = session.end_stack("cor")
+    assert not second.judged_alone and [k for k, _ in second.reacquire] == \
+        [k for k, r in enumerate(second.prediction.reasons) if r not in (None, "empty")]
+    assert "ax" in second.reacquire_of and second.reacquire_of["ax"] == session.summary().reacquire["ax"]
