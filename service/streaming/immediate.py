@@ -11,21 +11,30 @@ is decided. Two things follow for the immediate answer:
   the expected squared error gains half the squared distance to the twin
   (:data:`UNDECIDED_TWIN_CHANCE`). Once decided, the slice takes the twin nearer to the placement's
   prediction.
-* **The network's outliers.** At a stack's ends (little brain in the slice) the network's answer
-  for a lone slice can be tens of millimetres off where the stack puts it. Where the answer lies
-  further from the placement's prediction than :data:`OUTLIER_SIGMAS` times their combined expected
-  error, the prediction is answered instead, expected as far off as the received slices lie from
-  the placement (:func:`placement_spread_mm`: the received slices' network answers about it, the
-  stack's motion and the network's error in one figure), and never nearer than the answer it
-  overrules.
+* **Two estimates of one pose.** The network's answer and the placement's prediction are weighed
+  by their expected errors (the received slices' spread about the placement,
+  :func:`placement_spread_mm`: the stack's motion and the network's error in one figure): their
+  weighted Fréchet mean is answered, expected as the network's answer was (the mean's own figure
+  would trust two estimates whose errors are neither Gaussian nor independent). At a stack's ends
+  (little brain in the slice) the network's answer for a lone slice can be tens of millimetres
+  off: where it lies further from the prediction than :data:`OUTLIER_SIGMAS` times their combined
+  expected error, the prediction alone is answered, expected as far off as the stack's spread and
+  never nearer than the answer it overrules.
 
 Example (a slice whose network answer, expected within 2 mm, lies 40 mm from where its stack puts
-it, the stack's slices within 3 mm of their placement: the placement's pose is answered):
+it, the stack's slices within 3 mm of their placement: the placement's pose is answered; 1 mm off,
+the two are weighed, 4 : 9):
     >>> pose, predicted = np.eye(4), np.eye(4)
     >>> pose[0, 3] = 40.0
-    >>> chosen, expected = nearer_of(pose, 2.0, predicted, 3.0)
+    >>> chosen, expected = with_placement(pose, 2.0, predicted, 3.0)
     >>> float(chosen[0, 3]), expected
     (0.0, 3.0)
+    >>> pose[0, 3] = 1.0
+    >>> chosen, expected = with_placement(pose, 2.0, predicted, 3.0)
+    >>> round(float(chosen[0, 3]), 3), expected
+    (0.692, 2.0)
+    >>> with_placement(pose, float("nan"), predicted, 3.0)[0] is pose     # no expected error: left alone
+    True
 """
 
 from __future__ import annotations
@@ -33,14 +42,16 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from service.geometry import anchors
+from service.geometry import anchors, se3
 
 UNDECIDED_TWIN_CHANCE = 0.5
 """The chance that a slice answered before its stack decided its branch sits on its mirror twin: a
 slice alone cannot tell (docs/realtime.md gives the share measured on simulated acquisitions)."""
+MIN_WEIGHED_MM = 0.5
+"""The smallest expected error an estimate is weighed by (a spread of 0 would trust the placement alone)."""
 OUTLIER_SIGMAS = 1.0
 """How many combined expected errors the network's answer may lie from the placement's prediction
-before the prediction is answered instead (:func:`nearer_of`)."""
+before the prediction alone is answered (:func:`with_placement`)."""
 
 
 def placement_spread_mm(network_poses: NDArray[np.float64], atlas_from_scanner: NDArray[np.float64],
@@ -61,12 +72,16 @@ def placement_spread_mm(network_poses: NDArray[np.float64], atlas_from_scanner: 
     return float(np.sqrt(np.mean(np.square(anchors.ed(network_poses[usable], predicted)))))
 
 
-def nearer_of(pose: NDArray[np.float64], expected_mm: float, predicted: NDArray[np.float64],
-              spread_mm: float) -> tuple[NDArray[np.float64], float]:
-    """The network's ``pose`` with its ``expected_mm``, or the placement's ``predicted`` pose where the
-    two lie more than :data:`OUTLIER_SIGMAS` combined errors apart, expected as far off as the stack's
-    ``spread_mm`` and never nearer than the network answer it overrules (a sudden move of the fetus
-    makes the network right and the placement wrong, and one slice cannot tell which)."""
+def with_placement(pose: NDArray[np.float64], expected_mm: float, predicted: NDArray[np.float64],
+                   spread_mm: float) -> tuple[NDArray[np.float64], float]:
+    """The network's ``pose`` weighed with the placement's ``predicted`` pose (weights the inverse
+    squares of ``expected_mm`` and the stack's ``spread_mm``), expected as the network's; where the
+    two lie more than :data:`OUTLIER_SIGMAS` combined errors apart, the prediction alone, expected as
+    far off as ``spread_mm`` and never nearer than the network answer it overrules (a sudden move of
+    the fetus makes the network right and the placement wrong, and one slice cannot tell which)."""
+    if not (np.isfinite(expected_mm) and np.isfinite(spread_mm)):
+        return pose, float(expected_mm)                # no figure to weigh by (a degenerate answer)
     if float(anchors.ed(pose, predicted)) > OUTLIER_SIGMAS * float(np.hypot(expected_mm, spread_mm)):
         return predicted.copy(), float(max(spread_mm, expected_mm))
-    return pose, float(expected_mm)
+    weights = 1.0 / np.maximum([expected_mm, spread_mm], MIN_WEIGHED_MM) ** 2
+    return se3.frechet_mean(np.stack([pose, predicted]), weights), float(expected_mm)

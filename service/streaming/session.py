@@ -266,7 +266,7 @@ class StreamSession:
             if anchors.ed(other, predicted) < anchors.ed(pose[0], predicted):
                 pose[0], mass, twinned = other, 1.0 - mass, np.ones(1, bool)
             if spread is not None:
-                pose[0], expected[0] = immediate.nearer_of(pose[0], float(expected[0]), predicted, spread)
+                pose[0], expected[0] = immediate.with_placement(pose[0], float(expected[0]), predicted, spread)
         out = StackPoses(pose, mass, twinned, np.zeros(1, bool), None, expected)
         add_unseen_errors(out, info)
         if not decided:                                  # a slice alone cannot tell its twin
