@@ -23,7 +23,7 @@ is decided. Two things follow for the immediate answer:
 
 Example (a slice whose network answer, expected within 2 mm, lies 40 mm from where its stack puts
 it, the stack's slices within 3 mm of their placement: the placement's pose is answered; 1 mm off,
-the two are weighed, 4 : 9):
+the two are weighed 9 : 4 in the network answer's favour):
     >>> pose, predicted = np.eye(4), np.eye(4)
     >>> pose[0, 3] = 40.0
     >>> chosen, expected = with_placement(pose, 2.0, predicted, 3.0)
