@@ -294,7 +294,8 @@ def reconstruct(
         quality = quality_line(report.get("quality"), report.get("n_stacks"))
         if quality:
             console.print(quality)
-        if (report.get("quality") or {}).get("coherent") is False:
+        incoherent = (report.get("quality") or {}).get("coherent") is False
+        if incoherent:
             console.print("the stacks do not predict each other (leave one stack out under 0.5): the volume is no "
                           "coherent brain; do not use it. Check the stacks' poses (svrnet predict) and masks "
                           "(svrnet masks)", style="bold red", markup=False)
@@ -310,7 +311,7 @@ def reconstruct(
         if transforms_out is not None:
             svr.download_transforms(job_id, transforms_out)
             console.print(f"wrote {transforms_out}")
-    if (report.get("quality") or {}).get("coherent") is False:
+    if incoherent:
         raise typer.Exit(EXIT_NOTHING_USABLE)
 
 
@@ -349,15 +350,6 @@ def stream(
         names = Counter(st.name for st in read)
         read = [streaming.ScannerStack(f"{st.name}#{i}" if names[st.name] > 1 else st.name, st.slice_axis, st.slices)
                 for i, st in enumerate(read)]
-        orders = order or ["sequential"]
-        if len(orders) not in (1, len(read)):
-            raise typer.BadParameter(f"{len(orders)} values for {len(read)} stacks; give one for every stack or one "
-                                     "per stack", param_hint="--slice-order")
-        for st, o in zip(read, orders * len(read) if len(orders) == 1 else orders):
-            try:
-                streaming.send_order(len(st.slices), o)
-            except ValueError as e:
-                raise typer.BadParameter(f"{st.name}: {e}", param_hint="--slice-order") from None
         with Live(view.renderable(), console=console, auto_refresh=False, transient=True) as live:
             def on_message(message: dict[str, Any], answered: Sent | None) -> None:
                 view.on_message(message, answered)
@@ -366,7 +358,7 @@ def stream(
             result = streaming.stream_stacks(
                 read, server, api_key=api_key or None, mc_samples=mc_samples, variance_threshold=threshold,
                 max_expected_error_mm=max_expected_error, bias_correction=None if bias_correction else False,
-                masks_hold_csf=True if masks_hold_csf else None, model=model, pace_s=pace, order=orders,
+                masks_hold_csf=True if masks_hold_csf else None, model=model, pace_s=pace, order=order or "sequential",
                 on_message=on_message, json_out=json_out, answer_timeout_s=_timeout().read or 300.0)
         summary = result.summary or {}
         timing = summary.get("timing_ms") or {}

@@ -365,9 +365,14 @@ def stream_stacks(stacks: Sequence[ScannerStack], server: str = DEFAULT_SERVER, 
     if len(per_stack) == 1:
         per_stack *= len(stacks)
     if len(per_stack) != len(stacks):
-        raise ArgumentError(f"order: {len(per_stack)} orders for {len(stacks)} stacks; give one for every stack or one "
+        raise ArgumentError(f"order: {len(per_stack)} values for {len(stacks)} stacks; give one for every stack or one "
                             "per stack")
-    orders = [send_order(len(stack.slices), o) for stack, o in zip(stacks, per_stack)]
+    orders = []
+    for stack, o in zip(stacks, per_stack):
+        try:
+            orders.append(send_order(len(stack.slices), o))
+        except ArgumentError as e:
+            raise ArgumentError(f"{stack.name}: {e}") from None
     with (open(json_out, "w", encoding="utf-8") if json_out is not None else nullcontext()) as record, \
             _connect(stream_url(server), api_key, answer_timeout_s) as ws:
         session = _Session(ws, on_message, record, answer_timeout_s)
