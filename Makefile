@@ -8,7 +8,7 @@ PIP    := $(PY) -m pip install --disable-pip-version-check -q -c constraints.txt
 HOST   ?= 127.0.0.1
 PORT   ?= 8000
 
-.PHONY: serve test install-server install-dev bench cli-docs clean
+.PHONY: serve test install-server install-dev install-queue bench cli-docs clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -21,8 +21,13 @@ $(VENV)/.dev-installed: $(PY) pyproject.toml constraints.txt
 	$(PIP) -e ".[dev]"
 	touch $@ $(VENV)/.server-installed
 
+$(VENV)/.queue-installed: $(VENV)/.server-installed   # the Redis job back-end (docs/deployment.md)
+	$(PIP) -e ".[server,client,queue]"
+	touch $@
+
 install-server: $(VENV)/.server-installed
 install-dev: $(VENV)/.dev-installed
+install-queue: $(VENV)/.queue-installed
 
 serve: install-server
 	SVRNET_HOST=$(HOST) SVRNET_PORT=$(PORT) $(VENV)/bin/svrnet-server

@@ -22,13 +22,16 @@ from typing import Any
 from urllib.parse import quote
 
 from client import transport
-from client.errors import ArgumentError, JobFailed, SVRnetError, WaitTimeout
+from client.errors import ArgumentError, ConnectionFailed, JobFailed, ServerError, SVRnetError, WaitTimeout
 from client.multipart import MultipartBody, ProgressCallback, form_value, order_fields
 from client.transport import DEFAULT_SERVER, DEFAULT_TIMEOUT, PathLike, Transport
 
 __all__ = ["SVRnetClient", "DEFAULT_SERVER", "DEFAULT_TIMEOUT", "ProgressCallback", "PathLike"]
 
 TERMINAL = ("succeeded", "failed", "cancelled")
+UNREACHABLE_S = 120.0
+"""How long :meth:`SVRnetClient.wait` goes on polling a server it cannot reach (a restart loads its
+models in seconds to tens of seconds; the job goes on meanwhile)."""
 
 MAX_MASK_BYTES = 1 << 30
 """The largest archive member :meth:`SVRnetClient.masks` writes (a mask file of the server's)."""
@@ -298,14 +301,21 @@ class SVRnetClient(Transport):
         return self._json(self._send("GET", self._job_path(job_id)))
 
     def wait(self, job_id: str, poll_s: float = 1.0, timeout_s: float = 3600.0,
-             on_progress: Callable[[dict[str, Any]], None] | None = None) -> dict[str, Any]:
+             on_progress: Callable[[dict[str, Any]], None] | None = None,
+             unreachable_s: float = UNREACHABLE_S) -> dict[str, Any]:
         """Poll :meth:`status` until the job is ``succeeded``, ``failed`` or ``cancelled``.
+
+        A server that restarts (its jobs go on: they are stored) or a load balancer without a
+        replica for a while does not end the wait: polls that find no server go on for
+        ``unreachable_s`` in a row before :class:`~client.errors.ConnectionFailed` is raised.
 
         Args:
             job_id: the job.
             poll_s: seconds between polls.
             timeout_s: give up (:class:`~client.errors.WaitTimeout`) after this long; the job goes on.
             on_progress: called with every status body (e.g. to draw ``body["progress"]``).
+            unreachable_s: how long in a row the server may be unreachable (refused connections,
+                502-504 from a proxy).
 
         Returns:
             The final status body of a succeeded job.
@@ -318,8 +328,20 @@ class SVRnetClient(Transport):
             >>> SVRnetClient().wait("3f2a", on_progress=lambda s: print(s["stage"], s["progress"]))  # doctest: +SKIP
         """
         deadline = time.monotonic() + timeout_s
+        unreachable_since: float | None = None
         while True:
-            job = self.status(job_id)
+            try:
+                job = self.status(job_id)
+                unreachable_since = None
+            except (ConnectionFailed, ServerError) as exc:
+                if isinstance(exc, ServerError) and exc.status not in (502, 503, 504):
+                    raise
+                now = time.monotonic()
+                unreachable_since = now if unreachable_since is None else unreachable_since
+                if now - unreachable_since >= unreachable_s or now >= deadline:
+                    raise
+                transport.sleep(min(poll_s * 2, max(deadline - now, 0.0)))
+                continue
             if on_progress is not None:
                 on_progress(job)
             state = job.get("status")

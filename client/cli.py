@@ -52,7 +52,7 @@ from rich.live import Live
 from rich.progress import BarColumn, Progress, SpinnerColumn, TaskProgressColumn, TextColumn, TimeElapsedColumn
 
 from client._client import DEFAULT_SERVER, SVRnetClient
-from client.exits import EXIT_HELP, EXIT_NOTHING_USABLE, errors, stderr, stdout
+from client.exits import EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, errors, stderr, stdout
 from client.views import (StreamView, coverage_text, job_table, masks_table, models_table, predict_hints,
                           quality_line, reacquire_text, stage_label, summarise, upload_bar, usable)
 
@@ -384,15 +384,18 @@ def status(
     api_key: ApiKeyOpt = None,
     as_json: Annotated[bool, typer.Option("--json", help="print the raw JSON")] = False,
 ) -> None:
-    """Status of a reconstruction job (GET /v1/reconstructions/{job})."""
+    """Status of a reconstruction job (GET /v1/reconstructions/{job}); exit 8 when it failed or was
+    cancelled, as for `reconstruct --wait`."""
     job = _job_id(job)
     with errors(), _client(server, api_key) as svr:
         state = svr.status(job)
         console = stdout()
         if as_json:
             console.print_json(data=state)
-            return
-        console.print(job_table(state, job))
+        else:
+            console.print(job_table(state, job))
+    if state.get("status") in ("failed", "cancelled"):
+        raise typer.Exit(EXIT_JOB_FAILED)
 
 
 @app.command(epilog=EXIT_HELP)

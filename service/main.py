@@ -25,7 +25,7 @@ from service.core import logging as service_logging
 from service.core.machine import cpu_description
 from service.core.settings import Settings
 from service.inference.registry import ModelRegistry
-from service.jobs.backends import open_backend
+from service.jobs.backends import open_backend, queue_extra_missing
 from service.preprocess.localise import Localisers
 from service.streaming.background import background_executor, stop_stage_process
 
@@ -59,6 +59,7 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
                     # Folders of requests a killed server left (uploads, decoded DICOM): an hour past
                     # the upload deadline, no request of a live server still uses them.
                     await asyncio.to_thread(sweep_stale_uploads, settings.tmp_dir, settings.upload_timeout_s + 3600)
+                    await asyncio.to_thread(app.state.job_store.discard_ended_inputs)   # no upload outlives its job
                     await asyncio.to_thread(app.state.job_store.expire, settings.retention_hours * 3600)
                     await asyncio.to_thread(app.state.job_runner.maintain)
                 except Exception:  # noqa: BLE001 - a store briefly unreachable: /readyz says so; retry
@@ -121,6 +122,8 @@ def run(argv: list[str] | None = None) -> None:
         settings = Settings(**given)
     except ValueError as exc:                                   # pydantic's ValidationError: one line, no traceback
         parser.error(" ".join(str(exc).split()))
+    if settings.queue_url and (missing := queue_extra_missing()):
+        parser.exit(1, f"svrnet-server: {missing}\n")
     if not settings.queue_url:                                  # the embedded store: one server owns it
         from service.jobs.local_runner import StoreInUse, lock_store
 
@@ -137,3 +140,15 @@ def run(argv: list[str] | None = None) -> None:
                 log_level=service_logging.server_log_level(settings.log_level),
                 access_log=False, http=with_header_deadline(settings.header_timeout_s),
                 ws_ping_interval=settings.stream_ping_interval_s, ws_ping_timeout=settings.stream_ping_timeout_s)
+
+
+def run_worker() -> None:
+    """Console entry point ``svrnet-worker`` (:mod:`service.jobs.worker_cli`); without the ``queue``
+    extra it says in one line what to install instead of a traceback."""
+    import sys
+
+    if missing := queue_extra_missing():
+        sys.exit(f"svrnet-worker: {missing}")
+    from service.jobs import worker_cli
+
+    worker_cli.run()

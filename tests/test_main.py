@@ -39,3 +39,24 @@ def test_a_second_server_on_a_store_in_use_is_refused_in_one_line(tmp_path, monk
         held.close()
     err = capsys.readouterr().err
     assert end.value.code == 1 and "belongs to another running svrnet-server" in err and "Traceback" not in err
+
+
+def test_the_redis_back_end_without_the_queue_extra_is_named_in_one_line(monkeypatch: pytest.MonkeyPatch,
+                                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    import importlib.util
+
+    from service.jobs import backends
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "rq" else real(name, *a))
+    monkeypatch.setattr("uvicorn.run", lambda app, **kw: pytest.fail("served without the queue's packages"))
+    monkeypatch.setenv("SVRNET_QUEUE_URL", "redis://127.0.0.1:1/0")
+    with pytest.raises(SystemExit) as end:
+        main.run([])
+    err = capsys.readouterr().err
+    assert end.value.code == 1 and "rq is missing" in err and ".[queue]" in err and "Traceback" not in err
+    with pytest.raises(SystemExit) as end:
+        main.run_worker()
+    assert "svrnet-worker:" in str(end.value.code) and "rq is missing" in str(end.value.code)
+    monkeypatch.setattr(importlib.util, "find_spec", real)
+    assert backends.queue_extra_missing() is None                        # the dev extras hold the queue's

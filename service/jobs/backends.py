@@ -23,6 +23,28 @@ from service.jobs.runner import JobRunner
 from service.jobs.store import JobStore
 
 
+QUEUE_PACKAGES = ("redis", "rq")
+"""What the ``queue`` extra installs: the distributed back-end's client and queue."""
+QUEUE_EXTRA_MISSING = ("SVRNET_QUEUE_URL needs the queue extra ({name} is missing): "
+                       "pip install -c constraints.txt -e \".[queue]\" (make install-queue)")
+"""What a server or worker started for the distributed back-end without it says, in one line."""
+
+
+def queue_extra_missing() -> str | None:
+    """:data:`QUEUE_EXTRA_MISSING` naming the first of :data:`QUEUE_PACKAGES` that is not installed, or None.
+
+    Example:
+        >>> queue_extra_missing() is None or "pip install" in queue_extra_missing()
+        True
+    """
+    import importlib.util
+
+    for name in QUEUE_PACKAGES:
+        if importlib.util.find_spec(name) is None:
+            return QUEUE_EXTRA_MISSING.format(name=name)
+    return None
+
+
 def open_backend(settings: Settings) -> tuple[JobStore, JobRunner]:
     """The store and runner that ``settings`` choose: distributed when ``queue_url`` is set."""
     if settings.queue_url:
@@ -30,7 +52,7 @@ def open_backend(settings: Settings) -> tuple[JobStore, JobRunner]:
             from service.jobs.redis_store import RedisJobStore
             from service.jobs.rq_runner import RqRunner
         except ImportError as exc:
-            raise RuntimeError("SVRNET_QUEUE_URL needs the queue extra: pip install 'svrnet[queue]'") from exc
+            raise RuntimeError(QUEUE_EXTRA_MISSING.format(name=getattr(exc, "name", None) or "redis")) from exc
 
         store = RedisJobStore(settings.queue_url, settings.data_dir, settings.queue_name)
         return store, RqRunner(store, settings)

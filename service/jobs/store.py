@@ -77,6 +77,14 @@ class JobStore(ABC):
         """Delete a job's uploads (``inputs/``): done once the job has ended, whatever its outcome."""
         shutil.rmtree(self.directory(job_id) / "inputs", ignore_errors=True)
 
+    def discard_ended_inputs(self) -> list[str]:
+        """Delete the uploads of every ended job that still has them (a worker that could not, e.g. one
+        on another data folder, or one killed as the job ended); the ids whose uploads went."""
+        ended = [i for status in FINAL for i in self.ids(status) if (self.directory(i) / "inputs").exists()]
+        for job_id in ended:
+            self.discard_inputs(job_id)
+        return ended
+
     def is_cancelled(self, job_id: str) -> bool:
         job = self.get(job_id)
         return job is None or job.status == "cancelled"

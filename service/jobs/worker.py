@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from service.consistency.slice_order import SliceOrder, per_stack
-from service.core.errors import Cancelled, ServiceError
+from service.core.errors import Cancelled, InternalError, ServiceError
 from service.core.logging import error_at
 from service.geometry import frames
 from service.inference.acceptance import EMPTY
@@ -42,6 +42,9 @@ log = logging.getLogger(__name__)
 
 
 TIMED_OUT = "the job ran longer than SVRNET_JOB_TIMEOUT_H and was stopped"
+MISSING_UPLOADS = ("the job's uploads are not in the worker's data folder: every API replica and worker must "
+                   "share one SVRNET_DATA_DIR (docs/deployment.md); send the job again once they do")
+"""A job's failure where its worker does not see the folder the API wrote its uploads to."""
 
 
 class Superseded(Exception):
@@ -357,6 +360,8 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     from service.reconstruction.slices import SliceSet
 
     t0 = time.perf_counter()
+    if not (folder / "inputs" / "params.json").is_file():
+        raise InternalError(MISSING_UPLOADS)
     params = json.loads((folder / "inputs" / "params.json").read_text())
     files = _stack_files(folder / "inputs")
     orders = per_stack([SliceOrder.parse(t) for t in params.get("slice_order") or []], len(files))

@@ -205,6 +205,9 @@ def test_cli_reconstruct_without_wait_and_failed_job(fake_cli: Callable, stack_f
     fake_cli(jobs="failed")
     r = invoke(["reconstruct", str(stack_file), "--wait", "--poll", "0.05", "--out", str(tmp_path / "x.nii.gz")])
     assert r.exit_code == 8 and "SVR diverged" in r.stderr and not (tmp_path / "x.nii.gz").exists()
+    r = invoke(["status", "job1"])                        # a script asking later learns the same
+    assert r.exit_code == 8 and "failed" in r.stdout
+    assert invoke(["status", "job1", "--json"]).exit_code == 8
 
 
 def test_cli_status_cancel_and_conflict(fake_cli: Callable, stack_file: Path) -> None:

@@ -374,6 +374,31 @@ def test_poses_from_a_file_and_failed_and_cancelled_jobs(stack_file: Path, tmp_p
         assert ("SVR diverged" in str(e.value)) == (outcome == "failed")
 
 
+def test_wait_goes_on_through_a_server_restart_and_gives_up_on_a_server_gone(no_sleep: list[float]) -> None:
+    fake, down = FakeJobs(), {"left": 0, "status": None}
+
+    def restarting(request: httpx.Request) -> httpx.Response:
+        if request.method == "GET" and down["left"] > 0:
+            down["left"] -= 1
+            if down["status"] is None:
+                raise httpx.ConnectError("[Errno 111] Connection refused", request=request)
+            return httpx.Response(down["status"], json=problem(down["status"], "no replica"))
+        return fake(request)
+
+    svr = mock(restarting, retries=1)
+    for status in (None, 502):                       # refused connections (a restart), a proxy's 502
+        job_id = svr.reconstruct([__file__])["job_id"]
+        down.update(left=9, status=status)
+        assert svr.wait(job_id, poll_s=0.0)["status"] == "succeeded" and down["left"] == 0
+    job_id = svr.reconstruct([__file__])["job_id"]
+    down.update(left=9, status=None)
+    with pytest.raises(ConnectionFailed):
+        svr.wait(job_id, poll_s=0.0, unreachable_s=0.0)
+    down.update(left=1, status=500)                  # the server's own error is not waited out
+    with pytest.raises(ServerError):
+        svr.wait(job_id, poll_s=0.0)
+
+
 def test_wait_times_out() -> None:
     svr = mock(FakeJobs("running"))
     job_id = svr.reconstruct([__file__])["job_id"]

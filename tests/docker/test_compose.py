@@ -30,7 +30,7 @@ def test_the_services_and_their_health_checks() -> None:
         test = service.get("healthcheck", {}).get("test")
         assert isinstance(test, list) and test[0] == "CMD" and len(test) > 1, name
     assert SERVICES["worker"]["deploy"]["replicas"] == 2
-    assert SERVICES["lb"]["ports"] == ["8000:8000"]
+    assert SERVICES["lb"]["ports"] == ["${SVRNET_BIND:-127.0.0.1}:8000:8000"]     # this host only, unless told
     assert [n for n, s in _svrnet_services().items() if "ports" in s] == ["mrd"]     # MRD speaks TCP, not HTTP
 
 
@@ -42,7 +42,7 @@ def test_every_command_exists() -> None:
         assert service["build"]["dockerfile"] == "docker/Dockerfile"
     assert [SERVICES[n]["command"] for n in ("api-1", "api-2")] == [["svrnet-server"]] * 2
     assert SERVICES["worker"]["command"] == ["svrnet-worker"]
-    assert SERVICES["mrd"]["command"][0] == "svrnet-mrd" and SERVICES["mrd"]["ports"] == ["9002:9002"]
+    assert SERVICES["mrd"]["command"][0] == "svrnet-mrd" and SERVICES["mrd"]["ports"] == ["${SVRNET_BIND:-127.0.0.1}:9002:9002"]
     assert SERVICES["worker"]["healthcheck"]["test"][1:] == ["svrnet-worker", "--health"]
     out = io.StringIO()                               # the worker's option parser knows those options
     with contextlib.redirect_stdout(out), contextlib.suppress(SystemExit):

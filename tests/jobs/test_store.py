@@ -77,6 +77,32 @@ def test_retention_expires_only_finished_jobs(store: JobStore) -> None:
 
 
 @both
+def test_uploads_of_ended_jobs_are_discarded_whoever_ended_them(store: JobStore) -> None:
+    ended, live = store.create({}), store.create({})
+    for job in (ended, live):
+        (store.directory(job.id) / "inputs").mkdir()
+        (store.directory(job.id) / "inputs" / "stack_0.nii.gz").write_bytes(b"x")
+    assert store.claim(ended.id) and store.fail(ended.id, "a worker on another data folder")
+    assert store.discard_ended_inputs() == [ended.id] and store.discard_ended_inputs() == []
+    assert not (store.directory(ended.id) / "inputs").exists() and store.directory(ended.id).is_dir()
+    assert (store.directory(live.id) / "inputs" / "stack_0.nii.gz").exists()     # a queued job keeps them
+
+
+def test_a_worker_without_the_uploads_fails_the_job_saying_why(tmp_path: Path) -> None:
+    from service.jobs.worker import MISSING_UPLOADS, run_job
+
+    store = SqliteJobStore(tmp_path / "api")
+    job = store.create({})
+    (store.directory(job.id) / "inputs").mkdir()
+    (store.directory(job.id) / "inputs" / "params.json").write_text("{}")
+    elsewhere = SqliteJobStore(tmp_path / "api")
+    elsewhere.data_dir = tmp_path / "worker"                   # the records shared, not the folder
+    run_job(elsewhere, tmp_path / "models", job.id)
+    got = store.get(job.id)
+    assert (got.status, got.error) == ("failed", MISSING_UPLOADS) and "SVRNET_DATA_DIR" in got.error
+
+
+@both
 def test_a_job_cancelled_while_it_writes_does_not_end_succeeded(store: JobStore) -> None:
     job = store.create({})
     assert store.claim(job.id)
