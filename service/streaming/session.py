@@ -166,7 +166,7 @@ class StreamSession:
         self.stacks: dict[str, StreamedStack] = {}
         self.slices: dict[str, dict[int, _Slice]] = {}
         self.fits: dict[str, StackPoses] = {}
-        self.spreads: dict[str, float | None] = {}       # each fit's slices about its placement (mm)
+        self.placement_errors: dict[str, float | None] = {}   # how far off each fit's placement puts a new slice (mm)
         self.firmed: dict[str, int] = {}
         self.ended: dict[str, _Ended] = {}
         self.finals: dict[str, StackPrediction] = {}
@@ -196,7 +196,7 @@ class StreamSession:
             self.stacks[frame.stack] = stack
             self.held_bytes += size
             neighbours = self._neighbours(stack, frame.index)
-            fit, spread = self.fits.get(frame.stack), self.spreads.get(frame.stack)   # of one firm-up
+            fit, placement_mm = self.fits.get(frame.stack), self.placement_errors.get(frame.stack)   # of one firm-up
         try:
             state = self._prepare_alone(frame, neighbours)
         except Exception:
@@ -206,7 +206,7 @@ class StreamSession:
                 if not len(stack):
                     del self.stacks[frame.stack]
             raise
-        answer = self._alone(state, fit, spread)
+        answer = self._alone(state, fit, placement_mm)
         with self._lock:
             self.slices.setdefault(frame.stack, {})[frame.index] = state
             state.answer = answer
@@ -253,7 +253,7 @@ class StreamSession:
         region = None if found.pose_region is None else found.pose_region[:, :, k:k + 1]
         return replace(found, mask=found.mask[:, :, k:k + 1], pose_region=region)
 
-    def _alone(self, state: _Slice, fit: StackPoses | None, spread: float | None) -> SliceAnswer:
+    def _alone(self, state: _Slice, fit: StackPoses | None, placement_mm: float | None) -> SliceAnswer:
         """The slice's own pose; on the branch of its stack's model where that model decided it."""
         info, est = self.estimator.info, state.estimate
         plane = getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM)
@@ -265,8 +265,8 @@ class StreamSession:
             other = twin.twin(pose[0], plane)
             if anchors.ed(other, predicted) < anchors.ed(pose[0], predicted):
                 pose[0], mass, twinned = other, 1.0 - mass, np.ones(1, bool)
-            if spread is not None:
-                pose[0], expected[0] = immediate.with_placement(pose[0], float(expected[0]), predicted, spread)
+            if placement_mm is not None:
+                pose[0], expected[0] = immediate.with_placement(pose[0], float(expected[0]), predicted, placement_mm)
         out = StackPoses(pose, mass, twinned, np.zeros(1, bool), None, expected)
         add_unseen_errors(out, info)
         if not decided:                                  # a slice alone cannot tell its twin
@@ -311,11 +311,10 @@ class StreamSession:
                                      None if shape is None else np.asarray(shape),
                                      float(getattr(info, "mc_error_depth_gain", 0.0)), reference).result()
         add_unseen_errors(out, info)
-        spread = None
+        placement_mm = None
         if out.fit is not None and out.fit.atlas_from_scanner is not None:
-            on_branch = np.where(out.twinned[:, None, None], twin.twin(est.mean, plane), est.mean)
-            spread = immediate.placement_spread_mm(on_branch, out.fit.atlas_from_scanner, network_from_scanner,
-                                                   usable & ~out.inconsistent)
+            placement_mm = immediate.placement_error_mm(out.expected_error_mm, out.poses, out.fit.atlas_from_scanner,
+                                                        network_from_scanner, times[STREAMED], usable & ~out.inconsistent)
         answers = []
         for i, s in enumerate(states):
             answers.append(SliceAnswer(stack, s.frame.index, self._judged(s.prepared, s.network_from_voxel,
@@ -324,7 +323,7 @@ class StreamSession:
             if stack in self.ended:
                 return []
             self.fits[stack] = out
-            self.spreads[stack] = spread
+            self.placement_errors[stack] = placement_mm
             changed = self._changed(stack, answers)
         self.compute_ms["firm_up"] += (time.perf_counter() - t0) * 1e3
         return changed
