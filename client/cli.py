@@ -276,41 +276,81 @@ def reconstruct(
         job_id = str(job.get("job_id", ""))
         console.print(f"job {job_id} {job.get('status', 'queued')}: {job.get('status_url', '')}")
         if not wait:
-            console.print(f"follow it with: svrnet status {job_id}")
+            console.print(f"follow it with: svrnet status {job_id}; download it with: svrnet fetch {job_id}")
             return
-        with Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
-                      TimeElapsedColumn(), console=err, transient=True, disable=not err.is_terminal) as bar:
-            task = bar.add_task("queued", total=1.0)
+        done = _follow(svr, job_id, poll, timeout)
+        incoherent = _results(svr, job_id, done, out, preview, poses_out, transforms_out)
+    if incoherent:
+        raise typer.Exit(EXIT_NOTHING_USABLE)
 
-            def on_progress(state: dict[str, Any]) -> None:
-                label = stage_label(state)
-                bar.update(task, completed=float(state.get("progress") or 0.0), description=label)
 
-            done = svr.wait(job_id, poll_s=poll, timeout_s=timeout, on_progress=on_progress)
-        target = out if out is not None else Path("recon.nii.gz")
-        svr.download_volume(job_id, target)
-        console.print(f"job {job_id} succeeded; wrote {target}")
-        report = done.get("report") or {}
-        quality = quality_line(report.get("quality"), report.get("n_stacks"))
-        if quality:
-            console.print(quality)
-        incoherent = (report.get("quality") or {}).get("coherent") is False
-        if incoherent:
-            console.print("the stacks do not predict each other (leave one stack out under 0.5): the volume is no "
-                          "coherent brain; do not use it. Check the stacks' poses (svrnet predict) and masks "
-                          "(svrnet masks)", style="bold red", markup=False)
-        if report.get("started_from") == "every_slice":
-            console.print("started from every slice: too few were accepted to start from the accepted ones alone; "
-                          "judge the volume by the quality line and the preview", style="yellow", markup=False)
-        if preview is not None:
-            svr.download_preview(job_id, preview)
-            console.print(f"wrote {preview}")
-        if poses_out is not None:
-            _write_json(poses_out, svr.refined_poses(job_id))
-            console.print(f"wrote {poses_out}")
-        if transforms_out is not None:
-            svr.download_transforms(job_id, transforms_out)
-            console.print(f"wrote {transforms_out}")
+def _follow(svr: SVRnetClient, job_id: str, poll: float, timeout: float) -> dict[str, Any]:
+    """Wait for a job, with a progress bar on a terminal; its final status body."""
+    err = stderr()
+    with Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
+                  TimeElapsedColumn(), console=err, transient=True, disable=not err.is_terminal) as bar:
+        task = bar.add_task("queued", total=1.0)
+
+        def on_progress(state: dict[str, Any]) -> None:
+            bar.update(task, completed=float(state.get("progress") or 0.0), description=stage_label(state))
+
+        return svr.wait(job_id, poll_s=poll, timeout_s=timeout, on_progress=on_progress)
+
+
+def _results(svr: SVRnetClient, job_id: str, done: dict[str, Any], out: Path | None, preview: Path | None,
+             poses_out: Path | None, transforms_out: Path | None) -> bool:
+    """Download a succeeded job's volume (``out``, default ``recon.nii.gz``) and the files asked for, and
+    print its quality; True when the volume is no coherent brain."""
+    console = stdout()
+    target = out if out is not None else Path("recon.nii.gz")
+    svr.download_volume(job_id, target)
+    console.print(f"job {job_id} succeeded; wrote {target}")
+    report = done.get("report") or {}
+    quality = quality_line(report.get("quality"), report.get("n_stacks"))
+    if quality:
+        console.print(quality)
+    incoherent = (report.get("quality") or {}).get("coherent") is False
+    if incoherent:
+        console.print("the stacks do not predict each other (leave one stack out under 0.5): the volume is no "
+                      "coherent brain; do not use it. Check the stacks' poses (svrnet predict) and masks "
+                      "(svrnet masks)", style="bold red", markup=False)
+    if report.get("started_from") == "every_slice":
+        console.print("started from every slice: too few were accepted to start from the accepted ones alone; "
+                      "judge the volume by the quality line and the preview", style="yellow", markup=False)
+    if preview is not None:
+        svr.download_preview(job_id, preview)
+        console.print(f"wrote {preview}")
+    if poses_out is not None:
+        _write_json(poses_out, svr.refined_poses(job_id))
+        console.print(f"wrote {poses_out}")
+    if transforms_out is not None:
+        svr.download_transforms(job_id, transforms_out)
+        console.print(f"wrote {transforms_out}")
+    return incoherent
+
+
+@app.command(epilog=EXIT_HELP)
+def fetch(
+    job: Annotated[str, typer.Argument(help="job id (as `svrnet reconstruct` printed it)")],
+    server: ServerOpt = DEFAULT_SERVER,
+    api_key: ApiKeyOpt = None,
+    out: Annotated[Optional[Path], typer.Option(
+        "--out", "-o", dir_okay=False, help="volume file (default recon.nii.gz)")] = None,
+    preview: Annotated[Optional[Path], typer.Option(dir_okay=False, help="also download the preview PNG here")] = None,
+    poses_out: Annotated[Optional[Path], typer.Option(
+        "--poses-out", dir_okay=False, help="also write the refined slice poses (/v1/predict schema) here")] = None,
+    transforms_out: Annotated[Optional[Path], typer.Option(
+        "--transforms-out", dir_okay=False,
+        help="also download the per-slice ITK transforms (.zip of .tfm files) here")] = None,
+    timeout: Annotated[float, typer.Option(min=0, help="seconds to wait for a job still running")] = 3600.0,
+    poll: Annotated[float, typer.Option(min=0.05, help="seconds between status polls")] = 1.0,
+) -> None:
+    """Download a job's results (GET /v1/reconstructions/{job}/...), waiting for it first if it is still
+    queued or running: what `reconstruct --wait` does, for a job started without it."""
+    job = _job_id(job)
+    _check_writable(out=out, preview=preview, poses_out=poses_out, transforms_out=transforms_out)
+    with errors(), _client(server, api_key) as svr:
+        incoherent = _results(svr, job, _follow(svr, job, poll, timeout), out, preview, poses_out, transforms_out)
     if incoherent:
         raise typer.Exit(EXIT_NOTHING_USABLE)
 

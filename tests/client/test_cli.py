@@ -198,6 +198,19 @@ def test_cli_reconstruct_wait_downloads(fake_cli: Callable, stack_file: Path, tm
                       "slice_order": ["interleaved"], "slice_thickness_mm": ["2.5"]} and files[-1][0] == "poses"
 
 
+def test_cli_fetch_follows_a_job_started_without_wait_and_downloads_its_results(fake_cli: Callable, stack_file: Path,
+                                                                               tmp_path: Path) -> None:
+    fake_cli()
+    r = invoke(["reconstruct", str(stack_file)])
+    assert r.exit_code == 0 and "svrnet fetch job1" in r.stdout
+    out, refined = tmp_path / "v.nii.gz", tmp_path / "refined.json"
+    r = invoke(["fetch", "job1", "--poll", "0.05", "--out", str(out), "--poses-out", str(refined)])
+    assert r.exit_code == 0, r.output
+    assert out.read_bytes() == FakeJobs.VOLUME and json.loads(refined.read_text())["refined_by"] == {"job_id": "job1"}
+    assert "job1 succeeded" in r.stdout and not (tmp_path / "preview.png").exists()
+    assert invoke(["fetch", "nojob", "--out", str(tmp_path / "n.nii.gz")]).exit_code == 6
+
+
 def test_cli_reconstruct_without_wait_and_failed_job(fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
     fake_cli()
     r = invoke(["reconstruct", str(stack_file)])
