@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from service.core.settings import Settings
-from service.jobs.backends import open_backend
+from service.jobs.backends import QUEUE_EXTRA_MISSING, open_backend
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -44,7 +44,7 @@ def test_the_embedded_default_needs_no_queue_packages() -> None:
 
 
 def test_a_queue_url_without_the_queue_extra_says_what_to_install() -> None:
-    assert _run("redis://127.0.0.1:1/0") == "error: SVRNET_QUEUE_URL needs the queue extra: pip install 'svrnet[queue]'"
+    assert _run("redis://127.0.0.1:1/0") == "error: " + QUEUE_EXTRA_MISSING.format(name="redis")
 
 
 @pytest.mark.parametrize("queue_settings", ["embedded", "redis"], indirect=True)
