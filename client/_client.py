@@ -22,7 +22,7 @@ from typing import Any
 from urllib.parse import quote
 
 from client import transport
-from client.errors import ArgumentError, ConnectionFailed, JobFailed, ServerError, SVRnetError, WaitTimeout
+from client.errors import ArgumentError, Busy, ConnectionFailed, JobFailed, ServerError, SVRnetError, WaitTimeout
 from client.multipart import MultipartBody, ProgressCallback, form_value, order_fields
 from client.transport import DEFAULT_SERVER, DEFAULT_TIMEOUT, PathLike, Transport
 
@@ -314,8 +314,8 @@ class SVRnetClient(Transport):
             poll_s: seconds between polls.
             timeout_s: give up (:class:`~client.errors.WaitTimeout`) after this long; the job goes on.
             on_progress: called with every status body (e.g. to draw ``body["progress"]``).
-            unreachable_s: how long in a row the server may be unreachable (refused connections,
-                502-504 from a proxy).
+            unreachable_s: how long in a row the server may be unreachable or refuse to answer
+                (refused connections, 502 / 504 from a proxy, 429 / 503 after the transport's retries).
 
         Returns:
             The final status body of a succeeded job.
@@ -333,9 +333,9 @@ class SVRnetClient(Transport):
             try:
                 job = self.status(job_id)
                 unreachable_since = None
-            except (ConnectionFailed, ServerError) as exc:
-                if isinstance(exc, ServerError) and exc.status not in (502, 503, 504):
-                    raise
+            except (ConnectionFailed, Busy, ServerError) as exc:
+                if isinstance(exc, ServerError) and exc.status not in (502, 504):
+                    raise                          # the server's own fault, not its absence
                 now = time.monotonic()
                 unreachable_since = now if unreachable_since is None else unreachable_since
                 if now - unreachable_since >= unreachable_s or now >= deadline:

@@ -361,7 +361,7 @@ def stream_stacks(stacks: Sequence[ScannerStack], server: str = DEFAULT_SERVER, 
     options = {"model": model, "mc_samples": mc_samples, "variance_threshold": variance_threshold,
                "max_expected_error_mm": max_expected_error_mm, "bias_correction": bias_correction,
                "masks_hold_csf": masks_hold_csf}
-    per_stack = [order] * len(stacks) if isinstance(order, str) else list(order)
+    per_stack = [order] if isinstance(order, str) else list(order)
     if len(per_stack) == 1:
         per_stack *= len(stacks)
     if len(per_stack) != len(stacks):

@@ -84,14 +84,14 @@ def placement_error_mm(expected_mm: NDArray[np.float64], poses: NDArray[np.float
         >>> round(error, 3)                                  # sqrt(2^2 + 2^2 (1^2 + 3^2) / 2)
         4.899
     """
-    usable = np.asarray(usable, bool) & np.isfinite(expected_mm)
-    if not usable.any():
+    expected_mm = np.asarray(expected_mm, np.float64)
+    usable = np.flatnonzero(np.asarray(usable, bool) & np.isfinite(expected_mm))
+    if not len(usable):
         return None
-    predicted = atlas_from_scanner @ np.linalg.inv(network_from_scanner[usable])
-    distance = anchors.ed(poses[usable], predicted)
-    latest = np.argsort(np.asarray(arrival)[usable], kind="stable")[-LATEST_SLICES:]
-    return float(np.sqrt(np.mean(np.square(np.asarray(expected_mm)[usable]))
-                         + MOTION_GAIN ** 2 * np.mean(np.square(distance[latest]))))
+    latest = usable[np.argsort(np.asarray(arrival)[usable], kind="stable")[-LATEST_SLICES:]]
+    predicted = atlas_from_scanner @ np.linalg.inv(network_from_scanner[latest])
+    motion = anchors.ed(poses[latest], predicted)
+    return float(np.sqrt(np.mean(np.square(expected_mm[usable])) + MOTION_GAIN ** 2 * np.mean(np.square(motion))))
 
 
 def with_placement(pose: NDArray[np.float64], expected_mm: float, predicted: NDArray[np.float64],

@@ -386,7 +386,7 @@ def test_wait_goes_on_through_a_server_restart_and_gives_up_on_a_server_gone(no_
         return fake(request)
 
     svr = mock(restarting, retries=1)
-    for status in (None, 502):                       # refused connections (a restart), a proxy's 502
+    for status in (None, 502, 503):                  # refused connections (a restart), a proxy's 502, a 503 past retries
         job_id = svr.reconstruct([__file__])["job_id"]
         down.update(left=9, status=status)
         assert svr.wait(job_id, poll_s=0.0)["status"] == "succeeded" and down["left"] == 0

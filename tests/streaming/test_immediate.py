@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from service.geometry import se3
+from service.geometry.iterators import random_poses
+from service.geometry.pose import translate
 from service.streaming import immediate
 
 
@@ -27,6 +30,25 @@ def test_the_placement_error_holds_its_own_error_and_where_the_latest_slices_lie
     assert np.isclose(immediate.placement_error_mm(expected, late, np.eye(4), frames, reversed_arrival,
                                                    np.ones(6, bool)), 2.0)
     assert immediate.placement_error_mm(expected, late, np.eye(4), frames, arrival, np.zeros(6, bool)) is None
+
+
+def test_the_placement_error_composes_the_stack_frames_as_the_truth_is_simulated() -> None:
+    rng = np.random.default_rng(3)
+    atlas_from_scanner = random_poses(1, rng, centre=(5.0, -10.0, 20.0))[0]
+    network_in_scanner = random_poses(8, rng, tz_max_mm=30.0)           # each slice's network frame, scanner mm
+    truth = atlas_from_scanner @ network_in_scanner                      # a rigid stack: network frame -> atlas
+    network_from_scanner = se3.inverse(network_in_scanner)
+    arrival = rng.permutation(8)                                         # received in another order than stored
+    expected = np.full(8, 2.0)
+    assert np.isclose(immediate.placement_error_mm(expected, truth, atlas_from_scanner, network_from_scanner, arrival,
+                                                   np.ones(8, bool)), 2.0, atol=1e-9)
+    moved = truth.copy()
+    latest = np.argsort(arrival)[-immediate.LATEST_SLICES:]
+    moved[latest] = translate([3.0, 0.0, 4.0]) @ truth[latest]          # the fetus moved 5 mm (atlas) lately
+    moved[np.argsort(arrival)[0]] = translate([0.0, 40.0, 0.0]) @ truth[np.argsort(arrival)[0]]   # long ago
+    error = immediate.placement_error_mm(expected, moved, atlas_from_scanner, network_from_scanner, arrival,
+                                         np.ones(8, bool))
+    assert np.isclose(error, np.hypot(2.0, immediate.MOTION_GAIN * 5.0), atol=1e-9)
 
 
 def test_the_weighed_answer_lies_between_the_two_and_is_expected_nearer_than_either_alone() -> None:
