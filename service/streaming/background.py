@@ -19,7 +19,6 @@ Example:
 from __future__ import annotations
 
 import atexit
-import functools
 import multiprocessing
 import os
 import threading
@@ -42,13 +41,22 @@ def background_executor(name: str, workers: int = 1) -> ThreadPoolExecutor:
     return ThreadPoolExecutor(max_workers=workers, thread_name_prefix=name, initializer=lower_priority)
 
 
-@functools.cache
+_stage_pool: ProcessPoolExecutor | None = None
+_stage_pool_lock = threading.Lock()
+"""Held while the stage process is started or stopped: two firm-ups that start at once share one
+process, and a stop never misses one started beside it (a process nobody would end)."""
+
+
 def stage_process() -> ProcessPoolExecutor:
     """The process the firm-ups' stack fits run in: one for the server's life, started on first use
     (``spawn``: a fresh interpreter, nothing of the server's threads or model sessions), at a lower
     priority; shut down when the server exits."""
-    return ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=lower_priority)
+    global _stage_pool
+    with _stage_pool_lock:
+        if _stage_pool is None:
+            _stage_pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+                                              initializer=lower_priority)
+        return _stage_pool
 
 
 def stop_stage_process(timeout_s: float = 5.0) -> None:
@@ -58,15 +66,16 @@ def stop_stage_process(timeout_s: float = 5.0) -> None:
     tracker with it, running after the server had gone). The next :func:`stage_process` starts a new one.
 
     Example (the next use starts a new process):
-        >>> stage_process().submit(int).result()
+        >>> first = stage_process(); first.submit(int).result()
         0
-        >>> stop_stage_process(); stage_process.cache_info().currsize
-        0
+        >>> stop_stage_process(); stage_process() is first
+        False
     """
-    if not stage_process.cache_info().currsize:
+    global _stage_pool
+    with _stage_pool_lock:
+        pool, _stage_pool = _stage_pool, None
+    if pool is None:
         return
-    pool = stage_process()
-    stage_process.cache_clear()
     workers = list((getattr(pool, "_processes", None) or {}).values())
     pool.shutdown(wait=False, cancel_futures=True)
     for worker in workers:

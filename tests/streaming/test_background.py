@@ -4,6 +4,8 @@ to its end) leaves no process behind, where ``shutdown(wait=False)`` alone left 
 from __future__ import annotations
 
 import tempfile
+import threading
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 
 from fastapi.testclient import TestClient
 
@@ -29,6 +31,22 @@ def test_the_stage_process_ends_and_a_new_one_starts_on_next_use() -> None:
     stop_stage_process()
     assert not second.is_alive()
     stop_stage_process()                                                # nothing started: nothing to do
+
+
+def test_firm_ups_that_start_at_once_share_one_stage_process() -> None:
+    stop_stage_process()
+    barrier = threading.Barrier(8)
+
+    def first_use() -> ProcessPoolExecutor:
+        barrier.wait()
+        return stage_process()
+
+    with ThreadPoolExecutor(8) as threads:
+        pools = list(threads.map(lambda _: first_use(), range(8)))
+    assert all(pool is pools[0] for pool in pools)                     # one process, which a stop ends
+    worker = _worker()
+    stop_stage_process()
+    assert not worker.is_alive()
 
 
 def test_the_server_s_lifespan_ends_the_stage_process() -> None:
