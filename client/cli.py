@@ -53,7 +53,7 @@ from rich.progress import BarColumn, Progress, SpinnerColumn, TaskProgressColumn
 
 from client._client import DEFAULT_SERVER, SVRnetClient
 from client.exits import EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, errors, stderr, stdout
-from client.views import (StreamView, coverage_text, job_table, masks_table, models_table, predict_hints,
+from client.views import (NO_WORKER, StreamView, coverage_text, job_table, masks_table, models_table, predict_hints,
                           quality_line, reacquire_text, stage_label, summarise, upload_bar, usable)
 
 if TYPE_CHECKING:                     # client.stream needs numpy and nibabel: imported by `svrnet stream` only
@@ -290,9 +290,14 @@ def _follow(svr: SVRnetClient, job_id: str, poll: float, timeout: float) -> dict
     with Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
                   TimeElapsedColumn(), console=err, transient=True, disable=not err.is_terminal) as bar:
         task = bar.add_task("queued", total=1.0)
+        told: list[bool] = []
 
         def on_progress(state: dict[str, Any]) -> None:
             bar.update(task, completed=float(state.get("progress") or 0.0), description=stage_label(state))
+            if state.get("status") == "queued" and state.get("workers") == 0 and not told:
+                told.append(True)                      # once, also where no bar is drawn (a pipe, a log)
+                bar.console.print(f"job {job_id} is queued and {NO_WORKER}: it starts when a worker does "
+                                  "(docs/deployment.md)", style="yellow", markup=False)
 
         return svr.wait(job_id, poll_s=poll, timeout_s=timeout, on_progress=on_progress)
 

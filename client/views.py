@@ -131,6 +131,10 @@ def predict_hints(result: dict[str, Any]) -> list[str]:
     return hints
 
 
+NO_WORKER = "no worker is running (svrnet-worker)"
+"""What a queued job waits for when the server says no worker serves its queue."""
+
+
 def stage_label(state: dict[str, Any]) -> str:
     """The progress bar's label: the job's status and the stage it is in.
 
@@ -139,8 +143,12 @@ def stage_label(state: dict[str, Any]) -> str:
         'running: stack registration'
         >>> stage_label({"status": "queued", "stage": "queued"})
         'queued'
+        >>> stage_label({"status": "queued", "stage": "queued", "workers": 0})
+        'queued: no worker is running (svrnet-worker)'
     """
     status, stage = state.get("status"), state.get("stage")
+    if status == "queued" and state.get("workers") == 0:
+        return f"queued: {NO_WORKER}"
     return str(status) if not stage or stage == status else f"{status}: {stage}"
 
 
@@ -353,8 +361,12 @@ def job_table(state: dict[str, Any], job: str) -> Table:
     table.add_column("field", style="bold")
     table.add_column("value")
     for key in ("status", "stage", "progress", "error", "created_at", "updated_at", "result_url",
-                "preview_url"):
+                "preview_url", "workers"):
         value = state.get(key)
+        if key == "workers":
+            if state.get("status") != "queued" or value is None:
+                continue
+            value = NO_WORKER if value == 0 else value
         if key == "progress" and isinstance(value, (int, float)):
             value = f"{value:.0%}"
         table.add_row(key, "-" if value is None else str(value))

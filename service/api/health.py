@@ -17,7 +17,9 @@ async def healthz() -> dict[str, str]:
 
 @router.get("/readyz", summary="Readiness")
 async def readyz(request: Request) -> dict[str, object]:
-    """``200`` once every model is loaded and the job store is reachable; ``503`` before."""
+    """``200`` once every model is loaded and the job store is reachable; ``503`` before. ``workers``:
+    how many reconstruction workers serve the queue (0: jobs are accepted and wait for one; null
+    where the back-end cannot tell). The API is ready without them: workers scale on their own."""
     state = request.app.state
     registry = getattr(state, "registry", None)
     if registry is None or not registry.estimators:
@@ -25,4 +27,6 @@ async def readyz(request: Request) -> dict[str, object]:
     store = getattr(state, "job_store", None)
     if store is not None and not store.ping():
         raise NotReady("the job store is not reachable")
-    return {"status": "ready", "models": sorted(registry.estimators)}
+    runner = getattr(state, "job_runner", None)
+    return {"status": "ready", "models": sorted(registry.estimators),
+            "workers": runner.live_workers() if runner is not None else None}

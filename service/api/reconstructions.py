@@ -34,7 +34,7 @@ def _iso(t: float) -> str:
     return datetime.fromtimestamp(t, timezone.utc).isoformat()
 
 
-def _status(job: Job) -> dict:
+def _status(job: Job, workers: int | None = None) -> dict:
     done = job.status == "succeeded"
     base = f"/v1/reconstructions/{job.id}"
     return {"job_id": job.id, "status": job.status, "stage": job.stage, "progress": job.progress, "error": job.error,
@@ -42,7 +42,8 @@ def _status(job: Job) -> dict:
             "result_url": f"{base}/volume" if done else None, "preview_url": f"{base}/preview.png" if done else None,
             "poses_url": f"{base}/poses" if done else None,
             "transforms_url": f"{base}/transforms" if done else None, "report": job.report, "attempts": job.attempts,
-            "started_at": _iso(job.started_at) if job.started_at else None}
+            "started_at": _iso(job.started_at) if job.started_at else None,
+            "workers": workers if job.status == "queued" else None}
 
 
 def _job(request: Request, job_id: str) -> Job:
@@ -135,7 +136,10 @@ async def submit(
 
 @router.get("/{job_id}", summary="Job status", responses=problem_responses(401, 404))
 async def status(request: Request, job_id: str) -> dict:
-    return _status(_job(request, job_id))
+    """The job's state; a queued job's ``workers`` says how many workers serve the queue (0: none is
+    running, and the job waits until one is started; null where the back-end cannot tell)."""
+    job = _job(request, job_id)
+    return _status(job, request.app.state.job_runner.live_workers() if job.status == "queued" else None)
 
 
 def _result(request: Request, job_id: str, name: str, media_type: str, download: str,

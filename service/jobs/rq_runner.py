@@ -181,6 +181,14 @@ class RqRunner(JobRunner):
     def stats(self) -> dict[str, float]:
         return {"workers": float(Worker.count(queue=self.queue)), "queue_length": float(len(self.queue))}
 
+    def live_workers(self) -> int | None:
+        """The ``svrnet-worker`` processes registered on the queue (RQ drops a worker whose heartbeat
+        stops); None while Redis does not answer."""
+        try:
+            return int(Worker.count(queue=self.queue))
+        except redis.RedisError:
+            return None
+
     def shutdown(self) -> list[str]:
         self.connection.close()
         return []

@@ -34,6 +34,12 @@ class JobRunner(ABC):
         """Numbers for the metrics (e.g. ``workers``)."""
         return {}
 
+    def live_workers(self) -> int | None:
+        """How many workers serve the queue now (None: the back-end cannot tell). A queued job waits
+        for one: with none, it waits until a worker is started."""
+        workers = self.stats().get("workers")
+        return None if workers is None else int(workers)
+
     @abstractmethod
     def shutdown(self) -> list[str]:
         """At the API's stop: the jobs handed back to the queue."""

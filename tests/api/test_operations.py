@@ -73,7 +73,8 @@ def test_models_health_ready_metrics(real_client: TestClient, phantom_files) -> 
                               "variance_threshold", "trained_on"}
     assert models[0]["mc_seed"] == 0                                   # the tiny model's fixed draws
     assert real_client.get("/healthz").json() == {"status": "ok"}
-    assert real_client.get("/readyz").status_code == 200
+    ready = real_client.get("/readyz")
+    assert ready.status_code == 200 and ready.json()["workers"] == real_client.app.state.job_runner.live_workers() >= 1
     upload(real_client, *phantom_files[:2], mc_samples="2")
     text = real_client.get("/metrics").text
     assert 'svrnet_requests_total{method="POST",model="default",route="/v1/predict",status="200"}' in text

@@ -235,6 +235,20 @@ def test_cli_status_cancel_and_conflict(fake_cli: Callable, stack_file: Path) ->
     assert invoke(["cancel", "job1"]).exit_code == 6
 
 
+def test_a_job_waiting_for_a_worker_that_is_not_running_says_so(fake_cli: Callable, stack_file: Path,
+                                                                 tmp_path: Path) -> None:
+    fake_cli(workers=0)
+    assert invoke(["reconstruct", str(stack_file)]).exit_code == 0
+    r = invoke(["status", "job1"])
+    assert r.exit_code == 0 and "no worker is running" in r.stdout
+    fake_cli(workers=0)
+    r = invoke(["reconstruct", str(stack_file), "--wait", "--poll", "0.05", "--out", str(tmp_path / "v.nii.gz")])
+    assert r.exit_code == 0 and r.stderr.count("no worker is running (svrnet-worker)") == 1, r.stderr
+    fake_cli(workers=2)
+    r = invoke(["reconstruct", str(stack_file), "--wait", "--poll", "0.05", "--out", str(tmp_path / "w.nii.gz")])
+    assert r.exit_code == 0 and "no worker" not in r.stderr
+
+
 def test_cli_timeout_from_the_environment(stack_file: Path) -> None:
     r = invoke(["models", "--server", "http://127.0.0.1:9"], SVRNET_TIMEOUT="soon")
     assert r.exit_code == 2 and "SVRNET_TIMEOUT" in r.output

@@ -306,7 +306,9 @@ def test_a_job_queued_while_no_worker_runs_completes_when_one_starts(case: dict,
         assert r.status_code == 202, r.text
         job_id = r.json()["job_id"]
         time.sleep(1.5)                               # a maintenance round: nothing to re-deliver, nothing lost
-        assert first.get(f"/v1/reconstructions/{job_id}").json()["status"] == "queued"
+        st = first.get(f"/v1/reconstructions/{job_id}").json()
+        assert st["status"] == "queued" and st["workers"] == 0, st    # the user can see why it waits
+        assert first.get("/readyz").json()["workers"] == 0
     worker = Worker(tmp_path / "worker.log", env_of(queue_settings))
     try:
         with make_client(registry, **queue_settings) as second:

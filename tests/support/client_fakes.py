@@ -63,9 +63,9 @@ def masks_archive() -> bytes:
 class FakeServer:
     """/v1/predict and /v1/models with an optional key, plus the job routes; ``mode`` forces failures."""
 
-    def __init__(self, key: str | None = None, mode: str = "ok", jobs: str = "succeeded") -> None:
+    def __init__(self, key: str | None = None, mode: str = "ok", jobs: str = "succeeded", workers: int = 1) -> None:
         self.key, self.mode = key, mode
-        self.jobs = FakeJobs(jobs)
+        self.jobs = FakeJobs(jobs, workers)
         self.requests: list[httpx.Request] = []
 
     def __call__(self, request: httpx.Request) -> httpx.Response:
@@ -91,14 +91,14 @@ class FakeServer:
 class FakeJobs:
     """The contract's reconstruction routes: each status poll moves a job queued -> running -> succeeded
     (``outcome``: ``failed``, ``running`` for ever, or ``incoherent``: succeeded with a volume whose
-    stacks do not predict each other)."""
+    stacks do not predict each other). ``workers``: what a queued job's status says serves the queue."""
 
     VOLUME = b"\x1f\x8b fake nifti volume" * 1000
     PREVIEW = b"\x89PNG fake"
     TRANSFORMS = b"PK fake zip"
 
-    def __init__(self, outcome: str = "succeeded") -> None:
-        self.outcome = outcome
+    def __init__(self, outcome: str = "succeeded", workers: int = 1) -> None:
+        self.outcome, self.workers = outcome, workers
         self.jobs: dict[str, dict[str, Any]] = {}
         self.uploads: list[tuple[dict, list]] = []
 
@@ -109,7 +109,7 @@ class FakeJobs:
             job_id = f"job{len(self.jobs) + 1}"
             self.jobs[job_id] = {"job_id": job_id, "status": "queued", "stage": "queued", "progress": 0.0,
                                  "error": None, "created_at": "t0", "updated_at": "t0", "result_url": None,
-                                 "preview_url": None, "report": None, "polls": 0}
+                                 "preview_url": None, "report": None, "workers": self.workers, "polls": 0}
             url = f"/v1/reconstructions/{job_id}"
             return httpx.Response(202, headers={"Location": url},
                                   json={"job_id": job_id, "status": "queued", "status_url": url})
@@ -129,7 +129,7 @@ class FakeJobs:
             return httpx.Response(200, content=content[m.group(2)])
         job["polls"] += 1
         if job["polls"] == 2:
-            job.update(status="running", stage="svr", progress=0.5)
+            job.update(status="running", stage="svr", progress=0.5, workers=None)
         elif job["polls"] >= 3 and self.outcome in ("succeeded", "incoherent"):
             report: dict[str, Any] = {"slices": []}
             if self.outcome == "incoherent":          # a volume whose stacks do not predict each other
