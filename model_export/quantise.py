@@ -12,7 +12,7 @@ The weights use 7 of their 8 bits (``reduce_range``): x86 CPUs without VNNI mult
 in pairs summed into int16, which saturates with full-range weights and moves the poses several
 times more than the lost bit does. The first :data:`FLOAT_CONVS` convolutions stay float: the first
 sees one input channel, where an int8 convolution is slower than a float one, and the pair of them
-moves a slice's pose more than all the later ones together (docs/training.md, "int8 convolutions").
+moves a slice's pose more than all the later ones together (docs/reports/training-runs.md, "int8 convolutions").
 
 The quantised file keeps every metadata entry of its source (the calibration of the spread and of
 the accept flags included) and adds ``quantised``, which names the scheme and its calibration set:

@@ -4,7 +4,7 @@ Each probe changes the stack and runs the localiser again; the Dice against the 
 recall of the slices where the localiser misses most tell what the network relies on. A network that
 recovers a missed head when a fluid ring is painted around it, and loses it when the brain is darkened
 or its surroundings brightened, has learnt "a brain is ringed by fluid, or brighter than what surrounds
-it" (docs/localisation.md). Needs ``../shared/data/real_scans`` (or a stack and mask given).
+it" (docs/reports/localiser-experiments.md). Needs ``../shared/data/real_scans`` (or a stack and mask given).
 
     .venv/bin/python model_export/experiments/localiser_probe.py [--model service/localisers/default/model.onnx] \
         [--stack ../shared/data/real_scans/mial_lausanne_t30/sagittal1_lr.nii.gz]

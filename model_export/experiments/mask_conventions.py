@@ -5,7 +5,7 @@ shipped localiser's mask of the stack, its Dice against the manual mask as it is
 slice's plane by 1-4 mm (:func:`~service.preprocess.localise.grown` with the slice axis out of
 reach), and the signed in-plane distance of the manual outline from the localiser's mask (median
 and quartiles; positive: the manual outline lies outside). Two annotators' conventions show as a
-constant offset (docs/localisation.md, "Measured").
+constant offset (docs/reports/localiser-experiments.md, "Where the Dice is lost on the real stacks").
 
     .venv/bin/python model_export/experiments/mask_conventions.py ../shared/data/real_scans/mial_lausanne_t30 DIR/mial_sub01
 """

@@ -47,7 +47,7 @@ then hardly moves them). The coarser passes bring slices that moved far within r
 ones: under jumping and independent motion the 4.5 mm pass, its points two sigmas apart, leaves
 fewer slices far off. Smoothing in the plane only, a coarse pass's optimum lies off the truth (the
 two slices' 3D blurs differ): a 6 mm pass puts it beyond the finest pass's reach
-(docs/consistency.md)."""
+(docs/reports/consistency-experiments.md)."""
 REFINED_GAIN = 0.65
 """A refined slice's expected E.D. from the stage's: this times the stage's, times its remaining
 mismatch over the request's median to the :data:`MISMATCH_POWER` (:func:`expected_after`; fitted on
@@ -57,11 +57,11 @@ MISMATCH_POWER = 1.0
 request's median): in proportion. A slice the images pin down after motion the stage could not
 model (a jump) then loses the stage's over-estimate, and one they still disagree with keeps it: at
 the same share of slices over 10 mm accepted, the accept flags keep more of the good slices than
-with the square root (docs/accuracy.md, "Accept flags")."""
+with the square root (docs/reports/accuracy-analyses.md, "Accept flags: earlier calibrations")."""
 MAX_RELATIVE_MISMATCH = 8.0
 """The remaining mismatch over the request's median beyond which a slice's stage estimate grows no
 further (:func:`expected_after`). Past it the slice is simply lost: on simulated acquisitions its
-E.D. no longer grows with the mismatch (docs/consistency.md), and an estimate in proportion
+E.D. no longer grows with the mismatch (docs/reports/consistency-experiments.md), and an estimate in proportion
 over-states a few such slices several times over, enough to set the RMS of a request's expected
 errors. Such slices are far over any accept limit either way."""
 SPREAD_GAIN = 2.0
@@ -281,7 +281,7 @@ def expected_after(expected_error_mm: list[NDArray], relative: list[NDArray],
     what the images themselves allow, :data:`SPREAD_GAIN` times the slice's Laplace spread
     (``spread_mm``, :class:`Refinement`). The first knows how far the stage was off and how well the
     images agree now, the second how firmly the images hold the slice where it is; their geometric
-    mean ranks and scales the errors better than either (docs/consistency.md). A slice without a
+    mean ranks and scales the errors better than either (docs/reports/consistency-experiments.md). A slice without a
     spread keeps the first; a slice on no line gets :data:`UNCHECKED_GAIN` times the stage's.
 
     Example:

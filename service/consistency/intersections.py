@@ -39,7 +39,7 @@ MIN_SINE = np.sin(np.radians(30.0))
 MAX_POINTS = 25_000
 """Points per pass at most: a fixed random share of the crossing pairs (their lines whole) bounds
 the time. Three stacks of a fetal brain cross at about 7,000-60,000 points; the poses improve a
-little with more (docs/benchmarks.md: 15,000 cost 0.2 mm at moderate motion, 35,000 gain 0.05 mm
+little with more (docs/reports/benchmark-history.md: 15,000 cost 0.2 mm at moderate motion, 35,000 gain 0.05 mm
 for 15 % more time)."""
 
 

@@ -55,7 +55,7 @@ LENGTHS = (0.5, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0, np.inf)
 """Candidate lengths of the motion kernel, in acquisitions (0.5: jitter from one slice to the next;
 ``inf``: one rigid offset). The lengths and :data:`AMPLITUDES_MM` step by 1.5x or less, so that the
 models averaged lie close enough together; a coarser grid is measurably worse, a finer one gains
-nothing (measured in docs/consistency.md)."""
+nothing (measured in docs/reports/consistency-experiments.md)."""
 AMPLITUDES_MM = (1.0, 2.0, 3.0, 4.5, 6.0, 9.0, 12.0, 18.0, 24.0)
 """Candidate motion amplitudes (mm at the anchor radius, per component)."""
 NOISE_SCALES = (1.0, 1.5, 2.0)

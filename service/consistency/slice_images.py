@@ -68,7 +68,7 @@ on them."""
 SHADING_RANGE = (0.8, 1.25)
 """The local brain mean, over the stack's median, that counts as anatomy (:func:`shading`): on
 noise-free atlas brains at their true poses the refinement then moves the slices no further than
-without the correction (docs/consistency.md)."""
+without the correction (docs/reports/consistency-experiments.md)."""
 CROP_MARGIN_MM = 15.0
 """The images are kept this far beyond the union of a stack's brain masks (in-plane): the points'
 moves and three sigmas of the widest smoothing (4.5 mm) stay inside it, so the crop changes the

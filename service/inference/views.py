@@ -43,7 +43,7 @@ VIEW_COUNTS = (1, 4, 8)
 """1: the image as it is; 4: its four rotations; 8: rotations and flips (the symmetries of the square)."""
 SHIPPED_VIEWS = 8
 """The views ``svrnet-train ship`` gives a model (``tta_views`` in its metadata): 4 take half the
-inference time of 8 but give worse final poses and fewer accepted good slices (docs/benchmarks.md)."""
+inference time of 8 but give worse final poses and fewer accepted good slices (docs/reports/benchmark-history.md)."""
 
 _R = np.array([[0.0, 1.0, 0.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
 _F = np.diag([-1.0, 1.0, 1.0, 1.0])

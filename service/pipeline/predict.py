@@ -46,7 +46,7 @@ from service.preprocess.stack import slice_axis_of
 STAGE_WORKERS = 3
 """Stacks through the stack-consistency stage at a time (threads: its eigendecompositions release the
 GIL). Three, on two cores: a request of three stacks (the usual) has none left to wait for the
-others (docs/benchmarks.md)."""
+others (docs/reports/benchmark-history.md)."""
 
 
 def stack_poses(est: PoseEstimate, prepared: PreparedStack, net_from_vox: np.ndarray,

@@ -42,7 +42,7 @@ MASK_THRESHOLD = 0.4
 """The probability above which a pixel of the stack's own grid is in the mask, within the brain the
 geometry kept (:meth:`~service.preprocess.localise.Localiser.settle`): the network's probability
 falls through the skull's inner edge, and manual masks of the two real scans are drawn at or a little
-past that edge (docs/localisation.md)."""
+past that edge (docs/reports/localiser-experiments.md)."""
 WAIST_SHARE = 0.15
 """A slice of the brain's component whose area is under this share of the component's largest slice
 on each side of it is a waist: a thin bridge into a neighbouring structure (:func:`cut_at_waists`)."""

@@ -4,7 +4,7 @@
 The service fits the bias field on an image shrunk to pixels of 8 mm or more (a few thousand
 voxels). On such an image ITK's filter spends its time on fixed work per iteration, not on the
 voxels, and N4 takes dozens of iterations to converge; the same algorithm written as small dense
-contractions costs a fraction of that (docs/benchmarks.md). Each iteration, as in ITK's
+contractions costs a fraction of that (docs/reports/benchmark-history.md). Each iteration, as in ITK's
 ``N4BiasFieldCorrectionImageFilter``:
 
 1. the log image less the current log field is sharpened: its histogram (200 bins, triangular

@@ -81,7 +81,7 @@ REFERENCE_SLICES = 60
 """The held-out slices at which a job's score is judged by :data:`MIN_MISMATCH_RATIO` as it is: the
 sets it was chosen on start from about this many slices. A median over fewer is noisier (as one
 over the square root of their number), so a path asks for more (:func:`required_ratio`; the
-acquisitions it was judged on: docs/reconstruction.md)."""
+acquisitions it was judged on: docs/reports/reconstruction-experiments.md)."""
 
 
 MAX_FURTHER_PASSES = 1
