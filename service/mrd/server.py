@@ -35,6 +35,7 @@ from service.core.errors import Saturated
 from service.core.settings import Settings
 from service.inference.registry import ModelRegistry
 from service.mrd.connection import MrdConnection, SessionFactory, refuse
+from service.mrd.outbox import Outbox
 from service.preprocess.localise import Localiser, Localisers
 from service.streaming.options import SessionOptions, StreamLimits
 from service.streaming.session import StreamSession
@@ -125,8 +126,10 @@ class MrdHandler(socketserver.StreamRequestHandler):
             return
         try:
             reader = MessageDeadlineReader(self.connection, server.limits.idle_s)
-            connection = MrdConnection(reader, self.wfile, server.new_session, server.stream_limits)
+            outbox = Outbox(self.connection, server.limits.idle_s, server.stream_limits.max_bytes)
+            connection = MrdConnection(reader, outbox, server.new_session, server.stream_limits)
             connection.run()
+            outbox.drain(server.limits.idle_s)          # the answers still queued, as far as the client reads
         finally:
             server.slots.release()
         if connection.broken:

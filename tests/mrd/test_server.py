@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import select
 import socket
+import threading
 import time
 
 import ismrmrd
@@ -15,7 +16,8 @@ import pytest
 from ismrmrd.serialization import ConfigText
 
 from service.mrd.images import pose_from_meta
-from service.mrd.server import ServerLimits
+from service.inference.registry import ModelRegistry
+from service.mrd.server import MrdServer, ServerLimits, session_factory
 from service.streaming.options import StreamLimits
 from tests.mrd.conftest import Case, MrdClient, mrd_header
 from tests.support.streams import true_sent
@@ -61,6 +63,43 @@ def test_every_image_comes_back_in_order_with_its_true_pose(case: Case, serve) -
     assert summary["stacks"] == ["0", "1"] and summary["slices"] == 40
     timing = summary["timing_ms"]                                      # as Stream v1's summary
     assert timing["session"] > 0 and timing["pose_latency_p95"] >= timing["pose_latency_p50"] > 0
+
+
+class TightServer(MrdServer):
+    """The server with socket buffers of a few kilobytes per connection: a client's unread answers
+    fill them after a message or two, as tens of megabytes of answers fill a real socket's."""
+
+    def server_bind(self) -> None:
+        for option in (socket.SO_SNDBUF, socket.SO_RCVBUF):    # the accepted sockets inherit them
+            self.socket.setsockopt(socket.SOL_SOCKET, option, 4096)
+        super().server_bind()
+
+
+def test_a_client_that_reads_only_after_sending_everything_gets_every_answer(case: Case) -> None:
+    factory = session_factory(ModelRegistry({"default": case.oracle}), case.localiser, StreamLimits())  # type: ignore[dict-item]
+    server = TightServer(("127.0.0.1", 0), factory, StreamLimits(), ServerLimits(idle_s=5.0))
+    threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True).start()
+    try:
+        sock = socket.socket()
+        for option in (socket.SO_SNDBUF, socket.SO_RCVBUF):      # as small as the server's
+            sock.setsockopt(socket.SOL_SOCKET, option, 4096)
+        sock.settimeout(60)
+        sock.connect(("127.0.0.1", server.port))
+        writer = sock.makefile("wb")
+        outgoing = ismrmrd.ProtocolSerializer(writer)
+        sent = [case.images[series][k] for series in (0, 1) for k in range(20)]
+        for message in (ismrmrd.ConfigFile("svrnet"), CONFIG, mrd_header(slices=20), *sent):
+            outgoing.serialize(message)
+        outgoing.close()                                # CLOSE, and only now the client reads
+        writer.flush()
+        received = list(ismrmrd.ProtocolDeserializer(sock.makefile("rb")).deserialize())
+        sock.close()
+    finally:
+        server.shutdown()
+        server.server_close()
+    images = [m for m in received if isinstance(m, ismrmrd.Image)]
+    assert [(i.image_series_index, i.slice) for i in images] == [(i.image_series_index, i.slice) for i in sent]
+    assert [m["type"] for m in texts(received) if m["type"] != "update"] == ["stack", "stack", "summary"]
 
 
 def image_like(image: ismrmrd.Image, data: np.ndarray, **fields: object) -> ismrmrd.Image:
