@@ -290,14 +290,15 @@ def _follow(svr: SVRnetClient, job_id: str, poll: float, timeout: float) -> dict
     with Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
                   TimeElapsedColumn(), console=err, transient=True, disable=not err.is_terminal) as bar:
         task = bar.add_task("queued", total=1.0)
-        told: list[bool] = []
+        told = False
 
         def on_progress(state: dict[str, Any]) -> None:
+            nonlocal told
             bar.update(task, completed=float(state.get("progress") or 0.0), description=stage_label(state))
             if state.get("status") == "queued" and state.get("workers") == 0 and not told:
-                told.append(True)                      # once, also where no bar is drawn (a pipe, a log)
-                bar.console.print(f"job {job_id} is queued and {NO_WORKER}: it starts when a worker does "
-                                  "(docs/deployment.md)", style="yellow", markup=False)
+                told = True                            # once, also where no bar is drawn (a pipe, a log)
+                bar.console.print(f"job {job_id} is queued and {NO_WORKER}: it starts once svrnet-worker runs "
+                                  "with the server's SVRNET_QUEUE_URL and data folder", style="yellow", markup=False)
 
         return svr.wait(job_id, poll_s=poll, timeout_s=timeout, on_progress=on_progress)
 

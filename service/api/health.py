@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import asyncio
+
 from fastapi import APIRouter, Request
 
 from service.core.errors import NotReady
@@ -29,4 +31,4 @@ async def readyz(request: Request) -> dict[str, object]:
         raise NotReady("the job store is not reachable")
     runner = getattr(state, "job_runner", None)
     return {"status": "ready", "models": sorted(registry.estimators),
-            "workers": runner.live_workers() if runner is not None else None}
+            "workers": await asyncio.to_thread(runner.live_workers) if runner is not None else None}

@@ -139,7 +139,8 @@ async def status(request: Request, job_id: str) -> dict:
     """The job's state; a queued job's ``workers`` says how many workers serve the queue (0: none is
     running, and the job waits until one is started; null where the back-end cannot tell)."""
     job = _job(request, job_id)
-    return _status(job, request.app.state.job_runner.live_workers() if job.status == "queued" else None)
+    workers = await to_thread.run_sync(request.app.state.job_runner.live_workers) if job.status == "queued" else None
+    return _status(job, workers)
 
 
 def _result(request: Request, job_id: str, name: str, media_type: str, download: str,

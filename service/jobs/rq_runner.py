@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import redis
-from rq import Callback, Queue, Retry, get_current_job
+from rq import Callback, Queue, Retry, get_current_job, worker_registration
 from rq.command import send_stop_job_command
 from rq.exceptions import InvalidJobOperation, NoSuchJobError
 from rq.job import Job as RqJob
@@ -145,6 +145,7 @@ class RqRunner(JobRunner):
         if self.queue.acquire_maintenance_lock():
             try:
                 clean_registries(self.queue)
+                worker_registration.clean_worker_registry(self.queue)   # names of workers long gone
             finally:
                 self.queue.release_maintenance_lock()
         self.reconcile()
@@ -182,10 +183,16 @@ class RqRunner(JobRunner):
         return {"workers": float(Worker.count(queue=self.queue)), "queue_length": float(len(self.queue))}
 
     def live_workers(self) -> int | None:
-        """The ``svrnet-worker`` processes registered on the queue (RQ drops a worker whose heartbeat
-        stops); None while Redis does not answer."""
+        """The ``svrnet-worker`` processes serving the queue: those registered on it whose record is
+        alive (a worker's record expires once its heartbeat has stopped for its time to live, after a
+        ``kill -9`` or a lost machine; its name stays registered until the next clean-up); None while
+        Redis does not answer."""
         try:
-            return int(Worker.count(queue=self.queue))
+            keys = list(worker_registration.get_keys(queue=self.queue))
+            with self.connection.pipeline() as pipeline:
+                for key in keys:
+                    pipeline.exists(key)
+                return sum(bool(alive) for alive in pipeline.execute())
         except redis.RedisError:
             return None
 

@@ -46,10 +46,10 @@ class Outbox:
     def __init__(self, sock: socket.socket, idle_s: float, max_unread_bytes: int = MAX_UNREAD_BYTES) -> None:
         self.sock = sock.dup()                       # its own timeout: the reader's changes per message
         self.sock.settimeout(min(POLL_S, idle_s))
-        self.active_at = time.monotonic()
         self.idle_s, self.max_unread_bytes = idle_s, max_unread_bytes
+        self.active_at = self.progress_at = time.monotonic()
         self.current = bytearray()
-        self.queue: deque[bytes] = deque()
+        self.queue: deque[bytearray] = deque()
         self.unsent = 0
         self.sending = False
         self.failure: OSError | None = None
@@ -60,21 +60,27 @@ class Outbox:
 
     # -- the answering side ----------------------------------------------------------------------------------
     def write(self, data: bytes) -> int:
-        view = memoryview(data).cast("B")            # bytes, or a ctypes header as ismrmrd writes them
+        """Add ``data`` (bytes, or a ctypes header as ismrmrd writes them) to the message being written."""
+        view = memoryview(data).cast("B")
         self.current += view
         return view.nbytes
 
     def flush(self) -> None:
-        """Queue what was written since the last flush as one message. Raises the writer's failure
-        (the client gone: :class:`ConnectionError`; not reading for ``idle_s``: :class:`TimeoutError`),
-        and waits while :data:`MAX_UNREAD_BYTES` are unsent, at most ``idle_s``."""
-        message, self.current = bytes(self.current), bytearray()
+        """Queue what was written since the last flush as one message; wait while
+        ``max_unread_bytes`` are unsent, at most ``idle_s``.
+
+        Raises:
+            TimeoutError: the client has read none of its answers for ``idle_s`` (from now on every
+                flush raises at once).
+            ConnectionError: the client is gone; nothing more goes out.
+        """
+        message, self.current = self.current, bytearray()
         with self.changed:
             self.active_at = time.monotonic()
-            deadline = time.monotonic() + self.idle_s
+            deadline = self.active_at + self.idle_s
             while self.failure is None and self.unsent and self.unsent + len(message) > self.max_unread_bytes:
                 if not self.changed.wait(deadline - time.monotonic()):
-                    raise TimeoutError(f"the client read none of its answers for {self.idle_s:g} s")
+                    self._fail(TimeoutError())
             if isinstance(self.failure, TimeoutError):
                 raise TimeoutError(f"the client read none of its answers for {self.idle_s:g} s")
             if self.failure is not None:
@@ -85,51 +91,64 @@ class Outbox:
                 self.changed.notify_all()
 
     def drain(self, timeout_s: float) -> bool:
-        """Wait until every queued message is sent (True), the client is gone or ``timeout_s`` passes
-        (False); then stop the writer and close the duplicate socket."""
-        deadline = time.monotonic() + timeout_s
+        """Wait until every queued message is sent, for as long as the client reads some of them
+        every ``timeout_s``; then stop the writer and close the duplicate socket. Safe to call again.
+
+        Returns:
+            True when everything was sent; False when the client is gone or stopped reading.
+        """
+        called = time.monotonic()
         with self.changed:
             while self.failure is None and (self.queue or self.sending):
-                left = deadline - time.monotonic()
-                if left <= 0 or not self.changed.wait(left):
-                    break
-            done = self.failure is None and not self.queue and not self.sending
+                deadline = max(self.progress_at, called) + timeout_s
+                if not self.changed.wait(max(deadline - time.monotonic(), 0.0)) and time.monotonic() >= deadline:
+                    self._fail(TimeoutError())
+            done = self.failure is None
             self.closing = True
             self.changed.notify_all()
-        self.thread.join(timeout=1.0)
+        self.thread.join(timeout=POLL_S + 1.0)     # a send in progress gives up at its next poll
         self.sock.close()
         return done
 
     # -- the writer thread -----------------------------------------------------------------------------------
+    def _fail(self, failure: OSError) -> None:
+        """Under the lock: nothing more goes out; every waiter learns it."""
+        if self.failure is None:
+            self.failure = failure
+        self.queue.clear()
+        self.unsent = 0
+        self.changed.notify_all()
+
     def _send_all(self) -> None:
+        """The writer thread: the queued messages, in order, until :meth:`drain` or a failure."""
         while True:
             with self.changed:
-                while not self.queue and not self.closing:
+                while not self.queue and not self.closing and self.failure is None:
                     self.changed.wait()
-                if not self.queue:
+                if not self.queue or self.failure is not None:
                     return
                 message = self.queue.popleft()
                 self.sending = True
             try:
                 self._send(message)
-            except OSError as failure:               # gone, or not reading for idle_s: nothing more goes out
+            except OSError as failure:               # gone, or not reading: nothing more goes out
                 with self.changed:
-                    self.failure, self.sending = failure, False
-                    self.queue.clear()
-                    self.unsent = 0
-                    self.changed.notify_all()
+                    self.sending = False
+                    self._fail(failure)
                 return
             with self.changed:
                 self.sending = False
                 self.unsent -= len(message)
                 self.changed.notify_all()
 
-    def _send(self, message: bytes) -> None:
-        """Send ``message`` whole, waiting for the client to read while it is active."""
+    def _send(self, message: bytearray) -> None:
+        """Send ``message`` whole, waiting for the client to read while it is active and the outbox
+        has not failed (a drain that gave up, a flush that timed out)."""
         view = memoryview(message)
         while view.nbytes:
             try:
                 view = view[self.sock.send(view):]
+                self.progress_at = time.monotonic()
             except TimeoutError:
-                if time.monotonic() - self.active_at >= self.idle_s:
+                if self.failure is not None or time.monotonic() - self.active_at >= self.idle_s:
                     raise

@@ -113,7 +113,6 @@ class MrdHandler(socketserver.StreamRequestHandler):
 
     server: "MrdServer"
     rbufsize = 1 << 16
-    wbufsize = 1 << 16                      # answers go out whole: flushed after each message
     disable_nagle_algorithm = True
 
     def handle(self) -> None:
@@ -124,13 +123,16 @@ class MrdHandler(socketserver.StreamRequestHandler):
             busy = Saturated(f"session: {server.limits.max_sessions} MRD sessions are open; try again later")
             refuse(self.wfile, busy, retry_after_s=server.retry_after_s)
             return
+        outbox: Outbox | None = None
         try:
-            reader = MessageDeadlineReader(self.connection, server.limits.idle_s)
             outbox = Outbox(self.connection, server.limits.idle_s, server.stream_limits.max_bytes)
+            reader = MessageDeadlineReader(self.connection, server.limits.idle_s)
             connection = MrdConnection(reader, outbox, server.new_session, server.stream_limits)
             connection.run()
             outbox.drain(server.limits.idle_s)          # the answers still queued, as far as the client reads
         finally:
+            if outbox is not None:
+                outbox.drain(0.0)                       # after a failure too: no writer thread left behind
             server.slots.release()
         if connection.broken:
             self.linger()

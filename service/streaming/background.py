@@ -76,9 +76,9 @@ def stop_stage_process(timeout_s: float = 5.0) -> None:
         pool, _stage_pool = _stage_pool, None
     if pool is None:
         return
-    workers = list((getattr(pool, "_processes", None) or {}).values())
-    pool.shutdown(wait=False, cancel_futures=True)
-    for worker in workers:
+    processes = getattr(pool, "_processes", None) or {}      # the pool's own dict: shutdown drops the pool's
+    pool.shutdown(wait=False, cancel_futures=True)            # reference, not a process a submit was starting
+    for worker in list(processes.values()):
         worker.join(timeout_s)
         if worker.is_alive():
             worker.terminate()

@@ -6,6 +6,7 @@ from __future__ import annotations
 import socket
 import threading
 import time
+from collections.abc import Iterator
 
 import pytest
 
@@ -14,14 +15,17 @@ from service.mrd.outbox import Outbox
 SMALL_BUFFER = 4096
 
 
-def pair() -> tuple[socket.socket, socket.socket]:
+@pytest.fixture
+def pair() -> Iterator[tuple[socket.socket, socket.socket]]:
     """A connected pair whose kernel buffers hold a few kilobytes, so that unread answers block a
     plain writer after a few messages."""
     server_end, client_end = socket.socketpair()
     for sock in (server_end, client_end):
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SMALL_BUFFER)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, SMALL_BUFFER)
-    return server_end, client_end
+    yield server_end, client_end
+    server_end.close()
+    client_end.close()
 
 
 def read_all(sock: socket.socket, n: int) -> bytes:
@@ -34,8 +38,8 @@ def read_all(sock: socket.socket, n: int) -> bytes:
     return bytes(out)
 
 
-def test_answers_far_beyond_the_socket_buffers_are_queued_and_arrive_in_order() -> None:
-    server_end, client_end = pair()
+def test_answers_far_beyond_the_socket_buffers_are_queued_and_arrive_in_order(pair: tuple[socket.socket, socket.socket]) -> None:
+    server_end, client_end = pair
     box = Outbox(server_end, idle_s=10.0)
     messages = [bytes([k]) * 50_000 for k in range(40)]                # 2 MB against buffers of kilobytes
     started = time.monotonic()
@@ -48,19 +52,18 @@ def test_answers_far_beyond_the_socket_buffers_are_queued_and_arrive_in_order() 
     assert box.drain(5.0) and got == b"".join(messages)
 
 
-def test_past_the_unread_limit_the_answering_side_waits_then_gives_up() -> None:
-    server_end, client_end = pair()
+def test_past_the_unread_limit_the_answering_side_waits_then_gives_up(pair: tuple[socket.socket, socket.socket]) -> None:
+    server_end, client_end = pair
     box = Outbox(server_end, idle_s=0.5, max_unread_bytes=200_000)
     with pytest.raises(TimeoutError, match="read none of its answers"):
         for _ in range(100):
             box.write(b"x" * 50_000)
             box.flush()
     assert not box.drain(0.1)
-    client_end.close()
 
 
-def test_a_client_that_reads_once_it_has_sent_gets_everything_even_past_the_limit() -> None:
-    server_end, client_end = pair()
+def test_a_client_that_reads_once_it_has_sent_gets_everything_even_past_the_limit(pair: tuple[socket.socket, socket.socket]) -> None:
+    server_end, client_end = pair
     box = Outbox(server_end, idle_s=10.0, max_unread_bytes=100_000)
     total = 40 * 50_000
     reader = threading.Timer(0.3, lambda: got.append(read_all(client_end, total)))
@@ -74,8 +77,8 @@ def test_a_client_that_reads_once_it_has_sent_gets_everything_even_past_the_limi
     assert got[0] == b"".join(bytes([k]) * 50_000 for k in range(40))
 
 
-def test_a_client_gone_ends_the_answers() -> None:
-    server_end, client_end = pair()
+def test_a_client_gone_ends_the_answers(pair: tuple[socket.socket, socket.socket]) -> None:
+    server_end, client_end = pair
     box = Outbox(server_end, idle_s=5.0)
     client_end.close()
     with pytest.raises(ConnectionError):

@@ -102,6 +102,41 @@ def test_a_client_that_reads_only_after_sending_everything_gets_every_answer(cas
     assert [m["type"] for m in texts(received) if m["type"] != "update"] == ["stack", "stack", "summary"]
 
 
+def test_a_client_that_never_reads_loses_its_session_and_frees_the_slot(case: Case) -> None:
+    factory = session_factory(ModelRegistry({"default": case.oracle}), case.localiser, StreamLimits())  # type: ignore[dict-item]
+    server = TightServer(("127.0.0.1", 0), factory, StreamLimits(), ServerLimits(max_sessions=1, idle_s=1.0))
+    threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True).start()
+    mute = socket.socket()
+    for option in (socket.SO_SNDBUF, socket.SO_RCVBUF):
+        mute.setsockopt(socket.SOL_SOCKET, option, 4096)
+    mute.settimeout(60)
+    try:
+        mute.connect(("127.0.0.1", server.port))
+        writer = mute.makefile("wb")
+        outgoing = ismrmrd.ProtocolSerializer(writer)
+        for message in (CONFIG, *case.images[0][:10]):              # then silence, reading nothing
+            outgoing.serialize(message)
+        writer.flush()
+        deadline, answered = time.monotonic() + 60, None
+        while answered is None:                                     # the slot frees once the idle limit ends it
+            assert time.monotonic() < deadline, "the slot stayed taken"
+            other = MrdClient(server.port)
+            try:
+                other.send(CONFIG, case.images[1][0])
+            except OSError:
+                pass                                                # refused: the server closed first
+            received = other.close()
+            answered = next((m for m in received if isinstance(m, ismrmrd.Image)), None)
+            if answered is None:
+                assert texts(received)[0]["status"] == 503
+                time.sleep(0.5)
+    finally:
+        mute.close()
+        server.shutdown()
+        server.server_close()
+    assert answered.image_series_index == 1
+
+
 def image_like(image: ismrmrd.Image, data: np.ndarray, **fields: object) -> ismrmrd.Image:
     """An image with ``image``'s header but other data (``[channels, z, y, x]``) and ``fields``."""
     out = ismrmrd.Image(head=image.getHead(), data=data)
