@@ -4,9 +4,10 @@ Commands::
 
     svrnet predict STACK... [--mask M...] [--out poses.json] [--mc-samples N] [--threshold T]
                             [--no-bias-correction] [--model NAME]
+    svrnet masks STACK... [--out-dir DIR] [--margin-mm MM]
     svrnet reconstruct STACK... [--mask M...] [--poses poses.json] [--resolution 0.8] [--svr-iterations 3]
-                       [--poses-out refined.json]
-                                [--wait] [--out recon.nii.gz] [--preview preview.png]
+                       [--wait] [--out recon.nii.gz] [--preview preview.png] [--poses-out refined.json]
+    svrnet fetch JOB [--out recon.nii.gz] [--preview preview.png] [--poses-out refined.json]
     svrnet stream STACK... [--mask M...] [--pace SECONDS] [--slice-order ORDER]
                            [--mc-samples N] [--max-expected-error MM] [--json-out messages.jsonl]
     svrnet status JOB
@@ -38,23 +39,22 @@ Errors are one red line on stderr with the server's problem detail (and request 
 
 from __future__ import annotations
 
-import json
-import os
 from collections import Counter
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Optional
 
-import httpx
 import typer
 from rich.live import Live
-from rich.progress import BarColumn, Progress, SpinnerColumn, TaskProgressColumn, TextColumn, TimeElapsedColumn
 
 from client._client import DEFAULT_SERVER, SVRnetClient
+from client.cli_support import (ApiKeyOpt, BiasCorrectionOpt, MaskOpt, MasksHoldCsfOpt, MaxExpectedOpt, McSamplesOpt,
+                                ModelOpt, ServerOpt, StacksArg, ThresholdOpt, check_masks, check_writable, follow_job,
+                                job_id_of, positive, timeout_from_env, write_json, write_results)
 from client.exits import EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, errors, stderr, stdout
-from client.views import (NO_WORKER, StreamView, coverage_text, job_table, masks_table, models_table, predict_hints,
-                          quality_line, reacquire_text, stage_label, summarise, upload_bar, usable)
+from client.views import (StreamView, coverage_text, job_table, masks_table, models_table, predict_hints,
+                          reacquire_text, summarise, upload_bar, usable)
 
 if TYPE_CHECKING:                     # client.stream needs numpy and nibabel: imported by `svrnet stream` only
     from client.stream import Sent
@@ -73,38 +73,7 @@ app = typer.Typer(
 
 def make_client(server: str, api_key: str | None) -> SVRnetClient:
     """The client every command uses (tests monkeypatch this factory)."""
-    return SVRnetClient(base_url=server, api_key=api_key, timeout=_timeout())
-
-
-def _timeout() -> httpx.Timeout:
-    """Read/write timeout from ``$SVRNET_TIMEOUT`` (seconds; default 300): a large request on a CPU
-    server can take longer."""
-    raw = os.environ.get("SVRNET_TIMEOUT", "300")
-    try:
-        seconds = float(raw)
-    except ValueError:
-        seconds = -1.0
-    if not seconds > 0:
-        raise typer.BadParameter(f"SVRNET_TIMEOUT={raw!r}: must be a number of seconds > 0")
-    return httpx.Timeout(connect=5.0, read=seconds, write=seconds, pool=5.0)
-
-
-def _check_writable(**paths: Path | None) -> None:
-    """Output files (by option name) must be writable BEFORE anything is uploaded (not after an hour of
-    reconstruction)."""
-    for option, path in paths.items():
-        if path is None:
-            continue
-        folder = path.expanduser().resolve().parent
-        if not folder.is_dir() or not os.access(folder, os.W_OK):
-            raise typer.BadParameter(f"{path}: its folder {folder} does not exist or is not writable",
-                                     param_hint=f"--{option.replace('_', '-')}")
-
-
-def _job_id(job: str) -> str:
-    if not job.strip():
-        raise typer.BadParameter("the job id is empty", param_hint="JOB")
-    return job.strip()
+    return SVRnetClient(base_url=server, api_key=api_key, timeout=timeout_from_env())
 
 
 @contextmanager
@@ -114,47 +83,6 @@ def _client(server: str, api_key: str | None) -> Iterator[SVRnetClient]:
         yield svr
     finally:
         svr.close()
-
-
-def _check_masks(stacks: list[Path], masks: list[Path] | None) -> None:
-    if masks and len(masks) != len(stacks):
-        raise typer.BadParameter(f"{len(masks)} masks for {len(stacks)} stacks; give none or one per stack",
-                                 param_hint="--mask")
-
-
-def _positive(value: float | None) -> float | None:
-    if value is not None and not value > 0:
-        raise typer.BadParameter("must be > 0")
-    return value
-
-
-def _write_json(path: Path, body: Any) -> None:
-    path.write_text(json.dumps(body, indent=2) + "\n")
-
-
-MaxExpectedOpt = Annotated[Optional[float], typer.Option(
-    "--max-expected-error", callback=_positive,
-    help="accept only slices whose expected error (mm) is at most this (default: the model's)")]
-ServerOpt = Annotated[str, typer.Option("--server", envvar="SVRNET_SERVER", help="server URL")]
-ApiKeyOpt = Annotated[Optional[str], typer.Option("--api-key", envvar="SVRNET_API_KEY", show_default=False,
-                                                  help="API key, where the server asks for one")]
-MasksHoldCsfOpt = Annotated[bool, typer.Option(
-    "--masks-hold-csf", help="the masks are the skull's inside (brain and the CSF around it, as manual fetal masks "
-                             "are usually drawn): the pose network sees them less their outer 2 mm")]
-McSamplesOpt = Annotated[Optional[int], typer.Option(min=1, max=1000, help="MC-dropout passes per slice "
-                                                                           "(default: the server's, 100)")]
-ThresholdOpt = Annotated[Optional[float], typer.Option(
-    "--threshold", callback=_positive, help="geodesic-variance threshold, in the model's squared anchor-point units "
-    "(default: the model's; see `svrnet models`); a loose guard: --max-expected-error is the one to set")]
-BiasCorrectionOpt = Annotated[bool, typer.Option("--bias-correction/--no-bias-correction",
-                                                 help="N4 bias-field correction")]
-ModelOpt = Annotated[Optional[str], typer.Option(help="model name (see `svrnet models`)")]
-MaskOpt = Annotated[Optional[list[Path]], typer.Option(
-    "--mask", "-m", exists=True, dir_okay=False, readable=True, metavar="MASK",
-    help="region-of-interest mask; repeat, one per stack in the same order (or none)")]
-StacksArg = Annotated[list[Path], typer.Argument(
-    exists=True, readable=True, metavar="STACK",
-    help=".nii, .nii.gz, .nrrd, .mha, .dcm, or a DICOM series as a .zip or a folder (sent zipped)")]
 
 
 @app.command(epilog=EXIT_HELP)
@@ -180,8 +108,8 @@ def predict(
     masks_hold_csf: MasksHoldCsfOpt = False,
 ) -> None:
     """Atlas pose and confidence of every slice of every stack (POST /v1/predict)."""
-    _check_masks(stacks, mask)
-    _check_writable(out=out)
+    check_masks(stacks, mask)
+    check_writable(out=out)
     err = stderr()
     with errors(), _client(server, api_key) as svr:
         with upload_bar(err, f"{len(stacks)} stack(s)") as progress:
@@ -198,7 +126,7 @@ def predict(
         console.print(f"request {result.get('request_id', '?')}"
                       + (f" · {total / 1e3:.2f} s on the server" if isinstance(total, (int, float)) else ""))
         if out is not None:
-            _write_json(out, result)
+            write_json(out, result)
             console.print(f"wrote {out}")
     if not usable(result):
         raise typer.Exit(EXIT_NOTHING_USABLE)
@@ -233,7 +161,7 @@ def reconstruct(
         exists=True, dir_okay=False, readable=True,
         help="JSON answer of `svrnet predict --out` for these files")] = None,
     resolution: Annotated[Optional[float], typer.Option(
-        "--resolution", callback=_positive, help="output spacing in mm (server default 0.8)")] = None,
+        "--resolution", callback=positive, help="output spacing in mm (server default 0.8)")] = None,
     svr_iterations: Annotated[Optional[int], typer.Option(min=0, help="SVR iterations (server default 3)")] = None,
     mc_samples: McSamplesOpt = None,
     threshold: ThresholdOpt = None,
@@ -261,8 +189,8 @@ def reconstruct(
         "file's SliceThickness, else the slice spacing; give it for slices with gaps or overlap)")] = None,
 ) -> None:
     """Start a reconstruction job (POST /v1/reconstructions); with --wait, follow it and download the volume."""
-    _check_masks(stacks, mask)
-    _check_writable(out=out, preview=preview, poses_out=poses_out, transforms_out=transforms_out)
+    check_masks(stacks, mask)
+    check_writable(out=out, preview=preview, poses_out=poses_out, transforms_out=transforms_out)
     wait = wait or any(p is not None for p in (out, preview, poses_out, transforms_out))
     err, console = stderr(), stdout()
     with errors(), _client(server, api_key) as svr:
@@ -278,61 +206,10 @@ def reconstruct(
         if not wait:
             console.print(f"follow it with: svrnet status {job_id}; download it with: svrnet fetch {job_id}")
             return
-        done = _follow(svr, job_id, poll, timeout)
-        incoherent = _results(svr, job_id, done, out, preview, poses_out, transforms_out)
+        done = follow_job(svr, job_id, poll, timeout)
+        incoherent = write_results(svr, job_id, done, out, preview, poses_out, transforms_out)
     if incoherent:
         raise typer.Exit(EXIT_NOTHING_USABLE)
-
-
-def _follow(svr: SVRnetClient, job_id: str, poll: float, timeout: float) -> dict[str, Any]:
-    """Wait for a job, with a progress bar on a terminal; its final status body."""
-    err = stderr()
-    with Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
-                  TimeElapsedColumn(), console=err, transient=True, disable=not err.is_terminal) as bar:
-        task = bar.add_task("queued", total=1.0)
-        told = False
-
-        def on_progress(state: dict[str, Any]) -> None:
-            nonlocal told
-            bar.update(task, completed=float(state.get("progress") or 0.0), description=stage_label(state))
-            if state.get("status") == "queued" and state.get("workers") == 0 and not told:
-                told = True                            # once, also where no bar is drawn (a pipe, a log)
-                bar.console.print(f"job {job_id} is queued and {NO_WORKER}: it starts once svrnet-worker runs "
-                                  "with the server's SVRNET_QUEUE_URL and data folder", style="yellow", markup=False)
-
-        return svr.wait(job_id, poll_s=poll, timeout_s=timeout, on_progress=on_progress)
-
-
-def _results(svr: SVRnetClient, job_id: str, done: dict[str, Any], out: Path | None, preview: Path | None,
-             poses_out: Path | None, transforms_out: Path | None) -> bool:
-    """Download a succeeded job's volume (``out``, default ``recon.nii.gz``) and the files asked for, and
-    print its quality; True when the volume is no coherent brain."""
-    console = stdout()
-    target = out if out is not None else Path("recon.nii.gz")
-    svr.download_volume(job_id, target)
-    console.print(f"job {job_id} succeeded; wrote {target}")
-    report = done.get("report") or {}
-    quality = quality_line(report.get("quality"), report.get("n_stacks"))
-    if quality:
-        console.print(quality)
-    incoherent = (report.get("quality") or {}).get("coherent") is False
-    if incoherent:
-        console.print("the stacks do not predict each other (leave one stack out under 0.5): the volume is no "
-                      "coherent brain; do not use it. Check the stacks' poses (svrnet predict) and masks "
-                      "(svrnet masks)", style="bold red", markup=False)
-    if report.get("started_from") == "every_slice":
-        console.print("started from every slice: too few were accepted to start from the accepted ones alone; "
-                      "judge the volume by the quality line and the preview", style="yellow", markup=False)
-    if preview is not None:
-        svr.download_preview(job_id, preview)
-        console.print(f"wrote {preview}")
-    if poses_out is not None:
-        _write_json(poses_out, svr.refined_poses(job_id))
-        console.print(f"wrote {poses_out}")
-    if transforms_out is not None:
-        svr.download_transforms(job_id, transforms_out)
-        console.print(f"wrote {transforms_out}")
-    return incoherent
 
 
 @app.command(epilog=EXIT_HELP)
@@ -353,10 +230,10 @@ def fetch(
 ) -> None:
     """Download a job's results (GET /v1/reconstructions/{job}/...), waiting for it first if it is still
     queued or running: what `reconstruct --wait` does, for a job started without it."""
-    job = _job_id(job)
-    _check_writable(out=out, preview=preview, poses_out=poses_out, transforms_out=transforms_out)
+    job = job_id_of(job)
+    check_writable(out=out, preview=preview, poses_out=poses_out, transforms_out=transforms_out)
     with errors(), _client(server, api_key) as svr:
-        incoherent = _results(svr, job, _follow(svr, job, poll, timeout), out, preview, poses_out, transforms_out)
+        incoherent = write_results(svr, job, follow_job(svr, job, poll, timeout), out, preview, poses_out, transforms_out)
     if incoherent:
         raise typer.Exit(EXIT_NOTHING_USABLE)
 
@@ -387,8 +264,8 @@ def stream(
     """Send stacks slice by slice as a scanner would (WebSocket /v1/stream) and show each pose as it comes."""
     from client import stream as streaming
 
-    _check_masks(stacks, mask)
-    _check_writable(json_out=json_out)
+    check_masks(stacks, mask)
+    check_writable(json_out=json_out)
     console = stdout()
     view = StreamView(console)
     with errors():
@@ -405,7 +282,7 @@ def stream(
                 read, server, api_key=api_key or None, mc_samples=mc_samples, variance_threshold=threshold,
                 max_expected_error_mm=max_expected_error, bias_correction=None if bias_correction else False,
                 masks_hold_csf=True if masks_hold_csf else None, model=model, pace_s=pace, order=order or "sequential",
-                on_message=on_message, json_out=json_out, answer_timeout_s=_timeout().read or 300.0)
+                on_message=on_message, json_out=json_out, answer_timeout_s=timeout_from_env().read or 300.0)
         summary = result.summary or {}
         timing = summary.get("timing_ms") or {}
         p50, p95 = timing.get("pose_latency_p50"), timing.get("pose_latency_p95")
@@ -432,7 +309,7 @@ def status(
 ) -> None:
     """Status of a reconstruction job (GET /v1/reconstructions/{job}); exit 8 when it failed or was
     cancelled, as for `reconstruct --wait`."""
-    job = _job_id(job)
+    job = job_id_of(job)
     with errors(), _client(server, api_key) as svr:
         state = svr.status(job)
         console = stdout()
@@ -452,7 +329,7 @@ def cancel(
 ) -> None:
     """Cancel a queued or running job and delete its files; a finished (or cancelled) job is deleted
     (DELETE /v1/reconstructions/{job})."""
-    job = _job_id(job)
+    job = job_id_of(job)
     with errors(), _client(server, api_key) as svr:
         before = str(svr.status(job).get("status", ""))
         svr.cancel(job)

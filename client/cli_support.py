@@ -1,0 +1,152 @@
+"""What the ``svrnet`` commands share: their options, the checks made before anything is sent, and
+following a reconstruction job to its files (:mod:`client.cli` holds the commands).
+
+Example:
+    >>> positive(2.5)
+    2.5
+    >>> job_id_of("  3f2a ")
+    '3f2a'
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Annotated, Any, Optional
+
+import httpx
+import typer
+from rich.progress import BarColumn, Progress, SpinnerColumn, TaskProgressColumn, TextColumn, TimeElapsedColumn
+
+from client._client import SVRnetClient
+from client.exits import stderr, stdout
+from client.views import NO_WORKER, quality_line, stage_label
+
+
+def timeout_from_env() -> httpx.Timeout:
+    """Read/write timeout from ``$SVRNET_TIMEOUT`` (seconds; default 300): a large request on a CPU
+    server can take longer."""
+    raw = os.environ.get("SVRNET_TIMEOUT", "300")
+    try:
+        seconds = float(raw)
+    except ValueError:
+        seconds = -1.0
+    if not seconds > 0:
+        raise typer.BadParameter(f"SVRNET_TIMEOUT={raw!r}: must be a number of seconds > 0")
+    return httpx.Timeout(connect=5.0, read=seconds, write=seconds, pool=5.0)
+
+
+def check_writable(**paths: Path | None) -> None:
+    """Output files (by option name) must be writable BEFORE anything is uploaded (not after an hour of
+    reconstruction)."""
+    for option, path in paths.items():
+        if path is None:
+            continue
+        folder = path.expanduser().resolve().parent
+        if not folder.is_dir() or not os.access(folder, os.W_OK):
+            raise typer.BadParameter(f"{path}: its folder {folder} does not exist or is not writable",
+                                     param_hint=f"--{option.replace('_', '-')}")
+
+
+def job_id_of(job: str) -> str:
+    """The job id as given, without surrounding blanks (an empty one is a usage error)."""
+    if not job.strip():
+        raise typer.BadParameter("the job id is empty", param_hint="JOB")
+    return job.strip()
+
+
+def check_masks(stacks: list[Path], masks: list[Path] | None) -> None:
+    """None, or one mask per stack (a usage error otherwise)."""
+    if masks and len(masks) != len(stacks):
+        raise typer.BadParameter(f"{len(masks)} masks for {len(stacks)} stacks; give none or one per stack",
+                                 param_hint="--mask")
+
+
+def positive(value: float | None) -> float | None:
+    """An option's value when it is > 0 (or not given); a usage error otherwise."""
+    if value is not None and not value > 0:
+        raise typer.BadParameter("must be > 0")
+    return value
+
+
+def write_json(path: Path, body: Any) -> None:
+    """``body`` as indented JSON in ``path``."""
+    path.write_text(json.dumps(body, indent=2) + "\n")
+
+
+MaxExpectedOpt = Annotated[Optional[float], typer.Option(
+    "--max-expected-error", callback=positive,
+    help="accept only slices whose expected error (mm) is at most this (default: the model's)")]
+ServerOpt = Annotated[str, typer.Option("--server", envvar="SVRNET_SERVER", help="server URL")]
+ApiKeyOpt = Annotated[Optional[str], typer.Option("--api-key", envvar="SVRNET_API_KEY", show_default=False,
+                                                  help="API key, where the server asks for one")]
+MasksHoldCsfOpt = Annotated[bool, typer.Option(
+    "--masks-hold-csf", help="the masks are the skull's inside (brain and the CSF around it, as manual fetal masks "
+                             "are usually drawn): the pose network sees them less their outer 2 mm")]
+McSamplesOpt = Annotated[Optional[int], typer.Option(min=1, max=1000, help="MC-dropout passes per slice "
+                                                                           "(default: the server's, 100)")]
+ThresholdOpt = Annotated[Optional[float], typer.Option(
+    "--threshold", callback=positive, help="geodesic-variance threshold, in the model's squared anchor-point units "
+    "(default: the model's; see `svrnet models`); a loose guard: --max-expected-error is the one to set")]
+BiasCorrectionOpt = Annotated[bool, typer.Option("--bias-correction/--no-bias-correction",
+                                                 help="N4 bias-field correction")]
+ModelOpt = Annotated[Optional[str], typer.Option(help="model name (see `svrnet models`)")]
+MaskOpt = Annotated[Optional[list[Path]], typer.Option(
+    "--mask", "-m", exists=True, dir_okay=False, readable=True, metavar="MASK",
+    help="region-of-interest mask; repeat, one per stack in the same order (or none)")]
+StacksArg = Annotated[list[Path], typer.Argument(
+    exists=True, readable=True, metavar="STACK",
+    help=".nii, .nii.gz, .nrrd, .mha, .dcm, or a DICOM series as a .zip or a folder (sent zipped)")]
+
+
+
+def follow_job(svr: SVRnetClient, job_id: str, poll: float, timeout: float) -> dict[str, Any]:
+    """Wait for a job, with a progress bar on a terminal; its final status body."""
+    err = stderr()
+    with Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
+                  TimeElapsedColumn(), console=err, transient=True, disable=not err.is_terminal) as bar:
+        task = bar.add_task("queued", total=1.0)
+        told = False
+
+        def on_progress(state: dict[str, Any]) -> None:
+            nonlocal told
+            bar.update(task, completed=float(state.get("progress") or 0.0), description=stage_label(state))
+            if state.get("status") == "queued" and state.get("workers") == 0 and not told:
+                told = True                            # once, also where no bar is drawn (a pipe, a log)
+                bar.console.print(f"job {job_id} is queued and {NO_WORKER}: it starts once svrnet-worker runs "
+                                  "with the server's SVRNET_QUEUE_URL and data folder", style="yellow", markup=False)
+
+        return svr.wait(job_id, poll_s=poll, timeout_s=timeout, on_progress=on_progress)
+
+
+def write_results(svr: SVRnetClient, job_id: str, done: dict[str, Any], out: Path | None, preview: Path | None,
+             poses_out: Path | None, transforms_out: Path | None) -> bool:
+    """Download a succeeded job's volume (``out``, default ``recon.nii.gz``) and the files asked for, and
+    print its quality; True when the volume is no coherent brain."""
+    console = stdout()
+    target = out if out is not None else Path("recon.nii.gz")
+    svr.download_volume(job_id, target)
+    console.print(f"job {job_id} succeeded; wrote {target}")
+    report = done.get("report") or {}
+    quality = quality_line(report.get("quality"), report.get("n_stacks"))
+    if quality:
+        console.print(quality)
+    incoherent = (report.get("quality") or {}).get("coherent") is False
+    if incoherent:
+        console.print("the stacks do not predict each other (leave one stack out under 0.5): the volume is no "
+                      "coherent brain; do not use it. Check the stacks' poses (svrnet predict) and masks "
+                      "(svrnet masks)", style="bold red", markup=False)
+    if report.get("started_from") == "every_slice":
+        console.print("started from every slice: too few were accepted to start from the accepted ones alone; "
+                      "judge the volume by the quality line and the preview", style="yellow", markup=False)
+    if preview is not None:
+        svr.download_preview(job_id, preview)
+        console.print(f"wrote {preview}")
+    if poses_out is not None:
+        write_json(poses_out, svr.refined_poses(job_id))
+        console.print(f"wrote {poses_out}")
+    if transforms_out is not None:
+        svr.download_transforms(job_id, transforms_out)
+        console.print(f"wrote {transforms_out}")
+    return incoherent
