@@ -128,7 +128,7 @@ def test_camouflaged_heads_sit_in_tissue_as_bright_as_the_brain(head: HeadModel,
     def ring_over_brain(share: float) -> float:
         monkeypatch.setitem(scenes.CAMOUFLAGE_SHARE, "train", share)
         ratios = []
-        for seed in range(6):
+        for seed in range(4):                   # medians 0.11 and 0.90 (0.15 and 0.94 over six)
             scene = scenes.synth_scene(head, np.random.default_rng(seed), "train", random_contrast=False)
             px = float(scene.volume.spacing[0])
             plane = np.zeros((3, 3, 3), bool)
