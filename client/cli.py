@@ -49,7 +49,7 @@ import typer
 from rich.live import Live
 
 from client._client import DEFAULT_SERVER, SVRnetClient
-from client.cli_support import (ApiKeyOpt, BiasCorrectionOpt, MaskOpt, MasksHoldCsfOpt, MaxExpectedOpt, McSamplesOpt,
+from client.cli_support import (ApiKeyOpt, BiasCorrectionOpt, JobArg, MaskOpt, MasksHoldCsfOpt, MaxExpectedOpt, McSamplesOpt,
                                 ModelOpt, ServerOpt, StacksArg, ThresholdOpt, check_masks, check_writable, follow_job,
                                 job_id_of, positive, timeout_from_env, write_json, write_results)
 from client.exits import EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, errors, stderr, stdout
@@ -214,7 +214,7 @@ def reconstruct(
 
 @app.command(epilog=EXIT_HELP)
 def fetch(
-    job: Annotated[str, typer.Argument(help="job id (as `svrnet reconstruct` printed it)")],
+    job: JobArg,
     server: ServerOpt = DEFAULT_SERVER,
     api_key: ApiKeyOpt = None,
     out: Annotated[Optional[Path], typer.Option(
@@ -302,7 +302,7 @@ def stream(
 
 @app.command(epilog=EXIT_HELP)
 def status(
-    job: Annotated[str, typer.Argument(help="job id")],
+    job: JobArg,
     server: ServerOpt = DEFAULT_SERVER,
     api_key: ApiKeyOpt = None,
     as_json: Annotated[bool, typer.Option("--json", help="print the raw JSON")] = False,
@@ -323,7 +323,7 @@ def status(
 
 @app.command(epilog=EXIT_HELP)
 def cancel(
-    job: Annotated[str, typer.Argument(help="job id")],
+    job: JobArg,
     server: ServerOpt = DEFAULT_SERVER,
     api_key: ApiKeyOpt = None,
 ) -> None:

@@ -21,7 +21,7 @@ from rich.progress import BarColumn, Progress, SpinnerColumn, TaskProgressColumn
 
 from client._client import SVRnetClient
 from client.exits import stderr, stdout
-from client.views import NO_WORKER, quality_line, stage_label
+from client.views import NO_WORKER, quality_line, stage_label, waits_for_a_worker
 
 
 def timeout_from_env() -> httpx.Timeout:
@@ -95,6 +95,7 @@ ModelOpt = Annotated[Optional[str], typer.Option(help="model name (see `svrnet m
 MaskOpt = Annotated[Optional[list[Path]], typer.Option(
     "--mask", "-m", exists=True, dir_okay=False, readable=True, metavar="MASK",
     help="region-of-interest mask; repeat, one per stack in the same order (or none)")]
+JobArg = Annotated[str, typer.Argument(help="job id (as `svrnet reconstruct` printed it)")]
 StacksArg = Annotated[list[Path], typer.Argument(
     exists=True, readable=True, metavar="STACK",
     help=".nii, .nii.gz, .nrrd, .mha, .dcm, or a DICOM series as a .zip or a folder (sent zipped)")]
@@ -112,7 +113,7 @@ def follow_job(svr: SVRnetClient, job_id: str, poll: float, timeout: float) -> d
         def on_progress(state: dict[str, Any]) -> None:
             nonlocal told
             bar.update(task, completed=float(state.get("progress") or 0.0), description=stage_label(state))
-            if state.get("status") == "queued" and state.get("workers") == 0 and not told:
+            if waits_for_a_worker(state) and not told:
                 told = True                            # once, also where no bar is drawn (a pipe, a log)
                 bar.console.print(f"job {job_id} is queued and {NO_WORKER}: it starts once svrnet-worker runs "
                                   "with the server's SVRNET_QUEUE_URL and data folder", style="yellow", markup=False)

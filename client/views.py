@@ -135,6 +135,16 @@ NO_WORKER = "no worker is running (svrnet-worker)"
 """What a queued job waits for when the server says no worker serves its queue."""
 
 
+def waits_for_a_worker(state: dict[str, Any]) -> bool:
+    """Whether a job's status says it is queued and no worker serves its queue.
+
+    Example:
+        >>> waits_for_a_worker({"status": "queued", "workers": 0}), waits_for_a_worker({"status": "queued"})
+        (True, False)
+    """
+    return state.get("status") == "queued" and state.get("workers") == 0
+
+
 def stage_label(state: dict[str, Any]) -> str:
     """The progress bar's label: the job's status and the stage it is in.
 
@@ -147,7 +157,7 @@ def stage_label(state: dict[str, Any]) -> str:
         'queued: no worker is running (svrnet-worker)'
     """
     status, stage = state.get("status"), state.get("stage")
-    if status == "queued" and state.get("workers") == 0:
+    if waits_for_a_worker(state):
         return f"queued: {NO_WORKER}"
     return str(status) if not stage or stage == status else f"{status}: {stage}"
 
@@ -361,15 +371,13 @@ def job_table(state: dict[str, Any], job: str) -> Table:
     table.add_column("field", style="bold")
     table.add_column("value")
     for key in ("status", "stage", "progress", "error", "created_at", "updated_at", "result_url",
-                "preview_url", "workers"):
+                "preview_url"):
         value = state.get(key)
-        if key == "workers":
-            if state.get("status") != "queued" or value is None:
-                continue
-            value = NO_WORKER if value == 0 else value
         if key == "progress" and isinstance(value, (int, float)):
             value = f"{value:.0%}"
         table.add_row(key, "-" if value is None else str(value))
+    if state.get("status") == "queued" and state.get("workers") is not None:
+        table.add_row("workers", NO_WORKER if waits_for_a_worker(state) else str(state["workers"]))
     return table
 
 

@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-import asyncio
-
+from anyio import to_thread
 from fastapi import APIRouter, Request
 
 from service.core.errors import NotReady
@@ -31,4 +30,4 @@ async def readyz(request: Request) -> dict[str, object]:
         raise NotReady("the job store is not reachable")
     runner = getattr(state, "job_runner", None)
     return {"status": "ready", "models": sorted(registry.estimators),
-            "workers": await asyncio.to_thread(runner.live_workers) if runner is not None else None}
+            "workers": await to_thread.run_sync(runner.live_workers) if runner is not None else None}

@@ -29,7 +29,6 @@ from rq.exceptions import InvalidJobOperation, NoSuchJobError
 from rq.job import Job as RqJob
 from rq.job import JobStatus
 from rq.registry import clean_registries
-from rq.worker import Worker
 
 from service.core.settings import Settings
 from service.jobs.redis_store import RedisJobStore
@@ -180,21 +179,23 @@ class RqRunner(JobRunner):
         return failed
 
     def stats(self) -> dict[str, float]:
-        return {"workers": float(Worker.count(queue=self.queue)), "queue_length": float(len(self.queue))}
+        return {"workers": float(self._alive_workers()), "queue_length": float(len(self.queue))}
 
     def live_workers(self) -> int | None:
-        """The ``svrnet-worker`` processes serving the queue: those registered on it whose record is
-        alive (a worker's record expires once its heartbeat has stopped for its time to live, after a
-        ``kill -9`` or a lost machine; its name stays registered until the next clean-up); None while
-        Redis does not answer."""
         try:
-            keys = list(worker_registration.get_keys(queue=self.queue))
-            with self.connection.pipeline() as pipeline:
-                for key in keys:
-                    pipeline.exists(key)
-                return sum(bool(alive) for alive in pipeline.execute())
+            return self._alive_workers()
         except redis.RedisError:
             return None
+
+    def _alive_workers(self) -> int:
+        """The ``svrnet-worker`` processes serving the queue: those registered on it whose record is
+        alive (a worker's record expires once its heartbeat has stopped for its time to live, after a
+        ``kill -9`` or a lost machine; its name stays registered until the next clean-up)."""
+        keys = list(worker_registration.get_keys(queue=self.queue))
+        with self.connection.pipeline() as pipeline:
+            for key in keys:
+                pipeline.exists(key)
+            return sum(bool(alive) for alive in pipeline.execute())
 
     def shutdown(self) -> list[str]:
         self.connection.close()

@@ -35,8 +35,8 @@ class JobRunner(ABC):
         return {}
 
     def live_workers(self) -> int | None:
-        """How many workers serve the queue now (None: the back-end cannot tell). A queued job waits
-        for one: with none, it waits until a worker is started."""
+        """How many workers serve the queue now, the ``workers`` of :meth:`stats` (None: the back-end
+        cannot tell). A queued job waits for one: with none, it waits until a worker is started."""
         workers = self.stats().get("workers")
         return None if workers is None else int(workers)
 

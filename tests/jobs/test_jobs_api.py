@@ -314,6 +314,7 @@ def test_a_job_queued_while_no_worker_runs_completes_when_one_starts(case: dict,
         ghost = redis.Redis.from_url(queue_settings["queue_url"])
         ghost.sadd(f"rq:workers:{queue_settings['queue_name']}", "rq:worker:gone")
         assert first.get("/readyz").json()["workers"] == 0
+        assert 'svrnet_job_runner{what="workers"} 0.0' in first.get("/metrics").text      # the same count
     worker = Worker(tmp_path / "worker.log", env_of(queue_settings))
     try:
         with make_client(registry, **queue_settings) as second:
