@@ -1,9 +1,8 @@
-"""An ``svrnet-mrd`` server on a free localhost port, an MRD client, and simulated stacks sent as MRD
+"""An ``svrnet-mrd`` server on a free localhost port, and simulated stacks sent as MRD
 images, posed by an oracle that knows the simulated truth."""
 
 from __future__ import annotations
 
-import socket
 import threading
 from collections.abc import Iterator
 from typing import Any
@@ -22,25 +21,6 @@ from service.mrd.server import MrdServer, ServerLimits, session_factory
 from service.preprocess.localise import Localisation
 from service.streaming.options import StreamLimits
 from tests.support.streams import KeyedOracle, frames_of, simulated_stack, teach
-
-HEADER_XML = """<?xml version="1.0" encoding="utf-8"?>
-<ismrmrdHeader xmlns="http://www.ismrm.org/ISMRMRD">
- <experimentalConditions><H1resonanceFrequency_Hz>63500000</H1resonanceFrequency_Hz></experimentalConditions>
- <encoding>
-  <encodedSpace><matrixSize><x>64</x><y>64</y><z>1</z></matrixSize>
-   <fieldOfView_mm><x>76.8</x><y>76.8</y><z>3</z></fieldOfView_mm></encodedSpace>
-  <reconSpace><matrixSize><x>64</x><y>64</y><z>1</z></matrixSize>
-   <fieldOfView_mm><x>76.8</x><y>76.8</y><z>3</z></fieldOfView_mm></reconSpace>
-  <encodingLimits>{slice}</encodingLimits>
-  <trajectory>cartesian</trajectory>
- </encoding>
-</ismrmrdHeader>"""
-
-
-def mrd_header(slices: int | None) -> ismrmrd.xsd.ismrmrdHeader:
-    """An MRD XML header whose first encoding has ``slices`` slices (no slice limit: ``None``)."""
-    limit = "" if slices is None else f"<slice><minimum>0</minimum><maximum>{slices - 1}</maximum><center>0</center></slice>"
-    return ismrmrd.xsd.CreateFromDocument(HEADER_XML.replace("{slice}", limit))
 
 
 class NearestOracle(KeyedOracle):
@@ -129,44 +109,3 @@ def serve(case: Case) -> Iterator[Any]:
     for server in servers:
         server.shutdown()
         server.server_close()
-
-
-class MrdClient:
-    """A scanner's side: sends MRD messages, and collects what comes back (in a thread, so that neither
-    side blocks the other) until the server's ``CLOSE``."""
-
-    def __init__(self, port: int) -> None:
-        self.sock = socket.create_connection(("127.0.0.1", port), timeout=120)
-        self.writer = self.sock.makefile("wb")
-        self.outgoing = ismrmrd.ProtocolSerializer(self.writer)
-        self.received: list[Any] = []
-        self.closed_by_server = False
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        incoming = ismrmrd.ProtocolDeserializer(self.sock.makefile("rb"))
-        try:
-            for message in incoming.deserialize():
-                self.received.append(message)
-            self.closed_by_server = True
-        except (EOFError, OSError):
-            pass
-
-    def send(self, *messages: Any) -> None:
-        for message in messages:
-            self.outgoing.serialize(message)
-        self.writer.flush()
-
-    def close(self) -> list[Any]:
-        """Send ``CLOSE``; wait for the server's; everything received."""
-        try:
-            self.outgoing.close()
-        except OSError:
-            pass
-        return self.wait()
-
-    def wait(self) -> list[Any]:
-        self._reader.join(timeout=300)
-        self.sock.close()
-        return self.received

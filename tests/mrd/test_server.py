@@ -15,11 +15,12 @@ import numpy as np
 import pytest
 from ismrmrd.serialization import ConfigText
 
-from service.mrd.images import pose_from_meta
 from service.inference.registry import ModelRegistry
+from service.mrd.images import pose_from_meta
+from service.mrd.send import MrdLink, mrd_header
 from service.mrd.server import MrdServer, ServerLimits, session_factory
 from service.streaming.options import StreamLimits
-from tests.mrd.conftest import Case, MrdClient, mrd_header
+from tests.mrd.conftest import Case
 from tests.support.streams import true_sent
 
 CONFIG = ConfigText(json.dumps({"mc_samples": 10, "bias_correction": False}))
@@ -32,7 +33,7 @@ def texts(received: list) -> list[dict]:
 
 def test_every_image_comes_back_in_order_with_its_true_pose(case: Case, serve) -> None:  # noqa: ANN001
     server = serve()
-    client = MrdClient(server.port)
+    client = MrdLink("127.0.0.1", server.port)
     client.send(ismrmrd.ConfigFile("svrnet"), CONFIG, mrd_header(slices=20))
     sent = [case.images[series][k] for series in (0, 1) for k in INTERLEAVED]
     client.send(*sent)
@@ -120,7 +121,7 @@ def test_a_client_that_never_reads_loses_its_session_and_frees_the_slot(case: Ca
         deadline, answered = time.monotonic() + 60, None
         while answered is None:                                     # the slot frees once the idle limit ends it
             assert time.monotonic() < deadline, "the slot stayed taken"
-            other = MrdClient(server.port)
+            other = MrdLink("127.0.0.1", server.port)
             try:
                 other.send(CONFIG, case.images[1][0])
             except OSError:
@@ -147,7 +148,7 @@ def image_like(image: ismrmrd.Image, data: np.ndarray, **fields: object) -> ismr
 
 def test_unusable_messages_get_an_error_and_the_session_goes_on(case: Case, serve) -> None:  # noqa: ANN001
     server = serve()
-    client = MrdClient(server.port)
+    client = MrdLink("127.0.0.1", server.port)
     first = case.images[0][0]
     plane = first.data
     client.send(ConfigText('{"mc_samples": 0}'), CONFIG,
@@ -176,7 +177,7 @@ def test_unusable_messages_get_an_error_and_the_session_goes_on(case: Case, serv
 
 def test_an_image_over_the_pixel_limit_is_refused_before_its_data(case: Case, serve) -> None:  # noqa: ANN001
     server = serve(StreamLimits(max_pixels=32 * 32))
-    client = MrdClient(server.port)
+    client = MrdLink("127.0.0.1", server.port)
     try:
         client.send(case.images[0][0])
     except OSError:
@@ -189,11 +190,11 @@ def test_an_image_over_the_pixel_limit_is_refused_before_its_data(case: Case, se
 
 def test_sessions_over_the_limit_are_told_to_retry(case: Case, serve) -> None:  # noqa: ANN001
     server = serve(limits=ServerLimits(max_sessions=1))
-    holder = MrdClient(server.port)
+    holder = MrdLink("127.0.0.1", server.port)
     holder.send(CONFIG, case.images[0][0])
     while not holder.received:                          # the first session holds the slot once it answers
         holder._reader.join(timeout=0.05)
-    other = MrdClient(server.port)
+    other = MrdLink("127.0.0.1", server.port)
     (error,) = texts(other.wait())
     assert other.closed_by_server
     assert error["status"] == 503 and error["retry_after_s"] >= 1
@@ -203,7 +204,7 @@ def test_sessions_over_the_limit_are_told_to_retry(case: Case, serve) -> None:  
 @pytest.mark.parametrize("silent_s", [0.2])
 def test_a_silent_connection_is_closed_with_an_error(serve, silent_s: float) -> None:  # noqa: ANN001
     server = serve(limits=ServerLimits(idle_s=silent_s))
-    client = MrdClient(server.port)
+    client = MrdLink("127.0.0.1", server.port)
     (error,) = texts(client.wait())
     assert client.closed_by_server and "no message for too long" in error["detail"] and error["status"] == 408
 
@@ -241,7 +242,7 @@ def test_a_header_gives_the_slices_of_a_series_only_when_it_says_so(limit: str, 
     from types import SimpleNamespace
 
     from service.mrd.connection import MrdConnection
-    from tests.mrd.conftest import HEADER_XML
+    from service.mrd.send import HEADER_XML
 
     connection = SimpleNamespace(slices_per_series=-1)
     header = ismrmrd.xsd.CreateFromDocument(HEADER_XML.replace(
@@ -252,7 +253,7 @@ def test_a_header_gives_the_slices_of_a_series_only_when_it_says_so(limit: str, 
 
 def test_a_text_message_that_cannot_be_parsed_is_a_bad_request_not_an_unusable_image(serve) -> None:  # noqa: ANN001
     server = serve()
-    client = MrdClient(server.port)
+    client = MrdLink("127.0.0.1", server.port)
     text = b"\xff\xfe not utf-8"
     client.writer.write(int(ismrmrd.serialization.ISMRMRDMessageID.TEXT).to_bytes(2, "little")
                         + len(text).to_bytes(4, "little") + text)
@@ -264,7 +265,7 @@ def test_a_text_message_that_cannot_be_parsed_is_a_bad_request_not_an_unusable_i
 def test_an_image_errors_name_the_mrd_header_fields(case: Case, serve) -> None:  # noqa: ANN001
     """A geometry no acquisition has (30 mm pixels) is refused in the image header's own terms."""
     server = serve()
-    client = MrdClient(server.port)
+    client = MrdLink("127.0.0.1", server.port)
     first = case.images[0][0]
     nx = first.matrix_size[0]
     huge = image_like(first, first.data)

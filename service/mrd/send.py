@@ -1,0 +1,295 @@
+"""``svrnet-mrd-send``: stack files sent to an ``svrnet-mrd`` server as a scanner sends them.
+
+What a site sees before it connects a scanner: each stack file (NIfTI, NRRD, MHA) becomes one MRD
+image series (``image_series_index`` = the file's place on the command line), cut along its slice
+axis (the voxel axis of largest spacing, as ``/v1/predict`` cuts it) into 2D magnitude images
+whose headers place every pixel where the file's affine does (:func:`~service.mrd.images.image_from_slice`),
+sent in acquisition order (``--order``) over one connection, the answers read as they come
+(:class:`MrdLink`). It prints one line per series (images answered and accepted, the median
+expected error, the answers' latency) and, with ``--out``, writes every answer as a JSON line:
+images as ``{"type": "image", "series", "slice", ...}`` with their pose (the ``SVRnet.*`` meta
+attributes, :func:`~service.mrd.images.pose_from_meta`), TEXT messages as the server sent them.
+
+When every series has as many slices, the XML header says so, and each series ends (its ``stack``
+message) as soon as it has arrived; otherwise the series end at ``CLOSE``.
+
+Exit codes: 0 once the server's summary arrived, 2 for bad options, 3 when the server cannot be
+reached or ends the session before its summary, 5 for a file that cannot be read as a stack.
+
+Example:
+    >>> order_of_sending(5, "interleaved"), order_of_sending(4, "3,2,1,0")
+    ([0, 2, 4, 1, 3], [3, 2, 1, 0])
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import ismrmrd
+import numpy as np
+from ismrmrd.serialization import ConfigText
+
+from service.consistency.slice_order import SliceOrder
+from service.io.volume import Volume, read_volume
+from service.mrd.images import image_from_slice, pose_from_meta
+from service.preprocess.stack import slice_axis_of
+
+DEFAULT_PORT = 9002
+EXIT_OK, EXIT_USAGE, EXIT_CONNECTION, EXIT_BAD_INPUT = 0, 2, 3, 5
+HEADER_XML = """<?xml version="1.0" encoding="utf-8"?>
+<ismrmrdHeader xmlns="http://www.ismrm.org/ISMRMRD">
+ <experimentalConditions><H1resonanceFrequency_Hz>63500000</H1resonanceFrequency_Hz></experimentalConditions>
+ <encoding>
+  <encodedSpace><matrixSize><x>1</x><y>1</y><z>1</z></matrixSize>
+   <fieldOfView_mm><x>1</x><y>1</y><z>1</z></fieldOfView_mm></encodedSpace>
+  <reconSpace><matrixSize><x>1</x><y>1</y><z>1</z></matrixSize>
+   <fieldOfView_mm><x>1</x><y>1</y><z>1</z></fieldOfView_mm></reconSpace>
+  <encodingLimits>{slice}</encodingLimits>
+  <trajectory>cartesian</trajectory>
+ </encoding>
+</ismrmrdHeader>"""
+
+
+def mrd_header(slices: int | None) -> ismrmrd.xsd.ismrmrdHeader:
+    """An MRD XML header whose first encoding states ``slices`` slices a series (``None``: no limit;
+    the server then ends each series at ``CLOSE``)."""
+    limit = "" if slices is None else f"<slice><minimum>0</minimum><maximum>{slices - 1}</maximum><center>0</center></slice>"
+    return ismrmrd.xsd.CreateFromDocument(HEADER_XML.replace("{slice}", limit))
+
+
+def order_of_sending(count: int, order: str = "sequential") -> list[int]:
+    """The slice indices of a stack of ``count`` slices in the order a scanner acquires them: a named
+    order of ``/v1/predict``'s ``slice_order`` (``interleaved``: even indices first) or the indices
+    themselves, comma-separated (:class:`ValueError`, saying why, otherwise)."""
+    parsed = SliceOrder.parse(order)
+    if parsed.sequence is None and len(parsed.names) > 2:
+        raise ValueError("'auto' is not an order to send in; name one, or give the slice indices")
+    times = next(iter(parsed.times(count).values()))
+    return np.argsort(times, kind="stable").tolist()
+
+
+def series_images(volume: Volume, series: int, order: str = "sequential") -> list[ismrmrd.Image]:
+    """The MRD images of a stack, one per slice along its slice axis, in acquisition ``order``: image
+    ``(x, y)`` is voxel ``(x, y)`` of the two in-plane axes in increasing order, its header placing it
+    where ``volume.affine`` places that voxel; ``slice`` is the index along the slice axis,
+    ``image_index`` the place in the order of sending."""
+    axis = slice_axis_of(volume.spacing)
+    first, second = [a for a in range(3) if a != axis]
+    array = np.moveaxis(np.asarray(volume.array, np.float32), (first, second, axis), (0, 1, 2))
+    base = np.asarray(volume.affine, np.float64)[:, [first, second, axis, 3]]
+    images = []
+    for sent, k in enumerate(order_of_sending(array.shape[2], order)):
+        placed = base.copy()
+        placed[:3, 3] = base[:3, 3] + k * base[:3, 2]
+        images.append(image_from_slice(array[:, :, k], placed, series=series, slice_index=k, image_index=sent))
+    return images
+
+
+def answer_record(message: Any) -> dict[str, Any]:
+    """What the server sent, as one JSON object: an image's series, slice and pose, or a TEXT message."""
+    if isinstance(message, ismrmrd.Image):
+        return {"type": "image", "series": int(message.image_series_index), "slice": int(message.slice),
+                **pose_from_meta(message.meta)}
+    if isinstance(message, str):
+        try:
+            return json.loads(message)
+        except ValueError:
+            return {"type": "text", "text": message}
+    return {"type": type(message).__name__}
+
+
+class MrdLink:
+    """One connection to an MRD server: messages out, and every message back collected by a thread of
+    its own (so that neither side waits for the other to read) until the server's ``CLOSE``."""
+
+    def __init__(self, host: str, port: int, timeout_s: float = 120.0,
+                 on_message: Callable[[Any], None] | None = None) -> None:
+        self.sock = socket.create_connection((host, port), timeout=timeout_s)
+        self.writer = self.sock.makefile("wb")
+        self.outgoing = ismrmrd.ProtocolSerializer(self.writer)
+        self.received: list[Any] = []
+        self.closed_by_server = False
+        self.on_message = on_message
+        self.failure: Exception | None = None
+        """What ``on_message`` raised first (re-raised by :meth:`wait`; the messages are still all read)."""
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        incoming = ismrmrd.ProtocolDeserializer(self.sock.makefile("rb"))
+        try:
+            for message in incoming.deserialize():
+                self.received.append(message)
+                if self.on_message is not None and self.failure is None:
+                    try:
+                        self.on_message(message)
+                    except Exception as exc:  # noqa: BLE001 - kept for wait(); the reading goes on
+                        self.failure = exc
+            self.closed_by_server = True
+        except (EOFError, OSError):
+            pass
+
+    def send(self, *messages: Any) -> None:
+        for message in messages:
+            self.outgoing.serialize(message)
+        self.writer.flush()
+
+    def close(self, wait_s: float = 300.0) -> list[Any]:
+        """Send ``CLOSE``; wait for the server's; everything received."""
+        try:
+            self.outgoing.close()
+        except OSError:
+            pass
+        return self.wait(wait_s)
+
+    def wait(self, wait_s: float = 300.0) -> list[Any]:
+        """Wait (at most ``wait_s``) for the server to end the connection; everything received."""
+        self._reader.join(timeout=wait_s)
+        self.sock.close()
+        if self.failure is not None:
+            raise self.failure
+        return self.received
+
+
+@dataclass
+class SeriesTally:
+    """What came back for one series: its images' immediate answers, and its slices' poses as the
+    ``stack`` message gave them and later ``update`` messages moved them (a later series can move and
+    accept an ended one's slices)."""
+
+    name: str
+    sent: int
+    answered: int = 0
+    accepted_at_once: int = 0
+    latency_ms: list[float] = field(default_factory=list)
+    final: dict[tuple[str, int], dict[str, Any]] = field(default_factory=dict)
+    reacquire: dict[str, int] = field(default_factory=dict)
+
+    def take(self, record: dict[str, Any]) -> None:
+        """Count an answer of this series (an ``image`` record, its ``stack`` or ``update`` message)."""
+        kind = record["type"]
+        if kind == "image":
+            self.answered += 1
+            self.accepted_at_once += bool(record.get("accepted"))
+            self.latency_ms.append(float(record.get("latency_ms") or 0.0))
+            return
+        stack = str(record.get("stack"))
+        if kind == "stack" or (kind == "update" and any(name == stack for name, _ in self.final)):
+            self.final.update({(stack, int(s["index"])): s for s in record.get("slices", [])})
+            if "reacquire" in record:
+                self.reacquire[stack] = len(record["reacquire"])
+
+    def line(self) -> str:
+        latency = (f" (latency p50 / p95 {np.percentile(self.latency_ms, 50):.0f} / "
+                   f"{np.percentile(self.latency_ms, 95):.0f} ms)" if self.latency_ms else "")
+        text = f"{self.name}: {self.answered} of {self.sent} answered{latency}, {self.accepted_at_once} accepted at once"
+        if not self.final:
+            return text + "; no final poses"
+        final = list(self.final.values())
+        expected = [s["expected_error_mm"] for s in final if s.get("expected_error_mm") is not None]
+        median = f"{np.median(expected):.1f} mm" if expected else "-"
+        accepted = sum(bool(s.get("accepted")) for s in final)
+        return (text + f"; final: {accepted} of {len(final)} accepted, median expected error {median}, "
+                f"{sum(self.reacquire.values())} worth acquiring again")
+
+
+def send_series(series: Sequence[Sequence[ismrmrd.Image]], names: Sequence[str], host: str, port: int,
+                config: dict[str, Any] | None = None, pace_s: float = 0.0,
+                out: IO[str] | None = None) -> tuple[list[SeriesTally], list[dict[str, Any]], bool]:
+    """Send image ``series`` (:func:`series_images`; ``names`` for the tallies) over one connection,
+    ``pace_s`` seconds between images; each series' tally, every TEXT message, and whether the
+    session ended with the server's summary. Every answer goes to ``out`` as a JSON line as it
+    arrives."""
+    tallies = [SeriesTally(name, len(images)) for name, images in zip(names, series)]
+    texts: list[dict[str, Any]] = []
+
+    def on_message(message: Any) -> None:
+        record = answer_record(message)
+        if out is not None:
+            out.write(json.dumps(record) + "\n")
+        if record["type"] != "image":
+            texts.append(record)
+        series = record.get("series", str(record.get("stack", "")).split(".")[0])
+        if str(series).isdigit() and int(series) < len(tallies):
+            tallies[int(series)].take(record)
+
+    counts = {len(images) for images in series}
+    header = mrd_header(counts.pop() if len(counts) == 1 else None)
+    link = MrdLink(host, port, on_message=on_message)
+    link.send(ismrmrd.ConfigFile("svrnet"), ConfigText(json.dumps(config or {})), header)
+    for images in series:
+        for image in images:
+            link.send(image)
+            if pace_s > 0:
+                time.sleep(pace_s)
+    link.close()
+    return tallies, texts, any(t.get("type") == "summary" for t in texts)
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="svrnet-mrd-send", description="Send stack files to an svrnet-mrd server "
+                                 "as MRD images, as a scanner sends them, and show what comes back.")
+    ap.add_argument("stacks", nargs="+", type=Path, help="stack files (NIfTI, NRRD, MHA); one MRD series each")
+    ap.add_argument("--host", default="127.0.0.1", help="the server's address (default 127.0.0.1)")
+    ap.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"its port (default {DEFAULT_PORT})")
+    ap.add_argument("--order", default="sequential", help="acquisition order: sequential, interleaved, "
+                    "interleaved-odd-first, or the slice indices as acquired (0,2,4,1,3)")
+    ap.add_argument("--config", default="{}", help='session options as JSON, e.g. \'{"mc_samples": 50}\'')
+    ap.add_argument("--pace-s", type=float, default=0.0, help="seconds between images (a scanner's pace)")
+    ap.add_argument("--out", type=Path, help="write every answer as a JSON line to this file")
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    try:
+        config = json.loads(args.config)
+        if not isinstance(config, dict):
+            raise ValueError("not a JSON object")
+    except ValueError as e:
+        return _fail(f"--config: {e}", EXIT_USAGE)
+    volumes = []
+    for path in args.stacks:
+        try:
+            volumes.append(read_volume(path))
+        except (RuntimeError, OSError, ValueError) as e:
+            return _fail(f"{path.name}: not readable as a stack ({str(e).strip().splitlines()[-1]})", EXIT_BAD_INPUT)
+    try:
+        series = [series_images(volume, i, args.order) for i, volume in enumerate(volumes)]
+    except ValueError as e:
+        return _fail(f"--order: {e}", EXIT_USAGE)
+    names = [f"series {i} ({path.name})" for i, path in enumerate(args.stacks)]
+    out = open(args.out, "w", encoding="utf-8") if args.out else None
+    try:
+        tallies, texts, complete = send_series(series, names, args.host, args.port, config, args.pace_s, out)
+    except OSError as e:
+        return _fail(f"{args.host}:{args.port}: {e.strerror or e}", EXIT_CONNECTION)
+    finally:
+        if out is not None:
+            out.close()
+    for tally in tallies:
+        print(tally.line())
+    for error in (t for t in texts if t.get("type") == "error"):
+        print(f"error {error.get('status')}: {error.get('detail')}", file=sys.stderr)
+    if not complete:
+        return _fail("the server ended the session before its summary", EXIT_CONNECTION)
+    return EXIT_OK
+
+
+def _fail(message: str, code: int) -> int:
+    print(f"svrnet-mrd-send: {message}", file=sys.stderr)
+    return code
+
+
+def run() -> None:
+    """Console entry point."""
+    sys.exit(main())
