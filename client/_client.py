@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import io
 import json
-import os
 import time
 import zipfile
 from collections.abc import Callable, Mapping, Sequence
@@ -22,9 +21,10 @@ from typing import Any
 from urllib.parse import quote
 
 from client import transport
-from client.errors import ArgumentError, Busy, ConnectionFailed, JobFailed, ServerError, SVRnetError, WaitTimeout
+from client.errors import Busy, ConnectionFailed, JobFailed, ServerError, SVRnetError, WaitTimeout
 from client.multipart import MultipartBody, ProgressCallback, form_value, order_fields
 from client.transport import DEFAULT_SERVER, DEFAULT_TIMEOUT, PathLike, Transport
+from client.upload_files import file_parts
 
 __all__ = ["SVRnetClient", "DEFAULT_SERVER", "DEFAULT_TIMEOUT", "ProgressCallback", "PathLike"]
 
@@ -35,37 +35,6 @@ models in seconds to tens of seconds; the job goes on meanwhile)."""
 
 MAX_MASK_BYTES = 1 << 30
 """The largest archive member :meth:`SVRnetClient.masks` writes (a mask file of the server's)."""
-MAX_FOLDER_BYTES = 512 << 20
-"""The most a folder of one DICOM series may hold to be sent (zipped in memory; the server's default
-upload limit)."""
-
-
-def zipped_folder(folder: Path) -> bytes:
-    """A folder of one DICOM series as the ``.zip`` the server takes: its files (sub-folders
-    included; hidden files and links not, so nothing outside the folder goes), stored under their
-    paths in it.
-
-    Raises:
-        ArgumentError: naming the folder, when it holds no file or more than :data:`MAX_FOLDER_BYTES`.
-
-    Example:
-        >>> import tempfile
-        >>> d = Path(tempfile.mkdtemp()); _ = (d / "IM0001.dcm").write_bytes(b"x"); _ = (d / ".DS_Store").write_bytes(b"")
-        >>> zipfile.ZipFile(io.BytesIO(zipped_folder(d))).namelist()
-        ['IM0001.dcm']
-    """
-    files = sorted(p for p in folder.rglob("*")
-                   if p.is_file() and not p.is_symlink()
-                   and not any(part.startswith(".") for part in p.relative_to(folder).parts))
-    if not files:
-        raise ArgumentError(f"stacks: the folder {folder} holds no file")
-    if sum(p.stat().st_size for p in files) > MAX_FOLDER_BYTES:
-        raise ArgumentError(f"stacks: the folder {folder} holds more than {MAX_FOLDER_BYTES >> 20} MB; send one series")
-    buffer = io.BytesIO()
-    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as archive:
-        for p in files:
-            archive.write(p, p.relative_to(folder).as_posix())
-    return buffer.getvalue()
 
 
 class SVRnetClient(Transport):
@@ -91,30 +60,6 @@ class SVRnetClient(Transport):
         ...     print([m["name"] for m in svr.models()])
         ['default']
     """
-
-    @staticmethod
-    def _files(stacks: Sequence[PathLike], masks: Sequence[PathLike] | None) -> list[tuple[str, str, Path | bytes, str]]:
-        """The upload's file parts; a stack given as a folder (one DICOM series) goes as its ``.zip``."""
-        if isinstance(stacks, (str, os.PathLike)):
-            stacks = [stacks]
-        if isinstance(masks, (str, os.PathLike)):
-            masks = [masks]
-        if not stacks:
-            raise ArgumentError("stacks: at least one file is required")
-        masks = list(masks or [])
-        if masks and len(masks) != len(stacks):
-            raise ArgumentError(f"masks: {len(masks)} given for {len(stacks)} stacks; give none or one per stack")
-        files: list[tuple[str, str, Path | bytes, str]] = []
-        for field, paths in (("stacks", stacks), ("masks", masks)):
-            for p in paths:
-                path = Path(p)
-                if field == "stacks" and path.is_dir():
-                    files.append((field, f"{path.resolve().name}.zip", zipped_folder(path), "application/zip"))
-                    continue
-                if not path.is_file():
-                    raise FileNotFoundError(f"{field}: no such file: {path}")
-                files.append((field, path.name, path, "application/octet-stream"))
-        return files
 
     @staticmethod
     def _job_path(job_id: str, suffix: str = "") -> str:
@@ -191,7 +136,7 @@ class SVRnetClient(Transport):
                                                    ("masks_hold_csf", masks_hold_csf))
                   if v is not None]
         fields += order_fields(slice_order)
-        body = MultipartBody(fields, self._files(stacks, masks))
+        body = MultipartBody(fields, file_parts(stacks, masks))
         return self._json(self._send("POST", "/v1/predict", body=body, progress=progress))
 
     def masks(self, stacks: Sequence[PathLike], out_dir: PathLike, *, model: str | None = None,
@@ -211,7 +156,7 @@ class SVRnetClient(Transport):
             0.97
         """
         fields = [(k, v) for k, v in (("model", model), ("margin_mm", margin_mm)) if v is not None]
-        body = MultipartBody(fields, self._files(stacks, None))
+        body = MultipartBody(fields, file_parts(stacks, None))
         response = self._send("POST", "/v1/masks", body=body, progress=progress)
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
@@ -272,7 +217,7 @@ class SVRnetClient(Transport):
         fields += order_fields(slice_order)
         thickness = [slice_thickness_mm] if isinstance(slice_thickness_mm, (int, float)) else slice_thickness_mm or []
         fields += [("slice_thickness_mm", form_value(float(t))) for t in thickness]
-        files: list[tuple[str, str, Path | bytes, str]] = list(self._files(stacks, masks))
+        files: list[tuple[str, str, Path | bytes, str]] = list(file_parts(stacks, masks))
         if poses is not None:
             if isinstance(poses, Mapping):
                 files.append(("poses", "poses.json", json.dumps(poses).encode(), "application/json"))

@@ -1,9 +1,10 @@
 """Stream v1 from the scanner side: stack files sent slice by slice over ``/v1/stream`` (``docs/stream.md``).
 
 A stack file is cut along its slice axis (the voxel axis of largest spacing, ties to the last, as
-``/v1/predict`` does) into the 2D slices a scanner would send (:func:`scanner_slices`);
-:func:`stream_stacks` sends them in one session over :func:`websockets.sync.client.connect`, a few
-slices ahead of their poses, and hands every message the server sends to a callback.
+``/v1/predict`` does) into the 2D slices a scanner would send (:mod:`client.scanner_stack`, whose
+names this module re-exports); :func:`stream_stacks` sends them in one session over
+:func:`websockets.sync.client.connect`, a few slices ahead of their poses, and hands every message
+the server sends to a callback.
 
 Example:
     >>> from client.stream import read_stack, stream_stacks
@@ -17,7 +18,6 @@ from __future__ import annotations
 
 import json
 import time
-import zlib
 from collections import deque
 from collections.abc import Callable, Sequence
 from contextlib import nullcontext
@@ -25,21 +25,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
-import nibabel as nib
 import numpy as np
-from numpy.typing import NDArray
 from websockets.exceptions import ConnectionClosed, InvalidStatus, InvalidURI, WebSocketException
 from websockets.sync.client import ClientConnection, connect
 
 from client.transport import USER_AGENT
 from client._client import DEFAULT_SERVER
-from client.errors import (ArgumentError, Busy, ConnectionFailed, SVRnetError, UnsupportedFile,
-                           UnusableInput, error_class_for_status)
+from client.errors import ArgumentError, Busy, ConnectionFailed, SVRnetError, UnusableInput, error_class_for_status
+from client.scanner_stack import SENT_DTYPES, ScannerSlice, ScannerStack, read_stack, scanner_slices, slice_axis_of
 
 __all__ = ["ScannerSlice", "ScannerStack", "Sent", "StreamResult", "ORDERS", "slice_axis_of", "scanner_slices",
            "read_stack", "send_order", "stream_url", "stream_stacks"]
 
-SENT_DTYPES = ("uint8", "int16", "uint16")   # sent as they are; any other as float32 (all little endian)
 ORDERS = ("sequential", "interleaved", "interleaved-even-first", "interleaved-odd-first")
 """The named acquisition orders (``/v1/predict``'s ``slice_order`` words); slice indices as acquired
 (``0,2,4,1,3``) are taken too."""
@@ -50,33 +47,6 @@ MAX_MESSAGE_BYTES = 64 << 20
 """Largest message taken from the server (a ``stack`` message of a long stack is a few MB)."""
 
 MessageCallback = Callable[[dict[str, Any], "Sent | None"], None]
-
-
-@dataclass(frozen=True)
-class ScannerSlice:
-    """One slice as a scanner sends it.
-
-    Attributes:
-        index: its position along the stack's slice axis, 0-based.
-        pixels: ``[n0, n1]``: the two in-plane voxel axes of the file, in increasing axis order.
-        scanner_from_voxel: ``4 x 4``: voxel ``(i0, i1, 0, 1)`` of ``pixels`` -> scanner RAS mm.
-        mask: ``[n0, n1]`` brain mask (``None``: the server finds the brain).
-    """
-
-    index: int
-    pixels: NDArray
-    scanner_from_voxel: NDArray[np.float64]
-    mask: NDArray[np.bool_] | None = None
-
-
-@dataclass(frozen=True)
-class ScannerStack:
-    """A stack file cut into the slices a scanner would send: its ``name`` in the session, the file's
-    ``slice_axis`` and its ``slices`` in index order."""
-
-    name: str
-    slice_axis: int
-    slices: list[ScannerSlice]
 
 
 @dataclass(frozen=True)
@@ -99,92 +69,6 @@ class StreamResult:
     def of_type(self, kind: str) -> list[dict[str, Any]]:
         """The messages of one type (``pose``, ``update``, ``stack``, ``error`` ...), in order."""
         return [m for m in self.messages if m.get("type") == kind]
-
-
-def slice_axis_of(spacing: Sequence[float]) -> int:
-    """The voxel axis of largest spacing; ties go to the last axis (as the server's ``/v1/predict``).
-
-    Example:
-        >>> slice_axis_of([1.0, 4.0, 1.0]), slice_axis_of([3.0, 1.0, 3.0]), slice_axis_of([2.0, 2.0, 2.0])
-        (1, 2, 2)
-    """
-    sp = np.asarray(spacing, dtype=np.float64)
-    return int(np.flatnonzero(sp >= sp.max() * (1 - 1e-6))[-1])
-
-
-def scanner_slices(image: NDArray, affine: NDArray, mask: NDArray | None = None) -> tuple[int, list[ScannerSlice]]:
-    """The slices a scanner would send of a 3D ``image`` with its voxel -> RAS mm ``affine``.
-
-    Args:
-        image: the stack's voxels ``[n_x, n_y, n_z]``.
-        affine: ``4 x 4``, voxel -> RAS mm (a NIfTI file's affine).
-        mask: brain mask on the image's grid, or ``None``.
-
-    Returns:
-        The slice axis and the slices in index order: voxel ``(i0, i1, 0)`` of slice ``k`` is voxel
-        ``(k, i0, i1)``, ``(i0, k, i1)`` or ``(i0, i1, k)`` of ``image`` as the slice axis is 0, 1 or 2.
-
-    Example:
-        >>> affine = np.diag([1.0, 4.0, 1.5, 1.0])                 # axis 1 is the thickest: the slice axis
-        >>> axis, slices = scanner_slices(np.arange(24).reshape(2, 3, 4), affine)
-        >>> axis, len(slices), slices[2].pixels.shape, int(slices[2].pixels[1, 3])
-        (1, 3, (2, 4), 23)
-        >>> slices[2].scanner_from_voxel @ [1, 3, 0, 1]             # voxel (1, 2, 3) of the file
-        array([1. , 8. , 4.5, 1. ])
-    """
-    affine = np.asarray(affine, dtype=np.float64)
-    axis = slice_axis_of(np.linalg.norm(affine[:3, :3], axis=0))
-    first, second = (ax for ax in range(3) if ax != axis)
-    reordered = affine[:, [first, second, axis, 3]]
-    slices = []
-    for k in range(image.shape[axis]):
-        at = (slice(None),) * axis + (k,)
-        scanner_from_voxel = reordered.copy()
-        scanner_from_voxel[:3, 3] = affine[:3, 3] + k * affine[:3, axis]
-        slices.append(ScannerSlice(k, image[at], scanner_from_voxel, None if mask is None else mask[at] > 0))
-    return axis, slices
-
-
-def _volume(path: Path, what: str) -> tuple[NDArray, NDArray[np.float64]]:
-    """A 3D NIfTI file's voxels (scaled where the file says) and its affine."""
-    try:
-        img = nib.load(str(path))
-        data = np.asanyarray(img.dataobj)
-    except nib.filebasedimages.ImageFileError as e:
-        raise UnsupportedFile(f"{what}: {path.name} is not a NIfTI file nibabel can read ({e})") from None
-    except (EOFError, OSError, ValueError, zlib.error) as e:          # a truncated or corrupt file
-        raise UnsupportedFile(f"{what}: {path.name} is truncated or corrupt ({type(e).__name__}: {e})") from None
-    data = data.reshape(data.shape[:3]) if data.ndim > 3 and np.prod(data.shape[3:]) == 1 else data
-    if data.ndim != 3:
-        raise UnusableInput(f"{what}: {path.name} has shape {data.shape}; a stack is 3D")
-    return data, np.asarray(img.affine, dtype=np.float64)
-
-
-def read_stack(path: str | Path, mask_path: str | Path | None = None, name: str | None = None) -> ScannerStack:
-    """A NIfTI stack file (and its mask on the same grid) cut into the slices a scanner would send.
-
-    Pixels of ``uint8``, ``int16`` or ``uint16`` files go out as they are; any other type as ``float32``.
-
-    Args:
-        path: the stack file (``.nii`` or ``.nii.gz``).
-        mask_path: its brain mask on the same grid, or ``None`` (the server finds the brain).
-        name: the stack's name in the session (default: the file name without its extension).
-
-    Raises:
-        UnsupportedFile: a file nibabel cannot read. UnusableInput: not 3D, or the mask's grid differs.
-    """
-    path = Path(path)
-    image, affine = _volume(path, "stack")
-    if image.dtype.name not in SENT_DTYPES:
-        image = image.astype(np.float32)
-    mask = None
-    if mask_path is not None:
-        mask, mask_affine = _volume(Path(mask_path), "mask")
-        if mask.shape != image.shape or not np.allclose(mask_affine, affine, atol=1e-3):
-            raise UnusableInput(f"mask: the grid of {Path(mask_path).name} ({mask.shape}) differs from that of its "
-                                f"stack {path.name} ({image.shape})")
-    axis, slices = scanner_slices(image, affine, mask)
-    return ScannerStack(name or path.name.removesuffix(".gz").removesuffix(".nii"), axis, slices)
 
 
 def send_order(count: int, order: str = "sequential") -> list[int]:

@@ -19,7 +19,7 @@ from service.pipeline.prepare import check_mask_grid
 from service.core.errors import Conflict, InvalidParameter, NotFound
 from service.io.acquisition_geometry import MAX_VOXEL_MM, MIN_VOXEL_MM
 from service.jobs.store import Job, JobStore
-from service.jobs.worker import in_upload_order, poses_from_predict_body
+from service.jobs.uploaded_poses import in_upload_order, poses_from_predict_body
 from service.preprocess.stack import slice_axis_of
 from service.reconstruction.export import zip_folder
 

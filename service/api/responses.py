@@ -21,7 +21,7 @@ from service.consistency.stage import StackPoses
 from service.core.errors import ServiceError
 from service.geometry import anchors
 from service.pipeline.predict import StackPrediction
-from service.streaming.session import SessionSummary, SliceAnswer, StackAnswer
+from service.streaming.answers import SessionSummary, SliceAnswer, StackAnswer
 
 
 def _finite(value: float) -> float | None:

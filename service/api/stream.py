@@ -42,9 +42,10 @@ from service.core.errors import (
     Unauthorized,
 )
 from service.core.names import has_unsafe_characters
+from service.streaming.answers import SliceAnswer
 from service.streaming.frames import SliceFrame
 from service.streaming.options import SessionOptions, StreamLimits
-from service.streaming.session import SliceAnswer, StreamSession
+from service.streaming.session import StreamSession
 
 router = APIRouter()
 T = TypeVar("T")

@@ -19,7 +19,8 @@ The stages are those of ``/v1/predict`` (:mod:`service.pipeline.predict`), run a
    the stacks ended before it and their network statistics, through the same request-level stages
    (:func:`~service.pipeline.predict.predict_from_estimates`): its poses are those ``/v1/predict``
    gives for these stacks. Earlier stacks' slices that moved are returned as updates; the slices
-   worth acquiring again and the session's coverage of the brain come with the stack.
+   worth acquiring again and the session's coverage of the brain come with the stack (the answers:
+   :mod:`~service.streaming.answers`).
 
 Every pose an answer holds maps the slice **as sent**: ``network_from_voxel`` of each answer takes
 voxel ``(i0, i1, 0, 1)`` of the sent slice to the network frame (composed once, in
@@ -31,7 +32,7 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -50,6 +51,7 @@ from service.preprocess.localise import Localisation, Localiser
 from service.preprocess.slices import preprocess_slices
 from service.preprocess.stack import split_stack
 from service.streaming import immediate
+from service.streaming.answers import SessionSummary, SliceAnswer, StackAnswer, moved_mm, worth_acquiring_again
 from service.streaming.background import stage_process
 from service.streaming.coverage import Coverage, CoveredSlice, coverage
 from service.streaming.frames import SliceFrame, StreamedStack, check_frame
@@ -64,40 +66,6 @@ FIRM_UP_GROWTH = 0.25
 the stage's cost grows with the stack, so its total stays near linear in the slices."""
 WINDOW = 1
 """Neighbours on each side the localiser sees with a slice (when they have arrived)."""
-
-
-@dataclass
-class SliceAnswer:
-    """One slice's pose: row ``row`` of ``prediction``, whose ``network_from_voxel`` maps the slice as sent."""
-
-    stack: str
-    index: int
-    prediction: StackPrediction
-    row: int = 0
-    compute_ms: float = 0.0
-
-
-@dataclass
-class StackAnswer:
-    """A stack's final poses, the earlier slices they moved, what to acquire again, the coverage."""
-
-    stack: str
-    prediction: StackPrediction
-    updates: list[SliceAnswer]
-    reacquire: list[tuple[int, str]]
-    coverage: Coverage
-    timings: dict[str, float]
-    judged_alone: bool = False                                   # no stack had ended before it
-    reacquire_of: dict[str, list[tuple[int, str]]] = field(default_factory=dict)   # earlier stacks' lists that changed
-
-
-@dataclass
-class SessionSummary:
-    stacks: list[str]
-    coverage: Coverage
-    slices: int
-    compute_ms: dict[str, float]
-    reacquire: dict[str, list[tuple[int, str]]] = field(default_factory=dict)   # each ended stack's, final
 
 
 @dataclass
@@ -123,31 +91,6 @@ def sent_network_from_voxel(p: StackPrediction, frames: list[SliceFrame]) -> NDA
     (built from those slices): through the scanner and the stack's voxel ``(i0, i1, k)``."""
     stack_from_sent = np.linalg.inv(p.prepared.upload.volume.affine) @ np.stack([f.scanner_from_voxel for f in frames])
     return p.network_from_voxel @ stack_from_sent
-
-
-def moved_mm(a: SliceAnswer, b: SliceAnswer, reference: NDArray) -> float:
-    """E.D. between the poses of two answers for one slice, in the frame ``reference`` (sent voxel ->
-    a fixed network frame of the slice), so that different crops compare."""
-    def pose(x: SliceAnswer) -> NDArray:
-        return x.prediction.poses.poses[x.row] @ x.prediction.network_from_voxel[x.row] @ np.linalg.inv(reference)
-    return float(anchors.ed(pose(a), pose(b)))
-
-
-def worth_acquiring_again(reasons: list[str | None], judged_alone: bool) -> list[tuple[int, str]]:
-    """``(index, reason)`` of the slices of a stack worth acquiring again: those not accepted, but
-    for ``empty`` ones (no brain: nothing to gain) and, for a stack judged alone (the session's
-    first), those whose only fault is their expected error: the next stack that crosses them is
-    what brings it down (the shared real scan's axial stack: 0 of 24 accepted alone, 21 once the
-    coronal stack ended).
-
-    Example:
-        >>> worth_acquiring_again([None, "empty", "high_expected_error", "inconsistent_with_stack"], True)
-        [(3, 'inconsistent_with_stack')]
-        >>> worth_acquiring_again([None, "high_expected_error"], False)
-        [(1, 'high_expected_error')]
-    """
-    waits = {acceptance.EMPTY} | ({acceptance.HIGH_EXPECTED_ERROR} if judged_alone else set())
-    return [(k, r) for k, r in enumerate(reasons) if r is not None and r not in waits]
 
 
 class StreamSession:

@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
-from service.jobs.worker import (MIN_ACCEPTED_SHARE, MIN_ACCEPTED_SLICES, posed_slices, poses_from_predict_body,
-                                 start_label, starting_inclusion, starting_poses)
+from service.jobs.worker import (MIN_ACCEPTED_SHARE, MIN_ACCEPTED_SLICES, posed_slices, start_label,
+                                 starting_inclusion, starting_poses)
 
 
 def _poses(*accepted: list[bool]) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -63,35 +62,6 @@ def test_too_few_accepted_slices_start_every_slice_whatever_their_share() -> Non
     assert [inc.tolist() for _, inc in starting_inclusion(_poses(enough))] == [enough]
 
 
-def _slices(n: int, accepted: list[bool] | None = None) -> list[dict]:
-    """Slice ``k`` at z = 3.5 k (a rigid placement of 1.5 x 1.5 x 3.5 mm voxels)."""
-    out = []
-    for k in range(n):
-        m = np.diag([1.5, 1.5, 3.5, 1.0])
-        m[2, 3] = 3.5 * k
-        out.append({"index": k, "accepted": True if accepted is None else accepted[k], "atlas_from_voxel": m.tolist()})
-    return out
-
-
-def test_uploaded_poses_are_matched_to_slices_by_their_index_not_their_place() -> None:
-    spacing = [[1.5, 1.5, 3.5]]
-    listed = _slices(4, [True, False, True, True])[::-1]            # as a client may list them: 3, 2, 1, 0
-    body = {"stacks": [{"slices": listed}]}
-    ((mats, acc),) = poses_from_predict_body(body, [4], spacing)
-    np.testing.assert_allclose(mats[:, 2, 3], [0.0, 3.5, 7.0, 10.5])
-    assert acc.tolist() == [True, False, True, True]
-    assert [s["index"] for s in body["stacks"][0]["slices"]] == [0, 1, 2, 3]       # stored in that order
-    unindexed = [{k: v for k, v in s.items() if k != "index"} for s in _slices(4)[::-1]]
-    ((mats, _),) = poses_from_predict_body({"stacks": [{"slices": unindexed}]}, [4], spacing)
-    np.testing.assert_allclose(mats[:, 2, 3], [10.5, 7.0, 3.5, 0.0])                 # no index: the list's order
-    for indices in ([0, 1, 1, 3], [0, 1, 2, 4], [0, 1, None, 3], [0, 1, 2.0, 3], [0, 1, True, 3]):
-        bad = _slices(4)
-        for s, k in zip(bad, indices):
-            s["index"] = k
-        with pytest.raises(ValueError, match=r"stack 0: each slice's index must be one of 0..3, once each"):
-            poses_from_predict_body({"stacks": [{"slices": bad}]}, [4], spacing)
-
-
 def test_the_report_says_which_slices_a_job_started_from() -> None:
     """``started_from`` of a job's report, from the same rule that chose the start."""
     body = {"stacks": [{"slices": [{"atlas_from_voxel": np.eye(4).tolist(), "accepted": a, "reason": r}
@@ -100,17 +70,3 @@ def test_the_report_says_which_slices_a_job_started_from() -> None:
     assert start_label(body, starting_poses(body)) == "every_slice"                    # 1 accepted: too few
     everyone = {"stacks": [{"slices": [{**x, "accepted": True} for x in body["stacks"][0]["slices"]]}]}
     assert start_label(everyone, starting_poses(everyone)) == "accepted_slices"        # all accepted: the same set
-
-
-def test_poses_named_alike_are_matched_only_where_their_order_says_which_is_which() -> None:
-    from service.jobs.worker import in_upload_order
-
-    body = {"stacks": [{"index": 0, "filename": "t2.nii.gz", "slices": 1}, {"index": 1, "filename": "t2.nii.gz",
-                                                                            "slices": 2}, {"index": 2, "filename": "x"}]}
-    assert in_upload_order(body, ["t2.nii.gz", "t2.nii.gz", "x"]) is body                  # as /v1/predict had them
-    with pytest.raises(ValueError, match="repeat"):
-        in_upload_order(body, ["t2.nii.gz", "x", "t2.nii.gz"])
-    with pytest.raises(ValueError, match="name every stack or none"):
-        in_upload_order({"stacks": [{"filename": 7}, {"filename": "x"}]}, ["x", "y"])
-    placeholders = {"stacks": [{"filename": "stacks[0]"}, {"filename": "stacks[1]"}]}
-    assert in_upload_order(placeholders, ["b", "a"]) is placeholders                      # a job's own poses

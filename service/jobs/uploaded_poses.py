@@ -1,0 +1,143 @@
+"""Poses in the ``/v1/predict`` schema read as a job's starting poses, and checked against its uploads.
+
+A client may send a reconstruction job the body ``/v1/predict`` answered for its stacks (or a job's
+refined poses, ``GET /v1/reconstructions/{job_id}/poses``) as ``poses``. :func:`in_upload_order`
+matches its stacks to the uploaded ones by file name, :func:`poses_from_predict_body` reads it as
+``(atlas_from_voxel, accepted)`` per stack (each stack's slices put in their ``index`` order,
+:func:`in_index_order`) and refuses what does not fit the uploads, e.g. a pose that is no rigid
+placement of the stack's voxels (:func:`not_rigid`). The API checks them when the job is submitted
+(:mod:`service.api.reconstructions`); the worker reads them, or the service's own prediction, when
+the job runs (:mod:`service.jobs.worker`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.geometry import frames
+from service.io.acquisition_geometry import MAX_FIELD_OF_VIEW_MM
+
+
+def poses_from_predict_body(body: dict, n_slices: list[int],
+                            spacings: list | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``(atlas_from_voxel [n, 4, 4], accepted [n])`` per stack from a ``/v1/predict`` response body.
+
+    ``spacings``: each stack's voxel edges (mm, in its array's axis order), to check a client's
+    poses against: each ``atlas_from_voxel`` a rigid placement of the stack's voxels (columns of
+    those lengths, at right angles, last row 0, 0, 0, 1, within :data:`MAX_FIELD_OF_VIEW_MM` of the
+    atlas origin), and at least one slice accepted. A reconstruction's grid and its every stage
+    are sized by those poses.
+
+    A stack's slices are matched by their ``index`` where they have one (the body's list is put in
+    that order, :func:`in_index_order`), else by their place in the list. Of a job's refined poses
+    (``refined_by``) the slices it reconstructed from (``included``) are the accepted ones.
+
+    Raises:
+        ValueError: naming what does not match the uploaded stacks.
+    """
+    stacks = body.get("stacks") if isinstance(body, dict) else None
+    refined = isinstance(body, dict) and isinstance(body.get("refined_by"), dict)
+    if not isinstance(stacks, list) or len(stacks) != len(n_slices):
+        raise ValueError(f"poses: expected results for {len(n_slices)} stacks")
+    out = []
+    for i, (st, n) in enumerate(zip(stacks, n_slices)):
+        slices = st.get("slices") if isinstance(st, dict) else None
+        if not isinstance(slices, list):
+            raise ValueError(f"poses: stack {i} has no list of slices")
+        if len(slices) != n:
+            raise ValueError(f"poses: stack {i} has {n} slices but the poses list {len(slices)}")
+        slices = st["slices"] = in_index_order(slices, i)
+        try:
+            mats = np.array([s["atlas_from_voxel"] for s in slices], dtype=np.float64)
+            # A job's refined poses: the slices that job reconstructed from (``included``), whatever
+            # the model first said of them (a job started from every slice when too few were accepted).
+            acc = [s["included"] if refined and "included" in s else s["accepted"] for s in slices]
+        except (KeyError, TypeError, ValueError, IndexError, RecursionError) as exc:
+            raise ValueError(f"poses: stack {i}: each slice needs atlas_from_voxel and accepted") from exc
+        if mats.shape != (n, 4, 4) or not np.isfinite(mats).all():
+            raise ValueError(f"poses: stack {i}: atlas_from_voxel must be finite 4x4 matrices")
+        if not all(isinstance(a, bool) for a in acc):
+            raise ValueError(f"poses: stack {i}: accepted must be true or false")
+        if spacings is not None and (bad := not_rigid(mats, spacings[i])) is not None:
+            raise ValueError(f"poses: stack {i}, slice {bad}: atlas_from_voxel is no rigid placement of the stack's "
+                             f"voxels ({', '.join(f'{e:.4g}' for e in spacings[i])} mm) within "
+                             f"{MAX_FIELD_OF_VIEW_MM:.0f} mm of the atlas")
+        out.append((mats, np.array(acc, bool)))
+    if spacings is not None and not any(acc.any() for _, acc in out):
+        raise ValueError("poses: no slice is accepted; a job starts from the accepted slices")
+    return out
+
+
+def in_upload_order(body: dict, filenames: list[str]) -> dict:
+    """``body`` (a ``/v1/predict`` answer) with its stacks matched to the uploaded stacks by file name.
+
+    Poses belong to the files they were computed for; two stacks of one slice count and voxel size
+    are otherwise told apart by nothing but their order. A body without file names, or with a job's
+    ``stacks[i]`` in their place, is taken in its order; so are names that equal the uploads' in
+    their order. Distinct names in another order are put in the uploads' order (each stack's
+    ``index`` with them). Anything else is refused: names that differ from the uploads', names on
+    some stacks only, and repeated names in another order (which stack is which cannot be told).
+
+    Raises:
+        ValueError: naming the poses' stacks and the uploaded ones.
+
+    Example:
+        >>> body = {"stacks": [{"index": 0, "filename": "cor.nii.gz"}, {"index": 1, "filename": "ax.nii.gz"}]}
+        >>> [(s["index"], s["filename"]) for s in in_upload_order(body, ["ax.nii.gz", "cor.nii.gz"])["stacks"]]
+        [(0, 'ax.nii.gz'), (1, 'cor.nii.gz')]
+    """
+    stacks = body.get("stacks") if isinstance(body, dict) else None
+    if not isinstance(stacks, list) or len(stacks) != len(filenames):
+        return body                                      # poses_from_predict_body names the count
+    names = [s.get("filename") if isinstance(s, dict) else None for s in stacks]
+    placeholders = [f"stacks[{i}]" for i in range(len(stacks))]         # a job's refined poses keep no client name
+    if all(n is None for n in names) or names in (list(filenames), placeholders):
+        return body
+    listed = f"{', '.join(map(repr, names))}, not of the uploaded {', '.join(map(repr, filenames))}"
+    if not all(isinstance(n, str) and n for n in names):
+        raise ValueError(f"poses: some stacks have no filename ({listed}); name every stack or none")
+    if sorted(names) != sorted(filenames):
+        raise ValueError(f"poses: they are of the stacks {listed}; send the files the poses were computed for, under "
+                         "the same names (or poses without file names, matched by order)")
+    if len(set(names)) < len(names):
+        raise ValueError(f"poses: file names repeat ({listed}), so they cannot tell which stack is which; send the "
+                         "stacks in the order /v1/predict had them")
+    ordered = [stacks[names.index(f)] for f in filenames]
+    return {**body, "stacks": [{**st, "index": k} if isinstance(st, dict) and "index" in st else st
+                               for k, st in enumerate(ordered)]}
+
+
+def in_index_order(slices: list, stack: int) -> list:
+    """A stack's slices sorted by their ``index`` when they carry one (each of ``0 .. n - 1`` once); a
+    list without indices is taken in its order.
+
+    Example:
+        >>> [s["index"] for s in in_index_order([{"index": 1}, {"index": 0}], 0)]
+        [0, 1]
+    """
+    indices = [s.get("index") if isinstance(s, dict) else None for s in slices]
+    if all(k is None for k in indices):
+        return slices
+    if sorted(k for k in indices if type(k) is int) != list(range(len(slices))):
+        raise ValueError(f"poses: stack {stack}: each slice's index must be one of 0..{len(slices) - 1}, once each")
+    return sorted(slices, key=lambda s: s["index"])
+
+
+def not_rigid(mats: np.ndarray, spacing, tolerance: float = 0.01) -> int | None:  # noqa: ANN001
+    """The index of the first of ``mats [n, 4, 4]`` that is no rigid placement of voxels of edges
+    ``spacing`` (columns of those lengths within ``tolerance`` relative, at right angles within
+    ``tolerance`` in cosine, last row 0, 0, 0, 1, translation within :data:`MAX_FIELD_OF_VIEW_MM`),
+    else None.
+
+    Example:
+        >>> good = np.diag([1.1, 1.1, 3.0, 1.0])[None].repeat(2, 0)
+        >>> bad = good.copy(); bad[1, 0, 0] = 11.0
+        >>> not_rigid(good, [1.1, 1.1, 3.0]), not_rigid(bad, [1.1, 1.1, 3.0])
+        (None, 1)
+    """
+    lengths = np.linalg.norm(mats[:, :3, :3], axis=1)                          # [n, 3]
+    wrong = ((np.abs(lengths / np.asarray(spacing, np.float64) - 1.0).max(axis=1) > tolerance)
+             | (frames.axes_cosine(mats[:, :3, :3]) > tolerance)
+             | (np.abs(mats[:, 3] - [0, 0, 0, 1]).max(axis=1) > 1e-6)
+             | (np.linalg.norm(mats[:, :3, 3], axis=1) > MAX_FIELD_OF_VIEW_MM))
+    return int(np.argmax(wrong)) if wrong.any() else None

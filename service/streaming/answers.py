@@ -1,0 +1,79 @@
+"""What a stream session answers, and the rules on its answers.
+
+A slice's pose (:class:`SliceAnswer`), a stack's final poses with the earlier slices they moved
+(:class:`StackAnswer`) and the session's summary (:class:`SessionSummary`), as
+:class:`~service.streaming.session.StreamSession` returns them; how far a slice's pose moved between
+two answers (:func:`moved_mm`, which decides whether it is sent again) and which slices of a stack
+are worth acquiring again (:func:`worth_acquiring_again`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from service.geometry import anchors
+from service.inference import acceptance
+from service.pipeline.predict import StackPrediction
+from service.streaming.coverage import Coverage
+
+
+@dataclass
+class SliceAnswer:
+    """One slice's pose: row ``row`` of ``prediction``, whose ``network_from_voxel`` maps the slice as sent."""
+
+    stack: str
+    index: int
+    prediction: StackPrediction
+    row: int = 0
+    compute_ms: float = 0.0
+
+
+@dataclass
+class StackAnswer:
+    """A stack's final poses, the earlier slices they moved, what to acquire again, the coverage."""
+
+    stack: str
+    prediction: StackPrediction
+    updates: list[SliceAnswer]
+    reacquire: list[tuple[int, str]]
+    coverage: Coverage
+    timings: dict[str, float]
+    judged_alone: bool = False                                   # no stack had ended before it
+    reacquire_of: dict[str, list[tuple[int, str]]] = field(default_factory=dict)   # earlier stacks' lists that changed
+
+
+@dataclass
+class SessionSummary:
+    stacks: list[str]
+    coverage: Coverage
+    slices: int
+    compute_ms: dict[str, float]
+    reacquire: dict[str, list[tuple[int, str]]] = field(default_factory=dict)   # each ended stack's, final
+
+
+def moved_mm(a: SliceAnswer, b: SliceAnswer, reference: NDArray) -> float:
+    """E.D. between the poses of two answers for one slice, in the frame ``reference`` (sent voxel ->
+    a fixed network frame of the slice), so that different crops compare."""
+    def pose(x: SliceAnswer) -> NDArray:
+        return x.prediction.poses.poses[x.row] @ x.prediction.network_from_voxel[x.row] @ np.linalg.inv(reference)
+    return float(anchors.ed(pose(a), pose(b)))
+
+
+def worth_acquiring_again(reasons: list[str | None], judged_alone: bool) -> list[tuple[int, str]]:
+    """``(index, reason)`` of the slices of a stack worth acquiring again: those not accepted, but
+    for ``empty`` ones (no brain: nothing to gain) and, for a stack judged alone (the session's
+    first), those whose only fault is their expected error: the next stack that crosses them is
+    what brings it down (the shared real scan's axial stack: 0 of 24 accepted alone, 21 once the
+    coronal stack ended).
+
+    Example:
+        >>> worth_acquiring_again([None, "empty", "high_expected_error", "inconsistent_with_stack"], True)
+        [(3, 'inconsistent_with_stack')]
+        >>> worth_acquiring_again([None, "high_expected_error"], False)
+        [(1, 'high_expected_error')]
+    """
+    waits = {acceptance.EMPTY} | ({acceptance.HIGH_EXPECTED_ERROR} if judged_alone else set())
+    return [(k, r) for k, r in enumerate(reasons) if r is not None and r not in waits]

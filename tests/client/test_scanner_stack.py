@@ -1,0 +1,97 @@
+"""The slices a stack file is cut into (:mod:`client.scanner_stack`): against the file's affine, voxel
+by voxel, as read from a file, and as the server's stream core puts them back together."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import nibabel as nib
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from client.errors import UnsupportedFile, UnusableInput
+from client.scanner_stack import read_stack, scanner_slices
+
+
+def oblique_affine(spacing: tuple[float, float, float], seed: int, mirrored: bool = False) -> np.ndarray:
+    """An oblique affine; ``mirrored``: left-handed (its first column reversed)."""
+    affine = np.eye(4)
+    affine[:3, :3] = Rotation.from_rotvec(np.random.default_rng(seed).normal(size=3)).as_matrix() * spacing
+    if mirrored:
+        affine[:3, 0] *= -1.0
+    affine[:3, 3] = (-40.0, 12.5, 7.0)
+    return affine
+
+
+@pytest.mark.parametrize("mirrored", [False, True])
+@pytest.mark.parametrize(("spacing", "axis"), [((4.0, 1.0, 1.2), 0), ((1.0, 3.5, 1.2), 1), ((1.1, 1.0, 3.0), 2),
+                                               ((2.0, 2.0, 2.0), 2), ((3.0, 1.0, 3.0), 2)])
+def test_every_pixel_of_every_slice_sits_where_the_file_puts_its_voxel(spacing: tuple[float, float, float],
+                                                                       axis: int, mirrored: bool) -> None:
+    shape = (7, 6, 5)
+    image = np.random.default_rng(1).normal(size=shape).astype(np.float32)
+    mask = np.random.default_rng(2).random(shape) > 0.5
+    affine = oblique_affine(spacing, seed=axis, mirrored=mirrored)
+    got_axis, slices = scanner_slices(image, affine, mask)
+    assert got_axis == axis and [s.index for s in slices] == list(range(shape[axis]))
+    first, second = [ax for ax in range(3) if ax != axis]
+    for s in slices:
+        assert s.pixels.shape == (shape[first], shape[second]) and s.mask is not None
+        i0, i1 = np.meshgrid(np.arange(shape[first]), np.arange(shape[second]), indexing="ij")
+        voxel = np.zeros((*i0.shape, 3), int)
+        voxel[..., first], voxel[..., second], voxel[..., axis] = i0, i1, s.index
+        in_slice = np.stack([i0, i1, np.zeros_like(i0), np.ones_like(i0)], -1).astype(float)
+        in_file = np.concatenate([voxel, np.ones((*i0.shape, 1))], -1).astype(float)
+        assert np.allclose(in_slice @ s.scanner_from_voxel.T, in_file @ affine.T, atol=1e-9)
+        assert np.array_equal(s.pixels, image[voxel[..., 0], voxel[..., 1], voxel[..., 2]])
+        assert np.array_equal(s.mask, mask[voxel[..., 0], voxel[..., 1], voxel[..., 2]])
+        assert np.allclose(s.scanner_from_voxel[:3, 2], affine[:3, axis])          # normal x thickness
+        assert np.allclose(s.scanner_from_voxel[3], [0, 0, 0, 1])
+
+
+def test_a_file_is_read_with_its_type_and_its_mask_must_share_its_grid(tmp_path: Path) -> None:
+    affine = oblique_affine((1.0, 3.0, 1.0), seed=4)
+    image = np.arange(5 * 4 * 3, dtype=np.int16).reshape(5, 4, 3)
+    nib.save(nib.Nifti1Image(image, affine), tmp_path / "cor.nii.gz")
+    nib.save(nib.Nifti1Image((image % 2).astype(np.uint8), affine), tmp_path / "m.nii.gz")
+    nib.save(nib.Nifti1Image(np.zeros((5, 4, 2), np.uint8), affine), tmp_path / "other.nii.gz")
+    stack = read_stack(tmp_path / "cor.nii.gz", tmp_path / "m.nii.gz")
+    assert (stack.name, stack.slice_axis, len(stack.slices)) == ("cor", 1, 4)
+    assert stack.slices[2].pixels.dtype == np.int16 and np.array_equal(stack.slices[2].pixels, image[:, 2, :])
+    assert np.array_equal(stack.slices[2].mask, image[:, 2, :] % 2 == 1)
+    with pytest.raises(UnusableInput, match="differs"):
+        read_stack(tmp_path / "cor.nii.gz", tmp_path / "other.nii.gz")
+    noise = np.random.default_rng(0).integers(0, 1000, (5, 4, 3, 200)).astype(np.int16).reshape(5, 4, 600)
+    nib.save(nib.Nifti1Image(noise, affine), tmp_path / "big.nii.gz")
+    data = (tmp_path / "big.nii.gz").read_bytes()
+    (tmp_path / "cut.nii.gz").write_bytes(data[: len(data) // 2])      # its voxels cut short: bad input naming it
+    for args, what in (((tmp_path / "cut.nii.gz",), "stack"), ((tmp_path / "big.nii.gz", tmp_path / "cut.nii.gz"), "mask")):
+        with pytest.raises(UnsupportedFile, match=f"{what}: cut.nii.gz is truncated or corrupt"):
+            read_stack(*args)
+
+
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_the_server_rebuilds_the_file_from_the_slices_sent(axis: int) -> None:
+    """``svrnet stream``'s slices, put back together by the server's stream core: every voxel holds
+    the file's value where the file puts it in the scanner, and the slice axis comes from the file's
+    rule, which the client copies (``client.scanner_stack`` cannot import the service)."""
+    from service.preprocess.stack import slice_axis_of
+    from service.streaming.frames import SliceFrame, StreamedStack
+
+    spacing = [1.0, 1.1, 1.2]
+    spacing[axis] = 3.0
+    shape = (7, 6, 5)
+    image = np.random.default_rng(3).normal(size=shape).astype(np.float32)
+    affine = oblique_affine(tuple(spacing), seed=axis, mirrored=axis == 1)
+    got_axis, slices = scanner_slices(image, affine, None)
+    assert got_axis == axis == slice_axis_of(np.linalg.norm(affine[:3, :3], axis=0))
+    stack = StreamedStack("s")
+    for s in slices[::-1]:
+        stack.add(SliceFrame("s", s.index, s.pixels, s.scanner_from_voxel))
+    volume, _ = stack.volume()
+    ijk = np.stack(np.meshgrid(*[np.arange(n) for n in volume.array.shape], indexing="ij"), -1).reshape(-1, 3)
+    world = ijk @ volume.affine[:3, :3].T + volume.affine[:3, 3]
+    file_ijk = np.rint((world - affine[:3, 3]) @ np.linalg.inv(affine[:3, :3]).T).astype(int)
+    assert np.allclose(file_ijk @ affine[:3, :3].T + affine[:3, 3], world, atol=1e-9)
+    assert np.array_equal(volume.array[tuple(ijk.T)], image[tuple(file_ijk.T)])
