@@ -3,7 +3,7 @@
 Commands::
 
     svrnet predict STACK... [--mask M...] [--out poses.json] [--mc-samples N] [--threshold T]
-                            [--no-bias-correction] [--model NAME]
+                            [--no-bias-correction] [--model NAME] [--transforms-out transforms.zip]
     svrnet masks STACK... [--out-dir DIR] [--margin-mm MM]
     svrnet reconstruct STACK... [--mask M...] [--poses poses.json] [--resolution 0.8] [--svr-iterations 3]
                        [--wait] [--out recon.nii.gz] [--preview preview.png] [--poses-out refined.json]
@@ -106,10 +106,13 @@ def predict(
         "--image-consistency/--no-image-consistency",
         help="refine the poses where slices of different stacks cross")] = True,
     masks_hold_csf: MasksHoldCsfOpt = False,
+    transforms_out: Annotated[Optional[Path], typer.Option(
+        "--transforms-out", dir_okay=False,
+        help="also write each slice's ITK transform here (.zip of .tfm files, laid out as a job's)")] = None,
 ) -> None:
     """Atlas pose and confidence of every slice of every stack (POST /v1/predict)."""
     check_masks(stacks, mask)
-    check_writable(out=out)
+    check_writable(out=out, transforms_out=transforms_out)
     err = stderr()
     with errors(), _client(server, api_key) as svr:
         with upload_bar(err, f"{len(stacks)} stack(s)") as progress:
@@ -128,6 +131,10 @@ def predict(
         if out is not None:
             write_json(out, result)
             console.print(f"wrote {out}")
+        if transforms_out is not None:
+            from client.slice_transforms import write_transforms_zip       # numpy: only where it is needed
+            write_transforms_zip(result, transforms_out)
+            console.print(f"wrote {transforms_out}")
     if not usable(result):
         raise typer.Exit(EXIT_NOTHING_USABLE)
 

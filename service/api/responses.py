@@ -90,13 +90,15 @@ def stack_report(out: StackPoses | None) -> dict | None:
 
 
 def stack_objects(predictions: list[StackPrediction]) -> list[dict]:
-    """The response's ``stacks``: each stack's file, geometry, slices, consistency and localisation."""
+    """The response's ``stacks``: each stack's file, geometry (``scanner_from_voxel``: voxel index ->
+    scanner RAS mm, as the service read the file), slices, consistency and localisation."""
     stacks = []
     for index, p in enumerate(predictions):
         vol = p.prepared.upload.volume
         stacks.append({
             "index": index, "filename": p.prepared.upload.filename, "shape": list(vol.array.shape),
             "spacing_mm": [float(x) for x in vol.spacing], "slice_axis": p.prepared.slices.slice_axis,
+            "scanner_from_voxel": np.asarray(vol.affine, np.float64).tolist(),
             "slices": slice_objects(p), "consistency": stack_report(p.poses),
             "localisation": p.prepared.localisation.report(),
         })

@@ -14,6 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import SimpleITK as sitk
+
+from client.slice_transforms import transform_files
 from service.geometry import se3, sampling
 from service.geometry.anchors import ed
 from service.geometry.pose import apply, make_pose
@@ -26,6 +29,7 @@ nib = pytest.importorskip("nibabel", reason="nibabel (dev extra) writes the niba
 BRAIN = phantom_brain(0)
 OBLIQUE = se3.so3_exp(np.array([0.35, -0.25, 0.6]))
 LEFT_HANDED = np.diag([-1.0, 1.0, 1.0])
+LPS = np.diag([-1.0, -1.0, 1.0, 1.0])
 
 
 def motion(n: int, seed: int) -> np.ndarray:
@@ -104,6 +108,18 @@ def test_atlas_from_voxel_matches_truth(oracle, oracle_client, tmp_path: Path, w
     stack = body["stacks"][0]
     assert stack["slice_axis"] == axis and stack["shape"] == list(shape)
     assert [s["index"] for s in stack["slices"]] == list(range(shape[axis]))
+    np.testing.assert_allclose(stack["scanner_from_voxel"], aff, atol=1e-4)          # the file's own voxel -> RAS
+    # Each slice's ITK transform (client side, from the answer alone) takes the atlas point a voxel
+    # shows to where the file puts that voxel, both in ITK's LPS.
+    for name, text in transform_files(body).items():
+        if name.endswith(".tfm"):
+            k = int(name[-7:-4])
+            (tmp_path / "t.tfm").write_text(text)
+            itk = sitk.ReadTransform(str(tmp_path / "t.tfm"))
+            voxel = np.insert(np.array([[3.0, 40.0], [17.0, 5.0]]), axis, k, axis=1)
+            atlas_lps = apply(LPS @ np.array(stack["slices"][k]["atlas_from_voxel"]), voxel)
+            moved = np.array([itk.TransformPoint(tuple(p)) for p in atlas_lps])
+            np.testing.assert_allclose(moved, apply(LPS @ aff, voxel), atol=1e-3)
     worst = {"network_atlas_from_voxel": 0.0, "atlas_from_voxel": 0.0}
     for s in stack["slices"]:
         corners = np.array([[0, 0, 0], [shape[0] - 1, shape[1] - 1, shape[2] - 1], [shape[0] - 1, 0, 0]], float)

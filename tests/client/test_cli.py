@@ -147,6 +147,36 @@ def test_cli_server_and_key_from_the_environment(fake_cli: Callable) -> None:
     assert made == [("http://env:1234", "k")] and "default" in r.stdout and "449" in r.stdout and "4.5 mm" in r.stdout
 
 
+def test_cli_predict_writes_every_slices_transform_as_a_job_lays_them_out(fake_cli: Callable, stack_file: Path,
+                                                                           tmp_path: Path) -> None:
+    fake_cli()
+    target = tmp_path / "transforms.zip"
+    r = invoke(["predict", str(stack_file), "--transforms-out", str(target)])
+    assert r.exit_code == 0, r.output
+    assert f"wrote {target}" in r.stdout
+    with zipfile.ZipFile(target) as z:
+        assert sorted(z.namelist()) == sorted([f"transforms/stack0_slice{k:03d}.tfm" for k in range(4)]
+                                              + ["transforms/slice_transforms.txt"])
+        params = z.read("transforms/stack0_slice002.tfm").decode().splitlines()[3].split()[1:]
+        listing = z.read("transforms/slice_transforms.txt").decode().splitlines()
+    assert [float(v) for v in params[9:]] == [4.0, 0.0, 0.0]      # atlas 4 mm right (RAS) of the scanner: +4 mm L in LPS
+    assert [line.split()[:4] for line in listing[1:]] == [["0", "0", "1", "2.000"], ["0", "1", "1", "2.500"],
+                                                          ["0", "2", "0", "9.000"], ["0", "3", "0", "nan"]]
+
+
+def test_transforms_of_a_server_without_scanner_from_voxel_are_refused_saying_why(
+        fake_cli: Callable, stack_file: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from tests.support import client_fakes
+
+    older = json.loads(json.dumps(PREDICT_BODY))
+    del older["stacks"][0]["scanner_from_voxel"]
+    monkeypatch.setattr(client_fakes, "PREDICT_BODY", older)
+    fake_cli()
+    r = invoke(["predict", str(stack_file), "--transforms-out", str(tmp_path / "t.zip")])
+    assert r.exit_code == 5 and "scanner_from_voxel" in r.stderr and "update the server" in r.stderr, r.output
+    assert not (tmp_path / "t.zip").exists()
+
+
 @pytest.mark.parametrize(("kwargs", "args", "code", "needle"), [
     ({"mode": "down"}, ["models"], 3, "Connection refused"),
     ({"key": "k"}, ["models"], 4, "API key"),

@@ -35,15 +35,24 @@ def problem(status: int, detail: str, title: str = "Problem") -> dict[str, Any]:
     return {"type": "about:blank", "title": title, "status": status, "detail": detail, "request_id": "rid-1"}
 
 
+def _atlas_from_voxel(k: int) -> list[list[float]]:
+    """Slice ``k`` of the fake stack placed 2 mm further right each slice (1 x 1 x 3 mm voxels)."""
+    return [[1.0, 0.0, 0.0, 2.0 * k], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 3.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+
+
 PREDICT_BODY = {
     "request_id": "abc", "model": {"name": "default", "version": "1", "backbone": "b", "sha256": "0" * 64},
     "mc_samples": 5, "variance_threshold": 10.0, "timing_ms": {"total": 12.0},
     "stacks": [{"index": 0, "filename": "stack.nii.gz", "shape": [24, 24, 4], "spacing_mm": [1, 1, 3],
-                "slice_axis": 2, "slices": [
-                    {"index": 0, "accepted": True, "reason": None, "geodesic_variance": 1.0},
-                    {"index": 1, "accepted": True, "reason": None, "geodesic_variance": 3.0},
-                    {"index": 2, "accepted": False, "reason": "high_variance", "geodesic_variance": 40.0},
-                    {"index": 3, "accepted": False, "reason": "empty", "geodesic_variance": None}],
+                "slice_axis": 2, "scanner_from_voxel": _atlas_from_voxel(0), "slices": [
+                    {"index": 0, "accepted": True, "reason": None, "geodesic_variance": 1.0,
+                     "expected_error_mm": 2.0, "atlas_from_voxel": _atlas_from_voxel(0)},
+                    {"index": 1, "accepted": True, "reason": None, "geodesic_variance": 3.0,
+                     "expected_error_mm": 2.5, "atlas_from_voxel": _atlas_from_voxel(1)},
+                    {"index": 2, "accepted": False, "reason": "high_variance", "geodesic_variance": 40.0,
+                     "expected_error_mm": 9.0, "atlas_from_voxel": _atlas_from_voxel(2)},
+                    {"index": 3, "accepted": False, "reason": "empty", "geodesic_variance": None,
+                     "expected_error_mm": None, "atlas_from_voxel": _atlas_from_voxel(3)}],
                 "localisation": {"method": "network", "brain_volume_ml": 312.4, "confidence": 0.93}}],
 }
 
