@@ -13,8 +13,9 @@ attributes, :func:`~service.mrd.images.pose_from_meta`), TEXT messages as the se
 When every series has as many slices, the XML header says so, and each series ends (its ``stack``
 message) as soon as it has arrived; otherwise the series end at ``CLOSE``.
 
-Exit codes: 0 once the server's summary arrived, 2 for bad options, 3 when the server cannot be
-reached or ends the session before its summary, 5 for a file that cannot be read as a stack.
+Exit codes (those of ``svrnet``): 0 once the server's summary arrived, 2 for bad options, 3 when the
+server cannot be reached or ends the session before its summary, 5 for a file that cannot be read
+as a stack, 7 when the server's sessions are all taken (its error says when to retry).
 
 Example:
     >>> order_of_sending(5, "interleaved"), order_of_sending(4, "3,2,1,0")
@@ -44,7 +45,7 @@ from service.mrd.images import image_from_slice, pose_from_meta
 from service.preprocess.stack import slice_axis_of
 
 DEFAULT_PORT = 9002
-EXIT_OK, EXIT_USAGE, EXIT_CONNECTION, EXIT_BAD_INPUT = 0, 2, 3, 5
+EXIT_OK, EXIT_USAGE, EXIT_CONNECTION, EXIT_BAD_INPUT, EXIT_BUSY = 0, 2, 3, 5, 7
 HEADER_XML = """<?xml version="1.0" encoding="utf-8"?>
 <ismrmrdHeader xmlns="http://www.ismrm.org/ISMRMRD">
  <experimentalConditions><H1resonanceFrequency_Hz>63500000</H1resonanceFrequency_Hz></experimentalConditions>
@@ -225,13 +226,17 @@ def send_series(series: Sequence[Sequence[ismrmrd.Image]], names: Sequence[str],
     counts = {len(images) for images in series}
     header = mrd_header(counts.pop() if len(counts) == 1 else None)
     link = MrdLink(host, port, on_message=on_message)
-    link.send(ismrmrd.ConfigFile("svrnet"), ConfigText(json.dumps(config or {})), header)
-    for images in series:
-        for image in images:
-            link.send(image)
-            if pace_s > 0:
-                time.sleep(pace_s)
-    link.close()
+    try:
+        link.send(ismrmrd.ConfigFile("svrnet"), ConfigText(json.dumps(config or {})), header)
+        for images in series:
+            for image in images:
+                link.send(image)
+                if pace_s > 0:
+                    time.sleep(pace_s)
+    except OSError:                      # the server ended the session (busy, a broken stream): what it said is read
+        link.wait()
+    else:
+        link.close()
     return tallies, texts, any(t.get("type") == "summary" for t in texts)
 
 
@@ -281,7 +286,8 @@ def main(argv: list[str] | None = None) -> int:
     for error in (t for t in texts if t.get("type") == "error"):
         print(f"error {error.get('status')}: {error.get('detail')}", file=sys.stderr)
     if not complete:
-        return _fail("the server ended the session before its summary", EXIT_CONNECTION)
+        busy = any(t.get("type") == "error" and t.get("status") == 503 for t in texts)
+        return _fail("the server ended the session before its summary", EXIT_BUSY if busy else EXIT_CONNECTION)
     return EXIT_OK
 
 

@@ -15,6 +15,7 @@ import pytest
 from service.io.volume import Volume, write_volume
 from service.mrd import send
 from service.mrd.images import slice_from_image
+from service.mrd.server import ServerLimits
 from tests.mrd.conftest import Case
 from tests.mrd.test_images import oblique_stack, pixel_grid
 from tests.support.streams import true_sent
@@ -112,3 +113,17 @@ def test_a_series_final_poses_are_its_stack_message_as_later_updates_move_them()
                 "slices": [{"index": 1, "accepted": True, "expected_error_mm": 3.0}]})
     tally.take({"type": "update", "stack": "1", "slices": [{"index": 2, "accepted": True}]})   # another series'
     assert tally.line().endswith("final: 2 of 3 accepted, median expected error 2.5 mm, 1 worth acquiring again")
+
+
+def test_a_server_whose_sessions_are_taken_says_so_and_the_sender_ends_busy(case: Case, serve, tmp_path: Path,
+                                                                           capsys: pytest.CaptureFixture) -> None:  # noqa: ANN001
+    server = serve(limits=ServerLimits(max_sessions=1))
+    holder = send.MrdLink("127.0.0.1", server.port)
+    holder.send(case.images[0][0])
+    while not holder.received:                          # the first session holds the slot once it answers
+        holder._reader.join(timeout=0.05)
+    paths = write_case_stacks(case, tmp_path)
+    assert send.main([str(paths[0]), "--port", str(server.port)]) == send.EXIT_BUSY
+    err = capsys.readouterr().err
+    assert "error 503" in err and "before its summary" in err
+    holder.close()
