@@ -26,12 +26,14 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
-from scipy.spatial import Delaunay, QhullError
+from scipy.spatial import ConvexHull, QhullError
 
 GRID_MM = 2.0
 """Spacing of the atlas-space grid coverage is counted on."""
 MAX_HULL_POINTS = 4000
-"""Brain pixels kept (evenly) to build the hull: enough for its shape, cheap to triangulate."""
+"""Brain pixels kept (evenly) to build the hull: enough for its shape, cheap to build."""
+HULL_TOLERANCE_MM = 1e-6
+"""A grid point this near a face of the hull, outside it, still counts as inside (points on a face)."""
 MIN_GAP_ML = 0.1
 MAX_GAPS = 5
 
@@ -91,7 +93,7 @@ def coverage(slices: list[CoveredSlice]) -> Coverage:
     shape = tuple(int(x) for x in np.ceil((points.max(0) + GRID_MM - lo) / GRID_MM) + 1)
     grid = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1).reshape(-1, 3) * GRID_MM + lo
     try:
-        inside = Delaunay(points).find_simplex(grid) >= 0
+        inside = inside_hull(ConvexHull(points), grid)
     except QhullError:                      # the slices are coplanar: no volume yet
         return Coverage(0.0, 0.0)
     brain = grid[inside]
@@ -110,6 +112,24 @@ def coverage(slices: list[CoveredSlice]) -> Coverage:
     holes = np.zeros(shape, bool)
     holes.reshape(-1)[np.flatnonzero(inside)[~covered]] = True
     return Coverage(float(covered.mean()) if len(covered) else 0.0, volume_ml, gaps(holes, lo))
+
+
+def inside_hull(hull: ConvexHull, points: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Which ``points [n, 3]`` lie inside ``hull`` (on the inner side of every face, within
+    :data:`HULL_TOLERANCE_MM`): one half-space test per face. Unlike locating each point in a
+    Delaunay triangulation, this costs the same whatever the points' arrangement; a stack's brain
+    pixels lie on a lattice of parallel planes, whose degenerate triangulation sent the point
+    location to a search over every simplex (40 s for one stack of 20 slices on 2 cores).
+
+    Example (the unit cube's hull, one point inside, one on a face, one outside):
+        >>> cube = ConvexHull(np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float))
+        >>> inside_hull(cube, np.array([[0.5, 0.5, 0.5], [1.0, 0.5, 0.5], [1.5, 0.5, 0.5]])).tolist()
+        [True, True, False]
+    """
+    inside = np.ones(len(points), bool)
+    for face in hull.equations:                 # unit outward normal and offset: n . x + d <= 0 inside
+        inside &= points @ face[:3] + face[3] <= HULL_TOLERANCE_MM
+    return inside
 
 
 def gaps(holes: NDArray[np.bool_], origin_mm: NDArray) -> list[Gap]:

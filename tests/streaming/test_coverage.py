@@ -1,0 +1,50 @@
+"""Coverage of the brain by a session's slices, against what is known of simulated ones: the hull's
+inside agrees with an independent point location, a stack of every slice covers its whole hull (of
+the volume the hull has), and a missing slice is a gap along the stack's normal."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import ConvexHull, Delaunay
+
+from service.geometry import se3
+from service.streaming.coverage import CoveredSlice, brain_points, coverage, inside_hull
+
+
+def ball_stack(rotation: np.ndarray, keep: list[int] | None = None, n: int = 20, px: float = 1.2,
+               thick: float = 3.0) -> list[CoveredSlice]:
+    """Slices of a 35 mm ball, ``thick`` mm apart along the third column of ``rotation``, 64 x 64 px."""
+    out = []
+    for k in range(n) if keep is None else keep:
+        a = np.eye(4)
+        a[:3, :3] = rotation @ np.diag([px, px, thick])
+        z = (k - n / 2) * thick
+        a[:3, 3] = rotation @ np.array([-32 * px, -32 * px, z])
+        i, j = np.meshgrid(np.arange(64), np.arange(64), indexing="ij")
+        out.append(CoveredSlice(a, ((i - 32) * px) ** 2 + ((j - 32) * px) ** 2 + z ** 2 < 35.0 ** 2))
+    return out
+
+
+def test_inside_the_hull_agrees_with_a_delaunay_point_location() -> None:
+    rng = np.random.default_rng(5)
+    points = rng.normal(size=(300, 3)) * [30, 20, 25]
+    queries = rng.uniform(-80, 80, size=(20000, 3))
+    expected = Delaunay(points).find_simplex(queries) >= 0
+    np.testing.assert_array_equal(inside_hull(ConvexHull(points), queries), expected)
+
+
+def test_a_stack_of_every_slice_covers_its_whole_hull() -> None:
+    rotation = se3.so3_exp(np.array([0.3, -0.5, 0.2]))            # an oblique stack: the lattice of planes
+    slices = ball_stack(rotation)
+    c = coverage(slices)
+    assert c.brain_fraction > 0.999 and c.gaps == []                  # a grid point at the rim, at most
+    hull_ml = ConvexHull(brain_points(slices)).volume / 1000.0
+    assert abs(c.brain_volume_ml - hull_ml) < 0.1 * hull_ml, (c.brain_volume_ml, hull_ml)
+
+
+def test_a_missing_slice_is_a_gap_along_the_stacks_normal() -> None:
+    rotation = se3.so3_exp(np.array([0.3, -0.5, 0.2]))
+    c = coverage(ball_stack(rotation, keep=[k for k in range(20) if k != 10]))
+    assert 0.85 < c.brain_fraction < 1.0 and len(c.gaps) == 1
+    assert abs(abs(np.dot(c.gaps[0].normal, rotation[:, 2])) - 1.0) < 0.1, c.gaps[0].normal
+    assert 1.5 <= c.gaps[0].extent_mm <= 6.0, c.gaps[0].extent_mm
