@@ -21,7 +21,8 @@ _ERRORS = ("BadRequest", "Busy", "Conflict", "ConnectionFailed", "JobFailed", "N
            "ServerError", "SVRnetError", "Unauthorized", "UnsupportedFile", "UnusableInput", "WaitTimeout",
            "error_from_response")
 
-_SUBMODULES = ("cli", "errors", "exits", "launch", "multipart", "scanner_stack", "stream", "transport", "views")
+_SUBMODULES = ("cli", "errors", "exits", "launch", "multipart", "scanner_stack", "slice_transforms", "stream",
+               "transport", "upload_files", "views")
 
 __all__ = ["SVRnetClient", "DEFAULT_SERVER", *_ERRORS]
 

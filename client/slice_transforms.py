@@ -8,9 +8,11 @@ world frame,
     T_lps = F @ scanner_from_voxel @ inverse(atlas_from_voxel) @ F,   F = diag(-1, -1, 1, 1),
 
 which maps a point of atlas space (LPS mm) to the point of the uploaded stack's physical space (LPS
-mm, as ITK reads the file) where that slice observed it: ITK's registration convention with the
-atlas as the fixed image, so ``sitk.Resample(stack_image, atlas_image, sitk.ReadTransform(path))``
-puts that slice in atlas space. ``transforms/slice_transforms.txt`` lists every slice, one line
+mm, as the service placed the file: a NIfTI file by its sform whenever its code is above 0) where
+that slice observed it: ITK's registration convention with the atlas as the fixed image, so
+``sitk.Resample(stack_image, atlas_image, sitk.ReadTransform(path))`` puts that slice in atlas space,
+``stack_image`` placed as the service placed it (SimpleITK places a NIfTI file whose qform and
+sform differ by its qform: set its origin and direction from ``scanner_from_voxel`` first). ``transforms/slice_transforms.txt`` lists every slice, one line
 each: ``stack slice accepted expected_error_mm`` and the 12 numbers of the top 3 x 4 block of
 ``atlas_from_voxel`` (row-major). The layout and the ``.tfm`` text are those of a reconstruction
 job's ``transforms.zip`` (docs/reconstruction.md), with the predicted poses.
@@ -71,7 +73,7 @@ def transform_files(answer: dict[str, Any]) -> dict[str, str]:
     lines = ["# stack slice accepted expected_error_mm  atlas_from_voxel[0:3, 0:4] row-major "
              "(voxel index of the stack file -> atlas RAS mm)"]
     for stack in answer.get("stacks", []):
-        if "scanner_from_voxel" not in stack:
+        if stack.get("scanner_from_voxel") is None:
             raise UnusableInput("transforms: the server's answer has no scanner_from_voxel per stack (a server "
                                 "older than this client); update the server, or use a reconstruction job's transforms")
         s = int(stack["index"])

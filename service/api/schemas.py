@@ -119,7 +119,7 @@ class StackResult(BaseModel):
     slice_axis: int
     scanner_from_voxel: Optional[list[list[float]]] = Field(
         None, description="4x4, voxel index (i, j, k, 1) of the uploaded file -> scanner RAS mm, as the service read "
-                          "the file (atlas_from_voxel @ inv(scanner_from_voxel): a slice's pose in scanner coordinates)")
+                          "the file (atlas_from_voxel @ inv(scanner_from_voxel): a slice's map from scanner to atlas mm)")
     slices: list[SliceResult]
     consistency: Optional[StackConsistency] = Field(None, description="the stack-consistency stage (null when off)")
     localisation: Optional[Localisation] = Field(None, description="how the stack's brain was localised")

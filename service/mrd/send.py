@@ -1,21 +1,23 @@
 """``svrnet-mrd-send``: stack files sent to an ``svrnet-mrd`` server as a scanner sends them.
 
-What a site sees before it connects a scanner: each stack file (NIfTI, NRRD, MHA) becomes one MRD
-image series (``image_series_index`` = the file's place on the command line), cut along its slice
-axis (the voxel axis of largest spacing, as ``/v1/predict`` cuts it) into 2D magnitude images
-whose headers place every pixel where the file's affine does (:func:`~service.mrd.images.image_from_slice`),
-sent in acquisition order (``--order``) over one connection, the answers read as they come
-(:class:`MrdLink`). It prints one line per series (images answered and accepted, the median
-expected error, the answers' latency) and, with ``--out``, writes every answer as a JSON line:
-images as ``{"type": "image", "series", "slice", ...}`` with their pose (the ``SVRnet.*`` meta
-attributes, :func:`~service.mrd.images.pose_from_meta`), TEXT messages as the server sent them.
+What a site sees before it connects a scanner: each stack file (any file ``/v1/predict`` takes, read
+as it reads it, with its checks) becomes one MRD image series (``image_series_index`` = the file's
+place on the command line), cut along its slice axis (the voxel axis of largest spacing) into 2D
+magnitude images whose headers place every pixel where the file's affine does
+(:func:`~service.mrd.images.image_from_slice`), sent in acquisition order (``--order``) over one
+connection, the answers read as they come (:class:`MrdLink`). It prints one line per series
+(images answered, the server's latency, accepted at once and finally, the median expected error,
+slices worth acquiring again) and, with ``--out``, writes every answer as a JSON line: images as
+``{"type": "image", "series", "slice", ...}`` with their pose (the ``SVRnet.*`` meta attributes,
+:func:`~service.mrd.images.pose_from_meta`), TEXT messages as the server sent them.
 
 When every series has as many slices, the XML header says so, and each series ends (its ``stack``
 message) as soon as it has arrived; otherwise the series end at ``CLOSE``.
 
 Exit codes (those of ``svrnet``): 0 once the server's summary arrived, 2 for bad options, 3 when the
-server cannot be reached or ends the session before its summary, 5 for a file that cannot be read
-as a stack, 7 when the server's sessions are all taken (its error says when to retry).
+server cannot be reached, does not answer in MRD, or ends the session (or does not end it within
+``--wait-s``) before its summary, 5 for a file that cannot be read as a stack, 7 when the server's
+sessions are all taken (its error says when to retry).
 
 Example:
     >>> order_of_sending(5, "interleaved"), order_of_sending(4, "3,2,1,0")
@@ -40,11 +42,15 @@ import numpy as np
 from ismrmrd.serialization import ConfigText
 
 from service.consistency.slice_order import SliceOrder
-from service.io.volume import Volume, read_volume
+from service.core.errors import ServiceError
+from service.io.readers import read_upload
+from service.io.volume import Volume
 from service.mrd.images import image_from_slice, pose_from_meta
 from service.preprocess.stack import slice_axis_of
 
 DEFAULT_PORT = 9002
+SEND_ORDERS = ("sequential", "interleaved", "interleaved-even-first", "interleaved-odd-first")
+CONNECT_TIMEOUT_S = 10.0
 EXIT_OK, EXIT_USAGE, EXIT_CONNECTION, EXIT_BAD_INPUT, EXIT_BUSY = 0, 2, 3, 5, 7
 HEADER_XML = """<?xml version="1.0" encoding="utf-8"?>
 <ismrmrdHeader xmlns="http://www.ismrm.org/ISMRMRD">
@@ -68,12 +74,14 @@ def mrd_header(slices: int | None) -> ismrmrd.xsd.ismrmrdHeader:
 
 
 def order_of_sending(count: int, order: str = "sequential") -> list[int]:
-    """The slice indices of a stack of ``count`` slices in the order a scanner acquires them: a named
-    order of ``/v1/predict``'s ``slice_order`` (``interleaved``: even indices first) or the indices
-    themselves, comma-separated (:class:`ValueError`, saying why, otherwise)."""
-    parsed = SliceOrder.parse(order)
-    if parsed.sequence is None and len(parsed.names) > 2:
-        raise ValueError("'auto' is not an order to send in; name one, or give the slice indices")
+    """The slice indices of a stack of ``count`` slices in the order a scanner acquires them: one of
+    :data:`SEND_ORDERS` (``interleaved``: even indices first) or the indices themselves,
+    comma-separated (:class:`ValueError`, saying why, otherwise)."""
+    word = order.strip().lower()
+    if word == "auto" or (word[:1].isalpha() and word not in SEND_ORDERS):
+        raise ValueError(f"{order!r} is not an order to send in: one of {', '.join(SEND_ORDERS)}, "
+                         "or the slice indices as acquired (0,2,4,1,3)")
+    parsed = SliceOrder.parse("interleaved-even-first" if word == "interleaved" else order)
     times = next(iter(parsed.times(count).values()))
     return np.argsort(times, kind="stable").tolist()
 
@@ -81,12 +89,16 @@ def order_of_sending(count: int, order: str = "sequential") -> list[int]:
 def series_images(volume: Volume, series: int, order: str = "sequential") -> list[ismrmrd.Image]:
     """The MRD images of a stack, one per slice along its slice axis, in acquisition ``order``: image
     ``(x, y)`` is voxel ``(x, y)`` of the two in-plane axes in increasing order, its header placing it
-    where ``volume.affine`` places that voxel; ``slice`` is the index along the slice axis,
-    ``image_index`` the place in the order of sending."""
+    where ``volume.affine`` places that voxel (its axes made exactly orthogonal, as MRD's direction
+    fields are); ``slice`` is the index along the slice axis, ``image_index`` the place in the order
+    of sending."""
     axis = slice_axis_of(volume.spacing)
     first, second = [a for a in range(3) if a != axis]
     array = np.moveaxis(np.asarray(volume.array, np.float32), (first, second, axis), (0, 1, 2))
     base = np.asarray(volume.affine, np.float64)[:, [first, second, axis, 3]]
+    spacing = np.linalg.norm(base[:3, :3], axis=0)
+    u, _, vt = np.linalg.svd(base[:3, :3] / spacing)      # a scanner's directions are orthonormal: the nearest such
+    base[:3, :3] = (u @ vt) * spacing                      # (a file's sform may be sheared by up to 0.06 deg)
     images = []
     for sent, k in enumerate(order_of_sending(array.shape[2], order)):
         placed = base.copy()
@@ -102,9 +114,10 @@ def answer_record(message: Any) -> dict[str, Any]:
                 **pose_from_meta(message.meta)}
     if isinstance(message, str):
         try:
-            return json.loads(message)
+            record = json.loads(message)
         except ValueError:
-            return {"type": "text", "text": message}
+            record = None
+        return record if isinstance(record, dict) and "type" in record else {"type": "text", "text": message}
     return {"type": type(message).__name__}
 
 
@@ -112,13 +125,17 @@ class MrdLink:
     """One connection to an MRD server: messages out, and every message back collected by a thread of
     its own (so that neither side waits for the other to read) until the server's ``CLOSE``."""
 
-    def __init__(self, host: str, port: int, timeout_s: float = 120.0,
-                 on_message: Callable[[Any], None] | None = None) -> None:
-        self.sock = socket.create_connection((host, port), timeout=timeout_s)
+    def __init__(self, host: str, port: int, on_message: Callable[[Any], None] | None = None) -> None:
+        self.sock = socket.create_connection((host, port), timeout=CONNECT_TIMEOUT_S)
+        self.sock.settimeout(None)                 # the server's own limits end a session that stalls
         self.writer = self.sock.makefile("wb")
         self.outgoing = ismrmrd.ProtocolSerializer(self.writer)
         self.received: list[Any] = []
         self.closed_by_server = False
+        self.timed_out = False
+        """Whether :meth:`wait` gave up before the server ended the connection."""
+        self.unreadable: Exception | None = None
+        """What made the server's bytes unreadable as MRD messages (not an MRD server), if anything."""
         self.on_message = on_message
         self.failure: Exception | None = None
         """What ``on_message`` raised first (re-raised by :meth:`wait`; the messages are still all read)."""
@@ -138,13 +155,15 @@ class MrdLink:
             self.closed_by_server = True
         except (EOFError, OSError):
             pass
+        except Exception as exc:  # noqa: BLE001 - ismrmrd's parsers raise many kinds on bytes that are not MRD
+            self.unreadable = exc
 
     def send(self, *messages: Any) -> None:
         for message in messages:
             self.outgoing.serialize(message)
         self.writer.flush()
 
-    def close(self, wait_s: float = 300.0) -> list[Any]:
+    def close(self, wait_s: float = 600.0) -> list[Any]:
         """Send ``CLOSE``; wait for the server's; everything received."""
         try:
             self.outgoing.close()
@@ -152,10 +171,21 @@ class MrdLink:
             pass
         return self.wait(wait_s)
 
-    def wait(self, wait_s: float = 300.0) -> list[Any]:
-        """Wait (at most ``wait_s``) for the server to end the connection; everything received."""
+    def wait(self, wait_s: float = 600.0) -> list[Any]:
+        """Wait (at most ``wait_s``) for the server to end the connection, then end it here too (the
+        reader stops); everything received. Re-raises what ``on_message`` raised."""
         self._reader.join(timeout=wait_s)
-        self.sock.close()
+        self.timed_out = self._reader.is_alive()
+        try:
+            self.sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+        self._reader.join(timeout=5.0)
+        for closing in (self.writer, self.sock):
+            try:
+                closing.close()
+            except OSError:
+                pass
         if self.failure is not None:
             raise self.failure
         return self.received
@@ -190,7 +220,7 @@ class SeriesTally:
                 self.reacquire[stack] = len(record["reacquire"])
 
     def line(self) -> str:
-        latency = (f" (latency p50 / p95 {np.percentile(self.latency_ms, 50):.0f} / "
+        latency = (f" (server latency p50 / p95 {np.percentile(self.latency_ms, 50):.0f} / "
                    f"{np.percentile(self.latency_ms, 95):.0f} ms)" if self.latency_ms else "")
         text = f"{self.name}: {self.answered} of {self.sent} answered{latency}, {self.accepted_at_once} accepted at once"
         if not self.final:
@@ -203,13 +233,37 @@ class SeriesTally:
                 f"{sum(self.reacquire.values())} worth acquiring again")
 
 
+@dataclass
+class Session:
+    """What came back from one connection: each series' tally, every TEXT message, and why it ended
+    early (``problem``; None once the summary arrived)."""
+
+    tallies: list[SeriesTally]
+    texts: list[dict[str, Any]]
+    problem: str | None = None
+
+    @property
+    def refused_as_busy(self) -> bool:
+        """The server refused the session: its sessions were all taken (an error with ``retry_after_s``
+        that names no image)."""
+        return any(t.get("type") == "error" and t.get("status") == 503 and "retry_after_s" in t
+                   and "image_series_index" not in t for t in self.texts)
+
+
+class LinkError(Exception):
+    """The server could not be reached."""
+
+
 def send_series(series: Sequence[Sequence[ismrmrd.Image]], names: Sequence[str], host: str, port: int,
-                config: dict[str, Any] | None = None, pace_s: float = 0.0,
-                out: IO[str] | None = None) -> tuple[list[SeriesTally], list[dict[str, Any]], bool]:
+                config: dict[str, Any] | None = None, pace_s: float = 0.0, out: IO[str] | None = None,
+                wait_s: float = 600.0) -> Session:
     """Send image ``series`` (:func:`series_images`; ``names`` for the tallies) over one connection,
-    ``pace_s`` seconds between images; each series' tally, every TEXT message, and whether the
-    session ended with the server's summary. Every answer goes to ``out`` as a JSON line as it
-    arrives."""
+    ``pace_s`` seconds between images, and wait at most ``wait_s`` for the server's end of it. Every
+    answer goes to ``out`` as a JSON line as it arrives.
+
+    Raises:
+        LinkError: the server cannot be reached.
+    """
     tallies = [SeriesTally(name, len(images)) for name, images in zip(names, series)]
     texts: list[dict[str, Any]] = []
 
@@ -219,13 +273,16 @@ def send_series(series: Sequence[Sequence[ismrmrd.Image]], names: Sequence[str],
             out.write(json.dumps(record) + "\n")
         if record["type"] != "image":
             texts.append(record)
-        series = record.get("series", str(record.get("stack", "")).split(".")[0])
-        if str(series).isdigit() and int(series) < len(tallies):
-            tallies[int(series)].take(record)
+        series_index = record.get("series", str(record.get("stack", "")).split(".")[0])
+        if str(series_index).isdigit() and int(series_index) < len(tallies):
+            tallies[int(series_index)].take(record)
 
     counts = {len(images) for images in series}
     header = mrd_header(counts.pop() if len(counts) == 1 else None)
-    link = MrdLink(host, port, on_message=on_message)
+    try:
+        link = MrdLink(host, port, on_message=on_message)
+    except OSError as e:
+        raise LinkError(f"{host}:{port}: {e.strerror or e}") from None
     try:
         link.send(ismrmrd.ConfigFile("svrnet"), ConfigText(json.dumps(config or {})), header)
         for images in series:
@@ -234,22 +291,29 @@ def send_series(series: Sequence[Sequence[ismrmrd.Image]], names: Sequence[str],
                 if pace_s > 0:
                     time.sleep(pace_s)
     except OSError:                      # the server ended the session (busy, a broken stream): what it said is read
-        link.wait()
+        link.wait(wait_s)
     else:
-        link.close()
-    return tallies, texts, any(t.get("type") == "summary" for t in texts)
+        link.close(wait_s)
+    session = Session(tallies, texts)
+    if not any(t.get("type") == "summary" for t in texts):
+        session.problem = ("the server's answers are not MRD messages (is it an svrnet-mrd server?)" if link.unreadable
+                           else f"no end of the session from the server within {wait_s:g} s" if link.timed_out
+                           else "the server ended the session before its summary")
+    return session
 
 
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="svrnet-mrd-send", description="Send stack files to an svrnet-mrd server "
                                  "as MRD images, as a scanner sends them, and show what comes back.")
-    ap.add_argument("stacks", nargs="+", type=Path, help="stack files (NIfTI, NRRD, MHA); one MRD series each")
+    ap.add_argument("stacks", nargs="+", type=Path, help="stack files (NIfTI, NRRD, MHA, DICOM, a ZIP of one DICOM "
+                    "series); one MRD series each")
     ap.add_argument("--host", default="127.0.0.1", help="the server's address (default 127.0.0.1)")
     ap.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"its port (default {DEFAULT_PORT})")
     ap.add_argument("--order", default="sequential", help="acquisition order: sequential, interleaved, "
                     "interleaved-odd-first, or the slice indices as acquired (0,2,4,1,3)")
     ap.add_argument("--config", default="{}", help='session options as JSON, e.g. \'{"mc_samples": 50}\'')
     ap.add_argument("--pace-s", type=float, default=0.0, help="seconds between images (a scanner's pace)")
+    ap.add_argument("--wait-s", type=float, default=600.0, help="how long to wait for the server's last answers")
     ap.add_argument("--out", type=Path, help="write every answer as a JSON line to this file")
     return ap
 
@@ -262,32 +326,39 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError("not a JSON object")
     except ValueError as e:
         return _fail(f"--config: {e}", EXIT_USAGE)
-    volumes = []
-    for path in args.stacks:
-        try:
-            volumes.append(read_volume(path))
-        except (RuntimeError, OSError, ValueError) as e:
-            return _fail(f"{path.name}: not readable as a stack ({str(e).strip().splitlines()[-1]})", EXIT_BAD_INPUT)
     try:
-        series = [series_images(volume, i, args.order) for i, volume in enumerate(volumes)]
+        order_of_sending(len(args.order.split(",")), args.order)   # indices given: as many as there are, per file below
     except ValueError as e:
         return _fail(f"--order: {e}", EXIT_USAGE)
-    names = [f"series {i} ({path.name})" for i, path in enumerate(args.stacks)]
-    out = open(args.out, "w", encoding="utf-8") if args.out else None
+    series = []
+    for i, path in enumerate(args.stacks):
+        try:
+            volume = read_upload(path, path.name)             # as /v1/predict reads a file, with its checks
+        except ServiceError as e:
+            return _fail(e.detail, EXIT_BAD_INPUT)
+        try:
+            series.append(series_images(volume, i, args.order))
+        except ValueError as e:
+            return _fail(f"--order: {path.name}: {e}", EXIT_USAGE)
     try:
-        tallies, texts, complete = send_series(series, names, args.host, args.port, config, args.pace_s, out)
+        out = open(args.out, "w", encoding="utf-8") if args.out else None
     except OSError as e:
-        return _fail(f"{args.host}:{args.port}: {e.strerror or e}", EXIT_CONNECTION)
+        return _fail(f"--out: {args.out}: {e.strerror or e}", EXIT_USAGE)
+    names = [f"series {i} ({path.name})" for i, path in enumerate(args.stacks)]
+    try:
+        session = send_series(series, names, args.host, args.port, config, args.pace_s, out, args.wait_s)
+    except LinkError as e:
+        return _fail(str(e), EXIT_CONNECTION)
     finally:
         if out is not None:
             out.close()
-    for tally in tallies:
+    for tally in session.tallies:
         print(tally.line())
-    for error in (t for t in texts if t.get("type") == "error"):
-        print(f"error {error.get('status')}: {error.get('detail')}", file=sys.stderr)
-    if not complete:
-        busy = any(t.get("type") == "error" and t.get("status") == 503 for t in texts)
-        return _fail("the server ended the session before its summary", EXIT_BUSY if busy else EXIT_CONNECTION)
+    for error in (t for t in session.texts if t.get("type") == "error"):
+        retry = f" (retry after {error['retry_after_s']} s)" if "retry_after_s" in error else ""
+        print(f"error {error.get('status')}: {error.get('detail')}{retry}", file=sys.stderr)
+    if session.problem is not None:
+        return _fail(session.problem, EXIT_BUSY if session.refused_as_busy else EXIT_CONNECTION)
     return EXIT_OK
 
 

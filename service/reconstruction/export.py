@@ -8,7 +8,8 @@ Per-slice ``.tfm`` files (``transforms/stack{S}_slice{K:03d}.tfm``) hold an
 
 with ``F = diag(-1, -1, 1, 1)`` (:mod:`service.geometry.frames`): it maps a point of the
 reconstruction / atlas space (LPS mm) to the point of the uploaded stack's own physical space
-(LPS mm, as ITK reads that file's header) where that slice observed it. This is ITK's registration
+(LPS mm, as the service placed that file: a NIfTI file by its sform whenever its code is above 0)
+where that slice observed it. This is ITK's registration
 convention with the reconstruction as the fixed image and the stack as the moving image, so
 ``sitk.Resample(stack_image, reconstruction_image, sitk.ReadTransform(path))`` maps that slice of
 the stack into atlas space. (``atlas_from_scanner``, the other direction, is its inverse.)

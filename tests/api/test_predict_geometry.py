@@ -291,6 +291,7 @@ def test_a_dicom_series_acquisition_times_order_its_stack(oracle, oracle_client,
         assert r.status_code == 200, r.text
         stack = r.json()["stacks"][0]
         assert stack["consistency"]["acquisition_order"] == said
+        np.testing.assert_allclose(stack["scanner_from_voxel"], aff, atol=1e-3)    # the series' own geometry
         kept = [s for s in stack["slices"] if s["reason"] not in ("empty", "inconsistent_with_stack")]
         assert len(kept) >= 15                 # i.i.d. jitter: an end slice the others cannot predict is flagged
         for s in kept:

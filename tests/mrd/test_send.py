@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import json
 import socket
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -86,21 +88,62 @@ def test_a_session_from_files_answers_every_image_with_its_true_pose(case: Case,
     assert printed[0].startswith("series 0 (series0.nii.gz): 20 of 20 answered") and "final: " in printed[0]
 
 
+def free_port() -> int:
+    with socket.socket() as s:                               # a port nobody listens on, once closed
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 def test_exit_codes_name_what_is_wrong(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     stack = tmp_path / "stack.nii.gz"
     write_volume(oblique_stack((6, 6, 4), seed=1), stack)
     (tmp_path / "notes.nii.gz").write_bytes(b"not an image")
-    with socket.socket() as s:                               # a port nobody listens on
-        s.bind(("127.0.0.1", 0))
-        free = s.getsockname()[1]
-    assert send.main([str(stack), "--port", str(free)]) == send.EXIT_CONNECTION
-    assert f"127.0.0.1:{free}" in capsys.readouterr().err
-    assert send.main([str(tmp_path / "notes.nii.gz"), "--port", str(free)]) == send.EXIT_BAD_INPUT
-    assert "notes.nii.gz: not readable as a stack" in capsys.readouterr().err
-    assert send.main([str(stack), "--order", "auto"]) == send.EXIT_USAGE
-    assert "--order" in capsys.readouterr().err
+    port = free_port()
+    assert send.main([str(stack), "--port", str(port)]) == send.EXIT_CONNECTION
+    assert f"127.0.0.1:{port}" in capsys.readouterr().err
+    assert send.main([str(tmp_path / "notes.nii.gz"), "--port", str(port)]) == send.EXIT_BAD_INPUT
+    assert "notes.nii.gz" in capsys.readouterr().err
+    for order in ("auto", "sideways", "0,1,1"):
+        assert send.main([str(stack), "--order", order]) == send.EXIT_USAGE
+        assert "--order" in capsys.readouterr().err
+    assert send.main([str(stack), "--order", "0,1,2"]) == send.EXIT_USAGE     # three indices, four slices
+    assert "--order: stack.nii.gz" in capsys.readouterr().err
     assert send.main([str(stack), "--config", "[1]"]) == send.EXIT_USAGE
     assert "--config: not a JSON object" in capsys.readouterr().err
+    assert send.main([str(stack), "--out", str(tmp_path / "no" / "such" / "a.jsonl")]) == send.EXIT_USAGE
+    assert "--out" in capsys.readouterr().err
+
+
+def test_a_server_that_does_not_speak_mrd_is_named_so(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    stack = tmp_path / "stack.nii.gz"
+    write_volume(oblique_stack((6, 6, 4), seed=1), stack)
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(1)
+
+        def answer_http() -> None:
+            conn, _ = listener.accept()
+            with conn:
+                conn.recv(65536)
+                conn.sendall(b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n")
+
+        threading.Thread(target=answer_http, daemon=True).start()
+        code = send.main([str(stack), "--port", str(listener.getsockname()[1]), "--wait-s", "20"])
+    assert code == send.EXIT_CONNECTION
+    assert "not MRD messages" in capsys.readouterr().err
+
+
+def test_a_slightly_sheared_file_is_sent_with_orthogonal_axes_where_the_service_places_it() -> None:
+    stack = oblique_stack((7, 6, 5), seed=4)
+    affine = stack.affine.copy()
+    affine[:3, 0] += 5e-4 * np.linalg.norm(affine[:3, 0]) * affine[:3, 1] / np.linalg.norm(affine[:3, 1])
+    volume = Volume(stack.array, affine)                    # axes 0.03 deg from right angles (the service takes 0.06)
+    for image in send.series_images(volume, series=0):
+        _, scanner_from_voxel = slice_from_image(image)
+        grid = pixel_grid(7, 6)
+        voxel = grid.copy()
+        voxel[:, 2] = image.slice
+        np.testing.assert_allclose((scanner_from_voxel @ grid.T).T[:, :3], (affine @ voxel.T).T[:, :3], atol=0.02)
 
 
 def test_a_series_final_poses_are_its_stack_message_as_later_updates_move_them() -> None:
@@ -119,11 +162,15 @@ def test_a_server_whose_sessions_are_taken_says_so_and_the_sender_ends_busy(case
                                                                            capsys: pytest.CaptureFixture) -> None:  # noqa: ANN001
     server = serve(limits=ServerLimits(max_sessions=1))
     holder = send.MrdLink("127.0.0.1", server.port)
-    holder.send(case.images[0][0])
-    while not holder.received:                          # the first session holds the slot once it answers
-        holder._reader.join(timeout=0.05)
-    paths = write_case_stacks(case, tmp_path)
-    assert send.main([str(paths[0]), "--port", str(server.port)]) == send.EXIT_BUSY
-    err = capsys.readouterr().err
-    assert "error 503" in err and "before its summary" in err
-    holder.close()
+    try:
+        holder.send(case.images[0][0])
+        deadline = time.monotonic() + 60
+        while not holder.received:                      # the first session holds the slot once it answers
+            assert time.monotonic() < deadline
+            holder._reader.join(timeout=0.05)
+        paths = write_case_stacks(case, tmp_path)
+        assert send.main([str(paths[0]), "--port", str(server.port)]) == send.EXIT_BUSY
+        err = capsys.readouterr().err
+        assert "error 503" in err and "retry after" in err and "before its summary" in err
+    finally:
+        holder.close()
