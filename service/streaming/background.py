@@ -76,14 +76,19 @@ def stop_stage_process(timeout_s: float = 5.0) -> None:
         pool, _stage_pool = _stage_pool, None
     if pool is None:
         return
-    processes = getattr(pool, "_processes", None) or {}      # the pool's own dict: shutdown drops the pool's
-    pool.shutdown(wait=False, cancel_futures=True)            # reference, not a process a submit was starting
-    for worker in list(processes.values()):
-        worker.join(timeout_s)
-        if worker.is_alive():
-            worker.terminate()
-            worker.join(timeout_s)
-        if worker.is_alive():
+    workers = list((getattr(pool, "_processes", None) or {}).values())   # taken before the shutdown drops them
+    manager = getattr(pool, "_executor_manager_thread", None)
+    pool.shutdown(wait=False, cancel_futures=True)
+    # The pool's manager thread reaps each worker as it exits; joining them here as well would race it
+    # (two waitpid calls on one child: the loser reads "still running" and would signal a reaped pid).
+    if manager is not None:
+        manager.join(timeout_s)
+        if manager.is_alive():                                    # a fit still running past timeout_s
+            for worker in workers:
+                worker.terminate()
+            manager.join(timeout_s)
+    for worker in workers:
+        if worker.is_alive():                                     # no manager to reap it, or it would not end
             worker.kill()
             worker.join(timeout_s)
 

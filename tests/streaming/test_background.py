@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import tempfile
 import threading
+import time
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 
 from fastapi.testclient import TestClient
@@ -31,6 +32,15 @@ def test_the_stage_process_ends_and_a_new_one_starts_on_next_use() -> None:
     stop_stage_process()
     assert not second.is_alive()
     stop_stage_process()                                                # nothing started: nothing to do
+
+
+def test_a_fit_still_running_at_the_stop_is_ended_with_its_process() -> None:
+    worker = _worker()
+    running = stage_process().submit(time.sleep, 60)
+    while not running.running():
+        time.sleep(0.01)
+    stop_stage_process(timeout_s=0.5)
+    assert not worker.is_alive()
 
 
 def test_firm_ups_that_start_at_once_share_one_stage_process() -> None:
