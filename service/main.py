@@ -13,7 +13,6 @@ from contextlib import asynccontextmanager
 from anyio import CapacityLimiter
 from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
-from threadpoolctl import threadpool_limits
 
 from service.api import health, masks, metrics, models, openapi, predict, problems, reconstructions, stream
 from service.api.deps import MetricsAccess
@@ -24,6 +23,7 @@ from service.api.uploads import sweep_stale_uploads
 from service.core import logging as service_logging
 from service.core.machine import cpu_description
 from service.core.settings import Settings
+from service.core.threads import limit_blas_threads
 from service.inference.registry import ModelRegistry
 from service.jobs.backends import open_backend, queue_extra_missing
 from service.preprocess.localise import Localisers
@@ -39,7 +39,7 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        blas = threadpool_limits(limits=settings.blas_threads, user_api="blas") if settings.blas_threads else None
+        blas = limit_blas_threads(settings.blas_threads)
         app.state.registry = registry or ModelRegistry.from_directory(
             settings.models_dir, settings.default_model, settings.onnx_threads)
         app.state.localisers = Localisers.from_directory(settings.localisers_dir, settings.onnx_threads)

@@ -47,9 +47,11 @@ class Settings(BaseSettings):
     max_concurrent: int = Field(2, ge=1, description="requests processed at once; more get 503")
     preprocess_workers: int = Field(2, ge=1, description="stacks preprocessed in parallel")
     onnx_threads: int = Field(0, ge=0, description="onnxruntime intra-op threads (0 = all cores)")
-    blas_threads: int = Field(1, ge=0, description="numpy's and scipy's BLAS threads (0 = the library's default, "
-                              "every core): the consistency stages multiply many small matrices, which one thread "
-                              "does faster, and requests and preprocessing workers already use the cores side by side")
+    blas_threads: int = Field(1, ge=0, description="numpy's and scipy's BLAS threads in the server, svrnet-mrd, the "
+                              "job workers and svrnet-worker (0 = the library's default, every core): the consistency "
+                              "stages multiply many small matrices, which one thread does faster, and requests and "
+                              "preprocessing workers already use the cores side by side (the streams' stage process "
+                              "always uses one)")
     tmp_dir: Path | None = Field(None, description="where uploads are spooled (default: system temp)")
     data_dir: Path = Field(Path.home() / ".svrnet", description="job store: SQLite database and files")
     retry_after_s: int = Field(2, ge=1)

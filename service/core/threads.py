@@ -1,4 +1,6 @@
-"""Two threads for a request's long array work: two halves of the slices, every other stack.
+"""Threads for array work: two for a request's long array work, and one for numpy's and scipy's BLAS.
+
+**Two threads** for a request's long array work: two halves of the slices, every other stack.
 
 numpy does long array operations outside the GIL, so work of many milliseconds a half (the MC
 samples of half a request's slices, a pass's padded images and gradients of every other stack) runs
@@ -6,6 +8,13 @@ side by side on two cores; work of a few milliseconds (a pass of the image term 
 thousands of points) does not gain: the hand-over and the GIL between numpy's calls cost what the
 second core saves. One pool serves every request: a request's work waits for the pool rather than
 starting threads of its own. A forked child starts its own.
+
+**BLAS** (:func:`limit_blas_threads`): the consistency stages multiply many small matrices, which
+one thread does faster, and OpenBLAS threads that wait for work spin: on a machine whose cores are
+busy (a server's inference, a job beside it) two BLAS threads a process made a stack fit 10-30
+times slower (the stack-fit tests beside two busy processes on 2 cores: 192 s, 11 s with one
+thread). Every process of the service that runs them limits its BLAS: the server, ``svrnet-mrd``,
+the streams' stage process, the job workers.
 
 Example:
     >>> two_threads(lambda half: half * 10)
@@ -18,7 +27,7 @@ import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from typing import TypeVar
+from typing import Any, TypeVar
 
 T = TypeVar("T")
 
@@ -46,3 +55,32 @@ def two_threads(work: Callable[[int], T]) -> list[T]:
     if threading.current_thread().name.startswith(_PREFIX):
         return [work(0), work(1)]
     return list(_POOL.map(work, (0, 1)))
+
+
+def limit_blas_threads(threads: int) -> Any:
+    """Limit numpy's and scipy's BLAS libraries (each loaded first: a limit reaches only the libraries
+    a process has loaded) to ``threads`` threads for the rest of the process; 0 leaves them as they
+    are. Returns the limiter (its ``restore_original_limits()`` undoes it), or None.
+
+    Example:
+        >>> limiter = limit_blas_threads(1); set(blas_threads())
+        {1}
+        >>> limiter.restore_original_limits()
+    """
+    if threads <= 0:
+        return None
+    import numpy  # noqa: F401 - loads numpy's BLAS
+    import scipy.linalg  # noqa: F401 - loads scipy's own
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=threads, user_api="blas")
+
+
+def blas_threads() -> list[int]:
+    """The thread count of each BLAS library this process has loaded (numpy's and scipy's, loaded
+    first): what :func:`limit_blas_threads` set."""
+    import numpy  # noqa: F401
+    import scipy.linalg  # noqa: F401
+    from threadpoolctl import threadpool_info
+
+    return [int(lib["num_threads"]) for lib in threadpool_info() if lib.get("user_api") == "blas"]

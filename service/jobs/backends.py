@@ -61,4 +61,4 @@ def open_backend(settings: Settings) -> tuple[JobStore, JobRunner]:
 
     sqlite = SqliteJobStore(settings.data_dir)
     return sqlite, LocalRunner(sqlite, settings.models_dir, settings.job_workers, settings.job_max_attempts,
-                               settings.log_level, settings.job_timeout_h * 3600)
+                               settings.log_level, settings.job_timeout_h * 3600, settings.blas_threads)

@@ -84,9 +84,9 @@ class LocalRunner(JobRunner):
     """Submits queued jobs to a pool of ``workers`` processes (spawned, each exits with the server)."""
 
     def __init__(self, store: SqliteJobStore, models_dir: Path, workers: int = 1, max_attempts: int = 2,
-                 log_level: str = "info", timeout_s: float = float("inf")) -> None:
+                 log_level: str = "info", timeout_s: float = float("inf"), blas_threads: int = 1) -> None:
         self.store, self.models_dir, self.max_attempts, self.workers = store, models_dir, max_attempts, workers
-        self.log_level, self.timeout_s = log_level, timeout_s
+        self.log_level, self.timeout_s, self.blas_threads = log_level, timeout_s, blas_threads
         self.lock = threading.Lock()
         self.closing = False
         """Set at shutdown: the workers stopped then are not lost ones, and no pool replaces theirs."""
@@ -101,7 +101,7 @@ class LocalRunner(JobRunner):
 
     def _new_pool(self) -> ProcessPoolExecutor:
         return ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=start_worker, initargs=(os.getpid(), self.log_level))
+                                   initializer=start_worker, initargs=(os.getpid(), self.log_level, self.blas_threads))
 
     def start(self) -> list[str]:
         self.owner = lock_store(self.store.data_dir)

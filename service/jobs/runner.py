@@ -9,6 +9,7 @@ import time
 from abc import ABC, abstractmethod
 
 from service.core import logging as service_logging
+from service.core.threads import limit_blas_threads
 
 
 
@@ -57,11 +58,13 @@ def lost_worker(max_attempts: int) -> str:
             "(SVRNET_JOB_MAX_ATTEMPTS); the job was not completed")
 
 
-def start_worker(parent: int, log_level: str) -> None:
+def start_worker(parent: int, log_level: str, blas_threads: int = 1) -> None:
     """A pool worker process's start: the server's JSON logging (a failed job's line carries its id
-    and the kind of error) and :func:`watch_parent`."""
+    and the kind of error), :func:`watch_parent` and the server's BLAS threads
+    (:func:`~service.core.threads.limit_blas_threads`: a job runs beside the server's requests)."""
     service_logging.configure(log_level)
     watch_parent(parent)
+    limit_blas_threads(blas_threads)
 
 
 def watch_parent(parent: int | None = None, interval_s: float = 0.5) -> None:

@@ -34,6 +34,7 @@ from rq.worker import Worker
 
 from service.core import logging as service_logging
 from service.core.settings import Settings
+from service.core.threads import limit_blas_threads
 from service.jobs.rq_runner import set_context
 from service.jobs.runner import watch_parent
 
@@ -97,8 +98,10 @@ def build_worker(settings: Settings, name: str | None = None) -> SvrnetWorker:
 
 
 def work(settings: Settings, burst: bool = False, name: str | None = None) -> None:
-    """One worker in this process until SIGTERM (or, with ``burst``, until the queue is empty)."""
+    """One worker in this process until SIGTERM (or, with ``burst``, until the queue is empty); its
+    jobs (forked work horses) with the server's BLAS threads, beside other workers and servers."""
     hold_stop_signals()
+    limit_blas_threads(settings.blas_threads)
     set_context(settings)
     build_worker(settings, name).work(burst=burst, logging_level=settings.log_level.upper())
 

@@ -24,6 +24,8 @@ import os
 import threading
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 
+from service.core.threads import limit_blas_threads
+
 BACKGROUND_NICE = 10
 """How much lower the OS priority of the stack stages is than the poses'."""
 
@@ -47,15 +49,26 @@ _stage_pool_lock = threading.Lock()
 process, and a stop never misses one started beside it (a process nobody would end)."""
 
 
+STAGE_BLAS_THREADS = 1
+"""The stage process's BLAS threads: its fits multiply small matrices, and it runs beside the
+server's own work (:func:`~service.core.threads.limit_blas_threads`)."""
+
+
+def _start_stage_process() -> None:
+    """The stage process's start: a lower priority, one BLAS thread."""
+    lower_priority()
+    limit_blas_threads(STAGE_BLAS_THREADS)
+
+
 def stage_process() -> ProcessPoolExecutor:
     """The process the firm-ups' stack fits run in: one for the server's life, started on first use
     (``spawn``: a fresh interpreter, nothing of the server's threads or model sessions), at a lower
-    priority; shut down when the server exits."""
+    priority and with :data:`STAGE_BLAS_THREADS`; shut down when the server exits."""
     global _stage_pool
     with _stage_pool_lock:
         if _stage_pool is None:
             _stage_pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
-                                              initializer=lower_priority)
+                                              initializer=_start_stage_process)
         return _stage_pool
 
 

@@ -55,3 +55,13 @@ def test_the_lock_dies_with_its_owner(tmp_path: Path) -> None:
     runner = LocalRunner(SqliteJobStore(tmp_path), tmp_path)
     runner.start()                                                        # no stale lock after kill -9
     runner.shutdown()
+
+
+def test_a_job_worker_runs_the_servers_blas_threads(tmp_path: Path) -> None:
+    from service.core.threads import blas_threads
+
+    runner = LocalRunner(SqliteJobStore(tmp_path), tmp_path, blas_threads=1)
+    try:
+        assert set(runner.pool.submit(blas_threads).result(timeout=120)) == {1}
+    finally:
+        runner.pool.shutdown(wait=True, cancel_futures=True)

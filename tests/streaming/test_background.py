@@ -13,7 +13,8 @@ from fastapi.testclient import TestClient
 from service.core.settings import Settings
 from service.inference.registry import ModelRegistry
 from service.main import create_app
-from service.streaming.background import stage_process, stop_stage_process
+from service.core.threads import blas_threads
+from service.streaming.background import STAGE_BLAS_THREADS, stage_process, stop_stage_process
 from tests.api.conftest import OracleEstimator
 
 
@@ -41,6 +42,12 @@ def test_a_fit_still_running_at_the_stop_is_ended_with_its_process() -> None:
         time.sleep(0.01)
     stop_stage_process(timeout_s=0.5)
     assert not worker.is_alive()
+
+
+def test_the_stage_process_runs_one_blas_thread() -> None:
+    stop_stage_process()
+    assert set(stage_process().submit(blas_threads).result()) == {STAGE_BLAS_THREADS}
+    stop_stage_process()
 
 
 def test_firm_ups_that_start_at_once_share_one_stage_process() -> None:
