@@ -20,7 +20,7 @@ server cannot be reached, does not answer in MRD, or ends the session (or does n
 sessions are all taken (its error says when to retry).
 
 Example:
-    >>> order_of_sending(5, "interleaved"), order_of_sending(4, "3,2,1,0")
+    >>> send_order(5, "interleaved"), send_order(4, "3,2,1,0")
     ([0, 2, 4, 1, 3], [3, 2, 1, 0])
 """
 
@@ -73,7 +73,7 @@ def mrd_header(slices: int | None) -> ismrmrd.xsd.ismrmrdHeader:
     return ismrmrd.xsd.CreateFromDocument(HEADER_XML.replace("{slice}", limit))
 
 
-def order_of_sending(count: int, order: str = "sequential") -> list[int]:
+def send_order(count: int, order: str = "sequential") -> list[int]:
     """The slice indices of a stack of ``count`` slices in the order a scanner acquires them: one of
     :data:`SEND_ORDERS` (``interleaved``: even indices first) or the indices themselves,
     comma-separated (:class:`ValueError`, saying why, otherwise)."""
@@ -100,7 +100,7 @@ def series_images(volume: Volume, series: int, order: str = "sequential") -> lis
     u, _, vt = np.linalg.svd(base[:3, :3] / spacing)      # a scanner's directions are orthonormal: the nearest such
     base[:3, :3] = (u @ vt) * spacing                      # (a file's sform may be sheared by up to 0.06 deg)
     images = []
-    for sent, k in enumerate(order_of_sending(array.shape[2], order)):
+    for sent, k in enumerate(send_order(array.shape[2], order)):
         placed = base.copy()
         placed[:3, 3] = base[:3, 3] + k * base[:3, 2]
         images.append(image_from_slice(array[:, :, k], placed, series=series, slice_index=k, image_index=sent))
@@ -327,7 +327,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as e:
         return _fail(f"--config: {e}", EXIT_USAGE)
     try:
-        order_of_sending(len(args.order.split(",")), args.order)   # indices given: as many as there are, per file below
+        send_order(len(args.order.split(",")), args.order)   # indices given: as many as there are, per file below
     except ValueError as e:
         return _fail(f"--order: {e}", EXIT_USAGE)
     series = []

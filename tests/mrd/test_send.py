@@ -33,7 +33,7 @@ def test_every_pixel_of_every_image_lies_where_the_files_affine_puts_its_voxel(s
     volume = Volume(np.transpose(stack.array, order), stack.affine[:, order + [3]])
     images = send.series_images(volume, series=4, order="interleaved")
     n = volume.array.shape[slice_axis]
-    assert [i.slice for i in images] == send.order_of_sending(n, "interleaved")
+    assert [i.slice for i in images] == send.send_order(n, "interleaved")
     assert [i.image_index for i in images] == list(range(n)) and {i.image_series_index for i in images} == {4}
     for image in images:
         pixels, scanner_from_voxel = slice_from_image(image)
@@ -48,12 +48,12 @@ def test_every_pixel_of_every_image_lies_where_the_files_affine_puts_its_voxel(s
 
 
 def test_orders_of_sending() -> None:
-    assert send.order_of_sending(5, "sequential") == [0, 1, 2, 3, 4]
-    assert send.order_of_sending(5, "interleaved-odd-first") == [1, 3, 0, 2, 4]
-    assert send.order_of_sending(4, "1, 3, 0, 2") == [1, 3, 0, 2]
+    assert send.send_order(5, "sequential") == [0, 1, 2, 3, 4]
+    assert send.send_order(5, "interleaved-odd-first") == [1, 3, 0, 2, 4]
+    assert send.send_order(4, "1, 3, 0, 2") == [1, 3, 0, 2]
     for bad in ("auto", "0,1,1,2", "0,1,2", "sideways"):
         with pytest.raises(ValueError):
-            send.order_of_sending(4, bad)
+            send.send_order(4, bad)
 
 
 def write_case_stacks(case: Case, folder: Path) -> list[Path]:
@@ -79,7 +79,7 @@ def test_a_session_from_files_answers_every_image_with_its_true_pose(case: Case,
     assert code == send.EXIT_OK
     records = [json.loads(line) for line in out.read_text().splitlines()]
     images = [r for r in records if r["type"] == "image"]
-    assert [(r["series"], r["slice"]) for r in images] == [(s, k) for s in (0, 1) for k in send.order_of_sending(20, "interleaved")]
+    assert [(r["series"], r["slice"]) for r in images] == [(s, k) for s in (0, 1) for k in send.send_order(20, "interleaved")]
     for r in images:
         np.testing.assert_allclose(r["atlas_from_voxel"], true_sent(case.truths[r["series"]], r["slice"]), atol=1e-2)
     assert [r["stack"] for r in records if r["type"] == "stack"] == ["0", "1"]    # one length: each ends at once
