@@ -32,6 +32,7 @@ from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
+from service.core.process_pools import end_pool
 from service.jobs.runner import JobRunner, start_worker
 from service.jobs.store import SqliteJobStore
 from service.jobs.worker import TIMED_OUT, run_job
@@ -193,16 +194,7 @@ class LocalRunner(JobRunner):
         were running back in the queue."""
         with self.lock:
             self.closing = True
-        processes = list((getattr(self.pool, "_processes", None) or {}).values())
-        self.pool.shutdown(wait=False, cancel_futures=True)
-        for proc in processes:
-            if proc.is_alive():
-                proc.terminate()
-        for proc in processes:
-            proc.join(timeout_s)
-            if proc.is_alive():
-                proc.kill()
-                proc.join(timeout_s)
+        end_pool(self.pool, grace_s=0.0, timeout_s=timeout_s)
         handed_back = [j for j in self.store.recover(self.max_attempts) if j in self.futures] if self.started else []
         for job_id in handed_back:
             log.info(f"handed job {job_id} back to the queue", extra={"job_id": job_id})

@@ -24,6 +24,7 @@ import os
 import threading
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 
+from service.core.process_pools import end_pool
 from service.core.threads import limit_blas_threads
 
 BACKGROUND_NICE = 10
@@ -89,21 +90,7 @@ def stop_stage_process(timeout_s: float = 5.0) -> None:
         pool, _stage_pool = _stage_pool, None
     if pool is None:
         return
-    workers = list((getattr(pool, "_processes", None) or {}).values())   # taken before the shutdown drops them
-    manager = getattr(pool, "_executor_manager_thread", None)
-    pool.shutdown(wait=False, cancel_futures=True)
-    # The pool's manager thread reaps each worker as it exits; joining them here as well would race it
-    # (two waitpid calls on one child: the loser reads "still running" and would signal a reaped pid).
-    if manager is not None:
-        manager.join(timeout_s)
-        if manager.is_alive():                                    # a fit still running past timeout_s
-            for worker in workers:
-                worker.terminate()
-            manager.join(timeout_s)
-    for worker in workers:
-        if worker.is_alive():                                     # no manager to reap it, or it would not end
-            worker.kill()
-            worker.join(timeout_s)
+    end_pool(pool, grace_s=timeout_s, timeout_s=timeout_s)
 
 
 atexit.register(stop_stage_process)        # once: a no-op when no process was started

@@ -1,0 +1,42 @@
+"""Ending a process pool so that no process outlives it: one way for every pool of the service.
+
+:class:`~concurrent.futures.ProcessPoolExecutor`'s ``shutdown(wait=False)`` leaves its processes
+running, and ``shutdown(wait=True)`` waits for whatever they run. :func:`end_pool` gives the running
+work ``grace_s``, then terminates the processes, then kills what is left. The pool's manager thread
+reaps each worker as it exits; the pool is waited for through that thread, never by joining the
+workers beside it (two reapers of one child: the loser reads it as still running and would signal a
+reaped pid).
+
+Example (a pool whose one process is ended at once):
+    >>> from concurrent.futures import ProcessPoolExecutor
+    >>> pool = ProcessPoolExecutor(1); pool.submit(int).result()
+    0
+    >>> [p.is_alive() for p in end_pool(pool, grace_s=5.0)]
+    [False]
+"""
+
+from __future__ import annotations
+
+import multiprocessing.process
+from concurrent.futures import ProcessPoolExecutor
+
+
+def end_pool(pool: ProcessPoolExecutor, grace_s: float, timeout_s: float = 5.0) -> list[multiprocessing.process.BaseProcess]:
+    """Shut ``pool`` down, its queued work cancelled: the running work gets ``grace_s`` to finish,
+    then the processes are terminated (given ``timeout_s`` to end) and killed if still alive.
+    Returns the processes it had."""
+    workers = list((getattr(pool, "_processes", None) or {}).values())   # taken before the shutdown drops them
+    manager = getattr(pool, "_executor_manager_thread", None)
+    pool.shutdown(wait=False, cancel_futures=True)
+    if manager is not None:
+        manager.join(grace_s)
+        if manager.is_alive():                                   # work still running past the grace
+            for worker in workers:
+                if worker.is_alive():
+                    worker.terminate()
+            manager.join(timeout_s)
+    for worker in workers:
+        if worker.is_alive():                                    # no manager to reap it, or it would not end
+            worker.kill()
+            worker.join(timeout_s)
+    return workers
