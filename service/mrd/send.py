@@ -125,12 +125,15 @@ class MrdLink:
     """One connection to an MRD server: messages out, and every message back collected by a thread of
     its own (so that neither side waits for the other to read) until the server's ``CLOSE``."""
 
-    def __init__(self, host: str, port: int, on_message: Callable[[Any], None] | None = None) -> None:
+    def __init__(self, host: str, port: int, on_message: Callable[[Any], None] | None = None,
+                 keep: bool = True) -> None:
         self.sock = socket.create_connection((host, port), timeout=CONNECT_TIMEOUT_S)
         self.sock.settimeout(None)                 # the server's own limits end a session that stalls
         self.writer = self.sock.makefile("wb")
         self.outgoing = ismrmrd.ProtocolSerializer(self.writer)
         self.received: list[Any] = []
+        """Every message received (with ``keep``; a caller whose ``on_message`` takes them keeps none)."""
+        self.keep = keep
         self.closed_by_server = False
         self.timed_out = False
         """Whether :meth:`wait` gave up before the server ended the connection."""
@@ -146,7 +149,8 @@ class MrdLink:
         incoming = ismrmrd.ProtocolDeserializer(self.sock.makefile("rb"))
         try:
             for message in incoming.deserialize():
-                self.received.append(message)
+                if self.keep:
+                    self.received.append(message)
                 if self.on_message is not None and self.failure is None:
                     try:
                         self.on_message(message)
@@ -280,7 +284,7 @@ def send_series(series: Sequence[Sequence[ismrmrd.Image]], names: Sequence[str],
     counts = {len(images) for images in series}
     header = mrd_header(counts.pop() if len(counts) == 1 else None)
     try:
-        link = MrdLink(host, port, on_message=on_message)
+        link = MrdLink(host, port, on_message=on_message, keep=False)
     except OSError as e:
         raise LinkError(f"{host}:{port}: {e.strerror or e}") from None
     try:
