@@ -57,6 +57,12 @@ def two_threads(work: Callable[[int], T]) -> list[T]:
     return list(_POOL.map(work, (0, 1)))
 
 
+def _load_blas() -> None:
+    """Load numpy's BLAS and scipy's own (a thread limit reaches only the libraries a process has loaded)."""
+    import numpy  # noqa: F401
+    import scipy.linalg  # noqa: F401
+
+
 def limit_blas_threads(threads: int) -> Any:
     """Limit numpy's and scipy's BLAS libraries (each loaded first: a limit reaches only the libraries
     a process has loaded) to ``threads`` threads for the rest of the process; 0 leaves them as they
@@ -69,8 +75,7 @@ def limit_blas_threads(threads: int) -> Any:
     """
     if threads <= 0:
         return None
-    import numpy  # noqa: F401 - loads numpy's BLAS
-    import scipy.linalg  # noqa: F401 - loads scipy's own
+    _load_blas()
     from threadpoolctl import threadpool_limits
 
     return threadpool_limits(limits=threads, user_api="blas")
@@ -79,8 +84,7 @@ def limit_blas_threads(threads: int) -> Any:
 def blas_threads() -> list[int]:
     """The thread count of each BLAS library this process has loaded (numpy's and scipy's, loaded
     first): what :func:`limit_blas_threads` set."""
-    import numpy  # noqa: F401
-    import scipy.linalg  # noqa: F401
+    _load_blas()
     from threadpoolctl import threadpool_info
 
     return [int(lib["num_threads"]) for lib in threadpool_info() if lib.get("user_api") == "blas"]
