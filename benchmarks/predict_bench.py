@@ -11,8 +11,12 @@ uploaded, N4 on, 100 MC samples, every stage on), each also without ``image_cons
 
 ``--baseline REV`` serves the same scenarios from a git worktree of ``REV`` (its code and its
 shipped models) on a second port and prints each scenario's wall time beside it, as a ratio.
+``--model NAME`` sends the form field ``model`` (a model of the served folder); ``--compare-model
+NAME`` asks the same server with that model too, each request alternating with the first model's,
+and prints the ratio.
 
-    .venv/bin/python benchmarks/predict_bench.py [--baseline HEAD~3] [--model-dir service/models] [--real DIR]
+    .venv/bin/python benchmarks/predict_bench.py [--baseline HEAD~3] [--model-dir service/models] [--real DIR] \
+        [--model fast --compare-model default]
 """
 
 from __future__ import annotations
@@ -135,22 +139,32 @@ def wait_ready(client: httpx.Client) -> None:
 
 
 def measure(root: Path, model_dir: Path, scenarios: list[list[tuple[Path, Path]]],
-            real: list[tuple[Path, Path]] | None = None) -> tuple[dict, float]:
+            real: list[tuple[Path, Path]] | None = None, models: tuple[str | None, ...] = (None,)) -> tuple[dict, float]:
     """Best-of-3 wall time and server stage timings per (scenario, image_consistency), the real scan's
-    with and without masks (every stage on), and the peak RSS."""
+    with and without masks (every stage on), and the peak RSS; per model of ``models`` (None: the
+    server's default), their requests alternating, keyed ``(model, ...)``."""
     server, port = start_server(root, model_dir)
-    out = {}
+    out: dict = {}
+
+    def best(key: tuple, model: str | None, stacks: list[tuple[Path, Path]], **form: object) -> None:
+        wall, timing = run(client, stacks, repeats=1, **form, **({"model": model} if model else {}))
+        if key not in out or wall < out[key][0]:
+            out[key] = (wall, timing)
+
     try:
         with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=300) as client:
             wait_ready(client)
             for (name, _), stacks in zip(SCENARIOS, scenarios):
                 for image in ("true", "false"):
-                    out[name, image] = run(client, stacks, image_consistency=image)
+                    for _ in range(3):
+                        for model in models:
+                            best((model, name, image), model, stacks, image_consistency=image)
             if real:
                 for masks in (True, False, True):           # masks again: the best of six against three
-                    wall, timing = run(client, real, masks=masks, masks_hold_csf="true" if masks else "false")
-                    if ("real", masks) not in out or wall < out["real", masks][0]:
-                        out["real", masks] = (wall, timing)
+                    for _ in range(3):
+                        for model in models:
+                            best((model, "real", masks), model, real, masks=masks,
+                                 masks_hold_csf="true" if masks else "false")
         return out, peak_rss_mb(server.pid)
     finally:
         server.terminate()
@@ -162,6 +176,8 @@ def main() -> None:
     ap.add_argument("--model-dir", default=str(ROOT / "service" / "models"))
     ap.add_argument("--baseline", help="a git revision to compare with, in the same run")
     ap.add_argument("--real", type=Path, help="a real scan's folder: NAME.nii.gz and NAME_brain_mask.nii.gz")
+    ap.add_argument("--model", help="the model asked for (the form field `model`; default: the server's default)")
+    ap.add_argument("--compare-model", help="a second model asked of the same server, alternating, as a ratio")
     args = ap.parse_args()
     print(f"machine: {cpu_description()}")
     real = [(stack, mask) for _, stack, mask in masked_files(args.real)] if args.real else None
@@ -169,16 +185,24 @@ def main() -> None:
         (Path(tmp) / "b").mkdir()
         scenarios = [make_stacks(Path(tmp), 3, 128, 35, 1.1), make_stacks(Path(tmp) / "b", 6, 320, 22, 0.55)]
         print(f"source: {brain()[3]}")
-        now, rss = measure(ROOT, Path(args.model_dir), scenarios, real)
-        before = None
-        if args.baseline:
+        models = (args.model, args.compare_model) if args.compare_model else (args.model,)
+        both, rss = measure(ROOT, Path(args.model_dir), scenarios, real, models)
+        now = {k[1:]: v for k, v in both.items() if k[0] == args.model}
+        before, against = None, f"revision {args.baseline}"
+        if args.compare_model:
+            before, against = {k[1:]: v for k, v in both.items() if k[0] == args.compare_model}, \
+                f"model {args.compare_model}"
+        elif args.baseline:
             with revision_tree(args.baseline) as tree:
                 before, _ = measure(tree, tree / "service" / "models", scenarios, real)
+                before = {k[1:]: v for k, v in before.items()}
+        if args.model:
+            print(f"model: {args.model}")
     for name, target in SCENARIOS:
         for image in ("true", "false"):
             wall, t = now[name, image]
             total = max(t["total"], 1e-9)
-            ratio = f"; {before[name, image][0]:.2f} s at {args.baseline}: x{wall / before[name, image][0]:.2f}" \
+            ratio = f"; {before[name, image][0]:.2f} s with {against}: x{wall / before[name, image][0]:.2f}" \
                 if before else ""
             print(f"{name}, image_consistency={image}: {wall:.2f} s wall over HTTP (target <= {target:.0f} s){ratio}")
             print("   server stages, ms (share of the server's total): "
@@ -188,7 +212,7 @@ def main() -> None:
     if real:
         for masks in (True, False):
             wall, t = now["real", masks]
-            ratio = f"; {before['real', masks][0]:.2f} s at {args.baseline}: x{wall / before['real', masks][0]:.2f}" \
+            ratio = f"; {before['real', masks][0]:.2f} s with {against}: x{wall / before['real', masks][0]:.2f}" \
                 if before else ""
             print(f"R: {len(real)} real stacks ({args.real.name}) {'with their manual masks' if masks else 'without masks'}: "
                   f"{wall:.2f} s wall over HTTP{ratio}")

@@ -45,6 +45,10 @@ def _stage_text(train_config: dict) -> str:
     prior = train_config.get("init_from")
     if not prior:
         return ""
+    if "distil" in prior:
+        return (f"; the trunk distilled from `{prior['checkpoint']}` (width {train_config['width']}: its features and "
+                "grid points matched in all eight test-time views; the head is the teacher's, frozen) -- the cost "
+                "below is the total of the teacher's stages and the distillation")
     if "whole_network" not in prior:          # a checkpoint without a training history
         return (f"; a second stage, started from the weights of a first run of {prior['steps']} steps "
                 f"({prior['samples_seen']:,} samples, {prior['train_seconds'] / 3600:.2f} h, val E.D. "
@@ -95,6 +99,10 @@ def _accepted_twin(evaluation: dict) -> str:
 
 
 def _schedule_text(train_config: dict, steps: int, best: bool = False) -> str:
+    if "distil" in train_config:                       # model_export.distil: warm-up, cosine over a time budget
+        d = train_config["distil"]
+        return (f"lr {d['lr']}, {d['warmup_steps']} warm-up steps then a cosine over {d['minutes']} min "
+                f"({steps} steps)")
     planned = int(train_config.get("steps", steps))
     stopped = ""
     if best and steps < planned:

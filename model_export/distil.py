@@ -49,7 +49,7 @@ from model_export.stream import SliceStream, validation_set
 from model_export.train import pose_errors, predict_poses, resolve_device, stream_seed
 from model_export.training_record import hardware, prior_history, totals
 
-__all__ = ["DistilConfig", "distil", "narrowed", "student_of"]
+__all__ = ["DistilConfig", "distil", "narrowed", "student_config", "student_of"]
 
 
 @dataclass
@@ -110,6 +110,22 @@ def student_of(teacher: SVRNet, width: float, init: str) -> SVRNet:
     for p in student.head.parameters():
         p.requires_grad_(False)
     return student
+
+
+def student_config(teacher_config: dict, width: float, cfg: DistilConfig, teacher_path: Path, spec: str) -> dict:
+    """A student checkpoint's ``config``: the teacher's network and volumes at ``width``, the
+    simulation overrides the run used, and the run's own recipe under ``distil`` (what a model card
+    states of its last stage).
+
+    Example:
+        >>> c = student_config({"width": 1.0, "simulation": {"tz_fraction": 0.5}}, 0.75, DistilConfig(), Path("t.pt"), "0.75")
+        >>> c["width"], c["simulation"]["tz_fraction"], c["distil"]["teacher"]
+        (0.75, 0.47, 't.pt')
+    """
+    simulation = {**teacher_config.get("simulation", {}), "tz_fraction": SimulationConfig.tz_fraction, **cfg.simulation}
+    return {**teacher_config, "width": width, "simulation": simulation,
+            "init_from": {"checkpoint": str(teacher_path), "distil": spec},
+            "distil": {**asdict(cfg), "teacher": str(teacher_path)}}
 
 
 def all_views(x: torch.Tensor, n: int) -> torch.Tensor:
@@ -214,11 +230,10 @@ def distil(cfg: DistilConfig, out_dir: Path, teacher_path: Path, root: Path = DE
                 full = histories[s] + [segment]
                 tot = totals(full)
                 width, init = names[s]
-                config = {**ck["config"], "width": width, "init_from": {"checkpoint": str(teacher_path), "distil": s}}
+                config = student_config(ck["config"], width, cfg, teacher_path, s)
                 state = dict(model={k: v.cpu() for k, v in m.state_dict().items()}, step=step,
                              samples_seen=tot["samples"], train_seconds=tot["hours"] * 3600, history=full,
                              config=config, model_config=m.config, simulation=asdict(sim),
-                             distil={**asdict(cfg), "teacher": str(teacher_path)},
                              val_twin_ed_mm=float(err.mean()), best_ed_mm=float(err.mean()),
                              val_ed_to_teacher_mm=float(np.median(to_teacher)))
                 torch.save(state, out_dir / f"w{width:g}-{'next' if init.endswith('.pt') else init}.pt")

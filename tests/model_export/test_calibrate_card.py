@@ -26,8 +26,8 @@ def test_auroc_and_youden_on_separable_and_random_scores() -> None:
 def _card(tmp_path: Path, calibration: dict, train_config: dict) -> str:
     info = dict(name="default", version="1.0.0", backbone="compact", label_type="anchor", input_size="96",
                 pixel_spacing_mm="1.25", intensity="0-255", atlas_id="atlas", variance_threshold="8.4", commit="abc")
-    config = dict(width=1.0, hidden=128, dropout=0.25, lr=1e-3, lr_gamma=0.2, lr_milestones=[0.6, 0.85], batch=64,
-                  val_volumes=["STA24"], spatial_grid=3, grid_channels=32, **train_config)
+    config = {**dict(width=1.0, hidden=128, dropout=0.25, lr=1e-3, lr_gamma=0.2, lr_milestones=[0.6, 0.85], batch=64,
+                     val_volumes=["STA24"], spatial_grid=3, grid_channels=32), **train_config}
     evaluation = dict(ed_mean_mm=40.0, ed_median_mm=38.0, ed_p90_mm=70.0, gd_mean=10.0, outlier_fraction=0.03,
                       auroc_variance_error_gt_10mm=0.6, accepted_fraction=0.4, ed_accepted_mean_mm=35.0)
     summary = dict(train_seconds=3600.0, samples_seen=500000, steps=8500, train_volumes_text="23 volumes")
@@ -49,6 +49,18 @@ def test_card_states_the_head_the_criterion_and_a_second_stage(tmp_path: Path) -
     assert "second stage" in text and "4400 steps" in text and "**1.00 h**" in text
     plain = _card(tmp_path, {**cal, "criterion_mm": 10.0, "bad_fraction": 0.5}, {})
     assert "median error" not in plain and "second stage" not in plain and "E.D. > 10.0 mm" in plain
+
+
+def test_card_of_a_distilled_trunk_states_its_teacher_and_its_schedule(tmp_path: Path) -> None:
+    cal = dict(threshold=8.43, auroc=0.85, error_mm=10.0, criterion_mm=10.0, n_slices=600, bad_fraction=0.5,
+               accepted_fraction=0.4, ed_accepted_mean_mm=30.0, ed_rejected_mean_mm=45.0,
+               spearman_variance_error=0.35, variance=[1.0], ed_mm=[2.0])
+    distilled = dict(init_from=dict(checkpoint="service/models/default/checkpoint.pt", distil="0.75"),
+                     distil=dict(lr=0.002, warmup_steps=200, minutes=8.0))
+    text = _card(tmp_path, cal, {**distilled, "width": 0.75})
+    assert "distilled from `service/models/default/checkpoint.pt` (width 0.75" in text
+    assert "lr 0.002, 200 warm-up steps then a cosine over 8.0 min (8500 steps)" in text
+    assert "step decay" not in text and "second stage" not in text
 
 
 def test_card_gives_both_errors_and_the_totals_per_hardware(tmp_path: Path) -> None:
