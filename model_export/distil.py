@@ -1,7 +1,7 @@
 """A narrower pose trunk taught by the shipped network: the same head, the same answers, less arithmetic.
 
 The trunk is the network's cost at inference: it runs once per slice and test-time view, the MC
-passes repeat only the small head. :func:`distil` trains narrower trunks (``widths``) to give the
+passes repeat only the small head. :func:`distil` trains narrower trunks (``students``) to give the
 teacher's features, the 288 numbers its head reads, on the slices the service feeds it:
 
 * **The head is the teacher's, frozen**, and so is its label normalisation: a student whose features
@@ -20,7 +20,8 @@ teacher's features, the 288 numbers its head reads, on the slices the service fe
   as its checkpoint goes on from it (its history carried over).
 
 The learning rate warms up, then follows a cosine over the wall-clock budget, so a run of any length
-ends annealed. Each student's checkpoint is written at every validation (``<name>.pt``, the format of
+ends annealed. Each student's checkpoint is written at every validation (``w<width>-<start>.pt``, ``next`` for a
+student that went on from a checkpoint; the format of
 :mod:`model_export.train`, history carried over), and ``ship`` takes it as it takes a trained one.
 Needs numpy, scipy and torch only (a bare GPU host):
 
