@@ -32,7 +32,7 @@ Needs numpy, scipy and torch only (a bare GPU host):
 
 from __future__ import annotations
 
-import copy
+import argparse
 import json
 import math
 import time
@@ -47,7 +47,7 @@ from model_export.atlas import DEFAULT_ATLAS_ROOT
 from model_export.model import SVRNet
 from model_export.simulate import SimulationConfig
 from model_export.stream import SliceStream, validation_set
-from model_export.train import pose_errors, predict_poses, resolve_device, stream_seed
+from model_export.train import parse_fields, pose_errors, predict_poses, resolve_device, stream_seed
 from model_export.training_record import hardware, prior_history, totals
 
 __all__ = ["DistilConfig", "distil", "narrowed", "student_config", "student_of"]
@@ -93,18 +93,17 @@ def narrowed(teacher_state: dict[str, torch.Tensor], student: torch.nn.Module) -
     return out
 
 
-def student_of(teacher: SVRNet, width: float, init: str) -> SVRNet:
+def student_of(teacher: SVRNet, width: float, start: str | dict) -> SVRNet:
     """A network of ``width`` with the teacher's head and label normalisation (frozen); its trunk
-    ``sliced`` from the teacher's, ``fresh``, or an earlier run's student (a ``.pt`` path: the run
-    goes on from it)."""
-    config = {**teacher.config, "width": width}
-    student = SVRNet(**config)
-    if init == "sliced":
+    ``sliced`` from the teacher's, ``fresh``, or an earlier run's student (its checkpoint dict: the
+    run goes on from it)."""
+    student = SVRNet(**{**teacher.config, "width": width})
+    if isinstance(start, dict):
+        student.load_state_dict(start["model"])
+    elif start == "sliced":
         student.load_state_dict(narrowed(teacher.state_dict(), student))
-    elif init.endswith(".pt"):
-        student.load_state_dict(torch.load(init, map_location="cpu", weights_only=False)["model"])
-    elif init != "fresh":
-        raise ValueError(f"student init {init!r}: 'sliced', 'fresh' or an earlier student's checkpoint (.pt)")
+    elif start != "fresh":
+        raise ValueError(f"student start {start!r}: 'sliced', 'fresh' or an earlier student's checkpoint (.pt)")
     student.head.load_state_dict(teacher.head.state_dict())
     student.label_mean.copy_(teacher.label_mean)
     student.label_scale.copy_(teacher.label_scale)
@@ -163,15 +162,15 @@ def distil(cfg: DistilConfig, out_dir: Path, teacher_path: Path, root: Path = DE
         torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
         torch.backends.cudnn.benchmark = True
     ck = torch.load(teacher_path, map_location="cpu", weights_only=False)
-    teacher = SVRNet(**{"spatial_grid": 0, **ck["model_config"]})
-    teacher.load_state_dict(ck["model"])
-    teacher.to(device).eval()
-    teacher_sim = {k: v for k, v in ck["simulation"].items() if k in SimulationConfig.__dataclass_fields__}
-    sim = SimulationConfig(**{**teacher_sim, "tz_fraction": SimulationConfig.tz_fraction, **cfg.simulation})
+    teacher = SVRNet.from_checkpoint(ck).to(device)
     names = {s: (float(s.partition(":")[0]), s.partition(":")[2] or "sliced") for s in cfg.students}
-    students = {s: student_of(teacher, w, init).to(device) for s, (w, init) in names.items()}
-    histories = {s: prior_history(torch.load(init, map_location="cpu", weights_only=False) if init.endswith(".pt")
-                                  else ck) for s, (_, init) in names.items()}
+    configs = {s: student_config(ck["config"], w, cfg, teacher_path, s) for s, (w, _) in names.items()}
+    shared = next(iter(configs.values()))                  # every student sees the same slices
+    sim = SimulationConfig(sampling=shared.get("sampling", "random"), **shared["simulation"])   # as train() builds it
+    earlier = {s: torch.load(start, map_location="cpu", weights_only=False)
+               for s, (_, start) in names.items() if start.endswith(".pt")}
+    students = {s: student_of(teacher, w, earlier.get(s, start)).to(device) for s, (w, start) in names.items()}
+    histories = {s: prior_history(earlier.get(s, ck)) for s in names}
     opts = {s: torch.optim.Adam([p for p in m.parameters() if p.requires_grad], lr=cfg.lr) for s, m in students.items()}
 
     val_cfg = SimulationConfig.validation(size=sim.size, pixel_mm=sim.pixel_mm)
@@ -230,14 +229,13 @@ def distil(cfg: DistilConfig, out_dir: Path, teacher_path: Path, root: Path = DE
                            "loss": "distil", "run": str(out_dir), "stream_seeds": [seed]}
                 full = histories[s] + [segment]
                 tot = totals(full)
-                width, init = names[s]
-                config = student_config(ck["config"], width, cfg, teacher_path, s)
+                width, start = names[s]
                 state = dict(model={k: v.cpu() for k, v in m.state_dict().items()}, step=step,
                              samples_seen=tot["samples"], train_seconds=tot["hours"] * 3600, history=full,
-                             config=config, model_config=m.config, simulation=asdict(sim),
+                             config=configs[s], model_config=m.config, simulation=asdict(sim),
                              val_twin_ed_mm=float(err.mean()), best_ed_mm=float(err.mean()),
                              val_ed_to_teacher_mm=float(np.median(to_teacher)))
-                torch.save(state, out_dir / f"w{width:g}-{'next' if init.endswith('.pt') else init}.pt")
+                torch.save(state, out_dir / f"w{width:g}-{'next' if s in earlier else start}.pt")
                 summary["students"][s] = {"val_twin_ed_mm": float(err.mean()),
                                           "val_twin_ed_median_mm": float(np.median(err)),
                                           "to_teacher_median_mm": float(np.median(to_teacher)),
@@ -256,8 +254,6 @@ def distil(cfg: DistilConfig, out_dir: Path, teacher_path: Path, root: Path = DE
 
 def main(argv: list[str] | None = None) -> dict:
     """``python -m model_export.distil``: fields of :class:`DistilConfig` as ``field=value`` (JSON)."""
-    import argparse
-
     ap = argparse.ArgumentParser(prog="python -m model_export.distil", description=main.__doc__)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--root", type=Path, default=DEFAULT_ATLAS_ROOT)
@@ -265,16 +261,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--students", default="0.5:sliced", help="WIDTH:sliced|fresh|CKPT.pt, comma-separated")
     ap.add_argument("fields", nargs="*", help="DistilConfig overrides, field=value (JSON)")
     args = ap.parse_args(argv)
-    values: dict = {"students": args.students.split(",")}
-    for item in args.fields:
-        key, _, raw = item.partition("=")
-        if key not in DistilConfig.__dataclass_fields__:
-            ap.error(f"unknown DistilConfig field {key!r}")
-        try:
-            values[key] = json.loads(raw)
-        except json.JSONDecodeError:
-            values[key] = raw
-    summary = distil(DistilConfig(**copy.deepcopy(values)), args.out, args.teacher, args.root)
+    values = {"students": args.students.split(","), **parse_fields(ap, args.fields, DistilConfig)}
+    summary = distil(DistilConfig(**values), args.out, args.teacher, args.root)
     print(json.dumps(summary))
     return summary
 

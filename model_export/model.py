@@ -73,6 +73,14 @@ class SVRNet(nn.Module):
         self.register_buffer("label_mean", torch.zeros(size))
         self.register_buffer("label_scale", torch.ones(size))
 
+    @classmethod
+    def from_checkpoint(cls, ck: dict) -> "SVRNet":
+        """The network of a checkpoint dict (``model_config`` and ``model``), in eval mode; a
+        checkpoint without ``spatial_grid`` pools globally."""
+        model = cls(**{"spatial_grid": 0, **ck["model_config"]})
+        model.load_state_dict(ck["model"])
+        return model.eval()
+
     @property
     def label_type(self) -> str:
         return self.config["label_type"]

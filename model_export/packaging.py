@@ -20,10 +20,7 @@ CALIBRATION = (*SPREAD_FLAGS, *FLAGS)
 def load_checkpoint(path: Path) -> tuple[SVRNet, dict]:
     """The model (eval mode) and the whole checkpoint dict."""
     ck = torch.load(path, map_location="cpu", weights_only=False)
-    config = {"spatial_grid": 0, **ck["model_config"]}   # a checkpoint without spatial_grid pools globally
-    model = SVRNet(**config)
-    model.load_state_dict(ck["model"])
-    return model.eval(), ck
+    return SVRNet.from_checkpoint(ck), ck
 
 
 def export_checkpoint(checkpoint: Path, output: Path, *, name: str, version: str,

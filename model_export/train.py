@@ -16,6 +16,7 @@
 
 from __future__ import annotations
 
+import argparse
 import csv
 import json
 import time
@@ -36,7 +37,7 @@ from model_export.training_record import hardware, plot_log, prior_history, tota
 from service.geometry import anchors, encodings, se3
 from service.geometry.twin import POINT_LABELS, twin
 
-__all__ = ["TrainConfig", "train", "stream_seed", "predict_poses", "pose_errors", "validation_set"]
+__all__ = ["TrainConfig", "train", "stream_seed", "predict_poses", "pose_errors", "validation_set", "parse_fields"]
 
 
 @dataclass
@@ -301,6 +302,26 @@ def _progress_bar(progress: bool):  # noqa: ANN202 - rich's Progress, or a silen
                     TextColumn("{task.fields[info]}"), TimeRemainingColumn())
 
 
+def parse_fields(ap: argparse.ArgumentParser, items: list[str], config: type) -> dict:
+    """``field=value`` items (JSON values; a bare string as itself) of the dataclass ``config``;
+    an unknown field is the parser's usage error.
+
+    Example:
+        >>> parse_fields(argparse.ArgumentParser(), ["steps=3", "loss=min", 'simulation={"size": 48}'], TrainConfig)
+        {'steps': 3, 'loss': 'min', 'simulation': {'size': 48}}
+    """
+    values: dict = {}
+    for item in items:
+        key, _, raw = item.partition("=")
+        if key not in config.__dataclass_fields__:
+            ap.error(f"unknown {config.__name__} field {key!r}")
+        try:
+            values[key] = json.loads(raw)
+        except json.JSONDecodeError:
+            values[key] = raw                      # a bare string: loss=min
+    return values
+
+
 def main(argv: list[str] | None = None) -> Path:
     """``python -m model_export.train``: the same training with numpy, scipy and torch only (no typer).
 
@@ -313,8 +334,6 @@ def main(argv: list[str] | None = None) -> Path:
         python -m model_export.train --out $OUT/run --root data/packed --init service/models/default/checkpoint.pt \\
             device=auto workers=14 steps=9000 max_minutes=6.5 simulation='{"surroundings_share": 0.6}'
     """
-    import argparse
-
     ap = argparse.ArgumentParser(prog="python -m model_export.train", description=main.__doc__)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--root", type=Path, default=DEFAULT_ATLAS_ROOT)
@@ -322,15 +341,7 @@ def main(argv: list[str] | None = None) -> Path:
     ap.add_argument("--resume", type=Path)
     ap.add_argument("fields", nargs="*", help="TrainConfig overrides, field=value (JSON)")
     args = ap.parse_args(argv)
-    values = {}
-    for item in args.fields:
-        key, _, raw = item.partition("=")
-        if key not in TrainConfig.__dataclass_fields__:
-            ap.error(f"unknown TrainConfig field {key!r}")
-        try:
-            values[key] = json.loads(raw)
-        except json.JSONDecodeError:
-            values[key] = raw                      # a bare string: loss=min
+    values = parse_fields(ap, args.fields, TrainConfig)
     if args.resume is not None or args.init is not None:
         saved = torch.load(args.resume or args.init, map_location="cpu", weights_only=False)["config"]
         keep = TrainConfig.__dataclass_fields__.keys() - (set() if args.resume is not None else HOST_FIELDS)
