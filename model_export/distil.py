@@ -184,9 +184,10 @@ def distil(cfg: DistilConfig, out_dir: Path, teacher_path: Path, root: Path = DE
                              prefetch_factor=4 if cfg.workers else None, persistent_workers=cfg.workers > 0,
                              pin_memory=device.type == "cuda"))
     log = open(out_dir / "log.csv", "w")
-    log.write("step,slices,seconds,lr," + ",".join(f"loss[{s}],twin_ed[{s}],to_teacher[{s}]" for s in students) + "\n")
-    teacher_err = pose_errors(teacher_val, val.poses, plane)["ed_twin_mm"]
-    summary: dict = {"teacher_val_twin_ed_mm": float(teacher_err.mean()), "students": {}}
+    log.write("step,slices,seconds,lr," + ",".join(f"loss[{s}],ed[{s}],twin_ed[{s}],to_teacher[{s}]" for s in students) + "\n")
+    teacher_err = pose_errors(teacher_val, val.poses, plane)
+    summary: dict = {"teacher_val_ed_mm": float(teacher_err["ed_mm"].mean()),
+                     "teacher_val_twin_ed_mm": float(teacher_err["ed_twin_mm"].mean()), "students": {}}
     scale, running = None, {s: None for s in students}
     budget, step, slices = 60.0 * cfg.minutes, 0, 0
     t0 = last_val = time.perf_counter()
@@ -222,7 +223,8 @@ def distil(cfg: DistilConfig, out_dir: Path, teacher_path: Path, root: Path = DE
             row = [str(step), str(slices), f"{last_val - t0:.1f}", f"{lr:.2e}"]
             for s, m in students.items():
                 poses = predict_poses(m, val.inputs)
-                err = pose_errors(poses, val.poses, plane)["ed_twin_mm"]
+                errors = pose_errors(poses, val.poses, plane)
+                ed, err = errors["ed_mm"], errors["ed_twin_mm"]
                 to_teacher = pose_errors(poses, teacher_val, plane)["ed_mm"]
                 segment = {"hardware": hardware(device), "device": device.type, "samples": slices * cfg.views,
                            "seconds": last_val - t0, "steps": step, "label_type": teacher.label_type,
@@ -233,14 +235,14 @@ def distil(cfg: DistilConfig, out_dir: Path, teacher_path: Path, root: Path = DE
                 state = dict(model={k: v.cpu() for k, v in m.state_dict().items()}, step=step,
                              samples_seen=tot["samples"], train_seconds=tot["hours"] * 3600, history=full,
                              config=configs[s], model_config=m.config, simulation=asdict(sim),
-                             val_twin_ed_mm=float(err.mean()), best_ed_mm=float(err.mean()),
+                             val_ed_mm=float(ed.mean()), val_twin_ed_mm=float(err.mean()), best_ed_mm=float(err.mean()),
                              val_ed_to_teacher_mm=float(np.median(to_teacher)))
                 torch.save(state, out_dir / f"w{width:g}-{'next' if s in earlier else start}.pt")
-                summary["students"][s] = {"val_twin_ed_mm": float(err.mean()),
+                summary["students"][s] = {"val_ed_mm": float(ed.mean()), "val_twin_ed_mm": float(err.mean()),
                                           "val_twin_ed_median_mm": float(np.median(err)),
                                           "to_teacher_median_mm": float(np.median(to_teacher)),
                                           "to_teacher_mean_mm": float(to_teacher.mean())}
-                row += [f"{running[s]:.4f}", f"{err.mean():.2f}", f"{np.median(to_teacher):.2f}"]
+                row += [f"{running[s]:.4f}", f"{ed.mean():.2f}", f"{err.mean():.2f}", f"{np.median(to_teacher):.2f}"]
             log.write(",".join(row) + "\n")
             log.flush()
             print(" ".join(row), flush=True)

@@ -69,6 +69,8 @@ def test_a_run_moves_the_student_towards_the_teacher_and_records_its_segment(tea
     assert seg["loss"] == "distil" and seg["steps"] == 12 and seg["samples"] == 12 * 16 * 8
     assert student["samples_seen"] == teacher_ck["samples_seen"] + seg["samples"]
     assert student["model_config"]["width"] == 0.25 and student["config"]["width"] == 0.25
+    assert student["val_twin_ed_mm"] <= student["val_ed_mm"]                # against the truth and twin-min
+    assert rows[0][4:8] == ["loss[0.25:fresh]", "ed[0.25:fresh]", "twin_ed[0.25:fresh]", "to_teacher[0.25:fresh]"]
     model, _ = load_checkpoint(tmp_path / "w0.25-fresh.pt")          # loads as a trained checkpoint does
     assert isinstance(model, SVRNet) and summary["students"]["0.25:fresh"]["to_teacher_median_mm"] >= 0.0
     # A later run goes on from the student: its weights, its history, a stream of new slices.
