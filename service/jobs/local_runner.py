@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import multiprocessing.connection
 import os
 import sys
 import threading
@@ -172,7 +173,7 @@ class LocalRunner(JobRunner):
         """A job not yet started never starts; a running one stops now when it runs alone in the pool
         (its worker processes are stopped and replaced), else at its next stage."""
         future = self.futures.get(job_id)
-        if future is None or future.cancel():
+        if future is None or future.cancel() or future.done():    # done: it saw the cancel at a stage's end
             return
         job = self.store.get(job_id)
         if job is None or job.started_at is None or any(j in self.futures for j in self.store.ids("running")):
@@ -180,11 +181,23 @@ class LocalRunner(JobRunner):
         self._stop_workers("a cancelled job")
 
     def _stop_workers(self, reason: str) -> None:
-        """Kill the pool's processes; the pool, broken, is replaced and its jobs recovered (:meth:`_replace`)."""
+        """Kill the pool's processes; the pool, broken, is replaced and its jobs recovered (:meth:`_replace`).
+
+        The runner replaces it itself once the processes are gone: the job may have ended on its own
+        between the decision and the kill, and a pool whose idle worker dies fails no future, so no
+        future's callback would."""
         with self.lock:
-            self.stopped_for = reason
-            for proc in list((getattr(self.pool, "_processes", None) or {}).values()):
+            self.stopped_for, pool = reason, self.pool
+            procs = list((getattr(pool, "_processes", None) or {}).values())
+            for proc in procs:
                 proc.kill()
+
+        def replace() -> None:
+            for proc in procs:                         # their sentinels, not join(): the pool's thread reaps them
+                multiprocessing.connection.wait([proc.sentinel], timeout=10)
+            self._replace(pool)
+
+        threading.Thread(target=replace, name="job-pool-recovery", daemon=True).start()
 
     def stats(self) -> dict[str, float]:
         return {"workers": float(self.workers)}

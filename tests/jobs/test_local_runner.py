@@ -65,3 +65,27 @@ def test_a_job_worker_runs_the_servers_blas_threads(tmp_path: Path) -> None:
         assert set(runner.pool.submit(blas_threads).result(timeout=120)) == {1}
     finally:
         runner.pool.shutdown(wait=True, cancel_futures=True)
+
+
+def test_workers_stopped_after_their_job_ended_on_its_own_are_replaced(tmp_path: Path,
+                                                                        caplog: pytest.LogCaptureFixture) -> None:
+    # A cancelled job can see its cancel at a stage's end and return before the runner kills its
+    # worker: the idle worker's death fails no future, so the runner must replace the pool itself.
+    import os
+    import time
+
+    runner = LocalRunner(SqliteJobStore(tmp_path), tmp_path)
+    broken = runner.pool
+    try:
+        worker_pid = broken.submit(os.getpid).result(timeout=120)          # a live, idle worker
+        with caplog.at_level("INFO", logger="service.jobs.local_runner"):
+            runner._stop_workers("a cancelled job")
+            deadline = time.time() + 30
+            while runner.pool is broken:
+                assert time.time() < deadline
+                time.sleep(0.05)
+        assert "job workers stopped for a cancelled job and replaced" in caplog.text
+        assert runner.stopped_for is None
+        assert runner.pool.submit(os.getpid).result(timeout=120) != worker_pid   # the new pool runs jobs
+    finally:
+        runner.shutdown()
