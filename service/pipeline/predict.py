@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from itertools import pairwise
 
 import numpy as np
@@ -30,7 +30,6 @@ from service.consistency.stage import (
     ImageConsistency,
     StackPoses,
     consistent_poses,
-    network_from_voxel,
     pool_request,
     request_reference,
     undecided,

@@ -3,7 +3,6 @@ whole-uterus phantoms, on noise, and on the real scans of ../shared/data (skippe
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
