@@ -72,6 +72,10 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
         finally:
             janitor.cancel()
             app.state.job_runner.shutdown()
+            try:                                              # a worker stopped as its job ended left them
+                app.state.job_store.discard_ended_inputs()
+            except Exception:  # noqa: BLE001 - a store unreachable at shutdown: the next start's upkeep does it
+                log.warning("uploads of ended jobs not discarded at shutdown", exc_info=True)
             for executor in app.state.stream_stages.values():
                 executor.shutdown(wait=False, cancel_futures=True)
             await asyncio.to_thread(stop_stage_process)       # the streams' stack fits: no process left behind

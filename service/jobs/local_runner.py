@@ -34,7 +34,7 @@ from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 from service.core.process_pools import end_pool
-from service.jobs.runner import JobRunner, start_worker
+from service.jobs.runner import INTERRUPTED, JobRunner, start_worker
 from service.jobs.store import SqliteJobStore
 from service.jobs.worker import TIMED_OUT, run_job
 
@@ -108,7 +108,7 @@ class LocalRunner(JobRunner):
     def start(self) -> list[str]:
         self.owner = lock_store(self.store.data_dir)
         self.started = True
-        queued = self.store.recover(self.max_attempts)
+        queued = self._handed_over(self.store.recover(self.max_attempts), fail_others=True)
         for job_id in queued:
             job = self.store.get(job_id)
             if job is not None and job.attempts:
@@ -147,13 +147,31 @@ class LocalRunner(JobRunner):
             self.pool = self._new_pool()
             broken.shutdown(wait=False, cancel_futures=True)
             stopped_for, self.stopped_for = self.stopped_for, None
-        queued = self.store.recover(self.max_attempts, cause="lost worker")
+        queued = self._handed_over(self.store.recover(self.max_attempts, cause="lost worker"))
         if stopped_for is None:
             log.warning(f"a job worker process was lost (killed, or out of memory); {len(queued)} job(s) queued again")
         else:
             log.info(f"job workers stopped for {stopped_for} and replaced; {len(queued)} job(s) queued again")
         for job_id in queued:
             self.submit(job_id)
+
+    def _handed_over(self, queued: list[str], fail_others: bool = False) -> list[str]:
+        """The jobs of ``queued`` whose uploads were complete and handed to the runner (:meth:`submit`;
+        a job that ran once was).
+        The others are still being uploaded by a request, which submits them itself. At start
+        (``fail_others``) no request is: a job whose uploads were complete (its ``params.json``,
+        written last, is there: a store older than ``submitted_at``) runs, the others fail saying
+        so (their uploads go)."""
+        handed = []
+        for job_id in queued:
+            job = self.store.get(job_id)
+            complete = fail_others and (self.store.directory(job_id) / "inputs" / "params.json").exists()
+            if job is not None and (job.submitted_at is not None or job.started_at is not None or complete):
+                handed.append(job_id)
+            elif job is not None and fail_others and self.store.fail(job_id, INTERRUPTED):
+                self.store.discard_inputs(job_id)
+                log.warning(f"job {job_id} was being uploaded when the server stopped; it failed", extra={"job_id": job_id})
+        return handed
 
     def maintain(self) -> None:
         """Stop the jobs running longer than ``timeout_s``: each fails saying so (its uploads go now),
@@ -162,8 +180,8 @@ class LocalRunner(JobRunner):
         now = time.time()
         late = [job for job in map(self.store.get, self.store.ids("running"))
                 if job is not None and job.started_at is not None and now - job.started_at > self.timeout_s]
+        late = [job for job in late if self.store.fail(job.id, TIMED_OUT, job.attempts)]   # not ended meanwhile
         for job in late:
-            self.store.fail(job.id, TIMED_OUT, job.attempts)
             self.store.discard_inputs(job.id)
             log.warning(f"job {job.id} ran longer than SVRNET_JOB_TIMEOUT_H and was stopped", extra={"job_id": job.id})
         if late:

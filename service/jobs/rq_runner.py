@@ -32,13 +32,12 @@ from rq.registry import clean_registries
 
 from service.core.settings import Settings
 from service.jobs.redis_store import RedisJobStore
-from service.jobs.runner import JobRunner, lost_worker, watch_parent
+from service.jobs.runner import INTERRUPTED, JobRunner, lost_worker, watch_parent
 from service.jobs.worker import TIMED_OUT, run_job
 
 log = logging.getLogger(__name__)
 
 GIVEN_UP = (JobStatus.FAILED, JobStatus.STOPPED, JobStatus.CANCELED, JobStatus.FINISHED)
-INTERRUPTED = "the submission was interrupted before the job was queued (the API replica stopped); submit again"
 
 
 @dataclass

@@ -46,6 +46,10 @@ class JobRunner(ABC):
         """At the API's stop: the jobs handed back to the queue."""
 
 
+INTERRUPTED = "the submission was interrupted before the job was queued (the server stopped); submit again"
+"""A job's ``error`` when the API that stored it stopped before its uploads were complete."""
+
+
 def lost_worker(max_attempts: int) -> str:
     """A job's ``error`` once the workers running it were lost ``max_attempts`` times (killed, or out
     of memory), in words with no server detail.

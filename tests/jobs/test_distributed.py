@@ -154,9 +154,13 @@ def _run_one(tmp_path: Path, job_files: list, settings: dict[str, str], kill: bo
             while (st := client.get(f"/v1/reconstructions/{job_id}").json())["status"] not in FINAL:
                 assert time.time() < deadline, st
                 time.sleep(0.2)
+            folder = client.app.state.job_store.directory(job_id)
+            deadline = time.time() + 30                  # the status is stored just before the uploads go
+            while (folder / "inputs").exists() and time.time() < deadline:
+                time.sleep(0.1)
         finally:
             worker.kill_group()
-        return st, client.app.state.job_store.directory(job_id)
+        return st, folder
 
 
 @pytest.mark.slow

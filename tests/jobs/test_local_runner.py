@@ -80,12 +80,44 @@ def test_workers_stopped_after_their_job_ended_on_its_own_are_replaced(tmp_path:
         worker_pid = broken.submit(os.getpid).result(timeout=120)          # a live, idle worker
         with caplog.at_level("INFO", logger="service.jobs.local_runner"):
             runner._stop_workers("a cancelled job")
-            deadline = time.time() + 30
-            while runner.pool is broken:
+            deadline = time.time() + 30                 # the log line comes last, after the new pool and the recovery
+            while "job workers stopped for a cancelled job and replaced" not in caplog.text:
                 assert time.time() < deadline
                 time.sleep(0.05)
-        assert "job workers stopped for a cancelled job and replaced" in caplog.text
-        assert runner.stopped_for is None
+        assert runner.pool is not broken and runner.stopped_for is None
         assert runner.pool.submit(os.getpid).result(timeout=120) != worker_pid   # the new pool runs jobs
+    finally:
+        runner.shutdown()
+
+
+def test_a_replaced_pool_leaves_a_job_still_being_uploaded_to_its_request(tmp_path: Path) -> None:
+    # A job is stored (queued) before its uploads are written; the request submits it once they
+    # are. A pool replaced meanwhile (another job cancelled, timed out, or its worker lost) must not
+    # hand it to a worker, which would fail it for missing uploads while they are being written.
+    store = SqliteJobStore(tmp_path)
+    runner = LocalRunner(store, tmp_path)
+    try:
+        uploading = store.create({"model": "default"})
+        runner._replace(runner.pool)
+        assert uploading.id not in runner.futures
+        assert store.get(uploading.id).status == "queued" and store.get(uploading.id).submitted_at is None
+    finally:
+        runner.shutdown()
+
+
+def test_at_start_a_job_whose_upload_was_cut_short_fails_saying_so_and_a_complete_one_runs(tmp_path: Path) -> None:
+    from service.jobs.runner import INTERRUPTED
+
+    store = SqliteJobStore(tmp_path)
+    cut_short, complete = store.create({"model": "default"}), store.create({"model": "default"})
+    for job in (cut_short, complete):
+        (store.directory(job.id) / "inputs").mkdir(parents=True)
+        (store.directory(job.id) / "inputs" / "stack0").write_bytes(b"Doe")
+    (store.directory(complete.id) / "inputs" / "params.json").write_text("{}")     # written last, before submit
+    runner = LocalRunner(store, tmp_path)
+    try:
+        assert runner.start() == [complete.id]
+        assert store.get(cut_short.id).status == "failed" and store.get(cut_short.id).error == INTERRUPTED
+        assert not (store.directory(cut_short.id) / "inputs").exists()
     finally:
         runner.shutdown()

@@ -138,7 +138,7 @@ def test_the_queue_maintenance_fails_orphaned_and_given_up_jobs_with_reasons(que
     """What a replica's maintenance does with jobs the queue cannot run: a submission left half done
     by a stopped replica (after a grace period), a job the queue no longer knows."""
     from service.core.settings import Settings
-    from service.jobs.rq_runner import INTERRUPTED
+    from service.jobs.runner import INTERRUPTED
     from service.jobs.backends import open_backend
 
     store, runner = open_backend(Settings(**queue_settings))
