@@ -193,7 +193,9 @@ def run_job(store: JobStore, models_dir: Path, job_id: str, redelivered: bool = 
 def failure_reason(exc: Exception) -> str:
     """What the job's ``error`` says: the message of a service error (it names the file or field) or of
     a ``ValueError`` (the reconstruction's own account of unusable input, e.g. no slice left), else
-    only the kind of failure -- other messages (OS, ITK) may hold server paths.
+    only the kind of failure -- other messages (OS, ITK) may hold server paths. The queue's time
+    limit (RQ's ``JobTimeoutException``, raised wherever the job is) says so even where a step turned
+    it into its own error (a reader's "could not be read").
 
     Example:
         >>> failure_reason(ValueError("reconstruct: no included slice has any pixel inside its mask"))
@@ -201,10 +203,15 @@ def failure_reason(exc: Exception) -> str:
         >>> failure_reason(FileNotFoundError("/srv/data/x"))
         'internal error (FileNotFoundError); the server log has the job id'
     """
+    cause: BaseException | None = exc
+    for _ in range(16):                                 # the chain of causes, bounded
+        if cause is None:
+            break
+        if type(cause).__name__ == "JobTimeoutException":
+            return TIMED_OUT
+        cause = cause.__cause__ or cause.__context__
     if isinstance(exc, ServiceError):
         return exc.detail
-    if type(exc).__name__ == "JobTimeoutException":     # raised in the job by the queue's time limit
-        return TIMED_OUT
     if type(exc) is ValueError:
         return str(exc)
     return f"internal error ({type(exc).__name__}); the server log has the job id"

@@ -122,9 +122,9 @@ def healthy(settings: Settings, host: str | None = None) -> bool:
 
 
 def _child(settings: Settings, burst: bool, parent: int) -> None:
-    # Started holding the stop signals (see _pool) until RQ's handlers take over; the pool forwards
-    # what it got before the fork.
-    _early_stops.clear()
+    # Started holding the stop signals (see _pool) until RQ's handlers take over: a stop the pool
+    # forwards before then is remembered here and honoured when they are in place. The pool cleared
+    # its own remembered stops before forking and forwards them itself.
     watch_parent(parent)               # `kill -9` of svrnet-worker takes its workers (and their horses) along
     work(settings, burst)
 
@@ -137,6 +137,8 @@ def _pool(settings: Settings, n: int, burst: bool) -> int:
     # Children inherit the held stop signals (a stop before RQ's handlers is a warm one, never a kill);
     # one that reaches the pool before it forwards is forwarded as soon as it does.
     hold_stop_signals()
+    pending = _early_stops[:]                            # forwarded below, not inherited by the children
+    _early_stops.clear()
     for child in children:
         child.start()
 
@@ -147,6 +149,7 @@ def _pool(settings: Settings, n: int, burst: bool) -> int:
 
     signal.signal(signal.SIGTERM, forward)
     signal.signal(signal.SIGINT, forward)
+    _early_stops[:0] = pending
     while _early_stops:
         forward(_early_stops.pop(0), None)
     for child in children:

@@ -74,8 +74,8 @@ def test_a_stalled_body_gets_408_and_the_connection_closes(server: Server) -> No
 def test_kept_alive_requests_each_get_their_own_deadline(server: Server) -> None:
     with socket.create_connection(("127.0.0.1", server.port)) as sock:
         sock.settimeout(5)
-        for _ in range(3):                    # 3 x 0.9 s on one connection: longer than one deadline
-            time.sleep(0.9 * LIMIT_S)
+        for _ in range(4):                    # 4 x 0.6 deadlines on one connection: longer than one
+            time.sleep(0.6 * LIMIT_S)
             sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n")
             answer = b""
             while not answer.endswith(b"}"):  # the head and the body may come in two reads

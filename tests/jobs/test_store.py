@@ -147,9 +147,9 @@ def test_the_queue_maintenance_fails_orphaned_and_given_up_jobs_with_reasons(que
         (store.directory(job.id) / "inputs").mkdir()
     store.update(lost.id, submitted_at=time.time())      # handed over, but the queue has no record of it
     runner.submit(healthy.id)
-    runner.submit_grace_s = 0.5
-    time.sleep(0.6)
-    uploading = store.create({})                          # created just now: still within the grace
+    runner.submit_grace_s = 2.0
+    time.sleep(2.1)
+    uploading = store.create({})                          # created just now: within the grace (2 s of slack)
     assert sorted(runner.reconcile()) == sorted([orphan.id, lost.id])
     assert store.get(orphan.id).error == INTERRUPTED and "lost the job" in store.get(lost.id).error
     assert not (store.directory(orphan.id) / "inputs").exists()

@@ -70,3 +70,20 @@ def test_the_report_says_which_slices_a_job_started_from() -> None:
     assert start_label(body, starting_poses(body)) == "every_slice"                    # 1 accepted: too few
     everyone = {"stacks": [{"slices": [{**x, "accepted": True} for x in body["stacks"][0]["slices"]]}]}
     assert start_label(everyone, starting_poses(everyone)) == "accepted_slices"        # all accepted: the same set
+
+
+def test_the_queues_time_limit_says_so_even_where_a_reader_turned_it_into_its_own_error() -> None:
+    from service.core.errors import UnsupportedFile
+    from service.jobs.worker import TIMED_OUT, failure_reason
+
+    class JobTimeoutException(Exception):              # RQ's, raised by its alarm wherever the job is
+        pass
+
+    try:
+        try:
+            raise JobTimeoutException("Task exceeded maximum timeout value (1 seconds)")
+        except Exception as exc:
+            raise UnsupportedFile("stack0.nii.gz: could not be read (corrupt, truncated or inconsistent file)") from exc
+    except UnsupportedFile as err:
+        assert failure_reason(err) == TIMED_OUT
+    assert failure_reason(UnsupportedFile("stack0.nii.gz: could not be read")) == "stack0.nii.gz: could not be read"
