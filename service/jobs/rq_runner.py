@@ -33,6 +33,7 @@ from rq.registry import clean_registries
 from service.core.settings import Settings
 from service.jobs.redis_store import RedisJobStore
 from service.jobs.runner import INTERRUPTED, JobRunner, lost_worker, watch_parent
+from service.jobs.store import Job
 from service.jobs.worker import TIMED_OUT, run_job
 
 log = logging.getLogger(__name__)
@@ -164,7 +165,7 @@ class RqRunner(JobRunner):
             try:
                 rq_job = RqJob.fetch(job_id, connection=self.connection)
                 status = rq_job.get_status(refresh=True)
-                gone, reason = status in GIVEN_UP, ""
+                gone, reason = status in GIVEN_UP and not self._superseded_run_ended(job, status), ""
                 if gone:
                     last = rq_job.latest_result()
                     reason = failure_reason(status, (last.exc_string if last else None) or "",
@@ -176,6 +177,19 @@ class RqRunner(JobRunner):
                 log.warning(f"job {job_id} failed: {reason}", extra={"job_id": job_id})
                 failed.append(job_id)
         return failed
+
+    def _superseded_run_ended(self, job: Job, status: str) -> bool:
+        """Whether RQ's ``finished`` is a superseded run's while a later one may still run the job.
+
+        A job's task returns without ending the job only where another run took it over (RQ
+        re-delivered it after its worker had been silent too long, and the first run, alive after
+        all, stopped at its next stage): that return marks the shared RQ job ``finished`` under the
+        run in progress. The job is given up only once that run could no longer be alive (the job
+        time limit and a lost worker's silence past its latest start)."""
+        if status != JobStatus.FINISHED or job.status != "running":
+            return False
+        limit = self.settings.job_timeout_h * 3600 + self.settings.worker_lost_after_s + self.settings.worker_heartbeat_s
+        return time.time() - (job.started_at or job.updated_at) < limit
 
     def stats(self) -> dict[str, float]:
         return {"workers": float(self._alive_workers()), "queue_length": float(len(self.queue))}

@@ -155,3 +155,29 @@ def test_the_queue_maintenance_fails_orphaned_and_given_up_jobs_with_reasons(que
     assert not (store.directory(orphan.id) / "inputs").exists()
     assert store.get(uploading.id).status == "queued" and store.get(healthy.id).status == "queued"
     runner.shutdown()
+
+
+@pytest.mark.parametrize("queue_settings", ["redis"], indirect=True)
+def test_a_superseded_runs_return_does_not_fail_the_run_in_progress(queue_settings: dict,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    # A worker silent too long has its job re-delivered; when the first run, alive after all, stops
+    # at its next stage, RQ marks the shared job finished under the second run, which goes on.
+    from rq.job import Job as RqJob
+    from rq.job import JobStatus
+
+    from service.core.settings import Settings
+    from service.jobs import rq_runner
+    from service.jobs.backends import open_backend
+
+    settings = Settings(**queue_settings)
+    store, runner = open_backend(settings)
+    job = store.create({})
+    runner.submit(job.id)
+    assert store.claim(job.id) == 1 and store.claim(job.id, redelivered=True) == 2     # the second run
+    RqJob.fetch(job.id, connection=runner.connection).set_status(JobStatus.FINISHED)   # the first run's return
+    assert runner.reconcile() == [] and store.get(job.id).status == "running"
+    later = time.time() + settings.job_timeout_h * 3600 + settings.worker_lost_after_s + settings.worker_heartbeat_s + 1
+    monkeypatch.setattr(rq_runner.time, "time", lambda: later)                         # no run can be alive now
+    assert runner.reconcile() == [job.id]
+    assert store.get(job.id).error == "the worker ended without completing the job"
+    runner.shutdown()
