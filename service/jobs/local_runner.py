@@ -156,12 +156,11 @@ class LocalRunner(JobRunner):
             self.submit(job_id)
 
     def _handed_over(self, queued: list[str], fail_others: bool = False) -> list[str]:
-        """The jobs of ``queued`` whose uploads were complete and handed to the runner (:meth:`submit`;
-        a job that ran once was).
-        The others are still being uploaded by a request, which submits them itself. At start
-        (``fail_others``) no request is: a job whose uploads were complete (its ``params.json``,
-        written last, is there: a store older than ``submitted_at``) runs, the others fail saying
-        so (their uploads go)."""
+        """The jobs of ``queued`` handed to the runner once their uploads were complete (:meth:`submit`;
+        so was any job that ran). The others are still being uploaded by a request, which submits
+        them itself. At start (``fail_others``) no request is: a job whose uploads were complete (its
+        ``params.json``, written last, is there: a store older than ``submitted_at``) runs, the
+        others fail saying so (their uploads go)."""
         handed = []
         for job_id in queued:
             job = self.store.get(job_id)
@@ -170,7 +169,8 @@ class LocalRunner(JobRunner):
                 handed.append(job_id)
             elif job is not None and fail_others and self.store.fail(job_id, INTERRUPTED):
                 self.store.discard_inputs(job_id)
-                log.warning(f"job {job_id} was being uploaded when the server stopped; it failed", extra={"job_id": job_id})
+                log.warning(f"job {job_id} was being uploaded when the server stopped; it failed",
+                            extra={"job_id": job_id})
         return handed
 
     def maintain(self) -> None:
