@@ -35,7 +35,7 @@ from pathlib import Path
 
 from service.core.process_pools import end_pool
 from service.jobs.runner import INTERRUPTED, JobRunner, start_worker
-from service.jobs.store import SqliteJobStore
+from service.jobs.store import Job, SqliteJobStore
 from service.jobs.worker import TIMED_OUT, run_job
 
 log = logging.getLogger(__name__)
@@ -109,13 +109,12 @@ class LocalRunner(JobRunner):
         self.owner = lock_store(self.store.data_dir)
         self.started = True
         queued = self._handed_over(self.store.recover(self.max_attempts), fail_others=True)
-        for job_id in queued:
-            job = self.store.get(job_id)
-            if job is not None and job.attempts:
-                log.info(f"re-queued job {job_id}, attempt {job.attempts + 1}",
-                         extra={"job_id": job_id, "attempt": job.attempts + 1})
-            self.submit(job_id)
-        return queued
+        for job in queued:
+            if job.attempts:
+                log.info(f"re-queued job {job.id}, attempt {job.attempts + 1}",
+                         extra={"job_id": job.id, "attempt": job.attempts + 1})
+            self.submit(job.id)
+        return [job.id for job in queued]
 
     def submit(self, job_id: str) -> None:
         self.store.update(job_id, submitted_at=time.time())
@@ -152,10 +151,10 @@ class LocalRunner(JobRunner):
             log.warning(f"a job worker process was lost (killed, or out of memory); {len(queued)} job(s) queued again")
         else:
             log.info(f"job workers stopped for {stopped_for} and replaced; {len(queued)} job(s) queued again")
-        for job_id in queued:
-            self.submit(job_id)
+        for job in queued:
+            self.submit(job.id)
 
-    def _handed_over(self, queued: list[str], fail_others: bool = False) -> list[str]:
+    def _handed_over(self, queued: list[str], fail_others: bool = False) -> list[Job]:
         """The jobs of ``queued`` handed to the runner once their uploads were complete (:meth:`submit`;
         so was any job that ran). The others are still being uploaded by a request, which submits
         them itself. At start (``fail_others``) no request is: a job whose uploads were complete (its
@@ -166,7 +165,7 @@ class LocalRunner(JobRunner):
             job = self.store.get(job_id)
             complete = fail_others and (self.store.directory(job_id) / "inputs" / "params.json").exists()
             if job is not None and (job.submitted_at is not None or job.started_at is not None or complete):
-                handed.append(job_id)
+                handed.append(job)
             elif job is not None and fail_others and self.store.fail(job_id, INTERRUPTED):
                 self.store.discard_inputs(job_id)
                 log.warning(f"job {job_id} was being uploaded when the server stopped; it failed",

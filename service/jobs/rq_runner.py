@@ -165,7 +165,7 @@ class RqRunner(JobRunner):
             try:
                 rq_job = RqJob.fetch(job_id, connection=self.connection)
                 status = rq_job.get_status(refresh=True)
-                gone, reason = status in GIVEN_UP and not self._superseded_run_ended(job, status), ""
+                gone, reason = status in GIVEN_UP and not self._finished_under_a_live_run(job, status), ""
                 if gone:
                     last = rq_job.latest_result()
                     reason = failure_reason(status, (last.exc_string if last else None) or "",
@@ -178,8 +178,9 @@ class RqRunner(JobRunner):
                 failed.append(job_id)
         return failed
 
-    def _superseded_run_ended(self, job: Job, status: str) -> bool:
-        """Whether RQ's ``finished`` is a superseded run's while a later one may still run the job.
+    def _finished_under_a_live_run(self, job: Job, status: str) -> bool:
+        """Whether RQ's ``finished`` is a superseded run's while a later run may still be running the
+        job (then the job is not given up).
 
         A job's task returns without ending the job only where another run took it over (RQ
         re-delivered it after its worker had been silent too long, and the first run, alive after
