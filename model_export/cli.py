@@ -88,8 +88,11 @@ def export(
     version: str = "0.1.0",
     threshold: Annotated[Optional[float], typer.Option(help="variance threshold (default: calibrate now)")] = None,
     calibration_from: Annotated[Optional[Path], typer.Option(
-        help="a model whose calibration (spread and accept flags) the export takes over, for paired comparisons "
-             "of a fine-tuned network before it is recalibrated")] = None,
+        help="a model whose calibration (spread and accept flags) and test-time views the export takes over, "
+             "for paired comparisons of a fine-tuned network before it is recalibrated")] = None,
+    tta_views: Annotated[Optional[int], typer.Option(
+        help="test-time views the service runs the network with: 1, 4 or 8 (default: those of "
+             f"--calibration-from, else {SHIPPED_VIEWS}, as `ship`)")] = None,
     root: Root = DEFAULT_ATLAS_ROOT,
 ) -> None:
     """Export a checkpoint to ONNX (MC dropout kept stochastic, its draws fed from a seed) with its metadata."""
@@ -99,18 +102,21 @@ def export(
     from service.inference.model_file import load_model
 
     calibration = {}
+    views = SHIPPED_VIEWS
     if calibration_from is not None:
-        meta = load_model(calibration_from).info.metadata
-        calibration = {k: meta[k] for k in CALIBRATION if k in meta}
-        threshold = float(meta["variance_threshold"])
+        info = load_model(calibration_from).info
+        calibration = {k: info.metadata[k] for k in CALIBRATION if k in info.metadata}
+        threshold, views = float(info.metadata["variance_threshold"]), info.tta_views
+    views = views if tta_views is None else tta_views
     if threshold is None:
-        threshold = run_calibration(checkpoint, root)["threshold"]
-    path = export_checkpoint(checkpoint, output, name=name, version=version, variance_threshold=threshold)
+        threshold = run_calibration(checkpoint, root, views=views)["threshold"]
+    path = export_checkpoint(checkpoint, output, name=name, version=version, variance_threshold=threshold,
+                             tta_views=views)
     if calibration:
         write_metadata(path, calibration)
     exported = load_model(path)
     typer.echo(f"wrote {path} ({len(exported.draw_inputs)} dropout layers fed from seed {exported.mc_seed}, "
-               f"variance threshold {threshold:.3g})")
+               f"variance threshold {threshold:.3g}, {exported.info.tta_views} test-time views)")
 
 
 @app.command("fix-draws")
@@ -316,7 +322,7 @@ def ship(
     cal = run_calibration(checkpoint, root, views=tta_views)
     typer.echo(f"calibrated variance threshold {cal['threshold']:.4g} (AUROC {cal['auroc']:.3f})")
     onnx_path = export_checkpoint(checkpoint, out / "model.onnx", name=name, version=version,
-                                  variance_threshold=cal["threshold"], extra={"tta_views": tta_views})
+                                  variance_threshold=cal["threshold"], tta_views=tta_views)
     if int8:
         from model_export.quantise import quantise_model
 

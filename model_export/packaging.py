@@ -11,6 +11,7 @@ from model_export.calibrate_acceptance import FLAGS
 from model_export.export import build_metadata, export_onnx, fix_draws
 from model_export.model import SVRNet
 from model_export.spread import SPREAD_FLAGS
+from service.inference.views import SHIPPED_VIEWS
 
 CALIBRATION = (*SPREAD_FLAGS, *FLAGS)
 """A model's calibrated metadata: the spread's (``calibrate-spread``), then the accept flags'
@@ -24,9 +25,10 @@ def load_checkpoint(path: Path) -> tuple[SVRNet, dict]:
 
 
 def export_checkpoint(checkpoint: Path, output: Path, *, name: str, version: str,
-                      variance_threshold: float, extra: dict | None = None) -> Path:
+                      variance_threshold: float, tta_views: int = SHIPPED_VIEWS, extra: dict | None = None) -> Path:
     """Export a training checkpoint to ONNX with the metadata the service reads, its dropout draws
-    fed by the service (:func:`~model_export.export.fix_draws`)."""
+    fed by the service (:func:`~model_export.export.fix_draws`); the service runs it with
+    ``tta_views`` test-time views (:mod:`service.inference.views`; without the field it would run one)."""
     model, ck = load_checkpoint(checkpoint)
     cfg = ck["config"]
     training = (f"{len(cfg['train_volumes'])} atlas volumes ({', '.join(cfg['train_volumes'])}); "
@@ -36,7 +38,7 @@ def export_checkpoint(checkpoint: Path, output: Path, *, name: str, version: str
         variance_threshold=variance_threshold, atlas_id=ATLAS_ID, training_data=training,
         licences="; ".join(POPULATIONS.values()), symmetry_plane_x_mm=float(cfg.get("plane_x_mm", 0.0)),
         extra={"train_steps": ck["step"], "samples_seen": ck["samples_seen"],
-               "train_loss": cfg.get("loss", "l2"), **(extra or {})},
+               "train_loss": cfg.get("loss", "l2"), "tta_views": tta_views, **(extra or {})},
     )
     path = export_onnx(model, output, meta)
     fix_draws(path)

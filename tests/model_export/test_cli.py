@@ -30,7 +30,7 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
     views: list[int] = []
 
     def export(checkpoint: Path, output: Path, **kw: object) -> Path:
-        views.append(kw["extra"]["tta_views"])
+        views.append(kw["tta_views"])
         output.write_bytes(b"onnx")
         return output
 
@@ -72,8 +72,9 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
 
 
 def test_export_takes_over_another_models_calibration(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """``export --calibration-from`` writes the other model's spread and accept-flag settings and
-    calibrates nothing; the network and its own facts stay the checkpoint's."""
+    """``export --calibration-from`` writes the other model's spread and accept-flag settings and its
+    test-time views (a network compared with it is run as it is) and calibrates nothing; the network
+    and its own facts stay the checkpoint's."""
     import torch
 
     import model_export.calibrate as calibrate
@@ -89,13 +90,15 @@ def test_export_takes_over_another_models_calibration(tmp_path: Path, monkeypatc
 
     def own(checkpoint: Path, output: Path, **kw: float) -> Path:
         meta = build_metadata(model, name="tuned", version="0.0.2", pixel_mm=2.0, variance_threshold=kw["variance_threshold"],
-                              atlas_id="phantom", training_data="none", licences="n/a")
+                              atlas_id="phantom", training_data="none", licences="n/a",
+                              extra={"tta_views": kw["tta_views"]})
         return export_onnx(model, output, meta)
 
     source_meta = build_metadata(model, name="shipped", version="1.0.0", pixel_mm=2.0, variance_threshold=123.0,
                                  atlas_id="phantom", training_data="none", licences="n/a")
     source_meta.update(mc_error_scale="0.7", mc_error_shape="1,2,1,1,1,3", mc_error_depth_gain="0.25",
-                       expected_error_floor_mm="2.2", max_expected_error_mm="4.5", twin_risk_logit="-0.5,-0.2")
+                       expected_error_floor_mm="2.2", max_expected_error_mm="4.5", twin_risk_logit="-0.5,-0.2",
+                       tta_views="4")
     source = export_onnx(model, tmp_path / "shipped.onnx", source_meta)
     monkeypatch.setattr(calibrate, "calibrate", lambda *a, **k: pytest.fail("calibrated although told not to"))
     monkeypatch.setattr(packaging, "export_checkpoint", own)
@@ -108,6 +111,7 @@ def test_export_takes_over_another_models_calibration(tmp_path: Path, monkeypatc
     for key in CALIBRATION:
         assert getattr(got, key) == getattr(want, key), key
     assert got.variance_threshold == 123.0 and got.metadata["name"] == "tuned"
+    assert got.tta_views == 4
 
 
 def test_the_accept_flags_are_calibrated_again_from_kept_slice_columns(tmp_path: Path,

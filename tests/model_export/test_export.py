@@ -13,6 +13,7 @@ from model_export.export import build_metadata, count_random_nodes, export_onnx,
 from model_export.model import SVRNet
 from service.geometry import encodings
 from service.inference.estimator import OnnxPoseEstimator
+from service.inference.views import SHIPPED_VIEWS
 from service.inference.model_file import load_model
 from tests.support.pose_models import tiny_pose_model
 
@@ -157,6 +158,7 @@ def test_tiny_pipeline_trains_exports_and_loads(phantom_atlas: Path, tmp_path: P
     onnx_path = export_checkpoint(best, tmp_path / "m.onnx", name="t", version="0", variance_threshold=5.0)
     m = load_model(onnx_path)
     assert m.info.input_size == 48 and m.info.pixel_spacing_mm == 2.5
+    assert m.info.tta_views == SHIPPED_VIEWS          # served as `ship` serves: no export runs one view by default
     assert m.run(np.zeros((1, 48, 48), np.float32), np.ones(3, np.float32)).shape == (1, 3, 9)
     # Resume continues from the checkpoint's step.
     cfg.steps = 9
