@@ -1,10 +1,16 @@
-"""A model's metadata: the twin risk's coefficients are read, or refused with the reason."""
+"""A model's metadata: the twin risk's coefficients are read, or refused with the reason; every
+shipped pose model states the test-time views its calibrations were made with."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
-from service.inference.model_file import ModelInfo
+from service.inference.model_file import ModelInfo, load_model
+from service.inference.views import SHIPPED_VIEWS
+
+MODELS = Path(__file__).resolve().parents[2] / "service" / "models"
 
 META = {"name": "m", "version": "1", "backbone": "compact", "label_type": "grid", "input_size": "96",
         "pixel_spacing_mm": "1.25", "variance_threshold": "492.3"}
@@ -20,3 +26,10 @@ def test_the_twin_risk_is_read_and_absent_or_empty_means_none() -> None:
 def test_a_twin_risk_that_does_not_fall_with_the_distance_or_is_not_two_numbers_is_refused(text: str) -> None:
     with pytest.raises(ValueError, match="metadata"):
         ModelInfo.from_metadata({**META, "twin_risk_logit": text}, "s")
+
+
+@pytest.mark.parametrize("folder", sorted(p.name for p in MODELS.iterdir() if (p / "model.onnx").exists()))
+def test_every_shipped_pose_model_states_the_views_it_was_calibrated_with(folder: str) -> None:
+    """Without ``tta_views`` the service runs one view, where the calibrations and the card's figures
+    were measured with :data:`SHIPPED_VIEWS` (one view costs 1.0-1.5 mm, docs/training.md)."""
+    assert load_model(MODELS / folder / "model.onnx").info.metadata.get("tta_views") == str(SHIPPED_VIEWS)
