@@ -118,6 +118,10 @@ def main() -> None:
             print("   the same at the baseline: " + ", ".join(f"{k} {old.get(k, float('nan')):.1f}" for k, _ in longest))
         largest = sorted(peak.items(), key=lambda kv: -kv[1])[:4]
         print("   largest memory, MB: " + ", ".join(f"{k} {v:.0f}" for k, v in largest))
+        if before:
+            old_peak = before[masks][3]
+            print(f"   the same at the baseline (peak {max(old_peak.values()):.0f} MB): "
+                  + ", ".join(f"{k} {old_peak.get(k, float('nan')):.0f}" for k, _ in largest))
 
 
 if __name__ == "__main__":

@@ -165,8 +165,14 @@ def trilinear_entries(coords: NDArray, shape: tuple[int, int, int]) -> tuple[NDA
     return idx, w
 
 
+ROWS_PER_PART = 1 << 16
+"""Rows whose entries :func:`interpolation_matrix` works out at a time: the temporaries (indices,
+offsets, corner weights, about 0.7 KB a row of five points) are one part's, not every row's, beside
+the matrix itself."""
+
+
 def interpolation_matrix(coords: NDArray, shape: tuple[int, int, int], point_weights: ArrayLike | None = None,
-                         dtype: type = np.float32) -> sparse.csr_matrix:
+                         dtype: type = np.float32, rows_per_part: int = ROWS_PER_PART) -> sparse.csr_matrix:
     """Sparse ``[N, I*J*K]`` matrix of ``N`` weighted sums of trilinear samples.
 
     Args:
@@ -174,23 +180,27 @@ def interpolation_matrix(coords: NDArray, shape: tuple[int, int, int], point_wei
         shape: grid shape.
         point_weights: ``[Q]`` or ``[N, Q]`` weights of the points of a row (default 1).
         dtype: value type of the matrix.
+        rows_per_part: rows whose entries are worked out at a time (:data:`ROWS_PER_PART`).
 
     Returns:
         CSR matrix ``M`` with ``(M @ x.ravel())[n] = sum_q w[n, q] * trilinear(x, coords[n, q])``.
         Its transpose is the exact adjoint (trilinear splatting).
     """
-    c = np.asarray(coords, dtype=np.float64)
+    c = np.asarray(coords)
     n, q = c.shape[:2]
-    idx, w = trilinear_entries(c.reshape(-1, 3), shape)
-    if point_weights is not None:
-        pw = np.broadcast_to(np.asarray(point_weights, dtype=np.float32), (n, q)).reshape(-1, 1)
-        w *= pw
     size = int(np.prod(shape))
     small = max(size, n * q * 8) < np.iinfo(np.int32).max
     index_dtype = np.int32 if small else np.int64
+    pw = None if point_weights is None else np.broadcast_to(np.asarray(point_weights, dtype=np.float32), (n, q))
+    data, indices = np.empty(n * q * 8, dtype), np.empty(n * q * 8, index_dtype)
+    for a in range(0, n, max(1, rows_per_part)):
+        b = min(a + max(1, rows_per_part), n)
+        idx, w = trilinear_entries(c[a:b].reshape(-1, 3), shape)
+        if pw is not None:
+            w *= pw[a:b].reshape(-1, 1)
+        data[a * q * 8:b * q * 8], indices[a * q * 8:b * q * 8] = w.ravel(), idx.ravel()
     indptr = np.arange(0, n * q * 8 + 1, q * 8, dtype=index_dtype)
-    return sparse.csr_matrix((w.ravel().astype(dtype, copy=False), idx.ravel().astype(index_dtype, copy=False),
-                              indptr), shape=(n, size))
+    return sparse.csr_matrix((data, indices, indptr), shape=(n, size))
 
 
 def trilinear(volume: NDArray, coords: NDArray, gradient: bool = False) -> tuple[NDArray, NDArray | None]:

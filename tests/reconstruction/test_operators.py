@@ -68,6 +68,23 @@ def test_trilinear_matches_scipy_and_its_gradient_finite_differences(rng):
         assert np.allclose(fd[same_cell], grad[same_cell, axis], atol=2e-3)
 
 
+def test_the_interpolation_matrix_built_in_parts_is_the_matrix_built_at_once(rng):
+    """Rows worked out a few at a time (bounded temporaries) give the same matrix, entry for entry,
+    with weights per point and per row, across part boundaries that split no row."""
+    pts = rng.uniform(-1.0, [12.0, 10.0, 9.0], size=(53, 4, 3))
+    per_row = rng.uniform(0.1, 1.0, size=(53, 4))
+    for weights in (None, np.array([0.1, 0.4, 0.4, 0.1]), per_row):
+        whole = interpolation_matrix(pts, (12, 10, 9), weights, rows_per_part=10_000)
+        parts = interpolation_matrix(pts, (12, 10, 9), weights, rows_per_part=7)
+        assert whole.shape == parts.shape == (53, 12 * 10 * 9)
+        assert np.array_equal(whole.indptr, parts.indptr) and np.array_equal(whole.indices, parts.indices)
+        assert np.array_equal(whole.data, parts.data)
+        vol = rng.normal(size=(12, 10, 9))
+        want = sum((1.0 if weights is None else np.broadcast_to(weights, (53, 4))[:, k])
+                   * trilinear(vol, pts[:, k])[0] for k in range(4))
+        assert np.allclose(parts @ vol.ravel(), want, atol=1e-4)
+
+
 @pytest.mark.parametrize("dtype,tol", [(np.float64, 1e-10), (np.float32, 1e-5)])
 def test_forward_and_adjoint_are_adjoint(acquisition, rng, dtype, tol):
     """(c) <A x, y> == <x, A^T y> for the PSF operator of all pixels (float64 exact; float32 as used)."""
