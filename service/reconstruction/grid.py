@@ -193,8 +193,9 @@ def interpolation_matrix(coords: NDArray, shape: tuple[int, int, int], point_wei
     index_dtype = np.int32 if small else np.int64
     pw = None if point_weights is None else np.broadcast_to(np.asarray(point_weights, dtype=np.float32), (n, q))
     data, indices = np.empty(n * q * 8, dtype), np.empty(n * q * 8, index_dtype)
-    for a in range(0, n, max(1, rows_per_part)):
-        b = min(a + max(1, rows_per_part), n)
+    step = max(1, rows_per_part)
+    for a in range(0, n, step):
+        b = min(a + step, n)
         idx, w = trilinear_entries(c[a:b].reshape(-1, 3), shape)
         if pw is not None:
             w *= pw[a:b].reshape(-1, 1)

@@ -31,5 +31,5 @@ def test_a_twin_risk_that_does_not_fall_with_the_distance_or_is_not_two_numbers_
 @pytest.mark.parametrize("folder", sorted(p.name for p in MODELS.iterdir() if (p / "model.onnx").exists()))
 def test_every_shipped_pose_model_states_the_views_it_was_calibrated_with(folder: str) -> None:
     """Without ``tta_views`` the service runs one view, where the calibrations and the card's figures
-    were measured with :data:`SHIPPED_VIEWS` (one view costs 1.0-1.5 mm, docs/training.md)."""
+    were measured with :data:`SHIPPED_VIEWS` (docs/training.md measures what one view costs)."""
     assert load_model(MODELS / folder / "model.onnx").info.metadata.get("tta_views") == str(SHIPPED_VIEWS)
