@@ -143,6 +143,8 @@ def wobble_masks(masks: NDArray[np.bool_], config: SimulationConfig, rng: np.ran
         >>> bool((w != m).any()), bool(w[0, 32, 32])
         (True, True)
     """
+    if config.mask_wobble_share <= 0:
+        return masks                 # no draw: with the option off the random stream, so every slice, stays as it was
     which = np.flatnonzero(rng.random(len(masks)) < config.mask_wobble_share)
     if which.size == 0 or (config.mask_wobble_px[1] <= 0 and not any(config.mask_offset_px)):
         return masks

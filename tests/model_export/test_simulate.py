@@ -92,7 +92,10 @@ def test_wobbled_masks_move_the_boundary_by_up_to_their_amplitude_and_stay_one_p
         radius = np.hypot(*(np.argwhere(m & ~ndimage.binary_erosion(m)) - 48).T)
         assert radius.min() < 28 or radius.max() > 32      # bites or bulges of a few pixels
         assert 30 - 6 * 4.5 < radius.min() and radius.max() < 30 + 6 * 4.5 + 1
-    np.testing.assert_array_equal(wobble_masks(masks, SimulationConfig(), np.random.default_rng(3)), masks)
+    rng = np.random.default_rng(3)
+    np.testing.assert_array_equal(wobble_masks(masks, SimulationConfig(), rng), masks)
+    # the option off draws nothing: the stream goes on as without it (the validation slices stay the same)
+    assert rng.random() == np.random.default_rng(3).random()
 
 
 def test_dressed_slices_keep_the_brain_and_show_csf_skull_and_tissue_by_distance(phantom_atlas: Path) -> None:
