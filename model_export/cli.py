@@ -98,22 +98,19 @@ def export(
     """Export a checkpoint to ONNX (MC dropout kept stochastic, its draws fed from a seed) with its metadata."""
     from model_export.calibrate import calibrate as run_calibration
     from model_export.packaging import CALIBRATION, export_checkpoint
-    from model_export.spread import write_metadata
     from service.inference.model_file import load_model
 
-    calibration = {}
-    views = SHIPPED_VIEWS
+    calibration, views = {}, SHIPPED_VIEWS
     if calibration_from is not None:
         info = load_model(calibration_from).info
         calibration = {k: info.metadata[k] for k in CALIBRATION if k in info.metadata}
         threshold, views = float(info.metadata["variance_threshold"]), info.tta_views
-    views = views if tta_views is None else tta_views
+    if tta_views is not None:
+        views = tta_views
     if threshold is None:
         threshold = run_calibration(checkpoint, root, views=views)["threshold"]
     path = export_checkpoint(checkpoint, output, name=name, version=version, variance_threshold=threshold,
-                             tta_views=views)
-    if calibration:
-        write_metadata(path, calibration)
+                             tta_views=views, extra=calibration)
     exported = load_model(path)
     typer.echo(f"wrote {path} ({len(exported.draw_inputs)} dropout layers fed from seed {exported.mc_seed}, "
                f"variance threshold {threshold:.3g}, {exported.info.tta_views} test-time views)")

@@ -91,7 +91,7 @@ def test_export_takes_over_another_models_calibration(tmp_path: Path, monkeypatc
     def own(checkpoint: Path, output: Path, **kw: float) -> Path:
         meta = build_metadata(model, name="tuned", version="0.0.2", pixel_mm=2.0, variance_threshold=kw["variance_threshold"],
                               atlas_id="phantom", training_data="none", licences="n/a",
-                              extra={"tta_views": kw["tta_views"]})
+                              extra={"tta_views": kw["tta_views"], **(kw.get("extra") or {})})
         return export_onnx(model, output, meta)
 
     source_meta = build_metadata(model, name="shipped", version="1.0.0", pixel_mm=2.0, variance_threshold=123.0,
