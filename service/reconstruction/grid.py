@@ -166,9 +166,9 @@ def trilinear_entries(coords: NDArray, shape: tuple[int, int, int]) -> tuple[NDA
 
 
 ROWS_PER_PART = 1 << 16
-"""Rows whose entries :func:`interpolation_matrix` works out at a time: the temporaries (indices,
-offsets, corner weights, about 0.7 KB a row of five points) are one part's, not every row's, beside
-the matrix itself."""
+"""Rows whose entries :func:`interpolation_matrix` works out at a time: the temporaries (base indices,
+offsets, corner weights: several times the entries they make) are one part's, not every row's,
+beside the matrix itself."""
 
 
 def interpolation_matrix(coords: NDArray, shape: tuple[int, int, int], point_weights: ArrayLike | None = None,
