@@ -31,7 +31,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg import lapack
 
 BLOCKS: tuple[tuple[int, ...], ...] = ((0, 4), (1, 3), (2,), (5,))
 """The coordinates (r_x, r_y, r_z, t_x, t_y, t_z) a slice's offset along the normal couples."""
@@ -83,68 +82,26 @@ def whiteners(sig: NDArray, correlations: tuple[float, ...], neighbour_slices: f
 
 @dataclass
 class Block:
-    """One block of coupled coordinates, whitened for every (kernel ``c``, error correlation ``r``),
-    and reduced to tridiagonal form bordered by its observations.
+    """One block of coupled coordinates, whitened and decomposed for every (kernel ``c``, error correlation ``r``).
 
     Attributes:
         coords: the coordinates it holds (indices into the six).
         b: ``[q m, q m]`` the lever operator of the voting slices (:func:`lever_operator`).
         w: ``[r, q m, q m]`` the whitener of the network's errors (block-diagonal over the coordinates).
         logdet: ``[r]`` log det of the errors' covariance.
-        cov: ``[c, r, q m, q m]`` the whitened motion covariance ``W B K B^T W^T`` (plus a jitter).
+        lam, u: ``[c, r, q m]``, ``[c, r, q m, q m]`` eigendecomposition of the whitened motion covariance.
         y: ``[q m]`` the observations in slice coordinates.
-        diag, off: ``[c, r, q m]``, ``[c, r, q m - 1]`` the tridiagonal form ``T = Q^T cov Q`` whose
-            ``Q`` takes the whitened observations ``W y`` to the first axis (:func:`bordered_tridiagonal`).
-        head: ``[c, r]`` ``|W y|^2``, all of it on that first axis.
+        yt: ``[c, r, q m]`` the observations whitened and rotated to the eigenvectors.
     """
 
     coords: tuple[int, ...]
     b: NDArray
     w: NDArray
     logdet: NDArray
-    cov: NDArray
+    lam: NDArray
+    u: NDArray
     y: NDArray
-    diag: NDArray
-    off: NDArray
-    head: NDArray
-
-
-def bordered_tridiagonal(cov: NDArray, v: NDArray) -> tuple[NDArray, NDArray, NDArray]:
-    """``T = Q^T cov Q`` tridiagonal with ``Q^T v = |v| e_1``, for each matrix of ``cov [..., n, n]``
-    and vector of ``v [..., n]``: the diagonal ``[..., n]``, the off-diagonal ``[..., n - 1]`` and
-    ``|v|^2 [...]``.
-
-    LAPACK's Householder reduction (``dsytrd``, lower) of the bordered matrix ``[[0, v^T], [v, cov]]``
-    turns ``v`` onto the first axis with its first reflection and leaves that axis alone after it, so
-    the trailing block of the result is ``T`` and its first off-diagonal entry ``|v|``. Then
-    ``v^T f(cov) v = |v|^2 f(T)_11`` for any matrix function ``f``, and ``det(a cov + g I) = det(a T + g I)``:
-    the likelihood of every amplitude and noise scale (:func:`nll`) needs no eigenvectors.
-
-    Example:
-        >>> rng = np.random.default_rng(0)
-        >>> a = rng.normal(size=(5, 5)); cov = a @ a.T; v = rng.normal(size=5)
-        >>> d, e, h = bordered_tridiagonal(cov, v)
-        >>> t = np.diag(d) + np.diag(e, 1) + np.diag(e, -1)
-        >>> bool(np.isclose(h * np.linalg.inv(t + np.eye(5))[0, 0], v @ np.linalg.solve(cov + np.eye(5), v)))
-        True
-        >>> bool(np.allclose(np.linalg.eigvalsh(t), np.linalg.eigvalsh(cov)))
-        True
-    """
-    *lead, n = v.shape
-    flat, vs = cov.reshape(-1, n, n), v.reshape(-1, n)
-    diag, off, head = np.zeros((len(flat), n)), np.zeros((len(flat), max(n - 1, 0))), np.einsum("kn,kn->k", vs, vs)
-    if n:
-        lwork = max(int(lapack.dsytrd_lwork(n + 1)[0]), n + 1)
-        border = np.zeros((n + 1, n + 1), order="F")
-        for i in range(len(flat)):
-            border[0, 0] = 0.0
-            border[1:, 0] = vs[i]
-            border[1:, 1:] = flat[i]                          # dsytrd (lower) reads the lower triangle
-            _, d, e, _, info = lapack.dsytrd(border, lower=1, lwork=lwork, overwrite_a=1)
-            if info:
-                raise np.linalg.LinAlgError(f"dsytrd failed ({info})")
-            diag[i], off[i] = d[1:], e[1:]
-    return diag.reshape(*lead, n), off.reshape(*lead, max(n - 1, 0)), head.reshape(lead)
+    yt: NDArray
 
 
 def decompose(yv: NDArray, sig: NDArray, shape: NDArray, z: NDArray, cv: NDArray, correlations: tuple[float, ...],
@@ -152,32 +109,32 @@ def decompose(yv: NDArray, sig: NDArray, shape: NDArray, z: NDArray, cv: NDArray
     """The blocks of the voting slices' coordinates ``yv [m, 6]`` (stack frame), their errors
     ``sig * sqrt(shape[:, d])`` in slice coordinates, offsets ``z [m]`` and motion correlations ``cv [c, m, m]``.
 
-    The whitened covariances depend on everything but ``yv``: with ``memo`` (a dict the caller keeps),
+    The eigendecompositions depend on everything but ``yv``: with ``memo`` (a dict the caller keeps),
     a second call with the same errors, offsets and correlations (a stack's final fit, whose votes
     and branches the earlier fit left as they were, or chose on the same votes) reuses them and only
-    reduces them with its own ``yv``.
+    projects its own ``yv``.
     """
     key = None if memo is None else (np.asarray(sig, np.float64).tobytes(), np.asarray(shape, np.float64).tobytes(),
                                      np.asarray(z, np.float64).tobytes(), np.asarray(cv, np.float64).tobytes(),
                                      tuple(correlations), neighbour_slices)
     if memo is not None and key in memo:
         return [_project(bl, yv) for bl in memo[key]]
-    blocks = _whiten(sig, shape, z, cv, correlations, neighbour_slices)
+    blocks = _factorise(yv, sig, shape, z, cv, correlations, neighbour_slices)
     if memo is not None:
         memo[key] = blocks
-    return [_project(bl, yv) for bl in blocks]
+    return blocks
 
 
 def _project(bl: Block, yv: NDArray) -> Block:
-    """``bl`` (its whitened covariances) with the observations ``yv [m, 6]`` and their tridiagonal forms."""
+    """``bl`` (its factorisation) with the observations ``yv [m, 6]`` instead of its own."""
     y = bl.b @ yv[:, list(bl.coords)].T.reshape(-1)
-    v = np.broadcast_to(bl.w @ y, (*bl.cov.shape[:2], len(y)))                              # [c, r, qm]
-    return Block(bl.coords, bl.b, bl.w, bl.logdet, bl.cov, y, *bordered_tridiagonal(bl.cov, v))
+    yt = (np.swapaxes(bl.u, -1, -2) @ (bl.w @ y)[None, :, :, None])[..., 0]
+    return Block(bl.coords, bl.b, bl.w, bl.logdet, bl.lam, bl.u, y, yt)
 
 
-def _whiten(sig: NDArray, shape: NDArray, z: NDArray, cv: NDArray, correlations: tuple[float, ...],
-            neighbour_slices: float) -> list[Block]:
-    """The blocks' whiteners and whitened motion covariances (no observations yet)."""
+def _factorise(yv: NDArray, sig: NDArray, shape: NDArray, z: NDArray, cv: NDArray, correlations: tuple[float, ...],
+               neighbour_slices: float) -> list[Block]:
+    """:func:`decompose` without a memo."""
     m = len(sig)
     cache: dict[bytes, tuple[NDArray, NDArray]] = {}
     out = []
@@ -197,31 +154,20 @@ def _whiten(sig: NDArray, shape: NDArray, z: NDArray, cv: NDArray, correlations:
         for i in range(q):
             prior[:, i * m:(i + 1) * m, i * m:(i + 1) * m] = cv
         wb = w @ b                                                                          # [r, qm, qm]
-        cov = wb[None] @ prior[:, None] @ np.swapaxes(wb, 1, 2)[None] + JITTER * np.eye(q * m)
-        out.append(Block(coords, b, w, logdet, cov, np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0)))
+        lam, u = np.linalg.eigh(wb[None] @ prior[:, None] @ np.swapaxes(wb, 1, 2)[None] + JITTER * np.eye(q * m))
+        out.append(_project(Block(coords, b, w, logdet, np.maximum(lam, 0.0), u, np.zeros(0), np.zeros(0)), yv))
     return out
 
 
 def nll(blocks: list[Block], amps: NDArray, scales: NDArray) -> NDArray[np.float64]:
     """``[c, r, a, g]`` negative log marginal likelihood of every kernel, error correlation,
-    amplitude (``amps``: a^2) and noise scale (``scales``: g^2): the whitened covariance is
-    ``M = a^2 cov + g^2 I``, and on the tridiagonal form (:func:`bordered_tridiagonal`) the pivots
-    ``p_i = M_ii - M_i,i+1^2 / p_i+1`` of its factorisation from the last row up give both
-    ``log det M = sum log p_i`` and ``(W y)^T M^-1 (W y) = |W y|^2 / p_1``, every model at once."""
+    amplitude (``amps``: a^2) and noise scale (``scales``: g^2); the whitened covariance's
+    eigenvalues are ``a^2 lam + g^2``."""
     total = 0.0
-    a2, g2 = np.asarray(amps, np.float64)[:, None], np.asarray(scales, np.float64)[None, :]
     for bl in blocks:
-        n = bl.diag.shape[-1]
-        logdet = 0.5 * bl.logdet[None, :, None, None]
-        if not n:
-            total = total + logdet
-            continue
-        pivot = a2 * bl.diag[..., n - 1, None, None] + g2                                  # [c, r, a, g]
-        log_m = np.log(pivot)
-        for i in range(n - 2, -1, -1):
-            pivot = a2 * bl.diag[..., i, None, None] + g2 - (a2 * bl.off[..., i, None, None]) ** 2 / pivot
-            log_m += np.log(pivot)
-        total = total + 0.5 * bl.head[..., None, None] / pivot + 0.5 * log_m + logdet
+        ev = amps[:, None, None] * bl.lam[:, :, None, None] + scales[:, None]               # [c, r, a, g, qm]
+        total = total + (0.5 * np.einsum("crm,cragm->crag", bl.yt ** 2, 1.0 / ev) + 0.5 * np.log(ev).sum(-1)
+                         + 0.5 * bl.logdet[None, :, None, None])
     return total
 
 
@@ -269,10 +215,9 @@ def posterior(blocks: list[Block], c: NDArray, r: NDArray, amp2: NDArray, g2: ND
     kern_all, kern_nn = amp2[:, None, None] * k_all, amp2[:, None, None] * k_nn
     for bl in blocks:
         q = len(bl.coords)
-        wr = bl.w[r]                                                                        # [k, qm, qm]
-        c_inv = np.swapaxes(wr, 1, 2) @ np.linalg.solve(amp2[:, None, None] * bl.cov[c, r]
-                                                        + g2[:, None, None] * np.eye(q * m), wr)
-        c_inv = 0.5 * (c_inv + np.swapaxes(c_inv, 1, 2))                                   # [k, qm, qm]
+        ev = amp2[:, None] * bl.lam[c, r] + g2[:, None]                                    # [k, qm]
+        wu = np.swapaxes(bl.w[r], 1, 2) @ bl.u[c, r]                                        # [k, qm, qm]
+        c_inv = (wu / ev[:, None, :]) @ np.swapaxes(wu, 1, 2)
         alpha = (c_inv @ bl.y[:, None])[..., 0]                                             # [k, qm]
         k_star = block_diagonal(kern_all, q) @ bl.b.T                                       # cov(f, y~) [k, qn, qm]
         f = (k_star @ alpha[..., None])[..., 0]

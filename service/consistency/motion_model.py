@@ -150,10 +150,10 @@ def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dic
     """Choose and apply the motion model of one stack (see the module docstring).
 
     The covariance of the voting slices' coordinates is ``a^2 K + g^2 E_r`` (motion plus network
-    error). Whitened by ``W_r`` it is ``a^2 W K W^T + g^2 I``: one tridiagonal reduction per (order,
-    length, error correlation) and block of coupled coordinates, bordered by the observations
-    (:func:`~service.consistency.motion_blocks.bordered_tridiagonal`), gives the likelihood of
-    every amplitude and noise scale at once.
+    error). Whitened by ``W_r`` it is ``a^2 W K W^T + g^2 I``: one eigendecomposition per (order,
+    length, error correlation) and block of coupled coordinates
+    (:mod:`service.consistency.motion_blocks`) gives the likelihood of every amplitude and noise
+    scale at once.
 
     The poses are averaged over the grid, each combination weighed by its marginal likelihood (a
     uniform prior over the grid; combinations under :data:`MIN_MODEL_WEIGHT` left out), and their
@@ -178,7 +178,7 @@ def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dic
             are then independent in the slices' own coordinates, where a tilt and an in-plane shift
             of the centre are one error (:mod:`service.consistency.motion_blocks`); default 0.
         memo: a dict kept between fits of one stack: a fit with the same errors, times and grid
-            as an earlier one reuses its whitened covariances (:func:`~service.consistency.motion_blocks.decompose`).
+            as an earlier one reuses its eigendecompositions (:func:`~service.consistency.motion_blocks.decompose`).
     """
     q = np.eye(3) if axes is None else np.asarray(axes, dtype=np.float64)
     y = to_coordinates(proposals, rigid, centre)

@@ -247,7 +247,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     axes = axes @ anatomical_axes(s[:3, :3] @ axes)                         # x along the brain's left-right
     # the slices' offsets from the centre along the normal (their in-plane offsets, a few mm, left out:
     # then only the two in-plane translations vary from slice to slice, and the other four share
-    # one whitening in the motion model; the poses come out the same to a hundredth of a mm)
+    # one eigendecomposition in the motion model; the poses come out the same to a hundredth of a mm)
     along = ((inv_n[:, :3, 3] - centre) @ axes) * [0.0, 0.0, 1.0]
     grow = 1.0 + depth_gain * relative_depth(along[:, 2], use) ** 2
     shape = {"axes": axes} if error_shape is None else {   # errors per coordinate about each slice's origin
@@ -263,7 +263,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     # a slice far from the rigid fit may just have moved: every usable slice is weighed again by
     # how well the others predict it, in units of the spread both errors explain
     votes = _votes(ed(motion.loo @ inv_n, own), motion, sig, use)
-    memo: dict = {}                        # the final fit reuses this one's whitened covariances where its votes are these
+    memo: dict = {}                        # the final fit reuses this one's eigendecompositions where its votes are these
     motion = fit_motion(chosen, s, votes, orders, centre, memo=memo, **shape)
     first = branch
     branch = _branch(ed((motion.loo @ inv_n)[:, None], cand))
