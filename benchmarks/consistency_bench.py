@@ -1,7 +1,8 @@
-"""Cost of the stack-consistency stage: 6 stacks x 22 slices (the real-size predict case) and 3 x 40.
+"""Cost of the stack-consistency stage: 6 stacks x 22 slices (the real-size predict case), 3 x 40 and 3 x 80.
 
-Prints milliseconds per 100 slices (target <= 50) and, as a ratio that holds on a loaded machine
-too, the stage's time over that of the twin-aware MC-100 statistics of the same slices; then the
+Prints milliseconds per 100 slices (the stage's share of a request; the targets are whole
+requests', ``predict_bench.py``) and, as a ratio that holds on a loaded machine too, the stage's
+time over that of the twin-aware MC-100 statistics of the same slices; then the
 cost of weighing the error's shape (a model's ``mc_error_shape``: each tilt and the in-plane
 translation its lever arm couples form one block of twice the slices,
 :mod:`service.consistency.motion_blocks`) over weighing every coordinate alike. Run:
@@ -50,7 +51,7 @@ def main() -> None:
         m = measure(n_stacks, n_slices)
         t, total = m["stage"], n_stacks * n_slices
         print(f"{n_stacks} stacks x {n_slices} slices: {t * 1e3:7.1f} ms in all, "
-              f"{t * 1e3 * 100 / total:5.1f} ms per 100 slices (target <= 50); "
+              f"{t * 1e3 * 100 / total:5.1f} ms per 100 slices; "
               f"{t / m['statistics']:4.2f}x the MC-100 statistics of the same slices ({m['statistics'] * 1e3:.1f} ms); "
               f"with the error's shape {m['shaped'] / t:4.2f}x that")
 
