@@ -13,8 +13,8 @@ Fréchet mean of the two answers' differences about the brain's centre,
 the median E.D. per stack once it is undone, over those slices (the poses a user would take from
 either answer).
 
-    .venv/bin/python model_export/experiments/real_scan_poses.py [SCAN_FOLDER] [--localiser M] [--stacks A,B]
-        [--no-image-consistency] [--repeats N]
+    .venv/bin/python model_export/experiments/real_scan_poses.py [SCAN_FOLDER] [--localiser M] [--model M]
+        [--stacks A,B] [--no-image-consistency] [--repeats N]
 """
 
 from __future__ import annotations
@@ -100,13 +100,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("scan", type=Path, nargs="?", default=REAL_SCANS / "mial_lausanne_t30")
     ap.add_argument("--localiser", type=Path, help="a localiser ONNX file (default: the shipped one)")
+    ap.add_argument("--model", type=Path, help="the pose model (default: the shipped one)")
     ap.add_argument("--stacks", help="comma-separated names: these stacks alone (default: every masked one)")
     ap.add_argument("--no-image-consistency", action="store_true", help="both answers without the image stage")
     ap.add_argument("--repeats", type=int, default=1,
                     help="pairs of answers, each pair with the draws of the model's seed + 0, 1, ...; then their range")
     args = ap.parse_args()
     localiser = Localiser.load(args.localiser) if args.localiser else default_localiser()
-    estimator = _pose_estimator()
+    estimator = _pose_estimator(args.model)
     volumes, manual = read_scan(args.scan, args.stacks)
     seeded = [estimator if r == 0 or estimator.model.mc_seed is None
               else OnnxPoseEstimator(estimator.model.with_seed(estimator.model.mc_seed + r)) for r in range(args.repeats)]
