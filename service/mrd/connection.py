@@ -140,6 +140,8 @@ class MrdConnection:
         self.outgoing = ismrmrd.ProtocolSerializer(writer)
         self.new_session, self.limits = new_session, limits
         self.session: StreamSession | None = None
+        self.refused_config: ServiceError | None = None
+        """The session's config, when it was refused: images are then refused too, not posed with defaults."""
         self.slices_per_series: int | None = None
         self.series: dict[int, SeriesState] = {}
         self.counts = {"images": 0, "refused": 0, "stacks": 0}
@@ -247,7 +249,9 @@ class MrdConnection:
         try:
             options = SessionOptions.from_json(text, "config")
             self.session = self.new_session(options)      # an unknown model is named now, not at each image
+            self.refused_config = None
         except ServiceError as bad:
+            self.session, self.refused_config = None, bad
             self.send_error(bad)
 
     def on_header(self, header: ismrmrd.xsd.ismrmrdHeader) -> None:
@@ -318,6 +322,13 @@ class MrdConnection:
             wait([running])
 
     def open_session(self) -> StreamSession:
+        """The session: the config's, else the defaults' when no config came. After a refused config
+        (and no valid one before the first image) every image is refused, as the stream refuses slices
+        after a refused ``start``: poses made with options the client did not ask for would pass for
+        its own."""
+        if self.session is None and self.refused_config is not None:
+            raise InvalidParameter(f"config was refused ({self.refused_config.detail}); images are not posed "
+                                   "until the connection starts again with a valid config")
         if self.session is None:
             self.session = self.new_session(SessionOptions())
         return self.session

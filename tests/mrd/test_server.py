@@ -251,6 +251,19 @@ def test_a_header_gives_the_slices_of_a_series_only_when_it_says_so(limit: str, 
     assert connection.slices_per_series == slices
 
 
+def test_images_after_a_refused_config_are_refused_not_posed_with_defaults(case: Case, serve) -> None:  # noqa: ANN001
+    """A config the server refuses leaves the session without options: its images get errors that
+    name the refused config, not poses made with the defaults the client did not ask for."""
+    server = serve()
+    client = MrdLink("127.0.0.1", server.port)
+    client.send(ConfigText('{"mc_samples": 0, "bias_correction": false}'), *case.images[0][:3])
+    received = client.close()
+    errors = [m["detail"] for m in texts(received) if m["type"] == "error"]
+    assert "config.mc_samples" in errors[0], errors
+    assert len(errors) >= 4 and all("config was refused" in e and "config.mc_samples" in e for e in errors[1:4]), errors
+    assert not [m for m in received if isinstance(m, ismrmrd.Image)]
+
+
 def test_a_text_message_that_cannot_be_parsed_is_a_bad_request_not_an_unusable_image(serve) -> None:  # noqa: ANN001
     server = serve()
     client = MrdLink("127.0.0.1", server.port)
