@@ -166,7 +166,7 @@ class StreamConnection:
             raise InvalidParameter("start: the session has started already")
         if self.registry is None:
             raise NotReady("model: the models are still loading")
-        options = SessionOptions.from_message(msg, "start")
+        options = SessionOptions.from_start(msg)
         model = self.registry.resolve(options.model)
         estimator = self.registry.get(model)
         self.model = model

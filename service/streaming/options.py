@@ -66,7 +66,25 @@ class SessionOptions:
             raise InvalidParameter(f"{where}: not a JSON object") from None
         if not isinstance(given, dict):
             raise InvalidParameter(f"{where}: not a JSON object")
-        unknown = sorted(set(given) - set(cls.__dataclass_fields__))
+        return cls.from_fields(given, where)
+
+    @classmethod
+    def from_start(cls, message: dict) -> "SessionOptions":
+        """Options from a stream's ``start`` message, which holds nothing but its type and them: a
+        misspelt option is named, as ``/v1/predict`` names an unknown form field, not left at its default.
+
+        Example:
+            >>> SessionOptions.from_start({"type": "start", "variance_treshold": 40})
+            Traceback (most recent call last):
+            ...
+            service.core.errors.InvalidParameter: start: unknown options ['variance_treshold']
+        """
+        return cls.from_fields(message, "start", {"type"})
+
+    @classmethod
+    def from_fields(cls, given: dict, where: str, other: set[str] = frozenset()) -> "SessionOptions":
+        """:meth:`from_message` of ``given``, which may hold nothing but the options and ``other``."""
+        unknown = sorted(set(given) - set(other) - set(cls.__dataclass_fields__))
         if unknown:
             raise InvalidParameter(f"{where}: unknown options {unknown}")
         return cls.from_message(given, where)

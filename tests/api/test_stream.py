@@ -88,6 +88,8 @@ def test_bad_messages_get_an_error_naming_them_and_the_session_goes_on(client, c
         assert "start message first" in ws.receive_json()["detail"]
         ws.send_text(json.dumps({"type": "start", "mc_samples": 0}))
         assert "start.mc_samples" in ws.receive_json()["detail"]
+        ws.send_text(json.dumps({"type": "start", "mc_samples": 10, "variance_treshold": 40}))   # misspelt: named
+        assert "unknown options ['variance_treshold']" in ws.receive_json()["detail"]
         ws.send_text(json.dumps({"type": "start", "mc_samples": 10, "bias_correction": False}))
         assert ws.receive_json()["type"] == "ready"
         cases = [
