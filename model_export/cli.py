@@ -100,9 +100,19 @@ def export(
     from model_export.packaging import CALIBRATION, export_checkpoint
     from service.inference.model_file import load_model
 
+    from service.inference.views import VIEW_COUNTS
+
+    if tta_views is not None and tta_views not in VIEW_COUNTS:
+        raise typer.BadParameter(f"{tta_views} is not one of {VIEW_COUNTS}", param_hint="--tta-views")
     calibration, views = {}, SHIPPED_VIEWS
     if calibration_from is not None:
+        if threshold is not None:
+            raise typer.BadParameter("the variance threshold is part of the calibration --calibration-from takes "
+                                     "over; give one or the other", param_hint="--threshold")
         info = load_model(calibration_from).info
+        if tta_views is not None and tta_views != info.tta_views:
+            raise typer.BadParameter(f"{calibration_from.name} was calibrated with {info.tta_views} test-time views; "
+                                     f"its calibration does not hold for {tta_views}", param_hint="--tta-views")
         calibration = {k: info.metadata[k] for k in CALIBRATION if k in info.metadata}
         threshold, views = float(info.metadata["variance_threshold"]), info.tta_views
     if tta_views is not None:
@@ -114,6 +124,10 @@ def export(
     exported = load_model(path)
     typer.echo(f"wrote {path} ({len(exported.draw_inputs)} dropout layers fed from seed {exported.mc_seed}, "
                f"variance threshold {threshold:.3g}, {exported.info.tta_views} test-time views)")
+    if calibration_from is None:
+        typer.echo("not calibrated: its variance threshold is the single-slice one, its expected errors the raw MC "
+                   "spread (no mc_error_scale / shape), and it sets no max_expected_error_mm; `ship` calibrates "
+                   "a model, --calibration-from takes another's calibration over for comparisons", err=True)
 
 
 @app.command("fix-draws")

@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 
 from service.core.onnx import file_sha256, session_options
 from service.geometry.twin import DEFAULT_PLANE_X_MM
+from service.inference.views import VIEW_COUNTS
 
 INPUT_SLICES, INPUT_PASSES, OUTPUT_LABELS = "slices", "passes", "labels"
 DRAWS_PREFIX = "dropout_uniform_"
@@ -81,7 +82,7 @@ class ModelInfo:
                 variance_threshold=float(meta["variance_threshold"]), dropout_p=float(meta.get("dropout_p", 0.5)),
                 atlas_id=meta.get("atlas_id", ""), trained_on=meta.get("training_data", ""), sha256=sha256,
                 symmetry_plane_x_mm=float(meta.get("symmetry_plane_x_mm", DEFAULT_PLANE_X_MM)),
-                mc_error_scale=float(meta.get("mc_error_scale", 1.0)), tta_views=int(meta.get("tta_views", 1)),
+                mc_error_scale=float(meta.get("mc_error_scale", 1.0)), tta_views=_views(meta.get("tta_views", "1")),
                 mc_error_shape=_shape(meta.get("mc_error_shape", "")),
                 mc_error_depth_gain=float(meta.get("mc_error_depth_gain", 0.0)),
                 expected_error_floor_mm=float(meta.get("expected_error_floor_mm", 0.0)),
@@ -92,6 +93,15 @@ class ModelInfo:
             )
         except (KeyError, ValueError) as exc:
             raise ValueError(f"model metadata incomplete or invalid: {exc}") from exc
+
+
+def _views(text: str) -> int:
+    """``tta_views`` from its metadata text: one of :data:`~service.inference.views.VIEW_COUNTS` (a file
+    with another count would load and then fail every request)."""
+    n = int(text)
+    if n not in VIEW_COUNTS:
+        raise ValueError(f"tta_views must be one of {VIEW_COUNTS}, not {text!r}")
+    return n
 
 
 def _shape(text: str) -> tuple[float, ...] | None:

@@ -1,5 +1,5 @@
-"""A model's metadata: the twin risk's coefficients are read, or refused with the reason; every
-shipped pose model states the test-time views its calibrations were made with."""
+"""A model's metadata: the twin risk's coefficients and the test-time views are read, or refused with
+the reason; every shipped pose model states the test-time views its calibrations were made with."""
 
 from __future__ import annotations
 
@@ -26,6 +26,14 @@ def test_the_twin_risk_is_read_and_absent_or_empty_means_none() -> None:
 def test_a_twin_risk_that_does_not_fall_with_the_distance_or_is_not_two_numbers_is_refused(text: str) -> None:
     with pytest.raises(ValueError, match="metadata"):
         ModelInfo.from_metadata({**META, "twin_risk_logit": text}, "s")
+
+
+@pytest.mark.parametrize("text", ["2", "0", "16"])
+def test_a_view_count_the_estimator_cannot_run_is_refused_when_the_file_is_read(text: str) -> None:
+    """A file with another count of test-time views would load and then fail every request."""
+    assert ModelInfo.from_metadata({**META, "tta_views": "4"}, "s").tta_views == 4
+    with pytest.raises(ValueError, match="tta_views"):
+        ModelInfo.from_metadata({**META, "tta_views": text}, "s")
 
 
 @pytest.mark.parametrize("folder", sorted(p.name for p in MODELS.iterdir() if (p / "model.onnx").exists()))

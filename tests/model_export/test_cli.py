@@ -113,6 +113,13 @@ def test_export_takes_over_another_models_calibration(tmp_path: Path, monkeypatc
     assert got.variance_threshold == 123.0 and got.metadata["name"] == "tuned"
     assert got.tta_views == 4
 
+    # what would write a calibration that does not hold for the file is refused, naming the option
+    for extra, option in ((["--threshold", "40"], "--threshold"), (["--tta-views", "8"], "--tta-views")):
+        refused = CliRunner().invoke(app, ["export", str(tmp_path / "run.pt"), str(tmp_path / "other.onnx"),
+                                           "--calibration-from", str(source), *extra])
+        assert refused.exit_code == 2 and option in refused.output, refused.output
+        assert not (tmp_path / "other.onnx").exists()
+
 
 def test_the_accept_flags_are_calibrated_again_from_kept_slice_columns(tmp_path: Path,
                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
