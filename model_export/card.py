@@ -132,6 +132,23 @@ def _tz_text(train_config: dict) -> str:
     return f"the central {200 * fraction:.0f} %"
 
 
+def _threshold_text(info: dict, cal: dict) -> str:
+    """The served variance threshold, and the single-slice one when the accept flags' calibration
+    on the pipeline's final poses replaced it.
+
+    Example:
+        >>> print(_threshold_text({"variance_threshold": "447.2"}, {"threshold": 48.35}))
+        447.2 (calibrated on the pipeline's final poses, see "Accept flags"; 48.35 on single slices, see below)
+        >>> print(_threshold_text({"variance_threshold": "48.35"}, {"threshold": 48.35}))
+        48.35 (calibrated on single slices, see below)
+    """
+    served, single = float(info["variance_threshold"]), float(cal["threshold"])
+    if abs(served - single) <= 1e-6 * max(abs(single), 1.0):
+        return f"{served:.4g} (calibrated on single slices, see below)"
+    return (f"{served:.4g} (calibrated on the pipeline's final poses, see \"Accept flags\"; "
+            f"{single:.4g} on single slices, see below)")
+
+
 def _views_text(info: dict) -> str:
     n = int(info.get("tta_views", 1))
     what = {1: "the image only", 4: "its 4 rotations by 90 degrees", 8: "its 4 rotations, with and without a left-right flip"}
@@ -164,7 +181,7 @@ def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict
 | labels | {_label_text(info, train_config)} |
 | input | {info['input_size']} x {info['input_size']} px of {info['pixel_spacing_mm']} mm; {info['intensity']} |
 | output space | atlas `{info['atlas_id']}` (RAS mm of `shared/data/fetal_atlas`) |
-| variance threshold | {float(info['variance_threshold']):.4g} (calibrated, see below) |
+| variance threshold | {_threshold_text(info, cal)} |
 | test-time views | {_views_text(info)} |
 | arithmetic | {info.get('quantised', 'float32')} |
 | MC draws | {draws_text(info)} |
@@ -194,9 +211,9 @@ def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict
 | geodesic distance (mean) | {evaluation['gd_mean']:.2f} |
 | 3-MAD outliers | {100 * evaluation['outlier_fraction']:.1f} % |
 | AUROC of geodesic variance for {'twin-min ' if 'ed_twin_mean_mm' in evaluation else ''}E.D. > 10 mm | {evaluation['auroc_variance_error_gt_10mm']:.3f} |
-| accepted at the threshold | {100 * evaluation['accepted_fraction']:.1f} %, their mean E.D. {evaluation['ed_accepted_mean_mm']:.2f} mm{_accepted_twin(evaluation)} |
+| accepted at the single-slice threshold ({cal['threshold']:.4g}) | {100 * evaluation['accepted_fraction']:.1f} %, their mean E.D. {evaluation['ed_accepted_mean_mm']:.2f} mm{_accepted_twin(evaluation)} |
 
-## Calibration of the variance threshold
+## Calibration of the single-slice variance threshold
 
 On {cal['n_slices']} slices of the validation volumes simulated with the full training corruptions,
 {100 * cal['bad_fraction']:.0f} % of the slices have {'twin-min ' if cal.get('errors') == 'twin-min' else ''}E.D. > {cal['error_mm']:.0f} mm (MC samples put on one branch first); the AUROC of variance for
