@@ -44,6 +44,9 @@ class Volume:
     slice_thickness_mm: float | None = None
     """The slices' thickness where the file states it (DICOM ``SliceThickness``) or the client gave it;
     None: unknown, and the slice spacing stands in for it (the reconstruction's slice profile)."""
+    slice_axis: int | None = None
+    """The axis the slices were acquired along where it is known (a streamed stack, whose slices may
+    lie closer together than its pixels); None: the axis of largest spacing."""
     nifti: NiftiTransforms | None = None
     """The transforms of the NIfTI header the volume was read from (None for other files): written
     again into what the service returns on this grid, so that it overlays the upload in any viewer."""
@@ -65,7 +68,8 @@ class Volume:
         """
         affine = np.array(self.affine, dtype=np.float64)
         affine[:3, 3] += affine[:3, :3] @ [b.start or 0 for b in box]
-        return Volume(np.asarray(self.array)[box], affine, slice_thickness_mm=self.slice_thickness_mm)
+        return Volume(np.asarray(self.array)[box], affine, slice_thickness_mm=self.slice_thickness_mm,
+                      slice_axis=self.slice_axis)
 
 
 def from_sitk(image: sitk.Image) -> Volume:

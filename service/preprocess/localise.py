@@ -50,7 +50,7 @@ from service.core.settings import DEFAULT_LOCALISERS_DIR
 from service.io.volume import Volume
 from service.preprocess.brain_shape import MASK_THRESHOLD, THRESHOLD, brain_from_probabilities
 from service.preprocess.localiser_inputs import LocaliserGrid, localiser_inputs
-from service.preprocess.stack import mask_box, slice_axis_of
+from service.preprocess.stack import mask_box, slice_axis_of, stack_axis
 
 log = logging.getLogger(__name__)
 
@@ -246,7 +246,7 @@ class Localiser:
     def settle(self, volume: Volume, prob: NDArray[np.float32], grid: LocaliserGrid) -> Localisation:
         """The stack's geometry on its network probabilities (:meth:`probabilities`): one brain
         (:func:`brain_from_probabilities`), back on the stack's grid."""
-        axis = slice_axis_of(volume.spacing)
+        axis = stack_axis(volume)
         voxel_ml = self.grid_mm ** 2 * float(volume.spacing[axis]) / 1000.0
         brain, confidence = brain_from_probabilities(prob, voxel_ml, self.grid_mm)
         if not brain.any() or confidence < MIN_CONFIDENCE:

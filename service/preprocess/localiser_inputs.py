@@ -36,7 +36,7 @@ from scipy import ndimage, sparse
 
 from service.geometry.sampling import FWHM_TO_SIGMA, linear_operator
 from service.io.volume import Volume
-from service.preprocess.stack import slice_axis_of, slice_images, stack_from_slice_images
+from service.preprocess.stack import slice_images, stack_axis, stack_from_slice_images
 
 PAD_MULTIPLE = 16
 MIN_GRID_PX = 64
@@ -139,7 +139,7 @@ def with_neighbours(slices: NDArray[np.float32]) -> NDArray[np.float32]:
 
 def localiser_inputs(volume: Volume, grid_mm: float) -> tuple[NDArray[np.float32], LocaliserGrid]:
     """The network inputs ``[n, 3, Hp, Wp]`` of a stack and the grid to map outputs back with."""
-    axis = slice_axis_of(volume.spacing)
+    axis = stack_axis(volume)
     images, pixel_mm = slice_images(volume.array, volume.affine, axis)
     images = np.asarray(images, np.float32)
     finite = np.isfinite(images)
@@ -157,5 +157,5 @@ def localiser_inputs(volume: Volume, grid_mm: float) -> tuple[NDArray[np.float32
 def target_maps(mask: NDArray, volume: Volume, grid_mm: float) -> NDArray[np.float32]:
     """A stack's brain mask on the network grid ``[n, Hp, Wp]`` (brain fraction per pixel): the
     training target that matches :func:`localiser_inputs` pixel for pixel."""
-    images, pixel_mm = slice_images(np.asarray(mask, np.float32), volume.affine, slice_axis_of(volume.spacing))
+    images, pixel_mm = slice_images(np.asarray(mask, np.float32), volume.affine, stack_axis(volume))
     return _pad(np.clip(_resample(images, pixel_mm, grid_mm), 0.0, 1.0))[0]

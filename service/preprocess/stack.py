@@ -69,6 +69,18 @@ def slice_axis_of(spacing: NDArray) -> int:
     return int(np.flatnonzero(sp >= sp.max() * (1 - 1e-6))[-1])
 
 
+def stack_axis(volume: Volume) -> int:
+    """The axis ``volume``'s slices lie along: the one it says (a streamed stack), else
+    :func:`slice_axis_of` its spacing.
+
+    Example (slices 1 mm apart, pixels of 1.5 mm: only the stream knows which axis is the slices'):
+        >>> v = Volume(np.zeros((4, 4, 3)), np.diag([1.5, 1.5, 1.0, 1.0]))
+        >>> stack_axis(v), stack_axis(Volume(v.array, v.affine, slice_axis=2))
+        (1, 2)
+    """
+    return slice_axis_of(volume.spacing) if volume.slice_axis is None else int(volume.slice_axis)
+
+
 def slice_images(array: NDArray, affine: NDArray, axis: int) -> tuple[NDArray, tuple[float, float]]:
     """``[n, H, W]`` slices of a stack's ``array`` along ``axis`` (rows along the higher in-plane voxel
     axis, columns along the lower) and their ``(row_mm, col_mm)``; a view where it can be."""

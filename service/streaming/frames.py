@@ -188,5 +188,5 @@ class StreamedStack:
         image = np.stack([np.asarray(self.frames[k].pixels, dtype=np.float32) for k in range(n)], axis=-1)
         mask = None
         if first.mask is not None:
-            mask = Volume(np.stack([np.asarray(self.frames[k].mask, bool) for k in range(n)], axis=-1), affine)
-        return Volume(image, affine), mask
+            mask = Volume(np.stack([np.asarray(self.frames[k].mask, bool) for k in range(n)], axis=-1), affine, slice_axis=2)
+        return Volume(image, affine, slice_axis=2), mask

@@ -169,7 +169,7 @@ class StreamSession:
     def _prepare_alone(self, frame: SliceFrame, neighbours: list[SliceFrame]) -> _Slice:
         info = self.estimator.info
         pixels = np.asarray(frame.pixels, dtype=np.float32)[..., None]
-        volume = Volume(pixels, np.asarray(frame.scanner_from_voxel, dtype=np.float64))
+        volume = Volume(pixels, np.asarray(frame.scanner_from_voxel, dtype=np.float64), slice_axis=2)
         if frame.mask is not None:
             localisation = Localisation.of(np.asarray(frame.mask, bool)[..., None], volume.spacing, "mask", 1.0,
                                            holds_csf=self.masks_hold_csf)
@@ -189,9 +189,9 @@ class StreamSession:
             k = [f.index for f in neighbours].index(frame.index)
             affine = np.array(neighbours[0].scanner_from_voxel, dtype=np.float64)
             affine[:3, 2] = (neighbours[-1].scanner_from_voxel[:3, 3] - affine[:3, 3]) / (len(neighbours) - 1)
-            window = Volume(np.stack([np.asarray(f.pixels, np.float32) for f in neighbours], axis=-1), affine)
+            window = Volume(np.stack([np.asarray(f.pixels, np.float32) for f in neighbours], axis=-1), affine, slice_axis=2)
         else:
-            k, window = 0, Volume(np.asarray(frame.pixels, np.float32)[..., None], frame.scanner_from_voxel)
+            k, window = 0, Volume(np.asarray(frame.pixels, np.float32)[..., None], frame.scanner_from_voxel, slice_axis=2)
         found = self.localiser.localise_slice(window, k)
         region = None if found.pose_region is None else found.pose_region[:, :, k:k + 1]
         return replace(found, mask=found.mask[:, :, k:k + 1], pose_region=region)

@@ -208,3 +208,23 @@ def test_a_stack_judged_alone_waits_for_the_next_and_no_slice_to_reacquire_is_lo
     assert not second.judged_alone and [k for k, _ in second.reacquire] == \
         [k for k, r in enumerate(second.prediction.reasons) if r not in (None, "empty")]
     assert "ax" in second.reacquire_of and second.reacquire_of["ax"] == session.summary().reacquire["ax"]
+
+
+def test_a_stack_whose_slices_lie_closer_than_its_pixels_ends_along_its_slices(case) -> None:  # noqa: ANN001
+    """Overlapping slices (1 mm apart, 1.5 mm pixels): the stream knows the slice axis, so the stack's
+    acquisition order is checked along it and the stack ends with a pose for every slice (taking the
+    axis of largest spacing, the order of 16 slices was checked against the rows, and refused)."""
+    from dataclasses import replace
+
+    oracle, stacks, _ = case
+    frames = stacks[0]
+    normal = frames[0].scanner_from_voxel[:3, 2] / np.linalg.norm(frames[0].scanner_from_voxel[:3, 2])
+    session = StreamSession(oracle, None, options=FAST)
+    for f in frames:
+        sent = np.array(f.scanner_from_voxel, dtype=np.float64)
+        sent[:3, :2] *= 1.5 / np.linalg.norm(sent[:3, :2], axis=0)               # 1.5 mm pixels
+        sent[:3, 2] = normal * 3.0                                               # 3 mm thick
+        sent[:3, 3] = frames[0].scanner_from_voxel[:3, 3] + f.index * 1.0 * normal   # 1 mm apart
+        session.add_slice(replace(f, scanner_from_voxel=sent))
+    final = session.end_stack(frames[0].stack)
+    assert len(final.prediction.poses.poses) == len(frames)
