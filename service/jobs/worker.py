@@ -131,6 +131,15 @@ def start_label(body: dict, poses: list[tuple[np.ndarray, np.ndarray]]) -> str:
     return "accepted_slices" if kept else "every_slice"
 
 
+def uploaded_pose_masks(uploads: list) -> list[np.ndarray]:
+    """Each upload's brain as the pose network cut its slices (its mask, or the localiser's; the CSF
+    rim of a mask that holds it inset): what a job that predicts its own poses reconstructs from
+    (:func:`predicted_body`), so that a job given those poses reconstructs the same pixels."""
+    from service.pipeline.prepare import localise_uploads
+
+    return [found.pose_mask(u.volume.spacing, u.slice_axis) for found, u in zip(localise_uploads(uploads), uploads)]
+
+
 def predicted_body(uploads: list, estimator, mc_samples: int = 100,  # noqa: ANN001
                    variance_threshold: float | None = None, orders: list | None = None,
                    max_expected_error_mm: float | None = None) -> tuple[dict, list[np.ndarray]]:
@@ -266,14 +275,13 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     model_file = models_dir / params.get("model", "default") / "model.onnx"
     estimator = None
     if poses_path.exists():
-        from service.pipeline.prepare import localise_uploads
         from service.preprocess.stack import slice_axis_of
 
         counts = [u.volume.array.shape[slice_axis_of(u.volume.spacing)] for u in uploads]
         body = json.loads(poses_path.read_text())
         poses = poses_from_predict_body(body, counts, [u.volume.spacing for u in uploads])
         plane = DEFAULT_PLANE_X_MM
-        masks = [found.mask for found in localise_uploads(uploads)]
+        masks = uploaded_pose_masks(uploads)
         started_from = "uploaded_poses"
     else:
         progress("predicting poses", 0.05)

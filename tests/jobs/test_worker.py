@@ -87,3 +87,28 @@ def test_the_queues_time_limit_says_so_even_where_a_reader_turned_it_into_its_ow
     except UnsupportedFile as err:
         assert failure_reason(err) == TIMED_OUT
     assert failure_reason(UnsupportedFile("stack0.nii.gz: could not be read")) == "stack0.nii.gz: could not be read"
+
+
+def test_a_job_given_poses_reconstructs_the_pixels_a_job_that_predicts_them_does() -> None:
+    """With an uploaded mask that holds the CSF, the pixels a job reconstructs from are the pose
+    network's (the rim inset), whether it predicts the poses or is given them."""
+    from service.inference.model_file import ModelInfo
+    from service.io.volume import Volume
+    from service.jobs.worker import uploaded_pose_masks
+    from service.pipeline.prepare import StackUpload, prepare_stacks
+    from service.preprocess.stack import stack_from_slice_images
+    from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine
+
+    img, msk, aff = phantom_brain(2)
+    shape = (64, 64, 20)
+    a = stack_affine(2, np.eye(3), 1.2, 3.0, shape)
+    stack, mask = acquire_stack(img, msk, aff, a, shape, 2, np.stack([np.eye(4)] * shape[2]))
+    up = StackUpload("s.nii.gz", Volume(stack.astype(np.float32), a), Volume((mask > 0.5).astype(np.uint8), a),
+                     "m.nii.gz", mask_holds_csf=True)
+    info = ModelInfo(name="m", version="0", backbone="b", label_type="anchor", input_size=32, pixel_spacing_mm=2.0,
+                     variance_threshold=1.0, dropout_p=0.1, atlas_id="a", trained_on="-", sha256="0" * 64)
+    [prepared] = prepare_stacks([up], info, False)
+    predicted = stack_from_slice_images(prepared.slices.masks, prepared.slices.slice_axis) > 0
+    [given] = uploaded_pose_masks([up])
+    assert predicted.sum() < (mask > 0.5).sum()                       # the rim is inset ...
+    np.testing.assert_array_equal(given > 0, predicted)               # ... in both paths alike
