@@ -86,6 +86,14 @@ def test_mask_problems(oracle_client: TestClient, tmp_path: Path) -> None:
     assert_problem(post(oracle_client, two_masks), 400, "masks", "2 masks for 1 stacks")
 
 
+def test_stacks_without_masks_on_a_server_without_a_localiser_are_told_to_send_masks(oracle, tmp_path: Path) -> None:  # noqa: ANN001
+    """Not a 404 about a localiser the client never named: the field to fix is ``masks``."""
+    (tmp_path / "none").mkdir()
+    with make_client(ModelRegistry({"default": oracle}), localisers_dir=tmp_path / "none") as client:
+        r = post(client, [("stacks", ("s.nii.gz", nifti_bytes(stack(), tmp=tmp_path)))])
+    assert_problem(r, 400, "masks", "no brain localiser")
+
+
 def test_parameters_and_models(oracle_client: TestClient, tmp_path: Path) -> None:
     s = nifti_bytes(stack(), tmp=tmp_path)
     for field, value in [("mc_samples", "0"), ("mc_samples", "1001"), ("mc_samples", "many"),
