@@ -209,6 +209,9 @@ def calibrate_spread(
     from model_export.spread import calibrate_spread as run
 
     typer.echo(json.dumps(run(model, root, per_volume, write), indent=2))
+    if write:
+        typer.echo("the accept flags (expected-error limit, floor, twin risk, variance threshold) were calibrated on "
+                   "the expected errors before: run `calibrate-acceptance` on the model again", err=True)
 
 
 @app.command("calibrate-acceptance")
@@ -297,11 +300,14 @@ def quantise(
     root: Root = DEFAULT_ATLAS_ROOT,
 ) -> None:
     """Write a model with int8 convolutions (head and MC dropout float), its metadata kept; then run
-    `calibrate-acceptance` on it: the accept flags are calibrated on the poses of the file served."""
+    `calibrate-spread` and `calibrate-acceptance` on it: the spread and the accept flags are
+    calibrated on the poses of the file served."""
     from model_export.quantise import quantise_model
 
     path = quantise_model(source, output, slices, seed, root)
     typer.echo(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB; {source.stat().st_size / 1e6:.1f} MB before)")
+    typer.echo("its calibrations are the float model's: run `calibrate-spread`, then `calibrate-acceptance`, on it",
+               err=True)
 
 
 @app.command()
