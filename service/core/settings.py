@@ -30,7 +30,7 @@ class Settings(BaseSettings):
     port: int = Field(8000, ge=1, le=65535)
     models_dir: Path = DEFAULT_MODELS_DIR
     localisers_dir: Path = Field(DEFAULT_LOCALISERS_DIR, description="brain localisers of /v1/predict and /v1/masks: "
-                                                         "<name>/model.onnx (reconstruction workers use the shipped default)")
+                                                         "<name>/model.onnx; reconstruction jobs run its default too")
     default_model: str = "default"
     log_level: str = "info"
     api_keys: str = Field("", description="comma-separated keys; empty = no authentication")

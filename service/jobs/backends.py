@@ -61,4 +61,5 @@ def open_backend(settings: Settings) -> tuple[JobStore, JobRunner]:
 
     sqlite = SqliteJobStore(settings.data_dir)
     return sqlite, LocalRunner(sqlite, settings.models_dir, settings.job_workers, settings.job_max_attempts,
-                               settings.log_level, settings.job_timeout_h * 3600, settings.blas_threads)
+                               settings.log_level, settings.job_timeout_h * 3600, settings.blas_threads,
+                               settings.localisers_dir)

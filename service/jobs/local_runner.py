@@ -77,17 +77,20 @@ def lock_store(data_dir: Path):  # noqa: ANN201 - an open file, or None where th
     return handle
 
 
-def _run(data_dir: str, models_dir: str, job_id: str) -> None:
+def _run(data_dir: str, models_dir: str, job_id: str, localisers_dir: str | None = None) -> None:
     """What a pool process executes."""
-    run_job(SqliteJobStore(Path(data_dir)), Path(models_dir), job_id)
+    run_job(SqliteJobStore(Path(data_dir)), Path(models_dir), job_id,
+            localisers_dir=None if localisers_dir is None else Path(localisers_dir))
 
 
 class LocalRunner(JobRunner):
     """Submits queued jobs to a pool of ``workers`` processes (spawned, each exits with the server)."""
 
     def __init__(self, store: SqliteJobStore, models_dir: Path, workers: int = 1, max_attempts: int = 2,
-                 log_level: str = "info", timeout_s: float = float("inf"), blas_threads: int = 1) -> None:
+                 log_level: str = "info", timeout_s: float = float("inf"), blas_threads: int = 1,
+                 localisers_dir: Path | None = None) -> None:
         self.store, self.models_dir, self.max_attempts, self.workers = store, models_dir, max_attempts, workers
+        self.localisers_dir = localisers_dir
         self.log_level, self.timeout_s, self.blas_threads = log_level, timeout_s, blas_threads
         self.lock = threading.Lock()
         self.closing = False
@@ -120,7 +123,8 @@ class LocalRunner(JobRunner):
         self.store.update(job_id, submitted_at=time.time())
         with self.lock:
             try:
-                future = self.pool.submit(_run, str(self.store.data_dir), str(self.models_dir), job_id)
+                future = self.pool.submit(_run, str(self.store.data_dir), str(self.models_dir), job_id,
+                                          None if self.localisers_dir is None else str(self.localisers_dir))
             except BrokenProcessPool:          # broken since the last job ended: recovered below
                 future = None
             pool = self.pool

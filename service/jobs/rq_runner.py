@@ -48,6 +48,7 @@ class WorkerContext:
     store: RedisJobStore
     models_dir: Path
     max_attempts: int
+    localisers_dir: Path | None = None
 
 
 _context: WorkerContext | None = None
@@ -57,7 +58,7 @@ def set_context(settings: Settings) -> WorkerContext:
     global _context
     assert settings.queue_url, "the distributed back-end needs SVRNET_QUEUE_URL"
     _context = WorkerContext(RedisJobStore(settings.queue_url, settings.data_dir, settings.queue_name),
-                             Path(settings.models_dir), settings.job_max_attempts)
+                             Path(settings.models_dir), settings.job_max_attempts, Path(settings.localisers_dir))
     return _context
 
 
@@ -74,7 +75,7 @@ def execute(job_id: str) -> None:
     redelivered = retries_left is not None and retries_left < ctx.max_attempts - 1
     if redelivered:
         log.info(f"re-delivered job {job_id}, attempt {ctx.max_attempts - retries_left}", extra={"job_id": job_id})
-    run_job(ctx.store, ctx.models_dir, job_id, redelivered=redelivered)
+    run_job(ctx.store, ctx.models_dir, job_id, redelivered=redelivered, localisers_dir=ctx.localisers_dir)
 
 
 def on_stopped(job: RqJob, connection: redis.Redis) -> None:  # noqa: ARG001 - RQ's callback signature

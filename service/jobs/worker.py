@@ -131,28 +131,41 @@ def start_label(body: dict, poses: list[tuple[np.ndarray, np.ndarray]]) -> str:
     return "accepted_slices" if kept else "every_slice"
 
 
-def uploaded_pose_masks(uploads: list) -> list[np.ndarray]:
-    """Each upload's brain as the pose network cut its slices (its mask, or the localiser's; the CSF
-    rim of a mask that holds it inset): what a job that predicts its own poses reconstructs from
-    (:func:`predicted_body`), so that a job given those poses reconstructs the same pixels."""
+def uploaded_pose_masks(uploads: list, localiser=None) -> list[np.ndarray]:  # noqa: ANN001
+    """Each upload's brain as the pose network cut its slices (its mask, or ``localiser``'s, default
+    the shipped one; the CSF rim of a mask that holds it inset): what a job that predicts its own
+    poses reconstructs from (:func:`predicted_body`), so that a job given those poses reconstructs
+    the same pixels."""
     from service.pipeline.prepare import localise_uploads
 
-    return [found.pose_mask(u.volume.spacing, u.slice_axis) for found, u in zip(localise_uploads(uploads), uploads)]
+    return [found.pose_mask(u.volume.spacing, u.slice_axis)
+            for found, u in zip(localise_uploads(uploads, localiser), uploads)]
+
+
+def job_localiser(localisers_dir: Path | None, uploads: list):  # noqa: ANN201
+    """The server's default localiser (``SVRNET_LOCALISERS_DIR``, as ``/v1/predict`` runs it) where a
+    stack came without a mask; None where every stack has one, or no folder is given (the shipped one)."""
+    if localisers_dir is None or all(u.mask is not None for u in uploads):
+        return None
+    from service.preprocess.localise import Localisers
+
+    return Localisers.from_directory(localisers_dir, threads=1).get()
 
 
 def predicted_body(uploads: list, estimator, mc_samples: int = 100,  # noqa: ANN001
                    variance_threshold: float | None = None, orders: list | None = None,
-                   max_expected_error_mm: float | None = None) -> tuple[dict, list[np.ndarray]]:
+                   max_expected_error_mm: float | None = None, localiser=None) -> tuple[dict, list[np.ndarray]]:  # noqa: ANN001
     """The ``/v1/predict``-shaped body (``model``, ``mc_samples``, ``variance_threshold``, ``stacks``) of
     the service's own prediction, and the brain masks per stack; ``orders``: the stacks'
-    acquisition orders (:class:`~service.consistency.slice_order.SliceOrder`), if known."""
+    acquisition orders (:class:`~service.consistency.slice_order.SliceOrder`), if known;
+    ``localiser``: for the stacks without a mask (default: the shipped one)."""
     from service.api.responses import stack_objects
     from service.pipeline.predict import predict
     from service.pipeline.prepare import prepare_stacks
 
     info = estimator.info
     threshold = variance_threshold or info.variance_threshold
-    prepared = prepare_stacks(uploads, info, bias_correction=True, workers=1)
+    prepared = prepare_stacks(uploads, info, bias_correction=True, workers=1, localiser=localiser)
     max_expected = max_expected_error_mm or info.max_expected_error_mm
     predictions, _ = predict(prepared, estimator, mc_samples, threshold, orders=orders, max_expected_error_mm=max_expected)
     masks = [stack_from_slice_images(p.slices.masks, p.slices.slice_axis) for p in prepared]
@@ -162,11 +175,13 @@ def predicted_body(uploads: list, estimator, mc_samples: int = 100,  # noqa: ANN
             "max_expected_error_mm": max_expected, "stacks": stack_objects(predictions)}, masks
 
 
-def run_job(store: JobStore, models_dir: Path, job_id: str, redelivered: bool = False) -> None:
+def run_job(store: JobStore, models_dir: Path, job_id: str, redelivered: bool = False,
+            localisers_dir: Path | None = None) -> None:
     """Execute one job (in a worker process of either back-end): claim it atomically, report stage and
     progress, stop at the next stage when it is cancelled, record any failure with its reason.
 
-    ``redelivered``: the queue hands the job out again after the worker running it was lost.
+    ``redelivered``: the queue hands the job out again after the worker running it was lost;
+    ``localisers_dir``: the server's localisers (default: the shipped one).
     """
     attempt = store.claim(job_id, redelivered=redelivered)
     if not attempt:
@@ -182,7 +197,7 @@ def run_job(store: JobStore, models_dir: Path, job_id: str, redelivered: bool = 
         store.update(job_id, stage=stage, progress=float(min(max(fraction, 0.0), 1.0)))
 
     try:
-        _execute(store, folder, Path(models_dir), job_id, progress, attempt)
+        _execute(store, folder, Path(models_dir), job_id, progress, attempt, localisers_dir)
         log.info(f"job {job_id} completed, attempt {attempt}", extra={"job_id": job_id, "attempt": attempt})
     except Superseded:
         log.warning(f"job {job_id}: attempt {attempt} superseded by a re-delivery", extra={"job_id": job_id})
@@ -233,7 +248,7 @@ def _name(names: dict, field: str, index: int) -> str:
 
 
 def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progress,  # noqa: ANN001
-             attempt: int) -> None:
+             attempt: int, localisers_dir: Path | None = None) -> None:
     from service.inference.estimator import OnnxPoseEstimator
     from service.inference.model_file import load_model
     from service.pipeline.predict import stack_orders
@@ -281,13 +296,14 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         body = json.loads(poses_path.read_text())
         poses = poses_from_predict_body(body, counts, [u.volume.spacing for u in uploads])
         plane = DEFAULT_PLANE_X_MM
-        masks = uploaded_pose_masks(uploads)
+        masks = uploaded_pose_masks(uploads, job_localiser(localisers_dir, uploads))
         started_from = "uploaded_poses"
     else:
         progress("predicting poses", 0.05)
         estimator = OnnxPoseEstimator(load_model(model_file, threads=1))
         body, masks = predicted_body(uploads, estimator, int(params.get("mc_samples", 100)),
-                                     params.get("variance_threshold"), orders, params.get("max_expected_error_mm"))
+                                     params.get("variance_threshold"), orders, params.get("max_expected_error_mm"),
+                                     job_localiser(localisers_dir, uploads))
         poses = starting_poses(body)
         plane = estimator.info.symmetry_plane_x_mm
         started_from = start_label(body, poses)

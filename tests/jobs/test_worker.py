@@ -112,3 +112,21 @@ def test_a_job_given_poses_reconstructs_the_pixels_a_job_that_predicts_them_does
     [given] = uploaded_pose_masks([up])
     assert predicted.sum() < (mask > 0.5).sum()                       # the rim is inset ...
     np.testing.assert_array_equal(given > 0, predicted)               # ... in both paths alike
+
+
+def test_a_job_localises_with_the_servers_localiser_where_a_stack_has_no_mask(tmp_path) -> None:  # noqa: ANN001
+    """The localiser of ``SVRNET_LOCALISERS_DIR``, as ``/v1/predict`` runs it; none where every stack has a mask."""
+    import shutil
+    from pathlib import Path
+
+    from service.io.volume import Volume
+    from service.jobs.worker import job_localiser
+    from service.pipeline.prepare import StackUpload
+
+    shipped = Path(__file__).resolve().parents[2] / "service" / "localisers" / "default" / "model.onnx"
+    (tmp_path / "default").mkdir()
+    shutil.copy(shipped, tmp_path / "default" / "model.onnx")
+    vol = Volume(np.zeros((8, 8, 4), np.float32), np.diag([1.0, 1.0, 3.0, 1.0]))
+    masked, bare = StackUpload("a", vol, vol), StackUpload("b", vol)
+    assert job_localiser(tmp_path, [masked]) is None and job_localiser(None, [bare]) is None
+    assert job_localiser(tmp_path, [masked, bare]).path == tmp_path / "default" / "model.onnx"
