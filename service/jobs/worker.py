@@ -290,9 +290,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     model_file = models_dir / params.get("model", "default") / "model.onnx"
     estimator = None
     if poses_path.exists():
-        from service.preprocess.stack import slice_axis_of
-
-        counts = [u.volume.array.shape[slice_axis_of(u.volume.spacing)] for u in uploads]
+        counts = [u.volume.array.shape[u.slice_axis] for u in uploads]
         body = json.loads(poses_path.read_text())
         poses = poses_from_predict_body(body, counts, [u.volume.spacing for u in uploads])
         plane = DEFAULT_PLANE_X_MM

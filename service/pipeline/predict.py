@@ -40,7 +40,6 @@ from service.inference import acceptance
 from service.inference.estimator import PoseEstimate, PoseEstimator
 from service.inference.model_file import ModelInfo
 from service.pipeline.prepare import PreparedStack, StackUpload
-from service.preprocess.stack import stack_axis
 
 STAGE_WORKERS = 3
 """Stacks through the stack-consistency stage at a time (threads: its eigendecompositions release the
@@ -137,7 +136,7 @@ def stack_orders(orders: list[SliceOrder] | None, uploads: list[StackUpload]) ->
     out = []
     for i, (order, up) in enumerate(zip(every, uploads)):
         vol = up.volume
-        axis = up.slice_axis if up.slice_axis is not None else stack_axis(vol)
+        axis = up.slice_axis
         if not order.known and vol.acquisition_order is not None and axis == 2 \
                 and len(vol.acquisition_order) == vol.array.shape[2]:
             order = SliceOrder((), vol.acquisition_order, FROM_FILE)

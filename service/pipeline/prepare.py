@@ -34,7 +34,7 @@ from service.preprocess.bias import n4_correct
 from service.preprocess.localise import Localisation, Localiser, default_localiser
 from service.preprocess.localiser_inputs import LocaliserGrid
 from service.preprocess.slices import PreparedSlices, preprocess_slices
-from service.preprocess.stack import StackSlices, split_stack
+from service.preprocess.stack import StackSlices, split_stack, stack_axis
 
 GRID_TOLERANCE_MM = 1e-3
 
@@ -47,12 +47,15 @@ class StackUpload:
     volume: Volume
     mask: Volume | None = None
     mask_filename: str | None = None
-    slice_axis: int | None = None
-    """The axis the slices were acquired along, where known (a streamed stack); otherwise the axis
-    of largest spacing."""
     mask_holds_csf: bool = False
     """The uploaded mask is the skull's inside (brain and extra-axial CSF), as manual fetal masks are
     usually drawn (:attr:`~service.preprocess.localise.Localisation.holds_csf`)."""
+
+    @property
+    def slice_axis(self) -> int:
+        """The axis the slices were acquired along: the volume's where it says (a streamed stack),
+        otherwise the axis of largest spacing (:func:`~service.preprocess.stack.stack_axis`)."""
+        return stack_axis(self.volume)
 
 
 @dataclass

@@ -179,7 +179,7 @@ class StreamSession:
             localisation = self._localise(frame, neighbours)
         slices = split_stack(volume, localisation.pose_mask(volume.spacing, axis=2), axis=2)
         prepared = preprocess_slices(slices.images, slices.masks, slices.pixel_mm, info.input_size, info.pixel_spacing_mm)
-        stack = PreparedStack(StackUpload(frame.stack, volume, slice_axis=2), slices, prepared, localisation)
+        stack = PreparedStack(StackUpload(frame.stack, volume), slices, prepared, localisation)
         est = self.estimator.estimate(prepared.inputs, self.mc_samples)
         return _Slice(frame, stack, est, stack.network_from_voxel())
 
@@ -298,7 +298,7 @@ class StreamSession:
             order = SliceOrder((), streamed.arrival_order(), STREAMED)
             before = dict(self.ended)
         info = self.estimator.info
-        upload = StackUpload(stack, volume, mask, None if mask is None else f"{stack} (mask frames)", slice_axis=2,
+        upload = StackUpload(stack, volume, mask, None if mask is None else f"{stack} (mask frames)",
                              mask_holds_csf=self.masks_hold_csf)
         prepared = prepare_stack(upload, info, self.bias_correction, self.localiser)
         (estimate,), timings = estimate_stacks([prepared], self.estimator, self.mc_samples)

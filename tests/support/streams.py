@@ -69,7 +69,7 @@ def frames_of(name: str, image: np.ndarray, mask: np.ndarray, affine: np.ndarray
 def teach(oracle: KeyedOracle, name: str, image: np.ndarray, mask: np.ndarray, affine: np.ndarray,
           atlas_from_voxel: np.ndarray) -> None:
     """Tell the oracle each slice's true network pose, through the service's own preparation."""
-    prepared = prepare_stack(StackUpload(name, Volume(image, affine), Volume(mask, affine), slice_axis=2), INFO, False)
+    prepared = prepare_stack(StackUpload(name, Volume(image, affine, slice_axis=2), Volume(mask, affine)), INFO, False)
     nfv = prepared.network_from_voxel()
     truth = atlas_from_voxel @ np.linalg.inv(nfv)       # atlas_from_network: slice k's voxel (i, j, k) frame
     oracle.learn(prepared.prepared.inputs, truth)
