@@ -99,11 +99,12 @@ def export(
     from model_export.calibrate import calibrate as run_calibration
     from model_export.packaging import CALIBRATION, export_checkpoint
     from service.inference.model_file import load_model
+    from service.inference.views import view_count
 
-    from service.inference.views import VIEW_COUNTS
-
-    if tta_views is not None and tta_views not in VIEW_COUNTS:
-        raise typer.BadParameter(f"{tta_views} is not one of {VIEW_COUNTS}", param_hint="--tta-views")
+    try:
+        tta_views = None if tta_views is None else view_count(tta_views)
+    except ValueError as bad:
+        raise typer.BadParameter(str(bad), param_hint="--tta-views") from None
     calibration, views = {}, SHIPPED_VIEWS
     if calibration_from is not None:
         if threshold is not None:

@@ -8,7 +8,7 @@ Example (with a model file at hand):
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 from service.core.onnx import file_sha256, session_options
 from service.geometry.twin import DEFAULT_PLANE_X_MM
-from service.inference.views import VIEW_COUNTS
+from service.inference.views import view_count
 
 INPUT_SLICES, INPUT_PASSES, OUTPUT_LABELS = "slices", "passes", "labels"
 DRAWS_PREFIX = "dropout_uniform_"
@@ -82,7 +82,7 @@ class ModelInfo:
                 variance_threshold=float(meta["variance_threshold"]), dropout_p=float(meta.get("dropout_p", 0.5)),
                 atlas_id=meta.get("atlas_id", ""), trained_on=meta.get("training_data", ""), sha256=sha256,
                 symmetry_plane_x_mm=float(meta.get("symmetry_plane_x_mm", DEFAULT_PLANE_X_MM)),
-                mc_error_scale=float(meta.get("mc_error_scale", 1.0)), tta_views=_views(meta.get("tta_views", "1")),
+                mc_error_scale=float(meta.get("mc_error_scale", 1.0)), tta_views=view_count(meta.get("tta_views", 1), "tta_views"),
                 mc_error_shape=_shape(meta.get("mc_error_shape", "")),
                 mc_error_depth_gain=float(meta.get("mc_error_depth_gain", 0.0)),
                 expected_error_floor_mm=float(meta.get("expected_error_floor_mm", 0.0)),
@@ -93,15 +93,6 @@ class ModelInfo:
             )
         except (KeyError, ValueError) as exc:
             raise ValueError(f"model metadata incomplete or invalid: {exc}") from exc
-
-
-def _views(text: str) -> int:
-    """``tta_views`` from its metadata text: one of :data:`~service.inference.views.VIEW_COUNTS` (a file
-    with another count would load and then fail every request)."""
-    n = int(text)
-    if n not in VIEW_COUNTS:
-        raise ValueError(f"tta_views must be one of {VIEW_COUNTS}, not {text!r}")
-    return n
 
 
 def _shape(text: str) -> tuple[float, ...] | None:
@@ -183,11 +174,12 @@ class LoadedModel:
 
 
 def load_model(path: Path, threads: int = 0) -> LoadedModel:
-    """Open an exported model file with onnxruntime and read its metadata."""
+    """Open an exported model file with onnxruntime and read its metadata; its ``mc_seed`` is the seed it
+    runs with (:data:`DEFAULT_MC_SEED` where a file with draw inputs names none)."""
     path = Path(path)
     sess = ort.InferenceSession(str(path), session_options(threads), providers=["CPUExecutionProvider"])
     meta = sess.get_modelmeta().custom_metadata_map
     info = ModelInfo.from_metadata(meta, file_sha256(path))
     draws = [(i.name, int(i.shape[-1])) for i in sess.get_inputs() if i.name.startswith(DRAWS_PREFIX)]
     seed = (DEFAULT_MC_SEED if info.mc_seed is None else info.mc_seed) if draws else None
-    return LoadedModel(path, info, sess, draws, seed)
+    return LoadedModel(path, replace(info, mc_seed=seed), sess, draws, seed)

@@ -49,10 +49,23 @@ _R = np.array([[0.0, 1.0, 0.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]
 _F = np.diag([-1.0, 1.0, 1.0, 1.0])
 
 
+def view_count(n: int | str, field: str = "views") -> int:
+    """``n`` as a number of views, :class:`ValueError` naming ``field`` unless it is one of
+    :data:`VIEW_COUNTS` (a model file with another count would load and then fail every request).
+
+    Example:
+        >>> view_count("8")
+        8
+    """
+    count = int(n)
+    if count not in VIEW_COUNTS:
+        raise ValueError(f"{field}: {n} is not one of {VIEW_COUNTS}")
+    return count
+
+
 def views(n: int) -> list[tuple[int, bool]]:
     """The ``(k, flip)`` of each of ``n`` views (``n`` in :data:`VIEW_COUNTS`)."""
-    if n not in VIEW_COUNTS:
-        raise ValueError(f"views: {n} is not one of {VIEW_COUNTS}")
+    n = view_count(n)
     return [(k, flip) for flip in (False, True) for k in range(4)][:n] if n > 1 else [(0, False)]
 
 
