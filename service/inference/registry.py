@@ -54,5 +54,5 @@ class ModelRegistry:
                         "input_size": i.input_size, "spacing_mm": i.pixel_spacing_mm, "label_type": i.label_type,
                         "variance_threshold": i.variance_threshold,
                         "max_expected_error_mm": i.max_expected_error_mm, "trained_on": i.trained_on,
-                        "mc_seed": getattr(getattr(est, "model", None), "mc_seed", i.mc_seed)})   # the seed it runs
+                        "mc_seed": i.mc_seed})
         return out

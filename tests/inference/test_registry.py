@@ -2,19 +2,26 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
-from types import SimpleNamespace
+import shutil
+from pathlib import Path
 
-from service.inference.model_file import ModelInfo
+import onnx
+
+from model_export.export import metadata_of, set_metadata
+from service.inference.estimator import OnnxPoseEstimator
+from service.inference.model_file import DEFAULT_MC_SEED, load_model
 from service.inference.registry import ModelRegistry
-from tests.inference.test_model_file import META
 
 
-def test_the_seed_described_is_the_one_the_model_runs_with() -> None:
+def test_the_seed_described_is_the_one_the_model_runs_with(tiny_model_path: Path, tmp_path: Path) -> None:
     """A file with draw inputs but no ``mc_seed`` field runs with the default seed: that seed is
     described, not null (null means every call draws afresh)."""
-    info = ModelInfo.from_metadata(META, "s")
-    fixed = SimpleNamespace(info=info, model=SimpleNamespace(mc_seed=0))
-    fresh = SimpleNamespace(info=replace(info, name="fresh"), model=SimpleNamespace(mc_seed=None))
-    described = {m["name"]: m for m in ModelRegistry({"default": fixed, "fresh": fresh}).describe()}
-    assert info.mc_seed is None and described["default"]["mc_seed"] == 0 and described["fresh"]["mc_seed"] is None
+    path = tmp_path / "model.onnx"
+    shutil.copy(tiny_model_path, path)
+    proto = onnx.load(str(path))
+    set_metadata(proto, {k: v for k, v in metadata_of(proto).items() if k != "mc_seed"})
+    onnx.save(proto, str(path))
+    model = load_model(path)
+    assert "mc_seed" not in model.info.metadata and model.draw_inputs
+    [described] = ModelRegistry({"default": OnnxPoseEstimator(model)}).describe()
+    assert described["mc_seed"] == model.mc_seed == DEFAULT_MC_SEED

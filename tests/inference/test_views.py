@@ -11,7 +11,6 @@ import pytest
 
 from service.geometry import encodings, iterators, sampling, twin
 from service.inference.views import VIEW_COUNTS, pose_from_view, sample_views, split_samples, view_images, views
-from tests.api.conftest import tiny_model_path  # noqa: F401 - fixture
 from tests.support.phantoms import mirror_symmetric_volume
 
 PLANE_X = 1.5
