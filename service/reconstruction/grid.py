@@ -196,7 +196,7 @@ def interpolation_matrix(coords: NDArray, shape: tuple[int, int, int], point_wei
     step = max(1, rows_per_part)
     for a in range(0, n, step):
         b = min(a + step, n)
-        idx, w = trilinear_entries(c[a:b].reshape(-1, 3), shape)
+        idx, w = trilinear_entries(c[a:b].reshape(-1, 3).astype(np.float64, copy=False), shape)
         if pw is not None:
             w *= pw[a:b].reshape(-1, 1)
         data[a * q * 8:b * q * 8], indices[a * q * 8:b * q * 8] = w.ravel(), idx.ravel()
