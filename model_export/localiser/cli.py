@@ -16,10 +16,11 @@ from typing import Annotated, Optional
 import typer
 
 from model_export.atlas import DEFAULT_ATLAS_ROOT
+from model_export.localiser import GRID_MM
 
 app = typer.Typer(add_completion=False, help=__doc__, no_args_is_help=True)
-GRID_MM = 2.5
-"""The network grid of the shipped localiser (its ONNX metadata carry it to the service)."""
+CHECKPOINT_GRID = ("the network grid (mm); default: the one the checkpoint's shards were made on, which it records "
+                   f"({GRID_MM} for a checkpoint that does not); another is refused")
 
 
 @app.command()
@@ -87,7 +88,7 @@ def ship(
     heldout: Annotated[Path, typer.Option(help="shard folder of `data --style heldout --keep-stack`")],
     out: Path = Path("service/localisers/default"),
     version: str = "1.0.0",
-    grid_mm: float = GRID_MM,
+    grid_mm: Annotated[Optional[float], typer.Option(help=CHECKPOINT_GRID)] = None,
     pose_stacks: Annotated[int, typer.Option(help="held-out stacks whose poses are compared without/with masks")] = 8,
     ablation: Annotated[Optional[Path], typer.Option(help="JSON of `compare`: architectures measured alike")] = None,
     pose_scenes: Annotated[int, typer.Option(help="whole-uterus scenes of known slice poses: pose accuracy vs the truth")] = 10,
@@ -102,8 +103,11 @@ def ship(
 
     if mirrored_pass not in ("run", "learnt"):
         raise typer.BadParameter("run or learnt", param_hint="--mirrored-pass")
-    onnx_path = export_onnx(checkpoint, out / "model.onnx", grid_mm=grid_mm, version=version,
-                            extra={"mirrored_pass": mirrored_pass})
+    try:
+        onnx_path = export_onnx(checkpoint, out / "model.onnx", grid_mm=grid_mm, version=version,
+                                extra={"mirrored_pass": mirrored_pass})
+    except ValueError as e:
+        raise typer.BadParameter(str(e), param_hint="--grid-mm") from None
     figures = measure(Localiser.load(onnx_path), heldout, pose_stacks, pose_scenes=pose_scenes)
     figures["architectures"] = json.loads(ablation.read_text()) if ablation else []
     (out / "evaluation.json").write_text(json.dumps(figures, indent=1))
@@ -116,7 +120,7 @@ def compare(
     checkpoints: Annotated[list[Path], typer.Argument(help="checkpoints trained alike (same data, seed, minutes)")],
     heldout: Annotated[Path, typer.Option(help="shard folder of `data --style heldout --keep-stack`")],
     out: Annotated[Path, typer.Option(help="JSON rows for `ship --ablation`")],
-    grid_mm: float = GRID_MM,
+    grid_mm: Annotated[Optional[float], typer.Option(help=CHECKPOINT_GRID)] = None,
     real_scans: Annotated[Optional[list[Path]], typer.Option(
         help="folders of real scans (SCAN/NAME.nii.gz beside SCAN/NAME_brain_mask.nii.gz); repeat; "
              "default ../shared/data/real_scans (tools/fetch_real_scan.py fetches one more)")] = None,
@@ -134,7 +138,10 @@ def compare(
 
     rows = []
     for ckpt in checkpoints:
-        onnx_path = export_onnx(ckpt, Path(tempfile.mkdtemp()) / "model.onnx", grid_mm=grid_mm, version=ckpt.stem)
+        try:
+            onnx_path = export_onnx(ckpt, Path(tempfile.mkdtemp()) / "model.onnx", grid_mm=grid_mm, version=ckpt.stem)
+        except ValueError as e:
+            raise typer.BadParameter(str(e), param_hint="--grid-mm") from None
         config = load_checkpoint(ckpt).config
         loc = Localiser.load(onnx_path)
         for passes in ([True, False] if mirrored is None else [mirrored]):

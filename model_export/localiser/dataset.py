@@ -38,7 +38,7 @@ def _one(job: tuple[Path, str, int, float, bool]) -> str:
     x, _ = localiser_inputs(volume, grid_mm)
     extra = {"stack": volume.array.astype(np.float16), "affine": volume.affine, "mask": mask,
              "t2_like": not random_contrast} if keep_stack else {}
-    np.savez_compressed(path, slices=x[:, 1].astype(np.float16),
+    np.savez_compressed(path, slices=x[:, 1].astype(np.float16), grid_mm=np.float64(grid_mm),
                         target=np.round(target_maps(mask, volume, grid_mm) * 255).astype(np.uint8), **extra)
     return path.name
 

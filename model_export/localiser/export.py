@@ -14,6 +14,7 @@ import torch
 
 from model_export.atlas import POPULATIONS
 from model_export.export import git_commit
+from model_export.localiser import GRID_MM
 from model_export.localiser.net import LocaliserNet
 
 INPUT, OUTPUT = "stacks", "logits"
@@ -27,8 +28,25 @@ def load_checkpoint(path: Path) -> LocaliserNet:
     return net.eval()
 
 
-def export_onnx(checkpoint: Path, out: Path, *, grid_mm: float, version: str, extra: dict | None = None) -> Path:
-    """Write the ONNX file of ``checkpoint`` with its metadata; returns ``out``."""
+def checkpoint_grid_mm(checkpoint: Path, given: float | None = None) -> float:
+    """The network grid of ``checkpoint``: the one its training shards were made on, which it records;
+    ``given`` where it records none (:data:`GRID_MM` where neither says).
+
+    Raises:
+        ValueError: ``given`` differs from the grid the checkpoint records (the service would resample
+            every stack to a grid the network never saw).
+    """
+    recorded = torch.load(checkpoint, map_location="cpu", weights_only=False).get("grid_mm")  # our own checkpoint
+    if recorded is not None and given is not None and abs(float(recorded) - float(given)) > 1e-9:
+        raise ValueError(f"grid_mm: {checkpoint} was trained on shards of a {recorded} mm grid, not {given} mm")
+    return float(recorded if recorded is not None else GRID_MM if given is None else given)
+
+
+def export_onnx(checkpoint: Path, out: Path, *, grid_mm: float | None = None, version: str,
+                extra: dict | None = None) -> Path:
+    """Write the ONNX file of ``checkpoint`` with its metadata (its grid: :func:`checkpoint_grid_mm`
+    of ``grid_mm``); returns ``out``."""
+    grid_mm = checkpoint_grid_mm(checkpoint, grid_mm)
     net = load_checkpoint(checkpoint)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)

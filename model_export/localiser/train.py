@@ -31,6 +31,7 @@ class Shard:
     slices: np.ndarray          # [n, H, W] float16
     target: np.ndarray          # [n, H, W] uint8
     brain: np.ndarray           # indices of slices with brain
+    grid_mm: float | None = None  # the network grid the shard was made on (None: a shard from before it was recorded)
 
 
 def load_shards(folder: Path, known: dict[str, Shard]) -> dict[str, Shard]:
@@ -41,10 +42,23 @@ def load_shards(folder: Path, known: dict[str, Shard]) -> dict[str, Shard]:
         try:
             with np.load(path) as z:
                 t = z["target"]
-                known[path.name] = Shard(z["slices"], t, np.flatnonzero(t.reshape(len(t), -1).max(1) > 127))
+                grid = float(z["grid_mm"]) if "grid_mm" in z else None
+                known[path.name] = Shard(z["slices"], t, np.flatnonzero(t.reshape(len(t), -1).max(1) > 127), grid)
         except (OSError, ValueError, KeyError, EOFError):
             continue                                   # a shard still being written
     return known
+
+
+def shards_grid_mm(shards: dict[str, Shard]) -> float | None:
+    """The network grid all ``shards`` were made on (None where none records it).
+
+    Raises:
+        ValueError: the shards were made on different grids (a network learns one grid).
+    """
+    grids = sorted({s.grid_mm for s in shards.values() if s.grid_mm is not None})
+    if len(grids) > 1:
+        raise ValueError(f"the shards were made on grids of {grids} mm: train on shards of one grid")
+    return grids[0] if grids else None
 
 
 def draw_batch(shards: list[Shard], rng: np.random.Generator, batch: int, crop: int,
@@ -123,6 +137,9 @@ def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int =
     keep them (their scales and shifts still learn), so the network trains as it runs in the service;
     in training mode a fine-tune normalises each crop by its own batch and moves the statistics the
     exported network uses.
+
+    The checkpoint records the network grid its shards were made on (``grid_mm``; shards of two grids
+    are refused), which :func:`~model_export.localiser.export.export_onnx` writes into the model file.
     """
     torch.set_num_threads(threads)
     torch.manual_seed(seed)
@@ -145,7 +162,8 @@ def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int =
 
     def save() -> None:
         torch.save({"model": net.state_dict(), "optimiser": opt.state_dict(), "config": net.config,
-                    "step": step, "spent_s": time.perf_counter() - start, "shards": len(known)}, out)
+                    "step": step, "spent_s": time.perf_counter() - start, "shards": len(known),
+                    "grid_mm": shards_grid_mm(known)}, out)
 
     net.train()
     if freeze_norm:
@@ -155,6 +173,7 @@ def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int =
     while (elapsed := time.perf_counter() - start) < budget:
         if step % 200 == 0 or not known:
             load_shards(data, known)
+            shards_grid_mm(known)
         for g in opt.param_groups:
             g["lr"] = lr * 0.5 * (1 + np.cos(np.pi * min(elapsed / budget, 1.0)))
         x, y = draw_batch(list(known.values()), rng, batch, crop)

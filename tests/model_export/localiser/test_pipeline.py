@@ -86,3 +86,25 @@ def test_averaged_weights_lie_between_the_two_networks(tmp_path: Path) -> None:
     torch.save({"model": other.state_dict(), "config": other.config}, tmp_path / "other.pt")
     with pytest.raises(ValueError, match="differ"):
         average_weights(paths[0], tmp_path / "other.pt", tmp_path / "bad.pt")
+
+
+def test_a_checkpoint_carries_its_shards_grid_into_the_model_file(shards: Path, tmp_path: Path) -> None:
+    """The shards record the grid they were made on, training writes it into the checkpoint, and the
+    export takes it from there: a model file cannot claim a grid its network never learnt."""
+    import shutil
+
+    from model_export.localiser.train import shards_grid_mm
+
+    assert shards_grid_mm(load_shards(shards, {})) == GRID_MM
+    ckpt = tmp_path / "loc.pt"
+    train(shards, ckpt, 0.01, width=4, depth=2, batch=4, crop=32, threads=1)
+    assert torch.load(ckpt, weights_only=False)["grid_mm"] == GRID_MM
+    assert Localiser.load(export_onnx(ckpt, tmp_path / "a.onnx", version="0.0.1")).grid_mm == GRID_MM
+    with pytest.raises(ValueError, match=r"grid_mm: .* 4.0 mm grid, not 2.5 mm"):
+        export_onnx(ckpt, tmp_path / "b.onnx", grid_mm=2.5, version="0.0.1")
+    mixed = tmp_path / "mixed"
+    shutil.copytree(shards, mixed)
+    with np.load(mixed / "train-000001.npz") as z:
+        np.savez_compressed(mixed / "train-000001.npz", **{**dict(z), "grid_mm": np.float64(2.5)})
+    with pytest.raises(ValueError, match="grids of"):
+        train(mixed, tmp_path / "mixed.pt", 0.01, width=4, depth=2, batch=4, crop=32, threads=1)
