@@ -152,6 +152,21 @@ def job_localiser(localisers_dir: Path | None, uploads: list):  # noqa: ANN201
     return Localisers.from_directory(localisers_dir, threads=1).get()
 
 
+def job_estimator(model_file: Path, required: bool = True):  # noqa: ANN201
+    """The pose model a job names (one thread), and its atlas mid-sagittal plane: the plane its poses
+    and the frame steps are in, given poses included (they come from that model's ``/v1/predict``).
+    Not ``required`` (a job given poses) and the server without such a file: ``(None, the default
+    plane)``; required, :func:`~service.inference.model_file.load_model` says what is missing."""
+    from service.geometry.twin import DEFAULT_PLANE_X_MM
+    from service.inference.estimator import OnnxPoseEstimator
+    from service.inference.model_file import load_model
+
+    if not required and not Path(model_file).exists():
+        return None, DEFAULT_PLANE_X_MM
+    estimator = OnnxPoseEstimator(load_model(model_file, threads=1))
+    return estimator, estimator.info.symmetry_plane_x_mm
+
+
 def predicted_body(uploads: list, estimator, mc_samples: int = 100,  # noqa: ANN001
                    variance_threshold: float | None = None, orders: list | None = None,
                    max_expected_error_mm: float | None = None, localiser=None) -> tuple[dict, list[np.ndarray]]:  # noqa: ANN001
@@ -249,14 +264,11 @@ def _name(names: dict, field: str, index: int) -> str:
 
 def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progress,  # noqa: ANN001
              attempt: int, localisers_dir: Path | None = None) -> None:
-    from service.inference.estimator import OnnxPoseEstimator
-    from service.inference.model_file import load_model
     from service.pipeline.predict import stack_orders
     from service.pipeline.prepare import StackUpload
     from service.io.limits import DecodeBudget
     from service.io.readers import read_upload
     from service.reconstruction.export import write_outputs
-    from service.geometry.twin import DEFAULT_PLANE_X_MM
     from service.preprocess.stack import split_stack
     from service.reconstruction.atlas_frame import atlas_frame, with_frame
     from service.reconstruction.midline import midline_fit
@@ -288,22 +300,20 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         uploads.append(StackUpload(sname, vol, mask, mname, mask_holds_csf=bool(params.get("masks_hold_csf", False))))
     poses_path = folder / "inputs" / "poses.json"
     model_file = models_dir / params.get("model", "default") / "model.onnx"
-    estimator = None
     if poses_path.exists():
         counts = [u.volume.array.shape[u.slice_axis] for u in uploads]
         body = json.loads(poses_path.read_text())
         poses = poses_from_predict_body(body, counts, [u.volume.spacing for u in uploads])
-        plane = DEFAULT_PLANE_X_MM
+        estimator, plane = job_estimator(model_file, required=False)
         masks = uploaded_pose_masks(uploads, job_localiser(localisers_dir, uploads))
         started_from = "uploaded_poses"
     else:
         progress("predicting poses", 0.05)
-        estimator = OnnxPoseEstimator(load_model(model_file, threads=1))
+        estimator, plane = job_estimator(model_file)
         body, masks = predicted_body(uploads, estimator, int(params.get("mc_samples", 100)),
                                      params.get("variance_threshold"), orders, params.get("max_expected_error_mm"),
                                      job_localiser(localisers_dir, uploads))
         poses = starting_poses(body)
-        plane = estimator.info.symmetry_plane_x_mm
         started_from = start_label(body, poses)
     progress("reconstructing", 0.15)
     slice_set = SliceSet.from_stacks([(u.volume, m, mats, acc) for u, m, (mats, acc) in zip(uploads, masks, poses)])
@@ -315,8 +325,6 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     frame = None
     if params.get("atlas_frame", True):
         progress("atlas frame", 0.95)
-        if estimator is None and model_file.exists():
-            estimator = OnnxPoseEstimator(load_model(model_file, threads=1))
         frame = atlas_frame(result.volume, estimator, plane, mc_samples=int(params.get("mc_samples", 100)),
                             held_out_ncc=held_out_score(result))
         result = with_frame(result, frame)

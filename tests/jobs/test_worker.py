@@ -6,6 +6,7 @@ import numpy as np
 
 from service.jobs.worker import (MIN_ACCEPTED_SHARE, MIN_ACCEPTED_SLICES, posed_slices, start_label,
                                  starting_inclusion, starting_poses)
+from tests.api.conftest import tiny_model_path  # noqa: F401 - fixture
 
 
 def _poses(*accepted: list[bool]) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -130,3 +131,24 @@ def test_a_job_localises_with_the_servers_localiser_where_a_stack_has_no_mask(tm
     masked, bare = StackUpload("a", vol, vol), StackUpload("b", vol)
     assert job_localiser(tmp_path, [masked]) is None and job_localiser(None, [bare]) is None
     assert job_localiser(tmp_path, [masked, bare]).path == tmp_path / "default" / "model.onnx"
+
+
+def test_a_job_given_poses_works_in_the_plane_of_the_model_it_names(tiny_model_path, tmp_path) -> None:  # noqa: ANN001
+    """Given poses come from the named model's ``/v1/predict``: the job's twin branches and frame steps
+    use that model's mid-sagittal plane, not the default; a server without the file still runs the
+    job in the default plane, and a job that must predict says the model is missing."""
+    import onnx
+    import pytest
+
+    from model_export.export import metadata_of, set_metadata
+    from service.geometry.twin import DEFAULT_PLANE_X_MM
+    from service.jobs.worker import job_estimator
+
+    proto = onnx.load(str(tiny_model_path))
+    set_metadata(proto, {**metadata_of(proto), "symmetry_plane_x_mm": "1.5"})
+    onnx.save(proto, str(tmp_path / "model.onnx"))
+    estimator, plane = job_estimator(tmp_path / "model.onnx", required=False)
+    assert plane == 1.5 != DEFAULT_PLANE_X_MM and estimator.info.symmetry_plane_x_mm == 1.5
+    assert job_estimator(tmp_path / "absent.onnx", required=False) == (None, DEFAULT_PLANE_X_MM)
+    with pytest.raises(Exception, match="absent"):
+        job_estimator(tmp_path / "absent.onnx")
