@@ -6,7 +6,8 @@ validation volumes (``model_export.acquisitions``) are predicted by the shipped 
 server's pipeline (stack consistency, the stacks pooled), then reconstructed as a job does from the
 service's own poses (the accepted slices, or every slice: ``--start-shares``; coarse-to-fine, SVR rounds), once per ``--variants``
 (:data:`VARIANTS`: the full reconstruction, it without one of its stages, and ``job``: what a job
-runs, the never-worse choice of :mod:`service.reconstruction.never_worse`). Printed per level and
+runs, the never-worse choice of :mod:`service.reconstruction.never_worse`, then the left-out slices
+placed by their stacks' motion, :mod:`service.reconstruction.left_out`). Printed per level and
 variant: the mean E.D. (mm, slices with >= 20 mask pixels, network frames; against the truth,
 twin-min, and the truth in the acquisition's own frame) of the predicted and of the refined poses,
 on how many acquisitions the refined poses are worse than the predicted ones, the quality report's
@@ -24,6 +25,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -41,9 +43,11 @@ from service.geometry.anchors import ed
 from service.geometry.pose import about_centre
 from service.inference.estimator import OnnxPoseEstimator
 from service.inference.model_file import load_model
+from service.jobs.uploaded_poses import expected_errors
 from service.jobs.worker import MIN_ACCEPTED_SHARE, starting_poses
 from service.preprocess.stack import stack_from_slice_images
 from service.reconstruction.atlas_frame import atlas_frame, with_frame
+from service.reconstruction.left_out import place_left_out
 from service.reconstruction.midline import midline_fit
 from service.reconstruction.never_worse import held_out_score, reconstruct_never_worse
 from service.reconstruction.pipeline import ReconstructionConfig, reconstruct
@@ -178,6 +182,9 @@ def main() -> None:
                 config = ReconstructionConfig(symmetry_plane_x_mm=plane, **VARIANTS[variant])
                 if variant in JOBS:
                     res = reconstruct_never_worse(ss, args.resolution, args.rounds, config=config, **JOBS[variant])
+                    left_out = place_left_out(ss, res.atlas_from_voxel_final, res.included, expected_errors(body),
+                                              plane_x_mm=plane)
+                    res = replace(res, atlas_from_voxel_final=left_out.poses)
                 else:
                     res = reconstruct(ss, resolution_mm=args.resolution, svr_iterations=args.rounds, config=config)
                 seconds[name].append(time.perf_counter() - t)

@@ -53,7 +53,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from service.consistency.error_shape import anatomical_axes, relative_depth
-from service.consistency.motion_model import NO_VOTE, Grid, MotionFit, fit_motion, refit
+from service.consistency.motion_model import ERROR_CORRELATIONS, NO_VOTE, Grid, MotionFit, fit_motion, refit
 from service.consistency.slice_order import acquisition_orders
 from service.geometry import se3, twin
 from service.geometry.anchors import ed
@@ -165,7 +165,8 @@ class StackFit:
 def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLike | None = None,
               plane_x_mm: float = twin.DEFAULT_PLANE_X_MM, expected_error_mm: ArrayLike | None = None,
               times: dict[str, NDArray] | None = None, error_shape: ArrayLike | None = None,
-              depth_gain: float = 0.0, reference: ArrayLike | None = None) -> StackFit:
+              depth_gain: float = 0.0, reference: ArrayLike | None = None,
+              error_correlations: tuple[float, ...] = ERROR_CORRELATIONS) -> StackFit:
     """Make one stack's slice poses consistent (see the module docstring).
 
     Args:
@@ -259,12 +260,15 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
         noise2 = _neighbour_noise2(chosen, own, inv_n, on, inliers, float(np.median(r[inliers] ** 2)))
         sig = np.full(n, np.sqrt(max(noise2, MIN_NOISE_MM ** 2)))
     votes = np.where(inliers, sig / np.sqrt(np.maximum(tukey, 1e-12)), NO_VOTE)
-    motion = fit_motion(chosen, s, votes, orders, centre, FIRST_GRID, **shape)
+    grid = Grid(error_correlations=tuple(error_correlations))
+    first = FIRST_GRID if set(FIRST_GRID.error_correlations) <= set(grid.error_correlations) else \
+        Grid(error_correlations=grid.error_correlations[:1])
+    motion = fit_motion(chosen, s, votes, orders, centre, first, **shape)
     # a slice far from the rigid fit may just have moved: every usable slice is weighed again by
     # how well the others predict it, in units of the spread both errors explain
     votes = _votes(ed(motion.loo @ inv_n, own), motion, sig, use)
     memo: dict = {}                        # the final fit reuses this one's eigendecompositions where its votes are these
-    motion = fit_motion(chosen, s, votes, orders, centre, memo=memo, **shape)
+    motion = fit_motion(chosen, s, votes, orders, centre, grid, memo=memo, **shape)
     first = branch
     branch = _branch(ed((motion.loo @ inv_n)[:, None], cand))
     margin = _branch_margin(proposals, cand, branch, inv_n, w, inliers)
@@ -295,7 +299,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
         return StackFit(p.copy(), np.zeros(n, bool), np.zeros(n, bool), r_loo, False, s, fraction, motion.order,
                         motion.length, network_mm, model_mm)
     final_votes = np.where(use & ~inconsistent, np.where(np.isfinite(votes), votes, sig), NO_VOTE)
-    final = fit_motion(chosen, s, final_votes, orders, centre, memo=memo, **shape)   # every model again, averaged
+    final = fit_motion(chosen, s, final_votes, orders, centre, grid, memo=memo, **shape)   # every model again, averaged
     return StackFit(final.poses @ inv_n, branch == 1, inconsistent, r_loo, True, final.placement, fraction, final.order,
                     final.length, network_mm, model_mm, margin, final.sd_mm, final.placement_sd_mm, centre,
                     final.placement_cov, by_request, (far[0], far[1]) if by_request else (np.nan, np.nan))

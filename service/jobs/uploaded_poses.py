@@ -141,3 +141,21 @@ def not_rigid(mats: np.ndarray, spacing, tolerance: float = 0.01) -> int | None:
              | (np.abs(mats[:, 3] - [0, 0, 0, 1]).max(axis=1) > 1e-6)
              | (np.linalg.norm(mats[:, :3, 3], axis=1) > MAX_FIELD_OF_VIEW_MM))
     return int(np.argmax(wrong)) if wrong.any() else None
+
+
+def expected_errors(body: dict) -> np.ndarray:
+    """``[n]`` every slice's ``expected_error_mm`` of a ``/v1/predict`` body (stacks in order, slices in
+    the order :func:`poses_from_predict_body` put them), NaN where a slice has none or not a finite,
+    non-negative number (a client's body is read, not trusted).
+
+    Example:
+        >>> expected_errors({"stacks": [{"slices": [{"expected_error_mm": 2.5}, {"expected_error_mm": None}]},
+        ...                             {"slices": [{"expected_error_mm": "x"}, {}]}]}).tolist()
+        [2.5, nan, nan, nan]
+    """
+    def number(value: object) -> float:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value) and value >= 0
+        return float(value) if ok else np.nan
+
+    return np.array([number(s.get("expected_error_mm") if isinstance(s, dict) else None)
+                     for st in body.get("stacks", []) for s in st.get("slices", [])], dtype=np.float64)

@@ -65,7 +65,8 @@ def pose_fields(poses: ArrayLike) -> list[dict]:
 
 def refined_poses_body(predict_body: dict, refined: ArrayLike, slice_from_voxel: list[NDArray], *,
                        included: ArrayLike, weight: ArrayLike, ncc: ArrayLike, reasons: list[str | None],
-                       job_id: str, held_out_ncc: ArrayLike | None = None) -> dict:
+                       job_id: str, held_out_ncc: ArrayLike | None = None,
+                       placed_by_stack_motion: ArrayLike | None = None) -> dict:
     """A ``/v1/predict``-shaped body with the refined poses of every slice.
 
     Args:
@@ -76,6 +77,8 @@ def refined_poses_body(predict_body: dict, refined: ArrayLike, slice_from_voxel:
         included, weight, ncc, reasons: per slice, from the reconstruction.
         held_out_ncc: per slice, the NCC against the volume made without the slice's stack (None:
             not measured; null per slice).
+        placed_by_stack_motion: per slice, left out of the volume and placed by its stack's motion
+            through the slices in it (:mod:`~service.reconstruction.left_out`; None: none).
         job_id: the job (``refined_by``).
 
     Returns:
@@ -85,6 +88,7 @@ def refined_poses_body(predict_body: dict, refined: ArrayLike, slice_from_voxel:
     a_new = np.asarray(refined, dtype=np.float64)
     inc, w, c = np.asarray(included, bool), np.asarray(weight, np.float64), np.asarray(ncc, np.float64)
     held = np.full(len(c), np.nan) if held_out_ncc is None else np.asarray(held_out_ncc, np.float64)
+    by_motion = np.zeros(len(c), bool) if placed_by_stack_motion is None else np.asarray(placed_by_stack_motion, bool)
     start = 0
     for stack, sfv in zip(body["stacks"], slice_from_voxel):
         slices = stack["slices"]
@@ -104,7 +108,7 @@ def refined_poses_body(predict_body: dict, refined: ArrayLike, slice_from_voxel:
             s.update(fields)
             s["atlas_from_voxel"] = a_new[i].tolist()
             s.update(included=bool(inc[i]), exclusion_reason=reasons[i], weight=_num(w[i]), ncc=_num(c[i]),
-                     held_out_ncc=_num(held[i]))
+                     held_out_ncc=_num(held[i]), placed_by_stack_motion=bool(by_motion[i]))
         start += n
     body.setdefault("request_id", job_id)
     body.setdefault("timing_ms", {})

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from service.consistency.motion_model import ERROR_CORRELATIONS
 from service.consistency.slice_order import SliceOrder
 from service.consistency.stack_fit import fit_stack
 from service.geometry import se3
@@ -57,6 +58,8 @@ class StackFit:
             put slices on the twin branch while ``plane_x_mm`` is ``None`` (``None``: not computed).
         motion_mm: ``[n_stacks]`` how far the motion model moves each stack's slices from its rigid
             transform (RMS E.D. over the slices it was fitted from; 0 where it found none).
+        times: ``[n]`` each slice's acquisition time under the order the stage chose for its stack
+            (NaN where the stack is undecidable or has no usable slice).
     """
 
     atlas_from_scanner: NDArray[np.float64]
@@ -65,6 +68,7 @@ class StackFit:
     distance_mm: NDArray[np.float64]
     motion_poses: NDArray[np.float64] | None = None
     motion_mm: NDArray[np.float64] | None = None
+    times: NDArray[np.float64] | None = None
 
     def branch_poses(self, slices: SliceSet, atlas_from_voxel: ArrayLike, plane_x_mm: float) -> NDArray[np.float64]:
         """``atlas_from_voxel`` with the twin-branch slices replaced by their twins (the stack's branch)."""
@@ -100,7 +104,10 @@ def frame_from_scanner(slices: SliceSet) -> NDArray[np.float64]:
     """``[n, 4, 4]`` rigid scanner -> slice frame maps: origin at the slice's pixel centre, ``z`` its normal.
 
     The axes are the stack's in-plane voxel axes and the slice axis (unit length, the normal's sign
-    making the frame right-handed), so the slice's own plane is ``z = 0`` as the twin requires.
+    making the frame right-handed), so the slice's own plane is ``z = 0`` as the twin requires. A
+    slice without pixels (left out of the volume) has its origin on its own plane too, where the
+    centre of its stack's pixels projects onto it: its twin is mirrored about its own plane and its
+    lever arm is its distance from the stack's middle, as for the slices with pixels.
     """
     n = slices.n_slices
     cols = slices.stack_affine[:, :3, :3] / np.linalg.norm(slices.stack_affine[:, :3, :3], axis=1, keepdims=True)
@@ -112,15 +119,24 @@ def frame_from_scanner(slices: SliceSet) -> NDArray[np.float64]:
     rot[..., 2] *= np.sign(np.linalg.det(rot))[:, None]
     centre = slices.centres(slices.stack_affine)
     counts = slices.pixel_counts()
-    if (counts == 0).any():                         # slices without pixels: the centre of their plane
-        empty = counts == 0
-        centre[empty] = slices.stack_affine[empty, :3, 3]
+    empty = counts == 0
+    if empty.any():                                 # slices without pixels: on their own plane, nearest the stack's pixels
+        seen = np.bincount(slices.stack_index, counts, minlength=slices.stack_index.max() + 1)
+        middle = np.stack([np.bincount(slices.stack_index, centre[:, d] * counts, minlength=len(seen))
+                           for d in range(3)], -1) / np.maximum(seen, 1)[:, None]
+        unseen = seen[slices.stack_index] == 0      # a stack without pixels: its voxel origin, moved onto the plane
+        middle = np.where(unseen[:, None], slices.stack_affine[:, :3, 3], middle[slices.stack_index])
+        on_plane = slices.stack_affine[rows, :3, axis] * slices.slice_index[:, None] + slices.stack_affine[:, :3, 3]
+        normal = rot[..., 2]
+        off = np.einsum("nd,nd->n", middle - on_plane, normal)
+        centre[empty] = (middle - off[:, None] * normal)[empty]
     return se3.inverse(make_pose(rot, centre))
 
 
 def fit_stack_rigid(slices: SliceSet, atlas_from_voxel: ArrayLike | None = None, *,
                     plane_x_mm: float | None = None, use: ArrayLike | None = None,
-                    orders: Sequence[SliceOrder] | None = None) -> StackFit:
+                    orders: Sequence[SliceOrder] | None = None, expected_error_mm: ArrayLike | None = None,
+                    error_correlations: tuple[float, ...] = ERROR_CORRELATIONS) -> StackFit:
     """Per-stack ``atlas_from_scanner`` from per-slice poses by the stack-consistency stage (module docstring).
 
     Args:
@@ -130,6 +146,9 @@ def fit_stack_rigid(slices: SliceSet, atlas_from_voxel: ArrayLike | None = None,
             runs with the default plane, but no slice is flipped).
         use: ``[n]`` bool, the slices to fit from (default: the included ones).
         orders: per stack, what is known of its acquisition order (default: the stage chooses).
+        expected_error_mm: ``[n]`` each pose's expected E.D. (the stage weighs the slices by it; NaN:
+            unknown); default: the stage estimates one error for all from acquisition neighbours.
+        error_correlations: how alike neighbouring slices' errors may be (:func:`fit_stack`).
 
     Returns:
         The :class:`StackFit`.
@@ -146,15 +165,18 @@ def fit_stack_rigid(slices: SliceSet, atlas_from_voxel: ArrayLike | None = None,
     dist = np.full(n, np.nan)
     motion = np.zeros((n, 4, 4))
     moved = np.zeros(n_stacks)
+    times = np.full(n, np.nan)
+    errors = None if expected_error_mm is None else np.asarray(expected_error_mm, np.float64)
     for s in range(n_stacks):                   # a loop over the few stacks; slices are batched
         idx = np.flatnonzero(slices.stack_index == s)
         if not use[idx].any():
             motion[idx] = slices.stack_affine[idx]
             continue
-        order = orders[s] if orders is not None else SliceOrder()
-        fit = fit_stack(frame_poses[idx], n_k[idx], use[idx],
-                        DEFAULT_PLANE_X_MM if plane_x_mm is None else plane_x_mm, times=order.times(len(idx)))
+        order = (orders[s] if orders is not None else SliceOrder()).times(len(idx))
+        fit = fit_stack(frame_poses[idx], n_k[idx], use[idx], DEFAULT_PLANE_X_MM if plane_x_mm is None else plane_x_mm,
+                        None if errors is None else errors[idx], times=order, error_correlations=error_correlations)
         if fit.decidable and fit.atlas_from_scanner is not None:
+            times[idx] = order[fit.acquisition_order]
             out[s] = fit.atlas_from_scanner
             twin[idx] = fit.twinned & (plane_x_mm is not None)
             inlier[idx] = use[idx] & ~fit.inconsistent
@@ -170,4 +192,4 @@ def fit_stack_rigid(slices: SliceSet, atlas_from_voxel: ArrayLike | None = None,
         motion[idx] = out[s] @ slices.stack_affine[idx]
     if plane_x_mm is None and twin.any():
         twin[:] = False
-    return StackFit(out, twin, inlier, dist, motion, moved)
+    return StackFit(out, twin, inlier, dist, motion, moved, times)

@@ -261,3 +261,22 @@ def test_a_stack_agrees_with_the_request_only_where_it_sits_with_its_stacks(monk
     assert far.request_distance_mm[0] > stack_fit_module.REQUEST_AGREEMENT_MM
     alone = fit_stack(poses, nk)
     assert not alone.agrees_with_request and np.isnan(alone.request_distance_mm).all()
+
+
+def test_independent_errors_pull_the_model_towards_an_error_not_away_from_it() -> None:
+    """A still stack whose slices are exact (expected error 1 mm) but two (6 mm off, expected error 8
+    mm). With the network's correlated errors allowed, the exact slices beside the two are taken to
+    share part of their error, so the model moves *against* it (about -0.5 mm); with independent
+    errors (``error_correlations=(0.0,)``, as slices a reconstruction placed have) it stays within
+    0.1 mm, on the side of the error."""
+    rng = np.random.default_rng(7)
+    truth, nk = stack(rng, "mild", n=24)
+    still = np.repeat(truth[12:13] @ nk[12:13], 24, axis=0) @ se3.inverse(nk)       # no motion
+    off = still.copy()
+    off[[6, 17]] = translate(np.array([6.0, 0.0, 0.0])) @ still[[6, 17]]
+    errors = np.where(np.isin(np.arange(24), [6, 17]), 8.0, 1.0)
+    order = {"sequential": np.arange(24)}
+    shift = [float((fit.poses[:, :3, 3] - still[:, :3, 3])[:, 0].mean())
+             for fit in (fit_stack(off, nk, expected_error_mm=errors, times=order),
+                         fit_stack(off, nk, expected_error_mm=errors, times=order, error_correlations=(0.0,)))]
+    assert shift[0] < -0.2 and 0.0 <= shift[1] < 0.1, shift

@@ -115,6 +115,9 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
         rot = np.array(got["rotation"])
         np.testing.assert_allclose(rot @ rot.T, np.eye(3), atol=1e-9)
         assert len(got["anchor_points_mm"]) == 3 and len(got["quaternion_wxyz"]) == 4
+    moved = [s["placed_by_stack_motion"] for s in slices]        # left out of the volume, placed by their stack's motion
+    assert sum(moved) == report["left_out_placed_by_stack_motion"]
+    assert not any(s["included"] for s, m in zip(slices, moved) if m)
     assert submit(client, case, poses=body).status_code == 202
     # The per-slice transforms: a zip of one .tfm per slice, each F A P^-1 F (docs/reconstruction.md).
     assert st["transforms_url"] == f"/v1/reconstructions/{job_id}/transforms"

@@ -1,0 +1,94 @@
+"""The slices a job leaves out of its volume, placed by their stack's motion through the slices in it.
+
+A job reconstructs from the slices ``/v1/predict`` accepted; the others (and those the job itself
+excludes) are not in the volume, and keep the pose the prediction gave them: the network's, fused
+with their stack-mates' by the stack stage, some millimetres off. The slices in the volume come out
+within about a millimetre of each other. The stack's motion model
+(:func:`~service.consistency.stack_fit.fit_stack`, a Gaussian process over acquisition time) is fitted
+again with those refined slices as nearly exact observations and the left-out ones at their
+predicted expected errors, all independent (the network's errors are alike on neighbouring slices,
+the volume's placements are not), and a left-out slice takes the model's posterior pose where the motion
+around it is smooth: where the model predicts each slice of the volume within
+:data:`SMOOTH_MM` of where the volume put it, over :data:`REACH` acquisitions on either side of the
+left-out slice's time. Across a sudden move of the fetus the model bends between the two sides, so
+there (and in a stack whose motion is independent from slice to slice, where no neighbour predicts
+another) a left-out slice keeps its predicted pose.
+
+Example (a rigid stack of 12 slices, the volume placed 10 of them; the two others start 6 mm off
+and take the stack's pose):
+    >>> import numpy as np
+    >>> from service.io.volume import Volume
+    >>> from service.reconstruction.slices import SliceSet
+    >>> vol = Volume(np.ones((16, 16, 12), np.float32), np.diag([2.0, 2.0, 3.0, 1.0]))
+    >>> poses = np.repeat(vol.affine[None], 12, 0)
+    >>> off = poses.copy(); off[[3, 8], 0, 3] += 6.0
+    >>> ss = SliceSet.from_stacks([(vol, None, off, np.ones(12, bool))])
+    >>> inside = np.ones(12, bool); inside[[3, 8]] = False
+    >>> out = place_left_out(ss, off, inside, np.full(12, 8.0), plane_x_mm=None)
+    >>> out.moved.nonzero()[0].tolist(), bool(np.abs(out.poses[[3, 8], 0, 3]).max() < 0.5)
+    ([3, 8], True)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from service.consistency.slice_order import SliceOrder
+from service.reconstruction.slices import SliceSet
+from service.reconstruction.stack_rigid import fit_stack_rigid
+
+PLACED_MM = 1.0
+"""The expected E.D. the motion model gives a slice the volume placed (simulated acquisitions: the
+slices in a job's volume lie 0.4-1.1 mm from the truth in the acquisition's own frame)."""
+SMOOTH_MM = 2.0
+"""A left-out slice follows the model where it predicts every slice of the volume within this many
+mm of its refined pose over :data:`REACH` acquisitions on either side."""
+REACH = 2
+"""Acquisitions on either side of a left-out slice whose slices in the volume must agree with the model."""
+
+
+@dataclass
+class LeftOutPlacement:
+    """Output of :func:`place_left_out`.
+
+    Attributes:
+        poses: ``[n, 4, 4]`` every slice's ``atlas_from_voxel``: the given ones, the moved slices' replaced.
+        moved: ``[n]`` the left-out slices placed by their stack's motion.
+    """
+
+    poses: NDArray[np.float64]
+    moved: NDArray[np.bool_]
+
+
+def place_left_out(slices: SliceSet, refined: ArrayLike, placed: ArrayLike, expected_error_mm: ArrayLike, *,
+                   plane_x_mm: float | None, orders: Sequence[SliceOrder] | None = None) -> LeftOutPlacement:
+    """Move the left-out slices that their stack's smooth motion places (module docstring).
+
+    Args:
+        slices: the job's slice set (stack geometry; a left-out slice needs no pixels).
+        refined: ``[n, 4, 4]`` the job's ``atlas_from_voxel`` of every slice.
+        placed: ``[n]`` bool, the slices in the volume (placed by it).
+        expected_error_mm: ``[n]`` the predicted poses' expected E.D. (NaN: not posed, e.g. an empty
+            slice; such a slice stays where it is).
+        plane_x_mm: the atlas mid-sagittal plane of the poses (None: no twins).
+        orders: per stack, what is known of its acquisition order (default: the stage chooses).
+    """
+    poses = np.array(refined, dtype=np.float64)
+    inside = np.asarray(placed, bool)
+    expected = np.asarray(expected_error_mm, dtype=np.float64)
+    left_out = ~inside & np.isfinite(expected)
+    moved = np.zeros(len(poses), bool)
+    if not left_out.any() or not inside.any():
+        return LeftOutPlacement(poses, moved)
+    fit = fit_stack_rigid(replace(slices, include=inside | left_out), poses, plane_x_mm=plane_x_mm,
+                          use=inside | left_out, orders=orders,
+                          expected_error_mm=np.where(inside, PLACED_MM, expected), error_correlations=(0.0,))
+    for k in np.flatnonzero(left_out & np.isfinite(fit.times)):
+        near = inside & (slices.stack_index == slices.stack_index[k]) & (np.abs(fit.times - fit.times[k]) <= REACH)
+        moved[k] = bool(near.any()) and float(np.nanmax(fit.distance_mm[near])) <= SMOOTH_MM
+    poses[moved] = fit.motion_poses[moved]
+    return LeftOutPlacement(poses, moved)

@@ -1,0 +1,101 @@
+"""The slices a job leaves out, placed by their stack's motion through the slices in its volume:
+against a smooth motion and a sudden move simulated here, and the frame a slice without pixels gets."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.consistency.slice_order import SliceOrder
+from service.reconstruction.left_out import place_left_out
+from service.reconstruction.stack_rigid import frame_from_scanner
+from tests.reconstruction.helpers import CENTRE, make_acquisition, perturb, pose_error_mm, rigid_about
+
+SEQUENTIAL = [SliceOrder.parse("sequential")] * 3
+
+
+@pytest.fixture(scope="module")
+def acquisition():  # noqa: ANN201
+    return make_acquisition(3, rot_deg=0.0, trans_mm=0.0)
+
+
+def moving(acquisition, jump_at: int | None = None) -> tuple:  # noqa: ANN001
+    """Each stack's true poses under a smooth motion along its slices (up to 6 deg / 3 mm about the
+    brain's centre), with a sudden 8 mm move from slice ``jump_at`` on; the slice set, the truth."""
+    ss = acquisition.slice_set()
+    n = np.bincount(ss.stack_index)[ss.stack_index].astype(float)
+    phase = ss.slice_index / np.maximum(n - 1, 1)
+    rotv = np.stack([6.0 * np.sin(np.pi * phase), 3.0 * np.cos(np.pi * phase), np.zeros_like(phase)], 1)
+    shift = np.stack([3.0 * phase, np.zeros_like(phase), -2.0 * phase], 1)
+    if jump_at is not None:
+        shift[ss.slice_index >= jump_at, 1] += 8.0
+    return ss, rigid_about(CENTRE, rotv, shift) @ ss.atlas_from_voxel
+
+
+def left_out_slices(ss, picks: list[int]) -> np.ndarray:  # noqa: ANN001
+    """Slices ``picks`` (indices within each stack) of every stack."""
+    return np.isin(ss.slice_index, picks)
+
+
+def test_left_out_slices_follow_a_smooth_motion_and_the_placed_ones_stay(acquisition) -> None:  # noqa: ANN001
+    """The volume placed every slice but three a stack to 0.3 mm; the three start 4 mm / 4 deg off
+    (their predicted poses, expected error 6 mm) and end within 1 mm of the truth."""
+    ss, truth = moving(acquisition)
+    rng = np.random.default_rng(0)
+    out = left_out_slices(ss, [4, 9, 13])
+    refined = perturb(truth, rng, 0.2, 0.3, ss.centres(truth))
+    refined[out] = perturb(truth[out], rng, 4.0, 4.0, ss.centres(truth)[out])
+    before = pose_error_mm(ss, refined, truth, out)
+    placed = place_left_out(ss, refined, ~out, np.where(out, 6.0, 1.0), plane_x_mm=0.0, orders=SEQUENTIAL)
+    assert before > 4.0 and pose_error_mm(ss, placed.poses, truth, out) < 1.0, before
+    np.testing.assert_array_equal(placed.moved, out)
+    np.testing.assert_array_equal(placed.poses[~out], refined[~out])
+
+
+def test_a_slice_beside_a_sudden_move_keeps_its_predicted_pose(acquisition) -> None:  # noqa: ANN001
+    """The fetus jumps 8 mm at slice 10 of every stack: the model bends across the jump, so the slices
+    in the volume next to it disagree with it, and the left-out slice there stays where it was;
+    one far from the jump still follows the motion."""
+    ss, truth = moving(acquisition, jump_at=10)
+    rng = np.random.default_rng(1)
+    out = left_out_slices(ss, [3, 10])
+    refined = perturb(truth, rng, 0.2, 0.3, ss.centres(truth))
+    refined[out] = perturb(truth[out], rng, 2.0, 2.0, ss.centres(truth)[out])
+    placed = place_left_out(ss, refined, ~out, np.where(out, 6.0, 1.0), plane_x_mm=0.0, orders=SEQUENTIAL)
+    at_jump, far = out & (ss.slice_index == 10), out & (ss.slice_index == 3)
+    assert not placed.moved[at_jump].any()
+    np.testing.assert_array_equal(placed.poses[at_jump], refined[at_jump])
+    assert placed.moved[far].all() and pose_error_mm(ss, placed.poses, truth, far) < 1.0
+
+
+def test_slices_without_an_expected_error_or_without_placed_stack_mates_stay(acquisition) -> None:  # noqa: ANN001
+    ss, truth = moving(acquisition)
+    out = left_out_slices(ss, [5])
+    expected = np.where(out, np.nan, 1.0)                  # not posed (an empty slice)
+    assert not place_left_out(ss, truth, ~out, expected, plane_x_mm=0.0).moved.any()
+    nothing_placed = place_left_out(ss, truth, np.zeros(ss.n_slices, bool), np.full(ss.n_slices, 5.0), plane_x_mm=0.0)
+    assert not nothing_placed.moved.any() and np.array_equal(nothing_placed.poses, truth)
+
+
+def test_a_slice_without_pixels_gets_a_frame_on_its_own_plane(acquisition) -> None:  # noqa: ANN001
+    """Left out of the volume, a slice has no pixels; its frame's plane ``z = 0`` is still its own
+    (the twin mirrors it about that plane), its origin where the stack's pixel centre projects."""
+    include = [np.ones(len(t), bool) for t in acquisition.truth]
+    include[0][[2, 7]] = False
+    ss = acquisition.slice_set(include=include)
+    frames = frame_from_scanner(ss)
+    empty = np.flatnonzero(ss.pixel_counts() == 0)                 # these two and the phantom's end slices
+    assert {2, 7} <= set(ss.slice_index[empty[ss.stack_index[empty] == 0]])
+    for k in empty:
+        shape = acquisition.stacks[ss.stack_index[k]][0].array.shape
+        inplane = [d for d in range(3) if d != ss.slice_axis[k]]
+        corners = np.ones((4, 4))
+        corners[:, ss.slice_axis[k]] = ss.slice_index[k]
+        corners[:, inplane] = [[i, j] for i in (0, shape[inplane[0]] - 1) for j in (0, shape[inplane[1]] - 1)]
+        in_frame = corners @ (frames[k] @ ss.stack_affine[k]).T
+        np.testing.assert_allclose(in_frame[:, 2], 0.0, atol=1e-9)        # the slice's plane is z = 0
+        centre = ss.centres(ss.stack_affine)[ss.stack_index == ss.stack_index[k]]
+        seen = ss.pixel_counts()[ss.stack_index == ss.stack_index[k]]
+        middle = (centre * seen[:, None]).sum(0) / seen.sum()
+        origin = np.linalg.inv(frames[k])[:3, 3]
+        assert np.linalg.norm(np.cross(middle - origin, frames[k][2, :3])) < 1e-6   # on the normal through the middle
