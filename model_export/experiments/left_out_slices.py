@@ -1,0 +1,92 @@
+"""What placing the left-out slices by their stack's motion does to a job's poses
+(:mod:`service.reconstruction.left_out`), on simulated 3-stack acquisitions of the validation volumes.
+
+Each acquisition is predicted through the server's pipeline and reconstructed as a job does (the
+never-worse paths, 1.5 mm, 3 rounds); the left-out slices are then placed. Printed per acquisition
+and level: how many left-out slices moved, their mean E.D. in the acquisition's own frame (its
+common frame undone) before and after, and every slice's mean E.D. against the truth and twin-min,
+without and with the step (before the frame steps), and on how many acquisitions the step made the
+twin-min mean worse. Needs ``../shared/data``.
+
+    .venv/bin/python model_export/experiments/left_out_slices.py [--levels mild,moderate,jumps,independent]
+        [--per-level 5] [--seed 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from model_export.acquisitions import simulate_acquisition  # noqa: E402
+from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
+from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, run_acquisition  # noqa: E402
+from model_export.experiments.refine_bench import network_poses, to_truth_frame  # noqa: E402
+from service.api.responses import stack_objects  # noqa: E402
+from service.geometry import twin  # noqa: E402
+from service.geometry.anchors import ed  # noqa: E402
+from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
+from service.inference.model_file import load_model  # noqa: E402
+from service.jobs.uploaded_poses import expected_errors  # noqa: E402
+from service.jobs.worker import MIN_ACCEPTED_SHARE, starting_poses  # noqa: E402
+from service.preprocess.stack import stack_from_slice_images  # noqa: E402
+from service.reconstruction.left_out import place_left_out  # noqa: E402
+from service.reconstruction.never_worse import reconstruct_never_worse  # noqa: E402
+from service.reconstruction.pipeline import ReconstructionConfig  # noqa: E402
+from service.reconstruction.slices import SliceSet  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--levels", default="mild,moderate,jumps,independent")
+    ap.add_argument("--per-level", type=int, default=5)
+    ap.add_argument("--seed", type=int, default=5)
+    ap.add_argument("--model", default="service/models/default/model.onnx")
+    args = ap.parse_args()
+    if not DEFAULT_ATLAS_ROOT.exists():
+        sys.exit(f"needs the atlas volumes at {DEFAULT_ATLAS_ROOT}")
+    est = OnnxPoseEstimator(load_model(Path(args.model)))
+    plane = est.info.symmetry_plane_x_mm
+    vols = load_volumes(split(DEFAULT_ATLAS_ROOT)[1], DEFAULT_ATLAS_ROOT)
+    rng = np.random.default_rng(args.seed)
+    for level in args.levels.split(","):
+        rows: dict[str, list] = {"job": [], "placed": []}
+        worse = 0
+        for a in range(args.per_level):
+            vol = vols[a % len(vols)]
+            stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level)
+            (predictions,), prepared, _ = run_acquisition(stacks, est, 100, True)
+            body = {"stacks": stack_objects(predictions)}
+            masks = [stack_from_slice_images(p.slices.masks, p.slices.slice_axis) for p in prepared]
+            ss = SliceSet.from_stacks([(s.volume, m, mats, inc) for s, m, (mats, inc)
+                                       in zip(stacks, masks, starting_poses(body, MIN_ACCEPTED_SHARE))])
+            res = reconstruct_never_worse(ss, 1.5, 3, config=ReconstructionConfig(symmetry_plane_x_mm=plane))
+            placed = place_left_out(ss, res.atlas_from_voxel_final, res.included, expected_errors(body), plane_x_mm=plane)
+            keep = np.concatenate([p.prepared.mask_pixels >= MIN_MASK_PIXELS for p in prepared])
+
+            def scores(transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                pose, true = network_poses(stacks, prepared, transforms)
+                pose, true = pose[keep], true[keep]
+                return ed(to_truth_frame(pose, true) @ pose, true), ed(pose, true), twin.twin_min_ed(pose, true, plane)
+
+            before, after = scores(res.atlas_from_voxel_final), scores(placed.poses)
+            rows["job"].append(before)
+            rows["placed"].append(after)
+            out, moved = ~res.included[keep], placed.moved[keep]
+            worse += int(after[2].mean() > before[2].mean() + 1e-9)
+            print(f"{level} {vol.name}: {int(moved.sum())} of {int(out.sum())} left-out slices moved; left out, own "
+                  f"frame {before[0][out].mean():.2f} -> {after[0][out].mean():.2f} mm; all slices, truth / twin-min "
+                  f"{before[1].mean():.2f} / {before[2].mean():.2f} -> {after[1].mean():.2f} / {after[2].mean():.2f} mm",
+                  flush=True)
+        for name, v in rows.items():
+            own, truth, tmin = (np.concatenate([x[i] for x in v]).mean() for i in range(3))
+            print(f"== {level} {name}: mean E.D. own frame {own:.2f}, truth {truth:.2f}, twin-min {tmin:.2f} mm", flush=True)
+        print(f"== {level}: acquisitions worse with the step (twin-min) {worse} of {args.per_level}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
