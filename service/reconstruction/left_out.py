@@ -10,9 +10,11 @@ predicted expected errors, all independent (the network's errors are alike on ne
 the volume's placements are not), and a left-out slice takes the model's posterior pose where the motion
 around it is smooth: where the model predicts each slice of the volume within
 :data:`SMOOTH_MM` of where the volume put it, over :data:`REACH` acquisitions on either side of the
-left-out slice's time. Across a sudden move of the fetus the model bends between the two sides, so
-there (and in a stack whose motion is independent from slice to slice, where no neighbour predicts
-another) a left-out slice keeps its predicted pose.
+left-out slice's time. Across a sudden move of the fetus the model bends between the two sides;
+there a left-out slice takes the pose of the placed slice acquired next to it on one side where its
+own prediction clearly lies on that side (:func:`beside_a_jump`), and otherwise keeps its predicted
+pose, as it does in a stack whose motion is independent from slice to slice (where no neighbour
+predicts another).
 
 Example (a rigid stack of 12 slices, the volume placed 10 of them; the two others start 6 mm off
 and take the stack's pose):
@@ -38,8 +40,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from service.consistency.slice_order import SliceOrder
+from service.geometry.anchors import ed
 from service.reconstruction.slices import SliceSet
-from service.reconstruction.stack_rigid import fit_stack_rigid
+from service.reconstruction.stack_rigid import fit_stack_rigid, frame_from_scanner
 
 PLACED_MM = 1.0
 """The expected E.D. the motion model gives a slice the volume placed (simulated acquisitions: the
@@ -49,6 +52,12 @@ SMOOTH_MM = 2.0
 mm of its refined pose over :data:`REACH` acquisitions on either side."""
 REACH = 2
 """Acquisitions on either side of a left-out slice whose slices in the volume must agree with the model."""
+SMOOTH_SHARE = 0.5
+"""A stack whose model predicts at least this share of its placed slices within :data:`SMOOTH_MM`
+moves smoothly but for its jumps (:func:`beside_a_jump`); under independent motion none are."""
+SIDE_RATIO = 0.5
+"""A left-out slice beside a jump takes the side whose neighbour lies under this times as far from
+its predicted pose as the other side's (:func:`beside_a_jump`)."""
 
 
 @dataclass
@@ -58,15 +67,17 @@ class LeftOutPlacement:
     Attributes:
         poses: ``[n, 4, 4]`` every slice's ``atlas_from_voxel``: the given ones, the moved slices' replaced.
         moved: ``[n]`` the left-out slices placed by their stack's motion.
+        beside_jump: ``[n]`` those of them that took a neighbour's pose beside a jump (:func:`beside_a_jump`).
     """
 
     poses: NDArray[np.float64]
     moved: NDArray[np.bool_]
+    beside_jump: NDArray[np.bool_]
 
 
 def place_left_out(slices: SliceSet, refined: ArrayLike, placed: ArrayLike, expected_error_mm: ArrayLike, *,
                    plane_x_mm: float | None, orders: Sequence[SliceOrder] | None = None) -> LeftOutPlacement:
-    """Move the left-out slices that their stack's smooth motion places (module docstring).
+    """Move the left-out slices that their stack's motion places (module docstring).
 
     Args:
         slices: the job's slice set (stack geometry; a left-out slice needs no pixels).
@@ -83,7 +94,7 @@ def place_left_out(slices: SliceSet, refined: ArrayLike, placed: ArrayLike, expe
     left_out = ~inside & np.isfinite(expected)
     moved = np.zeros(len(poses), bool)
     if not left_out.any() or not inside.any():
-        return LeftOutPlacement(poses, moved)
+        return LeftOutPlacement(poses, moved, moved.copy())
     fit = fit_stack_rigid(replace(slices, include=inside | left_out), poses, plane_x_mm=plane_x_mm,
                           use=inside | left_out, orders=orders,
                           expected_error_mm=np.where(inside, PLACED_MM, expected), error_correlations=(0.0,))
@@ -91,4 +102,43 @@ def place_left_out(slices: SliceSet, refined: ArrayLike, placed: ArrayLike, expe
         near = inside & (slices.stack_index == slices.stack_index[k]) & (np.abs(fit.times - fit.times[k]) <= REACH)
         moved[k] = bool(near.any()) and float(np.nanmax(fit.distance_mm[near])) <= SMOOTH_MM
     poses[moved] = fit.motion_poses[moved]
-    return LeftOutPlacement(poses, moved)
+    beside = beside_a_jump(slices, poses, inside, left_out & ~moved & np.isfinite(fit.times), fit.times,
+                           fit.distance_mm, expected)
+    jumped = np.zeros(len(poses), bool)
+    for k, j in beside.items():
+        poses[k] = poses[j]
+        jumped[k] = True
+    return LeftOutPlacement(poses, moved | jumped, jumped)
+
+
+def beside_a_jump(slices: SliceSet, poses: NDArray, inside: NDArray, candidates: NDArray, times: NDArray,
+                  distance_mm: NDArray, expected_error_mm: NDArray) -> dict[int, int]:
+    """``{left-out slice: placed slice}``: the left-out slices beside a sudden move that take the pose
+    of the placed slice acquired next to them on their side of it.
+
+    Only in a stack whose motion is smooth but for its jumps (the model predicts at least
+    :data:`SMOOTH_SHARE` of its placed slices within :data:`SMOOTH_MM`; under independent motion
+    no neighbour tells where a slice was). The placed slices acquired just before and just after
+    the left-out one (within :data:`REACH`) lie on either side of the jump; the slice's own
+    predicted pose picks a side where it lies within its expected error of that side's neighbour
+    and under :data:`SIDE_RATIO` times its distance to the other side's. A stack is nearly one rigid
+    body from one acquisition to the next, so the slice takes that neighbour's ``atlas_from_voxel``.
+    """
+    frames = frame_from_scanner(slices)
+    out: dict[int, int] = {}
+    for k in np.flatnonzero(candidates):
+        same = inside & (slices.stack_index == slices.stack_index[k])
+        if np.mean(distance_mm[same] <= SMOOTH_MM) < SMOOTH_SHARE:
+            continue
+        sides = [g[pick(times[g])] for g, pick in ((np.flatnonzero(same & (times < times[k])), np.argmax),
+                                                   (np.flatnonzero(same & (times > times[k])), np.argmin)) if len(g)]
+        sides = [j for j in sides if abs(times[j] - times[k]) <= REACH]
+        if not sides:
+            continue
+        to_frame = np.linalg.inv(slices.stack_affine[k]) @ np.linalg.inv(frames[k])
+        own = (poses[k] @ to_frame)[None]
+        d = np.array([ed(own, (poses[j] @ to_frame)[None])[0] for j in sides])
+        i = int(np.argmin(d))
+        if d[i] <= expected_error_mm[k] and (len(d) == 1 or d[i] < SIDE_RATIO * d.max()):
+            out[int(k)] = int(sides[i])
+    return out

@@ -52,20 +52,38 @@ def test_left_out_slices_follow_a_smooth_motion_and_the_placed_ones_stay(acquisi
     np.testing.assert_array_equal(placed.poses[~out], refined[~out])
 
 
-def test_a_slice_beside_a_sudden_move_keeps_its_predicted_pose(acquisition) -> None:  # noqa: ANN001
-    """The fetus jumps 8 mm at slice 10 of every stack: the model bends across the jump, so the slices
-    in the volume next to it disagree with it, and the left-out slice there stays where it was;
-    one far from the jump still follows the motion."""
+def test_a_slice_beside_a_sudden_move_takes_its_side_where_its_prediction_tells(acquisition) -> None:  # noqa: ANN001
+    """The fetus jumps 8 mm along y at slice 10 of every stack: the model bends across the jump, so
+    the slices there are not given its pose. Slice 10, predicted near its truth, takes the pose of
+    the placed slice acquired next on its side of the jump (slice 11); slice 9, predicted halfway
+    between the two sides, keeps its predicted pose; slice 3, far from the jump, follows the motion."""
     ss, truth = moving(acquisition, jump_at=10)
     rng = np.random.default_rng(1)
-    out = left_out_slices(ss, [3, 10])
+    out = left_out_slices(ss, [3, 9, 10])
     refined = perturb(truth, rng, 0.2, 0.3, ss.centres(truth))
-    refined[out] = perturb(truth[out], rng, 2.0, 2.0, ss.centres(truth)[out])
+    refined[out] = perturb(truth[out], rng, 0.5, 0.5, ss.centres(truth)[out])
+    halfway = out & (ss.slice_index == 9)
+    refined[halfway, 1, 3] += 4.0
     placed = place_left_out(ss, refined, ~out, np.where(out, 6.0, 1.0), plane_x_mm=0.0, orders=SEQUENTIAL)
-    at_jump, far = out & (ss.slice_index == 10), out & (ss.slice_index == 3)
-    assert not placed.moved[at_jump].any()
-    np.testing.assert_array_equal(placed.poses[at_jump], refined[at_jump])
+    after, far = out & (ss.slice_index == 10), out & (ss.slice_index == 3)
+    assert not placed.moved[halfway].any()
+    np.testing.assert_array_equal(placed.poses[halfway], refined[halfway])
+    assert placed.moved[after].all() and pose_error_mm(ss, placed.poses, truth, after) < 1.5
+    np.testing.assert_array_equal(placed.poses[after], placed.poses[out.nonzero()[0] + 1][ss.slice_index[out] == 10])
     assert placed.moved[far].all() and pose_error_mm(ss, placed.poses, truth, far) < 1.0
+
+
+def test_beside_a_jump_nothing_moves_where_the_motion_is_independent(acquisition) -> None:  # noqa: ANN001
+    """Every slice of each stack moved independently (10 mm / 10 deg): no placed slice predicts
+    another, so no left-out slice takes a neighbour's pose, however near its prediction lies."""
+    ss, truth = moving(acquisition)
+    rng = np.random.default_rng(2)
+    truth = perturb(truth, rng, 10.0, 10.0, ss.centres(truth))
+    out = left_out_slices(ss, [4, 9, 13])
+    refined = perturb(truth, rng, 0.2, 0.3, ss.centres(truth))
+    refined[out] = refined[np.flatnonzero(out) + 1]                 # each predicted at its next neighbour's pose
+    placed = place_left_out(ss, refined, ~out, np.where(out, 6.0, 1.0), plane_x_mm=0.0, orders=SEQUENTIAL)
+    assert not placed.moved.any()
 
 
 def test_slices_without_an_expected_error_or_without_placed_stack_mates_stay(acquisition) -> None:  # noqa: ANN001
