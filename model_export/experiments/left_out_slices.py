@@ -23,14 +23,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.acquisitions import simulate_acquisition  # noqa: E402
-from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, run_acquisition  # noqa: E402
-from model_export.experiments.refine_bench import network_poses, to_truth_frame  # noqa: E402
+from model_export.experiments.refine_bench import network_poses, to_truth_frame, validation_setup  # noqa: E402
 from service.api.responses import stack_objects  # noqa: E402
 from service.geometry import twin  # noqa: E402
 from service.geometry.anchors import ed  # noqa: E402
-from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
-from service.inference.model_file import load_model  # noqa: E402
 from service.jobs.uploaded_poses import expected_errors  # noqa: E402
 from service.jobs.worker import MIN_ACCEPTED_SHARE, starting_poses  # noqa: E402
 from service.preprocess.stack import stack_from_slice_images  # noqa: E402
@@ -52,11 +49,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=5)
     ap.add_argument("--model", default="service/models/default/model.onnx")
     args = ap.parse_args()
-    if not DEFAULT_ATLAS_ROOT.exists():
-        sys.exit(f"needs the atlas volumes at {DEFAULT_ATLAS_ROOT}")
-    est = OnnxPoseEstimator(load_model(Path(args.model)))
-    plane = est.info.symmetry_plane_x_mm
-    vols = load_volumes(split(DEFAULT_ATLAS_ROOT)[1], DEFAULT_ATLAS_ROOT)
+    est, plane, vols = validation_setup(args.model)
     rng = np.random.default_rng(args.seed)
     for level in args.levels.split(","):
         rows: dict[str, list] = {"job": [], "by the motion model": [], "and beside jumps": []}

@@ -124,6 +124,15 @@ JOBS: dict[str, dict] = {"job": {}, "job-one-resolution": {"path_resolution_mm":
 """The variants that run a job's paths (:func:`reconstruct_never_worse`), and its keywords."""
 
 
+def validation_setup(model: str) -> tuple[OnnxPoseEstimator, float, list]:
+    """The pose model of file ``model``, its atlas mid-sagittal plane and the validation volumes;
+    exits with a message where the atlas data are absent."""
+    if not DEFAULT_ATLAS_ROOT.exists():
+        sys.exit(f"needs the atlas volumes at {DEFAULT_ATLAS_ROOT}")
+    est = OnnxPoseEstimator(load_model(Path(model)))
+    return est, est.info.symmetry_plane_x_mm, load_volumes(split(DEFAULT_ATLAS_ROOT)[1], DEFAULT_ATLAS_ROOT)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", default="service/models/default/model.onnx")
@@ -145,11 +154,7 @@ def main() -> None:
     ap.add_argument("--midline", action="store_true", help="also twin-min against the truth moved so that the "
                     "brain's own midline lies on the atlas plane (frame_bias.py's part 3)")
     args = ap.parse_args()
-    if not DEFAULT_ATLAS_ROOT.exists():
-        sys.exit(f"needs the atlas volumes at {DEFAULT_ATLAS_ROOT}")
-    est = OnnxPoseEstimator(load_model(Path(args.model)))
-    plane = est.info.symmetry_plane_x_mm
-    vols = load_volumes(split(DEFAULT_ATLAS_ROOT)[1], DEFAULT_ATLAS_ROOT)
+    est, plane, vols = validation_setup(args.model)
     rng = np.random.default_rng(args.seed)
     shares = [float(x) for x in args.start_shares.split(",")]
     variants = [f"{v}@{sh:g}" if len(shares) > 1 else v for v in args.variants.split(",") for sh in shares]
