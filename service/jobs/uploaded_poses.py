@@ -144,18 +144,23 @@ def not_rigid(mats: np.ndarray, spacing, tolerance: float = 0.01) -> int | None:
 
 
 def expected_errors(body: dict) -> np.ndarray:
-    """``[n]`` every slice's ``expected_error_mm`` of a ``/v1/predict`` body (stacks in order, slices in
-    the order :func:`poses_from_predict_body` put them), NaN where a slice has none or not a finite,
-    non-negative number (a client's body is read, not trusted).
+    """``[n]`` every slice's ``expected_error_mm`` of a ``/v1/predict`` body (stacks in order, each
+    stack's slices by their ``index``, :func:`in_index_order`, as :func:`poses_from_predict_body`
+    reads the poses), NaN where a slice has none or not a finite, non-negative number (a client's
+    body is read, not trusted).
 
     Example:
         >>> expected_errors({"stacks": [{"slices": [{"expected_error_mm": 2.5}, {"expected_error_mm": None}]},
         ...                             {"slices": [{"expected_error_mm": "x"}, {}]}]}).tolist()
         [2.5, nan, nan, nan]
+        >>> expected_errors({"stacks": [{"slices": [{"index": 1, "expected_error_mm": 4.0},
+        ...                                         {"index": 0, "expected_error_mm": 2.0}]}]}).tolist()
+        [2.0, 4.0]
     """
     def number(value: object) -> float:
         ok = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value) and value >= 0
         return float(value) if ok else np.nan
 
     return np.array([number(s.get("expected_error_mm") if isinstance(s, dict) else None)
-                     for st in body.get("stacks", []) for s in st.get("slices", [])], dtype=np.float64)
+                     for i, st in enumerate(body.get("stacks", [])) for s in in_index_order(st.get("slices", []), i)],
+                    dtype=np.float64)
