@@ -95,14 +95,15 @@ def place_left_out(slices: SliceSet, refined: ArrayLike, placed: ArrayLike, expe
     moved = np.zeros(len(poses), bool)
     if not left_out.any() or not inside.any():
         return LeftOutPlacement(poses, moved, moved.copy())
+    frames = frame_from_scanner(slices)
     fit = fit_stack_rigid(replace(slices, include=inside | left_out), poses, plane_x_mm=plane_x_mm,
-                          use=inside | left_out, orders=orders,
+                          use=inside | left_out, orders=orders, frames=frames,
                           expected_error_mm=np.where(inside, PLACED_MM, expected), error_correlations=(0.0,))
     for k in np.flatnonzero(left_out & np.isfinite(fit.times)):
         near = inside & (slices.stack_index == slices.stack_index[k]) & (np.abs(fit.times - fit.times[k]) <= REACH)
         moved[k] = bool(near.any()) and float(np.nanmax(fit.distance_mm[near])) <= SMOOTH_MM
     poses[moved] = fit.motion_poses[moved]
-    beside = beside_a_jump(slices, poses, inside, left_out & ~moved & np.isfinite(fit.times), fit.times,
+    beside = beside_a_jump(slices, frames, poses, inside, left_out & ~moved & np.isfinite(fit.times), fit.times,
                            fit.distance_mm, expected)
     jumped = np.zeros(len(poses), bool)
     for k, j in beside.items():
@@ -111,10 +112,11 @@ def place_left_out(slices: SliceSet, refined: ArrayLike, placed: ArrayLike, expe
     return LeftOutPlacement(poses, moved | jumped, jumped)
 
 
-def beside_a_jump(slices: SliceSet, poses: NDArray, inside: NDArray, candidates: NDArray, times: NDArray,
-                  distance_mm: NDArray, expected_error_mm: NDArray) -> dict[int, int]:
+def beside_a_jump(slices: SliceSet, frames: NDArray, poses: NDArray, inside: NDArray, candidates: NDArray,
+                  times: NDArray, distance_mm: NDArray, expected_error_mm: NDArray) -> dict[int, int]:
     """``{left-out slice: placed slice}``: the left-out slices beside a sudden move that take the pose
-    of the placed slice acquired next to them on their side of it.
+    of the placed slice acquired next to them on their side of it (``frames``: the slices'
+    :func:`~service.reconstruction.stack_rigid.frame_from_scanner`).
 
     Only in a stack whose motion is smooth but for its jumps (the model predicts at least
     :data:`SMOOTH_SHARE` of its placed slices within :data:`SMOOTH_MM`; under independent motion
@@ -124,12 +126,12 @@ def beside_a_jump(slices: SliceSet, poses: NDArray, inside: NDArray, candidates:
     and under :data:`SIDE_RATIO` times its distance to the other side's. A stack is nearly one rigid
     body from one acquisition to the next, so the slice takes that neighbour's ``atlas_from_voxel``.
     """
-    frames = frame_from_scanner(slices)
+    stacks = slices.stack_index
+    smooth = (np.bincount(stacks, inside & (distance_mm <= SMOOTH_MM), minlength=stacks.max() + 1)
+              >= SMOOTH_SHARE * np.bincount(stacks, inside, minlength=stacks.max() + 1))
     out: dict[int, int] = {}
-    for k in np.flatnonzero(candidates):
-        same = inside & (slices.stack_index == slices.stack_index[k])
-        if np.mean(distance_mm[same] <= SMOOTH_MM) < SMOOTH_SHARE:
-            continue
+    for k in np.flatnonzero(candidates & smooth[stacks]):
+        same = inside & (stacks == stacks[k])
         sides = [g[pick(times[g])] for g, pick in ((np.flatnonzero(same & (times < times[k])), np.argmax),
                                                    (np.flatnonzero(same & (times > times[k])), np.argmin)) if len(g)]
         sides = [j for j in sides if abs(times[j] - times[k]) <= REACH]

@@ -136,7 +136,8 @@ def frame_from_scanner(slices: SliceSet) -> NDArray[np.float64]:
 def fit_stack_rigid(slices: SliceSet, atlas_from_voxel: ArrayLike | None = None, *,
                     plane_x_mm: float | None = None, use: ArrayLike | None = None,
                     orders: Sequence[SliceOrder] | None = None, expected_error_mm: ArrayLike | None = None,
-                    error_correlations: tuple[float, ...] = ERROR_CORRELATIONS) -> StackFit:
+                    error_correlations: tuple[float, ...] = ERROR_CORRELATIONS,
+                    frames: NDArray | None = None) -> StackFit:
     """Per-stack ``atlas_from_scanner`` from per-slice poses by the stack-consistency stage (module docstring).
 
     Args:
@@ -149,6 +150,7 @@ def fit_stack_rigid(slices: SliceSet, atlas_from_voxel: ArrayLike | None = None,
         expected_error_mm: ``[n]`` each pose's expected E.D. (the stage weighs the slices by it; NaN:
             unknown); default: the stage estimates one error for all from acquisition neighbours.
         error_correlations: how alike neighbouring slices' errors may be (:func:`fit_stack`).
+        frames: the slices' :func:`frame_from_scanner`, where the caller has them already.
 
     Returns:
         The :class:`StackFit`.
@@ -156,7 +158,7 @@ def fit_stack_rigid(slices: SliceSet, atlas_from_voxel: ArrayLike | None = None,
     poses = np.asarray(slices.atlas_from_voxel if atlas_from_voxel is None else atlas_from_voxel, np.float64)
     use = slices.include.copy() if use is None else np.asarray(use, bool) & slices.include
     n, n_stacks = slices.n_slices, int(slices.stack_index.max()) + 1
-    n_k = frame_from_scanner(slices)
+    n_k = frame_from_scanner(slices) if frames is None else np.asarray(frames, np.float64)
     x_all = poses @ np.linalg.inv(slices.stack_affine)                   # atlas_from_scanner per slice
     frame_poses = x_all @ se3.inverse(n_k)
     out = np.repeat(np.eye(4)[None], n_stacks, axis=0)
