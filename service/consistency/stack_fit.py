@@ -261,8 +261,8 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
         sig = np.full(n, np.sqrt(max(noise2, MIN_NOISE_MM ** 2)))
     votes = np.where(inliers, sig / np.sqrt(np.maximum(tukey, 1e-12)), NO_VOTE)
     grid = Grid(error_correlations=tuple(error_correlations))
-    first = FIRST_GRID if set(FIRST_GRID.error_correlations) <= set(grid.error_correlations) else \
-        Grid(error_correlations=grid.error_correlations[:1])
+    first = FIRST_GRID if set(FIRST_GRID.error_correlations) <= set(error_correlations) else Grid(
+        error_correlations=grid.error_correlations[:1])             # the first fit only re-weighs: one correlation
     motion = fit_motion(chosen, s, votes, orders, centre, first, **shape)
     # a slice far from the rigid fit may just have moved: every usable slice is weighed again by
     # how well the others predict it, in units of the spread both errors explain
