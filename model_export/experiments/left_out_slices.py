@@ -5,8 +5,9 @@ Each acquisition is predicted through the server's pipeline and reconstructed as
 never-worse paths, 1.5 mm, 3 rounds); the left-out slices are then placed. Printed per acquisition
 and level: how many left-out slices moved, their mean E.D. in the acquisition's own frame (its
 common frame undone) before and after, and every slice's mean E.D. against the truth and twin-min,
-without the step, with the motion model's moves alone and with those beside jumps too (before the
-frame steps), and on how many acquisitions the step made the twin-min mean worse. Needs ``../shared/data``.
+without the step, with the motion model's moves alone, with those beside jumps too, and with the
+left-out slices then registered to the volume (before the frame steps), and on how many acquisitions
+the whole step made the twin-min mean worse. Needs ``../shared/data``.
 
     .venv/bin/python model_export/experiments/left_out_slices.py [--levels mild,moderate,jumps,independent]
         [--per-level 5] [--seed 5]
@@ -31,7 +32,7 @@ from service.geometry.anchors import ed  # noqa: E402
 from service.jobs.uploaded_poses import expected_errors  # noqa: E402
 from service.jobs.worker import MIN_ACCEPTED_SHARE, starting_poses  # noqa: E402
 from service.preprocess.stack import stack_from_slice_images  # noqa: E402
-from service.reconstruction.left_out import place_left_out  # noqa: E402
+from service.reconstruction.left_out import VolumeReference, place_left_out  # noqa: E402
 from service.reconstruction.never_worse import reconstruct_never_worse  # noqa: E402
 from service.reconstruction.pipeline import ReconstructionConfig  # noqa: E402
 from service.reconstruction.slices import SliceSet  # noqa: E402
@@ -52,7 +53,7 @@ def main() -> None:
     est, plane, vols = validation_setup(args.model)
     rng = np.random.default_rng(args.seed)
     for level in args.levels.split(","):
-        rows: dict[str, list] = {"job": [], "by the motion model": [], "and beside jumps": []}
+        rows: dict[str, list] = {"job": [], "by the motion model": [], "and beside jumps": [], "and by the volume": []}
         worse = 0
         for a in range(args.per_level):
             vol = vols[a % len(vols)]
@@ -64,6 +65,10 @@ def main() -> None:
                                        in zip(stacks, masks, starting_poses(body, MIN_ACCEPTED_SHARE))])
             res = reconstruct_never_worse(ss, 1.5, 3, config=ReconstructionConfig(symmetry_plane_x_mm=plane))
             placed = place_left_out(ss, res.atlas_from_voxel_final, res.included, expected_errors(body), plane_x_mm=plane)
+            every = SliceSet.from_stacks([(s.volume, m, mats, np.ones(len(mats), bool)) for s, m, (mats, _)
+                                          in zip(stacks, masks, starting_poses(body, MIN_ACCEPTED_SHARE))])
+            by_volume = place_left_out(ss, res.atlas_from_voxel_final, res.included, expected_errors(body),
+                                       plane_x_mm=plane, volume=VolumeReference(res.volume.array, res.grid, every))
             keep = np.concatenate([p.prepared.mask_pixels >= MIN_MASK_PIXELS for p in prepared])
 
             def scores(transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -73,17 +78,21 @@ def main() -> None:
 
             by_model = placed.poses.copy()
             by_model[placed.beside_jump] = res.atlas_from_voxel_final[placed.beside_jump]
-            before, after = scores(res.atlas_from_voxel_final), scores(placed.poses)
+            before, after, registered = (scores(res.atlas_from_voxel_final), scores(placed.poses),
+                                         scores(by_volume.poses))
             rows["job"].append(before)
             rows["by the motion model"].append(scores(by_model))
             rows["and beside jumps"].append(after)
+            rows["and by the volume"].append(registered)
             out, moved = ~res.included[keep], placed.moved[keep]
-            worse += int(after[2].mean() > before[2].mean() + 1e-9)
+            worse += int(registered[2].mean() > before[2].mean() + 1e-9)
             print(f"{level} {vol.name}: {int(moved.sum())} of {int(out.sum())} left-out slices moved "
                   f"({int(placed.beside_jump[keep].sum())} beside a jump, twin-min without them "
                   f"{rows['by the motion model'][-1][2].mean():.2f} mm); left out, own "
                   f"frame {mean(before[0][out]):.2f} -> {mean(after[0][out]):.2f} mm; all slices, truth / twin-min "
-                  f"{before[1].mean():.2f} / {before[2].mean():.2f} -> {after[1].mean():.2f} / {after[2].mean():.2f} mm",
+                  f"{before[1].mean():.2f} / {before[2].mean():.2f} -> {after[1].mean():.2f} / {after[2].mean():.2f} mm; "
+                  f"{int(by_volume.registered[keep].sum())} registered to the volume: left out, own frame "
+                  f"{mean(registered[0][out]):.2f} mm, all slices {registered[1].mean():.2f} / {registered[2].mean():.2f} mm",
                   flush=True)
         for name, v in rows.items():
             own, truth, tmin = (np.concatenate([x[i] for x in v]).mean() for i in range(3))

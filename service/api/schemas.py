@@ -147,6 +147,9 @@ class RefinedSlice(SliceResult):
     weight: Optional[float] = None
     ncc: Optional[float] = Field(None, description="NCC between the slice and the volume simulated at its pose")
     held_out_ncc: Optional[float] = Field(None, description="the same against the volume made without its stack")
+    placed_by_stack_motion: Optional[bool] = Field(None, description="left out of the volume, placed by its stack's "
+                                                   "motion through the slices in it")
+    placed_by_volume: Optional[bool] = Field(None, description="left out of the volume, registered to it")
 
 
 class RefinedStack(StackResult):
@@ -256,6 +259,7 @@ def job_poses(body: dict) -> dict:
         stack.pop("filename", None)
         (stack.get("consistency") or {}).pop("acquisition_order", None)
         for s in stack.get("slices", []):
-            for made_by_the_job in ("exclusion_reason", "weight", "ncc", "held_out_ncc"):
+            for made_by_the_job in ("exclusion_reason", "weight", "ncc", "held_out_ncc", "placed_by_stack_motion",
+                                    "placed_by_volume"):
                 s.pop(made_by_the_job, None)
     return kept

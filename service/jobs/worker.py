@@ -271,7 +271,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     from service.reconstruction.export import write_outputs
     from service.preprocess.stack import split_stack
     from service.reconstruction.atlas_frame import atlas_frame, with_frame
-    from service.reconstruction.left_out import place_left_out
+    from service.reconstruction.left_out import VolumeReference, place_left_out
     from service.reconstruction.midline import midline_fit
     from service.reconstruction.never_worse import held_out_score, reconstruct_never_worse
     from service.reconstruction.pipeline import ReconstructionConfig
@@ -324,8 +324,11 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
                                      progress=lambda stage, f: progress(stage, 0.15 + 0.8 * f),
                                      config=ReconstructionConfig(symmetry_plane_x_mm=plane,
                                                                  slice_orders=tuple(known_orders)))
+    every_slice = SliceSet.from_stacks([(u.volume, m, mats, np.ones(len(mats), bool))
+                                        for u, m, (mats, _) in zip(uploads, masks, poses)])
     left_out = place_left_out(slice_set, result.atlas_from_voxel_final, result.included, expected_errors(body),
-                              plane_x_mm=plane, orders=known_orders)
+                              plane_x_mm=plane, orders=known_orders,
+                              volume=VolumeReference(result.volume.array, result.grid, every_slice))
     result = replace(result, atlas_from_voxel_final=left_out.poses)
     frame = None
     if params.get("atlas_frame", True):
@@ -340,7 +343,8 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     # The report's timings: the winning path's stages and ``total``, every path's (``all_paths``), and
     # the job's up to the writing of its outputs (``job``: prediction and the frame steps included).
     result.timings = {**result.timings, "job": time.perf_counter() - t0}
-    extra = {"started_from": started_from, "left_out_placed_by_stack_motion": int(left_out.moved.sum())}
+    extra = {"started_from": started_from, "left_out_placed_by_stack_motion": int(left_out.moved.sum()),
+             "left_out_placed_by_volume": int(left_out.registered.sum())}
     if frame is not None:
         extra.update(atlas_frame=frame.report(), midline=midline.report())
     report = write_outputs(result, slice_set, folder / "outputs", extra=extra)
@@ -348,7 +352,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     refined = refined_poses_body(body, result.atlas_from_voxel_final, slice_frames, included=result.included,
                                  weight=result.slice_weight, ncc=result.ncc, held_out_ncc=result.held_out_ncc,
                                  reasons=result.exclusion_reason, job_id=job_id,
-                                 placed_by_stack_motion=left_out.moved)
+                                 placed_by_stack_motion=left_out.moved, placed_by_volume=left_out.registered)
     for i, stack in enumerate(refined.get("stacks", [])):
         # Results are kept until the retention limit; the clients' file names (often patient names)
         # are not: a stack is named by its place in the upload.

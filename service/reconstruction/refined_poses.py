@@ -66,7 +66,8 @@ def pose_fields(poses: ArrayLike) -> list[dict]:
 def refined_poses_body(predict_body: dict, refined: ArrayLike, slice_from_voxel: list[NDArray], *,
                        included: ArrayLike, weight: ArrayLike, ncc: ArrayLike, reasons: list[str | None],
                        job_id: str, held_out_ncc: ArrayLike | None = None,
-                       placed_by_stack_motion: ArrayLike | None = None) -> dict:
+                       placed_by_stack_motion: ArrayLike | None = None,
+                       placed_by_volume: ArrayLike | None = None) -> dict:
     """A ``/v1/predict``-shaped body with the refined poses of every slice.
 
     Args:
@@ -79,6 +80,7 @@ def refined_poses_body(predict_body: dict, refined: ArrayLike, slice_from_voxel:
             not measured; null per slice).
         placed_by_stack_motion: per slice, left out of the volume and placed by its stack's motion
             through the slices in it (:mod:`~service.reconstruction.left_out`; None: none).
+        placed_by_volume: per slice, left out of the volume and registered to it (None: none).
         job_id: the job (``refined_by``).
 
     Returns:
@@ -88,7 +90,8 @@ def refined_poses_body(predict_body: dict, refined: ArrayLike, slice_from_voxel:
     a_new = np.asarray(refined, dtype=np.float64)
     inc, w, c = np.asarray(included, bool), np.asarray(weight, np.float64), np.asarray(ncc, np.float64)
     held = np.full(len(c), np.nan) if held_out_ncc is None else np.asarray(held_out_ncc, np.float64)
-    by_motion = np.zeros(len(c), bool) if placed_by_stack_motion is None else np.asarray(placed_by_stack_motion, bool)
+    by_motion, by_volume = (np.zeros(len(c), bool) if flags is None else np.asarray(flags, bool)
+                            for flags in (placed_by_stack_motion, placed_by_volume))
     start = 0
     for stack, sfv in zip(body["stacks"], slice_from_voxel):
         slices = stack["slices"]
@@ -108,7 +111,8 @@ def refined_poses_body(predict_body: dict, refined: ArrayLike, slice_from_voxel:
             s.update(fields)
             s["atlas_from_voxel"] = a_new[i].tolist()
             s.update(included=bool(inc[i]), exclusion_reason=reasons[i], weight=_num(w[i]), ncc=_num(c[i]),
-                     held_out_ncc=_num(held[i]), placed_by_stack_motion=bool(by_motion[i]))
+                     held_out_ncc=_num(held[i]), placed_by_stack_motion=bool(by_motion[i]),
+                     placed_by_volume=bool(by_volume[i]))
         start += n
     body.setdefault("request_id", job_id)
     body.setdefault("timing_ms", {})

@@ -116,8 +116,11 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
         np.testing.assert_allclose(rot @ rot.T, np.eye(3), atol=1e-9)
         assert len(got["anchor_points_mm"]) == 3 and len(got["quaternion_wxyz"]) == 4
     moved = [s["placed_by_stack_motion"] for s in slices]        # left out of the volume, placed by their stack's motion
+    registered = [s["placed_by_volume"] for s in slices]         # or registered to it
     assert sum(moved) == report["left_out_placed_by_stack_motion"]
-    assert not any(s["included"] for s, m in zip(slices, moved) if m)
+    assert sum(registered) == report["left_out_placed_by_volume"]
+    assert not any(s["included"] or r for s, m, r in zip(slices, moved, registered) if m)
+    assert not any(s["included"] for s, r in zip(slices, registered) if r)
     assert submit(client, case, poses=body).status_code == 202
     # The per-slice transforms: a zip of one .tfm per slice, each F A P^-1 F (docs/reconstruction.md).
     assert st["transforms_url"] == f"/v1/reconstructions/{job_id}/transforms"
