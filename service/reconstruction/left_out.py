@@ -19,8 +19,7 @@ predicts another).
 Given the job's volume (:class:`VolumeReference`), every left-out slice whose brain section is large
 enough (:data:`MIN_AREA_MM2`) is then registered to it from a few starts: its pose so far, the
 motion model's, and the placed slices acquired next to it on either side. The registered pose with
-the highest NCC is taken where that NCC reaches what most placed slices reach
-(:data:`NCC_QUANTILE`). Several starts, because from a start beyond the registration's reach a
+the highest NCC is taken where that NCC comes near the placed slices' (:data:`NCC_RATIO`). Several starts, because from a start beyond the registration's reach a
 slice settles in a poorer optimum (lower NCC) than from the right side of a jump; large sections
 only, because a cap of the brain fits the volume about as well at poses centimetres apart.
 
@@ -70,13 +69,14 @@ SIDE_RATIO = 0.5
 its predicted pose as the other side's (:func:`beside_a_jump`)."""
 MIN_AREA_MM2 = 600.0
 """A left-out slice is registered to the volume when its brain section covers at least this area
-(about a 28 mm disc): on simulated acquisitions, smaller sections (the brain's caps) reached an NCC
-of 0.93-0.95 at poses 5-20 mm from the truth."""
+(about a 28 mm disc): smaller sections (the brain's caps) fit the volume as well at poses
+centimetres from the truth."""
 START_REACH = 3
 """The placed slices acquired within this many acquisitions of a left-out one give it a start."""
-NCC_QUANTILE = 0.25
-"""A left-out slice takes its registered pose where its NCC with the volume reaches this quantile
-of the placed slices' NCC (by the same measure)."""
+NCC_RATIO = 0.9
+"""A left-out slice takes its registered pose where its NCC with the volume reaches this fraction of
+the placed slices' median NCC (by the same measure): a slice that fits the volume nearly as well as
+the slices that made it (docs/reports/reconstruction-experiments.md)."""
 REGISTRATION_STEP_MM = 2.0
 """The registration's first trust radius (mm == degrees)."""
 
@@ -160,7 +160,7 @@ def place_left_out(slices: SliceSet, refined: ArrayLike, placed: ArrayLike, expe
 def register_left_out(volume: VolumeReference, poses: NDArray, motion_poses: NDArray, inside: NDArray,
                       left_out: NDArray, stack_index: NDArray, times: NDArray) -> NDArray[np.bool_]:
     """Register the left-out slices with a large enough brain section to ``volume`` from each start
-    (module docstring) and move those whose best NCC reaches the placed slices' :data:`NCC_QUANTILE`;
+    (module docstring) and move those whose best NCC reaches :data:`NCC_RATIO` of the placed slices' median;
     ``poses`` is updated in place. Returns the slices moved."""
     ref = volume.slices
     area = ref.pixel_counts() * ref.pixel_mm ** 2
@@ -181,7 +181,7 @@ def register_left_out(volume: VolumeReference, poses: NDArray, motion_poses: NDA
                               max_iterations=30, step_mm=REGISTRATION_STEP_MM)
         better = ok & reg.registered & (np.nan_to_num(reg.ncc, nan=-np.inf) > best)
         best_pose[better], best[better] = reg.atlas_from_voxel[better], reg.ncc[better]
-    moved = candidates & (best >= np.quantile(placed_ncc, NCC_QUANTILE))
+    moved = candidates & (best >= NCC_RATIO * np.median(placed_ncc))
     poses[moved] = best_pose[moved]
     return moved
 
