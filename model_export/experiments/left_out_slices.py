@@ -61,14 +61,13 @@ def main() -> None:
             (predictions,), prepared, _ = run_acquisition(stacks, est, 100, True)
             body = {"stacks": stack_objects(predictions)}
             masks = [stack_from_slice_images(p.slices.masks, p.slices.slice_axis) for p in prepared]
-            ss = SliceSet.from_stacks([(s.volume, m, mats, inc) for s, m, (mats, inc)
-                                       in zip(stacks, masks, starting_poses(body, MIN_ACCEPTED_SHARE))])
+            inputs = [(s.volume, m, mats, inc) for s, m, (mats, inc)
+                      in zip(stacks, masks, starting_poses(body, MIN_ACCEPTED_SHARE))]
+            ss = SliceSet.from_stacks(inputs)
             res = reconstruct_never_worse(ss, 1.5, 3, config=ReconstructionConfig(symmetry_plane_x_mm=plane))
             placed = place_left_out(ss, res.atlas_from_voxel_final, res.included, expected_errors(body), plane_x_mm=plane)
-            every = SliceSet.from_stacks([(s.volume, m, mats, np.ones(len(mats), bool)) for s, m, (mats, _)
-                                          in zip(stacks, masks, starting_poses(body, MIN_ACCEPTED_SHARE))])
             by_volume = place_left_out(ss, res.atlas_from_voxel_final, res.included, expected_errors(body),
-                                       plane_x_mm=plane, volume=VolumeReference(res.volume.array, res.grid, every))
+                                       plane_x_mm=plane, volume=VolumeReference.of(res, inputs))
             keep = np.concatenate([p.prepared.mask_pixels >= MIN_MASK_PIXELS for p in prepared])
 
             def scores(transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

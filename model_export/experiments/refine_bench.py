@@ -47,7 +47,7 @@ from service.jobs.uploaded_poses import expected_errors
 from service.jobs.worker import MIN_ACCEPTED_SHARE, starting_poses
 from service.preprocess.stack import stack_from_slice_images
 from service.reconstruction.atlas_frame import atlas_frame, with_frame
-from service.reconstruction.left_out import place_left_out
+from service.reconstruction.left_out import VolumeReference, place_left_out
 from service.reconstruction.midline import midline_fit
 from service.reconstruction.never_worse import held_out_score, reconstruct_never_worse
 from service.reconstruction.pipeline import ReconstructionConfig, reconstruct
@@ -180,7 +180,8 @@ def main() -> None:
                 poses = starting_poses(body, float(share or shares[0]))
                 if args.start == "truth":
                     poses = [(s.atlas_from_voxel, inc) for s, (_, inc) in zip(stacks, poses)]
-                ss = SliceSet.from_stacks([(s.volume, m, mats, inc) for s, m, (mats, inc) in zip(stacks, masks, poses)])
+                inputs = [(s.volume, m, mats, inc) for s, m, (mats, inc) in zip(stacks, masks, poses)]
+                ss = SliceSet.from_stacks(inputs)
                 if name == variants[0]:
                     rows["predicted"].append(errors(stacks, prepared, ss.atlas_from_voxel, plane, mid))
                 t = time.perf_counter()
@@ -188,7 +189,7 @@ def main() -> None:
                 if variant in JOBS:
                     res = reconstruct_never_worse(ss, args.resolution, args.rounds, config=config, **JOBS[variant])
                     left_out = place_left_out(ss, res.atlas_from_voxel_final, res.included, expected_errors(body),
-                                              plane_x_mm=plane)
+                                              plane_x_mm=plane, volume=VolumeReference.of(res, inputs))
                     res = replace(res, atlas_from_voxel_final=left_out.poses)
                 else:
                     res = reconstruct(ss, resolution_mm=args.resolution, svr_iterations=args.rounds, config=config)

@@ -318,17 +318,15 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         started_from = start_label(body, poses)
     progress("reconstructing", 0.15)
     known_orders = stack_orders(orders, uploads)
-    slice_set = SliceSet.from_stacks([(u.volume, m, mats, acc) for u, m, (mats, acc) in zip(uploads, masks, poses)])
+    stack_inputs = [(u.volume, m, mats, acc) for u, m, (mats, acc) in zip(uploads, masks, poses)]
+    slice_set = SliceSet.from_stacks(stack_inputs)
     result = reconstruct_never_worse(slice_set, resolution_mm=float(params.get("resolution_mm", 0.8)),
                                      svr_iterations=int(params.get("svr_iterations", 3)),
                                      progress=lambda stage, f: progress(stage, 0.15 + 0.8 * f),
                                      config=ReconstructionConfig(symmetry_plane_x_mm=plane,
                                                                  slice_orders=tuple(known_orders)))
-    every_slice = SliceSet.from_stacks([(u.volume, m, mats, np.ones(len(mats), bool))
-                                        for u, m, (mats, _) in zip(uploads, masks, poses)])
     left_out = place_left_out(slice_set, result.atlas_from_voxel_final, result.included, expected_errors(body),
-                              plane_x_mm=plane, orders=known_orders,
-                              volume=VolumeReference(result.volume.array, result.grid, every_slice))
+                              plane_x_mm=plane, orders=known_orders, volume=VolumeReference.of(result, stack_inputs))
     result = replace(result, atlas_from_voxel_final=left_out.poses)
     frame = None
     if params.get("atlas_frame", True):

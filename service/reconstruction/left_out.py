@@ -49,8 +49,9 @@ from numpy.typing import ArrayLike, NDArray
 from service.consistency.slice_order import SliceOrder
 from service.geometry.anchors import ed
 from service.reconstruction.grid import Grid
+from service.reconstruction.pipeline import ReconstructionResult
 from service.reconstruction.registration import register_slices
-from service.reconstruction.slices import SliceSet
+from service.reconstruction.slices import SliceSet, StackInput
 from service.reconstruction.stack_rigid import fit_stack_rigid, frame_from_scanner
 
 PLACED_MM = 1.0
@@ -113,6 +114,13 @@ class VolumeReference:
     array: NDArray
     grid: Grid
     slices: SliceSet
+
+    @classmethod
+    def of(cls, result: ReconstructionResult, stacks: Sequence[StackInput]) -> VolumeReference:
+        """The volume of a job's ``result``, and every slice of the job's ``stacks`` (as
+        :meth:`~service.reconstruction.slices.SliceSet.from_stacks` takes them; every slice included)."""
+        return cls(result.volume.array, result.grid,
+                   SliceSet.from_stacks([(v, m, mats, np.ones(len(mats), bool)) for v, m, mats, _ in stacks]))
 
 
 def place_left_out(slices: SliceSet, refined: ArrayLike, placed: ArrayLike, expected_error_mm: ArrayLike, *,
