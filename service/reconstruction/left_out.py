@@ -78,6 +78,9 @@ NCC_RATIO = 0.9
 """A left-out slice takes its registered pose where its NCC with the volume reaches this fraction of
 the placed slices' median NCC (by the same measure): a slice that fits the volume nearly as well as
 the slices that made it (docs/reports/reconstruction-experiments.md)."""
+NCC_GAIN = 0.03
+"""...and where it fits the volume by at least this much better than the slice's pose so far: a slice
+the earlier rules placed well gains a few thousandths, within the registration's own scatter."""
 REGISTRATION_STEP_MM = 2.0
 """The registration's first trust radius (mm == degrees)."""
 
@@ -168,7 +171,8 @@ def place_left_out(slices: SliceSet, refined: ArrayLike, placed: ArrayLike, expe
 def register_left_out(volume: VolumeReference, poses: NDArray, motion_poses: NDArray, inside: NDArray,
                       left_out: NDArray, stack_index: NDArray, times: NDArray) -> NDArray[np.bool_]:
     """Register the left-out slices with a large enough brain section to ``volume`` from each start
-    (module docstring) and move those whose best NCC reaches :data:`NCC_RATIO` of the placed slices' median;
+    (module docstring) and move those whose best NCC reaches :data:`NCC_RATIO` of the placed slices' median
+    and exceeds their NCC so far by :data:`NCC_GAIN`;
     ``poses`` is updated in place. Returns the slices moved."""
     ref = volume.slices
     area = ref.pixel_counts() * ref.pixel_mm ** 2
@@ -176,8 +180,8 @@ def register_left_out(volume: VolumeReference, poses: NDArray, motion_poses: NDA
     moved = np.zeros(len(poses), bool)
     if not candidates.any():
         return moved
-    placed_ncc = register_slices(volume.array, volume.grid, ref, poses, active=inside, max_iterations=0).ncc[inside]
-    placed_ncc = placed_ncc[np.isfinite(placed_ncc)]
+    now = register_slices(volume.array, volume.grid, ref, poses, active=inside | candidates, max_iterations=0).ncc
+    placed_ncc = now[inside & np.isfinite(now)]
     if not len(placed_ncc):
         return moved
     best_pose, best = poses.copy(), np.full(len(poses), -np.inf)
@@ -189,7 +193,7 @@ def register_left_out(volume: VolumeReference, poses: NDArray, motion_poses: NDA
                               max_iterations=30, step_mm=REGISTRATION_STEP_MM)
         better = ok & reg.registered & (np.nan_to_num(reg.ncc, nan=-np.inf) > best)
         best_pose[better], best[better] = reg.atlas_from_voxel[better], reg.ncc[better]
-    moved = candidates & (best >= NCC_RATIO * np.median(placed_ncc))
+    moved = candidates & (best >= NCC_RATIO * np.median(placed_ncc)) & (best >= np.nan_to_num(now, nan=-1.0) + NCC_GAIN)
     poses[moved] = best_pose[moved]
     return moved
 
