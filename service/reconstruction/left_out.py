@@ -81,6 +81,9 @@ the slices that made it (docs/reports/reconstruction-experiments.md)."""
 NCC_GAIN = 0.03
 """...and where it fits the volume by at least this much better than the slice's pose so far: a slice
 the earlier rules placed well gains a few thousandths, within the registration's own scatter."""
+MIN_MOVE_MM = 2.0
+"""...and where it moves the slice's pixels this far on average: nearer, the registration's own
+scatter about the volume's optimum is as large as the move."""
 REGISTRATION_STEP_MM = 2.0
 """The registration's first trust radius (mm == degrees)."""
 
@@ -172,7 +175,7 @@ def register_left_out(volume: VolumeReference, poses: NDArray, motion_poses: NDA
                       left_out: NDArray, stack_index: NDArray, times: NDArray) -> NDArray[np.bool_]:
     """Register the left-out slices with a large enough brain section to ``volume`` from each start
     (module docstring) and move those whose best NCC reaches :data:`NCC_RATIO` of the placed slices' median
-    and exceeds their NCC so far by :data:`NCC_GAIN`;
+    and exceeds their NCC so far by :data:`NCC_GAIN`, over a move of :data:`MIN_MOVE_MM` at least;
     ``poses`` is updated in place. Returns the slices moved."""
     ref = volume.slices
     area = ref.pixel_counts() * ref.pixel_mm ** 2
@@ -194,8 +197,17 @@ def register_left_out(volume: VolumeReference, poses: NDArray, motion_poses: NDA
         better = ok & reg.registered & (np.nan_to_num(reg.ncc, nan=-np.inf) > best)
         best_pose[better], best[better] = reg.atlas_from_voxel[better], reg.ncc[better]
     moved = candidates & (best >= NCC_RATIO * np.median(placed_ncc)) & (best >= np.nan_to_num(now, nan=-1.0) + NCC_GAIN)
+    moved &= mean_shift_mm(ref, poses, best_pose, moved) >= MIN_MOVE_MM
     poses[moved] = best_pose[moved]
     return moved
+
+
+def mean_shift_mm(slices: SliceSet, a: NDArray, b: NDArray, which: NDArray) -> NDArray[np.float64]:
+    """``[n]`` how far the pixels of each slice of ``which`` lie apart under poses ``a`` and ``b`` (mean, mm; 0 elsewhere)."""
+    pixels = np.flatnonzero(which[slices.slice_id])
+    d = np.linalg.norm(slices.positions(a, pixels) - slices.positions(b, pixels), axis=1)
+    sid = slices.slice_id[pixels]
+    return np.bincount(sid, d, slices.n_slices) / np.maximum(np.bincount(sid, minlength=slices.n_slices), 1)
 
 
 def neighbour_starts(poses: NDArray, inside: NDArray, candidates: NDArray, stack_index: NDArray,
