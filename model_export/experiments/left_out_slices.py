@@ -91,8 +91,8 @@ def main() -> None:
                   f"frame {mean(before[0][out]):.2f} -> {mean(after[0][out]):.2f} mm; all slices, truth / twin-min "
                   f"{before[1].mean():.2f} / {before[2].mean():.2f} -> {after[1].mean():.2f} / {after[2].mean():.2f} mm; "
                   f"{int(by_volume.registered[keep].sum())} registered to the volume: left out, own frame "
-                  f"{mean(registered[0][out]):.2f} mm, all slices {registered[1].mean():.2f} / {registered[2].mean():.2f} mm",
-                  flush=True)
+                  f"{mean(registered[0][out]):.2f} mm, all slices {registered[1].mean():.2f} / "
+                  f"{registered[2].mean():.2f} mm", flush=True)
         for name, v in rows.items():
             own, truth, tmin = (np.concatenate([x[i] for x in v]).mean() for i in range(3))
             print(f"== {level} {name}: mean E.D. own frame {own:.2f}, truth {truth:.2f}, twin-min {tmin:.2f} mm", flush=True)

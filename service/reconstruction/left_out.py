@@ -19,9 +19,12 @@ predicts another).
 Given the job's volume (:class:`VolumeReference`), every left-out slice whose brain section is large
 enough (:data:`MIN_AREA_MM2`) is then registered to it from a few starts: its pose so far, the
 motion model's, and the placed slices acquired next to it on either side. The registered pose with
-the highest NCC is taken where that NCC comes near the placed slices' (:data:`NCC_RATIO`). Several starts, because from a start beyond the registration's reach a
-slice settles in a poorer optimum (lower NCC) than from the right side of a jump; large sections
-only, because a cap of the brain fits the volume about as well at poses centimetres apart.
+the highest NCC is taken where that NCC comes near the placed slices' (:data:`NCC_RATIO`), clearly
+above the slice's own so far (:data:`NCC_GAIN`), over a move beyond the registration's scatter
+(:data:`MIN_MOVE_MM`) (:func:`register_left_out`). Several starts, because from a start beyond the
+registration's reach a slice settles in a poorer optimum (lower NCC) than from the right side of a
+jump; large sections only, because a cap of the brain fits the volume about as well at poses
+centimetres apart.
 
 Example (a rigid stack of 12 slices, the volume placed 10 of them; the two others start 6 mm off
 and take the stack's pose):
@@ -101,9 +104,9 @@ class LeftOutPlacement:
     poses: NDArray[np.float64]
     moved: NDArray[np.bool_]
     beside_jump: NDArray[np.bool_]
-    registered: NDArray[np.bool_] | None = None
+    registered: NDArray[np.bool_]
     """``[n]`` the left-out slices that took their pose from the volume (:class:`VolumeReference`);
-    ``moved`` no longer counts them."""
+    ``moved`` does not count them."""
 
 
 @dataclass
@@ -167,16 +170,17 @@ def place_left_out(slices: SliceSet, refined: ArrayLike, placed: ArrayLike, expe
         jumped[k] = True
     registered = np.zeros(len(poses), bool)
     if volume is not None:
-        registered = register_left_out(volume, poses, fit.motion_poses, inside, left_out, slices.stack_index, fit.times)
+        registered = register_left_out(volume, poses, fit.motion_poses, inside, left_out, slices.stack_index,
+                                       fit.times)
     return LeftOutPlacement(poses, (moved | jumped) & ~registered, jumped & ~registered, registered)
 
 
 def register_left_out(volume: VolumeReference, poses: NDArray, motion_poses: NDArray, inside: NDArray,
                       left_out: NDArray, stack_index: NDArray, times: NDArray) -> NDArray[np.bool_]:
     """Register the left-out slices with a large enough brain section to ``volume`` from each start
-    (module docstring) and move those whose best NCC reaches :data:`NCC_RATIO` of the placed slices' median
-    and exceeds their NCC so far by :data:`NCC_GAIN`, over a move of :data:`MIN_MOVE_MM` at least;
-    ``poses`` is updated in place. Returns the slices moved."""
+    (module docstring) and move those whose best NCC reaches :data:`NCC_RATIO` of the placed slices'
+    median and exceeds their NCC so far by :data:`NCC_GAIN`, over a move of :data:`MIN_MOVE_MM` at
+    least; ``poses`` is updated in place. Returns the slices moved."""
     ref = volume.slices
     area = ref.pixel_counts() * ref.pixel_mm ** 2
     candidates = left_out & ref.include & (area >= MIN_AREA_MM2)
@@ -196,14 +200,16 @@ def register_left_out(volume: VolumeReference, poses: NDArray, motion_poses: NDA
                               max_iterations=30, step_mm=REGISTRATION_STEP_MM)
         better = ok & reg.registered & (np.nan_to_num(reg.ncc, nan=-np.inf) > best)
         best_pose[better], best[better] = reg.atlas_from_voxel[better], reg.ncc[better]
-    moved = candidates & (best >= NCC_RATIO * np.median(placed_ncc)) & (best >= np.nan_to_num(now, nan=-1.0) + NCC_GAIN)
+    moved = (candidates & (best >= NCC_RATIO * np.median(placed_ncc))
+             & (best >= np.nan_to_num(now, nan=-1.0) + NCC_GAIN))
     moved &= mean_shift_mm(ref, poses, best_pose, moved) >= MIN_MOVE_MM
     poses[moved] = best_pose[moved]
     return moved
 
 
 def mean_shift_mm(slices: SliceSet, a: NDArray, b: NDArray, which: NDArray) -> NDArray[np.float64]:
-    """``[n]`` how far the pixels of each slice of ``which`` lie apart under poses ``a`` and ``b`` (mean, mm; 0 elsewhere)."""
+    """``[n]`` how far the pixels of each slice of ``which`` lie apart under poses ``a`` and ``b``
+    (their mean distance, mm; 0 elsewhere)."""
     pixels = np.flatnonzero(which[slices.slice_id])
     d = np.linalg.norm(slices.positions(a, pixels) - slices.positions(b, pixels), axis=1)
     sid = slices.slice_id[pixels]
@@ -217,7 +223,8 @@ def neighbour_starts(poses: NDArray, inside: NDArray, candidates: NDArray, stack
     starts = [np.full_like(poses, np.nan), np.full_like(poses, np.nan)]
     for k in np.flatnonzero(candidates & np.isfinite(times)):
         same = np.flatnonzero(inside & (stack_index == stack_index[k]) & (np.abs(times - times[k]) <= START_REACH))
-        for start, side, pick in ((starts[0], times[same] < times[k], np.argmax), (starts[1], times[same] > times[k], np.argmin)):
+        for start, side, pick in ((starts[0], times[same] < times[k], np.argmax),
+                                  (starts[1], times[same] > times[k], np.argmin)):
             if side.any():
                 start[k] = poses[same[side][pick(times[same][side])]]
     return starts

@@ -176,8 +176,8 @@ def test_a_slice_that_fits_the_volume_nowhere_keeps_its_pose(imaged) -> None:  #
 
 
 def test_left_out_slices_already_near_their_pose_are_not_moved_by_the_registration(imaged) -> None:  # noqa: ANN001
-    """Slices 8 and 9 of every stack, 0.8 mm / 0.8 deg off: within the registration's scatter, they keep
-    their poses (the gain in NCC and the move are too small to trust)."""
+    """Slices 8 and 9 of every stack, 0.8 mm / 0.8 deg off: within the registration's scatter, they
+    keep their poses (the gain in NCC and the move are too small to trust)."""
     acq, every, volume = imaged
     truth, rng = acq.true_poses, np.random.default_rng(6)
     out = np.isin(every.slice_index, [8, 9])
