@@ -1,4 +1,5 @@
-"""The slices a job leaves out of its volume, placed by their stack's motion through the slices in it.
+"""The slices a job leaves out of its volume, placed by their stack's motion through the slices in it
+or registered to the volume.
 
 A job reconstructs from the slices ``/v1/predict`` accepted; the others (and those the job itself
 excludes) are not in the volume, and keep the pose the prediction gave them: the network's, fused
