@@ -52,9 +52,10 @@ from numpy.typing import ArrayLike, NDArray
 
 from service.consistency.slice_order import SliceOrder
 from service.geometry.anchors import ed
+from service.reconstruction.forward import inplane_sigma_mm
 from service.reconstruction.grid import Grid
 from service.reconstruction.pipeline import ReconstructionResult
-from service.reconstruction.registration import register_slices
+from service.reconstruction.registration import RegistrationResult, blurred_volume, register_slices
 from service.reconstruction.slices import SliceSet, StackInput
 from service.reconstruction.stack_rigid import fit_stack_rigid, frame_from_scanner
 
@@ -90,6 +91,8 @@ MIN_MOVE_MM = 2.0
 scatter about the volume's optimum is as large as the move."""
 REGISTRATION_STEP_MM = 2.0
 """The registration's first trust radius (mm == degrees)."""
+REGISTRATION_ITERATIONS = 30
+"""The registration's iterations from each start at most."""
 
 
 @dataclass
@@ -188,7 +191,14 @@ def register_left_out(volume: VolumeReference, poses: NDArray, motion_poses: NDA
     moved = np.zeros(len(poses), bool)
     if not candidates.any():
         return moved
-    now = register_slices(volume.array, volume.grid, ref, poses, active=inside | candidates, max_iterations=0).ncc
+    blur = inplane_sigma_mm(ref)
+    blurred = blurred_volume(volume.array, volume.grid, blur)                 # once for every registration here
+
+    def register(start: NDArray, active: NDArray, iterations: int) -> RegistrationResult:
+        return register_slices(blurred, volume.grid, ref, start, active=active, max_iterations=iterations,
+                               step_mm=REGISTRATION_STEP_MM, blur_sigma_mm=blur, blurred=True)
+
+    now = register(poses, inside | candidates, 0).ncc
     placed_ncc = now[inside & np.isfinite(now)]
     if not len(placed_ncc):
         return moved
@@ -197,8 +207,7 @@ def register_left_out(volume: VolumeReference, poses: NDArray, motion_poses: NDA
         ok = candidates & np.isfinite(start[:, 0, 0])
         if not ok.any():
             continue
-        reg = register_slices(volume.array, volume.grid, ref, np.where(ok[:, None, None], start, poses), active=ok,
-                              max_iterations=30, step_mm=REGISTRATION_STEP_MM)
+        reg = register(np.where(ok[:, None, None], start, poses), ok, REGISTRATION_ITERATIONS)
         better = ok & reg.registered & (np.nan_to_num(reg.ncc, nan=-np.inf) > best)
         best_pose[better], best[better] = reg.atlas_from_voxel[better], reg.ncc[better]
     moved = (candidates & (best >= NCC_RATIO * np.median(placed_ncc))

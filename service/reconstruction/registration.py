@@ -200,12 +200,20 @@ def anchor_frame(slices: SliceSet, reference: ArrayLike, moved: ArrayLike, weigh
     return g @ moved
 
 
+def blurred_volume(volume: NDArray, grid: Grid, blur_sigma_mm: float) -> NDArray[np.float32]:
+    """``volume`` on ``grid`` blurred in-plane by ``blur_sigma_mm`` as :func:`register_slices` sees it
+    (float32; unchanged for no blur)."""
+    vol = np.asarray(volume, dtype=np.float32)
+    return ndimage.gaussian_filter(vol, blur_sigma_mm / grid.spacing, mode="constant", truncate=3.0) \
+        if blur_sigma_mm > 0 else vol
+
+
 def register_slices(volume: NDArray, grid: Grid, slices: SliceSet, atlas_from_voxel: ArrayLike, *,
                     active: NDArray | None = None, subsample: int = 2, psf_points: int = 3,
                     blur_sigma_mm: float | None = None, max_iterations: int = 40, step_mm: float = 1.0,
                     min_step_mm: float = 0.1, min_pixels: int = 16,
                     max_pixels: int | None = 150_000, prior: NDArray | None = None,
-                    prior_sd_mm: float | None = None) -> RegistrationResult:
+                    prior_sd_mm: float | None = None, blurred: bool = False) -> RegistrationResult:
     """Rigidly register every (active) slice to ``volume`` at once.
 
     Args:
@@ -229,6 +237,8 @@ def register_slices(volume: NDArray, grid: Grid, slices: SliceSet, atlas_from_vo
             ``w`` the slice's own NCC curvature in translation over ``prior_sd_mm^2``: directions the
             image constrains (translation) stay the image's, those it barely does (a thick slice's
             tilt) stay near the prior.
+        blurred: ``volume`` already carries the in-plane blur (:func:`blurred_volume` with the same
+            ``blur_sigma_mm``): a caller registering to one volume several times blurs it once.
 
     Returns:
         The :class:`RegistrationResult`.
@@ -242,9 +252,7 @@ def register_slices(volume: NDArray, grid: Grid, slices: SliceSet, atlas_from_vo
     act &= np.bincount(slices.slice_id[pixels], minlength=n) >= min_pixels
     pixels = pixels[act[slices.slice_id[pixels]]]
     blur = inplane_sigma_mm(slices) if blur_sigma_mm is None else float(blur_sigma_mm)
-    vol = np.asarray(volume, dtype=np.float32)
-    if blur > 0:
-        vol = ndimage.gaussian_filter(vol, blur / grid.spacing, mode="constant", truncate=3.0)
+    vol = np.asarray(volume, dtype=np.float32) if blurred else blurred_volume(volume, grid, blur)
     objective = _Objective(vol, grid, slices, pixels, psf_points, blur)
     act &= objective.s_norm > 1e-12
     ncc, grad, hess, centre = objective(poses, act)
