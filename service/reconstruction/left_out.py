@@ -232,12 +232,25 @@ def neighbour_starts(poses: NDArray, inside: NDArray, candidates: NDArray, stack
     acquired last before it and first after it, within :data:`START_REACH` acquisitions (NaN where none)."""
     starts = [np.full_like(poses, np.nan), np.full_like(poses, np.nan)]
     for k in np.flatnonzero(candidates & np.isfinite(times)):
-        same = np.flatnonzero(inside & (stack_index == stack_index[k]) & (np.abs(times - times[k]) <= START_REACH))
-        for start, side, pick in ((starts[0], times[same] < times[k], np.argmax),
-                                  (starts[1], times[same] > times[k], np.argmin)):
-            if side.any():
-                start[k] = poses[same[side][pick(times[same][side])]]
+        for start, j in zip(starts, acquired_next(inside, stack_index, times, int(k), START_REACH)):
+            if j is not None:
+                start[k] = poses[j]
     return starts
+
+
+def acquired_next(inside: NDArray, stack_index: NDArray, times: NDArray, k: int,
+                  reach: float) -> tuple[int | None, int | None]:
+    """The slices of ``inside`` in slice ``k``'s stack acquired last before it and first after it,
+    within ``reach`` acquisitions of it (None where there is none).
+
+    Example:
+        >>> acquired_next(np.array([True, False, True, True]), np.zeros(4, int), np.arange(4.0), 1, 2)
+        (0, 2)
+    """
+    same = np.flatnonzero(inside & (stack_index == stack_index[k]) & (np.abs(times - times[k]) <= reach))
+    before, after = same[times[same] < times[k]], same[times[same] > times[k]]
+    return (int(before[np.argmax(times[before])]) if len(before) else None,
+            int(after[np.argmin(times[after])]) if len(after) else None)
 
 
 def beside_a_jump(slices: SliceSet, frames: NDArray, poses: NDArray, inside: NDArray, candidates: NDArray,
@@ -259,10 +272,7 @@ def beside_a_jump(slices: SliceSet, frames: NDArray, poses: NDArray, inside: NDA
               >= SMOOTH_SHARE * np.bincount(stacks, inside, minlength=stacks.max() + 1))
     out: dict[int, int] = {}
     for k in np.flatnonzero(candidates & smooth[stacks]):
-        same = inside & (stacks == stacks[k])
-        sides = [g[pick(times[g])] for g, pick in ((np.flatnonzero(same & (times < times[k])), np.argmax),
-                                                   (np.flatnonzero(same & (times > times[k])), np.argmin)) if len(g)]
-        sides = [j for j in sides if abs(times[j] - times[k]) <= REACH]
+        sides = [j for j in acquired_next(inside, stacks, times, int(k), REACH) if j is not None]
         if not sides:
             continue
         to_frame = np.linalg.inv(slices.stack_affine[k]) @ np.linalg.inv(frames[k])
