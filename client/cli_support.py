@@ -21,7 +21,7 @@ from rich.progress import BarColumn, Progress, SpinnerColumn, TaskProgressColumn
 
 from client._client import SVRnetClient
 from client.exits import stderr, stdout
-from client.views import NO_WORKER, quality_line, stage_label, waits_for_a_worker
+from client.views import NO_WORKER, quality_line, refined_poses_line, stage_label, waits_for_a_worker
 
 
 def timeout_from_env() -> httpx.Timeout:
@@ -145,8 +145,10 @@ def write_results(svr: SVRnetClient, job_id: str, done: dict[str, Any], out: Pat
         svr.download_preview(job_id, preview)
         console.print(f"wrote {preview}")
     if poses_out is not None:
-        write_json(poses_out, svr.refined_poses(job_id))
+        refined = svr.refined_poses(job_id)
+        write_json(poses_out, refined)
         console.print(f"wrote {poses_out}")
+        console.print(refined_poses_line(refined), markup=False)
     if transforms_out is not None:
         svr.download_transforms(job_id, transforms_out)
         console.print(f"wrote {transforms_out}")

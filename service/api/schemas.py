@@ -150,6 +150,8 @@ class RefinedSlice(SliceResult):
     placed_by_stack_motion: Optional[bool] = Field(None, description="left out of the volume, placed by its stack's "
                                                    "motion through the slices in it")
     placed_by_volume: Optional[bool] = Field(None, description="left out of the volume, registered to it")
+    refined_expected_error_mm: Optional[float] = Field(
+        None, description="expected E.D. of the refined pose (mm); expected_error_mm stays the prediction's")
 
 
 class RefinedStack(StackResult):
@@ -260,6 +262,6 @@ def job_poses(body: dict) -> dict:
         (stack.get("consistency") or {}).pop("acquisition_order", None)
         for s in stack.get("slices", []):
             for made_by_the_job in ("exclusion_reason", "weight", "ncc", "held_out_ncc", "placed_by_stack_motion",
-                                    "placed_by_volume"):
+                                    "placed_by_volume", "refined_expected_error_mm"):
                 s.pop(made_by_the_job, None)
     return kept

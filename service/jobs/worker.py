@@ -275,6 +275,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     from service.reconstruction.midline import midline_fit
     from service.reconstruction.never_worse import held_out_score, reconstruct_never_worse
     from service.reconstruction.pipeline import ReconstructionConfig
+    from service.reconstruction.pose_errors import refined_expected_errors, roles
     from service.reconstruction.refined_poses import refined_poses_body
     from service.reconstruction.slices import SliceSet
 
@@ -325,8 +326,9 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
                                      progress=lambda stage, f: progress(stage, 0.15 + 0.8 * f),
                                      config=ReconstructionConfig(symmetry_plane_x_mm=plane,
                                                                  slice_orders=tuple(known_orders)))
+    reference = VolumeReference.of(result, stack_inputs)
     left_out = place_left_out(slice_set, result.atlas_from_voxel_final, result.included, expected_errors(body),
-                              plane_x_mm=plane, orders=known_orders, volume=VolumeReference.of(result, stack_inputs))
+                              plane_x_mm=plane, orders=known_orders, volume=reference)
     result = replace(result, atlas_from_voxel_final=left_out.poses)
     frame = None
     if params.get("atlas_frame", True):
@@ -350,7 +352,11 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     refined = refined_poses_body(body, result.atlas_from_voxel_final, slice_frames, included=result.included,
                                  weight=result.slice_weight, ncc=result.ncc, held_out_ncc=result.held_out_ncc,
                                  reasons=result.exclusion_reason, job_id=job_id,
-                                 placed_by_stack_motion=left_out.moved, placed_by_volume=left_out.registered)
+                                 placed_by_stack_motion=left_out.moved, placed_by_volume=left_out.registered,
+                                 refined_expected_error_mm=refined_expected_errors(
+                                     roles(result.included, left_out.moved, left_out.registered), left_out.ncc,
+                                     reference.areas_mm2, expected_errors(body),
+                                     held_out_ncc=held_out_score(result)))
     for i, stack in enumerate(refined.get("stacks", [])):
         # Results are kept until the retention limit; the clients' file names (often patient names)
         # are not: a stack is named by its place in the upload.

@@ -46,6 +46,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -111,6 +112,9 @@ class LeftOutPlacement:
     registered: NDArray[np.bool_]
     """``[n]`` the left-out slices that took their pose from the volume (:class:`VolumeReference`);
     ``moved`` does not count them."""
+    ncc: NDArray[np.float64]
+    """``[n]`` every slice's NCC with the volume simulated at its pose in ``poses``, all by one measure
+    (:meth:`VolumeReference.ncc`; NaN without a volume, or for a slice with too few brain pixels)."""
 
 
 @dataclass
@@ -135,6 +139,32 @@ class VolumeReference:
         return cls(result.volume.array, result.grid,
                    SliceSet.from_stacks([(v, m, mats, np.ones(len(mats), bool)) for v, m, mats, _ in stacks]))
 
+    @cached_property
+    def areas_mm2(self) -> NDArray[np.float64]:
+        """``[n]`` each slice's brain section (mm²)."""
+        return self.slices.pixel_counts() * self.slices.pixel_mm ** 2
+
+    @cached_property
+    def blur_sigma_mm(self) -> float:
+        """The slices' in-plane PSF, as the registration blurs the volume for them."""
+        return inplane_sigma_mm(self.slices)
+
+    @cached_property
+    def blurred(self) -> NDArray[np.float32]:
+        """The volume blurred in-plane once, for every registration and measure against it."""
+        return blurred_volume(self.array, self.grid, self.blur_sigma_mm)
+
+    def register(self, start: NDArray, active: NDArray, iterations: int) -> RegistrationResult:
+        """Register the ``active`` slices from ``start`` (``[n, 4, 4]``) to the volume (0 iterations:
+        their NCC there)."""
+        return register_slices(self.blurred, self.grid, self.slices, start, active=active,
+                               max_iterations=iterations, step_mm=REGISTRATION_STEP_MM,
+                               blur_sigma_mm=self.blur_sigma_mm, blurred=True)
+
+    def ncc(self, poses: NDArray) -> NDArray[np.float64]:
+        """``[n]`` every slice's NCC with the volume simulated at ``poses`` (NaN: too few brain pixels)."""
+        return self.register(poses, self.slices.include, 0).ncc
+
 
 def place_left_out(slices: SliceSet, refined: ArrayLike, placed: ArrayLike, expected_error_mm: ArrayLike, *,
                    plane_x_mm: float | None, orders: Sequence[SliceOrder] | None = None,
@@ -157,7 +187,7 @@ def place_left_out(slices: SliceSet, refined: ArrayLike, placed: ArrayLike, expe
     left_out = ~inside & np.isfinite(expected)
     moved = np.zeros(len(poses), bool)
     if not left_out.any() or not inside.any():
-        return LeftOutPlacement(poses, moved, moved.copy(), moved.copy())
+        return LeftOutPlacement(poses, moved, moved.copy(), moved.copy(), final_ncc(volume, poses))
     frames = frame_from_scanner(slices)
     fit = fit_stack_rigid(replace(slices, include=inside | left_out), poses, plane_x_mm=plane_x_mm,
                           use=inside | left_out, orders=orders, frames=frames,
@@ -176,7 +206,13 @@ def place_left_out(slices: SliceSet, refined: ArrayLike, placed: ArrayLike, expe
     if volume is not None:
         registered = register_left_out(volume, poses, fit.motion_poses, inside, left_out, slices.stack_index,
                                        fit.times)
-    return LeftOutPlacement(poses, (moved | jumped) & ~registered, jumped & ~registered, registered)
+    return LeftOutPlacement(poses, (moved | jumped) & ~registered, jumped & ~registered, registered,
+                            final_ncc(volume, poses))
+
+
+def final_ncc(volume: VolumeReference | None, poses: NDArray) -> NDArray[np.float64]:
+    """``[n]`` :meth:`VolumeReference.ncc` at ``poses`` (NaN without a volume)."""
+    return np.full(len(poses), np.nan) if volume is None else volume.ncc(poses)
 
 
 def register_left_out(volume: VolumeReference, poses: NDArray, motion_poses: NDArray, inside: NDArray,
@@ -186,18 +222,11 @@ def register_left_out(volume: VolumeReference, poses: NDArray, motion_poses: NDA
     median and exceeds their NCC so far by :data:`NCC_GAIN`, over a move of :data:`MIN_MOVE_MM` at
     least; ``poses`` is updated in place. Returns the slices moved."""
     ref = volume.slices
-    area = ref.pixel_counts() * ref.pixel_mm ** 2
-    candidates = left_out & ref.include & (area >= MIN_AREA_MM2)
+    candidates = left_out & ref.include & (volume.areas_mm2 >= MIN_AREA_MM2)
     moved = np.zeros(len(poses), bool)
     if not candidates.any():
         return moved
-    blur = inplane_sigma_mm(ref)
-    blurred = blurred_volume(volume.array, volume.grid, blur)                 # once for every registration here
-
-    def register(start: NDArray, active: NDArray, iterations: int) -> RegistrationResult:
-        return register_slices(blurred, volume.grid, ref, start, active=active, max_iterations=iterations,
-                               step_mm=REGISTRATION_STEP_MM, blur_sigma_mm=blur, blurred=True)
-
+    register = volume.register
     now = register(poses, inside | candidates, 0).ncc
     placed_ncc = now[inside & np.isfinite(now)]
     if not len(placed_ncc):

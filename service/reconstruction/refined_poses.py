@@ -15,8 +15,9 @@ may upload only ``atlas_from_voxel`` and ``accepted``), the frame is the slice g
 as do the other fields of the starting body (``expected_error_mm``, ``geodesic_variance``,
 ``branch``, ``network_atlas_from_voxel``, each stack's ``consistency``): they describe the starting
 prediction, not the refined pose. Fields are added: ``included``, ``exclusion_reason``, ``weight``,
-``ncc`` and ``held_out_ncc`` per slice (the refined pose's own agreement with the volume), and
-``refined_by`` at the top.
+``ncc`` and ``held_out_ncc`` per slice (the refined pose's own agreement with the volume),
+``placed_by_stack_motion``, ``placed_by_volume`` and ``refined_expected_error_mm`` (the refined
+pose's expected E.D., :mod:`~service.reconstruction.pose_errors`), and ``refined_by`` at the top.
 
 Example:
     >>> import numpy as np
@@ -67,7 +68,8 @@ def refined_poses_body(predict_body: dict, refined: ArrayLike, slice_from_voxel:
                        included: ArrayLike, weight: ArrayLike, ncc: ArrayLike, reasons: list[str | None],
                        job_id: str, held_out_ncc: ArrayLike | None = None,
                        placed_by_stack_motion: ArrayLike | None = None,
-                       placed_by_volume: ArrayLike | None = None) -> dict:
+                       placed_by_volume: ArrayLike | None = None,
+                       refined_expected_error_mm: ArrayLike | None = None) -> dict:
     """A ``/v1/predict``-shaped body with the refined poses of every slice.
 
     Args:
@@ -81,6 +83,8 @@ def refined_poses_body(predict_body: dict, refined: ArrayLike, slice_from_voxel:
         placed_by_stack_motion: per slice, left out of the volume and placed by its stack's motion
             through the slices in it (:mod:`~service.reconstruction.left_out`; None: none).
         placed_by_volume: per slice, left out of the volume and registered to it (None: none).
+        refined_expected_error_mm: per slice, the refined pose's expected E.D.
+            (:mod:`~service.reconstruction.pose_errors`; None: not estimated; null per slice).
         job_id: the job (``refined_by``).
 
     Returns:
@@ -89,7 +93,8 @@ def refined_poses_body(predict_body: dict, refined: ArrayLike, slice_from_voxel:
     body = copy.deepcopy(predict_body)
     a_new = np.asarray(refined, dtype=np.float64)
     inc, w, c = np.asarray(included, bool), np.asarray(weight, np.float64), np.asarray(ncc, np.float64)
-    held = np.full(len(c), np.nan) if held_out_ncc is None else np.asarray(held_out_ncc, np.float64)
+    held, refined_error = (np.full(len(c), np.nan) if x is None else np.asarray(x, np.float64)
+                           for x in (held_out_ncc, refined_expected_error_mm))
     by_motion, by_volume = (np.zeros(len(c), bool) if flags is None else np.asarray(flags, bool)
                             for flags in (placed_by_stack_motion, placed_by_volume))
     start = 0
@@ -112,7 +117,7 @@ def refined_poses_body(predict_body: dict, refined: ArrayLike, slice_from_voxel:
             s["atlas_from_voxel"] = a_new[i].tolist()
             s.update(included=bool(inc[i]), exclusion_reason=reasons[i], weight=_num(w[i]), ncc=_num(c[i]),
                      held_out_ncc=_num(held[i]), placed_by_stack_motion=bool(by_motion[i]),
-                     placed_by_volume=bool(by_volume[i]))
+                     placed_by_volume=bool(by_volume[i]), refined_expected_error_mm=_num(refined_error[i]))
         start += n
     body.setdefault("request_id", job_id)
     body.setdefault("timing_ms", {})

@@ -223,6 +223,10 @@ def test_cli_reconstruct_wait_downloads(fake_cli: Callable, stack_file: Path, tm
     assert transforms.read_bytes() == FakeJobs.TRANSFORMS
     assert json.loads(refined.read_text())["refined_by"] == {"job_id": "job1"}
     assert "job1" in r.stdout and "succeeded" in r.stdout
+    # what the job made of the slices: three posed, all placed; their median refined expected error
+    # against the starting poses'
+    assert ("refined poses: 3 of 3 posed slices placed (2 in the volume, 1 by their stack's motion, 0 registered "
+            "to it); median expected error 1.90 mm (starting poses 2.50 mm)") in " ".join(r.stdout.split())
     fields, files = fake.jobs.uploads[0]
     assert fields == {"resolution_mm": ["0.8"], "svr_iterations": ["2"], "atlas_frame": ["false"],
                       "slice_order": ["interleaved"], "slice_thickness_mm": ["2.5"]} and files[-1][0] == "poses"

@@ -19,6 +19,7 @@ from fastapi.testclient import TestClient
 from service.inference.registry import ModelRegistry
 from service.io.volume import Volume, read_volume, write_volume
 from service.jobs.store import SqliteJobStore
+from service.reconstruction.pose_errors import FRAME_MM
 from tests.api.conftest import OracleEstimator, make_client, tiny_model_path  # noqa: F401 - fixture
 from tests.jobs.conftest import BACKENDS, env_of
 from tests.support.live_server import Worker
@@ -121,6 +122,15 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
     assert sum(registered) == report["left_out_placed_by_volume"]
     assert not any(s["included"] or r for s, m, r in zip(slices, moved, registered) if m)
     assert not any(s["included"] for s, r in zip(slices, registered) if r)
+    # The refined poses' expected errors: a slice the job placed has one (here, where the client's
+    # poses carry no expected errors, the volume's frame error and its fit), a slice left where it
+    # was keeps its starting pose's (none here).
+    for s in slices:
+        if s["included"] or s["placed_by_stack_motion"] or s["placed_by_volume"]:
+            assert s["refined_expected_error_mm"] >= FRAME_MM
+        else:
+            assert s["refined_expected_error_mm"] == s.get("expected_error_mm")
+    assert sum(s["included"] for s in slices) >= 30
     assert submit(client, case, poses=body).status_code == 202
     # The per-slice transforms: a zip of one .tfm per slice, each F A P^-1 F (docs/reconstruction.md).
     assert st["transforms_url"] == f"/v1/reconstructions/{job_id}/transforms"

@@ -182,6 +182,12 @@ def test_a_slice_that_fits_the_volume_nowhere_keeps_its_pose(imaged) -> None:  #
     placed = place_left_out(every, refined, ~out, np.where(out, 6.0, 1.0), plane_x_mm=None, orders=SEQUENTIAL,
                             volume=scrambled)
     assert not placed.registered[noisy].any() and placed.registered[out & ~noisy].all()
+    # Every slice's NCC at its final pose, by one measure: the noise fits nowhere, the registered
+    # slices as the placed ones do.
+    np.testing.assert_array_equal(placed.ncc, scrambled.ncc(placed.poses))
+    median = np.nanmedian(placed.ncc[~out])
+    assert (placed.ncc[noisy] < 0.2 * median).all() and (placed.ncc[out & ~noisy] > 0.9 * median).all()
+    assert np.isnan(place_left_out(every, refined, ~out, np.where(out, 6.0, 1.0), plane_x_mm=None).ncc).all()
 
 
 def test_left_out_slices_already_near_their_pose_are_not_moved_by_the_registration(imaged) -> None:  # noqa: ANN001

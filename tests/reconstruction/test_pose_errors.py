@@ -1,0 +1,97 @@
+"""The refined poses' expected errors: each term of the model, and on a phantom whose volume is known,
+a misplaced slice told from the placed ones by its NCC alone."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.reconstruction.grid import bounds_of, make_grid
+from service.reconstruction.left_out import MIN_AREA_MM2, VolumeReference
+from service.reconstruction.pose_errors import (
+    BESIDE_MM,
+    FRAME_MM,
+    IN_VOLUME,
+    LEFT_OUT,
+    NCC_RATIO,
+    PLACED_BY_STACK_MOTION,
+    PLACED_BY_VOLUME,
+    PREDICTED_SHARE,
+    refined_expected_errors,
+    roles,
+)
+from tests.reconstruction.helpers import make_acquisition, perturb, reference_on
+
+LARGE, CAP = 2 * MIN_AREA_MM2, 0.5 * MIN_AREA_MM2
+
+
+def errors(role, ncc, area=LARGE, predicted=4.0, held_out_ncc=0.92):  # noqa: ANN001, ANN201
+    """The model on arrays built from scalars or lists, with the placed slices' median NCC 0.9."""
+    role = np.atleast_1d(role)
+    n = len(role)
+    full = lambda x: np.broadcast_to(np.asarray(x, np.float64), (n,)).copy()  # noqa: E731
+    # four more slices in the volume at NCC 0.9 set the median the ratio is taken against
+    out = refined_expected_errors(np.r_[role, [IN_VOLUME] * 4], np.r_[full(ncc), [0.9] * 4],
+                                  np.r_[full(area), [LARGE] * 4], np.r_[full(predicted), [4.0] * 4],
+                                  held_out_ncc=held_out_ncc)
+    return out[:n]
+
+
+def test_a_slice_in_the_volume_that_agrees_with_it_expects_the_frame_and_part_of_its_prediction() -> None:
+    """... and a slice placed beside the volume the frame and its placement's error, whatever its
+    prediction's (high: why the job left it out)."""
+    got = errors(IN_VOLUME, 0.9, predicted=4.0)
+    np.testing.assert_allclose(got, np.hypot(FRAME_MM, PREDICTED_SHARE * 4.0))
+    assert got[0] < 4.0                                                   # the volume placed it better
+    beside = errors([PLACED_BY_STACK_MOTION, PLACED_BY_VOLUME], 0.9, predicted=4.0)
+    np.testing.assert_allclose(beside, np.hypot(FRAME_MM, BESIDE_MM))   # not in the volume: its own fit instead
+
+
+def test_a_left_out_slice_keeps_its_starting_error_and_a_placed_one_needs_none() -> None:
+    """A slice left where it was keeps its starting pose's expected error (none known: none); a
+    slice the volume placed has one without it (a client's poses carry none): the volume's."""
+    got = errors([LEFT_OUT, LEFT_OUT, LEFT_OUT, IN_VOLUME], [0.2, 0.9, 0.9, 0.9], predicted=[9.0, 6.5, np.nan, np.nan])
+    assert got[0] == 9.0 and got[1] == 6.5 and np.isnan(got[2]) and got[3] == FRAME_MM
+
+
+def test_a_placed_slice_that_fits_the_volume_worse_expects_more_and_a_large_section_tells_more() -> None:
+    ratios = np.array([NCC_RATIO, 0.9, 0.7, 0.4])
+    large = errors([IN_VOLUME] * 4, 0.9 * ratios)
+    cap = errors([IN_VOLUME] * 4, 0.9 * ratios, area=CAP)
+    assert np.all(np.diff(large) > 0) and np.all(np.diff(cap[1:]) > 0)
+    assert large[0] == cap[0] and np.all(large[1:] > cap[1:])
+    assert large[-1] > 10.0                                               # far from where the volume says
+    assert errors(IN_VOLUME, 0.99)[0] == errors(IN_VOLUME, 0.9)[0]       # above the ratio: agrees
+
+
+def test_an_incoherent_volume_never_makes_a_pose_surer_than_its_prediction() -> None:
+    """Stacks that do not predict each other (leave-one-stack-out NCC 0.3) make no reference; one
+    stack alone (not measured) is judged as a coherent job."""
+    got = errors([IN_VOLUME, PLACED_BY_VOLUME], 0.9, predicted=[12.0, 3.0], held_out_ncc=0.3)
+    assert got[0] == 12.0 and got[1] == 3.0 > np.hypot(FRAME_MM, BESIDE_MM)
+    coherent = errors([IN_VOLUME, PLACED_BY_VOLUME], 0.9, predicted=[12.0, 3.0], held_out_ncc=0.92)
+    assert coherent[0] < 12.0
+    np.testing.assert_array_equal(errors([IN_VOLUME, PLACED_BY_VOLUME], 0.9, predicted=[12.0, 3.0],
+                                         held_out_ncc=None), coherent)
+
+
+def test_roles_put_a_slice_in_the_volume_before_its_left_out_flags() -> None:
+    assert roles([True, False], [True, False], [False, False]).tolist() == [IN_VOLUME, LEFT_OUT]
+
+
+def test_on_a_phantom_a_misplaced_slice_is_told_from_the_placed_ones() -> None:
+    """Every slice at its true pose in the phantom's own volume but slice 8 of the first stack, 8 mm
+    / 8 deg off (as a slice a job placed wrongly would be): its expected error rises past 5 mm, the
+    others' stay at the frame's and their prediction's share."""
+    acq = make_acquisition(0)
+    every = acq.slice_set()
+    grid = make_grid(1.0, bounds_of(every.positions(), 5.0))
+    volume = VolumeReference(reference_on(grid, acq)[0].astype(np.float32), grid, every)
+    poses = acq.true_poses.copy()
+    off = (every.stack_index == 0) & (every.slice_index == 8)
+    poses[off] = perturb(poses[off], np.random.default_rng(3), 8.0, 8.0, every.centres(poses)[off])
+    got = refined_expected_errors(np.full(every.n_slices, IN_VOLUME), volume.ncc(poses), volume.areas_mm2,
+                                  np.full(every.n_slices, 3.0), held_out_ncc=0.92)
+    assert volume.areas_mm2[off][0] >= MIN_AREA_MM2
+    assert got[off][0] > 5.0
+    large = ~off & (volume.areas_mm2 >= MIN_AREA_MM2)
+    np.testing.assert_allclose(got[large], np.hypot(FRAME_MM, PREDICTED_SHARE * 3.0))
