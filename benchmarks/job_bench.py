@@ -26,6 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from client.views import refined_poses_line  # noqa: E402
 from model_export.localiser.evaluate import masked_files  # noqa: E402
 from predict_bench import revision_tree, start_server, wait_ready  # noqa: E402
 from service.core.machine import cpu_description  # noqa: E402
@@ -51,9 +52,10 @@ def tree_rss_mb(pid: int) -> float:
 
 
 def run_job(client: httpx.Client, files: list[tuple[Path, Path]], masks: bool,
-            server_pid: int) -> tuple[float, str, dict[str, float], dict[str, float], dict]:
+            server_pid: int) -> tuple[float, str, dict[str, float], dict[str, float], dict, str]:
     """One job: its wall time from upload to a final status, that status, when each stage began (s),
-    the peak memory of the server's process tree during each stage (MB), and its report."""
+    the peak memory of the server's process tree during each stage (MB), its report, and what it made
+    of the slices (:func:`client.views.refined_poses_line`; empty unless it succeeded)."""
     upload = [("stacks", (s.name, s.read_bytes())) for s, _ in files]
     upload += [("masks", (m.name, m.read_bytes())) for _, m in files] if masks else []
     t0 = time.perf_counter()
@@ -68,12 +70,15 @@ def run_job(client: httpx.Client, files: list[tuple[Path, Path]], masks: bool,
         began.setdefault(stage, time.perf_counter() - t0)
         peak[stage] = max(peak.get(stage, 0.0), tree_rss_mb(server_pid))
         if st["status"] in FINAL:
-            return time.perf_counter() - t0, st["status"], began, peak, st.get("report") or {}
+            wall = time.perf_counter() - t0
+            poses = client.get(f"/v1/reconstructions/{job}/poses") if st["status"] == "succeeded" else None
+            placed = refined_poses_line(poses.json()) if poses is not None and poses.status_code == 200 else ""
+            return wall, st["status"], began, peak, st.get("report") or {}, placed
         time.sleep(0.2)
 
 
 def measure(root: Path, files: list[tuple[Path, Path]]) -> dict[bool, tuple[float, str, dict[str, float],
-                                                                        dict[str, float], dict]]:
+                                                                        dict[str, float], dict, str]]:
     """A job with the masks and one without, on a server of the code under ``root`` and its models."""
     server, port = start_server(root, root / "service" / "models")
     try:
@@ -107,13 +112,15 @@ def main() -> None:
         with revision_tree(args.baseline) as tree:
             before = measure(tree, files)
     for masks in (True, False):
-        wall, status, began, peak, report = now[masks]
+        wall, status, began, peak, report, placed = now[masks]
         ratio = f"; {before[masks][0]:.1f} s at {args.baseline} (x{wall / before[masks][0]:.2f})" if before else ""
         print(f"{len(files)} stacks of {args.scan.name} {'with their masks' if masks else 'without masks'}: "
               f"{status} in {wall:.1f} s{ratio}; peak memory of the server and its workers "
               f"{max(peak.values()):.0f} MB; left-out slices placed by their stack's motion "
               f"{report.get('left_out_placed_by_stack_motion')}, by the volume "
               f"{report.get('left_out_placed_by_volume')}")
+        if placed:
+            print(f"   {placed}")
         longest = sorted(durations(began, wall).items(), key=lambda kv: -kv[1])[:6]
         print("   longest stages, s: " + ", ".join(f"{k} {v:.1f}" for k, v in longest))
         if before:

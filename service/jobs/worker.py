@@ -326,8 +326,8 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
                                      progress=lambda stage, f: progress(stage, 0.15 + 0.8 * f),
                                      config=ReconstructionConfig(symmetry_plane_x_mm=plane,
                                                                  slice_orders=tuple(known_orders)))
-    reference = VolumeReference.of(result, stack_inputs)
-    left_out = place_left_out(slice_set, result.atlas_from_voxel_final, result.included, expected_errors(body),
+    reference, expected = VolumeReference.of(result, stack_inputs), expected_errors(body)
+    left_out = place_left_out(slice_set, result.atlas_from_voxel_final, result.included, expected,
                               plane_x_mm=plane, orders=known_orders, volume=reference)
     result = replace(result, atlas_from_voxel_final=left_out.poses)
     frame = None
@@ -355,7 +355,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
                                  placed_by_stack_motion=left_out.moved, placed_by_volume=left_out.registered,
                                  refined_expected_error_mm=refined_expected_errors(
                                      roles(result.included, left_out.moved, left_out.registered), left_out.ncc,
-                                     reference.areas_mm2, expected_errors(body),
+                                     reference.areas_mm2, expected,
                                      held_out_ncc=held_out_score(result)))
     for i, stack in enumerate(refined.get("stacks", [])):
         # Results are kept until the retention limit; the clients' file names (often patient names)
