@@ -52,10 +52,9 @@ def tree_rss_mb(pid: int) -> float:
 
 
 def run_job(client: httpx.Client, files: list[tuple[Path, Path]], masks: bool,
-            server_pid: int) -> tuple[float, str, dict[str, float], dict[str, float], dict, str]:
+            server_pid: int) -> tuple[float, str, dict[str, float], dict[str, float], dict]:
     """One job: its wall time from upload to a final status, that status, when each stage began (s),
-    the peak memory of the server's process tree during each stage (MB), its report, and what it made
-    of the slices (:func:`client.views.refined_poses_line`; empty unless it succeeded)."""
+    the peak memory of the server's process tree during each stage (MB), and its report."""
     upload = [("stacks", (s.name, s.read_bytes())) for s, _ in files]
     upload += [("masks", (m.name, m.read_bytes())) for _, m in files] if masks else []
     t0 = time.perf_counter()
@@ -70,15 +69,12 @@ def run_job(client: httpx.Client, files: list[tuple[Path, Path]], masks: bool,
         began.setdefault(stage, time.perf_counter() - t0)
         peak[stage] = max(peak.get(stage, 0.0), tree_rss_mb(server_pid))
         if st["status"] in FINAL:
-            wall = time.perf_counter() - t0
-            poses = client.get(f"/v1/reconstructions/{job}/poses") if st["status"] == "succeeded" else None
-            placed = refined_poses_line(poses.json()) if poses is not None and poses.status_code == 200 else ""
-            return wall, st["status"], began, peak, st.get("report") or {}, placed
+            return time.perf_counter() - t0, st["status"], began, peak, st.get("report") or {}
         time.sleep(0.2)
 
 
 def measure(root: Path, files: list[tuple[Path, Path]]) -> dict[bool, tuple[float, str, dict[str, float],
-                                                                        dict[str, float], dict, str]]:
+                                                                        dict[str, float], dict]]:
     """A job with the masks and one without, on a server of the code under ``root`` and its models."""
     server, port = start_server(root, root / "service" / "models")
     try:
@@ -112,15 +108,15 @@ def main() -> None:
         with revision_tree(args.baseline) as tree:
             before = measure(tree, files)
     for masks in (True, False):
-        wall, status, began, peak, report, placed = now[masks]
+        wall, status, began, peak, report = now[masks]
         ratio = f"; {before[masks][0]:.1f} s at {args.baseline} (x{wall / before[masks][0]:.2f})" if before else ""
         print(f"{len(files)} stacks of {args.scan.name} {'with their masks' if masks else 'without masks'}: "
               f"{status} in {wall:.1f} s{ratio}; peak memory of the server and its workers "
               f"{max(peak.values()):.0f} MB; left-out slices placed by their stack's motion "
               f"{report.get('left_out_placed_by_stack_motion')}, by the volume "
               f"{report.get('left_out_placed_by_volume')}")
-        if placed:
-            print(f"   {placed}")
+        if report.get("refined_poses"):
+            print(f"   {refined_poses_line(report['refined_poses'])}")
         longest = sorted(durations(began, wall).items(), key=lambda kv: -kv[1])[:6]
         print("   longest stages, s: " + ", ".join(f"{k} {v:.1f}" for k, v in longest))
         if before:

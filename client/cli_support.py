@@ -130,9 +130,9 @@ def write_results(svr: SVRnetClient, job_id: str, done: dict[str, Any], out: Pat
     svr.download_volume(job_id, target)
     console.print(f"job {job_id} succeeded; wrote {target}")
     report = done.get("report") or {}
-    quality = quality_line(report.get("quality"), report.get("n_stacks"))
-    if quality:
-        console.print(quality)
+    for line in (quality_line(report.get("quality"), report.get("n_stacks")), refined_poses_line(report.get("refined_poses"))):
+        if line:
+            console.print(line, markup=False)
     incoherent = (report.get("quality") or {}).get("coherent") is False
     if incoherent:
         console.print("the stacks do not predict each other (leave one stack out under 0.5): the volume is no "
@@ -145,10 +145,8 @@ def write_results(svr: SVRnetClient, job_id: str, done: dict[str, Any], out: Pat
         svr.download_preview(job_id, preview)
         console.print(f"wrote {preview}")
     if poses_out is not None:
-        refined = svr.refined_poses(job_id)
-        write_json(poses_out, refined)
+        write_json(poses_out, svr.refined_poses(job_id))
         console.print(f"wrote {poses_out}")
-        console.print(refined_poses_line(refined), markup=False)
     if transforms_out is not None:
         svr.download_transforms(job_id, transforms_out)
         console.print(f"wrote {transforms_out}")

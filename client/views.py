@@ -197,29 +197,26 @@ def quality_line(quality: dict[str, Any] | None, stacks: int | None = None) -> s
     return line
 
 
-def refined_poses_line(body: dict[str, Any]) -> str:
-    """A job's refined poses (``GET …/poses``) in one line: how many slices the job placed and how,
-    and the median expected error of the refined poses against the starting ones' (the posed slices).
+def refined_poses_line(summary: dict[str, Any] | None) -> str:
+    """The job report's ``refined_poses`` in one line (empty when the report has none): how many of
+    the posed slices the job placed and how, and their median expected error against the starting
+    poses'.
 
     Example:
-        >>> s = lambda inc, motion, vol, e, r: {"included": inc, "placed_by_stack_motion": motion,
-        ...     "placed_by_volume": vol, "expected_error_mm": e, "refined_expected_error_mm": r}
-        >>> print(refined_poses_line({"stacks": [{"slices": [s(True, False, False, 3.0, 2.1), s(True, False, False, 4.0, 2.5),
-        ...     s(False, True, False, 9.0, 2.5), s(False, False, False, 12.0, 12.0), s(False, False, False, None, None)]}]}))
+        >>> print(refined_poses_line({"posed": 4, "in_volume": 2, "placed_by_stack_motion": 1, "placed_by_volume": 0,
+        ...                           "median_expected_error_mm": 2.5, "median_starting_expected_error_mm": 6.5}))
         refined poses: 3 of 4 posed slices placed (2 in the volume, 1 by their stack's motion, 0 registered to it); median expected error 2.50 mm (starting poses 6.50 mm)
     """
-    slices = [s for st in body.get("stacks") or [] for s in st.get("slices") or []]
-    posed = [s for s in slices if s.get("refined_expected_error_mm") is not None]
-    inside = sum(bool(s.get("included")) for s in posed)
-    motion = sum(bool(s.get("placed_by_stack_motion")) for s in posed)
-    volume = sum(bool(s.get("placed_by_volume")) for s in posed)
-    line = (f"refined poses: {inside + motion + volume} of {len(posed)} posed slices placed ({inside} in the volume, "
-            f"{motion} by their stack's motion, {volume} registered to it)")
-    if posed:
-        line += f"; median expected error {statistics.median(s['refined_expected_error_mm'] for s in posed):.2f} mm"
-        start = [s["expected_error_mm"] for s in posed if s.get("expected_error_mm") is not None]
-        if start:
-            line += f" (starting poses {statistics.median(start):.2f} mm)"
+    if not summary:
+        return ""
+    inside, motion, volume = (int(summary.get(k) or 0) for k in ("in_volume", "placed_by_stack_motion",
+                                                                  "placed_by_volume"))
+    line = (f"refined poses: {inside + motion + volume} of {summary.get('posed', 0)} posed slices placed "
+            f"({inside} in the volume, {motion} by their stack's motion, {volume} registered to it)")
+    if summary.get("median_expected_error_mm") is not None:
+        line += f"; median expected error {summary['median_expected_error_mm']:.2f} mm"
+        if summary.get("median_starting_expected_error_mm") is not None:
+            line += f" (starting poses {summary['median_starting_expected_error_mm']:.2f} mm)"
     return line
 
 

@@ -1,16 +1,19 @@
 """Per-slice errors of a job's refined poses against the truth, with what the job knows of each slice:
-the table the refined poses' expected errors are fitted on.
+the table the refined poses' expected errors are fitted on, and their calibration.
 
 For each motion level, acquisitions of the validation volumes are predicted by the shipped model as
 the server does, then run through what a reconstruction job runs (the never-worse paths, the
 left-out slices placed, the atlas frame and the midline; :mod:`service.jobs.worker`). Saved per
 slice (``--out``, an ``.npz``): the level, the acquisition, the slice's role in the job
 (:data:`ROLES`), its predicted expected error, its NCC with the job's volume at its final pose (every
-slice by one measure) and the placed slices' median of it, its leave-one-stack-out NCC, its robust
-weight, its brain area, the acquisition's leave-one-stack-out median and the job's path, and its
-E.D. against the truth, twin-min and in the acquisition's own frame. Needs ``../shared/data``. Run:
-``.venv/bin/python model_export/experiments/refined_errors.py --levels mild,moderate,jumps,independent
---per-level 8 --seed 5 --out /tmp/refined_errors.npz``.
+slice by one measure) and the median of the slices in the volume, its leave-one-stack-out NCC, its
+robust weight, its brain area, the acquisition's leave-one-stack-out median and the job's path, and
+its E.D. against the truth, twin-min and in the acquisition's own frame. ``--score`` prints, per
+table and level, RMS E.D. over RMS ``refined_expected_error_mm``
+(:mod:`service.reconstruction.pose_errors`) and its AUROC for an E.D. over 5 mm; with ``--fit``,
+the constants least squares puts on the first table. Needs ``../shared/data``. Run:
+``.venv/bin/python model_export/experiments/refined_errors.py --per-level 8 --seed 5 --out seed5.npz``, then
+``... --score seed5.npz seed7.npz --fit``.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.acquisitions import simulate_acquisition
+from model_export.calibrate import auroc
 from model_export.evaluate_acquisitions import run_acquisition
 from model_export.experiments.refine_bench import network_poses, to_truth_frame, validation_setup
 from service.api.responses import stack_objects
@@ -39,13 +43,22 @@ from service.reconstruction.left_out import MIN_AREA_MM2, VolumeReference, place
 from service.reconstruction.midline import midline_fit
 from service.reconstruction.never_worse import held_out_score, reconstruct_never_worse
 from service.reconstruction.pipeline import ReconstructionConfig
-from service.reconstruction.pose_errors import IN_VOLUME, LEFT_OUT, NCC_RATIO, refined_expected_errors
+from service.reconstruction.pose_errors import (
+    IN_VOLUME,
+    LEFT_OUT,
+    NCC_RATIO,
+    PLACED_BY_STACK_MOTION,
+    PLACED_BY_VOLUME,
+    refined_expected_errors,
+    roles,
+)
 from service.reconstruction.slices import SliceSet
 
 MIN_MASK_PIXELS_MM2 = 31.0
 """Slices scored: a brain section of at least 20 pixels of 1.25 mm (``evaluate_acquisitions.MIN_MASK_PIXELS``)."""
 ROLES = ("in_volume", "placed_by_stack_motion", "placed_by_volume", "left_out", "not_posed")
-"""A slice's role in the job, the ``role`` column's values (indices)."""
+"""A slice's role in the job, the ``role`` column's values (indices; the first four are
+:func:`~service.reconstruction.pose_errors.roles`)."""
 
 
 def job_slices(stacks, prepared, body: dict, est, plane: float, resolution: float, rounds: int) -> dict:  # noqa: ANN001
@@ -64,15 +77,15 @@ def job_slices(stacks, prepared, body: dict, est, plane: float, resolution: floa
     framed = with_frame(res, atlas_frame(res.volume, est, plane, held_out_ncc=held))
     framed = with_frame(framed, midline_fit(framed.volume, plane, held_out_score(res)))
     pose, true = network_poses(stacks, prepared, framed.atlas_from_voxel_final)
-    posed = np.isfinite(expected)
-    role = np.select([res.included, left.moved, left.registered, posed], [0, 1, 2, 3], 4)
+    role = roles(res.included, left.moved, left.registered)
+    role = np.where((role == LEFT_OUT) & ~np.isfinite(expected), ROLES.index("not_posed"), role)
     frame = to_truth_frame(pose[res.included], true[res.included])
     n = len(pose)
     return {"role": role, "expected": expected, "ncc": ncc,
             "placed_ncc": np.full(n, np.nanmedian(ncc[res.included]) if res.included.any() else np.nan),
             "held_out_ncc": res.held_out_ncc if res.held_out_ncc is not None else np.full(n, np.nan),
             "weight": np.where(res.included, res.slice_weight, 0.0),
-            "area_mm2": ref.slices.pixel_counts() * ref.slices.pixel_mm ** 2,
+            "area_mm2": ref.areas_mm2,
             "loso": np.full(n, held if held is not None else np.nan),
             "ed": ed(pose, true), "twin_min": twin.twin_min_ed(pose, true, plane), "own_frame": ed(frame @ pose, true),
             "path": np.full(n, str(res.quality.get("path")))}
@@ -107,7 +120,6 @@ def score(tables: list[Path], fit: bool) -> None:
     prediction's expected errors for comparison), per role and over every posed slice; the AUROC of
     each for E.D. > 5 mm. With ``fit``, the constants least squares puts on the first table."""
     from scipy.optimize import nnls
-    from sklearn.metrics import roc_auc_score
     for i, path in enumerate(tables):
         t = dict(np.load(path))
         posed = (t["area_mm2"] >= MIN_MASK_PIXELS_MM2) & np.isfinite(t["expected"])
@@ -120,8 +132,9 @@ def score(tables: list[Path], fit: bool) -> None:
         rms = lambda x: float(np.sqrt(np.mean(np.square(x))))  # noqa: E731
         for level in dict.fromkeys(t["level"]):
             cells = []
-            for name, which in (("in the volume", (IN_VOLUME,)), ("placed beside it", (1, 2)),
-                                ("left out", (LEFT_OUT,)), ("every posed slice", (0, 1, 2, 3))):
+            for name, which in (("in the volume", (IN_VOLUME,)),
+                                ("placed beside it", (PLACED_BY_STACK_MOTION, PLACED_BY_VOLUME)),
+                                ("left out", (LEFT_OUT,)), ("every posed slice", range(LEFT_OUT + 1))):
                 s = posed & (t["level"] == level) & np.isin(t["role"], which)
                 if s.any():
                     cells.append(f"{name} ({s.sum()}) {rms(t['ed'][s]):.2f} / {rms(model[s]):.2f} = "
@@ -130,8 +143,8 @@ def score(tables: list[Path], fit: bool) -> None:
             cells.append(f"with the prediction's expected errors {rms(t['ed'][s]) / rms(t['expected'][s]):.2f}")
             print(f"{path.name} {level}: RMS E.D. / RMS expected: " + "; ".join(cells))
         bad = t["ed"][posed] > 5.0
-        print(f"{path.name} AUROC for E.D. > 5 mm: refined {roc_auc_score(bad, model[posed]):.3f}, "
-              f"the prediction's {roc_auc_score(bad, t['expected'][posed]):.3f}")
+        print(f"{path.name} AUROC for E.D. > 5 mm: refined {auroc(model[posed], bad):.3f}, "
+              f"the prediction's {auroc(t['expected'][posed], bad):.3f}")
 
 
 def main() -> None:

@@ -275,7 +275,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     from service.reconstruction.midline import midline_fit
     from service.reconstruction.never_worse import held_out_score, reconstruct_never_worse
     from service.reconstruction.pipeline import ReconstructionConfig
-    from service.reconstruction.pose_errors import refined_expected_errors, roles
+    from service.reconstruction.pose_errors import refined_expected_errors, refined_summary, roles
     from service.reconstruction.refined_poses import refined_poses_body
     from service.reconstruction.slices import SliceSet
 
@@ -343,8 +343,12 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     # The report's timings: the winning path's stages and ``total``, every path's (``all_paths``), and
     # the job's up to the writing of its outputs (``job``: prediction and the frame steps included).
     result.timings = {**result.timings, "job": time.perf_counter() - t0}
+    role = roles(result.included, left_out.moved, left_out.registered)
+    refined_errors = refined_expected_errors(role, left_out.ncc, reference.areas_mm2, expected,
+                                             held_out_ncc=held_out_score(result))
     extra = {"started_from": started_from, "left_out_placed_by_stack_motion": int(left_out.moved.sum()),
-             "left_out_placed_by_volume": int(left_out.registered.sum())}
+             "left_out_placed_by_volume": int(left_out.registered.sum()),
+             "refined_poses": refined_summary(role, refined_errors, expected)}
     if frame is not None:
         extra.update(atlas_frame=frame.report(), midline=midline.report())
     report = write_outputs(result, slice_set, folder / "outputs", extra=extra)
@@ -353,10 +357,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
                                  weight=result.slice_weight, ncc=result.ncc, held_out_ncc=result.held_out_ncc,
                                  reasons=result.exclusion_reason, job_id=job_id,
                                  placed_by_stack_motion=left_out.moved, placed_by_volume=left_out.registered,
-                                 refined_expected_error_mm=refined_expected_errors(
-                                     roles(result.included, left_out.moved, left_out.registered), left_out.ncc,
-                                     reference.areas_mm2, expected,
-                                     held_out_ncc=held_out_score(result)))
+                                 refined_expected_error_mm=refined_errors)
     for i, stack in enumerate(refined.get("stacks", [])):
         # Results are kept until the retention limit; the clients' file names (often patient names)
         # are not: a stack is named by its place in the upload.

@@ -99,3 +99,24 @@ def refined_expected_errors(role: ArrayLike, ncc: ArrayLike, area_mm2: ArrayLike
     if incoherent(held_out_ncc):
         out = np.fmax(out, predicted)
     return np.where(placed, out, predicted)
+
+
+def refined_summary(role: ArrayLike, refined_mm: ArrayLike, starting_mm: ArrayLike) -> dict:
+    """The job report's ``refined_poses``: over the posed slices (a refined expected error known), how
+    many the job placed and how, and the median expected error of the refined poses and of the
+    starting ones (where known; None for none).
+
+    Example:
+        >>> refined_summary([IN_VOLUME, IN_VOLUME, PLACED_BY_STACK_MOTION, LEFT_OUT, LEFT_OUT],
+        ...                 [2.1, 2.5, 2.5, 12.0, np.nan], [3.0, 4.0, 9.0, 12.0, np.nan])
+        {'posed': 4, 'in_volume': 2, 'placed_by_stack_motion': 1, 'placed_by_volume': 0, 'median_expected_error_mm': 2.5, 'median_starting_expected_error_mm': 6.5}
+    """
+    role, refined, starting = (np.asarray(x) for x in (role, refined_mm, starting_mm))
+    posed = np.isfinite(refined.astype(np.float64))
+    known = posed & np.isfinite(starting.astype(np.float64))
+    median = lambda x: round(float(np.median(x)), 3) if len(x) else None  # noqa: E731
+    return {"posed": int(posed.sum()), **{name: int(np.sum(posed & (role == r))) for name, r in
+                                          (("in_volume", IN_VOLUME), ("placed_by_stack_motion", PLACED_BY_STACK_MOTION),
+                                           ("placed_by_volume", PLACED_BY_VOLUME))},
+            "median_expected_error_mm": median(refined[posed]),
+            "median_starting_expected_error_mm": median(starting[known])}

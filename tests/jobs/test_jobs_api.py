@@ -131,6 +131,10 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
         else:
             assert s["refined_expected_error_mm"] == s.get("expected_error_mm")
     assert sum(s["included"] for s in slices) >= 30
+    summary, posed = report["refined_poses"], [s for s in slices if s["refined_expected_error_mm"] is not None]
+    assert summary["posed"] == len(posed) and summary["in_volume"] == sum(s["included"] for s in posed)
+    assert summary["median_expected_error_mm"] == pytest.approx(np.median([s["refined_expected_error_mm"] for s in posed]),
+                                                                abs=1e-3)
     assert submit(client, case, poses=body).status_code == 202
     # The per-slice transforms: a zip of one .tfm per slice, each F A P^-1 F (docs/reconstruction.md).
     assert st["transforms_url"] == f"/v1/reconstructions/{job_id}/transforms"
