@@ -330,6 +330,8 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     left_out = place_left_out(slice_set, result.atlas_from_voxel_final, result.included, expected,
                               plane_x_mm=plane, orders=known_orders, volume=reference)
     result = replace(result, atlas_from_voxel_final=left_out.poses)
+    areas = reference.areas_mm2
+    del reference                                   # every slice's pixels and the blurred volume: done with
     frame = None
     if params.get("atlas_frame", True):
         progress("atlas frame", 0.95)
@@ -344,8 +346,8 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     # the job's up to the writing of its outputs (``job``: prediction and the frame steps included).
     result.timings = {**result.timings, "job": time.perf_counter() - t0}
     role = roles(result.included, left_out.moved, left_out.registered)
-    refined_errors = refined_expected_errors(role, left_out.ncc, reference.areas_mm2, expected,
-                                             held_out_ncc=held_out_score(result))
+    refined_errors = refined_expected_errors(role, left_out.ncc, areas, expected, held_out_ncc=held_out_score(result),
+                                             framed=frame is not None and frame.applied)
     extra = {"started_from": started_from, "left_out_placed_by_stack_motion": int(left_out.moved.sum()),
              "left_out_placed_by_volume": int(left_out.registered.sum()),
              "refined_poses": refined_summary(role, refined_errors, expected)}

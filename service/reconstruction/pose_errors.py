@@ -4,7 +4,7 @@ A ``/v1/predict`` slice's ``expected_error_mm`` describes the network's pose. A 
 slices to where its volume puts them, and their errors change in kind: a slice in the volume, or
 one the job placed beside it, shares the volume's frame error (where the atlas frame and midline
 steps leave the brain: the same for every slice of one brain) and adds a little of its own; a slice
-the job left where the prediction put it keeps the prediction's error. What the job sees of each
+the job did not place keeps its starting pose's error. What the job sees of each
 slice tells them apart, and flags a slice whose pose disagrees with the volume:
 
 * its role: in the volume, placed by its stack's motion or registered to the volume
@@ -22,8 +22,11 @@ A placed slice's expected E.D. is the root of the sum of the squares of :data:`F
 volume's predicted error, and :data:`SHORTFALL_MM` per unit its NCC ratio falls below
 :data:`NCC_RATIO`. The constants are least squares on the squared E.D. of simulated jobs
 (``model_export/experiments/refined_errors.py``; the calibration is in docs/reconstruction.md).
-Where the job's stacks do not predict each other (:func:`~service.reconstruction.quality.incoherent`)
-the volume is no reference, and no slice's expected error falls below its starting pose's.
+A slice the job did not place keeps its starting pose's expected error, or more where it disagrees
+with the volume. Where the job's stacks do not predict each other
+(:func:`~service.reconstruction.quality.incoherent`), or cannot be judged so (one stack), or the
+frame steps did not move the poses, the constants do not hold: no slice's expected error falls
+below its starting pose's.
 
 Example (a slice in the volume, one that fits it badly, one left out at its prediction's 9 mm,
 one not posed):
@@ -73,7 +76,7 @@ def roles(included: ArrayLike, placed_by_stack_motion: ArrayLike, placed_by_volu
 
 
 def refined_expected_errors(role: ArrayLike, ncc: ArrayLike, area_mm2: ArrayLike, predicted_mm: ArrayLike, *,
-                            held_out_ncc: float | None) -> NDArray[np.float64]:
+                            held_out_ncc: float | None, framed: bool = True) -> NDArray[np.float64]:
     """``[n]`` the expected E.D. (mm) of each refined pose (module docstring).
 
     Args:
@@ -82,12 +85,14 @@ def refined_expected_errors(role: ArrayLike, ncc: ArrayLike, area_mm2: ArrayLike
         area_mm2: ``[n]`` its brain section's area.
         predicted_mm: ``[n]`` its starting pose's ``expected_error_mm`` (NaN: none known; a left-out
             slice's stays NaN, a placed slice's is the volume's alone).
-        held_out_ncc: the job's leave-one-stack-out median NCC (None: not measured): where it is
-            incoherent, no slice's expected error falls below its starting pose's.
+        held_out_ncc: the job's leave-one-stack-out median NCC (None: not measured, one stack).
+        framed: the atlas-frame and midline steps moved the poses (what the constants were fitted
+            after). Where they did not, or the stacks do not predict each other (``held_out_ncc``
+            incoherent or not measured), no slice's expected error falls below its starting pose's,
+            and a slice without one has none.
     """
     role = np.asarray(role, np.int64)
     c, predicted = np.asarray(ncc, np.float64), np.asarray(predicted_mm, np.float64)
-    placed = role != LEFT_OUT
     inside = role == IN_VOLUME
     median = float(np.nanmedian(c[inside])) if np.isfinite(c[inside]).any() else float("nan")
     ratio = np.nan_to_num(c / median, nan=NCC_RATIO) if median > 0 else np.full(len(c), NCC_RATIO)
@@ -96,15 +101,20 @@ def refined_expected_errors(role: ArrayLike, ncc: ArrayLike, area_mm2: ArrayLike
     beside = np.where(inside, 0.0, BESIDE_MM)
     share = np.where(inside, PREDICTED_SHARE * np.nan_to_num(predicted, nan=0.0), 0.0)  # none known: a client's
     out = np.sqrt(FRAME_MM ** 2 + beside ** 2 + share ** 2 + shortfall ** 2)
-    if incoherent(held_out_ncc):
-        out = np.fmax(out, predicted)
-    return np.where(placed, out, predicted)
+    known = np.isfinite(predicted)
+    # A slice the job did not place keeps its starting pose's error, more where it disagrees with the
+    # volume (an excluded slice may have been registered before the job left it out).
+    out = np.where(role == LEFT_OUT, np.where(known, np.fmax(out, predicted), np.nan), out)
+    if not framed or held_out_ncc is None or incoherent(held_out_ncc):
+        out = np.where(known, np.fmax(out, predicted), np.nan)
+    return out
 
 
 def refined_summary(role: ArrayLike, refined_mm: ArrayLike, starting_mm: ArrayLike) -> dict:
     """The job report's ``refined_poses``: over the posed slices (a refined expected error known), how
-    many the job placed and how, and the median expected error of the refined poses and of the
-    starting ones (where known; None for none).
+    many the job placed and how; the median expected error of the refined poses and of the starting
+    ones, over the slices that have both (the refined poses' over every posed slice where no starting
+    error is known; None for none).
 
     Example:
         >>> refined_summary([IN_VOLUME, IN_VOLUME, PLACED_BY_STACK_MOTION, LEFT_OUT, LEFT_OUT],
@@ -114,9 +124,10 @@ def refined_summary(role: ArrayLike, refined_mm: ArrayLike, starting_mm: ArrayLi
     role, refined, starting = (np.asarray(x) for x in (role, refined_mm, starting_mm))
     posed = np.isfinite(refined.astype(np.float64))
     known = posed & np.isfinite(starting.astype(np.float64))
+    compared = known if known.any() else posed                     # both medians over the same slices
     median = lambda x: round(float(np.median(x)), 3) if len(x) else None  # noqa: E731
     return {"posed": int(posed.sum()), **{name: int(np.sum(posed & (role == r))) for name, r in
                                           (("in_volume", IN_VOLUME), ("placed_by_stack_motion", PLACED_BY_STACK_MOTION),
                                            ("placed_by_volume", PLACED_BY_VOLUME))},
-            "median_expected_error_mm": median(refined[posed]),
+            "median_expected_error_mm": median(refined[compared]),
             "median_starting_expected_error_mm": median(starting[known])}

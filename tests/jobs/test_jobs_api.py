@@ -19,7 +19,6 @@ from fastapi.testclient import TestClient
 from service.inference.registry import ModelRegistry
 from service.io.volume import Volume, read_volume, write_volume
 from service.jobs.store import SqliteJobStore
-from service.reconstruction.pose_errors import FRAME_MM
 from tests.api.conftest import OracleEstimator, make_client, tiny_model_path  # noqa: F401 - fixture
 from tests.jobs.conftest import BACKENDS, env_of
 from tests.support.live_server import Worker
@@ -122,19 +121,19 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
     assert sum(registered) == report["left_out_placed_by_volume"]
     assert not any(s["included"] or r for s, m, r in zip(slices, moved, registered) if m)
     assert not any(s["included"] for s, r in zip(slices, registered) if r)
-    # The refined poses' expected errors: a slice the job placed has one (here, where the client's
-    # poses carry no expected errors, the volume's frame error and its fit), a slice left where it
-    # was keeps its starting pose's (none here).
-    for s in slices:
-        if s["included"] or s["placed_by_stack_motion"] or s["placed_by_volume"]:
-            assert s["refined_expected_error_mm"] >= FRAME_MM
-        else:
-            assert s["refined_expected_error_mm"] == s.get("expected_error_mm")
-    assert sum(s["included"] for s in slices) >= 30
-    summary, posed = report["refined_poses"], [s for s in slices if s["refined_expected_error_mm"] is not None]
-    assert summary["posed"] == len(posed) and summary["in_volume"] == sum(s["included"] for s in posed)
-    assert summary["median_expected_error_mm"] == pytest.approx(np.median([s["refined_expected_error_mm"] for s in posed]),
-                                                                abs=1e-3)
+    # The refined poses' expected errors. The client's poses carry none and the frame steps are off
+    # (the fitted constants do not hold): the job vouches for none. With the poses' own expected
+    # errors, none falls below them.
+    assert all(s["refined_expected_error_mm"] is None for s in slices)
+    assert report["refined_poses"]["posed"] == 0 and report["refined_poses"]["median_expected_error_mm"] is None
+    with_errors = json.loads(json.dumps(case["poses"]))
+    for stack in with_errors["stacks"]:
+        for s in stack["slices"]:
+            s["expected_error_mm"] = 3.0
+    second = wait(client, submit(client, case, poses=with_errors).json()["job_id"])
+    refined = [s for stack in client.get(second["poses_url"]).json()["stacks"] for s in stack["slices"]]
+    assert all(s["refined_expected_error_mm"] >= 3.0 for s in refined)
+    assert second["report"]["refined_poses"]["posed"] == len(refined)
     assert submit(client, case, poses=body).status_code == 202
     # The per-slice transforms: a zip of one .tfm per slice, each F A P^-1 F (docs/reconstruction.md).
     assert st["transforms_url"] == f"/v1/reconstructions/{job_id}/transforms"
@@ -160,7 +159,7 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
     assert again.status_code == 200 and zipfile.ZipFile(io.BytesIO(again.content)).namelist() == names
     # Prometheus: the jobs by state and the runner's workers, as the store has them.
     metrics = client.get("/metrics").text
-    assert 'svrnet_jobs{status="succeeded"} 1.0' in metrics, metrics[-2000:]
+    assert re.search(r'svrnet_jobs\{status="succeeded"\} [23]\.0', metrics), metrics[-2000:]   # the two above, maybe one more
     assert re.search(r'svrnet_job_runner\{what="workers"\} [1-9]', metrics)
 
 

@@ -24,7 +24,7 @@ from tests.reconstruction.helpers import make_acquisition, perturb, reference_on
 LARGE, CAP = 2 * MIN_AREA_MM2, 0.5 * MIN_AREA_MM2
 
 
-def errors(role, ncc, area=LARGE, predicted=4.0, held_out_ncc=0.92):  # noqa: ANN001, ANN201
+def errors(role, ncc, area=LARGE, predicted=4.0, held_out_ncc=0.92, framed=True):  # noqa: ANN001, ANN201
     """The model on arrays built from scalars or lists, with the placed slices' median NCC 0.9."""
     role = np.atleast_1d(role)
     n = len(role)
@@ -32,7 +32,7 @@ def errors(role, ncc, area=LARGE, predicted=4.0, held_out_ncc=0.92):  # noqa: AN
     # four more slices in the volume at NCC 0.9 set the median the ratio is taken against
     out = refined_expected_errors(np.r_[role, [IN_VOLUME] * 4], np.r_[full(ncc), [0.9] * 4],
                                   np.r_[full(area), [LARGE] * 4], np.r_[full(predicted), [4.0] * 4],
-                                  held_out_ncc=held_out_ncc)
+                                  held_out_ncc=held_out_ncc, framed=framed)
     return out[:n]
 
 
@@ -46,11 +46,12 @@ def test_a_slice_in_the_volume_that_agrees_with_it_expects_the_frame_and_part_of
     np.testing.assert_allclose(beside, np.hypot(FRAME_MM, BESIDE_MM))   # not in the volume: its own fit instead
 
 
-def test_a_left_out_slice_keeps_its_starting_error_and_a_placed_one_needs_none() -> None:
-    """A slice left where it was keeps its starting pose's expected error (none known: none); a
-    slice the volume placed has one without it (a client's poses carry none): the volume's."""
+def test_a_left_out_slice_keeps_at_least_its_starting_error_and_a_placed_one_needs_none() -> None:
+    """A slice the job did not place keeps its starting pose's expected error, more where it
+    disagrees with the volume (none known: none); a slice the volume placed has one without it (a
+    client's poses carry none): the volume's."""
     got = errors([LEFT_OUT, LEFT_OUT, LEFT_OUT, IN_VOLUME], [0.2, 0.9, 0.9, 0.9], predicted=[9.0, 6.5, np.nan, np.nan])
-    assert got[0] == 9.0 and got[1] == 6.5 and np.isnan(got[2]) and got[3] == FRAME_MM
+    assert got[0] > 12.0 and got[1] == 6.5 and np.isnan(got[2]) and got[3] == FRAME_MM
 
 
 def test_a_placed_slice_that_fits_the_volume_worse_expects_more_and_a_large_section_tells_more() -> None:
@@ -63,15 +64,15 @@ def test_a_placed_slice_that_fits_the_volume_worse_expects_more_and_a_large_sect
     assert errors(IN_VOLUME, 0.99)[0] == errors(IN_VOLUME, 0.9)[0]       # above the ratio: agrees
 
 
-def test_an_incoherent_volume_never_makes_a_pose_surer_than_its_prediction() -> None:
-    """Stacks that do not predict each other (leave-one-stack-out NCC 0.3) make no reference; one
-    stack alone (not measured) is judged as a coherent job."""
-    got = errors([IN_VOLUME, PLACED_BY_VOLUME], 0.9, predicted=[12.0, 3.0], held_out_ncc=0.3)
-    assert got[0] == 12.0 and got[1] == 3.0 > np.hypot(FRAME_MM, BESIDE_MM)
-    coherent = errors([IN_VOLUME, PLACED_BY_VOLUME], 0.9, predicted=[12.0, 3.0], held_out_ncc=0.92)
-    assert coherent[0] < 12.0
-    np.testing.assert_array_equal(errors([IN_VOLUME, PLACED_BY_VOLUME], 0.9, predicted=[12.0, 3.0],
-                                         held_out_ncc=None), coherent)
+def test_where_the_constants_do_not_hold_no_pose_is_surer_than_its_start() -> None:
+    """Stacks that do not predict each other (leave-one-stack-out NCC 0.3), one stack (not
+    measured) or no frame step: no slice's expected error falls below its starting pose's, and a
+    slice without one has none."""
+    coherent = errors([IN_VOLUME, PLACED_BY_VOLUME, IN_VOLUME], 0.9, predicted=[12.0, 3.0, np.nan], held_out_ncc=0.92)
+    assert coherent[0] < 12.0 and coherent[1] == np.hypot(FRAME_MM, BESIDE_MM) and coherent[2] == FRAME_MM
+    for kind in ({"held_out_ncc": 0.3}, {"held_out_ncc": None}, {"held_out_ncc": 0.92, "framed": False}):
+        got = errors([IN_VOLUME, PLACED_BY_VOLUME, IN_VOLUME], 0.9, predicted=[12.0, 3.0, np.nan], **kind)
+        assert got[0] == 12.0 and got[1] == 3.0 and np.isnan(got[2]), kind
 
 
 def test_roles_put_a_slice_in_the_volume_before_its_left_out_flags() -> None:
