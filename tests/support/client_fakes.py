@@ -56,20 +56,6 @@ PREDICT_BODY = {
                 "localisation": {"method": "network", "brain_volume_ml": 312.4, "confidence": 0.93}}],
 }
 
-JOB_FIELDS = [  # per slice of PREDICT_BODY: what a job adds to its refined poses
-    {"included": True, "placed_by_stack_motion": False, "placed_by_volume": False, "refined_expected_error_mm": 1.8},
-    {"included": True, "placed_by_stack_motion": False, "placed_by_volume": False, "refined_expected_error_mm": 1.9},
-    {"included": False, "placed_by_stack_motion": True, "placed_by_volume": False, "refined_expected_error_mm": 2.5},
-    {"included": False, "placed_by_stack_motion": False, "placed_by_volume": False, "refined_expected_error_mm": None}]
-
-
-def refined_body(job_id: str) -> dict:
-    """A job's refined poses as ``GET …/poses`` answers them: PREDICT_BODY with the job's fields."""
-    body = json.loads(json.dumps(PREDICT_BODY))
-    for s, extra in zip(body["stacks"][0]["slices"], JOB_FIELDS):
-        s.update(extra)
-    return dict(body, refined_by={"job_id": job_id})
-
 
 def masks_archive() -> bytes:
     """What /v1/masks answers, plus a member that names a path (never written)."""
@@ -147,7 +133,7 @@ class FakeJobs:
             if job["status"] != "succeeded":
                 return httpx.Response(409, json=problem(409, f"job {job['job_id']} is {job['status']}"))
             if m.group(2) == "/poses":
-                return httpx.Response(200, json=refined_body(job["job_id"]))
+                return httpx.Response(200, json=dict(PREDICT_BODY, refined_by={"job_id": job["job_id"]}))
             content = {"/volume": self.VOLUME, "/preview.png": self.PREVIEW, "/transforms": self.TRANSFORMS}
             return httpx.Response(200, content=content[m.group(2)])
         job["polls"] += 1
