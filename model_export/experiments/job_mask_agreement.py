@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -32,11 +31,8 @@ from service.jobs.uploaded_poses import expected_errors  # noqa: E402
 from service.jobs.worker import predicted_body, starting_poses  # noqa: E402
 from service.pipeline.prepare import StackUpload, prepare_stacks  # noqa: E402
 from service.preprocess.localise import default_localiser  # noqa: E402
-from service.reconstruction.atlas_frame import atlas_frame, with_frame  # noqa: E402
-from service.reconstruction.left_out import VolumeReference, place_left_out  # noqa: E402
-from service.reconstruction.midline import midline_fit  # noqa: E402
-from service.reconstruction.never_worse import held_out_score, reconstruct_never_worse  # noqa: E402
-from service.reconstruction.pipeline import ReconstructionConfig  # noqa: E402
+from service.reconstruction.job import refine_job  # noqa: E402
+from service.reconstruction.pose_errors import LEFT_OUT  # noqa: E402
 from service.reconstruction.slices import SliceSet  # noqa: E402
 
 STEPS = ("predicted", "job before the frame steps", "job after the atlas frame", "job as returned (midline)")
@@ -47,17 +43,14 @@ def answer(uploads: list[StackUpload], estimator, localiser, plane: float) -> di
     (accepted for the prediction, placed for the job's)."""
     body, masks = predicted_body(uploads, estimator, 100, localiser=localiser)
     inputs = [(u.volume, m, mats, acc) for u, m, (mats, acc) in zip(uploads, masks, starting_poses(body))]
-    ss = SliceSet.from_stacks(inputs)
-    res = reconstruct_never_worse(ss, 1.5, 3, config=ReconstructionConfig(symmetry_plane_x_mm=plane))
-    left = place_left_out(ss, res.atlas_from_voxel_final, res.included, expected_errors(body), plane_x_mm=plane,
-                          volume=VolumeReference.of(res, inputs))
-    res = replace(res, atlas_from_voxel_final=left.poses)
-    framed = with_frame(res, atlas_frame(res.volume, estimator, plane, held_out_ncc=held_out_score(res)))
-    returned = with_frame(framed, midline_fit(framed.volume, plane, held_out_score(res)))
+    job = refine_job(SliceSet.from_stacks(inputs), inputs, expected_errors(body), estimator=estimator,
+                     plane_x_mm=plane, resolution_mm=1.5, svr_iterations=3)
+    before = job.left_out.poses                                     # the poses before the frame steps
+    framed = (job.frame.correction if job.frame.applied else np.eye(4)) @ before
     slices = [s for st in body["stacks"] for s in st["slices"]]
-    placed = res.included | left.moved | left.registered
-    return {"poses": [np.array([s["atlas_from_voxel"] for s in slices]), res.atlas_from_voxel_final,
-                      framed.atlas_from_voxel_final, returned.atlas_from_voxel_final],
+    placed = job.role != LEFT_OUT
+    return {"poses": [np.array([s["atlas_from_voxel"] for s in slices]), before, framed,
+                      job.result.atlas_from_voxel_final],
             "use": [np.array([bool(s["accepted"]) for s in slices]), placed, placed, placed]}
 
 

@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -38,11 +37,9 @@ from service.geometry.anchors import ed
 from service.jobs.uploaded_poses import expected_errors
 from service.jobs.worker import starting_poses
 from service.preprocess.stack import stack_from_slice_images
-from service.reconstruction.atlas_frame import atlas_frame, with_frame
-from service.reconstruction.left_out import MIN_AREA_MM2, VolumeReference, place_left_out
-from service.reconstruction.midline import midline_fit
-from service.reconstruction.never_worse import held_out_score, reconstruct_never_worse
-from service.reconstruction.pipeline import ReconstructionConfig
+from service.reconstruction.job import refine_job
+from service.reconstruction.left_out import MIN_AREA_MM2
+from service.reconstruction.never_worse import held_out_score
 from service.reconstruction.pose_errors import (
     IN_VOLUME,
     LEFT_OUT,
@@ -50,7 +47,6 @@ from service.reconstruction.pose_errors import (
     PLACED_BY_STACK_MOTION,
     PLACED_BY_VOLUME,
     refined_expected_errors,
-    roles,
 )
 from service.reconstruction.slices import SliceSet
 
@@ -63,29 +59,20 @@ ROLES = ("in_volume", "placed_by_stack_motion", "placed_by_volume", "left_out", 
 
 def job_slices(stacks, prepared, body: dict, est, plane: float, resolution: float, rounds: int) -> dict:  # noqa: ANN001
     """Every slice's columns for one acquisition (module docstring) and the job's path."""
-    poses = starting_poses(body)
     masks = [stack_from_slice_images(p.slices.masks, p.slices.slice_axis) for p in prepared]
-    inputs = [(s.volume, m, mats, inc) for s, m, (mats, inc) in zip(stacks, masks, poses)]
-    ss = SliceSet.from_stacks(inputs)
+    inputs = [(s.volume, m, mats, inc) for s, m, (mats, inc) in zip(stacks, masks, starting_poses(body))]
     expected = expected_errors(body)
-    res = reconstruct_never_worse(ss, resolution, rounds, config=ReconstructionConfig(symmetry_plane_x_mm=plane))
-    ref = VolumeReference.of(res, inputs)
-    left = place_left_out(ss, res.atlas_from_voxel_final, res.included, expected, plane_x_mm=plane, volume=ref)
-    res = replace(res, atlas_from_voxel_final=left.poses)
-    ncc = left.ncc
-    held = held_out_score(res)
-    framed = with_frame(res, atlas_frame(res.volume, est, plane, held_out_ncc=held))
-    framed = with_frame(framed, midline_fit(framed.volume, plane, held_out_score(res)))
-    pose, true = network_poses(stacks, prepared, framed.atlas_from_voxel_final)
-    role = roles(res.included, left.moved, left.registered)
-    role = np.where((role == LEFT_OUT) & ~np.isfinite(expected), ROLES.index("not_posed"), role)
+    job = refine_job(SliceSet.from_stacks(inputs), inputs, expected, estimator=est, plane_x_mm=plane,
+                     resolution_mm=resolution, svr_iterations=rounds)
+    res, ncc = job.result, job.left_out.ncc
+    pose, true = network_poses(stacks, prepared, res.atlas_from_voxel_final)
+    role = np.where((job.role == LEFT_OUT) & ~np.isfinite(expected), ROLES.index("not_posed"), job.role)
     frame = to_truth_frame(pose[res.included], true[res.included])
-    n = len(pose)
+    held, n = held_out_score(res), len(pose)
     return {"role": role, "expected": expected, "ncc": ncc,
             "placed_ncc": np.full(n, np.nanmedian(ncc[res.included]) if res.included.any() else np.nan),
             "held_out_ncc": res.held_out_ncc if res.held_out_ncc is not None else np.full(n, np.nan),
-            "weight": np.where(res.included, res.slice_weight, 0.0),
-            "area_mm2": ref.areas_mm2,
+            "weight": np.where(res.included, res.slice_weight, 0.0), "area_mm2": job.areas_mm2,
             "loso": np.full(n, held if held is not None else np.nan),
             "ed": ed(pose, true), "twin_min": twin.twin_min_ed(pose, true, plane), "own_frame": ed(frame @ pose, true),
             "path": np.full(n, str(res.quality.get("path")))}

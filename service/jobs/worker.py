@@ -270,12 +270,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     from service.io.readers import read_upload
     from service.reconstruction.export import write_outputs
     from service.preprocess.stack import split_stack
-    from service.reconstruction.atlas_frame import atlas_frame, with_frame
-    from service.reconstruction.left_out import VolumeReference, place_left_out
-    from service.reconstruction.midline import midline_fit
-    from service.reconstruction.never_worse import held_out_score, reconstruct_never_worse
-    from service.reconstruction.pipeline import ReconstructionConfig
-    from service.reconstruction.pose_errors import refined_expected_errors, refined_summary, roles
+    from service.reconstruction.job import refine_job
     from service.reconstruction.refined_poses import refined_poses_body
     from service.reconstruction.slices import SliceSet
 
@@ -321,45 +316,24 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     known_orders = stack_orders(orders, uploads)
     stack_inputs = [(u.volume, m, mats, acc) for u, m, (mats, acc) in zip(uploads, masks, poses)]
     slice_set = SliceSet.from_stacks(stack_inputs)
-    result = reconstruct_never_worse(slice_set, resolution_mm=float(params.get("resolution_mm", 0.8)),
-                                     svr_iterations=int(params.get("svr_iterations", 3)),
-                                     progress=lambda stage, f: progress(stage, 0.15 + 0.8 * f),
-                                     config=ReconstructionConfig(symmetry_plane_x_mm=plane,
-                                                                 slice_orders=tuple(known_orders)))
-    reference, expected = VolumeReference.of(result, stack_inputs), expected_errors(body)
-    left_out = place_left_out(slice_set, result.atlas_from_voxel_final, result.included, expected,
-                              plane_x_mm=plane, orders=known_orders, volume=reference)
-    result = replace(result, atlas_from_voxel_final=left_out.poses)
-    areas = reference.areas_mm2
-    del reference                                   # every slice's pixels and the blurred volume: done with
-    frame = None
-    if params.get("atlas_frame", True):
-        progress("atlas frame", 0.95)
-        frame = atlas_frame(result.volume, estimator, plane, mc_samples=int(params.get("mc_samples", 100)),
-                            held_out_ncc=held_out_score(result))
-        result = with_frame(result, frame)
-        progress("midline", 0.96)
-        midline = midline_fit(result.volume, plane, held_out_score(result))
-        result = with_frame(result, midline)
+    job = refine_job(slice_set, stack_inputs, expected_errors(body), estimator=estimator, plane_x_mm=plane,
+                     resolution_mm=float(params.get("resolution_mm", 0.8)),
+                     svr_iterations=int(params.get("svr_iterations", 3)), orders=known_orders,
+                     frame_steps=params.get("atlas_frame", True), mc_samples=int(params.get("mc_samples", 100)),
+                     progress=lambda stage, f: progress(stage, 0.15 + 0.8 * f))
+    result, left_out = job.result, job.left_out
     progress("writing", 0.97)
     # The report's timings: the winning path's stages and ``total``, every path's (``all_paths``), and
     # the job's up to the writing of its outputs (``job``: prediction and the frame steps included).
     result.timings = {**result.timings, "job": time.perf_counter() - t0}
-    role = roles(result.included, left_out.moved, left_out.registered)
-    refined_errors = refined_expected_errors(role, left_out.ncc, areas, expected, held_out_ncc=held_out_score(result),
-                                             framed=frame is not None and frame.applied)
-    extra = {"started_from": started_from, "left_out_placed_by_stack_motion": int(left_out.moved.sum()),
-             "left_out_placed_by_volume": int(left_out.registered.sum()),
-             "refined_poses": refined_summary(role, refined_errors, expected)}
-    if frame is not None:
-        extra.update(atlas_frame=frame.report(), midline=midline.report())
+    extra = {"started_from": started_from, **job.report()}
     report = write_outputs(result, slice_set, folder / "outputs", extra=extra)
     slice_frames = [split_stack(u.volume, np.ones(u.volume.array.shape, bool)).slice_from_voxel for u in uploads]
     refined = refined_poses_body(body, result.atlas_from_voxel_final, slice_frames, included=result.included,
                                  weight=result.slice_weight, ncc=result.ncc, held_out_ncc=result.held_out_ncc,
                                  reasons=result.exclusion_reason, job_id=job_id,
                                  placed_by_stack_motion=left_out.moved, placed_by_volume=left_out.registered,
-                                 refined_expected_error_mm=refined_errors)
+                                 refined_expected_error_mm=job.expected_error_mm)
     for i, stack in enumerate(refined.get("stacks", [])):
         # Results are kept until the retention limit; the clients' file names (often patient names)
         # are not: a stack is named by its place in the upload.

@@ -1,0 +1,109 @@
+"""What a reconstruction job makes of its slices, from the starting poses to the poses it returns.
+
+One sequence, run by the job worker (:mod:`service.jobs.worker`) and by the experiments that measure
+it: the never-worse paths (:mod:`~service.reconstruction.never_worse`), the slices left out of the
+volume placed (:mod:`~service.reconstruction.left_out`), the atlas frame re-estimated by the network
+and the midline put on the atlas plane (:mod:`~service.reconstruction.atlas_frame`,
+:mod:`~service.reconstruction.midline`; ``atlas_frame=False`` skips both), and each returned pose's
+expected error (:mod:`~service.reconstruction.pose_errors`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from service.reconstruction.atlas_frame import FrameFit, atlas_frame, with_frame
+from service.reconstruction.left_out import LeftOutPlacement, VolumeReference, place_left_out
+from service.reconstruction.midline import FrameCorrection, midline_fit
+from service.reconstruction.never_worse import held_out_score, reconstruct_never_worse
+from service.reconstruction.pipeline import ReconstructionConfig, ReconstructionResult
+from service.reconstruction.pose_errors import refined_expected_errors, refined_summary, roles
+from service.reconstruction.slices import SliceSet, StackInput
+
+if TYPE_CHECKING:                      # the estimator is handed in; nothing of inference runs here
+    from service.consistency.slice_order import SliceOrder
+    from service.inference.estimator import PoseEstimator
+
+
+@dataclass
+class RefinedJob:
+    """Output of :func:`refine_job`.
+
+    Attributes:
+        result: the reconstruction, its volume and every slice's pose in the atlas frame the job settles.
+        left_out: where the slices left out of the volume went (its poses before the frame steps).
+        frame: the atlas-frame fit (None: not sought).
+        midline: the midline fit (None: not sought).
+        role: ``[n]`` each slice's role (:func:`~service.reconstruction.pose_errors.roles`).
+        areas_mm2: ``[n]`` each slice's brain section.
+        expected_error_mm: ``[n]`` each returned pose's expected E.D. (NaN: none).
+        starting_error_mm: ``[n]`` the starting poses' expected E.D. (NaN: none known).
+    """
+
+    result: ReconstructionResult
+    left_out: LeftOutPlacement
+    frame: FrameFit | None
+    midline: FrameCorrection | None
+    role: NDArray[np.int64]
+    areas_mm2: NDArray[np.float64]
+    expected_error_mm: NDArray[np.float64]
+    starting_error_mm: NDArray[np.float64]
+
+    def report(self) -> dict:
+        """The job report's fields for these steps."""
+        out = {"left_out_placed_by_stack_motion": int(self.left_out.moved.sum()),
+               "left_out_placed_by_volume": int(self.left_out.registered.sum()),
+               "refined_poses": refined_summary(self.role, self.expected_error_mm, self.starting_error_mm)}
+        if self.frame is not None and self.midline is not None:
+            out.update(atlas_frame=self.frame.report(), midline=self.midline.report())
+        return out
+
+
+def refine_job(slice_set: SliceSet, stacks: Sequence[StackInput], starting_error_mm: NDArray, *,
+               estimator: PoseEstimator | None, plane_x_mm: float, resolution_mm: float, svr_iterations: int,
+               orders: Sequence[SliceOrder | None] = (), frame_steps: bool = True, mc_samples: int = 100,
+               progress: Callable[[str, float], None] | None = None) -> RefinedJob:
+    """The job's steps on ``slice_set`` (made from ``stacks``, as
+    :meth:`~service.reconstruction.slices.SliceSet.from_stacks` takes them) from its starting poses,
+    whose expected errors are ``starting_error_mm`` (``[n]``, NaN: none known).
+
+    Args:
+        estimator: the pose model the atlas frame re-poses slices with (None: the frame stays, reported
+            not applied).
+        plane_x_mm: its atlas mid-sagittal plane.
+        resolution_mm, svr_iterations: the volume's spacing and the slice-to-volume rounds.
+        orders: per stack, what is known of its acquisition order (empty: nothing).
+        frame_steps: run the atlas-frame and midline steps.
+        progress: ``(stage, fraction of the steps done)`` as each stage begins.
+    """
+    report = progress or (lambda stage, fraction: None)
+    result = reconstruct_never_worse(slice_set, resolution_mm=resolution_mm, svr_iterations=svr_iterations,
+                                     progress=report,
+                                     config=ReconstructionConfig(symmetry_plane_x_mm=plane_x_mm,
+                                                                 slice_orders=tuple(orders) or None))
+    reference = VolumeReference.of(result, stacks)
+    left_out = place_left_out(slice_set, result.atlas_from_voxel_final, result.included, starting_error_mm,
+                              plane_x_mm=plane_x_mm, orders=list(orders) or None, volume=reference)
+    areas = reference.areas_mm2
+    del reference                                   # every slice's pixels and the blurred volume: done with
+    result = replace(result, atlas_from_voxel_final=left_out.poses)
+    frame, midline = None, None
+    if frame_steps:
+        report("atlas frame", 1.0)
+        frame = atlas_frame(result.volume, estimator, plane_x_mm, mc_samples=mc_samples,
+                            held_out_ncc=held_out_score(result))
+        result = with_frame(result, frame)
+        report("midline", 1.0)
+        midline = midline_fit(result.volume, plane_x_mm, held_out_score(result))
+        result = with_frame(result, midline)
+    role = roles(result.included, left_out.moved, left_out.registered)
+    expected = refined_expected_errors(role, left_out.ncc, areas, starting_error_mm,
+                                       held_out_ncc=held_out_score(result),
+                                       framed=frame is not None and frame.applied)
+    return RefinedJob(result, left_out, frame, midline, role, areas, expected,
+                      np.asarray(starting_error_mm, np.float64))
