@@ -9,12 +9,14 @@ through ``/v1/predict``'s pipeline with three masks:
 
 * ``brain``: the atlas's brain mask carried along (what the pose network was trained with);
 * ``skull``: everything inside the skull (how manual masks are drawn, what the localiser learns);
-* ``localiser``: none uploaded; the service's localiser finds it.
+* ``localiser``: none uploaded; the service's localiser finds it;
+* ``skull-csf+G`` (``--variants``): the ``skull`` mask grown by ``G`` mm and sent with
+  ``masks_hold_csf``, as a manual mask drawn to the skull's outer edge would be.
 
 Every slice with brain in the truth is scored against its true pose (E.D., mm) and twin-min (the
 nearer of the truth and its left-right twin); a slice the answer calls ``empty`` is counted apart.
 
-    .venv/bin/python -m model_export.localiser.pose_accuracy --scenes 10
+    .venv/bin/python -m model_export.localiser.pose_accuracy --scenes 10 [--variants skull,skull-csf+0,skull-csf+3,localiser]
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ from service.geometry import anchors, twin
 from service.io.volume import Volume
 from service.pipeline.predict import predict
 from service.pipeline.prepare import PreparedStack, StackUpload, prepare_stacks
-from service.preprocess.localise import Localiser
+from service.preprocess.localise import Localiser, grown
 
 VARIANTS = ("brain", "skull", "localiser")
 MIN_BRAIN_PIXELS = 200
@@ -47,6 +49,10 @@ def validation_scenes(count: int, seed: int = 2_000_000, root=DEFAULT_ATLAS_ROOT
 
 
 def _upload(scene: Scene, variant: str) -> StackUpload:
+    if variant.startswith("skull-csf+"):
+        mask = grown(scene.mask, scene.volume.spacing, float(variant[len("skull-csf+"):]))
+        return StackUpload(f"scene-{variant}.nii.gz", scene.volume, Volume(mask.astype(np.uint8), scene.volume.affine),
+                           mask_holds_csf=True)
     mask = {"brain": scene.brain, "skull": scene.mask, "localiser": None}[variant]
     return StackUpload(f"scene-{variant}.nii.gz", scene.volume,
                        None if mask is None else Volume(mask.astype(np.uint8), scene.volume.affine))

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from model_export.evaluate_acquisitions import NoisyTwinEstimator
-from model_export.localiser.pose_accuracy import score_scene
+from model_export.localiser.pose_accuracy import _upload, score_scene
 from model_export.localiser.scenes import HeadModel, synth_scene
 from tests.api.conftest import INFO
 from tests.support.phantoms import phantom_brain
@@ -46,3 +46,12 @@ def test_a_moved_answer_is_scored_by_how_far_it_moved(scene) -> None:  # noqa: A
     estimator = Shifted(INFO, np.random.default_rng(0), noise_deg=0.0, noise_mm=0.0, other_twin_fraction=0.0)
     got = score_scene(scene, "brain", estimator, mc_samples=4)
     assert 3.0 < np.nanmedian(got["ed_min"]) < 7.0, got["ed_min"]
+
+
+def test_a_mask_drawn_to_the_skull_s_outer_edge_holds_the_skull_s_inside_and_says_it_holds_csf(scene) -> None:  # noqa: ANN001
+    """``skull-csf+G``: the skull's inside grown by G mm, sent with ``masks_hold_csf`` (the pipeline
+    insets it again); ``skull`` is sent as it is."""
+    inside, outer = _upload(scene, "skull"), _upload(scene, "skull-csf+3")
+    small, large = inside.mask.array > 0, outer.mask.array > 0
+    assert outer.mask_holds_csf and not inside.mask_holds_csf
+    assert np.all(large[small]) and large.sum() > 1.2 * small.sum()
