@@ -53,8 +53,8 @@ from client.cli_support import (ApiKeyOpt, BiasCorrectionOpt, JobArg, MaskOpt, M
                                 ModelOpt, ServerOpt, StacksArg, ThresholdOpt, check_masks, check_writable, follow_job,
                                 job_id_of, positive, timeout_from_env, write_json, write_results)
 from client.exits import EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, errors, stderr, stdout
-from client.views import (StreamView, coverage_text, job_table, masks_table, models_table, predict_hints,
-                          reacquire_text, summarise, upload_bar, usable)
+from client.stream_views import StreamView, coverage_text, reacquire_text
+from client.views import job_table, masks_table, models_table, predict_hints, summarise, upload_bar, usable
 
 if TYPE_CHECKING:                     # client.stream needs numpy and nibabel: imported by `svrnet stream` only
     from client.stream import Sent

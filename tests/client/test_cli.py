@@ -15,6 +15,7 @@ import pytest
 from typer.testing import CliRunner
 
 import client.cli as cli
+import client.stream_views as stream_views
 import client.views as views
 from client import SVRnetClient
 from tests.support.client_fakes import PREDICT_BODY, FakeJobs, FakeServer, parse_multipart
@@ -111,7 +112,7 @@ def test_the_stream_table_fits_an_80_column_terminal_and_cuts_no_cell_short() ->
     rows = [{"stack": "sub-000_ses-01_T2w_haste_coronal_run-2", "index": i, "accepted": i % 2 == 0,
              "reason": None if i % 2 == 0 else "inconsistent_with_stack", "expected_error_mm": 12.25,
              "translation_mm": [-101.4, -40.5, -14.6], "latency_ms": 157.0, "updated": i == 3} for i in range(4)]
-    console.print(views.StreamView(console).table(rows, "stack cor: final poses"))
+    console.print(stream_views.StreamView(console).table(rows, "stack cor: final poses"))
     text = console.export_text()
     assert max(len(line) for line in text.splitlines()) <= 80 and "…" not in text
     assert text.count("✗ inconsistent_with_stack") == 2 and text.count("(-101, -40, -15)") == 4 and "3*" in text
