@@ -42,17 +42,16 @@ from numpy.typing import NDArray
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.experiments.frame_bias import common_frame  # noqa: E402
-from model_export.experiments.real_scan_poses import read_scan  # noqa: E402
+from model_export.experiments import real_scan_poses  # noqa: E402
 from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, dice  # noqa: E402
 from model_export.localiser.pose_accuracy import pose_accuracy, slice_poses, validation_scenes  # noqa: E402
-from service.api.responses import stack_objects  # noqa: E402
 from service.geometry import anchors, se3  # noqa: E402
 from service.inference import acceptance  # noqa: E402
 from service.inference.acceptance import ATLAS_CENTRE_MM  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator, PoseEstimator  # noqa: E402
 from service.io.volume import Volume  # noqa: E402
 from service.pipeline import predict as pipeline  # noqa: E402
-from service.pipeline.prepare import PreparedStack, StackUpload, prepare_stacks  # noqa: E402
+from service.pipeline.prepare import PreparedStack  # noqa: E402
 from service.preprocess.localise import default_localiser  # noqa: E402
 
 
@@ -98,13 +97,9 @@ def keeping_out(variant: str, manual: dict[str, Volume] | None = None) -> Iterat
 def answer(volumes: dict[str, Volume], manual: dict[str, Volume], estimator: PoseEstimator,
            variant: str | None) -> tuple[list[dict], list[PreparedStack]]:
     """``/v1/predict``'s stacks with the manual masks (``variant`` None), or without masks and the
-    slices ``variant`` names kept out."""
-    uploads = [StackUpload(n, v, None if variant else manual[n], None if variant else f"{n}_brain_mask",
-                           mask_holds_csf=not variant) for n, v in volumes.items()]
-    prepared = prepare_stacks(uploads, estimator.info, True, workers=2, localiser=default_localiser())
+    slices ``variant`` names kept out (:func:`~model_export.experiments.real_scan_poses.answer`)."""
     with keeping_out(variant or "none", manual):
-        predictions, _ = pipeline.predict(prepared, estimator, 100, estimator.info.variance_threshold)
-    return stack_objects(predictions), prepared
+        return real_scan_poses.answer(volumes, None if variant else manual, default_localiser(), estimator)
 
 
 def agreement(with_masks: list[dict], without: list[dict], prepared: list[PreparedStack]) -> str:
@@ -141,7 +136,7 @@ def main() -> None:
                 got = pose_accuracy(scenes, base, default_localiser(), ("localiser",))["localiser"]
             print(f"{variant}: {json.dumps({k: round(v, 2) for k, v in got.items()})}", flush=True)
         return
-    volumes, manual = read_scan(args.scan)
+    volumes, manual = real_scan_poses.read_scan(args.scan)
     for r in range(args.repeats):
         estimator = (base if r == 0 or base.model.mc_seed is None
                      else OnnxPoseEstimator(base.model.with_seed(base.model.mc_seed + r)))
