@@ -300,19 +300,25 @@ class SVRnetClient(Transport):
             transport.sleep(min(poll_s, remaining))
 
     def download_volume(self, job_id: str, out_path: PathLike,
-                        progress: ProgressCallback | None = None) -> Path:
-        """``GET /v1/reconstructions/{job_id}/volume``: the ``.nii.gz`` in atlas space, written to ``out_path``.
+                        progress: ProgressCallback | None = None, stack: int | None = None) -> Path:
+        """``GET /v1/reconstructions/{job_id}/volume``: the ``.nii.gz`` in atlas space, written to ``out_path``;
+        with ``stack``, placed in that stack's scanner coordinates (its index in the upload; the same
+        voxels, so that it overlays the stack in a viewer).
 
         The file is written under a temporary name and renamed when complete.
 
         Raises:
-            Conflict: 409, the job has not succeeded (yet). NotFound: unknown job.
+            Conflict: 409, the job has not succeeded (yet). NotFound: unknown job, or a stack the job
+            does not have or could not place.
 
         Example:
             >>> SVRnetClient().download_volume("3f2a", "recon.nii.gz")           # doctest: +SKIP
             PosixPath('recon.nii.gz')
+            >>> SVRnetClient().download_volume("3f2a", "recon_stack0.nii.gz", stack=0)   # doctest: +SKIP
+            PosixPath('recon_stack0.nii.gz')
         """
-        return self._download(self._job_path(job_id, "/volume"), out_path, progress)
+        query = "" if stack is None else f"?stack={int(stack)}"
+        return self._download(self._job_path(job_id, "/volume") + query, out_path, progress)
 
     def download_preview(self, job_id: str, out_path: PathLike,
                          progress: ProgressCallback | None = None) -> Path:

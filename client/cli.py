@@ -50,7 +50,8 @@ from rich.live import Live
 
 from client._client import DEFAULT_SERVER, SVRnetClient
 from client.cli_support import (ApiKeyOpt, BiasCorrectionOpt, JobArg, MaskOpt, MasksHoldCsfOpt, MaxExpectedOpt, McSamplesOpt,
-                                ModelOpt, ServerOpt, StacksArg, ThresholdOpt, check_masks, check_writable, follow_job,
+                                ModelOpt, ServerOpt, StackSpaceOpt, StacksArg, ThresholdOpt, check_masks, check_writable,
+                                follow_job,
                                 job_id_of, positive, timeout_from_env, write_json, write_results)
 from client.exits import EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, errors, stderr, stdout
 from client.stream_views import StreamView, coverage_text, reacquire_text
@@ -184,6 +185,7 @@ def reconstruct(
     transforms_out: Annotated[Optional[Path], typer.Option(
         "--transforms-out", dir_okay=False,
         help="also download the per-slice ITK transforms (.zip of .tfm files) here (implies --wait)")] = None,
+    stack_space: StackSpaceOpt = None,
     timeout: Annotated[float, typer.Option(min=0, help="seconds to wait for the job")] = 3600.0,
     poll: Annotated[float, typer.Option(min=0.05, help="seconds between status polls")] = 1.0,
     slice_order: Annotated[Optional[list[str]], typer.Option(
@@ -198,7 +200,7 @@ def reconstruct(
     """Start a reconstruction job (POST /v1/reconstructions); with --wait, follow it and download the volume."""
     check_masks(stacks, mask)
     check_writable(out=out, preview=preview, poses_out=poses_out, transforms_out=transforms_out)
-    wait = wait or any(p is not None for p in (out, preview, poses_out, transforms_out))
+    wait = wait or any(p is not None for p in (out, preview, poses_out, transforms_out, stack_space))
     err, console = stderr(), stdout()
     with errors(), _client(server, api_key) as svr:
         with upload_bar(err, f"{len(stacks)} stack(s)") as progress:
@@ -214,7 +216,7 @@ def reconstruct(
             console.print(f"follow it with: svrnet status {job_id}; download it with: svrnet fetch {job_id}")
             return
         done = follow_job(svr, job_id, poll, timeout)
-        incoherent = write_results(svr, job_id, done, out, preview, poses_out, transforms_out)
+        incoherent = write_results(svr, job_id, done, out, preview, poses_out, transforms_out, stack_space)
     if incoherent:
         raise typer.Exit(EXIT_NOTHING_USABLE)
 
@@ -232,6 +234,7 @@ def fetch(
     transforms_out: Annotated[Optional[Path], typer.Option(
         "--transforms-out", dir_okay=False,
         help="also download the per-slice ITK transforms (.zip of .tfm files) here")] = None,
+    stack_space: StackSpaceOpt = None,
     timeout: Annotated[float, typer.Option(min=0, help="seconds to wait for a job still running")] = 3600.0,
     poll: Annotated[float, typer.Option(min=0.05, help="seconds between status polls")] = 1.0,
 ) -> None:
@@ -240,7 +243,8 @@ def fetch(
     job = job_id_of(job)
     check_writable(out=out, preview=preview, poses_out=poses_out, transforms_out=transforms_out)
     with errors(), _client(server, api_key) as svr:
-        incoherent = write_results(svr, job, follow_job(svr, job, poll, timeout), out, preview, poses_out, transforms_out)
+        incoherent = write_results(svr, job, follow_job(svr, job, poll, timeout), out, preview, poses_out,
+                                   transforms_out, stack_space)
     if incoherent:
         raise typer.Exit(EXIT_NOTHING_USABLE)
 

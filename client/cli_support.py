@@ -84,6 +84,10 @@ ApiKeyOpt = Annotated[Optional[str], typer.Option("--api-key", envvar="SVRNET_AP
 MasksHoldCsfOpt = Annotated[bool, typer.Option(
     "--masks-hold-csf", help="the masks are the skull's inside (brain and the CSF around it, as manual fetal masks "
                              "are usually drawn): the pose network sees them less their outer 2 mm")]
+StackSpaceOpt = Annotated[Optional[int], typer.Option(
+    "--stack-space", min=0, help="write the volume in the scanner coordinates of this stack (0: the first "
+                                 "given), where the brain was while it was acquired, so that it overlays that "
+                                 "stack in a viewer (default: atlas space)")]
 McSamplesOpt = Annotated[Optional[int], typer.Option(min=1, max=1000, help="MC-dropout passes per slice "
                                                                            "(default: the server's, 100)")]
 ThresholdOpt = Annotated[Optional[float], typer.Option(
@@ -122,13 +126,19 @@ def follow_job(svr: SVRnetClient, job_id: str, poll: float, timeout: float) -> d
 
 
 def write_results(svr: SVRnetClient, job_id: str, done: dict[str, Any], out: Path | None, preview: Path | None,
-             poses_out: Path | None, transforms_out: Path | None) -> bool:
-    """Download a succeeded job's volume (``out``, default ``recon.nii.gz``) and the files asked for, and
-    print its quality; True when the volume is no coherent brain."""
+                  poses_out: Path | None, transforms_out: Path | None, stack_space: int | None = None) -> bool:
+    """Download a succeeded job's volume (``out``, default ``recon.nii.gz``; with ``stack_space``, placed in
+    that stack's scanner coordinates) and the files asked for, and print its quality; True when the
+    volume is no coherent brain."""
     console = stdout()
     target = out if out is not None else Path("recon.nii.gz")
-    svr.download_volume(job_id, target)
-    console.print(f"job {job_id} succeeded; wrote {target}")
+    svr.download_volume(job_id, target, stack=stack_space)
+    space = "atlas space" if stack_space is None else f"the scanner coordinates of stack {stack_space}"
+    console.print(f"job {job_id} succeeded; wrote {target} ({space})")
+    frame = next((f for f in (done.get("report") or {}).get("stack_frames") or [] if f.get("stack") == stack_space), None)
+    if frame is not None and frame.get("motion_mm") is not None:
+        console.print(f"stack {stack_space}: placed by {frame['slices']} of its slices, which moved "
+                      f"{frame['motion_mm']:.1f} mm (median) about that place", markup=False)
     report = done.get("report") or {}
     for line in (quality_line(report.get("quality"), report.get("n_stacks")), refined_poses_line(report.get("refined_poses"))):
         if line:

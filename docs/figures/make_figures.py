@@ -21,6 +21,12 @@ Figures of a real scan show a reconstruction job's volume (the job's own output 
 in the repository)::
 
     .venv/bin/python docs/figures/make_figures.py --real recon.nii.gz [--name real_scan_reconstruction.png]
+
+and each stack's largest brain slice beside the job's volume fetched in that stack's scanner
+coordinates (``svrnet fetch JOB --stack-space N``), cut where the slice lies::
+
+    .venv/bin/python docs/figures/make_figures.py --overlay axial.nii.gz recon_stack0.nii.gz \
+        --overlay coronal.nii.gz recon_stack1.nii.gz [--name stack_space_overlay.png]
 """
 
 from __future__ import annotations
@@ -360,14 +366,48 @@ def figure_real_scan(recon: Path, path: Path) -> None:
     save_png(figure, path)
 
 
+def figure_stack_overlay(pairs: list[tuple[Path, Path]], path: Path) -> None:
+    """Per pair (a stack, the job's volume in that stack's scanner coordinates): the stack's slice that
+    cuts most of the volume, and the volume sampled at that slice's voxel centres (scanner mm
+    from the stack's file), side by side: where the placement is right they show one cut."""
+    from service.geometry import sampling
+    from service.geometry.pose import apply
+    from service.io.volume import read_volume
+
+    figure, axes = plt.subplots(len(pairs), 2, figsize=(5.6, 2.8 * len(pairs)), squeeze=False)
+    for row, (stack_path, volume_path) in zip(axes, pairs):
+        stack, volume = read_volume(stack_path), read_volume(volume_path)
+        ijk = np.stack(np.meshgrid(*[np.arange(n) for n in stack.array.shape], indexing="ij"), -1).astype(np.float64)
+        cut = sampling.sample_points(volume.array, volume.affine, apply(stack.affine, ijk))
+        k = int(np.argmax((cut > 0).sum(axis=(0, 1))))                  # the slice that cuts most of the volume
+        seen = cut[..., k]
+        inside = np.argwhere(seen > 0)
+        lo, hi = inside.min(0), inside.max(0) + 1
+        for ax, image, title in zip(row, (stack.array[..., k], seen), (f"{stack_path.name.split('.')[0]}, slice {k}",
+                                                                        "the volume, placed by this stack")):
+            crop = np.rot90(image[lo[0]:hi[0], lo[1]:hi[1]])
+            ax.imshow(crop, cmap="gray", vmin=0, vmax=np.percentile(crop[crop > 0], 99), interpolation="bilinear")
+            ax.set_title(title, fontsize=9)
+            ax.axis("off")
+    figure.tight_layout()
+    save_png(figure, path)
+
+
 def main() -> None:
-    """Draw the phantom's figures into this script's folder; with ``--real RECON``, the real scan's."""
+    """Draw the phantom's figures into this script's folder; with ``--real RECON``, the real scan's;
+    with ``--overlay STACK VOLUME`` (repeated), the stacks beside the volume placed by them."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--real", type=Path, help="a reconstruction job's volume (NIfTI): draw its figure only")
-    parser.add_argument("--name", default="real_scan_reconstruction.png", help="the real scan's figure's file name")
+    parser.add_argument("--overlay", nargs=2, type=Path, action="append", metavar=("STACK", "VOLUME"),
+                        help="a stack and the job's volume in its scanner coordinates: draw their figure only")
+    parser.add_argument("--name", help="the real scan's figure's file name (default real_scan_reconstruction.png, "
+                                       "stack_space_overlay.png)")
     args = parser.parse_args()
     if args.real is not None:
-        figure_real_scan(args.real, HERE / args.name)
+        figure_real_scan(args.real, HERE / (args.name or "real_scan_reconstruction.png"))
+        return
+    if args.overlay:
+        figure_stack_overlay([tuple(pair) for pair in args.overlay], HERE / (args.name or "stack_space_overlay.png"))
         return
     rng = np.random.default_rng(2026)
     phantom = make_phantom()

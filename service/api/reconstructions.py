@@ -7,7 +7,7 @@ from datetime import datetime, timezone
 from typing import Annotated, Optional
 
 from anyio import to_thread
-from fastapi import APIRouter, Depends, Form, Request, Response
+from fastapi import APIRouter, Depends, Form, Query, Request, Response
 from fastapi.responses import FileResponse
 from pydantic import Field
 
@@ -21,7 +21,7 @@ from service.io.acquisition_geometry import MAX_VOXEL_MM, MIN_VOXEL_MM
 from service.jobs.store import Job, JobStore
 from service.jobs.uploaded_poses import in_upload_order, poses_from_predict_body
 from service.preprocess.stack import slice_axis_of
-from service.reconstruction.export import zip_folder
+from service.reconstruction.export import volume_in_stack_space, zip_folder
 
 router = APIRouter(prefix="/v1/reconstructions", tags=["reconstruction"], dependencies=[ApiKey])
 
@@ -155,8 +155,25 @@ def _result(request: Request, job_id: str, name: str, media_type: str, download:
 
 
 @router.get("/{job_id}/volume", responses=problem_responses(401, 404, 409), summary="The reconstructed volume (.nii.gz, atlas space)", response_class=FileResponse)
-async def volume(request: Request, job_id: str) -> FileResponse:
-    return _result(request, job_id, "volume.nii.gz", "application/gzip", f"{job_id}.nii.gz")
+async def volume(request: Request, job_id: str, stack: Annotated[Optional[int], Query(
+        ge=0, le=10_000, description="place the volume in the scanner coordinates of this stack (its index in "
+                                     "the upload): where the brain was, on average, while that stack was acquired, "
+                                     "so that it overlays the stack in a viewer; the same voxels, another affine "
+                                     "(the report's stack_frames)")] = None) -> FileResponse:
+    """The volume in atlas space, or with ``stack`` in that stack's scanner coordinates."""
+    if stack is None:
+        return _result(request, job_id, "volume.nii.gz", "application/gzip", f"{job_id}.nii.gz")
+    job = _job(request, job_id)
+    if job.status != "succeeded":
+        return _result(request, job_id, "volume.nii.gz", "application/gzip", f"{job_id}.nii.gz", job)   # its 409
+    outputs = _store(request).directory(job_id) / "outputs"
+    if not (outputs / "volume.nii.gz").exists():
+        raise NotFound(f"job_id: the results of job {job_id} have expired")
+    try:
+        await to_thread.run_sync(volume_in_stack_space, outputs, job.report or {}, stack)
+    except LookupError as exc:
+        raise NotFound(f"stack: {exc}") from None
+    return _result(request, job_id, f"volume_stack{stack}.nii.gz", "application/gzip", f"{job_id}_stack{stack}.nii.gz", job)
 
 
 @router.get("/{job_id}/preview.png", responses=problem_responses(401, 404, 409), summary="Three orthogonal mid-planes", response_class=FileResponse)

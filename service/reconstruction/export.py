@@ -17,7 +17,8 @@ the stack into atlas space. (``atlas_from_scanner``, the other direction, is its
 ``transforms/slice_transforms.txt`` lists every slice, SVRTK-style, one line each:
 ``stack slice included weight`` then the 12 numbers of the top 3 x 4 block (row-major) of
 ``atlas_from_voxel`` (voxel index of the stack file -> atlas RAS mm). ``report.json`` has the same
-per slice with the NCC, plus the volume's geometry and the timings.
+per slice with the NCC, plus the volume's geometry, each stack's frame (``stack_frames``:
+:mod:`service.reconstruction.stack_space`) and the timings.
 """
 
 from __future__ import annotations
@@ -33,10 +34,11 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from service.geometry import frames
-from service.io.volume import write_volume
+from service.io.volume import Volume, read_volume, write_volume
 from service.reconstruction.pipeline import ReconstructionResult
 from service.reconstruction.preview import preview_png
 from service.reconstruction.slices import SliceSet
+from service.reconstruction.stack_space import StackFrame, in_stack_space, stack_frames
 
 TFM_HEADER = "#Insight Transform File V1.0"
 
@@ -149,6 +151,9 @@ def write_outputs(result: ReconstructionResult, slices: SliceSet, folder: str | 
         "shape": [int(s) for s in result.volume.array.shape],
         "resolution_mm": [float(s) for s in result.volume.spacing],
         "affine": result.volume.affine.tolist(),
+        "stack_frames": [frame.as_json() for frame in stack_frames(
+            result.atlas_from_voxel_final, slices.stack_affine, slices.stack_index,
+            np.where(result.included, result.slice_weight, 0.0))],
         "timings_s": {k: round(float(v), 3) for k, v in result.timings.items()},
         "files": ["volume.nii.gz", "preview.png", "report.json", "transforms/slice_transforms.txt",
                   f"transforms/*.tfm ({len(tfms)})", "transforms.zip"],
@@ -157,3 +162,26 @@ def write_outputs(result: ReconstructionResult, slices: SliceSet, folder: str | 
     report = dict(summary, **(extra or {}), tfm_mapping=mapping, slices=slice_records(result, slices))
     (out / "report.json").write_text(json.dumps(report, indent=1))
     return report
+
+
+def volume_in_stack_space(outputs: Path, report: dict, stack: int) -> Path:
+    """A job's ``volume.nii.gz`` placed in the scanner coordinates of its stack ``stack`` (the report's
+    ``stack_frames``; :mod:`service.reconstruction.stack_space`): the same voxels, another affine,
+    written once as ``volume_stack{stack}.nii.gz`` beside it and returned. Raises LookupError (with
+    the reason) where the job has no such stack or the stack no frame."""
+    frames = report.get("stack_frames")
+    if frames is None:
+        raise LookupError("the job's report has no stack frames (a job of an earlier version)")
+    if not 0 <= stack < len(frames):
+        raise LookupError(f"stack {stack}: the job has {len(frames)} stacks (0-{len(frames) - 1})")
+    entry = frames[stack]
+    if entry.get("scanner_from_atlas") is None:
+        raise LookupError(f"stack {stack} has no slice in the volume: no frame to place the volume by")
+    target = Path(outputs) / f"volume_stack{stack}.nii.gz"
+    if not target.exists():
+        frame = StackFrame(stack, np.asarray(entry["scanner_from_atlas"], np.float64), entry["slices"], entry["motion_mm"])
+        volume = read_volume(Path(outputs) / "volume.nii.gz")
+        partial = target.with_name(f".{target.name}.{os.getpid()}.{threading.get_ident()}.nii.gz")
+        write_volume(Volume(volume.array, in_stack_space(volume.affine, frame)), partial)
+        os.replace(partial, target)              # whole or absent, as the archive
+    return target

@@ -246,6 +246,23 @@ def test_cli_fetch_follows_a_job_started_without_wait_and_downloads_its_results(
     assert invoke(["fetch", "nojob", "--out", str(tmp_path / "n.nii.gz")]).exit_code == 6
 
 
+def test_cli_fetch_writes_the_volume_in_a_stack_s_scanner_coordinates(fake_cli: Callable, stack_file: Path,
+                                                                      tmp_path: Path) -> None:
+    """``--stack-space N`` asks for the volume placed in stack N's scanner coordinates and says how far
+    that stack's slices moved about the place; a stack the job could not place is the server's 404."""
+    fake, _ = fake_cli()
+    invoke(["reconstruct", str(stack_file)])
+    out = tmp_path / "v0.nii.gz"
+    r = invoke(["fetch", "job1", "--poll", "0.05", "--out", str(out), "--stack-space", "0"])
+    assert r.exit_code == 0, r.output
+    assert out.read_bytes() == FakeJobs.VOLUME + b" placed by stack 0"
+    said = " ".join(r.stdout.split())
+    assert "the scanner coordinates of stack 0" in said and "placed by 12 of its slices, which moved 1.3 mm" in said
+    assert any(q.url.params.get("stack") == "0" for q in fake.requests)
+    r = invoke(["fetch", "job1", "--out", str(tmp_path / "v1.nii.gz"), "--stack-space", "1"])
+    assert r.exit_code == 6 and "stack 1 has no frame" in r.output and not (tmp_path / "v1.nii.gz").exists()
+
+
 def test_cli_reconstruct_without_wait_and_failed_job(fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
     fake_cli()
     r = invoke(["reconstruct", str(stack_file)])

@@ -163,6 +163,31 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
     assert re.search(r'svrnet_job_runner\{what="workers"\} [1-9]', metrics)
 
 
+@pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)
+def test_the_volume_is_served_in_a_stack_s_scanner_coordinates(client: TestClient, case: dict, tmp_path: Path) -> None:
+    """``GET …/volume?stack=N``: the same voxels, the affine the report's ``stack_frames[N]`` gives
+    (the case's stacks were acquired with the atlas as their scanner frame: close to the identity);
+    a stack the job does not have is a 404 naming the field, a negative index a 400."""
+    st = wait(client, submit(client, case).json()["job_id"])
+    frames = st["report"]["stack_frames"]
+    assert [f["stack"] for f in frames] == [0, 1, 2] and all(f["slices"] > 0 for f in frames)
+    assert all(f["motion_mm"] < 1.0 for f in frames)
+    frame = np.array(frames[1]["scanner_from_atlas"])
+    np.testing.assert_allclose(frame, np.eye(4), atol=0.5)
+    (tmp_path / "atlas.nii.gz").write_bytes(client.get(st["result_url"]).content)
+    got = client.get(st["result_url"], params={"stack": 1})
+    assert got.status_code == 200 and got.headers["content-type"] == "application/gzip"
+    (tmp_path / "stack1.nii.gz").write_bytes(got.content)
+    atlas, placed = read_volume(tmp_path / "atlas.nii.gz"), read_volume(tmp_path / "stack1.nii.gz")
+    np.testing.assert_array_equal(placed.array, atlas.array)
+    np.testing.assert_allclose(placed.affine, frame @ atlas.affine, atol=1e-4)
+    assert client.get(st["result_url"], params={"stack": 1}).content == got.content      # written once, served again
+    missing = client.get(st["result_url"], params={"stack": 3})
+    assert missing.status_code == 404 and "stack" in missing.json()["detail"]
+    negative = client.get(st["result_url"], params={"stack": -1})
+    assert negative.status_code == 400 and "stack" in negative.json()["detail"]
+
+
 @both
 def test_stages_are_reported_in_order(client: TestClient, case: dict) -> None:
     job_id = submit(client, case, slice_order="sequential",           # the order reaches the job's stage

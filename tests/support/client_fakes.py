@@ -103,6 +103,9 @@ class FakeJobs:
     stacks do not predict each other). ``workers``: what a queued job's status says serves the queue."""
 
     VOLUME = b"\x1f\x8b fake nifti volume" * 1000
+    STACK_FRAMES = [{"stack": 0, "slices": 12, "motion_mm": 1.3,
+                     "scanner_from_atlas": [[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]]},
+                    {"stack": 1, "slices": 0, "scanner_from_atlas": None, "motion_mm": None}]
     PREVIEW = b"\x89PNG fake"
     TRANSFORMS = b"PK fake zip"
 
@@ -134,13 +137,18 @@ class FakeJobs:
                 return httpx.Response(409, json=problem(409, f"job {job['job_id']} is {job['status']}"))
             if m.group(2) == "/poses":
                 return httpx.Response(200, json=dict(PREDICT_BODY, refined_by={"job_id": job["job_id"]}))
+            stack = request.url.params.get("stack")
+            if m.group(2) == "/volume" and stack is not None:      # in a stack's scanner coordinates
+                if int(stack) >= len(self.STACK_FRAMES) or self.STACK_FRAMES[int(stack)]["scanner_from_atlas"] is None:
+                    return httpx.Response(404, json=problem(404, f"stack: stack {stack} has no frame"))
+                return httpx.Response(200, content=self.VOLUME + f" placed by stack {stack}".encode())
             content = {"/volume": self.VOLUME, "/preview.png": self.PREVIEW, "/transforms": self.TRANSFORMS}
             return httpx.Response(200, content=content[m.group(2)])
         job["polls"] += 1
         if job["polls"] == 2:
             job.update(status="running", stage="svr", progress=0.5, workers=None)
         elif job["polls"] >= 3 and self.outcome in ("succeeded", "incoherent"):
-            report: dict[str, Any] = {"slices": [], "refined_poses": {
+            report: dict[str, Any] = {"slices": [], "stack_frames": self.STACK_FRAMES, "refined_poses": {
                 "posed": 3, "in_volume": 2, "placed_by_stack_motion": 1, "placed_by_volume": 0,
                 "median_expected_error_mm": 1.9, "median_starting_expected_error_mm": 2.5}}
             if self.outcome == "incoherent":          # a volume whose stacks do not predict each other
