@@ -53,7 +53,7 @@ from client.cli_support import (ApiKeyOpt, BiasCorrectionOpt, JobArg, MaskOpt, M
                                 ModelOpt, ServerOpt, StackSpaceOpt, StacksArg, ThresholdOpt, check_masks, check_writable,
                                 follow_job,
                                 job_id_of, positive, timeout_from_env, write_json, write_results)
-from client.exits import EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, errors, stderr, stdout
+from client.exits import EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, EXIT_USAGE, errors, fail, stderr, stdout
 from client.stream_views import StreamView, coverage_text, reacquire_text
 from client.views import job_table, masks_table, models_table, predict_hints, summarise, upload_bar, usable
 
@@ -199,6 +199,9 @@ def reconstruct(
 ) -> None:
     """Start a reconstruction job (POST /v1/reconstructions); with --wait, follow it and download the volume."""
     check_masks(stacks, mask)
+    if stack_space is not None and stack_space >= len(stacks):
+        fail(f"--stack-space: {stack_space} is not one of the {len(stacks)} stacks given (0-{len(stacks) - 1})",
+             EXIT_USAGE)
     check_writable(out=out, preview=preview, poses_out=poses_out, transforms_out=transforms_out)
     wait = wait or any(p is not None for p in (out, preview, poses_out, transforms_out, stack_space))
     err, console = stderr(), stdout()

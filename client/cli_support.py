@@ -20,7 +20,7 @@ import typer
 from rich.progress import BarColumn, Progress, SpinnerColumn, TaskProgressColumn, TextColumn, TimeElapsedColumn
 
 from client._client import SVRnetClient
-from client.exits import stderr, stdout
+from client.exits import EXIT_NOT_FOUND, fail, stderr, stdout
 from client.views import NO_WORKER, quality_line, refined_poses_line, stage_label, waits_for_a_worker
 
 
@@ -85,9 +85,9 @@ MasksHoldCsfOpt = Annotated[bool, typer.Option(
     "--masks-hold-csf", help="the masks are the skull's inside (brain and the CSF around it, as manual fetal masks "
                              "are usually drawn): the pose network sees them less their outer 2 mm")]
 StackSpaceOpt = Annotated[Optional[int], typer.Option(
-    "--stack-space", min=0, help="write the volume in the scanner coordinates of this stack (0: the first "
-                                 "given), where the brain was while it was acquired, so that it overlays that "
-                                 "stack in a viewer (default: atlas space)")]
+    "--stack-space", min=0, help="write the volume in the scanner coordinates of the job's stack N (0: its first "
+                                 "stack), where the brain was while that stack was acquired, so that it overlays "
+                                 "the stack in a viewer (default: atlas space)")]
 McSamplesOpt = Annotated[Optional[int], typer.Option(min=1, max=1000, help="MC-dropout passes per slice "
                                                                            "(default: the server's, 100)")]
 ThresholdOpt = Annotated[Optional[float], typer.Option(
@@ -125,6 +125,27 @@ def follow_job(svr: SVRnetClient, job_id: str, poll: float, timeout: float) -> d
         return svr.wait(job_id, poll_s=poll, timeout_s=timeout, on_progress=on_progress)
 
 
+def stack_frame_entry(done: dict[str, Any], stack: int) -> dict[str, Any]:
+    """The finished job's ``report.stack_frames[stack]``; ends the command (exit 6, nothing downloaded)
+    where the job has no place for that stack, or a server too old to place the volume by a stack.
+
+    Example:
+        >>> frames = [{"stack": 0, "scanner_from_atlas": [], "slices": 3}]
+        >>> stack_frame_entry({"report": {"stack_frames": frames}}, 0)["slices"]
+        3
+    """
+    frames = (done.get("report") or {}).get("stack_frames")
+    if frames is None:
+        fail("--stack-space: this server does not place volumes by a stack (its job reports have no "
+             "stack_frames); fetch the atlas-space volume without --stack-space", EXIT_NOT_FOUND)
+    if not 0 <= stack < len(frames):
+        fail(f"--stack-space: the job's stacks are 0-{len(frames) - 1}", EXIT_NOT_FOUND)
+    if frames[stack].get("scanner_from_atlas") is None:
+        fail(f"--stack-space: stack {stack} has no slice in the volume, so no place to put the volume by; "
+             "choose another stack", EXIT_NOT_FOUND)
+    return frames[stack]
+
+
 def write_results(svr: SVRnetClient, job_id: str, done: dict[str, Any], out: Path | None, preview: Path | None,
                   poses_out: Path | None, transforms_out: Path | None, stack_space: int | None = None) -> bool:
     """Download a succeeded job's volume (``out``, default ``recon.nii.gz``; with ``stack_space``, placed in
@@ -132,10 +153,12 @@ def write_results(svr: SVRnetClient, job_id: str, done: dict[str, Any], out: Pat
     volume is no coherent brain."""
     console = stdout()
     target = out if out is not None else Path("recon.nii.gz")
+    frame = None
+    if stack_space is not None:            # checked before any download: a server that ignores ?stack= would
+        frame = stack_frame_entry(done, stack_space)   # send the atlas-space volume
     svr.download_volume(job_id, target, stack=stack_space)
-    space = "atlas space" if stack_space is None else f"the scanner coordinates of stack {stack_space}"
-    console.print(f"job {job_id} succeeded; wrote {target} ({space})")
-    frame = next((f for f in (done.get("report") or {}).get("stack_frames") or [] if f.get("stack") == stack_space), None)
+    where = "" if frame is None else f" (the scanner coordinates of stack {stack_space})"
+    console.print(f"job {job_id} succeeded; wrote {target}{where}")
     if frame is not None and frame.get("motion_mm") is not None:
         console.print(f"stack {stack_space}: placed by {frame['slices']} of its slices, which moved "
                       f"{frame['motion_mm']:.1f} mm (median) about that place", markup=False)

@@ -22,6 +22,7 @@ from service.jobs.store import Job, JobStore
 from service.jobs.uploaded_poses import in_upload_order, poses_from_predict_body
 from service.preprocess.stack import slice_axis_of
 from service.reconstruction.export import volume_in_stack_space, zip_folder
+from service.reconstruction.stack_space import NoStackFrame
 
 router = APIRouter(prefix="/v1/reconstructions", tags=["reconstruction"], dependencies=[ApiKey])
 
@@ -154,26 +155,29 @@ def _result(request: Request, job_id: str, name: str, media_type: str, download:
     return FileResponse(path, media_type=media_type, filename=download)
 
 
-@router.get("/{job_id}/volume", responses=problem_responses(401, 404, 409), summary="The reconstructed volume (.nii.gz, atlas space)", response_class=FileResponse)
+@router.get("/{job_id}/volume", responses=problem_responses(401, 404, 409),
+            summary="The reconstructed volume (.nii.gz, atlas space or a stack's scanner coordinates)",
+            response_class=FileResponse)
 async def volume(request: Request, job_id: str, stack: Annotated[Optional[int], Query(
         ge=0, le=10_000, description="place the volume in the scanner coordinates of this stack (its index in "
                                      "the upload): where the brain was, on average, while that stack was acquired, "
                                      "so that it overlays the stack in a viewer; the same voxels, another affine "
-                                     "(the report's stack_frames)")] = None) -> FileResponse:
+                                     "(the report's stack_frames)")] = None) -> Response:
     """The volume in atlas space, or with ``stack`` in that stack's scanner coordinates."""
     if stack is None:
         return _result(request, job_id, "volume.nii.gz", "application/gzip", f"{job_id}.nii.gz")
     job = _job(request, job_id)
     if job.status != "succeeded":
         return _result(request, job_id, "volume.nii.gz", "application/gzip", f"{job_id}.nii.gz", job)   # its 409
-    outputs = _store(request).directory(job_id) / "outputs"
-    if not (outputs / "volume.nii.gz").exists():
-        raise NotFound(f"job_id: the results of job {job_id} have expired")
+    path = _store(request).directory(job_id) / "outputs" / "volume.nii.gz"
     try:
-        await to_thread.run_sync(volume_in_stack_space, outputs, job.report or {}, stack)
-    except LookupError as exc:
+        content = await to_thread.run_sync(volume_in_stack_space, path, job.report or {}, stack)
+    except NoStackFrame as exc:
         raise NotFound(f"stack: {exc}") from None
-    return _result(request, job_id, f"volume_stack{stack}.nii.gz", "application/gzip", f"{job_id}_stack{stack}.nii.gz", job)
+    except OSError:
+        raise NotFound(f"job_id: the results of job {job_id} have expired") from None
+    return Response(content, media_type="application/gzip",
+                    headers={"Content-Disposition": f'attachment; filename="{job_id}_stack{stack}.nii.gz"'})
 
 
 @router.get("/{job_id}/preview.png", responses=problem_responses(401, 404, 409), summary="Three orthogonal mid-planes", response_class=FileResponse)

@@ -23,6 +23,7 @@ per slice with the NCC, plus the volume's geometry, each stack's frame (``stack_
 
 from __future__ import annotations
 
+import gzip
 import json
 import math
 import os
@@ -30,22 +31,18 @@ import threading
 import zipfile
 from pathlib import Path
 
+import nibabel
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from service.geometry import frames
-from service.io.volume import Volume, read_volume, write_volume
+from service.io.volume import write_volume
 from service.reconstruction.pipeline import ReconstructionResult
 from service.reconstruction.preview import preview_png
 from service.reconstruction.slices import SliceSet
-from service.reconstruction.stack_space import StackFrame, in_stack_space, stack_frames
+from service.reconstruction.stack_space import in_stack_space, scanner_from_atlas, stack_frame, stack_frames
 
 TFM_HEADER = "#Insight Transform File V1.0"
-
-
-def scanner_from_atlas(atlas_from_voxel: ArrayLike, stack_affine: ArrayLike) -> NDArray[np.float64]:
-    """``[n, 4, 4]`` RAS transforms atlas mm -> the stack's scanner mm (``stack_affine @ inv(atlas_from_voxel)``)."""
-    return np.asarray(stack_affine, np.float64) @ np.linalg.inv(np.asarray(atlas_from_voxel, np.float64))
 
 
 def tfm_text(transform_lps: ArrayLike) -> str:
@@ -164,24 +161,17 @@ def write_outputs(result: ReconstructionResult, slices: SliceSet, folder: str | 
     return report
 
 
-def volume_in_stack_space(outputs: Path, report: dict, stack: int) -> Path:
-    """A job's ``volume.nii.gz`` placed in the scanner coordinates of its stack ``stack`` (the report's
-    ``stack_frames``; :mod:`service.reconstruction.stack_space`): the same voxels, another affine,
-    written once as ``volume_stack{stack}.nii.gz`` beside it and returned. Raises LookupError (with
-    the reason) where the job has no such stack or the stack no frame."""
-    frames = report.get("stack_frames")
-    if frames is None:
-        raise LookupError("the job's report has no stack frames (a job of an earlier version)")
-    if not 0 <= stack < len(frames):
-        raise LookupError(f"stack {stack}: the job has {len(frames)} stacks (0-{len(frames) - 1})")
-    entry = frames[stack]
-    if entry.get("scanner_from_atlas") is None:
-        raise LookupError(f"stack {stack} has no slice in the volume: no frame to place the volume by")
-    target = Path(outputs) / f"volume_stack{stack}.nii.gz"
-    if not target.exists():
-        frame = StackFrame(stack, np.asarray(entry["scanner_from_atlas"], np.float64), entry["slices"], entry["motion_mm"])
-        volume = read_volume(Path(outputs) / "volume.nii.gz")
-        partial = target.with_name(f".{target.name}.{os.getpid()}.{threading.get_ident()}.nii.gz")
-        write_volume(Volume(volume.array, in_stack_space(volume.affine, frame)), partial)
-        os.replace(partial, target)              # whole or absent, as the archive
-    return target
+def volume_in_stack_space(volume_path: Path, report: dict, stack: int) -> bytes:
+    """A job's volume (``volume.nii.gz`` at ``volume_path``) placed in the scanner coordinates of its
+    stack ``stack`` (the report's ``stack_frames``; :mod:`service.reconstruction.stack_space`), as the
+    bytes of a ``.nii.gz``: the same voxels, another affine (both NIfTI transforms). Made in memory,
+    nothing written beside the job's files. Raises
+    :class:`~service.reconstruction.stack_space.NoStackFrame` where the job has no such stack or no
+    place for it, OSError where the volume is gone."""
+    frame = stack_frame(report, stack)
+    image = nibabel.Nifti1Image.from_bytes(gzip.decompress(Path(volume_path).read_bytes()))
+    affine = in_stack_space(image.affine, frame)
+    placed = nibabel.Nifti1Image(np.asanyarray(image.dataobj), affine, header=image.header)
+    placed.set_sform(affine, code=1)
+    placed.set_qform(affine, code=1)
+    return gzip.compress(placed.to_bytes(), compresslevel=6)

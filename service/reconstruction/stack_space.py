@@ -9,7 +9,8 @@ that map over the stack's slices in the volume, weighed as the volume weighs the
 was, on average, while that stack was acquired. The rotation is taken about the atlas origin, which
 lies in the brain, so the mean is not pulled by the lever of a far scanner origin. ``motion_mm`` says
 how far the stack's slices strayed from it (the median over its slices of the mean displacement of
-points 40 mm about the brain's centre): the misfit to expect where the overlay meets a single slice.
+the brain's centre and six points 40 mm from it): the misfit to expect where the overlay meets a
+single slice.
 
 Placing the volume there changes only its affine (``scanner_from_atlas @ volume_affine``): the voxels
 are the same, so nothing is resampled.
@@ -55,6 +56,16 @@ class StackFrame:
                 "motion_mm": None if self.motion_mm is None else round(float(self.motion_mm), 3)}
 
 
+class NoStackFrame(LookupError):
+    """A job has no such stack, or no place for it (no slice of it in the volume, or a report of a job
+    made before stack frames existed); the message says which."""
+
+
+def scanner_from_atlas(atlas_from_voxel: ArrayLike, stack_affine: ArrayLike) -> NDArray[np.float64]:
+    """``[n, 4, 4]`` RAS transforms atlas mm -> the stack's scanner mm (``stack_affine @ inv(atlas_from_voxel)``)."""
+    return np.asarray(stack_affine, np.float64) @ np.linalg.inv(np.asarray(atlas_from_voxel, np.float64))
+
+
 def _points() -> NDArray[np.float64]:
     """``[4, 7]`` homogeneous points: the brain's centre and six points ``RADIUS_MM`` about it."""
     offsets = np.concatenate([np.zeros((1, 3)), RADIUS_MM * np.eye(3), -RADIUS_MM * np.eye(3)])
@@ -65,9 +76,11 @@ def stack_frames(atlas_from_voxel: ArrayLike, stack_affine: ArrayLike, stack_ind
                  weights: ArrayLike) -> list[StackFrame]:
     """Each stack's frame (see the module) from its slices' final ``atlas_from_voxel [n, 4, 4]``, their
     stacks' ``stack_affine [n, 4, 4]`` (voxel -> scanner RAS) and ``stack_index [n]``; a slice with
-    weight 0 (not in the volume) takes no part. Stacks ``0 .. max(stack_index)``, in order."""
-    pose = np.asarray(stack_affine, np.float64) @ np.linalg.inv(np.asarray(atlas_from_voxel, np.float64))
+    weight 0 (not in the volume) takes no part, nor one whose map mirrors (a pose of the other
+    handedness than its stack's file: no rotation is near it). Stacks ``0 .. max(stack_index)``, in order."""
+    pose = scanner_from_atlas(atlas_from_voxel, stack_affine)
     stack, w = np.asarray(stack_index, np.int64), np.nan_to_num(np.asarray(weights, np.float64))
+    w = np.where(np.linalg.det(pose[:, :3, :3]) > 0, w, 0.0) if len(pose) else w
     points = _points()
     out = []
     for s in range(int(stack.max()) + 1 if len(stack) else 0):
@@ -83,21 +96,34 @@ def stack_frames(atlas_from_voxel: ArrayLike, stack_affine: ArrayLike, stack_ind
 
 
 def _nearest_rigid(transforms: NDArray) -> NDArray[np.float64]:
-    """``[n, 4, 4]`` the rigid transforms nearest to ``transforms`` (their rotation parts projected onto
-    SO(3)); the per-slice maps are rigid up to the rounding of the files' affines."""
+    """``[n, 4, 4]`` the rigid transforms nearest to ``transforms`` of positive determinant (their
+    rotation parts projected onto SO(3)); the per-slice maps are rigid up to the rounding of the
+    files' affines."""
     u, _, vt = np.linalg.svd(transforms[:, :3, :3])
-    rotation = u @ vt
-    flip = np.linalg.det(rotation) < 0
-    u[flip, :, -1] *= -1
     out = np.array(transforms, np.float64, copy=True)
     out[:, :3, :3] = u @ vt
     out[:, 3] = [0.0, 0.0, 0.0, 1.0]
     return out
 
 
+def stack_frame(report: dict, stack: int) -> StackFrame:
+    """Stack ``stack``'s frame as a job's report holds it (``stack_frames``); raises
+    :class:`NoStackFrame` where there is none."""
+    entries = report.get("stack_frames")
+    if entries is None:
+        raise NoStackFrame("the job's report has no stack frames (a job of an earlier version)")
+    if not 0 <= stack < len(entries):
+        raise NoStackFrame(f"stack {stack}: the job's stacks are 0-{len(entries) - 1}")
+    entry = entries[stack]
+    if entry.get("scanner_from_atlas") is None:
+        raise NoStackFrame(f"stack {stack} has no slice in the volume: no place to put the volume by")
+    return StackFrame(stack, np.asarray(entry["scanner_from_atlas"], np.float64), int(entry.get("slices") or 0),
+                      entry.get("motion_mm"))
+
+
 def in_stack_space(volume_affine: ArrayLike, frame: StackFrame) -> NDArray[np.float64]:
     """The affine that places a volume of atlas space (``volume_affine``: voxel -> atlas RAS) in the
     stack's scanner coordinates (voxel -> scanner RAS)."""
     if frame.scanner_from_atlas is None:
-        raise ValueError(f"stack {frame.stack} has no slice in the volume: no frame to place it by")
+        raise NoStackFrame(f"stack {frame.stack} has no slice in the volume: no place to put the volume by")
     return frame.scanner_from_atlas @ np.asarray(volume_affine, np.float64)

@@ -260,7 +260,23 @@ def test_cli_fetch_writes_the_volume_in_a_stack_s_scanner_coordinates(fake_cli: 
     assert "the scanner coordinates of stack 0" in said and "placed by 12 of its slices, which moved 1.3 mm" in said
     assert any(q.url.params.get("stack") == "0" for q in fake.requests)
     r = invoke(["fetch", "job1", "--out", str(tmp_path / "v1.nii.gz"), "--stack-space", "1"])
-    assert r.exit_code == 6 and "stack 1 has no frame" in r.output and not (tmp_path / "v1.nii.gz").exists()
+    assert r.exit_code == 6 and "stack 1 has no slice in the volume" in r.output and not (tmp_path / "v1.nii.gz").exists()
+    asked = len(fake.requests)
+    r = invoke(["reconstruct", str(stack_file), "--stack-space", "1"])                  # one stack given
+    assert r.exit_code == 2 and "not one of the 1 stacks given" in r.output and len(fake.requests) == asked
+
+
+def test_cli_fetch_refuses_a_stack_space_a_server_cannot_give(fake_cli: Callable, stack_file: Path,
+                                                              tmp_path: Path) -> None:
+    """A server whose reports have no ``stack_frames`` ignores ``?stack=`` and would send the atlas-space
+    volume: nothing is downloaded and the user is told to fetch without the option."""
+    fake, _ = fake_cli()
+    fake.jobs.STACK_FRAMES = None
+    invoke(["reconstruct", str(stack_file)])
+    out = tmp_path / "v.nii.gz"
+    r = invoke(["fetch", "job1", "--poll", "0.05", "--out", str(out), "--stack-space", "0"])
+    assert r.exit_code == 6 and "does not place volumes by a stack" in r.output and not out.exists()
+    assert not any(q.url.path.endswith("/volume") for q in fake.requests)
 
 
 def test_cli_reconstruct_without_wait_and_failed_job(fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:

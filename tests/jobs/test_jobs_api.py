@@ -166,9 +166,12 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
 @pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)
 def test_the_volume_is_served_in_a_stack_s_scanner_coordinates(client: TestClient, case: dict, tmp_path: Path) -> None:
     """``GET …/volume?stack=N``: the same voxels, the affine the report's ``stack_frames[N]`` gives
-    (the case's stacks were acquired with the atlas as their scanner frame: close to the identity);
-    a stack the job does not have is a 404 naming the field, a negative index a 400."""
-    st = wait(client, submit(client, case).json()["job_id"])
+    (the case's stacks were acquired with the atlas as their scanner frame: close to the identity),
+    made in memory; a stack the job does not have is a 404 naming the field, a negative index a 400,
+    a volume gone with the retention a 404."""
+    job_id = submit(client, case).json()["job_id"]
+    st = wait(client, job_id)
+    st["job_id"] = job_id
     frames = st["report"]["stack_frames"]
     assert [f["stack"] for f in frames] == [0, 1, 2] and all(f["slices"] > 0 for f in frames)
     assert all(f["motion_mm"] < 1.0 for f in frames)
@@ -181,11 +184,16 @@ def test_the_volume_is_served_in_a_stack_s_scanner_coordinates(client: TestClien
     atlas, placed = read_volume(tmp_path / "atlas.nii.gz"), read_volume(tmp_path / "stack1.nii.gz")
     np.testing.assert_array_equal(placed.array, atlas.array)
     np.testing.assert_allclose(placed.affine, frame @ atlas.affine, atol=1e-4)
-    assert client.get(st["result_url"], params={"stack": 1}).content == got.content      # written once, served again
+    assert got.headers["content-disposition"].endswith('_stack1.nii.gz"')
+    outputs = client.app.state.job_store.directory(st["job_id"]) / "outputs"
+    assert sorted(p.name for p in outputs.glob("volume*")) == ["volume.nii.gz"]        # nothing written beside it
     missing = client.get(st["result_url"], params={"stack": 3})
     assert missing.status_code == 404 and "stack" in missing.json()["detail"]
     negative = client.get(st["result_url"], params={"stack": -1})
     assert negative.status_code == 400 and "stack" in negative.json()["detail"]
+    (outputs / "volume.nii.gz").unlink()                                               # as retention does
+    gone = client.get(st["result_url"], params={"stack": 1})
+    assert gone.status_code == 404 and "expired" in gone.json()["detail"]
 
 
 @both

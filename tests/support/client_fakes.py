@@ -148,9 +148,11 @@ class FakeJobs:
         if job["polls"] == 2:
             job.update(status="running", stage="svr", progress=0.5, workers=None)
         elif job["polls"] >= 3 and self.outcome in ("succeeded", "incoherent"):
-            report: dict[str, Any] = {"slices": [], "stack_frames": self.STACK_FRAMES, "refined_poses": {
+            report: dict[str, Any] = {"slices": [], "refined_poses": {
                 "posed": 3, "in_volume": 2, "placed_by_stack_motion": 1, "placed_by_volume": 0,
                 "median_expected_error_mm": 1.9, "median_starting_expected_error_mm": 2.5}}
+            if self.STACK_FRAMES is not None:         # None: a server of before stack frames
+                report["stack_frames"] = self.STACK_FRAMES
             if self.outcome == "incoherent":          # a volume whose stacks do not predict each other
                 report.update(n_stacks=2, quality={"judged_slices": 40, "median_ncc": 0.88, "fraction_ncc_above_0_7": 1.0,
                                                    "coherent": False, "leave_one_stack_out": {
