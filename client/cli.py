@@ -51,8 +51,7 @@ from rich.live import Live
 from client._client import DEFAULT_SERVER, SVRnetClient
 from client.cli_support import (ApiKeyOpt, BiasCorrectionOpt, JobArg, MaskOpt, MasksHoldCsfOpt, MaxExpectedOpt, McSamplesOpt,
                                 ModelOpt, ServerOpt, StackSpaceOpt, StacksArg, ThresholdOpt, check_masks, check_writable,
-                                follow_job,
-                                job_id_of, positive, timeout_from_env, write_json, write_results)
+                                follow_job, job_id_of, positive, timeout_from_env, write_json, write_results)
 from client.exits import EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, EXIT_USAGE, errors, fail, stderr, stdout
 from client.stream_views import StreamView, coverage_text, reacquire_text
 from client.views import job_table, masks_table, models_table, predict_hints, summarise, upload_bar, usable
