@@ -14,7 +14,9 @@ with the model's fixed draws of seed + 0, 1, ... (``--repeats``):
 * ``none``: the no-mask answer as the service gives it;
 * ``dice<D``: an oracle, the slices whose localiser mask scores a Dice under ``D`` against the manual
   mask of the same slice;
-* ``ends:E``: no oracle, the ``E`` outermost slices at each end of the localiser's brain.
+* ``ends:E``: no oracle, the ``E`` outermost slices at each end of the localiser's brain;
+* ``soft-ends:E:F``: those slices kept, their expected errors (the MC spread the stages weigh them
+  by) ``F`` times larger.
 
 Per variant and repeat: the slices both answers accept, their median E.D. (per stack too), the
 common rigid offset of the no-mask answer against the manual one (about the brain's centre,
@@ -65,8 +67,8 @@ def kept_out(variant: str, prepared: PreparedStack, manual: Volume | None) -> ND
         for k in range(len(out)):
             if found[..., k].any() or truth[..., k].any():
                 out[k] = dice(found[..., k], truth[..., k]) < float(variant[5:])
-    elif variant.startswith("ends:"):
-        ends, slices = int(variant[5:]), np.flatnonzero(brain)
+    elif variant.startswith(("ends:", "soft-ends:")):
+        ends, slices = int(variant.split(":")[1]), np.flatnonzero(brain)
         out[slices[:ends]] = out[slices[len(slices) - ends:]] = True
     elif variant != "none":
         raise ValueError(f"unknown variant {variant!r}")
@@ -84,7 +86,11 @@ def keeping_out(variant: str, manual: dict[str, Volume] | None = None) -> Iterat
         parts, timings = original(prepared, estimator, mc_samples)
         for part, p in zip(parts, prepared):
             if p.localisation.method == "network":
-                part.degenerate = part.degenerate | kept_out(variant, p, (manual or {}).get(p.upload.filename))
+                out = kept_out(variant, p, (manual or {}).get(p.upload.filename))
+                if variant.startswith("soft-ends:"):             # trusted less, not left out
+                    part.spread_mm = np.where(out, part.spread_mm * float(variant.split(":")[2]), part.spread_mm)
+                else:
+                    part.degenerate = part.degenerate | out
         return parts, timings
 
     pipeline.estimate_stacks = estimate
