@@ -16,7 +16,9 @@ with the model's fixed draws of seed + 0, 1, ... (``--repeats``):
   mask of the same slice;
 * ``ends:E``: no oracle, the ``E`` outermost slices at each end of the localiser's brain;
 * ``soft-ends:E:F``: those slices kept, their expected errors (the MC spread the stages weigh them
-  by) ``F`` times larger.
+  by) ``F`` times larger;
+* ``unsure:T:F``: no oracle, the slices whose mean localiser probability inside their mask is under
+  ``T`` kept, their expected errors ``F`` times larger.
 
 Per variant and repeat: the slices both answers accept, their median E.D. (per stack too), the
 common rigid offset of the no-mask answer against the manual one (about the brain's centre,
@@ -70,6 +72,14 @@ def kept_out(variant: str, prepared: PreparedStack, manual: Volume | None) -> ND
     elif variant.startswith(("ends:", "soft-ends:")):
         ends, slices = int(variant.split(":")[1]), np.flatnonzero(brain)
         out[slices[:ends]] = out[slices[len(slices) - ends:]] = True
+    elif variant.startswith("unsure:"):
+        axis = prepared.upload.slice_axis
+        probability, grid = default_localiser().probabilities(prepared.upload.volume)
+        found = np.moveaxis(prepared.localisation.mask, axis, -1)
+        inside = np.moveaxis(grid.to_stack(probability), axis, -1)
+        for k in range(len(out)):
+            if brain[k] and found[..., k].any():
+                out[k] = inside[..., k][found[..., k]].mean() < float(variant.split(":")[1])
     elif variant != "none":
         raise ValueError(f"unknown variant {variant!r}")
     return out
@@ -87,7 +97,7 @@ def keeping_out(variant: str, manual: dict[str, Volume] | None = None) -> Iterat
         for part, p in zip(parts, prepared):
             if p.localisation.method == "network":
                 out = kept_out(variant, p, (manual or {}).get(p.upload.filename))
-                if variant.startswith("soft-ends:"):             # trusted less, not left out
+                if variant.startswith(("soft-ends:", "unsure:")):  # trusted less, not left out
                     part.spread_mm = np.where(out, part.spread_mm * float(variant.split(":")[2]), part.spread_mm)
                 else:
                     part.degenerate = part.degenerate | out
