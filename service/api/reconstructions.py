@@ -19,7 +19,7 @@ from service.pipeline.prepare import check_mask_grid
 from service.core.errors import Conflict, InvalidParameter, NotFound
 from service.io.acquisition_geometry import MAX_VOXEL_MM, MIN_VOXEL_MM
 from service.jobs.store import Job, JobStore
-from service.jobs.uploaded_poses import handedness, in_upload_order, poses_from_predict_body
+from service.jobs.uploaded_poses import in_upload_order, poses_from_predict_body
 from service.preprocess.stack import slice_axis_of
 from service.reconstruction.export import volume_in_stack_space, zip_folder
 from service.reconstruction.stack_space import NoStackFrame
@@ -118,7 +118,7 @@ async def submit(
             counts = [u.volume.array.shape[slice_axis_of(u.volume.spacing)] for u in uploads]
             try:
                 body = in_upload_order(body, [u.filename for u in uploads])
-                poses_from_predict_body(body, counts, [u.volume.spacing for u in uploads], handedness(uploads))
+                poses_from_predict_body(body, counts, [u.volume.affine for u in uploads])
             except ValueError as exc:
                 raise InvalidParameter(str(exc)) from exc
             (inputs / "poses.json").write_text(json.dumps(job_poses(body)))

@@ -18,16 +18,13 @@ from service.geometry import frames
 from service.io.acquisition_geometry import MAX_FIELD_OF_VIEW_MM
 
 
-def poses_from_predict_body(body: dict, n_slices: list[int], spacings: list | None = None,
-                            handedness: list[float] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+def poses_from_predict_body(body: dict, n_slices: list[int],
+                            affines: list | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
     """``(atlas_from_voxel [n, 4, 4], accepted [n])`` per stack from a ``/v1/predict`` response body.
 
-    ``spacings``: each stack's voxel edges (mm, in its array's axis order), to check a client's
-    poses against: each ``atlas_from_voxel`` a rigid placement of the stack's voxels (columns of
-    those lengths, at right angles, last row 0, 0, 0, 1, within :data:`MAX_FIELD_OF_VIEW_MM` of the
-    atlas origin, and, with ``handedness`` (each stack's affine's determinant's sign), no mirror
-    image of the stack), and at least one slice accepted. A reconstruction's grid and its every stage
-    are sized by those poses.
+    ``affines``: each stack's voxel -> scanner affine, to check a client's poses against: each
+    ``atlas_from_voxel`` a rigid placement of the stack's voxels (:func:`not_rigid`), and at least
+    one slice accepted. A reconstruction's grid and its every stage are sized by those poses.
 
     A stack's slices are matched by their ``index`` where they have one (the body's list is put in
     that order, :func:`in_index_order`), else by their place in the list. Of a job's refined poses
@@ -59,14 +56,13 @@ def poses_from_predict_body(body: dict, n_slices: list[int], spacings: list | No
             raise ValueError(f"poses: stack {i}: atlas_from_voxel must be finite 4x4 matrices")
         if not all(isinstance(a, bool) for a in acc):
             raise ValueError(f"poses: stack {i}: accepted must be true or false")
-        hand = None if handedness is None else handedness[i]
-        if spacings is not None and (bad := not_rigid(mats, spacings[i], handedness=hand)) is not None:
+        if affines is not None and (bad := not_rigid(mats, affines[i])) is not None:
+            edges = frames.voxel_spacing(np.asarray(affines[i], np.float64))
             raise ValueError(f"poses: stack {i}, slice {bad}: atlas_from_voxel is no rigid placement of the stack's "
-                             f"voxels ({', '.join(f'{e:.4g}' for e in spacings[i])} mm) within "
-                             f"{MAX_FIELD_OF_VIEW_MM:.0f} mm of the atlas"
-                             + ("" if hand is None else ", nor of its mirror image"))
+                             f"voxels ({', '.join(f'{e:.4g}' for e in edges)} mm) within "
+                             f"{MAX_FIELD_OF_VIEW_MM:.0f} mm of the atlas, keeping the stack's handedness")
         out.append((mats, np.array(acc, bool)))
-    if spacings is not None and not any(acc.any() for _, acc in out):
+    if affines is not None and not any(acc.any() for _, acc in out):
         raise ValueError("poses: no slice is accepted; a job starts from the accepted slices")
     return out
 
@@ -126,35 +122,28 @@ def in_index_order(slices: list, stack: int) -> list:
     return sorted(slices, key=lambda s: s["index"])
 
 
-def handedness(uploads: list) -> list[float]:  # noqa: ANN001
-    """The sign of each upload's affine's determinant (``StackUpload``): a rigid pose of its voxels keeps it."""
-    return [float(np.sign(np.linalg.det(np.asarray(u.volume.affine, np.float64)[:3, :3]))) for u in uploads]
-
-
-def not_rigid(mats: np.ndarray, spacing, tolerance: float = 0.01,  # noqa: ANN001
-              handedness: float | None = None) -> int | None:
-    """The index of the first of ``mats [n, 4, 4]`` that is no rigid placement of voxels of edges
-    ``spacing`` (columns of those lengths within ``tolerance`` relative, at right angles within
-    ``tolerance`` in cosine, last row 0, 0, 0, 1, translation within :data:`MAX_FIELD_OF_VIEW_MM`;
-    with ``handedness``, the sign of the stack's affine's determinant, of that sign: a matrix of the
-    other mirrors the stack), else None.
+def not_rigid(mats: np.ndarray, affine: np.ndarray, tolerance: float = 0.01) -> int | None:
+    """The index of the first of ``mats [n, 4, 4]`` that is no rigid placement of the voxels of a stack
+    whose voxel -> scanner map is ``affine`` (columns of its voxel edges' lengths within ``tolerance``
+    relative, at right angles within ``tolerance`` in cosine, of its handedness: a matrix of the other
+    mirrors the stack; last row 0, 0, 0, 1, translation within :data:`MAX_FIELD_OF_VIEW_MM`), else None.
 
     Example:
-        >>> good = np.diag([1.1, 1.1, 3.0, 1.0])[None].repeat(2, 0)
+        >>> affine = np.diag([1.1, 1.1, 3.0, 1.0])
+        >>> good = affine[None].repeat(2, 0)
         >>> bad = good.copy(); bad[1, 0, 0] = 11.0
-        >>> not_rigid(good, [1.1, 1.1, 3.0]), not_rigid(bad, [1.1, 1.1, 3.0])
-        (None, 1)
         >>> mirrored = good.copy(); mirrored[1, 0, 0] = -1.1
-        >>> not_rigid(mirrored, [1.1, 1.1, 3.0]), not_rigid(mirrored, [1.1, 1.1, 3.0], handedness=1.0)
-        (None, 1)
+        >>> not_rigid(good, affine), not_rigid(bad, affine), not_rigid(mirrored, affine)
+        (None, 1, 1)
     """
+    affine = np.asarray(affine, np.float64)
+    spacing, handedness = frames.voxel_spacing(affine), np.sign(np.linalg.det(affine[:3, :3]))
     lengths = np.linalg.norm(mats[:, :3, :3], axis=1)                          # [n, 3]
-    wrong = ((np.abs(lengths / np.asarray(spacing, np.float64) - 1.0).max(axis=1) > tolerance)
+    wrong = ((np.abs(lengths / spacing - 1.0).max(axis=1) > tolerance)
              | (frames.axes_cosine(mats[:, :3, :3]) > tolerance)
              | (np.abs(mats[:, 3] - [0, 0, 0, 1]).max(axis=1) > 1e-6)
-             | (np.linalg.norm(mats[:, :3, 3], axis=1) > MAX_FIELD_OF_VIEW_MM))
-    if handedness is not None:
-        wrong |= np.sign(np.linalg.det(mats[:, :3, :3])) != np.sign(handedness)
+             | (np.linalg.norm(mats[:, :3, 3], axis=1) > MAX_FIELD_OF_VIEW_MM)
+             | (np.sign(np.linalg.det(mats[:, :3, :3])) != handedness))
     return int(np.argmax(wrong)) if wrong.any() else None
 
 

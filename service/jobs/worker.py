@@ -34,7 +34,7 @@ from service.core.errors import Cancelled, InternalError, ServiceError
 from service.core.logging import error_at
 from service.inference.acceptance import EMPTY
 from service.jobs.store import JobStore
-from service.jobs.uploaded_poses import expected_errors, handedness, poses_from_predict_body
+from service.jobs.uploaded_poses import expected_errors, poses_from_predict_body
 from service.preprocess.stack import stack_from_slice_images
 
 log = logging.getLogger(__name__)
@@ -300,7 +300,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     if poses_path.exists():
         counts = [u.volume.array.shape[u.slice_axis] for u in uploads]
         body = json.loads(poses_path.read_text())
-        poses = poses_from_predict_body(body, counts, [u.volume.spacing for u in uploads], handedness(uploads))
+        poses = poses_from_predict_body(body, counts, [u.volume.affine for u in uploads])
         estimator, plane = job_estimator(model_file, required=False)
         masks = uploaded_pose_masks(uploads, job_localiser(localisers_dir, uploads))
         started_from = "uploaded_poses"

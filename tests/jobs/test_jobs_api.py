@@ -246,7 +246,7 @@ def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict) ->
                            (lambda s: s["atlas_from_voxel"].__setitem__(3, [1, 2, 3, 4]), "rigid placement"),
                            (lambda s: s.__setitem__("accepted", "no"), "accepted must be true or false"),
                            (lambda s: [row.__setitem__(0, -row[0]) for row in s["atlas_from_voxel"][:3]],
-                            "nor of its mirror image")):                  # the voxels' first axis reversed
+                            "keeping the stack's handedness")):           # the voxels' first axis reversed
         bad = json.loads(json.dumps(case["poses"]))
         change(bad["stacks"][1]["slices"][2])
         r = submit(client, case, poses=bad)

@@ -19,22 +19,22 @@ def _slices(n: int, accepted: list[bool] | None = None) -> list[dict]:
 
 
 def test_uploaded_poses_are_matched_to_slices_by_their_index_not_their_place() -> None:
-    spacing = [[1.5, 1.5, 3.5]]
+    affines = [np.diag([1.5, 1.5, 3.5, 1.0])]
     listed = _slices(4, [True, False, True, True])[::-1]            # as a client may list them: 3, 2, 1, 0
     body = {"stacks": [{"slices": listed}]}
-    ((mats, acc),) = poses_from_predict_body(body, [4], spacing)
+    ((mats, acc),) = poses_from_predict_body(body, [4], affines)
     np.testing.assert_allclose(mats[:, 2, 3], [0.0, 3.5, 7.0, 10.5])
     assert acc.tolist() == [True, False, True, True]
     assert [s["index"] for s in body["stacks"][0]["slices"]] == [0, 1, 2, 3]       # stored in that order
     unindexed = [{k: v for k, v in s.items() if k != "index"} for s in _slices(4)[::-1]]
-    ((mats, _),) = poses_from_predict_body({"stacks": [{"slices": unindexed}]}, [4], spacing)
+    ((mats, _),) = poses_from_predict_body({"stacks": [{"slices": unindexed}]}, [4], affines)
     np.testing.assert_allclose(mats[:, 2, 3], [10.5, 7.0, 3.5, 0.0])                 # no index: the list's order
     for indices in ([0, 1, 1, 3], [0, 1, 2, 4], [0, 1, None, 3], [0, 1, 2.0, 3], [0, 1, True, 3]):
         bad = _slices(4)
         for s, k in zip(bad, indices):
             s["index"] = k
         with pytest.raises(ValueError, match=r"stack 0: each slice's index must be one of 0..3, once each"):
-            poses_from_predict_body({"stacks": [{"slices": bad}]}, [4], spacing)
+            poses_from_predict_body({"stacks": [{"slices": bad}]}, [4], affines)
 
 
 def test_poses_named_alike_are_matched_only_where_their_order_says_which_is_which() -> None:
