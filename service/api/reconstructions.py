@@ -13,7 +13,7 @@ from pydantic import Field
 
 from service.api.deps import ApiKey, RegistryDep, SettingsDep, SlotDep, queue_full
 from service.api.schemas import UPLOAD_ERRORS, job_poses, problem_responses
-from service.api.uploads import UploadFormDep, known_fields, save_and_read
+from service.api.uploads import UploadFormDep, known_fields, save_and_read, upload_directory
 from service.pipeline.predict import stack_orders
 from service.pipeline.prepare import check_mask_grid
 from service.core.errors import Conflict, InvalidParameter, NotFound
@@ -158,7 +158,7 @@ def _result(request: Request, job_id: str, name: str, media_type: str, download:
 @router.get("/{job_id}/volume", responses=problem_responses(401, 404, 409),
             summary="The reconstructed volume (.nii.gz, atlas space or a stack's scanner coordinates)",
             response_class=FileResponse)
-async def volume(request: Request, job_id: str, stack: Annotated[Optional[int], Query(
+async def volume(request: Request, job_id: str, settings: SettingsDep, stack: Annotated[Optional[int], Query(
         ge=0, le=10_000, description="place the volume in the scanner coordinates of this stack (its index in "
                                      "the upload): where the brain was, on average, while that stack was acquired, "
                                      "so that it overlays the stack in a viewer; the same voxels, another affine "
@@ -170,12 +170,15 @@ async def volume(request: Request, job_id: str, stack: Annotated[Optional[int], 
     if job.status != "succeeded":
         return _result(request, job_id, "volume.nii.gz", "application/gzip", f"{job_id}.nii.gz", job)   # its 409
     path = _store(request).directory(job_id) / "outputs" / "volume.nii.gz"
-    try:
-        content = await to_thread.run_sync(volume_in_stack_space, path, job.report or {}, stack)
-    except NoStackFrame as exc:
-        raise NotFound(f"stack: {exc}") from None
-    except OSError:
-        raise NotFound(f"job_id: the results of job {job_id} have expired") from None
+    with upload_directory(settings.tmp_dir) as tmp:        # the request's scratch, removed with it
+        try:
+            placed = await to_thread.run_sync(volume_in_stack_space, path, job.report or {}, stack,
+                                              tmp / "volume.nii.gz")
+        except NoStackFrame as exc:
+            raise NotFound(f"stack: {exc}") from None
+        except OSError:
+            raise NotFound(f"job_id: the results of job {job_id} have expired") from None
+        content = placed.read_bytes()
     return Response(content, media_type="application/gzip",
                     headers={"Content-Disposition": f'attachment; filename="{job_id}_stack{stack}.nii.gz"'})
 

@@ -23,7 +23,6 @@ per slice with the NCC, plus the volume's geometry, each stack's frame (``stack_
 
 from __future__ import annotations
 
-import gzip
 import json
 import math
 import os
@@ -31,12 +30,11 @@ import threading
 import zipfile
 from pathlib import Path
 
-import nibabel
 import numpy as np
 from numpy.typing import ArrayLike
 
 from service.geometry import frames
-from service.io.volume import write_volume
+from service.io.volume import Volume, read_volume, write_volume
 from service.reconstruction.pipeline import ReconstructionResult
 from service.reconstruction.preview import preview_png
 from service.reconstruction.slices import SliceSet
@@ -161,17 +159,13 @@ def write_outputs(result: ReconstructionResult, slices: SliceSet, folder: str | 
     return report
 
 
-def volume_in_stack_space(volume_path: Path, report: dict, stack: int) -> bytes:
+def volume_in_stack_space(volume_path: Path, report: dict, stack: int, target: Path) -> Path:
     """A job's volume (``volume.nii.gz`` at ``volume_path``) placed in the scanner coordinates of its
-    stack ``stack`` (the report's ``stack_frames``; :mod:`service.reconstruction.stack_space`), as the
-    bytes of a ``.nii.gz``: the same voxels, another affine (both NIfTI transforms). Made in memory,
-    nothing written beside the job's files. Raises
-    :class:`~service.reconstruction.stack_space.NoStackFrame` where the job has no such stack or no
-    place for it, OSError where the volume is gone."""
+    stack ``stack`` (the report's ``stack_frames``; :mod:`service.reconstruction.stack_space`), written
+    to ``target`` (the caller's scratch file, never beside the job's files): the same voxels,
+    another affine. Raises :class:`~service.reconstruction.stack_space.NoStackFrame` where the job has
+    no such stack or no place for it, OSError where the volume is gone."""
     frame = stack_frame(report, stack)
-    image = nibabel.Nifti1Image.from_bytes(gzip.decompress(Path(volume_path).read_bytes()))
-    affine = in_stack_space(image.affine, frame)
-    placed = nibabel.Nifti1Image(np.asanyarray(image.dataobj), affine, header=image.header)
-    placed.set_sform(affine, code=1)
-    placed.set_qform(affine, code=1)
-    return gzip.compress(placed.to_bytes(), compresslevel=6)
+    volume = read_volume(volume_path)
+    write_volume(Volume(volume.array, in_stack_space(volume.affine, frame)), target)
+    return target

@@ -87,20 +87,21 @@ def test_a_report_s_frame_is_found_or_the_reason_it_is_not_is_given(tmp_path: Pa
         with pytest.raises(NoStackFrame, match=words):
             stack_frame(bad, 2 if words == "stacks are 0-1" else 1)
     with pytest.raises(OSError):
-        volume_in_stack_space(tmp_path / "gone.nii.gz", report, 0)
+        volume_in_stack_space(tmp_path / "gone.nii.gz", report, 0, tmp_path / "placed.nii.gz")
 
 
 def test_the_atlas_volume_placed_by_the_frame_overlays_the_stack_through_a_nifti_file(tmp_path: Path) -> None:
-    """The composition end to end: the phantom in atlas space, placed with the stack's frame, written
-    and read as NIfTI, sampled at the stack's voxel centres (scanner mm from the stack's file) gives
+    """The composition end to end, as the API serves it: the phantom in atlas space written as the
+    job's volume, placed with the stack's frame from its report entry, written and read as NIfTI, sampled at the stack's voxel centres (scanner mm from the stack's file) gives
     the stack's intensities; left in atlas space it does not."""
     image, mask, brain_affine = phantom_brain(2)
     affine, atlas_from_voxel, motion = acquisition((0.0, 0.0))
     stack, inside = acquire_stack(image, mask, brain_affine, affine, SHAPE, 2, motion)
     frame = stack_frames(atlas_from_voxel, np.broadcast_to(affine, atlas_from_voxel.shape), np.zeros(SHAPE[2], int),
                          np.ones(SHAPE[2]))[0]
-    write_volume(Volume(image, in_stack_space(brain_affine, frame)), tmp_path / "placed.nii.gz")
-    placed = read_volume(tmp_path / "placed.nii.gz")
+    write_volume(Volume(image, brain_affine), tmp_path / "volume.nii.gz")          # the job's atlas-space volume
+    report = {"stack_frames": [frame.as_json()]}
+    placed = read_volume(volume_in_stack_space(tmp_path / "volume.nii.gz", report, 0, tmp_path / "placed.nii.gz"))
     ijk = np.stack(np.meshgrid(*[np.arange(s) for s in SHAPE], indexing="ij"), -1).astype(np.float64)
     scanner = apply(affine, ijk)
 
