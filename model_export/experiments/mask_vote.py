@@ -18,7 +18,9 @@ with the model's fixed draws of seed + 0, 1, ... (``--repeats``):
 * ``soft-ends:E:F``: those slices kept, their expected errors (the MC spread the stages weigh them
   by) ``F`` times larger;
 * ``unsure:T:F``: no oracle, the slices whose mean localiser probability inside their mask is under
-  ``T`` kept, their expected errors ``F`` times larger.
+  ``T`` kept, their expected errors ``F`` times larger;
+* ``graded:T:F``: no oracle, every slice's expected error grown in proportion to how far that mean
+  probability lies under ``T``: by 1 at ``T`` and up to ``F`` times at 0.5, the mask's own cut.
 
 Per variant and repeat: the slices both answers accept, their median E.D. (per stack too), the
 common rigid offset of the no-mask answer against the manual one (about the brain's centre,
@@ -59,6 +61,23 @@ from service.pipeline.prepare import PreparedStack  # noqa: E402
 from service.preprocess.localise import default_localiser  # noqa: E402
 
 
+def mean_inside(prepared: PreparedStack) -> NDArray[np.float64]:
+    """Each slice's mean localiser probability inside its localiser mask (NaN: no mask there)."""
+    axis = prepared.upload.slice_axis
+    probability, grid = default_localiser().probabilities(prepared.upload.volume)
+    found = np.moveaxis(prepared.localisation.mask, axis, -1)
+    inside = np.moveaxis(grid.to_stack(probability), axis, -1)
+    return np.array([inside[..., k][found[..., k]].mean() if found[..., k].any() else np.nan
+                     for k in range(found.shape[-1])])
+
+
+def spread_factor(variant: str, prepared: PreparedStack) -> NDArray[np.float64]:
+    """``graded:T:F``: each slice's factor on its expected error (see the module)."""
+    _, top, most = variant.split(":")
+    under = np.clip((float(top) - mean_inside(prepared)) / (float(top) - 0.5), 0.0, 1.0)
+    return 1.0 + (float(most) - 1.0) * np.nan_to_num(under)
+
+
 def kept_out(variant: str, prepared: PreparedStack, manual: Volume | None) -> NDArray[np.bool_]:
     """The slices of a no-mask ``prepared`` stack that ``variant`` keeps out (see the module)."""
     brain = prepared.prepared.mask_fraction >= acceptance.MIN_MASK_FRACTION
@@ -73,13 +92,7 @@ def kept_out(variant: str, prepared: PreparedStack, manual: Volume | None) -> ND
         ends, slices = int(variant.split(":")[1]), np.flatnonzero(brain)
         out[slices[:ends]] = out[slices[len(slices) - ends:]] = True
     elif variant.startswith("unsure:"):
-        axis = prepared.upload.slice_axis
-        probability, grid = default_localiser().probabilities(prepared.upload.volume)
-        found = np.moveaxis(prepared.localisation.mask, axis, -1)
-        inside = np.moveaxis(grid.to_stack(probability), axis, -1)
-        for k in range(len(out)):
-            if brain[k] and found[..., k].any():
-                out[k] = inside[..., k][found[..., k]].mean() < float(variant.split(":")[1])
+        out = brain & (np.nan_to_num(mean_inside(prepared), nan=1.0) < float(variant.split(":")[1]))
     elif variant != "none":
         raise ValueError(f"unknown variant {variant!r}")
     return out
@@ -96,6 +109,9 @@ def keeping_out(variant: str, manual: dict[str, Volume] | None = None) -> Iterat
         parts, timings = original(prepared, estimator, mc_samples)
         for part, p in zip(parts, prepared):
             if p.localisation.method == "network":
+                if variant.startswith("graded:"):
+                    part.spread_mm = part.spread_mm * spread_factor(variant, p)
+                    continue
                 out = kept_out(variant, p, (manual or {}).get(p.upload.filename))
                 if variant.startswith(("soft-ends:", "unsure:")):  # trusted less, not left out
                     part.spread_mm = np.where(out, part.spread_mm * float(variant.split(":")[2]), part.spread_mm)
