@@ -1,0 +1,151 @@
+"""A request whose images still disagree after the image stage: does its remaining mismatch tell
+when every slice's expected error is too small?
+
+The stages judge each slice's remaining image mismatch against the request's median, so a request
+whose slices agree nowhere (a signal void that biases the network alike in every stack) looks
+normal to them, and its slices keep expected errors that are too small. The image stage's
+remaining mismatch for the whole request (``mismatch_after``, per weighted point, in units of its
+noise) does not depend on that median. This script runs ``/v1/predict``'s stages on cached network
+outputs (:mod:`model_export.experiments.stage_variants`; a cache made with ``--void`` holds the
+void) and prints, per cache and motion level, the range of that mismatch and its fall through the
+stage, then what every slice's expected error times ``max(1, mismatch_after / M0) ** G`` would
+accept (good: E.D. under 5 mm, bad: over 10 mm) and the RMS E.D. over the RMS expected error.
+With ``--real DIR`` it prints the same mismatch for a real scan's answers with its manual masks and
+without them (the model's fixed draws of seed 0 and 1): where real scans lie against the caches.
+
+    .venv/bin/python model_export/experiments/stage_variants.py --cache /tmp/void-21.pkl --seed 21 --void \\
+        --levels mild,moderate,jumps --per-volume 2 base                                   # makes the cache
+    .venv/bin/python model_export/experiments/request_mismatch.py /tmp/stages-21.pkl /tmp/void-21.pkl \\
+        [--factors 0.2:0.5,0.5:1] [--real ../shared/data/real_scans/mial_lausanne_t30]
+"""
+
+from __future__ import annotations
+
+import argparse
+import pickle
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from model_export.evaluate_acquisitions import MIN_MASK_PIXELS  # noqa: E402
+from model_export.experiments.stage_variants import calibrated_as  # noqa: E402
+from service.geometry.anchors import ed  # noqa: E402
+from service.inference.model_file import load_model  # noqa: E402
+import service.pipeline.predict as pipeline  # noqa: E402
+
+
+@dataclass
+class Request:
+    """One cached acquisition through the stages: its image stage's mismatch before and after, and
+    per slice its E.D. against the truth, whether it was accepted and its expected error."""
+
+    cache: str
+    level: str
+    before: float
+    after: float
+    ed_mm: NDArray[np.float64]
+    accepted: NDArray[np.bool_]
+    expected_mm: NDArray[np.float64]
+
+
+def factor(after: float, m0: float, power: float) -> float:
+    """``max(1, after / m0) ** power`` (1 where the request has no image stage).
+
+    Example:
+        >>> factor(1.0, 0.5, 1.0), factor(0.2, 0.5, 1.0), factor(float("nan"), 0.5, 1.0)
+        (2.0, 1.0, 1.0)
+    """
+    return 1.0 if not np.isfinite(after) else max(1.0, after / m0) ** power
+
+
+def judged(requests: list[Request], limit_mm: float, m0: float | None, power: float) -> dict[str, float]:
+    """What the accept flags keep with every expected error of a request times :func:`factor`
+    (``m0`` None: as they are): shares of good (< 5 mm) and bad (> 10 mm) slices accepted, the bad
+    slices' count and RMS E.D. over RMS expected error.
+
+    Example:
+        >>> r = Request("c", "mild", 1.0, 1.0, np.array([2.0, 12.0]), np.array([True, True]), np.array([3.0, 3.0]))
+        >>> judged([r], 4.8, None, 1.0)["bad_accepted"], judged([r], 4.8, 0.5, 1.0)["bad_accepted"]
+        (1.0, 0.0)
+    """
+    e = np.concatenate([r.ed_mm for r in requests])
+    grown = np.concatenate([r.expected_mm * (1.0 if m0 is None else factor(r.after, m0, power)) for r in requests])
+    accepted = np.concatenate([r.accepted for r in requests]) & ~(grown > limit_mm)
+    known = np.isfinite(grown)
+    return {"good_accepted": float(np.mean(accepted[e < 5])) if (e < 5).any() else np.nan,
+            "bad_accepted": float(np.mean(accepted[e > 10])) if (e > 10).any() else np.nan,
+            "bad_slices": int((e > 10).sum()),
+            "rms_ratio": float(np.sqrt(np.mean(e[known] ** 2) / np.mean(grown[known] ** 2))) if known.any() else np.nan}
+
+
+def cached_requests(path: Path) -> list[Request]:
+    """Every acquisition of a ``stage_variants.py`` cache through the stages, judged with the shipped
+    model's calibration."""
+    with open(path, "rb") as f:
+        info, cases = pickle.load(f)
+    info = calibrated_as(info, load_model(Path("service/models/default/model.onnx")).info)
+    out = []
+    for level, prepared, parts, truth in cases:
+        predictions = pipeline.predict_from_estimates(prepared, parts, info, info.variance_threshold)[0]
+        stage = next((p.poses.image_consistency for p in predictions if p.poses.image_consistency is not None), None)
+        keep = [p.prepared.prepared.mask_pixels >= MIN_MASK_PIXELS for p in predictions]
+        out.append(Request(
+            path.name, level, np.nan if stage is None else stage.mismatch_before,
+            np.nan if stage is None else stage.mismatch_after,
+            np.concatenate([ed(p.poses.poses, t)[k] for p, t, k in zip(predictions, truth, keep)]),
+            np.concatenate([np.array([r is None for r in p.reasons])[k] for p, k in zip(predictions, keep)]),
+            np.concatenate([np.full(k.sum(), np.nan) if p.poses.expected_error_mm is None else p.poses.expected_error_mm[k]
+                            for p, k in zip(predictions, keep)])))
+    return out
+
+
+def real_mismatch(scan: Path) -> None:
+    """A real scan's answers with its manual masks and without them: the image stage's remaining mismatch."""
+    from model_export.experiments import mask_vote, real_scan_poses
+    from model_export.localiser.evaluate import _pose_estimator
+    from service.inference.estimator import OnnxPoseEstimator
+
+    base = _pose_estimator(None)
+    volumes, manual = real_scan_poses.read_scan(scan)
+    for seed in (0, 1):
+        estimator = base if seed == 0 else OnnxPoseEstimator(base.model.with_seed(base.model.mc_seed + seed))
+        for variant in (None, "none"):
+            stacks, _ = mask_vote.answer(volumes, manual, estimator, variant)
+            after = [(s["consistency"].get("image_consistency") or {}).get("mismatch_after") for s in stacks]
+            print(f"{scan.name}, seed {seed}, {'manual masks' if variant is None else 'no masks'}: mismatch after "
+                  f"{[None if m is None else round(m, 2) for m in after]}", flush=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("caches", type=Path, nargs="*")
+    ap.add_argument("--factors", default="0.2:0.5,0.3:1,0.5:1", help="M0:G pairs, comma-separated")
+    ap.add_argument("--real", type=Path, action="append", default=[])
+    args = ap.parse_args()
+    limit = load_model(Path("service/models/default/model.onnx")).info.max_expected_error_mm
+    requests = [r for path in args.caches for r in cached_requests(path)]
+    groups = sorted({(r.cache, r.level) for r in requests})
+    for cache, level in groups:
+        rows = [r for r in requests if (r.cache, r.level) == (cache, level)]
+        after = np.array([r.after for r in rows])
+        fall = after / np.array([r.before for r in rows])
+        print(f"{cache} {level}: mismatch after {np.nanmin(after):.2f}-{np.nanmax(after):.2f}, "
+              f"after / before {np.nanmin(fall):.2f}-{np.nanmax(fall):.2f}")
+    for spec in [None, *args.factors.split(",")]:
+        m0, power = (None, 1.0) if spec is None else (float(spec.split(":")[0]), float(spec.split(":")[1]))
+        print("as the service" if spec is None else f"expected errors x max(1, after / {m0}) ** {power}")
+        for cache, level in groups:
+            got = judged([r for r in requests if (r.cache, r.level) == (cache, level)], limit, m0, power)
+            print(f"  {cache} {level}: good accepted {got['good_accepted']:.0%}, bad accepted {got['bad_accepted']:.0%} "
+                  f"of {got['bad_slices']}, RMS E.D. / RMS expected {got['rms_ratio']:.2f}")
+    for scan in args.real:
+        real_mismatch(scan)
+
+
+if __name__ == "__main__":
+    main()
