@@ -12,7 +12,9 @@ slices' centre; :func:`~model_export.experiments.frame_bias.common_frame`) with 
 it is undone. The truth of the real brain is where the job placed it in the atlas, so its common
 error is where the network and the job's frame steps disagree.
 
-    svrnet reconstruct ../shared/data/real_scans/mial_lausanne_t30/*_lr.nii.gz --wait --out recon.nii.gz
+    D=../shared/data/real_scans/mial_lausanne_t30; svrnet reconstruct $D/{axial,coronal,sagittal}1_lr.nii.gz \\
+        -m $D/axial1_lr_brain_mask.nii.gz -m $D/coronal1_lr_brain_mask.nii.gz -m $D/sagittal1_lr_brain_mask.nii.gz \\
+        --masks-hold-csf --out recon.nii.gz
     .venv/bin/python model_export/experiments/real_brain_acquisitions.py recon.nii.gz [--atlas STA31] \\
         [--levels mild,moderate,jumps] [--repeats 2] [--seed 5]
 """
