@@ -15,6 +15,10 @@ variant. A variant is ``base`` or a ``;``-separated list of overrides:
 --columns`` (a second set of acquisitions pooled with the first).
 ``--void`` puts a dark ball in every acquisition (:func:`~model_export.experiments.scanner_sweep.with_void`);
 ``--alone`` sends each stack as a request of its own (a single-stack request, or a stream's first stack).
+``--source VOLUME`` (repeatable) simulates from these volumes instead of the held-out atlas brains: a
+job's reconstruction of a real scan (atlas space; its brain from its own intensities,
+:func:`~model_export.experiments.real_brain_acquisitions.brain_mask`), a real brain's texture where
+the atlases are population averages (docs/reports/accuracy-analyses.md).
 Per motion level it prints the mean E.D. against the truth and twin-min, the median E.D. once the
 acquisition's common rigid offset is undone (what the images can tell: "frame-free"), the share of
 slices under 5 mm and over 10 mm accepted (and how many are over 10 mm), RMS E.D. over RMS
@@ -46,24 +50,39 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.acquisitions import MOTION_LEVELS, simulate_acquisition  # noqa: E402
-from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
+from model_export.atlas import DEFAULT_ATLAS_ROOT, AtlasVolume, load_volumes, split  # noqa: E402
 from model_export.calibrate_acceptance import measuring, rates, rms, share  # noqa: E402
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, acceptance_columns, prepare_acquisition  # noqa: E402
 from model_export.experiments.frame_bias import common_frame  # noqa: E402
+from model_export.experiments.real_brain_acquisitions import brain_mask  # noqa: E402
 from model_export.experiments.scanner_sweep import with_void  # noqa: E402
 from model_export.packaging import CALIBRATION  # noqa: E402
 from service.geometry import twin  # noqa: E402
 from service.geometry.anchors import ed  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
 from service.inference.model_file import ModelInfo, load_model  # noqa: E402
+from service.io.volume import read_volume  # noqa: E402
 import service.pipeline.predict as pipeline  # noqa: E402
 
 
-def build(model: Path, root: Path, levels: list[str], per_volume: int, seed: int, void: bool = False) -> tuple:
-    """``(info, [(level, prepared stacks, estimates per stack, true poses per stack), ...])``."""
+def source_volumes(paths: list[Path]) -> list[AtlasVolume]:
+    """Volumes to simulate from instead of the atlas brains: each file (atlas space) with its brain
+    from its own intensities (:func:`~model_export.experiments.real_brain_acquisitions.brain_mask`)."""
+    out = []
+    for path in paths:
+        vol = read_volume(path)
+        out.append(AtlasVolume(path.name.split(".")[0], "source", vol.array.astype(np.float32),
+                               brain_mask(vol.array).astype(np.float32), vol.affine))
+    return out
+
+
+def build(model: Path, root: Path, levels: list[str], per_volume: int, seed: int, void: bool = False,
+          sources: list[Path] | None = None) -> tuple:
+    """``(info, [(level, prepared stacks, estimates per stack, true poses per stack), ...])``; from
+    ``sources`` (:func:`source_volumes`) where given, else from the held-out atlas brains."""
     loaded = load_model(model)
     estimator = OnnxPoseEstimator(loaded)
-    volumes = load_volumes(split(root)[1], root)
+    volumes = source_volumes(sources) if sources else load_volumes(split(root)[1], root)
     rng = np.random.default_rng(seed)
     cases = []
     for level in levels:
@@ -179,10 +198,13 @@ def main() -> None:
     ap.add_argument("--void", action="store_true", help="a dark ball in every acquisition (scanner_sweep.with_void)")
     ap.add_argument("--alone", action="store_true", help="each stack sent on its own, not with its acquisition's others")
     ap.add_argument("--columns", type=Path, help="write every slice's columns here (.npz) for calibrate-acceptance --columns")
+    ap.add_argument("--source", type=Path, action="append", default=[],
+                    help="simulate from this volume (atlas space: a job's reconstruction) instead of the atlas brains")
     args = ap.parse_args()
     if not args.cache.exists():
         with open(args.cache, "wb") as f:
-            pickle.dump(build(args.model, args.root, args.levels.split(","), args.per_volume, args.seed, args.void), f)
+            pickle.dump(build(args.model, args.root, args.levels.split(","), args.per_volume, args.seed, args.void,
+                              args.source), f)
     with open(args.cache, "rb") as f:
         info, cases = pickle.load(f)                                                               # noqa: S301 - our own file
     info = calibrated_as(info, load_model(args.model).info)
