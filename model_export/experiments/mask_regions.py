@@ -29,9 +29,9 @@ from numpy.typing import NDArray
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.experiments.frame_bias import common_frame  # noqa: E402
+from model_export.experiments.mask_vote import accepted_in_both  # noqa: E402
 from model_export.experiments.real_scan_poses import read_scan  # noqa: E402
 from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator  # noqa: E402
-from model_export.localiser.pose_accuracy import slice_poses  # noqa: E402
 from service.api.responses import stack_objects  # noqa: E402
 from service.geometry import anchors, se3  # noqa: E402
 from service.inference.acceptance import ATLAS_CENTRE_MM  # noqa: E402
@@ -89,13 +89,8 @@ def answer(volumes: dict[str, Volume], masks: dict[str, NDArray], estimator) -> 
 
 def agreement(reference: tuple[list[dict], list], other: tuple[list[dict], list]) -> str:
     """The two answers over the slices both accept: median E.D. and common rigid offset, as a line."""
-    a, b = [], []
-    for sa, sb, p in zip(reference[0], other[0], reference[1]):
-        (xa, ka), (xb, kb) = slice_poses(sa, p), slice_poses(sb, p)
-        both = ka & kb & np.array([x["accepted"] and y["accepted"] for x, y in zip(sa["slices"], sb["slices"])])
-        a.append(xa[both])
-        b.append(xb[both])
-    a, b = np.concatenate(a), np.concatenate(b)
+    pairs = accepted_in_both(reference[0], other[0], reference[1])
+    a, b = np.concatenate([x for x, _ in pairs]), np.concatenate([y for _, y in pairs])
     frame, _ = common_frame(b, a, ATLAS_CENTRE_MM)
     return (f"{len(a)} slices, median {np.median(anchors.ed(a, b)):.2f} mm; common "
             f"{np.round(np.degrees(se3.so3_log(frame[:3, :3])), 1).tolist()} deg, {np.round(frame[:3, 3], 1).tolist()} mm")

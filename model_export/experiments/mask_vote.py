@@ -134,13 +134,20 @@ def answer(volumes: dict[str, Volume], manual: dict[str, Volume], estimator: Pos
         return real_scan_poses.answer(volumes, None if variant else manual, default_localiser(), estimator)
 
 
-def agreement(with_masks: list[dict], without: list[dict], prepared: list[PreparedStack]) -> str:
-    """The two answers' distance over the slices both accept (see the module), as a line."""
+def accepted_in_both(first: list[dict], second: list[dict], prepared: list[PreparedStack]) -> list[tuple[NDArray, NDArray]]:
+    """Per stack, the two answers' slice poses (in ``prepared``'s slice frames,
+    :func:`~model_export.localiser.pose_accuracy.slice_poses`) over the slices both pose and accept."""
     pairs = []
-    for sa, sb, p in zip(with_masks, without, prepared):
+    for sa, sb, p in zip(first, second, prepared):
         (xa, ka), (xb, kb) = slice_poses(sa, p), slice_poses(sb, p)
         both = ka & kb & np.array([x["accepted"] and y["accepted"] for x, y in zip(sa["slices"], sb["slices"])])
         pairs.append((xa[both], xb[both]))
+    return pairs
+
+
+def agreement(with_masks: list[dict], without: list[dict], prepared: list[PreparedStack]) -> str:
+    """The two answers' distance over the slices both accept (see the module), as a line."""
+    pairs = accepted_in_both(with_masks, without, prepared)
     a, b = np.concatenate([x for x, _ in pairs]), np.concatenate([y for _, y in pairs])
     if not len(a):
         return "no slice accepted in both"
