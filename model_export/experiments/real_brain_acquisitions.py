@@ -32,7 +32,7 @@ from scipy import ndimage
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.acquisitions import simulate_acquisition  # noqa: E402
-from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
+from model_export.atlas import DEFAULT_ATLAS_ROOT, AtlasVolume, load_volumes, split  # noqa: E402
 from model_export.evaluate_acquisitions import prepare_acquisition  # noqa: E402
 from model_export.experiments.frame_bias import common_frame  # noqa: E402
 from service.geometry import se3, twin  # noqa: E402
@@ -67,6 +67,17 @@ def brain_mask(volume: NDArray) -> NDArray[np.bool_]:
     return ndimage.binary_fill_holes(labels == largest)
 
 
+def source_volumes(paths: list[Path]) -> list[AtlasVolume]:
+    """Volumes to simulate from instead of the atlas brains: each file (atlas space: a job's
+    reconstruction) with its brain from its own intensities (:func:`brain_mask`)."""
+    out = []
+    for path in paths:
+        vol = read_volume(path)
+        out.append(AtlasVolume(path.name.split(".")[0], "source", vol.array.astype(np.float32),
+                               brain_mask(vol.array).astype(np.float32), vol.affine))
+    return out
+
+
 def acquisition_line(name: str, level: str, stacks: list, model, estimator) -> str:  # noqa: ANN001
     """One simulated acquisition through the stages, as a line (see the module)."""
     info = model.info
@@ -97,15 +108,13 @@ def main() -> None:
     args = ap.parse_args()
     model = load_model(args.model)
     estimator = OnnxPoseEstimator(model)
-    real = read_volume(args.volume)
-    sources = [("real brain", real.array.astype(np.float32), brain_mask(real.array), real.affine)]
-    sources += [(v.name, v.image, v.mask, v.affine) for v in load_volumes(split(DEFAULT_ATLAS_ROOT)[1], DEFAULT_ATLAS_ROOT)
-                if v.name == args.atlas]
+    sources = source_volumes([args.volume])
+    sources += [v for v in load_volumes(split(DEFAULT_ATLAS_ROOT)[1], DEFAULT_ATLAS_ROOT) if v.name == args.atlas]
     rng = np.random.default_rng(args.seed)
-    for name, image, mask, affine in sources:
+    for source, name in zip(sources, ["real brain", args.atlas]):
         for level in args.levels.split(","):
             for _ in range(args.repeats):
-                stacks = simulate_acquisition(image, mask, affine, rng, level)
+                stacks = simulate_acquisition(source.image, source.mask, source.affine, rng, level)
                 print(acquisition_line(name, level, stacks, model, estimator), flush=True)
 
 

@@ -17,7 +17,7 @@ variant. A variant is ``base`` or a ``;``-separated list of overrides:
 ``--alone`` sends each stack as a request of its own (a single-stack request, or a stream's first stack).
 ``--source VOLUME`` (repeatable) simulates from these volumes instead of the held-out atlas brains: a
 job's reconstruction of a real scan (atlas space; its brain from its own intensities,
-:func:`~model_export.experiments.real_brain_acquisitions.brain_mask`), a real brain's texture where
+:func:`~model_export.experiments.real_brain_acquisitions.source_volumes`), a real brain's texture where
 the atlases are population averages (docs/reports/accuracy-analyses.md).
 Per motion level it prints the mean E.D. against the truth and twin-min, the median E.D. once the
 acquisition's common rigid offset is undone (what the images can tell: "frame-free"), the share of
@@ -50,36 +50,24 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.acquisitions import MOTION_LEVELS, simulate_acquisition  # noqa: E402
-from model_export.atlas import DEFAULT_ATLAS_ROOT, AtlasVolume, load_volumes, split  # noqa: E402
+from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
 from model_export.calibrate_acceptance import measuring, rates, rms, share  # noqa: E402
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, acceptance_columns, prepare_acquisition  # noqa: E402
 from model_export.experiments.frame_bias import common_frame  # noqa: E402
-from model_export.experiments.real_brain_acquisitions import brain_mask  # noqa: E402
+from model_export.experiments.real_brain_acquisitions import source_volumes  # noqa: E402
 from model_export.experiments.scanner_sweep import with_void  # noqa: E402
 from model_export.packaging import CALIBRATION  # noqa: E402
 from service.geometry import twin  # noqa: E402
 from service.geometry.anchors import ed  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
 from service.inference.model_file import ModelInfo, load_model  # noqa: E402
-from service.io.volume import read_volume  # noqa: E402
 import service.pipeline.predict as pipeline  # noqa: E402
-
-
-def source_volumes(paths: list[Path]) -> list[AtlasVolume]:
-    """Volumes to simulate from instead of the atlas brains: each file (atlas space) with its brain
-    from its own intensities (:func:`~model_export.experiments.real_brain_acquisitions.brain_mask`)."""
-    out = []
-    for path in paths:
-        vol = read_volume(path)
-        out.append(AtlasVolume(path.name.split(".")[0], "source", vol.array.astype(np.float32),
-                               brain_mask(vol.array).astype(np.float32), vol.affine))
-    return out
 
 
 def build(model: Path, root: Path, levels: list[str], per_volume: int, seed: int, void: bool = False,
           sources: list[Path] | None = None) -> tuple:
     """``(info, [(level, prepared stacks, estimates per stack, true poses per stack), ...])``; from
-    ``sources`` (:func:`source_volumes`) where given, else from the held-out atlas brains."""
+    ``sources`` (:func:`~model_export.experiments.real_brain_acquisitions.source_volumes`) where given, else from the held-out atlas brains."""
     loaded = load_model(model)
     estimator = OnnxPoseEstimator(loaded)
     volumes = source_volumes(sources) if sources else load_volumes(split(root)[1], root)
