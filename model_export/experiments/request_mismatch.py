@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS  # noqa: E402
 from model_export.experiments.stage_variants import calibrated_as  # noqa: E402
 from service.geometry.anchors import ed  # noqa: E402
-from service.inference.model_file import load_model  # noqa: E402
+from service.inference.model_file import ModelInfo, load_model  # noqa: E402
 import service.pipeline.predict as pipeline  # noqa: E402
 
 
@@ -83,12 +83,12 @@ def judged(requests: list[Request], limit_mm: float, m0: float | None, power: fl
             "rms_ratio": float(np.sqrt(np.mean(e[known] ** 2) / np.mean(grown[known] ** 2))) if known.any() else np.nan}
 
 
-def cached_requests(path: Path) -> list[Request]:
-    """Every acquisition of a ``stage_variants.py`` cache through the stages, judged with the shipped
-    model's calibration."""
+def cached_requests(path: Path, model: ModelInfo) -> list[Request]:
+    """Every acquisition of a ``stage_variants.py`` cache through the stages, judged with ``model``'s
+    calibration."""
     with open(path, "rb") as f:
-        info, cases = pickle.load(f)
-    info = calibrated_as(info, load_model(Path("service/models/default/model.onnx")).info)
+        info, cases = pickle.load(f)                                                   # noqa: S301 - our own file
+    info = calibrated_as(info, model)
     out = []
     for level, prepared, parts, truth in cases:
         predictions = pipeline.predict_from_estimates(prepared, parts, info, info.variance_threshold)[0]
@@ -126,9 +126,11 @@ def main() -> None:
     ap.add_argument("caches", type=Path, nargs="*")
     ap.add_argument("--factors", default="0.2:0.5,0.3:1,0.5:1", help="M0:G pairs, comma-separated")
     ap.add_argument("--real", type=Path, action="append", default=[])
+    ap.add_argument("--model", type=Path, default=Path("service/models/default/model.onnx"))
     args = ap.parse_args()
-    limit = load_model(Path("service/models/default/model.onnx")).info.max_expected_error_mm
-    requests = [r for path in args.caches for r in cached_requests(path)]
+    model = load_model(args.model).info
+    limit = model.max_expected_error_mm
+    requests = [r for path in args.caches for r in cached_requests(path, model)]
     groups = sorted({(r.cache, r.level) for r in requests})
     for cache, level in groups:
         rows = [r for r in requests if (r.cache, r.level) == (cache, level)]
