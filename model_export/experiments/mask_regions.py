@@ -91,6 +91,8 @@ def agreement(reference: tuple[list[dict], list], other: tuple[list[dict], list]
     """The two answers over the slices both accept: median E.D. and common rigid offset, as a line."""
     pairs = accepted_in_both(reference[0], other[0], reference[1])
     a, b = np.concatenate([x for x, _ in pairs]), np.concatenate([y for _, y in pairs])
+    if not len(a):
+        return "no slice accepted in both"
     frame, _ = common_frame(b, a, ATLAS_CENTRE_MM)
     return (f"{len(a)} slices, median {np.median(anchors.ed(a, b)):.2f} mm; common "
             f"{np.round(np.degrees(se3.so3_log(frame[:3, :3])), 1).tolist()} deg, {np.round(frame[:3, 3], 1).tolist()} mm")
