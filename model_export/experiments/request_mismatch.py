@@ -12,11 +12,16 @@ stage, then what every slice's expected error times ``max(1, mismatch_after / M0
 accept (good: E.D. under 5 mm, bad: over 10 mm) and the RMS E.D. over the RMS expected error.
 With ``--real DIR`` it prints the same mismatch for a real scan's answers with its manual masks and
 without them (the model's fixed draws of seed 0 and 1): where real scans lie against the caches.
+With ``--job-floor DIR`` it prints, for a real scan with its manual masks, the same image term at
+``/v1/predict``'s final poses and at the poses a reconstruction job refines from them (slice-to-
+volume registration): where both lie alike, the scan's mismatch is its own floor (its images disagree
+at the best poses anyone finds), not an error of the poses.
 
     .venv/bin/python model_export/experiments/stage_variants.py --cache /tmp/void-21.pkl --seed 21 --void \\
         --levels mild,moderate,jumps --per-volume 2 base                                   # makes the cache
     .venv/bin/python model_export/experiments/request_mismatch.py /tmp/stages-21.pkl /tmp/void-21.pkl \\
-        [--factors 0.2:0.5,0.5:1] [--real ../shared/data/real_scans/mial_lausanne_t30]
+        [--factors 0.2:0.5,0.5:1] [--real ../shared/data/real_scans/mial_lausanne_t30] \\
+        [--job-floor ../shared/data/real_scans/mial_lausanne_t30]
 """
 
 from __future__ import annotations
@@ -121,11 +126,63 @@ def real_mismatch(scan: Path) -> None:
                   f"{[None if m is None else round(m, 2) for m in after]}", flush=True)
 
 
+def mismatch_at(prepared: list, active: list[NDArray], poses: list[NDArray]) -> tuple[float, float]:
+    """The image stage's term (per weighted point, :attr:`~service.consistency.image_refinement.Refinement.cost_after`)
+    at ``poses`` (per stack ``[n, 4, 4]``, network frame -> atlas) over the slices ``active``, and after the
+    stage refines them further from there (a prior of 3 mm per slice)."""
+    from service.consistency.image_refinement import refine
+
+    images = [pipeline.stack_images(p, a) for p, a in zip(prepared, active)]
+    expected = [np.full(len(p), 3.0) for p in poses]
+    return refine(images, poses, expected, iterations=0).cost_after, refine(images, poses, expected).cost_after
+
+
+def job_floor(scan: Path) -> None:
+    """A real scan with its manual masks: the image term at ``/v1/predict``'s final poses, at its
+    stack stage's poses, and at the poses a reconstruction job (its never-worse slice-to-volume
+    refinement, 1.5 mm) takes them to, before and after its frame steps."""
+    from model_export.experiments import real_scan_poses
+    from model_export.localiser.evaluate import _pose_estimator
+    from service.jobs.uploaded_poses import expected_errors
+    from service.jobs.worker import predicted_body, starting_poses
+    from service.pipeline.prepare import StackUpload, prepare_stacks
+    from service.preprocess.localise import default_localiser
+    from service.reconstruction.job import refine_job
+    from service.reconstruction.slices import SliceSet
+
+    estimator, localiser = _pose_estimator(None), default_localiser()
+    volumes, manual = real_scan_poses.read_scan(scan)
+    uploads = [StackUpload(n, volumes[n], manual[n], f"{n}_brain_mask", mask_holds_csf=True) for n in volumes]
+    prepared = prepare_stacks(uploads, estimator.info, True, workers=2, localiser=localiser)
+    answers = {stage: pipeline.predict(prepared, estimator, 100, estimator.info.variance_threshold,
+                                       image_consistency=stage)[0] for stage in (True, False)}
+    active = [np.isfinite(p.estimate.spread_mm) for p in answers[True]]
+    network_from_voxel = [p.network_from_voxel() for p in prepared]
+    body, masks = predicted_body(uploads, estimator, 100, localiser=localiser)
+    inputs = [(u.volume, m, mats, acc) for u, m, (mats, acc) in zip(uploads, masks, starting_poses(body))]
+    job = refine_job(SliceSet.from_stacks(inputs), inputs, expected_errors(body), estimator=estimator,
+                     plane_x_mm=estimator.info.symmetry_plane_x_mm, resolution_mm=1.5, svr_iterations=3)
+    bounds = np.cumsum([0] + [len(n) for n in network_from_voxel])
+
+    def in_network_frames(atlas_from_voxel: NDArray) -> list[NDArray]:
+        return [np.asarray(atlas_from_voxel)[a:b] @ np.linalg.inv(n)
+                for a, b, n in zip(bounds[:-1], bounds[1:], network_from_voxel)]
+
+    rows = {"/v1/predict's final poses": [p.poses.poses for p in answers[True]],
+            "its stack stage's poses (no image stage)": [p.poses.poses for p in answers[False]],
+            "the job's, before its frame steps": in_network_frames(job.left_out.poses),
+            "the job's, as it returns them": in_network_frames(job.result.atlas_from_voxel_final)}
+    for label, poses in rows.items():
+        at, refined = mismatch_at(prepared, active, poses)
+        print(f"{scan.name}, manual masks, {label}: mismatch {at:.3f}, refined further {refined:.3f}", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("caches", type=Path, nargs="*")
     ap.add_argument("--factors", default="0.2:0.5,0.3:1,0.5:1", help="M0:G pairs, comma-separated")
     ap.add_argument("--real", type=Path, action="append", default=[])
+    ap.add_argument("--job-floor", type=Path, action="append", default=[])
     ap.add_argument("--model", type=Path, default=Path("service/models/default/model.onnx"))
     args = ap.parse_args()
     model = load_model(args.model).info
@@ -147,6 +204,8 @@ def main() -> None:
                   f"of {got['bad_slices']}, RMS E.D. / RMS expected {got['rms_ratio']:.2f}")
     for scan in args.real:
         real_mismatch(scan)
+    for scan in args.job_floor:
+        job_floor(scan)
 
 
 if __name__ == "__main__":

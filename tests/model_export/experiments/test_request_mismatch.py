@@ -33,3 +33,24 @@ def test_the_rms_ratio_compares_errors_with_the_grown_expectations() -> None:
     r = _request(1.0, [4.0, 4.0], [2.0, 2.0])
     assert np.isclose(judged([r], 4.8, None, 1.0)["rms_ratio"], 2.0)
     assert np.isclose(judged([r], 4.8, 0.5, 1.0)["rms_ratio"], 1.0)
+
+
+def test_the_image_term_at_given_poses_is_lowest_at_the_truth() -> None:
+    """``mismatch_at`` measures the image stage's term where the poses are: at a phantom acquisition's
+    true poses it is lower than at poses moved by a few degrees and millimetres, and the stage's
+    further refinement from the moved poses brings it down again."""
+    from model_export.acquisitions import simulate_acquisition
+    from model_export.evaluate_acquisitions import prepare_acquisition
+    from model_export.experiments.request_mismatch import mismatch_at
+    from tests.api.conftest import INFO
+    from tests.consistency.conftest import disturbed
+    from tests.support.phantoms import phantom_brain
+
+    img, mask, aff = phantom_brain(0)
+    stacks = simulate_acquisition(img, mask, aff, np.random.default_rng(3), "mild", size=64, pixel_mm=1.6)
+    prepared, truth = prepare_acquisition(stacks, INFO, bias_correction=False)
+    active = [np.ones(len(t), bool) for t in truth]
+    at_truth, _ = mismatch_at(prepared, active, truth)
+    moved, refined = mismatch_at(prepared, active, disturbed(truth, 3.0, 2.0, seed=1))
+    assert at_truth < 0.5 * moved
+    assert refined < 0.6 * moved
