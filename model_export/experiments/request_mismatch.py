@@ -15,13 +15,15 @@ without them (the model's fixed draws of seed 0 and 1): where real scans lie aga
 With ``--job-floor DIR`` it prints, for a real scan with its manual masks, the same image term at
 ``/v1/predict``'s final poses and at the poses a reconstruction job refines from them (slice-to-
 volume registration): where both lie alike, the scan's mismatch is its own floor (its images disagree
-at the best poses anyone finds), not an error of the poses.
+at the best poses anyone finds), not an error of the poses. ``--at-truth`` prints, for every third
+cached acquisition, the term at the service's poses, refined further from them, and at the true
+poses: what the images leave where the poses are right.
 
     .venv/bin/python model_export/experiments/stage_variants.py --cache /tmp/void-21.pkl --seed 21 --void \\
         --levels mild,moderate,jumps --per-volume 2 base                                   # makes the cache
     .venv/bin/python model_export/experiments/request_mismatch.py /tmp/stages-21.pkl /tmp/void-21.pkl \\
         [--factors 0.2:0.5,0.5:1] [--real ../shared/data/real_scans/mial_lausanne_t30] \\
-        [--job-floor ../shared/data/real_scans/mial_lausanne_t30]
+        [--job-floor ../shared/data/real_scans/mial_lausanne_t30] [--at-truth]
 """
 
 from __future__ import annotations
@@ -137,6 +139,23 @@ def mismatch_at(prepared: list, active: list[NDArray], poses: list[NDArray]) -> 
     return refine(images, poses, expected, iterations=0).cost_after, refine(images, poses, expected).cost_after
 
 
+def truth_floor(path: Path, model: ModelInfo, every: int = 3) -> None:
+    """Every ``every``-th acquisition of a ``stage_variants.py`` cache: the image term at the
+    service's final poses, refined further from them, and at the true poses; and the poses' mean E.D."""
+    with open(path, "rb") as f:
+        info, cases = pickle.load(f)                                                   # noqa: S301 - our own file
+    info = calibrated_as(info, model)
+    for level, prepared, parts, truth in cases[::every]:
+        predictions = pipeline.predict_from_estimates(prepared, parts, info, info.variance_threshold)[0]
+        active = [np.isfinite(p.estimate.spread_mm) for p in predictions]
+        poses = [p.poses.poses for p in predictions]
+        at, further = mismatch_at(prepared, active, poses)
+        at_truth, _ = mismatch_at(prepared, active, truth)
+        error = np.concatenate([ed(p, t) for p, t in zip(poses, truth)])
+        print(f"{path.name} {level}: mismatch at the service's poses {at:.2f}, refined further {further:.2f}, "
+              f"at the truth {at_truth:.2f}; mean E.D. {error.mean():.1f} mm", flush=True)
+
+
 def job_floor(scan: Path) -> None:
     """A real scan with its manual masks: the image term at ``/v1/predict``'s final poses, at its
     stack stage's poses, and at the poses a reconstruction job (its never-worse slice-to-volume
@@ -183,6 +202,7 @@ def main() -> None:
     ap.add_argument("--factors", default="0.2:0.5,0.3:1,0.5:1", help="M0:G pairs, comma-separated")
     ap.add_argument("--real", type=Path, action="append", default=[])
     ap.add_argument("--job-floor", type=Path, action="append", default=[])
+    ap.add_argument("--at-truth", action="store_true", help="the mismatch at the true poses of the caches' acquisitions")
     ap.add_argument("--model", type=Path, default=Path("service/models/default/model.onnx"))
     args = ap.parse_args()
     model = load_model(args.model).info
@@ -202,6 +222,9 @@ def main() -> None:
             got = judged([r for r in requests if (r.cache, r.level) == (cache, level)], limit, m0, power)
             print(f"  {cache} {level}: good accepted {got['good_accepted']:.0%}, bad accepted {got['bad_accepted']:.0%} "
                   f"of {got['bad_slices']}, RMS E.D. / RMS expected {got['rms_ratio']:.2f}")
+    if args.at_truth:
+        for path in args.caches:
+            truth_floor(path, model)
     for scan in args.real:
         real_mismatch(scan)
     for scan in args.job_floor:

@@ -33,6 +33,8 @@ def data(
     workers: int = 2,
     grid_mm: float = GRID_MM,
     root: Path = DEFAULT_ATLAS_ROOT,
+    shading_share: Annotated[float, typer.Option(help="share of stacks with a dark region over the head "
+                                                      "(3 T shading, signal voids)")] = 0.0,
 ) -> None:
     """Synthetic whole-uterus stacks: training volumes for ``train``, validation volumes for ``heldout``."""
     from model_export.atlas import split
@@ -40,7 +42,7 @@ def data(
 
     train_names, val_names = split(root)
     names = generate(out, train_names if style == "train" else val_names, count, style, grid_mm, seed, workers,
-                     keep_stack, root)
+                     keep_stack, root, shading_share)
     typer.echo(f"{len(names)} shards in {out}")
 
 

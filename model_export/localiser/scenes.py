@@ -24,7 +24,9 @@ brain's shape and its setting, not one scanner's contrast.
   layer and skull (:data:`CAMOUFLAGE_SHARE`), so that neither a fluid rim nor a brain brighter than its
   surroundings is what the network learns to look for.
 * **Acquisition**: a smooth multiplicative bias field and, for half the stacks, a surface coil's
-  fall-off; slice-to-slice intensity changes; noise.
+  fall-off; slice-to-slice intensity changes; noise. With ``shading_share``, that share of the
+  stacks also has a dark region fixed in the scanner over part or all of the head
+  (:func:`~model_export.localiser.surroundings.shading`: 3 T dielectric shading, signal voids).
 
 The brain mask the network learns is everything inside the skull (brain and extra-axial CSF), as
 manual fetal brain masks are drawn.
@@ -57,7 +59,7 @@ from scipy.spatial.transform import Rotation
 
 from model_export.atlas import signed_distance
 from model_export.localiser.surroundings import (StackGeometry, bias_field, camouflage, draw_surroundings, intensities,
-                                                 random_rotation, slice_gains)
+                                                 random_rotation, shading, slice_gains)
 from service.io.volume import Volume
 
 STYLES = ("train", "heldout")
@@ -262,17 +264,20 @@ class Scene:
 
 
 def synth_stack(head: HeadModel, rng: np.random.Generator, style: str = "train",
-                random_contrast: bool | None = None) -> tuple[Volume, NDArray[np.bool_]]:
+                random_contrast: bool | None = None, shading_share: float = 0.0) -> tuple[Volume, NDArray[np.bool_]]:
     """One synthetic whole-uterus stack and its skull-inside mask (:func:`synth_scene`)."""
-    scene = synth_scene(head, rng, style, random_contrast)
+    scene = synth_scene(head, rng, style, random_contrast, shading_share=shading_share)
     return scene.volume, scene.mask
 
 
 def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
-                random_contrast: bool | None = None, rigid: bool = False, csf_mm: float | None = None) -> Scene:
+                random_contrast: bool | None = None, rigid: bool = False, csf_mm: float | None = None,
+                shading_share: float = 0.0) -> Scene:
     """One synthetic whole-uterus stack, its masks and, with ``rigid`` (the head at the atlas's own
     size, not scaled by 0.9-1.1), its slices' true atlas poses. ``csf_mm``: the extra-axial CSF
     layer this thick instead of drawn (:func:`head_layers`; the other draws stay the same).
+    ``shading_share``: the chance of a dark region over the head (:func:`~model_export.localiser.surroundings.shading`;
+    at 0, the default, nothing is drawn for it, so a seed gives the stack it gave without it).
 
     ``random_contrast``: every tissue's intensity drawn uniformly (True) or T2-like (False); by
     default drawn, for 20 % of the ``train`` stacks and half of the ``heldout`` ones. The same seed
@@ -317,6 +322,8 @@ def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
     brain[box] = brain_fraction >= 0.5
     image *= bias_field(rng, image.shape, style)
     image *= slice_gains(rng, geo.slices)
+    if shading_share > 0 and rng.random() < shading_share:
+        image *= shading(rng, geo, centre, head.radius_mm * scale)
     sigma = rng.uniform(0.005, 0.08)
     noise = rng.standard_normal(image.shape).astype(np.float32) * sigma
     if style == "train":

@@ -253,3 +253,35 @@ def test_a_wider_csf_layer_widens_the_skull_inside_and_changes_nothing_else(head
     wide = synth_scene(head, np.random.default_rng(7), "heldout", random_contrast=False, csf_mm=6.0)
     assert np.array_equal(thin.brain, wide.brain)
     assert wide.mask.sum() > 1.2 * thin.mask.sum() and np.all(wide.mask[thin.mask])
+
+
+def test_a_shaded_scene_darkens_its_head_and_keeps_its_masks(head: HeadModel, small_fields: None) -> None:
+    """With ``shading_share`` 1 every scene has a dark region over its head: the same head and masks
+    as the same seed without it (every draw of the scene comes before the shading's), and inside the
+    skull a lower median intensity relative to the stack's, for every seed; at share 0 a seed gives
+    the stack it gave before the option existed (nothing drawn for it)."""
+    darker = []
+    for seed in range(4):
+        plain = synth_scene(head, np.random.default_rng(seed), "train")
+        shaded = synth_scene(head, np.random.default_rng(seed), "train", shading_share=1.0)
+        assert np.array_equal(plain.mask, shaded.mask) and np.array_equal(plain.brain, shaded.brain)
+
+        def head_level(scene) -> float:  # noqa: ANN001
+            return float(np.median(scene.volume.array[scene.mask]) / np.median(scene.volume.array))
+
+        darker.append(head_level(shaded) < head_level(plain))
+    assert all(darker)
+    again = synth_scene(head, np.random.default_rng(0), "train", shading_share=0.0)
+    np.testing.assert_array_equal(again.volume.array, synth_scene(head, np.random.default_rng(0), "train").volume.array)
+
+
+def test_the_shading_field_is_darkest_near_the_head_and_one_far_from_it() -> None:
+    geo = StackGeometry(2.0, 150, 3.0, 3.0, 30)
+    head_centre = np.array([20.0, -10.0, 0.0])
+    for seed in range(5):
+        gain = surroundings.shading(np.random.default_rng(seed), geo, head_centre, 40.0)
+        pts = geo.coordinates()
+        near = np.linalg.norm(pts - head_centre, axis=-1) < 40.0
+        assert 0.19 < gain.min() < 0.75 and gain.max() <= 1.0
+        assert gain[near].min() == pytest.approx(gain.min())                # the darkest point lies on the head
+        assert gain[np.linalg.norm(pts - head_centre, axis=-1) > 220.0].min() > 0.95
