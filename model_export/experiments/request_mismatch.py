@@ -17,13 +17,15 @@ With ``--job-floor DIR`` it prints, for a real scan with its manual masks, the s
 volume registration): where both lie alike, the scan's mismatch is its own floor (its images disagree
 at the best poses anyone finds), not an error of the poses. ``--at-truth`` prints, for every third
 cached acquisition, the term at the service's poses, refined further from them, and at the true
-poses: what the images leave where the poses are right.
+poses: what the images leave where the poses are right. ``--dark M0,...`` judges the caches with
+a request's share of dark pixels (:func:`dark_share`, its 90th percentile over the request's slices)
+in place of its mismatch, each ``M0`` a reference of that factor.
 
     .venv/bin/python model_export/experiments/stage_variants.py --cache /tmp/void-21.pkl --seed 21 --void \\
         --levels mild,moderate,jumps --per-volume 2 base                                   # makes the cache
     .venv/bin/python model_export/experiments/request_mismatch.py /tmp/stages-21.pkl /tmp/void-21.pkl \\
         [--factors 0.2:0.5,0.5:1] [--real ../shared/data/real_scans/mial_lausanne_t30] \\
-        [--job-floor ../shared/data/real_scans/mial_lausanne_t30] [--at-truth]
+        [--job-floor ../shared/data/real_scans/mial_lausanne_t30] [--at-truth] [--dark 0.1,0.15]
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from __future__ import annotations
 import argparse
 import pickle
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -139,6 +141,40 @@ def mismatch_at(prepared: list, active: list[NDArray], poses: list[NDArray]) -> 
     return refine(images, poses, expected, iterations=0).cost_after, refine(images, poses, expected).cost_after
 
 
+DARK = 0.5
+"""A pixel of a slice's mask is dark under this share of its stack's median brain intensity."""
+
+
+def dark_share(prepared: list) -> NDArray[np.float64]:
+    """Per slice of the prepared stacks, in order, the share of its mask's pixels darker than
+    :data:`DARK` times its stack's median brain intensity (NaN for a slice of 50 mask pixels or fewer):
+    where a void or shading has darkened the brain.
+
+    Example (one stack: a slice half darkened, one not, one without brain):
+        >>> from types import SimpleNamespace
+        >>> images = np.full((3, 10, 10), 100.0); images[0, :5] = 20.0
+        >>> masks = np.ones((3, 10, 10), bool); masks[2] = False
+        >>> dark_share([SimpleNamespace(slices=SimpleNamespace(images=images, masks=masks))]).tolist()
+        [0.5, 0.0, nan]
+    """
+    out = []
+    for p in prepared:
+        images, masks = p.slices.images, p.slices.masks
+        median = float(np.median(images[masks])) if masks.any() else 1.0
+        out += [float((image[mask] < DARK * median).mean()) if mask.sum() > 50 else np.nan
+                for image, mask in zip(images, masks)]
+    return np.array(out)
+
+
+def dark_requests(path: Path, model: ModelInfo) -> list[Request]:
+    """:func:`cached_requests` with each request's 90th percentile of :func:`dark_share` in place of
+    its remaining mismatch (the factor's input)."""
+    with open(path, "rb") as f:
+        _, cases = pickle.load(f)                                                      # noqa: S301 - our own file
+    shares = [float(np.nanpercentile(dark_share(prepared), 90)) for _, prepared, _, _ in cases]
+    return [replace(r, after=share) for r, share in zip(cached_requests(path, model), shares)]
+
+
 def truth_floor(path: Path, model: ModelInfo, every: int = 3) -> None:
     """Every ``every``-th acquisition of a ``stage_variants.py`` cache: the image term at the
     service's final poses, refined further from them, and at the true poses; and the poses' mean E.D."""
@@ -173,6 +209,7 @@ def job_floor(scan: Path) -> None:
     volumes, manual = real_scan_poses.read_scan(scan)
     uploads = [StackUpload(n, volumes[n], manual[n], f"{n}_brain_mask", mask_holds_csf=True) for n in volumes]
     prepared = prepare_stacks(uploads, estimator.info, True, workers=2, localiser=localiser)
+    print(f"{scan.name}, manual masks: 90th percentile of dark pixels {np.nanpercentile(dark_share(prepared), 90):.3f}")
     answers = {stage: pipeline.predict(prepared, estimator, 100, estimator.info.variance_threshold,
                                        image_consistency=stage)[0] for stage in (True, False)}
     active = [np.isfinite(p.estimate.spread_mm) for p in answers[True]]
@@ -203,6 +240,7 @@ def main() -> None:
     ap.add_argument("--real", type=Path, action="append", default=[])
     ap.add_argument("--job-floor", type=Path, action="append", default=[])
     ap.add_argument("--at-truth", action="store_true", help="the mismatch at the true poses of the caches' acquisitions")
+    ap.add_argument("--dark", help="references M0 of a factor on the request's share of dark pixels, comma-separated")
     ap.add_argument("--model", type=Path, default=Path("service/models/default/model.onnx"))
     args = ap.parse_args()
     model = load_model(args.model).info
@@ -222,6 +260,16 @@ def main() -> None:
             got = judged([r for r in requests if (r.cache, r.level) == (cache, level)], limit, m0, power)
             print(f"  {cache} {level}: good accepted {got['good_accepted']:.0%}, bad accepted {got['bad_accepted']:.0%} "
                   f"of {got['bad_slices']}, RMS E.D. / RMS expected {got['rms_ratio']:.2f}")
+    if args.dark:
+        for path in args.caches:
+            rows = dark_requests(path, model)
+            share = [r.after for r in rows]
+            print(f"{path.name}: a request's 90th percentile of dark pixels {min(share):.3f}-{max(share):.3f}")
+            for m0 in [None, *(float(x) for x in args.dark.split(","))]:
+                for level in sorted({r.level for r in rows}):
+                    got = judged([r for r in rows if r.level == level], limit, m0, 1.0)
+                    print(f"  {'as the service' if m0 is None else f'x max(1, dark / {m0})'} {level}: good accepted "
+                          f"{got['good_accepted']:.0%}, bad accepted {got['bad_accepted']:.0%} of {got['bad_slices']}")
     if args.at_truth:
         for path in args.caches:
             truth_floor(path, model)
