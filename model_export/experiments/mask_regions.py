@@ -28,13 +28,11 @@ from numpy.typing import NDArray
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from model_export.experiments.frame_bias import common_frame  # noqa: E402
-from model_export.experiments.mask_vote import accepted_in_both  # noqa: E402
+from model_export.experiments.mask_vote import accepted_in_both, common_offset  # noqa: E402
 from model_export.experiments.real_scan_poses import read_scan  # noqa: E402
 from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator  # noqa: E402
 from service.api.responses import stack_objects  # noqa: E402
 from service.geometry import anchors, se3  # noqa: E402
-from service.inference.acceptance import ATLAS_CENTRE_MM  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
 from service.io.volume import Volume  # noqa: E402
 from service.pipeline.predict import predict  # noqa: E402
@@ -89,11 +87,10 @@ def answer(volumes: dict[str, Volume], masks: dict[str, NDArray], estimator) -> 
 
 def agreement(reference: tuple[list[dict], list], other: tuple[list[dict], list]) -> str:
     """The two answers over the slices both accept: median E.D. and common rigid offset, as a line."""
-    pairs = accepted_in_both(reference[0], other[0], reference[1])
-    a, b = np.concatenate([x for x, _ in pairs]), np.concatenate([y for _, y in pairs])
-    if not len(a):
+    joined = common_offset(accepted_in_both(reference[0], other[0], reference[1]))
+    if joined is None:
         return "no slice accepted in both"
-    frame, _ = common_frame(b, a, ATLAS_CENTRE_MM)
+    a, b, frame, _ = joined
     return (f"{len(a)} slices, median {np.median(anchors.ed(a, b)):.2f} mm; common "
             f"{np.round(np.degrees(se3.so3_log(frame[:3, :3])), 1).tolist()} deg, {np.round(frame[:3, 3], 1).tolist()} mm")
 

@@ -145,13 +145,24 @@ def accepted_in_both(first: list[dict], second: list[dict], prepared: list[Prepa
     return pairs
 
 
+def common_offset(pairs: list[tuple[NDArray, NDArray]]) -> tuple[NDArray, NDArray, NDArray, NDArray] | None:
+    """The pairs of :func:`accepted_in_both` joined over the stacks (the first answer's poses, the
+    second's), their common rigid offset about the atlas centre and what is left per slice once it
+    is undone (:func:`~model_export.experiments.frame_bias.common_frame`); None without a pair."""
+    a, b = np.concatenate([x for x, _ in pairs]), np.concatenate([y for _, y in pairs])
+    if not len(a):
+        return None
+    frame, left = common_frame(b, a, ATLAS_CENTRE_MM)
+    return a, b, frame, left
+
+
 def agreement(with_masks: list[dict], without: list[dict], prepared: list[PreparedStack]) -> str:
     """The two answers' distance over the slices both accept (see the module), as a line."""
     pairs = accepted_in_both(with_masks, without, prepared)
-    a, b = np.concatenate([x for x, _ in pairs]), np.concatenate([y for _, y in pairs])
-    if not len(a):
+    joined = common_offset(pairs)
+    if joined is None:
         return "no slice accepted in both"
-    frame, left = common_frame(b, a, ATLAS_CENTRE_MM)
+    a, b, frame, left = joined
     per_stack = ", ".join(f"{np.median(anchors.ed(x, y)):.1f}" if len(x) else "-" for x, y in pairs)
     return (f"{len(a)} slices, median {np.median(anchors.ed(a, b)):.2f} mm (per stack {per_stack}); common "
             f"{np.linalg.norm(frame[:3, 3]):.2f} mm / {np.degrees(np.linalg.norm(se3.so3_log(frame[:3, :3]))):.2f} deg; "

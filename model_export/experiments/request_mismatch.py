@@ -92,19 +92,34 @@ def judged(requests: list[Request], limit_mm: float, m0: float | None, power: fl
             "rms_ratio": float(np.sqrt(np.mean(e[known] ** 2) / np.mean(grown[known] ** 2))) if known.any() else np.nan}
 
 
-def cached_requests(path: Path, model: ModelInfo) -> list[Request]:
-    """Every acquisition of a ``stage_variants.py`` cache through the stages, judged with ``model``'s
-    calibration."""
-    with open(path, "rb") as f:
-        info, cases = pickle.load(f)                                                   # noqa: S301 - our own file
-    info = calibrated_as(info, model)
+@dataclass
+class Cache:
+    """A ``stage_variants.py`` cache read once, its calibration ``model``'s, and every acquisition's
+    answer through the stages (``predictions``, in the order of ``cases``)."""
+
+    name: str
+    info: ModelInfo
+    cases: list
+    predictions: list
+
+    @classmethod
+    def read(cls, path: Path, model: ModelInfo) -> "Cache":
+        with open(path, "rb") as f:
+            info, cases = pickle.load(f)                                               # noqa: S301 - our own file
+        info = calibrated_as(info, model)
+        return cls(path.name, info, cases, [pipeline.predict_from_estimates(prepared, parts, info, info.variance_threshold)[0]
+                                            for _, prepared, parts, _ in cases])
+
+
+def cached_requests(cache: Cache) -> list[Request]:
+    """Every acquisition of ``cache`` as a :class:`Request`: its stage's mismatch, and per slice its E.D.,
+    accept flag and expected error."""
     out = []
-    for level, prepared, parts, truth in cases:
-        predictions = pipeline.predict_from_estimates(prepared, parts, info, info.variance_threshold)[0]
+    for (level, _, _, truth), predictions in zip(cache.cases, cache.predictions):
         stage = next((p.poses.image_consistency for p in predictions if p.poses.image_consistency is not None), None)
         keep = [p.prepared.prepared.mask_pixels >= MIN_MASK_PIXELS for p in predictions]
         out.append(Request(
-            path.name, level, np.nan if stage is None else stage.mismatch_before,
+            cache.name, level, np.nan if stage is None else stage.mismatch_before,
             np.nan if stage is None else stage.mismatch_after,
             np.concatenate([ed(p.poses.poses, t)[k] for p, t, k in zip(predictions, truth, keep)]),
             np.concatenate([np.array([r is None for r in p.reasons])[k] for p, k in zip(predictions, keep)]),
@@ -166,29 +181,23 @@ def dark_share(prepared: list) -> NDArray[np.float64]:
     return np.array(out)
 
 
-def dark_requests(path: Path, model: ModelInfo) -> list[Request]:
-    """:func:`cached_requests` with each request's 90th percentile of :func:`dark_share` in place of
-    its remaining mismatch (the factor's input)."""
-    with open(path, "rb") as f:
-        _, cases = pickle.load(f)                                                      # noqa: S301 - our own file
-    shares = [float(np.nanpercentile(dark_share(prepared), 90)) for _, prepared, _, _ in cases]
-    return [replace(r, after=share) for r, share in zip(cached_requests(path, model), shares)]
+def dark_requests(cache: Cache, requests: list[Request]) -> list[Request]:
+    """``cache``'s :func:`cached_requests` ``requests`` with each one's 90th percentile of
+    :func:`dark_share` in place of its remaining mismatch (the factor's input)."""
+    shares = [float(np.nanpercentile(dark_share(prepared), 90)) for _, prepared, _, _ in cache.cases]
+    return [replace(r, after=share) for r, share in zip(requests, shares)]
 
 
-def truth_floor(path: Path, model: ModelInfo, every: int = 3) -> None:
-    """Every ``every``-th acquisition of a ``stage_variants.py`` cache: the image term at the
-    service's final poses, refined further from them, and at the true poses; and the poses' mean E.D."""
-    with open(path, "rb") as f:
-        info, cases = pickle.load(f)                                                   # noqa: S301 - our own file
-    info = calibrated_as(info, model)
-    for level, prepared, parts, truth in cases[::every]:
-        predictions = pipeline.predict_from_estimates(prepared, parts, info, info.variance_threshold)[0]
+def truth_floor(cache: Cache, every: int = 3) -> None:
+    """Every ``every``-th acquisition of ``cache``: the image term at the service's final poses, refined
+    further from them, and at the true poses; and the poses' mean E.D."""
+    for (level, prepared, _, truth), predictions in list(zip(cache.cases, cache.predictions))[::every]:
         active = [np.isfinite(p.estimate.spread_mm) for p in predictions]
         poses = [p.poses.poses for p in predictions]
         at, further = mismatch_at(prepared, active, poses)
         at_truth, _ = mismatch_at(prepared, active, truth)
         error = np.concatenate([ed(p, t) for p, t in zip(poses, truth)])
-        print(f"{path.name} {level}: mismatch at the service's poses {at:.2f}, refined further {further:.2f}, "
+        print(f"{cache.name} {level}: mismatch at the service's poses {at:.2f}, refined further {further:.2f}, "
               f"at the truth {at_truth:.2f}; mean E.D. {error.mean():.1f} mm", flush=True)
 
 
@@ -210,8 +219,9 @@ def job_floor(scan: Path) -> None:
     uploads = [StackUpload(n, volumes[n], manual[n], f"{n}_brain_mask", mask_holds_csf=True) for n in volumes]
     prepared = prepare_stacks(uploads, estimator.info, True, workers=2, localiser=localiser)
     print(f"{scan.name}, manual masks: 90th percentile of dark pixels {np.nanpercentile(dark_share(prepared), 90):.3f}")
-    answers = {stage: pipeline.predict(prepared, estimator, 100, estimator.info.variance_threshold,
-                                       image_consistency=stage)[0] for stage in (True, False)}
+    parts, _ = pipeline.estimate_stacks(prepared, estimator, 100)              # the network once for both answers
+    answers = {stage: pipeline.predict_from_estimates(prepared, parts, estimator.info, estimator.info.variance_threshold,
+                                                      image_consistency=stage)[0] for stage in (True, False)}
     active = [np.isfinite(p.estimate.spread_mm) for p in answers[True]]
     network_from_voxel = [p.network_from_voxel() for p in prepared]
     body, masks = predicted_body(uploads, estimator, 100, localiser=localiser)
@@ -245,34 +255,39 @@ def main() -> None:
     args = ap.parse_args()
     model = load_model(args.model).info
     limit = model.max_expected_error_mm
-    requests = [r for path in args.caches for r in cached_requests(path, model)]
+    requests, dark = [], []
+    for path in args.caches:                      # one cache in memory at a time, through the stages once
+        cache = Cache.read(path, model)
+        found = cached_requests(cache)
+        requests += found
+        if args.dark:
+            dark += dark_requests(cache, found)
+        if args.at_truth:
+            truth_floor(cache)
+        del cache
     groups = sorted({(r.cache, r.level) for r in requests})
-    for cache, level in groups:
-        rows = [r for r in requests if (r.cache, r.level) == (cache, level)]
+    for cache_name, level in groups:
+        rows = [r for r in requests if (r.cache, r.level) == (cache_name, level)]
         after = np.array([r.after for r in rows])
         fall = after / np.array([r.before for r in rows])
-        print(f"{cache} {level}: mismatch after {np.nanmin(after):.2f}-{np.nanmax(after):.2f}, "
+        print(f"{cache_name} {level}: mismatch after {np.nanmin(after):.2f}-{np.nanmax(after):.2f}, "
               f"after / before {np.nanmin(fall):.2f}-{np.nanmax(fall):.2f}")
     for spec in [None, *args.factors.split(",")]:
         m0, power = (None, 1.0) if spec is None else (float(spec.split(":")[0]), float(spec.split(":")[1]))
         print("as the service" if spec is None else f"expected errors x max(1, after / {m0}) ** {power}")
-        for cache, level in groups:
-            got = judged([r for r in requests if (r.cache, r.level) == (cache, level)], limit, m0, power)
-            print(f"  {cache} {level}: good accepted {got['good_accepted']:.0%}, bad accepted {got['bad_accepted']:.0%} "
+        for cache_name, level in groups:
+            got = judged([r for r in requests if (r.cache, r.level) == (cache_name, level)], limit, m0, power)
+            print(f"  {cache_name} {level}: good accepted {got['good_accepted']:.0%}, bad accepted {got['bad_accepted']:.0%} "
                   f"of {got['bad_slices']}, RMS E.D. / RMS expected {got['rms_ratio']:.2f}")
-    if args.dark:
-        for path in args.caches:
-            rows = dark_requests(path, model)
-            share = [r.after for r in rows]
-            print(f"{path.name}: a request's 90th percentile of dark pixels {min(share):.3f}-{max(share):.3f}")
-            for m0 in [None, *(float(x) for x in args.dark.split(","))]:
-                for level in sorted({r.level for r in rows}):
-                    got = judged([r for r in rows if r.level == level], limit, m0, 1.0)
-                    print(f"  {'as the service' if m0 is None else f'x max(1, dark / {m0})'} {level}: good accepted "
-                          f"{got['good_accepted']:.0%}, bad accepted {got['bad_accepted']:.0%} of {got['bad_slices']}")
-    if args.at_truth:
-        for path in args.caches:
-            truth_floor(path, model)
+    for cache_name in dict.fromkeys(r.cache for r in dark):
+        rows = [r for r in dark if r.cache == cache_name]
+        share = [r.after for r in rows]
+        print(f"{cache_name}: a request's 90th percentile of dark pixels {min(share):.3f}-{max(share):.3f}")
+        for m0 in [None, *(float(x) for x in args.dark.split(","))]:
+            for level in sorted({r.level for r in rows}):
+                got = judged([r for r in rows if r.level == level], limit, m0, 1.0)
+                print(f"  {'as the service' if m0 is None else f'x max(1, dark / {m0})'} {level}: good accepted "
+                      f"{got['good_accepted']:.0%}, bad accepted {got['bad_accepted']:.0%} of {got['bad_slices']}")
     for scan in args.real:
         real_mismatch(scan)
     for scan in args.job_floor:
