@@ -28,7 +28,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from client.views import refined_poses_line  # noqa: E402
 from model_export.localiser.evaluate import masked_files  # noqa: E402
-from predict_bench import revision_tree, start_server, wait_ready  # noqa: E402
+from predict_bench import revision_tree, served, wait_ready  # noqa: E402
 from service.core.machine import cpu_description  # noqa: E402
 
 FINAL = ("succeeded", "failed", "cancelled")
@@ -76,14 +76,10 @@ def run_job(client: httpx.Client, files: list[tuple[Path, Path]], masks: bool,
 def measure(root: Path, files: list[tuple[Path, Path]]) -> dict[bool, tuple[float, str, dict[str, float],
                                                                         dict[str, float], dict]]:
     """A job with the masks and one without, on a server of the code under ``root`` and its models."""
-    server, port = start_server(root, root / "service" / "models")
-    try:
+    with served(root, root / "service" / "models") as (server, port):
         with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=300) as client:
             wait_ready(client)
             return {masks: run_job(client, files, masks, server.pid) for masks in (True, False)}
-    finally:
-        server.terminate()
-        server.wait(10)
 
 
 def durations(began: dict[str, float], total: float) -> dict[str, float]:

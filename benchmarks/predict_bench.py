@@ -105,13 +105,21 @@ def run(client: httpx.Client, stacks: list[tuple[Path, Path]], repeats: int = 3,
 SCENARIOS = (("A: 3 x 128x128x35", 1.0), ("B: 6 x 320x320x22", 2.0))
 
 
-def start_server(root: Path, model_dir: Path) -> tuple[subprocess.Popen, int]:
+@contextmanager
+def served(root: Path, model_dir: Path) -> Iterator[tuple[subprocess.Popen, int]]:
     """A server of the code under ``root`` serving ``model_dir``, on a free port, with a job store of
-    its own (not the user's ``~/.svrnet``, which a running server of theirs owns)."""
+    its own (not the user's ``~/.svrnet``, which a running server of theirs owns), stopped and its
+    store removed afterwards."""
     port = free_port()
-    env = dict(os.environ, SVRNET_PORT=str(port), SVRNET_MODELS_DIR=str(model_dir), SVRNET_LOG_LEVEL="warning",
-               PYTHONPATH=str(root), SVRNET_DATA_DIR=tempfile.mkdtemp(prefix="svrnet-bench-"))
-    return subprocess.Popen([sys.executable, "-c", "from service.main import run; run()"], env=env, cwd=root), port
+    with tempfile.TemporaryDirectory(prefix="svrnet-bench-") as store:
+        env = dict(os.environ, SVRNET_PORT=str(port), SVRNET_MODELS_DIR=str(model_dir), SVRNET_LOG_LEVEL="warning",
+                   PYTHONPATH=str(root), SVRNET_DATA_DIR=store)
+        server = subprocess.Popen([sys.executable, "-c", "from service.main import run; run()"], env=env, cwd=root)
+        try:
+            yield server, port
+        finally:
+            server.terminate()
+            server.wait(10)
 
 
 @contextmanager
@@ -143,7 +151,6 @@ def measure(root: Path, model_dir: Path, scenarios: list[list[tuple[Path, Path]]
     """Best-of-3 wall time and server stage timings per (scenario, image_consistency), the real scan's
     with and without masks (every stage on), and the peak RSS; per model of ``models`` (None: the
     server's default), their requests alternating, keyed ``(model, ...)``."""
-    server, port = start_server(root, model_dir)
     out: dict = {}
 
     def best(key: tuple, model: str | None, stacks: list[tuple[Path, Path]], **form: object) -> None:
@@ -151,7 +158,7 @@ def measure(root: Path, model_dir: Path, scenarios: list[list[tuple[Path, Path]]
         if key not in out or wall < out[key][0]:
             out[key] = (wall, timing)
 
-    try:
+    with served(root, model_dir) as (server, port):
         with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=300) as client:
             wait_ready(client)
             for (name, _), stacks in zip(SCENARIOS, scenarios):
@@ -166,9 +173,6 @@ def measure(root: Path, model_dir: Path, scenarios: list[list[tuple[Path, Path]]
                             best((model, "real", masks), model, real, masks=masks,
                                  masks_hold_csf="true" if masks else "false")
         return out, peak_rss_mb(server.pid)
-    finally:
-        server.terminate()
-        server.wait(10)
 
 
 def main() -> None:

@@ -149,7 +149,8 @@ def main() -> None:
     ap.add_argument("--latency-jobs", type=int, default=15)
     args = ap.parse_args()
     print(f"machine: {cpu_description()}")
-    root = Path(tempfile.mkdtemp(prefix="svrnet-queue-bench-"))
+    scratch = tempfile.TemporaryDirectory(prefix="svrnet-queue-bench-")
+    root = Path(scratch.name)
     files = _files(root / "case")
     server = RedisServer(root / "redis")
     try:
@@ -167,6 +168,7 @@ def main() -> None:
                                           "queue_name": f"c{uuid.uuid4().hex[:8]}", **queue}, args.jobs)
     finally:
         server.stop()
+        scratch.cleanup()
 
 
 if __name__ == "__main__":

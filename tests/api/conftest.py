@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -18,6 +17,7 @@ from service.inference.estimator import OnnxPoseEstimator, PoseEstimate
 from service.inference.model_file import ModelInfo, load_model
 from service.inference.registry import ModelRegistry
 from service.main import create_app
+from tests.support.scratch import job_store_dir
 
 INFO = ModelInfo(name="oracle", version="0", backbone="oracle", label_type="anchor", input_size=64,
                  pixel_spacing_mm=2.0, variance_threshold=10.0, dropout_p=0.5, atlas_id="phantom",
@@ -58,7 +58,7 @@ def tiny_model_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def make_client(registry: ModelRegistry, **settings: object) -> TestClient:
     """A TestClient of the app with ``registry``; the job store goes to a fresh temporary folder."""
-    settings.setdefault("data_dir", tempfile.mkdtemp(prefix="svrnet-test-"))
+    settings.setdefault("data_dir", job_store_dir())
     return TestClient(create_app(Settings(**settings), registry=registry), raise_server_exceptions=False)
 
 

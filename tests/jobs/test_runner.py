@@ -23,7 +23,8 @@ from service.core.settings import Settings
 from service.main import create_app
 from service.inference.registry import ModelRegistry
 from tests.api.conftest import OracleEstimator
-settings = Settings(data_dir=tempfile.mkdtemp(), queue_url=sys.argv[1] or None)
+store = tempfile.TemporaryDirectory(prefix="svrnet-test-")
+settings = Settings(data_dir=store.name, queue_url=sys.argv[1] or None)
 try:
     with TestClient(create_app(settings, ModelRegistry({"default": OracleEstimator()}))) as client:
         print(client.get("/readyz").status_code, type(client.app.state.job_store).__name__)

@@ -3,7 +3,6 @@ to its end) leaves no process behind, where ``shutdown(wait=False)`` alone left 
 
 from __future__ import annotations
 
-import tempfile
 import threading
 import time
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
@@ -16,6 +15,7 @@ from service.main import create_app
 from service.core.threads import blas_threads
 from service.streaming.background import STAGE_BLAS_THREADS, stage_process, stop_stage_process
 from tests.api.conftest import OracleEstimator
+from tests.support.scratch import job_store_dir
 
 
 def _worker():  # noqa: ANN202 - the pool's one process, started by a first task
@@ -67,7 +67,7 @@ def test_firm_ups_that_start_at_once_share_one_stage_process() -> None:
 
 
 def test_the_server_s_lifespan_ends_the_stage_process() -> None:
-    app = create_app(Settings(data_dir=tempfile.mkdtemp(prefix="svrnet-test-")),
+    app = create_app(Settings(data_dir=job_store_dir()),
                      registry=ModelRegistry({"default": OracleEstimator()}))
     with TestClient(app):
         worker = _worker()                                               # a stream's firm-up started it
