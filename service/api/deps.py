@@ -11,10 +11,10 @@ from fastapi import Depends, Header, Request
 from starlette.datastructures import State
 
 from service.api.metrics import Metrics
-from service.core.errors import QueueFull, Saturated, ServiceError, Unauthorized
+from service.core.errors import InvalidParameter, QueueFull, Saturated, ServiceError, Unauthorized
 from service.core.settings import Settings
 from service.inference.registry import ModelRegistry
-from service.preprocess.localise import Localisers
+from service.preprocess.localise import Localiser, Localisers
 
 
 def get_settings(request: Request) -> Settings:
@@ -37,6 +37,16 @@ SettingsDep = Annotated[Settings, Depends(get_settings)]
 RegistryDep = Annotated[ModelRegistry, Depends(get_registry)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 LocalisersDep = Annotated[Localisers, Depends(get_localisers)]
+
+
+def localiser_for(localisers: Localisers, masks: list) -> Localiser | None:
+    """The default brain localiser for a request whose stacks come without masks (None when masks
+    come); a server without one refuses such a request at once, naming the field ``masks``."""
+    if masks:
+        return None
+    if not localisers.localisers:
+        raise InvalidParameter("masks: this server has no brain localiser installed; send a mask with every stack")
+    return localisers.get()
 
 
 def api_key_ok(keys: set[str], authorization: str | None, x_api_key: str | None) -> bool:

@@ -8,11 +8,10 @@ from typing import Annotated
 from anyio import to_thread
 from fastapi import APIRouter, Depends, Form, Request
 
-from service.api.deps import ApiKey, LocalisersDep, MetricsDep, RegistryDep, SettingsDep, SlotDep
+from service.api.deps import ApiKey, LocalisersDep, MetricsDep, RegistryDep, SettingsDep, SlotDep, localiser_for
 from service.api.responses import stack_objects
 from service.api.schemas import UPLOAD_ERRORS, PredictResponse
 from service.api.uploads import UploadFormDep, known_fields, save_and_read, upload_directory
-from service.core.errors import InvalidParameter
 from service.pipeline.predict import predict as run_prediction
 from service.pipeline.prepare import prepare_stacks
 
@@ -41,9 +40,7 @@ async def predict(
     model = registry.resolve(form.model)
     request.scope["state"]["model"] = model
     estimator = registry.get(model)
-    if not form.masks and not localisers.localisers:
-        raise InvalidParameter("masks: this server has no brain localiser installed; send a mask with every stack")
-    localiser = None if form.masks else localisers.get()
+    localiser = localiser_for(localisers, form.masks)
     info = estimator.info
     threshold = form.variance_threshold if form.variance_threshold is not None else info.variance_threshold
     max_expected = form.max_expected_error_mm if form.max_expected_error_mm is not None else info.max_expected_error_mm

@@ -11,11 +11,12 @@ from fastapi import APIRouter, Depends, Form, Query, Request, Response
 from fastapi.responses import FileResponse
 from pydantic import Field
 
-from service.api.deps import ApiKey, RegistryDep, SettingsDep, SlotDep, queue_full
+from service.api.deps import ApiKey, LocalisersDep, RegistryDep, SettingsDep, SlotDep, localiser_for, queue_full
 from service.api.schemas import UPLOAD_ERRORS, job_poses, problem_responses
 from service.api.uploads import UploadFormDep, known_fields, save_and_read, upload_directory
 from service.pipeline.predict import stack_orders
 from service.pipeline.prepare import check_mask_grid
+from service.core.client_json import client_json
 from service.core.errors import Conflict, InvalidParameter, NotFound
 from service.io.acquisition_geometry import MAX_VOXEL_MM, MIN_VOXEL_MM
 from service.jobs.store import Job, JobStore
@@ -79,6 +80,7 @@ async def submit(
     request: Request,
     response: Response,
     registry: RegistryDep,
+    localisers: LocalisersDep,
     settings: SettingsDep,
     _slot: SlotDep,
     form: UploadFormDep,
@@ -94,6 +96,7 @@ async def submit(
     same files; without it the job predicts first.
     """
     model = registry.resolve(form.model)
+    localiser_for(localisers, form.masks)            # the job's worker localises; refused now, not failed later
     thickness = thickness_per_stack(slice_thickness_mm, len(form.stacks))
     if (full := queue_full(request.app.state)) is not None:
         raise full
@@ -112,8 +115,8 @@ async def submit(
         stack_orders(form.orders, uploads)
         if poses_text:
             try:
-                body = json.loads(poses_text)
-            except (ValueError, RecursionError) as exc:
+                body = client_json(poses_text)
+            except ValueError as exc:
                 raise InvalidParameter("poses: not valid JSON") from exc
             counts = [u.volume.array.shape[slice_axis_of(u.volume.spacing)] for u in uploads]
             try:

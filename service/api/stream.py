@@ -41,6 +41,7 @@ from service.core.errors import (
     ServiceError,
     Unauthorized,
 )
+from service.core.client_json import client_json
 from service.core.names import has_unsafe_characters
 from service.streaming.answers import SliceAnswer
 from service.streaming.frames import SliceFrame
@@ -123,16 +124,13 @@ class StreamConnection:
                     await self.handle(msg)
                 except ServiceError as e:
                     log.info("stream message refused", extra={"status": e.status})
-                    if isinstance(msg, dict) and msg.get("type") == "slice":
-                        # its frames: the pixels, and a mask for any "mask" but absent or false (a wrong
-                        # value such as "true" most likely came with one; a count too high ends at the
-                        # next text frame, so it never swallows a message)
-                        self.orphans = max(0, 1 + (msg.get("mask") not in (None, False)) - self.binaries_read)
+                    self.orphans = self.unread_frames(msg)
                     await self.send(error_message(e))
                 except (_Closed, WebSocketDisconnect):
                     raise
                 except Exception:  # noqa: BLE001 - a server fault ends one message, never the session
                     log.exception("stream message failed")
+                    self.orphans = self.unread_frames(msg)
                     await self.send(error_message(InternalError(f"session {self.session_id}: the server could "
                                                                 "not answer this message")))
         except (_Closed, WebSocketDisconnect):
@@ -270,15 +268,24 @@ class StreamConnection:
             await self.send(message)
         await self.send(stack_message(answer))
 
+    def unread_frames(self, msg: object) -> int:
+        """How many binary frames of a refused ``slice`` message are still to come, to be dropped
+        without an error each: its pixels, and a mask for any ``mask`` but absent or false (a wrong
+        value such as "true" most likely came with one; a count too high ends at the next text
+        frame, so it never swallows a message). 0 for any other message."""
+        if not (isinstance(msg, dict) and msg.get("type") == "slice"):
+            return 0
+        return max(0, 1 + (msg.get("mask") not in (None, False)) - self.binaries_read)
+
 
 def parse(text: str) -> dict:
     """A client message: a JSON object with a string ``type`` (:class:`MalformedRequest` otherwise)."""
     if len(text) > MAX_TEXT_BYTES:
         raise MalformedRequest(f"message: {len(text)} characters is over the limit of {MAX_TEXT_BYTES}")
     try:
-        msg = json.loads(text)
+        msg = client_json(text)
     except ValueError:
-        raise MalformedRequest("message: not JSON") from None
+        raise MalformedRequest("message: not JSON (or nested too deeply)") from None
     if not isinstance(msg, dict) or not isinstance(msg.get("type"), str):
         raise MalformedRequest("message: a JSON object with a string field type")
     return msg

@@ -9,11 +9,10 @@ Example:
 
 from __future__ import annotations
 
-import json
+import math
 from dataclasses import dataclass
 
-import numpy as np
-
+from service.core.client_json import client_json
 from service.core.errors import InvalidParameter
 from service.core.settings import Settings
 
@@ -61,7 +60,7 @@ class SessionOptions:
         """Options from a JSON object holding nothing else (an MRD config text); :class:`InvalidParameter`
         names the field at fault, ``where`` the message."""
         try:
-            given = json.loads(text)
+            given = client_json(text)
         except ValueError:
             raise InvalidParameter(f"{where}: not a JSON object") from None
         if not isinstance(given, dict):
@@ -101,7 +100,7 @@ class SessionOptions:
         for name in ("variance_threshold", "max_expected_error_mm"):
             value = given.get(name)
             if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
-                                      or not np.isfinite(value) or not value > 0):
+                                      or not math.isfinite(value) or not value > 0):
                 raise InvalidParameter(f"{where}.{name}: a positive number (or null) is required")
             limits[name] = None if value is None else float(value)
         flags = {name: given.get(name, default) for name, default in (("bias_correction", True), ("masks_hold_csf", False))}

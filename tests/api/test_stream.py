@@ -88,6 +88,8 @@ def test_bad_messages_get_an_error_naming_them_and_the_session_goes_on(client, c
         assert "start message first" in ws.receive_json()["detail"]
         ws.send_text(json.dumps({"type": "start", "mc_samples": 0}))
         assert "start.mc_samples" in ws.receive_json()["detail"]
+        ws.send_text(json.dumps({"type": "start", "mc_samples": 10, "variance_threshold": 10 ** 400}))
+        assert "start.variance_threshold: a positive number" in ws.receive_json()["detail"]      # not a 500
         ws.send_text(json.dumps({"type": "start", "mc_samples": 10, "variance_treshold": 40}))   # misspelt: named
         assert "unknown options ['variance_treshold']" in ws.receive_json()["detail"]
         ws.send_text(json.dumps({"type": "start", "mc_samples": 10, "bias_correction": False}))
@@ -95,6 +97,7 @@ def test_bad_messages_get_an_error_naming_them_and_the_session_goes_on(client, c
         cases = [
             ("not json", None, "not JSON"),
             (json.dumps([1, 2]), None, "JSON object"),
+            ("[" * 5000 + "]" * 5000, None, "nested too deeply"),
             (json.dumps({"type": "dance"}), None, "unknown message type"),
             (json.dumps({"type": "slice", "stack": "ax", "index": 1, "shape": [4, 4, 4], "dtype": "uint8",
                          "scanner_from_voxel": np.eye(4).tolist()}), None, "slice.shape"),
@@ -120,6 +123,11 @@ def test_bad_messages_get_an_error_naming_them_and_the_session_goes_on(client, c
         assert "slice.mask" in ws.receive_json()["detail"]
         ws.send_bytes(b"\x01\x02")                            # a binary frame out of place
         assert "not expected" in ws.receive_json()["detail"]
+        huge = f0.scanner_from_voxel.tolist()
+        huge[0][3] = 10 ** 400                                # a refused header's frames: one error, not three
+        send_slice(ws, f0, scanner_from_voxel=huge)
+        err = ws.receive_json()
+        assert err["status"] == 400 and "scanner_from_voxel" in err["detail"], err
         send_slice(ws, f0, dtype="uint16")                    # another dtype; the session still works
         pose = receive(ws)
         assert pose["index"] == 0

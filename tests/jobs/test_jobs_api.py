@@ -245,6 +245,7 @@ def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict) ->
                            (lambda s: s["atlas_from_voxel"][0].__setitem__(3, 5e3), "within 1000 mm"),
                            (lambda s: s["atlas_from_voxel"].__setitem__(3, [1, 2, 3, 4]), "rigid placement"),
                            (lambda s: s.__setitem__("accepted", "no"), "accepted must be true or false"),
+                           (lambda s: s["atlas_from_voxel"][0].__setitem__(0, 10 ** 400), "must be finite 4x4"),
                            (lambda s: [row.__setitem__(0, -row[0]) for row in s["atlas_from_voxel"][:3]],
                             "keeping the stack's handedness")):           # the voxels' first axis reversed
         bad = json.loads(json.dumps(case["poses"]))
@@ -263,6 +264,20 @@ def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict) ->
         r = submit(client, case, slice_order=order)
         assert r.status_code == 400 and all(n in r.json()["detail"] for n in needles), r.text
     assert not client.app.state.job_store.queued()                   # nothing left behind
+
+
+@pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)     # refused before any back-end
+def test_stacks_without_masks_on_a_server_without_a_localiser_are_refused_at_submission(
+        queue_settings: dict[str, str], case: dict, tmp_path: Path) -> None:
+    """As ``/v1/predict`` refuses them: a 400 naming ``masks`` now, not a job queued only to fail."""
+    (tmp_path / "none").mkdir()
+    with make_client(ModelRegistry({"default": OracleEstimator()}), localisers_dir=tmp_path / "none",
+                     **queue_settings) as client:
+        files = [("stacks", (s.name, s.read_bytes())) for s, _ in case["files"]]
+        r = client.post("/v1/reconstructions", files=files, data={"resolution_mm": "2.0"})
+        assert r.status_code == 400 and "masks" in r.json()["detail"] and "no brain localiser" in r.json()["detail"], r.text
+        assert not client.app.state.job_store.queued()
+        assert submit(client, case).status_code == 202                  # with masks the job is taken
 
 
 @pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)     # the back-end plays no part
