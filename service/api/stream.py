@@ -83,6 +83,7 @@ class StreamConnection:
         self.latencies: list[float] = []
         self.started = time.perf_counter()
         self.binaries_read = 0                      # binary frames the slice message being read has taken
+        self.last_frame_at = self.started           # when the last binary frame came (a pose's latency starts)
         self.orphans = 0                            # binary frames a refused slice message announced, not read
 
     async def send(self, message: dict) -> None:
@@ -183,11 +184,10 @@ class StreamConnection:
 
     async def slice(self, msg: dict) -> None:
         frame = await self.read_slice(msg)
-        t = time.perf_counter()
         answer: SliceAnswer = await to_thread.run_sync(self.session.add_slice, frame, limiter=self.pose_limiter)
-        latency = (time.perf_counter() - t) * 1e3
-        self.latencies.append(latency)
         self.metrics.observe_slices(self.model, [answer.prediction.reasons[answer.row]])
+        latency = (time.perf_counter() - self.last_frame_at) * 1e3       # from the slice's last frame
+        self.latencies.append(latency)
         await self.send({"type": "pose", **pose_object(answer, latency_ms=round(latency, 2))})
         self.firm_up(frame.stack)
 
@@ -227,6 +227,7 @@ class StreamConnection:
             self.pending = frame
             raise InvalidParameter(f"slice: its {what} binary frame was due, a text frame came; the slice is dropped")
         self.binaries_read += 1
+        self.last_frame_at = time.perf_counter()
         if len(data) != size:
             raise InvalidParameter(f"slice: its {what} frame has {len(data)} bytes, {size} were due "
                                    "(shape x dtype size); the slice is dropped")

@@ -80,6 +80,25 @@ def test_a_session_answers_every_slice_in_order_where_the_truth_is(client, case)
         assert closed.value.code == 1000
 
 
+def test_a_pose_s_latency_runs_from_the_slice_s_last_frame(client, case, monkeypatch) -> None:  # noqa: ANN001
+    """What the server does after the last frame counts (decoding the frames, waiting for a pose
+    thread), not only the network's pass."""
+    import time as clock
+
+    import service.api.stream as stream_module
+
+    def slow_frame(*args: object) -> SliceFrame:
+        clock.sleep(0.2)
+        return SliceFrame(*args)
+
+    monkeypatch.setattr(stream_module, "SliceFrame", slow_frame)
+    with client.websocket_connect("/v1/stream") as ws:
+        ws.send_text(json.dumps({"type": "start", "mc_samples": 10, "bias_correction": False}))
+        assert ws.receive_json()["type"] == "ready"
+        send_slice(ws, case[1][0][0])
+        assert receive(ws)["latency_ms"] >= 200
+
+
 def test_bad_messages_get_an_error_naming_them_and_the_session_goes_on(client, case) -> None:  # noqa: ANN001
     _, stacks, truths = case
     f0, f1 = stacks[0][0], stacks[0][1]
