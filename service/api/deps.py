@@ -98,7 +98,7 @@ def early_rejection(state: State, method: str, path: str, headers: dict[str, str
     if needs_key(settings, path) and not api_key_ok(settings.key_set(), headers.get("authorization"),
                                                     headers.get("x-api-key")):
         return Unauthorized(UNAUTHORIZED)
-    if method == "POST" and path == "/v1/predict":
+    if method == "POST" and path in ("/v1/predict", "/v1/masks"):
         return saturated(state)
     if method == "POST" and path == "/v1/reconstructions":
         return queue_full(state) or saturated(state)

@@ -1,5 +1,6 @@
-"""Uploads decode within bounded memory however many clients send at once: reconstructions take a
-processing slot like predictions (503 with Retry-After when none is free), and at most
+"""Uploads decode within bounded memory however many clients send at once: reconstructions and masks
+take a processing slot like predictions (503 with Retry-After when none is free, before the upload is
+read), and at most
 ``READ_WORKERS`` files are decoded at a time in the whole process."""
 
 from __future__ import annotations
@@ -19,12 +20,13 @@ from tests.api.conftest import make_client
 from tests.api.test_operations import _call_without_reading_the_body
 
 
-def test_a_saturated_server_refuses_reconstructions_before_reading_them(oracle) -> None:  # noqa: ANN001
+@pytest.mark.parametrize("route", ["/v1/reconstructions", "/v1/masks", "/v1/predict"])
+def test_a_saturated_server_refuses_uploads_before_reading_them(oracle, route: str) -> None:  # noqa: ANN001
     with make_client(ModelRegistry({"default": oracle}), max_concurrent=1, retry_after_s=4) as client:
         client.app.state.slots._value = 0
-        status, headers, read = _call_without_reading_the_body(client.app, "/v1/reconstructions", [])
+        status, headers, read = _call_without_reading_the_body(client.app, route, [])
         assert (status, read, headers["retry-after"]) == (503, False, "4")
-        r = client.post("/v1/reconstructions", files=[("stacks", ("s.nii.gz", b"x"))])
+        r = client.post(route, files=[("stacks", ("s.nii.gz", b"x"))])
         assert r.status_code == 503 and r.headers["retry-after"] == "4"
 
 
