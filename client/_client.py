@@ -21,7 +21,7 @@ from typing import Any
 from urllib.parse import quote
 
 from client import transport
-from client.errors import Busy, ConnectionFailed, JobFailed, ServerError, SVRnetError, WaitTimeout
+from client.errors import ArgumentError, Busy, ConnectionFailed, JobFailed, ServerError, SVRnetError, WaitTimeout
 from client.multipart import MultipartBody, ProgressCallback, form_value, order_fields
 from client.transport import DEFAULT_SERVER, DEFAULT_TIMEOUT, PathLike, Transport
 from client.upload_files import file_parts
@@ -140,12 +140,16 @@ class SVRnetClient(Transport):
         return self._json(self._send("POST", "/v1/predict", body=body, progress=progress))
 
     def masks(self, stacks: Sequence[PathLike], out_dir: PathLike, *, model: str | None = None,
-              margin_mm: float | None = None, progress: ProgressCallback | None = None) -> dict[str, Any]:
+              margin_mm: float | None = None, progress: ProgressCallback | None = None,
+              overwrite: bool = False) -> dict[str, Any]:
         """``POST /v1/masks``: the server's brain mask of every stack, written into ``out_dir``.
 
         Each mask is ``<stem>_mask.nii.gz`` on its stack's own grid (uint8 0/1), grown outward by
         ``margin_mm`` when given (the localiser's masks are the skull's inside); ``report.json`` lies
         beside them. Only the archive's own plain file names are written, never a path it names.
+        Files of those names already in ``out_dir`` (a hand-drawn ``axial_mask.nii.gz`` beside its
+        stack, say) are kept, and nothing is written, unless ``overwrite``; each file is written
+        whole or not at all.
 
         Returns:
             The report: ``stacks[]`` with ``filename``, ``mask``, ``brain_volume_ml``, ``confidence``,
@@ -158,18 +162,26 @@ class SVRnetClient(Transport):
         fields = [(k, v) for k, v in (("model", model), ("margin_mm", margin_mm)) if v is not None]
         body = MultipartBody(fields, file_parts(stacks, None))
         response = self._send("POST", "/v1/masks", body=body, progress=progress)
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
         try:
             archive = zipfile.ZipFile(io.BytesIO(response.content))
-            names = [i.filename for i in archive.infolist() if i.filename == Path(i.filename).name
-                     and i.filename.endswith((".nii.gz", ".json")) and i.file_size <= MAX_MASK_BYTES]
-            for name in names:
-                (out / name).write_bytes(archive.read(name))
-            return json.loads(archive.read("report.json"))
+            files = {i.filename: archive.read(i.filename) for i in archive.infolist()
+                     if i.filename == Path(i.filename).name and i.filename.endswith((".nii.gz", ".json"))
+                     and i.file_size <= MAX_MASK_BYTES}
+            report = json.loads(files["report.json"])
         except (zipfile.BadZipFile, KeyError, ValueError) as exc:
             raise SVRnetError("the server's masks archive is unreadable", status=response.status_code,
                               request_id=response.headers.get("x-request-id")) from exc
+        out = Path(out_dir)
+        there = [name for name in files if (out / name).exists()]
+        if there and not overwrite:
+            raise ArgumentError(f"out_dir: {out} holds {', '.join(there)} already; nothing was written "
+                                "(overwrite=True, --overwrite, replaces them)")
+        out.mkdir(parents=True, exist_ok=True)
+        for name, data in files.items():
+            partial = out / f".{name}.partial"
+            partial.write_bytes(data)
+            partial.replace(out / name)
+        return report
 
     def reconstruct(self, stacks: Sequence[PathLike], masks: Sequence[PathLike] | None = None,
                     poses: Mapping[str, Any] | PathLike | None = None, *, resolution_mm: float | None = None,
@@ -285,7 +297,8 @@ class SVRnetClient(Transport):
                 unreachable_since = now if unreachable_since is None else unreachable_since
                 if now - unreachable_since >= unreachable_s or now >= deadline:
                     raise
-                transport.sleep(min(poll_s * 2, max(deadline - now, 0.0)))
+                asked = exc.retry_after_s if isinstance(exc, Busy) and exc.retry_after_s is not None else 0.0
+                transport.sleep(min(max(poll_s * 2, asked), max(deadline - now, 0.0)))   # as long as the server asks
                 continue
             if on_progress is not None:
                 on_progress(job)

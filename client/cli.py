@@ -24,14 +24,15 @@ Exit codes:
     2   usage error (bad option or argument: typer's own, or the client's check naming it)
     3   connection failed (server unreachable, timeout)
     4   unauthorized (missing or wrong API key)
-    5   bad input (400, 413, 415, 422: malformed request, too large, unreadable or unusable file)
+    5   bad input (400, 413, 415, 422: malformed request, too large, unreadable or unusable file; every
+        slice of a stream refused)
     6   not found (unknown model or job)
     7   busy (429/503 after every retry)
     8   job failed or cancelled
     9   server error (5xx)
     10  conflict (409, e.g. result asked for before the job succeeded)
     11  timed out waiting for a job (the job goes on)
-    12  nothing usable in the answer, its files written: no slice accepted (predict), a volume whose
+    12  nothing usable in the answer, its files written: no slice accepted (predict, stream), a volume whose
         stacks do not predict each other (reconstruct)
 
 Errors are one red line on stderr with the server's problem detail (and request id), never a traceback.
@@ -45,14 +46,17 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Optional
 
+import httpx
 import typer
 from rich.live import Live
 
 from client._client import DEFAULT_SERVER, SVRnetClient
 from client.cli_support import (ApiKeyOpt, BiasCorrectionOpt, JobArg, MaskOpt, MasksHoldCsfOpt, MaxExpectedOpt, McSamplesOpt,
-                                ModelOpt, ServerOpt, StackSpaceOpt, StacksArg, ThresholdOpt, check_masks, check_writable,
-                                follow_job, job_id_of, positive, timeout_from_env, write_json, write_results)
-from client.exits import EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, EXIT_USAGE, errors, fail, stderr, stdout
+                                ModelOpt, ServerOpt, StackSpaceOpt, StacksArg, ThresholdOpt, check_folder_writable,
+                                check_masks, check_writable, follow_job, job_id_of, positive, timeout_from_env, write_json,
+                                write_results)
+from client.exits import (EXIT_BAD_INPUT, EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, EXIT_USAGE, errors, fail,
+                          stderr, stdout)
 from client.stream_views import StreamView, coverage_text, reacquire_text
 from client.views import job_table, masks_table, models_table, predict_hints, summarise, upload_bar, usable
 
@@ -72,8 +76,12 @@ app = typer.Typer(
 
 
 def make_client(server: str, api_key: str | None) -> SVRnetClient:
-    """The client every command uses (tests monkeypatch this factory)."""
-    return SVRnetClient(base_url=server, api_key=api_key, timeout=timeout_from_env())
+    """The client every command uses (tests monkeypatch this factory); a URL that is no URL is a usage
+    error naming ``--server``."""
+    try:
+        return SVRnetClient(base_url=server, api_key=api_key, timeout=timeout_from_env())
+    except httpx.InvalidURL as exc:
+        raise typer.BadParameter(f"{server!r}: {exc}", param_hint="--server") from None
 
 
 @contextmanager
@@ -149,12 +157,16 @@ def masks(
     margin: Annotated[Optional[float], typer.Option(
         "--margin-mm", min=0, help="grow each mask outward by this many mm (the masks are the skull's inside; "
         "2-4 mm reaches masks drawn to its outer edge)")] = None,
+    overwrite: Annotated[bool, typer.Option(
+        "--overwrite", help="replace files of the same names in --out-dir (without it they are kept and nothing "
+        "is written)")] = False,
 ) -> None:
     """Brain masks of stacks as they leave the scanner (POST /v1/masks): one NIfTI per stack."""
+    check_folder_writable("out_dir", out_dir)
     err = stderr()
     with errors(), _client(server, api_key) as svr:
         with upload_bar(err, f"{len(stacks)} stack(s)") as progress:
-            report = svr.masks(stacks, out_dir, model=model, margin_mm=margin, progress=progress)
+            report = svr.masks(stacks, out_dir, model=model, margin_mm=margin, progress=progress, overwrite=overwrite)
         stdout().print(masks_table(report, out_dir))
 
 
@@ -311,6 +323,10 @@ def stream(
             console.print(f"{error_count} error(s) from the server (above, in red)", style="red")
         if json_out is not None:
             console.print(f"wrote {json_out}")
+    if error_count and not result.of_type("pose"):
+        raise typer.Exit(EXIT_BAD_INPUT)                   # the server refused every slice
+    if not usable({"stacks": result.of_type("stack")}):
+        raise typer.Exit(EXIT_NOTHING_USABLE)              # no slice accepted in the stacks' final answers
 
 
 @app.command(epilog=EXIT_HELP)

@@ -32,8 +32,8 @@ def timeout_from_env() -> httpx.Timeout:
         seconds = float(raw)
     except ValueError:
         seconds = -1.0
-    if not seconds > 0:
-        raise typer.BadParameter(f"SVRNET_TIMEOUT={raw!r}: must be a number of seconds > 0")
+    if not 0 < seconds < float("inf"):
+        raise typer.BadParameter(f"SVRNET_TIMEOUT={raw!r}: must be a finite number of seconds > 0")
     return httpx.Timeout(connect=5.0, read=seconds, write=seconds, pool=5.0)
 
 
@@ -47,6 +47,16 @@ def check_writable(**paths: Path | None) -> None:
         if not folder.is_dir() or not os.access(folder, os.W_OK):
             raise typer.BadParameter(f"{path}: its folder {folder} does not exist or is not writable",
                                      param_hint=f"--{option.replace('_', '-')}")
+
+
+def check_folder_writable(option: str, folder: Path) -> None:
+    """An output folder (by option name) must be, or be creatable as, a writable folder BEFORE anything
+    is uploaded: no file in its place, and its nearest existing folder writable."""
+    folder = folder.expanduser().resolve()
+    existing = next(p for p in (folder, *folder.parents) if p.exists())
+    if not existing.is_dir() or not os.access(existing, os.W_OK):
+        raise typer.BadParameter(f"{folder}: {existing} is not a writable folder",
+                                 param_hint=f"--{option.replace('_', '-')}")
 
 
 def job_id_of(job: str) -> str:

@@ -26,7 +26,7 @@ EXIT_CONNECTION, EXIT_UNAUTHORIZED, EXIT_BAD_INPUT, EXIT_NOT_FOUND = 3, 4, 5, 6
 EXIT_BUSY, EXIT_JOB_FAILED, EXIT_SERVER, EXIT_CONFLICT, EXIT_TIMEOUT = 7, 8, 9, 10, 11
 EXIT_NOTHING_USABLE = 12
 """The request succeeded and its outputs are written, but nothing in them is worth using: no slice
-accepted (``predict``), a volume whose stacks do not predict each other (``reconstruct``)."""
+accepted (``predict``, ``stream``), a volume whose stacks do not predict each other (``reconstruct``)."""
 
 EXIT_CODES: list[tuple[type[SVRnetError] | tuple[type[SVRnetError], ...], int]] = [
     (ConnectionFailed, EXIT_CONNECTION),
@@ -42,7 +42,7 @@ EXIT_CODES: list[tuple[type[SVRnetError] | tuple[type[SVRnetError], ...], int]] 
 
 EXIT_HELP = (
     "Exit codes: 0 ok · 1 unexpected error · 2 usage · 3 connection failed · 4 unauthorized · "
-    "5 bad input (400/413/415/422) · 6 not found · 7 busy (429/503 after retries) · "
+    "5 bad input (400/413/415/422; a stream whose every slice is refused) · 6 not found · 7 busy (429/503 after retries) · "
     "8 job failed/cancelled · 9 server error (5xx) · 10 conflict (409) · 11 timed out waiting · "
     "12 nothing usable in the answer (no slice accepted; a volume that is no coherent brain), its files written."
 )

@@ -229,7 +229,8 @@ def stream_stacks(stacks: Sequence[ScannerStack], server: str = DEFAULT_SERVER, 
             one per stack.
         on_message: called with every message received and the message of the client it answers
             (``None`` for an ``update``).
-        json_out: where every message received is written, one JSON object a line.
+        json_out: where every message received is written, one JSON object a line (a file there is
+            left as it was when no connection opens).
         answer_timeout_s: the longest wait for an answer before :class:`ConnectionFailed`.
         max_in_flight: slices sent ahead of their poses at most.
 
@@ -257,8 +258,8 @@ def stream_stacks(stacks: Sequence[ScannerStack], server: str = DEFAULT_SERVER, 
             orders.append(send_order(len(stack.slices), o))
         except ArgumentError as e:
             raise ArgumentError(f"{stack.name}: {e}") from None
-    with (open(json_out, "w", encoding="utf-8") if json_out is not None else nullcontext()) as record, \
-            _connect(stream_url(server), api_key, answer_timeout_s) as ws:
+    with _connect(stream_url(server), api_key, answer_timeout_s) as ws, \
+            (open(json_out, "w", encoding="utf-8") if json_out is not None else nullcontext()) as record:   # kept if none
         session = _Session(ws, on_message, record, answer_timeout_s)
         session.send({"type": "start", **{k: v for k, v in options.items() if v is not None}})
         while not session.result.ready:

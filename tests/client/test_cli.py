@@ -132,6 +132,24 @@ def test_cli_masks_writes_the_masks_and_nothing_outside(fake_cli: Callable, stac
     assert [f[:2] for f in files] == [("stacks", "stack.nii.gz")]
 
 
+def test_cli_masks_keeps_files_already_there_unless_told_and_checks_its_folder_first(
+        fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
+    """A hand-drawn ``stack_mask.nii.gz`` beside its stack is not replaced without ``--overwrite``, and
+    nothing else of the answer is written either; a folder that cannot be one is refused before the upload."""
+    fake, _ = fake_cli()
+    own = tmp_path / "stack_mask.nii.gz"
+    own.write_bytes(b"drawn by hand")
+    r = invoke(["masks", str(stack_file), "--out-dir", str(tmp_path)])
+    assert r.exit_code == 2 and "stack_mask.nii.gz" in r.output and "--overwrite" in r.output, r.output
+    assert own.read_bytes() == b"drawn by hand" and not (tmp_path / "report.json").exists()
+    r = invoke(["masks", str(stack_file), "--out-dir", str(tmp_path), "--overwrite"])
+    assert r.exit_code == 0 and own.read_bytes() == b"mask bytes", r.output
+    assert not list(tmp_path.glob(".*.partial"))
+    sent = len(fake.requests)
+    r = invoke(["masks", str(stack_file), "--out-dir", str(stack_file / "sub")])      # under a file
+    assert r.exit_code == 2 and "--out-dir" in r.output and len(fake.requests) == sent, r.output
+
+
 def test_cli_sends_each_slice_order_as_one_field(fake_cli: Callable, stack_file: Path) -> None:
     fake, _ = fake_cli()
     r = invoke(["predict", str(stack_file), str(stack_file), "--slice-order", "interleaved",
@@ -320,7 +338,11 @@ def test_a_job_waiting_for_a_worker_that_is_not_running_says_so(fake_cli: Callab
 def test_cli_timeout_from_the_environment(stack_file: Path) -> None:
     r = invoke(["models", "--server", "http://127.0.0.1:9"], SVRNET_TIMEOUT="soon")
     assert r.exit_code == 2 and "SVRNET_TIMEOUT" in r.output
+    r = invoke(["models", "--server", "http://127.0.0.1:9"], SVRNET_TIMEOUT="inf")
+    assert r.exit_code == 2 and "SVRNET_TIMEOUT" in r.output
     assert cli.make_client("http://x", None)._http.timeout.read == 300.0
+    r = invoke(["models", "--server", "http://[::1"])                                  # no URL at all: usage
+    assert r.exit_code == 2 and "--server" in r.output, r.output
 
 
 def _alone(reason: str, confidence: float = 0.9, method: str = "network") -> dict:

@@ -399,6 +399,22 @@ def test_wait_goes_on_through_a_server_restart_and_gives_up_on_a_server_gone(no_
         svr.wait(job_id, poll_s=0.0)
 
 
+def test_wait_waits_as_long_as_a_busy_server_asks(no_sleep: list[float]) -> None:
+    fake, busy = FakeJobs(), {"left": 0}
+
+    def saturated(request: httpx.Request) -> httpx.Response:
+        if request.method == "GET" and busy["left"] > 0:
+            busy["left"] -= 1
+            return httpx.Response(503, json=problem(503, "busy"), headers={"Retry-After": "60"})
+        return fake(request)
+
+    svr = mock(saturated, retries=0)
+    job_id = svr.reconstruct([__file__])["job_id"]
+    busy["left"] = 2
+    assert svr.wait(job_id, poll_s=1.0, unreachable_s=600.0)["status"] == "succeeded"
+    assert sorted(no_sleep)[-2:] == [60.0, 60.0], no_sleep
+
+
 def test_wait_times_out() -> None:
     svr = mock(FakeJobs("running"))
     job_id = svr.reconstruct([__file__])["job_id"]

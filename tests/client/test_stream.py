@@ -151,12 +151,47 @@ def test_a_refused_session_exits_with_the_clients_codes(stack_file: Path, answer
     assert answer["detail"] in " ".join(result.output.split())
 
 
-def test_no_server_exits_with_connection_failed(stack_file: Path) -> None:
+def test_no_server_exits_with_connection_failed_and_keeps_an_earlier_record(stack_file: Path, tmp_path: Path) -> None:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    result = runner.invoke(cli.app, ["stream", str(stack_file), "--server", f"http://127.0.0.1:{port}"])
+    record = tmp_path / "earlier.jsonl"
+    record.write_text('{"type": "ready"}\n')
+    result = runner.invoke(cli.app, ["stream", str(stack_file), "--server", f"http://127.0.0.1:{port}",
+                                     "--json-out", str(record)])
     assert result.exit_code == exits.EXIT_CONNECTION and "cannot open ws://127.0.0.1" in result.output
+    assert record.read_text() == '{"type": "ready"}\n'                 # no session, the last one's record kept
+
+
+@pytest.mark.parametrize(("answer", "code"), [("rejected", exits.EXIT_NOTHING_USABLE), ("refused", exits.EXIT_BAD_INPUT)])
+def test_a_session_with_nothing_accepted_exits_as_predict_would(stack_file: Path, answer: str, code: int) -> None:
+    """No slice accepted in the stack's final answer: 12, as ``svrnet predict``; every slice refused: 5."""
+    def handler(ws: ServerConnection) -> None:
+        json.loads(ws.recv())
+        ws.send(json.dumps({"type": "ready", "session_id": "s1", "model": {"name": "default", "version": "1"},
+                            "mc_samples": 10, "limits": {"slices": 100, "pixels_per_slice": 1000, "idle_s": 30}}))
+        posed = []
+        while True:
+            msg = json.loads(ws.recv())
+            if msg["type"] == "slice":
+                [ws.recv() for _ in range(1 + bool(msg.get("mask")))]
+                if answer == "refused":
+                    ws.send(json.dumps({"type": "error", "title": "Invalid parameter", "status": 400, "detail": "no"}))
+                else:
+                    posed.append(pose(msg, accepted=False, reason="high_expected_error"))
+                    ws.send(json.dumps(posed[-1]))
+            elif msg["type"] == "end_stack":
+                ws.send(json.dumps({"type": "stack", "stack": msg["stack"], "slices": posed, "reacquire": [],
+                                    "coverage": {"brain_fraction": 0.1, "gaps": []}}) if posed else
+                        json.dumps({"type": "error", "title": "Invalid parameter", "status": 400, "detail": "no slice"}))
+            elif msg["type"] == "end":
+                ws.send(json.dumps({"type": "summary", "stacks": ["ax"], "slices": len(posed), "timing_ms": {}}))
+                ws.close(1000)
+                return
+
+    with scripted_server(handler) as url:
+        result = runner.invoke(cli.app, ["stream", str(stack_file), "--server", url])
+    assert result.exit_code == code, result.output
 
 
 # --- (c) end to end: a real svrnet-server with the shipped model ---------------------------------------------------
@@ -191,8 +226,10 @@ def test_end_to_end_against_a_real_server(tmp_path: Path) -> None:
     finally:
         server.stop(15)
         server.kill_group()
-    assert result.exit_code == 0, result.output + (tmp_path / "server.log").read_text()[-3000:]
+    assert result.exit_code in (0, exits.EXIT_NOTHING_USABLE), result.output + (tmp_path / "server.log").read_text()[-3000:]
     messages = [json.loads(line) for line in out.read_text().splitlines()]
+    accepted = any(s["accepted"] for m in messages if m["type"] == "stack" for s in m["slices"])
+    assert result.exit_code == (0 if accepted else exits.EXIT_NOTHING_USABLE)     # as predict: 12 when none is
     assert messages[0]["type"] == "ready" and messages[-1]["type"] == "summary"
     answers = [m["type"] for m in messages if m["type"] not in ("pose", "update")]
     assert answers == ["ready", "stack", "stack", "summary"]
