@@ -221,9 +221,8 @@ async def cancel(request: Request, job_id: str) -> Response:
     """A queued or running job is cancelled (its status stays readable as ``cancelled``); a finished
     one is deleted with its files (then ``404``)."""
     job = _job(request, job_id)
-    if job.status in ("queued", "running"):
-        _store(request).cancel(job_id)
+    if job.status in ("queued", "running") and _store(request).cancel(job_id):
         request.app.state.job_runner.cancel(job_id)
-    else:
+    else:                               # finished, perhaps since it was read: deleted with its results
         _store(request).delete(job_id)
     return Response(status_code=204)

@@ -161,9 +161,11 @@ class RedisJobStore(JobStore):
         return self._move(job_id, ("queued", "running"), "failed", attempt, stage="failed", error=reason) >= 0
 
     @_answering
-    def cancel(self, job_id: str) -> None:
-        self._move(job_id, ("queued", "running"), "cancelled", stage="cancelled")
+    def cancel(self, job_id: str) -> bool:
+        if self._move(job_id, ("queued", "running"), "cancelled", stage="cancelled") < 0:
+            return False
         shutil.rmtree(self.directory(job_id), ignore_errors=True)
+        return True
 
     @_answering
     def delete(self, job_id: str) -> None:

@@ -127,8 +127,9 @@ class JobStore(ABC):
         (given ``attempt``) a later run has claimed it."""
 
     @abstractmethod
-    def cancel(self, job_id: str) -> None:
-        """Mark cancelled (a running worker stops at its next check) and delete the job's files."""
+    def cancel(self, job_id: str) -> bool:
+        """Mark a queued or running job cancelled (a running worker stops at its next check) and delete
+        its files; False, with nothing deleted, when it had finished meanwhile (its results stand)."""
 
     @abstractmethod
     def delete(self, job_id: str) -> None:
@@ -243,10 +244,12 @@ class SqliteJobStore(JobStore):
                            "WHERE id = ? AND status IN ('queued', 'running') AND (? IS NULL OR attempts = ?)",
                            (reason, time.time(), job_id, attempt, attempt))
 
-    def cancel(self, job_id: str) -> None:
-        self._write("UPDATE jobs SET status = 'cancelled', stage = 'cancelled', updated_at = ? "
-                    "WHERE id = ? AND status IN ('queued', 'running')", (time.time(), job_id))
+    def cancel(self, job_id: str) -> bool:
+        if not self._write("UPDATE jobs SET status = 'cancelled', stage = 'cancelled', updated_at = ? "
+                           "WHERE id = ? AND status IN ('queued', 'running')", (time.time(), job_id)):
+            return False
         shutil.rmtree(self.directory(job_id), ignore_errors=True)
+        return True
 
     def delete(self, job_id: str) -> None:
         self._write("DELETE FROM jobs WHERE id = ?", (job_id,))

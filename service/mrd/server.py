@@ -122,7 +122,10 @@ class MrdHandler(socketserver.StreamRequestHandler):
         if not server.slots.acquire(blocking=False):
             log.warning("mrd connection refused: every session slot is taken")
             busy = Saturated(f"session: {server.limits.max_sessions} MRD sessions are open; try again later")
-            refuse(self.wfile, busy, retry_after_s=server.retry_after_s)
+            try:
+                refuse(self.wfile, busy, retry_after_s=server.retry_after_s)
+            except OSError:                 # the client left first: nothing to tell it
+                log.info("mrd refused connection closed before its answer")
             return
         outbox: Outbox | None = None
         try:

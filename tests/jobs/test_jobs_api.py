@@ -266,6 +266,26 @@ def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict) ->
     assert not client.app.state.job_store.queued()                   # nothing left behind
 
 
+@pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)
+def test_a_job_that_finishes_while_its_delete_runs_is_deleted_whole(client: TestClient, monkeypatch) -> None:  # noqa: ANN001
+    """Read as running, finished before the cancel lands: not a 'succeeded' job without its files, but
+    deleted with them, as a finished job is."""
+    store = client.app.state.job_store
+    job = store.create({})
+    assert store.claim(job.id)
+    original = store.cancel
+
+    def finishing_first(job_id: str) -> bool:
+        (store.directory(job_id) / "outputs").mkdir()
+        assert store.finish(job_id, {"slices": [1]})
+        return original(job_id)
+
+    monkeypatch.setattr(store, "cancel", finishing_first)
+    assert client.delete(f"/v1/reconstructions/{job.id}").status_code == 204
+    assert store.get(job.id) is None and not store.directory(job.id).exists()
+    assert client.get(f"/v1/reconstructions/{job.id}").status_code == 404
+
+
 @pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)     # refused before any back-end
 def test_stacks_without_masks_on_a_server_without_a_localiser_are_refused_at_submission(
         queue_settings: dict[str, str], case: dict, tmp_path: Path) -> None:

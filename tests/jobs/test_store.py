@@ -49,10 +49,23 @@ def test_a_redelivered_job_may_be_claimed_while_running_but_not_once_finished(st
 def test_cancel_deletes_files_and_stops_claims(store: JobStore) -> None:
     job = store.create({})
     (store.directory(job.id) / "inputs").mkdir()
-    store.cancel(job.id)
+    assert store.cancel(job.id)
     assert store.get(job.id).status == "cancelled" and not store.directory(job.id).exists()
     assert not store.claim(job.id) and not store.claim(job.id, redelivered=True) and store.is_cancelled(job.id)
     assert not store.fail(job.id, "late") and store.get(job.id).error is None
+
+
+@both
+def test_a_job_that_finished_before_its_cancel_keeps_its_results(store: JobStore) -> None:
+    """The cancel of a job read as running that has finished since: refused, its files kept (the API
+    then deletes the job whole, as it deletes a finished one)."""
+    job = store.create({})
+    assert store.claim(job.id)
+    (store.directory(job.id) / "outputs").mkdir()
+    (store.directory(job.id) / "outputs" / "volume.nii.gz").write_bytes(b"v")
+    assert store.finish(job.id, {"slices": [1]})
+    assert not store.cancel(job.id)
+    assert store.get(job.id).status == "succeeded" and (store.directory(job.id) / "outputs" / "volume.nii.gz").exists()
 
 
 @both

@@ -201,6 +201,29 @@ def test_sessions_over_the_limit_are_told_to_retry(case: Case, serve) -> None:  
     assert isinstance(holder.close()[0], ismrmrd.Image)
 
 
+def test_a_refused_client_that_leaves_first_is_no_server_error(case: Case, serve, monkeypatch) -> None:  # noqa: ANN001
+    """Its answer meets a reset connection: logged as the client's leaving, not a traceback of the
+    server's, and the session holding the slot goes on."""
+    import service.mrd.server as mrd_server
+
+    server = serve(limits=ServerLimits(max_sessions=1))
+    faults: list[object] = []
+    monkeypatch.setattr(server, "handle_error", lambda request, address: faults.append(address))
+    holder = MrdLink("127.0.0.1", server.port)
+    holder.send(CONFIG, case.images[0][0])
+    while not holder.received:
+        holder._reader.join(timeout=0.05)
+
+    def reset(*args: object, **kwargs: object) -> None:
+        raise ConnectionResetError(104, "Connection reset by peer")
+
+    monkeypatch.setattr(mrd_server, "refuse", reset)
+    with socket.create_connection(("127.0.0.1", server.port)) as gone:
+        gone.settimeout(5)
+        assert gone.recv(1) == b""                                          # the server closed it
+    assert isinstance(holder.close()[0], ismrmrd.Image) and faults == []     # the session held goes on
+
+
 @pytest.mark.parametrize("silent_s", [0.2])
 def test_a_silent_connection_is_closed_with_an_error(serve, silent_s: float) -> None:  # noqa: ANN001
     server = serve(limits=ServerLimits(idle_s=silent_s))
