@@ -51,10 +51,10 @@ import typer
 from rich.live import Live
 
 from client._client import DEFAULT_SERVER, SVRnetClient
-from client.cli_support import (ApiKeyOpt, BiasCorrectionOpt, JobArg, MaskOpt, MasksHoldCsfOpt, MaxExpectedOpt, McSamplesOpt,
-                                ModelOpt, ServerOpt, StackSpaceOpt, StacksArg, ThresholdOpt, check_folder_writable,
-                                check_masks, check_writable, follow_job, job_id_of, positive, timeout_from_env, write_json,
-                                write_results)
+from client.cli_support import (DEFAULT_VOLUME, ApiKeyOpt, BiasCorrectionOpt, JobArg, MaskOpt, MasksHoldCsfOpt,
+                                MaxExpectedOpt, McSamplesOpt, ModelOpt, ServerOpt, StackSpaceOpt, StacksArg, ThresholdOpt,
+                                check_folder_writable, check_masks, check_writable, follow_job, job_id_of, positive,
+                                timeout_from_env, write_json, write_results)
 from client.exits import (EXIT_BAD_INPUT, EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, EXIT_USAGE, errors, fail,
                           stderr, stdout)
 from client.stream_views import StreamView, coverage_text, reacquire_text
@@ -213,8 +213,9 @@ def reconstruct(
     if stack_space is not None and stack_space >= len(stacks):
         fail(f"--stack-space: {stack_space} is not one of the {len(stacks)} stacks given (0-{len(stacks) - 1})",
              EXIT_USAGE)
-    check_writable(out=out, preview=preview, poses_out=poses_out, transforms_out=transforms_out)
     wait = wait or any(p is not None for p in (out, preview, poses_out, transforms_out, stack_space))
+    check_writable(out=out if out is not None or not wait else DEFAULT_VOLUME, preview=preview, poses_out=poses_out,
+                   transforms_out=transforms_out)
     err, console = stderr(), stdout()
     with errors(), _client(server, api_key) as svr:
         with upload_bar(err, f"{len(stacks)} stack(s)") as progress:
@@ -255,7 +256,8 @@ def fetch(
     """Download a job's results (GET /v1/reconstructions/{job}/...), waiting for it first if it is still
     queued or running: what `reconstruct --wait` does, for a job started without it."""
     job = job_id_of(job)
-    check_writable(out=out, preview=preview, poses_out=poses_out, transforms_out=transforms_out)
+    check_writable(out=out if out is not None else DEFAULT_VOLUME, preview=preview, poses_out=poses_out,
+                   transforms_out=transforms_out)
     with errors(), _client(server, api_key) as svr:
         incoherent = write_results(svr, job, follow_job(svr, job, poll, timeout), out, preview, poses_out,
                                    transforms_out, stack_space)

@@ -37,6 +37,10 @@ def timeout_from_env() -> httpx.Timeout:
     return httpx.Timeout(connect=5.0, read=seconds, write=seconds, pool=5.0)
 
 
+DEFAULT_VOLUME = Path("recon.nii.gz")
+"""Where a job's volume is written without ``--out``."""
+
+
 def check_writable(**paths: Path | None) -> None:
     """Output files (by option name) must be writable BEFORE anything is uploaded (not after an hour of
     reconstruction)."""
@@ -47,6 +51,8 @@ def check_writable(**paths: Path | None) -> None:
         if not folder.is_dir() or not os.access(folder, os.W_OK):
             raise typer.BadParameter(f"{path}: its folder {folder} does not exist or is not writable",
                                      param_hint=f"--{option.replace('_', '-')}")
+        if path.expanduser().is_dir():
+            raise typer.BadParameter(f"{path} is a folder, not a file", param_hint=f"--{option.replace('_', '-')}")
 
 
 def check_folder_writable(option: str, folder: Path) -> None:
@@ -162,7 +168,7 @@ def write_results(svr: SVRnetClient, job_id: str, done: dict[str, Any], out: Pat
     that stack's scanner coordinates) and the files asked for, and print its quality; True when the
     volume is no coherent brain."""
     console = stdout()
-    target = out if out is not None else Path("recon.nii.gz")
+    target = out if out is not None else DEFAULT_VOLUME
     frame = None
     if stack_space is not None:            # checked before any download: a server that ignores ?stack= would
         frame = stack_frame_entry(done, stack_space)   # send the atlas-space volume

@@ -264,6 +264,17 @@ def test_cli_fetch_follows_a_job_started_without_wait_and_downloads_its_results(
     assert invoke(["fetch", "nojob", "--out", str(tmp_path / "n.nii.gz")]).exit_code == 6
 
 
+def test_cli_checks_the_default_volume_path_before_uploading(fake_cli: Callable, stack_file: Path, tmp_path: Path,
+                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    fake, _ = fake_cli()
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "recon.nii.gz").mkdir()                   # where --wait without --out would write
+    r = invoke(["reconstruct", str(stack_file), "--wait"])
+    assert r.exit_code == 2 and "recon.nii.gz" in r.output and not fake.requests, r.output
+    r = invoke(["fetch", "job1"])
+    assert r.exit_code == 2 and "recon.nii.gz" in r.output and not fake.requests, r.output
+
+
 def test_cli_fetch_writes_the_volume_in_a_stack_s_scanner_coordinates(fake_cli: Callable, stack_file: Path,
                                                                       tmp_path: Path) -> None:
     """``--stack-space N`` asks for the volume placed in stack N's scanner coordinates and says how far
