@@ -31,7 +31,8 @@ from websockets.sync.client import ClientConnection, connect
 
 from client.transport import USER_AGENT
 from client._client import DEFAULT_SERVER
-from client.errors import ArgumentError, Busy, ConnectionFailed, SVRnetError, UnusableInput, error_class_for_status
+from client.errors import (ArgumentError, Busy, ConnectionFailed, ServerError, SVRnetError, UnusableInput,
+                           error_class_for_status)
 from client.scanner_stack import SENT_DTYPES, ScannerSlice, ScannerStack, read_stack, scanner_slices, slice_axis_of
 
 __all__ = ["ScannerSlice", "ScannerStack", "Sent", "StreamResult", "ORDERS", "slice_axis_of", "scanner_slices",
@@ -169,7 +170,10 @@ class _Session:
     def handle(self, data: str | bytes) -> None:
         """Record a message, match it to the message it answers (every message of the client gets one
         answer, in order; an ``update`` answers none) and hand both to the callback."""
-        message = json.loads(data) if isinstance(data, str) else None
+        try:
+            message = json.loads(data) if isinstance(data, str) else None
+        except ValueError:
+            raise ServerError(f"the server sent a text frame that is no JSON: {data[:80]!r}") from None
         if not isinstance(message, dict):
             return
         if self.record is not None:

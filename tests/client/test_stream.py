@@ -163,6 +163,17 @@ def test_no_server_exits_with_connection_failed_and_keeps_an_earlier_record(stac
     assert record.read_text() == '{"type": "ready"}\n'                 # no session, the last one's record kept
 
 
+def test_a_server_that_answers_no_json_is_a_server_error(stack_file: Path) -> None:
+    def handler(ws: ServerConnection) -> None:
+        ws.recv()
+        ws.send("<html>502 Bad Gateway</html>")
+        ws.close(1000)
+
+    with scripted_server(handler) as url:
+        result = runner.invoke(cli.app, ["stream", str(stack_file), "--server", url])
+    assert result.exit_code == exits.EXIT_SERVER and "no JSON" in result.output, result.output
+
+
 @pytest.mark.parametrize(("answer", "code"), [("rejected", exits.EXIT_NOTHING_USABLE), ("refused", exits.EXIT_BAD_INPUT)])
 def test_a_session_with_nothing_accepted_exits_as_predict_would(stack_file: Path, answer: str, code: int) -> None:
     """No slice accepted in the stack's final answer: 12, as ``svrnet predict``; every slice refused: 5."""
