@@ -1,5 +1,7 @@
 """A ZIP archive holding one DICOM series, unpacked with every decoder bounded.
 
+* The member count and the member list's size are read from the archive's end record and bounded
+  before the list is parsed.
 * Members are inflated in chunks to flat, numbered files of a private folder (archive paths are never
   used), each chunk charged to the upload's :class:`~service.io.limits.FileBudget`.
 * A member that is itself an archive (ZIP, gzip, bzip2, xz, 7z, RAR) is refused by name: nothing nested
@@ -16,6 +18,7 @@ Every message names the client's archive and, where it is about one member, the 
 
 from __future__ import annotations
 
+import struct
 import tempfile
 import zipfile
 import zlib
@@ -35,7 +38,26 @@ from service.io.limits import FileBudget
 from service.io.volume import Volume, from_sitk
 
 MAX_MEMBERS = 5000
+MAX_DIRECTORY_BYTES = 16 * 2**20
+"""The most bytes of member list (central directory) parsed: 5,000 entries of about 3 KB each."""
 ARCHIVE_MAGIC = (b"PK\x03\x04", b"PK\x05\x06", b"\x1f\x8b", b"BZh", b"\xfd7zXZ", b"7z\xbc\xaf", b"Rar!")
+
+
+def _check_directory(path: Path, filename: str) -> None:
+    """Refuse an archive whose end record declares more members than :data:`MAX_MEMBERS` or a member
+    list over :data:`MAX_DIRECTORY_BYTES`, before the list is parsed (which takes time and memory in
+    proportion to it). An end record that cannot be read is left to the ZIP reader to refuse."""
+    with open(path, "rb") as f:
+        try:
+            end = zipfile._EndRecData(f)              # the end record the ZIP reader itself uses (ZIP64 too)
+        except (OSError, ValueError, struct.error):
+            return
+    if end is None:
+        return
+    count, size = int(end[zipfile._ECD_ENTRIES_TOTAL]), int(end[zipfile._ECD_SIZE])
+    if count > MAX_MEMBERS or size > MAX_DIRECTORY_BYTES:
+        raise UnusableImage(f"{filename}: too many files in the archive ({count} members, a member list of "
+                            f"{size} bytes)")
 
 
 def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path | None = None) -> Volume:
@@ -47,6 +69,7 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path 
         thicknesses: dict[str, object] = {}     # unpacked file -> its SliceThickness
         tags: dict[str, Tags] = {}            # unpacked file -> its geometry tags (to check the series)
         try:
+            _check_directory(path, filename)
             with zipfile.ZipFile(path) as z:
                 members = [m for m in z.infolist() if not m.is_dir()]
                 if len(members) > MAX_MEMBERS:

@@ -3,7 +3,7 @@
 * Deflated Explicit VR Little Endian: the dataset is inflated here, in chunks, charged to the file's
   :class:`~service.io.limits.FileBudget` as it grows (pydicom would inflate it whole, unbounded).
 * Pixel data: ``Rows x Columns x NumberOfFrames x SamplesPerPixel`` is charged before any pixel is
-  decoded (multi-frame included).
+  decoded (multi-frame included); colour pixel data (``SamplesPerPixel`` above 1) are refused (422).
 * Encapsulated pixel data: every frame is checked against ``Rows``/``Columns`` before a codec sees it:
   JPEG / JPEG-LS frames by their SOF marker, JPEG 2000 by its SIZ marker, RLE by counting (not
   producing) what each segment would decode to. Other encapsulated syntaxes (video, ...) are refused.
@@ -24,7 +24,7 @@ from pydicom.encaps import generate_frames
 from pydicom.filebase import DicomBytesIO
 from pydicom.filereader import _read_file_meta_info, read_dataset, read_preamble
 
-from service.core.errors import UnsupportedFile
+from service.core.errors import UnsupportedFile, UnusableImage
 from service.io.limits import FileBudget
 
 JPEG_FAMILY = set(uid.JPEGTransferSyntaxes) | set(uid.JPEGLSTransferSyntaxes)
@@ -82,6 +82,9 @@ def check_pixels(ds: Dataset, filename: str, budget: FileBudget) -> None:
         raise UnsupportedFile(f"{filename}: DICOM pixel data without a valid size (Rows, Columns, frames)") from exc
     if min(rows, cols, frames, spp) < 1:
         raise UnsupportedFile(f"{filename}: DICOM pixel data of size {rows} x {cols} x {frames}")
+    if spp != 1:                        # colour: its channels would be taken for slices or frames
+        raise UnusableImage(f"{filename}: DICOM pixel data with {spp} samples per pixel (colour); one grey value "
+                            "per pixel is required")
     budget.voxels(rows * cols * frames * spp)
     ts = ds.file_meta.get("TransferSyntaxUID") if hasattr(ds, "file_meta") else None
     if ts is None or not uid.UID(ts).is_encapsulated:

@@ -7,8 +7,12 @@ its own files, so an upload is never handed to a reader as sent:
 * the whole header is parsed, however long (up to :data:`MAX_HEADER_BYTES`; a longer one is refused);
 * a header that names another file anywhere -- whatever the spelling, case or position of the field,
   existing path or not -- is refused with the same 415, so the answer tells nothing about the server;
+* the header's lines end where its reader ends them (NRRD's at a bare ``\\r`` too), so no field can
+  hide behind a line end one reader sees and the other does not;
 * the reader gets a *new* header written here from an allow-list of geometry and encoding fields,
-  followed by the upload's own data bytes: fields that could name a file are never copied.
+  followed by the upload's own data bytes: fields that could name a file are never copied. A
+  compressed MetaImage's data are inflated here, bounded, and must give the size the header declares
+  (ITK's reader would leave the voxels of a stream that fails to inflate as its memory held them).
 
 Example:
     >>> import io
@@ -22,7 +26,10 @@ from __future__ import annotations
 
 import re
 import shutil
+import zlib
 from typing import BinaryIO
+
+import numpy as np
 
 from service.core.errors import UnsupportedFile
 
@@ -57,28 +64,41 @@ def _detached(filename: str, kind: str) -> UnsupportedFile:
                            "upload one file with its voxel data attached")
 
 
-def _lines(head: bytes) -> list[tuple[bytes, int]]:
-    """Each line of ``head`` (without its ``\\r\\n``) and the offset just after it."""
+_NRRD_LINE_END = re.compile(rb"\r\n|\n|\r")   # teem ends a line at a bare \r too
+_MHA_LINE_END = re.compile(rb"\n")             # MetaIO at \n only (a \r stays in the value)
+
+
+def _lines(head: bytes, kind: str) -> list[tuple[bytes, int]]:
+    """Each line of ``head`` (without its end) and the offset just after it, ending lines where the
+    ``kind``'s reader ends them: a field after a bare ``\\r`` is a field to NRRD's reader.
+
+    Example:
+        >>> _lines(b"a\\rb\\r\\nc", "nrrd"), _lines(b"a\\rb\\r\\nc", "mha")
+        ([(b'a', 2), (b'b', 5), (b'c', 6)], [(b'a\\rb', 5), (b'c', 6)])
+    """
+    ends = _NRRD_LINE_END if kind == "nrrd" else _MHA_LINE_END
     out, pos = [], 0
     while pos < len(head):
-        end = head.find(b"\n", pos)
-        nxt = len(head) if end < 0 else end + 1
-        out.append((head[pos:nxt].rstrip(b"\r\n"), nxt))
+        end = ends.search(head, pos)
+        line_end, nxt = (len(head), len(head)) if end is None else (end.start(), end.end())
+        out.append((head[pos:line_end].rstrip(b"\r"), nxt))
         pos = nxt
     return out
 
 
-def clean_header(src: BinaryIO, dst: BinaryIO, kind: str, filename: str) -> None:
+def clean_header(src: BinaryIO, dst: BinaryIO, kind: str, filename: str, max_inflated: int = 1 << 30) -> None:
     """Copy an NRRD (``kind="nrrd"``) or MetaImage (``"mha"``) upload from ``src`` to ``dst`` with a
-    header rebuilt from allowed fields; its data bytes are copied unchanged.
+    header rebuilt from allowed fields; its data bytes are copied unchanged, but for a compressed
+    MetaImage, whose data are inflated here (to at most ``max_inflated`` bytes).
 
     Raises:
         UnsupportedFile: the header names another file, is longer than :data:`MAX_HEADER_BYTES`, or
-            is incomplete (no data follow it). The message names ``filename`` only.
+            is incomplete (no data follow it); compressed MetaImage data that do not inflate to the
+            size the header declares. The message names ``filename`` only.
     """
     head = src.read(MAX_HEADER_BYTES + 1)
     complete = len(head) <= MAX_HEADER_BYTES
-    lines = _lines(head)
+    lines = _lines(head, kind)
     header, data_at = (_nrrd if kind == "nrrd" else _mha)(lines, filename)
     if data_at is None:
         # No end of header: the whole (allowed) prefix is header. Any reference to a file refuses it,
@@ -88,6 +108,9 @@ def clean_header(src: BinaryIO, dst: BinaryIO, kind: str, filename: str) -> None
         if not complete:
             raise UnsupportedFile(f"{filename}: a {kind.upper()} header longer than {MAX_HEADER_BYTES >> 10} KB")
         raise UnsupportedFile(f"{filename}: a {kind.upper()} header with no voxel data after it")
+    if kind == "mha" and (_field(header, "CompressedData") or b"").strip().lower() == b"true":
+        _inflated_mha(header, head[data_at:], src, dst, filename, max_inflated)
+        return
     dst.write(header)
     dst.write(head[data_at:])
     shutil.copyfileobj(src, dst, 1 << 20)
@@ -124,11 +147,62 @@ def _mha(lines: list[tuple[bytes, int]], filename: str) -> tuple[bytes, int | No
             if value.strip().upper() != b"LOCAL":
                 raise _detached(filename, "mha")
             return b"\n".join(out + [b"ElementDataFile = LOCAL"]) + b"\n", after
-        if _DETACHED.search(key):
-            raise _detached(filename, "mha")
+        if _DETACHED.search(key) or b"\r" in line:      # a \r inside a line: no field of any reader's
+            raise _detached(filename, "mha") if _DETACHED.search(line) else UnsupportedFile(
+                f"{filename}: an MHA header line with a carriage return inside it")
         if sep and name in MHA_FIELDS:
             out.append(MHA_CANONICAL[name].encode() + b" = " + value.strip())
     return b"", None
+
+
+MET_ITEM_BYTES = {"MET_CHAR": 1, "MET_UCHAR": 1, "MET_SHORT": 2, "MET_USHORT": 2, "MET_INT": 4, "MET_UINT": 4,
+                  "MET_LONG": 8, "MET_ULONG": 8, "MET_LONG_LONG": 8, "MET_ULONG_LONG": 8, "MET_FLOAT": 4,
+                  "MET_DOUBLE": 8}
+"""Bytes of one value by MetaImage ``ElementType`` (``long`` as ITK builds it on 64-bit Linux and macOS)."""
+
+
+def _field(header: bytes, name: str) -> bytes | None:
+    """The value of field ``name`` (canonical spelling) in a header rebuilt here."""
+    for line in header.split(b"\n"):
+        key, _, value = line.partition(b" = ")
+        if key == name.encode():
+            return value
+    return None
+
+
+def _inflated_mha(header: bytes, data: bytes, src: BinaryIO, dst: BinaryIO, filename: str,
+                  max_bytes: int) -> None:
+    """Write a compressed MetaImage as an uncompressed one: its header marked so, then its data
+    inflated here, bounded by the values the header declares. ITK's reader leaves the voxels of a
+    stream that fails to inflate as the memory it allocated held (an earlier upload's voxels, say)
+    and says nothing; here a stream that is corrupt, cut short or longer than declared is refused."""
+    try:
+        count = int(np.prod([int(v) for v in (_field(header, "DimSize") or b"").split()], dtype=np.float64))
+        count *= int(_field(header, "ElementNumberOfChannels") or b"1")
+        item = MET_ITEM_BYTES[(_field(header, "ElementType") or b"").decode("latin-1").strip().upper()]
+    except (ValueError, KeyError):
+        raise UnsupportedFile(f"{filename}: a compressed MHA file whose header gives no size or element type "
+                              "this reader knows") from None
+    expected = count * item
+    if not 0 < expected <= max_bytes:
+        raise UnsupportedFile(f"{filename}: a compressed MHA file that declares {expected} bytes of voxel data")
+    kept = [line for line in header.split(b"\n") if not line.startswith((b"CompressedData", b"ElementDataFile"))]
+    dst.write(b"\n".join(kept[:-1] + [b"CompressedData = False", b"ElementDataFile = LOCAL"]) + b"\n")
+    inflater, written = zlib.decompressobj(), 0
+    try:
+        chunk = data or src.read(1 << 20)
+        while chunk and not inflater.eof:
+            out = inflater.decompress(chunk, expected + 1 - written)
+            written += len(out)
+            if written > expected:
+                break
+            dst.write(out)
+            chunk = inflater.unconsumed_tail or src.read(1 << 20)
+    except zlib.error:
+        written = -1
+    if written != expected or not inflater.eof:
+        raise UnsupportedFile(f"{filename}: compressed MHA data that do not inflate to the {expected} bytes its "
+                              "header declares (corrupt or truncated)")
 
 
 __all__ = ["MAX_HEADER_BYTES", "clean_header"]

@@ -102,8 +102,8 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
                 if kind == "nifti" and _nifti_pair(path):
                     raise UnsupportedFile(f"{filename}: the header of a NIfTI .hdr/.img pair (its voxels are in "
                                           "another file); upload a single .nii or .nii.gz")
-                if kind == "nifti" and _nifti1_truncated(path):
-                    raise UnsupportedFile(f"{filename}: truncated NIfTI file (less voxel data than its header declares)")
+                if kind == "nifti" and (problem := _nifti1_problem(path)) is not None:
+                    raise UnsupportedFile(f"{filename}: {problem}")
                 if kind == "nifti" and _nifti_has_nonfinite(path):
                     raise UnusableImage(f"{filename}: contains NaN or infinite values")
                 transforms = read_transforms(path) if kind == "nifti" else None
@@ -118,7 +118,7 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
                 named = Path(tmp) / f"upload{SUFFIX_BY_KIND[kind]}"
                 if kind in ("nrrd", "mha"):
                     with open(path, "rb") as src, open(named, "wb") as dst:
-                        clean_header(src, dst, kind, filename)
+                        clean_header(src, dst, kind, filename, budget.limit)
                 else:
                     named.symlink_to(Path(path).resolve())
                 if transforms is not None and transforms.header_size == 540:      # NIfTI-2
@@ -197,20 +197,36 @@ def _nifti_pair(path: Path) -> bool:
     return head[344:348] == b"ni1\x00" or head[4:8] == b"ni2\x00"
 
 
-def _nifti1_truncated(path: Path) -> bool:
-    """An uncompressed NIfTI-1 file shorter than its header's offset plus voxel data (ITK would read
-    it without a word, filling the missing voxels)."""
+NIFTI_ITEM_BYTES = {2: 1, 4: 2, 8: 4, 16: 4, 32: 8, 64: 8, 128: 3, 256: 1, 512: 2, 768: 4, 1024: 8, 1280: 8,
+                    1536: 16, 1792: 16, 2048: 32, 2304: 4}
+"""Bytes of one voxel value by NIfTI ``datatype`` code (what ITK reads the voxels by)."""
+
+
+def _nifti1_problem(path: Path) -> str | None:
+    """What makes an uncompressed single-file NIfTI-1 header impossible to read as it claims, where
+    ITK would read it without a word: a data offset inside the 352-byte header (or not a number),
+    which shifts every voxel by the header's last bytes; a ``bitpix`` that is not its ``datatype``'s
+    (ITK sizes the voxels by ``datatype``); less voxel data than the header declares (ITK fills the
+    missing voxels). None for a header with none of these, and for NIfTI-2, which nibabel checks."""
     with open(path, "rb") as f:
         head = f.read(352)
     values = _nifti_values(head)
     if not values or 348 not in (int.from_bytes(head[:4], "little"), int.from_bytes(head[:4], "big")):
-        return False                                # NIfTI-2: nibabel reports a short file itself
+        return None
     endian = "<" if int.from_bytes(head[:4], "little") == 348 else ">"
+    datatype = int(np.frombuffer(head, endian + "i2", 1, 70)[0])
     bitpix = int(np.frombuffer(head, endian + "i2", 1, 72)[0])
     offset = float(np.frombuffer(head, endian + "f4", 1, 108)[0])
-    if not np.isfinite(offset) or bitpix <= 0:
-        return False  # an impossible header: the reader reports it
-    return path.stat().st_size < max(int(offset), 348) + values * bitpix // 8
+    item = NIFTI_ITEM_BYTES.get(datatype)
+    if item is None:
+        return None                                 # a type the reader refuses itself
+    if bitpix != 8 * item:
+        return f"inconsistent NIfTI header (bitpix {bitpix} for datatype {datatype}, which has {8 * item})"
+    if not (np.isfinite(offset) and offset >= 352):
+        return "impossible NIfTI header (its voxel data would start inside the header: vox_offset < 352)"
+    if path.stat().st_size < int(offset) + values * item:
+        return "truncated NIfTI file (less voxel data than its header declares)"
+    return None
 
 
 def _nifti_has_nonfinite(path: Path) -> bool:

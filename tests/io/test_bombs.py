@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import tracemalloc
+import zipfile
 from pathlib import Path
 
 import numpy as np
 import pytest
 from pydicom import uid
 
-from service.core.errors import PayloadTooLarge, UnsupportedFile
+from service.core.errors import PayloadTooLarge, UnsupportedFile, UnusableImage
 from service.io.limits import DecodeBudget
 from service.io.readers import read_upload
 from tests.support import corpus
@@ -107,3 +108,19 @@ def test_a_zipped_series_of_deflated_files_is_read_in_order(tmp_path: Path) -> N
     multiframe = corpus.dicom(np.stack(planes), 0, uid.DeflatedExplicitVRLittleEndian)
     single = read(tmp_path, corpus.zipped({"IM0000": multiframe}), "one.zip")
     np.testing.assert_array_equal(single.array, np.stack(planes).transpose(2, 1, 0))
+
+
+def test_a_zip_declaring_too_many_members_is_refused_before_its_list_is_parsed(tmp_path: Path,
+                                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """The member count (and the list's size) come from the end record: the list itself is never read."""
+    import service.io.archive as archive
+
+    path = tmp_path / "many.zip"
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as z:
+        for i in range(archive.MAX_MEMBERS + 1):
+            z.writestr(f"{i}", b"")
+    parsed: list[int] = []
+    monkeypatch.setattr(archive.zipfile, "ZipFile", lambda *a, **k: parsed.append(1))
+    with pytest.raises(UnusableImage, match=r"many.zip: too many files in the archive \(5001 members"):
+        read_upload(path, "many.zip")
+    assert not parsed

@@ -235,3 +235,19 @@ def test_an_enhanced_multiframe_whose_frames_make_no_one_stack_is_422(tmp_path: 
     path = _enhanced_file(tmp_path / "e.dcm", _frames(), **_damaged(kind))
     with pytest.raises(UnusableImage, match=f"e.dcm: a multi-frame DICOM of 8 frames, but {re.escape(words)}"):
         read_upload(path, "e.dcm")
+
+
+def test_a_colour_dicom_is_422_not_its_channels_taken_for_slices(tmp_path: Path) -> None:
+    """An RGB image (SamplesPerPixel 3) decodes to rows x cols x 3: never read as rows slices of 3 pixels."""
+    from pydicom import uid
+
+    from tests.support import corpus
+
+    ds = corpus._dataset(40, 48, 1)
+    ds.SamplesPerPixel, ds.PhotometricInterpretation, ds.PlanarConfiguration = 3, "RGB", 0
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit = 8, 8, 7
+    ds.PixelData = np.random.default_rng(0).integers(0, 255, (40, 48, 3), np.uint8).tobytes()
+    path = tmp_path / "rgb.dcm"
+    path.write_bytes(corpus._file(ds, uid.ExplicitVRLittleEndian))
+    with pytest.raises(UnusableImage, match="rgb.dcm: DICOM pixel data with 3 samples per pixel"):
+        read_upload(path, "rgb.dcm")

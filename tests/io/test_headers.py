@@ -57,6 +57,32 @@ def test_every_spelling_of_the_nrrd_field_is_refused(tmp_path: Path, secret: Pat
     assert "detached" in refuse(tmp_path, nrrd(str(secret).encode(), b"", field), "x.nrrd")
 
 
+@pytest.mark.parametrize("end", [b"\r", b"\r\n"])
+def test_an_nrrd_data_file_after_a_bare_carriage_return_is_refused(tmp_path: Path, secret: Path, end: bytes) -> None:
+    """NRRD's reader ends a line at a bare \\r: a field hidden after one in a \\n-ended line is a field."""
+    hostile = (b"NRRD0004\ntype: uchar\ndimension: 3\nsizes: 8 8 8\nencoding: raw" + end + b"data file: "
+               + str(secret).encode() + b"\n\n")
+    probe = tmp_path / "probe.nrrd"
+    probe.write_bytes(hostile)
+    assert sitk.ReadImage(str(probe)).GetSize() == (8, 8, 8)          # the hole is real for a plain reader
+    assert "detached" in refuse(tmp_path, hostile, "cr.nrrd")
+
+
+def test_a_compressed_mha_is_read_and_a_corrupt_one_refused_not_filled_from_memory(tmp_path: Path) -> None:
+    """ITK's reader leaves the voxels of a stream that fails to inflate as its memory held them."""
+    data = np.random.default_rng(3).random((8, 9, 10)).astype(np.float32)
+    path = tmp_path / "c.mha"
+    sitk.WriteImage(sitk.GetImageFromArray(data), str(path), True)      # compressed
+    assert b"CompressedData = True" in path.read_bytes()[:500]
+    np.testing.assert_array_equal(read_upload(path, "c.mha").array, data.transpose(2, 1, 0))
+    raw = path.read_bytes()
+    start = raw.index(b"ElementDataFile = LOCAL\n") + len(b"ElementDataFile = LOCAL\n")
+    header = raw[:start]
+    for body, name in ((b"x" * 100, "garbage.mha"), (raw[start:-50], "cut.mha"), (b"", "empty.mha")):
+        assert "do not inflate" in refuse(tmp_path, header + body, name)
+    assert "carriage return" in refuse(tmp_path, header.replace(b"NDims = 3", b"NDims = 3\rOffset = 1 2 3"), "cr.mha")
+
+
 @pytest.mark.parametrize("value", [b"LIST", b"slice%03d.raw 1 8 1", b"/etc/passwd"])
 def test_nrrd_list_and_pattern_forms_are_refused(tmp_path: Path, value: bytes) -> None:
     assert "detached" in refuse(tmp_path, nrrd(value, b""), "x.nrrd")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gzip
 import multiprocessing
 import re
 import zipfile
@@ -210,20 +211,34 @@ def test_an_enhanced_multiframe_without_geometry_is_422_not_a_made_up_grid() -> 
         read_upload(path, path.name)
 
 
-def test_impossible_headers_are_read_or_refused_never_an_unexpected_error(tmp_path: Path) -> None:
-    """A NIfTI data offset that is NaN or beyond the file: the reader copes or answers 415/422."""
+@pytest.mark.parametrize("compressed", [False, True])
+def test_impossible_nifti_headers_are_refused_not_read_as_something_else(tmp_path: Path, compressed: bool) -> None:
+    """A data offset inside the header (or not a number, or past the data), a bitpix that is not the
+    datatype's with the data cut to what the bitpix would need: 415 naming the file. ITK reads each
+    without a word (every voxel shifted by the header's last bytes; the missing voxels zero-filled),
+    and an offset under 352 also hid a NaN from the scan for them."""
     path = tmp_path / "v.nii"
-    write_volume(Volume(np.random.default_rng(1).random((6, 7, 5)).astype(np.float32), oblique()), path)
-    raw = bytearray(path.read_bytes())
-    for offset in (np.nan, 1e9, -5.0):
+    data = np.random.default_rng(1).random((6, 7, 5)).astype(np.float32)
+    data[2, 3, 1] = np.nan
+    write_volume(Volume(data, oblique()), path)
+    good = path.read_bytes()
+    cases = []
+    for offset in (np.nan, 1e9, -5.0, 0.0, 348.0):
+        raw = bytearray(good)
         raw[108:112] = np.float32(offset).tobytes()
-        path.write_bytes(bytes(raw))
-        try:
-            vol = read_upload(path, "odd.nii")
-        except (UnsupportedFile, UnusableImage) as exc:
-            assert "odd.nii" in exc.detail
-        else:
-            assert vol.array.shape == (6, 7, 5)
+        cases.append((bytes(raw), "NIfTI"))
+    raw = bytearray(good[:352 + data.size])                      # float32 data cut to a quarter ...
+    raw[72:74] = np.int16(8).tobytes()                           # ... which a bitpix of 8 would fit
+    cases.append((bytes(raw), "bitpix 8 for datatype 16"))
+    for content, words in cases:
+        target = tmp_path / ("odd.nii.gz" if compressed else "odd.nii")
+        target.write_bytes(gzip.compress(content) if compressed else content)
+        with pytest.raises(UnsupportedFile) as info:
+            read_upload(target, "odd.nii")
+        assert "odd.nii" in info.value.detail and words in info.value.detail, info.value.detail
+    path.write_bytes(good)
+    with pytest.raises(UnusableImage, match="NaN"):              # the same file as written: its NaN found
+        read_upload(path, "v.nii")
 
 
 @pytest.mark.parametrize(("pixdim", "codes", "words"), [
