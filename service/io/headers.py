@@ -16,10 +16,10 @@ its own files, so an upload is never handed to a reader as sent:
 
 Example:
     >>> import io
-    >>> src = io.BytesIO(b"NRRD0004\\n# note\\ntype: uchar\\ndimension: 1\\nsizes: 2\\nencoding: raw\\n\\n\\x01\\x02")
+    >>> src = io.BytesIO(b"NRRD0004\\n# note\\ntype: uchar\\ndimension: 1\\nsizes: 2\\nspacings: 1.5\\n\\n\\x01\\x02")
     >>> dst = io.BytesIO(); clean_header(src, dst, "nrrd", "a.nrrd")
     >>> dst.getvalue()
-    b'NRRD0004\\ntype: uchar\\ndimension: 1\\nsizes: 2\\nencoding: raw\\n\\n\\x01\\x02'
+    b'NRRD0004\\ntype: uchar\\ndimension: 1\\nsizes: 2\\nspacings: 1.5\\n\\n\\x01\\x02'
 """
 
 from __future__ import annotations
@@ -86,10 +86,46 @@ def _lines(head: bytes, kind: str) -> list[tuple[bytes, int]]:
     return out
 
 
-def clean_header(src: BinaryIO, dst: BinaryIO, kind: str, filename: str, max_inflated: int = 1 << 30) -> None:
+_NOT_FINITE = re.compile(rb"nan|inf", re.I)
+_NUMBER = re.compile(rb"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
+SIZE_FIELDS = {"nrrd": ("spacedirections", "spacings"), "mha": ("elementspacing", "elementsize")}
+PLACE_FIELDS = {"nrrd": ("spaceorigin",), "mha": ("offset", "position", "origin", "transformmatrix", "rotation",
+                                                   "orientation")}
+
+
+def geometry_problem(header: bytes, kind: str) -> str | None:
+    """Why a rebuilt header's geometry would be made up by its reader, or None: no voxel size at all
+    (the reader invents 1 mm, as for a NIfTI header without one), or sizes, origin or axes that are
+    not finite numbers (the reader puts 1 mm or 0 in their place), or a size that is not positive.
+
+    Example:
+        >>> geometry_problem(b"NRRD0004\\ntype: uchar\\nsizes: 2 2 2\\n\\n", "nrrd")
+        'its NRRD header gives no voxel size (no space directions or spacings); the reader would invent 1 mm'
+        >>> geometry_problem(b"NRRD0004\\nspacings: 1 1 3\\nspace origin: (0,0,0)\\n\\n", "nrrd") is None
+        True
+    """
+    fields: dict[str, bytes] = {}
+    for line in header.split(b"\n")[1 if kind == "nrrd" else 0:]:
+        key, _, value = line.partition(b":" if kind == "nrrd" else b"=")
+        fields[_key(key)] = value
+    sizes = [fields[name] for name in SIZE_FIELDS[kind] if name in fields]
+    if not sizes:
+        names = " or ".join(n.replace("space", "space ") if kind == "nrrd" else n for n in SIZE_FIELDS[kind])
+        return (f"its {kind.upper()} header gives no voxel size (no {names}); the reader would invent 1 mm")
+    for name in (*SIZE_FIELDS[kind], *PLACE_FIELDS[kind]):
+        if name in fields and _NOT_FINITE.search(fields[name]):
+            return f"its {kind.upper()} header's {name} holds values that are not finite numbers"
+    if any(float(v) <= 0 for v in _NUMBER.findall(fields.get("spacings", b"") + fields.get("elementspacing", b"")
+                                                 + fields.get("elementsize", b""))):
+        return f"its {kind.upper()} header gives a voxel size that is not positive"
+    return None
+
+
+def clean_header(src: BinaryIO, dst: BinaryIO, kind: str, filename: str, max_inflated: int = 1 << 30) -> bytes:
     """Copy an NRRD (``kind="nrrd"``) or MetaImage (``"mha"``) upload from ``src`` to ``dst`` with a
     header rebuilt from allowed fields; its data bytes are copied unchanged, but for a compressed
-    MetaImage, whose data are inflated here (to at most ``max_inflated`` bytes).
+    MetaImage, whose data are inflated here (to at most ``max_inflated`` bytes). Returns the rebuilt
+    header (for :func:`geometry_problem`, once the reader has read what it declares).
 
     Raises:
         UnsupportedFile: the header names another file, is longer than :data:`MAX_HEADER_BYTES`, or
@@ -110,10 +146,11 @@ def clean_header(src: BinaryIO, dst: BinaryIO, kind: str, filename: str, max_inf
         raise UnsupportedFile(f"{filename}: a {kind.upper()} header with no voxel data after it")
     if kind == "mha" and (_field(header, "CompressedData") or b"").strip().lower() == b"true":
         _inflated_mha(header, head[data_at:], src, dst, filename, max_inflated)
-        return
+        return header
     dst.write(header)
     dst.write(head[data_at:])
     shutil.copyfileobj(src, dst, 1 << 20)
+    return header
 
 
 def _nrrd(lines: list[tuple[bytes, int]], filename: str) -> tuple[bytes, int | None]:
@@ -205,4 +242,4 @@ def _inflated_mha(header: bytes, data: bytes, src: BinaryIO, dst: BinaryIO, file
                               "header declares (corrupt or truncated)")
 
 
-__all__ = ["MAX_HEADER_BYTES", "clean_header"]
+__all__ = ["MAX_HEADER_BYTES", "clean_header", "geometry_problem"]

@@ -36,9 +36,10 @@ from service.geometry import frames
 from service.io.acquisition_geometry import grid_problem, stacking_problem
 from service.io.archive import read_dicom_zip
 from service.io.dicom import read_dicom_file
-from service.io.headers import clean_header
+from service.io.headers import clean_header, geometry_problem
 from service.io.limits import DecodeBudget, FileBudget
-from service.io.nifti_header import NiftiTransforms, missing_voxel_size, read_transforms, sform_problem
+from service.io.nifti_header import (MAX_SHEAR_COS, NiftiTransforms, missing_voxel_size, read_transforms,
+                                     sform_problem)
 from service.io.volume import Volume, from_sitk, placed_by_header
 
 SUFFIX_BY_KIND = {"nifti": ".nii", "nifti-gz": ".nii.gz", "nrrd": ".nrrd", "mha": ".mha"}
@@ -116,9 +117,10 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
                 # SimpleITK reads a copy named by the sniffed content, with the reader chosen here
                 # (never by probing), and for NRRD/MHA a header rebuilt from allowed fields.
                 named = Path(tmp) / f"upload{SUFFIX_BY_KIND[kind]}"
+                header = None
                 if kind in ("nrrd", "mha"):
                     with open(path, "rb") as src, open(named, "wb") as dst:
-                        clean_header(src, dst, kind, filename, budget.limit)
+                        header = clean_header(src, dst, kind, filename, budget.limit)
                 else:
                     named.symlink_to(Path(path).resolve())
                 if transforms is not None and transforms.header_size == 540:      # NIfTI-2
@@ -126,6 +128,8 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
                 else:
                     budget.voxels(_declared_values(named, kind))
                     vol = placed_by_header(from_sitk(_squeeze_4d(_reader(named, kind).Execute(), filename)), transforms)
+                    if header is not None and (problem := geometry_problem(header, kind)) is not None:
+                        raise UnusableImage(f"{filename}: {problem}")      # what the reader made up
         elif kind in ("dicom", "zip"):
             vol = read_dicom_file(path, filename, budget) if kind == "dicom" else read_dicom_zip(path, filename, budget,
                                                                                                  scratch)
@@ -310,6 +314,9 @@ def validate(vol: Volume, filename: str) -> Volume:
         raise UnusableImage(f"{filename}: contains NaN or infinite values")
     if not np.isfinite(vol.affine).all() or abs(np.linalg.det(vol.affine[:3, :3])) < 1e-9:
         raise UnusableImage(f"{filename}: invalid geometry (singular voxel-to-world matrix)")
+    if (cos := float(frames.axes_cosine(vol.affine[:3, :3]))) > MAX_SHEAR_COS:
+        raise UnusableImage(f"{filename}: its voxel axes are sheared ({np.degrees(np.arccos(cos)):.2f} deg apart, "
+                            "not 90); resample the stack to a grid with axes at right angles")
     if (problem := grid_problem(vol.affine, a.shape)) is not None:
         raise UnusableImage(f"{filename}: {problem}")
     return replace(vol, array=a.astype(np.float32, copy=False))
