@@ -212,7 +212,8 @@ def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: 
     jobs = [(up, directory / f"stack{i}", display_name(up, "stacks", i)) for i, up in enumerate(stacks)]
     jobs += [(up, directory / f"mask{i}", display_name(up, "masks", i)) for i, up in enumerate(masks)]
     # Decompression and parsing release the GIL: read two files at a time. Errors surface in
-    # upload order, as a sequential loop would raise them.
+    # upload order, as a sequential loop would raise them; the map's futures not yet begun are then
+    # cancelled, so the files after a failed one are not read.
     with ThreadPoolExecutor(max_workers=READ_WORKERS) as pool:
         volumes = list(pool.map(lambda job: _read(*job, budget), jobs))
     n = len(stacks)

@@ -64,3 +64,30 @@ def test_no_more_than_two_files_decode_at_once_across_requests(monkeypatch: pyte
     with ThreadPoolExecutor(6) as pool:
         assert list(pool.map(request, range(6))) == [4] * 6
     assert peak[0] == uploads.READ_WORKERS
+
+
+def test_a_request_whose_first_file_fails_does_not_read_the_rest(monkeypatch: pytest.MonkeyPatch,
+                                                                  tmp_path: Path) -> None:
+    import io
+
+    from service.core.errors import UnsupportedFile
+
+    read: list[str] = []
+    real = uploads.read_upload
+
+    def tracked(path, name, **kwargs):  # noqa: ANN001, ANN003, ANN202
+        read.append(name)
+        time.sleep(0.05)
+        return real(path, name, **kwargs)
+
+    monkeypatch.setattr(uploads, "read_upload", tracked)
+
+    class Upload:
+        def __init__(self, data: bytes, name: str) -> None:
+            self.file, self.filename, self.size = io.BytesIO(data), name, len(data)
+
+    good = corpus.gz(corpus.nifti(np.ones((6, 6, 4))))
+    files = [Upload(b"not an image", "bad.nii.gz")] + [Upload(good, f"s{j}.nii.gz") for j in range(8)]
+    with pytest.raises(UnsupportedFile, match="bad.nii.gz"):
+        uploads.save_and_read(files, [], tmp_path)
+    assert len(read) <= uploads.READ_WORKERS + 1, read          # those under way finish; no more start
