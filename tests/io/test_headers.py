@@ -124,34 +124,26 @@ def test_a_two_file_nifti_header_is_refused(tmp_path: Path) -> None:
     assert "pair" in refuse(tmp_path, bytes(raw[:352]), "x.hdr")
 
 
-@pytest.mark.parametrize(("fields", "words"), [
-    (b"", "gives no voxel size (no space directions or spacings)"),
-    (b"spacings: nan nan nan\n", "spacings holds values that are not finite"),
-    (b"space: left-posterior-superior\nspace directions: (1,0,0) (0.5,1,0) (0,0,3)\n", "sheared"),
+NRRD_HEAD = b"NRRD0004\ntype: uchar\ndimension: 3\nsizes: 8 8 8\nencoding: raw\n"
+MHA_HEAD = b"ObjectType = Image\nNDims = 3\nDimSize = 8 8 8\nElementType = MET_UCHAR\n"
+
+
+@pytest.mark.parametrize(("name", "content", "words"), [
+    ("g.nrrd", NRRD_HEAD + b"\n", "gives no voxel size (no space directions or spacings)"),
+    ("g.nrrd", NRRD_HEAD + b"spacings: nan nan nan\n\n", "spacings holds values that are not finite"),
+    ("g.nrrd", NRRD_HEAD + b"space: left-posterior-superior\nspace directions: (1,0,0) (0.5,1,0) (0,0,3)\n\n",
+     "sheared"),
+    ("g.mha", MHA_HEAD + b"ElementDataFile = LOCAL\n", "gives no voxel size (no elementspacing or elementsize)"),
+    ("g.mha", MHA_HEAD + b"ElementSpacing = 1 1 3\nOffset = nan 0 0\nElementDataFile = LOCAL\n",
+     "offset holds values that are not finite"),
+    ("g.mha", MHA_HEAD + b"ElementSpacing = 1 1 -3\nElementDataFile = LOCAL\n", "not positive"),
 ])
-def test_an_nrrd_geometry_its_reader_would_make_up_is_422(tmp_path: Path, fields: bytes, words: str) -> None:
+def test_a_geometry_the_reader_would_make_up_is_422(tmp_path: Path, name: str, content: bytes, words: str) -> None:
     """As a NIfTI header without voxel sizes or with a sheared sform is: never 1 mm or 0 invented."""
     from service.core.errors import UnusableImage
 
-    upload = tmp_path / "g.nrrd"
-    upload.write_bytes(b"NRRD0004\ntype: uchar\ndimension: 3\nsizes: 8 8 8\nencoding: raw\n" + fields + b"\n"
-                       + bytes(512))
+    upload = tmp_path / name
+    upload.write_bytes(content + bytes(512))
     with pytest.raises(UnusableImage) as info:
-        read_upload(upload, "g.nrrd")
-    assert "g.nrrd" in info.value.detail and words in info.value.detail, info.value.detail
-
-
-@pytest.mark.parametrize(("fields", "words"), [
-    (b"", "gives no voxel size (no elementspacing or elementsize)"),
-    (b"ElementSpacing = 1 1 3\nOffset = nan 0 0\n", "offset holds values that are not finite"),
-    (b"ElementSpacing = 1 1 -3\n", "not positive"),
-])
-def test_an_mha_geometry_its_reader_would_make_up_is_422(tmp_path: Path, fields: bytes, words: str) -> None:
-    from service.core.errors import UnusableImage
-
-    upload = tmp_path / "g.mha"
-    upload.write_bytes(b"ObjectType = Image\nNDims = 3\nDimSize = 8 8 8\nElementType = MET_UCHAR\n" + fields
-                       + b"ElementDataFile = LOCAL\n" + bytes(512))
-    with pytest.raises(UnusableImage) as info:
-        read_upload(upload, "g.mha")
-    assert "g.mha" in info.value.detail and words in info.value.detail, info.value.detail
+        read_upload(upload, name)
+    assert name in info.value.detail and words in info.value.detail, info.value.detail
