@@ -17,7 +17,7 @@ its own files, so an upload is never handed to a reader as sent:
 Example:
     >>> import io
     >>> src = io.BytesIO(b"NRRD0004\\n# note\\ntype: uchar\\ndimension: 1\\nsizes: 2\\nspacings: 1.5\\n\\n\\x01\\x02")
-    >>> dst = io.BytesIO(); clean_header(src, dst, "nrrd", "a.nrrd")
+    >>> dst = io.BytesIO(); _ = clean_header(src, dst, "nrrd", "a.nrrd")
     >>> dst.getvalue()
     b'NRRD0004\\ntype: uchar\\ndimension: 1\\nsizes: 2\\nspacings: 1.5\\n\\n\\x01\\x02'
 """
