@@ -306,6 +306,11 @@ def _check_limits(stacks: Sequence[ScannerStack], limits: dict[str, Any]) -> Non
                                 f"the server's limit of {pixels} pixels a slice")
     if sum(len(st.slices) for st in stacks) > slices:
         raise UnusableInput(f"{sum(len(st.slices) for st in stacks)} slices: over the server's limit of {slices}")
+    per_stack = limits.get("stack_slices") or np.inf
+    for stack in stacks:
+        if len(stack.slices) > per_stack:
+            raise UnusableInput(f"stack {stack.name}: {len(stack.slices)} slices, over the server's limit of "
+                                f"{per_stack} a stack")
 
 
 def _slice_message(stack: str, s: ScannerSlice, acquisition_index: int) -> tuple[dict[str, Any], list[bytes]]:

@@ -68,7 +68,7 @@ async def masks(
     check_form(stacks, None, None, settings.max_files)
     with upload_directory(settings.tmp_dir) as tmp:
         uploads = await to_thread.run_sync(save_and_read, stacks, [], tmp, settings.max_decoded_bytes,
-                                           settings.max_request_decoded_bytes)
+                                           settings.max_request_decoded_bytes, False, settings.max_slices_per_stack)
         body = await to_thread.run_sync(masks_archive, uploads, localiser, tmp, margin_mm)
     return Response(body, media_type="application/zip",
                     headers={"Content-Disposition": 'attachment; filename="masks.zip"'})

@@ -46,7 +46,8 @@ async def predict(
     max_expected = form.max_expected_error_mm if form.max_expected_error_mm is not None else info.max_expected_error_mm
     with upload_directory(settings.tmp_dir) as tmp:
         uploads = await to_thread.run_sync(save_and_read, form.stacks, form.masks, tmp, settings.max_decoded_bytes,
-                                           settings.max_request_decoded_bytes, form.masks_hold_csf)
+                                           settings.max_request_decoded_bytes, form.masks_hold_csf,
+                                           settings.max_slices_per_stack)
     t_read = time.perf_counter()
     prepared = await to_thread.run_sync(prepare_stacks, uploads, estimator.info, bias_correction,
                                         settings.preprocess_workers, localiser)

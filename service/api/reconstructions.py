@@ -111,7 +111,7 @@ async def submit(
     inputs.mkdir()
     try:
         uploads = await to_thread.run_sync(save_and_read, form.stacks, form.masks, inputs, settings.max_decoded_bytes,
-                                           settings.max_request_decoded_bytes)
+                                           settings.max_request_decoded_bytes, False, settings.max_slices_per_stack)
         stack_orders(form.orders, uploads)
         if poses_text:
             try:

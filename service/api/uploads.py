@@ -22,11 +22,12 @@ from pydantic import AfterValidator, StringConstraints, WithJsonSchema
 
 from service.api.deps import SettingsDep
 from service.consistency.slice_order import MAX_TEXT, PATTERN, VALUES, SliceOrder, per_stack
-from service.core.errors import InvalidParameter
+from service.core.errors import InvalidParameter, UnusableImage
 from service.core.names import clean_name
 from service.pipeline.prepare import StackUpload
 from service.io.limits import DecodeBudget
 from service.io.readers import MAX_DECODED_BYTES, read_upload
+from service.preprocess.stack import slice_axis_of
 
 READ_WORKERS = 2
 # Files decoded at once in the whole process, whatever the number of requests: with the per-file
@@ -199,9 +200,10 @@ def parse_orders(values: list[str] | None, n_stacks: int) -> list[SliceOrder]:
 
 def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: Path,
                   max_decoded_bytes: int = MAX_DECODED_BYTES, max_request_bytes: int | None = None,
-                  masks_hold_csf: bool = False) -> list[StackUpload]:
+                  masks_hold_csf: bool = False, max_slices: int | None = None) -> list[StackUpload]:
     """Write each upload to ``directory`` and read it (blocking: run in a worker thread); the masks
-    are the skull's inside with ``masks_hold_csf``.
+    are the skull's inside with ``masks_hold_csf``; a stack of more than ``max_slices`` slices is
+    refused (422 naming the file).
 
     Each file may decode to ``max_decoded_bytes``, all of them together to ``max_request_bytes``
     (:class:`~service.io.limits.DecodeBudget`): many bombs in one request stop at the request's limit.
@@ -217,6 +219,11 @@ def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: 
     with ThreadPoolExecutor(max_workers=READ_WORKERS) as pool:
         volumes = list(pool.map(lambda job: _read(*job, budget), jobs))
     n = len(stacks)
+    for (_, _, name), volume in zip(jobs[:n], volumes[:n]):
+        count = volume.array.shape[slice_axis_of(volume.spacing)]
+        if max_slices is not None and count > max_slices:
+            raise UnusableImage(f"{name}: {count} slices; at most {max_slices} in one stack of 2D slices "
+                                "(SVRNET_MAX_SLICES_PER_STACK)")
     return [StackUpload(jobs[i][2], volumes[i], volumes[n + i] if masks else None, jobs[n + i][2] if masks else None,
                         mask_holds_csf=masks_hold_csf) for i in range(n)]
 

@@ -44,6 +44,8 @@ class Settings(BaseSettings):
     upload_timeout_s: float = Field(900.0, gt=0, description="a request body must arrive whole within this (408 "
                                     "after): a client trickling bytes cannot hold a connection for ever")
     max_files: int = Field(32, ge=1, description="most stacks (and masks) per request")
+    max_slices_per_stack: int = Field(128, ge=2, description="most slices in one uploaded stack (the stack stage's "
+                                      "work grows with the cube of a stack's slices; fetal stacks hold 20-80)")
     max_concurrent: int = Field(2, ge=1, description="requests processed at once; more get 503")
     preprocess_workers: int = Field(2, ge=1, description="stacks preprocessed in parallel")
     onnx_threads: int = Field(0, ge=0, description="onnxruntime intra-op threads (0 = all cores)")

@@ -27,11 +27,14 @@ class StreamLimits:
     max_pixels: int = 1024 * 1024
     max_bytes: int = 256 * 2**20
     """What the session's slices may hold in memory together (their pixels as float32)."""
+    max_stack_slices: int = 128
+    """What one stack may hold (``max_slices_per_stack``, as an upload: its stage's work grows with the cube)."""
 
     @classmethod
     def of(cls, settings: Settings) -> "StreamLimits":
         """The limits the ``stream_*`` settings give (``/v1/stream`` and ``svrnet-mrd`` alike)."""
-        return cls(settings.stream_max_slices, settings.stream_max_pixels, int(settings.stream_max_session_mb * 2**20))
+        return cls(settings.stream_max_slices, settings.stream_max_pixels, int(settings.stream_max_session_mb * 2**20),
+                   settings.max_slices_per_stack)
 
 
 @dataclass(frozen=True)

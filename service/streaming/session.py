@@ -130,6 +130,9 @@ class StreamSession:
             if sum(len(s) for s in self.stacks.values()) >= self.limits.max_slices:
                 raise InvalidParameter(f"slice: a session holds at most {self.limits.max_slices} slices; "
                                        "end it and start another")
+            if frame.stack in self.stacks and len(self.stacks[frame.stack]) >= self.limits.max_stack_slices:
+                raise InvalidParameter(f"slice.stack: stack {frame.stack!r} holds {self.limits.max_stack_slices} "
+                                       "slices, the most one stack may; end it and send the rest as another")
             size = np.asarray(frame.pixels).size * 4
             if self.held_bytes + size > self.limits.max_bytes:
                 raise InvalidParameter(f"slice: a session's slices hold at most {self.limits.max_bytes / 2**20:.3g} MB "

@@ -134,6 +134,17 @@ def test_too_many_files_and_too_large(oracle: object, tmp_path: Path) -> None:
         assert_problem(r, 413, "limit")
 
 
+def test_a_stack_of_more_slices_than_the_limit_is_422_before_any_stage(oracle: object, tmp_path: Path) -> None:
+    """The stack stage's work grows with the cube of a stack's slices: a few MB of 16 x 16 slices must
+    not hold a processing slot for minutes."""
+    long = nifti_bytes(np.ones((16, 16, 12), np.float32), tmp=tmp_path)
+    with make_client(ModelRegistry({"default": oracle}), max_slices_per_stack=10) as client:
+        for route in ("/v1/predict", "/v1/masks", "/v1/reconstructions"):
+            r = client.post(route, files=[("stacks", ("long.nii.gz", long))])
+            assert_problem(r, 422, "long.nii.gz", "12 slices; at most 10")
+        assert not client.app.state.job_store.queued()
+
+
 def test_malformed_multipart_is_400_never_500(oracle_client: TestClient) -> None:
     r = oracle_client.post("/v1/predict", content=b"--xx\r\nnot multipart", headers={"content-type": "multipart/form-data; boundary=xx"})
     assert r.status_code == 400, r.text

@@ -189,6 +189,19 @@ def test_a_session_holds_no_more_than_its_memory_limit(case) -> None:  # noqa: A
     assert len(session.stacks["ax"]) == 2
 
 
+def test_a_stack_holds_no_more_than_its_slice_limit_and_the_next_stack_goes_on(case) -> None:  # noqa: ANN001
+    """As an upload's: the stack stage's work grows with the cube of a stack's slices."""
+    oracle, stacks, _ = case
+    session = StreamSession(oracle, None, StreamLimits(max_stack_slices=2), FAST)
+    session.add_slice(stacks[0][0])
+    session.add_slice(stacks[0][1])
+    with pytest.raises(InvalidParameter, match="stack 'ax' holds 2 slices, the most one stack may"):
+        session.add_slice(stacks[0][2])
+    assert len(session.stacks["ax"]) == 2
+    session.add_slice(stacks[1][0])                                      # another stack is taken
+    assert len(session.stacks[stacks[1][0].stack]) == 1
+
+
 def test_a_stack_judged_alone_waits_for_the_next_and_no_slice_to_reacquire_is_lost(case) -> None:  # noqa: ANN001
     """Every slice over a tiny expected-error limit: the first stack's end lists none of them (the next
     stack may bring their errors down), a one-stack session's summary lists them all, and the second
