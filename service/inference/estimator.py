@@ -126,12 +126,15 @@ def slice_statistics(labels: NDArray, label_type: str, plane_x_mm: float = twin.
 
     The samples of each slice are put on one branch first (a sample and its left-right twin
     render the same image), so a split between the twins neither inflates the variance nor
-    disappears: it is reported as ``twin_mass``.
+    disappears: it is reported as ``twin_mass``. From a single sample the variance is NaN (not
+    measured), so that no slice is accepted on a spread that was never seen.
     """
     lab = np.asarray(labels, dtype=np.float64)
     poses = encodings.decode(label_type, lab)                        # [B, N, 4, 4]
     aligned, flipped = twin.align_samples(poses, plane_x_mm)
     mean, var = se3.frechet_mean_and_variance(aligned)
+    if lab.shape[1] < 2:            # one pass measures no spread: its variance is unknown, not 0
+        var = np.full(len(lab), np.nan)
     if label_type == "anchor":
         degenerate = anchors.degenerate(lab).mean(axis=1) > 0.5
     else:

@@ -52,3 +52,19 @@ def test_a_request_reduced_in_two_halves_equals_it_reduced_whole() -> None:
     both, whole = statistics(labels, "anchor", 0.7), slice_statistics(labels, "anchor", 0.7)
     for name in ("mean", "variance", "degenerate", "twin_mass", "spread_mm"):
         assert np.array_equal(getattr(both, name), getattr(whole, name)), name
+
+
+def test_one_sample_has_no_measured_variance_and_no_slice_is_accepted_on_it() -> None:
+    """mc_samples = 1: a spread of 0 would accept poses tens of mm off; the variance is unknown (NaN),
+    which the accept flags judge as high_variance, and the pose itself is still given."""
+    from service.inference import acceptance
+
+    rng = np.random.default_rng(2)
+    truth, samples = cloud(rng, 5, 1, 0.0)
+    est = statistics(anchors.encode(samples), "anchor", 0.7)
+    assert np.isnan(est.variance).all() and np.isfinite(est.spread_mm).all()
+    assert np.allclose(est.mean, samples[:, 0], atol=1e-6)
+    flags = acceptance.reasons(np.ones(5), np.zeros(5, bool), np.zeros((5, 3)), est.variance, 1e9)
+    assert flags == ["high_variance"] * 5
+    two = statistics(anchors.encode(cloud(rng, 5, 2, 0.0)[1]), "anchor", 0.7)
+    assert np.isfinite(two.variance).all()
