@@ -93,6 +93,21 @@ PLACE_FIELDS = {"nrrd": ("spaceorigin",), "mha": ("offset", "position", "origin"
                                                    "orientation")}
 
 
+def _fields(header: bytes, kind: str) -> dict[str, bytes]:
+    """The fields of a header rebuilt here, by :func:`_key` name (NRRD's magic line left out).
+
+    Example:
+        >>> _fields(b"ObjectType = Image\\nElementType = MET_UCHAR\\n", "mha")["elementtype"]
+        b' MET_UCHAR'
+    """
+    fields: dict[str, bytes] = {}
+    for line in header.split(b"\n")[1 if kind == "nrrd" else 0:]:
+        key, sep, value = line.partition(b":" if kind == "nrrd" else b"=")
+        if sep:
+            fields[_key(key)] = value
+    return fields
+
+
 def geometry_problem(header: bytes, kind: str) -> str | None:
     """Why a rebuilt header's geometry would be made up by its reader, or None: no voxel size at all
     (the reader invents 1 mm, as for a NIfTI header without one), or sizes, origin or axes that are
@@ -104,10 +119,7 @@ def geometry_problem(header: bytes, kind: str) -> str | None:
         >>> geometry_problem(b"NRRD0004\\nspacings: 1 1 3\\nspace origin: (0,0,0)\\n\\n", "nrrd") is None
         True
     """
-    fields: dict[str, bytes] = {}
-    for line in header.split(b"\n")[1 if kind == "nrrd" else 0:]:
-        key, _, value = line.partition(b":" if kind == "nrrd" else b"=")
-        fields[_key(key)] = value
+    fields = _fields(header, kind)
     sizes = [fields[name] for name in SIZE_FIELDS[kind] if name in fields]
     if not sizes:
         names = " or ".join(n.replace("space", "space ") if kind == "nrrd" else n for n in SIZE_FIELDS[kind])
@@ -144,7 +156,7 @@ def clean_header(src: BinaryIO, dst: BinaryIO, kind: str, filename: str, max_inf
         if not complete:
             raise UnsupportedFile(f"{filename}: a {kind.upper()} header longer than {MAX_HEADER_BYTES >> 10} KB")
         raise UnsupportedFile(f"{filename}: a {kind.upper()} header with no voxel data after it")
-    if kind == "mha" and (_field(header, "CompressedData") or b"").strip().lower() == b"true":
+    if kind == "mha" and _fields(header, "mha").get("compresseddata", b"").strip().lower() == b"true":
         _inflated_mha(header, head[data_at:], src, dst, filename, max_inflated)
         return header
     dst.write(header)
@@ -198,15 +210,6 @@ MET_ITEM_BYTES = {"MET_CHAR": 1, "MET_UCHAR": 1, "MET_SHORT": 2, "MET_USHORT": 2
 """Bytes of one value by MetaImage ``ElementType`` (``long`` as ITK builds it on 64-bit Linux and macOS)."""
 
 
-def _field(header: bytes, name: str) -> bytes | None:
-    """The value of field ``name`` (canonical spelling) in a header rebuilt here."""
-    for line in header.split(b"\n"):
-        key, _, value = line.partition(b" = ")
-        if key == name.encode():
-            return value
-    return None
-
-
 def _inflated_mha(header: bytes, data: bytes, src: BinaryIO, dst: BinaryIO, filename: str,
                   max_bytes: int) -> None:
     """Write a compressed MetaImage as an uncompressed one: its header marked so, then its data
@@ -214,9 +217,10 @@ def _inflated_mha(header: bytes, data: bytes, src: BinaryIO, dst: BinaryIO, file
     stream that fails to inflate as the memory it allocated held (an earlier upload's voxels, say)
     and says nothing; here a stream that is corrupt, cut short or longer than declared is refused."""
     try:
-        count = int(np.prod([int(v) for v in (_field(header, "DimSize") or b"").split()], dtype=np.float64))
-        count *= int(_field(header, "ElementNumberOfChannels") or b"1")
-        item = MET_ITEM_BYTES[(_field(header, "ElementType") or b"").decode("latin-1").strip().upper()]
+        fields = _fields(header, "mha")
+        count = int(np.prod([int(v) for v in fields.get("dimsize", b"").split()], dtype=np.float64))
+        count *= int(fields.get("elementnumberofchannels", b"1"))
+        item = MET_ITEM_BYTES[fields.get("elementtype", b"").decode("latin-1").strip().upper()]
     except (ValueError, KeyError):
         raise UnsupportedFile(f"{filename}: a compressed MHA file whose header gives no size or element type "
                               "this reader knows") from None
