@@ -13,7 +13,7 @@ from fastapi import APIRouter, Depends, File, Form, Response, UploadFile
 
 from service.api.deps import ApiKey, LocalisersDep, SettingsDep, SlotDep
 from service.api.schemas import UPLOAD_ERRORS
-from service.api.uploads import check_form, known_fields, save_and_read, upload_directory
+from service.api.uploads import check_form, known_fields, upload_directory, upload_reader
 from service.core.names import unique_stems
 from service.io.nifti_header import copy_transforms
 from service.io.volume import Volume, write_volume
@@ -67,8 +67,7 @@ async def masks(
     localiser = localisers.get(model)
     check_form(stacks, None, None, settings.max_files)
     with upload_directory(settings.tmp_dir) as tmp:
-        uploads = await to_thread.run_sync(save_and_read, stacks, [], tmp, settings.max_decoded_bytes,
-                                           settings.max_request_decoded_bytes, False, settings.max_slices_per_stack)
+        uploads = await to_thread.run_sync(upload_reader(settings), stacks, [], tmp)
         body = await to_thread.run_sync(masks_archive, uploads, localiser, tmp, margin_mm)
     return Response(body, media_type="application/zip",
                     headers={"Content-Disposition": 'attachment; filename="masks.zip"'})

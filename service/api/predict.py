@@ -11,7 +11,7 @@ from fastapi import APIRouter, Depends, Form, Request
 from service.api.deps import ApiKey, LocalisersDep, MetricsDep, RegistryDep, SettingsDep, SlotDep, localiser_for
 from service.api.responses import stack_objects
 from service.api.schemas import UPLOAD_ERRORS, PredictResponse
-from service.api.uploads import UploadFormDep, known_fields, save_and_read, upload_directory
+from service.api.uploads import UploadFormDep, known_fields, upload_directory, upload_reader
 from service.pipeline.predict import predict as run_prediction
 from service.pipeline.prepare import prepare_stacks
 
@@ -45,9 +45,7 @@ async def predict(
     threshold = form.variance_threshold if form.variance_threshold is not None else info.variance_threshold
     max_expected = form.max_expected_error_mm if form.max_expected_error_mm is not None else info.max_expected_error_mm
     with upload_directory(settings.tmp_dir) as tmp:
-        uploads = await to_thread.run_sync(save_and_read, form.stacks, form.masks, tmp, settings.max_decoded_bytes,
-                                           settings.max_request_decoded_bytes, form.masks_hold_csf,
-                                           settings.max_slices_per_stack)
+        uploads = await to_thread.run_sync(upload_reader(settings, form.masks_hold_csf), form.stacks, form.masks, tmp)
     t_read = time.perf_counter()
     prepared = await to_thread.run_sync(prepare_stacks, uploads, estimator.info, bias_correction,
                                         settings.preprocess_workers, localiser)

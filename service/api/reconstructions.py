@@ -13,7 +13,7 @@ from pydantic import Field
 
 from service.api.deps import ApiKey, LocalisersDep, RegistryDep, SettingsDep, SlotDep, localiser_for, queue_full
 from service.api.schemas import UPLOAD_ERRORS, job_poses, problem_responses
-from service.api.uploads import UploadFormDep, known_fields, save_and_read, upload_directory
+from service.api.uploads import UploadFormDep, known_fields, upload_directory, upload_reader
 from service.pipeline.predict import stack_orders
 from service.pipeline.prepare import check_mask_grid
 from service.core.client_json import client_json
@@ -110,8 +110,7 @@ async def submit(
     inputs = store.directory(job.id) / "inputs"
     inputs.mkdir()
     try:
-        uploads = await to_thread.run_sync(save_and_read, form.stacks, form.masks, inputs, settings.max_decoded_bytes,
-                                           settings.max_request_decoded_bytes, False, settings.max_slices_per_stack)
+        uploads = await to_thread.run_sync(upload_reader(settings), form.stacks, form.masks, inputs)
         stack_orders(form.orders, uploads)
         if poses_text:
             try:

@@ -24,6 +24,7 @@ from service.api.deps import SettingsDep
 from service.consistency.slice_order import MAX_TEXT, PATTERN, VALUES, SliceOrder, per_stack
 from service.core.errors import InvalidParameter, UnusableImage
 from service.core.names import clean_name
+from service.core.settings import Settings
 from service.pipeline.prepare import StackUpload
 from service.io.limits import DecodeBudget
 from service.io.readers import MAX_DECODED_BYTES, read_upload
@@ -196,6 +197,14 @@ def parse_orders(values: list[str] | None, n_stacks: int) -> list[SliceOrder]:
         return per_stack(orders, n_stacks)
     except ValueError as e:
         raise InvalidParameter(f"slice_order: {e}") from None
+
+
+def upload_reader(settings: Settings, masks_hold_csf: bool = False) -> Callable[..., list[StackUpload]]:
+    """:func:`save_and_read` with this server's limits (decoding, slices per stack): called with the
+    stacks, the masks and the folder they go to."""
+    return functools.partial(save_and_read, max_decoded_bytes=settings.max_decoded_bytes,
+                             max_request_bytes=settings.max_request_decoded_bytes, masks_hold_csf=masks_hold_csf,
+                             max_slices=settings.max_slices_per_stack)
 
 
 def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: Path,
