@@ -72,14 +72,28 @@ class PreparedStack:
 
 
 def check_mask_grid(upload: StackUpload) -> None:
-    """The mask must be on exactly the stack's grid (shape and voxel -> world map)."""
+    """The mask must be on exactly the stack's grid (shape and voxel -> world map).
+
+    Every corner of the grid is compared: a mask stored with two axes swapped (a square grid read
+    the other way round) keeps two opposite corners where its stack has them, and only the others
+    show that its voxels are not the stack's.
+
+    Example (the stack's first two axes swapped in the mask's file, the same world points):
+        >>> stack = Volume(np.zeros((4, 4, 2), np.float32), np.diag([1.0, 1.0, 3.0, 1.0]))
+        >>> swapped = Volume(np.zeros((4, 4, 2), np.uint8), np.diag([1.0, 1.0, 3.0, 1.0])[:, [1, 0, 2, 3]])
+        >>> check_mask_grid(StackUpload("s.nii.gz", stack, swapped, "m.nii.gz"))
+        Traceback (most recent call last):
+        ...
+        service.core.errors.UnusableImage: masks: m.nii.gz is not on the grid of its stack s.nii.gz (different origin, spacing or orientation)
+    """
     if upload.mask is None:
         return
     name = upload.mask_filename or "mask"
     if upload.mask.array.shape != upload.volume.array.shape:
         raise UnusableImage(f"masks: {name} has shape {list(upload.mask.array.shape)} but its stack "
                             f"{upload.filename} has {list(upload.volume.array.shape)}")
-    corners = np.array([[0, 0, 0, 1], [*np.array(upload.volume.array.shape) - 1, 1]], dtype=np.float64).T
+    last = np.array(upload.volume.array.shape[:3]) - 1
+    corners = np.array([[*(last * bits), 1] for bits in np.ndindex(2, 2, 2)], dtype=np.float64).T
     if np.abs(upload.mask.affine @ corners - upload.volume.affine @ corners).max() > GRID_TOLERANCE_MM:
         raise UnusableImage(f"masks: {name} is not on the grid of its stack {upload.filename} "
                             "(different origin, spacing or orientation)")
