@@ -113,6 +113,10 @@ def _volume(path: Path, what: str) -> tuple[NDArray, NDArray[np.float64]]:
     data = data.reshape(data.shape[:3]) if data.ndim > 3 and np.prod(data.shape[3:]) == 1 else data
     if data.ndim != 3:
         raise UnusableInput(f"{what}: {path.name} has shape {data.shape}; a stack is 3D")
+    if all(int(img.header.get(code, 0)) <= 0 for code in ("qform_code", "sform_code")):
+        # readers disagree where such a file's voxels lie (mirror images of one another): the server refuses it too
+        raise UnusableInput(f"{what}: {path.name}: its NIfTI header places its voxels nowhere (qform_code and "
+                            "sform_code 0); convert the series again with its geometry (e.g. dcm2niix)")
     return data, np.asarray(img.affine, dtype=np.float64)
 
 

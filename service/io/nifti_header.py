@@ -96,6 +96,27 @@ def missing_voxel_size(t: NiftiTransforms) -> str | None:
     return None if np.all(np.isfinite(edges)) and np.all(edges > 0) else ", ".join(f"{e:g}" for e in edges)
 
 
+def orientation_problem(t: NiftiTransforms) -> str | None:
+    """Why the header does not place the voxels in the scanner (neither ``qform_code`` nor
+    ``sform_code`` above 0), or None.
+
+    Without either transform the standard falls back to ``pixdim`` alone along +x, +y, +z, ITK to
+    -x, -y, +z and nibabel to -x, +y, +z: three readers, three placements, two of them mirror
+    images of the third. Which side of the fetus is left decides the twin a pose is on, so such a
+    file has no answer to give.
+
+    Example:
+        >>> t = NiftiTransforms(0, 0, (1.0, 1.0, 1.0, 3.0), (0.0,) * 6, (0.0,) * 12)
+        >>> orientation_problem(t)[:52]
+        'its NIfTI header places its voxels nowhere (qform_co'
+    """
+    if t.qform_code > 0 or t.sform_code > 0:
+        return None
+    return ("its NIfTI header places its voxels nowhere (qform_code and sform_code 0): the orientation in "
+            "the scanner, and which side is left, are unknown; convert the series again with its geometry "
+            "(e.g. dcm2niix)")
+
+
 def sform_problem(t: NiftiTransforms) -> str | None:
     """Why the sform cannot place an acquisition's voxels (not finite, an axis of no length, axes not
     at right angles), or None."""

@@ -38,8 +38,8 @@ from service.io.archive import read_dicom_zip
 from service.io.dicom import read_dicom_file
 from service.io.headers import clean_header, geometry_problem
 from service.io.limits import DecodeBudget, FileBudget
-from service.io.nifti_header import (MAX_SHEAR_COS, NiftiTransforms, missing_voxel_size, read_transforms,
-                                     sform_problem)
+from service.io.nifti_header import (MAX_SHEAR_COS, NiftiTransforms, missing_voxel_size, orientation_problem,
+                                     read_transforms, sform_problem)
 from service.io.volume import Volume, from_sitk, placed_by_header
 
 SUFFIX_BY_KIND = {"nifti": ".nii", "nifti-gz": ".nii.gz", "nrrd": ".nrrd", "mha": ".mha"}
@@ -108,6 +108,8 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
                 if kind == "nifti" and _nifti_has_nonfinite(path):
                     raise UnusableImage(f"{filename}: contains NaN or infinite values")
                 transforms = read_transforms(path) if kind == "nifti" else None
+                if transforms is not None and (problem := orientation_problem(transforms)) is not None:
+                    raise UnusableImage(f"{filename}: {problem}")
                 by_sform = transforms is not None and transforms.sform_code > 0
                 if by_sform and (problem := sform_problem(transforms)) is not None:
                     raise UnusableImage(f"{filename}: {problem}")
@@ -256,8 +258,7 @@ def _nifti_has_nonfinite(path: Path) -> bool:
 def _read_nifti2(path: Path, filename: str, budget: FileBudget, transforms: NiftiTransforms | None) -> Volume:
     """A NIfTI-2 file (which SimpleITK does not read) with nibabel: its declared voxels charged to
     ``budget`` before any is read, one 3D volume of real numbers, placed as its NIfTI-1 twin is
-    (:func:`placed_by_header`: the sform when its code is above 0, else the qform when its code is,
-    else ITK's fallback for NIfTI-1, the voxel sizes along -x, -y, +z from the origin). The voxels
+    (:func:`placed_by_header`: the sform when its code is above 0, else the qform). The voxels
     are scaled in float32, the only array beside the file's own."""
     image = nibabel.Nifti2Image.from_filename(str(path))
     shape = tuple(int(n) for n in image.shape)
@@ -276,10 +277,7 @@ def _read_nifti2(path: Path, filename: str, budget: FileBudget, transforms: Nift
         array *= np.float32(slope)
     if inter != 0.0:
         array += np.float32(inter)
-    affine = np.asarray(image.affine, np.float64)
-    if transforms is not None and transforms.qform_code <= 0 and transforms.sform_code <= 0:
-        affine = frames.ras_affine_from_lps(np.diag([*np.abs(transforms.pixdim[1:4]), 1.0]))
-    return placed_by_header(Volume(array, affine), transforms)
+    return placed_by_header(Volume(array, np.asarray(image.affine, np.float64)), transforms)
 
 
 def _squeeze_4d(image: sitk.Image, filename: str) -> sitk.Image:

@@ -95,3 +95,15 @@ def test_the_server_rebuilds_the_file_from_the_slices_sent(axis: int) -> None:
     file_ijk = np.rint((world - affine[:3, 3]) @ np.linalg.inv(affine[:3, :3]).T).astype(int)
     assert np.allclose(file_ijk @ affine[:3, :3].T + affine[:3, 3], world, atol=1e-9)
     assert np.array_equal(volume.array[tuple(ijk.T)], image[tuple(file_ijk.T)])
+
+
+def test_a_file_whose_header_places_its_voxels_nowhere_is_refused_as_the_server_refuses_it(tmp_path: Path) -> None:
+    """nibabel places such a file's voxels as the mirror image of where ITK does: the stream's stack
+    would sit on the other twin from the same file sent to ``/v1/predict``."""
+    img = nib.Nifti1Image(np.ones((8, 8, 4), np.int16), None)              # no affine: both codes 0
+    img.header.set_zooms((1.1, 1.1, 3.0))
+    nib.save(img, tmp_path / "old.nii.gz")
+    with pytest.raises(UnusableInput, match="old.nii.gz: its NIfTI header places its voxels nowhere"):
+        read_stack(tmp_path / "old.nii.gz")
+    nib.save(nib.Nifti1Image(np.ones((8, 8, 4), np.int16), np.diag([1.1, 1.1, 3.0, 1.0])), tmp_path / "scanner.nii.gz")
+    assert len(read_stack(tmp_path / "scanner.nii.gz").slices) == 4

@@ -242,8 +242,10 @@ def test_impossible_nifti_headers_are_refused_not_read_as_something_else(tmp_pat
 
 
 @pytest.mark.parametrize(("pixdim", "codes", "words"), [
-    ((0.0, 0.0, 0.0), (0, 0), "its NIfTI header gives no voxel size"),
-    ((np.nan, 1.0, 1.0), (0, 0), "its NIfTI header gives no voxel size"),
+    ((0.0, 0.0, 0.0), (1, 0), "its NIfTI header gives no voxel size"),
+    ((np.nan, 1.0, 1.0), (1, 0), "its NIfTI header gives no voxel size"),
+    # neither transform: ITK, nibabel and the standard place the voxels three ways (mirror images)
+    ((1.0, 1.0, 3.0), (0, 0), "its NIfTI header places its voxels nowhere"),
     ((1.0, -1.0, 3.0), (1, 0), "its NIfTI header gives no voxel size"),
     ((0.0, 0.0, 0.0), (1, 1), "its NIfTI sform gives an axis no length")])    # the sform places the voxels
 def test_a_nifti_header_without_voxel_sizes_is_422_not_1_mm(tmp_path: Path, pixdim: tuple, codes: tuple,
@@ -356,8 +358,8 @@ def test_a_zipped_series_is_unpacked_into_the_scratch_folder_given(tmp_path: Pat
 @pytest.mark.parametrize("codes", [(1, 2), (1, 0), (0, 0)])
 def test_a_nifti2_file_is_read_as_its_nifti1_twin(tmp_path: Path, codes: tuple[int, int]) -> None:
     """NIfTI-2 (which SimpleITK does not read) gives the voxels and placement of the same image as NIfTI-1,
-    by the sform where its code says so, else by the qform, else as ITK places a NIfTI-1 without
-    either; gzipped or not; scaled voxels alike."""
+    by the sform where its code says so, else by the qform, and is refused as it is without either;
+    gzipped or not; scaled voxels alike."""
     import nibabel
     arr = (np.random.default_rng(8).random((9, 8, 6)) * 500).astype(np.int16)
     voxel = oblique()
@@ -373,12 +375,18 @@ def test_a_nifti2_file_is_read_as_its_nifti1_twin(tmp_path: Path, codes: tuple[i
         for suffix in (".nii", ".nii.gz"):
             path = tmp_path / f"v{kind}{suffix}"
             nibabel.save(image, path)
+            if codes == (0, 0):
+                with pytest.raises(UnusableImage, match=rf"{path.name}: its NIfTI header places its voxels nowhere"):
+                    read_upload(path, path.name)
+                continue
             read[kind + suffix] = read_upload(path, path.name)
     for vol in read.values():
         np.testing.assert_allclose(vol.array, arr.astype(np.float32) * 0.5 + 10.0, rtol=1e-6)
         np.testing.assert_allclose(vol.affine, read["1.nii"].affine, atol=1e-4)
     if codes != (0, 0):
         np.testing.assert_allclose(read["2.nii"].affine, sform if codes[1] > 0 else voxel, atol=1e-4)
+    else:
+        assert not read
 
 
 def test_a_nifti2_file_of_several_volumes_complex_truncated_or_too_large_is_refused(tmp_path: Path) -> None:
