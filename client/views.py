@@ -96,7 +96,7 @@ def predict_hints(result: dict[str, Any]) -> list[str]:
         >>> body = {"max_expected_error_mm": 4.5, "stacks": [{"filename": "ax.nii.gz", "localisation": {
         ...     "method": "network", "confidence": 0.9}, "slices": [{"accepted": False, "reason": "high_expected_error"}]}]}
         >>> print(predict_hints(body)[0])
-        no slice accepted (every one expects an error over 4.5 mm): a stack sent alone has no other stack to agree with; send all the stacks of a scan in one request
+        no slice accepted (every one expects an error over 4.5 mm): a stack sent alone has no other stack to agree with; send all the stacks of a scan in one request (if nothing is accepted then either, the images are the cause: see the reasons above)
     """
     hints = []
     stacks = result.get("stacks") or []
@@ -118,12 +118,17 @@ def predict_hints(result: dict[str, Any]) -> list[str]:
                 hints.append(f"{stack.get('filename', '?')}: no slice accepted while the other stacks have some: its "
                              "poses are too uncertain or disagree with the others (motion, a signal void); acquire "
                              "it again if you need it")
-    if slices and not any(s.get("accepted") for s in slices):
+    if slices and all(s.get("reason") == "high_variance" and s.get("geodesic_variance") is None for s in slices):
+        hints.append("no slice accepted: one MC pass measures no spread (geodesic_variance null), and a pose "
+                     "without one is not judged usable; send --mc-samples 100, the count the accept flags are "
+                     "calibrated at")
+    elif slices and not any(s.get("accepted") for s in slices):
         limit = result.get("max_expected_error_mm")
         why = (f" (every one expects an error over {limit:.3g} mm)"
                if limit is not None and all(s.get("reason") == "high_expected_error" for s in slices) else "")
         hints.append(f"no slice accepted{why}: " + (
-            "a stack sent alone has no other stack to agree with; send all the stacks of a scan in one request"
+            "a stack sent alone has no other stack to agree with; send all the stacks of a scan in one request "
+            "(if nothing is accepted then either, the images are the cause: see the reasons above)"
             if len(stacks) == 1 else
             "the stacks do not agree on where their slices lie (motion beyond the model's reach, signal voids, "
             "a contrast unlike T2), so no pose is worth using; see the reasons above"))

@@ -93,7 +93,7 @@ def judge(prepared: PreparedStack, estimate: PoseEstimate, out: StackPoses, thre
                               max_expected_error_mm)
 
 
-def add_unseen_errors(out: StackPoses, info: ModelInfo) -> None:
+def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate | None = None) -> None:
     """Add to each returned pose's expected error (in place) what no stage sees.
 
     * The request's placement in the atlas frame: the model's ``expected_error_floor_mm``, in quadrature.
@@ -105,6 +105,10 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo) -> None:
       (:func:`~service.geometry.twin.twin_variance`). Where the stage found no consistent stack
       (and for a streamed slice answered before its stack is fitted), the poses are the network's
       and nothing is added: the calibration knows no such case.
+
+    A slice the network saw without measuring its spread (one MC pass: ``estimate``'s variance NaN)
+    has no expected error (NaN, null in the answer): the calibration scales a spread, and the
+    floor alone would read as a confident pose.
 
     Example (a sagittal slice 5 mm off the plane, 10 mm from its twin, in a consistent stack):
         >>> from types import SimpleNamespace
@@ -121,6 +125,8 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo) -> None:
     if logit is not None and out.fit is not None and out.fit.decidable:
         d = twin_distance_mm(out.poses, getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM))
         variance = variance + twin_variance(d, logit)
+    if estimate is not None:
+        variance = np.where(estimate.estimated & np.isnan(estimate.variance), np.nan, variance)
     out.expected_error_mm = np.sqrt(variance)
 
 
@@ -293,6 +299,6 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
     timings["image_consistency"] = time.perf_counter() - t
     results = []
     for s, e, nfv, out in zip(prepared, parts, frames, outs):
-        add_unseen_errors(out, info)
+        add_unseen_errors(out, info, e)
         results.append(StackPrediction(s, nfv, e, out, judge(s, e, out, threshold, max_expected_error_mm)))
     return results, timings

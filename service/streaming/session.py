@@ -214,7 +214,7 @@ class StreamSession:
             if placement_mm is not None:
                 pose[0], expected[0] = immediate.with_placement(pose[0], float(expected[0]), predicted, placement_mm)
         out = StackPoses(pose, mass, twinned, np.zeros(1, bool), None, expected)
-        add_unseen_errors(out, info)
+        add_unseen_errors(out, info, est)
         if not decided:                                  # a slice alone cannot tell its twin
             out.expected_error_mm = np.sqrt(out.expected_error_mm ** 2 + immediate.UNDECIDED_TWIN_CHANCE
                                             * twin.twin_distance_mm(pose, plane) ** 2)
@@ -256,7 +256,7 @@ class StreamSession:
                                      est.spread_mm * getattr(info, "mc_error_scale", 1.0), True, times,
                                      None if shape is None else np.asarray(shape),
                                      float(getattr(info, "mc_error_depth_gain", 0.0)), reference).result()
-        add_unseen_errors(out, info)
+        add_unseen_errors(out, info, est)
         placement_mm = None
         if out.fit is not None and out.fit.atlas_from_scanner is not None:
             placement_mm = immediate.placement_error_mm(out.expected_error_mm, out.poses, out.fit.atlas_from_scanner,

@@ -375,6 +375,12 @@ def test_an_answer_with_nothing_usable_says_what_to_do() -> None:
     assert "unsure" in unsure[0] and "0.30" in unsure[0] and "svrnet masks" in unsure[0]
     assert "no brain on the stack" in views.predict_hints(_alone("empty", method="mask"))[0]
     assert "localiser found none" in views.predict_hints(_alone("empty", confidence=0.05))[0]
+    # One MC pass: no spread was measured; the stacks are not to blame.
+    once = _alone("high_variance")
+    for s in once["stacks"][0]["slices"]:
+        s.update(geodesic_variance=None, expected_error_mm=None)
+    hint = views.predict_hints(once)
+    assert len(hint) == 1 and "--mc-samples 100" in hint[0] and "agree" not in hint[0]
     # One stack with nothing accepted beside others that have: that stack is named.
     none = {**_alone("high_expected_error")["stacks"][0], "filename": "coronal.nii.gz"}
     mixed = views.predict_hints({**PREDICT_BODY, "stacks": [*PREDICT_BODY["stacks"], none]})

@@ -42,3 +42,17 @@ def test_the_network_poses_of_an_undecided_stack_and_an_uncalibrated_model_take_
                       (_stack([5.0, 8.0], decidable=True), SimpleNamespace(expected_error_floor_mm=2.0))):
         add_unseen_errors(out, info)
         np.testing.assert_allclose(out.expected_error_mm, np.sqrt(13.0))
+
+
+def test_a_slice_whose_spread_was_not_measured_has_no_expected_error() -> None:
+    """One MC pass measures no spread (variance NaN): the floor alone would read as a confident pose.
+    A slice the network never saw (no brain) keeps what its stack's model gives it."""
+    from service.inference.estimator import PoseEstimate
+
+    info = SimpleNamespace(expected_error_floor_mm=1.3, twin_risk_logit=None, symmetry_plane_x_mm=0.0)
+    est = PoseEstimate(np.tile(np.eye(4), (3, 1, 1)), np.array([np.nan, np.nan, 2.0]), np.zeros(3, bool),
+                       spread_mm=np.array([0.0, np.nan, 1.0]))                # seen once, unseen, seen 100 times
+    out = _stack([10.0, 20.0, 30.0], decidable=True)
+    add_unseen_errors(out, info, est)
+    assert np.isnan(out.expected_error_mm[0])
+    np.testing.assert_allclose(out.expected_error_mm[1:], np.hypot(3.0, 1.3))

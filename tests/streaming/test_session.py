@@ -241,3 +241,21 @@ def test_a_stack_whose_slices_lie_closer_than_its_pixels_ends_along_its_slices(c
         session.add_slice(replace(f, scanner_from_voxel=sent))
     final = session.end_stack(frames[0].stack)
     assert len(final.prediction.poses.poses) == len(frames)
+
+
+def test_one_mc_pass_gives_streamed_poses_without_an_expected_error_and_accepts_none(case) -> None:  # noqa: ANN001
+    """As in ``/v1/predict``: a spread never measured calibrates nothing, immediately or once the stack is fitted
+    (the estimator reports one pass's variance as NaN, tests/inference/test_statistics_twin.py)."""
+    oracle, stacks, _ = case
+    learnt = oracle.estimate
+
+    def one_pass(inputs: np.ndarray, mc_samples: int):  # noqa: ANN202
+        est = learnt(inputs, mc_samples)
+        est.variance[:] = np.nan if mc_samples < 2 else est.variance
+        return est
+    oracle.estimate = one_pass
+    session = StreamSession(oracle, None, options=SessionOptions(mc_samples=1, bias_correction=False))
+    answers = [session.add_slice(frame) for frame in stacks[0]]
+    final = session.end_stack(stacks[0][0].stack).prediction
+    for p in [a.prediction for a in answers] + [final]:
+        assert np.isnan(p.poses.expected_error_mm).all() and all(r == "high_variance" for r in p.reasons)
