@@ -189,7 +189,7 @@ class SVRnetClient(Transport):
                     variance_threshold: float | None = None, max_expected_error_mm: float | None = None,
                     slice_order: str | Sequence[str] | None = None, atlas_frame: bool | None = None,
                     masks_hold_csf: bool | None = None, slice_thickness_mm: float | Sequence[float] | None = None,
-                    progress: ProgressCallback | None = None) -> dict[str, Any]:
+                    model: str | None = None, progress: ProgressCallback | None = None) -> dict[str, Any]:
         """``POST /v1/reconstructions``: start a slice-to-volume reconstruction job.
 
         Args:
@@ -208,6 +208,8 @@ class SVRnetClient(Transport):
             masks_hold_csf: as for :meth:`predict`.
             slice_thickness_mm: the slices' thickness (mm), one value for every stack or one per stack
                 (server default: a DICOM file's SliceThickness, else the slice spacing).
+            model: the pose model that predicts and re-estimates the atlas frame, as for :meth:`predict`
+                (default: the server's).
             progress: ``progress(bytes_sent, total)`` during the upload.
 
         Returns:
@@ -224,7 +226,8 @@ class SVRnetClient(Transport):
                                                    ("mc_samples", mc_samples),
                                                    ("variance_threshold", variance_threshold),
                                                    ("max_expected_error_mm", max_expected_error_mm),
-                                                   ("atlas_frame", atlas_frame), ("masks_hold_csf", masks_hold_csf))
+                                                   ("atlas_frame", atlas_frame), ("masks_hold_csf", masks_hold_csf),
+                                                   ("model", model))
                   if v is not None]
         fields += order_fields(slice_order)
         thickness = [slice_thickness_mm] if isinstance(slice_thickness_mm, (int, float)) else slice_thickness_mm or []

@@ -207,6 +207,7 @@ def reconstruct(
     thickness: Annotated[Optional[list[float]], typer.Option(
         "--thickness", help="slice thickness in mm, once for every stack or once per stack (default: a DICOM "
         "file's SliceThickness, else the slice spacing; give it for slices with gaps or overlap)")] = None,
+    model: ModelOpt = None,
 ) -> None:
     """Start a reconstruction job (POST /v1/reconstructions); with --wait, follow it and download the volume."""
     check_masks(stacks, mask)
@@ -224,7 +225,7 @@ def reconstruct(
                                   max_expected_error_mm=max_expected_error, slice_order=slice_order,
                                   atlas_frame=None if atlas_frame else False,
                                   masks_hold_csf=True if masks_hold_csf else None, slice_thickness_mm=thickness,
-                                  progress=progress)
+                                  model=model, progress=progress)
         job_id = str(job.get("job_id", ""))
         console.print(f"job {job_id} {job.get('status', 'queued')}: {job.get('status_url', '')}")
         if not wait:

@@ -236,7 +236,7 @@ def test_cli_reconstruct_wait_downloads(fake_cli: Callable, stack_file: Path, tm
     r = invoke(["reconstruct", str(stack_file), "--poses", str(poses), "--resolution", "0.8", "--svr-iterations",
                 "2", "--wait", "--poll", "0.05", "--out", str(out), "--preview", str(preview),
                 "--poses-out", str(refined), "--transforms-out", str(transforms), "--no-atlas-frame", "--slice-order",
-                "interleaved", "--thickness", "2.5"])
+                "interleaved", "--thickness", "2.5", "--model", "fast", "--max-expected-error", "4"])
     assert r.exit_code == 0, r.output
     assert out.read_bytes() == FakeJobs.VOLUME and preview.read_bytes() == FakeJobs.PREVIEW
     assert transforms.read_bytes() == FakeJobs.TRANSFORMS
@@ -248,7 +248,8 @@ def test_cli_reconstruct_wait_downloads(fake_cli: Callable, stack_file: Path, tm
             "to it); median expected error 1.90 mm (starting poses 2.50 mm)") in " ".join(r.stdout.split())
     fields, files = fake.jobs.uploads[0]
     assert fields == {"resolution_mm": ["0.8"], "svr_iterations": ["2"], "atlas_frame": ["false"],
-                      "slice_order": ["interleaved"], "slice_thickness_mm": ["2.5"]} and files[-1][0] == "poses"
+                      "slice_order": ["interleaved"], "slice_thickness_mm": ["2.5"], "model": ["fast"],
+                      "max_expected_error_mm": ["4.0"]} and files[-1][0] == "poses"
 
 
 def test_cli_fetch_follows_a_job_started_without_wait_and_downloads_its_results(fake_cli: Callable, stack_file: Path,
