@@ -131,22 +131,34 @@ def sform_problem(t: NiftiTransforms) -> str | None:
     return None
 
 
+ALIGNED_ANAT = 2
+"""NIfTI's ``xform_code`` for coordinates aligned to an anatomical reference (here the atlas); 1,
+what ITK writes, says the scanner's coordinates, which a volume in atlas space is not."""
+
+
 def copy_transforms(path: Path, t: NiftiTransforms) -> None:
     """Write ``t`` into the header of the NIfTI-1 file at ``path`` (``.nii`` or ``.nii.gz``, as the
     service writes them): both transforms and their codes, qfac and the voxel edges. Nothing else of
     the upload's header (descriptions, names) is copied."""
+    _put_fields(path, {"qform_code": [t.qform_code], "sform_code": [t.sform_code], "pixdim": t.pixdim,
+                       "quatern": t.quatern, "srow": t.srow})
+
+
+def set_codes(path: Path, code: int) -> None:
+    """Set both ``qform_code`` and ``sform_code`` of the NIfTI-1 file at ``path`` (as the service writes
+    them) to ``code``, the transforms themselves unchanged: what their coordinates are
+    (:data:`ALIGNED_ANAT` for a volume in atlas space)."""
+    _put_fields(path, {"qform_code": [code], "sform_code": [code]})
+
+
+def _put_fields(path: Path, fields: dict[str, tuple[float, ...] | list[int]]) -> None:
+    """Overwrite the named header fields (:data:`LAYOUTS`' names; codes as integers, the rest as
+    floats) of the NIfTI-1 file at ``path``, in its byte order, gzipped as it was."""
     compressed = path.name.endswith(".gz")
     data = bytearray(gzip.decompress(path.read_bytes()) if compressed else path.read_bytes())
     endian = "<" if int.from_bytes(data[:4], "little") == 348 else ">"
     at = LAYOUTS[348]
-
-    def put(offset: int, values: tuple[float, ...] | list[int], kind: str = at["f"]) -> None:
-        raw = np.asarray(values, endian + kind).tobytes()
-        data[offset:offset + len(raw)] = raw
-
-    put(at["qform_code"], [t.qform_code], at["code"])
-    put(at["sform_code"], [t.sform_code], at["code"])
-    put(at["pixdim"], t.pixdim)
-    put(at["quatern"], t.quatern)
-    put(at["srow"], t.srow)
+    for name, values in fields.items():
+        raw = np.asarray(values, endian + (at["code"] if name.endswith("_code") else at["f"])).tobytes()
+        data[at[name]:at[name] + len(raw)] = raw
     path.write_bytes(gzip.compress(bytes(data), compresslevel=6) if compressed else bytes(data))

@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from service.geometry import frames
+from service.io.nifti_header import ALIGNED_ANAT, set_codes
 from service.io.volume import Volume, read_volume, write_volume
 from service.reconstruction.pipeline import ReconstructionResult
 from service.reconstruction.preview import preview_png
@@ -110,14 +111,18 @@ def listing_text(result: ReconstructionResult, slices: SliceSet) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_outputs(result: ReconstructionResult, slices: SliceSet, folder: str | Path, extra: dict | None = None) -> dict:
-    """Write ``volume.nii.gz``, ``preview.png``, ``report.json`` and ``transforms/`` into ``folder``.
+def write_outputs(result: ReconstructionResult, slices: SliceSet, folder: str | Path, extra: dict | None = None,
+                  more_files: tuple[str, ...] = ()) -> dict:
+    """Write ``volume.nii.gz`` (its NIfTI codes :data:`~service.io.nifti_header.ALIGNED_ANAT`: atlas
+    coordinates), ``preview.png``, ``report.json`` and ``transforms/`` into ``folder``.
 
     Args:
         result: the reconstruction.
         slices: the slice set it was computed from (for stack/slice indices and stack headers).
         folder: output folder (created).
         extra: more entries for the report (e.g. the job's ``atlas_frame``).
+        more_files: files the caller writes into ``folder`` after these, listed with them in the
+            report's ``files``.
 
     Returns:
         The JSON-ready report (counts, geometry, timings, file names and, per slice, inclusion, weight
@@ -126,6 +131,7 @@ def write_outputs(result: ReconstructionResult, slices: SliceSet, folder: str | 
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
     write_volume(result.volume, out / "volume.nii.gz")
+    set_codes(out / "volume.nii.gz", ALIGNED_ANAT)          # atlas coordinates, not the scanner's
     (out / "preview.png").write_bytes(preview_png(result.volume))
     tfms = write_slice_tfms(out / "transforms", result.atlas_from_voxel_final, slices)
     (out / "transforms" / "slice_transforms.txt").write_text(listing_text(result, slices))
@@ -151,7 +157,7 @@ def write_outputs(result: ReconstructionResult, slices: SliceSet, folder: str | 
             np.where(result.included, result.slice_weight, 0.0))],
         "timings_s": {k: round(float(v), 3) for k, v in result.timings.items()},
         "files": ["volume.nii.gz", "preview.png", "report.json", "transforms/slice_transforms.txt",
-                  f"transforms/*.tfm ({len(tfms)})", "transforms.zip"],
+                  f"transforms/*.tfm ({len(tfms)})", "transforms.zip", *more_files],
     }
     mapping = "LPS, atlas (fixed) -> stack scanner space (moving); see service.reconstruction.export"
     report = dict(summary, **(extra or {}), tfm_mapping=mapping, slices=slice_records(result, slices))

@@ -153,7 +153,11 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
         stack_affine = read_volume(case["files"][rec["stack"]][0]).affine
         want = flip @ stack_affine @ np.linalg.inv(np.array(rec["atlas_from_voxel"])) @ flip
         np.testing.assert_allclose(m, want, atol=1e-6)
-    zipped = client.app.state.job_store.directory(job_id) / "outputs" / "transforms.zip"
+    outputs = client.app.state.job_store.directory(job_id) / "outputs"
+    listed = [name.split(" ")[0] for name in report["files"]]            # "transforms/*.tfm (36)": its pattern
+    assert sorted(p.relative_to(outputs).as_posix() for p in outputs.rglob("*") if p.is_file() and p.suffix != ".tfm") \
+        == sorted(n for n in listed if "*" not in n) and "poses.json" in listed   # every file the job wrote is listed
+    zipped = outputs / "transforms.zip"
     zipped.unlink()                                   # a job finished before the archive existed: made on request
     again = client.get(st["transforms_url"])
     assert again.status_code == 200 and zipfile.ZipFile(io.BytesIO(again.content)).namelist() == names

@@ -75,6 +75,11 @@ def test_listing_report_volume_and_preview(written):
 
     vol = read_volume(folder / "volume.nii.gz")
     assert np.allclose(vol.affine, result.volume.affine) and np.allclose(vol.array, result.volume.array)
+    # atlas coordinates, not the scanner's: NIfTI's aligned-anatomy code, and nibabel (FSL's rule) places it alike
+    import nibabel
+    header = nibabel.load(folder / "volume.nii.gz").header
+    assert (int(header["qform_code"]), int(header["sform_code"])) == (2, 2)
+    assert np.allclose(header.get_best_affine(), result.volume.affine, atol=1e-4)
     png = Image.open(folder / "preview.png")
     i, j, k = result.volume.array.shape
     assert png.size == (j + i + i + 4, max(k, j)) and png.mode == "L"
