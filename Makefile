@@ -8,7 +8,7 @@ PIP    := $(PY) -m pip install --disable-pip-version-check -q -c constraints.txt
 HOST   ?= 127.0.0.1
 PORT   ?= 8000
 
-.PHONY: serve test install-server install-dev install-queue bench cli-docs clean
+.PHONY: serve test install-server install-dev install-queue bench cli-docs config-docs clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -38,6 +38,9 @@ test: install-dev
 
 cli-docs: install-dev   # docs/cli.md, the reference of every svrnet command, from the CLI itself
 	$(PY) -m typer client.cli utils docs --name svrnet --title "Command line: svrnet" --output docs/cli.md
+
+config-docs: install-dev   # docs/configuration.md's table of every SVRNET_* setting, from the settings themselves
+	$(PY) -m tools.settings_docs
 
 bench: install-dev
 	$(PY) benchmarks/se3_bench.py

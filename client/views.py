@@ -57,7 +57,7 @@ def summarise(result: dict[str, Any]) -> Table:
                   collapse_padding=True,
                   caption="brain: the uploaded mask, or the volume the localiser found (its confidence); "
                           "accepted: of the slices with brain (empty ones have none); expected error (mm), variance "
-                          "(the network's spread, squared anchor-point units): their medians")
+                          "(the network's spread, about mm^2): their medians")
     stacks = result.get("stacks") or []
     longest = max([len(str(s.get("filename", ""))) for s in stacks] + [5])
     for col, just in (("stack", "left"), ("brain", "left"), ("accepted", "right"), ("rejected (by reason)", "left"),

@@ -2,7 +2,7 @@
 
 Examples:
     svrnet-train train --steps 20000 --out runs/default
-    svrnet-train export runs/default/best.pt service/models/default/model.onnx --threshold 25
+    svrnet-train export runs/default/best.pt service/models/default/model.onnx   # threshold calibrated on export
     svrnet-train calibrate runs/default/best.pt
     svrnet-train calibrate-acceptance service/models/default/model.onnx
     svrnet-train evaluate service/models/default/model.onnx --report model_export/reports/default.md

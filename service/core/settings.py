@@ -26,13 +26,16 @@ class Settings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="SVRNET_", extra="ignore")
 
-    host: str = "127.0.0.1"
-    port: int = Field(8000, ge=1, le=65535)
-    models_dir: Path = DEFAULT_MODELS_DIR
+    host: str = Field("127.0.0.1", description="address the server listens on (0.0.0.0: every interface)")
+    port: int = Field(8000, ge=1, le=65535, description="port the server listens on")
+    models_dir: Path = Field(DEFAULT_MODELS_DIR, description="pose models: <name>/model.onnx with its calibration "
+                             "and card (default: the shipped ones)")
     localisers_dir: Path = Field(DEFAULT_LOCALISERS_DIR, description="brain localisers of /v1/predict and /v1/masks: "
                                                          "<name>/model.onnx; reconstruction jobs run its default too")
-    default_model: str = "default"
-    log_level: str = "info"
+    default_model: str = Field("default", description="the pose model of a request that names none (default or "
+                               "fast)")
+    log_level: str = Field("info", description="the service's log level (JSON lines; never file names or DICOM "
+                           "attributes)")
     api_keys: str = Field("", description="comma-separated keys; empty = no authentication")
     metrics_public: bool = Field(False, description="serve /metrics without an API key even when keys are "
                                  "configured (by default it needs one, like /v1/)")
@@ -56,7 +59,7 @@ class Settings(BaseSettings):
                               "always uses one)")
     tmp_dir: Path | None = Field(None, description="where uploads are spooled (default: system temp)")
     data_dir: Path = Field(Path.home() / ".svrnet", description="job store: SQLite database and files")
-    retry_after_s: int = Field(2, ge=1)
+    retry_after_s: int = Field(2, ge=1, description="the Retry-After (seconds) of a 503 or 429 when saturated")
     job_workers: int = Field(1, ge=1, description="reconstruction jobs run at once (worker processes)")
     max_queued_jobs: int = Field(16, ge=1, description="reconstruction jobs waiting at most; more get 429")
     max_decoded_mb: float = Field(128.0, gt=0, description="limit of what one file decodes to: each inflated "
