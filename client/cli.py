@@ -53,8 +53,8 @@ from rich.live import Live
 from client._client import DEFAULT_SERVER, SVRnetClient
 from client.cli_support import (DEFAULT_VOLUME, ApiKeyOpt, BiasCorrectionOpt, JobArg, MaskOpt, MasksHoldCsfOpt,
                                 MaxExpectedOpt, McSamplesOpt, ModelOpt, ServerOpt, StackSpaceOpt, StacksArg, ThresholdOpt,
-                                check_folder_writable, check_masks, check_writable, follow_job, job_id_of, positive,
-                                timeout_from_env, write_json, write_results)
+                                check_folder_writable, check_masks, check_writable, follow_job, job_id_of, once_or_per_stack,
+                                positive, resolution_range, timeout_from_env, write_json, write_results)
 from client.exits import (EXIT_BAD_INPUT, EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, EXIT_USAGE, errors, fail,
                           stderr, stdout)
 from client.stream_views import StreamView, coverage_text, reacquire_text
@@ -121,6 +121,7 @@ def predict(
 ) -> None:
     """Atlas pose and confidence of every slice of every stack (POST /v1/predict)."""
     check_masks(stacks, mask)
+    once_or_per_stack(slice_order, stacks, "--slice-order")
     check_writable(out=out, transforms_out=transforms_out)
     err = stderr()
     with errors(), _client(server, api_key) as svr:
@@ -181,8 +182,8 @@ def reconstruct(
         exists=True, dir_okay=False, readable=True,
         help="JSON answer of `svrnet predict --out` for these files")] = None,
     resolution: Annotated[Optional[float], typer.Option(
-        "--resolution", callback=positive, help="output spacing in mm (server default 0.8)")] = None,
-    svr_iterations: Annotated[Optional[int], typer.Option(min=0, help="SVR iterations (server default 3)")] = None,
+        "--resolution", callback=resolution_range, help="output spacing in mm, over 0.2 and at most 5 (server default 0.8)")] = None,
+    svr_iterations: Annotated[Optional[int], typer.Option(min=0, max=10, help="SVR iterations (server default 3)")] = None,
     mc_samples: McSamplesOpt = None,
     threshold: ThresholdOpt = None,
     max_expected_error: MaxExpectedOpt = None,
@@ -212,6 +213,8 @@ def reconstruct(
 ) -> None:
     """Start a reconstruction job (POST /v1/reconstructions); with --wait, follow it and download the volume."""
     check_masks(stacks, mask)
+    once_or_per_stack(thickness, stacks, "--thickness")
+    once_or_per_stack(slice_order, stacks, "--slice-order")
     if stack_space is not None and stack_space >= len(stacks):
         fail(f"--stack-space: {stack_space} is not one of the {len(stacks)} stacks given (0-{len(stacks) - 1})",
              EXIT_USAGE)
@@ -228,7 +231,7 @@ def reconstruct(
                                   masks_hold_csf=True if masks_hold_csf else None, slice_thickness_mm=thickness,
                                   model=model, progress=progress)
         job_id = str(job.get("job_id", ""))
-        console.print(f"job {job_id} {job.get('status', 'queued')}: {job.get('status_url', '')}")
+        console.print(f"job {job_id} {job.get('status', 'queued')}: {job.get('status_url', '')}", soft_wrap=True)
         if not wait:
             console.print(f"follow it with: svrnet status {job_id}; download it with: svrnet fetch {job_id}")
             return

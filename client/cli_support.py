@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 from pathlib import Path
 from typing import Annotated, Any, Optional
 
@@ -20,7 +21,7 @@ import typer
 from rich.progress import BarColumn, Progress, SpinnerColumn, TaskProgressColumn, TextColumn, TimeElapsedColumn
 
 from client._client import SVRnetClient
-from client.exits import EXIT_NOT_FOUND, fail, stderr, stdout
+from client.exits import EXIT_NOT_FOUND, EXIT_USAGE, fail, stderr, stdout
 from client.views import NO_WORKER, quality_line, refined_poses_line, stage_label, waits_for_a_worker
 
 
@@ -86,6 +87,25 @@ def positive(value: float | None) -> float | None:
     return value
 
 
+def resolution_range(value: float | None) -> float | None:
+    """``--resolution`` within what the server takes (0.2 < mm <= 5), else a usage error naming it.
+
+    Example:
+        >>> resolution_range(0.8), resolution_range(None)
+        (0.8, None)
+    """
+    if value is not None and not 0.2 < value <= 5.0:
+        raise typer.BadParameter("must be over 0.2 and at most 5 (mm)")
+    return value
+
+
+def once_or_per_stack(values: list | None, stacks: list, option: str) -> None:
+    """A usage error naming ``option`` where it is given neither once nor once per stack."""
+    if values and len(values) not in (1, len(stacks)):
+        fail(f"{option}: {len(values)} values for {len(stacks)} stacks; give one for every stack or one per stack",
+             EXIT_USAGE)
+
+
 def write_json(path: Path, body: Any) -> None:
     """``body`` as indented JSON in ``path``."""
     path.write_text(json.dumps(body, indent=2) + "\n")
@@ -123,20 +143,26 @@ StacksArg = Annotated[list[Path], typer.Argument(
 
 
 def follow_job(svr: SVRnetClient, job_id: str, poll: float, timeout: float) -> dict[str, Any]:
-    """Wait for a job, with a progress bar on a terminal; its final status body."""
+    """Wait for a job, with a progress bar on a terminal, else a line on stderr at each change of
+    stage (a script's log shows where the job is); its final status body."""
     err = stderr()
     with Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
                   TimeElapsedColumn(), console=err, transient=True, disable=not err.is_terminal) as bar:
         task = bar.add_task("queued", total=1.0)
-        told = False
+        told, last = False, None
+        started = time.monotonic()
 
         def on_progress(state: dict[str, Any]) -> None:
-            nonlocal told
-            bar.update(task, completed=float(state.get("progress") or 0.0), description=stage_label(state))
+            nonlocal told, last
+            label = stage_label(state)
+            bar.update(task, completed=float(state.get("progress") or 0.0), description=label)
             if waits_for_a_worker(state) and not told:
-                told = True                            # once, also where no bar is drawn (a pipe, a log)
+                told, last = True, label               # once, also where no bar is drawn (a pipe, a log)
                 bar.console.print(f"job {job_id} is queued and {NO_WORKER}: it starts once svrnet-worker runs "
                                   "with the server's SVRNET_QUEUE_URL and data folder", style="yellow", markup=False)
+            elif not err.is_terminal and label != last:
+                last = label
+                err.print(f"job {job_id}: {label} ({time.monotonic() - started:.0f} s)", markup=False, highlight=False)
 
         return svr.wait(job_id, poll_s=poll, timeout_s=timeout, on_progress=on_progress)
 

@@ -55,7 +55,8 @@ def summarise(result: dict[str, Any]) -> Table:
              f"variance <= {'-' if threshold is None else f'{threshold:.4g}'}")
     table = Table(title=title, title_justify="left", caption_justify="left", box=box.SIMPLE_HEAD, pad_edge=False,
                   collapse_padding=True,
-                  caption="brain: the uploaded mask, or the volume the localiser found (its confidence); "
+                  caption="brain: the uploaded mask, or the intracranial volume the localiser found (brain and "
+                          "the CSF around it; its confidence); "
                           "accepted: of the slices with brain (empty ones have none); expected error (mm), variance "
                           "(the network's spread, about mm^2): their medians")
     stacks = result.get("stacks") or []
@@ -245,9 +246,10 @@ def masks_table(report: dict[str, Any], out_dir: object) -> Table:
     rather than being cut short, so that the table fits an 80-column terminal."""
     table = Table(title=f"brain masks in {out_dir}", title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False,
                   collapse_padding=True, caption_justify="left",
-                  caption="brain: its volume and the localiser's confidence; slices: those the mask touches "
+                  caption="volume: the mask's, the skull's inside (brain and the CSF around it: intracranial, not "
+                          "the brain alone); slices: those the mask touches "
                           "(`svrnet predict` calls a slice empty below 1 % of its network input)")
-    for col, just in (("stack", "left"), ("mask", "left"), ("brain (ml)", "right"), ("confidence", "right"),
+    for col, just in (("stack", "left"), ("mask", "left"), ("volume (ml)", "right"), ("confidence", "right"),
                       ("slices", "right")):
         table.add_column(col, justify=just, overflow="fold")  # type: ignore[arg-type]
     for row in report.get("stacks") or []:

@@ -242,6 +242,9 @@ def test_cli_reconstruct_wait_downloads(fake_cli: Callable, stack_file: Path, tm
     assert transforms.read_bytes() == FakeJobs.TRANSFORMS
     assert json.loads(refined.read_text())["refined_by"] == {"job_id": "job1"}
     assert "job1" in r.stdout and "succeeded" in r.stdout
+    # no terminal, no bar: a line per stage on stderr, so that a script's log shows where the job is
+    stages = [line for line in r.stderr.splitlines() if line.startswith("job job1: ")]
+    assert len(stages) >= 2 and len(set(stages)) == len(stages), r.stderr
     # what the job made of the slices: three posed, all placed; their median refined expected error
     # against the starting poses'
     assert ("refined poses: 3 of 3 posed slices placed (2 in the volume, 1 by their stack's motion, 0 registered "
@@ -462,3 +465,19 @@ def test_a_dicom_folder_goes_as_the_zip_the_server_takes(fake_cli: Callable, tmp
     (tmp_path / "empty").mkdir()
     r = invoke(["predict", str(tmp_path / "empty")])
     assert r.exit_code == 2 and "error: stacks: the folder" in r.stderr and "holds no file" in r.stderr
+
+
+def test_reconstruct_options_out_of_the_servers_range_are_usage_errors_naming_the_option(fake_cli: Callable,
+                                                                                        stack_file: Path) -> None:
+    """Not the server's 422 naming its form fields (``resolution_mm``), after an upload."""
+    fake, _ = fake_cli()
+    for args, words in ((["--resolution", "0.1"], "--resolution"), (["--resolution", "6"], "--resolution"),
+                        (["--svr-iterations", "11"], "--svr-iterations"),
+                        (["--thickness", "3", "--thickness", "2"], "--thickness: 2 values for 1 stacks"),
+                        (["--slice-order", "sequential", "--slice-order", "interleaved"], "--slice-order")):
+        r = invoke(["reconstruct", str(stack_file), *args])
+        assert r.exit_code == 2 and words in r.output, (args, r.output)
+    r = invoke(["predict", str(stack_file), "--slice-order", "sequential", "--slice-order", "interleaved"])
+    assert r.exit_code == 2 and "--slice-order: 2 values for 1 stacks" in r.output
+    assert not fake.jobs.uploads
+    assert "at most 5" in invoke(["reconstruct", "--help"]).output
