@@ -54,7 +54,7 @@ from client._client import DEFAULT_SERVER, SVRnetClient
 from client.cli_support import (DEFAULT_VOLUME, ApiKeyOpt, BiasCorrectionOpt, JobArg, MaskOpt, MasksHoldCsfOpt,
                                 MaxExpectedOpt, McSamplesOpt, ModelOpt, ServerOpt, StackSpaceOpt, StacksArg, ThresholdOpt,
                                 check_folder_writable, check_masks, check_writable, follow_job, job_id_of, once_or_per_stack,
-                                positive, resolution_range, timeout_from_env, write_json, write_results)
+                                resolution_range, timeout_from_env, write_json, write_results)
 from client.exits import (EXIT_BAD_INPUT, EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, EXIT_USAGE, errors, fail,
                           stderr, stdout)
 from client.stream_views import StreamView, coverage_text, reacquire_text

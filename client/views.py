@@ -25,9 +25,13 @@ from rich.progress import (BarColumn, DownloadColumn, Progress, SpinnerColumn, T
                            TransferSpeedColumn)
 from rich.table import Table
 
-NAME_WIDTH = 18
+NAME_WIDTH = 20
 """Stack file names up to this long stay on one line of the summary table; longer ones fold, so that
 every column fits an 80-column terminal."""
+SHORT_REASONS = {"empty": "empty", "degenerate_anchor_points": "degenerate", "outside_atlas": "outside",
+                 "inconsistent_with_stack": "inconsistent", "high_expected_error": "error", "high_variance": "variance"}
+"""The summary table's words for the answer's ``reason`` values (its caption names them), one a line,
+so that no word is cut at 80 columns."""
 
 
 def with_brain(slices: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -57,16 +61,18 @@ def summarise(result: dict[str, Any]) -> Table:
                   collapse_padding=True,
                   caption="brain: the uploaded mask, or the intracranial volume the localiser found (brain and "
                           "the CSF around it; its confidence); "
-                          "accepted: of the slices with brain (empty ones have none); expected error (mm), variance "
-                          "(the network's spread, about mm^2): their medians")
+                          "accepted: of the slices with brain (empty ones have none); rejected: error = "
+                          "high_expected_error, variance = high_variance, inconsistent = inconsistent_with_stack, "
+                          "outside = outside_atlas, degenerate = degenerate_anchor_points; expected error (mm), "
+                          "variance (the network's spread, about mm^2): their medians")
     stacks = result.get("stacks") or []
     longest = max([len(str(s.get("filename", ""))) for s in stacks] + [5])
-    for col, just in (("stack", "left"), ("brain", "left"), ("accepted", "right"), ("rejected (by reason)", "left"),
+    for col, just in (("stack", "left"), ("brain", "left"), ("accepted", "right"), ("rejected", "left"),
                       ("expected error", "right"), ("variance", "right")):
         # names up to NAME_WIDTH stay whole (the other columns wrap first), longer ones fold; no cell is cut short
         table.add_column(col, justify=just, overflow="fold", no_wrap=col == "stack" and longest <= NAME_WIDTH,  # type: ignore[arg-type]
-                         min_width={"stack": min(longest, NAME_WIDTH), "rejected (by reason)": 19}.get(col),
-                         max_width=None if col in ("stack", "rejected (by reason)") else 8)
+                         min_width={"stack": min(longest, NAME_WIDTH), "rejected": 14}.get(col),
+                         max_width=None if col in ("stack", "rejected") else 8)
     for stack in stacks:
         slices = stack.get("slices") or []
         accepted = sum(1 for s in slices if s.get("accepted"))
@@ -78,7 +84,8 @@ def summarise(result: dict[str, Any]) -> Table:
         found = "mask" if where.get("method") == "mask" else \
             f"{where.get('brain_volume_ml', 0):.0f} ml ({where.get('confidence', 0):.2f})" if where else "-"
         table.add_row(str(stack.get("filename", "")), found, f"{accepted} of {len(brain)}",
-                      ", ".join(f"{k} {v}" for k, v in sorted(reasons.items())) or "-",
+                      "\n".join(f"{SHORT_REASONS.get(k, k)} {v}" for k, v in sorted(reasons.items(), key=lambda kv: (-kv[1], kv[0])))
+                      or "-",
                       f"{statistics.median(expected):.1f} mm" if expected else "-",
                       f"{statistics.median(variances):.4g}" if variances else "-")
     return table
