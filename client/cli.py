@@ -13,6 +13,7 @@ Commands::
     svrnet status JOB
     svrnet cancel JOB
     svrnet models
+    svrnet export ANSWER.json STACK... --to nesvor|niftymic --out-dir DIR [--mask M...]
 
 Every command takes ``--server URL`` (default ``$SVRNET_SERVER``, else ``http://127.0.0.1:8000``); the
 API key comes from ``$SVRNET_API_KEY`` (sent as ``Authorization: Bearer``); ``$SVRNET_TIMEOUT`` sets the
@@ -51,6 +52,7 @@ import typer
 from rich.live import Live
 
 from client._client import DEFAULT_SERVER, SVRnetClient
+from client.cli_export import export
 from client.cli_support import (DEFAULT_VOLUME, ApiKeyOpt, BiasCorrectionOpt, JobArg, MaskOpt, MasksHoldCsfOpt,
                                 MaxExpectedOpt, McSamplesOpt, ModelOpt, ServerOpt, StackSpaceOpt, StacksArg, ThresholdOpt,
                                 check_folder_writable, check_masks, check_writable, follow_job, job_id_of, once_or_per_stack,
@@ -386,6 +388,9 @@ def models(
             console.print_json(data=listed)
             return
         console.print(models_table(listed))
+
+
+app.command(name="export", epilog=EXIT_HELP)(export)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,7 +1,7 @@
 """A ``/v1/predict`` answer's slice poses as ITK transforms, the files a reconstruction job writes.
 
-Tools that start slice-to-volume reconstruction from per-slice transforms (ITK, SimpleITK, NiftyMIC)
-read ``.tfm`` files. :func:`write_transforms_zip` writes, for every slice of every stack of an
+ITK and SimpleITK read ``.tfm`` files (NiftyMIC's per-slice files are the inverse transforms, named
+by stack: :mod:`client.peer_exports`). :func:`write_transforms_zip` writes, for every slice of every stack of an
 answer, ``transforms/stack{S}_slice{K:03d}.tfm``: an ``AffineTransform_double_3_3`` in ITK's LPS
 world frame,
 

@@ -14,7 +14,7 @@ convention with the reconstruction as the fixed image and the stack as the movin
 ``sitk.Resample(stack_image, reconstruction_image, sitk.ReadTransform(path))`` maps that slice of
 the stack into atlas space. (``atlas_from_scanner``, the other direction, is its inverse.)
 
-``transforms/slice_transforms.txt`` lists every slice, SVRTK-style, one line each:
+``transforms/slice_transforms.txt`` lists every slice, one line each:
 ``stack slice included weight`` then the 12 numbers of the top 3 x 4 block (row-major) of
 ``atlas_from_voxel`` (voxel index of the stack file -> atlas RAS mm). ``report.json`` has the same
 per slice with the NCC, plus the volume's geometry, each stack's frame (``stack_frames``:
@@ -101,7 +101,7 @@ def slice_records(result: ReconstructionResult, slices: SliceSet) -> list[dict]:
 
 
 def listing_text(result: ReconstructionResult, slices: SliceSet) -> str:
-    """The SVRTK-style per-slice listing (see the module docstring)."""
+    """The per-slice listing (see the module docstring)."""
     lines = ["# stack slice included weight  atlas_from_voxel[0:3, 0:4] row-major "
              "(voxel index of the stack file -> atlas RAS mm)"]
     for i in range(slices.n_slices):

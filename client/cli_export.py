@@ -1,0 +1,52 @@
+"""``svrnet export``: an answer's slice poses as NeSVoR or NiftyMIC read them (:mod:`client.peer_exports`),
+so that those tools start from the poses instead of registering the slices themselves."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from client.cli_support import MaskOpt, StacksArg, check_masks, once_or_per_stack
+from client.exits import EXIT_BAD_INPUT, errors, fail, stdout
+
+NEXT_STEP = {
+    "nesvor": "nesvor reconstruct --input-slices {out} --output-volume recon.nii.gz",
+    "niftymic": "niftymic_reconstruct_volume_from_slices --filenames {stacks} --dir-input-mc {out} "
+                "--reconstruction-space ATLAS_VOLUME.nii.gz --output recon.nii.gz",
+}
+"""What to run next, per tool (the docs give each in full: docs/reconstruction.md)."""
+
+
+def export(
+    answer: Annotated[Path, typer.Argument(exists=True, dir_okay=False, readable=True,
+                                           help="JSON answer of `svrnet predict --out` or `reconstruct --poses-out`")],
+    stacks: StacksArg,
+    to: Annotated[str, typer.Option("--to", help="the tool to start: nesvor or niftymic")],
+    out_dir: Annotated[Path, typer.Option("--out-dir", file_okay=False, help="folder to write into (created)")],
+    mask: MaskOpt = None,
+    all_slices: Annotated[bool, typer.Option(
+        "--all-slices", help="also the slices not accepted (default: accepted ones only; never those without brain)")] = False,
+    thickness: Annotated[Optional[list[float]], typer.Option(
+        "--thickness", help="slice thickness in mm for NeSVoR's slice profile, once for every stack or once per "
+        "stack (default: the slice spacing)")] = None,
+) -> None:
+    """Write the slice poses of an answer for NeSVoR (--input-slices) or NiftyMIC (--dir-input-mc): the
+    stacks given are the NIfTI files the answer was made from, in its order."""
+    check_masks(stacks, mask)
+    once_or_per_stack(thickness, stacks, "--thickness")
+    with errors():
+        from client.peer_exports import FORMATS, export as write           # numpy, nibabel: only where needed
+        if to not in FORMATS:
+            raise typer.BadParameter(f"one of {', '.join(FORMATS)}", param_hint="--to")
+        try:
+            body = json.loads(answer.read_text())
+        except (UnicodeDecodeError, json.JSONDecodeError) as e:
+            fail(f"{answer.name} is not a JSON answer ({e})", EXIT_BAD_INPUT)
+        count = write(body, stacks, mask, out_dir, to, all_slices, thickness)
+    console = stdout()
+    console.print(f"wrote {count} slices for {to} into {out_dir}", soft_wrap=True)
+    console.print("next: " + NEXT_STEP[to].format(out=out_dir, stacks=" ".join(str(s) for s in stacks)), soft_wrap=True,
+                  markup=False)

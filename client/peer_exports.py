@@ -1,0 +1,142 @@
+"""Slice poses written as other reconstruction tools read them, to start those tools from our poses.
+
+An answer of ``/v1/predict`` (``svrnet predict --out``) or a job's refined poses (``svrnet
+reconstruct --poses-out``) gives every slice ``k`` of stack ``s`` its ``atlas_from_voxel`` ``P_sk``
+(voxel ``(i, j, k)`` of the stack file -> atlas RAS mm) beside the stack's ``scanner_from_voxel``
+``S_s`` (as the server read the file). Two tools take per-slice poses as input:
+
+* **NeSVoR** (``nesvor reconstruct --input-slices DIR``) reads a folder of one-slice NIfTI files
+  ``{i}.nii.gz`` with ``mask_{i}.nii.gz``, each placed by its affine (voxel -> world, sform first),
+  its third voxel size the slice thickness. Each slice's affine here is ``P_sk`` moved to the
+  slice's own index 0, its third column scaled to the thickness: the slice in atlas space.
+  ``slices.tsv`` maps ``i`` back to stack and slice (NeSVoR keeps no such table).
+* **NiftyMIC** (``niftymic_reconstruct_volume_from_slices --dir-input-mc DIR``) reads, per slice of
+  a stack file ``NAME.nii.gz``, ``NAME_slice{k}.tfm``: a SimpleITK transform ``T`` (LPS) whose
+  composition with the slice's own voxel -> world map is its corrected one, so
+  ``T = F P_sk S_s^-1 F`` (``F = diag(-1, -1, 1, 1)``): scanner -> atlas, the inverse of the
+  ``.tfm`` files of ``svrnet predict --transforms-out``, which follow ITK's registration
+  convention. NiftyMIC drops a slice without a file, so the slices not written are left out.
+
+Only accepted slices are written unless ``all_slices``; slices without brain (``empty``) never.
+SVRTK's ``-transformations`` folder is not written: it numbers slices after cropping the stacks
+to its mask, which only a run of SVRTK knows (docs/reconstruction.md gives the recipe).
+
+Example (one slice 5 mm right of where it was acquired):
+    >>> S = np.diag([1.0, 1.0, 3.0, 1.0]); P = S.copy(); P[0, 3] = 5.0
+    >>> niftymic_transform(P, S)[:3, 3].tolist()       # scanner LPS -> atlas LPS: 5 mm towards the right (-L)
+    [-5.0, 0.0, 0.0]
+    >>> slice_affine(P, 2, 2.5)[:3, 3].tolist(), float(slice_affine(P, 2, 2.5)[2, 2])   # voxel (0, 0, 2) of the stack
+    ([5.0, 0.0, 6.0], 2.5)
+"""
+
+from __future__ import annotations
+
+import gzip
+import os
+from pathlib import Path
+from typing import Any
+
+import nibabel as nib
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from client.errors import UnusableInput
+from client.slice_transforms import LPS_FROM_RAS, tfm_text
+
+FORMATS = ("nesvor", "niftymic")
+
+
+def niftymic_transform(atlas_from_voxel: ArrayLike, scanner_from_voxel: ArrayLike) -> NDArray[np.float64]:
+    """NiftyMIC's ``4 x 4`` LPS transform of one slice: its scanner position -> its atlas position."""
+    atlas_from_scanner = np.asarray(atlas_from_voxel, np.float64) @ np.linalg.inv(np.asarray(scanner_from_voxel, np.float64))
+    return LPS_FROM_RAS @ atlas_from_scanner @ LPS_FROM_RAS
+
+
+def slice_affine(atlas_from_voxel: ArrayLike, k: int, thickness_mm: float) -> NDArray[np.float64]:
+    """The affine of slice ``k`` saved alone (its voxel ``(i, j, 0)`` is the stack's ``(i, j, k)``),
+    the third axis one slice thickness long, as NeSVoR reads a slice's profile."""
+    a = np.asarray(atlas_from_voxel, np.float64) @ np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, k], [0, 0, 0, 1.0]])
+    a[:3, 2] *= thickness_mm / np.linalg.norm(a[:3, 2])
+    return a
+
+
+def matched_stacks(answer: dict[str, Any], stacks: list[Path]) -> list[dict[str, Any]]:
+    """The answer's stack objects in the order of the files ``stacks``: by file name where the answer
+    names them so, else (a job's refined poses name them ``stacks[i]``) by place."""
+    found = answer.get("stacks") or []
+    if len(found) != len(stacks):
+        raise UnusableInput(f"export: the answer holds {len(found)} stacks, {len(stacks)} files were given")
+    by_name = {str(s.get("filename")): s for s in found}
+    if all(p.name in by_name for p in stacks):
+        return [by_name[p.name] for p in stacks]
+    return list(found)
+
+
+def _chosen(stack: dict[str, Any], all_slices: bool) -> list[dict[str, Any]]:
+    return [s for s in stack.get("slices") or [] if s.get("reason") != "empty" and (all_slices or s.get("accepted"))]
+
+
+def _stack_file(path: Path, stack: dict[str, Any]) -> tuple[nib.Nifti1Image, NDArray]:
+    """The stack file read with nibabel, checked to be the grid the answer's poses are of."""
+    try:
+        image = nib.load(str(path))
+    except (nib.filebasedimages.ImageFileError, OSError, ValueError) as e:
+        raise UnusableInput(f"export: {path.name} is not a NIfTI file ({e}); NeSVoR and NiftyMIC read NIfTI") from None
+    sfv = np.asarray(stack.get("scanner_from_voxel") or np.full((4, 4), np.nan), np.float64)
+    if tuple(image.shape[:3]) != tuple(stack.get("shape") or image.shape[:3]) or not np.allclose(image.affine, sfv, atol=1e-3):
+        raise UnusableInput(f"export: {path.name} is not the file the answer's stack {stack.get('index')} was read from "
+                            "(another grid or placement)")
+    header = image.header
+    if header["qform_code"] > 0 and header["sform_code"] > 0 and not np.allclose(header.get_qform(), header.get_sform(), atol=1e-3):
+        raise UnusableInput(f"export: {path.name}: its qform and sform disagree; ITK-based tools (NiftyMIC) place it by "
+                            "its qform, the service by its sform: write it with one placement first")
+    return image, sfv
+
+
+def _write(path: Path, data: bytes) -> None:
+    partial = path.with_name(f".{path.name}.{os.getpid()}")
+    partial.write_bytes(data)
+    os.replace(partial, path)
+
+
+def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None, folder: Path, to: str,
+           all_slices: bool = False, thickness_mm: list[float] | None = None) -> int:
+    """Write the slices of ``answer`` for the tool ``to`` (:data:`FORMATS`) into ``folder``; the number
+    of slices written. ``stacks`` (and ``masks``): the files the answer was made from, NIfTI.
+    ``thickness_mm``: one per stack, or one for all (default: each stack's slice spacing)."""
+    if to not in FORMATS:
+        raise UnusableInput(f"export: unknown format {to!r}; one of {', '.join(FORMATS)}")
+    folder.mkdir(parents=True, exist_ok=True)
+    count, rows = 0, ["i\tstack\tfile\tslice\taccepted\texpected_error_mm"]
+    for s, (path, stack) in enumerate(zip(stacks, matched_stacks(answer, stacks))):
+        image, sfv = _stack_file(path, stack)
+        chosen = _chosen(stack, all_slices)
+        if to == "niftymic":
+            stem = path.name.removesuffix(".gz").removesuffix(".nii")
+            for item in chosen:
+                t = niftymic_transform(item["atlas_from_voxel"], sfv)
+                _write(folder / f"{stem}_slice{int(item['index'])}.tfm", tfm_text(t).encode())
+            count += len(chosen)
+            continue
+        data = np.asarray(image.dataobj, np.float32).reshape(image.shape[:3])
+        mask = None if not masks else np.asarray(nib.load(str(masks[s])).dataobj).reshape(image.shape[:3]) > 0
+        spacing = float(np.linalg.norm(sfv[:3, 2]))
+        thick = spacing if not thickness_mm else float(thickness_mm[0] if len(thickness_mm) == 1 else thickness_mm[s])
+        for item in chosen:
+            k = int(item["index"])
+            a = slice_affine(item["atlas_from_voxel"], k, thick)
+            for name, values in ((f"{count}.nii.gz", data[:, :, k:k + 1]),
+                                 (f"mask_{count}.nii.gz", None if mask is None else mask[:, :, k:k + 1].astype(np.uint8))):
+                if values is None:
+                    continue
+                out = nib.Nifti1Image(values, a)
+                out.set_qform(a, 2)
+                out.set_sform(a, 2)
+                _write(folder / name, gzip.compress(out.to_bytes(), compresslevel=6))
+            expected = item.get("expected_error_mm")
+            rows.append(f"{count}\t{s}\t{path.name}\t{k}\t{int(bool(item.get('accepted')))}\t"
+                        f"{'nan' if expected is None else f'{float(expected):.3f}'}")
+            count += 1
+    if to == "nesvor":
+        _write(folder / "slices.tsv", ("\n".join(rows) + "\n").encode())
+    return count
