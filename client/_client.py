@@ -175,7 +175,7 @@ class SVRnetClient(Transport):
         there = [name for name in files if (out / name).exists()]
         if there and not overwrite:
             raise ArgumentError(f"out_dir: {out} holds {', '.join(there)} already; nothing was written "
-                                "(overwrite=True, --overwrite, replaces them)")
+                                "(`svrnet masks --overwrite` replaces them; in Python, overwrite=True)")
         out.mkdir(parents=True, exist_ok=True)
         for name, data in files.items():
             partial = out / f".{name}.partial"
