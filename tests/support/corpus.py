@@ -112,6 +112,7 @@ def gzip_bomb(megabytes: int) -> bytes:
     head[70:74] = np.array([16, 32], "<i2").tobytes()                 # float32
     head[76:108] = np.array([1, 1, 1, 1, 0, 0, 0, 0], "<f4").tobytes()
     head[108:112] = np.float32(352).tobytes()
+    head[252:256] = np.array([1, 0], "<i2").tobytes()                # qform: scanner (identity), no sform
     head[344:348] = b"n+1\x00"
     buf = io.BytesIO()
     with gzip.GzipFile(fileobj=buf, mode="wb", compresslevel=9, mtime=0) as g:
