@@ -208,11 +208,20 @@ def write_results(svr: SVRnetClient, job_id: str, done: dict[str, Any], out: Pat
     for line in (quality_line(report.get("quality"), report.get("n_stacks")), refined_poses_line(report.get("refined_poses"))):
         if line:
             console.print(line, markup=False)
-    incoherent = (report.get("quality") or {}).get("coherent") is False
+    quality = report.get("quality") or {}
+    incoherent = quality.get("coherent") is False
     if incoherent:
-        console.print("the stacks do not predict each other (leave one stack out under 0.5): the volume is no "
-                      "coherent brain; do not use it. Check the stacks' poses (svrnet predict) and masks "
-                      "(svrnet masks)", style="bold red", markup=False)
+        what = ("the stack's slices do not predict each other (leave alternate slices out under 0.5)"
+                if quality.get("leave_alternate_slices_out") else
+                "the stacks do not predict each other (leave one stack out under 0.5)")
+        console.print(f"{what}: the volume is no coherent brain; do not use it. Check the stacks' poses (svrnet "
+                      "predict) and masks (svrnet masks)", style="bold red", markup=False)
+    per_stack = (quality.get("leave_one_stack_out") or {}).get("per_stack_median_ncc") or []
+    apart = [str(i) for i, x in enumerate(per_stack) if x is not None and x < 0.5]
+    if apart and not incoherent:
+        console.print(f"stack {', '.join(apart)}: the other stacks do not predict it (leave one stack out under 0.5): "
+                      "another fetus, another contrast, or a stack far off; the volume rests on the others, and its "
+                      "slices keep their starting expected errors", style="yellow", markup=False)
     if report.get("started_from") == "every_slice":
         console.print("started from every slice: too few were accepted to start from the accepted ones alone; "
                       "judge the volume by the quality line and the preview", style="yellow", markup=False)

@@ -187,6 +187,10 @@ def quality_line(quality: dict[str, Any] | None, stacks: int | None = None) -> s
         'path slice_level + 1 further slice-level pass'
         >>> quality_line({"judged_slices": 22, "median_ncc": 0.99, "fraction_ncc_above_0_7": 1.0}, stacks=1).split("; ")[1]
         'leave one stack out: - (one stack: the volume is judged by its own slices only)'
+        >>> quality_line({"judged_slices": 22, "median_ncc": 0.99, "fraction_ncc_above_0_7": 1.0,
+        ...               "leave_alternate_slices_out": {"median_ncc": 0.12, "even_odd_median_ncc": [0.1, 0.14]}},
+        ...              stacks=1).split("; ")[1]
+        'one stack: leave alternate slices out 0.12 (even 0.10, odd 0.14)'
     """
     if not quality:
         return ""
@@ -195,9 +199,13 @@ def quality_line(quality: dict[str, Any] | None, stacks: int | None = None) -> s
     share = quality.get("fraction_ncc_above_0_7")
     line = (f"quality: slices vs volume median NCC {num(quality.get('median_ncc'))}, "
             f"{'-' if share is None else f'{share:.0%}'} above 0.7 ({quality.get('judged_slices', 0)} slices)")
+    alternate = quality.get("leave_alternate_slices_out") or {}
     if held.get("median_ncc") is not None:
         per = ", ".join(num(x) for x in held.get("per_stack_median_ncc") or [])
         line += f"; leave one stack out {num(held['median_ncc'])} (per stack {per})"
+    elif alternate.get("median_ncc") is not None:      # a lone stack's slices agree with any volume of themselves
+        even, odd = (alternate.get("even_odd_median_ncc") or [None, None])[:2]
+        line += f"; one stack: leave alternate slices out {num(alternate['median_ncc'])} (even {num(even)}, odd {num(odd)})"
     else:
         line += "; leave one stack out: -" + (" (one stack: the volume is judged by its own slices only)"
                                               if stacks == 1 else "")

@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from service.reconstruction.atlas_frame import FrameFit, atlas_frame, with_frame
 from service.reconstruction.left_out import LeftOutPlacement, VolumeReference, place_left_out
 from service.reconstruction.midline import FrameCorrection, midline_fit
-from service.reconstruction.never_worse import held_out_score, reconstruct_never_worse
+from service.reconstruction.never_worse import coherence_score, held_out_score, reconstruct_never_worse, stack_held_out
 from service.reconstruction.pipeline import ReconstructionConfig, ReconstructionResult
 from service.reconstruction.pose_errors import refined_expected_errors, refined_summary, roles
 from service.reconstruction.slices import SliceSet, StackInput
@@ -96,14 +96,15 @@ def refine_job(slice_set: SliceSet, stacks: Sequence[StackInput], starting_error
     if frame_steps:
         report("atlas frame", 1.0)
         frame = atlas_frame(result.volume, estimator, plane_x_mm, mc_samples=mc_samples,
-                            held_out_ncc=held_out_score(result))
+                            held_out_ncc=coherence_score(result))
         result = with_frame(result, frame)
         report("midline", 1.0)
-        midline = midline_fit(result.volume, plane_x_mm, held_out_score(result))
+        midline = midline_fit(result.volume, plane_x_mm, coherence_score(result))
         result = with_frame(result, midline)
     role = roles(result.included, left_out.moved, left_out.registered)
     expected = refined_expected_errors(role, left_out.ncc, areas, starting_error_mm,
                                        held_out_ncc=held_out_score(result),
-                                       framed=frame is not None and frame.applied)
+                                       framed=frame is not None and frame.applied,
+                                       stack_held_out_ncc=stack_held_out(result, slice_set.stack_index))
     return RefinedJob(result, left_out, frame, midline, role, areas, expected,
                       np.asarray(starting_error_mm, np.float64))

@@ -30,7 +30,8 @@ small margin is made again there.
 
 A registered path (1 or 3) wins where its leave-one-stack-out mismatch (1 - the median NCC) is at
 most the starting poses' over :data:`MIN_MISMATCH_RATIO` (more where the score rests on fewer than
-:data:`REFERENCE_SLICES` slices: :func:`required_ratio`); otherwise the starting poses do. A
+:data:`REFERENCE_SLICES` slices: :func:`required_ratio`) and its stacks predict each other
+(:data:`~service.reconstruction.quality.MIN_HELD_OUT_NCC`); otherwise the starting poses do. A
 further pass is kept by the same rule against the pass it started from; the first that is not ends
 them. The quality report names the winner (``path``), every path's score (``paths``) and the
 further passes' scores and how many were kept (``further_passes``), the paths' resolution
@@ -64,7 +65,7 @@ from numpy.typing import ArrayLike
 
 from service.reconstruction.grid import bounds_of, bounds_within
 from service.reconstruction.pipeline import Progress, ReconstructionConfig, ReconstructionResult, reconstruct
-from service.reconstruction.quality import exclusion_reasons
+from service.reconstruction.quality import exclusion_reasons, incoherent
 from service.reconstruction.slices import SliceSet
 
 PATHS = ("full", "starting_poses", "slice_level")
@@ -111,6 +112,44 @@ def held_out_score(result: ReconstructionResult) -> float | None:
     return result.quality["leave_one_stack_out"]["median_ncc"]
 
 
+def coherence_score(result: ReconstructionResult) -> float | None:
+    """The score that says whether the result is a coherent brain: its leave-one-stack-out median
+    NCC, or with one stack its leave-alternate-slices-out median (None: neither measured). The frame
+    steps leave a volume under :data:`~service.reconstruction.quality.MIN_HELD_OUT_NCC` alone; the
+    paths are chosen by :func:`held_out_score` alone.
+
+    Example:
+        >>> from types import SimpleNamespace
+        >>> coherence_score(SimpleNamespace(quality={"leave_one_stack_out": {"median_ncc": None},
+        ...                                          "leave_alternate_slices_out": {"median_ncc": -0.02}}))
+        -0.02
+    """
+    score = held_out_score(result)
+    if score is None and result.quality is not None:
+        return (result.quality.get("leave_alternate_slices_out") or {}).get("median_ncc")
+    return score
+
+
+def stack_held_out(result: ReconstructionResult, stack_index: ArrayLike) -> np.ndarray | None:
+    """``[n]`` the leave-one-stack-out median NCC of each slice's stack (``stack_index``; NaN where
+    not measured), or None where the result has no such score (no quality report, one stack).
+
+    Example:
+        >>> from types import SimpleNamespace
+        >>> r = SimpleNamespace(quality={"leave_one_stack_out": {"per_stack_median_ncc": [0.9, None, 0.44]}})
+        >>> stack_held_out(r, np.array([0, 1, 2, 2])).tolist()
+        [0.9, nan, 0.44, 0.44]
+    """
+    per = ((result.quality or {}).get("leave_one_stack_out") or {}).get("per_stack_median_ncc")
+    if not per or all(x is None for x in per):
+        return None
+    stacks = np.unique(stack_index)
+    if len(per) != len(stacks):
+        return None
+    by_stack = np.array([np.nan if x is None else float(x) for x in per])
+    return by_stack[np.searchsorted(stacks, np.asarray(stack_index))]
+
+
 def held_out_slices(result: ReconstructionResult) -> int | None:
     """How many slices the result's leave-one-stack-out score rests on (None: not known)."""
     if result.quality is None:
@@ -134,13 +173,23 @@ def required_ratio(slices: int | None, ratio: float = MIN_MISMATCH_RATIO) -> flo
 
 def choose(scores: dict[str, float | None], ratio: float = MIN_MISMATCH_RATIO) -> str:
     """The registered path with the highest score where its mismatch is ``ratio`` times smaller
-    than the starting poses' (:func:`required_ratio` of the slices the scores rest on), else the
-    starting poses; ``full`` when it has no score (nothing to compare)."""
+    than the starting poses' (:func:`required_ratio` of the slices the scores rest on) and its
+    volume a coherent brain (:func:`~service.reconstruction.quality.incoherent`: registration whose
+    stacks do not predict each other has not shown it did better, e.g. against a stack whose
+    contrast defeats the NCC), else the starting poses; ``full`` when it has no score (nothing to
+    compare).
+
+    Example (every path incoherent: the poses the job was given stand):
+        >>> choose({"full": 0.41, "starting_poses": 0.18, "slice_level": 0.3})
+        'starting_poses'
+    """
     if scores.get("full") is None:
         return "full"
     best = best_registered(scores)
     start = scores.get("starting_poses")
-    return best if start is None or clearly_better(scores[best], start, ratio) else "starting_poses"
+    if start is None:
+        return best
+    return best if clearly_better(scores[best], start, ratio) and not incoherent(scores[best]) else "starting_poses"
 
 
 def best_registered(scores: dict[str, float | None]) -> str | None:
@@ -252,10 +301,10 @@ def at_output_resolution(slice_set: SliceSet, results: dict[str, ReconstructionR
       ``ratio`` times that of ``chosen``, the robust super-resolution at those poses is solved
       too, and the pass is kept unless that volume does clearly better at the same resolution
       (scores of two resolutions are not alike: see :data:`UNDECIDED_POWER`).
-    * The starting poses won, but a registered path cut their mismatch by at least ``ratio`` to
-      the power :data:`UNDECIDED_POWER`: a coarse grid shows a pose's gain less (its volumes are
-      blurrier), so the choice is made again at ``resolution_mm``, by the same rule, between the
-      starting poses' volume and that path's slice level from its poses.
+    * The starting poses won, but a coherent registered path cut their mismatch by at least
+      ``ratio`` to the power :data:`UNDECIDED_POWER`: a coarse grid shows a pose's gain less (its
+      volumes are blurrier), so the choice is made again at ``resolution_mm``, by the same rule,
+      between the starting poses' volume and that path's slice level from its poses.
     * Otherwise: the robust super-resolution at the starting poses.
 
     Each volume's slice weights, exclusions and quality report are measured on it. Its field of
@@ -281,13 +330,14 @@ def at_output_resolution(slice_set: SliceSet, results: dict[str, ReconstructionR
         return (fine if kept else plain), best, {"tried": True, "score": score, "kept": kept, "against": against}, \
             _seconds(fine, plain)
     start, contender = scores["starting_poses"], best_registered(scores)
-    if contender is None or start is None or not clearly_better(scores[contender], start, ratio ** UNDECIDED_POWER):
+    if contender is None or start is None or incoherent(scores[contender]) \
+            or not clearly_better(scores[contender], start, ratio ** UNDECIDED_POWER):
         plain = solve(chosen, False, 0.0, 1.0)
         return plain, best, {"tried": False, "score": None, "kept": False}, _seconds(plain)
     plain = solve(chosen, False, 0.0, 0.3)
     fine = solve(results[contender], True, 0.3, 1.0)
     score, against = held_out_score(fine), held_out_score(plain)
-    kept = score is not None and against is not None and clearly_better(score, against, ratio)
+    kept = score is not None and against is not None and clearly_better(score, against, ratio) and not incoherent(score)
     return (fine if kept else plain), (contender if kept else best), \
         {"tried": True, "score": score, "kept": kept, "against": against}, _seconds(fine, plain)
 

@@ -56,7 +56,8 @@ from service.reconstruction.forward import ForwardModel, inplane_sigma_mm
 from service.reconstruction.gaussian_average import gaussian_average
 from service.reconstruction.grid import Grid, bounds_of, bounds_within, make_grid
 from service.reconstruction.registration import anchor_frame, register_slices
-from service.reconstruction.quality import exclusion_reasons, held_out_ncc, judged_slices, quality_report, slice_ncc
+from service.reconstruction.quality import (exclusion_reasons, held_out_groups, held_out_ncc, judged_slices,
+                                           quality_report, slice_ncc)
 from service.reconstruction.robust import ncc_outliers, robust_weights
 from service.reconstruction.slices import BIN_BELOW_FRACTION, SliceSet, inplane_bin_factors
 from service.reconstruction.superresolution import (
@@ -383,13 +384,14 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
     quality, held_out = None, None
     if cfg.quality:
         t0 = time.perf_counter()
-        held_out = held_out_ncc(model, slice_set.values, pixel_weight, sid, slice_set.stack_index,
+        held_out = held_out_ncc(model, slice_set.values, pixel_weight, sid,
+                                held_out_groups(slice_set.stack_index, slice_set.slice_index),
                                 lambda w: gaussian_average(slice_set, poses, grid, sigma_mm=cfg.ga_sigma_mm,
                                                            pixel_weight=w).volume,
                                 lambda sim, val: slice_ncc(sim, val, sid, n), float(lams[-1] if lams else cfg.lam),
                                 default_delta(x, support, cfg.delta_fraction), support)
         quality = quality_report(ncc, held_out, judged_slices(included, counts), slice_set.stack_index,
-                                 judged)
+                                 judged, slice_set.slice_index)
         timings["quality"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
     if progress is not None:

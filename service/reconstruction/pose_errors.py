@@ -44,7 +44,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from service.reconstruction.left_out import MIN_AREA_MM2
-from service.reconstruction.quality import incoherent
+from service.reconstruction.quality import MIN_HELD_OUT_NCC, incoherent
 
 IN_VOLUME, PLACED_BY_STACK_MOTION, PLACED_BY_VOLUME, LEFT_OUT = 0, 1, 2, 3
 """A slice's role in the job (:func:`roles`)."""
@@ -76,7 +76,8 @@ def roles(included: ArrayLike, placed_by_stack_motion: ArrayLike, placed_by_volu
 
 
 def refined_expected_errors(role: ArrayLike, ncc: ArrayLike, area_mm2: ArrayLike, predicted_mm: ArrayLike, *,
-                            held_out_ncc: float | None, framed: bool = True) -> NDArray[np.float64]:
+                            held_out_ncc: float | None, framed: bool = True,
+                            stack_held_out_ncc: ArrayLike | None = None) -> NDArray[np.float64]:
     """``[n]`` the expected E.D. (mm) of each refined pose (module docstring).
 
     Args:
@@ -90,6 +91,9 @@ def refined_expected_errors(role: ArrayLike, ncc: ArrayLike, area_mm2: ArrayLike
             after). Where they did not, or the stacks do not predict each other (``held_out_ncc``
             incoherent or not measured), no slice's expected error falls below its starting pose's,
             and a slice without one has none.
+        stack_held_out_ncc: ``[n]`` the leave-one-stack-out median NCC of each slice's stack (NaN:
+            not measured): a stack the others do not predict (a stack of another fetus, another
+            contrast) is treated so alone, whatever the job's median.
     """
     role = np.asarray(role, np.int64)
     c, predicted = np.asarray(ncc, np.float64), np.asarray(predicted_mm, np.float64)
@@ -106,7 +110,11 @@ def refined_expected_errors(role: ArrayLike, ncc: ArrayLike, area_mm2: ArrayLike
     # volume (an excluded slice may have been registered before the job left it out).
     out = np.where(role == LEFT_OUT, np.where(known, np.fmax(out, predicted), np.nan), out)
     if not framed or held_out_ncc is None or incoherent(held_out_ncc):
-        out = np.where(known, np.fmax(out, predicted), np.nan)
+        return np.where(known, np.fmax(out, predicted), np.nan)
+    if stack_held_out_ncc is not None:
+        stack = np.asarray(stack_held_out_ncc, np.float64)
+        alone = np.isfinite(stack) & (stack < MIN_HELD_OUT_NCC)
+        out = np.where(alone, np.where(known, np.fmax(out, predicted), np.nan), out)
     return out
 
 

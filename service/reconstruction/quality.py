@@ -13,7 +13,13 @@ Two measures, both from the acquired slices themselves:
   themselves. A volume that only echoes its own slices, or stacks that disagree, score well on
   agreement and badly here: it measures whether the stacks predict each other. Reported: the median
   per stack and over all slices, and whether that median reaches :data:`MIN_HELD_OUT_NCC`
-  (``coherent``: false for a volume that is no coherent brain, null with one stack).
+  (``coherent``: false for a volume that is no coherent brain).
+* **leave alternate slices out**, with one stack: its slices agree with a volume made of themselves
+  wherever they are put, so agreement says nothing; the volume solved without the even slices
+  judges them, and the one without the odd slices judges those. A slice sitting where it was
+  acquired lies between its neighbours, and the volume they make predicts it; slices placed
+  anywhere else are predicted by nothing. ``coherent`` then says whether that median reaches
+  :data:`MIN_ALTERNATE_NCC`.
 
 A slice is judged when it has at least :data:`MIN_PIXEL_FRACTION` of the median slice's pixels (an
 edge slice of a few pixels says little) and was used: for agreement, in the volume; for leaving
@@ -45,6 +51,10 @@ coherent brain, and neither the frame steps nor a user should trust it. Simulate
 0.87-0.95 and the real scans' 0.88-0.93; a jumping acquisition whose volume scored 0.17 was turned
 the wrong way by the midline step (its poses 6.1 -> 7.5 mm)."""
 
+MIN_ALTERNATE_NCC = MIN_HELD_OUT_NCC
+"""Below this leave-alternate-slices-out median NCC a single stack's slices do not predict each other
+(the same 0.5; docs/reconstruction.md gives what a good and a scrambled stack score)."""
+
 GOOD_NCC = 0.7
 MIN_PIXEL_FRACTION = 0.2
 HELD_OUT_ITERATIONS = 8
@@ -60,14 +70,27 @@ def judged_slices(use: NDArray, pixel_counts: NDArray) -> NDArray[np.bool_]:
     return use & (counts >= MIN_PIXEL_FRACTION * np.median(counts[use]))
 
 
+def held_out_groups(stack_index: NDArray, slice_index: NDArray) -> NDArray[np.int64]:
+    """The groups :func:`held_out_ncc` leaves out in turn: the stacks, or with one stack its even and
+    its odd slices (see the module).
+
+    Example:
+        >>> held_out_groups(np.array([0, 0, 1]), np.array([0, 1, 0])).tolist(), held_out_groups(np.zeros(4, int), np.arange(4)).tolist()
+        ([0, 0, 1], [0, 1, 0, 1])
+    """
+    stack_index = np.asarray(stack_index, np.int64)
+    return stack_index if len(np.unique(stack_index)) > 1 else np.asarray(slice_index, np.int64) % 2
+
+
 def held_out_ncc(model: ForwardModel, values: NDArray, pixel_weight: NDArray, slice_id: NDArray,
                  stack_index: NDArray, start: Callable[[NDArray], NDArray],
                  ncc: Callable[[NDArray, NDArray], NDArray], lam: float, delta: float, support: NDArray | None,
                  iterations: int = HELD_OUT_ITERATIONS) -> NDArray[np.float64]:
     """``[n]``: each slice's NCC against the volume solved without its stack's pixels (NaN where
-    the stack is the only one). ``start(weights)`` gives the volume the solve starts from, given the
-    pixel weights without the stack (the other stacks' Gaussian average); ``ncc(simulated, values)``
-    gives the per-slice NCC of pixel vectors."""
+    the stack is the only one; ``stack_index`` may be any grouping, :func:`held_out_groups`).
+    ``start(weights)`` gives the volume the solve starts from, given the pixel weights without the
+    stack (the other stacks' Gaussian average); ``ncc(simulated, values)`` gives the per-slice NCC of
+    pixel vectors."""
     n = len(stack_index)
     out = np.full(n, np.nan)
     stacks = np.unique(stack_index)
@@ -84,7 +107,7 @@ def held_out_ncc(model: ForwardModel, values: NDArray, pixel_weight: NDArray, sl
     return out
 
 
-def incoherent(held_out_ncc: float | None) -> bool:
+def incoherent(held_out_ncc: float | None, minimum: float = MIN_HELD_OUT_NCC) -> bool:
     """Whether a job's stacks do not predict each other (leave-one-stack-out median NCC under
     :data:`MIN_HELD_OUT_NCC`; None: not measured, e.g. one stack): no frame step trusts its volume,
     and the report says so (``coherent``).
@@ -93,7 +116,7 @@ def incoherent(held_out_ncc: float | None) -> bool:
         >>> incoherent(0.42), incoherent(0.9), incoherent(None)
         (True, False, False)
     """
-    return held_out_ncc is not None and held_out_ncc < MIN_HELD_OUT_NCC
+    return held_out_ncc is not None and held_out_ncc < minimum
 
 
 def _median(x: NDArray) -> float | None:
@@ -103,9 +126,11 @@ def _median(x: NDArray) -> float | None:
 
 
 def quality_report(ncc: NDArray, held_out: NDArray, judged: NDArray, stack_index: NDArray,
-                   held_out_judged: NDArray | None = None) -> dict:
+                   held_out_judged: NDArray | None = None, slice_index: NDArray | None = None) -> dict:
     """The ``quality`` object of a job's report (see the module): agreement over the ``judged``
-    slices, leaving a stack out over ``held_out_judged`` (default: the same slices)."""
+    slices, leaving a stack out over ``held_out_judged`` (default: the same slices). With one stack,
+    ``held_out`` holds each slice's NCC with its alternate slices left out (:func:`held_out_groups`
+    of ``slice_index``), reported as ``leave_alternate_slices_out``."""
     judged = np.asarray(judged, bool)
     held_judged = judged if held_out_judged is None else np.asarray(held_out_judged, bool)
     c = np.asarray(ncc, np.float64)[judged]
@@ -113,17 +138,18 @@ def quality_report(ncc: NDArray, held_out: NDArray, judged: NDArray, stack_index
     h = np.asarray(held_out, np.float64)
     stacks = np.unique(stack_index)
     held_median = _median(h[held_judged])
-    return {
-        "judged_slices": int(judged.sum()),
-        "coherent": None if held_median is None else not incoherent(held_median),
-        "median_ncc": _median(c),
-        "fraction_ncc_above_0_7": round(float(np.mean(c > GOOD_NCC)), 4) if c.size else None,
-        "leave_one_stack_out": {
-            "median_ncc": held_median,
-            "slices": int(np.isfinite(h[held_judged]).sum()),
-            "per_stack_median_ncc": [_median(h[held_judged & (stack_index == s)]) for s in stacks],
-        },
-    }
+    held = {"median_ncc": held_median, "slices": int(np.isfinite(h[held_judged]).sum())}
+    report = {"judged_slices": int(judged.sum()), "coherent": None if held_median is None else not incoherent(held_median),
+              "median_ncc": _median(c),
+              "fraction_ncc_above_0_7": round(float(np.mean(c > GOOD_NCC)), 4) if c.size else None}
+    if len(stacks) > 1 or slice_index is None:
+        return {**report, "leave_one_stack_out": {
+            **held, "per_stack_median_ncc": [_median(h[held_judged & (stack_index == s)]) for s in stacks]}}
+    halves = np.asarray(slice_index) % 2
+    return {**report, "coherent": None if held_median is None else not incoherent(held_median, MIN_ALTERNATE_NCC),
+            "leave_one_stack_out": {"median_ncc": None, "slices": 0, "per_stack_median_ncc": [None]},
+            "leave_alternate_slices_out": {
+                **held, "even_odd_median_ncc": [_median(h[held_judged & (halves == p)]) for p in (0, 1)]}}
 
 
 def exclusion_reasons(include: NDArray, included: NDArray, stack_inlier: NDArray | None) -> list[str | None]:

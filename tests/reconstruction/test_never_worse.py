@@ -349,3 +349,17 @@ def test_a_field_of_view_given_is_the_output_volumes_too(monkeypatch) -> None:  
              made={"output": [fake_result(0.94, 9)]}, resolution_mm=0.8, path_resolution_mm=1.5, log=log,
              bounds_mm=bounds)
     assert [e[2] for e in log] == [bounds] * 4
+
+
+def test_no_registered_path_whose_stacks_do_not_predict_each_other_replaces_the_starting_poses(monkeypatch) -> None:  # noqa: ANN001
+    """A stack whose contrast defeats the NCC: every path scores under 0.5, the full job 2.3 x better
+    than the start. Nothing shows the registration did better, at the paths' resolution or the output's."""
+    log: list = []
+    made = {"output": [fake_result(0.15, 9)]}
+    result, calls = run_with(monkeypatch, {"full": 0.41, "starting_poses": 0.18, "slice_level": 0.21},
+                             ReconstructionConfig(), made=made, resolution_mm=0.8, path_resolution_mm=1.5, log=log)
+    assert [c[0] for c in calls] == ["full", "starting_poses", "slice_level", "output"]
+    assert result.quality["path"] == "starting_poses" and log[-1][3] is False     # solved at the poses given
+    result, _ = run_with(monkeypatch, {"full": 0.62, "starting_poses": 0.18, "slice_level": 0.21},
+                         ReconstructionConfig())                                  # a coherent path still wins
+    assert result.quality["path"] == "full"

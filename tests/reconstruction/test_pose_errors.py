@@ -96,3 +96,17 @@ def test_on_a_phantom_a_misplaced_slice_is_told_from_the_placed_ones() -> None:
     assert got[off][0] > 5.0
     large = ~off & (volume.areas_mm2 >= MIN_AREA_MM2)
     np.testing.assert_allclose(got[large], np.hypot(FRAME_MM, PREDICTED_SHARE * 3.0))
+
+
+def test_a_stack_the_others_do_not_predict_keeps_its_starting_errors_in_a_coherent_job() -> None:
+    """A stack of another fetus in one job: the job's median passes, that stack's leave-out NCC (0.44)
+    does not, and its few slices in the volume must not claim the volume's 2-3 mm."""
+    role = np.full(4, IN_VOLUME)
+    predicted = np.array([3.0, 3.0, 12.0, 15.0])
+    common = dict(held_out_ncc=0.79)
+    together = refined_expected_errors(role, np.full(4, 0.9), np.full(4, 1000.0), predicted, **common)
+    assert (together < predicted).all()                                       # the volume vouches for them
+    apart = refined_expected_errors(role, np.full(4, 0.9), np.full(4, 1000.0), predicted, **common,
+                                    stack_held_out_ncc=np.array([0.86, 0.86, 0.44, 0.44]))
+    np.testing.assert_allclose(apart[:2], together[:2])
+    np.testing.assert_allclose(apart[2:], [12.0, 15.0])

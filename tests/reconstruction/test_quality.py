@@ -7,8 +7,9 @@ import numpy as np
 
 from service.geometry.pose import translate
 from service.reconstruction.pipeline import ReconstructionConfig, reconstruct
-from service.reconstruction.quality import quality_report
+from service.reconstruction.quality import MIN_ALTERNATE_NCC, quality_report
 from service.reconstruction.slices import SliceSet
+from tests.reconstruction.helpers import perturb
 
 FAST = ReconstructionConfig(register=False, sr_iterations=4)
 
@@ -38,8 +39,27 @@ def test_quality_can_be_off(acquisition) -> None:  # noqa: ANN001
     res = reconstruct(ss, resolution_mm=2.0, svr_iterations=0, config=ReconstructionConfig(quality=False))
     assert res.quality is None and res.held_out_ncc is None
     single = reconstruct(ss, resolution_mm=2.0, svr_iterations=0)
-    assert single.quality["leave_one_stack_out"]["median_ncc"] is None        # one stack: nothing to leave out
-    assert single.quality["coherent"] is None                                 # nor to judge coherence by
+    assert single.quality["leave_one_stack_out"]["median_ncc"] is None        # one stack: no other to leave out
+
+
+def test_one_stack_is_judged_by_its_alternate_slices_and_scrambled_poses_are_told_apart(acquisition) -> None:  # noqa: ANN001
+    """A lone stack's slices agree with a volume made of themselves wherever they are put; its even
+    slices left out are predicted by its odd ones only where the slices sit where they were acquired."""
+    vol, mask = acquisition.stacks[0]
+    truth = acquisition.truth[0]
+    use = np.ones(len(truth), bool)
+    good = reconstruct(SliceSet.from_stacks([(vol, mask, truth, use)]), resolution_mm=1.5, svr_iterations=0, config=FAST)
+    ss = SliceSet.from_stacks([(vol, mask, truth, use)])
+    scrambled = perturb(truth, np.random.default_rng(3), 15.0, 8.0, ss.centres())
+    bad = reconstruct(SliceSet.from_stacks([(vol, mask, scrambled, use)]), resolution_mm=1.5, svr_iterations=0,
+                      config=FAST)
+    g, b = good.quality, bad.quality
+    assert g["median_ncc"] > 0.8 and b["median_ncc"] > 0.8                    # agreement cannot tell them apart
+    assert g["leave_one_stack_out"]["median_ncc"] is None
+    g_alt, b_alt = g["leave_alternate_slices_out"], b["leave_alternate_slices_out"]
+    assert g_alt["median_ncc"] > MIN_ALTERNATE_NCC > b_alt["median_ncc"], (g_alt, b_alt)
+    assert g["coherent"] is True and b["coherent"] is False
+    assert len(g_alt["even_odd_median_ncc"]) == 2 and g_alt["slices"] > 0.5 * len(truth)
 
 
 def test_a_stack_placed_where_no_other_stack_reaches_does_not_predict_itself(acquisition) -> None:  # noqa: ANN001

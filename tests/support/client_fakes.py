@@ -147,7 +147,7 @@ class FakeJobs:
         job["polls"] += 1
         if job["polls"] == 2:
             job.update(status="running", stage="svr", progress=0.5, workers=None)
-        elif job["polls"] >= 3 and self.outcome in ("succeeded", "incoherent"):
+        elif job["polls"] >= 3 and self.outcome in ("succeeded", "incoherent", "one_apart", "lone_scrambled"):
             report: dict[str, Any] = {"slices": [], "refined_poses": {
                 "posed": 3, "in_volume": 2, "placed_by_stack_motion": 1, "placed_by_volume": 0,
                 "median_expected_error_mm": 1.9, "median_starting_expected_error_mm": 2.5}}
@@ -157,6 +157,16 @@ class FakeJobs:
                 report.update(n_stacks=2, quality={"judged_slices": 40, "median_ncc": 0.88, "fraction_ncc_above_0_7": 1.0,
                                                    "coherent": False, "leave_one_stack_out": {
                                                        "median_ncc": 0.13, "per_stack_median_ncc": [0.1, 0.2]}})
+            if self.outcome == "one_apart":           # a coherent job with one stack the others do not predict
+                report.update(n_stacks=3, quality={"judged_slices": 60, "median_ncc": 0.97, "fraction_ncc_above_0_7": 1.0,
+                                                   "coherent": True, "leave_one_stack_out": {
+                                                       "median_ncc": 0.79, "per_stack_median_ncc": [0.86, 0.44, 0.9]}})
+            if self.outcome == "lone_scrambled":      # one stack whose alternate slices do not predict each other
+                report.update(n_stacks=1, quality={"judged_slices": 22, "median_ncc": 0.95, "fraction_ncc_above_0_7": 1.0,
+                                                   "coherent": False, "leave_one_stack_out": {
+                                                       "median_ncc": None, "slices": 0, "per_stack_median_ncc": [None]},
+                                                   "leave_alternate_slices_out": {
+                                                       "median_ncc": -0.02, "even_odd_median_ncc": [-0.04, 0.05]}})
             job.update(status="succeeded", stage="done", progress=1.0,
                        result_url=f"/v1/reconstructions/{job['job_id']}/volume",
                        preview_url=f"/v1/reconstructions/{job['job_id']}/preview.png", report=report)
