@@ -55,8 +55,8 @@ from client._client import DEFAULT_SERVER, SVRnetClient
 from client.cli_export import export
 from client.cli_support import (DEFAULT_VOLUME, ApiKeyOpt, BiasCorrectionOpt, JobArg, MaskOpt, MasksHoldCsfOpt,
                                 MaxExpectedOpt, McSamplesOpt, ModelOpt, ServerOpt, StackSpaceOpt, StacksArg, ThresholdOpt,
-                                check_folder_writable, check_masks, check_writable, follow_job, job_id_of, once_or_per_stack,
-                                resolution_range, timeout_from_env, write_json, write_results)
+                                check_folder_writable, check_masks, check_writable, follow_job, job_id_of,
+                                once_or_per_stack, resolution_range, timeout_from_env, write_json, write_results)
 from client.exits import (EXIT_BAD_INPUT, EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, EXIT_USAGE, errors, fail,
                           stderr, stdout)
 from client.stream_views import StreamView, coverage_text, reacquire_text
@@ -184,8 +184,10 @@ def reconstruct(
         exists=True, dir_okay=False, readable=True,
         help="JSON answer of `svrnet predict --out` for these files")] = None,
     resolution: Annotated[Optional[float], typer.Option(
-        "--resolution", callback=resolution_range, help="output spacing in mm, over 0.2 and at most 5 (server default 0.8)")] = None,
-    svr_iterations: Annotated[Optional[int], typer.Option(min=0, max=10, help="SVR iterations (server default 3)")] = None,
+        "--resolution", callback=resolution_range,
+        help="output spacing in mm, over 0.2 and at most 5 (server default 0.8)")] = None,
+    svr_iterations: Annotated[Optional[int], typer.Option(min=0, max=10,
+                                                          help="SVR iterations (server default 3)")] = None,
     mc_samples: McSamplesOpt = None,
     threshold: ThresholdOpt = None,
     max_expected_error: MaxExpectedOpt = None,

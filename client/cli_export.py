@@ -28,7 +28,8 @@ def export(
     out_dir: Annotated[Path, typer.Option("--out-dir", file_okay=False, help="folder to write into (created)")],
     mask: MaskOpt = None,
     all_slices: Annotated[bool, typer.Option(
-        "--all-slices", help="also the slices not accepted (default: accepted ones only; never those without brain)")] = False,
+        "--all-slices",
+        help="also the slices not accepted (default: accepted ones only; never those without brain)")] = False,
     thickness: Annotated[Optional[list[float]], typer.Option(
         "--thickness", help="slice thickness in mm for NeSVoR's slice profile, once for every stack or once per "
         "stack (default: the slice spacing)")] = None,

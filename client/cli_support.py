@@ -127,8 +127,10 @@ StackSpaceOpt = Annotated[Optional[int], typer.Option(
 McSamplesOpt = Annotated[Optional[int], typer.Option(min=1, max=1000, help="MC-dropout passes per slice "
                                                                            "(default: the server's, 100)")]
 ThresholdOpt = Annotated[Optional[float], typer.Option(
-    "--threshold", callback=positive, help="geodesic-variance threshold (about mm^2: the MC samples' mean squared distance "
-    "from their mean, translations in mm plus twice the rotations in rad^2) (default: the model's; see `svrnet models`); a loose guard: --max-expected-error is the one to set")]
+    "--threshold", callback=positive,
+    help="geodesic-variance threshold (about mm^2: the MC samples' mean squared distance from their mean, "
+    "translations in mm plus twice the rotations in rad^2) (default: the model's; see `svrnet models`); a loose "
+    "guard: --max-expected-error is the one to set")]
 BiasCorrectionOpt = Annotated[bool, typer.Option("--bias-correction/--no-bias-correction",
                                                  help="N4 bias-field correction")]
 ModelOpt = Annotated[Optional[str], typer.Option(help="model name (see `svrnet models`)")]

@@ -48,7 +48,8 @@ FORMATS = ("nesvor", "niftymic")
 
 def niftymic_transform(atlas_from_voxel: ArrayLike, scanner_from_voxel: ArrayLike) -> NDArray[np.float64]:
     """NiftyMIC's ``4 x 4`` LPS transform of one slice: its scanner position -> its atlas position."""
-    atlas_from_scanner = np.asarray(atlas_from_voxel, np.float64) @ np.linalg.inv(np.asarray(scanner_from_voxel, np.float64))
+    scanner_from_voxel = np.asarray(scanner_from_voxel, np.float64)
+    atlas_from_scanner = np.asarray(atlas_from_voxel, np.float64) @ np.linalg.inv(scanner_from_voxel)
     return LPS_FROM_RAS @ atlas_from_scanner @ LPS_FROM_RAS
 
 
@@ -83,11 +84,13 @@ def _stack_file(path: Path, stack: dict[str, Any]) -> tuple[nib.Nifti1Image, NDA
     except (nib.filebasedimages.ImageFileError, OSError, ValueError) as e:
         raise UnusableInput(f"export: {path.name} is not a NIfTI file ({e}); NeSVoR and NiftyMIC read NIfTI") from None
     sfv = np.asarray(stack.get("scanner_from_voxel") or np.full((4, 4), np.nan), np.float64)
-    if tuple(image.shape[:3]) != tuple(stack.get("shape") or image.shape[:3]) or not np.allclose(image.affine, sfv, atol=1e-3):
+    same_grid = tuple(image.shape[:3]) == tuple(stack.get("shape") or image.shape[:3])
+    if not same_grid or not np.allclose(image.affine, sfv, atol=1e-3):
         raise UnusableInput(f"export: {path.name} is not the file the answer's stack {stack.get('index')} was read from "
                             "(another grid or placement)")
     header = image.header
-    if header["qform_code"] > 0 and header["sform_code"] > 0 and not np.allclose(header.get_qform(), header.get_sform(), atol=1e-3):
+    both = header["qform_code"] > 0 and header["sform_code"] > 0
+    if both and not np.allclose(header.get_qform(), header.get_sform(), atol=1e-3):
         raise UnusableInput(f"export: {path.name}: its qform and sform disagree; ITK-based tools (NiftyMIC) place it by "
                             "its qform, the service by its sform: write it with one placement first")
     return image, sfv

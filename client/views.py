@@ -76,7 +76,7 @@ def summarise(result: dict[str, Any]) -> Table:
     for stack in stacks:
         slices = stack.get("slices") or []
         accepted = sum(1 for s in slices if s.get("accepted"))
-        reasons = Counter(s.get("reason") or "unknown" for s in slices if not s.get("accepted"))
+        reasons = Counter(s.get("reason") or "unknown" for s in slices if not s.get("accepted")).most_common()
         brain = with_brain(slices)
         variances = [s["geodesic_variance"] for s in brain if s.get("geodesic_variance") is not None]
         expected = [s["expected_error_mm"] for s in brain if s.get("expected_error_mm") is not None]
@@ -84,7 +84,7 @@ def summarise(result: dict[str, Any]) -> Table:
         found = "mask" if where.get("method") == "mask" else \
             f"{where.get('brain_volume_ml', 0):.0f} ml ({where.get('confidence', 0):.2f})" if where else "-"
         table.add_row(str(stack.get("filename", "")), found, f"{accepted} of {len(brain)}",
-                      "\n".join(f"{SHORT_REASONS.get(k, k)} {v}" for k, v in sorted(reasons.items(), key=lambda kv: (-kv[1], kv[0])))
+                      "\n".join(f"{SHORT_REASONS.get(k, k)} {v}" for k, v in sorted(reasons, key=lambda kv: (-kv[1], kv[0])))
                       or "-",
                       f"{statistics.median(expected):.1f} mm" if expected else "-",
                       f"{statistics.median(variances):.4g}" if variances else "-")
