@@ -10,7 +10,7 @@ from typing import Annotated, Optional
 import typer
 
 from client.cli_support import MaskOpt, StacksArg, check_masks, once_or_per_stack
-from client.exits import EXIT_BAD_INPUT, errors, fail, stdout
+from client.exits import EXIT_BAD_INPUT, errors, fail, stderr, stdout
 
 NEXT_STEP = {
     "nesvor": "nesvor reconstruct --input-slices {out} --output-volume recon.nii.gz",
@@ -49,5 +49,8 @@ def export(
         count = write(body, stacks, mask, out_dir, to, all_slices, thickness)
     console = stdout()
     console.print(f"wrote {count} slices for {to} into {out_dir}", soft_wrap=True)
+    if to == "nesvor" and not mask:
+        stderr().print("no --mask: NeSVoR takes every pixel of each slice (the whole uterus of a stack as it leaves "
+                       "the scanner); `svrnet masks` makes the masks", style="yellow", markup=False)
     console.print("next: " + NEXT_STEP[to].format(out=out_dir, stacks=" ".join(str(s) for s in stacks)), soft_wrap=True,
                   markup=False)

@@ -109,6 +109,10 @@ def test_the_cli_writes_and_says_what_to_run_next(case: dict, tmp_path: Path) ->
                                      "--mask", str(case["mask"])], env={"COLUMNS": "200"})
     assert r.exit_code == 0, r.output
     assert "wrote 4 slices for nesvor" in r.stdout and f"nesvor reconstruct --input-slices {out}" in r.stdout
+    assert "no --mask" not in r.stderr
+    r = CliRunner().invoke(cli.app, ["export", str(answer), str(case["stack"]), "--to", "nesvor", "--out-dir",
+                                     str(tmp_path / "bare")], env={"COLUMNS": "200"})
+    assert r.exit_code == 0 and "no --mask: NeSVoR takes every pixel" in r.stderr
     r = CliRunner().invoke(cli.app, ["export", str(answer), str(case["stack"]), "--to", "svrtk", "--out-dir", str(out)])
     assert r.exit_code == 2 and "--to" in r.output
     answer.write_text("{not json")
