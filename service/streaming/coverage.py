@@ -1,20 +1,24 @@
 """How much of the fetal brain the accepted slices of a session already sample, and where the gaps are.
 
-The brain's extent in atlas space comes from the session itself, not from an atlas of one age: it
-is the convex hull of every accepted slice's brain pixels placed at their poses. A point of that
-hull is **covered** when an accepted slice passes through it: within half the slice's thickness of
-its plane (the slice profile), inside its brain mask (one pixel of slack). That is what a
+The brain's extent in atlas space comes from the session itself, not from an atlas of one age:
+the convex hull of the brain pixels of every slice that shows brain (accepted or not: a stack whose
+middle slices alone were accepted still shows how far the brain reaches), placed at their poses,
+less what lies further than :data:`REACH_THICKNESS` of a slice thickness from any of those pixels (the hull bridges the
+brain's concavities, below the frontal lobes and between the temporal poles, where no stack can
+add anything). A point of that brain is **covered** when an accepted slice passes through it:
+within half the slice's thickness of its plane (the slice profile), inside its brain mask (one
+pixel of slack). That is what a
 slice-to-volume reconstruction needs of every voxel. The uncovered points form the **gaps**; each
 gap, a 3D connected region, is reported by its centre, its thinnest direction (``normal``: slices
 stacked along it fill the gap fastest), its extent along that normal and its volume.
 
-Example (one stack of 3 mm slices every 3 mm, one slice missing):
+Example (one stack of 3 mm slices every 3 mm, one slice not accepted):
     >>> import numpy as np
-    >>> slices = []
-    >>> for k in [0, 1, 2, 4, 5]:
+    >>> shown = []
+    >>> for k in range(6):
     ...     a = np.diag([1.0, 1.0, 3.0, 1.0]); a[:3, 3] = (-20, -20, 3.0 * k)
-    ...     slices.append(CoveredSlice(a, np.ones((41, 41), bool)))
-    >>> c = coverage(slices)
+    ...     shown.append(CoveredSlice(a, np.ones((41, 41), bool)))
+    >>> c = coverage([s for k, s in enumerate(shown) if k != 3], shown)
     >>> round(c.brain_fraction, 2), len(c.gaps), [round(v, 1) for v in c.gaps[0].normal]
     (0.75, 1, [0.0, 0.0, 1.0])
 """
@@ -26,7 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
-from scipy.spatial import ConvexHull, QhullError
+from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 GRID_MM = 2.0
 """Spacing of the atlas-space grid coverage is counted on."""
@@ -34,6 +38,12 @@ MAX_HULL_POINTS = 4000
 """Brain pixels kept (evenly) to build the hull: enough for its shape, cheap to build."""
 HULL_TOLERANCE_MM = 1e-6
 """A grid point this near a face of the hull, outside it, still counts as inside (points on a face)."""
+REACH_THICKNESS = 0.6
+"""A point of the hull is brain within this many slice thicknesses of a brain pixel the slices show:
+the middle between two neighbouring slices of a stack is, the hull's bridge over the brain's
+concavities is not (on simulated sessions of three stacks of held-out brains the brain so counted
+is 0.98-0.99 covered, as the truth; counted by the hull alone, 0.95, its largest gap 5-15 ml below
+the frontal lobes, 1-9 % brain)."""
 MIN_GAP_ML = 0.1
 MAX_GAPS = 5
 
@@ -71,8 +81,9 @@ class Coverage:
                           "volume_ml": round(g.volume_ml, 2)} for g in self.gaps]}
 
 
-def brain_points(slices: list[CoveredSlice]) -> NDArray[np.float64]:
-    """Atlas mm of the slices' brain pixels (an even subset of at most :data:`MAX_HULL_POINTS`)."""
+def brain_points(slices: list[CoveredSlice], every: bool = False) -> NDArray[np.float64]:
+    """Atlas mm of the slices' brain pixels (an even subset of at most :data:`MAX_HULL_POINTS`, or
+    ``every`` one)."""
     pts = []
     for s in slices:
         idx = np.argwhere(np.asarray(s.mask))
@@ -80,14 +91,16 @@ def brain_points(slices: list[CoveredSlice]) -> NDArray[np.float64]:
             pts.append(idx @ s.atlas_from_voxel[:3, :2].T + s.atlas_from_voxel[:3, 3])
     if not pts:
         return np.zeros((0, 3))
-    every = np.concatenate(pts)
-    return every[:: max(1, len(every) // MAX_HULL_POINTS)]
+    found = np.concatenate(pts)
+    return found if every else found[:: max(1, len(found) // MAX_HULL_POINTS)]
 
 
-def coverage(slices: list[CoveredSlice]) -> Coverage:
-    """The coverage of the brain by ``slices`` (see the module)."""
-    points = brain_points(slices)
-    if len(points) < 4:
+def coverage(slices: list[CoveredSlice], shown: list[CoveredSlice] | None = None) -> Coverage:
+    """The coverage by the accepted ``slices`` of the brain that the slices ``shown`` (default: the
+    same) show (see the module)."""
+    shown = slices if shown is None else shown
+    points = brain_points(shown)
+    if len(points) < 4 or not slices:
         return Coverage(0.0, 0.0)
     lo = points.min(0) - GRID_MM
     shape = tuple(int(x) for x in np.ceil((points.max(0) + GRID_MM - lo) / GRID_MM) + 1)
@@ -96,6 +109,9 @@ def coverage(slices: list[CoveredSlice]) -> Coverage:
         inside = inside_hull(ConvexHull(points), grid)
     except QhullError:                      # the slices are coplanar: no volume yet
         return Coverage(0.0, 0.0)
+    reach = REACH_THICKNESS * max(float(np.linalg.norm(s.atlas_from_voxel[:3, 2])) for s in shown)
+    pixels = brain_points(shown, every=True)
+    inside[np.flatnonzero(inside)] = cKDTree(pixels).query(grid[inside], distance_upper_bound=reach)[0] <= reach
     brain = grid[inside]
     covered = np.zeros(len(brain), bool)
     for s in slices:

@@ -325,22 +325,24 @@ class StreamSession:
                     final = p
                 else:
                     updates += self._changed(name, answers)
-            covered = self._covered()
+            covered, shown = self._covered(), self._covered(accepted=False)
             alone = len(names) == 1
             lists = {n: worth_acquiring_again(p.reasons, alone) for n, p in zip(names, predictions)}
             changed = {n: r for n, r in lists.items() if n != stack and r != self.reacquire_sent.get(n)}
             self.reacquire_sent.update(lists)
-        answer = StackAnswer(stack, final, updates, lists[stack], coverage(covered), timings, alone, changed)
+        answer = StackAnswer(stack, final, updates, lists[stack], coverage(covered, shown), timings, alone, changed)
         self.compute_ms["end_stack"] += (time.perf_counter() - t0) * 1e3
         return answer
 
-    def _covered(self) -> list[CoveredSlice]:
-        """The accepted slices of the session at their latest poses, with their brain masks (under the lock)."""
+    def _covered(self, accepted: bool = True) -> list[CoveredSlice]:
+        """The accepted slices of the session (or, not ``accepted``, every slice with brain) at their
+        latest poses, with their brain masks (under the lock)."""
         out = []
         for states in self.slices.values():
             for s in states.values():
                 a = s.answer
-                if a is None or a.prediction.reasons[a.row] is not None:
+                reason = None if a is None else a.prediction.reasons[a.row]
+                if a is None or reason is not None and (accepted or reason == acceptance.EMPTY):
                     continue
                 brain = np.asarray(a.prediction.prepared.localisation.mask[:, :, a.row], bool)
                 out.append(CoveredSlice(a.prediction.poses.poses[a.row] @ a.prediction.network_from_voxel[a.row], brain))
@@ -348,8 +350,8 @@ class StreamSession:
 
     def coverage(self) -> Coverage:
         with self._lock:
-            covered = self._covered()
-        return coverage(covered)
+            covered, shown = self._covered(), self._covered(accepted=False)
+        return coverage(covered, shown)
 
     def summary(self) -> SessionSummary:
         with self._lock:

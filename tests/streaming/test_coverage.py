@@ -42,9 +42,37 @@ def test_a_stack_of_every_slice_covers_its_whole_hull() -> None:
     assert abs(c.brain_volume_ml - hull_ml) < 0.1 * hull_ml, (c.brain_volume_ml, hull_ml)
 
 
-def test_a_missing_slice_is_a_gap_along_the_stacks_normal() -> None:
+def test_a_slice_not_accepted_is_a_gap_along_the_stacks_normal() -> None:
     rotation = se3.so3_exp(np.array([0.3, -0.5, 0.2]))
-    c = coverage(ball_stack(rotation, keep=[k for k in range(20) if k != 10]))
+    c = coverage(ball_stack(rotation, keep=[k for k in range(20) if k != 10]), ball_stack(rotation))
     assert 0.85 < c.brain_fraction < 1.0 and len(c.gaps) == 1
     assert abs(abs(np.dot(c.gaps[0].normal, rotation[:, 2])) - 1.0) < 0.1, c.gaps[0].normal
     assert 1.5 <= c.gaps[0].extent_mm <= 6.0, c.gaps[0].extent_mm
+
+
+def test_the_brain_is_what_every_slice_shows_and_only_accepted_slices_cover_it() -> None:
+    """The middle half of a stack accepted: about half the brain its slices show is covered (counted
+    on the accepted slices alone, their hull, it was all covered)."""
+    rotation = se3.so3_exp(np.array([0.1, 0.2, -0.3]))
+    middle = ball_stack(rotation, keep=list(range(5, 15)))
+    alone, shown = coverage(middle), coverage(middle, ball_stack(rotation))
+    assert alone.brain_fraction > 0.95
+    assert 0.45 < shown.brain_fraction < 0.8 and shown.brain_volume_ml > 1.5 * alone.brain_volume_ml
+
+
+def test_the_hulls_bridge_over_a_concave_brain_is_no_brain_and_no_gap() -> None:
+    """Two lobes side by side, every slice accepted: the waist between them, inside their hull, lies
+    beyond the slices' brain pixels; counted as brain it was an uncovered gap no stack can fill."""
+    slices = []
+    for k in range(30):
+        a = np.diag([1.2, 1.2, 3.0, 1.0])
+        z = (k - 15) * 3.0
+        a[:3, 3] = (-48.0, -48.0, z)
+        i, j = np.meshgrid(np.arange(80), np.arange(80), indexing="ij")
+        x, y = (i - 40) * 1.2, (j - 40) * 1.2
+        lobes = ((x - 24) ** 2 + y ** 2 + z ** 2 < 18.0 ** 2) | ((x + 24) ** 2 + y ** 2 + z ** 2 < 18.0 ** 2)
+        slices.append(CoveredSlice(a, lobes))
+    c = coverage(slices)
+    assert c.brain_fraction > 0.98 and c.gaps == [], (c.brain_fraction, c.gaps)
+    two_balls_ml = 2 * 4 / 3 * np.pi * 18.0 ** 3 / 1000.0
+    assert c.brain_volume_ml < 1.25 * two_balls_ml < ConvexHull(brain_points(slices)).volume / 1000.0
