@@ -66,6 +66,10 @@ FIRM_UP_GROWTH = 0.25
 the stage's cost grows with the stack, so its total stays near linear in the slices."""
 WINDOW = 1
 """Neighbours on each side the localiser sees with a slice (when they have arrived)."""
+SHOWN_MAX_EXPECTED_MM = 10.0
+"""A slice not accepted still shows where the brain is when its expected error is at most this: its
+brain pixels extend the brain :mod:`~service.streaming.coverage` counts (not what is covered); one
+placed further off would draw brain, and a gap, where there is none."""
 
 
 @dataclass
@@ -335,18 +339,27 @@ class StreamSession:
         return answer
 
     def _covered(self, accepted: bool = True) -> list[CoveredSlice]:
-        """The accepted slices of the session (or, not ``accepted``, every slice with brain) at their
-        latest poses, with their brain masks (under the lock)."""
+        """The accepted slices of the session (or, not ``accepted``, also the slices with brain whose
+        pose is roughly right: expected within :data:`SHOWN_MAX_EXPECTED_MM`, not outside the atlas
+        or degenerate) at their latest poses, with their brain masks (under the lock)."""
         out = []
         for states in self.slices.values():
             for s in states.values():
                 a = s.answer
                 reason = None if a is None else a.prediction.reasons[a.row]
-                if a is None or reason is not None and (accepted or reason == acceptance.EMPTY):
+                if a is None or reason is not None and (accepted or not self._placed(a)):
                     continue
                 brain = np.asarray(a.prediction.prepared.localisation.mask[:, :, a.row], bool)
                 out.append(CoveredSlice(a.prediction.poses.poses[a.row] @ a.prediction.network_from_voxel[a.row], brain))
         return out
+
+    @staticmethod
+    def _placed(answer: SliceAnswer) -> bool:
+        """A slice not accepted whose pose still says where the brain it shows lies (see :meth:`_covered`)."""
+        p, row = answer.prediction, answer.row
+        expected = p.poses.expected_error_mm
+        return (p.reasons[row] in (acceptance.INCONSISTENT, acceptance.HIGH_EXPECTED_ERROR, acceptance.HIGH_VARIANCE)
+                and expected is not None and bool(expected[row] <= SHOWN_MAX_EXPECTED_MM))
 
     def coverage(self) -> Coverage:
         with self._lock:
