@@ -32,7 +32,6 @@ Example (one slice 5 mm right of where it was acquired):
 from __future__ import annotations
 
 import gzip
-import os
 from pathlib import Path
 from typing import Any
 
@@ -41,16 +40,15 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from client.errors import UnusableInput
-from client.slice_transforms import LPS_FROM_RAS, tfm_text
+from client.slice_transforms import stack_from_atlas_lps, tfm_text, write_whole
 
 FORMATS = ("nesvor", "niftymic")
 
 
 def niftymic_transform(atlas_from_voxel: ArrayLike, scanner_from_voxel: ArrayLike) -> NDArray[np.float64]:
-    """NiftyMIC's ``4 x 4`` LPS transform of one slice: its scanner position -> its atlas position."""
-    scanner_from_voxel = np.asarray(scanner_from_voxel, np.float64)
-    atlas_from_scanner = np.asarray(atlas_from_voxel, np.float64) @ np.linalg.inv(scanner_from_voxel)
-    return LPS_FROM_RAS @ atlas_from_scanner @ LPS_FROM_RAS
+    """NiftyMIC's ``4 x 4`` LPS transform of one slice: its scanner position -> its atlas position (the
+    inverse of :func:`~client.slice_transforms.stack_from_atlas_lps`)."""
+    return np.linalg.inv(stack_from_atlas_lps(atlas_from_voxel, scanner_from_voxel))
 
 
 def slice_affine(atlas_from_voxel: ArrayLike, k: int, thickness_mm: float) -> NDArray[np.float64]:
@@ -96,12 +94,6 @@ def _stack_file(path: Path, stack: dict[str, Any]) -> tuple[nib.Nifti1Image, NDA
     return image, sfv
 
 
-def _write(path: Path, data: bytes) -> None:
-    partial = path.with_name(f".{path.name}.{os.getpid()}")
-    partial.write_bytes(data)
-    os.replace(partial, path)
-
-
 def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None, folder: Path, to: str,
            all_slices: bool = False, thickness_mm: list[float] | None = None) -> int:
     """Write the slices of ``answer`` for the tool ``to`` (:data:`FORMATS`) into ``folder``; the number
@@ -118,7 +110,7 @@ def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None,
             stem = path.name.removesuffix(".gz").removesuffix(".nii")
             for item in chosen:
                 t = niftymic_transform(item["atlas_from_voxel"], sfv)
-                _write(folder / f"{stem}_slice{int(item['index'])}.tfm", tfm_text(t).encode())
+                write_whole(folder / f"{stem}_slice{int(item['index'])}.tfm", tfm_text(t).encode())
             count += len(chosen)
             continue
         data = np.asarray(image.dataobj, np.float32).reshape(image.shape[:3])
@@ -135,11 +127,11 @@ def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None,
                 out = nib.Nifti1Image(values, a)
                 out.set_qform(a, 2)
                 out.set_sform(a, 2)
-                _write(folder / name, gzip.compress(out.to_bytes(), compresslevel=6))
+                write_whole(folder / name, gzip.compress(out.to_bytes(), compresslevel=6))
             expected = item.get("expected_error_mm")
             rows.append(f"{count}\t{s}\t{path.name}\t{k}\t{int(bool(item.get('accepted')))}\t"
                         f"{'nan' if expected is None else f'{float(expected):.3f}'}")
             count += 1
     if to == "nesvor":
-        _write(folder / "slices.tsv", ("\n".join(rows) + "\n").encode())
+        write_whole(folder / "slices.tsv", ("\n".join(rows) + "\n").encode())
     return count

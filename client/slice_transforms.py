@@ -45,7 +45,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from client.errors import UnusableInput
 
-__all__ = ["stack_from_atlas_lps", "tfm_text", "transform_files", "write_transforms_zip"]
+__all__ = ["stack_from_atlas_lps", "tfm_text", "transform_files", "write_transforms_zip", "write_whole"]
 
 LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
 """RAS <-> LPS (its own inverse)."""
@@ -96,7 +96,12 @@ def write_transforms_zip(answer: dict[str, Any], target: Path) -> int:
     with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_DEFLATED) as archive:
         for name in sorted(files):
             archive.writestr(name, files[name])
-    partial = Path(target).with_name(f".{Path(target).name}.{os.getpid()}")
-    partial.write_bytes(buffer.getvalue())
-    os.replace(partial, target)
+    write_whole(Path(target), buffer.getvalue())
     return len(files) - 1
+
+
+def write_whole(path: Path, data: bytes) -> None:
+    """``data`` into ``path``, whole or not at all (a partial file beside it, renamed over it)."""
+    partial = path.with_name(f".{path.name}.{os.getpid()}")
+    partial.write_bytes(data)
+    os.replace(partial, path)
