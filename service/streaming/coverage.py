@@ -83,7 +83,7 @@ class Coverage:
 
 def brain_points(slices: list[CoveredSlice], every: bool = False) -> NDArray[np.float64]:
     """Atlas mm of the slices' brain pixels (an even subset of at most :data:`MAX_HULL_POINTS`, or
-    ``every`` one)."""
+    ``every`` one: :func:`hull_points` takes the subset of those)."""
     pts = []
     for s in slices:
         idx = np.argwhere(np.asarray(s.mask))
@@ -92,14 +92,20 @@ def brain_points(slices: list[CoveredSlice], every: bool = False) -> NDArray[np.
     if not pts:
         return np.zeros((0, 3))
     found = np.concatenate(pts)
-    return found if every else found[:: max(1, len(found) // MAX_HULL_POINTS)]
+    return found if every else hull_points(found)
+
+
+def hull_points(pixels: NDArray[np.float64]) -> NDArray[np.float64]:
+    """An even subset of at most about :data:`MAX_HULL_POINTS` of the brain ``pixels`` to build the hull from."""
+    return pixels[:: max(1, len(pixels) // MAX_HULL_POINTS)]
 
 
 def coverage(slices: list[CoveredSlice], shown: list[CoveredSlice] | None = None) -> Coverage:
     """The coverage by the accepted ``slices`` of the brain that the slices ``shown`` (default: the
     same) show (see the module)."""
     shown = slices if shown is None else shown
-    points = brain_points(shown)
+    pixels = brain_points(shown, every=True)
+    points = hull_points(pixels)
     if len(points) < 4 or not slices:
         return Coverage(0.0, 0.0)
     lo = points.min(0) - GRID_MM
@@ -110,7 +116,6 @@ def coverage(slices: list[CoveredSlice], shown: list[CoveredSlice] | None = None
     except QhullError:                      # the slices are coplanar: no volume yet
         return Coverage(0.0, 0.0)
     reach = REACH_THICKNESS * max(float(np.linalg.norm(s.atlas_from_voxel[:3, 2])) for s in shown)
-    pixels = brain_points(shown, every=True)
     inside[np.flatnonzero(inside)] = cKDTree(pixels).query(grid[inside], distance_upper_bound=reach)[0] <= reach
     brain = grid[inside]
     covered = np.zeros(len(brain), bool)

@@ -329,7 +329,7 @@ class StreamSession:
                     final = p
                 else:
                     updates += self._changed(name, answers)
-            covered, shown = self._covered(), self._covered(accepted=False)
+            covered, shown = self._covered()
             alone = len(names) == 1
             lists = {n: worth_acquiring_again(p.reasons, alone) for n, p in zip(names, predictions)}
             changed = {n: r for n, r in lists.items() if n != stack and r != self.reacquire_sent.get(n)}
@@ -338,20 +338,23 @@ class StreamSession:
         self.compute_ms["end_stack"] += (time.perf_counter() - t0) * 1e3
         return answer
 
-    def _covered(self, accepted: bool = True) -> list[CoveredSlice]:
-        """The accepted slices of the session (or, not ``accepted``, also the slices with brain whose
-        pose is roughly right: expected within :data:`SHOWN_MAX_EXPECTED_MM`, not outside the atlas
-        or degenerate) at their latest poses, with their brain masks (under the lock)."""
-        out = []
+    def _covered(self) -> tuple[list[CoveredSlice], list[CoveredSlice]]:
+        """The accepted slices of the session, and those with the slices with brain whose pose is
+        roughly right (expected within :data:`SHOWN_MAX_EXPECTED_MM`, not outside the atlas or
+        degenerate), at their latest poses with their brain masks: what :func:`coverage` takes (under
+        the lock)."""
+        covered, shown = [], []
         for states in self.slices.values():
             for s in states.values():
                 a = s.answer
-                reason = None if a is None else a.prediction.reasons[a.row]
-                if a is None or reason is not None and (accepted or not self._placed(a)):
+                if a is None or not (a.prediction.reasons[a.row] is None or self._placed(a)):
                     continue
                 brain = np.asarray(a.prediction.prepared.localisation.mask[:, :, a.row], bool)
-                out.append(CoveredSlice(a.prediction.poses.poses[a.row] @ a.prediction.network_from_voxel[a.row], brain))
-        return out
+                found = CoveredSlice(a.prediction.poses.poses[a.row] @ a.prediction.network_from_voxel[a.row], brain)
+                shown.append(found)
+                if a.prediction.reasons[a.row] is None:
+                    covered.append(found)
+        return covered, shown
 
     @staticmethod
     def _placed(answer: SliceAnswer) -> bool:
@@ -363,7 +366,7 @@ class StreamSession:
 
     def coverage(self) -> Coverage:
         with self._lock:
-            covered, shown = self._covered(), self._covered(accepted=False)
+            covered, shown = self._covered()
         return coverage(covered, shown)
 
     def summary(self) -> SessionSummary:
