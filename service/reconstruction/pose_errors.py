@@ -105,17 +105,15 @@ def refined_expected_errors(role: ArrayLike, ncc: ArrayLike, area_mm2: ArrayLike
     beside = np.where(inside, 0.0, BESIDE_MM)
     share = np.where(inside, PREDICTED_SHARE * np.nan_to_num(predicted, nan=0.0), 0.0)  # none known: a client's
     out = np.sqrt(FRAME_MM ** 2 + beside ** 2 + share ** 2 + shortfall ** 2)
-    known = np.isfinite(predicted)
-    # A slice the job did not place keeps its starting pose's error, more where it disagrees with the
-    # volume (an excluded slice may have been registered before the job left it out).
-    out = np.where(role == LEFT_OUT, np.where(known, np.fmax(out, predicted), np.nan), out)
+    # No lower than the starting pose's error (none where that is unknown): a slice the job did not
+    # place (more where it disagrees with the volume: an excluded slice may have been registered
+    # before the job left it out), every slice where the constants do not hold, and the slices of a
+    # stack the others do not predict.
+    floored = np.where(np.isfinite(predicted), np.fmax(out, predicted), np.nan)
     if not framed or held_out_ncc is None or incoherent(held_out_ncc):
-        return np.where(known, np.fmax(out, predicted), np.nan)
-    if stack_held_out_ncc is not None:
-        stack = np.asarray(stack_held_out_ncc, np.float64)
-        alone = np.isfinite(stack) & (stack < MIN_HELD_OUT_NCC)
-        out = np.where(alone, np.where(known, np.fmax(out, predicted), np.nan), out)
-    return out
+        return floored
+    stack = np.full(len(role), np.nan) if stack_held_out_ncc is None else np.asarray(stack_held_out_ncc, np.float64)
+    return np.where((role == LEFT_OUT) | (np.isfinite(stack) & (stack < MIN_HELD_OUT_NCC)), floored, out)
 
 
 def refined_summary(role: ArrayLike, refined_mm: ArrayLike, starting_mm: ArrayLike) -> dict:

@@ -139,15 +139,17 @@ def quality_report(ncc: NDArray, held_out: NDArray, judged: NDArray, stack_index
     stacks = np.unique(stack_index)
     held_median = _median(h[held_judged])
     held = {"median_ncc": held_median, "slices": int(np.isfinite(h[held_judged]).sum())}
-    report = {"judged_slices": int(judged.sum()), "coherent": None if held_median is None else not incoherent(held_median),
+    alone = len(stacks) == 1 and slice_index is not None
+    minimum = MIN_ALTERNATE_NCC if alone else MIN_HELD_OUT_NCC
+    report = {"judged_slices": int(judged.sum()),
+              "coherent": None if held_median is None else not incoherent(held_median, minimum),
               "median_ncc": _median(c),
               "fraction_ncc_above_0_7": round(float(np.mean(c > GOOD_NCC)), 4) if c.size else None}
-    if len(stacks) > 1 or slice_index is None:
+    if not alone:
         return {**report, "leave_one_stack_out": {
             **held, "per_stack_median_ncc": [_median(h[held_judged & (stack_index == s)]) for s in stacks]}}
-    halves = np.asarray(slice_index) % 2
-    return {**report, "coherent": None if held_median is None else not incoherent(held_median, MIN_ALTERNATE_NCC),
-            "leave_one_stack_out": {"median_ncc": None, "slices": 0, "per_stack_median_ncc": [None]},
+    halves = held_out_groups(stack_index, slice_index)
+    return {**report, "leave_one_stack_out": {"median_ncc": None, "slices": 0, "per_stack_median_ncc": [None]},
             "leave_alternate_slices_out": {
                 **held, "even_odd_median_ncc": [_median(h[held_judged & (halves == p)]) for p in (0, 1)]}}
 
