@@ -144,6 +144,11 @@ StacksArg = Annotated[list[Path], typer.Argument(
 
 
 
+COHERENT_NCC = 0.5
+"""The held-out median NCC under which the service calls a volume (or one stack of it) no coherent
+brain (``service.reconstruction.quality.MIN_HELD_OUT_NCC``; the client does not import the service)."""
+
+
 def follow_job(svr: SVRnetClient, job_id: str, poll: float, timeout: float) -> dict[str, Any]:
     """Wait for a job, with a progress bar on a terminal, else a line on stderr at each change of
     stage (a script's log shows where the job is); its final status body."""
@@ -213,15 +218,16 @@ def write_results(svr: SVRnetClient, job_id: str, done: dict[str, Any], out: Pat
     quality = report.get("quality") or {}
     incoherent = quality.get("coherent") is False
     if incoherent:
-        what = ("the stack's slices do not predict each other (leave alternate slices out under 0.5)"
+        what = (f"the stack's slices do not predict each other (leave alternate slices out under {COHERENT_NCC})"
                 if quality.get("leave_alternate_slices_out") else
-                "the stacks do not predict each other (leave one stack out under 0.5)")
+                f"the stacks do not predict each other (leave one stack out under {COHERENT_NCC})")
         console.print(f"{what}: the volume is no coherent brain; do not use it. Check the stacks' poses (svrnet "
                       "predict) and masks (svrnet masks)", style="bold red", markup=False)
     per_stack = (quality.get("leave_one_stack_out") or {}).get("per_stack_median_ncc") or []
-    apart = [str(i) for i, x in enumerate(per_stack) if x is not None and x < 0.5]
+    apart = [str(i) for i, x in enumerate(per_stack) if x is not None and x < COHERENT_NCC]
     if apart and not incoherent:
-        console.print(f"stack {', '.join(apart)}: the other stacks do not predict it (leave one stack out under 0.5): "
+        console.print(f"stack {', '.join(apart)}: the other stacks do not predict it (leave one stack out under "
+                      f"{COHERENT_NCC}): "
                       "another fetus, another contrast, or a stack far off; the volume rests on the others, and its "
                       "slices keep their starting expected errors", style="yellow", markup=False)
     if report.get("started_from") == "every_slice":
