@@ -53,11 +53,15 @@ class JsonFormatter(logging.Formatter):
 QUIET = {"pydicom": logging.CRITICAL, "multipart": logging.ERROR, "python_multipart": logging.ERROR}
 """Libraries whose messages may quote what they parse (pydicom a DICOM attribute's value, the form
 parser a body's bytes): their loggers only pass what stops them."""
+QUIET_WARNINGS = ("pydicom", "xsdata", "ismrmrd")
+"""Packages whose Python warnings may quote a client's value (pydicom an attribute's, xsdata an MRD
+XML header field's, such as a malformed birth date): ignored, as they would reach stderr as text."""
 
 
 def configure(level: str = "info") -> None:
     """Send the ``service`` loggers to stderr as JSON lines; quiet the libraries that parse clients'
-    bytes (:data:`QUIET`, and pydicom's warnings, which name an attribute and may quote its value)."""
+    bytes (:data:`QUIET`, and the warnings of :data:`QUIET_WARNINGS`, which name a field and may
+    quote its value)."""
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(JsonFormatter())
     root = logging.getLogger("service")
@@ -66,7 +70,8 @@ def configure(level: str = "info") -> None:
     root.propagate = False
     for name, floor in QUIET.items():
         logging.getLogger(name).setLevel(floor)
-    warnings.filterwarnings("ignore", module=r"pydicom(\.|$)")
+    for module in QUIET_WARNINGS:
+        warnings.filterwarnings("ignore", module=rf"{module}(\.|$)")
 
 
 def server_log_level(level: str) -> str:

@@ -35,3 +35,19 @@ def test_libraries_that_quote_what_they_parse_pass_nothing_below_their_floor(cap
     line = json.loads(err.strip().splitlines()[-1])
     assert line["route"] == "/v1/predict" and "stack_name" not in line
     assert service_logging.server_log_level("DEBUG") == "info"     # uvicorn's frames never logged
+
+
+def test_an_mrd_header_field_that_does_not_parse_is_not_quoted_on_stderr(capsys) -> None:  # noqa: ANN001
+    ismrmrd = pytest.importorskip("ismrmrd")
+    from service.mrd.send import mrd_header
+
+    xml = mrd_header(4).toXML("utf-8")
+    xml = (xml if isinstance(xml, str) else xml.decode()).replace(
+        "<encoding>", "<subjectInformation><patientBirthdate>1990-02-30</patientBirthdate>"
+        "<patientWeight_kg>72 kg</patientWeight_kg></subjectInformation><encoding>", 1)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        service_logging.configure("debug")
+        ismrmrd.xsd.CreateFromDocument(xml)                        # xsdata warns, quoting each value
+    assert not [w for w in caught if "1990" in str(w.message) or "72 kg" in str(w.message)]
+    assert "1990" not in capsys.readouterr().err
