@@ -22,7 +22,10 @@ import atexit
 import multiprocessing
 import os
 import threading
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from typing import Any, TypeVar
 
 from service.core.process_pools import end_pool
 from service.core.threads import limit_blas_threads
@@ -49,6 +52,8 @@ _stage_pool_lock = threading.Lock()
 """Held while the stage process is started or stopped: two firm-ups that start at once share one
 process, and a stop never misses one started beside it (a process nobody would end)."""
 
+
+T = TypeVar("T")
 
 STAGE_BLAS_THREADS = 1
 """The stage process's BLAS threads: its fits multiply small matrices, and it runs beside the
@@ -91,6 +96,35 @@ def stop_stage_process(timeout_s: float = 5.0) -> None:
     if pool is None:
         return
     end_pool(pool, grace_s=timeout_s, timeout_s=timeout_s)
+
+
+def run_in_stage_process(fn: Callable[..., T], *args: Any) -> T:
+    """``fn(*args)`` in the stage process (:func:`stage_process`), waited for. A process that has died
+    (the OS's memory killer, a crash) is replaced and the call run once more in the new one, so a lost
+    process costs the fit it was running, not every fit of every session after it.
+
+    Example:
+        >>> run_in_stage_process(pow, 2, 10)
+        1024
+    """
+    for attempt in range(2):
+        pool = stage_process()
+        try:
+            return pool.submit(fn, *args).result()
+        except BrokenProcessPool:
+            _forget(pool)
+            if attempt:
+                raise
+    raise AssertionError("unreachable")
+
+
+def _forget(broken: ProcessPoolExecutor) -> None:
+    """Drop ``broken`` as the stage process, unless another call replaced it already."""
+    global _stage_pool
+    with _stage_pool_lock:
+        if _stage_pool is broken:
+            _stage_pool = None
+    end_pool(broken, grace_s=0.0, timeout_s=1.0)
 
 
 atexit.register(stop_stage_process)        # once: a no-op when no process was started

@@ -52,7 +52,7 @@ from service.preprocess.slices import preprocess_slices
 from service.preprocess.stack import split_stack
 from service.streaming import immediate
 from service.streaming.answers import SessionSummary, SliceAnswer, StackAnswer, moved_mm, worth_acquiring_again
-from service.streaming.background import stage_process
+from service.streaming.background import run_in_stage_process
 from service.streaming.coverage import Coverage, CoveredSlice, coverage
 from service.streaming.frames import SliceFrame, StreamedStack, check_frame
 from service.streaming.options import SessionOptions, StreamLimits
@@ -255,11 +255,10 @@ class StreamSession:
             & ~est.degenerate
         shape = getattr(info, "mc_error_shape", None)
         plane = getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM)
-        out = stage_process().submit(consistent_poses, est.mean, est.twin_mass, network_from_scanner, np.eye(4), usable,
-                                     plane,
-                                     est.spread_mm * getattr(info, "mc_error_scale", 1.0), True, times,
-                                     None if shape is None else np.asarray(shape),
-                                     float(getattr(info, "mc_error_depth_gain", 0.0)), reference).result()
+        out = run_in_stage_process(consistent_poses, est.mean, est.twin_mass, network_from_scanner, np.eye(4), usable,
+                                   plane, est.spread_mm * getattr(info, "mc_error_scale", 1.0), True, times,
+                                   None if shape is None else np.asarray(shape),
+                                   float(getattr(info, "mc_error_depth_gain", 0.0)), reference)
         add_unseen_errors(out, info, est)
         placement_mm = None
         if out.fit is not None and out.fit.atlas_from_scanner is not None:

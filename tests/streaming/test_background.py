@@ -13,7 +13,7 @@ from service.core.settings import Settings
 from service.inference.registry import ModelRegistry
 from service.main import create_app
 from service.core.threads import blas_threads
-from service.streaming.background import STAGE_BLAS_THREADS, stage_process, stop_stage_process
+from service.streaming.background import STAGE_BLAS_THREADS, run_in_stage_process, stage_process, stop_stage_process
 from tests.api.conftest import OracleEstimator
 from tests.support.scratch import job_store_dir
 
@@ -42,6 +42,16 @@ def test_a_fit_still_running_at_the_stop_is_ended_with_its_process() -> None:
         time.sleep(0.01)
     stop_stage_process(timeout_s=0.5)
     assert not worker.is_alive()
+
+
+def test_a_stage_process_that_died_is_replaced_and_the_fit_run_in_the_new_one() -> None:
+    worker = _worker()
+    worker.kill()                                                       # the OS's memory killer, a crash
+    worker.join(5)
+    assert run_in_stage_process(pow, 2, 10) == 1024
+    assert run_in_stage_process(pow, 3, 2) == 9                         # and every fit after it
+    assert next(iter(stage_process()._processes.values())).pid != worker.pid
+    stop_stage_process()
 
 
 def test_the_stage_process_runs_one_blas_thread() -> None:
