@@ -179,7 +179,8 @@ class StreamConnection:
                          "mc_samples": options.mc_samples, "variance_threshold": self.session.threshold,
                          "max_expected_error_mm": self.session.max_expected_error_mm,
                          "localiser": localiser is not None,
-                         "limits": {"slices": limits.max_slices, "stack_slices": limits.max_stack_slices,
+                         "limits": {"slices": limits.max_slices, "stacks": limits.max_stacks,
+                                    "stack_slices": limits.max_stack_slices,
                                     "pixels_per_slice": limits.max_pixels,
                                     "session_mb": limits.max_bytes / 2**20, "idle_s": self.settings.stream_idle_s}})
 

@@ -59,7 +59,8 @@ RAW_DATA = {ISMRMRDMessageID.ACQUISITION: "acquisition", ISMRMRDMessageID.WAVEFO
             ISMRMRDMessageID.NDARRAY: "ndarray"}
 KNOWN = {int(m) for m in ISMRMRDMessageID} - {int(ISMRMRDMessageID.UNPEEKED)}
 MRD_FIELDS = {"slice.scanner_from_voxel": "image header (position, read_dir, phase_dir, slice_dir, field_of_view)",
-              "slice.shape": "image matrix_size", "slice.index": "image slice", "slice:": "image:"}
+              "slice.shape": "image matrix_size", "slice.index": "image slice", "slice.stack": "image image_series_index",
+              "end_stack.stack": "series", "slice:": "image:"}
 """The streaming core names a slice's fields as Stream v1 does; a scanner knows them by the MRD image's."""
 
 
@@ -269,6 +270,7 @@ class MrdConnection:
         series_index = int(image.image_series_index)
         series = self.series.setdefault(series_index, SeriesState(str(series_index)))
         try:
+            self.check_slice(int(image.slice))
             session = self.open_session()
             pixels, scanner_from_voxel = slice_from_image(image)
             answer = session.add_slice(SliceFrame(series.stack, int(image.slice), pixels, scanner_from_voxel))
@@ -288,6 +290,13 @@ class MrdConnection:
             self.end_series(series_index)
         else:
             self.firm_up(series.stack)
+
+    def check_slice(self, index: int) -> None:
+        """Refuse a slice the header's slice count leaves out (MRD counts slices from 0): the series
+        would wait for a slice that never comes, and end without it."""
+        if self.slices_per_series is not None and index >= self.slices_per_series:
+            raise InvalidParameter(f"slice.index: {index} is beyond the header's {self.slices_per_series} slices "
+                                   f"(encodingLimits.slice.maximum {self.slices_per_series - 1}; slices count from 0)")
 
     def firm_up(self, stack: str) -> None:
         """Run the stack stage on ``stack`` in this connection's background thread (one run at a time;
@@ -340,7 +349,7 @@ class MrdConnection:
         try:
             answer = self.stage.submit(self.open_session().end_stack, series.stack).result()   # at the stages' priority
         except ServiceError as failed:
-            self.send_error(failed, series=series_index)
+            self.send_error(in_mrd_terms(failed), series=series_index)
         except Exception as fault:  # noqa: BLE001 - as in on_image
             log.error("mrd stack failed", extra={"error_type": type(fault).__name__})
             self.send_error(InternalError("stack: the server failed on this series"), series=series_index)
@@ -349,8 +358,7 @@ class MrdConnection:
             for message in update_messages(answer.updates, answer.reacquire_of):   # earlier stacks' slices it moved
                 self.send_text(message)
             self.send_text(stack_message(answer))
-        following = SeriesState(f"{series_index}.{series.passes + 1}", passes=series.passes + 1)
-        self.series[series_index] = following
+        self.series[series_index] = SeriesState(f"{series_index}.{series.passes + 1}", passes=series.passes + 1)
 
     def finish(self) -> None:
         """The client closed: end the open stacks, send the summary, close."""

@@ -29,12 +29,15 @@ class StreamLimits:
     """What the session's slices may hold in memory together (their pixels as float32)."""
     max_stack_slices: int = 128
     """What one stack may hold (``max_slices_per_stack``, as an upload: its stage's work grows with the cube)."""
+    max_stacks: int = 32
+    """What one session may hold (``max_files``, as a request): each stack's end refits the session's
+    ended stacks with it, so its cost grows with the stacks before it."""
 
     @classmethod
     def of(cls, settings: Settings) -> "StreamLimits":
         """The limits the ``stream_*`` settings give (``/v1/stream`` and ``svrnet-mrd`` alike)."""
         return cls(settings.stream_max_slices, settings.stream_max_pixels, int(settings.stream_max_session_mb * 2**20),
-                   settings.max_slices_per_stack)
+                   settings.max_slices_per_stack, settings.max_files)
 
 
 @dataclass(frozen=True)

@@ -134,6 +134,9 @@ class StreamSession:
             if sum(len(s) for s in self.stacks.values()) >= self.limits.max_slices:
                 raise InvalidParameter(f"slice: a session holds at most {self.limits.max_slices} slices; "
                                        "end it and start another")
+            if frame.stack not in self.stacks and len(self.stacks) >= self.limits.max_stacks:
+                raise InvalidParameter(f"slice.stack: a session holds at most {self.limits.max_stacks} stacks; "
+                                       "end it and start another")
             if frame.stack in self.stacks and len(self.stacks[frame.stack]) >= self.limits.max_stack_slices:
                 raise InvalidParameter(f"slice.stack: stack {frame.stack!r} holds {self.limits.max_stack_slices} "
                                        "slices, the most one stack may; end it and send the rest as another")

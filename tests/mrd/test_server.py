@@ -175,6 +175,30 @@ def test_unusable_messages_get_an_error_and_the_session_goes_on(case: Case, serv
     assert kinds[-2:] == ["stack", "summary"]
 
 
+def test_a_slice_beyond_the_headers_count_is_refused_and_the_series_ends_with_the_others(case: Case, serve) -> None:  # noqa: ANN001
+    """A series numbered from 1 would wait for its slice 0 and end without it: its last slice is named
+    on arrival, in the header's terms."""
+    server = serve()
+    client = MrdLink("127.0.0.1", server.port)
+    last = case.images[0][19]
+    client.send(CONFIG, mrd_header(slices=20), image_like(last, last.data, slice=20))
+    client.send(*[case.images[0][k] for k in INTERLEAVED])
+    received = client.close()
+    errors = [m for m in texts(received) if m["type"] == "error"]
+    assert len(errors) == 1 and errors[0]["slice"] == 20
+    assert errors[0]["detail"].startswith("image slice: 20 is beyond the header's 20 slices")
+    assert [m["stack"] for m in texts(received) if m["type"] == "stack"] == ["0"]
+
+
+def test_a_series_that_cannot_end_is_named_in_mrd_terms(case: Case, serve) -> None:  # noqa: ANN001
+    server = serve()
+    client = MrdLink("127.0.0.1", server.port)
+    client.send(CONFIG, *[case.images[0][k] for k in range(1, 20)])        # no header: the series ends at CLOSE
+    received = client.close()
+    (error,) = [m for m in texts(received) if m["type"] == "error"]
+    assert error["detail"].startswith("series: stack '0' lacks the slices [0]") and error["image_series_index"] == 0
+
+
 def test_an_image_over_the_pixel_limit_is_refused_before_its_data(case: Case, serve) -> None:  # noqa: ANN001
     server = serve(StreamLimits(max_pixels=32 * 32))
     client = MrdLink("127.0.0.1", server.port)

@@ -202,6 +202,17 @@ def test_a_stack_holds_no_more_than_its_slice_limit_and_the_next_stack_goes_on(c
     assert len(session.stacks[stacks[1][0].stack]) == 1
 
 
+def test_a_session_holds_no_more_than_its_stack_limit_and_its_stacks_go_on(case) -> None:  # noqa: ANN001
+    """As a request's ``max_files``: each stack's end refits the ended stacks before it."""
+    oracle, stacks, _ = case
+    session = StreamSession(oracle, None, StreamLimits(max_stacks=1), FAST)
+    session.add_slice(stacks[0][0])
+    with pytest.raises(InvalidParameter, match="slice.stack: a session holds at most 1 stacks"):
+        session.add_slice(stacks[1][0])
+    session.add_slice(stacks[0][1])                                      # the stack it holds goes on
+    assert list(session.stacks) == ["ax"] and len(session.stacks["ax"]) == 2
+
+
 def test_a_stack_judged_alone_waits_for_the_next_and_no_slice_to_reacquire_is_lost(case) -> None:  # noqa: ANN001
     """Every slice over a tiny expected-error limit: the first stack's end lists none of them (the next
     stack may bring their errors down), a one-stack session's summary lists them all, and the second
