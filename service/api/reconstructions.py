@@ -6,6 +6,7 @@ import json
 from datetime import datetime, timezone
 from typing import Annotated, Optional
 
+import numpy as np
 from anyio import to_thread
 from fastapi import APIRouter, Depends, Form, Query, Request, Response
 from fastapi.responses import FileResponse
@@ -15,9 +16,9 @@ from service.api.deps import ApiKey, LocalisersDep, RegistryDep, SettingsDep, Sl
 from service.api.schemas import UPLOAD_ERRORS, job_poses, problem_responses
 from service.api.uploads import UploadFormDep, known_fields, upload_directory, upload_reader
 from service.pipeline.predict import stack_orders
-from service.pipeline.prepare import check_mask_grid
+from service.pipeline.prepare import StackUpload, check_mask_grid
 from service.core.client_json import client_json
-from service.core.errors import Conflict, InvalidParameter, NotFound
+from service.core.errors import Conflict, InvalidParameter, NotFound, UnusableImage
 from service.io.acquisition_geometry import MAX_VOXEL_MM, MIN_VOXEL_MM
 from service.jobs.store import Job, JobStore
 from service.jobs.uploaded_poses import in_upload_order, poses_from_predict_body
@@ -74,6 +75,24 @@ def thickness_per_stack(values: list[float] | None, n_stacks: int) -> list[float
     return list(values) * n_stacks if len(values) == 1 else list(values)
 
 
+def check_slices_to_use(uploads: list[StackUpload], accepted: list[np.ndarray] | None) -> None:
+    """Refuse now a job that would fail for want of slices: every stack has its mask, and no slice the
+    job may use (an accepted one, where poses are given) holds a voxel of it. Without a mask the
+    worker's localiser decides."""
+    if any(u.mask is None for u in uploads):
+        return
+    holding = []                                  # per stack: which slices hold a voxel of its mask
+    for u in uploads:
+        inside = np.moveaxis(np.asarray(u.mask.array) > 0, u.slice_axis, 0)
+        holding.append(inside.reshape(len(inside), -1).any(1))
+    if not any(h.any() for h in holding):
+        raise UnusableImage(f"masks: no mask holds a voxel ({', '.join(str(u.mask_filename) for u in uploads)}); "
+                            "there is nothing to reconstruct")
+    if accepted is not None and not any((h & np.asarray(a, bool)).any() for h, a in zip(holding, accepted)):
+        raise InvalidParameter("poses: no accepted slice holds a voxel of its stack's mask; there is nothing to "
+                               "reconstruct")
+
+
 @router.post("", status_code=202, responses=UPLOAD_ERRORS, summary="Start a reconstruction job",
              dependencies=[Depends(known_fields("poses"))])
 async def submit(
@@ -118,14 +137,22 @@ async def submit(
             except ValueError as exc:
                 raise InvalidParameter("poses: not valid JSON") from exc
             counts = [u.volume.array.shape[slice_axis_of(u.volume.spacing)] for u in uploads]
+            affines = [u.volume.affine for u in uploads]
             try:
                 body = in_upload_order(body, [u.filename for u in uploads])
-                poses_from_predict_body(body, counts, [u.volume.affine for u in uploads])
+                poses_from_predict_body(body, counts, affines)
             except ValueError as exc:
                 raise InvalidParameter(str(exc)) from exc
-            (inputs / "poses.json").write_text(json.dumps(job_poses(body)))
+            kept = job_poses(body)
+            try:
+                given = poses_from_predict_body(kept, counts, affines)          # what the worker will read
+            except ValueError as exc:
+                raise InvalidParameter(f"{exc} (as /v1/predict writes them: numbers as JSON numbers, accepted as "
+                                       "true or false)") from exc
+            (inputs / "poses.json").write_text(json.dumps(kept))
         for u in uploads:
             check_mask_grid(u)
+        check_slices_to_use(uploads, None if not poses_text else [accepted for _, accepted in given])
     except Exception:
         store.delete(job.id)          # rejected input leaves no job behind
         raise

@@ -16,6 +16,7 @@ import pytest
 import SimpleITK as sitk
 from fastapi.testclient import TestClient
 
+from service.api import reconstructions
 from service.inference.registry import ModelRegistry
 from service.io.volume import Volume, read_volume, write_volume
 from service.jobs.store import SqliteJobStore
@@ -35,11 +36,12 @@ def case(tmp_path_factory: pytest.TempPathFactory) -> dict:
 
 
 def submit(client: TestClient, case: dict, poses: object = None, masks: list[bytes] | None = None,
-           **data: str):  # noqa: ANN201
-    """Submit the case; ``poses``: a body (default: the true poses) or the raw text of one; ``masks``:
-    the mask files' bytes (default: the case's)."""
+           stacks: list[bytes] | None = None, **data: str):  # noqa: ANN201
+    """Submit the case; ``poses``: a body (default: the true poses) or the raw text of one; ``masks``
+    and ``stacks``: the files' bytes (default: the case's)."""
     text = poses if isinstance(poses, str) else json.dumps(poses or case["poses"])
-    files = [("stacks", (s.name, s.read_bytes())) for s, _ in case["files"]]
+    stacks = stacks or [s.read_bytes() for s, _ in case["files"]]
+    files = [("stacks", (s.name, data_)) for (s, _), data_ in zip(case["files"], stacks)]
     masks = masks or [m.read_bytes() for _, m in case["files"]]
     files += [("masks", (m.name, data_)) for (_, m), data_ in zip(case["files"], masks)]
     files.append(("poses", ("poses.json", text.encode(), "application/json")))
@@ -47,13 +49,13 @@ def submit(client: TestClient, case: dict, poses: object = None, masks: list[byt
     return client.post("/v1/reconstructions", files=files, data=data)
 
 
-def empty_masks(case: dict) -> list[bytes]:
-    """The case's mask files with no voxel set: a job on them has no slice to reconstruct from."""
+def zeroed(case: dict, which: int) -> list[bytes]:
+    """The case's stack (``which`` 0) or mask (1) files with every voxel 0."""
     out = []
-    for _, m in case["files"]:
-        mask = read_volume(m)
-        path = m.parent / f"empty_{m.name}"
-        write_volume(Volume(np.zeros_like(mask.array), mask.affine), path)
+    for files in case["files"]:
+        image = read_volume(files[which])
+        path = files[which].parent / f"zero_{files[which].name}"
+        write_volume(Volume(np.zeros_like(image.array), image.affine), path)
         out.append(path.read_bytes())
     return out
 
@@ -224,14 +226,15 @@ def test_stages_are_reported_in_order(client: TestClient, case: dict) -> None:
 
 
 @both
-def test_cancel_and_failure(client: TestClient, case: dict) -> None:
+def test_cancel_and_failure(client: TestClient, case: dict, monkeypatch: pytest.MonkeyPatch) -> None:
     job_id = submit(client, case, svr_iterations="3").json()["job_id"]
     assert client.delete(f"/v1/reconstructions/{job_id}").status_code == 204
     st = client.get(f"/v1/reconstructions/{job_id}").json()
     assert st["status"] == "cancelled"
     assert client.get(f"/v1/reconstructions/{job_id}/volume").status_code == 409
-    # No slice inside its mask: the job fails, with its reason.
-    job_id = submit(client, case, masks=empty_masks(case)).json()["job_id"]
+    # No slice inside its mask (what the submission refuses, let through): the job fails, with its reason.
+    monkeypatch.setattr(reconstructions, "check_slices_to_use", lambda *_: None)
+    job_id = submit(client, case, masks=zeroed(case, 1)).json()["job_id"]
     st = wait(client, job_id)
     assert st["status"] == "failed" and "no included slice" in st["error"], st
 
@@ -262,6 +265,29 @@ def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict) ->
             s["accepted"] = False
     r = submit(client, case, poses=rejected)
     assert r.status_code == 400 and "no slice is accepted" in r.json()["detail"], r.text
+    # Nothing to reconstruct from: masks without a voxel; poses accepted only where the masks hold none.
+    r = submit(client, case, masks=zeroed(case, 1))
+    assert r.status_code == 422 and r.json()["detail"].startswith("masks: no mask holds a voxel"), r.text
+    outside, first_only = json.loads(json.dumps(case["poses"])), []
+    for (_, m), st_ in zip(case["files"], outside["stacks"]):
+        mask = read_volume(m)
+        kept = np.moveaxis(mask.array.copy(), int(np.argmax(mask.spacing)), 0)
+        kept[1:] = 0                                                     # a voxel in the first slice only
+        path = m.parent / f"first_{m.name}"
+        write_volume(Volume(np.moveaxis(kept, 0, int(np.argmax(mask.spacing))), mask.affine), path)
+        first_only.append(path.read_bytes())
+        for s in st_["slices"]:
+            s["accepted"] = s["index"] != 0
+    r = submit(client, case, poses=outside, masks=first_only)
+    assert r.status_code == 400 and "no accepted slice holds a voxel" in r.json()["detail"], r.text
+    # Poses the worker could not read (a number as text, a flag as a number) are refused now, not later.
+    for change in (lambda s: s["atlas_from_voxel"][0].__setitem__(0, "1.0"), lambda s: s.__setitem__("accepted", 1)):
+        bad = json.loads(json.dumps(case["poses"]))
+        for st_ in bad["stacks"]:
+            for s in st_["slices"]:
+                change(s)
+        r = submit(client, case, poses=bad)
+        assert r.status_code == 400 and "poses: stack 0" in r.json()["detail"], r.text
     n_slices = len(case["poses"]["stacks"][1]["slices"])
     for order, needles in (("zigzag", ["slice_order", "interleaved-odd-first"]), (["auto", "auto"], ["2 values for 3 stacks"]),
                            (["auto", "0,1", "auto"], ["slice_order[1]", case["files"][1][0].name, f"stack of {n_slices} slices"])):

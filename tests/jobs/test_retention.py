@@ -8,11 +8,12 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
+from service.api import reconstructions
 from service.inference.registry import ModelRegistry
 from service.jobs.store import SqliteJobStore
 from tests.api.conftest import OracleEstimator, make_client
 from tests.jobs.conftest import BACKENDS
-from tests.jobs.test_jobs_api import case, empty_masks, submit, wait  # noqa: F401 - fixture
+from tests.jobs.test_jobs_api import case, submit, wait, zeroed  # noqa: F401 - fixture
 
 PATIENT = b"Doe^Jane"
 
@@ -47,8 +48,9 @@ def test_a_succeeded_job_keeps_only_its_results(client: TestClient, case: dict) 
 
 
 @pytest.mark.parametrize("queue_settings", BACKENDS, indirect=True)
-def test_a_failed_job_keeps_nothing_of_its_uploads(client: TestClient, case: dict) -> None:
-    job_id = submit(client, case, masks=empty_masks(case)).json()["job_id"]
+def test_a_failed_job_keeps_nothing_of_its_uploads(client: TestClient, case: dict, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(reconstructions, "check_slices_to_use", lambda *_: None)      # a job the worker fails
+    job_id = submit(client, case, masks=zeroed(case, 1)).json()["job_id"]
     assert wait(client, job_id)["status"] == "failed"
     _assert_no_upload_left(client.app.state.job_store.directory(job_id))
 
