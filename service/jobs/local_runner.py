@@ -9,7 +9,8 @@ pool for good: every job of it fails with ``BrokenProcessPool``, and so would ev
 submission. The runner then starts a new pool and recovers the jobs as after a restart, with the
 lost worker as the cause: the interrupted ones run again up to ``max_attempts`` times, then fail
 saying so, and the queued ones run. A job running longer than ``timeout_s`` is failed saying so and
-stopped the same way (:meth:`LocalRunner.maintain`): a job stops only with its process. So does a
+stopped the same way (:meth:`LocalRunner.maintain`): a job stops only with its process, and a pool's
+processes stop together, so the jobs running beside it run again without losing an attempt. So does a
 running job cancelled while no other job runs in the pool (:meth:`LocalRunner.cancel`); beside
 others it stops at its next stage, so that theirs go on.
 
@@ -99,6 +100,8 @@ class LocalRunner(JobRunner):
         self.futures: dict[str, Future] = {}
         self.stopped_for: str | None = None
         """Why the runner itself stopped the pool's processes (a timed-out or cancelled job), for the log."""
+        self.spared: list[str] = []
+        """The jobs running beside the one the runner stopped the pool for: their run does not count."""
         self.owner = None
         """The store's lock file while this runner owns the store (:func:`lock_store`)."""
         self.started = False
@@ -133,11 +136,14 @@ class LocalRunner(JobRunner):
         if future is None:
             self._replace(pool)
         else:
-            future.add_done_callback(lambda f: self._check(f, pool))
+            future.add_done_callback(lambda f: self._check(f, pool, job_id))
 
-    def _check(self, future: Future, pool: ProcessPoolExecutor) -> None:
-        """A job's future ended: if its pool broke, replace it (in a thread of its own: this callback
-        runs in the broken pool's own management thread)."""
+    def _check(self, future: Future, pool: ProcessPoolExecutor, job_id: str) -> None:
+        """A job's future ended: forget it; if its pool broke, replace it (in a thread of its own: this
+        callback runs in the broken pool's own management thread)."""
+        with self.lock:
+            if self.futures.get(job_id) is future:
+                del self.futures[job_id]
         if not future.cancelled() and isinstance(future.exception(), BrokenProcessPool):
             threading.Thread(target=self._replace, args=(pool,), name="job-pool-recovery", daemon=True).start()
 
@@ -150,7 +156,8 @@ class LocalRunner(JobRunner):
             self.pool = self._new_pool()
             broken.shutdown(wait=False, cancel_futures=True)
             stopped_for, self.stopped_for = self.stopped_for, None
-        queued = self._handed_over(self.store.recover(self.max_attempts, cause="lost worker"))
+            spared, self.spared = self.spared, []
+        queued = self._handed_over(self.store.recover(self.max_attempts, cause="lost worker", spared=spared))
         if stopped_for is None:
             log.warning(f"a job worker process was lost (killed, or out of memory); {len(queued)} job(s) queued again")
         else:
@@ -188,7 +195,7 @@ class LocalRunner(JobRunner):
             self.store.discard_inputs(job.id)
             log.warning(f"job {job.id} ran longer than SVRNET_JOB_TIMEOUT_H and was stopped", extra={"job_id": job.id})
         if late:
-            self._stop_workers("a timed-out job")
+            self._stop_workers("a timed-out job", spared=[j for j in self.store.ids("running") if j in self.futures])
 
     def cancel(self, job_id: str) -> None:
         """A job not yet started never starts; a running one stops now when it runs alone in the pool
@@ -201,14 +208,15 @@ class LocalRunner(JobRunner):
             return
         self._stop_workers("a cancelled job")
 
-    def _stop_workers(self, reason: str) -> None:
-        """Kill the pool's processes; the pool, broken, is replaced and its jobs recovered (:meth:`_replace`).
+    def _stop_workers(self, reason: str, spared: list[str] | None = None) -> None:
+        """Kill the pool's processes; the pool, broken, is replaced and its jobs recovered (:meth:`_replace`),
+        those of ``spared`` (running beside the job stopped for) without losing an attempt.
 
         The runner replaces it itself once the processes are gone: the job may have ended on its own
         between the decision and the kill, and a pool whose idle worker dies fails no future, so no
         future's callback would."""
         with self.lock:
-            self.stopped_for, pool = reason, self.pool
+            self.stopped_for, self.spared, pool = reason, list(spared or []), self.pool
             procs = list((getattr(pool, "_processes", None) or {}).values())
             for proc in procs:
                 proc.kill()

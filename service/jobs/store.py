@@ -259,13 +259,16 @@ class SqliteJobStore(JobStore):
         with self._connect() as db:
             return [r["id"] for r in db.execute("SELECT id FROM jobs WHERE status = ? ORDER BY created_at", (status,))]
 
-    def recover(self, max_attempts: int = 2, cause: str = "restart") -> list[str]:
+    def recover(self, max_attempts: int = 2, cause: str = "restart", spared: list[str] = ()) -> list[str]:
         """After a restart (or, ``cause="lost worker"``, after the worker processes running them were
         lost): re-queue interrupted jobs (or fail them after ``max_attempts``, deleting their
-        uploads); the queue."""
+        uploads); the queue. The jobs of ``spared`` were stopped for another job's sake (their
+        processes with its): the interrupted run does not count as one of their attempts."""
         now = time.time()
         error = "interrupted by a server restart too many times" if cause == "restart" else lost_worker(max_attempts)
         with self._connect() as db:
+            db.executemany("UPDATE jobs SET attempts = attempts - 1 WHERE id = ? AND status = 'running' AND attempts > 0",
+                           [(job_id,) for job_id in spared])
             given_up = [r["id"] for r in db.execute(
                 "SELECT id FROM jobs WHERE status = 'running' AND attempts >= ?", (max_attempts,))]
             db.execute("UPDATE jobs SET status = 'failed', stage = 'failed', updated_at = ?, error = ? "

@@ -121,3 +121,33 @@ def test_at_start_a_job_whose_upload_was_cut_short_fails_saying_so_and_a_complet
         assert not (store.directory(cut_short.id) / "inputs").exists()
     finally:
         runner.shutdown()
+
+
+def test_a_job_running_beside_a_timed_out_one_runs_again_without_losing_an_attempt(tmp_path: Path) -> None:
+    # A pool's processes stop together: the timed-out job's stop takes its neighbour's process too.
+    import time
+
+    from service.jobs.worker import TIMED_OUT
+
+    store = SqliteJobStore(tmp_path)
+    runner = LocalRunner(store, tmp_path, max_attempts=1, timeout_s=60.0)
+    try:
+        late, beside = store.create({}), store.create({})
+        for job in (late, beside):
+            assert store.claim(job.id) == 1
+            runner.futures[job.id] = runner.pool.submit(time.sleep, 30)    # what the pool's processes run
+        with store._connect() as db:
+            db.execute("UPDATE jobs SET started_at = ? WHERE id = ?", (time.time() - 120, late.id))
+        resubmitted: list[str] = []
+        runner.submit = resubmitted.append                                  # the new pool is not needed here
+        runner.maintain()
+        deadline = time.time() + 60
+        while not resubmitted:                                              # recovered once the processes are gone
+            assert time.time() < deadline
+            time.sleep(0.05)
+        assert resubmitted == [beside.id]
+        assert store.get(late.id).status == "failed" and store.get(late.id).error == TIMED_OUT
+        again = store.get(beside.id)
+        assert again.status == "queued" and again.attempts == 0, again      # at max_attempts 1 it would have failed
+    finally:
+        runner.shutdown()
