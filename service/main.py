@@ -60,6 +60,7 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
                     # the upload deadline, no request of a live server still uses them.
                     await asyncio.to_thread(sweep_stale_uploads, settings.tmp_dir, settings.upload_timeout_s + 3600)
                     await asyncio.to_thread(app.state.job_store.discard_ended_inputs)   # no upload outlives its job
+                    await asyncio.to_thread(app.state.job_store.sweep_orphans, settings.upload_timeout_s + 3600)
                     await asyncio.to_thread(app.state.job_store.expire, settings.retention_hours * 3600)
                     await asyncio.to_thread(app.state.job_runner.maintain)
                 except Exception:  # noqa: BLE001 - a store briefly unreachable: /readyz says so; retry

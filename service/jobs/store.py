@@ -85,6 +85,22 @@ class JobStore(ABC):
             self.discard_inputs(job_id)
         return ended
 
+    def sweep_orphans(self, grace_s: float) -> list[str]:
+        """Delete the job folders no record names, untouched for ``grace_s``: a record lost with a
+        queue's data (a Redis restarted without persistence) or a deletion cut short would otherwise
+        keep a job's uploads on disk for ever; the ids whose folders went."""
+        root = self.data_dir / "jobs"
+        cutoff, gone = time.time() - grace_s, []
+        for folder in sorted(root.iterdir()) if root.is_dir() else []:
+            try:
+                stale = folder.is_dir() and folder.stat().st_mtime < cutoff
+            except OSError:                     # deleted meanwhile
+                continue
+            if stale and self.get(folder.name) is None:
+                shutil.rmtree(folder, ignore_errors=True)
+                gone.append(folder.name)
+        return gone
+
     def is_cancelled(self, job_id: str) -> bool:
         job = self.get(job_id)
         return job is None or job.status == "cancelled"

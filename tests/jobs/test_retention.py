@@ -65,3 +65,22 @@ def test_a_job_failed_by_too_many_restarts_keeps_nothing(tmp_path: Path) -> None
         store.recover()
     assert store.get(job.id).status == "failed"
     assert not (store.directory(job.id) / "inputs").exists()
+
+
+def test_a_job_folder_whose_record_was_lost_goes_after_the_grace(tmp_path: Path) -> None:
+    """As after a Redis restarted without persistence: the uploads would otherwise stay for ever."""
+    import os
+    import time
+
+    store = SqliteJobStore(tmp_path)
+    kept = store.create({})
+    (store.directory(kept.id) / "inputs").mkdir(parents=True)
+    orphan, fresh = tmp_path / "jobs" / "0f", tmp_path / "jobs" / "1e"
+    for folder in (orphan, fresh):
+        (folder / "inputs").mkdir(parents=True)
+        (folder / "inputs" / "names.json").write_bytes(PATIENT)
+    old = time.time() - 7200
+    for folder in (orphan, store.directory(kept.id)):
+        os.utime(folder, (old, old))
+    assert store.sweep_orphans(grace_s=3600) == ["0f"]
+    assert not orphan.exists() and fresh.exists() and store.directory(kept.id).exists()
