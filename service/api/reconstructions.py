@@ -38,15 +38,19 @@ def _iso(t: float) -> str:
 
 
 def _status(job: Job, workers: int | None = None) -> dict:
+    """A job's status object; ``coherent`` repeats the report's verdict (``quality.coherent``), so that a
+    client reading only the status learns that a succeeded job's volume is no coherent brain."""
     done = job.status == "succeeded"
     base = f"/v1/reconstructions/{job.id}"
+    quality = (job.report or {}).get("quality") if done else None
     return {"job_id": job.id, "status": job.status, "stage": job.stage, "progress": job.progress, "error": job.error,
             "created_at": _iso(job.created_at), "updated_at": _iso(job.updated_at),
             "result_url": f"{base}/volume" if done else None, "preview_url": f"{base}/preview.png" if done else None,
             "poses_url": f"{base}/poses" if done else None,
             "transforms_url": f"{base}/transforms" if done else None, "report": job.report, "attempts": job.attempts,
             "started_at": _iso(job.started_at) if job.started_at else None,
-            "workers": workers if job.status == "queued" else None}
+            "workers": workers if job.status == "queued" else None,
+            "coherent": quality.get("coherent") if isinstance(quality, dict) else None}
 
 
 def _job(request: Request, job_id: str) -> Job:

@@ -100,6 +100,7 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
     assert png.status_code == 200 and png.content[:8] == b"\x89PNG\r\n\x1a\n"
     report = st["report"]
     assert report and len(report["slices"]) == 36
+    assert isinstance(st["coherent"], bool) and st["coherent"] == report["quality"]["coherent"]
     assert {"stack", "slice", "included", "exclusion_reason", "weight"} <= set(report["slices"][0])
     times = report["timings_s"]
     assert times["job"] >= times["all_paths"] >= times["total"] > 0     # the job holds its paths, they the winner
@@ -236,7 +237,7 @@ def test_cancel_and_failure(client: TestClient, case: dict, monkeypatch: pytest.
     monkeypatch.setattr(reconstructions, "check_slices_to_use", lambda *_: None)
     job_id = submit(client, case, masks=zeroed(case, 1)).json()["job_id"]
     st = wait(client, job_id)
-    assert st["status"] == "failed" and "no included slice" in st["error"], st
+    assert st["status"] == "failed" and "no included slice" in st["error"] and st["coherent"] is None, st
 
 
 @both
