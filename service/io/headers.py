@@ -12,7 +12,13 @@ its own files, so an upload is never handed to a reader as sent:
 * the reader gets a *new* header written here from an allow-list of geometry and encoding fields,
   followed by the upload's own data bytes: fields that could name a file are never copied. A
   compressed MetaImage's data are inflated here, bounded, and must give the size the header declares
-  (ITK's reader would leave the voxels of a stream that fails to inflate as its memory held them).
+  (ITK's reader would leave the voxels of a stream that fails to inflate as its memory held them);
+* the header's shape is checked here, in Python integers, before any reader sees it
+  (:func:`declared_values`): 1-4 axes of 1 to 2**31 - 1 voxels, a value type and encoding the reader
+  knows, yes/no fields that say yes or no. ITK's NRRD reader crashes on a ``dimension`` of 12, its
+  MetaImage reader loops for ever on an ``NDims`` of -1, both count sizes of 2**32 and more in 32 bits
+  (a file declaring 4,294,967,297 voxels was charged as 1 and allocated 16 GB), and a gzip NRRD's
+  ``byte skip`` is inflated and thrown away uncounted.
 
 Example:
     >>> import io
@@ -133,6 +139,78 @@ def geometry_problem(header: bytes, kind: str) -> str | None:
     return None
 
 
+MAX_AXES = 4
+MAX_AXIS_VOXELS = 2**31 - 1
+MAX_CHANNELS = 16
+NRRD_ITEM_BYTES = {
+    **dict.fromkeys(("signed char", "int8", "int8_t", "uchar", "unsigned char", "uint8", "uint8_t"), 1),
+    **dict.fromkeys(("short", "short int", "signed short", "signed short int", "int16", "int16_t", "ushort",
+                     "unsigned short", "unsigned short int", "uint16", "uint16_t"), 2),
+    **dict.fromkeys(("int", "signed int", "int32", "int32_t", "uint", "unsigned int", "uint32", "uint32_t", "float"), 4),
+    **dict.fromkeys(("longlong", "long long", "long long int", "signed long long", "signed long long int", "int64",
+                     "int64_t", "ulonglong", "unsigned long long", "unsigned long long int", "uint64", "uint64_t",
+                     "double"), 8)}
+"""Bytes of one value by NRRD ``type`` (teem's spellings, white space collapsed, lower case)."""
+NRRD_ENCODINGS = {"raw": False, "txt": False, "text": False, "ascii": False, "hex": False, "gz": True, "gzip": True}
+"""The NRRD encodings read, and whether each is compressed (bzip2 is not in ITK's build)."""
+MHA_YES_NO = ("binarydata", "binarydatabyteordermsb", "elementbyteordermsb", "compresseddata")
+
+
+def declared_values(header: bytes, kind: str, filename: str) -> int:
+    """The number of voxel values a rebuilt header declares (channels included), counted here in
+    Python integers; :class:`UnsupportedFile` naming the field for a header its reader would
+    misread, crash or hang on (see the module).
+
+    Example:
+        >>> declared_values(b"NRRD0004\\ntype: short\\ndimension: 3\\nsizes: 4 5 6\\nencoding: gzip\\n\\n", "nrrd", "a")
+        120
+        >>> declared_values(b"NDims = -1\\nDimSize = 2\\nElementType = MET_UCHAR\\n", "mha", "b.mha")
+        Traceback (most recent call last):
+        ...
+        service.core.errors.UnsupportedFile: b.mha: its MHA header's NDims is not a whole number of 1 to 4 axes
+    """
+    fields, name = _fields(header, kind), kind.upper()
+
+    def problem(what: str) -> UnsupportedFile:
+        return UnsupportedFile(f"{filename}: its {name} header's {what}")
+
+    def whole(field: str, label: str, low: int, high: int) -> int:
+        text = fields.get(field, b"").strip()
+        if not re.fullmatch(rb"\d+", text) or not low <= int(text) <= high:
+            raise problem(f"{label} is not a whole number of {low} to {high} axes" if field in ("dimension", "ndims")
+                          else f"{label} is not a whole number from {low} to {high}")
+        return int(text)
+
+    if kind == "nrrd":
+        axes = whole("dimension", "dimension", 1, MAX_AXES)
+        sizes_field, label = "sizes", "sizes"
+        item = NRRD_ITEM_BYTES.get(re.sub(rb"\s+", b" ", fields.get("type", b"").strip()).decode("latin-1").lower())
+        if item is None:
+            raise problem("type is not a number type this reader knows")
+        encoding = fields.get("encoding", b"raw").strip().decode("latin-1").lower()
+        if encoding not in NRRD_ENCODINGS:
+            raise problem(f"encoding {encoding[:20]!r} is not one this reader knows (raw, ascii, hex or gzip)")
+        skip = fields.get("byteskip", b"0").strip()
+        if NRRD_ENCODINGS[encoding] and skip not in (b"0", b""):
+            raise problem("byte skip is not 0 for compressed data (the skipped bytes would be inflated unbounded)")
+        channels = 1
+    else:
+        axes = whole("ndims", "NDims", 1, MAX_AXES)
+        sizes_field, label = "dimsize", "DimSize"
+        item = MET_ITEM_BYTES.get(fields.get("elementtype", b"").decode("latin-1").strip().upper())
+        if item is None:
+            raise problem("ElementType is not a number type this reader knows")
+        channels = whole("elementnumberofchannels", "ElementNumberOfChannels", 1, MAX_CHANNELS) \
+            if "elementnumberofchannels" in fields else 1
+        for yes_no in MHA_YES_NO:
+            if yes_no in fields and fields[yes_no].strip().lower() not in (b"true", b"false"):
+                raise problem(f"{MHA_CANONICAL[yes_no]} is neither True nor False")
+    sizes = fields.get(sizes_field, b"").split()
+    if len(sizes) != axes or not all(re.fullmatch(rb"\d+", s) and 1 <= int(s) <= MAX_AXIS_VOXELS for s in sizes):
+        raise problem(f"{label} does not give {axes} whole numbers from 1 to {MAX_AXIS_VOXELS}")
+    return int(np.prod([int(s) for s in sizes], dtype=object)) * channels
+
+
 def clean_header(src: BinaryIO, dst: BinaryIO, kind: str, filename: str, max_inflated: int = 1 << 30) -> bytes:
     """Copy an NRRD (``kind="nrrd"``) or MetaImage (``"mha"``) upload from ``src`` to ``dst`` with a
     header rebuilt from allowed fields; its data bytes are copied unchanged, but for a compressed
@@ -156,6 +234,7 @@ def clean_header(src: BinaryIO, dst: BinaryIO, kind: str, filename: str, max_inf
         if not complete:
             raise UnsupportedFile(f"{filename}: a {kind.upper()} header longer than {MAX_HEADER_BYTES >> 10} KB")
         raise UnsupportedFile(f"{filename}: a {kind.upper()} header with no voxel data after it")
+    declared_values(header, kind, filename)                # before any reader sees it
     if kind == "mha" and _fields(header, "mha").get("compresseddata", b"").strip().lower() == b"true":
         _inflated_mha(header, head[data_at:], src, dst, filename, max_inflated)
         return header
@@ -216,15 +295,8 @@ def _inflated_mha(header: bytes, data: bytes, src: BinaryIO, dst: BinaryIO, file
     inflated here, bounded by the values the header declares. ITK's reader leaves the voxels of a
     stream that fails to inflate as the memory it allocated held (an earlier upload's voxels, say)
     and says nothing; here a stream that is corrupt, cut short or longer than declared is refused."""
-    try:
-        fields = _fields(header, "mha")
-        count = int(np.prod([int(v) for v in fields.get("dimsize", b"").split()], dtype=np.float64))
-        count *= int(fields.get("elementnumberofchannels", b"1"))
-        item = MET_ITEM_BYTES[fields.get("elementtype", b"").decode("latin-1").strip().upper()]
-    except (ValueError, KeyError):
-        raise UnsupportedFile(f"{filename}: a compressed MHA file whose header gives no size or element type "
-                              "this reader knows") from None
-    expected = count * item
+    item = MET_ITEM_BYTES[_fields(header, "mha")["elementtype"].decode("latin-1").strip().upper()]
+    expected = declared_values(header, "mha", filename) * item
     if not 0 < expected <= max_bytes:
         raise UnsupportedFile(f"{filename}: a compressed MHA file that declares {expected} bytes of voxel data")
     kept = [line for line in header.split(b"\n") if not line.startswith((b"CompressedData", b"ElementDataFile"))]
@@ -246,4 +318,4 @@ def _inflated_mha(header: bytes, data: bytes, src: BinaryIO, dst: BinaryIO, file
                               "header declares (corrupt or truncated)")
 
 
-__all__ = ["MAX_HEADER_BYTES", "clean_header", "geometry_problem"]
+__all__ = ["MAX_HEADER_BYTES", "clean_header", "declared_values", "geometry_problem"]

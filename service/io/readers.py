@@ -36,7 +36,7 @@ from service.geometry import frames
 from service.io.acquisition_geometry import grid_problem, stacking_problem
 from service.io.archive import read_dicom_zip
 from service.io.dicom import read_dicom_file
-from service.io.headers import clean_header, geometry_problem
+from service.io.headers import clean_header, declared_values, geometry_problem
 from service.io.limits import DecodeBudget, FileBudget
 from service.io.nifti_header import (MAX_SHEAR_COS, NiftiTransforms, missing_voxel_size, orientation_problem,
                                      read_transforms, sform_problem)
@@ -128,7 +128,7 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
                 if transforms is not None and transforms.header_size == 540:      # NIfTI-2
                     vol = _read_nifti2(named, filename, budget, transforms)
                 else:
-                    budget.voxels(_declared_values(named, kind))
+                    budget.voxels(_declared_values(named, kind) if header is None else declared_values(header, kind, filename))
                     vol = placed_by_header(from_sitk(_squeeze_4d(_reader(named, kind).Execute(), filename)), transforms)
                     if header is not None and (problem := geometry_problem(header, kind)) is not None:
                         raise UnusableImage(f"{filename}: {problem}")      # what the reader made up

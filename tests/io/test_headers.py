@@ -147,3 +147,33 @@ def test_a_geometry_the_reader_would_make_up_is_422(tmp_path: Path, name: str, c
     with pytest.raises(UnusableImage) as info:
         read_upload(upload, name)
     assert name in info.value.detail and words in info.value.detail, info.value.detail
+
+
+PAYLOAD = bytes(77_000)
+
+
+@pytest.mark.parametrize("name, content, words", [
+    # ITK's NRRD reader crashes the process on these dimensions; MetaIO loops for ever on these NDims.
+    ("d12.nrrd", b"NRRD0004\ntype: uchar\ndimension: 12\nsizes: " + b"2 " * 12 + b"\nspacings: " + b"1 " * 12
+     + b"\nencoding: raw\n\n", "dimension is not a whole number of 1 to 4 axes"),
+    ("minus.mha", b"ObjectType = Image\nNDims = -1\nDimSize = 8 8 8\nElementSpacing = 1 1 1\nElementType = MET_UCHAR\n"
+     b"ElementDataFile = LOCAL\n", "NDims is not a whole number of 1 to 4 axes"),
+    ("huge.mha", b"ObjectType = Image\nNDims = 2147483647\nDimSize = 8 8 8\nElementType = MET_UCHAR\n"
+     b"ElementDataFile = LOCAL\n", "NDims is not"),
+    # A size past 32 bits, which ITK counts as 1 and teem allocates whole.
+    ("wrap.nrrd", b"NRRD0004\ntype: float\ndimension: 3\nsizes: 4294967297 1 1\nspacings: 1 1 1\nencoding: raw\n\n",
+     "sizes does not give 3 whole numbers"),
+    # Inflated and thrown away, uncounted.
+    ("skip.nrrd", b"NRRD0004\ntype: uchar\ndimension: 3\nsizes: 8 8 8\nspacings: 1 1 1\nencoding: gzip\n"
+     b"byte skip: 2000000000\n\n", "byte skip is not 0 for compressed data"),
+    # MetaIO takes 1 or T for compressed, fails to inflate and returns its buffer unfilled (an earlier upload's).
+    ("one.mha", b"ObjectType = Image\nNDims = 3\nDimSize = 8 8 8\nElementSpacing = 1 1 1\nElementType = MET_UCHAR\n"
+     b"CompressedData = 1\nElementDataFile = LOCAL\n", "CompressedData is neither True nor False"),
+    ("text.mha", b"ObjectType = Image\nNDims = 3\nDimSize = 8 8 8\nElementSpacing = 1 1 1\nElementType = MET_STRING\n"
+     b"ElementDataFile = LOCAL\n", "ElementType is not a number type"),
+    ("bz.nrrd", b"NRRD0004\ntype: uchar\ndimension: 3\nsizes: 8 8 8\nspacings: 1 1 1\nencoding: bzip2\n\n",
+     "encoding 'bzip2' is not one this reader knows"),
+])
+def test_a_header_its_reader_would_crash_hang_or_misread_on_is_refused_first(tmp_path: Path, name: str,
+                                                                             content: bytes, words: str) -> None:
+    assert words in refuse(tmp_path, content + PAYLOAD, name)
