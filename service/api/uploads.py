@@ -217,7 +217,7 @@ def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: 
     Each file may decode to ``max_decoded_bytes``, all of them together to ``max_request_bytes``
     (:class:`~service.io.limits.DecodeBudget`): many bombs in one request stop at the request's limit.
     """
-    budget = DecodeBudget(max_decoded_bytes, max_request_bytes)
+    budget = DecodeBudget(max_decoded_bytes, max_request_bytes, max_slices)
     if masks and len(masks) != len(stacks):
         raise InvalidParameter(f"masks: {len(masks)} masks for {len(stacks)} stacks; give none or one per stack")
     jobs = [(up, directory / f"stack{i}", display_name(up, "stacks", i)) for i, up in enumerate(stacks)]

@@ -25,6 +25,7 @@ import zlib
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import SimpleITK as sitk
 from pydicom import uid
 
@@ -68,6 +69,7 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path 
         times: dict[str, float | None] = {}   # unpacked file -> its acquisition time (for the order only)
         thicknesses: dict[str, object] = {}     # unpacked file -> its SliceThickness
         tags: dict[str, Tags] = {}            # unpacked file -> its geometry tags (to check the series)
+        sizes: dict[str, tuple[int, ...]] = {}  # unpacked file -> (columns, rows, frames) as pydicom read them
         try:
             _check_directory(path, filename)
             with zipfile.ZipFile(path) as z:
@@ -79,8 +81,9 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path 
                 for i, m in enumerate(members):
                     label = f"{filename}: {clean_name(m.filename) or f'member {i}'}"
                     out = Path(tmp) / f"{i:05d}.dcm"
-                    if _unpack(z, m, out, budget.member(label), label, times, tags, thicknesses):
+                    if _unpack(z, m, out, budget.member(label), label, times, tags, thicknesses, sizes):
                         labels[str(out)] = label
+                        budget.slices(len(labels), "DICOM images in the archive")
         except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as exc:
             raise UnsupportedFile(f"{filename}: corrupt or truncated ZIP archive") from exc
         except (NotImplementedError, RuntimeError) as exc:     # an unknown method, an encrypted member
@@ -97,16 +100,34 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path 
             return read_dicom_file(Path(files[0]), labels.get(files[0], filename), budget)
         if (problem := series_problem([tags[f] for f in files])) is not None:
             raise UnusableImage(f"{filename}: a DICOM series of {len(files)} files, but {problem}")
+        for f in files:
+            _check_size(f, sizes[f], labels.get(f, filename))
         reader.SetFileNames(files)
         return replace(from_sitk(reader.Execute()), acquisition_order=order_of([times.get(f) for f in files]),
                        slice_thickness_mm=stated_thickness([thicknesses.get(f) for f in files]))
 
 
+def _check_size(path: str, size: tuple[int, ...], label: str) -> None:
+    """Refuse a file whose image size GDCM, which builds the series' volume, reads otherwise than
+    pydicom, whose reading was checked and charged (``size``: columns, rows, frames): a header that
+    states Rows or Columns twice is read by its first value in one and its last in the other (a
+    1 KB archive stating 20,000 and then 8 was built into 3.5 GB)."""
+    info = sitk.ImageFileReader()
+    info.SetImageIO("GDCMImageIO")
+    info.SetFileName(path)
+    info.ReadImageInformation()
+    found = info.GetSize()
+    if tuple(found[:2]) != size[:2] or int(np.prod(found[2:], dtype=np.int64)) != size[2]:
+        raise UnsupportedFile(f"{label}: a DICOM header that states the image size twice, differently")
+
+
 def _unpack(z: zipfile.ZipFile, member: zipfile.ZipInfo, out: Path, budget: FileBudget, label: str,
-            times: dict[str, float | None], tags: dict[str, Tags], thicknesses: dict[str, object]) -> bool:
+            times: dict[str, float | None], tags: dict[str, Tags], thicknesses: dict[str, object],
+            sizes: dict[str, tuple[int, ...]]) -> bool:
     """Inflate ``member`` to ``out`` (charged to ``budget``) and screen it; False: not a DICOM image.
     Its acquisition time goes to ``times`` (:mod:`service.io.acquisition_times`), its geometry tags
-    to ``tags`` (:mod:`service.io.acquisition_geometry`), its slice thickness to ``thicknesses``."""
+    to ``tags`` (:mod:`service.io.acquisition_geometry`), its slice thickness to ``thicknesses``, its
+    image size to ``sizes``."""
     with z.open(member) as src, open(out, "wb") as dst:
         while chunk := src.read(1 << 20):
             budget.inflate(len(chunk))
@@ -130,6 +151,7 @@ def _unpack(z: zipfile.ZipFile, member: zipfile.ZipInfo, out: Path, budget: File
         return False
     times[str(out)] = seconds(ds)
     thicknesses[str(out)] = ds.get("SliceThickness")
+    sizes[str(out)] = (int(ds.Columns), int(ds.Rows), int(getattr(ds, "NumberOfFrames", 1) or 1))   # checked by load_dataset
     tags[str(out)] = (ds.get("ImagePositionPatient"), ds.get("ImageOrientationPatient"), ds.get("PixelSpacing"))
     if ds.file_meta.TransferSyntaxUID == uid.ExplicitVRLittleEndian and _was_deflated(out):
         ds.save_as(out, implicit_vr=False, little_endian=True, enforce_file_format=True)

@@ -134,6 +134,9 @@ def _multiframe(ds, pixels: np.ndarray, filename: str) -> Volume:  # noqa: ANN00
         dz, origin = float(np.median(np.diff(along[order]))), np.asarray(tags[order[0]][0], np.float64)
     else:
         dz, origin = float(between) if n > 1 else 1.0, np.asarray(tags[0][0], np.float64)
+    if n > 1 and not (np.isfinite(dz) and dz != 0):
+        raise UnusableImage(f"{filename}: a DICOM image of {n} frames {dz:g} mm apart (SpacingBetweenSlices, "
+                            "SliceThickness or the frames' positions): its slice spacing is unknown")
     ps = [float(x) for x in tags[0][2]]
     lps = _lps_affine(row_dir, col_dir, normal, (ps[1], ps[0], abs(dz) or 1.0), origin)
     thickness = stated_thickness([tag(group("PixelMeasuresSequence", f), "SliceThickness") for f in range(n)])

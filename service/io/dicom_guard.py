@@ -82,6 +82,7 @@ def check_pixels(ds: Dataset, filename: str, budget: FileBudget) -> None:
         raise UnsupportedFile(f"{filename}: DICOM pixel data without a valid size (Rows, Columns, frames)") from exc
     if min(rows, cols, frames, spp) < 1:
         raise UnsupportedFile(f"{filename}: DICOM pixel data of size {rows} x {cols} x {frames}")
+    budget.slices(frames, "frames")              # before a loop over them, or their decoding
     if spp != 1:                        # colour: its channels would be taken for slices or frames
         raise UnusableImage(f"{filename}: DICOM pixel data with {spp} samples per pixel (colour); one grey value "
                             "per pixel is required")
@@ -89,8 +90,12 @@ def check_pixels(ds: Dataset, filename: str, budget: FileBudget) -> None:
     ts = ds.file_meta.get("TransferSyntaxUID") if hasattr(ds, "file_meta") else None
     if ts is None or not uid.UID(ts).is_encapsulated:
         bits = int(getattr(ds, "BitsAllocated", 16) or 16)
-        if len(ds.PixelData) < rows * cols * frames * spp * bits // 8:
+        declared = (rows * cols * frames * spp * bits + 7) // 8
+        if len(ds.PixelData) < declared:
             raise UnsupportedFile(f"{filename}: DICOM pixel data shorter than its header declares (truncated file)")
+        if len(ds.PixelData) > declared + 1:     # one byte pads to even length; more would be decoded as frames
+            raise UnsupportedFile(f"{filename}: DICOM pixel data longer than its header declares ({len(ds.PixelData)} "
+                                  f"bytes for {frames} frame(s) of {rows} x {cols})")
         return
     if ts == uid.RLELossless:
         bits = int(getattr(ds, "BitsAllocated", 8) or 8)

@@ -136,6 +136,10 @@ def geometry_problem(header: bytes, kind: str) -> str | None:
     if any(float(v) <= 0 for v in _NUMBER.findall(fields.get("spacings", b"") + fields.get("elementspacing", b"")
                                                  + fields.get("elementsize", b""))):
         return f"its {kind.upper()} header gives a voxel size that is not positive"
+    directions = fields.get("spacedirections", b"") if kind == "nrrd" else b""
+    if b"none" in directions.lower() and (placed := directions.count(b"(")) < 3:
+        return (f"its NRRD header's space directions place {placed} of the image's axes (the others 'none'); the "
+                "reader would invent 1 mm for the rest")
     return None
 
 

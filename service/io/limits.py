@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import threading
 
-from service.core.errors import PayloadTooLarge
+from service.core.errors import PayloadTooLarge, UnusableImage
 
 
 def mb(n: int) -> str:
@@ -31,9 +31,12 @@ def mb(n: int) -> str:
 class DecodeBudget:
     """The decoded bytes one request may produce (thread-safe: files are read two at a time)."""
 
-    def __init__(self, per_file: int, per_request: int | None = None) -> None:
+    def __init__(self, per_file: int, per_request: int | None = None, max_slices: int | None = None) -> None:
         self.per_file = int(per_file)
         self.per_request = int(per_request if per_request is not None else per_file)
+        self.max_slices = max_slices
+        """The most slices a stack may have (a DICOM file's frames, a ZIP's images), checked before
+        they are decoded; None: no such limit."""
         self.used = 0
         self._lock = threading.Lock()
 
@@ -64,6 +67,14 @@ class FileBudget:
     @property
     def limit(self) -> int:
         return self.request.per_file
+
+    def slices(self, n: int, what: str) -> None:
+        """Refuse, before they are decoded, ``n`` slices (``what``: frames, images) where a stack may
+        hold fewer (:attr:`DecodeBudget.max_slices`)."""
+        most = self.request.max_slices
+        if most is not None and n > most:
+            raise UnusableImage(f"{self.filename}: {n} {what}; at most {most} in one stack of 2D slices "
+                                "(SVRNET_MAX_SLICES_PER_STACK)")
 
     def too_large(self, what: str = "its data decode") -> PayloadTooLarge:
         return PayloadTooLarge(f"{self.filename}: {what} to more than {mb(self.limit)}")

@@ -117,6 +117,24 @@ def orientation_problem(t: NiftiTransforms) -> str | None:
             "(e.g. dcm2niix)")
 
 
+def qform_problem(t: NiftiTransforms) -> str | None:
+    """Why the qform cannot place the voxels (a quaternion or offset that is not finite, or whose
+    ``b, c, d`` are no rotation's: their squares summing over 1), or None. ITK reads such a qform as
+    the identity or a zero offset without a word: a placement the file never held.
+
+    Example:
+        >>> t = NiftiTransforms(1, 0, (1.0, 1.0, 1.0, 3.0), (0.0, 0.0, float("nan"), 0.0, 0.0, 0.0), (0.0,) * 12)
+        >>> qform_problem(t)
+        'its NIfTI qform holds values that are not finite'
+    """
+    quatern = np.asarray(t.quatern, np.float64)
+    if not np.all(np.isfinite(quatern)):
+        return "its NIfTI qform holds values that are not finite"
+    if float(quatern[:3] @ quatern[:3]) > 1.0 + 1e-6:
+        return "its NIfTI qform's quaternion (quatern_b, c, d) is no rotation (their squares sum over 1)"
+    return None
+
+
 def sform_problem(t: NiftiTransforms) -> str | None:
     """Why the sform cannot place an acquisition's voxels (not finite, an axis of no length, axes not
     at right angles), or None."""

@@ -39,7 +39,7 @@ from service.io.dicom import read_dicom_file
 from service.io.headers import clean_header, declared_values, geometry_problem
 from service.io.limits import DecodeBudget, FileBudget
 from service.io.nifti_header import (MAX_SHEAR_COS, NiftiTransforms, missing_voxel_size, orientation_problem,
-                                     read_transforms, sform_problem)
+                                     qform_problem, read_transforms, sform_problem)
 from service.io.volume import Volume, from_sitk, placed_by_header
 
 SUFFIX_BY_KIND = {"nifti": ".nii", "nifti-gz": ".nii.gz", "nrrd": ".nrrd", "mha": ".mha"}
@@ -112,6 +112,8 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
                     raise UnusableImage(f"{filename}: {problem}")
                 by_sform = transforms is not None and transforms.sform_code > 0
                 if by_sform and (problem := sform_problem(transforms)) is not None:
+                    raise UnusableImage(f"{filename}: {problem}")
+                if transforms is not None and not by_sform and (problem := qform_problem(transforms)) is not None:
                     raise UnusableImage(f"{filename}: {problem}")
                 if transforms is not None and not by_sform and (pixdim := missing_voxel_size(transforms)) is not None:
                     raise UnusableImage(f"{filename}: its NIfTI header gives no voxel size (pixdim[1:4] = {pixdim}); "

@@ -20,6 +20,7 @@ from tests.io.test_headers import COMMENTS, mha, nrrd
 RNG = np.random.default_rng(15)
 STACK = (RNG.random((12, 10, 6)) * 100).astype(np.float32)
 SLICES = [(RNG.random((8, 6)) * 1000).astype(np.uint16) for _ in range(3)]
+ROWS = b"\x28\x00\x10\x00US\x02\x00\x08\x00"                  # (0028,0010) Rows = 8, explicit VR
 LIMIT_MB = 8
 
 
@@ -29,6 +30,11 @@ def _series(uid_suffix: str) -> dict[str, bytes]:
         data = corpus.dicom(p, k)
         out[f"{uid_suffix}/IM{k}"] = data.replace(corpus.SERIES.encode(), (corpus.SERIES[:-1] + uid_suffix).encode())
     return out
+
+
+def _patched(data: bytes, offset: int, values: np.ndarray) -> bytes:
+    """``data`` with ``values``' bytes written at ``offset``."""
+    return data[:offset] + values.tobytes() + data[offset + values.nbytes:]
 
 
 def _nrrd_header(fields: bytes, data: bytes = b"") -> bytes:
@@ -71,7 +77,25 @@ CORPUS: list[tuple[str, Callable[[], bytes], int, tuple[str, ...]]] = [
     ("rle-bomb.dcm", lambda: corpus.encapsulated([corpus.rle_bomb()], 8, 8, uid.RLELossless), 415, ("frame 0",)),
     ("video.dcm", lambda: corpus.encapsulated([b"\0" * 64], 8, 8, uid.MPEG2MPML), 415, ("transfer syntax",)),
     ("many-frames.dcm", lambda: corpus.dicom(np.zeros((2, 64, 64), np.uint16)).replace(b"IS\x02\x002 ",
-                                                                                        b"IS\x06\x0099999 "), 413, ("MB",)),
+                                                                                        b"IS\x06\x0099999 "), 422, ("99999 frames", "at most")),
+    # pydicom would decode the data beyond the declared frames as more frames.
+    ("excess-pixels.dcm", lambda: corpus.dicom(np.zeros((4, 64, 64), np.uint16)).replace(b"IS\x02\x004 ",
+                                                                                         b"IS\x02\x002 "), 415,
+     ("longer than its header declares",)),
+    # Rows stated twice: GDCM, which builds the series, reads the first value, pydicom the last.
+    ("rows-twice.zip", lambda: corpus.zipped({name: data.replace(ROWS, ROWS.replace(b"\x08\x00", b"\x20\x4e") + ROWS)
+                                              for name, data in _series("1").items()}), 415, ("states the image size twice",)),
+    ("many-images.zip", lambda: corpus.zipped({f"IM{k}": corpus.dicom(SLICES[0], k) for k in range(129)}), 422,
+     ("129 DICOM images in the archive", "at most 128")),
+    # Geometry a reader would make up: a qform of NaN (ITK: the identity), an axis of no direction
+    # (ITK: 1 mm), frames 0 mm apart (1 mm).
+    ("nan-qform.nii", lambda: _patched(corpus.nifti(np.ones((8, 8, 4))), 256, np.array([0, np.nan, 0], "<f4")), 422,
+     ("qform holds values that are not finite",)),
+    ("no-direction.nrrd", lambda: _nrrd_header(b"sizes: 2 2 2\nspace: left-posterior-superior\nspace directions: "
+                                               b"(1,0,0) (0,1,0) none\nencoding: raw\n", b"\0" * 32), 422,
+     ("space directions place 2",)),
+    ("flat.dcm", lambda: corpus.dicom(np.ones((3, 8, 6), np.uint16)).replace(b"DS\x04\x003.0 ", b"DS\x04\x000.0 "),
+     422, ("0 mm apart",)),
     ("one-slice.dcm", lambda: corpus.dicom(SLICES[0]), 422, ("2D",)),
     ("magic-only.dcm", lambda: b"\0" * 128 + b"DICM", 415, ()),
     ("empty.zip", lambda: corpus.zipped({}), 415, ("no DICOM series",)),
