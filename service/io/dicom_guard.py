@@ -83,6 +83,10 @@ def check_pixels(ds: Dataset, filename: str, budget: FileBudget) -> None:
     if min(rows, cols, frames, spp) < 1:
         raise UnsupportedFile(f"{filename}: DICOM pixel data of size {rows} x {cols} x {frames}")
     budget.slices(frames, "frames")              # before a loop over them, or their decoding
+    photometric = str(getattr(ds, "PhotometricInterpretation", "MONOCHROME2") or "MONOCHROME2").strip().upper()
+    if spp == 1 and not photometric.startswith("MONOCHROME"):      # a palette's indices are no grey values
+        raise UnusableImage(f"{filename}: DICOM pixel data of PhotometricInterpretation {photometric[:20]}; grey "
+                            "values (MONOCHROME2) are required")
     if spp != 1:                        # colour: its channels would be taken for slices or frames
         raise UnusableImage(f"{filename}: DICOM pixel data with {spp} samples per pixel (colour); one grey value "
                             "per pixel is required")
