@@ -316,11 +316,16 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     known_orders = stack_orders(orders, uploads)
     stack_inputs = [(u.volume, m, mats, acc) for u, m, (mats, acc) in zip(uploads, masks, poses)]
     slice_set = SliceSet.from_stacks(stack_inputs)
+
+    def refining(stage: str, fraction: float) -> None:
+        if stage != "done":              # the paths' end; the job is done once it has succeeded
+            progress(stage, 0.15 + 0.8 * fraction)
+
     job = refine_job(slice_set, stack_inputs, expected_errors(body), estimator=estimator, plane_x_mm=plane,
                      resolution_mm=float(params.get("resolution_mm", 0.8)),
                      svr_iterations=int(params.get("svr_iterations", 3)), orders=known_orders,
                      frame_steps=params.get("atlas_frame", True), mc_samples=int(params.get("mc_samples", 100)),
-                     progress=lambda stage, f: progress(stage, 0.15 + 0.8 * f))
+                     progress=refining)
     result, left_out = job.result, job.left_out
     progress("writing", 0.97)
     # The report's timings: the winning path's stages and ``total``, every path's (``all_paths``), and
