@@ -18,7 +18,7 @@ from service.api.uploads import UploadFormDep, known_fields, upload_directory, u
 from service.pipeline.predict import stack_orders
 from service.pipeline.prepare import StackUpload, check_mask_grid
 from service.core.client_json import client_json
-from service.core.errors import Conflict, InvalidParameter, NotFound, UnusableImage
+from service.core.errors import Conflict, InvalidParameter, NotFound, PayloadTooLarge, UnusableImage
 from service.io.acquisition_geometry import MAX_VOXEL_MM, MIN_VOXEL_MM
 from service.jobs.store import Job, JobStore
 from service.jobs.uploaded_poses import in_upload_order, poses_from_predict_body
@@ -79,6 +79,33 @@ def thickness_per_stack(values: list[float] | None, n_stacks: int) -> list[float
     return list(values) * n_stacks if len(values) == 1 else list(values)
 
 
+MAX_POSES_BYTES = 64 << 20
+"""The largest ``poses`` upload: a job's refined poses of 32 stacks of 128 slices take about 20 MB."""
+
+
+def checked_poses(text: str, uploads: list[StackUpload]) -> tuple[dict, list[tuple[np.ndarray, np.ndarray]]]:
+    """A ``poses`` upload as the job keeps it (:func:`~service.api.schemas.job_poses`) and the poses and
+    accepted flags the worker will read from it, per stack (blocking: run in a worker thread);
+    :class:`InvalidParameter` naming what does not match the uploads."""
+    try:
+        body = client_json(text)
+    except ValueError as exc:
+        raise InvalidParameter("poses: not valid JSON") from exc
+    counts = [u.volume.array.shape[slice_axis_of(u.volume.spacing)] for u in uploads]
+    affines = [u.volume.affine for u in uploads]
+    try:
+        body = in_upload_order(body, [u.filename for u in uploads])
+        poses_from_predict_body(body, counts, affines)
+    except ValueError as exc:
+        raise InvalidParameter(str(exc)) from exc
+    kept = job_poses(body)
+    try:
+        return kept, poses_from_predict_body(kept, counts, affines)          # what the worker will read
+    except ValueError as exc:
+        raise InvalidParameter(f"{exc} (as /v1/predict writes them: numbers as JSON numbers, accepted as "
+                               "true or false)") from exc
+
+
 def check_slices_to_use(uploads: list[StackUpload], accepted: list[np.ndarray] | None) -> None:
     """Refuse now a job that would fail for want of slices: every stack has its mask, and no slice the
     job may use (an accepted one, where poses are given) holds a voxel of it. Without a mask the
@@ -124,6 +151,9 @@ async def submit(
     if (full := queue_full(request.app.state)) is not None:
         raise full
     raw = (await request.form()).get("poses")
+    if hasattr(raw, "read") and (raw.size or 0) > MAX_POSES_BYTES:
+        raise PayloadTooLarge(f"poses: {raw.size} bytes; the poses of a request's stacks take at most "
+                              f"{MAX_POSES_BYTES >> 20} MB")
     poses_text = (await raw.read()).decode("utf-8", "replace") if hasattr(raw, "read") else raw
     store = _store(request)
     job = store.create({"resolution_mm": resolution_mm, "svr_iterations": svr_iterations, "mc_samples": form.mc_samples,
@@ -136,23 +166,7 @@ async def submit(
         uploads = await to_thread.run_sync(upload_reader(settings), form.stacks, form.masks, inputs)
         stack_orders(form.orders, uploads)
         if poses_text:
-            try:
-                body = client_json(poses_text)
-            except ValueError as exc:
-                raise InvalidParameter("poses: not valid JSON") from exc
-            counts = [u.volume.array.shape[slice_axis_of(u.volume.spacing)] for u in uploads]
-            affines = [u.volume.affine for u in uploads]
-            try:
-                body = in_upload_order(body, [u.filename for u in uploads])
-                poses_from_predict_body(body, counts, affines)
-            except ValueError as exc:
-                raise InvalidParameter(str(exc)) from exc
-            kept = job_poses(body)
-            try:
-                given = poses_from_predict_body(kept, counts, affines)          # what the worker will read
-            except ValueError as exc:
-                raise InvalidParameter(f"{exc} (as /v1/predict writes them: numbers as JSON numbers, accepted as "
-                                       "true or false)") from exc
+            kept, given = await to_thread.run_sync(checked_poses, poses_text, uploads)
             (inputs / "poses.json").write_text(json.dumps(kept))
         for u in uploads:
             check_mask_grid(u)

@@ -244,7 +244,7 @@ def test_cancel_and_failure(client: TestClient, case: dict, monkeypatch: pytest.
 
 
 @both
-def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict) -> None:
+def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict, monkeypatch: pytest.MonkeyPatch) -> None:
     n = len(case["poses"]["stacks"])
     for bad in ({"stacks": case["poses"]["stacks"][:2]}, {"stacks": [{"slices": 5}] * n},
                 {"stacks": [{"slices": [[1, 2]]}] * n}, {"stacks": [None] * n}, [1, 2],
@@ -284,6 +284,10 @@ def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict) ->
             s["accepted"] = s["index"] != 0
     r = submit(client, case, poses=outside, masks=first_only)
     assert r.status_code == 400 and "no accepted slice holds a voxel" in r.json()["detail"], r.text
+    monkeypatch.setattr(reconstructions, "MAX_POSES_BYTES", 1000)       # a file over the limit is not read
+    r = submit(client, case)
+    assert r.status_code == 413 and r.json()["detail"].startswith("poses: ") and "at most" in r.json()["detail"], r.text
+    monkeypatch.undo()
     # Poses the worker could not read (a number as text, a flag as a number) are refused now, not later.
     for change in (lambda s: s["atlas_from_voxel"][0].__setitem__(0, "1.0"), lambda s: s.__setitem__("accepted", 1)):
         bad = json.loads(json.dumps(case["poses"]))
