@@ -26,7 +26,8 @@ class StreamLimits:
     max_slices: int = 2000
     max_pixels: int = 1024 * 1024
     max_bytes: int = 256 * 2**20
-    """What the session's slices may hold in memory together (their pixels as float32)."""
+    """What a session may keep in memory: its slices' pixels as float32, each slice's preparation and each ended
+    stack's (about three times the pixels)."""
     max_stack_slices: int = 128
     """What one stack may hold (``max_slices_per_stack``, as an upload: its stage's work grows with the cube)."""
     max_stacks: int = 32

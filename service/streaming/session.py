@@ -90,6 +90,43 @@ class _Ended:
     order: SliceOrder
 
 
+def _base(array: np.ndarray) -> np.ndarray:
+    while isinstance(array.base, np.ndarray):
+        array = array.base
+    return array
+
+
+def array_bytes(*roots: object, besides: tuple[np.ndarray, ...] = ()) -> int:
+    """The bytes of the numpy arrays ``roots`` hold through their attributes, lists, tuples and dicts,
+    each array's memory counted once and that of ``besides`` not at all: what a session keeps of a
+    slice or a stack beyond its pixels, for its memory limit.
+
+    Example (a view costs nothing more than its base):
+        >>> a = np.zeros((10, 10), np.float32)
+        >>> array_bytes({"a": a, "view": a[:5]}, [np.ones(4)]), array_bytes([a], besides=(a,))
+        (432, 0)
+    """
+    counted = {id(_base(b)) for b in besides}
+    seen, total, todo = set(), 0, list(roots)
+    while todo:
+        item = todo.pop()
+        if id(item) in seen:
+            continue
+        seen.add(id(item))
+        if isinstance(item, np.ndarray):
+            base = _base(item)
+            if id(base) not in counted:
+                counted.add(id(base))
+                total += base.nbytes
+        elif isinstance(item, dict):
+            todo.extend(item.values())
+        elif isinstance(item, (list, tuple)):
+            todo.extend(item)
+        elif hasattr(item, "__dict__") and not isinstance(item, type):
+            todo.extend(vars(item).values())
+    return total
+
+
 def sent_network_from_voxel(p: StackPrediction, frames: list[SliceFrame]) -> NDArray[np.float64]:
     """``[n, 4, 4]``: voxel ``(i0, i1, 0, 1)`` of each sent slice -> its network frame in the stack ``p``
     (built from those slices): through the scanner and the stack's voxel ``(i0, i1, k)``."""
@@ -119,7 +156,7 @@ class StreamSession:
         self.finals: dict[str, StackPrediction] = {}
         self.reacquire_sent: dict[str, list[tuple[int, str]]] = {}   # each ended stack's list as last sent
         self.compute_ms: dict[str, float] = {"slices": 0.0, "firm_up": 0.0, "end_stack": 0.0}
-        self.held_bytes = 0                     # the received slices' pixels as float32
+        self.held_bytes = 0                     # the received slices' pixels as float32, and what is kept of them
         self._lock = threading.Lock()
 
     # -- 1. a slice arrives ------------------------------------------------------------------------------
@@ -142,8 +179,8 @@ class StreamSession:
                                        "slices, the most one stack may; end it and send the rest as another")
             size = np.asarray(frame.pixels).size * 4
             if self.held_bytes + size > self.limits.max_bytes:
-                raise InvalidParameter(f"slice: a session's slices hold at most {self.limits.max_bytes / 2**20:.3g} MB "
-                                       "together; end it and start another")
+                raise InvalidParameter(f"slice: a session keeps at most {self.limits.max_bytes / 2**20:.3g} MB (its "
+                                       "slices and their preparation); end it and start another")
             stack = self.stacks.get(frame.stack) or StreamedStack(frame.stack)
             stack.add(frame)
             self.stacks[frame.stack] = stack
@@ -160,9 +197,11 @@ class StreamSession:
                     del self.stacks[frame.stack]
             raise
         answer = self._alone(state, fit, placement_mm)
+        kept = array_bytes(state.prepared, state.estimate, besides=(frame.pixels,))    # its preparation, beside its pixels
         with self._lock:
             self.slices.setdefault(frame.stack, {})[frame.index] = state
             state.answer = answer
+            self.held_bytes += kept
         answer.compute_ms = (time.perf_counter() - t0) * 1e3
         self.compute_ms["slices"] += answer.compute_ms
         return answer
@@ -319,6 +358,7 @@ class StreamSession:
         timings.update(more)
         with self._lock:
             self.ended[stack] = ended[stack]
+            self.held_bytes += array_bytes(ended[stack])          # the stack as prepared whole
             updates = []
             for name, p in zip(names, predictions):
                 sent = self.stacks[name].frames

@@ -178,15 +178,29 @@ def test_masks_hold_csf_sets_the_pose_mask_inset_of_mask_frames(case) -> None:  
         SessionOptions.from_message({"masks_hold_csf": "yes"}, "start")
 
 
-def test_a_session_holds_no_more_than_its_memory_limit(case) -> None:  # noqa: ANN001
+def test_a_session_holds_no_more_than_its_memory_limit_counting_what_it_keeps(case) -> None:  # noqa: ANN001
+    """The limit counts each slice's preparation beside its pixels (about three times the pixels
+    kept in all), and each ended stack's."""
     oracle, stacks, _ = case
     one = stacks[0][0].pixels.size * 4
-    session = StreamSession(oracle, None, StreamLimits(max_bytes=2 * one + 1), FAST)
-    session.add_slice(stacks[0][0])
-    session.add_slice(stacks[0][1])
-    with pytest.raises(InvalidParameter, match="hold at most 0.0313 MB together"):
-        session.add_slice(stacks[0][2])
-    assert len(session.stacks["ax"]) == 2
+    probe = StreamSession(oracle, None, options=FAST)
+    probe.add_slice(stacks[0][0])
+    first = probe.held_bytes
+    assert first > 2 * one                                               # more than the pixels alone
+    for limit, taken in ((first + one - 1, 1), (first + one, 2)):
+        session = StreamSession(oracle, None, StreamLimits(max_bytes=limit), FAST)
+        session.add_slice(stacks[0][0])
+        if taken == 1:
+            with pytest.raises(InvalidParameter, match="a session keeps at most"):
+                session.add_slice(stacks[0][1])
+        else:
+            session.add_slice(stacks[0][1])
+        assert len(session.stacks["ax"]) == taken
+    for frame in stacks[0][1:]:
+        probe.add_slice(frame)
+    before = probe.held_bytes
+    probe.end_stack("ax")
+    assert probe.held_bytes > before                                     # the stack as prepared whole
 
 
 def test_a_stack_holds_no_more_than_its_slice_limit_and_the_next_stack_goes_on(case) -> None:  # noqa: ANN001
