@@ -310,6 +310,11 @@ def _integer(msg: dict, name: str, kind: str) -> int:
     return value
 
 
+AUTH_TIMEOUT_S = 10.0
+"""How long a connection without a key in its headers may take to send its ``auth`` message: until
+then it holds no session slot, so it is not left waiting as long as an idle session."""
+
+
 @router.websocket("/v1/stream")
 async def stream(ws: WebSocket) -> None:
     """Stream v1: one session per connection (see the module)."""
@@ -318,7 +323,7 @@ async def stream(ws: WebSocket) -> None:
     keys = state.settings.key_set()
     if not api_key_ok(keys, ws.headers.get("authorization"), ws.headers.get("x-api-key")):
         try:
-            first = parse(await asyncio.wait_for(ws.receive_text(), state.settings.stream_idle_s))
+            first = parse(await asyncio.wait_for(ws.receive_text(), min(AUTH_TIMEOUT_S, state.settings.stream_idle_s)))
         except (ServiceError, TimeoutError, WebSocketDisconnect, KeyError, RuntimeError):
             first = {}
         key = first.get("api_key") if first.get("type") == "auth" else None

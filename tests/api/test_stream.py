@@ -179,6 +179,18 @@ def test_keys_and_the_session_limit(case) -> None:  # noqa: ANN001
                 assert closed.value.code == 1013
 
 
+def test_a_connection_that_does_not_authenticate_in_time_is_closed(case, monkeypatch) -> None:  # noqa: ANN001
+    from service.api import stream
+
+    monkeypatch.setattr(stream, "AUTH_TIMEOUT_S", 0.2)
+    with make_client(ModelRegistry({"default": case[0]}), api_keys="k1") as client:
+        with client.websocket_connect("/v1/stream") as ws:                  # says nothing
+            assert ws.receive_json()["status"] == 401
+            with pytest.raises(WebSocketDisconnect) as closed:
+                ws.receive_json()
+            assert closed.value.code == 1008
+
+
 def test_an_idle_session_is_told_so_and_closed_going_away(case) -> None:  # noqa: ANN001
     with make_client(ModelRegistry({"default": case[0]}), stream_idle_s=0.3) as client:
         with client.websocket_connect("/v1/stream") as ws:
