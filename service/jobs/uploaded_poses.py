@@ -50,8 +50,11 @@ def poses_from_predict_body(body: dict, n_slices: list[int],
             # A job's refined poses: the slices that job reconstructed from (``included``), whatever
             # the model first said of them (a job started from every slice when too few were accepted).
             acc = [s["included"] if refined and "included" in s else s["accepted"] for s in slices]
-        except (KeyError, TypeError, ValueError, IndexError, RecursionError) as exc:
+        except KeyError as exc:
             raise ValueError(f"poses: stack {i}: each slice needs atlas_from_voxel and accepted") from exc
+        except (TypeError, ValueError, IndexError, RecursionError) as exc:
+            raise ValueError(f"poses: stack {i}: each slice needs atlas_from_voxel (a 4x4 matrix of numbers) and "
+                             "accepted") from exc
         if mats.shape != (n, 4, 4) or not np.isfinite(mats).all():
             raise ValueError(f"poses: stack {i}: atlas_from_voxel must be finite 4x4 matrices")
         if not all(isinstance(a, bool) for a in acc):

@@ -256,6 +256,7 @@ def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict, mo
                            (lambda s: s["atlas_from_voxel"][0].__setitem__(3, 5e3), "within 1000 mm"),
                            (lambda s: s["atlas_from_voxel"].__setitem__(3, [1, 2, 3, 4]), "rigid placement"),
                            (lambda s: s.__setitem__("accepted", "no"), "accepted must be true or false"),
+                           (lambda s: s["atlas_from_voxel"][0].insert(0, 1.0), "a 4x4 matrix of numbers"),   # a row of 5
                            (lambda s: s["atlas_from_voxel"][0].__setitem__(0, 10 ** 400), "must be finite 4x4"),
                            (lambda s: [row.__setitem__(0, -row[0]) for row in s["atlas_from_voxel"][:3]],
                             "keeping the stack's handedness")):           # the voxels' first axis reversed
