@@ -22,6 +22,7 @@ from urllib.parse import quote
 
 from client import transport
 from client.errors import ArgumentError, Busy, ConnectionFailed, JobFailed, ServerError, SVRnetError, WaitTimeout
+from client.files import write_whole
 from client.multipart import MultipartBody, ProgressCallback, form_value, order_fields
 from client.transport import DEFAULT_SERVER, DEFAULT_TIMEOUT, PathLike, Transport
 from client.upload_files import file_parts
@@ -178,9 +179,7 @@ class SVRnetClient(Transport):
                                 "(`svrnet masks --overwrite` replaces them; in Python, overwrite=True)")
         out.mkdir(parents=True, exist_ok=True)
         for name, data in files.items():
-            partial = out / f".{name}.partial"
-            partial.write_bytes(data)
-            partial.replace(out / name)
+            write_whole(out / name, data)
         return report
 
     def reconstruct(self, stacks: Sequence[PathLike], masks: Sequence[PathLike] | None = None,

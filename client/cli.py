@@ -53,7 +53,7 @@ from rich.live import Live
 
 from client._client import DEFAULT_SERVER, SVRnetClient
 from client.cli_export import export
-from client.cli_support import (DEFAULT_VOLUME, ApiKeyOpt, BiasCorrectionOpt, JobArg, MaskOpt, MasksHoldCsfOpt,
+from client.cli_support import (DEFAULT_VOLUME, ApiKeyOpt, BiasCorrectionOpt, JobArg, MaskOpt, MasksHoldCsfOpt, OverwriteOpt,
                                 MaxExpectedOpt, McSamplesOpt, ModelOpt, ServerOpt, StackSpaceOpt, StacksArg, ThresholdOpt,
                                 check_folder_writable, check_masks, check_writable, follow_job, job_id_of,
                                 once_or_per_stack, resolution_range, timeout_from_env, write_json, write_results)
@@ -120,11 +120,12 @@ def predict(
     transforms_out: Annotated[Optional[Path], typer.Option(
         "--transforms-out", dir_okay=False,
         help="also write each slice's ITK transform here (.zip of .tfm files, laid out as a job's)")] = None,
+    overwrite: OverwriteOpt = False,
 ) -> None:
     """Atlas pose and confidence of every slice of every stack (POST /v1/predict)."""
     check_masks(stacks, mask)
     once_or_per_stack(slice_order, stacks, "--slice-order")
-    check_writable(out=out, transforms_out=transforms_out)
+    check_writable(overwrite, out=out, transforms_out=transforms_out)
     err = stderr()
     with errors(), _client(server, api_key) as svr:
         with upload_bar(err, f"{len(stacks)} stack(s)") as progress:
@@ -214,6 +215,7 @@ def reconstruct(
         "--thickness", help="slice thickness in mm, once for every stack or once per stack (default: a DICOM "
         "file's SliceThickness, else the slice spacing; give it for slices with gaps or overlap)")] = None,
     model: ModelOpt = None,
+    overwrite: OverwriteOpt = False,
 ) -> None:
     """Start a reconstruction job (POST /v1/reconstructions); with --wait, follow it and download the volume."""
     check_masks(stacks, mask)
@@ -223,8 +225,8 @@ def reconstruct(
         fail(f"--stack-space: {stack_space} is not one of the {len(stacks)} stacks given (0-{len(stacks) - 1})",
              EXIT_USAGE)
     wait = wait or any(p is not None for p in (out, preview, poses_out, transforms_out, stack_space))
-    check_writable(out=out if out is not None or not wait else DEFAULT_VOLUME, preview=preview, poses_out=poses_out,
-                   transforms_out=transforms_out)
+    check_writable(overwrite, out=out if out is not None or not wait else DEFAULT_VOLUME, preview=preview,
+                   poses_out=poses_out, transforms_out=transforms_out)
     err, console = stderr(), stdout()
     with errors(), _client(server, api_key) as svr:
         with upload_bar(err, f"{len(stacks)} stack(s)") as progress:
@@ -261,11 +263,12 @@ def fetch(
     stack_space: StackSpaceOpt = None,
     timeout: Annotated[float, typer.Option(min=0, help="seconds to wait for a job still running")] = 3600.0,
     poll: Annotated[float, typer.Option(min=0.05, help="seconds between status polls")] = 1.0,
+    overwrite: OverwriteOpt = False,
 ) -> None:
     """Download a job's results (GET /v1/reconstructions/{job}/...), waiting for it first if it is still
     queued or running: what `reconstruct --wait` does, for a job started without it."""
     job = job_id_of(job)
-    check_writable(out=out if out is not None else DEFAULT_VOLUME, preview=preview, poses_out=poses_out,
+    check_writable(overwrite, out=out if out is not None else DEFAULT_VOLUME, preview=preview, poses_out=poses_out,
                    transforms_out=transforms_out)
     with errors(), _client(server, api_key) as svr:
         incoherent = write_results(svr, job, follow_job(svr, job, poll, timeout), out, preview, poses_out,
@@ -296,12 +299,13 @@ def stream(
     model: ModelOpt = None,
     json_out: Annotated[Optional[Path], typer.Option(
         "--json-out", dir_okay=False, help="write every message received here, one JSON object a line")] = None,
+    overwrite: OverwriteOpt = False,
 ) -> None:
     """Send stacks slice by slice as a scanner would (WebSocket /v1/stream) and show each pose as it comes."""
     from client import stream as streaming
 
     check_masks(stacks, mask)
-    check_writable(json_out=json_out)
+    check_writable(overwrite, json_out=json_out)
     console = stdout()
     view = StreamView(console)
     with errors():

@@ -21,6 +21,7 @@ import typer
 from rich.progress import BarColumn, Progress, SpinnerColumn, TaskProgressColumn, TextColumn, TimeElapsedColumn
 
 from client._client import SVRnetClient
+from client.files import write_whole
 from client.exits import EXIT_NOT_FOUND, EXIT_USAGE, fail, stderr, stdout
 from client.views import NO_WORKER, quality_line, refined_poses_line, stage_label, waits_for_a_worker
 
@@ -42,12 +43,21 @@ DEFAULT_VOLUME = Path("recon.nii.gz")
 """Where a job's volume is written without ``--out``."""
 
 
-def check_writable(**paths: Path | None) -> None:
+OverwriteOpt = Annotated[bool, typer.Option(
+    "--overwrite", help="replace output files that exist (without it an existing one stops the command before "
+                        "anything is sent)")]
+
+
+def check_writable(overwrite: bool = False, **paths: Path | None) -> None:
     """Output files (by option name) must be writable BEFORE anything is uploaded (not after an hour of
-    reconstruction)."""
+    reconstruction), and new unless ``overwrite``: a second patient's results never replace the first's
+    under a default name."""
     for option, path in paths.items():
         if path is None:
             continue
+        if not overwrite and path.expanduser().is_file():
+            raise typer.BadParameter(f"{path} exists; nothing was sent (--overwrite replaces it)",
+                                     param_hint=f"--{option.replace('_', '-')}")
         folder = path.expanduser().resolve().parent
         if not folder.is_dir() or not os.access(folder, os.W_OK):
             raise typer.BadParameter(f"{path}: its folder {folder} does not exist or is not writable",
@@ -107,8 +117,9 @@ def once_or_per_stack(values: list | None, stacks: list, option: str) -> None:
 
 
 def write_json(path: Path, body: Any) -> None:
-    """``body`` as indented JSON in ``path``."""
-    path.write_text(json.dumps(body, indent=2) + "\n")
+    """``body`` as indented JSON in ``path``, whole or not at all (a full disk leaves the file it
+    would have replaced as it was)."""
+    write_whole(path, (json.dumps(body, indent=2) + "\n").encode())
 
 
 MaxExpectedOpt = Annotated[Optional[float], typer.Option(

@@ -40,7 +40,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from client.errors import UnusableInput
-from client.slice_transforms import stack_from_atlas_lps, tfm_text, write_whole
+from client.files import write_whole
+from client.slice_transforms import stack_from_atlas_lps, tfm_text
 
 FORMATS = ("nesvor", "niftymic")
 

@@ -35,7 +35,6 @@ Example:
 from __future__ import annotations
 
 import io
-import os
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -44,8 +43,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from client.errors import UnusableInput
+from client.files import write_whole
 
-__all__ = ["stack_from_atlas_lps", "tfm_text", "transform_files", "write_transforms_zip", "write_whole"]
+__all__ = ["stack_from_atlas_lps", "tfm_text", "transform_files", "write_transforms_zip"]
 
 LPS_FROM_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
 """RAS <-> LPS (its own inverse)."""
@@ -98,10 +98,3 @@ def write_transforms_zip(answer: dict[str, Any], target: Path) -> int:
             archive.writestr(name, files[name])
     write_whole(Path(target), buffer.getvalue())
     return len(files) - 1
-
-
-def write_whole(path: Path, data: bytes) -> None:
-    """``data`` into ``path``, whole or not at all (a partial file beside it, renamed over it)."""
-    partial = path.with_name(f".{path.name}.{os.getpid()}")
-    partial.write_bytes(data)
-    os.replace(partial, path)

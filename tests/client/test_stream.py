@@ -159,6 +159,9 @@ def test_no_server_exits_with_connection_failed_and_keeps_an_earlier_record(stac
     record.write_text('{"type": "ready"}\n')
     result = runner.invoke(cli.app, ["stream", str(stack_file), "--server", f"http://127.0.0.1:{port}",
                                      "--json-out", str(record)])
+    assert result.exit_code == exits.EXIT_USAGE and "exists; nothing was sent (--overwrite" in result.output
+    result = runner.invoke(cli.app, ["stream", str(stack_file), "--server", f"http://127.0.0.1:{port}",
+                                     "--json-out", str(record), "--overwrite"])
     assert result.exit_code == exits.EXIT_CONNECTION and "cannot open ws://127.0.0.1" in result.output
     assert record.read_text() == '{"type": "ready"}\n'                 # no session, the last one's record kept
 
