@@ -29,7 +29,7 @@ import numpy as np
 from websockets.exceptions import ConnectionClosed, InvalidStatus, InvalidURI, WebSocketException
 from websockets.sync.client import ClientConnection, connect
 
-from client.transport import USER_AGENT
+from client.transport import USER_AGENT, clean_api_key
 from client._client import DEFAULT_SERVER
 from client.errors import (ArgumentError, Busy, ConnectionFailed, ServerError, SVRnetError, UnusableInput,
                            error_class_for_status)
@@ -262,7 +262,7 @@ def stream_stacks(stacks: Sequence[ScannerStack], server: str = DEFAULT_SERVER, 
             orders.append(send_order(len(stack.slices), o))
         except ArgumentError as e:
             raise ArgumentError(f"{stack.name}: {e}") from None
-    with _connect(stream_url(server), api_key, answer_timeout_s) as ws, \
+    with _connect(stream_url(server), clean_api_key(api_key), answer_timeout_s) as ws, \
             (open(json_out, "w", encoding="utf-8") if json_out is not None else nullcontext()) as record:   # kept if none
         session = _Session(ws, on_message, record, answer_timeout_s)
         session.send({"type": "start", **{k: v for k, v in options.items() if v is not None}})

@@ -20,10 +20,11 @@ import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Self, Union
+from urllib.parse import urlsplit, urlunsplit
 
 import httpx
 
-from client.errors import ConnectionFailed, SVRnetError, error_from_response, parse_retry_after
+from client.errors import ArgumentError, ConnectionFailed, SVRnetError, error_from_response, parse_retry_after
 from client.multipart import CHUNK, MultipartBody, ProgressCallback
 
 PathLike = Union[str, "os.PathLike[str]"]
@@ -46,6 +47,37 @@ def sleep(seconds: float) -> None:
     time.sleep(seconds)
 
 
+def clean_api_key(key: str | None) -> str | None:
+    """``key`` without surrounding blanks (a key file's line end), None for an empty one;
+    :class:`~client.errors.ArgumentError` for a key with a control, blank or non-ASCII character
+    inside, which no HTTP header can carry (the message never shows the key).
+
+    Example:
+        >>> clean_api_key("s3cret\\n"), clean_api_key("  ")
+        ('s3cret', None)
+    """
+    if key is None or not key.strip():
+        return None
+    key = key.strip()
+    if not all("!" <= c <= "~" for c in key):
+        raise ArgumentError("api_key: the API key (--api-key, SVRNET_API_KEY) holds a control, blank or non-ASCII "
+                            "character; check it")
+    return key
+
+
+def shown_url(url: str) -> str:
+    """``url`` without a user name or password, for messages.
+
+    Example:
+        >>> shown_url("http://user:hunter2@scanner-pc:8000/v1/predict")
+        'http://scanner-pc:8000/v1/predict'
+    """
+    parts = urlsplit(url)
+    if "@" not in parts.netloc:
+        return url
+    return urlunsplit(parts._replace(netloc=parts.netloc.rsplit("@", 1)[1]))
+
+
 class Transport:
     """Requests to one server with the client's headers and retry policy (see :class:`~client.SVRnetClient`
     for the arguments)."""
@@ -56,7 +88,7 @@ class Transport:
                  backoff_s: float = 0.5) -> None:
         if retries < 0:
             raise ValueError("retries must be >= 0")
-        self.api_key = api_key if api_key is not None else (os.environ.get("SVRNET_API_KEY") or None)
+        self.api_key = clean_api_key(api_key if api_key is not None else os.environ.get("SVRNET_API_KEY"))
         self.retries = retries
         self.backoff_s = backoff_s
         self._owns_http = http is None
@@ -148,7 +180,7 @@ class Transport:
         if isinstance(exc, (httpx.ReadTimeout, httpx.WriteTimeout)):
             reason += (" (no answer within the client's timeout: a large request on a CPU server can take longer; "
                        "raise SVRNET_TIMEOUT, in seconds, for svrnet, or timeout= of SVRnetClient)")
-        return ConnectionFailed(f"{method} {self._url(path)}: {reason}", title="Connection failed")
+        return ConnectionFailed(f"{method} {shown_url(self._url(path))}: {reason}", title="Connection failed")
 
     @staticmethod
     def _json(response: httpx.Response) -> Any:

@@ -25,7 +25,7 @@ from fastapi.testclient import TestClient
 
 from client import (BadRequest, Busy, Conflict, ConnectionFailed, JobFailed, NotFound, ServerError, SVRnetClient,
                     SVRnetError, Unauthorized, UnsupportedFile, UnusableInput, WaitTimeout)
-from client.errors import error_from_response
+from client.errors import ArgumentError, error_from_response
 from service.core.settings import Settings
 from service.inference.estimator import PoseEstimate
 from service.inference.model_file import ModelInfo
@@ -140,6 +140,11 @@ def test_api_keys(stack_file: Path, monkeypatch: pytest.MonkeyPatch) -> None:
         assert SVRnetClient(http=tc, api_key="k").predict([stack_file], bias_correction=False)["stacks"]
         monkeypatch.setenv("SVRNET_API_KEY", "k")
         assert SVRnetClient(http=tc).models()[0]["name"] == "default"
+        assert SVRnetClient(http=tc, api_key="k\r\n").models()[0]["name"] == "default"    # a key file's line end
+        for bad in ("k\x01ey", "k ey", "kéy"):                                # no header can carry them
+            with pytest.raises(ArgumentError) as refused:
+                SVRnetClient(http=tc, api_key=bad)
+            assert bad not in str(refused.value) and "api_key" in str(refused.value)
 
 
 @pytest.fixture
