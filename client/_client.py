@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import io
 import json
+import secrets
 import time
 import zipfile
 from collections.abc import Callable, Mapping, Sequence
@@ -240,7 +241,8 @@ class SVRnetClient(Transport):
                 if not path.is_file():
                     raise FileNotFoundError(f"poses: no such file: {path}")
                 files.append(("poses", path.name, path, "application/json"))
-        response = self._send("POST", "/v1/reconstructions", body=MultipartBody(fields, files), progress=progress)
+        response = self._send("POST", "/v1/reconstructions", body=MultipartBody(fields, files), progress=progress,
+                              headers={transport.IDEMPOTENCY_HEADER: secrets.token_urlsafe(24)})
         body = self._json(response)
         if isinstance(body, dict):
             location = response.headers.get("location")

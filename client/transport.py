@@ -47,6 +47,11 @@ def sleep(seconds: float) -> None:
     time.sleep(seconds)
 
 
+IDEMPOTENCY_HEADER = "Idempotency-Key"
+"""Sent with a job's submission, the same key with every retry of it: the server answers a retry with
+the job the first attempt made, so a lost answer costs no second job."""
+
+
 def clean_api_key(key: str | None) -> str | None:
     """``key`` without surrounding blanks (a key file's line end), None for an empty one;
     :class:`~client.errors.ArgumentError` for a key with a control, blank or non-ASCII character
@@ -127,21 +132,25 @@ class Transport:
 
     def _send(self, method: str, path: str, *, body: MultipartBody | None = None,
               progress: ProgressCallback | None = None, stream: bool = False,
-              params: Mapping[str, str] | None = None) -> httpx.Response:
-        """Send with retries; returns a successful response (still open when ``stream``), or raises."""
-        idempotent = method in ("GET", "HEAD")
+              params: Mapping[str, str] | None = None, headers: Mapping[str, str] | None = None) -> httpx.Response:
+        """Send with retries; returns a successful response (still open when ``stream``), or raises. A
+        request with an :data:`IDEMPOTENCY_HEADER` is retried as a GET is (its server answers a retry
+        with what the first made)."""
+        keyed = IDEMPOTENCY_HEADER in (headers or {})
+        idempotent = method in ("GET", "HEAD") or keyed
         for attempt in range(self.retries + 1):
-            extra = None
+            extra = dict(headers or {})
             content = None
             if body is not None:
-                extra = {"Content-Type": body.content_type, "Content-Length": str(body.total)}
+                extra |= {"Content-Type": body.content_type, "Content-Length": str(body.total)}
                 content = body.chunks(progress)
             try:
                 request = self._http.build_request(method, path, content=content, headers=self._headers(extra),
                                                    params=params)
                 response = self._http.send(request, stream=True)
             except httpx.TransportError as exc:
-                if idempotent and attempt < self.retries and not isinstance(exc, _NO_RETRY_TRANSPORT):
+                again = not isinstance(exc, _NO_RETRY_TRANSPORT) or (keyed and isinstance(exc, httpx.ReadTimeout))
+                if idempotent and attempt < self.retries and again:     # a keyed answer lost to a timeout: ask again
                     sleep(self._sleep_for(attempt, None))
                     continue
                 raise self._transport_error(method, path, exc) from exc

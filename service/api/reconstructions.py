@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 from datetime import datetime, timezone
 from typing import Annotated, Optional
@@ -79,6 +80,28 @@ def thickness_per_stack(values: list[float] | None, n_stacks: int) -> list[float
     return list(values) * n_stacks if len(values) == 1 else list(values)
 
 
+IDEMPOTENCY_HEADER = "Idempotency-Key"
+"""A request header of ``POST /v1/reconstructions``: a client's random key for one submission, sent
+again with every retry of it, so that a retry whose first answer was lost returns the job the first
+made instead of starting a second."""
+
+
+def idempotency_digest(key: str | None) -> str | None:
+    """The digest a job keeps of an ``Idempotency-Key`` (none of the client's text is stored), or None;
+    :class:`InvalidParameter` for a key that is not 8 to 200 printable ASCII characters.
+
+    Example:
+        >>> idempotency_digest("4f1c2a9e0b7d"), idempotency_digest(None)
+        ('0ffe3575cb6c496d947afe5441358c1720b414d1c3a8857562c43469609125af', None)
+    """
+    if key is None:
+        return None
+    if not 8 <= len(key) <= 200 or not all("!" <= c <= "~" for c in key):
+        raise InvalidParameter(f"{IDEMPOTENCY_HEADER}: 8 to 200 printable ASCII characters, the same for every "
+                               "retry of one submission")
+    return hashlib.sha256(key.encode()).hexdigest()
+
+
 MAX_POSES_BYTES = 64 << 20
 """The largest ``poses`` upload: a job's refined poses of 32 stacks of 128 slices take about 20 MB."""
 
@@ -148,6 +171,11 @@ async def submit(
     model = registry.resolve(form.model)
     localiser_for(localisers, form.masks)            # the job's worker localises; refused now, not failed later
     thickness = thickness_per_stack(slice_thickness_mm, len(form.stacks))
+    key = idempotency_digest(request.headers.get(IDEMPOTENCY_HEADER))
+    store = _store(request)
+    if key is not None and (earlier := await to_thread.run_sync(store.job_for_key, key)) is not None:
+        response.headers["Location"] = f"/v1/reconstructions/{earlier.id}"      # the job this key made: not another
+        return {"job_id": earlier.id, "status": earlier.status, "status_url": f"/v1/reconstructions/{earlier.id}"}
     if (full := queue_full(request.app.state)) is not None:
         raise full
     raw = (await request.form()).get("poses")
@@ -155,11 +183,11 @@ async def submit(
         raise PayloadTooLarge(f"poses: {raw.size} bytes; the poses of a request's stacks take at most "
                               f"{MAX_POSES_BYTES >> 20} MB")
     poses_text = (await raw.read()).decode("utf-8", "replace") if hasattr(raw, "read") else raw
-    store = _store(request)
     job = store.create({"resolution_mm": resolution_mm, "svr_iterations": svr_iterations, "mc_samples": form.mc_samples,
                         "variance_threshold": form.variance_threshold, "max_expected_error_mm": form.max_expected_error_mm,
                         "model": model, "slice_order": form.slice_order, "atlas_frame": atlas_frame,
-                        "masks_hold_csf": form.masks_hold_csf, "slice_thickness_mm": thickness})
+                        "masks_hold_csf": form.masks_hold_csf, "slice_thickness_mm": thickness,
+                        **({"idempotency_key": key} if key is not None else {})})
     inputs = store.directory(job.id) / "inputs"
     inputs.mkdir()
     try:

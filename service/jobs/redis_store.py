@@ -129,8 +129,18 @@ class RedisJobStore(JobStore):
                                                   "params": json.dumps(params), "attempts": "0", "created_at": now,
                                                   "updated_at": now})
             pipe.zadd(f"{self.prefix}state:queued", {job_id: float(now)})
+            if params.get("idempotency_key"):
+                pipe.set(self._idempotency(params["idempotency_key"]), job_id)
             pipe.execute()
         return self.get(job_id)  # type: ignore[return-value]
+
+    def _idempotency(self, key: str) -> str:
+        return f"{self.prefix}idempotency:{key}"
+
+    @_answering
+    def job_for_key(self, key: str) -> Job | None:
+        job_id = self.redis.get(self._idempotency(key))
+        return None if job_id is None else self.get(job_id)
 
     @_answering
     def get(self, job_id: str) -> Job | None:
@@ -169,7 +179,10 @@ class RedisJobStore(JobStore):
 
     @_answering
     def delete(self, job_id: str) -> None:
+        job = self.get(job_id)
         with self.redis.pipeline(transaction=True) as pipe:
+            if job is not None and job.params.get("idempotency_key"):
+                pipe.delete(self._idempotency(job.params["idempotency_key"]))
             for key in self._state_keys():
                 pipe.zrem(key, job_id)
             pipe.delete(self._key(job_id))

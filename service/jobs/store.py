@@ -123,6 +123,10 @@ class JobStore(ABC):
         """The job, or None."""
 
     @abstractmethod
+    def job_for_key(self, key: str) -> Job | None:
+        """The latest job created with ``params["idempotency_key"] == key``, or None."""
+
+    @abstractmethod
     def update(self, job_id: str, **fields: object) -> None:
         """Set ``stage``, ``progress`` or ``submitted_at`` of an existing job (never its status)."""
 
@@ -223,6 +227,12 @@ class SqliteJobStore(JobStore):
         self._write("INSERT INTO jobs (id, status, stage, progress, params, created_at, updated_at) "
                     "VALUES (?, 'queued', 'queued', 0, ?, ?, ?)", (job_id, json.dumps(params), now, now))
         return self.get(job_id)  # type: ignore[return-value]
+
+    def job_for_key(self, key: str) -> Job | None:
+        with self._connect() as db:
+            row = db.execute("SELECT id FROM jobs WHERE json_extract(params, '$.idempotency_key') = ? "
+                             "ORDER BY created_at DESC LIMIT 1", (key,)).fetchone()
+        return None if row is None else self.get(row["id"])
 
     def get(self, job_id: str) -> Job | None:
         with self._connect() as db:

@@ -364,6 +364,27 @@ def test_job_flow(stack_file: Path, mask_file: Path, tmp_path: Path, no_sleep: l
         svr.status("job1")
 
 
+def test_a_job_submission_whose_answer_is_lost_is_sent_again_with_its_key(stack_file: Path,
+                                                                          no_sleep: list[float]) -> None:
+    """The server answers a retry with the job the first attempt made (tests/jobs: the same key, one
+    job); a new submission has a new key."""
+    fake, keys = FakeJobs(), []
+
+    def losing_the_first_answer(request: httpx.Request) -> httpx.Response:
+        answer = fake(request)
+        if request.method == "POST":
+            keys.append(request.headers.get("idempotency-key"))
+            if len(keys) == 1:
+                raise httpx.ReadError("Server disconnected without sending a response", request=request)
+        return answer
+
+    svr = mock(losing_the_first_answer)
+    assert svr.reconstruct([stack_file])["job_id"]
+    assert len(keys) == 2 and keys[0] == keys[1] and len(keys[0]) >= 16
+    svr.reconstruct([stack_file])
+    assert len(keys) == 3 and keys[2] != keys[0]
+
+
 def test_poses_from_a_file_and_failed_and_cancelled_jobs(stack_file: Path, tmp_path: Path,
                                                          no_sleep: list[float]) -> None:
     poses = tmp_path / "poses.json"

@@ -36,7 +36,7 @@ def case(tmp_path_factory: pytest.TempPathFactory) -> dict:
 
 
 def submit(client: TestClient, case: dict, poses: object = None, masks: list[bytes] | None = None,
-           stacks: list[bytes] | None = None, **data: str):  # noqa: ANN201
+           stacks: list[bytes] | None = None, headers: dict[str, str] | None = None, **data: str):  # noqa: ANN201
     """Submit the case; ``poses``: a body (default: the true poses) or the raw text of one; ``masks``
     and ``stacks``: the files' bytes (default: the case's)."""
     text = poses if isinstance(poses, str) else json.dumps(poses or case["poses"])
@@ -46,7 +46,7 @@ def submit(client: TestClient, case: dict, poses: object = None, masks: list[byt
     files += [("masks", (m.name, data_)) for (_, m), data_ in zip(case["files"], masks)]
     files.append(("poses", ("poses.json", text.encode(), "application/json")))
     data = {"resolution_mm": "2.0", "svr_iterations": "1", "atlas_frame": "false", **data}   # a phantom, no brain
-    return client.post("/v1/reconstructions", files=files, data=data)
+    return client.post("/v1/reconstructions", files=files, data=data, headers=headers)
 
 
 def zeroed(case: dict, which: int) -> list[bytes]:
@@ -303,6 +303,23 @@ def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict, mo
         r = submit(client, case, slice_order=order)
         assert r.status_code == 400 and all(n in r.json()["detail"] for n in needles), r.text
     assert not client.app.state.job_store.queued()                   # nothing left behind
+
+
+@both
+def test_a_retried_submission_with_its_idempotency_key_gets_the_same_job(client: TestClient, case: dict) -> None:
+    """A client whose first answer was lost sends the submission again with the same key: the job the
+    first made, not a second; another key, another job; a key no client would make is refused."""
+    headers = {"Idempotency-Key": "k-3f9c1e7a55d2b0"}
+    first = submit(client, case, headers=headers)
+    again = submit(client, case, headers=headers)
+    assert first.status_code == again.status_code == 202
+    assert again.json()["job_id"] == first.json()["job_id"] and again.headers["location"] == first.headers["location"]
+    other = submit(client, case, headers={"Idempotency-Key": "k-0000000000000001"})
+    assert other.json()["job_id"] != first.json()["job_id"]
+    refused = submit(client, case, headers={"Idempotency-Key": "short"})
+    assert refused.status_code == 400 and refused.json()["detail"].startswith("Idempotency-Key:")
+    for job in (first, other):
+        wait(client, job.json()["job_id"])
 
 
 @pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)
