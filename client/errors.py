@@ -182,6 +182,12 @@ def parse_retry_after(value: str | None) -> float | None:
     return max(0.0, (when - datetime.now(timezone.utc)).total_seconds())
 
 
+def _content_kind(response: httpx.Response) -> str:
+    """What an answer's body is, in a few words (never its text)."""
+    kind = response.headers.get("content-type", "").split(";")[0].strip()
+    return kind or "no content type"
+
+
 def error_from_response(response: httpx.Response) -> SVRnetError:
     """The typed exception for an error ``response`` (its body must have been read).
 
@@ -211,9 +217,14 @@ def error_from_response(response: httpx.Response) -> SVRnetError:
     if 300 <= status < 400:                   # the client follows no redirect: most likely a wrong URL
         detail = (f"the server answered a redirect ({status}) to {response.headers.get('location', '?')}; "
                   "check the server URL")
+    elif status == 404 and "status" not in body:      # every SVRnet 404 is problem+json
+        detail = (f"the server answered 404 without a problem+json body ({_content_kind(response)}): it is not "
+                  "an SVRnet API v1 server; check the server URL and port")
     request_id = body.get("request_id") or response.headers.get("x-request-id")
     kwargs: dict[str, Any] = {"status": status, "title": str(title) if title else None,
                               "request_id": request_id, "type": body.get("type"), "body": body}
+    if 300 <= status < 400 or (status == 404 and "status" not in body):
+        return ConnectionFailed(detail, **kwargs)     # the wrong server: as one that cannot be reached
     cls = error_class_for_status(status)
     if cls is Busy:
         return Busy(detail, retry_after_s=parse_retry_after(response.headers.get("retry-after")), **kwargs)

@@ -320,7 +320,11 @@ def test_error_mapping(status: int, cls: type[SVRnetError]) -> None:
     assert type(err) is cls and err.status == status and err.detail == "field x: bad" and err.title == "T"
     assert err.request_id == "rid-1"
     plain = error_from_response(httpx.Response(status, text="<html>oops</html>", headers={"x-request-id": "h1"}))
-    assert type(plain) is cls and "oops" in plain.detail and plain.request_id == "h1"
+    if status == 404:                          # another web server at that URL: as if none could be reached
+        assert type(plain) is ConnectionFailed and "not an SVRnet API v1 server" in plain.detail
+        assert "oops" not in plain.detail and plain.request_id == "h1"
+    else:
+        assert type(plain) is cls and "oops" in plain.detail and plain.request_id == "h1"
 
 
 def test_api_key_header_and_non_json_server_error() -> None:
