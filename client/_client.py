@@ -31,6 +31,13 @@ from client.upload_files import file_parts
 __all__ = ["SVRnetClient", "DEFAULT_SERVER", "DEFAULT_TIMEOUT", "ProgressCallback", "PathLike"]
 
 TERMINAL = ("succeeded", "failed", "cancelled")
+JOB_STATES = ("queued", "running", *TERMINAL)
+
+
+def not_svrnet(call: str, expected: str) -> ConnectionFailed:
+    """The error for an answer of the wrong shape: another server, or another API, at the client's URL."""
+    return ConnectionFailed(f"{call}: the answer holds no {expected}; the server at this URL does not speak SVRnet "
+                            "API v1 (check the server URL and the server's version)")
 UNREACHABLE_S = 120.0
 """How long :meth:`SVRnetClient.wait` goes on polling a server it cannot reach (a restart loads its
 models in seconds to tens of seconds; the job goes on meanwhile)."""
@@ -88,7 +95,10 @@ class SVRnetClient(Transport):
             >>> [m["name"] for m in SVRnetClient().models()]           # doctest: +SKIP
             ['default']
         """
-        return self._json(self._send("GET", "/v1/models"))
+        models = self._json(self._send("GET", "/v1/models"))
+        if not (isinstance(models, list) and all(isinstance(m, dict) and isinstance(m.get("name"), str) for m in models)):
+            raise not_svrnet("GET /v1/models", "a list of models")
+        return models
 
     def predict(self, stacks: Sequence[PathLike], masks: Sequence[PathLike] | None = None, *,
                 mc_samples: int | None = None, variance_threshold: float | None = None,
@@ -250,6 +260,8 @@ class SVRnetClient(Transport):
                 body["status_url"] = location
             if "job_id" not in body and location:
                 body["job_id"] = location.rstrip("/").rsplit("/", 1)[-1]
+        if not (isinstance(body, dict) and isinstance(body.get("job_id"), str) and body["job_id"]):
+            raise not_svrnet("POST /v1/reconstructions", "a job id")
         return body
 
     def status(self, job_id: str) -> dict[str, Any]:
@@ -259,7 +271,10 @@ class SVRnetClient(Transport):
             >>> SVRnetClient().status("3f2a")["status"]                    # doctest: +SKIP
             'running'
         """
-        return self._json(self._send("GET", self._job_path(job_id)))
+        status = self._json(self._send("GET", self._job_path(job_id)))
+        if not (isinstance(status, dict) and status.get("status") in JOB_STATES):
+            raise not_svrnet(f"GET {self._job_path(job_id)}", "a job status")
+        return status
 
     def wait(self, job_id: str, poll_s: float = 1.0, timeout_s: float = 3600.0,
              on_progress: Callable[[dict[str, Any]], None] | None = None,

@@ -368,6 +368,18 @@ def test_job_flow(stack_file: Path, mask_file: Path, tmp_path: Path, no_sleep: l
         svr.status("job1")
 
 
+def test_answers_of_another_api_are_not_taken_for_a_job(stack_file: Path) -> None:
+    """Valid JSON of another shape (another server or version at the URL): a failed connection that says
+    so, not a job with an empty id or a table of dashes."""
+    def other_api(request: httpx.Request) -> httpx.Response:
+        return httpx.Response(202 if request.method == "POST" else 200, json={"id": 7, "state": "ok", "items": []})
+
+    svr = mock(other_api)
+    for call in (lambda: svr.reconstruct([stack_file]), lambda: svr.status("job1"), svr.models):
+        with pytest.raises(ConnectionFailed, match="does not speak SVRnet API v1"):
+            call()
+
+
 def test_a_job_submission_whose_answer_is_lost_is_sent_again_with_its_key(stack_file: Path,
                                                                           no_sleep: list[float]) -> None:
     """The server answers a retry with the job the first attempt made (tests/jobs: the same key, one
