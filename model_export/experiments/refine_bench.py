@@ -118,9 +118,10 @@ VARIANTS: dict[str, dict] = {
     "slice-level-prior2": {"coarse_to_fine": False, "registration_prior_sd_mm": 2.0},
     "job": {},                                           # what a job runs: the never-worse paths
     "job-one-resolution": {},                            # the same, its paths at the output resolution
+    "job-path-left-out": {},                             # the job, its left-out slices from the path's poses
 }
 """Each variant's :class:`ReconstructionConfig` fields (beside the model's symmetry plane)."""
-JOBS: dict[str, dict] = {"job": {}, "job-one-resolution": {"path_resolution_mm": None}}
+JOBS: dict[str, dict] = {"job": {}, "job-one-resolution": {"path_resolution_mm": None}, "job-path-left-out": {}}
 """The variants that run a job's paths (:func:`reconstruct_never_worse`), and its keywords."""
 
 
@@ -189,7 +190,8 @@ def main() -> None:
                 if variant in JOBS:
                     res = reconstruct_never_worse(ss, args.resolution, args.rounds, config=config, **JOBS[variant])
                     left_out = place_left_out(ss, res.atlas_from_voxel_final, res.included, expected_errors(body),
-                                              plane_x_mm=plane, volume=VolumeReference.of(res, inputs))
+                                              plane_x_mm=plane, volume=VolumeReference.of(res, inputs),
+                                              starting=None if variant == "job-path-left-out" else ss.atlas_from_voxel)
                     res = replace(res, atlas_from_voxel_final=left_out.poses)
                 else:
                     res = reconstruct(ss, resolution_mm=args.resolution, svr_iterations=args.rounds, config=config)

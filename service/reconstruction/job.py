@@ -88,7 +88,8 @@ def refine_job(slice_set: SliceSet, stacks: Sequence[StackInput], starting_error
                                                                  slice_orders=tuple(orders) or None))
     reference = VolumeReference.of(result, stacks)
     left_out = place_left_out(slice_set, result.atlas_from_voxel_final, result.included, starting_error_mm,
-                              plane_x_mm=plane_x_mm, orders=list(orders) or None, volume=reference)
+                              plane_x_mm=plane_x_mm, orders=list(orders) or None, volume=reference,
+                              starting=slice_set.atlas_from_voxel)
     areas = reference.areas_mm2
     del reference                                   # every slice's pixels and the blurred volume: done with
     result = replace(result, atlas_from_voxel_final=left_out.poses)

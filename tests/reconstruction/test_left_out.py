@@ -108,6 +108,21 @@ def test_slices_without_an_expected_error_or_without_placed_stack_mates_stay(acq
     assert not nothing_placed.moved.any() and np.array_equal(nothing_placed.poses, truth)
 
 
+def test_left_out_slices_start_from_the_poses_the_job_started_from(acquisition) -> None:  # noqa: ANN001
+    """A path that registered a slice and then left it out of its volume gives it a pose nothing
+    vouches for: the left-out slices start from the job's starting poses (their expected errors'
+    poses); where nothing moves them (here a stack none of whose slices the volume holds) they stay there."""
+    ss, truth = moving(acquisition)
+    stack_out = ss.stack_index == 2
+    astray = truth.copy()
+    astray[stack_out, :3, 3] += 25.0                          # the path's registration gone astray
+    out = place_left_out(ss, astray, ~stack_out, np.full(ss.n_slices, 5.0), plane_x_mm=0.0, starting=truth)
+    assert not out.moved[stack_out].any()
+    np.testing.assert_allclose(out.poses[stack_out], truth[stack_out])
+    kept = place_left_out(ss, astray, ~stack_out, np.full(ss.n_slices, 5.0), plane_x_mm=0.0)
+    np.testing.assert_allclose(kept.poses[stack_out], astray[stack_out])     # without: the path's poses
+
+
 def test_a_slice_without_pixels_gets_a_frame_on_its_own_plane(acquisition) -> None:  # noqa: ANN001
     """Left out of the volume, a slice has no pixels; its frame's plane ``z = 0`` is still its own
     (the twin mirrors it about that plane), its origin where the stack's pixel centre projects."""
