@@ -32,6 +32,10 @@ PathLike = Union[str, "os.PathLike[str]"]
 DEFAULT_SERVER = "http://127.0.0.1:8000"
 DEFAULT_TIMEOUT = httpx.Timeout(connect=5.0, read=300.0, write=300.0, pool=5.0)
 MAX_RETRY_SLEEP_S = 30.0
+SMALL_CALL_READ_S = 30.0
+"""The read timeout of a call that sends nothing and reads a small answer (a status, the models, a
+cancel), where a server that says nothing for this long is stuck, not busy: the client's timeout,
+made for uploads and reconstructions on a CPU, would hold a scanner script for minutes."""
 _NO_RETRY_TRANSPORT = (httpx.ReadTimeout, httpx.WriteTimeout, httpx.UnsupportedProtocol)
 
 try:
@@ -146,7 +150,7 @@ class Transport:
                 content = body.chunks(progress)
             try:
                 request = self._http.build_request(method, path, content=content, headers=self._headers(extra),
-                                                   params=params)
+                                                   params=params, timeout=self._timeout_for(body, stream))
                 response = self._http.send(request, stream=True)
             except httpx.TransportError as exc:
                 again = not isinstance(exc, _NO_RETRY_TRANSPORT) or (keyed and isinstance(exc, httpx.ReadTimeout))
@@ -181,14 +185,24 @@ class Transport:
             return response
         raise AssertionError("unreachable")  # pragma: no cover
 
+    def _timeout_for(self, body: MultipartBody | None, stream: bool) -> httpx.Timeout:
+        """The client's timeout; for a small call (no body, a small answer) its read at most
+        :data:`SMALL_CALL_READ_S`."""
+        timeout = self._http.timeout
+        if body is not None or stream or timeout.read is None or timeout.read <= SMALL_CALL_READ_S:
+            return timeout
+        return httpx.Timeout(connect=timeout.connect, read=SMALL_CALL_READ_S, write=timeout.write, pool=timeout.pool)
+
     def _url(self, path: str) -> str:
         return str(self._http.base_url).rstrip("/") + "/" + path.lstrip("/")
 
     def _transport_error(self, method: str, path: str, exc: Exception) -> ConnectionFailed:
         reason = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
-        if isinstance(exc, (httpx.ReadTimeout, httpx.WriteTimeout)):
+        if isinstance(exc, (httpx.ReadTimeout, httpx.WriteTimeout)) and method in ("POST", "PUT"):
             reason += (" (no answer within the client's timeout: a large request on a CPU server can take longer; "
                        "raise SVRNET_TIMEOUT, in seconds, for svrnet, or timeout= of SVRnetClient)")
+        elif isinstance(exc, httpx.ReadTimeout):
+            reason += " (the server accepted the connection and said nothing: it is stuck or overloaded)"
         return ConnectionFailed(f"{method} {shown_url(self._url(path))}: {reason}", title="Connection failed")
 
     @staticmethod

@@ -476,3 +476,16 @@ def test_import_client_pulls_in_nothing_heavy() -> None:
     done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == ""
+
+
+def test_a_small_call_waits_for_a_stuck_server_no_longer_than_half_a_minute() -> None:
+    """A status, the models, a cancel: SVRNET_TIMEOUT is for uploads and reconstructions on a CPU."""
+    from client.multipart import MultipartBody
+    from client.transport import SMALL_CALL_READ_S, Transport
+
+    with Transport("http://svr.test", timeout=300.0) as t:
+        assert t._timeout_for(None, False).read == SMALL_CALL_READ_S
+        assert t._timeout_for(None, True).read == 300.0                     # a download
+        assert t._timeout_for(MultipartBody({}, []), False).read == 300.0     # an upload
+    with Transport("http://svr.test", timeout=5.0) as t:
+        assert t._timeout_for(None, False).read == 5.0                      # never longer than asked
