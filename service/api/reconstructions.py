@@ -19,7 +19,7 @@ from service.api.uploads import UploadFormDep, known_fields, upload_directory, u
 from service.pipeline.predict import stack_orders
 from service.pipeline.prepare import StackUpload, check_mask_grid
 from service.core.client_json import client_json
-from service.core.errors import Conflict, InvalidParameter, NotFound, PayloadTooLarge, UnusableImage
+from service.core.errors import Conflict, InvalidParameter, NotFound, PayloadTooLarge, Saturated, UnusableImage
 from service.io.acquisition_geometry import MAX_VOXEL_MM, MIN_VOXEL_MM
 from service.jobs.store import Job, JobStore
 from service.jobs.uploaded_poses import in_upload_order, poses_from_predict_body
@@ -174,6 +174,10 @@ async def submit(
     key = idempotency_digest(request.headers.get(IDEMPOTENCY_HEADER))
     store = _store(request)
     if key is not None and (earlier := await to_thread.run_sync(store.job_for_key, key)) is not None:
+        if earlier.status == "queued" and earlier.submitted_at is None:       # its files are still being checked
+            raise Saturated(f"{IDEMPOTENCY_HEADER}: the first submission with this key is still being read; send it "
+                            "again after Retry-After (it answers with that job, or with why it was refused)",
+                            retry_after_s=settings.retry_after_s)
         response.headers["Location"] = f"/v1/reconstructions/{earlier.id}"      # the job this key made: not another
         return {"job_id": earlier.id, "status": earlier.status, "status_url": f"/v1/reconstructions/{earlier.id}"}
     if (full := queue_full(request.app.state)) is not None:

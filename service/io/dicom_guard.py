@@ -97,7 +97,7 @@ def check_pixels(ds: Dataset, filename: str, budget: FileBudget) -> None:
         declared = (rows * cols * frames * spp * bits + 7) // 8
         if len(ds.PixelData) < declared:
             raise UnsupportedFile(f"{filename}: DICOM pixel data shorter than its header declares (truncated file)")
-        if len(ds.PixelData) > declared + 1:     # one byte pads to even length; more would be decoded as frames
+        if len(ds.PixelData) - declared >= max(rows * cols * spp * bits // 8, 2):   # a frame more: decoded as one
             raise UnsupportedFile(f"{filename}: DICOM pixel data longer than its header declares ({len(ds.PixelData)} "
                                   f"bytes for {frames} frame(s) of {rows} x {cols})")
         return

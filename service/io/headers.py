@@ -15,7 +15,9 @@ its own files, so an upload is never handed to a reader as sent:
   (ITK's reader would leave the voxels of a stream that fails to inflate as its memory held them);
 * the header's shape is checked here, in Python integers, before any reader sees it
   (:func:`declared_values`): 1-4 axes of 1 to 2**31 - 1 voxels, a value type and encoding the reader
-  knows, yes/no fields that say yes or no. ITK's NRRD reader crashes on a ``dimension`` of 12, its
+  knows; a MetaImage's yes/no fields are written ``True`` or ``False`` as MetaIO reads them (a value
+  starting with T, t or 1 is yes), so that ``CompressedData = 1`` is inflated here, bounded, like
+  ``True``. ITK's NRRD reader crashes on a ``dimension`` of 12, its
   MetaImage reader loops for ever on an ``NDims`` of -1, both count sizes of 2**32 and more in 32 bits
   (a file declaring 4,294,967,297 voxels was charged as 1 and allocated 16 GB), and a gzip NRRD's
   ``byte skip`` is inflated and thrown away uncounted.
@@ -206,9 +208,6 @@ def declared_values(header: bytes, kind: str, filename: str) -> int:
             raise problem("ElementType is not a number type this reader knows")
         channels = whole("elementnumberofchannels", "ElementNumberOfChannels", 1, MAX_CHANNELS) \
             if "elementnumberofchannels" in fields else 1
-        for yes_no in MHA_YES_NO:
-            if yes_no in fields and fields[yes_no].strip().lower() not in (b"true", b"false"):
-                raise problem(f"{MHA_CANONICAL[yes_no]} is neither True nor False")
     sizes = fields.get(sizes_field, b"").split()
     if len(sizes) != axes or not all(re.fullmatch(rb"\d+", s) and 1 <= int(s) <= MAX_AXIS_VOXELS for s in sizes):
         raise problem(f"{label} does not give {axes} whole numbers from 1 to {MAX_AXIS_VOXELS}")
@@ -282,7 +281,10 @@ def _mha(lines: list[tuple[bytes, int]], filename: str) -> tuple[bytes, int | No
         if _DETACHED.search(key) or b"\r" in line:      # a \r inside a line: no field of any reader's
             raise _detached(filename, "mha") if _DETACHED.search(line) else UnsupportedFile(
                 f"{filename}: an MHA header line with a carriage return inside it")
-        if sep and name in MHA_FIELDS:
+        if sep and name in MHA_YES_NO:        # as MetaIO reads it: T, t or 1 first is yes, anything else no
+            out.append(MHA_CANONICAL[name].encode() + (b" = True" if value.strip()[:1] in (b"T", b"t", b"1")
+                                                        else b" = False"))
+        elif sep and name in MHA_FIELDS:
             out.append(MHA_CANONICAL[name].encode() + b" = " + value.strip())
     return b"", None
 

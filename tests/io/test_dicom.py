@@ -251,3 +251,21 @@ def test_a_colour_dicom_is_422_not_its_channels_taken_for_slices(tmp_path: Path)
     path.write_bytes(corpus._file(ds, uid.ExplicitVRLittleEndian))
     with pytest.raises(UnusableImage, match="rgb.dcm: DICOM pixel data with 3 samples per pixel"):
         read_upload(path, "rgb.dcm")
+
+
+def test_pixel_data_padded_by_less_than_a_frame_is_read_and_a_frame_more_refused(tmp_path: Path) -> None:
+    """Trailing padding shorter than a frame (pydicom drops it) is no extra frame: read as declared."""
+    from service.core.errors import UnsupportedFile
+    from tests.support import corpus
+
+    pixels = (np.arange(3 * 8 * 6) % 500).astype(np.uint16).reshape(3, 8, 6)
+    for extra, refused in ((6, False), (8 * 6 * 2, True)):
+        ds = corpus._dataset(8, 6, 3)
+        ds.PixelData = pixels.tobytes() + b"\0" * extra
+        path = tmp_path / f"pad{extra}.dcm"
+        path.write_bytes(corpus._file(ds, ExplicitVRLittleEndian))
+        if refused:
+            with pytest.raises(UnsupportedFile, match="longer than its header declares"):
+                read_upload(path, path.name)
+        else:
+            assert read_upload(path, path.name).array.shape == (6, 8, 3)

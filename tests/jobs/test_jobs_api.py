@@ -318,6 +318,12 @@ def test_a_retried_submission_with_its_idempotency_key_gets_the_same_job(client:
     assert other.json()["job_id"] != first.json()["job_id"]
     refused = submit(client, case, headers={"Idempotency-Key": "short"})
     assert refused.status_code == 400 and refused.json()["detail"].startswith("Idempotency-Key:")
+    # A retry while the first submission's files are still being read: told to ask again, not given
+    # a job that a refusal of those files would delete a moment later.
+    reading = {"Idempotency-Key": "k-5555555555555555"}
+    client.app.state.job_store.create({"idempotency_key": reconstructions.idempotency_digest(reading["Idempotency-Key"])})
+    busy = submit(client, case, headers=reading)
+    assert busy.status_code == 503 and busy.headers["retry-after"] and "still being read" in busy.json()["detail"]
     for job in (first, other):
         wait(client, job.json()["job_id"])
 
