@@ -181,8 +181,9 @@ class RedisJobStore(JobStore):
     def delete(self, job_id: str) -> None:
         job = self.get(job_id)
         with self.redis.pipeline(transaction=True) as pipe:
-            if job is not None and job.params.get("idempotency_key"):
-                pipe.delete(self._idempotency(job.params["idempotency_key"]))
+            key = job.params.get("idempotency_key") if job is not None else None
+            if key and self.redis.get(self._idempotency(key)) == job_id:     # not a later job's of the same key
+                pipe.delete(self._idempotency(key))
             for key in self._state_keys():
                 pipe.zrem(key, job_id)
             pipe.delete(self._key(job_id))
