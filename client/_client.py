@@ -328,7 +328,8 @@ class SVRnetClient(Transport):
                 raise JobFailed(job)
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                raise WaitTimeout(f"job {job_id} still {state} after {timeout_s:g} s", job=job)
+                raise WaitTimeout(f"job {job_id} still {state} after {timeout_s:g} s; it goes on on the server "
+                                  f"(svrnet fetch {job_id} waits for it again and downloads it)", job=job)
             transport.sleep(min(poll_s, remaining))
 
     def download_volume(self, job_id: str, out_path: PathLike,

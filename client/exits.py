@@ -86,6 +86,8 @@ def errors() -> Iterator[None]:
         raise
     except SVRnetError as e:
         hint = " (give the key with SVRNET_API_KEY or --api-key)" if isinstance(e, Unauthorized) else ""
+        if isinstance(e, Busy) and e.retry_after_s is not None:
+            hint = f" (the server asks to retry in {e.retry_after_s:g} s)"
         fail(" ".join(str(e).split()) + hint, exit_code_for(e))
     except ArgumentError as e:                             # the client's own checks of its arguments, by field
         fail(" ".join(str(e).split()), EXIT_USAGE)

@@ -498,3 +498,18 @@ def test_reconstruct_options_out_of_the_servers_range_are_usage_errors_naming_th
     assert r.exit_code == 2 and "--slice-order: 2 values for 1 stacks" in r.output
     assert not fake.jobs.uploads
     assert "at most 5" in invoke(["reconstruct", "--help"]).output
+
+
+def test_a_busy_server_s_retry_after_and_a_wait_that_ran_out_say_what_to_do(capsys: pytest.CaptureFixture) -> None:
+    import typer
+
+    from client import exits
+    from client.errors import Busy, WaitTimeout
+
+    with pytest.raises(typer.Exit) as busy, exits.errors():
+        raise Busy("503 Busy: saturated", status=503, retry_after_s=120.0)
+    assert busy.value.exit_code == exits.EXIT_BUSY and "retry in 120 s" in capsys.readouterr().err
+    svr = cli.make_client("http://svr.test", None)
+    svr.status = lambda job_id: {"job_id": job_id, "status": "running"}          # never ends
+    with pytest.raises(WaitTimeout, match="svrnet fetch j1 waits for it again"):
+        svr.wait("j1", poll_s=0.0, timeout_s=0.0)
