@@ -58,10 +58,11 @@ def so3_log(rotation: ArrayLike) -> NDArray[np.float64]:
 
 
 def _v_coefficients(theta: NDArray) -> tuple[NDArray, NDArray]:
-    """``a = (1 - cos t)/t^2`` and ``b = (t - sin t)/t^3`` with their series near 0."""
+    """``a = (1 - cos t)/t^2`` and ``b = (t - sin t)/t^3`` with their series near 0 (``1 - cos t`` as
+    ``2 sin^2(t/2)``, which keeps its digits where ``cos t`` is nearly 1)."""
     small = theta < 1e-4
     t = np.where(small, 1.0, theta)
-    a = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(t)) / t**2)
+    a = np.where(small, 0.5 - theta**2 / 24.0, 2.0 * np.sin(t / 2.0) ** 2 / t**2)
     b = np.where(small, 1.0 / 6.0 - theta**2 / 120.0, (t - np.sin(t)) / t**3)
     return a, b
 
@@ -84,8 +85,9 @@ def log(pose: ArrayLike) -> NDArray[np.float64]:
     theta = np.linalg.norm(w, axis=-1)
     small = theta < 1e-4
     t = np.where(small, 1.0, theta)
-    c = np.where(small, 1.0 / 12.0 + theta**2 / 720.0,
-                 (1.0 - t * np.sin(t) / (2.0 * (1.0 - np.cos(t)))) / t**2)
+    # (1 - t sin t / (2 (1 - cos t))) / t^2 with 1 - cos t = 2 sin^2(t/2): written with cos t, at
+    # t ~ 2e-4 its cancellation put 1e-7 mm of error on a 42 mm translation.
+    c = np.where(small, 1.0 / 12.0 + theta**2 / 720.0, (1.0 - (t / 2.0) / np.tan(t / 2.0)) / t**2)
     k = hat(w)
     vinv = np.eye(3) - 0.5 * k + c[..., None, None] * (k @ k)
     return np.concatenate([w, np.einsum("...ij,...j->...i", vinv, m[..., :3, 3])], axis=-1)
