@@ -4,7 +4,10 @@
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
-PIP    := $(PY) -m pip install --disable-pip-version-check -q -c constraints.txt
+# torch's CPU build comes from PyTorch's own index (PyPI's Linux torch is the multi-GB CUDA build);
+# `make test TORCH_INDEX=URL` points elsewhere (a mirror), and a machine without it uses what pip has.
+TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
+PIP    := $(PY) -m pip install --disable-pip-version-check -q -c constraints.txt --extra-index-url $(TORCH_INDEX) --retries 2
 HOST   ?= 127.0.0.1
 PORT   ?= 8000
 

@@ -22,7 +22,7 @@ from service.api.schemas import problem_responses
 from service.api.uploads import sweep_stale_uploads
 from service.core import logging as service_logging
 from service.core.machine import cpu_description
-from service.core.settings import Settings
+from service.core.settings import Settings, load_settings
 from service.core.threads import limit_blas_threads
 from service.inference.registry import ModelRegistry
 from service.jobs.backends import open_backend, queue_extra_missing
@@ -31,6 +31,12 @@ from service.streaming.background import background_executor, stop_stage_process
 
 RETENTION_CHECK_S = 600.0
 log = logging.getLogger(__name__)
+
+
+SHUTDOWN_GRACE_S = 60
+"""On SIGTERM the server stops taking connections and gives the requests under way this long to
+finish (a predict takes seconds; an upload still arriving after it is cut); running jobs are handed
+back to the queue at once (docs/deployment.md)."""
 
 
 def create_app(settings: Settings | None = None, registry: ModelRegistry | None = None) -> FastAPI:
@@ -95,6 +101,7 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
     problems.install(app)
     openapi.document_uploads(app, settings.max_files)
     app.state.stream_sessions = 0
+    app.state.metrics.watch_streams(app.state)
     app.state.stream_pose_limiter = CapacityLimiter(settings.stream_workers)
     app.state.stream_stages = {"firm_up": background_executor("svrnet-stream-firm-up"),
                                "end_stack": background_executor("svrnet-stream-end-stack")}
@@ -110,6 +117,8 @@ def run(argv: list[str] | None = None) -> None:
     """Console entry point: serve :func:`create_app` with uvicorn on ``SVRNET_HOST:SVRNET_PORT``
     (``--host`` and ``--port`` override them; ``--help`` says so and serves nothing)."""
     import argparse
+    import os
+    import tempfile
 
     import uvicorn
 
@@ -123,10 +132,10 @@ def run(argv: list[str] | None = None) -> None:
     parser.add_argument("--port", type=int, help="port to listen on (default: $SVRNET_PORT, else 8000)")
     args = parser.parse_args(argv)
     given = {k: v for k, v in (("host", args.host), ("port", args.port)) if v is not None}
-    try:
-        settings = Settings(**given)
-    except ValueError as exc:                                   # pydantic's ValidationError: one line, no traceback
-        parser.error(" ".join(str(exc).split()))
+    settings = load_settings("svrnet-server", **given)
+    if settings.tmp_dir is not None:                            # the form parser spools large uploads there too
+        tempfile.tempdir = str(settings.tmp_dir)
+        os.environ["TMPDIR"] = str(settings.tmp_dir)
     if settings.queue_url and (missing := queue_extra_missing()):
         parser.exit(1, f"svrnet-server: {missing}\n")
     if not settings.queue_url:                                  # the embedded store: one server owns it
@@ -139,12 +148,15 @@ def run(argv: list[str] | None = None) -> None:
         if held is not None:
             held.close()                                        # the server's job runner takes it at start
     service_logging.configure(settings.log_level)
+    if settings.host not in ("127.0.0.1", "localhost", "::1") and not settings.key_set():
+        log.warning("serving every host that reaches this address without API keys (SVRNET_API_KEYS)")
     # uvicorn's own access log writes each raw request path (job ids as sent, anything a client
     # puts in a URL); the service's JSON log records the route instead (service/api/middleware.py).
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port,
                 log_level=service_logging.server_log_level(settings.log_level),
                 access_log=False, http=with_header_deadline(settings.header_timeout_s),
-                ws_ping_interval=settings.stream_ping_interval_s, ws_ping_timeout=settings.stream_ping_timeout_s)
+                ws_ping_interval=settings.stream_ping_interval_s, ws_ping_timeout=settings.stream_ping_timeout_s,
+                timeout_graceful_shutdown=SHUTDOWN_GRACE_S)
 
 
 def run_worker() -> None:

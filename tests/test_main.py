@@ -22,7 +22,36 @@ def test_help_serves_nothing_and_options_override_the_environment(monkeypatch: p
     assert served[0]["ws_ping_timeout"] == 60.0 and served[0]["ws_ping_interval"] == 20.0
     with pytest.raises(SystemExit) as end:
         main.run(["--port", "0"])
-    assert end.value.code == 2 and "port" in capsys.readouterr().err and len(served) == 2
+    assert str(end.value.code).startswith("svrnet-server: SVRNET_PORT:") and len(served) == 2
+
+
+@pytest.mark.parametrize(("variable", "value", "said"), [
+    ("SVRNET_LOG_LEVEL", "verbose", "one of debug"),
+    ("SVRNET_QUEUE_URL", "http://127.0.0.1:6379", "redis://"),
+    ("SVRNET_MODELS_DIR", "{tmp}/none", "holds no <name>/model.onnx"),
+    ("SVRNET_LOCALISERS_DIR", "{tmp}", "holds no <name>/model.onnx"),
+    ("SVRNET_DEFAULT_MODEL", "huge", "no model 'huge'"),
+    ("SVRNET_DATA_DIR", "{tmp}/a_file/below", "cannot be created"),
+    ("SVRNET_TMP_DIR", "{tmp}/none", "not a folder"),
+    ("SVRNET_API_KEYS", " , ", "no key"),
+])
+def test_a_setting_that_cannot_work_stops_every_command_in_one_line_naming_it(
+        variable: str, value: str, said: str, tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: ANN001
+    """Not a server that passes its health check and fails every request, nor a traceback."""
+    from service.jobs import worker_cli
+    from service.mrd import server as mrd_server
+
+    (tmp_path / "a_file").write_text("")
+    monkeypatch.setenv("SVRNET_DATA_DIR", str(tmp_path / "data"))
+    monkeypatch.setenv(variable, value.format(tmp=tmp_path))
+    monkeypatch.setattr("uvicorn.run", lambda app, **kw: pytest.fail("served with a setting that cannot work"))
+    for prog, command in (("svrnet-server", lambda: main.run([])), ("svrnet-worker", lambda: worker_cli.main([])),
+                          ("svrnet-mrd", lambda: mrd_server.main([]))):
+        with pytest.raises(SystemExit) as end:
+            command()
+        message = str(end.value.code)
+        assert message.startswith(f"{prog}: ") and f"{variable}: " in message and said in message, message
+        assert "\n" not in message
 
 
 def test_a_second_server_on_a_store_in_use_is_refused_in_one_line(tmp_path, monkeypatch: pytest.MonkeyPatch,  # noqa: ANN001

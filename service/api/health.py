@@ -5,6 +5,7 @@ from __future__ import annotations
 from anyio import to_thread
 from fastapi import APIRouter, Request
 
+from service.api.schemas import problem_responses
 from service.core.errors import NotReady
 
 router = APIRouter(tags=["operations"])
@@ -16,7 +17,7 @@ async def healthz() -> dict[str, str]:
     return {"status": "ok"}
 
 
-@router.get("/readyz", summary="Readiness")
+@router.get("/readyz", summary="Readiness", responses=problem_responses(503))
 async def readyz(request: Request) -> dict[str, object]:
     """``200`` once every model is loaded and the job store is reachable; ``503`` before. ``workers``:
     how many reconstruction workers serve the queue (0: jobs are accepted and wait for one; null
@@ -27,7 +28,7 @@ async def readyz(request: Request) -> dict[str, object]:
         raise NotReady("no model loaded yet")
     store = getattr(state, "job_store", None)
     if store is not None and not store.ping():
-        raise NotReady("the job store is not reachable")
+        raise NotReady("the job store is not reachable or cannot be written")
     runner = getattr(state, "job_runner", None)
     return {"status": "ready", "models": sorted(registry.estimators),
             "workers": await to_thread.run_sync(runner.live_workers) if runner is not None else None}

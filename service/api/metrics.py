@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 from fastapi import APIRouter, Request, Response
-from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Histogram, generate_latest
+from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 from prometheus_client.core import GaugeMetricFamily
 
 
 class Metrics:
-    """Requests and latency by route and model, slices processed, slices rejected by reason."""
+    """Requests and latency by route and model, slices processed, slices rejected by reason; open
+    stream sessions; jobs by state, the runner's figures and whether the job store answers."""
 
     def __init__(self) -> None:
         self.registry = CollectorRegistry()
@@ -26,6 +27,11 @@ class Metrics:
         """Export the job counts per state and the runner's numbers (workers, queue length), read from
         the store at each scrape: with the distributed back-end every replica reports the whole queue."""
         self.registry.register(_JobCollector(store, runner))
+
+    def watch_streams(self, state) -> None:  # noqa: ANN001 - the app's state
+        """Export the open ``/v1/stream`` sessions (``state.stream_sessions``), read at each scrape."""
+        Gauge("svrnet_stream_sessions", "open /v1/stream sessions", registry=self.registry).set_function(
+            lambda: float(getattr(state, "stream_sessions", 0)))
 
     def observe_request(self, route: str, method: str, model: str, status: int, seconds: float) -> None:
         self.requests.labels(route, method, model, str(status)).inc()
@@ -46,6 +52,12 @@ class _JobCollector:
         jobs = GaugeMetricFamily("svrnet_jobs", "reconstruction jobs by state", labels=["status"])
         runner = GaugeMetricFamily("svrnet_job_runner", "job runner figures (workers, queue_length)", labels=["what"])
         try:
+            up = bool(self.store.ping())
+        except Exception:  # noqa: BLE001 - as below
+            up = False
+        yield GaugeMetricFamily("svrnet_job_store_up", "1 while the job store answers and can be written (as /readyz)",
+                                value=float(up))
+        try:
             for status, n in self.store.counts().items():
                 jobs.add_metric([status], n)
             for what, value in self.runner.stats().items():
@@ -59,6 +71,7 @@ class _JobCollector:
 router = APIRouter(tags=["operations"])
 
 
-@router.get("/metrics", summary="Prometheus metrics", response_class=Response)
+@router.get("/metrics", summary="Prometheus metrics", response_class=Response,
+            responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}}})
 async def metrics(request: Request) -> Response:
     return Response(generate_latest(request.app.state.metrics.registry), media_type=CONTENT_TYPE_LATEST)

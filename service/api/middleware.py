@@ -9,15 +9,41 @@ import re
 import time
 import uuid
 
+from starlette.routing import compile_path
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.api.deps import early_rejection
 from service.api.metrics import Metrics
 from service.api.problems import MEDIA_TYPE, problem_body
 from service.core.errors import InternalError, PayloadTooLarge, RequestTimeout, ServiceError
+from service.core.logging import error_at
 
 log = logging.getLogger("service.access")
 SAFE_ID = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
+METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
+"""HTTP methods named in metrics and logs; any other token a client sends is ``other`` (a label
+value per invented method would grow the metrics without bound)."""
+
+
+def route_of(app: object, scope: Scope) -> str:
+    """The route template a request's path matches (``/v1/reconstructions/{job_id}``), for answers
+    given before routing (a refused key, a busy server, a body too large); ``unmatched`` when none.
+    The templates are the app's documented paths (its OpenAPI schema, built once).
+
+    Example:
+        >>> from fastapi import FastAPI
+        >>> app = FastAPI()
+        >>> _ = app.get("/v1/jobs/{job_id}")(lambda job_id: None)
+        >>> route_of(app, {"path": "/v1/jobs/abc"}), route_of(app, {"path": "/x"})
+        ('/v1/jobs/{job_id}', 'unmatched')
+    """
+    openapi = getattr(app, "openapi", None)
+    if openapi is None:
+        return "unmatched"
+    for template in openapi().get("paths", {}):
+        if compile_path(template)[0].match(scope["path"]):
+            return template
+    return "unmatched"
 
 
 class RequestContext:
@@ -93,6 +119,10 @@ class RequestContext:
             early = early_rejection(app.state, scope["method"], scope["path"], headers) if app is not None else None
         except ServiceError as exc:            # e.g. the job store does not answer: 503, not a traceback
             early = exc
+        except Exception as exc:  # noqa: BLE001 - as below: a problem+json, counted and logged
+            log.error("unhandled error", extra={"request_id": rid, "error_type": type(exc).__name__,
+                                                "error_at": error_at(exc)})
+            early = InternalError()
         length = headers.get("content-length")
         try:
             if early is not None:
@@ -105,15 +135,16 @@ class RequestContext:
             if not state["started"]:
                 await self._problem(emit, rid, state["refusal"])
         except Exception as exc:  # noqa: BLE001 - the last line of defence: never a traceback
-            log.error("unhandled error", extra={"request_id": rid, "error_type": type(exc).__name__})
+            log.error("unhandled error", extra={"request_id": rid, "error_type": type(exc).__name__,
+                                                "error_at": error_at(exc)})
             if not state["started"]:
                 await self._problem(emit, rid, InternalError())
-        route = scope.get("route")
-        path = getattr(route, "path", None) or "unmatched"
+        path = getattr(scope.get("route"), "path", None) or route_of(app, scope)
+        method = scope["method"] if scope["method"] in METHODS else "other"
         model = scope["state"].get("model", "")
         elapsed = time.perf_counter() - start
-        self.metrics.observe_request(path, scope["method"], model, state["code"], elapsed)
-        log.info("request", extra={"request_id": rid, "route": path, "method": scope["method"],
+        self.metrics.observe_request(path, method, model, state["code"], elapsed)
+        log.info("request", extra={"request_id": rid, "route": path, "method": method,
                                    "status": state["code"], "duration_ms": round(elapsed * 1e3, 1)})
 
     def _too_large(self) -> PayloadTooLarge:

@@ -14,7 +14,8 @@ from fastapi.responses import FileResponse
 from pydantic import Field
 
 from service.api.deps import ApiKey, LocalisersDep, RegistryDep, SettingsDep, SlotDep, localiser_for, queue_full
-from service.api.schemas import UPLOAD_ERRORS, job_poses, problem_responses
+from service.api.schemas import (UPLOAD_ERRORS, JobCreated, JobStatus, RefinedPoses, download, job_poses,
+                                 problem_responses)
 from service.api.uploads import UploadFormDep, known_fields, upload_directory, upload_reader
 from service.pipeline.predict import stack_orders
 from service.pipeline.prepare import StackUpload, check_mask_grid
@@ -147,7 +148,9 @@ def check_slices_to_use(uploads: list[StackUpload], accepted: list[np.ndarray] |
                                "reconstruct")
 
 
-@router.post("", status_code=202, responses=UPLOAD_ERRORS, summary="Start a reconstruction job",
+@router.post("", status_code=202, response_model=JobCreated, summary="Start a reconstruction job",
+             responses={202: {"headers": {"Location": {"description": "the job's status URL",
+                                                       "schema": {"type": "string"}}}}, **UPLOAD_ERRORS},
              dependencies=[Depends(known_fields("poses"))])
 async def submit(
     request: Request,
@@ -214,7 +217,7 @@ async def submit(
     return {"job_id": job.id, "status": "queued", "status_url": f"/v1/reconstructions/{job.id}"}
 
 
-@router.get("/{job_id}", summary="Job status", responses=problem_responses(401, 404))
+@router.get("/{job_id}", summary="Job status", response_model=JobStatus, responses=problem_responses(401, 404))
 async def status(request: Request, job_id: str) -> dict:
     """The job's state; a queued job's ``workers`` says how many workers serve the queue (0: none is
     running, and the job waits until one is started; null where the back-end cannot tell)."""
@@ -234,7 +237,7 @@ def _result(request: Request, job_id: str, name: str, media_type: str, download:
     return FileResponse(path, media_type=media_type, filename=download)
 
 
-@router.get("/{job_id}/volume", responses=problem_responses(401, 404, 409),
+@router.get("/{job_id}/volume", responses=download("application/gzip", 401, 404, 409),
             summary="The reconstructed volume (.nii.gz, atlas space or a stack's scanner coordinates)",
             response_class=FileResponse)
 async def volume(request: Request, job_id: str, settings: SettingsDep, stack: Annotated[Optional[int], Query(
@@ -262,12 +265,12 @@ async def volume(request: Request, job_id: str, settings: SettingsDep, stack: An
                     headers={"Content-Disposition": f'attachment; filename="{job_id}_stack{stack}.nii.gz"'})
 
 
-@router.get("/{job_id}/preview.png", responses=problem_responses(401, 404, 409), summary="Three orthogonal mid-planes", response_class=FileResponse)
+@router.get("/{job_id}/preview.png", responses=download("image/png", 401, 404, 409), summary="Three orthogonal mid-planes", response_class=FileResponse)
 async def preview(request: Request, job_id: str) -> FileResponse:
     return _result(request, job_id, "preview.png", "image/png", f"{job_id}.png")
 
 
-@router.get("/{job_id}/poses", responses=problem_responses(401, 404, 409),
+@router.get("/{job_id}/poses", responses={200: {"model": RefinedPoses}, **problem_responses(401, 404, 409)},
             summary="Refined slice poses, in the /v1/predict schema", response_class=FileResponse)
 async def poses(request: Request, job_id: str) -> FileResponse:
     """The ``/v1/predict`` body the job started from with every slice's pose refined by the reconstruction
@@ -276,8 +279,7 @@ async def poses(request: Request, job_id: str) -> FileResponse:
     return _result(request, job_id, "poses.json", "application/json", f"{job_id}_poses.json")
 
 
-@router.get("/{job_id}/transforms", responses={200: {"content": {"application/zip": {}}},
-                                                **problem_responses(401, 404, 409)},
+@router.get("/{job_id}/transforms", responses=download("application/zip", 401, 404, 409),
             summary="Per-slice ITK transforms (.zip of transforms/*.tfm and slice_transforms.txt)",
             response_class=FileResponse)
 async def transforms(request: Request, job_id: str) -> FileResponse:

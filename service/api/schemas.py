@@ -6,7 +6,7 @@ import functools
 import typing
 from typing import Literal, Optional
 
-from pydantic import BaseModel, Field, TypeAdapter, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
 Vec3 = list[float]
 Mat = list[list[float]]
@@ -181,6 +181,42 @@ class ModelDescription(BaseModel):
                                                      "request); null where every call draws afresh")
 
 
+JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+
+
+class JobCreated(BaseModel):
+    """``202`` of ``POST /v1/reconstructions`` (its ``Location`` header: ``status_url``)."""
+
+    job_id: str
+    status: JobState
+    status_url: str
+
+
+class JobStatus(BaseModel):
+    """``GET /v1/reconstructions/{job_id}``: a job's state, its stage and progress, its results' URLs
+    once it has succeeded (null before), its report (docs/reconstruction.md)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    job_id: str
+    status: JobState
+    stage: Optional[str] = None
+    progress: float = Field(ge=0.0, le=1.0)
+    error: Optional[str] = None
+    created_at: str = Field(description="ISO 8601, UTC")
+    updated_at: str = Field(description="ISO 8601, UTC")
+    started_at: Optional[str] = Field(None, description="ISO 8601, UTC; null until a worker has started it")
+    result_url: Optional[str] = None
+    preview_url: Optional[str] = None
+    poses_url: Optional[str] = None
+    transforms_url: Optional[str] = None
+    report: Optional[dict] = None
+    attempts: int = 0
+    workers: Optional[int] = Field(None, description="a queued job: the workers serving the queue (0: it waits "
+                                                     "for one); null otherwise or where the back-end cannot tell")
+    coherent: Optional[bool] = Field(None, description="a succeeded job: the report's quality.coherent")
+
+
 class Problem(BaseModel):
     type: str
     title: str
@@ -195,6 +231,12 @@ def problem_responses(*codes: int) -> dict:
 
 
 UPLOAD_ERRORS = problem_responses(400, 401, 404, 408, 413, 415, 422, 429, 503)   # the routes that take stacks
+
+
+def download(media_type: str, *codes: int) -> dict:
+    """OpenAPI ``responses`` of a file download: ``200`` of ``media_type`` and these problem statuses."""
+    return {200: {"content": {media_type: {"schema": {"type": "string", "format": "binary"}}}},
+            **problem_responses(*codes)}
 
 
 def _model_in(annotation: object) -> type[BaseModel] | None:

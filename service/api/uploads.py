@@ -10,6 +10,7 @@ import tempfile
 import threading
 import time
 import typing
+from collections import Counter
 from collections.abc import Awaitable, Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
@@ -85,30 +86,41 @@ def display_name(upload: UploadFile, field: str, index: int) -> str:
 
 
 @functools.cache
-def form_fields(endpoint: Callable) -> tuple[str, ...]:
+def declared_fields(endpoint: Callable) -> dict[str, bool]:
     """The form and file fields a route function declares (``Annotated[..., Form()]`` / ``File()``),
-    its dependencies' included."""
+    its dependencies' included, each with whether it takes several values (a ``list`` field)."""
     hints = typing.get_type_hints(endpoint, include_extras=True)
-    out: list[str] = []
+    out: dict[str, bool] = {}
     for name, hint in hints.items():
         for meta in getattr(hint, "__metadata__", ()):
             if isinstance(meta, params.Form):
-                out.append(meta.alias or name)
+                inner = [a for a in (typing.get_args(hint)[0], *typing.get_args(typing.get_args(hint)[0]))]
+                out[meta.alias or name] = any(typing.get_origin(a) is list for a in inner)
             elif isinstance(meta, params.Depends) and meta.dependency is not None:
-                out.extend(form_fields(meta.dependency))
-    return tuple(out)
+                out.update(declared_fields(meta.dependency))
+    return out
+
+
+def form_fields(endpoint: Callable) -> tuple[str, ...]:
+    """The names of :func:`declared_fields`."""
+    return tuple(declared_fields(endpoint))
 
 
 def known_fields(*extra: str) -> Callable[[Request], Awaitable[None]]:
     """A dependency refusing (400, by name) any form field that the route neither declares nor lists in
-    ``extra`` (fields it reads from the raw form): a misspelt or misplaced option is never ignored."""
+    ``extra`` (fields it reads from the raw form), and a field of one value given more than once: a
+    misspelt, misplaced or doubled option is never ignored or silently decided by its last copy."""
 
     async def check(request: Request) -> None:
-        names = form_fields(request.scope["endpoint"]) + extra
+        declared = declared_fields(request.scope["endpoint"]) | dict.fromkeys(extra, False)
         form = await request.form()       # parsed once: FastAPI reuses it for the route's fields
-        unknown = [clean_name(k) or repr(k) for k in dict.fromkeys(form.keys()) if k not in names]
+        unknown = [clean_name(k) or repr(k) for k in dict.fromkeys(form.keys()) if k not in declared]
         if unknown:
-            raise InvalidParameter(f"{unknown[0]}: unknown field; this route takes {', '.join(names)}")
+            raise InvalidParameter(f"{unknown[0]}: unknown field; this route takes {', '.join(declared)}")
+        counts = Counter(k for k, _ in form.multi_items())
+        doubled = [k for k, n in counts.items() if n > 1 and not declared[k]]
+        if doubled:
+            raise InvalidParameter(f"{doubled[0]}: given {counts[doubled[0]]} times; this field takes one value")
 
     return check
 

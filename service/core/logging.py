@@ -41,11 +41,25 @@ def error_at(exc: BaseException) -> str:
 
 
 class JsonFormatter(logging.Formatter):
-    """One JSON object per line with the safe fields only."""
+    """One JSON object per line with the safe fields only; a record logged with its exception
+    (``log.exception``, ``exc_info=True``) carries the exception's type and where in the service it
+    was raised, never its message (which may name a file).
+
+    Example:
+        >>> try:
+        ...     raise KeyError("jane_doe.nii.gz")
+        ... except KeyError:
+        ...     record = logging.LogRecord("service.x", logging.ERROR, "", 0, "upkeep failed", (), sys.exc_info())
+        >>> line = JsonFormatter().format(record)
+        >>> json.loads(line)["error_type"], "jane" in line
+        ('KeyError', False)
+    """
 
     def format(self, record: logging.LogRecord) -> str:
         out = {"ts": time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(record.created)), "level": record.levelname,
                "logger": record.name, "msg": record.getMessage()}
+        if record.exc_info and record.exc_info[1] is not None:
+            out.update(error_type=type(record.exc_info[1]).__name__, error_at=error_at(record.exc_info[1]))
         out.update({k: getattr(record, k) for k in SAFE_FIELDS if hasattr(record, k)})
         return json.dumps(out)
 

@@ -12,9 +12,11 @@ Example:
 
 from __future__ import annotations
 
+import logging
+import os
 from pathlib import Path
 
-from pydantic import Field
+from pydantic import Field, ValidationError, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 DEFAULT_MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
@@ -34,8 +36,8 @@ class Settings(BaseSettings):
                                                          "<name>/model.onnx; reconstruction jobs run its default too")
     default_model: str = Field("default", description="the pose model of a request that names none (default or "
                                "fast)")
-    log_level: str = Field("info", description="the service's log level (JSON lines; never file names or DICOM "
-                           "attributes)")
+    log_level: str = Field("info", description="the service's log level: debug, info, warning, error or critical "
+                           "(JSON lines; never file names or DICOM attributes)")
     api_keys: str = Field("", description="comma-separated keys; empty = no authentication")
     metrics_public: bool = Field(False, description="serve /metrics without an API key even when keys are "
                                  "configured (by default it needs one, like /v1/)")
@@ -57,7 +59,8 @@ class Settings(BaseSettings):
                               "stages multiply many small matrices, which one thread does faster, and requests and "
                               "preprocessing workers already use the cores side by side (the streams' stage process "
                               "always uses one)")
-    tmp_dir: Path | None = Field(None, description="where uploads are spooled (default: system temp)")
+    tmp_dir: Path | None = Field(None, description="where uploads are spooled and requests' scratch lives: an "
+                                 "existing folder (default: the system temp folder)")
     data_dir: Path = Field(Path.home() / ".svrnet", description="job store: SQLite database and files")
     retry_after_s: int = Field(2, ge=1, description="the Retry-After (seconds) of a 503 or 429 when saturated")
     job_workers: int = Field(1, ge=1, description="reconstruction jobs run at once (worker processes)")
@@ -94,6 +97,46 @@ class Settings(BaseSettings):
     stream_workers: int = Field(1, ge=1, description="slices of all stream sessions posed at once (threads; each "
                                 "takes up to a core from /v1/predict)")
 
+    @field_validator("log_level")
+    @classmethod
+    def _known_level(cls, value: str) -> str:
+        if not isinstance(logging.getLevelName(value.upper()), int):
+            raise ValueError("one of debug, info, warning, error, critical")
+        return value.lower()
+
+    @field_validator("queue_url")
+    @classmethod
+    def _redis_url(cls, value: str | None) -> str | None:
+        if value and not value.startswith(("redis://", "rediss://", "unix://")):
+            raise ValueError("a redis://host:port/db (or rediss://, unix://) URL")
+        return value or None
+
+    def problems(self) -> list[str]:
+        """What makes these settings unusable on this machine, each naming its variable: folders
+        without a model or not writable. A server started with them would pass its health check and
+        fail every request (see :func:`load_settings`)."""
+        out = []
+        if self.api_keys.strip() and not self.key_set():
+            out.append("SVRNET_API_KEYS: holds separators but no key (unset it to serve without keys)")
+        for name, folder in (("SVRNET_MODELS_DIR", self.models_dir), ("SVRNET_LOCALISERS_DIR", self.localisers_dir)):
+            if not any(Path(folder).glob("*/model.onnx")):
+                out.append(f"{name}: {folder} holds no <name>/model.onnx")
+        if any(Path(self.models_dir).glob("*/model.onnx")) and not (Path(self.models_dir) / self.default_model
+                                                                    / "model.onnx").is_file():
+            out.append(f"SVRNET_DEFAULT_MODEL: no model {self.default_model!r} in {self.models_dir}")
+        for name, folder, create in (("SVRNET_DATA_DIR", self.data_dir, True), ("SVRNET_TMP_DIR", self.tmp_dir, False)):
+            if folder is None:
+                continue
+            try:
+                if create:
+                    Path(folder).mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                out.append(f"{name}: {folder} cannot be created ({exc.strerror})")
+                continue
+            if not Path(folder).is_dir() or not os.access(folder, os.W_OK | os.X_OK):
+                out.append(f"{name}: {folder} is not a folder this process can write")
+        return out
+
     @property
     def max_decoded_bytes(self) -> int:
         return int(self.max_decoded_mb * 2**20)
@@ -104,3 +147,31 @@ class Settings(BaseSettings):
 
     def key_set(self) -> set[str]:
         return {k.strip() for k in self.api_keys.split(",") if k.strip()}
+
+
+def load_settings(prog: str, **given: object) -> Settings:
+    """The settings of a console command (``svrnet-server``, ``svrnet-worker``, ``svrnet-mrd``):
+    a value that is wrong, or unusable here (:meth:`Settings.problems`), ends the command with
+    one line naming its ``SVRNET_*`` variable (exit status 1), never a traceback. The command's
+    files (uploads, job folders, results: patient data) are then created readable by its own
+    user only (umask 077), whatever the shell's umask.
+
+    Example:
+        >>> import os
+        >>> os.environ["SVRNET_LOG_LEVEL"] = "verbose"
+        >>> try:
+        ...     load_settings("svrnet-server")
+        ... except SystemExit as end:
+        ...     print(end.code)
+        svrnet-server: SVRNET_LOG_LEVEL: Value error, one of debug, info, warning, error, critical
+        >>> del os.environ["SVRNET_LOG_LEVEL"]
+    """
+    try:
+        settings = Settings(**given)
+    except ValidationError as exc:
+        raise SystemExit(f"{prog}: " + "; ".join(
+            f"SVRNET_{'_'.join(str(p) for p in e['loc']).upper()}: {e['msg']}" for e in exc.errors())) from None
+    if problems := settings.problems():
+        raise SystemExit(f"{prog}: " + "; ".join(problems))
+    os.umask(0o077)
+    return settings

@@ -34,6 +34,7 @@ from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
+from service.core.errors import StoreUnavailable
 from service.core.process_pools import end_pool
 from service.jobs.runner import INTERRUPTED, JobRunner, start_worker
 from service.jobs.store import Job, SqliteJobStore
@@ -233,13 +234,20 @@ class LocalRunner(JobRunner):
 
     def shutdown(self, timeout_s: float = 10.0) -> list[str]:
         """Stop every worker process (SIGTERM, then SIGKILL after ``timeout_s``) and put the jobs they
-        were running back in the queue."""
+        were running back in the queue; the run stopped so does not count as one of their attempts
+        (a rolling restart never fails a job; a server killed outright does count, at the next start)."""
         with self.lock:
             self.closing = True
+            running = list(self.futures)               # before the pool's end empties them
         end_pool(self.pool, grace_s=0.0, timeout_s=timeout_s)
-        handed_back = [j for j in self.store.recover(self.max_attempts) if j in self.futures] if self.started else []
+        handed_back: list[str] = []
+        if self.started:
+            try:                                       # an orderly stop is not the job's fault: no attempt spent
+                handed_back = [j for j in self.store.recover(self.max_attempts, spared=running) if j in running]
+            except StoreUnavailable:
+                log.warning("the job store cannot be written; running jobs are re-queued at the next start")
         for job_id in handed_back:
-            log.info(f"handed job {job_id} back to the queue", extra={"job_id": job_id})
+            log.info("handed a job back to the queue", extra={"job_id": job_id})
         if self.owner is not None:
             self.owner.close()                         # the lock goes with it
         self.owner, self.started = None, False

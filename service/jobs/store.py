@@ -23,14 +23,18 @@ Example:
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import sqlite3
 import time
 import uuid
 from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+from service.core.errors import StoreUnavailable
 from service.jobs.runner import lost_worker
 
 STATES = ("queued", "running", "succeeded", "failed", "cancelled")
@@ -197,7 +201,7 @@ class SqliteJobStore(JobStore):
         self.data_dir = Path(data_dir)
         (self.data_dir / "jobs").mkdir(parents=True, exist_ok=True)
         self.db_path = self.data_dir / "jobs.sqlite3"
-        with self._connect() as db:
+        with self._db() as db:
             db.execute("PRAGMA journal_mode=WAL")
             db.execute(SCHEMA)
             cols = {r["name"] for r in db.execute("PRAGMA table_info(jobs)")}
@@ -205,22 +209,31 @@ class SqliteJobStore(JobStore):
                 if col not in cols:
                     db.execute(f"ALTER TABLE jobs ADD COLUMN {col} REAL")
 
-    def _connect(self) -> sqlite3.Connection:
-        db = sqlite3.connect(self.db_path, timeout=30, isolation_level=None)
-        db.row_factory = sqlite3.Row
-        return db
+    @contextmanager
+    def _db(self) -> Iterator[sqlite3.Connection]:
+        """A connection; a database that cannot be read or written (a read-only or full disk, a
+        damaged file) is :class:`~service.core.errors.StoreUnavailable` (503), never a traceback."""
+        try:
+            db = sqlite3.connect(self.db_path, timeout=30, isolation_level=None)
+            db.row_factory = sqlite3.Row
+            with db:
+                yield db
+        except sqlite3.Error as exc:
+            raise StoreUnavailable(f"the job store's database cannot be used ({exc})") from exc
 
     def _write(self, sql: str, args: tuple) -> bool:
-        with self._connect() as db:
+        with self._db() as db:
             return db.execute(sql, args).rowcount == 1
 
     def ping(self) -> bool:
+        """Whether the database answers and it and the jobs' folder can be written (a read-only data
+        folder answers reads and fails every submission)."""
         try:
-            with self._connect() as db:
-                db.execute("SELECT 1").fetchone()
-            return True
-        except sqlite3.Error:
+            with self._db() as db:
+                db.execute("SELECT count(*) FROM jobs").fetchone()
+        except StoreUnavailable:
             return False
+        return all(os.access(p, os.W_OK) for p in (self.db_path, self.data_dir / "jobs", self.data_dir))
 
     def create(self, params: dict) -> Job:
         job_id, now = self._new_id(), time.time()
@@ -229,13 +242,13 @@ class SqliteJobStore(JobStore):
         return self.get(job_id)  # type: ignore[return-value]
 
     def job_for_key(self, key: str) -> Job | None:
-        with self._connect() as db:
+        with self._db() as db:
             row = db.execute("SELECT id FROM jobs WHERE json_extract(params, '$.idempotency_key') = ? "
                              "ORDER BY created_at DESC LIMIT 1", (key,)).fetchone()
         return None if row is None else self.get(row["id"])
 
     def get(self, job_id: str) -> Job | None:
-        with self._connect() as db:
+        with self._db() as db:
             row = db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
         if row is None:
             return None
@@ -254,7 +267,7 @@ class SqliteJobStore(JobStore):
     def claim(self, job_id: str, redelivered: bool = False) -> int:
         states = "('queued', 'running')" if redelivered else "('queued')"
         now = time.time()
-        with self._connect() as db:
+        with self._db() as db:
             row = db.execute("UPDATE jobs SET status = 'running', stage = 'starting', progress = 0, attempts = "
                              f"attempts + 1, started_at = ?, updated_at = ? WHERE id = ? AND status IN {states} "
                              "RETURNING attempts", (now, now, job_id)).fetchone()
@@ -282,7 +295,7 @@ class SqliteJobStore(JobStore):
         shutil.rmtree(self.directory(job_id), ignore_errors=True)
 
     def ids(self, status: str) -> list[str]:
-        with self._connect() as db:
+        with self._db() as db:
             return [r["id"] for r in db.execute("SELECT id FROM jobs WHERE status = ? ORDER BY created_at", (status,))]
 
     def recover(self, max_attempts: int = 2, cause: str = "restart", spared: list[str] = ()) -> list[str]:
@@ -292,7 +305,7 @@ class SqliteJobStore(JobStore):
         processes with its): the interrupted run does not count as one of their attempts."""
         now = time.time()
         error = "interrupted by a server restart too many times" if cause == "restart" else lost_worker(max_attempts)
-        with self._connect() as db:
+        with self._db() as db:
             db.executemany("UPDATE jobs SET attempts = attempts - 1 WHERE id = ? AND status = 'running' AND attempts > 0",
                            [(job_id,) for job_id in spared])
             given_up = [r["id"] for r in db.execute(
@@ -307,7 +320,7 @@ class SqliteJobStore(JobStore):
 
     def expire(self, retention_s: float) -> list[str]:
         cutoff = time.time() - retention_s
-        with self._connect() as db:
+        with self._db() as db:
             ids = [r["id"] for r in db.execute(
                 "SELECT id FROM jobs WHERE status IN ('succeeded', 'failed', 'cancelled') AND updated_at < ?", (cutoff,))]
             db.executemany("DELETE FROM jobs WHERE id = ?", [(i,) for i in ids])

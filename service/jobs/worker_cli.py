@@ -33,7 +33,7 @@ from rq.job import Job as RqJob
 from rq.worker import Worker
 
 from service.core import logging as service_logging
-from service.core.settings import Settings
+from service.core.settings import Settings, load_settings
 from service.core.threads import limit_blas_threads
 from service.jobs.rq_runner import set_context
 from service.jobs.runner import watch_parent
@@ -165,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--name", help="worker name (one worker only; default: RQ's unique name)")
     ap.add_argument("--health", action="store_true", help="exit 0 if a worker of this host is alive")
     args = ap.parse_args(argv)
-    settings = Settings()
+    settings = load_settings("svrnet-worker")
     if not settings.queue_url:
         print("svrnet-worker: set SVRNET_QUEUE_URL=redis://host:port/db", file=sys.stderr)
         return 2

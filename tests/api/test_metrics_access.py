@@ -29,3 +29,28 @@ def test_openapi_says_metrics_may_answer_401(oracle) -> None:  # noqa: ANN001
     with make_client(ModelRegistry({"default": oracle}), api_keys="k1") as client:
         spec = client.get("/openapi.json").json()
     assert "401" in spec["paths"]["/metrics"]["get"]["responses"]
+
+
+def test_labels_stay_bounded_and_early_refusals_name_their_route(oracle) -> None:  # noqa: ANN001
+    """An invented HTTP method is ``other`` (one series, not one per token a client makes up), and an
+    answer given before routing (a refused key) is counted under the route the path matches."""
+    with make_client(ModelRegistry({"default": oracle}), api_keys="k1", metrics_public=True) as client:
+        for method in ("JANEDOE", "XYZZY"):
+            client.request(method, "/healthz")
+        assert client.get("/v1/models").status_code == 401
+        assert client.get("/v1/reconstructions/0123456789abcdef0123456789abcdef").status_code == 401
+        lines = [x for x in client.get("/metrics").text.splitlines() if x.startswith("svrnet_requests_total{")]
+    assert not any("JANEDOE" in x or "XYZZY" in x for x in lines)
+    assert any('method="other"' in x and 'route="/healthz"' in x for x in lines), lines
+    assert any('route="/v1/models"' in x and 'status="401"' in x for x in lines), lines
+    assert any('route="/v1/reconstructions/{job_id}"' in x and 'status="401"' in x for x in lines), lines
+
+
+def test_stream_sessions_and_the_job_store_are_watched(oracle) -> None:  # noqa: ANN001
+    with make_client(ModelRegistry({"default": oracle})) as client:
+        text = client.get("/metrics").text
+        assert "svrnet_stream_sessions 0.0" in text and "svrnet_job_store_up 1.0" in text
+        client.app.state.stream_sessions = 2
+        client.app.state.job_store.db_path = client.app.state.job_store.data_dir / "jobs"   # no database opens there
+        text = client.get("/metrics").text
+    assert "svrnet_stream_sessions 2.0" in text and "svrnet_job_store_up 0.0" in text

@@ -63,3 +63,26 @@ def test_the_fields_a_route_takes_come_from_its_signature() -> None:
                                          "model"}
     assert set(form_fields(submit)) >= {"stacks", "masks", "resolution_mm", "svr_iterations", "mc_samples",
                                         "variance_threshold", "model"}
+
+
+@pytest.mark.parametrize(("route", "fields"), [
+    ("/v1/predict", [("model", "fast"), ("model", "default")]),
+    ("/v1/predict", [("mc_samples", "2"), ("mc_samples", "")]),          # an empty copy would reset it to 100
+    ("/v1/reconstructions", [("resolution_mm", "1.0"), ("resolution_mm", "2.0")]),
+    ("/v1/masks", [("margin_mm", "5"), ("margin_mm", "10")]),
+])
+def test_a_field_of_one_value_given_twice_is_400_naming_it(oracle_client: TestClient, route: str,
+                                                          fields: list[tuple[str, str]]) -> None:
+    """Which copy would win is the form parser's accident; the client meant one of them."""
+    r = oracle_client.post(route, files=[("stacks", ("s.nii.gz", nifti_bytes(stack()))), *fields])
+    assert_problem(r, 400, fields[0][0], "given 2 times")
+    assert not oracle_client.app.state.job_store.queued()
+
+
+def test_list_fields_may_repeat(oracle_client: TestClient, oracle) -> None:  # noqa: ANN001
+    oracle.truth = np.broadcast_to(np.eye(4), (12, 4, 4)).copy()            # two stacks of six slices
+    r = oracle_client.post("/v1/predict", files=[("stacks", ("a.nii.gz", nifti_bytes(stack()))),
+                                                 ("stacks", ("b.nii.gz", nifti_bytes(stack())))],
+                           data={"mc_samples": "2", "slice_order": ["sequential", "interleaved"]})
+    assert r.status_code == 200, r.text
+    assert [s["filename"] for s in r.json()["stacks"]] == ["a.nii.gz", "b.nii.gz"]

@@ -107,6 +107,10 @@ def test_the_masks_table_fits_an_80_column_terminal_and_cuts_no_name_short() -> 
     text = console.export_text()
     assert max(len(line) for line in text.splitlines()) <= 80 and "…" not in text
     assert text.count("run-2") == 4 and "301" in text and "0.91" in text      # both names of both rows, to the end
+    bare = Console(width=80, record=True, file=io.StringIO())                # api-v1's words: a list per stack
+    bare.print(views.masks_table([{k: v for k, v in row.items() if k != "mask"}], "/data/masks"))
+    shown = bare.export_text()
+    assert "301" in shown and "0.91" in shown
 
 
 def test_the_stream_table_fits_an_80_column_terminal_and_cuts_no_cell_short() -> None:

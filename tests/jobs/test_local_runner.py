@@ -136,7 +136,7 @@ def test_a_job_running_beside_a_timed_out_one_runs_again_without_losing_an_attem
         for job in (late, beside):
             assert store.claim(job.id) == 1
             runner.futures[job.id] = runner.pool.submit(time.sleep, 30)    # what the pool's processes run
-        with store._connect() as db:
+        with store._db() as db:
             db.execute("UPDATE jobs SET started_at = ? WHERE id = ?", (time.time() - 120, late.id))
         resubmitted: list[str] = []
         runner.submit = resubmitted.append                                  # the new pool is not needed here
@@ -151,3 +151,23 @@ def test_a_job_running_beside_a_timed_out_one_runs_again_without_losing_an_attem
         assert again.status == "queued" and again.attempts == 0, again      # at max_attempts 1 it would have failed
     finally:
         runner.shutdown()
+
+
+def test_an_orderly_stop_hands_running_jobs_back_without_spending_an_attempt(tmp_path: Path) -> None:
+    """Two rolling restarts at ``max_attempts`` 1 leave the job queued; a server killed outright
+    (the next start's recovery, without a shutdown) still counts."""
+    import time
+
+    store = SqliteJobStore(tmp_path)
+    job = store.create({})
+    for _ in range(2):
+        runner = LocalRunner(store, tmp_path, max_attempts=1)
+        runner.started = True
+        assert store.claim(job.id) == 1
+        runner.futures[job.id] = runner.pool.submit(time.sleep, 30)
+        assert runner.shutdown(timeout_s=5.0) == [job.id]
+        again = store.get(job.id)
+        assert again.status == "queued" and again.attempts == 0, again
+    assert store.claim(job.id) == 1
+    store.recover(max_attempts=1)                                    # a start after a kill -9
+    assert store.get(job.id).status == "failed"

@@ -74,3 +74,30 @@ def test_an_unreachable_queue_makes_the_replica_unready_not_dead(tmp_path: Path)
                   client.get("/v1/reconstructions/0123456789abcdef0123456789abcdef")):
             assert r.status_code == 503 and r.headers["retry-after"] == "5", r.text
             assert r.json()["type"] == "/problems/store-unavailable" and "Redis" in r.json()["detail"]
+
+
+def test_a_job_database_that_cannot_be_used_is_503_and_unready(tmp_path: Path) -> None:
+    """A data folder turned read-only (or a damaged database) answers reads and fails every write:
+    readiness says so, and the job routes answer problem+json 503, counted like any answer."""
+    from fastapi.testclient import TestClient
+
+    from service.inference.registry import ModelRegistry
+    from service.main import create_app
+    from tests.api.conftest import OracleEstimator
+
+    settings = Settings(data_dir=str(tmp_path))
+    with TestClient(create_app(settings, ModelRegistry({"default": OracleEstimator()})),
+                    raise_server_exceptions=False) as client:
+        assert client.get("/readyz").status_code == 200
+        store = client.app.state.job_store
+        store.db_path = tmp_path / "jobs"                  # a folder: no database opens there
+        r = client.get("/readyz")
+        assert r.status_code == 503 and "job store" in r.json()["detail"]
+        for r in (client.post("/v1/reconstructions", files=[("stacks", ("s.nii.gz", b"x" * 100))]),
+                  client.get("/v1/reconstructions/0123456789abcdef0123456789abcdef")):
+            assert r.status_code == 503, r.text
+            assert r.headers["content-type"] == "application/problem+json"
+            assert r.json()["type"] == "/problems/store-unavailable" and "request_id" in r.json()
+        counted = [line for line in client.get("/metrics").text.splitlines()
+                   if line.startswith("svrnet_requests_total{") and 'status="503"' in line]
+        assert counted, "the 503 answers are not counted"
