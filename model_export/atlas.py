@@ -114,7 +114,8 @@ def list_volumes(root: Path = DEFAULT_ATLAS_ROOT) -> list[tuple[str, str, Path, 
             name = t2.name[: -len("_T2.nii.gz")]
             out.append((name, population, t2, t2.with_name(f"{name}_mask.nii.gz")))
     if not out:
-        raise FileNotFoundError(f"no atlas volumes under {root}")
+        raise FileNotFoundError(f"no atlas volumes under {root}: it holds neither {' nor '.join(f'{p}/*_T2.nii.gz' for p in POPULATIONS)} "
+                                f"(the atlases of ../shared/data/fetal_atlas) nor a {PACKED_INDEX} (svrnet-train pack)")
     return out
 
 

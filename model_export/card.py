@@ -132,6 +132,19 @@ def _tz_text(train_config: dict) -> str:
     return f"the central {200 * fraction:.0f} %"
 
 
+def _simulation_text(train_config: dict) -> str:
+    """The run's own simulation settings beyond the defaults (``TrainConfig.simulation``), as the card states them.
+
+    Example:
+        >>> _simulation_text({"simulation": {"surroundings_share": 0.3, "tz_fraction": 0.5}})
+        '; settings of this run: `surroundings_share` 0.3'
+        >>> _simulation_text({})
+        ''
+    """
+    own = {k: v for k, v in (train_config.get("simulation") or {}).items() if k != "tz_fraction"}   # stated above
+    return "; settings of this run: " + ", ".join(f"`{k}` {v}" for k, v in sorted(own.items())) if own else ""
+
+
 def _threshold_text(info: dict, cal: dict) -> str:
     """The served variance threshold, and the single-slice one when the accept flags' calibration
     on the pipeline's final poses replaced it.
@@ -194,7 +207,7 @@ def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict
 - simulation: thick slices (2-4.5 mm Gaussian PSF), 0.8-1.5 mm acquisition pixels, any orientation
   (uniform normals, 0-360 degree in-plane), Tz over {_tz_text(train_config)} of the brain's extent, +-10 % brain size,
   bias field, gamma, signal voids, Rician noise, perturbed masks; then the service's own slice
-  preprocessing (`service/preprocess/slices.py`).
+  preprocessing (`service/preprocess/slices.py`){_simulation_text(train_config)}.
 - optimiser: Adam, {_schedule_text(train_config, train_summary['steps'], train_summary.get('best_checkpoint', False))}, batch {train_config['batch']}{_stage_text(train_config)}
 {_totals_text(train_summary)}
 

@@ -2,9 +2,9 @@
 
 Examples:
     svrnet-train train --steps 20000 --out runs/default
-    svrnet-train export runs/default/best.pt service/models/default/model.onnx   # threshold calibrated on export
+    svrnet-train export runs/default/best.pt runs/default/model.onnx   # threshold calibrated on export
     svrnet-train calibrate runs/default/best.pt
-    svrnet-train calibrate-acceptance service/models/default/model.onnx
+    svrnet-train calibrate-acceptance runs/default/model.onnx
     svrnet-train evaluate service/models/default/model.onnx --report model_export/reports/default.md
     svrnet-train quantise service/models/default/model.onnx /tmp/model-int8.onnx
     svrnet-train localiser --help
@@ -25,44 +25,84 @@ from service.inference.views import SHIPPED_VIEWS
 app = typer.Typer(add_completion=False, help=__doc__, no_args_is_help=True)
 app.add_typer(localiser_app, name="localiser", help="the brain localiser: synthetic data, training, shipping")
 
-Root = Annotated[Path, typer.Option(help="folder holding crl_sta/ and spina_bifida_cc0/")]
+def _atlas_root(ctx: typer.Context, param: typer.CallbackParam, root: Path) -> Path:
+    """A ``--root`` given that holds no atlas volumes (nor a packed folder) is refused at once by name,
+    not with a traceback after the run folder is made (the default is checked where it is read)."""
+    from click.core import ParameterSource
+
+    from model_export.atlas import list_volumes
+
+    if ctx.get_parameter_source(param.name) is ParameterSource.DEFAULT:
+        return root
+    try:
+        list_volumes(root)
+    except FileNotFoundError as missing:
+        raise typer.BadParameter(str(missing)) from None
+    return root
+
+
+Root = Annotated[Path, typer.Option(help="folder holding crl_sta/ and spina_bifida_cc0/, or a packed folder",
+                                    callback=_atlas_root)]
 
 
 @app.command()
 def train(
     out: Annotated[Path, typer.Option(help="run folder: checkpoints, log.csv, loss.png")] = Path("runs/default"),
-    backbone: str = "compact",
-    width: float = 1.0,
-    label_type: Annotated[str, typer.Option(help="anchor, grid, euler or quaternion")] = "anchor",
-    loss: Annotated[str, typer.Option(help="l2, or mirror-aware min / invariant (point labels)")] = "l2",
-    sampling: Annotated[str, typer.Option(help="random, euler or fibonacci")] = "random",
-    steps: int = 20000,
-    batch: int = 64,
-    lr: Annotated[float, typer.Option(help="Adam learning rate (step decay x0.2 at 60 % and 85 %)")] = 1e-4,
+    backbone: Annotated[Optional[str], typer.Option(help="[default: compact]")] = None,
+    width: Annotated[Optional[float], typer.Option(help="[default: 1.0]")] = None,
+    label_type: Annotated[Optional[str], typer.Option(help="anchor, grid, euler or quaternion [default: anchor]")] = None,
+    loss: Annotated[Optional[str], typer.Option(help="l2, or mirror-aware min / invariant (point labels) "
+                                                     "[default: l2]")] = None,
+    sampling: Annotated[Optional[str], typer.Option(help="random, euler or fibonacci [default: random]")] = None,
+    steps: Annotated[Optional[int], typer.Option(help="[default: 20000]")] = None,
+    batch: Annotated[Optional[int], typer.Option(help="slices a step, a multiple of 16 [default: 64]")] = None,
+    lr: Annotated[Optional[float], typer.Option(help="Adam learning rate (step decay x0.2 at 60 % and 85 %) "
+                                                     "[default: 1e-4]")] = None,
     constant_lr: Annotated[bool, typer.Option(help="no step decay")] = False,
-    dropout: float = 0.5,
-    val_every: int = 500,
-    val_per_volume: int = 100,
-    threads: int = 1,
-    workers: Annotated[int, typer.Option(help="simulation worker processes")] = 2,
-    reuse: Annotated[int, typer.Option(help="corruptions of each clean acquisition in the bank")] = 6,
-    device: Annotated[str, typer.Option(help="cpu, cuda or auto")] = "cpu",
+    dropout: Annotated[Optional[float], typer.Option(help="[default: 0.5]")] = None,
+    val_every: Annotated[Optional[int], typer.Option(help="[default: 500]")] = None,
+    val_per_volume: Annotated[Optional[int], typer.Option(help="[default: 100]")] = None,
+    threads: Annotated[Optional[int], typer.Option(help="[default: 1]")] = None,
+    workers: Annotated[Optional[int], typer.Option(help="simulation worker processes [default: 2]")] = None,
+    reuse: Annotated[Optional[int], typer.Option(help="corruptions of each clean acquisition in the bank "
+                                                      "[default: 6]")] = None,
+    device: Annotated[Optional[str], typer.Option(help="cpu, cuda or auto [default: cpu]")] = None,
     max_minutes: Annotated[Optional[float], typer.Option(help="stop at a checkpoint after this wall time")] = None,
-    plane_x_mm: Annotated[float, typer.Option(help="atlas symmetry plane x0 of the twin")] = 0.0,
-    seed: int = 0,
-    resume: Annotated[Optional[Path], typer.Option(help="checkpoint to continue from")] = None,
-    init: Annotated[Optional[Path], typer.Option(help="checkpoint whose weights start a new stage "
-                                                      "(fresh optimiser and schedule)")] = None,
+    plane_x_mm: Annotated[Optional[float], typer.Option(help="atlas symmetry plane x0 of the twin [default: 0]")] = None,
+    seed: Annotated[Optional[int], typer.Option(help="[default: 0]")] = None,
+    simulation: Annotated[Optional[str], typer.Option(
+        help='the simulation\'s settings as JSON, e.g. \'{"surroundings_share": 0.3}\' (model_export/simulate.py, '
+             "SimulationConfig)")] = None,
+    resume: Annotated[Optional[Path], typer.Option(help="checkpoint to continue from, with its run's settings "
+                                                        "(options given override them)")] = None,
+    init: Annotated[Optional[Path], typer.Option(help="checkpoint whose weights start a new stage (fresh optimiser "
+                                                      "and schedule); the stage that wrote it gives every setting "
+                                                      "not given but the host's")] = None,
     root: Root = DEFAULT_ATLAS_ROOT,
 ) -> None:
     """Train a model on simulated slices of the atlas volumes."""
-    from model_export.train import TrainConfig, train as run
+    from model_export.train import stage_config, train as run
 
-    cfg = TrainConfig(backbone=backbone, width=width, label_type=label_type, sampling=sampling, steps=steps,
-                      batch=batch, lr=lr, dropout=dropout, val_every=val_every, threads=threads, seed=seed, loss=loss,
-                      val_per_volume=val_per_volume, workers=workers, reuse=reuse, device=device,
-                      max_minutes=max_minutes, plane_x_mm=plane_x_mm,
-                      lr_milestones=() if constant_lr else TrainConfig.lr_milestones)
+    given = {k: v for k, v in dict(
+        backbone=backbone, width=width, label_type=label_type, sampling=sampling, steps=steps, batch=batch, lr=lr,
+        dropout=dropout, val_every=val_every, threads=threads, seed=seed, loss=loss, val_per_volume=val_per_volume,
+        workers=workers, reuse=reuse, device=device, max_minutes=max_minutes, plane_x_mm=plane_x_mm).items()
+        if v is not None}
+    if constant_lr:
+        given["lr_milestones"] = ()
+    if simulation is not None:
+        try:
+            given["simulation"] = json.loads(simulation)
+        except json.JSONDecodeError as bad:
+            raise typer.BadParameter(f"not JSON: {bad}", param_hint="--simulation") from None
+    if resume is not None and init is not None:
+        raise typer.BadParameter("a run resumes or starts a new stage, not both", param_hint="--init")
+    try:
+        cfg = stage_config(given, resume, init)
+    except ValueError as bad:
+        raise typer.BadParameter(str(bad), param_hint="--resume" if resume else "--init") from None
+    if cfg.batch % 16:
+        raise typer.BadParameter(f"{cfg.batch}: slices come in groups of 16", param_hint="--batch")
     best = run(cfg, out, root, resume, init=init)
     typer.echo(f"best checkpoint: {best}")
 
@@ -159,7 +199,8 @@ def calibrate(checkpoint: Path, root: Root = DEFAULT_ATLAS_ROOT, mc_samples: int
 @app.command()
 def evaluate(
     model: Path,
-    report: Annotated[Path, typer.Option(help="markdown report; figures beside it")] = Path("model_export/reports/default.md"),
+    report: Annotated[Optional[Path], typer.Option(help="markdown report; figures beside it "
+                                                        "[default: report.md beside the model]")] = None,
     root: Root = DEFAULT_ATLAS_ROOT,
     per_volume: int = 100,
     mc_samples: int = 100,
@@ -171,10 +212,12 @@ def evaluate(
                                                           "slice_order (e.g. interleaved), on the same network poses")] = None,
     slices: Annotated[Optional[Path], typer.Option(help="with --acquisitions: every slice's errors, variance and "
                                                         "place in its stack, as .npz (for analyses)")] = None,
-    seed: int = 1,
+    seed: Annotated[Optional[int], typer.Option(help="[default: 12345; with --acquisitions 1]")] = None,
 ) -> None:
     """The paper's metrics on the validation volumes, written as a markdown report."""
+    report = report if report is not None else model.parent / "report.md"
     if acquisitions:
+        seed = 1 if seed is None else seed
         import numpy as np
 
         from model_export.atlas import load_volumes, split
@@ -193,7 +236,8 @@ def evaluate(
         return
     from model_export.evaluate import evaluate as run
 
-    summary = run(model, report, root, per_volume=per_volume, mc_samples=mc_samples)
+    summary = run(model, report, root, per_volume=per_volume, mc_samples=mc_samples,
+                  **({} if seed is None else {"seed": seed}))
     typer.echo(json.dumps(summary, indent=2))
 
 
@@ -314,11 +358,13 @@ def quantise(
 @app.command()
 def ship(
     checkpoint: Path,
-    out: Annotated[Path, typer.Option(help="model folder the service reads")] = Path("service/models/default"),
+    out: Annotated[Path, typer.Option(help="model folder the service reads (SVRNET_MODELS_DIR/<name>)")],
     name: str = "default",
     version: str = "1.0.0",
     comparison: Annotated[Optional[Path], typer.Option(help="table.json of `compare`")] = None,
-    report: Path = Path("model_export/reports/default.md"),
+    report: Annotated[Optional[Path], typer.Option(
+        help="the evaluation report (beside it: its figures and acceptance.md) [default: OUT/report.md]")] = None,
+    force: Annotated[bool, typer.Option(help="replace a model folder that holds files")] = False,
     root: Root = DEFAULT_ATLAS_ROOT,
     tta_views: Annotated[int, typer.Option(help="test-time views the MC samples are shared among: 1, 4 "
                                                 "(rotations) or 8 (rotations and flips)")] = SHIPPED_VIEWS,
@@ -327,7 +373,8 @@ def ship(
 ) -> None:
     """Calibrate, export, evaluate and write the model card: the folder the service loads (the MC
     spread's expected error calibrated as `calibrate-spread` does, then the accept flags on the
-    pipeline's final poses, as `calibrate-acceptance` does)."""
+    pipeline's final poses, as `calibrate-acceptance` does). The folder is built beside ``out`` and
+    takes its place only when whole: a server never finds a model without its calibration or card."""
     import shutil
 
     from model_export.calibrate import calibrate as run_calibration
@@ -336,23 +383,32 @@ def ship(
     from model_export.packaging import export_checkpoint, load_checkpoint
     from service.inference.model_file import load_model
 
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and any(out.iterdir()) and not force:
+        raise typer.BadParameter(f"{out} holds a model already; --force replaces it", param_hint="--out")
+    try:
+        _, ck = load_checkpoint(checkpoint)
+    except (KeyError, ValueError, OSError) as bad:
+        raise typer.BadParameter(f"not a pose-network checkpoint ({bad})", param_hint="CHECKPOINT") from None
+    staging = out.parent / f".{out.name}.shipping"
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir(parents=True)
+    report = report if report is not None else staging / "report.md"
+    shown_report = report if not report.is_relative_to(staging) else out / report.relative_to(staging)
     cal = run_calibration(checkpoint, root, views=tta_views)
     typer.echo(f"calibrated variance threshold {cal['threshold']:.4g} (AUROC {cal['auroc']:.3f})")
-    onnx_path = export_checkpoint(checkpoint, out / "model.onnx", name=name, version=version,
+    onnx_path = export_checkpoint(checkpoint, staging / "model.onnx", name=name, version=version,
                                   variance_threshold=cal["threshold"], tta_views=tta_views)
     if int8:
         from model_export.quantise import quantise_model
 
         quantise_model(onnx_path, onnx_path, root=root)
-    shutil.copyfile(checkpoint, out / "checkpoint.pt")
+    shutil.copyfile(checkpoint, staging / "checkpoint.pt")
     from model_export.spread import calibrate_spread as run_spread
 
     typer.echo(f"spread calibrated: {json.dumps(run_spread(onnx_path, root))}")
     evaluation = run_evaluation(onnx_path, report, root)
     from model_export.training_record import prior_history, totals
 
-    _, ck = load_checkpoint(checkpoint)
     summary = {"train_seconds": ck["train_seconds"], "samples_seen": ck["samples_seen"], "steps": ck["step"],
                "best_checkpoint": ck.get("val_twin_ed_mm") is not None and ck.get("val_twin_ed_mm") == ck.get("best_ed_mm"),
                "totals": totals(prior_history(ck)), "history": prior_history(ck),
@@ -363,16 +419,23 @@ def ship(
     from model_export.spread import write_metadata
     from service.inference.estimator import OnnxPoseEstimator
 
+    typer.echo(f"accept flags: {PER_VOLUME} acquisitions per validation volume and motion level through every stage")
     flags = measure(OnnxPoseEstimator(load_model(onnx_path)), load_volumes(split(root)[1], root), per_volume=PER_VOLUME)
     write_metadata(onnx_path, flag_metadata(flags))
     info = load_model(onnx_path).info.metadata
-    write_card(out / "card.md", info=info, train_summary=summary, train_config=ck["config"], calibration=cal,
+    write_card(staging / "card.md", info=info, train_summary=summary, train_config=ck["config"], calibration=cal,
                evaluation=evaluation, comparison=load_json(comparison) if comparison else None,
-               report_path=str(report), onnx_bytes=onnx_path.stat().st_size)
-    card = out / "card.md"
+               report_path=str(shown_report), onnx_bytes=onnx_path.stat().st_size)
+    card = staging / "card.md"
     card.write_text(card.read_text() + "\n" + acceptance_markdown(flags, "Accept flags").replace("# Accept", "## Accept", 1))
-    (report.parent / "acceptance.md").write_text(acceptance_markdown(flags, f"Accept flags of {onnx_path}"))
-    (out / "calibration.json").write_text(json.dumps(cal))
+    (report.parent / "acceptance.md").write_text(acceptance_markdown(flags, f"Accept flags of {out / 'model.onnx'}"))
+    (staging / "calibration.json").write_text(json.dumps(cal))
+    old = out.parent / f".{out.name}.replaced"
+    shutil.rmtree(old, ignore_errors=True)
+    if out.exists():
+        out.rename(old)
+    staging.rename(out)
+    shutil.rmtree(old, ignore_errors=True)
     typer.echo(json.dumps(evaluation, indent=2))
 
 

@@ -97,7 +97,10 @@ def evaluate(model_path: Path, report: Path, root: Path = DEFAULT_ATLAS_ROOT, *,
     summary["by_orientation"] = by_orientation(err["ed_twin_mm"], val.poses)
     report.parent.mkdir(parents=True, exist_ok=True)
     _figures(report, metrics, val.inputs, pred, info.variance_threshold)
-    report.write_text(_markdown(model_path, info, summary, mc_samples, len(names), report))
+    options = "".join(f" --{k} {v}" for k, v in (("per-volume", per_volume), ("mc-samples", mc_samples), ("seed", seed))
+                      if v != EVALUATE_DEFAULTS[k])
+    options += "" if Path(root).resolve() == DEFAULT_ATLAS_ROOT.resolve() else f" --root {root}"
+    report.write_text(_markdown(model_path, info, summary, mc_samples, len(names), report, options))
     return ({k: v for k, v in summary.items() if not isinstance(v, dict)}
             | {k: summary[k] for k in ("per_volume", "per_volume_twin", "components", "by_orientation")})
 
@@ -207,7 +210,11 @@ def _figures(report: Path, metrics, inputs, pred, threshold) -> None:  # noqa: A
     plt.close(fig)
 
 
-def _markdown(model_path, info, s, mc, n, report) -> str:  # noqa: ANN001
+EVALUATE_DEFAULTS = {"per-volume": 100, "mc-samples": 100, "seed": 12345}
+""":func:`evaluate`'s defaults (the CLI's), left out of a report's command to regenerate it."""
+
+
+def _markdown(model_path, info, s, mc, n, report, options="") -> str:  # noqa: ANN001
     stem = report.with_suffix("").name
     row = lambda k, d: f"| {k} | {d['cc']:.3f} | {d['mse']:.1f} | {d['psnr']:.2f} | {d['ssim']:.3f} | {d['ed_mm']:.2f} | {d['gd']:.2f} |"  # noqa: E731
     vols = "\n".join(f"| {k} | {v:.2f} | {s['per_volume_twin'][k]:.2f} |" for k, v in s["per_volume"].items())
@@ -221,7 +228,7 @@ def _markdown(model_path, info, s, mc, n, report) -> str:  # noqa: ANN001
 Validation volumes held out by whole volume; {n} slices, 3 mm thick (Gaussian PSF), 1.0 mm pixels,
 Rician noise 3 %, bias field, random orientation (full sphere, any in-plane angle), Tz in the central
 70 % of the brain. {mc} MC-dropout passes per slice, Fréchet mean pose. Regenerate with
-`svrnet-train evaluate {model_path} --report {report}`.
+`svrnet-train evaluate {model_path} --report {report}{options}`.
 
 | slices | CC | MSE | PSNR (dB) | SSIM | E.D. (mm) | G.D. |
 |---|---|---|---|---|---|---|

@@ -107,7 +107,8 @@ def fix_draws(path: Path, seed: int = DEFAULT_MC_SEED) -> int:
     (:data:`~service.inference.model_file.DRAWS_PREFIX`), which the service fills from ``seed``
     (metadata ``mc_seed``, :meth:`~service.inference.model_file.LoadedModel.draws`). The dropout
     stays Monte Carlo; its draws become a fixed ensemble of sub-networks, so one request gives one
-    answer. The rest of the graph and its metadata are kept; returns the number of nodes replaced.
+    answer. The rest of the graph and its metadata are kept; a file whose draws are inputs already
+    gets only its seed. Returns the number of dropout layers whose draws the file now takes as inputs.
     """
     proto = onnx.load(str(path))
     graph = proto.graph
@@ -126,7 +127,7 @@ def fix_draws(path: Path, seed: int = DEFAULT_MC_SEED) -> int:
                          "mc_draws": "fixed: dropout_uniform_<k> inputs, filled from mc_seed"})
     onnx.checker.check_model(proto)
     onnx.save(proto, str(path))
-    return len(random)
+    return sum(i.name.startswith(DRAWS_PREFIX) for i in graph.input)
 
 
 def count_random_nodes(path: Path) -> int:

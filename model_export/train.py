@@ -32,7 +32,7 @@ from model_export.atlas import DEFAULT_ATLAS_ROOT, split
 from model_export.losses import check_label_type, point_loss
 from model_export.model import SVRNet, multi_loss
 from model_export.simulate import SimulationConfig
-from model_export.stream import SliceStream, label_sample, validation_set
+from model_export.stream import SLICES_PER_ACQUISITION, SliceStream, label_sample, validation_set
 from model_export.training_record import hardware, plot_log, prior_history, totals
 from service.geometry import anchors, encodings, se3
 from service.geometry.twin import POINT_LABELS, twin
@@ -160,6 +160,8 @@ def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resu
             figures of the final checkpoint are the totals.
     """
     check_label_type(cfg.label_type, cfg.loss)
+    if cfg.batch % SLICES_PER_ACQUISITION:            # the stream yields whole acquisitions' slices
+        raise ValueError(f"batch {cfg.batch}: a multiple of {SLICES_PER_ACQUISITION}")
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
@@ -322,6 +324,30 @@ def parse_fields(ap: argparse.ArgumentParser, items: list[str], config: type) ->
     return values
 
 
+def stage_config(given: dict, resume: Path | None = None, init: Path | None = None) -> TrainConfig:
+    """The configuration of a run from the fields given (``{field: value}``): with ``resume`` the
+    run's own saved configuration, with ``init`` that of the stage that wrote the checkpoint (all but
+    :data:`HOST_FIELDS`), else :class:`TrainConfig`'s defaults, each overridden by what is given. So a
+    resumed run continues with its own settings, and a new stage keeps the network, its labels, its
+    loss and its simulation unless a field says otherwise.
+
+    Example:
+        >>> stage_config({"steps": 10, "lr_milestones": [0.5]}).lr_milestones
+        (0.5,)
+    """
+    values = dict(given)
+    if resume is not None or init is not None:
+        saved = torch.load(resume or init, map_location="cpu", weights_only=False)
+        if "config" not in saved:
+            raise ValueError(f"{resume or init}: not a pose-network checkpoint of svrnet-train train (no config)")
+        keep = TrainConfig.__dataclass_fields__.keys() - (set() if resume is not None else HOST_FIELDS)
+        values = {**{k: v for k, v in saved["config"].items() if k in keep}, **values}
+    for key in ("lr_milestones", "loss_weights"):
+        if values.get(key) is not None:
+            values[key] = tuple(values[key])
+    return TrainConfig(**values)
+
+
 def main(argv: list[str] | None = None) -> Path:
     """``python -m model_export.train``: the same training with numpy, scipy and torch only (no typer).
 
@@ -341,14 +367,8 @@ def main(argv: list[str] | None = None) -> Path:
     ap.add_argument("--resume", type=Path)
     ap.add_argument("fields", nargs="*", help="TrainConfig overrides, field=value (JSON)")
     args = ap.parse_args(argv)
-    values = parse_fields(ap, args.fields, TrainConfig)
-    if args.resume is not None or args.init is not None:
-        saved = torch.load(args.resume or args.init, map_location="cpu", weights_only=False)["config"]
-        keep = TrainConfig.__dataclass_fields__.keys() - (set() if args.resume is not None else HOST_FIELDS)
-        values = {**{k: v for k, v in saved.items() if k in keep}, **values}
-    if "lr_milestones" in values:
-        values["lr_milestones"] = tuple(values["lr_milestones"])
-    best = train(TrainConfig(**values), args.out, args.root, resume=args.resume, init=args.init, progress=False)
+    cfg = stage_config(parse_fields(ap, args.fields, TrainConfig), args.resume, args.init)
+    best = train(cfg, args.out, args.root, resume=args.resume, init=args.init, progress=False)
     print(json.loads((args.out / "summary.json").read_text()))
     return best
 

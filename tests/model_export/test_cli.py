@@ -69,6 +69,19 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
     assert views == [SHIPPED_VIEWS]
     assert (report.parent / "acceptance.md").read_text().startswith("# Accept flags of")
     assert "## Accept flags" in (tmp_path / "model" / "card.md").read_text()
+    # A model folder is never replaced unasked, nor left half-shipped: the new one takes its place whole.
+    again = ["ship", str(checkpoint), "--out", str(tmp_path / "model")]
+    refused = CliRunner().invoke(app, again, env={"COLUMNS": "250"})
+    assert refused.exit_code != 0 and "holds a model already; --force replaces it" in refused.output, refused.output
+    monkeypatch.setattr(evaluate, "evaluate", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("stopped")))
+    assert CliRunner().invoke(app, [*again, "--force"]).exit_code != 0
+    assert (tmp_path / "model" / "card.md").read_text().startswith("# card") and \
+        (tmp_path / "model" / "model.onnx").read_bytes() == b"onnx"
+    monkeypatch.setattr(evaluate, "evaluate", lambda *a, **k: {})
+    replaced = CliRunner().invoke(app, [*again, "--force"])
+    assert replaced.exit_code == 0, replaced.output
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
+    assert (tmp_path / "model" / "acceptance.md").exists()              # the report's default place: the model's folder
 
 
 def test_export_takes_over_another_models_calibration(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -98,6 +98,9 @@ def fixed(exported: tuple[SVRNet, Path]) -> Path:
     path = exported[1].with_name("tiny-fixed.onnx")
     path.write_bytes(exported[1].read_bytes())
     assert fix_draws(path, seed=3) == 2
+    again = path.with_name("tiny-fixed-again.onnx")
+    again.write_bytes(path.read_bytes())
+    assert fix_draws(again, seed=3) == 2                      # already fixed: the same two layers, counted
     return path
 
 

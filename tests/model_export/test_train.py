@@ -147,3 +147,34 @@ def test_training_modules_import_without_the_service_stack() -> None:
             "import model_export.train, model_export.stream, model_export.simulate\nprint('ok')")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.stdout.strip() == "ok", out.stderr[-2000:]
+
+
+def test_the_cli_resumes_and_stages_with_the_runs_own_settings(packed: Path, tmp_path: Path) -> None:
+    """``svrnet-train train --resume`` continues with the run's settings, not the options' defaults
+    (dropout 0.5, anchor labels, l2: a network of another shape or another training); ``--init``
+    keeps the stage's, its simulation included; a batch the stream cannot fill is refused."""
+    from typer.testing import CliRunner
+
+    from model_export.cli import app
+
+    first = ["train", "--root", str(packed), "--backbone", "compact", "--width", "0.25", "--label-type", "grid",
+             "--loss", "min", "--steps", "2", "--batch", "16", "--val-every", "2", "--val-per-volume", "4",
+             "--reuse", "2", "--workers", "0", "--dropout", "0.25", "--lr", "5e-5",
+             "--simulation", '{"size": 48, "pixel_mm": 2.5, "tz_fraction": 0.5}']
+    runner = CliRunner()
+    r = runner.invoke(app, [*first, "--out", str(tmp_path / "a")])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(app, ["train", "--root", str(packed), "--out", str(tmp_path / "a"), "--steps", "3",
+                            "--resume", str(tmp_path / "a" / "last.pt")])
+    assert r.exit_code == 0, r.output
+    resumed = torch.load(tmp_path / "a" / "last.pt", weights_only=False)
+    assert resumed["step"] == 3
+    assert {k: resumed["config"][k] for k in ("dropout", "lr", "label_type", "loss", "width")} == {
+        "dropout": 0.25, "lr": 5e-5, "label_type": "grid", "loss": "min", "width": 0.25}
+    r = runner.invoke(app, ["train", "--root", str(packed), "--out", str(tmp_path / "b"), "--steps", "1",
+                            "--workers", "0", "--init", str(tmp_path / "a" / "last.pt")])
+    assert r.exit_code == 0, r.output
+    stage = torch.load(tmp_path / "b" / "last.pt", weights_only=False)
+    assert stage["config"]["simulation"]["tz_fraction"] == 0.5 and stage["config"]["dropout"] == 0.25
+    r = runner.invoke(app, [*first, "--out", str(tmp_path / "c"), "--batch", "8"])
+    assert r.exit_code != 0 and "groups of 16" in r.output
