@@ -81,6 +81,7 @@ def train(
     root: Root = DEFAULT_ATLAS_ROOT,
 ) -> None:
     """Train a model on simulated slices of the atlas volumes."""
+    from model_export.stream import SLICES_PER_ACQUISITION
     from model_export.train import stage_config, train as run
 
     given = {k: v for k, v in dict(
@@ -101,8 +102,8 @@ def train(
         cfg = stage_config(given, resume, init)
     except ValueError as bad:
         raise typer.BadParameter(str(bad), param_hint="--resume" if resume else "--init") from None
-    if cfg.batch % 16:
-        raise typer.BadParameter(f"{cfg.batch}: slices come in groups of 16", param_hint="--batch")
+    if cfg.batch % SLICES_PER_ACQUISITION:
+        raise typer.BadParameter(f"{cfg.batch}: slices come in groups of {SLICES_PER_ACQUISITION}", param_hint="--batch")
     best = run(cfg, out, root, resume, init=init)
     typer.echo(f"best checkpoint: {best}")
 
@@ -199,8 +200,7 @@ def calibrate(checkpoint: Path, root: Root = DEFAULT_ATLAS_ROOT, mc_samples: int
 @app.command()
 def evaluate(
     model: Path,
-    report: Annotated[Optional[Path], typer.Option(help="markdown report; figures beside it "
-                                                        "[default: report.md beside the model]")] = None,
+    report: Annotated[Path, typer.Option(help="markdown report; figures beside it")],
     root: Root = DEFAULT_ATLAS_ROOT,
     per_volume: int = 100,
     mc_samples: int = 100,
@@ -215,7 +215,6 @@ def evaluate(
     seed: Annotated[Optional[int], typer.Option(help="[default: 12345; with --acquisitions 1]")] = None,
 ) -> None:
     """The paper's metrics on the validation volumes, written as a markdown report."""
-    report = report if report is not None else model.parent / "report.md"
     if acquisitions:
         seed = 1 if seed is None else seed
         import numpy as np
@@ -377,11 +376,7 @@ def ship(
     takes its place only when whole: a server never finds a model without its calibration or card."""
     import shutil
 
-    from model_export.calibrate import calibrate as run_calibration
-    from model_export.card import load_json, write_card
-    from model_export.evaluate import evaluate as run_evaluation
-    from model_export.packaging import export_checkpoint, load_checkpoint
-    from service.inference.model_file import load_model
+    from model_export.packaging import load_checkpoint
 
     if out.exists() and any(out.iterdir()) and not force:
         raise typer.BadParameter(f"{out} holds a model already; --force replaces it", param_hint="--out")
@@ -392,8 +387,39 @@ def ship(
     staging = out.parent / f".{out.name}.shipping"
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir(parents=True)
-    report = report if report is not None else staging / "report.md"
-    shown_report = report if not report.is_relative_to(staging) else out / report.relative_to(staging)
+    report = report if report is not None else out / "report.md"
+    if report.resolve().is_relative_to(out.resolve()):       # written with the folder, not into the one it replaces
+        shown_report, report = report, staging / report.resolve().relative_to(out.resolve())
+        report.parent.mkdir(parents=True, exist_ok=True)
+    else:
+        shown_report = report
+    try:
+        evaluation = _ship_into(staging, out, checkpoint, ck, name, version, comparison, report, shown_report, root,
+                                tta_views, int8)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)             # nothing half-made is left for a server to find
+        raise
+    old = out.parent / f".{out.name}.replaced"
+    shutil.rmtree(old, ignore_errors=True)
+    if out.exists():
+        out.rename(old)
+    staging.rename(out)
+    shutil.rmtree(old, ignore_errors=True)
+    typer.echo(json.dumps(evaluation, indent=2))
+
+
+def _ship_into(staging: Path, out: Path, checkpoint: Path, ck: dict, name: str, version: str,
+               comparison: Path | None, report: Path, shown_report: Path, root: Path, tta_views: int,
+               int8: bool) -> dict:
+    """`ship`'s steps, each writing into ``staging``, which becomes ``out``; the evaluation's summary."""
+    import shutil
+
+    from model_export.calibrate import calibrate as run_calibration
+    from model_export.card import load_json, write_card
+    from model_export.evaluate import evaluate as run_evaluation
+    from model_export.packaging import export_checkpoint
+    from service.inference.model_file import load_model
+
     cal = run_calibration(checkpoint, root, views=tta_views)
     typer.echo(f"calibrated variance threshold {cal['threshold']:.4g} (AUROC {cal['auroc']:.3f})")
     onnx_path = export_checkpoint(checkpoint, staging / "model.onnx", name=name, version=version,
@@ -407,6 +433,8 @@ def ship(
 
     typer.echo(f"spread calibrated: {json.dumps(run_spread(onnx_path, root))}")
     evaluation = run_evaluation(onnx_path, report, root)
+    if report.exists():                                                        # the model's path once in place
+        report.write_text(report.read_text().replace(str(staging), str(out)))
     from model_export.training_record import prior_history, totals
 
     summary = {"train_seconds": ck["train_seconds"], "samples_seen": ck["samples_seen"], "steps": ck["step"],
@@ -430,13 +458,7 @@ def ship(
     card.write_text(card.read_text() + "\n" + acceptance_markdown(flags, "Accept flags").replace("# Accept", "## Accept", 1))
     (report.parent / "acceptance.md").write_text(acceptance_markdown(flags, f"Accept flags of {out / 'model.onnx'}"))
     (staging / "calibration.json").write_text(json.dumps(cal))
-    old = out.parent / f".{out.name}.replaced"
-    shutil.rmtree(old, ignore_errors=True)
-    if out.exists():
-        out.rename(old)
-    staging.rename(out)
-    shutil.rmtree(old, ignore_errors=True)
-    typer.echo(json.dumps(evaluation, indent=2))
+    return evaluation
 
 
 if __name__ == "__main__":

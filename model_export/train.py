@@ -328,8 +328,10 @@ def stage_config(given: dict, resume: Path | None = None, init: Path | None = No
     """The configuration of a run from the fields given (``{field: value}``): with ``resume`` the
     run's own saved configuration, with ``init`` that of the stage that wrote the checkpoint (all but
     :data:`HOST_FIELDS`), else :class:`TrainConfig`'s defaults, each overridden by what is given. So a
-    resumed run continues with its own settings, and a new stage keeps the network, its labels, its
-    loss and its simulation unless a field says otherwise.
+    resumed run continues with its own settings (its host's ``device``, ``workers``, ``threads`` and
+    time budget too: name them on another host), and a new stage keeps the network, its labels, its
+    loss and its simulation unless a field says otherwise (a ``simulation`` given changes the
+    settings it names and keeps the others).
 
     Example:
         >>> stage_config({"steps": 10, "lr_milestones": [0.5]}).lr_milestones
@@ -341,7 +343,10 @@ def stage_config(given: dict, resume: Path | None = None, init: Path | None = No
         if "config" not in saved:
             raise ValueError(f"{resume or init}: not a pose-network checkpoint of svrnet-train train (no config)")
         keep = TrainConfig.__dataclass_fields__.keys() - (set() if resume is not None else HOST_FIELDS)
-        values = {**{k: v for k, v in saved["config"].items() if k in keep}, **values}
+        old = {k: v for k, v in saved["config"].items() if k in keep}
+        if "simulation" in values:                     # a setting given changes the stage's, the others stay
+            values["simulation"] = {**(old.get("simulation") or {}), **values["simulation"]}
+        values = {**old, **values}
     for key in ("lr_milestones", "loss_weights"):
         if values.get(key) is not None:
             values[key] = tuple(values[key])

@@ -22,6 +22,7 @@ from service.api.schemas import problem_responses
 from service.api.uploads import sweep_stale_uploads
 from service.core import logging as service_logging
 from service.core.machine import cpu_description
+from service.core.onnx import model_files
 from service.core.settings import Settings, load_settings
 from service.core.threads import limit_blas_threads
 from service.inference.registry import ModelRegistry
@@ -148,6 +149,8 @@ def run(argv: list[str] | None = None) -> None:
         if held is not None:
             held.close()                                        # the server's job runner takes it at start
     service_logging.configure(settings.log_level)
+    if not model_files(settings.localisers_dir):
+        log.warning("no brain localiser in SVRNET_LOCALISERS_DIR: every stack needs its mask")
     if settings.host not in ("127.0.0.1", "localhost", "::1") and not settings.key_set():
         log.warning("serving every host that reaches this address without API keys (SVRNET_API_KEYS)")
     # uvicorn's own access log writes each raw request path (job ids as sent, anything a client

@@ -1,8 +1,10 @@
 """Shared fixtures: the location of ``../shared/data`` and a skip when it is absent; every test's
-job store in a folder of the test run's, never the user's ``~/.svrnet``."""
+job store in a folder of the test run's, never the user's ``~/.svrnet``; the process's umask as
+each test found it."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -16,6 +18,15 @@ def own_job_store(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.
     """``SVRNET_DATA_DIR`` for apps built from default settings: a server of the user's on the
     default store keeps its jobs (a test app's start would otherwise find the store taken)."""
     monkeypatch.setenv("SVRNET_DATA_DIR", str(tmp_path_factory.mktemp("svrnet-data")))
+
+
+@pytest.fixture(autouse=True)
+def kept_umask() -> None:
+    """A console command's start sets the umask (``load_settings``); the tests after it keep their own."""
+    before = os.umask(0o022)
+    os.umask(before)
+    yield
+    os.umask(before)
 
 
 @pytest.fixture(scope="session")

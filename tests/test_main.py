@@ -29,7 +29,6 @@ def test_help_serves_nothing_and_options_override_the_environment(monkeypatch: p
     ("SVRNET_LOG_LEVEL", "verbose", "one of debug"),
     ("SVRNET_QUEUE_URL", "http://127.0.0.1:6379", "redis://"),
     ("SVRNET_MODELS_DIR", "{tmp}/none", "holds no <name>/model.onnx"),
-    ("SVRNET_LOCALISERS_DIR", "{tmp}", "holds no <name>/model.onnx"),
     ("SVRNET_DEFAULT_MODEL", "huge", "no model 'huge'"),
     ("SVRNET_DATA_DIR", "{tmp}/a_file/below", "cannot be created"),
     ("SVRNET_TMP_DIR", "{tmp}/none", "not a folder"),
@@ -52,6 +51,18 @@ def test_a_setting_that_cannot_work_stops_every_command_in_one_line_naming_it(
         message = str(end.value.code)
         assert message.startswith(f"{prog}: ") and f"{variable}: " in message and said in message, message
         assert "\n" not in message
+
+
+def test_a_started_command_makes_its_files_private(monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:  # noqa: ANN001
+    import os
+
+    from service.core.settings import load_settings
+
+    monkeypatch.setenv("SVRNET_DATA_DIR", str(tmp_path))
+    os.umask(0o022)
+    load_settings("svrnet-server")
+    (tmp_path / "upload").write_bytes(b"x")
+    assert (tmp_path / "upload").stat().st_mode & 0o077 == 0
 
 
 def test_a_second_server_on_a_store_in_use_is_refused_in_one_line(tmp_path, monkeypatch: pytest.MonkeyPatch,  # noqa: ANN001

@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.acquisitions import SimulatedStack, simulate_acquisition  # noqa: E402
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
-from model_export.calibrate_acceptance import rates, share  # noqa: E402
+from model_export.calibrate_acceptance import rates, rms, share  # noqa: E402
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, Scored, run_acquisition, score  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
 from service.inference.model_file import load_model  # noqa: E402
@@ -48,6 +48,8 @@ SETTINGS: dict[str, tuple[dict[str, float], bool]] = {
     "2 mm slices": ({"pixel_mm": 1.0, "thickness_mm": 2.0, "gap_mm": 2.0}, False),
     "4.5 mm slices": ({"pixel_mm": 1.0, "thickness_mm": 4.5, "gap_mm": 4.5}, False),
     "4 mm slices 2 mm apart": ({"pixel_mm": 1.0, "thickness_mm": 4.0, "gap_mm": 2.0}, False),
+    "1.5 mm slices": ({"pixel_mm": 1.0, "thickness_mm": 1.5, "gap_mm": 1.5}, False),
+    "3 mm slices 1.5 mm apart": ({"pixel_mm": 1.0, "thickness_mm": 3.0, "gap_mm": 1.5}, False),
     "a signal void in the brain (with_void)": ({"pixel_mm": 1.0, **THREE_MM}, True),
 }
 """Each setting's :func:`simulate_acquisition` keywords, and whether :func:`with_void` darkens it."""
@@ -113,6 +115,17 @@ def void_split(scored: Scored, share: NDArray, keep: NDArray) -> str:
     return "  slices by the void's share of their brain: " + "; ".join(parts)
 
 
+def calibration(error_mm: NDArray, expected_mm: NDArray) -> float:
+    """RMS E.D. over RMS expected error of the slices that have an expected error (1: calibrated).
+
+    Example:
+        >>> float(calibration(np.array([3.0, 4.0, 9.0]), np.array([3.0, 4.0, np.inf])))
+        1.0
+    """
+    have = np.isfinite(expected_mm)
+    return rms(error_mm[have]) / rms(expected_mm[have]) if have.any() else float("nan")
+
+
 def sweep(estimator, volumes: list, level: str, per_volume: int, seed: int,  # noqa: ANN001
           only: set[int] | None = None) -> list[str]:
     """One line per setting: the same volumes and random draws for each."""
@@ -132,10 +145,11 @@ def sweep(estimator, volumes: list, level: str, per_volume: int, seed: int,  # n
             (predictions,), prepared, truth = run_acquisition(stacks, estimator)
             score(predictions, prepared, truth, stacks, estimator.info.symmetry_plane_x_mm, scored)
         keep = scored.array("mask_pixels") >= MIN_MASK_PIXELS
-        e, t, a = (scored.array(k)[keep] for k in ("ed", "ed_min", "accepted"))
+        e, t, a, x = (scored.array(k)[keep] for k in ("ed", "ed_min", "accepted", "expected"))
         shares = rates({"ed": e, "ed_min": t}, a.astype(bool))
         lines.append(f"| {name} | {e.mean():.2f} / {t.mean():.2f} mm | {np.median(e):.2f} mm | {len(e)} | "
                      f"{share(shares['good_accepted'])} | {share(shares['bad_accepted'])} ({shares['bad_slices']}) | "
+                     f"{calibration(e, x):.2f} | "
                      f"{time.perf_counter() - start:.0f} s |")
         print(lines[-1], flush=True)
         if void:
@@ -157,8 +171,8 @@ def main() -> None:
     for level in args.levels.split(","):
         print(f"\n{level} motion, {len(volumes) * args.per_volume} acquisitions per setting (seed {args.seed})\n")
         print("| acquisition | mean E.D. (truth / twin-min) | median E.D. | slices | E.D. < 5 mm accepted "
-              "| E.D. > 10 mm accepted (slices) | time |")
-        print("|---|---|---|---|---|---|---|")
+              "| E.D. > 10 mm accepted (slices) | RMS E.D. / RMS expected | time |")
+        print("|---|---|---|---|---|---|---|---|")
         sweep(estimator, volumes, level, args.per_volume, args.seed,
               {int(k) for k in args.only.split(",")} if args.only else None)
 

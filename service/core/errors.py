@@ -85,7 +85,8 @@ class QueueFull(Saturated):
 
 
 class StoreUnavailable(Saturated):
-    """503: the job store (Redis, with the distributed back-end) does not answer; retry later."""
+    """503: the job store does not answer (Redis, with the distributed back-end) or cannot be used
+    (the embedded database on a read-only or full disk); retry later."""
 
     status, title, type = 503, "Job store unavailable", "/problems/store-unavailable"
 

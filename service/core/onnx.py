@@ -22,6 +22,21 @@ def file_sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+def model_files(folder: Path) -> list[Path]:
+    """The ``<name>/model.onnx`` files of a models folder, by name; folders whose name starts with a dot
+    are left out (a model being shipped into place, ``svrnet-train ship``'s ``.<name>.shipping``).
+
+    Example:
+        >>> import tempfile
+        >>> root = Path(tempfile.mkdtemp())
+        >>> for name in ("default", ".default.shipping"):
+        ...     (root / name).mkdir(); (root / name / "model.onnx").write_bytes(b"")
+        >>> [p.parent.name for p in model_files(root)]
+        ['default']
+    """
+    return sorted(p for p in Path(folder).glob("*/model.onnx") if not p.parent.name.startswith("."))
+
+
 def session_options(threads: int = 0) -> ort.SessionOptions:
     """CPU session options: all graph optimisations (the pose models' dropout masks survive them), no
     spinning; ``threads`` 0 means all cores."""

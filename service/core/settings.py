@@ -112,17 +112,19 @@ class Settings(BaseSettings):
         return value or None
 
     def problems(self) -> list[str]:
-        """What makes these settings unusable on this machine, each naming its variable: folders
-        without a model or not writable. A server started with them would pass its health check and
-        fail every request (see :func:`load_settings`)."""
+        """What makes these settings unusable on this machine, each naming its variable: a models
+        folder without a model, folders that cannot be written. A server started with them would pass
+        its health check and fail every request (see :func:`load_settings`). A localisers folder
+        without a localiser is not one: such a server serves requests that send their masks."""
+        from service.core.onnx import model_files
+
         out = []
         if self.api_keys.strip() and not self.key_set():
             out.append("SVRNET_API_KEYS: holds separators but no key (unset it to serve without keys)")
-        for name, folder in (("SVRNET_MODELS_DIR", self.models_dir), ("SVRNET_LOCALISERS_DIR", self.localisers_dir)):
-            if not any(Path(folder).glob("*/model.onnx")):
-                out.append(f"{name}: {folder} holds no <name>/model.onnx")
-        if any(Path(self.models_dir).glob("*/model.onnx")) and not (Path(self.models_dir) / self.default_model
-                                                                    / "model.onnx").is_file():
+        names = [p.parent.name for p in model_files(self.models_dir)]
+        if not names:
+            out.append(f"SVRNET_MODELS_DIR: {self.models_dir} holds no <name>/model.onnx")
+        elif self.default_model not in names:
             out.append(f"SVRNET_DEFAULT_MODEL: no model {self.default_model!r} in {self.models_dir}")
         for name, folder, create in (("SVRNET_DATA_DIR", self.data_dir, True), ("SVRNET_TMP_DIR", self.tmp_dir, False)):
             if folder is None:

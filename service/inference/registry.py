@@ -6,6 +6,7 @@ import logging
 from pathlib import Path
 
 from service.core.errors import NotFound
+from service.core.onnx import model_files
 from service.inference.estimator import OnnxPoseEstimator, PoseEstimator
 from service.inference.model_file import load_model
 
@@ -22,7 +23,7 @@ class ModelRegistry:
     @classmethod
     def from_directory(cls, models_dir: Path, default_name: str = "default", threads: int = 0) -> "ModelRegistry":
         estimators: dict[str, PoseEstimator] = {}
-        for path in sorted(Path(models_dir).glob("*/model.onnx")):
+        for path in model_files(models_dir):
             estimators[path.parent.name] = OnnxPoseEstimator(load_model(path, threads))
             log.info("model loaded", extra={"model": path.parent.name})
         return cls(estimators, default_name)

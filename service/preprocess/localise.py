@@ -45,7 +45,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from service.core.errors import NotFound
-from service.core.onnx import file_sha256, session_options
+from service.core.onnx import file_sha256, model_files, session_options
 from service.core.settings import DEFAULT_LOCALISERS_DIR
 from service.io.volume import Volume
 from service.preprocess.brain_shape import MASK_THRESHOLD, THRESHOLD, brain_from_probabilities
@@ -298,7 +298,7 @@ class Localisers:
 
     @classmethod
     def from_directory(cls, folder: Path, threads: int = 0) -> "Localisers":
-        found = {p.parent.name: Localiser.load(p, threads) for p in sorted(Path(folder).glob("*/model.onnx"))}
+        found = {p.parent.name: Localiser.load(p, threads) for p in model_files(folder)}
         for name in found:
             log.info("localiser loaded", extra={"model": name})
         return cls(found)

@@ -77,6 +77,11 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
     assert CliRunner().invoke(app, [*again, "--force"]).exit_code != 0
     assert (tmp_path / "model" / "card.md").read_text().startswith("# card") and \
         (tmp_path / "model" / "model.onnx").read_bytes() == b"onnx"
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []   # nothing half-made to be served
+    monkeypatch.setattr(evaluate, "evaluate", lambda model, report, *a, **k: report.write_text("# report") and {})
+    inside = CliRunner().invoke(app, [*again, "--force", "--report", str(tmp_path / "model" / "eval" / "r.md")])
+    assert inside.exit_code == 0, inside.output                              # a report inside --out moves in with it
+    assert (tmp_path / "model" / "eval" / "r.md").read_text() == "# report"
     monkeypatch.setattr(evaluate, "evaluate", lambda *a, **k: {})
     replaced = CliRunner().invoke(app, [*again, "--force"])
     assert replaced.exit_code == 0, replaced.output

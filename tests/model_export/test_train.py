@@ -172,9 +172,11 @@ def test_the_cli_resumes_and_stages_with_the_runs_own_settings(packed: Path, tmp
     assert {k: resumed["config"][k] for k in ("dropout", "lr", "label_type", "loss", "width")} == {
         "dropout": 0.25, "lr": 5e-5, "label_type": "grid", "loss": "min", "width": 0.25}
     r = runner.invoke(app, ["train", "--root", str(packed), "--out", str(tmp_path / "b"), "--steps", "1",
-                            "--workers", "0", "--init", str(tmp_path / "a" / "last.pt")])
+                            "--workers", "0", "--init", str(tmp_path / "a" / "last.pt"),
+                            "--simulation", '{"surroundings_share": 0.3}'])
     assert r.exit_code == 0, r.output
     stage = torch.load(tmp_path / "b" / "last.pt", weights_only=False)
-    assert stage["config"]["simulation"]["tz_fraction"] == 0.5 and stage["config"]["dropout"] == 0.25
+    assert stage["config"]["dropout"] == 0.25
+    assert stage["config"]["simulation"] == {"size": 48, "pixel_mm": 2.5, "tz_fraction": 0.5, "surroundings_share": 0.3}
     r = runner.invoke(app, [*first, "--out", str(tmp_path / "c"), "--batch", "8"])
     assert r.exit_code != 0 and "groups of 16" in r.output
