@@ -30,7 +30,7 @@ def model_files(folder: Path) -> list[Path]:
         >>> import tempfile
         >>> root = Path(tempfile.mkdtemp())
         >>> for name in ("default", ".default.shipping"):
-        ...     (root / name).mkdir(); (root / name / "model.onnx").write_bytes(b"")
+        ...     (root / name).mkdir(); _ = (root / name / "model.onnx").write_bytes(b"")
         >>> [p.parent.name for p in model_files(root)]
         ['default']
     """
