@@ -27,7 +27,7 @@ async def readyz(request: Request) -> dict[str, object]:
     if registry is None or not registry.estimators:
         raise NotReady("no model loaded yet")
     store = getattr(state, "job_store", None)
-    if store is not None and not store.ping():
+    if store is not None and not await to_thread.run_sync(store.ping):     # a database query: off the loop
         raise NotReady("the job store is not reachable or cannot be written")
     runner = getattr(state, "job_runner", None)
     return {"status": "ready", "models": sorted(registry.estimators),

@@ -94,8 +94,8 @@ def declared_fields(endpoint: Callable) -> dict[str, bool]:
     for name, hint in hints.items():
         for meta in getattr(hint, "__metadata__", ()):
             if isinstance(meta, params.Form):
-                inner = [a for a in (typing.get_args(hint)[0], *typing.get_args(typing.get_args(hint)[0]))]
-                out[meta.alias or name] = any(typing.get_origin(a) is list for a in inner)
+                field = typing.get_args(hint)[0]                  # the type, Optional[...] unwrapped below
+                out[meta.alias or name] = any(typing.get_origin(a) is list for a in (field, *typing.get_args(field)))
             elif isinstance(meta, params.Depends) and meta.dependency is not None:
                 out.update(declared_fields(meta.dependency))
     return out
