@@ -157,6 +157,7 @@ def run(argv: list[str] | None = None) -> None:
     # puts in a URL); the service's JSON log records the route instead (service/api/middleware.py).
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port,
                 log_level=service_logging.server_log_level(settings.log_level),
+                log_config=service_logging.server_log_config(settings.log_level),
                 access_log=False, http=with_header_deadline(settings.header_timeout_s),
                 ws_ping_interval=settings.stream_ping_interval_s, ws_ping_timeout=settings.stream_ping_timeout_s,
                 timeout_graceful_shutdown=SHUTDOWN_GRACE_S)

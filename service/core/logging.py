@@ -97,3 +97,20 @@ def server_log_level(level: str) -> str:
         ('info', 'warning')
     """
     return "info" if level.lower() in ("debug", "trace") else level.lower()
+
+
+def server_log_config(level: str) -> dict:
+    """uvicorn's ``log_config``: its own loggers write the same JSON lines as the service's (a
+    startup line, a refused request, an error in the server) at :func:`server_log_level`, an
+    exception by its type and place only, so that stderr holds one format and no traceback.
+
+    Example:
+        >>> config = server_log_config("debug")
+        >>> config["formatters"]["json"]["()"].__name__, config["loggers"]["uvicorn.error"]["level"]
+        ('JsonFormatter', 'INFO')
+    """
+    return {"version": 1, "disable_existing_loggers": False,
+            "formatters": {"json": {"()": JsonFormatter}},
+            "handlers": {"stderr": {"class": "logging.StreamHandler", "formatter": "json", "stream": "ext://sys.stderr"}},
+            "loggers": {name: {"handlers": ["stderr"], "level": server_log_level(level).upper(), "propagate": False}
+                        for name in ("uvicorn", "uvicorn.error", "uvicorn.access")}}

@@ -51,3 +51,21 @@ def test_an_mrd_header_field_that_does_not_parse_is_not_quoted_on_stderr(capsys)
         ismrmrd.xsd.CreateFromDocument(xml)                        # xsdata warns, quoting each value
     assert not [w for w in caught if "1990" in str(w.message) or "72 kg" in str(w.message)]
     assert "1990" not in capsys.readouterr().err
+
+
+def test_uvicorns_own_lines_are_json_without_tracebacks() -> None:
+    """The server's own lines (an error in a connection, with its exception) join the service's JSON
+    lines on stderr: the exception's type and place, not its message or a traceback."""
+    import subprocess
+    import sys
+
+    code = ("import logging, logging.config\n"
+            "from service.core.logging import server_log_config\n"
+            "logging.config.dictConfig(server_log_config('info'))\n"
+            "try:\n    raise KeyError('jane_doe.nii.gz')\n"
+            "except KeyError:\n    logging.getLogger('uvicorn.error').exception('Exception in ASGI application')\n")
+    err = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60).stderr
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    line = json.loads(lines[0])
+    assert line["logger"] == "uvicorn.error" and line["error_type"] == "KeyError" and "jane" not in err
