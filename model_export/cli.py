@@ -369,6 +369,13 @@ def ship(
                                                 "(rotations) or 8 (rotations and flips)")] = SHIPPED_VIEWS,
     int8: Annotated[bool, typer.Option("--int8/--float", help="int8 convolutions (`quantise`) before the "
                                                               "calibrations, which then measure the file served")] = True,
+    slices_per_volume: Annotated[Optional[int], typer.Option(
+        min=1, help="validation slices per volume of the threshold's and the spread's calibrations and of the "
+                    "evaluation [default: theirs, 120 / 60 / 100]: fewer for a quick look, not for a model to serve")] = None,
+    acceptance_per_volume: Annotated[Optional[int], typer.Option(
+        min=1, help="acquisitions per validation volume and motion level of the accept flags [default: 8]")] = None,
+    quant_slices: Annotated[Optional[int], typer.Option(min=16, help="slices calibrating the int8 ranges "
+                                                                     "[default: 1024]")] = None,
 ) -> None:
     """Calibrate, export, evaluate and write the model card: the folder the service loads (the MC
     spread's expected error calibrated as `calibrate-spread` does, then the accept flags on the
@@ -394,8 +401,9 @@ def ship(
     else:
         shown_report = report
     try:
+        budget = {"slices": slices_per_volume, "acquisitions": acceptance_per_volume, "quant": quant_slices}
         evaluation = _ship_into(staging, out, checkpoint, ck, name, version, comparison, report, shown_report, root,
-                                tta_views, int8)
+                                tta_views, int8, {k: v for k, v in budget.items() if v is not None})
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)             # nothing half-made is left for a server to find
         raise
@@ -410,8 +418,10 @@ def ship(
 
 def _ship_into(staging: Path, out: Path, checkpoint: Path, ck: dict, name: str, version: str,
                comparison: Path | None, report: Path, shown_report: Path, root: Path, tta_views: int,
-               int8: bool) -> dict:
-    """`ship`'s steps, each writing into ``staging``, which becomes ``out``; the evaluation's summary."""
+               int8: bool, budget: dict[str, int]) -> dict:
+    """`ship`'s steps, each writing into ``staging``, which becomes ``out``; the evaluation's summary.
+    ``budget``: the sample counts given (``slices`` per volume, accept-flag ``acquisitions`` per
+    volume and level, ``quant`` slices); the others are each step's own."""
     import shutil
 
     from model_export.calibrate import calibrate as run_calibration
@@ -420,19 +430,20 @@ def _ship_into(staging: Path, out: Path, checkpoint: Path, ck: dict, name: str, 
     from model_export.packaging import export_checkpoint
     from service.inference.model_file import load_model
 
-    cal = run_calibration(checkpoint, root, views=tta_views)
+    per_volume = {"per_volume": budget["slices"]} if "slices" in budget else {}
+    cal = run_calibration(checkpoint, root, views=tta_views, **per_volume)
     typer.echo(f"calibrated variance threshold {cal['threshold']:.4g} (AUROC {cal['auroc']:.3f})")
     onnx_path = export_checkpoint(checkpoint, staging / "model.onnx", name=name, version=version,
                                   variance_threshold=cal["threshold"], tta_views=tta_views)
     if int8:
         from model_export.quantise import quantise_model
 
-        quantise_model(onnx_path, onnx_path, root=root)
+        quantise_model(onnx_path, onnx_path, root=root, **({"count": budget["quant"]} if "quant" in budget else {}))
     shutil.copyfile(checkpoint, staging / "checkpoint.pt")
     from model_export.spread import calibrate_spread as run_spread
 
-    typer.echo(f"spread calibrated: {json.dumps(run_spread(onnx_path, root))}")
-    evaluation = run_evaluation(onnx_path, report, root)
+    typer.echo(f"spread calibrated: {json.dumps(run_spread(onnx_path, root, **per_volume))}")
+    evaluation = run_evaluation(onnx_path, report, root, **per_volume)
     if report.exists():                                                        # the model's path once in place
         report.write_text(report.read_text().replace(str(staging), str(out)))
     from model_export.training_record import prior_history, totals
@@ -447,8 +458,9 @@ def _ship_into(staging: Path, out: Path, checkpoint: Path, ck: dict, name: str, 
     from model_export.spread import write_metadata
     from service.inference.estimator import OnnxPoseEstimator
 
-    typer.echo(f"accept flags: {PER_VOLUME} acquisitions per validation volume and motion level through every stage")
-    flags = measure(OnnxPoseEstimator(load_model(onnx_path)), load_volumes(split(root)[1], root), per_volume=PER_VOLUME)
+    acquisitions = budget.get("acquisitions", PER_VOLUME)
+    typer.echo(f"accept flags: {acquisitions} acquisitions per validation volume and motion level through every stage")
+    flags = measure(OnnxPoseEstimator(load_model(onnx_path)), load_volumes(split(root)[1], root), per_volume=acquisitions)
     write_metadata(onnx_path, flag_metadata(flags))
     info = load_model(onnx_path).info.metadata
     write_card(staging / "card.md", info=info, train_summary=summary, train_config=ck["config"], calibration=cal,

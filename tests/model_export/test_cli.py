@@ -8,10 +8,14 @@ import pytest
 from typer.testing import CliRunner
 
 
-def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("budget", [[], ["--slices-per-volume", "7", "--acceptance-per-volume", "2",
+                                     "--quant-slices", "32"]], ids=["defaults", "a quick look"])
+def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                             budget: list[str]) -> None:
     """The accept flags are measured on the expected error, so the spread's calibration (which sets
     ``mc_error_scale``) comes first; both measure the int8 file the service will run, so quantising
-    comes before them; the acceptance report is written beside the evaluation report."""
+    comes before them; the acceptance report is written beside the evaluation report. A smaller
+    budget reaches every step; without one each keeps its own."""
     import model_export.atlas as atlas
     import model_export.calibrate as calibrate
     import model_export.calibrate_acceptance as acceptance
@@ -28,6 +32,7 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
 
     calls: list[str] = []
     views: list[int] = []
+    sizes: dict[str, object] = {}
 
     def export(checkpoint: Path, output: Path, **kw: object) -> Path:
         views.append(kw["tta_views"])
@@ -37,21 +42,26 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
     class Loaded:
         info = type("Info", (), {"metadata": {}, "input_size": 96, "pixel_spacing_mm": 1.25})()
 
-    monkeypatch.setattr(calibrate, "calibrate", lambda *a, **k: calls.append("threshold") or {"threshold": 50.0, "auroc": 0.8})
+    monkeypatch.setattr(calibrate, "calibrate", lambda *a, **k: calls.append("threshold") or sizes.update(
+        threshold=k.get("per_volume")) or {"threshold": 50.0, "auroc": 0.8})
     monkeypatch.setattr(packaging, "export_checkpoint", export)
     monkeypatch.setattr(packaging, "load_checkpoint", lambda p: (None, {"train_seconds": 1.0, "samples_seen": 1, "step": 1,
                                                                        "config": {"train_volumes": []}}))
-    monkeypatch.setattr(quantise, "calibration_slices", lambda **k: calls.append(f"slices {k['size']}") or "slices")
+    monkeypatch.setattr(quantise, "calibration_slices", lambda **k: calls.append(f"slices {k['size']}") or
+                        sizes.update(quant=k["count"]) or "slices")
     monkeypatch.setattr(quantise, "quantise", lambda src, out, slices: calls.append(f"int8 {slices}") or out)
-    monkeypatch.setattr(spread, "calibrate_spread", lambda *a, **k: calls.append("spread") or {"mc_error_scale": 0.7})
+    monkeypatch.setattr(spread, "calibrate_spread", lambda *a, **k: calls.append("spread") or sizes.update(
+        spread=k.get("per_volume")) or {"mc_error_scale": 0.7})
     monkeypatch.setattr(spread, "write_metadata", lambda *a, **k: calls.append("flags written"))
-    monkeypatch.setattr(evaluate, "evaluate", lambda *a, **k: calls.append("evaluate") or {})
+    monkeypatch.setattr(evaluate, "evaluate", lambda *a, **k: calls.append("evaluate") or sizes.update(
+        evaluate=k.get("per_volume")) or {})
     monkeypatch.setattr(train, "prior_history", lambda ck: [])
     monkeypatch.setattr(train, "totals", lambda history: {})
     monkeypatch.setattr(atlas, "split", lambda root: ([], []))
     monkeypatch.setattr(atlas, "load_volumes", lambda names, root: [])
-    monkeypatch.setattr(acceptance, "measure", lambda *a, **k: calls.append("acceptance") or
-                        {"expected_error_floor_mm": 2.0, "variance_threshold": 480.0, "max_expected_error_mm": 4.0})
+    monkeypatch.setattr(acceptance, "measure", lambda *a, **k: calls.append("acceptance") or sizes.update(
+        acceptance=k["per_volume"]) or {"expected_error_floor_mm": 2.0, "variance_threshold": 480.0,
+                                        "max_expected_error_mm": 4.0})
     monkeypatch.setattr(acceptance, "markdown", lambda flags, title: f"# {title}\n")
     monkeypatch.setattr(estimator, "OnnxPoseEstimator", lambda model: None)
     monkeypatch.setattr(model_file, "load_model", lambda path: Loaded())
@@ -62,10 +72,14 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
     report = tmp_path / "reports" / "default.md"
     report.parent.mkdir()
 
-    result = CliRunner().invoke(app, ["ship", str(checkpoint), "--out", str(tmp_path / "model"), "--report", str(report)])
+    result = CliRunner().invoke(app, ["ship", str(checkpoint), "--out", str(tmp_path / "model"), "--report", str(report),
+                                      *budget])
 
     assert result.exit_code == 0, result.output
     assert calls == ["threshold", "slices 96", "int8 slices", "spread", "evaluate", "acceptance", "flags written"]
+    assert sizes == ({"threshold": 7, "quant": 32, "spread": 7, "evaluate": 7, "acceptance": 2} if budget else
+                     {"threshold": None, "quant": quantise.CALIBRATION_SLICES, "spread": None, "evaluate": None,
+                      "acceptance": acceptance.PER_VOLUME})
     assert views == [SHIPPED_VIEWS]
     assert (report.parent / "acceptance.md").read_text().startswith("# Accept flags of")
     assert "## Accept flags" in (tmp_path / "model" / "card.md").read_text()
