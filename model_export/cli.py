@@ -48,28 +48,25 @@ Root = Annotated[Path, typer.Option(help="folder holding crl_sta/ and spina_bifi
 @app.command()
 def train(
     out: Annotated[Path, typer.Option(help="run folder: checkpoints, log.csv, loss.png")] = Path("runs/default"),
-    backbone: Annotated[Optional[str], typer.Option(help="[default: compact]")] = None,
-    width: Annotated[Optional[float], typer.Option(help="[default: 1.0]")] = None,
-    label_type: Annotated[Optional[str], typer.Option(help="anchor, grid, euler or quaternion [default: anchor]")] = None,
-    loss: Annotated[Optional[str], typer.Option(help="l2, or mirror-aware min / invariant (point labels) "
-                                                     "[default: l2]")] = None,
-    sampling: Annotated[Optional[str], typer.Option(help="random, euler or fibonacci [default: random]")] = None,
-    steps: Annotated[Optional[int], typer.Option(help="[default: 20000]")] = None,
-    batch: Annotated[Optional[int], typer.Option(help="slices a step, a multiple of 16 [default: 64]")] = None,
-    lr: Annotated[Optional[float], typer.Option(help="Adam learning rate (step decay x0.2 at 60 % and 85 %) "
-                                                     "[default: 1e-4]")] = None,
+    backbone: Annotated[Optional[str], typer.Option()] = None,
+    width: Annotated[Optional[float], typer.Option()] = None,
+    label_type: Annotated[Optional[str], typer.Option(help="anchor, grid, euler or quaternion")] = None,
+    loss: Annotated[Optional[str], typer.Option(help="l2, or mirror-aware min / invariant (point labels)")] = None,
+    sampling: Annotated[Optional[str], typer.Option(help="random, euler or fibonacci")] = None,
+    steps: Annotated[Optional[int], typer.Option()] = None,
+    batch: Annotated[Optional[int], typer.Option(help="slices a step, a multiple of 16")] = None,
+    lr: Annotated[Optional[float], typer.Option(help="Adam learning rate (step decay x0.2 at 60 % and 85 %)")] = None,
     constant_lr: Annotated[bool, typer.Option(help="no step decay")] = False,
-    dropout: Annotated[Optional[float], typer.Option(help="[default: 0.5]")] = None,
-    val_every: Annotated[Optional[int], typer.Option(help="[default: 500]")] = None,
-    val_per_volume: Annotated[Optional[int], typer.Option(help="[default: 100]")] = None,
-    threads: Annotated[Optional[int], typer.Option(help="[default: 1]")] = None,
-    workers: Annotated[Optional[int], typer.Option(help="simulation worker processes [default: 2]")] = None,
-    reuse: Annotated[Optional[int], typer.Option(help="corruptions of each clean acquisition in the bank "
-                                                      "[default: 6]")] = None,
-    device: Annotated[Optional[str], typer.Option(help="cpu, cuda or auto [default: cpu]")] = None,
+    dropout: Annotated[Optional[float], typer.Option()] = None,
+    val_every: Annotated[Optional[int], typer.Option()] = None,
+    val_per_volume: Annotated[Optional[int], typer.Option()] = None,
+    threads: Annotated[Optional[int], typer.Option()] = None,
+    workers: Annotated[Optional[int], typer.Option(help="simulation worker processes")] = None,
+    reuse: Annotated[Optional[int], typer.Option(help="corruptions of each clean acquisition in the bank")] = None,
+    device: Annotated[Optional[str], typer.Option(help="cpu, cuda or auto")] = None,
     max_minutes: Annotated[Optional[float], typer.Option(help="stop at a checkpoint after this wall time")] = None,
-    plane_x_mm: Annotated[Optional[float], typer.Option(help="atlas symmetry plane x0 of the twin [default: 0]")] = None,
-    seed: Annotated[Optional[int], typer.Option(help="[default: 0]")] = None,
+    plane_x_mm: Annotated[Optional[float], typer.Option(help="atlas symmetry plane x0 of the twin")] = None,
+    seed: Annotated[Optional[int], typer.Option()] = None,
     simulation: Annotated[Optional[str], typer.Option(
         help='the simulation\'s settings as JSON, e.g. \'{"surroundings_share": 0.3}\' (model_export/simulate.py, '
              "SimulationConfig)")] = None,
@@ -80,7 +77,9 @@ def train(
                                                       "not given but the host's")] = None,
     root: Root = DEFAULT_ATLAS_ROOT,
 ) -> None:
-    """Train a model on simulated slices of the atlas volumes."""
+    """Train a model on simulated slices of the atlas volumes. An option not given takes the value of
+    the run --resume continues, else of the stage --init starts from (not its host's device, workers,
+    threads or time budget), else TrainConfig's (model_export/train.py)."""
     from model_export.stream import SLICES_PER_ACQUISITION
     from model_export.train import stage_config, train as run
 

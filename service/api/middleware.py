@@ -8,6 +8,7 @@ import logging
 import re
 import time
 import uuid
+import weakref
 
 from starlette.routing import compile_path
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -25,10 +26,22 @@ METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"}
 value per invented method would grow the metrics without bound)."""
 
 
+_TEMPLATES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _templates(app: object) -> tuple[tuple[re.Pattern, str], ...]:
+    """The app's documented path templates (its OpenAPI schema), each with its compiled pattern; made
+    once per app, and gone with it."""
+    if app not in _TEMPLATES:
+        openapi = getattr(app, "openapi", None)
+        _TEMPLATES[app] = () if openapi is None else tuple((compile_path(t)[0], t) for t in openapi().get("paths", {}))
+    return _TEMPLATES[app]
+
+
 def route_of(app: object, scope: Scope) -> str:
     """The route template a request's path matches (``/v1/reconstructions/{job_id}``), for answers
     given before routing (a refused key, a busy server, a body too large); ``unmatched`` when none.
-    The templates are the app's documented paths (its OpenAPI schema, built once).
+    The templates are the app's documented paths, compiled once per app.
 
     Example:
         >>> from fastapi import FastAPI
@@ -37,13 +50,7 @@ def route_of(app: object, scope: Scope) -> str:
         >>> route_of(app, {"path": "/v1/jobs/abc"}), route_of(app, {"path": "/x"})
         ('/v1/jobs/{job_id}', 'unmatched')
     """
-    openapi = getattr(app, "openapi", None)
-    if openapi is None:
-        return "unmatched"
-    for template in openapi().get("paths", {}):
-        if compile_path(template)[0].match(scope["path"]):
-            return template
-    return "unmatched"
+    return next((t for pattern, t in _templates(app) if pattern.match(scope["path"])), "unmatched")
 
 
 class RequestContext:

@@ -101,11 +101,6 @@ def declared_fields(endpoint: Callable) -> dict[str, bool]:
     return out
 
 
-def form_fields(endpoint: Callable) -> tuple[str, ...]:
-    """The names of :func:`declared_fields`."""
-    return tuple(declared_fields(endpoint))
-
-
 def known_fields(*extra: str) -> Callable[[Request], Awaitable[None]]:
     """A dependency refusing (400, by name) any form field that the route neither declares nor lists in
     ``extra`` (fields it reads from the raw form), and a field of one value given more than once: a

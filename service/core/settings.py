@@ -111,13 +111,13 @@ class Settings(BaseSettings):
             raise ValueError("a redis://host:port/db (or rediss://, unix://) URL")
         return value or None
 
-    def problems(self, default_model: bool = True) -> list[str]:
+    def problems(self, needs_default_model: bool = True) -> list[str]:
         """What makes these settings unusable on this machine, each naming its variable: a models
         folder without a model, folders that cannot be written. A server started with them would pass
         its health check and fail every request (see :func:`load_settings`). A localisers folder
         without a localiser is not one: such a server serves requests that send their masks.
-        ``default_model``: whether the default model must be among the models (a job worker runs
-        the model each job names)."""
+        ``needs_default_model``: whether :attr:`default_model` must be among the models (a job
+        worker runs the model each job names)."""
         from service.core.onnx import model_files
 
         out = []
@@ -126,7 +126,7 @@ class Settings(BaseSettings):
         names = [p.parent.name for p in model_files(self.models_dir)]
         if not names:
             out.append(f"SVRNET_MODELS_DIR: {self.models_dir} holds no <name>/model.onnx")
-        elif default_model and self.default_model not in names:
+        elif needs_default_model and self.default_model not in names:
             out.append(f"SVRNET_DEFAULT_MODEL: no model {self.default_model!r} in {self.models_dir}")
         for name, folder, create in (("SVRNET_DATA_DIR", self.data_dir, True), ("SVRNET_TMP_DIR", self.tmp_dir, False)):
             if folder is None:
@@ -153,12 +153,12 @@ class Settings(BaseSettings):
         return {k.strip() for k in self.api_keys.split(",") if k.strip()}
 
 
-def load_settings(prog: str, *, default_model: bool = True, **given: object) -> Settings:
+def load_settings(prog: str, *, needs_default_model: bool = True, **given: object) -> Settings:
     """The settings of a console command (``svrnet-server``, ``svrnet-worker``, ``svrnet-mrd``):
     a value that is wrong, or unusable here (:meth:`Settings.problems`), ends the command with
     one line naming its ``SVRNET_*`` variable (exit status 1), never a traceback. The command's
     files (uploads, job folders, results: patient data) are then created readable by its own
-    user only (umask 077), whatever the shell's umask. ``default_model``: as
+    user only (umask 077), whatever the shell's umask. ``needs_default_model``: as
     :meth:`Settings.problems`.
 
     Example:
@@ -176,7 +176,7 @@ def load_settings(prog: str, *, default_model: bool = True, **given: object) -> 
     except ValidationError as exc:
         raise SystemExit(f"{prog}: " + "; ".join(
             f"SVRNET_{'_'.join(str(p) for p in e['loc']).upper()}: {e['msg']}" for e in exc.errors())) from None
-    if problems := settings.problems(default_model):
+    if problems := settings.problems(needs_default_model):
         raise SystemExit(f"{prog}: " + "; ".join(problems))
     os.umask(0o077)
     return settings

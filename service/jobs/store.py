@@ -230,7 +230,7 @@ class SqliteJobStore(JobStore):
         folder answers reads and fails every submission)."""
         try:
             with self._db() as db:
-                db.execute("SELECT count(*) FROM jobs").fetchone()
+                db.execute("SELECT 1 FROM jobs LIMIT 1").fetchone()
         except StoreUnavailable:
             return False
         return all(os.access(p, os.W_OK) for p in (self.db_path, self.data_dir / "jobs", self.data_dir))

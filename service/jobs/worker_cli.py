@@ -165,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--name", help="worker name (one worker only; default: RQ's unique name)")
     ap.add_argument("--health", action="store_true", help="exit 0 if a worker of this host is alive")
     args = ap.parse_args(argv)
-    settings = load_settings("svrnet-worker", default_model=False)   # it runs the model each job names
+    settings = load_settings("svrnet-worker", needs_default_model=False)   # it runs the model each job names
     if not settings.queue_url:
         print("svrnet-worker: set SVRNET_QUEUE_URL=redis://host:port/db", file=sys.stderr)
         return 2

@@ -57,11 +57,11 @@ def test_the_fields_a_route_takes_come_from_its_signature() -> None:
     """A field added to a route is accepted at once: the allowed names are not a second list to keep."""
     from service.api.predict import predict
     from service.api.reconstructions import submit
-    from service.api.uploads import form_fields
+    from service.api.uploads import declared_fields
 
-    assert set(form_fields(predict)) >= {"stacks", "masks", "mc_samples", "variance_threshold", "bias_correction",
+    assert set(declared_fields(predict)) >= {"stacks", "masks", "mc_samples", "variance_threshold", "bias_correction",
                                          "model"}
-    assert set(form_fields(submit)) >= {"stacks", "masks", "resolution_mm", "svr_iterations", "mc_samples",
+    assert set(declared_fields(submit)) >= {"stacks", "masks", "resolution_mm", "svr_iterations", "mc_samples",
                                         "variance_threshold", "model"}
 
 
