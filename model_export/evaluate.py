@@ -20,6 +20,7 @@ On the validation volumes (3 mm thick, 1 mm pixels, noisy, bias-shaded slices; s
 
 from __future__ import annotations
 
+import inspect
 from pathlib import Path
 
 import numpy as np
@@ -97,8 +98,9 @@ def evaluate(model_path: Path, report: Path, root: Path = DEFAULT_ATLAS_ROOT, *,
     summary["by_orientation"] = by_orientation(err["ed_twin_mm"], val.poses)
     report.parent.mkdir(parents=True, exist_ok=True)
     _figures(report, metrics, val.inputs, pred, info.variance_threshold)
-    options = "".join(f" --{k} {v}" for k, v in (("per-volume", per_volume), ("mc-samples", mc_samples), ("seed", seed))
-                      if v != EVALUATE_DEFAULTS[k])
+    defaults = inspect.signature(evaluate).parameters            # the command's own: left out of the report's
+    options = "".join(f" --{k.replace('_', '-')} {v}" for k, v in
+                      (("per_volume", per_volume), ("mc_samples", mc_samples), ("seed", seed)) if v != defaults[k].default)
     options += "" if Path(root).resolve() == DEFAULT_ATLAS_ROOT.resolve() else f" --root {root}"
     report.write_text(_markdown(model_path, info, summary, mc_samples, len(names), report, options))
     return ({k: v for k, v in summary.items() if not isinstance(v, dict)}
@@ -208,10 +210,6 @@ def _figures(report: Path, metrics, inputs, pred, threshold) -> None:  # noqa: A
     fig.tight_layout()
     fig.savefig(f"{stem}_examples.png", dpi=80)
     plt.close(fig)
-
-
-EVALUATE_DEFAULTS = {"per-volume": 100, "mc-samples": 100, "seed": 12345}
-""":func:`evaluate`'s defaults (the CLI's), left out of a report's command to regenerate it."""
 
 
 def _markdown(model_path, info, s, mc, n, report, options="") -> str:  # noqa: ANN001

@@ -179,6 +179,13 @@ def test_tiny_pipeline_trains_exports_and_loads(phantom_atlas: Path, tmp_path: P
     with pytest.raises(ValueError, match="differs"):
         train(TrainConfig(**{**stage.__dict__, "hidden": 64}), tmp_path / "bad", phantom_atlas,
               init=tmp_path / "run" / "last.pt", progress=False)
+    # (after the training runs: their loader forks workers, which onnxruntime's threads must not precede)
+    # The evaluation report's command regenerates it: the options it ran with, not the defaults.
+    from model_export.evaluate import evaluate
+
+    evaluate(onnx_path, tmp_path / "report.md", phantom_atlas, per_volume=2, mc_samples=3)
+    command = (tmp_path / "report.md").read_text().split("Regenerate with\n`", 1)[1].split("`", 1)[0]
+    assert command.endswith(f"--per-volume 2 --mc-samples 3 --root {phantom_atlas}") and "--seed" not in command
 
 
 def test_a_grid_model_exports_and_the_service_decodes_it(tmp_path: Path) -> None:
