@@ -32,9 +32,11 @@ _TEMPLATES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 def _templates(app: object) -> tuple[tuple[re.Pattern, str], ...]:
     """The app's documented path templates (its OpenAPI schema), each with its compiled pattern; made
     once per app, and gone with it."""
+    openapi = getattr(app, "openapi", None)
+    if openapi is None:                                 # a bare ASGI app (or none): nothing documented
+        return ()
     if app not in _TEMPLATES:
-        openapi = getattr(app, "openapi", None)
-        _TEMPLATES[app] = () if openapi is None else tuple((compile_path(t)[0], t) for t in openapi().get("paths", {}))
+        _TEMPLATES[app] = tuple((compile_path(t)[0], t) for t in openapi().get("paths", {}))
     return _TEMPLATES[app]
 
 
