@@ -58,8 +58,8 @@ from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
 from model_export.atlas import signed_distance
-from model_export.localiser.surroundings import (StackGeometry, bias_field, camouflage, draw_surroundings, intensities,
-                                                 random_rotation, shading, slice_gains)
+from model_export.localiser.surroundings import (StackGeometry, _smooth_noise, bias_field, camouflage, draw_surroundings,
+                                                 intensities, random_rotation, shading, slice_gains)
 from service.io.volume import Volume
 
 STYLES = ("train", "heldout")
@@ -207,18 +207,40 @@ def head_layers(rng: np.random.Generator, thin: bool = False) -> tuple[float, fl
     return rng.uniform(1.0, 3.5), rng.uniform(1.5, 4.0), rng.uniform(2.0, 6.0)
 
 
+def csf_patches(rng: np.random.Generator, head: HeadModel, widest_mm: float,
+                patch_mm: float = 25.0) -> NDArray[np.float32]:
+    """Where and by how much (mm, on the head's grid) the extra-axial CSF is wider than its layer: smooth
+    patches about ``patch_mm`` across, up to ``widest_mm``, over about half the brain's surface. A
+    real fetal head's CSF is not one even layer: cisterns, the Sylvian fissures' openings and the
+    wide spaces of younger fetuses hold centimetres of it in places and little elsewhere.
+
+    Example:
+        >>> head = HeadModel.from_arrays(np.ones((20, 20, 20)), np.ones((20, 20, 20)), np.diag([2.0, 2, 2, 1]))
+        >>> extra = csf_patches(np.random.default_rng(0), head, 6.0)
+        >>> extra.shape == head.sdf.shape, bool(extra.min() >= 0 and extra.max() <= 6.0)
+        (True, True)
+    """
+    spacing = 1.0 / np.abs(np.diag(head.voxel_from_mm)[:3])
+    cells = tuple(max(2, int(round(n * s / patch_mm))) for n, s in zip(head.sdf.shape, spacing))
+    noise = _smooth_noise(rng, head.sdf.shape, cells)
+    return (widest_mm * np.clip(noise, 0.0, 2.0) / 2.0).astype(np.float32)
+
+
 def _head(head: HeadModel, geo: StackGeometry, centre: NDArray, rotation: NDArray, rng: np.random.Generator,
           tissue: dict[str, float], background: NDArray[np.float32], brain_scale: float, gamma: float,
           thin: bool = False, face: Face | None = None, layers: tuple[float, float, float] | None = None,
-          ) -> tuple[NDArray, NDArray, NDArray, tuple, tuple]:
+          csf_extra: NDArray | None = None) -> tuple[NDArray, NDArray, NDArray, tuple, tuple]:
     """The head's intensities, skull-inside and brain fractions in its in-plane box of every slice (slice
     profile), the box, and the head's motion (per-slice rotations and shifts); ``thin``: a thin CSF
     layer, skull and scalp (a camouflaged head, :data:`CAMOUFLAGE_SHARE`); ``face``: drawn outside the
     skull, in place of the scalp and the surroundings; ``layers``: the CSF, skull and scalp
-    thicknesses (mm; default drawn, :func:`head_layers`)."""
+    thicknesses (mm; default drawn, :func:`head_layers`); ``csf_extra``: mm of CSF added to the layer
+    where the head's grid says (the shape of ``head.sdf``; :func:`csf_patches`), the skull and scalp
+    pushed out by as much."""
     csf, skull, scalp = layers if layers is not None else head_layers(rng, thin)
     outer = csf + skull + scalp
-    reach = max(head.radius_mm * 1.15, face.reach_mm if face is not None else 0.0) + outer + 10.0
+    widest = float(csf_extra.max()) if csf_extra is not None else 0.0
+    reach = max(head.radius_mm * 1.15, face.reach_mm if face is not None else 0.0) + outer + widest + 10.0
     box = geo.box(centre, reach)
     pts = geo.coordinates()[box]                                     # [bx, by, slices, 3]
     rots, shifts = _head_motion(rng, geo.slices)
@@ -230,6 +252,9 @@ def _head(head: HeadModel, geo: StackGeometry, centre: NDArray, rotation: NDArra
         vox = local @ head.voxel_from_mm[:3, :3].T + head.voxel_from_mm[:3, 3]
         coords = np.moveaxis(vox, -1, 0)
         d = ndimage.map_coordinates(head.sdf, coords, order=1, mode="nearest")
+        if csf_extra is not None:              # the layers measured from the widened CSF's edge
+            d = np.where(d > 0, np.maximum(d - ndimage.map_coordinates(csf_extra, coords, order=1, mode="nearest"),
+                                           1e-3), d)
         t2 = ndimage.map_coordinates(head.t2, coords, order=1, mode="constant")
         v = np.where(d <= 0, brain_scale * np.power(np.clip(t2, 1e-3, None), gamma), tissue["csf"])
         v = np.where(d > csf, tissue["skull"], v)
@@ -272,12 +297,14 @@ def synth_stack(head: HeadModel, rng: np.random.Generator, style: str = "train",
 
 def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
                 random_contrast: bool | None = None, rigid: bool = False, csf_mm: float | None = None,
-                shading_share: float = 0.0) -> Scene:
+                shading_share: float = 0.0, csf_patches_mm: float = 0.0) -> Scene:
     """One synthetic whole-uterus stack, its masks and, with ``rigid`` (the head at the atlas's own
     size, not scaled by 0.9-1.1), its slices' true atlas poses. ``csf_mm``: the extra-axial CSF
     layer this thick instead of drawn (:func:`head_layers`; the other draws stay the same).
     ``shading_share``: the chance of a dark region over the head (:func:`~model_export.localiser.surroundings.shading`;
     at 0, the default, nothing is drawn for it, so a seed gives the stack it gave without it).
+    ``csf_patches_mm``: the CSF layer widened in patches by up to this much (:func:`csf_patches`,
+    drawn from a child of ``rng``: the scene is otherwise the one the seed gives without them).
 
     ``random_contrast``: every tissue's intensity drawn uniformly (True) or T2-like (False); by
     default drawn, for 20 % of the ``train`` stacks and half of the ``heldout`` ones. The same seed
@@ -312,8 +339,9 @@ def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
         layers = (float(csf_mm), *layers[1:])
     face_rng = np.random.default_rng(int(rng.integers(2**31)))     # the same draws after it, with a face or not
     face = Face.draw(face_rng, head, tissue, level, layers[0] + layers[1], style) if with_face else None
+    extra = csf_patches(rng.spawn(1)[0], head, csf_patches_mm) if csf_patches_mm > 0 else None   # the stream untouched
     values, inside, brain_fraction, box, motion = _head(head, geo, centre, rotation, rng, tissue, background,
-                                                        brain_scale, gamma, camouflaged, face, layers)
+                                                        brain_scale, gamma, camouflaged, face, layers, extra)
     image = background.copy()
     image[box] = values
     mask = np.zeros(image.shape, bool)

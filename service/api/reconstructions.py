@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 
 import numpy as np
 from anyio import to_thread
-from fastapi import APIRouter, Depends, Form, Query, Request, Response
+from fastapi import APIRouter, Depends, Form, Header, Query, Request, Response
 from fastapi.responses import FileResponse
 from pydantic import Field
 
@@ -165,6 +165,9 @@ async def submit(
     atlas_frame: Annotated[bool, Form(description="re-estimate the reconstruction's atlas frame with the model on "
                                                   "slices re-cut from it (corrects the common error of the poses)")] = True,
     slice_thickness_mm: Annotated[Optional[list[ThicknessField]], Form(description=SLICE_THICKNESS_HELP)] = None,
+    idempotency_key: Annotated[Optional[str], Header(alias=IDEMPOTENCY_HEADER, description=(
+        "8 to 200 printable ASCII characters: a submission sent again with the key of an earlier one gets "
+        "that job instead of a new one (for retries after a lost answer)"))] = None,
 ) -> dict:
     """Validates the files now (4xx at once), then queues the job; poll ``Location``.
 
@@ -174,7 +177,7 @@ async def submit(
     model = registry.resolve(form.model)
     localiser_for(localisers, form.masks)            # the job's worker localises; refused now, not failed later
     thickness = thickness_per_stack(slice_thickness_mm, len(form.stacks))
-    key = idempotency_digest(request.headers.get(IDEMPOTENCY_HEADER))
+    key = idempotency_digest(idempotency_key)
     store = _store(request)
     if key is not None and (earlier := await to_thread.run_sync(store.job_for_key, key)) is not None:
         if earlier.status == "queued" and earlier.submitted_at is None:       # its files are still being checked

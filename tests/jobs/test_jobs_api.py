@@ -326,6 +326,8 @@ def test_a_retried_submission_with_its_idempotency_key_gets_the_same_job(client:
     assert busy.status_code == 503 and busy.headers["retry-after"] and "still being read" in busy.json()["detail"]
     for job in (first, other):
         wait(client, job.json()["job_id"])
+    documented = client.app.openapi()["paths"]["/v1/reconstructions"]["post"]["parameters"]
+    assert {"name": "Idempotency-Key", "in": "header"}.items() <= documented[0].items()      # in /docs, as in the api page
 
 
 @pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)

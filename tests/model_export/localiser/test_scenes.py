@@ -255,6 +255,18 @@ def test_a_wider_csf_layer_widens_the_skull_inside_and_changes_nothing_else(head
     assert wide.mask.sum() > 1.2 * thin.mask.sum() and np.all(wide.mask[thin.mask])
 
 
+def test_csf_patches_widen_the_skull_inside_in_places_and_keep_the_brain(head: HeadModel, small_fields: None) -> None:
+    """The same seed with and without CSF patches of up to 8 mm: the same brain, a skull-inside mask
+    that holds the even layer's and more, by less than the 8 mm all round would add."""
+    even = synth_scene(head, np.random.default_rng(7), "heldout", random_contrast=False, csf_mm=2.0)
+    patchy = synth_scene(head, np.random.default_rng(7), "heldout", random_contrast=False, csf_mm=2.0, csf_patches_mm=8.0)
+    wide = synth_scene(head, np.random.default_rng(7), "heldout", random_contrast=False, csf_mm=10.0)
+    assert np.array_equal(even.brain, patchy.brain)
+    assert np.all(patchy.mask[even.mask]) and np.all(wide.mask[patchy.mask])
+    grown, all_round = patchy.mask.sum() - even.mask.sum(), wide.mask.sum() - even.mask.sum()
+    assert 0.1 * all_round < grown < 0.7 * all_round
+
+
 def test_a_shaded_scene_darkens_its_head_and_keeps_its_masks(head: HeadModel, small_fields: None) -> None:
     """With ``shading_share`` 1 every scene has a dark region over its head: the same head and masks
     as the same seed without it (every draw of the scene comes before the shading's), and inside the
