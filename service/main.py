@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import threading
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -37,7 +38,7 @@ log = logging.getLogger(__name__)
 SHUTDOWN_GRACE_S = 60
 """On SIGTERM the server stops taking connections and gives the requests under way this long to
 finish (a predict takes seconds; an upload still arriving after it is cut); running jobs are handed
-back to the queue at once (docs/deployment.md)."""
+back to the queue at once, not after that (docs/deployment.md)."""
 
 
 def create_app(settings: Settings | None = None, registry: ModelRegistry | None = None) -> FastAPI:
@@ -155,12 +156,24 @@ def run(argv: list[str] | None = None) -> None:
         log.warning("serving every host that reaches this address without API keys (SVRNET_API_KEYS)")
     # uvicorn's own access log writes each raw request path (job ids as sent, anything a client
     # puts in a URL); the service's JSON log records the route instead (service/api/middleware.py).
-    uvicorn.run(create_app(settings), host=settings.host, port=settings.port,
-                log_level=service_logging.server_log_level(settings.log_level),
-                log_config=service_logging.server_log_config(settings.log_level),
-                access_log=False, http=with_header_deadline(settings.header_timeout_s),
-                ws_ping_interval=settings.stream_ping_interval_s, ws_ping_timeout=settings.stream_ping_timeout_s,
-                timeout_graceful_shutdown=SHUTDOWN_GRACE_S)
+    app = create_app(settings)
+
+    class Server(uvicorn.Server):
+        def handle_exit(self, sig: int, frame: object) -> None:
+            """The first SIGTERM or SIGINT: uvicorn stops taking connections and lets the requests
+            under way finish; the running jobs are handed back to the queue now, not after that drain
+            (their work would be thrown away, and it would take the cores from the requests)."""
+            first = not self.should_exit
+            super().handle_exit(sig, frame)
+            if first and (runner := getattr(app.state, "job_runner", None)) is not None:
+                threading.Thread(target=runner.hand_back, name="job-hand-back", daemon=True).start()
+
+    Server(uvicorn.Config(app, host=settings.host, port=settings.port,
+                          log_level=service_logging.server_log_level(settings.log_level),
+                          log_config=service_logging.server_log_config(settings.log_level),
+                          access_log=False, http=with_header_deadline(settings.header_timeout_s),
+                          ws_ping_interval=settings.stream_ping_interval_s, ws_ping_timeout=settings.stream_ping_timeout_s,
+                          timeout_graceful_shutdown=SHUTDOWN_GRACE_S)).run()
 
 
 def run_worker() -> None:

@@ -7,9 +7,8 @@ skull-inside truth and its found / true volume (median over the scenes). A local
 fixed distance from the brain loses volume as the layer widens. ``--patches``: the same scenes with
 their drawn layer widened in patches by up to each of these (mm; :func:`~model_export.localiser.scenes.csf_patches`),
 as a real head's CSF is: wide in places, thin elsewhere; printed beside: the share of the true mask
-the localiser misses inside the widened CSF. ``--faint-skull``: every head's skull 0.5-1 mm thin and
-0.4-0.7 of the fluid's intensity (a young fetus's skull on a 1.1 mm grid, partial-volumed; the
-training scenes draw 1.5-4 mm at 0-0.15).
+the localiser misses inside the widened CSF. ``--faint-skull``: every head's skull thin and nearly as bright as
+the fluid (``synth_scene(faint_skull_share=1)``: a young fetus's skull on a 1.1 mm grid).
 
     .venv/bin/python model_export/experiments/csf_width.py [--model M] [--scenes 12] [--widths 1.5,3,5,7] [--patches 4,8] [--faint-skull]
 """
@@ -25,7 +24,6 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.atlas import DEFAULT_ATLAS_ROOT, VALIDATION_VOLUMES, load_volumes  # noqa: E402
-from model_export.localiser import scenes  # noqa: E402
 from model_export.localiser.evaluate import dice  # noqa: E402
 from model_export.localiser.scenes import HeadModel, synth_scene  # noqa: E402
 from service.preprocess.localise import Localiser, default_localiser  # noqa: E402
@@ -39,8 +37,6 @@ def main() -> None:
     ap.add_argument("--patches", default="", help="widest CSF patches, mm (comma-separated; 0: none)")
     ap.add_argument("--faint-skull", action="store_true", help="thin skulls of nearly the fluid's intensity")
     args = ap.parse_args()
-    if args.faint_skull:
-        faint_skulls()
     if not DEFAULT_ATLAS_ROOT.exists():
         sys.exit(f"needs the atlas volumes at {DEFAULT_ATLAS_ROOT}")
     localiser = Localiser.load(args.model) if args.model else default_localiser()
@@ -49,7 +45,8 @@ def main() -> None:
         rows = []
         for seed in range(args.scenes):
             scene = synth_scene(heads[seed % len(heads)], np.random.default_rng(1000 + seed), "heldout",
-                                random_contrast=False, csf_patches_mm=widest)
+                                random_contrast=False, csf_patches_mm=widest,
+                                faint_skull_share=float(args.faint_skull))
             found = localiser.localise(scene.volume).mask
             csf = scene.mask & ~scene.brain
             rows.append((dice(found, scene.mask), found.sum() / max(scene.mask.sum(), 1),
@@ -61,28 +58,13 @@ def main() -> None:
         rows = []
         for seed in range(args.scenes):
             scene = synth_scene(heads[seed % len(heads)], np.random.default_rng(1000 + seed), "heldout",
-                                random_contrast=False, csf_mm=width)
+                                random_contrast=False, csf_mm=width,
+                                faint_skull_share=float(args.faint_skull))
             found = localiser.localise(scene.volume).mask
             rows.append((dice(found, scene.mask), found.sum() / max(scene.mask.sum(), 1)))
         d, v = np.array(rows).T
         print(f"CSF layer {width:g} mm: Dice median {np.median(d):.3f} (min {d.min():.3f}); "
               f"found / true volume median {np.median(v):.2f}", flush=True)
-
-
-def faint_skulls() -> None:
-    """Every scene's skull drawn 0.5-1 mm thick at 0.4-0.7 of the fluid's intensity (the generator's
-    draws of the layers and intensities wrapped; everything else drawn as before)."""
-    layers, tissues = scenes.head_layers, scenes.intensities
-
-    def thin(rng: np.random.Generator, camouflaged: bool = False) -> tuple[float, float, float]:
-        csf, _, scalp = layers(rng, camouflaged)
-        return csf, rng.uniform(0.5, 1.0), scalp
-
-    def faint(rng: np.random.Generator, random_contrast: bool) -> dict[str, float]:
-        tissue = tissues(rng, random_contrast)
-        return {**tissue, "skull": tissue["fluid"] * rng.uniform(0.4, 0.7)}
-
-    scenes.head_layers, scenes.intensities = thin, faint
 
 
 if __name__ == "__main__":

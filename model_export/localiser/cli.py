@@ -35,6 +35,8 @@ def data(
     root: Path = DEFAULT_ATLAS_ROOT,
     shading_share: Annotated[float, typer.Option(help="share of stacks with a dark region over the head "
                                                       "(3 T shading, signal voids)")] = 0.0,
+    faint_skull_share: Annotated[float, typer.Option(help="share of heads whose skull is thin and nearly as bright "
+                                                          "as the fluid (a young fetus's)")] = 0.0,
 ) -> None:
     """Synthetic whole-uterus stacks: training volumes for ``train``, validation volumes for ``heldout``."""
     from model_export.atlas import split
@@ -42,7 +44,7 @@ def data(
 
     train_names, val_names = split(root)
     names = generate(out, train_names if style == "train" else val_names, count, style, grid_mm, seed, workers,
-                     keep_stack, root, shading_share)
+                     keep_stack, root, shading_share, faint_skull_share)
     typer.echo(f"{len(names)} shards in {out}")
 
 

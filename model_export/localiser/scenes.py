@@ -27,6 +27,9 @@ brain's shape and its setting, not one scanner's contrast.
   fall-off; slice-to-slice intensity changes; noise. With ``shading_share``, that share of the
   stacks also has a dark region fixed in the scanner over part or all of the head
   (:func:`~model_export.localiser.surroundings.shading`: 3 T dielectric shading, signal voids).
+  With ``faint_skull_share``, that share of the heads has a skull it hardly shows
+  (:data:`FAINT_SKULL_MM` thin at :data:`FAINT_SKULL_OF_FLUID` of the fluid's intensity: a young
+  fetus's skull, partial-volumed with the CSF and scalp on a 1.1 mm grid).
 
 The brain mask the network learns is everything inside the skull (brain and extra-axial CSF), as
 manual fetal brain masks are drawn.
@@ -63,6 +66,10 @@ from model_export.localiser.surroundings import (StackGeometry, _smooth_noise, b
 from service.io.volume import Volume
 
 STYLES = ("train", "heldout")
+FAINT_SKULL_MM = (0.5, 1.0)
+"""A faint skull's thickness (mm; :func:`head_layers` draws 1.5-4)."""
+FAINT_SKULL_OF_FLUID = (0.4, 0.7)
+"""A faint skull's intensity, as a share of the amniotic fluid's (the intensities draw 0-0.15)."""
 CAMOUFLAGE_SHARE = {"train": 0.25, "heldout": 0.15}
 """Share of stacks whose head lies in tissue as bright and as textured as the brain, as a head deep in
 the maternal pelvis does on a T2 scan: a thin CSF layer and the skull are all that tell where the brain
@@ -289,15 +296,17 @@ class Scene:
 
 
 def synth_stack(head: HeadModel, rng: np.random.Generator, style: str = "train",
-                random_contrast: bool | None = None, shading_share: float = 0.0) -> tuple[Volume, NDArray[np.bool_]]:
+                random_contrast: bool | None = None, shading_share: float = 0.0,
+                faint_skull_share: float = 0.0) -> tuple[Volume, NDArray[np.bool_]]:
     """One synthetic whole-uterus stack and its skull-inside mask (:func:`synth_scene`)."""
-    scene = synth_scene(head, rng, style, random_contrast, shading_share=shading_share)
+    scene = synth_scene(head, rng, style, random_contrast, shading_share=shading_share,
+                        faint_skull_share=faint_skull_share)
     return scene.volume, scene.mask
 
 
 def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
                 random_contrast: bool | None = None, rigid: bool = False, csf_mm: float | None = None,
-                shading_share: float = 0.0, csf_patches_mm: float = 0.0) -> Scene:
+                shading_share: float = 0.0, csf_patches_mm: float = 0.0, faint_skull_share: float = 0.0) -> Scene:
     """One synthetic whole-uterus stack, its masks and, with ``rigid`` (the head at the atlas's own
     size, not scaled by 0.9-1.1), its slices' true atlas poses. ``csf_mm``: the extra-axial CSF
     layer this thick instead of drawn (:func:`head_layers`; the other draws stay the same).
@@ -305,6 +314,9 @@ def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
     at 0, the default, nothing is drawn for it, so a seed gives the stack it gave without it).
     ``csf_patches_mm``: the CSF layer widened in patches by up to this much (:func:`csf_patches`,
     drawn from a child of ``rng``: the scene is otherwise the one the seed gives without them).
+    ``faint_skull_share``: the chance of a thin skull of nearly the fluid's intensity
+    (:data:`FAINT_SKULL_MM`, :data:`FAINT_SKULL_OF_FLUID`; drawn from a child of ``rng``, so the
+    scene is otherwise the one the seed gives without it).
 
     ``random_contrast``: every tissue's intensity drawn uniformly (True) or T2-like (False); by
     default drawn, for 20 % of the ``train`` stacks and half of the ``heldout`` ones. The same seed
@@ -337,6 +349,10 @@ def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
     layers = head_layers(rng, camouflaged)
     if csf_mm is not None:
         layers = (float(csf_mm), *layers[1:])
+    faint = rng.spawn(1)[0] if faint_skull_share > 0 else None           # the scene's own draws untouched
+    if faint is not None and faint.random() < faint_skull_share:
+        layers = (layers[0], float(faint.uniform(*FAINT_SKULL_MM)), layers[2])
+        tissue = {**tissue, "skull": tissue["fluid"] * float(faint.uniform(*FAINT_SKULL_OF_FLUID))}
     face_rng = np.random.default_rng(int(rng.integers(2**31)))     # the same draws after it, with a face or not
     face = Face.draw(face_rng, head, tissue, level, layers[0] + layers[1], style) if with_face else None
     extra = csf_patches(rng.spawn(1)[0], head, csf_patches_mm) if csf_patches_mm > 0 else None   # the stream untouched

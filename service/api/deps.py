@@ -98,10 +98,28 @@ def early_rejection(state: State, method: str, path: str, headers: dict[str, str
     if needs_key(settings, path) and not api_key_ok(settings.key_set(), headers.get("authorization"),
                                                     headers.get("x-api-key")):
         return Unauthorized(UNAUTHORIZED)
-    if method == "POST" and path in ("/v1/predict", "/v1/masks"):
-        return saturated(state)
     if method == "POST" and path == "/v1/reconstructions":
-        return queue_full(state) or saturated(state)
+        return queue_full(state)
+    return None
+
+
+SLOT_ROUTES = frozenset({("POST", "/v1/predict"), ("POST", "/v1/masks"), ("POST", "/v1/reconstructions")})
+"""The routes that take a processing slot (:func:`processing_slot`) for as long as they run."""
+SLOT_HELD = "processing_slot_held"
+"""The request-scope key that says the middleware took the request's slot before its upload was read."""
+
+
+async def take_slot(state: State) -> Saturated | None:
+    """Take one of the processing slots now, before the upload is read: None when taken (the caller
+    releases it, ``state.slots.release()``, when the request ends), else 503. Requests that arrive
+    together are each given a slot or refused at once; a slot only checked here and taken after
+    the body had let all of them upload, and refused the surplus only then."""
+    sem: asyncio.Semaphore | None = getattr(state, "slots", None)
+    if sem is None:
+        return None
+    if sem.locked():
+        return saturated(state)
+    await sem.acquire()          # free: asyncio takes it without waiting, so no other request comes between
     return None
 
 
@@ -123,7 +141,11 @@ def queue_full(state: State) -> QueueFull | None:
 
 
 async def processing_slot(request: Request) -> AsyncIterator[None]:
-    """One of ``max_concurrent`` processing slots, or 503 with ``Retry-After`` at once."""
+    """One of ``max_concurrent`` processing slots, or 503 with ``Retry-After`` at once; the slot the
+    middleware took for the request before its upload was read (:func:`take_slot`), where it did."""
+    if request.scope.get("state", {}).get(SLOT_HELD):
+        yield
+        return
     if (busy := saturated(request.app.state)) is not None:
         raise busy
     sem: asyncio.Semaphore = request.app.state.slots

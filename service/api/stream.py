@@ -27,6 +27,7 @@ from typing import TypeVar
 import numpy as np
 from anyio import CapacityLimiter, to_thread
 from fastapi import APIRouter, WebSocket
+from starlette.datastructures import State
 from starlette.websockets import WebSocketDisconnect
 
 from service.api.deps import UNAUTHORIZED, api_key_ok
@@ -85,22 +86,31 @@ class StreamConnection:
         self.binaries_read = 0                      # binary frames the slice message being read has taken
         self.last_frame_at = self.started           # when the last binary frame came (a pose's latency starts)
         self.orphans = 0                            # binary frames a refused slice message announced, not read
+        self.active_at = self.started               # when the client last sent a message that was answered
+        self.counted = False                        # this connection holds one of the session slots
 
     async def send(self, message: dict) -> None:
         async with self.send_lock:
             await self.ws.send_text(json.dumps(message))
 
+    def idle_limit_s(self) -> float:
+        """How long the client may stay idle: :data:`START_TIMEOUT_S` before its session starts (a
+        connection that never starts one holds nothing for long), ``stream_idle_s`` after."""
+        return self.settings.stream_idle_s if self.session is not None else \
+            min(START_TIMEOUT_S, self.settings.stream_idle_s)
+
     async def receive(self) -> dict:
         """The next frame (``{"text": …}`` or ``{"bytes": …}``); :class:`_Closed` when the client left
-        or stayed idle past ``stream_idle_s`` (then the server closes with 1001)."""
+        or stayed idle past :meth:`idle_limit_s` (then the server closes with 1001). Only answered
+        messages count as activity: a client that sends nothing but refused ones is idle."""
         if self.pending is not None:
             frame, self.pending = self.pending, None
             return frame
+        limit = self.idle_limit_s()
         try:
-            frame = await asyncio.wait_for(self.ws.receive(), self.settings.stream_idle_s)
+            frame = await asyncio.wait_for(self.ws.receive(), max(limit - (time.perf_counter() - self.active_at), 0.0))
         except TimeoutError:
-            await self.send(error_message(RequestTimeout(f"session: idle for {self.settings.stream_idle_s:g} s; "
-                                                         "closing")))
+            await self.send(error_message(RequestTimeout(f"session: idle for {limit:g} s; closing")))
             await self.ws.close(GOING_AWAY)
             raise _Closed from None
         if frame["type"] == "websocket.disconnect":
@@ -123,6 +133,7 @@ class StreamConnection:
                 try:
                     msg = parse(frame["text"])
                     await self.handle(msg)
+                    self.active_at = time.perf_counter()
                 except ServiceError as e:
                     log.info("stream message refused", extra={"status": e.status})
                     self.orphans = self.unread_frames(msg)
@@ -139,6 +150,8 @@ class StreamConnection:
         finally:
             if self.firming is not None:
                 self.firming.cancel()
+            if self.counted:
+                self.ws.app.state.stream_sessions -= 1
 
     async def handle(self, msg: dict) -> None:
         kind = msg["type"]
@@ -168,6 +181,13 @@ class StreamConnection:
         options = SessionOptions.from_start(msg)
         model = self.registry.resolve(options.model)
         estimator = self.registry.get(model)
+        state = self.ws.app.state
+        if (busy := sessions_full(state)) is not None:
+            await self.send(error_message(busy, retry_after_s=self.settings.retry_after_s))
+            await self.ws.close(TRY_AGAIN_LATER)
+            raise _Closed
+        state.stream_sessions += 1                  # a slot from the session's start, not the connection's
+        self.counted = True
         self.model = model
         localiser = self.localisers.get() if self.localisers.localisers else None
         limits = StreamLimits.of(self.settings)
@@ -313,6 +333,16 @@ def _integer(msg: dict, name: str, kind: str) -> int:
 AUTH_TIMEOUT_S = 10.0
 """How long a connection without a key in its headers may take to send its ``auth`` message: until
 then it holds no session slot, so it is not left waiting as long as an idle session."""
+START_TIMEOUT_S = 10.0
+"""How long a connection may take to start its session (its ``start`` answered): until then it holds
+no session slot, and a connection that never starts one is closed (1001) rather than left open."""
+
+
+def sessions_full(state: State) -> Saturated | None:
+    """503 when ``stream_max_sessions`` sessions have started and not ended."""
+    if state.stream_sessions >= state.settings.stream_max_sessions:
+        return Saturated(f"session: {state.settings.stream_max_sessions} stream sessions are open; try again later")
+    return None
 
 
 @router.websocket("/v1/stream")
@@ -331,13 +361,8 @@ async def stream(ws: WebSocket) -> None:
             await ws.send_text(json.dumps(error_message(Unauthorized(UNAUTHORIZED))))
             await ws.close(POLICY_VIOLATION)
             return
-    if state.stream_sessions >= state.settings.stream_max_sessions:
-        busy = Saturated(f"session: {state.settings.stream_max_sessions} stream sessions are open; try again later")
+    if (busy := sessions_full(state)) is not None:          # refused at once; the slot is taken at `start`
         await ws.send_text(json.dumps(error_message(busy, retry_after_s=state.settings.retry_after_s)))
         await ws.close(TRY_AGAIN_LATER)
         return
-    state.stream_sessions += 1
-    try:
-        await StreamConnection(ws).run()
-    finally:
-        state.stream_sessions -= 1
+    await StreamConnection(ws).run()

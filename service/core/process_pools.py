@@ -18,6 +18,9 @@ Example (a pool whose one process is ended at once):
 from __future__ import annotations
 
 import multiprocessing.process
+import os
+import threading
+import time
 from concurrent.futures import ProcessPoolExecutor
 
 
@@ -40,3 +43,17 @@ def end_pool(pool: ProcessPoolExecutor, grace_s: float, timeout_s: float = 5.0) 
             worker.kill()
             worker.join(timeout_s)
     return workers
+
+
+def watch_parent(parent: int | None = None, interval_s: float = 0.5) -> None:
+    """In a pool's process: exit as soon as the process that started it is gone (even after its
+    ``kill -9``), so no orphan keeps running a job that the queue will hand to another worker, or
+    holds the memory of a stage nobody will ask for again."""
+    parent = os.getppid() if parent is None else parent
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(interval_s)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()

@@ -97,6 +97,8 @@ class LocalRunner(JobRunner):
         self.lock = threading.Lock()
         self.closing = False
         """Set at shutdown: the workers stopped then are not lost ones, and no pool replaces theirs."""
+        self.stopping = threading.Lock()
+        """Held while the runner stops: one stop at a time."""
         self.pool = self._new_pool()
         self.futures: dict[str, Future] = {}
         self.stopped_for: str | None = None
@@ -126,6 +128,9 @@ class LocalRunner(JobRunner):
     def submit(self, job_id: str) -> None:
         self.store.update(job_id, submitted_at=time.time())
         with self.lock:
+            if self.closing:                   # the server is stopping: the job waits, queued, for its next start
+                log.info("job queued for the next start", extra={"job_id": job_id})
+                return
             try:
                 future = self.pool.submit(_run, str(self.store.data_dir), str(self.models_dir), job_id,
                                           None if self.localisers_dir is None else str(self.localisers_dir))
@@ -232,23 +237,33 @@ class LocalRunner(JobRunner):
     def stats(self) -> dict[str, float]:
         return {"workers": float(self.workers)}
 
-    def shutdown(self, timeout_s: float = 10.0) -> list[str]:
+    def hand_back(self, timeout_s: float = 10.0) -> list[str]:
         """Stop every worker process (SIGTERM, then SIGKILL after ``timeout_s``) and put the jobs they
-        were running back in the queue; the run stopped so does not count as one of their attempts
-        (a rolling restart never fails a job; a server killed outright does count, at the next start)."""
-        with self.lock:
-            self.closing = True
-            running = list(self.futures)               # before the pool's end empties them
-        end_pool(self.pool, grace_s=0.0, timeout_s=timeout_s)
-        handed_back: list[str] = []
-        if self.started:
-            try:                                       # an orderly stop is not the job's fault: no attempt spent
-                handed_back = [j for j in self.store.recover(self.max_attempts, spared=running) if j in running]
-            except StoreUnavailable:
-                log.warning("the job store cannot be written; running jobs are re-queued at the next start")
-        for job_id in handed_back:
-            log.info("handed a job back to the queue", extra={"job_id": job_id})
-        if self.owner is not None:
-            self.owner.close()                         # the lock goes with it
-        self.owner, self.started = None, False
+        were running back in the queue, as the server begins to stop; the run stopped so does not
+        count as one of their attempts (a rolling restart never fails a job; a server killed outright
+        does count, at the next start). Jobs submitted after it wait, queued, for the next start; the
+        store stays this server's until :meth:`shutdown`."""
+        with self.stopping:
+            with self.lock:
+                self.closing = True
+                running = list(self.futures)           # before the pool's end empties them
+            end_pool(self.pool, grace_s=0.0, timeout_s=timeout_s)
+            handed_back: list[str] = []
+            if self.started:
+                try:                                   # an orderly stop is not the job's fault: no attempt spent
+                    handed_back = [j for j in self.store.recover(self.max_attempts, spared=running) if j in running]
+                except StoreUnavailable:
+                    log.warning("the job store cannot be written; running jobs are re-queued at the next start")
+            for job_id in handed_back:
+                log.info("handed a job back to the queue", extra={"job_id": job_id})
+            self.started = False
+            return handed_back
+
+    def shutdown(self, timeout_s: float = 10.0) -> list[str]:
+        """:meth:`hand_back` (where it has not run yet), then the store's lock given up."""
+        handed_back = self.hand_back(timeout_s)
+        with self.stopping:
+            if self.owner is not None:
+                self.owner.close()                     # the lock goes with it
+            self.owner = None
         return handed_back

@@ -30,9 +30,10 @@ from rq.job import Job as RqJob
 from rq.job import JobStatus
 from rq.registry import clean_registries
 
+from service.core.process_pools import watch_parent
 from service.core.settings import Settings
 from service.jobs.redis_store import RedisJobStore
-from service.jobs.runner import INTERRUPTED, JobRunner, lost_worker, watch_parent
+from service.jobs.runner import INTERRUPTED, JobRunner, lost_worker
 from service.jobs.store import Job
 from service.jobs.worker import TIMED_OUT, run_job
 

@@ -1,16 +1,13 @@
 """The job-runner interface: what the API asks of a back-end (:mod:`service.jobs.backends` chooses
-one), and the watch a worker keeps on the process that started it."""
+one), and how a worker process starts."""
 
 from __future__ import annotations
 
-import os
-import threading
-import time
 from abc import ABC, abstractmethod
 
 from service.core import logging as service_logging
+from service.core.process_pools import watch_parent
 from service.core.threads import limit_blas_threads
-
 
 
 class JobRunner(ABC):
@@ -41,6 +38,12 @@ class JobRunner(ABC):
         workers = self.stats().get("workers")
         return None if workers is None else int(workers)
 
+    def hand_back(self) -> list[str]:
+        """As the API begins to stop (before the requests under way finish): stop the jobs this
+        process runs and hand them back to the queue; the jobs handed back. Workers of their own
+        (the distributed back-end) run on: nothing to hand back."""
+        return []
+
     @abstractmethod
     def shutdown(self) -> list[str]:
         """At the API's stop: the jobs handed back to the queue."""
@@ -64,21 +67,8 @@ def lost_worker(max_attempts: int) -> str:
 
 def start_worker(parent: int, log_level: str, blas_threads: int = 1) -> None:
     """A pool worker process's start: the server's JSON logging (a failed job's line carries its id
-    and the kind of error), :func:`watch_parent` and the server's BLAS threads
+    and the kind of error), :func:`~service.core.process_pools.watch_parent` and the server's BLAS threads
     (:func:`~service.core.threads.limit_blas_threads`: a job runs beside the server's requests)."""
     service_logging.configure(log_level)
     watch_parent(parent)
     limit_blas_threads(blas_threads)
-
-
-def watch_parent(parent: int | None = None, interval_s: float = 0.5) -> None:
-    """In a worker process: exit as soon as the process that started it is gone (even after its
-    ``kill -9``), so no orphan keeps running a job that the queue will hand to another worker."""
-    parent = os.getppid() if parent is None else parent
-
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(interval_s)
-        os._exit(0)
-
-    threading.Thread(target=watch, name="parent-watch", daemon=True).start()

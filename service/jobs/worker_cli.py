@@ -33,10 +33,10 @@ from rq.job import Job as RqJob
 from rq.worker import Worker
 
 from service.core import logging as service_logging
+from service.core.process_pools import watch_parent
 from service.core.settings import Settings, load_settings
 from service.core.threads import limit_blas_threads
 from service.jobs.rq_runner import set_context
-from service.jobs.runner import watch_parent
 
 log = logging.getLogger(__name__)
 

@@ -27,7 +27,7 @@ from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, TypeVar
 
-from service.core.process_pools import end_pool
+from service.core.process_pools import end_pool, watch_parent
 from service.core.threads import limit_blas_threads
 
 BACKGROUND_NICE = 10
@@ -61,9 +61,11 @@ server's own work (:func:`~service.core.threads.limit_blas_threads`)."""
 
 
 def _start_stage_process() -> None:
-    """The stage process's start: a lower priority, one BLAS thread."""
+    """The stage process's start: a lower priority, one BLAS thread, and an end with the server's
+    process (a server killed with ``kill -9`` leaves no stage process behind)."""
     lower_priority()
     limit_blas_threads(STAGE_BLAS_THREADS)
+    watch_parent()
 
 
 def stage_process() -> ProcessPoolExecutor:

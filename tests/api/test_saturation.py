@@ -5,6 +5,7 @@ read), and at most
 
 from __future__ import annotations
 
+import asyncio
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -28,6 +29,48 @@ def test_a_saturated_server_refuses_uploads_before_reading_them(oracle, route: s
         assert (status, read, headers["retry-after"]) == (503, False, "4")
         r = client.post(route, files=[("stacks", ("s.nii.gz", b"x"))])
         assert r.status_code == 503 and r.headers["retry-after"] == "4"
+
+
+def test_requests_that_arrive_together_are_refused_before_their_uploads(oracle) -> None:  # noqa: ANN001
+    """One slot, two uploads at the same moment: the second is refused (503) while the first is still
+    uploading, its body unread; the first's slot is free again once it has its answer."""
+    with make_client(ModelRegistry({"default": oracle}), max_concurrent=1, retry_after_s=3) as client:
+        app, answers, read = client.app, {}, {"second": False}
+
+        def scope() -> dict:
+            return {"type": "http", "method": "POST", "path": "/v1/predict", "raw_path": b"/v1/predict",
+                    "query_string": b"", "headers": [(b"content-type", b"multipart/form-data; boundary=xx")],
+                    "app": app, "root_path": "", "scheme": "http", "server": ("test", 80), "client": ("test", 1)}
+
+        def sender(name: str):  # noqa: ANN202
+            async def send(message: dict) -> None:
+                if message["type"] == "http.response.start":
+                    answers[name] = (message["status"], {k.decode(): v.decode() for k, v in message["headers"]})
+            return send
+
+        async def scenario() -> None:
+            uploading, finish = asyncio.Event(), asyncio.Event()
+
+            async def slow() -> dict:                      # the first client's body, still on its way
+                uploading.set()
+                await finish.wait()
+                return {"type": "http.request", "body": b"x" * 1000, "more_body": False}
+
+            async def quick() -> dict:
+                read["second"] = True
+                return {"type": "http.request", "body": b"x" * 1000, "more_body": False}
+
+            first = asyncio.create_task(app(scope(), slow, sender("first")))
+            await uploading.wait()
+            await app(scope(), quick, sender("second"))
+            finish.set()
+            await first
+
+        asyncio.run(scenario())
+        status, headers = answers["second"]
+        assert (status, read["second"], headers["retry-after"]) == (503, False, "3")
+        assert answers["first"][0] == 400                  # its garbage body, read and refused: not a 503
+        assert app.state.slots._value == 1                 # its slot given back
 
 
 def test_no_more_than_two_files_decode_at_once_across_requests(monkeypatch: pytest.MonkeyPatch,

@@ -4,6 +4,7 @@ truth; bad messages answered with an ``error`` while the session goes on; keys a
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Iterator
 
 import numpy as np
@@ -177,6 +178,57 @@ def test_keys_and_the_session_limit(case) -> None:  # noqa: ANN001
                 with pytest.raises(WebSocketDisconnect) as closed:
                     second.receive_json()
                 assert closed.value.code == 1013
+
+
+def test_a_session_slot_is_taken_by_a_start_and_a_connection_that_never_starts_is_closed(case, monkeypatch) -> None:  # noqa: ANN001
+    """One session slot: a connection that says nothing holds none (another starts its session
+    beside it) and is closed going away after the start deadline; a start while the slot is taken
+    is refused with 503 and 1013; the slot is free again when the session ends."""
+    from service.api import stream
+
+    monkeypatch.setattr(stream, "START_TIMEOUT_S", 5.0)
+    with make_client(ModelRegistry({"default": case[0]}), stream_max_sessions=1) as client:
+        with client.websocket_connect("/v1/stream") as silent:
+            with client.websocket_connect("/v1/stream") as first:
+                first.send_text(json.dumps({"type": "start", "mc_samples": 5}))
+                assert first.receive_json()["type"] == "ready"
+                silent.send_text(json.dumps({"type": "start", "mc_samples": 5}))
+                busy = silent.receive_json()
+                assert busy["status"] == 503 and busy["retry_after_s"] >= 1
+                with pytest.raises(WebSocketDisconnect) as closed:
+                    silent.receive_json()
+                assert closed.value.code == 1013
+                first.send_text(json.dumps({"type": "end"}))
+                assert first.receive_json()["type"] == "summary"
+        assert client.app.state.stream_sessions == 0
+        monkeypatch.setattr(stream, "START_TIMEOUT_S", 0.5)
+        with client.websocket_connect("/v1/stream") as idle:                  # never starts: closed
+            error = idle.receive_json()
+            assert error["status"] == 408 and "idle for 0.5 s" in error["detail"]
+            with pytest.raises(WebSocketDisconnect) as closed:
+                idle.receive_json()
+            assert closed.value.code == 1001
+
+
+def test_refused_messages_do_not_keep_a_session_open(case) -> None:  # noqa: ANN001
+    """A client that sends only messages the server refuses is idle: closed after ``stream_idle_s``
+    however often it sends them."""
+    with make_client(ModelRegistry({"default": case[0]}), stream_idle_s=0.6) as client:
+        with client.websocket_connect("/v1/stream") as ws:
+            ws.send_text(json.dumps({"type": "start", "mc_samples": 5}))
+            assert ws.receive_json()["type"] == "ready"
+            t0 = time.perf_counter()
+            for _ in range(20):
+                ws.send_text("garbage{")
+                answer = ws.receive_json()
+                if answer["status"] == 408:
+                    break
+                assert answer["status"] == 400
+                time.sleep(0.1)
+            assert answer["status"] == 408 and time.perf_counter() - t0 < 1.5
+            with pytest.raises(WebSocketDisconnect) as closed:
+                ws.receive_json()
+            assert closed.value.code == 1001
 
 
 def test_a_connection_that_does_not_authenticate_in_time_is_closed(case, monkeypatch) -> None:  # noqa: ANN001

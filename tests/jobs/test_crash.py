@@ -70,6 +70,44 @@ def test_a_server_stopped_mid_job_leaves_nothing_and_the_job_completes_after_res
         server.kill_group()
 
 
+@pytest.mark.slow
+def test_a_stopping_server_hands_its_running_job_back_at_once_while_requests_finish(
+        tmp_path: Path, job_files: tuple[list, dict]) -> None:
+    """SIGTERM with a job running and an upload still arriving: the job is back in the queue (no
+    attempt spent) and its worker gone within seconds, while the server still waits for the upload;
+    the server ends when the upload does."""
+    import socket
+
+    files, poses = job_files
+    server = Server(tmp_path / "data", tmp_path / "server.log")
+    try:
+        r = httpx.post(f"{server.url}/v1/reconstructions", files=files + [("poses", ("p.json", json.dumps(poses)))],
+                       data={"resolution_mm": "1.5", "svr_iterations": "2", "atlas_frame": "false"}, timeout=60)
+        job_id = r.json()["job_id"]
+        deadline = time.time() + 60
+        while (st := _status(server, job_id))["status"] == "queued" or st["stage"] in ("starting", "reading"):
+            assert time.time() < deadline, st
+            time.sleep(0.05)
+        worker = _job_worker(server)
+        upload = socket.create_connection(("127.0.0.1", server.port))
+        upload.sendall(b"POST /v1/predict HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary=b\r\n"
+                       b"Content-Length: 100000\r\n\r\n--b\r\n")           # a body still on its way
+        time.sleep(0.5)
+        server.proc.send_signal(signal.SIGTERM)
+        deadline = time.time() + 15
+        store = SqliteJobStore(tmp_path / "data")
+        while (job := store.get(job_id)).status == "running" or worker.is_running():
+            assert time.time() < deadline, (job, worker)
+            time.sleep(0.2)
+        assert job.status == "queued" and job.attempts == 0, job
+        assert server.proc.poll() is None                               # still waiting for the upload
+        upload.close()
+        server.proc.wait(timeout=60)
+        assert not server.leftovers()
+    finally:
+        server.kill_group()
+
+
 def _job_worker(server: Server) -> psutil.Process:
     """The server's job worker process (a spawned pool process, not multiprocessing's resource tracker)."""
     workers = [p for p in psutil.Process(server.proc.pid).children()

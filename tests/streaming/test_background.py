@@ -83,3 +83,36 @@ def test_the_server_s_lifespan_ends_the_stage_process() -> None:
         worker = _worker()                                               # a stream's firm-up started it
         assert worker.is_alive()
     assert not worker.is_alive()
+
+
+def test_the_stage_process_ends_with_a_server_killed_at_once(tmp_path) -> None:  # noqa: ANN001
+    """``kill -9`` of the process that started the stage process (no lifespan runs): the stage
+    process sees its parent gone and ends, rather than holding its memory for ever."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    script = ("import os, time\n"
+              "from service.streaming.background import stage_process\n"
+              "print(stage_process().submit(os.getpid).result(), flush=True)\n"
+              "time.sleep(60)\n")
+    server = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, cwd=tmp_path,
+                              env={**os.environ, "PYTHONPATH": os.getcwd()})
+    try:
+        child = int(server.stdout.readline())
+        os.kill(child, 0)                                                  # running
+        server.send_signal(signal.SIGKILL)
+        server.wait(10)
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline:
+            try:
+                os.kill(child, 0)
+            except ProcessLookupError:
+                break
+            time.sleep(0.1)
+        else:
+            os.kill(child, signal.SIGKILL)
+            raise AssertionError("the stage process outlived the server")
+    finally:
+        server.kill()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from model_export.localiser import surroundings
 from model_export.localiser.scenes import HeadModel, StackGeometry, synth_scene, synth_stack
@@ -265,6 +266,18 @@ def test_csf_patches_widen_the_skull_inside_in_places_and_keep_the_brain(head: H
     assert np.all(patchy.mask[even.mask]) and np.all(wide.mask[patchy.mask])
     grown, all_round = patchy.mask.sum() - even.mask.sum(), wide.mask.sum() - even.mask.sum()
     assert 0.1 * all_round < grown < 0.7 * all_round
+
+
+def test_a_faint_skull_brightens_the_skull_and_keeps_the_scene(head: HeadModel, small_fields: None) -> None:
+    """The same seed with every skull faint: the same brain and skull-inside mask, the same picture
+    inside it; just outside it (where the skull is), brighter."""
+    plain = synth_scene(head, np.random.default_rng(7), "heldout", random_contrast=False)
+    faint = synth_scene(head, np.random.default_rng(7), "heldout", random_contrast=False, faint_skull_share=1.0)
+    assert np.array_equal(plain.brain, faint.brain) and np.array_equal(plain.mask, faint.mask)
+    deep = ndimage.binary_erosion(plain.mask, np.ones((5, 5, 1), bool))
+    np.testing.assert_allclose(faint.volume.array[deep], plain.volume.array[deep], rtol=0.05)
+    rim = ndimage.binary_dilation(plain.mask, np.ones((3, 3, 1), bool)) & ~plain.mask
+    assert np.median(faint.volume.array[rim]) > 1.5 * np.median(plain.volume.array[rim])
 
 
 def test_a_shaded_scene_darkens_its_head_and_keeps_its_masks(head: HeadModel, small_fields: None) -> None:
