@@ -148,6 +148,17 @@ def check_slices_to_use(uploads: list[StackUpload], accepted: list[np.ndarray] |
                                "reconstruct")
 
 
+def _made_by_key(earlier: Job, response: Response, retry_after_s: float) -> dict:
+    """The answer to a submission whose idempotency key made ``earlier``: that job, or 503 while the
+    first submission's files are still being checked (the retry then gets the job, or its refusal)."""
+    if earlier.status == "queued" and earlier.submitted_at is None:
+        raise Saturated(f"{IDEMPOTENCY_HEADER}: the first submission with this key is still being read; send it "
+                        "again after Retry-After (it answers with that job, or with why it was refused)",
+                        retry_after_s=retry_after_s)
+    response.headers["Location"] = f"/v1/reconstructions/{earlier.id}"          # the job this key made: not another
+    return {"job_id": earlier.id, "status": earlier.status, "status_url": f"/v1/reconstructions/{earlier.id}"}
+
+
 @router.post("", status_code=202, response_model=JobCreated, summary="Start a reconstruction job",
              responses={202: {"headers": {"Location": {"description": "the job's status URL",
                                                        "schema": {"type": "string"}}}}, **UPLOAD_ERRORS},
@@ -180,12 +191,7 @@ async def submit(
     key = idempotency_digest(idempotency_key)
     store = _store(request)
     if key is not None and (earlier := await to_thread.run_sync(store.job_for_key, key)) is not None:
-        if earlier.status == "queued" and earlier.submitted_at is None:       # its files are still being checked
-            raise Saturated(f"{IDEMPOTENCY_HEADER}: the first submission with this key is still being read; send it "
-                            "again after Retry-After (it answers with that job, or with why it was refused)",
-                            retry_after_s=settings.retry_after_s)
-        response.headers["Location"] = f"/v1/reconstructions/{earlier.id}"      # the job this key made: not another
-        return {"job_id": earlier.id, "status": earlier.status, "status_url": f"/v1/reconstructions/{earlier.id}"}
+        return _made_by_key(earlier, response, settings.retry_after_s)
     if (full := queue_full(request.app.state)) is not None:
         raise full
     raw = (await request.form()).get("poses")
@@ -193,11 +199,14 @@ async def submit(
         raise PayloadTooLarge(f"poses: {raw.size} bytes; the poses of a request's stacks take at most "
                               f"{MAX_POSES_BYTES >> 20} MB")
     poses_text = (await raw.read()).decode("utf-8", "replace") if hasattr(raw, "read") else raw
-    job = store.create({"resolution_mm": resolution_mm, "svr_iterations": svr_iterations, "mc_samples": form.mc_samples,
-                        "variance_threshold": form.variance_threshold, "max_expected_error_mm": form.max_expected_error_mm,
-                        "model": model, "slice_order": form.slice_order, "atlas_frame": atlas_frame,
-                        "masks_hold_csf": form.masks_hold_csf, "slice_thickness_mm": thickness,
-                        **({"idempotency_key": key} if key is not None else {})})
+    job, made = store.create_once({
+        "resolution_mm": resolution_mm, "svr_iterations": svr_iterations, "mc_samples": form.mc_samples,
+        "variance_threshold": form.variance_threshold, "max_expected_error_mm": form.max_expected_error_mm,
+        "model": model, "slice_order": form.slice_order, "atlas_frame": atlas_frame,
+        "masks_hold_csf": form.masks_hold_csf, "slice_thickness_mm": thickness,
+        **({"idempotency_key": key} if key is not None else {})})
+    if not made:                                     # a submission with the same key came in meanwhile
+        return _made_by_key(job, response, settings.retry_after_s)
     inputs = store.directory(job.id) / "inputs"
     inputs.mkdir()
     try:

@@ -122,17 +122,36 @@ class RedisJobStore(JobStore):
             return False
 
     @_answering
-    def create(self, params: dict) -> Job:
+    def create(self, params: dict, map_key: bool = True) -> Job:
+        """A new ``queued`` job; with ``map_key``, its idempotency key (if any) names it from now on."""
         job_id, now = self._new_id(), repr(time.time())
         with self.redis.pipeline(transaction=True) as pipe:
             pipe.hset(self._key(job_id), mapping={"id": job_id, "status": "queued", "stage": "queued", "progress": "0",
                                                   "params": json.dumps(params), "attempts": "0", "created_at": now,
                                                   "updated_at": now})
             pipe.zadd(f"{self.prefix}state:queued", {job_id: float(now)})
-            if params.get("idempotency_key"):
+            if map_key and params.get("idempotency_key"):
                 pipe.set(self._idempotency(params["idempotency_key"]), job_id)
             pipe.execute()
         return self.get(job_id)  # type: ignore[return-value]
+
+    @_answering
+    def create_once(self, params: dict) -> tuple[Job, bool]:
+        key = params.get("idempotency_key")
+        if not key:
+            return self.create(params), True
+        made = self.create(params, map_key=False)
+        if self.redis.set(self._idempotency(key), made.id, nx=True):      # the key is this job's
+            return made, True
+        earlier = self.job_for_key(key)
+        if earlier is None:                                              # its job was deleted meanwhile
+            self.redis.set(self._idempotency(key), made.id)
+            return made, True
+        with self.redis.pipeline(transaction=True) as pipe:              # another submission's: ours goes
+            pipe.zrem(f"{self.prefix}state:queued", made.id)
+            pipe.delete(self._key(made.id))
+            pipe.execute()
+        return earlier, False
 
     def _idempotency(self, key: str) -> str:
         return f"{self.prefix}idempotency:{key}"

@@ -123,6 +123,12 @@ class JobStore(ABC):
         """A new ``queued`` job with an empty folder."""
 
     @abstractmethod
+    def create_once(self, params: dict) -> tuple[Job, bool]:
+        """:meth:`create` and True; but where a job of ``params["idempotency_key"]`` exists already,
+        that job and False. Checked and created in one step: two submissions with one key that arrive
+        at the same moment make one job."""
+
+    @abstractmethod
     def get(self, job_id: str) -> Job | None:
         """The job, or None."""
 
@@ -193,6 +199,10 @@ CREATE TABLE IF NOT EXISTS jobs (
 """
 
 
+KEY_QUERY = "SELECT id FROM jobs WHERE json_extract(params, '$.idempotency_key') = ? ORDER BY created_at DESC LIMIT 1"
+"""The latest job created with an idempotency key."""
+
+
 class SqliteJobStore(JobStore):
     """The embedded back-end: jobs in ``<data_dir>/jobs.sqlite3`` (WAL, safe across the server's
     worker processes); files in ``<data_dir>/jobs/<id>/``."""
@@ -241,10 +251,27 @@ class SqliteJobStore(JobStore):
                     "VALUES (?, 'queued', 'queued', 0, ?, ?, ?)", (job_id, json.dumps(params), now, now))
         return self.get(job_id)  # type: ignore[return-value]
 
+    def create_once(self, params: dict) -> tuple[Job, bool]:
+        key = params.get("idempotency_key")
+        if not key:
+            return self.create(params), True
+        job_id, now = self._new_id(), time.time()
+        with self._db() as db:
+            db.execute("BEGIN IMMEDIATE")             # the check and the insert, one writer at a time
+            try:
+                row = db.execute(KEY_QUERY, (key,)).fetchone()
+                if row is None:
+                    db.execute("INSERT INTO jobs (id, status, stage, progress, params, created_at, updated_at) "
+                               "VALUES (?, 'queued', 'queued', 0, ?, ?, ?)", (job_id, json.dumps(params), now, now))
+                db.execute("COMMIT")
+            except BaseException:
+                db.execute("ROLLBACK")
+                raise
+        return (self.get(job_id), True) if row is None else (self.get(row["id"]), False)  # type: ignore[return-value]
+
     def job_for_key(self, key: str) -> Job | None:
         with self._db() as db:
-            row = db.execute("SELECT id FROM jobs WHERE json_extract(params, '$.idempotency_key') = ? "
-                             "ORDER BY created_at DESC LIMIT 1", (key,)).fetchone()
+            row = db.execute(KEY_QUERY, (key,)).fetchone()
         return None if row is None else self.get(row["id"])
 
     def get(self, job_id: str) -> Job | None:

@@ -34,6 +34,27 @@ def test_lifecycle_and_claim_is_atomic(store: JobStore) -> None:
 
 
 @both
+def test_submissions_with_one_key_at_the_same_moment_make_one_job(store: JobStore) -> None:
+    """Eight submissions with one idempotency key at once: one job made, the others given it; a
+    submission without a key always makes its own."""
+    from concurrent.futures import ThreadPoolExecutor
+    from threading import Barrier
+
+    start = Barrier(8)
+
+    def submit(_: int) -> tuple[str, bool]:
+        start.wait()
+        job, made = store.create_once({"resolution_mm": 0.8, "idempotency_key": "k" * 64})
+        return job.id, made
+
+    with ThreadPoolExecutor(8) as pool:
+        answers = list(pool.map(submit, range(8)))
+    assert sum(made for _, made in answers) == 1 and len({job_id for job_id, _ in answers}) == 1
+    assert store.queued() == [answers[0][0]] and store.job_for_key("k" * 64).id == answers[0][0]
+    assert store.create_once({})[1] and store.create_once({})[1] and len(store.queued()) == 3
+
+
+@both
 def test_a_redelivered_job_may_be_claimed_while_running_but_not_once_finished(store: JobStore) -> None:
     job = store.create({})
     assert store.claim(job.id) == 1 and not store.claim(job.id)
