@@ -43,6 +43,7 @@ class SVRnetError(Exception):
         request_id: the server's request id (quote it in bug reports), when known.
         type: the problem type URI, when given.
         body: the decoded problem body (empty when the body was not JSON).
+        attempts: how many times the request was sent before this answer (1: not retried).
     """
 
     def __init__(self, detail: str, *, status: int | None = None, title: str | None = None,
@@ -54,6 +55,7 @@ class SVRnetError(Exception):
         self.detail = detail
         self.request_id = request_id
         self.type = type
+        self.attempts = 1
         self.body = body or {}
 
     def __str__(self) -> str:

@@ -86,8 +86,10 @@ def errors() -> Iterator[None]:
         raise
     except SVRnetError as e:
         hint = " (give the key with SVRNET_API_KEY or --api-key)" if isinstance(e, Unauthorized) else ""
-        if isinstance(e, Busy) and e.retry_after_s is not None:
-            hint = f" (the server asks to retry in {e.retry_after_s:g} s)"
+        if isinstance(e, Busy):
+            tried = f"sent {e.attempts} times" if e.attempts > 1 else "sent once"
+            asks = f"; it asks to retry in {e.retry_after_s:g} s" if e.retry_after_s is not None else ""
+            hint = f" ({tried}{asks})"
         fail(" ".join(str(e).split()) + hint, exit_code_for(e))
     except ArgumentError as e:                             # the client's own checks of its arguments, by field
         fail(" ".join(str(e).split()), EXIT_USAGE)

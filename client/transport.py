@@ -15,6 +15,7 @@ Example (a fake server that is busy once):
 from __future__ import annotations
 
 import os
+import random
 import secrets
 import time
 from collections.abc import Mapping
@@ -131,7 +132,11 @@ class Transport:
         return headers
 
     def _sleep_for(self, attempt: int, retry_after: float | None) -> float:
-        delay = retry_after if retry_after is not None else self.backoff_s * 2 ** attempt
+        """The wait before retry ``attempt + 1``: the server's ``Retry-After`` (else the backoff's first
+        sleep), doubled at each retry, and up to a quarter longer at random, so that clients refused
+        together do not all come back together; at most :data:`MAX_RETRY_SLEEP_S`."""
+        base = retry_after if retry_after is not None else self.backoff_s
+        delay = base * 2 ** attempt * (1.0 + 0.25 * random.random())
         return min(max(delay, 0.0), MAX_RETRY_SLEEP_S)
 
     def _send(self, method: str, path: str, *, body: MultipartBody | None = None,
@@ -170,7 +175,9 @@ class Transport:
                 if attempt < self.retries and retryable and (retry_after or 0.0) <= MAX_RETRY_SLEEP_S:
                     sleep(self._sleep_for(attempt, retry_after))
                     continue
-                raise error_from_response(response)
+                error = error_from_response(response)
+                error.attempts = attempt + 1
+                raise error
             if not response.is_success:              # 4xx/5xx, and redirects (never followed)
                 response.read()
                 response.close()
