@@ -55,6 +55,11 @@ def route_of(app: object, scope: Scope) -> str:
     return next((t for pattern, t in _templates(app) if pattern.match(scope["path"])), "unmatched")
 
 
+CLIENT_CLOSED = 499
+"""The status recorded (log, metrics) for a request whose client went away before its body was whole
+(nginx's convention): not the 400 the form parser makes of the cut-off body, which no client saw."""
+
+
 class RequestContext:
     """The outermost layer of the app, around every request:
 
@@ -70,7 +75,8 @@ class RequestContext:
       connection for ever (the answer, once the body is in, has no such limit);
     * turns any unexpected exception into a 500 problem+json with the request id, logged by type
       only (no traceback reaches the client or the log, no patient data the log);
-    * records metrics and writes one access-log line.
+    * records metrics and writes one access-log line (:data:`CLIENT_CLOSED` for a client that left
+      during its upload).
     """
 
     def __init__(self, app: ASGIApp, metrics: Metrics, max_body_bytes: int, idle_s: float = 60.0,
@@ -88,7 +94,7 @@ class RequestContext:
         scope.setdefault("state", {})["request_id"] = rid
         start = time.perf_counter()
         state: dict = {"code": 500, "started": False, "received": 0, "refusal": None, "replaced": False,
-                       "body_done": False}
+                       "body_done": False, "left": False}
         body_deadline = asyncio.get_running_loop().time() + self.timeout_s
 
         async def emit(message: Message) -> None:
@@ -117,6 +123,8 @@ class RequestContext:
             except asyncio.TimeoutError:
                 state["refusal"] = self._timed_out()
                 raise BodyRefused from None
+            if message["type"] == "http.disconnect":
+                state["left"] = True               # the client went away before its body was whole
             if message["type"] == "http.request":
                 state["received"] += len(message.get("body", b""))
                 state["body_done"] = not message.get("more_body", False)
@@ -160,6 +168,8 @@ class RequestContext:
                 app.state.slots.release()
         path = getattr(scope.get("route"), "path", None) or route_of(app, scope)
         method = scope["method"] if scope["method"] in METHODS else "other"
+        if state["left"]:
+            state["code"] = CLIENT_CLOSED         # whatever the app made of the cut-off body, no one got it
         model = scope["state"].get("model", "")
         elapsed = time.perf_counter() - start
         self.metrics.observe_request(path, method, model, state["code"], elapsed)

@@ -115,3 +115,31 @@ def test_processing_after_the_body_has_no_time_limit() -> None:
     layer = RequestContext(slow_app, Metrics(), max_body_bytes=100, idle_s=0.1, timeout_s=0.2)
     status, _, body = asyncio.run(call(layer, "/anything", one_chunk()))
     assert (status, body) == (200, b"done")
+
+
+def test_a_client_that_leaves_during_its_upload_is_recorded_as_gone_and_frees_its_slot(oracle: object) -> None:
+    """Half a body, then the client is gone: the log and the metrics say 499 (not the 400 the form
+    parser makes of what came), and the request's processing slot is free again."""
+    async def leaves(app: Callable) -> None:
+        parts = [{"type": "http.request", "body": multipart("stacks", "s.nii.gz", b"\0" * 100)[:80], "more_body": True},
+                 {"type": "http.disconnect"}]
+
+        async def receive() -> dict:
+            return parts.pop(0) if parts else {"type": "http.disconnect"}
+
+        async def send(message: dict) -> None:
+            pass
+
+        scope = {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1", "method": "POST",
+                 "scheme": "http", "path": "/v1/predict", "raw_path": b"/v1/predict", "query_string": b"",
+                 "root_path": "", "client": ("127.0.0.1", 1), "server": ("testserver", 80),
+                 "headers": [(b"content-type", f"multipart/form-data; boundary={BOUNDARY}".encode())]}
+        await asyncio.wait_for(app(scope, receive, send), 30)
+
+    with make_client(ModelRegistry({"default": oracle}), max_concurrent=1) as client:
+        client.portal.call(leaves, client.app)
+        scraped = client.get("/metrics").text
+        assert client.app.state.slots._value == 1
+    predicts = [line for line in scraped.splitlines()
+                if line.startswith("svrnet_requests_total{") and 'route="/v1/predict"' in line]
+    assert len(predicts) == 1 and 'status="499"' in predicts[0], predicts
