@@ -41,31 +41,29 @@ def main() -> None:
         sys.exit(f"needs the atlas volumes at {DEFAULT_ATLAS_ROOT}")
     localiser = Localiser.load(args.model) if args.model else default_localiser()
     heads = [HeadModel.from_arrays(v.image, v.mask, v.affine) for v in load_volumes(list(VALIDATION_VOLUMES))]
+    faint = float(args.faint_skull)
     for widest in (float(w) for w in args.patches.split(",") if w):
-        rows = []
-        for seed in range(args.scenes):
-            scene = synth_scene(heads[seed % len(heads)], np.random.default_rng(1000 + seed), "heldout",
-                                random_contrast=False, csf_patches_mm=widest,
-                                faint_skull_share=float(args.faint_skull))
-            found = localiser.localise(scene.volume).mask
-            csf = scene.mask & ~scene.brain
-            rows.append((dice(found, scene.mask), found.sum() / max(scene.mask.sum(), 1),
-                         (csf & ~found).sum() / max(csf.sum(), 1)))
-        d, v, m = np.array(rows).T
+        d, v, m = measure(localiser, heads, args.scenes, csf_patches_mm=widest, faint_skull_share=faint)
         print(f"CSF patches up to {widest:g} mm: Dice median {np.median(d):.3f} (min {d.min():.3f}); "
               f"found / true volume median {np.median(v):.2f}; CSF missed median {np.median(m):.2f}", flush=True)
     for width in (float(w) for w in args.widths.split(",") if w):
-        rows = []
-        for seed in range(args.scenes):
-            scene = synth_scene(heads[seed % len(heads)], np.random.default_rng(1000 + seed), "heldout",
-                                random_contrast=False, csf_mm=width,
-                                faint_skull_share=float(args.faint_skull))
-            found = localiser.localise(scene.volume).mask
-            rows.append((dice(found, scene.mask), found.sum() / max(scene.mask.sum(), 1)))
-        d, v = np.array(rows).T
+        d, v, _ = measure(localiser, heads, args.scenes, csf_mm=width, faint_skull_share=faint)
         print(f"CSF layer {width:g} mm: Dice median {np.median(d):.3f} (min {d.min():.3f}); "
               f"found / true volume median {np.median(v):.2f}", flush=True)
 
+
+def measure(localiser: Localiser, heads: list[HeadModel], scenes: int, **drawn: float) -> np.ndarray:
+    """``[3, scenes]``: the localiser's Dice, found / true volume and share of the CSF missed on held-out
+    scenes (T2-like contrast, seeds 1000...) drawn with ``drawn`` (:func:`synth_scene`'s options)."""
+    rows = []
+    for seed in range(scenes):
+        scene = synth_scene(heads[seed % len(heads)], np.random.default_rng(1000 + seed), "heldout",
+                            random_contrast=False, **drawn)
+        found = localiser.localise(scene.volume).mask
+        csf = scene.mask & ~scene.brain
+        rows.append((dice(found, scene.mask), found.sum() / max(scene.mask.sum(), 1),
+                     (csf & ~found).sum() / max(csf.sum(), 1)))
+    return np.array(rows).T
 
 if __name__ == "__main__":
     main()

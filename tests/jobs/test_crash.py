@@ -31,23 +31,29 @@ def _status(server: Server, job_id: str) -> dict:
     return httpx.get(f"{server.url}/v1/reconstructions/{job_id}", timeout=10).json()
 
 
+def _running_job(server: Server, job_files: tuple[list, dict], **form: str) -> str:
+    """A job submitted with its poses (``form`` its fields) and waited for until it runs: its id."""
+    files, poses = job_files
+    r = httpx.post(f"{server.url}/v1/reconstructions", files=files + [("poses", ("p.json", json.dumps(poses)))],
+                   data={"atlas_frame": "false", **form}, timeout=60)
+    assert r.status_code == 202, r.text
+    job_id = r.json()["job_id"]
+    deadline = time.time() + 60
+    while (st := _status(server, job_id))["status"] == "queued" or st["stage"] in ("starting", "reading"):
+        assert time.time() < deadline, st
+        time.sleep(0.05)
+    return job_id
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL], ids=["SIGTERM", "kill-9"])
 def test_a_server_stopped_mid_job_leaves_nothing_and_the_job_completes_after_restart(
         tmp_path: Path, job_files: tuple[list, dict], sig: int) -> None:
-    files, poses = job_files
     log = tmp_path / "server.log"
     server = Server(tmp_path / "data", log)
     try:
-        r = httpx.post(f"{server.url}/v1/reconstructions", files=files + [("poses", ("p.json", json.dumps(poses)))],
-                       data={"resolution_mm": "1.5", "svr_iterations": "2", "atlas_frame": "false"}, timeout=60)
-        assert r.status_code == 202, r.text
-        job_id = r.json()["job_id"]
-        deadline = time.time() + 60
-        while (st := _status(server, job_id))["status"] == "queued" or st["stage"] in ("starting", "reading"):
-            assert time.time() < deadline, st
-            time.sleep(0.05)
-        assert st["status"] == "running", st                       # stopped mid-job
+        job_id = _running_job(server, job_files, resolution_mm="1.5", svr_iterations="2")
+        assert _status(server, job_id)["status"] == "running"       # stopped mid-job
         server.stop(sig)
         left = server.leftovers()
         assert not left, f"processes left behind after {signal.Signals(sig).name}: {left}"
@@ -78,16 +84,9 @@ def test_a_stopping_server_hands_its_running_job_back_at_once_while_requests_fin
     the server ends when the upload does."""
     import socket
 
-    files, poses = job_files
     server = Server(tmp_path / "data", tmp_path / "server.log")
     try:
-        r = httpx.post(f"{server.url}/v1/reconstructions", files=files + [("poses", ("p.json", json.dumps(poses)))],
-                       data={"resolution_mm": "1.5", "svr_iterations": "2", "atlas_frame": "false"}, timeout=60)
-        job_id = r.json()["job_id"]
-        deadline = time.time() + 60
-        while (st := _status(server, job_id))["status"] == "queued" or st["stage"] in ("starting", "reading"):
-            assert time.time() < deadline, st
-            time.sleep(0.05)
+        job_id = _running_job(server, job_files, resolution_mm="1.5", svr_iterations="2")
         worker = _job_worker(server)
         upload = socket.create_connection(("127.0.0.1", server.port))
         upload.sendall(b"POST /v1/predict HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary=b\r\n"
@@ -208,13 +207,7 @@ def test_a_running_job_cancelled_stops_at_once_and_the_next_job_runs(tmp_path: P
     server = Server(tmp_path / "data", log)
     upload = files + [("poses", ("p.json", json.dumps(poses)))]
     try:
-        r = httpx.post(f"{server.url}/v1/reconstructions", files=upload,
-                       data={"resolution_mm": "1.0", "svr_iterations": "3", "atlas_frame": "false"}, timeout=60)
-        job_id = r.json()["job_id"]
-        deadline = time.time() + 60
-        while (st := _status(server, job_id))["status"] == "queued" or st["stage"] in ("starting", "reading"):
-            assert time.time() < deadline, st
-            time.sleep(0.05)
+        job_id = _running_job(server, job_files, resolution_mm="1.0", svr_iterations="3")
         worker = _job_worker(server)
         assert httpx.delete(f"{server.url}/v1/reconstructions/{job_id}", timeout=10).status_code == 204
         # Stopped now, not at the job's next stage: its worker is killed and replaced, unless the job
