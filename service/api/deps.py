@@ -112,8 +112,8 @@ SLOT_HELD = "processing_slot_held"
 async def take_slot(state: State) -> Saturated | None:
     """Take one of the processing slots now, before the upload is read: None when taken (the caller
     releases it, ``state.slots.release()``, when the request ends), else 503. Requests that arrive
-    together are each given a slot or refused at once; a slot only checked here and taken after
-    the body had let all of them upload, and refused the surplus only then."""
+    together are each given a slot or refused at once (a slot only checked here, and taken once the
+    body is in, would let all of them upload before refusing the surplus)."""
     sem: asyncio.Semaphore | None = getattr(state, "slots", None)
     if sem is None:
         return None
