@@ -2,8 +2,9 @@
 
 * ``stacks`` carry ``minItems: 1`` and ``maxItems: SVRNET_MAX_FILES``, ``masks`` ``maxItems`` too: a
   generated client never sends a list the schema calls valid and the server refuses;
-* optional form fields are optional, not nullable (a multipart form cannot send a null: FastAPI's
-  ``anyOf [..., null]`` made generated clients send the text ``null``);
+* optional form fields, headers and query parameters are optional, not nullable (a multipart form
+  or a header cannot send a null: FastAPI's ``anyOf [..., null]`` made generated clients send the
+  text ``null``);
 * ``poses`` (read by ``POST /v1/reconstructions`` from the raw form: a JSON text or a JSON file) is
   documented with the other fields;
 * :func:`allowed_methods` lists every documented method of a path, for ``Allow`` (on ``405`` and
@@ -34,6 +35,8 @@ def document_uploads(app: FastAPI, max_files: int) -> None:
         components = schema.get("components", {}).get("schemas", {})
         for path, ops in schema.get("paths", {}).items():
             for op in ops.values():
+                for param in op.get("parameters", []):           # a header or query value is given or not: never null
+                    param["schema"] = _not_null(param.get("schema", {}))
                 body = op.get("requestBody", {}).get("content", {}).get("multipart/form-data", {}).get("schema", {})
                 target = components.get(body.get("$ref", "").rsplit("/", 1)[-1])
                 if target is None:
@@ -41,9 +44,7 @@ def document_uploads(app: FastAPI, max_files: int) -> None:
                 props = target.setdefault("properties", {})
                 target["additionalProperties"] = False         # unknown fields are refused (400)
                 for name, prop in props.items():     # a form field is given or left out: never null
-                    variants = [v for v in prop.get("anyOf", []) if v.get("type") != "null"]
-                    if "anyOf" in prop and len(variants) == 1:
-                        props[name] = {**{k: v for k, v in prop.items() if k != "anyOf"}, **variants[0]}
+                    props[name] = _not_null(prop)
                 for name, low in (("stacks", 1), ("masks", 0)):
                     if props.get(name, {}).get("type") == "array":
                         props[name]["maxItems"] = max_files
@@ -54,6 +55,20 @@ def document_uploads(app: FastAPI, max_files: int) -> None:
         return schema
 
     app.openapi = openapi  # type: ignore[method-assign]
+
+
+def _not_null(prop: dict) -> dict:
+    """``prop`` without the ``null`` of FastAPI's ``anyOf [X, null]`` for an optional value: ``X`` with
+    ``prop``'s other keys (its title, description and constraints).
+
+    Example:
+        >>> _not_null({"anyOf": [{"type": "string"}, {"type": "null"}], "minLength": 8})
+        {'minLength': 8, 'type': 'string'}
+    """
+    variants = [v for v in prop.get("anyOf", []) if v.get("type") != "null"]
+    if "anyOf" in prop and len(variants) == 1:
+        return {**{k: v for k, v in prop.items() if k != "anyOf"}, **variants[0]}
+    return prop
 
 
 def allowed_methods(app: FastAPI, path: str) -> list[str]:

@@ -178,7 +178,8 @@ async def submit(
     slice_thickness_mm: Annotated[Optional[list[ThicknessField]], Form(description=SLICE_THICKNESS_HELP)] = None,
     idempotency_key: Annotated[Optional[str], Header(alias=IDEMPOTENCY_HEADER, description=(
         "8 to 200 printable ASCII characters: a submission sent again with the key of an earlier one gets "
-        "that job instead of a new one (for retries after a lost answer)"))] = None,
+        "that job instead of a new one (for retries after a lost answer)"),
+        json_schema_extra={"minLength": 8, "maxLength": 200, "pattern": "^[!-~]+$"})] = None,
 ) -> dict:
     """Validates the files now (4xx at once), then queues the job; poll ``Location``.
 

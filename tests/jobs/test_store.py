@@ -55,6 +55,15 @@ def test_submissions_with_one_key_at_the_same_moment_make_one_job(store: JobStor
 
 
 @both
+def test_a_store_whose_jobs_folder_is_gone_is_not_ready(store: JobStore, tmp_path: Path) -> None:
+    """The jobs' folder unmounted or gone (the database or Redis still answering): the store's ping,
+    which ``/readyz`` asks, says it cannot take jobs."""
+    assert store.ping()
+    store.data_dir = tmp_path / "unmounted"
+    assert not store.ping()
+
+
+@both
 def test_a_redelivered_job_may_be_claimed_while_running_but_not_once_finished(store: JobStore) -> None:
     job = store.create({})
     assert store.claim(job.id) == 1 and not store.claim(job.id)
