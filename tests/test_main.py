@@ -9,8 +9,8 @@ from service import main
 
 def test_help_serves_nothing_and_options_override_the_environment(monkeypatch: pytest.MonkeyPatch,
                                                                   capsys: pytest.CaptureFixture[str]) -> None:
-    served: list[dict] = []
-    monkeypatch.setattr("uvicorn.run", lambda app, **kw: served.append(kw))
+    served: list = []
+    monkeypatch.setattr("uvicorn.Server.run", lambda server, sockets=None: served.append(server.config))
     monkeypatch.setattr(main, "create_app", lambda settings: settings)
     with pytest.raises(SystemExit) as end:
         main.run(["--help"])
@@ -18,8 +18,9 @@ def test_help_serves_nothing_and_options_override_the_environment(monkeypatch: p
     monkeypatch.setenv("SVRNET_PORT", "8123")
     main.run([])
     main.run(["--port", "9001", "--host", "0.0.0.0"])
-    assert [(s["host"], s["port"]) for s in served] == [("127.0.0.1", 8123), ("0.0.0.0", 9001)]
-    assert served[0]["ws_ping_timeout"] == 60.0 and served[0]["ws_ping_interval"] == 20.0
+    assert [(s.host, s.port) for s in served] == [("127.0.0.1", 8123), ("0.0.0.0", 9001)]
+    assert served[0].ws_ping_timeout == 60.0 and served[0].ws_ping_interval == 20.0
+    assert served[0].timeout_graceful_shutdown == main.SHUTDOWN_GRACE_S
     with pytest.raises(SystemExit) as end:
         main.run(["--port", "0"])
     assert str(end.value.code).startswith("svrnet-server: SVRNET_PORT:") and len(served) == 2
@@ -43,7 +44,7 @@ def test_a_setting_that_cannot_work_stops_every_command_in_one_line_naming_it(
     (tmp_path / "a_file").write_text("")
     monkeypatch.setenv("SVRNET_DATA_DIR", str(tmp_path / "data"))
     monkeypatch.setenv(variable, value.format(tmp=tmp_path))
-    monkeypatch.setattr("uvicorn.run", lambda app, **kw: pytest.fail("served with a setting that cannot work"))
+    monkeypatch.setattr("uvicorn.Server.run", lambda server, sockets=None: pytest.fail("served with a setting that cannot work"))
     commands = [("svrnet-server", lambda: main.run([])), ("svrnet-worker", lambda: worker_cli.main([])),
                 ("svrnet-mrd", lambda: mrd_server.main([]))]
     for prog, command in commands if variable != "SVRNET_DEFAULT_MODEL" else [commands[0], commands[2]]:
@@ -70,7 +71,7 @@ def test_a_second_server_on_a_store_in_use_is_refused_in_one_line(tmp_path, monk
                                                                   capsys: pytest.CaptureFixture[str]) -> None:
     from service.jobs.local_runner import lock_store
 
-    monkeypatch.setattr("uvicorn.run", lambda app, **kw: pytest.fail("served beside the store's owner"))
+    monkeypatch.setattr("uvicorn.Server.run", lambda server, sockets=None: pytest.fail("served beside the store's owner"))
     monkeypatch.setenv("SVRNET_DATA_DIR", str(tmp_path))
     held = lock_store(tmp_path)                                          # the running server's
     try:
@@ -90,7 +91,7 @@ def test_the_redis_back_end_without_the_queue_extra_is_named_in_one_line(monkeyp
 
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "rq" else real(name, *a))
-    monkeypatch.setattr("uvicorn.run", lambda app, **kw: pytest.fail("served without the queue's packages"))
+    monkeypatch.setattr("uvicorn.Server.run", lambda server, sockets=None: pytest.fail("served without the queue's packages"))
     monkeypatch.setenv("SVRNET_QUEUE_URL", "redis://127.0.0.1:1/0")
     with pytest.raises(SystemExit) as end:
         main.run([])
