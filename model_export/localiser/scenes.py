@@ -61,8 +61,8 @@ from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
 from model_export.atlas import signed_distance
-from model_export.localiser.surroundings import (StackGeometry, _smooth_noise, bias_field, camouflage, draw_surroundings,
-                                                 intensities, random_rotation, shading, slice_gains)
+from model_export.localiser.surroundings import (StackGeometry, bias_field, camouflage, draw_surroundings, intensities,
+                                                 random_rotation, shading, slice_gains, smooth_noise)
 from service.io.volume import Volume
 
 STYLES = ("train", "heldout")
@@ -229,7 +229,7 @@ def csf_patches(rng: np.random.Generator, head: HeadModel, widest_mm: float,
     """
     spacing = 1.0 / np.abs(np.diag(head.voxel_from_mm)[:3])
     cells = tuple(max(2, int(round(n * s / patch_mm))) for n, s in zip(head.sdf.shape, spacing))
-    noise = _smooth_noise(rng, head.sdf.shape, cells)
+    noise = smooth_noise(rng, head.sdf.shape, cells)
     return (widest_mm * np.clip(noise, 0.0, 2.0) / 2.0).astype(np.float32)
 
 

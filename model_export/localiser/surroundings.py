@@ -38,7 +38,7 @@ def random_rotation(rng: np.random.Generator) -> NDArray[np.float64]:
     return Rotation.random(random_state=int(rng.integers(2**31))).as_matrix()
 
 
-def _smooth_noise(rng: np.random.Generator, shape: tuple[int, ...], cells: tuple[int, ...]) -> NDArray[np.float32]:
+def smooth_noise(rng: np.random.Generator, shape: tuple[int, ...], cells: tuple[int, ...]) -> NDArray[np.float32]:
     """Zero-mean, unit-scale smooth noise on ``shape``: Gaussian noise on ``cells`` points, upsampled."""
     small = rng.standard_normal(cells).astype(np.float32)
     out = ndimage.zoom(small, [s / c for s, c in zip(shape, cells)], order=1, mode="nearest", grid_mode=True)
@@ -97,7 +97,7 @@ class StackGeometry:
 
 def _maternal_labels(rng: np.random.Generator, shape: tuple[int, ...], style: str, count: int) -> NDArray[np.int8]:
     if style == "train":
-        fields = np.stack([_smooth_noise(rng, shape, (rng.integers(4, 12),) * 2 + (rng.integers(2, 5),))
+        fields = np.stack([smooth_noise(rng, shape, (rng.integers(4, 12),) * 2 + (rng.integers(2, 5),))
                            for _ in range(count)])
         return np.argmax(fields, 0).astype(np.int8)
     small = tuple(max(2, s // 4) for s in shape)
@@ -116,7 +116,7 @@ def draw_surroundings(rng: np.random.Generator, geo: StackGeometry, brain_centre
     pts = geo.coordinates(step=2)
     shape = pts.shape[:3]
     def wobble(amount: float) -> NDArray[np.float32]:
-        return amount * _smooth_noise(rng, shape, (5, 5, 3))
+        return amount * smooth_noise(rng, shape, (5, 5, 3))
     # the mother: an ellipsoid body, air outside, a fat layer under the skin, tissues inside
     body_r = _ellipsoid_radius(pts, rng.normal(0, 30, 3), rng.uniform([150, 110, 150], [230, 180, 260]),
                                random_rotation(rng)) + wobble(0.03)
@@ -125,9 +125,9 @@ def draw_surroundings(rng: np.random.Generator, geo: StackGeometry, brain_centre
     labels = _maternal_labels(rng, shape, style, n_labels)
     means = rng.uniform(0.02, 0.9, n_labels) if style == "heldout" else \
         np.concatenate([[tissue["fat"]], rng.uniform(0.02, 0.7, n_labels - 1)])
-    image = means[labels].astype(np.float32) * (1 + 0.25 * _smooth_noise(rng, shape, (24, 24, 6)))
+    image = means[labels].astype(np.float32) * (1 + 0.25 * smooth_noise(rng, shape, (24, 24, 6)))
     if rng.random() < 0.5:                                   # bowel gas and fluid-filled loops: small blobs
-        blobs = _smooth_noise(rng, shape, (40, 40, 8))
+        blobs = smooth_noise(rng, shape, (40, 40, 8))
         image = np.where(blobs > 1.6, rng.choice([0.02, tissue["fluid"]]), image)
     image = np.where(body_r > 1 - fat_depth, tissue["fat"], image)
     image = np.where(body_r > 1, tissue["air"], image)
@@ -154,8 +154,8 @@ def draw_surroundings(rng: np.random.Generator, geo: StackGeometry, brain_centre
     side = rot[:, 0] * rng.choice([-1, 1])
     towards = ((pts - uterus_c) @ side) / (np.linalg.norm(pts - uterus_c, axis=-1) + 1e-3)
     placenta = (uterus_r <= 1) & (uterus_r > 1 - rng.uniform(0.15, 0.35)) & (towards > rng.uniform(0.3, 0.8))
-    image = np.where(placenta, tissue["placenta"] * (1 + 0.15 * _smooth_noise(rng, shape, (20, 20, 5))), image)
-    fluid = tissue["fluid"] * (1 + rng.uniform(0, 0.1) * _smooth_noise(rng, shape, (8, 8, 3)))
+    image = np.where(placenta, tissue["placenta"] * (1 + 0.15 * smooth_noise(rng, shape, (20, 20, 5))), image)
+    fluid = tissue["fluid"] * (1 + rng.uniform(0, 0.1) * smooth_noise(rng, shape, (8, 8, 3)))
     image = np.where(uterus_r <= 1 - wall, fluid, image)
     trunk_rot = Rotation.align_vectors([direction], [[1.0, 0.0, 0.0]])[0].as_matrix()
     body = _ellipsoid_radius(pts, trunk_c, np.array([length, *rng.uniform(0.5, 0.9, 2) * head_radius]),
@@ -163,7 +163,7 @@ def draw_surroundings(rng: np.random.Generator, geo: StackGeometry, brain_centre
     for _ in range(int(rng.integers(0, 5))):
         c = trunk_c + rng.normal(0, 1, 3) * length
         body |= _ellipsoid_radius(pts, c, rng.uniform(6, 25, 3), random_rotation(rng)) <= 1
-    body_texture = tissue["body"] * (1 + 0.3 * _smooth_noise(rng, shape, (30, 30, 8)))
+    body_texture = tissue["body"] * (1 + 0.3 * smooth_noise(rng, shape, (30, 30, 8)))
     if decoy is not None and rng.random() < 0.6:               # organs as rich in texture as a brain
         body_texture = tissue["body"] * (0.4 + 1.2 * _decoy_texture(rng, decoy, pts, trunk_c))
     local = (pts - trunk_c) @ trunk_rot                           # the spine: a dark rod along the trunk
@@ -203,12 +203,12 @@ def camouflage(rng: np.random.Generator, geo: StackGeometry, background: NDArray
     pts = geo.coordinates()[box]
     shape = pts.shape[:3]
     radius = _ellipsoid_radius(pts, centre, head_radius * rng.uniform(1.2, 2.0, 3), random_rotation(rng)) \
-        + 0.15 * _smooth_noise(rng, shape, (6, 6, 3))
+        + 0.15 * smooth_noise(rng, shape, (6, 6, 3))
     if style == "train":
         texture = 0.4 + 1.2 * _decoy_texture(rng, decoy, pts, centre)
     else:
         cells = _maternal_labels(rng, shape, "heldout", int(rng.integers(3, 7)))
-        texture = rng.uniform(0.5, 1.5, int(cells.max()) + 1)[cells] * (1 + 0.2 * _smooth_noise(rng, shape, (20, 20, 5)))
+        texture = rng.uniform(0.5, 1.5, int(cells.max()) + 1)[cells] * (1 + 0.2 * smooth_noise(rng, shape, (20, 20, 5)))
     weight = np.clip((1.0 - radius) / 0.15, 0.0, 1.0)                       # a soft edge
     out = background.copy()
     out[box] = (1 - weight) * background[box] + weight * level * rng.uniform(0.6, 1.4) * texture
@@ -239,7 +239,7 @@ def bias_field(rng: np.random.Generator, shape: tuple[int, ...], style: str) -> 
 def _field(rng: np.random.Generator, shape: tuple[int, ...], style: str) -> NDArray[np.float32]:
     strength = rng.uniform(0.0, 0.6)
     if style == "train":
-        return np.exp(strength * _smooth_noise(rng, shape, (3, 3, 2)))
+        return np.exp(strength * smooth_noise(rng, shape, (3, 3, 2)))
     axes = [np.linspace(-1, 1, s, dtype=np.float32) for s in shape]
     x, y, z = np.meshgrid(*axes, indexing="ij")
     c = rng.normal(0, 1, 6)

@@ -199,6 +199,9 @@ CREATE TABLE IF NOT EXISTS jobs (
 """
 
 
+INSERT_JOB = ("INSERT INTO jobs (id, status, stage, progress, params, created_at, updated_at) "
+              "VALUES (?, 'queued', 'queued', 0, ?, ?, ?)")
+"""A new queued job."""
 KEY_QUERY = "SELECT id FROM jobs WHERE json_extract(params, '$.idempotency_key') = ? ORDER BY created_at DESC LIMIT 1"
 """The latest job created with an idempotency key."""
 
@@ -247,8 +250,7 @@ class SqliteJobStore(JobStore):
 
     def create(self, params: dict) -> Job:
         job_id, now = self._new_id(), time.time()
-        self._write("INSERT INTO jobs (id, status, stage, progress, params, created_at, updated_at) "
-                    "VALUES (?, 'queued', 'queued', 0, ?, ?, ?)", (job_id, json.dumps(params), now, now))
+        self._write(INSERT_JOB, (job_id, json.dumps(params), now, now))
         return self.get(job_id)  # type: ignore[return-value]
 
     def create_once(self, params: dict) -> tuple[Job, bool]:
@@ -261,8 +263,7 @@ class SqliteJobStore(JobStore):
             try:
                 row = db.execute(KEY_QUERY, (key,)).fetchone()
                 if row is None:
-                    db.execute("INSERT INTO jobs (id, status, stage, progress, params, created_at, updated_at) "
-                               "VALUES (?, 'queued', 'queued', 0, ?, ?, ?)", (job_id, json.dumps(params), now, now))
+                    db.execute(INSERT_JOB, (job_id, json.dumps(params), now, now))
                 db.execute("COMMIT")
             except BaseException:
                 db.execute("ROLLBACK")
