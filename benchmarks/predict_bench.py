@@ -10,7 +10,9 @@ uploaded, N4 on, 100 MC samples, every stage on), each also without ``image_cons
      localiser's), target <= 2 s with masks and <= 1.3 x that without.
 
 ``--baseline REV`` serves the same scenarios from a git worktree of ``REV`` (its code and its
-shipped models) on a second port and prints each scenario's wall time beside it, as a ratio.
+shipped models) on a second port, started beside the first, every request sent to one server and
+then the other (a shared host's drift moves both alike), and prints each scenario's wall time
+beside it, as a ratio.
 ``--model NAME`` sends the form field ``model`` (a model of the served folder); ``--compare-model
 NAME`` asks the same server with that model too, each request alternating with the first model's,
 and prints the ratio.
@@ -29,7 +31,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
 import httpx
@@ -146,33 +148,37 @@ def wait_ready(client: httpx.Client) -> None:
     raise RuntimeError("the server did not become ready")
 
 
-def measure(root: Path, model_dir: Path, scenarios: list[list[tuple[Path, Path]]],
+def measure(trees: list[tuple[Path, Path]], scenarios: list[list[tuple[Path, Path]]],
             real: list[tuple[Path, Path]] | None = None, models: tuple[str | None, ...] = (None,)) -> tuple[dict, float]:
     """Best-of-3 wall time and server stage timings per (scenario, image_consistency), the real scan's
-    with and without masks (every stage on), and the peak RSS; per model of ``models`` (None: the
-    server's default), their requests alternating, keyed ``(model, ...)``."""
+    with and without masks (every stage on), and the first server's peak RSS. One server per
+    ``(code root, models folder)`` of ``trees``, all started at once, and per model of ``models``
+    (None: the server's default): every request goes to each server and model in turn, so that a
+    machine whose speed drifts (a shared host) moves them alike. Keyed ``(tree index, model, ...)``."""
     out: dict = {}
+    sides = [(i, model) for i in range(len(trees)) for model in models]
 
-    def best(key: tuple, model: str | None, stacks: list[tuple[Path, Path]], **form: object) -> None:
-        wall, timing = run(client, stacks, repeats=1, **form, **({"model": model} if model else {}))
-        if key not in out or wall < out[key][0]:
-            out[key] = (wall, timing)
+    def best(clients: list[httpx.Client], key: tuple, stacks: list[tuple[Path, Path]], **form: object) -> None:
+        for i, model in sides:
+            wall, timing = run(clients[i], stacks, repeats=1, **form, **({"model": model} if model else {}))
+            if (i, model, *key) not in out or wall < out[i, model, *key][0]:
+                out[i, model, *key] = (wall, timing)
 
-    with served(root, model_dir) as (server, port):
-        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=300) as client:
+    with ExitStack() as stack:
+        servers = [stack.enter_context(served(root, model_dir)) for root, model_dir in trees]
+        clients = [stack.enter_context(httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=300))
+                   for _, port in servers]
+        for client in clients:
             wait_ready(client)
-            for (name, _), stacks in zip(SCENARIOS, scenarios):
-                for image in ("true", "false"):
-                    for _ in range(3):
-                        for model in models:
-                            best((model, name, image), model, stacks, image_consistency=image)
-            if real:
-                for masks in (True, False, True):           # masks again: the best of six against three
-                    for _ in range(3):
-                        for model in models:
-                            best((model, "real", masks), model, real, masks=masks,
-                                 masks_hold_csf="true" if masks else "false")
-        return out, peak_rss_mb(server.pid)
+        for (name, _), stacks in zip(SCENARIOS, scenarios):
+            for image in ("true", "false"):
+                for _ in range(3):
+                    best(clients, (name, image), stacks, image_consistency=image)
+        if real:
+            for masks in (True, False, True):           # masks again: the best of six against three
+                for _ in range(3):
+                    best(clients, ("real", masks), real, masks=masks, masks_hold_csf="true" if masks else "false")
+        return out, peak_rss_mb(servers[0][0].pid)
 
 
 def main() -> None:
@@ -190,16 +196,19 @@ def main() -> None:
         scenarios = [make_stacks(Path(tmp), 3, 128, 35, 1.1), make_stacks(Path(tmp) / "b", 6, 320, 22, 0.55)]
         print(f"source: {brain()[3]}")
         models = (args.model, args.compare_model) if args.compare_model else (args.model,)
-        both, rss = measure(ROOT, Path(args.model_dir), scenarios, real, models)
-        now = {k[1:]: v for k, v in both.items() if k[0] == args.model}
+        with ExitStack() as trees:
+            served_trees = [(ROOT, Path(args.model_dir))]
+            if args.baseline and not args.compare_model:
+                tree = trees.enter_context(revision_tree(args.baseline))
+                served_trees.append((tree, tree / "service" / "models"))
+            both, rss = measure(served_trees, scenarios, real, models)
+        now = {k[2:]: v for k, v in both.items() if k[:2] == (0, args.model)}
         before, against = None, f"revision {args.baseline}"
         if args.compare_model:
-            before, against = {k[1:]: v for k, v in both.items() if k[0] == args.compare_model}, \
+            before, against = {k[2:]: v for k, v in both.items() if k[:2] == (0, args.compare_model)}, \
                 f"model {args.compare_model}"
         elif args.baseline:
-            with revision_tree(args.baseline) as tree:
-                before, _ = measure(tree, tree / "service" / "models", scenarios, real)
-                before = {k[1:]: v for k, v in before.items()}
+            before = {k[2:]: v for k, v in both.items() if k[:2] == (1, args.model)}
         if args.model:
             print(f"model: {args.model}")
     for name, target in SCENARIOS:
