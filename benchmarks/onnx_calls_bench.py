@@ -16,7 +16,6 @@ the medians, the best times and their ratio, and checks that both ways give the 
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from dataclasses import replace

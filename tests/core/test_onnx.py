@@ -14,7 +14,6 @@ import pytest
 from service.core.onnx import SideBySide
 from service.inference.estimator import OnnxPoseEstimator
 from service.inference.model_file import load_model
-from tests.api.conftest import tiny_model_path  # noqa: F401 - fixture
 
 
 def test_calls_run_on_several_threads_and_come_back_in_order() -> None:
