@@ -153,10 +153,11 @@ def measure(trees: list[tuple[Path, Path]], scenarios: list[list[tuple[Path, Pat
     """Best-of-3 wall time and server stage timings per (scenario, image_consistency), the real scan's
     with and without masks (every stage on), and the first server's peak RSS. One server per
     ``(code root, models folder)`` of ``trees``, all started at once, and per model of ``models``
-    (None: the server's default): every request goes to each server and model in turn, so that a
-    machine whose speed drifts (a shared host) moves them alike. Keyed ``(tree index, model, ...)``."""
+    (None: the server's default; the servers after the first: their default): every request goes to
+    each server and model in turn, so that a machine whose speed drifts (a shared host) moves them
+    alike. Keyed ``(tree index, model, ...)``."""
     out: dict = {}
-    sides = [(i, model) for i in range(len(trees)) for model in models]
+    sides = [(0, model) for model in models] + [(i, None) for i in range(1, len(trees))]   # others: their default
 
     def best(clients: list[httpx.Client], key: tuple, stacks: list[tuple[Path, Path]], **form: object) -> None:
         for i, model in sides:
@@ -208,7 +209,7 @@ def main() -> None:
             before, against = {k[2:]: v for k, v in both.items() if k[:2] == (0, args.compare_model)}, \
                 f"model {args.compare_model}"
         elif args.baseline:
-            before = {k[2:]: v for k, v in both.items() if k[:2] == (1, args.model)}
+            before = {k[2:]: v for k, v in both.items() if k[:2] == (1, None)}
         if args.model:
             print(f"model: {args.model}")
     for name, target in SCENARIOS:

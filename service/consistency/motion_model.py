@@ -40,7 +40,7 @@ Example:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -92,8 +92,6 @@ class MotionFit:
         placement_sd_mm: its standard error per coordinate (mm).
         placement_cov: ``[n]`` covariance (mm^2 per coordinate) of each slice's posterior error with
             the placement's error (how much of a slice's error the stack's position carries).
-        kernel_weights: posterior weight of each ``(order, length)`` evaluated (summed over the rest).
-        correlation_weights: posterior weight of each error correlation evaluated.
     """
 
     poses: NDArray[np.float64]
@@ -108,8 +106,6 @@ class MotionFit:
     placement: NDArray[np.float64] | None = None
     placement_sd_mm: float = float("nan")
     placement_cov: NDArray[np.float64] | None = None
-    kernel_weights: dict[tuple[str, float], float] = field(default_factory=dict)
-    correlation_weights: dict[float, float] = field(default_factory=dict)
 
 
 def to_coordinates(proposals: NDArray, rigid: NDArray, centre: NDArray) -> NDArray[np.float64]:
@@ -133,48 +129,16 @@ class Grid:
     amplitudes_mm: tuple[float, ...] = AMPLITUDES_MM
     noise_scales: tuple[float, ...] = NOISE_SCALES
     error_correlations: tuple[float, ...] = ERROR_CORRELATIONS
-    kernels: tuple[tuple[str, float], ...] | None = None
-    """The ``(order, length)`` pairs evaluated (:func:`screened`); default every order with every length."""
 
 
-def screened(grid: Grid, fit: MotionFit, share: float) -> Grid:
-    """``grid`` without the kernels and error correlations whose posterior weight in ``fit`` (a fit of
-    the same stack on other votes) is under ``share`` of the largest: a fit on a few changed votes
-    chooses among the models the earlier one found likely, so it decomposes those alone. Error
-    correlations ``fit`` did not evaluate are all kept; ``share`` 0 keeps everything.
-
-    Example (the weights of an earlier fit; one kernel and one correlation stand out):
-        >>> fit = MotionFit(*[None] * 4, 0.0, 0.0, 0.5, *[None] * 2, kernel_weights={("sequential", 2.0): 0.9,
-        ...                 ("sequential", 4.0): 1e-5}, correlation_weights={0.5: 1.0})
-        >>> g = screened(Grid(), fit, 1e-3)
-        >>> g.kernels, g.error_correlations
-        ((('sequential', 2.0),), (0.0, 0.5, 0.9))
-    """
-    if share <= 0 or not fit.kernel_weights:
-        return grid
-    top = max(fit.kernel_weights.values())
-    kernels = tuple(k for k, w in fit.kernel_weights.items() if w >= share * top)
-    seen = fit.correlation_weights
-    if set(grid.error_correlations) <= set(seen):
-        best = max(seen.values())
-        correlations = tuple(r for r in grid.error_correlations if seen[r] >= share * best)
-    else:
-        correlations = grid.error_correlations
-    return replace(grid, kernels=kernels, error_correlations=correlations)
-
-
-def _correlations(times: dict[str, NDArray], lengths: tuple[float, ...],
-                  kernels: tuple[tuple[str, float], ...] | None = None) -> tuple[list[tuple[str, float]], NDArray]:
-    """``[(order, length)]`` (those of ``kernels`` alone, when given) and their correlation matrices ``[c, n, n]``."""
+def _correlations(times: dict[str, NDArray], lengths: tuple[float, ...]) -> tuple[list[tuple[str, float]], NDArray]:
+    """``[(order, length)]`` and their correlation matrices ``[c, n, n]``."""
     combos, mats = [], []
     for name, t in times.items():
         dt = np.asarray(t, dtype=np.float64)[:, None] - np.asarray(t, dtype=np.float64)[None]
         for length in lengths:
-            if np.isinf(length) and any(np.isinf(c[1]) for c in combos):
+            if np.isinf(length) and combos and any(np.isinf(c[1]) for c in combos):
                 continue                                   # a rigid offset does not depend on the order
-            if kernels is not None and (name, float(length)) not in kernels and not (
-                    np.isinf(length) and any(np.isinf(k[1]) for k in kernels)):
-                continue
             combos.append((name, float(length)))
             mats.append(np.ones(dt.shape) if np.isinf(length) else np.exp(-0.5 * (dt / length) ** 2))
     return combos, np.stack(mats)
@@ -224,7 +188,7 @@ def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dic
     noise = np.asarray(noise_mm, dtype=np.float64)[vote]
     shape = np.broadcast_to(np.ones(6) if noise_shape is None else np.asarray(noise_shape, dtype=np.float64),
                             (len(y), 6))[vote]                                              # [m, 6]
-    combos, corr = _correlations(times, grid.lengths, grid.kernels)
+    combos, corr = _correlations(times, grid.lengths)
     cv = corr[:, vote][:, :, vote]                                                          # [c, m, m]
     blocks = decompose(y[vote], noise, shape, z[vote], cv, grid.error_correlations, ERROR_CORRELATION_SLICES, memo)
     amps = np.asarray(grid.amplitudes_mm, dtype=np.float64) ** 2
@@ -257,8 +221,7 @@ def fit_motion(proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dic
                      float(length), float(np.sqrt(amps[ai])), float(grid.noise_scales[gi]),
                      float(grid.error_correlations[ri]), np.sqrt(3.0 * np.maximum(slice_var, 0.0)),
                      np.sqrt(3.0 * np.maximum(loo_var, 0.0)), placement, float(np.sqrt(max(post_cov.mean(), 0.0))),
-                     post_cov.mean(axis=1), dict(zip(combos, weight.sum(axis=(1, 2, 3)).tolist())),
-                     dict(zip(grid.error_correlations, weight.sum(axis=(0, 2, 3)).tolist())))
+                     post_cov.mean(axis=1))
 
 
 def refit(fit: MotionFit, proposals: NDArray, rigid: NDArray, noise_mm: NDArray, times: dict[str, NDArray],

@@ -21,8 +21,8 @@ Steps (all slices at once, numpy only):
    slices' network errors are alike, are chosen by the marginal likelihood.
 4. **Fusion and consistency**: a slice whose own pose disagrees with the others' prediction
    beyond what both spreads explain is *inconsistent*: it does not vote and takes the prediction;
-   with the remaining votes every motion model the earlier fit found likely is fitted again, and each
-   slice's pose becomes the posterior mean averaged over the models (its own proposal weighed against the others' by their
+   with the remaining votes every motion model is fitted again, and each slice's pose becomes the
+   posterior mean averaged over the models (its own proposal weighed against the others' by their
    errors). When fewer than :data:`MIN_INLIER_FRACTION` of the slices agree, or
    the model's spread exceeds :data:`MAX_MODEL_ERROR_MM`, the stack is *undecidable* and nothing
    is changed.
@@ -53,7 +53,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from service.consistency.error_shape import anatomical_axes, relative_depth
-from service.consistency.motion_model import ERROR_CORRELATIONS, NO_VOTE, Grid, MotionFit, fit_motion, refit, screened
+from service.consistency.motion_model import ERROR_CORRELATIONS, NO_VOTE, Grid, MotionFit, fit_motion, refit
 from service.consistency.slice_order import acquisition_orders
 from service.geometry import se3, twin
 from service.geometry.anchors import ed
@@ -91,10 +91,6 @@ FIRST_GRID = Grid(error_correlations=(0.5,))
 """The first motion fit only re-weighs the slices: one error correlation suffices."""
 MIN_STANDARD_SCALE = 0.5
 """Floor of the robust scale of residuals in units of the slices' expected errors."""
-SCREEN_SHARE = 1e-3
-"""A fit on changed votes decomposes only the kernels and error correlations that held at least this
-share of the largest posterior weight in the fit before it (:func:`~service.consistency.motion_model.screened`;
-0: every one)."""
 
 
 @dataclass
@@ -272,8 +268,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     # how well the others predict it, in units of the spread both errors explain
     votes = _votes(ed(motion.loo @ inv_n, own), motion, sig, use)
     memo: dict = {}                        # the final fit reuses this one's eigendecompositions where its votes are these
-    likely = screened(grid, motion, SCREEN_SHARE)                         # the models the first fit found likely
-    motion = averaged = fit_motion(chosen, s, votes, orders, centre, likely, memo=memo, **shape)
+    motion = fit_motion(chosen, s, votes, orders, centre, grid, memo=memo, **shape)
     first = branch
     branch = _branch(ed((motion.loo @ inv_n)[:, None], cand))
     margin = _branch_margin(proposals, cand, branch, inv_n, w, inliers)
@@ -304,9 +299,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
         return StackFit(p.copy(), np.zeros(n, bool), np.zeros(n, bool), r_loo, False, s, fraction, motion.order,
                         motion.length, network_mm, model_mm)
     final_votes = np.where(use & ~inconsistent, np.where(np.isfinite(votes), votes, sig), NO_VOTE)
-    if not np.array_equal(final_votes, votes):                              # (the same votes: its decompositions again)
-        likely = screened(likely, averaged, SCREEN_SHARE)
-    final = fit_motion(chosen, s, final_votes, orders, centre, likely, memo=memo, **shape)   # every likely model again, averaged
+    final = fit_motion(chosen, s, final_votes, orders, centre, grid, memo=memo, **shape)   # every model again, averaged
     return StackFit(final.poses @ inv_n, branch == 1, inconsistent, r_loo, True, final.placement, fraction, final.order,
                     final.length, network_mm, model_mm, margin, final.sd_mm, final.placement_sd_mm, centre,
                     final.placement_cov, by_request, (far[0], far[1]) if by_request else (np.nan, np.nan))

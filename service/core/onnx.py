@@ -20,6 +20,8 @@ from typing import TypeVar
 
 import onnxruntime as ort
 
+from service.core.machine import usable_cores
+
 T = TypeVar("T")
 R = TypeVar("R")
 
@@ -67,12 +69,12 @@ class SideBySide:
     request's batches (the pose network's views and slices, the localiser's slices) go to
     ``workers`` threads that call one session opened with one intra-op thread (:meth:`options`):
     the same numbers, in about 0.8-0.85 of the time on two cores (``benchmarks/onnx_calls_bench.py``).
-    ``workers`` 0 means every core; 1 runs the calls one after the other. The threads start at the
+    ``workers`` 0 means every core this process may use (:func:`usable_cores`); 1 runs the calls one after the other. The threads start at the
     first call of each process (a forked work horse starts its own).
     """
 
     def __init__(self, workers: int = 0) -> None:
-        self.workers = max(1, workers or os.cpu_count() or 1)
+        self.workers = max(1, workers or usable_cores())
         self._lock = threading.Lock()
         self._pool: ThreadPoolExecutor | None = None
         self._pid = 0

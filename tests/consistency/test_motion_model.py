@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from model_export.acquisitions import interleaved_times, smooth_motion
-from service.consistency.motion_model import NO_VOTE, Grid, fit_motion, from_coordinates, refit, screened, to_coordinates
+from service.consistency.motion_model import NO_VOTE, Grid, fit_motion, from_coordinates, refit, to_coordinates
 from service.consistency.slice_order import acquisition_orders
 from service.geometry import se3
 from service.geometry.anchors import ed
@@ -151,25 +151,6 @@ def test_a_refit_keeps_the_chosen_hyper_parameters() -> None:
     votes[5] = NO_VOTE
     fewer = refit(fit, proposals, s, votes, acquisition_orders(N), CENTRE)
     assert (fewer.order, fewer.length, fewer.amplitude_mm) == (fit.order, fit.length, fit.amplitude_mm)
-
-
-def test_a_fit_on_a_few_changed_votes_screened_by_the_earlier_fit_gives_the_full_grids_poses() -> None:
-    """The kernels and error correlations the first fit found unlikely are not decomposed again when
-    three votes change: a fraction of the grid, the same poses to a hundredth of a millimetre."""
-    rng = np.random.default_rng(3)
-    s, truth = moving_stack(rng, 20.0, 8.0)
-    sd = rng.uniform(3, 8, N)
-    proposals = noisy(truth, rng, sd, 0.5)
-    orders = acquisition_orders(N)
-    first = fit_motion(proposals, s, sd, orders, CENTRE)
-    votes = sd.copy()
-    votes[[4, 17, 30]] = NO_VOTE
-    likely = screened(Grid(), first, 1e-3)
-    assert len(likely.kernels) * len(likely.error_correlations) <= 0.5 * 22 * 3
-    full, fast = (fit_motion(proposals, s, votes, orders, CENTRE, g) for g in (Grid(), likely))
-    assert ed(fast.poses, full.poses).max() < 0.01
-    np.testing.assert_allclose(fast.sd_mm, full.sd_mm, rtol=1e-2)
-    assert screened(Grid(), first, 0.0) == Grid()                             # share 0: everything
 
 
 def test_averaging_over_the_models_changes_the_poses_smoothly_with_the_expected_errors() -> None:

@@ -98,31 +98,6 @@ def test_a_gross_outlier_is_flagged_and_given_the_stack_pose() -> None:
     assert ed(fit.poses[10], truth[10]) < 10.0
 
 
-def test_the_fits_after_the_first_decompose_only_its_likely_models_and_answer_alike(monkeypatch: pytest.MonkeyPatch) -> None:
-    """With an inconsistent slice every fit after the first runs on changed votes; screened by the fit
-    before it (``SCREEN_SHARE``), they give the poses and expected errors of the whole grid."""
-    import service.consistency.motion_blocks as blocks
-    import service.consistency.stack_fit as stack_fit
-
-    rng = np.random.default_rng(3)
-    truth, nk = stack(rng, "moderate")
-    poses = truth @ se3.exp(rng.normal(0, 1, (len(truth), 6)) * NOISE * 0.3)
-    poses[10] = truth[10] @ se3.exp(np.array([0.0, 1.2, 0.0, 30.0, 0.0, 0.0]))
-    sizes: list[int] = []
-    factorise = blocks._factorise
-    monkeypatch.setattr(blocks, "_factorise", lambda yv, sig, shape, z, cv, corr, nb: (
-        sizes.append(len(cv) * len(corr)), factorise(yv, sig, shape, z, cv, corr, nb))[1])
-    fast = fit_stack(poses, nk, expected_error_mm=np.full(len(poses), 4.0))
-    screened_sizes = sizes.copy()
-    monkeypatch.setattr(stack_fit, "SCREEN_SHARE", 0.0)
-    sizes.clear()
-    full = fit_stack(poses, nk, expected_error_mm=np.full(len(poses), 4.0))
-    assert fast.inconsistent[10] and full.inconsistent[10]
-    assert sum(screened_sizes) < 0.6 * sum(sizes)
-    assert ed(fast.poses, full.poses).max() < 0.05
-    np.testing.assert_allclose(fast.expected_error_mm, full.expected_error_mm, rtol=0.02)
-
-
 def test_unusable_slices_take_the_stack_model_and_do_not_vote() -> None:
     rng = np.random.default_rng(5)
     truth, nk = stack(rng, "mild")

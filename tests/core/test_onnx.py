@@ -54,3 +54,12 @@ def test_the_pose_model_side_by_side_gives_the_labels_of_one_call_after_the_othe
     serial = OnnxPoseEstimator(replace(model, calls=SideBySide(1)), batch_slices=3)
     x = np.random.default_rng(0).random((7, 64, 64), np.float32) * 255
     np.testing.assert_array_equal(side.sample_labels(x, 20), serial.sample_labels(x, 20))
+
+
+def test_every_core_means_the_cores_this_process_may_use(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A container pinned to two cores of a large host runs two calls at once, not one per host core."""
+    import os
+
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {3, 7}, raising=False)
+    monkeypatch.setattr(os, "cpu_count", lambda: 64)
+    assert SideBySide(0).workers == 2 and SideBySide(5).workers == 5
