@@ -69,8 +69,9 @@ class SideBySide:
     request's batches (the pose network's views and slices, the localiser's slices) go to
     ``workers`` threads that call one session opened with one intra-op thread (:meth:`options`):
     the same numbers, in about 0.8-0.85 of the time on two cores (``benchmarks/onnx_calls_bench.py``).
-    ``workers`` 0 means every core this process may use (:func:`usable_cores`); 1 runs the calls one after the other. The threads start at the
-    first call of each process (a forked work horse starts its own).
+    ``workers`` 0 means every core this process may use (:func:`~service.core.machine.usable_cores`);
+    1 runs the calls one after the other. The threads start at the first call of each process (a
+    forked work horse starts its own).
     """
 
     def __init__(self, workers: int = 0) -> None:

@@ -233,8 +233,8 @@ class Localiser:
         those of the inputs mirrored along ``W`` (mirrored back)."""
         n = len(x)
         both = np.concatenate([x, x[..., ::-1]]) if self.mirrored else x
-        logits = np.concatenate(self.calls.map(lambda k: self.session.run(None, {name: both[k:k + BATCH_SLICES]})[0][:, 0],
-                                               range(0, len(both), BATCH_SLICES)))
+        logits = np.concatenate(self.calls.map(
+            lambda k: self.session.run(None, {name: both[k:k + BATCH_SLICES]})[0][:, 0], range(0, len(both), BATCH_SLICES)))
         return 0.5 * (logits[:n] + logits[n:, :, ::-1]) if self.mirrored else logits
 
     def localise(self, volume: Volume) -> Localisation:
