@@ -11,16 +11,14 @@ Example:
 from __future__ import annotations
 
 import hashlib
-import os
-import threading
 from collections.abc import Callable, Iterable
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TypeVar
 
 import onnxruntime as ort
 
 from service.core.machine import usable_cores
+from service.core.threads import ProcessThreads
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -67,18 +65,19 @@ class SideBySide:
     inside one call, their convolutions wait for each other at every layer; as separate calls of one
     thread each they do not. An onnxruntime session takes calls from several threads at once, so a
     request's batches (the pose network's views and slices, the localiser's slices) go to
-    ``workers`` threads that call one session opened with one intra-op thread (:meth:`options`):
-    the same numbers, in about 0.8-0.85 of the time on two cores (``benchmarks/onnx_calls_bench.py``).
-    ``workers`` 0 means every core this process may use (:func:`~service.core.machine.usable_cores`);
-    1 runs the calls one after the other. The threads start at the first call of each process (a
-    forked work horse starts its own).
+    ``workers`` threads (:class:`~service.core.threads.ProcessThreads`) that call one session opened
+    with one intra-op thread (:meth:`options`): the same numbers, in about 0.8-0.85 of the time on
+    two cores (``benchmarks/onnx_calls_bench.py``). ``workers`` 0 means every core this process may
+    use (:func:`~service.core.machine.usable_cores`); 1 runs the calls one after the other.
     """
 
     def __init__(self, workers: int = 0) -> None:
-        self.workers = max(1, workers or usable_cores())
-        self._lock = threading.Lock()
-        self._pool: ThreadPoolExecutor | None = None
-        self._pid = 0
+        self.threads = ProcessThreads(workers or usable_cores(), "svrnet-onnx")
+
+    @property
+    def workers(self) -> int:
+        """How many calls run at once."""
+        return self.threads.workers
 
     @staticmethod
     def options() -> ort.SessionOptions:
@@ -87,12 +86,4 @@ class SideBySide:
 
     def map(self, call: Callable[[T], R], items: Iterable[T]) -> list[R]:
         """``[call(item) for item in items]``, the calls on :attr:`workers` threads, in order."""
-        items = list(items)
-        if self.workers == 1 or len(items) < 2:
-            return [call(item) for item in items]
-        with self._lock:
-            if self._pool is None or self._pid != os.getpid():
-                self._pool = ThreadPoolExecutor(self.workers, thread_name_prefix="svrnet-onnx")
-                self._pid = os.getpid()
-            pool = self._pool
-        return list(pool.map(call, items))
+        return self.threads.map(call, items)

@@ -170,9 +170,10 @@ class OnnxPoseEstimator:
         passes = np.ones(mc_samples, np.float32) if mc_samples > 0 else np.zeros(1, np.float32)
         x = np.asarray(inputs, dtype=np.float32)
         group = max(int(group or len(x)), 1)
-        calls = [(x[start + i:min(start + i + self.batch_slices, start + group)], draw)
-                 for draw, start in enumerate(range(0, len(x), group))
-                 for i in range(0, min(group, len(x) - start), self.batch_slices)]
+        calls = []
+        for draw, start in enumerate(range(0, len(x), group)):
+            rows = x[start:start + group]
+            calls += [(rows[i:i + self.batch_slices], draw) for i in range(0, len(rows), self.batch_slices)]
         chunks = self.model.calls.map(lambda c: self.model.run(c[0], passes, c[1]), calls)
         return np.concatenate(chunks) if chunks else np.zeros((0, len(passes), 0), np.float32)
 
