@@ -7,8 +7,7 @@ samples of half a request's slices, a pass's padded images and gradients of ever
 side by side on two cores; work of a few milliseconds (a pass of the image term over its tens of
 thousands of points) does not gain: the hand-over and the GIL between numpy's calls cost what the
 second core saves. One pool serves every request: a request's work waits for the pool rather than
-starting threads of its own. A forked child starts its own. The pools of the service's threads are
-:class:`ProcessThreads` (the onnxruntime calls' too: :class:`~service.core.onnx.SideBySide`).
+starting threads of its own. A forked child starts its own.
 
 **BLAS** (:func:`limit_blas_threads`): the consistency stages multiply many small matrices, which
 one thread does faster, and OpenBLAS threads that wait for work spin: on a machine whose cores are
@@ -26,66 +25,36 @@ from __future__ import annotations
 
 import os
 import threading
-import weakref
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, TypeVar
 
 T = TypeVar("T")
 
-
-class ProcessThreads:
-    """``workers`` threads of this process for work side by side (:meth:`map`), started at the first
-    call. A forked process (an RQ work horse) inherits the parent's pool without its threads: work
-    sent there would never run, so every child forgets its parent's pools and starts its own. Work
-    that a pool's own thread sends to that pool runs there, one after the other (it would otherwise
-    wait for itself).
-
-    Example:
-        >>> ProcessThreads(2, "svrnet-example").map(lambda k: k * k, [1, 2, 3])
-        [1, 4, 9]
-    """
-
-    def __init__(self, workers: int, prefix: str) -> None:
-        self.workers = max(1, int(workers))
-        self.prefix = prefix
-        self._lock = threading.Lock()
-        self._pool: ThreadPoolExecutor | None = None
-        _ALL.add(self)
-
-    def map(self, work: Callable[[Any], T], items: Iterable[Any]) -> list[T]:
-        """``[work(item) for item in items]``, on the pool's threads, in order."""
-        items = list(items)
-        if self.workers == 1 or len(items) < 2 or threading.current_thread().name.startswith(self.prefix):
-            return [work(item) for item in items]
-        with self._lock:
-            if self._pool is None:
-                self._pool = ThreadPoolExecutor(self.workers, thread_name_prefix=self.prefix)
-            pool = self._pool
-        return list(pool.map(work, items))
-
-    def _forget(self) -> None:
-        """In a forked child: the parent's threads are not here (nor whoever held the lock)."""
-        self._lock = threading.Lock()
-        self._pool = None
+_PREFIX = "svrnet-arrays"
 
 
-_ALL: weakref.WeakSet[ProcessThreads] = weakref.WeakSet()
+def _new_pool() -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(max_workers=2, thread_name_prefix=_PREFIX)
 
 
-def _forget_all_after_fork() -> None:
-    for threads in list(_ALL):
-        threads._forget()
+def _fresh_pool_after_fork() -> None:
+    """A forked process (an RQ work horse) holds the parent's pool without its threads: work sent
+    there would never run. The child starts a pool of its own."""
+    global _POOL
+    _POOL = _new_pool()
 
 
-os.register_at_fork(after_in_child=_forget_all_after_fork)
-_ARRAYS = ProcessThreads(2, "svrnet-arrays")
+_POOL = _new_pool()
+os.register_at_fork(after_in_child=_fresh_pool_after_fork)
 
 
 def two_threads(work: Callable[[int], T]) -> list[T]:
     """``[work(0), work(1)]``, side by side in two threads; one after the other when called from
     the pool's own threads (work that waited there for the pool would wait for itself)."""
-    return _ARRAYS.map(work, (0, 1))
+    if threading.current_thread().name.startswith(_PREFIX):
+        return [work(0), work(1)]
+    return list(_POOL.map(work, (0, 1)))
 
 
 def _load_blas() -> None:

@@ -165,16 +165,15 @@ class OnnxPoseEstimator:
         """Raw labels ``[B, N, D]``; ``mc_samples = 0`` gives one deterministic pass (N = 1). Rows come
         in groups of ``group`` (default: one group), group ``g`` with dropout draws ``g``
         (:meth:`~service.inference.model_file.LoadedModel.draws`), in calls of at most
-        :attr:`batch_slices` rows, run side by side (the model's
-        :attr:`~service.inference.model_file.LoadedModel.calls`)."""
+        :attr:`batch_slices` rows."""
         passes = np.ones(mc_samples, np.float32) if mc_samples > 0 else np.zeros(1, np.float32)
         x = np.asarray(inputs, dtype=np.float32)
         group = max(int(group or len(x)), 1)
-        calls = []
+        chunks = []
         for draw, start in enumerate(range(0, len(x), group)):
             rows = x[start:start + group]
-            calls += [(rows[i:i + self.batch_slices], draw) for i in range(0, len(rows), self.batch_slices)]
-        chunks = self.model.calls.map(lambda c: self.model.run(c[0], passes, c[1]), calls)
+            chunks += [self.model.run(rows[i:i + self.batch_slices], passes, draw)
+                       for i in range(0, len(rows), self.batch_slices)]
         return np.concatenate(chunks) if chunks else np.zeros((0, len(passes), 0), np.float32)
 
     def estimate(self, inputs: NDArray[np.float32], mc_samples: int) -> PoseEstimate:

@@ -15,7 +15,7 @@ import numpy as np
 import onnxruntime as ort
 from numpy.typing import NDArray
 
-from service.core.onnx import SideBySide, file_sha256
+from service.core.onnx import file_sha256, session_options
 from service.geometry.twin import DEFAULT_PLANE_X_MM
 from service.inference.views import view_count
 
@@ -137,14 +137,12 @@ class LoadedModel:
     mc_seed: int | None = None
     """The seed of the fixed dropout draws; None where the graph draws its own."""
     _draws: dict[int, tuple[int, dict[str, NDArray[np.float32]]]] = field(default_factory=dict, repr=False)
-    calls: SideBySide = field(default_factory=lambda: SideBySide(1), repr=False)
-    """How its calls share the cores (:class:`~service.core.onnx.SideBySide`)."""
 
     def with_seed(self, seed: int) -> "LoadedModel":
         """The same model and session with the draws of ``seed`` (another fixed ensemble: experiments
         that ask how far the MC draws move an answer)."""
         return LoadedModel(self.path, self.info, self.session, self.draw_inputs,
-                           seed if self.draw_inputs else None, calls=self.calls)
+                           seed if self.draw_inputs else None)
 
     def draws(self, n: int, draw: int = 0) -> dict[str, NDArray[np.float32]]:
         """The dropout inputs for ``n`` passes of ensemble ``draw`` (each test-time view has its own):
@@ -177,13 +175,11 @@ class LoadedModel:
 
 def load_model(path: Path, threads: int = 0) -> LoadedModel:
     """Open an exported model file with onnxruntime and read its metadata; its ``mc_seed`` is the seed it
-    runs with (:data:`DEFAULT_MC_SEED` where a file with draw inputs names none). Its calls run on
-    ``threads`` cores side by side (0: every core; :class:`~service.core.onnx.SideBySide`)."""
+    runs with (:data:`DEFAULT_MC_SEED` where a file with draw inputs names none)."""
     path = Path(path)
-    calls = SideBySide(threads)
-    sess = ort.InferenceSession(str(path), calls.options(), providers=["CPUExecutionProvider"])
+    sess = ort.InferenceSession(str(path), session_options(threads), providers=["CPUExecutionProvider"])
     meta = sess.get_modelmeta().custom_metadata_map
     info = ModelInfo.from_metadata(meta, file_sha256(path))
     draws = [(i.name, int(i.shape[-1])) for i in sess.get_inputs() if i.name.startswith(DRAWS_PREFIX)]
     seed = (DEFAULT_MC_SEED if info.mc_seed is None else info.mc_seed) if draws else None
-    return LoadedModel(path, replace(info, mc_seed=seed), sess, draws, seed, calls=calls)
+    return LoadedModel(path, replace(info, mc_seed=seed), sess, draws, seed)

@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import functools
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -45,7 +45,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from service.core.errors import NotFound
-from service.core.onnx import SideBySide, file_sha256, model_files
+from service.core.onnx import file_sha256, model_files, session_options
 from service.core.settings import DEFAULT_LOCALISERS_DIR
 from service.io.volume import Volume
 from service.preprocess.brain_shape import MASK_THRESHOLD, THRESHOLD, brain_from_probabilities
@@ -58,10 +58,9 @@ MIN_SLICE_AREA_MM2 = 100.0
 """A slice's brain region smaller than this is not taken for a brain (:meth:`Localiser.localise_slice`)."""
 MIN_CONFIDENCE = 0.15
 """Below this confidence no brain is reported: the mask is empty and the stack's slices ``empty``."""
-BATCH_SLICES = 2
-"""Slices per onnxruntime call of the localiser: the calls run side by side, one core each
-(:class:`~service.core.onnx.SideBySide`), and on two cores two 144 x 144 slices a call run faster per
-slice than more (the activations stay in cache)."""
+BATCH_SLICES = 8
+"""Slices per onnxruntime call of the localiser: on two cores a handful of 144 x 144 slices a call runs
+faster per slice than a whole stack at once (the activations stay in cache)."""
 POSE_MASK_INSET_MM = 2.0
 """How far inside the localiser's mask (the skull's inside) the pose network's mask lies: the pose
 network learnt the atlas's brain masks, which leave out most of the extra-axial CSF around the brain
@@ -191,19 +190,15 @@ class Localiser:
     mirrored: bool = True
     """Average each slice's logits with those of its mirror image (one more network pass a slice). A
     network that learnt that average (metadata ``mirrored_pass`` ``"learnt"``) runs once."""
-    calls: SideBySide = field(default_factory=lambda: SideBySide(1), repr=False)
-    """How its calls share the cores (:class:`~service.core.onnx.SideBySide`)."""
 
     @classmethod
     def load(cls, path: Path, threads: int = 0) -> "Localiser":
-        """Open ``path`` with onnxruntime, its calls on ``threads`` cores side by side (0: every core),
-        and read its metadata."""
+        """Open ``path`` with onnxruntime (``threads`` 0: all cores) and read its metadata."""
         path = Path(path)
-        calls = SideBySide(threads)
-        sess = ort.InferenceSession(str(path), calls.options(), providers=["CPUExecutionProvider"])
+        sess = ort.InferenceSession(str(path), session_options(threads), providers=["CPUExecutionProvider"])
         meta = sess.get_modelmeta().custom_metadata_map
         return cls(path, sess, float(meta["grid_mm"]), meta.get("version", "unknown"), file_sha256(path),
-                   mirrored=meta.get("mirrored_pass", "run") != "learnt", calls=calls)
+                   mirrored=meta.get("mirrored_pass", "run") != "learnt")
 
     def probabilities(self, volume: Volume) -> tuple[NDArray[np.float32], LocaliserGrid]:
         """Per-slice brain probabilities on the network grid ``[n, Hp, Wp]`` and that grid."""
@@ -228,14 +223,16 @@ class Localiser:
         return [(prob, grid) for prob, (_, grid) in zip(out, inputs)]
 
     def _logits(self, name: str, x: NDArray[np.float32]) -> NDArray[np.float32]:
-        """The network's logits ``[n, H, W]`` for inputs ``[n, c, H, W]``, in calls of
-        :data:`BATCH_SLICES` run side by side (:attr:`calls`); with :attr:`mirrored`, averaged with
-        those of the inputs mirrored along ``W`` (mirrored back)."""
-        n = len(x)
-        both = np.concatenate([x, x[..., ::-1]]) if self.mirrored else x
-        logits = np.concatenate(self.calls.map(
-            lambda k: self.session.run(None, {name: both[k:k + BATCH_SLICES]})[0][:, 0], range(0, len(both), BATCH_SLICES)))
-        return 0.5 * (logits[:n] + logits[n:, :, ::-1]) if self.mirrored else logits
+        """The network's logits ``[n, H, W]`` for inputs ``[n, c, H, W]``, in batches of
+        :data:`BATCH_SLICES`; with :attr:`mirrored`, averaged with those of the inputs mirrored along
+        ``W`` (mirrored back)."""
+        def run(inputs: NDArray[np.float32]) -> NDArray[np.float32]:
+            return np.concatenate([self.session.run(None, {name: inputs[k:k + BATCH_SLICES]})[0][:, 0]
+                                   for k in range(0, len(inputs), BATCH_SLICES)])
+        logits = run(x)
+        if self.mirrored:
+            logits = 0.5 * (logits + run(np.ascontiguousarray(x[..., ::-1]))[..., ::-1])
+        return logits
 
     def localise(self, volume: Volume) -> Localisation:
         """The brain mask of ``volume`` on its own grid, its volume and the confidence."""
