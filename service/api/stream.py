@@ -278,18 +278,28 @@ class StreamConnection:
             except Exception:  # noqa: BLE001 - a background stage must not end the session; the stack's end says more
                 log.warning("stream firm-up failed", exc_info=True)
 
-    async def settle(self) -> None:
-        """Wait for the background stage (its updates go out before what follows)."""
+    async def settle(self, stack: str | None = None) -> set[str]:
+        """Wait for the background stage's running firm-up (its updates go out before what follows).
+        The queued firm-ups are taken out of the queue: that of ``stack`` (every one when None) is
+        dropped, its end runs the stage anyway; the other stacks' are returned, for the caller to
+        queue again once it is done (:meth:`end_stack`), so that one stack's end neither waits for
+        nor loses another's."""
+        others = self.dirty - {stack} if stack is not None else set()
         self.dirty.clear()
         if self.firming is not None:
             await asyncio.gather(self.firming, return_exceptions=True)
+        return others
 
     async def end_stack(self, stack: str) -> None:
-        await self.settle()
-        answer = await self.in_background("end_stack", self.session.end_stack, stack)
-        for message in update_messages(answer.updates, answer.reacquire_of):
-            await self.send(message)
-        await self.send(stack_message(answer))
+        others = await self.settle(stack)
+        try:
+            answer = await self.in_background("end_stack", self.session.end_stack, stack)
+            for message in update_messages(answer.updates, answer.reacquire_of):
+                await self.send(message)
+            await self.send(stack_message(answer))
+        finally:                                    # a refused end changes nothing: the others' firm-ups run
+            for other in others:
+                self.firm_up(other)
 
     def unread_frames(self, msg: object) -> int:
         """How many binary frames of a refused ``slice`` message are still to come, to be dropped

@@ -322,13 +322,18 @@ class MrdConnection:
             except Exception as fault:  # noqa: BLE001 - a background stage must not end the session
                 log.warning("mrd firm-up failed", extra={"error_type": type(fault).__name__})
 
-    def settle(self) -> None:
-        """Wait for the background stage (its updates go out before what follows); drop what it had to do."""
+    def settle(self, stack: str | None = None) -> set[str]:
+        """Wait for the background stage's running firm-up (its updates go out before what follows);
+        the queued firm-ups are taken out of the queue: that of ``stack`` (every one when None) is
+        dropped, the other stacks' returned for the caller to queue again (:meth:`end_series`), as
+        :meth:`service.api.stream.StreamConnection.settle` does."""
         with self.stage_lock:
+            others = self.dirty - {stack} if stack is not None else set()
             self.dirty.clear()
             running = self.firming
         if running is not None:
             wait([running])
+        return others
 
     def open_session(self) -> StreamSession:
         """The session: the config's, else the defaults' when no config came. After a refused config
@@ -345,7 +350,7 @@ class MrdConnection:
     def end_series(self, series_index: int) -> None:
         """End the series' stack (answered by its final poses) and start its next pass afresh."""
         series = self.series.pop(series_index)
-        self.settle()
+        others = self.settle(series.stack)
         try:
             answer = self.stage.submit(self.open_session().end_stack, series.stack).result()   # at the stages' priority
         except ServiceError as failed:
@@ -358,6 +363,8 @@ class MrdConnection:
             for message in update_messages(answer.updates, answer.reacquire_of):   # earlier stacks' slices it moved
                 self.send_text(message)
             self.send_text(stack_message(answer))
+        for other in others:                               # the other series' firm-ups, still to come
+            self.firm_up(other)
         self.series[series_index] = SeriesState(f"{series_index}.{series.passes + 1}", passes=series.passes + 1)
 
     def finish(self) -> None:

@@ -3,18 +3,23 @@ truth; bad messages answered with an ``error`` while the session goes on; keys a
 
 from __future__ import annotations
 
+import asyncio
 import json
 import time
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
+from service.api import stream
+from service.core.errors import InvalidParameter
 from service.inference.registry import ModelRegistry
 from service.streaming.frames import SliceFrame
 from tests.api.conftest import make_client
+from tests.support.firm_ups import GatedSession
 from tests.support.streams import KeyedOracle, true_sent, two_stacks_case
 
 
@@ -254,3 +259,42 @@ def test_an_idle_session_is_told_so_and_closed_going_away(case) -> None:  # noqa
             with pytest.raises(WebSocketDisconnect) as closed:
                 ws.receive_json()
             assert closed.value.code == 1001
+
+
+def test_ending_a_stack_keeps_the_firm_up_another_stack_has_queued(monkeypatch: pytest.MonkeyPatch) -> None:
+    """One stack's end waits for the running firm-up only; another stack's queued one runs after
+    it, and after an end the session refuses (which changes nothing)."""
+    monkeypatch.setattr(stream, "stack_message", lambda answer: {"type": "stack"})
+    session = GatedSession(held="a", stacks=("a", "b"))
+    conn = object.__new__(stream.StreamConnection)         # the queue alone: no socket
+    conn.session, conn.dirty, conn.firming, conn.sent = session, set(), None, []
+    conn.stages = {"firm_up": ThreadPoolExecutor(1), "end_stack": ThreadPoolExecutor(1)}
+
+    async def send(message: dict) -> None:
+        conn.sent.append(message)
+
+    conn.send = send
+
+    async def scenario(end: str) -> None:
+        session.gate.clear()
+        session.running.clear()
+        conn.firm_up("a")                                    # running, held at the gate
+        assert await asyncio.to_thread(session.running.wait, 5)
+        conn.firm_up("b")                                    # queued behind it
+        ending = asyncio.create_task(conn.end_stack(end))
+        while conn.dirty:                                    # the end has taken the queue: then the gate opens
+            await asyncio.sleep(0.001)
+        session.gate.set()
+        try:
+            await ending
+        finally:
+            await asyncio.gather(conn.firming, return_exceptions=True)   # the queue run to its end
+
+    asyncio.run(scenario("a"))
+    assert conn.sent == [{"type": "stack"}] and session.calls.count(("firm_up", "b")) == 1
+    assert session.calls.index(("end_stack", "a")) < session.calls.index(("firm_up", "b"))
+    with pytest.raises(InvalidParameter):
+        asyncio.run(scenario("no-such-stack"))               # refused: b's queued firm-up still runs
+    assert session.calls.count(("firm_up", "b")) == 2
+    for pool in conn.stages.values():
+        pool.shutdown()
