@@ -70,6 +70,12 @@ def _inflate(fp: BinaryIO, budget: FileBudget) -> bytes:
     return bytes(out)
 
 
+PHOTOMETRIC_TERMS = frozenset({"MONOCHROME1", "MONOCHROME2", "PALETTE COLOR", "RGB", "HSV", "ARGB", "CMYK", "YBR_FULL",
+                               "YBR_FULL_422", "YBR_PARTIAL_422", "YBR_PARTIAL_420", "YBR_ICT", "YBR_RCT"})
+"""The defined terms of PhotometricInterpretation (PS3.3 C.7.6.3.1.2): the only values an answer names
+(a tag's free text could hold anything, a name among it)."""
+
+
 def check_pixels(ds: Dataset, filename: str, budget: FileBudget) -> None:
     """Charge the declared pixel array and check compressed frames against it, before decoding."""
     if "PixelData" not in ds:
@@ -85,7 +91,8 @@ def check_pixels(ds: Dataset, filename: str, budget: FileBudget) -> None:
     budget.slices(frames, "frames")              # before a loop over them, or their decoding
     photometric = str(getattr(ds, "PhotometricInterpretation", "MONOCHROME2") or "MONOCHROME2").strip().upper()
     if spp == 1 and not photometric.startswith("MONOCHROME"):      # a palette's indices are no grey values
-        raise UnusableImage(f"{filename}: DICOM pixel data of PhotometricInterpretation {photometric[:20]}; grey "
+        named = photometric if photometric in PHOTOMETRIC_TERMS else "other than MONOCHROME"   # never a free text
+        raise UnusableImage(f"{filename}: DICOM pixel data of PhotometricInterpretation {named}; grey "
                             "values (MONOCHROME2) are required")
     if spp != 1:                        # colour: its channels would be taken for slices or frames
         raise UnusableImage(f"{filename}: DICOM pixel data with {spp} samples per pixel (colour); one grey value "

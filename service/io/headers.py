@@ -116,10 +116,37 @@ def _fields(header: bytes, kind: str) -> dict[str, bytes]:
     return fields
 
 
+_MHA_MATRICES = ("transformmatrix", "rotation", "orientation")
+
+
+def _mha_counts(fields: dict[str, bytes]) -> str | None:
+    """Why an MHA header's sizes, origin or axes are not ``NDims`` plain numbers (axes: ``NDims``
+    squared), or None: its reader reads what numbers it finds and puts 0 in place of the rest.
+
+    Example:
+        >>> _mha_counts({"ndims": b" 3", "offset": b" 10"})
+        "its MHA header's offset is not 3 numbers"
+        >>> _mha_counts({"ndims": b" 3", "offset": b" 1 2 3", "transformmatrix": b" 1 0 0 0 1 0 0 0 1"}) is None
+        True
+    """
+    ndims = fields.get("ndims", b"").strip()
+    if not ndims.isdigit():
+        return None                                      # the reader refuses the header itself
+    n = int(ndims)
+    for name in (*SIZE_FIELDS["mha"], *PLACE_FIELDS["mha"]):
+        if name in fields:
+            want = n * n if name in _MHA_MATRICES else n
+            values = fields[name].split()
+            if len(values) != want or not all(_NUMBER.fullmatch(v) for v in values):
+                return f"its MHA header's {name} is not {want} numbers"
+    return None
+
+
 def geometry_problem(header: bytes, kind: str) -> str | None:
     """Why a rebuilt header's geometry would be made up by its reader, or None: no voxel size at all
     (the reader invents 1 mm, as for a NIfTI header without one), or sizes, origin or axes that are
-    not finite numbers (the reader puts 1 mm or 0 in their place), or a size that is not positive.
+    not finite numbers (the reader puts 1 mm or 0 in their place) or, in an MHA header, not as many
+    numbers as the image has dimensions (:func:`_mha_counts`), or a size that is not positive.
 
     Example:
         >>> geometry_problem(b"NRRD0004\\ntype: uchar\\nsizes: 2 2 2\\n\\n", "nrrd")
@@ -135,6 +162,8 @@ def geometry_problem(header: bytes, kind: str) -> str | None:
     for name in (*SIZE_FIELDS[kind], *PLACE_FIELDS[kind]):
         if name in fields and _NOT_FINITE.search(fields[name]):
             return f"its {kind.upper()} header's {name} holds values that are not finite numbers"
+    if kind == "mha" and (problem := _mha_counts(fields)) is not None:
+        return problem
     if any(float(v) <= 0 for v in _NUMBER.findall(fields.get("spacings", b"") + fields.get("elementspacing", b"")
                                                  + fields.get("elementsize", b""))):
         return f"its {kind.upper()} header gives a voxel size that is not positive"

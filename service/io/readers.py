@@ -310,8 +310,9 @@ def validate(vol: Volume, filename: str) -> Volume:
         raise UnusableImage(f"{filename}: 2D image (shape {list(a.shape)}); a stack of at least two slices is required")
     if not np.issubdtype(a.dtype, np.number) or np.iscomplexobj(a):
         raise UnusableImage(f"{filename}: unsupported pixel type {a.dtype}")
+    a = a.astype(np.float32, copy=False)                # values beyond float32's range become inf here
     if not np.isfinite(a).all():
-        raise UnusableImage(f"{filename}: contains NaN or infinite values")
+        raise UnusableImage(f"{filename}: contains NaN or infinite values (or values beyond float32's range)")
     if not np.isfinite(vol.affine).all() or abs(np.linalg.det(vol.affine[:3, :3])) < 1e-9:
         raise UnusableImage(f"{filename}: invalid geometry (singular voxel-to-world matrix)")
     if (cos := float(frames.axes_cosine(vol.affine[:3, :3]))) > MAX_SHEAR_COS:
@@ -319,7 +320,7 @@ def validate(vol: Volume, filename: str) -> Volume:
                             "not 90); resample the stack to a grid with axes at right angles")
     if (problem := grid_problem(vol.affine, a.shape)) is not None:
         raise UnusableImage(f"{filename}: {problem}")
-    return replace(vol, array=a.astype(np.float32, copy=False))
+    return replace(vol, array=a)
 
 
 __all__ = ["read_upload", "sniff", "validate"]

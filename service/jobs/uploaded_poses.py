@@ -160,13 +160,21 @@ def expected_errors(body: dict) -> np.ndarray:
         >>> expected_errors({"stacks": [{"slices": [{"expected_error_mm": 2.5}, {"expected_error_mm": None}]},
         ...                             {"slices": [{"expected_error_mm": "x"}, {}]}]}).tolist()
         [2.5, nan, nan, nan]
+        >>> expected_errors({"stacks": [{"slices": [{"expected_error_mm": 10 ** 20}, {"expected_error_mm": 10 ** 400},
+        ...                                         {"expected_error_mm": -1}]}]}).tolist()
+        [1e+20, nan, nan]
         >>> expected_errors({"stacks": [{"slices": [{"index": 1, "expected_error_mm": 4.0},
         ...                                         {"index": 0, "expected_error_mm": 2.0}]}]}).tolist()
         [2.0, 4.0]
     """
     def number(value: object) -> float:
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value) and value >= 0
-        return float(value) if ok else np.nan
+        if not isinstance(value, (int, float)) or isinstance(value, bool):
+            return np.nan
+        try:
+            as_float = float(value)
+        except OverflowError:                            # an int beyond float's range (JSON has no limit)
+            return np.nan
+        return as_float if np.isfinite(as_float) and as_float >= 0 else np.nan
 
     return np.array([number(s.get("expected_error_mm") if isinstance(s, dict) else None)
                      for i, st in enumerate(body.get("stacks", [])) for s in in_index_order(st.get("slices", []), i)],

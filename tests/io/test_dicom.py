@@ -269,3 +269,17 @@ def test_pixel_data_padded_by_less_than_a_frame_is_read_and_a_frame_more_refused
                 read_upload(path, path.name)
         else:
             assert read_upload(path, path.name).array.shape == (6, 8, 3)
+
+
+@pytest.mark.parametrize(("photometric", "named"), [("PALETTE COLOR", "PALETTE COLOR"), ("DOE^JANE^X", "other than")])
+def test_a_photometric_interpretation_is_named_only_when_it_is_a_defined_term(tmp_path: Path, photometric: str,
+                                                                            named: str) -> None:
+    """The tag's defined terms are named; free text (a name could be stuffed there) never comes back."""
+    path = tmp_path / "frames.dcm"
+    ds = _dataset(path, MRImageStorage, np.ones((4, 8, 8), np.uint16))
+    ds.NumberOfFrames = 4
+    ds.PhotometricInterpretation = photometric
+    ds.save_as(str(path), enforce_file_format=True)
+    with pytest.raises(UnusableImage) as info:
+        read_upload(path, "frames.dcm")
+    assert named in info.value.detail and "DOE" not in info.value.detail, info.value.detail

@@ -137,6 +137,7 @@ MHA_HEAD = b"ObjectType = Image\nNDims = 3\nDimSize = 8 8 8\nElementType = MET_U
     ("g.mha", MHA_HEAD + b"ElementSpacing = 1 1 3\nOffset = nan 0 0\nElementDataFile = LOCAL\n",
      "offset holds values that are not finite"),
     ("g.mha", MHA_HEAD + b"ElementSpacing = 1 1 -3\nElementDataFile = LOCAL\n", "not positive"),
+    ("g.mha", MHA_HEAD + b"ElementSpacing = 1 1 3\nOffset = a b c\nElementDataFile = LOCAL\n", "offset is not 3 numbers"),
 ])
 def test_a_geometry_the_reader_would_make_up_is_422(tmp_path: Path, name: str, content: bytes, words: str) -> None:
     """As a NIfTI header without voxel sizes or with a sheared sform is: never 1 mm or 0 invented."""
@@ -150,6 +151,19 @@ def test_a_geometry_the_reader_would_make_up_is_422(tmp_path: Path, name: str, c
 
 
 PAYLOAD = bytes(77_000)
+
+
+@pytest.mark.parametrize("field", [b"Offset = 10", b"Offset = 1 2", b"ElementSpacing = 1 1 3\nPosition = 0 x 0",
+                                   b"TransformMatrix = 1 0 0 0 1 0"])
+def test_an_mha_placement_of_too_few_numbers_is_refused_not_filled_with_zeros(tmp_path: Path, field: bytes) -> None:
+    from service.core.errors import UnusableImage
+
+    upload = tmp_path / "p.mha"
+    spacing = b"" if b"ElementSpacing" in field else b"ElementSpacing = 1 1 3\n"
+    upload.write_bytes(MHA_HEAD + spacing + field + b"\nElementDataFile = LOCAL\n" + bytes(512))
+    with pytest.raises((UnusableImage, UnsupportedFile)) as info:
+        read_upload(upload, "p.mha")
+    assert "p.mha" in info.value.detail
 
 
 @pytest.mark.parametrize("name, content, words", [

@@ -417,3 +417,18 @@ def test_a_nifti2_file_of_several_volumes_complex_truncated_or_too_large_is_refu
     (tmp_path / "cut.nii").write_bytes(data[: len(data) - 100])
     with pytest.raises(UnsupportedFile, match="cut.nii"):
         read_upload(tmp_path / "cut.nii", "cut.nii")
+
+
+@pytest.mark.parametrize("suffix", [".nii", ".nii.gz", ".mha"])
+def test_finite_voxels_beyond_float32s_range_are_422_not_read_as_infinite(tmp_path: Path, suffix: str) -> None:
+    """A float64 file's 1e300 would become inf where the service computes in float32: refused as NaN and
+    inf are, not read as a stack whose slices then hold no brain."""
+    array = np.ones((6, 20, 20))
+    array[3, 10, 10] = 1e300
+    image = sitk.GetImageFromArray(array)
+    image.SetSpacing((1.0, 1.0, 3.0))
+    path = tmp_path / f"big{suffix}"
+    sitk.WriteImage(image, str(path))
+    with pytest.raises(UnusableImage) as info:
+        read_upload(path, path.name)
+    assert path.name in info.value.detail and "float32" in info.value.detail
