@@ -262,8 +262,8 @@ def test_an_idle_session_is_told_so_and_closed_going_away(case) -> None:  # noqa
 
 
 def test_ending_a_stack_keeps_the_firm_up_another_stack_has_queued(monkeypatch: pytest.MonkeyPatch) -> None:
-    """One stack's end waits for the running firm-up only; another stack's queued one runs after
-    it, and after an end the session refuses (which changes nothing)."""
+    """One stack's end waits for the running firm-up only; another stack's queued one runs after it,
+    and an end the session refuses changes nothing: the queued firm-up still runs."""
     monkeypatch.setattr(stream, "stack_message", lambda answer: {"type": "stack"})
     session = GatedSession(held="a", stacks=("a", "b"))
     conn = object.__new__(stream.StreamConnection)         # the queue alone: no socket
