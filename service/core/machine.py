@@ -57,19 +57,10 @@ def describe_cpuinfo(text: str, cores: int | None, fallback_name: str = "unknown
     return "; ".join(parts)
 
 
-def usable_cores() -> int:
-    """The cores this process may run on (its CPU affinity: a container pinned to two cores of a large
-    host has two), else every core."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):                  # no affinity on this platform
-        return os.cpu_count() or 1
-
-
 def cpu_description() -> str:
     """:func:`describe_cpuinfo` of this machine (its processor's name alone where there is no
     ``/proc/cpuinfo``)."""
-    cores = usable_cores()
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     try:
         text = CPUINFO.read_text(errors="replace")
     except OSError:
