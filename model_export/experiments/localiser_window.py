@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from model_export.localiser.evaluate import dice, masked_files  # noqa: E402
 from service.io.volume import Volume, read_volume  # noqa: E402
 from service.preprocess.brain_shape import brain_from_probabilities  # noqa: E402
-from service.preprocess.localise import BATCH_SLICES, Localiser  # noqa: E402
+from service.preprocess.localise import Localiser  # noqa: E402
 from service.preprocess.localiser_inputs import MIN_GRID_PX, PAD_MULTIPLE, LocaliserGrid, localiser_inputs  # noqa: E402
 from service.core.settings import DEFAULT_LOCALISERS_DIR  # noqa: E402
 
@@ -45,13 +46,17 @@ def _window(lo: float, hi: float, n: int) -> tuple[int, int]:
     return start, start + size
 
 
-class WindowedLocaliser(Localiser):
-    """:class:`Localiser` whose full passes run on the window a coarse pass finds; ``share`` holds
-    each stack's window share of the canvas (1.0 where it fell back to the whole canvas)."""
+def coarse_to_fine(index: float, coarse: LocaliserGrid, fine: LocaliserGrid, axis: int, coarse_mm: float,
+                   fine_mm: float) -> float:
+    """Where pixel edge ``index`` of the padded coarse grid lies on the padded fine grid (both grids
+    cover the slice's field of view from its corner, each padded by its own offset)."""
+    return (index - coarse.offset[axis]) * coarse_mm / fine_mm + fine.offset[axis]
 
-    coarse_mm: float = 4.0
-    margin_mm: float = 25.0
-    share: list[float] = []
+
+class WindowedLocaliser(Localiser):
+    """:class:`Localiser` whose full passes run on the window a coarse pass finds (set
+    ``coarse_mm``, ``margin_mm`` and ``share`` after :meth:`load`); ``share`` collects each stack's
+    window share of the canvas (1.0 where it fell back to the whole canvas)."""
 
     def probabilities_of(self, volumes: list[Volume]) -> list[tuple[NDArray[np.float32], LocaliserGrid]]:
         return [self._windowed(v) for v in volumes]
@@ -59,8 +64,7 @@ class WindowedLocaliser(Localiser):
     def _windowed(self, volume: Volume) -> tuple[NDArray[np.float32], LocaliserGrid]:
         name = self.session.get_inputs()[0].name
         coarse, cgrid = localiser_inputs(volume, self.coarse_mm)
-        plain = np.concatenate([self.session.run(None, {name: coarse[k:k + BATCH_SLICES]})[0][:, 0]
-                                for k in range(0, len(coarse), BATCH_SLICES)])
+        plain = replace(self, mirrored=False)._logits(name, coarse)
         voxel_ml = self.coarse_mm ** 2 * float(volume.spacing[cgrid.slice_axis]) / 1000.0
         brain, _ = brain_from_probabilities(1.0 / (1.0 + np.exp(-plain)), voxel_ml, self.coarse_mm)
         if not brain.any():
@@ -68,10 +72,12 @@ class WindowedLocaliser(Localiser):
         x, grid = localiser_inputs(volume, self.grid_mm)
         n, h, w = len(x), *x.shape[2:]
         spans = [np.flatnonzero(brain.any(axis=a)) for a in ((1, 2), (0, 2), (0, 1))]
-        to_fine = [lambda i, a=a: (i - cgrid.offset[a]) * self.coarse_mm / self.grid_mm + grid.offset[a] for a in (0, 1)]
+        def fine(i: float, a: int) -> float:
+            return coarse_to_fine(i, cgrid, grid, a, self.coarse_mm, self.grid_mm)
+
         m = self.margin_mm / self.grid_mm
-        r0, r1 = _window(to_fine[0](spans[1][0]) - m, to_fine[0](spans[1][-1] + 1) + m, h)
-        c0, c1 = _window(to_fine[1](spans[2][0]) - m, to_fine[1](spans[2][-1] + 1) + m, w)
+        r0, r1 = _window(fine(spans[1][0], 0) - m, fine(spans[1][-1] + 1, 0) + m, h)
+        c0, c1 = _window(fine(spans[2][0], 1) - m, fine(spans[2][-1] + 1, 1) + m, w)
         s0, s1 = max(spans[0][0] - 2, 0), min(spans[0][-1] + 3, n)
         logits = np.full((n, h, w), -20.0, np.float32)
         logits[s0:s1, r0:r1, c0:c1] = self._logits(name, np.ascontiguousarray(x[s0:s1, :, r0:r1, c0:c1]))
@@ -98,7 +104,7 @@ def main() -> None:
     ap.add_argument("--margin-mm", type=float, default=25.0)
     args = ap.parse_args()
     whole, windowed = Localiser.load(args.model), WindowedLocaliser.load(args.model)
-    windowed.coarse_mm, windowed.margin_mm = args.coarse_mm, args.margin_mm
+    windowed.coarse_mm, windowed.margin_mm, windowed.share = args.coarse_mm, args.margin_mm, []
     stacks = []
     for scan in args.scans:
         masked = {s.resolve() for _, s, _ in masked_files(scan)}

@@ -33,29 +33,29 @@ SHIFTS_MM = ([0.0, 0.0, 0.0], [50.0, 0.0, 0.0], [0.0, -120.0, 80.0], [200.0, 150
 MASK_SUFFIX = "_brain_mask.nii.gz"
 
 
-def shifted_files(scan: Path, names: list[str], shift: np.ndarray, folder: Path) -> list[tuple]:
-    """The multipart files of ``names`` (stacks, then their masks) with every affine moved by ``shift``."""
+def shifted_files(volumes: list[tuple[str, str, Volume]], shift: np.ndarray, folder: Path) -> list[tuple]:
+    """The multipart files of ``(field, file name, volume)`` with every affine moved by ``shift``."""
     files = []
-    for field, suffix in (("stacks", ".nii.gz"), ("masks", MASK_SUFFIX)):
-        for name in names:
-            volume = read_volume(scan / f"{name}{suffix}")
-            affine = volume.affine.copy()
-            affine[:3, 3] += shift
-            path = folder / f"{name}{suffix}"
-            write_volume(Volume(volume.array, affine), path)
-            files.append((field, (path.name, path.read_bytes(), "application/gzip")))
+    for field, name, volume in volumes:
+        affine = volume.affine.copy()
+        affine[:3, 3] += shift
+        path = folder / name
+        write_volume(Volume(volume.array, affine), path)
+        files.append((field, (path.name, path.read_bytes(), "application/gzip")))
     return files
 
 
 def main() -> None:
     scan, names = Path(sys.argv[1]), sys.argv[2].split(",")
     fields = {"mc_samples": "30", **dict(arg.split("=", 1) for arg in sys.argv[3:])}
+    volumes = [(field, f"{name}{suffix}", read_volume(scan / f"{name}{suffix}"))
+               for field, suffix in (("stacks", ".nii.gz"), ("masks", MASK_SUFFIX)) for name in names]
     registry = ModelRegistry.from_directory(Path(__file__).resolve().parents[2] / "service" / "models")
     answers = {}
     with tempfile.TemporaryDirectory() as tmp, \
             TestClient(create_app(Settings(data_dir=Path(tmp) / "jobs"), registry=registry)) as client:
         for shift in SHIFTS_MM:
-            r = client.post("/v1/predict", files=shifted_files(scan, names, np.array(shift), Path(tmp)), data=fields)
+            r = client.post("/v1/predict", files=shifted_files(volumes, np.array(shift), Path(tmp)), data=fields)
             r.raise_for_status()
             answers[tuple(shift)] = [np.array([s["atlas_from_voxel"] for s in stack["slices"]])
                                      for stack in r.json()["stacks"]]
