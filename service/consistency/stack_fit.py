@@ -57,7 +57,7 @@ from service.consistency.motion_model import ERROR_CORRELATIONS, NO_VOTE, Grid, 
 from service.consistency.slice_order import acquisition_orders
 from service.geometry import se3, twin
 from service.geometry.anchors import ed
-from service.geometry.pose import make_pose
+from service.geometry.pose import make_pose, translate
 
 RANSAC_TAU_MM = 30.0
 """MSAC truncation of a slice's residual when scoring branch proposals (mm of E.D.)."""
@@ -202,7 +202,12 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
             motion between stacks.
     """
     p = np.asarray(poses, dtype=np.float64)
-    nk = np.asarray(network_from_scanner, dtype=np.float64)
+    # the fit's frame is the scanner's moved to the slices' centre: means of rigid maps (a rotation
+    # with a translation) depend on the point they turn about, and the scanner's origin (its table
+    # position) lies anywhere, often far from the fetus; from this point on, the fit sees none of it
+    origin = se3.inverse(np.asarray(network_from_scanner, dtype=np.float64))[:, :3, 3].mean(axis=0)
+    nk = np.asarray(network_from_scanner, dtype=np.float64) @ translate(origin)
+    to_scanner = translate(-origin)         # atlas_from_fit_frame @ to_scanner: atlas_from_scanner
     n = len(p)
     use = np.ones(n, bool) if usable is None else np.asarray(usable, bool).copy()
     unchanged = StackFit(p.copy(), np.zeros(n, bool), np.zeros(n, bool), np.full(n, np.nan), False)
@@ -243,7 +248,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     #    the stack's branch as a whole by the rigid model (only the order along the normal tells a
     #    stack from its twin, and a flexible motion model can bend to either order)
     orders = acquisition_orders(n) if times is None else times
-    centre = inv_n[:, :3, 3].mean(axis=0)                                   # the slices' centre, scanner mm
+    centre = inv_n[:, :3, 3].mean(axis=0)                                   # the slices' centre (0 in the fit's frame)
     axes = inv_n[idx[0], :3, :3]                                            # the stack's x, y, normal in scanner
     axes = axes @ anatomical_axes(s[:3, :3] @ axes)                         # x along the brain's left-right
     # the slices' offsets from the centre along the normal (their in-plane offsets, a few mm, left out:
@@ -275,7 +280,8 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     by_request = reference is not None and 1.0 / MIN_STACK_BRANCH_MARGIN < margin < MIN_STACK_BRANCH_MARGIN
     if by_request:                         # the request's other stacks decide: the branch nearer to them
         fits = [se3.frechet_mean(proposals[on, b], np.maximum(w, 1e-12), tol=MEAN_TOL_RAD) for b in (branch, 1 - branch)]
-        far = [float(ed(f @ inv_n[use], np.asarray(reference, dtype=np.float64) @ inv_n[use]).mean()) for f in fits]
+        ref = np.asarray(reference, dtype=np.float64) @ translate(origin)
+        far = [float(ed(f @ inv_n[use], ref @ inv_n[use]).mean()) for f in fits]
         if far[1] < far[0]:
             branch, margin, s, far = 1 - branch, 1.0 / margin, fits[1], far[::-1]
     elif margin < 1.0:                     # the whole stack's twin is the better rigid stack: take it
@@ -296,13 +302,13 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     inconsistent = use & (r_loo > limit)
     fraction = float((use & ~inconsistent).sum() / use.sum())
     if fraction < MIN_INLIER_FRACTION or model_mm > MAX_MODEL_ERROR_MM:
-        return StackFit(p.copy(), np.zeros(n, bool), np.zeros(n, bool), r_loo, False, s, fraction, motion.order,
-                        motion.length, network_mm, model_mm)
+        return StackFit(p.copy(), np.zeros(n, bool), np.zeros(n, bool), r_loo, False, s @ to_scanner, fraction,
+                        motion.order, motion.length, network_mm, model_mm)
     final_votes = np.where(use & ~inconsistent, np.where(np.isfinite(votes), votes, sig), NO_VOTE)
     final = fit_motion(chosen, s, final_votes, orders, centre, grid, memo=memo, **shape)   # every model again, averaged
-    return StackFit(final.poses @ inv_n, branch == 1, inconsistent, r_loo, True, final.placement, fraction, final.order,
-                    final.length, network_mm, model_mm, margin, final.sd_mm, final.placement_sd_mm, centre,
-                    final.placement_cov, by_request, (far[0], far[1]) if by_request else (np.nan, np.nan))
+    return StackFit(final.poses @ inv_n, branch == 1, inconsistent, r_loo, True, final.placement @ to_scanner, fraction,
+                    final.order, final.length, network_mm, model_mm, margin, final.sd_mm, final.placement_sd_mm,
+                    centre + origin, final.placement_cov, by_request, (far[0], far[1]) if by_request else (np.nan, np.nan))
 
 
 def _branch_margin(proposals: NDArray, cand: NDArray, branch: NDArray, inv_n: NDArray, w: NDArray,

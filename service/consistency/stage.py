@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 from service.consistency.cross_stack import pool_stacks
 from service.consistency.stack_fit import StackFit, fit_stack
 from service.geometry import se3
+from service.geometry.pose import translate
 
 
 @dataclass
@@ -104,13 +105,17 @@ def request_reference(outs: list[StackPoses]) -> NDArray[np.float64] | None:
 
     The stacks of one request share the scanner frame; a stack that cannot tell its own branch (its
     slices' order along the normal fits its twin nearly as well) takes the branch nearer to this
-    (:func:`fit_stack`'s ``reference``)."""
+    (:func:`fit_stack`'s ``reference``). The mean is taken about the stacks' centre, not the scanner's
+    origin (a mean of rigid maps depends on the point they turn about), so where the files place the
+    scanner's origin changes nothing."""
     fits = [o.fit for o in outs if o.fit is not None and o.fit.branch_decided and o.fit.atlas_from_scanner is not None
-            and np.isfinite(o.fit.placement_sd_mm)]
+            and o.fit.centre is not None and np.isfinite(o.fit.placement_sd_mm)]
     if not fits:
         return None
     weights = np.array([1.0 / max(f.placement_sd_mm, 1e-3) ** 2 for f in fits])
-    return se3.frechet_mean(np.stack([f.atlas_from_scanner for f in fits]), weights)
+    centre = np.mean([f.centre for f in fits], axis=0)
+    about = np.stack([f.atlas_from_scanner for f in fits]) @ translate(centre)
+    return se3.frechet_mean(about, weights) @ translate(-centre)
 
 
 def pool_request(outs: list[StackPoses]) -> None:

@@ -37,7 +37,7 @@ from service.consistency.slice_order import SliceOrder
 from service.consistency.stack_fit import fit_stack
 from service.geometry import se3
 from service.geometry.anchors import ed
-from service.geometry.pose import make_pose
+from service.geometry.pose import make_pose, translate
 from service.geometry.twin import DEFAULT_PLANE_X_MM, mirror
 from service.reconstruction.slices import SliceSet
 
@@ -189,8 +189,9 @@ def fit_stack_rigid(slices: SliceSet, atlas_from_voxel: ArrayLike | None = None,
                 used = use[idx]
                 moved[s] = float(np.sqrt(np.mean(ed(fit.poses[used], rigid[used]) ** 2)))
                 continue
-        else:
-            out[s] = se3.frechet_mean(x_all[idx[use[idx]]])
+        else:                                   # the mean about the stack's centre, not the scanner's origin
+            about = translate(se3.inverse(n_k[idx])[:, :3, 3].mean(axis=0))
+            out[s] = se3.frechet_mean(x_all[idx[use[idx]]] @ about) @ se3.inverse(about)
         motion[idx] = out[s] @ slices.stack_affine[idx]
     if plane_x_mm is None and twin.any():
         twin[:] = False

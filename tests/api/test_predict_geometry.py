@@ -19,8 +19,8 @@ import SimpleITK as sitk
 from client.slice_transforms import transform_files
 from service.geometry import se3, sampling
 from service.geometry.anchors import ed
-from service.geometry.pose import apply, make_pose
-from service.io.volume import Volume, write_volume
+from service.geometry.pose import apply, make_pose, translate
+from service.io.volume import Volume, read_volume, write_volume
 from service.preprocess.intensity import rescale_0_255
 from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine
 
@@ -209,6 +209,41 @@ def test_two_stacks_are_refined_where_their_slices_cross(oracle, oracle_client, 
         else:
             assert reports == [None, None]
     assert relative["true"] < 0.6 * relative["false"], relative
+
+
+def test_where_the_files_put_the_scanners_origin_changes_no_pose(oracle, oracle_client, tmp_path: Path) -> None:
+    """The scanner's origin (its table position) is the files' choice, not the fetus's. Two stacks of
+    a still fetus, the network 2-4 deg / mm off per stack and 1 deg / 1 mm per slice, every stage on;
+    the same files with every affine moved by 300 mm give the same ``atlas_from_voxel``, and the
+    stage's placements move with the scanner frame."""
+    files, truths = two_still_stacks(tmp_path)
+    rng = np.random.default_rng(8)
+    centre = make_pose(np.eye(3), [0.0, 3.0, 8.0])
+    offset = centre @ se3.exp(np.array([*np.radians([2.0, -2.5, 2.0]), 2.5, -2.0, 4.0])) @ se3.inverse(centre)
+    given = np.concatenate([truths[0], offset @ truths[1]])
+    oracle.truth = given @ se3.exp(np.concatenate([rng.normal(0, np.radians(1.0), (len(given), 3)),
+                                                   rng.normal(0, 1.0, (len(given), 3))], 1))
+    oracle.spread_mm = 3.0
+    shift = np.array([200.0, 150.0, -100.0])
+    moved_files = []
+    for field, (name, data) in files:
+        (tmp_path / name).write_bytes(data)
+        vol = read_volume(tmp_path / name)
+        write_volume(Volume(vol.array, translate(shift) @ vol.affine), tmp_path / f"moved-{name}")
+        moved_files.append((field, (name, (tmp_path / f"moved-{name}").read_bytes())))
+    answers = []
+    for upload in (files, moved_files):
+        r = oracle_client.post("/v1/predict", files=upload, data={"bias_correction": "false", "mc_samples": "5"})
+        assert r.status_code == 200, r.text
+        answers.append(r.json()["stacks"])
+    for here, there in zip(*answers):
+        assert here["consistency"]["decidable"] and here["consistency"]["image_consistency"] is not None
+        a = np.array([s["atlas_from_voxel"] for s in here["slices"]])
+        b = np.array([s["atlas_from_voxel"] for s in there["slices"]])
+        assert np.abs(a[:, :3, 3] - b[:, :3, 3]).max() < 1e-3 and np.abs(a[:, :3, :3] - b[:, :3, :3]).max() < 1e-5
+        for key in ("atlas_from_scanner", "pooled_atlas_from_scanner"):
+            np.testing.assert_allclose(np.array(there["consistency"][key]),
+                                       np.array(here["consistency"][key]) @ translate(-shift), atol=1e-3)
 
 
 def test_a_stack_that_does_not_decide_its_branch_takes_the_other_stacks(oracle, oracle_client, tmp_path: Path,

@@ -280,3 +280,26 @@ def test_independent_errors_pull_the_model_towards_an_error_not_away_from_it() -
              for fit in (fit_stack(off, nk, expected_error_mm=errors, times=order),
                          fit_stack(off, nk, expected_error_mm=errors, times=order, error_correlations=(0.0,)))]
     assert shift[0] < -0.2 and 0.0 <= shift[1] < 0.1, shift
+
+
+@pytest.mark.parametrize("motion", ["mild", "moderate"])
+def test_where_the_files_put_the_scanners_origin_changes_nothing(motion: str) -> None:
+    """The scanner's origin (its table position) is the files' choice, not the fetus's: with every
+    slice moved by one shift in scanner mm, the fit returns the same poses, with or without a
+    request's reference, and reports its placement and centre in the shifted frame."""
+    rng = np.random.default_rng(zlib.crc32(f"origin-{motion}".encode()))
+    truth, nk = stack(rng, motion)
+    poses, _ = fake_network(truth, rng)
+    expected = np.full(len(poses), 14.0)
+    reference = se3.frechet_mean(truth @ nk)
+    for shift in ([50.0, 0.0, 0.0], [200.0, 150.0, -100.0]):
+        moved = translate(-np.array(shift))                    # scanner_from_moved_scanner
+        for ref in (None, reference):
+            here = fit_stack(poses, nk, expected_error_mm=expected, reference=ref)
+            there = fit_stack(poses, nk @ moved, expected_error_mm=expected,
+                              reference=None if ref is None else ref @ moved)
+            assert here.decidable and there.decidable
+            assert ed(here.poses, there.poses).max() < 1e-6
+            np.testing.assert_allclose(there.atlas_from_scanner, here.atlas_from_scanner @ moved, atol=1e-6)
+            np.testing.assert_allclose(there.centre, here.centre + shift, atol=1e-6)
+            np.testing.assert_allclose(there.expected_error_mm, here.expected_error_mm, atol=1e-6)

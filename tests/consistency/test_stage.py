@@ -46,13 +46,34 @@ def test_atlas_from_scanner_is_recovered_from_slice_poses(handedness: float) -> 
 
 
 def test_the_request_reference_is_the_precision_weighted_placement_of_the_decided_stacks() -> None:
-    def out(x_mm: float, sd_mm: float, margin: float) -> StackPoses:
-        fit = StackFit(np.eye(4)[None], np.zeros(1, bool), np.zeros(1, bool), np.zeros(1), True,
-                       translate([x_mm, 0.0, 0.0]), 1.0, branch_margin=margin, placement_sd_mm=sd_mm)
-        return StackPoses(fit.poses, np.zeros(1), fit.twinned, fit.inconsistent, fit)
-
-    undecided_one = out(50.0, 0.1, 1.1)                                    # precise, but its branch is open
-    assert undecided(undecided_one) and not undecided(out(0.0, 1.0, 3.0))
+    undecided_one = placed(translate([50.0, 0.0, 0.0]), 0.1, 1.1)           # precise, but its branch is open
+    assert undecided(undecided_one) and not undecided(placed(np.eye(4), 1.0, 3.0))
     assert request_reference([undecided_one]) is None
-    ref = request_reference([out(0.0, 1.0, 3.0), out(3.0, 2.0, 2.0), undecided_one])
+    ref = request_reference([placed(np.eye(4), 1.0, 3.0), placed(translate([3.0, 0.0, 0.0]), 2.0, 2.0), undecided_one])
     np.testing.assert_allclose(ref[:3, 3], [0.6, 0.0, 0.0], atol=1e-6)     # weights 1 and 1/4
+
+
+def placed(atlas_from_scanner: np.ndarray, sd_mm: float, margin: float, centre=(0.0, 0.0, 0.0)) -> StackPoses:
+    """A stack the stage fitted at ``atlas_from_scanner`` (its slices' centre ``centre``, scanner mm)."""
+    fit = StackFit(np.eye(4)[None], np.zeros(1, bool), np.zeros(1, bool), np.zeros(1), True, atlas_from_scanner,
+                   1.0, branch_margin=margin, placement_sd_mm=sd_mm, centre=np.asarray(centre, np.float64))
+    return StackPoses(fit.poses, np.zeros(1), fit.twinned, fit.inconsistent, fit)
+
+
+def test_the_request_reference_does_not_depend_on_the_scanners_origin() -> None:
+    """Two stacks placed 20 deg apart, turned about their common centre: their reference is there
+    where the two turns cancel, and found with every stack moved by one shift in scanner mm it is
+    the unshifted one moved alike (the mean of rigid maps taken about the scanner's origin, 300 mm
+    away, would not be)."""
+    rng = np.random.default_rng(4)
+    centres = np.array([[10.0, -5.0, 20.0], [14.0, -2.0, 16.0]])
+    centre = centres.mean(axis=0)
+    base = make_pose(se3.so3_exp(rng.normal(0, 1, 3)), [3.0, -4.0, 5.0])
+    turns = [se3.so3_exp(np.radians([0.0, 0.0, a])) for a in (-10.0, 10.0)]
+    placements = [base @ translate(centre) @ make_pose(t, [0.0, 0.0, 0.0]) @ translate(-centre) for t in turns]
+    ref = request_reference([placed(a, 1.0, 3.0, c) for a, c in zip(placements, centres)])
+    shift = np.array([200.0, 150.0, -100.0])
+    moved = translate(-shift)                                              # scanner_from_moved_scanner
+    there = request_reference([placed(a @ moved, 1.0, 3.0, c + shift) for a, c in zip(placements, centres)])
+    np.testing.assert_allclose(ref, base, atol=1e-6)
+    np.testing.assert_allclose(there, ref @ moved, atol=1e-6)

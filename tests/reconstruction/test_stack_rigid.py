@@ -97,3 +97,26 @@ def test_only_stacks_that_moved_more_than_the_threshold_follow_their_motion():
     assert _bodies(ss, fit, np.inf) is None
     np.testing.assert_allclose(_bodies(ss, fit, 0.0)[~first & (ss.stack_index == 1)],
                                fit.motion_poses[ss.stack_index == 1])
+
+
+def test_where_the_files_put_the_scanners_origin_changes_no_slices_place(acquisition):
+    """Every stack file moved by one shift in scanner mm (the scanner's origin is the files' choice):
+    the slices' places (``motion_poses``, atlas <- voxel) stay where they were, and each stack's
+    ``atlas_from_scanner`` moves with the scanner frame; as well for a stack the stage cannot fit
+    (its slices scattered 90 deg / 40 mm apart), which takes the mean of its slices about its centre."""
+    from dataclasses import replace
+
+    from service.geometry.pose import translate
+    from tests.reconstruction.helpers import perturb
+
+    ss = acquisition.slice_set()
+    rng = np.random.default_rng(9)
+    poses = perturb(ss.atlas_from_voxel, rng, 2.0, 2.0, ss.centres(ss.atlas_from_voxel))
+    scattered = ss.stack_index == 2
+    poses[scattered] = perturb(poses[scattered], rng, 90.0, 40.0, ss.centres(poses)[scattered])
+    shift = np.array([200.0, 150.0, -100.0])
+    moved = replace(ss, stack_affine=translate(shift) @ ss.stack_affine)
+    here, there = fit_stack_rigid(ss, poses), fit_stack_rigid(moved, poses)
+    assert not np.allclose(here.atlas_from_scanner[2], np.eye(4))          # the stage's fallback, not nothing
+    np.testing.assert_allclose(there.motion_poses, here.motion_poses, atol=1e-5)
+    np.testing.assert_allclose(there.atlas_from_scanner, here.atlas_from_scanner @ translate(-shift), atol=1e-5)
