@@ -3,7 +3,9 @@
 An acquisition is three stacks (axial, coronal, sagittal with respect to the brain, each tilted
 by up to :data:`STACK_TILT_DEG`), 3 mm slices 3 mm apart on a square in-plane grid, acquired
 interleaved (even slices first), with a smooth bias field and Rician noise, placed in a scanner
-frame at a random rigid position of the fetus. The fetus moves during the acquisition:
+frame at a random rigid position of the fetus (any orientation; the brain anywhere within
+:data:`SCANNER_ORIGIN_MM` of the scanner's origin per axis: a whole-uterus field of view off the
+isocentre, or the origin another pipeline's files choose). The fetus moves during the acquisition:
 
 * ``mild``: a smooth random trajectory reaching 5 deg / 3 mm at its largest;
 * ``moderate``: the same reaching 20 deg / 8 mm;
@@ -50,6 +52,7 @@ drift); ``None``: any orientation per slice."""
 MAX_JUMPS = 4
 STACK_TILT_DEG = 10.0
 EXTREME_OFFSET_MM = 15.0
+SCANNER_ORIGIN_MM = 150.0
 ORIENTATIONS = {
     # columns: the stack's in-plane x, in-plane y and normal, as atlas directions
     "axial": np.eye(3),
@@ -176,7 +179,7 @@ def simulate_acquisition(image: NDArray, mask: NDArray, affine: NDArray, rng: np
         raise ValueError(f"unknown motion level {motion!r}; expected one of {list(MOTION_LEVELS)}")
     m = np.asarray(mask) > 0.5
     centre = _centroid(m, affine)
-    scanner_from_atlas = make_pose(iterators.random_rotations(1, rng, np.pi)[0], rng.uniform(-30, 30, 3))
+    scanner_from_atlas = make_pose(iterators.random_rotations(1, rng, np.pi)[0], rng.uniform(-SCANNER_ORIGIN_MM, SCANNER_ORIGIN_MM, 3))
     return [simulate_stack(np.asarray(image, np.float32), m, affine, centre, o, scanner_from_atlas, rng, motion, **kwargs)
             for o in ORIENTATIONS]
 

@@ -189,10 +189,12 @@ def main() -> None:
     ap.add_argument("--source", type=Path, action="append", default=[],
                     help="simulate from this volume (atlas space: a job's reconstruction) instead of the atlas brains")
     args = ap.parse_args()
-    if not args.cache.exists():
-        with open(args.cache, "wb") as f:
-            pickle.dump(build(args.model, args.root, args.levels.split(","), args.per_volume, args.seed, args.void,
-                              args.source), f)
+    if not args.cache.exists():             # written whole or not at all: a stopped build leaves no cache
+        built = build(args.model, args.root, args.levels.split(","), args.per_volume, args.seed, args.void, args.source)
+        partial = args.cache.with_name(args.cache.name + ".partial")
+        with open(partial, "wb") as f:
+            pickle.dump(built, f)
+        partial.replace(args.cache)
     with open(args.cache, "rb") as f:
         info, cases = pickle.load(f)                                                               # noqa: S301 - our own file
     info = calibrated_as(info, load_model(args.model).info)
