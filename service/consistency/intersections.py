@@ -102,6 +102,43 @@ def candidate_pairs(atlas_from_slice: NDArray, stack_of: NDArray, free: NDArray)
     return np.stack([a[keep], b[keep]], axis=1)
 
 
+def slice_keys(stack_of: NDArray, local: NDArray, fingerprints: list[int]) -> NDArray[np.uint64]:
+    """``[n]`` a 64-bit hash naming each slice by its stack's ``fingerprint`` (a checksum of its
+    images) and its index in the stack: the same whatever the stack's place in the request."""
+    return _mix(np.asarray(fingerprints, np.uint64)[stack_of] * np.uint64(0x9E3779B97F4A7C15) + np.asarray(local, np.uint64))
+
+
+def canonical_pairs(pairs: NDArray, keys: NDArray) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """The ``pairs`` each with its slice of the smaller key (:func:`slice_keys`) first, and each
+    pair's place in the point budget's fixed random order (the order of a hash of its two keys).
+    A pair's line, its points and the budget's choice of pairs then depend on its two slices alone,
+    not on the order of the request's stacks: the same stacks sent in another order get the same poses.
+
+    Example (two stacks of three slices, then the same stacks the other way round):
+        >>> pairs = np.array([[0, 3], [0, 4], [1, 5], [2, 3]])
+        >>> keys = slice_keys(np.repeat([0, 1], 3), np.tile(np.arange(3), 2), [11, 22])
+        >>> swapped = np.concatenate([keys[3:], keys[:3]])          # stack 1 first
+        >>> a, rank_a = canonical_pairs(pairs, keys)
+        >>> b, rank_b = canonical_pairs((pairs + 3) % 6, swapped)
+        >>> bool((keys[a] == swapped[b]).all() and (rank_a == rank_b).all()), sorted(rank_a.tolist())
+        (True, [0, 1, 2, 3])
+    """
+    pairs = np.asarray(pairs, np.int64)
+    a, b = keys[pairs[:, 0]], keys[pairs[:, 1]]
+    pairs = np.where((a <= b)[:, None], pairs, pairs[:, ::-1])
+    rank = np.empty(len(pairs), np.int64)
+    rank[np.argsort(_mix(np.minimum(a, b) ^ _mix(np.maximum(a, b))), kind="stable")] = np.arange(len(pairs))
+    return pairs, rank
+
+
+def _mix(z: NDArray) -> NDArray[np.uint64]:
+    """SplitMix64's finaliser on ``uint64`` arrays (wrapping): well-spread 64-bit hashes of integers."""
+    z = np.asarray(z, np.uint64)
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
 BOX_MARGIN_PX = 1.5
 """A slice's mask box is widened by this many pixels before a line's points are tested against it:
 a bilinear sample reads the pixels up to one away, and the margin's rest covers rounding."""
@@ -124,6 +161,7 @@ class ImageTerm:
         those within both slices' mask boxes at those poses (:meth:`_within_boxes`): elsewhere a
         point's weight is 0, and :meth:`select` would drop it."""
         self.stacks = SampledStacks(sampled)
+        pairs, self._rank = canonical_pairs(pairs, slice_keys(stack_of, local, [s.fingerprint for s in sampled]))
         self.stack_of, self.local, self.pairs, self.t = stack_of, local, pairs, t
         first, count = np.zeros(len(pairs), np.int64), np.full(len(pairs), len(t))
         if atlas_from_slice is not None:
@@ -133,8 +171,6 @@ class ImageTerm:
         self.pair_of = np.repeat(np.arange(len(pairs)), count)
         self.t_of = first[self.pair_of] + np.arange(len(self.pair_of)) - np.repeat(np.cumsum(count) - count, count)
         self.sw = np.ones(len(self.pair_of))
-        self._rank = np.empty(len(pairs), np.int64)             # each pair's place in the budget's fixed random order
-        self._rank[np.random.default_rng(0).permutation(len(pairs))] = np.arange(len(pairs))
         self._last: tuple | None = None
         self._slices: list[tuple | None] = [None, None]
 

@@ -19,6 +19,7 @@ Example (two stacks of one 4 x 4 slice each; the second slice's centre pixel, bi
 
 from __future__ import annotations
 
+import zlib
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -101,9 +102,13 @@ class BlockedStack:
     origin: tuple[int, int]
     support: NDArray[np.float64] = field(init=False)
     """``[n, 2, 2]`` each slice's box of nonzero ``masks`` (:func:`_support_boxes`)."""
+    fingerprint: int = field(init=False)
+    """A checksum of ``images``: the stack's name in the point budget's order
+    (:func:`~service.consistency.intersections.pair_ranks`), whatever its place in the request."""
 
     def __post_init__(self) -> None:
         self.support = _support_boxes(self.masks)
+        self.fingerprint = zlib.crc32(np.ascontiguousarray(self.images).view(np.uint8))
 
     @classmethod
     def of(cls, s: StackImages) -> "BlockedStack":
@@ -215,6 +220,7 @@ class SampledStack:
         pixel = (s.pixel_mm[0] * f[0], s.pixel_mm[1] * f[1])
         self.images = _wide_gaussian(images, sigma_mm, pixel)
         self.masks = blocked.masks
+        self.fingerprint = blocked.fingerprint
         self.support = blocked.support
         self.padded = (images.shape[1] + 2, images.shape[2] + 2)                # a zero border: bilinear fades to 0
         # block (r', c') is centred on the original pixel (r0 + f r' + (f - 1) / 2, ...)

@@ -259,3 +259,17 @@ def test_images_smoothed_ahead_give_the_refinement_it_gets_when_it_smooths_them_
     alone = refine(used, start, errors)
     assert all(np.array_equal(a, b) for a, b in zip(ahead.poses, alone.poses))
     assert not all(np.array_equal(a, b) for a, b in zip(ahead.poses, start))
+
+
+def test_the_same_stacks_in_another_order_are_refined_alike(acquisition) -> None:  # noqa: ANN001
+    """Where the point budget binds (here 1,500 points a pass), it is spent on the same crossing
+    lines whatever the order of the request's stacks, so the refined poses are the same."""
+    images, truth = acquisition
+    start = disturbed(truth, 2.5, 2.5, seed=4)
+    errors = [np.full(len(t), 5.0) for t in truth]
+    passes = ((3.0, 3.0, 1500), (0.9, 2.0, 1500))
+    ahead = refine(images, start, errors, passes=passes)
+    back = refine(images[::-1], start[::-1], errors[::-1], passes=passes)
+    assert ahead.pairs == back.pairs
+    for mine, theirs in zip(ahead.poses, back.poses[::-1]):
+        assert ed(mine, theirs).max() < 1e-6
