@@ -104,7 +104,7 @@ def candidate_pairs(atlas_from_slice: NDArray, stack_of: NDArray, free: NDArray)
 
 def slice_keys(stack_of: NDArray, local: NDArray, fingerprints: list[int]) -> NDArray[np.uint64]:
     """``[n]`` a 64-bit hash naming each slice by its stack's ``fingerprint`` (a checksum of its
-    images) and its index in the stack: the same whatever the stack's place in the request."""
+    masks) and its index in the stack: the same whatever the stack's place in the request."""
     return _mix(np.asarray(fingerprints, np.uint64)[stack_of] * np.uint64(0x9E3779B97F4A7C15) + np.asarray(local, np.uint64))
 
 

@@ -103,12 +103,14 @@ class BlockedStack:
     support: NDArray[np.float64] = field(init=False)
     """``[n, 2, 2]`` each slice's box of nonzero ``masks`` (:func:`_support_boxes`)."""
     fingerprint: int = field(init=False)
-    """A checksum of ``images``: the stack's name in the point budget's order
-    (:func:`~service.consistency.intersections.pair_ranks`), whatever its place in the request."""
+    """A checksum of ``masks``: the stack's name in the point budget's order
+    (:func:`~service.consistency.intersections.slice_keys`), whatever its place in the request. Of the
+    masks, not the images: a file written again (its affine's rounding, another reader) changes the
+    images' last bits, and the choice of crossing lines would change with them."""
 
     def __post_init__(self) -> None:
         self.support = _support_boxes(self.masks)
-        self.fingerprint = zlib.crc32(np.ascontiguousarray(self.images).view(np.uint8))
+        self.fingerprint = zlib.crc32(np.ascontiguousarray(self.masks).view(np.uint8))
 
     @classmethod
     def of(cls, s: StackImages) -> "BlockedStack":
