@@ -11,7 +11,8 @@ and should change no slice's place in the atlas beyond that.
 
 This script sends a real scan's stacks (with their manual masks) to the app as they are and in
 each variant (:data:`FRAMES`, :data:`STORAGE`, reversed order), and prints per variant and per
-stack how the slices both answers accept moved from the answer to the files as they are: the
+stack how the slices both answers accept (with the stages off: those with brain) moved from the
+answer to the files as they are: the
 median and largest move of a slice's centre (mm), the largest turn (degrees). Form fields after
 the stack names (``image_consistency=false stack_consistency=false``) switch stages off, to find
 the stage that depends on the variant.
@@ -103,6 +104,7 @@ class StackAnswer:
     centres: np.ndarray              # [n, 3] scanner mm, the voxel grid's centre in the slice's plane
     in_plane: np.ndarray             # [n, 2, 3] unit in-plane axes, scanner
     accepted: np.ndarray             # [n] bool
+    with_brain: np.ndarray           # [n] bool: not ``empty``
 
     @classmethod
     def of(cls, stack: dict) -> "StackAnswer":
@@ -115,7 +117,8 @@ class StackAnswer:
         axes = affine[:3, [a for a in range(3) if a != axis]].T
         return cls(poses @ np.linalg.inv(affine), (voxels @ affine.T)[:, :3],
                    np.repeat((axes / np.linalg.norm(axes, axis=1, keepdims=True))[None], len(poses), 0),
-                   np.array([s["accepted"] for s in stack["slices"]], bool))
+                   np.array([s["accepted"] for s in stack["slices"]], bool),
+                   np.array([s["reason"] != "empty" for s in stack["slices"]], bool))
 
 
 def changes(answer: StackAnswer, base: StackAnswer, moved_from_scanner: np.ndarray | None = None,
@@ -123,13 +126,14 @@ def changes(answer: StackAnswer, base: StackAnswer, moved_from_scanner: np.ndarr
     """How one stack's slices moved in the atlas between two answers (``answer`` given the files
     moved by ``moved_from_scanner``), over the slices both accept: the median and largest move of a
     slice's centre (mm), the largest move of points :data:`IN_PLANE_MM` from it in its plane over
-    that distance, less the centre's, as an angle (degrees), and how many slices that is. Slices
-    are matched by where their centres are.
+    that distance, less the centre's, as an angle (degrees), and how many slices that is (where the
+    two answers accept none in common, as with the stages off, the slices with brain). Slices are
+    matched by where their centres are.
 
     Example (one slice moved 0.5 mm and turned 2 deg about the slice normal):
-        >>> base = StackAnswer(np.eye(4)[None], np.zeros((1, 3)), np.eye(3)[None, :2], np.array([True]))
+        >>> base = StackAnswer(np.eye(4)[None], np.zeros((1, 3)), np.eye(3)[None, :2], np.array([True]), np.array([True]))
         >>> turned = make_pose(se3.so3_exp(np.radians([0.0, 0.0, 2.0])), [0.0, 0.5, 0.0])
-        >>> answer = StackAnswer(turned[None], base.centres, base.in_plane, base.accepted)
+        >>> answer = StackAnswer(turned[None], base.centres, base.in_plane, base.accepted, base.with_brain)
         >>> median, largest, turn, slices = changes(answer, base)
         >>> round(median, 3), round(turn, 3), slices
         (0.5, 2.0, 1)
@@ -138,6 +142,8 @@ def changes(answer: StackAnswer, base: StackAnswer, moved_from_scanner: np.ndarr
     here = (base.centres @ m[:3, :3].T) + m[:3, 3]
     match = np.argmin(np.linalg.norm(answer.centres[None] - here[:, None], axis=2), axis=1)
     both = base.accepted & answer.accepted[match]
+    if not both.any():                  # the stages off: nothing is accepted, every slice with brain counts
+        both = base.with_brain & answer.with_brain[match]
     if not both.any():
         return float("nan"), float("nan"), float("nan"), 0
     points = base.centres[:, None] + IN_PLANE_MM * np.concatenate([np.zeros_like(base.in_plane[:, :1]), base.in_plane], 1)
