@@ -14,10 +14,12 @@ from client.exits import EXIT_BAD_INPUT, errors, fail, stderr, stdout
 
 NEXT_STEP = {
     "nesvor": "nesvor reconstruct --input-slices {out} --output-volume recon.nii.gz",
-    "niftymic": "niftymic_reconstruct_volume_from_slices --filenames {stacks} --dir-input-mc {out} "
+    "niftymic": "niftymic_reconstruct_volume_from_slices --filenames {stacks}{masks} --dir-input-mc {out} "
                 "--reconstruction-space ATLAS_VOLUME.nii.gz --output recon.nii.gz",
 }
 """What to run next, per tool (the docs give each in full: docs/reconstruction.md)."""
+REGEX_CHARACTERS = frozenset("^$*+?{}[]\\|()")
+"""Characters that change what NiftyMIC's pattern ``NAME_slice([0-9]+)[.]tfm`` matches."""
 
 
 def export(
@@ -46,11 +48,21 @@ def export(
             body = json.loads(answer.read_text())
         except (UnicodeDecodeError, json.JSONDecodeError) as e:
             fail(f"{answer.name} is not a JSON answer ({e})", EXIT_BAD_INPUT)
-        count = write(body, stacks, mask, out_dir, to, all_slices, thickness)
+        done = write(body, stacks, mask, out_dir, to, all_slices, thickness)
     console = stdout()
-    console.print(f"wrote {count} slices for {to} into {out_dir}", soft_wrap=True)
+    console.print(f"wrote {done.count} slices for {to} into {out_dir}", soft_wrap=True)
     if to == "nesvor" and not mask:
         stderr().print("no --mask: NeSVoR takes every pixel of each slice (the whole uterus of a stack as it leaves "
                        "the scanner); `svrnet masks` makes the masks", style="yellow", markup=False)
-    console.print("next: " + NEXT_STEP[to].format(out=out_dir, stacks=" ".join(str(s) for s in stacks)), soft_wrap=True,
-                  markup=False)
+    if to == "niftymic":
+        if done.stacks != list(stacks):
+            stderr().print(f"NiftyMIC cuts slices along a file's third axis: the stacks stored otherwise were written "
+                           f"again into {out_dir / 'stacks'} (the same images); give NiftyMIC those", style="yellow",
+                           markup=False)
+        odd = [s.name for s in stacks if set(s.name) & REGEX_CHARACTERS]
+        if odd:
+            stderr().print(f"NiftyMIC finds a stack's .tfm files by a regular expression of its name: rename "
+                           f"{', '.join(odd)} (no {''.join(sorted(REGEX_CHARACTERS))})", style="yellow", markup=False)
+    masks = "" if not done.masks else " --filenames-masks " + " ".join(str(m) for m in done.masks)
+    console.print("next: " + NEXT_STEP[to].format(out=out_dir, stacks=" ".join(str(s) for s in done.stacks), masks=masks),
+                  soft_wrap=True, markup=False)

@@ -8,18 +8,22 @@ reconstruct --poses-out``) gives every slice ``k`` of stack ``s`` its ``atlas_fr
 * **NeSVoR** (``nesvor reconstruct --input-slices DIR``) reads a folder of one-slice NIfTI files
   ``{i}.nii.gz`` with ``mask_{i}.nii.gz``, each placed by its affine (voxel -> world, sform first),
   its third voxel size the slice thickness. Each slice's affine here is ``P_sk`` moved to the
-  slice's own index 0, its third column scaled to the thickness: the slice in atlas space.
+  slice's own index 0, its third column scaled to the thickness: the slice in atlas space. A slice
+  is cut along the stack's ``slice_axis`` (the answer's; a file may store its slices along any
+  axis), its in-plane axes the next two in cyclic order, so the affine keeps the file's handedness.
   ``slices.tsv`` maps ``i`` back to stack and slice (NeSVoR keeps no such table).
 * **NiftyMIC** (``niftymic_reconstruct_volume_from_slices --dir-input-mc DIR``) reads, per slice of
   a stack file ``NAME.nii.gz``, ``NAME_slice{k}.tfm``: a SimpleITK transform ``T`` (LPS) whose
   composition with the slice's own voxel -> world map is its corrected one, so
   ``T = F P_sk S_s^-1 F`` (``F = diag(-1, -1, 1, 1)``): scanner -> atlas, the inverse of the
   ``.tfm`` files of ``svrnet predict --transforms-out``, which follow ITK's registration
-  convention. NiftyMIC drops a slice without a file, so the slices not written are left out.
-
-Only accepted slices are written unless ``all_slices``; slices without brain (``empty``) never.
-SVRTK's ``-transformations`` folder is not written: it numbers slices after cropping the stacks
-to its mask, which only a run of SVRTK knows (docs/reconstruction.md gives the recipe).
+  convention. NiftyMIC drops a slice without a file, so the slices not written are left out. It
+  also reads ``NAME.tfm``, the stack's own move (applied first, and undone in each slice's): here
+  the mean of its slices' ``T`` (rotations by their chordal mean), so that the volume NiftyMIC
+  starts from, a stack resampled into the reconstruction space, lies there too. NiftyMIC cuts a
+  stack's slices along the file's third axis: a stack whose ``slice_axis`` is another is written
+  again into ``DIR/stacks/`` with its voxels in cyclic order, the slice axis last (the same image,
+  placed alike), with its mask; give NiftyMIC those files.
 
 Example (one slice 5 mm right of where it was acquired):
     >>> S = np.diag([1.0, 1.0, 3.0, 1.0]); P = S.copy(); P[0, 3] = 5.0
@@ -32,6 +36,7 @@ Example (one slice 5 mm right of where it was acquired):
 from __future__ import annotations
 
 import gzip
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -52,12 +57,47 @@ def niftymic_transform(atlas_from_voxel: ArrayLike, scanner_from_voxel: ArrayLik
     return np.linalg.inv(stack_from_atlas_lps(atlas_from_voxel, scanner_from_voxel))
 
 
-def slice_affine(atlas_from_voxel: ArrayLike, k: int, thickness_mm: float) -> NDArray[np.float64]:
-    """The affine of slice ``k`` saved alone (its voxel ``(i, j, 0)`` is the stack's ``(i, j, k)``),
-    the third axis one slice thickness long, as NeSVoR reads a slice's profile."""
-    a = np.asarray(atlas_from_voxel, np.float64) @ np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, k], [0, 0, 0, 1.0]])
+def axis_order(slice_axis: int) -> tuple[int, int, int]:
+    """The stack's voxel axes in the order a slice file holds them: the two in-plane axes in cyclic
+    order after ``slice_axis``, then ``slice_axis`` (a cyclic permutation keeps the affine's
+    handedness)."""
+    a = int(slice_axis)
+    if a not in (0, 1, 2):
+        raise UnusableInput(f"export: slice_axis {slice_axis!r} is not 0, 1 or 2")
+    return (a + 1) % 3, (a + 2) % 3, a
+
+
+def reordered(voxel_map: ArrayLike, slice_axis: int) -> NDArray[np.float64]:
+    """``voxel_map`` (stack voxel -> world) of the stack's voxels in :func:`axis_order`: the map of
+    index ``(u, v, w)`` of the reordered array ``np.transpose(data, axis_order(slice_axis))``."""
+    m = np.asarray(voxel_map, np.float64)
+    return m @ np.eye(4)[:, list(axis_order(slice_axis)) + [3]]
+
+
+def slice_affine(atlas_from_voxel: ArrayLike, k: int, thickness_mm: float, slice_axis: int = 2) -> NDArray[np.float64]:
+    """The affine of slice ``k`` saved alone (its voxel ``(u, v, 0)`` is the stack's voxel at ``u, v``
+    in plane (:func:`axis_order`) and ``k`` along ``slice_axis``), the third axis one slice
+    thickness long, as NeSVoR reads a slice's profile."""
+    a = reordered(atlas_from_voxel, slice_axis) @ np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, k], [0, 0, 0, 1.0]])
     a[:3, 2] *= thickness_mm / np.linalg.norm(a[:3, 2])
     return a
+
+
+def mean_transform(transforms: ArrayLike) -> NDArray[np.float64]:
+    """The mean of rigid ``4 x 4`` transforms: the rotations' chordal mean (the rotation nearest their
+    sum), the translations' mean.
+
+    Example:
+        >>> t = np.stack([np.eye(4), np.eye(4)]); t[1, :3, 3] = (2.0, 0.0, 4.0)
+        >>> mean_transform(t)[:3, 3].tolist()
+        [1.0, 0.0, 2.0]
+    """
+    t = np.asarray(transforms, np.float64)
+    u, _, vt = np.linalg.svd(t[:, :3, :3].sum(axis=0))
+    out = np.eye(4)
+    out[:3, :3] = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    out[:3, 3] = t[:, :3, 3].mean(axis=0)
+    return out
 
 
 def matched_stacks(answer: dict[str, Any], stacks: list[Path]) -> list[dict[str, Any]]:
@@ -95,44 +135,83 @@ def _stack_file(path: Path, stack: dict[str, Any]) -> tuple[nib.Nifti1Image, NDA
     return image, sfv
 
 
+@dataclass
+class Exported:
+    """What :func:`export` wrote: the slices, and the stack files (and masks) to give the tool: the
+    files given, or their copies rewritten with the slice axis last (NiftyMIC)."""
+
+    count: int
+    stacks: list[Path]
+    masks: list[Path] | None = None
+
+
 def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None, folder: Path, to: str,
-           all_slices: bool = False, thickness_mm: list[float] | None = None) -> int:
-    """Write the slices of ``answer`` for the tool ``to`` (:data:`FORMATS`) into ``folder``; the number
-    of slices written. ``stacks`` (and ``masks``): the files the answer was made from, NIfTI.
-    ``thickness_mm``: one per stack, or one for all (default: each stack's slice spacing)."""
+           all_slices: bool = False, thickness_mm: list[float] | None = None) -> Exported:
+    """Write the slices of ``answer`` for the tool ``to`` (:data:`FORMATS`) into ``folder``.
+    ``stacks`` (and ``masks``): the files the answer was made from, NIfTI. ``thickness_mm``: one per
+    stack, or one for all (default: each stack's slice spacing)."""
     if to not in FORMATS:
         raise UnusableInput(f"export: unknown format {to!r}; one of {', '.join(FORMATS)}")
     folder.mkdir(parents=True, exist_ok=True)
-    count, rows = 0, ["i\tstack\tfile\tslice\taccepted\texpected_error_mm"]
+    done = Exported(0, list(stacks), None if not masks else list(masks))
+    rows = ["i\tstack\tfile\tslice\taccepted\texpected_error_mm"]
     for s, (path, stack) in enumerate(zip(stacks, matched_stacks(answer, stacks))):
         image, sfv = _stack_file(path, stack)
         chosen = _chosen(stack, all_slices)
-        if to == "niftymic":
-            stem = path.name.removesuffix(".gz").removesuffix(".nii")
-            for item in chosen:
-                t = niftymic_transform(item["atlas_from_voxel"], sfv)
-                write_whole(folder / f"{stem}_slice{int(item['index'])}.tfm", tfm_text(t).encode())
-            count += len(chosen)
-            continue
-        data = np.asarray(image.dataobj, np.float32).reshape(image.shape[:3])
+        axis = int(stack.get("slice_axis", 2))
+        order = axis_order(axis)
         mask = None if not masks else np.asarray(nib.load(str(masks[s])).dataobj).reshape(image.shape[:3]) > 0
-        spacing = float(np.linalg.norm(sfv[:3, 2]))
+        if to == "niftymic":
+            _niftymic_stack(path, stack, chosen, sfv, folder)
+            if axis != 2:                   # NiftyMIC cuts along the third axis: the stack written so
+                done.stacks[s] = _rewritten(np.asarray(image.dataobj).reshape(image.shape[:3]), sfv, axis,
+                                            folder / "stacks" / path.name)
+                if mask is not None and done.masks is not None:
+                    done.masks[s] = _rewritten(mask.astype(np.uint8), sfv, axis, folder / "stacks" / masks[s].name)
+            done.count += len(chosen)
+            continue
+        data = np.transpose(np.asarray(image.dataobj, np.float32).reshape(image.shape[:3]), order)
+        mask = None if mask is None else np.transpose(mask, order)
+        spacing = float(np.linalg.norm(sfv[:3, axis]))
         thick = spacing if not thickness_mm else float(thickness_mm[0] if len(thickness_mm) == 1 else thickness_mm[s])
         for item in chosen:
             k = int(item["index"])
-            a = slice_affine(item["atlas_from_voxel"], k, thick)
-            for name, values in ((f"{count}.nii.gz", data[:, :, k:k + 1]),
-                                 (f"mask_{count}.nii.gz", None if mask is None else mask[:, :, k:k + 1].astype(np.uint8))):
-                if values is None:
-                    continue
-                out = nib.Nifti1Image(values, a)
-                out.set_qform(a, 2)
-                out.set_sform(a, 2)
-                write_whole(folder / name, gzip.compress(out.to_bytes(), compresslevel=6))
+            a = slice_affine(item["atlas_from_voxel"], k, thick, axis)
+            for name, values in ((f"{done.count}.nii.gz", data[:, :, k:k + 1]),
+                                 (f"mask_{done.count}.nii.gz", None if mask is None else mask[:, :, k:k + 1].astype(np.uint8))):
+                if values is not None:
+                    _write_nifti(values, a, folder / name)
             expected = item.get("expected_error_mm")
-            rows.append(f"{count}\t{s}\t{path.name}\t{k}\t{int(bool(item.get('accepted')))}\t"
+            rows.append(f"{done.count}\t{s}\t{path.name}\t{k}\t{int(bool(item.get('accepted')))}\t"
                         f"{'nan' if expected is None else f'{float(expected):.3f}'}")
-            count += 1
+            done.count += 1
     if to == "nesvor":
         write_whole(folder / "slices.tsv", ("\n".join(rows) + "\n").encode())
-    return count
+    return done
+
+
+def _niftymic_stack(path: Path, stack: dict[str, Any], chosen: list[dict[str, Any]], sfv: NDArray, folder: Path) -> None:
+    """NiftyMIC's ``NAME_slice{k}.tfm`` per chosen slice and ``NAME.tfm``, their mean (the module)."""
+    stem = path.name.removesuffix(".gz").removesuffix(".nii")
+    moves = [niftymic_transform(item["atlas_from_voxel"], sfv) for item in chosen]
+    for item, t in zip(chosen, moves):
+        write_whole(folder / f"{stem}_slice{int(item['index'])}.tfm", tfm_text(t).encode())
+    if moves:
+        write_whole(folder / f"{stem}.tfm", tfm_text(mean_transform(moves)).encode())
+
+
+def _rewritten(values: NDArray, scanner_from_voxel: NDArray, slice_axis: int, path: Path) -> Path:
+    """``values`` (the stack's voxels) written to ``path`` in :func:`axis_order`, placed as before."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _write_nifti(np.ascontiguousarray(np.transpose(values, axis_order(slice_axis))),
+                 reordered(scanner_from_voxel, slice_axis), path, code=1)
+    return path
+
+
+def _write_nifti(values: NDArray, affine: NDArray, path: Path, code: int = 2) -> None:
+    """``values`` as a gzipped NIfTI-1 file placed by ``affine``, qform and sform alike (``code`` 2:
+    aligned to another space, the atlas; 1: scanner)."""
+    out = nib.Nifti1Image(values, affine)
+    out.set_qform(affine, code)
+    out.set_sform(affine, code)
+    write_whole(path, gzip.compress(out.to_bytes(), compresslevel=6))

@@ -21,17 +21,20 @@ SHAPE = (20, 16, 6)
 F = np.diag([-1.0, -1.0, 1.0, 1.0])
 
 
-@pytest.fixture
-def case(tmp_path: Path) -> dict:
-    """A left-handed oblique stack file, its mask, and an answer placing each slice by a pose of its own
-    (a rigid move per slice, as motion gives): slice 0 without brain, slice 3 not accepted."""
+def make_case(folder: Path, slice_axis: int = 2) -> dict:
+    """A left-handed oblique stack file whose slices lie along ``slice_axis``, its mask, and an answer
+    placing each slice by a pose of its own (a rigid move per slice, as motion gives): slice 0 without
+    brain, slice 3 not accepted."""
     rng = np.random.default_rng(4)
+    shape, zooms = list(SHAPE[:2]), [-1.1, 0.9]
+    shape.insert(slice_axis, SHAPE[2])
+    zooms.insert(slice_axis, 3.2)
     scanner_from_voxel = np.eye(4)
-    scanner_from_voxel[:3, :3] = Rotation.from_rotvec([0.3, -0.5, 0.2]).as_matrix() @ np.diag([-1.1, 0.9, 3.2])
+    scanner_from_voxel[:3, :3] = Rotation.from_rotvec([0.3, -0.5, 0.2]).as_matrix() @ np.diag(zooms)
     scanner_from_voxel[:3, 3] = (-12.0, 30.0, 5.0)
-    data = rng.random(SHAPE).astype(np.float32) * 100
-    mask = (rng.random(SHAPE) > 0.5).astype(np.uint8)
-    stack, mask_path = tmp_path / "ax.nii.gz", tmp_path / "ax_mask.nii.gz"
+    data = rng.random(shape).astype(np.float32) * 100
+    mask = (rng.random(shape) > 0.5).astype(np.uint8)
+    stack, mask_path = folder / "ax.nii.gz", folder / "ax_mask.nii.gz"
     for values, path in ((data, stack), (mask, mask_path)):
         image = nib.Nifti1Image(values, scanner_from_voxel)
         image.set_qform(scanner_from_voxel, 1)
@@ -44,45 +47,84 @@ def case(tmp_path: Path) -> dict:
         poses.append(move @ scanner_from_voxel)
         slices.append({"index": k, "atlas_from_voxel": poses[-1].tolist(), "accepted": k not in (0, 3),
                        "reason": "empty" if k == 0 else "high_expected_error" if k == 3 else None, "expected_error_mm": 2.5})
-    answer = {"stacks": [{"index": 0, "filename": "ax.nii.gz", "shape": list(SHAPE),
+    answer = {"stacks": [{"index": 0, "filename": "ax.nii.gz", "shape": shape, "slice_axis": slice_axis,
                           "scanner_from_voxel": scanner_from_voxel.tolist(), "slices": slices}]}
     return {"stack": stack, "mask": mask_path, "data": data, "mask_data": mask, "poses": poses, "answer": answer,
-            "scanner_from_voxel": scanner_from_voxel}
+            "scanner_from_voxel": scanner_from_voxel, "slice_axis": slice_axis}
 
 
-def test_a_nesvor_slice_file_places_each_voxel_where_its_pose_does(case: dict, tmp_path: Path) -> None:
+@pytest.fixture
+def case(tmp_path: Path) -> dict:
+    return make_case(tmp_path)
+
+
+def voxel(slice_axis: int, in_plane: tuple[float, float], k: float) -> list[float]:
+    """The stack's voxel index of in-plane position ``in_plane`` (the two other axes in cyclic order
+    after ``slice_axis``) on slice ``k``: what a slice file's voxel ``(u, v, 0)`` holds."""
+    index = [0.0, 0.0, 0.0]
+    index[(slice_axis + 1) % 3], index[(slice_axis + 2) % 3], index[slice_axis] = in_plane[0], in_plane[1], k
+    return index
+
+
+@pytest.mark.parametrize("slice_axis", [2, 0, 1])
+def test_a_nesvor_slice_file_places_each_voxel_where_its_pose_does(slice_axis: int, tmp_path: Path) -> None:
+    """Whatever axis the file stores its slices along, a slice file holds that slice's pixels and
+    places each where the slice's pose puts the stack voxel it came from."""
+    case = make_case(tmp_path, slice_axis)
     out = tmp_path / "nesvor"
-    assert export(case["answer"], [case["stack"]], [case["mask"]], out, "nesvor", thickness_mm=[2.5]) == 4
+    assert export(case["answer"], [case["stack"]], [case["mask"]], out, "nesvor", thickness_mm=[2.5]).count == 4
     rows = (out / "slices.tsv").read_text().splitlines()[1:]
     assert [int(r.split("\t")[3]) for r in rows] == [1, 2, 4, 5]                # accepted slices only
-    ij = np.array([[0, 0], [19, 0], [7, 11], [19, 15]], np.float64)
+    uv = [(0, 0), (15, 0), (7, 11), (15, 15)]
+    in_plane = tuple(case["data"].shape[(slice_axis + j) % 3] for j in (1, 2))
     for i, k in enumerate([1, 2, 4, 5]):
         image, mask = nib.load(out / f"{i}.nii.gz"), nib.load(out / f"mask_{i}.nii.gz")
-        assert image.shape == (20, 16, 1) and np.array_equal(np.asarray(image.dataobj)[..., 0], case["data"][:, :, k])
-        assert np.array_equal(np.asarray(mask.dataobj)[..., 0], case["mask_data"][:, :, k])
-        got = (image.affine @ np.c_[ij, np.zeros(4), np.ones(4)].T).T
-        want = (case["poses"][k] @ np.c_[ij, np.full(4, k), np.ones(4)].T).T
+        assert image.shape == (*in_plane, 1)
+        for u, v in uv:
+            index = tuple(int(x) for x in voxel(slice_axis, (u, v), k))
+            assert np.asarray(image.dataobj)[u, v, 0] == case["data"][index]
+            assert np.asarray(mask.dataobj)[u, v, 0] == case["mask_data"][index]
+        got = (image.affine @ np.c_[uv, np.zeros(4), np.ones(4)].T).T
+        want = (case["poses"][k] @ np.c_[[voxel(slice_axis, p, k) for p in uv], np.ones(4)].T).T
         np.testing.assert_allclose(got, want, atol=1e-4)
         assert image.header.get_zooms()[2] == pytest.approx(2.5, abs=1e-5)       # the slice profile
+        assert np.linalg.det(image.affine[:3, :3]) < 0                          # the file's handedness kept
         assert np.allclose(mask.affine, image.affine)
     assert len(list(out.glob("*.nii.gz"))) == 8
 
 
-def test_a_niftymic_transform_composed_with_the_stack_file_gives_each_voxel_its_atlas_point(case: dict,
+@pytest.mark.parametrize("slice_axis", [2, 0])
+def test_a_niftymic_transform_composed_with_the_stack_file_gives_each_voxel_its_atlas_point(slice_axis: int,
                                                                                           tmp_path: Path) -> None:
-    """NiftyMIC reads the stack with SimpleITK (LPS) and corrects each slice's placement by T (slice.py:
-    ``affine = T o A0``): T applied to a voxel's scanner point must give its atlas point."""
+    """NiftyMIC reads the stack with SimpleITK (LPS), cuts it along its third axis, and corrects each
+    slice's placement by T (slice.py: ``affine = T o A0``): T applied to a voxel's scanner point must
+    give its atlas point. A stack stored with its slices along another axis is written again, slices
+    last, with its mask; ``NAME.tfm`` is a rigid move among the slices' own."""
     sitk = pytest.importorskip("SimpleITK")
+    case = make_case(tmp_path, slice_axis)
     out = tmp_path / "niftymic"
-    assert export(case["answer"], [case["stack"]], None, out, "niftymic", all_slices=True) == 5     # not slice 0
-    assert sorted(p.name for p in out.iterdir()) == [f"ax_slice{k}.tfm" for k in (1, 2, 3, 4, 5)]
-    image = sitk.ReadImage(str(case["stack"]))
+    done = export(case["answer"], [case["stack"]], [case["mask"]], out, "niftymic", all_slices=True)
+    assert done.count == 5                                                             # not slice 0
+    assert sorted(p.name for p in out.glob("*.tfm")) == ["ax.tfm"] + [f"ax_slice{k}.tfm" for k in (1, 2, 3, 4, 5)]
+    stack = case["stack"] if slice_axis == 2 else out / "stacks" / "ax.nii.gz"
+    assert done.stacks == [stack] and done.masks == [case["mask"] if slice_axis == 2 else out / "stacks" / "ax_mask.nii.gz"]
+    image = sitk.ReadImage(str(stack))
+    assert image.GetSize() == (20, 16, 6)
+    if slice_axis != 2:
+        mask = sitk.GetArrayFromImage(sitk.ReadImage(str(done.masks[0])))       # [k, v, u]
+        assert np.array_equal(mask[4, 11, 7], case["mask_data"][tuple(int(x) for x in voxel(slice_axis, (7, 11), 4))])
     for k in (1, 3, 5):
         t = sitk.ReadTransform(str(out / f"ax_slice{k}.tfm"))
-        for i, j in ((0, 0), (19, 15), (5, 9)):
-            scanner_lps = image.TransformContinuousIndexToPhysicalPoint((float(i), float(j), float(k)))
-            atlas_lps = F @ case["poses"][k] @ np.array([i, j, k, 1.0])
+        for u, v in ((0, 0), (19, 15), (5, 9)):
+            scanner_lps = image.TransformContinuousIndexToPhysicalPoint((float(u), float(v), float(k)))
+            atlas_lps = F @ case["poses"][k] @ np.array(voxel(slice_axis, (u, v), k) + [1.0])
             np.testing.assert_allclose(t.TransformPoint(scanner_lps), atlas_lps[:3], atol=1e-4)
+    whole = sitk.ReadTransform(str(out / "ax.tfm"))
+    matrix = np.array(sitk.AffineTransform(whole).GetMatrix()).reshape(3, 3)
+    np.testing.assert_allclose(matrix @ matrix.T, np.eye(3), atol=1e-9)
+    centre = image.TransformContinuousIndexToPhysicalPoint((9.5, 7.5, 2.5))
+    moved = [sitk.ReadTransform(str(out / f"ax_slice{k}.tfm")).TransformPoint(centre) for k in range(1, 6)]
+    assert np.linalg.norm(np.subtract(whole.TransformPoint(centre), np.mean(moved, axis=0))) < 5.0
 
 
 def test_files_that_are_not_the_answers_are_refused(case: dict, tmp_path: Path) -> None:
@@ -118,3 +160,23 @@ def test_the_cli_writes_and_says_what_to_run_next(case: dict, tmp_path: Path) ->
     answer.write_text("{not json")
     r = CliRunner().invoke(cli.app, ["export", str(answer), str(case["stack"]), "--to", "nesvor", "--out-dir", str(out)])
     assert r.exit_code == 5 and "poses.json is not a JSON answer" in r.output
+
+
+def test_the_cli_names_the_stacks_niftymic_must_read(tmp_path: Path) -> None:
+    """A stack stored with its slices first is given to NiftyMIC as its rewritten copy, masks too; a
+    file name NiftyMIC's pattern would not match is named."""
+    case = make_case(tmp_path, slice_axis=0)
+    answer = tmp_path / "poses.json"
+    answer.write_text(json.dumps(case["answer"]))
+    odd = tmp_path / "ax(1).nii.gz"
+    odd.write_bytes(case["stack"].read_bytes())
+    out = tmp_path / "mc"
+    r = CliRunner().invoke(cli.app, ["export", str(answer), str(case["stack"]), "--to", "niftymic", "--out-dir", str(out),
+                                     "--mask", str(case["mask"])], env={"COLUMNS": "400"})
+    assert r.exit_code == 0, r.output
+    assert f"--filenames {out / 'stacks' / 'ax.nii.gz'} --filenames-masks {out / 'stacks' / 'ax_mask.nii.gz'} " in r.stdout
+    assert "written again" in r.stderr and "rename" not in r.stderr
+    r = CliRunner().invoke(cli.app, ["export", str(answer), str(odd), "--to", "niftymic", "--out-dir", str(out)],
+                           env={"COLUMNS": "400"})
+    assert r.exit_code == 0, r.output
+    assert "rename ax(1).nii.gz" in r.stderr
