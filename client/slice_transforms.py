@@ -12,7 +12,8 @@ mm, as the service placed the file: a NIfTI file by its sform whenever its code 
 that slice observed it: ITK's registration convention with the atlas as the fixed image, so
 ``sitk.Resample(stack_image, atlas_image, sitk.ReadTransform(path))`` puts that slice in atlas space,
 ``stack_image`` placed as the service placed it (SimpleITK places a NIfTI file whose qform and
-sform differ by its qform: set its origin and direction from ``scanner_from_voxel`` first). ``transforms/slice_transforms.txt`` lists every slice, one line
+sform differ by its qform where the sform's code is 2-4, and takes its voxel sizes from ``pixdim``:
+set its origin, direction and spacing from ``scanner_from_voxel`` first). ``transforms/slice_transforms.txt`` lists every slice, one line
 each: ``stack slice accepted expected_error_mm`` and the 12 numbers of the top 3 x 4 block of
 ``atlas_from_voxel`` (row-major). The layout and the ``.tfm`` text are those of a reconstruction
 job's ``transforms.zip`` (docs/reconstruction.md), with the predicted poses.
