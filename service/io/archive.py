@@ -103,6 +103,7 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path 
         for f in files:
             _check_size(f, sizes[f], labels.get(f, filename))
         reader.SetFileNames(files)
+        reader.SetOutputPixelType(sitk.sitkFloat32)   # each file's own rescale kept: else the first file's type
         return replace(from_sitk(reader.Execute()), acquisition_order=order_of([times.get(f) for f in files]),
                        slice_thickness_mm=stated_thickness([thicknesses.get(f) for f in files]))
 

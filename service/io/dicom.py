@@ -106,6 +106,12 @@ def _multiframe(ds, pixels: np.ndarray, filename: str) -> Volume:  # noqa: ANN00
         return getattr(item, name, None) if item is not None and name in item else getattr(ds, name, None)
 
     n = len(pixels)
+    if "RescaleSlope" not in ds and "RescaleIntercept" not in ds:      # Enhanced MR: each frame's own rescale
+        for f in range(n):
+            transform = group("PixelValueTransformationSequence", f)
+            if transform is not None:
+                pixels[f] = (pixels[f] * float(getattr(transform, "RescaleSlope", 1) or 1)
+                             + float(getattr(transform, "RescaleIntercept", 0) or 0))
     placed = [group("PlanePositionSequence", f) for f in range(n)]     # a frame's own position, never the file's
     tags = [(getattr(placed[f], "ImagePositionPatient", None),
              tag(group("PlaneOrientationSequence", f), "ImageOrientationPatient"),

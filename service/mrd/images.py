@@ -130,7 +130,7 @@ class SliceGeometry:
         :class:`ValueError` for a sheared one)."""
         origin, spacing, direction = frames.itk_from_affine(scanner_from_voxel)
         nx, ny = int(shape[0]), int(shape[1])
-        centre = origin + direction[:, :2] @ (spacing[:2] * [(nx - 1) / 2, (ny - 1) / 2])
+        centre = origin + direction[:, :2] @ (spacing[:2] * centre_voxel(nx, ny))
         return cls((nx, ny), (spacing[0] * nx, spacing[1] * ny, spacing[2]), tuple(centre.tolist()),
                    *(tuple(direction[:, c].tolist()) for c in range(3)))  # type: ignore[arg-type]
 
@@ -140,24 +140,37 @@ class SliceGeometry:
         Column 0 is ``read_dir`` times the read pixel size ``field_of_view[0] / matrix_size[0]``, column
         1 ``phase_dir`` times ``field_of_view[1] / matrix_size[1]``, column 2 ``slice_dir`` times the
         slice thickness ``field_of_view[2]``; ``position``, the image's centre, lies at voxel
-        ``((nx - 1) / 2, (ny - 1) / 2, 0)``: between two pixels along an even side.
+        :func:`centre_voxel`.
 
         Example:
             >>> g = SliceGeometry((4, 3), (5.0, 3.0, 2.0), (0.0, 0.0, 0.0), (1.0, 0, 0), (0, 1.0, 0), (0, 0, 1.0))
-            >>> g.scanner_from_voxel()[:3, 3].tolist()        # LPS (-1.5*1.25, -1, 0) -> RAS
-            [1.875, 1.0, 0.0]
+            >>> g.scanner_from_voxel()[:3, 3].tolist()        # LPS (-2 * 1.25, -1.5, 0) -> RAS
+            [2.5, 1.5, 0.0]
         """
         nx, ny = self.matrix_size
         fov = np.asarray(self.field_of_view, dtype=np.float64)
         spacing = np.array([fov[0] / nx, fov[1] / ny, fov[2]])
         direction = np.stack([self.read_dir, self.phase_dir, self.slice_dir], axis=1).astype(np.float64)
-        origin = np.asarray(self.position) - direction[:, :2] @ (spacing[:2] * [(nx - 1) / 2, (ny - 1) / 2])
+        origin = np.asarray(self.position) - direction[:, :2] @ (spacing[:2] * centre_voxel(nx, ny))
         return frames.affine_from_itk(origin, spacing, direction)
 
     def write_into(self, image: ismrmrd.Image) -> None:
         """Set the geometry fields of ``image``'s header (rounded to the header's float32)."""
         image.field_of_view, image.position = self.field_of_view, self.position
         image.read_dir, image.phase_dir, image.slice_dir = self.read_dir, self.phase_dir, self.slice_dir
+
+
+def centre_voxel(nx: int, ny: int) -> NDArray[np.float64]:
+    """Where an MRD image's ``position`` lies in its pixel grid: ``(nx / 2, ny / 2)``, the centre of
+    the field of view as the scanner's Fourier reconstruction places it (pixel ``n / 2`` of an even
+    side, not between two pixels), and as Gadgetron writes a DICOM image's first pixel from it
+    (``position - field_of_view / 2`` along ``read_dir`` and ``phase_dir``).
+
+    Example:
+        >>> centre_voxel(256, 224).tolist()
+        [128.0, 112.0]
+    """
+    return np.array([nx / 2, ny / 2], dtype=np.float64)
 
 
 def slice_from_image(image: ismrmrd.Image) -> tuple[NDArray[np.float32], NDArray[np.float64]]:

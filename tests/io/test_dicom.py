@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import re
 import struct
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -200,6 +201,27 @@ def test_an_enhanced_multiframe_is_placed_frame_by_frame_and_ordered_along_its_n
     assert vol.slice_thickness_mm == 3.0                   # as stated (PixelMeasuresSequence), not the 3.3 mm spacing
 
 
+@pytest.mark.parametrize("where", ["per frame", "shared"])
+def test_an_enhanced_multiframe_s_rescale_is_each_frame_s_own(tmp_path: Path, where: str) -> None:
+    """Enhanced MR keeps RescaleSlope and RescaleIntercept in the Pixel Value Transformation functional
+    group (PS3.3 C.7.6.16.2.9), per frame (as Philips writes them) or shared; each frame is rescaled by
+    its own, as nibabel does (stored 100 everywhere)."""
+    n = 4
+    path = _enhanced_file(tmp_path / "e.dcm", np.full((n, 12, 10), 100, np.uint16),
+                          [np.array([-40.0, 20.0, 35.0]) + 3.3 * d * NORMAL for d in range(n)],
+                          shared_orientation=[*ROW, *COL])
+    ds = pydicom.dcmread(path)
+    slopes, intercepts = ([1.0, 2.0, 0.5, 4.0], [0.0, 10.0, -5.0, 0.0]) if where == "per frame" else ([3.0] * n, [-1000.0] * n)
+    for f in range(n) if where == "per frame" else [None]:
+        transform = Dataset()
+        transform.RescaleSlope, transform.RescaleIntercept, transform.RescaleType = slopes[f or 0], intercepts[f or 0], "US"
+        target = ds.SharedFunctionalGroupsSequence[0] if f is None else ds.PerFrameFunctionalGroupsSequence[f]
+        target.PixelValueTransformationSequence = Sequence([transform])
+    ds.save_as(path)
+    vol = read_upload(path, "e.dcm")
+    np.testing.assert_allclose(vol.array[3, 5, :], [100 * a + b for a, b in zip(slopes, intercepts)])
+
+
 def _damaged(kind: str) -> dict:
     origin = np.array([-40.0, 20.0, 35.0])
     positions = [origin + 3.3 * d * NORMAL for d in range(8)]
@@ -283,3 +305,33 @@ def test_a_photometric_interpretation_is_named_only_when_it_is_a_defined_term(tm
     with pytest.raises(UnusableImage) as info:
         read_upload(path, "frames.dcm")
     assert named in info.value.detail and "DOE" not in info.value.detail, info.value.detail
+
+
+def test_a_zipped_series_places_each_pixel_by_its_file_and_keeps_each_file_s_rescale(tmp_path: Path) -> None:
+    """A classic series zipped, oblique, with pixels 1.2 mm between rows and 0.8 mm between columns,
+    its files stored from the top of the stack down and each with its own RescaleSlope and
+    RescaleIntercept: every voxel lies at its pixel's centre by the standard (PS3.3 C.7.6.2.1.1: IPP +
+    column x spacing along the row + row x spacing along the column) and holds its file's value (the
+    series reader would take the first file's integer type and round the others')."""
+    rows, cols, n, between = 12, 10, 6, 3.3
+    slopes, intercepts = [0.01, 0.01, 2.5, 0.5, 0.01, 1.0], [0.0, 5.0, -3.0, 0.0, 1.5, 0.0]   # the bottom file: 1, 0
+    top = np.array([-30.0, 12.0, 40.0])
+    uids = [generate_uid() for _ in range(3)]
+    stored = [(np.arange(rows * cols).reshape(rows, cols) + 1000 * f + 1).astype(np.uint16) for f in range(n)]
+    with zipfile.ZipFile(tmp_path / "s.zip", "w") as archive:
+        for f in range(n):
+            ds = _dataset(tmp_path / f"{f}.dcm", MRImageStorage, stored[f])
+            ds.SeriesInstanceUID, ds.StudyInstanceUID, ds.FrameOfReferenceUID = uids
+            ds.InstanceNumber, ds.ImagePositionPatient = f + 1, [float(x) for x in top - f * between * NORMAL]
+            ds.ImageOrientationPatient, ds.PixelSpacing, ds.SliceThickness = [*ROW, *COL], [1.2, 0.8], 3.0
+            ds.RescaleSlope, ds.RescaleIntercept = slopes[f], intercepts[f]
+            pydicom.dcmwrite(str(tmp_path / f"{f}.dcm"), ds, enforce_file_format=True)
+            archive.write(tmp_path / f"{f}.dcm", f"{f}.dcm")
+    vol = read_upload(tmp_path / "s.zip", "s.zip")
+    lps = frames.LPS_FROM_RAS @ vol.affine
+    for f, r, c in ((0, 0, 0), (2, 11, 3), (5, 4, 9), (3, 7, 7), (1, 3, 2), (4, 10, 1)):
+        point = top - f * between * NORMAL + c * 0.8 * ROW + r * 1.2 * COL
+        index = np.linalg.solve(lps, [*point, 1.0])[:3]
+        assert np.allclose(index, np.round(index), atol=1e-4), index
+        i, j, k = (int(v) for v in np.round(index))
+        assert vol.array[i, j, k] == pytest.approx(stored[f][r, c] * slopes[f] + intercepts[f], rel=1e-5)

@@ -81,7 +81,7 @@ def test_header_fields_follow_the_mrd_definition(shape: tuple[int, int, int]) ->
     spacing = np.linalg.norm(lps[:3, :3], axis=0)
     for k in range(nz):
         image = wire(image_from_slice(volume.array[:, :, k], slice_affine(volume, k), series=4, slice_index=k))
-        centre = lps @ [(nx - 1) / 2, (ny - 1) / 2, k, 1.0]
+        centre = lps @ [nx / 2, ny / 2, k, 1.0]
         tolerance = 8 * FLOAT32_EPS * (1 + np.abs(centre).max())
         np.testing.assert_allclose(image.position, centre[:3], rtol=0, atol=tolerance)
         for field, column in (("read_dir", 0), ("phase_dir", 1), ("slice_dir", 2)):
@@ -90,6 +90,28 @@ def test_header_fields_follow_the_mrd_definition(shape: tuple[int, int, int]) ->
         assert tuple(image.matrix_size) == (nx, ny, 1) and image.slice == k and image.image_series_index == 4
         x, y = nx - 1, 1
         assert image.data[0, 0, y, x] == volume.array[x, y, k]
+
+
+def test_the_first_pixel_lies_where_gadgetron_puts_a_dicom_image_s_first_pixel() -> None:
+    """A scanner's header, read independently of the conversion code: Gadgetron writes the DICOM
+    ImagePositionPatient of an MRD image as ``position - field_of_view[0] / 2 * read_dir -
+    field_of_view[1] / 2 * phase_dir`` (its DicomFinishGadget), the Fourier reconstruction's centre at
+    pixel ``n / 2``; pixel (x, y) lies x and y pixels on from there. 256 x 224 pixels of 1.25 mm,
+    oblique."""
+    rng = np.random.default_rng(2)
+    rotation = se3.so3_exp(rng.normal(0, 0.5, 3))
+    header = ismrmrd.ImageHeader()
+    header.matrix_size[:] = (256, 224, 1)
+    header.field_of_view[:] = (320.0, 280.0, 3.0)
+    header.position[:] = (-10.5, 22.25, 40.0)
+    for field, column in (("read_dir", 0), ("phase_dir", 1), ("slice_dir", 2)):
+        getattr(header, field)[:] = rotation[:, column]
+    position, read, phase = (np.array(getattr(header, f), np.float64) for f in ("position", "read_dir", "phase_dir"))
+    first = position - 160.0 * read - 140.0 * phase                                   # LPS
+    ras = SliceGeometry.of_header(header).scanner_from_voxel()
+    for x, y in ((0, 0), (255, 0), (17, 200)):
+        want = first + 1.25 * x * read + 1.25 * y * phase
+        np.testing.assert_allclose(frames.LPS_FROM_RAS @ ras @ [x, y, 0, 1.0], [*want, 1.0], atol=1e-4)
 
 
 @pytest.mark.parametrize("shape", SHAPES)
@@ -109,13 +131,14 @@ def test_round_trip_through_an_mrd_stream(shape: tuple[int, int, int]) -> None:
 
 
 def test_axial_slice_of_a_ras_volume_flips_x_and_y_into_lps() -> None:
-    """A slice of an axis-aligned RAS volume: LPS read/phase are -x and -y, position the negated centre."""
+    """A slice of an axis-aligned RAS volume: LPS read/phase are -x and -y, position the negated centre
+    (pixel (2.5, 1.5) of 5 x 3)."""
     affine = np.diag([1.0, 2.0, 3.0, 1.0])
     affine[:3, 3] = (10.0, 20.0, 30.0)
     image = image_from_slice(np.zeros((5, 3), np.float32), affine)
     assert list(image.read_dir) == [-1.0, 0.0, 0.0] and list(image.phase_dir) == [0.0, -1.0, 0.0]
     assert list(image.slice_dir) == [0.0, 0.0, 1.0]
-    assert list(image.position) == [-12.0, -22.0, 30.0]
+    assert list(image.position) == [-12.5, -23.0, 30.0]
 
 
 def header(**fields: object) -> ismrmrd.ImageHeader:
