@@ -88,6 +88,28 @@ def interleaved_times(n: int) -> NDArray[np.int64]:
     return np.where(k % 2 == 0, k // 2, (n + 1) // 2 + k // 2)
 
 
+def stored_last_to_first(stack: SimulatedStack) -> SimulatedStack:
+    """The same stack as a file that stores its slices the other way writes it: the slice axis
+    reversed in the voxels and the affine (each slice where it was), the truth and the acquisition
+    times with it. An interleaved acquisition then runs downwards in the file's slice order.
+
+    Example:
+        >>> s = SimulatedStack(Volume(np.arange(3.0).reshape(1, 1, 3), np.eye(4)), Volume(np.ones((1, 1, 3)), np.eye(4)),
+        ...                    np.stack([translate([0, 0, k]) for k in range(3)]), "axial", interleaved_times(3), "mild")
+        >>> r = stored_last_to_first(s)
+        >>> r.volume.array.ravel().tolist(), r.times.tolist(), float((r.volume.affine @ [0, 0, 0, 1])[2])
+        ([2.0, 1.0, 0.0], [1, 2, 0], 2.0)
+        >>> bool(np.allclose(r.atlas_from_voxel[0] @ [0, 0, 0, 1], s.atlas_from_voxel[2] @ [0, 0, 2, 1]))
+        True
+    """
+    n = stack.volume.array.shape[2]
+    flip = np.diag([1.0, 1.0, -1.0, 1.0])
+    flip[2, 3] = n - 1                                       # new voxel (i, j, k) is old voxel (i, j, n - 1 - k)
+    return SimulatedStack(Volume(stack.volume.array[:, :, ::-1].copy(), stack.volume.affine @ flip),
+                          Volume(stack.mask.array[:, :, ::-1].copy(), stack.mask.affine @ flip),
+                          stack.atlas_from_voxel[::-1] @ flip, stack.orientation, stack.times[::-1].copy(), stack.motion)
+
+
 def smooth_motion(times: ArrayLike, rng: np.random.Generator, max_deg: float, max_mm: float) -> NDArray[np.float64]:
     """Twists ``[n, 6]`` of a smooth random trajectory over acquisition ``times``, scaled to its maxima.
 

@@ -14,6 +14,7 @@ variant. A variant is ``base`` or a ``;``-separated list of overrides:
 ``--columns OUT.npz`` writes every cached slice's columns for ``svrnet-train calibrate-acceptance
 --columns`` (a second set of acquisitions pooled with the first).
 ``--void`` puts a dark ball in every acquisition (:func:`~model_export.experiments.scanner_sweep.with_void`);
+``--last-to-first`` stores every stack with its slices the other way (the same acquisitions);
 ``--alone`` sends each stack as a request of its own (a single-stack request, or a stream's first stack).
 ``--source VOLUME`` (repeatable) simulates from these volumes instead of the held-out atlas brains: a
 job's reconstruction of a real scan (atlas space; its brain from its own intensities,
@@ -49,7 +50,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from model_export.acquisitions import MOTION_LEVELS, simulate_acquisition  # noqa: E402
+from model_export.acquisitions import MOTION_LEVELS, simulate_acquisition, stored_last_to_first  # noqa: E402
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
 from model_export.calibrate_acceptance import measuring, rates, rms, share  # noqa: E402
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, acceptance_columns, prepare_acquisition  # noqa: E402
@@ -65,9 +66,11 @@ import service.pipeline.predict as pipeline  # noqa: E402
 
 
 def build(model: Path, root: Path, levels: list[str], per_volume: int, seed: int, void: bool = False,
-          sources: list[Path] | None = None) -> tuple:
+          sources: list[Path] | None = None, last_to_first: bool = False) -> tuple:
     """``(info, [(level, prepared stacks, estimates per stack, true poses per stack), ...])``; from
-    ``sources`` (:func:`~model_export.experiments.real_brain_acquisitions.source_volumes`) where given, else from the held-out atlas brains."""
+    ``sources`` (:func:`~model_export.experiments.real_brain_acquisitions.source_volumes`) where given, else from the held-out atlas brains;
+    with ``last_to_first`` each stack stored with its slices the other way
+    (:func:`~model_export.acquisitions.stored_last_to_first`)."""
     loaded = load_model(model)
     estimator = OnnxPoseEstimator(loaded)
     volumes = source_volumes(sources) if sources else load_volumes(split(root)[1], root)
@@ -76,6 +79,7 @@ def build(model: Path, root: Path, levels: list[str], per_volume: int, seed: int
     for level in levels:
         for vol in volumes * per_volume:
             stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level)
+            stacks = [stored_last_to_first(s) for s in stacks] if last_to_first else stacks
             prepared, truth = prepare_acquisition(with_void(stacks, rng) if void else stacks, loaded.info)
             parts, _ = pipeline.estimate_stacks(prepared, estimator, 100)
             cases.append((level, prepared, parts, truth))
@@ -184,13 +188,16 @@ def main() -> None:
     ap.add_argument("--per-volume", type=int, default=2)
     ap.add_argument("--seed", type=int, default=21)
     ap.add_argument("--void", action="store_true", help="a dark ball in every acquisition (scanner_sweep.with_void)")
+    ap.add_argument("--last-to-first", action="store_true",
+                    help="each stack stored with its slices the other way (the same draws): its interleaved order runs downwards")
     ap.add_argument("--alone", action="store_true", help="each stack sent on its own, not with its acquisition's others")
     ap.add_argument("--columns", type=Path, help="write every slice's columns here (.npz) for calibrate-acceptance --columns")
     ap.add_argument("--source", type=Path, action="append", default=[],
                     help="simulate from this volume (atlas space: a job's reconstruction) instead of the atlas brains")
     args = ap.parse_args()
     if not args.cache.exists():             # written whole or not at all: a stopped build leaves no cache
-        built = build(args.model, args.root, args.levels.split(","), args.per_volume, args.seed, args.void, args.source)
+        built = build(args.model, args.root, args.levels.split(","), args.per_volume, args.seed, args.void, args.source,
+                      args.last_to_first)
         partial = args.cache.with_name(args.cache.name + ".partial")
         with open(partial, "wb") as f:
             pickle.dump(built, f)

@@ -102,10 +102,13 @@ def candidate_pairs(atlas_from_slice: NDArray, stack_of: NDArray, free: NDArray)
     return np.stack([a[keep], b[keep]], axis=1)
 
 
-def slice_keys(stack_of: NDArray, local: NDArray, fingerprints: list[int]) -> NDArray[np.uint64]:
-    """``[n]`` a 64-bit hash naming each slice by its stack's ``fingerprint`` (a checksum of its
-    masks) and its index in the stack: the same whatever the stack's place in the request."""
-    return _mix(np.asarray(fingerprints, np.uint64)[stack_of] * np.uint64(0x9E3779B97F4A7C15) + np.asarray(local, np.uint64))
+def slice_keys(stack_of: NDArray, local: NDArray, fingerprints: list[NDArray]) -> NDArray[np.uint64]:
+    """``[n]`` a 64-bit hash naming each slice by its own fingerprint (per stack, ``[n_s]`` checksums
+    of its slices' masks): the same whatever the stack's place in the request, and wherever the file
+    stores the slice within its stack (slices last to first)."""
+    flat = np.concatenate([np.asarray(f, np.uint64) for f in fingerprints])
+    start = np.cumsum([0] + [len(f) for f in fingerprints])[:-1]
+    return _mix(flat[start[np.asarray(stack_of)] + np.asarray(local)])
 
 
 def canonical_pairs(pairs: NDArray, keys: NDArray) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
@@ -116,7 +119,7 @@ def canonical_pairs(pairs: NDArray, keys: NDArray) -> tuple[NDArray[np.int64], N
 
     Example (two stacks of three slices, then the same stacks the other way round):
         >>> pairs = np.array([[0, 3], [0, 4], [1, 5], [2, 3]])
-        >>> keys = slice_keys(np.repeat([0, 1], 3), np.tile(np.arange(3), 2), [11, 22])
+        >>> keys = slice_keys(np.repeat([0, 1], 3), np.tile(np.arange(3), 2), [[11, 12, 13], [21, 22, 23]])
         >>> swapped = np.concatenate([keys[3:], keys[:3]])          # stack 1 first
         >>> a, rank_a = canonical_pairs(pairs, keys)
         >>> b, rank_b = canonical_pairs((pairs + 3) % 6, swapped)
@@ -161,7 +164,7 @@ class ImageTerm:
         those within both slices' mask boxes at those poses (:meth:`_within_boxes`): elsewhere a
         point's weight is 0, and :meth:`select` would drop it."""
         self.stacks = SampledStacks(sampled)
-        pairs, self._rank = canonical_pairs(pairs, slice_keys(stack_of, local, [s.fingerprint for s in sampled]))
+        pairs, self._rank = canonical_pairs(pairs, slice_keys(stack_of, local, [s.fingerprints for s in sampled]))
         self.stack_of, self.local, self.pairs, self.t = stack_of, local, pairs, t
         first, count = np.zeros(len(pairs), np.int64), np.full(len(pairs), len(t))
         if atlas_from_slice is not None:

@@ -102,15 +102,16 @@ class BlockedStack:
     origin: tuple[int, int]
     support: NDArray[np.float64] = field(init=False)
     """``[n, 2, 2]`` each slice's box of nonzero ``masks`` (:func:`_support_boxes`)."""
-    fingerprint: int = field(init=False)
-    """A checksum of ``masks``: the stack's name in the point budget's order
-    (:func:`~service.consistency.intersections.slice_keys`), whatever its place in the request. Of the
-    masks, not the images: a file written again (its affine's rounding, another reader) changes the
-    images' last bits, and the choice of crossing lines would change with them."""
+    fingerprints: NDArray[np.uint64] = field(init=False)
+    """``[n]`` a checksum of each slice's ``masks``: the slice's name in the point budget's order
+    (:func:`~service.consistency.intersections.slice_keys`), whatever its stack's place in the
+    request and its own place in the stack. Of the masks, not the images: a file written again (its
+    affine's rounding, another reader) changes the images' last bits, and the choice of crossing
+    lines would change with them."""
 
     def __post_init__(self) -> None:
         self.support = _support_boxes(self.masks)
-        self.fingerprint = zlib.crc32(np.ascontiguousarray(self.masks).view(np.uint8))
+        self.fingerprints = np.array([zlib.crc32(np.ascontiguousarray(m).view(np.uint8)) for m in self.masks], np.uint64)
 
     @classmethod
     def of(cls, s: StackImages) -> "BlockedStack":
@@ -222,7 +223,7 @@ class SampledStack:
         pixel = (s.pixel_mm[0] * f[0], s.pixel_mm[1] * f[1])
         self.images = _wide_gaussian(images, sigma_mm, pixel)
         self.masks = blocked.masks
-        self.fingerprint = blocked.fingerprint
+        self.fingerprints = blocked.fingerprints
         self.support = blocked.support
         self.padded = (images.shape[1] + 2, images.shape[2] + 2)                # a zero border: bilinear fades to 0
         # block (r', c') is centred on the original pixel (r0 + f r' + (f - 1) / 2, ...)

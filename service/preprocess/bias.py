@@ -1,15 +1,16 @@
 """N4 bias-field correction, fitted small and applied at full resolution.
 
-The field is smooth, so it is fitted on an image shrunk in-plane (x4, and to pixels of at least
-8 mm; the few slices of a stack are kept) and restricted to the region around the brain (the mask's
+The field is smooth, so it is fitted on an image shrunk to pixels of about 8 mm (in-plane at least
+x4; at least 4 pixels left per axis) and restricted to the region around the brain (the mask's
 bounding box plus a margin), on two fitting levels (a third, with twice the control points, fits a
 field finer than the brain's extent needs). The fit is N4 in numpy
 (:func:`~service.preprocess.n4.n4_log_field`: ITK's algorithm and ITK's field, without ITK's fixed
-cost per iteration, which dominates on a fit image of a few thousand voxels); SimpleITK shrinks,
-thresholds the fit mask (Otsu); the fitted log field is interpolated linearly onto the
-full-resolution grid of the region (:func:`upsample_linear`: the two grids share their axes, so
-the trilinear interpolation is three small matrix products), where it is divided out. Outside the
-region the image is left as it is (it is masked out later anyway).
+cost per iteration, which dominates on a fit image of a few thousand voxels) on samples centred
+on each axis of the region (:func:`centred_samples`: a file that stores an axis the other way gets
+the same samples); SimpleITK thresholds the fit mask (Otsu); the fitted log field is
+interpolated linearly onto the full-resolution grid of the region (:func:`upsample_linear`: three
+small matrix products), where it is divided out. Outside the region the image is left as it is (it
+is masked out later anyway).
 
 Example:
     >>> import numpy as np
@@ -58,34 +59,51 @@ def n4_correct(volume: Volume, mask: NDArray | None = None, *, shrink: int = 4, 
     box = None if mask is None else mask_box(np.asarray(mask, bool), np.ceil(margin_mm / volume.spacing).astype(int))
     box = box or tuple(slice(0, n) for n in arr.shape)
     region = volume.region(box)
-    # The fit works on the voxel grid alone (the field lives on the index domain): ITK's shrink picks
-    # each block's pixel by rounding a physical position, which for an even factor sits half a pixel
-    # off, so with the stack's own geometry 1e-7 mm of header rounding (float32 MRD headers) chose
-    # the other pixel. On a grid of unit spacing at the origin the pick is always the same.
-    image = sitk.GetImageFromArray(np.ascontiguousarray(np.maximum(np.asarray(region.array, np.float32), 0.0)
-                                                        .transpose(2, 1, 0)))
+    # The fit works on the voxel grid alone (the field lives on the index domain), on samples centred
+    # in the region: the same samples whichever way the file stores its axes (a shrink from the first
+    # voxel, as ITK's, samples a stack stored last to first elsewhere and moved its poses by about an
+    # MC draw's spread), and no physical position to round.
+    region_array = np.maximum(np.asarray(region.array, np.float32), 0.0)
     sp = np.asarray(region.spacing, np.float64)
     target = max(shrink * min(sp), fit_spacing_mm)
     factors = [max(1, int(round(target / s))) for s in sp]                    # keep thick-slice axis
-    factors = [min(f, max(1, n // 4)) for f, n in zip(factors, image.GetSize())]
-    small = sitk.Shrink(image, factors)
-    fit_mask = sitk.OtsuThreshold(small, 0, 1, 200)
-    if sitk.GetArrayViewFromImage(fit_mask).sum() < 10:
+    factors = [min(f, max(1, n // 4)) for f, n in zip(factors, region_array.shape)]
+    small, at = centred_samples(region_array, factors)
+    small_image = sitk.GetImageFromArray(np.ascontiguousarray(small.transpose(2, 1, 0)))
+    fit_mask = sitk.GetArrayFromImage(sitk.OtsuThreshold(small_image, 0, 1, 200)).transpose(2, 1, 0) > 0
+    if fit_mask.sum() < 10:
         fit_mask = small > 0
-    field = n4_log_field(sitk.GetArrayViewFromImage(small), sitk.GetArrayViewFromImage(fit_mask) > 0,
-                         (iterations,) * levels)
-    log_field = upsample_linear(field.transpose(2, 1, 0), continuous_indices(small, image))
+    field = n4_log_field(small, fit_mask, (iterations,) * levels)
+    log_field = upsample_linear(field, at)
     out = arr.copy()
     out[box] = arr[box] / np.exp(log_field)
     return out
 
 
-def continuous_indices(coarse: sitk.Image, fine: sitk.Image) -> list[NDArray[np.float64]]:
-    """Per axis ``(x, y, z)``, where each of ``fine``'s voxel indices lies in ``coarse``'s continuous
-    index, for two images of one orientation (a shrunk image and its source: their axes coincide)."""
-    origin = np.asarray(coarse.TransformPhysicalPointToContinuousIndex(fine.GetOrigin()))
-    step = np.asarray(fine.GetSpacing()) / np.asarray(coarse.GetSpacing())
-    return [origin[a] + step[a] * np.arange(n) for a, n in enumerate(fine.GetSize())]
+def centred_samples(values: NDArray, factors: list[int]) -> tuple[NDArray[np.float32], list[NDArray[np.float64]]]:
+    """``values`` shrunk by ``factors``: ``n // factor`` samples per axis, ``factor`` voxels apart and
+    centred on the axis's middle; and, per axis, where each of ``values``' voxels lies in the shrunk
+    grid's continuous index. A sample that falls between two voxels (where the voxels left over and
+    the factor are both even or both odd) is their mean. Reversing an axis of ``values`` reverses
+    its samples. Samples, not block means, as ITK's shrink: N4 sharpens the histogram of the fit
+    image, and means of blocks that straddle tissues fill in the peaks it sharpens.
+
+    Example (7 voxels every 2: three samples, at voxels 1, 3 and 5):
+        >>> small, at = centred_samples(np.arange(7.0)[:, None, None], [2, 1, 1])
+        >>> small[:, 0, 0].tolist(), at[0][[0, 6]].tolist()
+        ([1.0, 3.0, 5.0], [-0.5, 2.5])
+    """
+    out = np.asarray(values, np.float64)
+    at = []
+    for axis, f in enumerate(factors):
+        n = out.shape[axis]
+        m = max(1, n // f)
+        centres = (n - 1) / 2.0 + f * (np.arange(m) - (m - 1) / 2.0)
+        moved = np.moveaxis(out, axis, 0)
+        sampled = linear_operator(centres, n, np.float64) @ moved.reshape(n, -1)
+        out = np.moveaxis(np.asarray(sampled).reshape(m, *moved.shape[1:]), 0, axis)
+        at.append((np.arange(n) - centres[0]) / f)
+    return out.astype(np.float32), at
 
 
 def upsample_linear(values: NDArray, at: list[NDArray]) -> NDArray[np.float32]:

@@ -270,6 +270,40 @@ def test_the_same_stacks_in_another_order_get_the_same_poses(oracle, oracle_clie
         assert np.abs(a[:, :3, 3] - b[:, :3, 3]).max() < 1e-3 and np.abs(a[:, :3, :3] - b[:, :3, :3]).max() < 1e-5
 
 
+def test_a_stack_whose_file_stores_its_slices_last_to_first_gets_the_same_poses(oracle, oracle_client,
+                                                                                tmp_path: Path) -> None:
+    """Two stacks of a still fetus, the network off per stack and per slice, every stage and N4 on:
+    the second stack's file written again with its slices last to first (its affine so, each slice
+    where it was) gives each slice the same place in the atlas (before: N4 shrank the stack from its
+    first voxel, and the image stage named slices by their index)."""
+    files, truths = two_still_stacks(tmp_path)
+    rng = np.random.default_rng(4)
+    noise = [se3.exp(np.concatenate([rng.normal(0, np.radians(1.0), (len(t), 3)), rng.normal(0, 1.0, (len(t), 3))], 1))
+             for t in truths]
+    given = [truths[0] @ noise[0], truths[1] @ noise[1]]
+    oracle.spread_mm = 3.0
+    axis = 1                                                        # the second stack's slice axis
+    n = len(truths[1])
+    flip = np.eye(4)
+    flip[axis, axis], flip[axis, 3] = -1.0, n - 1                   # new voxel index -> old
+    for name in ("s1", "m1"):
+        vol = read_volume(tmp_path / f"{name}.nii.gz")
+        write(tmp_path / f"{name}r.nii.gz", np.flip(vol.array, axis).copy(), vol.affine @ flip, "simpleitk")
+    stored = files[:2] + [("stacks", ("s1.nii.gz", (tmp_path / "s1r.nii.gz").read_bytes())),
+                          ("masks", ("m1.nii.gz", (tmp_path / "m1r.nii.gz").read_bytes()))]
+    answers = []
+    for upload, second in ((files, given[1]), (stored, given[1][::-1])):
+        oracle.truth = np.concatenate([given[0], second])
+        r = oracle_client.post("/v1/predict", files=upload, data={"mc_samples": "5"})
+        assert r.status_code == 200, r.text
+        stacks = r.json()["stacks"]
+        assert all(st["consistency"]["image_consistency"] is not None for st in stacks)
+        answers.append([np.array([s["atlas_from_voxel"] for s in st["slices"]]) for st in stacks])
+    (first, second), (first_r, second_r) = answers
+    np.testing.assert_allclose(first_r, first, atol=1e-4)
+    np.testing.assert_allclose(second_r[::-1] @ np.linalg.inv(flip), second, atol=1e-4)
+
+
 def test_a_stack_that_does_not_decide_its_branch_takes_the_other_stacks(oracle, oracle_client, tmp_path: Path,
                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
     """Two stacks of the same still fetus; the second comes from the network wholly on its twin and

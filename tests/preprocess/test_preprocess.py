@@ -7,7 +7,7 @@ import pytest
 from scipy import ndimage
 
 from service.io.volume import Volume
-from service.preprocess.bias import continuous_indices, n4_correct, upsample_linear
+from service.preprocess.bias import centred_samples, n4_correct, upsample_linear
 from service.preprocess.intensity import rescale_0_255
 from service.preprocess.slices import preprocess_slices, sample_grid
 from service.preprocess.stack import slice_axis_of, slice_images, split_stack, stack_from_slice_images
@@ -89,34 +89,27 @@ def test_n4_removes_a_smooth_bias_field_and_the_shrunk_fit_equals_the_full_resol
     assert np.corrcoef(fast[mask], full[mask])[0, 1] > 0.98
 
 
-def test_the_field_is_upsampled_as_itk_resamples_it_linearly_within_the_coarse_grid() -> None:
-    """The separable upsampling equals ITK's linear resampling of a shrunk image onto its oblique
-    source grid wherever the source voxel lies within the coarse grid; beyond it, the value is the
-    linear interpolant's at the nearest point of the grid (continuous, where ITK switches to the nearest
-    coarse voxel in every axis)."""
-    import SimpleITK as sitk
+def test_the_fit_grid_samples_the_region_centred_and_maps_back_onto_its_source() -> None:
+    """N4's fit grid: samples ``factor`` voxels apart centred on each axis (a voxel's value where the
+    centre falls on one, two voxels' mean between them), the same samples for an axis stored the other
+    way, and each source voxel's place in it such that a linear ramp, shrunk and interpolated back, is
+    itself; beyond the grid the value is the interpolant's at the nearest point of the grid."""
     rng = np.random.default_rng(3)
-    fine = sitk.GetImageFromArray(np.zeros((9, 70, 64), np.float32))
-    fine.SetSpacing((0.55, 0.6, 3.5))
-    fine.SetOrigin((3.0, -2.0, 5.0))
-    q = np.linalg.qr(rng.normal(size=(3, 3)))[0]
-    fine.SetDirection(tuple((q * np.sign(np.linalg.det(q))).ravel()))
-    coarse = sitk.Shrink(fine, [15, 13, 1])
-    values = rng.random(sitk.GetArrayViewFromImage(coarse).shape).astype(np.float32)
-    field = sitk.GetImageFromArray(values)
-    field.CopyInformation(coarse)
-    itk = sitk.GetArrayFromImage(sitk.Resample(field, fine, sitk.Transform(), sitk.sitkLinear, 0.0, sitk.sitkFloat32,
-                                               useNearestNeighborExtrapolator=True)).transpose(2, 1, 0)
-    at = continuous_indices(coarse, fine)
-    ours = upsample_linear(values.transpose(2, 1, 0), at)
-    # ITK decides "inside" on its own rounding of each point's index: a source voxel on the grid's edge
-    # (here the third row, at exactly -0.5) falls either way with the CPU's arithmetic, so it is left out.
-    inside = [(c > -0.5 + 1e-9) & (c < n - 0.5 - 1e-9) for c, n in zip(at, coarse.GetSize())]
-    grid = np.ix_(*inside)
-    assert all(k.sum() < len(k) for k in inside[:2])                 # the test reaches beyond the grid
-    np.testing.assert_allclose(ours[grid], itk[grid], atol=1e-6)
-    clamped = [np.clip(c, 0, n - 1) for c, n in zip(at, coarse.GetSize())]
-    np.testing.assert_allclose(ours, upsample_linear(values.transpose(2, 1, 0), clamped), atol=1e-7)
+    factors = [4, 7, 1]                 # 23 voxels: samples at 3, 7, ..., 19; 31: at 4.5, 11.5, 18.5, 25.5
+    values = rng.random((23, 31, 9))
+    small, at = centred_samples(values, factors)
+    assert small.shape == (5, 4, 9)
+    np.testing.assert_allclose(small[:, 0], values[3:20:4, 4:6].mean(axis=1), rtol=1e-6)
+    reversed_small, _ = centred_samples(values[::-1, ::-1, ::-1], factors)
+    np.testing.assert_allclose(reversed_small[::-1, ::-1, ::-1], small, rtol=1e-6)
+    x, y, z = np.meshgrid(*(np.arange(n, dtype=np.float64) for n in values.shape), indexing="ij")
+    ramp = 0.3 * x - 0.2 * y + 0.5 * z
+    back = upsample_linear(centred_samples(ramp, factors)[0], at)
+    inside = np.ix_(*[(c >= 0) & (c <= n - 1) for c, n in zip(at, small.shape)])
+    assert all(((c < 0) | (c > n - 1)).any() for c, n in zip(at[:2], small.shape))   # the test reaches beyond
+    np.testing.assert_allclose(back[inside], ramp[inside], atol=1e-5)
+    clamped = [np.clip(c, 0, n - 1) for c, n in zip(at, small.shape)]
+    np.testing.assert_allclose(back, upsample_linear(centred_samples(ramp, factors)[0], clamped), atol=1e-7)
 
 
 def test_the_inputs_do_not_depend_on_the_empty_field_of_view_around_the_masks() -> None:
