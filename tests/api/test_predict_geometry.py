@@ -88,6 +88,17 @@ def two_still_stacks(tmp_path: Path) -> tuple[list[tuple], list[np.ndarray]]:
     return files, truths
 
 
+def stacks_apart(truths: list[np.ndarray], rng: np.random.Generator, shift_z_mm: float, noise: float) -> np.ndarray:
+    """What an oracle network answers for :func:`two_still_stacks`: the second stack moved about the
+    brain's centre by (2, -2.5, 2) deg and (2.5, -2, ``shift_z_mm``) mm, every slice a further
+    ``noise`` deg and mm off on its own (normal)."""
+    centre = make_pose(np.eye(3), [0.0, 3.0, 8.0])
+    offset = centre @ se3.exp(np.array([*np.radians([2.0, -2.5, 2.0]), 2.5, -2.0, shift_z_mm])) @ se3.inverse(centre)
+    given = np.concatenate([truths[0], offset @ truths[1]])
+    return given @ se3.exp(np.concatenate([rng.normal(0, np.radians(noise), (len(given), 3)),
+                                           rng.normal(0, noise, (len(given), 3))], 1))
+
+
 @pytest.mark.parametrize(("writer", "axis", "rotation"), CASES, ids=[f"{w}-axis{a}-{i}" for i, (w, a, _) in enumerate(CASES)])
 def test_atlas_from_voxel_matches_truth(oracle, oracle_client, tmp_path: Path, writer: str, axis: int,
                                         rotation: np.ndarray) -> None:
@@ -183,13 +194,8 @@ def test_two_stacks_are_refined_where_their_slices_cross(oracle, oracle_client, 
     map that best takes all poses to the truth is applied) drops with ``image_consistency`` to under
     0.6 of what it is without (measured: 1.82 -> 0.81 mm); the report says what it did."""
     files, truths = two_still_stacks(tmp_path)
-    rng = np.random.default_rng(5)
     truth = np.concatenate(truths)
-    centre = make_pose(np.eye(3), [0.0, 3.0, 8.0])
-    offset = centre @ se3.exp(np.array([*np.radians([2.0, -2.5, 2.0]), 2.5, -2.0, 2.5])) @ se3.inverse(centre)
-    given = np.concatenate([truths[0], offset @ truths[1]])
-    oracle.truth = given @ se3.exp(np.concatenate([rng.normal(0, np.radians(0.5), (len(truth), 3)),
-                                                   rng.normal(0, 0.5, (len(truth), 3))], 1))
+    oracle.truth = stacks_apart(truths, np.random.default_rng(5), 2.5, 0.5)
     oracle.spread_mm = 4.0
     relative = {}
     for on in ("true", "false"):
@@ -217,12 +223,7 @@ def test_where_the_files_put_the_scanners_origin_changes_no_pose(oracle, oracle_
     the same files with every affine moved by 300 mm give the same ``atlas_from_voxel``, and the
     stage's placements move with the scanner frame."""
     files, truths = two_still_stacks(tmp_path)
-    rng = np.random.default_rng(8)
-    centre = make_pose(np.eye(3), [0.0, 3.0, 8.0])
-    offset = centre @ se3.exp(np.array([*np.radians([2.0, -2.5, 2.0]), 2.5, -2.0, 4.0])) @ se3.inverse(centre)
-    given = np.concatenate([truths[0], offset @ truths[1]])
-    oracle.truth = given @ se3.exp(np.concatenate([rng.normal(0, np.radians(1.0), (len(given), 3)),
-                                                   rng.normal(0, 1.0, (len(given), 3))], 1))
+    oracle.truth = stacks_apart(truths, np.random.default_rng(8), 4.0, 1.0)
     oracle.spread_mm = 3.0
     shift = np.array([200.0, 150.0, -100.0])
     moved_files = []
