@@ -162,9 +162,9 @@ def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None,
         order = axis_order(axis)
         mask = None if not masks else np.asarray(nib.load(str(masks[s])).dataobj).reshape(image.shape[:3]) > 0
         if to == "niftymic":
-            _niftymic_stack(path, stack, chosen, sfv, folder)
+            _niftymic_stack(path, chosen, sfv, folder)
             if axis != 2:                   # NiftyMIC cuts along the third axis: the stack written so
-                done.stacks[s] = _rewritten(np.asarray(image.dataobj).reshape(image.shape[:3]), sfv, axis,
+                done.stacks[s] = _rewritten(np.asarray(image.dataobj, np.float32).reshape(image.shape[:3]), sfv, axis,
                                             folder / "stacks" / path.name)
                 if mask is not None and done.masks is not None:
                     done.masks[s] = _rewritten(mask.astype(np.uint8), sfv, axis, folder / "stacks" / masks[s].name)
@@ -190,7 +190,7 @@ def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None,
     return done
 
 
-def _niftymic_stack(path: Path, stack: dict[str, Any], chosen: list[dict[str, Any]], sfv: NDArray, folder: Path) -> None:
+def _niftymic_stack(path: Path, chosen: list[dict[str, Any]], sfv: NDArray, folder: Path) -> None:
     """NiftyMIC's ``NAME_slice{k}.tfm`` per chosen slice and ``NAME.tfm``, their mean (the module)."""
     stem = path.name.removesuffix(".gz").removesuffix(".nii")
     moves = [niftymic_transform(item["atlas_from_voxel"], sfv) for item in chosen]
