@@ -45,9 +45,10 @@ def _csa_header(tags: dict[str, list[float]]) -> bytes:
 
 
 def _mosaic_file(path: Path, slices: np.ndarray, n_declared: int, acquisition_matrix: list[int] | None,
-                 csa: bytes | None = None) -> Path:
+                 csa: bytes | None = None, pixel_spacing: tuple[float, float] = (2.0, 2.0)) -> Path:
     """A Siemens mosaic of ``slices`` ``[n, rows, cols]`` (ceil(sqrt(n)) tiles a side, empty tiles after
-    the last), declaring ``n_declared`` images; ``csa``: its CSA image header (0029,1010)."""
+    the last), declaring ``n_declared`` images; ``csa``: its CSA image header (0029,1010);
+    ``pixel_spacing``: PixelSpacing (between rows, between columns)."""
     n, tr, tc = slices.shape
     side = int(np.ceil(np.sqrt(n)))
     mosaic = np.zeros((side * tr, side * tc), np.uint16)
@@ -55,7 +56,7 @@ def _mosaic_file(path: Path, slices: np.ndarray, n_declared: int, acquisition_ma
         mosaic[(k // side) * tr:(k // side + 1) * tr, (k % side) * tc:(k % side + 1) * tc] = slices[k]
     ds = _dataset(path, MRImageStorage, mosaic)
     ds.ImageType = ["ORIGINAL", "PRIMARY", "M", "MOSAIC"]
-    ds.PixelSpacing, ds.SliceThickness, ds.SpacingBetweenSlices = [2.0, 2.0], 3.0, 3.5
+    ds.PixelSpacing, ds.SliceThickness, ds.SpacingBetweenSlices = list(pixel_spacing), 3.0, 3.5
     ds.ImageOrientationPatient, ds.ImagePositionPatient = [1, 0, 0, 0, 1, 0], [-100.0, -80.0, 10.0]
     if acquisition_matrix is not None:
         ds.AcquisitionMatrix = acquisition_matrix
@@ -79,6 +80,18 @@ def test_a_mosaic_is_cut_into_its_declared_tiles(tmp_path: Path) -> None:
     # Siemens writes the position of a virtual image the mosaic's size, centred where each tile is:
     # the first tile's centre lies where the mosaic's centre does (LPS (-100, -80, 10), 96 x 80 of 2 mm).
     centre_lps = np.array([-100.0, -80.0, 10.0]) + [(80 - 1) / 2 * 2.0, (96 - 1) / 2 * 2.0, 0.0]
+    tile_centre = vol.affine @ [(20 - 1) / 2, (24 - 1) / 2, 0.0, 1.0]
+    np.testing.assert_allclose(tile_centre[:3], centre_lps * [-1, -1, 1], atol=1e-9)
+
+
+def test_a_mosaic_of_oblong_pixels_takes_each_spacing_along_its_own_axis(tmp_path: Path) -> None:
+    """PixelSpacing is (between rows, between columns): 2.0 mm down a column, 1.5 mm along a row. The
+    columns (i) are 1.5 mm apart, the rows (j) 2.0 mm, and the first tile's centre lies at the
+    mosaic's centre, each half-width measured in its own pixels (a swap moves it by 8 mm)."""
+    slices = (np.random.default_rng(7).random((10, 24, 20)) * 1000 + 100).astype(np.uint16)
+    vol = read_upload(_mosaic_file(tmp_path / "m.dcm", slices, 10, None, pixel_spacing=(2.0, 1.5)), "m.dcm")
+    np.testing.assert_allclose(vol.spacing, [1.5, 2.0, 3.5])
+    centre_lps = np.array([-100.0, -80.0, 10.0]) + [(80 - 1) / 2 * 1.5, (96 - 1) / 2 * 2.0, 0.0]
     tile_centre = vol.affine @ [(20 - 1) / 2, (24 - 1) / 2, 0.0, 1.0]
     np.testing.assert_allclose(tile_centre[:3], centre_lps * [-1, -1, 1], atol=1e-9)
 
