@@ -23,7 +23,11 @@ reconstruct --poses-out``) gives every slice ``k`` of stack ``s`` its ``atlas_fr
   starts from, a stack resampled into the reconstruction space, lies there too. NiftyMIC cuts a
   stack's slices along the file's third axis: a stack whose ``slice_axis`` is another is written
   again into ``DIR/stacks/`` with its voxels in cyclic order, the slice axis last (the same image,
-  placed alike), with its mask; give NiftyMIC those files.
+  placed alike), its mask into ``DIR/masks/``; give NiftyMIC those files.
+
+Only accepted slices are written unless ``all_slices``; slices without brain (``empty``) never.
+SVRTK's ``-transformations`` folder is not written: it numbers slices after cropping the stacks
+to its mask, which only a run of SVRTK knows (docs/reconstruction.md gives the recipe).
 
 Example (one slice 5 mm right of where it was acquired):
     >>> S = np.diag([1.0, 1.0, 3.0, 1.0]); P = S.copy(); P[0, 3] = 5.0
@@ -155,23 +159,27 @@ def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None,
     folder.mkdir(parents=True, exist_ok=True)
     done = Exported(0, list(stacks), None if not masks else list(masks))
     rows = ["i\tstack\tfile\tslice\taccepted\texpected_error_mm"]
+    stems = [p.name.removesuffix(".gz").removesuffix(".nii") for p in stacks]
+    if to == "niftymic" and len(set(stems)) < len(stems):
+        raise UnusableInput("export: NiftyMIC names each stack's transforms by its file name, and two stacks are "
+                            f"named {max(set(stems), key=stems.count)!r}: rename one")
     for s, (path, stack) in enumerate(zip(stacks, matched_stacks(answer, stacks))):
         image, sfv = _stack_file(path, stack)
         chosen = _chosen(stack, all_slices)
         axis = int(stack.get("slice_axis", 2))
-        order = axis_order(axis)
-        mask = None if not masks else np.asarray(nib.load(str(masks[s])).dataobj).reshape(image.shape[:3]) > 0
         if to == "niftymic":
-            _niftymic_stack(path, chosen, sfv, folder)
+            _niftymic_stack(path, chosen, _chosen(stack, True), sfv, folder)
             if axis != 2:                   # NiftyMIC cuts along the third axis: the stack written so
                 done.stacks[s] = _rewritten(np.asarray(image.dataobj, np.float32).reshape(image.shape[:3]), sfv, axis,
                                             folder / "stacks" / path.name)
-                if mask is not None and done.masks is not None:
-                    done.masks[s] = _rewritten(mask.astype(np.uint8), sfv, axis, folder / "stacks" / masks[s].name)
+                if masks and done.masks is not None:
+                    done.masks[s] = _rewritten(_mask(masks[s], image.shape[:3]).astype(np.uint8), sfv, axis,
+                                               folder / "masks" / masks[s].name)
             done.count += len(chosen)
             continue
+        order = axis_order(axis)
         data = np.transpose(np.asarray(image.dataobj, np.float32).reshape(image.shape[:3]), order)
-        mask = None if mask is None else np.transpose(mask, order)
+        mask = None if not masks else np.transpose(_mask(masks[s], image.shape[:3]), order)
         spacing = float(np.linalg.norm(sfv[:3, axis]))
         thick = spacing if not thickness_mm else float(thickness_mm[0] if len(thickness_mm) == 1 else thickness_mm[s])
         for item in chosen:
@@ -190,14 +198,30 @@ def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None,
     return done
 
 
-def _niftymic_stack(path: Path, chosen: list[dict[str, Any]], sfv: NDArray, folder: Path) -> None:
-    """NiftyMIC's ``NAME_slice{k}.tfm`` per chosen slice and ``NAME.tfm``, their mean (the module)."""
+def _niftymic_stack(path: Path, chosen: list[dict[str, Any]], with_brain: list[dict[str, Any]], sfv: NDArray,
+                    folder: Path) -> None:
+    """NiftyMIC's ``NAME_slice{k}.tfm`` per chosen slice and ``NAME.tfm``, their mean (the module); the
+    mean of every slice with brain where none is chosen: NiftyMIC then drops the stack's slices, but
+    may still start its volume from the stack, which should lie in atlas space too."""
     stem = path.name.removesuffix(".gz").removesuffix(".nii")
     moves = [niftymic_transform(item["atlas_from_voxel"], sfv) for item in chosen]
     for item, t in zip(chosen, moves):
         write_whole(folder / f"{stem}_slice{int(item['index'])}.tfm", tfm_text(t).encode())
-    if moves:
-        write_whole(folder / f"{stem}.tfm", tfm_text(mean_transform(moves)).encode())
+    placing = moves or [niftymic_transform(item["atlas_from_voxel"], sfv) for item in with_brain]
+    if placing:
+        write_whole(folder / f"{stem}.tfm", tfm_text(mean_transform(placing)).encode())
+
+
+def _mask(path: Path, shape: tuple[int, ...]) -> NDArray[np.bool_]:
+    """The mask file ``path`` as a boolean array of the stack's ``shape``; :class:`UnusableInput` when
+    it is not of that grid or not a NIfTI file."""
+    try:
+        values = np.asarray(nib.load(str(path)).dataobj)
+    except (nib.filebasedimages.ImageFileError, OSError, ValueError) as e:
+        raise UnusableInput(f"export: {path.name} is not a NIfTI mask ({e})") from None
+    if values.size != int(np.prod(shape)):
+        raise UnusableInput(f"export: {path.name} is not on its stack's grid ({values.shape} against {tuple(shape)})")
+    return values.reshape(shape) > 0
 
 
 def _rewritten(values: NDArray, scanner_from_voxel: NDArray, slice_axis: int, path: Path) -> Path:

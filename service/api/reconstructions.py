@@ -24,7 +24,6 @@ from service.core.errors import Conflict, InvalidParameter, NotFound, PayloadToo
 from service.io.acquisition_geometry import MAX_VOXEL_MM, MIN_VOXEL_MM
 from service.jobs.store import Job, JobStore
 from service.jobs.uploaded_poses import in_upload_order, poses_from_predict_body
-from service.preprocess.stack import slice_axis_of
 from service.reconstruction.export import volume_in_stack_space, zip_folder
 from service.reconstruction.stack_space import NoStackFrame
 
@@ -115,7 +114,7 @@ def checked_poses(text: str, uploads: list[StackUpload]) -> tuple[dict, list[tup
         body = client_json(text)
     except ValueError as exc:
         raise InvalidParameter("poses: not valid JSON") from exc
-    counts = [u.volume.array.shape[slice_axis_of(u.volume.spacing)] for u in uploads]
+    counts = [u.volume.array.shape[u.slice_axis] for u in uploads]
     affines = [u.volume.affine for u in uploads]
     try:
         body = in_upload_order(body, [u.filename for u in uploads])

@@ -1,7 +1,7 @@
 """N4 bias-field correction, fitted small and applied at full resolution.
 
-The field is smooth, so it is fitted on an image shrunk to pixels of about 8 mm (in-plane at least
-x4; at least 4 pixels left per axis) and restricted to the region around the brain (the mask's
+The field is smooth, so it is fitted on an image shrunk to pixels of about 8 mm (in-plane by 4 at
+least, but never to fewer than 4 samples along an axis) and restricted to the region around the brain (the mask's
 bounding box plus a margin), on two fitting levels (a third, with twice the control points, fits a
 field finer than the brain's extent needs). The fit is N4 in numpy
 (:func:`~service.preprocess.n4.n4_log_field`: ITK's algorithm and ITK's field, without ITK's fixed

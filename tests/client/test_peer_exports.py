@@ -107,7 +107,7 @@ def test_a_niftymic_transform_composed_with_the_stack_file_gives_each_voxel_its_
     assert done.count == 5                                                             # not slice 0
     assert sorted(p.name for p in out.glob("*.tfm")) == ["ax.tfm"] + [f"ax_slice{k}.tfm" for k in (1, 2, 3, 4, 5)]
     stack = case["stack"] if slice_axis == 2 else out / "stacks" / "ax.nii.gz"
-    assert done.stacks == [stack] and done.masks == [case["mask"] if slice_axis == 2 else out / "stacks" / "ax_mask.nii.gz"]
+    assert done.stacks == [stack] and done.masks == [case["mask"] if slice_axis == 2 else out / "masks" / "ax_mask.nii.gz"]
     image = sitk.ReadImage(str(stack))
     assert image.GetSize() == (20, 16, 6)
     if slice_axis != 2:
@@ -174,9 +174,43 @@ def test_the_cli_names_the_stacks_niftymic_must_read(tmp_path: Path) -> None:
     r = CliRunner().invoke(cli.app, ["export", str(answer), str(case["stack"]), "--to", "niftymic", "--out-dir", str(out),
                                      "--mask", str(case["mask"])], env={"COLUMNS": "400"})
     assert r.exit_code == 0, r.output
-    assert f"--filenames {out / 'stacks' / 'ax.nii.gz'} --filenames-masks {out / 'stacks' / 'ax_mask.nii.gz'} " in r.stdout
+    assert f"--filenames {out / 'stacks' / 'ax.nii.gz'} --filenames-masks {out / 'masks' / 'ax_mask.nii.gz'} " in r.stdout
     assert "written again" in r.stderr and "rename" not in r.stderr
     r = CliRunner().invoke(cli.app, ["export", str(answer), str(odd), "--to", "niftymic", "--out-dir", str(out)],
                            env={"COLUMNS": "400"})
     assert r.exit_code == 0, r.output
     assert "rename ax(1).nii.gz" in r.stderr
+
+
+def test_niftymic_gets_each_file_it_needs_and_no_file_overwrites_another(tmp_path: Path) -> None:
+    """A mask of its stack's name (stacks/ax.nii.gz, masks/ax.nii.gz) rewritten beside its stack
+    overwrites neither; a stack without an accepted slice is still placed (NAME.tfm from its slices
+    with brain, no slice files); two stacks of one name, and a mask off its stack's grid, are refused
+    by name."""
+    case = make_case(tmp_path, slice_axis=0)
+    (tmp_path / "masks").mkdir()
+    mask = (tmp_path / "masks" / "ax.nii.gz")
+    mask.write_bytes(case["mask"].read_bytes())
+    out = tmp_path / "mc"
+    done = export(case["answer"], [case["stack"]], [mask], out, "niftymic")
+    assert done.stacks == [out / "stacks" / "ax.nii.gz"] and done.masks == [out / "masks" / "ax.nii.gz"]
+    np.testing.assert_array_equal(np.asarray(nib.load(done.stacks[0]).dataobj),
+                                  np.transpose(case["data"], (1, 2, 0)))
+    assert set(np.unique(np.asarray(nib.load(done.masks[0]).dataobj))) <= {0, 1}
+    none = json.loads(json.dumps(case["answer"]))
+    for item in none["stacks"][0]["slices"]:
+        item["accepted"] = False
+    bare = tmp_path / "none"
+    assert export(none, [case["stack"]], None, bare, "niftymic").count == 0
+    assert sorted(p.name for p in bare.glob("*.tfm")) == ["ax.tfm"]
+    twice = json.loads(json.dumps(case["answer"]))
+    twice["stacks"].append({**twice["stacks"][0], "index": 1})
+    (tmp_path / "other").mkdir()
+    copy = tmp_path / "other" / "ax.nii.gz"
+    copy.write_bytes(case["stack"].read_bytes())
+    with pytest.raises(UnusableInput, match="two stacks are named 'ax'"):
+        export(twice, [case["stack"], copy], None, tmp_path / "x", "niftymic")
+    small = tmp_path / "small.nii.gz"
+    nib.save(nib.Nifti1Image(np.ones((3, 3, 3), np.uint8), np.eye(4)), small)
+    with pytest.raises(UnusableInput, match="small.nii.gz is not on its stack's grid"):
+        export(case["answer"], [case["stack"]], [small], tmp_path / "y", "nesvor")
