@@ -105,7 +105,8 @@ def candidate_pairs(atlas_from_slice: NDArray, stack_of: NDArray, free: NDArray)
 def slice_keys(stack_of: NDArray, local: NDArray, fingerprints: list[NDArray]) -> NDArray[np.uint64]:
     """``[n]`` a 64-bit hash naming each slice by its own fingerprint (per stack, ``[n_s]`` checksums
     of its slices' masks): the same whatever the stack's place in the request, and wherever the file
-    stores the slice within its stack (slices last to first)."""
+    stores the slice within its stack (slices last to first). Slices of identical masks (one box
+    uploaded for every slice) share a key, and their pairs keep the order they are listed in."""
     flat = np.concatenate([np.asarray(f, np.uint64) for f in fingerprints])
     start = np.cumsum([0] + [len(f) for f in fingerprints])[:-1]
     return _mix(flat[start[np.asarray(stack_of)] + np.asarray(local)])
