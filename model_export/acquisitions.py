@@ -38,7 +38,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
 from service.geometry import iterators, sampling, se3
-from service.geometry.pose import make_pose, translate
+from service.geometry.pose import index_reversal, make_pose, translate
 from service.io.volume import Volume
 from service.preprocess.stack import split_stack
 
@@ -102,9 +102,7 @@ def stored_last_to_first(stack: SimulatedStack) -> SimulatedStack:
         >>> bool(np.allclose(r.atlas_from_voxel[0] @ [0, 0, 0, 1], s.atlas_from_voxel[2] @ [0, 0, 2, 1]))
         True
     """
-    n = stack.volume.array.shape[2]
-    flip = np.diag([1.0, 1.0, -1.0, 1.0])
-    flip[2, 3] = n - 1                                       # new voxel (i, j, k) is old voxel (i, j, n - 1 - k)
+    flip = index_reversal(2, stack.volume.array.shape[2])
     return SimulatedStack(Volume(stack.volume.array[:, :, ::-1].copy(), stack.volume.affine @ flip),
                           Volume(stack.mask.array[:, :, ::-1].copy(), stack.mask.affine @ flip),
                           stack.atlas_from_voxel[::-1] @ flip, stack.orientation, stack.times[::-1].copy(), stack.motion)

@@ -42,6 +42,7 @@ from scipy import ndimage
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.localiser.evaluate import dice, masked_files  # noqa: E402
+from service.geometry.pose import index_reversal  # noqa: E402
 from service.io.volume import Volume, read_volume  # noqa: E402
 from service.preprocess.localise import Localiser, default_localiser  # noqa: E402
 from service.preprocess.stack import slice_axis_of  # noqa: E402
@@ -58,9 +59,7 @@ def reordered(volume: Volume, mask: NDArray, order: tuple[int, int, int]) -> tup
 
 def reversed_axis(volume: Volume, mask: NDArray, axis: int) -> tuple[Volume, NDArray]:
     """The voxels along ``axis`` stored last to first, the affine saying so (the world unchanged)."""
-    affine = volume.affine.copy()
-    affine[:3, 3] += affine[:3, axis] * (volume.array.shape[axis] - 1)
-    affine[:3, axis] *= -1
+    affine = volume.affine @ index_reversal(axis, volume.array.shape[axis])
     return Volume(np.ascontiguousarray(np.flip(volume.array, axis)), affine), np.flip(mask, axis)
 
 

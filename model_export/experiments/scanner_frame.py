@@ -36,7 +36,7 @@ from fastapi.testclient import TestClient  # noqa: E402
 
 from service.core.settings import Settings  # noqa: E402
 from service.geometry import se3  # noqa: E402
-from service.geometry.pose import make_pose, translate  # noqa: E402
+from service.geometry.pose import index_reversal, make_pose, translate  # noqa: E402
 from service.inference.registry import ModelRegistry  # noqa: E402
 from service.io.volume import Volume, read_volume, write_volume  # noqa: E402
 from service.main import create_app  # noqa: E402
@@ -82,16 +82,15 @@ def restored(volume: Volume, how: str, which: int | None, slice_axis: int) -> Vo
         (3.0, [0.0, 2.0, 3.0, 1.0])
     """
     plane = [a for a in range(3) if a != slice_axis]
-    old_from_new = np.eye(4)
     if how == "flip":
         axis = slice_axis if which == -1 else plane[0]
         array = np.flip(volume.array, axis)
-        old_from_new[axis, axis], old_from_new[axis, 3] = -1.0, volume.array.shape[axis] - 1
+        old_from_new = index_reversal(axis, volume.array.shape[axis])
     else:
         order = [0, 1, 2]
         order[plane[0]], order[plane[1]] = plane[1], plane[0]
         array = np.transpose(volume.array, order)
-        old_from_new = old_from_new[[*order, 3]]                         # a swap: its own inverse
+        old_from_new = np.eye(4)[[*order, 3]]                            # a swap: its own inverse
     return Volume(np.ascontiguousarray(array), volume.affine @ old_from_new)
 
 

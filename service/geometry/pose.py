@@ -65,6 +65,20 @@ def translate(offset: ArrayLike) -> NDArray[np.float64]:
     return make_pose(np.broadcast_to(np.eye(3), off.shape[:-1] + (3, 3)), off)
 
 
+def index_reversal(axis: int, size: int) -> NDArray[np.float64]:
+    """``old_from_new`` voxel indices of an array whose ``axis`` (``size`` voxels) is stored the other
+    way: new voxel ``k`` is old voxel ``size - 1 - k``. ``affine @ index_reversal(axis, size)`` is the
+    reversed array's affine, every voxel where it was.
+
+    Example (3 slices along z: the new first slice is the old last, at the same place):
+        >>> (np.diag([1.0, 1.0, 3.0, 1.0]) @ index_reversal(2, 3) @ [0.0, 0.0, 0.0, 1.0]).tolist()
+        [0.0, 0.0, 6.0, 1.0]
+    """
+    m = np.eye(4)
+    m[axis, axis], m[axis, 3] = -1.0, size - 1
+    return m
+
+
 def about_centre(transform: ArrayLike, centre: ArrayLike) -> NDArray[np.float64]:
     """A rigid ``transform`` written about the point ``centre`` (its rotation turns about it, its shift
     moves it) as a map of atlas points: ``T(centre) transform T(centre)^-1``.

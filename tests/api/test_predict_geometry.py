@@ -19,7 +19,7 @@ import SimpleITK as sitk
 from client.slice_transforms import transform_files
 from service.geometry import se3, sampling
 from service.geometry.anchors import ed
-from service.geometry.pose import apply, make_pose, translate
+from service.geometry.pose import apply, index_reversal, make_pose, translate
 from service.io.volume import Volume, read_volume, write_volume
 from service.preprocess.intensity import rescale_0_255
 from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine
@@ -285,8 +285,7 @@ def test_a_stack_whose_file_stores_its_slices_last_to_first_gets_the_same_poses(
     oracle.spread_mm = 3.0
     axis = 1                                                        # the second stack's slice axis
     n = len(truths[1])
-    flip = np.eye(4)
-    flip[axis, axis], flip[axis, 3] = -1.0, n - 1                   # new voxel index -> old
+    flip = index_reversal(axis, n)                                  # new voxel index -> old
     for name in ("s1", "m1"):
         vol = read_volume(tmp_path / f"{name}.nii.gz")
         write(tmp_path / f"{name}r.nii.gz", np.flip(vol.array, axis).copy(), vol.affine @ flip, "simpleitk")
