@@ -96,8 +96,8 @@ def stack_from_slice_images(images: NDArray, axis: int) -> NDArray:
 
 def split_stack(volume: Volume, mask: NDArray, axis: int | None = None) -> StackSlices:
     """Slices, masks and slice-frame transforms of a stack (vectorised, no per-slice loop), along
-    ``axis`` (default: :func:`slice_axis_of` its spacing; a streamed slice says its own)."""
-    a = slice_axis_of(volume.spacing) if axis is None else axis
+    ``axis`` (default: :func:`stack_axis`, the one the volume says, else the one its spacing does)."""
+    a = stack_axis(volume) if axis is None else axis
     p, q = [ax for ax in range(3) if ax != a]
     images = slice_images(np.asarray(volume.array, dtype=np.float32), volume.affine, a)[0]
     masks = slice_images(np.asarray(mask, dtype=bool), volume.affine, a)[0]

@@ -25,7 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from service.geometry.sampling import FWHM_TO_SIGMA, INPLANE_FWHM_FACTOR
 from service.io.volume import Volume
-from service.preprocess.stack import split_stack, stack_axis
+from service.preprocess.stack import split_stack
 
 BIN_BELOW_FRACTION = 0.75
 """:func:`inplane_bin_factors`: slices whose pixels are at most this fraction of the voxel size are binned 2 x 2."""
@@ -196,7 +196,7 @@ class SliceSet:
             m = np.ones(arr.shape, bool) if mask is None else np.asarray(mask) > 0
             if m.shape != arr.shape:
                 raise ValueError(f"stack {si}: mask shape {m.shape} differs from the volume's {arr.shape}")
-            split = split_stack(volume, m, stack_axis(volume))        # the axis a volume says (a streamed stack), as /v1/predict cuts it
+            split = split_stack(volume, m)
             n = len(split.images)
             mats = np.asarray(mats, dtype=np.float64)
             inc = np.asarray(include, dtype=bool).reshape(-1)
