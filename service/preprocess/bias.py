@@ -98,11 +98,14 @@ def centred_samples(values: NDArray, factors: list[int]) -> tuple[NDArray[np.flo
     for axis, f in enumerate(factors):
         n = out.shape[axis]
         m = max(1, n // f)
-        centres = (n - 1) / 2.0 + f * (np.arange(m) - (m - 1) / 2.0)
+        first = (n - 1) / 2.0 - f * (m - 1) / 2.0           # the first sample's place: a voxel or halfway
+        low = int(np.floor(first))
         moved = np.moveaxis(out, axis, 0)
-        sampled = linear_operator(centres, n, np.float64) @ moved.reshape(n, -1)
-        out = np.moveaxis(np.asarray(sampled).reshape(m, *moved.shape[1:]), 0, axis)
-        at.append((np.arange(n) - centres[0]) / f)
+        picked = moved[low:low + f * (m - 1) + 1:f]
+        if first != low:
+            picked = 0.5 * picked + 0.5 * moved[low + 1:low + f * (m - 1) + 2:f]
+        out = np.moveaxis(picked, 0, axis)
+        at.append((np.arange(n) - first) / f)
     return out.astype(np.float32), at
 
 
@@ -119,8 +122,6 @@ def upsample_linear(values: NDArray, at: list[NDArray]) -> NDArray[np.float32]:
         [0.5, 1.25, 2.0]
     """
     out = np.asarray(values, np.float64)
-    for axis, c in enumerate(at):
-        moved = np.moveaxis(out, axis, 0)
-        along = linear_operator(c, len(moved), np.float64) @ moved.reshape(len(moved), -1)
-        out = np.moveaxis(along.reshape(len(c), *moved.shape[1:]), 0, axis)
+    for c in at:                          # axis 0 contracted, the new axis last: after three, the order is back
+        out = np.tensordot(out, linear_operator(c, len(out), np.float64).toarray(), (0, 1))
     return out.astype(np.float32)
