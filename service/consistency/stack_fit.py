@@ -166,7 +166,8 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
               plane_x_mm: float = twin.DEFAULT_PLANE_X_MM, expected_error_mm: ArrayLike | None = None,
               times: dict[str, NDArray] | None = None, error_shape: ArrayLike | None = None,
               depth_gain: float = 0.0, reference: ArrayLike | None = None,
-              error_correlations: tuple[float, ...] = ERROR_CORRELATIONS) -> StackFit:
+              error_correlations: tuple[float, ...] = ERROR_CORRELATIONS,
+              request_margin: float | None = None) -> StackFit:
     """Make one stack's slice poses consistent (see the module docstring).
 
     Args:
@@ -200,6 +201,9 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
             whole stack's twin is a gross move (the mirror composed with the reversal of the slice
             order: 180 deg for a stack across the mid-sagittal plane), far beyond the fetus's usual
             motion between stacks.
+        request_margin: with ``reference``, the request decides the branch wherever the stack's own
+            margin is under this (None: :data:`MIN_STACK_BRANCH_MARGIN`, where the stack does not
+            decide it); a larger one lets the other stacks overrule a stack that decided by a small margin.
     """
     p = np.asarray(poses, dtype=np.float64)
     # the fit's frame is the scanner's moved to the slices' centre: means of rigid maps (a rotation
@@ -277,7 +281,8 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     first = branch
     branch = _branch(ed((motion.loo @ inv_n)[:, None], cand))
     margin = _branch_margin(proposals, cand, branch, inv_n, w, inliers)
-    by_request = reference is not None and 1.0 / MIN_STACK_BRANCH_MARGIN < margin < MIN_STACK_BRANCH_MARGIN
+    asked = MIN_STACK_BRANCH_MARGIN if request_margin is None else request_margin
+    by_request = reference is not None and 1.0 / asked < margin < asked
     if by_request:                         # the request's other stacks decide: the branch nearer to them
         fits = [se3.frechet_mean(proposals[on, b], np.maximum(w, 1e-12), tol=MEAN_TOL_RAD) for b in (branch, 1 - branch)]
         ref = np.asarray(reference, dtype=np.float64) @ translate(origin)

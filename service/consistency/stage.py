@@ -73,7 +73,7 @@ def consistent_poses(mean: NDArray, twin_mass: NDArray, network_from_vox: NDArra
                      usable: NDArray, plane_x_mm: float, expected_error_mm: NDArray | None = None,
                      enabled: bool = True, times: dict[str, NDArray] | None = None,
                      error_shape: NDArray | None = None, depth_gain: float = 0.0,
-                     reference: NDArray | None = None) -> StackPoses:
+                     reference: NDArray | None = None, request_margin: float | None = None) -> StackPoses:
     """Run :func:`fit_stack` on one stack (or pass the network's poses through when ``enabled`` is False).
 
     ``expected_error_mm`` is each network pose's expected error: the MC spread times the model's
@@ -81,14 +81,15 @@ def consistent_poses(mean: NDArray, twin_mass: NDArray, network_from_vox: NDArra
     posterior spread where the stack is decidable, the network poses' otherwise. ``times``: the candidate acquisition
     orders (:class:`~service.consistency.slice_order.SliceOrder`; default every named one).
     ``error_shape``, ``depth_gain``: the model's ``mc_error_shape`` and ``mc_error_depth_gain`` (see :func:`fit_stack`).
-    ``reference``: the placement of the request's stacks that decided their branch (:func:`request_reference`).
+    ``reference``: the placement of the request's stacks that decided their branch (:func:`request_reference`);
+    ``request_margin``: the stack's own branch margin under which that placement decides its branch.
     """
     n = len(mean)
     if not enabled:
         return StackPoses(mean, twin_mass, np.zeros(n, bool), np.zeros(n, bool), None, expected_error_mm)
     network_from_scanner = network_from_vox @ np.linalg.inv(scanner_from_voxel)
     fit = fit_stack(mean, network_from_scanner, usable, plane_x_mm, expected_error_mm, times, error_shape, depth_gain,
-                    reference)
+                    reference, request_margin=request_margin)
     mass = np.where(fit.twinned, 1.0 - twin_mass, twin_mass)
     return StackPoses(fit.poses, mass, fit.twinned, fit.inconsistent, fit,
                       fit.expected_error_mm if fit.decidable else expected_error_mm)
@@ -97,6 +98,24 @@ def consistent_poses(mean: NDArray, twin_mass: NDArray, network_from_vox: NDArra
 def undecided(out: StackPoses) -> bool:
     """The stage found one consistent stack but not its left-right branch (the request may decide it)."""
     return out.fit is not None and out.fit.decidable and not out.fit.branch_decided
+
+
+CHECKED_MARGIN = 3.0
+"""A stack that decided its branch by a margin under this is checked against the request's other
+stacks (:func:`weakly_decided`, :func:`overruled`): a stack whose slices tell its branch only
+weakly can land on its twin, 80-110 mm from the truth, with confident slices."""
+
+
+def weakly_decided(out: StackPoses) -> bool:
+    """The stack decided its left-right branch by its own slices, but by less than :data:`CHECKED_MARGIN`."""
+    return out.fit is not None and out.fit.branch_decided and out.fit.branch_margin < CHECKED_MARGIN
+
+
+def overruled(redo: StackPoses) -> bool:
+    """``redo``, the stack fitted again with the other stacks' placement deciding below
+    :data:`CHECKED_MARGIN`, took the other branch, and sits where the other stacks do on it and far from them on
+    its first one (``StackFit.agrees_with_request``): the other stacks overrule the stack's own weak decision."""
+    return redo.fit is not None and redo.fit.branch_margin < 1.0 and redo.fit.agrees_with_request
 
 
 def request_reference(outs: list[StackPoses]) -> NDArray[np.float64] | None:

@@ -27,12 +27,15 @@ from service.consistency.image_refinement import expected_after, refine, relativ
 from service.consistency.slice_images import SampledStack, StackImages
 from service.consistency.slice_order import FROM_FILE, SliceOrder, per_stack
 from service.consistency.stage import (
+    CHECKED_MARGIN,
     ImageConsistency,
     StackPoses,
     consistent_poses,
+    overruled,
     pool_request,
     request_reference,
     undecided,
+    weakly_decided,
 )
 from service.core.errors import InvalidParameter
 from service.geometry.twin import DEFAULT_PLANE_X_MM, twin_distance_mm, twin_variance
@@ -50,18 +53,21 @@ others (docs/reports/benchmark-history.md)."""
 def stack_poses(est: PoseEstimate, prepared: PreparedStack, net_from_vox: np.ndarray,
                 stack_consistency: bool, plane_x_mm: float, expected_error_mm: np.ndarray,
                 order: SliceOrder | None = None, error_shape: tuple[float, ...] | None = None,
-                depth_gain: float = 0.0, reference: np.ndarray | None = None) -> StackPoses:
+                depth_gain: float = 0.0, reference: np.ndarray | None = None,
+                request_margin: float | None = None) -> StackPoses:
     """One stack's poses through the stack-consistency stage (or as the network gave them), from its
     slices' statistics ``est``;
     ``expected_error_mm`` is each slice's expected error: its MC spread times the model's ``mc_error_scale``;
     ``order`` what is known of the stack's acquisition order (default: nothing; the stage chooses);
     ``error_shape`` and ``depth_gain`` the model's ``mc_error_shape`` and ``mc_error_depth_gain``;
-    ``reference`` where the request's stacks that decided their branch put the scanner frame."""
+    ``reference`` where the request's stacks that decided their branch put the scanner frame, deciding
+    this stack's branch where its own margin is under ``request_margin``."""
     p = prepared.prepared
     usable = (p.mask_fraction >= acceptance.MIN_MASK_FRACTION) & ~est.degenerate
     return consistent_poses(est.mean, est.twin_mass, net_from_vox, prepared.upload.volume.affine, usable,
                             plane_x_mm, expected_error_mm, stack_consistency, (order or SliceOrder()).times(len(p.inputs)),
-                            None if error_shape is None else np.asarray(error_shape), depth_gain, reference)
+                            None if error_shape is None else np.asarray(error_shape), depth_gain, reference,
+                            request_margin)
 
 
 @dataclass
@@ -290,6 +296,14 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
             outs = list(pool.map(lambda e, s, nfv, order, out: stack_poses(
                 e, s, nfv, True, plane_x_mm, e.spread_mm * scale, order, shape, gain, reference)
                 if undecided(out) else out, parts, prepared, frames, orders, outs))
+        for i, out in enumerate(outs):     # a stack that decided weakly, checked against the others
+            others = request_reference(outs[:i] + outs[i + 1:]) if weakly_decided(out) else None
+            if others is None:
+                continue
+            redo = stack_poses(parts[i], prepared[i], frames[i], True, plane_x_mm, parts[i].spread_mm * scale, orders[i],
+                               shape, gain, others, CHECKED_MARGIN)
+            if overruled(redo):
+                outs[i] = redo
     if stack_consistency:
         pool_request(outs)
     timings["stack_consistency"] = time.perf_counter() - t

@@ -8,11 +8,14 @@ import pytest
 
 from service.consistency.stack_fit import StackFit
 from service.consistency.stage import (
+    CHECKED_MARGIN,
     StackPoses,
     consistent_poses,
     network_from_voxel,
+    overruled,
     request_reference,
     undecided,
+    weakly_decided,
 )
 from service.api.responses import stack_report
 from service.geometry import anchors, se3, twin
@@ -77,3 +80,30 @@ def test_the_request_reference_does_not_depend_on_the_scanners_origin() -> None:
     there = request_reference([placed(a @ moved, 1.0, 3.0, c + shift) for a, c in zip(placements, centres)])
     np.testing.assert_allclose(ref, base, atol=1e-6)
     np.testing.assert_allclose(there, ref @ moved, atol=1e-6)
+
+
+def test_the_other_stacks_overrule_a_stack_that_decided_its_branch_weakly() -> None:
+    """A stack decides its branch by its slices' order (every network pose on its twin: the stage
+    takes the true branch). The other stacks placed on the mirrored side overrule it only where its
+    margin is under the one asked (``request_margin``, here twice its own): it then takes their
+    branch, sits where they do (0.8 mm) and 100 mm from them on its own. Placed where its own branch
+    puts it, they leave it as it was; under the default margin (a decided stack) they are not asked."""
+    from tests.consistency.test_stack_fit import NOISE, stack
+
+    rng = np.random.default_rng(31)
+    truth, nk = stack(rng, "mild")
+    n = len(truth)
+    poses = twin.twin(truth) @ se3.exp(rng.normal(0, 1, (n, 6)) * NOISE * 0.3)
+    args = (poses, np.full(n, 0.1), nk, np.eye(4), np.ones(n, bool), 0.0, np.full(n, 3.0))
+    alone = consistent_poses(*args)
+    assert alone.fit.branch_decided and alone.twinned.all() and anchors.ed(alone.poses, truth).mean() < 5.0
+    assert weakly_decided(alone) == (alone.fit.branch_margin < CHECKED_MARGIN)
+    mirrored, true_side = se3.frechet_mean(twin.twin(truth) @ nk), se3.frechet_mean(truth @ nk)
+    asked = alone.fit.branch_margin * 2.0
+    assert not overruled(consistent_poses(*args, reference=mirrored))             # decided: not asked
+    redo = consistent_poses(*args, reference=mirrored, request_margin=asked)
+    taken, other = redo.fit.request_distance_mm
+    assert overruled(redo) and not redo.twinned.any() and taken < 2.0 and other > 50.0
+    assert anchors.ed(redo.poses, truth).mean() > 50.0
+    kept = consistent_poses(*args, reference=true_side, request_margin=asked)
+    assert not overruled(kept) and kept.twinned.all()
