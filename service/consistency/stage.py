@@ -103,7 +103,7 @@ def undecided(out: StackPoses) -> bool:
 CHECKED_MARGIN = 3.0
 """A stack that decided its branch by a margin under this is checked against the request's other
 stacks (:func:`weakly_decided`, :func:`overruled`): a stack whose slices tell its branch only
-weakly can land on its twin, 80-110 mm from the truth, with confident slices."""
+weakly can land whole on its twin with confident slices (docs/consistency.md)."""
 
 
 def weakly_decided(out: StackPoses) -> bool:
