@@ -9,6 +9,7 @@ composes it once here from the service's own crop/centre and the file's geometry
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -96,26 +97,33 @@ def consistent_poses(mean: NDArray, twin_mass: NDArray, network_from_vox: NDArra
 
 
 def undecided(out: StackPoses) -> bool:
-    """The stage found one consistent stack but not its left-right branch (the request may decide it)."""
-    return out.fit is not None and out.fit.decidable and not out.fit.branch_decided
+    """The stage found one consistent stack but not its left-right branch, and the request has not
+    decided it either (it may: a stack the other stacks overruled, :func:`checked_branch`, has been)."""
+    return out.fit is not None and out.fit.decidable and not out.fit.branch_decided and not out.fit.branch_from_request
 
 
 CHECKED_MARGIN = 3.0
 """A stack that decided its branch by a margin under this is checked against the request's other
-stacks (:func:`weakly_decided`, :func:`overruled`): a stack whose slices tell its branch only
+stacks (:func:`checked_branch`): a stack whose slices tell its branch only
 weakly can land whole on its twin with confident slices (docs/consistency.md)."""
 
 
-def weakly_decided(out: StackPoses) -> bool:
-    """The stack decided its left-right branch by its own slices, but by less than :data:`CHECKED_MARGIN`."""
-    return out.fit is not None and out.fit.branch_decided and out.fit.branch_margin < CHECKED_MARGIN
+def checked_branch(out: StackPoses, reference: NDArray | None,
+                   refit: Callable[[NDArray, float], StackPoses]) -> StackPoses:
+    """``out``, or the stack fitted again where the other stacks overrule its branch.
 
-
-def overruled(redo: StackPoses) -> bool:
-    """``redo``, the stack fitted again with the other stacks' placement deciding below
-    :data:`CHECKED_MARGIN`, took the other branch, and sits where the other stacks do on it and far from them on
-    its first one (``StackFit.agrees_with_request``): the other stacks overrule the stack's own weak decision."""
-    return redo.fit is not None and redo.fit.branch_margin < 1.0 and redo.fit.agrees_with_request
+    A stack that decided its left-right branch by its own slices, but by less than
+    :data:`CHECKED_MARGIN`, is fitted again (``refit(reference, CHECKED_MARGIN)``) with the other
+    stacks' placement ``reference`` (:func:`request_reference` of the others) deciding. The refit is
+    taken where it chose the other branch and sits where the other stacks do on it and far from
+    them on its first one (``StackFit.agrees_with_request``); otherwise ``out`` stands.
+    """
+    fit = out.fit
+    if reference is None or fit is None or not fit.branch_decided or fit.branch_margin >= CHECKED_MARGIN:
+        return out
+    redo = refit(reference, CHECKED_MARGIN)
+    flipped = redo.fit is not None and redo.fit.branch_margin < 1.0 and redo.fit.agrees_with_request
+    return redo if flipped else out
 
 
 def request_reference(outs: list[StackPoses]) -> NDArray[np.float64] | None:

@@ -27,15 +27,13 @@ from service.consistency.image_refinement import expected_after, refine, relativ
 from service.consistency.slice_images import SampledStack, StackImages
 from service.consistency.slice_order import FROM_FILE, SliceOrder, per_stack
 from service.consistency.stage import (
-    CHECKED_MARGIN,
     ImageConsistency,
     StackPoses,
+    checked_branch,
     consistent_poses,
-    overruled,
     pool_request,
     request_reference,
     undecided,
-    weakly_decided,
 )
 from service.core.errors import InvalidParameter
 from service.geometry.twin import DEFAULT_PLANE_X_MM, twin_distance_mm, twin_variance
@@ -291,19 +289,15 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
         outs = list(pool.map(lambda e, s, nfv, order: stack_poses(e, s, nfv, stack_consistency, plane_x_mm,
                                                                   e.spread_mm * scale, order, shape, gain),
                              parts, prepared, frames, orders))
+        for i in range(len(outs) if stack_consistency else 0):   # a weak decision checked against the others
+            outs[i] = checked_branch(outs[i], request_reference(outs[:i] + outs[i + 1:]), lambda ref, margin: stack_poses(
+                parts[i], prepared[i], frames[i], True, plane_x_mm, parts[i].spread_mm * scale, orders[i], shape, gain,
+                ref, margin))
         reference = request_reference(outs) if stack_consistency else None
         if reference is not None:          # a stack that did not decide its branch takes the others' word
             outs = list(pool.map(lambda e, s, nfv, order, out: stack_poses(
                 e, s, nfv, True, plane_x_mm, e.spread_mm * scale, order, shape, gain, reference)
                 if undecided(out) else out, parts, prepared, frames, orders, outs))
-        for i, out in enumerate(outs):     # a stack that decided weakly, checked against the others
-            others = request_reference(outs[:i] + outs[i + 1:]) if weakly_decided(out) else None
-            if others is None:
-                continue
-            redo = stack_poses(parts[i], prepared[i], frames[i], True, plane_x_mm, parts[i].spread_mm * scale, orders[i],
-                               shape, gain, others, CHECKED_MARGIN)
-            if overruled(redo):
-                outs[i] = redo
     if stack_consistency:
         pool_request(outs)
     timings["stack_consistency"] = time.perf_counter() - t

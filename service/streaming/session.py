@@ -38,14 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.consistency.slice_order import STREAMED, SliceOrder
-from service.consistency.stage import (
-    CHECKED_MARGIN,
-    StackPoses,
-    consistent_poses,
-    overruled,
-    request_reference,
-    weakly_decided,
-)
+from service.consistency.stage import StackPoses, checked_branch, consistent_poses, request_reference
 from service.core.errors import InvalidParameter
 from service.geometry import anchors, twin
 from service.geometry.twin import DEFAULT_PLANE_X_MM
@@ -270,11 +263,9 @@ class StreamSession:
         plane = getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM)
         args = (est.mean, est.twin_mass, network_from_scanner, np.eye(4), usable, plane,
                 est.spread_mm * getattr(info, "mc_error_scale", 1.0), True, times,
-                None if shape is None else np.asarray(shape), float(getattr(info, "mc_error_depth_gain", 0.0)), reference)
-        out = run_in_stage_process(consistent_poses, *args)
-        if reference is not None and weakly_decided(out):       # the ended stacks may overrule a weak decision
-            redo = run_in_stage_process(consistent_poses, *args, CHECKED_MARGIN)
-            out = redo if overruled(redo) else out
+                None if shape is None else np.asarray(shape), float(getattr(info, "mc_error_depth_gain", 0.0)))
+        out = run_in_stage_process(consistent_poses, *args, reference)
+        out = checked_branch(out, reference, lambda ref, margin: run_in_stage_process(consistent_poses, *args, ref, margin))
         add_unseen_errors(out, info, est)
         placement_mm = None
         if out.fit is not None and out.fit.atlas_from_scanner is not None:

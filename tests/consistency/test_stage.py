@@ -8,14 +8,12 @@ import pytest
 
 from service.consistency.stack_fit import StackFit
 from service.consistency.stage import (
-    CHECKED_MARGIN,
     StackPoses,
+    checked_branch,
     consistent_poses,
     network_from_voxel,
-    overruled,
     request_reference,
     undecided,
-    weakly_decided,
 )
 from service.api.responses import stack_report
 from service.geometry import anchors, se3, twin
@@ -51,6 +49,9 @@ def test_atlas_from_scanner_is_recovered_from_slice_poses(handedness: float) -> 
 def test_the_request_reference_is_the_precision_weighted_placement_of_the_decided_stacks() -> None:
     undecided_one = placed(translate([50.0, 0.0, 0.0]), 0.1, 1.1)           # precise, but its branch is open
     assert undecided(undecided_one) and not undecided(placed(np.eye(4), 1.0, 3.0))
+    told = placed(np.eye(4), 1.0, 0.5)
+    told.fit.branch_from_request = True                                   # the request decided it already
+    assert not undecided(told)
     assert request_reference([undecided_one]) is None
     ref = request_reference([placed(np.eye(4), 1.0, 3.0), placed(translate([3.0, 0.0, 0.0]), 2.0, 2.0), undecided_one])
     np.testing.assert_allclose(ref[:3, 3], [0.6, 0.0, 0.0], atol=1e-6)     # weights 1 and 1/4
@@ -82,12 +83,13 @@ def test_the_request_reference_does_not_depend_on_the_scanners_origin() -> None:
     np.testing.assert_allclose(there, ref @ moved, atol=1e-6)
 
 
-def test_the_other_stacks_overrule_a_stack_that_decided_its_branch_weakly() -> None:
+def test_the_other_stacks_overrule_a_stack_that_decided_its_branch_weakly(monkeypatch: pytest.MonkeyPatch) -> None:
     """A stack decides its branch by its slices' order (every network pose on its twin: the stage
-    takes the true branch). The other stacks placed on the mirrored side overrule it only where its
-    margin is under the one asked (``request_margin``, here twice its own): it then takes their
-    branch, sits where they do (0.8 mm) and 100 mm from them on its own. Placed where its own branch
-    puts it, they leave it as it was; under the default margin (a decided stack) they are not asked."""
+    takes the true branch). Where its margin is under the one checked (here set to twice its own),
+    the other stacks placed on the mirrored side overrule it: it takes their branch, sits where they
+    do (0.8 mm) and 100 mm from them on its own. Placed where its own branch puts it, or absent,
+    they leave it as it was; with the shipped margin (a stack decided by far more) they are not asked."""
+    import service.consistency.stage as stage_module
     from tests.consistency.test_stack_fit import NOISE, stack
 
     rng = np.random.default_rng(31)
@@ -97,13 +99,19 @@ def test_the_other_stacks_overrule_a_stack_that_decided_its_branch_weakly() -> N
     args = (poses, np.full(n, 0.1), nk, np.eye(4), np.ones(n, bool), 0.0, np.full(n, 3.0))
     alone = consistent_poses(*args)
     assert alone.fit.branch_decided and alone.twinned.all() and anchors.ed(alone.poses, truth).mean() < 5.0
-    assert weakly_decided(alone) == (alone.fit.branch_margin < CHECKED_MARGIN)
+    asked: list[float] = []
+
+    def refit(reference: np.ndarray, margin: float) -> StackPoses:
+        asked.append(margin)
+        return consistent_poses(*args, reference=reference, request_margin=margin)
+
     mirrored, true_side = se3.frechet_mean(twin.twin(truth) @ nk), se3.frechet_mean(truth @ nk)
-    asked = alone.fit.branch_margin * 2.0
-    assert not overruled(consistent_poses(*args, reference=mirrored))             # decided: not asked
-    redo = consistent_poses(*args, reference=mirrored, request_margin=asked)
+    assert checked_branch(alone, mirrored, refit) is alone and not asked            # decided: not asked
+    monkeypatch.setattr(stage_module, "CHECKED_MARGIN", alone.fit.branch_margin * 2.0)
+    redo = checked_branch(alone, mirrored, refit)
     taken, other = redo.fit.request_distance_mm
-    assert overruled(redo) and not redo.twinned.any() and taken < 2.0 and other > 50.0
+    assert asked == [alone.fit.branch_margin * 2.0] and redo is not alone
+    assert redo.fit.branch_from_request and not redo.twinned.any() and taken < 2.0 and other > 50.0
     assert anchors.ed(redo.poses, truth).mean() > 50.0
-    kept = consistent_poses(*args, reference=true_side, request_margin=asked)
-    assert not overruled(kept) and kept.twinned.all()
+    assert checked_branch(alone, true_side, refit) is alone and len(asked) == 2    # asked, agrees with it
+    assert checked_branch(alone, None, refit) is alone and len(asked) == 2          # no other stack
