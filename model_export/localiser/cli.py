@@ -37,14 +37,21 @@ def data(
                                                       "(3 T shading, signal voids)")] = 0.0,
     faint_skull_share: Annotated[float, typer.Option(help="share of heads whose skull is thin and nearly as bright "
                                                           "as the fluid (a young fetus's)")] = 0.0,
+    motion: Annotated[Optional[str], typer.Option(help="the heads move as at this level of the pose benchmarks (mild, "
+                                                        "moderate, jumps, independent) over an interleaved acquisition; "
+                                                        "default: the generator's own drift")] = None,
 ) -> None:
     """Synthetic whole-uterus stacks: training volumes for ``train``, validation volumes for ``heldout``."""
     from model_export.atlas import split
     from model_export.localiser.dataset import generate
+    from model_export.localiser.scenes import MOTIONS
+
+    if motion is not None and motion not in MOTIONS:
+        raise typer.BadParameter(f"{motion!r} is not one of {', '.join(MOTIONS)}", param_hint="--motion")
 
     train_names, val_names = split(root)
     names = generate(out, train_names if style == "train" else val_names, count, style, grid_mm, seed, workers,
-                     keep_stack, root, shading_share, faint_skull_share)
+                     keep_stack, root, shading_share, faint_skull_share, motion)
     typer.echo(f"{len(names)} shards in {out}")
 
 

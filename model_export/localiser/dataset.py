@@ -26,15 +26,15 @@ def _init(names: list[str], root: Path) -> None:
     _HEADS.extend(HeadModel.from_arrays(v.image, v.mask, v.affine) for v in load_volumes(names, root))
 
 
-def _one(job: tuple[Path, str, int, float, bool, float, float]) -> str:
-    out, style, seed, grid_mm, keep_stack, shading_share, faint_skull_share = job
+def _one(job: tuple[Path, str, int, float, bool, float, float, str | None]) -> str:
+    out, style, seed, grid_mm, keep_stack, shading_share, faint_skull_share, motion = job
     path = out / f"{style}-{seed:06d}.npz"
     if path.exists():
         return path.name
     rng = np.random.default_rng(seed)
     head = _HEADS[int(rng.integers(len(_HEADS)))]
     random_contrast = bool(seed % 2) if style == "heldout" else None      # held out: T2-like and random, alternately
-    volume, mask = synth_stack(head, rng, style, random_contrast, shading_share, faint_skull_share)
+    volume, mask = synth_stack(head, rng, style, random_contrast, shading_share, faint_skull_share, motion)
     x, _ = localiser_inputs(volume, grid_mm)
     extra = {"stack": volume.array.astype(np.float16), "affine": volume.affine, "mask": mask,
              "t2_like": not random_contrast} if keep_stack else {}
@@ -45,12 +45,14 @@ def _one(job: tuple[Path, str, int, float, bool, float, float]) -> str:
 
 def generate(out: Path, names: list[str], count: int, style: str, grid_mm: float, first_seed: int = 0,
              workers: int = 2, keep_stack: bool = False, root: Path = DEFAULT_ATLAS_ROOT,
-             shading_share: float = 0.0, faint_skull_share: float = 0.0) -> list[str]:
+             shading_share: float = 0.0, faint_skull_share: float = 0.0, motion: str | None = None) -> list[str]:
     """Write ``count`` shards of ``style`` from the atlas volumes ``names`` (seeds ``first_seed...``),
     ``shading_share`` of them with a dark region over the head, ``faint_skull_share`` of the heads
-    with a faint skull (:func:`~model_export.localiser.scenes.synth_scene`)."""
+    with a faint skull, the heads moving as ``motion`` says (default: the generator's own drift)
+    (:func:`~model_export.localiser.scenes.synth_scene`)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    jobs = [(out, style, first_seed + i, grid_mm, keep_stack, shading_share, faint_skull_share) for i in range(count)]
+    jobs = [(out, style, first_seed + i, grid_mm, keep_stack, shading_share, faint_skull_share, motion)
+            for i in range(count)]
     with Pool(workers, initializer=_init, initargs=(names, root)) as pool:
         return list(pool.imap_unordered(_one, jobs))

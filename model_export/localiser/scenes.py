@@ -18,7 +18,8 @@ brain's shape and its setting, not one scanner's contrast.
   (:data:`FACE_SHARE`) also have a face below the frontal lobes (two bright, fluid-filled eyes in
   textured soft tissue) and a neck leaving the skull base towards the trunk: on a T2 scan the eyes
   in textured tissue, right under the brain, look much like a piece of it. The head takes any
-  orientation and moves from slice to slice (small drift plus occasional jumps).
+  orientation and moves from slice to slice (small drift plus occasional jumps; or, with ``motion``,
+  as at a level of the pose benchmarks, over an interleaved acquisition).
 * **Hard settings**: some heads sit at or beyond the uterine wall, low in the maternal pelvis
   (:data:`~model_export.localiser.surroundings.ENGAGED_SHARE`); some lie in tissue as bright and as textured as the brain, behind a thin CSF
   layer and skull (:data:`CAMOUFLAGE_SHARE`), so that neither a fluid rim nor a brain brighter than its
@@ -60,12 +61,16 @@ from numpy.typing import NDArray
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
+from model_export.acquisitions import MOTION_LEVELS, interleaved_times, motion_twists
 from model_export.atlas import signed_distance
 from model_export.localiser.surroundings import (StackGeometry, bias_field, camouflage, draw_surroundings, intensities,
                                                  random_rotation, shading, slice_gains, smooth_noise)
+from service.geometry import se3
 from service.io.volume import Volume
 
 STYLES = ("train", "heldout")
+MOTIONS = tuple(level for level, limits in MOTION_LEVELS.items() if limits is not None)
+"""The pose benchmarks' motion levels a scene's head can move by (``synth_scene(..., motion=)``)."""
 FAINT_SKULL_MM = (0.5, 1.0)
 """A faint skull's thickness (mm; :func:`head_layers` draws 1.5-4)."""
 FAINT_SKULL_OF_FLUID = (0.4, 0.7)
@@ -196,14 +201,21 @@ class Face:
         return values.astype(np.float32), eye | tissue | neck
 
 
-def _head_motion(rng: np.random.Generator, slices: int) -> tuple[NDArray, NDArray]:
-    """Per-slice rotation ``[n, 3, 3]`` and shift ``[n, 3]`` of the head: a drift plus a few jumps."""
+def _head_motion(rng: np.random.Generator, slices: int, level: str | None = None) -> tuple[NDArray, NDArray]:
+    """Per-slice rotation ``[n, 3, 3]`` and shift ``[n, 3]`` of the head: a drift plus a few jumps, or
+    with ``level`` the motion of that level of the pose benchmarks
+    (:func:`~model_export.acquisitions.motion_twists`) over an interleaved acquisition, about the
+    head's centre, drawn from a child of ``rng`` after the drift's draws (the scene's later draws
+    stay those it has without)."""
     sigma_deg, sigma_mm = rng.uniform(0, 6), rng.uniform(0, 4)
     rotvec = np.cumsum(rng.normal(0, sigma_deg / 3, (slices, 3)), 0)
     shift = np.cumsum(rng.normal(0, sigma_mm / 3, (slices, 3)), 0)
     jumps = rng.random(slices) < rng.uniform(0, 0.15)
     rotvec[jumps] += rng.normal(0, 12, (int(jumps.sum()), 3))
     shift[jumps] += rng.normal(0, 5, (int(jumps.sum()), 3))
+    if level is not None:
+        moves = se3.exp(motion_twists(interleaved_times(slices), rng.spawn(1)[0], level))
+        return moves[:, :3, :3], moves[:, :3, 3]
     return Rotation.from_rotvec(np.deg2rad(rotvec - rotvec.mean(0))).as_matrix(), shift - shift.mean(0)
 
 
@@ -236,21 +248,22 @@ def csf_patches(rng: np.random.Generator, head: HeadModel, widest_mm: float,
 def _head(head: HeadModel, geo: StackGeometry, centre: NDArray, rotation: NDArray, rng: np.random.Generator,
           tissue: dict[str, float], background: NDArray[np.float32], brain_scale: float, gamma: float,
           thin: bool = False, face: Face | None = None, layers: tuple[float, float, float] | None = None,
-          csf_extra: NDArray | None = None) -> tuple[NDArray, NDArray, NDArray, tuple, tuple]:
+          csf_extra: NDArray | None = None, motion: str | None = None) -> tuple[NDArray, NDArray, NDArray, tuple, tuple]:
     """The head's intensities, skull-inside and brain fractions in its in-plane box of every slice (slice
     profile), the box, and the head's motion (per-slice rotations and shifts); ``thin``: a thin CSF
     layer, skull and scalp (a camouflaged head, :data:`CAMOUFLAGE_SHARE`); ``face``: drawn outside the
     skull, in place of the scalp and the surroundings; ``layers``: the CSF, skull and scalp
     thicknesses (mm; default drawn, :func:`head_layers`); ``csf_extra``: mm of CSF added to the layer
     where the head's grid says (the shape of ``head.sdf``; :func:`csf_patches`), the skull and scalp
-    pushed out by as much."""
+    pushed out by as much; ``motion``: a pose benchmark's motion level instead of the drift
+    (:func:`_head_motion`)."""
     csf, skull, scalp = layers if layers is not None else head_layers(rng, thin)
     outer = csf + skull + scalp
     widest = float(csf_extra.max()) if csf_extra is not None else 0.0
     reach = max(head.radius_mm * 1.15, face.reach_mm if face is not None else 0.0) + outer + widest + 10.0
     box = geo.box(centre, reach)
     pts = geo.coordinates()[box]                                     # [bx, by, slices, 3]
-    rots, shifts = _head_motion(rng, geo.slices)
+    rots, shifts = _head_motion(rng, geo.slices, motion)
     values, inside, brain = 0.0, 0.0, 0.0
     offsets = (np.array([-1.0, 0.0, 1.0]) * geo.thickness_mm / 3.0)
     for dz in offsets:
@@ -297,16 +310,17 @@ class Scene:
 
 def synth_stack(head: HeadModel, rng: np.random.Generator, style: str = "train",
                 random_contrast: bool | None = None, shading_share: float = 0.0,
-                faint_skull_share: float = 0.0) -> tuple[Volume, NDArray[np.bool_]]:
+                faint_skull_share: float = 0.0, motion: str | None = None) -> tuple[Volume, NDArray[np.bool_]]:
     """One synthetic whole-uterus stack and its skull-inside mask (:func:`synth_scene`)."""
     scene = synth_scene(head, rng, style, random_contrast, shading_share=shading_share,
-                        faint_skull_share=faint_skull_share)
+                        faint_skull_share=faint_skull_share, motion=motion)
     return scene.volume, scene.mask
 
 
 def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
                 random_contrast: bool | None = None, rigid: bool = False, csf_mm: float | None = None,
-                shading_share: float = 0.0, csf_patches_mm: float = 0.0, faint_skull_share: float = 0.0) -> Scene:
+                shading_share: float = 0.0, csf_patches_mm: float = 0.0, faint_skull_share: float = 0.0,
+                motion: str | None = None) -> Scene:
     """One synthetic whole-uterus stack, its masks and, with ``rigid`` (the head at the atlas's own
     size, not scaled by 0.9-1.1), its slices' true atlas poses. ``csf_mm``: the extra-axial CSF
     layer this thick instead of drawn (:func:`head_layers`; the other draws stay the same).
@@ -317,6 +331,10 @@ def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
     ``faint_skull_share``: the chance of a thin skull of nearly the fluid's intensity
     (:data:`FAINT_SKULL_MM`, :data:`FAINT_SKULL_OF_FLUID`; drawn from a child of ``rng``, so the
     scene is otherwise the one the seed gives without it).
+    ``motion``: the head moves as at that level of the pose benchmarks (``mild``, ``moderate``,
+    ``jumps``, ``independent``; :func:`~model_export.acquisitions.motion_twists`) over an
+    interleaved acquisition, instead of the generator's own drift (from a child of ``rng``: the
+    scene is otherwise the one the seed gives without it).
 
     ``random_contrast``: every tissue's intensity drawn uniformly (True) or T2-like (False); by
     default drawn, for 20 % of the ``train`` stacks and half of the ``heldout`` ones. The same seed
@@ -324,6 +342,8 @@ def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
     """
     if style not in STYLES:
         raise ValueError(f"style must be one of {STYLES}")
+    if motion is not None and motion not in MOTIONS:
+        raise ValueError(f"motion must be one of {MOTIONS} (or None: the generator's own drift)")
     geo = StackGeometry.draw(rng)
     if random_contrast is None:
         random_contrast = bool(rng.random() < (0.2 if style == "train" else 0.5))
@@ -357,7 +377,7 @@ def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
     face = Face.draw(face_rng, head, tissue, level, layers[0] + layers[1], style) if with_face else None
     extra = csf_patches(rng.spawn(1)[0], head, csf_patches_mm) if csf_patches_mm > 0 else None   # the stream untouched
     values, inside, brain_fraction, box, motion = _head(head, geo, centre, rotation, rng, tissue, background,
-                                                        brain_scale, gamma, camouflaged, face, layers, extra)
+                                                        brain_scale, gamma, camouflaged, face, layers, extra, motion)
     image = background.copy()
     image[box] = values
     mask = np.zeros(image.shape, bool)

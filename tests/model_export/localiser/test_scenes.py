@@ -310,3 +310,30 @@ def test_the_shading_field_is_darkest_near_the_head_and_one_far_from_it() -> Non
         assert 0.19 < gain.min() < 0.75 and gain.max() <= 1.0
         assert gain[near].min() == pytest.approx(gain.min())                # the darkest point lies on the head
         assert gain[np.linalg.norm(pts - head_centre, axis=-1) > 220.0].min() > 0.95
+
+
+def test_a_scene_can_move_its_head_as_the_pose_benchmarks_levels_do(small_fields: None) -> None:
+    """``motion`` changes only the head's motion: the same seed gives the same surroundings; with
+    independent motion neighbouring slices turn against each other by a median of over 8 deg
+    (uniform up to 20 deg each), with mild motion by at most twice its 5 deg, where the generator's
+    own drift turns them by a few; an unknown level is refused."""
+    image, mask, affine = phantom_brain(3)
+    head = HeadModel.from_arrays(image, mask, affine)
+
+    def scene(motion: str | None):  # noqa: ANN202
+        return synth_scene(head, np.random.default_rng(12), "heldout", rigid=True, motion=motion)
+
+    def neighbours_turn_deg(moving) -> np.ndarray:  # noqa: ANN001
+        a = moving.atlas_from_voxel[:, :3, :3]
+        rot = a / np.linalg.norm(a, axis=1)[:, None, :]
+        rel = np.einsum("nji,njk->nik", rot[:-1], rot[1:])
+        return np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+
+    own, mild, independent = scene(None), scene("mild"), scene("independent")
+    changed = own.volume.array != independent.volume.array
+    to_heads = ndimage.distance_transform_edt(~(own.mask | independent.mask), sampling=own.volume.spacing)
+    assert changed.any() and to_heads[changed].max() < 30.0         # the head (and its scalp) alone moved
+    assert np.median(neighbours_turn_deg(independent)) > 8.0 > np.median(neighbours_turn_deg(own))
+    assert neighbours_turn_deg(mild).max() <= 10.0 + 1e-6
+    with pytest.raises(ValueError, match="motion"):
+        synth_scene(head, np.random.default_rng(12), "heldout", motion="extreme")
