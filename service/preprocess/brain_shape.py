@@ -231,7 +231,7 @@ def end_dips(area: NDArray) -> NDArray[np.int64]:
     return np.array(sorted(dips), np.int64)
 
 
-def _margin_disk(grid_mm: float) -> NDArray[np.bool_]:
+def margin_disk(grid_mm: float) -> NDArray[np.bool_]:
     """The in-plane disk of radius :data:`OUTLIER_MARGIN_MM` (pixels of ``grid_mm``, at least one)."""
     radius = max(1, int(round(OUTLIER_MARGIN_MM / grid_mm)))
     return np.hypot(*np.mgrid[-radius:radius + 1, -radius:radius + 1]) <= radius
@@ -263,7 +263,7 @@ def trim_outlier_slices(component: NDArray[np.bool_], grid_mm: float) -> NDArray
     if not outlier.any():
         return component
     regular = np.flatnonzero((area > 0) & ~outlier)
-    disk = _margin_disk(grid_mm)
+    disk = margin_disk(grid_mm)
     out = component.copy()
     for k in np.flatnonzero(outlier):
         below, above = regular[regular < k], regular[regular > k]
@@ -295,7 +295,7 @@ def trim_growing_caps(component: NDArray[np.bool_], grid_mm: float) -> NDArray[n
     area = component.reshape(len(component), -1).sum(1)
     if np.count_nonzero(area) < 5:
         return component
-    disk = _margin_disk(grid_mm)
+    disk = margin_disk(grid_mm)
     out = component.copy()
     middle = int(round(float(np.arange(len(area)) @ area / area.sum())))     # the widest slices' place,
     for step in (1, -1):                                                      # whatever lies beside a cap

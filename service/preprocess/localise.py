@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import functools
 import logging
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -48,7 +49,7 @@ from service.core.errors import NotFound
 from service.core.onnx import file_sha256, model_files, session_options
 from service.core.settings import DEFAULT_LOCALISERS_DIR
 from service.io.volume import Volume
-from service.preprocess.brain_shape import MASK_THRESHOLD, THRESHOLD, brain_from_probabilities
+from service.preprocess.brain_shape import MASK_THRESHOLD, THRESHOLD, brain_from_probabilities, margin_disk
 from service.preprocess.localiser_inputs import LocaliserGrid, localiser_inputs
 from service.preprocess.stack import mask_box, slice_axis_of, stack_axis
 
@@ -259,25 +260,77 @@ class Localiser:
 
     def localise_slice(self, volume: Volume, which: int) -> Localisation:
         """The brain in slice ``which`` of ``volume`` (a few neighbouring slices of a stack that is still
-        being acquired): in that slice's probabilities, the 2D region with most brain probability,
-        its holes filled, back on the slice's grid. Its confidence multiplies how sure the network is
-        inside it and the share of the slice's brain-like probability it holds; below
-        :data:`MIN_CONFIDENCE`, or under :data:`MIN_SLICE_AREA_MM2`, the slice has no brain. The
-        returned mask covers ``volume``, brain only in slice ``which``."""
+        being acquired): :meth:`slice_in_stack` without the stack's other slices."""
+        return self.slice_in_stack(volume, which)[0]
+
+    def slice_in_stack(self, volume: Volume, which: int, others: Mapping[int, NDArray] | None = None,
+                       index: int = 0) -> tuple[Localisation, NDArray[np.float16]]:
+        """The brain in slice ``which`` of ``volume`` (a few neighbouring slices of a stack that is still
+        being acquired), and that slice's probability map on the network grid, which later calls take
+        among ``others``.
+
+        In the slice's probabilities, the 2D regions above :data:`~service.preprocess.brain_shape.THRESHOLD`
+        are candidates; without ``others`` the one with most probability is the brain. At the face end
+        of a coronal stack that is the face, larger than the frontal lobes beside it, which is why
+        ``others`` (the maps of the stack's slices received before it, by their index in the stack;
+        ``index`` is this slice's) settle it where they can: the geometry that settles a whole stack
+        (:func:`brain_from_probabilities`) finds the brain in every received map, in index order, and
+        its region in this slice is the slice's brain; past the brain's end (two slices at most), the
+        candidate that reaches within :data:`~service.preprocess.brain_shape.OUTLIER_MARGIN_MM` of its
+        nearest slice, or none. Where the received maps hold no brain of two slices or more and
+        :data:`MIN_CONFIDENCE`, or it ends further away, the slice is judged alone. The chosen
+        region's holes are filled. Its confidence multiplies how sure the network is inside it and
+        the share of the slice's brain-like probability it holds; below :data:`MIN_CONFIDENCE`, or
+        under :data:`MIN_SLICE_AREA_MM2`, the slice has no brain. The returned mask covers
+        ``volume``, brain only in slice ``which``."""
         prob, grid = self.probabilities(volume)
         p = prob[which]
+        own = p.astype(np.float16)
         labels, n = ndimage.label(p >= THRESHOLD)
         empty = Localisation.of(np.zeros(volume.array.shape, bool), volume.spacing, "network", 0.0)
         if n == 0:
-            return empty
+            return empty, own
         mass = ndimage.sum_labels(p, labels, np.arange(1, n + 1))
         best = labels == int(np.argmax(mass)) + 1
-        confidence = float(p[best].mean() * mass.max() / mass.sum())
+        in_stack = self._in_stack_brain(p, labels, others, index, float(volume.spacing[stack_axis(volume)])) \
+            if others else None
+        if in_stack is not None:
+            if not in_stack.any():
+                return empty, own
+            best = in_stack
+        confidence = float(p[best].mean() * p[best].sum() / mass.sum())
         if best.sum() * self.grid_mm ** 2 < MIN_SLICE_AREA_MM2 or confidence < MIN_CONFIDENCE:
-            return Localisation.of(empty.mask, volume.spacing, "network", confidence)
+            return Localisation.of(empty.mask, volume.spacing, "network", confidence), own
         maps = np.zeros_like(prob)
         maps[which] = np.where(ndimage.binary_dilation(best, iterations=1), np.maximum(p, ndimage.binary_fill_holes(best)), 0.0)
-        return Localisation.found(grid.to_stack(maps), volume.spacing, confidence)     # slice by slice: only `which`
+        return Localisation.found(grid.to_stack(maps), volume.spacing, confidence), own    # slice by slice: only `which`
+
+    def _in_stack_brain(self, p: NDArray, labels: NDArray, others: Mapping[int, NDArray], index: int,
+                        slice_mm: float) -> NDArray[np.bool_] | None:
+        """Where the brain of the received maps ``others`` lies in slice ``index`` (its map ``p``, its
+        candidate regions ``labels``; :meth:`slice_in_stack`): its region there as the geometry leaves
+        it; past its end, the candidate that touches its nearest slice, or nothing; None where the
+        maps do not tell (none of this slice's grid, a brain of confidence under :data:`MIN_CONFIDENCE`
+        or in one slice, or ending further than two slices away)."""
+        order = sorted(k for k, m in others.items() if k != index and m.shape == p.shape)
+        if not order:
+            return None
+        order = sorted([*order, index])
+        at = order.index(index)
+        stacked = np.stack([p if k == index else np.asarray(others[k], np.float32) for k in order])
+        gap_mm = float(np.median(np.diff(order))) * slice_mm
+        brain, confidence = brain_from_probabilities(stacked, self.grid_mm ** 2 * gap_mm / 1000.0, self.grid_mm)
+        rows = np.flatnonzero(brain.reshape(len(order), -1).any(1))
+        if confidence < MIN_CONFIDENCE or len(rows) < 2:
+            return None
+        if brain[at].any():
+            return brain[at]
+        near = int(rows[np.argmin(np.abs(np.asarray(order)[rows] - index))])
+        if abs(order[near] - index) > 2:
+            return None
+        touched = ndimage.binary_dilation(brain[near], structure=margin_disk(self.grid_mm))
+        overlap = ndimage.sum_labels(touched, labels, np.arange(1, int(labels.max()) + 1))
+        return labels == int(np.argmax(overlap)) + 1 if overlap.max() > 0 else np.zeros_like(touched)
 
 
 @functools.cache

@@ -3,7 +3,9 @@
 The stages are those of ``/v1/predict`` (:mod:`service.pipeline.predict`), run at three moments:
 
 1. **A slice arrives** (:meth:`StreamSession.add_slice`): its brain (the sent mask, else the
-   localiser on the slice and its received neighbours), the service's slice preprocessing, MC-dropout
+   localiser on the slice and its received neighbours, the region of it that the brain of the
+   stack's slices received so far passes through:
+   :meth:`~service.preprocess.localise.Localiser.slice_in_stack`), the service's slice preprocessing, MC-dropout
    inference and the twin-aware statistics of that slice alone. Where the stack's model has already
    decided the stack's left-right branch, the slice takes the twin nearer to where that model puts
    it, or that place itself where the network's answer is an outlier from it; before, its expected
@@ -82,6 +84,7 @@ class _Slice:
     estimate: PoseEstimate
     network_from_voxel: NDArray[np.float64]          # [1, 4, 4] sent voxel -> this slice's network frame
     answer: SliceAnswer | None = None
+    brain_map: NDArray | None = None                 # its localiser probabilities (network grid), without a mask
 
 
 @dataclass
@@ -113,6 +116,7 @@ class StreamSession:
         self.masks_hold_csf = options.masks_hold_csf
         self.stacks: dict[str, StreamedStack] = {}
         self.slices: dict[str, dict[int, _Slice]] = {}
+        self.brain_maps: dict[str, dict[int, NDArray]] = {}   # per stack still open: each localised slice's map
         self.fits: dict[str, StackPoses] = {}
         self.placement_errors: dict[str, float | None] = {}   # how far off each fit's placement puts a new slice (mm)
         self.firmed: dict[str, int] = {}
@@ -150,9 +154,10 @@ class StreamSession:
             self.stacks[frame.stack] = stack
             self.held_bytes += size
             neighbours = self._neighbours(stack, frame.index)
+            received = dict(self.brain_maps.get(frame.stack, {}))
             fit, placement_mm = self.fits.get(frame.stack), self.placement_errors.get(frame.stack)   # of one firm-up
         try:
-            state = self._prepare_alone(frame, neighbours)
+            state = self._prepare_alone(frame, neighbours, received)
         except Exception:
             with self._lock:
                 stack.remove(frame.index)
@@ -161,9 +166,11 @@ class StreamSession:
                     del self.stacks[frame.stack]
             raise
         answer = self._alone(state, fit, placement_mm)
-        kept = array_bytes(state.prepared, state.estimate, besides=(frame.pixels,))    # its preparation, beside its pixels
+        kept = array_bytes(state.prepared, state.estimate, [state.brain_map], besides=(frame.pixels,))   # beside its pixels
         with self._lock:
             self.slices.setdefault(frame.stack, {})[frame.index] = state
+            if state.brain_map is not None:
+                self.brain_maps.setdefault(frame.stack, {})[frame.index] = state.brain_map
             state.answer = answer
             self.held_bytes += kept
         answer.compute_ms = (time.perf_counter() - t0) * 1e3
@@ -179,8 +186,9 @@ class StreamSession:
             hi += 1
         return [stack.frames[k] for k in range(lo, hi + 1)]
 
-    def _prepare_alone(self, frame: SliceFrame, neighbours: list[SliceFrame]) -> _Slice:
+    def _prepare_alone(self, frame: SliceFrame, neighbours: list[SliceFrame], received: dict[int, NDArray]) -> _Slice:
         info = self.estimator.info
+        brain_map = None
         pixels = np.asarray(frame.pixels, dtype=np.float32)[..., None]
         volume = Volume(pixels, np.asarray(frame.scanner_from_voxel, dtype=np.float64), slice_axis=2)
         if frame.mask is not None:
@@ -189,15 +197,18 @@ class StreamSession:
         elif self.localiser is None:
             raise InvalidParameter("slice.mask: no localiser is installed; send a mask frame with every slice")
         else:
-            localisation = self._localise(frame, neighbours)
+            localisation, brain_map = self._localise(frame, neighbours, received)
         slices = split_stack(volume, localisation.pose_mask(volume.spacing, axis=2), axis=2)
         prepared = preprocess_slices(slices.images, slices.masks, slices.pixel_mm, info.input_size, info.pixel_spacing_mm)
         stack = PreparedStack(StackUpload(frame.stack, volume), slices, prepared, localisation)
         est = self.estimator.estimate(prepared.inputs, self.mc_samples)
-        return _Slice(frame, stack, est, stack.network_from_voxel())
+        return _Slice(frame, stack, est, stack.network_from_voxel(), brain_map=brain_map)
 
-    def _localise(self, frame: SliceFrame, neighbours: list[SliceFrame]) -> Localisation:
-        """The brain of ``frame`` by the localiser, seen between its received neighbours."""
+    def _localise(self, frame: SliceFrame, neighbours: list[SliceFrame],
+                  received: dict[int, NDArray]) -> tuple[Localisation, NDArray]:
+        """The brain of ``frame`` by the localiser, seen between its received neighbours, where the brain
+        of the stack's slices ``received`` so far passes through it (their localiser maps, by index;
+        :meth:`~service.preprocess.localise.Localiser.slice_in_stack`); and its own map."""
         if len(neighbours) > 1:
             k = [f.index for f in neighbours].index(frame.index)
             affine = np.array(neighbours[0].scanner_from_voxel, dtype=np.float64)
@@ -205,9 +216,9 @@ class StreamSession:
             window = Volume(np.stack([np.asarray(f.pixels, np.float32) for f in neighbours], axis=-1), affine, slice_axis=2)
         else:
             k, window = 0, Volume(np.asarray(frame.pixels, np.float32)[..., None], frame.scanner_from_voxel, slice_axis=2)
-        found = self.localiser.localise_slice(window, k)
+        found, brain_map = self.localiser.slice_in_stack(window, k, received, frame.index)
         region = None if found.pose_region is None else found.pose_region[:, :, k:k + 1]
-        return replace(found, mask=found.mask[:, :, k:k + 1], pose_region=region)
+        return replace(found, mask=found.mask[:, :, k:k + 1], pose_region=region), brain_map
 
     def _alone(self, state: _Slice, fit: StackPoses | None, placement_mm: float | None) -> SliceAnswer:
         """The slice's own pose; on the branch of its stack's model where that model decided it."""
@@ -324,6 +335,10 @@ class StreamSession:
         with self._lock:
             self.ended[stack] = ended[stack]
             self.held_bytes += array_bytes(ended[stack])          # the stack as prepared whole
+            for state in self.slices.get(stack, {}).values():     # its slices' maps serve no later slice
+                self.held_bytes -= array_bytes([state.brain_map])
+                state.brain_map = None
+            self.brain_maps.pop(stack, None)
             updates = []
             for name, p in zip(names, predictions):
                 sent = self.stacks[name].frames

@@ -217,3 +217,52 @@ def test_an_upload_said_to_hold_the_csf_gets_the_localisers_inset() -> None:
     assert np.array_equal(tight.pose_mask(spacing), mask > 0)
     assert rim.pose_mask(spacing)[:, :, 2].sum() == 20 * 20 and rim.report()["pose_mask_inset_mm"] == 2.0
 
+
+
+class _ProbabilityLocaliser(Localiser):
+    """A localiser whose network's probability is the stack's own value at each pixel (the grid is the
+    stack's: 2.5 mm pixels, no padding)."""
+
+    def __init__(self) -> None:
+        super().__init__(None, None, 2.5, "test", "")           # type: ignore[arg-type]
+
+    def probabilities(self, volume: Volume):  # noqa: ANN201
+        from service.preprocess.localiser_inputs import LocaliserGrid
+        from service.preprocess.stack import slice_images
+
+        images, _ = slice_images(volume.array, volume.affine, 2)
+        return images.astype(np.float32), LocaliserGrid(volume.array.shape, 2, images.shape[1:], images.shape[1:], (0, 0))
+
+
+def test_a_streamed_slice_takes_the_region_the_stacks_brain_passes_through_not_the_face_beside_it() -> None:
+    """A coronal stack's last slices hold a face larger than the frontal lobes beside it. Alone, each
+    such slice takes the face (most probability); streamed in interleaved order with the maps of the
+    slices received before it, it takes the brain the stack's geometry finds, and the face-only slices
+    just past the brain's end get no brain at all."""
+    n = 20
+    z = np.arange(n)[None, None, :]
+    y, x = np.mgrid[0:64, 0:64]
+    radius = np.where((z >= 2) & (z <= 15), 12.0 * np.sqrt(np.clip(1 - ((z - 8.5) / 8.0) ** 2, 0.05, 1)), 0.0)
+    brain = np.hypot(x[..., None] - 22, y[..., None] - 32) < radius
+    face = (np.abs(x[..., None] - 50) < 9) & (np.abs(y[..., None] - 32) < 14) & (z >= 12) & (z <= 17)
+    assert not (ndimage.binary_dilation(brain, np.ones((9, 9, 1), bool)) & face).any()
+    volume = Volume(np.where(brain | face, 0.9, 0.02).astype(np.float32), np.diag([2.5, 2.5, 3.0, 1.0]))
+    localiser = _ProbabilityLocaliser()
+    order = np.argsort(np.where(np.arange(n) % 2 == 0, np.arange(n) // 2, (n + 1) // 2 + np.arange(n) // 2))
+    received: dict[int, np.ndarray] = {}
+    streamed, alone = {}, {}
+    for k in map(int, order):
+        lo, hi = max(k - 1, 0), min(k + 1, n - 1)
+        lo, hi = (lo if lo in received else k), (hi if hi in received else k)
+        window = Volume(np.ascontiguousarray(volume.array[:, :, lo:hi + 1]),
+                        volume.affine @ np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, lo], [0, 0, 0, 1.0]]))
+        found, received[k] = localiser.slice_in_stack(window, k - lo, received, k)
+        streamed[k] = found.mask[:, :, k - lo]
+        alone[k] = localiser.localise_slice(window, k - lo).mask[:, :, k - lo]
+    for k in range(12, 16):                                   # the brain and the face beside it
+        assert (alone[k] & face[:, :, k]).any() and not (alone[k] & brain[:, :, k]).any()
+        assert (streamed[k] & brain[:, :, k]).sum() > 0.8 * brain[:, :, k].sum() and not (streamed[k] & face[:, :, k]).any()
+    for k in (16, 17):                                        # the face alone, just past the brain
+        assert alone[k].any() and not streamed[k].any()
+    for k in range(2, 12):                                    # the brain alone: either way
+        assert np.array_equal(streamed[k], alone[k]) and (streamed[k] & brain[:, :, k]).any()
