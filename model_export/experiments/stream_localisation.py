@@ -57,7 +57,8 @@ def streamed(localiser: Localiser, volume: Volume, with_stack: bool) -> tuple[np
             hi += 1
         window = Volume(np.ascontiguousarray(array[:, :, lo:hi + 1]), affine @ translate([0.0, 0.0, float(lo)]),
                         slice_axis=2)
-        found, received[k] = localiser.slice_in_stack(window, k - lo, received if with_stack else None, k)
+        found, received[k] = localiser.slice_in_stack(window, k - lo, received if with_stack else None, k,
+                                                    float(volume.spacing[axis]))
         masks[:, :, k] = found.mask[:, :, k - lo]
     return masks, (time.perf_counter() - t) / n
 

@@ -62,6 +62,9 @@ MIN_CONFIDENCE = 0.15
 BATCH_SLICES = 8
 """Slices per onnxruntime call of the localiser: on two cores a handful of 144 x 144 slices a call runs
 faster per slice than a whole stack at once (the activations stay in cache)."""
+MAX_STACK_MAPS = 32
+"""A streamed slice's brain is settled among at most this many received slices of its stack, the nearest
+(:meth:`Localiser.slice_in_stack`): the geometry's cost stays that of a stack of this size."""
 POSE_MASK_INSET_MM = 2.0
 """How far inside the localiser's mask (the skull's inside) the pose network's mask lies: the pose
 network learnt the atlas's brain masks, which leave out most of the extra-axial CSF around the brain
@@ -264,25 +267,29 @@ class Localiser:
         return self.slice_in_stack(volume, which)[0]
 
     def slice_in_stack(self, volume: Volume, which: int, others: Mapping[int, NDArray] | None = None,
-                       index: int = 0) -> tuple[Localisation, NDArray[np.float16]]:
+                       index: int = 0, slice_mm: float | None = None) -> tuple[Localisation, NDArray[np.float16]]:
         """The brain in slice ``which`` of ``volume`` (a few neighbouring slices of a stack that is still
         being acquired), and that slice's probability map on the network grid, which later calls take
         among ``others``.
 
         In the slice's probabilities, the 2D regions above :data:`~service.preprocess.brain_shape.THRESHOLD`
-        are candidates; without ``others`` the one with most probability is the brain. At the face end
-        of a coronal stack that is the face, larger than the frontal lobes beside it, which is why
+        are candidates; alone, the one with most probability is the brain. At the face end of a
+        coronal stack that is the face, larger than the frontal lobes beside it, which is why
         ``others`` (the maps of the stack's slices received before it, by their index in the stack;
-        ``index`` is this slice's) settle it where they can: the geometry that settles a whole stack
-        (:func:`brain_from_probabilities`) finds the brain in every received map, in index order, and
-        its region in this slice is the slice's brain; past the brain's end (two slices at most), the
-        candidate that reaches within :data:`~service.preprocess.brain_shape.OUTLIER_MARGIN_MM` of its
-        nearest slice, or none. Where the received maps hold no brain of two slices or more and
-        :data:`MIN_CONFIDENCE`, or it ends further away, the slice is judged alone. The chosen
-        region's holes are filled. Its confidence multiplies how sure the network is inside it and
-        the share of the slice's brain-like probability it holds; below :data:`MIN_CONFIDENCE`, or
-        under :data:`MIN_SLICE_AREA_MM2`, the slice has no brain. The returned mask covers
-        ``volume``, brain only in slice ``which``."""
+        ``index`` is this slice's; ``slice_mm`` the stack's step between slices, default the
+        window's) settle it where they can: the geometry that settles a whole stack
+        (:func:`brain_from_probabilities`) finds the brain in the received maps (the
+        :data:`MAX_STACK_MAPS` nearest this slice), stacked in index order, and its region in this
+        slice is the slice's brain. Where it misses this slice but holds one of the two on either
+        side (past the brain's end, or a slice it trimmed), the candidate that reaches within
+        :data:`~service.preprocess.brain_shape.OUTLIER_MARGIN_MM` of that slice's region is.
+        Otherwise (no brain of two slices or more and :data:`MIN_CONFIDENCE` in the received maps,
+        no candidate near it, or none of the maps on this slice's grid) the slice is judged alone:
+        a stack whose face end arrives first has a face for its brain until the brain's own slices
+        outweigh it. The chosen region's holes are filled. Its confidence multiplies how sure the
+        network is inside it and the share of the slice's candidate probability it holds; below
+        :data:`MIN_CONFIDENCE`, or under :data:`MIN_SLICE_AREA_MM2`, the slice has no brain. The
+        returned mask covers ``volume``, brain only in slice ``which``."""
         prob, grid = self.probabilities(volume)
         p = prob[which]
         own = p.astype(np.float16)
@@ -292,13 +299,11 @@ class Localiser:
             return empty, own
         mass = ndimage.sum_labels(p, labels, np.arange(1, n + 1))
         best = labels == int(np.argmax(mass)) + 1
-        in_stack = self._in_stack_brain(p, labels, others, index, float(volume.spacing[stack_axis(volume)])) \
-            if others else None
+        step = float(volume.spacing[stack_axis(volume)]) if slice_mm is None else float(slice_mm)
+        in_stack = self._in_stack_brain(p, labels, others, index, step) if others else None
         if in_stack is not None:
-            if not in_stack.any():
-                return empty, own
             best = in_stack
-        confidence = float(p[best].mean() * p[best].sum() / mass.sum())
+        confidence = float(p[best].mean() * p[best & (labels > 0)].sum() / mass.sum())
         if best.sum() * self.grid_mm ** 2 < MIN_SLICE_AREA_MM2 or confidence < MIN_CONFIDENCE:
             return Localisation.of(empty.mask, volume.spacing, "network", confidence), own
         maps = np.zeros_like(prob)
@@ -309,13 +314,13 @@ class Localiser:
                         slice_mm: float) -> NDArray[np.bool_] | None:
         """Where the brain of the received maps ``others`` lies in slice ``index`` (its map ``p``, its
         candidate regions ``labels``; :meth:`slice_in_stack`): its region there as the geometry leaves
-        it; past its end, the candidate that touches its nearest slice, or nothing; None where the
-        maps do not tell (none of this slice's grid, a brain of confidence under :data:`MIN_CONFIDENCE`
-        or in one slice, or ending further than two slices away)."""
-        order = sorted(k for k, m in others.items() if k != index and m.shape == p.shape)
-        if not order:
+        it, or the candidate that reaches its region in a slice beside it; None where the maps do not
+        tell."""
+        near = sorted((k for k, m in others.items() if k != index and m.shape == p.shape),
+                      key=lambda k: abs(k - index))[:MAX_STACK_MAPS - 1]
+        if not near:
             return None
-        order = sorted([*order, index])
+        order = sorted([*near, index])
         at = order.index(index)
         stacked = np.stack([p if k == index else np.asarray(others[k], np.float32) for k in order])
         gap_mm = float(np.median(np.diff(order))) * slice_mm
@@ -325,12 +330,12 @@ class Localiser:
             return None
         if brain[at].any():
             return brain[at]
-        near = int(rows[np.argmin(np.abs(np.asarray(order)[rows] - index))])
-        if abs(order[near] - index) > 2:
+        beside = int(rows[np.argmin(np.abs(np.asarray(order)[rows] - index))])
+        if abs(order[beside] - index) > 2:
             return None
-        touched = ndimage.binary_dilation(brain[near], structure=margin_disk(self.grid_mm))
-        overlap = ndimage.sum_labels(touched, labels, np.arange(1, int(labels.max()) + 1))
-        return labels == int(np.argmax(overlap)) + 1 if overlap.max() > 0 else np.zeros_like(touched)
+        reach = ndimage.binary_dilation(brain[beside], structure=margin_disk(self.grid_mm))
+        overlap = ndimage.sum_labels(reach, labels, np.arange(1, int(labels.max()) + 1))
+        return labels == int(np.argmax(overlap)) + 1 if overlap.max() > 0 else None
 
 
 @functools.cache

@@ -165,6 +165,15 @@ class StreamedStack:
         """The indices below the largest received one that have not arrived."""
         return sorted(set(range(max(self.frames) + 1)) - set(self.frames)) if self.frames else []
 
+    def step_mm(self) -> float | None:
+        """The distance between neighbouring slices, from the two received slices furthest apart in
+        index (None with fewer than two)."""
+        if len(self.frames) < 2:
+            return None
+        lo, hi = min(self.frames), max(self.frames)
+        shift = self.frames[hi].scanner_from_voxel[:3, 3] - self.frames[lo].scanner_from_voxel[:3, 3]
+        return float(np.linalg.norm(shift)) / (hi - lo)
+
     def volume(self) -> tuple[Volume, Volume | None]:
         """The complete stack as a volume (and its mask volume, when the slices came with masks);
         :class:`InvalidParameter` when slices are missing or unevenly spaced."""

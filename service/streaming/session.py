@@ -155,9 +155,10 @@ class StreamSession:
             self.held_bytes += size
             neighbours = self._neighbours(stack, frame.index)
             received = dict(self.brain_maps.get(frame.stack, {}))
+            step_mm = stack.step_mm()
             fit, placement_mm = self.fits.get(frame.stack), self.placement_errors.get(frame.stack)   # of one firm-up
         try:
-            state = self._prepare_alone(frame, neighbours, received)
+            state = self._prepare_alone(frame, neighbours, received, step_mm)
         except Exception:
             with self._lock:
                 stack.remove(frame.index)
@@ -186,7 +187,8 @@ class StreamSession:
             hi += 1
         return [stack.frames[k] for k in range(lo, hi + 1)]
 
-    def _prepare_alone(self, frame: SliceFrame, neighbours: list[SliceFrame], received: dict[int, NDArray]) -> _Slice:
+    def _prepare_alone(self, frame: SliceFrame, neighbours: list[SliceFrame], received: dict[int, NDArray],
+                       step_mm: float | None = None) -> _Slice:
         info = self.estimator.info
         brain_map = None
         pixels = np.asarray(frame.pixels, dtype=np.float32)[..., None]
@@ -197,18 +199,18 @@ class StreamSession:
         elif self.localiser is None:
             raise InvalidParameter("slice.mask: no localiser is installed; send a mask frame with every slice")
         else:
-            localisation, brain_map = self._localise(frame, neighbours, received)
+            localisation, brain_map = self._localise(frame, neighbours, received, step_mm)
         slices = split_stack(volume, localisation.pose_mask(volume.spacing, axis=2), axis=2)
         prepared = preprocess_slices(slices.images, slices.masks, slices.pixel_mm, info.input_size, info.pixel_spacing_mm)
         stack = PreparedStack(StackUpload(frame.stack, volume), slices, prepared, localisation)
         est = self.estimator.estimate(prepared.inputs, self.mc_samples)
         return _Slice(frame, stack, est, stack.network_from_voxel(), brain_map=brain_map)
 
-    def _localise(self, frame: SliceFrame, neighbours: list[SliceFrame],
-                  received: dict[int, NDArray]) -> tuple[Localisation, NDArray]:
+    def _localise(self, frame: SliceFrame, neighbours: list[SliceFrame], received: dict[int, NDArray],
+                  step_mm: float | None = None) -> tuple[Localisation, NDArray]:
         """The brain of ``frame`` by the localiser, seen between its received neighbours, where the brain
-        of the stack's slices ``received`` so far passes through it (their localiser maps, by index;
-        :meth:`~service.preprocess.localise.Localiser.slice_in_stack`); and its own map."""
+        of the stack's slices ``received`` so far passes through it (their localiser maps, by index,
+        ``step_mm`` apart; :meth:`~service.preprocess.localise.Localiser.slice_in_stack`); and its own map."""
         if len(neighbours) > 1:
             k = [f.index for f in neighbours].index(frame.index)
             affine = np.array(neighbours[0].scanner_from_voxel, dtype=np.float64)
@@ -216,7 +218,7 @@ class StreamSession:
             window = Volume(np.stack([np.asarray(f.pixels, np.float32) for f in neighbours], axis=-1), affine, slice_axis=2)
         else:
             k, window = 0, Volume(np.asarray(frame.pixels, np.float32)[..., None], frame.scanner_from_voxel, slice_axis=2)
-        found, brain_map = self.localiser.slice_in_stack(window, k, received, frame.index)
+        found, brain_map = self.localiser.slice_in_stack(window, k, received, frame.index, step_mm)
         region = None if found.pose_region is None else found.pose_region[:, :, k:k + 1]
         return replace(found, mask=found.mask[:, :, k:k + 1], pose_region=region), brain_map
 

@@ -66,8 +66,8 @@ class LookupLocaliser:
     def localise_slice(self, volume: Volume, which: int) -> Localisation:
         return Localisation.of(self._mask(volume, which), volume.spacing, "network", 1.0)
 
-    def slice_in_stack(self, volume: Volume, which: int, others: dict | None = None,
-                       index: int = 0) -> tuple[Localisation, np.ndarray]:
+    def slice_in_stack(self, volume: Volume, which: int, others: dict | None = None, index: int = 0,
+                       slice_mm: float | None = None) -> tuple[Localisation, np.ndarray]:
         return self.localise_slice(volume, which), np.zeros((1, 1), np.float16)
 
 

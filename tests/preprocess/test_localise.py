@@ -234,11 +234,10 @@ class _ProbabilityLocaliser(Localiser):
         return images.astype(np.float32), LocaliserGrid(volume.array.shape, 2, images.shape[1:], images.shape[1:], (0, 0))
 
 
-def test_a_streamed_slice_takes_the_region_the_stacks_brain_passes_through_not_the_face_beside_it() -> None:
-    """A coronal stack's last slices hold a face larger than the frontal lobes beside it. Alone, each
-    such slice takes the face (most probability); streamed in interleaved order with the maps of the
-    slices received before it, it takes the brain the stack's geometry finds, and the face-only slices
-    just past the brain's end get no brain at all."""
+def _streamed_face_end(order: list[int]) -> tuple[dict, dict, np.ndarray, np.ndarray]:
+    """A coronal stack whose last slices hold a face larger than the frontal lobes beside it (brain in
+    slices 2-15, face in 12-17, 4 pixels apart), streamed in ``order``: each slice's mask with the maps
+    of the slices received before it, and alone; the brain and the face."""
     n = 20
     z = np.arange(n)[None, None, :]
     y, x = np.mgrid[0:64, 0:64]
@@ -248,21 +247,37 @@ def test_a_streamed_slice_takes_the_region_the_stacks_brain_passes_through_not_t
     assert not (ndimage.binary_dilation(brain, np.ones((9, 9, 1), bool)) & face).any()
     volume = Volume(np.where(brain | face, 0.9, 0.02).astype(np.float32), np.diag([2.5, 2.5, 3.0, 1.0]))
     localiser = _ProbabilityLocaliser()
-    order = np.argsort(np.where(np.arange(n) % 2 == 0, np.arange(n) // 2, (n + 1) // 2 + np.arange(n) // 2))
     received: dict[int, np.ndarray] = {}
     streamed, alone = {}, {}
-    for k in map(int, order):
+    for k in order:
         lo, hi = max(k - 1, 0), min(k + 1, n - 1)
         lo, hi = (lo if lo in received else k), (hi if hi in received else k)
         window = Volume(np.ascontiguousarray(volume.array[:, :, lo:hi + 1]),
                         volume.affine @ np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, lo], [0, 0, 0, 1.0]]))
-        found, received[k] = localiser.slice_in_stack(window, k - lo, received, k)
+        found, received[k] = localiser.slice_in_stack(window, k - lo, received, k, 3.0)
         streamed[k] = found.mask[:, :, k - lo]
         alone[k] = localiser.localise_slice(window, k - lo).mask[:, :, k - lo]
+    return streamed, alone, brain, face
+
+
+def test_a_streamed_slice_takes_the_region_the_stacks_brain_passes_through_not_the_face_beside_it() -> None:
+    """Alone, each slice of the face end takes the face (most probability); streamed in interleaved
+    order (even slices first) with the maps of the slices received before it, it takes the brain
+    the stack's geometry finds. Slices of the face alone, past the brain, are judged alone."""
+    n = 20
+    streamed, alone, brain, face = _streamed_face_end([*range(0, n, 2), *range(1, n, 2)])
     for k in range(12, 16):                                   # the brain and the face beside it
         assert (alone[k] & face[:, :, k]).any() and not (alone[k] & brain[:, :, k]).any()
         assert (streamed[k] & brain[:, :, k]).sum() > 0.8 * brain[:, :, k].sum() and not (streamed[k] & face[:, :, k]).any()
-    for k in (16, 17):                                        # the face alone, just past the brain
-        assert alone[k].any() and not streamed[k].any()
-    for k in range(2, 12):                                    # the brain alone: either way
-        assert np.array_equal(streamed[k], alone[k]) and (streamed[k] & brain[:, :, k]).any()
+    for k in (*range(2, 12), 16, 17):                         # the brain alone, the face alone: either way
+        assert np.array_equal(streamed[k], alone[k]) and streamed[k].any()
+
+
+def test_a_stack_whose_face_end_arrives_first_loses_no_brain_slice() -> None:
+    """Sent from the face end (the received maps' largest object is first the face), every slice that
+    shows the brain alone still gets it: where the received maps' brain (the face) does not reach a
+    slice, the slice is judged alone."""
+    streamed, alone, brain, face = _streamed_face_end(list(range(19, -1, -1)))
+    for k in range(2, 12):
+        assert (streamed[k] & brain[:, :, k]).sum() > 0.8 * brain[:, :, k].sum(), k
+    assert all((streamed[k] & brain[:, :, k]).any() or not (alone[k] & brain[:, :, k]).any() for k in range(20))
