@@ -2,9 +2,8 @@
 
 The stages are those of ``/v1/predict`` (:mod:`service.pipeline.predict`), run at three moments:
 
-1. **A slice arrives** (:meth:`StreamSession.add_slice`): its brain (the sent mask, else the
-   localiser on the slice and its received neighbours, the region of it that the brain of the
-   stack's slices received so far passes through:
+1. **A slice arrives** (:meth:`StreamSession.add_slice`): its brain (the sent mask, else the localiser on the
+   slice and its received neighbours, where the brain of the stack's received slices passes through it:
    :meth:`~service.preprocess.localise.Localiser.slice_in_stack`), the service's slice preprocessing, MC-dropout
    inference and the twin-aware statistics of that slice alone. Where the stack's model has already
    decided the stack's left-right branch, the slice takes the twin nearer to where that model puts
