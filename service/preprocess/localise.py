@@ -280,7 +280,8 @@ class Localiser:
         window's) settle it where they can: the geometry that settles a whole stack
         (:func:`brain_from_probabilities`) finds the brain in the received maps (the
         :data:`MAX_STACK_MAPS` nearest this slice), stacked in index order, and its region in this
-        slice is the slice's brain. Where it misses this slice but holds one of the two on either
+        slice is the slice's brain (unless a sliver, under :data:`MIN_SLICE_AREA_MM2`: then the
+        slice tells better). Where it misses this slice but holds one of the two on either
         side (past the brain's end, or a slice it trimmed), the candidate that reaches within
         :data:`~service.preprocess.brain_shape.OUTLIER_MARGIN_MM` of that slice's region is.
         Otherwise (no brain of two slices or more and :data:`MIN_CONFIDENCE` in the received maps,
@@ -328,8 +329,10 @@ class Localiser:
         rows = np.flatnonzero(brain.reshape(len(order), -1).any(1))
         if confidence < MIN_CONFIDENCE or len(rows) < 2:
             return None
-        if brain[at].any():
+        if brain[at].sum() * self.grid_mm ** 2 >= MIN_SLICE_AREA_MM2:
             return brain[at]
+        if brain[at].any():                       # a sliver of what the maps hold: this slice tells better
+            return None
         beside = int(rows[np.argmin(np.abs(np.asarray(order)[rows] - index))])
         if abs(order[beside] - index) > 2:
             return None

@@ -281,3 +281,24 @@ def test_a_stack_whose_face_end_arrives_first_loses_no_brain_slice() -> None:
     for k in range(2, 12):
         assert (streamed[k] & brain[:, :, k]).sum() > 0.8 * brain[:, :, k].sum(), k
     assert all((streamed[k] & brain[:, :, k]).any() or not (alone[k] & brain[:, :, k]).any() for k in range(20))
+
+
+def test_a_sliver_of_the_received_slices_brain_does_not_overrule_the_slice() -> None:
+    """The received slices' brain (a blob in slices 0-5) reaches the new slice 6 as a sliver of 4
+    pixels beside a large region of its own: the slice is judged alone and keeps that region, where
+    the sliver alone would have been too small to be a brain."""
+    array = np.full((48, 48, 7), 0.02, np.float32)
+    array[4:20, 4:20, :6] = 0.9
+    array[4:6, 4:6, 6] = 0.9                                  # what is left of the blob in slice 6
+    array[26:46, 24:46, 6] = 0.9                              # the slice's own region
+    volume = Volume(array, np.diag([2.5, 2.5, 3.0, 1.0]))
+    localiser = _ProbabilityLocaliser()
+    received = {}
+    for k in range(6):
+        window = Volume(np.ascontiguousarray(array[:, :, k:k + 1]),
+                        volume.affine @ np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, k], [0, 0, 0, 1.0]]))
+        _, received[k] = localiser.slice_in_stack(window, 0, received, k, 3.0)
+    window = Volume(np.ascontiguousarray(array[:, :, 6:7]),
+                    volume.affine @ np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 6], [0, 0, 0, 1.0]]))
+    found, _ = localiser.slice_in_stack(window, 0, received, 6, 3.0)
+    assert found.mask[26:46, 24:46, 0].all() and not found.mask[4:6, 4:6, 0].any()
