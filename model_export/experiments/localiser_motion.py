@@ -35,9 +35,9 @@ BRAIN_SLICE_MM2 = 300.0
 FIRST_SEED = 5_000_000
 
 
-def missed_slices(localiser: Localiser, scene) -> tuple[int, int, int]:  # noqa: ANN001
-    """Of ``scene``'s brain slices: how many, how many its mask mostly misses, and how many of those
-    the network found before the geometry."""
+def scene_scores(localiser: Localiser, scene) -> tuple[float, int, int, int]:  # noqa: ANN001
+    """The mask's Dice on ``scene``, and of its brain slices: how many, how many the mask mostly
+    misses, and how many of those the network found before the geometry (one network run)."""
     truth = scene.mask
     prob, grid = localiser.probabilities(scene.volume)
     found = localiser.settle(scene.volume, prob, grid).mask
@@ -46,7 +46,8 @@ def missed_slices(localiser: Localiser, scene) -> tuple[int, int, int]:  # noqa:
     true_area = truth.reshape(-1, truth.shape[2]).sum(0)
     brain = true_area * scene.volume.spacing[0] * scene.volume.spacing[1] > BRAIN_SLICE_MM2
     missed = brain & (per_slice(found) < 0.5 * true_area)
-    return int(brain.sum()), int(missed.sum()), int((missed & (per_slice(network) >= 0.5 * true_area)).sum())
+    return (dice(found, truth), int(brain.sum()), int(missed.sum()),
+            int((missed & (per_slice(network) >= 0.5 * true_area)).sum()))
 
 
 def main() -> None:
@@ -64,8 +65,9 @@ def main() -> None:
         for i in range(args.scenes):
             scene = synth_scene(heads[i % len(heads)], np.random.default_rng(FIRST_SEED + i), "heldout",
                                 random_contrast=False, motion=motion)
-            scores.append(dice(localiser.localise(scene.volume).mask, scene.mask))
-            counts += missed_slices(localiser, scene)
+            score, *slices = scene_scores(localiser, scene)
+            scores.append(score)
+            counts += slices
         d = np.array(scores)
         label = motion or "the generator's own drift"
         print(f"{label}: Dice median {np.median(d):.3f} mean {d.mean():.3f} min "

@@ -83,7 +83,7 @@ class _Slice:
     estimate: PoseEstimate
     network_from_voxel: NDArray[np.float64]          # [1, 4, 4] sent voxel -> this slice's network frame
     answer: SliceAnswer | None = None
-    brain_map: NDArray | None = None                 # its localiser probabilities (network grid), without a mask
+    brain_map: NDArray | None = None                 # its localiser map (network grid) while its stack is open
 
 
 @dataclass
@@ -115,7 +115,6 @@ class StreamSession:
         self.masks_hold_csf = options.masks_hold_csf
         self.stacks: dict[str, StreamedStack] = {}
         self.slices: dict[str, dict[int, _Slice]] = {}
-        self.brain_maps: dict[str, dict[int, NDArray]] = {}   # per stack still open: each localised slice's map
         self.fits: dict[str, StackPoses] = {}
         self.placement_errors: dict[str, float | None] = {}   # how far off each fit's placement puts a new slice (mm)
         self.firmed: dict[str, int] = {}
@@ -153,7 +152,7 @@ class StreamSession:
             self.stacks[frame.stack] = stack
             self.held_bytes += size
             neighbours = self._neighbours(stack, frame.index)
-            received = dict(self.brain_maps.get(frame.stack, {}))
+            received = {k: st.brain_map for k, st in self.slices.get(frame.stack, {}).items() if st.brain_map is not None}
             step_mm = stack.step_mm()
             fit, placement_mm = self.fits.get(frame.stack), self.placement_errors.get(frame.stack)   # of one firm-up
         try:
@@ -169,8 +168,6 @@ class StreamSession:
         kept = array_bytes(state.prepared, state.estimate, [state.brain_map], besides=(frame.pixels,))   # beside its pixels
         with self._lock:
             self.slices.setdefault(frame.stack, {})[frame.index] = state
-            if state.brain_map is not None:
-                self.brain_maps.setdefault(frame.stack, {})[frame.index] = state.brain_map
             state.answer = answer
             self.held_bytes += kept
         answer.compute_ms = (time.perf_counter() - t0) * 1e3
@@ -339,7 +336,6 @@ class StreamSession:
             for state in self.slices.get(stack, {}).values():     # its slices' maps serve no later slice
                 self.held_bytes -= array_bytes([state.brain_map])
                 state.brain_map = None
-            self.brain_maps.pop(stack, None)
             updates = []
             for name, p in zip(names, predictions):
                 sent = self.stacks[name].frames
