@@ -40,7 +40,7 @@ from service.io.headers import clean_header, declared_values, geometry_problem
 from service.io.limits import DecodeBudget, FileBudget
 from service.io.nifti_header import (MAX_SHEAR_COS, NiftiTransforms, missing_voxel_size, orientation_problem,
                                      qform_problem, read_transforms, sform_problem)
-from service.io.volume import Volume, from_sitk, placed_by_header
+from service.io.volume import Volume, from_sitk, magnitude, placed_by_header
 
 SUFFIX_BY_KIND = {"nifti": ".nii", "nifti-gz": ".nii.gz", "nrrd": ".nrrd", "mha": ".mha"}
 MAX_DECODED_BYTES = 128 * 2**20
@@ -300,7 +300,8 @@ def _squeeze_4d(image: sitk.Image, filename: str) -> sitk.Image:
 
 
 def validate(vol: Volume, filename: str) -> Volume:
-    """Reject volumes the service cannot use."""
+    """Reject volumes the service cannot use; the values of the others as float32 magnitudes
+    (:func:`~service.io.volume.magnitude`: a file stored with an offset gets its background at 0)."""
     a = vol.array
     if a.ndim != 3:
         raise UnusableImage(f"{filename}: {a.ndim}D image; a 3D stack is required")
@@ -320,7 +321,7 @@ def validate(vol: Volume, filename: str) -> Volume:
                             "not 90); resample the stack to a grid with axes at right angles")
     if (problem := grid_problem(vol.affine, a.shape)) is not None:
         raise UnusableImage(f"{filename}: {problem}")
-    return replace(vol, array=a)
+    return replace(vol, array=magnitude(a))
 
 
 __all__ = ["read_upload", "sniff", "validate"]

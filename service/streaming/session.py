@@ -45,7 +45,7 @@ from service.geometry import anchors, twin
 from service.geometry.twin import DEFAULT_PLANE_X_MM
 from service.inference import acceptance
 from service.inference.estimator import PoseEstimate, PoseEstimator
-from service.io.volume import Volume
+from service.io.volume import Volume, magnitude
 from service.pipeline.predict import StackPrediction, add_unseen_errors, estimate_stacks, judge, predict_from_estimates
 from service.pipeline.prepare import PreparedStack, StackUpload, prepare_stack
 from service.preprocess.localise import Localisation, Localiser
@@ -131,6 +131,7 @@ class StreamSession:
         unchanged, when the slice cannot be taken)."""
         t0 = time.perf_counter()
         check_frame(frame, self.limits.max_pixels)
+        frame = replace(frame, pixels=magnitude(np.asarray(frame.pixels, np.float32)))   # as a file's values are read
         with self._lock:
             if frame.stack in self.ended:
                 raise InvalidParameter(f"slice.stack: stack {frame.stack!r} has ended; send a new stack under a new name")

@@ -247,6 +247,35 @@ def test_where_the_files_put_the_scanners_origin_changes_no_pose(oracle, oracle_
                                        np.array(here["consistency"][key]) @ translate(-shift), atol=1e-3)
 
 
+def test_stacks_stored_with_an_offset_or_as_z_scores_get_what_their_magnitudes_get(oracle, oracle_client,
+                                                                                     tmp_path: Path) -> None:
+    """A magnitude image stored with values below zero (a signed export's offset, a z-score) is the same
+    image: with N4 and every stage on, the network sees the same inputs and the answer is the same
+    (before, N4 clipped the dark half of a z-scored brain to 0 and the localiser's scaling took the
+    offset for the image)."""
+    files, truths = two_still_stacks(tmp_path)
+    oracle.truth = stacks_apart(truths, np.random.default_rng(9), 3.0, 1.0)
+    oracle.spread_mm = 3.0
+    stored = {"offset": lambda a: a - 1000.0, "z-score": lambda a: (a - a.mean()) / a.std()}
+    answers, inputs = {}, {}
+    for how in ("as acquired", *stored):
+        upload = []
+        for field, (name, data) in files:
+            if how != "as acquired" and field == "stacks":
+                (tmp_path / name).write_bytes(data)
+                vol = read_volume(tmp_path / name)
+                write_volume(Volume(stored[how](vol.array.astype(np.float32)), vol.affine), tmp_path / f"{how}-{name}")
+                data = (tmp_path / f"{how}-{name}").read_bytes()
+            upload.append((field, (name, data)))
+        r = oracle_client.post("/v1/predict", files=upload, data={"bias_correction": "true", "mc_samples": "5"})
+        assert r.status_code == 200, r.text
+        answers[how] = np.array([s["atlas_from_voxel"] for st in r.json()["stacks"] for s in st["slices"]])
+        inputs[how] = oracle.seen.copy()
+    for how in stored:
+        np.testing.assert_allclose(inputs[how], inputs["as acquired"], atol=0.05)
+        np.testing.assert_allclose(answers[how], answers["as acquired"], atol=1e-3)
+
+
 def test_the_same_stacks_in_another_order_get_the_same_poses(oracle, oracle_client, tmp_path: Path) -> None:
     """Two stacks of a still fetus, the network off per stack and per slice, every stage on: sent the
     other way round (stacks and masks), each stack's slices get the same ``atlas_from_voxel``."""

@@ -224,7 +224,7 @@ def test_an_enhanced_multiframe_s_rescale_is_each_frame_s_own(tmp_path: Path, wh
                           [np.array([-40.0, 20.0, 35.0]) + 3.3 * d * NORMAL for d in range(n)],
                           shared_orientation=[*ROW, *COL])
     ds = pydicom.dcmread(path)
-    slopes, intercepts = ([1.0, 2.0, 0.5, 4.0], [0.0, 10.0, -5.0, 0.0]) if where == "per frame" else ([3.0] * n, [-1000.0] * n)
+    slopes, intercepts = ([1.0, 2.0, 0.5, 4.0], [0.0, 10.0, -5.0, 0.0]) if where == "per frame" else ([3.0] * n, [-200.0] * n)
     for f in range(n) if where == "per frame" else [None]:
         transform = Dataset()
         transform.RescaleSlope, transform.RescaleIntercept, transform.RescaleType = slopes[f or 0], intercepts[f or 0], "US"

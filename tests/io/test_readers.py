@@ -432,3 +432,34 @@ def test_finite_voxels_beyond_float32s_range_are_422_not_read_as_infinite(tmp_pa
     with pytest.raises(UnusableImage) as info:
         read_upload(path, path.name)
     assert path.name in info.value.detail and "float32" in info.value.detail
+
+
+@pytest.mark.parametrize("stored", ["offset int16", "z-score float32"])
+def test_a_file_stored_with_an_offset_is_read_as_its_magnitudes(tmp_path: Path, stored: str) -> None:
+    """A magnitude image stored with values below zero (a signed export's offset, a z-score) is read
+    with its background at 0, as the scanner's own file would be: the same values (a z-score up to
+    its scale), where before its brain sat on a negative floor that the localiser's percentile
+    scaling and N4's multiplicative model cannot take."""
+    rng = np.random.default_rng(3)
+    magnitudes = np.zeros((6, 40, 40), np.float32)
+    magnitudes[:, 10:30, 12:28] = rng.uniform(100, 900, (6, 20, 16)).round()
+    if stored == "offset int16":
+        array, scale = (magnitudes - 1024).astype(np.int16), 1.0
+    else:
+        scale = float(magnitudes.std())
+        array = ((magnitudes - magnitudes.mean()) / scale).astype(np.float32)
+    image = sitk.GetImageFromArray(array)
+    image.SetSpacing((1.0, 1.0, 3.0))
+    path = tmp_path / "stack.nii.gz"
+    sitk.WriteImage(image, str(path))
+    read = read_upload(path, path.name).array.transpose(2, 1, 0)
+    assert read.min() == 0.0
+    np.testing.assert_allclose(read * scale, magnitudes, atol=1e-3 * magnitudes.max())
+
+
+def test_a_file_without_negative_values_is_read_as_it_is(tmp_path: Path) -> None:
+    array = np.random.default_rng(4).uniform(5, 50, (6, 20, 20)).astype(np.float32)
+    image = sitk.GetImageFromArray(array)
+    image.SetSpacing((1.0, 1.0, 3.0))
+    sitk.WriteImage(image, str(tmp_path / "s.nii"))
+    np.testing.assert_array_equal(read_upload(tmp_path / "s.nii", "s.nii").array.transpose(2, 1, 0), array)

@@ -284,3 +284,19 @@ def test_one_mc_pass_gives_streamed_poses_without_an_expected_error_and_accepts_
     final = session.end_stack(stacks[0][0].stack).prediction
     for p in [a.prediction for a in answers] + [final]:
         assert np.isnan(p.poses.expected_error_mm).all() and all(r == "high_variance" for r in p.reasons)
+
+
+def test_slices_sent_with_an_offset_are_held_as_their_magnitudes(case) -> None:  # noqa: ANN001
+    """A scanner or converter that sends signed values (the magnitudes less 1000) sends the same image:
+    the session holds each slice as its magnitudes, as ``/v1/predict`` reads a file so stored, and
+    shows the network what the magnitudes show it."""
+    oracle, stacks, _ = case
+    plain, shifted = StreamSession(oracle, None, options=FAST), StreamSession(oracle, None, options=FAST)
+    for frame in stacks[0][:6]:
+        a = plain.add_slice(frame)
+        b = shifted.add_slice(SliceFrame(frame.stack, frame.index, np.asarray(frame.pixels) - 1000.0,
+                                         frame.scanner_from_voxel, frame.mask))
+        np.testing.assert_allclose(b.prediction.prepared.prepared.inputs[b.row],
+                                   a.prediction.prepared.prepared.inputs[a.row], atol=0.05)
+    name = stacks[0][0].stack
+    np.testing.assert_allclose(shifted.stacks[name].volume()[0].array, plain.stacks[name].volume()[0].array, atol=1e-3)
