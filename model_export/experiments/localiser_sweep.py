@@ -16,7 +16,9 @@ the Dice against the rewritten mask, per stack and as the median and minimum per
 * ``gamma0.6``, ``gamma1.6``: another contrast; ``noise``: Rician noise of 6 % of the bright end;
   ``shading``: a smooth field over a factor of 3 across the field of view; ``scale1e3``: another
   intensity range;
-* ``every2nd``: every other slice (slices twice as far apart).
+* ``every2nd``: every other slice (slices twice as far apart);
+* ``first-half``, ``last-half``, ``brain-slab``: a stack that covers part of the brain (up to or
+  from its middle slice, with what lies beyond its end), or the brain's slices alone.
 
 A localiser whose masks hold under every rewrite does not depend on what one scanner writes.
 ``--single-pass`` runs the network without its mirror-image pass (:attr:`Localiser.mirrored`);
@@ -132,6 +134,14 @@ def rewrites(volume: Volume, mask: NDArray[np.bool_], rng: np.random.Generator) 
     doubled = np.eye(4)
     doubled[axis, axis] = 2.0
     yield "every2nd", Volume(np.ascontiguousarray(image[tuple(keep)]), volume.affine @ doubled), mask[tuple(keep)]
+    brain = np.flatnonzero(np.moveaxis(mask, axis, 0).reshape(mask.shape[axis], -1).any(axis=1))
+    if len(brain):
+        middle = (brain[0] + brain[-1] + 1) // 2
+        for name, part in (("first-half", slice(0, middle)), ("last-half", slice(middle, mask.shape[axis])),
+                           ("brain-slab", slice(brain[0], brain[-1] + 1))):
+            box = [slice(None)] * 3
+            box[axis] = part
+            yield name, volume.region(tuple(box)), mask[tuple(box)]
 
 
 def main() -> None:
