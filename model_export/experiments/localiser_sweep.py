@@ -18,7 +18,9 @@ the Dice against the rewritten mask, per stack and as the median and minimum per
   intensity range;
 * ``every2nd``: every other slice (slices twice as far apart);
 * ``first-half``, ``last-half``, ``brain-slab``: a stack that covers part of the brain (up to or
-  from its middle slice, with what lies beyond its end), or the brain's slices alone.
+  from its middle slice, with what lies beyond its end), or the brain's slices alone;
+* ``zero-filled``: the brain's middle slice filled with zeros (a slice a scanner or a QC step
+  blanked; its mask is then empty too).
 
 A localiser whose masks hold under every rewrite does not depend on what one scanner writes.
 ``--single-pass`` runs the network without its mirror-image pass (:attr:`Localiser.mirrored`);
@@ -142,6 +144,11 @@ def rewrites(volume: Volume, mask: NDArray[np.bool_], rng: np.random.Generator) 
             box = [slice(None)] * 3
             box[axis] = part
             yield name, volume.region(tuple(box)), mask[tuple(box)]
+        box = [slice(None)] * 3
+        box[axis] = slice(middle, middle + 1)
+        blanked, unseen = image.copy(), mask.copy()
+        blanked[tuple(box)], unseen[tuple(box)] = 0.0, False
+        yield "zero-filled", Volume(blanked, volume.affine), unseen
 
 
 def main() -> None:

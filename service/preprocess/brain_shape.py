@@ -317,16 +317,28 @@ def largest_mass(mask: NDArray[np.bool_], prob: NDArray[np.float32]) -> NDArray[
 
 
 def brain_from_probabilities(prob: NDArray[np.float32], voxel_ml: float, grid_mm: float = 2.5,
-                             ) -> tuple[NDArray[np.bool_], float]:
+                             blank: NDArray[np.bool_] | None = None) -> tuple[NDArray[np.bool_], float]:
     """The brain's 3D component in per-slice probability maps ``[n, H, W]`` (``voxel_ml`` the volume of
     one grid voxel, ``grid_mm`` its in-plane size) and the confidence in it.
+
+    ``blank`` marks slices that hold no image (:func:`~service.preprocess.stack.blank_slices`): the
+    brain is found as if they were not there, the slices on either side next to each other, and none
+    of them is brain. A zero-filled slice would otherwise cut the brain in two, and the geometry keep
+    one half.
 
     Example (two blobs: the larger, surer one wins; the small one is dropped):
         >>> p = np.zeros((6, 20, 20), np.float32); p[1:5, 2:10, 2:10] = 0.95; p[2:3, 15:18, 15:18] = 0.6
         >>> brain, conf = brain_from_probabilities(p, voxel_ml=1.0)
         >>> int(brain.sum()), bool(brain[2, 16, 16]), round(conf, 2)
         (256, False, 0.93)
+        >>> p[3] = 0.0                                  # a blank slice in the middle: the brain is joined across it
+        >>> [int(b.sum()) for b in brain_from_probabilities(p, 1.0, blank=np.arange(6) == 3)[0]]
+        [0, 64, 64, 0, 64, 0]
     """
+    if blank is not None and np.any(blank) and not np.all(blank):
+        out = np.zeros(prob.shape, bool)
+        out[~blank], confidence = brain_from_probabilities(prob[~blank], voxel_ml, grid_mm)
+        return out, confidence
     out = np.zeros(prob.shape, bool)
     above = prob >= THRESHOLD
     box = mask_box(above, [0, 0, 0])                          # every component lies inside it

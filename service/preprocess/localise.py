@@ -51,7 +51,7 @@ from service.core.settings import DEFAULT_LOCALISERS_DIR
 from service.io.volume import Volume
 from service.preprocess.brain_shape import MASK_THRESHOLD, THRESHOLD, brain_from_probabilities, margin_disk
 from service.preprocess.localiser_inputs import LocaliserGrid, localiser_inputs
-from service.preprocess.stack import mask_box, slice_axis_of, stack_axis
+from service.preprocess.stack import blank_slices, mask_box, slice_axis_of, stack_axis
 
 log = logging.getLogger(__name__)
 
@@ -252,7 +252,7 @@ class Localiser:
         (:func:`brain_from_probabilities`), back on the stack's grid."""
         axis = stack_axis(volume)
         voxel_ml = self.grid_mm ** 2 * float(volume.spacing[axis]) / 1000.0
-        brain, confidence = brain_from_probabilities(prob, voxel_ml, self.grid_mm)
+        brain, confidence = brain_from_probabilities(prob, voxel_ml, self.grid_mm, blank_slices(volume))
         if not brain.any() or confidence < MIN_CONFIDENCE:
             return Localisation.of(np.zeros(volume.array.shape, bool), volume.spacing, "network", confidence)
         box = mask_box(brain, [0, 1, 1])                     # the brain and the ring of pixels around it
@@ -267,7 +267,8 @@ class Localiser:
         return self.slice_in_stack(volume, which)[0]
 
     def slice_in_stack(self, volume: Volume, which: int, others: Mapping[int, NDArray] | None = None,
-                       index: int = 0, slice_mm: float | None = None) -> tuple[Localisation, NDArray[np.float16]]:
+                       index: int = 0, slice_mm: float | None = None,
+                       ) -> tuple[Localisation, NDArray[np.float16] | None]:
         """The brain in slice ``which`` of ``volume`` (a few neighbouring slices of a stack that is still
         being acquired), and that slice's probability map on the network grid, which later calls take
         among ``others``.
@@ -290,12 +291,16 @@ class Localiser:
         outweigh it. The chosen region's holes are filled. Its confidence multiplies how sure the
         network is inside it and the share of the slice's candidate probability it holds; below
         :data:`MIN_CONFIDENCE`, or under :data:`MIN_SLICE_AREA_MM2`, the slice has no brain. The
-        returned mask covers ``volume``, brain only in slice ``which``."""
+        returned mask covers ``volume``, brain only in slice ``which``. A slice that holds no image
+        (:func:`~service.preprocess.stack.blank_slices`) has no brain and no map: the later slices'
+        geometry joins the brain across it, as a whole stack's does."""
+        empty = Localisation.of(np.zeros(volume.array.shape, bool), volume.spacing, "network", 0.0)
+        if blank_slices(volume)[which]:
+            return empty, None
         prob, grid = self.probabilities(volume)
         p = prob[which]
         own = p.astype(np.float16)
         labels, n = ndimage.label(p >= THRESHOLD)
-        empty = Localisation.of(np.zeros(volume.array.shape, bool), volume.spacing, "network", 0.0)
         if n == 0:
             return empty, own
         mass = ndimage.sum_labels(p, labels, np.arange(1, n + 1))
@@ -317,7 +322,7 @@ class Localiser:
         candidate regions ``labels``; :meth:`slice_in_stack`): its region there as the geometry leaves
         it, or the candidate that reaches its region in a slice beside it; None where the maps do not
         tell."""
-        near = sorted((k for k, m in others.items() if k != index and m.shape == p.shape),
+        near = sorted((k for k, m in others.items() if k != index and m is not None and m.shape == p.shape),
                       key=lambda k: abs(k - index))[:MAX_STACK_MAPS - 1]
         if not near:
             return None

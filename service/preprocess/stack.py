@@ -81,6 +81,21 @@ def stack_axis(volume: Volume) -> int:
     return slice_axis_of(volume.spacing) if volume.slice_axis is None else int(volume.slice_axis)
 
 
+def blank_slices(volume: Volume) -> NDArray[np.bool_]:
+    """Per slice along the stack's slice axis, whether it holds no image: every pixel one value (a
+    slice a scanner or a converter filled with zeros where it had none, or a QC step blanked).
+
+    Example:
+        >>> v = Volume(np.random.default_rng(0).random((4, 4, 3), np.float32), np.diag([1.0, 1.0, 3.0, 1.0]))
+        >>> v.array[:, :, 1] = 0.0
+        >>> blank_slices(v).tolist()
+        [False, True, False]
+    """
+    axis = stack_axis(volume)
+    plane = tuple(a for a in range(3) if a != axis)
+    return np.asarray(volume.array.max(axis=plane) == volume.array.min(axis=plane))
+
+
 def slice_images(array: NDArray, affine: NDArray, axis: int) -> tuple[NDArray, tuple[float, float]]:
     """``[n, H, W]`` slices of a stack's ``array`` along ``axis`` (rows along the higher in-plane voxel
     axis, columns along the lower) and their ``(row_mm, col_mm)``; a view where it can be."""

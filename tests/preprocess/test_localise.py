@@ -56,6 +56,29 @@ def test_the_shipped_localiser_finds_the_brain_of_a_generated_whole_uterus_stack
     assert np.median(scores) > 0.8, scores
 
 
+def test_a_zero_filled_slice_through_the_brain_does_not_cut_it_in_two(localiser: Localiser) -> None:
+    """A slice a scanner or converter filled with zeros, in the middle of the brain, holds no image:
+    it gets no mask, and the brain on either side of it is found as in the stack without it (the
+    network sees nothing there; the geometry took the gap for the brain's end and kept one half)."""
+    from model_export.localiser.scenes import HeadModel, synth_stack
+    from service.preprocess.stack import stack_axis
+    from tests.support.phantoms import phantom_brain
+
+    head = HeadModel.from_arrays(*phantom_brain(11))
+    volume, truth = synth_stack(head, np.random.default_rng(101), "heldout")
+    axis = stack_axis(volume)
+    found = np.moveaxis(localiser.localise(volume).mask, axis, 0)
+    brain = np.flatnonzero(np.moveaxis(truth, axis, 0).reshape(truth.shape[axis], -1).any(1))
+    middle = int(brain[len(brain) // 2])
+    array = np.moveaxis(volume.array.copy(), axis, 0)
+    array[middle] = 0.0
+    blanked = np.moveaxis(localiser.localise(Volume(np.moveaxis(array, 0, axis), volume.affine)).mask, axis, 0)
+    assert not blanked[middle].any()
+    others = np.arange(len(array)) != middle
+    assert dice(blanked[others], found[others]) > 0.95
+    assert blanked[:middle].any() and blanked[middle + 1:].any()
+
+
 def test_a_stack_written_with_an_axis_reversed_gets_the_same_mask(localiser: Localiser) -> None:
     """The network sees each slice and its mirror image along the grid's W axis (the stack's first
     in-plane voxel axis): a file whose first in-plane axis runs the other way (its header saying so)
@@ -234,10 +257,11 @@ class _ProbabilityLocaliser(Localiser):
         return images.astype(np.float32), LocaliserGrid(volume.array.shape, 2, images.shape[1:], images.shape[1:], (0, 0))
 
 
-def _streamed_face_end(order: list[int]) -> tuple[dict, dict, np.ndarray, np.ndarray]:
+def _streamed_face_end(order: list[int], blank: int | None = None) -> tuple[dict, dict, np.ndarray, np.ndarray]:
     """A coronal stack whose last slices hold a face larger than the frontal lobes beside it (brain in
     slices 2-15, face in 12-17, 4 pixels apart), streamed in ``order``: each slice's mask with the maps
-    of the slices received before it, and alone; the brain and the face."""
+    of the slices received before it, and alone; the brain and the face. ``blank``: a slice sent
+    filled with zeros."""
     n = 20
     z = np.arange(n)[None, None, :]
     y, x = np.mgrid[0:64, 0:64]
@@ -246,6 +270,8 @@ def _streamed_face_end(order: list[int]) -> tuple[dict, dict, np.ndarray, np.nda
     face = (np.abs(x[..., None] - 50) < 9) & (np.abs(y[..., None] - 32) < 14) & (z >= 12) & (z <= 17)
     assert not (ndimage.binary_dilation(brain, np.ones((9, 9, 1), bool)) & face).any()
     volume = Volume(np.where(brain | face, 0.9, 0.02).astype(np.float32), np.diag([2.5, 2.5, 3.0, 1.0]))
+    if blank is not None:
+        volume.array[:, :, blank] = 0.0
     localiser = _ProbabilityLocaliser()
     received: dict[int, np.ndarray] = {}
     streamed, alone = {}, {}
@@ -281,6 +307,19 @@ def test_a_stack_whose_face_end_arrives_first_loses_no_brain_slice() -> None:
     for k in range(2, 12):
         assert (streamed[k] & brain[:, :, k]).sum() > 0.8 * brain[:, :, k].sum(), k
     assert all((streamed[k] & brain[:, :, k]).any() or not (alone[k] & brain[:, :, k]).any() for k in range(20))
+
+
+def test_a_zero_filled_streamed_slice_leaves_the_stacks_brain_whole() -> None:
+    """A slice sent filled with zeros in the middle of the brain gets no brain and leaves no map: the
+    slices after it still find the stack's brain across it, and the face end takes the brain, not
+    the face (with the blank map kept, the brain's first part alone was the received brain, which
+    reaches no slice of the face end)."""
+    n = 20
+    streamed, _, brain, face = _streamed_face_end([*range(0, n, 2), *range(1, n, 2)], blank=10)
+    assert not streamed[10].any()
+    for k in range(12, 16):
+        assert (streamed[k] & brain[:, :, k]).sum() > 0.8 * brain[:, :, k].sum(), k
+        assert not (streamed[k] & face[:, :, k]).any(), k
 
 
 def test_a_sliver_of_the_received_slices_brain_does_not_overrule_the_slice() -> None:
