@@ -26,7 +26,7 @@ from service.consistency.slice_order import MAX_TEXT, PATTERN, VALUES, SliceOrde
 from service.core.errors import InvalidParameter, UnusableImage
 from service.core.names import clean_name
 from service.core.settings import Settings
-from service.pipeline.prepare import StackUpload
+from service.pipeline.prepare import StackUpload, mask_on_stack_grid
 from service.io.limits import DecodeBudget
 from service.io.readers import MAX_DECODED_BYTES, read_upload
 from service.preprocess.stack import slice_axis_of
@@ -218,8 +218,9 @@ def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: 
                   max_decoded_bytes: int = MAX_DECODED_BYTES, max_request_bytes: int | None = None,
                   masks_hold_csf: bool = False, max_slices: int | None = None) -> list[StackUpload]:
     """Write each upload to ``directory`` and read it (blocking: run in a worker thread); the masks
-    are the skull's inside with ``masks_hold_csf``; a stack of more than ``max_slices`` slices is
-    refused (422 naming the file).
+    are the skull's inside with ``masks_hold_csf``, each brought into its stack's voxel order where its
+    file stores the stack's voxels in another (:func:`~service.pipeline.prepare.mask_on_stack_grid`);
+    a stack of more than ``max_slices`` slices is refused (422 naming the file).
 
     Each file may decode to ``max_decoded_bytes``, all of them together to ``max_request_bytes``
     (:class:`~service.io.limits.DecodeBudget`): many bombs in one request stop at the request's limit.
@@ -240,8 +241,9 @@ def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: 
         if max_slices is not None and count > max_slices:
             raise UnusableImage(f"{name}: {count} slices; at most {max_slices} in one stack of 2D slices "
                                 "(SVRNET_MAX_SLICES_PER_STACK)")
-    return [StackUpload(jobs[i][2], volumes[i], volumes[n + i] if masks else None, jobs[n + i][2] if masks else None,
-                        mask_holds_csf=masks_hold_csf) for i in range(n)]
+    return [mask_on_stack_grid(StackUpload(jobs[i][2], volumes[i], volumes[n + i] if masks else None,
+                                           jobs[n + i][2] if masks else None, mask_holds_csf=masks_hold_csf))
+            for i in range(n)]
 
 
 def _read(upload: UploadFile, path: Path, name: str, budget: DecodeBudget):  # noqa: ANN202

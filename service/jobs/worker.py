@@ -265,7 +265,7 @@ def _name(names: dict, field: str, index: int) -> str:
 def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progress,  # noqa: ANN001
              attempt: int, localisers_dir: Path | None = None) -> None:
     from service.pipeline.predict import stack_orders
-    from service.pipeline.prepare import StackUpload
+    from service.pipeline.prepare import StackUpload, mask_on_stack_grid
     from service.io.limits import DecodeBudget
     from service.io.readers import read_upload
     from service.reconstruction.export import write_outputs
@@ -294,7 +294,8 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
             vol = replace(vol, slice_thickness_mm=float(thickness[i]))
         mname = _name(names, "masks", i) if m is not None else None
         mask = read_upload(m, mname, budget=budget.file(mname), scratch=m.parent) if m is not None else None
-        uploads.append(StackUpload(sname, vol, mask, mname, mask_holds_csf=bool(params.get("masks_hold_csf", False))))
+        uploads.append(mask_on_stack_grid(StackUpload(sname, vol, mask, mname,
+                                                      mask_holds_csf=bool(params.get("masks_hold_csf", False)))))
     poses_path = folder / "inputs" / "poses.json"
     model_file = models_dir / params.get("model", "default") / "model.onnx"
     if poses_path.exists():

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -69,6 +69,42 @@ class PreparedStack:
     def network_from_voxel(self) -> np.ndarray:
         """``[n, 4, 4]`` voxel ``(i, j, k)`` of slice ``k`` -> its network frame (the service's crop/centre)."""
         return network_from_voxel(self.prepared.input_from_network(), self.slices.slice_from_voxel)
+
+
+def mask_on_stack_grid(upload: StackUpload) -> StackUpload:
+    """``upload`` with its mask's voxels in its stack's order, where the mask's file holds the stack's
+    voxels (the same voxel centres in the world) stored in another order: axes swapped or reversed,
+    as a tool that reorients its files to a standard orientation writes them. Any other mask is left
+    as it is, for :func:`check_mask_grid` to refuse.
+
+    Example (the mask stored with its first axis reversed, its header saying so):
+        >>> from service.geometry.pose import index_reversal
+        >>> stack = Volume(np.zeros((3, 2, 2), np.float32), np.diag([1.0, 1.0, 3.0, 1.0]))
+        >>> m = np.zeros((3, 2, 2), np.uint8); m[0] = 1                  # the stack's first row of voxels
+        >>> flipped = Volume(m[::-1].copy(), np.diag([1.0, 1.0, 3.0, 1.0]) @ index_reversal(0, 3))
+        >>> mask_on_stack_grid(StackUpload("s.nii.gz", stack, flipped)).mask.array[:, 0, 0].tolist()
+        [1, 0, 0]
+    """
+    if upload.mask is None:
+        return upload
+    stack_shape, mask = upload.volume.array.shape, upload.mask
+    index = np.linalg.inv(mask.affine) @ upload.volume.affine          # stack voxel -> mask voxel
+    signed = np.round(index[:3, :3])
+    if not (np.allclose(index[:3, :3], signed, atol=1e-3) and (np.abs(signed).sum(0) == 1).all()
+            and (np.abs(signed).sum(1) == 1).all()):
+        return upload
+    order = [int(np.flatnonzero(signed[:, b])[0]) for b in range(3)]       # the mask axis of each stack axis
+    if [mask.array.shape[a] for a in order] != list(stack_shape) or order == [0, 1, 2] and (signed > 0).all():
+        return upload
+    array = np.asarray(mask.array).transpose(order)
+    reversed_axes = tuple(b for b in range(3) if signed[order[b], b] < 0)
+    array = np.flip(array, reversed_axes) if reversed_axes else array
+    taken = np.eye(4)                                                   # the new voxel -> the mask file's voxel
+    for b, a in enumerate(order):
+        taken[a, :] = 0.0
+        taken[a, b] = signed[a, b]
+        taken[a, 3] = stack_shape[b] - 1 if signed[a, b] < 0 else 0.0
+    return replace(upload, mask=replace(mask, array=np.ascontiguousarray(array), affine=mask.affine @ taken))
 
 
 def check_mask_grid(upload: StackUpload) -> None:

@@ -276,6 +276,35 @@ def test_stacks_stored_with_an_offset_or_as_z_scores_get_what_their_magnitudes_g
         np.testing.assert_allclose(answers[how], answers["as acquired"], atol=1e-3)
 
 
+def test_a_mask_file_that_stores_the_stacks_voxels_in_another_order_gives_the_same_answer(oracle, oracle_client,
+                                                                                            tmp_path: Path) -> None:
+    """Each mask written as a tool that reorients its files writes it (its first axis reversed and its
+    first two axes swapped, the header saying so: the same voxels in the world) gives the answer
+    the stack's own grid gives (it was a 422 for a grid "not the stack's")."""
+    files, truths = two_still_stacks(tmp_path)
+    oracle.truth = stacks_apart(truths, np.random.default_rng(10), 3.0, 1.0)
+    oracle.spread_mm = 3.0
+    reoriented = []
+    for field, (name, data) in files:
+        if field == "masks":
+            (tmp_path / name).write_bytes(data)
+            vol = read_volume(tmp_path / name)
+            array = np.asarray(vol.array)[::-1].transpose(1, 0, 2)
+            affine = vol.affine @ index_reversal(0, vol.array.shape[0]) @ np.eye(4)[:, [1, 0, 2, 3]]
+            write_volume(Volume(np.ascontiguousarray(array), affine), tmp_path / f"turned-{name}")
+            data = (tmp_path / f"turned-{name}").read_bytes()
+        reoriented.append((field, (name, data)))
+    answers = []
+    for upload in (files, reoriented):
+        r = oracle_client.post("/v1/predict", files=upload, data={"bias_correction": "true", "mc_samples": "5"})
+        assert r.status_code == 200, r.text
+        answers.append(r.json()["stacks"])
+    for here, there in zip(*answers):
+        assert here["localisation"] == there["localisation"]
+        np.testing.assert_allclose([s["atlas_from_voxel"] for s in there["slices"]],
+                                   [s["atlas_from_voxel"] for s in here["slices"]], atol=1e-6)
+
+
 def test_the_same_stacks_in_another_order_get_the_same_poses(oracle, oracle_client, tmp_path: Path) -> None:
     """Two stacks of a still fetus, the network off per stack and per slice, every stage on: sent the
     other way round (stacks and masks), each stack's slices get the same ``atlas_from_voxel``."""

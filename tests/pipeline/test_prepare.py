@@ -9,7 +9,10 @@ import pytest
 from service.core.settings import DEFAULT_MODELS_DIR
 from service.inference.model_file import load_model
 from service.io.volume import Volume
-from service.pipeline.prepare import StackUpload, localise, localise_uploads, prepare_stack, prepare_stacks
+from service.core.errors import UnusableImage
+from service.geometry.pose import index_reversal
+from service.pipeline.prepare import (StackUpload, check_mask_grid, localise, localise_uploads, mask_on_stack_grid,
+                                      prepare_stack, prepare_stacks)
 
 
 @pytest.fixture(scope="module")
@@ -45,3 +48,27 @@ def test_localise_uploads_gives_every_upload_its_mask_or_the_localisers(uploads:
     assert [f.method for f in found] == ["network", "mask", "network"]
     for f, u in zip(found, uploads):
         assert np.array_equal(f.mask, localise(u).mask)
+
+
+@pytest.mark.parametrize("order, reversed_axes", [((1, 0, 2), ()), ((0, 1, 2), (0, 2)), ((2, 0, 1), (1,))])
+def test_a_mask_that_stores_its_stacks_voxels_in_another_order_is_taken_in_the_stacks(
+        order: tuple[int, int, int], reversed_axes: tuple[int, ...]) -> None:
+    """A mask file that holds the stack's voxels with its axes swapped or reversed, its header saying
+    so (as a tool that reorients its files writes it), is the stack's mask: brought into the stack's
+    order, every voxel where it was in the world. A mask on another grid is left for the check to
+    refuse."""
+    rng = np.random.default_rng(6)
+    affine = np.array([[0.0, 1.1, 0.2, -30.0], [1.1, 0.0, 0.0, 20.0], [0.0, -0.05, 3.0, 5.0], [0, 0, 0, 1.0]])
+    stack = Volume(rng.random((12, 10, 5), np.float32), affine)
+    mask = rng.random((12, 10, 5)) > 0.5
+    stored, file_affine = mask, affine.copy()
+    for axis in reversed_axes:
+        stored, file_affine = stored[(slice(None),) * axis + (slice(None, None, -1),)], file_affine @ index_reversal(axis, mask.shape[axis])
+    permute = np.eye(4)[:, [*order, 3]]                                # the file's voxel -> the reversed array's voxel
+    stored, file_affine = stored.transpose(order), file_affine @ permute
+    upload = mask_on_stack_grid(StackUpload("s.nii.gz", stack, Volume(stored.astype(np.uint8), file_affine), "m.nii.gz"))
+    check_mask_grid(upload)
+    np.testing.assert_array_equal(upload.mask.array, mask)
+    shifted = Volume(mask.astype(np.uint8), affine @ np.array([[1, 0, 0, 1.0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]))
+    with pytest.raises(UnusableImage, match="m.nii.gz is not on the grid"):
+        check_mask_grid(mask_on_stack_grid(StackUpload("s.nii.gz", stack, shifted, "m.nii.gz")))
