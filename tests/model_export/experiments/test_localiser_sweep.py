@@ -70,6 +70,14 @@ def test_every_rewrite_keeps_the_mask_on_the_stacks_grid_and_the_brain_in_view()
             probe = np.array([[5, 7, 3], [30, 2, 11]])
             np.testing.assert_allclose(apply(v.affine, probe), apply(volume.affine, probe * [1, 2, 1]), atol=1e-9)
             assert np.array_equal(v.array[5, 3], volume.array[5, 6]) and np.array_equal(m, mask[:, ::2])
+        elif name in ("first-half", "last-half"):                   # part of the stack, its voxels where they were
+            first = np.linalg.solve(volume.affine, v.affine @ [0, 0, 0, 1])[:3]
+            np.testing.assert_allclose(first, np.round(first), atol=1e-9)
+            assert 0.3 < m.sum() / mask.sum() < 0.7, name
         else:
             assert np.linalg.norm(_centroid(v, m) - centre) < 0.6, name
-    assert {"base", "x-reversed", "y-reversed", "px2.0", "cropped", "fov420", "noise", "every2nd"} <= set(names)
+        if name == "zero-filled":                                    # one slice of the brain blanked, its mask too
+            blank = ~v.array.any(axis=(0, 2))
+            assert blank.sum() == 1 and mask[:, blank].any() and not m[:, blank].any()
+    assert {"base", "x-reversed", "y-reversed", "px2.0", "cropped", "fov420", "noise", "every2nd", "first-half",
+            "last-half", "brain-slab", "zero-filled"} <= set(names)
