@@ -53,7 +53,7 @@ from service.core.errors import Cancelled
 from service.io.volume import Volume
 from service.reconstruction.coarse_to_fine import START_OWN, CoarseAlignment, coarse_align
 from service.reconstruction.forward import ForwardModel, inplane_sigma_mm
-from service.reconstruction.gaussian_average import gaussian_average
+from service.reconstruction.gaussian_average import compact_brain, gaussian_average
 from service.reconstruction.grid import Grid, bounds_of, bounds_within, make_grid
 from service.reconstruction.registration import anchor_frame, register_slices
 from service.reconstruction.quality import (exclusion_reasons, held_out_groups, held_out_ncc, judged_slices,
@@ -277,7 +277,7 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
         config: tuning (:class:`ReconstructionConfig`).
 
     Returns:
-        The :class:`ReconstructionResult`.
+        The :class:`ReconstructionResult`, its volume the brain's compact body (:func:`compact_brain`).
 
     Raises:
         ValueError: if no slice is included.
@@ -397,6 +397,6 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
     if progress is not None:
         progress("done", 1.0)
     reasons = exclusion_reasons(slice_set.include, included, None if coarse is None else coarse.fit.inlier)
-    return ReconstructionResult(Volume(x.astype(np.float32), grid.affine.copy()), poses,
+    return ReconstructionResult(Volume(compact_brain(x, grid.spacing).astype(np.float32), grid.affine.copy()), poses,
                                 np.where(included, slice_weight, 0.0), included, ncc, timings, grid, reasons, coarse,
                                 quality, held_out)

@@ -123,3 +123,28 @@ def test_no_usable_slice_is_an_error(acquisition):
     ss = SliceSet.from_stacks([(vol, mask, acquisition.truth[0], np.zeros(len(acquisition.truth[0]), bool))])
     with pytest.raises(ValueError, match="no included slice"):
         reconstruct(ss)
+
+
+def test_a_slice_whose_mask_runs_on_past_the_brain_leaves_no_spike(acquisition):
+    """One slice's mask runs on past the brain as a strip 3 pixels wide (a localiser's mask at a face
+    or neck) with bright tissue in it: no other slice sees it, and the volume, from the true poses,
+    holds nothing where it ends; the brain itself is as without the strip (its NCC against the
+    phantom within 0.005 of the volume without it)."""
+    from dataclasses import replace
+
+    volume, mask = acquisition.stacks[0]
+    k = mask.shape[2] // 2
+    rows = np.flatnonzero(mask[:, :, k].any(axis=1))
+    centre = int(np.median(np.flatnonzero(mask[rows[len(rows) // 2], :, k])))
+    image, leaked = volume.array.copy(), mask.copy()
+    image[rows[-1]:, centre - 1:centre + 2, k] = 150.0                # from the brain's edge to the field's
+    leaked[rows[-1]:, centre - 1:centre + 2, k] = True
+    stacks = [(type(volume)(image, volume.affine), leaked), *acquisition.stacks[1:]]
+    result = reconstruct(replace(acquisition, stacks=stacks).slice_set(), resolution_mm=1.0, svr_iterations=0)
+    end = volume.affine @ [mask.shape[0] - 3, centre, k, 1.0]           # the strip's far end, in atlas mm
+    voxel = np.round(np.linalg.solve(result.grid.affine, end)[:3]).astype(int)
+    assert np.all((voxel >= 0) & (voxel < result.volume.array.shape))       # the field of view holds the strip
+    assert result.volume.array[tuple(voxel)] == 0.0
+    _, ncc = _scores(result, acquisition)
+    _, ncc_without = _scores(reconstruct(acquisition.slice_set(), resolution_mm=1.0, svr_iterations=0), acquisition)
+    assert ncc > ncc_without - 0.005
