@@ -351,13 +351,14 @@ def figure_reconstruction(phantom: Phantom, stacks: list[Stack], path: Path) -> 
 
 
 def figure_real_scan(recon: Path, path: Path) -> None:
-    """The three mid-planes of a reconstruction job's volume (:func:`service.reconstruction.preview.mid_planes`:
-    neurological convention), larger than the job's own preview."""
+    """The three planes of atlas space through a reconstruction job's volume
+    (:func:`service.reconstruction.preview.atlas_planes`, the job's preview's: neurological
+    convention), larger than the job's own preview."""
     from service.io.volume import read_volume
-    from service.reconstruction.preview import mid_planes
+    from service.reconstruction.preview import atlas_planes
 
-    panels = mid_planes(read_volume(recon))
-    figure, axes = plt.subplots(1, 3, figsize=(10.5, 3.8), gridspec_kw={"width_ratios": [p.width for p in panels]})
+    panels = atlas_planes(read_volume(recon))
+    figure, axes = plt.subplots(1, 3, figsize=(10.5, 3.8), gridspec_kw={"width_ratios": [p.shape[1] for p in panels]})
     for ax, panel, name in zip(axes, panels, ("sagittal", "coronal", "axial")):
         ax.imshow(np.asarray(panel), cmap="gray", vmin=0, vmax=255, interpolation="bilinear")
         ax.set_title(name, fontsize=10)
