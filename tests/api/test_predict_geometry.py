@@ -217,6 +217,29 @@ def test_two_stacks_are_refined_where_their_slices_cross(oracle, oracle_client, 
     assert relative["true"] < 0.6 * relative["false"], relative
 
 
+def rewritten(files: list[tuple], tmp_path: Path, field: str, change) -> list[tuple]:  # noqa: ANN001
+    """The upload ``files`` with each file of ``field`` (``stacks`` or ``masks``) read, changed by
+    ``change`` (a :class:`Volume` -> :class:`Volume`) and written again under its own name."""
+    out = []
+    for f, (name, data) in files:
+        if f == field:
+            (tmp_path / name).write_bytes(data)
+            write_volume(change(read_volume(tmp_path / name)), tmp_path / f"rewritten-{name}")
+            data = (tmp_path / f"rewritten-{name}").read_bytes()
+        out.append((f, (name, data)))
+    return out
+
+
+def answered(client, uploads: list[list[tuple]], **form: str) -> list[list[dict]]:  # noqa: ANN001
+    """Each upload's ``/v1/predict`` stacks (200 asserted), the form fields ``form``."""
+    answers = []
+    for upload in uploads:
+        r = client.post("/v1/predict", files=upload, data=form)
+        assert r.status_code == 200, r.text
+        answers.append(r.json()["stacks"])
+    return answers
+
+
 def test_where_the_files_put_the_scanners_origin_changes_no_pose(oracle, oracle_client, tmp_path: Path) -> None:
     """The scanner's origin (its table position) is the files' choice, not the fetus's. Two stacks of
     a still fetus, the network 2-4 deg / mm off per stack and 1 deg / 1 mm per slice, every stage on;
@@ -226,18 +249,9 @@ def test_where_the_files_put_the_scanners_origin_changes_no_pose(oracle, oracle_
     oracle.truth = stacks_apart(truths, np.random.default_rng(8), 4.0, 1.0)
     oracle.spread_mm = 3.0
     shift = np.array([200.0, 150.0, -100.0])
-    moved_files = []
-    for field, (name, data) in files:
-        (tmp_path / name).write_bytes(data)
-        vol = read_volume(tmp_path / name)
-        write_volume(Volume(vol.array, translate(shift) @ vol.affine), tmp_path / f"moved-{name}")
-        moved_files.append((field, (name, (tmp_path / f"moved-{name}").read_bytes())))
-    answers = []
-    for upload in (files, moved_files):
-        r = oracle_client.post("/v1/predict", files=upload, data={"bias_correction": "false", "mc_samples": "5"})
-        assert r.status_code == 200, r.text
-        answers.append(r.json()["stacks"])
-    for here, there in zip(*answers):
+    moved = lambda vol: Volume(vol.array, translate(shift) @ vol.affine)  # noqa: E731
+    moved_files = rewritten(rewritten(files, tmp_path, "stacks", moved), tmp_path, "masks", moved)
+    for here, there in zip(*answered(oracle_client, [files, moved_files], bias_correction="false", mc_samples="5")):
         assert here["consistency"]["decidable"] and here["consistency"]["image_consistency"] is not None
         a = np.array([s["atlas_from_voxel"] for s in here["slices"]])
         b = np.array([s["atlas_from_voxel"] for s in there["slices"]])
@@ -259,17 +273,10 @@ def test_stacks_stored_with_an_offset_or_as_z_scores_get_what_their_magnitudes_g
     stored = {"offset": lambda a: a - 1000.0, "z-score": lambda a: (a - a.mean()) / a.std()}
     answers, inputs = {}, {}
     for how in ("as acquired", *stored):
-        upload = []
-        for field, (name, data) in files:
-            if how != "as acquired" and field == "stacks":
-                (tmp_path / name).write_bytes(data)
-                vol = read_volume(tmp_path / name)
-                write_volume(Volume(stored[how](vol.array.astype(np.float32)), vol.affine), tmp_path / f"{how}-{name}")
-                data = (tmp_path / f"{how}-{name}").read_bytes()
-            upload.append((field, (name, data)))
-        r = oracle_client.post("/v1/predict", files=upload, data={"bias_correction": "true", "mc_samples": "5"})
-        assert r.status_code == 200, r.text
-        answers[how] = np.array([s["atlas_from_voxel"] for st in r.json()["stacks"] for s in st["slices"]])
+        upload = files if how == "as acquired" else rewritten(
+            files, tmp_path, "stacks", lambda vol: Volume(stored[how](vol.array.astype(np.float32)), vol.affine))
+        [stacks] = answered(oracle_client, [upload], bias_correction="true", mc_samples="5")
+        answers[how] = np.array([s["atlas_from_voxel"] for st in stacks for s in st["slices"]])
         inputs[how] = oracle.seen.copy()
     for how in stored:
         np.testing.assert_allclose(inputs[how], inputs["as acquired"], atol=0.05)
@@ -284,22 +291,12 @@ def test_a_mask_file_that_stores_the_stacks_voxels_in_another_order_gives_the_sa
     files, truths = two_still_stacks(tmp_path)
     oracle.truth = stacks_apart(truths, np.random.default_rng(10), 3.0, 1.0)
     oracle.spread_mm = 3.0
-    reoriented = []
-    for field, (name, data) in files:
-        if field == "masks":
-            (tmp_path / name).write_bytes(data)
-            vol = read_volume(tmp_path / name)
-            array = np.asarray(vol.array)[::-1].transpose(1, 0, 2)
-            affine = vol.affine @ index_reversal(0, vol.array.shape[0]) @ np.eye(4)[:, [1, 0, 2, 3]]
-            write_volume(Volume(np.ascontiguousarray(array), affine), tmp_path / f"turned-{name}")
-            data = (tmp_path / f"turned-{name}").read_bytes()
-        reoriented.append((field, (name, data)))
-    answers = []
-    for upload in (files, reoriented):
-        r = oracle_client.post("/v1/predict", files=upload, data={"bias_correction": "true", "mc_samples": "5"})
-        assert r.status_code == 200, r.text
-        answers.append(r.json()["stacks"])
-    for here, there in zip(*answers):
+    def turned(vol: Volume) -> Volume:                    # its first axis reversed, then its first two swapped
+        affine = vol.affine @ index_reversal(0, vol.array.shape[0]) @ np.eye(4)[:, [1, 0, 2, 3]]
+        return Volume(np.ascontiguousarray(np.asarray(vol.array)[::-1].transpose(1, 0, 2)), affine)
+
+    reoriented = rewritten(files, tmp_path, "masks", turned)
+    for here, there in zip(*answered(oracle_client, [files, reoriented], bias_correction="true", mc_samples="5")):
         assert here["localisation"] == there["localisation"]
         np.testing.assert_allclose([s["atlas_from_voxel"] for s in there["slices"]],
                                    [s["atlas_from_voxel"] for s in here["slices"]], atol=1e-6)
