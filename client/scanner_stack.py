@@ -120,6 +120,25 @@ def _volume(path: Path, what: str) -> tuple[NDArray, NDArray[np.float64]]:
     return data, np.asarray(img.affine, dtype=np.float64)
 
 
+def in_stack_order(mask: NDArray, mask_affine: NDArray, stack_affine: NDArray) -> tuple[NDArray, NDArray]:
+    """A mask's voxels and affine brought into its stack's axis order and directions (nibabel's
+    orientation tools), as the server takes a mask file that stores its stack's voxels in another
+    order; a mask on another grid keeps a grid that then differs from the stack's.
+
+    Example (the mask's first axis stored the other way, its affine saying so):
+        >>> stack = np.diag([1.0, 1.0, 3.0, 1.0])
+        >>> m = np.zeros((3, 2, 2), np.uint8); m[0] = 1
+        >>> flipped = stack @ np.array([[-1.0, 0, 0, 2], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+        >>> out, affine = in_stack_order(m[::-1], flipped, stack)
+        >>> out[:, 0, 0].tolist(), bool(np.allclose(affine, stack))
+        ([1, 0, 0], True)
+    """
+    ornt = nib.orientations.ornt_transform(nib.orientations.io_orientation(mask_affine),
+                                           nib.orientations.io_orientation(stack_affine))
+    affine = mask_affine @ nib.orientations.inv_ornt_aff(ornt, mask.shape)
+    return np.ascontiguousarray(nib.orientations.apply_orientation(mask, ornt)), affine
+
+
 def read_stack(path: str | Path, mask_path: str | Path | None = None, name: str | None = None) -> ScannerStack:
     """A NIfTI stack file (and its mask on the same grid) cut into the slices a scanner would send.
 
@@ -127,7 +146,8 @@ def read_stack(path: str | Path, mask_path: str | Path | None = None, name: str 
 
     Args:
         path: the stack file (``.nii`` or ``.nii.gz``).
-        mask_path: its brain mask on the same grid, or ``None`` (the server finds the brain).
+        mask_path: its brain mask on the same grid (its voxels in any axis order:
+            :func:`in_stack_order`), or ``None`` (the server finds the brain).
         name: the stack's name in the session (default: the file name without its extension).
 
     Raises:
@@ -139,7 +159,7 @@ def read_stack(path: str | Path, mask_path: str | Path | None = None, name: str 
         image = image.astype(np.float32)
     mask = None
     if mask_path is not None:
-        mask, mask_affine = _volume(Path(mask_path), "mask")
+        mask, mask_affine = in_stack_order(*_volume(Path(mask_path), "mask"), affine)
         if mask.shape != image.shape or not np.allclose(mask_affine, affine, atol=1e-3):
             raise UnusableInput(f"mask: the grid of {Path(mask_path).name} ({mask.shape}) differs from that of its "
                                 f"stack {path.name} ({image.shape})")

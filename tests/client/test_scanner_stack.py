@@ -107,3 +107,18 @@ def test_a_file_whose_header_places_its_voxels_nowhere_is_refused_as_the_server_
         read_stack(tmp_path / "old.nii.gz")
     nib.save(nib.Nifti1Image(np.ones((8, 8, 4), np.int16), np.diag([1.1, 1.1, 3.0, 1.0])), tmp_path / "scanner.nii.gz")
     assert len(read_stack(tmp_path / "scanner.nii.gz").slices) == 4
+
+
+def test_a_mask_that_stores_its_stacks_voxels_in_another_order_is_read_in_the_stacks(tmp_path: Path) -> None:
+    """A mask file written by a tool that reorients its files (the stack's voxels, its axes swapped
+    and one reversed, the affine saying so) gives each slice the mask the stack's own order gives."""
+    affine = oblique_affine((1.0, 3.0, 1.0), seed=5)
+    image = np.arange(5 * 4 * 3, dtype=np.int16).reshape(5, 4, 3)
+    mask = (image % 3 == 0).astype(np.uint8)
+    nib.save(nib.Nifti1Image(image, affine), tmp_path / "cor.nii.gz")
+    nib.save(nib.Nifti1Image(mask, affine), tmp_path / "m.nii.gz")
+    turned = affine @ np.array([[0, 0, -1, 4], [0, 1, 0, 0], [1, 0, 0, 0], [0, 0, 0, 1.0]])   # new (i,j,k) -> old (4-k, j, i)
+    nib.save(nib.Nifti1Image(np.ascontiguousarray(mask[::-1].transpose(2, 1, 0)), turned), tmp_path / "turned.nii.gz")
+    plain = read_stack(tmp_path / "cor.nii.gz", tmp_path / "m.nii.gz")
+    other = read_stack(tmp_path / "cor.nii.gz", tmp_path / "turned.nii.gz")
+    assert all(np.array_equal(a.mask, b.mask) for a, b in zip(plain.slices, other.slices))
