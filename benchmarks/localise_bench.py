@@ -61,12 +61,12 @@ def uploads() -> tuple[list[StackUpload], str]:
         return [StackUpload(name, read_volume(stack), read_volume(mask)) for name, stack, mask in masked_files(real)], \
             "real scan mial_lausanne_t30, manual masks"
     from model_export.localiser.scenes import HeadModel, synth_stack
-    from tests.support.phantoms import phantom_brain
+    from tests.support.phantoms import one_fetus_scene, phantom_brain
 
     head = HeadModel.from_arrays(*phantom_brain(11))
-    out = []
-    for seed in range(3):
-        vol, mask = synth_stack(head, np.random.default_rng(200 + seed), "heldout")
+    out = []                                 # one request's stacks: their brains where one fetus's would be
+    stacks = one_fetus_scene([synth_stack(head, np.random.default_rng(200 + seed), "heldout") for seed in range(3)])
+    for seed, (vol, mask) in enumerate(stacks):
         out.append(StackUpload(f"generated{seed}", vol, Volume(mask.astype(np.uint8), vol.affine)))
     return out, "generated whole-uterus stacks (phantom brain), true masks"
 

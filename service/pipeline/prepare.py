@@ -33,6 +33,7 @@ from service.io.volume import Volume
 from service.preprocess.bias import n4_correct
 from service.preprocess.localise import Localisation, Localiser, default_localiser
 from service.preprocess.localiser_inputs import LocaliserGrid
+from service.preprocess.one_fetus import brain_centre_mm, one_fetus
 from service.preprocess.slices import PreparedSlices, preprocess_slices
 from service.preprocess.stack import StackSlices, split_stack, stack_axis
 
@@ -165,10 +166,16 @@ def prepare_stack(upload: StackUpload, info: ModelInfo, bias_correction: bool,
 def localise_uploads(uploads: list[StackUpload], localiser: Localiser | None = None) -> list[Localisation]:
     """Each upload's localisation: its mask, else the brain ``localiser`` (default: the shipped one)
     finds, the uploads without a mask in shared network calls
-    (:meth:`~service.preprocess.localise.Localiser.localise_many`)."""
+    (:meth:`~service.preprocess.localise.Localiser.localise_many`), on the fetus the masks show."""
     missing = [u.volume for u in uploads if u.mask is None]
-    found = iter((localiser or default_localiser()).localise_many(missing) if missing else [])
+    found = iter((localiser or default_localiser()).localise_many(missing, mask_centres(uploads)) if missing else [])
     return [localise(u) if u.mask is not None else next(found) for u in uploads]
+
+
+def mask_centres(uploads: list[StackUpload]) -> list[np.ndarray]:
+    """The centres (scanner mm) of the uploaded masks' brains: where the user's fetus is."""
+    centres = [brain_centre_mm(u.mask.array > 0, u.volume.affine) for u in uploads if u.mask is not None]
+    return [c for c in centres if c is not None]
 
 
 def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction: bool,
@@ -178,20 +185,33 @@ def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction:
     The stacks without a mask go through ``localiser``'s network (default: the shipped one) one
     after the other, here; each goes on to the workers as soon as its probabilities are there, so
     that its geometry, N4 and slices are worked out beside the next stack's network passes (the
-    network runs on both cores, the rest mostly on one). Stacks with a mask start at once."""
+    network runs on both cores, the rest mostly on one). Stacks with a mask start at once. Where the
+    stacks settled on brains farther apart than a fetus moves (twins), they settle again on one
+    fetus's (:func:`~service.preprocess.one_fetus.one_fetus`: the uploaded masks', or the one most
+    of them see) and are prepared again."""
     for u in uploads:
         check_mask_grid(u)
     with ThreadPoolExecutor(max_workers=max(1, min(workers, len(uploads)))) as pool:
         futures = [pool.submit(prepare_stack, u, info, bias_correction) if u.mask is not None else None
                    for u in uploads]
+        found = {}
         for i, u in enumerate(uploads):
             if u.mask is None:
                 loc = localiser or default_localiser()
                 t = time.perf_counter()
-                found = loc.probabilities(u.volume)
-                futures[i] = pool.submit(_settle_and_prepare, u, info, bias_correction, loc, found,
+                found[i] = loc.probabilities(u.volume)
+                futures[i] = pool.submit(_settle_and_prepare, u, info, bias_correction, loc, found[i],
                                          time.perf_counter() - t)
-        return [f.result() for f in futures]
+        prepared = [f.result() for f in futures]
+    if len(found) and len(uploads) > 1:                 # every stack on one fetus's brain (twins)
+        which = sorted(found)
+        again = one_fetus(localiser or default_localiser(), [uploads[i].volume for i in which],
+                          [found[i] for i in which], [prepared[i].localisation for i in which], mask_centres(uploads))
+        for i, localisation in zip(which, again):
+            if localisation is not prepared[i].localisation:
+                prepared[i] = prepare_stack(uploads[i], info, bias_correction,
+                                            found=(localisation, prepared[i].timings["localisation"]))
+    return prepared
 
 
 def _settle_and_prepare(upload: StackUpload, info: ModelInfo, bias_correction: bool, localiser: Localiser,

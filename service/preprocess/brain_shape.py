@@ -317,14 +317,16 @@ def largest_mass(mask: NDArray[np.bool_], prob: NDArray[np.float32]) -> NDArray[
 
 
 def brain_from_probabilities(prob: NDArray[np.float32], voxel_ml: float, grid_mm: float = 2.5,
-                             blank: NDArray[np.bool_] | None = None) -> tuple[NDArray[np.bool_], float]:
+                             blank: NDArray[np.bool_] | None = None, prefer: NDArray[np.bool_] | None = None,
+                             ) -> tuple[NDArray[np.bool_], float]:
     """The brain's 3D component in per-slice probability maps ``[n, H, W]`` (``voxel_ml`` the volume of
     one grid voxel, ``grid_mm`` its in-plane size) and the confidence in it.
 
     ``blank`` marks slices that hold no image (:func:`~service.preprocess.stack.blank_slices`): the
     brain is found as if they were not there, the slices on either side next to each other, and none
     of them is brain. A zero-filled slice would otherwise cut the brain in two, and the geometry keep
-    one half.
+    one half. ``prefer`` (the grid's pixels where the request's fetus is,
+    :mod:`~service.preprocess.one_fetus`): only the components that reach into it compete.
 
     Example (two blobs: the larger, surer one wins; the small one is dropped):
         >>> p = np.zeros((6, 20, 20), np.float32); p[1:5, 2:10, 2:10] = 0.95; p[2:3, 15:18, 15:18] = 0.6
@@ -337,7 +339,8 @@ def brain_from_probabilities(prob: NDArray[np.float32], voxel_ml: float, grid_mm
     """
     if blank is not None and np.any(blank) and not np.all(blank):
         out = np.zeros(prob.shape, bool)
-        out[~blank], confidence = brain_from_probabilities(prob[~blank], voxel_ml, grid_mm)
+        out[~blank], confidence = brain_from_probabilities(prob[~blank], voxel_ml, grid_mm,
+                                                           prefer=None if prefer is None else prefer[~blank])
         return out, confidence
     out = np.zeros(prob.shape, bool)
     above = prob >= THRESHOLD
@@ -348,7 +351,13 @@ def brain_from_probabilities(prob: NDArray[np.float32], voxel_ml: float, grid_mm
     labels, n = ndimage.label(above[box], structure=np.ones((3, 3, 3), bool))
     mass = np.bincount(labels.ravel(), weights=p.ravel(), minlength=n + 1)[1:]
     volume_of = np.bincount(labels.ravel(), minlength=n + 1)[1:] * voxel_ml
-    best = int(np.argmax(mass * plausibility(volume_of) + 1e-6 * mass)) + 1
+    score = mass * plausibility(volume_of) + 1e-6 * mass
+    if prefer is not None:
+        reaching = np.bincount(labels[np.asarray(prefer, bool)[box]], minlength=n + 1)[1:] > 0
+        if not reaching.any():
+            return out, 0.0
+        score = np.where(reaching, score, -1.0)
+    best = int(np.argmax(score)) + 1
     brain = cut_at_waists(labels == best, p)
     brain = trim_to_head_ellipses(trim_growing_caps(trim_outlier_slices(brain, grid_mm), grid_mm), grid_mm)
     brain = fill_holes_in_plane(largest_mass(brain, p))

@@ -51,6 +51,7 @@ from service.core.settings import DEFAULT_LOCALISERS_DIR
 from service.io.volume import Volume
 from service.preprocess.brain_shape import MASK_THRESHOLD, THRESHOLD, brain_from_probabilities, margin_disk
 from service.preprocess.localiser_inputs import LocaliserGrid, localiser_inputs
+from service.preprocess.one_fetus import one_fetus
 from service.preprocess.stack import blank_slices, mask_box, slice_axis_of, stack_axis
 
 log = logging.getLogger(__name__)
@@ -242,17 +243,23 @@ class Localiser:
         """The brain mask of ``volume`` on its own grid, its volume and the confidence."""
         return self.localise_many([volume])[0]
 
-    def localise_many(self, volumes: list[Volume]) -> list[Localisation]:
-        """:meth:`localise` for each of ``volumes``, the network run on their slices together
+    def localise_many(self, volumes: list[Volume], fixed: list[NDArray] | None = None) -> list[Localisation]:
+        """:meth:`localise` for each of ``volumes`` (one request's stacks: every one on the same
+        fetus's brain, :func:`~service.preprocess.one_fetus.one_fetus`; ``fixed``: the centres of the
+        request's uploaded masks, scanner mm), the network run on their slices together
         (:meth:`probabilities_of`)."""
-        return [self.settle(v, prob, grid) for v, (prob, grid) in zip(volumes, self.probabilities_of(volumes))]
+        found = self.probabilities_of(volumes)
+        return one_fetus(self, volumes, found, [self.settle(v, prob, grid) for v, (prob, grid) in zip(volumes, found)],
+                         fixed)
 
-    def settle(self, volume: Volume, prob: NDArray[np.float32], grid: LocaliserGrid) -> Localisation:
+    def settle(self, volume: Volume, prob: NDArray[np.float32], grid: LocaliserGrid,
+               prefer: NDArray[np.bool_] | None = None) -> Localisation:
         """The stack's geometry on its network probabilities (:meth:`probabilities`): one brain
-        (:func:`brain_from_probabilities`), back on the stack's grid."""
+        (:func:`brain_from_probabilities`; ``prefer``: the grid's pixels it must reach), back on the
+        stack's grid."""
         axis = stack_axis(volume)
         voxel_ml = self.grid_mm ** 2 * float(volume.spacing[axis]) / 1000.0
-        brain, confidence = brain_from_probabilities(prob, voxel_ml, self.grid_mm, blank_slices(volume))
+        brain, confidence = brain_from_probabilities(prob, voxel_ml, self.grid_mm, blank_slices(volume), prefer)
         if not brain.any() or confidence < MIN_CONFIDENCE:
             return Localisation.of(np.zeros(volume.array.shape, bool), volume.spacing, "network", confidence)
         box = mask_box(brain, [0, 1, 1])                     # the brain and the ring of pixels around it

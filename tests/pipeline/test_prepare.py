@@ -17,13 +17,14 @@ from service.pipeline.prepare import (StackUpload, check_mask_grid, localise, lo
 
 @pytest.fixture(scope="module")
 def uploads() -> list[StackUpload]:
-    """Two generated whole-uterus stacks without masks around one with its mask (a phantom's)."""
+    """Two generated whole-uterus stacks without masks around one with its mask (a phantom's), their
+    brains where one fetus's would be."""
     from model_export.localiser.scenes import HeadModel, synth_stack
-    from tests.support.phantoms import phantom_brain
+    from tests.support.phantoms import one_fetus_scene, phantom_brain
 
     image, mask, affine = phantom_brain(11)
     head = HeadModel.from_arrays(image, mask, affine)
-    found = [synth_stack(head, np.random.default_rng(300 + seed), "heldout") for seed in range(3)]
+    found = one_fetus_scene([synth_stack(head, np.random.default_rng(300 + seed), "heldout") for seed in range(3)])
     volume, truth = found[1]
     return [StackUpload("a.nii.gz", found[0][0]),
             StackUpload("b.nii.gz", volume, Volume(truth.astype(np.uint8), volume.affine), "b_mask.nii.gz"),

@@ -135,11 +135,12 @@ def test_stacks_localised_together_get_what_each_gets_alone(localiser: Localiser
     """The request's stacks share the network's calls (grids of two sizes, batches that cross stacks):
     every mask and confidence is what the stack gets on its own."""
     from model_export.localiser.scenes import HeadModel, synth_stack
-    from tests.support.phantoms import phantom_brain
+    from tests.support.phantoms import one_fetus_scene, phantom_brain
 
     image, mask, affine = phantom_brain(11)
     head = HeadModel.from_arrays(image, mask, affine)
-    volumes = [synth_stack(head, np.random.default_rng(200 + seed), "heldout")[0] for seed in range(3)]
+    volumes = [v for v, _ in one_fetus_scene([synth_stack(head, np.random.default_rng(200 + seed), "heldout")
+                                              for seed in range(3)])]
     noise = np.random.default_rng(0).random((96, 80, 7), np.float32) * 500
     volumes.insert(1, Volume(noise, np.diag([1.2, 1.2, 3.0, 1.0])))
     assert len({localiser.probabilities(v)[0].shape[1:] for v in volumes}) > 1

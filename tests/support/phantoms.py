@@ -116,3 +116,14 @@ def ellipsoid_brain_maps(n: int = 16, size: int = 48) -> np.ndarray:
     k, r, c = np.mgrid[:n, :size, :size]
     inside = ((k - (n - 1) / 2) / ((n - 1) / 2)) ** 2 + ((r - 20) / 14) ** 2 + ((c - 20) / 14) ** 2 < 1
     return np.where(inside, 0.9, 0.0).astype(np.float32)
+
+
+def one_fetus_scene(stacks: list[tuple]) -> list[tuple]:
+    """Generated stacks ``(volume, brain mask)`` of independent scenes placed as one request's stacks
+    are: each stack's brain centred on the scanner's origin (the stacks of one scan share the
+    scanner's frame, and one fetus's brain lies within a few centimetres in all of them)."""
+    from service.geometry.pose import translate
+    from service.io.volume import Volume
+    from service.preprocess.one_fetus import brain_centre_mm
+
+    return [(Volume(v.array, translate(-brain_centre_mm(m, v.affine)) @ v.affine), m) for v, m in stacks]

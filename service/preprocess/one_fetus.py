@@ -1,0 +1,89 @@
+"""One fetus per request: the brain the localiser settles on in every stack is the same fetus's.
+
+A twin pregnancy puts two heads in a whole-uterus field of view. Each stack's geometry keeps the
+brain of most (plausible) probability, and stacks of one request can settle on different heads:
+their poses then describe two brains. The stacks share the scanner's frame, so where a brain lies
+is comparable across them. Where the stacks' brains lie farther apart than a fetus moves between
+stacks (:data:`BRAIN_MOVE_MM`), the request's fetus is the place most of them agree on (weighed by
+their confidence; an uploaded mask's brain, the user's choice, decides alone), and every stack
+settles again on the brain it saw there (or keeps its own where it saw none there).
+
+Example (stacks settled 100 mm apart: two of three agree; an uploaded mask's brain decides alone):
+    >>> centres = [np.array([0.0, 0.0, 0.0]), np.array([100.0, 0.0, 0.0]), np.array([95.0, 10.0, 0.0])]
+    >>> request_centre(centres, [0.9, 0.5, 0.5], fixed=[]).tolist()
+    [100.0, 0.0, 0.0]
+    >>> request_centre(centres, [0.9, 0.5, 0.5], fixed=[np.array([3.0, 5.0, 0.0])]).tolist()
+    [3.0, 5.0, 0.0]
+    >>> request_centre(centres[1:], [0.5, 0.5], fixed=[]) is None                 # one fetus
+    True
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from service.io.volume import Volume
+from service.preprocess.localiser_inputs import LocaliserGrid, target_maps
+
+if TYPE_CHECKING:
+    from service.preprocess.localise import Localisation, Localiser
+
+BRAIN_MOVE_MM = 60.0
+"""Stacks whose brains' centres lie within this of each other see one fetus (a fetal head moves
+tens of millimetres between stacks; two fetuses' heads, side by side, have their centres 75 mm or
+more apart)."""
+CENTRE_REACH_MM = 20.0
+"""A stack's brain is the request's fetus's where it reaches within this of the fetus's centre (a
+twin's brain, its centre 75 mm or more away, ends farther from it)."""
+
+
+def brain_centre_mm(mask: NDArray, affine: NDArray) -> NDArray[np.float64] | None:
+    """The centre of a mask's voxels in scanner mm (None for an empty mask)."""
+    found = np.argwhere(np.asarray(mask, bool))
+    if len(found) == 0:
+        return None
+    return np.asarray(affine, np.float64)[:3, :3] @ found.mean(axis=0) + np.asarray(affine, np.float64)[:3, 3]
+
+
+def request_centre(centres: list[NDArray | None], confidences: list[float],
+                   fixed: list[NDArray]) -> NDArray[np.float64] | None:
+    """Where the request's fetus is: None where every brain found (and every uploaded mask's,
+    ``fixed``) lies within :data:`BRAIN_MOVE_MM` of the others; otherwise the uploaded masks' first
+    brain, or the found brain whose neighbourhood holds the most confidence."""
+    found = [(c, w) for c, w in zip(centres, confidences) if c is not None]
+    places = [np.asarray(c, np.float64) for c in fixed] + [c for c, _ in found]
+    if len(places) < 2 or max(np.linalg.norm(a - b) for a in places for b in places) <= BRAIN_MOVE_MM:
+        return None
+    if fixed:
+        return np.asarray(fixed[0], np.float64)
+    support = [sum(w for c, w in found if np.linalg.norm(c - here) <= BRAIN_MOVE_MM) for here, _ in found]
+    return np.asarray(found[int(np.argmax(support))][0], np.float64)
+
+
+def near_on_grid(volume: Volume, grid_mm: float, centre_mm: NDArray) -> NDArray[np.bool_]:
+    """The localiser grid's pixels within :data:`CENTRE_REACH_MM` of ``centre_mm`` (scanner mm), as
+    ``[n, Hp, Wp]`` maps of the stack (:func:`~service.preprocess.localiser_inputs.target_maps`)."""
+    index = np.stack(np.meshgrid(*[np.arange(n) for n in volume.array.shape], indexing="ij"), axis=-1)
+    world = index @ np.asarray(volume.affine, np.float64)[:3, :3].T + np.asarray(volume.affine, np.float64)[:3, 3]
+    near = np.linalg.norm(world - np.asarray(centre_mm, np.float64), axis=-1) <= CENTRE_REACH_MM
+    return target_maps(near, volume, grid_mm) > 0
+
+
+def one_fetus(localiser: Localiser, volumes: list[Volume], found: list[tuple[NDArray, LocaliserGrid]],
+              settled: list[Localisation], fixed: list[NDArray] | None = None) -> list[Localisation]:
+    """``settled`` (each stack's :meth:`~service.preprocess.localise.Localiser.settle` on its
+    network probabilities ``found``) where its brains are one fetus's; otherwise every stack settled
+    again on the brain that reaches within :data:`CENTRE_REACH_MM` of the request's fetus's centre
+    (:func:`request_centre`; ``fixed``: the centres of the request's uploaded masks), the other
+    fetus's left out of its choice. A stack that saw no brain there keeps its own (a fetus that
+    moved farther than :data:`BRAIN_MOVE_MM` between stacks is still found)."""
+    centres = [brain_centre_mm(s.mask, v.affine) for s, v in zip(settled, volumes)]
+    target = request_centre(centres, [s.confidence for s in settled], list(fixed or []))
+    if target is None:
+        return list(settled)
+    again = [localiser.settle(volume, prob, grid, prefer=near_on_grid(volume, localiser.grid_mm, target))
+             for volume, (prob, grid) in zip(volumes, found)]
+    return [there if there.brain_volume_ml > 0 else own for there, own in zip(again, settled)]

@@ -1,0 +1,92 @@
+"""One fetus per request: stacks of a twin pregnancy settle on the same fetus's brain."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.inference.model_file import ModelInfo
+from service.io.volume import Volume
+from service.pipeline.prepare import StackUpload, prepare_stacks
+from service.preprocess.localise import Localiser
+from service.preprocess.localiser_inputs import LocaliserGrid
+from service.preprocess.one_fetus import brain_centre_mm
+
+GRID_MM = 2.5
+
+
+class _ProbabilityLocaliser(Localiser):
+    """A localiser whose network's probability is the stack's own value (the stack on the network's
+    grid: 64 x 64 pixels of 2.5 mm, slices along the last axis)."""
+
+    def __init__(self) -> None:
+        super().__init__(None, None, GRID_MM, "test", "")           # type: ignore[arg-type]
+
+    def probabilities(self, volume: Volume):  # noqa: ANN201
+        return self.probabilities_of([volume])[0]
+
+    def probabilities_of(self, volumes: list[Volume]):  # noqa: ANN201
+        return [(np.moveaxis(v.array, 2, 0).transpose(0, 2, 1).astype(np.float32),
+                 LocaliserGrid(v.array.shape, 2, v.array.shape[:2][::-1], v.array.shape[:2][::-1], (0, 0)))
+                for v in volumes]
+
+
+def _twins(larger: str) -> Volume:
+    """A stack of two heads 100 mm apart (balls of 30 mm radius in scanner mm), the ``larger`` one
+    ("first" or "second") holding more probability."""
+    affine = np.diag([GRID_MM, GRID_MM, 4.0, 1.0])
+    affine[:3, 3] = (-80.0, -80.0, -40.0)
+    index = np.stack(np.meshgrid(np.arange(64), np.arange(64), np.arange(20), indexing="ij"), axis=-1)
+    world = index @ affine[:3, :3].T + affine[:3, 3]
+    first = np.linalg.norm(world - [-40.0, 0.0, 0.0], axis=-1) < 30.0
+    second = np.linalg.norm(world - [60.0, 0.0, 0.0], axis=-1) < (33.0 if larger == "second" else 27.0)
+    return Volume(np.where(first, 0.9, np.where(second, 0.95, 0.0)).astype(np.float32), affine)
+
+
+def test_the_stacks_of_a_twin_pregnancy_settle_on_the_brain_most_of_them_see() -> None:
+    """Two stacks see the first fetus's brain as the brain, the third the second fetus's: alone, each
+    keeps its own; as one request, all three the first (the third's second brain left out of its
+    choice), whether localised together or prepared for ``/v1/predict``."""
+    localiser = _ProbabilityLocaliser()
+    volumes = [_twins("first"), _twins("first"), _twins("second")]
+    alone = [localiser.settle(v, *localiser.probabilities(v)) for v in volumes]
+    centres = [brain_centre_mm(found.mask, v.affine) for found, v in zip(alone, volumes)]
+    assert centres[0][0] < -20 and centres[2][0] > 40                  # the third alone: the second fetus
+    together = localiser.localise_many(volumes)
+    assert all(brain_centre_mm(found.mask, v.affine)[0] < -20 for found, v in zip(together, volumes))
+    info = ModelInfo(name="m", version="0", backbone="b", label_type="anchor", input_size=32, pixel_spacing_mm=2.0,
+                     variance_threshold=1.0, dropout_p=0.1, atlas_id="a", trained_on="-", sha256="0" * 64)
+    prepared = prepare_stacks([StackUpload(f"s{i}.nii.gz", v) for i, v in enumerate(volumes)], info, False,
+                              localiser=localiser)
+    assert all(brain_centre_mm(p.localisation.mask, v.affine)[0] < -20 for p, v in zip(prepared, volumes))
+
+
+def test_an_uploaded_masks_brain_decides_which_fetus() -> None:
+    """One stack comes with a mask on the second fetus: the stacks without masks settle there too."""
+    localiser = _ProbabilityLocaliser()
+    volumes = [_twins("first"), _twins("first"), _twins("second")]
+    mask = Volume((volumes[2].array > 0.92).astype(np.uint8), volumes[2].affine)
+    uploads = [StackUpload("a.nii.gz", volumes[0]), StackUpload("b.nii.gz", volumes[1]),
+               StackUpload("c.nii.gz", volumes[2], mask, "c_mask.nii.gz")]
+    info = ModelInfo(name="m", version="0", backbone="b", label_type="anchor", input_size=32, pixel_spacing_mm=2.0,
+                     variance_threshold=1.0, dropout_p=0.1, atlas_id="a", trained_on="-", sha256="0" * 64)
+    prepared = prepare_stacks(uploads, info, False, localiser=localiser)
+    assert all(brain_centre_mm(p.localisation.mask, v.affine)[0] > 40 for p, v in zip(prepared, volumes))
+
+
+def test_stacks_of_one_fetus_are_left_as_they_settled() -> None:
+    localiser = _ProbabilityLocaliser()
+    volumes = [_twins("first"), _twins("first")]
+    alone = [localiser.settle(v, *localiser.probabilities(v)) for v in volumes]
+    together = localiser.localise_many(volumes)
+    assert all(np.array_equal(a.mask, b.mask) and a.confidence == b.confidence for a, b in zip(alone, together))
+
+
+def test_a_stack_that_sees_no_brain_where_the_others_do_keeps_its_own() -> None:
+    """A fetus that moved farther than :data:`BRAIN_MOVE_MM` between stacks: the stack whose only
+    brain lies there keeps it (there is none near the others' for it to take)."""
+    localiser = _ProbabilityLocaliser()
+    volumes = [_twins("first"), _twins("first"), _twins("second")]
+    volumes[2].array[volumes[2].array == np.float32(0.9)] = 0.0         # the third sees the second head alone
+    alone = localiser.settle(volumes[2], *localiser.probabilities(volumes[2]))
+    together = localiser.localise_many(volumes)
+    assert together[2].brain_volume_ml > 0 and np.array_equal(together[2].mask, alone.mask)
