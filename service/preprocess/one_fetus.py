@@ -66,10 +66,14 @@ def request_centre(centres: list[NDArray | None], confidences: list[float],
 def near_on_grid(volume: Volume, grid_mm: float, centre_mm: NDArray) -> NDArray[np.bool_]:
     """The localiser grid's pixels within :data:`CENTRE_REACH_MM` of ``centre_mm`` (scanner mm), as
     ``[n, Hp, Wp]`` maps of the stack (:func:`~service.preprocess.localiser_inputs.target_maps`)."""
-    index = np.stack(np.meshgrid(*[np.arange(n) for n in volume.array.shape], indexing="ij"), axis=-1)
-    world = index @ np.asarray(volume.affine, np.float64)[:3, :3].T + np.asarray(volume.affine, np.float64)[:3, 3]
-    near = np.linalg.norm(world - np.asarray(centre_mm, np.float64), axis=-1) <= CENTRE_REACH_MM
-    return target_maps(near, volume, grid_mm) > 0
+    affine = np.asarray(volume.affine, np.float64)
+    offset = affine[:3, 3] - np.asarray(centre_mm, np.float64)
+    squared = np.zeros(volume.array.shape, np.float32)
+    for c in range(3):                   # the voxels' scanner coordinates, one at a time, by broadcasting
+        along = [np.arange(n, dtype=np.float32).reshape([-1 if a == axis else 1 for a in range(3)]) * affine[c, axis]
+                 for axis, n in enumerate(volume.array.shape)]
+        squared += (along[0] + along[1] + along[2] + np.float32(offset[c])) ** 2
+    return target_maps(squared <= CENTRE_REACH_MM ** 2, volume, grid_mm) > 0
 
 
 def one_fetus(localiser: Localiser, volumes: list[Volume], found: list[tuple[NDArray, LocaliserGrid]],
