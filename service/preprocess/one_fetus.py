@@ -20,7 +20,7 @@ Example (stacks settled 100 mm apart: two of three agree; an uploaded mask's bra
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,8 +28,23 @@ from numpy.typing import NDArray
 from service.io.volume import Volume
 from service.preprocess.localiser_inputs import LocaliserGrid, target_maps
 
-if TYPE_CHECKING:
-    from service.preprocess.localise import Localisation, Localiser
+
+class Settled(Protocol):
+    """What :func:`one_fetus` reads of a stack's localisation
+    (:class:`~service.preprocess.localise.Localisation`)."""
+
+    mask: NDArray
+    confidence: float
+    brain_volume_ml: float
+
+
+class Settles(Protocol):
+    """What :func:`one_fetus` asks of a localiser (:class:`~service.preprocess.localise.Localiser`)."""
+
+    grid_mm: float
+
+    def settle(self, volume: Volume, prob: NDArray, grid: LocaliserGrid, prefer: NDArray | None = None) -> Settled:
+        ...
 
 BRAIN_MOVE_MM = 60.0
 """Stacks whose brains' centres lie within this of each other see one fetus (a fetal head moves
@@ -76,8 +91,8 @@ def near_on_grid(volume: Volume, grid_mm: float, centre_mm: NDArray) -> NDArray[
     return target_maps(squared <= CENTRE_REACH_MM ** 2, volume, grid_mm) > 0
 
 
-def one_fetus(localiser: Localiser, volumes: list[Volume], found: list[tuple[NDArray, LocaliserGrid]],
-              settled: list[Localisation], fixed: list[NDArray] | None = None) -> list[Localisation]:
+def one_fetus(localiser: Settles, volumes: list[Volume], found: list[tuple[NDArray, LocaliserGrid]],
+              settled: list[Settled], fixed: list[NDArray] | None = None) -> list[Settled]:
     """``settled`` (each stack's :meth:`~service.preprocess.localise.Localiser.settle` on its
     network probabilities ``found``) where its brains are one fetus's; otherwise every stack settled
     again on the brain that reaches within :data:`CENTRE_REACH_MM` of the request's fetus's centre
