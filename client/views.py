@@ -123,9 +123,14 @@ def predict_hints(result: dict[str, Any]) -> list[str]:
     if usable(result):
         for stack in stacks:
             if with_brain(stack.get("slices") or []) and not any(s.get("accepted") for s in stack.get("slices") or []):
-                hints.append(f"{stack.get('filename', '?')}: no slice accepted while the other stacks have some: its "
-                             "poses are too uncertain or disagree with the others (motion, a signal void); acquire "
-                             "it again if you need it")
+                fit = stack.get("consistency") or {}
+                unplaced = fit.get("branch_from_request") and not fit.get("branch_agrees_with_request")
+                hints.append(f"{stack.get('filename', '?')}: no slice accepted while the other stacks have some: " + (
+                    "its slices do not tell its left-right branch and it sits with the other stacks on neither "
+                    "(without a mask, a sagittal stack can); upload its mask with --mask, or acquire it again"
+                    if unplaced else
+                    "its poses are too uncertain or disagree with the others (motion, a signal void); acquire it "
+                    "again if you need it"))
     if slices and all(s.get("reason") == "high_variance" and s.get("geodesic_variance") is None for s in slices):
         hints.append("no slice accepted: one MC pass measures no spread (geodesic_variance null), and a pose "
                      "without one is not judged usable; send --mc-samples 100, the count the accept flags are "

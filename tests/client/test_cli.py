@@ -397,6 +397,11 @@ def test_an_answer_with_nothing_usable_says_what_to_do() -> None:
     none = {**_alone("high_expected_error")["stacks"][0], "filename": "coronal.nii.gz"}
     mixed = views.predict_hints({**PREDICT_BODY, "stacks": [*PREDICT_BODY["stacks"], none]})
     assert len(mixed) == 1 and mixed[0].startswith("coronal.nii.gz: no slice accepted while the other stacks")
+    assert "acquire it again if you need it" in mixed[0]
+    # ... and where its branch is the request's and it sits with the others on neither: a mask may help.
+    unplaced = {**none, "consistency": {"branch_from_request": True, "branch_agrees_with_request": False}}
+    hint = views.predict_hints({**PREDICT_BODY, "stacks": [*PREDICT_BODY["stacks"], unplaced]})
+    assert len(hint) == 1 and "left-right branch" in hint[0] and "--mask" in hint[0]
 
 
 def test_the_cli_prints_the_hints(fake_cli: Callable, stack_file: Path, monkeypatch: pytest.MonkeyPatch) -> None:
