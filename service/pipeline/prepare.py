@@ -203,7 +203,7 @@ def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction:
                 futures[i] = pool.submit(_settle_and_prepare, u, info, bias_correction, loc, found[i],
                                          time.perf_counter() - t)
         prepared = [f.result() for f in futures]
-    if len(found) and len(uploads) > 1:                 # every stack on one fetus's brain (twins)
+    if found and len(uploads) > 1:                      # every stack on one fetus's brain (twins)
         which = sorted(found)
         again = one_fetus(localiser or default_localiser(), [uploads[i].volume for i in which],
                           [found[i] for i in which], [prepared[i].localisation for i in which], mask_centres(uploads))

@@ -5,8 +5,8 @@ brain of most (plausible) probability, and stacks of one request can settle on d
 their poses then describe two brains. The stacks share the scanner's frame, so where a brain lies
 is comparable across them. Where the stacks' brains lie farther apart than a fetus moves between
 stacks (:data:`BRAIN_MOVE_MM`), the request's fetus is the place most of them agree on (weighed by
-their confidence; an uploaded mask's brain, the user's choice, decides alone), and every stack
-settles again on the brain it saw there (or keeps its own where it saw none there).
+their confidence; an uploaded mask's brain, the user's choice, decides alone), and every stack that
+settled elsewhere settles again on the brain it saw there (or keeps its own where it saw none there).
 
 Example (stacks settled 100 mm apart: two of three agree; an uploaded mask's brain decides alone):
     >>> centres = [np.array([0.0, 0.0, 0.0]), np.array([100.0, 0.0, 0.0]), np.array([95.0, 10.0, 0.0])]
@@ -88,14 +88,15 @@ def near_on_grid(volume: Volume, grid_mm: float, centre_mm: NDArray) -> NDArray[
         along = [np.arange(n, dtype=np.float32).reshape([-1 if a == axis else 1 for a in range(3)]) * affine[c, axis]
                  for axis, n in enumerate(volume.array.shape)]
         squared += (along[0] + along[1] + along[2] + np.float32(offset[c])) ** 2
-    return target_maps(squared <= CENTRE_REACH_MM ** 2, volume, grid_mm) > 0
+    return target_maps(squared <= CENTRE_REACH_MM ** 2, volume, grid_mm) > 0.5
 
 
 def one_fetus(localiser: Settles, volumes: list[Volume], found: list[tuple[NDArray, LocaliserGrid]],
               settled: list[Settled], fixed: list[NDArray] | None = None) -> list[Settled]:
     """``settled`` (each stack's :meth:`~service.preprocess.localise.Localiser.settle` on its
-    network probabilities ``found``) where its brains are one fetus's; otherwise every stack settled
-    again on the brain that reaches within :data:`CENTRE_REACH_MM` of the request's fetus's centre
+    network probabilities ``found``) where its brains are one fetus's; otherwise every stack whose
+    brain lies farther than :data:`BRAIN_MOVE_MM` from the request's fetus settled again on the brain
+    that reaches within :data:`CENTRE_REACH_MM` of that fetus's centre
     (:func:`request_centre`; ``fixed``: the centres of the request's uploaded masks), the other
     fetus's left out of its choice. A stack that saw no brain there keeps its own (a fetus that
     moved farther than :data:`BRAIN_MOVE_MM` between stacks is still found)."""
@@ -103,6 +104,11 @@ def one_fetus(localiser: Settles, volumes: list[Volume], found: list[tuple[NDArr
     target = request_centre(centres, [s.confidence for s in settled], list(fixed or []))
     if target is None:
         return list(settled)
-    again = [localiser.settle(volume, prob, grid, prefer=near_on_grid(volume, localiser.grid_mm, target))
-             for volume, (prob, grid) in zip(volumes, found)]
-    return [there if there.brain_volume_ml > 0 else own for there, own in zip(again, settled)]
+    out = []
+    for volume, (prob, grid), own, centre in zip(volumes, found, settled, centres):
+        if centre is not None and np.linalg.norm(centre - target) <= BRAIN_MOVE_MM:
+            out.append(own)                  # settled there already: its best brain is the one that reaches it
+            continue
+        there = localiser.settle(volume, prob, grid, prefer=near_on_grid(volume, localiser.grid_mm, target))
+        out.append(there if there.brain_volume_ml > 0 else own)
+    return out
