@@ -90,3 +90,27 @@ def test_a_stack_that_sees_no_brain_where_the_others_do_keeps_its_own() -> None:
     alone = localiser.settle(volumes[2], *localiser.probabilities(volumes[2]))
     together = localiser.localise_many(volumes)
     assert together[2].brain_volume_ml > 0 and np.array_equal(together[2].mask, alone.mask)
+
+
+def test_the_pixels_near_the_fetus_are_those_near_it_in_the_scanner() -> None:
+    """An oblique stack (1.1 mm pixels, 3.3 mm slices, turned about all three axes): the localiser
+    grid's pixels that :func:`near_on_grid` marks, brought back onto the stack's grid
+    (:meth:`LocaliserGrid.to_stack`), are its voxels within :data:`CENTRE_REACH_MM` of the centre in
+    scanner mm, to a grid pixel (2.5 mm) and a slice's half-thickness."""
+    from scipy.spatial.transform import Rotation
+
+    from service.preprocess.localiser_inputs import localiser_inputs
+    from service.preprocess.one_fetus import CENTRE_REACH_MM, near_on_grid
+
+    affine = np.eye(4)
+    affine[:3, :3] = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix() @ np.diag([1.1, 1.1, 3.3])
+    affine[:3, 3] = (-120.0, 40.0, -30.0)
+    volume = Volume(np.ones((150, 130, 24), np.float32), affine)
+    centre = affine[:3, :3] @ [80.0, 60.0, 11.0] + affine[:3, 3]
+    _, grid = localiser_inputs(volume, GRID_MM)
+    back = grid.to_stack(near_on_grid(volume, GRID_MM, centre).astype(np.float32)) > 0.5
+    index = np.stack(np.meshgrid(*[np.arange(n) for n in volume.array.shape], indexing="ij"), axis=-1)
+    distance = np.linalg.norm(index @ affine[:3, :3].T + affine[:3, 3] - centre, axis=-1)
+    slack = GRID_MM + 3.3 / 2
+    assert back[distance <= CENTRE_REACH_MM - slack].all()
+    assert not back[distance > CENTRE_REACH_MM + slack].any()
