@@ -12,7 +12,8 @@ the Dice against the rewritten mask, per stack and as the median and minimum per
 * ``px0.7``, ``px1.6``, ``px2.0``: in-plane pixels of that size (anti-aliased when coarser);
 * ``fov250``, ``fov420``: the field of view cut to 250 mm about its centre (where the brain stays
   in it) or widened to 420 mm with background; ``cropped``: cut to the head, the manual mask's
-  box and 15 mm (a stack cropped before it is sent, as other pipelines do);
+  box and 15 mm (a stack cropped before it is sent, as other pipelines do); ``cropped-tight``:
+  cut to the mask's box itself;
 * ``gamma0.6``, ``gamma1.6``: another contrast; ``noise``: Rician noise of 6 % of the bright end;
   ``shading``: a smooth field over a factor of 3 across the field of view; ``scale1e3``: another
   intensity range;
@@ -20,7 +21,12 @@ the Dice against the rewritten mask, per stack and as the median and minimum per
 * ``first-half``, ``last-half``, ``brain-slab``: a stack that covers part of the brain (up to or
   from its middle slice, with what lies beyond its end), or the brain's slices alone;
 * ``zero-filled``: the brain's middle slice filled with zeros (a slice a scanner or a QC step
-  blanked; its mask is then empty too).
+  blanked; its mask is then empty too);
+* ``wrap-u``, ``wrap-v``: the field of view cut to 70 % along one in-plane axis (a rectangular
+  field of view along the phase-encoding direction), what lies beyond it folded back over the
+  image (aliasing: the two magnitudes summed as signals of random phase), the brain kept inside;
+* ``edge0``, ``edge15``: the field of view ending at the brain's outline along one in-plane axis,
+  or 15 mm inside it (a head at the edge of the image; the mask cut alike).
 
 A localiser whose masks hold under every rewrite does not depend on what one scanner writes.
 ``--single-pass`` runs the network without its mirror-image pass (:attr:`Localiser.mirrored`);
@@ -88,6 +94,27 @@ def in_plane_pixels(volume: Volume, mask: NDArray, pixel_mm: float) -> tuple[Vol
     return Volume(image.astype(np.float32), affine), resampled
 
 
+def wrapped(volume: Volume, mask: NDArray, axis: int, share: float) -> tuple[Volume, NDArray] | None:
+    """The stack acquired with ``share`` of its field of view along ``axis`` (about the image's
+    centre, moved as little as keeps the brain inside), what lies beyond folded back over it: the
+    magnitudes of the pixels that land on one pixel combine as signals of random phase (``hypot``).
+    None where the brain does not fit."""
+    n = volume.array.shape[axis]
+    m = int(round(share * n))
+    inside = np.flatnonzero(np.moveaxis(mask, axis, 0).reshape(n, -1).any(axis=1))
+    if not len(inside) or inside[-1] - inside[0] + 1 > m:
+        return None
+    start = int(np.clip((n - m) // 2, inside[-1] + 1 - m, inside[0]))
+    image = np.moveaxis(volume.array.astype(np.float64), axis, 0)
+    folded = np.zeros((m, *image.shape[1:]))
+    for i in range(n):
+        folded[(i - start) % m] += image[i] ** 2
+    box = [slice(None)] * 3
+    box[axis] = slice(start, start + m)
+    return (Volume(np.moveaxis(np.sqrt(folded), 0, axis).astype(np.float32), volume.region(tuple(box)).affine),
+            mask[tuple(box)])
+
+
 def rewrites(volume: Volume, mask: NDArray[np.bool_], rng: np.random.Generator) -> Iterator[Rewrite]:
     """Every rewrite of the module's list, stack and mask alike."""
     yield "base", volume, mask
@@ -107,12 +134,12 @@ def rewrites(volume: Volume, mask: NDArray[np.bool_], rng: np.random.Generator) 
     if mask[tuple(box)].sum() > 0.95 * mask.sum():
         yield "fov250", volume.region(tuple(box)), mask[tuple(box)]
     found = np.argwhere(mask)
-    if len(found):
+    for name, margin_mm in (("cropped", 15), ("cropped-tight", 0)) if len(found) else ():
         head = [slice(None)] * 3
         for a in plane:
-            margin = int(round(15 / volume.spacing[a]))
+            margin = int(round(margin_mm / volume.spacing[a]))
             head[a] = slice(max(0, found[:, a].min() - margin), found[:, a].max() + 1 + margin)
-        yield "cropped", volume.region(tuple(head)), mask[tuple(head)]
+        yield name, volume.region(tuple(head)), mask[tuple(head)]
     pad = [(0, 0)] * 3
     for a in plane:
         p = max(0, int(round((420 / volume.spacing[a] - image.shape[a]) / 2)))
@@ -149,6 +176,16 @@ def rewrites(volume: Volume, mask: NDArray[np.bool_], rng: np.random.Generator) 
         blanked, unseen = image.copy(), mask.copy()
         blanked[tuple(box)], unseen[tuple(box)] = 0.0, False
         yield "zero-filled", Volume(blanked, volume.affine), unseen
+    for name, a in (("wrap-u", plane[0]), ("wrap-v", plane[1])):
+        folded = wrapped(volume, mask, a, 0.7)
+        if folded is not None:
+            yield (name, *folded)
+    if len(found):
+        a = plane[0]
+        for cut_mm in (0, 15):
+            box = [slice(None)] * 3
+            box[a] = slice(found[:, a].min() + int(round(cut_mm / volume.spacing[a])), None)
+            yield f"edge{cut_mm}", volume.region(tuple(box)), mask[tuple(box)]
 
 
 def main() -> None:

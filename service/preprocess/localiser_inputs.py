@@ -7,8 +7,10 @@ For a stack (any orientation, any in-plane pixel size, whole uterus or cropped),
    clipped to 0..2), so that no scanner's units matter;
 3. resample every slice to square pixels of ``grid_mm`` (the model's; Gaussian anti-aliasing first,
    so a 0.5 mm and a 1.5 mm acquisition look alike), its field of view kept;
-4. pad with zeros to a multiple of :data:`PAD_MULTIPLE` on each side, and to at least
-   :data:`MIN_GRID_PX`, centred;
+4. continue the image by a band of fluid (:data:`FLUID_BAND_MM` at :data:`FLUID_LEVEL`) beyond
+   each side where it ends in tissue, not in the air around the mother (:func:`open_sides`: a stack
+   cropped close to the head, a head at the image's edge), then pad with zeros to a multiple of
+   :data:`PAD_MULTIPLE` on each side, and to at least :data:`MIN_GRID_PX`, centred;
 5. stack each slice with its two neighbours along the slice axis as three channels (2.5D; the end
    slices repeat themselves).
 
@@ -17,12 +19,18 @@ For a stack (any orientation, any in-plane pixel size, whole uterus or cropped),
 Example:
     >>> import numpy as np
     >>> from service.io.volume import Volume
-    >>> vol = Volume(np.random.default_rng(0).random((100, 80, 6), np.float32), np.diag([1.25, 1.25, 3.0, 1.0]))
+    >>> body = np.pad(np.random.default_rng(0).random((90, 70, 6), np.float32), ((5, 5), (5, 5), (0, 0)))
+    >>> vol = Volume(body, np.diag([1.25, 1.25, 3.0, 1.0]))         # a field of view that ends in air
     >>> x, grid = localiser_inputs(vol, grid_mm=2.5)
     >>> x.shape                                       # 6 slices, 3 channels, 40 x 50 px padded to 64
     (6, 3, 64, 64)
+    >>> float(x[0, 1, grid.offset[0], grid.offset[1] - 1])          # zeros beyond the air
+    0.0
     >>> grid.to_stack(x[:, 1]).shape == vol.array.shape
     True
+    >>> x, grid = localiser_inputs(Volume(body[5:-5, 5:-5], vol.affine), 2.5)   # cropped to the body
+    >>> round(float(x[0, 1, grid.offset[0], grid.offset[1] - 1]), 2)             # a band of fluid beyond it
+    0.4
 """
 
 from __future__ import annotations
@@ -45,6 +53,19 @@ the head before it is sent keeps the canvas the network learnt on (fields of vie
 which it needs to see the head's poles; every field of view of the training scenes is padded
 to this size or more anyway."""
 PERCENTILE = 99.5
+SIDES = ("top", "bottom", "left", "right")
+"""A slice's sides: its first and last rows, its first and last columns."""
+OPEN_SIDE_LEVEL = 0.1
+OPEN_SIDE_SHARE = 0.5
+"""A side of a stack is open where over this share of its edge pixels (every slice's) are brighter
+than :data:`OPEN_SIDE_LEVEL` of the stack's bright end: the image ends in tissue or fluid. A
+whole-uterus field of view ends in the air around the mother on every side."""
+FLUID_BAND_MM = 20.0
+FLUID_LEVEL = 0.4
+"""The band beyond an open side (of the bright end: fluid-bright). A brain that runs into zeros is
+unlike any head the network learnt: it finds part of it, or none. Against a bright band it sees a
+brain bounded all round, as fluid and CSF bound every head it learnt (docs/reports/localiser-
+experiments.md, "A head at the edge of the image")."""
 
 
 @dataclass(frozen=True)
@@ -120,15 +141,38 @@ def _resample(images: NDArray[np.float32], pixel_mm: tuple[float, float], grid_m
                       axis_operator(w_in, float(pixel_mm[1]) / grid_mm))
 
 
-def _pad(small: NDArray[np.float32]) -> tuple[NDArray[np.float32], tuple[int, int]]:
+def open_sides(images: NDArray[np.float32]) -> frozenset[str]:
+    """The :data:`SIDES` of slices ``[n, H, W]`` (scaled to their bright end) that end in tissue.
+
+    Example (a head cropped close on its left: that side is open, the others end in air):
+        >>> images = np.zeros((3, 40, 40), np.float32); images[:, 5:35, 0:25] = 0.6
+        >>> sorted(open_sides(images))
+        ['left']
+    """
+    ends = {"top": images[:, 0], "bottom": images[:, -1], "left": images[:, :, 0], "right": images[:, :, -1]}
+    return frozenset(side for side, px in ends.items() if float((px > OPEN_SIDE_LEVEL).mean()) > OPEN_SIDE_SHARE)
+
+
+def _pad(small: NDArray[np.float32], band: tuple[int, int, int, int] = (0, 0, 0, 0), fill: float = 0.0,
+         ) -> tuple[NDArray[np.float32], tuple[int, int]]:
     """Zero-pad ``[n, h, w]`` to multiples of :data:`PAD_MULTIPLE` and at least :data:`MIN_GRID_PX`,
-    centred; returns it and its offset."""
+    centred, after a band of ``fill`` ``band`` pixels wide on each side (top, bottom, left, right);
+    returns it and the offset of ``small`` in it.
+
+    Example (a 4 x 4 slice with a 2-pixel band on its left: the band, then the slice):
+        >>> padded, (r, c) = _pad(np.ones((1, 4, 4), np.float32), (0, 0, 2, 0), fill=0.5)
+        >>> padded.shape, (r, c), padded[0, r, c - 3:c + 1].tolist()
+        ((1, 64, 64), (30, 31), [0.0, 0.5, 0.5, 1.0])
+    """
     h, w = small.shape[1:]
-    hp, wp = (max(-(-n // PAD_MULTIPLE) * PAD_MULTIPLE, MIN_GRID_PX) for n in (h, w))
-    r, c = (hp - h) // 2, (wp - w) // 2
+    top, bottom, left, right = band
+    hb, wb = h + top + bottom, w + left + right
+    hp, wp = (max(-(-n // PAD_MULTIPLE) * PAD_MULTIPLE, MIN_GRID_PX) for n in (hb, wb))
+    r, c = (hp - hb) // 2, (wp - wb) // 2
     padded = np.zeros((len(small), hp, wp), np.float32)
-    padded[:, r:r + h, c:c + w] = small
-    return padded, (r, c)
+    padded[:, r:r + hb, c:c + wb] = fill
+    padded[:, r + top:r + top + h, c + left:c + left + w] = small
+    return padded, (r + top, c + left)
 
 
 def with_neighbours(slices: NDArray[np.float32]) -> NDArray[np.float32]:
@@ -137,8 +181,8 @@ def with_neighbours(slices: NDArray[np.float32]) -> NDArray[np.float32]:
     return np.stack([ext[:-2], ext[1:-1], ext[2:]], axis=1)
 
 
-def localiser_inputs(volume: Volume, grid_mm: float) -> tuple[NDArray[np.float32], LocaliserGrid]:
-    """The network inputs ``[n, 3, Hp, Wp]`` of a stack and the grid to map outputs back with."""
+def _scaled_slices(volume: Volume) -> tuple[NDArray[np.float32], tuple[float, float], int]:
+    """A stack's slices ``[n, H, W]`` scaled to its bright end (steps 1-2), their pixel size, the slice axis."""
     axis = stack_axis(volume)
     images, pixel_mm = slice_images(volume.array, volume.affine, axis)
     images = np.asarray(images, np.float32)
@@ -147,8 +191,20 @@ def localiser_inputs(volume: Volume, grid_mm: float) -> tuple[NDArray[np.float32
         images = np.where(finite, images, np.float32(0.0))
     scale = float(np.percentile(images[:, ::3, ::3], PERCENTILE))        # every 9th pixel: as good, 30x faster
     images = np.clip(images / scale, 0.0, 2.0) if scale > 0 else np.zeros_like(images)
+    return images, pixel_mm, axis
+
+
+def _band(images: NDArray[np.float32], grid_mm: float) -> tuple[int, int, int, int]:
+    """Grid pixels of fluid band beyond each of the :data:`SIDES` (step 4)."""
+    sides, width = open_sides(images), int(round(FLUID_BAND_MM / grid_mm))
+    return tuple(width if side in sides else 0 for side in SIDES)
+
+
+def localiser_inputs(volume: Volume, grid_mm: float) -> tuple[NDArray[np.float32], LocaliserGrid]:
+    """The network inputs ``[n, 3, Hp, Wp]`` of a stack and the grid to map outputs back with."""
+    images, pixel_mm, axis = _scaled_slices(volume)
     small = _resample(images, pixel_mm, grid_mm)
-    padded, offset = _pad(small)
+    padded, offset = _pad(small, _band(images, grid_mm), FLUID_LEVEL)
     x = with_neighbours(padded)
     grid = LocaliserGrid(tuple(volume.array.shape), axis, images.shape[1:], small.shape[1:], offset)
     return np.ascontiguousarray(x), grid
@@ -158,4 +214,4 @@ def target_maps(mask: NDArray, volume: Volume, grid_mm: float) -> NDArray[np.flo
     """A stack's brain mask on the network grid ``[n, Hp, Wp]`` (brain fraction per pixel): the
     training target that matches :func:`localiser_inputs` pixel for pixel."""
     images, pixel_mm = slice_images(np.asarray(mask, np.float32), volume.affine, stack_axis(volume))
-    return _pad(np.clip(_resample(images, pixel_mm, grid_mm), 0.0, 1.0))[0]
+    return _pad(np.clip(_resample(images, pixel_mm, grid_mm), 0.0, 1.0), _band(_scaled_slices(volume)[0], grid_mm))[0]

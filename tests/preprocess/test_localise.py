@@ -131,6 +131,31 @@ def test_a_stack_cropped_to_the_head_before_it_is_sent_is_localised(localiser: L
     assert sorted(scores)[1] > 0.9, scores
 
 
+def test_a_head_at_the_edge_of_the_image_is_found_whole(localiser: Localiser) -> None:
+    """A stack cropped to the head's box, or whose field of view ends inside the brain, shows brain
+    right up to the image's end: the network sees fluid beyond that edge, not zeros, and finds the
+    brain there as it finds a whole head (zeros against the brain leave it part of the brain, or none)."""
+    from model_export.localiser.scenes import HeadModel, synth_stack
+    from tests.support.phantoms import phantom_brain
+
+    image, mask, affine = phantom_brain(11)
+    head = HeadModel.from_arrays(image, mask, affine)
+    scores = {"box": [], "cut": []}
+    for seed in range(4):
+        volume, truth = synth_stack(head, np.random.default_rng(300 + seed), "heldout")
+        axis = int(np.argmax(volume.spacing))
+        plane = [a for a in range(3) if a != axis]
+        found = np.argwhere(truth)
+        box = [slice(None)] * 3
+        for a in plane:
+            box[a] = slice(found[:, a].min(), found[:, a].max() + 1)
+        cut = [slice(None)] * 3
+        cut[plane[0]] = slice(found[:, plane[0]].min() + int(round(10 / volume.spacing[plane[0]])), None)
+        for name, b in (("box", tuple(box)), ("cut", tuple(cut))):
+            scores[name].append(dice(localiser.localise(volume.region(b)).mask, truth[b]))
+    assert np.median(scores["box"]) > 0.85 and np.median(scores["cut"]) > 0.85, scores
+
+
 def test_stacks_localised_together_get_what_each_gets_alone(localiser: Localiser) -> None:
     """The request's stacks share the network's calls (grids of two sizes, batches that cross stacks):
     every mask and confidence is what the stack gets on its own."""

@@ -58,6 +58,28 @@ def test_a_stack_cropped_to_the_head_is_padded_to_the_canvas_and_maps_back() -> 
     assert 2 * (back & brain).sum() / (back.sum() + brain.sum()) > 0.97
 
 
+def test_a_side_that_ends_in_tissue_is_continued_by_fluid_and_the_target_stays_on_the_brain() -> None:
+    """The ellipsoid's stack cut through the body on the side of its first voxel axis (the slices'
+    columns): beyond that side, and only there, the grid holds a band of fluid, FLUID_BAND_MM wide;
+    the target still lies on the image's brain, and comes back to the stack unchanged."""
+    from service.preprocess.localiser_inputs import FLUID_BAND_MM, FLUID_LEVEL
+
+    vol, brain = ellipsoid_stack(1.25, fov_mm=300.0, centre_mm=(-40.0, 0.0, 5.0))
+    start = int(np.argwhere(brain)[:, 0].min())                       # the field of view ends at the brain
+    cut, cut_brain = vol.region((slice(start, None), slice(None), slice(None))), brain[start:]
+    x, grid = localiser_inputs(cut, 2.5)
+    (r, c), (h, w) = grid.offset, grid.resampled
+    band = int(round(FLUID_BAND_MM / 2.5))
+    middle = x[:, 1, r + h // 2]                                         # a row through the middle of each slice
+    assert np.allclose(middle[:, c - band:c], FLUID_LEVEL) and np.all(middle[:, c - band - 1] == 0)
+    assert np.all(x[:, 1, r - 1, c:c + w] == 0) and np.all(x[:, 1, r + h, c:c + w] == 0)   # top, bottom: air
+    assert np.all(x[:, 1, r:r + h, c + w] == 0)                                          # the far side: air
+    target = target_maps(cut_brain, cut, 2.5)
+    assert x[:, 1][target > 0.9].min() > 0.9                          # the target is on the brain (300)
+    back = grid.to_stack(target) >= 0.5
+    assert 2 * (back & cut_brain).sum() / (back.sum() + cut_brain.sum()) > 0.97
+
+
 def test_the_network_sees_the_same_picture_at_any_pixel_size() -> None:
     fine, _ = ellipsoid_stack(0.6)
     coarse, _ = ellipsoid_stack(1.5)
