@@ -7,8 +7,9 @@ script takes every real stack with a manual mask (``NAME_brain_mask.nii.gz`` bes
 the Dice against the rewritten mask, per stack and as the median and minimum per rewrite:
 
 * ``base``: the file as it is;
-* ``slice-axis-first``, ``x-reversed``, ``y-reversed``: the same voxels stored in another order
-  (the slice axis first; the first or the second in-plane axis last to first), the header saying so;
+* ``slice-axis-first``, ``in-plane-swapped``, ``x-reversed``, ``y-reversed``: the same voxels
+  stored in another order (the slice axis first; the two in-plane axes swapped; the first or the
+  second in-plane axis last to first), the header saying so;
 * ``px0.7``, ``px1.6``, ``px2.0``: in-plane pixels of that size (anti-aliased when coarser);
 * ``fov250``, ``fov420``: the field of view cut to 250 mm about its centre (where the brain stays
   in it) or widened to 420 mm with background; ``cropped``: cut to the head, the manual mask's
@@ -26,7 +27,10 @@ the Dice against the rewritten mask, per stack and as the median and minimum per
   field of view along the phase-encoding direction), what lies beyond it folded back over the
   image (aliasing: the two magnitudes summed as signals of random phase), the brain kept inside;
 * ``edge0``, ``edge15``: the field of view ending at the brain's outline along one in-plane axis,
-  or 15 mm inside it (a head at the edge of the image; the mask cut alike).
+  or 15 mm inside it (a head at the edge of the image; the mask cut alike);
+* ``younger0.8``, ``younger0.7``: the voxels said to be 0.8 or 0.7 times their size (the header
+  alone), so that head, uterus and body are that much smaller: a younger pregnancy's scale (the
+  shared scan's brain then 180 / 120 ml, `sub-01`'s about 70 / 45 ml, as at 20-23 weeks).
 
 A localiser whose masks hold under every rewrite does not depend on what one scanner writes.
 ``--single-pass`` runs the network without its mirror-image pass (:attr:`Localiser.mirrored`);
@@ -121,6 +125,9 @@ def rewrites(volume: Volume, mask: NDArray[np.bool_], rng: np.random.Generator) 
     axis = slice_axis_of(volume.spacing)
     yield ("slice-axis-first", *reordered(volume, mask, (axis, *[a for a in range(3) if a != axis])))
     plane = [a for a in range(3) if a != axis]
+    swapped = [0, 1, 2]
+    swapped[plane[0]], swapped[plane[1]] = plane[1], plane[0]
+    yield ("in-plane-swapped", *reordered(volume, mask, tuple(swapped)))
     yield ("x-reversed", *reversed_axis(volume, mask, plane[0]))
     yield ("y-reversed", *reversed_axis(volume, mask, plane[1]))
     for pixel_mm in (0.7, 1.6, 2.0):
@@ -186,6 +193,10 @@ def rewrites(volume: Volume, mask: NDArray[np.bool_], rng: np.random.Generator) 
             box = [slice(None)] * 3
             box[a] = slice(found[:, a].min() + int(round(cut_mm / volume.spacing[a])), None)
             yield f"edge{cut_mm}", volume.region(tuple(box)), mask[tuple(box)]
+    for scale in (0.8, 0.7):
+        smaller = volume.affine.copy()
+        smaller[:3, :3] *= scale
+        yield f"younger{scale}", Volume(image, smaller), mask
 
 
 def main() -> None:

@@ -66,6 +66,16 @@ faster per slice than a whole stack at once (the activations stay in cache)."""
 MAX_STACK_MAPS = 32
 """A streamed slice's brain is settled among at most this many received slices of its stack, the nearest
 (:meth:`Localiser.slice_in_stack`): the geometry's cost stays that of a stack of this size."""
+SMALL_BRAIN_ML = 100.0
+"""A brain found smaller than this (a fetus of under about 23 weeks, or part of a brain) is looked at
+again on a finer grid (:meth:`Localiser.small_brains_again`)."""
+TYPICAL_BRAIN_ML = 250.0
+"""... on which it appears at this volume, about the median of the heads the network learnt."""
+MIN_GRID_SCALE = 0.6
+"""The finer grid's pixels are at least this share of the model's."""
+CUT_END_SHARE = 0.5
+"""A stack's end slice cuts through a brain where it holds over this share of the brain's largest
+slice (:func:`cut_by_stack_ends`): a brain's caps are smaller."""
 POSE_MASK_INSET_MM = 2.0
 """How far inside the localiser's mask (the skull's inside) the pose network's mask lies: the pose
 network learnt the atlas's brain masks, which leave out most of the extra-axial CSF around the brain
@@ -209,11 +219,13 @@ class Localiser:
         """Per-slice brain probabilities on the network grid ``[n, Hp, Wp]`` and that grid."""
         return self.probabilities_of([volume])[0]
 
-    def probabilities_of(self, volumes: list[Volume]) -> list[tuple[NDArray[np.float32], LocaliserGrid]]:
+    def probabilities_of(self, volumes: list[Volume], grids_mm: list[float] | None = None,
+                         ) -> list[tuple[NDArray[np.float32], LocaliserGrid]]:
         """:meth:`probabilities` of several stacks, their slices sharing onnxruntime calls: the slices of
         all stacks whose network grids have one size go through the network together, in batches of
-        :data:`BATCH_SLICES` (one request's stacks cost what their slices do, not a call each)."""
-        inputs = [localiser_inputs(v, self.grid_mm) for v in volumes]
+        :data:`BATCH_SLICES` (one request's stacks cost what their slices do, not a call each).
+        ``grids_mm``: each stack's grid pixel size (default the model's)."""
+        inputs = [localiser_inputs(v, g) for v, g in zip(volumes, grids_mm or [self.grid_mm] * len(volumes))]
         feed = self.session.get_inputs()[0]
         out: list[NDArray | None] = [None] * len(volumes)
         for size in dict.fromkeys(x.shape[2:] for x, _ in inputs):
@@ -249,8 +261,36 @@ class Localiser:
         request's uploaded masks, scanner mm), the network run on their slices together
         (:meth:`probabilities_of`)."""
         found = self.probabilities_of(volumes)
-        return one_fetus(self, volumes, found, [self.settle(v, prob, grid) for v, (prob, grid) in zip(volumes, found)],
-                         fixed)
+        settled = [self.settle(v, prob, grid) for v, (prob, grid) in zip(volumes, found)]
+        found, settled = self.small_brains_again(volumes, found, settled)
+        return one_fetus(self, volumes, found, settled, fixed)
+
+    def small_brains_again(self, volumes: list[Volume], found: list[tuple[NDArray[np.float32], LocaliserGrid]],
+                           settled: list[Localisation],
+                           ) -> tuple[list[tuple[NDArray[np.float32], LocaliserGrid]], list[Localisation]]:
+        """``found`` and ``settled`` (:meth:`localise_many`), where a stack's brain is smaller than
+        :data:`SMALL_BRAIN_ML`, seen again on a grid of finer pixels, on which it appears at
+        :data:`TYPICAL_BRAIN_ML` (the pixels at most :data:`MIN_GRID_SCALE` times finer), and that
+        answer kept where it finds a brain. A brain that the stack's first or last slice cuts through
+        is left as it is: it is part of a larger one (a stack that covers half the brain).
+
+        The network is surest of heads of its training heads' usual size. A young fetus's head (under
+        about 23 weeks) in a real uterus is not: at the model's grid the amniotic sac, head-sized at
+        that age, looks like a head, and the network takes the sac in, or structures beside the
+        head. On the finer grid the head is the size the network knows and the sac larger than any
+        head (docs/reports/localiser-experiments.md, "A younger fetus")."""
+        again = [k for k, (s, v) in enumerate(zip(settled, volumes))
+                 if 0 < s.brain_volume_ml < SMALL_BRAIN_ML and not cut_by_stack_ends(s.mask, v)]
+        if not again:
+            return found, settled
+        grids_mm = [self.grid_mm * float(np.clip((settled[k].brain_volume_ml / TYPICAL_BRAIN_ML) ** (1 / 3),
+                                                 MIN_GRID_SCALE, 1.0)) for k in again]
+        found, settled = list(found), list(settled)
+        for k, (prob, grid) in zip(again, self.probabilities_of([volumes[k] for k in again], grids_mm)):
+            there = self.settle(volumes[k], prob, grid)
+            if there.mask.any():
+                found[k], settled[k] = (prob, grid), there
+        return found, settled
 
     def settle(self, volume: Volume, prob: NDArray[np.float32], grid: LocaliserGrid,
                prefer: NDArray[np.bool_] | None = None) -> Localisation:
@@ -258,8 +298,8 @@ class Localiser:
         (:func:`brain_from_probabilities`; ``prefer``: the grid's pixels it must reach), back on the
         stack's grid."""
         axis = stack_axis(volume)
-        voxel_ml = self.grid_mm ** 2 * float(volume.spacing[axis]) / 1000.0
-        brain, confidence = brain_from_probabilities(prob, voxel_ml, self.grid_mm, blank_slices(volume), prefer)
+        voxel_ml = grid.grid_mm ** 2 * float(volume.spacing[axis]) / 1000.0
+        brain, confidence = brain_from_probabilities(prob, voxel_ml, grid.grid_mm, blank_slices(volume), prefer)
         if not brain.any() or confidence < MIN_CONFIDENCE:
             return Localisation.of(np.zeros(volume.array.shape, bool), volume.spacing, "network", confidence)
         box = mask_box(brain, [0, 1, 1])                     # the brain and the ring of pixels around it
@@ -351,6 +391,21 @@ class Localiser:
         reach = ndimage.binary_dilation(brain[beside], structure=margin_disk(self.grid_mm))
         overlap = ndimage.sum_labels(reach, labels, np.arange(1, int(labels.max()) + 1))
         return labels == int(np.argmax(overlap)) + 1 if overlap.max() > 0 else None
+
+
+def cut_by_stack_ends(mask: NDArray, volume: Volume) -> bool:
+    """Whether the first or the last slice of ``volume`` cuts through the body of ``mask``'s brain:
+    its brain there is over :data:`CUT_END_SHARE` of the brain's largest slice (a cap is smaller).
+
+    Example (a brain of 3 slices of 4, 4 and 1 pixels: whole; without its first slice, cut):
+        >>> m = np.zeros((4, 4, 5), bool); m[1:3, 1:3, 1:3] = True; m[1, 1, 3] = True
+        >>> v = Volume(np.zeros((4, 4, 5), np.float32), np.diag([1.0, 1.0, 3.0, 1.0]))
+        >>> cut_by_stack_ends(m, v), cut_by_stack_ends(m[..., 2:], v.region((slice(0, 4), slice(0, 4), slice(2, 5))))
+        (False, True)
+    """
+    along = np.moveaxis(np.asarray(mask, bool), stack_axis(volume), 0)
+    area = along.reshape(len(along), -1).sum(1)
+    return bool(max(area[0], area[-1]) > CUT_END_SHARE * area.max())
 
 
 @functools.cache

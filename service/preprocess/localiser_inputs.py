@@ -77,6 +77,7 @@ class LocaliserGrid:
     native: tuple[int, int]                 # (H, W) of a slice as stored
     resampled: tuple[int, int]              # (h, w) on the network grid, before padding
     offset: tuple[int, int]                 # where the resampled slice starts in the padded one
+    grid_mm: float                          # the grid's pixel size
 
     def to_stack(self, maps: NDArray) -> NDArray[np.float32]:
         """Per-slice maps ``[n, Hp, Wp]`` on the padded network grid -> the stack's array shape (bilinear,
@@ -206,7 +207,7 @@ def localiser_inputs(volume: Volume, grid_mm: float) -> tuple[NDArray[np.float32
     small = _resample(images, pixel_mm, grid_mm)
     padded, offset = _pad(small, _band(images, grid_mm), FLUID_LEVEL)
     x = with_neighbours(padded)
-    grid = LocaliserGrid(tuple(volume.array.shape), axis, images.shape[1:], small.shape[1:], offset)
+    grid = LocaliserGrid(tuple(volume.array.shape), axis, images.shape[1:], small.shape[1:], offset, grid_mm)
     return np.ascontiguousarray(x), grid
 
 

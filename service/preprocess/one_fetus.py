@@ -41,8 +41,6 @@ class Settled(Protocol):
 class Settles(Protocol):
     """What :func:`one_fetus` asks of a localiser (:class:`~service.preprocess.localise.Localiser`)."""
 
-    grid_mm: float
-
     def settle(self, volume: Volume, prob: NDArray, grid: LocaliserGrid, prefer: NDArray | None = None) -> Settled:
         ...
 
@@ -109,6 +107,6 @@ def one_fetus(localiser: Settles, volumes: list[Volume], found: list[tuple[NDArr
         if centre is not None and np.linalg.norm(centre - target) <= BRAIN_MOVE_MM:
             out.append(own)                  # settled there already: its best brain is the one that reaches it
             continue
-        there = localiser.settle(volume, prob, grid, prefer=near_on_grid(volume, localiser.grid_mm, target))
+        there = localiser.settle(volume, prob, grid, prefer=near_on_grid(volume, grid.grid_mm, target))
         out.append(there if there.brain_volume_ml > 0 else own)
     return out

@@ -24,9 +24,9 @@ class _ProbabilityLocaliser(Localiser):
     def probabilities(self, volume: Volume):  # noqa: ANN201
         return self.probabilities_of([volume])[0]
 
-    def probabilities_of(self, volumes: list[Volume]):  # noqa: ANN201
+    def probabilities_of(self, volumes: list[Volume], grids_mm: list[float] | None = None):  # noqa: ANN201
         return [(np.moveaxis(v.array, 2, 0).transpose(0, 2, 1).astype(np.float32),
-                 LocaliserGrid(v.array.shape, 2, v.array.shape[:2][::-1], v.array.shape[:2][::-1], (0, 0)))
+                 LocaliserGrid(v.array.shape, 2, v.array.shape[:2][::-1], v.array.shape[:2][::-1], (0, 0), GRID_MM))
                 for v in volumes]
 
 
