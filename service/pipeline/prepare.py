@@ -194,15 +194,18 @@ def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction:
     with ThreadPoolExecutor(max_workers=max(1, min(workers, len(uploads)))) as pool:
         futures = [pool.submit(prepare_stack, u, info, bias_correction) if u.mask is not None else None
                    for u in uploads]
-        found = {}
+        settling = {}
         for i, u in enumerate(uploads):
             if u.mask is None:
                 loc = localiser or default_localiser()
                 t = time.perf_counter()
-                found[i] = loc.probabilities(u.volume)
-                futures[i] = pool.submit(_settle_and_prepare, u, info, bias_correction, loc, found[i],
-                                         time.perf_counter() - t)
-        prepared = [f.result() for f in futures]
+                found = loc.probabilities(u.volume)
+                settling[i] = pool.submit(_settle_and_prepare, u, info, bias_correction, loc, found,
+                                          time.perf_counter() - t)
+        prepared = [None if f is None else f.result() for f in futures]
+        found = {}
+        for i, f in settling.items():
+            prepared[i], found[i] = f.result()
     if found and len(uploads) > 1:                      # every stack on one fetus's brain (twins)
         which = sorted(found)
         again = one_fetus(localiser or default_localiser(), [uploads[i].volume for i in which],
@@ -215,9 +218,11 @@ def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction:
 
 
 def _settle_and_prepare(upload: StackUpload, info: ModelInfo, bias_correction: bool, localiser: Localiser,
-                        found: tuple[np.ndarray, LocaliserGrid], seconds: float) -> PreparedStack:
+                        found: tuple[np.ndarray, LocaliserGrid], seconds: float,
+                        ) -> tuple[PreparedStack, tuple[np.ndarray, LocaliserGrid]]:
     """:func:`prepare_stack` of a stack whose localiser probabilities ``found`` took ``seconds``: its
-    brain settled (:meth:`~service.preprocess.localise.Localiser.settle`), then the rest."""
+    brain settled (:meth:`~service.preprocess.localise.Localiser.settle_closer`: a small brain seen
+    again on finer pixels), then the rest; with the probabilities the brain rests on."""
     t = time.perf_counter()
-    localisation = localiser.settle(upload.volume, *found)
-    return prepare_stack(upload, info, bias_correction, found=(localisation, seconds + time.perf_counter() - t))
+    localisation, found = localiser.settle_closer(upload.volume, *found)
+    return prepare_stack(upload, info, bias_correction, found=(localisation, seconds + time.perf_counter() - t)), found

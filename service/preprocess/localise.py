@@ -68,7 +68,7 @@ MAX_STACK_MAPS = 32
 (:meth:`Localiser.slice_in_stack`): the geometry's cost stays that of a stack of this size."""
 SMALL_BRAIN_ML = 100.0
 """A brain found smaller than this (a fetus of under about 23 weeks, or part of a brain) is looked at
-again on a finer grid (:meth:`Localiser.small_brains_again`)."""
+again on a finer grid (:meth:`Localiser.settle_closer`)."""
 TYPICAL_BRAIN_ML = 250.0
 """... on which it appears at this volume, about the median of the heads the network learnt."""
 MIN_GRID_SCALE = 0.6
@@ -260,18 +260,15 @@ class Localiser:
         fetus's brain, :func:`~service.preprocess.one_fetus.one_fetus`; ``fixed``: the centres of the
         request's uploaded masks, scanner mm), the network run on their slices together
         (:meth:`probabilities_of`)."""
-        found = self.probabilities_of(volumes)
-        settled = [self.settle(v, prob, grid) for v, (prob, grid) in zip(volumes, found)]
-        found, settled = self.small_brains_again(volumes, found, settled)
-        return one_fetus(self, volumes, found, settled, fixed)
+        answers = [self.settle_closer(v, prob, grid) for v, (prob, grid) in zip(volumes, self.probabilities_of(volumes))]
+        return one_fetus(self, volumes, [found for _, found in answers], [a for a, _ in answers], fixed)
 
-    def small_brains_again(self, volumes: list[Volume], found: list[tuple[NDArray[np.float32], LocaliserGrid]],
-                           settled: list[Localisation],
-                           ) -> tuple[list[tuple[NDArray[np.float32], LocaliserGrid]], list[Localisation]]:
-        """``found`` and ``settled`` (:meth:`localise_many`), where a stack's brain is smaller than
-        :data:`SMALL_BRAIN_ML`, seen again on a grid of finer pixels, on which it appears at
-        :data:`TYPICAL_BRAIN_ML` (the pixels at most :data:`MIN_GRID_SCALE` times finer), and that
-        answer kept where it finds a brain. A brain that the stack's first or last slice cuts through
+    def settle_closer(self, volume: Volume, prob: NDArray[np.float32], grid: LocaliserGrid,
+                      ) -> tuple[Localisation, tuple[NDArray[np.float32], LocaliserGrid]]:
+        """:meth:`settle`, and where the brain is smaller than :data:`SMALL_BRAIN_ML`, the stack seen
+        again on a grid of finer pixels, on which it appears at :data:`TYPICAL_BRAIN_ML` (the pixels
+        at most :data:`MIN_GRID_SCALE` times finer), that answer kept where it finds a brain; with the
+        probabilities the answer rests on. A brain that the stack's first or last slice cuts through
         is left as it is: it is part of a larger one (a stack that covers half the brain).
 
         The network is surest of heads of its training heads' usual size. A young fetus's head (under
@@ -279,18 +276,13 @@ class Localiser:
         that age, looks like a head, and the network takes the sac in, or structures beside the
         head. On the finer grid the head is the size the network knows and the sac larger than any
         head (docs/reports/localiser-experiments.md, "A younger fetus")."""
-        again = [k for k, (s, v) in enumerate(zip(settled, volumes))
-                 if 0 < s.brain_volume_ml < SMALL_BRAIN_ML and not cut_by_stack_ends(s.mask, v)]
-        if not again:
-            return found, settled
-        grids_mm = [self.grid_mm * float(np.clip((settled[k].brain_volume_ml / TYPICAL_BRAIN_ML) ** (1 / 3),
-                                                 MIN_GRID_SCALE, 1.0)) for k in again]
-        found, settled = list(found), list(settled)
-        for k, (prob, grid) in zip(again, self.probabilities_of([volumes[k] for k in again], grids_mm)):
-            there = self.settle(volumes[k], prob, grid)
-            if there.mask.any():
-                found[k], settled[k] = (prob, grid), there
-        return found, settled
+        found = self.settle(volume, prob, grid)
+        if not 0 < found.brain_volume_ml < SMALL_BRAIN_ML or cut_by_stack_ends(found.mask, volume):
+            return found, (prob, grid)
+        scale = float(np.clip((found.brain_volume_ml / TYPICAL_BRAIN_ML) ** (1 / 3), MIN_GRID_SCALE, 1.0))
+        (finer, finer_grid), = self.probabilities_of([volume], [self.grid_mm * scale])
+        there = self.settle(volume, finer, finer_grid)
+        return (there, (finer, finer_grid)) if there.mask.any() else (found, (prob, grid))
 
     def settle(self, volume: Volume, prob: NDArray[np.float32], grid: LocaliserGrid,
                prefer: NDArray[np.bool_] | None = None) -> Localisation:

@@ -44,6 +44,32 @@ def test_each_stack_is_prepared_as_it_is_alone_whatever_the_order_of_masks(uploa
             assert p.timings["localisation"] > 0
 
 
+def test_a_young_fetuss_stacks_are_prepared_on_the_localisers_closer_look() -> None:
+    """Stacks of a younger pregnancy's scale (the generated stacks' voxels said to be 0.7 times their
+    size): /v1/predict's preparation settles each small brain as the localiser does alone, on finer
+    pixels where the first look finds it small, not on the model's grid."""
+    from model_export.localiser.scenes import HeadModel, synth_stack
+    from service.preprocess.localise import SMALL_BRAIN_ML, default_localiser
+    from tests.support.phantoms import one_fetus_scene, phantom_brain
+
+    image, mask, affine = phantom_brain(11)
+    head = HeadModel.from_arrays(image, mask, affine)
+    uploads = []
+    for k, (volume, _) in enumerate(one_fetus_scene([synth_stack(head, np.random.default_rng(100 + seed), "heldout")
+                                                     for seed in range(2)])):
+        smaller = volume.affine.copy()
+        smaller[:3, :3] *= 0.7
+        uploads.append(StackUpload(f"{k}.nii.gz", Volume(volume.array, smaller)))
+    info = load_model(DEFAULT_MODELS_DIR / "default" / "model.onnx").info
+    prepared = prepare_stacks(uploads, info, True, workers=2)
+    loc = default_localiser()
+    for p, u in zip(prepared, uploads):
+        alone = loc.localise(u.volume)
+        first = loc.settle(u.volume, *loc.probabilities(u.volume))
+        assert 0 < first.brain_volume_ml < SMALL_BRAIN_ML
+        assert np.array_equal(p.localisation.mask, alone.mask) and not np.array_equal(alone.mask, first.mask)
+
+
 def test_localise_uploads_gives_every_upload_its_mask_or_the_localisers(uploads: list[StackUpload]) -> None:
     found = localise_uploads(uploads)
     assert [f.method for f in found] == ["network", "mask", "network"]
