@@ -70,14 +70,33 @@ def test_every_rewrite_keeps_the_mask_on_the_stacks_grid_and_the_brain_in_view()
             probe = np.array([[5, 7, 3], [30, 2, 11]])
             np.testing.assert_allclose(apply(v.affine, probe), apply(volume.affine, probe * [1, 2, 1]), atol=1e-9)
             assert np.array_equal(v.array[5, 3], volume.array[5, 6]) and np.array_equal(m, mask[:, ::2])
-        elif name in ("first-half", "last-half"):                   # part of the stack, its voxels where they were
+        elif name in ("first-half", "last-half", "edge15"):        # part of the stack, its voxels where they were
             first = np.linalg.solve(volume.affine, v.affine @ [0, 0, 0, 1])[:3]
             np.testing.assert_allclose(first, np.round(first), atol=1e-9)
-            assert 0.3 < m.sum() / mask.sum() < 0.7, name
+            assert (0.3 < m.sum() / mask.sum() < 0.7) if name != "edge15" else (0.5 < m.sum() / mask.sum() < 0.95), name
+        elif name.startswith("younger"):                             # the same voxels, said to be smaller
+            scale = float(name.removeprefix("younger"))
+            np.testing.assert_allclose(v.affine[:3, :3], scale * volume.affine[:3, :3], atol=1e-12)
+            assert np.array_equal(v.array, volume.array) and np.array_equal(m, mask)
         else:
             assert np.linalg.norm(_centroid(v, m) - centre) < 0.6, name
         if name == "zero-filled":                                    # one slice of the brain blanked, its mask too
             blank = ~v.array.any(axis=(0, 2))
             assert blank.sum() == 1 and mask[:, blank].any() and not m[:, blank].any()
-    assert {"base", "x-reversed", "y-reversed", "px2.0", "cropped", "fov420", "noise", "every2nd", "first-half",
-            "last-half", "brain-slab", "zero-filled"} <= set(names)
+    assert {"base", "x-reversed", "y-reversed", "in-plane-swapped", "px2.0", "cropped", "cropped-tight", "fov420",
+            "noise", "every2nd", "first-half", "last-half", "brain-slab", "zero-filled", "wrap-u", "wrap-v", "edge0",
+            "edge15", "younger0.8", "younger0.7"} <= set(names)
+
+
+def test_a_folded_field_of_view_keeps_the_brain_and_adds_what_lay_beyond() -> None:
+    """``wrap-u``: 70 % of the field of view along the first in-plane axis, the brain inside it; what
+    lay beyond either end is folded back over the image (the image's energy kept)."""
+    from model_export.experiments.localiser_sweep import wrapped
+
+    volume, mask, _ = _ball_stack(axis=2)
+    v, m = wrapped(volume, mask, 0, 0.7)
+    assert v.array.shape[0] == round(0.7 * volume.array.shape[0]) and m.sum() == mask.sum()
+    np.testing.assert_allclose((v.array.astype(np.float64) ** 2).sum(), (volume.array.astype(np.float64) ** 2).sum(),
+                               rtol=1e-5)
+    start = int(round(np.linalg.solve(volume.affine, v.affine @ [0, 0, 0, 1])[0]))
+    assert np.all(v.array >= volume.array[start:start + v.array.shape[0]] - 1e-3)       # folded onto, never less
