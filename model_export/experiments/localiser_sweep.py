@@ -22,7 +22,9 @@ the Dice against the rewritten mask, per stack and as the median and minimum per
 * ``first-half``, ``last-half``, ``brain-slab``: a stack that covers part of the brain (up to or
   from its middle slice, with what lies beyond its end), or the brain's slices alone;
 * ``zero-filled``: the brain's middle slice filled with zeros (a slice a scanner or a QC step
-  blanked; its mask is then empty too);
+  blanked; its mask is then empty too); ``dark-slice``: that slice at a tenth of its intensity;
+  ``signal-void``: half of it (its first columns) at a fifth (a slice that intra-slice motion
+  darkened);
 * ``wrap-u``, ``wrap-v``: the field of view cut to 70 % along one in-plane axis (a rectangular
   field of view along the phase-encoding direction), what lies beyond it folded back over the
   image (aliasing: the two magnitudes summed as signals of random phase), the brain kept inside;
@@ -183,6 +185,11 @@ def rewrites(volume: Volume, mask: NDArray[np.bool_], rng: np.random.Generator) 
         blanked, unseen = image.copy(), mask.copy()
         blanked[tuple(box)], unseen[tuple(box)] = 0.0, False
         yield "zero-filled", Volume(blanked, volume.affine), unseen
+        dark, void = image.copy(), np.moveaxis(image.copy(), axis, 0)
+        dark[tuple(box)] *= 0.1
+        void[middle, :, : void.shape[2] // 2] *= 0.2
+        yield "dark-slice", Volume(dark, volume.affine), mask
+        yield "signal-void", Volume(np.ascontiguousarray(np.moveaxis(void, 0, axis)), volume.affine), mask
     for name, a in (("wrap-u", plane[0]), ("wrap-v", plane[1])):
         folded = wrapped(volume, mask, a, 0.7)
         if folded is not None:

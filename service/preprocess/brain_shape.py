@@ -316,6 +316,46 @@ def largest_mass(mask: NDArray[np.bool_], prob: NDArray[np.float32]) -> NDArray[
     return labels == int(np.argmax(ndimage.sum_labels(prob, labels, np.arange(1, n + 1)))) + 1
 
 
+def missing_slices(labels: NDArray[np.int32], best: int) -> NDArray[np.bool_]:
+    """Slices (of 3D-labelled per-slice maps ``labels [n, H, W]``) in which the network sees (almost) no
+    brain between two slices of one brain: inside component ``best``, a slice under :data:`WAIST_SHARE`
+    of its neighbours, which are wide (over :data:`VALLEY_SHARE` of its widest slice) and overlap by
+    :data:`WAIST_OVERLAP` of the larger; or just past either end of ``best``, where the slice beyond
+    holds a component whose region overlaps the end slice's so, both wide, and which is large (over
+    :data:`TAIL_SHARE` of ``best``'s voxels): one brain that a slice without it splits in two.
+
+    A slice that a signal void or intra-slice motion darkened over the brain shows the network little
+    or no brain there: the brain's component ends at it, or the rules that follow take the next slice
+    for a growing cap and trim every slice beyond. The two halves lie one above the other, as a
+    head's neighbouring slices do; a bridge into the neck, the body or the face does not.
+
+    Example (a brain of 7 slices whose slice 3 the network does not see):
+        >>> p = np.zeros((7, 10, 10), np.float32); p[:, 2:8, 2:8] = 0.9; p[3] = 0.0
+        >>> labels, _ = ndimage.label(p > 0.5, structure=np.ones((3, 3, 3), bool))
+        >>> missing_slices(labels, 1).tolist()
+        [False, False, False, True, False, False, False]
+    """
+    comp = labels == best
+    area = comp.reshape(len(comp), -1).sum(1)
+    rows = np.flatnonzero(area)
+    out = np.zeros(len(labels), bool)
+    for k in range(rows[0] + 1, rows[-1]):                          # a poor slice inside the component
+        smaller, larger = sorted((area[k - 1], area[k + 1]))
+        if smaller >= VALLEY_SHARE * area.max() and area[k] < WAIST_SHARE * smaller:
+            out[k] = (comp[k - 1] & comp[k + 1]).sum() >= WAIST_OVERLAP * larger
+    for end, step in ((rows[-1], 1), (rows[0], -1)):
+        gap, beyond = end + step, end + 2 * step
+        here = comp[end]
+        if not 0 <= beyond < len(labels) or (labels[gap] > 0)[here].sum() >= WAIST_SHARE * here.sum():
+            continue
+        for other in set(np.unique(labels[beyond][here]).tolist()) - {0, best}:
+            there = labels[beyond] == other
+            wide = min(here.sum(), there.sum()) >= VALLEY_SHARE * area.max()
+            large = np.count_nonzero(labels == other) >= TAIL_SHARE * area.sum()
+            out[gap] |= wide and large and (here & there).sum() >= WAIST_OVERLAP * max(here.sum(), there.sum())
+    return out
+
+
 def brain_from_probabilities(prob: NDArray[np.float32], voxel_ml: float, grid_mm: float = 2.5,
                              blank: NDArray[np.bool_] | None = None, prefer: NDArray[np.bool_] | None = None,
                              ) -> tuple[NDArray[np.bool_], float]:
@@ -358,6 +398,11 @@ def brain_from_probabilities(prob: NDArray[np.float32], voxel_ml: float, grid_mm
             return out, 0.0
         score = np.where(reaching, score, -1.0)
     best = int(np.argmax(score)) + 1
+    gaps = missing_slices(labels, best)
+    if gaps.any():                                            # one brain, split by slices it does not show
+        missing = np.zeros(len(prob), bool)
+        missing[box[0]][gaps] = True
+        return brain_from_probabilities(prob, voxel_ml, grid_mm, missing if blank is None else blank | missing, prefer)
     brain = cut_at_waists(labels == best, p)
     brain = trim_to_head_ellipses(trim_growing_caps(trim_outlier_slices(brain, grid_mm), grid_mm), grid_mm)
     brain = fill_holes_in_plane(largest_mass(brain, p))

@@ -183,3 +183,22 @@ def test_a_cap_is_not_judged_against_an_empty_slice() -> None:
     brain[9:11] = False                                               # the area-weighted middle (9.5) among them
     assert np.array_equal(trim_growing_caps(brain, 2.5), brain)
 
+
+
+def test_a_slice_the_network_sees_no_brain_in_does_not_cut_the_brain_in_two() -> None:
+    """A slice a signal void darkened over the brain holds no brain for the network: both halves stay
+    one brain (the slice without a mask), where a blob past the brain's end beyond an empty slice, or
+    a small one over it, does not join it."""
+    p = ellipsoid_brain_maps(24)
+    rows = np.flatnonzero(p.reshape(len(p), -1).max(1) >= 0.5)
+    middle = (rows[0] + rows[-1]) // 2
+    seen = p >= 0.5
+    p[middle] = 0.0
+    brain, _ = brain_from_probabilities(p, voxel_ml=0.1)
+    assert not brain[middle].any()
+    assert brain.sum() == seen.sum() - seen[middle].sum()              # both halves, every pixel they hold
+    q = ellipsoid_brain_maps(24)
+    q[16:] = 0.0                                                          # the brain ends at slice 15; slice 16
+    q[17:19] = np.where(q[15] >= 0.5, 0.8, 0.0)                           # empty, then a blob over its last slice
+    brain, _ = brain_from_probabilities(q, voxel_ml=0.1)
+    assert brain[15].any() and not brain[16:].any()

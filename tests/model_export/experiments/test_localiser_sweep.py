@@ -80,11 +80,16 @@ def test_every_rewrite_keeps_the_mask_on_the_stacks_grid_and_the_brain_in_view()
             assert np.array_equal(v.array, volume.array) and np.array_equal(m, mask)
         else:
             assert np.linalg.norm(_centroid(v, m) - centre) < 0.6, name
+        if name in ("dark-slice", "signal-void"):                     # one slice of the brain darkened, all or half
+            changed = (v.array != volume.array).any(axis=(0, 2))
+            assert changed.sum() == 1 and mask[:, changed].any() and np.array_equal(m, mask)
+            assert (v.array[:, changed] <= volume.array[:, changed] + 1e-6).all()
         if name == "zero-filled":                                    # one slice of the brain blanked, its mask too
             blank = ~v.array.any(axis=(0, 2))
             assert blank.sum() == 1 and mask[:, blank].any() and not m[:, blank].any()
     assert {"base", "x-reversed", "y-reversed", "in-plane-swapped", "px2.0", "cropped", "cropped-tight", "fov420",
-            "noise", "every2nd", "first-half", "last-half", "brain-slab", "zero-filled", "wrap-u", "wrap-v", "edge0",
+            "noise", "every2nd", "first-half", "last-half", "brain-slab", "zero-filled", "dark-slice", "signal-void",
+            "wrap-u", "wrap-v", "edge0",
             "edge15", "younger0.8", "younger0.7"} <= set(names)
 
 
