@@ -15,7 +15,8 @@ the Dice against the rewritten mask, per stack and as the median and minimum per
   in it) or widened to 420 mm with background; ``cropped``: cut to the head, the manual mask's
   box and 15 mm (a stack cropped before it is sent, as other pipelines do); ``cropped-tight``:
   cut to the mask's box itself;
-* ``gamma0.6``, ``gamma1.6``: another contrast; ``noise``: Rician noise of 6 % of the bright end;
+* ``gamma0.6``, ``gamma1.6``: another contrast; ``noise``, ``noise15``: Rician noise of 6 % or 15 %
+  of the bright end (a low-field scanner's);
   ``shading``: a smooth field over a factor of 3 across the field of view; ``scale1e3``: another
   intensity range;
 * ``every2nd``: every other slice (slices twice as far apart);
@@ -30,6 +31,8 @@ the Dice against the rewritten mask, per stack and as the median and minimum per
   image (aliasing: the two magnitudes summed as signals of random phase), the brain kept inside;
 * ``edge0``, ``edge15``: the field of view ending at the brain's outline along one in-plane axis,
   or 15 mm inside it (a head at the edge of the image; the mask cut alike);
+* ``moving``: each slice's content (and mask) shifted in its plane by up to 10 mm either way (the
+  fetus moving between slices);
 * ``younger0.8``, ``younger0.7``: the voxels said to be 0.8 or 0.7 times their size (the header
   alone), so that head, uterus and body are that much smaller: a younger pregnancy's scale (the
   shared scan's brain then 180 / 120 ml, `sub-01`'s about 70 / 45 ml, as at 20-23 weeks).
@@ -160,9 +163,11 @@ def rewrites(volume: Volume, mask: NDArray[np.bool_], rng: np.random.Generator) 
     bright = float(np.percentile(image, 99.5))
     for gamma in (0.6, 1.6):
         yield f"gamma{gamma}", Volume(bright * (np.clip(image, 0, None) / bright) ** gamma, volume.affine), mask
-    s = 0.06 * bright
-    yield "noise", Volume(np.hypot(image + rng.normal(0, s, image.shape), rng.normal(0, s, image.shape))
-                          .astype(np.float32), volume.affine), mask
+    own = np.random.default_rng(1)                  # the rewrites added later draw apart from ``rng``
+    for name, share, draws in (("noise", 0.06, rng), ("noise15", 0.15, own)):
+        s = share * bright
+        yield name, Volume(np.hypot(image + draws.normal(0, s, image.shape), draws.normal(0, s, image.shape))
+                           .astype(np.float32), volume.affine), mask
     u, v = np.meshgrid(*[np.linspace(-1, 1, image.shape[a]) for a in plane], indexing="ij")
     field = np.expand_dims(np.exp(np.log(3.0) / 2 * (u + 0.5 * v) / 1.5), axis)
     yield "shading", Volume(image * field, volume.affine), mask
@@ -200,6 +205,12 @@ def rewrites(volume: Volume, mask: NDArray[np.bool_], rng: np.random.Generator) 
             box = [slice(None)] * 3
             box[a] = slice(found[:, a].min() + int(round(cut_mm / volume.spacing[a])), None)
             yield f"edge{cut_mm}", volume.region(tuple(box)), mask[tuple(box)]
+    moved, moved_mask = np.moveaxis(image.copy(), axis, 0), np.moveaxis(mask.copy(), axis, 0)
+    for k in range(len(moved)):
+        shift = own.uniform(-10.0, 10.0, 2) / volume.spacing[plane]
+        moved[k] = ndimage.shift(moved[k], shift, order=1)
+        moved_mask[k] = ndimage.shift(moved_mask[k].astype(np.float32), shift, order=1) >= 0.5
+    yield "moving", Volume(np.ascontiguousarray(np.moveaxis(moved, 0, axis)), volume.affine), np.moveaxis(moved_mask, 0, axis)
     for scale in (0.8, 0.7):
         smaller = volume.affine.copy()
         smaller[:3, :3] *= scale

@@ -74,6 +74,13 @@ def test_every_rewrite_keeps_the_mask_on_the_stacks_grid_and_the_brain_in_view()
             first = np.linalg.solve(volume.affine, v.affine @ [0, 0, 0, 1])[:3]
             np.testing.assert_allclose(first, np.round(first), atol=1e-9)
             assert (0.3 < m.sum() / mask.sum() < 0.7) if name != "edge15" else (0.5 < m.sum() / mask.sum() < 0.95), name
+        elif name == "moving":                                       # each slice's content and mask moved alike
+            assert abs(int(m.sum()) - int(mask.sum())) <= 0.05 * mask.sum()
+            for k in range(v.array.shape[1]):
+                if m[:, k].any():
+                    shift = _centroid(v, np.where(np.arange(m.shape[1])[None, :, None] == k, m, False)) - \
+                        _centroid(volume, np.where(np.arange(mask.shape[1])[None, :, None] == k, mask, False))
+                    assert np.linalg.norm(shift) <= np.sqrt(2) * 10.0 + 1.0, (k, shift)
         elif name.startswith("younger"):                             # the same voxels, said to be smaller
             scale = float(name.removeprefix("younger"))
             np.testing.assert_allclose(v.affine[:3, :3], scale * volume.affine[:3, :3], atol=1e-12)
@@ -88,7 +95,7 @@ def test_every_rewrite_keeps_the_mask_on_the_stacks_grid_and_the_brain_in_view()
             blank = ~v.array.any(axis=(0, 2))
             assert blank.sum() == 1 and mask[:, blank].any() and not m[:, blank].any()
     assert {"base", "x-reversed", "y-reversed", "in-plane-swapped", "px2.0", "cropped", "cropped-tight", "fov420",
-            "noise", "every2nd", "first-half", "last-half", "brain-slab", "zero-filled", "dark-slice", "signal-void",
+            "noise", "noise15", "moving", "every2nd", "first-half", "last-half", "brain-slab", "zero-filled", "dark-slice", "signal-void",
             "wrap-u", "wrap-v", "edge0",
             "edge15", "younger0.8", "younger0.7"} <= set(names)
 
