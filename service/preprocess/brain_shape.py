@@ -5,7 +5,9 @@ to the other, each slice much like its neighbours. What the network takes for br
 cut away, on the network's grid of per-slice maps ``[n, H, W]``:
 
 1. the 3D connected component with most probability, weighed by how plausible its volume is for 20-40
-   weeks (:func:`plausibility`);
+   weeks (:func:`plausibility`); a slice in which the network sees (almost) no brain between two of
+   that brain's slices is left out and its neighbours joined (:func:`missing_slices`: a slice a signal
+   void darkened), as a blank slice is;
 2. what hangs on to it through a waist: a thin bridge of one or more slices into the fetal neck, body
    or face, or a dip past which the component widens again (:func:`cut_at_waists`);
 3. what a slice adds in its own plane beyond its neighbours (:func:`trim_outlier_slices`: a sagittal
