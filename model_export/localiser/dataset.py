@@ -35,11 +35,11 @@ def _one(job: tuple[Path, str, int, float, bool, float, float, str | None]) -> s
     head = _HEADS[int(rng.integers(len(_HEADS)))]
     random_contrast = bool(seed % 2) if style == "heldout" else None      # held out: T2-like and random, alternately
     volume, mask = synth_stack(head, rng, style, random_contrast, shading_share, faint_skull_share, motion)
-    x, _ = localiser_inputs(volume, grid_mm)
+    x, grid = localiser_inputs(volume, grid_mm)
     extra = {"stack": volume.array.astype(np.float16), "affine": volume.affine, "mask": mask,
              "t2_like": not random_contrast} if keep_stack else {}
     np.savez_compressed(path, slices=x[:, 1].astype(np.float16), grid_mm=np.float64(grid_mm),
-                        target=np.round(target_maps(mask, volume, grid_mm) * 255).astype(np.uint8), **extra)
+                        target=np.round(target_maps(mask, volume, grid) * 255).astype(np.uint8), **extra)
     return path.name
 
 

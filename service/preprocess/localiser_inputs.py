@@ -14,7 +14,8 @@ For a stack (any orientation, any in-plane pixel size, whole uterus or cropped),
 5. stack each slice with its two neighbours along the slice axis as three channels (2.5D; the end
    slices repeat themselves).
 
-:meth:`LocaliserGrid.to_stack` maps the network's per-pixel output back onto the stack's own grid.
+:meth:`LocaliserGrid.to_stack` maps the network's per-pixel output back onto the stack's own grid, and
+:func:`target_maps` a mask of the stack onto the network's grid.
 
 Example:
     >>> import numpy as np
@@ -78,6 +79,7 @@ class LocaliserGrid:
     resampled: tuple[int, int]              # (h, w) on the network grid, before padding
     offset: tuple[int, int]                 # where the resampled slice starts in the padded one
     grid_mm: float                          # the grid's pixel size
+    band: tuple[int, int, int, int] = (0, 0, 0, 0)   # fluid band pixels beyond each of SIDES (step 4)
 
     def to_stack(self, maps: NDArray) -> NDArray[np.float32]:
         """Per-slice maps ``[n, Hp, Wp]`` on the padded network grid -> the stack's array shape (bilinear,
@@ -182,19 +184,6 @@ def with_neighbours(slices: NDArray[np.float32]) -> NDArray[np.float32]:
     return np.stack([ext[:-2], ext[1:-1], ext[2:]], axis=1)
 
 
-def _scaled_slices(volume: Volume) -> tuple[NDArray[np.float32], tuple[float, float], int]:
-    """A stack's slices ``[n, H, W]`` scaled to its bright end (steps 1-2), their pixel size, the slice axis."""
-    axis = stack_axis(volume)
-    images, pixel_mm = slice_images(volume.array, volume.affine, axis)
-    images = np.asarray(images, np.float32)
-    finite = np.isfinite(images)
-    if not finite.all():                                                  # NaN and inf pixels count as 0
-        images = np.where(finite, images, np.float32(0.0))
-    scale = float(np.percentile(images[:, ::3, ::3], PERCENTILE))        # every 9th pixel: as good, 30x faster
-    images = np.clip(images / scale, 0.0, 2.0) if scale > 0 else np.zeros_like(images)
-    return images, pixel_mm, axis
-
-
 def _band(images: NDArray[np.float32], grid_mm: float) -> tuple[int, int, int, int]:
     """Grid pixels of fluid band beyond each of the :data:`SIDES` (step 4)."""
     sides, width = open_sides(images), int(round(FLUID_BAND_MM / grid_mm))
@@ -203,16 +192,25 @@ def _band(images: NDArray[np.float32], grid_mm: float) -> tuple[int, int, int, i
 
 def localiser_inputs(volume: Volume, grid_mm: float) -> tuple[NDArray[np.float32], LocaliserGrid]:
     """The network inputs ``[n, 3, Hp, Wp]`` of a stack and the grid to map outputs back with."""
-    images, pixel_mm, axis = _scaled_slices(volume)
+    axis = stack_axis(volume)
+    images, pixel_mm = slice_images(volume.array, volume.affine, axis)
+    images = np.asarray(images, np.float32)
+    finite = np.isfinite(images)
+    if not finite.all():                                                  # NaN and inf pixels count as 0
+        images = np.where(finite, images, np.float32(0.0))
+    scale = float(np.percentile(images[:, ::3, ::3], PERCENTILE))        # every 9th pixel: as good, 30x faster
+    images = np.clip(images / scale, 0.0, 2.0) if scale > 0 else np.zeros_like(images)
     small = _resample(images, pixel_mm, grid_mm)
-    padded, offset = _pad(small, _band(images, grid_mm), FLUID_LEVEL)
+    band = _band(images, grid_mm)
+    padded, offset = _pad(small, band, FLUID_LEVEL)
     x = with_neighbours(padded)
-    grid = LocaliserGrid(tuple(volume.array.shape), axis, images.shape[1:], small.shape[1:], offset, grid_mm)
+    grid = LocaliserGrid(tuple(volume.array.shape), axis, images.shape[1:], small.shape[1:], offset, grid_mm, band)
     return np.ascontiguousarray(x), grid
 
 
-def target_maps(mask: NDArray, volume: Volume, grid_mm: float) -> NDArray[np.float32]:
+def target_maps(mask: NDArray, volume: Volume, grid: LocaliserGrid) -> NDArray[np.float32]:
     """A stack's brain mask on the network grid ``[n, Hp, Wp]`` (brain fraction per pixel): the
-    training target that matches :func:`localiser_inputs` pixel for pixel."""
+    training target that matches :func:`localiser_inputs` pixel for pixel, on the ``grid`` it
+    returned for ``volume`` (no fluid in the band)."""
     images, pixel_mm = slice_images(np.asarray(mask, np.float32), volume.affine, stack_axis(volume))
-    return _pad(np.clip(_resample(images, pixel_mm, grid_mm), 0.0, 1.0), _band(_scaled_slices(volume)[0], grid_mm))[0]
+    return _pad(np.clip(_resample(images, pixel_mm, grid.grid_mm), 0.0, 1.0), grid.band)[0]

@@ -76,7 +76,7 @@ def request_centre(centres: list[NDArray | None], confidences: list[float],
     return np.asarray(found[int(np.argmax(support))][0], np.float64)
 
 
-def near_on_grid(volume: Volume, grid_mm: float, centre_mm: NDArray) -> NDArray[np.bool_]:
+def near_on_grid(volume: Volume, grid: LocaliserGrid, centre_mm: NDArray) -> NDArray[np.bool_]:
     """The localiser grid's pixels within :data:`CENTRE_REACH_MM` of ``centre_mm`` (scanner mm), as
     ``[n, Hp, Wp]`` maps of the stack (:func:`~service.preprocess.localiser_inputs.target_maps`)."""
     affine = np.asarray(volume.affine, np.float64)
@@ -86,7 +86,7 @@ def near_on_grid(volume: Volume, grid_mm: float, centre_mm: NDArray) -> NDArray[
         along = [np.arange(n, dtype=np.float32).reshape([-1 if a == axis else 1 for a in range(3)]) * affine[c, axis]
                  for axis, n in enumerate(volume.array.shape)]
         squared += (along[0] + along[1] + along[2] + np.float32(offset[c])) ** 2
-    return target_maps(squared <= CENTRE_REACH_MM ** 2, volume, grid_mm) > 0.5
+    return target_maps(squared <= CENTRE_REACH_MM ** 2, volume, grid) > 0.5
 
 
 def one_fetus(localiser: Settles, volumes: list[Volume], found: list[tuple[NDArray, LocaliserGrid]],
@@ -107,6 +107,6 @@ def one_fetus(localiser: Settles, volumes: list[Volume], found: list[tuple[NDArr
         if centre is not None and np.linalg.norm(centre - target) <= BRAIN_MOVE_MM:
             out.append(own)                  # settled there already: its best brain is the one that reaches it
             continue
-        there = localiser.settle(volume, prob, grid, prefer=near_on_grid(volume, grid.grid_mm, target))
+        there = localiser.settle(volume, prob, grid, prefer=near_on_grid(volume, grid, target))
         out.append(there if there.brain_volume_ml > 0 else own)
     return out

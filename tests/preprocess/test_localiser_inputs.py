@@ -37,8 +37,8 @@ def test_inputs_are_padded_to_the_grid_and_hold_each_slice_between_its_neighbour
 
 def test_a_mask_goes_to_the_grid_and_back_unchanged() -> None:
     vol, brain = ellipsoid_stack(1.1)
-    target = target_maps(brain, vol, 2.5)
     _, grid = localiser_inputs(vol, 2.5)
+    target = target_maps(brain, vol, grid)
     back = grid.to_stack(target) >= 0.5
     assert back.shape == brain.shape
     dice = 2 * (back & brain).sum() / (back.sum() + brain.sum())
@@ -50,7 +50,7 @@ def test_a_stack_cropped_to_the_head_is_padded_to_the_canvas_and_maps_back() -> 
     image's brain in the padded grid, and the mask comes back to the stack unchanged."""
     vol, brain = ellipsoid_stack(1.1, fov_mm=110.0, centre_mm=(0.0, 0.0, 5.0))
     x, grid = localiser_inputs(vol, 2.5)
-    target = target_maps(brain, vol, 2.5)
+    target = target_maps(brain, vol, grid)
     assert grid.resampled == (44, 44) and x.shape[2:] == (MIN_GRID_PX, MIN_GRID_PX) == target.shape[1:]
     inside, outside = x[:, 1][target > 0.9], x[:, 1][(target < 0.1) & (x[:, 1] > 0)]
     assert inside.min() > 0.9 and outside.max() < 0.5                  # the brain (300) is where the target is
@@ -74,7 +74,7 @@ def test_a_side_that_ends_in_tissue_is_continued_by_fluid_and_the_target_stays_o
     assert np.allclose(middle[:, c - band:c], FLUID_LEVEL) and np.all(middle[:, c - band - 1] == 0)
     assert np.all(x[:, 1, r - 1, c:c + w] == 0) and np.all(x[:, 1, r + h, c:c + w] == 0)   # top, bottom: air
     assert np.all(x[:, 1, r:r + h, c + w] == 0)                                          # the far side: air
-    target = target_maps(cut_brain, cut, 2.5)
+    target = target_maps(cut_brain, cut, grid)
     assert x[:, 1][target > 0.9].min() > 0.9                          # the target is on the brain (300)
     back = grid.to_stack(target) >= 0.5
     assert 2 * (back & cut_brain).sum() / (back.sum() + cut_brain.sum()) > 0.97
@@ -97,7 +97,7 @@ def test_the_slice_axis_is_the_thick_one_and_maps_back(axis: int) -> None:
     moved = Volume(np.ascontiguousarray(array), np.diag([*spacing, 1.0]))
     x, grid = localiser_inputs(moved, 2.5)
     assert len(x) == 20 and grid.slice_axis == axis
-    back = grid.to_stack(target_maps(mask, moved, 2.5)) >= 0.5
+    back = grid.to_stack(target_maps(mask, moved, grid)) >= 0.5
     assert back.shape == array.shape and (back & mask).sum() > 0.95 * mask.sum()
 
 

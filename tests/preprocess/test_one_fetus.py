@@ -108,7 +108,7 @@ def test_the_pixels_near_the_fetus_are_those_near_it_in_the_scanner() -> None:
     volume = Volume(np.ones((150, 130, 24), np.float32), affine)
     centre = affine[:3, :3] @ [80.0, 60.0, 11.0] + affine[:3, 3]
     _, grid = localiser_inputs(volume, GRID_MM)
-    back = grid.to_stack(near_on_grid(volume, GRID_MM, centre).astype(np.float32)) > 0.5
+    back = grid.to_stack(near_on_grid(volume, grid, centre).astype(np.float32)) > 0.5
     index = np.stack(np.meshgrid(*[np.arange(n) for n in volume.array.shape], indexing="ij"), axis=-1)
     distance = np.linalg.norm(index @ affine[:3, :3].T + affine[:3, 3] - centre, axis=-1)
     slack = GRID_MM + 3.3 / 2

@@ -22,10 +22,10 @@ def test_a_shard_is_the_service_input_and_its_target(shards: Path) -> None:
 
     with np.load(shards / "train-000000.npz") as z:
         volume = Volume(z["stack"].astype(np.float32), z["affine"])
-        x, _ = localiser_inputs(volume, GRID_MM)
+        x, grid = localiser_inputs(volume, GRID_MM)
         assert z["slices"].shape == x[:, 1].shape
         assert np.allclose(z["slices"], x[:, 1], atol=2e-2)                  # float16 storage
-        target = target_maps(z["mask"], volume, GRID_MM)
+        target = target_maps(z["mask"], volume, grid)
         assert np.abs(z["target"] / 255.0 - target).max() <= 1 / 255 + 1e-6
         assert z["target"].max() == 255 and z["target"].mean() < 0.1 * 255
 
