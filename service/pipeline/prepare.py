@@ -25,6 +25,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from nibabel import orientations
 
 from service.consistency.stage import network_from_voxel
 from service.core.errors import UnusableImage
@@ -75,8 +76,9 @@ class PreparedStack:
 def mask_on_stack_grid(upload: StackUpload) -> StackUpload:
     """``upload`` with its mask's voxels in its stack's order, where the mask's file holds the stack's
     voxels (the same voxel centres in the world) stored in another order: axes swapped or reversed,
-    as a tool that reorients its files to a standard orientation writes them. Any other mask is left
-    as it is, for :func:`check_mask_grid` to refuse.
+    as a tool that reorients its files to a standard orientation writes them (nibabel's orientation
+    tools, as the client's :func:`~client.scanner_stack.in_stack_order`). Any other mask is left as
+    it is, for :func:`check_mask_grid` to refuse.
 
     Example (the mask stored with its first axis reversed, its header saying so):
         >>> from service.geometry.pose import index_reversal
@@ -86,26 +88,19 @@ def mask_on_stack_grid(upload: StackUpload) -> StackUpload:
         >>> mask_on_stack_grid(StackUpload("s.nii.gz", stack, flipped)).mask.array[:, 0, 0].tolist()
         [1, 0, 0]
     """
-    if upload.mask is None:
+    mask = upload.mask
+    if mask is None:
         return upload
-    stack_shape, mask = upload.volume.array.shape, upload.mask
-    index = np.linalg.inv(mask.affine) @ upload.volume.affine          # stack voxel -> mask voxel
-    signed = np.round(index[:3, :3])
-    if not (np.allclose(index[:3, :3], signed, atol=1e-3) and (np.abs(signed).sum(0) == 1).all()
-            and (np.abs(signed).sum(1) == 1).all()):
+    ornt = orientations.ornt_transform(orientations.io_orientation(mask.affine),
+                                       orientations.io_orientation(upload.volume.affine))
+    if (ornt == [[0, 1], [1, 1], [2, 1]]).all():                       # already in the stack's order
         return upload
-    order = [int(np.flatnonzero(signed[:, b])[0]) for b in range(3)]       # the mask axis of each stack axis
-    if [mask.array.shape[a] for a in order] != list(stack_shape) or order == [0, 1, 2] and (signed > 0).all():
+    array = orientations.apply_orientation(np.asarray(mask.array), ornt)
+    affine = np.asarray(mask.affine, np.float64) @ orientations.inv_ornt_aff(ornt, mask.array.shape)
+    index = np.linalg.solve(upload.volume.affine, affine)              # new mask voxel -> stack voxel
+    if array.shape != upload.volume.array.shape or not np.allclose(index, np.eye(4), atol=1e-3):
         return upload
-    array = np.asarray(mask.array).transpose(order)
-    reversed_axes = tuple(b for b in range(3) if signed[order[b], b] < 0)
-    array = np.flip(array, reversed_axes) if reversed_axes else array
-    taken = np.eye(4)                                                   # the new voxel -> the mask file's voxel
-    for b, a in enumerate(order):
-        taken[a, :] = 0.0
-        taken[a, b] = signed[a, b]
-        taken[a, 3] = stack_shape[b] - 1 if signed[a, b] < 0 else 0.0
-    return replace(upload, mask=replace(mask, array=np.ascontiguousarray(array), affine=mask.affine @ taken))
+    return replace(upload, mask=replace(mask, array=np.ascontiguousarray(array), affine=affine))
 
 
 def check_mask_grid(upload: StackUpload) -> None:
