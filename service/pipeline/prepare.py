@@ -194,8 +194,8 @@ def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction:
             if u.mask is None:
                 loc = localiser or default_localiser()
                 t = time.perf_counter()
-                found = loc.probabilities(u.volume)
-                settling[i] = pool.submit(_settle_and_prepare, u, info, bias_correction, loc, found,
+                probabilities = loc.probabilities(u.volume)
+                settling[i] = pool.submit(_settle_and_prepare, u, info, bias_correction, loc, probabilities,
                                           time.perf_counter() - t)
         prepared = [None if f is None else f.result() for f in futures]
         found = {}
