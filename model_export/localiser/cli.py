@@ -71,13 +71,18 @@ def train(
     teacher_weight: Annotated[float, typer.Option(help="the teacher's share of the loss (the rest: the true mask)")] = 0.7,
     freeze_norm: Annotated[bool, typer.Option(help="batch norm at its running statistics (a fine-tune trains as the "
                                                    "service runs it)")] = False,
+    batch: int = 16,
+    device: Annotated[str, typer.Option(help="cpu or cuda (on a GPU host; `python -m model_export.localiser.train` "
+                                             "there needs no typer)")] = "cpu",
+    loaders: Annotated[int, typer.Option(help="worker processes that draw the batches (0: the training process)")] = 0,
 ) -> None:
     """Train (or continue training) the localiser for a wall-clock budget; progress in ``<out>.log``.
     With ``--init`` of another width the network starts from that one's strongest channels."""
     from model_export.localiser.train import train as run
 
     run(data, out, minutes, width=width, depth=depth, threads=threads, seed=seed, log=Path(f"{out}.log"),
-        in_channels=channels, init=init, lr=lr, teacher=teacher, teacher_weight=teacher_weight, freeze_norm=freeze_norm)
+        in_channels=channels, init=init, lr=lr, teacher=teacher, teacher_weight=teacher_weight, freeze_norm=freeze_norm,
+        batch=batch, device=device, loaders=loaders)
 
 
 @app.command()

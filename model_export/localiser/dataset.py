@@ -10,12 +10,14 @@ with ``t2_like`` (held-out stacks alternate T2-like and uniformly random contras
 
 from __future__ import annotations
 
+import os
 from multiprocessing import Pool
 from pathlib import Path
 
 import numpy as np
 
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes
+from model_export.localiser import GRID_MM
 from model_export.localiser.scenes import HeadModel, synth_stack
 from service.preprocess.localiser_inputs import localiser_inputs, target_maps
 
@@ -38,8 +40,11 @@ def _one(job: tuple[Path, str, int, float, bool, float, float, str | None]) -> s
     x, grid = localiser_inputs(volume, grid_mm)
     extra = {"stack": volume.array.astype(np.float16), "affine": volume.affine, "mask": mask,
              "t2_like": not random_contrast} if keep_stack else {}
-    np.savez_compressed(path, slices=x[:, 1].astype(np.float16), grid_mm=np.float64(grid_mm),
-                        target=np.round(target_maps(mask, volume, grid) * 255).astype(np.uint8), **extra)
+    partial = path.with_suffix(".partial")            # a reader beside the generator never sees half a shard
+    with open(partial, "wb") as f:
+        np.savez_compressed(f, slices=x[:, 1].astype(np.float16), grid_mm=np.float64(grid_mm),
+                            target=np.round(target_maps(mask, volume, grid) * 255).astype(np.uint8), **extra)
+    os.replace(partial, path)
     return path.name
 
 
@@ -56,3 +61,39 @@ def generate(out: Path, names: list[str], count: int, style: str, grid_mm: float
             for i in range(count)]
     with Pool(workers, initializer=_init, initargs=(names, root)) as pool:
         return list(pool.imap_unordered(_one, jobs))
+
+
+def main(argv: list[str] | None = None) -> list[str]:
+    """``python -m model_export.localiser.dataset``: :func:`generate` with numpy and scipy only (no
+    typer), for a bare GPU host that generates its shards beside the training; ``--root`` may be a
+    packed folder (``svrnet-train pack``) that holds the training volumes alone.
+
+    Example:
+        python -m model_export.localiser.dataset --out SHARDS --root data/packed --count 2000 --seed 7000000 \\
+            --workers 10 --faint-skull-share 0.25
+    """
+    import argparse
+
+    from model_export.atlas import VALIDATION_VOLUMES, list_volumes
+
+    ap = argparse.ArgumentParser(prog="python -m model_export.localiser.dataset", description=main.__doc__)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--root", type=Path, default=DEFAULT_ATLAS_ROOT)
+    ap.add_argument("--count", type=int, default=600)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--grid-mm", type=float, default=GRID_MM)
+    ap.add_argument("--shading-share", type=float, default=0.0)
+    ap.add_argument("--faint-skull-share", type=float, default=0.0)
+    ap.add_argument("--motion")
+    args = ap.parse_args(argv)
+    names = [name for name, *_ in list_volumes(args.root) if name not in VALIDATION_VOLUMES]
+    return generate(args.out, names, args.count, "train", args.grid_mm, args.seed, args.workers,
+                    root=args.root, shading_share=args.shading_share, faint_skull_share=args.faint_skull_share,
+                    motion=args.motion)
+
+
+if __name__ == "__main__":              # run as the module itself, so its worker processes can find its functions
+    from model_export.localiser.dataset import main as module_main
+
+    module_main()

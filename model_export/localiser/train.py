@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import time
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -44,7 +45,7 @@ def load_shards(folder: Path, known: dict[str, Shard]) -> dict[str, Shard]:
                 t = z["target"]
                 grid = float(z["grid_mm"]) if "grid_mm" in z else None
                 known[path.name] = Shard(z["slices"], t, np.flatnonzero(t.reshape(len(t), -1).max(1) > 127), grid)
-        except (OSError, ValueError, KeyError, EOFError):
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
             continue                                   # a shard still being written
     return known
 
@@ -59,6 +60,20 @@ def shards_grid_mm(shards: dict[str, Shard]) -> float | None:
     if len(grids) > 1:
         raise ValueError(f"the shards were made on grids of {grids} mm: train on shards of one grid")
     return grids[0] if grids else None
+
+
+def folder_grid_mm(folder: Path) -> tuple[int, float | None]:
+    """How many shards ``folder`` holds and the network grid they were made on (:func:`shards_grid_mm`),
+    reading each shard's grid alone."""
+    grids = {}
+    for path in sorted(Path(folder).glob("*.npz")):
+        try:
+            with np.load(path) as z:
+                grids[path.name] = Shard(np.empty(0), np.empty(0), np.empty(0),
+                                         float(z["grid_mm"]) if "grid_mm" in z else None)
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+            continue                                   # a shard still being written
+    return len(grids), shards_grid_mm(grids)
 
 
 def draw_batch(shards: list[Shard], rng: np.random.Generator, batch: int, crop: int,
@@ -94,6 +109,27 @@ def draw_batch(shards: list[Shard], rng: np.random.Generator, batch: int, crop: 
     return xs, ys
 
 
+class BatchStream(torch.utils.data.IterableDataset):
+    """Endless training batches (:func:`draw_batch`) from the shards of ``folder``, read again every
+    200 batches as it grows. Each worker process of a ``DataLoader`` draws from its own seed."""
+
+    def __init__(self, folder: Path, batch: int, crop: int, seed: int, in_channels: int = 3) -> None:
+        super().__init__()
+        self.folder, self.batch, self.crop, self.seed, self.in_channels = Path(folder), batch, crop, seed, in_channels
+
+    def __iter__(self):  # noqa: ANN204
+        info = torch.utils.data.get_worker_info()
+        rng = np.random.default_rng([self.seed, info.id if info is not None else 0])
+        known: dict[str, Shard] = {}
+        while True:
+            while not load_shards(self.folder, known):
+                time.sleep(1.0)                        # shards still being generated
+            shards_grid_mm(known)
+            for _ in range(200):
+                x, y = draw_batch(list(known.values()), rng, self.batch, self.crop)
+                yield (x if self.in_channels == 3 else x[:, 1:2]), y
+
+
 def _contrast(x: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Intensity changes the input function's percentile scaling does not undo, drawn per sample: a
     global scale (a bright coil-side rim or fat sets the percentile and darkens the rest), a gamma, a
@@ -124,7 +160,8 @@ def loss_fn(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int = 4, batch: int = 16,
           crop: int = 128, lr: float = 2e-3, seed: int = 0, checkpoint_s: float = 120.0,
           threads: int = 2, log: Path | None = None, in_channels: int = 3, init: Path | None = None,
-          teacher: Path | None = None, teacher_weight: float = 0.7, freeze_norm: bool = False) -> Path:
+          teacher: Path | None = None, teacher_weight: float = 0.7, freeze_norm: bool = False,
+          device: str = "cpu", loaders: int = 0) -> Path:
     """Train for ``minutes`` of wall clock (resuming ``out`` if it exists); returns the checkpoint path.
 
     ``in_channels`` 3 is the 2.5D network (a slice and its neighbours), 1 the 2D one (the slice alone).
@@ -138,32 +175,40 @@ def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int =
     in training mode a fine-tune normalises each crop by its own batch and moves the statistics the
     exported network uses.
 
+    ``device``: where the network steps (``cuda`` on a GPU host); ``loaders``: worker processes that
+    draw the batches (:class:`BatchStream`), for a host whose network step outruns one core's drawing.
+
     The checkpoint records the network grid its shards were made on (``grid_mm``; shards of two grids
     are refused), which :func:`~model_export.localiser.export.export_onnx` writes into the model file.
     """
     torch.set_num_threads(threads)
     torch.manual_seed(seed)
-    rng = np.random.default_rng(seed)
     out = Path(out)
     net = LocaliserNet(in_channels=in_channels, width=width, depth=depth)
     opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
     step, spent = 0, 0.0
     if init is not None and not out.exists():
         net.load_state_dict(pruned(load_checkpoint(init), width).state_dict())     # the identity at its own width
-    teacher_net = load_checkpoint(teacher) if teacher is not None else None
+    teacher_net = load_checkpoint(teacher).to(device) if teacher is not None else None
     if out.exists():
         state = torch.load(out, map_location="cpu", weights_only=False)
         net.load_state_dict(state["model"])
         opt.load_state_dict(state["optimiser"])
         step, spent = state["step"], state.get("spent_s", 0.0)
+    net.to(device)
+    for values in opt.state.values():                  # a resumed optimiser's moments beside the weights
+        values.update({k: v.to(device) for k, v in values.items() if torch.is_tensor(v) and k != "step"})
     budget = spent + minutes * 60.0
-    known: dict[str, Shard] = {}
     start, last_ckpt, losses = time.perf_counter() - spent, time.perf_counter(), []
+    stream = BatchStream(data, batch, crop, seed + step, in_channels)
+    batches = iter(stream if loaders == 0 else torch.utils.data.DataLoader(
+        stream, batch_size=None, num_workers=loaders, pin_memory=device != "cpu", persistent_workers=True))
 
     def save() -> None:
-        torch.save({"model": net.state_dict(), "optimiser": opt.state_dict(), "config": net.config,
-                    "step": step, "spent_s": time.perf_counter() - start, "shards": len(known),
-                    "grid_mm": shards_grid_mm(known)}, out)
+        shards, grid_mm = folder_grid_mm(data)
+        torch.save({"model": {k: v.cpu() for k, v in net.state_dict().items()}, "optimiser": opt.state_dict(),
+                    "config": net.config, "step": step, "spent_s": time.perf_counter() - start, "shards": shards,
+                    "grid_mm": grid_mm}, out)
 
     net.train()
     if freeze_norm:
@@ -171,14 +216,9 @@ def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int =
             if isinstance(module, torch.nn.BatchNorm2d):
                 module.eval()
     while (elapsed := time.perf_counter() - start) < budget:
-        if step % 200 == 0 or not known:
-            load_shards(data, known)
-            shards_grid_mm(known)
         for g in opt.param_groups:
             g["lr"] = lr * 0.5 * (1 + np.cos(np.pi * min(elapsed / budget, 1.0)))
-        x, y = draw_batch(list(known.values()), rng, batch, crop)
-        x = x if in_channels == 3 else x[:, 1:2]
-        x, y = torch.from_numpy(x), torch.from_numpy(y)
+        x, y = (torch.as_tensor(t).to(device, non_blocking=True) for t in next(batches))
         if teacher_net is None:
             loss = loss_fn(net(x), y)
         else:
@@ -194,7 +234,7 @@ def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int =
             if log is not None:
                 with open(log, "a") as f:
                     f.write(json.dumps({"step": step, "elapsed_s": round(elapsed), "loss": float(np.mean(losses[-200:])),
-                                        "lr": opt.param_groups[0]["lr"], "shards": len(known)}) + "\n")
+                                        "lr": opt.param_groups[0]["lr"]}) + "\n")
     save()
     return out
 
@@ -214,3 +254,37 @@ def average_weights(base: Path, tuned: Path, out: Path, weight: float = 0.5) -> 
                                                   "weight": weight}}, out)
     return Path(out)
 
+
+
+def main(argv: list[str] | None = None) -> Path:
+    """``python -m model_export.localiser.train``: :func:`train` with numpy, scipy and torch only (no
+    typer), for a bare GPU host; the options are those of ``svrnet-train localiser train`` and
+    :func:`train`'s keywords.
+
+    Example:
+        python -m model_export.localiser.train --data SHARDS --out $OUT/w6.pt --width 6 \\
+            --init service/localisers/default/checkpoint.pt --teacher service/localisers/default/checkpoint.pt \\
+            --lr 1e-3 --batch 64 --device cuda --loaders 2 --minutes 6
+    """
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m model_export.localiser.train", description=main.__doc__)
+    ap.add_argument("--data", type=Path, required=True)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--minutes", type=float, default=60.0)
+    for name, kind in (("width", int), ("depth", int), ("batch", int), ("crop", int), ("lr", float), ("seed", int),
+                       ("threads", int), ("teacher-weight", float), ("loaders", int), ("checkpoint-s", float)):
+        ap.add_argument(f"--{name}", type=kind)
+    ap.add_argument("--init", type=Path)
+    ap.add_argument("--teacher", type=Path)
+    ap.add_argument("--freeze-norm", action="store_true")
+    ap.add_argument("--device", default="cpu")
+    args = vars(ap.parse_args(argv))
+    keywords = {k: v for k, v in args.items() if v is not None and k not in ("data", "out", "minutes")}
+    return train(args["data"], args["out"], args["minutes"], log=Path(f"{args['out']}.log"), **keywords)
+
+
+if __name__ == "__main__":              # run as the module itself, so its worker processes can find its functions
+    from model_export.localiser.train import main as module_main
+
+    module_main()

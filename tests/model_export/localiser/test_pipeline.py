@@ -108,3 +108,53 @@ def test_a_checkpoint_carries_its_shards_grid_into_the_model_file(shards: Path, 
         np.savez_compressed(mixed / "train-000001.npz", **{**dict(z), "grid_mm": np.float64(2.5)})
     with pytest.raises(ValueError, match="grids of"):
         train(mixed, tmp_path / "mixed.pt", 0.01, width=4, depth=2, batch=4, crop=32, threads=1)
+
+
+def test_a_shard_still_being_written_is_not_read(shards: Path, tmp_path: Path) -> None:
+    """A trainer reads its folder while a generator writes into it: half a shard is skipped, not a crash."""
+    import shutil
+
+    folder = tmp_path / "growing"
+    shutil.copytree(shards, folder)
+    whole = (folder / "train-000001.npz").read_bytes()
+    (folder / "train-000009.npz").write_bytes(whole[: len(whole) // 2])
+    assert sorted(load_shards(folder, {})) == ["train-000000.npz", "train-000001.npz"]
+
+
+def test_the_generator_writes_whole_shards_of_the_training_volumes_alone(phantom_atlas: Path, tmp_path: Path) -> None:
+    """``python -m model_export.localiser.dataset``: shards of the training volumes (the validation
+    volumes of the same folder never), each written whole under its final name."""
+    from model_export.atlas import VALIDATION_VOLUMES
+    from model_export.localiser import dataset
+
+    seen: list[list[str]] = []
+    real_generate = dataset.generate
+
+    def spy(out, names, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        seen.append(list(names))
+        return real_generate(out, names, *args, **kwargs)
+
+    dataset.generate = spy
+    try:
+        names = dataset.main(["--out", str(tmp_path), "--root", str(phantom_atlas), "--count", "1", "--seed", "5",
+                              "--workers", "1", "--grid-mm", str(GRID_MM)])
+    finally:
+        dataset.generate = real_generate
+    assert names == ["train-000005.npz"] and sorted(p.name for p in tmp_path.iterdir()) == names
+    assert sorted(seen[0]) == ["SB_GA27_operated", "STA30"] and not set(seen[0]) & set(VALIDATION_VOLUMES)
+    with np.load(tmp_path / names[0]) as z:
+        assert float(z["grid_mm"]) == GRID_MM and z["target"].max() == 255
+
+
+def test_batches_drawn_by_worker_processes_train_the_network(shards: Path, tmp_path: Path) -> None:
+    """``python -m model_export.localiser.train ... --loaders 1``: the batches come from a worker
+    process (a GPU host's way), and the run trains, checkpoints and records the shards' grid."""
+    from model_export.localiser.train import BatchStream, main
+
+    x, y = next(iter(BatchStream(shards, 4, 32, seed=0)))
+    assert x.shape == (4, 3, 32, 32) and y.shape == (4, 1, 32, 32) and 0 <= y.min() and y.max() <= 1
+    ckpt = main(["--data", str(shards), "--out", str(tmp_path / "w.pt"), "--minutes", "0.1", "--width", "4",
+                 "--depth", "2", "--batch", "4", "--crop", "32", "--threads", "1", "--loaders", "1", "--device", "cpu"])
+    state = torch.load(ckpt, weights_only=False)
+    assert state["step"] > 0 and state["grid_mm"] == GRID_MM and state["shards"] == 2
+    assert all(v.device.type == "cpu" for v in state["model"].values())
