@@ -141,8 +141,11 @@ def load_volumes(names: list[str] | None = None, root: Path = DEFAULT_ATLAS_ROOT
 PACKED_INDEX = "packed.json"
 
 
-def pack(out: Path, root: Path = DEFAULT_ATLAS_ROOT) -> Path:
-    """Write every atlas volume of ``root`` as ``out/<name>.npz`` plus the ``packed.json`` index.
+def pack(out: Path, root: Path = DEFAULT_ATLAS_ROOT, names: list[str] | None = None, compressed: bool = True) -> Path:
+    """Write every atlas volume of ``root`` (or those of ``names``) as ``out/<name>.npz`` plus the
+    ``packed.json`` index; ``compressed`` False stores them uncompressed, for an archiver that
+    compresses better than zip's deflate (``tar -cJf``: about 17 against 30 MB for all 28 volumes,
+    which then travel to a GPU host beside the repository).
 
     Voxels outside the image's non-zero box are zero, and slice sampling pads with zeros, so the
     crop changes nothing that the simulation sees; the affine's origin moves with it.
@@ -154,14 +157,15 @@ def pack(out: Path, root: Path = DEFAULT_ATLAS_ROOT) -> Path:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     entries = []
-    for vol in load_volumes(None, root):
+    save = np.savez_compressed if compressed else np.savez
+    for vol in load_volumes(names, root):
         nz = np.argwhere((vol.image != 0) | (vol.mask > 0))
         lo, hi = nz.min(0), nz.max(0) + 1
         box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
         affine = vol.affine.copy()
         affine[:3, 3] = vol.affine[:3, :3] @ lo + vol.affine[:3, 3]
-        np.savez_compressed(out / f"{vol.name}.npz", image=np.ascontiguousarray(vol.image[box]),
-                            mask=np.ascontiguousarray(vol.mask[box] > 0.5), affine=affine)
+        save(out / f"{vol.name}.npz", image=np.ascontiguousarray(vol.image[box]),
+             mask=np.ascontiguousarray(vol.mask[box] > 0.5), affine=affine)
         entries.append((vol.name, vol.population))
     (out / PACKED_INDEX).write_text(json.dumps({"volumes": entries}, indent=1))
     return out

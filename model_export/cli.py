@@ -111,11 +111,16 @@ def train(
 def pack(
     out: Annotated[Path, typer.Option(help="packed folder (one .npz per volume + packed.json)")] = Path("data/packed"),
     root: Root = DEFAULT_ATLAS_ROOT,
+    training_only: Annotated[bool, typer.Option(help="the training volumes alone (what the localiser's scenes are "
+                                                     "made from; a pose run also validates on the others)")] = False,
+    uncompressed: Annotated[bool, typer.Option(help="store the arrays uncompressed (for tar -cJf, which packs "
+                                                    "them smaller)")] = False,
 ) -> None:
     """Pack the atlas volumes as .npz (numpy only: no SimpleITK needed where they are read)."""
     from model_export.atlas import pack as run
+    from model_export.atlas import split
 
-    path = run(out, root)
+    path = run(out, root, split(root)[0] if training_only else None, compressed=not uncompressed)
     size = sum(f.stat().st_size for f in path.iterdir())
     typer.echo(f"wrote {path} ({size / 1e6:.1f} MB)")
 

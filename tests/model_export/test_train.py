@@ -44,6 +44,23 @@ def test_packed_volumes_load_without_simpleitk(packed: Path) -> None:
     assert out.stdout.split() == ["7", "5"]
 
 
+def test_a_pack_of_the_training_volumes_uncompressed_holds_the_same_arrays(packed: Path, tmp_path: Path,
+                                                                          phantom_atlas: Path) -> None:
+    """``pack --training-only --uncompressed``: what travels to a GPU host as one archive."""
+    import zipfile
+
+    from model_export.atlas import VALIDATION_VOLUMES, list_volumes, split
+
+    small = pack(tmp_path / "small", phantom_atlas, split(phantom_atlas)[0], compressed=False)
+    assert sorted(n for n, *_ in list_volumes(small)) == ["SB_GA27_operated", "STA30"]
+    assert not set(n for n, *_ in list_volumes(small)) & set(VALIDATION_VOLUMES)
+    with zipfile.ZipFile(small / "STA30.npz") as z:
+        assert {i.compress_type for i in z.infolist()} == {zipfile.ZIP_STORED}
+    for name in ("STA30", "SB_GA27_operated"):
+        with np.load(small / f"{name}.npz") as a, np.load(packed / f"{name}.npz") as b:
+            assert all(np.array_equal(a[k], b[k]) for k in ("image", "mask", "affine"))
+
+
 def test_pose_errors_report_the_truth_and_the_nearer_twin() -> None:
     rng = np.random.default_rng(0)
     true = iterators.random_poses(8, rng, tz_max_mm=10.0, centre=np.array([20.0, 0.0, 0.0]))
