@@ -21,6 +21,7 @@ from service.consistency.stage import StackPoses
 from service.core.errors import ServiceError
 from service.geometry import anchors
 from service.pipeline.predict import StackPrediction
+from service.preprocess.noise import NOISY_INPUT
 from service.streaming.answers import SessionSummary, SliceAnswer, StackAnswer
 
 
@@ -100,9 +101,23 @@ def stack_objects(predictions: list[StackPrediction]) -> list[dict]:
             "spacing_mm": [float(x) for x in vol.spacing], "slice_axis": p.prepared.slices.slice_axis,
             "scanner_from_voxel": np.asarray(vol.affine, np.float64).tolist(),
             "slices": slice_objects(p), "consistency": stack_report(p.poses),
-            "localisation": p.prepared.localisation.report(),
+            "localisation": p.prepared.localisation.report(), "noise": noise_report(p.prepared.input_noise),
         })
     return stacks
+
+
+def noise_report(level: float) -> dict:
+    """A stack's ``noise`` object: its network inputs' noise (:func:`~service.preprocess.noise.input_noise`;
+    null where no slice holds enough brain to tell) and whether it is beyond what the network's poses
+    and expected errors were measured to hold (:data:`~service.preprocess.noise.NOISY_INPUT`).
+
+    Example:
+        >>> noise_report(0.0712), noise_report(float("nan"))
+        ({'input_noise': 0.0712, 'beyond_calibration': True}, {'input_noise': None, 'beyond_calibration': False})
+    """
+    known = bool(np.isfinite(level))
+    return {"input_noise": round(float(level), 4) if known else None,
+            "beyond_calibration": known and level > NOISY_INPUT}
 
 
 def pose_object(answer: SliceAnswer, **extra: object) -> dict:

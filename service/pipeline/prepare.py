@@ -34,6 +34,7 @@ from service.io.volume import Volume
 from service.preprocess.bias import n4_correct
 from service.preprocess.localise import Localisation, Localiser, default_localiser
 from service.preprocess.localiser_inputs import LocaliserGrid
+from service.preprocess.noise import input_noise
 from service.preprocess.one_fetus import brain_centre_mm, one_fetus
 from service.preprocess.slices import PreparedSlices, preprocess_slices
 from service.preprocess.stack import StackSlices, split_stack, stack_axis
@@ -67,6 +68,8 @@ class PreparedStack:
     prepared: PreparedSlices
     localisation: Localisation
     timings: dict[str, float] = field(default_factory=dict)
+    input_noise: float = float("nan")
+    """The noise of the network's inputs (:func:`~service.preprocess.noise.input_noise`; NaN: not measured)."""
 
     def network_from_voxel(self) -> np.ndarray:
         """``[n, 4, 4]`` voxel ``(i, j, k)`` of slice ``k`` -> its network frame (the service's crop/centre)."""
@@ -155,7 +158,7 @@ def prepare_stack(upload: StackUpload, info: ModelInfo, bias_correction: bool,
     slices = split_stack(Volume(array, vol.affine), localisation.pose_mask(vol.spacing, upload.slice_axis), upload.slice_axis)
     prepared = preprocess_slices(slices.images, slices.masks, slices.pixel_mm, info.input_size, info.pixel_spacing_mm)
     timings["preprocess"] = time.perf_counter() - t
-    return PreparedStack(upload, slices, prepared, localisation, timings)
+    return PreparedStack(upload, slices, prepared, localisation, timings, input_noise(prepared.inputs))
 
 
 def localise_uploads(uploads: list[StackUpload], localiser: Localiser | None = None) -> list[Localisation]:
