@@ -98,7 +98,8 @@ confidences real stacks get)."""
 
 def predict_hints(result: dict[str, Any]) -> list[str]:
     """What to do about an answer with nothing usable in it: a stack without brain slices, a localiser
-    that was unsure, no slice accepted (one line each; none for a usable answer).
+    that was unsure, no slice accepted; and what to know of one that is usable: a stack noisier than
+    the poses were calibrated on (one line each; none for a clean, usable answer).
 
     Example (one stack sent alone, nothing accepted):
         >>> body = {"max_expected_error_mm": 4.5, "stacks": [{"filename": "ax.nii.gz", "localisation": {
@@ -119,6 +120,11 @@ def predict_hints(result: dict[str, Any]) -> list[str]:
         elif where.get("method") == "network" and float(where.get("confidence") or 0.0) < LOW_CONFIDENCE:
             hints.append(f"{name}: the localiser was unsure of the brain (confidence {where.get('confidence', 0):.2f}); "
                          "check its mask with `svrnet masks`, or upload one with --mask")
+        noise = stack.get("noise") or {}
+        if brain and noise.get("beyond_calibration"):
+            hints.append(f"{name}: noisier than the poses were calibrated on (input noise "
+                         f"{noise.get('input_noise', 0):.3f}, a low-field scanner's): its poses may be less accurate "
+                         "than their expected errors say")
     slices = with_brain([s for st in stacks for s in st.get("slices") or []])
     if usable(result):
         for stack in stacks:
