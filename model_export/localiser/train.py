@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import time
 import zipfile
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -56,24 +57,27 @@ def shards_grid_mm(shards: dict[str, Shard]) -> float | None:
     Raises:
         ValueError: the shards were made on different grids (a network learns one grid).
     """
-    grids = sorted({s.grid_mm for s in shards.values() if s.grid_mm is not None})
-    if len(grids) > 1:
-        raise ValueError(f"the shards were made on grids of {grids} mm: train on shards of one grid")
-    return grids[0] if grids else None
+    return _one_grid_mm(s.grid_mm for s in shards.values())
+
+
+def _one_grid_mm(grids: Iterable[float | None]) -> float | None:
+    found = sorted({g for g in grids if g is not None})
+    if len(found) > 1:
+        raise ValueError(f"the shards were made on grids of {found} mm: train on shards of one grid")
+    return found[0] if found else None
 
 
 def folder_grid_mm(folder: Path) -> tuple[int, float | None]:
-    """How many shards ``folder`` holds and the network grid they were made on (:func:`shards_grid_mm`),
-    reading each shard's grid alone."""
-    grids = {}
+    """How many whole shards ``folder`` holds and the network grid they were made on
+    (:func:`shards_grid_mm`), reading each shard's grid alone (a checkpoint's record of its data)."""
+    grids = []
     for path in sorted(Path(folder).glob("*.npz")):
         try:
             with np.load(path) as z:
-                grids[path.name] = Shard(np.empty(0), np.empty(0), np.empty(0),
-                                         float(z["grid_mm"]) if "grid_mm" in z else None)
+                grids.append(float(z["grid_mm"]) if "grid_mm" in z else None)
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
             continue                                   # a shard still being written
-    return len(grids), shards_grid_mm(grids)
+    return len(grids), _one_grid_mm(grids)
 
 
 def draw_batch(shards: list[Shard], rng: np.random.Generator, batch: int, crop: int,
