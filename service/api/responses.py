@@ -141,7 +141,7 @@ def stack_message(answer: StackAnswer) -> dict:
     found = {"method": loc.method, "confidence": round(loc.confidence, 3)}
     slices = [{"stack": answer.stack, **s, "localisation": found} for s in slice_objects(p)]
     return {"type": "stack", "stack": answer.stack, "slices": slices, "consistency": stack_report(p.poses),
-            "localisation": p.prepared.localisation.report(),
+            "localisation": p.prepared.localisation.report(), "noise": noise_report(p.prepared.input_noise),
             "reacquire": _reacquire(answer.reacquire), "judged_alone": answer.judged_alone,
             "coverage": answer.coverage.report(),
             "timing_ms": {k: round(v * 1e3, 1) for k, v in answer.timings.items()}}
