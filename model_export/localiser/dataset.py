@@ -66,10 +66,10 @@ def generate(out: Path, names: list[str], count: int, style: str, grid_mm: float
 def main(argv: list[str] | None = None) -> list[str]:
     """``python -m model_export.localiser.dataset``: :func:`generate` with numpy and scipy only (no
     typer), for a bare GPU host that generates its shards beside the training; ``--root`` may be a
-    packed folder (``svrnet-train pack``) that holds the training volumes alone.
+    packed folder (``svrnet-train pack --training-only``).
 
     Example:
-        python -m model_export.localiser.dataset --out SHARDS --root data/packed --count 2000 --seed 7000000 \\
+        python -m model_export.localiser.dataset --out SHARDS --root data/packed_loc --count 2000 --seed 7000000 \\
             --workers 10 --faint-skull-share 0.25
     """
     import argparse
