@@ -123,7 +123,7 @@ def predict_hints(result: dict[str, Any]) -> list[str]:
         noise = stack.get("noise") or {}
         if brain and noise.get("beyond_calibration"):
             hints.append(f"{name}: noisier than the poses were calibrated on (input noise "
-                         f"{noise.get('input_noise', 0):.3f}, a low-field scanner's): its poses may be less accurate "
+                         f"{noise.get('input_noise') or 0:.3f}, a low-field scanner's): its poses may be less accurate "
                          "than their expected errors say")
     slices = with_brain([s for st in stacks for s in st.get("slices") or []])
     if usable(result):

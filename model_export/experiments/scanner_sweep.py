@@ -5,8 +5,9 @@ The acquisition benchmarks simulate 1 mm pixels and 3 mm slices 3 mm apart. Scan
 scanner's stacks are noisier (Rician noise of 8 or 15 % of the bright end). This script runs the
 same held-out volumes, motion level and seed through the whole pipeline (masks uploaded, N4, 100 MC
 samples, every stage) once per acquisition setting, and prints per setting the mean E.D. against the
-truth and twin-min, the median, the slices with brain, and the shares of slices with E.D. < 5 mm and
-> 10 mm that are accepted. Every setting keeps a 128 mm field of view. Each acquisition draws from its
+truth and twin-min, the median, the slices with brain, the shares of slices with E.D. < 5 mm and
+> 10 mm that are accepted, and the stacks' median input noise (:func:`~service.preprocess.noise.input_noise`,
+what a ``/v1/predict`` answer's ``noise`` reports). Every setting keeps a 128 mm field of view. Each acquisition draws from its
 own seed, so that its first stack's placement and motion are alike in every setting (later draws
 follow the image sizes).
 
@@ -136,7 +137,7 @@ def sweep(estimator, volumes: list, level: str, per_volume: int, seed: int,  # n
     for i, (name, (geometry, void)) in enumerate(SETTINGS.items(), 1):
         if only and i not in only:
             continue
-        scored, darkened = Scored(), []
+        scored, darkened, noise = Scored(), [], []
         start = time.perf_counter()
         for a, vol in enumerate(volumes * per_volume):
             rng = np.random.default_rng([seed, a])         # each acquisition's draws start alike in every setting
@@ -147,12 +148,13 @@ def sweep(estimator, volumes: list, level: str, per_volume: int, seed: int,  # n
                 darkened += darkened_share(clean, stacks)
             (predictions,), prepared, truth = run_acquisition(stacks, estimator)
             score(predictions, prepared, truth, stacks, estimator.info.symmetry_plane_x_mm, scored)
+            noise += [p.input_noise for p in prepared]
         keep = scored.array("mask_pixels") >= MIN_MASK_PIXELS
         e, t, a, x = (scored.array(k)[keep] for k in ("ed", "ed_min", "accepted", "expected"))
         shares = rates({"ed": e, "ed_min": t}, a.astype(bool))
         lines.append(f"| {name} | {e.mean():.2f} / {t.mean():.2f} mm | {np.median(e):.2f} mm | {len(e)} | "
                      f"{share(shares['good_accepted'])} | {share(shares['bad_accepted'])} ({shares['bad_slices']}) | "
-                     f"{calibration(e, x):.2f} | "
+                     f"{calibration(e, x):.2f} | {np.nanmedian(noise):.3f} | "
                      f"{time.perf_counter() - start:.0f} s |")
         print(lines[-1], flush=True)
         if void:
@@ -174,8 +176,8 @@ def main() -> None:
     for level in args.levels.split(","):
         print(f"\n{level} motion, {len(volumes) * args.per_volume} acquisitions per setting (seed {args.seed})\n")
         print("| acquisition | mean E.D. (truth / twin-min) | median E.D. | slices | E.D. < 5 mm accepted "
-              "| E.D. > 10 mm accepted (slices) | RMS E.D. / RMS expected | time |")
-        print("|---|---|---|---|---|---|---|---|")
+              "| E.D. > 10 mm accepted (slices) | RMS E.D. / RMS expected | input noise (median) | time |")
+        print("|---|---|---|---|---|---|---|---|---|")
         sweep(estimator, volumes, level, args.per_volume, args.seed,
               {int(k) for k in args.only.split(",")} if args.only else None)
 

@@ -112,12 +112,12 @@ def noise_report(level: float) -> dict:
     and expected errors were measured to hold (:data:`~service.preprocess.noise.NOISY_INPUT`).
 
     Example:
-        >>> noise_report(0.0712), noise_report(float("nan"))
-        ({'input_noise': 0.0712, 'beyond_calibration': True}, {'input_noise': None, 'beyond_calibration': False})
+        >>> noise_report(0.1244), noise_report(float("nan"))
+        ({'input_noise': 0.1244, 'beyond_calibration': True}, {'input_noise': None, 'beyond_calibration': False})
     """
     known = bool(np.isfinite(level))
     return {"input_noise": round(float(level), 4) if known else None,
-            "beyond_calibration": known and level > NOISY_INPUT}
+            "beyond_calibration": bool(known and level > NOISY_INPUT)}
 
 
 def pose_object(answer: SliceAnswer, **extra: object) -> dict:

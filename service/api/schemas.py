@@ -112,13 +112,14 @@ class Localisation(BaseModel):
 
 
 class Noise(BaseModel):
-    input_noise: Optional[float] = Field(description="the noise SD of the stack's network inputs (the brain on the "
-                                                     "network's 1.25 mm grid, 0-255) as a share of their range; "
-                                                     "null when no slice holds enough brain to tell. Simulated "
-                                                     "acquisitions with Rician noise of 3 / 8 / 15 % of the bright "
-                                                     "end give about 0.025 / 0.056 / 0.083")
+    input_noise: Optional[float] = Field(description="the noise SD the stack's slices carry into the pose network's "
+                                                     "inputs (the brain rescaled to 0-255, on the network's 1.25 mm "
+                                                     "pixels) as a share of their range; null when no slice holds "
+                                                     "enough brain to tell. Simulated acquisitions of 1 mm pixels "
+                                                     "with Rician noise of 3 / 8 / 15 % of the bright end give about "
+                                                     "0.036 / 0.084 / 0.124")
     beyond_calibration: bool = Field(description="input_noise exceeds what the poses and their expected errors "
-                                                 "were measured to hold (0.06): the poses may be less accurate "
+                                                 "were measured to hold (0.10): the poses may be less accurate "
                                                  "than expected_error_mm says (a low-field scanner's noise)")
 
 

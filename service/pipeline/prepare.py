@@ -157,8 +157,9 @@ def prepare_stack(upload: StackUpload, info: ModelInfo, bias_correction: bool,
     t = time.perf_counter()
     slices = split_stack(Volume(array, vol.affine), localisation.pose_mask(vol.spacing, upload.slice_axis), upload.slice_axis)
     prepared = preprocess_slices(slices.images, slices.masks, slices.pixel_mm, info.input_size, info.pixel_spacing_mm)
+    noise = input_noise(slices.images, slices.masks, slices.pixel_mm, info.pixel_spacing_mm)
     timings["preprocess"] = time.perf_counter() - t
-    return PreparedStack(upload, slices, prepared, localisation, timings, input_noise(prepared.inputs))
+    return PreparedStack(upload, slices, prepared, localisation, timings, noise)
 
 
 def localise_uploads(uploads: list[StackUpload], localiser: Localiser | None = None) -> list[Localisation]:

@@ -389,8 +389,8 @@ def test_an_answer_with_nothing_usable_says_what_to_do() -> None:
     assert "localiser found none" in views.predict_hints(_alone("empty", confidence=0.05))[0]
     # A usable answer whose stack is noisier than the poses were calibrated on: told, not alarmed.
     noisy = {**PREDICT_BODY, "stacks": [{**PREDICT_BODY["stacks"][0],
-                                         "noise": {"input_noise": 0.083, "beyond_calibration": True}}]}
-    assert views.usable(noisy) and [h for h in views.predict_hints(noisy) if "noisier" in h and "0.083" in h]
+                                         "noise": {"input_noise": 0.124, "beyond_calibration": True}}]}
+    assert views.usable(noisy) and [h for h in views.predict_hints(noisy) if "noisier" in h and "0.124" in h]
     noisy["stacks"][0]["noise"]["beyond_calibration"] = False
     assert views.predict_hints(noisy) == []
     # One MC pass: no spread was measured; the stacks are not to blame.
