@@ -171,6 +171,12 @@ def pack(out: Path, root: Path = DEFAULT_ATLAS_ROOT, names: list[str] | None = N
     return out
 
 
+def training_volumes(root: Path = DEFAULT_ATLAS_ROOT) -> list[str]:
+    """Names of the volumes of ``root`` that are not :data:`VALIDATION_VOLUMES` (a folder packed
+    with the training volumes alone holds no others; :func:`split` wants both)."""
+    return [name for name, *_ in list_volumes(root) if name not in VALIDATION_VOLUMES]
+
+
 def split(root: Path = DEFAULT_ATLAS_ROOT,
           validation: tuple[str, ...] = VALIDATION_VOLUMES) -> tuple[list[str], list[str]]:
     """Names of the training and validation volumes."""

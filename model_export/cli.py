@@ -118,9 +118,9 @@ def pack(
 ) -> None:
     """Pack the atlas volumes as .npz (numpy only: no SimpleITK needed where they are read)."""
     from model_export.atlas import pack as run
-    from model_export.atlas import split
+    from model_export.atlas import training_volumes
 
-    path = run(out, root, split(root)[0] if training_only else None, compressed=not uncompressed)
+    path = run(out, root, training_volumes(root) if training_only else None, compressed=not uncompressed)
     size = sum(f.stat().st_size for f in path.iterdir())
     typer.echo(f"wrote {path} ({size / 1e6:.1f} MB)")
 

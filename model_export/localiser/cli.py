@@ -42,15 +42,14 @@ def data(
                                                         "default: the generator's own drift")] = None,
 ) -> None:
     """Synthetic whole-uterus stacks: training volumes for ``train``, validation volumes for ``heldout``."""
-    from model_export.atlas import split
+    from model_export.atlas import split, training_volumes
     from model_export.localiser.dataset import generate
     from model_export.localiser.scenes import MOTIONS
 
     if motion is not None and motion not in MOTIONS:
         raise typer.BadParameter(f"{motion!r} is not one of {', '.join(MOTIONS)}", param_hint="--motion")
 
-    train_names, val_names = split(root)
-    names = generate(out, train_names if style == "train" else val_names, count, style, grid_mm, seed, workers,
+    names = generate(out, training_volumes(root) if style == "train" else split(root)[1], count, style, grid_mm, seed, workers,
                      keep_stack, root, shading_share, faint_skull_share, motion)
     typer.echo(f"{len(names)} shards in {out}")
 
@@ -71,10 +70,12 @@ def train(
     teacher_weight: Annotated[float, typer.Option(help="the teacher's share of the loss (the rest: the true mask)")] = 0.7,
     freeze_norm: Annotated[bool, typer.Option(help="batch norm at its running statistics (a fine-tune trains as the "
                                                    "service runs it)")] = False,
-    batch: int = 16,
+    batch: Annotated[int, typer.Option(help="crops per step")] = 16,
     device: Annotated[str, typer.Option(help="cpu or cuda (on a GPU host; `python -m model_export.localiser.train` "
                                              "there needs no typer)")] = "cpu",
-    loaders: Annotated[int, typer.Option(help="worker processes that draw the batches (0: the training process)")] = 0,
+    loaders: Annotated[int, typer.Option(help="processes that draw the batches from the shards (0: the training "
+                                              "process; `data --workers` are those that generate scenes); each "
+                                              "holds the shards it has read in memory")] = 0,
 ) -> None:
     """Train (or continue training) the localiser for a wall-clock budget; progress in ``<out>.log``.
     With ``--init`` of another width the network starts from that one's strongest channels."""

@@ -64,9 +64,9 @@ def generate(out: Path, names: list[str], count: int, style: str, grid_mm: float
 
 
 def main(argv: list[str] | None = None) -> list[str]:
-    """``python -m model_export.localiser.dataset``: :func:`generate` with numpy and scipy only (no
-    typer), for a bare GPU host that generates its shards beside the training; ``--root`` may be a
-    packed folder (``svrnet-train pack --training-only``).
+    """``python -m model_export.localiser.dataset``: :func:`generate` of training shards without typer,
+    for a bare GPU host that generates its shards beside the training; ``--root`` may be a packed
+    folder of the training volumes alone (``svrnet-train pack --training-only``).
 
     Example:
         python -m model_export.localiser.dataset --out SHARDS --root data/packed_loc --count 2000 --seed 7000000 \\
@@ -74,7 +74,8 @@ def main(argv: list[str] | None = None) -> list[str]:
     """
     import argparse
 
-    from model_export.atlas import VALIDATION_VOLUMES, list_volumes
+    from model_export.atlas import training_volumes
+    from model_export.localiser.scenes import MOTIONS
 
     ap = argparse.ArgumentParser(prog="python -m model_export.localiser.dataset", description=main.__doc__)
     ap.add_argument("--out", type=Path, required=True)
@@ -85,10 +86,9 @@ def main(argv: list[str] | None = None) -> list[str]:
     ap.add_argument("--grid-mm", type=float, default=GRID_MM)
     ap.add_argument("--shading-share", type=float, default=0.0)
     ap.add_argument("--faint-skull-share", type=float, default=0.0)
-    ap.add_argument("--motion")
+    ap.add_argument("--motion", choices=MOTIONS)
     args = ap.parse_args(argv)
-    names = [name for name, *_ in list_volumes(args.root) if name not in VALIDATION_VOLUMES]
-    return generate(args.out, names, args.count, "train", args.grid_mm, args.seed, args.workers,
+    return generate(args.out, training_volumes(args.root), args.count, "train", args.grid_mm, args.seed, args.workers,
                     root=args.root, shading_share=args.shading_share, faint_skull_share=args.faint_skull_share,
                     motion=args.motion)
 

@@ -12,9 +12,10 @@ the wall-clock budget, so a run of any length ends annealed; a checkpoint is wri
 from __future__ import annotations
 
 import json
+import sys
 import time
 import zipfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -67,17 +68,24 @@ def _one_grid_mm(grids: Iterable[float | None]) -> float | None:
     return found[0] if found else None
 
 
-def folder_grid_mm(folder: Path) -> tuple[int, float | None]:
-    """How many whole shards ``folder`` holds and the network grid they were made on
-    (:func:`shards_grid_mm`), reading each shard's grid alone (a checkpoint's record of its data)."""
-    grids = []
+def folder_grids(folder: Path, known: dict[str, float | None]) -> dict[str, float | None]:
+    """``known`` with the grid of every whole shard of ``folder`` not in it yet (each read alone, not
+    its slices): what a checkpoint records of the shards its run has seen.
+
+    Example (an empty folder adds nothing):
+        >>> import tempfile
+        >>> folder_grids(Path(tempfile.mkdtemp()), {"a.npz": 2.5})
+        {'a.npz': 2.5}
+    """
     for path in sorted(Path(folder).glob("*.npz")):
+        if path.name in known:
+            continue
         try:
             with np.load(path) as z:
-                grids.append(float(z["grid_mm"]) if "grid_mm" in z else None)
+                known[path.name] = float(z["grid_mm"]) if "grid_mm" in z else None
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
             continue                                   # a shard still being written
-    return len(grids), _one_grid_mm(grids)
+    return known
 
 
 def draw_batch(shards: list[Shard], rng: np.random.Generator, batch: int, crop: int,
@@ -121,13 +129,15 @@ class BatchStream(torch.utils.data.IterableDataset):
         super().__init__()
         self.folder, self.batch, self.crop, self.seed, self.in_channels = Path(folder), batch, crop, seed, in_channels
 
-    def __iter__(self):  # noqa: ANN204
+    def __iter__(self) -> Iterator[tuple[np.ndarray, np.ndarray]]:
         info = torch.utils.data.get_worker_info()
         rng = np.random.default_rng([self.seed, info.id if info is not None else 0])
         known: dict[str, Shard] = {}
         while True:
-            while not load_shards(self.folder, known):
-                time.sleep(1.0)                        # shards still being generated
+            if not load_shards(self.folder, known):
+                print(f"waiting for shards in {self.folder}", file=sys.stderr, flush=True)
+                while not load_shards(self.folder, known):
+                    time.sleep(1.0)                    # a generator beside the training has not written one yet
             shards_grid_mm(known)
             for _ in range(200):
                 x, y = draw_batch(list(known.values()), rng, self.batch, self.crop)
@@ -185,12 +195,14 @@ def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int =
     The checkpoint records the network grid its shards were made on (``grid_mm``; shards of two grids
     are refused), which :func:`~model_export.localiser.export.export_onnx` writes into the model file.
     """
+    if not Path(data).is_dir():
+        raise FileNotFoundError(f"data: {data} is not a folder of shards (`svrnet-train localiser data --out`)")
     torch.set_num_threads(threads)
     torch.manual_seed(seed)
     out = Path(out)
     net = LocaliserNet(in_channels=in_channels, width=width, depth=depth)
     opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
-    step, spent = 0, 0.0
+    step, spent, recorded = 0, 0.0, None
     if init is not None and not out.exists():
         net.load_state_dict(pruned(load_checkpoint(init), width).state_dict())     # the identity at its own width
     teacher_net = load_checkpoint(teacher).to(device) if teacher is not None else None
@@ -198,7 +210,7 @@ def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int =
         state = torch.load(out, map_location="cpu", weights_only=False)
         net.load_state_dict(state["model"])
         opt.load_state_dict(state["optimiser"])
-        step, spent = state["step"], state.get("spent_s", 0.0)
+        step, spent, recorded = state["step"], state.get("spent_s", 0.0), state.get("grid_mm")
     net.to(device)
     for values in opt.state.values():                  # a resumed optimiser's moments beside the weights
         values.update({k: v.to(device) for k, v in values.items() if torch.is_tensor(v) and k != "step"})
@@ -208,10 +220,12 @@ def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int =
     batches = iter(stream if loaders == 0 else torch.utils.data.DataLoader(
         stream, batch_size=None, num_workers=loaders, pin_memory=device != "cpu", persistent_workers=True))
 
+    seen: dict[str, float | None] = {}
+
     def save() -> None:
-        shards, grid_mm = folder_grid_mm(data)
+        grid_mm = _one_grid_mm([*folder_grids(data, seen).values(), recorded])
         torch.save({"model": {k: v.cpu() for k, v in net.state_dict().items()}, "optimiser": opt.state_dict(),
-                    "config": net.config, "step": step, "spent_s": time.perf_counter() - start, "shards": shards,
+                    "config": net.config, "step": step, "spent_s": time.perf_counter() - start, "shards": len(seen),
                     "grid_mm": grid_mm}, out)
 
     net.train()
@@ -261,9 +275,9 @@ def average_weights(base: Path, tuned: Path, out: Path, weight: float = 0.5) -> 
 
 
 def main(argv: list[str] | None = None) -> Path:
-    """``python -m model_export.localiser.train``: :func:`train` with numpy, scipy and torch only (no
-    typer), for a bare GPU host; the options are those of ``svrnet-train localiser train`` and
-    :func:`train`'s keywords.
+    """``python -m model_export.localiser.train``: :func:`train` without typer, for a bare GPU host;
+    the options are those of ``svrnet-train localiser train`` (``--channels`` its ``in_channels``)
+    and :func:`train`'s keywords.
 
     Example:
         python -m model_export.localiser.train --data SHARDS --out $OUT/w6.pt --width 6 \\
@@ -279,6 +293,7 @@ def main(argv: list[str] | None = None) -> Path:
     for name, kind in (("width", int), ("depth", int), ("batch", int), ("crop", int), ("lr", float), ("seed", int),
                        ("threads", int), ("teacher-weight", float), ("loaders", int), ("checkpoint-s", float)):
         ap.add_argument(f"--{name}", type=kind)
+    ap.add_argument("--channels", dest="in_channels", type=int, choices=(1, 3))
     ap.add_argument("--init", type=Path)
     ap.add_argument("--teacher", type=Path)
     ap.add_argument("--freeze-norm", action="store_true")

@@ -121,7 +121,8 @@ def test_a_shard_still_being_written_is_not_read(shards: Path, tmp_path: Path) -
     assert sorted(load_shards(folder, {})) == ["train-000000.npz", "train-000001.npz"]
 
 
-def test_the_generator_writes_whole_shards_of_the_training_volumes_alone(phantom_atlas: Path, tmp_path: Path) -> None:
+def test_the_generator_writes_whole_shards_of_the_training_volumes_alone(phantom_atlas: Path, tmp_path: Path,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
     """``python -m model_export.localiser.dataset``: shards of the training volumes (the validation
     volumes of the same folder never), each written whole under its final name."""
     from model_export.atlas import VALIDATION_VOLUMES
@@ -134,12 +135,9 @@ def test_the_generator_writes_whole_shards_of_the_training_volumes_alone(phantom
         seen.append(list(names))
         return real_generate(out, names, *args, **kwargs)
 
-    dataset.generate = spy
-    try:
-        names = dataset.main(["--out", str(tmp_path), "--root", str(phantom_atlas), "--count", "1", "--seed", "5",
-                              "--workers", "1", "--grid-mm", str(GRID_MM)])
-    finally:
-        dataset.generate = real_generate
+    monkeypatch.setattr(dataset, "generate", spy)
+    names = dataset.main(["--out", str(tmp_path), "--root", str(phantom_atlas), "--count", "1", "--seed", "5",
+                          "--workers", "1", "--grid-mm", str(GRID_MM)])
     assert names == ["train-000005.npz"] and sorted(p.name for p in tmp_path.iterdir()) == names
     assert sorted(seen[0]) == ["SB_GA27_operated", "STA30"] and not set(seen[0]) & set(VALIDATION_VOLUMES)
     with np.load(tmp_path / names[0]) as z:
@@ -158,3 +156,9 @@ def test_batches_drawn_by_worker_processes_train_the_network(shards: Path, tmp_p
     state = torch.load(ckpt, weights_only=False)
     assert state["step"] > 0 and state["grid_mm"] == GRID_MM and state["shards"] == 2
     assert all(v.device.type == "cpu" for v in state["model"].values())
+    # Two worker processes draw different batches (each its own seed), not the same stream twice.
+    loader = iter(torch.utils.data.DataLoader(BatchStream(shards, 4, 32, seed=3), batch_size=None, num_workers=2))
+    first, second = next(loader), next(loader)
+    assert not np.array_equal(first[0], second[0])
+    with pytest.raises(FileNotFoundError, match="not a folder of shards"):      # a mistyped --data: said, not awaited
+        main(["--data", str(tmp_path / "nowhere"), "--out", str(tmp_path / "x.pt"), "--minutes", "0.01"])
