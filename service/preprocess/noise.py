@@ -59,8 +59,8 @@ def input_noise(images: ArrayLike, masks: ArrayLike, pixel_mm: tuple[float, floa
     ``pixel_mm``) carry into the pose network's inputs of ``grid_mm`` pixels, as a share of the inputs'
     0-255 range (NaN: no slice holds enough brain to tell).
 
-    Example (a smooth ramp with white noise of SD 10 on the 0-255 scale, on 1.25 mm pixels, and on
-    pixels of half that size, four of which make one input pixel):
+    Example (a smooth ramp from 40 to 200 with white noise of SD 10: 10 over the ramp's stretch to
+    0-255, on 1.25 mm pixels; on pixels of half that size, four of which make one input pixel, half of it):
         >>> rng = np.random.default_rng(0)
         >>> ramp = np.tile(np.linspace(40.0, 200.0, 64), (64, 1))
         >>> x = np.zeros((3, 80, 80), np.float32); x[:, 8:72, 8:72] = ramp + rng.normal(0, 10, (3, 64, 64))
