@@ -124,7 +124,8 @@ def predict_hints(result: dict[str, Any]) -> list[str]:
         if brain and noise.get("beyond_calibration"):
             hints.append(f"{name}: noisier than the poses were calibrated on (input noise "
                          f"{noise.get('input_noise') or 0:.3f}, a low-field scanner's): its poses may be less accurate "
-                         "than their expected errors say")
+                         "than their expected errors say, and some of its accepted slices wrong; check them against "
+                         "the other stacks' or acquire it again")
     slices = with_brain([s for st in stacks for s in st.get("slices") or []])
     if usable(result):
         for stack in stacks:

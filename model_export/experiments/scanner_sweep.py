@@ -55,6 +55,9 @@ SETTINGS: dict[str, tuple[dict[str, float], bool]] = {
     "a signal void in the brain (with_void)": ({"pixel_mm": 1.0, **THREE_MM}, True),
     "Rician noise 8 % (the benchmarks' 3 %)": ({"pixel_mm": 1.0, **THREE_MM, "noise": 0.08}, False),
     "Rician noise 15 % (a low-field scanner's)": ({"pixel_mm": 1.0, **THREE_MM, "noise": 0.15}, False),
+    "0.8 mm pixels, noise 15 %": ({"pixel_mm": 0.8, **THREE_MM, "noise": 0.15}, False),
+    "1.6 mm pixels, noise 8 %": ({"pixel_mm": 1.6, **THREE_MM, "noise": 0.08}, False),
+    "1.6 mm pixels, noise 15 %": ({"pixel_mm": 1.6, **THREE_MM, "noise": 0.15}, False),
 }
 """Each setting's :func:`simulate_acquisition` keywords, and whether :func:`with_void` darkens it."""
 VOID_RADIUS_MM, VOID_OFFSET_MM, VOID_GAIN = 25.0, 15.0, 0.4

@@ -39,8 +39,10 @@ NOISY_INPUT = 0.10
 pipeline's noise benchmarks show it holds. The held-out brains' simulated acquisitions of 1 mm
 pixels give 0.036 / 0.084 / 0.124 (medians of 15 stacks; 0.029-0.043, 0.070-0.093, 0.109-0.130)
 at Rician noise of 3 / 8 / 15 % of the bright end, and are posed as well at 8 % as at 3 %, less well
-at 15 % (the module's figures); of 1.6 mm pixels 0.049 / 0.109 / 0.160. The real scans at hand
-give 0.017-0.023, the shared one with noise of 15 % added 0.107-0.129."""
+at 15 % (the module's figures); of 1.6 mm pixels 0.049 / 0.109 / 0.160, and those at 8 % and
+15 % lose 0.4-0.5 and 2.8-3.0 mm, a third to a half of their slices off by over 10 mm still
+accepted at 15 %; of 0.8 mm pixels at 15 % 0.098, and little lost. The real scans at hand give
+0.017-0.023, the shared one with noise of 15 % added 0.107-0.129."""
 
 
 def inner_responses(images: NDArray[np.float32], masks: NDArray[np.bool_]) -> list[NDArray[np.float32]]:
