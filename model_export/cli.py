@@ -297,6 +297,45 @@ def calibrate_acceptance(
     typer.echo(json.dumps(result, indent=2))
 
 
+@app.command("calibrate-noise")
+def calibrate_noise(
+    model: Path,
+    root: Root = DEFAULT_ATLAS_ROOT,
+    per_volume: Annotated[Optional[int], typer.Option(help="acquisitions per validation volume, noise level, pixel size "
+                                                           "and motion level (default: calibrate_noise.PER_VOLUME)")] = None,
+    report: Path = Path("model_export/reports/noise.md"),
+    write: Annotated[bool, typer.Option(help="write noise_error into the model's metadata")] = False,
+    seed: int = 7,
+    slices: Annotated[Optional[Path], typer.Option(help="also keep every slice's columns here (.npz)")] = None,
+    columns: Annotated[Optional[Path], typer.Option(
+        help="calibrate from the slice columns a previous run kept (--slices) instead of measuring again")] = None,
+) -> None:
+    """Calibrate how the expected errors grow with a stack's input noise (noise_error) on simulated
+    acquisitions of the validation volumes at a ladder of noise levels and two pixel sizes."""
+    import numpy as np
+
+    from model_export.atlas import load_volumes, split
+    from model_export.calibrate_noise import PER_VOLUME, calibrate, markdown, measure, noise_metadata
+    from model_export.spread import write_metadata
+    from service.inference.estimator import OnnxPoseEstimator
+    from service.inference.model_file import load_model
+
+    if columns is not None:
+        with np.load(columns) as kept:
+            measured = {k: kept[k] for k in kept.files}
+    else:
+        measured = measure(OnnxPoseEstimator(load_model(model)), load_volumes(split(root)[1], root),
+                           per_volume or PER_VOLUME, seed)
+        if slices is not None:
+            np.savez_compressed(slices, **measured)
+    result = calibrate(measured)
+    report.parent.mkdir(parents=True, exist_ok=True)
+    report.write_text(f"# Noise calibration of {model}\n\n{markdown(result)}\n")
+    if write:
+        write_metadata(model, noise_metadata(result))
+    typer.echo(json.dumps(result, indent=2))
+
+
 @app.command()
 def midplane(
     root: Root = DEFAULT_ATLAS_ROOT,
@@ -366,7 +405,7 @@ def ship(
     version: str = "1.0.0",
     comparison: Annotated[Optional[Path], typer.Option(help="table.json of `compare`")] = None,
     report: Annotated[Optional[Path], typer.Option(
-        help="the evaluation report (beside it: its figures and acceptance.md) [default: OUT/report.md]")] = None,
+        help="the evaluation report (beside it: its figures, acceptance.md and noise.md) [default: OUT/report.md]")] = None,
     force: Annotated[bool, typer.Option(help="replace a model folder that holds files")] = False,
     root: Root = DEFAULT_ATLAS_ROOT,
     tta_views: Annotated[int, typer.Option(help="test-time views the MC samples are shared among: 1, 4 "
@@ -380,10 +419,14 @@ def ship(
         min=1, help="acquisitions per validation volume and motion level of the accept flags [default: 8]")] = None,
     quant_slices: Annotated[Optional[int], typer.Option(min=16, help="slices calibrating the int8 ranges "
                                                                      "[default: 1024]")] = None,
+    noise_per_volume: Annotated[Optional[int], typer.Option(
+        min=0, help="acquisitions per validation volume, noise level, pixel size and motion level of the noise "
+                    "error [default: 1; 0: not calibrated]")] = None,
 ) -> None:
     """Calibrate, export, evaluate and write the model card: the folder the service loads (the MC
     spread's expected error calibrated as `calibrate-spread` does, then the accept flags on the
-    pipeline's final poses, as `calibrate-acceptance` does). The folder is built beside ``out`` and
+    pipeline's final poses, as `calibrate-acceptance` does, then the noise error, as
+    `calibrate-noise` does). The folder is built beside ``out`` and
     takes its place only when whole: a server never finds a model without its calibration or card."""
     import shutil
 
@@ -405,7 +448,8 @@ def ship(
     else:
         shown_report = report
     try:
-        budget = {"slices": slices_per_volume, "acquisitions": acceptance_per_volume, "quant": quant_slices}
+        budget = {"slices": slices_per_volume, "acquisitions": acceptance_per_volume, "quant": quant_slices,
+                  "noise": noise_per_volume}
         evaluation = _ship_into(staging, out, checkpoint, ck, name, version, comparison, report, shown_report, root,
                                 tta_views, int8, {k: v for k, v in budget.items() if v is not None})
     except BaseException:
@@ -425,7 +469,8 @@ def _ship_into(staging: Path, out: Path, checkpoint: Path, ck: dict, name: str, 
                int8: bool, budget: dict[str, int]) -> dict:
     """`ship`'s steps, each writing into ``staging``, which becomes ``out``; the evaluation's summary.
     ``budget``: the sample counts given (``slices`` per volume, accept-flag ``acquisitions`` per
-    volume and level, ``quant`` slices); the others are each step's own."""
+    volume and level, ``quant`` slices, ``noise`` acquisitions per volume and setting); the others are
+    each step's own."""
     import shutil
 
     from model_export.calibrate import calibrate as run_calibration
@@ -466,12 +511,24 @@ def _ship_into(staging: Path, out: Path, checkpoint: Path, ck: dict, name: str, 
     typer.echo(f"accept flags: {acquisitions} acquisitions per validation volume and motion level through every stage")
     flags = measure(OnnxPoseEstimator(load_model(onnx_path)), load_volumes(split(root)[1], root), per_volume=acquisitions)
     write_metadata(onnx_path, flag_metadata(flags))
+    noise_table = ""
+    if budget.get("noise", 1):
+        from model_export import calibrate_noise
+
+        typer.echo("noise error: acquisitions at a ladder of noise levels and two pixel sizes through every stage")
+        noise = calibrate_noise.calibrate(calibrate_noise.measure(
+            OnnxPoseEstimator(load_model(onnx_path)), load_volumes(split(root)[1], root),
+            budget.get("noise", calibrate_noise.PER_VOLUME)))
+        write_metadata(onnx_path, calibrate_noise.noise_metadata(noise))
+        noise_table = calibrate_noise.markdown(noise)
+        (report.parent / "noise.md").write_text(f"# Noise error of {name} {version}\n\n{noise_table}\n")
     info = load_model(onnx_path).info.metadata
     write_card(staging / "card.md", info=info, train_summary=summary, train_config=ck["config"], calibration=cal,
                evaluation=evaluation, comparison=load_json(comparison) if comparison else None,
                report_path=str(shown_report), onnx_bytes=onnx_path.stat().st_size)
     card = staging / "card.md"
-    card.write_text(card.read_text() + "\n" + acceptance_markdown(flags, "Accept flags").replace("# Accept", "## Accept", 1))
+    card.write_text(card.read_text() + "\n" + acceptance_markdown(flags, "Accept flags").replace("# Accept", "## Accept", 1)
+                    + (f"\n## Noise error\n\n{noise_table}\n" if noise_table else ""))
     (report.parent / "acceptance.md").write_text(acceptance_markdown(flags, f"Accept flags of {out / 'model.onnx'}"))
     (staging / "calibration.json").write_text(json.dumps(cal))
     return evaluation

@@ -134,8 +134,9 @@ def calibration(error_mm: NDArray, expected_mm: NDArray) -> float:
 
 
 def sweep(estimator, volumes: list, level: str, per_volume: int, seed: int,  # noqa: ANN001
-          only: set[int] | None = None) -> list[str]:
-    """One line per setting: the same volumes and random draws for each."""
+          only: set[int] | None = None, dump: dict[str, NDArray] | None = None) -> list[str]:
+    """One line per setting: the same volumes and random draws for each. ``dump``: gets each setting's
+    per-slice columns (``<level>/<setting number>/<column>``), with each slice's stack's input noise."""
     lines = []
     for i, (name, (geometry, void)) in enumerate(SETTINGS.items(), 1):
         if only and i not in only:
@@ -152,6 +153,8 @@ def sweep(estimator, volumes: list, level: str, per_volume: int, seed: int,  # n
             (predictions,), prepared, truth = run_acquisition(stacks, estimator)
             score(predictions, prepared, truth, stacks, estimator.info.symmetry_plane_x_mm, scored)
             noise += [p.input_noise for p in prepared]
+            for p in prepared:
+                scored.add(input_noise=np.full(len(p.prepared.mask_pixels), p.input_noise))
         keep = scored.array("mask_pixels") >= MIN_MASK_PIXELS
         e, t, a, x = (scored.array(k)[keep] for k in ("ed", "ed_min", "accepted", "expected"))
         shares = rates({"ed": e, "ed_min": t}, a.astype(bool))
@@ -160,6 +163,8 @@ def sweep(estimator, volumes: list, level: str, per_volume: int, seed: int,  # n
                      f"{calibration(e, x):.2f} | {np.nanmedian(noise):.3f} | "
                      f"{time.perf_counter() - start:.0f} s |")
         print(lines[-1], flush=True)
+        if dump is not None:
+            dump.update({f"{level}/{i}/{k}": scored.array(k) for k in scored.columns if k != "orientation"})
         if void:
             print(void_split(scored, np.concatenate(darkened), keep), flush=True)
     return lines
@@ -173,16 +178,20 @@ def main() -> None:
     ap.add_argument("--per-volume", type=int, default=2)
     ap.add_argument("--seed", type=int, default=5)
     ap.add_argument("--only", help="comma-separated setting numbers (1-based) to run")
+    ap.add_argument("--dump", type=Path, help="write every setting's per-slice columns to this .npz")
     args = ap.parse_args()
     estimator = OnnxPoseEstimator(load_model(args.model))
     volumes = load_volumes(split(args.root)[1], args.root)
+    dump: dict[str, NDArray] | None = {} if args.dump else None
     for level in args.levels.split(","):
         print(f"\n{level} motion, {len(volumes) * args.per_volume} acquisitions per setting (seed {args.seed})\n")
         print("| acquisition | mean E.D. (truth / twin-min) | median E.D. | slices | E.D. < 5 mm accepted "
               "| E.D. > 10 mm accepted (slices) | RMS E.D. / RMS expected | input noise (median) | time |")
         print("|---|---|---|---|---|---|---|---|---|")
         sweep(estimator, volumes, level, args.per_volume, args.seed,
-              {int(k) for k in args.only.split(",")} if args.only else None)
+              {int(k) for k in args.only.split(",")} if args.only else None, dump)
+        if dump is not None:
+            np.savez_compressed(args.dump, **dump)
 
 
 if __name__ == "__main__":

@@ -65,6 +65,10 @@ class ModelInfo:
     max_expected_error_mm: float | None = None
     """Calibration: the default ``max_expected_error_mm`` of the accept flag (``high_expected_error``);
     None (not calibrated): slices are judged by their variance alone unless a request sets it."""
+    noise_error: tuple[float, float] | None = None
+    """Calibration: ``(onset, slope)``, the error (mm) a stack's slices carry beyond their MC spread
+    when its inputs are noisier than the network learnt, ``slope x max(0, input_noise - onset)``
+    (:func:`service.preprocess.noise.noise_error_mm`); None (not calibrated): none is added."""
     tta_views: int = 1
     """Test-time views the MC samples are shared among (:mod:`service.inference.views`); the variance
     threshold and ``mc_error_scale`` were calibrated with them."""
@@ -88,6 +92,7 @@ class ModelInfo:
                 expected_error_floor_mm=float(meta.get("expected_error_floor_mm", 0.0)),
                 max_expected_error_mm=float(meta["max_expected_error_mm"]) if meta.get("max_expected_error_mm") else None,
                 twin_risk_logit=_logit(meta.get("twin_risk_logit", "")),
+                noise_error=_noise_error(meta.get("noise_error", "")),
                 mc_seed=int(meta["mc_seed"]) if meta.get("mc_seed") else None,
                 metadata=dict(meta),
             )
@@ -103,6 +108,25 @@ def _shape(text: str) -> tuple[float, ...] | None:
     if len(shape) != 6 or not all(x > 0 for x in shape):
         raise ValueError(f"mc_error_shape must be six positive numbers, not {text!r}")
     return shape
+
+
+def _noise_error(text: str) -> tuple[float, float] | None:
+    """``noise_error`` from its metadata text (an onset in [0, 1) and a non-negative slope; absent or
+    empty: None).
+
+    Example:
+        >>> _noise_error("0.1,40"), _noise_error("")
+        ((0.1, 40.0), None)
+    """
+    if not text:
+        return None
+    try:
+        values = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 2 or not (0.0 <= values[0] < 1.0 and 0.0 <= values[1] < np.inf):
+        raise ValueError(f"noise_error must be an onset in [0, 1) and a non-negative slope, not {text!r}")
+    return values[0], values[1]
 
 
 def _logit(text: str) -> tuple[float, float] | None:

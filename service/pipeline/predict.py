@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from itertools import pairwise
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from service.consistency.image_refinement import expected_after, refine, relative_mismatch, smooth_ahead
 from service.consistency.slice_images import SampledStack, StackImages
@@ -41,6 +42,7 @@ from service.inference import acceptance
 from service.inference.estimator import PoseEstimate, PoseEstimator
 from service.inference.model_file import ModelInfo
 from service.pipeline.prepare import PreparedStack, StackUpload
+from service.preprocess.noise import noise_error_mm
 
 STAGE_WORKERS = 3
 """Stacks through the stack-consistency stage at a time (threads: its eigendecompositions release the
@@ -97,10 +99,15 @@ def judge(prepared: PreparedStack, estimate: PoseEstimate, out: StackPoses, thre
                               max_expected_error_mm)
 
 
-def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate | None = None) -> None:
+def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate | None = None,
+                      input_noise: ArrayLike = np.nan) -> None:
     """Add to each returned pose's expected error (in place) what no stage sees.
 
     * The request's placement in the atlas frame: the model's ``expected_error_floor_mm``, in quadrature.
+    * Inputs noisier than the network learnt (its stack's ``input_noise``, one value or one per
+      slice): the model's ``noise_error`` calibration (:func:`~service.preprocess.noise.noise_error_mm`),
+      in quadrature. Such a stack is posed worse than its spread says, and mostly by one turn and
+      shift of the whole request, which its slices' agreement cannot show.
     * In a stack the stage found consistent (each slice's branch set by its stack-mates), the chance
       that a slice sits on its mirror twin all the same: near the mid-sagittal plane a slice and its
       twin show one image, and a sudden move of the fetus can put a slice's stack-mates' prediction
@@ -125,6 +132,7 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate |
     if out.expected_error_mm is None:
         return
     variance = np.asarray(out.expected_error_mm, np.float64) ** 2 + float(getattr(info, "expected_error_floor_mm", 0.0)) ** 2
+    variance = variance + noise_error_mm(input_noise, getattr(info, "noise_error", None)) ** 2
     logit = getattr(info, "twin_risk_logit", None)
     if logit is not None and out.fit is not None and out.fit.decidable:
         d = twin_distance_mm(out.poses, getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM))
@@ -307,6 +315,6 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
     timings["image_consistency"] = time.perf_counter() - t
     results = []
     for s, e, nfv, out in zip(prepared, parts, frames, outs):
-        add_unseen_errors(out, info, e)
+        add_unseen_errors(out, info, e, s.input_noise)
         results.append(StackPrediction(s, nfv, e, out, judge(s, e, out, threshold, max_expected_error_mm)))
     return results, timings

@@ -84,3 +84,21 @@ def input_noise(images: ArrayLike, masks: ArrayLike, pixel_mm: tuple[float, floa
     sd = 1.4826 * float(np.median(np.abs(responses))) / KERNEL_GAIN / 255.0
     averaged = np.sqrt(min(1.0, pixel_mm[0] / grid_mm) * min(1.0, pixel_mm[1] / grid_mm))
     return float(sd * averaged)
+
+
+def noise_error_mm(level: ArrayLike, calibration: tuple[float, float] | None) -> NDArray[np.float64]:
+    """The error (mm) slices of input noise ``level`` carry beyond what the network's spread says, as
+    the model's ``noise_error`` calibration ``(onset, slope)`` gives it: ``slope x max(0, level -
+    onset)``; 0 without a calibration or where the noise is unknown (NaN).
+
+    Example:
+        >>> noise_error_mm([0.05, 0.15, float("nan")], (0.1, 40.0)).round(2).tolist()
+        [0.0, 2.0, 0.0]
+        >>> noise_error_mm(0.2, None).tolist()
+        0.0
+    """
+    level = np.asarray(level, np.float64)
+    if calibration is None:
+        return np.zeros_like(level)
+    onset, slope = calibration
+    return np.where(np.isfinite(level), slope * np.maximum(level - onset, 0.0), 0.0)

@@ -49,6 +49,7 @@ from service.io.volume import Volume, magnitude
 from service.pipeline.predict import StackPrediction, add_unseen_errors, estimate_stacks, judge, predict_from_estimates
 from service.pipeline.prepare import PreparedStack, StackUpload, prepare_stack
 from service.preprocess.localise import Localisation, Localiser
+from service.preprocess.noise import input_noise
 from service.preprocess.slices import preprocess_slices
 from service.preprocess.stack import split_stack
 from service.streaming import immediate
@@ -199,7 +200,8 @@ class StreamSession:
             localisation, brain_map = self._localise(frame, neighbours, received, step_mm)
         slices = split_stack(volume, localisation.pose_mask(volume.spacing, axis=2), axis=2)
         prepared = preprocess_slices(slices.images, slices.masks, slices.pixel_mm, info.input_size, info.pixel_spacing_mm)
-        stack = PreparedStack(StackUpload(frame.stack, volume), slices, prepared, localisation)
+        stack = PreparedStack(StackUpload(frame.stack, volume), slices, prepared, localisation,
+                              input_noise=input_noise(slices.images, slices.masks, slices.pixel_mm, info.pixel_spacing_mm))
         est = self.estimator.estimate(prepared.inputs, self.mc_samples)
         return _Slice(frame, stack, est, stack.network_from_voxel(), brain_map=brain_map)
 
@@ -234,7 +236,7 @@ class StreamSession:
             if placement_mm is not None:
                 pose[0], expected[0] = immediate.with_placement(pose[0], float(expected[0]), predicted, placement_mm)
         out = StackPoses(pose, mass, twinned, np.zeros(1, bool), None, expected)
-        add_unseen_errors(out, info, est)
+        add_unseen_errors(out, info, est, state.prepared.input_noise)
         if not decided:                                  # a slice alone cannot tell its twin
             out.expected_error_mm = np.sqrt(out.expected_error_mm ** 2 + immediate.UNDECIDED_TWIN_CHANCE
                                             * twin.twin_distance_mm(pose, plane) ** 2)
@@ -276,7 +278,8 @@ class StreamSession:
                 None if shape is None else np.asarray(shape), float(getattr(info, "mc_error_depth_gain", 0.0)))
         out = run_in_stage_process(consistent_poses, *args, reference)
         out = checked_branch(out, reference, lambda ref, margin: run_in_stage_process(consistent_poses, *args, ref, margin))
-        add_unseen_errors(out, info, est)
+        noise = [s.prepared.input_noise for s in states]
+        add_unseen_errors(out, info, est, np.nanmedian(noise) if np.isfinite(noise).any() else np.nan)
         placement_mm = None
         if out.fit is not None and out.fit.atlas_from_scanner is not None:
             placement_mm = immediate.placement_error_mm(out.expected_error_mm, out.poses, out.fit.atlas_from_scanner,

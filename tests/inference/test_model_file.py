@@ -28,6 +28,18 @@ def test_a_twin_risk_that_does_not_fall_with_the_distance_or_is_not_two_numbers_
         ModelInfo.from_metadata({**META, "twin_risk_logit": text}, "s")
 
 
+def test_the_noise_error_is_read_and_absent_or_empty_means_none() -> None:
+    assert ModelInfo.from_metadata({**META, "noise_error": "0.09,52.5"}, "s").noise_error == (0.09, 52.5)
+    assert ModelInfo.from_metadata(META, "s").noise_error is None
+    assert ModelInfo.from_metadata({**META, "noise_error": ""}, "s").noise_error is None
+
+
+@pytest.mark.parametrize("text", ["0.1,-5", "1.5,40", "-0.1,40", "0.1", "0.1,inf", "0.1,nan", "a,b"])
+def test_a_noise_error_that_is_not_an_onset_and_a_non_negative_slope_is_refused(text: str) -> None:
+    with pytest.raises(ValueError, match="noise_error"):
+        ModelInfo.from_metadata({**META, "noise_error": text}, "s")
+
+
 @pytest.mark.parametrize("text", ["2", "0", "16"])
 def test_a_view_count_the_estimator_cannot_run_is_refused_when_the_file_is_read(text: str) -> None:
     """A file with another count of test-time views would load and then fail every request."""

@@ -9,7 +9,7 @@ from typer.testing import CliRunner
 
 
 @pytest.mark.parametrize("budget", [[], ["--slices-per-volume", "7", "--acceptance-per-volume", "2",
-                                     "--quant-slices", "32"]], ids=["defaults", "a quick look"])
+                                     "--quant-slices", "32", "--noise-per-volume", "3"]], ids=["defaults", "a quick look"])
 def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                              budget: list[str]) -> None:
     """The accept flags are measured on the expected error, so the spread's calibration (which sets
@@ -19,6 +19,7 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
     import model_export.atlas as atlas
     import model_export.calibrate as calibrate
     import model_export.calibrate_acceptance as acceptance
+    import model_export.calibrate_noise as noise
     import model_export.card as card
     import model_export.evaluate as evaluate
     import model_export.packaging as packaging
@@ -63,6 +64,9 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
         acceptance=k["per_volume"]) or {"expected_error_floor_mm": 2.0, "variance_threshold": 480.0,
                                         "max_expected_error_mm": 4.0})
     monkeypatch.setattr(acceptance, "markdown", lambda flags, title: f"# {title}\n")
+    monkeypatch.setattr(noise, "measure", lambda *a, **k: calls.append("noise") or sizes.update(noise=a[2]) or {})
+    monkeypatch.setattr(noise, "calibrate", lambda columns: {"noise_error": [0.09, 50.0]})
+    monkeypatch.setattr(noise, "markdown", lambda result: "noise table")
     monkeypatch.setattr(estimator, "OnnxPoseEstimator", lambda model: None)
     monkeypatch.setattr(model_file, "load_model", lambda path: Loaded())
     monkeypatch.setattr(quantise, "load_model", lambda path: Loaded())
@@ -76,13 +80,16 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
                                       *budget])
 
     assert result.exit_code == 0, result.output
-    assert calls == ["threshold", "slices 96", "int8 slices", "spread", "evaluate", "acceptance", "flags written"]
-    assert sizes == ({"threshold": 7, "quant": 32, "spread": 7, "evaluate": 7, "acceptance": 2} if budget else
+    assert calls == ["threshold", "slices 96", "int8 slices", "spread", "evaluate", "acceptance", "flags written",
+                     "noise", "flags written"]
+    assert sizes == ({"threshold": 7, "quant": 32, "spread": 7, "evaluate": 7, "acceptance": 2, "noise": 3} if budget else
                      {"threshold": None, "quant": quantise.CALIBRATION_SLICES, "spread": None, "evaluate": None,
-                      "acceptance": acceptance.PER_VOLUME})
+                      "acceptance": acceptance.PER_VOLUME, "noise": noise.PER_VOLUME})
+    assert (report.parent / "noise.md").read_text().endswith("noise table\n")
     assert views == [SHIPPED_VIEWS]
     assert (report.parent / "acceptance.md").read_text().startswith("# Accept flags of")
     assert "## Accept flags" in (tmp_path / "model" / "card.md").read_text()
+    assert "## Noise error\n\nnoise table" in (tmp_path / "model" / "card.md").read_text()
     # A model folder is never replaced unasked, nor left half-shipped: the new one takes its place whole.
     again = ["ship", str(checkpoint), "--out", str(tmp_path / "model")]
     refused = CliRunner().invoke(app, again, env={"COLUMNS": "250"})
@@ -130,7 +137,7 @@ def test_export_takes_over_another_models_calibration(tmp_path: Path, monkeypatc
                                  atlas_id="phantom", training_data="none", licences="n/a")
     source_meta.update(mc_error_scale="0.7", mc_error_shape="1,2,1,1,1,3", mc_error_depth_gain="0.25",
                        expected_error_floor_mm="2.2", max_expected_error_mm="4.5", twin_risk_logit="-0.5,-0.2",
-                       tta_views="4")
+                       noise_error="0.09,52", tta_views="4")
     source = export_onnx(model, tmp_path / "shipped.onnx", source_meta)
     monkeypatch.setattr(calibrate, "calibrate", lambda *a, **k: pytest.fail("calibrated although told not to"))
     monkeypatch.setattr(packaging, "export_checkpoint", own)
@@ -142,6 +149,7 @@ def test_export_takes_over_another_models_calibration(tmp_path: Path, monkeypatc
     got, want = load_model(out).info, load_model(source).info
     for key in CALIBRATION:
         assert getattr(got, key) == getattr(want, key), key
+    assert got.noise_error == (0.09, 52.0)
     assert got.variance_threshold == 123.0 and got.metadata["name"] == "tuned"
     assert got.tta_views == 4
 

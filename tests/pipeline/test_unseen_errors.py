@@ -1,4 +1,5 @@
-"""What no stage sees, added to the returned poses' expected errors: the floor and the twin risk."""
+"""What no stage sees, added to the returned poses' expected errors: the floor, the twin risk and the
+error of inputs noisier than the network learnt."""
 
 from __future__ import annotations
 
@@ -56,3 +57,59 @@ def test_a_slice_whose_spread_was_not_measured_has_no_expected_error() -> None:
     add_unseen_errors(out, info, est)
     assert np.isnan(out.expected_error_mm[0])
     np.testing.assert_allclose(out.expected_error_mm[1:], np.hypot(3.0, 1.3))
+
+
+def test_a_stack_noisier_than_the_calibration_gains_its_noise_error_in_quadrature() -> None:
+    """A model calibrated with ``noise_error (0.09, 50)``: a stack of input noise 0.05 gains nothing,
+    one of 0.15 gains 3 mm in quadrature on every slice (one value for the stack, or one per slice);
+    unmeasured noise (NaN) and an uncalibrated model add nothing."""
+    info = SimpleNamespace(expected_error_floor_mm=2.0, twin_risk_logit=None, symmetry_plane_x_mm=0.0,
+                           noise_error=(0.09, 50.0))
+    for noise, extra in ((0.05, 0.0), (0.15, 3.0), (float("nan"), 0.0)):
+        out = _stack([10.0, 20.0], decidable=True)
+        add_unseen_errors(out, info, input_noise=noise)
+        np.testing.assert_allclose(out.expected_error_mm, np.sqrt(9.0 + 4.0 + extra ** 2))
+    out = _stack([10.0, 20.0], decidable=True)
+    add_unseen_errors(out, info, input_noise=np.array([0.05, 0.15]))
+    np.testing.assert_allclose(out.expected_error_mm, [np.sqrt(13.0), np.sqrt(22.0)])
+    out = _stack([10.0, 20.0], decidable=True)
+    add_unseen_errors(out, SimpleNamespace(expected_error_floor_mm=2.0, symmetry_plane_x_mm=0.0), input_noise=0.3)
+    np.testing.assert_allclose(out.expected_error_mm, np.sqrt(13.0))
+
+
+def test_predict_gives_each_stack_the_noise_error_of_its_own_input_noise() -> None:
+    """Two stacks of one request through the shipped network (its fixed MC draws: the same poses
+    twice), one measured clean and one measured noisy: only the noisy one's expected errors grow, by
+    its noise error in quadrature, and the poses stay where they were."""
+    from copy import copy
+    from dataclasses import replace
+
+    from service.core.settings import DEFAULT_MODELS_DIR
+    from service.inference.estimator import OnnxPoseEstimator
+    from service.inference.model_file import load_model
+    from service.io.volume import Volume
+    from service.pipeline.predict import predict
+    from service.pipeline.prepare import StackUpload, prepare_stack
+    from service.preprocess.noise import noise_error_mm
+    from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine
+
+    estimator = OnnxPoseEstimator(load_model(DEFAULT_MODELS_DIR / "default" / "model.onnx"))
+    image, mask, atlas_affine = phantom_brain(3)
+    prepared = []
+    for axis in (2, 1):
+        shape = (64, 64, 18) if axis == 2 else (64, 18, 64)
+        affine = stack_affine(axis, np.eye(3), 1.2, 3.0, shape)
+        img, msk = acquire_stack(image, mask, atlas_affine, affine, shape, axis, np.broadcast_to(np.eye(4), (18, 4, 4)))
+        upload = StackUpload(f"s{axis}.nii.gz", Volume(img, affine), Volume(msk.astype(np.uint8), affine))
+        prepared.append(prepare_stack(upload, estimator.info, False))
+    calibrated = copy(estimator)
+    calibrated.info = replace(estimator.info, noise_error=(0.09, 50.0))
+    noisy = [replace(prepared[0], input_noise=0.03), replace(prepared[1], input_noise=0.15)]
+    before, _ = predict(noisy, estimator, 20, estimator.info.variance_threshold)
+    after, _ = predict(noisy, calibrated, 20, estimator.info.variance_threshold)
+    for b, a, p in zip(before, after, noisy):
+        np.testing.assert_allclose(a.poses.poses, b.poses.poses)
+        np.testing.assert_allclose(a.poses.expected_error_mm,
+                                   np.hypot(b.poses.expected_error_mm, noise_error_mm(p.input_noise, (0.09, 50.0))))
+    grown = after[1].poses.expected_error_mm - before[1].poses.expected_error_mm
+    assert np.all(grown[np.isfinite(grown)] > 0.1)              # 3 mm in quadrature on the phantom's ~20 mm
