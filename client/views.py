@@ -122,10 +122,13 @@ def predict_hints(result: dict[str, Any]) -> list[str]:
                          "check its mask with `svrnet masks`, or upload one with --mask")
         noise = stack.get("noise") or {}
         if brain and noise.get("beyond_calibration"):
-            hints.append(f"{name}: noisier than the poses were calibrated on (input noise "
-                         f"{noise.get('input_noise') or 0:.3f}, a low-field scanner's): its poses may be less accurate "
-                         "than their expected errors say, and some of its accepted slices wrong; check them against "
-                         "the other stacks' or acquire it again")
+            added = float(noise.get("expected_error_added_mm") or 0.0)
+            told = (f"its expected errors include {added:.1f} mm for the noise, so fewer of its slices are accepted"
+                    if added > 0 else "its poses may be less accurate than their expected errors say, and some of its "
+                                      "accepted slices wrong")
+            hints.append(f"{name}: noisier than the pose network learnt (input noise "
+                         f"{noise.get('input_noise') or 0:.3f}, a low-field scanner's): {told}; check its poses "
+                         "against the other stacks' or acquire it again")
     slices = with_brain([s for st in stacks for s in st.get("slices") or []])
     if usable(result):
         for stack in stacks:

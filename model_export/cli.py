@@ -5,6 +5,7 @@ Examples:
     svrnet-train export runs/default/best.pt runs/default/model.onnx   # threshold calibrated on export
     svrnet-train calibrate runs/default/best.pt
     svrnet-train calibrate-acceptance runs/default/model.onnx
+    svrnet-train calibrate-noise runs/default/model.onnx --write
     svrnet-train evaluate service/models/default/model.onnx --report model_export/reports/default.md
     svrnet-train quantise service/models/default/model.onnx /tmp/model-int8.onnx
     svrnet-train localiser --help
@@ -19,30 +20,15 @@ from typing import Annotated, Optional
 import typer
 
 from model_export.atlas import DEFAULT_ATLAS_ROOT
+from model_export.calibration_cli import COMMANDS as CALIBRATION_COMMANDS
+from model_export.cli_options import Root
 from model_export.localiser.cli import app as localiser_app
 from service.inference.views import SHIPPED_VIEWS
 
 app = typer.Typer(add_completion=False, help=__doc__, no_args_is_help=True)
 app.add_typer(localiser_app, name="localiser", help="the brain localiser: synthetic data, training, shipping")
-
-def _atlas_root(ctx: typer.Context, param: typer.CallbackParam, root: Path) -> Path:
-    """A ``--root`` given that holds no atlas volumes (nor a packed folder) is refused at once by name,
-    not with a traceback after the run folder is made (the default is checked where it is read)."""
-    from click.core import ParameterSource
-
-    from model_export.atlas import list_volumes
-
-    if ctx.get_parameter_source(param.name) is ParameterSource.DEFAULT:
-        return root
-    try:
-        list_volumes(root)
-    except FileNotFoundError as missing:
-        raise typer.BadParameter(str(missing)) from None
-    return root
-
-
-Root = Annotated[Path, typer.Option(help="folder holding crl_sta/ and spina_bifida_cc0/, or a packed folder",
-                                    callback=_atlas_root)]
+for _name, _command in CALIBRATION_COMMANDS.items():
+    app.command(_name)(_command)
 
 
 @app.command()
@@ -192,16 +178,6 @@ def fix_draws(source: Path, output: Annotated[Optional[Path], typer.Argument(hel
 
 
 @app.command()
-def calibrate(checkpoint: Path, root: Root = DEFAULT_ATLAS_ROOT, mc_samples: int = 100,
-              tta_views: int = SHIPPED_VIEWS) -> None:
-    """Choose the variance threshold on the validation volumes; print AUROC and the chosen value."""
-    from model_export.calibrate import calibrate as run
-
-    result = run(checkpoint, root, mc_samples=mc_samples, views=tta_views)
-    typer.echo(json.dumps({k: v for k, v in result.items() if not isinstance(v, list)}, indent=2))
-
-
-@app.command()
 def evaluate(
     model: Path,
     report: Annotated[Path, typer.Option(help="markdown report; figures beside it")],
@@ -242,98 +218,6 @@ def evaluate(
     summary = run(model, report, root, per_volume=per_volume, mc_samples=mc_samples,
                   **({} if seed is None else {"seed": seed}))
     typer.echo(json.dumps(summary, indent=2))
-
-
-@app.command("calibrate-spread")
-def calibrate_spread(
-    model: Path,
-    root: Root = DEFAULT_ATLAS_ROOT,
-    per_volume: int = 60,
-    write: Annotated[bool, typer.Option(help="write mc_error_scale, mc_error_shape and mc_error_depth_gain into the model's metadata")] = True,
-) -> None:
-    """Measure how the model's MC spread relates to its twin-min error (mc_error_scale), and the error's
-    shape over the six coordinates of a slice (mc_error_shape) and its growth towards a stack's outer
-    slices (mc_error_depth_gain); store them."""
-    from model_export.spread import calibrate_spread as run
-
-    typer.echo(json.dumps(run(model, root, per_volume, write), indent=2))
-    if write:
-        typer.echo("the accept flags (expected-error limit, floor, twin risk, variance threshold) were calibrated on "
-                   "the expected errors before: run `calibrate-acceptance` on the model again", err=True)
-
-
-@app.command("calibrate-acceptance")
-def calibrate_acceptance(
-    model: Path,
-    root: Root = DEFAULT_ATLAS_ROOT,
-    per_volume: Annotated[Optional[int], typer.Option(help="acquisitions per validation volume and motion level "
-                                                           "(default: calibrate_acceptance.PER_VOLUME)")] = None,
-    report: Path = Path("model_export/reports/acceptance.md"),
-    write: Annotated[bool, typer.Option(help="write twin_risk_logit, expected_error_floor_mm, variance_threshold "
-                                             "and max_expected_error_mm into the model's metadata")] = True,
-    seed: int = 1,
-    slices: Annotated[Optional[Path], typer.Option(help="also keep every slice's columns here (.npz)")] = None,
-    columns: Annotated[Optional[list[Path]], typer.Option(
-        help="calibrate from the slice columns previous runs kept (--slices) instead of measuring again; "
-             "given several times, their slices pooled")] = None,
-) -> None:
-    """Calibrate the accept flags on the pipeline's final poses over simulated acquisitions of the
-    validation volumes at every motion level (mild, moderate, jumps, independent)."""
-    from model_export.atlas import load_volumes, split
-    from model_export.calibrate_acceptance import LEVELS, PER_VOLUME, calibrate, flag_metadata, level_columns, markdown, measure
-    from model_export.spread import write_metadata
-    from service.inference.estimator import OnnxPoseEstimator
-    from service.inference.model_file import load_model
-
-    if columns:
-        result = calibrate(level_columns(columns, LEVELS))
-    else:
-        result = measure(OnnxPoseEstimator(load_model(model)), load_volumes(split(root)[1], root),
-                         per_volume or PER_VOLUME, seed, slices=slices)
-    report.parent.mkdir(parents=True, exist_ok=True)
-    report.write_text(markdown(result, f"Accept flags of {model}"))
-    if write:
-        write_metadata(model, flag_metadata(result))
-    typer.echo(json.dumps(result, indent=2))
-
-
-@app.command("calibrate-noise")
-def calibrate_noise(
-    model: Path,
-    root: Root = DEFAULT_ATLAS_ROOT,
-    per_volume: Annotated[Optional[int], typer.Option(help="acquisitions per validation volume, noise level, pixel size "
-                                                           "and motion level (default: calibrate_noise.PER_VOLUME)")] = None,
-    report: Path = Path("model_export/reports/noise.md"),
-    write: Annotated[bool, typer.Option(help="write noise_error into the model's metadata")] = False,
-    seed: int = 7,
-    slices: Annotated[Optional[Path], typer.Option(help="also keep every slice's columns here (.npz)")] = None,
-    columns: Annotated[Optional[Path], typer.Option(
-        help="calibrate from the slice columns a previous run kept (--slices) instead of measuring again")] = None,
-) -> None:
-    """Calibrate how the expected errors grow with a stack's input noise (noise_error) on simulated
-    acquisitions of the validation volumes at a ladder of noise levels and two pixel sizes."""
-    import numpy as np
-
-    from model_export.atlas import load_volumes, split
-    from model_export.calibrate_noise import PER_VOLUME, calibrate, markdown, measure, noise_metadata
-    from model_export.spread import write_metadata
-    from service.inference.estimator import OnnxPoseEstimator
-    from service.inference.model_file import load_model
-
-    if columns is not None:
-        with np.load(columns) as kept:
-            measured = {k: kept[k] for k in kept.files}
-    else:
-        measured = measure(OnnxPoseEstimator(load_model(model)), load_volumes(split(root)[1], root),
-                           per_volume or PER_VOLUME, seed)
-        if slices is not None:
-            np.savez_compressed(slices, **measured)
-    result = calibrate(measured)
-    report.parent.mkdir(parents=True, exist_ok=True)
-    report.write_text(f"# Noise calibration of {model}\n\n{markdown(result)}\n")
-    if write:
-        write_metadata(model, noise_metadata(result))
-    typer.echo(json.dumps(result, indent=2))
 
 
 @app.command()
@@ -393,8 +277,8 @@ def quantise(
 
     path = quantise_model(source, output, slices, seed, root)
     typer.echo(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB; {source.stat().st_size / 1e6:.1f} MB before)")
-    typer.echo("its calibrations are the float model's: run `calibrate-spread`, then `calibrate-acceptance`, on it",
-               err=True)
+    typer.echo("its calibrations are the float model's: run `calibrate-spread`, then `calibrate-acceptance`, then "
+               "`calibrate-noise --write`, on it", err=True)
 
 
 @app.command()
@@ -428,9 +312,8 @@ def ship(
     pipeline's final poses, as `calibrate-acceptance` does, then the noise error, as
     `calibrate-noise` does). The folder is built beside ``out`` and
     takes its place only when whole: a server never finds a model without its calibration or card."""
-    import shutil
-
     from model_export.packaging import load_checkpoint
+    from model_export.shipping import ship_folder, ship_into
 
     if out.exists() and any(out.iterdir()) and not force:
         raise typer.BadParameter(f"{out} holds a model already; --force replaces it", param_hint="--out")
@@ -438,100 +321,12 @@ def ship(
         _, ck = load_checkpoint(checkpoint)
     except (KeyError, ValueError, OSError) as bad:
         raise typer.BadParameter(f"not a pose-network checkpoint ({bad})", param_hint="CHECKPOINT") from None
-    staging = out.parent / f".{out.name}.shipping"
-    shutil.rmtree(staging, ignore_errors=True)
-    staging.mkdir(parents=True)
-    report = report if report is not None else out / "report.md"
-    if report.resolve().is_relative_to(out.resolve()):       # written with the folder, not into the one it replaces
-        shown_report, report = report, staging / report.resolve().relative_to(out.resolve())
-        report.parent.mkdir(parents=True, exist_ok=True)
-    else:
-        shown_report = report
-    try:
-        budget = {"slices": slices_per_volume, "acquisitions": acceptance_per_volume, "quant": quant_slices,
-                  "noise": noise_per_volume}
-        evaluation = _ship_into(staging, out, checkpoint, ck, name, version, comparison, report, shown_report, root,
-                                tta_views, int8, {k: v for k, v in budget.items() if v is not None})
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)             # nothing half-made is left for a server to find
-        raise
-    old = out.parent / f".{out.name}.replaced"
-    shutil.rmtree(old, ignore_errors=True)
-    if out.exists():
-        out.rename(old)
-    staging.rename(out)
-    shutil.rmtree(old, ignore_errors=True)
+    budget = {"slices": slices_per_volume, "acquisitions": acceptance_per_volume, "quant": quant_slices,
+              "noise": noise_per_volume}
+    evaluation = ship_folder(out, report, lambda staging, written, shown: ship_into(
+        staging, out, checkpoint, ck, name, version, comparison, written, shown, root, tta_views, int8,
+        {k: v for k, v in budget.items() if v is not None}, typer.echo))
     typer.echo(json.dumps(evaluation, indent=2))
-
-
-def _ship_into(staging: Path, out: Path, checkpoint: Path, ck: dict, name: str, version: str,
-               comparison: Path | None, report: Path, shown_report: Path, root: Path, tta_views: int,
-               int8: bool, budget: dict[str, int]) -> dict:
-    """`ship`'s steps, each writing into ``staging``, which becomes ``out``; the evaluation's summary.
-    ``budget``: the sample counts given (``slices`` per volume, accept-flag ``acquisitions`` per
-    volume and level, ``quant`` slices, ``noise`` acquisitions per volume and setting); the others are
-    each step's own."""
-    import shutil
-
-    from model_export.calibrate import calibrate as run_calibration
-    from model_export.card import load_json, write_card
-    from model_export.evaluate import evaluate as run_evaluation
-    from model_export.packaging import export_checkpoint
-    from service.inference.model_file import load_model
-
-    per_volume = {"per_volume": budget["slices"]} if "slices" in budget else {}
-    cal = run_calibration(checkpoint, root, views=tta_views, **per_volume)
-    typer.echo(f"calibrated variance threshold {cal['threshold']:.4g} (AUROC {cal['auroc']:.3f})")
-    onnx_path = export_checkpoint(checkpoint, staging / "model.onnx", name=name, version=version,
-                                  variance_threshold=cal["threshold"], tta_views=tta_views)
-    if int8:
-        from model_export.quantise import quantise_model
-
-        quantise_model(onnx_path, onnx_path, root=root, **({"count": budget["quant"]} if "quant" in budget else {}))
-    shutil.copyfile(checkpoint, staging / "checkpoint.pt")
-    from model_export.spread import calibrate_spread as run_spread
-
-    typer.echo(f"spread calibrated: {json.dumps(run_spread(onnx_path, root, **per_volume))}")
-    evaluation = run_evaluation(onnx_path, report, root, **per_volume)
-    if report.exists():                                                        # the model's path once in place
-        report.write_text(report.read_text().replace(str(staging), str(out)))
-    from model_export.training_record import prior_history, totals
-
-    summary = {"train_seconds": ck["train_seconds"], "samples_seen": ck["samples_seen"], "steps": ck["step"],
-               "best_checkpoint": ck.get("val_twin_ed_mm") is not None and ck.get("val_twin_ed_mm") == ck.get("best_ed_mm"),
-               "totals": totals(prior_history(ck)), "history": prior_history(ck),
-               "train_volumes_text": f"{len(ck['config']['train_volumes'])} atlas volumes: "
-                                     + ", ".join(ck["config"]["train_volumes"])}
-    from model_export.atlas import load_volumes, split
-    from model_export.calibrate_acceptance import PER_VOLUME, flag_metadata, measure, markdown as acceptance_markdown
-    from model_export.spread import write_metadata
-    from service.inference.estimator import OnnxPoseEstimator
-
-    acquisitions = budget.get("acquisitions", PER_VOLUME)
-    typer.echo(f"accept flags: {acquisitions} acquisitions per validation volume and motion level through every stage")
-    flags = measure(OnnxPoseEstimator(load_model(onnx_path)), load_volumes(split(root)[1], root), per_volume=acquisitions)
-    write_metadata(onnx_path, flag_metadata(flags))
-    noise_table = ""
-    if budget.get("noise", 1):
-        from model_export import calibrate_noise
-
-        typer.echo("noise error: acquisitions at a ladder of noise levels and two pixel sizes through every stage")
-        noise = calibrate_noise.calibrate(calibrate_noise.measure(
-            OnnxPoseEstimator(load_model(onnx_path)), load_volumes(split(root)[1], root),
-            budget.get("noise", calibrate_noise.PER_VOLUME)))
-        write_metadata(onnx_path, calibrate_noise.noise_metadata(noise))
-        noise_table = calibrate_noise.markdown(noise)
-        (report.parent / "noise.md").write_text(f"# Noise error of {name} {version}\n\n{noise_table}\n")
-    info = load_model(onnx_path).info.metadata
-    write_card(staging / "card.md", info=info, train_summary=summary, train_config=ck["config"], calibration=cal,
-               evaluation=evaluation, comparison=load_json(comparison) if comparison else None,
-               report_path=str(shown_report), onnx_bytes=onnx_path.stat().st_size)
-    card = staging / "card.md"
-    card.write_text(card.read_text() + "\n" + acceptance_markdown(flags, "Accept flags").replace("# Accept", "## Accept", 1)
-                    + (f"\n## Noise error\n\n{noise_table}\n" if noise_table else ""))
-    (report.parent / "acceptance.md").write_text(acceptance_markdown(flags, f"Accept flags of {out / 'model.onnx'}"))
-    (staging / "calibration.json").write_text(json.dumps(cal))
-    return evaluation
 
 
 if __name__ == "__main__":

@@ -101,23 +101,26 @@ def stack_objects(predictions: list[StackPrediction]) -> list[dict]:
             "spacing_mm": [float(x) for x in vol.spacing], "slice_axis": p.prepared.slices.slice_axis,
             "scanner_from_voxel": np.asarray(vol.affine, np.float64).tolist(),
             "slices": slice_objects(p), "consistency": stack_report(p.poses),
-            "localisation": p.prepared.localisation.report(), "noise": noise_report(p.prepared.input_noise),
+            "localisation": p.prepared.localisation.report(), "noise": noise_report(p.prepared.input_noise, p.noise_error_mm),
         })
     return stacks
 
 
-def noise_report(level: float) -> dict:
+def noise_report(level: float, added_mm: float = 0.0) -> dict:
     """A stack's ``noise`` object: its network inputs' noise (:func:`~service.preprocess.noise.input_noise`;
-    null where no slice holds enough brain to tell) and whether it is beyond what the network's poses
-    and expected errors were measured to hold (:data:`~service.preprocess.noise.NOISY_INPUT`).
+    null where no slice holds enough brain to tell), whether it is beyond what the network learnt and
+    the pipeline's benchmarks hold (:data:`~service.preprocess.noise.NOISY_INPUT`), and what it added
+    to each slice's expected error (``added_mm``, in quadrature; the model's noise calibration).
 
     Example:
-        >>> noise_report(0.1244), noise_report(float("nan"))
-        ({'input_noise': 0.1244, 'beyond_calibration': True}, {'input_noise': None, 'beyond_calibration': False})
+        >>> noise_report(0.1244, 2.13), noise_report(float("nan"))  # doctest: +NORMALIZE_WHITESPACE
+        ({'input_noise': 0.1244, 'beyond_calibration': True, 'expected_error_added_mm': 2.13},
+         {'input_noise': None, 'beyond_calibration': False, 'expected_error_added_mm': 0.0})
     """
     known = bool(np.isfinite(level))
     return {"input_noise": round(float(level), 4) if known else None,
-            "beyond_calibration": bool(known and level > NOISY_INPUT)}
+            "beyond_calibration": bool(known and level > NOISY_INPUT),
+            "expected_error_added_mm": round(float(added_mm), 2)}
 
 
 def pose_object(answer: SliceAnswer, **extra: object) -> dict:
@@ -141,7 +144,7 @@ def stack_message(answer: StackAnswer) -> dict:
     found = {"method": loc.method, "confidence": round(loc.confidence, 3)}
     slices = [{"stack": answer.stack, **s, "localisation": found} for s in slice_objects(p)]
     return {"type": "stack", "stack": answer.stack, "slices": slices, "consistency": stack_report(p.poses),
-            "localisation": p.prepared.localisation.report(), "noise": noise_report(p.prepared.input_noise),
+            "localisation": p.prepared.localisation.report(), "noise": noise_report(p.prepared.input_noise, p.noise_error_mm),
             "reacquire": _reacquire(answer.reacquire), "judged_alone": answer.judged_alone,
             "coverage": answer.coverage.report(),
             "timing_ms": {k: round(v * 1e3, 1) for k, v in answer.timings.items()}}

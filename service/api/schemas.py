@@ -118,9 +118,15 @@ class Noise(BaseModel):
                                                      "enough brain to tell. Simulated acquisitions of 1 mm pixels "
                                                      "with Rician noise of 3 / 8 / 15 % of the bright end give about "
                                                      "0.036 / 0.084 / 0.124")
-    beyond_calibration: bool = Field(description="input_noise exceeds what the poses and their expected errors "
-                                                 "were measured to hold (0.10): the poses may be less accurate "
-                                                 "than expected_error_mm says (a low-field scanner's noise)")
+    beyond_calibration: bool = Field(description="input_noise exceeds what the network learnt and the pipeline's "
+                                                 "benchmarks hold (0.10), as a low-field scanner's noise can: the "
+                                                 "poses are less accurate, mostly by one turn and shift of the whole "
+                                                 "request, which the slices' agreement cannot show")
+    expected_error_added_mm: float = Field(0.0, description="what the stack's noise added, in quadrature, to each of "
+                                                            "its slices' expected_error_mm (the model's noise "
+                                                            "calibration; 0 below its onset, or for a model "
+                                                            "without one), so that its accept flags judge the "
+                                                            "error its noise brings too")
 
 
 class StackResult(BaseModel):

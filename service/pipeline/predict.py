@@ -80,6 +80,8 @@ class StackPrediction:
         estimate: the network's MC statistics of the stack's slices.
         poses: the returned poses and what the stages did (:class:`~service.consistency.stage.StackPoses`).
         reasons: why each slice is not accepted (None: accepted).
+        noise_error_mm: what the stack's input noise added to each slice's expected error, in
+            quadrature (:func:`~service.preprocess.noise.noise_error_mm`; 0: nothing).
     """
 
     prepared: PreparedStack
@@ -87,6 +89,7 @@ class StackPrediction:
     estimate: PoseEstimate
     poses: StackPoses
     reasons: list[str | None]
+    noise_error_mm: float = 0.0
 
 
 def judge(prepared: PreparedStack, estimate: PoseEstimate, out: StackPoses, threshold: float,
@@ -316,5 +319,6 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
     results = []
     for s, e, nfv, out in zip(prepared, parts, frames, outs):
         add_unseen_errors(out, info, e, s.input_noise)
-        results.append(StackPrediction(s, nfv, e, out, judge(s, e, out, threshold, max_expected_error_mm)))
+        results.append(StackPrediction(s, nfv, e, out, judge(s, e, out, threshold, max_expected_error_mm),
+                                       float(noise_error_mm(s.input_noise, getattr(info, "noise_error", None)))))
     return results, timings

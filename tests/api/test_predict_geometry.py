@@ -121,6 +121,7 @@ def test_atlas_from_voxel_matches_truth(oracle, oracle_client, tmp_path: Path, w
     assert [s["index"] for s in stack["slices"]] == list(range(shape[axis]))
     np.testing.assert_allclose(stack["scanner_from_voxel"], aff, atol=1e-4)          # the file's own voxel -> RAS
     assert 0.0 <= stack["noise"]["input_noise"] < 0.06 and stack["noise"]["beyond_calibration"] is False  # noise-free
+    assert stack["noise"]["expected_error_added_mm"] == 0.0
     # Each slice's ITK transform (client side, from the answer alone) takes the atlas point a voxel
     # shows to where the file puts that voxel, both in ITK's LPS.
     for name, text in transform_files(body).items():

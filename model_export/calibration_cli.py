@@ -1,0 +1,118 @@
+"""``svrnet-train``'s calibrations: the variance threshold, the MC spread, the accept flags and the
+noise error (registered on the app by :mod:`model_export.cli`)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from model_export.atlas import DEFAULT_ATLAS_ROOT
+from model_export.cli_options import Root
+from service.inference.views import SHIPPED_VIEWS
+
+
+def calibrate(checkpoint: Path, root: Root = DEFAULT_ATLAS_ROOT, mc_samples: int = 100,
+              tta_views: int = SHIPPED_VIEWS) -> None:
+    """Choose the variance threshold on the validation volumes; print AUROC and the chosen value."""
+    from model_export.calibrate import calibrate as run
+
+    result = run(checkpoint, root, mc_samples=mc_samples, views=tta_views)
+    typer.echo(json.dumps({k: v for k, v in result.items() if not isinstance(v, list)}, indent=2))
+
+
+def calibrate_spread(
+    model: Path,
+    root: Root = DEFAULT_ATLAS_ROOT,
+    per_volume: int = 60,
+    write: Annotated[bool, typer.Option(help="write mc_error_scale, mc_error_shape and mc_error_depth_gain into the model's metadata")] = True,
+) -> None:
+    """Measure how the model's MC spread relates to its twin-min error (mc_error_scale), and the error's
+    shape over the six coordinates of a slice (mc_error_shape) and its growth towards a stack's outer
+    slices (mc_error_depth_gain); store them."""
+    from model_export.spread import calibrate_spread as run
+
+    typer.echo(json.dumps(run(model, root, per_volume, write), indent=2))
+    if write:
+        typer.echo("the accept flags (expected-error limit, floor, twin risk, variance threshold) and the noise error "
+                   "were calibrated on the expected errors before: run `calibrate-acceptance`, then `calibrate-noise "
+                   "--write`, on the model again", err=True)
+
+
+def calibrate_acceptance(
+    model: Path,
+    root: Root = DEFAULT_ATLAS_ROOT,
+    per_volume: Annotated[Optional[int], typer.Option(help="acquisitions per validation volume and motion level "
+                                                           "(default: calibrate_acceptance.PER_VOLUME)")] = None,
+    report: Path = Path("model_export/reports/acceptance.md"),
+    write: Annotated[bool, typer.Option(help="write twin_risk_logit, expected_error_floor_mm, variance_threshold "
+                                             "and max_expected_error_mm into the model's metadata")] = True,
+    seed: int = 1,
+    slices: Annotated[Optional[Path], typer.Option(help="also keep every slice's columns here (.npz)")] = None,
+    columns: Annotated[Optional[list[Path]], typer.Option(
+        help="calibrate from the slice columns previous runs kept (--slices) instead of measuring again; "
+             "given several times, their slices pooled")] = None,
+) -> None:
+    """Calibrate the accept flags on the pipeline's final poses over simulated acquisitions of the
+    validation volumes at every motion level (mild, moderate, jumps, independent)."""
+    from model_export.atlas import load_volumes, split
+    from model_export.calibrate_acceptance import LEVELS, PER_VOLUME, calibrate, flag_metadata, level_columns, markdown, measure
+    from model_export.spread import write_metadata
+    from service.inference.estimator import OnnxPoseEstimator
+    from service.inference.model_file import load_model
+
+    if columns:
+        result = calibrate(level_columns(columns, LEVELS))
+    else:
+        result = measure(OnnxPoseEstimator(load_model(model)), load_volumes(split(root)[1], root),
+                         per_volume or PER_VOLUME, seed, slices=slices)
+    report.parent.mkdir(parents=True, exist_ok=True)
+    report.write_text(markdown(result, f"Accept flags of {model}"))
+    if write:
+        write_metadata(model, flag_metadata(result))
+    typer.echo(json.dumps(result, indent=2))
+
+
+def calibrate_noise(
+    model: Path,
+    root: Root = DEFAULT_ATLAS_ROOT,
+    per_volume: Annotated[Optional[int], typer.Option(help="acquisitions per validation volume, noise level, pixel size "
+                                                           "and motion level (default: calibrate_noise.PER_VOLUME)")] = None,
+    report: Path = Path("model_export/reports/noise.md"),
+    write: Annotated[bool, typer.Option(help="write noise_error into the model's metadata")] = False,
+    seed: int = 7,
+    slices: Annotated[Optional[Path], typer.Option(help="also keep every slice's columns here (.npz)")] = None,
+    columns: Annotated[Optional[Path], typer.Option(
+        help="calibrate from the slice columns a previous run kept (--slices) instead of measuring again")] = None,
+) -> None:
+    """Calibrate how the expected errors grow with a stack's input noise (noise_error) on simulated
+    acquisitions of the validation volumes at a ladder of noise levels and two pixel sizes."""
+    import numpy as np
+
+    from model_export.atlas import load_volumes, split
+    from model_export.calibrate_noise import PER_VOLUME, calibrate, markdown, measure, noise_metadata
+    from model_export.spread import write_metadata
+    from service.inference.estimator import OnnxPoseEstimator
+    from service.inference.model_file import load_model
+
+    if columns is not None:
+        with np.load(columns) as kept:
+            measured = {k: kept[k] for k in kept.files}
+    else:
+        measured = measure(OnnxPoseEstimator(load_model(model)), load_volumes(split(root)[1], root),
+                           per_volume or PER_VOLUME, seed)
+        if slices is not None:
+            np.savez_compressed(slices, **measured)
+    result = calibrate(measured)
+    report.parent.mkdir(parents=True, exist_ok=True)
+    report.write_text(f"# Noise calibration of {model}\n\n{markdown(result)}\n")
+    if write:
+        write_metadata(model, noise_metadata(result))
+    typer.echo(json.dumps(result, indent=2))
+
+
+COMMANDS = {"calibrate": calibrate, "calibrate-spread": calibrate_spread, "calibrate-acceptance": calibrate_acceptance,
+            "calibrate-noise": calibrate_noise}
+"""Each command's name and function, in the order ``svrnet-train --help`` lists them."""
