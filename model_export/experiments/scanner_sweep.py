@@ -15,6 +15,9 @@ Also a signal void: a dark ball in the brain (:func:`with_void`), which the acqu
 never make; its slices are split by the share of their brain it darkened (:func:`void_split`), the
 network's own twin-min E.D. beside the final one, which tells the network's part from the stages'.
 
+``--dump F.npz`` keeps every setting's per-slice columns (with each slice's stack's input noise);
+``--smooth T`` smooths noisy stacks before the network (:func:`noise_offset.smoothing`).
+
     .venv/bin/python model_export/experiments/scanner_sweep.py [--levels mild,jumps] [--per-volume 2] [--only 1,9] [--model M]   # needs ../shared/data
 """
 
@@ -179,7 +182,14 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=5)
     ap.add_argument("--only", help="comma-separated setting numbers (1-based) to run")
     ap.add_argument("--dump", type=Path, help="write every setting's per-slice columns to this .npz")
+    ap.add_argument("--smooth", type=float, help="smooth stacks of input noise over 0.09 down to this first "
+                                                 "(an experiment: noise_offset.smoothing)")
     args = ap.parse_args()
+    if args.smooth:
+        import service.pipeline.prepare as prepare
+        from noise_offset import smoothing
+
+        prepare.preprocess_slices = smoothing(args.smooth)
     estimator = OnnxPoseEstimator(load_model(args.model))
     volumes = load_volumes(split(args.root)[1], args.root)
     dump: dict[str, NDArray] | None = {} if args.dump else None

@@ -1,11 +1,14 @@
 """How noisy a stack's slices are for the pose network.
 
 A low-field scanner's stacks (0.55 T) are noisier than the slices the pose network was trained and
-calibrated on, and are posed less well than their expected errors say: on simulated acquisitions of
+calibrated on, and are posed less well than the network's spread says: on simulated acquisitions of
 1 mm pixels with Rician noise of 15 % of the bright end, 0.3 mm further from the truth at mild
 motion and 0.8 mm under jumps, RMS E.D. over RMS expected error 1.24 (docs/accuracy.md, "Other
 scanners' acquisitions"). :func:`input_noise` puts a number on a stack's noise in the units the
-network sees it in, so that a stack noisier than the network knows is told apart.
+network sees it in, so that a stack noisier than the network knows is told apart, and
+:func:`noise_error_mm` what that noise costs beyond the network's spread (mostly one turn and
+shift of the whole request, which the slices' agreement cannot show), as the model's calibration
+says: the pipeline adds it to the stack's expected errors.
 
 The noise is measured on the slices as the scanner wrote them, on the 0-255 scale the network's
 inputs are rescaled to (the 1st to 99th percentile inside the mask), with Immerkær's estimate
