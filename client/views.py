@@ -123,7 +123,7 @@ def predict_hints(result: dict[str, Any]) -> list[str]:
         noise = stack.get("noise") or {}
         if brain and noise.get("beyond_calibration"):
             added = float(noise.get("expected_error_added_mm") or 0.0)
-            told = (f"its expected errors include {added:.1f} mm for the noise, so fewer of its slices are accepted"
+            told = (f"its expected errors include {added:.2f} mm for the noise, so fewer of its slices are accepted"
                     if added > 0 else "its poses may be less accurate than their expected errors say, and some of its "
                                       "accepted slices wrong")
             hints.append(f"{name}: noisier than the pose network learnt (input noise "

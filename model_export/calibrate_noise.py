@@ -2,8 +2,8 @@
 
 The MC spread measures what the network is unsure of on the slices it learnt from. A stack noisier
 than those (a low-field scanner's, coarse pixels that keep their noise) is posed worse than its
-spread says, and mostly by a turn and shift of the whole request, which no stage sees: its slices
-agree with each other. The service adds that error in quadrature to every slice's expected error,
+spread says, mostly by a larger turn and shift of the whole request, which no stage sees: its
+slices agree with each other. The service adds that error in quadrature to every slice's expected error,
 ``slope x max(0, input_noise - onset)`` mm from its stack's input noise
 (:func:`~service.preprocess.noise.noise_error_mm`), so that a noisy stack's slices are accepted as
 a clean stack's are: by what their errors are likely to be.
@@ -17,9 +17,13 @@ from its own stack's noise) nearest what that median is in the clean stacks (bel
 :data:`CLEAN_NOISE`): a noisy stack's slices then stand to their expected errors as clean ones do
 (:func:`fit_hinge`). The median, not the RMS, because the RMS of a group is set by its few slices
 on their twin or far off, which the accept flags judge by other means. The report also gives each
-group's own missing error (:func:`missing_error`), the ``s`` it alone would ask for.
+group's own missing error (:func:`missing_error`), the ``s`` it alone would ask for, and each
+group's median ratio with the fitted hinge: where the error grows faster than a hinge, some groups
+are left a little over-trusted and others under-trusted. The offset is shared by a request's
+slices, so an acquisition, not a slice, is the unit of evidence; requests that mix noisy and clean
+stacks are not simulated.
 
-    svrnet-train calibrate-noise service/models/default/model.onnx [--write]     # needs the atlas data
+    svrnet-train calibrate-noise service/models/default/model.onnx [--no-write]   # needs the atlas data
 """
 
 from __future__ import annotations
@@ -30,7 +34,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
-from model_export.acquisitions import simulate_acquisition
+from model_export.acquisitions import SimulatedStack, simulate_acquisition
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, Scored, run_acquisition, score
 
 NOISE_LADDER = (0.03, 0.06, 0.09, 0.12, 0.15, 0.18)
@@ -41,6 +45,7 @@ LEVELS = ("mild", "moderate", "jumps")
 PER_VOLUME = 1
 """Acquisitions per validation volume, noise level, pixel size and motion level."""
 FOV_MM = 128.0
+"""The simulated acquisitions' field of view (mm), whatever their pixel size."""
 BIN_EDGES = (0.0, 0.06, 0.09, 0.11, 0.13, 0.15, 0.17, 1.0)
 """Groups of stacks by their input noise."""
 CLEAN_NOISE = 0.06
@@ -63,15 +68,20 @@ def measure(estimator, volumes: list, per_volume: int = PER_VOLUME, seed: int = 
         for noise in NOISE_LADDER:
             for pixel_mm in PIXELS_MM:
                 for a, vol in enumerate(volumes * per_volume):
-                    rng = np.random.default_rng([seed, a])
-                    stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level, size=int(round(FOV_MM / pixel_mm)),
-                                                  pixel_mm=pixel_mm, thickness_mm=3.0, gap_mm=3.0, noise=noise)
+                    stacks = acquire(vol, np.random.default_rng([seed, a]), level, pixel_mm=pixel_mm, noise=noise)
                     (predictions,), prepared, truth = run_acquisition(stacks, estimator)
                     score(predictions, prepared, truth, stacks, estimator.info.symmetry_plane_x_mm, scored)
-                    for p in prepared:
-                        scored.add(input_noise=np.full(len(p.prepared.mask_pixels), p.input_noise))
     keep = scored.array("mask_pixels") >= MIN_MASK_PIXELS
     return {k: scored.array(k)[keep] for k in ("ed", "expected", "input_noise")}
+
+
+def acquire(volume, rng: np.random.Generator, level: str, pixel_mm: float = 1.0, thickness_mm: float = 3.0,  # noqa: ANN001
+            gap_mm: float = 3.0, noise: float = 0.03) -> list[SimulatedStack]:
+    """One simulated 3-stack acquisition of an atlas ``volume`` as another scanner writes it: ``pixel_mm``
+    pixels over a :data:`FOV_MM` field of view, slices ``thickness_mm`` thick ``gap_mm`` apart, Rician
+    ``noise`` (a share of the bright end)."""
+    return simulate_acquisition(volume.image, volume.mask, volume.affine, rng, level, size=int(round(FOV_MM / pixel_mm)),
+                                pixel_mm=pixel_mm, thickness_mm=thickness_mm, gap_mm=gap_mm, noise=noise)
 
 
 def median_ratio(ed: NDArray, expected: NDArray, extra_mm: float = 0.0) -> float:
@@ -133,6 +143,9 @@ def calibrate(columns: dict[str, NDArray]) -> dict:
     have = np.isfinite(expected) & np.isfinite(noise)
     ed, expected, noise = ed[have], expected[have], noise[have]
     clean = noise < CLEAN_NOISE
+    if clean.sum() < MIN_GROUP_SLICES:
+        raise ValueError(f"{int(clean.sum())} slices of stacks under input noise {CLEAN_NOISE}: the clean reference "
+                         f"needs {MIN_GROUP_SLICES}; measure with the noise ladder's lowest levels")
     target = median_ratio(ed[clean], expected[clean])
     groups, masks = [], []
     for lo, hi in zip(BIN_EDGES[:-1], BIN_EDGES[1:]):
@@ -144,6 +157,8 @@ def calibrate(columns: dict[str, NDArray]) -> dict:
                        "ed_median_mm": float(np.median(ed[g])), "expected_median_mm": float(np.median(expected[g])),
                        "median_ratio": median_ratio(ed[g], expected[g]),
                        "missing_mm": missing_error(ed[g], expected[g], target)})
+    if len(groups) < 2:
+        raise ValueError("the slices fill fewer than two groups of input noise: nothing to fit a growth to")
     onset, slope = fit_hinge(noise, ed, expected, masks, target)
     for g, m in zip(groups, masks):
         g["median_ratio_after"] = median_ratio(ed[m] / np.hypot(expected[m], slope * np.maximum(noise[m] - onset, 0.0)),

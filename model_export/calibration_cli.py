@@ -81,11 +81,12 @@ def calibrate_noise(
     per_volume: Annotated[Optional[int], typer.Option(help="acquisitions per validation volume, noise level, pixel size "
                                                            "and motion level (default: calibrate_noise.PER_VOLUME)")] = None,
     report: Path = Path("model_export/reports/noise.md"),
-    write: Annotated[bool, typer.Option(help="write noise_error into the model's metadata")] = False,
+    write: Annotated[bool, typer.Option(help="write noise_error into the model's metadata")] = True,
     seed: int = 7,
     slices: Annotated[Optional[Path], typer.Option(help="also keep every slice's columns here (.npz)")] = None,
-    columns: Annotated[Optional[Path], typer.Option(
-        help="calibrate from the slice columns a previous run kept (--slices) instead of measuring again")] = None,
+    columns: Annotated[Optional[list[Path]], typer.Option(
+        help="calibrate from the slice columns previous runs kept (--slices) instead of measuring again; "
+             "given several times, their slices pooled")] = None,
 ) -> None:
     """Calibrate how the expected errors grow with a stack's input noise (noise_error) on simulated
     acquisitions of the validation volumes at a ladder of noise levels and two pixel sizes."""
@@ -97,9 +98,9 @@ def calibrate_noise(
     from service.inference.estimator import OnnxPoseEstimator
     from service.inference.model_file import load_model
 
-    if columns is not None:
-        with np.load(columns) as kept:
-            measured = {k: kept[k] for k in kept.files}
+    if columns:
+        kept = [np.load(path) for path in columns]
+        measured = {k: np.concatenate([f[k] for f in kept]) for k in ("ed", "expected", "input_noise")}
     else:
         measured = measure(OnnxPoseEstimator(load_model(model)), load_volumes(split(root)[1], root),
                            per_volume or PER_VOLUME, seed)
@@ -115,4 +116,5 @@ def calibrate_noise(
 
 COMMANDS = {"calibrate": calibrate, "calibrate-spread": calibrate_spread, "calibrate-acceptance": calibrate_acceptance,
             "calibrate-noise": calibrate_noise}
-"""Each command's name and function, in the order ``svrnet-train --help`` lists them."""
+"""Each command's name and function (:mod:`model_export.cli` registers them first, so ``svrnet-train
+--help`` lists them before its own)."""

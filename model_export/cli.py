@@ -5,7 +5,7 @@ Examples:
     svrnet-train export runs/default/best.pt runs/default/model.onnx   # threshold calibrated on export
     svrnet-train calibrate runs/default/best.pt
     svrnet-train calibrate-acceptance runs/default/model.onnx
-    svrnet-train calibrate-noise runs/default/model.onnx --write
+    svrnet-train calibrate-noise runs/default/model.onnx
     svrnet-train evaluate service/models/default/model.onnx --report model_export/reports/default.md
     svrnet-train quantise service/models/default/model.onnx /tmp/model-int8.onnx
     svrnet-train localiser --help
@@ -278,7 +278,7 @@ def quantise(
     path = quantise_model(source, output, slices, seed, root)
     typer.echo(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB; {source.stat().st_size / 1e6:.1f} MB before)")
     typer.echo("its calibrations are the float model's: run `calibrate-spread`, then `calibrate-acceptance`, then "
-               "`calibrate-noise --write`, on it", err=True)
+               "`calibrate-noise`, on it", err=True)
 
 
 @app.command()

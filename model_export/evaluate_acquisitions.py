@@ -185,7 +185,8 @@ def score(predictions: list[StackPrediction], prepared: list[PreparedStack], tru
                  branch_decided=np.full(n, bool(stage.get("branch_decided"))),
                  tilt_deg=parts["tilt_deg"], twist_deg=parts["twist_deg"], centre_mm=parts["centre_mm"],
                  off_plane_mm=parts["off_plane_mm"], depth=np.abs(k - mid) / half,
-                 time=(times - times.min()) / max(float(np.ptp(times)), 1.0), **slice_evidence(pred))
+                 time=(times - times.min()) / max(float(np.ptp(times)), 1.0), input_noise=np.full(n, p.input_noise),
+                 **slice_evidence(pred))
 
 
 def slice_evidence(prediction: StackPrediction) -> dict[str, NDArray]:

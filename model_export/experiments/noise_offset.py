@@ -26,8 +26,8 @@ from scipy import ndimage
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from model_export.acquisitions import simulate_acquisition  # noqa: E402
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
+from model_export.calibrate_noise import acquire  # noqa: E402
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, run_acquisition  # noqa: E402
 from service.api.responses import stack_objects  # noqa: E402
 from service.geometry import se3  # noqa: E402
@@ -36,7 +36,6 @@ from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
 from service.inference.model_file import load_model  # noqa: E402
 from service.preprocess.noise import input_noise  # noqa: E402
 
-FOV_MM = 128.0
 SMOOTH_ONSET = 0.09
 
 
@@ -99,8 +98,7 @@ def main() -> None:
     print("| acquisition | mean / median E.D. | common offset | once undone: mean / median | accepted |\n|---|---|---|---|---|")
     for a, vol in enumerate(volumes * args.per_volume):
         rng = np.random.default_rng([args.seed, a])
-        stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, args.level, size=int(round(FOV_MM / args.pixel_mm)),
-                                      pixel_mm=args.pixel_mm, thickness_mm=3.0, gap_mm=3.0, noise=args.noise)
+        stacks = acquire(vol, rng, args.level, pixel_mm=args.pixel_mm, noise=args.noise)
         (predictions,), prepared, truth = run_acquisition(stacks, estimator)
         final, true, accepted = [], [], []
         for res, p, t in zip(stack_objects(predictions), prepared, truth):

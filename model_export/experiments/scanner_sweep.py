@@ -34,35 +34,39 @@ from numpy.typing import NDArray
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from model_export.acquisitions import SimulatedStack, simulate_acquisition  # noqa: E402
+from model_export.acquisitions import SimulatedStack  # noqa: E402
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
 from model_export.calibrate_acceptance import rates, rms, share  # noqa: E402
+from model_export.calibrate_noise import acquire  # noqa: E402
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, Scored, run_acquisition, score  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
 from service.inference.model_file import load_model  # noqa: E402
 from service.io.volume import Volume  # noqa: E402
 
-FOV_MM = 128.0
 THREE_MM = {"thickness_mm": 3.0, "gap_mm": 3.0}
-SETTINGS: dict[str, tuple[dict[str, float], bool]] = {
-    "1.0 mm pixels, 3 mm slices (the benchmarks')": ({"pixel_mm": 1.0, **THREE_MM}, False),
-    "0.5 mm pixels": ({"pixel_mm": 0.5, **THREE_MM}, False),
-    "0.8 mm pixels": ({"pixel_mm": 0.8, **THREE_MM}, False),
-    "1.25 mm pixels": ({"pixel_mm": 1.25, **THREE_MM}, False),
-    "1.6 mm pixels": ({"pixel_mm": 1.6, **THREE_MM}, False),
-    "2 mm slices": ({"pixel_mm": 1.0, "thickness_mm": 2.0, "gap_mm": 2.0}, False),
-    "4.5 mm slices": ({"pixel_mm": 1.0, "thickness_mm": 4.5, "gap_mm": 4.5}, False),
-    "4 mm slices 2 mm apart": ({"pixel_mm": 1.0, "thickness_mm": 4.0, "gap_mm": 2.0}, False),
-    "1.5 mm slices": ({"pixel_mm": 1.0, "thickness_mm": 1.5, "gap_mm": 1.5}, False),
-    "3 mm slices 1.5 mm apart": ({"pixel_mm": 1.0, "thickness_mm": 3.0, "gap_mm": 1.5}, False),
-    "a signal void in the brain (with_void)": ({"pixel_mm": 1.0, **THREE_MM}, True),
-    "Rician noise 8 % (the benchmarks' 3 %)": ({"pixel_mm": 1.0, **THREE_MM, "noise": 0.08}, False),
-    "Rician noise 15 % (a low-field scanner's)": ({"pixel_mm": 1.0, **THREE_MM, "noise": 0.15}, False),
-    "0.8 mm pixels, noise 15 %": ({"pixel_mm": 0.8, **THREE_MM, "noise": 0.15}, False),
-    "1.6 mm pixels, noise 8 %": ({"pixel_mm": 1.6, **THREE_MM, "noise": 0.08}, False),
-    "1.6 mm pixels, noise 15 %": ({"pixel_mm": 1.6, **THREE_MM, "noise": 0.15}, False),
+SETTINGS: dict[str, tuple[dict[str, float], str | None]] = {
+    "1.0 mm pixels, 3 mm slices (the benchmarks')": ({"pixel_mm": 1.0, **THREE_MM}, None),
+    "0.5 mm pixels": ({"pixel_mm": 0.5, **THREE_MM}, None),
+    "0.8 mm pixels": ({"pixel_mm": 0.8, **THREE_MM}, None),
+    "1.25 mm pixels": ({"pixel_mm": 1.25, **THREE_MM}, None),
+    "1.6 mm pixels": ({"pixel_mm": 1.6, **THREE_MM}, None),
+    "2 mm slices": ({"pixel_mm": 1.0, "thickness_mm": 2.0, "gap_mm": 2.0}, None),
+    "4.5 mm slices": ({"pixel_mm": 1.0, "thickness_mm": 4.5, "gap_mm": 4.5}, None),
+    "4 mm slices 2 mm apart": ({"pixel_mm": 1.0, "thickness_mm": 4.0, "gap_mm": 2.0}, None),
+    "1.5 mm slices": ({"pixel_mm": 1.0, "thickness_mm": 1.5, "gap_mm": 1.5}, None),
+    "3 mm slices 1.5 mm apart": ({"pixel_mm": 1.0, "thickness_mm": 3.0, "gap_mm": 1.5}, None),
+    "a signal void in the brain (with_void)": ({"pixel_mm": 1.0, **THREE_MM}, "void"),
+    "Rician noise 8 % (the benchmarks' 3 %)": ({"pixel_mm": 1.0, **THREE_MM, "noise": 0.08}, None),
+    "Rician noise 15 % (a low-field scanner's)": ({"pixel_mm": 1.0, **THREE_MM, "noise": 0.15}, None),
+    "0.8 mm pixels, noise 15 %": ({"pixel_mm": 0.8, **THREE_MM, "noise": 0.15}, None),
+    "1.6 mm pixels, noise 8 %": ({"pixel_mm": 1.6, **THREE_MM, "noise": 0.08}, None),
+    "1.6 mm pixels, noise 15 %": ({"pixel_mm": 1.6, **THREE_MM, "noise": 0.15}, None),
+    "gamma 0.5 (the training draws 0.75-1.35)": ({"pixel_mm": 1.0, **THREE_MM}, "gamma 0.5"),
+    "gamma 2": ({"pixel_mm": 1.0, **THREE_MM}, "gamma 2"),
+    "tissue contrast halved (a balanced-SSFP look)": ({"pixel_mm": 1.0, **THREE_MM}, "tissue contrast halved"),
 }
-"""Each setting's :func:`simulate_acquisition` keywords, and whether :func:`with_void` darkens it."""
+"""Each setting's :func:`~model_export.calibrate_noise.acquire` keywords, and how its stacks are rewritten: ``"void"``
+(:func:`with_void`), a key of :data:`CONTRASTS` (:func:`with_contrast`) or not at all."""
 VOID_RADIUS_MM, VOID_OFFSET_MM, VOID_GAIN = 25.0, 15.0, 0.4
 """A dark ball in the scanner, as 3 T dielectric shading leaves one in some real stacks (a real
 whole-uterus stack of another site shows the head 0.35-0.5x its median over a third of the brain):
@@ -82,6 +86,34 @@ def with_void(stacks: list[SimulatedStack], rng: np.random.Generator) -> list[Si
         gain = VOID_GAIN + (1 - VOID_GAIN) / (1 + np.exp(-(r - VOID_RADIUS_MM) / 1.5))
         dark = (s.volume.array * gain.reshape(s.volume.array.shape)).astype(np.float32)
         out.append(replace(s, volume=Volume(dark, s.volume.affine)))
+    return out
+
+
+CONTRASTS = {
+    "gamma 0.5": lambda t: t ** 0.5,
+    "gamma 2": lambda t: t ** 2.0,
+    "tissue contrast halved": lambda t: t - 0.5 * (t - 0.45) * np.clip((0.9 - t) / 0.3, 0.0, 1.0),
+}
+"""Intensity curves on each stack's intensities over its brain's 99th percentile: gammas outside the
+training's draws, and grey and white matter (below about 0.6) drawn halfway to 0.45 with the CSF
+(0.9 and above) as it is, as a balanced-SSFP (TrueFISP) stack shows the fetal brain."""
+
+
+def with_contrast(stacks: list[SimulatedStack], curve: str) -> list[SimulatedStack]:
+    """The stacks with :data:`CONTRASTS` ``curve`` applied to their intensities.
+
+    Example (a stack of brain at 0.3 and CSF at 1.0, tissue contrast halved: the CSF stays):
+        >>> m = Volume(np.ones((3, 1, 1), np.uint8), np.eye(4))
+        >>> s = SimulatedStack(Volume(np.array([0.3, 1.0, 1.0], np.float32).reshape(3, 1, 1), np.eye(4)), m,
+        ...                    np.eye(4)[None], "axial", np.arange(1), "mild")
+        >>> with_contrast([s], "tissue contrast halved")[0].volume.array.ravel().round(3).tolist()
+        [0.375, 1.0, 1.0]
+    """
+    out = []
+    for s in stacks:
+        top = float(np.percentile(s.volume.array[s.mask.array > 0], 99)) if s.mask.array.any() else 1.0
+        t = np.clip(s.volume.array / top, 0.0, None)
+        out.append(replace(s, volume=Volume((CONTRASTS[curve](t) * top).astype(np.float32), s.volume.affine)))
     return out
 
 
@@ -141,23 +173,22 @@ def sweep(estimator, volumes: list, level: str, per_volume: int, seed: int,  # n
     """One line per setting: the same volumes and random draws for each. ``dump``: gets each setting's
     per-slice columns (``<level>/<setting number>/<column>``), with each slice's stack's input noise."""
     lines = []
-    for i, (name, (geometry, void)) in enumerate(SETTINGS.items(), 1):
+    for i, (name, (geometry, rewrite)) in enumerate(SETTINGS.items(), 1):
         if only and i not in only:
             continue
         scored, darkened, noise = Scored(), [], []
         start = time.perf_counter()
         for a, vol in enumerate(volumes * per_volume):
             rng = np.random.default_rng([seed, a])         # each acquisition's draws start alike in every setting
-            stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level,
-                                          size=int(round(FOV_MM / geometry["pixel_mm"])), **geometry)
-            if void:
+            stacks = acquire(vol, rng, level, **geometry)
+            if rewrite == "void":
                 clean, stacks = stacks, with_void(stacks, rng)
                 darkened += darkened_share(clean, stacks)
+            elif rewrite is not None:
+                stacks = with_contrast(stacks, rewrite)
             (predictions,), prepared, truth = run_acquisition(stacks, estimator)
             score(predictions, prepared, truth, stacks, estimator.info.symmetry_plane_x_mm, scored)
             noise += [p.input_noise for p in prepared]
-            for p in prepared:
-                scored.add(input_noise=np.full(len(p.prepared.mask_pixels), p.input_noise))
         keep = scored.array("mask_pixels") >= MIN_MASK_PIXELS
         e, t, a, x = (scored.array(k)[keep] for k in ("ed", "ed_min", "accepted", "expected"))
         shares = rates({"ed": e, "ed_min": t}, a.astype(bool))
@@ -168,7 +199,7 @@ def sweep(estimator, volumes: list, level: str, per_volume: int, seed: int,  # n
         print(lines[-1], flush=True)
         if dump is not None:
             dump.update({f"{level}/{i}/{k}": scored.array(k) for k in scored.columns if k != "orientation"})
-        if void:
+        if rewrite == "void":
             print(void_split(scored, np.concatenate(darkened), keep), flush=True)
     return lines
 

@@ -120,7 +120,7 @@ class Noise(BaseModel):
                                                      "0.036 / 0.084 / 0.124")
     beyond_calibration: bool = Field(description="input_noise exceeds what the network learnt and the pipeline's "
                                                  "benchmarks hold (0.10), as a low-field scanner's noise can: the "
-                                                 "poses are less accurate, mostly by one turn and shift of the whole "
+                                                 "poses are less accurate, mostly by a larger turn and shift of the whole "
                                                  "request, which the slices' agreement cannot show")
     expected_error_added_mm: float = Field(0.0, description="what the stack's noise added, in quadrature, to each of "
                                                             "its slices' expected_error_mm (the model's noise "

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from itertools import pairwise
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from service.consistency.image_refinement import expected_after, refine, relative_mismatch, smooth_ahead
 from service.consistency.slice_images import SampledStack, StackImages
@@ -103,13 +103,14 @@ def judge(prepared: PreparedStack, estimate: PoseEstimate, out: StackPoses, thre
 
 
 def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate | None = None,
-                      input_noise: ArrayLike = np.nan) -> None:
-    """Add to each returned pose's expected error (in place) what no stage sees.
+                      input_noise: ArrayLike = np.nan) -> NDArray[np.float64]:
+    """Add to each returned pose's expected error (in place) what no stage sees; return what the
+    noise added (mm, in quadrature; shaped as ``input_noise``).
 
     * The request's placement in the atlas frame: the model's ``expected_error_floor_mm``, in quadrature.
     * Inputs noisier than the network learnt (its stack's ``input_noise``, one value or one per
       slice): the model's ``noise_error`` calibration (:func:`~service.preprocess.noise.noise_error_mm`),
-      in quadrature. Such a stack is posed worse than its spread says, and mostly by one turn and
+      in quadrature. Such a stack is posed worse than its spread says, mostly by a larger turn and
       shift of the whole request, which its slices' agreement cannot show.
     * In a stack the stage found consistent (each slice's branch set by its stack-mates), the chance
       that a slice sits on its mirror twin all the same: near the mid-sagittal plane a slice and its
@@ -132,10 +133,11 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate |
         >>> add_unseen_errors(out, info); out.expected_error_mm.round(2).tolist()       # sqrt(9 + 16 + 11.92)
         [6.08]
     """
+    added = noise_error_mm(input_noise, getattr(info, "noise_error", None))
     if out.expected_error_mm is None:
-        return
+        return np.zeros_like(added)
     variance = np.asarray(out.expected_error_mm, np.float64) ** 2 + float(getattr(info, "expected_error_floor_mm", 0.0)) ** 2
-    variance = variance + noise_error_mm(input_noise, getattr(info, "noise_error", None)) ** 2
+    variance = variance + added ** 2
     logit = getattr(info, "twin_risk_logit", None)
     if logit is not None and out.fit is not None and out.fit.decidable:
         d = twin_distance_mm(out.poses, getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM))
@@ -143,6 +145,7 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate |
     if estimate is not None:
         variance = np.where(estimate.estimated & np.isnan(estimate.variance), np.nan, variance)
     out.expected_error_mm = np.sqrt(variance)
+    return added
 
 
 def stack_orders(orders: list[SliceOrder] | None, uploads: list[StackUpload]) -> list[SliceOrder]:
@@ -318,7 +321,6 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
     timings["image_consistency"] = time.perf_counter() - t
     results = []
     for s, e, nfv, out in zip(prepared, parts, frames, outs):
-        add_unseen_errors(out, info, e, s.input_noise)
-        results.append(StackPrediction(s, nfv, e, out, judge(s, e, out, threshold, max_expected_error_mm),
-                                       float(noise_error_mm(s.input_noise, getattr(info, "noise_error", None)))))
+        added = add_unseen_errors(out, info, e, s.input_noise)
+        results.append(StackPrediction(s, nfv, e, out, judge(s, e, out, threshold, max_expected_error_mm), float(added)))
     return results, timings

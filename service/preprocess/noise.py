@@ -1,14 +1,12 @@
 """How noisy a stack's slices are for the pose network.
 
 A low-field scanner's stacks (0.55 T) are noisier than the slices the pose network was trained and
-calibrated on, and are posed less well than the network's spread says: on simulated acquisitions of
-1 mm pixels with Rician noise of 15 % of the bright end, 0.3 mm further from the truth at mild
-motion and 0.8 mm under jumps, RMS E.D. over RMS expected error 1.24 (docs/accuracy.md, "Other
-scanners' acquisitions"). :func:`input_noise` puts a number on a stack's noise in the units the
-network sees it in, so that a stack noisier than the network knows is told apart, and
-:func:`noise_error_mm` what that noise costs beyond the network's spread (mostly one turn and
-shift of the whole request, which the slices' agreement cannot show), as the model's calibration
-says: the pipeline adds it to the stack's expected errors.
+calibrated on, and are posed less well than the network's spread says, most on coarse pixels
+(docs/accuracy.md, "Other scanners' acquisitions"). :func:`input_noise` puts a number on a stack's
+noise in the units the network sees it in, so that a stack noisier than the network knows is told
+apart, and :func:`noise_error_mm` what that noise costs beyond the network's spread (mostly a
+larger turn and shift of the whole request, which the slices' agreement cannot show), as the
+model's calibration says: the pipeline adds it to the stack's expected errors.
 
 The noise is measured on the slices as the scanner wrote them, on the 0-255 scale the network's
 inputs are rescaled to (the 1st to 99th percentile inside the mask), with Immerkær's estimate
@@ -38,14 +36,10 @@ KERNEL_GAIN = 6.0
 MIN_PIXELS = 50
 """Inner brain pixels a slice needs to count (an end slice's cap tells little)."""
 NOISY_INPUT = 0.10
-"""Input noise (a share of the inputs' 0-255 range) above which a stack is noisier than the
-pipeline's noise benchmarks show it holds. The held-out brains' simulated acquisitions of 1 mm
-pixels give 0.036 / 0.084 / 0.124 (medians of 15 stacks; 0.029-0.043, 0.070-0.093, 0.109-0.130)
-at Rician noise of 3 / 8 / 15 % of the bright end, and are posed as well at 8 % as at 3 %, less well
-at 15 % (the module's figures); of 1.6 mm pixels 0.049 / 0.109 / 0.160, and those at 8 % and
-15 % lose 0.4-0.5 and 2.8-3.0 mm, a third to a half of their slices off by over 10 mm still
-accepted at 15 %; of 0.8 mm pixels at 15 % 0.098, and little lost. The real scans at hand give
-0.017-0.023, the shared one with noise of 15 % added 0.107-0.129."""
+"""Input noise (a share of the inputs' 0-255 range) above which a stack is noisier than the network
+learnt and the pipeline's benchmarks hold (``beyond_calibration``). Simulated acquisitions of 1 mm
+pixels with Rician noise of 3 / 8 / 15 % of the bright end give about 0.036 / 0.084 / 0.124, of
+1.6 mm pixels 0.049 / 0.109 / 0.160; the real scans at hand 0.017-0.023 (docs/accuracy.md)."""
 
 
 def inner_responses(images: NDArray[np.float32], masks: NDArray[np.bool_]) -> NDArray[np.float32]:
@@ -105,3 +99,16 @@ def noise_error_mm(level: ArrayLike, calibration: tuple[float, float] | None) ->
         return np.zeros_like(level)
     onset, slope = calibration
     return np.where(np.isfinite(level), slope * np.maximum(level - onset, 0.0), 0.0)
+
+
+def stack_noise(levels: ArrayLike) -> float:
+    """One stack's input noise from its slices' (or parts') estimates: their median where known (NaN
+    where none is).
+
+    Example:
+        >>> stack_noise([0.12, float("nan"), 0.10, 0.11]), bool(np.isnan(stack_noise([float("nan")])))
+        (0.11, True)
+    """
+    levels = np.asarray(levels, np.float64)
+    known = levels[np.isfinite(levels)]
+    return float(np.median(known)) if known.size else float("nan")

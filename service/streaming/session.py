@@ -49,7 +49,7 @@ from service.io.volume import Volume, magnitude
 from service.pipeline.predict import StackPrediction, add_unseen_errors, estimate_stacks, judge, predict_from_estimates
 from service.pipeline.prepare import PreparedStack, StackUpload, prepare_stack
 from service.preprocess.localise import Localisation, Localiser
-from service.preprocess.noise import input_noise
+from service.preprocess.noise import input_noise, noise_error_mm, stack_noise
 from service.preprocess.slices import preprocess_slices
 from service.preprocess.stack import split_stack
 from service.streaming import immediate
@@ -157,6 +157,7 @@ class StreamSession:
             received = {k: st.brain_map for k, st in self.slices.get(frame.stack, {}).items() if st.brain_map is not None}
             step_mm = stack.step_mm()
             fit, placement_mm = self.fits.get(frame.stack), self.placement_errors.get(frame.stack)   # of one firm-up
+            noise = [st.prepared.input_noise for st in self.slices.get(frame.stack, {}).values()]
         try:
             state = self._prepare_alone(frame, neighbours, received, step_mm)
         except Exception:
@@ -166,7 +167,7 @@ class StreamSession:
                 if not len(stack):
                     del self.stacks[frame.stack]
             raise
-        answer = self._alone(state, fit, placement_mm)
+        answer = self._alone(state, fit, placement_mm, stack_noise([*noise, state.prepared.input_noise]))
         kept = array_bytes(state.prepared, state.estimate, [state.brain_map], besides=(frame.pixels,))   # beside its pixels
         with self._lock:
             self.slices.setdefault(frame.stack, {})[frame.index] = state
@@ -221,8 +222,10 @@ class StreamSession:
         region = None if found.pose_region is None else found.pose_region[:, :, k:k + 1]
         return replace(found, mask=found.mask[:, :, k:k + 1], pose_region=region), brain_map
 
-    def _alone(self, state: _Slice, fit: StackPoses | None, placement_mm: float | None) -> SliceAnswer:
-        """The slice's own pose; on the branch of its stack's model where that model decided it."""
+    def _alone(self, state: _Slice, fit: StackPoses | None, placement_mm: float | None,
+               input_noise: float = float("nan")) -> SliceAnswer:
+        """The slice's own pose; on the branch of its stack's model where that model decided it; the
+        noise error of its stack's ``input_noise`` so far (over the slices received) added."""
         info, est = self.estimator.info, state.estimate
         plane = getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM)
         pose, mass, twinned = est.mean.copy(), est.twin_mass.copy(), np.zeros(1, bool)
@@ -236,7 +239,7 @@ class StreamSession:
             if placement_mm is not None:
                 pose[0], expected[0] = immediate.with_placement(pose[0], float(expected[0]), predicted, placement_mm)
         out = StackPoses(pose, mass, twinned, np.zeros(1, bool), None, expected)
-        add_unseen_errors(out, info, est, state.prepared.input_noise)
+        add_unseen_errors(out, info, est, input_noise)
         if not decided:                                  # a slice alone cannot tell its twin
             out.expected_error_mm = np.sqrt(out.expected_error_mm ** 2 + immediate.UNDECIDED_TWIN_CHANCE
                                             * twin.twin_distance_mm(pose, plane) ** 2)
@@ -278,16 +281,16 @@ class StreamSession:
                 None if shape is None else np.asarray(shape), float(getattr(info, "mc_error_depth_gain", 0.0)))
         out = run_in_stage_process(consistent_poses, *args, reference)
         out = checked_branch(out, reference, lambda ref, margin: run_in_stage_process(consistent_poses, *args, ref, margin))
-        noise = [s.prepared.input_noise for s in states]
-        add_unseen_errors(out, info, est, np.nanmedian(noise) if np.isfinite(noise).any() else np.nan)
+        add_unseen_errors(out, info, est)
         placement_mm = None
         if out.fit is not None and out.fit.atlas_from_scanner is not None:
             placement_mm = immediate.placement_error_mm(out.expected_error_mm, out.poses, out.fit.atlas_from_scanner,
                                                         network_from_scanner, times[STREAMED], usable & ~out.inconsistent)
-        answers = []
-        for i, s in enumerate(states):
-            answers.append(SliceAnswer(stack, s.frame.index, self._judged(s.prepared, s.network_from_voxel,
-                                                                           s.estimate, out.part(slice(i, i + 1)))))
+        if out.expected_error_mm is not None:     # the noise error after the placement's: later answers add their own
+            out.expected_error_mm = np.hypot(out.expected_error_mm, noise_error_mm(
+                stack_noise([s.prepared.input_noise for s in states]), getattr(info, "noise_error", None)))
+        answers = [SliceAnswer(stack, s.frame.index, self._judged(s.prepared, s.network_from_voxel, s.estimate,
+                                                                  out.part(slice(i, i + 1)))) for i, s in enumerate(states)]
         with self._lock:
             if stack in self.ended:
                 return []

@@ -393,7 +393,7 @@ def test_an_answer_with_nothing_usable_says_what_to_do() -> None:
     assert views.usable(noisy) and [h for h in views.predict_hints(noisy) if "noisier" in h and "0.124" in h
                                     and "less accurate than their expected errors say" in h]
     noisy["stacks"][0]["noise"]["expected_error_added_mm"] = 2.04     # a model calibrated for it says how much
-    assert [h for h in views.predict_hints(noisy) if "include 2.0 mm for the noise" in h and "say," not in h]
+    assert [h for h in views.predict_hints(noisy) if "include 2.04 mm for the noise" in h and "say," not in h]
     noisy["stacks"][0]["noise"]["beyond_calibration"] = False
     assert views.predict_hints(noisy) == []
     # One MC pass: no spread was measured; the stacks are not to blame.

@@ -76,8 +76,21 @@ def test_the_command_calibrates_from_kept_columns_and_writes_the_metadata_and_re
     written = []
     monkeypatch.setattr(spread, "write_metadata", lambda path, updates: written.append((path, updates)))
     report = tmp_path / "noise.md"
-    result = CliRunner().invoke(app, ["calibrate-noise", str(tmp_path / "m.onnx"), "--columns", str(tmp_path / "columns.npz"),
-                                      "--report", str(report), "--write"])
+    half = {k: v[1::2] for k, v in cols.items()}
+    np.savez_compressed(tmp_path / "odd.npz", **half)
+    np.savez_compressed(tmp_path / "even.npz", **{k: v[::2] for k, v in cols.items()})
+    result = CliRunner().invoke(app, ["calibrate-noise", str(tmp_path / "m.onnx"), "--columns", str(tmp_path / "odd.npz"),
+                                      "--columns", str(tmp_path / "even.npz"), "--report", str(report)])
     assert result.exit_code == 0, result.output
-    assert written == [(tmp_path / "m.onnx", noise_metadata(calibrate(cols)))]
+    pooled = {k: np.concatenate([v[1::2], v[::2]]) for k, v in cols.items()}      # two runs' slices together
+    assert written == [(tmp_path / "m.onnx", noise_metadata(calibrate(pooled)))]
+    assert calibrate(pooled)["noise_error"] == calibrate(cols)["noise_error"]
     assert "| input noise (median) |" in report.read_text()
+
+
+def test_without_clean_stacks_or_with_one_group_there_is_nothing_to_calibrate_against() -> None:
+    cols = columns(np.random.default_rng(6))
+    with pytest.raises(ValueError, match="clean reference"):
+        calibrate({k: v[cols["input_noise"] > 0.07] for k, v in cols.items()})
+    with pytest.raises(ValueError, match="fewer than two groups"):
+        calibrate({k: v[cols["input_noise"] < 0.045] for k, v in cols.items()})

@@ -108,6 +108,10 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
     assert replaced.exit_code == 0, replaced.output
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
     assert (tmp_path / "model" / "acceptance.md").exists()              # the report's default place: the model's folder
+    calls.clear()
+    unmeasured = CliRunner().invoke(app, [*again, "--force", "--noise-per-volume", "0"])
+    assert unmeasured.exit_code == 0 and "acceptance" in calls and "noise" not in calls, unmeasured.output
+    assert "## Noise error" not in (tmp_path / "model" / "card.md").read_text()
 
 
 def test_export_takes_over_another_models_calibration(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from service.consistency.stage import StackPoses
 from service.geometry import twin
@@ -102,6 +103,7 @@ def test_predict_gives_each_stack_the_noise_error_of_its_own_input_noise() -> No
         img, msk = acquire_stack(image, mask, atlas_affine, affine, shape, axis, np.broadcast_to(np.eye(4), (18, 4, 4)))
         upload = StackUpload(f"s{axis}.nii.gz", Volume(img, affine), Volume(msk.astype(np.uint8), affine))
         prepared.append(prepare_stack(upload, estimator.info, False))
+    estimator.info = replace(estimator.info, noise_error=None)      # the shipped model's own is set below
     calibrated = copy(estimator)
     calibrated.info = replace(estimator.info, noise_error=(0.09, 50.0))
     noisy = [replace(prepared[0], input_noise=0.03), replace(prepared[1], input_noise=0.15)]
@@ -111,5 +113,10 @@ def test_predict_gives_each_stack_the_noise_error_of_its_own_input_noise() -> No
         np.testing.assert_allclose(a.poses.poses, b.poses.poses)
         np.testing.assert_allclose(a.poses.expected_error_mm,
                                    np.hypot(b.poses.expected_error_mm, noise_error_mm(p.input_noise, (0.09, 50.0))))
+    assert [p.noise_error_mm for p in before] == [0.0, 0.0]
+    assert after[0].noise_error_mm == 0.0 and after[1].noise_error_mm == pytest.approx(3.0)
+    from service.api.responses import stack_objects
+
+    assert [s["noise"]["expected_error_added_mm"] for s in stack_objects(after)] == [0.0, 3.0]
     grown = after[1].poses.expected_error_mm - before[1].poses.expected_error_mm
     assert np.all(grown[np.isfinite(grown)] > 0.1)              # 3 mm in quadrature on the phantom's ~20 mm

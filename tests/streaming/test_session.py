@@ -302,13 +302,14 @@ def test_slices_sent_with_an_offset_are_held_as_their_magnitudes(case) -> None: 
     np.testing.assert_allclose(shifted.stacks[name].volume()[0].array, plain.stacks[name].volume()[0].array, atol=1e-3)
 
 
-def test_streamed_slices_gain_the_noise_error_of_their_input_noise(case) -> None:  # noqa: ANN001
-    """As in ``/v1/predict``: a model calibrated with a noise error adds it to each immediate answer
-    (from the slice's own input noise), to a firmed-up stack's (their median) and to the final poses
-    (the stack's), in quadrature; the poses are the same."""
+def test_streamed_slices_gain_the_noise_error_of_their_stacks_input_noise_once(case) -> None:  # noqa: ANN001
+    """As in ``/v1/predict``: a model calibrated with a noise error adds it once, in quadrature, to
+    each immediate answer (from its stack's input noise so far: the median over the slices received),
+    before and after its stack's model is fitted (whose placement error, which later answers weigh,
+    holds none of it), to a firmed-up stack's poses and to the final poses; the poses are the same."""
     from dataclasses import replace
 
-    from service.preprocess.noise import noise_error_mm
+    from service.preprocess.noise import noise_error_mm, stack_noise
 
     oracle, stacks, _ = case
     frames = stacks[0]
@@ -317,20 +318,20 @@ def test_streamed_slices_gain_the_noise_error_of_their_input_noise(case) -> None
     for name, info in (("plain", INFO), ("noisy", replace(INFO, noise_error=calibration))):
         oracle.info = info
         session = StreamSession(oracle, None, options=FAST)
-        immediate = [session.add_slice(f) for f in frames]
+        immediate = [session.add_slice(f) for f in frames[:12]]
         session.firm_up(frames[0].stack)
         firmed = session.fits[frames[0].stack]
+        immediate += [session.add_slice(f) for f in frames[12:]]
         answers[name] = (immediate, session.end_stack(frames[0].stack).prediction, firmed)
     del oracle.info                                               # the class's again
-    for plain, noisy in zip(answers["plain"][0], answers["noisy"][0]):
-        n = noisy.prediction.prepared.input_noise
-        assert np.isfinite(n) and n > 0
+    levels = [a.prediction.prepared.input_noise for a in answers["noisy"][0]]
+    assert np.isfinite(levels).all() and min(levels) > 0
+    for k, (plain, noisy) in enumerate(zip(answers["plain"][0], answers["noisy"][0])):
         np.testing.assert_allclose(noisy.prediction.poses.poses, plain.prediction.poses.poses)
-        np.testing.assert_allclose(noisy.prediction.poses.expected_error_mm,
-                                   np.hypot(plain.prediction.poses.expected_error_mm, noise_error_mm(n, calibration)))
-    median = np.median([a.prediction.prepared.input_noise for a in answers["noisy"][0]])
-    np.testing.assert_allclose(answers["noisy"][2].expected_error_mm,
-                               np.hypot(answers["plain"][2].expected_error_mm, noise_error_mm(median, calibration)))
+        np.testing.assert_allclose(noisy.prediction.poses.expected_error_mm, np.hypot(
+            plain.prediction.poses.expected_error_mm, noise_error_mm(stack_noise(levels[:k + 1]), calibration)))
+    np.testing.assert_allclose(answers["noisy"][2].expected_error_mm, np.hypot(
+        answers["plain"][2].expected_error_mm, noise_error_mm(stack_noise(levels[:12]), calibration)))
     plain, noisy = answers["plain"][1], answers["noisy"][1]
-    np.testing.assert_allclose(noisy.poses.expected_error_mm,
-                               np.hypot(plain.poses.expected_error_mm, noise_error_mm(noisy.prepared.input_noise, calibration)))
+    assert noisy.noise_error_mm == float(noise_error_mm(noisy.prepared.input_noise, calibration)) > 0
+    np.testing.assert_allclose(noisy.poses.expected_error_mm, np.hypot(plain.poses.expected_error_mm, noisy.noise_error_mm))
