@@ -34,6 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.acquisitions import simulate_acquisition
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
+from model_export.calibrate_noise import FOV_MM
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, run_acquisition
 from model_export.experiments.frame_bias import midline_offset
 from model_export.volume_metrics import volume_psnr_ncc
@@ -146,6 +147,8 @@ def main() -> None:
     ap.add_argument("--levels", default="mild,moderate,jumps,independent")
     ap.add_argument("--start", choices=("predicted", "truth"), default="predicted",
                     help="the poses the reconstruction starts from (truth: does registration keep them?)")
+    ap.add_argument("--pixel-mm", type=float, default=1.0, help="the simulated stacks' pixel size (a 128 mm field of view)")
+    ap.add_argument("--noise", type=float, default=0.03, help="their Rician noise, a share of the bright end")
     ap.add_argument("--bias", type=float, default=None, help="the simulated stacks' bias-field strength "
                     "(default: model_export.acquisitions'; 0: none)")
     ap.add_argument("--start-shares", default=str(MIN_ACCEPTED_SHARE),
@@ -168,7 +171,8 @@ def main() -> None:
         psnr = {k: [] for k in [*variants, *framed]}
         for a in range(args.per_level):
             vol = vols[a % len(vols)]
-            stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level,
+            stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level, pixel_mm=args.pixel_mm,
+                                          size=int(round(FOV_MM / args.pixel_mm)), noise=args.noise,
                                           **({} if args.bias is None else {"bias": args.bias}))
             (predictions,), prepared, _ = run_acquisition(stacks, est, 100, True)
             if args.midline and vol.name not in midlines:
