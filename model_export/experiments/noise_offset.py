@@ -4,7 +4,8 @@ Per simulated 3-stack acquisition of the held-out volumes (``scanner_sweep.py``'
 its 128 mm field of view, 3 mm slices) at a pixel size and Rician noise level, through the whole
 pipeline with the masks: the mean and median E.D. of the returned poses against the truth, the
 rigid transform of atlas space that best takes the truth onto them (least squares over the anchor
-points of the 80 % best slices: the request's common offset, in degrees and mm), and the E.D. once
+points of the 80 % best slices: the request's common offset, its rotation vector in degrees and its
+shift in mm, atlas RAS), and the E.D. once
 that offset is undone (what is each slice's own), with the share of slices accepted.
 
 ``--smooth T`` first smooths in-plane each stack whose input noise exceeds 0.09 with a Gaussian
@@ -95,7 +96,8 @@ def main() -> None:
         prepare.preprocess_slices = smoothing(args.smooth)
     estimator = OnnxPoseEstimator(load_model(args.model))
     volumes = load_volumes(split(args.root)[1], args.root)
-    print("| acquisition | mean / median E.D. | common offset | once undone: mean / median | accepted |\n|---|---|---|---|---|")
+    print("| acquisition | mean / median E.D. | common offset: turn, shift | once undone: mean / median | accepted |\n"
+          "|---|---|---|---|---|")
     for a, vol in enumerate(volumes * args.per_volume):
         rng = np.random.default_rng([args.seed, a])
         stacks = acquire(vol, rng, args.level, pixel_mm=args.pixel_mm, noise=args.noise)
@@ -109,8 +111,10 @@ def main() -> None:
         f, t, ok = np.concatenate(final), np.concatenate(true), np.concatenate(accepted)
         c = common_offset(f, t)
         e, left = ed(f, t), ed(f, c @ t)
-        turn = np.degrees(np.linalg.norm(se3.log(c)[:3]))
-        print(f"| {vol.name} ({a}) | {e.mean():.2f} / {np.median(e):.2f} mm | {turn:.1f} deg, {np.linalg.norm(c[:3, 3]):.1f} mm "
+        twist = se3.log(c)
+        turn = ", ".join(f"{x:+.1f}" for x in np.degrees(twist[:3]))
+        shift = ", ".join(f"{x:+.1f}" for x in c[:3, 3])
+        print(f"| {vol.name} ({a}) | {e.mean():.2f} / {np.median(e):.2f} mm | ({turn}) deg, ({shift}) mm "
               f"| {left.mean():.2f} / {np.median(left):.2f} mm | {ok.mean():.0%} |", flush=True)
 
 
