@@ -37,8 +37,8 @@ def calibrate_spread(
     typer.echo(json.dumps(run(model, root, per_volume, write), indent=2))
     if write:
         typer.echo("the accept flags (expected-error limit, floor, twin risk, variance threshold) and the noise error "
-                   "were calibrated on the expected errors before: run `calibrate-acceptance`, then `calibrate-noise "
-                   "--write`, on the model again", err=True)
+                   "were calibrated on the expected errors before: run `calibrate-acceptance`, then `calibrate-noise`, "
+                   "on the model again", err=True)
 
 
 def calibrate_acceptance(
