@@ -130,7 +130,7 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate |
         >>> pose = np.array([[0.0, 0, 1, 5], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]])
         >>> out = SimpleNamespace(expected_error_mm=np.array([3.0]), fit=SimpleNamespace(decidable=True), poses=pose[None])
         >>> info = SimpleNamespace(expected_error_floor_mm=4.0, twin_risk_logit=(-1.0, -0.1))
-        >>> add_unseen_errors(out, info); out.expected_error_mm.round(2).tolist()       # sqrt(9 + 16 + 11.92)
+        >>> _ = add_unseen_errors(out, info); out.expected_error_mm.round(2).tolist()   # sqrt(9 + 16 + 11.92)
         [6.08]
     """
     added = noise_error_mm(input_noise, getattr(info, "noise_error", None))
