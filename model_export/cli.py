@@ -305,7 +305,7 @@ def ship(
                                                                      "[default: 1024]")] = None,
     noise_per_volume: Annotated[Optional[int], typer.Option(
         min=0, help="acquisitions per validation volume, noise level, pixel size and motion level of the noise "
-                    "error [default: 1; 0: not calibrated]")] = None,
+                    "error [default: 2; 0: not calibrated]")] = None,
 ) -> None:
     """Calibrate, export, evaluate and write the model card: the folder the service loads (the MC
     spread's expected error calibrated as `calibrate-spread` does, then the accept flags on the

@@ -101,7 +101,8 @@ def stack_objects(predictions: list[StackPrediction]) -> list[dict]:
             "spacing_mm": [float(x) for x in vol.spacing], "slice_axis": p.prepared.slices.slice_axis,
             "scanner_from_voxel": np.asarray(vol.affine, np.float64).tolist(),
             "slices": slice_objects(p), "consistency": stack_report(p.poses),
-            "localisation": p.prepared.localisation.report(), "noise": noise_report(p.prepared.input_noise, p.noise_error_mm),
+            "localisation": p.prepared.localisation.report(),
+            "noise": noise_report(p.prepared.input_noise, p.noise_error_mm),
         })
     return stacks
 
@@ -144,9 +145,9 @@ def stack_message(answer: StackAnswer) -> dict:
     found = {"method": loc.method, "confidence": round(loc.confidence, 3)}
     slices = [{"stack": answer.stack, **s, "localisation": found} for s in slice_objects(p)]
     return {"type": "stack", "stack": answer.stack, "slices": slices, "consistency": stack_report(p.poses),
-            "localisation": p.prepared.localisation.report(), "noise": noise_report(p.prepared.input_noise, p.noise_error_mm),
-            "reacquire": _reacquire(answer.reacquire), "judged_alone": answer.judged_alone,
-            "coverage": answer.coverage.report(),
+            "localisation": p.prepared.localisation.report(),
+            "noise": noise_report(p.prepared.input_noise, p.noise_error_mm), "reacquire": _reacquire(answer.reacquire),
+            "judged_alone": answer.judged_alone, "coverage": answer.coverage.report(),
             "timing_ms": {k: round(v * 1e3, 1) for k, v in answer.timings.items()}}
 
 
