@@ -37,19 +37,31 @@ class Shard:
     grid_mm: float | None = None  # the network grid the shard was made on (None: a shard from before it was recorded)
 
 
-def load_shards(folder: Path, known: dict[str, Shard]) -> dict[str, Shard]:
-    """Every shard of ``folder`` (those already in ``known`` are kept, not read again)."""
+def _read_new(folder: Path, known: dict, read) -> dict:  # noqa: ANN001
+    """``known`` with ``read(npz)`` of every whole shard of ``folder`` not in it yet (a shard still
+    being written is skipped: it is read on a later call)."""
     for path in sorted(Path(folder).glob("*.npz")):
         if path.name in known:
             continue
         try:
             with np.load(path) as z:
-                t = z["target"]
-                grid = float(z["grid_mm"]) if "grid_mm" in z else None
-                known[path.name] = Shard(z["slices"], t, np.flatnonzero(t.reshape(len(t), -1).max(1) > 127), grid)
+                known[path.name] = read(z)
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
-            continue                                   # a shard still being written
+            continue
     return known
+
+
+def _grid_of(z) -> float | None:  # noqa: ANN001
+    return float(z["grid_mm"]) if "grid_mm" in z else None
+
+
+def load_shards(folder: Path, known: dict[str, Shard]) -> dict[str, Shard]:
+    """Every shard of ``folder`` (those already in ``known`` are kept, not read again)."""
+    def shard(z) -> Shard:  # noqa: ANN001
+        t = z["target"]
+        return Shard(z["slices"], t, np.flatnonzero(t.reshape(len(t), -1).max(1) > 127), _grid_of(z))
+
+    return _read_new(folder, known, shard)
 
 
 def shards_grid_mm(shards: dict[str, Shard]) -> float | None:
@@ -77,15 +89,7 @@ def folder_grids(folder: Path, known: dict[str, float | None]) -> dict[str, floa
         >>> folder_grids(Path(tempfile.mkdtemp()), {"a.npz": 2.5})
         {'a.npz': 2.5}
     """
-    for path in sorted(Path(folder).glob("*.npz")):
-        if path.name in known:
-            continue
-        try:
-            with np.load(path) as z:
-                known[path.name] = float(z["grid_mm"]) if "grid_mm" in z else None
-        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
-            continue                                   # a shard still being written
-    return known
+    return _read_new(folder, known, _grid_of)
 
 
 def draw_batch(shards: list[Shard], rng: np.random.Generator, batch: int, crop: int,
