@@ -133,11 +133,9 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate |
         >>> _ = add_unseen_errors(out, info); out.expected_error_mm.round(2).tolist()   # sqrt(9 + 16 + 11.92)
         [6.08]
     """
-    added = noise_error_mm(input_noise, getattr(info, "noise_error", None))
     if out.expected_error_mm is None:
-        return np.zeros_like(added)
+        return add_noise_error(out, info, input_noise)
     variance = np.asarray(out.expected_error_mm, np.float64) ** 2 + float(getattr(info, "expected_error_floor_mm", 0.0)) ** 2
-    variance = variance + added ** 2
     logit = getattr(info, "twin_risk_logit", None)
     if logit is not None and out.fit is not None and out.fit.decidable:
         d = twin_distance_mm(out.poses, getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM))
@@ -145,6 +143,23 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate |
     if estimate is not None:
         variance = np.where(estimate.estimated & np.isnan(estimate.variance), np.nan, variance)
     out.expected_error_mm = np.sqrt(variance)
+    return add_noise_error(out, info, input_noise)
+
+
+def add_noise_error(out: StackPoses, info: ModelInfo, input_noise: ArrayLike) -> NDArray[np.float64]:
+    """Add to each returned pose's expected error (in place, in quadrature) the model's noise error
+    for ``input_noise`` (:func:`~service.preprocess.noise.noise_error_mm`); return what it added.
+
+    Example (a stack of input noise 0.15 under a calibration of onset 0.1 and slope 80 mm: 4 mm):
+        >>> from types import SimpleNamespace
+        >>> out = SimpleNamespace(expected_error_mm=np.array([3.0, np.nan]))
+        >>> added = add_noise_error(out, SimpleNamespace(noise_error=(0.1, 80.0)), 0.15)
+        >>> round(float(added), 6), out.expected_error_mm.round(6).tolist()
+        (4.0, [5.0, nan])
+    """
+    added = noise_error_mm(input_noise, getattr(info, "noise_error", None))
+    if out.expected_error_mm is not None:
+        out.expected_error_mm = np.hypot(out.expected_error_mm, added)
     return added
 
 

@@ -46,10 +46,11 @@ from service.geometry.twin import DEFAULT_PLANE_X_MM
 from service.inference import acceptance
 from service.inference.estimator import PoseEstimate, PoseEstimator
 from service.io.volume import Volume, magnitude
-from service.pipeline.predict import StackPrediction, add_unseen_errors, estimate_stacks, judge, predict_from_estimates
+from service.pipeline.predict import (StackPrediction, add_noise_error, add_unseen_errors, estimate_stacks, judge,
+                                     predict_from_estimates)
 from service.pipeline.prepare import PreparedStack, StackUpload, prepare_stack
 from service.preprocess.localise import Localisation, Localiser
-from service.preprocess.noise import input_noise, noise_error_mm, stack_noise
+from service.preprocess.noise import input_noise, stack_noise
 from service.preprocess.slices import preprocess_slices
 from service.preprocess.stack import split_stack
 from service.streaming import immediate
@@ -286,9 +287,8 @@ class StreamSession:
         if out.fit is not None and out.fit.atlas_from_scanner is not None:
             placement_mm = immediate.placement_error_mm(out.expected_error_mm, out.poses, out.fit.atlas_from_scanner,
                                                         network_from_scanner, times[STREAMED], usable & ~out.inconsistent)
-        if out.expected_error_mm is not None:     # the noise error after the placement's: later answers add their own
-            out.expected_error_mm = np.hypot(out.expected_error_mm, noise_error_mm(
-                stack_noise([s.prepared.input_noise for s in states]), getattr(info, "noise_error", None)))
+        # The noise error after the placement's, which later answers weigh and then add their own to.
+        add_noise_error(out, info, stack_noise([s.prepared.input_noise for s in states]))
         answers = [SliceAnswer(stack, s.frame.index, self._judged(s.prepared, s.network_from_voxel, s.estimate,
                                                                   out.part(slice(i, i + 1)))) for i, s in enumerate(states)]
         with self._lock:
