@@ -13,13 +13,18 @@ Fréchet mean of the two answers' differences about the brain's centre,
 the median E.D. per stack once it is undone, over those slices (the poses a user would take from
 either answer).
 
+``--floor`` measures what the comparison rests on: the answers of each mask mode against each other
+under other MC draws (the model's seed + 1, 2, ...; ``--repeats`` answers a mode), the same masks
+throughout, so that only the draws separate them. ``--mc-samples`` sets the passes per slice.
+
     .venv/bin/python model_export/experiments/real_scan_poses.py [SCAN_FOLDER] [--localiser M] [--model M]
-        [--stacks A,B] [--no-image-consistency] [--repeats N]
+        [--stacks A,B] [--no-image-consistency] [--repeats N] [--floor] [--mc-samples 100]
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import sys
 from pathlib import Path
 
@@ -41,14 +46,14 @@ from service.preprocess.localise import Localiser, default_localiser  # noqa: E4
 
 
 def answer(volumes: dict[str, Volume], manual: dict[str, Volume] | None, localiser: Localiser,
-           estimator: PoseEstimator, image_consistency: bool = True) -> tuple[list[dict], list]:
+           estimator: PoseEstimator, image_consistency: bool = True, mc_samples: int = 100) -> tuple[list[dict], list]:
     """``/v1/predict``'s answer (its ``stacks`` objects) and the prepared stacks for the named
     ``volumes``: with their ``manual`` masks (sent with ``masks_hold_csf``), or without masks."""
     names = list(volumes)
     uploads = [StackUpload(n, volumes[n], manual[n] if manual else None, f"{n}_brain_mask" if manual else None,
                            mask_holds_csf=bool(manual)) for n in names]
     prepared = prepare_stacks(uploads, estimator.info, True, workers=2, localiser=localiser)
-    predictions, _ = predict(prepared, estimator, 100, estimator.info.variance_threshold,
+    predictions, _ = predict(prepared, estimator, mc_samples, estimator.info.variance_threshold,
                              image_consistency=image_consistency)
     return stack_objects(predictions), prepared
 
@@ -62,13 +67,23 @@ def read_scan(scan: Path, stacks: str | None = None) -> tuple[dict[str, Volume],
 
 
 def compare(volumes: dict[str, Volume], manual: dict[str, Volume], localiser: Localiser,
-            estimator: PoseEstimator, image_consistency: bool = True) -> dict[str, float] | None:
+            estimator: PoseEstimator, image_consistency: bool = True, mc_samples: int = 100) -> dict[str, float] | None:
     """One answer with the manual masks and one without, printed per stack and as a whole; returns
     the whole's figures (None when no slice is accepted in both)."""
-    (with_masks, prepared), (without, _) = [answer(volumes, m, localiser, estimator, image_consistency)
+    (with_masks, prepared), (without, _) = [answer(volumes, m, localiser, estimator, image_consistency, mc_samples)
                                             for m in (manual, None)]
+    return apart(list(volumes), with_masks, without, prepared, ("with masks", "without"))
+
+
+def apart(names: list[str], first: list[dict], second: list[dict], prepared: list,
+          labels: tuple[str, str]) -> dict[str, float] | None:
+    """Two answers for the same stacks (``stacks`` objects, the ``prepared`` stacks of the first),
+    printed per stack (``M``: posed in the first only, ``L``: in the second only, ``*``: accepted in
+    the second) and as a whole: the second's common rigid offset from the first over the slices both
+    accept, and what is left once it is undone; returns the whole's figures (None when no slice is
+    accepted in both)."""
     pairs = []
-    for name, sa, sb, p in zip(volumes, with_masks, without, prepared):
+    for name, sa, sb, p in zip(names, first, second, prepared):
         (xa, ka), (xb, kb) = slice_poses(sa, p), slice_poses(sb, p)
         d = anchors.ed(xa, xb)
         both = ka & kb
@@ -77,14 +92,14 @@ def compare(volumes: dict[str, Volume], manual: dict[str, Volume], localiser: Lo
         accepted = [sum(s["accepted"] for s in st["slices"]) for st in (sa, sb)]
         marks = [f"{k}:" + ("-" if not (ka[k] or kb[k]) else "M" if not kb[k] else "L" if not ka[k] else f"{d[k]:.0f}")
                  + ("*" if sb["slices"][k]["accepted"] else "") for k in range(len(d))]
-        print(f"{name}: median {np.median(d[both]):.1f} mm over {both.sum()} slices; accepted with masks "
-              f"{accepted[0]}, without {accepted[1]}; localiser confidence {sb['localisation']['confidence']:.2f}")
+        print(f"{name}: median {np.median(d[both]):.1f} mm over {both.sum()} slices; accepted {labels[0]} "
+              f"{accepted[0]}, {labels[1]} {accepted[1]}; localiser confidence {sb['localisation']['confidence']:.2f}")
         print("   " + " ".join(marks))
     a, b = np.concatenate([x for x, _ in pairs]), np.concatenate([y for _, y in pairs])
     if not len(a):
         print("no slice is accepted in both answers")
         return None
-    frame, left = common_frame(b, a, ATLAS_CENTRE_MM)                # the no-mask answer against the manual one
+    frame, left = common_frame(b, a, ATLAS_CENTRE_MM)                # the second answer against the first
     angle = np.degrees(np.linalg.norm(se3.so3_log(frame[:3, :3])))
     per_stack = np.split(left, np.cumsum([len(x) for x, _ in pairs])[:-1])
     out = {"slices": len(a), "median_ed_mm": float(np.median(anchors.ed(a, b))), "offset_mm": float(np.linalg.norm(frame[:3, 3])),
@@ -96,6 +111,29 @@ def compare(volumes: dict[str, Volume], manual: dict[str, Volume], localiser: Lo
     return out
 
 
+def floor(volumes: dict[str, Volume], manual: dict[str, Volume], localiser: Localiser,
+          estimators: list[PoseEstimator], image_consistency: bool = True, mc_samples: int = 100,
+          ) -> dict[str, list[dict[str, float]]]:
+    """Per mask mode (the manual masks, none), every pair of answers under the draws of
+    ``estimators`` (the same masks and model, other MC draws): :func:`apart`'s figures per pair."""
+    out: dict[str, list[dict[str, float]]] = {}
+    for mode, masks in (("manual masks", manual), ("no masks", None)):
+        runs = [answer(volumes, masks, localiser, e, image_consistency, mc_samples) for e in estimators]
+        out[mode] = []
+        for i, j in itertools.combinations(range(len(runs)), 2):
+            print(f"-- {mode}: draws {i} against draws {j}")
+            figures = apart(list(volumes), runs[i][0], runs[j][0], runs[i][1], (f"draws {i}", f"draws {j}"))
+            if figures:
+                out[mode].append(figures)
+    return out
+
+
+def summary(runs: list[dict[str, float]]) -> str:
+    """The median and range of each figure over ``runs``."""
+    return "; ".join(f"{k} {np.median([r[k] for r in runs]):.2f} ({min(r[k] for r in runs):.2f}-{max(r[k] for r in runs):.2f})"
+                     for k in runs[0])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("scan", type=Path, nargs="?", default=REAL_SCANS / "mial_lausanne_t30")
@@ -103,6 +141,9 @@ def main() -> None:
     ap.add_argument("--model", type=Path, help="the pose model (default: the shipped one)")
     ap.add_argument("--stacks", help="comma-separated names: these stacks alone (default: every masked one)")
     ap.add_argument("--no-image-consistency", action="store_true", help="both answers without the image stage")
+    ap.add_argument("--mc-samples", type=int, default=100, help="MC passes per slice")
+    ap.add_argument("--floor", action="store_true",
+                    help="each mask mode's answers against each other under other MC draws instead")
     ap.add_argument("--repeats", type=int, default=1,
                     help="pairs of answers, each pair with the draws of the model's seed + 0, 1, ...; then their range")
     args = ap.parse_args()
@@ -111,13 +152,15 @@ def main() -> None:
     volumes, manual = read_scan(args.scan, args.stacks)
     seeded = [estimator if r == 0 or estimator.model.mc_seed is None
               else OnnxPoseEstimator(estimator.model.with_seed(estimator.model.mc_seed + r)) for r in range(args.repeats)]
-    runs = [compare(volumes, manual, localiser, e, not args.no_image_consistency) for e in seeded]
+    if args.floor:
+        for mode, pairs in floor(volumes, manual, localiser, seeded, not args.no_image_consistency, args.mc_samples).items():
+            if pairs:
+                print(f"{mode}, over {len(pairs)} pairs of draws: {summary(pairs)}")
+        return
+    runs = [compare(volumes, manual, localiser, e, not args.no_image_consistency, args.mc_samples) for e in seeded]
     runs = [r for r in runs if r]
     if len(runs) > 1:
-        print(f"over {len(runs)} pairs: " + "; ".join(
-            f"{k} {np.median([r[k] for r in runs]):.2f} ({min(r[k] for r in runs):.2f}-{max(r[k] for r in runs):.2f})"
-            for k in runs[0]))
-
+        print(f"over {len(runs)} pairs: {summary(runs)}")
 
 if __name__ == "__main__":
     main()
