@@ -11,6 +11,8 @@
    network decides by a narrow margin at the brain's edge (a face, a neck as wide as the head) is
    decided alike for every sampling a scanner makes of it. A network distilled from that average
    (``model_export.localiser.distil``; metadata ``mirrored_pass: learnt``) gives it in one pass.
+   The network and the geometry see a stack's slices in one order whichever way its file stores
+   them (:func:`reversed_slices`): a file that stores them last to first gets the same mask.
 2. **The geometry** settles the answer (:mod:`service.preprocess.brain_shape`), on the network's
    grid: one 3D connected brain of a plausible volume for 20-40 weeks, without what hangs on to it
    through a waist or what a slice adds beyond its neighbours, its in-plane holes filled; then the
@@ -226,6 +228,8 @@ class Localiser:
         :data:`BATCH_SLICES` (one request's stacks cost what their slices do, not a call each).
         ``grids_mm``: each stack's grid pixel size (default the model's)."""
         inputs = [localiser_inputs(v, g) for v, g in zip(volumes, grids_mm or [self.grid_mm] * len(volumes))]
+        turned = [reversed_slices(v) for v in volumes]                 # seen last to first: slices and neighbours
+        inputs = [(np.ascontiguousarray(x[::-1, ::-1]) if t else x, grid) for (x, grid), t in zip(inputs, turned)]
         feed = self.session.get_inputs()[0]
         out: list[NDArray | None] = [None] * len(volumes)
         for size in dict.fromkeys(x.shape[2:] for x, _ in inputs):
@@ -236,7 +240,7 @@ class Localiser:
             logits = self._logits(feed.name, x) if len(x) else np.zeros((0, *size), np.float32)
             ends = np.cumsum([0] + [len(inputs[i][0]) for i in which])
             for i, a, b in zip(which, ends[:-1], ends[1:]):
-                out[i] = 1.0 / (1.0 + np.exp(-logits[a:b]))
+                out[i] = 1.0 / (1.0 + np.exp(-(logits[a:b][::-1] if turned[i] else logits[a:b])))
         return [(prob, grid) for prob, (_, grid) in zip(out, inputs)]
 
     def _logits(self, name: str, x: NDArray[np.float32]) -> NDArray[np.float32]:
@@ -291,7 +295,10 @@ class Localiser:
         stack's grid."""
         axis = stack_axis(volume)
         voxel_ml = grid.grid_mm ** 2 * float(volume.spacing[axis]) / 1000.0
-        brain, confidence = brain_from_probabilities(prob, voxel_ml, grid.grid_mm, blank_slices(volume), prefer)
+        seen = (lambda a: None if a is None else a[::-1]) if reversed_slices(volume) else (lambda a: a)
+        brain, confidence = brain_from_probabilities(seen(prob), voxel_ml, grid.grid_mm, seen(blank_slices(volume)),
+                                                     seen(prefer))
+        brain = seen(brain)
         if not brain.any() or confidence < MIN_CONFIDENCE:
             return Localisation.of(np.zeros(volume.array.shape, bool), volume.spacing, "network", confidence)
         box = mask_box(brain, [0, 1, 1])                     # the brain and the ring of pixels around it
@@ -383,6 +390,22 @@ class Localiser:
         reach = ndimage.binary_dilation(brain[beside], structure=margin_disk(self.grid_mm))
         overlap = ndimage.sum_labels(reach, labels, np.arange(1, int(labels.max()) + 1))
         return labels == int(np.argmax(overlap)) + 1 if overlap.max() > 0 else None
+
+
+def reversed_slices(volume: Volume) -> bool:
+    """Whether the localiser sees ``volume``'s slices last to first: where its slice axis points
+    against the scanner axis it runs most along (that component of its voxel axis negative). The
+    same acquisition stored the other way round has the opposite answer, so the network, which sees
+    each slice between its two neighbours, and the geometry see both files' slices in one order.
+
+    Example (the same slices stored in both orders):
+        >>> a = Volume(np.zeros((4, 4, 3), np.float32), np.diag([1.0, 1.0, 3.0, 1.0]))
+        >>> b = Volume(a.array[:, :, ::-1], a.affine @ np.diag([1.0, 1.0, -1.0, 1.0]))
+        >>> reversed_slices(a), reversed_slices(b)
+        (False, True)
+    """
+    column = np.asarray(volume.affine, np.float64)[:3, stack_axis(volume)]
+    return bool(column[int(np.argmax(np.abs(column)))] < 0)
 
 
 def cut_by_stack_ends(mask: NDArray, volume: Volume) -> bool:
