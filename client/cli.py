@@ -136,7 +136,7 @@ def predict(
                                  masks_hold_csf=True if masks_hold_csf else None, progress=progress)
         console = stdout()
         console.print(summarise(result))
-        for hint in predict_hints(result):
+        for hint in predict_hints(result, None if image_consistency else "the image consistency stage"):
             console.print(hint, style="yellow", markup=False)
         total = (result.get("timing_ms") or {}).get("total")
         console.print(f"request {result.get('request_id', '?')}"

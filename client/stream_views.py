@@ -31,12 +31,13 @@ class StreamView:
         self.console = console
         self.rows: dict[tuple[str, int], dict[str, Any]] = {}    # (stack, index) -> the row's fields
         self.finished: set[str] = set()                           # stacks whose `stack` message came
+        self.limit: float | None = None                           # the session's accept limit (mm)
 
     def on_message(self, message: dict[str, Any], answered: Sent | None) -> None:
         kind = message.get("type")
         if kind == "ready":
             model = message.get("model") or {}
-            limit = message.get("max_expected_error_mm")
+            limit = self.limit = message.get("max_expected_error_mm")
             self.console.print(f"session {message.get('session_id', '?')} · model {model.get('name', '?')} "
                                f"{model.get('version', '')} · mc_samples {message.get('mc_samples')} · accepted: "
                                f"expected error <= {'-' if limit is None else f'{limit:.3g} mm'}")
@@ -49,7 +50,7 @@ class StreamView:
                 row.update({k: v for k, v in moved.items() if k != "latency_ms"}, updated=True)
             if name in self.finished and message.get("slices"):
                 self.console.print(f"update of stack {name}: " + ", ".join(
-                    f"#{s.get('index')} {' '.join(pose_cells(s)[2:4])}" for s in message.get("slices") or []),
+                    f"#{s.get('index')} {' '.join(pose_cells(s, self.limit)[2:4])}" for s in message.get("slices") or []),
                     markup=False)
             if name in self.finished and "reacquire" in message:
                 rows = [row for (stack, _), row in self.rows.items() if stack == name]
@@ -89,7 +90,7 @@ class StreamView:
             table.add_column(col, justify=just, overflow="fold",  # type: ignore[arg-type]
                              max_width=14 if col == "stack" else None, no_wrap=col in ("accepted", "translation"))
         for row in rows:
-            table.add_row(*pose_cells(row))
+            table.add_row(*pose_cells(row, self.limit))
         return table
 
     def renderable(self) -> Table:
@@ -111,21 +112,38 @@ def sent_label(sent: Sent) -> str:
     return " ".join(p for p in (sent.type, sent.stack, None if sent.index is None else f"#{sent.index}") if p)
 
 
-def pose_cells(row: dict[str, Any]) -> list[str]:
+def pose_cells(row: dict[str, Any], limit: float | None = None) -> list[str]:
     """A pose's cells in ``svrnet stream``'s table (the index marked ``*`` once a later slice updated
-    the pose; the translation to the millimetre: the JSON output has it in full).
+    the pose; the translation to the millimetre: the JSON output has it in full); the expected error
+    to 0.1 mm, or finer where that would put it on the other side of the accept ``limit``.
 
     Example:
         >>> pose_cells({"stack": "ax", "index": 3, "accepted": False, "reason": "high_expected_error",
         ...             "expected_error_mm": 7.25, "translation_mm": [1, -2.5, 30], "latency_ms": 21.4, "updated": True})
         ['ax', '3*', '✗ high_expected_error', '7.2 mm', '(1, -2, 30)', '21 ms']
+        >>> pose_cells({"expected_error_mm": 4.82}, limit=4.8)[3]        # not "4.8 mm" beside a limit of 4.8
+        '4.82 mm'
     """
     expected, translation, latency = row.get("expected_error_mm"), row.get("translation_mm"), row.get("latency_ms")
     return [str(row.get("stack", "")), f"{row.get('index', '')}{'*' if row.get('updated') else ''}",
             "✓" if row.get("accepted") else f"✗ {row.get('reason') or ''}".rstrip(),
-            "-" if expected is None else f"{expected:.1f} mm",
+            "-" if expected is None else f"{beside_limit(expected, limit)} mm",
             "-" if not translation else "(" + ", ".join(f"{v:.0f}" for v in translation) + ")",
             "-" if latency is None else f"{latency:.0f} ms"]
+
+
+def beside_limit(value: float, limit: float | None) -> str:
+    """``value`` to 0.1, or to as many more decimals (up to 3) as keep it on its side of ``limit``.
+
+    Example:
+        >>> beside_limit(4.83, 4.8), beside_limit(4.75, 4.8), beside_limit(7.25, 4.8), beside_limit(4.8, None)
+        ('4.83', '4.8', '7.2', '4.8')
+    """
+    for digits in (1, 2, 3):
+        text = f"{value:.{digits}f}"
+        if limit is None or (float(text) > limit) == (value > limit):
+            return text
+    return text
 
 
 def reacquire_text(reacquire: list[dict[str, Any]] | None) -> str:

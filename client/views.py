@@ -96,16 +96,19 @@ LOW_CONFIDENCE = 0.5
 confidences real stacks get)."""
 
 
-def predict_hints(result: dict[str, Any]) -> list[str]:
+def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[str]:
     """What to do about an answer with nothing usable in it: a stack without brain slices, a localiser
-    that was unsure, no slice accepted; and what to know of one that is usable: a stack noisier than
-    the poses were calibrated on (one line each; none for a clean, usable answer).
+    that was unsure, no slice accepted (``stage_off``: the consistency stage the request turned off,
+    which then comes first); and what to know of one that is usable: a stack noisier than the poses
+    were calibrated on (one line each; none for a clean, usable answer).
 
     Example (one stack sent alone, nothing accepted):
         >>> body = {"max_expected_error_mm": 4.5, "stacks": [{"filename": "ax.nii.gz", "localisation": {
         ...     "method": "network", "confidence": 0.9}, "slices": [{"accepted": False, "reason": "high_expected_error"}]}]}
         >>> print(predict_hints(body)[0])
         no slice accepted (every one expects an error over 4.5 mm): a stack sent alone has no other stack to agree with; send all the stacks of a scan in one request (if nothing is accepted then either, the images are the cause: see the reasons above)
+        >>> print(predict_hints(body, stage_off="the image consistency stage")[0][:70])
+        fewer than half the slices accepted with the image consistency stage o
     """
     hints = []
     stacks = result.get("stacks") or []
@@ -130,6 +133,11 @@ def predict_hints(result: dict[str, Any]) -> list[str]:
                          f"{noise.get('input_noise') or 0:.3f}, a low-field scanner's): {told}; check its poses "
                          "against the other stacks' or acquire it again")
     slices = with_brain([s for st in stacks for s in st.get("slices") or []])
+    if stage_off and slices and sum(bool(s.get("accepted")) for s in slices) < len(slices) / 2:
+        hints.append(f"fewer than half the slices accepted with {stage_off} off: the accept flags judge what every "
+                     "stage makes of the poses, and without it most real slices' expected errors stay over the "
+                     "limit; send the request with every stage on before you acquire anything again")
+        return hints
     if usable(result):
         for stack in stacks:
             if with_brain(stack.get("slices") or []) and not any(s.get("accepted") for s in stack.get("slices") or []):

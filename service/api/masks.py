@@ -65,7 +65,7 @@ async def masks(
 ) -> Response:
     """One NIfTI mask per stack on the stack's own grid (uint8 0/1) and ``report.json``, zipped."""
     localiser = localisers.get(model)
-    check_form(stacks, None, None, settings.max_files)
+    check_form(stacks, None, settings.max_files)
     with upload_directory(settings.tmp_dir) as tmp:
         uploads = await to_thread.run_sync(upload_reader(settings), stacks, [], tmp)
         body = await to_thread.run_sync(masks_archive, uploads, localiser, tmp, margin_mm)

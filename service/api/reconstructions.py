@@ -170,7 +170,7 @@ async def submit(
     settings: SettingsDep,
     _slot: SlotDep,
     form: UploadFormDep,
-    resolution_mm: Annotated[float, Form(gt=0.2, le=5.0)] = 0.8,
+    resolution_mm: Annotated[float, Form(gt=0.2, le=5.0, allow_inf_nan=False)] = 0.8,
     svr_iterations: Annotated[int, Form(ge=0, le=10)] = 3,
     atlas_frame: Annotated[bool, Form(description="re-estimate the reconstruction's atlas frame with the model on "
                                                   "slices re-cut from it (corrects the common error of the poses)")] = True,

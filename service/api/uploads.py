@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import math
 import re
 import shutil
 import tempfile
@@ -120,13 +119,9 @@ def known_fields(*extra: str) -> Callable[[Request], Awaitable[None]]:
     return check
 
 
-def check_form(stacks: list[UploadFile], masks: list[UploadFile] | None, variance_threshold: float | None,
-               max_files: int, max_expected_error_mm: float | None = None) -> list[UploadFile]:
+def check_form(stacks: list[UploadFile], masks: list[UploadFile] | None, max_files: int) -> list[UploadFile]:
     """The checks FastAPI's form validation leaves to the routes; returns the masks really given
     (a form with an empty file field sends a nameless, empty part)."""
-    for name, value in (("variance_threshold", variance_threshold), ("max_expected_error_mm", max_expected_error_mm)):
-        if value is not None and not math.isfinite(value):
-            raise InvalidParameter(f"{name}: must be a finite number > 0")   # the parser lets inf through
     if len(stacks) > max_files:
         raise InvalidParameter(f"stacks: {len(stacks)} files; at most {max_files} per request")
     return [m for m in (masks or []) if m.filename or m.size]
@@ -176,14 +171,14 @@ async def upload_form(
     stacks: Annotated[list[UploadFile], File(description="1..32 stacks: .nii(.gz), .nrrd, .mha, .dcm or .zip of a DICOM series")],
     masks: Annotated[Optional[list[UploadFile]], File(description="0 or one mask per stack, same grid")] = None,
     mc_samples: Annotated[int, Form(ge=1, le=1000, description="MC-dropout passes per slice")] = 100,
-    variance_threshold: Annotated[Optional[float], Form(gt=0, description="default: the model's")] = None,
-    max_expected_error_mm: Annotated[Optional[float], Form(gt=0, description=MAX_EXPECTED_ERROR_HELP)] = None,
+    variance_threshold: Annotated[Optional[float], Form(gt=0, allow_inf_nan=False, description="default: the model's")] = None,
+    max_expected_error_mm: Annotated[Optional[float], Form(gt=0, allow_inf_nan=False, description=MAX_EXPECTED_ERROR_HELP)] = None,
     model: Annotated[str, Form(description="a name from GET /v1/models")] = "default",
     slice_order: Annotated[Optional[list[SliceOrderField]], Form(description=SLICE_ORDER_HELP)] = None,
     masks_hold_csf: Annotated[bool, Form(description=MASKS_HOLD_CSF_HELP)] = False,
 ) -> UploadForm:
     """The shared fields of a request (:class:`UploadForm`); 400 naming the field that is wrong."""
-    given = check_form(stacks, masks, variance_threshold, settings.max_files, max_expected_error_mm)
+    given = check_form(stacks, masks, settings.max_files)
     return UploadForm(stacks, given, mc_samples, variance_threshold, max_expected_error_mm, model,
                       slice_order or [], parse_orders(slice_order, len(stacks)), masks_hold_csf)
 

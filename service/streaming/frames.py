@@ -27,7 +27,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.core.errors import InvalidParameter
+from service.geometry.frames import axes_cosine
 from service.io.acquisition_geometry import grid_problem
+from service.io.nifti_header import MAX_SHEAR_COS
 from service.io.volume import Volume
 
 AXIS_TOLERANCE = 1e-3
@@ -82,6 +84,9 @@ def check_frame(frame: SliceFrame, max_pixels: int) -> None:
     if lengths.min() <= 1e-6 or abs(np.linalg.det(a[:3, :3] / lengths)) < 0.5:
         raise InvalidParameter("slice.scanner_from_voxel: its columns (pixel axes and normal x thickness) must be "
                                "nonzero and not parallel")
+    if (cos := float(axes_cosine(a[:3, :3]))) > MAX_SHEAR_COS:                # as a stack file's grid
+        raise InvalidParameter(f"slice.scanner_from_voxel: its columns are sheared ({np.degrees(np.arccos(cos)):.2f} "
+                               "deg apart, not 90); send the pixel axes and the normal at right angles")
     if (problem := grid_problem(a, px.shape + (1,))) is not None:
         raise InvalidParameter(f"slice.scanner_from_voxel: {problem}")
     if frame.mask is not None and np.asarray(frame.mask).shape != px.shape:

@@ -103,6 +103,9 @@ def test_parameters_and_models(oracle_client: TestClient, tmp_path: Path) -> Non
                          ("variance_threshold", "-1"), ("variance_threshold", "inf"), ("bias_correction", "perhaps"),
                          ("max_expected_error_mm", "0"), ("max_expected_error_mm", "inf"), ("max_expected_error_mm", "x")]:
         assert_problem(post(oracle_client, [("stacks", ("s.nii.gz", s))], {field: value}), 400, field)
+    for field in ("variance_threshold", "max_expected_error_mm"):       # not a number: named so, not as "> 0"
+        for value in ("nan", "inf"):
+            assert_problem(post(oracle_client, [("stacks", ("s.nii.gz", s))], {field: value}), 400, field, "finite")
     assert_problem(post(oracle_client, [("stacks", ("s.nii.gz", s))], {"model": "nope"}), 404, "model", "nope")
     assert_problem(post(oracle_client, []), 400, "stacks")
     r = post(oracle_client, [], {"stacks": "s.nii.gz"})                   # a path as text, not the file

@@ -251,6 +251,9 @@ def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict, mo
                 "[" * 100_000 + "]" * 100_000, "{not json"):
         r = submit(client, case, poses=bad)
         assert r.status_code == 400 and "poses" in r.json()["detail"], r.text
+    for value in ("nan", "inf"):                                # not a size: named so, not as out of range
+        r = submit(client, case, resolution_mm=value)
+        assert r.status_code == 400 and "resolution_mm" in r.json()["detail"] and "finite" in r.json()["detail"], r.text
     # Poses no scanner gives: scaled, sheared, far away, not a rigid placement; none accepted.
     for change, needle in ((lambda s: s["atlas_from_voxel"][0].__setitem__(0, 1e6), "stack 1, slice 2: atlas_from_voxel"),
                            (lambda s: s["atlas_from_voxel"][0].__setitem__(3, 5e3), "within 1000 mm"),

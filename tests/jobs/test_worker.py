@@ -1,11 +1,16 @@
-"""Which of the service's own poses a reconstruction job starts from (:func:`starting_inclusion`)."""
+"""Which of the service's own poses a reconstruction job starts from (:func:`starting_inclusion`), and what
+its own prediction says of stacks without a brain."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from service.jobs.worker import (MIN_ACCEPTED_SHARE, MIN_ACCEPTED_SLICES, posed_slices, start_label,
-                                 starting_inclusion, starting_poses)
+from service.io.volume import Volume
+from service.jobs.worker import (MIN_ACCEPTED_SHARE, MIN_ACCEPTED_SLICES, job_estimator, posed_slices,
+                                 predicted_body, start_label, starting_inclusion, starting_poses)
+from service.pipeline.prepare import StackUpload
+from service.preprocess.localise import default_localiser
 from tests.api.conftest import tiny_model_path  # noqa: F401 - fixture
 
 
@@ -152,3 +157,14 @@ def test_a_job_given_poses_works_in_the_plane_of_the_model_it_names(tiny_model_p
     assert job_estimator(tmp_path / "absent.onnx", required=False) == (None, DEFAULT_PLANE_X_MM)
     with pytest.raises(Exception, match="absent"):
         job_estimator(tmp_path / "absent.onnx")
+
+
+def test_a_job_whose_stacks_hold_no_brain_the_localiser_finds_says_so(tiny_model_path) -> None:  # noqa: ANN001
+    """Stacks sent without masks in which the localiser finds no brain (noise): the job fails with
+    what `/v1/predict`'s answer says of them (send a mask), not with the reconstruction's "no pixel
+    inside its mask" of masks the user never sent."""
+    noise = np.random.default_rng(0).random((128, 128, 12), np.float32) * 500
+    upload = StackUpload("noise.nii.gz", Volume(noise, np.diag([1.5, 1.5, 3.0, 1.0])))
+    estimator, _ = job_estimator(tiny_model_path)
+    with pytest.raises(ValueError, match="the localiser found no brain in any stack.*upload a brain mask"):
+        predicted_body([upload], estimator, mc_samples=5, localiser=default_localiser())

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from service.streaming.frames import SliceFrame, StreamedStack
+from service.core.errors import InvalidParameter
+from service.streaming.frames import SliceFrame, StreamedStack, check_frame
 
 
 def _frame(index: int, step_mm: float = 3.3, thickness_mm: float = 2.0) -> SliceFrame:
@@ -22,3 +24,13 @@ def test_the_step_between_slices_is_measured_from_the_slices_received_not_their_
     for k in (0, 3):
         stack.add(_frame(k))
     assert np.isclose(stack.step_mm(), 3.3)
+
+
+def test_a_slice_whose_affine_is_sheared_is_refused_naming_the_field() -> None:
+    """A streamed slice's pixel axes and normal must be at right angles, as a stack file's are
+    (`/v1/predict` refuses a sheared sform): the stream would otherwise place its pixels as if they were."""
+    check_frame(_frame(0), max_pixels=10_000)                                     # at right angles: taken
+    sheared = _frame(0)
+    sheared.scanner_from_voxel[:3, :3] = [[1.1, 0.5, 0.0], [0.0, 1.2, 0.0], [0.0, 0.0, 2.0]]
+    with pytest.raises(InvalidParameter, match=r"slice\.scanner_from_voxel: its columns are sheared"):
+        check_frame(sheared, max_pixels=10_000)
