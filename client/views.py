@@ -109,6 +109,9 @@ def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[
         no slice accepted (every one expects an error over 4.5 mm): a stack sent alone has no other stack to agree with; send all the stacks of a scan in one request (if nothing is accepted then either, the images are the cause: see the reasons above)
         >>> print(predict_hints(body, stage_off="the image consistency stage")[0][:70])
         fewer than half the slices accepted with the image consistency stage o
+        >>> ok = {"slices": [{"accepted": True, "reason": None}] * 3}
+        >>> print(predict_hints({"stacks": [ok, body["stacks"][0]]}, "the image consistency stage")[0][:61])
+        ax.nii.gz: no slice accepted with the image consistency stage
     """
     hints = []
     stacks = result.get("stacks") or []
@@ -141,6 +144,11 @@ def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[
     if usable(result):
         for stack in stacks:
             if with_brain(stack.get("slices") or []) and not any(s.get("accepted") for s in stack.get("slices") or []):
+                if stage_off:
+                    hints.append(f"{stack.get('filename', '?')}: no slice accepted with {stage_off} off, while the "
+                                 "other stacks have some: send the request with every stage on before you acquire "
+                                 "it again")
+                    continue
                 fit = stack.get("consistency") or {}
                 unplaced = fit.get("branch_from_request") and not fit.get("branch_agrees_with_request")
                 hints.append(f"{stack.get('filename', '?')}: no slice accepted while the other stacks have some: " + (
