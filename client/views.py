@@ -136,7 +136,9 @@ def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[
                          f"{noise.get('input_noise') or 0:.3f}, a low-field scanner's): {told}; check its poses "
                          "against the other stacks' or acquire it again")
     slices = with_brain([s for st in stacks for s in st.get("slices") or []])
-    if stage_off and slices and sum(bool(s.get("accepted")) for s in slices) < len(slices) / 2:
+    one_pass = bool(slices) and all(s.get("reason") == "high_variance" and s.get("geodesic_variance") is None
+                                    for s in slices)
+    if stage_off and not one_pass and slices and sum(bool(s.get("accepted")) for s in slices) < len(slices) / 2:
         hints.append(f"fewer than half the slices accepted with {stage_off} off: the accept flags judge what every "
                      "stage makes of the poses, and without it most real slices' expected errors stay over the "
                      "limit; send the request with every stage on before you acquire anything again")
@@ -157,7 +159,7 @@ def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[
                     if unplaced else
                     "its poses are too uncertain or disagree with the others (motion, a signal void); acquire it "
                     "again if you need it"))
-    if slices and all(s.get("reason") == "high_variance" and s.get("geodesic_variance") is None for s in slices):
+    if one_pass:
         hints.append("no slice accepted: one MC pass measures no spread (geodesic_variance null), and a pose "
                      "without one is not judged usable; send --mc-samples 100, the count the accept flags are "
                      "calibrated at")

@@ -31,7 +31,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from model_export.localiser.evaluate import dice, masked_files  # noqa: E402
 from service.io.volume import Volume, read_volume  # noqa: E402
 from service.preprocess.brain_shape import brain_from_probabilities  # noqa: E402
-from service.preprocess.localise import Localiser  # noqa: E402
+from service.geometry.pose import index_reversal  # noqa: E402
+from service.preprocess.localise import Localiser, reversed_slices  # noqa: E402
+from service.preprocess.stack import stack_axis  # noqa: E402
 from service.preprocess.localiser_inputs import MIN_GRID_PX, PAD_MULTIPLE, LocaliserGrid, localiser_inputs  # noqa: E402
 from service.core.settings import DEFAULT_LOCALISERS_DIR  # noqa: E402
 
@@ -58,8 +60,22 @@ class WindowedLocaliser(Localiser):
     ``coarse_mm``, ``margin_mm`` and ``share`` after :meth:`load`); ``share`` collects each stack's
     window share of the canvas (1.0 where it fell back to the whole canvas)."""
 
-    def probabilities_of(self, volumes: list[Volume]) -> list[tuple[NDArray[np.float32], LocaliserGrid]]:
-        return [self._windowed(v) for v in volumes]
+    def probabilities_of(self, volumes: list[Volume], grids_mm: list[float] | None = None,
+                         ) -> list[tuple[NDArray[np.float32], LocaliserGrid]]:
+        if grids_mm is not None:                        # a small brain's second look: the whole canvas
+            return super().probabilities_of(volumes, grids_mm)
+        return [self._in_order(v) for v in volumes]
+
+    def _in_order(self, volume: Volume) -> tuple[NDArray[np.float32], LocaliserGrid]:
+        """:meth:`_windowed` on the stack's slices in the order the service's localiser sees them
+        (:func:`~service.preprocess.localise.reversed_slices`), the maps in the file's order."""
+        if not reversed_slices(volume):
+            return self._windowed(volume)
+        axis = stack_axis(volume)
+        turned = Volume(np.ascontiguousarray(np.flip(volume.array, axis)),
+                        volume.affine @ index_reversal(axis, volume.array.shape[axis]))
+        prob, grid = self._windowed(turned)
+        return np.ascontiguousarray(prob[::-1]), grid
 
     def _windowed(self, volume: Volume) -> tuple[NDArray[np.float32], LocaliserGrid]:
         name = self.session.get_inputs()[0].name

@@ -14,7 +14,7 @@ the median E.D. per stack once it is undone, over those slices (the poses a user
 either answer).
 
 ``--floor`` measures what the comparison rests on: the answers of each mask mode against each other
-under other MC draws (the model's seed + 1, 2, ...; ``--repeats`` answers a mode), the same masks
+under other MC draws (the model's seed + 0, 1, ...; ``--repeats`` answers a mode, at least 2), the same masks
 throughout, so that only the draws separate them. ``--mc-samples`` sets the passes per slice.
 
     .venv/bin/python model_export/experiments/real_scan_poses.py [SCAN_FOLDER] [--localiser M] [--model M]
@@ -147,6 +147,8 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=1,
                     help="pairs of answers, each pair with the draws of the model's seed + 0, 1, ...; then their range")
     args = ap.parse_args()
+    if args.floor and args.repeats < 2:
+        ap.error("--floor compares answers under other draws: give --repeats 2 or more")
     localiser = Localiser.load(args.localiser) if args.localiser else default_localiser()
     estimator = _pose_estimator(args.model)
     volumes, manual = read_scan(args.scan, args.stacks)
@@ -161,6 +163,7 @@ def main() -> None:
     runs = [r for r in runs if r]
     if len(runs) > 1:
         print(f"over {len(runs)} pairs: {summary(runs)}")
+
 
 if __name__ == "__main__":
     main()

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from service.consistency.slice_order import SliceOrder, per_stack
-from service.core.errors import Cancelled, InternalError, ServiceError
+from service.core.errors import Cancelled, InternalError, ServiceError, UnusableImage
 from service.core.logging import error_at
 from service.inference.acceptance import EMPTY
 from service.jobs.store import JobStore
@@ -181,9 +181,10 @@ def predicted_body(uploads: list, estimator, mc_samples: int = 100,  # noqa: ANN
     info = estimator.info
     threshold = variance_threshold or info.variance_threshold
     prepared = prepare_stacks(uploads, info, bias_correction=True, workers=1, localiser=localiser)
-    if not any(p.localisation.mask.any() for p in prepared):     # as /v1/predict's hint says it, not as "no pixel"
-        raise ValueError("masks: the localiser found no brain in any stack (every slice is empty); upload a brain "
-                         "mask with each stack")
+    looked = any(p.localisation.method == "network" for p in prepared)
+    if looked and not any(p.localisation.mask.any() for p in prepared):
+        raise UnusableImage("masks: the localiser found no brain in any stack sent without a mask (every slice is "
+                            "empty); upload a brain mask with each stack")     # as /v1/predict's hint says it
     max_expected = max_expected_error_mm or info.max_expected_error_mm
     predictions, _ = predict(prepared, estimator, mc_samples, threshold, orders=orders, max_expected_error_mm=max_expected)
     masks = [stack_from_slice_images(p.slices.masks, p.slices.slice_axis) for p in prepared]

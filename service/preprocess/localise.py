@@ -396,9 +396,10 @@ def reversed_slices(volume: Volume) -> bool:
     """Whether the localiser sees ``volume``'s slices last to first: where its slice axis points
     against the scanner axis it runs most along (that component of its voxel axis negative). The
     same acquisition stored the other way round has the opposite answer, so the network, which sees
-    each slice between its two neighbours, and the geometry see both files' slices in one order.
+    each slice between its two neighbours, and a whole stack's geometry see both files' slices in
+    one order (a streamed slice's geometry takes the received slices by their index).
 
-    Example (the same slices stored in both orders):
+    Example (only the slice axis's direction matters):
         >>> a = Volume(np.zeros((4, 4, 3), np.float32), np.diag([1.0, 1.0, 3.0, 1.0]))
         >>> b = Volume(a.array[:, :, ::-1], a.affine @ np.diag([1.0, 1.0, -1.0, 1.0]))
         >>> reversed_slices(a), reversed_slices(b)

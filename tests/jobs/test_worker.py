@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from service.core.errors import UnusableImage
 from service.io.volume import Volume
 from service.jobs.worker import (MIN_ACCEPTED_SHARE, MIN_ACCEPTED_SLICES, job_estimator, posed_slices,
                                  predicted_body, start_label, starting_inclusion, starting_poses)
@@ -166,5 +167,5 @@ def test_a_job_whose_stacks_hold_no_brain_the_localiser_finds_says_so(tiny_model
     noise = np.random.default_rng(0).random((128, 128, 12), np.float32) * 500
     upload = StackUpload("noise.nii.gz", Volume(noise, np.diag([1.5, 1.5, 3.0, 1.0])))
     estimator, _ = job_estimator(tiny_model_path)
-    with pytest.raises(ValueError, match="the localiser found no brain in any stack.*upload a brain mask"):
+    with pytest.raises(UnusableImage, match="the localiser found no brain in any stack.*upload a brain mask"):
         predicted_body([upload], estimator, mc_samples=5, localiser=default_localiser())
