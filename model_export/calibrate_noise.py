@@ -77,12 +77,12 @@ def measure(estimator, volumes: list, per_volume: int = PER_VOLUME, seed: int = 
 
 
 def acquire(volume, rng: np.random.Generator, level: str, pixel_mm: float = 1.0, thickness_mm: float = 3.0,  # noqa: ANN001
-            gap_mm: float = 3.0, noise: float = 0.03) -> list[SimulatedStack]:
+            gap_mm: float = 3.0, noise: float = 0.03, **more: float) -> list[SimulatedStack]:
     """One simulated 3-stack acquisition of an atlas ``volume`` as another scanner writes it: ``pixel_mm``
     pixels over a :data:`FOV_MM` field of view, slices ``thickness_mm`` thick ``gap_mm`` apart, Rician
-    ``noise`` (a share of the bright end)."""
+    ``noise`` (a share of the bright end); ``more``: other :func:`simulate_acquisition` keywords (``bias``)."""
     return simulate_acquisition(volume.image, volume.mask, volume.affine, rng, level, size=int(round(FOV_MM / pixel_mm)),
-                                pixel_mm=pixel_mm, thickness_mm=thickness_mm, gap_mm=gap_mm, noise=noise)
+                                pixel_mm=pixel_mm, thickness_mm=thickness_mm, gap_mm=gap_mm, noise=noise, **more)
 
 
 def median_ratio(ed: NDArray, expected: NDArray, extra_mm: float = 0.0) -> float:

@@ -99,8 +99,11 @@ def calibrate_noise(
     from service.inference.model_file import load_model
 
     if columns:
-        kept = [np.load(path) for path in columns]
-        measured = {k: np.concatenate([f[k] for f in kept]) for k in ("ed", "expected", "input_noise")}
+        parts = []
+        for path in columns:
+            with np.load(path) as kept:
+                parts.append({k: kept[k] for k in ("ed", "expected", "input_noise")})
+        measured = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     else:
         measured = measure(OnnxPoseEstimator(load_model(model)), load_volumes(split(root)[1], root),
                            per_volume or PER_VOLUME, seed)

@@ -32,9 +32,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from model_export.acquisitions import simulate_acquisition
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
-from model_export.calibrate_noise import FOV_MM
+from model_export.calibrate_noise import acquire
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, run_acquisition
 from model_export.experiments.frame_bias import midline_offset
 from model_export.volume_metrics import volume_psnr_ncc
@@ -171,9 +170,8 @@ def main() -> None:
         psnr = {k: [] for k in [*variants, *framed]}
         for a in range(args.per_level):
             vol = vols[a % len(vols)]
-            stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level, pixel_mm=args.pixel_mm,
-                                          size=int(round(FOV_MM / args.pixel_mm)), noise=args.noise,
-                                          **({} if args.bias is None else {"bias": args.bias}))
+            stacks = acquire(vol, rng, level, pixel_mm=args.pixel_mm, noise=args.noise,
+                             **({} if args.bias is None else {"bias": args.bias}))
             (predictions,), prepared, _ = run_acquisition(stacks, est, 100, True)
             if args.midline and vol.name not in midlines:
                 midlines[vol.name] = about_centre(midline_offset(vol), vol.centre)

@@ -187,3 +187,25 @@ def test_the_accept_flags_are_calibrated_again_from_kept_slice_columns(tmp_path:
                                       "--columns", str(tmp_path / "slices.npz"), "--report", str(report)])
     assert result.exit_code == 0, result.output
     assert "max expected error" in report.read_text() and '"judged_levels"' in result.output
+
+
+def test_the_noise_error_is_calibrated_from_several_kept_column_files_pooled(tmp_path: Path,
+                                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """``calibrate-noise --columns A --columns B`` pools the slices of both files, measuring nothing."""
+    import numpy as np
+
+    import model_export.calibrate_noise as noise
+    from model_export.cli import app
+
+    pooled = {}
+    monkeypatch.setattr(noise, "measure", lambda *a, **k: pytest.fail("measured again"))
+    monkeypatch.setattr(noise, "calibrate", lambda columns: pooled.update(columns) or {"noise_error": [0.1, 70.0]})
+    monkeypatch.setattr(noise, "markdown", lambda result: "noise table")
+    for name, n in (("a", 3), ("b", 2)):
+        np.savez(tmp_path / f"{name}.npz", ed=np.full(n, 2.0), expected=np.full(n, 1.5), input_noise=np.arange(n) / 10)
+    result = CliRunner().invoke(app, ["calibrate-noise", str(tmp_path / "model.onnx"), "--no-write", "--columns",
+                                      str(tmp_path / "a.npz"), "--columns", str(tmp_path / "b.npz"),
+                                      "--report", str(tmp_path / "noise.md")])
+    assert result.exit_code == 0, result.output
+    assert sorted(pooled) == ["ed", "expected", "input_noise"]
+    assert pooled["input_noise"].tolist() == [0.0, 0.1, 0.2, 0.0, 0.1]
