@@ -30,12 +30,12 @@ class _ProbabilityLocaliser(Localiser):
                 for v in volumes]
 
 
-def _twins(larger: str) -> Volume:
-    """A stack of two heads 100 mm apart (balls of 30 mm radius in scanner mm), the ``larger`` one
-    ("first" or "second") holding more probability."""
+def _twins(larger: str, slices: int = 20) -> Volume:
+    """A stack of two heads 100 mm apart (balls of 30 mm radius in scanner mm, 10 slices from the
+    first), the ``larger`` one ("first" or "second") holding more probability."""
     affine = np.diag([GRID_MM, GRID_MM, 4.0, 1.0])
     affine[:3, 3] = (-80.0, -80.0, -40.0)
-    index = np.stack(np.meshgrid(np.arange(64), np.arange(64), np.arange(20), indexing="ij"), axis=-1)
+    index = np.stack(np.meshgrid(np.arange(64), np.arange(64), np.arange(slices), indexing="ij"), axis=-1)
     world = index @ affine[:3, :3].T + affine[:3, 3]
     first = np.linalg.norm(world - [-40.0, 0.0, 0.0], axis=-1) < 30.0
     second = np.linalg.norm(world - [60.0, 0.0, 0.0], axis=-1) < (33.0 if larger == "second" else 27.0)
@@ -71,6 +71,24 @@ def test_an_uploaded_masks_brain_decides_which_fetus() -> None:
                      variance_threshold=1.0, dropout_p=0.1, atlas_id="a", trained_on="-", sha256="0" * 64)
     prepared = prepare_stacks(uploads, info, False, localiser=localiser)
     assert all(brain_centre_mm(p.localisation.mask, v.affine)[0] > 40 for p, v in zip(prepared, volumes))
+
+
+def test_a_stack_stored_last_to_first_settles_on_the_same_fetus() -> None:
+    """The third stack's file stores its slices last to first (its heads near its last slices, not
+    its first): the geometry sees them in the scanner's order, and the pixels near the request's
+    fetus (``prefer``) with them, so it settles on the first fetus as the same stack stored first to
+    last does (were ``prefer`` left in the file's order, it would lie 19 slices from that fetus's
+    brain, which would not reach it, and the stack would keep the second fetus's)."""
+    from service.geometry.pose import index_reversal
+    from service.preprocess.localise import reversed_slices
+
+    localiser = _ProbabilityLocaliser()
+    plain = _twins("second", slices=40)
+    stored = Volume(np.ascontiguousarray(plain.array[:, :, ::-1]), plain.affine @ index_reversal(2, 40))
+    assert reversed_slices(stored) and not reversed_slices(plain)
+    answers = [localiser.localise_many([_twins("first"), _twins("first"), third])[2] for third in (plain, stored)]
+    assert brain_centre_mm(answers[1].mask, stored.affine)[0] < -20
+    assert np.array_equal(answers[0].mask, answers[1].mask[:, :, ::-1])
 
 
 def test_stacks_of_one_fetus_are_left_as_they_settled() -> None:
