@@ -375,6 +375,19 @@ def _alone(reason: str, confidence: float = 0.9, method: str = "network") -> dic
          "slices": [{"index": i, "accepted": False, "reason": reason, "expected_error_mm": 6.0} for i in range(3)]}]}
 
 
+def test_predict_without_the_image_stage_blames_the_stage_not_the_images(fake_cli: Callable, stack_file: Path) -> None:
+    """Two stacks, none of their slices accepted: with ``--no-image-consistency`` the CLI says the
+    stage was off and to send the request with every stage on; with every stage on it says the
+    stacks do not agree."""
+    two = {**_alone("high_expected_error"), "stacks": _alone("high_expected_error")["stacks"] * 2}
+    fake_cli(predict_body=two)
+    off = " ".join(invoke(["predict", str(stack_file), str(stack_file), "--no-image-consistency"]).stdout.split())
+    assert "with the image consistency stage off" in off and "every stage on" in off and "do not agree" not in off
+    fake_cli(predict_body=two)
+    on = " ".join(invoke(["predict", str(stack_file), str(stack_file)]).stdout.split())
+    assert "stage off" not in on and "do not agree" in on
+
+
 def test_an_answer_with_nothing_usable_says_what_to_do() -> None:
     """A stack sent alone with no slice accepted, a localiser that was unsure, a stack without brain:
     each gets its hint; a usable answer none."""

@@ -70,10 +70,13 @@ def masks_archive() -> bytes:
 
 
 class FakeServer:
-    """/v1/predict and /v1/models with an optional key, plus the job routes; ``mode`` forces failures."""
+    """/v1/predict and /v1/models with an optional key, plus the job routes; ``mode`` forces failures;
+    ``predict_body``: what /v1/predict answers (default :data:`PREDICT_BODY`)."""
 
-    def __init__(self, key: str | None = None, mode: str = "ok", jobs: str = "succeeded", workers: int = 1) -> None:
+    def __init__(self, key: str | None = None, mode: str = "ok", jobs: str = "succeeded", workers: int = 1,
+                 predict_body: dict | None = None) -> None:
         self.key, self.mode = key, mode
+        self.predict_body = PREDICT_BODY if predict_body is None else predict_body
         self.jobs = FakeJobs(jobs, workers)
         self.requests: list[httpx.Request] = []
 
@@ -86,7 +89,7 @@ class FakeServer:
         if self.mode == "422":
             return httpx.Response(422, json=problem(422, "stacks: flat.nii.gz is a 2D image", "Unusable image"))
         if request.url.path == "/v1/predict":
-            return httpx.Response(200, json=PREDICT_BODY)
+            return httpx.Response(200, json=self.predict_body)
         if request.url.path == "/v1/masks":
             return httpx.Response(200, content=masks_archive(), headers={"content-type": "application/zip"})
         if request.url.path == "/v1/models":
