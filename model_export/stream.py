@@ -5,7 +5,9 @@ network (simulation and the service's numpy preprocessing stay off the accelerat
 the cores to run many workers). Each worker keeps a **bank** of clean thick-slice acquisitions (the
 expensive 3D sampling, :meth:`SliceSimulator.acquire`) and re-corrupts and re-preprocesses each of
 them ``reuse`` times with fresh draws (:meth:`SliceSimulator.finish`): bias, gamma, voids, noise
-and the imperfect mask change every time, the pose does not.
+and the imperfect mask change every time, the pose does not. With ``scene_share`` a share of each
+batch comes instead from generated whole-uterus scenes cut with the localiser's own masks
+(:class:`~model_export.scene_slices.ScenePool`).
 
 Example (needs the atlas, or a packed folder, as ``root``):
     >>> from model_export.simulate import SimulationConfig                     # doctest: +SKIP
@@ -42,12 +44,15 @@ class SliceStream(IterableDataset):
         reuse: on average how many times each clean acquisition is re-corrupted before replacement.
         pool: acquisitions in the bank.
         seed: base seed (each worker adds its id).
+        scene_share: share of each batch's groups cut with the localiser's masks from generated scenes.
+        scene_reuse: how many times, on average, each scene slice is drawn.
     """
 
     def __init__(self, names: list[str], root: Path, sim: SimulationConfig, label_type: str, batch: int,
-                 reuse: int, pool: int, seed: int) -> None:
+                 reuse: int, pool: int, seed: int, scene_share: float = 0.0, scene_reuse: float = 8.0) -> None:
         self.names, self.root, self.sim, self.label_type, self.batch = names, root, sim, label_type, batch
         self.reuse, self.pool, self.seed = reuse, pool, seed
+        self.scene_share, self.scene_reuse = scene_share, scene_reuse
 
     def __iter__(self):  # noqa: ANN204 - generator
         torch.set_num_threads(1)
@@ -55,16 +60,33 @@ class SliceStream(IterableDataset):
         rng = np.random.default_rng(self.seed + (info.id if info else 0) * 7919)
         simulator = SliceSimulator(load_volumes(self.names, self.root), self.sim)
         groups = max(1, self.batch // SLICES_PER_ACQUISITION)
+        scene_groups = min(groups, int(round(groups * self.scene_share)))
+        scenes = scene_pool(simulator, rng, self.scene_reuse) if scene_groups else None
         pool = [fresh_acquisition(simulator, rng) for _ in range(max(self.pool, groups))]
-        refresh = max(1, round(groups / self.reuse))
+        refresh = max(1, round((groups - scene_groups) / self.reuse))
         while True:
-            picks = rng.choice(len(pool), size=groups, replace=False)
+            picks = rng.choice(len(pool), size=groups - scene_groups, replace=False)
             parts = [simulator.finish(pool[j], rng) for j in picks]
+            if scenes is not None:
+                inputs, poses = scenes.draw(scene_groups * SLICES_PER_ACQUISITION)
+                parts.append(SliceBatch(inputs, poses))
             x = np.concatenate([p.inputs for p in parts])
             y = np.concatenate([encodings.encode(self.label_type, p.poses) for p in parts])
             yield torch.from_numpy(x[:, None]), torch.from_numpy(y.astype(np.float32))
             for j in rng.choice(len(pool), size=refresh, replace=False):
                 pool[j] = fresh_acquisition(simulator, rng)
+
+
+def scene_pool(simulator: SliceSimulator, rng: np.random.Generator, reuse: float):  # noqa: ANN201 - a ScenePool
+    """A worker's :class:`~model_export.scene_slices.ScenePool` over the simulator's volumes, with the
+    service's localiser on one thread (imported here: a stream without scenes needs no localiser)."""
+    from model_export.scene_slices import LazyHeads, ScenePool
+    from service.core.settings import DEFAULT_LOCALISERS_DIR
+    from service.preprocess.localise import Localiser
+
+    localiser = Localiser.load(DEFAULT_LOCALISERS_DIR / "default" / "model.onnx", threads=1)
+    return ScenePool(LazyHeads(simulator.volumes), localiser, simulator.config.size, simulator.config.pixel_mm, rng,
+                     reuse=reuse)
 
 
 def fresh_acquisition(simulator: SliceSimulator, rng: np.random.Generator,

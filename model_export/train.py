@@ -74,6 +74,11 @@ class TrainConfig:
     val_volumes: list[str] | None = None
     simulation: dict = field(default_factory=dict)
     init_from: dict | None = None
+    scene_share: float = 0.0
+    """Share of each batch cut with the localiser's own masks from generated whole-uterus scenes
+    (:mod:`model_export.scene_slices`): what a stack sent without a mask shows the network."""
+    scene_reuse: float = 8.0
+    """How many times, on average, each such slice is drawn before its scene is replaced."""
 
 
 HOST_FIELDS = frozenset({"device", "workers", "threads", "max_minutes", "init_from"})
@@ -216,7 +221,8 @@ def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resu
 
     seed = stream_seed(cfg.seed, totals(history)["samples"] + base["samples"])
     segment["stream_seeds"] = [*segment.get("stream_seeds", []), seed]
-    stream = SliceStream(cfg.train_volumes, root, sim, cfg.label_type, cfg.batch, cfg.reuse, cfg.pool, seed)
+    stream = SliceStream(cfg.train_volumes, root, sim, cfg.label_type, cfg.batch, cfg.reuse, cfg.pool, seed,
+                         cfg.scene_share, cfg.scene_reuse)
     loader = iter(DataLoader(stream, batch_size=None, num_workers=cfg.workers, prefetch_factor=4 if cfg.workers else None,
                              persistent_workers=cfg.workers > 0, pin_memory=device.type == "cuda"))
     log_path = out_dir / "log.csv"

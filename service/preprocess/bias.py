@@ -26,7 +26,6 @@ Example:
 from __future__ import annotations
 
 import numpy as np
-import SimpleITK as sitk
 from numpy.typing import NDArray
 
 from service.geometry.sampling import linear_operator
@@ -69,6 +68,8 @@ def n4_correct(volume: Volume, mask: NDArray | None = None, *, shrink: int = 4, 
     factors = [max(1, int(round(target / s))) for s in sp]                    # keep thick-slice axis
     factors = [min(f, max(1, n // 4)) for f, n in zip(factors, region_array.shape)]
     small, at = centred_samples(region_array, factors)
+    import SimpleITK as sitk      # here: a training host prepares stacks without N4 and has no SimpleITK
+
     small_image = sitk.GetImageFromArray(np.ascontiguousarray(small.transpose(2, 1, 0)))
     fit_mask = sitk.GetArrayFromImage(sitk.OtsuThreshold(small_image, 0, 1, 200)).transpose(2, 1, 0) > 0
     if fit_mask.sum() < 10:

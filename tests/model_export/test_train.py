@@ -129,6 +129,22 @@ def test_training_compounds_on_any_device(device: str, packed: Path, tmp_path: P
     assert log[0].split(",")[7] == "val_twin_ed_mm" and log[-1].startswith("3,")
 
 
+def test_a_share_of_each_batch_comes_from_scenes_cut_with_the_localisers_masks(packed: Path) -> None:
+    """``scene_share`` 0.5 of a 32-slice batch: one group of 16 simulated slices and 16 slices of
+    generated whole-uterus scenes the localiser masked, on the network's grid with finite labels;
+    the scene slices' inputs are zero outside the localiser's pose mask, so part of each is black."""
+    from model_export.simulate import SimulationConfig
+    from model_export.stream import SliceStream
+
+    stream = SliceStream(["STA30"], packed, SimulationConfig(size=48, pixel_mm=2.5), "grid", 32, 2, 3, seed=1,
+                         scene_share=0.5, scene_reuse=4.0)
+    x, y = next(iter(stream))
+    assert x.shape[0] > 16 and x.shape[1:] == (1, 48, 48) and y.shape[0] == x.shape[0]
+    assert torch.isfinite(y).all()
+    scene = x[-16:, 0]
+    assert ((scene == 0).float().mean(dim=(1, 2)) > 0.2).all()
+
+
 def test_module_entry_point_trains_without_typer_rich_or_matplotlib(packed: Path, tmp_path: Path,
                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
     """``python -m model_export.train``: what a bare GPU host runs (numpy, scipy, torch only)."""
