@@ -68,3 +68,25 @@ def test_the_estimate_is_the_noise_on_a_smooth_brain_and_ignores_what_lies_outsi
     tiny = np.zeros((2, 96, 96), bool)
     tiny[:, 40:45, 40:45] = True                                       # a cap's few pixels: nothing to tell
     assert np.isnan(input_noise(np.ones((2, 96, 96)), tiny, (1.0, 1.0), 1.25))
+
+
+@pytest.mark.parametrize("factor", [2.0, 1.6])
+def test_a_reconstruction_interpolated_to_finer_pixels_reads_its_acquisitions_noise(factor: float) -> None:
+    """A 1.1 mm stack with Rician noise of 15 %, written as a scanner's interpolated reconstruction
+    (each slice resampled by cubic splines to pixels ``factor`` times finer: 0.55 or 0.69 mm): its
+    noise is smooth over the pixels, and the estimate reads it at 0.6-1.5 times the stack written at
+    its own pixels, still beyond the calibration (read pixel by pixel, it was 8-17 times lower)."""
+    from scipy import ndimage
+
+    upload = _noisy_stack(0.15, 1.1)
+    own = input_noise(np.moveaxis(upload.volume.array, 2, 0), np.moveaxis(upload.mask.array > 0, 2, 0), (1.1, 1.1), 1.25)
+    n = upload.volume.array.shape[0]
+    centres = (np.arange(int(round(n * factor))) + 0.5) / factor - 0.5
+    rows, cols = np.meshgrid(centres, centres, indexing="ij")
+    fine = np.stack([ndimage.map_coordinates(s, [rows, cols], order=3, mode="nearest")
+                     for s in np.moveaxis(upload.volume.array, 2, 0)])
+    masks = np.stack([ndimage.map_coordinates(s.astype(np.float32), [rows, cols], order=0) > 0.5
+                      for s in np.moveaxis(upload.mask.array, 2, 0)])
+    read = input_noise(fine, masks, (1.1 / factor, 1.1 / factor), 1.25)
+    assert own > NOISY_INPUT and read > NOISY_INPUT * 0.8
+    assert 0.6 < read / own < 1.5, (own, read)
