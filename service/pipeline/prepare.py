@@ -39,7 +39,11 @@ from service.preprocess.one_fetus import brain_centre_mm, one_fetus
 from service.preprocess.slices import PreparedSlices, preprocess_slices
 from service.preprocess.stack import StackSlices, split_stack, stack_axis
 
-GRID_TOLERANCE_MM = 1e-3
+GRID_TOLERANCE_VOXELS = 0.01
+"""How far (a share of the stack's smallest voxel) a mask's grid may lie from its stack's at the
+grid's corners: a mask written with a qform alone, beside a stack whose sform is very slightly
+oblique, cannot hold that obliqueness in its quaternion and lies 1-2 micrometres off at the corners
+of a 256 x 256 x 30 grid (a third site's manual mask); a mask on another grid lies a voxel or more off."""
 
 
 @dataclass
@@ -129,7 +133,8 @@ def check_mask_grid(upload: StackUpload) -> None:
                             f"{upload.filename} has {list(upload.volume.array.shape)}")
     last = np.array(upload.volume.array.shape[:3]) - 1
     corners = np.array([[*(last * bits), 1] for bits in np.ndindex(2, 2, 2)], dtype=np.float64).T
-    if np.abs(upload.mask.affine @ corners - upload.volume.affine @ corners).max() > GRID_TOLERANCE_MM:
+    tolerance = GRID_TOLERANCE_VOXELS * float(np.min(upload.volume.spacing))
+    if np.abs(upload.mask.affine @ corners - upload.volume.affine @ corners).max() > tolerance:
         raise UnusableImage(f"masks: {name} is not on the grid of its stack {upload.filename} "
                             "(different origin, spacing or orientation)")
 
