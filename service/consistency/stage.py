@@ -28,6 +28,7 @@ class Pooled:
     atlas_from_scanner: NDArray[np.float64]   # 4 x 4, the stack's pooled placement
     stacks: int                               # stacks pooled
     between_stacks_sd_mm: float               # spread of the placements between stacks
+    placement_sd_mm: float = float("nan")     # standard error of the pooled placement per coordinate
 
 
 @dataclass
@@ -169,7 +170,8 @@ def pool_request(outs: list[StackPoses]) -> None:
             out.expected_error_mm = pooled_expected_error_mm(out.expected_error_mm, fit.placement_cov,
                                                              fit.placement_sd_mm ** 2, float(pooled.sd_mm[j] ** 2),
                                                              float(pooled.kept[j]))
-        out.pooled = Pooled(pooled.corrections[j] @ fit.atlas_from_scanner, len(which), float(pooled.tau_mm))
+        out.pooled = Pooled(pooled.corrections[j] @ fit.atlas_from_scanner, len(which), float(pooled.tau_mm),
+                            float(pooled.sd_mm[j]))
 
 
 def pooled_expected_error_mm(expected_error_mm: NDArray, cov: NDArray, v: float, v_pooled: float, kept: float) -> NDArray:

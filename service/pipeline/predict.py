@@ -219,6 +219,28 @@ def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPos
     _refine_stacks(prepared, outs, proper, [i for i in take if i not in own], own, store)
 
 
+def placement_floor_mm(outs: list[StackPoses]) -> float:
+    """The expected E.D. below which the image stage brings no slice of stacks refined together
+    (``outs``): that of the best-placed stack's placement in the atlas (its pooled placement's
+    standard error where the request's stacks were pooled, else its own; ``sqrt(3)`` x the error per
+    coordinate). The images relate the slices to each other, not to the atlas: two stacks that agree
+    where they cross are placed no better than the better of the two. On simulated acquisitions the
+    floor is 1.2-2.1 mm per coordinate, below the stage's own estimates; on a real request whose
+    stacks each carry the network's poses 30-36 mm about their motion model it is 4.6 mm
+    (docs/consistency.md).
+
+    Example (two stacks placed to 4 and 1.5 mm per coordinate: the better one's, 2.6 mm):
+        >>> from types import SimpleNamespace as N
+        >>> outs = [N(pooled=N(placement_sd_mm=4.0), fit=None), N(pooled=None, fit=N(placement_sd_mm=1.5))]
+        >>> round(placement_floor_mm(outs), 2)
+        2.6
+    """
+    sds = [o.pooled.placement_sd_mm if o.pooled is not None else
+           (o.fit.placement_sd_mm if o.fit is not None else np.nan) for o in outs]
+    known = [sd for sd in sds if np.isfinite(sd)]
+    return float(np.sqrt(3.0) * min(known)) if known else 0.0
+
+
 def stack_images(prepared: PreparedStack, active: np.ndarray | None = None, fixed: bool = False) -> StackImages:
     """A prepared stack's slices as the image stage sees them; ``active`` (default: all) the slices
     that take part."""
@@ -247,7 +269,8 @@ def _refine_stacks(prepared: list[PreparedStack], outs: list[StackPoses], proper
     ref = refine(images, [outs[i].poses for i in which], expected,
                  smoothed=None if smoothed is None else [smoothed[i] for i in which])
     relative = relative_mismatch(ref.mismatch)
-    after = expected_after(expected, relative, ref.spread_mm)
+    after = [np.fmax(a, placement_floor_mm([outs[i] for i in which]))
+             for a in expected_after(expected, relative, ref.spread_mm)]
     for j, i in enumerate(moving):
         outs[i].poses = ref.poses[j]
         if outs[i].expected_error_mm is not None:

@@ -41,3 +41,33 @@ def test_a_stack_that_agrees_with_the_request_is_refined_with_the_self_decided_o
     predict.refine_where_stacks_cross([None] * 4, _outs("own", "agrees", "request", "own"), [None] * 4)
     predict.refine_where_stacks_cross([None] * 2, _outs("own", "agrees"), [None] * 2)
     assert calls == [([0, 1, 3], []), ([2], [0, 1, 3]), ([0, 1], [])]
+
+
+def _placed(sd: float | None, pooled: bool = True) -> SimpleNamespace:
+    """A stage output of three slices with expected errors of 9 mm, placed to ``sd`` mm per coordinate."""
+    import numpy as np
+
+    fit = SimpleNamespace(placement_sd_mm=sd if not pooled else 99.0)
+    return SimpleNamespace(poses=np.repeat(np.eye(4)[None], 3, 0), expected_error_mm=np.full(3, 9.0),
+                           inconsistent=np.zeros(3, bool), fit=fit,
+                           pooled=SimpleNamespace(placement_sd_mm=sd) if pooled else None, image_consistency=None)
+
+
+@pytest.mark.parametrize("sds, floor", [((4.0, 6.0), 4.0 * 3 ** 0.5), ((4.0, 1.0), 3 ** 0.5)])
+def test_the_images_place_no_slice_better_than_the_best_placed_stack(monkeypatch: pytest.MonkeyPatch, sds, floor) -> None:  # noqa: ANN001
+    """Two stacks whose images agree where they cross (a sharp refinement: 1 mm) are placed in the
+    atlas no better than the better placed of them: with placements of 4 and 6 mm per coordinate
+    every slice keeps at least sqrt(3) x 4 mm (the pooled placement's, not the stack's own 99 mm);
+    beside a stack placed to 1 mm (not pooled: its own placement), sqrt(3) x 1 mm."""
+    import numpy as np
+
+    outs = [_placed(sds[0]), _placed(sds[1], pooled=False)]
+    monkeypatch.setattr(predict, "stack_images", lambda prepared, active=None, fixed=False: SimpleNamespace(active=active))
+    monkeypatch.setattr(predict, "refine", lambda images, poses, expected, smoothed=None: SimpleNamespace(
+        poses=poses, mismatch=[np.zeros(3)] * 2, moved_mm=[np.zeros(3)] * 2, pairs=4, cost_before=1.0, cost_after=0.5,
+        spread_mm=[np.ones(3)] * 2))
+    monkeypatch.setattr(predict, "relative_mismatch", lambda mismatch: [np.ones(3)] * 2)
+    monkeypatch.setattr(predict, "expected_after", lambda expected, relative, spread: [np.ones(3)] * 2)
+    predict._refine_stacks([None, None], outs, [np.ones(3, bool)] * 2, [0, 1], [])
+    for out in outs:
+        np.testing.assert_allclose(out.expected_error_mm, max(floor, 1.0))
