@@ -10,8 +10,8 @@ the head rigid at the atlas's size, so every slice's true atlas pose is known) g
 ``/v1/predict``'s own preparation of a stack without a mask: the localiser, the pose mask, the
 slices, the crop and centring (:func:`~service.pipeline.prepare.prepare_stacks`, without N4: the
 simulated training slices keep their bias field too). Each slice the service would pose becomes a
-network input whose label is its true pose in the network frame, the frame the stream's labels are
-given in.
+network input whose label is its true pose: its network frame -> atlas mm, as the stream's labels
+are given.
 
 A scene costs about 2.5 s on one core (the scene itself 1-3 s, the localiser and the slices 0.4 s)
 and gives about 20 slices, where the plain simulation gives about 200 slices a second, so a
@@ -51,16 +51,15 @@ def scene_slices(head: HeadModel, rng: np.random.Generator, localiser: Localiser
                  style: str = "train") -> SliceBatch:
     """The slices of one generated scene of ``head`` that the service poses when the stack comes
     without a mask (the resampled pose mask covers at least :data:`MIN_MASK_FRACTION` of the input),
-    as network inputs ``[n, size, size]`` with their true network-frame poses (none where the
-    localiser finds no brain)."""
+    as network inputs ``[n, size, size]`` with their true poses, network frame -> atlas mm (none
+    where the localiser finds no brain); no thickness is recorded (the scenes' slice profiles are
+    drawn inside the generator)."""
     scene = synth_scene(head, rng, style, rigid=True)
     prepared = prepare_stacks([StackUpload("scene.nii.gz", scene.volume)], model_grid(size, pixel_mm), False,
                               workers=1, localiser=localiser)[0]
     poses = scene.atlas_from_voxel @ np.linalg.inv(prepared.network_from_voxel())
     keep = np.asarray(prepared.prepared.mask_fraction) >= MIN_MASK_FRACTION
-    thickness = float(scene.volume.spacing[prepared.slices.slice_axis])
-    return SliceBatch(prepared.prepared.inputs[keep], poses[keep], ["scene"] * int(keep.sum()),
-                      np.full(int(keep.sum()), thickness))
+    return SliceBatch(prepared.prepared.inputs[keep], poses[keep], ["scene"] * int(keep.sum()))
 
 
 class LazyHeads:
@@ -87,7 +86,8 @@ class ScenePool:
     Args:
         heads: the training brains (a list, or :class:`LazyHeads`).
         localiser: the localiser the service runs (one thread: a worker among many).
-        size, pixel_mm: the network's input grid.
+        size: the network's input, pixels a side.
+        pixel_mm: the network's input pixel size.
         rng: the worker's generator.
         scenes: how many scenes the pool holds.
         reuse: how many times, on average, each slice is drawn before its scene is replaced.

@@ -44,7 +44,8 @@ class SliceStream(IterableDataset):
         reuse: on average how many times each clean acquisition is re-corrupted before replacement.
         pool: acquisitions in the bank.
         seed: base seed (each worker adds its id).
-        scene_share: share of each batch's groups cut with the localiser's masks from generated scenes.
+        scene_share: share of each batch cut with the localiser's masks from generated scenes, in
+            whole groups of :data:`SLICES_PER_ACQUISITION` (0.25 of 64: one group of 16).
         scene_reuse: how many times, on average, each scene slice is drawn.
     """
 
@@ -52,6 +53,8 @@ class SliceStream(IterableDataset):
                  reuse: int, pool: int, seed: int, scene_share: float = 0.0, scene_reuse: float = 8.0) -> None:
         self.names, self.root, self.sim, self.label_type, self.batch = names, root, sim, label_type, batch
         self.reuse, self.pool, self.seed = reuse, pool, seed
+        if not 0.0 <= scene_share <= 1.0:
+            raise ValueError(f"scene_share {scene_share}: a share between 0 and 1")
         self.scene_share, self.scene_reuse = scene_share, scene_reuse
 
     def __iter__(self):  # noqa: ANN204 - generator
@@ -62,10 +65,11 @@ class SliceStream(IterableDataset):
         groups = max(1, self.batch // SLICES_PER_ACQUISITION)
         scene_groups = min(groups, int(round(groups * self.scene_share)))
         scenes = scene_pool(simulator, rng, self.scene_reuse) if scene_groups else None
-        pool = [fresh_acquisition(simulator, rng) for _ in range(max(self.pool, groups))]
-        refresh = max(1, round((groups - scene_groups) / self.reuse))
+        simulated = groups - scene_groups
+        pool = [fresh_acquisition(simulator, rng) for _ in range(max(self.pool, groups) if simulated else 0)]
+        refresh = max(1, round(simulated / self.reuse)) if simulated else 0
         while True:
-            picks = rng.choice(len(pool), size=groups - scene_groups, replace=False)
+            picks = rng.choice(len(pool), size=simulated, replace=False)
             parts = [simulator.finish(pool[j], rng) for j in picks]
             if scenes is not None:
                 inputs, poses = scenes.draw(scene_groups * SLICES_PER_ACQUISITION)

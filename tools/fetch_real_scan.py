@@ -5,7 +5,7 @@
   mask drawn to the skull; BSD-3 licence).
 * ``bch_fetus40`` (``--scan bch_fetus40``): ``fetus_40`` of the "challenging" test set of Boston
   Children's Hospital's fetal brain extraction (one whole-uterus T2 stack of 256 x 256 x 30, 1.17
-  mm pixels, 3 mm slices, with its manual brain mask; a third site). Its repository has no licence
+  mm pixels, 3 mm slices, with its manual brain mask; the group of `bch_f0832s1`). Its repository has no licence
   file: it is fetched to evaluate on your own machine, and never redistributed.
 
     .venv/bin/python tools/fetch_real_scan.py [DIR] [--scan NAME]      # default ../shared/data/extra_scans, mial_sub01

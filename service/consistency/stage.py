@@ -44,6 +44,7 @@ class ImageConsistency:
     slice_mismatch: NDArray[np.float64] | None = None       # [n] each slice's image term after, over the request's median (NaN: on no line)
     expected_before_mm: NDArray[np.float64] | None = None   # [n] each slice's expected E.D. before the refinement
     slice_spread_mm: NDArray[np.float64] | None = None      # [n] each refined slice's Laplace spread (NaN: not refined)
+    placement_floor_mm: float = 0.0                         # no returned expected error lies below it (placement_floor_mm)
 
 
 @dataclass

@@ -112,6 +112,9 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate |
       slice): the model's ``noise_error`` calibration (:func:`~service.preprocess.noise.noise_error_mm`),
       in quadrature. Such a stack is posed worse than its spread says, mostly by a larger turn and
       shift of the whole request, which its slices' agreement cannot show.
+    * Where the image stage refined the stack, no less than its placement floor
+      (:func:`placement_floor_mm`): the whole expected error, not a term beside the others (the
+      floor is the request's placement, which the first term stands for where no stack tells it).
     * In a stack the stage found consistent (each slice's branch set by its stack-mates), the chance
       that a slice sits on its mirror twin all the same: near the mid-sagittal plane a slice and its
       twin show one image, and a sudden move of the fetus can put a slice's stack-mates' prediction
@@ -140,6 +143,8 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate |
     if logit is not None and out.fit is not None and out.fit.decidable:
         d = twin_distance_mm(out.poses, getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM))
         variance = variance + twin_variance(d, logit)
+    refined = getattr(out, "image_consistency", None)
+    variance = np.maximum(variance, (refined.placement_floor_mm if refined is not None else 0.0) ** 2)
     if estimate is not None:
         variance = np.where(estimate.estimated & np.isnan(estimate.variance), np.nan, variance)
     out.expected_error_mm = np.sqrt(variance)
@@ -220,8 +225,8 @@ def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPos
 
 
 def placement_floor_mm(outs: list[StackPoses]) -> float:
-    """The expected E.D. below which the image stage brings no slice of stacks refined together
-    (``outs``): that of the best-placed stack's placement in the atlas (its pooled placement's
+    """The expected E.D. below which no returned pose of stacks the image stage refined together
+    (``outs``) lies (:func:`add_unseen_errors` applies it last): that of the best-placed stack's placement in the atlas (its pooled placement's
     standard error where the request's stacks were pooled, else its own; ``sqrt(3)`` x the error per
     coordinate). The images relate the slices to each other, not to the atlas: two stacks that agree
     where they cross are placed no better than the better of the two. On simulated acquisitions the
@@ -269,8 +274,8 @@ def _refine_stacks(prepared: list[PreparedStack], outs: list[StackPoses], proper
     ref = refine(images, [outs[i].poses for i in which], expected,
                  smoothed=None if smoothed is None else [smoothed[i] for i in which])
     relative = relative_mismatch(ref.mismatch)
-    after = [np.fmax(a, placement_floor_mm([outs[i] for i in which]))
-             for a in expected_after(expected, relative, ref.spread_mm)]
+    after = expected_after(expected, relative, ref.spread_mm)
+    floor = placement_floor_mm([outs[i] for i in which])
     for j, i in enumerate(moving):
         outs[i].poses = ref.poses[j]
         if outs[i].expected_error_mm is not None:
@@ -279,7 +284,7 @@ def _refine_stacks(prepared: list[PreparedStack], outs: list[StackPoses], proper
         outs[i].image_consistency = ImageConsistency(len(which), ref.pairs, int(images[j].active.sum()),
                                                      float(np.median(moved)) if len(moved) else 0.0,
                                                      float(ref.cost_before), float(ref.cost_after),
-                                                     relative[j], expected[j], ref.spread_mm[j])
+                                                     relative[j], expected[j], ref.spread_mm[j], floor)
 
 
 def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples: int,

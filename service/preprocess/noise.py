@@ -27,7 +27,7 @@ noisy than the same acquisition written at its own pixels. Where the pixels so f
 much noisier than all of them (:data:`SMOOTH_NOISE`: white noise reads alike), the noise is smooth
 over the pixels and the estimate is theirs: a real stack with Rician noise of 15 % reads 0.129 at
 its own 1.125 mm pixels, 0.0074 interpolated to 0.56 mm and 0.017 to 0.70 mm, and so read 0.097
-and 0.147.
+and 0.146.
 """
 
 from __future__ import annotations

@@ -57,8 +57,9 @@ def _placed(sd: float | None, pooled: bool = True) -> SimpleNamespace:
 def test_the_images_place_no_slice_better_than_the_best_placed_stack(monkeypatch: pytest.MonkeyPatch, sds, floor) -> None:  # noqa: ANN001
     """Two stacks whose images agree where they cross (a sharp refinement: 1 mm) are placed in the
     atlas no better than the better placed of them: with placements of 4 and 6 mm per coordinate
-    every slice keeps at least sqrt(3) x 4 mm (the pooled placement's, not the stack's own 99 mm);
-    beside a stack placed to 1 mm (not pooled: its own placement), sqrt(3) x 1 mm."""
+    every slice's returned expected error is at least sqrt(3) x 4 mm (the pooled placement's, not
+    the stack's own 99 mm); beside a stack placed to 1 mm (not pooled: its own placement),
+    sqrt(3) x 1 mm, the model's own floor no longer added on top of it."""
     import numpy as np
 
     outs = [_placed(sds[0]), _placed(sds[1], pooled=False)]
@@ -69,5 +70,8 @@ def test_the_images_place_no_slice_better_than_the_best_placed_stack(monkeypatch
     monkeypatch.setattr(predict, "relative_mismatch", lambda mismatch: [np.ones(3)] * 2)
     monkeypatch.setattr(predict, "expected_after", lambda expected, relative, spread: [np.ones(3)] * 2)
     predict._refine_stacks([None, None], outs, [np.ones(3, bool)] * 2, [0, 1], [])
+    info = SimpleNamespace(expected_error_floor_mm=0.5, twin_risk_logit=None)
     for out in outs:
-        np.testing.assert_allclose(out.expected_error_mm, max(floor, 1.0))
+        assert out.image_consistency.placement_floor_mm == pytest.approx(floor)
+        predict.add_unseen_errors(out, info)                   # the floor is the whole error, not a term
+        np.testing.assert_allclose(out.expected_error_mm, max(floor, np.hypot(1.0, 0.5)))

@@ -101,29 +101,40 @@ def test_a_mask_that_stores_its_stacks_voxels_in_another_order_is_taken_in_the_s
         check_mask_grid(mask_on_stack_grid(StackUpload("s.nii.gz", stack, shifted, "m.nii.gz")))
 
 
-def test_a_mask_written_with_a_qform_alone_beside_a_slightly_oblique_sform_is_on_its_grid(tmp_path) -> None:  # noqa: ANN001
+@pytest.mark.parametrize("size, pixel", [(256, 1.17), (512, 0.586)])
+def test_a_mask_written_with_a_qform_alone_beside_a_slightly_oblique_sform_is_on_its_grid(
+        tmp_path, size: int, pixel: float) -> None:  # noqa: ANN001
     """A stack whose sform is a little off orthogonal (as scanners write them) and its mask saved by
-    another tool with the qform alone: the quaternion cannot hold the obliqueness, and the grids' corners
-    lie micrometres apart; the mask is the stack's. Moved by a tenth of a voxel, it is not."""
+    another tool with the qform alone: the quaternion cannot hold the obliqueness, and the grids'
+    corners lie micrometres apart, in proportion to the field of view (a 300 mm grid of 256 or 512
+    pixels); the mask is the stack's, stored as it is or with an axis reversed. Moved by a tenth of a
+    voxel, it is not."""
     import nibabel as nib
 
     from service.io.volume import read_volume
 
+    scale = np.diag([pixel / 1.17, pixel / 1.17, 1.0, 1.0])
     affine = np.array([[-1.111, 0.0, 0.9541, 135.7], [-0.0406, -1.1649, -0.3095, 191.1],
-                       [0.3705, -0.1275, 2.8273, 52.5], [0.0, 0.0, 0.0, 1.0]])
-    stack = nib.Nifti1Image(np.random.default_rng(0).random((256, 256, 30)).astype(np.float32), None)
+                       [0.3705, -0.1275, 2.8273, 52.5], [0.0, 0.0, 0.0, 1.0]]) @ scale
+    stack = nib.Nifti1Image(np.random.default_rng(0).random((size, size, 30)).astype(np.float32), None)
     stack.set_sform(affine, code=1)
     stack.set_qform(affine, code=2)
     nib.save(stack, tmp_path / "s.nii.gz")
-    for name, shift in (("m.nii.gz", 0.0), ("moved.nii.gz", 0.1)):
-        mask = nib.Nifti1Image(np.ones((256, 256, 30), np.uint8), None)
-        mask.set_qform(affine @ np.array([[1, 0, 0, shift], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]]), code=1)
+    for name, shift, flip in (("m.nii.gz", 0.0, False), ("flipped.nii.gz", 0.0, True), ("moved.nii.gz", 0.1, False)):
+        moved = affine @ np.array([[1, 0, 0, shift], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+        data = np.zeros((size, size, 30), np.uint8)
+        data[: size // 3] = 1
+        if flip:
+            data, moved = data[::-1], moved @ index_reversal(0, size)
+        mask = nib.Nifti1Image(np.ascontiguousarray(data), None)
+        mask.set_qform(moved, code=1)
         mask.set_sform(None, code=0)
         nib.save(mask, tmp_path / name)
     volume = read_volume(tmp_path / "s.nii.gz")
-    upload = StackUpload("s.nii.gz", volume, read_volume(tmp_path / "m.nii.gz"), "m.nii.gz")
-    corners = np.abs(upload.mask.affine - volume.affine).max()
-    assert 0 < corners < 1e-4                                          # not the same numbers, the same grid
-    check_mask_grid(upload)
+    for name in ("m.nii.gz", "flipped.nii.gz"):
+        upload = mask_on_stack_grid(StackUpload("s.nii.gz", volume, read_volume(tmp_path / name), name))
+        assert 0 < np.abs(upload.mask.affine - volume.affine).max() < 0.01     # not the same numbers, the same grid
+        check_mask_grid(upload)
+        assert upload.mask.array[: size // 3].all() and not upload.mask.array[size // 3:].any()
     with pytest.raises(UnusableImage, match="moved.nii.gz is not on the grid"):
         check_mask_grid(StackUpload("s.nii.gz", volume, read_volume(tmp_path / "moved.nii.gz"), "moved.nii.gz"))
