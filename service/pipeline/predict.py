@@ -226,13 +226,14 @@ def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPos
 
 def placement_floor_mm(outs: list[StackPoses]) -> float:
     """The expected E.D. below which no returned pose of stacks the image stage refined together
-    (``outs``) lies (:func:`add_unseen_errors` applies it last): that of the best-placed stack's placement in the atlas (its pooled placement's
-    standard error where the request's stacks were pooled, else its own; ``sqrt(3)`` x the error per
-    coordinate). The images relate the slices to each other, not to the atlas: two stacks that agree
-    where they cross are placed no better than the better of the two. On simulated acquisitions the
-    floor is 1.2-2.1 mm per coordinate, below the stage's own estimates; on a real request whose
-    stacks each carry the network's poses 30-36 mm about their motion model it is 4.6 mm
-    (docs/consistency.md).
+    (``outs``) lies (:func:`add_unseen_errors` applies it last): that of the best-placed stack's
+    placement in the atlas (its pooled placement's standard error where the request's stacks were
+    pooled, else its own; ``sqrt(3)`` x the error per coordinate). The images relate the slices to
+    each other, not to the atlas: two stacks that agree where they cross are placed no better than
+    the better of the two. The stacks of simulated acquisitions are placed to 1.2-2.1 mm a
+    coordinate (a floor of 2.0-3.6 mm, under the stages' own estimates); a real request whose stacks
+    carry the network's poses 30-36 mm about their motion models, to 4.6 mm (a floor of 8.0 mm;
+    docs/consistency.md).
 
     Example (two stacks placed to 4 and 1.5 mm per coordinate: the better one's, 2.6 mm):
         >>> from types import SimpleNamespace as N
@@ -265,8 +266,8 @@ def _refine_stacks(prepared: list[PreparedStack], outs: list[StackPoses], proper
                    moving: list[int], partners: list[int], smoothed: dict[int, dict] | None = None) -> None:
     """:func:`refine` the stacks ``moving`` (indices into the request) with the stacks ``partners`` as
     fixed partners; sets the moving stacks' poses, expected errors (with partners: never below the
-    stage's) and ``image_consistency``. ``smoothed``: per stack (request index), :func:`refine`'s
-    store of its smoothed images."""
+    stage's) and ``image_consistency`` (with the :func:`placement_floor_mm` of the stacks refined).
+    ``smoothed``: per stack (request index), :func:`refine`'s store of its smoothed images."""
     which = moving + partners
     images = [stack_images(prepared[i], proper[i] & ~outs[i].inconsistent, fixed=i in partners) for i in which]
     expected = [outs[i].expected_error_mm if outs[i].expected_error_mm is not None
