@@ -96,7 +96,7 @@ def prepare_acquisition(stacks: list[SimulatedStack], info: ModelInfo, bias_corr
     own crop/centre)."""
     uploads = [StackUpload(f"{s.orientation}.nii.gz", s.volume, s.mask, f"{s.orientation}_mask.nii.gz") for s in stacks]
     prepared = prepare_stacks(uploads, info, bias_correction, workers=2)
-    return prepared, [s.atlas_from_voxel @ np.linalg.inv(p.network_from_voxel()) for s, p in zip(stacks, prepared)]
+    return prepared, [p.in_network_frame(s.atlas_from_voxel) for s, p in zip(stacks, prepared)]
 
 
 def run_acquisition(stacks: list[SimulatedStack], estimator, mc_samples: int = 100,  # noqa: ANN001
@@ -153,11 +153,10 @@ def score(predictions: list[StackPrediction], prepared: list[PreparedStack], tru
     from model_export.evaluate import error_components
 
     for res, pred, p, true, sim in zip(stack_objects(predictions), predictions, prepared, truth, stacks):
-        inv = np.linalg.inv(p.network_from_voxel())
-        final = np.array([s["atlas_from_voxel"] for s in res["slices"]]) @ inv
+        final = p.in_network_frame([s["atlas_from_voxel"] for s in res["slices"]])
         unseen = np.full((4, 4), np.nan)                # an empty slice is not shown to the network
-        network = np.array([unseen if s["network_atlas_from_voxel"] is None else s["network_atlas_from_voxel"]
-                            for s in res["slices"]]) @ inv
+        network = p.in_network_frame([unseen if s["network_atlas_from_voxel"] is None else s["network_atlas_from_voxel"]
+                                      for s in res["slices"]])
         tw = twin.twin(true, plane_x_mm)
         e, e_tw = ed(final, true), ed(final, tw)
         stage = res["consistency"] or {}
@@ -169,7 +168,7 @@ def score(predictions: list[StackPrediction], prepared: list[PreparedStack], tru
             else ((n - 1) / 2.0, max((n - 1) / 2.0, 1.0))
         times = np.asarray(sim.times, dtype=np.float64)
         # The motion the stage fitted: how far it put each slice from its rigid stack pose.
-        rigid = rigid_poses(stage, sim.volume.affine, inv)
+        rigid = rigid_poses(stage, sim.volume.affine, np.linalg.inv(p.network_from_voxel()))
         fitted = ed(final, rigid) if rigid is not None else np.full(n, np.nan)
         into.add(**acceptance_columns(final, true, [s.get("expected_error_mm") for s in res["slices"]],
                                       [s["geodesic_variance"] for s in res["slices"]],

@@ -57,7 +57,7 @@ def scene_slices(head: HeadModel, rng: np.random.Generator, localiser: Localiser
     scene = synth_scene(head, rng, style, rigid=True)
     prepared = prepare_stacks([StackUpload("scene.nii.gz", scene.volume)], model_grid(size, pixel_mm), False,
                               workers=1, localiser=localiser)[0]
-    poses = scene.atlas_from_voxel @ np.linalg.inv(prepared.network_from_voxel())
+    poses = prepared.in_network_frame(scene.atlas_from_voxel)
     keep = np.asarray(prepared.prepared.mask_fraction) >= MIN_MASK_FRACTION
     return SliceBatch(prepared.prepared.inputs[keep], poses[keep], ["scene"] * int(keep.sum()))
 

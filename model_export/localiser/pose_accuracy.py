@@ -75,7 +75,7 @@ def score_scene(scene: Scene, variant: str, estimator, localiser: Localiser | No
     info = estimator.info
     prepared = prepare_stacks([_upload(scene, variant)], info, True, workers=1, localiser=localiser)
     if hasattr(estimator, "truth"):
-        estimator.truth = scene.atlas_from_voxel @ np.linalg.inv(prepared[0].network_from_voxel())
+        estimator.truth = prepared[0].in_network_frame(scene.atlas_from_voxel)
     predictions, _ = predict(prepared, estimator, mc_samples, info.variance_threshold)
     poses, posed = slice_poses(stack_objects(predictions)[0], prepared[0])
     truth = scene.atlas_from_voxel @ np.linalg.inv(prepared[0].slices.slice_from_voxel)

@@ -131,7 +131,8 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate |
     Example (a sagittal slice 5 mm off the plane, 10 mm from its twin, in a consistent stack):
         >>> from types import SimpleNamespace
         >>> pose = np.array([[0.0, 0, 1, 5], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]])
-        >>> out = SimpleNamespace(expected_error_mm=np.array([3.0]), fit=SimpleNamespace(decidable=True), poses=pose[None])
+        >>> out = SimpleNamespace(expected_error_mm=np.array([3.0]), fit=SimpleNamespace(decidable=True), poses=pose[None],
+        ...                       image_consistency=None)
         >>> info = SimpleNamespace(expected_error_floor_mm=4.0, twin_risk_logit=(-1.0, -0.1))
         >>> _ = add_unseen_errors(out, info); out.expected_error_mm.round(2).tolist()   # sqrt(9 + 16 + 11.92)
         [6.08]
@@ -143,7 +144,7 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate |
     if logit is not None and out.fit is not None and out.fit.decidable:
         d = twin_distance_mm(out.poses, getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM))
         variance = variance + twin_variance(d, logit)
-    refined = getattr(out, "image_consistency", None)
+    refined = out.image_consistency
     variance = np.maximum(variance, (refined.placement_floor_mm if refined is not None else 0.0) ** 2)
     if estimate is not None:
         variance = np.where(estimate.estimated & np.isnan(estimate.variance), np.nan, variance)

@@ -84,6 +84,12 @@ class PreparedStack:
         """``[n, 4, 4]`` voxel ``(i, j, k)`` of slice ``k`` -> its network frame (the service's crop/centre)."""
         return network_from_voxel(self.prepared.input_from_network(), self.slices.slice_from_voxel)
 
+    def in_network_frame(self, atlas_from_voxel: NDArray) -> NDArray[np.float64]:
+        """Slice poses ``atlas_from_voxel [n, 4, 4]`` of this stack's slices (an answer's, or a
+        simulation's truth) as the network gives them: its frame -> atlas mm, through the service's
+        crop and centring (what a training label and an evaluation compare)."""
+        return np.asarray(atlas_from_voxel, np.float64) @ np.linalg.inv(self.network_from_voxel())
+
 
 def mask_on_stack_grid(upload: StackUpload) -> StackUpload:
     """``upload`` with its mask's voxels in its stack's order, where the mask's file holds the stack's
