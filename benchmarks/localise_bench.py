@@ -2,8 +2,10 @@
 
 1. :meth:`Localiser.localise` on stacks of the sizes scanners write (random content in a field of
    view that ends in air, as a whole-uterus stack's does: the cost does not depend on the content),
-   split into input, network and geometry; and the same stack cropped through the body on two
-   sides (the network then also sees the fluid band beyond them: a larger grid).
+   split into input, network (both passes) and geometry; and the same stack cropped through the
+   body on two sides (the network then also sees the fluid band beyond them: a larger grid). Then
+   the network's time with its calls two at a time on half the cores each (as the service runs
+   it) against one call at a time on all of them, and the pose network's alike.
 2. The predict pipeline (no HTTP; N4, 100 MC samples, every stage on) on the same stacks with the
    reference masks and without them: wall times, their ratio, and the median E.D. between the two
    sets of poses. Stacks: the real scan of ``../shared/data/real_scans/mial_lausanne_t30`` where it
@@ -56,12 +58,41 @@ def stage_times(loc: Localiser) -> None:
         vol = Volume(content, np.diag([pixel, pixel, thick, 1.0]))
         t_in, (x, grid) = timed(lambda: localiser_inputs(vol, loc.grid_mm))
         name = loc.session.get_inputs()[0].name
-        t_net, logits = timed(lambda: loc.session.run(None, {name: x})[0][:, 0])
+        t_net, logits = timed(lambda: loc._logits(name, x))
         prob = 1 / (1 + np.exp(-logits))
         t_geo, _ = timed(lambda: brain_from_probabilities(prob, loc.grid_mm ** 2 * thick / 1e3, loc.grid_mm))
         t_all, _ = timed(lambda: loc.localise(vol))
         label = "x".join(map(str, vol.array.shape)) + (" cut" if cut else "")
         print(f"{label:>18} {pixel:>6.2f} {t_in:>10.0f} {t_net:>11.0f} {t_geo:>12.0f} {t_all:>9.0f}")
+
+
+def side_by_side_ratios(loc: Localiser) -> None:
+    """The localiser's and the pose network's time, calls two at a time against one at a time on
+    every core, alternating in one process."""
+    from service.inference.estimator import OnnxPoseEstimator
+    from service.inference.model_file import load_model
+    from service.core.threads import available_cores
+
+    cores = available_cores()
+    vol = Volume(np.random.default_rng(1).random(SIZES[0][0], np.float32) * 300, np.diag([1.125, 1.125, 3.3, 1.0]))
+    x, _ = localiser_inputs(vol, loc.grid_mm)
+    name = loc.session.get_inputs()[0].name
+    one_call = Localiser.load(loc.path, threads=cores)
+    pose_path = ROOT / "service" / "models" / "default" / "model.onnx"
+    poses = {side: OnnxPoseEstimator(load_model(pose_path, threads=0 if side else cores)) for side in (True, False)}
+    size = poses[True].info.input_size
+    slices = np.random.default_rng(2).uniform(0, 255, (105, size, size)).astype(np.float32)
+    rows = [("localiser, 320x320x22, both passes", lambda: loc._logits(name, x), lambda: one_call._logits(name, x)),
+            ("pose network, 105 slices, MC-100", lambda: poses[True].sample_labels(slices, 100),
+             lambda: poses[False].sample_labels(slices, 100))]
+    print(f"\n{'network':>36} {'two calls at a time ms':>23} {'one call ms':>12} {'ratio':>6}")
+    for label, side, one in rows:
+        times = {0: [], 1: []}
+        for _ in range(5):                                            # alternating: the same machine state
+            times[0].append(timed(side, 1)[0])
+            times[1].append(timed(one, 1)[0])
+        a, b = float(np.median(times[0])), float(np.median(times[1]))
+        print(f"{label:>36} {a:>23.0f} {b:>12.0f} {a / b:>6.2f}")
 
 
 def uploads() -> tuple[list[StackUpload], str]:
@@ -85,6 +116,7 @@ def main() -> None:
     loc = Localiser.load(DEFAULT_LOCALISERS_DIR / "default" / "model.onnx")
     print(f"localiser {loc.version}, grid {loc.grid_mm} mm")
     stage_times(loc)
+    side_by_side_ratios(loc)
     stacks, what = uploads()
     print(f"\n/v1/predict pipeline on {what}:")
     r = pose_agreement(stacks, loc, _pose_estimator())

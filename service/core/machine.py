@@ -13,9 +13,10 @@ Example:
 
 from __future__ import annotations
 
-import os
 import platform
 from pathlib import Path
+
+from service.core.threads import available_cores
 
 CPUINFO = Path("/proc/cpuinfo")
 FEATURES = (("avx2", "AVX2"), ("fma", "FMA"), ("avx512f", "AVX-512"), ("avx_vnni", "AVX-VNNI"),
@@ -60,7 +61,7 @@ def describe_cpuinfo(text: str, cores: int | None, fallback_name: str = "unknown
 def cpu_description() -> str:
     """:func:`describe_cpuinfo` of this machine (its processor's name alone where there is no
     ``/proc/cpuinfo``)."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    cores = available_cores()
     try:
         text = CPUINFO.read_text(errors="replace")
     except OSError:

@@ -3,6 +3,8 @@
 Example:
     >>> session_options(2).intra_op_num_threads
     2
+    >>> session_threads(1), session_threads(4, cores=4), session_threads(0, cores=4)
+    ((1, False), (4, False), (2, True))
 """
 
 from __future__ import annotations
@@ -11,6 +13,8 @@ import hashlib
 from pathlib import Path
 
 import onnxruntime as ort
+
+from service.core.threads import available_cores
 
 
 def file_sha256(path: Path) -> str:
@@ -45,3 +49,15 @@ def session_options(threads: int = 0) -> ort.SessionOptions:
     opts.intra_op_num_threads = threads
     opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
     return opts
+
+
+def session_threads(threads: int = 0, cores: int | None = None) -> tuple[int, bool]:
+    """A session's intra-op threads, and whether its calls run two at a time
+    (:func:`~service.core.threads.side_by_side`). ``threads`` 0 (all of the machine's ``cores``,
+    two or more): half the cores a call, two calls at a time; a small network's convolutions gain
+    less from a second intra-op thread than from a second call. Otherwise ``threads``, one call at
+    a time."""
+    cores = available_cores() if cores is None else cores
+    if threads == 0 and cores >= 2:
+        return cores // 2, True
+    return threads, False

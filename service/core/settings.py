@@ -53,7 +53,8 @@ class Settings(BaseSettings):
                                       "work grows with the cube of a stack's slices; fetal stacks hold 20-80)")
     max_concurrent: int = Field(2, ge=1, description="requests processed at once; more get 503")
     preprocess_workers: int = Field(2, ge=1, description="stacks preprocessed in parallel")
-    onnx_threads: int = Field(0, ge=0, description="onnxruntime intra-op threads (0 = all cores)")
+    onnx_threads: int = Field(0, ge=0, description="onnxruntime intra-op threads (0 = all cores: two network calls "
+                              "at a time, each on half of them)")
     blas_threads: int = Field(1, ge=0, description="numpy's and scipy's BLAS threads in the server, svrnet-mrd, the "
                               "job workers and svrnet-worker (0 = the library's default, every core): the consistency "
                               "stages multiply many small matrices, which one thread does faster, and requests and "

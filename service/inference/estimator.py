@@ -14,7 +14,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from service.core.threads import two_threads
+from service.core.threads import side_by_side, two_threads
 from service.geometry import anchors, encodings, se3, twin
 from service.inference.model_file import LoadedModel, ModelInfo
 from service.inference.views import sample_views
@@ -165,15 +165,16 @@ class OnnxPoseEstimator:
         """Raw labels ``[B, N, D]``; ``mc_samples = 0`` gives one deterministic pass (N = 1). Rows come
         in groups of ``group`` (default: one group), group ``g`` with dropout draws ``g``
         (:meth:`~service.inference.model_file.LoadedModel.draws`), in calls of at most
-        :attr:`batch_slices` rows."""
+        :attr:`batch_slices` rows (two at a time where the model's session is set so:
+        :attr:`~service.inference.model_file.LoadedModel.side_by_side`)."""
         passes = np.ones(mc_samples, np.float32) if mc_samples > 0 else np.zeros(1, np.float32)
         x = np.asarray(inputs, dtype=np.float32)
         group = max(int(group or len(x)), 1)
-        chunks = []
-        for draw, start in enumerate(range(0, len(x), group)):
-            rows = x[start:start + group]
-            chunks += [self.model.run(rows[i:i + self.batch_slices], passes, draw)
-                       for i in range(0, len(rows), self.batch_slices)]
+        calls = [(x[start:start + group][i:i + self.batch_slices], draw)
+                 for draw, start in enumerate(range(0, len(x), group)) for i in range(0, min(group, len(x) - start),
+                                                                                   self.batch_slices)]
+        run = lambda call: self.model.run(call[0], passes, call[1])  # noqa: E731
+        chunks = side_by_side(run, calls) if self.model.side_by_side else [run(call) for call in calls]
         return np.concatenate(chunks) if chunks else np.zeros((0, len(passes), 0), np.float32)
 
     def estimate(self, inputs: NDArray[np.float32], mc_samples: int) -> PoseEstimate:

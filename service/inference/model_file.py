@@ -15,7 +15,7 @@ import numpy as np
 import onnxruntime as ort
 from numpy.typing import NDArray
 
-from service.core.onnx import file_sha256, session_options
+from service.core.onnx import file_sha256, session_options, session_threads
 from service.geometry.twin import DEFAULT_PLANE_X_MM
 from service.inference.views import view_count
 
@@ -160,13 +160,15 @@ class LoadedModel:
     """The dropout draws' inputs, by name, and the units of each layer (``F``)."""
     mc_seed: int | None = None
     """The seed of the fixed dropout draws; None where the graph draws its own."""
+    side_by_side: bool = False
+    """Its calls may run two at a time, the session on half the cores (:func:`~service.core.onnx.session_threads`)."""
     _draws: dict[int, tuple[int, dict[str, NDArray[np.float32]]]] = field(default_factory=dict, repr=False)
 
     def with_seed(self, seed: int) -> "LoadedModel":
         """The same model and session with the draws of ``seed`` (another fixed ensemble: experiments
         that ask how far the MC draws move an answer)."""
         return LoadedModel(self.path, self.info, self.session, self.draw_inputs,
-                           seed if self.draw_inputs else None)
+                           seed if self.draw_inputs else None, self.side_by_side)
 
     def draws(self, n: int, draw: int = 0) -> dict[str, NDArray[np.float32]]:
         """The dropout inputs for ``n`` passes of ensemble ``draw`` (each test-time view has its own):
@@ -201,9 +203,10 @@ def load_model(path: Path, threads: int = 0) -> LoadedModel:
     """Open an exported model file with onnxruntime and read its metadata; its ``mc_seed`` is the seed it
     runs with (:data:`DEFAULT_MC_SEED` where a file with draw inputs names none)."""
     path = Path(path)
-    sess = ort.InferenceSession(str(path), session_options(threads), providers=["CPUExecutionProvider"])
+    per_call, side = session_threads(threads)
+    sess = ort.InferenceSession(str(path), session_options(per_call), providers=["CPUExecutionProvider"])
     meta = sess.get_modelmeta().custom_metadata_map
     info = ModelInfo.from_metadata(meta, file_sha256(path))
     draws = [(i.name, int(i.shape[-1])) for i in sess.get_inputs() if i.name.startswith(DRAWS_PREFIX)]
     seed = (DEFAULT_MC_SEED if info.mc_seed is None else info.mc_seed) if draws else None
-    return LoadedModel(path, replace(info, mc_seed=seed), sess, draws, seed)
+    return LoadedModel(path, replace(info, mc_seed=seed), sess, draws, seed, side)

@@ -48,8 +48,9 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from service.core.errors import NotFound
-from service.core.onnx import file_sha256, model_files, session_options
+from service.core.onnx import file_sha256, model_files, session_options, session_threads
 from service.core.settings import DEFAULT_LOCALISERS_DIR
+from service.core.threads import side_by_side
 from service.io.volume import Volume
 from service.preprocess.brain_shape import MASK_THRESHOLD, THRESHOLD, brain_from_probabilities, margin_disk
 from service.preprocess.localiser_inputs import LocaliserGrid, localiser_inputs
@@ -207,15 +208,20 @@ class Localiser:
     mirrored: bool = True
     """Average each slice's logits with those of its mirror image (one more network pass a slice). A
     network that learnt that average (metadata ``mirrored_pass`` ``"learnt"``) runs once."""
+    side_by_side: bool = False
+    """Run the network's batches two at a time (:func:`~service.core.threads.side_by_side`), the
+    session on half the cores: the U-Net's few channels gain little from a second intra-op thread."""
 
     @classmethod
     def load(cls, path: Path, threads: int = 0) -> "Localiser":
-        """Open ``path`` with onnxruntime (``threads`` 0: all cores) and read its metadata."""
+        """Open ``path`` with onnxruntime and read its metadata; ``threads`` 0: all cores, two calls at
+        a time (:func:`~service.core.onnx.session_threads`)."""
         path = Path(path)
-        sess = ort.InferenceSession(str(path), session_options(threads), providers=["CPUExecutionProvider"])
+        per_call, side = session_threads(threads)
+        sess = ort.InferenceSession(str(path), session_options(per_call), providers=["CPUExecutionProvider"])
         meta = sess.get_modelmeta().custom_metadata_map
         return cls(path, sess, float(meta["grid_mm"]), meta.get("version", "unknown"), file_sha256(path),
-                   mirrored=meta.get("mirrored_pass", "run") != "learnt")
+                   mirrored=meta.get("mirrored_pass", "run") != "learnt", side_by_side=side)
 
     def probabilities(self, volume: Volume) -> tuple[NDArray[np.float32], LocaliserGrid]:
         """Per-slice brain probabilities on the network grid ``[n, Hp, Wp]`` and that grid."""
@@ -245,14 +251,15 @@ class Localiser:
 
     def _logits(self, name: str, x: NDArray[np.float32]) -> NDArray[np.float32]:
         """The network's logits ``[n, H, W]`` for inputs ``[n, c, H, W]``, in batches of
-        :data:`BATCH_SLICES`; with :attr:`mirrored`, averaged with those of the inputs mirrored along
-        ``W`` (mirrored back)."""
-        def run(inputs: NDArray[np.float32]) -> NDArray[np.float32]:
-            return np.concatenate([self.session.run(None, {name: inputs[k:k + BATCH_SLICES]})[0][:, 0]
-                                   for k in range(0, len(inputs), BATCH_SLICES)])
-        logits = run(x)
+        :data:`BATCH_SLICES` (:attr:`side_by_side`: two at a time); with :attr:`mirrored`, averaged
+        with those of the inputs mirrored along ``W`` (mirrored back)."""
+        seen = [x, np.ascontiguousarray(x[..., ::-1])] if self.mirrored else [x]
+        batches = [(view, k) for view in seen for k in range(0, len(x), BATCH_SLICES)]
+        run = lambda batch: self.session.run(None, {name: batch[0][batch[1]:batch[1] + BATCH_SLICES]})[0][:, 0]  # noqa: E731
+        out = side_by_side(run, batches) if self.side_by_side else [run(batch) for batch in batches]
+        logits = np.concatenate(out[:len(out) // len(seen)])
         if self.mirrored:
-            logits = 0.5 * (logits + run(np.ascontiguousarray(x[..., ::-1]))[..., ::-1])
+            logits = 0.5 * (logits + np.concatenate(out[len(out) // 2:])[..., ::-1])
         return logits
 
     def localise(self, volume: Volume) -> Localisation:

@@ -6,7 +6,7 @@ import threading
 
 import pytest
 
-from service.core.threads import two_threads
+from service.core.threads import side_by_side, two_threads
 
 
 def test_two_threads_answers_in_order_and_runs_both_halves_at_once() -> None:
@@ -18,6 +18,19 @@ def test_two_threads_answers_in_order_and_runs_both_halves_at_once() -> None:
         return half + 10
 
     assert two_threads(work) == [10, 11]
+
+
+def test_side_by_side_keeps_the_items_order_and_runs_two_at_a_time() -> None:
+    """Items of uneven cost: the answers come in the items' order, and the first two run at once."""
+    both = threading.Barrier(2, timeout=10)
+
+    def work(item: int) -> int:
+        if item < 2:
+            both.wait()
+        return item * item
+
+    assert side_by_side(work, list(range(7))) == [0, 1, 4, 9, 16, 25, 36]
+    assert side_by_side(work, []) == []
 
 
 def test_an_error_in_either_half_reaches_the_caller() -> None:

@@ -40,3 +40,19 @@ def test_a_request_of_empty_slices_only_runs_nothing(tiny_model_path) -> None:  
     out = est.estimate(np.zeros((3, size, size), np.float32), 10)
     assert isinstance(out, PoseEstimate) and len(out.mean) == 3 and not out.estimated.any()
     np.testing.assert_array_equal(out.mean, np.broadcast_to(np.eye(4), (3, 4, 4)))
+
+
+def test_calls_run_two_at_a_time_give_each_row_its_own_labels(tiny_model_path) -> None:  # noqa: ANN001, F811
+    """Rows in three groups (three draws), in calls of 4 rows run two at a time, get the labels each
+    group gets from one call of its own with its draws: where a call runs is a matter of speed."""
+    from service.core.threads import available_cores
+
+    side, alone = load_model(tiny_model_path), load_model(tiny_model_path, threads=1)
+    assert side.side_by_side == (available_cores() >= 2) and not alone.side_by_side
+    size = side.info.input_size
+    x = np.random.default_rng(2).uniform(0, 255, (30, size, size)).astype(np.float32)
+    est = OnnxPoseEstimator(side, batch_slices=4)
+    out = est.run(x, 8, group=10)
+    passes = np.ones(8, np.float32)
+    expected = np.concatenate([alone.run(x[g * 10:(g + 1) * 10], passes, g) for g in range(3)])
+    assert out.shape == expected.shape and np.abs(out - expected).max() < 1e-4

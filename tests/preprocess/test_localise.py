@@ -56,6 +56,27 @@ def test_the_shipped_localiser_finds_the_brain_of_a_generated_whole_uterus_stack
     assert np.median(scores) > 0.8, scores
 
 
+def test_batches_run_side_by_side_give_the_logits_of_one_call(localiser: Localiser) -> None:
+    """Two network calls at a time, each on half the cores, are a matter of speed: every batch's
+    logits, the mirrored pass's too, land where one call on the whole stack puts them."""
+    from model_export.localiser.scenes import HeadModel, synth_stack
+    from service.core.threads import available_cores
+    from service.preprocess.localiser_inputs import localiser_inputs
+    from tests.support.phantoms import phantom_brain
+
+    image, mask, affine = phantom_brain(11)
+    volume, _ = synth_stack(HeadModel.from_arrays(image, mask, affine), np.random.default_rng(7), "heldout")
+    x, _ = localiser_inputs(volume, localiser.grid_mm)
+    name = localiser.session.get_inputs()[0].name
+    whole = lambda inputs: localiser.session.run(None, {name: np.ascontiguousarray(inputs)})[0][:, 0]  # noqa: E731
+    expected = 0.5 * (whole(x) + whole(x[..., ::-1])[..., ::-1])
+    assert len(x) > 2 * 8 and localiser.side_by_side == (available_cores() >= 2)
+    for threads in (0, 1):
+        loaded = Localiser.load(localiser.path, threads=threads)
+        assert loaded.side_by_side == (threads == 0 and available_cores() >= 2)
+        assert np.abs(loaded._logits(name, x) - expected).max() < 1e-4
+
+
 def test_a_zero_filled_slice_through_the_brain_does_not_cut_it_in_two(localiser: Localiser) -> None:
     """A slice a scanner or converter filled with zeros, in the middle of the brain, holds no image:
     it gets no mask, and the brain on either side of it is found as in the stack without it (the
