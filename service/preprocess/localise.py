@@ -146,7 +146,9 @@ class Localisation:
 
 def inset_in_plane(mask: NDArray, spacing: NDArray, inset_mm: float, axis: int | None = None) -> NDArray[np.bool_]:
     """``mask`` without the pixels within ``inset_mm`` of its outside, in the plane of each slice along
-    ``axis`` (default: the thick one), by exact Euclidean distances on the voxel sizes ``spacing``.
+    ``axis`` (default: the thick one), by exact Euclidean distances on the voxel sizes ``spacing``:
+    an erosion by the in-plane disc of the offsets within ``inset_mm`` (outside the array counts as
+    outside), which on a fine grid costs half a distance transform.
 
     Example (a 20 x 20 mm square of 1 mm pixels loses 2 mm on each side):
         >>> m = np.zeros((30, 30, 3), bool); m[5:25, 5:25] = True
@@ -155,18 +157,17 @@ def inset_in_plane(mask: NDArray, spacing: NDArray, inset_mm: float, axis: int |
         (256, True)
     """
     mask = np.asarray(mask, bool)
-    found = np.argwhere(mask)
-    if len(found) == 0:
+    box = mask_box(mask, [0, 0, 0])
+    if box is None:
         return mask.copy()
     axis = slice_axis_of(spacing) if axis is None else axis
-    lo, hi = np.maximum(found.min(0) - 1, 0), found.max(0) + 2
-    box = tuple(slice(a, b) for a, b in zip(lo, hi))
-    sampling = np.array(spacing, np.float64)
-    sampling[axis] = 1e6                                  # the nearest outside is always in the slice's plane
-    inside = np.pad(mask[box], 1)
-    distance = ndimage.distance_transform_edt(inside, sampling=sampling)[1:-1, 1:-1, 1:-1]
+    sampling = np.asarray(spacing, np.float64)
+    reach = [0 if k == axis else int(np.floor(inset_mm / sampling[k])) for k in range(3)]
+    offsets = np.meshgrid(*[np.arange(-r, r + 1) * sampling[k] for k, r in enumerate(reach)], indexing="ij")
+    disc = sum(o ** 2 for o in offsets) <= inset_mm ** 2
+    inside = np.pad(mask[box], [(r, r) for r in reach])
     out = np.zeros_like(mask)
-    out[box] = mask[box] & (distance > inset_mm)
+    out[box] = ndimage.binary_erosion(inside, disc)[tuple(slice(r, len_ - r) for r, len_ in zip(reach, inside.shape))]
     return out
 
 

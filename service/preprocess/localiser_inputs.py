@@ -199,7 +199,8 @@ def localiser_inputs(volume: Volume, grid_mm: float) -> tuple[NDArray[np.float32
     if not finite.all():                                                  # NaN and inf pixels count as 0
         images = np.where(finite, images, np.float32(0.0))
     scale = float(np.percentile(images[:, ::3, ::3], PERCENTILE))        # every 9th pixel: as good, 30x faster
-    images = np.clip(images / scale, 0.0, 2.0) if scale > 0 else np.zeros_like(images)
+    # float32 bounds: with Python floats numpy clips a float32 array through a buffered float64 loop, 5x slower
+    images = np.clip(images / scale, np.float32(0.0), np.float32(2.0)) if scale > 0 else np.zeros_like(images)
     small = _resample(images, pixel_mm, grid_mm)
     band = _band(images, grid_mm)
     padded, offset = _pad(small, band, FLUID_LEVEL)

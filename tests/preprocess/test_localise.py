@@ -299,6 +299,25 @@ def test_a_real_brain_leaking_into_the_fetal_body_is_cut_at_the_waist(localiser:
     assert per_slice[:37].all() and not per_slice[38:].any()
 
 
+def test_the_inset_removes_exactly_the_pixels_within_its_distance_of_the_outside() -> None:
+    """Against exact in-plane Euclidean distances to the nearest outside pixel (outside the array
+    counts as outside): random masks on grids of scanners' voxel sizes, touching the array's edge,
+    distances that tie with a pixel's, and each axis as the slice axis."""
+    from service.preprocess.localise import inset_in_plane
+
+    rng = np.random.default_rng(0)
+    for case in range(60):
+        shape = tuple(int(n) for n in rng.integers(5, 30, 3))
+        spacing = rng.choice([0.5, 0.5625, 0.7, 1.0, 1.125, 1.6, 3.0, 3.3], 3)
+        mask = ndimage.binary_dilation(rng.random(shape) > 0.97, iterations=int(rng.integers(1, 5)))
+        mask[:, :2] |= case % 5 == 0
+        inset, axis = float(rng.choice([1.0, 2.0, 2.5])), int(rng.integers(0, 3))
+        sampling = np.array(spacing, np.float64)
+        sampling[axis] = 1e6                                   # the nearest outside within the slice's plane
+        distance = ndimage.distance_transform_edt(np.pad(mask, 1), sampling=sampling)[1:-1, 1:-1, 1:-1]
+        np.testing.assert_array_equal(inset_in_plane(mask, spacing, inset, axis), mask & (distance > inset))
+
+
 def test_the_pose_network_gets_the_localisers_mask_without_its_csf_rim() -> None:
     """An uploaded mask is used as it is; the localiser's (the skull's inside) loses its outer
     POSE_MASK_INSET_MM in each slice's plane, whatever the slice axis, and no slice gains a pixel."""

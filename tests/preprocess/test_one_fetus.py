@@ -132,3 +132,16 @@ def test_the_pixels_near_the_fetus_are_those_near_it_in_the_scanner() -> None:
     slack = GRID_MM + 3.3 / 2
     assert back[distance <= CENTRE_REACH_MM - slack].all()
     assert not back[distance > CENTRE_REACH_MM + slack].any()
+
+
+def test_a_brains_centre_is_the_mean_of_its_voxels_in_scanner_mm() -> None:
+    """From the mask's counts along each axis: the mean of its voxels' positions, on an oblique grid."""
+    rng = np.random.default_rng(3)
+    mask = rng.random((30, 20, 12)) > 0.8
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    affine = np.eye(4)
+    affine[:3, :3], affine[:3, 3] = q @ np.diag([0.7, 0.9, 3.3]), [-40.0, 12.5, 80.0]
+    voxels = np.argwhere(mask)
+    expected = (affine[:3, :3] @ voxels.T).T.mean(axis=0) + affine[:3, 3]
+    np.testing.assert_allclose(brain_centre_mm(mask, affine), expected, atol=1e-9)
+    assert brain_centre_mm(np.zeros((3, 3, 3), bool), affine) is None
