@@ -232,9 +232,12 @@ def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: 
         volumes = list(pool.map(lambda job: _read(*job, budget), jobs))
     n = len(stacks)
     for (_, _, name), volume in zip(jobs[:n], volumes[:n]):
-        count = volume.array.shape[slice_axis_of(volume.spacing)]
+        axis = slice_axis_of(volume.spacing)
+        count = volume.array.shape[axis]
         if max_slices is not None and count > max_slices:
-            raise UnusableImage(f"{name}: {count} slices; at most {max_slices} in one stack of 2D slices "
+            voxels = " x ".join(f"{s:.3g}" for s in volume.spacing)
+            raise UnusableImage(f"{name}: {count} slices along its array axis {axis}, the axis of largest "
+                                f"spacing (voxels of {voxels} mm); at most {max_slices} in one stack of 2D slices "
                                 "(SVRNET_MAX_SLICES_PER_STACK)")
     return [mask_on_stack_grid(StackUpload(jobs[i][2], volumes[i], volumes[n + i] if masks else None,
                                            jobs[n + i][2] if masks else None, mask_holds_csf=masks_hold_csf))

@@ -69,6 +69,29 @@ class StackUpload:
         otherwise the axis of largest spacing (:func:`~service.preprocess.stack.stack_axis`)."""
         return stack_axis(self.volume)
 
+    def mask_voxels(self) -> NDArray[np.bool_] | None:
+        """The uploaded mask's brain voxels (:func:`mask_voxels`); None without a mask."""
+        return None if self.mask is None else mask_voxels(self.mask.array)
+
+
+def mask_voxels(array: NDArray) -> NDArray[np.bool_]:
+    """The voxels an uploaded mask marks: every nonzero voxel of a mask of whole numbers (0 / 1,
+    0 / 255, a label map), and of a mask of fractions (a probability map, a mask resampled with
+    partial volumes) those at half its largest value or more: a probability map's faint background
+    is not brain, nor the blur a resampled mask's edge gains.
+
+    Example (a binary mask as floats, and a probability map with a faint background):
+        >>> mask_voxels(np.array([0.0, 255.0, 255.0])).tolist(), mask_voxels(np.array([0.02, 0.3, 0.9, 1.0])).tolist()
+        ([False, True, True], [False, False, True, True])
+    """
+    a = np.asarray(array)
+    if a.dtype.kind in "biu":
+        return a > 0
+    a = np.where(np.isfinite(a), a, 0.0)
+    if not a.size or np.array_equal(a, np.round(a)):
+        return a > 0
+    return a >= 0.5 * float(a.max())
+
 
 @dataclass
 class PreparedStack:
@@ -167,7 +190,7 @@ def check_mask_grid(upload: StackUpload) -> None:
 def localise(upload: StackUpload, localiser: Localiser | None = None) -> Localisation:
     """The uploaded mask, else the brain that ``localiser`` (default: the shipped one) finds."""
     if upload.mask is not None:
-        return Localisation.of(upload.mask.array, upload.volume.spacing, "mask", 1.0, upload.mask_holds_csf)
+        return Localisation.of(upload.mask_voxels(), upload.volume.spacing, "mask", 1.0, upload.mask_holds_csf)
     return (localiser or default_localiser()).localise(upload.volume)
 
 
@@ -203,7 +226,7 @@ def localise_uploads(uploads: list[StackUpload], localiser: Localiser | None = N
 
 def mask_centres(uploads: list[StackUpload]) -> list[np.ndarray]:
     """The centres (scanner mm) of the uploaded masks' brains: where the user's fetus is."""
-    centres = [brain_centre_mm(u.mask.array > 0, u.volume.affine) for u in uploads if u.mask is not None]
+    centres = [brain_centre_mm(u.mask_voxels(), u.volume.affine) for u in uploads if u.mask is not None]
     return [c for c in centres if c is not None]
 
 

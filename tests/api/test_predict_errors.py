@@ -147,7 +147,7 @@ def test_a_stack_of_more_slices_than_the_limit_is_422_before_any_stage(oracle: o
     with make_client(ModelRegistry({"default": oracle}), max_slices_per_stack=10) as client:
         for route in ("/v1/predict", "/v1/masks", "/v1/reconstructions"):
             r = client.post(route, files=[("stacks", ("long.nii.gz", long))])
-            assert_problem(r, 422, "long.nii.gz", "12 slices; at most 10")
+            assert_problem(r, 422, "long.nii.gz", "12 slices along its array axis 2", "at most 10")
         assert not client.app.state.job_store.queued()
 
 

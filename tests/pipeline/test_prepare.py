@@ -138,3 +138,23 @@ def test_a_mask_written_with_a_qform_alone_beside_a_slightly_oblique_sform_is_on
         assert upload.mask.array[: size // 3].all() and not upload.mask.array[size // 3:].any()
     with pytest.raises(UnusableImage, match="moved.nii.gz is not on the grid"):
         check_mask_grid(StackUpload("s.nii.gz", volume, read_volume(tmp_path / "moved.nii.gz"), "moved.nii.gz"))
+
+
+def test_a_mask_of_fractions_marks_what_its_binary_original_marks() -> None:
+    """A probability map with a faint background, and a binary mask resampled with partial volumes,
+    mark the brain its binary original marks, not the whole field of view or a blurred rim; whole
+    numbers (0 / 255 as floats, a label map) mark every nonzero voxel."""
+    from scipy import ndimage
+
+    vol = Volume(np.random.default_rng(5).random((60, 50, 12), np.float32), np.diag([1.2, 1.2, 3.0, 1.0]))
+    zz, yy, xx = np.mgrid[:60, :50, :12]
+    brain = ((zz - 30) / 18.0) ** 2 + ((yy - 25) / 15.0) ** 2 + ((xx - 6) / 5.0) ** 2 <= 1.0
+    binary = localise(StackUpload("s.nii.gz", vol, Volume(brain.astype(np.uint8), vol.affine)))
+    blurred = ndimage.gaussian_filter(brain.astype(np.float32), (1.5, 1.5, 0.5))
+    for fractions in (0.02 + 0.98 * blurred, blurred):
+        found = localise(StackUpload("s.nii.gz", vol, Volume(fractions.astype(np.float32), vol.affine)))
+        dice = 2 * (found.mask & binary.mask).sum() / (found.mask.sum() + binary.mask.sum())
+        assert dice > 0.95 and abs(found.brain_volume_ml / binary.brain_volume_ml - 1) < 0.06
+    labels = brain.astype(np.float32) * 255.0
+    labels[brain & (zz < 30)] = 2.0                                 # two labels, both brain
+    assert np.array_equal(localise(StackUpload("s.nii.gz", vol, Volume(labels, vol.affine))).mask, binary.mask)
