@@ -77,7 +77,8 @@ def score_scene(scene: Scene, variant: str, estimator, localiser: Localiser | No
     if hasattr(estimator, "truth"):
         estimator.truth = prepared[0].in_network_frame(scene.atlas_from_voxel)
     predictions, _ = predict(prepared, estimator, mc_samples, info.variance_threshold)
-    poses, posed = slice_poses(stack_objects(predictions)[0], prepared[0])
+    answer = stack_objects(predictions)[0]
+    poses, posed = slice_poses(answer, prepared[0])
     truth = scene.atlas_from_voxel @ np.linalg.inv(prepared[0].slices.slice_from_voxel)
     scored = np.flatnonzero(scene.brain.sum(axis=(0, 1)) >= MIN_BRAIN_PIXELS)
     keep = scored[posed[scored]]
@@ -85,28 +86,40 @@ def score_scene(scene: Scene, variant: str, estimator, localiser: Localiser | No
     ed, ed_min = np.full(len(scored), np.nan), np.full(len(scored), np.nan)
     ed[posed[scored]] = anchors.ed(poses[keep], truth[keep])
     ed_min[posed[scored]] = twin.twin_min_ed(poses[keep], truth[keep], plane)
-    return {"ed": ed, "ed_min": ed_min}
+    expected = np.array([np.nan if a["expected_error_mm"] is None else a["expected_error_mm"]
+                         for a in answer["slices"]], np.float64)[scored]
+    accepted = np.array([bool(a["accepted"]) for a in answer["slices"]])[scored]
+    return {"ed": ed, "ed_min": ed_min, "expected": expected, "accepted": accepted}
 
 
 def pose_accuracy(scenes: list[Scene], estimator, localiser: Localiser,  # noqa: ANN001
                   variants: tuple[str, ...] = VARIANTS, mc_samples: int = 100) -> dict[str, dict]:
     """Per mask variant over all ``scenes``: median and mean E.D. and twin-min E.D. of the posed brain
-    slices, their count, and the share of brain slices left ``empty``."""
-    rows: dict[str, dict[str, list]] = {v: {"ed": [], "ed_min": []} for v in variants}
+    slices, their count, the share of brain slices left ``empty``, RMS E.D. over RMS
+    ``expected_error_mm`` (1: the expected errors are honest), and the slices accepted, of which
+    how many lie over 10 mm from the truth."""
+    keys = ("ed", "ed_min", "expected", "accepted")
+    rows: dict[str, dict[str, list]] = {v: {key: [] for key in keys} for v in variants}
     for scene in scenes:
         for variant in variants:
             got = score_scene(scene, variant, estimator, localiser if variant == "localiser" else None, mc_samples)
-            for key in ("ed", "ed_min"):
+            for key in keys:
                 rows[variant][key].append(got[key])
     out = {}
     for variant, r in rows.items():
         ed, ed_min = np.concatenate(r["ed"]), np.concatenate(r["ed_min"])
+        expected, accepted = np.concatenate(r["expected"]), np.concatenate(r["accepted"])
         posed = np.isfinite(ed)
+        told = posed & np.isfinite(expected)
         out[variant] = {"median_ed_mm": float(np.median(ed[posed])) if posed.any() else None,
                         "mean_ed_mm": float(np.mean(ed[posed])) if posed.any() else None,
                         "median_twin_min_mm": float(np.median(ed_min[posed])) if posed.any() else None,
                         "mean_twin_min_mm": float(np.mean(ed_min[posed])) if posed.any() else None,
-                        "slices": int(posed.sum()), "empty_share": float(1 - posed.mean()) if len(ed) else None}
+                        "slices": int(posed.sum()), "empty_share": float(1 - posed.mean()) if len(ed) else None,
+                        "rms_ed_over_rms_expected": float(np.sqrt(np.mean(ed[told] ** 2) / np.mean(expected[told] ** 2)))
+                        if told.any() else None,
+                        "accepted": int((accepted & posed).sum()),
+                        "accepted_over_10mm": int((accepted & posed & (np.nan_to_num(ed, nan=0.0) > 10.0)).sum())}
     return out
 
 

@@ -58,8 +58,12 @@ models averaged lie close enough together; a coarser grid is measurably worse, a
 nothing (measured in docs/reports/consistency-experiments.md)."""
 AMPLITUDES_MM = (1.0, 2.0, 3.0, 4.5, 6.0, 9.0, 12.0, 18.0, 24.0)
 """Candidate motion amplitudes (mm at the anchor radius, per component)."""
-NOISE_SCALES = (1.0, 1.5, 2.0)
-"""Candidate factors on the slices' expected errors (the calibration is made on single slices)."""
+NOISE_SCALES = tuple(float(2.0 ** (k / 6)) for k in range(7))
+"""Candidate factors on the slices' expected errors (the calibration is made on single slices): 1 to
+2 in steps of 2^(1/6) (12 %). The likelihood of a stack's 100-200 coordinates is sharp in this
+factor, so the average over the models stays near the grid's nearest point: between factors 1.5 times
+apart a stack's every expected error jumped by a third where a file's lossless rewrite moved the
+likelihood's peak across their midpoint (docs/reports/consistency-experiments.md)."""
 ERROR_CORRELATIONS = (0.0, 0.5, 0.9)
 """Candidate correlations of the network's errors between neighbouring slices (they look alike)."""
 ERROR_CORRELATION_SLICES = 1.5
