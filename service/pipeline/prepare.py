@@ -188,9 +188,11 @@ def check_mask_grid(upload: StackUpload) -> None:
 
 
 def localise(upload: StackUpload, localiser: Localiser | None = None) -> Localisation:
-    """The uploaded mask, else the brain that ``localiser`` (default: the shipped one) finds."""
+    """The uploaded mask (its confidence 1, or 0 where it marks no voxel: the user says the stack
+    shows no brain), else the brain that ``localiser`` (default: the shipped one) finds."""
     if upload.mask is not None:
-        return Localisation.of(upload.mask_voxels(), upload.volume.spacing, "mask", 1.0, upload.mask_holds_csf)
+        voxels = upload.mask_voxels()
+        return Localisation.of(voxels, upload.volume.spacing, "mask", float(voxels.any()), upload.mask_holds_csf)
     return (localiser or default_localiser()).localise(upload.volume)
 
 

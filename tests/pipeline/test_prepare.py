@@ -158,3 +158,15 @@ def test_a_mask_of_fractions_marks_what_its_binary_original_marks() -> None:
     labels = brain.astype(np.float32) * 255.0
     labels[brain & (zz < 30)] = 2.0                                 # two labels, both brain
     assert np.array_equal(localise(StackUpload("s.nii.gz", vol, Volume(labels, vol.affine))).mask, binary.mask)
+
+
+def test_an_uploaded_mask_that_marks_nothing_is_reported_with_no_confidence() -> None:
+    """An all-zero mask is the user's word that the stack shows no brain: its slices are empty and its
+    localisation says so (confidence 0, 0 ml), not a sure localisation of nothing."""
+    vol = Volume(np.random.default_rng(3).random((20, 20, 4), np.float32), np.diag([1.0, 1.0, 3.0, 1.0]))
+    found = localise(StackUpload("s.nii.gz", vol, Volume(np.zeros((20, 20, 4), np.uint8), vol.affine)))
+    assert found.method == "mask" and found.confidence == 0.0 and found.brain_volume_ml == 0.0 and not found.mask.any()
+    box = np.zeros((20, 20, 4), np.uint8)
+    box[5:15, 5:15] = 1
+    assert localise(StackUpload("s.nii.gz", vol, Volume(box, vol.affine))).confidence == 1.0
+
