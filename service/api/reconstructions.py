@@ -137,7 +137,7 @@ def check_slices_to_use(uploads: list[StackUpload], accepted: list[np.ndarray] |
         return
     holding = []                                  # per stack: which slices hold a voxel of its mask
     for u in uploads:
-        inside = np.moveaxis(u.mask_voxels(), u.slice_axis, 0)
+        inside = np.moveaxis(u.mask_voxels, u.slice_axis, 0)
         holding.append(inside.reshape(len(inside), -1).any(1))
     if not any(h.any() for h in holding):
         raise UnusableImage(f"masks: no mask holds a voxel ({', '.join(str(u.mask_filename) for u in uploads)}); "

@@ -20,6 +20,7 @@ Example (a stack with its mask, prepared without N4):
 
 from __future__ import annotations
 
+import functools
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -69,8 +70,10 @@ class StackUpload:
         otherwise the axis of largest spacing (:func:`~service.preprocess.stack.stack_axis`)."""
         return stack_axis(self.volume)
 
+    @functools.cached_property
     def mask_voxels(self) -> NDArray[np.bool_] | None:
-        """The uploaded mask's brain voxels (:func:`mask_voxels`); None without a mask."""
+        """The uploaded mask's brain voxels (:func:`mask_voxels`), worked out once however many stages
+        ask (the localisation, the request's fetus, a job's check); None without a mask."""
         return None if self.mask is None else mask_voxels(self.mask.array)
 
 
@@ -191,7 +194,7 @@ def localise(upload: StackUpload, localiser: Localiser | None = None) -> Localis
     """The uploaded mask (its confidence 1, or 0 where it marks no voxel: the user says the stack
     shows no brain), else the brain that ``localiser`` (default: the shipped one) finds."""
     if upload.mask is not None:
-        voxels = upload.mask_voxels()
+        voxels = upload.mask_voxels
         return Localisation.of(voxels, upload.volume.spacing, "mask", float(voxels.any()), upload.mask_holds_csf)
     return (localiser or default_localiser()).localise(upload.volume)
 
@@ -228,7 +231,7 @@ def localise_uploads(uploads: list[StackUpload], localiser: Localiser | None = N
 
 def mask_centres(uploads: list[StackUpload]) -> list[np.ndarray]:
     """The centres (scanner mm) of the uploaded masks' brains: where the user's fetus is."""
-    centres = [brain_centre_mm(u.mask_voxels(), u.volume.affine) for u in uploads if u.mask is not None]
+    centres = [brain_centre_mm(u.mask_voxels, u.volume.affine) for u in uploads if u.mask is not None]
     return [c for c in centres if c is not None]
 
 
