@@ -104,6 +104,41 @@ def undecided(out: StackPoses) -> bool:
     return out.fit is not None and out.fit.decidable and not out.fit.branch_decided and not out.fit.branch_from_request
 
 
+MISFIT_ONSET = 0.7
+"""Where a stack's slices start to disagree with its motion model more than its spreads explain: the
+median (root mean square) of their leave-one-out residuals in units of the spread both errors
+explain (:attr:`~service.consistency.stack_fit.StackFit.residual_z`)."""
+MISFIT_GAIN = 1.4
+"""How fast a stack's expected errors grow past :data:`MISFIT_ONSET` (:func:`misfit_factor`). Onset
+and gain are measured on simulated stacks sent alone (smooth, jumping and independent motion; the
+calibration and its check in docs/reports/consistency-experiments.md)."""
+
+
+def misfit_factor(fit: StackFit | None) -> float:
+    """The factor on a stack's expected errors where no later stage weighs its slices again.
+
+    The motion model's spreads hold where the fetus moves as the model says, smoothly. Where it
+    jumps, or every slice moves on its own, the model's spreads are too small by up to half again
+    (stacks sent alone: RMS E.D. / RMS expected 1.3-1.5), and its slices' residuals against what
+    the others predict are larger than the spreads explain. The factor is
+    ``1 + MISFIT_GAIN * max(0, z - MISFIT_ONSET)``, ``z`` the stack's median (RMS) residual in
+    units of that spread; 1 for a stack the stage did not fit.
+
+    Example:
+        >>> from types import SimpleNamespace
+        >>> round(misfit_factor(SimpleNamespace(decidable=True, residual_z=np.array([0.5, 1.2, 1.0]))), 3)
+        1.42
+        >>> misfit_factor(None)
+        1.0
+    """
+    z = None if fit is None or not fit.decidable else getattr(fit, "residual_z", None)
+    z = np.asarray([] if z is None else z, np.float64)
+    z = z[np.isfinite(z)]
+    if len(z) == 0:
+        return 1.0
+    return 1.0 + MISFIT_GAIN * max(0.0, float(np.sqrt(np.median(z ** 2))) - MISFIT_ONSET)
+
+
 CHECKED_MARGIN = 3.0
 """A stack that decided its branch by a margin under this is checked against the request's other
 stacks (:func:`checked_branch`): a stack whose slices tell its branch only

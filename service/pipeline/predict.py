@@ -31,6 +31,7 @@ from service.consistency.stage import (
     ImageConsistency,
     StackPoses,
     checked_branch,
+    misfit_factor,
     consistent_poses,
     pool_request,
     request_reference,
@@ -107,6 +108,9 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate |
     """Add to each returned pose's expected error (in place) what no stage sees; return what the
     noise added (mm, in quadrature; shaped as ``input_noise``).
 
+    * Where no image stage weighed the stack's slices again (a stack sent alone, a stream's stack, a
+      stack the request could not place), the motion its model did not explain: the stage's
+      expected errors times :func:`~service.consistency.stage.misfit_factor`.
     * The request's placement in the atlas frame: the model's ``expected_error_floor_mm``, in quadrature.
     * Inputs noisier than the network learnt (its stack's ``input_noise``, one value or one per
       slice): the model's ``noise_error`` calibration (:func:`~service.preprocess.noise.noise_error_mm`),
@@ -139,12 +143,13 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate |
     """
     if out.expected_error_mm is None:
         return add_noise_error(out, info, input_noise)
-    variance = np.asarray(out.expected_error_mm, np.float64) ** 2 + float(getattr(info, "expected_error_floor_mm", 0.0)) ** 2
+    refined = out.image_consistency
+    own = np.asarray(out.expected_error_mm, np.float64) * (misfit_factor(out.fit) if refined is None else 1.0)
+    variance = own ** 2 + float(getattr(info, "expected_error_floor_mm", 0.0)) ** 2
     logit = getattr(info, "twin_risk_logit", None)
     if logit is not None and out.fit is not None and out.fit.decidable:
         d = twin_distance_mm(out.poses, getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM))
         variance = variance + twin_variance(d, logit)
-    refined = out.image_consistency
     variance = np.maximum(variance, (refined.placement_floor_mm if refined is not None else 0.0) ** 2)
     if estimate is not None:
         variance = np.where(estimate.estimated & np.isnan(estimate.variance), np.nan, variance)

@@ -115,3 +115,32 @@ def test_the_other_stacks_overrule_a_stack_that_decided_its_branch_weakly(monkey
     assert anchors.ed(redo.poses, truth).mean() > 50.0
     assert checked_branch(alone, true_side, refit) is alone and len(asked) == 2    # asked, agrees with it
     assert checked_branch(alone, None, refit) is alone and len(asked) == 2          # no other stack
+
+
+def test_slices_that_move_on_their_own_raise_the_misfit_factor_and_it_makes_their_errors_more_honest() -> None:
+    """The same stacks and network errors (4 deg / 3 mm), the fetus drifting smoothly or every slice
+    moving on its own within 20 deg / 8 mm: the second's slices disagree with their motion model
+    beyond its spreads, so its factor is larger in every stack, and its expected errors times the
+    factor lie nearer the true errors than without."""
+    from model_export.acquisitions import interleaved_times, motion_twists
+    from service.consistency import fit_stack
+    from service.consistency.stage import misfit_factor
+    from tests.consistency.test_stack_fit import stack
+
+    noise = np.array([np.radians(4.0)] * 3 + [3.0] * 3) / np.sqrt(3.0)
+    centre = np.array([1.0, -3.0, 10.0])
+    factors, ratios = {}, []
+    for seed in range(5):
+        for motion in ("mild", "independent"):
+            rng = np.random.default_rng(seed)
+            truth, nfs = stack(rng, "mild", n=30)
+            moved = translate(centre) @ se3.exp(motion_twists(interleaved_times(30), rng, motion)) @ translate(-centre) @ truth
+            noisy = moved @ se3.exp(rng.normal(0, 1, (30, 6)) * noise)
+            fit = fit_stack(noisy, nfs, expected_error_mm=np.full(30, np.sqrt(np.mean(anchors.ed(noisy, moved) ** 2))))
+            factors[seed, motion] = misfit_factor(fit)
+            if motion == "independent":
+                err = np.sqrt(np.mean(anchors.ed(fit.poses, moved) ** 2))
+                ratios.append((err / np.sqrt(np.mean(fit.expected_error_mm ** 2)), err / np.sqrt(np.mean((fit.expected_error_mm * factors[seed, motion]) ** 2))))
+    assert all(factors[s, "independent"] > factors[s, "mild"] + 0.2 for s in range(5)), factors
+    before, after = np.median(ratios, axis=0)
+    assert before > 2.0 and abs(np.log(after)) < 0.6 * abs(np.log(before)), ratios

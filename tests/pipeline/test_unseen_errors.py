@@ -120,3 +120,21 @@ def test_predict_gives_each_stack_the_noise_error_of_its_own_input_noise() -> No
     assert [s["noise"]["expected_error_added_mm"] for s in stack_objects(after)] == [0.0, 3.0]
     grown = after[1].poses.expected_error_mm - before[1].poses.expected_error_mm
     assert np.all(grown[np.isfinite(grown)] > 0.1)              # 3 mm in quadrature on the phantom's ~20 mm
+
+
+def test_a_stack_no_image_stage_weighed_again_takes_its_misfit_factor_before_the_floor() -> None:
+    """Slices whose residuals against the others' prediction are 1.7 times the spread the model
+    explains (median): the stage's 3 mm grow by ``1 + MISFIT_GAIN * (1.7 - MISFIT_ONSET)`` before the
+    floor is added; a stack the image stage refined keeps its own errors, and so does one whose
+    slices agree with their model."""
+    from service.consistency.stage import MISFIT_GAIN, MISFIT_ONSET, ImageConsistency
+
+    info = SimpleNamespace(expected_error_floor_mm=2.0, twin_risk_logit=None, symmetry_plane_x_mm=0.0)
+    factor = 1.0 + MISFIT_GAIN * (1.7 - MISFIT_ONSET)
+    for z, refined, own in (([1.7, 1.7, 0.2], None, 3.0 * factor), ([1.7, 1.7, 0.2], True, 3.0), ([0.5, 0.6, 0.2], None, 3.0)):
+        out = _stack([10.0, 20.0, 30.0], decidable=True)
+        out.fit = SimpleNamespace(decidable=True, residual_z=np.array(z))
+        if refined:
+            out.image_consistency = ImageConsistency(2, 10, 3, 0.5, 1.0, 0.8)
+        add_unseen_errors(out, info)
+        np.testing.assert_allclose(out.expected_error_mm, np.hypot(own, 2.0))
