@@ -186,9 +186,9 @@ def simulate_stack(image: NDArray, mask: NDArray, affine: NDArray, centre: NDArr
     img = sampling.sample_slices(image, affine, slice_poses, size, pixel_mm, thickness_mm=thickness_mm or None)
     msk = sampling.sample_slices(mask.astype(np.float32), affine, slice_poses, size, pixel_mm) > 0.5
     img = _corrupt(img, rng, noise, bias) if noise or bias else img
-    # slice [r, c] is voxel (i = c, j = r, k): the array is [i, j, k]
-    array = np.ascontiguousarray(img.transpose(2, 1, 0).astype(np.float32))
-    marray = np.ascontiguousarray(msk.transpose(2, 1, 0).astype(np.uint8))
+    # each picture back in the file's voxel order, as the service's slices lay it out (split_stack)
+    array = np.ascontiguousarray(stack_geo.to_stack(img).astype(np.float32))
+    marray = np.ascontiguousarray(stack_geo.to_stack(msk).astype(np.uint8))
     return SimulatedStack(Volume(array, file_affine), Volume(marray, file_affine), truth, orientation, times, motion)
 
 

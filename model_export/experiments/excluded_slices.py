@@ -33,7 +33,6 @@ from service.geometry.anchors import ed  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
 from service.inference.model_file import load_model  # noqa: E402
 from service.jobs.worker import MIN_ACCEPTED_SHARE, starting_poses  # noqa: E402
-from service.preprocess.stack import stack_from_slice_images  # noqa: E402
 from service.reconstruction.forward import inplane_sigma_mm  # noqa: E402
 from service.reconstruction.pipeline import ReconstructionConfig, reconstruct  # noqa: E402
 from service.reconstruction.registration import register_slices  # noqa: E402
@@ -56,7 +55,7 @@ def main() -> None:
         vol = vols[a % len(vols)]
         stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, args.level)
         (predictions,), prepared, _ = run_acquisition(stacks, est, 100, True)
-        masks = [stack_from_slice_images(p.slices.masks, p.slices.slice_axis) for p in prepared]
+        masks = [p.slices.to_stack(p.slices.masks) for p in prepared]
         poses = starting_poses({"stacks": stack_objects(predictions)}, MIN_ACCEPTED_SHARE)
         job_set = SliceSet.from_stacks([(s.volume, m, mats, inc) for s, m, (mats, inc) in zip(stacks, masks, poses)])
         every = SliceSet.from_stacks([(s.volume, m, mats, np.ones(len(mats), bool))

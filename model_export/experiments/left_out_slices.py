@@ -31,7 +31,6 @@ from service.geometry import twin  # noqa: E402
 from service.geometry.anchors import ed  # noqa: E402
 from service.jobs.uploaded_poses import expected_errors  # noqa: E402
 from service.jobs.worker import MIN_ACCEPTED_SHARE, starting_poses  # noqa: E402
-from service.preprocess.stack import stack_from_slice_images  # noqa: E402
 from service.reconstruction.left_out import VolumeReference, place_left_out  # noqa: E402
 from service.reconstruction.never_worse import reconstruct_never_worse  # noqa: E402
 from service.reconstruction.pipeline import ReconstructionConfig  # noqa: E402
@@ -60,7 +59,7 @@ def main() -> None:
             stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level)
             (predictions,), prepared, _ = run_acquisition(stacks, est, 100, True)
             body = {"stacks": stack_objects(predictions)}
-            masks = [stack_from_slice_images(p.slices.masks, p.slices.slice_axis) for p in prepared]
+            masks = [p.slices.to_stack(p.slices.masks) for p in prepared]
             inputs = [(s.volume, m, mats, inc) for s, m, (mats, inc)
                       in zip(stacks, masks, starting_poses(body, MIN_ACCEPTED_SHARE))]
             ss = SliceSet.from_stacks(inputs)

@@ -45,7 +45,6 @@ from service.inference.estimator import OnnxPoseEstimator
 from service.inference.model_file import load_model
 from service.jobs.uploaded_poses import expected_errors
 from service.jobs.worker import MIN_ACCEPTED_SHARE, starting_poses
-from service.preprocess.stack import stack_from_slice_images
 from service.reconstruction.atlas_frame import atlas_frame, with_frame
 from service.reconstruction.left_out import VolumeReference, place_left_out
 from service.reconstruction.midline import midline_fit
@@ -177,7 +176,7 @@ def main() -> None:
                 midlines[vol.name] = about_centre(midline_offset(vol), vol.centre)
             mid = midlines.get(vol.name)
             body = {"stacks": stack_objects(predictions)}
-            masks = [stack_from_slice_images(p.slices.masks, p.slices.slice_axis) for p in prepared]
+            masks = [p.slices.to_stack(p.slices.masks) for p in prepared]
             for name in variants:
                 variant, _, share = name.partition("@")
                 poses = starting_poses(body, float(share or shares[0]))

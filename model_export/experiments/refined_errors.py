@@ -36,7 +36,6 @@ from service.geometry import twin
 from service.geometry.anchors import ed
 from service.jobs.uploaded_poses import expected_errors
 from service.jobs.worker import starting_poses
-from service.preprocess.stack import stack_from_slice_images
 from service.reconstruction.job import refine_job
 from service.reconstruction.left_out import MIN_AREA_MM2
 from service.reconstruction.never_worse import held_out_score
@@ -59,7 +58,7 @@ ROLES = ("in_volume", "placed_by_stack_motion", "placed_by_volume", "left_out", 
 
 def job_slices(stacks, prepared, body: dict, est, plane: float, resolution: float, rounds: int) -> dict:  # noqa: ANN001
     """Every slice's columns for one acquisition (module docstring) and the job's path."""
-    masks = [stack_from_slice_images(p.slices.masks, p.slices.slice_axis) for p in prepared]
+    masks = [p.slices.to_stack(p.slices.masks) for p in prepared]
     inputs = [(s.volume, m, mats, inc) for s, m, (mats, inc) in zip(stacks, masks, starting_poses(body))]
     expected = expected_errors(body)
     job = refine_job(SliceSet.from_stacks(inputs), inputs, expected, estimator=est, plane_x_mm=plane,

@@ -85,3 +85,31 @@ def axes_cosine(axes: ArrayLike) -> NDArray[np.float64]:
     a = np.asarray(axes, dtype=np.float64)
     unit = a / np.maximum(np.linalg.norm(a, axis=-2, keepdims=True), 1e-12)
     return np.abs(np.swapaxes(unit, -1, -2) @ unit - np.eye(3)).max(axis=(-2, -1))
+
+
+def in_plane_layout(affine: ArrayLike, axis: int) -> tuple[int, int, int, int]:
+    """``(x_axis, y_axis, x_sign, y_sign)``: how a slice across voxel ``axis`` of a grid ``affine`` is
+    laid out as a picture, the same for every order the file stores its in-plane voxels in.
+
+    The picture's columns run along voxel axis ``x_axis`` (increasing where ``x_sign`` is 1, decreasing
+    where -1) and its rows along ``y_axis``. Of the four directions the two in-plane voxel axes give
+    (each either way), the columns take the one nearest the first world axis in the slice's plane,
+    the rows the other voxel axis, the way nearest the second. A file
+    that stores the slice's rows reversed or its two in-plane axes swapped describes the same four
+    directions, so its pictures come out as another file's of the same slices. The world axis
+    nearest the slice's normal is left out; of the other two the lower comes first (an axial slice's
+    columns run along x, its rows along y; a sagittal slice's along y and z).
+
+    Example (an axial grid stored with its in-plane axes swapped and its rows reversed):
+        >>> a = np.array([[0.0, 1.0, 0, 0], [-1.0, 0, 0, 0], [0, 0, 3.0, 0], [0, 0, 0, 1]])
+        >>> in_plane_layout(a, 2), in_plane_layout(np.diag([1.0, 1.0, 3.0, 1.0]), 2)
+        ((1, 0, 1, -1), (0, 1, 1, 1))
+    """
+    a = np.asarray(affine, dtype=np.float64)[:3, :3]
+    cols = a / np.linalg.norm(a, axis=0)
+    p, q = (ax for ax in range(3) if ax != axis)
+    normal = np.cross(cols[:, p], cols[:, q])
+    first, second = (ax for ax in range(3) if ax != int(np.argmax(np.abs(normal))))   # the world axes in the plane
+    x_axis = p if abs(cols[first, p]) >= abs(cols[first, q]) else q
+    y_axis = q if x_axis == p else p
+    return x_axis, y_axis, int(np.sign(cols[first, x_axis]) or 1), int(np.sign(cols[second, y_axis]) or 1)

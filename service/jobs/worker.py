@@ -35,7 +35,6 @@ from service.core.logging import error_at
 from service.inference.acceptance import EMPTY
 from service.jobs.store import JobStore
 from service.jobs.uploaded_poses import expected_errors, poses_from_predict_body
-from service.preprocess.stack import stack_from_slice_images
 
 log = logging.getLogger(__name__)
 
@@ -187,7 +186,7 @@ def predicted_body(uploads: list, estimator, mc_samples: int = 100,  # noqa: ANN
                             "empty); upload a brain mask with each stack")     # as /v1/predict's hint says it
     max_expected = max_expected_error_mm or info.max_expected_error_mm
     predictions, _ = predict(prepared, estimator, mc_samples, threshold, orders=orders, max_expected_error_mm=max_expected)
-    masks = [stack_from_slice_images(p.slices.masks, p.slices.slice_axis) for p in prepared]
+    masks = [p.slices.to_stack(p.slices.masks) for p in prepared]
     model = {"name": info.name, "version": info.version, "backbone": info.backbone,
              "sha256": info.sha256}
     return {"model": model, "mc_samples": mc_samples, "variance_threshold": threshold,

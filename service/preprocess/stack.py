@@ -1,10 +1,11 @@
 """A stack as a batch of 2D slices along its slice axis, with each slice's voxel -> slice-frame map.
 
 The slice axis is the voxel axis of largest spacing (ties: the last one), per the API contract.
-Of the two in-plane voxel axes ``p < q``, ``p`` runs along image columns (slice-frame ``x``) and ``q``
-along rows (``y``); the slice normal ``z = x cross y`` points to the side of increasing slice index
-when the voxel axes are right-handed and to the other side otherwise, so that the slice frame is
-always a right-handed, physically scaled copy of the stack's geometry.
+Each slice is laid out as a picture the same way whatever order the file stores its in-plane voxels
+in (:func:`~service.geometry.frames.in_plane_layout`: its columns, slice-frame ``x``, and rows, ``y``,
+along the in-plane voxel axes nearest two fixed world axes): a file with its rows reversed or its
+in-plane axes swapped shows the network the same pictures. The slice normal is ``z = x cross y``, so
+that the slice frame is always a right-handed, physically scaled copy of the stack's geometry.
 
 Example:
     >>> import numpy as np
@@ -31,11 +32,13 @@ class StackSlices:
     """Slices of one stack.
 
     Attributes:
-        images: ``[n, H, W]`` float32 (rows along voxel axis ``q``, columns along ``p``).
+        images: ``[n, H, W]`` float32, laid out as ``layout`` says.
         masks: ``[n, H, W]`` bool.
         pixel_mm: ``(row_mm, col_mm)``.
         slice_axis: the voxel axis the slices are taken along.
         slice_from_voxel: ``[n, 4, 4]`` voxel index ``(i, j, k, 1)`` -> slice-frame mm of each slice.
+        layout: ``(x_axis, y_axis, x_sign, y_sign)``, the voxel axes (and their directions) the
+            pictures' columns and rows run along (:func:`~service.geometry.frames.in_plane_layout`).
     """
 
     images: NDArray[np.float32]
@@ -43,6 +46,18 @@ class StackSlices:
     pixel_mm: tuple[float, float]
     slice_axis: int
     slice_from_voxel: NDArray[np.float64]
+    layout: tuple[int, int, int, int] = (0, 1, 1, 1)
+
+    def to_stack(self, pictures: NDArray) -> NDArray:
+        """``[n, H, W]`` arrays laid out as these slices' pictures, back in the stack's voxel order.
+
+        Example (a stack stored with its rows reversed):
+            >>> vol = Volume(np.arange(24.0).reshape(2, 4, 3), np.diag([1.0, -1.0, 3.0, 1.0]))
+            >>> s = split_stack(vol, np.ones((2, 4, 3), bool))
+            >>> s.layout, bool(np.array_equal(s.to_stack(s.images), vol.array))
+            ((0, 1, 1, -1), True)
+        """
+        return stack_from_pictures(pictures, self.slice_axis, self.layout)
 
 
 def mask_box(mask: NDArray, margin: NDArray | list[int]) -> tuple[slice, ...] | None:
@@ -97,8 +112,10 @@ def blank_slices(volume: Volume) -> NDArray[np.bool_]:
 
 
 def slice_images(array: NDArray, affine: NDArray, axis: int) -> tuple[NDArray, tuple[float, float]]:
-    """``[n, H, W]`` slices of a stack's ``array`` along ``axis`` (rows along the higher in-plane voxel
-    axis, columns along the lower) and their ``(row_mm, col_mm)``; a view where it can be."""
+    """``[n, H, W]`` slices of a stack's ``array`` along ``axis`` in the file's order (rows along the
+    higher in-plane voxel axis, columns along the lower) and their ``(row_mm, col_mm)``; a view where
+    it can be. The localiser's input (:mod:`~service.preprocess.localiser_inputs`), which its network
+    learnt in this order; the pose network's slices are laid out by the scanner's axes (:func:`split_stack`)."""
     p, q = [ax for ax in range(3) if ax != axis]
     sp = frames.voxel_spacing(affine)
     return np.moveaxis(np.asarray(array), axis, 0).transpose(0, 2, 1), (float(sp[q]), float(sp[p]))
@@ -111,21 +128,37 @@ def stack_from_slice_images(images: NDArray, axis: int) -> NDArray:
 
 def split_stack(volume: Volume, mask: NDArray, axis: int | None = None) -> StackSlices:
     """Slices, masks and slice-frame transforms of a stack (vectorised, no per-slice loop), along
-    ``axis`` (default: :func:`stack_axis`, the one the volume says, else the one its spacing does)."""
+    ``axis`` (default: :func:`stack_axis`, the one the volume says, else the one its spacing does),
+    each slice laid out as :func:`~service.geometry.frames.in_plane_layout` says."""
     a = stack_axis(volume) if axis is None else axis
-    p, q = [ax for ax in range(3) if ax != a]
-    images = slice_images(np.asarray(volume.array, dtype=np.float32), volume.affine, a)[0]
-    masks = slice_images(np.asarray(mask, dtype=bool), volume.affine, a)[0]
+    layout = frames.in_plane_layout(volume.affine, a)
+    x_axis, y_axis, sx, sy = layout
+    images = pictures(np.asarray(volume.array, dtype=np.float32), a, layout)
+    masks = pictures(np.asarray(mask, dtype=bool), a, layout)
     n, h, w = images.shape
     sp = frames.voxel_spacing(volume.affine)
-    cols = volume.affine[:3, :3] / sp
-    sign = np.sign(np.dot(cols[:, a], np.cross(cols[:, p], cols[:, q]))) or 1.0
+    order = [x_axis, y_axis, a]
+    parity = 1.0 if sum(order[i] > order[j] for i in range(3) for j in range(i + 1, 3)) % 2 == 0 else -1.0
+    sz = (np.sign(np.linalg.det(volume.affine[:3, :3])) or 1.0) * sx * sy * parity   # the frame right-handed
     m = np.zeros((n, 4, 4))
-    m[:, 0, p] = sp[p]
-    m[:, 0, 3] = -(w - 1) / 2.0 * sp[p]
-    m[:, 1, q] = sp[q]
-    m[:, 1, 3] = -(h - 1) / 2.0 * sp[q]
-    m[:, 2, a] = sign * sp[a]
-    m[:, 2, 3] = -sign * sp[a] * np.arange(n)
+    m[:, 0, x_axis] = sx * sp[x_axis]
+    m[:, 0, 3] = -sx * sp[x_axis] * (w - 1) / 2.0
+    m[:, 1, y_axis] = sy * sp[y_axis]
+    m[:, 1, 3] = -sy * sp[y_axis] * (h - 1) / 2.0
+    m[:, 2, a] = sz * sp[a]
+    m[:, 2, 3] = -sz * sp[a] * np.arange(n)
     m[:, 3, 3] = 1.0
-    return StackSlices(images, masks, (float(sp[q]), float(sp[p])), a, m)
+    return StackSlices(images, masks, (float(sp[y_axis]), float(sp[x_axis])), a, m, layout)
+
+
+def pictures(array: NDArray, axis: int, layout: tuple[int, int, int, int]) -> NDArray:
+    """``[n, H, W]`` the slices of a stack's ``array`` along ``axis`` laid out as ``layout`` says
+    (:func:`~service.geometry.frames.in_plane_layout`); a view where it can be."""
+    x_axis, y_axis, sx, sy = layout
+    return np.transpose(np.asarray(array), (axis, y_axis, x_axis))[:, ::sy, ::sx]
+
+
+def stack_from_pictures(images: NDArray, axis: int, layout: tuple[int, int, int, int]) -> NDArray:
+    """The inverse of :func:`pictures`: ``[n, H, W]`` back to the stack's voxel order."""
+    x_axis, y_axis, sx, sy = layout
+    return np.transpose(np.asarray(images)[:, ::sy, ::sx], np.argsort([axis, y_axis, x_axis]))

@@ -103,7 +103,6 @@ def test_a_job_given_poses_reconstructs_the_pixels_a_job_that_predicts_them_does
     from service.io.volume import Volume
     from service.jobs.worker import uploaded_pose_masks
     from service.pipeline.prepare import StackUpload, prepare_stacks
-    from service.preprocess.stack import stack_from_slice_images
     from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine
 
     img, msk, aff = phantom_brain(2)
@@ -115,7 +114,7 @@ def test_a_job_given_poses_reconstructs_the_pixels_a_job_that_predicts_them_does
     info = ModelInfo(name="m", version="0", backbone="b", label_type="anchor", input_size=32, pixel_spacing_mm=2.0,
                      variance_threshold=1.0, dropout_p=0.1, atlas_id="a", trained_on="-", sha256="0" * 64)
     [prepared] = prepare_stacks([up], info, False)
-    predicted = stack_from_slice_images(prepared.slices.masks, prepared.slices.slice_axis) > 0
+    predicted = prepared.slices.to_stack(prepared.slices.masks) > 0
     [given] = uploaded_pose_masks([up])
     assert predicted.sum() < (mask > 0.5).sum()                       # the rim is inset ...
     np.testing.assert_array_equal(given > 0, predicted)               # ... in both paths alike

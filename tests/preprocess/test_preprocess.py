@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 from scipy import ndimage
 
+from service.geometry import se3
+from service.geometry.pose import make_pose
 from service.io.volume import Volume
 from service.preprocess.bias import centred_samples, n4_correct, upsample_linear
 from service.preprocess.intensity import rescale_0_255
@@ -52,9 +56,45 @@ def test_split_stack_is_vectorised_and_right_handed() -> None:
     vol = Volume(np.random.default_rng(0).random((10, 12, 5)).astype(np.float32), aff)
     s = split_stack(vol, np.ones((10, 12, 5), bool))
     assert s.images.shape == (5, 12, 10)
-    np.testing.assert_array_equal(s.images[2], vol.array[:, :, 2].T)
+    np.testing.assert_array_equal(s.images[2], vol.array[::-1, :, 2].T)    # columns along +x: the stored axis reversed
     world_from_slice = aff @ np.linalg.inv(s.slice_from_voxel[2])
     assert np.linalg.det(world_from_slice[:3, :3]) == pytest.approx(1.0)   # a rigid map
+
+
+def _stored(vol: Volume, flip0: bool, flip1: bool, swap: bool) -> Volume:
+    """``vol`` as a file that stores its in-plane voxels another way writes it: the same voxels in the same places."""
+    a, aff = np.asarray(vol.array), np.asarray(vol.affine, np.float64).copy()
+    for axis, flip in ((0, flip0), (1, flip1)):
+        if flip:
+            a = np.flip(a, axis)
+            index = np.eye(4)
+            index[axis, axis], index[axis, 3] = -1.0, a.shape[axis] - 1.0
+            aff = aff @ index
+    if swap:
+        a = np.swapaxes(a, 0, 1)
+        aff = aff[:, [1, 0, 2, 3]]
+    return Volume(np.ascontiguousarray(a), aff)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_stack_stored_with_its_in_plane_voxels_in_any_order_gives_the_same_pictures_and_slice_frames(seed: int) -> None:
+    """Rows reversed, columns reversed, the two axes swapped (the eight ways a file can store a
+    slice): the same pictures, masks and slice frames in the world, so the network sees one stack."""
+    rng = np.random.default_rng(seed)
+    rot = se3.so3_exp(rng.normal(0, 0.6, 3))                     # an oblique stack, any handedness of storage
+    aff = make_pose(rot, rng.uniform(-50, 50, 3)) @ np.diag([0.9, 1.1, 3.0, 1.0])
+    vol = Volume(rng.random((9, 11, 6)).astype(np.float32), aff)
+    mask = rng.random((9, 11, 6)) > 0.4
+    ref = split_stack(vol, mask)
+    world = aff @ np.linalg.inv(ref.slice_from_voxel)
+    for flip0, flip1, swap in itertools.product([False, True], repeat=3):
+        other = _stored(vol, flip0, flip1, swap)
+        s = split_stack(other, np.asarray(_stored(Volume(mask, aff), flip0, flip1, swap).array))
+        np.testing.assert_array_equal(s.images, ref.images)
+        np.testing.assert_array_equal(s.masks, ref.masks)
+        assert s.pixel_mm == ref.pixel_mm
+        np.testing.assert_allclose(other.affine @ np.linalg.inv(s.slice_from_voxel), world, atol=1e-9)
+        np.testing.assert_array_equal(s.to_stack(s.masks), _stored(Volume(mask, aff), flip0, flip1, swap).array)
 
 
 def test_slice_masks_go_back_to_the_stacks_voxels_along_any_slice_axis() -> None:
@@ -64,7 +104,7 @@ def test_slice_masks_go_back_to_the_stacks_voxels_along_any_slice_axis() -> None
         spacing[axis] = 3.0
         s = split_stack(Volume(mask.astype(np.float32), np.diag(spacing + [1.0])), mask)
         assert s.slice_axis == axis
-        np.testing.assert_array_equal(stack_from_slice_images(s.masks, s.slice_axis), mask)
+        np.testing.assert_array_equal(s.to_stack(s.masks), mask)
         np.testing.assert_array_equal(stack_from_slice_images(slice_images(mask, np.eye(4), axis)[0], axis), mask)
 
 
