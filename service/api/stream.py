@@ -28,7 +28,7 @@ import numpy as np
 from anyio import CapacityLimiter, to_thread
 from fastapi import APIRouter, WebSocket
 from starlette.datastructures import State
-from starlette.websockets import WebSocketDisconnect
+from starlette.websockets import WebSocketDisconnect, WebSocketDisconnected
 
 from service.api.deps import UNAUTHORIZED, api_key_ok
 from service.api.responses import error_message, pose_object, stack_message, summary_message, update_messages
@@ -90,8 +90,13 @@ class StreamConnection:
         self.counted = False                        # this connection holds one of the session slots
 
     async def send(self, message: dict) -> None:
+        """Send ``message``; :class:`_Closed` where the client has gone (a normal end of a session,
+        whichever task finds it first: the messages' loop or the background firm-up)."""
         async with self.send_lock:
-            await self.ws.send_text(json.dumps(message))
+            try:
+                await self.ws.send_text(json.dumps(message))
+            except (WebSocketDisconnect, WebSocketDisconnected):
+                raise _Closed from None
 
     def idle_limit_s(self) -> float:
         """How long the client may stay idle: :data:`START_TIMEOUT_S` before its session starts (a
@@ -109,6 +114,8 @@ class StreamConnection:
         limit = self.idle_limit_s()
         try:
             frame = await asyncio.wait_for(self.ws.receive(), max(limit - (time.perf_counter() - self.active_at), 0.0))
+        except WebSocketDisconnected:
+            raise _Closed from None
         except TimeoutError:
             await self.send(error_message(RequestTimeout(f"session: idle for {limit:g} s; closing")))
             await self.ws.close(GOING_AWAY)
@@ -275,6 +282,9 @@ class StreamConnection:
                 updates = await self.in_background("firm_up", self.session.firm_up, stack)
                 for message in update_messages(updates):
                     await self.send(message)
+            except _Closed:                         # the client has gone: nothing to firm up for
+                self.dirty.clear()
+                return
             except Exception:  # noqa: BLE001 - a background stage must not end the session; the stack's end says more
                 log.warning("stream firm-up failed", exc_info=True)
 

@@ -28,14 +28,16 @@ from numpy.typing import NDArray
 
 from service.core.errors import InvalidParameter
 from service.geometry.frames import axes_cosine
-from service.io.acquisition_geometry import grid_problem
+from service.io.acquisition_geometry import SPACING_TOLERANCE, grid_problem
 from service.io.nifti_header import MAX_SHEAR_COS
 from service.io.volume import Volume
 
 AXIS_TOLERANCE = 1e-3
 """Largest relative difference between the in-plane axes of two slices of one stack."""
 LINE_TOLERANCE_MM = 0.05
-"""Largest distance of a slice's origin from the stack's line of slices (and from its even spacing)."""
+"""The least tolerance of a slice's origin: off the stack's line of slices (otherwise
+:data:`~service.io.acquisition_geometry.SPACING_TOLERANCE` of its pixel size) and off its even place
+along it (otherwise that share of the step between slices), as ``/v1/predict`` allows a series."""
 
 
 @dataclass
@@ -121,7 +123,8 @@ class StreamedStack:
                                    "first slice (a stack's slices are parallel, of one pixel grid)")
         normal = b[:3, 2] / np.linalg.norm(b[:3, 2])
         offset = a[:3, 3] - b[:3, 3]
-        if np.linalg.norm(offset - normal * (offset @ normal)) > LINE_TOLERANCE_MM:
+        pixel_mm = float(np.linalg.norm(b[:3, :2], axis=0).min())
+        if np.linalg.norm(offset - normal * (offset @ normal)) > max(LINE_TOLERANCE_MM, SPACING_TOLERANCE * pixel_mm):
             raise InvalidParameter(f"slice.scanner_from_voxel: the slice is shifted in plane from stack {self.name!r}'s "
                                    "other slices (they must lie along one normal)")
         if (frame.mask is None) != (first.mask is None):
@@ -131,24 +134,53 @@ class StreamedStack:
     def _check_place(self, frame: SliceFrame, first: SliceFrame, normal: NDArray[np.float64]) -> None:
         """A slice's index is its place along the normal: its origin lies where the slices received so
         far put the slice of that index (evenly spaced; with one slice received, anywhere but there),
-        within :data:`LINE_TOLERANCE_MM` of each of the two slices the step comes from, as far as the
-        step is extrapolated (:meth:`volume` checks the whole stack at that tolerance)."""
+        within :meth:`place_tolerance_mm`, widened as far as the line is extrapolated. The line is the
+        slices' robust one (:meth:`line`): a slice accepted a little off it, while the step was known
+        from two slices alone, does not move where the later ones must lie."""
         along = float((frame.scanner_from_voxel[:3, 3] - first.scanner_from_voxel[:3, 3]) @ normal)
-        others = [k for k in self.frames if k != first.index]
-        if not others:
+        if len(self.frames) == 1:
             if abs(along) < LINE_TOLERANCE_MM:
                 raise InvalidParameter(f"slice.scanner_from_voxel: slice {frame.index} sits where slice {first.index} "
                                        f"of stack {self.name!r} does (each index is its own place along the normal)")
             return
-        far = self.frames[max(others, key=lambda k: abs(k - first.index))]
-        step = float((far.scanner_from_voxel[:3, 3] - first.scanner_from_voxel[:3, 3]) @ normal) / (far.index - first.index)
-        expected = step * (frame.index - first.index)
-        reach = abs(frame.index - first.index) / abs(far.index - first.index)     # the step's rounding, extrapolated
-        if abs(along - expected) > LINE_TOLERANCE_MM * (1.0 + 2.0 * reach):
+        start, step = self.line(first, normal)
+        expected = start + step * frame.index
+        lo, hi = min(self.frames), max(self.frames)
+        reach = max(lo - frame.index, frame.index - hi, 0) / (hi - lo)        # the step's rounding, extrapolated
+        if abs(along - expected) > self.place_tolerance_mm(step) * (1.0 + 2.0 * reach):
             raise InvalidParameter(f"slice.index: slice {frame.index} of stack {self.name!r} lies {along:.2f} mm along the "
                                    f"normal from slice {first.index}, where the stack's slices put index {frame.index} "
                                    f"at {expected:.2f} mm (a slice's index is its place along the normal, the slices "
                                    "evenly spaced)")
+
+    def line(self, first: SliceFrame, normal: NDArray[np.float64]) -> tuple[float, float]:
+        """``(start, step)``: where the received slices put index 0 and the step between neighbours,
+        mm along ``normal`` from ``first``: the median step over every pair of slices and the median of
+        what each slice then says of index 0 (one slice off the line moves neither)."""
+        idx = np.array(sorted(self.frames), dtype=np.float64)
+        along = np.array([(self.frames[int(k)].scanner_from_voxel[:3, 3] - first.scanner_from_voxel[:3, 3]) @ normal
+                          for k in idx])
+        i, j = np.triu_indices(len(idx), 1)
+        step = float(np.median((along[j] - along[i]) / (idx[j] - idx[i])))
+        return float(np.median(along - step * idx)), step
+
+    @staticmethod
+    def place_tolerance_mm(step: float) -> float:
+        """How far a slice may lie from its even place: :data:`SPACING_TOLERANCE` of the step (as
+        ``/v1/predict`` allows a series' steps to differ), at least :data:`LINE_TOLERANCE_MM`."""
+        return max(LINE_TOLERANCE_MM, SPACING_TOLERANCE * abs(step))
+
+    def off_line(self) -> list[int]:
+        """The received slices farther from the stack's robust line (:meth:`line`) than
+        :meth:`place_tolerance_mm` (none with fewer than three slices)."""
+        if len(self.frames) < 3:
+            return []
+        first = self.frames[self.arrivals[0]]
+        normal = first.scanner_from_voxel[:3, 2] / np.linalg.norm(first.scanner_from_voxel[:3, 2])
+        start, step = self.line(first, normal)
+        return sorted(k for k, f in self.frames.items()
+                      if abs(float((f.scanner_from_voxel[:3, 3] - first.scanner_from_voxel[:3, 3]) @ normal)
+                             - start - step * k) > self.place_tolerance_mm(step))
 
     def remove(self, index: int) -> None:
         """Forget the slice ``index`` (one the service could not take after all)."""
@@ -188,14 +220,14 @@ class StreamedStack:
         if gaps:
             raise InvalidParameter(f"end_stack.stack: stack {self.name!r} lacks the slices {gaps[:10]} (indices 0.."
                                    f"{max(self.frames)} are expected)")
+        if self.off_line():
+            raise InvalidParameter(f"end_stack.stack: the slices of stack {self.name!r} are not evenly spaced along "
+                                   "their normal")
         n = len(self.frames)
         first = self.frames[0]
         origins = np.stack([self.frames[k].scanner_from_voxel[:3, 3] for k in range(n)])
         affine = np.array(first.scanner_from_voxel, dtype=np.float64)
         step = (origins[-1] - origins[0]) / (n - 1) if n > 1 else affine[:3, 2]
-        if n > 1 and np.abs(origins - origins[0] - np.outer(np.arange(n), step)).max() > LINE_TOLERANCE_MM:
-            raise InvalidParameter(f"end_stack.stack: the slices of stack {self.name!r} are not evenly spaced along "
-                                   "their normal")
         if np.linalg.norm(step) < 1e-3:
             raise InvalidParameter(f"end_stack.stack: the slices of stack {self.name!r} all sit at one position")
         affine[:3, 2] = step

@@ -313,6 +313,15 @@ class StreamSession:
                 state.answer = a
         return out
 
+    def _forget(self, stack: str, index: int) -> None:
+        """Drop slice ``index`` of ``stack`` and what the session kept of it (under the lock)."""
+        frame = self.stacks[stack].frames[index]
+        self.stacks[stack].remove(index)
+        self.held_bytes -= np.asarray(frame.pixels).size * 4
+        state = self.slices.get(stack, {}).pop(index, None)
+        if state is not None:
+            self.held_bytes -= array_bytes(state.prepared, state.estimate, [state.brain_map], besides=(frame.pixels,))
+
     # -- 3. the stack ends ------------------------------------------------------------------------------------
     def end_stack(self, stack: str) -> StackAnswer:
         """The stack's final poses, as ``/v1/predict`` gives them with the stacks ended before it."""
@@ -323,6 +332,13 @@ class StreamSession:
             if stack not in self.stacks:
                 raise InvalidParameter(f"end_stack.stack: no slice of a stack {stack!r} has arrived")
             streamed = self.stacks[stack]
+            off = streamed.off_line() if not streamed.missing() else []
+            if off:                 # a slice taken while the step was known from few slices: let it come again
+                for k in off:
+                    self._forget(stack, k)
+                raise InvalidParameter(f"end_stack.stack: the slices {off[:10]} of stack {stack!r} lie off the even "
+                                       "spacing of its other slices along their normal; they are dropped from the "
+                                       "stack: send them again where they belong, then end_stack again")
             volume, mask = streamed.volume()
             order = SliceOrder((), streamed.arrival_order(), STREAMED)
             before = dict(self.ended)

@@ -299,3 +299,38 @@ def test_ending_a_stack_keeps_the_firm_up_another_stack_has_queued(monkeypatch: 
     assert session.calls.count(("firm_up", "b")) == 2
     for pool in conn.stages.values():
         pool.shutdown()
+
+
+def test_a_client_gone_while_an_answer_is_sent_ends_its_session_quietly(monkeypatch, caplog) -> None:  # noqa: ANN001
+    """A scanner that closes right after ``end_stack``: the send of the stack's answer, or of a
+    background firm-up's update, finds the socket gone (Starlette's WebSocketDisconnected). That is
+    a session's normal end: no error logged, nothing raised out of the app, the firm-up queue
+    dropped; a receive after the disconnect ends the session alike."""
+    import logging
+    from types import SimpleNamespace
+
+    from starlette.websockets import WebSocketDisconnected
+
+    class GoneSocket:
+        app = SimpleNamespace(state=SimpleNamespace(settings=None, registry=None, localisers=None, metrics=None,
+                                                    stream_pose_limiter=None,
+                                                    stream_stages={"firm_up": ThreadPoolExecutor(1)}, stream_sessions=0))
+
+        async def send_text(self, text: str) -> None:
+            raise WebSocketDisconnected('Cannot call "send" once a close message has been sent.')
+
+        async def receive(self) -> dict:
+            raise WebSocketDisconnected('Cannot call "receive" once a disconnect message has been received.')
+
+    conn = stream.StreamConnection(GoneSocket())                              # type: ignore[arg-type]
+    with pytest.raises(stream._Closed):
+        asyncio.run(conn.send({"type": "stack"}))
+    monkeypatch.setattr(stream, "update_messages", lambda updates: [{"type": "update"}])
+    conn.session = SimpleNamespace(firm_up=lambda stack: ["an update"])
+    conn.dirty = {"ax", "cor"}
+    conn.settings = SimpleNamespace(stream_idle_s=30.0)
+    with caplog.at_level(logging.INFO, logger="service"):
+        asyncio.run(conn._firm_up_loop())
+        asyncio.run(conn.run())                                               # returns: the client has gone
+    assert not conn.dirty
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING], [r.getMessage() for r in caplog.records]

@@ -163,6 +163,52 @@ def test_positions_rounded_as_scanners_write_them_pass_the_arrival_check() -> No
     assert stack.volume()[0].array.shape == (4, 4, 60)
 
 
+def test_slice_positions_rounded_to_a_tenth_of_a_mm_are_taken_as_predict_takes_such_a_series() -> None:
+    """Slices 3.304 mm apart whose positions along the normal are written rounded to 0.1 mm (steps of
+    3.2 to 3.4 mm), sent in an interleaved order: every slice is taken and the stack ends (its steps
+    differ from their median by under 5 %, which ``/v1/predict`` allows a series); a slice 0.3 mm off
+    is refused once the step is known."""
+    rotation = np.linalg.qr(np.array([[0.07, 1.0, 0.04], [1.0, -0.07, 0.03], [0.04, 0.03, -1.0]]))[0]   # 4 deg oblique
+    normal = rotation[:, 2]
+    stack = StreamedStack("s")
+
+    def frame(k: int, extra_mm: float = 0.0) -> SliceFrame:
+        a = np.eye(4)
+        a[:3, :3] = rotation @ np.diag([1.1, 1.1, 3.3])
+        a[:3, 3] = np.array([10.0, -20.0, 30.0]) + normal * (np.round(k * 3.304, 1) + extra_mm)
+        return SliceFrame("s", k, np.zeros((4, 4), np.float32), a)
+
+    for k in list(range(0, 24, 2)) + list(range(1, 23, 2)):
+        stack.add(frame(k))
+    with pytest.raises(InvalidParameter, match="slice.index: slice 23"):
+        stack.add(frame(23, 0.3))
+    stack.add(frame(23))
+    assert stack.volume()[0].array.shape == (4, 4, 24)
+
+
+def test_a_slice_taken_off_its_place_does_not_lock_the_stack_and_ends_dropped_to_be_sent_again(case) -> None:  # noqa: ANN001
+    """Slices 0 and 1, then slice 10 0.3 mm off its place (taken: the step is known from two slices
+    only), then every other slice where it belongs: each is taken (the line is the slices' robust
+    one, not slice 10's). Ending the stack names slice 10 and drops it; sent again where it belongs,
+    the stack ends."""
+    oracle, stacks, _ = case
+    frames = stacks[0]
+    n = len(frames)
+    session = StreamSession(oracle, None, options=FAST)
+    normal = frames[0].scanner_from_voxel[:3, 2] / np.linalg.norm(frames[0].scanner_from_voxel[:3, 2])
+    off = frames[10].scanner_from_voxel.copy()
+    off[:3, 3] += 0.3 * normal
+    for f in frames[:2] + [SliceFrame("ax", 10, frames[10].pixels, off, frames[10].mask)]:
+        session.add_slice(f)
+    for k in [*range(2, 10), *range(11, n)]:
+        session.add_slice(frames[k])
+    with pytest.raises(InvalidParameter, match=r"the slices \[10\] of stack 'ax' lie off the even spacing"):
+        session.end_stack("ax")
+    assert 10 not in session.stacks["ax"].frames and 10 not in session.slices["ax"]
+    session.add_slice(frames[10])
+    assert len(session.end_stack("ax").prediction.poses.poses) == n
+
+
 def test_masks_hold_csf_sets_the_pose_mask_inset_of_mask_frames(case) -> None:  # noqa: ANN001
     oracle, stacks, _ = case
     frames = stacks[0]
