@@ -173,6 +173,7 @@ def run(argv: list[str] | None = None) -> None:
                           log_config=service_logging.server_log_config(settings.log_level),
                           access_log=False, http=with_header_deadline(settings.header_timeout_s),
                           ws_ping_interval=settings.stream_ping_interval_s, ws_ping_timeout=settings.stream_ping_timeout_s,
+                          ws_max_size=stream.largest_frame_bytes(settings.stream_max_pixels),
                           timeout_graceful_shutdown=SHUTDOWN_GRACE_S)).run()
 
 

@@ -56,6 +56,22 @@ log = logging.getLogger(__name__)
 DTYPES = {"uint8": "<u1", "int16": "<i2", "uint16": "<u2", "float32": "<f4"}
 MAX_TEXT_BYTES = 64 * 1024
 """Longest JSON message accepted (a slice's header is a few hundred bytes)."""
+WS_MIN_FRAME_BYTES = 16 * 2**20
+"""The server's cap on one websocket frame is at least this (uvicorn's default) and at least the
+largest slice :func:`largest_frame_bytes` allows: a frame past it closes the connection (1009)."""
+
+
+def largest_frame_bytes(max_pixels: int) -> int:
+    """The websocket frame cap for slices of up to ``max_pixels`` pixels (the widest dtype; at least
+    :data:`WS_MIN_FRAME_BYTES`): a deployment that allows larger slices must not have them cut off
+    by the server's default cap.
+
+    Example:
+        >>> largest_frame_bytes(1024 * 1024) == WS_MIN_FRAME_BYTES, largest_frame_bytes(4096 * 4096)
+        (True, 67108864)
+    """
+    widest = max(np.dtype(d).itemsize for d in DTYPES.values())
+    return max(WS_MIN_FRAME_BYTES, int(max_pixels) * widest)
 POLICY_VIOLATION, GOING_AWAY, TRY_AGAIN_LATER = 1008, 1001, 1013
 
 
