@@ -446,3 +446,28 @@ def test_a_dicom_series_acquisition_times_order_its_stack(oracle, oracle_client,
         assert len(kept) >= 15                 # i.i.d. jitter: an end slice the others cannot predict is flagged
         for s in kept:
             np.testing.assert_allclose(s["atlas_from_voxel"], s["network_atlas_from_voxel"], atol=0.05)
+
+
+def test_a_stack_stored_with_its_in_plane_axes_swapped_and_rows_reversed_gets_the_same_poses(real_client,
+                                                                                            tmp_path: Path) -> None:  # noqa: ANN001
+    """A real (tiny, random) network with its MC dropout and test-time views, every stage and N4 on:
+    the oblique coronal stack's file written again with its in-plane axes swapped and its rows
+    reversed (its mask alike, the header saying so) gives each slice the same place in the atlas.
+    The slices are laid out by the scanner's axes, so the network sees the same pictures through the
+    same views with the same draws (before: another view per picture, other draws, other poses)."""
+    files, _ = two_still_stacks(tmp_path)
+    vol, msk = read_volume(tmp_path / "s1.nii.gz"), read_volume(tmp_path / "m1.nii.gz")
+    n = vol.array.shape[2]                                          # its slices lie along voxel axis 1
+    old_from_new = np.array([[0.0, 0.0, 1.0, 0.0], [0.0, 1.0, 0.0, 0.0], [-1.0, 0.0, 0.0, n - 1.0], [0.0, 0.0, 0.0, 1.0]])
+    for name, v in (("s1t", vol), ("m1t", msk)):
+        write(tmp_path / f"{name}.nii.gz", np.ascontiguousarray(np.flip(np.swapaxes(v.array, 0, 2), 0)),
+              v.affine @ old_from_new, "simpleitk")
+    stored = [("stacks", ("s1.nii.gz", (tmp_path / "s1t.nii.gz").read_bytes())),
+              ("masks", ("m1.nii.gz", (tmp_path / "m1t.nii.gz").read_bytes()))]
+    answers = []
+    for upload in (files[2:], stored):
+        r = real_client.post("/v1/predict", files=upload, data={"mc_samples": "10"})
+        assert r.status_code == 200, r.text
+        answers.append(np.array([s["atlas_from_voxel"] for s in r.json()["stacks"][0]["slices"]]))
+    as_stored, turned = answers
+    np.testing.assert_allclose(turned, as_stored @ old_from_new, atol=1e-4)
