@@ -90,10 +90,10 @@ def check_pixels(ds: Dataset, filename: str, budget: FileBudget) -> None:
         raise UnsupportedFile(f"{filename}: DICOM pixel data of size {rows} x {cols} x {frames}")
     budget.slices(frames, "frames")              # before a loop over them, or their decoding
     photometric = str(getattr(ds, "PhotometricInterpretation", "MONOCHROME2") or "MONOCHROME2").strip().upper()
-    if spp == 1 and not photometric.startswith("MONOCHROME"):      # a palette's indices are no grey values
-        named = photometric if photometric in PHOTOMETRIC_TERMS else "other than MONOCHROME"   # never a free text
+    if spp == 1 and photometric != "MONOCHROME2":   # a palette's indices are no grey values; MONOCHROME1 runs the other way
+        named = photometric if photometric in PHOTOMETRIC_TERMS else "other than MONOCHROME2"  # never a free text
         raise UnusableImage(f"{filename}: DICOM pixel data of PhotometricInterpretation {named}; grey "
-                            "values (MONOCHROME2) are required")
+                            "values with signal bright (MONOCHROME2) are required: export the series as MONOCHROME2")
     if spp != 1:                        # colour: its channels would be taken for slices or frames
         raise UnusableImage(f"{filename}: DICOM pixel data with {spp} samples per pixel (colour); one grey value "
                             "per pixel is required")
@@ -124,7 +124,14 @@ def check_pixels(ds: Dataset, filename: str, budget: FileBudget) -> None:
 
 
 def _rle_fits(frame: bytes, segment_bytes: int, max_segments: int) -> bool:
-    """Whether every RLE segment of ``frame`` decodes to at most ``segment_bytes`` (counted, not decoded)."""
+    """Whether every RLE segment of ``frame`` decodes to at most ``segment_bytes`` (counted, not decoded;
+    a segment that has decoded whole may end in the one pad byte of PS3.5 Annex G, nothing more).
+
+    Example (one segment of 4 bytes: a literal run of 3, then a repeat of 1, padded to even length):
+        >>> header = (1).to_bytes(4, "little") + (64).to_bytes(4, "little") + bytes(56)
+        >>> _rle_fits(header + bytes([2, 7, 8, 9, 0, 5, 0]), 4, 1), _rle_fits(header + bytes([2, 7, 8, 9, 1, 5, 5]), 4, 1)
+        (True, False)
+    """
     if len(frame) < 64:
         return False
     n = int.from_bytes(frame[:4], "little")
@@ -136,6 +143,10 @@ def _rle_fits(frame: bytes, segment_bytes: int, max_segments: int) -> bool:
             return False
         seg, pos, out = frame[start:end], 0, 0
         while pos < len(seg):
+            if out == segment_bytes:        # decoded whole: one byte more pads the segment to an even length
+                if len(seg) - pos > 1:
+                    return False
+                break
             h = seg[pos]
             if h > 128:
                 out, pos = out + 257 - h, pos + 2

@@ -28,16 +28,17 @@ from numpy.typing import NDArray
 
 from service.core.errors import InvalidParameter
 from service.geometry.frames import axes_cosine
-from service.io.acquisition_geometry import SPACING_TOLERANCE, grid_problem
+from service.io.acquisition_geometry import POSITION_ROUNDING_MM, SPACING_TOLERANCE, grid_problem, in_plane_shear
 from service.io.nifti_header import MAX_SHEAR_COS
 from service.io.volume import Volume
 
 AXIS_TOLERANCE = 1e-3
 """Largest relative difference between the in-plane axes of two slices of one stack."""
 LINE_TOLERANCE_MM = 0.05
-"""The least tolerance of a slice's origin: off the stack's line of slices (otherwise
-:data:`~service.io.acquisition_geometry.SPACING_TOLERANCE` of its pixel size) and off its even place
-along it (otherwise that share of the step between slices), as ``/v1/predict`` allows a series."""
+"""The least tolerance of a slice's place along the stack's normal (otherwise
+:data:`~service.io.acquisition_geometry.SPACING_TOLERANCE` of the step between slices); within the
+plane a slice may lie :data:`~service.io.acquisition_geometry.POSITION_ROUNDING_MM` or that share of
+a pixel off the first slice's line, whichever is more: as ``/v1/predict`` allows a series."""
 
 
 @dataclass
@@ -124,7 +125,7 @@ class StreamedStack:
         normal = b[:3, 2] / np.linalg.norm(b[:3, 2])
         offset = a[:3, 3] - b[:3, 3]
         pixel_mm = float(np.linalg.norm(b[:3, :2], axis=0).min())
-        if np.linalg.norm(offset - normal * (offset @ normal)) > max(LINE_TOLERANCE_MM, SPACING_TOLERANCE * pixel_mm):
+        if np.linalg.norm(offset - normal * (offset @ normal)) > max(SPACING_TOLERANCE * pixel_mm, POSITION_ROUNDING_MM):
             raise InvalidParameter(f"slice.scanner_from_voxel: the slice is shifted in plane from stack {self.name!r}'s "
                                    "other slices (they must lie along one normal)")
         if (frame.mask is None) != (first.mask is None):
@@ -223,6 +224,12 @@ class StreamedStack:
         if self.off_line():
             raise InvalidParameter(f"end_stack.stack: the slices of stack {self.name!r} are not evenly spaced along "
                                    "their normal")
+        first = self.frames[self.arrivals[0]].scanner_from_voxel
+        if len(self.frames) > 1 and (shear := in_plane_shear(
+                np.stack([f.scanner_from_voxel[:3, 3] for f in self.frames.values()]),
+                first[:3, 2] / np.linalg.norm(first[:3, 2]), float(np.linalg.norm(first[:3, :2], axis=0).min()))):
+            raise InvalidParameter(f"end_stack.stack: the slices of stack {self.name!r} are shifted within their "
+                                   f"plane ({shear}): a sheared grid, not one stack")
         n = len(self.frames)
         first = self.frames[0]
         origins = np.stack([self.frames[k].scanner_from_voxel[:3, 3] for k in range(n)])

@@ -124,3 +124,59 @@ def test_a_zip_declaring_too_many_members_is_refused_before_its_list_is_parsed(t
     with pytest.raises(UnusableImage, match=r"many.zip: too many files in the archive \(5001 members"):
         read_upload(path, "many.zip")
     assert not parsed
+
+
+def test_rle_frames_padded_to_an_even_length_are_read(tmp_path: Path) -> None:
+    """PS3.5 Annex G pads each RLE segment of odd length with one byte: the guard counts a segment
+    decoded whole and stops there (it counted the pad as a run's header and refused half a real
+    scanner's RLE slices as larger than their header). Files as pydicom's encoder writes them, some
+    of their segments padded, read back exactly; a segment with more than its pad left is refused."""
+    import io
+
+    from pydicom import dcmread
+    from pydicom.encaps import generate_frames
+
+    padded = 0
+    for seed in range(6):
+        px = (np.random.default_rng(seed).random((2, 9, 7)) * 300).astype(np.uint16)
+        ds = dcmread(io.BytesIO(corpus.dicom(px)))
+        ds.compress(uid.RLELossless)
+        out = io.BytesIO()
+        ds.save_as(out)
+        for frame in generate_frames(ds.PixelData, number_of_frames=2):
+            padded += _decoded_before_the_end(frame)
+        vol = read(tmp_path, out.getvalue(), f"rle{seed}.dcm")
+        np.testing.assert_array_equal(vol.array, px.transpose(2, 1, 0))
+    assert padded > 0                                       # the case the guard got wrong was among them
+    with pytest.raises(UnsupportedFile, match="frame 0 does not match"):
+        read(tmp_path, corpus.encapsulated([corpus.rle_bomb()], 8, 8, uid.RLELossless), "lying.dcm")
+
+
+def _decoded_before_the_end(frame: bytes) -> int:
+    """How many of ``frame``'s RLE segments hold their pixels' bytes before their last byte (padded)."""
+    n = int.from_bytes(frame[:4], "little")
+    offsets = [int.from_bytes(frame[4 + 4 * i:8 + 4 * i], "little") for i in range(n)] + [len(frame)]
+    count = 0
+    for start, end in zip(offsets, offsets[1:]):
+        seg, pos, out = frame[start:end], 0, 0
+        while pos < len(seg) and out < 9 * 7:
+            h = seg[pos]
+            out, pos = (out + 257 - h, pos + 2) if h > 128 else (out + h + 1, pos + h + 2) if h < 128 else (out, pos + 1)
+        count += pos < len(seg)
+    return count
+
+
+def test_a_monochrome1_dicom_is_refused_naming_its_photometric_interpretation(tmp_path: Path) -> None:
+    """MONOCHROME1 stores signal dark: read as it is, a brain would be the darkest tissue and the
+    localiser would find none (a 200 with every slice empty). It is refused, saying what to send."""
+    import io
+
+    from pydicom import dcmread
+
+    ds = dcmread(io.BytesIO(corpus.dicom(np.zeros((2, 8, 8), np.uint16))))
+    ds.PhotometricInterpretation = "MONOCHROME1"
+    out = io.BytesIO()
+    ds.save_as(out)
+    with pytest.raises(UnusableImage, match="mono.dcm: DICOM pixel data of PhotometricInterpretation MONOCHROME1; .*"
+                                            "export the series as MONOCHROME2"):
+        read(tmp_path, out.getvalue(), "mono.dcm")
