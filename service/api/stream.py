@@ -59,6 +59,7 @@ MAX_TEXT_BYTES = 64 * 1024
 WS_MIN_FRAME_BYTES = 16 * 2**20
 """The server's cap on one websocket frame is at least this (uvicorn's default) and at least the
 largest slice :func:`largest_frame_bytes` allows: a frame past it closes the connection (1009)."""
+POLICY_VIOLATION, GOING_AWAY, TRY_AGAIN_LATER = 1008, 1001, 1013
 
 
 def largest_frame_bytes(max_pixels: int) -> int:
@@ -72,7 +73,6 @@ def largest_frame_bytes(max_pixels: int) -> int:
     """
     widest = max(np.dtype(d).itemsize for d in DTYPES.values())
     return max(WS_MIN_FRAME_BYTES, int(max_pixels) * widest)
-POLICY_VIOLATION, GOING_AWAY, TRY_AGAIN_LATER = 1008, 1001, 1013
 
 
 class _Closed(Exception):
