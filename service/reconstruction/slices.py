@@ -204,6 +204,7 @@ class SliceSet:
                 raise ValueError(f"stack {si}: expected {n} slices (transforms {mats.shape}, include {inc.shape})")
             a = split.slice_axis
             p, q = [ax for ax in range(3) if ax != a]
+            x_axis, y_axis, sx, sy = split.layout                      # how each picture lies on the voxels
             finite = np.isfinite(split.images)
             brain = split.masks & finite
             inside = split.images[brain]
@@ -214,7 +215,10 @@ class SliceSet:
             keep = brain & inc[:, None, None]
             s_idx, r_idx, c_idx = np.nonzero(keep)
             vox = np.empty((len(s_idx), 3), np.float32)
-            vox[:, a], vox[:, q], vox[:, p] = s_idx, r_idx, c_idx
+            h, w = keep.shape[1:]
+            vox[:, a] = s_idx
+            vox[:, y_axis] = r_idx if sy > 0 else h - 1 - r_idx
+            vox[:, x_axis] = c_idx if sx > 0 else w - 1 - c_idx
             parts["values"].append(split.images[keep] * np.float32(INTENSITY_SCALE / scale))
             parts["voxel"].append(vox)
             parts["slice_id"].append((s_idx + offset).astype(np.int32))

@@ -130,3 +130,23 @@ def test_uniform_stack_gives_uniform_average():
     grid = make_grid(1.0, bounds_of(ss.positions(), 2.0))
     avg = gaussian_average(ss, ss.atlas_from_voxel, grid)
     assert np.allclose(avg.volume[avg.support], INTENSITY_SCALE, rtol=1e-4)
+
+
+def test_a_slice_set_of_a_stack_stored_with_its_in_plane_axes_swapped_and_reversed_places_the_same_pixels(acquisition):
+    """The slices' pictures are laid out by the scanner's axes, not the file's order: each pixel's
+    voxel index is the file's own (its value the file's voxel there), and it lands where the
+    stack as first stored puts it."""
+    vol, mask = acquisition.stacks[1]                     # slice axis 1: in-plane axes 0 and 2
+    n = vol.array.shape[2]
+    old_from_new = np.array([[0.0, 0.0, 1.0, 0.0], [0.0, 1.0, 0.0, 0.0], [-1.0, 0.0, 0.0, n - 1.0], [0.0, 0.0, 0.0, 1.0]])
+    turned = Volume(np.ascontiguousarray(np.flip(np.swapaxes(vol.array, 0, 2), 0)), vol.affine @ old_from_new)
+    turned_mask = np.ascontiguousarray(np.flip(np.swapaxes(mask, 0, 2), 0))
+    include = np.ones(vol.array.shape[1], bool)
+    first = SliceSet.from_stacks([(vol, mask, acquisition.truth[1], include)])
+    again = SliceSet.from_stacks([(turned, turned_mask, acquisition.truth[1] @ old_from_new, include)])
+    ijk = again.voxel.astype(int)
+    ratio = again.values / turned.array[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
+    assert np.allclose(ratio, ratio[0], rtol=1e-5)
+    order = lambda p: np.lexsort(np.round(p, 6).T)         # noqa: E731 - the pixels in one order
+    a, b = first.positions(), again.positions()
+    np.testing.assert_allclose(a[order(a)], b[order(b)], atol=1e-6)
