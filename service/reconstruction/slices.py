@@ -219,9 +219,10 @@ class SliceSet:
             vox[:, a] = s_idx
             vox[:, y_axis] = r_idx if sy > 0 else h - 1 - r_idx
             vox[:, x_axis] = c_idx if sx > 0 else w - 1 - c_idx
-            parts["values"].append(split.images[keep] * np.float32(INTENSITY_SCALE / scale))
-            parts["voxel"].append(vox)
-            parts["slice_id"].append((s_idx + offset).astype(np.int32))
+            stored = np.lexsort((vox[:, p], vox[:, q], s_idx))          # each slice's pixels in the file's order
+            parts["values"].append((split.images[keep] * np.float32(INTENSITY_SCALE / scale))[stored])
+            parts["voxel"].append(vox[stored])
+            parts["slice_id"].append((s_idx[stored] + offset).astype(np.int32))
             parts["mats"].append(mats)
             sp = volume.spacing
             parts["thick"].append(np.full(n, volume.slice_thickness_mm or sp[a]))
