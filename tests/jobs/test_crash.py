@@ -171,7 +171,7 @@ def test_a_job_past_the_timeout_is_stopped_and_fails_saying_so(tmp_path: Path, j
     server = Server(tmp_path / "data", tmp_path / "server.log", job_timeout_h=str(4 / 3600))
     try:
         r = httpx.post(f"{server.url}/v1/reconstructions", files=files + [("poses", ("p.json", json.dumps(poses)))],
-                       data={"resolution_mm": "1.0", "svr_iterations": "3", "atlas_frame": "false"}, timeout=60)
+                       data={"resolution_mm": "0.8", "svr_iterations": "8", "atlas_frame": "false"}, timeout=60)  # well past 4 s
         job_id = r.json()["job_id"]
         deadline = time.time() + 60
         while (st := _status(server, job_id))["status"] == "queued":
