@@ -124,7 +124,6 @@ class StackFit:
             the branch taken, and on the other, from the reference (``[taken, other]``).
         residual_z: ``[n]`` each slice's ``residual_mm`` in units of the spread that the network's error
             and the others' prediction explain (the measure of :data:`OUTLIER_K`; None when undecidable).
-        acquisition_times: ``[n]`` the slices' acquisition times under the order chosen (None when undecidable).
     """
 
     poses: NDArray[np.float64]
@@ -146,7 +145,6 @@ class StackFit:
     branch_from_request: bool = False
     request_distance_mm: tuple[float, float] = (float("nan"), float("nan"))
     residual_z: NDArray[np.float64] | None = None
-    acquisition_times: NDArray[np.float64] | None = None
 
     @property
     def branch_decided(self) -> bool:
@@ -319,7 +317,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     return StackFit(final.poses @ inv_n, branch == 1, inconsistent, r_loo, True, final.placement @ to_scanner, fraction,
                     final.order, final.length, network_mm, model_mm, margin, final.sd_mm, final.placement_sd_mm,
                     centre + origin, final.placement_cov, by_request, (far[0], far[1]) if by_request else (np.nan, np.nan),
-                    r_loo / np.sqrt(noise_sd ** 2 + motion.model_sd_mm ** 2), np.asarray(orders[final.order], np.float64))
+                    r_loo / np.sqrt(noise_sd ** 2 + motion.model_sd_mm ** 2))
 
 
 def _branch_margin(proposals: NDArray, cand: NDArray, branch: NDArray, inv_n: NDArray, w: NDArray,

@@ -212,16 +212,17 @@ class StreamedStack:
         shift = self.frames[hi].scanner_from_voxel[:3, 3] - self.frames[lo].scanner_from_voxel[:3, 3]
         return float(np.linalg.norm(shift)) / (hi - lo)
 
-    def volume(self) -> tuple[Volume, Volume | None]:
+    def volume(self, checked: bool = False) -> tuple[Volume, Volume | None]:
         """The complete stack as a volume (and its mask volume, when the slices came with masks);
-        :class:`InvalidParameter` when slices are missing or unevenly spaced."""
+        :class:`InvalidParameter` when slices are missing or unevenly spaced (``checked``: the caller
+        has found no slice off the even spacing, :meth:`off_line`, already)."""
         if not self.frames:
             raise InvalidParameter(f"end_stack.stack: stack {self.name!r} has no slices")
         gaps = self.missing()
         if gaps:
             raise InvalidParameter(f"end_stack.stack: stack {self.name!r} lacks the slices {gaps[:10]} (indices 0.."
                                    f"{max(self.frames)} are expected)")
-        if self.off_line():
+        if not checked and self.off_line():
             raise InvalidParameter(f"end_stack.stack: the slices of stack {self.name!r} are not evenly spaced along "
                                    "their normal")
         first = self.frames[self.arrivals[0]].scanner_from_voxel

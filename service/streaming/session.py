@@ -339,7 +339,7 @@ class StreamSession:
                 raise InvalidParameter(f"end_stack.stack: the slices {off[:10]} of stack {stack!r} lie off the even "
                                        "spacing of its other slices along their normal; they are dropped from the "
                                        "stack: send them again where they belong, then end_stack again")
-            volume, mask = streamed.volume()
+            volume, mask = streamed.volume(checked=not streamed.missing())
             order = SliceOrder((), streamed.arrival_order(), STREAMED)
             before = dict(self.ended)
         info = self.estimator.info
