@@ -2,7 +2,7 @@
 
 The pose network learns on slices of the skull-stripped atlases, masked by the atlas's brain mask
 made a little imperfect (:mod:`model_export.simulate`). A stack sent without a mask is cut instead
-with the learned localiser's mask: the skull's inside, less a rim (:data:`~service.preprocess.localise.POSE_MASK_INSET_MM`),
+with the learned localiser's mask: the skull's inside, less a rim (:data:`~service.preprocess.localisation.POSE_MASK_INSET_MM`),
 whose outline differs from the atlas's in ways no perturbation of that mask draws (a face's edge
 kept, a lobe's tip lost, CSF left in), and the network reads a slice's pose partly off its
 outline. Here a generated whole-uterus scene (:func:`~model_export.localiser.scenes.synth_scene`,

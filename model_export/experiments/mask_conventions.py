@@ -2,7 +2,7 @@
 
 For every ``<stack>_brain_mask.nii.gz`` beside its ``<stack>.nii.gz`` in the folders given, the
 shipped localiser's mask of the stack, its Dice against the manual mask as it is and grown in each
-slice's plane by 1-4 mm (:func:`~service.preprocess.localise.grown` with the slice axis out of
+slice's plane by 1-4 mm (:func:`~service.preprocess.localisation.grown` with the slice axis out of
 reach), and the signed in-plane distance of the manual outline from the localiser's mask (median
 and quartiles; positive: the manual outline lies outside). Two annotators' conventions show as a
 constant offset (docs/reports/localiser-experiments.md, "Where the Dice is lost on the real stacks").
@@ -20,7 +20,8 @@ from scipy import ndimage
 
 from model_export.localiser.evaluate import dice
 from service.io.volume import read_volume
-from service.preprocess.localise import default_localiser, grown
+from service.preprocess.localisation import grown
+from service.preprocess.localise import default_localiser
 from service.preprocess.stack import slice_axis_of
 
 MARGINS_MM = (1.0, 2.0, 3.0, 4.0)

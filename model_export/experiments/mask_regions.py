@@ -37,7 +37,8 @@ from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
 from service.io.volume import Volume  # noqa: E402
 from service.pipeline.predict import predict  # noqa: E402
 from service.pipeline.prepare import StackUpload, prepare_stacks  # noqa: E402
-from service.preprocess.localise import default_localiser, grown, inset_in_plane  # noqa: E402
+from service.preprocess.localisation import grown, inset_in_plane  # noqa: E402
+from service.preprocess.localise import default_localiser  # noqa: E402
 
 REGIONS = {"z<1/3": (2, 0), "z mid": (2, 1), "z>2/3": (2, 2), "y<1/3": (1, 0), "y mid": (1, 1), "y>2/3": (1, 2)}
 """Each region: the atlas axis (1: y, anterior-posterior; 2: z, inferior-superior) and its third of the brain."""

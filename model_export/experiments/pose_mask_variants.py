@@ -3,7 +3,7 @@ generated whole-uterus scenes, and a real scan's poses without masks against tho
 masks.
 
 The localiser's pose mask is its probabilities cut at ``THRESHOLD`` less their outer
-``POSE_MASK_INSET_MM`` (:mod:`service.preprocess.localise`; the inset applies to uploads sent with
+``POSE_MASK_INSET_MM`` (:mod:`service.preprocess.localisation`; the inset applies to uploads sent with
 ``masks_hold_csf`` too). Each variant sets both and measures, with the model's fixed draws (the
 variants see the same samples):
 
@@ -37,6 +37,7 @@ from scipy import ndimage
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import service.pipeline.prepare as prepare  # noqa: E402
+import service.preprocess.localisation as localisation  # noqa: E402
 import service.preprocess.localise as localise  # noqa: E402
 from model_export.experiments.real_scan_poses import compare, read_scan  # noqa: E402
 from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator  # noqa: E402
@@ -70,12 +71,12 @@ def image_rim(image: NDArray, region: NDArray, spacing: NDArray, axis: int | Non
         return region
     axis = slice_axis_of(spacing) if axis is None else axis
     image = np.asarray(image, np.float32)
-    core = localise.inset_in_plane(region, spacing, 5.0, axis)
+    core = localisation.inset_in_plane(region, spacing, 5.0, axis)
     tissue = float(np.median(image[core if core.sum() >= 50 else region]))
     csf = float(np.percentile(image[region], 98))
     rim_like = (image > tissue + bright * (csf - tissue)) | (image < 0.5 * tissue)
-    inside_edge = localise.inset_in_plane(region, spacing, edge_mm, axis)
-    band = region & ~localise.inset_in_plane(region, spacing, depth_mm, axis)
+    inside_edge = localisation.inset_in_plane(region, spacing, edge_mm, axis)
+    band = region & ~localisation.inset_in_plane(region, spacing, depth_mm, axis)
     plane = np.zeros((3, 3, 3), bool)
     for ax in (a for a in range(3) if a != axis):
         line = [1, 1, 1]
@@ -109,15 +110,15 @@ def main() -> None:
     estimator, localiser = _pose_estimator(), localise.default_localiser()
     scenes = validation_scenes(args.scenes)
     volumes, manual = read_scan(args.scan)
-    shipped = localise.THRESHOLD
+    shipped = localisation.THRESHOLD
     for variant in args.variants.split(","):
         if variant.startswith("rim:"):
             edge, depth, bright = (float(x) for x in variant[4:].split("/"))
-            localise.THRESHOLD, localise.POSE_MASK_INSET_MM = shipped, 0.0
+            localisation.THRESHOLD, localisation.POSE_MASK_INSET_MM = shipped, 0.0
             prepare.split_stack = rim_split(edge, depth, bright)
         else:
             cut, inset = (float(x) for x in variant.split("/"))
-            localise.THRESHOLD, localise.POSE_MASK_INSET_MM = cut, inset
+            localisation.THRESHOLD, localisation.POSE_MASK_INSET_MM = cut, inset
             prepare.split_stack = split_stack
         acc = pose_accuracy(scenes, estimator, localiser, ("localiser",))["localiser"] if scenes else None
         pairs = []

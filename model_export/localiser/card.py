@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from service.preprocess.localise import POSE_MASK_INSET_MM
+from service.preprocess.localisation import POSE_MASK_INSET_MM
 
 
 def _fmt(x: float | None, digits: int = 3) -> str:

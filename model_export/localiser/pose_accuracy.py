@@ -34,7 +34,8 @@ from service.geometry import anchors, twin
 from service.io.volume import Volume
 from service.pipeline.predict import predict
 from service.pipeline.prepare import PreparedStack, StackUpload, prepare_stacks
-from service.preprocess.localise import Localiser, grown
+from service.preprocess.localisation import grown
+from service.preprocess.localise import Localiser
 
 VARIANTS = ("brain", "skull", "localiser")
 MIN_BRAIN_PIXELS = 200

@@ -17,7 +17,8 @@ from service.api.uploads import check_form, known_fields, upload_directory, uplo
 from service.core.names import unique_stems
 from service.io.nifti_header import copy_transforms
 from service.io.volume import Volume, write_volume
-from service.preprocess.localise import Localisation, Localiser, grown
+from service.preprocess.localisation import Localisation, grown
+from service.preprocess.localise import Localiser
 
 router = APIRouter(prefix="/v1", tags=["masks"], dependencies=[ApiKey])
 
@@ -29,7 +30,7 @@ MARGIN_HELP = ("grow each mask outward by this many mm (Euclidean, on the stack'
 
 def masks_archive(uploads: list, localiser: Localiser, directory: Path, margin_mm: float = 0.0) -> bytes:
     """The zip of one ``<stem>_mask.nii.gz`` per stack (its own grid), grown by ``margin_mm``
-    (:func:`~service.preprocess.localise.grown`), and ``report.json``."""
+    (:func:`~service.preprocess.localisation.grown`), and ``report.json``."""
     report = []
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:

@@ -34,7 +34,8 @@ from service.core.errors import UnusableImage
 from service.inference.model_file import ModelInfo
 from service.io.volume import Volume
 from service.preprocess.bias import n4_correct
-from service.preprocess.localise import Localisation, Localiser, default_localiser
+from service.preprocess.localisation import Localisation
+from service.preprocess.localise import Localiser, default_localiser
 from service.preprocess.localiser_inputs import LocaliserGrid
 from service.preprocess.noise import input_noise
 from service.preprocess.one_fetus import brain_centre_mm, one_fetus
@@ -62,7 +63,7 @@ class StackUpload:
     mask_filename: str | None = None
     mask_holds_csf: bool = False
     """The uploaded mask is the skull's inside (brain and extra-axial CSF), as manual fetal masks are
-    usually drawn (:attr:`~service.preprocess.localise.Localisation.holds_csf`)."""
+    usually drawn (:attr:`~service.preprocess.localisation.Localisation.holds_csf`)."""
 
     @property
     def slice_axis(self) -> int:

@@ -22,10 +22,11 @@
    brain-like probability the chosen brain holds, and the plausibility of its volume. A stack with
    no brain (noise, another body part) gets a low confidence; below :data:`MIN_CONFIDENCE` its mask
    is empty and its slices are ``empty``.
-4. **The pose network's mask** (:meth:`Localisation.pose_mask`): the localiser's mask is the skull's
+4. **The pose network's mask** (:meth:`~service.preprocess.localisation.Localisation.pose_mask`): the localiser's mask is the skull's
    inside, as manual masks are drawn; the pose network learnt the atlas's tighter brain masks, so its
-   slices are cut with the mask less its outer :data:`POSE_MASK_INSET_MM` (the localiser's mask as
-   cut at :data:`~service.preprocess.brain_shape.THRESHOLD`, :attr:`Localisation.pose_region`).
+   slices are cut with the mask less its outer
+   :data:`~service.preprocess.localisation.POSE_MASK_INSET_MM` (the localiser's mask as cut at
+   :data:`~service.preprocess.brain_shape.THRESHOLD`, :attr:`~service.preprocess.localisation.Localisation.pose_region`).
 
 Example (a localiser is an ONNX file; see :class:`Localiser`):
     >>> loc = Localiser.load(DEFAULT_LOCALISERS_DIR / "default" / "model.onnx")   # doctest: +SKIP
@@ -52,10 +53,11 @@ from service.core.onnx import file_sha256, model_files, session_options, session
 from service.core.settings import DEFAULT_LOCALISERS_DIR
 from service.core.threads import side_by_side
 from service.io.volume import Volume
-from service.preprocess.brain_shape import MASK_THRESHOLD, THRESHOLD, brain_from_probabilities, margin_disk
+from service.preprocess.brain_shape import THRESHOLD, brain_from_probabilities, margin_disk
+from service.preprocess.localisation import Localisation
 from service.preprocess.localiser_inputs import LocaliserGrid, localiser_inputs
 from service.preprocess.one_fetus import one_fetus
-from service.preprocess.stack import blank_slices, mask_box, slice_axis_of, stack_axis
+from service.preprocess.stack import blank_slices, mask_box, stack_axis
 
 log = logging.getLogger(__name__)
 
@@ -79,122 +81,6 @@ MIN_GRID_SCALE = 0.6
 CUT_END_SHARE = 0.5
 """A stack's end slice cuts through a brain where it holds over this share of the brain's largest
 slice (:func:`cut_by_stack_ends`): a brain's caps are smaller."""
-POSE_MASK_INSET_MM = 2.0
-"""How far inside the localiser's mask (the skull's inside) the pose network's mask lies: the pose
-network learnt the atlas's brain masks, which leave out most of the extra-axial CSF around the brain
-(about 1-3.5 mm thick), and a mask that holds it costs the poses accuracy."""
-
-
-@dataclass(frozen=True)
-class Localisation:
-    """Where a stack's brain is and how it was found (the ``localisation`` object of a response)."""
-
-    mask: NDArray[np.bool_]
-    method: str                    # "mask" (uploaded) or "network"
-    brain_volume_ml: float
-    confidence: float
-    slices_with_brain: int
-    holds_csf: bool = False
-    """The mask is the skull's inside (the brain and the extra-axial CSF around it): the localiser's
-    always, an uploaded one when the request says so (``masks_hold_csf``)."""
-    pose_region: NDArray[np.bool_] | None = None
-    """Where the pose network's mask starts from, where it differs from :attr:`mask`: the localiser's
-    probabilities cut at :data:`~service.preprocess.brain_shape.THRESHOLD` (the mask itself is cut
-    lower, as manual masks are drawn; the pose network learnt on the cut it has always had)."""
-
-    @classmethod
-    def of(cls, mask: NDArray, spacing: NDArray, method: str, confidence: float,
-           holds_csf: bool | None = None, pose_region: NDArray | None = None) -> "Localisation":
-        """A mask on a stack's grid of voxel sizes ``spacing``, with its volume and slice count
-        (``holds_csf`` default: a localiser's mask does, an uploaded one does not)."""
-        m = np.asarray(mask) > 0
-        axis = slice_axis_of(spacing)
-        slices = int(np.count_nonzero(np.moveaxis(m, axis, 0).reshape(m.shape[axis], -1).any(1)))
-        csf = method == "network" if holds_csf is None else bool(holds_csf)
-        region = None if pose_region is None else np.asarray(pose_region) > 0
-        return cls(m, method, float(m.sum() * np.prod(spacing) / 1000.0), float(confidence), slices, csf, region)
-
-    @property
-    def pose_inset_mm(self) -> float:
-        """How far inside the mask the pose network's mask lies (:meth:`pose_mask`)."""
-        return POSE_MASK_INSET_MM if self.holds_csf else 0.0
-
-    @classmethod
-    def found(cls, probability: NDArray, spacing: NDArray, confidence: float) -> "Localisation":
-        """The localiser's answer from its brain probabilities on the stack's grid: the mask cut at
-        :data:`~service.preprocess.brain_shape.MASK_THRESHOLD`, its :attr:`pose_region` at
-        :data:`~service.preprocess.brain_shape.THRESHOLD`."""
-        return cls.of(probability >= MASK_THRESHOLD, spacing, "network", confidence,
-                      pose_region=probability >= THRESHOLD)
-
-    def pose_mask(self, spacing: NDArray, axis: int | None = None) -> NDArray[np.bool_]:
-        """The mask the pose network's slices are cut with: a tight brain mask as it is; one that holds
-        the CSF around the brain (the localiser's, or an upload the request says holds it) without its outer
-        :data:`POSE_MASK_INSET_MM` in the plane of the slices along ``axis`` (default: the thick one),
-        the brain as the atlas masks the pose network learnt from draw it; the localiser's from its
-        :attr:`pose_region`."""
-        region = self.mask if self.pose_region is None else self.pose_region
-        if not self.holds_csf or not region.any():
-            return region
-        return inset_in_plane(region, np.asarray(spacing, np.float64), POSE_MASK_INSET_MM, axis)
-
-    def report(self) -> dict:
-        """The ``localisation`` object of a ``/v1/predict`` stack."""
-        return {"method": self.method, "brain_volume_ml": round(self.brain_volume_ml, 1),
-                "confidence": round(self.confidence, 3), "pose_mask_inset_mm": self.pose_inset_mm}
-
-
-def inset_in_plane(mask: NDArray, spacing: NDArray, inset_mm: float, axis: int | None = None) -> NDArray[np.bool_]:
-    """``mask`` without the pixels within ``inset_mm`` of its outside, in the plane of each slice along
-    ``axis`` (default: the thick one), by exact Euclidean distances on the voxel sizes ``spacing``:
-    an erosion by the in-plane disc of the offsets within ``inset_mm`` (outside the array counts as
-    outside), which on a fine grid costs half a distance transform.
-
-    Example (a 20 x 20 mm square of 1 mm pixels loses 2 mm on each side):
-        >>> m = np.zeros((30, 30, 3), bool); m[5:25, 5:25] = True
-        >>> out = inset_in_plane(m, np.array([1.0, 1.0, 3.0]), 2.0)
-        >>> int(out[:, :, 1].sum()), bool(out[:, :, 0].sum() == out[:, :, 1].sum())
-        (256, True)
-    """
-    mask = np.asarray(mask, bool)
-    box = mask_box(mask, [0, 0, 0])
-    if box is None:
-        return mask.copy()
-    axis = slice_axis_of(spacing) if axis is None else axis
-    sampling = np.asarray(spacing, np.float64)
-    reach = [0 if k == axis else int(np.floor(inset_mm / sampling[k])) for k in range(3)]
-    offsets = np.meshgrid(*[np.arange(-r, r + 1) * sampling[k] for k, r in enumerate(reach)], indexing="ij")
-    disc = sum(o ** 2 for o in offsets) <= inset_mm ** 2
-    inside = np.pad(mask[box], [(r, r) for r in reach])
-    out = np.zeros_like(mask)
-    out[box] = ndimage.binary_erosion(inside, disc)[tuple(slice(r, len_ - r) for r, len_ in zip(reach, inside.shape))]
-    return out
-
-
-def grown(mask: NDArray, spacing: NDArray, margin_mm: float) -> NDArray[np.bool_]:
-    """``mask`` with every voxel whose centre lies within ``margin_mm`` of it, by exact Euclidean
-    distances on the voxel sizes ``spacing`` (across thick slices only where the margin reaches the
-    next slice's centre): a mask drawn to another convention (the skull's outer edge, a margin for a
-    reconstruction tool) from the localiser's, which is the skull's inside.
-
-    Example (a 10 x 10 mm square of 1 mm pixels, 3 mm slices, grown by 2 mm: 14 x 14 pixels less the
-    three beyond 2 mm at each corner, no slice added):
-        >>> m = np.zeros((20, 20, 5), bool); m[5:15, 5:15, 2] = True
-        >>> out = grown(m, np.array([1.0, 1.0, 3.0]), 2.0)
-        >>> int(out[:, :, 2].sum()), int(out.sum() - out[:, :, 2].sum())
-        (184, 0)
-    """
-    mask = np.asarray(mask, bool)
-    found = np.argwhere(mask)
-    if margin_mm <= 0 or len(found) == 0:
-        return mask.copy()
-    sampling = np.asarray(spacing, np.float64)
-    reach = np.ceil(margin_mm / sampling).astype(int) + 1
-    lo, hi = np.maximum(found.min(0) - reach, 0), np.minimum(found.max(0) + reach + 1, mask.shape)
-    box = tuple(slice(a, b) for a, b in zip(lo, hi))
-    out = np.zeros_like(mask)
-    out[box] = ndimage.distance_transform_edt(~mask[box], sampling=sampling) <= margin_mm
-    return out
 
 
 @dataclass

@@ -31,7 +31,7 @@ from service.preprocess.localiser_inputs import LocaliserGrid, target_maps
 
 class Settled(Protocol):
     """What :func:`one_fetus` reads of a stack's localisation
-    (:class:`~service.preprocess.localise.Localisation`)."""
+    (:class:`~service.preprocess.localisation.Localisation`)."""
 
     mask: NDArray
     confidence: float

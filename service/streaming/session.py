@@ -49,7 +49,8 @@ from service.io.volume import Volume, magnitude
 from service.pipeline.predict import (StackPrediction, add_noise_error, add_unseen_errors, estimate_stacks, judge,
                                      predict_from_estimates)
 from service.pipeline.prepare import PreparedStack, StackUpload, prepare_stack
-from service.preprocess.localise import Localisation, Localiser
+from service.preprocess.localisation import Localisation
+from service.preprocess.localise import Localiser
 from service.preprocess.noise import input_noise, stack_noise
 from service.preprocess.slices import preprocess_slices
 from service.preprocess.stack import split_stack

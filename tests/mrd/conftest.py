@@ -18,7 +18,7 @@ from service.inference.registry import ModelRegistry
 from service.io.volume import Volume
 from service.mrd.images import image_from_slice
 from service.mrd.server import MrdServer, ServerLimits, session_factory
-from service.preprocess.localise import Localisation
+from service.preprocess.localisation import Localisation
 from service.streaming.options import StreamLimits
 from tests.support.streams import KeyedOracle, frames_of, simulated_stack, teach
 

@@ -10,7 +10,7 @@ from scipy import ndimage
 
 from service.core.settings import DEFAULT_LOCALISERS_DIR
 from service.io.volume import Volume, read_volume
-from service.preprocess.localise import Localisation, Localiser, Localisers
+from service.preprocess.localise import Localiser, Localisers
 from tests.conftest import SHARED_DATA
 
 REAL = SHARED_DATA / "real_scans"
@@ -23,15 +23,6 @@ def dice(a: np.ndarray, b: np.ndarray) -> float:
 @pytest.fixture(scope="module")
 def localiser() -> Localiser:
     return Localiser.load(DEFAULT_LOCALISERS_DIR / "default" / "model.onnx")
-
-
-def test_an_uploaded_mask_is_reported_as_such() -> None:
-    mask = np.zeros((10, 12, 6), np.uint8)
-    mask[2:5, 3:6, 1:4] = 1
-    found = Localisation.of(mask, np.array([2.0, 2.0, 4.0]), "mask", 1.0)
-    assert found.brain_volume_ml == pytest.approx(27 * 16 / 1000)
-    assert found.slices_with_brain == 3
-    assert found.report() == {"method": "mask", "brain_volume_ml": 0.4, "confidence": 1.0, "pose_mask_inset_mm": 0.0}
 
 
 def test_the_registry_names_what_it_lacks() -> None:
@@ -299,52 +290,13 @@ def test_a_real_brain_leaking_into_the_fetal_body_is_cut_at_the_waist(localiser:
     assert per_slice[:37].all() and not per_slice[38:].any()
 
 
-def test_the_inset_removes_exactly_the_pixels_within_its_distance_of_the_outside() -> None:
-    """Against exact in-plane Euclidean distances to the nearest outside pixel (outside the array
-    counts as outside): random masks on grids of scanners' voxel sizes, touching the array's edge,
-    distances that tie with a pixel's, and each axis as the slice axis."""
-    from service.preprocess.localise import inset_in_plane
-
-    rng = np.random.default_rng(0)
-    for case in range(60):
-        shape = tuple(int(n) for n in rng.integers(5, 30, 3))
-        spacing = rng.choice([0.5, 0.5625, 0.7, 1.0, 1.125, 1.6, 3.0, 3.3], 3)
-        mask = ndimage.binary_dilation(rng.random(shape) > 0.97, iterations=int(rng.integers(1, 5)))
-        mask[:, :2] |= case % 5 == 0
-        inset, axis = float(rng.choice([1.0, 2.0, 2.5])), int(rng.integers(0, 3))
-        sampling = np.array(spacing, np.float64)
-        sampling[axis] = 1e6                                   # the nearest outside within the slice's plane
-        distance = ndimage.distance_transform_edt(np.pad(mask, 1), sampling=sampling)[1:-1, 1:-1, 1:-1]
-        np.testing.assert_array_equal(inset_in_plane(mask, spacing, inset, axis), mask & (distance > inset))
-
-
-def test_the_pose_network_gets_the_localisers_mask_without_its_csf_rim() -> None:
-    """An uploaded mask is used as it is; the localiser's (the skull's inside) loses its outer
-    POSE_MASK_INSET_MM in each slice's plane, whatever the slice axis, and no slice gains a pixel."""
-    from service.preprocess.localise import POSE_MASK_INSET_MM, inset_in_plane
-
-    spacing = np.array([1.2, 3.0, 1.2])                        # slices along axis 1
-    x, y, z = np.meshgrid(*[np.arange(n) * s for n, s in zip((60, 12, 60), spacing)], indexing="ij")
-    ball = (x - 36) ** 2 + ((y - 16) * 1.5) ** 2 + (z - 36) ** 2 <= 25 ** 2
-    uploaded = Localisation.of(ball, spacing, "mask", 1.0)
-    assert uploaded.pose_mask(spacing) is uploaded.mask
-    found = Localisation.of(ball, spacing, "network", 0.9)
-    inner = found.pose_mask(spacing)
-    assert not (inner & ~ball).any() and inner.sum() < ball.sum()
-    gone = ball & ~inner
-    depth = ndimage.distance_transform_edt(np.pad(ball, ((0, 0), (0, 0), (0, 0))), sampling=[1.2, 1e6, 1.2])
-    assert depth[gone].max() <= POSE_MASK_INSET_MM + 1e-6 and depth[inner].min() > POSE_MASK_INSET_MM
-    assert np.array_equal(inner, inset_in_plane(ball, spacing, POSE_MASK_INSET_MM, axis=1))
-    assert not Localisation.of(np.zeros_like(ball), spacing, "network", 0.0).pose_mask(spacing).any()
-
-
 def test_the_mask_is_cut_lower_than_the_region_the_pose_network_starts_from(localiser: Localiser) -> None:
     """The localiser's mask holds its pose region and more (cut at MASK_THRESHOLD, not THRESHOLD); the
     pose network's mask is the pose region less its rim, with nothing of the mask's extra; a slice
     localised alone keeps the two cuts too."""
     from model_export.localiser.scenes import HeadModel, synth_stack
     from service.preprocess.brain_shape import MASK_THRESHOLD, THRESHOLD
-    from service.preprocess.localise import POSE_MASK_INSET_MM, inset_in_plane
+    from service.preprocess.localisation import POSE_MASK_INSET_MM, inset_in_plane
     from tests.support.phantoms import phantom_brain
 
     assert MASK_THRESHOLD < THRESHOLD
@@ -373,7 +325,6 @@ def test_an_upload_said_to_hold_the_csf_gets_the_localisers_inset() -> None:
     assert tight.method == rim.method == "mask" and tight.pose_inset_mm == 0.0 and rim.pose_inset_mm == 2.0
     assert np.array_equal(tight.pose_mask(spacing), mask > 0)
     assert rim.pose_mask(spacing)[:, :, 2].sum() == 20 * 20 and rim.report()["pose_mask_inset_mm"] == 2.0
-
 
 
 class _ProbabilityLocaliser(Localiser):

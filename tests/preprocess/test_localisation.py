@@ -1,0 +1,70 @@
+"""What a localisation holds: an uploaded mask's report, and the masks cut from it for the pose network
+(the inset against exact distances, on grids of scanners' voxel sizes)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from service.preprocess.localisation import POSE_MASK_INSET_MM, Localisation, inset_in_plane
+
+
+def test_an_uploaded_mask_is_reported_as_such() -> None:
+    mask = np.zeros((10, 12, 6), np.uint8)
+    mask[2:5, 3:6, 1:4] = 1
+    found = Localisation.of(mask, np.array([2.0, 2.0, 4.0]), "mask", 1.0)
+    assert found.brain_volume_ml == pytest.approx(27 * 16 / 1000)
+    assert found.slices_with_brain == 3
+    assert found.report() == {"method": "mask", "brain_volume_ml": 0.4, "confidence": 1.0, "pose_mask_inset_mm": 0.0}
+
+
+def test_the_inset_removes_exactly_the_pixels_within_its_distance_of_the_outside() -> None:
+    """Against exact in-plane Euclidean distances to the nearest outside pixel (outside the array
+    counts as outside): random masks on grids of scanners' voxel sizes, touching the array's edge,
+    distances that tie with a pixel's, and each axis as the slice axis."""
+    rng = np.random.default_rng(0)
+    for case in range(60):
+        shape = tuple(int(n) for n in rng.integers(5, 30, 3))
+        spacing = rng.choice([0.5, 0.5625, 0.7, 1.0, 1.125, 1.6, 3.0, 3.3], 3)
+        mask = ndimage.binary_dilation(rng.random(shape) > 0.97, iterations=int(rng.integers(1, 5)))
+        mask[:, :2] |= case % 5 == 0
+        inset, axis = float(rng.choice([1.0, 2.0, 2.5])), int(rng.integers(0, 3))
+        sampling = np.array(spacing, np.float64)
+        sampling[axis] = 1e6                                   # the nearest outside within the slice's plane
+        distance = ndimage.distance_transform_edt(np.pad(mask, 1), sampling=sampling)[1:-1, 1:-1, 1:-1]
+        np.testing.assert_array_equal(inset_in_plane(mask, spacing, inset, axis), mask & (distance > inset))
+
+
+def test_the_pose_network_gets_the_localisers_mask_without_its_csf_rim() -> None:
+    """An uploaded mask is used as it is; the localiser's (the skull's inside) loses its outer
+    POSE_MASK_INSET_MM in each slice's plane, whatever the slice axis, and no slice gains a pixel."""
+    spacing = np.array([1.2, 3.0, 1.2])                        # slices along axis 1
+    x, y, z = np.meshgrid(*[np.arange(n) * s for n, s in zip((60, 12, 60), spacing)], indexing="ij")
+    ball = (x - 36) ** 2 + ((y - 16) * 1.5) ** 2 + (z - 36) ** 2 <= 25 ** 2
+    uploaded = Localisation.of(ball, spacing, "mask", 1.0)
+    assert uploaded.pose_mask(spacing) is uploaded.mask
+    found = Localisation.of(ball, spacing, "network", 0.9)
+    inner = found.pose_mask(spacing)
+    assert not (inner & ~ball).any() and inner.sum() < ball.sum()
+    gone = ball & ~inner
+    depth = ndimage.distance_transform_edt(np.pad(ball, ((0, 0), (0, 0), (0, 0))), sampling=[1.2, 1e6, 1.2])
+    assert depth[gone].max() <= POSE_MASK_INSET_MM + 1e-6 and depth[inner].min() > POSE_MASK_INSET_MM
+    assert np.array_equal(inner, inset_in_plane(ball, spacing, POSE_MASK_INSET_MM, axis=1))
+    assert not Localisation.of(np.zeros_like(ball), spacing, "network", 0.0).pose_mask(spacing).any()
+
+
+def test_a_mask_grown_by_a_margin_holds_exactly_the_voxels_within_that_distance() -> None:
+    """Against exact Euclidean distances from the mask, on grids of scanners' voxel sizes (thick
+    slices included): every voxel within the margin is added, none beyond it, none removed."""
+    from service.preprocess.localisation import grown
+
+    rng = np.random.default_rng(1)
+    for _ in range(40):
+        shape = tuple(int(n) for n in rng.integers(5, 25, 3))
+        spacing = rng.choice([0.5, 0.7, 1.0, 1.125, 1.6, 3.0, 3.3], 3)
+        mask = ndimage.binary_dilation(rng.random(shape) > 0.98, iterations=int(rng.integers(0, 3)) or 1)
+        margin = float(rng.choice([1.0, 2.0, 3.0, 4.5]))
+        distance = ndimage.distance_transform_edt(~mask, sampling=spacing)
+        np.testing.assert_array_equal(grown(mask, spacing, margin), distance <= margin)
+    assert not grown(np.zeros((4, 4, 4), bool), np.ones(3), 3.0).any()
