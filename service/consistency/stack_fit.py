@@ -123,7 +123,8 @@ class StackFit:
         request_distance_mm: with ``branch_from_request``, the mean E.D. of the stack's rigid fit on
             the branch taken, and on the other, from the reference (``[taken, other]``).
         residual_z: ``[n]`` each slice's ``residual_mm`` in units of the spread that the network's error
-            and the others' prediction explain (the measure of :data:`OUTLIER_K`; None when undecidable).
+            and the others' prediction explain (the measure of :data:`OUTLIER_K`; NaN for a slice that
+            may not vote, whose own pose is no measurement: an empty slice; None when undecidable).
     """
 
     poses: NDArray[np.float64]
@@ -317,7 +318,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     return StackFit(final.poses @ inv_n, branch == 1, inconsistent, r_loo, True, final.placement @ to_scanner, fraction,
                     final.order, final.length, network_mm, model_mm, margin, final.sd_mm, final.placement_sd_mm,
                     centre + origin, final.placement_cov, by_request, (far[0], far[1]) if by_request else (np.nan, np.nan),
-                    r_loo / np.sqrt(noise_sd ** 2 + motion.model_sd_mm ** 2))
+                    np.where(use, r_loo / np.sqrt(noise_sd ** 2 + motion.model_sd_mm ** 2), np.nan))
 
 
 def _branch_margin(proposals: NDArray, cand: NDArray, branch: NDArray, inv_n: NDArray, w: NDArray,

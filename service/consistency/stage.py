@@ -104,7 +104,7 @@ def undecided(out: StackPoses) -> bool:
     return out.fit is not None and out.fit.decidable and not out.fit.branch_decided and not out.fit.branch_from_request
 
 
-MISFIT_ONSET = 0.7
+MISFIT_ONSET = 0.6
 """Where a stack's slices start to disagree with its motion model more than its spreads explain: the
 median (root mean square) of their leave-one-out residuals in units of the spread both errors
 explain (:attr:`~service.consistency.stack_fit.StackFit.residual_z`)."""
@@ -122,12 +122,15 @@ def misfit_factor(fit: StackFit | None) -> float:
     (stacks sent alone: RMS E.D. / RMS expected 1.3-1.5), and its slices' residuals against what
     the others predict are larger than the spreads explain. The factor is
     ``1 + MISFIT_GAIN * max(0, z - MISFIT_ONSET)``, ``z`` the stack's median (RMS) residual in
-    units of that spread; 1 for a stack the stage did not fit.
+    units of that spread over the slices that may vote (an empty slice's own pose is no
+    measurement: its residual is NaN and counts for nothing); 1 for a stack the stage did not fit.
 
-    Example:
+    Example (the same stack with and without two empty slices):
         >>> from types import SimpleNamespace
         >>> round(misfit_factor(SimpleNamespace(decidable=True, residual_z=np.array([0.5, 1.2, 1.0]))), 3)
-        1.42
+        1.56
+        >>> round(misfit_factor(SimpleNamespace(decidable=True, residual_z=np.array([0.5, 1.2, 1.0, np.nan, np.nan]))), 3)
+        1.56
         >>> misfit_factor(None)
         1.0
     """

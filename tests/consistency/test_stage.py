@@ -144,3 +144,26 @@ def test_slices_that_move_on_their_own_raise_the_misfit_factor_and_it_makes_thei
     assert all(factors[s, "independent"] > factors[s, "mild"] + 0.2 for s in range(5)), factors
     before, after = np.median(ratios, axis=0)
     assert before > 2.0 and abs(np.log(after)) < 0.6 * abs(np.log(before)), ratios
+
+
+def test_empty_slices_leave_a_stacks_misfit_factor_as_its_slices_with_brain_give_it() -> None:
+    """A whole-uterus stack's end slices show no brain: the network never saw a brain there and
+    their 'poses' are no measurement (here: anywhere within 60 mm and 90 deg). They do not vote, get
+    no residual, and the stack's factor is the one its slices with brain give it alone."""
+    from service.consistency import fit_stack
+    from service.consistency.stage import misfit_factor
+    from tests.consistency.test_stack_fit import stack
+
+    noise = np.array([np.radians(4.0)] * 3 + [3.0] * 3) / np.sqrt(3.0)
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        truth, nfs = stack(rng, "mild", n=30)
+        noisy = truth @ se3.exp(rng.normal(0, 1, (30, 6)) * noise)
+        expected = np.full(30, np.sqrt(np.mean(anchors.ed(noisy, truth) ** 2)))
+        brain = np.arange(30) >= 8                                      # eight empty slices at one end
+        junk = noisy.copy()
+        junk[~brain] = se3.exp(np.concatenate([rng.uniform(-1.5, 1.5, (8, 3)), rng.uniform(-60, 60, (8, 3))], 1))
+        whole = fit_stack(junk, nfs, usable=brain, expected_error_mm=np.where(brain, expected, np.nan))
+        alone = fit_stack(noisy[brain], nfs[brain], expected_error_mm=expected[brain])
+        assert np.isnan(whole.residual_z[~brain]).all() and np.isfinite(whole.residual_z[brain]).all()
+        assert misfit_factor(whole) == pytest.approx(misfit_factor(alone), rel=0.05)
