@@ -91,6 +91,17 @@ class StoreUnavailable(Saturated):
     status, title, type = 503, "Job store unavailable", "/problems/store-unavailable"
 
 
+class InsufficientStorage(Saturated):
+    """507: the server's disk (its temporary or data folder) filled while it wrote what a request sent;
+    the files are not at fault: retry later (and the operator frees space)."""
+
+    status, title, type = 507, "Insufficient storage", "/problems/insufficient-storage"
+
+    def __init__(self, detail: str = "the server's disk is full; the files were not read, retry later",
+                 retry_after_s: int = 30) -> None:
+        super().__init__(detail, retry_after_s)
+
+
 class InternalError(ServiceError):
     """500: a fault of the server, not of the request (details go to the log by type only)."""
 

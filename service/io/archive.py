@@ -35,7 +35,7 @@ from service.io.acquisition_geometry import Tags, series_problem, stated_thickne
 from service.io.acquisition_times import order_of, seconds
 from service.io.dicom import read_dicom_file
 from service.io.dicom_guard import load_dataset
-from service.io.limits import FileBudget
+from service.io.limits import FileBudget, raise_if_out_of_space
 from service.io.volume import Volume, from_sitk
 
 MAX_MEMBERS = 5000
@@ -85,6 +85,7 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path 
                         labels[str(out)] = label
                         budget.slices(len(labels), "DICOM images in the archive")
         except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as exc:
+            raise_if_out_of_space(exc)
             raise UnsupportedFile(f"{filename}: corrupt or truncated ZIP archive") from exc
         except (NotImplementedError, RuntimeError) as exc:     # an unknown method, an encrypted member
             raise UnsupportedFile(f"{filename}: a ZIP archive with encrypted members or an unsupported "

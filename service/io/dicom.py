@@ -41,7 +41,7 @@ from service.geometry import frames
 from service.io.acquisition_geometry import series_problem, stated_thickness
 from service.io.acquisition_times import order_of, seconds
 from service.io.dicom_guard import load_dataset
-from service.io.limits import FileBudget
+from service.io.limits import FileBudget, raise_if_out_of_space
 from service.io.volume import Volume
 
 with warnings.catch_warnings():         # nibabel.nicom warns on import about its DICOM readers, not used here
@@ -72,6 +72,7 @@ def read_dicom_file(path: Path, filename: str, budget: FileBudget) -> Volume:
         ds = load_dataset(path, filename, budget)
         pixels = ds.pixel_array.astype(np.float32)
     except (InvalidDicomError, AttributeError, ValueError, OSError, KeyError, EOFError) as exc:
+        raise_if_out_of_space(exc)
         raise UnsupportedFile(f"{filename}: unreadable DICOM pixel data") from exc
     slope = float(getattr(ds, "RescaleSlope", 1) or 1)
     pixels = pixels * slope + float(getattr(ds, "RescaleIntercept", 0) or 0)

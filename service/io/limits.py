@@ -18,9 +18,32 @@ Example:
 
 from __future__ import annotations
 
+import errno
+import logging
 import threading
 
-from service.core.errors import PayloadTooLarge, UnusableImage
+from service.core.errors import InsufficientStorage, PayloadTooLarge, UnusableImage
+
+log = logging.getLogger(__name__)
+NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
+
+
+def raise_if_out_of_space(exc: BaseException) -> None:
+    """Raise :class:`~service.core.errors.InsufficientStorage` (507, logged for the operator) where
+    ``exc`` is the disk filling up (``ENOSPC``, ``EDQUOT``): a decoder that catches ``OSError`` to
+    name a corrupt file calls this first, so that a full disk is not blamed on the client's file.
+
+    Example:
+        >>> raise_if_out_of_space(OSError(errno.EIO, "bad sector"))          # not the disk filling up
+        >>> try:
+        ...     raise_if_out_of_space(OSError(errno.ENOSPC, "No space left on device"))
+        ... except InsufficientStorage as exc:
+        ...     print(exc.status)
+        507
+    """
+    if isinstance(exc, OSError) and exc.errno in NO_SPACE:
+        log.warning("the disk is full: a request's files could not be written (%s)", errno.errorcode.get(exc.errno))
+        raise InsufficientStorage() from exc
 
 
 def mb(n: int) -> str:

@@ -37,7 +37,7 @@ from service.io.acquisition_geometry import grid_problem, stacking_problem
 from service.io.archive import read_dicom_zip
 from service.io.dicom import read_dicom_file
 from service.io.headers import clean_header, declared_values, geometry_problem
-from service.io.limits import DecodeBudget, FileBudget
+from service.io.limits import DecodeBudget, FileBudget, raise_if_out_of_space
 from service.io.nifti_header import (MAX_SHEAR_COS, NiftiTransforms, missing_voxel_size, orientation_problem,
                                      qform_problem, read_transforms, sform_problem)
 from service.io.volume import Volume, from_sitk, magnitude, placed_by_header
@@ -168,6 +168,7 @@ def _gunzip(path: Path, out: Path, budget: FileBudget) -> Path:
                 budget.inflate(len(chunk))
                 dst.write(chunk)
     except GZIP_ERRORS as exc:
+        raise_if_out_of_space(exc)
         raise UnsupportedFile(f"{budget.filename}: truncated or corrupt gzip stream") from exc
     return out
 

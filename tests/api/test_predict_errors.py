@@ -252,3 +252,30 @@ def test_a_dicom_deflate_bomb_is_413_naming_the_file(oracle: object) -> None:
 
     assert_problem(post_to(oracle, [("stacks", ("bomb.dcm", deflate_bomb(64)))], max_decoded_mb=16), 413,
                    "bomb.dcm")
+
+
+def test_a_full_disk_while_a_file_is_decoded_is_507_not_the_clients_corrupt_file(
+        oracle_client: TestClient, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The temporary folder fills while a gzipped stack is inflated to it: the answer says the server's
+    disk is full (507, Retry-After), not that the client's file is truncated or corrupt (415)."""
+    import builtins
+    import errno
+
+    import service.io.readers as readers
+
+    class FullDisk(io.RawIOBase):
+        def writable(self) -> bool:
+            return True
+
+        def write(self, b) -> int:  # noqa: ANN001
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    def full_open(file, mode="r", *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        return FullDisk() if "w" in mode else builtins.open(file, mode, *args, **kwargs)
+
+    monkeypatch.setattr(readers, "open", full_open, raising=False)
+    r = post(oracle_client, [("stacks", ("a.nii.gz", nifti_bytes(stack(), tmp=tmp_path)))])
+    assert_problem(r, 507, "disk is full")
+    assert r.json()["type"] == "/problems/insufficient-storage" and int(r.headers["Retry-After"]) > 0
+    monkeypatch.undo()
+    assert post(oracle_client, [("stacks", ("a.nii.gz", b"\x1f\x8b not gzip at all"))]).status_code == 415
