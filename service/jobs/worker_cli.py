@@ -24,6 +24,7 @@ import os
 import signal
 import socket
 import sys
+import time
 from datetime import datetime, timezone
 
 import redis
@@ -41,6 +42,9 @@ from service.jobs.rq_runner import set_context
 log = logging.getLogger(__name__)
 
 
+RESTART_DELAY_S = 5.0
+"""How long the pool waits before it starts a worker that ended unasked again (a Redis outage: the new
+worker's first connection may fail too, and is tried again as long)."""
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
 _early_stops: list[int] = []
 
@@ -130,10 +134,19 @@ def _child(settings: Settings, burst: bool, parent: int) -> None:
 
 
 def _pool(settings: Settings, n: int, burst: bool) -> int:
-    """``n`` workers in child processes; SIGTERM/SIGINT are passed on; the exit code of the worst."""
+    """``n`` workers in child processes; SIGTERM/SIGINT are passed on; the exit code of the worst.
+
+    A worker that ends before the pool is told to stop (RQ quits on an error its loop does not
+    handle: the queue's Redis gone while a job runs) is started again after
+    :data:`RESTART_DELAY_S` (not with ``burst``, whose workers end when the queue is empty), so
+    the pool keeps its ``n`` workers through a Redis outage."""
     ctx = multiprocessing.get_context("fork")
-    children = [ctx.Process(target=_child, args=(settings, burst, os.getpid()), name=f"svrnet-worker-{i}")
-                for i in range(n)]
+
+    def start(i: int) -> multiprocessing.process.BaseProcess:
+        return ctx.Process(target=_child, args=(settings, burst, os.getpid()), name=f"svrnet-worker-{i}")
+
+    children = [start(i) for i in range(n)]
+    stopping = False
     # Children inherit the held stop signals (a stop before RQ's handlers is a warm one, never a kill);
     # one that reaches the pool before it forwards is forwarded as soon as it does.
     hold_stop_signals()
@@ -143,6 +156,8 @@ def _pool(settings: Settings, n: int, burst: bool) -> int:
         child.start()
 
     def forward(signum: int, frame: object) -> None:  # noqa: ARG001
+        nonlocal stopping
+        stopping = True
         for child in children:
             if child.pid is not None and child.is_alive():
                 os.kill(child.pid, signum)
@@ -152,8 +167,16 @@ def _pool(settings: Settings, n: int, burst: bool) -> int:
     _early_stops[:0] = pending
     while _early_stops:
         forward(_early_stops.pop(0), None)
-    for child in children:
-        child.join()
+    while any(child.is_alive() for child in children) or not (stopping or burst):
+        for i, child in enumerate(children):
+            child.join(timeout=0.5 / n)
+            if child.exitcode is not None and not (stopping or burst):
+                log.warning("worker %d ended (exit code %s) before a stop: starting it again in %.0f s",
+                            i, child.exitcode, RESTART_DELAY_S)
+                time.sleep(RESTART_DELAY_S)
+                if not stopping:
+                    children[i] = start(i)
+                    children[i].start()
     return max(abs(child.exitcode or 0) for child in children)
 
 

@@ -81,3 +81,45 @@ def test_a_stop_signal_during_start_up_unregisters_and_exits_cleanly(tmp_path: P
     assert done.returncode == 0 and "returned" in done.stdout, done.stderr[-2000:]
     queue = Queue(name, connection=redis.Redis.from_url(redis_url))
     assert RqWorker.count(queue=queue) == 0
+
+
+RESTARTING_POOL = textwrap.dedent("""
+    import os, sys, time
+    from pathlib import Path
+    from service.jobs import worker_cli
+
+    started = Path(sys.argv[1])
+    worker_cli.RESTART_DELAY_S = 0.1
+
+    def crashing_then_steady_work(settings, burst=False, name=None):
+        # The first two workers end at once, unasked (as RQ quits when Redis goes away while a job
+        # runs); the ones started in their place work until the pool forwards a stop.
+        worker_cli.hold_stop_signals()
+        (started / str(os.getpid())).touch()
+        if len(list(started.iterdir())) <= 2:
+            sys.exit(1)
+        while not worker_cli._early_stops:
+            time.sleep(0.05)
+        sys.exit(0)
+
+    worker_cli.work = crashing_then_steady_work
+    sys.exit(worker_cli._pool(None, 2, False))
+""")
+
+
+def test_a_worker_that_ends_unasked_is_started_again_and_the_pool_still_stops_warm(tmp_path: Path) -> None:
+    proc = subprocess.Popen([sys.executable, "-c", RESTARTING_POOL, str(tmp_path)], cwd=ROOT, start_new_session=True)
+    try:
+        deadline = time.time() + 30
+        while len(list(tmp_path.iterdir())) < 4:                 # two ended, two started in their place
+            assert time.time() < deadline and proc.poll() is None
+            time.sleep(0.02)
+        time.sleep(0.3)
+        assert proc.poll() is None and len(list(tmp_path.iterdir())) == 4   # the pool keeps two, no more
+        os.kill(proc.pid, signal.SIGTERM)
+        assert proc.wait(timeout=30) == 0
+    finally:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
