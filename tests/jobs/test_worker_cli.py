@@ -9,6 +9,8 @@ import subprocess
 import sys
 import textwrap
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -16,6 +18,27 @@ import pytest
 pytest.importorskip("rq", reason="svrnet-worker needs the queue extra (rq, redis)")
 
 ROOT = Path(__file__).resolve().parents[2]
+
+@contextmanager
+def pool_process(script: str, folder: Path) -> Iterator[subprocess.Popen]:
+    """``script`` run with ``folder`` as its argument, in a session of its own that is killed whole after."""
+    proc = subprocess.Popen([sys.executable, "-c", script, str(folder)], cwd=ROOT, start_new_session=True)
+    try:
+        yield proc
+    finally:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
+def wait_for_workers(proc: subprocess.Popen, folder: Path, n: int) -> None:
+    """Until ``n`` workers have started (each leaves a file in ``folder``), the pool still running."""
+    deadline = time.time() + 30
+    while len(list(folder.iterdir())) < n:
+        assert time.time() < deadline and proc.poll() is None
+        time.sleep(0.02)
+
 
 POOL = textwrap.dedent("""
     import os, sys, time
@@ -39,19 +62,10 @@ POOL = textwrap.dedent("""
 def test_a_stop_signal_in_a_workers_start_up_window_is_a_warm_stop_not_a_kill(tmp_path: Path) -> None:
     # Each pooled worker runs a parent-watch thread (and BLAS pools); a SIGTERM forwarded before RQ has
     # installed its handlers must not land on such a thread and kill the worker with -15.
-    proc = subprocess.Popen([sys.executable, "-c", POOL, str(tmp_path)], cwd=ROOT, start_new_session=True)
-    try:
-        deadline = time.time() + 30
-        while len(list(tmp_path.iterdir())) < 2:
-            assert time.time() < deadline and proc.poll() is None
-            time.sleep(0.02)
+    with pool_process(POOL, tmp_path) as proc:
+        wait_for_workers(proc, tmp_path, 2)
         os.kill(proc.pid, signal.SIGTERM)
         assert proc.wait(timeout=30) == 0                    # both workers saw the stop, neither was killed
-    finally:
-        try:
-            os.killpg(proc.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
 
 
 
@@ -108,18 +122,9 @@ RESTARTING_POOL = textwrap.dedent("""
 
 
 def test_a_worker_that_ends_unasked_is_started_again_and_the_pool_still_stops_warm(tmp_path: Path) -> None:
-    proc = subprocess.Popen([sys.executable, "-c", RESTARTING_POOL, str(tmp_path)], cwd=ROOT, start_new_session=True)
-    try:
-        deadline = time.time() + 30
-        while len(list(tmp_path.iterdir())) < 4:                 # two ended, two started in their place
-            assert time.time() < deadline and proc.poll() is None
-            time.sleep(0.02)
+    with pool_process(RESTARTING_POOL, tmp_path) as proc:
+        wait_for_workers(proc, tmp_path, 4)                      # two ended, two started in their place
         time.sleep(0.3)
         assert proc.poll() is None and len(list(tmp_path.iterdir())) == 4   # the pool keeps two, no more
         os.kill(proc.pid, signal.SIGTERM)
         assert proc.wait(timeout=30) == 0
-    finally:
-        try:
-            os.killpg(proc.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
