@@ -98,6 +98,7 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
     app.state.settings = settings
     app.state.metrics = Metrics()
     app.state.slots = asyncio.Semaphore(settings.max_concurrent)
+    app.state.admissions = asyncio.Semaphore(settings.admissions())
     app.state.registry = None
     app.state.localisers = Localisers({})
     problems.install(app)

@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import asyncio
 import hmac
+import threading
 from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
 from typing import Annotated
 
 from fastapi import Depends, Header, Request
 from starlette.datastructures import State
 
 from service.api.metrics import Metrics
+from service.core.cancellation import cancelled_by
 from service.core.errors import InvalidParameter, QueueFull, Saturated, ServiceError, Unauthorized
 from service.core.settings import Settings
 from service.inference.registry import ModelRegistry
@@ -104,30 +107,64 @@ def early_rejection(state: State, method: str, path: str, headers: dict[str, str
 
 
 SLOT_ROUTES = frozenset({("POST", "/v1/predict"), ("POST", "/v1/masks"), ("POST", "/v1/reconstructions")})
-"""The routes that take a processing slot (:func:`processing_slot`) for as long as they run."""
-SLOT_HELD = "processing_slot_held"
-"""The request-scope key that says the middleware took the request's slot before its upload was read."""
+"""The routes that are admitted before their upload is read (:func:`take_admission`) and take a
+processing slot (:func:`processing_slot`) once it is in."""
 
 
-async def take_slot(state: State) -> Saturated | None:
-    """Take one of the processing slots now, before the upload is read: None when taken (the caller
-    releases it, ``state.slots.release()``, when the request ends), else 503. Requests that arrive
-    together are each given a slot or refused at once (a slot only checked here, and taken once the
-    body is in, would let all of them upload before refusing the surplus)."""
-    sem: asyncio.Semaphore | None = getattr(state, "slots", None)
+async def take_admission(state: State) -> Saturated | None:
+    """Admit a request to a processing route now, before its upload is read: None when admitted (the
+    caller releases it, ``state.admissions.release()``, when the request ends), else 503 at once.
+
+    Admissions (``max_admitted``) bound what is received, waiting and processed at once -- the
+    spooled uploads on disk among them -- so requests that arrive together beyond them are refused
+    before they push their stacks. Processing slots (``max_concurrent``) are taken only once a body
+    is whole (:func:`processing_slot`): a client whose upload trickles in holds an admission, never the
+    processing a quicker client's request needs."""
+    sem: asyncio.Semaphore | None = getattr(state, "admissions", None)
     if sem is None:
         return None
     if sem.locked():
-        return saturated(state)
+        return Saturated("the server is busy with other requests; retry later", state.settings.retry_after_s)
     await sem.acquire()          # free: asyncio takes it without waiting, so no other request comes between
     return None
 
 
-def saturated(state: State) -> Saturated | None:
-    """503 when every one of the ``max_concurrent`` processing slots is taken."""
-    if state.slots.locked():
-        return Saturated("the server is busy with other requests; retry later", state.settings.retry_after_s)
-    return None
+async def processing_slot(request: Request) -> AsyncIterator[None]:
+    """One of ``max_concurrent`` processing slots, taken once the request's upload is in (FastAPI reads
+    the body before it solves the dependencies): waited for up to ``slot_wait_s``, in arrival order,
+    then 503 with ``Retry-After``."""
+    state = request.app.state
+    sem: asyncio.Semaphore = state.slots
+    try:
+        await asyncio.wait_for(sem.acquire(), timeout=state.settings.slot_wait_s)
+    except asyncio.TimeoutError:
+        raise Saturated("every processing slot stayed busy while this request waited; retry later",
+                        state.settings.retry_after_s) from None
+    try:
+        yield
+    finally:
+        sem.release()
+
+
+@asynccontextmanager
+async def stopped_when_client_leaves(request: Request) -> AsyncIterator[threading.Event]:
+    """Within the block, the stages a route runs stop at their next checkpoint once the client has
+    closed its connection (:mod:`service.core.cancellation`): a request whose client left gives its
+    processing slot back within a step, not at the end of work no one will read. A task listens for
+    the ASGI ``http.disconnect`` (after the body is in, the server's next message is that one)."""
+    gone = threading.Event()
+
+    async def listen() -> None:
+        while (await request.receive())["type"] != "http.disconnect":
+            pass
+        gone.set()
+
+    listener = asyncio.create_task(listen())
+    try:
+        with cancelled_by(gone):
+            yield gone
+    finally:
+        listener.cancel()
 
 
 def queue_full(state: State) -> QueueFull | None:
@@ -138,19 +175,6 @@ def queue_full(state: State) -> QueueFull | None:
         return QueueFull(f"{settings.max_queued_jobs} reconstruction jobs are queued already; retry later",
                          settings.retry_after_s)
     return None
-
-
-async def processing_slot(request: Request) -> AsyncIterator[None]:
-    """One of ``max_concurrent`` processing slots, or 503 with ``Retry-After`` at once; the slot the
-    middleware took for the request before its upload was read (:func:`take_slot`), where it did."""
-    if request.scope.get("state", {}).get(SLOT_HELD):
-        yield
-        return
-    if (busy := saturated(request.app.state)) is not None:
-        raise busy
-    sem: asyncio.Semaphore = request.app.state.slots
-    async with sem:
-        yield
 
 
 ApiKey = Depends(require_api_key)

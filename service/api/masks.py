@@ -9,9 +9,9 @@ from pathlib import Path
 from typing import Annotated
 
 from anyio import to_thread
-from fastapi import APIRouter, Depends, File, Form, Response, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Request, Response, UploadFile
 
-from service.api.deps import ApiKey, LocalisersDep, SettingsDep, SlotDep
+from service.api.deps import ApiKey, LocalisersDep, SettingsDep, SlotDep, stopped_when_client_leaves
 from service.api.schemas import UPLOAD_ERRORS
 from service.api.uploads import check_form, known_fields, upload_directory, upload_reader
 from service.core.names import unique_stems
@@ -57,6 +57,7 @@ def masks_archive(uploads: list, localiser: Localiser, directory: Path, margin_m
              response_class=Response, summary="Brain masks of stacks sent without one",
              dependencies=[Depends(known_fields())])
 async def masks(
+    request: Request,
     localisers: LocalisersDep,
     settings: SettingsDep,
     _slot: SlotDep,
@@ -67,8 +68,9 @@ async def masks(
     """One NIfTI mask per stack on the stack's own grid (uint8 0/1) and ``report.json``, zipped."""
     localiser = localisers.get(model)
     check_form(stacks, None, settings.max_files)
-    with upload_directory(settings.tmp_dir) as tmp:
-        uploads = await to_thread.run_sync(upload_reader(settings), stacks, [], tmp)
-        body = await to_thread.run_sync(masks_archive, uploads, localiser, tmp, margin_mm)
+    async with stopped_when_client_leaves(request):
+        with upload_directory(settings.tmp_dir) as tmp:
+            uploads = await to_thread.run_sync(upload_reader(settings), stacks, [], tmp)
+            body = await to_thread.run_sync(masks_archive, uploads, localiser, tmp, margin_mm)
     return Response(body, media_type="application/zip",
                     headers={"Content-Disposition": 'attachment; filename="masks.zip"'})

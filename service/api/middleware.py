@@ -13,7 +13,7 @@ import weakref
 from starlette.routing import compile_path
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.api.deps import SLOT_HELD, SLOT_ROUTES, early_rejection, take_slot
+from service.api.deps import SLOT_ROUTES, early_rejection, take_admission
 from service.api.metrics import Metrics
 from service.api.problems import MEDIA_TYPE, problem_body
 from service.core.errors import InternalError, PayloadTooLarge, RequestTimeout, ServiceError
@@ -65,9 +65,9 @@ class RequestContext:
 
     * assigns ``X-Request-ID`` (kept from the client when it is a safe token) to every answer;
     * refuses what needs no body -- a missing API key, a full job queue -- before the upload is read
-      (:func:`service.api.deps.early_rejection`), and takes the processing slot of a route that needs
-      one then too (:func:`service.api.deps.take_slot`: 503 at once when none is free), held until
-      the request ends;
+      (:func:`service.api.deps.early_rejection`), and admits a request to a processing route then too
+      (:func:`service.api.deps.take_admission`: 503 at once when every admission is taken), held until
+      the request ends (its processing slot is taken once its body is in);
     * limits the body size: 413 from ``Content-Length`` at once, or as soon as a chunked body passes
       the limit, whatever the form parser makes of the cut-off body;
     * limits the body's time: 408 (and the connection closed) when no data comes for ``idle_s`` or the
@@ -145,9 +145,8 @@ class RequestContext:
         length = headers.get("content-length")
         held = False
         if early is None and app is not None and (scope["method"], scope["path"]) in SLOT_ROUTES:
-            early = await take_slot(app.state)          # the request's processing slot, before its body
-            held = early is None and getattr(app.state, "slots", None) is not None
-            scope["state"][SLOT_HELD] = held
+            early = await take_admission(app.state)      # before its body
+            held = early is None and getattr(app.state, "admissions", None) is not None
         try:
             if early is not None:
                 await self._problem(emit, rid, early)
@@ -165,7 +164,7 @@ class RequestContext:
                 await self._problem(emit, rid, InternalError())
         finally:
             if held:
-                app.state.slots.release()
+                app.state.admissions.release()
         path = getattr(scope.get("route"), "path", None) or route_of(app, scope)
         method = scope["method"] if scope["method"] in METHODS else "other"
         if state["left"]:

@@ -8,7 +8,8 @@ from typing import Annotated
 from anyio import to_thread
 from fastapi import APIRouter, Depends, Form, Request
 
-from service.api.deps import ApiKey, LocalisersDep, MetricsDep, RegistryDep, SettingsDep, SlotDep, localiser_for
+from service.api.deps import (ApiKey, LocalisersDep, MetricsDep, RegistryDep, SettingsDep, SlotDep, localiser_for,
+                              stopped_when_client_leaves)
 from service.api.responses import stack_objects
 from service.api.schemas import UPLOAD_ERRORS, PredictResponse
 from service.api.uploads import UploadFormDep, known_fields, upload_directory, upload_reader
@@ -35,7 +36,8 @@ async def predict(
                                                         "cross (their images must agree there); needs stack_consistency "
                                                         "and two stacks that decided their left-right branch")] = True,
 ) -> dict:
-    """Every slice of every stack, accepted or not, in order, with its SE(3) Fréchet-mean pose."""
+    """Every slice of every stack, accepted or not, in order, with its SE(3) Fréchet-mean pose (the work
+    stops at its next step where the client leaves)."""
     t0 = time.perf_counter()
     model = registry.resolve(form.model)
     request.scope["state"]["model"] = model
@@ -44,14 +46,17 @@ async def predict(
     info = estimator.info
     threshold = form.variance_threshold if form.variance_threshold is not None else info.variance_threshold
     max_expected = form.max_expected_error_mm if form.max_expected_error_mm is not None else info.max_expected_error_mm
-    with upload_directory(settings.tmp_dir) as tmp:
-        uploads = await to_thread.run_sync(upload_reader(settings, form.masks_hold_csf), form.stacks, form.masks, tmp)
-    t_read = time.perf_counter()
-    prepared = await to_thread.run_sync(prepare_stacks, uploads, estimator.info, bias_correction,
-                                        settings.preprocess_workers, localiser)
-    t_prep = time.perf_counter()
-    predictions, timings = await to_thread.run_sync(run_prediction, prepared, estimator, form.mc_samples, threshold,
-                                                    stack_consistency, form.orders, image_consistency, max_expected)
+    async with stopped_when_client_leaves(request):
+        with upload_directory(settings.tmp_dir) as tmp:
+            uploads = await to_thread.run_sync(upload_reader(settings, form.masks_hold_csf), form.stacks, form.masks,
+                                               tmp)
+        t_read = time.perf_counter()
+        prepared = await to_thread.run_sync(prepare_stacks, uploads, estimator.info, bias_correction,
+                                            settings.preprocess_workers, localiser)
+        t_prep = time.perf_counter()
+        predictions, timings = await to_thread.run_sync(run_prediction, prepared, estimator, form.mc_samples,
+                                                        threshold, stack_consistency, form.orders, image_consistency,
+                                                        max_expected)
     metrics.observe_slices(model, [r for p in predictions for r in p.reasons])
     stage = lambda key: sum(p.timings.get(key, 0.0) for p in prepared)  # noqa: E731 - CPU time summed over stacks
     return {

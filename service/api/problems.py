@@ -2,7 +2,8 @@
 
 * :class:`ServiceError` subclasses carry their status, title and detail;
 * request validation errors (FastAPI) become 400 naming the field (API v1 keeps 422 for unusable files);
-* Starlette HTTP errors keep their status; a 405 lists every method of the path in ``Allow``, and
+* Starlette HTTP errors keep their status (the form parser's 400 is a 507 where the disk filled while it
+  spooled the files); a 405 lists every method of the path in ``Allow``, and
   ``OPTIONS`` answers 204 with that ``Allow``;
 * anything else is a server fault, answered by :class:`service.api.middleware.RequestContext` (the
   outermost layer) as :class:`~service.core.errors.InternalError`: 500 with the request id, never a traceback.
@@ -16,7 +17,8 @@ from fastapi.responses import JSONResponse, Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.api.openapi import allowed_methods
-from service.core.errors import InvalidParameter, MalformedRequest, ServiceError
+from service.core.errors import InsufficientStorage, InvalidParameter, MalformedRequest, ServiceError
+from service.io.limits import raise_if_out_of_space
 
 MEDIA_TYPE = "application/problem+json"
 
@@ -111,6 +113,10 @@ def install(app: FastAPI) -> None:
             return problem(405, "Method not allowed", f"{request.method} is not allowed here; allowed: "
                            f"{allow['Allow']}", headers=allow, request=request)
         if exc.status_code == 400:      # the form parser (a part header over 8 KB, a broken boundary ...)
+            try:                        # ... or the disk filling while it spooled the files: not the client's
+                raise_if_out_of_space(exc.__cause__)
+            except InsufficientStorage as full:
+                return await service_error(request, full)
             return await service_error(request, MalformedRequest(f"the request body could not be parsed "
                                                                  f"({str(exc.detail).rstrip('.')})"))
         return problem(exc.status_code, str(exc.detail) if exc.status_code < 500 else "Server error",

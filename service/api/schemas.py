@@ -249,7 +249,7 @@ def problem_responses(*codes: int) -> dict:
     return {code: {"model": Problem} for code in codes}
 
 
-UPLOAD_ERRORS = problem_responses(400, 401, 404, 408, 413, 415, 422, 429, 503)   # the routes that take stacks
+UPLOAD_ERRORS = problem_responses(400, 401, 404, 408, 413, 415, 422, 429, 503, 507)   # the routes that take stacks
 
 
 def download(media_type: str, *codes: int) -> dict:

@@ -22,6 +22,7 @@ from pydantic import AfterValidator, StringConstraints, WithJsonSchema
 
 from service.api.deps import SettingsDep
 from service.consistency.slice_order import MAX_TEXT, PATTERN, VALUES, SliceOrder, per_stack
+from service.core.cancellation import carried, checkpoint
 from service.core.errors import InvalidParameter, UnusableImage
 from service.core.names import clean_name
 from service.core.settings import Settings
@@ -229,7 +230,7 @@ def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: 
     # upload order, as a sequential loop would raise them; the map's futures not yet begun are then
     # cancelled, so the files after a failed one are not read.
     with ThreadPoolExecutor(max_workers=READ_WORKERS) as pool:
-        volumes = list(pool.map(lambda job: _read(*job, budget), jobs))
+        volumes = list(pool.map(carried(lambda job: _read(*job, budget)), jobs))
     n = len(stacks)
     for (_, _, name), volume in zip(jobs[:n], volumes[:n]):
         axis = slice_axis_of(volume.spacing)
@@ -245,6 +246,7 @@ def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: 
 
 
 def _read(upload: UploadFile, path: Path, name: str, budget: DecodeBudget):  # noqa: ANN202
+    checkpoint()
     upload.file.seek(0)
     with open(path, "wb") as f:
         shutil.copyfileobj(upload.file, f, 1 << 20)

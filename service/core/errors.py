@@ -102,6 +102,16 @@ class InsufficientStorage(Saturated):
         super().__init__(detail, retry_after_s)
 
 
+class ClientGone(ServiceError):
+    """499 (nginx's convention): the client closed its connection while its request was processed; the
+    work stops at its next step (:func:`service.core.cancellation.checkpoint`) and no one gets the answer."""
+
+    status, title, type = 499, "Client closed request", "/problems/client-closed-request"
+
+    def __init__(self, detail: str = "the client closed its connection before the answer was ready") -> None:
+        super().__init__(detail)
+
+
 class InternalError(ServiceError):
     """500: a fault of the server, not of the request (details go to the log by type only)."""
 

@@ -51,7 +51,14 @@ class Settings(BaseSettings):
     max_files: int = Field(32, ge=1, description="most stacks (and masks) per request")
     max_slices_per_stack: int = Field(128, ge=2, description="most slices in one uploaded stack (the stack stage's "
                                       "work grows with the cube of a stack's slices; fetal stacks hold 20-80)")
-    max_concurrent: int = Field(2, ge=1, description="requests processed at once; more get 503")
+    max_concurrent: int = Field(2, ge=1, description="requests processed at once (predictions, masks, job "
+                                "submissions); a request whose upload is in waits up to slot_wait_s for one, then 503")
+    max_admitted: int = Field(0, ge=0, description="requests to those routes admitted at once: receiving their "
+                              "upload, waiting for a processing slot or processing; more get 503 before their body is "
+                              "read (0 = twice max_concurrent; never fewer than max_concurrent). Slow uploads hold "
+                              "admissions, not processing slots")
+    slot_wait_s: float = Field(30.0, ge=0, description="how long a request whose upload is in waits for a processing "
+                               "slot before it is answered 503")
     preprocess_workers: int = Field(2, ge=1, description="stacks preprocessed in parallel")
     onnx_threads: int = Field(0, ge=0, description="onnxruntime intra-op threads (0 = all cores: two network calls "
                               "at a time, each on half of them)")
@@ -149,6 +156,11 @@ class Settings(BaseSettings):
     @property
     def max_request_decoded_bytes(self) -> int:
         return int(self.max_request_decoded_mb * 2**20)
+
+    def admissions(self) -> int:
+        """Requests to the processing routes admitted at once (:attr:`max_admitted`, 0: twice
+        :attr:`max_concurrent`; never fewer than it)."""
+        return max(self.max_admitted or 2 * self.max_concurrent, self.max_concurrent)
 
     def key_set(self) -> set[str]:
         return {k.strip() for k in self.api_keys.split(",") if k.strip()}

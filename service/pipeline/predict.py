@@ -37,6 +37,7 @@ from service.consistency.stage import (
     request_reference,
     undecided,
 )
+from service.core.cancellation import checkpoint
 from service.core.errors import InvalidParameter
 from service.geometry.twin import DEFAULT_PLANE_X_MM, twin_distance_mm, twin_variance
 from service.inference import acceptance
@@ -303,6 +304,7 @@ def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples:
     to the poses (:func:`predict_from_estimates`); returns each stack's :class:`StackPrediction` and
     the timings."""
     parts, timings = estimate_stacks(prepared, estimator, mc_samples)
+    checkpoint()
     predictions, more = predict_from_estimates(prepared, parts, estimator.info, threshold, stack_consistency, orders,
                                                image_consistency, max_expected_error_mm)
     return predictions, {**timings, **more}
@@ -365,6 +367,7 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
     if stack_consistency:
         pool_request(outs)
     timings["stack_consistency"] = time.perf_counter() - t
+    checkpoint()
     t = time.perf_counter()
     if refining:
         refine_where_stacks_cross(prepared, outs, [~e.degenerate for e in parts], smoothed.result())

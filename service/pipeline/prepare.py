@@ -30,6 +30,7 @@ from nibabel import orientations
 from numpy.typing import NDArray
 
 from service.consistency.stage import network_from_voxel
+from service.core.cancellation import carried, checkpoint
 from service.core.errors import UnusableImage
 from service.inference.model_file import ModelInfo
 from service.io.volume import Volume
@@ -204,12 +205,14 @@ def prepare_stack(upload: StackUpload, info: ModelInfo, bias_correction: bool,
                   localiser: Localiser | None = None, found: tuple[Localisation, float] | None = None) -> PreparedStack:
     """Localise, bias-correct, split and preprocess one stack (runs in a worker thread); ``found``:
     its localisation and the seconds it took, where the caller localised it already."""
+    checkpoint()
     timings: dict[str, float] = {}
     vol = upload.volume
     t = time.perf_counter()
     localisation = found[0] if found is not None else localise(upload, localiser)
     mask = localisation.mask
     timings["localisation"] = found[1] if found is not None else time.perf_counter() - t
+    checkpoint()
     t = time.perf_counter()
     array = n4_correct(vol, mask) if bias_correction and mask.any() else vol.array
     timings["bias_correction"] = time.perf_counter() - t
@@ -250,15 +253,16 @@ def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction:
     for u in uploads:
         check_mask_grid(u)
     with ThreadPoolExecutor(max_workers=max(1, min(workers, len(uploads)))) as pool:
-        futures = [pool.submit(prepare_stack, u, info, bias_correction) if u.mask is not None else None
+        futures = [pool.submit(carried(prepare_stack), u, info, bias_correction) if u.mask is not None else None
                    for u in uploads]
         settling = {}
         for i, u in enumerate(uploads):
             if u.mask is None:
+                checkpoint()
                 loc = localiser or default_localiser()
                 t = time.perf_counter()
                 probabilities = loc.probabilities(u.volume)
-                settling[i] = pool.submit(_settle_and_prepare, u, info, bias_correction, loc, probabilities,
+                settling[i] = pool.submit(carried(_settle_and_prepare), u, info, bias_correction, loc, probabilities,
                                           time.perf_counter() - t)
         prepared = [None if f is None else f.result() for f in futures]
         found = {}

@@ -48,6 +48,7 @@ import onnxruntime as ort
 from numpy.typing import NDArray
 from scipy import ndimage
 
+from service.core.cancellation import checkpoint
 from service.core.errors import NotFound
 from service.core.onnx import file_sha256, model_files, session_options, session_threads
 from service.core.settings import DEFAULT_LOCALISERS_DIR
@@ -158,7 +159,10 @@ class Localiser:
         fetus's brain, :func:`~service.preprocess.one_fetus.one_fetus`; ``fixed``: the centres of the
         request's uploaded masks, scanner mm), the network run on their slices together
         (:meth:`probabilities_of`)."""
-        answers = [self.settle_closer(v, prob, grid) for v, (prob, grid) in zip(volumes, self.probabilities_of(volumes))]
+        answers = []
+        for volume, (prob, grid) in zip(volumes, self.probabilities_of(volumes)):
+            checkpoint()                          # the request's client may have left meanwhile
+            answers.append(self.settle_closer(volume, prob, grid))
         return one_fetus(self, volumes, [found for _, found in answers], [a for a, _ in answers], fixed)
 
     def settle_closer(self, volume: Volume, prob: NDArray[np.float32], grid: LocaliserGrid,

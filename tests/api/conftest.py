@@ -16,7 +16,9 @@ from service.core.settings import Settings
 from service.inference.estimator import OnnxPoseEstimator, PoseEstimate
 from service.inference.model_file import ModelInfo, load_model
 from service.inference.registry import ModelRegistry
+from service.io.volume import Volume, write_volume
 from service.main import create_app
+from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine
 from tests.support.scratch import job_store_dir
 
 INFO = ModelInfo(name="oracle", version="0", backbone="oracle", label_type="anchor", input_size=64,
@@ -78,3 +80,17 @@ def real_client(tiny_model_path: Path) -> Iterator[TestClient]:
     registry = ModelRegistry({"default": OnnxPoseEstimator(load_model(tiny_model_path))})
     with make_client(registry) as client:
         yield client
+
+
+@pytest.fixture(scope="session")
+def phantom_files(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, int]:
+    """A phantom stack of 16 slices and its mask, as NIfTI files."""
+    brain = phantom_brain(3)
+    shape = (48, 48, 16)
+    aff = stack_affine(2, np.eye(3), 1.5, 3.5, shape)
+    g = np.broadcast_to(np.eye(4), (16, 4, 4))
+    img, msk = acquire_stack(*brain, aff, shape, 2, g)
+    d = tmp_path_factory.mktemp("phantom_stack")
+    write_volume(Volume(img * 3.0 + 20.0, aff), d / "stack.nii.gz")
+    write_volume(Volume(msk.astype(np.uint8), aff), d / "mask.nii.gz")
+    return d / "stack.nii.gz", d / "mask.nii.gz", 16

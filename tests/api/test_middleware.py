@@ -117,9 +117,9 @@ def test_processing_after_the_body_has_no_time_limit() -> None:
     assert (status, body) == (200, b"done")
 
 
-def test_a_client_that_leaves_during_its_upload_is_recorded_as_gone_and_frees_its_slot(oracle: object) -> None:
+def test_a_client_that_leaves_during_its_upload_is_recorded_as_gone_and_frees_its_admission(oracle: object) -> None:
     """Half a body, then the client is gone: the log and the metrics say 499 (not the 400 the form
-    parser makes of what came), and the request's processing slot is free again."""
+    parser makes of what came), and the request's admission is free again."""
     async def leaves(app: Callable) -> None:
         parts = [{"type": "http.request", "body": multipart("stacks", "s.nii.gz", b"\0" * 100)[:80], "more_body": True},
                  {"type": "http.disconnect"}]
@@ -139,7 +139,7 @@ def test_a_client_that_leaves_during_its_upload_is_recorded_as_gone_and_frees_it
     with make_client(ModelRegistry({"default": oracle}), max_concurrent=1) as client:
         client.portal.call(leaves, client.app)
         scraped = client.get("/metrics").text
-        assert client.app.state.slots._value == 1
+        assert client.app.state.slots._value == 1 and client.app.state.admissions._value == 2
     predicts = [line for line in scraped.splitlines()
                 if line.startswith("svrnet_requests_total{") and 'route="/v1/predict"' in line]
     assert len(predicts) == 1 and 'status="499"' in predicts[0], predicts

@@ -7,7 +7,6 @@ import logging
 from pathlib import Path
 
 import numpy as np
-import pytest
 from fastapi.testclient import TestClient
 
 from service.core.logging import JsonFormatter
@@ -18,20 +17,6 @@ from service.inference.registry import ModelRegistry
 from service.io.volume import Volume, write_volume
 from service.main import create_app
 from tests.api.conftest import make_client
-from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine
-
-
-@pytest.fixture(scope="module")
-def phantom_files(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, int]:
-    brain = phantom_brain(3)
-    shape = (48, 48, 16)
-    aff = stack_affine(2, np.eye(3), 1.5, 3.5, shape)
-    g = np.broadcast_to(np.eye(4), (16, 4, 4))
-    img, msk = acquire_stack(*brain, aff, shape, 2, g)
-    d = tmp_path_factory.mktemp("phantom_stack")
-    write_volume(Volume(img * 3.0 + 20.0, aff), d / "stack.nii.gz")
-    write_volume(Volume(msk.astype(np.uint8), aff), d / "mask.nii.gz")
-    return d / "stack.nii.gz", d / "mask.nii.gz", 16
 
 
 def upload(client: TestClient, stack: Path, mask: Path | None, **data: str):  # noqa: ANN201
@@ -108,7 +93,7 @@ def test_request_id_is_returned_and_kept(real_client: TestClient) -> None:
 
 
 def test_saturation_answers_503_with_retry_after(oracle, phantom_files) -> None:
-    with make_client(ModelRegistry({"default": oracle}), max_concurrent=1, retry_after_s=7) as client:
+    with make_client(ModelRegistry({"default": oracle}), max_concurrent=1, retry_after_s=7, slot_wait_s=0.1) as client:
         sem: asyncio.Semaphore = client.app.state.slots
         sem._value = 0  # all slots taken by other requests
         r = upload(client, *phantom_files[:2])
@@ -154,7 +139,7 @@ def test_refusals_come_before_the_upload_is_read(oracle) -> None:
         assert (status, read) == (401, False) and headers["x-request-id"]
         status, _, read = _call_without_reading_the_body(app, "/v1/reconstructions", [(b"x-api-key", b"wrong")])
         assert (status, read) == (401, False)
-        app.state.slots._value = 0
+        app.state.admissions._value = 0
         status, headers, read = _call_without_reading_the_body(app, "/v1/predict", [(b"authorization", b"Bearer k1")])
         assert (status, read, headers["retry-after"]) == (503, False, "5")
 

@@ -279,3 +279,24 @@ def test_a_full_disk_while_a_file_is_decoded_is_507_not_the_clients_corrupt_file
     assert r.json()["type"] == "/problems/insufficient-storage" and int(r.headers["Retry-After"]) > 0
     monkeypatch.undo()
     assert post(oracle_client, [("stacks", ("a.nii.gz", b"\x1f\x8b not gzip at all"))]).status_code == 415
+
+
+def test_a_full_disk_while_the_upload_is_received_is_507_not_a_malformed_body(
+        oracle_client: TestClient, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The temporary folder fills while the form parser spools the request's files: 507 with
+    Retry-After, not the 400 "the request body could not be parsed" that blames the client."""
+    import errno
+
+    from starlette.datastructures import UploadFile
+
+    async def full(self, data: bytes) -> None:  # noqa: ANN001
+        raise OSError(errno.EDQUOT, "Disk quota exceeded")
+
+    monkeypatch.setattr(UploadFile, "write", full)
+    r = post(oracle_client, [("stacks", ("a.nii.gz", nifti_bytes(stack(), tmp=tmp_path)))])
+    assert_problem(r, 507, "disk is full")
+    assert int(r.headers["Retry-After"]) > 0
+    monkeypatch.undo()
+    broken = oracle_client.post("/v1/predict", content=b"--xx\r\nno headers", headers={
+        "content-type": "multipart/form-data; boundary=xx"})
+    assert broken.status_code == 400                      # a broken body is still the client's

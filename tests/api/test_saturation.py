@@ -1,7 +1,8 @@
-"""Uploads decode within bounded memory however many clients send at once: reconstructions and masks
-take a processing slot like predictions (503 with Retry-After when none is free, before the upload is
-read), and at most
-``READ_WORKERS`` files are decoded at a time in the whole process."""
+"""Admission and processing slots: reconstructions, masks and predictions are admitted before their
+upload is read (503 with Retry-After when every admission is taken) and take a processing slot once
+their upload is in (waited for, then 503), so a slow upload holds no processing; uploads decode within
+bounded memory however many clients send at once: at most ``READ_WORKERS`` files are decoded at a
+time in the whole process."""
 
 from __future__ import annotations
 
@@ -15,6 +16,8 @@ import numpy as np
 import pytest
 
 from service.api import uploads
+from service.inference.estimator import OnnxPoseEstimator
+from service.inference.model_file import load_model
 from service.inference.registry import ModelRegistry
 from tests.support import corpus
 from tests.api.conftest import make_client
@@ -22,31 +25,33 @@ from tests.api.test_operations import _call_without_reading_the_body
 
 
 @pytest.mark.parametrize("route", ["/v1/reconstructions", "/v1/masks", "/v1/predict"])
-def test_a_saturated_server_refuses_uploads_before_reading_them(oracle, route: str) -> None:  # noqa: ANN001
+def test_a_server_with_every_admission_taken_refuses_uploads_before_reading_them(oracle, route: str) -> None:  # noqa: ANN001
     with make_client(ModelRegistry({"default": oracle}), max_concurrent=1, retry_after_s=4) as client:
-        client.app.state.slots._value = 0
+        client.app.state.admissions._value = 0
         status, headers, read = _call_without_reading_the_body(client.app, route, [])
         assert (status, read, headers["retry-after"]) == (503, False, "4")
         r = client.post(route, files=[("stacks", ("s.nii.gz", b"x"))])
         assert r.status_code == 503 and r.headers["retry-after"] == "4"
 
 
-def test_requests_that_arrive_together_are_refused_before_their_uploads(oracle) -> None:  # noqa: ANN001
-    """One slot, two uploads at the same moment: the second is refused (503) while the first is still
-    uploading, its body unread; the first's slot is free again once it has its answer."""
-    with make_client(ModelRegistry({"default": oracle}), max_concurrent=1, retry_after_s=3) as client:
+def _scope(app, path: str = "/v1/predict", content_type: bytes = b"multipart/form-data; boundary=xx") -> dict:  # noqa: ANN001
+    return {"type": "http", "method": "POST", "path": path, "raw_path": path.encode(), "query_string": b"",
+            "headers": [(b"content-type", content_type)], "app": app, "root_path": "", "scheme": "http",
+            "server": ("test", 80), "client": ("test", 1)}
+
+
+def _sender(answers: dict, name: str):  # noqa: ANN202
+    async def send(message: dict) -> None:
+        if message["type"] == "http.response.start":
+            answers[name] = (message["status"], {k.decode(): v.decode() for k, v in message["headers"]})
+    return send
+
+
+def test_requests_that_arrive_together_beyond_the_admissions_are_refused_before_their_uploads(oracle) -> None:  # noqa: ANN001
+    """One admission, two uploads at the same moment: the second is refused (503) while the first is
+    still uploading, its body unread; the first's admission is free again once it has its answer."""
+    with make_client(ModelRegistry({"default": oracle}), max_concurrent=1, max_admitted=1, retry_after_s=3) as client:
         app, answers, read = client.app, {}, {"second": False}
-
-        def scope() -> dict:
-            return {"type": "http", "method": "POST", "path": "/v1/predict", "raw_path": b"/v1/predict",
-                    "query_string": b"", "headers": [(b"content-type", b"multipart/form-data; boundary=xx")],
-                    "app": app, "root_path": "", "scheme": "http", "server": ("test", 80), "client": ("test", 1)}
-
-        def sender(name: str):  # noqa: ANN202
-            async def send(message: dict) -> None:
-                if message["type"] == "http.response.start":
-                    answers[name] = (message["status"], {k.decode(): v.decode() for k, v in message["headers"]})
-            return send
 
         async def scenario() -> None:
             uploading, finish = asyncio.Event(), asyncio.Event()
@@ -60,9 +65,9 @@ def test_requests_that_arrive_together_are_refused_before_their_uploads(oracle) 
                 read["second"] = True
                 return {"type": "http.request", "body": b"x" * 1000, "more_body": False}
 
-            first = asyncio.create_task(app(scope(), slow, sender("first")))
+            first = asyncio.create_task(app(_scope(app), slow, _sender(answers, "first")))
             await uploading.wait()
-            await app(scope(), quick, sender("second"))
+            await app(_scope(app), quick, _sender(answers, "second"))
             finish.set()
             await first
 
@@ -70,7 +75,58 @@ def test_requests_that_arrive_together_are_refused_before_their_uploads(oracle) 
         status, headers = answers["second"]
         assert (status, read["second"], headers["retry-after"]) == (503, False, "3")
         assert answers["first"][0] == 400                  # its garbage body, read and refused: not a 503
-        assert app.state.slots._value == 1                 # its slot given back
+        assert app.state.admissions._value == 1 and app.state.slots._value == 1      # given back
+
+
+def test_a_slow_upload_holds_no_processing_slot(tiny_model_path: Path, phantom_files) -> None:  # noqa: ANN001
+    """One processing slot; a client's upload trickles in and is not whole yet: a quicker client's
+    request is processed meanwhile (200), not refused because the slow one holds the slot."""
+    registry = ModelRegistry({"default": OnnxPoseEstimator(load_model(tiny_model_path))})
+    stack, mask, _ = phantom_files
+    with make_client(registry, max_concurrent=1, max_admitted=2) as client:
+        app, answers = client.app, {}
+        uploading, finish = threading.Event(), asyncio.Event()
+
+        async def slow() -> dict:
+            uploading.set()
+            await finish.wait()
+            return {"type": "http.request", "body": b"x" * 1000, "more_body": False}
+
+        async def wake() -> None:
+            finish.set()
+
+        first = client.portal.start_task_soon(app, _scope(app), slow, _sender(answers, "first"))
+        assert uploading.wait(10)
+        r = client.post("/v1/predict", files=[("stacks", (stack.name, stack.read_bytes())),
+                                              ("masks", (mask.name, mask.read_bytes()))], data={"mc_samples": "2"})
+        assert r.status_code == 200, r.text
+        client.portal.call(wake)
+        first.result(10)
+        assert answers["first"][0] == 400
+        assert app.state.admissions._value == 2 and app.state.slots._value == 1
+
+
+def test_a_request_whose_upload_is_in_waits_for_a_slot_then_is_refused(oracle, phantom_files) -> None:  # noqa: ANN001
+    """Every processing slot taken: a request's upload is read, and it waits ``slot_wait_s`` for a
+    slot; a slot given back meanwhile serves it, none given back is a 503 with Retry-After."""
+    stack, _, _ = phantom_files
+    files = [("stacks", (stack.name, stack.read_bytes()))]
+    with make_client(ModelRegistry({"default": oracle}), max_concurrent=1, slot_wait_s=0.3, retry_after_s=6) as client:
+        client.app.state.slots._value = 0
+        started = time.perf_counter()
+        r = client.post("/v1/predict", files=files, data={"variance_threshold": "x"})
+        assert r.status_code == 503 and r.headers["retry-after"] == "6" and "waited" in r.json()["detail"]
+        assert time.perf_counter() - started >= 0.3
+    with make_client(ModelRegistry({"default": oracle}), max_concurrent=1, slot_wait_s=30) as client:
+        client.app.state.slots._value = 0
+
+        async def give_back() -> None:
+            await asyncio.sleep(0.3)
+            client.app.state.slots.release()
+
+        client.portal.start_task_soon(give_back)
+        r = client.post("/v1/predict", files=files, data={"variance_threshold": "x"})
+        assert r.status_code == 400 and "variance_threshold" in r.text       # served: its own fault, not a 503
 
 
 def test_no_more_than_two_files_decode_at_once_across_requests(monkeypatch: pytest.MonkeyPatch,
@@ -134,3 +190,55 @@ def test_a_request_whose_first_file_fails_does_not_read_the_rest(monkeypatch: py
     with pytest.raises(UnsupportedFile, match="bad.nii.gz"):
         uploads.save_and_read(files, [], tmp_path)
     assert len(read) <= uploads.READ_WORKERS + 1, read          # those under way finish; no more start
+
+
+def test_a_request_whose_client_leaves_stops_at_its_next_step_and_frees_its_slot(
+        oracle, phantom_files, monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: ANN001
+    """The client closes its connection while its stacks are prepared: the work stops at the next step
+    (the network never runs), the slot and the admission are free again, and the request is
+    recorded as 499 (no one got an answer)."""
+    import httpx
+
+    from service.api import predict as route
+    from service.core import cancellation
+
+    stack, mask, _ = phantom_files
+    built = httpx.Request("POST", "http://test/v1/predict", data={"mc_samples": "2"},
+                          files=[("stacks", (stack.name, stack.read_bytes())), ("masks", (mask.name, mask.read_bytes()))])
+    body, content_type = built.read(), built.headers["content-type"].encode()
+    preparing, steps = threading.Event(), []
+    real_prepare, real_predict = route.prepare_stacks, route.run_prediction
+
+    def prepare(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        steps.append("prepare")
+        preparing.set()
+        assert cancellation._GONE.get().wait(10), "the request never learnt that its client left"
+        return real_prepare(*args, **kwargs)
+
+    def predict(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        steps.append("predict")
+        return real_predict(*args, **kwargs)
+
+    monkeypatch.setattr(route, "prepare_stacks", prepare)
+    monkeypatch.setattr(route, "run_prediction", predict)
+    with make_client(ModelRegistry({"default": oracle}), max_concurrent=1, max_admitted=2) as client:
+        app, answers, sent = client.app, {}, [False]
+
+        async def scenario() -> None:
+            async def receive() -> dict:
+                if not sent[0]:
+                    sent[0] = True
+                    return {"type": "http.request", "body": body, "more_body": False}
+                while not preparing.is_set():               # the client leaves once its stacks are being prepared
+                    await asyncio.sleep(0.01)
+                return {"type": "http.disconnect"}
+
+            await asyncio.wait_for(app(_scope(app, content_type=content_type), receive, _sender(answers, "gone")), 30)
+
+        client.portal.call(scenario)
+        assert steps == ["prepare"]                          # stopped before the network
+        assert app.state.slots._value == 1 and app.state.admissions._value == 2
+        scraped = client.get("/metrics").text
+    counted = [line for line in scraped.splitlines()
+               if line.startswith("svrnet_requests_total{") and 'route="/v1/predict"' in line]
+    assert len(counted) == 1 and 'status="499"' in counted[0], counted
