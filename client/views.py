@@ -100,7 +100,8 @@ def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[
     """What to do about an answer with nothing usable in it: a stack without brain slices, a localiser
     that was unsure, no slice accepted (``stage_off``: the consistency stage the request turned off,
     which then comes first); and what to know of one that is usable: a stack noisier than the poses
-    were calibrated on (one line each; none for a clean, usable answer).
+    were calibrated on, slices whose brain lost its signal (one line each; none for a clean, usable
+    answer).
 
     Example (one stack sent alone, nothing accepted):
         >>> body = {"max_expected_error_mm": 4.5, "stacks": [{"filename": "ax.nii.gz", "localisation": {
@@ -126,6 +127,11 @@ def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[
         elif where.get("method") == "network" and float(where.get("confidence") or 0.0) < LOW_CONFIDENCE:
             hints.append(f"{name}: the localiser was unsure of the brain (confidence {where.get('confidence', 0):.2f}); "
                          "check its mask with `svrnet masks`, or upload one with --mask")
+        lost = [s.get("index") for s in brain if s.get("signal_lost")]
+        if lost:
+            hints.append(f"{name}: {len(lost)} slice(s) lost the brain's signal (a signal void, motion within the "
+                         f"slice: {', '.join(str(k) for k in lost)}): no other stack's image checks their poses; "
+                         "acquire them again if you need them")
         noise = stack.get("noise") or {}
         if brain and noise.get("beyond_calibration"):
             added = float(noise.get("expected_error_added_mm") or 0.0)

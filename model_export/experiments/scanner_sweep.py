@@ -89,6 +89,38 @@ def with_void(stacks: list[SimulatedStack], rng: np.random.Generator) -> list[Si
     return out
 
 
+LOSS_RUN = (0.25, 0.6)
+LOSS_GAIN = (0.1, 0.35)
+LOSS_NOISE = 0.05
+
+
+def with_signal_loss(stacks: list[SimulatedStack], rng: np.random.Generator) -> list[SimulatedStack]:
+    """The stacks of one acquisition with a signal loss over the brain in a run of consecutive slices
+    of each (as a real whole-uterus stack shows it: the brain's inside dark and noisy in a third to
+    a half of its slices): in :data:`LOSS_RUN` of the slices with brain, from a random start, the
+    brain's voxels times a gain of :data:`LOSS_GAIN` plus Gaussian noise of :data:`LOSS_NOISE` of the
+    brain's 99th percentile."""
+    out = []
+    for s in stacks:
+        axis = int(np.argmax(s.volume.spacing))
+        mask = s.mask.array > 0
+        with_brain = np.flatnonzero(np.moveaxis(mask, axis, 0).reshape(mask.shape[axis], -1).any(1))
+        if len(with_brain) < 4:
+            out.append(s)
+            continue
+        n = max(2, int(round(rng.uniform(*LOSS_RUN) * len(with_brain))))
+        start = int(rng.integers(0, len(with_brain) - n + 1))
+        top = float(np.percentile(s.volume.array[mask], 99))
+        array = np.moveaxis(np.array(s.volume.array, np.float32), axis, 0)
+        inside = np.moveaxis(mask, axis, 0)
+        for k in with_brain[start:start + n]:
+            m = inside[k]
+            array[k][m] = array[k][m] * rng.uniform(*LOSS_GAIN) + rng.normal(0, LOSS_NOISE * top, m.sum())
+        array = np.clip(np.moveaxis(array, 0, axis), 0, None).astype(np.float32)
+        out.append(replace(s, volume=Volume(array, s.volume.affine)))
+    return out
+
+
 CONTRASTS = {
     "gamma 0.5": lambda t: t ** 0.5,
     "gamma 2": lambda t: t ** 2.0,

@@ -14,6 +14,8 @@ variant. A variant is ``base`` or a ``;``-separated list of overrides:
 ``--columns OUT.npz`` writes every cached slice's columns for ``svrnet-train calibrate-acceptance
 --columns`` (a second set of acquisitions pooled with the first).
 ``--void`` puts a dark ball in every acquisition (:func:`~model_export.experiments.scanner_sweep.with_void`);
+``--signal-loss`` a signal loss over the brain in a run of each stack's slices
+(:func:`~model_export.experiments.scanner_sweep.with_signal_loss`);
 ``--last-to-first`` stores every stack with its slices the other way (the same acquisitions);
 ``--alone`` sends each stack as a request of its own (a single-stack request, or a stream's first stack).
 ``--source VOLUME`` (repeatable) simulates from these volumes instead of the held-out atlas brains: a
@@ -56,7 +58,7 @@ from model_export.calibrate_acceptance import measuring, rates, rms, share  # no
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, acceptance_columns, prepare_acquisition  # noqa: E402
 from model_export.experiments.frame_bias import common_frame  # noqa: E402
 from model_export.experiments.real_brain_acquisitions import source_volumes  # noqa: E402
-from model_export.experiments.scanner_sweep import with_void  # noqa: E402
+from model_export.experiments.scanner_sweep import with_signal_loss, with_void  # noqa: E402
 from model_export.packaging import CALIBRATION  # noqa: E402
 from service.geometry import twin  # noqa: E402
 from service.geometry.anchors import ed  # noqa: E402
@@ -66,7 +68,7 @@ import service.pipeline.predict as pipeline  # noqa: E402
 
 
 def build(model: Path, root: Path, levels: list[str], per_volume: int, seed: int, void: bool = False,
-          sources: list[Path] | None = None, last_to_first: bool = False) -> tuple:
+          sources: list[Path] | None = None, last_to_first: bool = False, signal_loss: bool = False) -> tuple:
     """``(info, [(level, prepared stacks, estimates per stack, true poses per stack), ...])``; from
     ``sources`` (:func:`~model_export.experiments.real_brain_acquisitions.source_volumes`) where given, else from the held-out atlas brains;
     with ``last_to_first`` each stack stored with its slices the other way
@@ -80,7 +82,9 @@ def build(model: Path, root: Path, levels: list[str], per_volume: int, seed: int
         for vol in volumes * per_volume:
             stacks = simulate_acquisition(vol.image, vol.mask, vol.affine, rng, level)
             stacks = [stored_last_to_first(s) for s in stacks] if last_to_first else stacks
-            prepared, truth = prepare_acquisition(with_void(stacks, rng) if void else stacks, loaded.info)
+            stacks = with_void(stacks, rng) if void else stacks
+            stacks = with_signal_loss(stacks, rng) if signal_loss else stacks
+            prepared, truth = prepare_acquisition(stacks, loaded.info)
             parts, _ = pipeline.estimate_stacks(prepared, estimator, 100)
             cases.append((level, prepared, parts, truth))
     return loaded.info, cases
@@ -188,6 +192,8 @@ def main() -> None:
     ap.add_argument("--per-volume", type=int, default=2)
     ap.add_argument("--seed", type=int, default=21)
     ap.add_argument("--void", action="store_true", help="a dark ball in every acquisition (scanner_sweep.with_void)")
+    ap.add_argument("--signal-loss", action="store_true",
+                    help="a signal loss over the brain in a run of slices of every stack (scanner_sweep.with_signal_loss)")
     ap.add_argument("--last-to-first", action="store_true",
                     help="each stack stored with its slices the other way (the same draws): its interleaved order runs downwards")
     ap.add_argument("--alone", action="store_true", help="each stack sent on its own, not with its acquisition's others")
@@ -197,7 +203,7 @@ def main() -> None:
     args = ap.parse_args()
     if not args.cache.exists():             # written whole or not at all: a stopped build leaves no cache
         built = build(args.model, args.root, args.levels.split(","), args.per_volume, args.seed, args.void, args.source,
-                      args.last_to_first)
+                      args.last_to_first, args.signal_loss)
         partial = args.cache.with_name(args.cache.name + ".partial")
         with open(partial, "wb") as f:
             pickle.dump(built, f)

@@ -29,8 +29,9 @@ def _finite(value: float) -> float | None:
     return float(value) if np.isfinite(value) else None
 
 
-def slice_objects(p: StackPrediction) -> list[dict]:
-    """Every slice of one stack, accepted or not, in order."""
+def slice_objects(p: StackPrediction, rows: slice = slice(None)) -> list[dict]:
+    """Every slice of one stack, accepted or not, in order; ``rows``: the rows of ``p.prepared``'s
+    slices that ``p``'s poses are (a stream's slice: one row of its stack)."""
     out, est = p.poses, p.estimate
     mean = out.poses
     atlas_from_voxel = mean @ p.network_from_voxel
@@ -42,6 +43,7 @@ def slice_objects(p: StackPrediction) -> list[dict]:
     pts = anchors.encode(mean).reshape(-1, 3, 3)
     expected: NDArray = out.expected_error_mm if out.expected_error_mm is not None else np.full(len(mean), np.nan)
     seen = est.estimated
+    lost = p.prepared.signal_lost[rows]
     return [
         {
             "index": i, "accepted": p.reasons[i] is None, "reason": p.reasons[i],
@@ -52,6 +54,7 @@ def slice_objects(p: StackPrediction) -> list[dict]:
             "branch": "twin" if out.twinned[i] else "network", "twin_mass": float(out.twin_mass[i]),
             "network_atlas_from_voxel": network_atlas_from_voxel[i].tolist() if seen[i] else None,
             "expected_error_mm": _finite(expected[i]),
+            "signal_lost": bool(lost[i]),
         }
         for i in range(len(mean))
     ]
@@ -130,7 +133,7 @@ def pose_object(answer: SliceAnswer, **extra: object) -> dict:
     p = answer.prediction
     row = slice(answer.row, answer.row + 1)
     body = slice_objects(StackPrediction(p.prepared, p.network_from_voxel[row], p.estimate.part(row), p.poses.part(row),
-                                         p.reasons[row]))[0]
+                                         p.reasons[row]), row)[0]
     loc = p.prepared.localisation
     body.update({"stack": answer.stack, "index": answer.index,
                  "localisation": {"method": loc.method, "confidence": round(loc.confidence, 3)}, **extra})

@@ -331,7 +331,9 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
     """Each stack (with its slices' statistics ``parts``) through the stack-consistency stage, the
     stacks' positions pooled where they agree (:func:`~service.consistency.stage.pool_request`) and
     their slices refined where they cross (:func:`refine_where_stacks_cross`; with
-    ``image_consistency`` and the stage on); returns each stack's :class:`StackPrediction` and the
+    ``image_consistency`` and the stage on; a slice whose brain lost its signal,
+    :attr:`~service.pipeline.prepare.PreparedStack.signal_lost`, has no image to compare and keeps
+    the stack stage's pose); returns each stack's :class:`StackPrediction` and the
     timings. ``orders``: what the request says of the stacks' acquisition orders
     (:func:`stack_orders`). ``threshold`` and ``max_expected_error_mm`` (default: the model's)
     decide the accept flags."""
@@ -370,7 +372,8 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
     checkpoint()
     t = time.perf_counter()
     if refining:
-        refine_where_stacks_cross(prepared, outs, [~e.degenerate for e in parts], smoothed.result())
+        refine_where_stacks_cross(prepared, outs, [~e.degenerate & ~s.signal_lost for e, s in zip(parts, prepared)],
+                                  smoothed.result())
     timings["image_consistency"] = time.perf_counter() - t
     results = []
     for s, e, nfv, out in zip(prepared, parts, frames, outs):

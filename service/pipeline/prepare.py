@@ -34,6 +34,7 @@ from service.core.cancellation import carried, checkpoint
 from service.core.errors import UnusableImage
 from service.inference.model_file import ModelInfo
 from service.io.volume import Volume
+from service.preprocess.intensity import signal_lost
 from service.preprocess.bias import n4_correct
 from service.preprocess.localisation import Localisation
 from service.preprocess.localise import Localiser, default_localiser
@@ -107,6 +108,12 @@ class PreparedStack:
     timings: dict[str, float] = field(default_factory=dict)
     input_noise: float = float("nan")
     """The noise of the network's inputs (:func:`~service.preprocess.noise.input_noise`; NaN: not measured)."""
+
+    @functools.cached_property
+    def signal_lost(self) -> NDArray[np.bool_]:
+        """``[n]`` the slices whose brain lost its signal (:func:`~service.preprocess.intensity.signal_lost`,
+        on the bias-corrected slices and their pose masks): they take no part in image consistency."""
+        return signal_lost(self.slices.images, self.slices.masks)
 
     def network_from_voxel(self) -> np.ndarray:
         """``[n, 4, 4]`` voxel ``(i, j, k)`` of slice ``k`` -> its network frame (the service's crop/centre)."""

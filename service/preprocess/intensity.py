@@ -49,3 +49,33 @@ def rescale_0_255(
     span = np.where(hi - lo > 1e-6, hi - lo, 1.0)
     out = (np.clip(x, lo, hi) - lo) / span * 255.0
     return np.where(m & np.isfinite(out), out, 0.0).astype(np.float32)
+
+
+SIGNAL_LOSS_LEVEL = 0.4
+"""A brain pixel under this fraction of its stack's brain median is dark."""
+SIGNAL_LOSS_SHARE = 0.15
+"""A slice with more of its brain's pixels dark than this has lost its signal (a signal void,
+intra-slice motion): above what clean real slices hold, noisy ones included, and under what real
+voids leave (docs/reports/consistency-experiments.md, "Signal loss over runs of slices")."""
+
+
+def signal_lost(images: ArrayLike, masks: ArrayLike) -> NDArray[np.bool_]:
+    """Per slice of a stack, whether its brain has lost its signal: over :data:`SIGNAL_LOSS_SHARE` of
+    the pixels in its mask under :data:`SIGNAL_LOSS_LEVEL` times the median of the stack's brain
+    pixels (every slice's together, so a stack of dark tissue is its own reference). Such a slice's
+    image has nothing to compare with the other stacks' where they cross; its network pose, read off
+    the mask's outline as much as the brain, still counts. Slices without mask: False.
+
+    Example (three slices of brain at 100, the middle one dark over half of it):
+        >>> import numpy as np
+        >>> x = np.full((3, 4, 4), 100.0); x[1, :2] = 10.0
+        >>> signal_lost(x, np.ones_like(x, bool)).tolist()
+        [False, True, False]
+    """
+    x = np.asarray(images, dtype=np.float32)
+    m = np.asarray(masks, dtype=bool)
+    if not m.any():
+        return np.zeros(len(x), bool)
+    dark = (x < SIGNAL_LOSS_LEVEL * float(np.median(x[m]))) & m
+    counts = m.reshape(len(m), -1).sum(axis=1)
+    return (counts > 0) & (dark.reshape(len(m), -1).sum(axis=1) > SIGNAL_LOSS_SHARE * counts)

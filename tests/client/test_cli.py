@@ -409,6 +409,10 @@ def test_an_answer_with_nothing_usable_says_what_to_do() -> None:
     assert [h for h in views.predict_hints(noisy) if "include 2.04 mm for the noise" in h and "say," not in h]
     noisy["stacks"][0]["noise"]["beyond_calibration"] = False
     assert views.predict_hints(noisy) == []
+    # Slices whose brain lost its signal: named, with what to do.
+    voided = {**PREDICT_BODY, "stacks": [{**PREDICT_BODY["stacks"][0], "slices": [
+        {**s, "index": k, "signal_lost": k in (1, 2)} for k, s in enumerate(PREDICT_BODY["stacks"][0]["slices"] * 3)]}]}
+    assert [h for h in views.predict_hints(voided) if "2 slice(s) lost the brain's signal" in h and ": 1, 2)" in h]
     # One MC pass: no spread was measured; the stacks are not to blame.
     once = _alone("high_variance")
     for s in once["stacks"][0]["slices"]:
