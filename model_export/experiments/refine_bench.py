@@ -36,6 +36,7 @@ from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
 from model_export.calibrate_noise import acquire
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, run_acquisition
 from model_export.experiments.frame_bias import midline_offset
+from model_export.experiments.scanner_sweep import with_signal_loss
 from model_export.volume_metrics import volume_psnr_ncc
 from service.api.responses import stack_objects
 from service.geometry import se3, twin
@@ -118,9 +119,11 @@ VARIANTS: dict[str, dict] = {
     "job": {},                                           # what a job runs: the never-worse paths
     "job-one-resolution": {},                            # the same, its paths at the output resolution
     "job-path-left-out": {},                             # the job, its left-out slices from the path's poses
+    "job-with-signal-lost": {},                          # the job, started with the slices that lost their signal
 }
 """Each variant's :class:`ReconstructionConfig` fields (beside the model's symmetry plane)."""
-JOBS: dict[str, dict] = {"job": {}, "job-one-resolution": {"path_resolution_mm": None}, "job-path-left-out": {}}
+JOBS: dict[str, dict] = {"job": {}, "job-one-resolution": {"path_resolution_mm": None}, "job-path-left-out": {},
+                         "job-with-signal-lost": {}}
 """The variants that run a job's paths (:func:`reconstruct_never_worse`), and its keywords."""
 
 
@@ -153,6 +156,8 @@ def main() -> None:
                     help="comma-separated: each reconstructs from the same prediction, starting from the accepted "
                          "slices when this share of the posed ones is accepted (above 1: from every slice)")
     ap.add_argument("--variants", default="default", help=f"comma-separated, of {', '.join(VARIANTS)}")
+    ap.add_argument("--signal-loss", action="store_true", help="a signal loss over the brain in a run of slices of "
+                    "every stack (scanner_sweep.with_signal_loss)")
     ap.add_argument("--midline", action="store_true", help="also twin-min against the truth moved so that the "
                     "brain's own midline lies on the atlas plane (frame_bias.py's part 3)")
     args = ap.parse_args()
@@ -171,6 +176,7 @@ def main() -> None:
             vol = vols[a % len(vols)]
             stacks = acquire(vol, rng, level, pixel_mm=args.pixel_mm, noise=args.noise,
                              **({} if args.bias is None else {"bias": args.bias}))
+            stacks = with_signal_loss(stacks, rng) if args.signal_loss else stacks
             (predictions,), prepared, _ = run_acquisition(stacks, est, 100, True)
             if args.midline and vol.name not in midlines:
                 midlines[vol.name] = about_centre(midline_offset(vol), vol.centre)
@@ -179,7 +185,7 @@ def main() -> None:
             masks = [p.slices.to_stack(p.slices.masks) for p in prepared]
             for name in variants:
                 variant, _, share = name.partition("@")
-                poses = starting_poses(body, float(share or shares[0]))
+                poses = starting_poses(body, float(share or shares[0]), keep_signal_lost=variant == "job-with-signal-lost")
                 if args.start == "truth":
                     poses = [(s.atlas_from_voxel, inc) for s, (_, inc) in zip(stacks, poses)]
                 inputs = [(s.volume, m, mats, inc) for s, m, (mats, inc) in zip(stacks, masks, poses)]

@@ -104,13 +104,21 @@ def posed_slices(body: dict) -> list[np.ndarray]:
     return [np.array([s.get("reason") != EMPTY for s in st["slices"]]) for st in body["stacks"]]
 
 
-def starting_poses(body: dict, min_share: float = MIN_ACCEPTED_SHARE,
-                   min_slices: int = MIN_ACCEPTED_SLICES) -> list[tuple[np.ndarray, np.ndarray]]:
+def signal_lost_slices(body: dict) -> list[np.ndarray]:
+    """Per stack of a ``/v1/predict`` body, which slices lost the brain's signal (``signal_lost``)."""
+    return [np.array([bool(s.get("signal_lost")) for s in st["slices"]], bool) for st in body["stacks"]]
+
+
+def starting_poses(body: dict, min_share: float = MIN_ACCEPTED_SHARE, min_slices: int = MIN_ACCEPTED_SLICES,
+                   keep_signal_lost: bool = False) -> list[tuple[np.ndarray, np.ndarray]]:
     """``(atlas_from_voxel, include)`` per stack that a job starts from, given the service's own
     ``/v1/predict`` body (:func:`~service.jobs.uploaded_poses.poses_from_predict_body`,
-    :func:`starting_inclusion`)."""
+    :func:`starting_inclusion`), less the slices whose brain lost its signal (their images would
+    darken the volume where they lie; kept with ``keep_signal_lost``, or where nothing else is left)."""
     poses = poses_from_predict_body(body, [len(st["slices"]) for st in body["stacks"]])
-    return starting_inclusion(poses, posed_slices(body), min_share, min_slices)
+    started = starting_inclusion(poses, posed_slices(body), min_share, min_slices)
+    kept = [(mats, include & ~lost) for (mats, include), lost in zip(started, signal_lost_slices(body))]
+    return started if keep_signal_lost or not any(include.any() for _, include in kept) else kept
 
 
 def start_label(body: dict, poses: list[tuple[np.ndarray, np.ndarray]]) -> str:
@@ -126,7 +134,8 @@ def start_label(body: dict, poses: list[tuple[np.ndarray, np.ndarray]]) -> str:
         'every_slice'
     """
     accepted = [np.array([bool(s.get("accepted")) for s in st["slices"]]) for st in body["stacks"]]
-    kept = all(np.array_equal(include, acc) for (_, include), acc in zip(poses, accepted))
+    kept = all(np.array_equal(include, acc) or np.array_equal(include, acc & ~lost)
+               for (_, include), acc, lost in zip(poses, accepted, signal_lost_slices(body)))
     return "accepted_slices" if kept else "every_slice"
 
 

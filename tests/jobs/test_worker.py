@@ -62,6 +62,22 @@ def test_a_predict_body_gives_the_poses_and_the_accepted_start() -> None:
     assert starting_poses(body)[0][1].tolist() == [True, True, True]                  # 1 slice: too few
 
 
+def test_a_job_starts_without_the_slices_whose_brain_lost_its_signal() -> None:
+    """Their images would darken the volume where they lie: left out whether the job starts from the
+    accepted slices or from every slice, unless nothing else is left; the report still says which rule
+    chose the start."""
+    flags = ((True, False), (True, True), (False, True), (True, False), (False, False))
+    body = {"stacks": [{"slices": [{"atlas_from_voxel": np.eye(4).tolist(), "accepted": a, "reason": None if a else
+                                    "high_expected_error", "signal_lost": lost} for a, lost in flags]}]}
+    assert starting_poses(body, min_slices=1)[0][1].tolist() == [True, False, False, True, False]
+    assert start_label(body, starting_poses(body, min_slices=1)) == "accepted_slices"
+    assert starting_poses(body)[0][1].tolist() == [True, False, False, True, True]      # every slice: too few accepted
+    assert start_label(body, starting_poses(body)) == "every_slice"
+    assert starting_poses(body, keep_signal_lost=True)[0][1].tolist() == [True] * 5
+    dark = {"stacks": [{"slices": [{**x, "signal_lost": True} for x in body["stacks"][0]["slices"]]}]}
+    assert starting_poses(dark)[0][1].tolist() == [True] * 5                           # nothing else left
+
+
 def test_too_few_accepted_slices_start_every_slice_whatever_their_share() -> None:
     few = [True] * (MIN_ACCEPTED_SLICES - 1) + [False] * 20                     # 29 of 49: over the share
     assert [inc.tolist() for _, inc in starting_inclusion(_poses(few))] == [[True] * 49]
