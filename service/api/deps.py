@@ -14,7 +14,7 @@ from starlette.datastructures import State
 
 from service.api.metrics import Metrics
 from service.core.cancellation import cancelled_by
-from service.core.errors import InvalidParameter, QueueFull, Saturated, ServiceError, Unauthorized
+from service.core.errors import ClientGone, InvalidParameter, QueueFull, Saturated, ServiceError, Unauthorized
 from service.core.settings import Settings
 from service.inference.registry import ModelRegistry
 from service.preprocess.localise import Localiser, Localisers
@@ -108,7 +108,7 @@ def early_rejection(state: State, method: str, path: str, headers: dict[str, str
 
 SLOT_ROUTES = frozenset({("POST", "/v1/predict"), ("POST", "/v1/masks"), ("POST", "/v1/reconstructions")})
 """The routes that are admitted before their upload is read (:func:`take_admission`) and take a
-processing slot (:func:`processing_slot`) once it is in."""
+processing slot (:func:`processing`) once it is in and valid."""
 
 
 async def take_admission(state: State) -> Saturated | None:
@@ -118,7 +118,7 @@ async def take_admission(state: State) -> Saturated | None:
     Admissions (``max_admitted``) bound what is received, waiting and processed at once -- the
     spooled uploads on disk among them -- so requests that arrive together beyond them are refused
     before they push their stacks. Processing slots (``max_concurrent``) are taken only once a body
-    is whole (:func:`processing_slot`): a client whose upload trickles in holds an admission, never the
+    is whole and valid (:func:`processing`): a client whose upload trickles in holds an admission, never the
     processing a quicker client's request needs."""
     sem: asyncio.Semaphore | None = getattr(state, "admissions", None)
     if sem is None:
@@ -129,40 +129,75 @@ async def take_admission(state: State) -> Saturated | None:
     return None
 
 
-async def processing_slot(request: Request) -> AsyncIterator[None]:
-    """One of ``max_concurrent`` processing slots, taken once the request's upload is in (FastAPI reads
-    the body before it solves the dependencies): waited for up to ``slot_wait_s``, in arrival order,
-    then 503 with ``Retry-After``."""
-    state = request.app.state
-    sem: asyncio.Semaphore = state.slots
+def _drop(slots: asyncio.Semaphore, acquire: asyncio.Future) -> None:
+    """Give back the slot a waiter got, or stop it waiting (a waiter cancelled after its wake-up gives
+    the slot on to the next)."""
+    if acquire.done() and not acquire.cancelled():
+        slots.release()
+    else:
+        acquire.cancel()
+
+
+async def _wait_for_slot(slots: asyncio.Semaphore, wait_s: float, left: asyncio.Event) -> str:
+    """One of ``slots``: at once where one is free, else waited for up to ``wait_s`` (in arrival order)
+    unless the client leaves first; returns ``held``, ``busy`` (none came free) or ``gone`` (the
+    client left: no slot held). A request cancelled meanwhile (a server shutting down) holds none."""
+    if not slots.locked():
+        await slots.acquire()               # free: asyncio takes it without waiting
+        return "held"
+    if wait_s <= 0:
+        return "busy"
+    acquire, leaving = asyncio.ensure_future(slots.acquire()), asyncio.ensure_future(left.wait())
     try:
-        await asyncio.wait_for(sem.acquire(), timeout=state.settings.slot_wait_s)
-    except asyncio.TimeoutError:
-        raise Saturated("every processing slot stayed busy while this request waited; retry later",
-                        state.settings.retry_after_s) from None
-    try:
-        yield
+        await asyncio.wait({acquire, leaving}, timeout=wait_s, return_when=asyncio.FIRST_COMPLETED)
+    except BaseException:
+        _drop(slots, acquire)
+        raise
     finally:
-        sem.release()
+        leaving.cancel()
+    if left.is_set():
+        _drop(slots, acquire)
+        return "gone"
+    if acquire.done() and not acquire.cancelled():
+        return "held"
+    acquire.cancel()
+    return "busy"
 
 
 @asynccontextmanager
-async def stopped_when_client_leaves(request: Request) -> AsyncIterator[threading.Event]:
-    """Within the block, the stages a route runs stop at their next checkpoint once the client has
-    closed its connection (:mod:`service.core.cancellation`): a request whose client left gives its
-    processing slot back within a step, not at the end of work no one will read. A task listens for
-    the ASGI ``http.disconnect`` (after the body is in, the server's next message is that one)."""
-    gone = threading.Event()
+async def processing(request: Request) -> AsyncIterator[None]:
+    """A request's processing, around the work of a route's body (entered there, so after FastAPI has
+    read the upload and checked every field: an invalid request gets its 400 without waiting):
+
+    * one of ``max_concurrent`` processing slots, waited for up to ``slot_wait_s`` in arrival order,
+      then 503 with ``Retry-After``; given back when the work ends, before the answer is sent (a
+      client that reads its answer slowly holds no slot);
+    * the work stops at its next checkpoint once the client has closed its connection
+      (:mod:`service.core.cancellation`; 499), and a client that leaves while its request waits for a
+      slot ends the wait. A task listens for the ASGI ``http.disconnect`` (once the body is in, the
+      server's next message is that one)."""
+    state = request.app.state
+    gone, left = threading.Event(), asyncio.Event()
 
     async def listen() -> None:
         while (await request.receive())["type"] != "http.disconnect":
             pass
         gone.set()
+        left.set()
 
     listener = asyncio.create_task(listen())
     try:
-        with cancelled_by(gone):
-            yield gone
+        got = await _wait_for_slot(state.slots, state.settings.slot_wait_s, left)
+        if got == "busy":
+            raise Saturated("every processing slot stayed busy while this request waited; retry later",
+                            state.settings.retry_after_s)
+        if got == "gone":
+            raise ClientGone()
+        try:
+            with cancelled_by(gone):
+                yield
+        finally:
+            state.slots.release()
     finally:
         listener.cancel()
 
@@ -179,4 +214,3 @@ def queue_full(state: State) -> QueueFull | None:
 
 ApiKey = Depends(require_api_key)
 MetricsAccess = Depends(require_metrics_access)
-SlotDep = Annotated[None, Depends(processing_slot)]

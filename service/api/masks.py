@@ -11,7 +11,7 @@ from typing import Annotated
 from anyio import to_thread
 from fastapi import APIRouter, Depends, File, Form, Request, Response, UploadFile
 
-from service.api.deps import ApiKey, LocalisersDep, SettingsDep, SlotDep, stopped_when_client_leaves
+from service.api.deps import ApiKey, LocalisersDep, SettingsDep, processing
 from service.api.schemas import UPLOAD_ERRORS
 from service.api.uploads import check_form, known_fields, upload_directory, upload_reader
 from service.core.names import unique_stems
@@ -60,7 +60,6 @@ async def masks(
     request: Request,
     localisers: LocalisersDep,
     settings: SettingsDep,
-    _slot: SlotDep,
     stacks: Annotated[list[UploadFile], File(description="1..32 stacks, as for /v1/predict")],
     model: Annotated[str, Form(description="the localiser's name")] = "default",
     margin_mm: Annotated[float, Form(ge=0.0, le=MAX_MARGIN_MM, allow_inf_nan=False, description=MARGIN_HELP)] = 0.0,
@@ -68,7 +67,7 @@ async def masks(
     """One NIfTI mask per stack on the stack's own grid (uint8 0/1) and ``report.json``, zipped."""
     localiser = localisers.get(model)
     check_form(stacks, None, settings.max_files)
-    async with stopped_when_client_leaves(request):
+    async with processing(request):
         with upload_directory(settings.tmp_dir) as tmp:
             uploads = await to_thread.run_sync(upload_reader(settings), stacks, [], tmp)
             body = await to_thread.run_sync(masks_archive, uploads, localiser, tmp, margin_mm)

@@ -8,8 +8,8 @@ from typing import Annotated
 from anyio import to_thread
 from fastapi import APIRouter, Depends, Form, Request
 
-from service.api.deps import (ApiKey, LocalisersDep, MetricsDep, RegistryDep, SettingsDep, SlotDep, localiser_for,
-                              stopped_when_client_leaves)
+from service.api.deps import (ApiKey, LocalisersDep, MetricsDep, RegistryDep, SettingsDep, localiser_for,
+                              processing)
 from service.api.responses import stack_objects
 from service.api.schemas import UPLOAD_ERRORS, PredictResponse
 from service.api.uploads import UploadFormDep, known_fields, upload_directory, upload_reader
@@ -27,7 +27,6 @@ async def predict(
     localisers: LocalisersDep,
     settings: SettingsDep,
     metrics: MetricsDep,
-    _slot: SlotDep,
     form: UploadFormDep,
     bias_correction: Annotated[bool, Form(description="N4 before normalisation")] = True,
     stack_consistency: Annotated[bool, Form(description="decide each stack's left-right branch from all its slices, "
@@ -46,7 +45,7 @@ async def predict(
     info = estimator.info
     threshold = form.variance_threshold if form.variance_threshold is not None else info.variance_threshold
     max_expected = form.max_expected_error_mm if form.max_expected_error_mm is not None else info.max_expected_error_mm
-    async with stopped_when_client_leaves(request):
+    async with processing(request):
         with upload_directory(settings.tmp_dir) as tmp:
             uploads = await to_thread.run_sync(upload_reader(settings, form.masks_hold_csf), form.stacks, form.masks,
                                                tmp)

@@ -13,14 +13,15 @@ from fastapi import APIRouter, Depends, Form, Header, Query, Request, Response
 from fastapi.responses import FileResponse
 from pydantic import Field
 
-from service.api.deps import ApiKey, LocalisersDep, RegistryDep, SettingsDep, SlotDep, localiser_for, queue_full
+from service.api.deps import ApiKey, LocalisersDep, RegistryDep, SettingsDep, localiser_for, processing, queue_full
 from service.api.schemas import (UPLOAD_ERRORS, JobCreated, JobStatus, RefinedPoses, download, job_poses,
                                  problem_responses)
-from service.api.uploads import UploadFormDep, known_fields, upload_directory, upload_reader
+from service.api.uploads import UploadForm, UploadFormDep, known_fields, upload_directory, upload_reader
 from service.pipeline.predict import stack_orders
 from service.pipeline.prepare import StackUpload, check_mask_grid
 from service.core.client_json import client_json
 from service.core.errors import Conflict, InvalidParameter, NotFound, PayloadTooLarge, Saturated, UnusableImage
+from service.core.settings import Settings
 from service.io.acquisition_geometry import MAX_VOXEL_MM, MIN_VOXEL_MM
 from service.jobs.store import Job, JobStore
 from service.jobs.uploaded_poses import in_upload_order, poses_from_predict_body
@@ -158,6 +159,45 @@ def _made_by_key(earlier: Job, response: Response, retry_after_s: float) -> dict
     return {"job_id": earlier.id, "status": earlier.status, "status_url": f"/v1/reconstructions/{earlier.id}"}
 
 
+async def _submit(request: Request, response: Response, settings: Settings, form: UploadForm, key: str | None,
+                  params: dict) -> dict:
+    """The job made from a valid submission (or the one an earlier submission with its key made):
+    its files read and checked (4xx at once, leaving no job behind), then queued."""
+    store = _store(request)
+    if key is not None and (earlier := await to_thread.run_sync(store.job_for_key, key)) is not None:
+        return _made_by_key(earlier, response, settings.retry_after_s)
+    if (full := queue_full(request.app.state)) is not None:
+        raise full
+    raw = (await request.form()).get("poses")
+    if hasattr(raw, "read") and (raw.size or 0) > MAX_POSES_BYTES:
+        raise PayloadTooLarge(f"poses: {raw.size} bytes; the poses of a request's stacks take at most "
+                              f"{MAX_POSES_BYTES >> 20} MB")
+    poses_text = (await raw.read()).decode("utf-8", "replace") if hasattr(raw, "read") else raw
+    job, made = store.create_once({**params, **({"idempotency_key": key} if key is not None else {})})
+    if not made:                                     # a submission with the same key came in meanwhile
+        return _made_by_key(job, response, settings.retry_after_s)
+    inputs = store.directory(job.id) / "inputs"
+    inputs.mkdir()
+    try:
+        uploads = await to_thread.run_sync(upload_reader(settings), form.stacks, form.masks, inputs)
+        stack_orders(form.orders, uploads)
+        if poses_text:
+            kept, given = await to_thread.run_sync(checked_poses, poses_text, uploads)
+            (inputs / "poses.json").write_text(json.dumps(kept))
+        for u in uploads:
+            check_mask_grid(u)
+        check_slices_to_use(uploads, None if not poses_text else [accepted for _, accepted in given])
+    except Exception:
+        store.delete(job.id)          # rejected input (or a client gone) leaves no job behind
+        raise
+    names = {"stacks": [u.filename for u in uploads], "masks": [u.mask_filename for u in uploads if u.mask_filename]}
+    (inputs / "names.json").write_text(json.dumps(names))
+    (inputs / "params.json").write_text(json.dumps(store.get(job.id).params))
+    request.app.state.job_runner.submit(job.id)
+    response.headers["Location"] = f"/v1/reconstructions/{job.id}"
+    return {"job_id": job.id, "status": "queued", "status_url": f"/v1/reconstructions/{job.id}"}
+
+
 @router.post("", status_code=202, response_model=JobCreated, summary="Start a reconstruction job",
              responses={202: {"headers": {"Location": {"description": "the job's status URL",
                                                        "schema": {"type": "string"}}}}, **UPLOAD_ERRORS},
@@ -168,7 +208,6 @@ async def submit(
     registry: RegistryDep,
     localisers: LocalisersDep,
     settings: SettingsDep,
-    _slot: SlotDep,
     form: UploadFormDep,
     resolution_mm: Annotated[float, Form(gt=0.2, le=5.0, allow_inf_nan=False)] = 0.8,
     svr_iterations: Annotated[int, Form(ge=0, le=10)] = 3,
@@ -189,44 +228,12 @@ async def submit(
     localiser_for(localisers, form.masks)            # the job's worker localises; refused now, not failed later
     thickness = thickness_per_stack(slice_thickness_mm, len(form.stacks))
     key = idempotency_digest(idempotency_key)
-    store = _store(request)
-    if key is not None and (earlier := await to_thread.run_sync(store.job_for_key, key)) is not None:
-        return _made_by_key(earlier, response, settings.retry_after_s)
-    if (full := queue_full(request.app.state)) is not None:
-        raise full
-    raw = (await request.form()).get("poses")
-    if hasattr(raw, "read") and (raw.size or 0) > MAX_POSES_BYTES:
-        raise PayloadTooLarge(f"poses: {raw.size} bytes; the poses of a request's stacks take at most "
-                              f"{MAX_POSES_BYTES >> 20} MB")
-    poses_text = (await raw.read()).decode("utf-8", "replace") if hasattr(raw, "read") else raw
-    job, made = store.create_once({
-        "resolution_mm": resolution_mm, "svr_iterations": svr_iterations, "mc_samples": form.mc_samples,
-        "variance_threshold": form.variance_threshold, "max_expected_error_mm": form.max_expected_error_mm,
-        "model": model, "slice_order": form.slice_order, "atlas_frame": atlas_frame,
-        "masks_hold_csf": form.masks_hold_csf, "slice_thickness_mm": thickness,
-        **({"idempotency_key": key} if key is not None else {})})
-    if not made:                                     # a submission with the same key came in meanwhile
-        return _made_by_key(job, response, settings.retry_after_s)
-    inputs = store.directory(job.id) / "inputs"
-    inputs.mkdir()
-    try:
-        uploads = await to_thread.run_sync(upload_reader(settings), form.stacks, form.masks, inputs)
-        stack_orders(form.orders, uploads)
-        if poses_text:
-            kept, given = await to_thread.run_sync(checked_poses, poses_text, uploads)
-            (inputs / "poses.json").write_text(json.dumps(kept))
-        for u in uploads:
-            check_mask_grid(u)
-        check_slices_to_use(uploads, None if not poses_text else [accepted for _, accepted in given])
-    except Exception:
-        store.delete(job.id)          # rejected input leaves no job behind
-        raise
-    names = {"stacks": [u.filename for u in uploads], "masks": [u.mask_filename for u in uploads if u.mask_filename]}
-    (inputs / "names.json").write_text(json.dumps(names))
-    (inputs / "params.json").write_text(json.dumps(store.get(job.id).params))
-    request.app.state.job_runner.submit(job.id)
-    response.headers["Location"] = f"/v1/reconstructions/{job.id}"
-    return {"job_id": job.id, "status": "queued", "status_url": f"/v1/reconstructions/{job.id}"}
+    async with processing(request):
+        return await _submit(request, response, settings, form, key, {
+            "resolution_mm": resolution_mm, "svr_iterations": svr_iterations, "mc_samples": form.mc_samples,
+            "variance_threshold": form.variance_threshold, "max_expected_error_mm": form.max_expected_error_mm,
+            "model": model, "slice_order": form.slice_order, "atlas_frame": atlas_frame,
+            "masks_hold_csf": form.masks_hold_csf, "slice_thickness_mm": thickness})
 
 
 @router.get("/{job_id}", summary="Job status", response_model=JobStatus, responses=problem_responses(401, 404))

@@ -31,7 +31,8 @@ def _finite(value: float) -> float | None:
 
 def slice_objects(p: StackPrediction, rows: slice = slice(None)) -> list[dict]:
     """Every slice of one stack, accepted or not, in order; ``rows``: the rows of ``p.prepared``'s
-    slices that ``p``'s poses are (a stream's slice: one row of its stack)."""
+    slices that ``p``'s poses are. ``signal_lost`` is judged against the slice's stack: null where
+    ``p.prepared`` holds one slice (a stream's slice before its stack ends)."""
     out, est = p.poses, p.estimate
     mean = out.poses
     atlas_from_voxel = mean @ p.network_from_voxel
@@ -43,7 +44,7 @@ def slice_objects(p: StackPrediction, rows: slice = slice(None)) -> list[dict]:
     pts = anchors.encode(mean).reshape(-1, 3, 3)
     expected: NDArray = out.expected_error_mm if out.expected_error_mm is not None else np.full(len(mean), np.nan)
     seen = est.estimated
-    lost = p.prepared.signal_lost[rows]
+    lost = p.prepared.signal_lost[rows] if len(p.prepared.slices.images) > 1 else [None] * len(mean)
     return [
         {
             "index": i, "accepted": p.reasons[i] is None, "reason": p.reasons[i],
@@ -54,7 +55,7 @@ def slice_objects(p: StackPrediction, rows: slice = slice(None)) -> list[dict]:
             "branch": "twin" if out.twinned[i] else "network", "twin_mass": float(out.twin_mass[i]),
             "network_atlas_from_voxel": network_atlas_from_voxel[i].tolist() if seen[i] else None,
             "expected_error_mm": _finite(expected[i]),
-            "signal_lost": bool(lost[i]),
+            "signal_lost": None if lost[i] is None else bool(lost[i]),
         }
         for i in range(len(mean))
     ]

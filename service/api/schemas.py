@@ -45,10 +45,11 @@ class SliceResult(BaseModel):
                           "plus what no stage sees: the request's placement in the atlas (the model's floor) and, "
                           "where the stack decided its left-right branch, the chance that the slice sits on its "
                           "mirror twin times its squared distance to it")
-    signal_lost: bool = Field(False, description="the slice's brain lost its signal (over 15 % of its brain pixels under "
-                                                 "0.4 x the stack's brain median: a signal void, motion within the "
-                                                 "slice): its image takes no part in image consistency; worth "
-                                                 "acquiring again")
+    signal_lost: Optional[bool] = Field(
+        False, description="the slice's brain lost its signal (over 15 % of its brain pixels under 0.4 x its stack's "
+                           "brain median: a signal void, motion within the slice): no other stack's image checks its "
+                           "pose; null where there is no stack to judge it against (a stream's slice before its "
+                           "stack ends, a stack of one slice)")
 
 
 class ImageConsistency(BaseModel):

@@ -107,16 +107,21 @@ def test_a_slow_upload_holds_no_processing_slot(tiny_model_path: Path, phantom_f
 
 
 def test_a_request_whose_upload_is_in_waits_for_a_slot_then_is_refused(oracle, phantom_files) -> None:  # noqa: ANN001
-    """Every processing slot taken: a request's upload is read, and it waits ``slot_wait_s`` for a
-    slot; a slot given back meanwhile serves it, none given back is a 503 with Retry-After."""
+    """Every processing slot taken: a valid request's upload is read, and it waits ``slot_wait_s`` for
+    a slot; a slot given back meanwhile serves it, none given back is a 503 with Retry-After. An
+    invalid request gets its 400 at once, busy or not; ``slot_wait_s=0`` refuses at once when busy and
+    serves at once when free."""
     stack, _, _ = phantom_files
     files = [("stacks", (stack.name, stack.read_bytes()))]
     with make_client(ModelRegistry({"default": oracle}), max_concurrent=1, slot_wait_s=0.3, retry_after_s=6) as client:
         client.app.state.slots._value = 0
         started = time.perf_counter()
-        r = client.post("/v1/predict", files=files, data={"variance_threshold": "x"})
+        r = client.post("/v1/predict", files=files, data={"bias_correction": "false"})
         assert r.status_code == 503 and r.headers["retry-after"] == "6" and "waited" in r.json()["detail"]
         assert time.perf_counter() - started >= 0.3
+        started = time.perf_counter()
+        r = client.post("/v1/predict", files=files, data={"variance_threshold": "x"})
+        assert r.status_code == 400 and "variance_threshold" in r.text and time.perf_counter() - started < 0.3
     with make_client(ModelRegistry({"default": oracle}), max_concurrent=1, slot_wait_s=30) as client:
         client.app.state.slots._value = 0
 
@@ -125,8 +130,73 @@ def test_a_request_whose_upload_is_in_waits_for_a_slot_then_is_refused(oracle, p
             client.app.state.slots.release()
 
         client.portal.start_task_soon(give_back)
-        r = client.post("/v1/predict", files=files, data={"variance_threshold": "x"})
-        assert r.status_code == 400 and "variance_threshold" in r.text       # served: its own fault, not a 503
+        oracle.truth = np.repeat(np.eye(4)[None], 16, 0)
+        r = client.post("/v1/predict", files=files, data={"stack_consistency": "false", "mc_samples": "2"})
+        assert r.status_code == 200, r.text                                  # served once the slot came back
+    with make_client(ModelRegistry({"default": oracle}), max_concurrent=1, slot_wait_s=0) as client:
+        r = client.post("/v1/predict", files=files, data={"stack_consistency": "false", "mc_samples": "2"})
+        assert r.status_code == 200, r.text                                  # free: served at once
+        client.app.state.slots._value = 0
+        assert client.post("/v1/predict", files=files).status_code == 503    # busy: refused at once
+
+
+def test_the_slot_is_free_again_before_the_answer_is_sent(oracle, phantom_files) -> None:  # noqa: ANN001
+    """A client that reads its answer slowly holds no processing slot: it is given back when the work
+    ends, before the answer's first byte."""
+    import httpx
+
+    stack, _, _ = phantom_files
+    built = httpx.Request("POST", "http://test/v1/predict", data={"stack_consistency": "false", "mc_samples": "2"},
+                          files=[("stacks", (stack.name, stack.read_bytes()))])
+    body, content_type = built.read(), built.headers["content-type"].encode()
+    oracle.truth = np.repeat(np.eye(4)[None], 16, 0)
+    with make_client(ModelRegistry({"default": oracle}), max_concurrent=1) as client:
+        app, free_when_answered, sent = client.app, [], [False]
+
+        async def scenario() -> None:
+            async def receive() -> dict:
+                if not sent[0]:
+                    sent[0] = True
+                    return {"type": "http.request", "body": body, "more_body": False}
+                await asyncio.sleep(3600)                    # the client neither sends nor leaves
+
+            async def send(message: dict) -> None:
+                if message["type"] == "http.response.start":
+                    free_when_answered.append((message["status"], app.state.slots._value))
+
+            await asyncio.wait_for(app(_scope(app, content_type=content_type), receive, send), 30)
+
+        client.portal.call(scenario)
+    assert free_when_answered == [(200, 1)]
+
+
+def test_a_client_that_leaves_while_its_request_waits_for_a_slot_takes_none(oracle, phantom_files) -> None:  # noqa: ANN001
+    import httpx
+
+    stack, _, _ = phantom_files
+    built = httpx.Request("POST", "http://test/v1/predict", files=[("stacks", (stack.name, stack.read_bytes()))])
+    body, content_type = built.read(), built.headers["content-type"].encode()
+    with make_client(ModelRegistry({"default": oracle}), max_concurrent=1, max_admitted=2, slot_wait_s=30) as client:
+        app, answers, sent = client.app, {}, [False]
+        app.state.slots._value = 0                               # the one slot busy elsewhere
+
+        async def scenario() -> None:
+            async def receive() -> dict:
+                if not sent[0]:
+                    sent[0] = True
+                    return {"type": "http.request", "body": body, "more_body": False}
+                await asyncio.sleep(0.2)                         # then the client gives up
+                return {"type": "http.disconnect"}
+
+            await asyncio.wait_for(app(_scope(app, content_type=content_type), receive, _sender(answers, "gone")), 10)
+
+        started = time.perf_counter()
+        client.portal.call(scenario)
+        assert time.perf_counter() - started < 5                # not the 30 s of the wait
+        assert answers["gone"][0] == 499
+        assert app.state.slots._value == 0 and app.state.admissions._value == 2
+        app.state.slots.release()                                # the slot taken elsewhere comes back:
+        assert app.state.slots._value == 1                       # none was taken by the request that left
 
 
 def test_no_more_than_two_files_decode_at_once_across_requests(monkeypatch: pytest.MonkeyPatch,

@@ -69,5 +69,22 @@ def test_the_answer_names_the_slices_without_signal() -> None:
     predictions, _ = predict.predict_from_estimates([stack], [part], INFO, INFO.variance_threshold)
     slices = stack_objects(predictions)[0]["slices"]
     assert [s["index"] for s in slices if s["signal_lost"]] == list(DARK)
-    streamed = [pose_object(SliceAnswer("s", k, predictions[0], k))["signal_lost"] for k in range(n)]   # a stream's rows
-    assert [k for k, lost in enumerate(streamed) if lost] == list(DARK)
+    ended = [pose_object(SliceAnswer("s", k, predictions[0], k))["signal_lost"] for k in range(n)]   # an ended stack's rows
+    assert [k for k, lost in enumerate(ended) if lost] == list(DARK)
+    # A stream's slice before its stack ends is a stack of one: nothing to judge it against.
+    alone, _ = predict.predict_from_estimates([one_slice(stack, DARK[0])], [part.part(slice(DARK[0], DARK[0] + 1))],
+                                              INFO, INFO.variance_threshold, stack_consistency=False)
+    assert pose_object(SliceAnswer("s", DARK[0], alone[0], 0))["signal_lost"] is None
+
+
+def one_slice(stack: PreparedStack, k: int) -> PreparedStack:
+    """Slice ``k`` of ``stack`` prepared alone, as a stream prepares a slice before its stack ends."""
+    from dataclasses import replace
+
+    from service.preprocess.stack import StackSlices
+
+    sl = stack.slices
+    rows = slice(k, k + 1)
+    slices = StackSlices(sl.images[rows], sl.masks[rows], sl.pixel_mm, sl.slice_axis, sl.slice_from_voxel[rows], sl.layout)
+    prepared = replace(stack.prepared, **{f: getattr(stack.prepared, f)[rows] for f in ("inputs", "mask_fraction", "mask_pixels")})
+    return replace(stack, slices=slices, prepared=prepared)
