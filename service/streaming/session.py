@@ -374,7 +374,7 @@ class StreamSession:
                     updates += self._changed(name, answers)
             covered, shown = self._covered()
             alone = len(names) == 1
-            lists = {n: worth_acquiring_again(p.reasons, alone) for n, p in zip(names, predictions)}
+            lists = {n: worth_acquiring_again(p.reasons, alone, p.prepared.signal_lost) for n, p in zip(names, predictions)}
             changed = {n: r for n, r in lists.items() if n != stack and r != self.reacquire_sent.get(n)}
             self.reacquire_sent.update(lists)
         answer = StackAnswer(stack, final, updates, lists[stack], coverage(covered, shown), timings, alone, changed)
@@ -416,5 +416,6 @@ class StreamSession:
         with self._lock:
             names = list(self.stacks)
             n = sum(len(s) for s in self.stacks.values())
-            final = {k: worth_acquiring_again(p.reasons, False) for k, p in self.finals.items()}   # nothing more comes
+            final = {k: worth_acquiring_again(p.reasons, False, p.prepared.signal_lost)          # nothing more comes
+                     for k, p in self.finals.items()}
         return SessionSummary(names, self.coverage(), n, dict(self.compute_ms), final)

@@ -381,3 +381,29 @@ def test_streamed_slices_gain_the_noise_error_of_their_stacks_input_noise_once(c
     plain, noisy = answers["plain"][1], answers["noisy"][1]
     assert noisy.noise_error_mm == float(noise_error_mm(noisy.prepared.input_noise, calibration)) > 0
     np.testing.assert_allclose(noisy.poses.expected_error_mm, np.hypot(plain.poses.expected_error_mm, noisy.noise_error_mm))
+
+
+def test_slices_whose_brain_lost_its_signal_are_named_once_their_stack_ends_and_worth_acquiring_again() -> None:
+    """Two slices darkened over most of their brain: each `pose` has no stack to judge it against
+    (null); the `stack` message names them and lists them to acquire again, with reason `signal_lost`."""
+    from service.api.responses import pose_object, stack_message
+    from service.inference.registry import ModelRegistry
+    from tests.support.streams import frames_of, simulated_stack
+
+    estimator = ModelRegistry.from_directory("service/models", "default", 0).get("default")
+    image, mask, affine, _ = simulated_stack(3, np.eye(3))
+    image = image * 3.0 + 20.0
+    dark = (image.shape[2] // 2, image.shape[2] // 2 + 2)
+    for k in dark:
+        inside = mask[..., k] > 0
+        image[..., k][inside] = image[..., k][inside] * 0.1
+    session = StreamSession(estimator, None, options=SessionOptions(mc_samples=4, bias_correction=False))
+    poses = [pose_object(session.add_slice(f))["signal_lost"]
+             for f in frames_of("ax", image.astype(np.float32), mask.astype(np.uint8), affine)]
+    final = stack_message(session.end_stack("ax"))
+    assert set(poses) == {None}
+    assert [s["index"] for s in final["slices"] if s["signal_lost"]] == list(dark)
+    listed = {r["index"]: r["reason"] for r in final["reacquire"]}
+    assert set(dark) <= set(listed)                  # with their own reason where they have one, else signal_lost
+    assert all(listed[k] == "signal_lost" for k, s in zip(range(len(final["slices"])), final["slices"])
+               if k in dark and s["reason"] in (None, "high_expected_error"))
