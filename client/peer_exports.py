@@ -120,8 +120,10 @@ def _chosen(stack: dict[str, Any], all_slices: bool) -> list[dict[str, Any]]:
     return [s for s in stack.get("slices") or [] if s.get("reason") != "empty" and (all_slices or s.get("accepted"))]
 
 
-def _stack_file(path: Path, stack: dict[str, Any]) -> tuple[nib.Nifti1Image, NDArray]:
-    """The stack file read with nibabel, checked to be the grid the answer's poses are of."""
+def _stack_file(path: Path, stack: dict[str, Any], read_by_qform: bool) -> tuple[nib.Nifti1Image, NDArray]:
+    """The stack file read with nibabel, checked to be the grid the answer's poses are of; for a tool
+    that places it by its qform (``read_by_qform``: ITK's readers), checked that its qform is where
+    the service placed it (its sform). NeSVoR is given slices written here, not the stack's header."""
     try:
         image = nib.load(str(path))
     except (nib.filebasedimages.ImageFileError, OSError, ValueError) as e:
@@ -133,7 +135,7 @@ def _stack_file(path: Path, stack: dict[str, Any]) -> tuple[nib.Nifti1Image, NDA
                             "(another grid or placement)")
     header = image.header
     both = header["qform_code"] > 0 and header["sform_code"] > 0
-    if both and not np.allclose(header.get_qform(), header.get_sform(), atol=1e-3):
+    if read_by_qform and both and not np.allclose(header.get_qform(), header.get_sform(), atol=1e-3):
         raise UnusableInput(f"export: {path.name}: its qform and sform disagree; ITK-based tools (NiftyMIC) place it by "
                             "its qform, the service by its sform: write it with one placement first")
     return image, sfv
@@ -164,7 +166,7 @@ def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None,
         raise UnusableInput("export: NiftyMIC names each stack's transforms by its file name, and two stacks are "
                             f"named {max(set(stems), key=stems.count)!r}: rename one")
     for s, (path, stack) in enumerate(zip(stacks, matched_stacks(answer, stacks))):
-        image, sfv = _stack_file(path, stack)
+        image, sfv = _stack_file(path, stack, read_by_qform=to == "niftymic")
         chosen = _chosen(stack, all_slices)
         axis = int(stack.get("slice_axis", 2))
         if to == "niftymic":

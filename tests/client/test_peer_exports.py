@@ -139,6 +139,7 @@ def test_files_that_are_not_the_answers_are_refused(case: dict, tmp_path: Path) 
     nib.save(two, other)
     with pytest.raises(UnusableInput, match="qform and sform disagree"):
         export(case["answer"], [other], None, tmp_path / "x", "niftymic")
+    assert export(case["answer"], [other], None, tmp_path / "n", "nesvor").count > 0     # its slices are written here
     with pytest.raises(UnusableInput, match="holds 1 stacks, 2 files"):
         export(case["answer"], [other, other], None, tmp_path / "x", "nesvor")
 
