@@ -112,7 +112,7 @@ class SVRnetClient(Transport):
 
         Args:
             stacks: 1..32 files (``.nii``, ``.nii.gz``, ``.nrrd``, ``.mha``, ``.dcm``, ``.zip``).
-            masks: none, or one region-of-interest mask per stack, in the same order.
+            masks: none, or one brain mask per stack, in the same order (the fetal brain, not a box around it).
             mc_samples: Monte Carlo dropout passes per slice (1..1000).
             variance_threshold: slices above this geodesic variance are not accepted.
             max_expected_error_mm: slices whose returned pose's expected error (mm) exceeds it are

@@ -134,6 +134,11 @@ def predict(
                                  bias_correction=None if bias_correction else False, model=model,
                                  slice_order=slice_order, image_consistency=None if image_consistency else False,
                                  masks_hold_csf=True if masks_hold_csf else None, progress=progress)
+        if out is not None:                 # the files first: a closed pipe on stdout loses no answer
+            write_json(out, result)
+        if transforms_out is not None:
+            from client.slice_transforms import write_transforms_zip       # numpy: only where it is needed
+            write_transforms_zip(result, transforms_out)
         console = stdout()
         console.print(summarise(result))
         for hint in predict_hints(result, None if image_consistency else "the image consistency stage"):
@@ -141,13 +146,9 @@ def predict(
         total = (result.get("timing_ms") or {}).get("total")
         console.print(f"request {result.get('request_id', '?')}"
                       + (f" · {total / 1e3:.2f} s on the server" if isinstance(total, (int, float)) else ""))
-        if out is not None:
-            write_json(out, result)
-            console.print(f"wrote {out}")
-        if transforms_out is not None:
-            from client.slice_transforms import write_transforms_zip       # numpy: only where it is needed
-            write_transforms_zip(result, transforms_out)
-            console.print(f"wrote {transforms_out}")
+        for written in (out, transforms_out):
+            if written is not None:
+                console.print(f"wrote {written}")
     if not usable(result):
         raise typer.Exit(EXIT_NOTHING_USABLE)
 

@@ -106,12 +106,19 @@ def mean_transform(transforms: ArrayLike) -> NDArray[np.float64]:
 
 def matched_stacks(answer: dict[str, Any], stacks: list[Path]) -> list[dict[str, Any]]:
     """The answer's stack objects in the order of the files ``stacks``: by file name where the answer
-    names them so, else (a job's refined poses name them ``stacks[i]``) by place."""
+    names them so, each name once, else (a job's refined poses name them ``stacks[i]``; two files of
+    one name from two folders) by place.
+
+    Example (two folders' ``ax.nii.gz``, given in the order they were sent):
+        >>> answer = {"stacks": [{"filename": "ax.nii.gz", "index": 0}, {"filename": "ax.nii.gz", "index": 1}]}
+        >>> [s["index"] for s in matched_stacks(answer, [Path("a/ax.nii.gz"), Path("b/ax.nii.gz")])]
+        [0, 1]
+    """
     found = answer.get("stacks") or []
     if len(found) != len(stacks):
         raise UnusableInput(f"export: the answer holds {len(found)} stacks, {len(stacks)} files were given")
     by_name = {str(s.get("filename")): s for s in found}
-    if all(p.name in by_name for p in stacks):
+    if len(by_name) == len(found) and len({p.name for p in stacks}) == len(stacks) and all(p.name in by_name for p in stacks):
         return [by_name[p.name] for p in stacks]
     return list(found)
 

@@ -94,6 +94,9 @@ def summarise(result: dict[str, Any]) -> Table:
 LOW_CONFIDENCE = 0.5
 """A localiser confidence under this gets a hint to look at the mask (docs/localisation.md gives the
 confidences real stacks get)."""
+LARGEST_BRAIN_ML = 700.0
+"""An uploaded mask over this volume is no fetal brain mask (the service's localiser takes brains of
+30-700 ml with their CSF as plausible; a term brain holds about 450)."""
 
 
 def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[str]:
@@ -124,6 +127,10 @@ def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[
                 "its mask holds no brain on the stack's slices; check that it is the stack's mask"
                 if where.get("method") == "mask" else
                 "the localiser found none; upload a brain mask with --mask"))
+        elif where.get("method") == "mask" and float(where.get("brain_volume_ml") or 0.0) > LARGEST_BRAIN_ML:
+            hints.append(f"{name}: its mask holds {float(where['brain_volume_ml']):.0f} ml, more than any fetal brain "
+                         "(a box or the whole head?): the pose network reads the brain's outline; upload a brain "
+                         "mask (`svrnet masks` makes one), or none")
         elif where.get("method") == "network" and float(where.get("confidence") or 0.0) < LOW_CONFIDENCE:
             hints.append(f"{name}: the localiser was unsure of the brain (confidence {where.get('confidence', 0):.2f}); "
                          "check its mask with `svrnet masks`, or upload one with --mask")

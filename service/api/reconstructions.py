@@ -18,7 +18,7 @@ from service.api.schemas import (UPLOAD_ERRORS, JobCreated, JobStatus, RefinedPo
                                  problem_responses)
 from service.api.uploads import UploadForm, UploadFormDep, known_fields, upload_directory, upload_reader
 from service.pipeline.predict import stack_orders
-from service.pipeline.prepare import StackUpload, check_mask_grid
+from service.pipeline.prepare import StackUpload, check_distinct_stacks, check_mask_grid
 from service.core.client_json import client_json
 from service.core.errors import Conflict, InvalidParameter, NotFound, PayloadTooLarge, Saturated, UnusableImage
 from service.core.settings import Settings
@@ -186,6 +186,7 @@ async def _submit(request: Request, response: Response, settings: Settings, form
             (inputs / "poses.json").write_text(json.dumps(kept))
         for u in uploads:
             check_mask_grid(u)
+        check_distinct_stacks(uploads)
         check_slices_to_use(uploads, None if not poses_text else [accepted for _, accepted in given])
     except Exception:
         store.delete(job.id)          # rejected input (or a client gone) leaves no job behind

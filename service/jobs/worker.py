@@ -35,6 +35,7 @@ from service.core.logging import error_at
 from service.inference.acceptance import EMPTY
 from service.jobs.store import JobStore
 from service.jobs.uploaded_poses import expected_errors, poses_from_predict_body
+from service.preprocess.intensity import SIGNAL_LOST
 
 log = logging.getLogger(__name__)
 
@@ -107,6 +108,21 @@ def posed_slices(body: dict) -> list[np.ndarray]:
 def signal_lost_slices(body: dict) -> list[np.ndarray]:
     """Per stack of a ``/v1/predict`` body, which slices lost the brain's signal (``signal_lost``)."""
     return [np.array([bool(s.get("signal_lost")) for s in st["slices"]], bool) for st in body["stacks"]]
+
+
+def lost_reasons(reasons: list[str | None] | None, body: dict) -> list[str | None] | None:
+    """A job's per-slice exclusion reasons (all stacks' slices in order) with ``signal_lost`` for the
+    slices left out because their brain lost its signal (:func:`starting_poses`), not ``not_used``.
+
+    Example:
+        >>> body = {"stacks": [{"slices": [{"signal_lost": True}, {}]}, {"slices": [{"signal_lost": True}]}]}
+        >>> lost_reasons(["not_used", "not_used", None], body)
+        ['signal_lost', 'not_used', None]
+    """
+    if reasons is None:
+        return None
+    lost = np.concatenate(signal_lost_slices(body) or [np.zeros(0, bool)])
+    return [SIGNAL_LOST if r == "not_used" and k < len(lost) and lost[k] else r for k, r in enumerate(reasons)]
 
 
 def starting_poses(body: dict, min_share: float = MIN_ACCEPTED_SHARE, min_slices: int = MIN_ACCEPTED_SLICES,
@@ -340,6 +356,8 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
                      frame_steps=params.get("atlas_frame", True), mc_samples=int(params.get("mc_samples", 100)),
                      progress=refining)
     result, left_out = job.result, job.left_out
+    if started_from != "uploaded_poses":        # uploaded poses keep the client's flags
+        result.exclusion_reason = lost_reasons(result.exclusion_reason, body)
     progress("writing", 0.97)
     # The report's timings: the winning path's stages and ``total``, every path's (``all_paths``), and
     # the job's up to the writing of its outputs (``job``: prediction and the frame steps included).

@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 
 from service.consistency.stage import network_from_voxel
 from service.core.cancellation import carried, checkpoint
-from service.core.errors import UnusableImage
+from service.core.errors import InvalidParameter, UnusableImage
 from service.inference.model_file import ModelInfo
 from service.io.volume import Volume
 from service.preprocess.intensity import signal_lost
@@ -199,6 +199,28 @@ def check_mask_grid(upload: StackUpload) -> None:
                             "(different origin, spacing or orientation)")
 
 
+def check_distinct_stacks(uploads: list[StackUpload]) -> None:
+    """400 naming both files where a request sends one stack twice (the same grid and voxels under two
+    names): the stages would take the copy for a second acquisition that agrees with the first and
+    answer surer than the scan allows (or, for two copies alone, with nothing crossing them, accept
+    none).
+
+    Example:
+        >>> v = Volume(np.zeros((4, 4, 3), np.float32), np.eye(4))
+        >>> check_distinct_stacks([StackUpload("a", v), StackUpload("b", Volume(v.array + 1, v.affine))])
+        >>> check_distinct_stacks([StackUpload("a", v), StackUpload("b", Volume(v.array.copy(), v.affine))])
+        Traceback (most recent call last):
+        ...
+        service.core.errors.InvalidParameter: stacks: b is the same image as a (the same grid and voxels): send each stack of a scan once
+    """
+    for j, b in enumerate(uploads):
+        for a in uploads[:j]:
+            if (a.volume.array.shape == b.volume.array.shape and np.allclose(a.volume.affine, b.volume.affine, atol=1e-4)
+                    and np.array_equal(a.volume.array, b.volume.array)):
+                raise InvalidParameter(f"stacks: {b.filename} is the same image as {a.filename} (the same grid and "
+                                       "voxels): send each stack of a scan once")
+
+
 def localise(upload: StackUpload, localiser: Localiser | None = None) -> Localisation:
     """The uploaded mask (its confidence 1, or 0 where it marks no voxel: the user says the stack
     shows no brain), else the brain that ``localiser`` (default: the shipped one) finds."""
@@ -259,6 +281,7 @@ def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction:
     of them see) and are prepared again."""
     for u in uploads:
         check_mask_grid(u)
+    check_distinct_stacks(uploads)
     with ThreadPoolExecutor(max_workers=max(1, min(workers, len(uploads)))) as pool:
         futures = [pool.submit(carried(prepare_stack), u, info, bias_correction) if u.mask is not None else None
                    for u in uploads]

@@ -51,6 +51,9 @@ def rescale_0_255(
     return np.where(m & np.isfinite(out), out, 0.0).astype(np.float32)
 
 
+SIGNAL_LOST = "signal_lost"
+"""The name of such a slice's fault wherever a reason is given: a stream's slices to acquire again, a
+job's slices left out of its volume."""
 SIGNAL_LOSS_LEVEL = 0.4
 """A brain pixel under this fraction of its stack's brain median is dark."""
 SIGNAL_LOSS_SHARE = 0.15

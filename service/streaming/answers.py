@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 
 from service.geometry import anchors
 from service.inference import acceptance
+from service.preprocess.intensity import SIGNAL_LOST
 from service.pipeline.predict import StackPrediction
 from service.streaming.coverage import Coverage
 
@@ -63,28 +64,24 @@ def moved_mm(a: SliceAnswer, b: SliceAnswer, reference: NDArray) -> float:
     return float(anchors.ed(pose(a), pose(b)))
 
 
-SIGNAL_LOST = "signal_lost"
-"""The ``reason`` of a slice worth acquiring again because its brain lost its signal."""
-
-
 def worth_acquiring_again(reasons: list[str | None], judged_alone: bool,
                           signal_lost: Sequence[bool] | None = None) -> list[tuple[int, str]]:
     """``(index, reason)`` of the slices of a stack worth acquiring again: those not accepted, but
     for ``empty`` ones (no brain: nothing to gain) and, for a stack judged alone (the session's
     first), those whose only fault is their expected error: the next stack that crosses them is
     what brings it down (the shared real scan's axial stack: 0 of 24 accepted alone, 21 once the
-    coronal stack ended); and those whose brain lost its signal (``signal_lost``), accepted or not:
-    no other stack's image can check them, and a slice acquired again may show the brain.
+    coronal stack ended); and those whose brain lost its signal (``signal_lost``), accepted or not,
+    with that reason before any other: it is the cause, and a slice acquired again may show the brain.
 
     Example:
         >>> worth_acquiring_again([None, "empty", "high_expected_error", "inconsistent_with_stack"], True)
         [(3, 'inconsistent_with_stack')]
         >>> worth_acquiring_again([None, "high_expected_error"], False)
         [(1, 'high_expected_error')]
-        >>> worth_acquiring_again([None, "high_expected_error", None], True, [True, True, False])
-        [(0, 'signal_lost'), (1, 'signal_lost')]
+        >>> worth_acquiring_again([None, "high_expected_error", "inconsistent_with_stack"], False, [True, True, True])
+        [(0, 'signal_lost'), (1, 'signal_lost'), (2, 'signal_lost')]
     """
     waits = {acceptance.EMPTY} | ({acceptance.HIGH_EXPECTED_ERROR} if judged_alone else set())
     lost = [False] * len(reasons) if signal_lost is None else [bool(x) for x in signal_lost]
-    return [(k, r if r is not None and r not in waits else SIGNAL_LOST) for k, r in enumerate(reasons)
-            if (r is not None and r not in waits) or (lost[k] and r != acceptance.EMPTY)]
+    return [(k, SIGNAL_LOST if lost[k] else r) for k, r in enumerate(reasons)
+            if r != acceptance.EMPTY and (lost[k] or (r is not None and r not in waits))]

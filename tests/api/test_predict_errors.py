@@ -300,3 +300,10 @@ def test_a_full_disk_while_the_upload_is_received_is_507_not_a_malformed_body(
     broken = oracle_client.post("/v1/predict", content=b"--xx\r\nno headers", headers={
         "content-type": "multipart/form-data; boundary=xx"})
     assert broken.status_code == 400                      # a broken body is still the client's
+
+
+def test_a_stack_sent_twice_is_refused_naming_both_files(oracle_client: TestClient, tmp_path: Path) -> None:
+    """A copy would count as a second acquisition that agrees with the first: 400, before any work."""
+    data = nifti_bytes(stack(), tmp=tmp_path)
+    r = post(oracle_client, [("stacks", ("ax.nii.gz", data)), ("stacks", ("copy_of_ax.nii.gz", data))])
+    assert_problem(r, 400, "copy_of_ax.nii.gz is the same image as ax.nii.gz")

@@ -42,6 +42,19 @@ def invoke(args: list[str], **env: str) -> Any:
     return CliRunner().invoke(cli.app, args, env={"COLUMNS": "200", **env})
 
 
+def test_cli_predict_writes_its_files_before_it_prints(fake_cli: Callable, stack_file: Path, tmp_path: Path,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """Its output piped to a reader that closes early (`| head`): the answer is on disk all the same."""
+    def closed(*args: Any) -> None:
+        raise BrokenPipeError
+
+    fake_cli()
+    monkeypatch.setattr(cli, "summarise", closed)
+    out = tmp_path / "poses.json"
+    invoke(["predict", str(stack_file), "--out", str(out)])
+    assert json.loads(out.read_text()) == PREDICT_BODY
+
+
 def test_cli_predict_writes_json_and_prints_a_summary(fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
     fake, made = fake_cli()
     out = tmp_path / "poses.json"
@@ -399,6 +412,11 @@ def test_an_answer_with_nothing_usable_says_what_to_do() -> None:
     unsure = views.predict_hints(_alone("high_expected_error", confidence=0.3))
     assert "unsure" in unsure[0] and "0.30" in unsure[0] and "svrnet masks" in unsure[0]
     assert "no brain on the stack" in views.predict_hints(_alone("empty", method="mask"))[0]
+    boxed = _alone("high_expected_error", method="mask")
+    boxed["stacks"][0]["localisation"]["brain_volume_ml"] = 1180.0                   # a box around the head
+    assert "holds 1180 ml, more than any fetal brain" in views.predict_hints(boxed)[0]
+    boxed["stacks"][0]["localisation"]["brain_volume_ml"] = 450.0
+    assert not [h for h in views.predict_hints(boxed) if "more than any fetal brain" in h]
     assert "localiser found none" in views.predict_hints(_alone("empty", confidence=0.05))[0]
     # A usable answer whose stack is noisier than the poses were calibrated on: told, not alarmed.
     noisy = {**PREDICT_BODY, "stacks": [{**PREDICT_BODY["stacks"][0],

@@ -404,6 +404,4 @@ def test_slices_whose_brain_lost_its_signal_are_named_once_their_stack_ends_and_
     assert set(poses) == {None}
     assert [s["index"] for s in final["slices"] if s["signal_lost"]] == list(dark)
     listed = {r["index"]: r["reason"] for r in final["reacquire"]}
-    assert set(dark) <= set(listed)                  # with their own reason where they have one, else signal_lost
-    assert all(listed[k] == "signal_lost" for k, s in zip(range(len(final["slices"])), final["slices"])
-               if k in dark and s["reason"] in (None, "high_expected_error"))
+    assert {k: listed.get(k) for k in dark} == dict.fromkeys(dark, "signal_lost")     # the cause, whatever else
