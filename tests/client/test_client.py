@@ -173,10 +173,14 @@ def live_server() -> Iterator[str]:
         assert not thread.is_alive(), "uvicorn did not stop"
 
 
-def test_over_real_http(live_server: str, stack_file: Path) -> None:
+def test_over_real_http(live_server: str, stack_file: Path, tmp_path: Path) -> None:
+    other = tmp_path / "second" / stack_file.name                      # another stack of the same file name
+    other.parent.mkdir()
+    data = np.random.default_rng(1).random((24, 24, 6)).astype(np.float32) * 100
+    write_volume(Volume(data, np.diag([1.0, 1.0, 3.0, 1.0])), other)
     with SVRnetClient(live_server, retries=0) as svr:
         assert svr.models()[0]["name"] == "default"
-        result = svr.predict([stack_file, stack_file], mc_samples=2, bias_correction=False)
+        result = svr.predict([stack_file, other], mc_samples=2, bias_correction=False)
         assert [s["filename"] for s in result["stacks"]] == ["stack.nii.gz", "stack.nii.gz"]
         assert result["mc_samples"] == 2 and len(result["stacks"][1]["slices"]) == 6
 

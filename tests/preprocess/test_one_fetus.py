@@ -30,6 +30,11 @@ class _ProbabilityLocaliser(Localiser):
                 for v in volumes]
 
 
+def _again(volume: Volume) -> Volume:
+    """The same scene acquired again: a stack of its own (a request refuses one stack sent twice)."""
+    return Volume(volume.array * np.float32(1.00001), volume.affine)
+
+
 def _twins(larger: str, slices: int = 20) -> Volume:
     """A stack of two heads 100 mm apart (balls of 30 mm radius in scanner mm, 10 slices from the
     first), the ``larger`` one ("first" or "second") holding more probability."""
@@ -47,7 +52,7 @@ def test_the_stacks_of_a_twin_pregnancy_settle_on_the_brain_most_of_them_see() -
     keeps its own; as one request, all three the first (the third's second brain left out of its
     choice), whether localised together or prepared for ``/v1/predict``."""
     localiser = _ProbabilityLocaliser()
-    volumes = [_twins("first"), _twins("first"), _twins("second")]
+    volumes = [_twins("first"), _again(_twins("first")), _twins("second")]
     alone = [localiser.settle(v, *localiser.probabilities(v)) for v in volumes]
     centres = [brain_centre_mm(found.mask, v.affine) for found, v in zip(alone, volumes)]
     assert centres[0][0] < -20 and centres[2][0] > 40                  # the third alone: the second fetus
@@ -63,7 +68,7 @@ def test_the_stacks_of_a_twin_pregnancy_settle_on_the_brain_most_of_them_see() -
 def test_an_uploaded_masks_brain_decides_which_fetus() -> None:
     """One stack comes with a mask on the second fetus: the stacks without masks settle there too."""
     localiser = _ProbabilityLocaliser()
-    volumes = [_twins("first"), _twins("first"), _twins("second")]
+    volumes = [_twins("first"), _again(_twins("first")), _twins("second")]
     mask = Volume((volumes[2].array > 0.92).astype(np.uint8), volumes[2].affine)
     uploads = [StackUpload("a.nii.gz", volumes[0]), StackUpload("b.nii.gz", volumes[1]),
                StackUpload("c.nii.gz", volumes[2], mask, "c_mask.nii.gz")]
@@ -103,7 +108,7 @@ def test_a_stack_that_sees_no_brain_where_the_others_do_keeps_its_own() -> None:
     """A fetus that moved farther than :data:`BRAIN_MOVE_MM` between stacks: the stack whose only
     brain lies there keeps it (there is none near the others' for it to take)."""
     localiser = _ProbabilityLocaliser()
-    volumes = [_twins("first"), _twins("first"), _twins("second")]
+    volumes = [_twins("first"), _again(_twins("first")), _twins("second")]
     volumes[2].array[volumes[2].array == np.float32(0.9)] = 0.0         # the third sees the second head alone
     alone = localiser.settle(volumes[2], *localiser.probabilities(volumes[2]))
     together = localiser.localise_many(volumes)
