@@ -118,7 +118,8 @@ def matched_stacks(answer: dict[str, Any], stacks: list[Path]) -> list[dict[str,
     if len(found) != len(stacks):
         raise UnusableInput(f"export: the answer holds {len(found)} stacks, {len(stacks)} files were given")
     by_name = {str(s.get("filename")): s for s in found}
-    if len(by_name) == len(found) and len({p.name for p in stacks}) == len(stacks) and all(p.name in by_name for p in stacks):
+    names_once = len(by_name) == len(found) and len({p.name for p in stacks}) == len(stacks)
+    if names_once and all(p.name in by_name for p in stacks):
         return [by_name[p.name] for p in stacks]
     return list(found)
 

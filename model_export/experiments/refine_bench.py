@@ -185,7 +185,8 @@ def main() -> None:
             masks = [p.slices.to_stack(p.slices.masks) for p in prepared]
             for name in variants:
                 variant, _, share = name.partition("@")
-                poses = starting_poses(body, float(share or shares[0]), keep_signal_lost=variant == "job-with-signal-lost")
+                poses = starting_poses(body, float(share or shares[0]),
+                                       keep_signal_lost=variant == "job-with-signal-lost")
                 if args.start == "truth":
                     poses = [(s.atlas_from_voxel, inc) for s, (_, inc) in zip(stacks, poses)]
                 inputs = [(s.volume, m, mats, inc) for s, m, (mats, inc) in zip(stacks, masks, poses)]

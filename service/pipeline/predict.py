@@ -333,8 +333,8 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
     their slices refined where they cross (:func:`refine_where_stacks_cross`; with
     ``image_consistency`` and the stage on; a slice whose brain lost its signal,
     :attr:`~service.pipeline.prepare.PreparedStack.signal_lost`, has no image to compare: it moves
-    with its refined neighbours, as a slice the images do not check); returns each stack's :class:`StackPrediction` and the
-    timings. ``orders``: what the request says of the stacks' acquisition orders
+    with its refined neighbours, as a slice the images do not check); returns each stack's
+    :class:`StackPrediction` and the timings. ``orders``: what the request says of the stacks' acquisition orders
     (:func:`stack_orders`). ``threshold`` and ``max_expected_error_mm`` (default: the model's)
     decide the accept flags."""
     orders = stack_orders(orders, [p.upload for p in prepared])

@@ -34,8 +34,8 @@ from service.core.cancellation import carried, checkpoint
 from service.core.errors import InvalidParameter, UnusableImage
 from service.inference.model_file import ModelInfo
 from service.io.volume import Volume
-from service.preprocess.intensity import signal_lost
 from service.preprocess.bias import n4_correct
+from service.preprocess.intensity import signal_lost
 from service.preprocess.localisation import Localisation
 from service.preprocess.localise import Localiser, default_localiser
 from service.preprocess.localiser_inputs import LocaliserGrid
@@ -215,8 +215,9 @@ def check_distinct_stacks(uploads: list[StackUpload]) -> None:
     """
     for j, b in enumerate(uploads):
         for a in uploads[:j]:
-            if (a.volume.array.shape == b.volume.array.shape and np.allclose(a.volume.affine, b.volume.affine, atol=1e-4)
-                    and np.array_equal(a.volume.array, b.volume.array)):
+            same_grid = a.volume.array.shape == b.volume.array.shape and np.allclose(a.volume.affine, b.volume.affine,
+                                                                                       atol=1e-4)
+            if same_grid and np.array_equal(a.volume.array, b.volume.array):
                 raise InvalidParameter(f"stacks: {b.filename} is the same image as {a.filename} (the same grid and "
                                        "voxels): send each stack of a scan once")
 

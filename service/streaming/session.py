@@ -374,7 +374,8 @@ class StreamSession:
                     updates += self._changed(name, answers)
             covered, shown = self._covered()
             alone = len(names) == 1
-            lists = {n: worth_acquiring_again(p.reasons, alone, p.prepared.signal_lost) for n, p in zip(names, predictions)}
+            lists = {n: worth_acquiring_again(p.reasons, alone, p.prepared.signal_lost)
+                     for n, p in zip(names, predictions)}
             changed = {n: r for n, r in lists.items() if n != stack and r != self.reacquire_sent.get(n)}
             self.reacquire_sent.update(lists)
         answer = StackAnswer(stack, final, updates, lists[stack], coverage(covered, shown), timings, alone, changed)
