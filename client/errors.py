@@ -190,6 +190,11 @@ def _content_kind(response: httpx.Response) -> str:
     return kind or "no content type"
 
 
+NOT_SVRNET = (404, 405, 501)
+"""Statuses that, without a problem+json body, say the address is another server (SVRnet answers a
+404 or 405 as problem+json and never 501 Not Implemented, a plain web server's answer to a POST)."""
+
+
 def error_from_response(response: httpx.Response) -> SVRnetError:
     """The typed exception for an error ``response`` (its body must have been read).
 
@@ -202,6 +207,8 @@ def error_from_response(response: httpx.Response) -> SVRnetError:
         >>> e = error_from_response(r)
         >>> type(e).__name__, e.detail
         ('NotFound', "model: unknown model 'x'")
+        >>> type(error_from_response(httpx.Response(501, text="<html>Unsupported method</html>"))).__name__
+        'ConnectionFailed'
     """
     status = response.status_code
     body: dict[str, Any] = {}
@@ -219,13 +226,13 @@ def error_from_response(response: httpx.Response) -> SVRnetError:
     if 300 <= status < 400:                   # the client follows no redirect: most likely a wrong URL
         detail = (f"the server answered a redirect ({status}) to {response.headers.get('location', '?')}; "
                   "check the server URL")
-    elif status == 404 and "status" not in body:      # every SVRnet 404 is problem+json
-        detail = (f"the server answered 404 without a problem+json body ({_content_kind(response)}): it is not "
-                  "an SVRnet API v1 server; check the server URL and port")
+    elif status in NOT_SVRNET and "status" not in body:      # every SVRnet 404 and 405 is problem+json
+        detail = (f"the server answered {status} without a problem+json body ({_content_kind(response)}): it is "
+                  "not an SVRnet API v1 server; check the server URL and port")
     request_id = body.get("request_id") or response.headers.get("x-request-id")
     kwargs: dict[str, Any] = {"status": status, "title": str(title) if title else None,
                               "request_id": request_id, "type": body.get("type"), "body": body}
-    if 300 <= status < 400 or (status == 404 and "status" not in body):
+    if 300 <= status < 400 or (status in NOT_SVRNET and "status" not in body):
         return ConnectionFailed(detail, **kwargs)     # the wrong server: as one that cannot be reached
     cls = error_class_for_status(status)
     if cls is Busy:

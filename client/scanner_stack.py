@@ -101,10 +101,23 @@ def scanner_slices(image: NDArray, affine: NDArray, mask: NDArray | None = None)
     return axis, slices
 
 
+def _nifti(path: Path) -> nib.Nifti1Image:
+    """The NIfTI image of ``path``, read by its content where its name says gzip and it is not (as the
+    server reads it): a plain NIfTI-1 or -2 file named ``.nii.gz``."""
+    if path.name.endswith(".gz"):
+        with open(path, "rb") as f:
+            plain = f.read(2) != b"\x1f\x8b"
+        if plain:
+            raw = path.read_bytes()
+            nifti2 = 540 in (int.from_bytes(raw[:4], "little"), int.from_bytes(raw[:4], "big"))
+            return (nib.Nifti2Image if nifti2 else nib.Nifti1Image).from_bytes(raw)
+    return nib.load(str(path))
+
+
 def _volume(path: Path, what: str) -> tuple[NDArray, NDArray[np.float64]]:
     """A 3D NIfTI file's voxels (scaled where the file says) and its affine."""
     try:
-        img = nib.load(str(path))
+        img = _nifti(path)
         data = np.asanyarray(img.dataobj)
     except nib.filebasedimages.ImageFileError as e:
         raise UnsupportedFile(f"{what}: {path.name} is not a NIfTI file nibabel can read ({e})") from None

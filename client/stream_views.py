@@ -163,12 +163,16 @@ def reacquire_text(reacquire: list[dict[str, Any]] | None) -> str:
 
 
 def coverage_text(coverage: dict[str, Any] | None) -> str:
-    """The coverage of the atlas brain in words.
+    """The coverage of the atlas brain in words (none covered: no gaps to count, the whole brain is one).
 
     Example:
         >>> coverage_text({"brain_fraction": 0.834, "gaps": [{"extent_mm": 12.0}]})
         '83% of the brain, 1 gap'
+        >>> coverage_text({"brain_fraction": 0.0, "gaps": []})
+        'none of the brain (no slice accepted)'
     """
     coverage = coverage or {}
     fraction, gaps = coverage.get("brain_fraction"), len(coverage.get("gaps") or [])
+    if fraction is not None and fraction <= 0:
+        return "none of the brain (no slice accepted)"
     return f"{'-' if fraction is None else f'{fraction:.0%}'} of the brain, {gaps} gap{'' if gaps == 1 else 's'}"

@@ -69,6 +69,11 @@ def test_a_file_is_read_with_its_type_and_its_mask_must_share_its_grid(tmp_path:
     for args, what in (((tmp_path / "cut.nii.gz",), "stack"), ((tmp_path / "big.nii.gz", tmp_path / "cut.nii.gz"), "mask")):
         with pytest.raises(UnsupportedFile, match=f"{what}: cut.nii.gz is truncated or corrupt"):
             read_stack(*args)
+    for image_class in (nib.Nifti1Image, nib.Nifti2Image):    # a plain NIfTI named .nii.gz: read, as the server reads it
+        plain = tmp_path / "plain.nii"
+        nib.save(image_class(image, affine), plain)
+        plain.rename(tmp_path / "plain.nii.gz")
+        assert np.array_equal(read_stack(tmp_path / "plain.nii.gz").slices[2].pixels, image[:, 2, :])
 
 
 @pytest.mark.parametrize("axis", [0, 1, 2])
