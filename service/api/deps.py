@@ -106,7 +106,7 @@ def early_rejection(state: State, method: str, path: str, headers: dict[str, str
     return None
 
 
-SLOT_ROUTES = frozenset({("POST", "/v1/predict"), ("POST", "/v1/masks"), ("POST", "/v1/reconstructions")})
+PROCESSING_ROUTES = frozenset({("POST", "/v1/predict"), ("POST", "/v1/masks"), ("POST", "/v1/reconstructions")})
 """The routes that are admitted before their upload is read (:func:`take_admission`) and take a
 processing slot (:func:`processing`) once it is in and valid."""
 

@@ -13,7 +13,7 @@ import weakref
 from starlette.routing import compile_path
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.api.deps import SLOT_ROUTES, early_rejection, take_admission
+from service.api.deps import PROCESSING_ROUTES, early_rejection, take_admission
 from service.api.metrics import Metrics
 from service.api.problems import MEDIA_TYPE, problem_body
 from service.core.errors import InternalError, PayloadTooLarge, RequestTimeout, ServiceError
@@ -67,7 +67,7 @@ class RequestContext:
     * refuses what needs no body -- a missing API key, a full job queue -- before the upload is read
       (:func:`service.api.deps.early_rejection`), and admits a request to a processing route then too
       (:func:`service.api.deps.take_admission`: 503 at once when every admission is taken), held until
-      the request ends (its processing slot is taken once its body is in);
+      the request ends (its processing slot is taken in the route's body, :func:`service.api.deps.processing`);
     * limits the body size: 413 from ``Content-Length`` at once, or as soon as a chunked body passes
       the limit, whatever the form parser makes of the cut-off body;
     * limits the body's time: 408 (and the connection closed) when no data comes for ``idle_s`` or the
@@ -144,7 +144,7 @@ class RequestContext:
             early = InternalError()
         length = headers.get("content-length")
         held = False
-        if early is None and app is not None and (scope["method"], scope["path"]) in SLOT_ROUTES:
+        if early is None and app is not None and (scope["method"], scope["path"]) in PROCESSING_ROUTES:
             early = await take_admission(app.state)      # before its body
             held = early is None and getattr(app.state, "admissions", None) is not None
         try:

@@ -72,8 +72,12 @@ def test_a_file_is_read_with_its_type_and_its_mask_must_share_its_grid(tmp_path:
     for image_class in (nib.Nifti1Image, nib.Nifti2Image):    # a plain NIfTI named .nii.gz: read, as the server reads it
         plain = tmp_path / "plain.nii"
         nib.save(image_class(image, affine), plain)
+        named = read_stack(plain)
         plain.rename(tmp_path / "plain.nii.gz")
-        assert np.array_equal(read_stack(tmp_path / "plain.nii.gz").slices[2].pixels, image[:, 2, :])
+        misnamed = read_stack(tmp_path / "plain.nii.gz")
+        assert np.array_equal(misnamed.slices[2].pixels, image[:, 2, :])
+        for a, b in zip(misnamed.slices, named.slices):           # placed where the file says, as read by its name
+            np.testing.assert_array_equal(a.scanner_from_voxel, b.scanner_from_voxel)
 
 
 @pytest.mark.parametrize("axis", [0, 1, 2])
