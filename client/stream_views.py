@@ -17,6 +17,8 @@ from rich import box
 from rich.console import Console
 from rich.table import Table
 
+from client.views import with_brain
+
 if TYPE_CHECKING:                     # client.stream needs numpy and nibabel: imported by `svrnet stream` only
     from client.stream import Sent
 
@@ -54,8 +56,8 @@ class StreamView:
                     markup=False)
             if name in self.finished and "reacquire" in message:
                 rows = [row for (stack, _), row in self.rows.items() if stack == name]
-                self.console.print(f"stack {name} now: {sum(1 for r in rows if r.get('accepted'))}/{len(rows)} "
-                                   f"accepted · reacquire: {reacquire_text(message['reacquire'])}", markup=False)
+                self.console.print(f"stack {name} now: {accepted_text(rows)} · "
+                                   f"reacquire: {reacquire_text(message['reacquire'])}", markup=False)
         elif kind == "stack":
             self.close_stack(message)
         elif kind == "error":
@@ -74,9 +76,8 @@ class StreamView:
         rows = [row for (stack, _), row in self.rows.items() if stack == name]
         self.console.print(self.table(sorted(rows, key=lambda r: r.get("index", 0)),
                                       f"stack {name}: final poses"))
-        accepted = sum(1 for s in final if s.get("accepted"))
         alone = " (judged alone: the next stack that crosses it can accept its slices)" if message.get("judged_alone") else ""
-        self.console.print(f"stack {name}: {accepted}/{len(final)} accepted{alone} · "
+        self.console.print(f"stack {name}: {accepted_text(final)}{alone} · "
                            f"reacquire: {reacquire_text(message.get('reacquire'))} · "
                            f"coverage {coverage_text(message.get('coverage'))}", markup=False)
 
@@ -160,6 +161,18 @@ def reacquire_text(reacquire: list[dict[str, Any]] | None) -> str:
     for r in reacquire or []:
         by_reason.setdefault(str(r.get("reason")), []).append(f"#{r.get('index')}")
     return "; ".join(f"{reason} {' '.join(indices)}" for reason, indices in by_reason.items()) or "none"
+
+
+def accepted_text(slices: list[dict[str, Any]]) -> str:
+    """How many of a stack's slices with brain are accepted, counted as ``svrnet predict`` counts them
+    (an ``empty`` slice has no pose to accept).
+
+    Example:
+        >>> accepted_text([{"accepted": True}, {"accepted": False, "reason": "empty"}, {"accepted": False}])
+        '1 of 2 slices with brain accepted'
+    """
+    brain = with_brain(slices)
+    return f"{sum(1 for s in brain if s.get('accepted'))} of {len(brain)} slices with brain accepted"
 
 
 def coverage_text(coverage: dict[str, Any] | None) -> str:

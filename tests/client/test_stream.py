@@ -93,7 +93,9 @@ def test_a_scripted_session_shows_poses_updates_errors_and_the_summary(stack_fil
                                     **now}))
                 final = (0, 2) if msg["stack"] == "ax" else (0, 1, 2, 3)
                 ws.send(json.dumps({"type": "stack", "stack": msg["stack"],
-                                    "slices": [pose({"stack": msg["stack"], "index": k}) for k in final],
+                                    "slices": [pose({"stack": msg["stack"], "index": k},
+                                                    **({"accepted": False, "reason": "empty"} if k == 1 and len(final) == 4
+                                                       else {})) for k in final],
                                     "reacquire": [{"index": 3, "reason": "high_expected_error"}] if len(final) < 4
                                     else [], "judged_alone": msg["stack"] == "ax",
                                     "coverage": {"brain_fraction": 0.42, "gaps": [{"extent_mm": 9.0}]}}))
@@ -123,10 +125,10 @@ def test_a_scripted_session_shows_poses_updates_errors_and_the_summary(stack_fil
     text = " ".join(result.output.split())
     assert "error (slice ax #1): 400 Invalid parameter: slice: made up" in text
     assert "✗ high_expected_error" in text and "updated" in text
-    assert ("stack ax: 2/2 accepted (judged alone: the next stack that crosses it can accept its slices) · reacquire: "
+    assert ("stack ax: 2 of 2 slices with brain accepted (judged alone: the next stack that crosses it can accept its slices) · reacquire: "
             "high_expected_error #3 · coverage 42% of the brain, 1 gap") in text
-    assert "stack ax now: 2/3 accepted · reacquire: none" in text and "stack cor now" not in text   # #1 got an error
-    assert "update of stack ax: #2 ✓ 1.5 mm" in text and "stack cor: 4/4 accepted · reacquire: none" in text
+    assert "stack ax now: 2 of 3 slices with brain accepted · reacquire: none" in text and "stack cor now" not in text   # #1 got an error
+    assert "update of stack ax: #2 ✓ 1.5 mm" in text and "stack cor: 3 of 3 slices with brain accepted · reacquire: none" in text
     assert ("session: 2 stack(s), 7 slices · pose latency p50 12 ms, p95 19 ms · "
             "coverage 42% of the brain, 0 gaps") in text
     kinds = [json.loads(line)["type"] for line in out.read_text().splitlines()]

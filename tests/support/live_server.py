@@ -27,24 +27,36 @@ class Server:
     """``svrnet-server`` in its own process group (so whatever it leaves behind can be found)."""
 
     def __init__(self, data_dir: Path, log: Path, **settings: str) -> None:
-        self.port = _free_port()
-        env = {**os.environ, "SVRNET_PORT": str(self.port), "SVRNET_DATA_DIR": str(data_dir),
-               "SVRNET_LOG_LEVEL": "info", "SVRNET_MAX_CONCURRENT": "1"}
-        env.update({f"SVRNET_{k.upper()}": str(v) for k, v in settings.items()})
         self.log = open(log, "ab")  # noqa: SIM115 - closed in stop()
-        self.proc = subprocess.Popen([sys.executable, "-c", "from service.main import run; run()"], cwd=ROOT, env=env,
-                                     stdout=self.log, stderr=subprocess.STDOUT, start_new_session=True)
-        self.url = f"http://127.0.0.1:{self.port}"
+        for _ in range(3):                      # a port taken between its choice and the server's bind: another
+            self.port = _free_port()
+            self.url = f"http://127.0.0.1:{self.port}"
+            env = {**os.environ, "SVRNET_PORT": str(self.port), "SVRNET_DATA_DIR": str(data_dir),
+                   "SVRNET_LOG_LEVEL": "info", "SVRNET_MAX_CONCURRENT": "1"}
+            env.update({f"SVRNET_{k.upper()}": str(v) for k, v in settings.items()})
+            start = log.stat().st_size
+            self.proc = subprocess.Popen([sys.executable, "-c", "from service.main import run; run()"], cwd=ROOT,
+                                         env=env, stdout=self.log, stderr=subprocess.STDOUT, start_new_session=True)
+            if self._ready(log, start):
+                return
+        raise AssertionError(f"the server did not start: {log.read_text()[-3000:]}")
+
+    def _ready(self, log: Path, start: int) -> bool:
+        """Whether this server, and no other process on its port, answers ``/readyz`` (its own log says it
+        listens there); False when it ended (its port was taken)."""
+        listening = f"Uvicorn running on {self.url} "
         deadline = time.time() + 120
         while time.time() < deadline:
-            assert self.proc.poll() is None, log.read_text()[-3000:]
-            try:
-                if httpx.get(f"{self.url}/readyz", timeout=2).status_code == 200:
-                    return
-            except httpx.HTTPError:
-                pass
+            if self.proc.poll() is not None:
+                return False
+            if listening in log.read_bytes()[start:].decode(errors="replace"):
+                try:
+                    if httpx.get(f"{self.url}/readyz", timeout=2).status_code == 200:
+                        return True
+                except httpx.HTTPError:
+                    pass
             time.sleep(0.2)
-        raise AssertionError("the server did not become ready")
+        raise AssertionError(f"the server did not become ready: {log.read_text()[-3000:]}")
 
     def stop(self, sig: int) -> int:
         os.kill(self.proc.pid, sig)
