@@ -47,10 +47,11 @@ from service.inference.model_file import load_model
 from service.jobs.uploaded_poses import expected_errors
 from service.jobs.worker import MIN_ACCEPTED_SHARE, starting_poses
 from service.reconstruction.atlas_frame import atlas_frame, with_frame
-from service.reconstruction.left_out import VolumeReference, place_left_out
+from service.reconstruction.left_out import LeftOutPlacement, VolumeReference, place_left_out
 from service.reconstruction.midline import midline_fit
-from service.reconstruction.never_worse import held_out_score, reconstruct_never_worse
+from service.reconstruction.never_worse import coherence_score, held_out_score, reconstruct_never_worse
 from service.reconstruction.pipeline import ReconstructionConfig, reconstruct
+from service.reconstruction.quality import incoherent
 from service.reconstruction.slices import SliceSet
 
 
@@ -70,6 +71,19 @@ def errors(stacks, prepared, poses, plane_x_mm: float, midline: np.ndarray | Non
     if midline is not None:
         rows.append(twin.twin_min_ed(pose, midline @ true, plane_x_mm))
     return np.stack(rows)
+
+
+def left_out_changes(stacks, prepared, starting: np.ndarray, included: np.ndarray, left_out: LeftOutPlacement,  # noqa: ANN001
+                     plane_x_mm: float) -> str:
+    """Mean twin-min E.D. (mm) from the starting poses to the job's, per group of slices: those in the
+    volume, and the left-out ones by what :func:`~service.reconstruction.left_out.place_left_out` did."""
+    keep = np.concatenate([p.prepared.mask_pixels >= MIN_MASK_PIXELS for p in prepared])
+    before, after = (errors(stacks, prepared, poses, plane_x_mm)[1] for poses in (starting, left_out.poses))
+    out = ~included & ~left_out.moved & ~left_out.registered
+    groups = {"in the volume": included, "left out, moved by motion": left_out.moved & ~left_out.beside_jump,
+              "beside a jump": left_out.beside_jump, "registered": left_out.registered, "left where they were": out}
+    return "; ".join(f"{name} {int(g[keep].sum())}: {before[g[keep]].mean():.2f} -> {after[g[keep]].mean():.2f}"
+                     for name, g in groups.items() if g[keep].any())
 
 
 def network_poses(stacks, prepared, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # noqa: ANN001
@@ -199,8 +213,11 @@ def main() -> None:
                     res = reconstruct_never_worse(ss, args.resolution, args.rounds, config=config, **JOBS[variant])
                     left_out = place_left_out(ss, res.atlas_from_voxel_final, res.included, expected_errors(body),
                                               plane_x_mm=plane, volume=VolumeReference.of(res, inputs),
-                                              starting=None if variant == "job-path-left-out" else ss.atlas_from_voxel)
+                                              starting=None if variant == "job-path-left-out" else ss.atlas_from_voxel,
+                                              register=not incoherent(coherence_score(res)))
                     res = replace(res, atlas_from_voxel_final=left_out.poses)
+                    print("  " + left_out_changes(stacks, prepared, ss.atlas_from_voxel, res.included, left_out, plane),
+                          flush=True)
                 else:
                     res = reconstruct(ss, resolution_mm=args.resolution, svr_iterations=args.rounds, config=config)
                 seconds[name].append(time.perf_counter() - t)

@@ -127,9 +127,9 @@ def requests(prepared: list, parts: list, alone: bool) -> list[tuple[list, list]
     return [([p], [e]) for p, e in zip(prepared, parts)] if alone else [(prepared, parts)]
 
 
-def run(info, cases: list, variant: str, alone: bool = False) -> str:  # noqa: ANN001
+def run(info, cases: list, variant: str, alone: bool = False, by_signal: bool = False) -> str:  # noqa: ANN001
     """One variant over every cached acquisition (``alone``: each stack sent on its own): a line per
-    motion level."""
+    motion level (``by_signal``: and one each for the slices that lost their signal and the others)."""
     saved = overridden(variant)
     columns: dict[str, dict[str, list]] = defaultdict(lambda: defaultdict(list))
     start = time.perf_counter()
@@ -148,17 +148,26 @@ def run(info, cases: list, variant: str, alone: bool = False) -> str:  # noqa: A
                                                    for p, k in zip(predictions, keep)]))
             col["expected"].append(np.concatenate([np.full(k.sum(), np.nan) if p.poses.expected_error_mm is None
                                                    else p.poses.expected_error_mm[k] for p, k in zip(predictions, keep)]))
+            col["lost"].append(np.concatenate([p.prepared.signal_lost[k] for p, k in zip(predictions, keep)]))
     finally:
         for target, name, value in saved:
             setattr(target, name, value)
     lines = [f"{variant}  ({time.perf_counter() - start:.0f} s)"]
     for level, col in columns.items():
-        e, t, f, a, x = (np.concatenate(col[k]) for k in ("ed", "twin_min", "frame_free", "accepted", "expected"))
-        shares, known = rates({"ed": e, "ed_min": t}, a), np.isfinite(x)
-        ratio = rms(e[known]) / rms(x[known]) if known.any() else np.nan
-        lines.append(f"  {level:12s} E.D. {e.mean():.2f} / twin-min {t.mean():.2f} mm, frame-free median {np.median(f):.2f} mm;"
-                     f" accepted: {share(shares['good_accepted'])} of < 5 mm, {share(shares['bad_accepted'])} of > 10 mm"
-                     f" ({shares['bad_slices']} slices); RMS E.D. / RMS expected {ratio:.2f}")
+        lost = np.concatenate(col["lost"])
+        groups = {"": np.ones(len(lost), bool)}
+        if by_signal:
+            groups.update({"  signal lost": lost, "  the others": ~lost})
+        for label, rows in groups.items():
+            e, t, f, a, x = (np.concatenate(col[k])[rows] for k in ("ed", "twin_min", "frame_free", "accepted", "expected"))
+            if not len(e):
+                continue
+            shares, known = rates({"ed": e, "ed_min": t}, a), np.isfinite(x)
+            ratio = rms(e[known]) / rms(x[known]) if known.any() else np.nan
+            lines.append(f"  {level + label:24s} E.D. {e.mean():.2f} / twin-min {t.mean():.2f} mm, frame-free median "
+                         f"{np.median(f):.2f} mm; accepted: {share(shares['good_accepted'])} of < 5 mm, "
+                         f"{share(shares['bad_accepted'])} of > 10 mm ({shares['bad_slices']} slices, {len(e)} in all);"
+                         f" RMS E.D. / RMS expected {ratio:.2f}")
     return "\n".join(lines)
 
 
@@ -197,6 +206,8 @@ def main() -> None:
     ap.add_argument("--last-to-first", action="store_true",
                     help="each stack stored with its slices the other way (the same draws): its interleaved order runs downwards")
     ap.add_argument("--alone", action="store_true", help="each stack sent on its own, not with its acquisition's others")
+    ap.add_argument("--by-signal", action="store_true",
+                    help="also a line each for the slices that lost their signal and for the others")
     ap.add_argument("--columns", type=Path, help="write every slice's columns here (.npz) for calibrate-acceptance --columns")
     ap.add_argument("--source", type=Path, action="append", default=[],
                     help="simulate from this volume (atlas space: a job's reconstruction) instead of the atlas brains")
@@ -214,7 +225,7 @@ def main() -> None:
     if args.columns:
         write_columns(info, cases, args.columns)
     for variant in args.variants:
-        print(run(info, cases, variant, args.alone), flush=True)
+        print(run(info, cases, variant, args.alone, args.by_signal), flush=True)
 
 
 if __name__ == "__main__":

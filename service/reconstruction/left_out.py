@@ -25,7 +25,9 @@ above the slice's own so far (:data:`NCC_GAIN`), over a move beyond the registra
 (:data:`MIN_MOVE_MM`) (:func:`register_left_out`). Several starts, because from a start beyond the
 registration's reach a slice settles in a poorer optimum (lower NCC) than from the right side of a
 jump; large sections only, because a cap of the brain fits the volume about as well at poses
-centimetres apart.
+centimetres apart. A volume that is no coherent brain (its stacks do not predict each other,
+:func:`~service.reconstruction.quality.incoherent`) places no slice: a slice's best fit to it says
+nothing of where the slice belongs, and takes it further off.
 
 Example (a rigid stack of 12 slices, the volume placed 10 of them; the two others start 6 mm off
 and take the stack's pose):
@@ -168,7 +170,8 @@ class VolumeReference:
 
 def place_left_out(slices: SliceSet, refined: ArrayLike, placed: ArrayLike, expected_error_mm: ArrayLike, *,
                    plane_x_mm: float | None, orders: Sequence[SliceOrder] | None = None,
-                   volume: VolumeReference | None = None, starting: ArrayLike | None = None) -> LeftOutPlacement:
+                   volume: VolumeReference | None = None, starting: ArrayLike | None = None,
+                   register: bool = True) -> LeftOutPlacement:
     """Move the left-out slices that their stack's motion places (module docstring).
 
     Args:
@@ -184,6 +187,9 @@ def place_left_out(slices: SliceSet, refined: ArrayLike, placed: ArrayLike, expe
             the poses ``expected_error_mm`` is of (None: from ``refined``). A path that registered a
             slice and then left it out of its volume leaves it where nothing vouches for it (on a
             whole-uterus scene, 9.3 -> 22.9 mm).
+        register: register the left-out slices to ``volume``; False where the volume is no coherent
+            brain (:func:`~service.reconstruction.quality.incoherent`): a slice's best fit to it says
+            nothing of where the slice belongs (``volume`` then only measures the NCC).
     """
     poses = np.array(refined, dtype=np.float64)
     inside = np.asarray(placed, bool)
@@ -209,7 +215,7 @@ def place_left_out(slices: SliceSet, refined: ArrayLike, placed: ArrayLike, expe
         poses[k] = poses[j]
         jumped[k] = True
     registered = np.zeros(len(poses), bool)
-    if volume is not None:
+    if volume is not None and register:
         registered = register_left_out(volume, poses, fit.motion_poses, inside, left_out, slices.stack_index,
                                        fit.times)
     return LeftOutPlacement(poses, (moved | jumped) & ~registered, jumped & ~registered, registered,

@@ -179,6 +179,13 @@ def test_left_out_slices_are_registered_to_the_volume_and_caps_stay(imaged) -> N
     motion_only = place_left_out(every, refined, ~out, expected, plane_x_mm=None, orders=SEQUENTIAL)
     np.testing.assert_array_equal(placed.poses[cap], motion_only.poses[cap])
     assert not motion_only.registered.any()
+    # A volume the job found incoherent places nothing: the slices keep the motion's poses, their
+    # NCC with the volume still measured.
+    unjudged = place_left_out(every, refined, ~out, expected, plane_x_mm=None, orders=SEQUENTIAL, volume=volume,
+                              register=False)
+    assert not unjudged.registered.any()
+    np.testing.assert_array_equal(unjudged.poses, motion_only.poses)
+    assert np.isfinite(unjudged.ncc[big]).all() and np.isnan(motion_only.ncc).all()
 
 
 def test_a_slice_that_fits_the_volume_nowhere_keeps_its_pose(imaged) -> None:  # noqa: ANN001
