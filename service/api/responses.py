@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from service.consistency.image_refinement import agreed
 from service.consistency.stage import StackPoses
 from service.core.errors import ServiceError
 from service.geometry import anchors
@@ -89,7 +90,7 @@ def stack_report(out: StackPoses | None) -> dict | None:
     report["image_consistency"] = None if ic is None else {
         "stacks": ic.stacks, "pairs": ic.pairs, "slices_refined": ic.slices_refined,
         "median_move_mm": ic.median_move_mm, "mismatch_before": _finite(ic.mismatch_before),
-        "mismatch_after": _finite(ic.mismatch_after),
+        "mismatch_after": _finite(ic.mismatch_after), "agreed": agreed(ic.mismatch_after),
     }
     return report
 

@@ -8,6 +8,8 @@ from typing import Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
+from service.consistency.image_refinement import AGREED_MISMATCH
+
 Vec3 = list[float]
 Mat = list[list[float]]
 
@@ -60,6 +62,9 @@ class ImageConsistency(BaseModel):
     mismatch_before: Optional[float] = Field(None, description="mean squared image difference along the crossings "
                                                                "(noise units), at the stage's poses")
     mismatch_after: Optional[float] = Field(None, description="the same at the refined poses")
+    agreed: Optional[bool] = Field(None, description=f"whether mismatch_after is at most {AGREED_MISMATCH:g}: the "
+                                                     "refinement brought the slices into agreement (false: the "
+                                                     "stage's expected errors stand)")
 
 
 class StackConsistency(BaseModel):

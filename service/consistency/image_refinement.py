@@ -69,6 +69,13 @@ SPREAD_GAIN = 2.0
 (:func:`laplace_spread_mm`). The spread understates the error (neighbouring points of a line are
 correlated, the noise scale is nominal): RMS E.D. / RMS spread is 1.9-2.4 on simulated acquisitions
 (docs/consistency.md)."""
+AGREED_MISMATCH = 1.5
+"""The image term per weighted point (the squared intensity difference in units of ``noise``) at or
+under which a refinement has brought its slices into agreement where they cross. Above it the slices
+still disagree after the refinement, and the stage's expected errors stand: each slice's remaining
+mismatch over the request's median then ranks the slices but no longer says how well they are
+placed (a run of slices whose brain lost its signal bends its stack-mates beyond what the images
+can bring back; docs/reports/consistency-experiments.md)."""
 UNCHECKED_GAIN = 1.9
 """A slice on no line (the brain's caps): this times the stage's expected E.D. (the stage
 under-states them, and the rest of their stack moved)."""
@@ -269,6 +276,17 @@ def relative_mismatch(mismatch: list[NDArray]) -> list[NDArray[np.float64]]:
     ref = float(np.nanmedian(every)) if np.isfinite(every).any() else np.nan
     return [np.maximum(np.asarray(m, np.float64), 0.0) / max(ref, 1e-12) if np.isfinite(ref)
             else np.full(len(m), np.nan) for m in mismatch]
+
+
+def agreed(mismatch_after: float) -> bool:
+    """Whether a refinement whose image term per weighted point ended at ``mismatch_after`` brought
+    its slices into agreement (:data:`AGREED_MISMATCH`; NaN: no points, nothing agreed).
+
+    Example:
+        >>> agreed(0.2), agreed(2.4), agreed(float("nan"))
+        (True, False, False)
+    """
+    return bool(mismatch_after <= AGREED_MISMATCH)
 
 
 def expected_after(expected_error_mm: list[NDArray], relative: list[NDArray],

@@ -24,7 +24,7 @@ from itertools import pairwise
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from service.consistency.image_refinement import expected_after, refine, relative_mismatch, smooth_ahead
+from service.consistency.image_refinement import agreed, expected_after, refine, relative_mismatch, smooth_ahead
 from service.consistency.slice_images import SampledStack, StackImages
 from service.consistency.slice_order import FROM_FILE, SliceOrder, per_stack
 from service.consistency.stage import (
@@ -272,8 +272,10 @@ def smooth_images_ahead(prepared: list[PreparedStack]) -> list[dict[float, Sampl
 def _refine_stacks(prepared: list[PreparedStack], outs: list[StackPoses], proper: list[np.ndarray],
                    moving: list[int], partners: list[int], smoothed: dict[int, dict] | None = None) -> None:
     """:func:`refine` the stacks ``moving`` (indices into the request) with the stacks ``partners`` as
-    fixed partners; sets the moving stacks' poses, expected errors (with partners: never below the
-    stage's) and ``image_consistency`` (with the :func:`placement_floor_mm` of the stacks refined).
+    fixed partners; sets the moving stacks' poses, expected errors (with partners, or where the
+    refinement left the slices disagreeing, :func:`~service.consistency.image_refinement.agreed`:
+    never below the stage's) and ``image_consistency`` (with the :func:`placement_floor_mm` of the
+    stacks refined).
     ``smoothed``: per stack (request index), :func:`refine`'s store of its smoothed images."""
     which = moving + partners
     images = [stack_images(prepared[i], proper[i] & ~outs[i].inconsistent, fixed=i in partners) for i in which]
@@ -287,7 +289,8 @@ def _refine_stacks(prepared: list[PreparedStack], outs: list[StackPoses], proper
     for j, i in enumerate(moving):
         outs[i].poses = ref.poses[j]
         if outs[i].expected_error_mm is not None:
-            outs[i].expected_error_mm = np.fmax(after[j], expected[j]) if partners else after[j]
+            outs[i].expected_error_mm = (np.fmax(after[j], expected[j]) if partners or not agreed(ref.cost_after)
+                                         else after[j])
         moved = ref.moved_mm[j][images[j].active]
         outs[i].image_consistency = ImageConsistency(len(which), ref.pairs, int(images[j].active.sum()),
                                                      float(np.median(moved)) if len(moved) else 0.0,
