@@ -34,7 +34,7 @@ def _status(server: Server, job_id: str) -> dict:
 def _running_job(server: Server, job_files: tuple[list, dict], **form: str) -> str:
     """A job submitted with its poses (``form`` its fields) and waited for until it runs: its id."""
     files, poses = job_files
-    r = httpx.post(f"{server.url}/v1/reconstructions", files=files + [("poses", ("p.json", json.dumps(poses)))],
+    r = server.post("/v1/reconstructions", files=files + [("poses", ("p.json", json.dumps(poses)))],
                    data={"atlas_frame": "false", **form}, timeout=60)
     assert r.status_code == 202, r.text
     job_id = r.json()["job_id"]
@@ -134,7 +134,7 @@ def test_a_job_worker_killed_mid_job_is_replaced_and_its_job_runs_again_or_fails
     server = Server(tmp_path / "data", log, job_max_attempts=str(attempts))
     data = {"resolution_mm": "1.5", "svr_iterations": "2", "atlas_frame": "false"}
     try:
-        r = httpx.post(f"{server.url}/v1/reconstructions", files=files + [("poses", ("p.json", json.dumps(poses)))],
+        r = server.post("/v1/reconstructions", files=files + [("poses", ("p.json", json.dumps(poses)))],
                        data=data, timeout=60)
         job_id = r.json()["job_id"]
         deadline = time.time() + 60
@@ -151,7 +151,7 @@ def test_a_job_worker_killed_mid_job_is_replaced_and_its_job_runs_again_or_fails
         else:
             assert st["status"] == "failed" and st["error"] == lost_worker(1), st
         assert "a job worker process was lost" in log.read_text()
-        r = httpx.post(f"{server.url}/v1/reconstructions", files=files + [("poses", ("p.json", json.dumps(poses)))],
+        r = server.post("/v1/reconstructions", files=files + [("poses", ("p.json", json.dumps(poses)))],
                        data={**data, "svr_iterations": "0"}, timeout=60)
         assert r.status_code == 202, r.text                          # the new pool takes jobs
         deadline = time.time() + 120
@@ -170,7 +170,7 @@ def test_a_job_past_the_timeout_is_stopped_and_fails_saying_so(tmp_path: Path, j
     files, poses = job_files
     server = Server(tmp_path / "data", tmp_path / "server.log", job_timeout_h=str(4 / 3600))
     try:
-        r = httpx.post(f"{server.url}/v1/reconstructions", files=files + [("poses", ("p.json", json.dumps(poses)))],
+        r = server.post("/v1/reconstructions", files=files + [("poses", ("p.json", json.dumps(poses)))],
                        data={"resolution_mm": "0.8", "svr_iterations": "8", "atlas_frame": "false"}, timeout=60)  # well past 4 s
         job_id = r.json()["job_id"]
         deadline = time.time() + 60
@@ -229,7 +229,7 @@ def test_a_running_job_cancelled_stops_at_once_and_the_next_job_runs(tmp_path: P
         time.sleep(1)
         assert _status(server, job_id)["status"] == "cancelled"
         assert not (tmp_path / "data" / "jobs" / job_id).exists()          # nothing written after the cancel
-        r = httpx.post(f"{server.url}/v1/reconstructions", files=upload,
+        r = server.post("/v1/reconstructions", files=upload,
                        data={"resolution_mm": "1.5", "svr_iterations": "0", "atlas_frame": "false"}, timeout=60)
         deadline = time.time() + 120
         while (st := _status(server, r.json()["job_id"]))["status"] not in ("succeeded", "failed", "cancelled"):

@@ -28,11 +28,13 @@ class Server:
 
     def __init__(self, data_dir: Path, log: Path, **settings: str) -> None:
         self.log = open(log, "ab")  # noqa: SIM115 - closed in stop()
+        self.log_path = log
         for _ in range(3):                      # a port taken between its choice and the server's bind: another
             self.port = _free_port()
             self.url = f"http://127.0.0.1:{self.port}"
             env = {**os.environ, "SVRNET_PORT": str(self.port), "SVRNET_DATA_DIR": str(data_dir),
-                   "SVRNET_LOG_LEVEL": "info", "SVRNET_MAX_CONCURRENT": "1"}
+                   "SVRNET_LOG_LEVEL": "info", "SVRNET_MAX_CONCURRENT": "1",
+                   "PYTHONFAULTHANDLER": "1"}                 # a crash of native code leaves its traceback
             env.update({f"SVRNET_{k.upper()}": str(v) for k, v in settings.items()})
             start = log.stat().st_size
             self.proc = subprocess.Popen([sys.executable, "-c", "from service.main import run; run()"], cwd=ROOT,
@@ -57,6 +59,19 @@ class Server:
                     pass
             time.sleep(0.2)
         raise AssertionError(f"the server did not become ready: {log.read_text()[-3000:]}")
+
+    def post(self, path: str, **kwargs: object) -> httpx.Response:
+        """``httpx.post`` to this server; a connection it drops says what was there to answer: whether
+        the server still runs, who listens on its port, and its log's end."""
+        try:
+            return httpx.post(f"{self.url}{path}", **kwargs)  # type: ignore[arg-type]
+        except httpx.TransportError as exc:
+            import psutil
+
+            listening = [(c.pid, c.laddr) for c in psutil.net_connections("tcp")
+                         if c.laddr and c.laddr.port == self.port and c.status == psutil.CONN_LISTEN]
+            raise AssertionError(f"{exc!r}; server exit code {self.proc.poll()}, pid {self.proc.pid}; listening on "
+                                 f"port {self.port}: {listening}; log: {self.log_path.read_text()[-3000:]}") from exc
 
     def stop(self, sig: int) -> int:
         os.kill(self.proc.pid, sig)
