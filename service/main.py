@@ -171,7 +171,7 @@ def run(argv: list[str] | None = None) -> None:
 
     Server(uvicorn.Config(app, host=settings.host, port=settings.port,
                           log_level=service_logging.server_log_level(settings.log_level),
-                          log_config=service_logging.server_log_config(settings.log_level),
+                          log_config=service_logging.server_log_config(settings.log_level, (stream.STREAM_PATH,)),
                           access_log=False, http=with_header_deadline(settings.header_timeout_s),
                           ws_ping_interval=settings.stream_ping_interval_s, ws_ping_timeout=settings.stream_ping_timeout_s,
                           ws_max_size=stream.largest_frame_bytes(settings.stream_max_pixels),

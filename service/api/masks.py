@@ -14,7 +14,7 @@ from fastapi import APIRouter, Depends, File, Form, Request, Response, UploadFil
 from service.api.deps import ApiKey, LocalisersDep, SettingsDep, processing
 from service.api.schemas import UPLOAD_ERRORS
 from service.api.uploads import check_form, known_fields, upload_directory, upload_reader
-from service.core.names import unique_stems
+from service.core.names import MAX_NAME, unique_stems
 from service.io.nifti_header import copy_transforms
 from service.io.volume import Volume, write_volume
 from service.preprocess.localisation import Localisation, grown
@@ -23,6 +23,9 @@ from service.preprocess.localise import Localiser
 router = APIRouter(prefix="/v1", tags=["masks"], dependencies=[ApiKey])
 
 
+MASK_SUFFIX = "_mask.nii.gz"
+"""Each mask's name in the archive: its stack's stem and this (the whole within :data:`MAX_NAME`, a
+file system's limit)."""
 MAX_MARGIN_MM = 20.0
 MARGIN_HELP = ("grow each mask outward by this many mm (Euclidean, on the stack's voxel sizes): the localiser's "
                "masks are the skull's inside; 2-4 mm reaches masks drawn to the skull's outer edge")
@@ -35,17 +38,18 @@ def masks_archive(uploads: list, localiser: Localiser, directory: Path, margin_m
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
         located = localiser.localise_many([u.volume for u in uploads])
-        for upload, stem, found in zip(uploads, unique_stems([u.filename for u in uploads]), located):
+        stems = unique_stems([u.filename for u in uploads], MAX_NAME - len(MASK_SUFFIX))
+        for k, (upload, stem, found) in enumerate(zip(uploads, stems, located)):
             if margin_mm > 0 and found.mask.any():
                 found = Localisation.of(grown(found.mask, upload.volume.spacing, margin_mm), upload.volume.spacing,
                                         found.method, found.confidence, found.holds_csf)
-            path = directory / f"{stem}_mask.nii.gz"
+            path, member = directory / f"mask{k}.nii.gz", f"{stem}{MASK_SUFFIX}"   # no client name on disk
             write_volume(Volume(found.mask.astype("uint8"), upload.volume.affine), path)
             if upload.volume.nifti is not None:          # the upload's own transforms: overlays in any viewer
                 copy_transforms(path, upload.volume.nifti)
-            archive.write(path, path.name)
+            archive.write(path, member)
             path.unlink()
-            report.append({"filename": upload.filename, "mask": path.name, **found.report(),
+            report.append({"filename": upload.filename, "mask": member, **found.report(),
                            "slices_with_brain": found.slices_with_brain, "margin_mm": margin_mm})
         archive.writestr("report.json", json.dumps({"localiser": {"version": localiser.version,
                                                                   "sha256": localiser.sha256},

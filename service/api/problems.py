@@ -17,10 +17,12 @@ from fastapi.responses import JSONResponse, Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.api.openapi import allowed_methods
-from service.core.errors import InsufficientStorage, InvalidParameter, MalformedRequest, ServiceError
+from service.core.errors import InsufficientStorage, InvalidParameter, MalformedRequest, PayloadTooLarge, ServiceError
 from service.io.limits import raise_if_out_of_space
 
 MEDIA_TYPE = "application/problem+json"
+FIELD_LIMIT_KB = 1024
+"""The form parser's limit on a part sent as a plain value, not a file (Starlette's ``max_part_size``)."""
 
 
 def problem_body(status: int, title: str, detail: str, type_: str = "about:blank",
@@ -117,6 +119,10 @@ def install(app: FastAPI) -> None:
                 raise_if_out_of_space(exc.__cause__)
             except InsufficientStorage as full:
                 return await service_error(request, full)
+            if "Part exceeded maximum size" in str(exc.detail):
+                return await service_error(request, PayloadTooLarge(
+                    f"a form field sent as a plain value is over {FIELD_LIMIT_KB} KB: send a large field (poses) as "
+                    "a file part (curl: -F poses=@poses.json)"))
             return await service_error(request, MalformedRequest(f"the request body could not be parsed "
                                                                  f"({str(exc.detail).rstrip('.')})"))
         return problem(exc.status_code, str(exc.detail) if exc.status_code < 500 else "Server error",

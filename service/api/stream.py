@@ -50,6 +50,8 @@ from service.streaming.options import SessionOptions, StreamLimits
 from service.streaming.session import StreamSession
 
 router = APIRouter()
+STREAM_PATH = "/v1/stream"
+"""The stream's route (the server's log names it on each handshake, never the path a client sent)."""
 T = TypeVar("T")
 log = logging.getLogger(__name__)
 
@@ -381,7 +383,7 @@ def sessions_full(state: State) -> Saturated | None:
     return None
 
 
-@router.websocket("/v1/stream")
+@router.websocket(STREAM_PATH)
 async def stream(ws: WebSocket) -> None:
     """Stream v1: one session per connection (see the module)."""
     await ws.accept()

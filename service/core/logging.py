@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import sys
 import time
 import warnings
@@ -86,6 +87,30 @@ def configure(level: str = "info") -> None:
         logging.getLogger(name).setLevel(floor)
     for module in QUIET_WARNINGS:
         warnings.filterwarnings("ignore", module=rf"{module}(\.|$)")
+    logging.captureWarnings(True)                  # the rest as JSON lines: their kind and place, not their text
+    captured = logging.getLogger("py.warnings")
+    captured.handlers[:] = [handler]
+    captured.propagate = False
+    captured.filters[:] = [WarningPlace()]
+
+
+class WarningPlace(logging.Filter):
+    r"""A Python warning (``logging.captureWarnings``) logged by its category and the code that
+    warned, never its text (which may quote a value: an overflow in a client's numbers, a field).
+
+    Example:
+        >>> record = logging.LogRecord("py.warnings", 30, "", 0, "/x/numpy/core/_methods.py:49: RuntimeWarning: "
+        ...                            "overflow encountered in multiply (Doe)\n  return umr(a)\n", (), None)
+        >>> WarningPlace().filter(record), record.getMessage(), record.error_type, record.error_at
+        (True, 'a library warned', 'RuntimeWarning', '_methods.py:49')
+    """
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        found = re.match(r"(.*?):(\d+): (\w+): ", str(record.msg))
+        record.msg, record.args = "a library warned", ()
+        record.error_type = found.group(3) if found else "Warning"
+        record.error_at = f"{found.group(1).replace(chr(92), '/').rsplit('/', 1)[-1]}:{found.group(2)}" if found else ""
+        return True
 
 
 def server_log_level(level: str) -> str:
@@ -99,10 +124,35 @@ def server_log_level(level: str) -> str:
     return "info" if level.lower() in ("debug", "trace") else level.lower()
 
 
-def server_log_config(level: str) -> dict:
+class HandshakePaths(logging.Filter):
+    """Rewrites uvicorn's line on each WebSocket handshake (``'%s - "WebSocket %s" ...'``, the path
+    with its query string as the client sent it) to name a known route (``paths``) or
+    ``(another path)``, the query string dropped: a client may put a patient's name or a key there.
+
+    Example:
+        >>> record = logging.LogRecord("uvicorn.error", 20, "", 0, '%s - "WebSocket %s" %d',
+        ...                            ("1.2.3.4:5", "/v1/stream/Doe_Jane?key=k", 403), None)
+        >>> HandshakePaths(["/v1/stream"]).filter(record), record.getMessage()
+        (True, '- - "WebSocket (another path)" 403')
+    """
+
+    def __init__(self, paths: list[str] | tuple[str, ...] = ()) -> None:
+        super().__init__()
+        self.paths = frozenset(paths)
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if isinstance(record.msg, str) and record.msg.startswith('%s - "WebSocket %s"') and len(record.args or ()) >= 2:
+            path = str(record.args[1]).split("?", 1)[0]
+            record.args = ("-", path if path in self.paths else "(another path)", *record.args[2:])
+        return True
+
+
+def server_log_config(level: str, websocket_paths: tuple[str, ...] = ()) -> dict:
     """uvicorn's ``log_config``: its own loggers write the same JSON lines as the service's (a
     startup line, a refused request, an error in the server) at :func:`server_log_level`, an
-    exception by its type and place only, so that stderr holds one format and no traceback.
+    exception by its type and place only, so that stderr holds one format and no traceback; its
+    WebSocket handshake lines name the route (one of ``websocket_paths``), never the path or query
+    string sent, nor the client's address (:class:`HandshakePaths`).
 
     Example:
         >>> config = server_log_config("debug")
@@ -111,6 +161,8 @@ def server_log_config(level: str) -> dict:
     """
     return {"version": 1, "disable_existing_loggers": False,
             "formatters": {"json": {"()": JsonFormatter}},
-            "handlers": {"stderr": {"class": "logging.StreamHandler", "formatter": "json", "stream": "ext://sys.stderr"}},
+            "filters": {"handshakes": {"()": HandshakePaths, "paths": list(websocket_paths)}},
+            "handlers": {"stderr": {"class": "logging.StreamHandler", "formatter": "json", "stream": "ext://sys.stderr",
+                                    "filters": ["handshakes"]}},
             "loggers": {name: {"handlers": ["stderr"], "level": server_log_level(level).upper(), "propagate": False}
                         for name in ("uvicorn", "uvicorn.error", "uvicorn.access")}}

@@ -43,13 +43,15 @@ def has_unsafe_characters(name: str) -> bool:
     return any(unicodedata.category(c) in UNSAFE_CATEGORIES for c in name)
 
 
-def unique_stems(names: list[str]) -> list[str]:
-    """File-system-safe stems of upload names (extensions dropped, only ``[A-Za-z0-9._-]``), made
-    unique with ``-1``, ``-2`` ... in order.
+def unique_stems(names: list[str], max_length: int | None = None) -> list[str]:
+    """File-system-safe stems of upload names (extensions dropped, only ``[A-Za-z0-9._-]``, at most
+    ``max_length`` characters), made unique with ``-1``, ``-2`` ... in order.
 
     Example:
         >>> unique_stems(["axial.nii.gz", "axial.nii", "../x y.mha", "stacks[3]"])
         ['axial', 'axial-1', 'x_y', 'stacks_3']
+        >>> unique_stems(["abcdef.nii", "abcdeg.nii"], max_length=4)
+        ['abcd', 'ab-1']
     """
     out: list[str] = []
     for name in names:
@@ -58,11 +60,11 @@ def unique_stems(names: list[str]) -> list[str]:
             if base.lower().endswith(suffix):
                 base = base[: -len(suffix)]
                 break
-        stem = re.sub(r"[^A-Za-z0-9._-]+", "_", base).strip("._") or "stack"
+        stem = (re.sub(r"[^A-Za-z0-9._-]+", "_", base).strip("._") or "stack")[:max_length]
         candidate, k = stem, 0
         while candidate in out:
             k += 1
-            candidate = f"{stem}-{k}"
+            candidate = f"{stem[:None if max_length is None else max_length - len(str(k)) - 1]}-{k}"
         out.append(candidate)
     return out
 

@@ -36,7 +36,7 @@ from service.io.acquisition_times import order_of, seconds
 from service.io.dicom import read_dicom_file
 from service.io.dicom_guard import load_dataset
 from service.io.limits import FileBudget, raise_if_out_of_space
-from service.io.volume import Volume, from_sitk
+from service.io.volume import SITK_FILES, Volume, from_sitk
 
 MAX_MEMBERS = 5000
 MAX_DIRECTORY_BYTES = 16 * 2**20
@@ -91,12 +91,14 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path 
             raise UnsupportedFile(f"{filename}: a ZIP archive with encrypted members or an unsupported "
                                   "compression method") from exc
         reader = sitk.ImageSeriesReader()
-        series = reader.GetGDCMSeriesIDs(tmp) if labels else ()
+        with SITK_FILES:
+            series = reader.GetGDCMSeriesIDs(tmp) if labels else ()
         if not series:
             raise UnsupportedFile(f"{filename}: the ZIP archive holds no DICOM series")
         if len(series) > 1:
             raise UnusableImage(f"{filename}: the ZIP archive holds {len(series)} DICOM series; upload one per file")
-        files = reader.GetGDCMSeriesFileNames(tmp, series[0])
+        with SITK_FILES:
+            files = reader.GetGDCMSeriesFileNames(tmp, series[0])
         if len(files) == 1:
             return read_dicom_file(Path(files[0]), labels.get(files[0], filename), budget)
         if (problem := series_problem([tags[f] for f in files])) is not None:
@@ -105,7 +107,9 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path 
             _check_size(f, sizes[f], labels.get(f, filename))
         reader.SetFileNames(files)
         reader.SetOutputPixelType(sitk.sitkFloat32)   # each file's own rescale kept: else the first file's type
-        return replace(from_sitk(reader.Execute()), acquisition_order=order_of([times.get(f) for f in files]),
+        with SITK_FILES:
+            image = reader.Execute()
+        return replace(from_sitk(image), acquisition_order=order_of([times.get(f) for f in files]),
                        slice_thickness_mm=stated_thickness([thicknesses.get(f) for f in files]))
 
 
@@ -117,7 +121,8 @@ def _check_size(path: str, size: tuple[int, ...], label: str) -> None:
     info = sitk.ImageFileReader()
     info.SetImageIO("GDCMImageIO")
     info.SetFileName(path)
-    info.ReadImageInformation()
+    with SITK_FILES:
+        info.ReadImageInformation()
     found = info.GetSize()
     if tuple(found[:2]) != size[:2] or int(np.prod(found[2:], dtype=np.int64)) != size[2]:
         raise UnsupportedFile(f"{label}: a DICOM header that states the image size twice, differently")

@@ -36,8 +36,9 @@ LAYOUTS = {348: dict(dim=40, pixdim=76, qform_code=252, sform_code=254, quatern=
                      code="i2"),
            540: dict(dim=16, pixdim=104, qform_code=344, sform_code=348, quatern=352, srow=400, d="i8", f="f8",
                      code="i4")}
-MAX_SHEAR_COS = 1e-3
-"""Axes of the sform further from right angles than this (cosine; 0.06 deg) are a sheared grid."""
+MAX_SHEAR_COS = frames.MAX_SHEAR_COS
+"""Axes of the sform further from right angles than this are a sheared grid (one tolerance with what
+the service can write back: :func:`~service.geometry.frames.itk_from_affine`)."""
 
 
 @dataclass(frozen=True)

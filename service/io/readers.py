@@ -40,7 +40,7 @@ from service.io.headers import clean_header, declared_values, geometry_problem
 from service.io.limits import DecodeBudget, FileBudget, raise_if_out_of_space
 from service.io.nifti_header import (MAX_SHEAR_COS, NiftiTransforms, missing_voxel_size, orientation_problem,
                                      qform_problem, read_transforms, sform_problem)
-from service.io.volume import Volume, from_sitk, magnitude, placed_by_header
+from service.io.volume import SITK_FILES, Volume, from_sitk, magnitude, placed_by_header
 
 SUFFIX_BY_KIND = {"nifti": ".nii", "nifti-gz": ".nii.gz", "nrrd": ".nrrd", "mha": ".mha"}
 MAX_DECODED_BYTES = 128 * 2**20
@@ -131,7 +131,9 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
                     vol = _read_nifti2(named, filename, budget, transforms)
                 else:
                     budget.voxels(_declared_values(named, kind) if header is None else declared_values(header, kind, filename))
-                    vol = placed_by_header(from_sitk(_squeeze_4d(_reader(named, kind).Execute(), filename)), transforms)
+                    with SITK_FILES:
+                        image = _reader(named, kind).Execute()
+                    vol = placed_by_header(from_sitk(_squeeze_4d(image, filename)), transforms)
                     if header is not None and (problem := geometry_problem(header, kind)) is not None:
                         raise UnusableImage(f"{filename}: {problem}")      # what the reader made up
         elif kind in ("dicom", "zip"):
@@ -195,7 +197,8 @@ def _reader(path: Path, kind: str) -> sitk.ImageFileReader:
 def _declared_values(path: Path, kind: str) -> int:
     """Voxel values the header declares (read without decoding any voxels)."""
     reader = _reader(path, kind)
-    reader.ReadImageInformation()
+    with SITK_FILES:
+        reader.ReadImageInformation()
     return int(np.prod(reader.GetSize(), dtype=np.float64) * reader.GetNumberOfComponents())
 
 

@@ -18,6 +18,7 @@ Example:
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -30,6 +31,13 @@ from service.io.nifti_header import NiftiTransforms, read_transforms, sform_affi
 
 if TYPE_CHECKING:
     import SimpleITK as sitk
+
+SITK_FILES = threading.Lock()
+"""Held by every read and write of a file through SimpleITK (its image readers and writers, GDCM's
+series lookups): two run at once in one process can crash it inside ITK (a server reading two
+uploads at once died of a segmentation fault there). The files are small and already decoded
+(gzip is inflated before, :mod:`service.io.readers`), so the lock costs little; arrays and filters
+need no lock."""
 
 
 @dataclass
@@ -130,7 +138,9 @@ def read_volume(path: str | Path) -> Volume:
     (:mod:`service.io.nifti_header`; the service's own files, the atlases)."""
     import SimpleITK as sitk
     nifti = read_transforms(Path(path)) if str(path).endswith((".nii", ".nii.gz")) else None
-    return placed_by_header(from_sitk(sitk.ReadImage(str(path))), nifti)
+    with SITK_FILES:
+        image = sitk.ReadImage(str(path))
+    return placed_by_header(from_sitk(image), nifti)
 
 
 def placed_by_header(volume: Volume, nifti: NiftiTransforms | None) -> Volume:
@@ -146,4 +156,6 @@ def placed_by_header(volume: Volume, nifti: NiftiTransforms | None) -> Volume:
 def write_volume(volume: Volume, path: str | Path) -> None:
     """Write a :class:`Volume`; the format follows the file name (``.nii.gz``, ``.nrrd``, ``.mha``)."""
     import SimpleITK as sitk
-    sitk.WriteImage(to_sitk(volume), str(path), useCompression=True)
+    image = to_sitk(volume)
+    with SITK_FILES:
+        sitk.WriteImage(image, str(path), useCompression=True)

@@ -142,3 +142,25 @@ def test_masks_of_a_nifti_upload_carry_its_transforms(real_client: TestClient, u
     for get in ("get_best_affine", "get_qform", "get_sform"):
         np.testing.assert_allclose(getattr(mask.header, get)(), getattr(stack.header, get)(), atol=1e-4)
     assert (int(mask.header["sform_code"]), int(mask.header["qform_code"])) == (2, 1)
+
+
+def test_a_nearly_square_grid_and_a_long_file_name_get_their_mask(real_client: TestClient, uterus_files,
+                                                                    tmp_path: Path) -> None:
+    """A stack whose sform axes lie 0.03 deg off right angles (within what a file may hold) gets its
+    mask with its own sform, where writing it failed (a 500); a file name of 255 characters gets a
+    mask named within 255, and nothing on disk is named after it."""
+    nib = pytest.importorskip("nibabel")
+    source = nib.load(str(uterus_files[0]))
+    sheared = source.affine.copy()
+    sheared[:3, 1] += 5e-4 * np.linalg.norm(sheared[:3, 1]) * sheared[:3, 0] / np.linalg.norm(sheared[:3, 0])
+    source.header.set_sform(sheared, code=2)
+    name = "Doe_Jane_19800101_" + "x" * (255 - 18 - 7) + ".nii.gz"
+    path = tmp_path / name
+    nib.save(nib.Nifti1Image(np.asarray(source.dataobj), None, source.header), str(path))
+    r = post_masks(real_client, path)
+    assert r.status_code == 200, r.text
+    archive = zipfile.ZipFile(io.BytesIO(r.content))
+    member = next(n for n in archive.namelist() if n != "report.json")
+    assert member.startswith("Doe_Jane_") and member.endswith("_mask.nii.gz") and len(member) <= 255
+    (tmp_path / "m.nii.gz").write_bytes(archive.read(member))
+    np.testing.assert_allclose(nib.load(str(tmp_path / "m.nii.gz")).header.get_sform(), sheared, atol=1e-4)

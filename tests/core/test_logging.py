@@ -69,3 +69,21 @@ def test_uvicorns_own_lines_are_json_without_tracebacks() -> None:
     assert len(lines) == 1, err
     line = json.loads(lines[0])
     assert line["logger"] == "uvicorn.error" and line["error_type"] == "KeyError" and "jane" not in err
+
+
+def test_websocket_handshake_lines_name_the_route_never_the_path_or_query_sent() -> None:
+    """uvicorn logs each WebSocket handshake with the path and query string as sent: a scanner script
+    may put a patient's name or its key there. The line names the route, or 'another path'."""
+    import subprocess
+    import sys
+
+    code = ("import logging, logging.config\n"
+            "from service.core.logging import server_log_config\n"
+            "logging.config.dictConfig(server_log_config('info', ('/v1/stream',)))\n"
+            "log = logging.getLogger('uvicorn.error')\n"
+            "log.info('%s - \"WebSocket %s\" [accepted]', '10.0.0.7:4242', '/v1/stream?patient=Doe_Jane&api_key=SECRET')\n"
+            "log.info('%s - \"WebSocket %s\" 403', '10.0.0.7:4243', '/v1/stream/Doe_Jane_MRN4711')\n")
+    err = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60).stderr
+    messages = [json.loads(line)["msg"] for line in err.strip().splitlines()]
+    assert messages == ['- - "WebSocket /v1/stream" [accepted]', '- - "WebSocket (another path)" 403'], err
+    assert "Doe" not in err and "SECRET" not in err and "10.0.0.7" not in err
