@@ -58,7 +58,8 @@ def _status(job: Job, workers: int | None = None) -> dict:
 def _job(request: Request, job_id: str) -> Job:
     job = _store(request).get(job_id)
     if job is None:
-        raise NotFound(f"job_id: no job {job_id!r}")
+        shown = job_id if len(job_id) <= 64 else f"{job_id[:32]}... ({len(job_id)} characters)"
+        raise NotFound(f"job_id: no job {shown!r}")
     return job
 
 

@@ -105,6 +105,9 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
     times = report["timings_s"]
     assert times["job"] >= times["all_paths"] >= times["total"] > 0     # the job holds its paths, they the winner
     assert client.get("/v1/reconstructions/unknown").status_code == 404
+    long_id = client.get("/v1/reconstructions/" + "a" * 5000)               # not echoed whole
+    assert long_id.status_code == 404 and "(5000 characters)" in long_id.json()["detail"]
+    assert len(long_id.json()["detail"]) < 200
     # The refined poses, in the /v1/predict schema (a valid `poses` input to a new job).
     assert st["poses_url"] == f"/v1/reconstructions/{job_id}/poses"
     body = client.get(st["poses_url"]).json()
