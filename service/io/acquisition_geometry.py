@@ -176,6 +176,27 @@ def stacking_problem(spacing: Sequence[float], n_slices: int) -> str | None:
             "pixel apart")
 
 
+def slice_axis_problem(spacing: Sequence[float]) -> str | None:
+    """Why a stack file that does not say which axis its slices run along (NIfTI, NRRD, MHA) cannot be
+    cut into slices: two voxel axes share the largest spacing and the third's is smaller, so that
+    its slices lie closer together than its pixels (slices that overlap) and the axis of largest
+    spacing, the slice axis of API v1, is an in-plane one. None if it can.
+
+    Example:
+        >>> slice_axis_problem([1.5, 1.5, 1.2])
+        'two of its voxel axes share the largest spacing (1.5 mm) and the third lies 1.2 mm apart: its slices are closer together than its pixels, so the axis of largest spacing, the slice axis of API v1, is an in-plane one; resample the stack to slices at least a pixel apart'
+        >>> slice_axis_problem([1.2, 1.2, 3.0]), slice_axis_problem([1.0, 1.0, 1.0])
+        (None, None)
+    """
+    sp = np.asarray(spacing, np.float64)
+    largest = sp >= sp.max() * (1 - 1e-6)
+    if largest.sum() != 2:
+        return None
+    return (f"two of its voxel axes share the largest spacing ({sp.max():.3g} mm) and the third lies "
+            f"{sp[~largest][0]:.3g} mm apart: its slices are closer together than its pixels, so the axis of largest "
+            "spacing, the slice axis of API v1, is an in-plane one; resample the stack to slices at least a pixel apart")
+
+
 def stated_thickness(values: Sequence[object]) -> float | None:
     """The slice thickness the files or frames of one stack state (DICOM ``SliceThickness``), when
     every one states the same plausible value (within 1 %, :data:`MIN_VOXEL_MM` to

@@ -79,7 +79,8 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path 
                 if sum(m.file_size for m in members) > budget.limit:
                     raise budget.too_large("the archive inflates")
                 for i, m in enumerate(members):
-                    label = f"{filename}: {clean_name(m.filename) or f'member {i}'}"
+                    base = clean_name(m.filename.replace("\\", "/").rsplit("/", 1)[-1])   # not its folders (a
+                    label = f"{filename}: member {i + 1} of {len(members)}" + (f" ({base})" if base else "")  # patient's)
                     out = Path(tmp) / f"{i:05d}.dcm"
                     if _unpack(z, m, out, budget.member(label), label, times, tags, thicknesses, sizes):
                         labels[str(out)] = label

@@ -33,7 +33,7 @@ from isal import igzip, isal_zlib
 
 from service.core.errors import ServiceError, UnsupportedFile, UnusableImage
 from service.geometry import frames
-from service.io.acquisition_geometry import grid_problem, stacking_problem
+from service.io.acquisition_geometry import grid_problem, slice_axis_problem, stacking_problem
 from service.io.archive import read_dicom_zip
 from service.io.dicom import read_dicom_file
 from service.io.headers import clean_header, declared_values, geometry_problem
@@ -47,6 +47,8 @@ MAX_DECODED_BYTES = 128 * 2**20
 IMAGE_IO = {"nifti": "NiftiImageIO", "nrrd": "NrrdImageIO", "mha": "MetaImageIO"}
 GZIP_ERRORS = (OSError, EOFError, zlib.error, isal_zlib.error)
 """What a truncated, corrupt or non-gzip stream raises while it is inflated."""
+
+sitk.ProcessObject_SetGlobalWarningDisplay(False)   # ITK's warnings reach stderr as plain text naming the file read
 
 
 def sniff(path: Path) -> str:
@@ -324,6 +326,8 @@ def validate(vol: Volume, filename: str) -> Volume:
         raise UnusableImage(f"{filename}: its voxel axes are sheared ({np.degrees(np.arccos(cos)):.2f} deg apart, "
                             "not 90); resample the stack to a grid with axes at right angles")
     if (problem := grid_problem(vol.affine, a.shape)) is not None:
+        raise UnusableImage(f"{filename}: {problem}")
+    if vol.slice_axis is None and (problem := slice_axis_problem(vol.spacing)) is not None:
         raise UnusableImage(f"{filename}: {problem}")
     return replace(vol, array=magnitude(a))
 

@@ -21,8 +21,9 @@ def test_a_dicom_error_names_the_clients_file(oracle_client: TestClient) -> None
 
 def test_a_dicom_error_inside_a_zip_names_the_archive_and_the_member(oracle_client: TestClient) -> None:
     r = post(oracle_client, [("stacks", ("study.zip", corpus.zipped({"series 3/IM0007": BROKEN_DICOM})))])
-    assert_problem(r, 415, "study.zip", "series 3/IM0007")
+    assert_problem(r, 415, "study.zip", "member 1 of 1 (IM0007)")
     assert "00000.dcm" not in r.text and "svrnet-" not in r.text
+    assert "series 3" not in r.text                     # a PACS export's folders name the patient
 
 
 @pytest.mark.parametrize("name", ["scan\u202egpj.nii.gz", "scan\x1b[31m.nii.gz", "scan\u200b\x07.nii.gz"])

@@ -337,6 +337,20 @@ def test_a_series_of_slices_closer_than_its_pixels_is_422_not_cut_along_a_pixel_
         read_upload(_zip_of(tmp_path / "overlap.zip", files), "overlap.zip")
 
 
+@pytest.mark.parametrize("suffix", [".nii.gz", ".nrrd"])
+def test_a_stack_file_of_slices_closer_than_its_pixels_is_422_not_cut_along_a_pixel_axis(tmp_path: Path,
+                                                                                        suffix: str) -> None:
+    """A NIfTI or NRRD stack of 1.5 mm pixels with slices 1.2 mm apart (overlapping): its file does not
+    say which axis is the slices', and the axis of largest spacing would be an in-plane one. Slices
+    as far apart as the pixels are a stack as before."""
+    arr = (np.random.default_rng(9).random((30, 30, 40)) * 1000).astype(np.float32).round()
+    write_volume(Volume(arr, np.diag([1.5, 1.5, 1.2, 1.0])), path := tmp_path / f"overlap{suffix}")
+    with pytest.raises(UnusableImage, match=f"overlap{suffix}: two of its voxel axes share the largest spacing"):
+        read_upload(path, path.name)
+    write_volume(Volume(arr, np.diag([1.5, 1.5, 1.5, 1.0])), cube := tmp_path / f"cube{suffix}")
+    assert read_upload(cube, cube.name).array.shape == (30, 30, 40)
+
+
 def test_a_zipped_series_is_unpacked_into_the_scratch_folder_given(tmp_path: Path, monkeypatch) -> None:
     """The service passes the request's or job's own folder: a process killed mid-read leaves the
     decoded DICOM files (every tag of them) where that request's or job's clean-up removes them."""
