@@ -303,3 +303,18 @@ def test_where_the_files_put_the_scanners_origin_changes_nothing(motion: str) ->
             np.testing.assert_allclose(there.atlas_from_scanner, here.atlas_from_scanner @ moved, atol=1e-6)
             np.testing.assert_allclose(there.centre, here.centre + shift, atol=1e-6)
             np.testing.assert_allclose(there.expected_error_mm, here.expected_error_mm, atol=1e-6)
+
+
+def test_a_stack_near_the_midline_agrees_with_the_request_where_its_twin_lies_a_little_further() -> None:
+    """A sagittal stack whose twin placement is close to its own (the shared real scan's: 14 mm from the
+    request on its branch, 18.5 mm on its twin) agrees with the request, as it does with its own
+    margin over 1.5; its twin no further than its branch does not; beyond 15 mm on its branch neither."""
+    from service.consistency.stack_fit import StackFit
+
+    def fit(taken: float, other: float) -> StackFit:
+        return StackFit(np.eye(4)[None], np.zeros(1, bool), np.zeros(1, bool), np.zeros(1), True, branch_margin=1.26,
+                        branch_from_request=True, request_distance_mm=(taken, other))
+
+    assert fit(14.0, 18.5).agrees_with_request and fit(14.0, 18.5).branch_known
+    assert not fit(14.0, 14.5).agrees_with_request
+    assert not fit(16.0, 60.0).agrees_with_request
