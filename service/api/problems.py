@@ -119,10 +119,10 @@ def install(app: FastAPI) -> None:
                 raise_if_out_of_space(exc.__cause__)
             except InsufficientStorage as full:
                 return await service_error(request, full)
-            if "Part exceeded maximum size" in str(exc.detail):
+            if "exceeded maximum size" in str(exc.detail):       # a multipart part's or an urlencoded field's
                 return await service_error(request, PayloadTooLarge(
                     f"a form field sent as a plain value is over {FIELD_LIMIT_KB} KB: send a large field (poses) as "
-                    "a file part (curl: -F poses=@poses.json)"))
+                    "a file part of a multipart form (curl: -F poses=@poses.json)"))
             return await service_error(request, MalformedRequest(f"the request body could not be parsed "
                                                                  f"({str(exc.detail).rstrip('.')})"))
         return problem(exc.status_code, str(exc.detail) if exc.status_code < 500 else "Server error",

@@ -63,8 +63,9 @@ class ImageConsistency(BaseModel):
                                                                "(noise units), at the stage's poses")
     mismatch_after: Optional[float] = Field(None, description="the same at the refined poses")
     agreed: Optional[bool] = Field(None, description=f"whether mismatch_after is at most {AGREED_MISMATCH:g}: the "
-                                                     "refinement brought the slices into agreement (false: the "
-                                                     "stage's expected errors stand)")
+                                                     "refinement brought the slices into agreement and may lower "
+                                                     "their expected errors (false: the stage's stand; a stack "
+                                                     "refined against fixed partners keeps at least them either way)")
 
 
 class StackConsistency(BaseModel):

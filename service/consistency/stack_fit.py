@@ -89,7 +89,7 @@ REQUEST_MARGIN = 1.25
 shared real scan, its branch decided by the request, lies 14 mm from it on that branch and 18.5-19.3
 mm on its twin. At 3 it did not agree, left the joint refinement and lost every accepted slice
 whenever its own margin fell under 1.5, which a change of its voxels below the file's rounding
-did."""
+did. A branch the stack decided itself is overruled only on more (``stage.OVERRULE_MARGIN``)."""
 MIN_NOISE_MM = 0.01
 """Floor of a pose's expected error (mm), so an exact oracle still has a finite weight."""
 FIRST_GRID = Grid(error_correlations=(0.5,))
@@ -160,10 +160,15 @@ class StackFit:
     @property
     def agrees_with_request(self) -> bool:
         """The request decided the stack's branch, and the stack sits where the request's stacks do on
-        it and far from them on its twin (:data:`REQUEST_AGREEMENT_MM`, :data:`REQUEST_MARGIN`)."""
+        it and further from them on its twin (:data:`REQUEST_AGREEMENT_MM`, :data:`REQUEST_MARGIN`)."""
+        return self.agrees_by(REQUEST_MARGIN)
+
+    def agrees_by(self, margin: float) -> bool:
+        """:attr:`agrees_with_request` with its twin at least ``margin`` times as far from the request
+        as its branch (a stack's own decision overruled asks more: ``stage.OVERRULE_MARGIN``)."""
         taken, other = self.request_distance_mm
         return bool(self.decidable and self.branch_from_request and taken <= REQUEST_AGREEMENT_MM
-                    and other >= REQUEST_MARGIN * taken)
+                    and other >= margin * taken)
 
     @property
     def branch_known(self) -> bool:

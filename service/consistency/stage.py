@@ -146,6 +146,10 @@ CHECKED_MARGIN = 3.0
 """A stack that decided its branch by a margin under this is checked against the request's other
 stacks (:func:`checked_branch`): a stack whose slices tell its branch only
 weakly can land whole on its twin with confident slices (docs/consistency.md)."""
+OVERRULE_MARGIN = 3.0
+"""Such a stack takes the request's branch where, refitted, it lies on it within
+:data:`~service.consistency.stack_fit.REQUEST_AGREEMENT_MM` of the other stacks and its own first
+branch at least this many times as far: its slices' own decision is overruled on clear evidence only."""
 
 
 def checked_branch(out: StackPoses, reference: NDArray | None,
@@ -156,13 +160,13 @@ def checked_branch(out: StackPoses, reference: NDArray | None,
     :data:`CHECKED_MARGIN`, is fitted again (``refit(reference, CHECKED_MARGIN)``) with the other
     stacks' placement ``reference`` (:func:`request_reference` of the others) deciding. The refit is
     taken where it chose the other branch and sits where the other stacks do on it and far from
-    them on its first one (``StackFit.agrees_with_request``); otherwise ``out`` stands.
+    them on its first one (``StackFit.agrees_by(OVERRULE_MARGIN)``); otherwise ``out`` stands.
     """
     fit = out.fit
     if reference is None or fit is None or not fit.branch_decided or fit.branch_margin >= CHECKED_MARGIN:
         return out
     redo = refit(reference, CHECKED_MARGIN)
-    flipped = redo.fit is not None and redo.fit.branch_margin < 1.0 and redo.fit.agrees_with_request
+    flipped = redo.fit is not None and redo.fit.branch_margin < 1.0 and redo.fit.agrees_by(OVERRULE_MARGIN)
     return redo if flipped else out
 
 

@@ -77,7 +77,7 @@ def itk_from_affine(affine_ras: ArrayLike) -> tuple[NDArray, NDArray, NDArray]:
     m = a[:3, :3]
     spacing = np.linalg.norm(m, axis=0)
     direction = m / spacing
-    if float(axes_cosine(direction)) > MAX_SHEAR_COS:
+    if not float(axes_cosine(direction)) <= MAX_SHEAR_COS:            # NaN (an axis of no length) too
         raise ValueError("affine has shear; cannot be expressed as ITK origin/spacing/direction")
     u, _, vt = np.linalg.svd(direction)
     return a[:3, 3].copy(), spacing, u @ vt

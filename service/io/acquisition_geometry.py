@@ -176,24 +176,28 @@ def stacking_problem(spacing: Sequence[float], n_slices: int) -> str | None:
             "pixel apart")
 
 
+OVERLAP_RATIO = 0.95
+"""A file's third axis at most this share of the spacing its first two share: its slices overlap."""
+
+
 def slice_axis_problem(spacing: Sequence[float]) -> str | None:
-    """Why a stack file that does not say which axis its slices run along (NIfTI, NRRD, MHA) cannot be
-    cut into slices: two voxel axes share the largest spacing and the third's is smaller, so that
-    its slices lie closer together than its pixels (slices that overlap) and the axis of largest
-    spacing, the slice axis of API v1, is an in-plane one. None if it can.
+    """Why a stack file that does not say which axis its slices run along (NIfTI, NRRD, MHA; by
+    convention its third) cannot be cut into slices: its first two axes share the largest spacing
+    and the third's is clearly smaller (:data:`OVERLAP_RATIO`), so that its slices lie closer together
+    than its pixels (slices that overlap) and the axis of largest spacing, the slice axis of API v1,
+    is an in-plane one. None if it can (a tie that holds the third axis leaves it the slice axis).
 
     Example:
         >>> slice_axis_problem([1.5, 1.5, 1.2])
-        'two of its voxel axes share the largest spacing (1.5 mm) and the third lies 1.2 mm apart: its slices are closer together than its pixels, so the axis of largest spacing, the slice axis of API v1, is an in-plane one; resample the stack to slices at least a pixel apart'
-        >>> slice_axis_problem([1.2, 1.2, 3.0]), slice_axis_problem([1.0, 1.0, 1.0])
-        (None, None)
+        'its first two voxel axes share the largest spacing (1.5 mm) and its third lies 1.2 mm apart: its slices are closer together than its pixels, so the axis of largest spacing, the slice axis of API v1, is an in-plane one; resample the stack to slices at least a pixel apart'
+        >>> slice_axis_problem([1.2, 1.2, 3.0]), slice_axis_problem([1.0, 1.2, 1.2]), slice_axis_problem([1.0, 1.0, 0.9999])
+        (None, None, None)
     """
     sp = np.asarray(spacing, np.float64)
-    largest = sp >= sp.max() * (1 - 1e-6)
-    if largest.sum() != 2:
+    if abs(sp[0] - sp[1]) > 1e-6 * sp.max() or sp[2] > OVERLAP_RATIO * sp[0]:
         return None
-    return (f"two of its voxel axes share the largest spacing ({sp.max():.3g} mm) and the third lies "
-            f"{sp[~largest][0]:.3g} mm apart: its slices are closer together than its pixels, so the axis of largest "
+    return (f"its first two voxel axes share the largest spacing ({sp[0]:.3g} mm) and its third lies "
+            f"{sp[2]:.3g} mm apart: its slices are closer together than its pixels, so the axis of largest "
             "spacing, the slice axis of API v1, is an in-plane one; resample the stack to slices at least a pixel apart")
 
 

@@ -152,7 +152,10 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
     except Exception as exc:  # noqa: BLE001 - SimpleITK's RuntimeError, pydicom's and numpy's errors ...
         # The text may hold paths or tag values: it stays out of the answer and the log.
         raise UnsupportedFile(f"{filename}: could not be read (corrupt, truncated or inconsistent file)") from exc
-    return validate(vol, filename)
+    checked = validate(vol, filename)
+    if kind in SUFFIX_BY_KIND and (problem := slice_axis_problem(checked.spacing)) is not None:
+        raise UnusableImage(f"{filename}: {problem}")          # a DICOM stack's third axis is its slices'
+    return checked
 
 
 def _gunzip(path: Path, out: Path, budget: FileBudget) -> Path:
@@ -326,8 +329,6 @@ def validate(vol: Volume, filename: str) -> Volume:
         raise UnusableImage(f"{filename}: its voxel axes are sheared ({np.degrees(np.arccos(cos)):.2f} deg apart, "
                             "not 90); resample the stack to a grid with axes at right angles")
     if (problem := grid_problem(vol.affine, a.shape)) is not None:
-        raise UnusableImage(f"{filename}: {problem}")
-    if vol.slice_axis is None and (problem := slice_axis_problem(vol.spacing)) is not None:
         raise UnusableImage(f"{filename}: {problem}")
     return replace(vol, array=magnitude(a))
 

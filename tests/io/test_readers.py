@@ -345,10 +345,14 @@ def test_a_stack_file_of_slices_closer_than_its_pixels_is_422_not_cut_along_a_pi
     as far apart as the pixels are a stack as before."""
     arr = (np.random.default_rng(9).random((30, 30, 40)) * 1000).astype(np.float32).round()
     write_volume(Volume(arr, np.diag([1.5, 1.5, 1.2, 1.0])), path := tmp_path / f"overlap{suffix}")
-    with pytest.raises(UnusableImage, match=f"overlap{suffix}: two of its voxel axes share the largest spacing"):
+    with pytest.raises(UnusableImage, match=f"overlap{suffix}: its first two voxel axes share the largest spacing"):
         read_upload(path, path.name)
-    write_volume(Volume(arr, np.diag([1.5, 1.5, 1.5, 1.0])), cube := tmp_path / f"cube{suffix}")
-    assert read_upload(cube, cube.name).array.shape == (30, 30, 40)
+    for spacing in ([1.5, 1.5, 1.5], [1.2, 1.5, 1.5], [1.0, 1.0, 0.9999]):   # the third axis the slices' (a tie
+        write_volume(Volume(arr, np.diag([*spacing, 1.0])), ok := tmp_path / f"ok{suffix}")  # holds it, or none)
+        assert read_upload(ok, ok.name).array.shape == (30, 30, 40)
+    # A DICOM series says its slice axis: pixels of 1.0 x 1.2 mm, slices 1.2 mm apart are a stack.
+    files = _write_series(tmp_path, Volume(arr[:, :, :6], np.diag([1.0, 1.2, 1.2, 1.0])), "1.2.3.778")
+    assert read_upload(_zip_of(tmp_path / "series.zip", files), "series.zip").array.shape == (30, 30, 6)
 
 
 def test_a_zipped_series_is_unpacked_into_the_scratch_folder_given(tmp_path: Path, monkeypatch) -> None:

@@ -298,6 +298,8 @@ def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict, mo
     files = [("stacks", (s.name, s.read_bytes())) for s, _ in case["files"]]
     r = client.post("/v1/reconstructions", files=files, data={"poses": " " * 1_100_000 + json.dumps(case["poses"])})
     assert r.status_code == 413 and "as a file part" in r.json()["detail"], r.text    # a plain field over 1 MB
+    r = client.post("/v1/reconstructions", data={"poses": " " * 1_100_000})              # urlencoded, the same
+    assert r.status_code == 413 and "as a file part" in r.json()["detail"], r.text
     # Poses the worker could not read (a number as text, a flag as a number) are refused now, not later.
     for change in (lambda s: s["atlas_from_voxel"][0].__setitem__(0, "1.0"), lambda s: s.__setitem__("accepted", 1)):
         bad = json.loads(json.dumps(case["poses"]))
