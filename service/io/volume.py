@@ -35,9 +35,10 @@ if TYPE_CHECKING:
 SITK_FILES = threading.Lock()
 """Held by every read and write of a file through SimpleITK (its image readers and writers, GDCM's
 series lookups): two run at once in one process can crash it inside ITK (a server reading two
-uploads at once died of a segmentation fault there). The files are small and already decoded
-(gzip is inflated before, :mod:`service.io.readers`), so the lock costs little; arrays and filters
-need no lock."""
+uploads at once died of a segmentation fault there). An upload is already decoded when it is read
+(gzip is inflated before, :mod:`service.io.readers`); the service's own ``.nii.gz`` files (a job's
+volume, a mask) are compressed or inflated under the lock, one at a time, which costs little beside
+their jobs. Arrays and filters need no lock."""
 
 
 @dataclass

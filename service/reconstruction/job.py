@@ -22,8 +22,8 @@ from service.reconstruction.left_out import LeftOutPlacement, VolumeReference, p
 from service.reconstruction.midline import FrameCorrection, midline_fit
 from service.reconstruction.never_worse import coherence_score, held_out_score, reconstruct_never_worse, stack_held_out
 from service.reconstruction.pipeline import ReconstructionConfig, ReconstructionResult
-from service.reconstruction.quality import incoherent
 from service.reconstruction.pose_errors import refined_expected_errors, refined_summary, roles
+from service.reconstruction.quality import incoherent
 from service.reconstruction.slices import SliceSet, StackInput
 
 if TYPE_CHECKING:                      # the estimator is handed in; nothing of inference runs here
