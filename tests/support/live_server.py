@@ -32,7 +32,8 @@ class Server:
         for _ in range(3):                      # a port taken between its choice and the server's bind: another
             self.port = _free_port()
             self.url = f"http://127.0.0.1:{self.port}"
-            env = {**os.environ, "SVRNET_PORT": str(self.port), "SVRNET_DATA_DIR": str(data_dir),
+            env = {**os.environ, "SVRNET_HOST": "127.0.0.1", "SVRNET_PORT": str(self.port),
+                   "SVRNET_DATA_DIR": str(data_dir),
                    "SVRNET_LOG_LEVEL": "info", "SVRNET_MAX_CONCURRENT": "1",
                    "PYTHONFAULTHANDLER": "1"}                 # a crash of native code leaves its traceback
             env.update({f"SVRNET_{k.upper()}": str(v) for k, v in settings.items()})
