@@ -32,9 +32,8 @@ from service.geometry.anchors import ed  # noqa: E402
 from service.jobs.uploaded_poses import expected_errors  # noqa: E402
 from service.jobs.worker import MIN_ACCEPTED_SHARE, starting_poses  # noqa: E402
 from service.reconstruction.left_out import VolumeReference, place_left_out  # noqa: E402
-from service.reconstruction.never_worse import coherence_score, reconstruct_never_worse  # noqa: E402
+from service.reconstruction.never_worse import reconstruct_never_worse  # noqa: E402
 from service.reconstruction.pipeline import ReconstructionConfig  # noqa: E402
-from service.reconstruction.quality import incoherent  # noqa: E402
 from service.reconstruction.slices import SliceSet  # noqa: E402
 
 
@@ -67,8 +66,7 @@ def main() -> None:
             res = reconstruct_never_worse(ss, 1.5, 3, config=ReconstructionConfig(symmetry_plane_x_mm=plane))
             placed = place_left_out(ss, res.atlas_from_voxel_final, res.included, expected_errors(body), plane_x_mm=plane)
             by_volume = place_left_out(ss, res.atlas_from_voxel_final, res.included, expected_errors(body),
-                                       plane_x_mm=plane, volume=VolumeReference.of(res, inputs),
-                                       register=not incoherent(coherence_score(res)))
+                                       plane_x_mm=plane, volume=VolumeReference.of(res, inputs))
             keep = np.concatenate([p.prepared.mask_pixels >= MIN_MASK_PIXELS for p in prepared])
 
             def scores(transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -49,9 +49,8 @@ from service.jobs.worker import MIN_ACCEPTED_SHARE, starting_poses
 from service.reconstruction.atlas_frame import atlas_frame, with_frame
 from service.reconstruction.left_out import LeftOutPlacement, VolumeReference, place_left_out
 from service.reconstruction.midline import midline_fit
-from service.reconstruction.never_worse import coherence_score, held_out_score, reconstruct_never_worse
+from service.reconstruction.never_worse import held_out_score, reconstruct_never_worse
 from service.reconstruction.pipeline import ReconstructionConfig, reconstruct
-from service.reconstruction.quality import incoherent
 from service.reconstruction.slices import SliceSet
 
 
@@ -213,8 +212,7 @@ def main() -> None:
                     res = reconstruct_never_worse(ss, args.resolution, args.rounds, config=config, **JOBS[variant])
                     left_out = place_left_out(ss, res.atlas_from_voxel_final, res.included, expected_errors(body),
                                               plane_x_mm=plane, volume=VolumeReference.of(res, inputs),
-                                              starting=None if variant == "job-path-left-out" else ss.atlas_from_voxel,
-                                              register=not incoherent(coherence_score(res)))
+                                              starting=None if variant == "job-path-left-out" else ss.atlas_from_voxel)
                     res = replace(res, atlas_from_voxel_final=left_out.poses)
                     print("  " + left_out_changes(stacks, prepared, ss.atlas_from_voxel, res.included, left_out, plane),
                           flush=True)

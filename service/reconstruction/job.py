@@ -23,7 +23,6 @@ from service.reconstruction.midline import FrameCorrection, midline_fit
 from service.reconstruction.never_worse import coherence_score, held_out_score, reconstruct_never_worse, stack_held_out
 from service.reconstruction.pipeline import ReconstructionConfig, ReconstructionResult
 from service.reconstruction.pose_errors import refined_expected_errors, refined_summary, roles
-from service.reconstruction.quality import incoherent
 from service.reconstruction.slices import SliceSet, StackInput
 
 if TYPE_CHECKING:                      # the estimator is handed in; nothing of inference runs here
@@ -90,7 +89,7 @@ def refine_job(slice_set: SliceSet, stacks: Sequence[StackInput], starting_error
     reference = VolumeReference.of(result, stacks)
     left_out = place_left_out(slice_set, result.atlas_from_voxel_final, result.included, starting_error_mm,
                               plane_x_mm=plane_x_mm, orders=list(orders) or None, volume=reference,
-                              starting=slice_set.atlas_from_voxel, register=not incoherent(coherence_score(result)))
+                              starting=slice_set.atlas_from_voxel)
     areas = reference.areas_mm2
     del reference                                   # every slice's pixels and the blurred volume: done with
     result = replace(result, atlas_from_voxel_final=left_out.poses)

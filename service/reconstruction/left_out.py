@@ -57,7 +57,9 @@ from service.consistency.slice_order import SliceOrder
 from service.geometry.anchors import ed
 from service.reconstruction.forward import inplane_sigma_mm
 from service.reconstruction.grid import Grid
+from service.reconstruction.never_worse import coherence_score
 from service.reconstruction.pipeline import ReconstructionResult
+from service.reconstruction.quality import incoherent
 from service.reconstruction.registration import RegistrationResult, blurred_volume, register_slices
 from service.reconstruction.slices import SliceSet, StackInput
 from service.reconstruction.stack_rigid import fit_stack_rigid, frame_from_scanner
@@ -128,18 +130,23 @@ class VolumeReference:
         grid: its grid.
         slices: the slice set of every slice with its pixels (``include`` where it has brain pixels),
             in the order of the job's.
+        coherent: the volume is a coherent brain (its stacks predict each other,
+            :func:`~service.reconstruction.quality.incoherent`); an incoherent one places no slice:
+            a slice's best fit to it says nothing of where the slice belongs.
     """
 
     array: NDArray
     grid: Grid
     slices: SliceSet
+    coherent: bool = True
 
     @classmethod
     def of(cls, result: ReconstructionResult, stacks: Sequence[StackInput]) -> VolumeReference:
         """The volume of a job's ``result``, and every slice of the job's ``stacks`` (as
         :meth:`~service.reconstruction.slices.SliceSet.from_stacks` takes them; every slice included)."""
         return cls(result.volume.array, result.grid,
-                   SliceSet.from_stacks([(v, m, mats, np.ones(len(mats), bool)) for v, m, mats, _ in stacks]))
+                   SliceSet.from_stacks([(v, m, mats, np.ones(len(mats), bool)) for v, m, mats, _ in stacks]),
+                   not incoherent(coherence_score(result)))
 
     @cached_property
     def areas_mm2(self) -> NDArray[np.float64]:
@@ -170,8 +177,7 @@ class VolumeReference:
 
 def place_left_out(slices: SliceSet, refined: ArrayLike, placed: ArrayLike, expected_error_mm: ArrayLike, *,
                    plane_x_mm: float | None, orders: Sequence[SliceOrder] | None = None,
-                   volume: VolumeReference | None = None, starting: ArrayLike | None = None,
-                   register: bool = True) -> LeftOutPlacement:
+                   volume: VolumeReference | None = None, starting: ArrayLike | None = None) -> LeftOutPlacement:
     """Move the left-out slices that their stack's motion places (module docstring).
 
     Args:
@@ -182,14 +188,12 @@ def place_left_out(slices: SliceSet, refined: ArrayLike, placed: ArrayLike, expe
             slice; such a slice stays where it is).
         plane_x_mm: the atlas mid-sagittal plane of the poses (None: no twins).
         orders: per stack, what is known of its acquisition order (default: the stage chooses).
-        volume: the job's volume to register the left-out slices to (None: motion only).
+        volume: the job's volume to register the left-out slices to (None, or one that is not
+            ``coherent``: motion only; the NCC is measured against any volume given).
         starting: ``[n, 4, 4]`` the poses the job started from: the left-out slices start from these,
             the poses ``expected_error_mm`` is of (None: from ``refined``). A path that registered a
             slice and then left it out of its volume leaves it where nothing vouches for it (on a
             whole-uterus scene, 9.3 -> 22.9 mm).
-        register: register the left-out slices to ``volume``; False where the volume is no coherent
-            brain (:func:`~service.reconstruction.quality.incoherent`): a slice's best fit to it says
-            nothing of where the slice belongs (``volume`` then only measures the NCC).
     """
     poses = np.array(refined, dtype=np.float64)
     inside = np.asarray(placed, bool)
@@ -215,7 +219,7 @@ def place_left_out(slices: SliceSet, refined: ArrayLike, placed: ArrayLike, expe
         poses[k] = poses[j]
         jumped[k] = True
     registered = np.zeros(len(poses), bool)
-    if volume is not None and register:
+    if volume is not None and volume.coherent:
         registered = register_left_out(volume, poses, fit.motion_poses, inside, left_out, slices.stack_index,
                                        fit.times)
     return LeftOutPlacement(poses, (moved | jumped) & ~registered, jumped & ~registered, registered,

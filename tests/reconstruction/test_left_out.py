@@ -180,9 +180,15 @@ def test_left_out_slices_are_registered_to_the_volume_and_caps_stay(imaged) -> N
     np.testing.assert_array_equal(placed.poses[cap], motion_only.poses[cap])
     assert not motion_only.registered.any()
     # A volume the job found incoherent places nothing: the slices keep the motion's poses, their
-    # NCC with the volume still measured.
-    unjudged = place_left_out(every, refined, ~out, expected, plane_x_mm=None, orders=SEQUENTIAL, volume=volume,
-                              register=False)
+    # NCC with the volume still measured. A job's result says whether its volume is coherent.
+    from types import SimpleNamespace
+    stacks = [(v, m, p, np.ones(len(p), bool)) for (v, m), p in zip(acq.stacks, acq.truth)]
+    for median, coherent in ((0.9, True), (0.2, False)):
+        result = SimpleNamespace(volume=SimpleNamespace(array=volume.array), grid=volume.grid,
+                                 quality={"leave_one_stack_out": {"median_ncc": median}})
+        assert VolumeReference.of(result, stacks).coherent is coherent
+    unjudged = place_left_out(every, refined, ~out, expected, plane_x_mm=None, orders=SEQUENTIAL,
+                              volume=replace(volume, coherent=False))
     assert not unjudged.registered.any()
     np.testing.assert_array_equal(unjudged.poses, motion_only.poses)
     assert np.isfinite(unjudged.ncc[big]).all() and np.isnan(motion_only.ncc).all()
