@@ -106,10 +106,10 @@ class WarningPlace(logging.Filter):
     """
 
     def filter(self, record: logging.LogRecord) -> bool:
-        found = re.match(r"(.*?):(\d+): (\w+): ", str(record.msg))
+        found = re.match(r"(?:.*[\\/])?([^\\/]*?):(\d+): (\w+): ", str(record.msg))   # the file's name, line, category
         record.msg, record.args = "a library warned", ()
         record.error_type = found.group(3) if found else "Warning"
-        record.error_at = f"{found.group(1).replace(chr(92), '/').rsplit('/', 1)[-1]}:{found.group(2)}" if found else ""
+        record.error_at = f"{found.group(1)}:{found.group(2)}" if found else ""
         return True
 
 

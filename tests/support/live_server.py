@@ -40,11 +40,11 @@ class Server:
             start = log.stat().st_size
             self.proc = subprocess.Popen([sys.executable, "-c", "from service.main import run; run()"], cwd=ROOT,
                                          env=env, stdout=self.log, stderr=subprocess.STDOUT, start_new_session=True)
-            if self._ready(log, start):
+            if self._ready(start):
                 return
         raise AssertionError(f"the server did not start: {log.read_text()[-3000:]}")
 
-    def _ready(self, log: Path, start: int) -> bool:
+    def _ready(self, start: int) -> bool:
         """Whether this server, and no other process on its port, answers ``/readyz`` (its own log says it
         listens there); False when it ended (its port was taken)."""
         listening = f"Uvicorn running on {self.url} "
@@ -52,14 +52,14 @@ class Server:
         while time.time() < deadline:
             if self.proc.poll() is not None:
                 return False
-            if listening in log.read_bytes()[start:].decode(errors="replace"):
+            if listening in self.log_path.read_bytes()[start:].decode(errors="replace"):
                 try:
                     if httpx.get(f"{self.url}/readyz", timeout=2).status_code == 200:
                         return True
                 except httpx.HTTPError:
                     pass
             time.sleep(0.2)
-        raise AssertionError(f"the server did not become ready: {log.read_text()[-3000:]}")
+        raise AssertionError(f"the server did not become ready: {self.log_path.read_text()[-3000:]}")
 
     def post(self, path: str, **kwargs: object) -> httpx.Response:
         """``httpx.post`` to this server; a connection it drops says what was there to answer: whether
