@@ -11,6 +11,8 @@
 
 from __future__ import annotations
 
+import inspect
+
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
@@ -21,8 +23,9 @@ from service.core.errors import InsufficientStorage, InvalidParameter, Malformed
 from service.io.limits import raise_if_out_of_space
 
 MEDIA_TYPE = "application/problem+json"
-FIELD_LIMIT_KB = 1024
-"""The form parser's limit on a part sent as a plain value, not a file (Starlette's ``max_part_size``)."""
+FIELD_LIMIT_KB = inspect.signature(Request.form).parameters["max_part_size"].default // 1024
+"""The form parser's limit on a part sent as a plain value, not a file: Starlette's ``max_part_size``,
+read from the installed Starlette (the service calls ``request.form()`` with its defaults)."""
 
 
 def problem_body(status: int, title: str, detail: str, type_: str = "about:blank",

@@ -160,13 +160,13 @@ class StreamConnection:
                     await self.handle(msg)
                     self.active_at = time.perf_counter()
                 except ServiceError as e:
-                    log.info("stream message refused", extra={"status": e.status})
+                    log.info("stream message refused", extra={"status": e.status, "session_id": self.session_id})
                     self.orphans = self.unread_frames(msg)
                     await self.send(error_message(e))
                 except (_Closed, WebSocketDisconnect):
                     raise
                 except Exception:  # noqa: BLE001 - a server fault ends one message, never the session
-                    log.exception("stream message failed")
+                    log.exception("stream message failed", extra={"session_id": self.session_id})
                     self.orphans = self.unread_frames(msg)
                     await self.send(error_message(InternalError(f"session {self.session_id}: the server could "
                                                                 "not answer this message")))
@@ -177,6 +177,9 @@ class StreamConnection:
                 self.firming.cancel()
             if self.counted:
                 self.ws.app.state.stream_sessions -= 1
+            log.info("stream session", extra={"session_id": self.session_id, "route": STREAM_PATH,
+                                               "model": self.model, "n_slices": len(self.latencies),
+                                               "duration_ms": round((time.perf_counter() - self.started) * 1e3, 1)})
 
     async def handle(self, msg: dict) -> None:
         kind = msg["type"]
@@ -304,7 +307,7 @@ class StreamConnection:
                 self.dirty.clear()
                 return
             except Exception:  # noqa: BLE001 - a background stage must not end the session; the stack's end says more
-                log.warning("stream firm-up failed", exc_info=True)
+                log.warning("stream firm-up failed", exc_info=True, extra={"session_id": self.session_id})
 
     async def settle(self, stack: str | None = None) -> set[str]:
         """Wait for the background stage's running firm-up (its updates go out before what follows).

@@ -1,7 +1,7 @@
 """Structured (JSON lines) logs that never contain patient information.
 
-Only whitelisted fields reach the log: request id, route, method, status, duration, counts and
-model names. File names, DICOM attributes and error details (which name files) are never logged.
+Only whitelisted fields reach the log: request, job and stream session ids, route, method, status,
+duration, counts and model names. File names, DICOM attributes and error details (which name files) are never logged.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import time
 import warnings
 
 SAFE_FIELDS = ("request_id", "route", "method", "status", "duration_ms", "n_stacks", "n_slices", "model",
-               "error_type", "error_at", "job_id", "stage")
+               "error_type", "error_at", "job_id", "stage", "session_id")
 
 
 def error_at(exc: BaseException) -> str:

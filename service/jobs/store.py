@@ -229,6 +229,7 @@ class SqliteJobStore(JobStore):
         try:
             db = sqlite3.connect(self.db_path, timeout=30, isolation_level=None)
             db.row_factory = sqlite3.Row
+            db.execute("PRAGMA secure_delete=ON")    # a deleted job's pages are zeroed, not left in free space
             with db:
                 yield db
         except sqlite3.Error as exc:
@@ -320,7 +321,15 @@ class SqliteJobStore(JobStore):
 
     def delete(self, job_id: str) -> None:
         self._write("DELETE FROM jobs WHERE id = ?", (job_id,))
+        self._checkpoint()
         shutil.rmtree(self.directory(job_id), ignore_errors=True)
+
+    def _checkpoint(self) -> None:
+        """Write the log's pages back into the database and empty the log, so that deleted jobs'
+        records (their parameters, reports, idempotency keys) do not outlive them in
+        ``jobs.sqlite3-wal``; where a reader holds the log, the next deletion's checkpoint does it."""
+        with self._db() as db:
+            db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
 
     def ids(self, status: str) -> list[str]:
         with self._db() as db:
@@ -352,6 +361,8 @@ class SqliteJobStore(JobStore):
             ids = [r["id"] for r in db.execute(
                 "SELECT id FROM jobs WHERE status IN ('succeeded', 'failed', 'cancelled') AND updated_at < ?", (cutoff,))]
             db.executemany("DELETE FROM jobs WHERE id = ?", [(i,) for i in ids])
+        if ids:
+            self._checkpoint()
         for i in ids:
             shutil.rmtree(self.directory(i), ignore_errors=True)
         return ids

@@ -87,6 +87,26 @@ def test_a_session_answers_every_slice_in_order_where_the_truth_is(client, case)
         assert closed.value.code == 1000
 
 
+def test_a_session_s_log_lines_carry_its_id_and_its_end_is_logged(client, case, caplog) -> None:  # noqa: ANN001
+    """An operator follows one scanner's session through the log: its refusals and its end (slices
+    answered, how long it ran) carry the ``session_id`` the client was given in ``ready``."""
+    import logging
+    _, stacks, _ = case
+    with caplog.at_level(logging.INFO, logger="service"), client.websocket_connect("/v1/stream") as ws:
+        ws.send_text(json.dumps({"type": "start", "mc_samples": 10, "bias_correction": False}))
+        session_id = ws.receive_json()["session_id"]
+        send_slice(ws, stacks[0][0])
+        receive(ws)
+        ws.send_text(json.dumps({"type": "dance"}))
+        assert ws.receive_json()["type"] == "error"
+        ws.send_text(json.dumps({"type": "end"}))
+        receive(ws, ("summary",))
+    lines = {r.getMessage(): r for r in caplog.records if getattr(r, "session_id", None) == session_id}
+    assert lines["stream message refused"].status == 400
+    end = lines["stream session"]
+    assert end.n_slices == 1 and end.duration_ms > 0 and end.route == "/v1/stream" and end.model == "default"
+
+
 def test_a_pose_s_latency_runs_from_the_slice_s_last_frame(client, case, monkeypatch) -> None:  # noqa: ANN001
     """What the server does after the last frame counts (decoding the frames, waiting for a pose
     thread), not only the network's pass."""

@@ -298,6 +298,7 @@ def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict, mo
     files = [("stacks", (s.name, s.read_bytes())) for s, _ in case["files"]]
     r = client.post("/v1/reconstructions", files=files, data={"poses": " " * 1_100_000 + json.dumps(case["poses"])})
     assert r.status_code == 413 and "as a file part" in r.json()["detail"], r.text    # a plain field over 1 MB
+    assert "over 1024 KB" in r.json()["detail"]                  # the parser's own limit (a field of 1.1 MB)
     r = client.post("/v1/reconstructions", data={"poses": " " * 1_100_000})              # urlencoded, the same
     assert r.status_code == 413 and "as a file part" in r.json()["detail"], r.text
     # Poses the worker could not read (a number as text, a flag as a number) are refused now, not later.

@@ -164,6 +164,24 @@ def test_delete_removes_record_and_files(store: JobStore) -> None:
 
 
 @pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)
+def test_a_deleted_or_expired_job_leaves_no_trace_in_the_database_files(store: JobStore) -> None:
+    marker = b"key-of-a-deleted-job"
+    for end in ("delete", "expire"):
+        job = store.create({"idempotency_key": marker.decode() + end})
+        assert store.claim(job.id) and store.finish(job.id, {"note": marker.decode() + end})
+        with store._db() as reader:                 # a reader between the writes must not block the end
+            reader.execute("SELECT COUNT(*) FROM jobs").fetchone()
+        if end == "delete":
+            store.delete(job.id)
+        else:
+            time.sleep(0.05)
+            assert store.expire(retention_s=0.01) == [job.id]
+        files = list(store.data_dir.glob("jobs.sqlite3*"))
+        assert files and all(marker + end.encode() not in f.read_bytes() for f in files), end
+        assert all(job.id.encode() not in f.read_bytes() for f in files), end
+
+
+@pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)
 def test_restart_requeues_running_jobs_then_fails_them_after_max_attempts(store: JobStore, tmp_path: Path) -> None:
     queued, running = store.create({}), store.create({})
     store.claim(running.id)
