@@ -10,7 +10,8 @@ Only pixel data and geometry are taken, and of the frames' acquisition times onl
   zipped series' files must (:func:`~service.io.acquisition_geometry.series_problem`: one
   orientation and pixel spacing, evenly spaced along the normal, none shifted in its plane). Without
   per-frame positions the frames are stacked by ``SpacingBetweenSlices`` (or ``SliceThickness``)
-  along the normal of the file's ``ImageOrientationPatient`` from its ``ImagePositionPatient``; a file
+  along the normal of the file's ``ImageOrientationPatient`` from its ``ImagePositionPatient`` (against
+  the normal where the spacing is negative, as older scanners write frames stored downwards); a file
   missing any of these is refused, never given a made-up grid. The frames are ordered along the
   slice normal, as a series' files are.
 * Siemens mosaic (``ImageType`` contains ``MOSAIC``): ``NumberOfImagesInMosaic`` (0019,100A) tiles
@@ -145,7 +146,7 @@ def _multiframe(ds, pixels: np.ndarray, filename: str) -> Volume:  # noqa: ANN00
         raise UnusableImage(f"{filename}: a DICOM image of {n} frames {dz:g} mm apart (SpacingBetweenSlices, "
                             "SliceThickness or the frames' positions): its slice spacing is unknown")
     ps = [float(x) for x in tags[0][2]]
-    lps = _lps_affine(row_dir, col_dir, normal, (ps[1], ps[0], abs(dz) or 1.0), origin)
+    lps = _lps_affine(row_dir, col_dir, normal, (ps[1], ps[0], dz), origin)    # a negative spacing: frames run against the normal
     thickness = stated_thickness([tag(group("PixelMeasuresSequence", f), "SliceThickness") for f in range(n)])
     return Volume(np.ascontiguousarray(pixels.transpose(2, 1, 0)), frames.ras_affine_from_lps(lps),
                   order_of(frame_times), slice_thickness_mm=thickness)
@@ -180,7 +181,7 @@ def _mosaic(ds, pixels: np.ndarray, filename: str) -> Volume:  # noqa: ANN001
     # ImagePositionPatient is the top-left of the whole mosaic: move to the first tile's corner.
     origin = np.asarray(ds.ImagePositionPatient, dtype=np.float64)
     origin = origin + row_dir * ps[1] * (cols - tc) / 2.0 + col_dir * ps[0] * (rows - tr) / 2.0
-    dz = float(getattr(ds, "SpacingBetweenSlices", None) or ds.SliceThickness)
+    dz = abs(float(getattr(ds, "SpacingBetweenSlices", None) or ds.SliceThickness))   # the CSA normal gives the way
     lps = _lps_affine(row_dir, col_dir, normal, (ps[1], ps[0], dz), origin)
     return Volume(np.ascontiguousarray(stack.transpose(2, 1, 0)), frames.ras_affine_from_lps(lps),
                   order_of(tile_times),

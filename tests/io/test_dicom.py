@@ -126,6 +126,11 @@ def test_a_mosaic_s_tiles_follow_its_csa_slice_normal(tmp_path: Path, direction:
         np.testing.assert_allclose((vol.affine @ [0, 0, s, 1])[:3], acquired_lps * [-1, -1, 1], atol=1e-9)
     without = read_upload(_mosaic_file(tmp_path / "plain.dcm", slices, n, None), "plain.dcm")
     assert np.allclose(without.affine, vol.affine) == (direction > 0)   # no CSA header: taken as ascending
+    negative = _mosaic_file(tmp_path / "neg.dcm", slices, n, None, csa)
+    ds = pydicom.dcmread(negative)
+    ds.SpacingBetweenSlices = -3.5                                  # the CSA normal says which way, not the sign
+    pydicom.dcmwrite(str(negative), ds, enforce_file_format=True)
+    np.testing.assert_allclose(read_upload(negative, "neg.dcm").affine, vol.affine, atol=1e-9)
 
 
 def test_a_mosaic_keeps_the_order_its_csa_times_give(tmp_path: Path) -> None:
@@ -212,6 +217,26 @@ def test_an_enhanced_multiframe_is_placed_frame_by_frame_and_ordered_along_its_n
     for f, d in enumerate(stored_depth):                   # depth d holds frame f, its columns along i
         np.testing.assert_array_equal(vol.array[:, :, d], pixels[f].T.astype(np.float32))
     assert vol.slice_thickness_mm == 3.0                   # as stated (PixelMeasuresSequence), not the 3.3 mm spacing
+
+
+@pytest.mark.parametrize("spacing", [3.3, -3.3])
+def test_a_legacy_multiframe_stacks_its_frames_by_the_sign_of_its_spacing(tmp_path: Path, spacing: float) -> None:
+    """A multi-frame MR image without functional groups: frame k lies k x SpacingBetweenSlices along
+    the normal of its ImageOrientationPatient from its ImagePositionPatient, against the normal where
+    the spacing is negative (frames stored downwards). Each frame holds its own number, so every
+    slice the reader returns is checked against where its frame was acquired."""
+    n, origin = 6, np.array([-40.0, 20.0, 35.0])
+    ds = _dataset(tmp_path / "legacy.dcm", MRImageStorage, np.stack([np.full((12, 10), 100 * (k + 1)) for k in range(n)]))
+    ds.NumberOfFrames = n
+    ds.ImageOrientationPatient, ds.ImagePositionPatient = [*ROW, *COL], list(origin)
+    ds.PixelSpacing, ds.SliceThickness, ds.SpacingBetweenSlices = [1.2, 0.9], 3.0, spacing
+    pydicom.dcmwrite(str(tmp_path / "legacy.dcm"), ds, enforce_file_format=True)
+    vol = read_upload(tmp_path / "legacy.dcm", "legacy.dcm")
+    np.testing.assert_allclose(vol.spacing, [0.9, 1.2, 3.3])
+    for s in range(n):
+        k = int(vol.array[0, 0, s]) // 100 - 1                     # the frame this slice came from
+        acquired_lps = origin + k * spacing * NORMAL
+        np.testing.assert_allclose((vol.affine @ [0, 0, s, 1])[:3], acquired_lps * [-1, -1, 1], atol=1e-6)
 
 
 @pytest.mark.parametrize("where", ["per frame", "shared"])
