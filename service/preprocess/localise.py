@@ -5,14 +5,18 @@
    (:func:`~service.preprocess.localiser_inputs.localiser_inputs`) and gives each pixel's
    probability of lying inside the fetal skull. It is trained on synthetic whole-uterus stacks only
    (atlas brains in generated surroundings; ``model_export.localiser``), so no scanner's contrast,
-   pixel size or field of view is special to it. Each slice is also seen mirrored along its first
-   in-plane axis (the grid's ``W``), and the two answers' logits averaged: a stack written with that
-   axis reversed gets the same mask (where the grid's padding is even on both sides), and what the
-   network decides by a narrow margin at the brain's edge (a face, a neck as wide as the head) is
-   decided alike for every sampling a scanner makes of it. A network distilled from that average
-   (``model_export.localiser.distil``; metadata ``mirrored_pass: learnt``) gives it in one pass.
-   The network and the geometry see a stack's slices in one order whichever way its file stores
-   them (:func:`reversed_slices`): a file that stores them last to first gets the same mask.
+   pixel size or field of view is special to it. Each slice is seen laid out as a picture by the
+   scanner's axes (:func:`~service.geometry.frames.in_plane_layout`), so a file that stores its
+   rows or columns reversed or its in-plane axes swapped gets the same mask voxel for voxel (a
+   network answers a picture and its turned copy a little differently: seen as the file stored
+   them, the real stacks' masks moved by up to 0.15 Dice between storages). Each slice is also
+   seen mirrored along the picture's columns (the grid's ``W``), and the two answers' logits
+   averaged: what the network decides by a narrow margin at the brain's edge (a face, a neck as
+   wide as the head) is decided alike for every sampling a scanner makes of it. A network
+   distilled from that average (``model_export.localiser.distil``; metadata ``mirrored_pass:
+   learnt``) gives it in one pass. The network and the geometry see a stack's slices in one order
+   whichever way its file stores them (:func:`reversed_slices`): a file that stores them last to
+   first gets the same mask.
 2. **The geometry** settles the answer (:mod:`service.preprocess.brain_shape`), on the network's
    grid: one 3D connected brain of a plausible volume for 20-40 weeks, without what hangs on to it
    through a waist or what a slice adds beyond its neighbours, its in-plane holes filled; then the

@@ -2,7 +2,9 @@
 
 For a stack (any orientation, any in-plane pixel size, whole uterus or cropped), in order:
 
-1. split it into slices along its slice axis (:func:`~service.preprocess.stack.slice_images`);
+1. split it into slices along its slice axis, each laid out as a picture by the scanner's axes
+   (:func:`~service.preprocess.stack.slice_images`): however the file stores its in-plane voxels,
+   the network sees the same pictures and the mask is the same;
 2. scale intensities by the stack's 99.5th percentile (of every third pixel along rows and columns;
    clipped to 0..2), so that no scanner's units matter;
 3. resample every slice to square pixels of ``grid_mm`` (the model's; Gaussian anti-aliasing first,
@@ -45,7 +47,7 @@ from scipy import ndimage, sparse
 
 from service.geometry.sampling import FWHM_TO_SIGMA, linear_operator
 from service.io.volume import Volume
-from service.preprocess.stack import slice_images, stack_axis, stack_from_slice_images
+from service.preprocess.stack import slice_images, stack_axis, stack_from_pictures
 
 PAD_MULTIPLE = 16
 MIN_GRID_PX = 64
@@ -75,7 +77,8 @@ class LocaliserGrid:
 
     shape: tuple[int, int, int]             # the stack's array shape
     slice_axis: int
-    native: tuple[int, int]                 # (H, W) of a slice as stored
+    layout: tuple[int, int, int, int]       # how each slice is laid out as a picture (frames.in_plane_layout)
+    native: tuple[int, int]                 # (H, W) of a slice's picture at the stack's pixels
     resampled: tuple[int, int]              # (h, w) on the network grid, before padding
     offset: tuple[int, int]                 # where the resampled slice starts in the padded one
     grid_mm: float                          # the grid's pixel size
@@ -92,14 +95,14 @@ class LocaliserGrid:
         native = np.zeros((len(core), *self.native), np.float32)
         nonzero = np.argwhere(core.any(axis=0))
         if len(nonzero) == 0:
-            return stack_from_slice_images(native, self.slice_axis)
+            return stack_from_pictures(native, self.slice_axis, self.layout)
         scale = np.array(self.native) / np.array([h, w])             # native pixels per network pixel
         lo = np.maximum(np.floor((nonzero.min(0) - 1) * scale).astype(int), 0)
         hi = np.minimum(np.ceil((nonzero.max(0) + 2) * scale).astype(int), self.native)
         rows = linear_operator((np.arange(lo[0], hi[0]) + 0.5) / scale[0] - 0.5, h)
         cols = linear_operator((np.arange(lo[1], hi[1]) + 0.5) / scale[1] - 0.5, w)
         native[:, lo[0]:hi[0], lo[1]:hi[1]] = _separable(np.ascontiguousarray(core), rows, cols)
-        return stack_from_slice_images(native, self.slice_axis)
+        return stack_from_pictures(native, self.slice_axis, self.layout)
 
 
 def _separable(images: NDArray[np.float32], rows: sparse.csr_matrix, cols: sparse.csr_matrix) -> NDArray[np.float32]:
@@ -193,7 +196,7 @@ def _band(images: NDArray[np.float32], grid_mm: float) -> tuple[int, int, int, i
 def localiser_inputs(volume: Volume, grid_mm: float) -> tuple[NDArray[np.float32], LocaliserGrid]:
     """The network inputs ``[n, 3, Hp, Wp]`` of a stack and the grid to map outputs back with."""
     axis = stack_axis(volume)
-    images, pixel_mm = slice_images(volume.array, volume.affine, axis)
+    images, pixel_mm, layout = slice_images(volume.array, volume.affine, axis)
     images = np.asarray(images, np.float32)
     finite = np.isfinite(images)
     if not finite.all():                                                  # NaN and inf pixels count as 0
@@ -205,7 +208,8 @@ def localiser_inputs(volume: Volume, grid_mm: float) -> tuple[NDArray[np.float32
     band = _band(images, grid_mm)
     padded, offset = _pad(small, band, FLUID_LEVEL)
     x = with_neighbours(padded)
-    grid = LocaliserGrid(tuple(volume.array.shape), axis, images.shape[1:], small.shape[1:], offset, grid_mm, band)
+    grid = LocaliserGrid(tuple(volume.array.shape), axis, layout, images.shape[1:], small.shape[1:], offset, grid_mm,
+                         band)
     return np.ascontiguousarray(x), grid
 
 
@@ -213,5 +217,5 @@ def target_maps(mask: NDArray, volume: Volume, grid: LocaliserGrid) -> NDArray[n
     """A stack's brain mask on the network grid ``[n, Hp, Wp]`` (brain fraction per pixel): the
     training target that matches :func:`localiser_inputs` pixel for pixel, on the ``grid`` it
     returned for ``volume`` (no fluid in the band)."""
-    images, pixel_mm = slice_images(np.asarray(mask, np.float32), volume.affine, stack_axis(volume))
+    images, pixel_mm, _ = slice_images(np.asarray(mask, np.float32), volume.affine, stack_axis(volume))
     return _pad(np.clip(_resample(images, pixel_mm, grid.grid_mm), 0.0, 1.0), grid.band)[0]

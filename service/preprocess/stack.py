@@ -111,19 +111,24 @@ def blank_slices(volume: Volume) -> NDArray[np.bool_]:
     return np.asarray(volume.array.max(axis=plane) == volume.array.min(axis=plane))
 
 
-def slice_images(array: NDArray, affine: NDArray, axis: int) -> tuple[NDArray, tuple[float, float]]:
-    """``[n, H, W]`` slices of a stack's ``array`` along ``axis`` in the file's order (rows along the
-    higher in-plane voxel axis, columns along the lower) and their ``(row_mm, col_mm)``; a view where
-    it can be. The localiser's input (:mod:`~service.preprocess.localiser_inputs`), which its network
-    learnt in this order; the pose network's slices are laid out by the scanner's axes (:func:`split_stack`)."""
-    p, q = [ax for ax in range(3) if ax != axis]
+def slice_images(array: NDArray, affine: NDArray, axis: int,
+                 ) -> tuple[NDArray, tuple[float, float], tuple[int, int, int, int]]:
+    """``[n, H, W]`` slices of a stack's ``array`` along ``axis``, laid out as pictures by the scanner's
+    axes (:func:`~service.geometry.frames.in_plane_layout`, as :func:`split_stack` lays out the pose
+    network's slices), their ``(row_mm, col_mm)`` and the layout; a view where it can be. The
+    localiser's input (:mod:`~service.preprocess.localiser_inputs`): a file that stores its rows
+    reversed or its in-plane axes swapped gives the same pictures, so the same mask.
+
+    Example (the same slices stored with their in-plane axes swapped: the same pictures):
+        >>> a = np.random.default_rng(0).random((3, 4, 2))
+        >>> swapped = np.array([[0.0, 1, 0, 0], [1, 0, 0, 0], [0, 0, 3, 0], [0, 0, 0, 1]])
+        >>> one, two = slice_images(a, np.diag([1.0, 1, 3, 1]), 2), slice_images(a.transpose(1, 0, 2), swapped, 2)
+        >>> bool(np.array_equal(one[0], two[0])), one[2], two[2]
+        (True, (0, 1, 1, 1), (1, 0, 1, 1))
+    """
+    layout = frames.in_plane_layout(affine, axis)
     sp = frames.voxel_spacing(affine)
-    return np.moveaxis(np.asarray(array), axis, 0).transpose(0, 2, 1), (float(sp[q]), float(sp[p]))
-
-
-def stack_from_slice_images(images: NDArray, axis: int) -> NDArray:
-    """The inverse of :func:`slice_images`: ``[n, H, W]`` back to the stack's voxel order."""
-    return np.moveaxis(np.asarray(images).transpose(0, 2, 1), 0, axis)
+    return pictures(array, axis, layout), (float(sp[layout[1]]), float(sp[layout[0]])), layout
 
 
 def split_stack(volume: Volume, mask: NDArray, axis: int | None = None) -> StackSlices:

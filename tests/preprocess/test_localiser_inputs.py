@@ -133,7 +133,7 @@ def test_the_resampling_operators_compute_the_filter_and_zoom_they_replace(shape
 def test_maps_go_back_to_the_stack_as_bilinear_interpolation_does() -> None:
     from scipy import ndimage
 
-    from service.preprocess.stack import stack_from_slice_images
+    from service.preprocess.stack import stack_from_pictures
 
     vol, _ = ellipsoid_stack(1.1, fov_mm=120, slices=6)
     _, grid = localiser_inputs(vol, 2.5)
@@ -144,8 +144,8 @@ def test_maps_go_back_to_the_stack_as_bilinear_interpolation_does() -> None:
     rows = (np.arange(grid.native[0]) + 0.5) / scale[0] - 0.5
     cols = (np.arange(grid.native[1]) + 0.5) / scale[1] - 0.5
     k, rr, cc = np.meshgrid(np.arange(6), rows, cols, indexing="ij")
-    expected = stack_from_slice_images(ndimage.map_coordinates(maps[:, r:r + h, c:c + w], [k, rr, cc], order=1,
-                                                               mode="nearest"), grid.slice_axis)
+    expected = stack_from_pictures(ndimage.map_coordinates(maps[:, r:r + h, c:c + w], [k, rr, cc], order=1,
+                                                           mode="nearest"), grid.slice_axis, grid.layout)
     got = grid.to_stack(maps)
     near = got > 0                               # only the box around the non-zero maps is interpolated
     assert np.abs(got - expected)[near].max() < 1e-5 and np.abs(expected[~near]).max() < 1e-3

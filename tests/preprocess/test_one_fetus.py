@@ -26,7 +26,8 @@ class _ProbabilityLocaliser(Localiser):
 
     def probabilities_of(self, volumes: list[Volume], grids_mm: list[float] | None = None):  # noqa: ANN201
         return [(np.moveaxis(v.array, 2, 0).transpose(0, 2, 1).astype(np.float32),
-                 LocaliserGrid(v.array.shape, 2, v.array.shape[:2][::-1], v.array.shape[:2][::-1], (0, 0), GRID_MM))
+                 LocaliserGrid(v.array.shape, 2, (0, 1, 1, 1), v.array.shape[:2][::-1], v.array.shape[:2][::-1],
+                               (0, 0), GRID_MM))
                 for v in volumes]
 
 

@@ -14,8 +14,9 @@ from service.io.volume import Volume
 from service.preprocess.bias import centred_samples, n4_correct, upsample_linear
 from service.preprocess.intensity import rescale_0_255
 from service.preprocess.slices import preprocess_slices, sample_grid
-from service.preprocess.stack import slice_axis_of, slice_images, split_stack, stack_from_slice_images
+from service.preprocess.stack import slice_axis_of, slice_images, split_stack, stack_from_pictures
 from tests.support.phantoms import phantom_brain
+from tests.support.storage import stored_as
 
 
 def test_rescale_prunes_one_percent_and_zeroes_outside() -> None:
@@ -61,21 +62,6 @@ def test_split_stack_is_vectorised_and_right_handed() -> None:
     assert np.linalg.det(world_from_slice[:3, :3]) == pytest.approx(1.0)   # a rigid map
 
 
-def _stored(vol: Volume, flip0: bool, flip1: bool, swap: bool) -> Volume:
-    """``vol`` as a file that stores its in-plane voxels another way writes it: the same voxels in the same places."""
-    a, aff = np.asarray(vol.array), np.asarray(vol.affine, np.float64).copy()
-    for axis, flip in ((0, flip0), (1, flip1)):
-        if flip:
-            a = np.flip(a, axis)
-            index = np.eye(4)
-            index[axis, axis], index[axis, 3] = -1.0, a.shape[axis] - 1.0
-            aff = aff @ index
-    if swap:
-        a = np.swapaxes(a, 0, 1)
-        aff = aff[:, [1, 0, 2, 3]]
-    return Volume(np.ascontiguousarray(a), aff)
-
-
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_a_stack_stored_with_its_in_plane_voxels_in_any_order_gives_the_same_pictures_and_slice_frames(seed: int) -> None:
     """Rows reversed, columns reversed, the two axes swapped (the eight ways a file can store a
@@ -88,13 +74,13 @@ def test_a_stack_stored_with_its_in_plane_voxels_in_any_order_gives_the_same_pic
     ref = split_stack(vol, mask)
     world = aff @ np.linalg.inv(ref.slice_from_voxel)
     for flip0, flip1, swap in itertools.product([False, True], repeat=3):
-        other = _stored(vol, flip0, flip1, swap)
-        s = split_stack(other, np.asarray(_stored(Volume(mask, aff), flip0, flip1, swap).array))
+        other = stored_as(vol, flip0, flip1, swap)
+        s = split_stack(other, np.asarray(stored_as(Volume(mask, aff), flip0, flip1, swap).array))
         np.testing.assert_array_equal(s.images, ref.images)
         np.testing.assert_array_equal(s.masks, ref.masks)
         assert s.pixel_mm == ref.pixel_mm
         np.testing.assert_allclose(other.affine @ np.linalg.inv(s.slice_from_voxel), world, atol=1e-9)
-        np.testing.assert_array_equal(s.to_stack(s.masks), _stored(Volume(mask, aff), flip0, flip1, swap).array)
+        np.testing.assert_array_equal(s.to_stack(s.masks), stored_as(Volume(mask, aff), flip0, flip1, swap).array)
 
 
 def test_slice_masks_go_back_to_the_stacks_voxels_along_any_slice_axis() -> None:
@@ -105,7 +91,9 @@ def test_slice_masks_go_back_to_the_stacks_voxels_along_any_slice_axis() -> None
         s = split_stack(Volume(mask.astype(np.float32), np.diag(spacing + [1.0])), mask)
         assert s.slice_axis == axis
         np.testing.assert_array_equal(s.to_stack(s.masks), mask)
-        np.testing.assert_array_equal(stack_from_slice_images(slice_images(mask, np.eye(4), axis)[0], axis), mask)
+        images, _, layout = slice_images(mask, np.diag(spacing + [1.0]), axis)
+        np.testing.assert_array_equal(stack_from_pictures(images, axis, layout), mask)
+        np.testing.assert_array_equal(images, s.masks)                 # the localiser's pictures are the pose network's
 
 
 def biased_phantom(strength: float = 0.5) -> tuple[Volume, np.ndarray, np.ndarray]:
