@@ -334,6 +334,10 @@ def stream(
         for name, slices in (summary.get("reacquire") or {}).items():
             if slices:
                 console.print(f"worth acquiring again, stack {name}: {reacquire_text(slices)}", markup=False)
+        for name, left in (summary.get("unfinished") or {}).items():
+            missing = left.get("missing") or []
+            console.print(f"stack {name}: no final poses" + (f", slices {', '.join(map(str, missing))} never arrived"
+                                                            if missing else " (never ended)"), style="red")
         error_count = len(result.of_type("error"))
         if error_count:
             console.print(f"{error_count} error(s) from the server (above, in red)", style="red")

@@ -182,8 +182,9 @@ def _reacquire(slices: list[tuple[int, str]]) -> list[dict]:
 
 
 def summary_message(summary: SessionSummary, started: float, latencies_ms: list[float]) -> dict:
-    """A stream's ``summary``: the session's stacks, slices, coverage and where its time went,
-    with the session's length since ``started`` (``time.perf_counter``) and the median and 95th
+    """A stream's ``summary``: the session's stacks, slices, coverage, each ended stack's slices worth
+    acquiring again, the stacks that got no final poses (never ended, or their end refused: the
+    slices missing below their highest one), and where its time went, with the session's length since ``started`` (``time.perf_counter``) and the median and 95th
     percentile of its pose latencies (ms)."""
     lat = np.asarray(latencies_ms, np.float64) if latencies_ms else np.zeros(1)
     session = {"session": (time.perf_counter() - started) * 1e3, "pose_latency_p50": float(np.percentile(lat, 50)),
@@ -191,6 +192,7 @@ def summary_message(summary: SessionSummary, started: float, latencies_ms: list[
     return {"type": "summary", "stacks": summary.stacks, "slices": summary.slices,
             "coverage": summary.coverage.report(),
             "reacquire": {stack: _reacquire(slices) for stack, slices in summary.reacquire.items()},
+            "unfinished": {stack: {"missing": missing} for stack, missing in summary.unfinished.items()},
             "timing_ms": {k: round(v, 1) for k, v in {**summary.compute_ms, **session}.items()}}
 
 

@@ -42,7 +42,7 @@ from service.api.responses import error_message, pose_object, stack_message, sum
 from service.core.errors import (InternalError, InvalidParameter, PayloadTooLarge, RequestTimeout, ServiceError,
                                  UnusableImage)
 from service.mrd.images import pixel_count, slice_from_image, with_pose
-from service.streaming.frames import SliceFrame
+from service.streaming.frames import IncompleteStack, SliceFrame
 from service.streaming.background import background_executor
 from service.streaming.options import SessionOptions, StreamLimits
 from service.streaming.session import StreamSession
@@ -354,6 +354,11 @@ class MrdConnection:
         try:
             answer = self.stage.submit(self.open_session().end_stack, series.stack).result()   # at the stages' priority
         except ServiceError as failed:
+            if series.passes > 1 and isinstance(failed, IncompleteStack):
+                failed = InvalidParameter(
+                    f"series {series_index}: the slices {sorted(series.slices)[:10]} came after the series had ended; "
+                    f"they make a pass of their own (stack {series.stack!r}), which ends as a stack only with all "
+                    "its slices: their immediate poses are their answer (the summary's unfinished lists the pass)")
             self.send_error(in_mrd_terms(failed), series=series_index)
         except Exception as fault:  # noqa: BLE001 - as in on_image
             log.error("mrd stack failed", extra={"error_type": type(fault).__name__})

@@ -54,6 +54,7 @@ class SessionSummary:
     slices: int
     compute_ms: dict[str, float]
     reacquire: dict[str, list[tuple[int, str]]] = field(default_factory=dict)   # each ended stack's, final
+    unfinished: dict[str, list[int]] = field(default_factory=dict)   # stacks without final poses: their missing slices
 
 
 def moved_mm(a: SliceAnswer, b: SliceAnswer, reference: NDArray) -> float:

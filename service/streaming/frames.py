@@ -41,6 +41,14 @@ plane a slice may lie :data:`~service.io.acquisition_geometry.POSITION_ROUNDING_
 a pixel off the first slice's line, whichever is more: as ``/v1/predict`` allows a series."""
 
 
+class IncompleteStack(InvalidParameter):
+    """A stack ended without all its slices (:meth:`StreamedStack.volume`); ``missing``: their indices."""
+
+    def __init__(self, detail: str, missing: list[int] | None = None) -> None:
+        super().__init__(detail)                    # one argument: copies and pickles rebuild it from its detail
+        self.missing = list(missing or [])
+
+
 @dataclass
 class SliceFrame:
     """One slice as sent: its stack's name, its index along the stack normal, pixels and geometry.
@@ -220,8 +228,8 @@ class StreamedStack:
             raise InvalidParameter(f"end_stack.stack: stack {self.name!r} has no slices")
         gaps = self.missing()
         if gaps:
-            raise InvalidParameter(f"end_stack.stack: stack {self.name!r} lacks the slices {gaps[:10]} (indices 0.."
-                                   f"{max(self.frames)} are expected)")
+            raise IncompleteStack(f"end_stack.stack: stack {self.name!r} lacks the slices {gaps[:10]} (indices 0.."
+                                  f"{max(self.frames)} are expected)", gaps)
         if not checked and self.off_line():
             raise InvalidParameter(f"end_stack.stack: the slices of stack {self.name!r} are not evenly spaced along "
                                    "their normal")

@@ -419,4 +419,5 @@ class StreamSession:
             n = sum(len(s) for s in self.stacks.values())
             final = {k: worth_acquiring_again(p.reasons, False, p.prepared.signal_lost)          # nothing more comes
                      for k, p in self.finals.items()}
-        return SessionSummary(names, self.coverage(), n, dict(self.compute_ms), final)
+            unfinished = {k: s.missing() for k, s in self.stacks.items() if k not in self.finals}
+        return SessionSummary(names, self.coverage(), n, dict(self.compute_ms), final, unfinished)

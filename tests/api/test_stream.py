@@ -81,6 +81,7 @@ def test_a_session_answers_every_slice_in_order_where_the_truth_is(client, case)
         summary = receive(ws, ("summary",))
         assert summary["stacks"] == ["ax", "cor"] and summary["slices"] == sum(len(f) for f in stacks)
         assert set(summary["reacquire"]) == {"ax", "cor"}                   # each stack's final list
+        assert summary["unfinished"] == {}                                  # every stack ended
         assert summary["timing_ms"]["pose_latency_p95"] >= summary["timing_ms"]["pose_latency_p50"]
         with pytest.raises(WebSocketDisconnect) as closed:
             ws.receive_json()
@@ -100,7 +101,7 @@ def test_a_session_s_log_lines_carry_its_id_and_its_end_is_logged(client, case, 
         ws.send_text(json.dumps({"type": "dance"}))
         assert ws.receive_json()["type"] == "error"
         ws.send_text(json.dumps({"type": "end"}))
-        receive(ws, ("summary",))
+        assert receive(ws, ("summary",))["unfinished"] == {stacks[0][0].stack: {"missing": []}}    # never ended
     lines = {r.getMessage(): r for r in caplog.records if getattr(r, "session_id", None) == session_id}
     assert lines["stream message refused"].status == 400
     end = lines["stream session"]

@@ -102,6 +102,7 @@ def test_a_scripted_session_shows_poses_updates_errors_and_the_summary(stack_fil
             elif msg["type"] == "end":
                 ws.send(json.dumps({"type": "summary", "stacks": ["ax", "cor"], "slices": 7,
                                     "coverage": {"brain_fraction": 0.42, "gaps": []},
+                                    "unfinished": {"sag": {"missing": [4, 7]}},
                                     "timing_ms": {"pose_latency_p50": 12.0, "pose_latency_p95": 19.0}}))
                 ws.close(1000)
                 return
@@ -131,6 +132,7 @@ def test_a_scripted_session_shows_poses_updates_errors_and_the_summary(stack_fil
     assert "update of stack ax: #2 ✓ 1.5 mm" in text and "stack cor: 3 of 3 slices with brain accepted · reacquire: none" in text
     assert ("session: 2 stack(s), 7 slices · pose latency p50 12 ms, p95 19 ms · "
             "coverage 42% of the brain, 0 gaps") in text
+    assert "stack sag: no final poses, slices 4, 7 never arrived" in text      # a stack the summary says did not end
     kinds = [json.loads(line)["type"] for line in out.read_text().splitlines()]
     assert kinds == ["ready", "pose", "pose", "error", "pose", "update", "stack", "pose", "pose", "pose", "pose",
                      "update", "stack", "summary"]

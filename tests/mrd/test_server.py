@@ -197,6 +197,25 @@ def test_a_series_that_cannot_end_is_named_in_mrd_terms(case: Case, serve) -> No
     received = client.close()
     (error,) = [m for m in texts(received) if m["type"] == "error"]
     assert error["detail"].startswith("series: stack '0' lacks the slices [0]") and error["image_series_index"] == 0
+    summary = texts(received)[-1]                  # not a clean session: the series is named with what it lacks
+    assert summary["type"] == "summary" and summary["reacquire"] == {} and summary["unfinished"] == {"0": {"missing": [0]}}
+
+
+def test_slices_sent_again_after_their_series_ended_are_told_why_they_get_no_stack(case: Case, serve) -> None:  # noqa: ANN001
+    """A complete series, then two of its slices again (as its ``stack`` message's ``reacquire`` asks):
+    they form the series' second pass, which cannot end as a stack of its own; the error says so in
+    the series' terms, not by the slices the scanner was never asked for, and the summary names it."""
+    server = serve()
+    client = MrdLink("127.0.0.1", server.port)
+    client.send(CONFIG, mrd_header(slices=20), *case.images[0], case.images[0][5], case.images[0][9])
+    received = client.close()
+    messages = texts(received)
+    assert [m["stack"] for m in messages if m["type"] == "stack"] == ["0"]
+    assert len([m for m in received if isinstance(m, ismrmrd.Image)]) == 22          # each image answered at once
+    (error,) = [m for m in messages if m["type"] == "error"]
+    assert error["image_series_index"] == 0 and error["detail"].startswith(
+        "series 0: the slices [5, 9] came after the series had ended; they make a pass of their own (stack '0.2')")
+    assert messages[-1]["unfinished"] == {"0.2": {"missing": [0, 1, 2, 3, 4, 6, 7, 8]}}
 
 
 def test_an_image_over_the_pixel_limit_is_refused_before_its_data(case: Case, serve) -> None:  # noqa: ANN001
