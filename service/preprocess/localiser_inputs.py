@@ -95,14 +95,14 @@ class LocaliserGrid:
         native = np.zeros((len(core), *self.native), np.float32)
         nonzero = np.argwhere(core.any(axis=0))
         if len(nonzero) == 0:
-            return stack_from_pictures(native, self.slice_axis, self.layout)
+            return np.ascontiguousarray(stack_from_pictures(native, self.slice_axis, self.layout))
         scale = np.array(self.native) / np.array([h, w])             # native pixels per network pixel
         lo = np.maximum(np.floor((nonzero.min(0) - 1) * scale).astype(int), 0)
         hi = np.minimum(np.ceil((nonzero.max(0) + 2) * scale).astype(int), self.native)
         rows = linear_operator((np.arange(lo[0], hi[0]) + 0.5) / scale[0] - 0.5, h)
         cols = linear_operator((np.arange(lo[1], hi[1]) + 0.5) / scale[1] - 0.5, w)
         native[:, lo[0]:hi[0], lo[1]:hi[1]] = _separable(np.ascontiguousarray(core), rows, cols)
-        return stack_from_pictures(native, self.slice_axis, self.layout)
+        return np.ascontiguousarray(stack_from_pictures(native, self.slice_axis, self.layout))   # later steps walk it by voxel order
 
 
 def _separable(images: NDArray[np.float32], rows: sparse.csr_matrix, cols: sparse.csr_matrix) -> NDArray[np.float32]:
