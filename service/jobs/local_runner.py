@@ -119,8 +119,9 @@ class LocalRunner(JobRunner):
         self.started = True
         queued = self._handed_over(self.store.recover(self.max_attempts), fail_others=True)
         for job in queued:
-            if job.attempts:
-                log.info(f"re-queued job {job.id}, attempt {job.attempts + 1}",
+            if job.started_at is not None:       # it ran before the restart: a lost run, or one handed back
+                log.info(f"re-queued job {job.id}, attempt {job.attempts + 1}" if job.attempts else
+                         f"resumed job {job.id} (handed back at the last shutdown; the run did not count)",
                          extra={"job_id": job.id, "attempt": job.attempts + 1})
             self.submit(job.id)
         return [job.id for job in queued]

@@ -23,6 +23,7 @@ Example:
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shutil
 import sqlite3
@@ -36,6 +37,8 @@ from pathlib import Path
 
 from service.core.errors import StoreUnavailable
 from service.jobs.runner import lost_worker
+
+log = logging.getLogger(__name__)
 
 STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 FINAL = ("succeeded", "failed", "cancelled")
@@ -353,6 +356,7 @@ class SqliteJobStore(JobStore):
                        "WHERE status = 'running'", (f"queued (re-run after {cause})", now))
         for job_id in given_up:
             self.discard_inputs(job_id)
+            log.warning(f"job {job_id} failed: {error}", extra={"job_id": job_id})
         return self.queued()
 
     def expire(self, retention_s: float) -> list[str]:

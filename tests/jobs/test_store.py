@@ -182,7 +182,8 @@ def test_a_deleted_or_expired_job_leaves_no_trace_in_the_database_files(store: J
 
 
 @pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)
-def test_restart_requeues_running_jobs_then_fails_them_after_max_attempts(store: JobStore, tmp_path: Path) -> None:
+def test_restart_requeues_running_jobs_then_fails_them_after_max_attempts(store: JobStore, tmp_path: Path,
+                                                                        caplog: pytest.LogCaptureFixture) -> None:
     queued, running = store.create({}), store.create({})
     store.claim(running.id)
     reopened = SqliteJobStore(store.data_dir)         # a new server process
@@ -192,6 +193,7 @@ def test_restart_requeues_running_jobs_then_fails_them_after_max_attempts(store:
     assert reopened.recover(max_attempts=2) == [queued.id]
     failed = reopened.get(running.id)
     assert failed.status == "failed" and "restart" in failed.error
+    assert f"job {running.id} failed: interrupted by a server restart" in caplog.text       # the log says so too
 
 
 @pytest.mark.parametrize("queue_settings", ["redis"], indirect=True)
