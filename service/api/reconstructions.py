@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 from datetime import datetime, timezone
 from typing import Annotated, Optional
 
@@ -27,6 +28,8 @@ from service.jobs.store import Job, JobStore
 from service.jobs.uploaded_poses import in_upload_order, poses_from_predict_body
 from service.reconstruction.export import volume_in_stack_space, zip_folder
 from service.reconstruction.stack_space import NoStackFrame
+
+log = logging.getLogger(__name__)
 
 router = APIRouter(prefix="/v1/reconstructions", tags=["reconstruction"], dependencies=[ApiKey])
 
@@ -196,6 +199,8 @@ async def _submit(request: Request, response: Response, settings: Settings, form
     (inputs / "names.json").write_text(json.dumps(names))
     (inputs / "params.json").write_text(json.dumps(store.get(job.id).params))
     request.app.state.job_runner.submit(job.id)
+    log.info("job submitted", extra={"request_id": request.scope["state"]["request_id"], "job_id": job.id,
+                                     "n_stacks": len(uploads)})           # the request's id, linked to its job's lines
     response.headers["Location"] = f"/v1/reconstructions/{job.id}"
     return {"job_id": job.id, "status": "queued", "status_url": f"/v1/reconstructions/{job.id}"}
 

@@ -318,11 +318,16 @@ def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict, mo
 
 
 @both
-def test_a_retried_submission_with_its_idempotency_key_gets_the_same_job(client: TestClient, case: dict) -> None:
+def test_a_retried_submission_with_its_idempotency_key_gets_the_same_job(client: TestClient, case: dict,
+                                                                         caplog: pytest.LogCaptureFixture) -> None:
     """A client whose first answer was lost sends the submission again with the same key: the job the
-    first made, not a second; another key, another job; a key no client would make is refused."""
-    headers = {"Idempotency-Key": "k-3f9c1e7a55d2b0"}
-    first = submit(client, case, headers=headers)
+    first made, not a second; another key, another job; a key no client would make is refused. The
+    log links the submission's request id to its job."""
+    headers = {"Idempotency-Key": "k-3f9c1e7a55d2b0", "X-Request-ID": "scanner-script-0001"}
+    with caplog.at_level("INFO", logger="service"):
+        first = submit(client, case, headers=headers)
+    (line,) = [r for r in caplog.records if r.getMessage() == "job submitted"]
+    assert (line.request_id, line.job_id, line.n_stacks) == ("scanner-script-0001", first.json()["job_id"], len(case["files"]))
     again = submit(client, case, headers=headers)
     assert first.status_code == again.status_code == 202
     assert again.json()["job_id"] == first.json()["job_id"] and again.headers["location"] == first.headers["location"]
