@@ -73,16 +73,23 @@ QUIET_WARNINGS = ("pydicom", "xsdata", "ismrmrd")
 XML header field's, such as a malformed birth date): ignored, as they would reach stderr as text."""
 
 
-def configure(level: str = "info") -> None:
+def configure(level: str = "info", libraries: tuple[str, ...] = ()) -> None:
     """Send the ``service`` loggers to stderr as JSON lines; quiet the libraries that parse clients'
     bytes (:data:`QUIET`, and the warnings of :data:`QUIET_WARNINGS`, which name a field and may
-    quote its value)."""
+    quote its value). The loggers of ``libraries`` (``rq`` in a worker) go the same way, each line
+    cut to its first (:class:`FirstLine`)."""
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(JsonFormatter())
     root = logging.getLogger("service")
     root.handlers[:] = [handler]
     root.setLevel(level.upper())
     root.propagate = False
+    for name in libraries:
+        library = logging.getLogger(name)
+        library.handlers[:] = [handler]
+        library.filters[:] = [FirstLine()]
+        library.setLevel(level.upper())
+        library.propagate = False
     for name, floor in QUIET.items():
         logging.getLogger(name).setLevel(floor)
     for module in QUIET_WARNINGS:
@@ -92,6 +99,21 @@ def configure(level: str = "info") -> None:
     captured.handlers[:] = [handler]
     captured.propagate = False
     captured.filters[:] = [WarningPlace()]
+
+
+class FirstLine(logging.Filter):
+    r"""A library's line cut to its first line: RQ appends a failed job's traceback, whose exception
+    messages may name a client's file, to the line that says which job failed.
+
+    Example:
+        >>> record = logging.LogRecord("rq.worker", 40, "", 0, "job %s: raised (%s)\n%s", ("j1", "f", "Doe"), None)
+        >>> FirstLine().filter(record), record.getMessage()
+        (True, 'job j1: raised (f)')
+    """
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        record.msg, record.args = record.getMessage().split("\n", 1)[0], ()
+        return True
 
 
 class WarningPlace(logging.Filter):

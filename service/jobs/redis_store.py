@@ -187,6 +187,13 @@ class RedisJobStore(JobStore):
                                  started_at=repr(time.time()), **{"+attempts": 1}))
 
     @_answering
+    def hand_back(self, job_id: str) -> bool:
+        """Put a running job back in the queue (its worker was stopped at once): its run does not
+        count as an attempt. False where it was no longer running (it ended meanwhile)."""
+        return self._move(job_id, ("running",), "queued", stage="queued (handed back by a stopping worker)",
+                          progress="0", **{"+attempts": -1}) >= 0
+
+    @_answering
     def finish(self, job_id: str, report: dict, attempt: int | None = None) -> bool:
         return self._move(job_id, ("running",), "succeeded", attempt, stage="done", progress="1.0", report=report) >= 0
 

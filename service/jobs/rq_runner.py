@@ -63,13 +63,14 @@ def set_context(settings: Settings) -> WorkerContext:
     return _context
 
 
-def _worker_context() -> WorkerContext:
+def worker_context() -> WorkerContext:
+    """This worker process's context (:func:`set_context`; from the environment's settings if unset)."""
     return _context or set_context(Settings())
 
 
 def execute(job_id: str) -> None:
     """The RQ task (in the work horse): run the job; ``redelivered`` when RQ retried it."""
-    ctx = _worker_context()
+    ctx = worker_context()
     watch_parent()
     current = get_current_job()
     retries_left = current.retries_left if current is not None else None
@@ -81,7 +82,7 @@ def execute(job_id: str) -> None:
 
 def on_stopped(job: RqJob, connection: redis.Redis) -> None:  # noqa: ARG001 - RQ's callback signature
     """After RQ killed a cancelled job's horse (in the worker): remove what it may have written since."""
-    store = _worker_context().store
+    store = worker_context().store
     if store.is_cancelled(job.id):
         shutil.rmtree(store.directory(job.id), ignore_errors=True)
 

@@ -37,7 +37,7 @@ from service.core import logging as service_logging
 from service.core.process_pools import watch_parent
 from service.core.settings import Settings, load_settings
 from service.core.threads import limit_blas_threads
-from service.jobs.rq_runner import set_context
+from service.jobs.rq_runner import worker_context, set_context
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +70,28 @@ class SvrnetWorker(Worker):
 
     def get_heartbeat_ttl(self, job: RqJob) -> int:
         return int(self.job_monitoring_interval + self.lost_after_s)
+
+    def request_force_stop(self, signum: int, frame: object) -> None:
+        """RQ's cold shutdown (a second stop signal: the horse is killed, then ``SystemExit``), with the
+        job it was running handed back: queued again at the front, in the job store too, its run not
+        counted as an attempt (otherwise RQ leaves it started until the worker is found lost, and the
+        stop spends one of its attempts)."""
+        job = self.get_current_job() if self.horse_pid else None
+        try:
+            super().request_force_stop(signum, frame)              # type: ignore[arg-type]
+        except SystemExit:
+            if job is not None:
+                self._hand_back(job)
+            raise
+
+    def _hand_back(self, job: RqJob) -> None:
+        if not worker_context().store.hand_back(job.id):     # it ended meanwhile: nothing to hand back
+            return
+        with self.connection.pipeline() as pipe:
+            self.cleanup_execution(job, pipe)                  # out of the started registry: not abandoned later
+            pipe.execute()
+        Queue(job.origin, connection=self.connection).enqueue_job(job, at_front=True)
+        log.info(f"handed back job {job.id} (the worker was stopped; the run does not count)", extra={"job_id": job.id})
 
     def _install_signal_handlers(self) -> None:
         # RQ registers the worker before it installs its handlers, and installs them outside its
@@ -195,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.health:
         return 0 if healthy(settings) else 1
     hold_stop_signals()
-    service_logging.configure(settings.log_level)
+    service_logging.configure(settings.log_level, libraries=("rq",))     # RQ's lines as JSON on stderr too
     _preload()
     if args.workers <= 1:
         work(settings, args.burst, args.name)

@@ -132,6 +132,41 @@ def test_sigterm_lets_the_worker_finish_its_job(tmp_path: Path, job_files: list,
     runner.shutdown()
 
 
+@pytest.mark.slow
+def test_a_second_sigterm_hands_the_job_back_at_once_without_spending_an_attempt(
+        tmp_path: Path, job_files: list, cluster_settings: dict[str, str]) -> None:
+    """The first SIGTERM asks the worker to finish its job; a second one stops the job and hands it
+    back: queued again at once (not once the worker is found lost), shown as queued, the stopped run
+    not counted; the next worker completes it as its first attempt."""
+    from rq import Queue
+
+    api = Server(Path(cluster_settings["data_dir"]), tmp_path / "api.log",
+                 **{k: v for k, v in cluster_settings.items() if k != "data_dir"})
+    workers = [Worker(tmp_path / "worker.log", env_of(cluster_settings))]
+    try:
+        job_id = submit(api.url, job_files)
+        deadline = time.time() + 60
+        while (st := status(api.url, job_id))["status"] == "queued" or st["stage"] in ("starting", "reading"):
+            assert time.time() < deadline, st
+            time.sleep(0.05)
+        workers[0].proc.send_signal(signal.SIGTERM)
+        time.sleep(1.5)                                     # RQ takes two signals within 1 s for one
+        workers[0].proc.send_signal(signal.SIGTERM)
+        workers[0].proc.wait(timeout=30)
+        st = status(api.url, job_id)
+        queue = Queue(cluster_settings["queue_name"], connection=redis.Redis.from_url(cluster_settings["queue_url"]))
+        assert st["status"] == "queued" and st["attempts"] == 0 and queue.job_ids == [job_id], st
+        assert f"handed back job {job_id}" in (tmp_path / "worker.log").read_text()
+        workers.append(Worker(tmp_path / "worker2.log", env_of(cluster_settings)))
+        deadline = time.time() + 240
+        while (st := status(api.url, job_id))["status"] not in FINAL:
+            assert time.time() < deadline, st
+            time.sleep(0.3)
+        assert st["status"] == "succeeded" and st["attempts"] == 1, st
+    finally:
+        stop_all(workers, [api])
+
+
 def _run_one(tmp_path: Path, job_files: list, settings: dict[str, str], kill: bool) -> tuple[dict, Path]:
     """One long job on one worker (killed -9 once the job is past reading, if ``kill``): its final
     status and folder."""

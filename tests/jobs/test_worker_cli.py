@@ -97,6 +97,20 @@ def test_a_stop_signal_during_start_up_unregisters_and_exits_cleanly(tmp_path: P
     assert RqWorker.count(queue=queue) == 0
 
 
+def test_a_worker_logs_only_json_lines_on_stderr_rq_s_own_included(tmp_path: Path, redis_url: str) -> None:
+    """A log shipper reads one stream of JSON lines: RQ's own lines (its start, its registries, its
+    end) come as the service's do, on stderr, nothing on stdout."""
+    import json
+
+    env = {**os.environ, "SVRNET_QUEUE_URL": redis_url, "SVRNET_QUEUE_NAME": f"t{os.getpid()}json",
+           "SVRNET_DATA_DIR": str(tmp_path)}
+    done = subprocess.run([sys.executable, "-c", "from service.jobs.worker_cli import run; run()", "--burst"],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr[-2000:]
+    lines = [json.loads(line) for line in done.stderr.splitlines()]
+    assert done.stdout == "" and any(line["logger"].startswith("rq.") for line in lines), done.stderr
+
+
 RESTARTING_POOL = textwrap.dedent("""
     import os, sys, time
     from pathlib import Path
