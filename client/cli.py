@@ -57,6 +57,7 @@ from client.cli_support import (DEFAULT_VOLUME, ApiKeyOpt, BiasCorrectionOpt, Jo
                                 MaxExpectedOpt, McSamplesOpt, ModelOpt, ServerOpt, StackSpaceOpt, StacksArg, ThresholdOpt,
                                 check_folder_writable, check_masks, check_writable, follow_job, job_id_of,
                                 once_or_per_stack, resolution_range, timeout_from_env, write_json, write_results)
+from client.errors import SVRnetError
 from client.exits import (EXIT_BAD_INPUT, EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, EXIT_USAGE, errors, fail,
                           stderr, stdout)
 from client.stream_views import StreamView, coverage_text, reacquire_text
@@ -314,16 +315,21 @@ def stream(
         names = Counter(st.name for st in read)
         read = [streaming.ScannerStack(f"{st.name}#{i}" if names[st.name] > 1 else st.name, st.slice_axis, st.slices)
                 for i, st in enumerate(read)]
-        with Live(view.renderable(), console=console, auto_refresh=False, transient=True) as live:
-            def on_message(message: dict[str, Any], answered: Sent | None) -> None:
-                view.on_message(message, answered)
-                live.update(view.renderable(), refresh=True)
+        try:
+            with Live(view.renderable(), console=console, auto_refresh=False, transient=True) as live:
+                def on_message(message: dict[str, Any], answered: Sent | None) -> None:
+                    view.on_message(message, answered)
+                    live.update(view.renderable(), refresh=True)
 
-            result = streaming.stream_stacks(
-                read, server, api_key=api_key or None, mc_samples=mc_samples, variance_threshold=threshold,
-                max_expected_error_mm=max_expected_error, bias_correction=None if bias_correction else False,
-                masks_hold_csf=True if masks_hold_csf else None, model=model, pace_s=pace, order=order or "sequential",
-                on_message=on_message, json_out=json_out, answer_timeout_s=timeout_from_env().read or 300.0)
+                result = streaming.stream_stacks(
+                    read, server, api_key=api_key or None, mc_samples=mc_samples, variance_threshold=threshold,
+                    max_expected_error_mm=max_expected_error, bias_correction=None if bias_correction else False,
+                    masks_hold_csf=True if masks_hold_csf else None, model=model, pace_s=pace,
+                    order=order or "sequential", on_message=on_message, json_out=json_out,
+                    answer_timeout_s=timeout_from_env().read or 300.0)
+        except SVRnetError:
+            view.print_open()                          # the transient table goes with the session: keep its rows
+            raise
         summary = result.summary or {}
         timing = summary.get("timing_ms") or {}
         p50, p95 = timing.get("pose_latency_p50"), timing.get("pose_latency_p95")

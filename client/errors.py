@@ -70,7 +70,15 @@ class BadRequest(SVRnetError):
 
 
 class Unauthorized(SVRnetError):
-    """401/403: missing or wrong API key (set ``SVRNET_API_KEY`` or pass ``api_key=``)."""
+    """401/403: missing or wrong API key (set ``SVRNET_API_KEY`` or pass ``api_key=``).
+
+    Attributes:
+        key_sent: whether the refused request carried a key (None: not known).
+    """
+
+    def __init__(self, detail: str, *, key_sent: bool | None = None, **kwargs: Any) -> None:
+        super().__init__(detail, **kwargs)
+        self.key_sent = key_sent
 
 
 class NotFound(SVRnetError):
@@ -234,7 +242,20 @@ def error_from_response(response: httpx.Response) -> SVRnetError:
                               "request_id": request_id, "type": body.get("type"), "body": body}
     if 300 <= status < 400 or (status in NOT_SVRNET and "status" not in body):
         return ConnectionFailed(detail, **kwargs)     # the wrong server: as one that cannot be reached
+    if status == 404 and detail.startswith("no route "):
+        return ConnectionFailed(detail, **kwargs)     # the right server at the wrong URL: check the server URL
     cls = error_class_for_status(status)
     if cls is Busy:
         return Busy(detail, retry_after_s=parse_retry_after(response.headers.get("retry-after")), **kwargs)
+    if cls is Unauthorized:
+        return Unauthorized(detail, key_sent=_key_sent(response), **kwargs)
     return cls(detail, **kwargs)
+
+
+def _key_sent(response: httpx.Response) -> bool | None:
+    """Whether the request ``response`` answers carried an API key (None: the request is not known)."""
+    try:
+        headers = response.request.headers
+    except RuntimeError:                       # a response made without its request
+        return None
+    return "authorization" in headers or "x-api-key" in headers

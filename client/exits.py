@@ -85,7 +85,10 @@ def errors() -> Iterator[None]:
     except (typer.Exit, typer.Abort, typer.BadParameter):   # typer's own ending: its exit code stands
         raise
     except SVRnetError as e:
-        hint = " (give the key with SVRNET_API_KEY or --api-key)" if isinstance(e, Unauthorized) else ""
+        hint = ""
+        if isinstance(e, Unauthorized):
+            hint = (" (the key sent was refused: check SVRNET_API_KEY or --api-key)" if e.key_sent
+                    else " (give the key with SVRNET_API_KEY or --api-key)")
         if isinstance(e, Busy):
             tried = f"sent {e.attempts} times" if e.attempts > 1 else "sent once"
             asks = f"; it asks to retry in {e.retry_after_s:g} s" if e.retry_after_s is not None else ""

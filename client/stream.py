@@ -195,13 +195,17 @@ class _Session:
 
     def closed_error(self, e: ConnectionClosed) -> SVRnetError:
         """Why the server closed the session early: a refusal (1008, 1013) as its last ``error`` says,
-        else the close code and reason (or, for an idle session, 1001, its ``error``'s detail)."""
+        a restart (1012) as what to do, else the close code and reason (or, for an idle session, 1001,
+        its ``error``'s detail)."""
         code, reason = (e.rcvd.code, e.rcvd.reason) if e.rcvd is not None else (1006, str(e))
         said = self.last_error or {}
         if code in (1008, 1013) and said:
             return _server_error(said)
         if code == 1013:
             return Busy("the server is busy (close code 1013)", status=503)
+        if code == 1012:
+            return ConnectionFailed("the server is restarting (close code 1012, service restart): the session is "
+                                    "lost; stream the stacks again once it answers")
         why = said.get("detail") if code == 1001 and said else reason
         return ConnectionFailed(f"the server closed the stream (close code {code}{': ' + why if why else ''})")
 

@@ -94,6 +94,13 @@ class StreamView:
             table.add_row(*pose_cells(row, self.limit))
         return table
 
+    def print_open(self) -> None:
+        """Print the slices of the stacks that did not end (a session cut short): what was received
+        stays on the screen and in a redirected output, not only in ``--json-out``."""
+        rows = [row for (stack, _), row in self.rows.items() if stack not in self.finished]
+        if rows:
+            self.console.print(self.table(rows, "received before the session ended (no final poses)"))
+
     def renderable(self) -> Table:
         """The open stack's slices, the latest that fit the terminal."""
         rows = [row for (stack, _), row in self.rows.items() if stack not in self.finished]

@@ -313,8 +313,9 @@ def parser() -> argparse.ArgumentParser:
                     "series); one MRD series each")
     ap.add_argument("--host", default="127.0.0.1", help="the server's address (default 127.0.0.1)")
     ap.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"its port (default {DEFAULT_PORT})")
-    ap.add_argument("--order", default="sequential", help="acquisition order: sequential, interleaved, "
-                    "interleaved-odd-first, or the slice indices as acquired (0,2,4,1,3)")
+    ap.add_argument("--order", default="sequential", help="acquisition order: sequential, interleaved (even "
+                    "indices first), interleaved-even-first, interleaved-odd-first, or the slice indices as "
+                    "acquired (0,2,4,1,3)")
     ap.add_argument("--config", default="{}", help='session options as JSON, e.g. \'{"mc_samples": 50}\'')
     ap.add_argument("--pace-s", type=float, default=0.0, help="seconds between images (a scanner's pace)")
     ap.add_argument("--wait-s", type=float, default=600.0, help="how long to wait for the server's last answers")

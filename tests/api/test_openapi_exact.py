@@ -51,3 +51,12 @@ def test_every_documented_method_is_in_allow(oracle_client: TestClient) -> None:
         concrete = path.replace("{job_id}", "abc")
         allow = {m.strip().lower() for m in oracle_client.options(concrete).headers["allow"].split(",")}
         assert set(ops) <= allow, (path, allow)
+
+
+def test_a_path_with_no_route_says_where_the_routes_are(oracle_client: TestClient) -> None:
+    """A client whose server URL ends in /v1 asks /v1/v1/models: the 404 says why, not just "Not Found";
+    a route's own 404 (an unknown job) keeps its detail."""
+    r = oracle_client.get("/v1/v1/models")
+    assert r.status_code == 404 and r.headers["content-type"].startswith("application/problem+json")
+    assert "no route '/v1/v1/models'" in r.json()["detail"] and "ends in /v1" in r.json()["detail"]
+    assert oracle_client.get("/v1/reconstructions/abc").json()["detail"].startswith("job_id: no job")

@@ -511,7 +511,9 @@ def test_every_command_takes_the_api_key_and_an_unauthorised_one_says_how_to_giv
     assert invoke(["models", "--api-key", "k"]).exit_code == 0 and made[-1][1] == "k"
     assert invoke(["predict", str(stack_file), "--api-key", "k"]).exit_code == 0 and made[-1][1] == "k"
     r = invoke(["models"])
-    assert r.exit_code == 4 and "SVRNET_API_KEY or --api-key" in r.stderr
+    assert r.exit_code == 4 and "give the key with SVRNET_API_KEY or --api-key" in r.stderr
+    r = invoke(["models", "--api-key", "wrong"])
+    assert r.exit_code == 4 and "the key sent was refused" in " ".join(r.stderr.split())
     r = invoke(["predict", str(stack_file), "--out", str(tmp_path / "no" / "p.json")])
     assert r.exit_code == 2 and "--out" in r.output and "--preview" not in r.output
 

@@ -26,6 +26,7 @@ from fastapi.testclient import TestClient
 from client import (BadRequest, Busy, Conflict, ConnectionFailed, JobFailed, NotFound, ServerError, SVRnetClient,
                     SVRnetError, Unauthorized, UnsupportedFile, UnusableInput, WaitTimeout)
 from client.errors import ArgumentError, error_from_response
+from client.exits import EXIT_CONNECTION, exit_code_for
 from service.core.settings import Settings
 from service.inference.estimator import PoseEstimate
 from service.inference.model_file import ModelInfo
@@ -133,9 +134,10 @@ def test_api_keys(stack_file: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     with make_test_client(api_keys="k") as tc:
         with pytest.raises(Unauthorized) as e:
             SVRnetClient(http=tc).models()
-        assert e.value.status == 401 and "API key" in e.value.detail
-        with pytest.raises(Unauthorized):
+        assert e.value.status == 401 and "API key" in e.value.detail and e.value.key_sent is False
+        with pytest.raises(Unauthorized) as e:
             SVRnetClient(http=tc, api_key="wrong").predict([stack_file])
+        assert e.value.key_sent is True                   # the CLI then says the key was refused, not missing
         assert SVRnetClient(http=tc, api_key="k").models()[0]["name"] == "default"
         assert SVRnetClient(http=tc, api_key="k").predict([stack_file], bias_correction=False)["stacks"]
         monkeypatch.setenv("SVRNET_API_KEY", "k")
@@ -333,6 +335,9 @@ def test_error_mapping(status: int, cls: type[SVRnetError]) -> None:
         assert "oops" not in plain.detail and plain.request_id == "h1"
     else:
         assert type(plain) is cls and "oops" in plain.detail and plain.request_id == "h1"
+    if status == 404:                          # an SVRnet server at a wrong path (a URL ending in /v1): the same
+        wrong = error_from_response(httpx.Response(404, json=problem(404, "no route '/v1/v1/models': ...", "T")))
+        assert type(wrong) is ConnectionFailed and exit_code_for(wrong) == EXIT_CONNECTION
 
 
 def test_api_key_header_and_non_json_server_error() -> None:

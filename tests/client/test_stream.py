@@ -170,6 +170,25 @@ def test_no_server_exits_with_connection_failed_and_keeps_an_earlier_record(stac
     assert record.read_text() == '{"type": "ready"}\n'                 # no session, the last one's record kept
 
 
+def test_a_server_restart_mid_session_says_so_and_keeps_what_was_answered(stack_file: Path) -> None:
+    """A server that restarts (close code 1012) after answering two slices: the poses received stay
+    in the output (the live table is transient), and the error says to stream the stacks again."""
+    def handler(ws: ServerConnection) -> None:
+        ws.recv()
+        ws.send(json.dumps({"type": "ready", "session_id": "s1", "model": {"name": "default"}, "mc_samples": 10}))
+        for _ in range(2):
+            msg = json.loads(ws.recv())
+            ws.recv()
+            ws.send(json.dumps(pose(msg)))
+        ws.close(1012, "service restart")
+
+    with scripted_server(handler) as url:
+        result = runner.invoke(cli.app, ["stream", str(stack_file), "--server", url])
+    text = " ".join(result.output.split())
+    assert result.exit_code == exits.EXIT_CONNECTION and "the server is restarting (close code 1012" in text, text
+    assert "received before the session ended" in text and "stream the stacks again" in text
+
+
 def test_a_server_that_answers_no_json_is_a_server_error(stack_file: Path) -> None:
     def handler(ws: ServerConnection) -> None:
         ws.recv()
