@@ -47,7 +47,7 @@ from scipy import ndimage, sparse
 
 from service.geometry.sampling import FWHM_TO_SIGMA, linear_operator
 from service.io.volume import Volume
-from service.preprocess.stack import slice_images, stack_axis, stack_from_pictures
+from service.preprocess.stack import pictures, slice_images, stack_axis
 
 PAD_MULTIPLE = 16
 MIN_GRID_PX = 64
@@ -92,17 +92,18 @@ class LocaliserGrid:
         r, c = self.offset
         h, w = self.resampled
         core = np.asarray(maps, np.float32)[:, r:r + h, c:c + w]
-        native = np.zeros((len(core), *self.native), np.float32)
+        out = np.zeros(self.shape, np.float32)                        # the stack's voxel order
+        native = pictures(out, self.slice_axis, self.layout)          # a view of it, laid out as the maps
         nonzero = np.argwhere(core.any(axis=0))
         if len(nonzero) == 0:
-            return np.ascontiguousarray(stack_from_pictures(native, self.slice_axis, self.layout))
+            return out
         scale = np.array(self.native) / np.array([h, w])             # native pixels per network pixel
         lo = np.maximum(np.floor((nonzero.min(0) - 1) * scale).astype(int), 0)
         hi = np.minimum(np.ceil((nonzero.max(0) + 2) * scale).astype(int), self.native)
         rows = linear_operator((np.arange(lo[0], hi[0]) + 0.5) / scale[0] - 0.5, h)
         cols = linear_operator((np.arange(lo[1], hi[1]) + 0.5) / scale[1] - 0.5, w)
         native[:, lo[0]:hi[0], lo[1]:hi[1]] = _separable(np.ascontiguousarray(core), rows, cols)
-        return np.ascontiguousarray(stack_from_pictures(native, self.slice_axis, self.layout))   # later steps walk it by voxel order
+        return out
 
 
 def _separable(images: NDArray[np.float32], rows: sparse.csr_matrix, cols: sparse.csr_matrix) -> NDArray[np.float32]:
