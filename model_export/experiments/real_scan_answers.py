@@ -5,14 +5,20 @@ with its manual mask, and the stacks of another site without masks (docs/accurac
 scans"). Each row is one request through the app in process (N4, 100 MC samples, every stage, the
 default accept flags). A model with fixed draws answers a request again as it did
 (docs/training.md, "Export and MC dropout"); ``--repeats`` sends each request again, which checks that.
+``--storages DIR`` sends instead the stacks of the scan folder ``DIR`` (each ``NAME.nii.gz`` beside a
+manual mask) without masks, every stack stored each of the eight ways a file can hold its in-plane
+voxels (either axis reversed, the two swapped; the world unchanged): one row each, which should
+all be the same (docs/reports/localiser-experiments.md, "Slices laid out by the scanner's axes").
 
-    .venv/bin/python model_export/experiments/real_scan_answers.py [--repeats 2]
+    .venv/bin/python model_export/experiments/real_scan_answers.py [--repeats 2] [--storages DIR ...]
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -21,8 +27,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from fastapi.testclient import TestClient  # noqa: E402
 
-from model_export.localiser.evaluate import MASK_SUFFIX, REAL_SCANS  # noqa: E402
+from model_export.experiments.localiser_sweep import reordered, reversed_axis  # noqa: E402
+from model_export.localiser.evaluate import MASK_SUFFIX, REAL_SCANS, masked_files  # noqa: E402
+from service.io.volume import Volume, read_volume, write_volume  # noqa: E402
 from service.main import create_app  # noqa: E402
+from service.preprocess.stack import stack_axis  # noqa: E402
 
 SHARED = ("mial_lausanne_t30", ["axial1_lr", "coronal1_lr", "sagittal1_lr"])
 OTHER_SITE = ("bch_f0832s1", ["fetus_03", "fetus_04"])
@@ -49,10 +58,45 @@ def answer_row(client: TestClient, folder: Path, names: list[str], masks: bool) 
     return ", ".join(cells)
 
 
+def stored_as(volume: Volume, first: bool, second: bool, swapped: bool) -> Volume:
+    """``volume`` as a file that stores its in-plane voxel axes otherwise holds it: the first and or
+    the second reversed, then the two swapped (each voxel where it was in the world)."""
+    axis = stack_axis(volume)
+    p, q = (a for a in range(3) if a != axis)
+    mask = np.zeros(volume.array.shape, bool)
+    for along, flip in ((p, first), (q, second)):
+        if flip:
+            volume, mask = reversed_axis(volume, mask, along)
+    if swapped:
+        order = [0, 1, 2]
+        order[p], order[q] = q, p
+        volume, mask = reordered(volume, mask, tuple(order))
+    return volume
+
+
+def storage_rows(client: TestClient, folder: Path) -> None:
+    """Print the answer without masks for every storage of the scan ``folder``'s masked stacks."""
+    names = [name for name, _, _ in masked_files(folder)]
+    volumes = {n: read_volume(folder / f"{n}.nii.gz") for n in names}
+    with tempfile.TemporaryDirectory() as tmp:
+        for storage in itertools.product([False, True], repeat=3):
+            for n in names:
+                write_volume(stored_as(volumes[n], *storage), Path(tmp) / f"{n}.nii.gz")
+            label = ", ".join(k for k, on in zip(("first reversed", "second reversed", "swapped"), storage)
+                              if on) or "as stored"
+            print(f"{folder.name}, {label}:", answer_row(client, Path(tmp), names, False), flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--repeats", type=int, default=1)
+    ap.add_argument("--storages", type=Path, nargs="+", help="scan folders to send stored every way, without masks")
     args = ap.parse_args()
+    if args.storages:
+        with TestClient(create_app()) as client:
+            for folder in args.storages:
+                storage_rows(client, folder)
+        return
     shared, other = REAL_SCANS / SHARED[0], REAL_SCANS / OTHER_SITE[0]
     if not shared.is_dir():
         sys.exit(f"needs the real scans at {REAL_SCANS}")
