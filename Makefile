@@ -8,8 +8,8 @@ PY     := $(VENV)/bin/python
 # `make test TORCH_INDEX=URL` points elsewhere (a mirror), and a machine without it uses what pip has.
 TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
 PIP    := $(PY) -m pip install --disable-pip-version-check -q -c constraints.txt --extra-index-url $(TORCH_INDEX) --retries 2
-HOST   ?= $(or $(SVRNET_HOST),127.0.0.1)
-PORT   ?= $(or $(SVRNET_PORT),8000)
+HOST   := $(or $(SVRNET_HOST),127.0.0.1)
+PORT   := $(or $(SVRNET_PORT),8000)
 
 .PHONY: serve test install-server install-dev install-queue bench cli-docs config-docs clean
 

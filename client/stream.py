@@ -31,8 +31,8 @@ from websockets.sync.client import ClientConnection, connect
 
 from client.transport import USER_AGENT, clean_api_key
 from client._client import DEFAULT_SERVER
-from client.errors import (ArgumentError, Busy, ConnectionFailed, ServerError, SVRnetError, UnusableInput,
-                           error_class_for_status)
+from client.errors import (ArgumentError, Busy, ConnectionFailed, ServerError, SVRnetError, Unauthorized,
+                           UnusableInput, error_class_for_status)
 from client.scanner_stack import SENT_DTYPES, ScannerSlice, ScannerStack, read_stack, scanner_slices, slice_axis_of
 
 __all__ = ["ScannerSlice", "ScannerStack", "Sent", "StreamResult", "ORDERS", "slice_axis_of", "scanner_slices",
@@ -112,22 +112,27 @@ def stream_url(server: str) -> str:
     return f"{schemes[scheme.lower()]}://{rest.rstrip('/')}/v1/stream"
 
 
-def _server_error(message: dict[str, Any]) -> SVRnetError:
-    """The client error of an ``error`` message (a ``Busy`` with ``retry_after_s`` where it says)."""
+def _server_error(message: dict[str, Any], key_sent: bool | None = None) -> SVRnetError:
+    """The client error of an ``error`` message (a ``Busy`` with ``retry_after_s`` where it says; an
+    ``Unauthorized`` saying whether the session sent a key)."""
     status = message.get("status") if isinstance(message.get("status"), int) else 400
     detail = str(message.get("detail") or message.get("title") or f"error {status}")
     kwargs = {"status": status, "title": message.get("title"), "type": message.get("problem_type"), "body": message}
-    if error_class_for_status(status) is Busy:
+    cls = error_class_for_status(status)
+    if cls is Busy:
         return Busy(detail, retry_after_s=message.get("retry_after_s"), **kwargs)
-    return error_class_for_status(status)(detail, **kwargs)
+    if cls is Unauthorized:
+        return Unauthorized(detail, key_sent=key_sent, **kwargs)
+    return cls(detail, **kwargs)
 
 
 class _Session:
     """One connection: sends what the client has, reads what the server answers (one thread)."""
 
     def __init__(self, ws: ClientConnection, on_message: MessageCallback | None, record: IO[str] | None,
-                 answer_timeout_s: float) -> None:
+                 answer_timeout_s: float, key_sent: bool = False) -> None:
         self.ws, self.on_message, self.record, self.answer_timeout_s = ws, on_message, record, answer_timeout_s
+        self.key_sent = key_sent
         self.unanswered: deque[Sent] = deque()
         self.result = StreamResult()
         self.last_error: dict[str, Any] | None = None
@@ -189,7 +194,7 @@ class _Session:
         elif kind == "error":
             self.last_error = message
             if (answered is not None and answered.type in ("start", "end")) or message.get("status") == 401:
-                raise _server_error(message)
+                raise _server_error(message, self.key_sent)
         if self.on_message is not None:
             self.on_message(message, answered)
 
@@ -200,7 +205,7 @@ class _Session:
         code, reason = (e.rcvd.code, e.rcvd.reason) if e.rcvd is not None else (1006, str(e))
         said = self.last_error or {}
         if code in (1008, 1013) and said:
-            return _server_error(said)
+            return _server_error(said, self.key_sent)
         if code == 1013:
             return Busy("the server is busy (close code 1013)", status=503)
         if code == 1012:
@@ -266,9 +271,10 @@ def stream_stacks(stacks: Sequence[ScannerStack], server: str = DEFAULT_SERVER, 
             orders.append(send_order(len(stack.slices), o))
         except ArgumentError as e:
             raise ArgumentError(f"{stack.name}: {e}") from None
-    with _connect(stream_url(server), clean_api_key(api_key), answer_timeout_s) as ws, \
+    key = clean_api_key(api_key)
+    with _connect(stream_url(server), key, answer_timeout_s) as ws, \
             (open(json_out, "w", encoding="utf-8") if json_out is not None else nullcontext()) as record:   # kept if none
-        session = _Session(ws, on_message, record, answer_timeout_s)
+        session = _Session(ws, on_message, record, answer_timeout_s, key_sent=bool(key))
         session.send({"type": "start", **{k: v for k, v in options.items() if v is not None}})
         while not session.result.ready:
             session.receive(None)

@@ -64,7 +64,7 @@ from model_export.localiser.evaluate import dice, masked_files  # noqa: E402
 from service.geometry.pose import index_reversal  # noqa: E402
 from service.io.volume import Volume, read_volume  # noqa: E402
 from service.preprocess.localise import Localiser, default_localiser  # noqa: E402
-from service.preprocess.stack import slice_axis_of  # noqa: E402
+from service.preprocess.stack import slice_axis_of, stack_axis  # noqa: E402
 
 Rewrite = tuple[str, Volume, NDArray[np.bool_]]
 
@@ -80,6 +80,22 @@ def reversed_axis(volume: Volume, mask: NDArray, axis: int) -> tuple[Volume, NDA
     """The voxels along ``axis`` stored last to first, the affine saying so (the world unchanged)."""
     affine = volume.affine @ index_reversal(axis, volume.array.shape[axis])
     return Volume(np.ascontiguousarray(np.flip(volume.array, axis)), affine), np.flip(mask, axis)
+
+
+def stored_as(volume: Volume, first: bool, second: bool, swapped: bool) -> Volume:
+    """``volume`` as a file that stores its in-plane voxel axes otherwise holds it: the first and or
+    the second reversed, then the two swapped (each voxel where it was in the world)."""
+    axis = stack_axis(volume)
+    p, q = (a for a in range(3) if a != axis)
+    mask = np.zeros(volume.array.shape, bool)
+    for along, flip in ((p, first), (q, second)):
+        if flip:
+            volume, mask = reversed_axis(volume, mask, along)
+    if swapped:
+        order = [0, 1, 2]
+        order[p], order[q] = q, p
+        volume, mask = reordered(volume, mask, tuple(order))
+    return volume
 
 
 def in_plane_pixels(volume: Volume, mask: NDArray, pixel_mm: float) -> tuple[Volume, NDArray]:

@@ -27,11 +27,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from fastapi.testclient import TestClient  # noqa: E402
 
-from model_export.experiments.localiser_sweep import reordered, reversed_axis  # noqa: E402
+from model_export.experiments.localiser_sweep import stored_as  # noqa: E402
 from model_export.localiser.evaluate import MASK_SUFFIX, REAL_SCANS, masked_files  # noqa: E402
-from service.io.volume import Volume, read_volume, write_volume  # noqa: E402
+from service.io.volume import read_volume, write_volume  # noqa: E402
 from service.main import create_app  # noqa: E402
-from service.preprocess.stack import stack_axis  # noqa: E402
 
 SHARED = ("mial_lausanne_t30", ["axial1_lr", "coronal1_lr", "sagittal1_lr"])
 OTHER_SITE = ("bch_f0832s1", ["fetus_03", "fetus_04"])
@@ -56,22 +55,6 @@ def answer_row(client: TestClient, folder: Path, names: list[str], masks: bool) 
         expected = np.median([s["expected_error_mm"] for s in brain]) if brain else float("nan")
         cells.append(f"{sum(s['accepted'] for s in brain)} of {len(brain)} ({expected:.1f} mm)")
     return ", ".join(cells)
-
-
-def stored_as(volume: Volume, first: bool, second: bool, swapped: bool) -> Volume:
-    """``volume`` as a file that stores its in-plane voxel axes otherwise holds it: the first and or
-    the second reversed, then the two swapped (each voxel where it was in the world)."""
-    axis = stack_axis(volume)
-    p, q = (a for a in range(3) if a != axis)
-    mask = np.zeros(volume.array.shape, bool)
-    for along, flip in ((p, first), (q, second)):
-        if flip:
-            volume, mask = reversed_axis(volume, mask, along)
-    if swapped:
-        order = [0, 1, 2]
-        order[p], order[q] = q, p
-        volume, mask = reordered(volume, mask, tuple(order))
-    return volume
 
 
 def storage_rows(client: TestClient, folder: Path) -> None:

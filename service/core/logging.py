@@ -84,10 +84,12 @@ def configure(level: str = "info", libraries: tuple[str, ...] = ()) -> None:
     root.handlers[:] = [handler]
     root.setLevel(level.upper())
     root.propagate = False
+    cut = logging.StreamHandler(sys.stderr)          # a handler's filter sees its child loggers' records too
+    cut.setFormatter(JsonFormatter())
+    cut.addFilter(FirstLine())
     for name in libraries:
         library = logging.getLogger(name)
-        library.handlers[:] = [handler]
-        library.filters[:] = [FirstLine()]
+        library.handlers[:] = [cut]
         library.setLevel(level.upper())
         library.propagate = False
     for name, floor in QUIET.items():

@@ -112,7 +112,9 @@ def in_plane_layout(affine: ArrayLike, axis: int) -> tuple[int, int, int, int]:
     that stores the slice's rows reversed or its two in-plane axes swapped describes the same four
     directions, so its pictures come out as another file's of the same slices. The world axis
     nearest the slice's normal is left out; of the other two the lower comes first (an axial slice's
-    columns run along x, its rows along y; a sagittal slice's along y and z).
+    columns run along x, its rows along y; a sagittal slice's along y and z). Where both voxel axes
+    lie as near the first world axis (a grid turned by 45 degrees in its plane), the columns take the
+    one nearer the second: a tie the file's storage order never breaks.
 
     Example (an axial grid stored with its in-plane axes swapped and its rows reversed):
         >>> a = np.array([[0.0, 1.0, 0, 0], [-1.0, 0, 0, 0], [0, 0, 3.0, 0], [0, 0, 0, 1]])
@@ -124,6 +126,7 @@ def in_plane_layout(affine: ArrayLike, axis: int) -> tuple[int, int, int, int]:
     p, q = (ax for ax in range(3) if ax != axis)
     normal = np.cross(cols[:, p], cols[:, q])
     first, second = (ax for ax in range(3) if ax != int(np.argmax(np.abs(normal))))   # the world axes in the plane
-    x_axis = p if abs(cols[first, p]) >= abs(cols[first, q]) else q
+    along = {ax: np.sign(cols[first, ax]) * cols[:, ax] for ax in (p, q)}          # each axis the way along `first`
+    x_axis = max((p, q), key=lambda ax: (round(float(along[ax][first]), 6), round(float(along[ax][second]), 6)))
     y_axis = q if x_axis == p else p
     return x_axis, y_axis, int(np.sign(cols[first, x_axis]) or 1), int(np.sign(cols[second, y_axis]) or 1)

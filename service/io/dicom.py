@@ -12,8 +12,9 @@ Only pixel data and geometry are taken, and of the frames' acquisition times onl
   per-frame positions the frames are stacked by ``SpacingBetweenSlices`` (or ``SliceThickness``)
   along the normal of the file's ``ImageOrientationPatient`` from its ``ImagePositionPatient`` (against
   the normal where the spacing is negative, as older scanners write frames stored downwards); a file
-  missing any of these is refused, never given a made-up grid. The frames are ordered along the
-  slice normal, as a series' files are.
+  missing any of these is refused, never given a made-up grid. Frames placed one by one are ordered
+  along the slice normal, as a series' files are; frames stacked by a negative spacing keep the
+  file's order, the affine's slice axis pointing against the normal.
 * Siemens mosaic (``ImageType`` contains ``MOSAIC``): ``NumberOfImagesInMosaic`` (0019,100A) tiles
   in a square of ``ceil(sqrt(n))`` tiles a side, each the mosaic's size over that (as nibabel reads
   them; ``AcquisitionMatrix`` is the acquired matrix, smaller than the tiles at partial phase

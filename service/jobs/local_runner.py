@@ -117,11 +117,14 @@ class LocalRunner(JobRunner):
     def start(self) -> list[str]:
         self.owner = lock_store(self.store.data_dir)
         self.started = True
+        lost = set(self.store.ids("running"))      # runs a stop did not hand back (kill -9, a crash)
         queued = self._handed_over(self.store.recover(self.max_attempts), fail_others=True)
         for job in queued:
-            if job.started_at is not None:       # it ran before the restart: a lost run, or one handed back
-                log.info(f"re-queued job {job.id}, attempt {job.attempts + 1}" if job.attempts else
-                         f"resumed job {job.id} (handed back at the last shutdown; the run did not count)",
+            if job.id in lost:
+                log.info(f"re-queued job {job.id}, attempt {job.attempts + 1}",
+                         extra={"job_id": job.id, "attempt": job.attempts + 1})
+            elif job.started_at is not None:       # it ran before, and a stop handed it back
+                log.info(f"resumed job {job.id} (stopped at the last shutdown; the run did not count)",
                          extra={"job_id": job.id, "attempt": job.attempts + 1})
             self.submit(job.id)
         return [job.id for job in queued]

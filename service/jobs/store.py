@@ -330,9 +330,16 @@ class SqliteJobStore(JobStore):
     def _checkpoint(self) -> None:
         """Write the log's pages back into the database and empty the log, so that deleted jobs'
         records (their parameters, reports, idempotency keys) do not outlive them in
-        ``jobs.sqlite3-wal``; where a reader holds the log, the next deletion's checkpoint does it."""
-        with self._db() as db:
-            db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        ``jobs.sqlite3-wal``. It never waits: where another connection is reading or writing, the
+        checkpoint gives up at once (SQLite's busy result), and a later deletion's does it."""
+        try:
+            db = sqlite3.connect(self.db_path, timeout=0, isolation_level=None)
+            try:
+                db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+            finally:
+                db.close()
+        except sqlite3.Error:
+            pass
 
     def ids(self, status: str) -> list[str]:
         with self._db() as db:

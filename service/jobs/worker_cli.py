@@ -81,16 +81,22 @@ class SvrnetWorker(Worker):
             super().request_force_stop(signum, frame)              # type: ignore[arg-type]
         except SystemExit:
             if job is not None:
-                self._hand_back(job)
+                try:
+                    self._hand_back(job)
+                except Exception:  # noqa: BLE001 - the stop goes on; the job is re-delivered once the worker is found lost
+                    log.warning(f"job {job.id} could not be handed back", exc_info=True, extra={"job_id": job.id})
             raise
 
     def _hand_back(self, job: RqJob) -> None:
+        """Mark ``job`` queued in the job store (a worker that takes it claims it from there), queue it
+        again at the front, then take its run out of the started registry, where RQ would later
+        find it abandoned. A Redis failure between the steps is logged by the caller."""
         if not worker_context().store.hand_back(job.id):     # it ended meanwhile: nothing to hand back
             return
-        with self.connection.pipeline() as pipe:
-            self.cleanup_execution(job, pipe)                  # out of the started registry: not abandoned later
-            pipe.execute()
         Queue(job.origin, connection=self.connection).enqueue_job(job, at_front=True)
+        with self.connection.pipeline() as pipe:
+            self.cleanup_execution(job, pipe)
+            pipe.execute()
         log.info(f"handed back job {job.id} (the worker was stopped; the run does not count)", extra={"job_id": job.id})
 
     def _install_signal_handlers(self) -> None:

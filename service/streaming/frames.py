@@ -42,11 +42,7 @@ a pixel off the first slice's line, whichever is more: as ``/v1/predict`` allows
 
 
 class IncompleteStack(InvalidParameter):
-    """A stack ended without all its slices (:meth:`StreamedStack.volume`); ``missing``: their indices."""
-
-    def __init__(self, detail: str, missing: list[int] | None = None) -> None:
-        super().__init__(detail)                    # one argument: copies and pickles rebuild it from its detail
-        self.missing = list(missing or [])
+    """A stack ended without all its slices (:meth:`StreamedStack.volume`)."""
 
 
 @dataclass
@@ -229,7 +225,7 @@ class StreamedStack:
         gaps = self.missing()
         if gaps:
             raise IncompleteStack(f"end_stack.stack: stack {self.name!r} lacks the slices {gaps[:10]} (indices 0.."
-                                  f"{max(self.frames)} are expected)", gaps)
+                                  f"{max(self.frames)} are expected)")
         if not checked and self.off_line():
             raise InvalidParameter(f"end_stack.stack: the slices of stack {self.name!r} are not evenly spaced along "
                                    "their normal")

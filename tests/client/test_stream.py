@@ -151,8 +151,12 @@ def test_a_refused_session_exits_with_the_clients_codes(stack_file: Path, answer
 
     with scripted_server(handler) as url:
         result = runner.invoke(cli.app, ["stream", str(stack_file), "--server", url])
+        keyed = runner.invoke(cli.app, ["stream", str(stack_file), "--server", url, "--api-key", "wrong"])
     assert result.exit_code == {1013: exits.EXIT_BUSY, 1008: exits.EXIT_UNAUTHORIZED}[code], result.output
     assert answer["detail"] in " ".join(result.output.split())
+    if code == 1008:                                   # a key was refused, or none was given: the hint says which
+        assert "give the key with" in " ".join(result.output.split())
+        assert "the key sent was refused" in " ".join(keyed.output.split()), keyed.output
 
 
 def test_no_server_exits_with_connection_failed_and_keeps_an_earlier_record(stack_file: Path, tmp_path: Path) -> None:

@@ -70,7 +70,7 @@ def test_a_server_stopped_mid_job_leaves_nothing_and_the_job_completes_after_res
             time.sleep(0.3)
         assert st["status"] == "succeeded", st
         assert (f"re-queued job {job_id}, attempt 2" in log.read_text()) == bool(spent)
-        assert (f"resumed job {job_id} (handed back" in log.read_text()) == (not spent)      # the restart says either
+        assert (f"resumed job {job_id} (stopped at the last shutdown" in log.read_text()) == (not spent)   # either
         server.stop(signal.SIGTERM)
         assert not server.leftovers()
     finally:

@@ -3,6 +3,7 @@ failure, retention; and the embedded store's recovery after a restart."""
 
 from __future__ import annotations
 
+import sqlite3
 import time
 from pathlib import Path
 
@@ -169,8 +170,13 @@ def test_a_deleted_or_expired_job_leaves_no_trace_in_the_database_files(store: J
     for end in ("delete", "expire"):
         job = store.create({"idempotency_key": marker.decode() + end})
         assert store.claim(job.id) and store.finish(job.id, {"note": marker.decode() + end})
-        with store._db() as reader:                 # a reader between the writes must not block the end
-            reader.execute("SELECT COUNT(*) FROM jobs").fetchone()
+        reader = sqlite3.connect(store.data_dir / "jobs.sqlite3", isolation_level=None)
+        reader.execute("BEGIN")
+        reader.execute("SELECT COUNT(*) FROM jobs").fetchone()       # a read under way: the deletion does not wait
+        started = time.perf_counter()
+        store.delete(store.create({}).id)
+        assert time.perf_counter() - started < 1.0
+        reader.close()                                                 # the next deletion's checkpoint does it
         if end == "delete":
             store.delete(job.id)
         else:

@@ -111,6 +111,23 @@ def test_a_worker_logs_only_json_lines_on_stderr_rq_s_own_included(tmp_path: Pat
     assert done.stdout == "" and any(line["logger"].startswith("rq.") for line in lines), done.stderr
 
 
+def test_rq_s_lines_are_cut_to_their_first_line_on_every_rq_logger() -> None:
+    """RQ appends a failed job's traceback (whose text may name a client's file) to the line of its
+    ``rq.worker`` logger: only the first line reaches the log."""
+    import json
+
+    script = textwrap.dedent("""
+        import logging
+        from service.core import logging as service_logging
+        service_logging.configure("info", libraries=("rq",))
+        logging.getLogger("rq.worker").error("job %s: exception raised (%s)\\n%s", "j1", "f",
+                                             "Traceback ...\\nUnusableImage: jane_doe.nii.gz")
+    """)
+    done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    (line,) = [json.loads(x) for x in done.stderr.splitlines()]
+    assert line["msg"] == "job j1: exception raised (f)" and "jane" not in done.stderr, done.stderr
+
+
 RESTARTING_POOL = textwrap.dedent("""
     import os, sys, time
     from pathlib import Path
