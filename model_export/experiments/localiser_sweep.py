@@ -49,6 +49,7 @@ a stack, a brain that looks smaller); ``--rewrites base,px1.6`` runs only those 
 from __future__ import annotations
 
 import argparse
+import itertools
 import sys
 from collections import defaultdict
 from collections.abc import Iterator
@@ -69,32 +70,41 @@ from service.preprocess.stack import slice_axis_of, stack_axis  # noqa: E402
 Rewrite = tuple[str, Volume, NDArray[np.bool_]]
 
 
-def reordered(volume: Volume, mask: NDArray, order: tuple[int, int, int]) -> tuple[Volume, NDArray]:
-    """The same voxels with their axes in ``order``, the affine permuted alike (the world unchanged)."""
+def reordered(volume: Volume, mask: NDArray | None, order: tuple[int, int, int]) -> tuple[Volume, NDArray | None]:
+    """The same voxels with their axes in ``order``, the affine permuted alike (the world unchanged);
+    the mask alike (None: none)."""
     affine = volume.affine.copy()
     affine[:3, :3] = volume.affine[:3, :3][:, list(order)]
-    return Volume(np.ascontiguousarray(volume.array.transpose(order)), affine), mask.transpose(order)
+    return (Volume(np.ascontiguousarray(volume.array.transpose(order)), affine),
+            None if mask is None else mask.transpose(order))
 
 
-def reversed_axis(volume: Volume, mask: NDArray, axis: int) -> tuple[Volume, NDArray]:
-    """The voxels along ``axis`` stored last to first, the affine saying so (the world unchanged)."""
+def reversed_axis(volume: Volume, mask: NDArray | None, axis: int) -> tuple[Volume, NDArray | None]:
+    """The voxels along ``axis`` stored last to first, the affine saying so (the world unchanged); the
+    mask alike (None: none)."""
     affine = volume.affine @ index_reversal(axis, volume.array.shape[axis])
-    return Volume(np.ascontiguousarray(np.flip(volume.array, axis)), affine), np.flip(mask, axis)
+    return (Volume(np.ascontiguousarray(np.flip(volume.array, axis)), affine),
+            None if mask is None else np.flip(mask, axis))
+
+
+STORAGES = list(itertools.product([False, True], repeat=3))
+"""Every ``(first, second, swapped)`` of :func:`stored_as`: the eight ways a file can store a stack's
+two in-plane voxel axes (the first is the file's own)."""
 
 
 def stored_as(volume: Volume, first: bool, second: bool, swapped: bool) -> Volume:
     """``volume`` as a file that stores its in-plane voxel axes otherwise holds it: the first and or
-    the second reversed, then the two swapped (each voxel where it was in the world)."""
+    the second reversed, then the two swapped (each voxel where it was in the world). A mask rides
+    along as a volume of its own (``stored_as(Volume(mask, affine), ...)``)."""
     axis = stack_axis(volume)
     p, q = (a for a in range(3) if a != axis)
-    mask = np.zeros(volume.array.shape, bool)
     for along, flip in ((p, first), (q, second)):
         if flip:
-            volume, mask = reversed_axis(volume, mask, along)
+            volume = reversed_axis(volume, None, along)[0]
     if swapped:
         order = [0, 1, 2]
         order[p], order[q] = q, p
-        volume, mask = reordered(volume, mask, tuple(order))
+        volume = reordered(volume, None, tuple(order))[0]
     return volume
 
 

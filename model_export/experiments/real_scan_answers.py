@@ -16,7 +16,6 @@ all be the same (docs/reports/localiser-experiments.md, "Slices laid out by the 
 from __future__ import annotations
 
 import argparse
-import itertools
 import sys
 import tempfile
 from pathlib import Path
@@ -27,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from fastapi.testclient import TestClient  # noqa: E402
 
-from model_export.experiments.localiser_sweep import stored_as  # noqa: E402
+from model_export.experiments.localiser_sweep import STORAGES, stored_as  # noqa: E402
 from model_export.localiser.evaluate import MASK_SUFFIX, REAL_SCANS, masked_files  # noqa: E402
 from service.io.volume import read_volume, write_volume  # noqa: E402
 from service.main import create_app  # noqa: E402
@@ -62,7 +61,7 @@ def storage_rows(client: TestClient, folder: Path) -> None:
     names = [name for name, _, _ in masked_files(folder)]
     volumes = {n: read_volume(folder / f"{n}.nii.gz") for n in names}
     with tempfile.TemporaryDirectory() as tmp:
-        for storage in itertools.product([False, True], repeat=3):
+        for storage in STORAGES:
             for n in names:
                 write_volume(stored_as(volumes[n], *storage), Path(tmp) / f"{n}.nii.gz")
             label = ", ".join(k for k, on in zip(("first reversed", "second reversed", "swapped"), storage)

@@ -29,7 +29,7 @@ def test_a_slice_s_picture_is_the_same_for_every_storage_also_at_45_degrees(degr
     axis (45 degrees) is laid out by the second: its eight storages give one picture, as at 30."""
     from service.io.volume import Volume
     from service.preprocess.stack import pictures
-    from tests.support.storage import STORAGES, stored_as
+    from model_export.experiments.localiser_sweep import STORAGES, stored_as
 
     c, s = (np.sqrt(0.5), np.copysign(np.sqrt(0.5), degrees)) if abs(degrees) == 45 else \
         (np.cos(np.radians(degrees)), np.sin(np.radians(degrees)))      # at 45 degrees exactly as a header writes it

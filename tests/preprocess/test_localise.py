@@ -99,7 +99,7 @@ def test_a_stack_whose_file_stores_its_in_plane_voxels_in_any_order_gets_the_sam
     transposed lost its accepted slices: docs/reports/localiser-experiments.md)."""
     from model_export.localiser.scenes import HeadModel, synth_stack
     from tests.support.phantoms import phantom_brain
-    from tests.support.storage import STORAGES, back_from_stored, stored_as
+    from model_export.experiments.localiser_sweep import STORAGES, stored_as
 
     image, mask, affine = phantom_brain(11)
     volume, _ = synth_stack(HeadModel.from_arrays(image, mask, affine), np.random.default_rng(7), "heldout")
@@ -111,7 +111,7 @@ def test_a_stack_whose_file_stores_its_in_plane_voxels_in_any_order_gets_the_sam
             other = stored_as(volume, *storage)
             assert np.array_equal(loc.probabilities(other)[0], prob), storage
             there = loc.localise(other)
-            assert np.array_equal(back_from_stored(there.mask, *storage), found.mask), storage
+            assert np.array_equal(there.mask, stored_as(Volume(found.mask, volume.affine), *storage).array), storage
             assert there.brain_volume_ml == found.brain_volume_ml and there.confidence == found.confidence
 
 

@@ -10,6 +10,7 @@ from service.pipeline.prepare import StackUpload, prepare_stacks
 from service.preprocess.localise import Localiser
 from service.preprocess.localiser_inputs import LocaliserGrid
 from service.preprocess.one_fetus import brain_centre_mm
+from service.preprocess.stack import slice_images
 
 GRID_MM = 2.5
 
@@ -25,10 +26,12 @@ class _ProbabilityLocaliser(Localiser):
         return self.probabilities_of([volume])[0]
 
     def probabilities_of(self, volumes: list[Volume], grids_mm: list[float] | None = None):  # noqa: ANN201
-        return [(np.moveaxis(v.array, 2, 0).transpose(0, 2, 1).astype(np.float32),
-                 LocaliserGrid(v.array.shape, 2, (0, 1, 1, 1), v.array.shape[:2][::-1], v.array.shape[:2][::-1],
-                               (0, 0), GRID_MM))
-                for v in volumes]
+        out = []
+        for v in volumes:                            # the stack's own pixels, laid out as the localiser's
+            images, _, layout = slice_images(v.array, v.affine, 2)
+            out.append((images.astype(np.float32),
+                        LocaliserGrid(v.array.shape, 2, layout, images.shape[1:], images.shape[1:], (0, 0), GRID_MM)))
+        return out
 
 
 def _again(volume: Volume) -> Volume:

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+from model_export.experiments.localiser_sweep import stored_as
 from service.geometry import se3
 from service.geometry.pose import make_pose
 from service.io.volume import Volume
@@ -16,7 +17,6 @@ from service.preprocess.intensity import rescale_0_255
 from service.preprocess.slices import preprocess_slices, sample_grid
 from service.preprocess.stack import slice_axis_of, slice_images, split_stack, stack_from_pictures
 from tests.support.phantoms import phantom_brain
-from tests.support.storage import stored_as
 
 
 def test_rescale_prunes_one_percent_and_zeroes_outside() -> None:
