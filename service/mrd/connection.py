@@ -357,8 +357,8 @@ class MrdConnection:
             if series.passes > 1 and isinstance(failed, IncompleteStack):
                 failed = InvalidParameter(
                     f"series {series_index}: the slices {sorted(series.slices)[:10]} came after the series had ended; "
-                    f"they make a pass of their own (stack {series.stack!r}), which ends as a stack only with all "
-                    "its slices: their immediate poses are their answer (the summary's unfinished lists the pass)")
+                    f"they make a pass of their own (stack {series.stack!r}), which ends as a stack only with most "
+                    "of its slices: their immediate poses are their answer (the summary's unfinished lists the pass)")
             self.send_error(in_mrd_terms(failed), series=series_index)
         except Exception as fault:  # noqa: BLE001 - as in on_image
             log.error("mrd stack failed", extra={"error_type": type(fault).__name__})

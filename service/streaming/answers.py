@@ -21,6 +21,9 @@ from service.preprocess.intensity import SIGNAL_LOST
 from service.pipeline.predict import StackPrediction
 from service.streaming.coverage import Coverage
 
+NOT_RECEIVED = "not_received"
+"""The reason of a slice its stack ended without: it never arrived (a stream's, or an MRD series')."""
+
 
 @dataclass
 class SliceAnswer:
@@ -72,7 +75,8 @@ def worth_acquiring_again(reasons: list[str | None], judged_alone: bool,
     first), those whose only fault is their expected error: the next stack that crosses them is
     what brings it down (the shared real scan's axial stack: 0 of 24 accepted alone, 21 once the
     coronal stack ended); and those whose brain lost its signal (``signal_lost``), accepted or not,
-    with that reason before any other: it is the cause, and a slice acquired again may show the brain.
+    with that reason before any other: it is the cause, and a slice acquired again may show the brain;
+    but a slice that never arrived (:data:`NOT_RECEIVED`) is listed as such.
 
     Example:
         >>> worth_acquiring_again([None, "empty", "high_expected_error", "inconsistent_with_stack"], True)
@@ -81,8 +85,10 @@ def worth_acquiring_again(reasons: list[str | None], judged_alone: bool,
         [(1, 'high_expected_error')]
         >>> worth_acquiring_again([None, "high_expected_error", "inconsistent_with_stack"], False, [True, True, True])
         [(0, 'signal_lost'), (1, 'signal_lost'), (2, 'signal_lost')]
+        >>> worth_acquiring_again([None, "not_received", "empty"], True, [False, True, False])
+        [(1, 'not_received')]
     """
     waits = {acceptance.EMPTY} | ({acceptance.HIGH_EXPECTED_ERROR} if judged_alone else set())
     lost = [False] * len(reasons) if signal_lost is None else [bool(x) for x in signal_lost]
-    return [(k, SIGNAL_LOST if lost[k] else r) for k, r in enumerate(reasons)
+    return [(k, SIGNAL_LOST if lost[k] and r != NOT_RECEIVED else r) for k, r in enumerate(reasons)
             if r != acceptance.EMPTY and (lost[k] or (r is not None and r not in waits))]

@@ -41,8 +41,14 @@ plane a slice may lie :data:`~service.io.acquisition_geometry.POSITION_ROUNDING_
 a pixel off the first slice's line, whichever is more: as ``/v1/predict`` allows a series."""
 
 
+MAX_MISSING_SHARE = 0.5
+"""The largest share of a stack's slices that may be missing when it ends: a scanner's dropped slice
+costs its stack nothing but that slice, while a few slices sent again under a stack of their own
+(a reacquisition) are not taken for a stack full of holes."""
+
+
 class IncompleteStack(InvalidParameter):
-    """A stack ended without all its slices (:meth:`StreamedStack.volume`)."""
+    """A stack ended with too many of its slices missing (:meth:`StreamedStack.volume`)."""
 
 
 @dataclass
@@ -217,15 +223,30 @@ class StreamedStack:
         return float(np.linalg.norm(shift)) / (hi - lo)
 
     def volume(self, checked: bool = False) -> tuple[Volume, Volume | None]:
-        """The complete stack as a volume (and its mask volume, when the slices came with masks);
-        :class:`InvalidParameter` when slices are missing or unevenly spaced (``checked``: the caller
-        has found no slice off the even spacing, :meth:`off_line`, already)."""
+        """The stack as a volume (and its mask volume, when the slices came with masks): voxel
+        ``(i0, i1, k)`` is slice ``k``. A slice that has not arrived (:meth:`missing`) is blank, with no brain in its mask, at its place on the stack's line: the stack is
+        judged by what came and the caller names what did not. :class:`IncompleteStack` when more
+        than :data:`MAX_MISSING_SHARE` of the slices, or all but one, are missing;
+        :class:`InvalidParameter` when the slices are unevenly spaced (``checked``: the caller has
+        found no slice off the even spacing, :meth:`off_line`, already).
+
+        Example:
+            >>> stack = StreamedStack("ax")
+            >>> for k in (1, 2, 4):
+            ...     a = np.diag([1.0, 1.0, 3.0, 1.0]); a[:3, 3] = (0, 0, 3.5 * k)
+            ...     stack.add(SliceFrame("ax", k, np.ones((4, 5), np.float32), a))
+            >>> vol, _ = stack.volume()
+            >>> stack.missing(), vol.array.shape, vol.array[0, 0].tolist(), float(vol.affine[2, 3])
+            ([0, 3], (4, 5, 5), [0.0, 1.0, 1.0, 0.0, 1.0], 0.0)
+        """
         if not self.frames:
             raise InvalidParameter(f"end_stack.stack: stack {self.name!r} has no slices")
         gaps = self.missing()
-        if gaps:
+        n = len(self.frames) + len(gaps)
+        if gaps and (len(self.frames) < 2 or len(gaps) > MAX_MISSING_SHARE * n):
             raise IncompleteStack(f"end_stack.stack: stack {self.name!r} lacks the slices {gaps[:10]} (indices 0.."
-                                  f"{max(self.frames)} are expected)")
+                                  f"{n - 1} are expected; a stack ends with at most {MAX_MISSING_SHARE:.0%} of its "
+                                  "slices missing, and at least two received)")
         if not checked and self.off_line():
             raise InvalidParameter(f"end_stack.stack: the slices of stack {self.name!r} are not evenly spaced along "
                                    "their normal")
@@ -235,16 +256,18 @@ class StreamedStack:
                 first[:3, 2] / np.linalg.norm(first[:3, 2]), float(np.linalg.norm(first[:3, :2], axis=0).min()))):
             raise InvalidParameter(f"end_stack.stack: the slices of stack {self.name!r} are shifted within their "
                                    f"plane ({shear}): a sheared grid, not one stack")
-        n = len(self.frames)
-        first = self.frames[0]
-        origins = np.stack([self.frames[k].scanner_from_voxel[:3, 3] for k in range(n)])
-        affine = np.array(first.scanner_from_voxel, dtype=np.float64)
-        step = (origins[-1] - origins[0]) / (n - 1) if n > 1 else affine[:3, 2]
-        if np.linalg.norm(step) < 1e-3:
+        lo, hi = min(self.frames), max(self.frames)
+        affine = np.array(self.frames[lo].scanner_from_voxel, dtype=np.float64)
+        if hi > lo:
+            affine[:3, 2] = (self.frames[hi].scanner_from_voxel[:3, 3] - affine[:3, 3]) / (hi - lo)
+        if np.linalg.norm(affine[:3, 2]) < 1e-3:
             raise InvalidParameter(f"end_stack.stack: the slices of stack {self.name!r} all sit at one position")
-        affine[:3, 2] = step
-        image = np.stack([np.asarray(self.frames[k].pixels, dtype=np.float32) for k in range(n)], axis=-1)
+        affine[:3, 3] -= lo * affine[:3, 2]                        # where slice 0 sits, received or not
+        blank = np.zeros(np.shape(self.frames[lo].pixels), np.float32)
+        image = np.stack([np.asarray(self.frames[k].pixels, np.float32) if k in self.frames else blank
+                          for k in range(n)], axis=-1)
         mask = None
-        if first.mask is not None:
-            mask = Volume(np.stack([np.asarray(self.frames[k].mask, bool) for k in range(n)], axis=-1), affine, slice_axis=2)
+        if self.frames[lo].mask is not None:
+            mask = Volume(np.stack([np.asarray(self.frames[k].mask, bool) if k in self.frames else blank > 0
+                                    for k in range(n)], axis=-1), affine, slice_axis=2)
         return Volume(image, affine, slice_axis=2), mask

@@ -55,7 +55,8 @@ from service.preprocess.noise import input_noise, stack_noise
 from service.preprocess.slices import preprocess_slices
 from service.preprocess.stack import split_stack
 from service.streaming import immediate
-from service.streaming.answers import SessionSummary, SliceAnswer, StackAnswer, moved_mm, worth_acquiring_again
+from service.streaming.answers import (NOT_RECEIVED, SessionSummary, SliceAnswer, StackAnswer, moved_mm,
+                                       worth_acquiring_again)
 from service.streaming.background import run_in_stage_process
 from service.streaming.footprint import array_bytes
 from service.streaming.coverage import Coverage, CoveredSlice, coverage
@@ -94,12 +95,20 @@ class _Ended:
     prepared: PreparedStack
     estimate: PoseEstimate
     order: SliceOrder
+    missing: tuple[int, ...] = ()           # the slices it ended without: blank in it, :data:`NOT_RECEIVED`
 
 
-def sent_network_from_voxel(p: StackPrediction, frames: list[SliceFrame]) -> NDArray[np.float64]:
+def sent_network_from_voxel(p: StackPrediction, frames: list[SliceFrame | None]) -> NDArray[np.float64]:
     """``[n, 4, 4]``: voxel ``(i0, i1, 0, 1)`` of each sent slice -> its network frame in the stack ``p``
-    (built from those slices): through the scanner and the stack's voxel ``(i0, i1, k)``."""
-    stack_from_sent = np.linalg.inv(p.prepared.upload.volume.affine) @ np.stack([f.scanner_from_voxel for f in frames])
+    (built from those slices): through the scanner and the stack's voxel ``(i0, i1, k)``. A slice that
+    never came (None) is the stack's blank slice ``k``: its voxel ``(i0, i1, k)``."""
+    stack_from_scanner = np.linalg.inv(p.prepared.upload.volume.affine)
+    stack_from_sent = np.stack([np.eye(4) for _ in frames])
+    for k, f in enumerate(frames):
+        if f is None:
+            stack_from_sent[k, 2, 3] = k
+        else:
+            stack_from_sent[k] = stack_from_scanner @ f.scanner_from_voxel
     return p.network_from_voxel @ stack_from_sent
 
 
@@ -136,8 +145,12 @@ class StreamSession:
         check_frame(frame, self.limits.max_pixels)
         frame = replace(frame, pixels=magnitude(np.asarray(frame.pixels, np.float32)))   # as a file's values are read
         with self._lock:
-            if frame.stack in self.ended:
-                raise InvalidParameter(f"slice.stack: stack {frame.stack!r} has ended; send a new stack under a new name")
+            gap = frame.stack in self.ended and frame.index in self.ended[frame.stack].missing
+            if frame.stack in self.ended and not gap:
+                missing = list(self.ended[frame.stack].missing)
+                raise InvalidParameter(f"slice.stack: stack {frame.stack!r} has ended; send a new stack under a new name"
+                                       + (f" (only the slices it ended without, {missing[:10]}, may still come: "
+                                          "end it again then)" if missing else ""))
             if sum(len(s) for s in self.stacks.values()) >= self.limits.max_slices:
                 raise InvalidParameter(f"slice: a session holds at most {self.limits.max_slices} slices; "
                                        "end it and start another")
@@ -175,6 +188,8 @@ class StreamSession:
             self.slices.setdefault(frame.stack, {})[frame.index] = state
             state.answer = answer
             self.held_bytes += kept
+            if gap:
+                self._reopen(frame.stack)
         answer.compute_ms = (time.perf_counter() - t0) * 1e3
         self.compute_ms["slices"] += answer.compute_ms
         return answer
@@ -323,9 +338,18 @@ class StreamSession:
         if state is not None:
             self.held_bytes -= array_bytes(state.prepared, state.estimate, [state.brain_map], besides=(frame.pixels,))
 
+    def _reopen(self, stack: str) -> None:
+        """A slice the ended ``stack`` lacked has come: the stack is open again, its final poses
+        withdrawn until it ends again (under the lock)."""
+        self.held_bytes -= array_bytes(self.ended.pop(stack))
+        self.finals.pop(stack, None)
+
     # -- 3. the stack ends ------------------------------------------------------------------------------------
     def end_stack(self, stack: str) -> StackAnswer:
-        """The stack's final poses, as ``/v1/predict`` gives them with the stacks ended before it."""
+        """The stack's final poses, as ``/v1/predict`` gives them with the stacks ended before it.
+        Slices below its largest index that have not come are judged blank, their reason
+        :data:`NOT_RECEIVED`, and listed to acquire again; they may still come, and reopen the stack
+        (:meth:`add_slice`)."""
         t0 = time.perf_counter()
         with self._lock:
             if stack in self.ended:
@@ -333,22 +357,23 @@ class StreamSession:
             if stack not in self.stacks:
                 raise InvalidParameter(f"end_stack.stack: no slice of a stack {stack!r} has arrived")
             streamed = self.stacks[stack]
-            off = streamed.off_line() if not streamed.missing() else []
+            off = streamed.off_line()
             if off:                 # a slice taken while the step was known from few slices: let it come again
                 for k in off:
                     self._forget(stack, k)
                 raise InvalidParameter(f"end_stack.stack: the slices {off[:10]} of stack {stack!r} lie off the even "
                                        "spacing of its other slices along their normal; they are dropped from the "
                                        "stack: send them again where they belong, then end_stack again")
-            volume, mask = streamed.volume(checked=not streamed.missing())
-            order = SliceOrder((), streamed.arrival_order(), STREAMED)
+            volume, mask = streamed.volume(checked=True)
+            missing = tuple(streamed.missing())
+            order = SliceOrder((), streamed.arrival_order() + missing, STREAMED)
             before = dict(self.ended)
         info = self.estimator.info
         upload = StackUpload(stack, volume, mask, None if mask is None else f"{stack} (mask frames)",
                              mask_holds_csf=self.masks_hold_csf)
         prepared = prepare_stack(upload, info, self.bias_correction, self.localiser)
         (estimate,), timings = estimate_stacks([prepared], self.estimator, self.mc_samples)
-        ended = {**before, stack: _Ended(prepared, estimate, order)}
+        ended = {**before, stack: _Ended(prepared, estimate, order, missing)}
         names = list(ended)
         predictions, more = predict_from_estimates([ended[n].prepared for n in names], [ended[n].estimate for n in names],
                                                    info, self.threshold, True, [ended[n].order for n in names], True,
@@ -362,9 +387,10 @@ class StreamSession:
                 state.brain_map = None
             updates = []
             for name, p in zip(names, predictions):
-                sent = self.stacks[name].frames
-                p = replace(p, network_from_voxel=sent_network_from_voxel(p, [sent[k] for k in range(len(sent))]))
-                answers = [SliceAnswer(name, k, p, k) for k in range(len(p.reasons))]
+                sent, gone = self.stacks[name].frames, ended[name].missing
+                p = replace(p, network_from_voxel=sent_network_from_voxel(p, [sent.get(k) for k in range(len(p.reasons))]),
+                            reasons=[NOT_RECEIVED if k in gone else r for k, r in enumerate(p.reasons)])
+                answers = [SliceAnswer(name, k, p, k) for k in range(len(p.reasons)) if k in sent]
                 self.finals[name] = p
                 if name == stack:
                     for a in answers:
@@ -374,8 +400,8 @@ class StreamSession:
                     updates += self._changed(name, answers)
             covered, shown = self._covered()
             alone = len(names) == 1
-            lists = {n: worth_acquiring_again(p.reasons, alone, p.prepared.signal_lost)
-                     for n, p in zip(names, predictions)}
+            lists = {n: worth_acquiring_again(self.finals[n].reasons, alone, self.finals[n].prepared.signal_lost)
+                     for n in names}
             changed = {n: r for n, r in lists.items() if n != stack and r != self.reacquire_sent.get(n)}
             self.reacquire_sent.update(lists)
         answer = StackAnswer(stack, final, updates, lists[stack], coverage(covered, shown), timings, alone, changed)

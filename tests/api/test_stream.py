@@ -88,6 +88,36 @@ def test_a_session_answers_every_slice_in_order_where_the_truth_is(client, case)
         assert closed.value.code == 1000
 
 
+def test_a_stack_ends_without_a_slice_that_never_came_and_again_once_it_came(client, case) -> None:  # noqa: ANN001
+    """The contract's ``stack`` lists every slice: one that never arrived has reason ``not_received``
+    and is in ``reacquire``; sent after all, it reopens the stack, which ends again whole."""
+    _, stacks, truths = case
+    frames = stacks[0]
+    with client.websocket_connect("/v1/stream") as ws:
+        ws.send_text(json.dumps({"type": "start", "mc_samples": 10, "bias_correction": False}))
+        ws.receive_json()
+        for f in frames:
+            if f.index != 5:
+                send_slice(ws, f)
+                receive(ws)
+        ws.send_text(json.dumps({"type": "end_stack", "stack": "ax"}))
+        stack = receive(ws, ("stack",))
+        assert [s["index"] for s in stack["slices"] if s["reason"] == "not_received"] == [5]
+        assert {"index": 5, "reason": "not_received"} in stack["reacquire"] and not stack["slices"][5]["accepted"]
+        got = np.array([s["atlas_from_voxel"] for s in stack["slices"]])
+        want = np.stack([true_sent(truths[0], k) for k in range(len(frames))])
+        assert np.abs(np.delete(got - want, 5, axis=0)[:, :3, 3]).max() < 0.5
+        send_slice(ws, frames[5])
+        assert receive(ws)["index"] == 5
+        ws.send_text(json.dumps({"type": "end_stack", "stack": "ax"}))
+        again = receive(ws, ("stack",))
+        assert not [s for s in again["slices"] if s["reason"] == "not_received"]
+        assert np.abs(np.array(again["slices"][5]["atlas_from_voxel"])[:3, 3] - want[5, :3, 3]).max() < 0.5
+        ws.send_text(json.dumps({"type": "end"}))
+        summary = receive(ws, ("summary",))
+        assert summary["unfinished"] == {} and {"index": 5, "reason": "not_received"} not in summary["reacquire"]["ax"]
+
+
 def test_a_session_s_log_lines_carry_its_id_and_its_end_is_logged(client, case, caplog) -> None:  # noqa: ANN001
     """An operator follows one scanner's session through the log: its refusals and its end (slices
     answered, how long it ran) carry the ``session_id`` the client was given in ``ready``."""

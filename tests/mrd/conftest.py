@@ -45,7 +45,8 @@ class NearestOracle(KeyedOracle):
 
 
 class LookupLocaliser:
-    """Finds each slice's true brain mask by its pixels (MRD images carry no mask; the pixels arrive exactly)."""
+    """Finds each slice's true brain mask by its pixels (MRD images carry no mask; the pixels arrive
+    exactly); a slice it never saw (the blank of one that never came) has no brain."""
 
     def __init__(self) -> None:
         self.masks: dict[bytes, np.ndarray] = {}
@@ -57,7 +58,7 @@ class LookupLocaliser:
     def _mask(self, volume: Volume, only: int | None = None) -> np.ndarray:
         out = np.zeros(volume.array.shape, bool)
         for k in range(volume.array.shape[2]) if only is None else (only,):
-            out[:, :, k] = self.masks[np.ascontiguousarray(volume.array[:, :, k], np.float32).tobytes()]
+            out[:, :, k] = self.masks.get(np.ascontiguousarray(volume.array[:, :, k], np.float32).tobytes(), False)
         return out
 
     def localise(self, volume: Volume) -> Localisation:

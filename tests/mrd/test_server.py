@@ -190,15 +190,33 @@ def test_a_slice_beyond_the_headers_count_is_refused_and_the_series_ends_with_th
     assert [m["stack"] for m in texts(received) if m["type"] == "stack"] == ["0"]
 
 
-def test_a_series_that_cannot_end_is_named_in_mrd_terms(case: Case, serve) -> None:  # noqa: ANN001
+def test_a_series_without_a_slice_ends_at_close_naming_it(case: Case, serve) -> None:  # noqa: ANN001
+    """A dropped image costs its series that slice alone: the series ends at ``CLOSE`` with it blank,
+    ``not_received`` and listed to acquire again."""
     server = serve()
     client = MrdLink("127.0.0.1", server.port)
-    client.send(CONFIG, *[case.images[0][k] for k in range(1, 20)])        # no header: the series ends at CLOSE
+    client.send(CONFIG, mrd_header(slices=20), *[case.images[0][k] for k in range(20) if k != 6])
+    received = client.close()
+    messages = texts(received)
+    assert not [m for m in messages if m["type"] == "error"]
+    (stack,) = [m for m in messages if m["type"] == "stack"]
+    assert len(stack["slices"]) == 20 and [k for k, s in enumerate(stack["slices"]) if s["reason"] == "not_received"] == [6]
+    assert {"index": 6, "reason": "not_received"} in stack["reacquire"]
+    summary = messages[-1]
+    assert summary["type"] == "summary" and summary["unfinished"] == {}
+    assert {"index": 6, "reason": "not_received"} in summary["reacquire"]["0"]
+
+
+def test_a_series_with_most_of_its_slices_missing_is_named_in_mrd_terms(case: Case, serve) -> None:  # noqa: ANN001
+    server = serve()
+    client = MrdLink("127.0.0.1", server.port)
+    client.send(CONFIG, *[case.images[0][k] for k in (2, 3, 19)])        # no header: the series ends at CLOSE
     received = client.close()
     (error,) = [m for m in texts(received) if m["type"] == "error"]
-    assert error["detail"].startswith("series: stack '0' lacks the slices [0]") and error["image_series_index"] == 0
+    assert error["detail"].startswith("series: stack '0' lacks the slices [0, 1, 4, 5") and error["image_series_index"] == 0
     summary = texts(received)[-1]                  # not a clean session: the series is named with what it lacks
-    assert summary["type"] == "summary" and summary["reacquire"] == {} and summary["unfinished"] == {"0": {"missing": [0]}}
+    assert summary["type"] == "summary" and summary["reacquire"] == {}
+    assert summary["unfinished"] == {"0": {"missing": [k for k in range(19) if k not in (2, 3)]}}
 
 
 def test_slices_sent_again_after_their_series_ended_are_told_why_they_get_no_stack(case: Case, serve) -> None:  # noqa: ANN001

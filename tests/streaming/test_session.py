@@ -8,7 +8,8 @@ import pytest
 
 from service.core.errors import InvalidParameter
 from service.geometry import twin
-from service.streaming.frames import SliceFrame, StreamedStack
+from service.streaming.answers import NOT_RECEIVED
+from service.streaming.frames import IncompleteStack, SliceFrame, StreamedStack
 from service.streaming.options import SessionOptions, StreamLimits
 from service.streaming.session import StreamSession
 from tests.api.conftest import INFO
@@ -116,9 +117,11 @@ def test_bad_slices_are_refused_and_change_nothing(case) -> None:  # noqa: ANN00
         with pytest.raises(InvalidParameter, match=words):
             session.add_slice(frame)
     assert len(session.stacks["ax"]) == 1
-    with pytest.raises(InvalidParameter, match="lacks the slices"):
+    with pytest.raises(InvalidParameter, match="lacks the slices"):     # a stack of one slice and a gap
         session.add_slice(stacks[0][2])
+        session.stacks["ax"].remove(0)
         session.end_stack("ax")
+    session.add_slice(stacks[0][0])
     session.add_slice(stacks[0][1])
     with pytest.raises(InvalidParameter, match="at most 3 slices"):
         session.add_slice(stacks[0][3])
@@ -127,6 +130,54 @@ def test_bad_slices_are_refused_and_change_nothing(case) -> None:  # noqa: ANN00
         session.add_slice(stacks[0][3])
     with pytest.raises(InvalidParameter, match="already ended"):
         session.end_stack("ax")
+
+
+def test_a_stack_ends_without_the_slices_that_never_came_and_takes_them_when_they_do(case) -> None:  # noqa: ANN001
+    """A scanner's dropped slice costs its stack that slice alone: the stack ends with it blank,
+    named ``not_received`` and listed to acquire again, every slice received placed as the
+    simulation put it; the slice, sent after all, reopens the stack, and its next end is whole."""
+    oracle, stacks, truths = case
+    frames, n = stacks[0], len(stacks[0])
+    session = StreamSession(oracle, None, options=FAST)
+    gone = (0, 7, 8)                                          # the first slice too: the stack's origin is inferred
+    for k in range(n):
+        if k not in gone:
+            session.add_slice(frames[k])
+    final = session.end_stack("ax")
+    p = final.prediction
+    assert [k for k, r in enumerate(p.reasons) if r == NOT_RECEIVED] == list(gone) and len(p.reasons) == n
+    assert [(k, r) for k, r in final.reacquire if r == NOT_RECEIVED] == [(k, NOT_RECEIVED) for k in gone]
+    got = p.poses.poses @ p.network_from_voxel
+    err = [np.linalg.norm(got[k, :3, 3] - true_sent(truths[0], k)[:3, 3]) for k in range(n) if k not in gone]
+    assert max(err) < 0.5, err
+    for k in gone:                                            # a blank slice k maps as the stack's voxel (i0, i1, k)
+        stack_from_sent = np.linalg.inv(p.prepared.upload.volume.affine) @ frames[k].scanner_from_voxel
+        assert np.allclose(stack_from_sent, np.eye(4) + np.outer(np.eye(4)[2], np.eye(4)[3]) * k, atol=1e-6)
+    assert session.summary().reacquire["ax"][:3] == [(k, NOT_RECEIVED) for k in gone]
+    with pytest.raises(InvalidParameter, match=r"has ended.*\[0, 7, 8\], may still come"):
+        session.add_slice(frames[3])
+    session.add_slice(frames[7])                              # it came after all: the stack is open again
+    assert "ax" not in session.finals and session.summary().unfinished == {"ax": [0, 8]}
+    session.add_slice(frames[8])
+    session.add_slice(frames[0])
+    again = session.end_stack("ax").prediction
+    assert NOT_RECEIVED not in again.reasons
+    got = again.poses.poses @ again.network_from_voxel
+    assert max(np.linalg.norm(got[k, :3, 3] - true_sent(truths[0], k)[:3, 3]) for k in range(n)) < 0.5
+
+
+def test_a_stack_with_most_of_its_slices_missing_does_not_end(case) -> None:  # noqa: ANN001
+    """A few slices sent under a stack of their own (a reacquisition) are not judged as a stack of holes."""
+    oracle, stacks, _ = case
+    session = StreamSession(oracle, None, options=FAST)
+    for k in (4, 9):
+        session.add_slice(stacks[0][k])
+    with pytest.raises(IncompleteStack, match=r"lacks the slices \[0, 1, 2, 3, 5, 6, 7, 8\]"):
+        session.end_stack("ax")
+    for k in (0, 1, 2, 3, 5):
+        session.add_slice(stacks[0][k])
+    reasons = session.end_stack("ax").prediction.reasons
+    assert [k for k, r in enumerate(reasons) if r == NOT_RECEIVED] == [6, 7, 8] and len(reasons) == 10
 
 
 def test_a_slice_whose_index_contradicts_its_place_is_refused_on_arrival(case) -> None:  # noqa: ANN001
