@@ -224,9 +224,10 @@ class StreamedStack:
 
     def volume(self, checked: bool = False) -> tuple[Volume, Volume | None]:
         """The stack as a volume (and its mask volume, when the slices came with masks): voxel
-        ``(i0, i1, k)`` is slice ``k``. A slice that has not arrived (:meth:`missing`) is blank, with no brain in its mask, at its place on the stack's line: the stack is
-        judged by what came and the caller names what did not. :class:`IncompleteStack` when more
-        than :data:`MAX_MISSING_SHARE` of the slices, or all but one, are missing;
+        ``(i0, i1, k)`` is slice ``k``. A slice that has not arrived (:meth:`missing`) is blank,
+        with no brain in its mask, at its place on the stack's line: the stack is judged by what
+        came and the caller names what did not. :class:`IncompleteStack` when more than
+        :data:`MAX_MISSING_SHARE` of the slices, or all but one, are missing;
         :class:`InvalidParameter` when the slices are unevenly spaced (``checked``: the caller has
         found no slice off the even spacing, :meth:`off_line`, already).
 
