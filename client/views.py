@@ -35,8 +35,14 @@ so that no word is cut at 80 columns."""
 
 
 def with_brain(slices: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """The slices of a ``/v1/predict`` stack that hold brain (not ``empty``: their pose says nothing)."""
-    return [s for s in slices if s.get("reason") != "empty"]
+    """The slices of a stack that hold brain: not ``empty`` (their pose says nothing), nor, in a
+    stream's stack, ``not_received`` (never sent: no image to hold anything).
+
+    Example:
+        >>> [s["reason"] for s in with_brain([{"reason": None}, {"reason": "empty"}, {"reason": "not_received"}])]
+        [None]
+    """
+    return [s for s in slices if s.get("reason") not in ("empty", "not_received")]
 
 
 def usable(result: dict[str, Any]) -> bool:
