@@ -17,6 +17,9 @@ Example (a pool whose one process is ended at once):
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import gc
 import multiprocessing.process
 import os
 import threading
@@ -57,3 +60,20 @@ def watch_parent(parent: int | None = None, interval_s: float = 0.5) -> None:
         os._exit(0)
 
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+def release_memory() -> bool:
+    """In a long-lived pool process, after a large piece of work: collect what cycles hold and hand
+    the C heap's free pages back to the system (glibc's ``malloc_trim``), so that an idle process
+    does not keep its last job's peak. False where the C library has no such call (musl, macOS).
+
+    Example:
+        >>> isinstance(release_memory(), bool)
+        True
+    """
+    gc.collect()
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        return bool(libc.malloc_trim(0)) or True
+    except (OSError, AttributeError):
+        return False

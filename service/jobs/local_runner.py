@@ -35,7 +35,7 @@ from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 from service.core.errors import StoreUnavailable
-from service.core.process_pools import end_pool
+from service.core.process_pools import end_pool, release_memory
 from service.jobs.runner import INTERRUPTED, JobRunner, start_worker
 from service.jobs.store import Job, SqliteJobStore
 from service.jobs.worker import TIMED_OUT, run_job
@@ -80,9 +80,13 @@ def lock_store(data_dir: Path):  # noqa: ANN201 - an open file, or None where th
 
 
 def _run(data_dir: str, models_dir: str, job_id: str, localisers_dir: str | None = None) -> None:
-    """What a pool process executes."""
-    run_job(SqliteJobStore(Path(data_dir)), Path(models_dir), job_id,
-            localisers_dir=None if localisers_dir is None else Path(localisers_dir))
+    """What a pool process executes: the job, then its memory handed back (the process waits for the
+    next job)."""
+    try:
+        run_job(SqliteJobStore(Path(data_dir)), Path(models_dir), job_id,
+                localisers_dir=None if localisers_dir is None else Path(localisers_dir))
+    finally:
+        release_memory()
 
 
 class LocalRunner(JobRunner):
