@@ -51,10 +51,15 @@ OverwriteOpt = Annotated[bool, typer.Option(
 def check_writable(overwrite: bool = False, **paths: Path | None) -> None:
     """Output files (by option name) must be writable BEFORE anything is uploaded (not after an hour of
     reconstruction), and new unless ``overwrite``: a second patient's results never replace the first's
-    under a default name."""
+    under a default name; and distinct: one file named for two outputs would hold only the last."""
+    taken: dict[Path, str] = {}
     for option, path in paths.items():
         if path is None:
             continue
+        other = taken.setdefault(path.expanduser().resolve(), option)
+        if other != option:
+            raise typer.BadParameter(f"{path} is also given to --{other.replace('_', '-')}; name each output its own "
+                                     "file", param_hint=f"--{option.replace('_', '-')}")
         if not overwrite and path.expanduser().is_file():
             raise typer.BadParameter(f"{path} exists; nothing was sent (--overwrite replaces it)",
                                      param_hint=f"--{option.replace('_', '-')}")

@@ -289,6 +289,19 @@ def test_cli_fetch_follows_a_job_started_without_wait_and_downloads_its_results(
     assert invoke(["fetch", "nojob", "--out", str(tmp_path / "n.nii.gz")]).exit_code == 6
 
 
+def test_one_file_named_for_two_outputs_stops_the_command_before_anything_is_sent(fake_cli: Callable,
+                                                                                   stack_file: Path, tmp_path: Path) -> None:
+    """``--out x --preview x`` would write the volume, then the picture over it, and exit 0."""
+    fake, _ = fake_cli()
+    same = tmp_path / "same.nii.gz"
+    again = f"{tmp_path}/../{tmp_path.name}/same.nii.gz"                  # the same file, named otherwise
+    for args in (["fetch", "job1", "--out", str(same), "--preview", str(same)],
+                 ["reconstruct", str(stack_file), "--wait", "--out", str(same), "--poses-out", again]):
+        r = invoke(args)
+        assert r.exit_code == 2 and "also given to --out" in r.output and not fake.requests, r.output
+    assert not same.exists()
+
+
 def test_cli_checks_the_default_volume_path_before_uploading(fake_cli: Callable, stack_file: Path, tmp_path: Path,
                                                             monkeypatch: pytest.MonkeyPatch) -> None:
     fake, _ = fake_cli()
