@@ -61,7 +61,8 @@ return tonumber(redis.call('HGET', KEYS[1], 'attempts'))
 # KEYS: the job's hash. ARGV: field/value pairs, set only if the job exists.
 UPDATE = """
 if redis.call('EXISTS', KEYS[1]) == 0 then return 0 end
-for i = 1, #ARGV, 2 do redis.call('HSET', KEYS[1], ARGV[i], ARGV[i + 1]) end
+if ARGV[1] ~= '' and redis.call('HGET', KEYS[1], 'status') ~= ARGV[1] then return 0 end
+for i = 2, #ARGV, 2 do redis.call('HSET', KEYS[1], ARGV[i], ARGV[i + 1]) end
 return 1
 """
 
@@ -175,7 +176,7 @@ class RedisJobStore(JobStore):
     def update(self, job_id: str, **fields: object) -> None:
         if not set(fields) <= {"stage", "progress", "submitted_at"}:
             raise ValueError(f"update: only stage, progress, submitted_at (not {sorted(fields)})")
-        args: list[str] = ["updated_at", repr(time.time())]
+        args: list[str] = ["running" if {"stage", "progress"} & set(fields) else "", "updated_at", repr(time.time())]
         for k, v in fields.items():
             args += [k, v if isinstance(v, str) else repr(float(v))]  # type: ignore[arg-type]
         self._update(keys=[self._key(job_id)], args=args)

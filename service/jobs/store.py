@@ -141,7 +141,9 @@ class JobStore(ABC):
 
     @abstractmethod
     def update(self, job_id: str, **fields: object) -> None:
-        """Set ``stage``, ``progress`` or ``submitted_at`` of an existing job (never its status)."""
+        """Set ``stage``, ``progress`` or ``submitted_at`` of an existing job (never its status); a
+        stage or progress only while the job runs (a run's last report, read before a cancel or
+        the end, does not show an ended job at work)."""
 
     @abstractmethod
     def claim(self, job_id: str, redelivered: bool = False) -> int:
@@ -292,9 +294,10 @@ class SqliteJobStore(JobStore):
     def update(self, job_id: str, **fields: object) -> None:
         if not set(fields) <= {"stage", "progress", "submitted_at"}:
             raise ValueError(f"update: only stage, progress, submitted_at (not {sorted(fields)})")
+        running = " AND status = 'running'" if {"stage", "progress"} & set(fields) else ""
         fields["updated_at"] = time.time()
         cols = ", ".join(f"{k} = ?" for k in fields)
-        self._write(f"UPDATE jobs SET {cols} WHERE id = ?", (*fields.values(), job_id))
+        self._write(f"UPDATE jobs SET {cols} WHERE id = ?{running}", (*fields.values(), job_id))
 
     def claim(self, job_id: str, redelivered: bool = False) -> int:
         states = "('queued', 'running')" if redelivered else "('queued')"

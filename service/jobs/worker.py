@@ -247,11 +247,15 @@ def run_job(store: JobStore, models_dir: Path, job_id: str, redelivered: bool = 
         return                         # the later run owns the job's files
     except Cancelled:
         log.info("job cancelled", extra={"job_id": job_id})
+        shutil.rmtree(folder, ignore_errors=True)          # what the run wrote after the cancel deleted its files
     except Exception as exc:  # noqa: BLE001 - every failure is recorded on the job, not lost
         if store.fail(job_id, failure_reason(exc), attempt):
             log.warning("job failed", extra={"job_id": job_id, "error_type": type(exc).__name__, "error_at": error_at(exc)})
+            shutil.rmtree(folder / "outputs", ignore_errors=True)   # a failed job's results are no results: none stay
         else:                          # cancelled meanwhile (its files deleted under the run): no failure
             log.info("job ended after it was cancelled or superseded", extra={"job_id": job_id})
+            if store.is_cancelled(job_id):
+                shutil.rmtree(folder, ignore_errors=True)
     # Ended, whatever the outcome: the uploads (raw headers, the clients' file names) go now, not at
     # the retention limit. A worker stopped mid-job never gets here, so a re-run still has them.
     store.discard_inputs(job_id)

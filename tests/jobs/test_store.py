@@ -35,6 +35,20 @@ def test_lifecycle_and_claim_is_atomic(store: JobStore) -> None:
 
 
 @both
+def test_a_run_s_late_progress_report_does_not_show_an_ended_job_at_work(store: JobStore) -> None:
+    """A worker reads its job as running, the job is cancelled (or ends), then the report lands."""
+    cancelled, done = store.create({}), store.create({})
+    for job in (cancelled, done):
+        assert store.claim(job.id)
+    store.cancel(cancelled.id)
+    assert store.finish(done.id, {"slices": []})
+    for job, status, progress in ((cancelled, "cancelled", 0.0), (done, "succeeded", 1.0)):
+        store.update(job.id, stage="registration 2/3", progress=0.4)
+        got = store.get(job.id)
+        assert got.status == status and got.stage != "registration 2/3" and got.progress == progress, got
+
+
+@both
 def test_submissions_with_one_key_at_the_same_moment_make_one_job(store: JobStore) -> None:
     """Eight submissions with one idempotency key at once: one job made, the others given it; a
     submission without a key always makes its own."""
@@ -250,3 +264,31 @@ def test_a_superseded_runs_return_does_not_fail_the_run_in_progress(queue_settin
     assert runner.reconcile() == [job.id]
     assert store.get(job.id).error == "the worker ended without completing the job"
     runner.shutdown()
+
+
+@both
+def test_a_job_that_fails_or_is_cancelled_after_writing_results_leaves_none(store: JobStore, tmp_path: Path,
+                                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """A failure after the results were written (the refined poses' step, a time limit) leaves no
+    volume of a failed job for the retention time; a cancel that deleted the job's files while the
+    run went on writing leaves nothing of what it wrote after."""
+    from service.core.errors import Cancelled
+    from service.jobs import worker
+
+    def writes_then(error: Exception):  # noqa: ANN202
+        def execute(store_, folder: Path, *args: object) -> None:  # noqa: ANN001
+            (folder / "outputs").mkdir(parents=True, exist_ok=True)
+            (folder / "outputs" / "volume.nii.gz").write_bytes(b"patient")
+            if isinstance(error, Cancelled):
+                store_.cancel(job_id)
+                (folder / "outputs").mkdir(parents=True, exist_ok=True)      # the run writes on after the cancel
+                (folder / "outputs" / "preview.png").write_bytes(b"patient")
+            raise error
+        return execute
+
+    for error, status in ((ValueError("refined poses: broken"), "failed"), (Cancelled(), "cancelled")):
+        job_id = store.create({}).id
+        monkeypatch.setattr(worker, "_execute", writes_then(error))
+        worker.run_job(store, tmp_path / "models", job_id)
+        assert store.get(job_id).status == status
+        assert not (store.directory(job_id) / "outputs").exists(), status
