@@ -59,6 +59,9 @@ def poses_from_predict_body(body: dict, n_slices: list[int],
             raise ValueError(f"poses: stack {i}: atlas_from_voxel must be finite 4x4 matrices")
         if not all(isinstance(a, bool) for a in acc):
             raise ValueError(f"poses: stack {i}: accepted must be true or false")
+        if (bad := not_a_pose(slices)) is not None:
+            raise ValueError(f"poses: stack {i}, slice {bad}: rotation must be a 3x3 rotation matrix and translation_mm "
+                             "three finite numbers (the refined poses keep the frame they give), or leave both out")
         if affines is not None and (bad := not_rigid(mats, affines[i])) is not None:
             edges = frames.voxel_spacing(np.asarray(affines[i], np.float64))
             raise ValueError(f"poses: stack {i}, slice {bad}: atlas_from_voxel is no rigid placement of the stack's "
@@ -123,6 +126,32 @@ def in_index_order(slices: list, stack: int) -> list:
     if sorted(k for k in indices if type(k) is int) != list(range(len(slices))):
         raise ValueError(f"poses: stack {stack}: each slice's index must be one of 0..{len(slices) - 1}, once each")
     return sorted(slices, key=lambda s: s["index"])
+
+
+def not_a_pose(slices: list, tolerance: float = 1e-3) -> int | None:
+    """The index of the first slice whose ``rotation`` is no rotation matrix (orthonormal within
+    ``tolerance``, determinant +1) or whose ``translation_mm`` is no three finite numbers, where a
+    slice gives either; else None. A job's refined poses keep the frame these give.
+
+    Example:
+        >>> good = {"rotation": np.eye(3).tolist(), "translation_mm": [1.0, 2.0, 3.0]}
+        >>> not_a_pose([good, {}]), not_a_pose([good, {**good, "rotation": (2 * np.eye(3)).tolist()}])
+        (None, 1)
+        >>> not_a_pose([{"rotation": np.diag([1.0, 1.0, -1.0]).tolist(), "translation_mm": [0, 0, 0]}])
+        0
+    """
+    for k, s in enumerate(slices):
+        if "rotation" not in s and "translation_mm" not in s:
+            continue
+        try:
+            r, t = (np.array(s.get(key), dtype=np.float64) for key in ("rotation", "translation_mm"))
+        except (TypeError, ValueError, RecursionError):
+            return k
+        if r.shape != (3, 3) or t.shape != (3,) or not (np.isfinite(r).all() and np.isfinite(t).all()):
+            return k
+        if np.abs(r.T @ r - np.eye(3)).max() > tolerance or np.linalg.det(r) <= 0:
+            return k
+    return None
 
 
 def not_rigid(mats: np.ndarray, affine: np.ndarray, tolerance: float = 0.01) -> int | None:

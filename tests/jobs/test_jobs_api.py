@@ -265,7 +265,11 @@ def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict, mo
                            (lambda s: s["atlas_from_voxel"][0].insert(0, 1.0), "a 4x4 matrix of numbers"),   # a row of 5
                            (lambda s: s["atlas_from_voxel"][0].__setitem__(0, 10 ** 400), "must be finite 4x4"),
                            (lambda s: [row.__setitem__(0, -row[0]) for row in s["atlas_from_voxel"][:3]],
-                            "keeping the stack's handedness")):           # the voxels' first axis reversed
+                            "keeping the stack's handedness"),            # the voxels' first axis reversed
+                           (lambda s: s.update(rotation=[[2, 0, 0], [0, 2, 0], [0, 0, 2]], translation_mm=[0, 0, 0]),
+                            "stack 1, slice 2: rotation must be a 3x3 rotation matrix"),   # the refined frame's
+                           (lambda s: s.update(rotation=[[0, 0, 0]] * 3, translation_mm=[0, 0, 0]), "rotation must be"),
+                           (lambda s: s.update(rotation=np.eye(3).tolist(), translation_mm=[1, "x"]), "translation_mm")):
         bad = json.loads(json.dumps(case["poses"]))
         change(bad["stacks"][1]["slices"][2])
         r = submit(client, case, poses=bad)
