@@ -140,13 +140,19 @@ def check_slices_to_use(uploads: list[StackUpload], accepted: list[np.ndarray] |
     worker's localiser decides."""
     if any(u.mask is None for u in uploads):
         return
-    holding = []                                  # per stack: which slices hold a voxel of its mask
+    holding, showing = [], []                     # per stack: which slices hold a voxel of its mask; and an image there
     for u in uploads:
-        inside = np.moveaxis(u.mask_voxels, u.slice_axis, 0)
-        holding.append(inside.reshape(len(inside), -1).any(1))
+        inside = np.moveaxis(u.mask_voxels, u.slice_axis, 0).reshape(u.volume.array.shape[u.slice_axis], -1)
+        pixels = np.moveaxis(u.volume.array, u.slice_axis, 0).reshape(inside.shape)
+        holding.append(inside.any(1))
+        showing.append(np.where(inside, pixels, -np.inf).max(1) > np.where(inside, pixels, np.inf).min(1))
     if not any(h.any() for h in holding):
         raise UnusableImage(f"masks: no mask holds a voxel ({', '.join(str(u.mask_filename) for u in uploads)}); "
                             "there is nothing to reconstruct")
+    if not any(s.any() for s in showing):
+        raise UnusableImage(f"stacks: no slice shows an image inside its mask (the pixels there are all alike: "
+                            f"{', '.join(u.filename for u in uploads)}); there is nothing to reconstruct")
+    holding = [h & s for h, s in zip(holding, showing)]
     if accepted is not None and not any((h & np.asarray(a, bool)).any() for h, a in zip(holding, accepted)):
         raise InvalidParameter("poses: no accepted slice holds a voxel of its stack's mask; there is nothing to "
                                "reconstruct")

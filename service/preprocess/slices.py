@@ -46,7 +46,8 @@ class PreparedSlices:
         inputs: ``[B, L, L]`` float32, 0-255, what the network is fed.
         centroid_mm: ``[B, 2]`` mask centroid (x, y) in the input slice frame, mm.
         mask_pixels: ``[B]`` mask area in the input slice, pixels.
-        mask_fraction: ``[B]`` share of the network input covered by the resampled mask.
+        mask_fraction: ``[B]`` share of the network input covered by the resampled mask; 0 where the
+            slice's pixels inside its mask are all alike (a blank or saturated slice shows nothing).
     """
 
     inputs: NDArray[np.float32]
@@ -109,11 +110,12 @@ def preprocess_slices(
     rows = (cy[:, None] + grid[None, :]) / pixel_mm[0] + (h - 1) / 2.0 - r0     # [B, L]
     both = sample_grid(np.concatenate([scaled, m.astype(np.float32)]), np.concatenate([rows, rows]),
                        np.concatenate([cols, cols]))
+    flat = ~(scaled.reshape(b, -1) > 0).any(axis=1)        # no contrast in the region: nothing to see
     return PreparedSlices(
         inputs=both[:b].astype(np.float32),
         centroid_mm=np.stack([cx, cy], axis=1),
         mask_pixels=counts,
-        mask_fraction=(both[b:].reshape(b, -1) > 0.5).mean(axis=1),
+        mask_fraction=np.where(flat, 0.0, (both[b:].reshape(b, -1) > 0.5).mean(axis=1)),
     )
 
 

@@ -283,6 +283,8 @@ def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict, mo
     # Nothing to reconstruct from: masks without a voxel; poses accepted only where the masks hold none.
     r = submit(client, case, masks=zeroed(case, 1))
     assert r.status_code == 422 and r.json()["detail"].startswith("masks: no mask holds a voxel"), r.text
+    r = submit(client, case, stacks=zeroed(case, 0))                     # blank stacks: a blank volume, not a result
+    assert r.status_code == 422 and r.json()["detail"].startswith("stacks: no slice shows an image"), r.text
     outside, first_only = json.loads(json.dumps(case["poses"])), []
     for (_, m), st_ in zip(case["files"], outside["stacks"]):
         mask = read_volume(m)

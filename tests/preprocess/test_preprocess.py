@@ -46,6 +46,19 @@ def test_preprocess_centres_the_mask_and_handles_anisotropic_pixels() -> None:
     np.testing.assert_allclose(out.input_from_network()[0][:2, 3], [cx, cy])
 
 
+@pytest.mark.parametrize("blur", [False, True])
+def test_a_slice_whose_pixels_in_its_mask_are_all_alike_has_no_region_to_pose(blur: bool) -> None:
+    """A blank (or saturated) slice under a mask shows nothing: ``empty``, not a pose of zeros."""
+    img = np.zeros((3, 40, 40), np.float32)
+    img[0, 10:30, 10:30] = np.arange(400).reshape(20, 20) + 1            # an image
+    img[2, 10:30, 10:30] = 700.0                                          # saturated
+    mask = np.zeros(img.shape, bool)
+    mask[:, 10:30, 10:30] = True
+    out = preprocess_slices(img, mask, (2.0, 2.0) if blur else (1.0, 1.0), 32, 1.0 if not blur else 3.0)
+    assert out.mask_fraction[0] > 0.1 and out.mask_fraction[1] == out.mask_fraction[2] == 0.0
+    assert not out.inputs[1:].any()
+
+
 def test_slice_axis_is_largest_spacing_ties_last() -> None:
     assert slice_axis_of([1.0, 3.0, 1.0]) == 1
     assert slice_axis_of([2.0, 2.0, 2.0]) == 2
