@@ -44,6 +44,9 @@ def poses_from_predict_body(body: dict, n_slices: list[int],
             raise ValueError(f"poses: stack {i} has no list of slices")
         if len(slices) != n:
             raise ValueError(f"poses: stack {i} has {n} slices but the poses list {len(slices)}")
+        if affines is not None and not of_grid(st.get("scanner_from_voxel"), affines[i]):
+            raise ValueError(f"poses: stack {i}'s scanner_from_voxel is not the grid of the uploaded stack {i}: the "
+                             "poses are of another stack; send the stacks in the order the poses have them")
         slices = st["slices"] = in_index_order(slices, i)
         try:
             mats = np.array([s["atlas_from_voxel"] for s in slices], dtype=np.float64)
@@ -126,6 +129,25 @@ def in_index_order(slices: list, stack: int) -> list:
     if sorted(k for k in indices if type(k) is int) != list(range(len(slices))):
         raise ValueError(f"poses: stack {stack}: each slice's index must be one of 0..{len(slices) - 1}, once each")
     return sorted(slices, key=lambda s: s["index"])
+
+
+def of_grid(given: object, affine: np.ndarray, tolerance_mm: float = 1e-3) -> bool:
+    """Whether a poses body's ``scanner_from_voxel`` of a stack (None: the body gives none) is the
+    uploaded stack's voxel -> scanner ``affine``: two stacks of one slice count and voxel size are
+    otherwise told apart by nothing.
+
+    Example:
+        >>> a = np.diag([1.1, 1.1, 3.0, 1.0])
+        >>> of_grid(a.tolist(), a), of_grid(None, a), of_grid(np.diag([3.0, 1.1, 1.1, 1.0]).tolist(), a)
+        (True, True, False)
+    """
+    if given is None:
+        return True
+    try:
+        matrix = np.array(given, dtype=np.float64)
+    except (TypeError, ValueError, RecursionError):
+        return False
+    return matrix.shape == (4, 4) and bool(np.allclose(matrix, affine, rtol=0.0, atol=tolerance_mm))
 
 
 def not_a_pose(slices: list, tolerance: float = 1e-3) -> int | None:

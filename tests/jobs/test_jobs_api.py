@@ -274,6 +274,12 @@ def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict, mo
         change(bad["stacks"][1]["slices"][2])
         r = submit(client, case, poses=bad)
         assert r.status_code == 400 and needle in r.json()["detail"], r.text
+    swapped = json.loads(json.dumps(case["poses"]))                  # poses of the stacks in another order
+    grids = [read_volume(stack).affine.tolist() for stack, _ in case["files"]]
+    for st_, grid in zip(swapped["stacks"], grids[1:] + grids[:1]):
+        st_["scanner_from_voxel"] = grid
+    r = submit(client, case, poses=swapped)
+    assert r.status_code == 400 and "stack 0's scanner_from_voxel is not the grid of the uploaded stack 0" in r.text
     rejected = json.loads(json.dumps(case["poses"]))
     for st_ in rejected["stacks"]:
         for s in st_["slices"]:
