@@ -21,7 +21,8 @@ from service.api.uploads import UploadForm, UploadFormDep, known_fields, upload_
 from service.pipeline.predict import stack_orders
 from service.pipeline.prepare import StackUpload, check_distinct_stacks, check_mask_grid
 from service.core.client_json import client_json
-from service.core.errors import Conflict, InvalidParameter, NotFound, PayloadTooLarge, Saturated, UnusableImage
+from service.core.errors import (Conflict, InvalidParameter, KeyReused, NotFound, PayloadTooLarge, Saturated,
+                                 UnusableImage)
 from service.core.settings import Settings
 from service.io.acquisition_geometry import MAX_VOXEL_MM, MIN_VOXEL_MM
 from service.jobs.store import Job, JobStore
@@ -107,6 +108,21 @@ def idempotency_digest(key: str | None) -> str | None:
     return hashlib.sha256(key.encode()).hexdigest()
 
 
+async def submission_digest(form: UploadForm, poses_text: str | None, params: dict) -> str:
+    """A digest of what a submission sends: its files (names and bytes, in order), its poses and its
+    options. A retry sends the same; a key sent again with another request is refused
+    (:class:`~service.core.errors.KeyReused`)."""
+    digest = hashlib.sha256(json.dumps(params, sort_keys=True, default=str).encode())
+    for part in (*form.stacks, *form.masks):
+        digest.update(b"\0" + (part.filename or "").encode() + b"\0")
+        await part.seek(0)
+        while chunk := await part.read(1 << 20):
+            digest.update(chunk)
+        await part.seek(0)
+    digest.update(b"\0" + (poses_text or "").encode())
+    return digest.hexdigest()
+
+
 MAX_POSES_BYTES = 64 << 20
 """The largest ``poses`` upload: a job's refined poses of 32 stacks of 128 slices take about 20 MB."""
 
@@ -158,9 +174,13 @@ def check_slices_to_use(uploads: list[StackUpload], accepted: list[np.ndarray] |
                                "reconstruct")
 
 
-def _made_by_key(earlier: Job, response: Response, retry_after_s: float) -> dict:
+def _made_by_key(earlier: Job, response: Response, retry_after_s: float, digest: str) -> dict:
     """The answer to a submission whose idempotency key made ``earlier``: that job, or 503 while the
-    first submission's files are still being checked (the retry then gets the job, or its refusal)."""
+    first submission's files are still being checked (the retry then gets the job, or its refusal);
+    422 where the submission is not the one that made it (``digest``, :func:`submission_digest`)."""
+    if earlier.params.get("request_digest", digest) != digest:
+        raise KeyReused(f"{IDEMPOTENCY_HEADER}: this key made job {earlier.id} from another request (other files, "
+                        "poses or options); send a new key with a new request")
     if earlier.status == "queued" and earlier.submitted_at is None:
         raise Saturated(f"{IDEMPOTENCY_HEADER}: the first submission with this key is still being read; send it "
                         "again after Retry-After (it answers with that job, or with why it was refused)",
@@ -174,18 +194,20 @@ async def _submit(request: Request, response: Response, settings: Settings, form
     """The job made from a valid submission (or the one an earlier submission with its key made):
     its files read and checked (4xx at once, leaving no job behind), then queued."""
     store = _store(request)
-    if key is not None and (earlier := await to_thread.run_sync(store.job_for_key, key)) is not None:
-        return _made_by_key(earlier, response, settings.retry_after_s)
-    if (full := queue_full(request.app.state)) is not None:
-        raise full
     raw = (await request.form()).get("poses")
     if hasattr(raw, "read") and (raw.size or 0) > MAX_POSES_BYTES:
         raise PayloadTooLarge(f"poses: {raw.size} bytes; the poses of a request's stacks take at most "
                               f"{MAX_POSES_BYTES >> 20} MB")
     poses_text = (await raw.read()).decode("utf-8", "replace") if hasattr(raw, "read") else raw
-    job, made = store.create_once({**params, **({"idempotency_key": key} if key is not None else {})})
+    if key is not None:
+        params = {**params, "idempotency_key": key, "request_digest": await submission_digest(form, poses_text, params)}
+        if (earlier := await to_thread.run_sync(store.job_for_key, key)) is not None:
+            return _made_by_key(earlier, response, settings.retry_after_s, params["request_digest"])
+    if (full := queue_full(request.app.state)) is not None:
+        raise full
+    job, made = store.create_once(params)
     if not made:                                     # a submission with the same key came in meanwhile
-        return _made_by_key(job, response, settings.retry_after_s)
+        return _made_by_key(job, response, settings.retry_after_s, params["request_digest"])
     inputs = store.directory(job.id) / "inputs"
     inputs.mkdir()
     try:

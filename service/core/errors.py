@@ -61,6 +61,13 @@ class UnusableImage(ServiceError):
     status, title, type = 422, "Unusable image", "/problems/unusable-image"
 
 
+class KeyReused(ServiceError):
+    """422: an idempotency key sent again with another request (other files, poses or options): the
+    earlier job is not this request's, and a new job under the key would make it two."""
+
+    status, title, type = 422, "Idempotency key reused", "/problems/idempotency-key-reused"
+
+
 class InvalidParameter(ServiceError):
     """A form field is missing, out of range or inconsistent with another (API v1: "400 malformed request";
     422 is kept for files that were read but cannot be used)."""

@@ -345,6 +345,10 @@ def test_a_retried_submission_with_its_idempotency_key_gets_the_same_job(client:
     assert again.json()["job_id"] == first.json()["job_id"] and again.headers["location"] == first.headers["location"]
     other = submit(client, case, headers={"Idempotency-Key": "k-0000000000000001"})
     assert other.json()["job_id"] != first.json()["job_id"]
+    for changed in ({"stacks": zeroed(case, 0)}, {"resolution_mm": "1.5"}):    # the key of another request
+        reused = submit(client, case, headers=headers, **changed)
+        assert reused.status_code == 422 and first.json()["job_id"] in reused.json()["detail"], reused.text
+        assert reused.json()["type"] == "/problems/idempotency-key-reused"
     refused = submit(client, case, headers={"Idempotency-Key": "short"})
     assert refused.status_code == 400 and refused.json()["detail"].startswith("Idempotency-Key:")
     # A retry while the first submission's files are still being read: told to ask again, not given
