@@ -89,6 +89,9 @@ class RequestContext:
             await self.app(scope, receive, send)
             return
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
+        sent_method = scope["method"]
+        if sent_method == "HEAD":                    # answered as GET, without the body (RFC 9110, 9.3.2)
+            scope = {**scope, "method": "GET"}
         rid = headers.get("x-request-id", "")
         rid = rid if SAFE_ID.match(rid) else uuid.uuid4().hex
         scope.setdefault("state", {})["request_id"] = rid
@@ -101,6 +104,10 @@ class RequestContext:
             if message["type"] == "http.response.start":
                 state["code"], state["started"] = message["status"], True
                 message["headers"] = list(message.get("headers", [])) + [(b"x-request-id", rid.encode())]
+            elif sent_method == "HEAD" and message["type"] == "http.response.body":
+                if message.get("more_body", False):
+                    return
+                message = {**message, "body": b""}
             await send(message)
 
         async def send_with_id(message: Message) -> None:
@@ -166,7 +173,7 @@ class RequestContext:
             if held:
                 app.state.admissions.release()
         path = getattr(scope.get("route"), "path", None) or route_of(app, scope)
-        method = scope["method"] if scope["method"] in METHODS else "other"
+        method = sent_method if sent_method in METHODS else "other"
         if state["left"]:
             state["code"] = CLIENT_CLOSED         # whatever the app made of the cut-off body, no one got it
         model = scope["state"].get("model", "")

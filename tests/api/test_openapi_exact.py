@@ -45,6 +45,19 @@ def test_allow_lists_every_method_of_the_path(oracle_client: TestClient, path: s
     assert {m.strip() for m in r.headers["allow"].split(",")} == allow
 
 
+def test_head_is_answered_wherever_allow_lists_it_as_get_is_without_the_body(oracle_client: TestClient) -> None:
+    """``Allow`` names HEAD with every GET (RFC 9110 asks every server to answer it): the headers of
+    the GET, no body; a path without GET refuses it as it refuses GET."""
+    for path in ("/healthz", "/v1/models", "/openapi.json"):
+        got, head = oracle_client.get(path), oracle_client.head(path)
+        assert head.status_code == got.status_code == 200 and head.content == b"", path
+        assert head.headers["content-length"] == got.headers["content-length"] == str(len(got.content))
+        assert head.headers["content-type"] == got.headers["content-type"]
+    assert oracle_client.head("/v1/reconstructions/nojob").status_code == 404
+    refused = oracle_client.head("/v1/predict")
+    assert refused.status_code == 405 and refused.content == b"" and refused.headers["allow"] == "OPTIONS, POST"
+
+
 def test_every_documented_method_is_in_allow(oracle_client: TestClient) -> None:
     spec = oracle_client.get("/openapi.json").json()
     for path, ops in spec["paths"].items():

@@ -92,6 +92,8 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
     assert st["status"] == "succeeded", st
     assert st["progress"] == 1.0 and st["result_url"].endswith("/volume") and st["preview_url"].endswith(".png")
     vol_bytes = client.get(st["result_url"]).content
+    head = client.head(st["result_url"])                     # a client checks the download's size first
+    assert head.status_code == 200 and head.content == b"" and int(head.headers["content-length"]) == len(vol_bytes)
     (tmp_path / "v.nii.gz").write_bytes(vol_bytes)
     vol = read_volume(tmp_path / "v.nii.gz")
     assert vol.array.ndim == 3 and np.isfinite(vol.array).all() and vol.array.max() > 0
