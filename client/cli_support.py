@@ -246,6 +246,11 @@ def write_results(svr: SVRnetClient, job_id: str, done: dict[str, Any], out: Pat
                       f"{COHERENT_NCC}): "
                       "another fetus, another contrast, or a stack far off; the volume rests on the others, and its "
                       "slices keep their starting expected errors", style="yellow", markup=False)
+    unused = [str(i) for i, x in enumerate(per_stack) if x is None]
+    if unused and len(per_stack) > 1 and not incoherent:
+        console.print(f"stack {', '.join(unused)}: no slice of it is in the volume (none accepted, or no brain "
+                      "found); the volume rests on the other stacks. See its slices in svrnet predict, or send "
+                      "its mask", style="yellow", markup=False)
     if report.get("started_from") == "every_slice":
         console.print("started from every slice: too few were accepted to start from the accepted ones alone; "
                       "judge the volume by the quality line and the preview", style="yellow", markup=False)

@@ -481,14 +481,16 @@ def test_a_volume_that_is_no_coherent_brain_is_written_said_so_and_ends_with_its
 def test_a_stack_the_others_do_not_predict_is_named_and_a_scrambled_lone_stack_is_no_coherent_brain(
         fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
     fake_cli(jobs="one_apart")
-    r = invoke(["reconstruct", str(stack_file), str(stack_file), str(stack_file), "--poll", "0.05", "--out",
-                str(tmp_path / "a.nii.gz")])
-    assert r.exit_code == 0 and "stack 1: the other stacks do not predict it" in " ".join(r.stdout.split()), r.output
+    r = invoke(["reconstruct", *[str(stack_file)] * 4, "--poll", "0.05", "--out", str(tmp_path / "a.nii.gz")])
+    text = " ".join(r.stdout.split())
+    assert r.exit_code == 0 and "stack 1: the other stacks do not predict it" in text, r.output
+    assert "per stack 0.86, 0.44, 0.90, -" in text and "stack 3: no slice of it is in the volume" in text
     fake_cli(jobs="lone_scrambled")
     r = invoke(["reconstruct", str(stack_file), "--poll", "0.05", "--out", str(tmp_path / "b.nii.gz")])
     text = " ".join(r.stdout.split())
     assert r.exit_code == 12 and "one stack: leave alternate slices out -0.02" in text, r.output
     assert "the stack's slices do not predict each other" in text and "no coherent brain" in text
+    assert "no slice of it is in the volume" not in text                   # a lone stack has none to leave out
 
 
 def test_a_quality_line_says_when_no_stack_can_be_left_out() -> None:

@@ -160,10 +160,10 @@ class FakeJobs:
                 report.update(n_stacks=2, quality={"judged_slices": 40, "median_ncc": 0.88, "fraction_ncc_above_0_7": 1.0,
                                                    "coherent": False, "leave_one_stack_out": {
                                                        "median_ncc": 0.13, "per_stack_median_ncc": [0.1, 0.2]}})
-            if self.outcome == "one_apart":           # a coherent job with one stack the others do not predict
-                report.update(n_stacks=3, quality={"judged_slices": 60, "median_ncc": 0.97, "fraction_ncc_above_0_7": 1.0,
-                                                   "coherent": True, "leave_one_stack_out": {
-                                                       "median_ncc": 0.79, "per_stack_median_ncc": [0.86, 0.44, 0.9]}})
+            if self.outcome == "one_apart":           # a coherent job with one stack the others do not predict,
+                report.update(n_stacks=4, quality={"judged_slices": 60, "median_ncc": 0.97,    # and one not in it
+                                                   "fraction_ncc_above_0_7": 1.0, "coherent": True, "leave_one_stack_out": {
+                                                       "median_ncc": 0.79, "per_stack_median_ncc": [0.86, 0.44, 0.9, None]}})
             if self.outcome == "lone_scrambled":      # one stack whose alternate slices do not predict each other
                 report.update(n_stacks=1, quality={"judged_slices": 22, "median_ncc": 0.95, "fraction_ncc_above_0_7": 1.0,
                                                    "coherent": False, "leave_one_stack_out": {
