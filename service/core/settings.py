@@ -77,7 +77,8 @@ class Settings(BaseSettings):
                                   "stream, and its voxels counted as float32 (413 above)")
     max_request_decoded_mb: float = Field(1024.0, gt=0, description="limit of what all files of one request "
                                           "decode to together (413 above)")
-    retention_hours: float = Field(72.0, gt=0, description="finished jobs and their files are deleted after this")
+    retention_hours: float = Field(72.0, gt=0, description="finished jobs and their files are deleted after this "
+                                   "(checked every 10 minutes, or a tenth of it where shorter)")
     job_max_attempts: int = Field(2, ge=1, description="runs of a job whose worker (or server) was lost, at most; "
                                   "then it fails with that reason")
     queue_url: str | None = Field(None, description="redis://host:port/db: the distributed back-end (job records "

@@ -259,7 +259,8 @@ class LocalRunner(JobRunner):
             handed_back: list[str] = []
             if self.started:
                 try:                                   # an orderly stop is not the job's fault: no attempt spent
-                    handed_back = [j for j in self.store.recover(self.max_attempts, spared=running) if j in running]
+                    started = set(self.store.ids("running")) & set(running)    # not those still waiting in the pool
+                    handed_back = [j for j in self.store.recover(self.max_attempts, spared=running) if j in started]
                 except StoreUnavailable:
                     log.warning("the job store cannot be written; running jobs are re-queued at the next start")
             for job_id in handed_back:

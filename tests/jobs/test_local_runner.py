@@ -171,3 +171,20 @@ def test_an_orderly_stop_hands_running_jobs_back_without_spending_an_attempt(tmp
     assert store.claim(job.id) == 1
     store.recover(max_attempts=1)                                    # a start after a kill -9
     assert store.get(job.id).status == "failed"
+
+
+def test_a_stop_hands_back_and_logs_only_the_jobs_that_had_started(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Jobs submitted to the pool but still waiting there are not "handed back": they never left the queue."""
+    from concurrent.futures import Future
+
+    store = SqliteJobStore(tmp_path)
+    runner = LocalRunner(store, tmp_path)
+    runner.start()
+    started, waiting = store.create({}), store.create({})
+    assert store.claim(started.id) == 1
+    runner.futures = {started.id: Future(), waiting.id: Future()}       # both in the pool, one taken by a worker
+    with caplog.at_level("INFO", logger="service"):
+        assert runner.shutdown() == [started.id]
+    assert [r.job_id for r in caplog.records if r.getMessage() == "handed a job back to the queue"] == [started.id]
+    assert [store.get(j.id).status for j in (started, waiting)] == ["queued", "queued"]
+    assert store.get(started.id).attempts == 0                           # an orderly stop spends no attempt
