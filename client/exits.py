@@ -62,13 +62,19 @@ def exit_code_for(error: BaseException) -> int:
 
 
 def stdout() -> Console:
-    """The console commands print their results on."""
-    return Console(highlight=False)
+    """The console commands print their results on: lines wrapped at a terminal's width, kept whole
+    where the output goes to a file or a pipe (a script greps one line for one message)."""
+    return _unwrapped_off_terminal(Console(highlight=False))
 
 
 def stderr() -> Console:
-    """The console errors go to."""
-    return Console(stderr=True, highlight=False)
+    """The console errors go to (wrapped as :func:`stdout`)."""
+    return _unwrapped_off_terminal(Console(stderr=True, highlight=False))
+
+
+def _unwrapped_off_terminal(console: Console) -> Console:
+    console.soft_wrap = not console.is_terminal
+    return console
 
 
 def fail(message: str, code: int) -> None:
