@@ -61,7 +61,8 @@ from client.errors import SVRnetError
 from client.exits import (EXIT_BAD_INPUT, EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, EXIT_USAGE, errors, fail,
                           stderr, stdout)
 from client.stream_views import StreamView, coverage_text, reacquire_text
-from client.views import job_table, masks_table, models_table, predict_hints, summarise, upload_bar, usable
+from client.views import (job_table, masks_table, models_table, predict_hints, quality_line, refined_poses_line,
+                          summarise, upload_bar, usable)
 
 if TYPE_CHECKING:                     # client.stream needs numpy and nibabel: imported by `svrnet stream` only
     from client.stream import Sent
@@ -372,6 +373,11 @@ def status(
             console.print_json(data=state)
         else:
             console.print(job_table(state, job))
+            report = state.get("report") or {}                # a finished job: how to judge its volume
+            for line in (quality_line(report.get("quality"), report.get("n_stacks")),
+                         refined_poses_line(report.get("refined_poses"))):
+                if line:
+                    console.print(line, markup=False)
     if state.get("status") in ("failed", "cancelled"):
         raise typer.Exit(EXIT_JOB_FAILED)
 

@@ -370,6 +370,15 @@ def test_cli_status_cancel_and_conflict(fake_cli: Callable, stack_file: Path) ->
     assert invoke(["cancel", "job1"]).exit_code == 6
 
 
+def test_status_of_a_finished_job_prints_how_to_judge_its_volume(fake_cli: Callable, stack_file: Path) -> None:
+    fake_cli(jobs="one_apart")
+    assert invoke(["reconstruct", *[str(stack_file)] * 4]).exit_code == 0
+    for _ in range(3):                                       # the fake's job moves on at each poll
+        r = invoke(["status", "job1"])
+    assert r.exit_code == 0 and "succeeded" in r.stdout
+    assert "leave one stack out 0.79 (per stack 0.86, 0.44, 0.90, -)" in r.stdout and "refined poses: 3 of 3" in r.stdout
+
+
 def test_a_job_waiting_for_a_worker_that_is_not_running_says_so(fake_cli: Callable, stack_file: Path,
                                                                  tmp_path: Path) -> None:
     fake_cli(workers=0)
