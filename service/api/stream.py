@@ -117,8 +117,9 @@ class StreamConnection:
                 raise _Closed from None
 
     def idle_limit_s(self) -> float:
-        """How long the client may stay idle: :data:`START_TIMEOUT_S` before its session starts (a
-        connection that never starts one holds nothing for long), ``stream_idle_s`` after."""
+        """How long the client may stay idle: ``stream_idle_s`` once its session has started; before,
+        :data:`START_TIMEOUT_S` from the connection (a connection that never starts a session holds
+        nothing for long, however often it sends ``auth``)."""
         return self.settings.stream_idle_s if self.session is not None else \
             min(START_TIMEOUT_S, self.settings.stream_idle_s)
 
@@ -130,8 +131,9 @@ class StreamConnection:
             frame, self.pending = self.pending, None
             return frame
         limit = self.idle_limit_s()
+        since = self.active_at if self.session is not None else self.started
         try:
-            frame = await asyncio.wait_for(self.ws.receive(), max(limit - (time.perf_counter() - self.active_at), 0.0))
+            frame = await asyncio.wait_for(self.ws.receive(), max(limit - (time.perf_counter() - since), 0.0))
         except WebSocketDisconnected:
             raise _Closed from None
         except TimeoutError:
@@ -247,7 +249,7 @@ class StreamConnection:
         index = _integer(msg, "index", "slice")
         acquisition = _integer(msg, "acquisition_index", "slice") if msg.get("acquisition_index") is not None else None
         shape = msg.get("shape")
-        if not (isinstance(shape, list) and len(shape) == 2 and all(isinstance(n, int) and n > 0 for n in shape)):
+        if not (isinstance(shape, list) and len(shape) == 2 and all(type(n) is int and n > 0 for n in shape)):
             raise InvalidParameter("slice.shape: [n0, n1], two positive integers (a slice is 2D)")
         if shape[0] * shape[1] > self.settings.stream_max_pixels:
             raise InvalidParameter(f"slice.shape: {shape[0]} x {shape[1]} pixels is over this server's limit of "

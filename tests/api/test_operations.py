@@ -80,6 +80,9 @@ def test_api_keys(tiny_model_path: Path, phantom_files) -> None:
         assert client.get("/v1/models", headers={"Authorization": "Bearer wrong"}).status_code == 401
         assert client.get("/v1/models", headers={"Authorization": "Bearer k2"}).status_code == 200
         assert client.get("/v1/models", headers={"X-API-Key": "k1"}).status_code == 200
+        for odd in ("caf\xe9".encode("latin-1"), b"\xff\xfe"):                # bytes no ASCII key holds: 401, not 500
+            assert client.get("/v1/models", headers={"X-API-Key": odd}).status_code == 401
+            assert client.get("/v1/models", headers={"Authorization": b"Bearer " + odd}).status_code == 401
         assert client.get("/healthz").status_code == 200          # liveness stays open
         r = client.post("/v1/predict", files=[("stacks", ("s.nii.gz", phantom_files[0].read_bytes()))])
         assert r.status_code == 401 and r.headers["content-type"].startswith("application/problem+json")

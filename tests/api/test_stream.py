@@ -178,6 +178,8 @@ def test_bad_messages_get_an_error_naming_them_and_the_session_goes_on(client, c
             (json.dumps({"type": "dance"}), None, "unknown message type"),
             (json.dumps({"type": "slice", "stack": "ax", "index": 1, "shape": [4, 4, 4], "dtype": "uint8",
                          "scanner_from_voxel": np.eye(4).tolist()}), None, "slice.shape"),
+            (json.dumps({"type": "slice", "stack": "ax", "index": 1, "shape": [True, 4], "dtype": "uint8",
+                         "scanner_from_voxel": np.eye(4).tolist()}), None, "slice.shape"),      # a bool is no count
             (json.dumps({"type": "slice", "stack": "ax", "index": 1, "shape": [100, 100], "dtype": "uint8",
                          "scanner_from_voxel": np.eye(4).tolist()}), None, "limit of 4096 pixels"),
             (json.dumps({"type": "slice", "stack": "ax", "index": 1, "shape": [4, 4], "dtype": "float64",
@@ -219,12 +221,13 @@ def test_bad_messages_get_an_error_naming_them_and_the_session_goes_on(client, c
 def test_keys_and_the_session_limit(case) -> None:  # noqa: ANN001
     registry = ModelRegistry({"default": case[0]})
     with make_client(registry, api_keys="k1", stream_max_sessions=1) as client:
-        with client.websocket_connect("/v1/stream") as ws:
-            ws.send_text(json.dumps({"type": "auth", "api_key": "wrong"}))
-            assert ws.receive_json()["status"] == 401
-            with pytest.raises(WebSocketDisconnect) as closed:
-                ws.receive_json()
-            assert closed.value.code == 1008
+        for wrong in ("wrong", "café"):
+            with client.websocket_connect("/v1/stream") as ws:
+                ws.send_text(json.dumps({"type": "auth", "api_key": wrong}))
+                assert ws.receive_json()["status"] == 401
+                with pytest.raises(WebSocketDisconnect) as closed:
+                    ws.receive_json()
+                assert closed.value.code == 1008
         with client.websocket_connect("/v1/stream", headers={"X-API-Key": "k1"}) as first:
             first.send_text(json.dumps({"type": "start", "mc_samples": 5}))
             assert first.receive_json()["type"] == "ready"
@@ -259,6 +262,15 @@ def test_a_session_slot_is_taken_by_a_start_and_a_connection_that_never_starts_i
                 assert first.receive_json()["type"] == "summary"
         assert client.app.state.stream_sessions == 0
         monkeypatch.setattr(stream, "START_TIMEOUT_S", 0.5)
+        with client.websocket_connect("/v1/stream") as chatty:                # auth again and again, no start
+            t0 = time.perf_counter()
+            for _ in range(10):
+                chatty.send_text(json.dumps({"type": "auth"}))
+                time.sleep(0.2)
+                if time.perf_counter() - t0 > 0.6:
+                    break
+            error = chatty.receive_json()
+            assert error["status"] == 408 and "idle for 0.5 s" in error["detail"]
         with client.websocket_connect("/v1/stream") as idle:                  # never starts: closed
             error = idle.receive_json()
             assert error["status"] == 408 and "idle for 0.5 s" in error["detail"]
