@@ -279,6 +279,11 @@ def _model_in(annotation: object) -> type[BaseModel] | None:
     return None
 
 
+def _holds_list(annotation: object) -> bool:
+    """Whether an annotation is a list (itself, or inside Optional)."""
+    return typing.get_origin(annotation) is list or any(_holds_list(a) for a in typing.get_args(annotation))
+
+
 @functools.cache
 def _adapter(annotation: object) -> TypeAdapter:
     return TypeAdapter(annotation)
@@ -294,6 +299,8 @@ def known_only(value: object, model: type[BaseModel]) -> object:
         >>> known_only({"stacks": [{"index": 0, "note": "x", "slices": [{"index": 0, "who": "y"}]}], "extra": 1,
         ...             "mc_samples": {"hidden": "x"}}, PredictResponse)
         {'stacks': [{'index': 0, 'slices': [{'index': 0}]}]}
+        >>> known_only({"stacks": [{"index": 0, "consistency": [{"acquisition_order": "x"}]}]}, PredictResponse)
+        {'stacks': [{'index': 0}]}
     """
     if isinstance(value, list):
         return [kept for v in value if isinstance(v, dict) and (kept := known_only(v, model)) is not None]
@@ -305,7 +312,7 @@ def known_only(value: object, model: type[BaseModel]) -> object:
             continue
         inner = _model_in(field.annotation)
         if inner is not None:
-            if isinstance(value[name], (dict, list)):
+            if isinstance(value[name], list if _holds_list(field.annotation) else dict):   # the declared shape only
                 out[name] = known_only(value[name], inner)
             continue
         try:
