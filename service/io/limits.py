@@ -82,6 +82,7 @@ class FileBudget:
     def __init__(self, request: DecodeBudget, filename: str, parent: FileBudget | None = None) -> None:
         self.request, self.filename, self.parent = request, filename, parent
         self.inflated = 0
+        self.voxel_bytes = 0
 
     def member(self, label: str) -> FileBudget:
         """The same budget, spent by a part of the file (a ZIP member) and naming ``label`` in errors."""
@@ -111,10 +112,13 @@ class FileBudget:
         self.request._charge(self.filename, n)
 
     def voxels(self, n_values: int) -> None:
-        """Charge an array of ``n_values`` voxel values (as float32) before it is allocated."""
+        """Charge an array of ``n_values`` voxel values (as float32) before it is allocated; a file's
+        parts (a ZIP's images, which make one series) together."""
         n = int(n_values) * 4
-        if n > self.limit:
-            raise self.too_large("its voxel data decode")
+        owner = self.parent or self
+        owner.voxel_bytes += n
+        if owner.voxel_bytes > self.limit:
+            raise owner.too_large("its voxel data decode" if owner is self else "its images' voxel data decode")
         self.request._charge(self.filename, n)
 
 

@@ -110,6 +110,17 @@ def test_a_zipped_series_of_deflated_files_is_read_in_order(tmp_path: Path) -> N
     np.testing.assert_array_equal(single.array, np.stack(planes).transpose(2, 1, 0))
 
 
+def test_a_zipped_series_is_held_to_one_files_voxel_limit_together(tmp_path: Path) -> None:
+    """Each image of a ZIP within the per-file limit, the series they make over it (a few KB of
+    constant images would otherwise become a volume of any size): 413 before GDCM builds it."""
+    plane = np.full((256, 256), 7, np.uint16)                          # 0.25 MB as float32
+    members = {f"IM{k:04d}": corpus.dicom(plane, k) for k in range(6)}
+    with pytest.raises(PayloadTooLarge, match=r"series\.zip: its images' voxel data decode to more than 1 MB"):
+        read(tmp_path, corpus.zipped(members), "series.zip", limit_mb=1, request_mb=64)
+    assert read(tmp_path, corpus.zipped(dict(list(members.items())[:3])), "three.zip", limit_mb=1,
+                request_mb=64).array.shape[2] == 3
+
+
 def test_a_zip_declaring_too_many_members_is_refused_before_its_list_is_parsed(tmp_path: Path,
                                                                              monkeypatch: pytest.MonkeyPatch) -> None:
     """The member count (and the list's size) come from the end record: the list itself is never read."""
