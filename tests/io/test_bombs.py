@@ -36,6 +36,37 @@ def test_a_dicom_deflate_bomb_is_stopped_while_it_inflates(tmp_path: Path) -> No
     assert peak < 3 * 4 * MB, f"{peak / MB:.0f} MB allocated to refuse a 64 MB bomb at 4 MB"
 
 
+@pytest.mark.parametrize("deflate", [True, False])
+@pytest.mark.parametrize("what", ["items", "elements"])
+def test_a_dicom_dataset_of_countless_tiny_parts_is_refused_before_pydicom_builds_it(tmp_path: Path, what: str,
+                                                                                     deflate: bool) -> None:
+    """Empty sequence items or zero-length elements cost 8 bytes in a file and hundreds as pydicom's
+    objects: a few hundred KB (tens when deflated) would take gigabytes. 413 at once, within bounded memory."""
+    import struct
+    import zlib
+
+    from service.io import dicom_guard
+
+    ds = corpus._dataset(8, 8, 1)
+    if what == "items":
+        body = (struct.pack("<HH2sHI", 0x0008, 0x1140, b"SQ", 0, 0xFFFFFFFF)
+                + struct.pack("<HHI", 0xFFFE, 0xE000, 0) * (dicom_guard.MAX_ITEMS + 1) + struct.pack("<HHI", 0xFFFE, 0xE0DD, 0))
+    else:
+        body = b"".join(struct.pack("<HH2sH", 0x0009, k + 1, b"LO", 0) for k in range(dicom_guard.MAX_ELEMENTS + 1))
+    if deflate:
+        c = zlib.compressobj(9, zlib.DEFLATED, -zlib.MAX_WBITS)
+        data = corpus._file(ds, uid.DeflatedExplicitVRLittleEndian, c.compress(body) + c.flush())
+    else:
+        data = corpus._file(ds, uid.ExplicitVRLittleEndian, body)
+    tracemalloc.start()
+    with pytest.raises(PayloadTooLarge, match=f"more than {dicom_guard.MAX_ITEMS} sequence items" if what == "items"
+                       else f"more than {dicom_guard.MAX_ELEMENTS} elements"):
+        read(tmp_path, data, "tiny.dcm")
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 16 * MB, peak
+
+
 def test_a_deflated_dicom_within_the_limit_is_read(tmp_path: Path) -> None:
     pixels = np.arange(3 * 8 * 6, dtype=np.uint16).reshape(3, 8, 6)
     vol = read(tmp_path, corpus.dicom(pixels, ts=uid.DeflatedExplicitVRLittleEndian), "ok.dcm")
