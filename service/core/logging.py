@@ -65,9 +65,11 @@ class JsonFormatter(logging.Formatter):
         return json.dumps(out)
 
 
-QUIET = {"pydicom": logging.CRITICAL, "multipart": logging.ERROR, "python_multipart": logging.ERROR}
+QUIET = {"pydicom": logging.CRITICAL, "multipart": logging.ERROR, "python_multipart": logging.ERROR,
+         "nibabel": logging.CRITICAL, "nibabel.global": logging.CRITICAL}
 """Libraries whose messages may quote what they parse (pydicom a DICOM attribute's value, the form
-parser a body's bytes): their loggers only pass what stops them."""
+parser a body's bytes, nibabel a NIfTI header's fields, on a plain-text handler of its own): their
+loggers only pass what stops them."""
 QUIET_WARNINGS = ("pydicom", "xsdata", "ismrmrd")
 """Packages whose Python warnings may quote a client's value (pydicom an attribute's, xsdata an MRD
 XML header field's, such as a malformed birth date): ignored, as they would reach stderr as text."""

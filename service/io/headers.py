@@ -95,6 +95,9 @@ def _lines(head: bytes, kind: str) -> list[tuple[bytes, int]]:
 
 
 _NOT_FINITE = re.compile(rb"nan|inf", re.I)
+MAX_GEOMETRY_MM = 1e6
+"""Larger numbers in a header's sizes, directions or origin are no scanner's (the reader would put
+1 mm in place of a direction it cannot normalise)."""
 _NUMBER = re.compile(rb"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
 SIZE_FIELDS = {"nrrd": ("spacedirections", "spacings"), "mha": ("elementspacing", "elementsize")}
 PLACE_FIELDS = {"nrrd": ("spaceorigin",), "mha": ("offset", "position", "origin", "transformmatrix", "rotation",
@@ -153,6 +156,8 @@ def geometry_problem(header: bytes, kind: str) -> str | None:
         'its NRRD header gives no voxel size (no space directions or spacings); the reader would invent 1 mm'
         >>> geometry_problem(b"NRRD0004\\nspacings: 1 1 3\\nspace origin: (0,0,0)\\n\\n", "nrrd") is None
         True
+        >>> geometry_problem(b"NRRD0004\\nspace directions: (1e200,0,0) (0,1,0) (0,0,1)\\n\\n", "nrrd")[-9:]
+        '1e+06 mm)'
     """
     fields = _fields(header, kind)
     sizes = [fields[name] for name in SIZE_FIELDS[kind] if name in fields]
@@ -160,8 +165,10 @@ def geometry_problem(header: bytes, kind: str) -> str | None:
         names = " or ".join(n.replace("space", "space ") if kind == "nrrd" else n for n in SIZE_FIELDS[kind])
         return (f"its {kind.upper()} header gives no voxel size (no {names}); the reader would invent 1 mm")
     for name in (*SIZE_FIELDS[kind], *PLACE_FIELDS[kind]):
-        if name in fields and _NOT_FINITE.search(fields[name]):
-            return f"its {kind.upper()} header's {name} holds values that are not finite numbers"
+        if name in fields and (_NOT_FINITE.search(fields[name]) or
+                               any(abs(float(v)) > MAX_GEOMETRY_MM for v in _NUMBER.findall(fields[name]))):
+            return (f"its {kind.upper()} header's {name} holds values that are not finite numbers (or beyond "
+                    f"{MAX_GEOMETRY_MM:.0e} mm)")
     if kind == "mha" and (problem := _mha_counts(fields)) is not None:
         return problem
     if any(float(v) <= 0 for v in _NUMBER.findall(fields.get("spacings", b"") + fields.get("elementspacing", b"")
@@ -310,6 +317,11 @@ def _mha(lines: list[tuple[bytes, int]], filename: str) -> tuple[bytes, int | No
         if _DETACHED.search(key) or b"\r" in line:      # a \r inside a line: no field of any reader's
             raise _detached(filename, "mha") if _DETACHED.search(line) else UnsupportedFile(
                 f"{filename}: an MHA header line with a carriage return inside it")
+        if sep and name == "headersize":      # the data follow the rebuilt header: a skip into it is refused
+            if value.strip() not in (b"-1", b"0"):
+                raise UnsupportedFile(f"{filename}: an MHA header with a HeaderSize (bytes to skip before the data) "
+                                      "other than 0 or -1")
+            continue
         if sep and name in MHA_YES_NO:        # as MetaIO reads it: T, t or 1 first is yes, anything else no
             out.append(MHA_CANONICAL[name].encode() + (b" = True" if value.strip()[:1] in (b"T", b"t", b"1")
                                                         else b" = False"))

@@ -272,6 +272,9 @@ def _read_nifti2(path: Path, filename: str, budget: FileBudget, transforms: Nift
     (:func:`placed_by_header`: the sform when its code is above 0, else the qform). The voxels
     are scaled in float32, the only array beside the file's own."""
     image = nibabel.Nifti2Image.from_filename(str(path))
+    if image.dataobj.offset < 544:                         # one file: the data after header and extension flag
+        raise UnusableImage(f"{filename}: impossible NIfTI-2 header (its voxel data would start inside the header: "
+                            "vox_offset < 544)")
     shape = tuple(int(n) for n in image.shape)
     budget.voxels(int(np.prod(shape, dtype=np.float64)))
     if len(shape) < 3:

@@ -24,6 +24,8 @@ def _restored_logging():  # noqa: ANN202 - configure() changes process-wide stat
 def test_libraries_that_quote_what_they_parse_pass_nothing_below_their_floor(capsys) -> None:  # noqa: ANN001
     service_logging.configure("debug")
     logging.getLogger("pydicom").warning("Value 'Doe^Jane' is not valid for VR DS")
+    import nibabel.imageglobals                                      # its own plain-text handler on stderr
+    nibabel.imageglobals.logger.error("magic string 'Doe ' is not valid")
     logging.getLogger("service.test").info("request", extra={"route": "/v1/predict", "stack_name": "Doe_Jane.nii"})
     with warnings.catch_warnings(record=True) as caught:
         service_logging.configure("debug")                         # filters are set again inside catch_warnings

@@ -138,6 +138,8 @@ MHA_HEAD = b"ObjectType = Image\nNDims = 3\nDimSize = 8 8 8\nElementType = MET_U
      "offset holds values that are not finite"),
     ("g.mha", MHA_HEAD + b"ElementSpacing = 1 1 -3\nElementDataFile = LOCAL\n", "not positive"),
     ("g.mha", MHA_HEAD + b"ElementSpacing = 1 1 3\nOffset = a b c\nElementDataFile = LOCAL\n", "offset is not 3 numbers"),
+    ("g.nrrd", NRRD_HEAD + b"space: left-posterior-superior\nspace directions: (1e200,0,0) (0,1,0) (0,0,1)\n\n",
+     "beyond 1e+06 mm"),                                              # the reader would put 1 mm in its place
 ])
 def test_a_geometry_the_reader_would_make_up_is_422(tmp_path: Path, name: str, content: bytes, words: str) -> None:
     """As a NIfTI header without voxel sizes or with a sheared sform is: never 1 mm or 0 invented."""
@@ -209,3 +211,12 @@ def test_metaimage_yes_no_values_are_read_as_metaio_reads_them(tmp_path: Path) -
     upload.write_bytes(written)
     read = read_upload(upload, "z.mha")
     np.testing.assert_array_equal(read.array, array.transpose(2, 1, 0).astype(read.array.dtype))
+
+
+def test_an_mha_header_size_that_skips_into_the_rebuilt_header_is_refused(tmp_path: Path) -> None:
+    """The data follow the rebuilt header: a HeaderSize of 5 read the header's own text as voxels."""
+    head = MHA_HEAD + b"ElementSpacing = 1 1 3\n"
+    assert "HeaderSize" in refuse(tmp_path, head + b"HeaderSize = 5\nElementDataFile = LOCAL\n" + bytes(512), "h.mha")
+    upload = tmp_path / "ok.mha"
+    upload.write_bytes(head + b"HeaderSize = -1\nElementDataFile = LOCAL\n" + bytes(range(256)) * 2)
+    assert read_upload(upload, "ok.mha").array.max() == 255
