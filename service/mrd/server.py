@@ -218,6 +218,9 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, stop)
     host, port = server.server_address[:2]
     log.info("svrnet-mrd listening on %s:%s", host, port)
+    if host not in ("127.0.0.1", "localhost", "::1"):          # MRD has no API key: any peer may take its sessions
+        log.warning("svrnet-mrd has no authentication: serving every host that reaches this address; keep it on a "
+                    "scanner's own network or behind a tunnel")
     try:
         server.serve_forever()
     except KeyboardInterrupt:
