@@ -54,21 +54,21 @@ def localiser_for(localisers: Localisers, masks: list) -> Localiser | None:
 
 def api_key_ok(keys: set[str], authorization: str | None, x_api_key: str | None) -> bool:
     """``Authorization: Bearer <key>`` or ``X-API-Key: <key>`` is one of ``keys`` (always true without keys),
-    compared in constant time as UTF-8 bytes (any character a client sends, none an error).
+    compared in constant time. Keys are printable ASCII (the settings check them): a key sent with
+    any other character is no key, whatever it holds.
 
     Example:
-        >>> api_key_ok({"k-1"}, None, "k-1"), api_key_ok({"k-1"}, "Bearer café", None), api_key_ok({"café"}, None, "café")
-        (True, False, True)
+        >>> api_key_ok({"k-1"}, None, "k-1"), api_key_ok({"k-1"}, "Bearer café", None), api_key_ok({"k-1"}, None, "\\ud800")
+        (True, False, False)
     """
     if not keys:
         return True
     given = x_api_key
     if authorization and authorization.lower().startswith("bearer "):
         given = authorization[7:].strip()
-    if not given:
+    if not given or not given.isascii():
         return False
-    sent = given.encode("utf-8", "surrogateescape")
-    return any(hmac.compare_digest(sent, k.encode("utf-8", "surrogateescape")) for k in keys)
+    return any(hmac.compare_digest(given.encode(), k.encode()) for k in keys if k.isascii())
 
 
 UNAUTHORIZED = "Authorization: a valid API key is required (Bearer token or X-API-Key header)"

@@ -8,6 +8,8 @@ Example:
     >>> del os.environ["SVRNET_PORT"]
     >>> sorted(Settings(api_keys="a, b").key_set())
     ['a', 'b']
+    >>> [p for p in Settings(api_keys="a, café").problems() if p.startswith("SVRNET_API_KEYS")]
+    ['SVRNET_API_KEYS: a key holds a character that is not printable ASCII (HTTP headers carry no other reliably)']
 """
 
 from __future__ import annotations
@@ -132,6 +134,9 @@ class Settings(BaseSettings):
         out = []
         if self.api_keys.strip() and not self.key_set():
             out.append("SVRNET_API_KEYS: holds separators but no key (unset it to serve without keys)")
+        if any(not ("!" <= c <= "~") for k in self.key_set() for c in k):
+            out.append("SVRNET_API_KEYS: a key holds a character that is not printable ASCII (HTTP headers carry "
+                       "no other reliably)")
         names = [p.parent.name for p in model_files(self.models_dir)]
         if not names:
             out.append(f"SVRNET_MODELS_DIR: {self.models_dir} holds no <name>/model.onnx")

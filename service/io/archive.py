@@ -100,8 +100,9 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path 
             raise UnusableImage(f"{filename}: the ZIP archive holds {len(series)} DICOM series; upload one per file")
         with SITK_FILES:
             files = reader.GetGDCMSeriesFileNames(tmp, series[0])
-        if len(files) == 1:
-            return read_dicom_file(Path(files[0]), labels.get(files[0], filename), budget)
+        if len(files) == 1:                  # read again as a file of its own: its voxels charged to it alone
+            label = labels.get(files[0], filename)
+            return read_dicom_file(Path(files[0]), label, budget.request.file(label))
         if (problem := series_problem([tags[f] for f in files])) is not None:
             raise UnusableImage(f"{filename}: a DICOM series of {len(files)} files, but {problem}")
         for f in files:

@@ -2,10 +2,8 @@
 
 * Deflated Explicit VR Little Endian: the dataset is inflated here, in chunks, charged to the file's
   :class:`~service.io.limits.FileBudget` as it grows (pydicom would inflate it whole, unbounded).
-* The dataset's structure, before pydicom parses it (:func:`check_structure`): pydicom makes a
-  Python object of every element and sequence item, hundreds of bytes for an item of eight, so a
-  small file of empty items or tiny elements would take gigabytes. The sequence items, the
-  top-level elements and the header's bytes before the pixel data are bounded.
+* The dataset's elements and items, at every depth, and its header's bytes are counted from its raw
+  bytes before pydicom builds any of them (:func:`~service.io.dicom_structure.check_structure`).
 * Pixel data: ``Rows x Columns x NumberOfFrames x SamplesPerPixel`` is charged before any pixel is
   decoded (multi-frame included); colour pixel data (``SamplesPerPixel`` above 1) are refused (422).
 * Encapsulated pixel data: every frame is checked against ``Rows``/``Columns`` before a codec sees it:
@@ -26,24 +24,16 @@ from pydicom import uid
 from pydicom.dataset import Dataset, FileDataset
 from pydicom.encaps import generate_frames
 from pydicom.filebase import DicomBytesIO
-from pydicom.filereader import _read_file_meta_info, data_element_generator, read_dataset, read_preamble
+from pydicom.filereader import _read_file_meta_info, read_dataset, read_preamble
 
-from service.core.errors import PayloadTooLarge, UnsupportedFile, UnusableImage
+from service.core.errors import UnsupportedFile, UnusableImage
+from service.io.dicom_structure import check_structure
 from service.io.limits import FileBudget
 
 JPEG_FAMILY = set(uid.JPEGTransferSyntaxes) | set(uid.JPEGLSTransferSyntaxes)
 J2K_FAMILY = set(uid.JPEG2000TransferSyntaxes) | {uid.HTJ2K, uid.HTJ2KLossless, uid.HTJ2KLosslessRPCL}
 SOF_MARKERS = {m for m in range(0xC0, 0xD0) if m not in (0xC4, 0xC8, 0xCC)} | {0xF7}
 CHUNK = 1 << 20
-MAX_HEADER_BYTES = 8 << 20
-"""The most bytes of a dataset before its pixel data (an enhanced MR file's per-frame groups for a
-thousand frames take a few MB)."""
-MAX_ITEMS = 100_000
-"""The most sequence items (and encapsulated fragments) in one file."""
-MAX_ELEMENTS = 20_000
-"""The most elements at a dataset's top level (an MR image has a few hundred)."""
-ITEM_TAGS = (b"\xfe\xff\x00\xe0", b"\xff\xfe\xe0\x00")       # (FFFE,E000), little and big endian
-PIXEL_DATA = 0x7FE00010
 
 
 def load_dataset(path: Path, filename: str, budget: FileBudget, require_pixels: bool = True) -> Dataset:
@@ -71,47 +61,6 @@ def load_dataset(path: Path, filename: str, budget: FileBudget, require_pixels: 
     if require_pixels or "PixelData" in ds:
         check_pixels(ds, filename, budget)
     return ds
-
-
-def check_structure(fp: BinaryIO, filename: str, implicit_vr: bool, little_endian: bool) -> None:
-    """Refuse (413) the dataset that starts at ``fp``'s position (left there again) before pydicom
-    builds it: more than :data:`MAX_ITEMS` sequence items in the rest of the file (counted by their
-    tag's bytes, which only makes the bound stricter where a value holds them), more than
-    :data:`MAX_ELEMENTS` elements at its top level, or more than :data:`MAX_HEADER_BYTES` before its
-    pixel data. The items are counted first: reading an element of a sequence builds its items.
-
-    Example:
-        >>> from io import BytesIO
-        >>> check_structure(BytesIO(b"\\xe0\\x7f\\x10\\x00OW\\x00\\x00\\x02\\x00\\x00\\x00\\x01\\x00"), "a.dcm", False, True)
-        >>> try:
-        ...     check_structure(BytesIO(b"\\xfe\\xff\\x00\\xe0" * (MAX_ITEMS + 1)), "b.dcm", False, True)
-        ... except PayloadTooLarge as exc:
-        ...     print(exc.detail)
-        b.dcm: a DICOM dataset of more than 100000 sequence items
-    """
-    start, items, tail = fp.tell(), 0, b""
-    while chunk := fp.read(CHUNK):
-        data = tail + chunk                      # a tag across two chunks counted once: tail is 3 bytes
-        items += sum(data.count(tag) for tag in ITEM_TAGS)
-        if items > MAX_ITEMS:
-            raise PayloadTooLarge(f"{filename}: a DICOM dataset of more than {MAX_ITEMS} sequence items")
-        tail = data[-3:]
-    fp.seek(start)
-    elements = 0
-    try:
-        for _ in data_element_generator(fp, implicit_vr, little_endian, defer_size=CHUNK,
-                                        stop_when=lambda tag, vr, length: tag == PIXEL_DATA):
-            elements += 1
-            if elements > MAX_ELEMENTS:
-                raise PayloadTooLarge(f"{filename}: a DICOM dataset of more than {MAX_ELEMENTS} elements")
-            if fp.tell() - start > MAX_HEADER_BYTES:
-                raise PayloadTooLarge(f"{filename}: a DICOM header of more than {MAX_HEADER_BYTES >> 20} MB before "
-                                      "its pixel data")
-    except PayloadTooLarge:
-        raise
-    except Exception:  # noqa: BLE001 - malformed: pydicom's own reading says so, as it always has
-        pass
-    fp.seek(start)
 
 
 def _inflate(fp: BinaryIO, budget: FileBudget) -> bytes:

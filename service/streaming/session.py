@@ -133,6 +133,7 @@ class StreamSession:
         self.ended: dict[str, _Ended] = {}
         self.finals: dict[str, StackPrediction] = {}
         self.reacquire_sent: dict[str, list[tuple[int, str]]] = {}   # each ended stack's list as last sent
+        self.reopened: dict[str, int] = {}      # a reopened stack's earlier end, still held: its bytes
         self.compute_ms: dict[str, float] = {"slices": 0.0, "firm_up": 0.0, "end_stack": 0.0}
         self.held_bytes = 0                     # the received slices' pixels as float32, and what is kept of them
         self._lock = threading.Lock()
@@ -340,8 +341,9 @@ class StreamSession:
 
     def _reopen(self, stack: str) -> None:
         """A slice the ended ``stack`` lacked has come: the stack is open again, its final poses
-        withdrawn until it ends again (under the lock)."""
-        self.held_bytes -= array_bytes(self.ended.pop(stack))
+        withdrawn until it ends again (under the lock). What its end prepared stays counted until
+        then: its slices' last answers hold it."""
+        self.reopened[stack] = array_bytes(self.ended.pop(stack))
         self.finals.pop(stack, None)
 
     # -- 3. the stack ends ------------------------------------------------------------------------------------
@@ -381,7 +383,7 @@ class StreamSession:
         timings.update(more)
         with self._lock:
             self.ended[stack] = ended[stack]
-            self.held_bytes += array_bytes(ended[stack])          # the stack as prepared whole
+            self.held_bytes += array_bytes(ended[stack]) - self.reopened.pop(stack, 0)   # the stack as prepared whole
             for state in self.slices.get(stack, {}).values():     # its slices' maps serve no later slice
                 self.held_bytes -= array_bytes([state.brain_map])
                 state.brain_map = None

@@ -221,7 +221,7 @@ def test_bad_messages_get_an_error_naming_them_and_the_session_goes_on(client, c
 def test_keys_and_the_session_limit(case) -> None:  # noqa: ANN001
     registry = ModelRegistry({"default": case[0]})
     with make_client(registry, api_keys="k1", stream_max_sessions=1) as client:
-        for wrong in ("wrong", "café"):
+        for wrong in ("wrong", "café", "\ud800x"):                          # a lone surrogate too: 401, not a 1006
             with client.websocket_connect("/v1/stream") as ws:
                 ws.send_text(json.dumps({"type": "auth", "api_key": wrong}))
                 assert ws.receive_json()["status"] == 401

@@ -156,12 +156,19 @@ def test_a_stack_ends_without_the_slices_that_never_came_and_takes_them_when_the
     assert session.summary().reacquire["ax"][:3] == [(k, NOT_RECEIVED) for k in gone]
     with pytest.raises(InvalidParameter, match=r"has ended.*\[0, 7, 8\], may still come"):
         session.add_slice(frames[3])
+    held = session.held_bytes
     session.add_slice(frames[7])                              # it came after all: the stack is open again
     assert "ax" not in session.finals and session.summary().unfinished == {"ax": [0, 8]}
+    assert session.held_bytes > held                          # the earlier end still held (its answers keep it)
     session.add_slice(frames[8])
     session.add_slice(frames[0])
     again = session.end_stack("ax").prediction
     assert NOT_RECEIVED not in again.reasons
+    whole = StreamSession(oracle, None, options=FAST)
+    for frame in frames:
+        whole.add_slice(frame)
+    whole.end_stack("ax")
+    assert abs(session.held_bytes - whole.held_bytes) < 0.01 * whole.held_bytes, (session.held_bytes, whole.held_bytes)
     got = again.poses.poses @ again.network_from_voxel
     assert max(np.linalg.norm(got[k, :3, 3] - true_sent(truths[0], k)[:3, 3]) for k in range(n)) < 0.5
 

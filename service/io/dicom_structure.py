@@ -1,0 +1,131 @@
+"""A DICOM dataset's elements counted from its bytes, before pydicom builds any of them.
+
+pydicom makes a Python object of every element and sequence item it reads: hundreds of bytes for an
+element of eight, so a file of a few hundred KB of empty items or zero-length elements would take
+gigabytes, at any depth and after the pixel data too. :func:`check_structure` walks the dataset's
+raw bytes (tag, VR, length; into sequences and items, over every other value) and refuses a dataset
+of more than :data:`MAX_ELEMENTS` elements and items, or of more than :data:`MAX_HEADER_BYTES` before
+its pixel data, holding nothing but a stack of open containers. Where the bytes stop making sense
+(a length past the end, a stray tag) it stops counting: pydicom's own reading then says what is
+wrong, as it always has.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from typing import BinaryIO
+
+from pydicom.datadict import dictionary_VR
+
+from service.core.errors import PayloadTooLarge
+
+MAX_ELEMENTS = 200_000
+"""The most elements and sequence items in one file, at every depth (an enhanced MR file of a
+thousand frames holds about a hundred thousand)."""
+MAX_HEADER_BYTES = 8 << 20
+"""The most bytes of a dataset before its pixel data."""
+PIXEL_DATA = 0x7FE00010
+UNDEFINED = 0xFFFFFFFF
+LONG_VRS = frozenset({b"OB", b"OD", b"OF", b"OL", b"OV", b"OW", b"SQ", b"SV", b"UC", b"UN", b"UR", b"UT", b"UV"})
+"""Explicit VRs whose length takes 4 bytes (after 2 reserved)."""
+ITEM, ITEM_END, SEQUENCE_END = 0xE000, 0xE00D, 0xE0DD
+
+
+@dataclass
+class _Open:
+    """A container the walk is inside: a dataset (the file's, or an item's), a sequence of items, or
+    encapsulated pixel data (items whose values are fragments); ``end``: its last byte + 1 where its
+    length is defined; ``implicit``: its elements' VR encoding."""
+
+    kind: str
+    end: int | None
+    implicit: bool
+
+
+def _is_sequence(tag: int) -> bool:
+    try:
+        return dictionary_VR(tag) == "SQ"
+    except KeyError:
+        return False
+
+
+def check_structure(fp: BinaryIO, filename: str, implicit_vr: bool, little_endian: bool) -> None:
+    """Refuse (413) the dataset that starts at ``fp``'s position (left there again) when it holds more
+    than :data:`MAX_ELEMENTS` elements and items or more than :data:`MAX_HEADER_BYTES` before its
+    pixel data (see the module).
+
+    Example (an explicit VR little endian dataset: a sequence of 5 empty items, then pixel data):
+        >>> import io, struct
+        >>> items = struct.pack("<HH2sHI", 8, 0x1140, b"SQ", 0, UNDEFINED) + struct.pack("<HHI", 0xFFFE, ITEM, 0) * 5
+        >>> pixels = b"\\xe0\\x7f\\x10\\x00OW\\x00\\x00" + struct.pack("<I", 2) + b"\\x01\\x00"
+        >>> data = items + struct.pack("<HHI", 0xFFFE, SEQUENCE_END, 0) + pixels
+        >>> check_structure(io.BytesIO(data), "a.dcm", False, True)
+        >>> try:
+        ...     check_structure(io.BytesIO(items + items[12:20] * MAX_ELEMENTS), "b.dcm", False, True)
+        ... except PayloadTooLarge as exc:
+        ...     print(exc.detail)
+        b.dcm: a DICOM dataset of more than 200000 elements and sequence items
+    """
+    start = fp.tell()
+    size = fp.seek(0, 2) - start
+    fp.seek(start)
+    try:
+        _walk(fp, start, size, filename, implicit_vr, "<" if little_endian else ">")
+    finally:
+        fp.seek(start)
+
+
+def _walk(fp: BinaryIO, start: int, size: int, filename: str, implicit: bool, e: str) -> None:
+    stack = [_Open("dataset", size, implicit)]
+    count = 0
+    while True:
+        at = fp.tell() - start
+        while stack and stack[-1].end is not None and at >= stack[-1].end:
+            stack.pop()                                  # a container of defined length ends here
+        head = fp.read(8)
+        if not stack or len(head) < 8:
+            return
+        group, element = struct.unpack(e + "HH", head[:4])
+        count += 1
+        if count > MAX_ELEMENTS:
+            raise PayloadTooLarge(f"{filename}: a DICOM dataset of more than {MAX_ELEMENTS} elements and sequence items")
+        top = stack[-1]
+        if group == 0xFFFE:                              # items and delimiters: tag and a 4-byte length, no VR
+            length = struct.unpack(e + "I", head[4:])[0]
+            if element == SEQUENCE_END and top.kind in ("sequence", "fragments"):
+                stack.pop()
+            elif element == ITEM_END and top.kind == "dataset" and len(stack) > 1:
+                stack.pop()
+            elif element == ITEM and top.kind == "fragments" and length != UNDEFINED and at + 8 + length <= size:
+                fp.seek(length, 1)                       # a fragment's compressed bytes
+            elif element == ITEM and top.kind == "sequence":
+                stack.append(_Open("dataset", None if length == UNDEFINED else at + 8 + length, top.implicit))
+            else:
+                return                                   # no structure pydicom reads: it says what is wrong
+            continue
+        if top.kind != "dataset":
+            return
+        tag = group << 16 | element
+        vr, length, header = None, struct.unpack(e + "I", head[4:])[0], 8
+        if not top.implicit:
+            vr = head[4:6]
+            if vr in LONG_VRS:
+                length, header = struct.unpack(e + "I", fp.read(4))[0], 12
+            else:
+                length = struct.unpack(e + "H", head[6:])[0]
+        if tag == PIXEL_DATA and len(stack) == 1 and at > MAX_HEADER_BYTES:
+            raise PayloadTooLarge(f"{filename}: a DICOM header of more than {MAX_HEADER_BYTES >> 20} MB before its "
+                                  "pixel data")
+        end = None if length == UNDEFINED else at + header + length
+        if vr == b"SQ" or (vr in (None, b"UN") and tag != PIXEL_DATA and (length == UNDEFINED or _is_sequence(tag))):
+            stack.append(_Open("sequence", end, top.implicit or vr == b"UN"))   # a UN sequence is implicit VR
+        elif length == UNDEFINED:
+            stack.append(_Open("fragments", None, top.implicit))
+        elif end > size:
+            return
+        else:
+            fp.seek(length, 1)
+        if len(stack) == 1 and fp.tell() - start > MAX_HEADER_BYTES and tag < PIXEL_DATA:
+            raise PayloadTooLarge(f"{filename}: a DICOM header of more than {MAX_HEADER_BYTES >> 20} MB before its "
+                                  "pixel data")
