@@ -199,12 +199,12 @@ async def _submit(request: Request, response: Response, settings: Settings, form
         raise PayloadTooLarge(f"poses: {raw.size} bytes; the poses of a request's stacks take at most "
                               f"{MAX_POSES_BYTES >> 20} MB")
     poses_text = (await raw.read()).decode("utf-8", "replace") if hasattr(raw, "read") else raw
+    if key is not None and (earlier := await to_thread.run_sync(store.job_for_key, key)) is not None:
+        return _made_by_key(earlier, response, settings.retry_after_s, await submission_digest(form, poses_text, params))
+    if (full := queue_full(request.app.state)) is not None:
+        raise full                                   # before the files are hashed: a busy server answers at once
     if key is not None:
         params = {**params, "idempotency_key": key, "request_digest": await submission_digest(form, poses_text, params)}
-        if (earlier := await to_thread.run_sync(store.job_for_key, key)) is not None:
-            return _made_by_key(earlier, response, settings.retry_after_s, params["request_digest"])
-    if (full := queue_full(request.app.state)) is not None:
-        raise full
     job, made = store.create_once(params)
     if not made:                                     # a submission with the same key came in meanwhile
         return _made_by_key(job, response, settings.retry_after_s, params["request_digest"])

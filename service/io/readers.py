@@ -273,8 +273,8 @@ def _read_nifti2(path: Path, filename: str, budget: FileBudget, transforms: Nift
     are scaled in float32, the only array beside the file's own."""
     image = nibabel.Nifti2Image.from_filename(str(path))
     if image.dataobj.offset < 544:                         # one file: the data after header and extension flag
-        raise UnusableImage(f"{filename}: impossible NIfTI-2 header (its voxel data would start inside the header: "
-                            "vox_offset < 544)")
+        raise UnsupportedFile(f"{filename}: impossible NIfTI-2 header (its voxel data would start inside the header: "
+                              "vox_offset < 544)")                 # as a NIfTI-1 header's (415)
     shape = tuple(int(n) for n in image.shape)
     budget.voxels(int(np.prod(shape, dtype=np.float64)))
     if len(shape) < 3:

@@ -47,7 +47,8 @@ class PreparedSlices:
         centroid_mm: ``[B, 2]`` mask centroid (x, y) in the input slice frame, mm.
         mask_pixels: ``[B]`` mask area in the input slice, pixels.
         mask_fraction: ``[B]`` share of the network input covered by the resampled mask; 0 where the
-            slice's pixels inside its mask are all alike (a blank or saturated slice shows nothing).
+            slice's pixels inside its mask are all alike but for under 1 % of them (the rescale's
+            percentiles meet: a blank or saturated slice shows nothing).
     """
 
     inputs: NDArray[np.float32]

@@ -3,10 +3,11 @@
 A streamed slice is a 2D array ``[n0, n1]`` with its ``scanner_from_voxel`` (RAS mm): voxel
 ``(i0, i1, 0, 1)`` -> scanner mm, the third column the slice normal times its thickness. The slices
 of one stack share their in-plane axes and sit along one normal; :class:`StreamedStack` checks that
-as they arrive and, once the stack ends (slices that never came blank), builds the :class:`~service.io.volume.Volume` that
-``/v1/predict`` would have read from a file: voxel ``(i0, i1, k)`` is pixel ``(i0, i1)`` of the
-slice of index ``k``, and the third column of its affine is the step between neighbouring slices
-(the spacing, which may differ from the thickness where slices have gaps or overlap).
+as they arrive and, once the stack ends (slices that never came blank), builds the
+:class:`~service.io.volume.Volume` that ``/v1/predict`` would have read from a file: voxel
+``(i0, i1, k)`` is pixel ``(i0, i1)`` of the slice of index ``k``, and the third column of its
+affine is the step between neighbouring slices (the spacing, which may differ from the thickness
+where slices have gaps or overlap).
 
 Example:
     >>> import numpy as np

@@ -429,7 +429,7 @@ def test_a_nifti2_file_of_several_volumes_complex_truncated_or_too_large_is_refu
     inside = bytearray((tmp_path / "small.nii").read_bytes())
     inside[168:176] = (0).to_bytes(8, "little")                         # vox_offset 0: the header read as voxels
     (tmp_path / "inside.nii").write_bytes(bytes(inside))
-    with pytest.raises(UnusableImage, match="vox_offset < 544"):
+    with pytest.raises(UnsupportedFile, match="vox_offset < 544"):
         read_upload(tmp_path / "inside.nii", "inside.nii")
     arr = np.ones((9, 8, 6, 2), np.float32)
     nibabel.save(nibabel.Nifti2Image(arr, np.diag([1.0, 1.0, 3.0, 1.0])), tmp_path / "v4.nii")
