@@ -122,6 +122,7 @@ def test_bad_slices_are_refused_and_change_nothing(case) -> None:  # noqa: ANN00
     with pytest.raises(InvalidParameter, match="lacks the slices"):     # a stack of one slice and a gap
         lone.end_stack("ax")
     session.add_slice(stacks[0][1])
+    session.add_slice(stacks[0][2])
     with pytest.raises(InvalidParameter, match="at most 3 slices"):
         session.add_slice(stacks[0][3])
     session.end_stack("ax")
