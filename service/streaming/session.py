@@ -42,6 +42,7 @@ from service.consistency.slice_order import STREAMED, SliceOrder
 from service.consistency.stage import StackPoses, checked_branch, consistent_poses, request_reference
 from service.core.errors import InvalidParameter
 from service.geometry import anchors, twin
+from service.geometry.pose import translate
 from service.geometry.twin import DEFAULT_PLANE_X_MM
 from service.inference import acceptance
 from service.inference.estimator import PoseEstimate, PoseEstimator
@@ -102,14 +103,10 @@ def sent_network_from_voxel(p: StackPrediction, frames: list[SliceFrame | None])
     """``[n, 4, 4]``: voxel ``(i0, i1, 0, 1)`` of each sent slice -> its network frame in the stack ``p``
     (built from those slices): through the scanner and the stack's voxel ``(i0, i1, k)``. A slice that
     never came (None) is the stack's blank slice ``k``: its voxel ``(i0, i1, k)``."""
-    stack_from_scanner = np.linalg.inv(p.prepared.upload.volume.affine)
-    stack_from_sent = np.stack([np.eye(4) for _ in frames])
-    for k, f in enumerate(frames):
-        if f is None:
-            stack_from_sent[k, 2, 3] = k
-        else:
-            stack_from_sent[k] = stack_from_scanner @ f.scanner_from_voxel
-    return p.network_from_voxel @ stack_from_sent
+    affine = p.prepared.upload.volume.affine
+    sent = np.stack([affine @ translate([0.0, 0.0, k]) if f is None else f.scanner_from_voxel
+                     for k, f in enumerate(frames)])
+    return p.network_from_voxel @ np.linalg.inv(affine) @ sent
 
 
 class StreamSession:

@@ -3,6 +3,8 @@ each slice as sent where the simulation put it."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -11,7 +13,7 @@ from service.geometry import twin
 from service.streaming.answers import NOT_RECEIVED
 from service.streaming.frames import IncompleteStack, SliceFrame, StreamedStack
 from service.streaming.options import SessionOptions, StreamLimits
-from service.streaming.session import StreamSession
+from service.streaming.session import StreamSession, sent_network_from_voxel
 from tests.api.conftest import INFO
 from tests.support.streams import SHAPE, KeyedOracle, true_sent, two_stacks_case
 
@@ -153,6 +155,10 @@ def test_a_stack_ends_without_the_slices_that_never_came_and_takes_them_when_the
     for k in gone:                                            # a blank slice k maps as the stack's voxel (i0, i1, k)
         stack_from_sent = np.linalg.inv(p.prepared.upload.volume.affine) @ frames[k].scanner_from_voxel
         assert np.allclose(stack_from_sent, np.eye(4) + np.outer(np.eye(4)[2], np.eye(4)[3]) * k, atol=1e-6)
+    # ... which is where the scanner's frame for it puts it (the stack inferred where slice 0 lies)
+    unit = replace(p, network_from_voxel=np.tile(np.eye(4), (n, 1, 1)))
+    assert np.allclose(sent_network_from_voxel(unit, [None if k in gone else f for k, f in enumerate(frames)]),
+                       sent_network_from_voxel(unit, frames), atol=1e-6)
     assert session.summary().reacquire["ax"][:3] == [(k, NOT_RECEIVED) for k in gone]
     with pytest.raises(InvalidParameter, match=r"has ended.*\[0, 7, 8\], may still come"):
         session.add_slice(frames[3])
