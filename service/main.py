@@ -59,10 +59,10 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
         async def upkeep() -> None:
             # Retention everywhere, and the runner's maintenance: with the distributed back-end the
             # queue's (re-delivering the jobs of lost workers), which every replica may do; with the
-            # embedded one, stopping jobs past the job timeout (checked ten times within it). Retention
-            # is checked ten times within it too, at most every RETENTION_CHECK_S.
-            period = min(settings.queue_maintenance_s if settings.queue_url else
-                         min(RETENTION_CHECK_S, settings.job_timeout_h * 3600 / 10), settings.retention_hours * 360)
+            # embedded one, stopping jobs past the job timeout; the timeout and the retention each
+            # checked ten times within their span, at least every RETENTION_CHECK_S.
+            runner_s = settings.queue_maintenance_s if settings.queue_url else settings.job_timeout_h * 360
+            period = min(runner_s, RETENTION_CHECK_S, settings.retention_hours * 360)
             while True:
                 try:
                     # Folders of requests a killed server left (uploads, decoded DICOM): an hour past

@@ -68,7 +68,7 @@ def api_key_ok(keys: set[str], authorization: str | None, x_api_key: str | None)
         given = authorization[7:].strip()
     if not given or not given.isascii():
         return False
-    return any(hmac.compare_digest(given.encode(), k.encode()) for k in keys if k.isascii())
+    return any(hmac.compare_digest(given.encode(), k.encode()) for k in keys)
 
 
 UNAUTHORIZED = "Authorization: a valid API key is required (Bearer token or X-API-Key header)"

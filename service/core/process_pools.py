@@ -62,18 +62,16 @@ def watch_parent(parent: int | None = None, interval_s: float = 0.5) -> None:
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
-def release_memory() -> bool:
+def release_memory() -> None:
     """In a long-lived pool process, after a large piece of work: collect what cycles hold and hand
-    the C heap's free pages back to the system (glibc's ``malloc_trim``), so that an idle process
-    does not keep its last job's peak. False where the C library has no such call (musl, macOS).
+    the C heap's free pages back to the system (glibc's ``malloc_trim``; a C library without it,
+    musl or macOS's, keeps them), so that an idle process does not keep its last job's peak.
 
     Example:
-        >>> isinstance(release_memory(), bool)
-        True
+        >>> release_memory()
     """
     gc.collect()
     try:
         ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim(0)
     except (OSError, AttributeError):
-        return False
-    return True
+        pass
