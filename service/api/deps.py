@@ -4,17 +4,20 @@ from __future__ import annotations
 
 import asyncio
 import hmac
+import ipaddress
 import threading
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Annotated
+from urllib.parse import urlsplit
 
 from fastapi import Depends, Header, Request
 from starlette.datastructures import State
 
 from service.api.metrics import Metrics
 from service.core.cancellation import cancelled_by
-from service.core.errors import ClientGone, InvalidParameter, QueueFull, Saturated, ServiceError, Unauthorized
+from service.core.errors import (ClientGone, ForeignOrigin, InvalidParameter, QueueFull, Saturated, ServiceError,
+                                 Unauthorized)
 from service.core.settings import Settings
 from service.inference.registry import ModelRegistry
 from service.preprocess.localise import Localiser, Localisers
@@ -71,6 +74,42 @@ def api_key_ok(keys: set[str], authorization: str | None, x_api_key: str | None)
     return any(hmac.compare_digest(given.encode(), k.encode()) for k in keys)
 
 
+def origin_ok(settings: Settings, headers: dict[str, str]) -> bool:
+    """Whether a request may come from where its ``Origin`` header says (lower-case ``headers``).
+
+    Scripts and the client send no ``Origin``; browsers do, and a page the user merely visits can
+    post a form to, or open a websocket on, a service on their machine without any CORS
+    permission. Without API keys, a request carrying an ``Origin`` is therefore served only from the
+    server's own pages at an address (an IP literal or ``localhost``, which a rebound DNS name
+    cannot pose as) or from one of ``allowed_origins``; with keys, the key decides.
+
+    Example:
+        >>> s = Settings(allowed_origins="https://viewer.example")
+        >>> [origin_ok(s, {"host": "127.0.0.1:8000", "origin": o}) for o in
+        ...  (None, "http://127.0.0.1:8000", "https://viewer.example", "https://evil.example", "null")]
+        [True, True, True, False, False]
+        >>> origin_ok(s, {"host": "evil.example:8000", "origin": "http://evil.example:8000"})
+        False
+    """
+    origin = headers.get("origin")
+    if origin is None or settings.key_set():
+        return True
+    origin = origin.strip().rstrip("/").lower()
+    allowed = settings.origin_set()
+    if "*" in allowed or origin in allowed:
+        return True
+    try:
+        parts = urlsplit(origin)
+        host = parts.hostname or ""
+        at_address = host == "localhost" or bool(ipaddress.ip_address(host))
+    except ValueError:
+        return False
+    return at_address and parts.scheme in ("http", "https") and parts.netloc == headers.get("host", "").lower()
+
+
+FOREIGN_ORIGIN = ("Origin: this server serves browser pages of its own address only; list the page's origin "
+                  "in SVRNET_ALLOWED_ORIGINS, or configure API keys")
+
 UNAUTHORIZED = "Authorization: a valid API key is required (Bearer token or X-API-Key header)"
 
 
@@ -107,6 +146,8 @@ def early_rejection(state: State, method: str, path: str, headers: dict[str, str
     The route dependencies make the same checks again; these are the early, cheap copies.
     """
     settings: Settings = state.settings
+    if not origin_ok(settings, headers):
+        return ForeignOrigin(FOREIGN_ORIGIN)
     if needs_key(settings, path) and not api_key_ok(settings.key_set(), headers.get("authorization"),
                                                     headers.get("x-api-key")):
         return Unauthorized(UNAUTHORIZED)

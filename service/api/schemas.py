@@ -256,8 +256,16 @@ class Problem(BaseModel):
 
 
 def problem_responses(*codes: int) -> dict:
-    """OpenAPI ``responses`` for these error statuses: problem+json bodies (RFC 7807)."""
-    return {code: {"model": Problem} for code in codes}
+    """OpenAPI ``responses`` for these error statuses: problem+json bodies (RFC 7807). A route that
+    asks for a key (401) refuses a foreign browser page (403) at the same place
+    (:func:`service.api.deps.early_rejection`).
+
+    Example:
+        >>> sorted(problem_responses(401, 404))
+        [401, 403, 404]
+    """
+    codes = codes + ((403,) if 401 in codes else ())
+    return {code: {"model": Problem} for code in sorted(set(codes))}
 
 
 UPLOAD_ERRORS = problem_responses(400, 401, 404, 408, 413, 415, 422, 429, 503, 507)   # the routes that take stacks

@@ -30,7 +30,7 @@ from fastapi import APIRouter, WebSocket
 from starlette.datastructures import State
 from starlette.websockets import WebSocketDisconnect, WebSocketDisconnected
 
-from service.api.deps import UNAUTHORIZED, api_key_ok
+from service.api.deps import UNAUTHORIZED, api_key_ok, origin_ok
 from service.api.responses import error_message, pose_object, stack_message, summary_message, update_messages
 from service.core.errors import (
     InternalError,
@@ -391,8 +391,11 @@ def sessions_full(state: State) -> Saturated | None:
 @router.websocket(STREAM_PATH)
 async def stream(ws: WebSocket) -> None:
     """Stream v1: one session per connection (see the module)."""
-    await ws.accept()
     state = ws.app.state
+    if not origin_ok(state.settings, {k.lower(): v for k, v in ws.headers.items()}):
+        await ws.close(POLICY_VIOLATION)             # before the handshake: the page gets an HTTP 403
+        return
+    await ws.accept()
     keys = state.settings.key_set()
     if not api_key_ok(keys, ws.headers.get("authorization"), ws.headers.get("x-api-key")):
         try:

@@ -29,6 +29,13 @@ class Unauthorized(ServiceError):
     headers = {"WWW-Authenticate": "Bearer"}
 
 
+class ForeignOrigin(ServiceError):
+    """403: a browser page of another origin than the server's own (or one of ``allowed_origins``)
+    sent the request: a page the user merely visits must not use a service on their machine."""
+
+    status, title, type = 403, "Origin not allowed", "/problems/origin-not-allowed"
+
+
 class NotFound(ServiceError):
     status, title, type = 404, "Not found", "/problems/not-found"
 

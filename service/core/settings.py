@@ -41,6 +41,11 @@ class Settings(BaseSettings):
     log_level: str = Field("info", description="the service's log level: debug, info, warning, error or critical "
                            "(JSON lines; never file names or DICOM attributes)")
     api_keys: str = Field("", description="comma-separated keys; empty = no authentication")
+    allowed_origins: str = Field("", description="without API keys: comma-separated browser origins "
+                                 "(scheme://host[:port]) that may call the service besides its own pages at an "
+                                 "address; * = any. Another page's request (it carries an Origin header; scripts "
+                                 "send none) is refused, 403, a stream connection too: a web page the user visits "
+                                 "must not use a service on their machine. With keys, the key decides")
     metrics_public: bool = Field(False, description="serve /metrics without an API key even when keys are "
                                  "configured (by default it needs one, like /v1/)")
     max_upload_mb: float = Field(512.0, gt=0, description="limit of one request body (413 above)")
@@ -167,6 +172,10 @@ class Settings(BaseSettings):
         """Requests to the processing routes admitted at once (:attr:`max_admitted`, 0: twice
         :attr:`max_concurrent`; never fewer than it)."""
         return max(self.max_admitted or 2 * self.max_concurrent, self.max_concurrent)
+
+    def origin_set(self) -> set[str]:
+        """The origins of :attr:`allowed_origins`, without a trailing slash, in lower case."""
+        return {o.strip().rstrip("/").lower() for o in self.allowed_origins.split(",") if o.strip()}
 
     def key_set(self) -> set[str]:
         return {k.strip() for k in self.api_keys.split(",") if k.strip()}

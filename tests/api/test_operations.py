@@ -88,6 +88,27 @@ def test_api_keys(tiny_model_path: Path, phantom_files) -> None:
         assert r.status_code == 401 and r.headers["content-type"].startswith("application/problem+json")
 
 
+def test_another_site_s_page_is_refused_without_keys(tiny_model_path: Path, phantom_files) -> None:
+    """A browser page of another origin posts a form without any CORS permission: refused (403) before
+    its upload is read, unless listed; the server's own page at its address, and scripts, are served."""
+    registry = ModelRegistry({"default": OnnxPoseEstimator(load_model(tiny_model_path))})
+    stack = [("stacks", ("s.nii.gz", phantom_files[0].read_bytes()))]
+    with make_client(registry, allowed_origins="https://viewer.example/") as client:
+        evil = {"Origin": "https://evil.example"}
+        r = client.post("/v1/predict", files=stack, headers=evil)
+        assert r.status_code == 403 and r.json()["type"] == "/problems/origin-not-allowed"
+        assert "SVRNET_ALLOWED_ORIGINS" in r.json()["detail"]
+        assert client.get("/v1/models", headers={"Origin": "null"}).status_code == 403
+        rebound = {"Host": "evil.example:8000", "Origin": "http://evil.example:8000"}    # DNS rebinding
+        assert client.get("/v1/models", headers=rebound).status_code == 403
+        own = {"Host": "127.0.0.1:8000", "Origin": "http://127.0.0.1:8000"}
+        assert client.get("/v1/models", headers=own).status_code == 200
+        assert client.get("/v1/models", headers={"Origin": "https://Viewer.example"}).status_code == 200
+        assert client.get("/v1/models").status_code == 200
+    with make_client(registry, api_keys="k1") as client:                    # with keys, the key decides
+        assert client.get("/v1/models", headers={"Origin": "https://evil.example", "X-API-Key": "k1"}).status_code == 200
+
+
 def test_request_id_is_returned_and_kept(real_client: TestClient) -> None:
     r = real_client.get("/healthz", headers={"X-Request-ID": "abc-123"})
     assert r.headers["x-request-id"] == "abc-123"

@@ -240,6 +240,18 @@ def test_keys_and_the_session_limit(case) -> None:  # noqa: ANN001
                 assert closed.value.code == 1013
 
 
+def test_another_site_s_page_cannot_open_a_session_without_keys(case) -> None:  # noqa: ANN001
+    with make_client(ModelRegistry({"default": case[0]})) as client:
+        with pytest.raises(WebSocketDisconnect) as refused:
+            with client.websocket_connect("/v1/stream", headers={"Origin": "https://evil.example"}):
+                pass
+        assert refused.value.code == 1008                  # closed before the handshake: an HTTP 403
+        with client.websocket_connect("/v1/stream", headers={"Host": "localhost:8000",
+                                                             "Origin": "http://localhost:8000"}) as ws:
+            ws.send_text(json.dumps({"type": "start", "mc_samples": 5}))
+            assert ws.receive_json()["type"] == "ready"
+
+
 def test_a_session_slot_is_taken_by_a_start_and_a_connection_that_never_starts_is_closed(case, monkeypatch) -> None:  # noqa: ANN001
     """One session slot: a connection that says nothing holds none (another starts its session
     beside it) and is closed going away after the start deadline; a start while the slot is taken
