@@ -2,7 +2,7 @@
 with the maps of its stack's slices received before it.
 
 Slices are sent in an interleaved acquisition order (even slices first); each is localised between its
-received neighbours (``service.streaming.session.WINDOW`` a side), once alone
+received neighbours (``service.streaming.arrival.WINDOW`` a side), once alone
 (:meth:`~service.preprocess.localise.Localiser.localise_slice`) and once with the maps of the slices
 received before it (:meth:`~service.preprocess.localise.Localiser.slice_in_stack`, what a stream
 does). Printed per stack (real scans with manual masks: ``NAME.nii.gz`` beside
@@ -33,7 +33,7 @@ from service.geometry.pose import translate  # noqa: E402
 from service.io.volume import Volume, read_volume  # noqa: E402
 from service.preprocess.localise import Localiser, default_localiser  # noqa: E402
 from service.preprocess.stack import stack_axis  # noqa: E402
-from service.streaming.session import WINDOW  # noqa: E402
+from service.streaming.arrival import WINDOW  # noqa: E402
 
 BRAIN_SLICE_MM2 = 300.0
 

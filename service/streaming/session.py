@@ -2,14 +2,9 @@
 
 The stages are those of ``/v1/predict`` (:mod:`service.pipeline.predict`), run at three moments:
 
-1. **A slice arrives** (:meth:`StreamSession.add_slice`): its brain (the sent mask, else the localiser on the
-   slice and its received neighbours, where the brain of the stack's received slices passes through it:
-   :meth:`~service.preprocess.localise.Localiser.slice_in_stack`), the service's slice preprocessing, MC-dropout
-   inference and the twin-aware statistics of that slice alone. Where the stack's model has already
-   decided the stack's left-right branch, the slice takes the twin nearer to where that model puts
-   it, or that place itself where the network's answer is an outlier from it; before, its expected
-   error allows for either twin (:mod:`~service.streaming.immediate`). N4 needs the whole stack, so
-   this pose is of the slice as sent.
+1. **A slice arrives** (:meth:`StreamSession.add_slice`): the slice alone through the stages of
+   ``/v1/predict``, its brain seen between its received neighbours, its pose on its stack's branch
+   once the stack's model decided it (:mod:`~service.streaming.arrival`).
 2. **Between slices** (:meth:`StreamSession.firm_up`): the stack-consistency stage on the slices of
    the open stack received so far, their acquisition order the order they arrived in (or the
    client's ``acquisition_index``), with the branch of the stacks already ended; its fit runs in the
@@ -41,23 +36,20 @@ from numpy.typing import NDArray
 from service.consistency.slice_order import STREAMED, SliceOrder
 from service.consistency.stage import StackPoses, checked_branch, consistent_poses, request_reference
 from service.core.errors import InvalidParameter
-from service.geometry import anchors, twin
 from service.geometry.pose import translate
 from service.geometry.twin import DEFAULT_PLANE_X_MM
 from service.inference import acceptance
 from service.inference.estimator import PoseEstimate, PoseEstimator
-from service.io.volume import Volume, magnitude
+from service.io.volume import magnitude
 from service.pipeline.predict import (StackPrediction, add_noise_error, add_unseen_errors, estimate_stacks, judge,
                                      predict_from_estimates)
 from service.pipeline.prepare import PreparedStack, StackUpload, prepare_stack
-from service.preprocess.localisation import Localisation
 from service.preprocess.localise import Localiser
-from service.preprocess.noise import input_noise, stack_noise
-from service.preprocess.slices import preprocess_slices
-from service.preprocess.stack import split_stack
+from service.preprocess.noise import stack_noise
 from service.streaming import immediate
 from service.streaming.answers import (NOT_RECEIVED, SessionSummary, SliceAnswer, StackAnswer, moved_mm,
                                        worth_acquiring_again)
+from service.streaming.arrival import ReceivedSlice, neighbours, pose_alone, prepare_alone
 from service.streaming.background import run_in_stage_process
 from service.streaming.footprint import array_bytes
 from service.streaming.coverage import Coverage, CoveredSlice, coverage
@@ -71,24 +63,10 @@ MIN_FIRM_UP_SLICES = 4
 FIRM_UP_GROWTH = 0.25
 """... and again once the slices it has grew by this share since its last run (at least one more):
 the stage's cost grows with the stack, so its total stays near linear in the slices."""
-WINDOW = 1
-"""Neighbours on each side the localiser sees with a slice (when they have arrived)."""
 SHOWN_MAX_EXPECTED_MM = 10.0
 """A slice not accepted still shows where the brain is when its expected error is at most this: its
 brain pixels extend the brain :mod:`~service.streaming.coverage` counts (not what is covered); one
 placed further off would draw brain, and a gap, where there is none."""
-
-
-@dataclass
-class _Slice:
-    """A received slice: its frame, its preparation alone, its network statistics and what was last sent."""
-
-    frame: SliceFrame
-    prepared: PreparedStack
-    estimate: PoseEstimate
-    network_from_voxel: NDArray[np.float64]          # [1, 4, 4] sent voxel -> this slice's network frame
-    answer: SliceAnswer | None = None
-    brain_map: NDArray | None = None                 # its localiser map (network grid) while its stack is open
 
 
 @dataclass
@@ -123,7 +101,7 @@ class StreamSession:
         self.bias_correction = options.bias_correction
         self.masks_hold_csf = options.masks_hold_csf
         self.stacks: dict[str, StreamedStack] = {}
-        self.slices: dict[str, dict[int, _Slice]] = {}
+        self.slices: dict[str, dict[int, ReceivedSlice]] = {}
         self.fits: dict[str, StackPoses] = {}
         self.placement_errors: dict[str, float | None] = {}   # how far off each fit's placement puts a new slice (mm)
         self.firmed: dict[str, int] = {}
@@ -166,13 +144,14 @@ class StreamSession:
             stack.add(frame)
             self.stacks[frame.stack] = stack
             self.held_bytes += size
-            neighbours = self._neighbours(stack, frame.index)
+            around = neighbours(stack, frame.index)
             received = {k: st.brain_map for k, st in self.slices.get(frame.stack, {}).items() if st.brain_map is not None}
             step_mm = stack.step_mm()
             fit, placement_mm = self.fits.get(frame.stack), self.placement_errors.get(frame.stack)   # of one firm-up
             noise = [st.prepared.input_noise for st in self.slices.get(frame.stack, {}).values()]
         try:
-            state = self._prepare_alone(frame, neighbours, received, step_mm)
+            state = prepare_alone(self.estimator, self.localiser, frame, self.mc_samples, self.masks_hold_csf, around,
+                                  received, step_mm)
         except Exception:
             with self._lock:
                 stack.remove(frame.index)
@@ -180,7 +159,9 @@ class StreamSession:
                 if not len(stack):
                     del self.stacks[frame.stack]
             raise
-        answer = self._alone(state, fit, placement_mm, stack_noise([*noise, state.prepared.input_noise]))
+        alone = pose_alone(self.estimator.info, state, fit, placement_mm, stack_noise([*noise, state.prepared.input_noise]))
+        answer = SliceAnswer(frame.stack, frame.index, self._judged(state.prepared, state.network_from_voxel,
+                                                                     state.estimate, alone))
         kept = array_bytes(state.prepared, state.estimate, [state.brain_map], besides=(frame.pixels,))   # beside its pixels
         with self._lock:
             self.slices.setdefault(frame.stack, {})[frame.index] = state
@@ -191,75 +172,6 @@ class StreamSession:
         answer.compute_ms = (time.perf_counter() - t0) * 1e3
         self.compute_ms["slices"] += answer.compute_ms
         return answer
-
-    def _neighbours(self, stack: StreamedStack, index: int) -> list[SliceFrame]:
-        """The slice and its received, contiguous neighbours (up to :data:`WINDOW` a side), by index."""
-        lo = hi = index
-        while lo - 1 in stack.frames and index - lo < WINDOW:
-            lo -= 1
-        while hi + 1 in stack.frames and hi - index < WINDOW:
-            hi += 1
-        return [stack.frames[k] for k in range(lo, hi + 1)]
-
-    def _prepare_alone(self, frame: SliceFrame, neighbours: list[SliceFrame], received: dict[int, NDArray],
-                       step_mm: float | None = None) -> _Slice:
-        info = self.estimator.info
-        brain_map = None
-        pixels = np.asarray(frame.pixels, dtype=np.float32)[..., None]
-        volume = Volume(pixels, np.asarray(frame.scanner_from_voxel, dtype=np.float64), slice_axis=2)
-        if frame.mask is not None:
-            localisation = Localisation.of(np.asarray(frame.mask, bool)[..., None], volume.spacing, "mask", 1.0,
-                                           holds_csf=self.masks_hold_csf)
-        elif self.localiser is None:
-            raise InvalidParameter("slice.mask: no localiser is installed; send a mask frame with every slice")
-        else:
-            localisation, brain_map = self._localise(frame, neighbours, received, step_mm)
-        slices = split_stack(volume, localisation.pose_mask(volume.spacing, axis=2), axis=2)
-        prepared = preprocess_slices(slices.images, slices.masks, slices.pixel_mm, info.input_size, info.pixel_spacing_mm)
-        stack = PreparedStack(StackUpload(frame.stack, volume), slices, prepared, localisation,
-                              input_noise=input_noise(slices.images, slices.masks, slices.pixel_mm, info.pixel_spacing_mm))
-        est = self.estimator.estimate(prepared.inputs, self.mc_samples)
-        return _Slice(frame, stack, est, stack.network_from_voxel(), brain_map=brain_map)
-
-    def _localise(self, frame: SliceFrame, neighbours: list[SliceFrame], received: dict[int, NDArray],
-                  step_mm: float | None = None) -> tuple[Localisation, NDArray]:
-        """The brain of ``frame`` by the localiser, seen between its received neighbours, where the brain
-        of the stack's slices ``received`` so far passes through it (their localiser maps, by index,
-        ``step_mm`` apart; :meth:`~service.preprocess.localise.Localiser.slice_in_stack`); and its own map."""
-        if len(neighbours) > 1:
-            k = [f.index for f in neighbours].index(frame.index)
-            affine = np.array(neighbours[0].scanner_from_voxel, dtype=np.float64)
-            affine[:3, 2] = (neighbours[-1].scanner_from_voxel[:3, 3] - affine[:3, 3]) / (len(neighbours) - 1)
-            window = Volume(np.stack([np.asarray(f.pixels, np.float32) for f in neighbours], axis=-1), affine, slice_axis=2)
-        else:
-            k, window = 0, Volume(np.asarray(frame.pixels, np.float32)[..., None], frame.scanner_from_voxel, slice_axis=2)
-        found, brain_map = self.localiser.slice_in_stack(window, k, received, frame.index, step_mm)
-        region = None if found.pose_region is None else found.pose_region[:, :, k:k + 1]
-        return replace(found, mask=found.mask[:, :, k:k + 1], pose_region=region), brain_map
-
-    def _alone(self, state: _Slice, fit: StackPoses | None, placement_mm: float | None,
-               input_noise: float = float("nan")) -> SliceAnswer:
-        """The slice's own pose; on the branch of its stack's model where that model decided it; the
-        noise error of its stack's ``input_noise`` so far (over the slices received) added."""
-        info, est = self.estimator.info, state.estimate
-        plane = getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM)
-        pose, mass, twinned = est.mean.copy(), est.twin_mass.copy(), np.zeros(1, bool)
-        expected = est.spread_mm * getattr(info, "mc_error_scale", 1.0)
-        decided = fit is not None and fit.fit is not None and fit.fit.branch_decided and fit.fit.atlas_from_scanner is not None
-        if decided:
-            predicted = fit.fit.atlas_from_scanner @ state.frame.scanner_from_voxel @ np.linalg.inv(state.network_from_voxel[0])
-            other = twin.twin(pose[0], plane)
-            if anchors.ed(other, predicted) < anchors.ed(pose[0], predicted):
-                pose[0], mass, twinned = other, 1.0 - mass, np.ones(1, bool)
-            if placement_mm is not None:
-                pose[0], expected[0] = immediate.with_placement(pose[0], float(expected[0]), predicted, placement_mm)
-        out = StackPoses(pose, mass, twinned, np.zeros(1, bool), None, expected)
-        add_unseen_errors(out, info, est, input_noise)
-        if not decided:                                  # a slice alone cannot tell its twin
-            out.expected_error_mm = np.sqrt(out.expected_error_mm ** 2 + immediate.UNDECIDED_TWIN_CHANCE
-                                            * twin.twin_distance_mm(pose, plane) ** 2)
-        return SliceAnswer(state.frame.stack, state.frame.index, self._judged(state.prepared, state.network_from_voxel,
-                                                                               est, out))
 
     def _judged(self, prepared: PreparedStack, network_from_voxel: NDArray, est: PoseEstimate,
                 out: StackPoses) -> StackPrediction:
