@@ -95,6 +95,7 @@ class RequestContext:
         rid = headers.get("x-request-id", "")
         rid = rid if SAFE_ID.match(rid) else uuid.uuid4().hex
         scope.setdefault("state", {})["request_id"] = rid
+        scope["state"]["sent_method"] = sent_method           # a download answers HEAD without reading its file
         start = time.perf_counter()
         state: dict = {"code": 500, "started": False, "received": 0, "refusal": None, "replaced": False,
                        "body_done": False, "left": False}

@@ -12,6 +12,7 @@ import numpy as np
 from anyio import to_thread
 from fastapi import APIRouter, Depends, Form, Header, Query, Request, Response
 from fastapi.responses import FileResponse
+from starlette.types import Receive, Scope, Send
 from pydantic import Field
 
 from service.api.deps import ApiKey, LocalisersDep, RegistryDep, SettingsDep, localiser_for, processing, queue_full
@@ -280,6 +281,16 @@ async def status(request: Request, job_id: str) -> dict:
     return _status(job, workers)
 
 
+class Download(FileResponse):
+    """A result file; to ``HEAD`` (answered as ``GET`` by the middleware, which drops the body) its
+    headers alone, the file not read."""
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope.get("state", {}).get("sent_method") == "HEAD":
+            scope = {**scope, "method": "HEAD"}
+        await super().__call__(scope, receive, send)
+
+
 def _result(request: Request, job_id: str, name: str, media_type: str, download: str,
             job: Job | None = None) -> FileResponse:
     job = job or _job(request, job_id)
@@ -288,7 +299,7 @@ def _result(request: Request, job_id: str, name: str, media_type: str, download:
     path = _store(request).directory(job_id) / "outputs" / name
     if not path.exists():
         raise NotFound(f"job_id: the results of job {job_id} have expired")
-    return FileResponse(path, media_type=media_type, filename=download)
+    return Download(path, media_type=media_type, filename=download)
 
 
 @router.get("/{job_id}/volume", responses=download("application/gzip", 401, 404, 409),

@@ -11,6 +11,7 @@ import time
 import zipfile
 from pathlib import Path
 
+import anyio
 import numpy as np
 import pytest
 import SimpleITK as sitk
@@ -92,7 +93,12 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
     assert st["status"] == "succeeded", st
     assert st["progress"] == 1.0 and st["result_url"].endswith("/volume") and st["preview_url"].endswith(".png")
     vol_bytes = client.get(st["result_url"]).content
-    head = client.head(st["result_url"])                     # a client checks the download's size first
+    opened = []
+    real_open = anyio.open_file
+    with pytest.MonkeyPatch.context() as mp:                  # a client checks the download's size first
+        mp.setattr(anyio, "open_file", lambda *a, **k: opened.append(a) or real_open(*a, **k))
+        head = client.head(st["result_url"])
+    assert opened == []                                       # ... and the server does not read the file for it
     assert head.status_code == 200 and head.content == b"" and int(head.headers["content-length"]) == len(vol_bytes)
     (tmp_path / "v.nii.gz").write_bytes(vol_bytes)
     vol = read_volume(tmp_path / "v.nii.gz")
