@@ -149,7 +149,8 @@ class SVRnetClient(Transport):
                   if v is not None]
         fields += order_fields(slice_order)
         body = MultipartBody(fields, file_parts(stacks, masks))
-        return self._json(self._send("POST", "/v1/predict", body=body, progress=progress))
+        return _with_stacks(self._json(self._send("POST", "/v1/predict", body=body, progress=progress)),
+                            "POST /v1/predict")
 
     def masks(self, stacks: Sequence[PathLike], out_dir: PathLike, *, model: str | None = None,
               margin_mm: float | None = None, progress: ProgressCallback | None = None,
@@ -159,9 +160,10 @@ class SVRnetClient(Transport):
         Each mask is ``<stem>_mask.nii.gz`` on its stack's own grid (uint8 0/1), grown outward by
         ``margin_mm`` when given (the localiser's masks are the skull's inside); ``report.json`` lies
         beside them. Only the archive's own plain file names are written, never a path it names.
-        Files of those names already in ``out_dir`` (a hand-drawn ``axial_mask.nii.gz`` beside its
+        Masks of those names already in ``out_dir`` (a hand-drawn ``axial_mask.nii.gz`` beside its
         stack, say) are kept, and nothing is written, unless ``overwrite``; each file is written
-        whole or not at all.
+        whole or not at all. A ``report.json`` there from an earlier call keeps its entries for the
+        masks still beside it: the folder's report describes every mask in it.
 
         Returns:
             The report: ``stacks[]`` with ``filename``, ``mask``, ``brain_volume_ml``, ``confidence``,
@@ -179,15 +181,17 @@ class SVRnetClient(Transport):
             files = {i.filename: archive.read(i.filename) for i in archive.infolist()
                      if i.filename == Path(i.filename).name and i.filename.endswith((".nii.gz", ".json"))
                      and i.file_size <= MAX_MASK_BYTES}
-            report = json.loads(files["report.json"])
+            report = json.loads(files[REPORT])
         except (zipfile.BadZipFile, KeyError, ValueError) as exc:
             raise SVRnetError("the server's masks archive is unreadable", status=response.status_code,
                               request_id=response.headers.get("x-request-id")) from exc
         out = Path(out_dir)
-        there = [name for name in files if (out / name).exists()]
+        there = [name for name in files if name != REPORT and (out / name).exists()]
         if there and not overwrite:
             raise ArgumentError(f"out_dir: {out} holds {', '.join(there)} already; nothing was written "
                                 "(`svrnet masks --overwrite` replaces them; in Python, overwrite=True)")
+        report = _with_earlier_masks(report, out)
+        files[REPORT] = json.dumps(report, indent=1).encode()
         out.mkdir(parents=True, exist_ok=True)
         for name, data in files.items():
             write_whole(out / name, data)
@@ -388,7 +392,8 @@ class SVRnetClient(Transport):
             >>> SVRnetClient().refined_poses("3f2a")["stacks"][0]["slices"][0]["included"]   # doctest: +SKIP
             True
         """
-        return self._json(self._send("GET", self._job_path(job_id, "/poses")))
+        return _with_stacks(self._json(self._send("GET", self._job_path(job_id, "/poses"))),
+                            f"GET {self._job_path(job_id, '/poses')}")
 
     def cancel(self, job_id: str) -> None:
         """``DELETE /v1/reconstructions/{job_id}``: cancel a queued/running job and delete its files.
@@ -398,3 +403,45 @@ class SVRnetClient(Transport):
         """
         self._send("DELETE", self._job_path(job_id))
 
+
+REPORT = "report.json"
+"""The masks' report, beside them (:meth:`SVRnetClient.masks`)."""
+
+
+def _with_earlier_masks(report: Any, out: Path) -> Any:
+    """``report`` (of masks about to be written into ``out``) with the entries of the report already
+    there whose masks stay: other masks of earlier calls, which the new report would otherwise hide.
+
+    Example:
+        >>> import tempfile
+        >>> out = Path(tempfile.mkdtemp()); _ = (out / "ax_mask.nii.gz").write_bytes(b"")
+        >>> _ = (out / REPORT).write_text(json.dumps({"stacks": [{"mask": "ax_mask.nii.gz"}, {"mask": "gone.nii.gz"}]}))
+        >>> [e["mask"] for e in _with_earlier_masks({"stacks": [{"mask": "co_mask.nii.gz"}]}, out)["stacks"]]
+        ['ax_mask.nii.gz', 'co_mask.nii.gz']
+    """
+    if not isinstance(report, dict):                      # another api-v1 server's bare list: as it came
+        return report
+    try:
+        earlier = json.loads((out / REPORT).read_text())["stacks"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return report
+    new = {e.get("mask") for e in report.get("stacks") or []}
+    kept = [e for e in earlier if isinstance(e, dict) and isinstance(e.get("mask"), str) and e["mask"] not in new
+            and e["mask"] == Path(e["mask"]).name and (out / e["mask"]).is_file()]
+    return {**report, "stacks": kept + list(report.get("stacks") or [])}
+
+
+def _with_stacks(body: Any, call: str) -> dict[str, Any]:
+    """``body`` where it is an answer of poses (an object with a ``stacks`` list), else the
+    :func:`not_svrnet` error of ``call``: nothing is written from an answer of another server.
+
+    Example:
+        >>> _with_stacks({"stacks": []}, "POST /v1/predict")
+        {'stacks': []}
+        >>> _with_stacks([], "POST /v1/predict")
+        Traceback (most recent call last):
+        client.errors.ConnectionFailed: POST /v1/predict: ...
+    """
+    if not (isinstance(body, dict) and isinstance(body.get("stacks"), list)):
+        raise not_svrnet(call, "an object with a stacks list")
+    return body

@@ -56,7 +56,8 @@ from client.cli_export import export
 from client.cli_support import (DEFAULT_VOLUME, ApiKeyOpt, BiasCorrectionOpt, JobArg, MaskOpt, MasksHoldCsfOpt, OverwriteOpt,
                                 MaxExpectedOpt, McSamplesOpt, ModelOpt, ServerOpt, StackSpaceOpt, StacksArg, ThresholdOpt,
                                 check_folder_writable, check_masks, check_writable, follow_job, job_id_of,
-                                once_or_per_stack, resolution_range, timeout_from_env, write_json, write_results)
+                                once_or_per_stack, resolution_range, timeout_from_env, user_path, write_json,
+                                write_results)
 from client.errors import SVRnetError
 from client.exits import (EXIT_BAD_INPUT, EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, EXIT_USAGE, errors, fail,
                           stderr, stdout)
@@ -104,7 +105,7 @@ def predict(
     mask: MaskOpt = None,
     server: ServerOpt = DEFAULT_SERVER,
     api_key: ApiKeyOpt = None,
-    out: Annotated[Optional[Path], typer.Option("--out", "-o", dir_okay=False,
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", dir_okay=False, callback=user_path,
                                                 help="write the full JSON answer here")] = None,
     mc_samples: McSamplesOpt = None,
     threshold: ThresholdOpt = None,
@@ -120,7 +121,7 @@ def predict(
         help="refine the poses where slices of different stacks cross")] = True,
     masks_hold_csf: MasksHoldCsfOpt = False,
     transforms_out: Annotated[Optional[Path], typer.Option(
-        "--transforms-out", dir_okay=False,
+        "--transforms-out", dir_okay=False, callback=user_path,
         help="also write each slice's ITK transform here (.zip of .tfm files, laid out as a job's)")] = None,
     overwrite: OverwriteOpt = False,
 ) -> None:
@@ -158,7 +159,8 @@ def predict(
 @app.command(epilog=EXIT_HELP)
 def masks(
     stacks: StacksArg,
-    out_dir: Annotated[Path, typer.Option("--out-dir", "-o", file_okay=False, help="where the masks are written")],
+    out_dir: Annotated[Path, typer.Option("--out-dir", "-o", file_okay=False, callback=user_path,
+                                          help="where the masks are written")],
     server: ServerOpt = DEFAULT_SERVER,
     api_key: ApiKeyOpt = None,
     model: Annotated[Optional[str], typer.Option(help="localiser name (default: the server's)")] = None,
@@ -197,14 +199,14 @@ def reconstruct(
     max_expected_error: MaxExpectedOpt = None,
     wait: Annotated[bool, typer.Option("--wait", help="wait for the job and download its results")] = False,
     out: Annotated[Optional[Path], typer.Option(
-        "--out", "-o", dir_okay=False, help="volume file (implies --wait; default recon.nii.gz with --wait)")] = None,
+        "--out", "-o", dir_okay=False, callback=user_path, help="volume file (implies --wait; default recon.nii.gz with --wait)")] = None,
     preview: Annotated[Optional[Path], typer.Option(
-        dir_okay=False, help="also download the preview PNG here (implies --wait)")] = None,
+        dir_okay=False, callback=user_path, help="also download the preview PNG here (implies --wait)")] = None,
     poses_out: Annotated[Optional[Path], typer.Option(
-        "--poses-out", dir_okay=False,
+        "--poses-out", dir_okay=False, callback=user_path,
         help="also write the refined slice poses (/v1/predict schema) here (implies --wait)")] = None,
     transforms_out: Annotated[Optional[Path], typer.Option(
-        "--transforms-out", dir_okay=False,
+        "--transforms-out", dir_okay=False, callback=user_path,
         help="also download the per-slice ITK transforms (.zip of .tfm files) here (implies --wait)")] = None,
     stack_space: StackSpaceOpt = None,
     timeout: Annotated[float, typer.Option(min=0, help="seconds to wait for the job")] = 3600.0,
@@ -256,12 +258,12 @@ def fetch(
     server: ServerOpt = DEFAULT_SERVER,
     api_key: ApiKeyOpt = None,
     out: Annotated[Optional[Path], typer.Option(
-        "--out", "-o", dir_okay=False, help="volume file (default recon.nii.gz)")] = None,
-    preview: Annotated[Optional[Path], typer.Option(dir_okay=False, help="also download the preview PNG here")] = None,
+        "--out", "-o", dir_okay=False, callback=user_path, help="volume file (default recon.nii.gz)")] = None,
+    preview: Annotated[Optional[Path], typer.Option(dir_okay=False, callback=user_path, help="also download the preview PNG here")] = None,
     poses_out: Annotated[Optional[Path], typer.Option(
-        "--poses-out", dir_okay=False, help="also write the refined slice poses (/v1/predict schema) here")] = None,
+        "--poses-out", dir_okay=False, callback=user_path, help="also write the refined slice poses (/v1/predict schema) here")] = None,
     transforms_out: Annotated[Optional[Path], typer.Option(
-        "--transforms-out", dir_okay=False,
+        "--transforms-out", dir_okay=False, callback=user_path,
         help="also download the per-slice ITK transforms (.zip of .tfm files) here")] = None,
     stack_space: StackSpaceOpt = None,
     timeout: Annotated[float, typer.Option(min=0, help="seconds to wait for a job still running")] = 3600.0,
@@ -301,7 +303,7 @@ def stream(
     masks_hold_csf: MasksHoldCsfOpt = False,
     model: ModelOpt = None,
     json_out: Annotated[Optional[Path], typer.Option(
-        "--json-out", dir_okay=False, help="write every message received here, one JSON object a line")] = None,
+        "--json-out", dir_okay=False, callback=user_path, help="write every message received here, one JSON object a line")] = None,
     overwrite: OverwriteOpt = False,
 ) -> None:
     """Send stacks slice by slice as a scanner would (WebSocket /v1/stream) and show each pose as it comes."""
@@ -348,8 +350,13 @@ def stream(
         error_count = len(result.of_type("error"))
         if error_count:
             console.print(f"{error_count} error(s) from the server (above, in red)", style="red")
+        for name, left in result.unsent.items():
+            console.print(f"stack {name}: slices {', '.join(map(str, left))} not posed: the "
+                          "server's session was full; stream them in another session", style="red", markup=False)
         if json_out is not None:
             console.print(f"wrote {json_out}")
+    if result.unsent:
+        raise typer.Exit(EXIT_BAD_INPUT)                   # what the session could not take is not posed
     if error_count and not result.of_type("pose"):
         raise typer.Exit(EXIT_BAD_INPUT)                   # the server refused every slice
     if not usable({"stacks": result.of_type("stack")}):

@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from client.cli_support import MaskOpt, StacksArg, check_masks, once_or_per_stack
+from client.cli_support import MaskOpt, StacksArg, check_masks, once_or_per_stack, user_path
 from client.exits import EXIT_BAD_INPUT, errors, fail, stderr, stdout
 
 NEXT_STEP = {
@@ -27,7 +27,8 @@ def export(
                                            help="JSON answer of `svrnet predict --out` or `reconstruct --poses-out`")],
     stacks: StacksArg,
     to: Annotated[str, typer.Option("--to", help="the tool to start: nesvor or niftymic")],
-    out_dir: Annotated[Path, typer.Option("--out-dir", file_okay=False, help="folder to write into (created)")],
+    out_dir: Annotated[Path, typer.Option("--out-dir", file_okay=False, callback=user_path,
+                                          help="folder to write into (created; new or empty)")],
     mask: MaskOpt = None,
     all_slices: Annotated[bool, typer.Option(
         "--all-slices",
@@ -35,6 +36,9 @@ def export(
     thickness: Annotated[Optional[list[float]], typer.Option(
         "--thickness", help="slice thickness in mm for NeSVoR's slice profile, once for every stack or once per "
         "stack (default: the slice spacing)")] = None,
+    overwrite: Annotated[bool, typer.Option(
+        "--overwrite", help="replace an earlier export in --out-dir (without it, a folder that holds anything "
+                            "stops the command: each tool reads every slice file of its folder)")] = False,
 ) -> None:
     """Write the slice poses of an answer for NeSVoR (--input-slices) or NiftyMIC (--dir-input-mc): the
     stacks given are the NIfTI files the answer was made from, in its order."""
@@ -48,7 +52,7 @@ def export(
             body = json.loads(answer.read_text())
         except (UnicodeDecodeError, json.JSONDecodeError) as e:
             fail(f"{answer.name} is not a JSON answer ({e})", EXIT_BAD_INPUT)
-        done = write(body, stacks, mask, out_dir, to, all_slices, thickness)
+        done = write(body, stacks, mask, out_dir, to, all_slices, thickness, overwrite)
     console = stdout()
     console.print(f"wrote {done.count} slices for {to} into {out_dir}", soft_wrap=True)
     if to == "nesvor" and not mask:

@@ -48,6 +48,18 @@ OverwriteOpt = Annotated[bool, typer.Option(
                         "anything is sent)")]
 
 
+def user_path(value: Path | None) -> Path | None:
+    """An output path option as the user means it: ``~`` expanded when the option is parsed, so that
+    the check before the upload and the write after it see one path (a shell leaves ``--out=~/x``, and
+    a pipeline's argument list every ``~``, to the program).
+
+    Example:
+        >>> user_path(Path("~/p.json")) == Path.home() / "p.json", user_path(None)
+        (True, None)
+    """
+    return None if value is None else value.expanduser()
+
+
 def check_writable(overwrite: bool = False, **paths: Path | None) -> None:
     """Output files (by option name) must be writable BEFORE anything is uploaded (not after an hour of
     reconstruction), and new unless ``overwrite``: a second patient's results never replace the first's

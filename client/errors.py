@@ -102,7 +102,7 @@ class UnusableInput(SVRnetError):
 
 
 class Busy(SVRnetError):
-    """429/503 still answered after every retry.
+    """429/503 (or 507: the server's disk is full for now) still answered after every retry.
 
     Attributes:
         retry_after_s: the server's last ``Retry-After`` in seconds, when it sent one.
@@ -118,7 +118,8 @@ class ServerError(SVRnetError):
 
 
 class ConnectionFailed(SVRnetError):
-    """No HTTP answer: connection refused, DNS failure, timeout, connection dropped."""
+    """No HTTP answer (connection refused, DNS failure, timeout, connection dropped), or a 408: the
+    upload did not reach the server in time."""
 
 
 class JobFailed(SVRnetError):
@@ -148,9 +149,11 @@ class WaitTimeout(SVRnetError):
 
 
 _BY_STATUS: dict[int, type[SVRnetError]] = {
-    400: BadRequest, 401: Unauthorized, 403: Unauthorized, 404: NotFound, 409: Conflict, 413: PayloadTooLarge,
-    415: UnsupportedFile, 422: UnusableInput, 429: Busy, 503: Busy,
+    400: BadRequest, 401: Unauthorized, 403: Unauthorized, 404: NotFound, 408: ConnectionFailed, 409: Conflict,
+    413: PayloadTooLarge, 415: UnsupportedFile, 422: UnusableInput, 429: Busy, 503: Busy, 507: Busy,
 }
+"""408 (the upload did not arrive in time) is the connection's fault, not the files'; 507 (the
+server's disk filled, ``Retry-After`` given) is a busy server's, retried as a 503 is."""
 
 
 def error_class_for_status(status: int) -> type[SVRnetError]:
@@ -159,8 +162,8 @@ def error_class_for_status(status: int) -> type[SVRnetError]:
     Example:
         >>> error_class_for_status(422).__name__
         'UnusableInput'
-        >>> error_class_for_status(502).__name__
-        'ServerError'
+        >>> error_class_for_status(502).__name__, error_class_for_status(408).__name__, error_class_for_status(507).__name__
+        ('ServerError', 'ConnectionFailed', 'Busy')
     """
     if status in _BY_STATUS:
         return _BY_STATUS[status]

@@ -159,21 +159,51 @@ class Exported:
     masks: list[Path] | None = None
 
 
+EXPORTED = ("[0-9]*.nii.gz", "mask_[0-9]*.nii.gz", "*.tfm", "slices.tsv", "stacks/*.nii.gz", "masks/*.nii.gz")
+"""The files an export writes into its folder (either tool's): what ``overwrite`` removes first, since
+each tool takes every such file of the folder."""
+
+
+def clear_for_export(folder: Path, overwrite: bool) -> None:
+    """Make ``folder`` ready for an export: created, and empty of an earlier export's files. Both tools
+    read every slice file of the folder, so one patient's export must never lie among another's: a
+    folder that holds anything is refused (:class:`UnusableInput`) unless ``overwrite``, which removes
+    the files :data:`EXPORTED` names (nothing else).
+
+    Example:
+        >>> import tempfile
+        >>> d = Path(tempfile.mkdtemp()); _ = (d / "0.nii.gz").write_bytes(b""); _ = (d / "notes.txt").write_text("")
+        >>> clear_for_export(d, overwrite=True); sorted(p.name for p in d.iterdir())
+        ['notes.txt']
+    """
+    if folder.is_dir() and any(folder.iterdir()):
+        if not overwrite:
+            raise UnusableInput(f"export: {folder} is not empty; each tool reads every slice file of its folder, so "
+                                "give a new or empty folder (--overwrite replaces an earlier export there)")
+        for pattern in EXPORTED:
+            for path in folder.glob(pattern):
+                if path.is_file():
+                    path.unlink()
+    folder.mkdir(parents=True, exist_ok=True)
+
+
 def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None, folder: Path, to: str,
-           all_slices: bool = False, thickness_mm: list[float] | None = None) -> Exported:
-    """Write the slices of ``answer`` for the tool ``to`` (:data:`FORMATS`) into ``folder``.
-    ``stacks`` (and ``masks``): the files the answer was made from, NIfTI. ``thickness_mm``: one per
-    stack, or one for all (default: each stack's slice spacing)."""
+           all_slices: bool = False, thickness_mm: list[float] | None = None, overwrite: bool = False) -> Exported:
+    """Write the slices of ``answer`` for the tool ``to`` (:data:`FORMATS`) into ``folder``, a new or
+    empty folder unless ``overwrite`` (:func:`clear_for_export`). ``stacks`` (and ``masks``): the files
+    the answer was made from, NIfTI. ``thickness_mm``: one per stack, or one for all (default: each
+    stack's slice spacing)."""
     if to not in FORMATS:
         raise UnusableInput(f"export: unknown format {to!r}; one of {', '.join(FORMATS)}")
-    folder.mkdir(parents=True, exist_ok=True)
     done = Exported(0, list(stacks), None if not masks else list(masks))
     rows = ["i\tstack\tfile\tslice\taccepted\texpected_error_mm"]
     stems = [p.name.removesuffix(".gz").removesuffix(".nii") for p in stacks]
     if to == "niftymic" and len(set(stems)) < len(stems):
         raise UnusableInput("export: NiftyMIC names each stack's transforms by its file name, and two stacks are "
                             f"named {max(set(stems), key=stems.count)!r}: rename one")
-    for s, (path, stack) in enumerate(zip(stacks, matched_stacks(answer, stacks))):
+    answered = matched_stacks(answer, stacks)           # the answer checked before the folder is touched
+    clear_for_export(folder, overwrite)
+    for s, (path, stack) in enumerate(zip(stacks, answered)):
         image, sfv = _stack_file(path, stack, read_by_qform=to == "niftymic")
         chosen = _chosen(stack, all_slices)
         axis = int(stack.get("slice_axis", 2))

@@ -43,6 +43,8 @@ ORDERS = ("sequential", "interleaved", "interleaved-even-first", "interleaved-od
 (``0,2,4,1,3``) are taken too."""
 MAX_IN_FLIGHT = 4
 """Slices sent ahead of their poses at most, so that a slow server is never buried."""
+SESSION_FULL = "/problems/session-full"
+"""The problem type of a slice refused because the session holds all it may: no later slice is taken."""
 OPEN_TIMEOUT_S = 10.0
 MAX_MESSAGE_BYTES = 64 << 20
 """Largest message taken from the server (a ``stack`` message of a long stack is a few MB)."""
@@ -61,11 +63,15 @@ class Sent:
 
 @dataclass
 class StreamResult:
-    """Every message of a session, in the order received (``messages``), its ``ready`` and ``summary``."""
+    """Every message of a session, in the order received (``messages``), its ``ready`` and ``summary``,
+    and the slices it could not take (``unsent``)."""
 
     ready: dict[str, Any] = field(default_factory=dict)
     messages: list[dict[str, Any]] = field(default_factory=list)
     summary: dict[str, Any] | None = None
+    unsent: dict[str, list[int]] = field(default_factory=dict)
+    """Per stack, the slices the session could not take (the server's session was full: its slices,
+    stacks or memory), in index order; send them in another session."""
 
     def of_type(self, kind: str) -> list[dict[str, Any]]:
         """The messages of one type (``pose``, ``update``, ``stack``, ``error`` ...), in order."""
@@ -136,6 +142,8 @@ class _Session:
         self.unanswered: deque[Sent] = deque()
         self.result = StreamResult()
         self.last_error: dict[str, Any] | None = None
+        self.full = False                       # the server refused a slice because the session holds all it may
+        self.posed: set[str] = set()            # stacks with at least one slice taken
 
     def send(self, header: dict[str, Any], *frames: bytes) -> None:
         """A text message and its binary frames; it is then owed one answer."""
@@ -191,8 +199,13 @@ class _Session:
             self.result.ready = message
         elif kind == "summary":
             self.result.summary = message
+        elif kind == "pose" and answered is not None:
+            self.posed.add(str(answered.stack))
         elif kind == "error":
             self.last_error = message
+            if answered is not None and answered.type == "slice" and message.get("problem_type") == SESSION_FULL:
+                self.full = True
+                self.result.unsent.setdefault(str(answered.stack), []).append(int(answered.index))
             if (answered is not None and answered.type in ("start", "end")) or message.get("status") == 401:
                 raise _server_error(message, self.key_sent)
         if self.on_message is not None:
@@ -253,7 +266,9 @@ def stream_stacks(stacks: Sequence[ScannerStack], server: str = DEFAULT_SERVER, 
     Raises:
         ConnectionFailed: no connection, no answer, or the server closed the session early.
         Unauthorized: a missing or wrong API key. Busy: the server's sessions are all taken (1013).
-        UnusableInput: slices over the server's ``ready.limits`` (before any is sent).
+        UnusableInput: stacks or slices over the server's ``ready.limits`` (before any is sent). Where
+            the session fills up as it goes (its memory), the rest of the slices are not sent, the
+            stacks begun are ended, and ``unsent`` names what is left.
         SVRnetError: the server refused ``start`` or ``end`` (its error's class).
     """
     options = {"model": model, "mc_samples": mc_samples, "variance_threshold": variance_threshold,
@@ -283,10 +298,17 @@ def stream_stacks(stacks: Sequence[ScannerStack], server: str = DEFAULT_SERVER, 
         for stack, indices in zip(stacks, orders):
             for position, k in enumerate(indices):
                 session.wait_to_send(next_send, max_in_flight)
+                if session.full:                # nothing more is taken: the rest waits for another session
+                    session.result.unsent.setdefault(stack.name, []).append(k)
+                    continue
                 header, frames = _slice_message(stack.name, stack.slices[k], position)
                 session.send(header, *frames)
                 next_send = time.monotonic() + pace_s
-            session.send({"type": "end_stack", "stack": stack.name})
+            if session.full:                    # the answers of the slices sent, to know which stacks began
+                session.wait_to_send(0.0, 1)
+            if not session.full or stack.name in session.posed:      # a stack none of whose slices was taken
+                session.send({"type": "end_stack", "stack": stack.name})    # cannot end
+        session.result.unsent = {name: sorted(ks) for name, ks in session.result.unsent.items()}
         session.send({"type": "end"})
         while session.result.summary is None:
             session.receive(None)
@@ -316,6 +338,14 @@ def _check_limits(stacks: Sequence[ScannerStack], limits: dict[str, Any]) -> Non
                                 f"the server's limit of {pixels} pixels a slice")
     if sum(len(st.slices) for st in stacks) > slices:
         raise UnusableInput(f"{sum(len(st.slices) for st in stacks)} slices: over the server's limit of {slices}")
+    most = limits.get("stacks") or np.inf
+    if len(stacks) > most:
+        raise UnusableInput(f"{len(stacks)} stacks: over the server's limit of {most} a session; stream the rest in "
+                            "another session")
+    held = sum(st.slices[0].pixels.size * len(st.slices) for st in stacks if st.slices) * 4 / 2**20
+    if held > (limits.get("session_mb") or np.inf):              # the pixels alone, as the server holds them
+        raise UnusableInput(f"the stacks' pixels alone take {held:.0f} MB as the server holds them: over its limit of "
+                            f"{limits['session_mb']:g} MB a session; stream fewer stacks in each session")
     per_stack = limits.get("stack_slices") or np.inf
     for stack in stacks:
         if len(stack.slices) > per_stack:

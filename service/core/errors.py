@@ -82,6 +82,13 @@ class InvalidParameter(ServiceError):
     status, title, type = 400, "Invalid parameter", "/problems/invalid-parameter"
 
 
+class SessionFull(InvalidParameter):
+    """A stream session holds all it may (slices, stacks or memory): no later slice of it will be
+    taken either, so a client stops sending and starts another session for the rest."""
+
+    title, type = "Session full", "/problems/session-full"
+
+
 class Saturated(ServiceError):
     """503: every processing slot is taken (``Retry-After`` says when to try again)."""
 

@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 
 from service.consistency.slice_order import STREAMED, SliceOrder
 from service.consistency.stage import StackPoses, checked_branch, consistent_poses, request_reference
-from service.core.errors import InvalidParameter
+from service.core.errors import InvalidParameter, SessionFull
 from service.geometry.pose import translate
 from service.geometry.twin import DEFAULT_PLANE_X_MM
 from service.inference import acceptance
@@ -128,18 +128,18 @@ class StreamSession:
                                        + (f" (only the slices it ended without, {missing[:10]}, may still come: "
                                           "end it again then)" if missing else ""))
             if sum(len(s) for s in self.stacks.values()) >= self.limits.max_slices:
-                raise InvalidParameter(f"slice: a session holds at most {self.limits.max_slices} slices; "
-                                       "end it and start another")
+                raise SessionFull(f"slice: a session holds at most {self.limits.max_slices} slices; "
+                                  "end it and start another")
             if frame.stack not in self.stacks and len(self.stacks) >= self.limits.max_stacks:
-                raise InvalidParameter(f"slice.stack: a session holds at most {self.limits.max_stacks} stacks; "
-                                       "end it and start another")
+                raise SessionFull(f"slice.stack: a session holds at most {self.limits.max_stacks} stacks; "
+                                  "end it and start another")
             if frame.stack in self.stacks and len(self.stacks[frame.stack]) >= self.limits.max_stack_slices:
                 raise InvalidParameter(f"slice.stack: stack {frame.stack!r} holds {self.limits.max_stack_slices} "
                                        "slices, the most one stack may; end it and send the rest as another")
             size = np.asarray(frame.pixels).size * 4
             if self.held_bytes + size > self.limits.max_bytes:
-                raise InvalidParameter(f"slice: a session keeps at most {self.limits.max_bytes / 2**20:.3g} MB (its "
-                                       "slices and their preparation); end it and start another")
+                raise SessionFull(f"slice: a session keeps at most {self.limits.max_bytes / 2**20:.3g} MB (its "
+                                  "slices and their preparation); end it and start another")
             stack = self.stacks.get(frame.stack) or StreamedStack(frame.stack)
             stack.add(frame)
             self.stacks[frame.stack] = stack

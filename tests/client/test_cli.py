@@ -55,6 +55,22 @@ def test_cli_predict_writes_its_files_before_it_prints(fake_cli: Callable, stack
     assert json.loads(out.read_text()) == PREDICT_BODY
 
 
+def test_an_output_under_home_is_written_where_it_was_checked(fake_cli: Callable, stack_file: Path, tmp_path: Path,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--out=~/x`` reaches the program unexpanded (a shell leaves it so, an argument list always):
+    it is written under the home folder, where it was checked before the upload, not lost after it."""
+    fake_cli()
+    home = tmp_path / "home"
+    home.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    monkeypatch.chdir(tmp_path)
+    r = invoke(["predict", str(stack_file), "--out=~/poses.json"], HOME=str(home))
+    assert r.exit_code == 0, r.output
+    assert json.loads((home / "poses.json").read_text()) == PREDICT_BODY and not (tmp_path / "~").exists()
+    r = invoke(["masks", str(stack_file), "--out-dir", "~/masks"], HOME=str(home))
+    assert r.exit_code == 0 and (home / "masks" / "stack_mask.nii.gz").exists() and not (tmp_path / "~").exists()
+
+
 def test_cli_predict_writes_json_and_prints_a_summary(fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
     fake, made = fake_cli()
     out = tmp_path / "poses.json"
@@ -169,6 +185,22 @@ def test_cli_masks_keeps_files_already_there_unless_told_and_checks_its_folder_f
     sent = len(fake.requests)
     r = invoke(["masks", str(stack_file), "--out-dir", str(stack_file / "sub")])      # under a file
     assert r.exit_code == 2 and "--out-dir" in r.output and len(fake.requests) == sent, r.output
+
+
+def test_cli_masks_of_a_second_batch_join_the_folder_s_report(fake_cli: Callable, stack_file: Path,
+                                                             tmp_path: Path) -> None:
+    """A second `svrnet masks` into a folder of masks: no refusal for its report.json, which then lists
+    the masks of both batches (an entry whose mask is gone is dropped)."""
+    fake_cli()
+    (tmp_path / "ax_mask.nii.gz").write_bytes(b"earlier")
+    (tmp_path / "report.json").write_text(json.dumps({"stacks": [
+        {"filename": "ax.nii.gz", "mask": "ax_mask.nii.gz", "confidence": 0.8},
+        {"filename": "gone.nii.gz", "mask": "gone_mask.nii.gz"}]}))
+    r = invoke(["masks", str(stack_file), "--out-dir", str(tmp_path)])
+    assert r.exit_code == 0, r.output
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert [e["mask"] for e in report["stacks"]] == ["ax_mask.nii.gz", "stack_mask.nii.gz"]
+    assert (tmp_path / "ax_mask.nii.gz").read_bytes() == b"earlier"
 
 
 def test_cli_sends_each_slice_order_as_one_field(fake_cli: Callable, stack_file: Path) -> None:

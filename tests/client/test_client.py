@@ -222,6 +222,28 @@ def test_503_twice_then_success_resends_the_whole_body(stack_file: Path, mask_fi
     assert progress[-1] == (len(request.content), len(request.content))
 
 
+def test_a_full_disk_is_waited_out_and_a_late_upload_is_the_connection_s_fault(stack_file: Path,
+                                                                              no_sleep: list[float]) -> None:
+    """507 with ``Retry-After`` (the server's disk filled; the files are not at fault) is retried as a 503
+    is; a 408 (the upload did not arrive in time) is a connection failure (exit 3), not bad input (5)."""
+    calls: list[httpx.Request] = []
+
+    def full_then_free(request: httpx.Request) -> httpx.Response:
+        calls.append(request)
+        if len(calls) == 1:
+            return httpx.Response(507, headers={"Retry-After": "1"}, json=problem(507, "disk full", "Insufficient storage"))
+        return httpx.Response(200, json={"stacks": []})
+
+    assert mock(full_then_free).predict([stack_file]) == {"stacks": []} and len(calls) == 2 and len(no_sleep) == 1
+    for wrong in ([], {"stacks": None}):                       # an answer of another server: nothing written from it
+        with pytest.raises(ConnectionFailed, match="does not speak SVRnet"):
+            mock(lambda request, wrong=wrong: httpx.Response(200, json=wrong)).predict([stack_file])
+    late = lambda request: httpx.Response(408, json=problem(408, "no data for 60 s", "Request timeout"))  # noqa: E731
+    with pytest.raises(ConnectionFailed) as e:
+        mock(late).predict([stack_file])
+    assert e.value.status == 408 and exit_code_for(e.value) == EXIT_CONNECTION
+
+
 def test_upload_progress_reaches_the_total(stack_file: Path) -> None:
     big = stack_file.parent / "big.nii"
     big.write_bytes(bytes(range(256)) * 4000)                 # ~1 MB: several chunks
@@ -229,7 +251,7 @@ def test_upload_progress_reaches_the_total(stack_file: Path) -> None:
 
     def handler(request: httpx.Request) -> httpx.Response:
         got.append(request)
-        return httpx.Response(200, json={})
+        return httpx.Response(200, json={"stacks": []})
 
     seen: list[tuple[int, int]] = []
     mock(handler).predict([big, stack_file], bias_correction=True, model="m", image_consistency=False,

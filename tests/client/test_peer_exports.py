@@ -163,6 +163,29 @@ def test_the_cli_writes_and_says_what_to_run_next(case: dict, tmp_path: Path) ->
     assert r.exit_code == 5 and "poses.json is not a JSON answer" in r.output
 
 
+def test_an_export_never_lies_among_an_earlier_one(case: dict, tmp_path: Path) -> None:
+    """Each tool reads every slice file of its folder: a second patient's export into the first's folder
+    is refused, and with ``--overwrite`` none of the first's slices, masks or transforms is left."""
+    answer = tmp_path / "poses.json"
+    answer.write_text(json.dumps(case["answer"]))
+    out = tmp_path / "slices"
+    run = lambda *more: CliRunner().invoke(cli.app, ["export", str(answer), str(case["stack"]), "--out-dir",  # noqa: E731
+                                                     str(out), *more], env={"COLUMNS": "200"})
+    assert run("--to", "nesvor", "--mask", str(case["mask"]), "--all-slices").exit_code == 0
+    (out / "notes.txt").write_text("kept")
+    before = sorted(p.name for p in out.iterdir())
+    r = run("--to", "nesvor")
+    assert r.exit_code == 5 and "not empty" in r.output and "--overwrite" in r.output
+    assert sorted(p.name for p in out.iterdir()) == before
+    r = run("--to", "nesvor", "--overwrite")                                # accepted slices only, no masks now
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in out.iterdir()) == ["0.nii.gz", "1.nii.gz", "2.nii.gz", "3.nii.gz", "notes.txt",
+                                                     "slices.tsv"]
+    r = run("--to", "niftymic", "--overwrite")
+    assert r.exit_code == 0 and not list(out.glob("*.nii.gz")) and not (out / "slices.tsv").exists(), r.output
+    assert len(list(out.glob("ax_slice*.tfm"))) == 4
+
+
 def test_the_cli_names_the_stacks_niftymic_must_read(tmp_path: Path) -> None:
     """A stack stored with its slices first is given to NiftyMIC as its rewritten copy, masks too; a
     file name NiftyMIC's pattern would not match is named."""
@@ -177,8 +200,8 @@ def test_the_cli_names_the_stacks_niftymic_must_read(tmp_path: Path) -> None:
     assert r.exit_code == 0, r.output
     assert f"--filenames {out / 'stacks' / 'ax.nii.gz'} --filenames-masks {out / 'masks' / 'ax_mask.nii.gz'} " in r.stdout
     assert "written again" in r.stderr and "rename" not in r.stderr
-    r = CliRunner().invoke(cli.app, ["export", str(answer), str(odd), "--to", "niftymic", "--out-dir", str(out)],
-                           env={"COLUMNS": "400"})
+    r = CliRunner().invoke(cli.app, ["export", str(answer), str(odd), "--to", "niftymic", "--out-dir",
+                                     str(tmp_path / "mc2")], env={"COLUMNS": "400"})
     assert r.exit_code == 0, r.output
     assert "rename ax(1).nii.gz" in r.stderr
 

@@ -19,6 +19,7 @@ from websockets.sync.server import ServerConnection, serve
 
 import client.cli as cli
 import client.exits as exits
+import client.stream as streaming
 from client.stream import send_order
 
 runner = CliRunner(env={"COLUMNS": "200"})
@@ -233,6 +234,54 @@ def test_a_session_with_nothing_accepted_exits_as_predict_would(stack_file: Path
     with scripted_server(handler) as url:
         result = runner.invoke(cli.app, ["stream", str(stack_file), "--server", url])
     assert result.exit_code == code, result.output
+
+
+def test_a_session_that_fills_up_stops_sending_and_names_what_it_could_not_take(stack_file: Path,
+                                                                                tmp_path: Path) -> None:
+    """The server takes three slices, then refuses for a full session: the client sends no further slice
+    once the refusal is in
+    and no end_stack of a stack none of whose slices was taken, ends the stack it began, names the
+    slices left, and exits 5; too many stacks for the session are refused before any slice is sent."""
+    second = tmp_path / "co.nii.gz"
+    second.write_bytes(stack_file.read_bytes())
+    received: list[dict] = []
+
+    def handler(ws: ServerConnection) -> None:
+        json.loads(ws.recv())
+        ws.send(json.dumps({"type": "ready", "session_id": "s1", "model": {"name": "default", "version": "1"},
+                            "mc_samples": 10, "limits": {"slices": 100, "stacks": 4, "pixels_per_slice": 1000,
+                                                         "session_mb": 1.0, "idle_s": 30}}))
+        posed: list[dict] = []
+        while True:
+            msg = json.loads(ws.recv())
+            received.append(msg)
+            if msg["type"] == "slice":
+                ws.recv()
+                if len(posed) < 3:
+                    posed.append(pose(msg))
+                    ws.send(json.dumps(posed[-1]))
+                else:
+                    ws.send(json.dumps({"type": "error", "problem_type": "/problems/session-full", "status": 400,
+                                        "title": "Session full", "detail": "slice: a session keeps at most 1 MB"}))
+            elif msg["type"] == "end_stack":
+                ws.send(json.dumps({"type": "stack", "stack": msg["stack"], "slices": posed, "reacquire": [],
+                                    "coverage": {"brain_fraction": 0.1, "gaps": []}}))
+            elif msg["type"] == "end":
+                ws.send(json.dumps({"type": "summary", "stacks": ["ax"], "slices": 3, "timing_ms": {}}))
+                ws.close(1000)
+                return
+
+    with scripted_server(handler) as url:
+        result = runner.invoke(cli.app, ["stream", str(stack_file), str(second), "--server", url], env={"COLUMNS": "200"})
+    assert result.exit_code == exits.EXIT_BAD_INPUT, result.output
+    assert "stack ax: slices 3 not posed" in result.output and "stack co: slices 0, 1, 2, 3 not posed" in result.output
+    sent = [(m["type"], m.get("stack")) for m in received]
+    assert sent.count(("slice", "ax")) == 4                     # once the refusal is in, nothing more is sent:
+    assert sent.count(("slice", "co")) < streaming.MAX_IN_FLIGHT    # at most what was on its way before it came
+    assert ("end_stack", "ax") in sent and ("end_stack", "co") not in sent and sent[-1] == ("end", None)
+    with scripted_server(handler) as url:
+        result = runner.invoke(cli.app, ["stream", *[str(stack_file)] * 5, "--server", url])
+    assert result.exit_code == exits.EXIT_BAD_INPUT and "5 stacks: over the server's limit of 4" in result.output
 
 
 # --- (c) end to end: a real svrnet-server with the shipped model ---------------------------------------------------

@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from service.core.errors import InvalidParameter
+from service.core.errors import InvalidParameter, SessionFull
 from service.geometry import twin
 from service.streaming.answers import NOT_RECEIVED
 from service.streaming.frames import IncompleteStack, SliceFrame, StreamedStack
@@ -301,7 +301,7 @@ def test_a_session_holds_no_more_than_its_memory_limit_counting_what_it_keeps(ca
         session = StreamSession(oracle, None, StreamLimits(max_bytes=limit), FAST)
         session.add_slice(stacks[0][0])
         if taken == 1:
-            with pytest.raises(InvalidParameter, match="a session keeps at most"):
+            with pytest.raises(SessionFull, match="a session keeps at most"):
                 session.add_slice(stacks[0][1])
         else:
             session.add_slice(stacks[0][1])
@@ -331,7 +331,7 @@ def test_a_session_holds_no_more_than_its_stack_limit_and_its_stacks_go_on(case)
     oracle, stacks, _ = case
     session = StreamSession(oracle, None, StreamLimits(max_stacks=1), FAST)
     session.add_slice(stacks[0][0])
-    with pytest.raises(InvalidParameter, match="slice.stack: a session holds at most 1 stacks"):
+    with pytest.raises(SessionFull, match="slice.stack: a session holds at most 1 stacks"):
         session.add_slice(stacks[1][0])
     session.add_slice(stacks[0][1])                                      # the stack it holds goes on
     assert list(session.stacks) == ["ax"] and len(session.stacks["ax"]) == 2
