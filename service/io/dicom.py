@@ -125,7 +125,8 @@ def _multiframe(ds, pixels: np.ndarray, filename: str) -> Volume:  # noqa: ANN00
         if (problem := series_problem(tags, "frames")) is not None:
             raise UnusableImage(f"{filename}: a multi-frame DICOM of {n} frames, but {problem}")
     else:                       # one position for the file: a single frame, or frames SpacingBetweenSlices apart
-        between = getattr(ds, "SpacingBetweenSlices", None) or getattr(ds, "SliceThickness", None)
+        measures = group("PixelMeasuresSequence")      # Enhanced MR states both there, a classic file at its top
+        between = tag(measures, "SpacingBetweenSlices") or tag(measures, "SliceThickness")
         tags[0] = (tags[0][0] or getattr(ds, "ImagePositionPatient", None), tags[0][1], tags[0][2])
         missing = [name for name, value in zip(("ImagePositionPatient", "ImageOrientationPatient", "PixelSpacing"),
                                                tags[0]) if value is None]

@@ -145,17 +145,32 @@ def _mha_counts(fields: dict[str, bytes]) -> str | None:
     return None
 
 
+ANATOMICAL_SPACES = frozenset(f"{name}{time}" for name in ("right-anterior-superior", "left-anterior-superior",
+                                                           "left-posterior-superior", "ras", "las", "lps")
+                               for time in ("", "-time", "t"))
+"""NRRD ``space`` values that say which side is the patient's left (teem's names, long and short,
+with their time variants; lower case). ``scanner-xyz`` and ``3D-right-handed`` do not: ITK reads
+them as LPS whatever the file meant."""
+
+
 def geometry_problem(header: bytes, kind: str) -> str | None:
     """Why a rebuilt header's geometry would be made up by its reader, or None: no voxel size at all
     (the reader invents 1 mm, as for a NIfTI header without one), or sizes, origin or axes that are
     not finite numbers (the reader puts 1 mm or 0 in their place) or, in an MHA header, not as many
-    numbers as the image has dimensions (:func:`_mha_counts`), or a size that is not positive.
+    numbers as the image has dimensions (:func:`_mha_counts`), or a size that is not positive; or an
+    NRRD header that names no anatomical ``space`` (:data:`ANATOMICAL_SPACES`): which side is the
+    patient's left is then unknown, and it decides each slice's mirror twin, as a NIfTI header with
+    neither transform is refused for.
 
     Example:
         >>> geometry_problem(b"NRRD0004\\ntype: uchar\\nsizes: 2 2 2\\n\\n", "nrrd")
         'its NRRD header gives no voxel size (no space directions or spacings); the reader would invent 1 mm'
-        >>> geometry_problem(b"NRRD0004\\nspacings: 1 1 3\\nspace origin: (0,0,0)\\n\\n", "nrrd") is None
+        >>> geometry_problem(b"NRRD0004\\nspace: RAS\\nspace directions: (1,0,0) (0,1,0) (0,0,3)\\n\\n", "nrrd") is None
         True
+        >>> geometry_problem(b"NRRD0004\\nspacings: 1 1 3\\nspace origin: (0,0,0)\\n\\n", "nrrd")[:45]
+        'its NRRD header names no anatomical space (sp'
+        >>> geometry_problem(b"NRRD0004\\nspace: scanner-xyz\\nspace directions: (1,0,0) (0,1,0) (0,0,3)\\n\\n", "nrrd")[-39:]
+        "space 'scanner-xyz' names no such thing"
         >>> geometry_problem(b"NRRD0004\\nspace directions: (1e200,0,0) (0,1,0) (0,0,1)\\n\\n", "nrrd")[-9:]
         '1e+06 mm)'
     """
@@ -178,6 +193,11 @@ def geometry_problem(header: bytes, kind: str) -> str | None:
     if b"none" in directions.lower() and (placed := directions.count(b"(")) < 3:
         return (f"its NRRD header's space directions place {placed} of the image's axes (the others 'none'); the "
                 "reader would invent 1 mm for the rest")
+    space = fields.get("space", b"").strip().decode("latin-1").lower()
+    if kind == "nrrd" and space not in ANATOMICAL_SPACES:
+        return ("its NRRD header names no anatomical space (space: RAS, LAS or LPS): which side is the patient's left "
+                "is unknown, and it decides each slice's mirror twin" + (f"; space {space!r} names no such thing"
+                                                                           if space else ""))
     return None
 
 

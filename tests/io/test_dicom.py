@@ -239,6 +239,27 @@ def test_a_legacy_multiframe_stacks_its_frames_by_the_sign_of_its_spacing(tmp_pa
         np.testing.assert_allclose((vol.affine @ [0, 0, s, 1])[:3], acquired_lps * [-1, -1, 1], atol=1e-6)
 
 
+def test_frames_without_positions_take_the_spacing_their_functional_group_states(tmp_path: Path) -> None:
+    """Enhanced MR states SpacingBetweenSlices in its Pixel Measures functional group: frames placed by
+    one position lie that far apart, not at the file's top-level SliceThickness."""
+    n, origin = 5, np.array([-40.0, 20.0, 35.0])
+    ds = _dataset(tmp_path / "grouped.dcm", MRImageStorage, np.stack([np.full((12, 10), 100 * (k + 1)) for k in range(n)]))
+    ds.NumberOfFrames = n
+    ds.ImageOrientationPatient, ds.ImagePositionPatient = [*ROW, *COL], list(origin)
+    ds.SliceThickness = 3.0
+    measures = Dataset()
+    measures.PixelSpacing, measures.SpacingBetweenSlices = [1.2, 0.9], 3.3
+    shared = Dataset()
+    shared.PixelMeasuresSequence = Sequence([measures])
+    ds.SharedFunctionalGroupsSequence = Sequence([shared])
+    pydicom.dcmwrite(str(tmp_path / "grouped.dcm"), ds, enforce_file_format=True)
+    vol = read_upload(tmp_path / "grouped.dcm", "grouped.dcm")
+    np.testing.assert_allclose(vol.spacing, [0.9, 1.2, 3.3])
+    for s in range(n):
+        k = int(vol.array[0, 0, s]) // 100 - 1
+        np.testing.assert_allclose((vol.affine @ [0, 0, s, 1])[:3], (origin + 3.3 * k * NORMAL) * [-1, -1, 1], atol=1e-6)
+
+
 @pytest.mark.parametrize("where", ["per frame", "shared"])
 def test_an_enhanced_multiframe_s_rescale_is_each_frame_s_own(tmp_path: Path, where: str) -> None:
     """Enhanced MR keeps RescaleSlope and RescaleIntercept in the Pixel Value Transformation functional

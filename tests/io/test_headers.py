@@ -140,9 +140,16 @@ MHA_HEAD = b"ObjectType = Image\nNDims = 3\nDimSize = 8 8 8\nElementType = MET_U
     ("g.mha", MHA_HEAD + b"ElementSpacing = 1 1 3\nOffset = a b c\nElementDataFile = LOCAL\n", "offset is not 3 numbers"),
     ("g.nrrd", NRRD_HEAD + b"space: left-posterior-superior\nspace directions: (1e200,0,0) (0,1,0) (0,0,1)\n\n",
      "beyond 1e+06 mm"),                                              # the reader would put 1 mm in its place
+    ("g.nrrd", NRRD_HEAD + b"spacings: 1 1 3\n\n", "names no anatomical space"),    # ITK would say LPS
+    ("g.nrrd", NRRD_HEAD + b"space: scanner-xyz\nspace directions: (1,0,0) (0,1,0) (0,0,3)\n\n", "'scanner-xyz'"),
+    ("g.nrrd", NRRD_HEAD + b"space: 3D-right-handed\nspace directions: (1,0,0) (0,1,0) (0,0,3)\n\n",
+     "names no anatomical space"),
+    ("g.nrrd", NRRD_HEAD + b"space dimension: 3\nspace directions: (1,0,0) (0,1,0) (0,0,3)\n\n",
+     "names no anatomical space"),
 ])
 def test_a_geometry_the_reader_would_make_up_is_422(tmp_path: Path, name: str, content: bytes, words: str) -> None:
-    """As a NIfTI header without voxel sizes or with a sheared sform is: never 1 mm or 0 invented."""
+    """As a NIfTI header without voxel sizes, with a sheared sform or without any orientation is: never
+    1 mm or 0 invented, nor which side is left."""
     from service.core.errors import UnusableImage
 
     upload = tmp_path / name
