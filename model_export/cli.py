@@ -1,7 +1,7 @@
 """``svrnet-train``: train, export, calibrate and evaluate SVRnet models.
 
 Examples:
-    svrnet-train train --steps 20000 --out runs/default
+    svrnet-train train --label-type grid --loss min --dropout 0.25 --steps 20000 --out runs/default
     svrnet-train export runs/default/best.pt runs/default/model.onnx   # threshold calibrated on export
     svrnet-train calibrate runs/default/best.pt
     svrnet-train calibrate-acceptance runs/default/model.onnx
@@ -39,13 +39,13 @@ def train(
     label_type: Annotated[Optional[str], typer.Option(help="anchor, grid, euler or quaternion")] = None,
     loss: Annotated[Optional[str], typer.Option(help="l2, or mirror-aware min / invariant (point labels)")] = None,
     sampling: Annotated[Optional[str], typer.Option(help="random, euler or fibonacci")] = None,
-    steps: Annotated[Optional[int], typer.Option()] = None,
-    batch: Annotated[Optional[int], typer.Option(help="slices a step, a multiple of 16")] = None,
+    steps: Annotated[Optional[int], typer.Option(min=1)] = None,
+    batch: Annotated[Optional[int], typer.Option(min=16, help="slices a step, a multiple of 16")] = None,
     lr: Annotated[Optional[float], typer.Option(help="Adam learning rate (step decay x0.2 at 60 % and 85 %)")] = None,
     constant_lr: Annotated[bool, typer.Option(help="no step decay")] = False,
     dropout: Annotated[Optional[float], typer.Option()] = None,
-    val_every: Annotated[Optional[int], typer.Option()] = None,
-    val_per_volume: Annotated[Optional[int], typer.Option()] = None,
+    val_every: Annotated[Optional[int], typer.Option(min=1)] = None,
+    val_per_volume: Annotated[Optional[int], typer.Option(min=1)] = None,
     threads: Annotated[Optional[int], typer.Option()] = None,
     workers: Annotated[Optional[int], typer.Option(help="simulation worker processes")] = None,
     reuse: Annotated[Optional[int], typer.Option(help="corruptions of each clean acquisition in the bank")] = None,

@@ -226,7 +226,7 @@ def distil(cfg: DistilConfig, out_dir: Path, teacher_path: Path, root: Path = DE
                 errors = pose_errors(poses, val.poses, plane)
                 ed, err = errors["ed_mm"], errors["ed_twin_mm"]
                 to_teacher = pose_errors(poses, teacher_val, plane)["ed_mm"]
-                segment = {"hardware": hardware(device), "device": device.type, "samples": slices * cfg.views,
+                segment = {"hardware": hardware(device), "device": device.type, "samples": slices, "views": cfg.views,
                            "seconds": last_val - t0, "steps": step, "label_type": teacher.label_type,
                            "loss": "distil", "run": str(out_dir), "stream_seeds": [seed]}
                 full = histories[s] + [segment]

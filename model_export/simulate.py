@@ -34,6 +34,7 @@ from scipy.special import expit
 
 from model_export.atlas import AtlasVolume, signed_distance
 from service.geometry import iterators, sampling
+from service.inference.acceptance import MIN_MASK_FRACTION
 from service.geometry.pose import make_pose, slice_pixel_coordinates
 from service.preprocess.slices import preprocess_slices
 
@@ -85,7 +86,7 @@ class SimulationConfig:
     sampling: str = "random"
     inplane_range: float = 2 * np.pi
     tz_fraction: float = FULL_EXTENT_TZ_FRACTION
-    min_mask_fraction: float = 0.02
+    min_mask_fraction: float = MIN_MASK_FRACTION    # the slices the service poses, not fewer
 
     @classmethod
     def validation(cls, **overrides: object) -> "SimulationConfig":

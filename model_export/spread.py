@@ -89,7 +89,7 @@ def measure_error_shape(model_path: Path, root: Path = DEFAULT_ATLAS_ROOT, per_v
             spread.append(est.spread_mm[inside])
     coords, spread, depth = np.concatenate(coords), np.concatenate(spread), np.concatenate(depth)
     shape = error_shape(coords, spread)
-    return {"stack_slices": len(coords), "mc_error_shape": [round(float(x), 3) for x in shape],
+    return {"stack_slices": len(coords), "mc_error_shape": [float(f"{x:.4g}") for x in shape],
             "mc_error_depth_gain": depth_gain(coords, spread, depth)}
 
 
@@ -110,7 +110,7 @@ def calibrate_spread(model_path: Path, root: Path = DEFAULT_ATLAS_ROOT, per_volu
     result = measure_error_scale(model_path, root, per_volume) | measure_error_shape(model_path, root)
     if write:
         write_metadata(model_path, {"mc_error_scale": f"{result['mc_error_scale']:.3f}",
-                                    "mc_error_shape": ",".join(f"{x:.3f}" for x in result["mc_error_shape"]),
+                                    "mc_error_shape": ",".join(f"{x:.4g}" for x in result["mc_error_shape"]),
                                     "mc_error_depth_gain": f"{result['mc_error_depth_gain']:.2f}"})
     return result
 

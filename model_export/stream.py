@@ -67,7 +67,7 @@ class SliceStream(IterableDataset):
         scenes = scene_pool(simulator, rng, self.scene_reuse) if scene_groups else None
         simulated = groups - scene_groups
         pool = [fresh_acquisition(simulator, rng) for _ in range(max(self.pool, groups) if simulated else 0)]
-        refresh = max(1, round(simulated / self.reuse)) if simulated else 0
+        owed = 0.0                # fresh acquisitions owed: each is corrupted `reuse` times on average
         while True:
             picks = rng.choice(len(pool), size=simulated, replace=False)
             parts = [simulator.finish(pool[j], rng) for j in picks]
@@ -77,6 +77,9 @@ class SliceStream(IterableDataset):
             x = np.concatenate([p.inputs for p in parts])
             y = np.concatenate([encodings.encode(self.label_type, p.poses) for p in parts])
             yield torch.from_numpy(x[:, None]), torch.from_numpy(y.astype(np.float32))
+            owed += simulated / self.reuse if simulated else 0.0
+            refresh = min(int(owed), len(pool))
+            owed -= refresh
             for j in rng.choice(len(pool), size=refresh, replace=False):
                 pool[j] = fresh_acquisition(simulator, rng)
 

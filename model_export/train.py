@@ -9,7 +9,8 @@
   the twin-min E.D. (a single slice cannot tell the twins apart).
 * Training compounds: every checkpoint carries ``history``, one segment per run (hardware, device,
   samples, seconds, loss, label), and ``samples_seen`` / ``train_seconds`` are the totals over all
-  of them. ``resume`` continues a run exactly; ``init`` starts a new stage from a checkpoint's
+  of them. ``resume`` continues a run (its weights, optimiser, schedule and step; its slices drawn
+  afresh, so it ends near, not at, the uninterrupted run); ``init`` starts a new stage from a checkpoint's
   weights (the whole network, or only the trunk when the label type changes). ``max_minutes``
   stops at a checkpoint when a wall-clock budget is spent (a later ``resume`` goes on).
 """
@@ -21,6 +22,7 @@ import csv
 import json
 import time
 import warnings
+from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -158,15 +160,18 @@ def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resu
         cfg: the run's configuration.
         out_dir: run folder (checkpoints, ``log.csv``, ``loss.png``, ``summary.json``).
         root: the atlas folder or a packed folder (:func:`model_export.atlas.pack`).
-        resume: continue a run exactly (weights, optimiser, learning-rate schedule, step, history).
+        resume: continue a run (weights, optimiser, step, history; the learning-rate schedule of
+            ``cfg``, whose steps may be new; its slices drawn afresh from a new stream seed).
         progress: show a progress bar.
         init: start from this checkpoint's weights (and label normalisation) with a fresh optimiser
             and schedule of ``cfg.steps`` -- a new training stage. Its history carries over, so the
             figures of the final checkpoint are the totals.
     """
     check_label_type(cfg.label_type, cfg.loss)
-    if cfg.batch % SLICES_PER_ACQUISITION:            # the stream yields whole acquisitions' slices
-        raise ValueError(f"batch {cfg.batch}: a multiple of {SLICES_PER_ACQUISITION}")
+    if cfg.batch % SLICES_PER_ACQUISITION or cfg.batch <= 0:      # the stream yields whole acquisitions' slices
+        raise ValueError(f"batch {cfg.batch}: a positive multiple of {SLICES_PER_ACQUISITION}")
+    if min(cfg.steps, cfg.val_every, cfg.val_per_volume) < 1:
+        raise ValueError(f"steps {cfg.steps}, val_every {cfg.val_every}, val_per_volume {cfg.val_per_volume}: each at least 1")
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
@@ -209,9 +214,16 @@ def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resu
     if resume is not None:
         opt.load_state_dict(ck["optimizer"])
         sched.load_state_dict(ck["scheduler"])
+        # This run's schedule (its steps, milestones and lr may be new), from the step it resumes at.
+        sched.milestones = Counter(milestones)
+        decays = sum(1 for m in milestones if m <= sched.last_epoch)
+        for group in opt.param_groups:
+            group["initial_lr"], group["lr"] = cfg.lr, cfg.lr * cfg.lr_gamma ** decays
+        sched.base_lrs = [cfg.lr] * len(opt.param_groups)
     # This run's own segment; a resumed run continues the segment of its checkpoint when the hardware matches.
     segment = {"hardware": hardware(device), "device": device.type, "samples": 0, "seconds": 0.0, "steps": 0,
-               "label_type": cfg.label_type, "loss": cfg.loss, "run": str(out_dir)}
+               "label_type": cfg.label_type, "loss": cfg.loss, "run": str(out_dir),
+               "config": {k: v for k, v in asdict(cfg).items() if k != "init_from"}}    # the stage's recipe
     if resume is not None and history and history[-1].get("run") == str(out_dir) \
             and history[-1]["hardware"] == segment["hardware"]:
         segment = history.pop()

@@ -16,6 +16,7 @@ from typing import Annotated, Optional
 import typer
 
 from model_export.atlas import DEFAULT_ATLAS_ROOT
+from model_export.cli_options import Root
 from model_export.localiser import GRID_MM
 
 app = typer.Typer(add_completion=False, help=__doc__, no_args_is_help=True)
@@ -32,7 +33,7 @@ def data(
     keep_stack: Annotated[bool, typer.Option(help="keep each stack and mask (for evaluation)")] = False,
     workers: int = 2,
     grid_mm: float = GRID_MM,
-    root: Path = DEFAULT_ATLAS_ROOT,
+    root: Root = DEFAULT_ATLAS_ROOT,
     shading_share: Annotated[float, typer.Option(help="share of stacks with a dark region over the head "
                                                       "(3 T shading, signal voids)")] = 0.0,
     faint_skull_share: Annotated[float, typer.Option(help="share of heads whose skull is thin and nearly as bright "

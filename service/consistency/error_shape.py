@@ -71,8 +71,15 @@ def error_coordinates(pred: ArrayLike, true: ArrayLike) -> NDArray[np.float64]:
     return np.concatenate([rot, np.einsum("nji,nj->ni", r, err[:, :3, 3])], axis=1)
 
 
+MIN_SHAPE_SHARE = 1e-3
+"""The least a coordinate's variance may be of the six's mean (:func:`error_shape`): a share of 0
+(a short calibration, or a network whose answers hardly vary along one coordinate) would have the
+stack stage trust that coordinate without bound, and a model's metadata holds positive shares only."""
+
+
 def error_shape(coordinates: ArrayLike, expected_error_mm: ArrayLike) -> NDArray[np.float64]:
-    """``[6]`` variance per coordinate of errors ``[n, 6]`` in units of their expected errors, mean 1.
+    """``[6]`` variance per coordinate of errors ``[n, 6]`` in units of their expected errors, mean 1,
+    none under :data:`MIN_SHAPE_SHARE` of it.
 
     Robust (``1.4826 x`` the median absolute value, squared): a slice the network cannot place is an
     outlier the stage rejects, not part of the noise it weighs.
@@ -82,9 +89,12 @@ def error_shape(coordinates: ArrayLike, expected_error_mm: ArrayLike) -> NDArray
         >>> shape = error_shape(rng.normal(0, [1, 1, 1, 0.5, 0.5, 5.0], (4000, 6)), np.ones(4000))
         >>> round(float(shape[5] / shape[3]), -1)
         100.0
+        >>> float(error_shape(rng.normal(0, [1, 1, 1, 1, 1, 1e-6], (400, 6)), np.ones(400))[5]) > 0.0009
+        True
     """
     u = np.asarray(coordinates, dtype=np.float64) / np.asarray(expected_error_mm, dtype=np.float64)[:, None]
     var = (se3.MAD_SCALE * np.median(np.abs(u), axis=0)) ** 2
+    var = np.maximum(var / var.mean(), MIN_SHAPE_SHARE)
     return var / var.mean()
 
 

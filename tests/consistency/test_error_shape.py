@@ -46,3 +46,14 @@ def test_error_shape_is_robust_to_slices_the_network_cannot_place() -> None:
     np.testing.assert_allclose(a.mean(), 1.0)
     np.testing.assert_allclose(a / a[0], np.array([4.0, 1.0, 0.25, 0.04, 0.09, 2.25]) / 4.0, rtol=0.15)
     np.testing.assert_allclose(b / b[0], a / a[0], rtol=0.3, atol=0.01)
+
+
+def test_a_coordinate_without_error_keeps_a_share_a_model_can_hold() -> None:
+    """A network whose answers hardly vary along one coordinate (a short calibration): that coordinate
+    keeps a positive share, written and read back as six positive numbers (the model's metadata)."""
+    from service.inference.model_file import _shape
+
+    coords = np.random.default_rng(3).normal(0, [3.0, 1.0, 1.0, 0.5, 0.5, 1e-5], (500, 6))
+    shape = error_shape(coords, np.ones(500))
+    assert shape[5] > 0 and np.isclose(shape.mean(), 1.0)
+    assert _shape(",".join(f"{x:.4g}" for x in shape)) is not None     # as model_export.spread writes it

@@ -66,7 +66,8 @@ def test_a_run_moves_the_student_towards_the_teacher_and_records_its_segment(tea
     student = torch.load(tmp_path / "w0.25-fresh.pt", weights_only=False)
     teacher_ck = torch.load(ckpt, weights_only=False)
     seg = student["history"][-1]
-    assert seg["loss"] == "distil" and seg["steps"] == 12 and seg["samples"] == 12 * 16 * 8
+    assert seg["loss"] == "distil" and seg["steps"] == 12 and seg["samples"] == 12 * 16   # slices, each in
+    assert seg["views"] == 8                                                               # eight views
     assert student["samples_seen"] == teacher_ck["samples_seen"] + seg["samples"]
     assert student["model_config"]["width"] == 0.25 and student["config"]["width"] == 0.25
     assert student["val_twin_ed_mm"] <= student["val_ed_mm"]                # against the truth and twin-min
@@ -78,7 +79,7 @@ def test_a_run_moves_the_student_towards_the_teacher_and_records_its_segment(tea
     distil(cfg, tmp_path / "next", ckpt, packed)
     after = torch.load(tmp_path / "next" / "w0.25-next.pt", weights_only=False)
     assert [h["loss"] for h in after["history"][-2:]] == ["distil", "distil"]
-    assert after["samples_seen"] == student["samples_seen"] + 2 * 16 * 8
+    assert after["samples_seen"] == student["samples_seen"] + 2 * 16
     assert after["history"][-1]["stream_seeds"] != seg["stream_seeds"]
 
 

@@ -129,6 +129,18 @@ def test_training_compounds_on_any_device(device: str, packed: Path, tmp_path: P
     assert log[0].split(",")[7] == "val_twin_ed_mm" and log[-1].startswith("3,")
 
 
+def test_a_resume_with_more_steps_follows_the_new_schedule(packed: Path, tmp_path: Path) -> None:
+    """``--resume`` with a new ``steps``: its milestones are the new run's (at half and three quarters
+    of 40 steps), not the first run's (of 4 steps, long passed), so the lr is the full one again."""
+    train(_tiny(steps=4, lr_milestones=(0.5, 0.75), lr_gamma=0.1), tmp_path / "r", packed, progress=False)
+    longer = _tiny(steps=40, lr_milestones=(0.5, 0.75), lr_gamma=0.1, max_minutes=0.0)      # one more step
+    train(longer, tmp_path / "r", packed, resume=tmp_path / "r" / "last.pt", progress=False)
+    rows = [line.split(",") for line in (tmp_path / "r" / "log.csv").read_text().splitlines()[1:]]
+    lrs = {int(r[0]): float(r[3]) for r in rows}
+    assert lrs[2] == pytest.approx(1e-4) and lrs[4] == pytest.approx(1e-5)    # the first run's two decays
+    assert lrs[5] == pytest.approx(1e-3)                                       # before the new run's first, at 20
+
+
 def test_a_share_of_each_batch_comes_from_scenes_cut_with_the_localisers_masks(packed: Path) -> None:
     """``scene_share`` 0.5 of a 32-slice batch: one group of 16 simulated slices and 16 slices of
     generated whole-uterus scenes the localiser masked, on the network's grid with finite labels;
@@ -143,6 +155,26 @@ def test_a_share_of_each_batch_comes_from_scenes_cut_with_the_localisers_masks(p
     assert torch.isfinite(y).all()
     scene = x[-16:, 0]
     assert ((scene == 0).float().mean(dim=(1, 2)) > 0.2).all()
+
+
+@pytest.mark.parametrize("reuse", [2, 16])
+def test_each_clean_acquisition_is_corrupted_reuse_times_on_average(packed: Path, reuse: int,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """``reuse`` is what the stream does, beyond the batch's groups too: four groups a batch, each
+    fresh acquisition finished about ``reuse`` times over the batches (it was four at most)."""
+    import model_export.stream as stream_module
+    from model_export.simulate import SimulationConfig
+
+    made = [0]
+    real = stream_module.fresh_acquisition
+    monkeypatch.setattr(stream_module, "fresh_acquisition", lambda *a: made.__setitem__(0, made[0] + 1) or real(*a))
+    stream = stream_module.SliceStream(["STA30"], packed, SimulationConfig(size=32, pixel_mm=4.0), "grid", 64, reuse,
+                                       4, seed=1)
+    batches, it = 24, iter(stream)
+    for _ in range(batches):
+        next(it)
+    fresh = made[0] - 4                                              # the first pool
+    assert fresh == pytest.approx((batches - 1) * 4 / reuse, abs=1)  # replaced after each batch but the last
 
 
 def test_module_entry_point_trains_without_typer_rich_or_matplotlib(packed: Path, tmp_path: Path,
@@ -211,5 +243,5 @@ def test_the_cli_resumes_and_stages_with_the_runs_own_settings(packed: Path, tmp
     stage = torch.load(tmp_path / "b" / "last.pt", weights_only=False)
     assert stage["config"]["dropout"] == 0.25
     assert stage["config"]["simulation"] == {"size": 48, "pixel_mm": 2.5, "tz_fraction": 0.5, "surroundings_share": 0.3}
-    r = runner.invoke(app, [*first, "--out", str(tmp_path / "c"), "--batch", "8"])
+    r = runner.invoke(app, [*first, "--out", str(tmp_path / "c"), "--batch", "24"])
     assert r.exit_code != 0 and "groups of 16" in r.output
