@@ -185,8 +185,10 @@ class StreamConnection:
 
     async def handle(self, msg: dict) -> None:
         kind = msg["type"]
-        if kind == "auth":
+        if kind == "auth" and self.session is None:       # a key sent both ways: the header's was checked
             return
+        if kind == "auth":                                 # answered, and so no sign of life (the idle limit)
+            raise InvalidParameter("auth: the session has started; a key is sent once, before start")
         if kind == "start":
             return await self.start(msg)
         if self.session is None and kind in ("slice", "end_stack", "end"):

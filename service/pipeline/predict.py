@@ -275,7 +275,8 @@ def _refine_stacks(prepared: list[PreparedStack], outs: list[StackPoses], proper
     fixed partners; sets the moving stacks' poses, expected errors (with partners, or where the
     refinement left the slices disagreeing, :func:`~service.consistency.image_refinement.agreed`:
     never below the stage's) and ``image_consistency`` (with the :func:`placement_floor_mm` of the
-    stacks refined).
+    stacks refined). Where no slice of theirs crosses another's (stacks of one orientation), nothing
+    changes: the images checked nothing.
     ``smoothed``: per stack (request index), :func:`refine`'s store of its smoothed images."""
     which = moving + partners
     images = [stack_images(prepared[i], proper[i] & ~outs[i].inconsistent, fixed=i in partners) for i in which]
@@ -283,6 +284,8 @@ def _refine_stacks(prepared: list[PreparedStack], outs: list[StackPoses], proper
                 else np.full(len(outs[i].poses), np.nan) for i in which]
     ref = refine(images, [outs[i].poses for i in which], expected,
                  smoothed=None if smoothed is None else [smoothed[i] for i in which])
+    if ref.pairs == 0:              # no slice crosses another stack's (parallel stacks): nothing was checked,
+        return                      # and the stacks keep what the stack stage said of them
     relative = relative_mismatch(ref.mismatch)
     after = expected_after(expected, relative, ref.spread_mm)
     floor = placement_floor_mm([outs[i] for i in which])

@@ -219,6 +219,34 @@ def test_two_stacks_are_refined_where_their_slices_cross(oracle, oracle_client, 
     assert relative["true"] < 0.6 * relative["false"], relative
 
 
+def test_a_stack_acquired_again_in_its_orientation_loses_nothing_to_the_image_stage(oracle, oracle_client,
+                                                                                  tmp_path: Path) -> None:
+    """An axial stack and its repeat (the same planning, half a slice along: the usual remedy for a
+    corrupted stack): no slice of one crosses the other's, so the images check nothing, and the
+    answer is the one without the image stage (its expected errors were multiplied as for slices
+    on no line, and most slices lost their accept flag)."""
+    files, truths = [], []
+    for i, shift in enumerate((0.0, 1.75)):
+        shape = (44, 44, 18)
+        aff = stack_affine(2, np.eye(3), 1.5, 3.5, shape)
+        aff[:3, 3] += aff[:3, 2] / 3.5 * shift
+        g = np.repeat(np.eye(4)[None], 18, axis=0)
+        img, msk = acquire_stack(*BRAIN, aff, shape, 2, g)
+        write(tmp_path / f"s{i}.nii.gz", img, aff, "simpleitk")
+        write(tmp_path / f"m{i}.nii.gz", msk.astype(np.uint8), aff, "simpleitk")
+        truths.append(true_network_poses(aff, msk, 2, g))
+        files += [("stacks", (f"s{i}.nii.gz", (tmp_path / f"s{i}.nii.gz").read_bytes())),
+                  ("masks", (f"m{i}.nii.gz", (tmp_path / f"m{i}.nii.gz").read_bytes()))]
+    oracle.truth = stacks_apart(truths, np.random.default_rng(6), 1.0, 0.5)
+    oracle.spread_mm = 2.0
+    on = answered(oracle_client, [files], bias_correction="false", mc_samples="5")[0]
+    off = answered(oracle_client, [files], bias_correction="false", mc_samples="5", image_consistency="false")[0]
+    assert [st["consistency"]["image_consistency"] for st in on] == [None, None]
+    for a, b in zip(on, off):
+        assert [s["expected_error_mm"] for s in a["slices"]] == [s["expected_error_mm"] for s in b["slices"]]
+        assert [s["accepted"] for s in a["slices"]] == [s["accepted"] for s in b["slices"]]
+
+
 def rewritten(files: list[tuple], tmp_path: Path, field: str, change) -> list[tuple]:  # noqa: ANN001
     """The upload ``files`` with each file of ``field`` (``stacks`` or ``masks``) read, changed by
     ``change`` (a :class:`Volume` -> :class:`Volume`) and written again under its own name."""

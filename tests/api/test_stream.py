@@ -337,6 +337,22 @@ def test_an_idle_session_is_told_so_and_closed_going_away(case) -> None:  # noqa
             assert closed.value.code == 1001
 
 
+def test_auth_after_start_is_refused_and_keeps_no_session_alive(case) -> None:  # noqa: ANN001
+    """An ``auth`` once the session has started gets an ``error``, and, as a refused message, does not
+    count as a sign of life: the idle limit still closes a session that sends nothing else (an auth
+    every 0.2 s kept a session of a 0.5 s limit open, unanswered, for ever)."""
+    with make_client(ModelRegistry({"default": case[0]}), stream_idle_s=0.5) as client:
+        with client.websocket_connect("/v1/stream") as ws:
+            ws.send_text(json.dumps({"type": "start", "mc_samples": 5}))
+            assert ws.receive_json()["type"] == "ready"
+            for _ in range(3):
+                ws.send_text(json.dumps({"type": "auth", "api_key": "k"}))
+                time.sleep(0.2)
+            answers = [ws.receive_json() for _ in range(4)]
+            assert [a["status"] for a in answers] == [400, 400, 400, 408]
+            assert all(a["detail"].startswith("auth:") for a in answers[:3])
+
+
 def test_ending_a_stack_keeps_the_firm_up_another_stack_has_queued(monkeypatch: pytest.MonkeyPatch) -> None:
     """One stack's end waits for the running firm-up only; another stack's queued one runs after it,
     and an end the session refuses changes nothing: the queued firm-up still runs."""
