@@ -28,7 +28,7 @@ async def readyz(request: Request) -> dict[str, object]:
         raise NotReady("no model loaded yet")
     store = getattr(state, "job_store", None)
     if store is not None and not await to_thread.run_sync(store.ping):     # a database query: off the loop
-        raise NotReady("the job store is not reachable or cannot be written")
+        raise NotReady("the job store is not reachable, or its data folder cannot be written or is full")
     runner = getattr(state, "job_runner", None)
     return {"status": "ready", "models": sorted(registry.estimators),
             "workers": await to_thread.run_sync(runner.live_workers) if runner is not None else None}

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import functools
 import json
 import logging
 import re
@@ -10,6 +11,7 @@ import time
 import uuid
 import weakref
 
+from anyio import to_thread
 from starlette.routing import compile_path
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -143,7 +145,10 @@ class RequestContext:
 
         app = scope.get("app")
         try:
-            early = early_rejection(app.state, scope["method"], scope["path"], headers) if app is not None else None
+            check = functools.partial(early_rejection, app.state, scope["method"], scope["path"], headers)
+            # The queue's length is the job store's (off the event loop: a stalled store holds this request only).
+            early = None if app is None else (await to_thread.run_sync(check) if (scope["method"], scope["path"])
+                                              == ("POST", "/v1/reconstructions") else check())
         except ServiceError as exc:            # e.g. the job store does not answer: 503, not a traceback
             early = exc
         except Exception as exc:  # noqa: BLE001 - as below: a problem+json, counted and logged

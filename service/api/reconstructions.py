@@ -60,8 +60,10 @@ def _status(job: Job, workers: int | None = None) -> dict:
             "coherent": quality.get("coherent") if isinstance(quality, dict) else None}
 
 
-def _job(request: Request, job_id: str) -> Job:
-    job = _store(request).get(job_id)
+async def _job(request: Request, job_id: str) -> Job:
+    """The job ``job_id`` (404 when there is none), read off the event loop: a store that stalls (a
+    Redis that does not answer) holds this request, not every other of the replica's."""
+    job = await to_thread.run_sync(_store(request).get, job_id)
     if job is None:
         shown = job_id if len(job_id) <= 64 else f"{job_id[:32]}... ({len(job_id)} characters)"
         raise NotFound(f"job_id: no job {shown!r}")
@@ -202,11 +204,11 @@ async def _submit(request: Request, response: Response, settings: Settings, form
     poses_text = (await raw.read()).decode("utf-8", "replace") if hasattr(raw, "read") else raw
     if key is not None and (earlier := await to_thread.run_sync(store.job_for_key, key)) is not None:
         return _made_by_key(earlier, response, settings.retry_after_s, await submission_digest(form, poses_text, params))
-    if (full := queue_full(request.app.state)) is not None:
+    if (full := await to_thread.run_sync(queue_full, request.app.state)) is not None:
         raise full                                   # before the files are hashed: a busy server answers at once
     if key is not None:
         params = {**params, "idempotency_key": key, "request_digest": await submission_digest(form, poses_text, params)}
-    job, made = store.create_once(params)
+    job, made = await to_thread.run_sync(store.create_once, params)
     if not made:                                     # a submission with the same key came in meanwhile
         return _made_by_key(job, response, settings.retry_after_s, params["request_digest"])
     inputs = store.directory(job.id) / "inputs"
@@ -222,12 +224,12 @@ async def _submit(request: Request, response: Response, settings: Settings, form
         check_distinct_stacks(uploads)
         check_slices_to_use(uploads, None if not poses_text else [accepted for _, accepted in given])
     except Exception:
-        store.delete(job.id)          # rejected input (or a client gone) leaves no job behind
+        await to_thread.run_sync(store.delete, job.id)     # rejected input (or a client gone) leaves no job behind
         raise
     names = {"stacks": [u.filename for u in uploads], "masks": [u.mask_filename for u in uploads if u.mask_filename]}
     (inputs / "names.json").write_text(json.dumps(names))
-    (inputs / "params.json").write_text(json.dumps(store.get(job.id).params))
-    request.app.state.job_runner.submit(job.id)
+    (inputs / "params.json").write_text(json.dumps(job.params))
+    await to_thread.run_sync(request.app.state.job_runner.submit, job.id)
     log.info("job submitted", extra={"request_id": request.scope["state"]["request_id"], "job_id": job.id,
                                      "n_stacks": len(uploads)})           # the request's id, linked to its job's lines
     response.headers["Location"] = f"/v1/reconstructions/{job.id}"
@@ -276,7 +278,7 @@ async def submit(
 async def status(request: Request, job_id: str) -> dict:
     """The job's state; a queued job's ``workers`` says how many workers serve the queue (0: none is
     running, and the job waits until one is started; null where the back-end cannot tell)."""
-    job = _job(request, job_id)
+    job = await _job(request, job_id)
     workers = await to_thread.run_sync(request.app.state.job_runner.live_workers) if job.status == "queued" else None
     return _status(job, workers)
 
@@ -291,9 +293,9 @@ class Download(FileResponse):
         await super().__call__(scope, receive, send)
 
 
-def _result(request: Request, job_id: str, name: str, media_type: str, download: str,
-            job: Job | None = None) -> FileResponse:
-    job = job or _job(request, job_id)
+async def _result(request: Request, job_id: str, name: str, media_type: str, download: str,
+                  job: Job | None = None) -> FileResponse:
+    job = job or await _job(request, job_id)
     if job.status != "succeeded":
         raise Conflict(f"job_id: job {job_id} is {job.status}; results exist once it has succeeded")
     path = _store(request).directory(job_id) / "outputs" / name
@@ -312,10 +314,10 @@ async def volume(request: Request, job_id: str, settings: SettingsDep, stack: An
                                      "(the report's stack_frames)")] = None) -> Response:
     """The volume in atlas space, or with ``stack`` in that stack's scanner coordinates."""
     if stack is None:
-        return _result(request, job_id, "volume.nii.gz", "application/gzip", f"{job_id}.nii.gz")
-    job = _job(request, job_id)
+        return await _result(request, job_id, "volume.nii.gz", "application/gzip", f"{job_id}.nii.gz")
+    job = await _job(request, job_id)
     if job.status != "succeeded":
-        return _result(request, job_id, "volume.nii.gz", "application/gzip", f"{job_id}.nii.gz", job)   # its 409
+        return await _result(request, job_id, "volume.nii.gz", "application/gzip", f"{job_id}.nii.gz", job)  # its 409
     path = _store(request).directory(job_id) / "outputs" / "volume.nii.gz"
     with upload_directory(settings.tmp_dir) as tmp:        # the request's scratch, removed with it
         try:
@@ -332,7 +334,7 @@ async def volume(request: Request, job_id: str, settings: SettingsDep, stack: An
 
 @router.get("/{job_id}/preview.png", responses=download("image/png", 401, 404, 409), summary="Three orthogonal mid-planes", response_class=FileResponse)
 async def preview(request: Request, job_id: str) -> FileResponse:
-    return _result(request, job_id, "preview.png", "image/png", f"{job_id}.png")
+    return await _result(request, job_id, "preview.png", "image/png", f"{job_id}.png")
 
 
 @router.get("/{job_id}/poses", responses={200: {"model": RefinedPoses}, **problem_responses(401, 404, 409)},
@@ -341,7 +343,7 @@ async def poses(request: Request, job_id: str) -> FileResponse:
     """The ``/v1/predict`` body the job started from with every slice's pose refined by the reconstruction
     (``atlas_from_voxel`` and the pose fields; ``accepted``/``reason`` stay the model's), plus per slice
     ``included``, ``exclusion_reason``, ``weight``, ``ncc``. It is a valid ``poses`` input to a new job."""
-    return _result(request, job_id, "poses.json", "application/json", f"{job_id}_poses.json")
+    return await _result(request, job_id, "poses.json", "application/json", f"{job_id}_poses.json")
 
 
 @router.get("/{job_id}/transforms", responses=download("application/zip", 401, 404, 409),
@@ -352,20 +354,26 @@ async def transforms(request: Request, job_id: str) -> FileResponse:
     uploaded stack's LPS, the reconstruction as the fixed image) and ``slice_transforms.txt``
     (docs/reconstruction.md, "Output files"); made from the folder when a job written before the
     archive existed is asked for it."""
-    job = _job(request, job_id)
+    job = await _job(request, job_id)
     outputs = _store(request).directory(job_id) / "outputs"
     if job.status == "succeeded" and not (outputs / "transforms.zip").exists() and (outputs / "transforms").is_dir():
         await to_thread.run_sync(zip_folder, outputs / "transforms", outputs / "transforms.zip")
-    return _result(request, job_id, "transforms.zip", "application/zip", f"{job_id}_transforms.zip", job)
+    return await _result(request, job_id, "transforms.zip", "application/zip", f"{job_id}_transforms.zip", job)
 
 
 @router.delete("/{job_id}", status_code=204, responses=problem_responses(401, 404), summary="Cancel a job and delete its files")
 async def cancel(request: Request, job_id: str) -> Response:
     """A queued or running job is cancelled (its status stays readable as ``cancelled``); a finished
     one is deleted with its files (then ``404``)."""
-    job = _job(request, job_id)
-    if job.status in ("queued", "running") and _store(request).cancel(job_id):
-        request.app.state.job_runner.cancel(job_id)
-    else:                               # finished, perhaps since it was read: deleted with its results
-        _store(request).delete(job_id)
+    job = await _job(request, job_id)
+    await to_thread.run_sync(_cancel_or_delete, request, job)
     return Response(status_code=204)
+
+
+def _cancel_or_delete(request: Request, job: Job) -> None:
+    """Cancel ``job`` where it is queued or running, else delete it with its files (a worker's thread:
+    the store and the queue may take their time)."""
+    if job.status in ("queued", "running") and _store(request).cancel(job.id):
+        request.app.state.job_runner.cancel(job.id)
+    else:                               # finished, perhaps since it was read: deleted with its results
+        _store(request).delete(job.id)

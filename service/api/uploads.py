@@ -27,7 +27,7 @@ from service.core.errors import InvalidParameter, UnusableImage
 from service.core.names import clean_name
 from service.core.settings import Settings
 from service.pipeline.prepare import StackUpload, mask_on_stack_grid
-from service.io.limits import DecodeBudget
+from service.io.limits import DecodeBudget, raise_if_out_of_space
 from service.io.readers import MAX_DECODED_BYTES, read_upload
 from service.preprocess.stack import slice_axis_of
 
@@ -248,7 +248,11 @@ def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: 
 def _read(upload: UploadFile, path: Path, name: str, budget: DecodeBudget):  # noqa: ANN202
     checkpoint()
     upload.file.seek(0)
-    with open(path, "wb") as f:
-        shutil.copyfileobj(upload.file, f, 1 << 20)
+    try:
+        with open(path, "wb") as f:
+            shutil.copyfileobj(upload.file, f, 1 << 20)
+    except OSError as exc:
+        raise_if_out_of_space(exc)        # a full disk is the server's (507), not the client's file
+        raise
     with DECODING:
         return read_upload(path, name, budget=budget.file(name), scratch=path.parent)

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import functools
 import json
-import os
 import shutil
 import time
 from collections.abc import Callable
@@ -118,14 +117,14 @@ class RedisJobStore(JobStore):
         return int(self._transition(keys=[self._key(job_id), *self._state_keys()], args=args))
 
     def ping(self) -> bool:
-        """Whether Redis answers and the shared jobs' folder can be written (a volume mounted read-only,
-        or gone, answers the status routes and fails every submission)."""
+        """Whether Redis answers and the shared jobs' folder can take jobs (:meth:`folders_take_jobs`: a
+        volume mounted read-only, full or gone answers the status routes and fails every submission)."""
         try:
             if not self.redis.ping():
                 return False
         except redis.RedisError:
             return False
-        return all(os.access(p, os.W_OK) for p in (self.data_dir / "jobs", self.data_dir))
+        return self.folders_take_jobs()
 
     @_answering
     def create(self, params: dict, map_key: bool = True) -> Job:

@@ -46,6 +46,11 @@ FIELDS = ("id", "status", "stage", "progress", "error", "params", "report", "att
           "submitted_at", "started_at")
 
 
+MIN_FREE_BYTES = 64 << 20
+"""The free disk a data folder must have for its store to be ready (``/readyz``): less takes no
+stack of a submission."""
+
+
 @dataclass
 class Job:
     """One reconstruction job as every back-end stores it.
@@ -119,7 +124,16 @@ class JobStore(ABC):
 
     @abstractmethod
     def ping(self) -> bool:
-        """Whether the store answers."""
+        """Whether the store answers and its folders can take a job (:meth:`folders_take_jobs`)."""
+
+    def folders_take_jobs(self, *paths: Path) -> bool:
+        """Whether the data folder and ``paths`` can be written and the disk has :data:`MIN_FREE_BYTES`
+        left: a read-only folder, or a full disk, answers reads and fails every submission."""
+        try:
+            room = shutil.disk_usage(self.data_dir).free >= MIN_FREE_BYTES
+        except OSError:
+            return False
+        return room and all(os.access(p, os.W_OK) for p in (*paths, self.data_dir / "jobs", self.data_dir))
 
     @abstractmethod
     def create(self, params: dict) -> Job:
@@ -252,7 +266,7 @@ class SqliteJobStore(JobStore):
                 db.execute("SELECT 1 FROM jobs LIMIT 1").fetchone()
         except StoreUnavailable:
             return False
-        return all(os.access(p, os.W_OK) for p in (self.db_path, self.data_dir / "jobs", self.data_dir))
+        return self.folders_take_jobs(self.db_path)
 
     def create(self, params: dict) -> Job:
         job_id, now = self._new_id(), time.time()

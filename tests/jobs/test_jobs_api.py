@@ -612,3 +612,55 @@ def test_a_job_cancelled_while_queued_leaves_no_record_in_redis(case: dict, queu
         assert client.get(f"/v1/reconstructions/{job_id}").json()["status"] == "cancelled"
         assert not connection.exists(f"rq:job:{job_id}")
         assert not any(connection.zscore(key, job_id) is not None for key in connection.scan_iter("rq:*canceled*"))
+
+
+@pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)
+def test_a_stalled_job_store_holds_its_own_requests_not_the_replica(client: TestClient, monkeypatch) -> None:  # noqa: ANN001
+    """A job store that does not answer (a Redis stalled for seconds) holds the requests that ask it,
+    and nothing else: the liveness probe and the metrics are answered while a status read, a cancel
+    and a submission's queue check wait on it (they ran on the event loop and froze the replica)."""
+    import threading
+
+    store = client.app.state.job_store
+    entered, released, answered_while_stalled = threading.Semaphore(0), threading.Event(), []
+
+    def stalled(method):  # noqa: ANN001, ANN202
+        def wait_then(*args: object) -> object:
+            entered.release()
+            answered_while_stalled.append(released.wait(10))  # False: nothing else was answered meanwhile
+            return method(*args)
+        return wait_then
+
+    monkeypatch.setattr(store, "get", stalled(store.get))
+    monkeypatch.setattr(store, "queued", stalled(store.queued))
+    statuses: list[int] = []
+    calls = [lambda: client.get("/v1/reconstructions/abc"), lambda: client.delete("/v1/reconstructions/abc"),
+             lambda: client.post("/v1/reconstructions", files=[("stacks", ("s.nii.gz", b"x"))])]
+    threads = [threading.Thread(target=lambda call=call: statuses.append(call().status_code)) for call in calls]
+    for t in threads:
+        t.start()
+    for _ in calls:
+        assert entered.acquire(timeout=10)                   # all three wait on the store together
+    assert client.get("/healthz").status_code == 200 and client.get("/metrics").status_code == 200
+    released.set()
+    for t in threads:
+        t.join(10)
+    assert len(answered_while_stalled) >= 3 and all(answered_while_stalled)
+    assert sorted(statuses) == [404, 404, 415], statuses
+
+
+@pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)
+def test_a_full_disk_while_a_submission_s_files_are_kept_is_507_and_leaves_no_job(client: TestClient, case: dict,
+                                                                                   monkeypatch) -> None:  # noqa: ANN001
+    """The job's folder fills while a stack is copied into it: 507 (the server's disk, Retry-After),
+    not a 500, and no job is left behind."""
+    import errno
+    import shutil as shutil_module
+
+    def full(*args: object, **kwargs: object) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(shutil_module, "copyfileobj", full)
+    r = submit(client, case)
+    assert r.status_code == 507 and r.json()["type"] == "/problems/insufficient-storage", r.text
+    assert int(r.headers["Retry-After"]) > 0 and client.app.state.job_store.queued() == []

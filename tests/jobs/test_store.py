@@ -79,6 +79,19 @@ def test_a_store_whose_jobs_folder_is_gone_is_not_ready(store: JobStore, tmp_pat
 
 
 @both
+def test_a_store_on_a_full_disk_is_not_ready(store: JobStore, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A data folder that can be written but has no room (the volume full): the ping says the store
+    cannot take jobs, as for a read-only folder (it answered ready, and every submission failed)."""
+    import shutil as shutil_module
+    from collections import namedtuple
+
+    assert store.ping()
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil_module, "disk_usage", lambda path: usage(10 << 30, (10 << 30) - (1 << 20), 1 << 20))
+    assert not store.ping()
+
+
+@both
 def test_a_redelivered_job_may_be_claimed_while_running_but_not_once_finished(store: JobStore) -> None:
     job = store.create({})
     assert store.claim(job.id) == 1 and not store.claim(job.id)
