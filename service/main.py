@@ -151,7 +151,7 @@ def run(argv: list[str] | None = None) -> None:
             parser.exit(1, f"svrnet-server: {exc}\n")
         if held is not None:
             held.close()                                        # the server's job runner takes it at start
-    service_logging.configure(settings.log_level)
+    service_logging.configure(settings.log_level, libraries=("rq",) if settings.queue_url else ())  # its clean-ups
     if not model_files(settings.localisers_dir):
         log.warning("no brain localiser in SVRNET_LOCALISERS_DIR: every stack needs its mask")
     if settings.host not in ("127.0.0.1", "localhost", "::1") and not settings.key_set():

@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import os
 from pathlib import Path
+from urllib.parse import urlsplit
 
 from pydantic import Field, ValidationError, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -123,9 +124,31 @@ class Settings(BaseSettings):
     @field_validator("queue_url")
     @classmethod
     def _redis_url(cls, value: str | None) -> str | None:
-        if value and not value.startswith(("redis://", "rediss://", "unix://")):
+        """A Redis URL whose parts the client can read (a port that is a number, a database that is
+        one): checked here, so that a typo stops the start with one line, not a traceback later.
+
+        Example:
+            >>> Settings(queue_url="redis://127.0.0.1:6379/0").queue_url
+            'redis://127.0.0.1:6379/0'
+            >>> Settings(queue_url="redis://127.0.0.1:notaport/0")
+            Traceback (most recent call last):
+            pydantic_core._pydantic_core.ValidationError: 1 validation error for Settings
+            ...
+        """
+        if not value:
+            return None
+        if not value.startswith(("redis://", "rediss://", "unix://")):
             raise ValueError("a redis://host:port/db (or rediss://, unix://) URL")
-        return value or None
+        parts = urlsplit(value)
+        try:
+            parts.port                                                    # a ValueError where it is no number
+        except ValueError:
+            raise ValueError("its port is not a number: a redis://host:port/db URL") from None
+        if parts.scheme != "unix" and not parts.hostname:
+            raise ValueError("it names no host: a redis://host:port/db URL")
+        if parts.scheme != "unix" and parts.path.strip("/") and not parts.path.strip("/").isdigit():
+            raise ValueError("its database is not a number: a redis://host:port/db URL")
+        return value
 
     def problems(self, needs_default_model: bool = True) -> list[str]:
         """What makes these settings unusable on this machine, each naming its variable: a models
@@ -152,7 +175,7 @@ class Settings(BaseSettings):
                 continue
             try:
                 if create:
-                    Path(folder).mkdir(parents=True, exist_ok=True)
+                    Path(folder).mkdir(parents=True, exist_ok=True, mode=0o700)   # patient data: the owner's alone
             except OSError as exc:
                 out.append(f"{name}: {folder} cannot be created ({exc.strerror})")
                 continue

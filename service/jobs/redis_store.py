@@ -194,6 +194,14 @@ class RedisJobStore(JobStore):
                           progress="0", **{"+attempts": -1}) >= 0
 
     @_answering
+    def back_in_queue(self, job_id: str, attempt: int) -> bool:
+        """Show a running job as queued again where the queue put it back after its worker was lost
+        (the lost run counts: the queue's retry took one of its attempts). Only the run ``attempt``:
+        a later run that has claimed it meanwhile is left running. False where the move did not apply."""
+        return self._move(job_id, ("running",), "queued", attempt, stage="queued (its worker was lost)",
+                          progress="0") >= 0
+
+    @_answering
     def finish(self, job_id: str, report: dict, attempt: int | None = None) -> bool:
         return self._move(job_id, ("running",), "succeeded", attempt, stage="done", progress="1.0", report=report) >= 0
 

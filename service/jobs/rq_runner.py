@@ -40,6 +40,9 @@ from service.jobs.worker import TIMED_OUT, run_job
 log = logging.getLogger(__name__)
 
 GIVEN_UP = (JobStatus.FAILED, JobStatus.STOPPED, JobStatus.CANCELED, JobStatus.FINISHED)
+WAITING = (JobStatus.QUEUED, JobStatus.DEFERRED, JobStatus.SCHEDULED)
+"""RQ's states of a job that waits for a worker: a run the store shows running is over (its worker was
+lost, and the registry's clean-up put the job back) and the job is queued again."""
 
 
 @dataclass
@@ -154,7 +157,8 @@ class RqRunner(JobRunner):
 
     def reconcile(self) -> list[str]:
         """Fail (with the reason) every unfinished job RQ has given up or lost, or whose submission a
-        stopped replica left half done; their ids."""
+        stopped replica left half done (their ids); show as queued again a job whose run RQ put back
+        in the queue after its worker was lost (:data:`WAITING`)."""
         failed = []
         for job_id in self.store.ids("queued") + self.store.ids("running"):
             job = self.store.get(job_id)
@@ -168,6 +172,9 @@ class RqRunner(JobRunner):
             try:
                 rq_job = RqJob.fetch(job_id, connection=self.connection)
                 status = rq_job.get_status(refresh=True)
+                if job.status == "running" and status in WAITING and self.store.back_in_queue(job_id, job.attempts):
+                    log.warning(f"job {job_id} is queued again: its worker was lost", extra={"job_id": job_id})
+                    continue
                 gone, reason = status in GIVEN_UP and not self._finished_under_a_live_run(job, status), ""
                 if gone:
                     last = rq_job.latest_result()

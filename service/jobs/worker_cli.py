@@ -158,7 +158,19 @@ def _child(settings: Settings, burst: bool, parent: int) -> None:
     # forwards before then is remembered here and honoured when they are in place. The pool cleared
     # its own remembered stops before forking and forwards them itself.
     watch_parent(parent)               # `kill -9` of svrnet-worker takes its workers (and their horses) along
-    work(settings, burst)
+    sys.exit(_logged(work, settings, burst))
+
+
+def _logged(run_worker, *args: object) -> int:  # noqa: ANN001
+    """``run_worker(*args)``'s exit code: 0, or 1 where it ended on an error (the queue's Redis gone, an
+    address that names none), told as one JSON line (its kind and place in the code), not a traceback."""
+    try:
+        run_worker(*args)
+    except Exception as exc:  # noqa: BLE001 - any end of a worker is logged as one line, then exits 1
+        log.error("the worker stopped on an error", extra={"error_type": type(exc).__name__,
+                                                           "error_at": service_logging.error_at(exc)})
+        return 1
+    return 0
 
 
 def _pool(settings: Settings, n: int, burst: bool) -> int:
@@ -220,14 +232,17 @@ def main(argv: list[str] | None = None) -> int:
     if not settings.queue_url:
         print("svrnet-worker: set SVRNET_QUEUE_URL=redis://host:port/db", file=sys.stderr)
         return 2
-    if args.health:
-        return 0 if healthy(settings) else 1
-    hold_stop_signals()
     service_logging.configure(settings.log_level, libraries=("rq",))     # RQ's lines as JSON on stderr too
+    if args.health:
+        try:
+            return 0 if healthy(settings) else 1
+        except redis.RedisError as exc:
+            print(f"svrnet-worker: the queue does not answer ({type(exc).__name__})", file=sys.stderr)
+            return 1
+    hold_stop_signals()
     _preload()
     if args.workers <= 1:
-        work(settings, args.burst, args.name)
-        return 0
+        return _logged(work, settings, args.burst, args.name)
     return _pool(settings, args.workers, args.burst)
 
 

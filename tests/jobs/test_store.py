@@ -279,6 +279,30 @@ def test_a_superseded_runs_return_does_not_fail_the_run_in_progress(queue_settin
     runner.shutdown()
 
 
+@pytest.mark.parametrize("queue_settings", ["redis"], indirect=True)
+def test_a_job_the_queue_took_back_from_a_lost_worker_shows_queued(queue_settings: dict) -> None:
+    """RQ's clean-up puts a lost worker's job back in the queue: the store shows it queued again (it
+    showed `running`, its stage frozen, for as long as no worker came), its lost run counted; a later
+    run that claimed it meanwhile is left running."""
+    from rq.job import Job as RqJob
+    from rq.job import JobStatus
+
+    from service.core.settings import Settings
+    from service.jobs.backends import open_backend
+
+    store, runner = open_backend(Settings(**queue_settings))
+    job = store.create({})
+    runner.submit(job.id)
+    assert store.claim(job.id) == 1
+    RqJob.fetch(job.id, connection=runner.connection).set_status(JobStatus.QUEUED)     # the registry's clean-up
+    assert runner.reconcile() == []
+    back = store.get(job.id)
+    assert back.status == "queued" and "worker was lost" in back.stage and back.attempts == 1
+    assert store.claim(job.id) == 2                                   # the next worker's run
+    assert not store.back_in_queue(job.id, attempt=1) and store.get(job.id).status == "running"
+    runner.shutdown()
+
+
 @both
 def test_a_job_that_fails_or_is_cancelled_after_writing_results_leaves_none(store: JobStore, tmp_path: Path,
                                                                             monkeypatch: pytest.MonkeyPatch) -> None:

@@ -111,6 +111,27 @@ def test_a_worker_logs_only_json_lines_on_stderr_rq_s_own_included(tmp_path: Pat
     assert done.stdout == "" and any(line["logger"].startswith("rq.") for line in lines), done.stderr
 
 
+def test_a_worker_whose_queue_does_not_answer_says_so_in_one_json_line(tmp_path: Path) -> None:
+    """Redis not there at the start (nothing listens on the port): the worker exits 1 with one JSON
+    line saying why (its kind and place), and ``--health`` exits 1 with one line, no traceback
+    (a log shipper got 60 lines of traceback, a health check's output the same)."""
+    import json
+    import socket
+
+    with socket.socket() as free:
+        free.bind(("127.0.0.1", 0))
+        port = free.getsockname()[1]
+    env = {**os.environ, "SVRNET_QUEUE_URL": f"redis://127.0.0.1:{port}/0", "SVRNET_QUEUE_NAME": "tnone",
+           "SVRNET_DATA_DIR": str(tmp_path)}
+    command = [sys.executable, "-c", "from service.jobs.worker_cli import run; run()"]
+    done = subprocess.run([*command, "--burst"], cwd=ROOT, env=env, capture_output=True, text=True, timeout=60)
+    lines = [json.loads(line) for line in done.stderr.splitlines()]
+    assert done.returncode == 1 and lines[-1]["error_type"] == "ConnectionError", done.stderr[-2000:]
+    assert "Traceback" not in done.stderr
+    health = subprocess.run([*command, "--health"], cwd=ROOT, env=env, capture_output=True, text=True, timeout=60)
+    assert health.returncode == 1 and "Traceback" not in health.stderr and len(health.stderr.splitlines()) == 1
+
+
 def test_rq_s_lines_are_cut_to_their_first_line_on_every_rq_logger() -> None:
     """RQ appends a failed job's traceback (whose text may name a client's file) to the line of its
     ``rq.worker`` logger: only the first line reaches the log."""
