@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import hashlib
+import asyncio
 import json
 import logging
 from datetime import datetime, timezone
@@ -16,14 +16,15 @@ from starlette.types import Receive, Scope, Send
 from pydantic import Field
 
 from service.api.deps import ApiKey, LocalisersDep, RegistryDep, SettingsDep, localiser_for, processing, queue_full
+from service.api.idempotency import (IDEMPOTENCY_HEADER, hold_submission, idempotency_digest, made_by_key,
+                                     submission_digest, unless_abandoned)
 from service.api.schemas import (UPLOAD_ERRORS, JobCreated, JobStatus, RefinedPoses, download, job_poses,
                                  problem_responses)
 from service.api.uploads import UploadForm, UploadFormDep, known_fields, upload_directory, upload_reader
 from service.pipeline.predict import stack_orders
 from service.pipeline.prepare import StackUpload, check_distinct_stacks, check_mask_grid
 from service.core.client_json import client_json
-from service.core.errors import (Conflict, InvalidParameter, KeyReused, NotFound, PayloadTooLarge, Saturated,
-                                 UnusableImage)
+from service.core.errors import Conflict, InvalidParameter, NotFound, PayloadTooLarge, UnusableImage
 from service.core.settings import Settings
 from service.io.acquisition_geometry import MAX_VOXEL_MM, MIN_VOXEL_MM
 from service.jobs.store import Job, JobStore
@@ -89,43 +90,6 @@ def thickness_per_stack(values: list[float] | None, n_stacks: int) -> list[float
     return list(values) * n_stacks if len(values) == 1 else list(values)
 
 
-IDEMPOTENCY_HEADER = "Idempotency-Key"
-"""A request header of ``POST /v1/reconstructions``: a client's random key for one submission, sent
-again with every retry of it, so that a retry whose first answer was lost returns the job the first
-made instead of starting a second."""
-
-
-def idempotency_digest(key: str | None) -> str | None:
-    """The digest a job keeps of an ``Idempotency-Key`` (none of the client's text is stored), or None;
-    :class:`InvalidParameter` for a key that is not 8 to 200 printable ASCII characters.
-
-    Example:
-        >>> idempotency_digest("4f1c2a9e0b7d"), idempotency_digest(None)
-        ('0ffe3575cb6c496d947afe5441358c1720b414d1c3a8857562c43469609125af', None)
-    """
-    if key is None:
-        return None
-    if not 8 <= len(key) <= 200 or not all("!" <= c <= "~" for c in key):
-        raise InvalidParameter(f"{IDEMPOTENCY_HEADER}: 8 to 200 printable ASCII characters, the same for every "
-                               "retry of one submission")
-    return hashlib.sha256(key.encode()).hexdigest()
-
-
-async def submission_digest(form: UploadForm, poses_text: str | None, params: dict) -> str:
-    """A digest of what a submission sends: its files (names and bytes, in order), its poses and its
-    options. A retry sends the same; a key sent again with another request is refused
-    (:class:`~service.core.errors.KeyReused`)."""
-    digest = hashlib.sha256(json.dumps(params, sort_keys=True, default=str).encode())
-    for part in (*form.stacks, *form.masks):
-        digest.update(b"\0" + (part.filename or "").encode() + b"\0")
-        await part.seek(0)
-        while chunk := await part.read(1 << 20):
-            digest.update(chunk)
-        await part.seek(0)
-    digest.update(b"\0" + (poses_text or "").encode())
-    return digest.hexdigest()
-
-
 MAX_POSES_BYTES = 64 << 20
 """The largest ``poses`` upload: a job's refined poses of 32 stacks of 128 slices take about 20 MB."""
 
@@ -177,21 +141,6 @@ def check_slices_to_use(uploads: list[StackUpload], accepted: list[np.ndarray] |
                                "reconstruct")
 
 
-def _made_by_key(earlier: Job, response: Response, retry_after_s: float, digest: str) -> dict:
-    """The answer to a submission whose idempotency key made ``earlier``: that job, or 503 while the
-    first submission's files are still being checked (the retry then gets the job, or its refusal);
-    422 where the submission is not the one that made it (``digest``, :func:`submission_digest`)."""
-    if earlier.params.get("request_digest", digest) != digest:
-        raise KeyReused(f"{IDEMPOTENCY_HEADER}: this key made job {earlier.id} from another request (other files, "
-                        "poses or options); send a new key with a new request")
-    if earlier.status == "queued" and earlier.submitted_at is None:
-        raise Saturated(f"{IDEMPOTENCY_HEADER}: the first submission with this key is still being read; send it "
-                        "again after Retry-After (it answers with that job, or with why it was refused)",
-                        retry_after_s=retry_after_s)
-    response.headers["Location"] = f"/v1/reconstructions/{earlier.id}"          # the job this key made: not another
-    return {"job_id": earlier.id, "status": earlier.status, "status_url": f"/v1/reconstructions/{earlier.id}"}
-
-
 async def _submit(request: Request, response: Response, settings: Settings, form: UploadForm, key: str | None,
                   params: dict) -> dict:
     """The job made from a valid submission (or the one an earlier submission with its key made):
@@ -203,14 +152,25 @@ async def _submit(request: Request, response: Response, settings: Settings, form
                               f"{MAX_POSES_BYTES >> 20} MB")
     poses_text = (await raw.read()).decode("utf-8", "replace") if hasattr(raw, "read") else raw
     if key is not None and (earlier := await to_thread.run_sync(store.job_for_key, key)) is not None:
-        return _made_by_key(earlier, response, settings.retry_after_s, await submission_digest(form, poses_text, params))
+        earlier = await to_thread.run_sync(unless_abandoned, store, earlier)
+        return made_by_key(earlier, response, settings.retry_after_s, await submission_digest(form, poses_text, params))
     if (full := await to_thread.run_sync(queue_full, request.app.state)) is not None:
         raise full                                   # before the files are hashed: a busy server answers at once
     if key is not None:
         params = {**params, "idempotency_key": key, "request_digest": await submission_digest(form, poses_text, params)}
     job, made = await to_thread.run_sync(store.create_once, params)
     if not made:                                     # a submission with the same key came in meanwhile
-        return _made_by_key(job, response, settings.retry_after_s, params["request_digest"])
+        return made_by_key(job, response, settings.retry_after_s, params["request_digest"])
+    holding = asyncio.create_task(hold_submission(store, job.id))
+    try:
+        return await _keep_submission(request, response, settings, form, poses_text, store, job)
+    finally:
+        holding.cancel()
+
+
+async def _keep_submission(request: Request, response: Response, settings: Settings, form: UploadForm,
+                           poses_text: str | None, store: JobStore, job: Job) -> dict:
+    """The new ``job``'s files read and checked (4xx at once, leaving no job behind), then queued."""
     inputs = store.directory(job.id) / "inputs"
     inputs.mkdir()
     try:

@@ -27,7 +27,7 @@ from typing import TypeVar
 import redis
 
 from service.core.errors import StoreUnavailable
-from service.jobs.store import FINAL, STATES, Job, JobStore
+from service.jobs.store import FINAL, STATES, SUBMISSION_LEASE_S, Job, JobStore
 
 F = TypeVar("F", bound=Callable)
 
@@ -192,6 +192,14 @@ class RedisJobStore(JobStore):
         count as an attempt. False where it was no longer running (it ended meanwhile)."""
         return self._move(job_id, ("running",), "queued", stage="queued (handed back by a stopping worker)",
                           progress="0", **{"+attempts": -1}) >= 0
+
+    @_answering
+    def hold_submission(self, job_id: str) -> None:
+        self.redis.set(f"{self.prefix}submitting:{job_id}", "1", px=int(SUBMISSION_LEASE_S * 1000))
+
+    @_answering
+    def submission_held(self, job_id: str) -> bool:
+        return bool(self.redis.exists(f"{self.prefix}submitting:{job_id}"))
 
     @_answering
     def back_in_queue(self, job_id: str, attempt: int) -> bool:

@@ -34,7 +34,7 @@ from service.core.process_pools import watch_parent
 from service.core.settings import Settings
 from service.jobs.redis_store import RedisJobStore
 from service.jobs.runner import INTERRUPTED, JobRunner, lost_worker
-from service.jobs.store import Job
+from service.jobs.store import SUBMISSION_LEASE_S, Job
 from service.jobs.worker import TIMED_OUT, run_job
 
 log = logging.getLogger(__name__)
@@ -110,8 +110,9 @@ def failure_reason(status: str, exc_string: str, max_attempts: int) -> str:
 class RqRunner(JobRunner):
     """Enqueues jobs on the RQ queue ``settings.queue_name``; the workers are ``svrnet-worker`` processes."""
 
-    submit_grace_s = 3600.0
-    """A job created this long ago and never handed to the queue was orphaned by a replica that stopped."""
+    submit_grace_s = 2 * SUBMISSION_LEASE_S
+    """A job created this long ago, never handed to the queue and whose submission no replica holds
+    (:meth:`~service.jobs.store.JobStore.submission_held`), was orphaned by a replica that stopped."""
 
     def __init__(self, store: RedisJobStore, settings: Settings) -> None:
         self.store, self.settings = store, settings
@@ -165,7 +166,8 @@ class RqRunner(JobRunner):
             if job is None:
                 continue
             if job.submitted_at is None:   # being stored by a replica, or orphaned when it stopped
-                if time.time() - job.created_at > self.submit_grace_s and self.store.fail(job_id, INTERRUPTED):
+                if (time.time() - job.created_at > self.submit_grace_s and not self.store.submission_held(job_id)
+                        and self.store.fail(job_id, INTERRUPTED)):
                     self.store.discard_inputs(job_id)
                     failed.append(job_id)
                 continue

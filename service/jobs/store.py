@@ -46,6 +46,9 @@ FIELDS = ("id", "status", "stage", "progress", "error", "params", "report", "att
           "submitted_at", "started_at")
 
 
+SUBMISSION_LEASE_S = 30.0
+"""How long a replica's word that it still reads a submission holds (:meth:`JobStore.hold_submission`;
+renewed every third of it)."""
 MIN_FREE_BYTES = 64 << 20
 """The free disk a data folder must have for its store to be ready (``/readyz``): less takes no
 stack of a submission."""
@@ -112,6 +115,16 @@ class JobStore(ABC):
                 shutil.rmtree(folder, ignore_errors=True)
                 gone.append(folder.name)
         return gone
+
+    def hold_submission(self, job_id: str) -> None:
+        """Say, for :data:`SUBMISSION_LEASE_S`, that a replica is still reading ``job_id``'s submission
+        (called again while it does). One process owns the embedded store: nothing to say."""
+
+    def submission_held(self, job_id: str) -> bool:
+        """Whether a replica said within :data:`SUBMISSION_LEASE_S` that it reads ``job_id``'s
+        submission; without, a job never handed to the queue was left by a replica that stopped. The
+        embedded store's server is the only one, and its restart recovers such jobs: always true."""
+        return True
 
     def is_cancelled(self, job_id: str) -> bool:
         job = self.get(job_id)

@@ -17,7 +17,7 @@ import pytest
 import SimpleITK as sitk
 from fastapi.testclient import TestClient
 
-from service.api import reconstructions
+from service.api import idempotency, reconstructions
 from service.inference.registry import ModelRegistry
 from service.io.volume import Volume, read_volume, write_volume
 from service.jobs.store import SqliteJobStore
@@ -362,7 +362,7 @@ def test_a_retried_submission_with_its_idempotency_key_gets_the_same_job(client:
     # A retry while the first submission's files are still being read: told to ask again, not given
     # a job that a refusal of those files would delete a moment later.
     reading = {"Idempotency-Key": "k-5555555555555555"}
-    client.app.state.job_store.create({"idempotency_key": reconstructions.idempotency_digest(reading["Idempotency-Key"])})
+    client.app.state.job_store.create({"idempotency_key": idempotency.idempotency_digest(reading["Idempotency-Key"])})
     busy = submit(client, case, headers=reading)
     assert busy.status_code == 503 and busy.headers["retry-after"] and "still being read" in busy.json()["detail"]
     for job in (first, other):
@@ -664,3 +664,25 @@ def test_a_full_disk_while_a_submission_s_files_are_kept_is_507_and_leaves_no_jo
     r = submit(client, case)
     assert r.status_code == 507 and r.json()["type"] == "/problems/insufficient-storage", r.text
     assert int(r.headers["Retry-After"]) > 0 and client.app.state.job_store.queued() == []
+
+
+@pytest.mark.parametrize("queue_settings", ["redis"], indirect=True)
+def test_a_retry_of_a_submission_its_replica_abandoned_is_told_at_once(client: TestClient, case: dict,
+                                                                        monkeypatch) -> None:  # noqa: ANN001
+    """A replica stopped while it read a keyed submission: the job was stored, never queued. A retry
+    with the key waits while a replica holds the submission, and once none has for the lease the job
+    is failed as interrupted and the retry gets it at once, not a 503 for an hour."""
+    from service.jobs.store import SUBMISSION_LEASE_S
+
+    key = "k-7777777777777777"
+    store = client.app.state.job_store
+    orphan = store.create({"idempotency_key": idempotency.idempotency_digest(key)})
+    store.hold_submission(orphan.id)                            # its replica still reading it
+    later = time.time() + SUBMISSION_LEASE_S + 1
+    monkeypatch.setattr(idempotency.time, "time", lambda: later)
+    assert submit(client, case, headers={"Idempotency-Key": key}).status_code == 503
+    store.redis.delete(f"{store.prefix}submitting:{orphan.id}")   # the replica stopped: no renewal
+    r = submit(client, case, headers={"Idempotency-Key": key})
+    assert r.status_code == 202 and r.json() == {"job_id": orphan.id, "status": "failed",
+                                                 "status_url": f"/v1/reconstructions/{orphan.id}"}, r.text
+    assert "interrupted" in client.get(f"/v1/reconstructions/{orphan.id}").json()["error"]
