@@ -199,7 +199,8 @@ def reconstruct(
     max_expected_error: MaxExpectedOpt = None,
     wait: Annotated[bool, typer.Option("--wait", help="wait for the job and download its results")] = False,
     out: Annotated[Optional[Path], typer.Option(
-        "--out", "-o", dir_okay=False, callback=user_path, help="volume file (implies --wait; default recon.nii.gz with --wait)")] = None,
+        "--out", "-o", dir_okay=False, callback=user_path,
+        help="volume file (implies --wait; default recon.nii.gz with --wait)")] = None,
     preview: Annotated[Optional[Path], typer.Option(
         dir_okay=False, callback=user_path, help="also download the preview PNG here (implies --wait)")] = None,
     poses_out: Annotated[Optional[Path], typer.Option(
@@ -259,9 +260,11 @@ def fetch(
     api_key: ApiKeyOpt = None,
     out: Annotated[Optional[Path], typer.Option(
         "--out", "-o", dir_okay=False, callback=user_path, help="volume file (default recon.nii.gz)")] = None,
-    preview: Annotated[Optional[Path], typer.Option(dir_okay=False, callback=user_path, help="also download the preview PNG here")] = None,
+    preview: Annotated[Optional[Path], typer.Option(dir_okay=False, callback=user_path,
+                                                    help="also download the preview PNG here")] = None,
     poses_out: Annotated[Optional[Path], typer.Option(
-        "--poses-out", dir_okay=False, callback=user_path, help="also write the refined slice poses (/v1/predict schema) here")] = None,
+        "--poses-out", dir_okay=False, callback=user_path,
+        help="also write the refined slice poses (/v1/predict schema) here")] = None,
     transforms_out: Annotated[Optional[Path], typer.Option(
         "--transforms-out", dir_okay=False, callback=user_path,
         help="also download the per-slice ITK transforms (.zip of .tfm files) here")] = None,
@@ -303,7 +306,8 @@ def stream(
     masks_hold_csf: MasksHoldCsfOpt = False,
     model: ModelOpt = None,
     json_out: Annotated[Optional[Path], typer.Option(
-        "--json-out", dir_okay=False, callback=user_path, help="write every message received here, one JSON object a line")] = None,
+        "--json-out", dir_okay=False, callback=user_path,
+        help="write every message received here, one JSON object a line")] = None,
     overwrite: OverwriteOpt = False,
 ) -> None:
     """Send stacks slice by slice as a scanner would (WebSocket /v1/stream) and show each pose as it comes."""

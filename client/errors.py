@@ -162,8 +162,8 @@ def error_class_for_status(status: int) -> type[SVRnetError]:
     Example:
         >>> error_class_for_status(422).__name__
         'UnusableInput'
-        >>> error_class_for_status(502).__name__, error_class_for_status(408).__name__, error_class_for_status(507).__name__
-        ('ServerError', 'ConnectionFailed', 'Busy')
+        >>> [error_class_for_status(s).__name__ for s in (502, 408, 507)]
+        ['ServerError', 'ConnectionFailed', 'Busy']
     """
     if status in _BY_STATUS:
         return _BY_STATUS[status]

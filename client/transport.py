@@ -165,7 +165,8 @@ class Transport:
                 raise self._transport_error(method, path, exc) from exc
             except httpx.InvalidURL as exc:
                 raise ConnectionFailed(f"{method} {path}: invalid URL: {exc}") from exc
-            if response.status_code in (429, 503, 507) or (keyed and response.status_code in (502, 504)):  # or a proxy lost it
+            busy = response.status_code in (429, 503, 507)            # 507: the server's disk, full for now
+            if busy or (keyed and response.status_code in (502, 504)):   # or a proxy lost a keyed answer
                 response.read()
                 response.close()
                 retry_after = parse_retry_after(response.headers.get("retry-after"))

@@ -171,7 +171,8 @@ def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resu
     if cfg.batch % SLICES_PER_ACQUISITION or cfg.batch <= 0:      # the stream yields whole acquisitions' slices
         raise ValueError(f"batch {cfg.batch}: a positive multiple of {SLICES_PER_ACQUISITION}")
     if min(cfg.steps, cfg.val_every, cfg.val_per_volume) < 1:
-        raise ValueError(f"steps {cfg.steps}, val_every {cfg.val_every}, val_per_volume {cfg.val_per_volume}: each at least 1")
+        raise ValueError(f"steps {cfg.steps}, val_every {cfg.val_every}, val_per_volume {cfg.val_per_volume}: "
+                         "each at least 1")
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)

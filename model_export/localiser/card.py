@@ -59,7 +59,8 @@ answer's `confidence` is low when no brain-like region is found; check it, or up
 ## Training data
 Synthetic stacks only (`model_export/localiser/scenes.py`, style `train`): every atlas brain but the five
 validation volumes (`model_export.atlas.training_volumes`; CRL spatio-temporal atlas, Gholipour et al.
-2017; fetal spina-bifida atlas, Fidon et al. 2021) put, in any orientation and with slice-to-slice motion, into generated surroundings:
+2017; fetal spina-bifida atlas, Fidon et al. 2021) put, in any orientation and with slice-to-slice motion,
+into generated surroundings:
 extra-axial CSF, skull, scalp; amniotic fluid, uterine wall, placenta, fetal body and limbs; the mother's
 tissues, fat and the air around her; for 30 % of the stacks the head at or beyond the uterine wall (low in
 the maternal pelvis, no fluid around it), for 25 % in tissue as bright and as textured as the brain behind
