@@ -145,10 +145,12 @@ class RequestContext:
 
         app = scope.get("app")
         try:
-            check = functools.partial(early_rejection, app.state, scope["method"], scope["path"], headers)
-            # The queue's length is the job store's (off the event loop: a stalled store holds this request only).
-            early = None if app is None else (await to_thread.run_sync(check) if (scope["method"], scope["path"])
-                                              == ("POST", "/v1/reconstructions") else check())
+            early = None
+            if app is not None:
+                check = functools.partial(early_rejection, app.state, scope["method"], scope["path"], headers)
+                # The queue's length is the job store's: off the event loop (a stalled store holds this request only).
+                queue = (scope["method"], scope["path"]) == ("POST", "/v1/reconstructions")
+                early = await to_thread.run_sync(check) if queue else check()
         except ServiceError as exc:            # e.g. the job store does not answer: 503, not a traceback
             early = exc
         except Exception as exc:  # noqa: BLE001 - as below: a problem+json, counted and logged

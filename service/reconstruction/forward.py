@@ -16,8 +16,8 @@ stacks of different in-plane resolution share it).
 
 Example:
     >>> u, w = psf_quadrature(5)
-    >>> u.tolist(), round(float(w.sum()), 6)
-    ([-2.0, -1.0, 0.0, 1.0, 2.0], 1.0)
+    >>> u.round(2).tolist(), round(float(w.sum()), 6), round(float(np.sum(w * u**2)), 6)   # unit variance
+    ([-2.08, -1.04, 0.0, 1.04, 2.08], 1.0, 1.0)
 """
 
 from __future__ import annotations
@@ -36,12 +36,17 @@ BLUR_TRUNCATE = 3.0
 
 
 def psf_quadrature(n_points: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Through-plane quadrature: offsets in units of sigma ``[Q]`` and normalised Gaussian weights ``[Q]``."""
+    """Through-plane quadrature: offsets in units of sigma ``[Q]`` and normalised Gaussian weights ``[Q]``.
+
+    Gaussian weights at evenly spaced points over +-:data:`PSF_SPAN_SIGMAS`, the points then spread
+    so that the weights' variance is exactly 1: a few points of a truncated Gaussian have a variance of
+    0.85-0.92, which would model slices 4-8 % thinner than they are (the FWHM the slice thickness)."""
     if n_points <= 1:
         return np.zeros(1), np.ones(1)
     u = np.linspace(-PSF_SPAN_SIGMAS, PSF_SPAN_SIGMAS, n_points)
     w = np.exp(-0.5 * u**2)
-    return u, w / w.sum()
+    w /= w.sum()
+    return u / np.sqrt(np.sum(w * u**2)), w
 
 
 def inplane_sigma_mm(slices: SliceSet) -> float:

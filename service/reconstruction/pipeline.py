@@ -377,6 +377,7 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
     if cancel is not None and cancel():
         raise Cancelled("cancelled before finishing")
     t0 = time.perf_counter()
+    x = compact_brain(x, grid.spacing)          # the volume returned: what the quality report judges
     if model is None:
         model = ForwardModel(slice_set, poses, grid, psf_points=cfg.psf_points)
     ncc = slice_ncc(model.forward(x), slice_set.values, sid, n)
@@ -397,6 +398,6 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
     if progress is not None:
         progress("done", 1.0)
     reasons = exclusion_reasons(slice_set.include, included, None if coarse is None else coarse.fit.inlier)
-    return ReconstructionResult(Volume(compact_brain(x, grid.spacing).astype(np.float32), grid.affine.copy()), poses,
+    return ReconstructionResult(Volume(x.astype(np.float32), grid.affine.copy()), poses,
                                 np.where(included, slice_weight, 0.0), included, ncc, timings, grid, reasons, coarse,
                                 quality, held_out)

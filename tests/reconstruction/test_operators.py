@@ -103,6 +103,9 @@ def test_psf_quadrature_and_forward_model_reproduce_the_acquisition(acquisition)
     better than sampling the phantom at the pixel centres."""
     u, w = psf_quadrature(5)
     assert w.sum() == pytest.approx(1.0) and np.all(w[:2] < w[2])
+    for n in (3, 5, 9):                                   # the slice's profile as wide as it is: variance 1
+        u, w = psf_quadrature(n)
+        assert np.sum(w * u**2) == pytest.approx(1.0) and np.sum(w * u) == pytest.approx(0.0, abs=1e-12)
     ss = acquisition.slice_set()
     grid = make_grid(0.8, bounds_of(ss.positions(), 6.0))
     ref, _ = reference_on(grid, acquisition)

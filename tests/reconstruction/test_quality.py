@@ -54,7 +54,9 @@ def test_one_stack_is_judged_by_its_alternate_slices_and_scrambled_poses_are_tol
     bad = reconstruct(SliceSet.from_stacks([(vol, mask, scrambled, use)]), resolution_mm=1.5, svr_iterations=0,
                       config=FAST)
     g, b = good.quality, bad.quality
-    assert g["median_ncc"] > 0.8 and b["median_ncc"] > 0.8                    # agreement cannot tell them apart
+    # Agreement hardly tells them apart (the scrambled volume's stray sheets, off the returned volume,
+    # take it down a little): the alternate slices do.
+    assert g["median_ncc"] > 0.8 and b["median_ncc"] > 0.6
     assert g["leave_one_stack_out"]["median_ncc"] is None
     g_alt, b_alt = g["leave_alternate_slices_out"], b["leave_alternate_slices_out"]
     assert g_alt["median_ncc"] > MIN_ALTERNATE_NCC > b_alt["median_ncc"], (g_alt, b_alt)
