@@ -11,19 +11,17 @@ Example:
 
 from __future__ import annotations
 
-import io
 import json
 import secrets
 import time
-import zipfile
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
 from client import transport
-from client.errors import ArgumentError, Busy, ConnectionFailed, JobFailed, ServerError, SVRnetError, WaitTimeout
-from client.files import write_whole
+from client.errors import Busy, ConnectionFailed, JobFailed, ServerError, WaitTimeout
+from client.mask_archive import write_mask_archive
 from client.multipart import MultipartBody, ProgressCallback, form_value, order_fields
 from client.transport import DEFAULT_SERVER, DEFAULT_TIMEOUT, PathLike, Transport
 from client.upload_files import file_parts
@@ -41,10 +39,6 @@ def not_svrnet(call: str, expected: str) -> ConnectionFailed:
 UNREACHABLE_S = 120.0
 """How long :meth:`SVRnetClient.wait` goes on polling a server it cannot reach (a restart loads its
 models in seconds to tens of seconds; the job goes on meanwhile)."""
-
-MAX_MASK_BYTES = 1 << 30
-"""The largest archive member :meth:`SVRnetClient.masks` writes (a mask file of the server's)."""
-
 
 class SVRnetClient(Transport):
     """A synchronous client of the SVRnet HTTP API v1.
@@ -176,26 +170,8 @@ class SVRnetClient(Transport):
         fields = [(k, v) for k, v in (("model", model), ("margin_mm", margin_mm)) if v is not None]
         body = MultipartBody(fields, file_parts(stacks, None))
         response = self._send("POST", "/v1/masks", body=body, progress=progress)
-        try:
-            archive = zipfile.ZipFile(io.BytesIO(response.content))
-            files = {i.filename: archive.read(i.filename) for i in archive.infolist()
-                     if i.filename == Path(i.filename).name and i.filename.endswith((".nii.gz", ".json"))
-                     and i.file_size <= MAX_MASK_BYTES}
-            report = json.loads(files[REPORT])
-        except (zipfile.BadZipFile, KeyError, ValueError) as exc:
-            raise SVRnetError("the server's masks archive is unreadable", status=response.status_code,
-                              request_id=response.headers.get("x-request-id")) from exc
-        out = Path(out_dir)
-        there = [name for name in files if name != REPORT and (out / name).exists()]
-        if there and not overwrite:
-            raise ArgumentError(f"out_dir: {out} holds {', '.join(there)} already; nothing was written "
-                                "(`svrnet masks --overwrite` replaces them; in Python, overwrite=True)")
-        report = _with_earlier_masks(report, out)
-        files[REPORT] = json.dumps(report, indent=1).encode()
-        out.mkdir(parents=True, exist_ok=True)
-        for name, data in files.items():
-            write_whole(out / name, data)
-        return report
+        return write_mask_archive(response.content, Path(out_dir), overwrite, status=response.status_code,
+                                  request_id=response.headers.get("x-request-id"))
 
     def reconstruct(self, stacks: Sequence[PathLike], masks: Sequence[PathLike] | None = None,
                     poses: Mapping[str, Any] | PathLike | None = None, *, resolution_mm: float | None = None,
@@ -402,33 +378,6 @@ class SVRnetClient(Transport):
             >>> SVRnetClient().cancel("3f2a")                                    # doctest: +SKIP
         """
         self._send("DELETE", self._job_path(job_id))
-
-
-REPORT = "report.json"
-"""The masks' report, beside them (:meth:`SVRnetClient.masks`)."""
-
-
-def _with_earlier_masks(report: Any, out: Path) -> Any:
-    """``report`` (of masks about to be written into ``out``) with the entries of the report already
-    there whose masks stay: other masks of earlier calls, which the new report would otherwise hide.
-
-    Example:
-        >>> import tempfile
-        >>> out = Path(tempfile.mkdtemp()); _ = (out / "ax_mask.nii.gz").write_bytes(b"")
-        >>> _ = (out / REPORT).write_text(json.dumps({"stacks": [{"mask": "ax_mask.nii.gz"}, {"mask": "gone.nii.gz"}]}))
-        >>> [e["mask"] for e in _with_earlier_masks({"stacks": [{"mask": "co_mask.nii.gz"}]}, out)["stacks"]]
-        ['ax_mask.nii.gz', 'co_mask.nii.gz']
-    """
-    if not isinstance(report, dict):                      # another api-v1 server's bare list: as it came
-        return report
-    try:
-        earlier = json.loads((out / REPORT).read_text())["stacks"]
-    except (OSError, ValueError, KeyError, TypeError):
-        return report
-    new = {e.get("mask") for e in report.get("stacks") or []}
-    kept = [e for e in earlier if isinstance(e, dict) and isinstance(e.get("mask"), str) and e["mask"] not in new
-            and e["mask"] == Path(e["mask"]).name and (out / e["mask"]).is_file()]
-    return {**report, "stacks": kept + list(report.get("stacks") or [])}
 
 
 def _with_stacks(body: Any, call: str) -> dict[str, Any]:

@@ -42,7 +42,8 @@ EXIT_CODES: list[tuple[type[SVRnetError] | tuple[type[SVRnetError], ...], int]] 
 
 EXIT_HELP = (
     "Exit codes: 0 ok · 1 unexpected error · 2 usage · 3 connection failed (or not an SVRnet server) · 4 unauthorized · "
-    "5 bad input (400/413/415/422; a stream whose every slice is refused) · 6 not found · 7 busy (429/503 after retries) · "
+    "5 bad input (400/413/415/422; a stream whose every slice is refused, or whose session could not take them all) · "
+    "6 not found · 7 busy (429/503/507 after retries) · "
     "8 job failed/cancelled · 9 server error (5xx) · 10 conflict (409) · 11 timed out waiting · "
     "12 nothing usable in the answer (no slice accepted; a volume that is no coherent brain), its files written."
 )

@@ -40,6 +40,8 @@ Example (one slice 5 mm right of where it was acquired):
 from __future__ import annotations
 
 import gzip
+import json
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -159,38 +161,64 @@ class Exported:
     masks: list[Path] | None = None
 
 
-EXPORTED = ("[0-9]*.nii.gz", "mask_[0-9]*.nii.gz", "*.tfm", "slices.tsv", "stacks/*.nii.gz", "masks/*.nii.gz")
-"""The files an export writes into its folder (either tool's): what ``overwrite`` removes first, since
-each tool takes every such file of the folder."""
+MANIFEST = ".svrnet-export.json"
+"""The list of the files an export wrote into its folder: all that ``overwrite`` removes."""
+TOOL_FILES = re.compile(r"^(\d+\.nii\.gz|mask_\d+\.nii\.gz|.+_slice\d+\.tfm|slices\.tsv)$")
+"""Names of files either tool reads from the folder (NeSVoR every ``{i}.nii.gz`` and ``mask_{i}``,
+NiftyMIC every ``NAME_slice{k}.tfm``)."""
 
 
-def clear_for_export(folder: Path, overwrite: bool) -> None:
-    """Make ``folder`` ready for an export: created, and empty of an earlier export's files. Both tools
-    read every slice file of the folder, so one patient's export must never lie among another's: a
-    folder that holds anything is refused (:class:`UnusableInput`) unless ``overwrite``, which removes
-    the files :data:`EXPORTED` names (nothing else).
+def _files(folder: Path) -> set[str]:
+    """The files under ``folder``, as paths relative to it."""
+    return {p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file()} if folder.is_dir() else set()
+
+
+def clear_for_export(folder: Path, overwrite: bool, inputs: list[Path] = ()) -> set[str]:
+    """Make ``folder`` ready for an export and return the files already there. Both tools read every
+    slice file of the folder, so one patient's export must never lie among another's: a folder that
+    holds anything is refused (:class:`UnusableInput`) unless ``overwrite``, which removes what an
+    earlier export listed in its :data:`MANIFEST` and nothing else, and then still refuses a folder
+    holding files a tool would read (:data:`TOOL_FILES`) that no export listed. A folder that holds
+    one of the ``inputs`` (the stacks and masks exported) is refused.
 
     Example:
         >>> import tempfile
         >>> d = Path(tempfile.mkdtemp()); _ = (d / "0.nii.gz").write_bytes(b""); _ = (d / "notes.txt").write_text("")
-        >>> clear_for_export(d, overwrite=True); sorted(p.name for p in d.iterdir())
+        >>> _ = (d / MANIFEST).write_text('["0.nii.gz"]')
+        >>> sorted(clear_for_export(d, overwrite=True))
         ['notes.txt']
     """
-    if folder.is_dir() and any(folder.iterdir()):
-        if not overwrite:
-            raise UnusableInput(f"export: {folder} is not empty; each tool reads every slice file of its folder, so "
-                                "give a new or empty folder (--overwrite replaces an earlier export there)")
-        for pattern in EXPORTED:
-            for path in folder.glob(pattern):
-                if path.is_file():
-                    path.unlink()
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = folder.expanduser()
+    inside = [p for p in inputs if folder.resolve() in Path(p).expanduser().resolve().parents]
+    if inside:
+        raise UnusableInput(f"export: {inside[0].name} lies in the folder to write, {folder}; give another folder")
+    if not _files(folder):
+        folder.mkdir(parents=True, exist_ok=True)
+        return set()
+    if not overwrite:
+        raise UnusableInput(f"export: {folder} is not empty; each tool reads every slice file of its folder, so "
+                            "give a new or empty folder (--overwrite replaces an earlier export there)")
+    try:
+        listed = json.loads((folder / MANIFEST).read_text()) if (folder / MANIFEST).is_file() else []
+    except (OSError, ValueError):
+        listed = []
+    for name in listed if isinstance(listed, list) else []:
+        path = folder / str(name)
+        if ".." not in Path(str(name)).parts and path.is_file():
+            path.unlink()
+    (folder / MANIFEST).unlink(missing_ok=True)
+    left = sorted(n for n in _files(folder) if TOOL_FILES.match(Path(n).name))
+    if left:
+        raise UnusableInput(f"export: {folder} holds {left[0]}, a file a tool would read that no export of svrnet "
+                            "wrote; give a new or empty folder")
+    return _files(folder)
 
 
 def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None, folder: Path, to: str,
            all_slices: bool = False, thickness_mm: list[float] | None = None, overwrite: bool = False) -> Exported:
     """Write the slices of ``answer`` for the tool ``to`` (:data:`FORMATS`) into ``folder``, a new or
-    empty folder unless ``overwrite`` (:func:`clear_for_export`). ``stacks`` (and ``masks``): the files
+    empty folder unless ``overwrite`` (:func:`clear_for_export`), and the list of what it wrote
+    (:data:`MANIFEST`). ``stacks`` (and ``masks``): the files
     the answer was made from, NIfTI. ``thickness_mm``: one per stack, or one for all (default: each
     stack's slice spacing)."""
     if to not in FORMATS:
@@ -202,7 +230,7 @@ def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None,
         raise UnusableInput("export: NiftyMIC names each stack's transforms by its file name, and two stacks are "
                             f"named {max(set(stems), key=stems.count)!r}: rename one")
     answered = matched_stacks(answer, stacks)           # the answer checked before the folder is touched
-    clear_for_export(folder, overwrite)
+    before = clear_for_export(folder, overwrite, [*stacks, *(masks or [])])
     for s, (path, stack) in enumerate(zip(stacks, answered)):
         image, sfv = _stack_file(path, stack, read_by_qform=to == "niftymic")
         chosen = _chosen(stack, all_slices)
@@ -235,6 +263,7 @@ def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None,
             done.count += 1
     if to == "nesvor":
         write_whole(folder / "slices.tsv", ("\n".join(rows) + "\n").encode())
+    write_whole(folder / MANIFEST, json.dumps(sorted(_files(folder) - before - {MANIFEST}), indent=0).encode())
     return done
 
 

@@ -48,7 +48,7 @@ def train(
     val_per_volume: Annotated[Optional[int], typer.Option(min=1)] = None,
     threads: Annotated[Optional[int], typer.Option()] = None,
     workers: Annotated[Optional[int], typer.Option(help="simulation worker processes")] = None,
-    reuse: Annotated[Optional[int], typer.Option(help="corruptions of each clean acquisition in the bank")] = None,
+    reuse: Annotated[Optional[int], typer.Option(min=1, help="corruptions of each clean acquisition in the bank")] = None,
     device: Annotated[Optional[str], typer.Option(help="cpu, cuda or auto")] = None,
     max_minutes: Annotated[Optional[float], typer.Option(help="stop at a checkpoint after this wall time")] = None,
     plane_x_mm: Annotated[Optional[float], typer.Option(help="atlas symmetry plane x0 of the twin")] = None,

@@ -168,11 +168,10 @@ def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resu
             figures of the final checkpoint are the totals.
     """
     check_label_type(cfg.label_type, cfg.loss)
-    if cfg.batch % SLICES_PER_ACQUISITION or cfg.batch <= 0:      # the stream yields whole acquisitions' slices
-        raise ValueError(f"batch {cfg.batch}: a positive multiple of {SLICES_PER_ACQUISITION}")
-    if min(cfg.steps, cfg.val_every, cfg.val_per_volume) < 1:
-        raise ValueError(f"steps {cfg.steps}, val_every {cfg.val_every}, val_per_volume {cfg.val_per_volume}: "
-                         "each at least 1")
+    if cfg.batch % SLICES_PER_ACQUISITION or min(cfg.batch, cfg.steps, cfg.val_every, cfg.val_per_volume, cfg.reuse) < 1:
+        raise ValueError(f"batch {cfg.batch} (a multiple of {SLICES_PER_ACQUISITION}: whole acquisitions), steps "
+                         f"{cfg.steps}, val_every {cfg.val_every}, val_per_volume {cfg.val_per_volume}, reuse "
+                         f"{cfg.reuse}: each at least 1")
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
@@ -227,7 +226,7 @@ def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resu
                "config": {k: v for k, v in asdict(cfg).items() if k != "init_from"}}    # the stage's recipe
     if resume is not None and history and history[-1].get("run") == str(out_dir) \
             and history[-1]["hardware"] == segment["hardware"]:
-        segment = history.pop()
+        segment = {**history.pop(), "config": segment["config"]}            # as it goes on now (its steps)
     base = {"samples": segment["samples"], "seconds": segment["seconds"], "steps": segment["steps"]}
     val = validation_set(cfg.val_volumes, root, cfg.val_per_volume,
                          config=SimulationConfig.validation(size=sim.size, pixel_mm=sim.pixel_mm))

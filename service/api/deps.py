@@ -94,8 +94,8 @@ def origin_ok(settings: Settings, headers: dict[str, str]) -> bool:
     origin = headers.get("origin")
     if origin is None or settings.key_set():
         return True
-    origin = origin.strip().rstrip("/").lower()
-    allowed = settings.origin_set()
+    origin = _plain_origin(origin)
+    allowed = {_plain_origin(o) for o in settings.origin_set()}
     if "*" in allowed or origin in allowed:
         return True
     try:
@@ -105,6 +105,20 @@ def origin_ok(settings: Settings, headers: dict[str, str]) -> bool:
     except ValueError:
         return False
     return at_address and parts.scheme in ("http", "https") and parts.netloc == headers.get("host", "").lower()
+
+
+def _plain_origin(origin: str) -> str:
+    """An origin as browsers send it: lower case, no trailing slash, no default port.
+
+    Example:
+        >>> _plain_origin("HTTPS://Viewer.example:443/"), _plain_origin("http://127.0.0.1:8000")
+        ('https://viewer.example', 'http://127.0.0.1:8000')
+    """
+    origin = origin.strip().rstrip("/").lower()
+    for scheme, port in (("https://", ":443"), ("http://", ":80")):
+        if origin.startswith(scheme) and origin.endswith(port):
+            return origin[: -len(port)]
+    return origin
 
 
 FOREIGN_ORIGIN = ("Origin: this server serves browser pages of its own address only; list the page's origin "
@@ -146,7 +160,7 @@ def early_rejection(state: State, method: str, path: str, headers: dict[str, str
     The route dependencies make the same checks again; these are the early, cheap copies.
     """
     settings: Settings = state.settings
-    if not origin_ok(settings, headers):
+    if path.startswith("/v1/") and not origin_ok(settings, headers):      # the API: probes and docs stay open
         return ForeignOrigin(FOREIGN_ORIGIN)
     if needs_key(settings, path) and not api_key_ok(settings.key_set(), headers.get("authorization"),
                                                     headers.get("x-api-key")):

@@ -24,7 +24,7 @@ from service.api.uploads import UploadForm, UploadFormDep, known_fields, upload_
 from service.pipeline.predict import stack_orders
 from service.pipeline.prepare import StackUpload, check_distinct_stacks, check_mask_grid
 from service.core.client_json import client_json
-from service.core.errors import Conflict, InvalidParameter, NotFound, PayloadTooLarge, UnusableImage
+from service.core.errors import Conflict, InvalidParameter, NotFound, PayloadTooLarge, Saturated, UnusableImage
 from service.core.settings import Settings
 from service.io.acquisition_geometry import MAX_VOXEL_MM, MIN_VOXEL_MM
 from service.jobs.store import Job, JobStore
@@ -186,6 +186,11 @@ async def _keep_submission(request: Request, response: Response, settings: Setti
     except Exception:
         await to_thread.run_sync(store.delete, job.id)     # rejected input (or a client gone) leaves no job behind
         raise
+    now = await to_thread.run_sync(store.get, job.id)
+    if now is None or now.status != "queued":            # given up meanwhile (its lease lapsed): told, not queued
+        raise Saturated(f"{IDEMPOTENCY_HEADER}: the job store gave this submission up while its files were read "
+                        f"(job {job.id} is {now.status if now else 'gone'}); send it again with a new key",
+                        retry_after_s=settings.retry_after_s)
     names = {"stacks": [u.filename for u in uploads], "masks": [u.mask_filename for u in uploads if u.mask_filename]}
     (inputs / "names.json").write_text(json.dumps(names))
     (inputs / "params.json").write_text(json.dumps(job.params))

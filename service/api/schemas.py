@@ -256,8 +256,8 @@ class Problem(BaseModel):
 
 
 def problem_responses(*codes: int) -> dict:
-    """OpenAPI ``responses`` for these error statuses: problem+json bodies (RFC 7807). A route that
-    asks for a key (401) refuses a foreign browser page (403) at the same place
+    """OpenAPI ``responses`` for these error statuses: problem+json bodies (RFC 7807). An API route
+    (it asks for a key: 401) refuses a foreign browser page (403) at the same place
     (:func:`service.api.deps.early_rejection`).
 
     Example:

@@ -83,8 +83,9 @@ class InvalidParameter(ServiceError):
 
 
 class SessionFull(InvalidParameter):
-    """A stream session holds all it may (slices, stacks or memory): no later slice of it will be
-    taken either, so a client stops sending and starts another session for the rest."""
+    """A stream session holds all the slices or memory it may: a client stops sending, ends the stacks
+    it began and sends the rest in another session (a later, smaller slice might still fit, but a
+    session that full is done)."""
 
     title, type = "Session full", "/problems/session-full"
 

@@ -5,8 +5,8 @@ For a stack (any orientation, any in-plane pixel size, whole uterus or cropped),
 1. split it into slices along its slice axis, each laid out as a picture by the scanner's axes
    (:func:`~service.preprocess.stack.slice_images`): however the file stores its in-plane voxels,
    the network sees the same pictures and the mask is the same;
-2. scale intensities by the stack's 99.5th percentile (of every third pixel along rows and columns;
-   clipped to 0..2), so that no scanner's units matter;
+2. scale intensities by the stack's 99.5th percentile (over pixels out of step with its rows and
+   columns, :func:`intensity_scale`; clipped to 0..2), so that no scanner's units matter;
 3. resample every slice to square pixels of ``grid_mm`` (the model's; Gaussian anti-aliasing first,
    so a 0.5 mm and a 1.5 mm acquisition look alike), its field of view kept;
 4. continue the image by a band of fluid (:data:`FLUID_BAND_MM` at :data:`FLUID_LEVEL`) beyond

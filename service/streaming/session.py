@@ -131,8 +131,8 @@ class StreamSession:
                 raise SessionFull(f"slice: a session holds at most {self.limits.max_slices} slices; "
                                   "end it and start another")
             if frame.stack not in self.stacks and len(self.stacks) >= self.limits.max_stacks:
-                raise SessionFull(f"slice.stack: a session holds at most {self.limits.max_stacks} stacks; "
-                                  "end it and start another")
+                raise InvalidParameter(f"slice.stack: a session holds at most {self.limits.max_stacks} stacks; "
+                                       "end it and start another (its stacks may go on)")
             if frame.stack in self.stacks and len(self.stacks[frame.stack]) >= self.limits.max_stack_slices:
                 raise InvalidParameter(f"slice.stack: stack {frame.stack!r} holds {self.limits.max_stack_slices} "
                                        "slices, the most one stack may; end it and send the rest as another")

@@ -104,6 +104,8 @@ def test_another_site_s_page_is_refused_without_keys(tiny_model_path: Path, phan
         own = {"Host": "127.0.0.1:8000", "Origin": "http://127.0.0.1:8000"}
         assert client.get("/v1/models", headers=own).status_code == 200
         assert client.get("/v1/models", headers={"Origin": "https://Viewer.example"}).status_code == 200
+        assert client.get("/v1/models", headers={"Origin": "https://viewer.example:443"}).status_code == 200
+        assert client.get("/healthz", headers=evil).status_code == 200          # probes and docs stay open
         assert client.get("/v1/models").status_code == 200
     with make_client(registry, api_keys="k1") as client:                    # with keys, the key decides
         assert client.get("/v1/models", headers={"Origin": "https://evil.example", "X-API-Key": "k1"}).status_code == 200

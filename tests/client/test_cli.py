@@ -193,13 +193,14 @@ def test_cli_masks_of_a_second_batch_join_the_folder_s_report(fake_cli: Callable
     the masks of both batches (an entry whose mask is gone is dropped)."""
     fake_cli()
     (tmp_path / "ax_mask.nii.gz").write_bytes(b"earlier")
-    (tmp_path / "report.json").write_text(json.dumps({"stacks": [
+    (tmp_path / "report.json").write_text(json.dumps({"localiser": {"version": "0.9"}, "stacks": [
         {"filename": "ax.nii.gz", "mask": "ax_mask.nii.gz", "confidence": 0.8},
         {"filename": "gone.nii.gz", "mask": "gone_mask.nii.gz"}]}))
     r = invoke(["masks", str(stack_file), "--out-dir", str(tmp_path)])
     assert r.exit_code == 0, r.output
     report = json.loads((tmp_path / "report.json").read_text())
     assert [e["mask"] for e in report["stacks"]] == ["ax_mask.nii.gz", "stack_mask.nii.gz"]
+    assert report["stacks"][0]["localiser"] == {"version": "0.9"}           # made by the earlier localiser
     assert (tmp_path / "ax_mask.nii.gz").read_bytes() == b"earlier"
 
 

@@ -165,7 +165,10 @@ def test_the_cli_writes_and_says_what_to_run_next(case: dict, tmp_path: Path) ->
 
 def test_an_export_never_lies_among_an_earlier_one(case: dict, tmp_path: Path) -> None:
     """Each tool reads every slice file of its folder: a second patient's export into the first's folder
-    is refused, and with ``--overwrite`` none of the first's slices, masks or transforms is left."""
+    is refused; with ``--overwrite`` none of the first's slices, masks or transforms is left, and
+    nothing the export did not write is touched (a user's own stack named like a slice file, a
+    ``stacks/`` folder of inputs); a folder holding the stacks exported, or slice files no export
+    listed, is refused even then."""
     answer = tmp_path / "poses.json"
     answer.write_text(json.dumps(case["answer"]))
     out = tmp_path / "slices"
@@ -173,17 +176,29 @@ def test_an_export_never_lies_among_an_earlier_one(case: dict, tmp_path: Path) -
                                                      str(out), *more], env={"COLUMNS": "200"})
     assert run("--to", "nesvor", "--mask", str(case["mask"]), "--all-slices").exit_code == 0
     (out / "notes.txt").write_text("kept")
+    (out / "stacks").mkdir()
+    (out / "stacks" / "3_t2_haste.nii.gz").write_bytes(b"the user's own")
     before = sorted(p.name for p in out.iterdir())
     r = run("--to", "nesvor")
     assert r.exit_code == 5 and "not empty" in r.output and "--overwrite" in r.output
     assert sorted(p.name for p in out.iterdir()) == before
     r = run("--to", "nesvor", "--overwrite")                                # accepted slices only, no masks now
     assert r.exit_code == 0, r.output
-    assert sorted(p.name for p in out.iterdir()) == ["0.nii.gz", "1.nii.gz", "2.nii.gz", "3.nii.gz", "notes.txt",
-                                                     "slices.tsv"]
+    assert sorted(p.name for p in out.iterdir()) == [".svrnet-export.json", "0.nii.gz", "1.nii.gz", "2.nii.gz",
+                                                     "3.nii.gz", "notes.txt", "slices.tsv", "stacks"]
+    assert (out / "stacks" / "3_t2_haste.nii.gz").read_bytes() == b"the user's own"
     r = run("--to", "niftymic", "--overwrite")
-    assert r.exit_code == 0 and not list(out.glob("*.nii.gz")) and not (out / "slices.tsv").exists(), r.output
-    assert len(list(out.glob("ax_slice*.tfm"))) == 4
+    assert r.exit_code == 0 and not list(out.glob("[0-9]*.nii.gz")) and not (out / "slices.tsv").exists(), r.output
+    assert len(list(out.glob("ax_slice*.tfm"))) == 4 and (out / "stacks" / "3_t2_haste.nii.gz").exists()
+    (out / ".svrnet-export.json").unlink()                                 # slice files no export listed
+    r = run("--to", "nesvor", "--overwrite")
+    assert r.exit_code == 5 and "no export of svrnet wrote" in r.output, r.output
+    inputs = tmp_path / "inputs"
+    inputs.mkdir()
+    (inputs / "ax.nii.gz").write_bytes(case["stack"].read_bytes())
+    r = CliRunner().invoke(cli.app, ["export", str(answer), str(inputs / "ax.nii.gz"), "--to", "nesvor", "--out-dir",
+                                     str(tmp_path), "--overwrite"], env={"COLUMNS": "200"})
+    assert r.exit_code == 5 and "lies in the folder to write" in r.output and (inputs / "ax.nii.gz").exists()
 
 
 def test_the_cli_names_the_stacks_niftymic_must_read(tmp_path: Path) -> None:

@@ -686,3 +686,18 @@ def test_a_retry_of_a_submission_its_replica_abandoned_is_told_at_once(client: T
     assert r.status_code == 202 and r.json() == {"job_id": orphan.id, "status": "failed",
                                                  "status_url": f"/v1/reconstructions/{orphan.id}"}, r.text
     assert "interrupted" in client.get(f"/v1/reconstructions/{orphan.id}").json()["error"]
+
+
+@pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)
+def test_a_submission_given_up_while_its_files_were_read_is_told_not_queued(client: TestClient, case: dict,
+                                                                              monkeypatch) -> None:  # noqa: ANN001
+    """The store failed the job while its files were read (its replica's lease lapsed, a retry found it
+    abandoned): the submission is answered 503 saying so, and nothing is queued or written for it."""
+    from service.jobs.runner import INTERRUPTED
+
+    store = client.app.state.job_store
+    monkeypatch.setattr(reconstructions, "check_slices_to_use",
+                        lambda uploads, accepted: [store.fail(j, INTERRUPTED) for j in store.ids("queued")])
+    r = submit(client, case, headers={"Idempotency-Key": "k-8888888888888888"})
+    assert r.status_code == 503 and "gave this submission up" in r.json()["detail"], r.text
+    assert store.queued() == [] and all(store.get(j).status == "failed" for j in store.ids("failed"))

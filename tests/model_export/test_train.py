@@ -139,6 +139,8 @@ def test_a_resume_with_more_steps_follows_the_new_schedule(packed: Path, tmp_pat
     lrs = {int(r[0]): float(r[3]) for r in rows}
     assert lrs[2] == pytest.approx(1e-4) and lrs[4] == pytest.approx(1e-5)    # the first run's two decays
     assert lrs[5] == pytest.approx(1e-3)                                       # before the new run's first, at 20
+    segment = torch.load(tmp_path / "r" / "last.pt", weights_only=False)["history"][-1]
+    assert segment["config"]["steps"] == 40 and tuple(segment["config"]["lr_milestones"]) == (0.5, 0.75)
 
 
 def test_a_share_of_each_batch_comes_from_scenes_cut_with_the_localisers_masks(packed: Path) -> None:

@@ -166,3 +166,10 @@ def test_a_bright_line_does_not_set_the_stacks_intensity_scale() -> None:
             assert intensity_scale(lined) == pytest.approx(np.percentile(lined, 99.5), rel=0.05)
             assert intensity_scale(lined) < 2 * reference
     assert intensity_scale(clean[::-1]) == reference
+    # ... and the network's inputs of a stack so lined are those of the clean stack, not a black stack.
+    affine = np.diag([1.1, 1.1, 3.0, 1.0])
+    lined = clean.copy()
+    lined[:, :, 201] = 65535.0                                        # in step with every third, however laid out
+    x_clean, _ = localiser_inputs(Volume(np.moveaxis(clean, 0, -1), affine), 2.5)
+    x_lined, _ = localiser_inputs(Volume(np.moveaxis(lined, 0, -1), affine), 2.5)
+    assert np.median(x_lined[x_lined > 0]) == pytest.approx(np.median(x_clean[x_clean > 0]), rel=0.25)  # was 1 %

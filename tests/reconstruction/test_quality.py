@@ -33,6 +33,33 @@ def test_true_poses_score_high_and_a_misplaced_stack_scores_low_when_left_out(ac
     assert q["coherent"] is True
 
 
+def test_the_slices_are_judged_against_the_volume_returned(acquisition, monkeypatch) -> None:  # noqa: ANN001
+    """The per-slice NCCs (and so the report) are those of the volume the job returns, after its
+    compact-body step: a spike that step takes off the volume no longer lets a slice agree with it.
+    Here the step also darkens the volume along x, so the two volumes give the slices NCCs far apart."""
+    from service.reconstruction import pipeline
+    from service.reconstruction.forward import ForwardModel
+    from service.reconstruction.quality import slice_ncc
+
+    kept = {}
+    real = pipeline.compact_brain
+
+    def compact_and_darken(x, spacing):  # noqa: ANN001, ANN202 - a compact step that visibly changes the volume
+        kept["before"] = x.copy()
+        kept["returned"] = out = real(x, spacing) * np.linspace(0.2, 1.0, x.shape[0])[:, None, None]
+        return out
+
+    monkeypatch.setattr(pipeline, "compact_brain", compact_and_darken)
+    placed = [(vol, mask, t, np.ones(len(t), bool)) for (vol, mask), t in zip(acquisition.stacks, acquisition.truth)]
+    ss = SliceSet.from_stacks(placed)
+    res = reconstruct(ss, resolution_mm=2.0, svr_iterations=0, config=FAST)
+    np.testing.assert_array_equal(res.volume.array, kept["returned"].astype(np.float32))
+    model = ForwardModel(ss, res.atlas_from_voxel_final, res.grid, psf_points=FAST.psf_points)   # unbinned
+    off = {k: np.nanmax(np.abs(res.ncc - slice_ncc(model.forward(v), ss.values, ss.slice_id, ss.n_slices)))
+           for k, v in kept.items()}
+    assert off["returned"] < 0.1 < 0.5 < off["before"], off
+
+
 def test_quality_can_be_off(acquisition) -> None:  # noqa: ANN001
     vol, mask = acquisition.stacks[0]
     ss = SliceSet.from_stacks([(vol, mask, acquisition.truth[0], np.ones(len(acquisition.truth[0]), bool))])

@@ -1,0 +1,73 @@
+"""The masks archive of ``POST /v1/masks`` written into a folder: one NIfTI mask per stack and
+``report.json``, only the archive's own plain file names, each file whole or not at all; a folder's
+report keeps the masks of earlier calls that stay beside it."""
+
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+from pathlib import Path
+from typing import Any
+
+from client.errors import ArgumentError, SVRnetError
+from client.files import write_whole
+
+MAX_MASK_BYTES = 1 << 30
+"""The largest archive member :meth:`SVRnetClient.masks` writes (a mask file of the server's)."""
+
+
+REPORT = "report.json"
+"""The masks' report, beside them (:meth:`SVRnetClient.masks`)."""
+
+
+def _with_earlier_masks(report: Any, out: Path) -> Any:
+    """``report`` (of masks about to be written into ``out``) with the entries of the report already
+    there whose masks stay: other masks of earlier calls, which the new report would otherwise hide,
+    each with the ``localiser`` that made it (the report's own is the latest call's).
+
+    Example:
+        >>> import tempfile
+        >>> out = Path(tempfile.mkdtemp()); _ = (out / "ax_mask.nii.gz").write_bytes(b"")
+        >>> _ = (out / REPORT).write_text(json.dumps({"stacks": [{"mask": "ax_mask.nii.gz"}, {"mask": "gone.nii.gz"}]}))
+        >>> [e["mask"] for e in _with_earlier_masks({"stacks": [{"mask": "co_mask.nii.gz"}]}, out)["stacks"]]
+        ['ax_mask.nii.gz', 'co_mask.nii.gz']
+    """
+    if not isinstance(report, dict):                      # another api-v1 server's bare list: as it came
+        return report
+    try:
+        previous = json.loads((out / REPORT).read_text())
+        earlier = previous["stacks"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return report
+    new = {e.get("mask") for e in report.get("stacks") or []}
+    kept = [{"localiser": previous.get("localiser"), **e} for e in earlier if isinstance(e, dict)   # who made it
+            and isinstance(e.get("mask"), str) and e["mask"] not in new and e["mask"] == Path(e["mask"]).name
+            and (out / e["mask"]).is_file()]
+    return {**report, "stacks": kept + list(report.get("stacks") or [])}
+
+
+def write_mask_archive(content: bytes, out: Path, overwrite: bool, status: int | None = None,
+                       request_id: str | None = None) -> Any:
+    """Write the masks archive ``content`` into ``out`` and return its report (joined with the
+    folder's earlier one, :func:`_with_earlier_masks`). Masks of those names already there are kept,
+    and nothing is written (:class:`ArgumentError`), unless ``overwrite``; an archive that cannot be
+    read is the server's fault (:class:`SVRnetError` with ``status`` and ``request_id``)."""
+    try:
+        archive = zipfile.ZipFile(io.BytesIO(content))
+        files = {i.filename: archive.read(i.filename) for i in archive.infolist()
+                 if i.filename == Path(i.filename).name and i.filename.endswith((".nii.gz", ".json"))
+                 and i.file_size <= MAX_MASK_BYTES}
+        report = json.loads(files[REPORT])
+    except (zipfile.BadZipFile, KeyError, ValueError) as exc:
+        raise SVRnetError("the server's masks archive is unreadable", status=status, request_id=request_id) from exc
+    there = [name for name in files if name != REPORT and (out / name).exists()]
+    if there and not overwrite:
+        raise ArgumentError(f"out_dir: {out} holds {', '.join(there)} already; nothing was written "
+                            "(`svrnet masks --overwrite` replaces them; in Python, overwrite=True)")
+    report = _with_earlier_masks(report, out)
+    files[REPORT] = json.dumps(report, indent=1).encode()
+    out.mkdir(parents=True, exist_ok=True)
+    for name, data in files.items():
+        write_whole(out / name, data)
+    return report
