@@ -44,7 +44,8 @@ class SVRnetClient(Transport):
     """A synchronous client of the SVRnet HTTP API v1.
 
     Args:
-        base_url: the server, e.g. ``http://scanner-gpu:8000``; ignored when ``http`` is given
+        base_url: the server, e.g. ``http://scanner-gpu:8000`` (default: ``SVRNET_SERVER``, else
+            ``http://127.0.0.1:8000``, as the command line); ignored when ``http`` is given
             (that client's own ``base_url`` is used).
         api_key: sent as ``Authorization: Bearer <key>``; defaults to ``$SVRNET_API_KEY``.
         timeout: httpx timeouts; reads and writes get 300 s, since a large request takes a while.

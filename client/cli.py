@@ -165,7 +165,7 @@ def masks(
     api_key: ApiKeyOpt = None,
     model: Annotated[Optional[str], typer.Option(help="localiser name (default: the server's)")] = None,
     margin: Annotated[Optional[float], typer.Option(
-        "--margin-mm", min=0, help="grow each mask outward by this many mm (the masks are the skull's inside; "
+        "--margin-mm", min=0, max=20, help="grow each mask outward by this many mm (the masks are the skull's inside; "
         "2-4 mm reaches masks drawn to its outer edge)")] = None,
     overwrite: Annotated[bool, typer.Option(
         "--overwrite", help="replace files of the same names in --out-dir (without it they are kept and nothing "

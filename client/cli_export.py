@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from client.cli_support import MaskOpt, StacksArg, check_masks, once_or_per_stack, user_path
+from client.cli_support import MaskOpt, check_masks, once_or_per_stack, user_path
 from client.exits import EXIT_BAD_INPUT, errors, fail, stderr, stdout
 
 NEXT_STEP = {
@@ -25,7 +25,10 @@ REGEX_CHARACTERS = frozenset("^$*+?{}[]\\|()")
 def export(
     answer: Annotated[Path, typer.Argument(exists=True, dir_okay=False, readable=True,
                                            help="JSON answer of `svrnet predict --out` or `reconstruct --poses-out`")],
-    stacks: StacksArg,
+    stacks: Annotated[list[Path], typer.Argument(
+        exists=True, readable=True, metavar="STACK",
+        help=".nii or .nii.gz: the files the answer was made from (NeSVoR and NiftyMIC read NIfTI; a scan "
+             "sent as DICOM, NRRD or MHA: convert it, e.g. with dcm2niix, and predict from the NIfTI files)")],
     to: Annotated[str, typer.Option("--to", help="the tool to start: nesvor or niftymic")],
     out_dir: Annotated[Path, typer.Option("--out-dir", file_okay=False, callback=user_path,
                                           help="folder to write into (created; new or empty)")],

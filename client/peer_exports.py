@@ -25,7 +25,9 @@ reconstruct --poses-out``) gives every slice ``k`` of stack ``s`` its ``atlas_fr
   again into ``DIR/stacks/`` with its voxels in cyclic order, the slice axis last (the same image,
   placed alike), its mask into ``DIR/masks/``; give NiftyMIC those files.
 
-Only accepted slices are written unless ``all_slices``; slices without brain (``empty``) never.
+Only the slices the answer trusts are written unless ``all_slices`` (a prediction's accepted ones;
+of a job's refined poses, those the job reconstructed from, ``included``, with its
+``refined_expected_error_mm`` in ``slices.tsv``); slices without brain (``empty``) never.
 SVRTK's ``-transformations`` folder is not written: it numbers slices after cropping the stacks
 to its mask, which only a run of SVRTK knows (docs/reconstruction.md gives the recipe).
 
@@ -127,7 +129,16 @@ def matched_stacks(answer: dict[str, Any], stacks: list[Path]) -> list[dict[str,
 
 
 def _chosen(stack: dict[str, Any], all_slices: bool) -> list[dict[str, Any]]:
-    return [s for s in stack.get("slices") or [] if s.get("reason") != "empty" and (all_slices or s.get("accepted"))]
+    """The slices of ``stack`` to write: those with brain that the answer trusts (a job's refined poses:
+    those the job reconstructed from, ``included``; a prediction: the accepted ones), or every one
+    with brain."""
+    return [s for s in stack.get("slices") or [] if s.get("reason") != "empty" and (all_slices or _trusted(s))]
+
+
+def _trusted(item: dict[str, Any]) -> bool:
+    """Whether the answer trusts a slice's pose: a job's verdict where it gave one (``included``),
+    else the prediction's (``accepted``)."""
+    return bool(item["included"] if "included" in item else item.get("accepted"))
 
 
 def _stack_file(path: Path, stack: dict[str, Any], read_by_qform: bool) -> tuple[nib.Nifti1Image, NDArray]:
@@ -257,8 +268,8 @@ def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None,
                                  (f"mask_{done.count}.nii.gz", None if mask is None else mask[:, :, k:k + 1].astype(np.uint8))):
                 if values is not None:
                     _write_nifti(values, a, folder / name)
-            expected = item.get("expected_error_mm")
-            rows.append(f"{done.count}\t{s}\t{path.name}\t{k}\t{int(bool(item.get('accepted')))}\t"
+            expected = item.get("refined_expected_error_mm", item.get("expected_error_mm"))   # a job's, where refined
+            rows.append(f"{done.count}\t{s}\t{path.name}\t{k}\t{int(_trusted(item))}\t"
                         f"{'nan' if expected is None else f'{float(expected):.3f}'}")
             done.count += 1
     if to == "nesvor":

@@ -92,12 +92,13 @@ class Transport:
     """Requests to one server with the client's headers and retry policy (see :class:`~client.SVRnetClient`
     for the arguments)."""
 
-    def __init__(self, base_url: str = DEFAULT_SERVER, api_key: str | None = None,
+    def __init__(self, base_url: str | None = None, api_key: str | None = None,
                  timeout: httpx.Timeout | float | None = DEFAULT_TIMEOUT, retries: int = 3,
                  transport: httpx.BaseTransport | None = None, *, http: httpx.Client | None = None,
                  backoff_s: float = 0.5) -> None:
         if retries < 0:
             raise ValueError("retries must be >= 0")
+        base_url = base_url or os.environ.get("SVRNET_SERVER") or DEFAULT_SERVER     # as the CLI reads it
         self.api_key = clean_api_key(api_key if api_key is not None else os.environ.get("SVRNET_API_KEY"))
         self.retries = retries
         self.backoff_s = backoff_s

@@ -174,7 +174,8 @@ def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[
                 unplaced = fit.get("branch_from_request") and not fit.get("branch_agrees_with_request")
                 hints.append(f"{stack.get('filename', '?')}: no slice accepted while the other stacks have some: " + (
                     "its slices do not tell its left-right branch and it sits with the other stacks on neither "
-                    "(without a mask, a sagittal stack can); upload its mask with --mask, or acquire it again"
+                    "(without a mask, a sagittal stack can); send masks with every stack (`svrnet masks` makes the others', "
+                    "sent with --masks-hold-csf), or acquire it again"
                     if unplaced else
                     "its poses are too uncertain or disagree with the others (motion, a signal void); acquire it "
                     "again if you need it"))

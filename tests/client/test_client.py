@@ -530,3 +530,12 @@ def test_a_small_call_waits_for_a_stuck_server_no_longer_than_half_a_minute() ->
         assert t._timeout_for(MultipartBody({}, []), False).read == 300.0     # an upload
     with Transport("http://svr.test", timeout=5.0) as t:
         assert t._timeout_for(None, False).read == 5.0                      # never longer than asked
+
+
+def test_the_server_defaults_to_svrnet_server_as_the_command_line(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("SVRNET_SERVER", "http://recon-server:8011")
+    with SVRnetClient() as svr:
+        assert svr.base_url.startswith("http://recon-server:8011")
+    monkeypatch.delenv("SVRNET_SERVER")
+    with SVRnetClient() as svr:
+        assert svr.base_url.startswith("http://127.0.0.1:8000")

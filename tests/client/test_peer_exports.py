@@ -201,6 +201,19 @@ def test_an_export_never_lies_among_an_earlier_one(case: dict, tmp_path: Path) -
     assert r.exit_code == 5 and "lies in the folder to write" in r.output and (inputs / "ax.nii.gz").exists()
 
 
+def test_a_jobs_refined_poses_are_exported_by_the_jobs_verdict(case: dict, tmp_path: Path) -> None:
+    """Of a job's refined poses, the slices the job reconstructed from (``included``) are written, with
+    their refined expected errors, whatever the prediction first said of them."""
+    refined = json.loads(json.dumps(case["answer"]))
+    for s in refined["stacks"][0]["slices"]:
+        s["included"] = s["index"] in (1, 3)                        # the job took slice 3, left the others out
+        s["refined_expected_error_mm"] = 1.25
+    done = export(refined, [case["stack"]], None, tmp_path / "out", "nesvor")
+    rows = (tmp_path / "out" / "slices.tsv").read_text().splitlines()[1:]
+    assert done.count == 2 and [r.split("\t")[3] for r in rows] == ["1", "3"]
+    assert all(r.endswith("\t1\t1.250") for r in rows)
+
+
 def test_the_cli_names_the_stacks_niftymic_must_read(tmp_path: Path) -> None:
     """A stack stored with its slices first is given to NiftyMIC as its rewritten copy, masks too; a
     file name NiftyMIC's pattern would not match is named."""
