@@ -14,14 +14,13 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import json
-import time
 
 from anyio import to_thread
 from fastapi import Response
 
 from service.api.uploads import UploadForm
 from service.core.errors import InvalidParameter, KeyReused, Saturated, ServiceError
-from service.jobs.runner import INTERRUPTED
+from service.jobs.runner import fail_abandoned
 from service.jobs.store import SUBMISSION_LEASE_S, Job, JobStore
 
 IDEMPOTENCY_HEADER = "Idempotency-Key"
@@ -93,8 +92,4 @@ def unless_abandoned(store: JobStore, job: Job) -> Job:
     and no replica has held it for :data:`~service.jobs.store.SUBMISSION_LEASE_S` (the replica that read
     it stopped), failed as interrupted, its files gone, so that the retry is told at once (and sends a
     new key), not to wait for a submission no one reads (blocking)."""
-    if (job.status == "queued" and job.submitted_at is None and time.time() - job.created_at > SUBMISSION_LEASE_S
-            and not store.submission_held(job.id) and store.fail(job.id, INTERRUPTED)):
-        store.discard_inputs(job.id)
-        return store.get(job.id) or job
-    return job
+    return (store.get(job.id) or job) if fail_abandoned(store, job, SUBMISSION_LEASE_S) else job
