@@ -68,19 +68,18 @@ def check_writable(overwrite: bool = False, **paths: Path | None) -> None:
     for option, path in paths.items():
         if path is None:
             continue
-        other = taken.setdefault(path.expanduser().resolve(), option)
+        where, hint = path.expanduser().resolve(), f"--{option.replace('_', '-')}"
+        other = taken.setdefault(where, option)
         if other != option:
             raise typer.BadParameter(f"{path} is also given to --{other.replace('_', '-')}; name each output its own "
-                                     "file", param_hint=f"--{option.replace('_', '-')}")
-        if not overwrite and path.expanduser().is_file():
-            raise typer.BadParameter(f"{path} exists; nothing was sent (--overwrite replaces it)",
-                                     param_hint=f"--{option.replace('_', '-')}")
-        folder = path.expanduser().resolve().parent
-        if not folder.is_dir() or not os.access(folder, os.W_OK):
-            raise typer.BadParameter(f"{path}: its folder {folder} does not exist or is not writable",
-                                     param_hint=f"--{option.replace('_', '-')}")
-        if path.expanduser().is_dir():
-            raise typer.BadParameter(f"{path} is a folder, not a file", param_hint=f"--{option.replace('_', '-')}")
+                                     "file", param_hint=hint)
+        if not overwrite and where.is_file():
+            raise typer.BadParameter(f"{path} exists; nothing was sent (--overwrite replaces it)", param_hint=hint)
+        if not where.parent.is_dir() or not os.access(where.parent, os.W_OK):
+            raise typer.BadParameter(f"{path}: its folder {where.parent} does not exist or is not writable",
+                                     param_hint=hint)
+        if where.is_dir():
+            raise typer.BadParameter(f"{path} is a folder, not a file", param_hint=hint)
 
 
 def check_folder_writable(option: str, folder: Path) -> None:

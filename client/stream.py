@@ -44,7 +44,8 @@ ORDERS = ("sequential", "interleaved", "interleaved-even-first", "interleaved-od
 MAX_IN_FLIGHT = 4
 """Slices sent ahead of their poses at most, so that a slow server is never buried."""
 SESSION_FULL = "/problems/session-full"
-"""The problem type of a slice refused because the session holds all it may: no later slice is taken."""
+"""The problem type of a slice refused because the session holds all the slices or memory it may:
+the client sends no more and names what is left (:attr:`StreamResult.unsent`)."""
 OPEN_TIMEOUT_S = 10.0
 MAX_MESSAGE_BYTES = 64 << 20
 """Largest message taken from the server (a ``stack`` message of a long stack is a few MB)."""
@@ -70,8 +71,8 @@ class StreamResult:
     messages: list[dict[str, Any]] = field(default_factory=list)
     summary: dict[str, Any] | None = None
     unsent: dict[str, list[int]] = field(default_factory=dict)
-    """Per stack, the slices the session could not take (the server's session was full: its slices,
-    stacks or memory), in index order; send them in another session."""
+    """Per stack, the slices the session could not take (the server's session held all the slices or
+    memory it may), in index order; send them in another session."""
 
     def of_type(self, kind: str) -> list[dict[str, Any]]:
         """The messages of one type (``pose``, ``update``, ``stack``, ``error`` ...), in order."""
