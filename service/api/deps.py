@@ -18,7 +18,7 @@ from service.api.metrics import Metrics
 from service.core.cancellation import cancelled_by
 from service.core.errors import (ClientGone, ForeignOrigin, InvalidParameter, QueueFull, Saturated, ServiceError,
                                  Unauthorized)
-from service.core.settings import Settings
+from service.core.settings import Settings, plain_origin
 from service.inference.registry import ModelRegistry
 from service.preprocess.localise import Localiser, Localisers
 
@@ -94,8 +94,8 @@ def origin_ok(settings: Settings, headers: dict[str, str]) -> bool:
     origin = headers.get("origin")
     if origin is None or settings.key_set():
         return True
-    origin = _plain_origin(origin)
-    allowed = {_plain_origin(o) for o in settings.origin_set()}
+    origin = plain_origin(origin)
+    allowed = settings.origin_set()
     if "*" in allowed or origin in allowed:
         return True
     try:
@@ -105,20 +105,6 @@ def origin_ok(settings: Settings, headers: dict[str, str]) -> bool:
     except ValueError:
         return False
     return at_address and parts.scheme in ("http", "https") and parts.netloc == headers.get("host", "").lower()
-
-
-def _plain_origin(origin: str) -> str:
-    """An origin as browsers send it: lower case, no trailing slash, no default port.
-
-    Example:
-        >>> _plain_origin("HTTPS://Viewer.example:443/"), _plain_origin("http://127.0.0.1:8000")
-        ('https://viewer.example', 'http://127.0.0.1:8000')
-    """
-    origin = origin.strip().rstrip("/").lower()
-    for scheme, port in (("https://", ":443"), ("http://", ":80")):
-        if origin.startswith(scheme) and origin.endswith(port):
-            return origin[: -len(port)]
-    return origin
 
 
 FOREIGN_ORIGIN = ("Origin: this server serves browser pages of its own address only; list the page's origin "

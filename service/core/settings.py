@@ -197,11 +197,25 @@ class Settings(BaseSettings):
         return max(self.max_admitted or 2 * self.max_concurrent, self.max_concurrent)
 
     def origin_set(self) -> set[str]:
-        """The origins of :attr:`allowed_origins`, without a trailing slash, in lower case."""
-        return {o.strip().rstrip("/").lower() for o in self.allowed_origins.split(",") if o.strip()}
+        """The origins of :attr:`allowed_origins`, as browsers send them (:func:`plain_origin`)."""
+        return {plain_origin(o) for o in self.allowed_origins.split(",") if o.strip()}
 
     def key_set(self) -> set[str]:
         return {k.strip() for k in self.api_keys.split(",") if k.strip()}
+
+
+def plain_origin(origin: str) -> str:
+    """An origin as browsers send it: lower case, no trailing slash, no default port.
+
+    Example:
+        >>> plain_origin("HTTPS://Viewer.example:443/"), plain_origin("http://127.0.0.1:8000")
+        ('https://viewer.example', 'http://127.0.0.1:8000')
+    """
+    origin = origin.strip().rstrip("/").lower()
+    for scheme, port in (("https://", ":443"), ("http://", ":80")):
+        if origin.startswith(scheme) and origin.endswith(port):
+            return origin[: -len(port)]
+    return origin
 
 
 def load_settings(prog: str, *, needs_default_model: bool = True, **given: object) -> Settings:
