@@ -20,7 +20,6 @@ from fastapi import Response
 
 from service.api.uploads import UploadForm
 from service.core.errors import InvalidParameter, KeyReused, Saturated, ServiceError
-from service.jobs.runner import fail_abandoned
 from service.jobs.store import SUBMISSION_LEASE_S, Job, JobStore
 
 IDEMPOTENCY_HEADER = "Idempotency-Key"
@@ -92,4 +91,4 @@ def unless_abandoned(store: JobStore, job: Job) -> Job:
     and no replica has held it for :data:`~service.jobs.store.SUBMISSION_LEASE_S` (the replica that read
     it stopped), failed as interrupted, its files gone, so that the retry is told at once (and sends a
     new key), not to wait for a submission no one reads (blocking)."""
-    return (store.get(job.id) or job) if fail_abandoned(store, job, SUBMISSION_LEASE_S) else job
+    return (store.get(job.id) or job) if store.fail_abandoned(job, SUBMISSION_LEASE_S) else job

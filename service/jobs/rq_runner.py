@@ -33,7 +33,7 @@ from rq.registry import clean_registries
 from service.core.process_pools import watch_parent
 from service.core.settings import Settings
 from service.jobs.redis_store import RedisJobStore
-from service.jobs.runner import JobRunner, fail_abandoned, lost_worker
+from service.jobs.runner import JobRunner, lost_worker
 from service.jobs.store import SUBMISSION_LEASE_S, Job
 from service.jobs.worker import TIMED_OUT, run_job
 
@@ -166,7 +166,7 @@ class RqRunner(JobRunner):
             if job is None:
                 continue
             if job.submitted_at is None:   # being stored by a replica, or orphaned when it stopped
-                if fail_abandoned(self.store, job, self.submit_grace_s):
+                if self.store.fail_abandoned(job, self.submit_grace_s):
                     failed.append(job_id)
                 continue
             try:

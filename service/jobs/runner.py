@@ -3,16 +3,11 @@ one), and how a worker process starts."""
 
 from __future__ import annotations
 
-import time
 from abc import ABC, abstractmethod
-from typing import TYPE_CHECKING
 
 from service.core import logging as service_logging
 from service.core.process_pools import watch_parent
 from service.core.threads import limit_blas_threads
-
-if TYPE_CHECKING:
-    from service.jobs.store import Job, JobStore
 
 
 class JobRunner(ABC):
@@ -56,18 +51,6 @@ class JobRunner(ABC):
 
 INTERRUPTED = "the submission was interrupted before the job was queued (the server stopped); submit again"
 """A job's ``error`` when the API that stored it stopped before its uploads were complete."""
-
-
-def fail_abandoned(store: JobStore, job: Job, grace_s: float) -> bool:
-    """Fail ``job`` as :data:`INTERRUPTED` and discard its uploads where its submission was left half
-    done: queued, never handed to the queue, made over ``grace_s`` ago, and held by no replica
-    (:meth:`~service.jobs.store.JobStore.submission_held`: the replica that read it stopped); whether
-    it was. A retry with the job's key and the queue's upkeep both ask this."""
-    if (job.status == "queued" and job.submitted_at is None and time.time() - job.created_at > grace_s
-            and not store.submission_held(job.id) and store.fail(job.id, INTERRUPTED)):
-        store.discard_inputs(job.id)
-        return True
-    return False
 
 
 def lost_worker(max_attempts: int) -> str:

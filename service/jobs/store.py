@@ -36,7 +36,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from service.core.errors import StoreUnavailable
-from service.jobs.runner import lost_worker
+from service.jobs.runner import INTERRUPTED, lost_worker
 
 log = logging.getLogger(__name__)
 
@@ -125,6 +125,17 @@ class JobStore(ABC):
         submission; without, a job never handed to the queue was left by a replica that stopped. The
         embedded store's server is the only one, and its restart recovers such jobs: always true."""
         return True
+
+    def fail_abandoned(self, job: Job, grace_s: float) -> bool:
+        """Fail ``job`` as :data:`~service.jobs.runner.INTERRUPTED`, its uploads discarded, where its
+        submission was left half done: queued, never handed to the queue, made over ``grace_s`` ago
+        and held by no replica (:meth:`submission_held`); whether it was. A keyed retry and the queue's
+        upkeep both ask this."""
+        if (job.status == "queued" and job.submitted_at is None and time.time() - job.created_at > grace_s
+                and not self.submission_held(job.id) and self.fail(job.id, INTERRUPTED)):
+            self.discard_inputs(job.id)
+            return True
+        return False
 
     def is_cancelled(self, job_id: str) -> bool:
         job = self.get(job_id)

@@ -672,7 +672,7 @@ def test_a_retry_of_a_submission_its_replica_abandoned_is_told_at_once(client: T
     """A replica stopped while it read a keyed submission: the job was stored, never queued. A retry
     with the key waits while a replica holds the submission, and once none has for the lease the job
     is failed as interrupted and the retry gets it at once, not a 503 for an hour."""
-    from service.jobs import runner
+    from service.jobs import store as store_module
     from service.jobs.store import SUBMISSION_LEASE_S
 
     key = "k-7777777777777777"
@@ -680,7 +680,7 @@ def test_a_retry_of_a_submission_its_replica_abandoned_is_told_at_once(client: T
     orphan = store.create({"idempotency_key": idempotency.idempotency_digest(key)})
     store.hold_submission(orphan.id)                            # its replica still reading it
     later = time.time() + SUBMISSION_LEASE_S + 1
-    monkeypatch.setattr(runner.time, "time", lambda: later)
+    monkeypatch.setattr(store_module.time, "time", lambda: later)
     assert submit(client, case, headers={"Idempotency-Key": key}).status_code == 503
     store.redis.delete(f"{store.prefix}submitting:{orphan.id}")   # the replica stopped: no renewal
     r = submit(client, case, headers={"Idempotency-Key": key})
