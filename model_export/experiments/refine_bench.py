@@ -36,7 +36,7 @@ from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
 from model_export.calibrate_noise import acquire
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, run_acquisition
 from model_export.experiments.frame_bias import midline_offset
-from model_export.experiments.scanner_sweep import with_signal_loss
+from model_export.experiments.scanner_sweep import with_shading, with_signal_loss
 from model_export.volume_metrics import volume_psnr_ncc
 from service.api.responses import stack_objects
 from service.geometry import se3, twin
@@ -47,6 +47,7 @@ from service.inference.model_file import load_model
 from service.jobs.uploaded_poses import expected_errors
 from service.jobs.worker import MIN_ACCEPTED_SHARE, starting_poses
 from service.reconstruction.atlas_frame import atlas_frame, with_frame
+from service.reconstruction.job import bias_corrected_stacks
 from service.reconstruction.left_out import LeftOutPlacement, VolumeReference, place_left_out
 from service.reconstruction.midline import midline_fit
 from service.reconstruction.never_worse import held_out_score, reconstruct_never_worse
@@ -122,6 +123,7 @@ VARIANTS: dict[str, dict] = {
     "no-anchor": {"anchor_frame": False},                # the slices' common drift kept
     "file-grids": {"stack_follow_motion_mm": float("inf")},
     "no-register": {"register": False},                  # super-resolution at the starting poses
+    "no-intensity": {"intensity_matching": False},       # one scale per stack, no slice's gain or shading
     "slice-level": {"coarse_to_fine": False},            # steps 4-5 alone, and each without one of its parts
     "slice-level-no-folds": {"coarse_to_fine": False, "leave_out_folds": 1},
     "slice-level-no-anchor": {"coarse_to_fine": False, "anchor_frame": False},
@@ -133,10 +135,14 @@ VARIANTS: dict[str, dict] = {
     "job-one-resolution": {},                            # the same, its paths at the output resolution
     "job-path-left-out": {},                             # the job, its left-out slices from the path's poses
     "job-with-signal-lost": {},                          # the job, started with the slices that lost their signal
+    "job-no-intensity": {"intensity_matching": False},   # the job without the slices' gains and shading
+    "job-raw-stacks": {},                                # the job on the stacks as acquired (no N4)
+    "job-raw-stacks-no-intensity": {"intensity_matching": False},   # neither: a job before 2026-12-05
 }
 """Each variant's :class:`ReconstructionConfig` fields (beside the model's symmetry plane)."""
 JOBS: dict[str, dict] = {"job": {}, "job-one-resolution": {"path_resolution_mm": None}, "job-path-left-out": {},
-                         "job-with-signal-lost": {}}
+                         "job-with-signal-lost": {}, "job-no-intensity": {},
+                         "job-raw-stacks": {}, "job-raw-stacks-no-intensity": {}}
 """The variants that run a job's paths (:func:`reconstruct_never_worse`), and its keywords."""
 
 
@@ -171,6 +177,9 @@ def main() -> None:
     ap.add_argument("--variants", default="default", help=f"comma-separated, of {', '.join(VARIANTS)}")
     ap.add_argument("--signal-loss", action="store_true", help="a signal loss over the brain in a run of slices of "
                     "every stack (scanner_sweep.with_signal_loss)")
+    ap.add_argument("--shading", type=float, default=0.0, help="a linear field of +-this share across each "
+                    "stack's brain, another direction per stack (scanner_sweep.with_shading)")
+    ap.add_argument("--slice-gain", type=float, default=0.0, help="each slice's own gain, exp(N(0, this))")
     ap.add_argument("--midline", action="store_true", help="also twin-min against the truth moved so that the "
                     "brain's own midline lies on the atlas plane (frame_bias.py's part 3)")
     args = ap.parse_args()
@@ -190,19 +199,23 @@ def main() -> None:
             stacks = acquire(vol, rng, level, pixel_mm=args.pixel_mm, noise=args.noise,
                              **({} if args.bias is None else {"bias": args.bias}))
             stacks = with_signal_loss(stacks, rng) if args.signal_loss else stacks
+            if args.shading or args.slice_gain:
+                stacks = with_shading(stacks, rng, args.shading, args.slice_gain)
             (predictions,), prepared, _ = run_acquisition(stacks, est, 100, True)
             if args.midline and vol.name not in midlines:
                 midlines[vol.name] = about_centre(midline_offset(vol), vol.centre)
             mid = midlines.get(vol.name)
             body = {"stacks": stack_objects(predictions)}
             masks = [p.slices.to_stack(p.slices.masks) for p in prepared]
+            corrected = bias_corrected_stacks([s.volume for s in stacks], masks)   # as a job's worker does
             for name in variants:
                 variant, _, share = name.partition("@")
                 poses = starting_poses(body, float(share or shares[0]),
                                        keep_signal_lost=variant == "job-with-signal-lost")
                 if args.start == "truth":
                     poses = [(s.atlas_from_voxel, inc) for s, (_, inc) in zip(stacks, poses)]
-                inputs = [(s.volume, m, mats, inc) for s, m, (mats, inc) in zip(stacks, masks, poses)]
+                volumes = [s.volume for s in stacks] if variant.startswith("job-raw-stacks") else corrected
+                inputs = [(v, m, mats, inc) for v, m, (mats, inc) in zip(volumes, masks, poses)]
                 ss = SliceSet.from_stacks(inputs)
                 if name == variants[0]:
                     rows["predicted"].append(errors(stacks, prepared, ss.atlas_from_voxel, plane, mid))

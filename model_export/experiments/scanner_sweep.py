@@ -121,6 +121,31 @@ def with_signal_loss(stacks: list[SimulatedStack], rng: np.random.Generator) -> 
     return out
 
 
+
+def with_shading(stacks: list[SimulatedStack], rng: np.random.Generator, field: float,
+                 gain_sd: float = 0.0) -> list[SimulatedStack]:
+    """The stacks of one acquisition with intensities a coil and a single-shot sequence change: a
+    linear field over each stack, ``1 +- field`` across its brain along a random direction (another
+    per stack: slices through it differ in gain and are shaded across), and each slice's own gain,
+    ``exp(N(0, gain_sd))``."""
+    out = []
+    for s in stacks:
+        axis = int(np.argmax(s.volume.spacing))
+        mask = s.mask.array > 0
+        direction = rng.normal(size=3)
+        direction /= np.linalg.norm(direction)
+        idx = np.indices(mask.shape).reshape(3, -1).T.astype(np.float64)
+        along = (idx @ s.volume.affine[:3, :3].T) @ direction
+        inside = along[mask.ravel()] if mask.any() else along
+        lo, hi = float(inside.min()), float(inside.max())
+        ramp = 1.0 + field * np.clip(2.0 * (along - lo) / max(hi - lo, 1e-6) - 1.0, -1.5, 1.5)
+        gains = np.exp(rng.normal(0.0, gain_sd, mask.shape[axis])) if gain_sd else np.ones(mask.shape[axis])
+        shape = [1, 1, 1]
+        shape[axis] = -1
+        array = s.volume.array * ramp.reshape(mask.shape) * gains.reshape(shape)
+        out.append(replace(s, volume=Volume(np.clip(array, 0, None).astype(np.float32), s.volume.affine)))
+    return out
+
 CONTRASTS = {
     "gamma 0.5": lambda t: t ** 0.5,
     "gamma 2": lambda t: t ** 2.0,

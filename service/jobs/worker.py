@@ -302,7 +302,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     from service.io.readers import read_upload
     from service.reconstruction.export import write_outputs
     from service.preprocess.stack import split_stack
-    from service.reconstruction.job import refine_job
+    from service.reconstruction.job import bias_corrected_stacks, refine_job
     from service.reconstruction.refined_poses import refined_poses_body
     from service.reconstruction.slices import SliceSet
 
@@ -347,7 +347,8 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         started_from = start_label(body, poses)
     progress("reconstructing", 0.15)
     known_orders = stack_orders(orders, uploads)
-    stack_inputs = [(u.volume, m, mats, acc) for u, m, (mats, acc) in zip(uploads, masks, poses)]
+    volumes = bias_corrected_stacks([u.volume for u in uploads], masks)
+    stack_inputs = [(v, m, mats, acc) for v, m, (mats, acc) in zip(volumes, masks, poses)]
     slice_set = SliceSet.from_stacks(stack_inputs)
 
     def refining(stage: str, fraction: float) -> None:

@@ -149,6 +149,7 @@ def write_outputs(result: ReconstructionResult, slices: SliceSet, folder: str | 
                                for r in sorted({x for x in (result.exclusion_reason or []) if x})},
         "mean_ncc": _num(float(np.mean(ncc))) if ncc.size else None,
         "quality": result.quality,
+        "intensity": None if result.intensity is None else result.intensity.summary(result.included),
         "shape": [int(s) for s in result.volume.array.shape],
         "resolution_mm": [float(s) for s in result.volume.spacing],
         "affine": result.volume.affine.tolist(),

@@ -9,7 +9,8 @@ super-resolution.
             from its own pose or its stack's, whichever fits the other stacks better
             (coarse_to_fine.py; only with ``config.coarse_to_fine``)
     x = GaussianAverage(slices at the starting poses)
-    round 0: W = robust weights of s - A x;  x = SR(x, lambda_initial)     (smooth sharpening)
+    round 0: g = slice intensities onto A x; W = robust weights of g s - A x;
+             x = SR(x, lambda_initial)                                  (smooth sharpening)
     rounds 1..svr_iterations:
         poses = register all slices to x                   (registration.py; by folds of stacks,
                                                             each to x re-solved without that fold;
@@ -17,8 +18,9 @@ super-resolution.
                                                             radius against a blurred x)
         poses = anchor_frame(poses)                        (no common rigid drift)
         A = forward model at the new poses                 (forward.py)
-        W = EM inlier probabilities x slice weights of s - A x   (robust.py)
-        x = CG on (A^T W A + lambda D^T Omega D) x = A^T W s      (superresolution.py)
+        g = each slice's gain and shading onto A x         (intensity.py)
+        W = EM inlier probabilities x slice weights of g s - A x   (robust.py)
+        x = CG on (A^T W A + lambda D^T Omega D) x = A^T W g s    (superresolution.py)
 
 Registering against the Gaussian average itself would bias the poses (a blurred target pulls the
 slices inwards), hence round 0. Leaving a slice's own stacks out of the volume it is registered to
@@ -43,7 +45,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -55,6 +57,7 @@ from service.reconstruction.coarse_to_fine import START_OWN, CoarseAlignment, co
 from service.reconstruction.forward import ForwardModel, inplane_sigma_mm
 from service.reconstruction.gaussian_average import compact_brain, gaussian_average
 from service.reconstruction.grid import Grid, bounds_of, bounds_within, make_grid
+from service.reconstruction.intensity import SliceIntensity, fit_intensity
 from service.reconstruction.registration import anchor_frame, register_slices
 from service.reconstruction.quality import (exclusion_reasons, held_out_groups, held_out_ncc, judged_slices,
                                            quality_report, slice_ncc)
@@ -136,6 +139,8 @@ class ReconstructionConfig:
         registration_prior_sd_mm: hold each slice near its starting pose in registration, this far
             expected (mm == degrees; :func:`~service.reconstruction.registration.register_slices`'s
             ``prior``); ``None``: no prior.
+        intensity_matching: fit each slice's gain and in-plane shading against the volume in every
+            round (:mod:`~service.reconstruction.intensity`; False: one scale per stack).
         quality: measure the result without ground truth (:mod:`~service.reconstruction.quality`;
             its leave-one-stack-out volumes cost a few CG iterations per stack).
     """
@@ -169,6 +174,7 @@ class ReconstructionConfig:
     robust: bool = True
     robust_tolerance: float = 3.0
     exclude_ratio: float = 0.5
+    intensity_matching: bool = True
     quality: bool = True
     registration_prior_sd_mm: float | None = None
 
@@ -195,6 +201,7 @@ class ReconstructionResult:
         coarse: the coarse alignment (``None`` when not run).
         quality: the report of :func:`~service.reconstruction.quality.quality_report` (``None`` when off).
         held_out_ncc: ``[n]`` each slice's NCC with the volume solved without its stack (NaN: not measured).
+        intensity: each slice's intensity correction of the last round (``None``: not fitted).
     """
 
     volume: Volume
@@ -208,6 +215,7 @@ class ReconstructionResult:
     coarse: CoarseAlignment | None = None
     quality: dict | None = None
     held_out_ncc: NDArray[np.float64] | None = None
+    intensity: SliceIntensity | None = None
 
 
 def capture(cfg: ReconstructionConfig, round_index: int, slices: SliceSet,
@@ -333,6 +341,8 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
     included = slice_set.include.copy()
     model = None
     pixel_weight = slice_weight[sid].astype(np.float32)
+    inlier = np.ones(slice_set.n_pixels, np.float32)        # the robust inlier probabilities of the last round
+    observed, intensity = slice_set, None                    # the slices as acquired; their last correction
     poor = np.zeros(n, bool)
     restarted = np.zeros(n, bool)
     counts = slice_set.pixel_counts()             # the NCC of a slice with a few pixels at the edge says little
@@ -357,14 +367,19 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
         stage(f"robust weighting {it}/{rounds}")
         t0 = time.perf_counter()
         model = ForwardModel(slice_set, poses, grid, psf_points=cfg.psf_points)
+        simulated = model.forward(x) if cfg.robust or cfg.intensity_matching else None
+        if cfg.intensity_matching:
+            intensity = fit_intensity(observed, simulated, observed.values, inlier * (slice_weight[sid] > 0),
+                                      included)
+            slice_set = replace(observed, values=observed.values * intensity.factor(observed))
         if cfg.robust:
-            simulated = model.forward(x)
             rw = robust_weights(slice_set.values - simulated, sid, n, ratio=cfg.exclude_ratio,
                                 candidates=slice_set.include, tolerance=cfg.robust_tolerance)
             poor = ncc_outliers(slice_ncc(simulated, slice_set.values, sid, n), judged)
             rw.slice_weight[poor] = 0.0
             included = slice_set.include & ~rw.excluded & ~poor
             slice_weight = rw.slice_weight
+            inlier = rw.pixel_weight
             pixel_weight = rw.pixel_weight * slice_weight[sid].astype(np.float32)
         timings["robust"] += time.perf_counter() - t0
 
@@ -400,4 +415,4 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
     reasons = exclusion_reasons(slice_set.include, included, None if coarse is None else coarse.fit.inlier)
     return ReconstructionResult(Volume(x.astype(np.float32), grid.affine.copy()), poses,
                                 np.where(included, slice_weight, 0.0), included, ncc, timings, grid, reasons, coarse,
-                                quality, held_out)
+                                quality, held_out, intensity)
