@@ -55,7 +55,8 @@ from service.core.machine import cpu_description  # noqa: E402
 from service.geometry import se3  # noqa: E402
 from service.geometry.pose import make_pose  # noqa: E402
 from service.io.volume import Volume, read_volume  # noqa: E402
-from service.reconstruction.pipeline import ReconstructionConfig, reconstruct  # noqa: E402
+from service.reconstruction.config import ReconstructionConfig  # noqa: E402
+from service.reconstruction.pipeline import reconstruct  # noqa: E402
 from service.reconstruction.registration import anchor_frame  # noqa: E402
 from service.reconstruction.slices import SliceSet  # noqa: E402
 from tests.support.phantoms import phantom_brain, stack_affine  # noqa: E402

@@ -50,7 +50,8 @@ from service.geometry import se3  # noqa: E402
 from service.geometry.pose import apply  # noqa: E402
 from service.geometry.sampling import sample_points  # noqa: E402
 from service.io.volume import Volume  # noqa: E402
-from service.reconstruction.pipeline import ReconstructionConfig, reconstruct  # noqa: E402
+from service.reconstruction.config import ReconstructionConfig  # noqa: E402
+from service.reconstruction.pipeline import reconstruct  # noqa: E402
 from service.reconstruction.slices import SliceSet  # noqa: E402
 
 HERE = Path(__file__).resolve().parent

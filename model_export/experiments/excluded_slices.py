@@ -34,7 +34,8 @@ from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
 from service.inference.model_file import load_model  # noqa: E402
 from service.jobs.worker import MIN_ACCEPTED_SHARE, starting_poses  # noqa: E402
 from service.reconstruction.forward import inplane_sigma_mm  # noqa: E402
-from service.reconstruction.pipeline import ReconstructionConfig, reconstruct  # noqa: E402
+from service.reconstruction.config import ReconstructionConfig  # noqa: E402
+from service.reconstruction.pipeline import reconstruct  # noqa: E402
 from service.reconstruction.registration import register_slices  # noqa: E402
 from service.reconstruction.slices import SliceSet  # noqa: E402
 

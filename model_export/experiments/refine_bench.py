@@ -51,7 +51,8 @@ from service.reconstruction.job import bias_corrected_stacks
 from service.reconstruction.left_out import LeftOutPlacement, VolumeReference, place_left_out
 from service.reconstruction.midline import midline_fit
 from service.reconstruction.never_worse import held_out_score, reconstruct_never_worse
-from service.reconstruction.pipeline import ReconstructionConfig, reconstruct
+from service.reconstruction.config import ReconstructionConfig
+from service.reconstruction.pipeline import reconstruct
 from service.reconstruction.slices import SliceSet
 
 

@@ -10,10 +10,12 @@ Modules:
     * :mod:`~service.reconstruction.forward` -- PSF acquisition model ``A`` and ``A^T``;
     * :mod:`~service.reconstruction.registration` -- batched rigid slice-to-volume registration (NCC);
     * :mod:`~service.reconstruction.robust` -- EM outlier rejection of pixels and slices;
+    * :mod:`~service.reconstruction.intensity` -- each slice's gain and shading matched to the volume;
     * :mod:`~service.reconstruction.superresolution` -- CG super-resolution, edge-preserving prior;
     * :mod:`~service.reconstruction.stack_rigid` -- one robust, twin-aware rigid transform per stack;
     * :mod:`~service.reconstruction.stack_registration` -- stack-to-stack registration, 4 -> 2 -> 1 mm;
     * :mod:`~service.reconstruction.coarse_to_fine` -- the coarse steps and each slice's starting pose;
+    * :mod:`~service.reconstruction.config` -- :class:`ReconstructionConfig`, every stage's settings;
     * :mod:`~service.reconstruction.pipeline` -- :func:`reconstruct`, the whole loop;
     * :mod:`~service.reconstruction.quality` -- the quality report without ground truth;
     * :mod:`~service.reconstruction.never_worse` -- the paths a job tries, the best one kept;
@@ -30,12 +32,8 @@ Usage::
     report = export.write_outputs(result, ss, out_dir)
 """
 
-from service.reconstruction.pipeline import (
-    Cancelled,
-    ReconstructionConfig,
-    ReconstructionResult,
-    reconstruct,
-)
+from service.reconstruction.config import ReconstructionConfig
+from service.reconstruction.pipeline import Cancelled, ReconstructionResult, reconstruct
 from service.reconstruction.slices import SliceSet
 
 __all__ = ["Cancelled", "ReconstructionConfig", "ReconstructionResult", "SliceSet", "reconstruct"]

@@ -23,7 +23,8 @@ from service.reconstruction.atlas_frame import FrameFit, atlas_frame, with_frame
 from service.reconstruction.left_out import LeftOutPlacement, VolumeReference, place_left_out
 from service.reconstruction.midline import FrameCorrection, midline_fit
 from service.reconstruction.never_worse import coherence_score, held_out_score, reconstruct_never_worse, stack_held_out
-from service.reconstruction.pipeline import ReconstructionConfig, ReconstructionResult
+from service.reconstruction.config import ReconstructionConfig
+from service.reconstruction.pipeline import ReconstructionResult
 from service.reconstruction.pose_errors import refined_expected_errors, refined_summary, roles
 from service.reconstruction.slices import SliceSet, StackInput
 

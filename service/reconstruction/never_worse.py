@@ -64,7 +64,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from service.reconstruction.grid import bounds_of, bounds_within
-from service.reconstruction.pipeline import Progress, ReconstructionConfig, ReconstructionResult, reconstruct
+from service.reconstruction.config import ReconstructionConfig
+from service.reconstruction.pipeline import Progress, ReconstructionResult, reconstruct
 from service.reconstruction.quality import exclusion_reasons, incoherent
 from service.reconstruction.slices import SliceSet
 

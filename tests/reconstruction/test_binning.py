@@ -15,7 +15,8 @@ from service.geometry import se3
 from service.geometry.pose import make_pose
 from service.io.volume import Volume
 from service.reconstruction.forward import inplane_sigma_mm
-from service.reconstruction.pipeline import ReconstructionConfig, reconstruct
+from service.reconstruction.config import ReconstructionConfig
+from service.reconstruction.pipeline import reconstruct
 from service.reconstruction.slices import SliceSet, inplane_bin_factors
 
 GRADIENT = np.array([0.7, -1.3, 2.1])

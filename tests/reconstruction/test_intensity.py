@@ -10,7 +10,8 @@ import pytest
 
 from service.io.volume import Volume
 from service.reconstruction.intensity import MIN_PIXELS, fit_intensity, in_plane_mm
-from service.reconstruction.pipeline import ReconstructionConfig, reconstruct
+from service.reconstruction.config import ReconstructionConfig
+from service.reconstruction.pipeline import reconstruct
 from tests.reconstruction.helpers import pose_error_mm, psnr_ncc, reference_on
 
 

@@ -7,7 +7,8 @@ import numpy as np
 from service.io.volume import Volume
 from service.reconstruction import never_worse
 from service.reconstruction.grid import make_grid
-from service.reconstruction.pipeline import ReconstructionConfig, ReconstructionResult
+from service.reconstruction.config import ReconstructionConfig
+from service.reconstruction.pipeline import ReconstructionResult
 from service.reconstruction.slices import SliceSet
 
 

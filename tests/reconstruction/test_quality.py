@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 
 from service.geometry.pose import translate
-from service.reconstruction.pipeline import ReconstructionConfig, reconstruct
+from service.reconstruction.config import ReconstructionConfig
+from service.reconstruction.pipeline import reconstruct
 from service.reconstruction.quality import MIN_ALTERNATE_NCC, quality_report
 from service.reconstruction.slices import SliceSet
 from tests.reconstruction.helpers import perturb

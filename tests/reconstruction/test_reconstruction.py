@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.reconstruction.pipeline import Cancelled, ReconstructionConfig, reconstruct
+from service.reconstruction.config import ReconstructionConfig
+from service.reconstruction.pipeline import Cancelled, reconstruct
 from service.reconstruction.slices import SliceSet
 from tests.reconstruction.helpers import perturb, pose_error_mm, psnr_ncc, reference_on
 

@@ -7,7 +7,8 @@ import pytest
 
 from service.io.volume import Volume
 from service.reconstruction.forward import ForwardModel
-from service.reconstruction.pipeline import ReconstructionConfig, reconstruct
+from service.reconstruction.config import ReconstructionConfig
+from service.reconstruction.pipeline import reconstruct
 from service.reconstruction.robust import em_inliers, robust_weights
 from service.reconstruction.slices import SliceSet
 from tests.reconstruction.helpers import CENTRE, psnr_ncc, reference_on, rigid_about
