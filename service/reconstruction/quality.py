@@ -11,7 +11,9 @@ Two measures, both from the acquired slices themselves:
   volume: a few conjugate-gradient iterations from the full volume keep the left-out stack's imprint
   wherever no other stack reaches, and slices piled where only their own stack lies then predict
   themselves. A volume that only echoes its own slices, or stacks that disagree, score well on
-  agreement and badly here: it measures whether the stacks predict each other. Reported: the median
+  agreement and badly here: it measures whether the stacks predict each other. The left-out
+  slices are judged as acquired: their intensity matching (:mod:`~service.reconstruction.intensity`)
+  was fitted to a volume that held them, and NCC needs no gain. Reported: the median
   per stack and over all slices, and whether that median reaches :data:`MIN_HELD_OUT_NCC`
   (``coherent``: false for a volume that is no coherent brain).
 * **leave alternate slices out**, with one stack: its slices agree with a volume made of themselves
