@@ -19,11 +19,11 @@ from service.reconstruction.superresolution import DEFAULT_DELTA_FRACTION, DEFAU
 
 @dataclass
 class ReconstructionConfig:
-    """Tuning of :func:`reconstruct` (the defaults are what the benchmark and the tests use).
+    """Tuning of :func:`~service.reconstruction.pipeline.reconstruct` (the defaults are what the benchmark and the tests use).
 
     Attributes:
         inplane_binning: average 2 x 2 in-plane pixel blocks of slices whose pixels are at most
-            ``bin_below_fraction`` of the output voxel size (:meth:`SliceSet.binned`) before anything
+            ``bin_below_fraction`` of the output voxel size (:meth:`~service.reconstruction.slices.SliceSet.binned`) before anything
             else: a 0.55 mm pixel is finer than a 0.8 mm grid resolves, and every stage costs in
             proportion to the pixels (real size: 1.4 M pixels -> 0.36 M).
         bin_below_fraction: see ``inplane_binning``.
@@ -58,7 +58,7 @@ class ReconstructionConfig:
         slice_orders: per stack, what is known of its acquisition order
             (:class:`~service.consistency.slice_order.SliceOrder`; ``None``: the stage chooses).
         capture_schedule: ``(trust radius mm, extra blur sigma mm)`` of the first registration rounds
-            when the coarse step found the predictions coarse (see :func:`capture`)
+            when the coarse step found the predictions coarse (see :func:`~service.reconstruction.pipeline.capture`)
             (wide capture range against a blurred volume); later rounds use
             ``registration_step_mm`` and the forward model's blur.
         psf_points: through-plane PSF points of the super-resolution forward model.

@@ -69,15 +69,22 @@ class RefinedJob:
 
 def bias_corrected_stacks(volumes: Sequence[Volume], masks: Sequence[NDArray]) -> list[Volume]:
     """Each stack as a job reconstructs it: its coil's bias field taken out by N4 over its brain
-    (:func:`~service.preprocess.bias.n4_correct`, as ``/v1/predict`` prepares the network's slices);
-    a stack without brain pixels as it is.
+    (:func:`~service.preprocess.bias.n4_correct` fitted over ``masks``, the brain the job
+    reconstructs); a stack without brain pixels as it is.
 
     A field fixed in the scanner is smooth in the stack's voxel grid however the fetus moves, and
     changes each stack's brightness across the brain along another direction: the stacks then
     disagree with each other by more than their anatomy, and the stack-to-stack registration,
-    which compares whole stacks, follows the fields (+-30 % across a simulated brain moved stacks
-    started at their true poses by 24-31 mm). What N4 leaves, a gain per slice and the shading
-    the motion adds, is the per-slice intensity matching's (:mod:`~service.reconstruction.intensity`).
+    which compares whole stacks, follows the fields (docs/reconstruction.md, "What a job does").
+    What N4 leaves, a gain per slice and the shading the motion adds, is the per-slice intensity
+    matching's (:mod:`~service.reconstruction.intensity`).
+
+    Args:
+        volumes: the stacks as uploaded.
+        masks: each stack's brain on its grid (nonzero: brain).
+
+    Returns:
+        The corrected stacks, on the same grids with the same headers.
 
     Example (a stack shaded from one side to the other comes back nearly flat):
         >>> import numpy as np

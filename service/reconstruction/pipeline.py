@@ -260,8 +260,9 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
         model = ForwardModel(slice_set, poses, grid, psf_points=cfg.psf_points)
         simulated = model.forward(x) if cfg.robust or cfg.intensity_matching else None
         if cfg.intensity_matching:
-            intensity = fit_intensity(observed, simulated, observed.values, inlier * (slice_weight[sid] > 0),
-                                      included)
+            # every candidate slice, the excluded ones too: judged against matched slices at their own
+            # intensities, a slice of another gain would stay an outlier wherever registration put it
+            intensity = fit_intensity(observed, simulated, observed.values, inlier, observed.include)
             slice_set = replace(observed, values=observed.values * intensity.factor(observed))
         if cfg.robust:
             rw = robust_weights(slice_set.values - simulated, sid, n, ratio=cfg.exclude_ratio,

@@ -68,6 +68,9 @@ def test_listing_report_volume_and_preview(written):
 
     report = json.loads((folder / "report.json").read_text())
     assert report["n_slices"] == ss.n_slices == len(report["slices"])
+    assert report["intensity"] == result.intensity.summary(result.included)     # equal gains: about 1
+    assert 0 < report["intensity"]["slices"] <= report["n_included"]
+    assert 0.8 < report["intensity"]["gain_p5_p95"][0] <= 1.0 <= report["intensity"]["gain_p5_p95"][1] < 1.25
     entry = report["slices"][20 + 3]
     assert (entry["stack"], entry["slice"], entry["included"], entry["ncc"]) == (1, 3, False, None)
     assert summary["n_not_used"] >= 1 and summary["n_included"] == int(result.included.sum())
