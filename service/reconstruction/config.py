@@ -19,13 +19,15 @@ from service.reconstruction.superresolution import DEFAULT_DELTA_FRACTION, DEFAU
 
 @dataclass
 class ReconstructionConfig:
-    """Tuning of :func:`~service.reconstruction.pipeline.reconstruct` (the defaults are what the benchmark and the tests use).
+    """Tuning of :func:`~service.reconstruction.pipeline.reconstruct` (the defaults are what the
+    benchmark and the tests use).
 
     Attributes:
         inplane_binning: average 2 x 2 in-plane pixel blocks of slices whose pixels are at most
-            ``bin_below_fraction`` of the output voxel size (:meth:`~service.reconstruction.slices.SliceSet.binned`) before anything
-            else: a 0.55 mm pixel is finer than a 0.8 mm grid resolves, and every stage costs in
-            proportion to the pixels (real size: 1.4 M pixels -> 0.36 M).
+            ``bin_below_fraction`` of the output voxel size
+            (:meth:`~service.reconstruction.slices.SliceSet.binned`) before anything else: a 0.55 mm
+            pixel is finer than a 0.8 mm grid resolves, and every stage costs in proportion to the
+            pixels (real size: 1.4 M pixels -> 0.36 M).
         bin_below_fraction: see ``inplane_binning``.
         margin_mm: margin around the pixels' bounding box when no field of view is given.
         fov_growth_mm: when no field of view is given, it reaches at most this much beyond the

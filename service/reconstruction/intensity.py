@@ -112,7 +112,16 @@ class SliceIntensity:
 
 
 def in_plane_mm(slices: SliceSet) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """``[N]`` each pixel's position (mm) along its slice's first and second in-plane voxel axes."""
+    """``[N]`` each pixel's position (mm) along its slice's first and second in-plane voxel axes.
+
+    Example (slices along the first voxel axis: their pixels lie along the second and third):
+        >>> from service.io.volume import Volume
+        >>> vol = Volume(np.ones((2, 3, 4), np.float32), np.diag([3.0, 1.5, 2.0, 1.0]))
+        >>> ss = SliceSet.from_stacks([(vol, None, np.repeat(vol.affine[None], 2, 0), [True, True])])
+        >>> u, v = in_plane_mm(ss)
+        >>> float(u.max()), float(v.max())
+        (3.0, 6.0)
+    """
     sid = slices.slice_id
     spacing = np.linalg.norm(slices.stack_affine[:, :3, :3], axis=1)          # [n, 3] column norms
     axis = slices.slice_axis

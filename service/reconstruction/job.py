@@ -89,7 +89,8 @@ def bias_corrected_stacks(volumes: Sequence[Volume], masks: Sequence[NDArray]) -
     Example (a stack shaded from one side to the other comes back nearly flat):
         >>> import numpy as np
         >>> ramp = np.linspace(0.7, 1.3, 32, dtype=np.float32)[:, None, None] * np.ones((32, 32, 8), np.float32)
-        >>> [flat] = bias_corrected_stacks([Volume(100 * ramp, np.diag([2.0, 2.0, 4.0, 1.0]))], [np.ones(ramp.shape, bool)])
+        >>> stack = Volume(100 * ramp, np.diag([2.0, 2.0, 4.0, 1.0]))
+        >>> [flat] = bias_corrected_stacks([stack], [np.ones(ramp.shape, bool)])
         >>> a = flat.array[4:-4, 4:-4]
         >>> bool(a.max() / a.min() < 1.2)
         True

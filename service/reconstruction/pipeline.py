@@ -298,7 +298,8 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
                                                            pixel_weight=w).volume,
                                 # each left-out slice as acquired: its shading was fitted to the volume that
                                 # held it, and NCC needs no gain
-                                lambda sim, _: slice_ncc(sim, observed.values, sid, n), float(lams[-1] if lams else cfg.lam),
+                                lambda sim, _: slice_ncc(sim, observed.values, sid, n),
+                                float(lams[-1] if lams else cfg.lam),
                                 default_delta(x, support, cfg.delta_fraction), support)
         quality = quality_report(ncc, held_out, judged_slices(included, counts), slice_set.stack_index,
                                  judged, slice_set.slice_index)
