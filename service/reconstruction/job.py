@@ -68,9 +68,10 @@ class RefinedJob:
 
 
 def bias_corrected_stacks(volumes: Sequence[Volume], masks: Sequence[NDArray]) -> list[Volume]:
-    """Each stack as a job reconstructs it: its coil's bias field taken out by N4 over its brain
-    (:func:`~service.preprocess.bias.n4_correct` fitted over ``masks``, the brain the job
-    reconstructs); a stack without brain pixels as it is.
+    """Each stack as a job reconstructs it: its coil's bias field taken out by N4
+    (:func:`~service.preprocess.bias.n4_correct`, fitted over the box around ``masks``, the brain
+    the job reconstructs, and a margin; outside the box the stack stays as uploaded); a stack
+    without brain pixels as it is.
 
     A field fixed in the scanner is smooth in the stack's voxel grid however the fetus moves, and
     changes each stack's brightness across the brain along another direction: the stacks then
