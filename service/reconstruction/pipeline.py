@@ -296,11 +296,9 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
                                 held_out_groups(slice_set.stack_index, slice_set.slice_index),
                                 lambda w: gaussian_average(slice_set, poses, grid, sigma_mm=cfg.ga_sigma_mm,
                                                            pixel_weight=w).volume,
-                                # each left-out slice as acquired: its shading was fitted to the volume that
-                                # held it, and NCC needs no gain
-                                lambda sim, _: slice_ncc(sim, observed.values, sid, n),
-                                float(lams[-1] if lams else cfg.lam),
-                                default_delta(x, support, cfg.delta_fraction), support)
+                                lambda sim, val: slice_ncc(sim, val, sid, n), float(lams[-1] if lams else cfg.lam),
+                                default_delta(x, support, cfg.delta_fraction), support,
+                                judged=observed.values)     # as acquired: the matching saw the volume
         quality = quality_report(ncc, held_out, judged_slices(included, counts), slice_set.stack_index,
                                  judged, slice_set.slice_index)
         timings["quality"] = time.perf_counter() - t0

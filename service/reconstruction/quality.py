@@ -87,12 +87,14 @@ def held_out_groups(stack_index: NDArray, slice_index: NDArray) -> NDArray[np.in
 def held_out_ncc(model: ForwardModel, values: NDArray, pixel_weight: NDArray, slice_id: NDArray,
                  stack_index: NDArray, start: Callable[[NDArray], NDArray],
                  ncc: Callable[[NDArray, NDArray], NDArray], lam: float, delta: float, support: NDArray | None,
-                 iterations: int = HELD_OUT_ITERATIONS) -> NDArray[np.float64]:
+                 iterations: int = HELD_OUT_ITERATIONS, judged: NDArray | None = None) -> NDArray[np.float64]:
     """``[n]``: each slice's NCC against the volume solved without its stack's pixels (NaN where
     the stack is the only one; ``stack_index`` may be any grouping, :func:`held_out_groups`).
     ``start(weights)`` gives the volume the solve starts from, given the pixel weights without the
     stack (the other stacks' Gaussian average); ``ncc(simulated, values)`` gives the per-slice NCC of
-    pixel vectors."""
+    pixel vectors; ``judged``: the pixel values the left-out slices are judged by (default
+    ``values``, which the solve uses: a caller that matched them to a volume holding those slices
+    judges them as acquired)."""
     n = len(stack_index)
     out = np.full(n, np.nan)
     stacks = np.unique(stack_index)
@@ -105,7 +107,7 @@ def held_out_ncc(model: ForwardModel, values: NDArray, pixel_weight: NDArray, sl
         xs = solve_without(model, values, pixel_weight, left_out, x0, iterations=iterations, lam=lam,
                            delta=delta, support=support)
         mine = stack_index == s
-        out[mine] = ncc(model.forward(xs), values)[mine]
+        out[mine] = ncc(model.forward(xs), values if judged is None else judged)[mine]
     return out
 
 

@@ -118,3 +118,23 @@ def test_slices_a_path_dropped_still_count_when_a_stack_is_left_out() -> None:
     assert quality_report(ncc, held, in_volume, stacks)["leave_one_stack_out"]["slices"] == 2
     assert r["coherent"] is True                                         # 0.5, the least a coherent volume scores
     assert quality_report(ncc, held * 0.5, in_volume, stacks, given)["coherent"] is False
+
+
+def test_left_out_slices_are_judged_as_acquired_not_as_matched(acquisition, monkeypatch) -> None:  # noqa: ANN001
+    """Leave one stack out solves with the matched intensities and judges each left-out slice by its
+    values as acquired: its shading was fitted to a volume that held it."""
+    from service.reconstruction import pipeline
+
+    seen = {}
+    real = pipeline.held_out_ncc
+
+    def spy(model, values, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        seen["solved"], seen["judged"] = values, kwargs.get("judged")
+        return real(model, values, *args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "held_out_ncc", spy)
+    placed = [(vol, mask, t, np.ones(len(t), bool)) for (vol, mask), t in zip(acquisition.stacks, acquisition.truth)]
+    ss = SliceSet.from_stacks(placed)
+    reconstruct(ss, resolution_mm=1.5, svr_iterations=1, config=FAST)
+    np.testing.assert_array_equal(seen["judged"], ss.values)
+    assert not np.array_equal(seen["solved"], ss.values)
