@@ -15,7 +15,12 @@ leave-one-stack-out NCC (what a user sees without the truth) and the seconds of 
 network (``service/reconstruction/atlas_frame.py``), and then with its midline put on the atlas plane
 (``service/reconstruction/midline.py``), as a job does; ``--midline`` adds twin-min against the truth moved so
 that the brain's own midline lies on the atlas plane (a brain off that plane has no mirror twin in a
-symmetric atlas space: ``frame_bias.py``, part 3). Needs ``../shared/data`` (the atlas volumes). Run:
+symmetric atlas space: ``frame_bias.py``, part 3). Every variant reconstructs the stacks as a job's
+worker does, bias-corrected by N4 (:func:`~service.reconstruction.job.bias_corrected_stacks`; figures
+before 2026-12-05 were made on the stacks as acquired), but the ``job-raw-stacks`` ones.
+``--shading`` and ``--slice-gain`` change the stacks' intensities as a coil and a single-shot
+sequence do (:func:`~model_export.experiments.scanner_sweep.with_shading`). Needs ``../shared/data``
+(the atlas volumes). Run:
 ``.venv/bin/python model_export/experiments/refine_bench.py [--levels mild,jumps] [--variants default,no-coarse]
 [--per-level 6] [--resolution 1.5] [--rounds 3]``.
 """

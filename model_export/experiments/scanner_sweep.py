@@ -42,6 +42,7 @@ from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, Scored, run_acqu
 from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
 from service.inference.model_file import load_model  # noqa: E402
 from service.io.volume import Volume  # noqa: E402
+from service.preprocess.stack import stack_axis  # noqa: E402
 
 THREE_MM = {"thickness_mm": 3.0, "gap_mm": 3.0}
 SETTINGS: dict[str, tuple[dict[str, float], str | None]] = {
@@ -102,7 +103,7 @@ def with_signal_loss(stacks: list[SimulatedStack], rng: np.random.Generator) -> 
     brain's 99th percentile."""
     out = []
     for s in stacks:
-        axis = int(np.argmax(s.volume.spacing))
+        axis = stack_axis(s.volume)
         mask = s.mask.array > 0
         with_brain = np.flatnonzero(np.moveaxis(mask, axis, 0).reshape(mask.shape[axis], -1).any(1))
         if len(with_brain) < 4:
@@ -130,7 +131,7 @@ def with_shading(stacks: list[SimulatedStack], rng: np.random.Generator, field: 
     ``exp(N(0, gain_sd))``."""
     out = []
     for s in stacks:
-        axis = int(np.argmax(s.volume.spacing))
+        axis = stack_axis(s.volume)
         mask = s.mask.array > 0
         direction = rng.normal(size=3)
         direction /= np.linalg.norm(direction)

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from service.io.volume import Volume
-from service.reconstruction.intensity import MIN_PIXELS, fit_intensity
+from service.preprocess.stack import stack_axis
 from service.reconstruction.config import ReconstructionConfig
+from service.reconstruction.intensity import MIN_PIXELS, fit_intensity
 from service.reconstruction.pipeline import reconstruct
 from tests.reconstruction.helpers import perturb, pose_error_mm, psnr_ncc, reference_on
 
@@ -68,7 +69,7 @@ def test_slices_of_unequal_gains_reconstruct_as_equal_ones(acquisition):
     rng = np.random.default_rng(5)
     stacks = []
     for volume, mask in acquisition.stacks:
-        axis = int(np.argmax(volume.spacing))
+        axis = stack_axis(volume)
         shape = [1, 1, 1]
         shape[axis] = -1
         gains = np.exp(rng.normal(0.0, 0.15, volume.array.shape[axis])).reshape(shape)
@@ -97,7 +98,7 @@ def test_every_candidate_slice_is_matched_the_excluded_ones_too(acquisition):
     start = truth.atlas_from_voxel.copy()
     start[odd] = perturb(start[odd], np.random.default_rng(4), 3.5, 3.5, truth.centres()[odd])
     stacks = [(Volume(v.array.copy(), v.affine), m) for v, m in acquisition.stacks]
-    axis = int(np.argmax(stacks[0][0].spacing))
+    axis = stack_axis(stacks[0][0])
     pictures = np.moveaxis(stacks[0][0].array, axis, 0)
     for k in odd:
         pictures[k] *= 0.55
