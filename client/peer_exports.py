@@ -26,7 +26,8 @@ reconstruct --poses-out``) gives every slice ``k`` of stack ``s`` its ``atlas_fr
   placed alike), its mask into ``DIR/masks/``; give NiftyMIC those files.
 
 Only the slices the answer trusts are written unless ``all_slices`` (a prediction's accepted ones;
-of a job's refined poses, those the job reconstructed from, ``included``, with its
+of a job's refined poses, those the job reconstructed from, ``included``, and those it placed by
+their stack's motion or by its volume within the answer's ``max_expected_error_mm``, with their
 ``refined_expected_error_mm`` in ``slices.tsv``); slices without brain (``empty``) never.
 SVRTK's ``-transformations`` folder is not written: it numbers slices after cropping the stacks
 to its mask, which only a run of SVRTK knows (docs/reconstruction.md gives the recipe).
@@ -128,17 +129,32 @@ def matched_stacks(answer: dict[str, Any], stacks: list[Path]) -> list[dict[str,
     return list(found)
 
 
-def _chosen(stack: dict[str, Any], all_slices: bool) -> list[dict[str, Any]]:
-    """The slices of ``stack`` to write: those with brain that the answer trusts (a job's refined poses:
-    those the job reconstructed from, ``included``; a prediction: the accepted ones), or every one
-    with brain."""
-    return [s for s in stack.get("slices") or [] if s.get("reason") != "empty" and (all_slices or _trusted(s))]
+def _chosen(stack: dict[str, Any], all_slices: bool, limit_mm: float | None = None) -> list[dict[str, Any]]:
+    """The slices of ``stack`` to write: those with brain that the answer trusts (:func:`_trusted`), or
+    every one with brain."""
+    return [s for s in stack.get("slices") or []
+            if s.get("reason") != "empty" and (all_slices or _trusted(s, limit_mm))]
 
 
-def _trusted(item: dict[str, Any]) -> bool:
-    """Whether the answer trusts a slice's pose: a job's verdict where it gave one (``included``),
-    else the prediction's (``accepted``)."""
-    return bool(item["included"] if "included" in item else item.get("accepted"))
+def _trusted(item: dict[str, Any], limit_mm: float | None = None) -> bool:
+    """Whether the answer trusts a slice's pose. A job's refined poses: the slices it reconstructed from
+    (``included``), and those it placed otherwise (by their stack's motion or by registration to its
+    volume) whose ``refined_expected_error_mm`` is within ``limit_mm`` (the answer's
+    ``max_expected_error_mm``, the limit its prediction accepted by). A prediction: its accepted slices.
+
+    Example:
+        >>> _trusted({"accepted": False, "included": False, "placed_by_stack_motion": True,
+        ...           "refined_expected_error_mm": 3.1}, 4.8), _trusted({"accepted": True}, 4.8)
+        (True, True)
+        >>> _trusted({"accepted": False, "included": False, "placed_by_volume": True,
+        ...           "refined_expected_error_mm": 6.0}, 4.8)
+        False
+    """
+    if "included" not in item:
+        return bool(item.get("accepted"))
+    placed = bool(item.get("placed_by_stack_motion") or item.get("placed_by_volume"))
+    error = item.get("refined_expected_error_mm")
+    return bool(item["included"]) or (placed and limit_mm is not None and error is not None and float(error) <= limit_mm)
 
 
 def _stack_file(path: Path, stack: dict[str, Any], read_by_qform: bool) -> tuple[nib.Nifti1Image, NDArray]:
@@ -241,10 +257,11 @@ def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None,
         raise UnusableInput("export: NiftyMIC names each stack's transforms by its file name, and two stacks are "
                             f"named {max(set(stems), key=stems.count)!r}: rename one")
     answered = matched_stacks(answer, stacks)           # the answer checked before the folder is touched
+    limit = answer.get("max_expected_error_mm")
     before = clear_for_export(folder, overwrite, [*stacks, *(masks or [])])
     for s, (path, stack) in enumerate(zip(stacks, answered)):
         image, sfv = _stack_file(path, stack, read_by_qform=to == "niftymic")
-        chosen = _chosen(stack, all_slices)
+        chosen = _chosen(stack, all_slices, limit)
         axis = int(stack.get("slice_axis", 2))
         if to == "niftymic":
             _niftymic_stack(path, chosen, _chosen(stack, True), sfv, folder)
@@ -269,7 +286,7 @@ def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None,
                 if values is not None:
                     _write_nifti(values, a, folder / name)
             expected = item.get("refined_expected_error_mm", item.get("expected_error_mm"))   # a job's, where refined
-            rows.append(f"{done.count}\t{s}\t{path.name}\t{k}\t{int(_trusted(item))}\t"
+            rows.append(f"{done.count}\t{s}\t{path.name}\t{k}\t{int(_trusted(item, limit))}\t"
                         f"{'nan' if expected is None else f'{float(expected):.3f}'}")
             done.count += 1
     if to == "nesvor":

@@ -232,6 +232,9 @@ def quality_line(quality: dict[str, Any] | None, stacks: int | None = None) -> s
     job had (with one, no stack can be left out, and the line says so).
 
     Example:
+        >>> quality_line({"judged_slices": 80, "leave_one_stack_out": {"median_ncc": 0.8,
+        ...               "per_stack_median_ncc": [0.8, None]}}).split("; ")[1]
+        'leave one stack out 0.80 (per stack 0.80, - (not in the volume))'
         >>> quality_line({"judged_slices": 80, "median_ncc": 0.91, "fraction_ncc_above_0_7": 0.95,
         ...               "leave_one_stack_out": {"median_ncc": 0.84, "per_stack_median_ncc": [0.86, 0.8, 0.85]}})
         'quality: slices vs volume median NCC 0.91, 95% above 0.7 (80 slices); leave one stack out 0.84 (per stack 0.86, 0.80, 0.85)'
@@ -254,7 +257,7 @@ def quality_line(quality: dict[str, Any] | None, stacks: int | None = None) -> s
             f"{'-' if share is None else f'{share:.0%}'} above 0.7 ({quality.get('judged_slices', 0)} slices)")
     alternate = quality.get("leave_alternate_slices_out") or {}
     if held.get("median_ncc") is not None:
-        per = ", ".join(num(x) for x in held.get("per_stack_median_ncc") or [])
+        per = ", ".join("- (not in the volume)" if x is None else num(x) for x in held.get("per_stack_median_ncc") or [])
         line += f"; leave one stack out {num(held['median_ncc'])} (per stack {per})"
     elif alternate.get("median_ncc") is not None:      # a lone stack's slices agree with any volume of themselves
         even, odd = (alternate.get("even_odd_median_ncc") or [None, None])[:2]

@@ -182,6 +182,35 @@ def draws_text(info: dict) -> str:
             "(`svrnet-train fix-draws`); a slice's network input gets the same samples in any call, and a request one answer")
 
 
+USE_AND_LIMITS = """## Intended use
+
+Research use only (the CRL atlas's licence); not for clinical decisions. Input: the slices of
+fetal brain T2-weighted single-shot stacks (2-4.5 mm slices, 0.8-1.6 mm pixels; trained on brains of
+21-38 weeks' gestation), each with its brain mask or the service's localiser's. Output: each slice's
+rigid pose in the atlas space with an expected error. Use it through the service: a single slice's
+pose (the validation below) is a coarse start; a request of several stacks, judged by their stack
+and request stages, is what the accept flags (the last sections) are calibrated on, and their table
+gives what such a request achieves at each motion level against the truth and twin-min.
+
+## Limitations
+
+- The atlas frame of an unseen brain: a held-out simulated brain is placed 1-3 degrees and 1-2 mm
+  off its true frame, the same for every slice of it; a real brain differs by several degrees from
+  an age-matched atlas volume. `expected_error_mm` does not include that common offset.
+- A single slice cannot tell its left-right mirror twin from the truth; a stack decides its slices'
+  side. Errors are given against the truth and twin-min.
+- Calibrated on simulated requests of three stacks: a stack sent alone, a signal void over the
+  brain, another contrast or an image that is no fetal brain are posed worse than the expected error
+  says (docs/accuracy.md, "Real scans" and "Other scanners' acquisitions").
+- Planes near the brain's ends are the hardest: the validation below takes planes in the central
+  70 % of the brain's extent; over its whole extent the single-slice twin-min error is about twice
+  as large (docs/accuracy.md, "By depth").
+- It learnt the atlas's brain masks, which leave out most extra-axial CSF: a mask drawn to the
+  skull's inside is sent with `masks_hold_csf` (the service insets it by 2 mm).
+"""
+"""The card's use and limits, the same for every pose model of this recipe."""
+
+
 def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict, calibration: dict,
                evaluation: dict, comparison: list[dict] | None, report_path: str, onnx_bytes: int) -> Path:
     """Write ``card.md`` with training cost, validation accuracy, calibration and the backbone table."""
@@ -201,6 +230,7 @@ def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict
 | file | `model.onnx` ({onnx_bytes / 1e6:.1f} MB), `checkpoint.pt` (the next training run starts from it: `svrnet-train train --init`) |
 | commit | {info['commit']} |
 
+{USE_AND_LIMITS}
 ## Training
 
 - data: {train_summary.get('train_volumes_text', '')}
@@ -213,8 +243,9 @@ def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict
 
 ## Validation (whole held-out volumes: {', '.join(train_config['val_volumes'])})
 
-3 mm thick, 1 mm pixels, noisy and bias-shaded slices, any orientation; 100 MC-dropout passes
-(shared among the test-time views, as the service runs it); full report:
+3 mm thick, 1 mm pixels, Rician noise 3 %, bias field, any orientation, planes in the central 70 %
+of the brain's extent; 100 MC-dropout passes (shared among the test-time views, as the service runs
+it); single slices, before any stack or request stage; full report:
 `{report_path}`.
 
 | metric | value |

@@ -62,6 +62,7 @@ async def predict(
         "request_id": request.scope["state"]["request_id"],
         "model": {"name": model, "version": info.version, "backbone": info.backbone, "sha256": info.sha256},
         "mc_samples": form.mc_samples, "variance_threshold": threshold, "max_expected_error_mm": max_expected,
+        "localiser": None if localiser is None else localiser.provenance(),
         "stacks": stack_objects(predictions),
         "timing_ms": {
             "read": (t_read - t0) * 1e3, "localisation": stage("localisation") * 1e3,

@@ -21,6 +21,12 @@ class ModelRef(BaseModel):
     sha256: str
 
 
+class LocaliserRef(BaseModel):
+    name: str
+    version: str
+    sha256: str
+
+
 class SliceResult(BaseModel):
     index: int = Field(description="index along slice_axis")
     accepted: bool
@@ -162,6 +168,8 @@ class PredictResponse(BaseModel):
     variance_threshold: float
     max_expected_error_mm: Optional[float] = Field(
         None, description="slices whose expected_error_mm exceeds it are not accepted (null: not judged by it)")
+    localiser: Optional[LocaliserRef] = Field(
+        None, description="the brain localiser that found the brain of the stacks sent without masks (null: masks sent)")
     stacks: list[StackResult]
     timing_ms: dict[str, float]
 

@@ -34,6 +34,7 @@ from service.core.errors import Cancelled, InternalError, ServiceError, Unusable
 from service.core.logging import error_at
 from service.inference.acceptance import EMPTY
 from service.jobs.store import JobStore
+from service.jobs.provenance import localiser_provenance, provenance
 from service.jobs.uploaded_poses import expected_errors, poses_from_predict_body
 from service.preprocess.intensity import SIGNAL_LOST
 
@@ -215,7 +216,8 @@ def predicted_body(uploads: list, estimator, mc_samples: int = 100,  # noqa: ANN
     model = {"name": info.name, "version": info.version, "backbone": info.backbone,
              "sha256": info.sha256}
     return {"model": model, "mc_samples": mc_samples, "variance_threshold": threshold,
-            "max_expected_error_mm": max_expected, "stacks": stack_objects(predictions)}, masks
+            "max_expected_error_mm": max_expected, "localiser": localiser_provenance(uploads, localiser),
+            "stacks": stack_objects(predictions)}, masks
 
 
 def run_job(store: JobStore, models_dir: Path, job_id: str, redelivered: bool = False,
@@ -329,20 +331,21 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         uploads.append(mask_on_stack_grid(StackUpload(sname, vol, mask, mname,
                                                       mask_holds_csf=bool(params.get("masks_hold_csf", False)))))
     poses_path = folder / "inputs" / "poses.json"
+    localiser = job_localiser(localisers_dir, uploads)
     model_file = models_dir / params.get("model", "default") / "model.onnx"
     if poses_path.exists():
         counts = [u.volume.array.shape[u.slice_axis] for u in uploads]
         body = json.loads(poses_path.read_text())
         poses = poses_from_predict_body(body, counts, [u.volume.affine for u in uploads])
         estimator, plane = job_estimator(model_file, required=False)
-        masks = uploaded_pose_masks(uploads, job_localiser(localisers_dir, uploads))
+        masks = uploaded_pose_masks(uploads, localiser)
         started_from = "uploaded_poses"
     else:
         progress("predicting poses", 0.05)
         estimator, plane = job_estimator(model_file)
         body, masks = predicted_body(uploads, estimator, int(params.get("mc_samples", 100)),
                                      params.get("variance_threshold"), orders, params.get("max_expected_error_mm"),
-                                     job_localiser(localisers_dir, uploads))
+                                     localiser)
         poses = starting_poses(body)
         started_from = start_label(body, poses)
     progress("reconstructing", 0.15)
@@ -367,7 +370,8 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     # The report's timings: the winning path's stages and ``total``, every path's (``all_paths``), and
     # the job's up to the writing of its outputs (``job``: prediction and the frame steps included).
     result.timings = {**result.timings, "job": time.perf_counter() - t0}
-    extra = {"started_from": started_from, **job.report()}
+    extra = {"started_from": started_from, **job.report(),
+             "provenance": provenance(body.get("model"), uploads, localiser, bool(params.get("masks_hold_csf", False)))}
     report = write_outputs(result, slice_set, folder / "outputs", extra=extra, more_files=("poses.json",))
     slice_frames = [split_stack(u.volume, np.ones(u.volume.array.shape, bool)).slice_from_voxel for u in uploads]
     refined = refined_poses_body(body, result.atlas_from_voxel_final, slice_frames, included=result.included,

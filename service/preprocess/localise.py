@@ -115,6 +115,10 @@ class Localiser:
         return cls(path, sess, float(meta["grid_mm"]), meta.get("version", "unknown"), file_sha256(path),
                    mirrored=meta.get("mirrored_pass", "run") != "learnt", side_by_side=side)
 
+    def provenance(self) -> dict:
+        """What made a mask: ``{"name", "version", "sha256"}`` (the name is the model's folder)."""
+        return {"name": self.path.parent.name, "version": self.version, "sha256": self.sha256}
+
     def probabilities(self, volume: Volume) -> tuple[NDArray[np.float32], LocaliserGrid]:
         """Per-slice brain probabilities on the network grid ``[n, Hp, Wp]`` and that grid."""
         return self.probabilities_of([volume])[0]

@@ -100,8 +100,11 @@ def test_predict_says_how_each_stack_was_localised(real_client: TestClient, uter
     reasons = [s["reason"] for s in without.json()["stacks"][0]["slices"]]
     assert 0 < reasons.count("empty") < len(reasons)              # slices beyond the head are empty, not all
     assert where["pose_mask_inset_mm"] == 2.0                        # the localiser's mask holds the CSF
+    made_by = without.json()["localiser"]                             # which localiser found it
+    assert made_by["name"] == "default" and made_by["version"] and len(made_by["sha256"]) == 64
     files.append(("masks", (mask.name, mask.read_bytes())))
     with_mask = real_client.post("/v1/predict", files=files, data={"mc_samples": "2"})
+    assert with_mask.json()["localiser"] is None
     assert with_mask.json()["stacks"][0]["localisation"] == {**with_mask.json()["stacks"][0]["localisation"],
                                                              "method": "mask", "pose_mask_inset_mm": 0.0}
     said = real_client.post("/v1/predict", files=files, data={"mc_samples": "2", "masks_hold_csf": "true"})

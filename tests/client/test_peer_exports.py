@@ -214,6 +214,21 @@ def test_a_jobs_refined_poses_are_exported_by_the_jobs_verdict(case: dict, tmp_p
     assert all(r.endswith("\t1\t1.250") for r in rows)
 
 
+def test_the_slices_a_job_placed_beside_its_volume_are_exported_within_the_answers_limit(case: dict,
+                                                                                        tmp_path: Path) -> None:
+    """A slice the job placed by its stack's motion or by its volume is written where its refined
+    expected error is within the answer's ``max_expected_error_mm``, and not beyond it."""
+    refined = json.loads(json.dumps(case["answer"]))
+    refined["max_expected_error_mm"] = 4.8
+    for s in refined["stacks"][0]["slices"]:
+        s.update(included=s["index"] == 1, placed_by_stack_motion=s["index"] == 2, placed_by_volume=s["index"] == 3,
+                 refined_expected_error_mm={1: 1.5, 2: 3.0, 3: 6.0}.get(s["index"], 9.0))
+    done = export(refined, [case["stack"]], None, tmp_path / "out", "nesvor")
+    rows = (tmp_path / "out" / "slices.tsv").read_text().splitlines()[1:]
+    assert done.count == 2 and [r.split("\t")[3] for r in rows] == ["1", "2"]
+    assert [r.split("\t")[4] for r in rows] == ["1", "1"]
+
+
 def test_the_cli_names_the_stacks_niftymic_must_read(tmp_path: Path) -> None:
     """A stack stored with its slices first is given to NiftyMIC as its rewritten copy, masks too; a
     file name NiftyMIC's pattern would not match is named."""

@@ -110,6 +110,10 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
     assert report and len(report["slices"]) == 36
     assert isinstance(st["coherent"], bool) and st["coherent"] == report["quality"]["coherent"]
     assert {"stack", "slice", "included", "exclusion_reason", "weight"} <= set(report["slices"][0])
+    made_by = report["provenance"]                             # what made it, without the clients' file names
+    assert made_by["masks"] == ["uploaded"] * 3 and made_by["localiser"] is None and made_by["service"]["version"]
+    assert made_by["model"] == case["poses"].get("model") and made_by["masks_hold_csf"] is False
+    assert not any(f.name in json.dumps(made_by) for f, _ in case["files"])
     times = report["timings_s"]
     assert times["job"] >= times["all_paths"] >= times["total"] > 0     # the job holds its paths, they the winner
     assert client.get("/v1/reconstructions/unknown").status_code == 404

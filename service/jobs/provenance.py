@@ -1,0 +1,37 @@
+"""What made a job's outputs, for its report: the service's version, the pose model, the brain
+localiser and where each stack's mask came from; never the clients' file names (they often name the
+patient).
+
+Example (two stacks, one sent with its mask):
+    >>> from types import SimpleNamespace as U
+    >>> from service.preprocess.localise import default_localiser
+    >>> made = provenance({"name": "default"}, [U(mask=1), U(mask=None)], default_localiser(), False)
+    >>> made["masks"], made["localiser"]["name"], made["service"]["name"]
+    (['uploaded', 'localiser'], 'default', 'svrnet')
+"""
+
+from __future__ import annotations
+
+from importlib.metadata import PackageNotFoundError, version
+
+from service.preprocess.localise import default_localiser
+
+
+def localiser_provenance(uploads: list, localiser) -> dict | None:  # noqa: ANN001
+    """The localiser (``localiser``, default the shipped one) that found the brain of the stacks
+    without a mask, as ``/v1/predict`` names it; None where every stack came with one."""
+    return (localiser or default_localiser()).provenance() if any(u.mask is None for u in uploads) else None
+
+
+def provenance(model: dict | None, uploads: list, localiser, masks_hold_csf: bool) -> dict:  # noqa: ANN001
+    """What made a job's outputs: this service's version, the pose model (the starting body's), the
+    localiser (:func:`localiser_provenance`), and per stack whether its mask was uploaded or the
+    localiser's (``"uploaded"`` / ``"localiser"``). No file names: they often name the patient."""
+    try:
+        service = version("svrnet")
+    except PackageNotFoundError:
+        service = "unknown"
+    return {"service": {"name": "svrnet", "version": service}, "model": model,
+            "localiser": localiser_provenance(uploads, localiser),
+            "masks": ["uploaded" if u.mask is not None else "localiser" for u in uploads],
+            "masks_hold_csf": masks_hold_csf}
