@@ -6,7 +6,9 @@ whatever its grid's orientation: a job's volume keeps its atlas-frame and midlin
 its affine (its voxels are not resampled), so its array's own mid-planes may be tilted by them.
 Superior is up in the first two panels and anterior up in the axial one, with the subject's right
 on the right (neurological convention); pixels are squares of the finest voxel edge. Intensities
-are windowed to the 1st-99th percentiles of the nonzero voxels.
+are windowed to the 1st-99th percentiles of the nonzero voxels. A strip below the panels names
+their sides (``P``/``A`` under the sagittal panel, ``L``/``R`` under the others: the twin of a
+left-right mirrored volume shows there) and carries a 10 mm scale bar.
 
 Example:
     >>> import numpy as np
@@ -23,12 +25,18 @@ import itertools
 
 import numpy as np
 from numpy.typing import NDArray
-from PIL import Image
+from PIL import Image, ImageDraw
 from scipy.ndimage import map_coordinates
 
 from service.io.volume import Volume
 
 GAP_PX = 2
+LABEL_PX = 14
+"""Height of the strip below the panels that names their sides and holds the scale bar."""
+SCALE_MM = 10.0
+SIDES = (("P", "A"), ("L", "R"), ("L", "R"))
+"""What lies at each panel's left and right edge: the sagittal panel's columns run along atlas y, the
+coronal and axial panels' along atlas x (neurological convention)."""
 
 
 def window(array: NDArray, low: float = 1.0, high: float = 99.0) -> NDArray[np.uint8]:
@@ -72,15 +80,22 @@ def atlas_planes(volume: Volume) -> list[NDArray[np.uint8]]:
 
 
 def preview_png(volume: Volume) -> bytes:
-    """PNG bytes of the three orthogonal mid-planes of ``volume`` side by side (grayscale)."""
+    """PNG bytes of the three orthogonal mid-planes of ``volume`` side by side (grayscale), with the
+    strip that names their sides and a 10 mm scale bar below them."""
     panels = [Image.fromarray(np.ascontiguousarray(p)) for p in atlas_planes(volume)]
     height = max(p.height for p in panels)
     width = sum(p.width for p in panels) + GAP_PX * (len(panels) - 1)
-    canvas = Image.new("L", (width, height), 0)
+    canvas = Image.new("L", (width, height + LABEL_PX), 0)
+    draw = ImageDraw.Draw(canvas)
     x = 0
-    for p in panels:
+    for p, (left, right) in zip(panels, SIDES):
         canvas.paste(p, (x, (height - p.height) // 2))
+        draw.text((x + 1, height + 1), left, fill=255)
+        draw.text((x + p.width - 7, height + 1), right, fill=255)
         x += p.width + GAP_PX
+    bar = max(1, round(SCALE_MM / float(volume.spacing.min())))        # pixels are the finest voxel edge
+    start = (panels[0].width - bar) // 2
+    draw.line([(start, height + LABEL_PX // 2), (start + bar - 1, height + LABEL_PX // 2)], fill=255, width=2)
     buf = io.BytesIO()
     canvas.save(buf, format="PNG", optimize=True)
     return buf.getvalue()
