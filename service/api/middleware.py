@@ -18,7 +18,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from service.api.deps import PROCESSING_ROUTES, early_rejection, take_admission
 from service.api.metrics import Metrics
 from service.api.problems import MEDIA_TYPE, problem_body
-from service.core.errors import InternalError, PayloadTooLarge, RequestTimeout, ServiceError
+from service.core.errors import InternalError, MalformedRequest, PayloadTooLarge, RequestTimeout, ServiceError
 from service.core.logging import error_at
 
 log = logging.getLogger("service.access")
@@ -29,6 +29,38 @@ value per invented method would grow the metrics without bound)."""
 
 
 _TEMPLATES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+BOUNDARY = re.compile(r'boundary="?([^";]{1,200})"?', re.IGNORECASE)
+
+
+def closing_delimiter(content_type: str) -> bytes | None:
+    """The delimiter a multipart body ends with (``--BOUNDARY--``, RFC 2046), or None for another body.
+
+    Example:
+        >>> closing_delimiter('multipart/form-data; boundary="zz"'), closing_delimiter("application/json")
+        (b'--zz--', None)
+    """
+    if not content_type.lower().startswith("multipart/"):
+        return None
+    found = BOUNDARY.search(content_type)
+    return None if found is None else b"--" + found.group(1).encode("latin-1") + b"--"
+
+
+EPILOGUE_BYTES = 1024
+"""What a multipart body may carry after its closing delimiter (RFC 2046's epilogue, which clients
+leave empty or a line break) for the delimiter still to be found at its end."""
+
+
+def cut_off(tail: bytes, delimiter: bytes) -> bool:
+    """Whether a multipart body whose last bytes are ``tail`` stops before its closing delimiter: the
+    form parser keeps the parts it finished and drops the one cut off, so the request would be
+    answered for less than the client sent. (A part's own bytes never hold the delimiter: the
+    boundary is chosen so.)
+
+    Example:
+        >>> cut_off(b"...data\\r\\n--zz--\\r\\n", b"--zz--"), cut_off(b"...half a file", b"--zz--")
+        (False, True)
+    """
+    return delimiter not in tail
 
 
 def _templates(app: object) -> tuple[tuple[re.Pattern, str], ...]:
@@ -102,6 +134,8 @@ class RequestContext:
         state: dict = {"code": 500, "started": False, "received": 0, "refusal": None, "replaced": False,
                        "body_done": False, "left": False}
         body_deadline = asyncio.get_running_loop().time() + self.timeout_s
+        delimiter = closing_delimiter(headers.get("content-type", ""))
+        tail = b""
 
         async def emit(message: Message) -> None:
             if message["type"] == "http.response.start":
@@ -136,11 +170,19 @@ class RequestContext:
             if message["type"] == "http.disconnect":
                 state["left"] = True               # the client went away before its body was whole
             if message["type"] == "http.request":
+                nonlocal tail
                 state["received"] += len(message.get("body", b""))
                 state["body_done"] = not message.get("more_body", False)
                 if state["received"] > self.max_body:
                     state["refusal"] = self._too_large()
                     raise BodyRefused
+                if delimiter is not None:
+                    tail = (tail + message.get("body", b""))[-(len(delimiter) + EPILOGUE_BYTES):]
+                    if state["body_done"] and cut_off(tail, delimiter):
+                        state["refusal"] = MalformedRequest(
+                            "the multipart body ends before its closing boundary: it was cut off on the way, and "
+                            "no part of it is used; send the request again")
+                        raise BodyRefused
             return message
 
         app = scope.get("app")

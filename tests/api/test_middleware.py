@@ -110,7 +110,7 @@ def test_processing_after_the_body_has_no_time_limit() -> None:
         await send({"type": "http.response.body", "body": b"done"})
 
     async def one_chunk() -> AsyncIterator[bytes]:
-        yield b"abc"
+        yield f"--{BOUNDARY}--\r\n".encode()                 # a whole (empty) multipart body
 
     layer = RequestContext(slow_app, Metrics(), max_body_bytes=100, idle_s=0.1, timeout_s=0.2)
     status, _, body = asyncio.run(call(layer, "/anything", one_chunk()))

@@ -158,6 +158,22 @@ def test_malformed_multipart_is_400_never_500(oracle_client: TestClient) -> None
     assert r.status_code == 400
 
 
+def test_a_body_cut_off_before_its_closing_boundary_is_400_not_answered_for_its_first_parts(
+        oracle_client: TestClient, tmp_path: Path) -> None:
+    """The form parser keeps the parts it finished: a body cut off in its second stack (or its mask)
+    would be answered for the first stack alone. It is refused, naming what happened."""
+    whole = nifti_bytes(stack(), tmp=tmp_path)
+    part = lambda name, filename, data: (f"--zz\r\nContent-Disposition: form-data; name=\"{name}\"; "  # noqa: E731
+                                         f"filename=\"{filename}\"\r\n\r\n").encode() + data + b"\r\n"
+    body = part("stacks", "a.nii.gz", whole) + part("stacks", "b.nii.gz", whole[: len(whole) // 2])
+    for route in ("/v1/predict", "/v1/reconstructions", "/v1/masks"):
+        r = oracle_client.post(route, content=body, headers={"content-type": "multipart/form-data; boundary=zz"})
+        assert_problem(r, 400, "closing boundary", "cut off")
+    r = oracle_client.post("/v1/predict", content=body + b"--zz--\r\n",      # closed: the half file is the fault
+                           headers={"content-type": "multipart/form-data; boundary=zz"})
+    assert_problem(r, 415, "b.nii.gz")
+
+
 def test_gzip_of_garbage_is_415(oracle_client: TestClient) -> None:
     data = gzip.compress(b"\0" * 4000)
     assert_problem(post(oracle_client, [("stacks", ("zeros.nii.gz", data))]), 415, "zeros.nii.gz")
