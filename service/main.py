@@ -16,7 +16,7 @@ from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
 
 from service.api import health, masks, metrics, models, openapi, predict, problems, reconstructions, stream
-from service.api.deps import MetricsAccess
+from service.api.deps import KnownQuery, MetricsAccess
 from service.api.metrics import Metrics
 from service.api.middleware import RequestContext
 from service.api.schemas import problem_responses
@@ -109,9 +109,10 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
     app.state.stream_pose_limiter = CapacityLimiter(settings.stream_workers)
     app.state.stream_stages = {"firm_up": background_executor("svrnet-stream-firm-up"),
                                "end_stack": background_executor("svrnet-stream-end-stack")}
-    for module in (health, models, predict, masks, reconstructions, stream):
-        app.include_router(module.router)
-    app.include_router(metrics.router, dependencies=[MetricsAccess], responses=problem_responses(401))
+    for module in (health, models, predict, masks, reconstructions):
+        app.include_router(module.router, dependencies=[KnownQuery])
+    app.include_router(stream.router)
+    app.include_router(metrics.router, dependencies=[MetricsAccess, KnownQuery], responses=problem_responses(401))
     app.add_middleware(RequestContext, metrics=app.state.metrics, max_body_bytes=int(settings.max_upload_mb * 2**20),
                        idle_s=settings.upload_idle_s, timeout_s=settings.upload_timeout_s)
     return app

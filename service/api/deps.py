@@ -11,13 +11,17 @@ from contextlib import asynccontextmanager
 from typing import Annotated
 from urllib.parse import urlsplit
 
+from collections import Counter
+
 from fastapi import Depends, Header, Request
+from fastapi.dependencies.models import Dependant
 from starlette.datastructures import State
 
 from service.api.metrics import Metrics
 from service.core.cancellation import cancelled_by
 from service.core.errors import (ClientGone, ForeignOrigin, InvalidParameter, QueueFull, Saturated, ServiceError,
                                  Unauthorized)
+from service.core.names import clean_name
 from service.core.settings import Settings, plain_origin
 from service.inference.registry import ModelRegistry
 from service.preprocess.localise import Localiser, Localisers
@@ -264,3 +268,29 @@ def queue_full(state: State) -> QueueFull | None:
 
 ApiKey = Depends(require_api_key)
 MetricsAccess = Depends(require_metrics_access)
+
+
+def query_names(dependant: Dependant) -> list[str]:
+    """The query parameters a route declares, its dependencies' included (by the names clients send)."""
+    return [p.alias for p in dependant.query_params] + [n for d in dependant.dependencies for n in query_names(d)]
+
+
+def known_query(request: Request) -> None:
+    """Refuses (400, by name) a query parameter the route does not declare, and one given twice: a
+    misspelt ``?stak=0`` would otherwise be ignored (the volume served in atlas space) and a doubled
+    one decided by its last copy. Routes with a body take their options in it, and declare none here.
+    """
+    route = request.scope.get("route")
+    dependant = getattr(route, "dependant", None)
+    declared = query_names(dependant) if dependant is not None else []
+    given = [k for k, _ in request.query_params.multi_items()]
+    unknown = [k for k in dict.fromkeys(given) if k not in declared]
+    if unknown:
+        takes = f"this route takes {', '.join(declared)}" if declared else "this route takes none (its options go in the body)"
+        raise InvalidParameter(f"{clean_name(unknown[0]) or repr(unknown[0])}: unknown query parameter; {takes}")
+    doubled = [(k, n) for k, n in Counter(given).items() if n > 1]
+    if doubled:
+        raise InvalidParameter(f"{doubled[0][0]}: given {doubled[0][1]} times; this query parameter takes one value")
+
+
+KnownQuery = Depends(known_query)

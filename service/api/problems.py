@@ -129,7 +129,8 @@ def install(app: FastAPI) -> None:
                 return await service_error(request, PayloadTooLarge(
                     f"a form field sent as a plain value is over {FIELD_LIMIT_KB} KB: send a large field (poses) as "
                     "a file part of a multipart form (curl: -F poses=@poses.json)"))
-            return await service_error(request, MalformedRequest(f"the request body could not be parsed "
-                                                                 f"({str(exc.detail).rstrip('.')})"))
+            return await service_error(request, MalformedRequest(
+                f"the request body could not be parsed ({str(exc.detail).rstrip('.')}): a multipart form's "
+                "boundary broken, or a part's header lines too long or too many (a file name of kilobytes)"))
         return problem(exc.status_code, str(exc.detail) if exc.status_code < 500 else "Server error",
                        str(exc.detail), headers=getattr(exc, "headers", None), request=request)

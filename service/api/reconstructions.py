@@ -230,6 +230,8 @@ async def submit(
     model = registry.resolve(form.model)
     localiser_for(localisers, form.masks)            # the job's worker localises; refused now, not failed later
     thickness = thickness_per_stack(slice_thickness_mm, len(form.stacks))
+    if len(request.headers.getlist(IDEMPOTENCY_HEADER)) > 1:      # not one chosen of two
+        raise InvalidParameter(f"{IDEMPOTENCY_HEADER}: given more than once; send one key per submission")
     key = idempotency_digest(idempotency_key)
     async with processing(request):
         return await _submit(request, response, settings, form, key, {

@@ -103,8 +103,9 @@ def declared_fields(endpoint: Callable) -> dict[str, bool]:
 
 def known_fields(*extra: str) -> Callable[[Request], Awaitable[None]]:
     """A dependency refusing (400, by name) any form field that the route neither declares nor lists in
-    ``extra`` (fields it reads from the raw form), and a field of one value given more than once: a
-    misspelt, misplaced or doubled option is never ignored or silently decided by its last copy."""
+    ``extra`` (fields it reads from the raw form), a field of one value given more than once, and a
+    field sent empty: a misspelt, misplaced, doubled or blank option is never ignored, silently decided
+    by its last copy or taken for its default."""
 
     async def check(request: Request) -> None:
         declared = declared_fields(request.scope["endpoint"]) | dict.fromkeys(extra, False)
@@ -116,6 +117,9 @@ def known_fields(*extra: str) -> Callable[[Request], Awaitable[None]]:
         doubled = [k for k, n in counts.items() if n > 1 and not declared[k]]
         if doubled:
             raise InvalidParameter(f"{doubled[0]}: given {counts[doubled[0]]} times; this field takes one value")
+        empty = [k for k, v in form.multi_items() if isinstance(v, str) and not v.strip()]
+        if empty:                         # FastAPI takes an empty value for an absent one: the default
+            raise InvalidParameter(f"{empty[0]}: empty; leave the field out for its default")
 
     return check
 
@@ -224,15 +228,15 @@ def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: 
     budget = DecodeBudget(max_decoded_bytes, max_request_bytes, max_slices)
     if masks and len(masks) != len(stacks):
         raise InvalidParameter(f"masks: {len(masks)} masks for {len(stacks)} stacks; give none or one per stack")
-    jobs = [(up, directory / f"stack{i}", display_name(up, "stacks", i)) for i, up in enumerate(stacks)]
-    jobs += [(up, directory / f"mask{i}", display_name(up, "masks", i)) for i, up in enumerate(masks)]
+    jobs = [(up, directory / f"stack{i}", display_name(up, "stacks", i), True) for i, up in enumerate(stacks)]
+    jobs += [(up, directory / f"mask{i}", display_name(up, "masks", i), False) for i, up in enumerate(masks)]
     # Decompression and parsing release the GIL: read two files at a time. Errors surface in
     # upload order, as a sequential loop would raise them; the map's futures not yet begun are then
     # cancelled, so the files after a failed one are not read.
     with ThreadPoolExecutor(max_workers=READ_WORKERS) as pool:
-        volumes = list(pool.map(carried(lambda job: _read(*job, budget)), jobs))
+        volumes = list(pool.map(carried(lambda job: _read(*job[:3], budget, job[3])), jobs))
     n = len(stacks)
-    for (_, _, name), volume in zip(jobs[:n], volumes[:n]):
+    for (_, _, name, _), volume in zip(jobs[:n], volumes[:n]):
         axis = slice_axis_of(volume.spacing)
         count = volume.array.shape[axis]
         if max_slices is not None and count > max_slices:
@@ -245,7 +249,9 @@ def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: 
             for i in range(n)]
 
 
-def _read(upload: UploadFile, path: Path, name: str, budget: DecodeBudget):  # noqa: ANN202
+def _read(upload: UploadFile, path: Path, name: str, budget: DecodeBudget, image: bool = True):  # noqa: ANN202
+    """Write one upload to ``path`` and read it: a stack's values as magnitudes, a mask's as they are
+    (``image`` False)."""
     checkpoint()
     upload.file.seek(0)
     try:
@@ -255,4 +261,4 @@ def _read(upload: UploadFile, path: Path, name: str, budget: DecodeBudget):  # n
         raise_if_out_of_space(exc)        # a full disk is the server's (507), not the client's file
         raise
     with DECODING:
-        return read_upload(path, name, budget=budget.file(name), scratch=path.parent)
+        return read_upload(path, name, budget=budget.file(name), scratch=path.parent, magnitudes=image)

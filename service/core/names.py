@@ -45,11 +45,12 @@ def has_unsafe_characters(name: str) -> bool:
 
 def unique_stems(names: list[str], max_length: int | None = None) -> list[str]:
     """File-system-safe stems of upload names (extensions dropped, only ``[A-Za-z0-9._-]``, at most
-    ``max_length`` characters), made unique with ``-1``, ``-2`` ... in order.
+    ``max_length`` characters), made unique with ``-1``, ``-2`` ... in order, regardless of case: on
+    macOS and Windows ``AX`` and ``ax`` are one file, and one unzipped over the other would be lost.
 
     Example:
-        >>> unique_stems(["axial.nii.gz", "axial.nii", "../x y.mha", "stacks[3]"])
-        ['axial', 'axial-1', 'x_y', 'stacks_3']
+        >>> unique_stems(["axial.nii.gz", "axial.nii", "../x y.mha", "stacks[3]", "AXIAL.nii"])
+        ['axial', 'axial-1', 'x_y', 'stacks_3', 'AXIAL-2']
         >>> unique_stems(["abcdef.nii", "abcdeg.nii"], max_length=4)
         ['abcd', 'ab-1']
     """
@@ -62,7 +63,7 @@ def unique_stems(names: list[str], max_length: int | None = None) -> list[str]:
                 break
         stem = (re.sub(r"[^A-Za-z0-9._-]+", "_", base).strip("._") or "stack")[:max_length]
         candidate, k = stem, 0
-        while candidate in out:
+        while candidate.lower() in {o.lower() for o in out}:
             k += 1
             candidate = f"{stem[:None if max_length is None else max_length - len(str(k)) - 1]}-{k}"
         out.append(candidate)

@@ -84,7 +84,7 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path 
                     out = Path(tmp) / f"{i:05d}.dcm"
                     if _unpack(z, m, out, budget.member(label), label, times, tags, thicknesses, sizes):
                         labels[str(out)] = label
-                        budget.slices(len(labels), "DICOM images in the archive")
+                        budget.slices(len(labels), "DICOM images in the archive or more (counted as they are read)")
         except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as exc:
             raise_if_out_of_space(exc)
             raise UnsupportedFile(f"{filename}: corrupt or truncated ZIP archive") from exc

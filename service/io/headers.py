@@ -39,7 +39,7 @@ from typing import BinaryIO
 
 import numpy as np
 
-from service.core.errors import UnsupportedFile
+from service.core.errors import PayloadTooLarge, UnsupportedFile
 
 MAX_HEADER_BYTES = 1 << 20
 
@@ -324,6 +324,11 @@ def _nrrd(lines: list[tuple[bytes, int]], filename: str) -> tuple[bytes, int | N
     return b"", None
 
 
+_TEXT_BYTES = bytes(range(32, 127)) + b"\t\r"
+"""The bytes a MetaImage header line is written in (printable ASCII, a tab; a carriage return is
+judged on its own below)."""
+
+
 def _mha(lines: list[tuple[bytes, int]], filename: str) -> tuple[bytes, int | None]:
     """The rebuilt MetaImage header (ending ``ElementDataFile = LOCAL``) and the offset of the data."""
     out = []
@@ -334,6 +339,8 @@ def _mha(lines: list[tuple[bytes, int]], filename: str) -> tuple[bytes, int | No
             if value.strip().upper() != b"LOCAL":
                 raise _detached(filename, "mha")
             return b"\n".join(out + [b"ElementDataFile = LOCAL"]) + b"\n", after
+        if line.translate(None, _TEXT_BYTES):       # bytes no header holds: its voxel data, read as lines
+            raise UnsupportedFile(f"{filename}: an MHA header with no ElementDataFile line before its voxel data")
         if _DETACHED.search(key) or b"\r" in line:      # a \r inside a line: no field of any reader's
             raise _detached(filename, "mha") if _DETACHED.search(line) else UnsupportedFile(
                 f"{filename}: an MHA header line with a carriage return inside it")
@@ -364,8 +371,11 @@ def _inflated_mha(header: bytes, data: bytes, src: BinaryIO, dst: BinaryIO, file
     and says nothing; here a stream that is corrupt, cut short or longer than declared is refused."""
     item = MET_ITEM_BYTES[_fields(header, "mha")["elementtype"].decode("latin-1").strip().upper()]
     expected = declared_values(header, "mha", filename) * item
-    if not 0 < expected <= max_bytes:
+    if expected <= 0:
         raise UnsupportedFile(f"{filename}: a compressed MHA file that declares {expected} bytes of voxel data")
+    if expected > max_bytes:                 # refused as every decoder refuses its bomb: before it inflates
+        raise PayloadTooLarge(f"{filename}: its voxel data decode to more than {max_bytes / 2**20:.3g} MB "
+                              f"(a compressed MHA file that declares {expected} bytes)")
     kept = [line for line in header.split(b"\n") if not line.startswith((b"CompressedData", b"ElementDataFile"))]
     dst.write(b"\n".join(kept[:-1] + [b"CompressedData = False", b"ElementDataFile = LOCAL"]) + b"\n")
     inflater, written = zlib.decompressobj(), 0

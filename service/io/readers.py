@@ -84,7 +84,7 @@ def _is_nifti(head: bytes) -> bool:
 
 
 def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_BYTES,
-                budget: FileBudget | None = None, scratch: Path | None = None) -> Volume:
+                budget: FileBudget | None = None, scratch: Path | None = None, magnitudes: bool = True) -> Volume:
     """Read one uploaded file as a 3D :class:`Volume`; ``filename`` is used in error messages only.
 
     ``budget`` (default: ``max_decoded_bytes`` for this file alone) is charged by every decoder as it
@@ -92,7 +92,9 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
     ``scratch``: where the decoded copies go while the file is read (a ZIP's members, a gunzipped
     NIfTI; default: the system's temporary folder). The service passes the folder of the request or
     job the upload belongs to, so that a process killed while reading leaves them where that
-    request's or job's own clean-up removes them.
+    request's or job's own clean-up removes them. ``magnitudes``: the values read as an image's
+    magnitudes (:func:`validate`); False for a mask, whose labels keep their values (a mask saved as
+    signed numbers marks its brain by -1 as well as by 1).
     Whatever a parser raises on a client's bytes becomes a 4xx naming ``filename``, never a 500.
     """
     budget = budget or DecodeBudget(max_decoded_bytes).file(filename)
@@ -152,7 +154,7 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
     except Exception as exc:  # noqa: BLE001 - SimpleITK's RuntimeError, pydicom's and numpy's errors ...
         # The text may hold paths or tag values: it stays out of the answer and the log.
         raise UnsupportedFile(f"{filename}: could not be read (corrupt, truncated or inconsistent file)") from exc
-    checked = validate(vol, filename)
+    checked = validate(vol, filename, magnitudes)
     if kind in SUFFIX_BY_KIND and (problem := slice_axis_problem(checked.spacing)) is not None:
         raise UnusableImage(f"{filename}: {problem}")          # a DICOM stack's third axis is its slices'
     return checked
@@ -311,9 +313,10 @@ def _squeeze_4d(image: sitk.Image, filename: str) -> sitk.Image:
     return image
 
 
-def validate(vol: Volume, filename: str) -> Volume:
-    """Reject volumes the service cannot use; the values of the others as float32 magnitudes
-    (:func:`~service.io.volume.magnitude`: a file stored with an offset gets its background at 0)."""
+def validate(vol: Volume, filename: str, magnitudes: bool = True) -> Volume:
+    """Reject volumes the service cannot use; the values of the others as float32, with ``magnitudes``
+    as magnitudes (:func:`~service.io.volume.magnitude`: a file stored with an offset gets its
+    background at 0)."""
     a = vol.array
     if a.ndim != 3:
         raise UnusableImage(f"{filename}: {a.ndim}D image; a 3D stack is required")
@@ -328,12 +331,12 @@ def validate(vol: Volume, filename: str) -> Volume:
         raise UnusableImage(f"{filename}: contains NaN or infinite values (or values beyond float32's range)")
     if not np.isfinite(vol.affine).all() or abs(np.linalg.det(vol.affine[:3, :3])) < 1e-9:
         raise UnusableImage(f"{filename}: invalid geometry (singular voxel-to-world matrix)")
+    if (problem := grid_problem(vol.affine, a.shape)) is not None:     # first: a voxel of 1e300 mm is no shear
+        raise UnusableImage(f"{filename}: {problem}")
     if (cos := float(frames.axes_cosine(vol.affine[:3, :3]))) > MAX_SHEAR_COS:
         raise UnusableImage(f"{filename}: its voxel axes are sheared ({np.degrees(np.arccos(cos)):.2f} deg apart, "
                             "not 90); resample the stack to a grid with axes at right angles")
-    if (problem := grid_problem(vol.affine, a.shape)) is not None:
-        raise UnusableImage(f"{filename}: {problem}")
-    return replace(vol, array=magnitude(a))
+    return replace(vol, array=magnitude(a) if magnitudes else a)
 
 
 __all__ = ["read_upload", "sniff", "validate"]

@@ -327,7 +327,8 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         if thickness[i] is not None:
             vol = replace(vol, slice_thickness_mm=float(thickness[i]))
         mname = _name(names, "masks", i) if m is not None else None
-        mask = read_upload(m, mname, budget=budget.file(mname), scratch=m.parent) if m is not None else None
+        mask = (read_upload(m, mname, budget=budget.file(mname), scratch=m.parent, magnitudes=False)
+                if m is not None else None)
         uploads.append(mask_on_stack_grid(StackUpload(sname, vol, mask, mname,
                                                       mask_holds_csf=bool(params.get("masks_hold_csf", False)))))
     poses_path = folder / "inputs" / "poses.json"

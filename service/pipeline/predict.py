@@ -194,7 +194,7 @@ def stack_orders(orders: list[SliceOrder] | None, uploads: list[StackUpload]) ->
         try:
             order.times(vol.array.shape[axis])
         except ValueError as e:
-            raise InvalidParameter(f"slice_order[{i}] ({up.filename}): {e}") from None
+            raise InvalidParameter(f"slice_order, stack {i} ({up.filename}): {e}") from None   # one value may serve all
         out.append(order)
     return out
 

@@ -82,21 +82,24 @@ class StackUpload:
 
 def mask_voxels(array: NDArray) -> NDArray[np.bool_]:
     """The voxels an uploaded mask marks: every nonzero voxel of a mask of whole numbers (0 / 1,
-    0 / 255, a label map), and of a mask of fractions (a probability map, a mask resampled with
-    partial volumes) those at half its largest value or more: a probability map's faint background
-    is not brain, nor the blur a resampled mask's edge gains.
+    0 / 255, a label map; -1 where a mask of 255 was saved as signed bytes), and of a mask of
+    fractions (a probability map, a mask resampled with partial volumes) those at half its largest
+    magnitude or more: a probability map's faint background is not brain, nor the blur a resampled
+    mask's edge gains.
 
-    Example (a binary mask as floats, and a probability map with a faint background):
-        >>> mask_voxels(np.array([0.0, 255.0, 255.0])).tolist(), mask_voxels(np.array([0.02, 0.3, 0.9, 1.0])).tolist()
-        ([False, True, True], [False, False, True, True])
+    Example (a binary mask as floats, a signed one, and a probability map with a faint background):
+        >>> mask_voxels(np.array([0.0, 255.0, 255.0])).tolist(), mask_voxels(np.array([0, -1, -1], np.int8)).tolist()
+        ([False, True, True], [False, True, True])
+        >>> mask_voxels(np.array([0.02, 0.3, 0.9, 1.0])).tolist()
+        [False, False, True, True]
     """
     a = np.asarray(array)
     if a.dtype.kind in "biu":
-        return a > 0
+        return a != 0
     a = np.where(np.isfinite(a), a, 0.0)
     if not a.size or np.array_equal(a, np.round(a)):
-        return a > 0
-    return a >= 0.5 * float(a.max())
+        return a != 0
+    return np.abs(a) >= 0.5 * float(np.abs(a).max())
 
 
 @dataclass

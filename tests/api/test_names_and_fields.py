@@ -80,6 +80,27 @@ def test_a_field_of_one_value_given_twice_is_400_naming_it(oracle_client: TestCl
     assert not oracle_client.app.state.job_store.queued()
 
 
+@pytest.mark.parametrize("field", ["model", "mc_samples", "masks_hold_csf"])
+def test_a_field_sent_empty_is_400_not_its_default(oracle_client: TestClient, field: str) -> None:
+    """FastAPI reads an empty form value as an absent one: ``model=`` would run the default model."""
+    r = oracle_client.post("/v1/predict", files=[("stacks", ("s.nii.gz", nifti_bytes(stack())))], data={field: ""})
+    assert_problem(r, 400, field, "empty")
+
+
+@pytest.mark.parametrize("url", ["/v1/predict?mc_samples=5", "/v1/models?x=1", "/healthz?verbose=1",
+                                 "/v1/reconstructions/abc/volume?stak=0"])
+def test_an_unknown_query_parameter_is_400_naming_it(oracle_client: TestClient, url: str) -> None:
+    """A misspelt ``?stak=0`` would serve the atlas-space volume; a form route's options go in its body."""
+    method = oracle_client.post if url.startswith("/v1/predict") else oracle_client.get
+    r = method(url, files=[("stacks", ("s.nii.gz", nifti_bytes(stack())))]) if method == oracle_client.post else method(url)
+    assert_problem(r, 400, url.split("?")[1].split("=")[0], "unknown query parameter")
+
+
+def test_a_query_parameter_given_twice_is_400(oracle_client: TestClient) -> None:
+    r = oracle_client.get("/v1/reconstructions/abc/volume?stack=1&stack=0")
+    assert_problem(r, 400, "stack", "given 2 times")
+
+
 def test_list_fields_may_repeat(oracle_client: TestClient, oracle) -> None:  # noqa: ANN001
     oracle.truth = np.broadcast_to(np.eye(4), (12, 4, 4)).copy()            # two stacks of six slices
     r = oracle_client.post("/v1/predict", files=[("stacks", ("a.nii.gz", nifti_bytes(stack()))),

@@ -89,6 +89,21 @@ def test_mask_problems(oracle_client: TestClient, tmp_path: Path) -> None:
     assert_problem(post(oracle_client, two_masks), 400, "masks", "2 masks for 1 stacks")
 
 
+def test_a_mask_saved_as_signed_numbers_marks_the_same_brain(real_client: TestClient, tmp_path: Path) -> None:
+    """A mask of 255 saved as signed bytes holds -1 where the brain is: its nonzero voxels are the
+    brain, as for the same mask of 1, not the complement an image's magnitude would make of it."""
+    s = nifti_bytes(stack(), tmp=tmp_path)
+    box = np.zeros((20, 20, 6), np.int16)
+    box[5:15, 5:15, 1:5] = 1
+    volumes = []
+    for label in (1, -1):
+        r = post(real_client, [("stacks", ("s.nii.gz", s)), ("masks", ("m.nii.gz", nifti_bytes(label * box, tmp=tmp_path)))],
+                 {"mc_samples": "2"})
+        assert r.status_code == 200, r.text
+        volumes.append(r.json()["stacks"][0]["localisation"]["brain_volume_ml"])
+    assert volumes[0] == volumes[1] == 1.2                     # 400 voxels of 3 mm^3
+
+
 def test_stacks_without_masks_on_a_server_without_a_localiser_are_told_to_send_masks(oracle, tmp_path: Path) -> None:  # noqa: ANN001
     """Not a 404 about a localiser the client never named: the field to fix is ``masks``."""
     (tmp_path / "none").mkdir()
@@ -126,7 +141,12 @@ def test_a_slice_order_that_says_nothing_known_or_does_not_fit_is_400(oracle, or
                    "slice_order", "2 values for 1 stacks")
     oracle.truth = np.repeat(np.eye(4)[None], 6, axis=0)
     r = post(oracle_client, one, {"slice_order": "0,2,4,1,3"})
-    assert_problem(r, 400, "slice_order[0]", "s.nii.gz", "5 indices given for a stack of 6 slices")
+    assert_problem(r, 400, "slice_order, stack 0 (s.nii.gz)", "5 indices given for a stack of 6 slices")
+    two = one + [("stacks", ("t.nii.gz", nifti_bytes(stack((20, 20, 5), seed=1), tmp=tmp_path)))]
+    oracle.truth = np.repeat(np.eye(4)[None], 11, axis=0)
+    r = post(oracle_client, two, {"slice_order": "0,2,4,1,3,5"})       # one value the client gave for both
+    assert_problem(r, 400, "slice_order, stack 1 (t.nii.gz)", "6 indices")
+    oracle.truth = np.repeat(np.eye(4)[None], 6, axis=0)
     r = post(oracle_client, one, {"slice_order": "0,2,4,1,3,5", "bias_correction": "false"})
     assert r.status_code == 200, r.text
 

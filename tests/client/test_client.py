@@ -97,7 +97,7 @@ def test_a_slice_order_reaches_the_stage_and_a_wrong_one_is_named(app_client: Te
     assert len(result["stacks"][0]["slices"]) == 6
     with pytest.raises(BadRequest) as e400:
         svr.predict([stack_file], slice_order="0,1,2", bias_correction=False)
-    assert e400.value.status == 400 and "slice_order[0]" in e400.value.detail
+    assert e400.value.status == 400 and "slice_order, stack 0" in e400.value.detail
 
 
 def test_predict_without_options_uses_server_defaults(app_client: TestClient, stack_file: Path) -> None:

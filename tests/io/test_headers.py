@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from service.core.errors import UnsupportedFile
+from service.core.errors import PayloadTooLarge, UnsupportedFile
 from service.io.headers import MAX_HEADER_BYTES
 from service.io.readers import read_upload
 
@@ -81,6 +81,24 @@ def test_a_compressed_mha_is_read_and_a_corrupt_one_refused_not_filled_from_memo
     for body, name in ((b"x" * 100, "garbage.mha"), (raw[start:-50], "cut.mha"), (b"", "empty.mha")):
         assert "do not inflate" in refuse(tmp_path, header + body, name)
     assert "carriage return" in refuse(tmp_path, header.replace(b"NDims = 3", b"NDims = 3\rOffset = 1 2 3"), "cr.mha")
+
+
+def test_an_mha_without_its_element_data_file_line_is_named_so(tmp_path: Path) -> None:
+    """Its voxel data are read as header lines: the answer says what is missing, not what the
+    data's bytes look like."""
+    data = np.random.default_rng(0).integers(0, 256, 4000, dtype=np.uint8).tobytes()
+    header = b"ObjectType = Image\nNDims = 3\nDimSize = 10 10 10\nElementType = MET_FLOAT\n"
+    assert "no ElementDataFile line" in refuse(tmp_path, header + data, "n.mha")
+
+
+def test_a_compressed_mha_that_declares_more_than_the_limit_is_413_before_it_inflates(tmp_path: Path) -> None:
+    """As every other decoder's bomb: too large (413, naming the file), not an unsupported file."""
+    header = (b"ObjectType = Image\nNDims = 3\nDimSize = 2000 2000 30\nElementType = MET_FLOAT\n"
+              b"CompressedData = True\nElementDataFile = LOCAL\n")
+    path = tmp_path / "b.mha"
+    path.write_bytes(header + b"x\x9c" + b"\0" * 100)
+    with pytest.raises(PayloadTooLarge, match="b.mha: its voxel data decode to more than"):
+        read_upload(path, "b.mha", max_decoded_bytes=128 << 20)
 
 
 @pytest.mark.parametrize("value", [b"LIST", b"slice%03d.raw 1 8 1", b"/etc/passwd"])

@@ -335,7 +335,7 @@ def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict, mo
         assert r.status_code == 400 and "poses: stack 0" in r.json()["detail"], r.text
     n_slices = len(case["poses"]["stacks"][1]["slices"])
     for order, needles in (("zigzag", ["slice_order", "interleaved-odd-first"]), (["auto", "auto"], ["2 values for 3 stacks"]),
-                           (["auto", "0,1", "auto"], ["slice_order[1]", case["files"][1][0].name, f"stack of {n_slices} slices"])):
+                           (["auto", "0,1", "auto"], ["slice_order, stack 1", case["files"][1][0].name, f"stack of {n_slices} slices"])):
         r = submit(client, case, slice_order=order)
         assert r.status_code == 400 and all(n in r.json()["detail"] for n in needles), r.text
     assert not client.app.state.job_store.queued()                   # nothing left behind
@@ -363,6 +363,8 @@ def test_a_retried_submission_with_its_idempotency_key_gets_the_same_job(client:
         assert reused.json()["type"] == "/problems/idempotency-key-reused"
     refused = submit(client, case, headers={"Idempotency-Key": "short"})
     assert refused.status_code == 400 and refused.json()["detail"].startswith("Idempotency-Key:")
+    two = submit(client, case, headers=[("Idempotency-Key", "k-aaaaaaaaaaaa"), ("Idempotency-Key", "k-bbbbbbbbbbbb")])
+    assert two.status_code == 400 and "more than once" in two.json()["detail"], two.text
     # A retry while the first submission's files are still being read: told to ask again, not given
     # a job that a refusal of those files would delete a moment later.
     reading = {"Idempotency-Key": "k-5555555555555555"}
