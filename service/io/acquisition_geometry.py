@@ -61,7 +61,9 @@ def grid_problem(affine: ArrayLike, shape: tuple[int, ...]) -> str | None:
     axis is the voxel count times that edge.
     """
     edges = voxel_spacing(affine)
-    if not np.all(np.isfinite(edges)) or edges.min() < MIN_VOXEL_MM * (1 - _ROUNDING):
+    if not np.all(np.isfinite(edges)):
+        return f"voxel size {_mm(edges)} mm: beyond any size a number can hold along an axis"
+    if edges.min() < MIN_VOXEL_MM * (1 - _ROUNDING):
         return f"voxel size {_mm(edges)} mm: under {MIN_VOXEL_MM} mm along an axis, which no MRI acquisition has"
     if edges.max() > MAX_VOXEL_MM * (1 + _ROUNDING):
         return f"voxel size {_mm(edges)} mm: beyond {MAX_VOXEL_MM:.0f} mm along an axis, which no MRI acquisition " \

@@ -16,7 +16,7 @@ import SimpleITK as sitk
 from service.core.errors import UnsupportedFile, UnusableImage
 from service.geometry import frames, se3
 from service.io.limits import DecodeBudget
-from service.io.readers import read_upload, sniff
+from service.io.readers import read_upload, sniff, validate
 from service.io.volume import Volume, write_volume
 from tests.conftest import SHARED_DATA
 
@@ -516,3 +516,11 @@ def test_an_oblique_series_whose_positions_are_written_to_a_tenth_of_a_mm_is_one
     vol = read_upload(z, "rounded.zip")
     assert vol.array.shape == arr.shape
     np.testing.assert_allclose(vol.affine, aff, atol=0.1)
+
+
+def test_a_voxel_of_absurd_size_is_named_so_not_a_shear() -> None:
+    """A header whose voxel edge is 1e300 mm makes the axes' angle meaningless: the answer names the
+    voxel size, as it does for a voxel of 30 mm."""
+    for edge in (30.0, 1e300):
+        with pytest.raises(UnusableImage, match="voxel size .* beyond (20 mm|any size)"):
+            validate(Volume(np.ones((4, 4, 3), np.float32), np.diag([edge, 1.0, 3.0, 1.0])), "big.nii")
