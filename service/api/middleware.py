@@ -159,6 +159,7 @@ class RequestContext:
             await emit(message)
 
         async def limited_receive() -> Message:
+            nonlocal tail
             if state["body_done"]:                   # later calls wait for a disconnect: no limit
                 return await receive()
             wait = min(self.idle_s, body_deadline - asyncio.get_running_loop().time())
@@ -170,7 +171,6 @@ class RequestContext:
             if message["type"] == "http.disconnect":
                 state["left"] = True               # the client went away before its body was whole
             if message["type"] == "http.request":
-                nonlocal tail
                 state["received"] += len(message.get("body", b""))
                 state["body_done"] = not message.get("more_body", False)
                 if state["received"] > self.max_body:
