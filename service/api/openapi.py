@@ -5,6 +5,8 @@
 * optional form fields, headers and query parameters are optional, not nullable (a multipart form
   or a header cannot send a null: FastAPI's ``anyOf [..., null]`` made generated clients send the
   text ``null``);
+* a form field's text is never empty (``minLength: 1``): an empty value is refused (400), as FastAPI
+  would read it as absent and take the default;
 * ``poses`` (read by ``POST /v1/reconstructions`` from the raw form: a JSON text or a JSON file) is
   documented with the other fields;
 * :func:`allowed_methods` lists every documented method of a path, for ``Allow`` (on ``405`` and
@@ -16,7 +18,7 @@ from __future__ import annotations
 from fastapi import FastAPI
 
 POSES = {
-    "anyOf": [{"type": "string", "format": "binary"}, {"type": "string"}],
+    "anyOf": [{"type": "string", "format": "binary"}, {"type": "string", "minLength": 1}],
     "title": "Poses",
     "description": "optional: the JSON body /v1/predict returned for the same files (as a JSON file or text); "
                    "without it the job predicts the poses first",
@@ -43,8 +45,8 @@ def document_uploads(app: FastAPI, max_files: int) -> None:
                     continue
                 props = target.setdefault("properties", {})
                 target["additionalProperties"] = False         # unknown fields are refused (400)
-                for name, prop in props.items():     # a form field is given or left out: never null
-                    props[name] = _not_null(prop)
+                for name, prop in props.items():     # a form field is given or left out: never null, never empty
+                    props[name] = _not_empty(_not_null(prop))
                 for name, low in (("stacks", 1), ("masks", 0)):
                     if props.get(name, {}).get("type") == "array":
                         props[name]["maxItems"] = max_files
@@ -68,6 +70,24 @@ def _not_null(prop: dict) -> dict:
     variants = [v for v in prop.get("anyOf", []) if v.get("type") != "null"]
     if "anyOf" in prop and len(variants) == 1:
         return {**{k: v for k, v in prop.items() if k != "anyOf"}, **variants[0]}
+    return prop
+
+
+def _not_empty(prop: dict) -> dict:
+    """``prop`` with ``minLength: 1`` on its text (not a file), its list's items' or its variants'.
+
+    Example:
+        >>> _not_empty({"type": "array", "items": {"type": "string"}})
+        {'type': 'array', 'items': {'type': 'string', 'minLength': 1}}
+        >>> _not_empty({"type": "string", "format": "binary"})
+        {'type': 'string', 'format': 'binary'}
+    """
+    if prop.get("type") == "string" and prop.get("format") != "binary":
+        return {**prop, "minLength": max(1, prop.get("minLength", 1))}
+    if prop.get("type") == "array" and isinstance(prop.get("items"), dict):
+        return {**prop, "items": _not_empty(prop["items"])}
+    if "anyOf" in prop:
+        return {**prop, "anyOf": [_not_empty(v) for v in prop["anyOf"]]}
     return prop
 
 
