@@ -55,6 +55,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from client.errors import UnusableInput
 from client.files import write_whole
+from client.scanner_stack import slice_axis_of
 from client.slice_transforms import stack_from_atlas_lps, tfm_text
 
 FORMATS = ("nesvor", "niftymic")
@@ -165,7 +166,10 @@ def _stack_file(path: Path, stack: dict[str, Any], read_by_qform: bool) -> tuple
         image = nib.load(str(path))
     except (nib.filebasedimages.ImageFileError, OSError, ValueError) as e:
         raise UnusableInput(f"export: {path.name} is not a NIfTI file ({e}); NeSVoR and NiftyMIC read NIfTI") from None
-    sfv = np.asarray(stack.get("scanner_from_voxel") or np.full((4, 4), np.nan), np.float64)
+    if stack.get("scanner_from_voxel") is None:
+        raise UnusableInput(f"export: the answer's stack {stack.get('index')} has no scanner_from_voxel (the placement "
+                            "the service read its file with); export an answer of svrnet predict or a job's poses")
+    sfv = np.asarray(stack["scanner_from_voxel"], np.float64)
     same_grid = tuple(image.shape[:3]) == tuple(stack.get("shape") or image.shape[:3])
     if not same_grid or not np.allclose(image.affine, sfv, atol=1e-3):
         raise UnusableInput(f"export: {path.name} is not the file the answer's stack {stack.get('index')} was read from "
@@ -175,6 +179,11 @@ def _stack_file(path: Path, stack: dict[str, Any], read_by_qform: bool) -> tuple
     if read_by_qform and both and not np.allclose(header.get_qform(), header.get_sform(), atol=1e-3):
         raise UnusableInput(f"export: {path.name}: its qform and sform disagree; ITK-based tools (NiftyMIC) place it by "
                             "its qform, the service by its sform: write it with one placement first")
+    zooms = np.asarray(header.get_zooms()[:3], np.float64)
+    if read_by_qform and not np.allclose(zooms, np.linalg.norm(sfv[:3, :3], axis=0), rtol=1e-3):
+        raise UnusableInput(f"export: {path.name}: its voxel sizes (pixdim {', '.join(f'{z:g}' for z in zooms)} mm) "
+                            "disagree with its placement; ITK-based tools (NiftyMIC) take them from pixdim, the service "
+                            "from the sform: write it with one placement first")
     return image, sfv
 
 
@@ -262,20 +271,21 @@ def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None,
     for s, (path, stack) in enumerate(zip(stacks, answered)):
         image, sfv = _stack_file(path, stack, read_by_qform=to == "niftymic")
         chosen = _chosen(stack, all_slices, limit)
-        axis = int(stack.get("slice_axis", 2))
+        axis = int(stack["slice_axis"]) if stack.get("slice_axis") is not None else \
+            slice_axis_of(np.linalg.norm(sfv[:3, :3], axis=0))          # the service's rule, not a guess
         if to == "niftymic":
             _niftymic_stack(path, chosen, _chosen(stack, True), sfv, folder)
             if axis != 2:                   # NiftyMIC cuts along the third axis: the stack written so
                 done.stacks[s] = _rewritten(np.asarray(image.dataobj, np.float32).reshape(image.shape[:3]), sfv, axis,
                                             folder / "stacks" / path.name)
                 if masks and done.masks is not None:
-                    done.masks[s] = _rewritten(_mask(masks[s], image.shape[:3]).astype(np.uint8), sfv, axis,
+                    done.masks[s] = _rewritten(_mask(masks[s], image).astype(np.uint8), sfv, axis,
                                                folder / "masks" / masks[s].name)
             done.count += len(chosen)
             continue
         order = axis_order(axis)
         data = np.transpose(np.asarray(image.dataobj, np.float32).reshape(image.shape[:3]), order)
-        mask = None if not masks else np.transpose(_mask(masks[s], image.shape[:3]), order)
+        mask = None if not masks else np.transpose(_mask(masks[s], image), order)
         spacing = float(np.linalg.norm(sfv[:3, axis]))
         thick = spacing if not thickness_mm else float(thickness_mm[0] if len(thickness_mm) == 1 else thickness_mm[s])
         for item in chosen:
@@ -309,16 +319,51 @@ def _niftymic_stack(path: Path, chosen: list[dict[str, Any]], with_brain: list[d
         write_whole(folder / f"{stem}.tfm", tfm_text(mean_transform(placing)).encode())
 
 
-def _mask(path: Path, shape: tuple[int, ...]) -> NDArray[np.bool_]:
-    """The mask file ``path`` as a boolean array of the stack's ``shape``; :class:`UnusableInput` when
-    it is not of that grid or not a NIfTI file."""
+def _mask(path: Path, stack: nib.Nifti1Image) -> NDArray[np.bool_]:
+    """The mask file ``path`` as a boolean array on ``stack``'s voxels (nonzero: brain), brought into
+    the stack's voxel order where it stores the same grid's voxels in another (axes swapped or
+    reversed, as tools that reorient files write them; as the service reads it);
+    :class:`UnusableInput` when it is on another grid or not a NIfTI file.
+
+    Example (a mask stored with the stack's axes reversed and swapped):
+        >>> import tempfile
+        >>> stack = nib.Nifti1Image(np.zeros((3, 4, 2), np.float32), np.diag([1.0, 2.0, 3.0, 1.0]))
+        >>> m = np.zeros((3, 4, 2), np.uint8); m[0, 1, 1] = 1
+        >>> flip = np.diag([1.0, -1.0, 1.0, 1.0]); flip[1, 3] = 3                  # voxel j -> 3 - j
+        >>> swap = np.eye(4)[[2, 1, 0, 3]]                                           # axes 0 and 2 exchanged
+        >>> stored = nib.Nifti1Image(np.transpose(m[:, ::-1, :], (2, 1, 0)), stack.affine @ flip @ swap)
+        >>> path = Path(tempfile.mkdtemp()) / "m.nii.gz"; nib.save(stored, path)
+        >>> np.argwhere(_mask(path, stack)).tolist()
+        [[0, 1, 1]]
+    """
     try:
-        values = np.asarray(nib.load(str(path)).dataobj)
+        image = nib.load(str(path))
+        values = np.asarray(image.dataobj)
     except (nib.filebasedimages.ImageFileError, OSError, ValueError) as e:
         raise UnusableInput(f"export: {path.name} is not a NIfTI mask ({e})") from None
-    if values.size != int(np.prod(shape)):
-        raise UnusableInput(f"export: {path.name} is not on its stack's grid ({values.shape} against {tuple(shape)})")
-    return values.reshape(shape) > 0
+    shape = tuple(stack.shape[:3])
+    if values.ndim > 3 and values.size == int(np.prod(values.shape[:3])):
+        values = values.reshape(values.shape[:3])
+    refused = UnusableInput(f"export: {path.name} is not on its stack's grid ({values.shape} against {shape})")
+    if values.ndim != 3:
+        raise refused
+    mask_from_stack = np.linalg.inv(image.affine) @ stack.affine      # stack voxel -> mask voxel
+    signs = np.round(mask_from_stack[:3, :3])
+    if not np.allclose(mask_from_stack[:3, :3], signs, atol=1e-3) or sorted(np.abs(signs).sum(0)) != [1, 1, 1] \
+            or sorted(np.abs(signs).sum(1)) != [1, 1, 1]:
+        raise refused
+    axes = [int(np.flatnonzero(signs[:, j])[0]) for j in range(3)]      # the mask axis of each stack axis
+    moved = np.transpose(values, axes)
+    if moved.shape != shape:
+        raise refused
+    for j, i in enumerate(axes):
+        corner = mask_from_stack[i, 3]                                  # where stack voxel 0 lies on that mask axis
+        if signs[i, j] < 0:
+            moved = np.flip(moved, j)
+            corner = values.shape[i] - 1 - corner
+        if abs(corner) > 1e-2:
+            raise refused
+    return moved != 0
 
 
 def _rewritten(values: NDArray, scanner_from_voxel: NDArray, slice_axis: int, path: Path) -> Path:

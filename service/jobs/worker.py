@@ -380,10 +380,13 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
                                  reasons=result.exclusion_reason, job_id=job_id,
                                  placed_by_stack_motion=left_out.moved, placed_by_volume=left_out.registered,
                                  refined_expected_error_mm=job.expected_error_mm)
-    for i, stack in enumerate(refined.get("stacks", [])):
+    for i, (stack, u) in enumerate(zip(refined.get("stacks", []), uploads)):
         # Results are kept until the retention limit; the clients' file names (often patient names)
-        # are not: a stack is named by its place in the upload.
-        stack["filename"] = f"stacks[{i}]"
+        # are not: a stack is named by its place in the upload. Its geometry is the upload's as the
+        # service read it (uploaded poses need not carry it; `svrnet export` cuts slices by it).
+        stack.update(filename=f"stacks[{i}]", index=i, shape=list(u.volume.array.shape),
+                     spacing_mm=[float(x) for x in u.volume.spacing], slice_axis=int(u.slice_axis),
+                     scanner_from_voxel=np.asarray(u.volume.affine, np.float64).tolist())
     (folder / "outputs" / "poses.json").write_text(json.dumps(refined))
     if not store.finish(job_id, report, attempt):
         if not store.is_cancelled(job_id):

@@ -93,6 +93,46 @@ def test_a_nesvor_slice_file_places_each_voxel_where_its_pose_does(slice_axis: i
     assert len(list(out.glob("*.nii.gz"))) == 8
 
 
+def test_an_answer_without_slice_axis_is_cut_along_the_files_slice_axis_and_its_mask_in_any_storage(
+        tmp_path: Path) -> None:
+    """Poses a client made may leave out ``slice_axis``: the slices are cut along the file's axis of
+    largest spacing, as the service cuts them, not along a default. A mask stored with the stack's
+    axes in another order is brought onto the stack's voxels; one of another grid is refused."""
+    case = make_case(tmp_path, slice_axis=0)
+    answer = json.loads(json.dumps(case["answer"]))
+    del answer["stacks"][0]["slice_axis"]
+    stored = nib.Nifti1Image(np.transpose(case["mask_data"], (2, 1, 0)), case["scanner_from_voxel"] @ np.eye(4)[[2, 1, 0, 3]])
+    permuted = tmp_path / "ax_mask_permuted.nii.gz"
+    nib.save(stored, permuted)
+    out = tmp_path / "nesvor"
+    assert export(answer, [case["stack"]], [permuted], out, "nesvor").count == 4
+    for i, k in enumerate([1, 2, 4, 5]):
+        image, mask = nib.load(out / f"{i}.nii.gz"), nib.load(out / f"mask_{i}.nii.gz")
+        assert image.shape == (*case["data"].shape[1:], 1)
+        np.testing.assert_array_equal(np.asarray(image.dataobj)[..., 0], case["data"][k])
+        np.testing.assert_array_equal(np.asarray(mask.dataobj)[..., 0], case["mask_data"][k])
+    shifted = case["scanner_from_voxel"].copy()
+    shifted[:3, 3] += shifted[:3, 1]                                       # one voxel along the second axis
+    nib.save(nib.Nifti1Image(case["mask_data"], shifted), tmp_path / "off.nii.gz")
+    with pytest.raises(UnusableInput, match="off.nii.gz is not on its stack's grid"):
+        export(case["answer"], [case["stack"]], [tmp_path / "off.nii.gz"], tmp_path / "x", "nesvor")
+
+
+def test_a_file_whose_pixdim_disagrees_with_its_placement_is_refused_for_niftymic(case: dict, tmp_path: Path) -> None:
+    """ITK reads voxel sizes from pixdim where the service reads the sform: NiftyMIC would put the
+    slices elsewhere, so the export says so rather than write transforms for another grid."""
+    image = nib.Nifti1Image(case["data"], case["scanner_from_voxel"])
+    image.set_qform(None, 0)
+    image.header.set_zooms((1.0, 1.0, 1.0))                         # pixdim of 1 mm, an sform of 1.1 / 0.9 / 3.2
+    image.set_sform(case["scanner_from_voxel"], 1)
+    path = tmp_path / "pix" / "ax.nii.gz"
+    path.parent.mkdir()
+    nib.save(image, path)
+    with pytest.raises(UnusableInput, match="voxel sizes .pixdim"):
+        export(case["answer"], [path], None, tmp_path / "x", "niftymic")
+    assert export(case["answer"], [path], None, tmp_path / "n", "nesvor").count == 4     # NeSVoR reads our slices
+
+
 @pytest.mark.parametrize("slice_axis", [2, 0])
 def test_a_niftymic_transform_composed_with_the_stack_file_gives_each_voxel_its_atlas_point(slice_axis: int,
                                                                                           tmp_path: Path) -> None:

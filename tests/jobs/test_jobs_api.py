@@ -582,6 +582,10 @@ def test_a_clients_extra_fields_in_its_poses_are_not_kept(client: TestClient, ca
     assert st["status"] == "succeeded", st
     refined = client.get(st["poses_url"]).text
     assert "ZZPATIENTZZ" not in refined and json.loads(refined)["stacks"][1]["slices"][0]["atlas_from_voxel"]
+    assert "ZZPATIENTZZ" not in json.dumps(st["report"])                 # its provenance neither
+    geometry = json.loads(refined)["stacks"][0]                            # the upload's, as the service read it
+    assert geometry["shape"] == list(read_volume(case["files"][0][0]).array.shape) == [12, 36, 36]
+    assert geometry["slice_axis"] == 0 and len(geometry["scanner_from_voxel"]) == 4   # its slices along axis 0
 
 
 @pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)     # the back-end plays no part
