@@ -144,26 +144,47 @@ class StreamedStack:
         self._check_place(frame, first, normal)
 
     def _check_place(self, frame: SliceFrame, first: SliceFrame, normal: NDArray[np.float64]) -> None:
-        """A slice's index is its place along the normal: its origin lies where the slices received so
-        far put the slice of that index (evenly spaced; with one slice received, anywhere but there),
-        within :meth:`place_tolerance_mm`, widened as far as the line is extrapolated. The line is the
-        slices' robust one (:meth:`line`): a slice accepted a little off it, while the step was known
-        from two slices alone, does not move where the later ones must lie."""
+        """A slice's index is its place along the normal. It may not sit where a received slice of
+        another index does; once the received slices agree on a line (:meth:`agreed_line`), its
+        origin lies where that line puts the slice of its index, within :meth:`place_tolerance_mm`,
+        widened as far as the line is extrapolated. Until they agree (fewer than three slices on one
+        line, or not most of them, and two slices a step other than their thickness apart) a slice is
+        kept wherever it lies: one misplaced slice among the first two must not make the line that
+        refuses every correct slice after it; it lies off the line the later ones draw, and the
+        stack's end drops it to be sent again (:meth:`off_line`)."""
         along = float((frame.scanner_from_voxel[:3, 3] - first.scanner_from_voxel[:3, 3]) @ normal)
-        if len(self.frames) == 1:
-            if abs(along) < LINE_TOLERANCE_MM:
-                raise InvalidParameter(f"slice.scanner_from_voxel: slice {frame.index} sits where slice {first.index} "
-                                       f"of stack {self.name!r} does (each index is its own place along the normal)")
+        for k, other in self.frames.items():
+            if abs(along - float((other.scanner_from_voxel[:3, 3] - first.scanner_from_voxel[:3, 3]) @ normal)) \
+                    < LINE_TOLERANCE_MM:
+                raise InvalidParameter(f"slice.scanner_from_voxel: slice {frame.index} sits where slice {k} of stack "
+                                       f"{self.name!r} does (each index is its own place along the normal)")
+        agreed = self.agreed_line(first, normal)
+        if agreed is None:
             return
-        start, step = self.line(first, normal)
+        start, step, on = agreed
         expected = start + step * frame.index
-        lo, hi = min(self.frames), max(self.frames)
+        lo, hi = min(on), max(on)
         reach = max(lo - frame.index, frame.index - hi, 0) / (hi - lo)        # the step's rounding, extrapolated
         if abs(along - expected) > self.place_tolerance_mm(step) * (1.0 + 2.0 * reach):
             raise InvalidParameter(f"slice.index: slice {frame.index} of stack {self.name!r} lies {along:.2f} mm along the "
                                    f"normal from slice {first.index}, where the stack's slices put index {frame.index} "
                                    f"at {expected:.2f} mm (a slice's index is its place along the normal, the slices "
                                    "evenly spaced)")
+
+    def agreed_line(self, first: SliceFrame, normal: NDArray[np.float64]) -> tuple[float, float, list[int]] | None:
+        """``(start, step, on)``: the received slices' robust line (:meth:`line`) and the slices on it,
+        where at least three slices and most of them lie on it, or two whose step is the slices'
+        thickness (the third column's length: contiguous slices); None otherwise."""
+        if len(self.frames) < 2:
+            return None
+        start, step = self.line(first, normal)
+        if len(self.frames) == 2:
+            agree = abs(abs(step) - first.thickness_mm) <= self.place_tolerance_mm(step)
+            return (start, step, sorted(self.frames)) if agree else None
+        on = [k for k, f in self.frames.items()
+              if abs(float((f.scanner_from_voxel[:3, 3] - first.scanner_from_voxel[:3, 3]) @ normal)
+                     - start - step * k) <= self.place_tolerance_mm(step)]
+        return (start, step, on) if len(on) >= 3 and 2 * len(on) > len(self.frames) else None
 
     def line(self, first: SliceFrame, normal: NDArray[np.float64]) -> tuple[float, float]:
         """``(start, step)``: where the received slices put index 0 and the step between neighbours,

@@ -470,3 +470,24 @@ def test_slices_whose_brain_lost_its_signal_are_named_once_their_stack_ends_and_
     assert [s["index"] for s in final["slices"] if s["signal_lost"]] == list(dark)
     listed = {r["index"]: r["reason"] for r in final["reacquire"]}
     assert {k: listed.get(k) for k in dark} == dict.fromkeys(dark, "signal_lost")     # the cause, whatever else
+
+
+def test_a_misplaced_second_slice_does_not_lock_out_the_correct_ones_after_it() -> None:
+    """Slice 0 right, then an index 2 sent at slice 3's place (an off-by-one client): the two make
+    no line their thickness confirms, so the correct slices after them are kept; the line they draw
+    refuses only what contradicts it (slice 3, where the misplaced one sits), and the stack's end
+    finds the misplaced slice off that line, to be sent again."""
+    stack = StreamedStack("ax")
+    place = lambda k: np.diag([1.1, 1.1, 3.3, 1.0]) + np.pad(np.array([[0.0], [0.0], [3.3 * k]]), ((0, 1), (3, 0)))  # noqa: E731
+    stack.add(SliceFrame("ax", 0, np.zeros((4, 4), np.float32), place(0)))
+    stack.add(SliceFrame("ax", 2, np.zeros((4, 4), np.float32), place(3)))          # misplaced
+    refused = []
+    for k in range(1, 12):
+        if k == 2:
+            continue
+        try:
+            stack.add(SliceFrame("ax", k, np.zeros((4, 4), np.float32), place(k)))
+        except InvalidParameter as e:
+            refused.append((k, str(e)))
+    assert [k for k, _ in refused] == [3] and "sits where slice 2" in refused[0][1]
+    assert stack.off_line() == [2]
