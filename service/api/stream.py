@@ -260,10 +260,11 @@ class StreamConnection:
         if dtype not in DTYPES:
             raise InvalidParameter(f"slice.dtype: one of {', '.join(DTYPES)}")
         affine = msg.get("scanner_from_voxel")
-        try:
-            affine = np.array(affine, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise InvalidParameter("slice.scanner_from_voxel: a 4 x 4 array of numbers") from None
+        rows = affine if isinstance(affine, list) and len(affine) == 4 else []
+        numbers = all(isinstance(r, list) and len(r) == 4 and all(type(v) in (int, float) for v in r) for r in rows)
+        if not rows or not numbers:            # numpy would read "3" and true as numbers
+            raise InvalidParameter("slice.scanner_from_voxel: a 4 x 4 array of numbers")
+        affine = np.array(affine, dtype=np.float64)
         with_mask = msg.get("mask", False)
         if not isinstance(with_mask, bool):
             raise InvalidParameter("slice.mask: true or false")

@@ -68,17 +68,20 @@ class Gap:
 @dataclass(frozen=True)
 class Coverage:
     """``brain_fraction``: share of the brain's hull covered; ``gaps``: the largest uncovered regions;
-    ``brain_volume_ml``: the hull's volume (0 when the accepted slices do not span a volume yet)."""
+    ``brain_volume_ml``: the hull's volume (0 when the accepted slices do not span a volume yet);
+    ``measured``: whether the brain's extent is known (False: no accepted slice, or the slices do not
+    span a volume yet; the fraction 0 and no gaps then say nothing of what is covered)."""
 
     brain_fraction: float
     brain_volume_ml: float
     gaps: list[Gap] = field(default_factory=list)
+    measured: bool = True
 
     def report(self) -> dict:
-        """The contract's ``coverage`` object."""
+        """The contract's ``coverage`` object, and ``measured``."""
         return {"brain_fraction": round(self.brain_fraction, 4), "brain_volume_ml": round(self.brain_volume_ml, 1),
                 "gaps": [{"centre_mm": g.centre_mm, "normal": g.normal, "extent_mm": round(g.extent_mm, 1),
-                          "volume_ml": round(g.volume_ml, 2)} for g in self.gaps]}
+                          "volume_ml": round(g.volume_ml, 2)} for g in self.gaps], "measured": self.measured}
 
 
 def brain_points(slices: list[CoveredSlice], every: bool = False) -> NDArray[np.float64]:
@@ -107,14 +110,14 @@ def coverage(slices: list[CoveredSlice], shown: list[CoveredSlice] | None = None
     pixels = brain_points(shown, every=True)
     points = hull_points(pixels)
     if len(points) < 4 or not slices:
-        return Coverage(0.0, 0.0)
+        return Coverage(0.0, 0.0, measured=False)
     lo = points.min(0) - GRID_MM
     shape = tuple(int(x) for x in np.ceil((points.max(0) + GRID_MM - lo) / GRID_MM) + 1)
     grid = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1).reshape(-1, 3) * GRID_MM + lo
     try:
         inside = inside_hull(ConvexHull(points), grid)
     except QhullError:                      # the slices are coplanar: no volume yet
-        return Coverage(0.0, 0.0)
+        return Coverage(0.0, 0.0, measured=False)
     reach = REACH_THICKNESS * max(float(np.linalg.norm(s.atlas_from_voxel[:3, 2])) for s in shown)
     inside[np.flatnonzero(inside)] = cKDTree(pixels).query(grid[inside], distance_upper_bound=reach)[0] <= reach
     brain = grid[inside]

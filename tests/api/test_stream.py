@@ -186,6 +186,12 @@ def test_bad_messages_get_an_error_naming_them_and_the_session_goes_on(client, c
                          "scanner_from_voxel": np.eye(4).tolist()}), None, "slice.dtype"),
             (json.dumps({"type": "slice", "stack": "ax", "index": 1, "shape": [4, 4], "dtype": "uint8",
                          "scanner_from_voxel": np.eye(4).tolist()}), b"\x00" * 15, "15 bytes, 16 were due"),
+            (json.dumps({"type": "slice", "stack": "ax", "index": 1, "shape": [4, 4], "dtype": "uint8",
+                         "scanner_from_voxel": [["1", 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}), None,
+             "slice.scanner_from_voxel"),                                         # text, though numpy reads it
+            (json.dumps({"type": "slice", "stack": "ax", "index": 1, "shape": [4, 4], "dtype": "uint8",
+                         "scanner_from_voxel": [[True, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}), None,
+             "slice.scanner_from_voxel"),
             (json.dumps({"type": "end_stack", "stack": "nothing"}), None, "no slice"),
             (json.dumps({"type": "end_stack", "stack": "ax\u202e\r\nevil"}), None,      # echoed in every answer
              "end_stack.stack: control, format or line-separator characters are not allowed"),

@@ -76,3 +76,13 @@ def test_the_hulls_bridge_over_a_concave_brain_is_no_brain_and_no_gap() -> None:
     assert c.brain_fraction > 0.98 and c.gaps == [], (c.brain_fraction, c.gaps)
     two_balls_ml = 2 * 4 / 3 * np.pi * 18.0 ** 3 / 1000.0
     assert c.brain_volume_ml < 1.25 * two_balls_ml < ConvexHull(brain_points(slices)).volume / 1000.0
+
+
+def test_coverage_without_a_volume_says_it_is_not_measured() -> None:
+    """No accepted slice, or accepted slices in one plane: the brain's extent is unknown, and the
+    report says so rather than read as a brain with no gaps."""
+    rotation = np.eye(3)
+    assert coverage([]).report()["measured"] is False
+    one = ball_stack(rotation, keep=[10])
+    assert coverage(one).report() == {"brain_fraction": 0.0, "brain_volume_ml": 0.0, "gaps": [], "measured": False}
+    assert coverage(ball_stack(rotation)).report()["measured"] is True
