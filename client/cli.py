@@ -41,6 +41,8 @@ Errors are one red line on stderr with the server's problem detail (and request 
 
 from __future__ import annotations
 
+import json
+import sys
 from collections import Counter
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -381,7 +383,7 @@ def status(
         state = svr.status(job)
         console = stdout()
         if as_json:
-            console.print_json(data=state)
+            sys.stdout.write(json.dumps(state, indent=2) + "\n")        # plain: no colour codes, even with FORCE_COLOR
         else:
             console.print(job_table(state, job))
             report = state.get("report") or {}                # a finished job: how to judge its volume
@@ -419,7 +421,7 @@ def models(
         listed = svr.models()
         console = stdout()
         if as_json:
-            console.print_json(data=listed)
+            sys.stdout.write(json.dumps(listed, indent=2) + "\n")
             return
         console.print(models_table(listed))
 

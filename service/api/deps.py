@@ -155,8 +155,8 @@ def early_rejection(state: State, method: str, path: str, headers: dict[str, str
     if needs_key(settings, path) and not api_key_ok(settings.key_set(), headers.get("authorization"),
                                                     headers.get("x-api-key")):
         return Unauthorized(UNAUTHORIZED)
-    if method == "POST" and path == "/v1/reconstructions":
-        return queue_full(state)
+    if method == "POST" and path == "/v1/reconstructions" and "idempotency-key" not in headers:
+        return queue_full(state)       # a keyed retry is first matched to the job its key made (the route)
     return None
 
 

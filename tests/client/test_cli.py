@@ -398,6 +398,8 @@ def test_cli_status_cancel_and_conflict(fake_cli: Callable, stack_file: Path) ->
     assert r.exit_code == 0 and "queued" in r.stdout
     r = invoke(["status", "job1", "--json"])
     assert r.exit_code == 0 and json.loads(r.stdout)["job_id"] == "job1"
+    r = CliRunner().invoke(cli.app, ["status", "job1", "--json"], env={"FORCE_COLOR": "1"})   # as CI runners set it
+    assert r.exit_code == 0 and "\x1b[" not in r.stdout and json.loads(r.stdout)["job_id"] == "job1"
     r = invoke(["cancel", "job1"])                        # the fake's job moves on at each poll: now finished
     assert r.exit_code == 0 and "job1 (succeeded) deleted" in r.stdout
     assert invoke(["cancel", "job1"]).exit_code == 6

@@ -441,6 +441,13 @@ def test_delete_of_a_finished_job_removes_it_and_a_full_queue_is_429(case: dict,
         r = submit(client, case, svr_iterations="0")
         assert r.status_code == 429 and r.headers["retry-after"] == "9" and "queued" in r.json()["detail"]
         store = client.app.state.job_store
+        store.delete(first)
+        key = {"Idempotency-Key": "k-7777777777777777"}
+        first = submit(client, case, headers=key, svr_iterations="0").json()["job_id"]   # its answer lost
+        again = submit(client, case, headers=key, svr_iterations="0")                   # the queue full now
+        assert again.status_code != 429, again.text         # matched to its key's job, not told the queue is full
+        assert again.json().get("job_id") == first or again.json()["detail"].startswith("Idempotency-Key:")
+        assert submit(client, case, headers={"Idempotency-Key": "k-8888888888888888"}, svr_iterations="0").status_code == 429
         assert store.claim(first) and store.finish(first, {"slices": []})
         assert client.get(f"/v1/reconstructions/{first}").json()["status"] == "succeeded"
         assert client.delete(f"/v1/reconstructions/{first}").status_code == 204
