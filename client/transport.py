@@ -25,7 +25,7 @@ from urllib.parse import urlsplit, urlunsplit
 
 import httpx
 
-from client.errors import ArgumentError, ConnectionFailed, SVRnetError, error_from_response, parse_retry_after
+from client.errors import ArgumentError, ConnectionFailed, error_from_response, parse_retry_after
 from client.multipart import CHUNK, MultipartBody, ProgressCallback
 
 PathLike = Union[str, "os.PathLike[str]"]
@@ -218,16 +218,22 @@ class Transport:
     def _json(response: httpx.Response) -> Any:
         try:
             return response.json()
-        except ValueError as exc:
-            raise SVRnetError(f"the server answered {response.status_code} with a body that is not JSON",
-                              status=response.status_code,
-                              request_id=response.headers.get("x-request-id")) from exc
+        except ValueError as exc:           # a proxy's login page, another service: not an SVRnet answer
+            raise ConnectionFailed(f"the server answered {response.status_code} with a body that is not JSON: not "
+                                   "an SVRnet server (a proxy's page, another service at that address?)",
+                                   status=response.status_code,
+                                   request_id=response.headers.get("x-request-id")) from exc
 
     def _download(self, path: str, out_path: PathLike, progress: ProgressCallback | None) -> Path:
         out = Path(out_path)
         tmp = out.with_name(f".{out.name}.part-{secrets.token_hex(4)}")
         response = self._send("GET", path, stream=True)
         try:
+            if response.headers.get("content-type", "").lower().startswith(("text/html", "text/plain")):
+                raise ConnectionFailed(f"GET {path}: the server answered {response.status_code} with a "
+                                       f"{response.headers['content-type'].split(';')[0]} page, not the file: not an "
+                                       "SVRnet server (a proxy's login page?); nothing was written",
+                                       status=response.status_code)
             total = int(response.headers.get("content-length") or 0)
             done = 0
             with open(tmp, "wb") as fh:

@@ -539,3 +539,17 @@ def test_the_server_defaults_to_svrnet_server_as_the_command_line(monkeypatch: p
     monkeypatch.delenv("SVRNET_SERVER")
     with SVRnetClient() as svr:
         assert svr.base_url.startswith("http://127.0.0.1:8000")
+
+
+def test_a_proxys_html_page_is_not_an_svrnet_answer_and_writes_no_file(tmp_path: Path) -> None:
+    """A login page answered with 200: the caller is told the server is not SVRnet (exit 3), and no
+    download is written from it."""
+    page = lambda request: httpx.Response(200, text="<html>Please log in</html>",  # noqa: E731
+                                          headers={"content-type": "text/html; charset=utf-8"})
+    svr = SVRnetClient("http://svr.test", transport=httpx.MockTransport(page))
+    with pytest.raises(ConnectionFailed, match="not an SVRnet server") as e:
+        svr.models()
+    assert exit_code_for(e.value) == EXIT_CONNECTION
+    with pytest.raises(ConnectionFailed, match="text/html page, not the file"):
+        svr.download_volume("job1", tmp_path / "vol.nii.gz")
+    assert list(tmp_path.iterdir()) == []
