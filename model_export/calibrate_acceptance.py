@@ -174,7 +174,14 @@ def rates(columns: dict[str, NDArray], ok: NDArray) -> dict[str, float]:
 
 
 def calibrate(by_level: dict[str, dict[str, NDArray]]) -> dict:
-    """The four settings (module docstring) from each level's slice columns, and how they do per level."""
+    """The four settings (module docstring) from each level's slice columns, and how they do per level.
+    :class:`ValueError` where no slice lies within :data:`GOOD_MM` of the truth: a model that places no
+    slice well (a short run) gives no variance of a good slice to set the threshold by."""
+    good = sum(int((np.asarray(c["ed"]) < GOOD_MM).sum()) for c in by_level.values())
+    if not good:
+        raise ValueError(f"accept flags: none of the {sum(len(c['ed']) for c in by_level.values())} slices lies within "
+                         f"{GOOD_MM:g} mm of the truth; the model cannot be calibrated yet (train it longer, or start "
+                         "from a shipped checkpoint with train --init)")
     logit = choose_twin_risk(by_level)
     by_level = {k: with_twin_risk(c, logit) for k, c in by_level.items()}
     floor = choose_floor({k: c["ed"] for k, c in by_level.items()}, {k: c["expected"] for k, c in by_level.items()})

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from model_export.calibrate_acceptance import MAX_BAD_ACCEPTED, accepted, calibrate, rates
 
@@ -111,3 +112,12 @@ def test_the_columns_of_several_runs_are_pooled_level_by_level(tmp_path) -> None
     assert out["mild"]["ed"].tolist() == [0.0, 2.0, 4.0, 100.0, 102.0]
     assert out["independent"]["ed"].tolist() == [0.0, 2.0, 4.0] and np.isnan(out["mild"]["expected"]).all()
     assert level_columns(tmp_path / "b.npz", ("mild",))["mild"]["ed"].tolist() == [100.0, 102.0]
+
+
+def test_a_model_that_places_no_slice_well_is_told_so_not_an_index_error() -> None:
+    """A short run's model: every slice tens of mm off. The calibration says why it cannot be made."""
+    rng = np.random.default_rng(3)
+    far = {k: {**c, "ed": c["ed"] + 40.0, "ed_min": c.get("ed_min", c["ed"]) + 40.0}
+           for k, c in {"mild": level(rng, 200, 2.0, 1.0), "moderate": level(rng, 200, 3.0, 1.0)}.items()}
+    with pytest.raises(ValueError, match="none of the 400 slices lies within 5 mm"):
+        calibrate(far)
