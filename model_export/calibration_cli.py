@@ -46,7 +46,8 @@ def calibrate_acceptance(
     root: Root = DEFAULT_ATLAS_ROOT,
     per_volume: Annotated[Optional[int], typer.Option(help="acquisitions per validation volume and motion level "
                                                            "(default: calibrate_acceptance.PER_VOLUME)")] = None,
-    report: Path = Path("model_export/reports/acceptance.md"),
+    report: Annotated[Optional[Path], typer.Option(help="markdown report (default: acceptance.md beside the model; "
+                                                        "the shipped model's is model_export/reports/acceptance.md)")] = None,
     write: Annotated[bool, typer.Option(help="write twin_risk_logit, expected_error_floor_mm, variance_threshold "
                                              "and max_expected_error_mm into the model's metadata")] = True,
     seed: int = 1,
@@ -68,6 +69,7 @@ def calibrate_acceptance(
     else:
         result = measure(OnnxPoseEstimator(load_model(model)), load_volumes(split(root)[1], root),
                          per_volume or PER_VOLUME, seed, slices=slices)
+    report = report or model.with_name("acceptance.md")        # never the shipped model's report by default
     report.parent.mkdir(parents=True, exist_ok=True)
     report.write_text(markdown(result, f"Accept flags of {model}"))
     if write:
@@ -80,7 +82,8 @@ def calibrate_noise(
     root: Root = DEFAULT_ATLAS_ROOT,
     per_volume: Annotated[Optional[int], typer.Option(help="acquisitions per validation volume, noise level, pixel size "
                                                            "and motion level (default: calibrate_noise.PER_VOLUME)")] = None,
-    report: Path = Path("model_export/reports/noise.md"),
+    report: Annotated[Optional[Path], typer.Option(help="markdown report (default: noise.md beside the model; "
+                                                        "the shipped model's is model_export/reports/noise.md)")] = None,
     write: Annotated[bool, typer.Option(help="write noise_error into the model's metadata")] = True,
     seed: int = 7,
     slices: Annotated[Optional[Path], typer.Option(help="also keep every slice's columns here (.npz)")] = None,
@@ -110,6 +113,7 @@ def calibrate_noise(
         if slices is not None:
             np.savez_compressed(slices, **measured)
     result = calibrate(measured)
+    report = report or model.with_name("noise.md")              # never the shipped model's report by default
     report.parent.mkdir(parents=True, exist_ok=True)
     report.write_text(f"# Noise calibration of {model}\n\n{markdown(result)}\n")
     if write:

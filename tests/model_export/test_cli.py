@@ -187,6 +187,10 @@ def test_the_accept_flags_are_calibrated_again_from_kept_slice_columns(tmp_path:
                                       "--columns", str(tmp_path / "slices.npz"), "--report", str(report)])
     assert result.exit_code == 0, result.output
     assert "max expected error" in report.read_text() and '"judged_levels"' in result.output
+    report.unlink()
+    result = CliRunner().invoke(app, ["calibrate-acceptance", str(tmp_path / "model.onnx"), "--no-write",
+                                      "--columns", str(tmp_path / "slices.npz")])
+    assert result.exit_code == 0 and report.exists()                  # beside the model: not the shipped report
 
 
 def test_the_noise_error_is_calibrated_from_several_kept_column_files_pooled(tmp_path: Path,
