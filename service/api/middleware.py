@@ -177,7 +177,8 @@ class RequestContext:
                     state["refusal"] = self._too_large()
                     raise BodyRefused
                 if delimiter is not None:
-                    tail = (tail + message.get("body", b""))[-(len(delimiter) + EPILOGUE_BYTES):]
+                    keep = len(delimiter) + EPILOGUE_BYTES          # the chunk's end only: no copy of a whole chunk
+                    tail = (tail + message.get("body", b"")[-keep:])[-keep:]
                     if state["body_done"] and cut_off(tail, delimiter):
                         state["refusal"] = MalformedRequest(
                             "the multipart body ends before its closing boundary: it was cut off on the way, and "

@@ -21,6 +21,7 @@ from service.consistency.image_refinement import agreed
 from service.consistency.stage import StackPoses
 from service.core.errors import ServiceError
 from service.geometry import anchors
+from service.io.volume import Volume
 from service.pipeline.predict import StackPrediction
 from service.preprocess.noise import NOISY_INPUT
 from service.streaming.answers import SessionSummary, SliceAnswer, StackAnswer
@@ -95,16 +96,21 @@ def stack_report(out: StackPoses | None) -> dict | None:
     return report
 
 
+def stack_geometry(index: int, filename: str, volume: Volume, slice_axis: int) -> dict:
+    """A stack object's place and geometry, as the service read its file: ``index``, ``filename``,
+    ``shape``, ``spacing_mm``, ``slice_axis`` and ``scanner_from_voxel`` (voxel index -> scanner RAS mm)."""
+    return {"index": index, "filename": filename, "shape": list(volume.array.shape),
+            "spacing_mm": [float(x) for x in volume.spacing], "slice_axis": int(slice_axis),
+            "scanner_from_voxel": np.asarray(volume.affine, np.float64).tolist()}
+
+
 def stack_objects(predictions: list[StackPrediction]) -> list[dict]:
     """The response's ``stacks``: each stack's file, geometry (``scanner_from_voxel``: voxel index ->
     scanner RAS mm, as the service read the file), slices, consistency and localisation."""
     stacks = []
     for index, p in enumerate(predictions):
-        vol = p.prepared.upload.volume
         stacks.append({
-            "index": index, "filename": p.prepared.upload.filename, "shape": list(vol.array.shape),
-            "spacing_mm": [float(x) for x in vol.spacing], "slice_axis": p.prepared.slices.slice_axis,
-            "scanner_from_voxel": np.asarray(vol.affine, np.float64).tolist(),
+            **stack_geometry(index, p.prepared.upload.filename, p.prepared.upload.volume, p.prepared.slices.slice_axis),
             "slices": slice_objects(p), "consistency": stack_report(p.poses),
             "localisation": p.prepared.localisation.report(),
             "noise": noise_report(p.prepared.input_noise, p.noise_error_mm),

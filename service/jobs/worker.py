@@ -305,6 +305,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     from service.reconstruction.export import write_outputs
     from service.preprocess.stack import split_stack
     from service.reconstruction.job import bias_corrected_stacks, refine_job
+    from service.api.responses import stack_geometry
     from service.reconstruction.refined_poses import refined_poses_body
     from service.reconstruction.slices import SliceSet
 
@@ -384,9 +385,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         # Results are kept until the retention limit; the clients' file names (often patient names)
         # are not: a stack is named by its place in the upload. Its geometry is the upload's as the
         # service read it (uploaded poses need not carry it; `svrnet export` cuts slices by it).
-        stack.update(filename=f"stacks[{i}]", index=i, shape=list(u.volume.array.shape),
-                     spacing_mm=[float(x) for x in u.volume.spacing], slice_axis=int(u.slice_axis),
-                     scanner_from_voxel=np.asarray(u.volume.affine, np.float64).tolist())
+        stack.update(stack_geometry(i, f"stacks[{i}]", u.volume, u.slice_axis))
     (folder / "outputs" / "poses.json").write_text(json.dumps(refined))
     if not store.finish(job_id, report, attempt):
         if not store.is_cancelled(job_id):

@@ -177,13 +177,11 @@ class StreamedStack:
         thickness (the third column's length: contiguous slices); None otherwise."""
         if len(self.frames) < 2:
             return None
-        start, step = self.line(first, normal)
+        start, step, off = self.line_and_misfits(first, normal)
         if len(self.frames) == 2:
             agree = abs(abs(step) - first.thickness_mm) <= self.place_tolerance_mm(step)
             return (start, step, sorted(self.frames)) if agree else None
-        on = [k for k, f in self.frames.items()
-              if abs(float((f.scanner_from_voxel[:3, 3] - first.scanner_from_voxel[:3, 3]) @ normal)
-                     - start - step * k) <= self.place_tolerance_mm(step)]
+        on = [k for k, miss in off.items() if miss <= self.place_tolerance_mm(step)]
         return (start, step, on) if len(on) >= 3 and 2 * len(on) > len(self.frames) else None
 
     def line(self, first: SliceFrame, normal: NDArray[np.float64]) -> tuple[float, float]:
@@ -196,6 +194,12 @@ class StreamedStack:
         i, j = np.triu_indices(len(idx), 1)
         step = float(np.median((along[j] - along[i]) / (idx[j] - idx[i])))
         return float(np.median(along - step * idx)), step
+
+    def line_and_misfits(self, first: SliceFrame, normal: NDArray[np.float64]) -> tuple[float, float, dict[int, float]]:
+        """:meth:`line` and each received slice's distance from it along ``normal`` (mm)."""
+        start, step = self.line(first, normal)
+        return start, step, {k: abs(float((f.scanner_from_voxel[:3, 3] - first.scanner_from_voxel[:3, 3]) @ normal)
+                                    - start - step * k) for k, f in self.frames.items()}
 
     @staticmethod
     def place_tolerance_mm(step: float) -> float:
@@ -210,10 +214,8 @@ class StreamedStack:
             return []
         first = self.frames[self.arrivals[0]]
         normal = first.scanner_from_voxel[:3, 2] / np.linalg.norm(first.scanner_from_voxel[:3, 2])
-        start, step = self.line(first, normal)
-        return sorted(k for k, f in self.frames.items()
-                      if abs(float((f.scanner_from_voxel[:3, 3] - first.scanner_from_voxel[:3, 3]) @ normal)
-                             - start - step * k) > self.place_tolerance_mm(step))
+        _, step, off = self.line_and_misfits(first, normal)
+        return sorted(k for k, miss in off.items() if miss > self.place_tolerance_mm(step))
 
     def remove(self, index: int) -> None:
         """Forget the slice ``index`` (one the service could not take after all)."""
