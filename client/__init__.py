@@ -13,12 +13,12 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:                     # what type checkers and IDEs see; at run time, imported on first use
     from client._client import DEFAULT_SERVER, SVRnetClient
-    from client.errors import (BadRequest, Busy, Conflict, ConnectionFailed, JobFailed, NotFound, PayloadTooLarge,
-                               ServerError, SVRnetError, Unauthorized, UnsupportedFile, UnusableInput, WaitTimeout,
-                               error_from_response)
+    from client.errors import (BadRequest, Busy, Conflict, ConnectionFailed, JobFailed, KeyReused, NotFound,
+                               OriginNotAllowed, PayloadTooLarge, ServerError, SVRnetError, Unauthorized,
+                               UnsupportedFile, UnusableInput, WaitTimeout, error_from_response)
 
-_ERRORS = ("BadRequest", "Busy", "Conflict", "ConnectionFailed", "JobFailed", "NotFound", "PayloadTooLarge",
-           "ServerError", "SVRnetError", "Unauthorized", "UnsupportedFile", "UnusableInput", "WaitTimeout",
+_ERRORS = ("BadRequest", "Busy", "Conflict", "ConnectionFailed", "JobFailed", "KeyReused", "NotFound",
+           "OriginNotAllowed", "PayloadTooLarge", "ServerError", "SVRnetError", "Unauthorized", "UnsupportedFile", "UnusableInput", "WaitTimeout",
            "error_from_response")
 
 _SUBMODULES = ("cli", "errors", "exits", "launch", "multipart", "scanner_stack", "slice_transforms", "stream",

@@ -263,8 +263,11 @@ class SVRnetClient(Transport):
         """Poll :meth:`status` until the job is ``succeeded``, ``failed`` or ``cancelled``.
 
         A server that restarts (its jobs go on: they are stored) or a load balancer without a
-        replica for a while does not end the wait: polls that find no server go on for
-        ``unreachable_s`` in a row before :class:`~client.errors.ConnectionFailed` is raised.
+        replica for a while does not end the wait: once the server has answered this client (the
+        job's submission, an earlier poll), polls that find no server go on for ``unreachable_s`` in
+        a row before :class:`~client.errors.ConnectionFailed` is raised. A server that has answered
+        nothing yet (a wrong address, a server not started) ends the wait at the first poll, after
+        the transport's retries.
 
         Args:
             job_id: the job.
@@ -293,6 +296,8 @@ class SVRnetClient(Transport):
             except (ConnectionFailed, Busy, ServerError) as exc:
                 if isinstance(exc, ServerError) and exc.status not in (502, 504):
                     raise                          # the server's own fault, not its absence
+                if not self.answered and not isinstance(exc, Busy):
+                    raise                          # never reached: no server to wait for at this address
                 now = time.monotonic()
                 unreachable_since = now if unreachable_since is None else unreachable_since
                 if now - unreachable_since >= unreachable_s or now >= deadline:

@@ -24,17 +24,19 @@ Exit codes:
     1   unexpected error (e.g. a local file could not be written)
     2   usage error (bad option or argument: typer's own, or the client's check naming it)
     3   connection failed (server unreachable, timeout)
-    4   unauthorized (missing or wrong API key)
+    4   unauthorized (missing or wrong API key; a browser Origin the server does not allow)
     5   bad input (400, 413, 415, 422: malformed request, too large, unreadable or unusable file; every
         slice of a stream refused)
     6   not found (unknown model or job)
     7   busy (429/503 after every retry)
     8   job failed or cancelled
     9   server error (5xx)
-    10  conflict (409, e.g. result asked for before the job succeeded)
+    10  conflict (409, e.g. result asked for before the job succeeded; a submission's idempotency key that
+        the server holds for another request)
     11  timed out waiting for a job (the job goes on)
     12  nothing usable in the answer, its files written: no slice accepted (predict, stream), a volume whose
         stacks do not predict each other (reconstruct)
+    130 interrupted (Ctrl-C); a job already submitted goes on on the server
 
 Errors are one red line on stderr with the server's problem detail (and request id), never a traceback.
 """

@@ -21,8 +21,9 @@ from typing import Any
 import httpx
 
 __all__ = [
-    "SVRnetError", "BadRequest", "Unauthorized", "NotFound", "Conflict", "PayloadTooLarge", "UnsupportedFile",
-    "UnusableInput", "Busy", "ServerError", "ConnectionFailed", "JobFailed", "WaitTimeout",
+    "SVRnetError", "BadRequest", "Unauthorized", "OriginNotAllowed", "NotFound", "Conflict", "KeyReused",
+    "PayloadTooLarge", "UnsupportedFile", "UnusableInput", "Busy", "ServerError", "ConnectionFailed", "JobFailed",
+    "WaitTimeout",
     "error_from_response", "error_class_for_status", "ArgumentError",
 ]
 
@@ -81,12 +82,23 @@ class Unauthorized(SVRnetError):
         self.key_sent = key_sent
 
 
+class OriginNotAllowed(Unauthorized):
+    """403 ``/problems/origin-not-allowed``: the request carried a browser's ``Origin`` of another site
+    than the server's own or its ``SVRNET_ALLOWED_ORIGINS``; the API key is not the problem."""
+
+
 class NotFound(SVRnetError):
     """404: unknown model or job."""
 
 
 class Conflict(SVRnetError):
     """409: e.g. a reconstruction result asked for before the job succeeded."""
+
+
+class KeyReused(Conflict):
+    """422 ``/problems/idempotency-key-reused``: the ``Idempotency-Key`` made a job from another
+    request (other files, poses or options); send this request under a new key. The files are not at
+    fault, so this is no :class:`UnusableInput`."""
 
 
 class PayloadTooLarge(SVRnetError):
@@ -156,15 +168,25 @@ _BY_STATUS: dict[int, type[SVRnetError]] = {
 server's disk filled, ``Retry-After`` given) is a busy server's, retried as a 503 is."""
 
 
-def error_class_for_status(status: int) -> type[SVRnetError]:
-    """The exception class for an HTTP error status.
+_BY_TYPE: dict[tuple[int, str], type[SVRnetError]] = {
+    (422, "/problems/idempotency-key-reused"): KeyReused, (403, "/problems/origin-not-allowed"): OriginNotAllowed,
+}
+"""Problem types whose status another kind of failure shares (422 unusable images, 403 refused keys)."""
+
+
+def error_class_for_status(status: int, problem_type: str | None = None) -> type[SVRnetError]:
+    """The exception class for an HTTP error status, and the problem ``type`` where it says more.
 
     Example:
         >>> error_class_for_status(422).__name__
         'UnusableInput'
+        >>> error_class_for_status(422, "/problems/idempotency-key-reused").__name__
+        'KeyReused'
         >>> [error_class_for_status(s).__name__ for s in (502, 408, 507)]
         ['ServerError', 'ConnectionFailed', 'Busy']
     """
+    if isinstance(problem_type, str) and (status, problem_type) in _BY_TYPE:
+        return _BY_TYPE[status, problem_type]
     if status in _BY_STATUS:
         return _BY_STATUS[status]
     if 400 <= status < 500:
@@ -247,11 +269,11 @@ def error_from_response(response: httpx.Response) -> SVRnetError:
         return ConnectionFailed(detail, **kwargs)     # the wrong server: as one that cannot be reached
     if status == 404 and detail.startswith("no route "):
         return ConnectionFailed(detail, **kwargs)     # the right server at the wrong URL: check the server URL
-    cls = error_class_for_status(status)
+    cls = error_class_for_status(status, body.get("type"))
     if cls is Busy:
         return Busy(detail, retry_after_s=parse_retry_after(response.headers.get("retry-after")), **kwargs)
-    if cls is Unauthorized:
-        return Unauthorized(detail, key_sent=_key_sent(response), **kwargs)
+    if issubclass(cls, Unauthorized):
+        return cls(detail, key_sent=_key_sent(response), **kwargs)
     return cls(detail, **kwargs)
 
 

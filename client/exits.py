@@ -17,14 +17,15 @@ from contextlib import contextmanager
 import typer
 from rich.console import Console
 
-from client.errors import (ArgumentError, BadRequest, Busy, Conflict, ConnectionFailed, JobFailed, NotFound,
-                           PayloadTooLarge, ServerError, SVRnetError, Unauthorized, UnsupportedFile, UnusableInput,
-                           WaitTimeout)
+from client.errors import (ArgumentError, BadRequest, Busy, Conflict, ConnectionFailed, JobFailed, KeyReused,
+                           NotFound, OriginNotAllowed, PayloadTooLarge, ServerError, SVRnetError, Unauthorized,
+                           UnsupportedFile, UnusableInput, WaitTimeout)
 
 EXIT_OK, EXIT_UNEXPECTED, EXIT_USAGE = 0, 1, 2
 EXIT_CONNECTION, EXIT_UNAUTHORIZED, EXIT_BAD_INPUT, EXIT_NOT_FOUND = 3, 4, 5, 6
 EXIT_BUSY, EXIT_JOB_FAILED, EXIT_SERVER, EXIT_CONFLICT, EXIT_TIMEOUT = 7, 8, 9, 10, 11
 EXIT_NOTHING_USABLE = 12
+EXIT_INTERRUPTED = 130
 """The request succeeded and its outputs are written, but nothing in them is worth using: no slice
 accepted (``predict``, ``stream``), a volume whose stacks do not predict each other (``reconstruct``)."""
 
@@ -44,8 +45,10 @@ EXIT_HELP = (
     "Exit codes: 0 ok · 1 unexpected error · 2 usage · 3 connection failed (or not an SVRnet server) · 4 unauthorized · "
     "5 bad input (400/413/415/422; a stream whose every slice is refused, or whose session could not take them all) · "
     "6 not found · 7 busy (429/503/507 after retries) · "
-    "8 job failed/cancelled · 9 server error (5xx) · 10 conflict (409) · 11 timed out waiting · "
-    "12 nothing usable in the answer (no slice accepted; a volume that is no coherent brain), its files written."
+    "8 job failed/cancelled · 9 server error (5xx) · 10 conflict (409; a submission's key held by another "
+    "request) · 11 timed out waiting · "
+    "12 nothing usable in the answer (no slice accepted; a volume that is no coherent brain), its files written · "
+    "130 interrupted (Ctrl-C; a job already submitted goes on on the server)."
 )
 
 
@@ -93,9 +96,14 @@ def errors() -> Iterator[None]:
         raise
     except SVRnetError as e:
         hint = ""
-        if isinstance(e, Unauthorized):
+        if isinstance(e, OriginNotAllowed):
+            hint = (" (the request carried a browser's Origin header of another site: send it without one, or "
+                    "add that origin to the server's SVRNET_ALLOWED_ORIGINS)")
+        elif isinstance(e, Unauthorized):
             hint = (" (the key sent was refused: check SVRNET_API_KEY or --api-key)" if e.key_sent
                     else " (give the key with SVRNET_API_KEY or --api-key)")
+        if isinstance(e, KeyReused):
+            hint = " (the server holds another request under this submission's key: submit it again)"
         if isinstance(e, Busy):
             tried = f"sent {e.attempts} times" if e.attempts > 1 else "sent once"
             asks = f"; it asks to retry in {e.retry_after_s:g} s" if e.retry_after_s is not None else ""
@@ -104,7 +112,7 @@ def errors() -> Iterator[None]:
     except ArgumentError as e:                             # the client's own checks of its arguments, by field
         fail(" ".join(str(e).split()), EXIT_USAGE)
     except KeyboardInterrupt:
-        fail("interrupted", 130)
+        fail("interrupted", EXIT_INTERRUPTED)
     except OSError as e:
         fail(f"{type(e).__name__}: {e}", EXIT_UNEXPECTED)
     except Exception as e:  # noqa: BLE001 - the CLI promises no tracebacks

@@ -125,11 +125,11 @@ def _server_error(message: dict[str, Any], key_sent: bool | None = None) -> SVRn
     status = message.get("status") if isinstance(message.get("status"), int) else 400
     detail = str(message.get("detail") or message.get("title") or f"error {status}")
     kwargs = {"status": status, "title": message.get("title"), "type": message.get("problem_type"), "body": message}
-    cls = error_class_for_status(status)
+    cls = error_class_for_status(status, message.get("problem_type"))
     if cls is Busy:
         return Busy(detail, retry_after_s=message.get("retry_after_s"), **kwargs)
-    if cls is Unauthorized:
-        return Unauthorized(detail, key_sent=key_sent, **kwargs)
+    if issubclass(cls, Unauthorized):
+        return cls(detail, key_sent=key_sent, **kwargs)
     return cls(detail, **kwargs)
 
 

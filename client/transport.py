@@ -102,6 +102,8 @@ class Transport:
         self.api_key = clean_api_key(api_key if api_key is not None else os.environ.get("SVRNET_API_KEY"))
         self.retries = retries
         self.backoff_s = backoff_s
+        self.answered = False
+        """Whether the server has answered this client at all (any status): a server to wait for."""
         self._owns_http = http is None
         self._http = http if http is not None else httpx.Client(base_url=base_url, timeout=timeout,
                                                                  transport=transport)
@@ -166,8 +168,9 @@ class Transport:
                 raise self._transport_error(method, path, exc) from exc
             except httpx.InvalidURL as exc:
                 raise ConnectionFailed(f"{method} {path}: invalid URL: {exc}") from exc
+            self.answered = self.answered or response.status_code not in (502, 504)     # not a proxy's
             busy = response.status_code in (429, 503, 507)            # 507: the server's disk, full for now
-            if busy or (keyed and response.status_code in (502, 504)):   # or a proxy lost a keyed answer
+            if busy or (idempotent and response.status_code in (502, 504)):   # or a proxy lost the answer
                 response.read()
                 response.close()
                 retry_after = parse_retry_after(response.headers.get("retry-after"))
@@ -187,7 +190,10 @@ class Transport:
             if not stream:
                 try:
                     response.read()
-                except httpx.TransportError as exc:
+                except httpx.TransportError as exc:     # the answer cut off: asked again where that is safe
+                    if idempotent and attempt < self.retries and not isinstance(exc, _NO_RETRY_TRANSPORT):
+                        sleep(self._sleep_for(attempt, None))
+                        continue
                     raise self._transport_error(method, path, exc) from exc
                 finally:
                     response.close()
@@ -225,27 +231,34 @@ class Transport:
                                    request_id=response.headers.get("x-request-id")) from exc
 
     def _download(self, path: str, out_path: PathLike, progress: ProgressCallback | None) -> Path:
+        """``GET path`` into ``out_path``, written under a temporary name and renamed when whole; a
+        download cut off is started again (up to the client's retries), never left half-written."""
         out = Path(out_path)
         tmp = out.with_name(f".{out.name}.part-{secrets.token_hex(4)}")
-        response = self._send("GET", path, stream=True)
-        try:
-            if response.headers.get("content-type", "").lower().startswith(("text/html", "text/plain")):
-                raise ConnectionFailed(f"GET {path}: the server answered {response.status_code} with a "
-                                       f"{response.headers['content-type'].split(';')[0]} page, not the file: not an "
-                                       "SVRnet server (a proxy's login page?); nothing was written",
-                                       status=response.status_code)
-            total = int(response.headers.get("content-length") or 0)
-            done = 0
-            with open(tmp, "wb") as fh:
-                for data in response.iter_bytes(CHUNK):
-                    fh.write(data)
-                    done += len(data)
-                    if progress is not None:
-                        progress(done, total or done)
-            os.replace(tmp, out)
-        except httpx.TransportError as exc:
-            raise self._transport_error("GET", path, exc) from exc
-        finally:
-            response.close()
-            tmp.unlink(missing_ok=True)
-        return out
+        for attempt in range(self.retries + 1):
+            response = self._send("GET", path, stream=True)
+            try:
+                if response.headers.get("content-type", "").lower().startswith(("text/html", "text/plain")):
+                    raise ConnectionFailed(f"GET {path}: the server answered {response.status_code} with a "
+                                           f"{response.headers['content-type'].split(';')[0]} page, not the file: "
+                                           "not an SVRnet server (a proxy's login page?); nothing was written",
+                                           status=response.status_code)
+                total = int(response.headers.get("content-length") or 0)
+                done = 0
+                with open(tmp, "wb") as fh:
+                    for data in response.iter_bytes(CHUNK):
+                        fh.write(data)
+                        done += len(data)
+                        if progress is not None:
+                            progress(done, total or done)
+                os.replace(tmp, out)
+                return out
+            except httpx.TransportError as exc:
+                if attempt < self.retries and not isinstance(exc, _NO_RETRY_TRANSPORT):
+                    sleep(self._sleep_for(attempt, None))
+                    continue
+                raise self._transport_error("GET", path, exc) from exc
+            finally:
+                response.close()
+                tmp.unlink(missing_ok=True)
+        raise AssertionError("unreachable")  # pragma: no cover

@@ -21,12 +21,14 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
+import typer
 from fastapi.testclient import TestClient
 
-from client import (BadRequest, Busy, Conflict, ConnectionFailed, JobFailed, NotFound, ServerError, SVRnetClient,
-                    SVRnetError, Unauthorized, UnsupportedFile, UnusableInput, WaitTimeout)
+from client import (BadRequest, Busy, Conflict, ConnectionFailed, JobFailed, KeyReused, NotFound, OriginNotAllowed,
+                    ServerError, SVRnetClient, SVRnetError, Unauthorized, UnsupportedFile, UnusableInput, WaitTimeout)
+from client import stream as client_stream
 from client.errors import ArgumentError, error_from_response
-from client.exits import EXIT_CONNECTION, exit_code_for
+from client.exits import EXIT_CONNECTION, EXIT_HELP, EXIT_INTERRUPTED, errors, exit_code_for
 from service.core.settings import Settings
 from service.inference.estimator import PoseEstimate
 from service.inference.model_file import ModelInfo
@@ -553,3 +555,93 @@ def test_a_proxys_html_page_is_not_an_svrnet_answer_and_writes_no_file(tmp_path:
     with pytest.raises(ConnectionFailed, match="text/html page, not the file"):
         svr.download_volume("job1", tmp_path / "vol.nii.gz")
     assert list(tmp_path.iterdir()) == []
+
+
+# --- (f) answers lost on the way, and problem types that share a status ------------------------------------------
+
+
+class _CutOff(httpx.SyncByteStream):
+    """A body that ends after its first bytes, as a connection that drops mid-answer."""
+
+    def __init__(self, head: bytes) -> None:
+        self.head = head
+
+    def __iter__(self) -> Iterator[bytes]:
+        yield self.head
+        raise httpx.RemoteProtocolError("peer closed connection without sending complete message body")
+
+
+def test_gets_are_asked_again_after_a_proxys_502_504_or_a_cut_off_answer(tmp_path: Path,
+                                                                         no_sleep: list[float]) -> None:
+    fake, lost = FakeJobs(), []
+
+    def lossy(request: httpx.Request) -> httpx.Response:
+        if request.method == "GET" and lost:
+            kind = lost.pop(0)
+            if kind == "cut":
+                return httpx.Response(200, headers={"content-length": "4000"}, stream=_CutOff(b"\x1f\x8b cut"))
+            return httpx.Response(kind, text="<html>Bad Gateway</html>")
+        return fake(request)
+
+    svr = mock(lossy, retries=3)
+    job_id = svr.reconstruct([__file__])["job_id"]
+    lost[:] = [502, 504, "cut"]
+    assert svr.status(job_id)["job_id"] == job_id and lost == [] and len(no_sleep) == 3
+    svr.wait(job_id, poll_s=0.0)
+    lost[:] = ["cut", 502]
+    out = svr.download_volume(job_id, tmp_path / "vol.nii.gz")
+    assert out.read_bytes() == FakeJobs.VOLUME and sorted(p.name for p in tmp_path.iterdir()) == ["vol.nii.gz"]
+    lost[:] = ["cut"] * 4                                      # cut off every time: no half-written file
+    with pytest.raises(ConnectionFailed, match="RemoteProtocolError"):
+        svr.download_volume(job_id, tmp_path / "again.nii.gz")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["vol.nii.gz"]
+
+
+def test_a_post_is_not_sent_again_after_a_502(stack_file: Path) -> None:
+    calls = []
+
+    def gateway(request: httpx.Request) -> httpx.Response:
+        calls.append(request.method)
+        return httpx.Response(502, text="<html>Bad Gateway</html>")
+
+    with pytest.raises(ServerError):
+        mock(gateway, retries=3).predict([stack_file])
+    assert calls == ["POST"]                                   # /v1/predict may have run: not repeated unasked
+
+
+def test_waiting_on_a_server_that_never_answered_ends_at_once(no_sleep: list[float]) -> None:
+    calls = []
+
+    def stopped(request: httpx.Request) -> httpx.Response:
+        calls.append(request.method)
+        raise httpx.ConnectError("[Errno 111] Connection refused", request=request)
+
+    with pytest.raises(ConnectionFailed, match="Connection refused"):
+        mock(stopped, retries=2).wait("3f2a", poll_s=1.0, timeout_s=3600.0, unreachable_s=120.0)
+    assert calls == ["GET"] * 3 and sum(no_sleep) < 5              # the transport's retries, not 120 s of polls
+
+
+@pytest.mark.parametrize(("status", "ptype", "cls", "code"), [
+    (422, "/problems/idempotency-key-reused", KeyReused, 10),
+    (422, "/problems/unusable-image", UnusableInput, 5),
+    (403, "/problems/origin-not-allowed", OriginNotAllowed, 4),
+    (403, "/problems/unauthorized", Unauthorized, 4),
+    (400, "/problems/idempotency-key-reused", BadRequest, 5),   # a type the status does not agree with
+])
+def test_problem_types_that_share_a_status_are_told_apart(status: int, ptype: str, cls: type[SVRnetError],
+                                                          code: int) -> None:
+    err = error_from_response(httpx.Response(status, json={**problem(status, "x"), "type": ptype}))
+    assert type(err) is cls and exit_code_for(err) == code
+    streamed = client_stream._server_error({"type": "error", "status": status, "problem_type": ptype, "detail": "x"})
+    assert type(streamed) is cls
+
+
+def test_the_cli_names_the_origin_not_the_key(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(typer.Exit) as e, errors():
+        raise error_from_response(httpx.Response(403, json={**problem(403, "Origin: not allowed"),
+                                                            "type": "/problems/origin-not-allowed"}))
+    said = capsys.readouterr().err
+    assert e.value.exit_code == 4 and "SVRNET_ALLOWED_ORIGINS" in said and "API_KEY" not in said
+    with pytest.raises(typer.Exit) as e, errors():
+        raise KeyboardInterrupt
+    assert e.value.exit_code == EXIT_INTERRUPTED and "130 interrupted" in EXIT_HELP
