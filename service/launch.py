@@ -1,0 +1,59 @@
+"""The service's console entry points: the command, or one line naming what to install.
+
+The server's commands (``svrnet-server``, ``svrnet-worker``, ``svrnet-mrd``, ``svrnet-mrd-send``)
+need the ``server`` extra. The distribution installs them with the ``client`` extra too (one
+package, three extras); there, a server command says what to install instead of failing with a
+traceback. This module imports nothing beyond the standard library.
+
+Example:
+    >>> import subprocess, sys
+    >>> code = "import sys; sys.modules['fastapi'] = None; from service.launch import server; server()"
+    >>> done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    >>> done.returncode, "pip install" in done.stderr, "Traceback" in done.stderr
+    (1, True, False)
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+SERVER_PACKAGES = ("numpy", "scipy", "fastapi", "fastapi_offline", "starlette", "anyio", "uvicorn", "pydantic",
+                   "pydantic_settings", "multipart", "python_multipart", "onnxruntime", "SimpleITK",
+                   "prometheus_client", "PIL", "pydicom", "nibabel", "websockets", "ismrmrd", "threadpoolctl", "isal")
+"""The top-level modules the ``server`` extra installs (and what they bring)."""
+
+
+def run_entry_point(command: str, target: str) -> None:
+    """Call ``target`` (``"module:function"``) for ``command``; where importing its module misses one
+    of :data:`SERVER_PACKAGES`, exit 1 with one line naming it and the extra to install."""
+    module, _, function = target.partition(":")
+    try:
+        entry = getattr(importlib.import_module(module), function)
+    except ModuleNotFoundError as missing:
+        name = (missing.name or str(missing).partition("'")[2].partition("'")[0]).split(".")[0]
+        if name not in SERVER_PACKAGES:          # a submodule's import names no ``name`` of its own
+            raise
+        sys.exit(f"{command}: the server's packages are not installed ({name} is missing): "
+                 "pip install -c constraints.txt \".[server]\" (make serve installs them)")
+    entry()
+
+
+def server() -> None:
+    """Run ``svrnet-server`` (:func:`service.main.run`)."""
+    run_entry_point("svrnet-server", "service.main:run")
+
+
+def worker() -> None:
+    """Run ``svrnet-worker`` (:func:`service.main.run_worker`)."""
+    run_entry_point("svrnet-worker", "service.main:run_worker")
+
+
+def mrd_server() -> None:
+    """Run ``svrnet-mrd`` (:func:`service.mrd.server.run`)."""
+    run_entry_point("svrnet-mrd", "service.mrd.server:run")
+
+
+def mrd_send() -> None:
+    """Run ``svrnet-mrd-send`` (:func:`service.mrd.send.run`)."""
+    run_entry_point("svrnet-mrd-send", "service.mrd.send:run")

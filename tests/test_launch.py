@@ -1,0 +1,34 @@
+"""The server's console commands, installed with the client extra alone, say what to install."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPTS = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+SERVER_ONLY = ("scipy", "fastapi", "fastapi_offline", "starlette", "uvicorn", "pydantic", "pydantic_settings",
+               "multipart", "python_multipart", "onnxruntime", "SimpleITK", "prometheus_client", "PIL", "pydicom",
+               "ismrmrd", "threadpoolctl", "isal")
+"""What the server extra installs and the client extra does not: absent where the client's alone are."""
+
+
+@pytest.mark.parametrize("command", ["svrnet-server", "svrnet-worker", "svrnet-mrd", "svrnet-mrd-send"])
+def test_a_server_command_without_the_server_extra_names_it(command: str) -> None:
+    module, _, function = SCRIPTS[command].partition(":")
+    code = (f"import sys; sys.modules.update(dict.fromkeys({SERVER_ONLY!r})); sys.argv = [{command!r}, '--help']; "
+            f"from {module} import {function}; {function}()")
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
+    assert done.stderr.startswith(f"{command}: ") and '".[server]"' in done.stderr and " is missing" in done.stderr
+
+
+def test_with_the_server_extra_a_command_runs() -> None:
+    module, _, function = SCRIPTS["svrnet-server"].partition(":")
+    code = f"import sys; sys.argv = ['svrnet-server', '--help']; from {module} import {function}; {function}()"
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and "--port" in done.stdout, done.stderr
