@@ -324,6 +324,10 @@ def _connect(url: str, api_key: str | None, answer_timeout_s: float) -> ClientCo
                        user_agent_header=USER_AGENT)
     except InvalidStatus as e:
         status = e.response.status_code
+        if status in (403, 404):              # the key is checked after the handshake, not by it
+            raise ConnectionFailed(f"{url}: the server refused the WebSocket ({status}): no stream at that address "
+                                   "(give --server the server's root, e.g. http://host:8000, not a path below it)",
+                                   status=status) from None
         raise error_class_for_status(status)(f"{url}: the server refused the WebSocket ({status})",
                                              status=status) from None
     except (OSError, TimeoutError, InvalidURI, WebSocketException) as e:

@@ -48,9 +48,9 @@ def stack_file(tmp_path: Path) -> Path:
 
 
 @contextmanager
-def scripted_server(handler: Callable[[ServerConnection], None]) -> Iterator[str]:
+def scripted_server(handler: Callable[[ServerConnection], None], **options: object) -> Iterator[str]:
     """A WebSocket server on a free port running ``handler`` per connection; yields its http:// address."""
-    with serve(handler, "127.0.0.1", 0) as server:
+    with serve(handler, "127.0.0.1", 0, **options) as server:
         thread = threading.Thread(target=server.serve_forever, daemon=True)
         thread.start()
         try:
@@ -158,6 +158,19 @@ def test_a_refused_session_exits_with_the_clients_codes(stack_file: Path, answer
     if code == 1008:                                   # a key was refused, or none was given: the hint says which
         assert "give the key with" in " ".join(result.output.split())
         assert "the key sent was refused" in " ".join(keyed.output.split()), keyed.output
+
+
+def test_a_handshake_refused_as_a_wrong_path_names_the_address_not_the_key(stack_file: Path) -> None:
+    """A server answers a WebSocket at a path it does not serve with 403 before the handshake (the
+    key is checked after it): the client says to check the address, not the key."""
+    def refuse(connection: ServerConnection, request: object) -> object:
+        return connection.respond(403, "Forbidden")
+
+    with scripted_server(lambda ws: None, process_request=refuse) as url:
+        result = runner.invoke(cli.app, ["stream", str(stack_file), "--server", url + "/v1"])
+    said = " ".join(result.output.split())
+    assert result.exit_code == exits.EXIT_CONNECTION, result.output
+    assert "/v1/v1/stream" in said and "server's root" in said and "key" not in said
 
 
 def test_no_server_exits_with_connection_failed_and_keeps_an_earlier_record(stack_file: Path, tmp_path: Path) -> None:
