@@ -3,7 +3,9 @@
 ``../shared/data/fetal_atlas`` holds two populations on the same 0.8 mm RAS grid (see its README):
 the CRL spatio-temporal atlas (``crl_sta``, research use only) and the spina-bifida atlas
 (``spina_bifida_cc0``, CC0). Neighbouring weeks look alike, so validation uses whole held-out
-volumes of both populations (:data:`VALIDATION_VOLUMES`), never slices of a training volume.
+volumes of both populations (:data:`VALIDATION_VOLUMES`), never slices of a training volume. A run
+may hold out others (``TrainConfig.val_volumes``): its checkpoint and the model exported from it
+record them, and a model is evaluated and calibrated on its own (:func:`validation_volumes`).
 
 A *packed* folder (:func:`pack`, ``svrnet-train pack``) holds the same volumes as one ``.npz`` each
 (image and mask cropped to the image's non-zero box, exact float32, the affine moved with the crop)
@@ -14,6 +16,7 @@ function here accepts it as ``root`` in place of the atlas folder.
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -178,10 +181,45 @@ def training_volumes(root: Path = DEFAULT_ATLAS_ROOT) -> list[str]:
 
 
 def split(root: Path = DEFAULT_ATLAS_ROOT,
-          validation: tuple[str, ...] = VALIDATION_VOLUMES) -> tuple[list[str], list[str]]:
-    """Names of the training and validation volumes."""
+          validation: Sequence[str] = VALIDATION_VOLUMES) -> tuple[list[str], list[str]]:
+    """Names of the training and validation volumes of ``root``, in its order (``validation``: the
+    names held out, each of which ``root`` must hold)."""
     names = [n for n, *_ in list_volumes(root)]
     missing = set(validation) - set(names)
     if missing:
         raise ValueError(f"validation volumes not found: {sorted(missing)}")
     return [n for n in names if n not in validation], [n for n in names if n in validation]
+
+
+HELD_OUT = "validation held out: "
+"""What precedes the validation volumes in an exported model's ``training_data`` metadata."""
+
+
+def validation_volumes(record: Mapping) -> list[str]:
+    """The validation volumes of a trained model: those its checkpoint dict records
+    (``config["val_volumes"]``), or, for an exported model's metadata, its ``validation_volumes``
+    entry (comma-separated), else the names its ``training_data`` gives after :data:`HELD_OUT`;
+    :data:`VALIDATION_VOLUMES` for a record that names none (a checkpoint of a run that recorded no split).
+
+    Every evaluation and calibration of a model uses these: a run that held out its own volumes
+    trained on the fixed ones, which must not judge it.
+
+    Example:
+        >>> validation_volumes({"config": {"val_volumes": ["STA30", "STA33"]}})
+        ['STA30', 'STA33']
+        >>> validation_volumes({"validation_volumes": "STA30,STA33"})
+        ['STA30', 'STA33']
+        >>> validation_volumes({"training_data": "2 atlas volumes (STA21, STA22); validation held out: STA30, STA33"})
+        ['STA30', 'STA33']
+        >>> validation_volumes({"config": {}}) == list(VALIDATION_VOLUMES)
+        True
+    """
+    recorded = (record.get("config") or {}).get("val_volumes")
+    if recorded:
+        return list(recorded)
+    if record.get("validation_volumes"):
+        return [n.strip() for n in str(record["validation_volumes"]).split(",") if n.strip()]
+    text = str(record.get("training_data", ""))
+    if HELD_OUT in text:
+        return [n.strip() for n in text.split(HELD_OUT, 1)[1].split(",") if n.strip()]
+    return list(VALIDATION_VOLUMES)

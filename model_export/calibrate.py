@@ -8,6 +8,10 @@ anchor-point error of the mean pose: a single slice cannot tell a pose from its 
 decides the branch), so the variance is asked to flag slices that are wrong on either branch. The threshold maximises Youden's J (TPR - FPR) for flagging
 slices with error > ``error_mm``; the AUROC says how well variance ranks bad slices.
 
+The statistics are those of the file the service runs when one is given (``model_file``: the
+exported, perhaps int8, ONNX file through the service's own estimator, with its test-time views and
+fixed draws), else those of the checkpoint's float network in torch.
+
 When fewer than ``MIN_CLASS_FRACTION`` of the slices fall on one side of ``error_mm`` (a weak model:
 nearly every slice is off by more than 10 mm), Youden's J on a handful of slices is noise; the
 threshold is then chosen for the median error instead (flag the worse half), and both AUROCs are
@@ -22,7 +26,7 @@ import numpy as np
 import torch
 from scipy import stats
 
-from model_export.atlas import DEFAULT_ATLAS_ROOT
+from model_export.atlas import DEFAULT_ATLAS_ROOT, validation_volumes
 from model_export.packaging import load_checkpoint
 from model_export.simulate import SimulationConfig
 from model_export.train import pose_errors, validation_set
@@ -66,14 +70,31 @@ def mc_statistics(model, inputs: np.ndarray, mc_samples: int, batch: int = 64,  
 
 
 def calibrate(checkpoint: Path, root: Path = DEFAULT_ATLAS_ROOT, *, mc_samples: int = 100,
-              per_volume: int = 120, error_mm: float = ERROR_MM, seed: int = 777, views: int = 1) -> dict:
-    """Choose the variance threshold; returns it with the AUROC and the data behind them."""
+              per_volume: int = 120, error_mm: float = ERROR_MM, seed: int = 777, views: int = 1,
+              model_file: Path | None = None) -> dict:
+    """Choose the variance threshold on the checkpoint's validation volumes, simulated as it trained;
+    returns it with the AUROC and the data behind them.
+
+    Args:
+        checkpoint: the training checkpoint (its validation volumes, simulation and symmetry plane).
+        views: test-time views of the float network (a ``model_file`` runs its own).
+        model_file: the exported ONNX file to measure, as the service runs it (the file shipped:
+            int8 where its convolutions are); None measures the checkpoint's float network.
+    """
     model, ck = load_checkpoint(checkpoint)
     torch.manual_seed(seed)
     plane = float(ck["config"].get("plane_x_mm", 0.0))
     sim = SimulationConfig(**{k: v for k, v in ck["simulation"].items() if k in SimulationConfig.__dataclass_fields__})
-    val = validation_set(ck["config"]["val_volumes"], root, per_volume, seed=seed, config=sim)
-    est = mc_statistics(model, val.inputs, mc_samples, plane_x_mm=plane, views=views)
+    val = validation_set(validation_volumes(ck), root, per_volume, seed=seed, config=sim)
+    if model_file is None:
+        est = mc_statistics(model, val.inputs, mc_samples, plane_x_mm=plane, views=views)
+    else:
+        from service.inference.estimator import OnnxPoseEstimator
+        from service.inference.model_file import load_model
+
+        served = OnnxPoseEstimator(load_model(model_file))
+        views = served.info.tta_views
+        est = statistics(served.sample_labels(val.inputs, mc_samples), served.info.label_type, plane)
     errors = pose_errors(est.mean, val.poses, plane)
     err = errors["ed_twin_mm"]
     bad = err > error_mm
@@ -84,6 +105,7 @@ def calibrate(checkpoint: Path, root: Path = DEFAULT_ATLAS_ROOT, *, mc_samples: 
     accepted = est.variance <= thr
     return {
         "threshold": thr, "auroc": auroc(est.variance, bad), "error_mm": error_mm, "errors": "twin-min", "views": views,
+        "measured_on": "checkpoint (float, torch)" if model_file is None else Path(model_file).name,
         "auroc_truth": auroc(est.variance, errors["ed_mm"] > error_mm),
         "criterion_mm": criterion, "auroc_criterion": auroc(est.variance, err > criterion),
         "n_slices": int(len(err)),

@@ -15,11 +15,14 @@ from service.inference.views import SHIPPED_VIEWS
 
 
 def calibrate(checkpoint: Path, root: Root = DEFAULT_ATLAS_ROOT, mc_samples: int = 100,
-              tta_views: int = SHIPPED_VIEWS) -> None:
-    """Choose the variance threshold on the validation volumes; print AUROC and the chosen value."""
+              tta_views: int = SHIPPED_VIEWS,
+              model: Annotated[Optional[Path], typer.Option(
+                  help="the ONNX file exported from CHECKPOINT to measure as the service runs it (its own views; "
+                       "int8 where quantised) [default: CHECKPOINT's float network with --tta-views]")] = None) -> None:
+    """Choose the variance threshold on the checkpoint's validation volumes; print AUROC and the chosen value."""
     from model_export.calibrate import calibrate as run
 
-    result = run(checkpoint, root, mc_samples=mc_samples, views=tta_views)
+    result = run(checkpoint, root, mc_samples=mc_samples, views=tta_views, model_file=model)
     typer.echo(json.dumps({k: v for k, v in result.items() if not isinstance(v, list)}, indent=2))
 
 
@@ -57,8 +60,8 @@ def calibrate_acceptance(
              "given several times, their slices pooled")] = None,
 ) -> None:
     """Calibrate the accept flags on the pipeline's final poses over simulated acquisitions of the
-    validation volumes at every motion level (mild, moderate, jumps, independent)."""
-    from model_export.atlas import load_volumes, split
+    model's validation volumes (its metadata's) at every motion level (mild, moderate, jumps, independent)."""
+    from model_export.atlas import load_volumes, split, validation_volumes
     from model_export.calibrate_acceptance import LEVELS, PER_VOLUME, calibrate, flag_metadata, level_columns, markdown, measure
     from model_export.spread import write_metadata
     from service.inference.estimator import OnnxPoseEstimator
@@ -67,7 +70,8 @@ def calibrate_acceptance(
     if columns:
         result = calibrate(level_columns(columns, LEVELS))
     else:
-        result = measure(OnnxPoseEstimator(load_model(model)), load_volumes(split(root)[1], root),
+        loaded = load_model(model)
+        result = measure(OnnxPoseEstimator(loaded), load_volumes(split(root, validation_volumes(loaded.info.metadata))[1], root),
                          per_volume or PER_VOLUME, seed, slices=slices)
     report = report or model.with_name("acceptance.md")        # never the shipped model's report by default
     report.parent.mkdir(parents=True, exist_ok=True)
@@ -92,10 +96,11 @@ def calibrate_noise(
              "given several times, their slices pooled")] = None,
 ) -> None:
     """Calibrate how the expected errors grow with a stack's input noise (noise_error) on simulated
-    acquisitions of the validation volumes at a ladder of noise levels and two pixel sizes."""
+    acquisitions of the model's validation volumes (its metadata's) at a ladder of noise levels and
+    two pixel sizes."""
     import numpy as np
 
-    from model_export.atlas import load_volumes, split
+    from model_export.atlas import load_volumes, split, validation_volumes
     from model_export.calibrate_noise import PER_VOLUME, calibrate, markdown, measure, noise_metadata
     from model_export.spread import write_metadata
     from service.inference.estimator import OnnxPoseEstimator
@@ -108,7 +113,8 @@ def calibrate_noise(
                 parts.append({k: kept[k] for k in ("ed", "expected", "input_noise")})
         measured = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     else:
-        measured = measure(OnnxPoseEstimator(load_model(model)), load_volumes(split(root)[1], root),
+        loaded = load_model(model)
+        measured = measure(OnnxPoseEstimator(loaded), load_volumes(split(root, validation_volumes(loaded.info.metadata))[1], root),
                            per_volume or PER_VOLUME, seed)
         if slices is not None:
             np.savez_compressed(slices, **measured)

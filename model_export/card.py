@@ -7,6 +7,57 @@ from pathlib import Path
 
 from model_export.atlas import POPULATIONS
 from model_export.compare import markdown as table_markdown
+from model_export.training_record import commits
+
+SHIPPED_SCALE_SAMPLES = 1_000_000
+"""Training samples (all stages) under which a card calls its model a quick look: the shipped models
+were trained on millions (``default`` 2.11: 6.4 million over its stages, 12.6 h)."""
+
+
+def budget_text(train_summary: dict, train_config: dict, budget: list[tuple[str, int | None, int]] | None = None) -> str:
+    """The card's opening statement of what made the model: its training (steps of the last stage,
+    samples and hours over all stages) and the budgets of its calibrations and evaluation
+    (``(what, given, default)``; ``given`` None: the default), and **quick look** when the training
+    is under :data:`SHIPPED_SCALE_SAMPLES` or a budget under its default.
+
+    Example:
+        >>> print(budget_text({"steps": 4, "samples_seen": 64, "train_seconds": 36.0}, {"batch": 16},
+        ...                   [("slices per volume of the evaluation", 7, 100), ("slices of the int8 ranges", None, 1024)]))
+        **Budget**: training 4 steps of batch 16 in its last stage, 64 samples in 0.01 h over all stages; 7 slices per volume of the evaluation (default 100), 1024 slices of the int8 ranges.
+        <BLANKLINE>
+        **Quick look**: under the scale of a model to serve (training under 1,000,000 samples; the slices per volume of the evaluation under its default): its figures and calibrations show that the recipe runs, not what it achieves, and it is not for serving.
+    """
+    totals = train_summary.get("totals") or {}
+    samples = int(totals.get("samples", train_summary.get("samples_seen", 0)))
+    hours = float(totals.get("hours", train_summary.get("train_seconds", 0.0) / 3600))
+    parts = [f"{given if given is not None else default} {what}" + (f" (default {default})" if given is not None and
+                                                                      given != default else "")
+             for what, given, default in budget or []]
+    text = (f"**Budget**: training {train_summary['steps']} steps of batch {train_config.get('batch', '?')} in its last "
+            f"stage, {samples:,} samples in {hours:.2f} h over all stages{'; ' if parts else ''}{', '.join(parts)}.")
+    short = ([f"training under {SHIPPED_SCALE_SAMPLES:,} samples"] if samples < SHIPPED_SCALE_SAMPLES else []) + \
+        [f"the {what} under its default" for what, given, default in budget or [] if given is not None and given < default]
+    if not short:
+        return text
+    return (f"{text}\n\n**Quick look**: under the scale of a model to serve ({'; '.join(short)}): its figures and "
+            "calibrations show that the recipe runs, not what it achieves, and it is not for serving.")
+
+
+def _commit_text(info: dict, train_summary: dict) -> str:
+    """The code's commit at export and at every training run behind the checkpoint (``-dirty``: the
+    working tree held uncommitted changes to tracked files, which the commit alone does not give).
+
+    Example:
+        >>> _commit_text({"commit": "e4f5a6b"}, {"history": [{"commits": ["a1b2c3d-dirty"]}]})
+        'e4f5a6b at export; training at a1b2c3d-dirty (-dirty: with uncommitted changes to tracked files)'
+        >>> _commit_text({"commit": "e4f5a6b"}, {"history": [{"samples": 10}]})
+        'e4f5a6b at export; training: not recorded'
+    """
+    trained = commits(train_summary.get("history", []))
+    text = f"{info['commit']} at export; " + (f"training at {', '.join(trained)}" if trained else "training: not recorded")
+    if any(c.endswith("-dirty") for c in [info["commit"], *trained]):
+        text += " (-dirty: with uncommitted changes to tracked files)"
+    return text
 
 
 def _grid_text(train_config: dict) -> str:
@@ -169,6 +220,17 @@ def _views_text(info: dict) -> str:
             "(`service/inference/views.py`)")
 
 
+def _measured_text(cal: dict) -> str:
+    """What the single-slice threshold was measured on: the file served, or the float network.
+
+    Example:
+        >>> _measured_text({"measured_on": "model.onnx"})
+        '`model.onnx`, the file served'
+    """
+    where = cal.get("measured_on")
+    return f"`{where}`, the file served" if where and where.endswith(".onnx") else "the checkpoint's float network"
+
+
 def draws_text(info: dict) -> str:
     """The card's row on where the MC-dropout draws come from.
 
@@ -212,10 +274,14 @@ gives what such a request achieves at each motion level against the truth and tw
 
 
 def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict, calibration: dict,
-               evaluation: dict, comparison: list[dict] | None, report_path: str, onnx_bytes: int) -> Path:
-    """Write ``card.md`` with training cost, validation accuracy, calibration and the backbone table."""
+               evaluation: dict, comparison: list[dict] | None, report_path: str, onnx_bytes: int,
+               budget: list[tuple[str, int | None, int]] | None = None) -> Path:
+    """Write ``card.md`` with its budget first (:func:`budget_text`), then the training cost,
+    validation accuracy, calibration and the backbone table."""
     cal = {k: v for k, v in calibration.items() if not isinstance(v, list)}
     text = f"""# Model card: SVRnet `{info['name']}` {info['version']}
+
+{budget_text(train_summary, train_config, budget)}
 
 | | |
 |---|---|
@@ -228,7 +294,7 @@ def write_card(out: Path, *, info: dict, train_summary: dict, train_config: dict
 | arithmetic | {info.get('quantised', 'float32')} |
 | MC draws | {draws_text(info)} |
 | file | `model.onnx` ({onnx_bytes / 1e6:.1f} MB), `checkpoint.pt` (the next training run starts from it: `svrnet-train train --init`) |
-| commit | {info['commit']} |
+| commit | {_commit_text(info, train_summary)} |
 
 {USE_AND_LIMITS}
 ## Training
@@ -259,7 +325,8 @@ it); single slices, before any stack or request stage; full report:
 
 ## Calibration of the single-slice variance threshold
 
-On {cal['n_slices']} slices of the validation volumes simulated with the full training corruptions,
+On {cal['n_slices']} slices of the validation volumes simulated with the full training corruptions, measured on
+{_measured_text(cal)},
 {100 * cal['bad_fraction']:.0f} % of the slices have {'twin-min ' if cal.get('errors') == 'twin-min' else ''}E.D. > {cal['error_mm']:.0f} mm (MC samples put on one branch first); the AUROC of variance for
 flagging them is {cal['auroc']:.3f}. {_criterion_text(cal)} The threshold maximising Youden's J for
 flagging slices with E.D. > {cal.get('criterion_mm', cal['error_mm']):.1f} mm is **{cal['threshold']:.4g}** (the paper

@@ -194,19 +194,20 @@ def evaluate(
                                                         "place in its stack, as .npz (for analyses)")] = None,
     seed: Annotated[Optional[int], typer.Option(help="[default: 12345; with --acquisitions 1]")] = None,
 ) -> None:
-    """The paper's metrics on the validation volumes, written as a markdown report."""
+    """The paper's metrics on the model's validation volumes (those its metadata records), written as a
+    markdown report."""
     if acquisitions:
         seed = 1 if seed is None else seed
         import numpy as np
 
-        from model_export.atlas import load_volumes, split
+        from model_export.atlas import load_volumes, split, validation_volumes
         from model_export.evaluate_acquisitions import NoisyTwinEstimator, evaluate_acquisitions, markdown
         from service.inference.estimator import OnnxPoseEstimator
         from service.inference.model_file import load_model
 
         onnx = OnnxPoseEstimator(load_model(model))
         est = NoisyTwinEstimator(onnx.info, np.random.default_rng(seed)) if fake else onnx
-        vols = load_volumes(split(root)[1], root)
+        vols = load_volumes(split(root, validation_volumes(onnx.info.metadata))[1], root)
         summary = evaluate_acquisitions(vols, est, np.random.default_rng(seed), per_volume=max(1, per_volume),
                                         mc_samples=mc_samples, told=tuple(told or ()), slices=slices)
         report.parent.mkdir(parents=True, exist_ok=True)
@@ -225,17 +226,17 @@ def midplane(
     root: Root = DEFAULT_ATLAS_ROOT,
     report: Annotated[Path, typer.Option(help="markdown table")] = Path("model_export/reports/midplane.md"),
 ) -> None:
-    """Measure each atlas volume's mid-sagittal plane x0 (where it best matches its left-right mirror)."""
+    """Measure each atlas volume's mid-sagittal plane x0 (where it best matches its left-right mirror),
+    in the atlas folder or a packed one."""
     import numpy as np
 
-    from model_export.atlas import list_volumes
+    from model_export.atlas import list_volumes, load_volumes
     from service.geometry.twin import measure_plane_x
-    from service.io.volume import read_volume
 
     rows = []
-    for name, population, t2, _ in list_volumes(root):
-        vol = read_volume(t2)
-        rows.append((name, population, measure_plane_x(vol.array, vol.affine)))
+    for name, population, *_ in list_volumes(root):
+        vol = load_volumes([name], root)[0]                       # one at a time: .nii.gz or packed .npz
+        rows.append((name, population, measure_plane_x(vol.image, vol.affine)))
         typer.echo(f"{name:24s} {population:18s} x0 = {rows[-1][2]:+.2f} mm")
     xs = np.array([r[2] for r in rows])
     lines = ["# Mid-sagittal plane of each atlas volume", "",

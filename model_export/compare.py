@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from model_export.atlas import DEFAULT_ATLAS_ROOT
+from model_export.atlas import DEFAULT_ATLAS_ROOT, validation_volumes
 from model_export.packaging import load_checkpoint
 from model_export.train import TrainConfig, pose_errors, predict_poses, train, validation_set
 from service.geometry import se3
@@ -35,7 +35,7 @@ def compare(out_dir: Path, backbones: tuple[str, ...] = PAPER_BACKBONES, *, step
         seconds = time.perf_counter() - t0
         model, ck = load_checkpoint(best)
         if val is None:
-            val = validation_set(ck["config"]["val_volumes"], root, 60)
+            val = validation_set(validation_volumes(ck), root, 60)
         torch.set_num_threads(2)
         t1 = time.perf_counter()
         pred = predict_poses(model, val.inputs)

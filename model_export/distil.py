@@ -43,12 +43,12 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from model_export.atlas import DEFAULT_ATLAS_ROOT
+from model_export.atlas import DEFAULT_ATLAS_ROOT, validation_volumes
 from model_export.model import SVRNet
 from model_export.simulate import SimulationConfig
 from model_export.stream import SliceStream, validation_set
 from model_export.train import parse_fields, pose_errors, predict_poses, resolve_device, stream_seed
-from model_export.training_record import hardware, prior_history, totals
+from model_export.training_record import git_commit, hardware, prior_history, totals
 
 __all__ = ["DistilConfig", "distil", "narrowed", "student_config", "student_of"]
 
@@ -174,10 +174,11 @@ def distil(cfg: DistilConfig, out_dir: Path, teacher_path: Path, root: Path = DE
     opts = {s: torch.optim.Adam([p for p in m.parameters() if p.requires_grad], lr=cfg.lr) for s, m in students.items()}
 
     val_cfg = SimulationConfig.validation(size=sim.size, pixel_mm=sim.pixel_mm)
-    val = validation_set(ck["config"]["val_volumes"], root, cfg.val_per_volume, config=val_cfg)
+    val = validation_set(validation_volumes(ck), root, cfg.val_per_volume, config=val_cfg)
     teacher_val = predict_poses(teacher, val.inputs)
     plane = float(ck["config"].get("plane_x_mm", 0.0))
     seed = stream_seed(cfg.seed, max(totals(h)["samples"] for h in histories.values()))   # never a replay
+    code = git_commit()                                    # the code this run is at (-dirty: with changes)
     stream = SliceStream(ck["config"]["train_volumes"], root, sim, teacher.label_type, cfg.batch, cfg.reuse, cfg.pool,
                          seed)
     loader = iter(DataLoader(stream, batch_size=None, num_workers=cfg.workers,
@@ -228,7 +229,7 @@ def distil(cfg: DistilConfig, out_dir: Path, teacher_path: Path, root: Path = DE
                 to_teacher = pose_errors(poses, teacher_val, plane)["ed_mm"]
                 segment = {"hardware": hardware(device), "device": device.type, "samples": slices, "views": cfg.views,
                            "seconds": last_val - t0, "steps": step, "label_type": teacher.label_type,
-                           "loss": "distil", "run": str(out_dir), "stream_seeds": [seed]}
+                           "loss": "distil", "run": str(out_dir), "stream_seeds": [seed], "commits": [code]}
                 full = histories[s] + [segment]
                 tot = totals(full)
                 width, start = names[s]

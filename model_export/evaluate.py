@@ -27,7 +27,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
-from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
+from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split, validation_volumes
 from model_export.calibrate import ERROR_MM, auroc
 from model_export.simulate import SimulationConfig
 from model_export.train import pose_errors, validation_set
@@ -72,7 +72,7 @@ def evaluate(model_path: Path, report: Path, root: Path = DEFAULT_ATLAS_ROOT, *,
     """Run the evaluation; writes ``report`` (markdown) and PNG figures beside it; returns the summary."""
     model = load_model(model_path)
     info = model.info
-    _, val_names = split(root)
+    _, val_names = split(root, validation_volumes(info.metadata))
     cfg = SimulationConfig.validation(size=info.input_size, pixel_mm=info.pixel_spacing_mm)
     val = validation_set(val_names, root, per_volume, seed=seed, config=cfg)
     plane = info.symmetry_plane_x_mm

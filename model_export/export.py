@@ -15,13 +15,13 @@ output ``labels [B, N, D]``. The trunk runs once per slice, the head ``N`` times
 
 from __future__ import annotations
 
-import subprocess
 from pathlib import Path
 
 import onnx
 import torch
 
 from model_export.model import MCExport, SVRNet
+from model_export.training_record import git_commit
 from service.geometry.anchors import ANCHOR_HALF_SIZE_MM
 from service.geometry.twin import DEFAULT_PLANE_X_MM
 from service.inference.model_file import DEFAULT_MC_SEED, DRAWS_PREFIX
@@ -31,21 +31,14 @@ INTENSITY_CONVENTION = ("0-255: N4-corrected slice, masked, clipped to the 1st/9
                         "and rescaled; resampled to the model grid centred on the mask centroid")
 
 
-def git_commit() -> str:
-    """The current commit of the repository (``unknown`` outside git)."""
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                              check=True, cwd=Path(__file__).parent).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
 def build_metadata(model: SVRNet, *, name: str, version: str, pixel_mm: float, variance_threshold: float,
                    atlas_id: str, training_data: str, licences: str, extra: dict | None = None,
                    symmetry_plane_x_mm: float = DEFAULT_PLANE_X_MM) -> dict[str, str]:
     """The metadata stored in the ONNX file (all values strings).
 
-    ``symmetry_plane_x_mm`` is the atlas mid-sagittal plane the model was trained with (its twin).
+    ``symmetry_plane_x_mm`` is the atlas mid-sagittal plane the model was trained with (its twin);
+    ``commit`` the code's at export (:func:`~model_export.training_record.git_commit`, ``-dirty`` with
+    uncommitted changes).
     """
     c = model.config
     meta = {

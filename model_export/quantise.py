@@ -24,7 +24,7 @@ the service reads such a file as any other.
 from __future__ import annotations
 
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, quantize_static
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
-from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
+from model_export.atlas import DEFAULT_ATLAS_ROOT, VALIDATION_VOLUMES, load_volumes, split, validation_volumes
 from model_export.export import INPUT_PASSES, INPUT_SLICES, count_random_nodes, metadata_of, set_metadata
 from model_export.simulate import SimulationConfig, SliceSimulator
 from service.inference.model_file import load_model
@@ -45,11 +45,12 @@ BATCH = 64
 
 
 def calibration_slices(count: int = CALIBRATION_SLICES, seed: int = 0, root: Path = DEFAULT_ATLAS_ROOT,
-                       size: int = 96, pixel_mm: float = 1.25) -> NDArray[np.float32]:
-    """``[count, 1, size, size]`` preprocessed slices of the training volumes, corrupted as in training,
-    on the model's grid (``size`` pixels of ``pixel_mm``)."""
+                       size: int = 96, pixel_mm: float = 1.25,
+                       held_out: Sequence[str] = VALIDATION_VOLUMES) -> NDArray[np.float32]:
+    """``[count, 1, size, size]`` preprocessed slices of the training volumes (those of ``root`` not
+    ``held_out``), corrupted as in training, on the model's grid (``size`` pixels of ``pixel_mm``)."""
     config = SimulationConfig(size=size, pixel_mm=pixel_mm)
-    simulator = SliceSimulator(load_volumes(split(root)[0], root), config)
+    simulator = SliceSimulator(load_volumes(split(root, held_out)[0], root), config)
     rng = np.random.default_rng(seed)
     parts, have = [], 0
     while have < count:
@@ -63,10 +64,12 @@ def calibration_slices(count: int = CALIBRATION_SLICES, seed: int = 0, root: Pat
 
 def quantise_model(source: Path, out: Path, count: int = CALIBRATION_SLICES, seed: int = 0,
                    root: Path = DEFAULT_ATLAS_ROOT) -> Path:
-    """:func:`quantise` with ``count`` :func:`calibration_slices` on the grid ``source``'s metadata gives."""
+    """:func:`quantise` with ``count`` :func:`calibration_slices` on the grid ``source``'s metadata gives,
+    none of the model's validation volumes among them."""
     info = load_model(source).info
     return quantise(source, out, calibration_slices(count=count, seed=seed, root=root, size=info.input_size,
-                                                    pixel_mm=info.pixel_spacing_mm))
+                                                    pixel_mm=info.pixel_spacing_mm,
+                                                    held_out=validation_volumes(info.metadata)))
 
 
 class _Slices(CalibrationDataReader):

@@ -1,5 +1,7 @@
-"""``svrnet-train ship``'s steps: calibrate, export, quantise, calibrate the spread, evaluate, calibrate
-the accept flags and the noise error, and write the model card, each into the folder being built.
+"""``svrnet-train ship``'s steps: export, quantise, calibrate the variance threshold, calibrate the
+spread, evaluate, calibrate the accept flags and the noise error, and write the model card, each into
+the folder being built. Every calibration and the evaluation measure the file shipped (int8 where it
+is), on the checkpoint's own validation volumes.
 
 The command (`svrnet-train ship`, :func:`model_export.cli.ship`) builds that folder beside the one it replaces and puts it
 in place only when every step is done: a server never finds a model without its calibration or card.
@@ -11,6 +13,32 @@ import json
 import shutil
 from collections.abc import Callable
 from pathlib import Path
+
+STEP_SLICES = {"variance threshold": 120, "spread": 60, "evaluation": 100}
+"""Each step's own validation slices per volume (``calibrate``, ``calibrate_spread``, ``evaluate``),
+which ``ship --slices-per-volume`` replaces in all three."""
+
+
+def budgets(budget: dict[str, int], int8: bool) -> list[tuple[str, int | None, int]]:
+    """``(what, given, default)`` of every sample count of `ship`'s steps, for the card's budget
+    (:func:`~model_export.card.budget_text`); ``given`` None where ``budget`` leaves it to the step.
+
+    Example:
+        >>> [row[1:] for row in budgets({"slices": 7, "noise": 0}, int8=False)]
+        [(7, 120), (7, 60), (7, 100), (None, 8), (0, 2)]
+    """
+    from model_export import calibrate_noise
+    from model_export.calibrate_acceptance import PER_VOLUME
+    from model_export.quantise import CALIBRATION_SLICES
+
+    rows = [(f"validation slices per volume of the {step}", budget.get("slices"), n) for step, n in STEP_SLICES.items()]
+    rows.append(("acquisitions per validation volume and motion level of the accept flags", budget.get("acquisitions"),
+                 PER_VOLUME))
+    if int8:
+        rows.append(("slices of the int8 ranges", budget.get("quant"), CALIBRATION_SLICES))
+    rows.append(("acquisitions per validation volume and setting of the noise error", budget.get("noise"),
+                 calibrate_noise.PER_VOLUME))
+    return rows
 
 
 def ship_folder(out: Path, report: Path | None, build: Callable[[Path, Path, Path], dict]) -> dict:
@@ -52,17 +80,20 @@ def ship_into(staging: Path, out: Path, checkpoint: Path, ck: dict, name: str, v
     from model_export.card import load_json, write_card
     from model_export.evaluate import evaluate as run_evaluation
     from model_export.packaging import export_checkpoint
+    from model_export.spread import write_metadata
     from service.inference.model_file import load_model
 
     per_volume = {"per_volume": budget["slices"]} if "slices" in budget else {}
-    cal = run_calibration(checkpoint, root, views=tta_views, **per_volume)
-    say(f"calibrated variance threshold {cal['threshold']:.4g} (AUROC {cal['auroc']:.3f})")
     onnx_path = export_checkpoint(checkpoint, staging / "model.onnx", name=name, version=version,
-                                  variance_threshold=cal["threshold"], tta_views=tta_views)
+                                  variance_threshold=float("nan"), tta_views=tta_views)    # calibrated below
     if int8:
         from model_export.quantise import quantise_model
 
         quantise_model(onnx_path, onnx_path, root=root, **({"count": budget["quant"]} if "quant" in budget else {}))
+    cal = run_calibration(checkpoint, root, model_file=onnx_path, **per_volume)
+    write_metadata(onnx_path, {"variance_threshold": cal["threshold"]})
+    say(f"calibrated variance threshold {cal['threshold']:.4g} (AUROC {cal['auroc']:.3f}) on {onnx_path.name}"
+        f"{' (int8)' if int8 else ''}")
     shutil.copyfile(checkpoint, staging / "checkpoint.pt")
     from model_export.spread import calibrate_spread as run_spread
 
@@ -77,14 +108,14 @@ def ship_into(staging: Path, out: Path, checkpoint: Path, ck: dict, name: str, v
                "totals": totals(prior_history(ck)), "history": prior_history(ck),
                "train_volumes_text": f"{len(ck['config']['train_volumes'])} atlas volumes: "
                                      + ", ".join(ck["config"]["train_volumes"])}
-    from model_export.atlas import load_volumes, split
+    from model_export.atlas import load_volumes, split, validation_volumes
     from model_export.calibrate_acceptance import PER_VOLUME, flag_metadata, measure, markdown as acceptance_markdown
-    from model_export.spread import write_metadata
     from service.inference.estimator import OnnxPoseEstimator
 
+    held_out = split(root, validation_volumes(ck))[1]
     acquisitions = budget.get("acquisitions", PER_VOLUME)
     say(f"accept flags: {acquisitions} acquisitions per validation volume and motion level through every stage")
-    flags = measure(OnnxPoseEstimator(load_model(onnx_path)), load_volumes(split(root)[1], root), per_volume=acquisitions)
+    flags = measure(OnnxPoseEstimator(load_model(onnx_path)), load_volumes(held_out, root), per_volume=acquisitions)
     write_metadata(onnx_path, flag_metadata(flags))
     noise_table = ""
     if budget.get("noise", 1):
@@ -92,7 +123,7 @@ def ship_into(staging: Path, out: Path, checkpoint: Path, ck: dict, name: str, v
 
         say("noise error: acquisitions at a ladder of noise levels and two pixel sizes through every stage")
         noise = calibrate_noise.calibrate(calibrate_noise.measure(
-            OnnxPoseEstimator(load_model(onnx_path)), load_volumes(split(root)[1], root),
+            OnnxPoseEstimator(load_model(onnx_path)), load_volumes(held_out, root),
             budget.get("noise", calibrate_noise.PER_VOLUME)))
         write_metadata(onnx_path, calibrate_noise.noise_metadata(noise))
         noise_table = calibrate_noise.markdown(noise)
@@ -100,7 +131,7 @@ def ship_into(staging: Path, out: Path, checkpoint: Path, ck: dict, name: str, v
     info = load_model(onnx_path).info.metadata
     write_card(staging / "card.md", info=info, train_summary=summary, train_config=ck["config"], calibration=cal,
                evaluation=evaluation, comparison=load_json(comparison) if comparison else None,
-               report_path=str(shown_report), onnx_bytes=onnx_path.stat().st_size)
+               report_path=str(shown_report), onnx_bytes=onnx_path.stat().st_size, budget=budgets(budget, int8))
     card = staging / "card.md"
     card.write_text(card.read_text() + "\n" + acceptance_markdown(flags, "Accept flags").replace("# Accept", "## Accept", 1)
                     + (f"\n## Noise error\n\n{noise_table}\n" if noise_table else ""))

@@ -27,7 +27,7 @@ import numpy as np
 import onnx
 
 from model_export.acquisitions import simulate_acquisition
-from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
+from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split, validation_volumes
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, prepare_acquisition
 from model_export.export import metadata_of, set_metadata
 from model_export.simulate import SimulationConfig
@@ -53,7 +53,7 @@ def measure_error_scale(model_path: Path, root: Path = DEFAULT_ATLAS_ROOT, per_v
     """The twin-min E.D. and MC spread of the model on single validation slices, and their ratio."""
     model = load_model(model_path)
     info = model.info
-    _, val_names = split(root)
+    _, val_names = split(root, validation_volumes(info.metadata))
     cfg = SimulationConfig.validation(size=info.input_size, pixel_mm=info.pixel_spacing_mm)
     val = validation_set(val_names, root, per_volume, seed=seed, config=cfg)
     est = OnnxPoseEstimator(model).estimate(val.inputs, mc_samples)
@@ -74,7 +74,7 @@ def measure_error_shape(model_path: Path, root: Path = DEFAULT_ATLAS_ROOT, per_v
     model = load_model(model_path)
     info = model.info
     estimator = OnnxPoseEstimator(model)
-    volumes = load_volumes(split(root)[1], root)
+    volumes = load_volumes(split(root, validation_volumes(info.metadata))[1], root)
     rng, coords, spread, depth = np.random.default_rng(seed), [], [], []
     for vol in volumes:
         for _ in range(per_volume):

@@ -30,12 +30,12 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from model_export.atlas import DEFAULT_ATLAS_ROOT, split
+from model_export.atlas import DEFAULT_ATLAS_ROOT, VALIDATION_VOLUMES, split
 from model_export.losses import check_label_type, point_loss
 from model_export.model import SVRNet, multi_loss
 from model_export.simulate import SimulationConfig
 from model_export.stream import SLICES_PER_ACQUISITION, SliceStream, label_sample, validation_set
-from model_export.training_record import hardware, plot_log, prior_history, totals
+from model_export.training_record import git_commit, hardware, plot_log, prior_history, totals
 from service.geometry import anchors, encodings, se3
 from service.geometry.twin import POINT_LABELS, twin
 
@@ -176,9 +176,11 @@ def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resu
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
     device = resolve_device(cfg.device)
-    train_names, val_names = split(root)
+    train_names, val_names = split(root, cfg.val_volumes or VALIDATION_VOLUMES)
     cfg.train_volumes = cfg.train_volumes or train_names
     cfg.val_volumes = cfg.val_volumes or val_names
+    if set(cfg.train_volumes) & set(cfg.val_volumes):
+        raise ValueError(f"volumes both trained and validated on: {sorted(set(cfg.train_volumes) & set(cfg.val_volumes))}")
     sim = SimulationConfig(sampling=cfg.sampling, **cfg.simulation)
     model = SVRNet(cfg.backbone, cfg.width, cfg.label_type, sim.size, cfg.hidden, cfg.dropout, cfg.spatial_grid,
                    cfg.grid_channels)
@@ -227,6 +229,7 @@ def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resu
     if resume is not None and history and history[-1].get("run") == str(out_dir) \
             and history[-1]["hardware"] == segment["hardware"]:
         segment = {**history.pop(), "config": segment["config"]}            # as it goes on now (its steps)
+    segment["commits"] = list(dict.fromkeys([*segment.get("commits", []), git_commit()]))    # the code of each start
     base = {"samples": segment["samples"], "seconds": segment["seconds"], "steps": segment["steps"]}
     val = validation_set(cfg.val_volumes, root, cfg.val_per_volume,
                          config=SimulationConfig.validation(size=sim.size, pixel_mm=sim.pixel_mm))

@@ -1,9 +1,9 @@
-"""The record a training run leaves: its hardware, the segments behind a checkpoint, totals over them,
-and the curves of its log.
+"""The record a training run leaves: its hardware, its code's commit, the segments behind a
+checkpoint, totals over them, and the curves of its log.
 
 Every checkpoint carries ``history``, one segment per run (hardware, device, samples, seconds, loss,
-label); a model card states the totals, overall and per hardware, and only what the checkpoints
-record.
+label, the ``commits`` its code was at); a model card states the totals, overall and per hardware,
+and only what the checkpoints record.
 
 Example:
     >>> totals(prior_history({"samples_seen": 64, "train_seconds": 7200.0}))["hours"]
@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import csv
 import os
+import subprocess
 from pathlib import Path
 
 import torch
@@ -27,6 +28,38 @@ def hardware(device: torch.device) -> str:
     if device.type == "cuda":
         return torch.cuda.get_device_name(device)
     return f"CPU, {os.cpu_count()} cores"
+
+
+def git_commit(repo: Path = Path(__file__).parent) -> str:
+    """The short commit of the repository holding ``repo``, with ``-dirty`` when a tracked file
+    differs from it (staged or not); ``unknown`` outside git. Untracked files do not count
+    (``git status --porcelain --untracked-files=no``): run folders, packed data and reports are
+    untracked, while code a run imports is tracked once committed.
+
+    Example:
+        >>> import tempfile
+        >>> git_commit(Path(tempfile.mkdtemp()))
+        'unknown'
+    """
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], capture_output=True, text=True, check=True, cwd=repo).stdout.strip()
+
+    try:
+        commit = git("rev-parse", "--short", "HEAD")
+        return commit + ("-dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def commits(history: list[dict]) -> list[str]:
+    """The commits of the code behind a checkpoint's segments, each once, oldest first (segments of
+    runs that recorded none give none).
+
+    Example:
+        >>> commits([{"commits": ["a1b2c3d"]}, {}, {"commits": ["a1b2c3d", "e4f5a6b-dirty"]}])
+        ['a1b2c3d', 'e4f5a6b-dirty']
+    """
+    return list(dict.fromkeys(c for seg in history for c in seg.get("commits", ())))
 
 
 def totals(history: list[dict]) -> dict:

@@ -109,3 +109,51 @@ def test_grid_mc_samples_split_between_twins_are_put_on_one_branch() -> None:
     assert se3.geodesic_distance(est.mean, majority).max() < 1.0
     _, naive = se3.frechet_mean_and_variance(encodings.decode("grid", samples))
     assert naive.min() > 100.0                                                # what a twin-blind mean reports
+
+
+def test_card_states_its_budget_first_and_a_quick_look_below_a_served_models_scale(tmp_path: Path) -> None:
+    cal = dict(threshold=3.0, auroc=0.8, error_mm=10.0, criterion_mm=10.0, auroc_criterion=0.8, n_slices=14,
+               bad_fraction=0.5, accepted_fraction=0.5, ed_accepted_mean_mm=8.0, ed_rejected_mean_mm=20.0,
+               spearman_variance_error=0.5, measured_on="model.onnx")
+    info = dict(name="default", version="2.0.0", backbone="compact", label_type="anchor", input_size="96",
+                pixel_spacing_mm="1.25", intensity="0-255", atlas_id="atlas", variance_threshold="3.0", commit="abc")
+    config = dict(width=1.0, hidden=128, dropout=0.25, lr=5e-4, lr_gamma=0.2, lr_milestones=[], batch=16,
+                  val_volumes=["STA24"], spatial_grid=3, grid_channels=32)
+    evaluation = dict(ed_mean_mm=30.0, ed_median_mm=28.0, ed_p90_mm=60.0, gd_mean=5.0, outlier_fraction=0.03,
+                      auroc_variance_error_gt_10mm=0.8, accepted_fraction=0.5, ed_accepted_mean_mm=25.0)
+
+    def card(samples: int, budget: list) -> str:
+        summary = dict(train_seconds=36.0, samples_seen=samples, steps=4)
+        return write_card(tmp_path / "card.md", info=info, train_summary=summary, train_config=config,
+                          calibration=cal, evaluation=evaluation, comparison=None, report_path="r.md",
+                          onnx_bytes=3_000_000, budget=budget).read_text()
+
+    quick = card(64, [("validation slices per volume of the evaluation", 7, 100)])
+    head = quick.split("| | |")[0]                                    # before the card's table: up front
+    assert "**Budget**: training 4 steps of batch 16 in its last stage, 64 samples in 0.01 h" in head
+    assert "7 validation slices per volume of the evaluation (default 100)" in head
+    assert "**Quick look**" in head and "training under 1,000,000 samples" in head
+    assert "the validation slices per volume of the evaluation under its default" in head
+    assert "measured on\n`model.onnx`, the file served" in quick
+    served = card(6_448_616, [("validation slices per volume of the evaluation", None, 100)])
+    assert "6,448,616 samples" in served and "100 validation slices per volume" in served
+    assert "Quick look" not in served
+
+
+def test_card_gives_the_commits_of_training_and_export_dirty_or_not(tmp_path: Path) -> None:
+    cal = dict(threshold=8.43, auroc=0.85, error_mm=10.0, criterion_mm=10.0, n_slices=600, bad_fraction=0.5,
+               accepted_fraction=0.4, ed_accepted_mean_mm=30.0, ed_rejected_mean_mm=45.0,
+               spearman_variance_error=0.35, variance=[1.0], ed_mm=[2.0])
+    summary = dict(train_seconds=3600.0, samples_seen=10, steps=1,
+                   history=[{"hardware": "CPU", "samples": 10, "seconds": 3600.0, "commits": ["1234567-dirty"]}],
+                   totals={"samples": 10, "hours": 1.0, "by_hardware": {"CPU": {"samples": 10, "hours": 1.0}}})
+    info = dict(name="default", version="1.0.0", backbone="compact", label_type="anchor", input_size="96",
+                pixel_spacing_mm="1.25", intensity="0-255", atlas_id="atlas", variance_threshold="8.4", commit="abcdef0")
+    config = dict(width=1.0, hidden=128, dropout=0.25, lr=1e-3, lr_gamma=0.2, lr_milestones=[0.6, 0.85], batch=64,
+                  val_volumes=["STA24"], spatial_grid=3, grid_channels=32)
+    evaluation = dict(ed_mean_mm=40.0, ed_median_mm=38.0, ed_p90_mm=70.0, gd_mean=10.0, outlier_fraction=0.03,
+                      auroc_variance_error_gt_10mm=0.6, accepted_fraction=0.4, ed_accepted_mean_mm=35.0)
+    text = write_card(tmp_path / "card.md", info=info, train_summary=summary, train_config=config, calibration=cal,
+                      evaluation=evaluation, comparison=None, report_path="r.md", onnx_bytes=1).read_text()
+    assert ("| commit | abcdef0 at export; training at 1234567-dirty (-dirty: with uncommitted changes to tracked "
+            "files) |") in text

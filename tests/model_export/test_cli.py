@@ -13,9 +13,10 @@ from typer.testing import CliRunner
 def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                              budget: list[str]) -> None:
     """The accept flags are measured on the expected error, so the spread's calibration (which sets
-    ``mc_error_scale``) comes first; both measure the int8 file the service will run, so quantising
-    comes before them; the acceptance report is written beside the evaluation report. A smaller
-    budget reaches every step; without one each keeps its own."""
+    ``mc_error_scale``) comes first; every calibration, the variance threshold's included, measures
+    the int8 file the service will run, so quantising comes before them, all on the checkpoint's own
+    validation volumes; the acceptance report is written beside the evaluation report. A smaller
+    budget reaches every step, and the card states it; without one each keeps its own."""
     import model_export.atlas as atlas
     import model_export.calibrate as calibrate
     import model_export.calibrate_acceptance as acceptance
@@ -34,6 +35,13 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
     calls: list[str] = []
     views: list[int] = []
     sizes: dict[str, object] = {}
+    held_out: list[list[str]] = []
+    card_budget: list[list] = []
+
+    def threshold(checkpoint: Path, root: Path, **k: object) -> dict:
+        calls.append(f"threshold on {k['model_file'].name}, {k['model_file'].read_bytes().decode()}")
+        sizes.update(threshold=k.get("per_volume"))
+        return {"threshold": 50.0, "auroc": 0.8}
 
     def export(checkpoint: Path, output: Path, **kw: object) -> Path:
         views.append(kw["tta_views"])
@@ -43,14 +51,15 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
     class Loaded:
         info = type("Info", (), {"metadata": {}, "input_size": 96, "pixel_spacing_mm": 1.25})()
 
-    monkeypatch.setattr(calibrate, "calibrate", lambda *a, **k: calls.append("threshold") or sizes.update(
-        threshold=k.get("per_volume")) or {"threshold": 50.0, "auroc": 0.8})
+    monkeypatch.setattr(calibrate, "calibrate", threshold)
     monkeypatch.setattr(packaging, "export_checkpoint", export)
     monkeypatch.setattr(packaging, "load_checkpoint", lambda p: (None, {"train_seconds": 1.0, "samples_seen": 1, "step": 1,
-                                                                       "config": {"train_volumes": []}}))
+                                                                       "config": {"train_volumes": [],
+                                                                                  "val_volumes": ["STA30"]}}))
     monkeypatch.setattr(quantise, "calibration_slices", lambda **k: calls.append(f"slices {k['size']}") or
                         sizes.update(quant=k["count"]) or "slices")
-    monkeypatch.setattr(quantise, "quantise", lambda src, out, slices: calls.append(f"int8 {slices}") or out)
+    monkeypatch.setattr(quantise, "quantise", lambda src, out, slices: calls.append(f"int8 {slices}") or
+                        out.write_bytes(b"int8") and out)
     monkeypatch.setattr(spread, "calibrate_spread", lambda *a, **k: calls.append("spread") or sizes.update(
         spread=k.get("per_volume")) or {"mc_error_scale": 0.7})
     monkeypatch.setattr(spread, "write_metadata", lambda *a, **k: calls.append("flags written"))
@@ -58,7 +67,7 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
         evaluate=k.get("per_volume")) or {})
     monkeypatch.setattr(train, "prior_history", lambda ck: [])
     monkeypatch.setattr(train, "totals", lambda history: {})
-    monkeypatch.setattr(atlas, "split", lambda root: ([], []))
+    monkeypatch.setattr(atlas, "split", lambda root, validation: held_out.append(list(validation)) or ([], []))
     monkeypatch.setattr(atlas, "load_volumes", lambda names, root: [])
     monkeypatch.setattr(acceptance, "measure", lambda *a, **k: calls.append("acceptance") or sizes.update(
         acceptance=k["per_volume"]) or {"expected_error_floor_mm": 2.0, "variance_threshold": 480.0,
@@ -70,7 +79,7 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
     monkeypatch.setattr(estimator, "OnnxPoseEstimator", lambda model: None)
     monkeypatch.setattr(model_file, "load_model", lambda path: Loaded())
     monkeypatch.setattr(quantise, "load_model", lambda path: Loaded())
-    monkeypatch.setattr(card, "write_card", lambda out, **kw: out.write_text("# card\n"))
+    monkeypatch.setattr(card, "write_card", lambda out, **kw: card_budget.append(kw["budget"]) or out.write_text("# card\n"))
     checkpoint = tmp_path / "run.pt"
     checkpoint.write_bytes(b"weights")
     report = tmp_path / "reports" / "default.md"
@@ -80,8 +89,11 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
                                       *budget])
 
     assert result.exit_code == 0, result.output
-    assert calls == ["threshold", "slices 96", "int8 slices", "spread", "evaluate", "acceptance", "flags written",
-                     "noise", "flags written"]
+    assert calls == ["slices 96", "int8 slices", "threshold on model.onnx, int8", "flags written", "spread", "evaluate",
+                     "acceptance", "flags written", "noise", "flags written"]
+    assert held_out == [["STA30"]]
+    given = [row[1] for row in card_budget[0]]
+    assert given == ([7, 7, 7, 2, 32, 3] if budget else [None] * 6)
     assert sizes == ({"threshold": 7, "quant": 32, "spread": 7, "evaluate": 7, "acceptance": 2, "noise": 3} if budget else
                      {"threshold": None, "quant": quantise.CALIBRATION_SLICES, "spread": None, "evaluate": None,
                       "acceptance": acceptance.PER_VOLUME, "noise": noise.PER_VOLUME})
@@ -97,7 +109,7 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
     monkeypatch.setattr(evaluate, "evaluate", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("stopped")))
     assert CliRunner().invoke(app, [*again, "--force"]).exit_code != 0
     assert (tmp_path / "model" / "card.md").read_text().startswith("# card") and \
-        (tmp_path / "model" / "model.onnx").read_bytes() == b"onnx"
+        (tmp_path / "model" / "model.onnx").read_bytes() == b"int8"    # the shipped (quantised) file
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []   # nothing half-made to be served
     monkeypatch.setattr(evaluate, "evaluate", lambda model, report, *a, **k: report.write_text("# report") and {})
     inside = CliRunner().invoke(app, [*again, "--force", "--report", str(tmp_path / "model" / "eval" / "r.md")])

@@ -14,7 +14,7 @@ from model_export.atlas import load_volumes, pack
 from model_export.model import SVRNet
 from model_export.stream import validation_set
 from model_export.train import TrainConfig, _load_init, pose_errors, train
-from model_export.training_record import UNRECORDED_HARDWARE, prior_history, totals
+from model_export.training_record import UNRECORDED_HARDWARE, git_commit, prior_history, totals
 from service.geometry import iterators, twin
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
@@ -59,6 +59,53 @@ def test_a_pack_of_the_training_volumes_uncompressed_holds_the_same_arrays(packe
     for name in ("STA30", "SB_GA27_operated"):
         with np.load(small / f"{name}.npz") as a, np.load(packed / f"{name}.npz") as b:
             assert all(np.array_equal(a[k], b[k]) for k in ("image", "mask", "affine"))
+
+
+def test_midplane_reads_a_packed_folder_as_it_reads_the_atlas_folder(phantom_atlas: Path, packed: Path,
+                                                                   tmp_path: Path) -> None:
+    """The packed volumes are cropped, their affines moved with the crop: the planes stay where they were."""
+    from typer.testing import CliRunner
+
+    from model_export.cli import app
+
+    planes = {}
+    for name, root in (("atlas", phantom_atlas), ("packed", packed)):
+        result = CliRunner().invoke(app, ["midplane", "--root", str(root), "--report", str(tmp_path / f"{name}.md")])
+        assert result.exit_code == 0, result.output
+        rows = [line.split("|")[1:4] for line in (tmp_path / f"{name}.md").read_text().splitlines()
+                if line.startswith("| S")]
+        planes[name] = {n.strip(): float(x) for n, _, x in rows}
+    assert len(planes["packed"]) == 7 and planes["packed"].keys() == planes["atlas"].keys()
+    assert all(abs(planes["packed"][n] - planes["atlas"][n]) < 0.05 for n in planes["atlas"]), planes
+
+
+def test_git_commit_is_dirty_with_uncommitted_changes_to_tracked_files_only(tmp_path: Path) -> None:
+    def git(*args: str) -> str:
+        return subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", *args], cwd=tmp_path,
+                              capture_output=True, text=True, check=True).stdout.strip()
+
+    git("init", "-q")
+    (tmp_path / "code.py").write_text("x = 1\n")
+    git("add", "code.py")
+    git("commit", "-qm", "code")
+    head = git("rev-parse", "--short", "HEAD")
+    assert git_commit(tmp_path) == head
+    (tmp_path / "run.log").write_text("untracked: a run's output\n")
+    assert git_commit(tmp_path) == head
+    (tmp_path / "code.py").write_text("x = 2\n")
+    assert git_commit(tmp_path) == f"{head}-dirty"
+    git("add", "code.py")                                             # staged, not committed: still dirty
+    assert git_commit(tmp_path) == f"{head}-dirty"
+
+
+def test_a_run_that_holds_out_its_own_volumes_trains_on_none_of_them(packed: Path, tmp_path: Path) -> None:
+    train(_tiny(steps=1, val_every=1, val_per_volume=2, val_volumes=["STA30"]), tmp_path / "own", packed,
+          progress=False)
+    config = torch.load(tmp_path / "own" / "last.pt", weights_only=False)["config"]
+    assert config["val_volumes"] == ["STA30"] and "STA30" not in config["train_volumes"]
+    assert len(config["train_volumes"]) == 6
+    with pytest.raises(ValueError, match="both trained and validated on"):
+        train(_tiny(val_volumes=["STA30"], train_volumes=["STA30", "STA24"]), tmp_path / "both", packed, progress=False)
 
 
 def test_pose_errors_report_the_truth_and_the_nearer_twin() -> None:
@@ -109,6 +156,7 @@ def test_training_compounds_on_any_device(device: str, packed: Path, tmp_path: P
     assert first["samples_seen"] == 64 and first["history"][-1]["device"] == device
     assert all(v.device.type == "cpu" for v in first["model"].values())   # checkpoints load anywhere
     assert first["val_twin_ed_mm"] <= first["val_ed_mm"]
+    assert first["history"][-1]["commits"] == [git_commit()]          # the code it ran, -dirty with changes
     # A new stage with another label and loss, stopped by its wall-clock budget after one step...
     stage = _tiny(device=device, label_type="grid", loss="invariant", steps=3, max_minutes=0.0)
     with pytest.warns(UserWarning, match="only the trunk"):
