@@ -3,8 +3,8 @@
 Examples:
     svrnet-train localiser data --out runs/localiser/train --count 600
     svrnet-train localiser data --out runs/localiser/heldout --count 40 --style heldout --seed 1000000 --keep-stack
-    svrnet-train localiser train --data runs/localiser/train --out runs/localiser/localiser.pt --minutes 60
-    svrnet-train localiser ship runs/localiser/localiser.pt --heldout runs/localiser/heldout
+    svrnet-train localiser train --data runs/localiser/train --out runs/localiser/localiser.pt --steps 12000
+    svrnet-train localiser ship runs/localiser/localiser.pt --heldout runs/localiser/heldout --out runs/localiser/next
 """
 
 from __future__ import annotations
@@ -59,7 +59,12 @@ def data(
 def train(
     data: Annotated[Path, typer.Option(help="shard folder of `data` (read again as it grows)")],
     out: Annotated[Path, typer.Option(help="checkpoint (resumed when it exists)")],
-    minutes: float = 60.0,
+    steps: Annotated[Optional[int], typer.Option(help="train until the checkpoint has done this many steps; the "
+                                                      "learning rate anneals over them (reproducible: the same seed, "
+                                                      "steps, settings and shards give the same weights)")] = None,
+    minutes: Annotated[Optional[float], typer.Option(help="instead of --steps: this many more minutes of wall clock "
+                                                          "(not reproducible: the weights depend on the machine's "
+                                                          "speed)")] = None,
     width: int = 8,
     depth: int = 4,
     threads: int = 2,
@@ -78,11 +83,14 @@ def train(
                                               "process; `data --workers` are those that generate scenes); each "
                                               "holds the shards it has read in memory")] = 0,
 ) -> None:
-    """Train (or continue training) the localiser for a wall-clock budget; progress in ``<out>.log``.
-    With ``--init`` of another width the network starts from that one's strongest channels."""
+    """Train (or continue training) the localiser for ``--steps`` (or ``--minutes``); progress in
+    ``<out>.log``. The checkpoint records the seed, budget, steps done, the shards' identity and the
+    commit. With ``--init`` of another width the network starts from that one's strongest channels."""
     from model_export.localiser.train import train as run
 
-    run(data, out, minutes, width=width, depth=depth, threads=threads, seed=seed, log=Path(f"{out}.log"),
+    if (steps is None) == (minutes is None):
+        raise typer.BadParameter("give one budget: --steps (reproducible) or --minutes", param_hint="--steps")
+    run(data, out, minutes, steps=steps, width=width, depth=depth, threads=threads, seed=seed, log=Path(f"{out}.log"),
         in_channels=channels, init=init, lr=lr, teacher=teacher, teacher_weight=teacher_weight, freeze_norm=freeze_norm,
         batch=batch, device=device, loaders=loaders)
 
@@ -100,12 +108,19 @@ def average(
     typer.echo(str(average_weights(base, tuned, out, weight)))
 
 
+CHECKPOINT_COPY_MB = 64.0
+"""``ship`` copies a checkpoint up to this size beside the model (the shipped width-8 one: 4 MB);
+a larger one is recorded by its sha256 alone."""
+
+
 @app.command()
 def ship(
     checkpoint: Path,
     heldout: Annotated[Path, typer.Option(help="shard folder of `data --style heldout --keep-stack`")],
-    out: Path = Path("service/localisers/default"),
-    version: str = "1.0.0",
+    out: Annotated[Path, typer.Option(help="the new model's folder (the service loads every folder under "
+                                           "service/localisers/; service/localisers/default is the shipped one)")],
+    version: Annotated[str, typer.Option(help="the version the model file and the card carry")],
+    force: Annotated[bool, typer.Option(help="write into a folder that already holds files")] = False,
     grid_mm: Annotated[Optional[float], typer.Option(help=CHECKPOINT_GRID)] = None,
     pose_stacks: Annotated[int, typer.Option(help="held-out stacks whose poses are compared without/with masks")] = 8,
     ablation: Annotated[Optional[Path], typer.Option(help="JSON of `compare`: architectures measured alike")] = None,
@@ -113,24 +128,49 @@ def ship(
     mirrored_pass: Annotated[str, typer.Option(help="run: the service adds the mirror-image pass; learnt: a "
                                                "network distilled from it (`train --teacher`) runs once")] = "run",
 ) -> None:
-    """Export to ONNX, measure (held-out set, real scans, poses without masks) and write the card."""
+    """Export to ONNX, measure (held-out set, real scans, poses without masks) and write the card, into
+    ``--out`` with the checkpoint (or its sha256 where it is over 64 MB). The card is written from the
+    checkpoint's record and the measurements; small budgets make it a quick look, which it says."""
+    import os
+    import shutil
+
+    import torch
+
     from model_export.localiser.card import write_card
     from model_export.localiser.evaluate import measure
     from model_export.localiser.export import export_onnx
+    from model_export.localiser.record import data_record, file_record, git_state, shard_manifest
     from service.preprocess.localise import Localiser
 
     if mirrored_pass not in ("run", "learnt"):
         raise typer.BadParameter("run or learnt", param_hint="--mirrored-pass")
+    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not force:
+        raise typer.BadParameter(f"{out} is not an empty folder; give a new one, or --force to write into it",
+                                 param_hint="--out")
+    state = torch.load(checkpoint, map_location="cpu", weights_only=False)          # our own checkpoint
+    record = file_record(checkpoint)
     try:
         onnx_path = export_onnx(checkpoint, out / "model.onnx", grid_mm=grid_mm, version=version,
-                                extra={"mirrored_pass": mirrored_pass})
+                                extra={"mirrored_pass": mirrored_pass, "checkpoint_sha256": record["sha256"],
+                                       "steps": state.get("step", 0)})
     except ValueError as e:
         raise typer.BadParameter(str(e), param_hint="--grid-mm") from None
+    copied = record["bytes"] <= CHECKPOINT_COPY_MB * 2**20
+    if copied and Path(checkpoint).resolve() != (out / "checkpoint.pt").resolve():
+        shutil.copyfile(checkpoint, out / "checkpoint.pt")
     figures = measure(Localiser.load(onnx_path), heldout, pose_stacks, pose_scenes=pose_scenes)
     figures["architectures"] = json.loads(ablation.read_text()) if ablation else []
+    figures["shipped"] = {"version": version, "checkpoint": {**record, "copied": copied},
+                          "training": state.get("training"), "step": state.get("step", 0),
+                          "shards": state.get("shards", 0), "config": state["config"],
+                          "heldout": {k: v for k, v in data_record(heldout, shard_manifest(heldout, {})).items()
+                                      if k != "names"},
+                          "commit": git_state(), "machine": f"{os.cpu_count()} CPU cores"}
     (out / "evaluation.json").write_text(json.dumps(figures, indent=1))
     write_card(out / "card.md", onnx_path, figures)
     typer.echo(json.dumps(figures["summary"], indent=1))
+    if not copied:
+        typer.echo(f"{checkpoint} is {record['bytes'] / 2**20:.0f} MB: not copied; the card records its sha256")
 
 
 @app.command()

@@ -4,12 +4,14 @@ Each shard ``<style>-<seed>.npz`` holds one synthetic stack (:func:`~model_expor
 passed through the service's own input function: ``slices [n, Hp, Wp]`` float16 (the middle channel
 of :func:`~service.preprocess.localiser_inputs.localiser_inputs`; the 2.5D channels are rebuilt with
 :func:`~service.preprocess.localiser_inputs.with_neighbours`) and ``target [n, Hp, Wp]`` uint8 (brain
-fraction x 255), plus the stack itself when ``keep_stack`` (for evaluation on the stack's own grid)
+fraction x 255), ``grid_mm`` and ``generator`` (the JSON of the generator's settings: style, grid,
+shares, motion, atlas volumes, the code's commit), plus the stack itself when ``keep_stack`` (for evaluation on the stack's own grid)
 with ``t2_like`` (held-out stacks alternate T2-like and uniformly random contrasts by seed).
 """
 
 from __future__ import annotations
 
+import json
 import os
 from multiprocessing import Pool
 from pathlib import Path
@@ -18,6 +20,7 @@ import numpy as np
 
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes
 from model_export.localiser import GRID_MM
+from model_export.localiser.record import git_state
 from model_export.localiser.scenes import HeadModel, synth_stack
 from service.preprocess.localiser_inputs import localiser_inputs, target_maps
 
@@ -28,8 +31,8 @@ def _init(names: list[str], root: Path) -> None:
     _HEADS.extend(HeadModel.from_arrays(v.image, v.mask, v.affine) for v in load_volumes(names, root))
 
 
-def _one(job: tuple[Path, str, int, float, bool, float, float, str | None]) -> str:
-    out, style, seed, grid_mm, keep_stack, shading_share, faint_skull_share, motion = job
+def _one(job: tuple[Path, str, int, float, bool, float, float, str | None, str]) -> str:
+    out, style, seed, grid_mm, keep_stack, shading_share, faint_skull_share, motion, settings = job
     path = out / f"{style}-{seed:06d}.npz"
     if path.exists():
         return path.name
@@ -43,6 +46,7 @@ def _one(job: tuple[Path, str, int, float, bool, float, float, str | None]) -> s
     partial = path.with_suffix(".partial")            # a reader beside the generator never sees half a shard
     with open(partial, "wb") as f:
         np.savez_compressed(f, slices=x[:, 1].astype(np.float16), grid_mm=np.float64(grid_mm),
+                            generator=np.str_(settings),
                             target=np.round(target_maps(mask, volume, grid) * 255).astype(np.uint8), **extra)
     os.replace(partial, path)
     return path.name
@@ -54,10 +58,14 @@ def generate(out: Path, names: list[str], count: int, style: str, grid_mm: float
     """Write ``count`` shards of ``style`` from the atlas volumes ``names`` (seeds ``first_seed...``),
     ``shading_share`` of them with a dark region over the head, ``faint_skull_share`` of the heads
     with a faint skull, the heads moving as ``motion`` says (default: the generator's own drift)
-    (:func:`~model_export.localiser.scenes.synth_scene`)."""
+    (:func:`~model_export.localiser.scenes.synth_scene`). Each shard records these settings
+    (``generator``), which a training checkpoint carries on (:mod:`model_export.localiser.record`)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    jobs = [(out, style, first_seed + i, grid_mm, keep_stack, shading_share, faint_skull_share, motion)
+    settings = json.dumps({"style": style, "grid_mm": grid_mm, "shading_share": shading_share,
+                           "faint_skull_share": faint_skull_share, "motion": motion, "volumes": sorted(names),
+                           "commit": git_state()}, sort_keys=True)
+    jobs = [(out, style, first_seed + i, grid_mm, keep_stack, shading_share, faint_skull_share, motion, settings)
             for i in range(count)]
     with Pool(workers, initializer=_init, initargs=(names, root)) as pool:
         return list(pool.imap_unordered(_one, jobs))

@@ -4,14 +4,22 @@ Each step draws a batch of slices (most of them crossing the brain), rebuilds th
 exactly as the service does (:func:`~service.preprocess.localiser_inputs.with_neighbours`: a slice
 between its neighbours, the ends repeated), crops a random ``crop`` x ``crop`` window (one that holds
 the brain's centre where the slice has brain), flips and turns it, and minimises binary cross-entropy
-plus soft Dice against the brain fraction of every pixel. The learning rate follows a cosine over
-the wall-clock budget, so a run of any length ends annealed; a checkpoint is written every
-``checkpoint_s`` seconds and at the end, and training resumes from it.
+plus soft Dice against the brain fraction of every pixel. The budget is a number of steps (the
+reproducible one: the same seed, steps, settings and shards give the same weights) or minutes of
+wall clock; the learning rate follows a cosine over it, so a run of any length ends annealed. A
+checkpoint is written every ``checkpoint_s`` seconds and at the end, with what made it (seed,
+budget, steps done, the shards' identity, the commit; :mod:`model_export.localiser.record`), and
+training resumes from it.
+
+Example (the learning rate of a 4-step budget, step by step):
+    >>> [round(lr_at(1.0, step, 4), 3) for step in range(4)]
+    [1.0, 0.854, 0.5, 0.146]
 """
 
 from __future__ import annotations
 
 import json
+import random
 import sys
 import time
 import zipfile
@@ -27,6 +35,7 @@ from scipy import ndimage
 from model_export.localiser.distil import distillation_loss, mirrored_logits, pruned
 from model_export.localiser.export import load_checkpoint
 from model_export.localiser.net import LocaliserNet
+from model_export.localiser.record import data_record, file_record, git_state, shard_manifest
 
 
 @dataclass
@@ -78,18 +87,6 @@ def _one_grid_mm(grids: Iterable[float | None]) -> float | None:
     if len(found) > 1:
         raise ValueError(f"the shards were made on grids of {found} mm: train on shards of one grid")
     return found[0] if found else None
-
-
-def folder_grids(folder: Path, known: dict[str, float | None]) -> dict[str, float | None]:
-    """``known`` with the grid of every whole shard of ``folder`` not in it yet (each read alone, not
-    its slices): what a checkpoint records of the shards its run has seen.
-
-    Example (an empty folder adds nothing):
-        >>> import tempfile
-        >>> folder_grids(Path(tempfile.mkdtemp()), {"a.npz": 2.5})
-        {'a.npz': 2.5}
-    """
-    return _read_new(folder, known, _grid_of)
 
 
 def draw_batch(shards: list[Shard], rng: np.random.Generator, batch: int, crop: int,
@@ -175,12 +172,40 @@ def loss_fn(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return F.binary_cross_entropy_with_logits(logits, target) + dice
 
 
-def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int = 4, batch: int = 16,
-          crop: int = 128, lr: float = 2e-3, seed: int = 0, checkpoint_s: float = 120.0,
-          threads: int = 2, log: Path | None = None, in_channels: int = 3, init: Path | None = None,
-          teacher: Path | None = None, teacher_weight: float = 0.7, freeze_norm: bool = False,
-          device: str = "cpu", loaders: int = 0) -> Path:
-    """Train for ``minutes`` of wall clock (resuming ``out`` if it exists); returns the checkpoint path.
+def _budget(minutes: float | None, steps: int | None) -> tuple[float | None, int | None]:
+    if (minutes is None) == (steps is None):
+        raise ValueError("give one budget: steps (reproducible) or minutes (wall clock)")
+    if (steps is not None and steps < 0) or (minutes is not None and minutes < 0):
+        raise ValueError(f"a budget is not negative: steps {steps}, minutes {minutes}")
+    return minutes, steps
+
+
+def lr_at(lr: float, done: float, budget: float) -> float:
+    """The learning rate after ``done`` of a ``budget`` (steps or seconds): a cosine from ``lr`` to 0."""
+    return float(lr * 0.5 * (1 + np.cos(np.pi * min(done / budget, 1.0)))) if budget > 0 else 0.0
+
+
+def seed_everything(seed: int) -> None:
+    """Seed torch, numpy's global generator and Python's :mod:`random` (the batches have their own
+    generator, :class:`BatchStream`'s)."""
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+def train(data: Path, out: Path, minutes: float | None = None, *, steps: int | None = None, width: int = 8,
+          depth: int = 4, batch: int = 16, crop: int = 128, lr: float = 2e-3, seed: int = 0,
+          checkpoint_s: float = 120.0, threads: int = 2, log: Path | None = None, in_channels: int = 3,
+          init: Path | None = None, teacher: Path | None = None, teacher_weight: float = 0.7,
+          freeze_norm: bool = False, device: str = "cpu", loaders: int = 0) -> Path:
+    """Train until the checkpoint has done ``steps`` steps, or for ``minutes`` more of wall clock
+    (resuming ``out`` if it exists); returns the checkpoint path.
+
+    Only the step budget is reproducible: the learning rate follows a cosine over the steps, and a
+    run of the same seed, steps, settings and shards, uninterrupted, on the same device kind and
+    threads, gives the same weights. A wall-clock budget anneals over the time instead, so its
+    weights depend on the machine's speed. A resumed run draws its batches from ``seed`` plus the
+    steps done, so it is not the uninterrupted run bit for bit (the checkpoint lists its runs).
 
     ``in_channels`` 3 is the 2.5D network (a slice and its neighbours), 1 the 2D one (the slice alone).
     ``init``: a checkpoint whose weights start a new run (a fresh optimiser and learning-rate schedule;
@@ -197,17 +222,27 @@ def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int =
     draw the batches (:class:`BatchStream`), for a host whose network step outruns one core's drawing.
 
     The checkpoint records the network grid its shards were made on (``grid_mm``; shards of two grids
-    are refused), which :func:`~model_export.localiser.export.export_onnx` writes into the model file.
+    are refused), which :func:`~model_export.localiser.export.export_onnx` writes into the model file,
+    and under ``training`` this run's settings, seed and budget, the steps done, the shard folder's
+    identity and its shards' generator settings (:func:`~model_export.localiser.record.data_record`
+    of the shards in the folder when it was written), the code's commit
+    (:func:`~model_export.localiser.record.git_state`) and every run that made it (``runs``).
+
+    Raises:
+        ValueError: neither or both budgets given, or shards of two grids.
+        FileNotFoundError: ``data`` is not a folder.
     """
+    minutes, steps = _budget(minutes, steps)
     if not Path(data).is_dir():
         raise FileNotFoundError(f"data: {data} is not a folder of shards (`svrnet-train localiser data --out`)")
     torch.set_num_threads(threads)
-    torch.manual_seed(seed)
+    seed_everything(seed)
     out = Path(out)
     net = LocaliserNet(in_channels=in_channels, width=width, depth=depth)
     opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
-    step, spent, recorded = 0, 0.0, None
+    step, spent, recorded, runs, started = 0, 0.0, None, [], None
     if init is not None and not out.exists():
+        started = file_record(init)
         net.load_state_dict(pruned(load_checkpoint(init), width).state_dict())     # the identity at its own width
     teacher_net = load_checkpoint(teacher).to(device) if teacher is not None else None
     if out.exists():
@@ -215,31 +250,41 @@ def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int =
         net.load_state_dict(state["model"])
         opt.load_state_dict(state["optimiser"])
         step, spent, recorded = state["step"], state.get("spent_s", 0.0), state.get("grid_mm")
+        before = state.get("training", {})
+        runs, started = before.get("runs", [{"from_step": 0, "to_step": step, "recorded": False}]), before.get("init")
     net.to(device)
     for values in opt.state.values():                  # a resumed optimiser's moments beside the weights
         values.update({k: v.to(device) for k, v in values.items() if torch.is_tensor(v) and k != "step"})
-    budget = spent + minutes * 60.0
-    start, last_ckpt, losses = time.perf_counter() - spent, time.perf_counter(), []
+    budget = spent + (minutes or 0.0) * 60.0
+    start, last_ckpt, losses, first_step = time.perf_counter() - spent, time.perf_counter(), [], step
     stream = BatchStream(data, batch, crop, seed + step, in_channels)
     batches = iter(stream if loaders == 0 else torch.utils.data.DataLoader(
         stream, batch_size=None, num_workers=loaders, pin_memory=device != "cpu", persistent_workers=True))
 
-    seen: dict[str, float | None] = {}
+    manifest: dict[str, dict] = {}
+    settings = {"seed": seed, "steps": steps, "minutes": minutes, "lr": lr, "batch": batch, "crop": crop,
+                "teacher_weight": teacher_weight if teacher else None, "freeze_norm": freeze_norm,
+                "device": device, "loaders": loaders, "threads": threads,
+                "init": started,
+                "teacher": file_record(teacher) if teacher is not None else None, "commit": git_state()}
 
     def save() -> None:
-        grid_mm = _one_grid_mm([*folder_grids(data, seen).values(), recorded])
+        shard_manifest(data, manifest)
+        grid_mm = _one_grid_mm([*(m["grid_mm"] for m in manifest.values()), recorded])
+        run = {**settings, "from_step": first_step, "to_step": step, "data": data_record(data, manifest)}
+        this = {**{k: v for k, v in run.items() if k != "data"}, "manifest_sha256": run["data"]["manifest_sha256"]}
         torch.save({"model": {k: v.cpu() for k, v in net.state_dict().items()}, "optimiser": opt.state_dict(),
-                    "config": net.config, "step": step, "spent_s": time.perf_counter() - start, "shards": len(seen),
-                    "grid_mm": grid_mm}, out)
+                    "config": net.config, "step": step, "spent_s": time.perf_counter() - start,
+                    "shards": len(manifest), "grid_mm": grid_mm, "training": {**run, "runs": [*runs, this]}}, out)
 
     net.train()
     if freeze_norm:
         for module in net.modules():
             if isinstance(module, torch.nn.BatchNorm2d):
                 module.eval()
-    while (elapsed := time.perf_counter() - start) < budget:
+    while (step < steps) if steps is not None else ((elapsed := time.perf_counter() - start) < budget):
         for g in opt.param_groups:
-            g["lr"] = lr * 0.5 * (1 + np.cos(np.pi * min(elapsed / budget, 1.0)))
+            g["lr"] = lr_at(lr, step, steps) if steps is not None else lr_at(lr, elapsed, budget)
         x, y = (torch.as_tensor(t).to(device, non_blocking=True) for t in next(batches))
         if teacher_net is None:
             loss = loss_fn(net(x), y)
@@ -255,9 +300,10 @@ def train(data: Path, out: Path, minutes: float, *, width: int = 8, depth: int =
             last_ckpt = time.perf_counter()
             if log is not None:
                 with open(log, "a") as f:
-                    f.write(json.dumps({"step": step, "elapsed_s": round(elapsed), "loss": float(np.mean(losses[-200:])),
-                                        "lr": opt.param_groups[0]["lr"]}) + "\n")
-    save()
+                    f.write(json.dumps({"step": step, "elapsed_s": round(time.perf_counter() - start),
+                                        "loss": float(np.mean(losses[-200:])), "lr": opt.param_groups[0]["lr"]}) + "\n")
+    if step > first_step or not runs:                  # a finished budget leaves its checkpoint as it is
+        save()
     return out
 
 
@@ -286,14 +332,16 @@ def main(argv: list[str] | None = None) -> Path:
     Example:
         python -m model_export.localiser.train --data SHARDS --out $OUT/w6.pt --width 6 \\
             --init service/localisers/default/checkpoint.pt --teacher service/localisers/default/checkpoint.pt \\
-            --lr 1e-3 --batch 64 --device cuda --loaders 2 --minutes 6
+            --lr 1e-3 --batch 64 --device cuda --loaders 2 --steps 6000
     """
     import argparse
 
     ap = argparse.ArgumentParser(prog="python -m model_export.localiser.train", description=main.__doc__)
     ap.add_argument("--data", type=Path, required=True)
     ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--minutes", type=float, default=60.0)
+    budget = ap.add_mutually_exclusive_group(required=True)
+    budget.add_argument("--steps", type=int, help="train until the checkpoint has done this many steps (reproducible)")
+    budget.add_argument("--minutes", type=float, help="train this many more minutes of wall clock (not reproducible)")
     for name, kind in (("width", int), ("depth", int), ("batch", int), ("crop", int), ("lr", float), ("seed", int),
                        ("threads", int), ("teacher-weight", float), ("loaders", int), ("checkpoint-s", float)):
         ap.add_argument(f"--{name}", type=kind)
