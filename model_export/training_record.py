@@ -30,8 +30,8 @@ def hardware(device: torch.device) -> str:
     return f"CPU, {os.cpu_count()} cores"
 
 
-def git_commit(repo: Path = Path(__file__).parent) -> str:
-    """The short commit of the repository holding ``repo``, with ``-dirty`` when a tracked file
+def git_commit(repo: Path = Path(__file__).parent, short: bool = True) -> str:
+    """The commit (``short``: abbreviated) of the repository holding ``repo``, with ``-dirty`` when a tracked file
     differs from it (staged or not); ``unknown`` outside git. Untracked files do not count
     (``git status --porcelain --untracked-files=no``): run folders, packed data and reports are
     untracked, while code a run imports is tracked once committed.
@@ -45,7 +45,7 @@ def git_commit(repo: Path = Path(__file__).parent) -> str:
         return subprocess.run(["git", *args], capture_output=True, text=True, check=True, cwd=repo).stdout.strip()
 
     try:
-        commit = git("rev-parse", "--short", "HEAD")
+        commit = git("rev-parse", *(["--short"] if short else []), "HEAD")
         return commit + ("-dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"

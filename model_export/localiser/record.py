@@ -20,41 +20,21 @@ from __future__ import annotations
 import hashlib
 import json
 import re
-import subprocess
 import zipfile
 from pathlib import Path
 
 import numpy as np
 
+from model_export.training_record import git_commit
+from service.core.onnx import file_sha256
+
 REPOSITORY = Path(__file__).resolve().parents[2]
 
 
 def git_state(repo: Path = REPOSITORY) -> str:
-    """The commit the code runs at, with ``-dirty`` when tracked files have uncommitted changes
-    (``unknown`` outside git).
-
-    Example (a folder outside any repository):
-        >>> import tempfile
-        >>> git_state(Path(tempfile.mkdtemp()))
-        'unknown'
-    """
-    def git(*args: str) -> str:
-        return subprocess.run(["git", *args], capture_output=True, text=True, check=True, cwd=repo).stdout.strip()
-
-    try:
-        commit = git("rev-parse", "HEAD")
-        return commit + ("-dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
-def file_sha256(path: Path) -> str:
-    """The sha256 of a file's bytes (hex)."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+    """The whole commit the code runs at, with ``-dirty`` when tracked files have uncommitted changes
+    (``unknown`` outside git; :func:`~model_export.training_record.git_commit`)."""
+    return git_commit(repo, short=False)
 
 
 def file_record(path: Path) -> dict:
