@@ -37,7 +37,8 @@ def train(
     backbone: Annotated[Optional[str], typer.Option()] = None,
     width: Annotated[Optional[float], typer.Option()] = None,
     label_type: Annotated[Optional[str], typer.Option(help="anchor, grid, euler or quaternion")] = None,
-    loss: Annotated[Optional[str], typer.Option(help="l2, or mirror-aware min / invariant (point labels)")] = None,
+    loss: Annotated[Optional[str], typer.Option(help="l2, or mirror-aware min / invariant (point labels; default min for "
+                                                         "them, l2 for the others)")] = None,
     sampling: Annotated[Optional[str], typer.Option(help="random, euler or fibonacci")] = None,
     steps: Annotated[Optional[int], typer.Option(min=1)] = None,
     batch: Annotated[Optional[int], typer.Option(min=16, help="slices a step, a multiple of 16")] = None,

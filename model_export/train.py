@@ -60,7 +60,9 @@ class TrainConfig:
     spatial_grid: int = 3
     grid_channels: int = 32
     loss_weights: tuple[float, ...] | None = None
-    loss: str = "l2"
+    loss: str = ""
+    """``l2``, ``min`` or ``invariant``; empty: ``min`` for point labels (a slice's twin is as right
+    as the slice, which one slice cannot tell from it), ``l2`` for the others (:func:`default_loss`)."""
     plane_x_mm: float = 0.0
     seed: int = 0
     val_every: int = 500
@@ -119,14 +121,24 @@ def predict_poses(model: SVRNet, inputs: np.ndarray, batch: int = 256) -> np.nda
 
 
 def pose_errors(pred: np.ndarray, true: np.ndarray, plane_x_mm: float = 0.0) -> dict[str, np.ndarray]:
-    """Per slice: the mean anchor-point E.D. (mm) to the truth and to the nearer twin, and the G.D.
+    """Per slice: the mean anchor-point E.D. (mm) and the G.D., to the truth and to the nearer twin.
 
     Returns ``ed_mm`` (against the truth), ``ed_twin_mm`` (twin-min: against whichever of the truth
-    and its twin is nearer), ``on_twin`` (the twin is strictly nearer) and ``gd`` (to the truth).
+    and its twin is nearer), ``on_twin`` (the twin is strictly nearer), ``gd`` (to the truth) and
+    ``gd_twin`` (to that nearer one).
+
+    Example (a pose on the twin of the truth: 0 twin-min, far from the truth):
+        >>> true = se3.exp(np.array([[0.2, 0.1, 0.3, 20.0, 5.0, 0.0]]))
+        >>> err = pose_errors(twin(true), true)
+        >>> bool(err["ed_mm"][0] > 30), float(err["ed_twin_mm"][0]), float(err["gd_twin"][0])
+        (True, 0.0, 0.0)
     """
-    e_true, e_twin = anchors.ed(pred, true), anchors.ed(pred, twin(true, plane_x_mm))
-    return {"ed_mm": e_true, "ed_twin_mm": np.minimum(e_true, e_twin), "on_twin": e_twin < e_true,
-            "gd": se3.geodesic_distance(pred, true)}
+    twins = twin(true, plane_x_mm)
+    e_true, e_twin = anchors.ed(pred, true), anchors.ed(pred, twins)
+    on_twin = e_twin < e_true
+    nearer = np.where(on_twin[..., None, None], twins, true)
+    return {"ed_mm": e_true, "ed_twin_mm": np.minimum(e_true, e_twin), "on_twin": on_twin,
+            "gd": se3.geodesic_distance(pred, true), "gd_twin": se3.geodesic_distance(pred, nearer)}
 
 
 def _load_init(model: SVRNet, ck: dict, path: Path) -> bool:
@@ -152,6 +164,16 @@ def _loss(model: SVRNet, x: torch.Tensor, y: torch.Tensor, cfg: TrainConfig) -> 
     return multi_loss(model.normalised(x), target, cfg.label_type, cfg.loss_weights)[0]
 
 
+def default_loss(label_type: str) -> str:
+    """The loss a run takes when none is given: mirror-aware (``min``) for point labels, else ``l2``.
+
+    Example:
+        >>> default_loss("grid"), default_loss("quaternion")
+        ('min', 'l2')
+    """
+    return "min" if label_type in POINT_LABELS else "l2"
+
+
 def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resume: Path | None = None,
           progress: bool = True, init: Path | None = None) -> Path:
     """Train, logging to ``out_dir/log.csv``; returns the path of the best checkpoint.
@@ -167,6 +189,7 @@ def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resu
             and schedule of ``cfg.steps`` -- a new training stage. Its history carries over, so the
             figures of the final checkpoint are the totals.
     """
+    cfg.loss = cfg.loss or default_loss(cfg.label_type)
     check_label_type(cfg.label_type, cfg.loss)
     if cfg.batch % SLICES_PER_ACQUISITION or min(cfg.batch, cfg.steps, cfg.val_every, cfg.val_per_volume, cfg.reuse) < 1:
         raise ValueError(f"batch {cfg.batch} (a multiple of {SLICES_PER_ACQUISITION}: whole acquisitions), steps "

@@ -98,6 +98,19 @@ def consistent_poses(mean: NDArray, twin_mass: NDArray, network_from_vox: NDArra
                       fit.expected_error_mm if fit.decidable else expected_error_mm)
 
 
+def branch_set(out: StackPoses) -> bool:
+    """The stage fitted one consistent stack and its left-right branch is set, by the stack's own
+    slices or by the request's other stacks; otherwise each slice keeps the network's branch.
+
+    Example:
+        >>> from types import SimpleNamespace
+        >>> fit = SimpleNamespace(decidable=True, branch_decided=False, branch_from_request=True)
+        >>> branch_set(SimpleNamespace(fit=fit)), branch_set(SimpleNamespace(fit=None))
+        (True, False)
+    """
+    return out.fit is not None and out.fit.decidable and (out.fit.branch_decided or out.fit.branch_from_request)
+
+
 def undecided(out: StackPoses) -> bool:
     """The stage found one consistent stack but not its left-right branch, and the request has not
     decided it either (it may: a stack the other stacks overruled, :func:`checked_branch`, has been)."""

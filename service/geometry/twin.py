@@ -139,6 +139,24 @@ def twin_risk(distance_mm: ArrayLike, logit: tuple[float, float]) -> NDArray[np.
     return expit(a + b * np.asarray(distance_mm, dtype=np.float64))
 
 
+UNDECIDED_TWIN_CHANCE = 0.5
+"""The chance that a slice whose branch nothing has decided (no stack model, no request, a slice
+alone) sits on its mirror twin: a slice and its twin show one image, and the network's MC samples
+split between them by the view they came from, not by the image."""
+
+
+def undecided_twin_variance(distance_mm: ArrayLike) -> NDArray[np.float64]:
+    """What the twin adds to the expected squared E.D. (mm^2) of a slice whose branch is undecided:
+    :data:`UNDECIDED_TWIN_CHANCE` times its squared distance to its twin.
+
+    Example:
+        >>> undecided_twin_variance(np.array([0.0, 10.0])).tolist()
+        [0.0, 50.0]
+    """
+    d = np.asarray(distance_mm, dtype=np.float64)
+    return UNDECIDED_TWIN_CHANCE * d ** 2
+
+
 def twin_variance(distance_mm: ArrayLike, logit: tuple[float, float]) -> NDArray[np.float64]:
     """What the twin adds to a slice's expected squared E.D. (mm^2): its chance of sitting on its
     twin (:func:`twin_risk`) times its squared distance to it; a slice on the plane adds nothing.

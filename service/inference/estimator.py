@@ -125,11 +125,25 @@ def slice_statistics(labels: NDArray, label_type: str, plane_x_mm: float = twin.
     """Decode MC labels ``[B, N, D]`` and reduce them to :class:`PoseEstimate`, twin-aware.
 
     The samples of each slice are put on one branch first (a sample and its left-right twin
-    render the same image), so a split between the twins neither inflates the variance nor
-    disappears: it is reported as ``twin_mass``. From a single sample the variance is NaN (not
-    measured), so that no slice is accepted on a spread that was never seen.
+    render the same image), so a split between the twins is not taken for spread, nor lost: it is
+    reported as ``twin_mass``. From a single sample the variance is NaN (not measured), so that no
+    slice is accepted on a spread that was never seen. A slice with a non-finite sample is
+    ``degenerate`` (it neither votes in its stack's model nor is accepted), its statistics taken
+    over its finite samples.
+
+    Example (one NaN among a slice's three samples):
+        >>> lab = np.tile(encodings.encode("anchor", np.eye(4)[None]), (1, 3, 1))
+        >>> lab[0, 1, 0] = np.nan
+        >>> est = slice_statistics(lab, "anchor")
+        >>> bool(est.degenerate[0]), bool(np.isfinite(est.mean).all())
+        (True, True)
     """
     lab = np.asarray(labels, dtype=np.float64)
+    finite = np.isfinite(lab).all(axis=-1)                           # [B, N]
+    if not finite.all():                 # a broken sample: the slice's first finite one stands in for it
+        first = np.argmax(finite, axis=1)
+        stand_in = np.where(finite.any(axis=1)[:, None], lab[np.arange(len(lab)), first], 0.0)
+        lab = np.where(finite[..., None], lab, stand_in[:, None, :])
     poses = encodings.decode(label_type, lab)                        # [B, N, 4, 4]
     aligned, flipped = twin.align_samples(poses, plane_x_mm)
     mean, var = se3.frechet_mean_and_variance(aligned)
@@ -139,6 +153,7 @@ def slice_statistics(labels: NDArray, label_type: str, plane_x_mm: float = twin.
         degenerate = anchors.degenerate(lab).mean(axis=1) > 0.5
     else:
         degenerate = np.zeros(len(lab), dtype=bool)
+    degenerate = degenerate | ~finite.all(axis=1)
     pts = anchors.encode(aligned).reshape(aligned.shape[:-2] + (3, 3))
     centre = anchors.encode(mean).reshape(mean.shape[:-2] + (1, 3, 3))
     spread = np.sqrt(np.mean(np.linalg.norm(pts - centre, axis=-1).mean(axis=-1) ** 2, axis=-1))

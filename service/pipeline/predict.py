@@ -30,6 +30,7 @@ from service.consistency.slice_order import FROM_FILE, SliceOrder, per_stack
 from service.consistency.stage import (
     ImageConsistency,
     StackPoses,
+    branch_set,
     checked_branch,
     consistent_poses,
     misfit_factor,
@@ -39,7 +40,7 @@ from service.consistency.stage import (
 )
 from service.core.cancellation import checkpoint
 from service.core.errors import InvalidParameter
-from service.geometry.twin import DEFAULT_PLANE_X_MM, twin_distance_mm, twin_variance
+from service.geometry.twin import DEFAULT_PLANE_X_MM, twin_distance_mm, twin_variance, undecided_twin_variance
 from service.inference import acceptance
 from service.inference.estimator import PoseEstimate, PoseEstimator
 from service.inference.model_file import ModelInfo
@@ -105,7 +106,7 @@ def judge(prepared: PreparedStack, estimate: PoseEstimate, out: StackPoses, thre
 
 
 def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate | None = None,
-                      input_noise: ArrayLike = np.nan) -> NDArray[np.float64]:
+                      input_noise: ArrayLike = np.nan, branch_known: bool | None = None) -> NDArray[np.float64]:
     """Add to each returned pose's expected error (in place) what no stage sees; return what the
     noise added (mm, in quadrature; shaped as ``input_noise``).
 
@@ -125,9 +126,14 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate |
       twin show one image, and a sudden move of the fetus can put a slice's stack-mates' prediction
       nearer its twin. The model's ``twin_risk_logit`` gives that chance ``p`` from the slice's
       distance ``d`` to its twin; the expected squared error grows by ``p d^2``
-      (:func:`~service.geometry.twin.twin_variance`). Where the stage found no consistent stack
-      (and for a streamed slice answered before its stack is fitted), the poses are the network's
-      and nothing is added: the calibration knows no such case.
+      (:func:`~service.geometry.twin.twin_variance`).
+    * Where nothing decided the slice's branch (the stage off, a stack it found inconsistent, a
+      consistent stack whose branch neither it nor the request decided, a streamed slice answered
+      before its stack's branch is known: ``branch_known`` False), the pose's branch is the
+      network's, which a single slice cannot tell: it is on its twin by even odds, and the expected
+      squared error grows by half its squared distance to it
+      (:func:`~service.geometry.twin.undecided_twin_variance`). A slice near the mid-plane keeps a
+      small error and may be accepted; a lateral one does not pass as a sure pose.
 
     A slice the network saw without measuring its spread (one MC pass: ``estimate``'s variance NaN)
     has no expected error (NaN, null in the answer): the calibration scales a spread, and the
@@ -136,8 +142,8 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate |
     Example (a sagittal slice 5 mm off the plane, 10 mm from its twin, in a consistent stack):
         >>> from types import SimpleNamespace
         >>> pose = np.array([[0.0, 0, 1, 5], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]])
-        >>> out = SimpleNamespace(expected_error_mm=np.array([3.0]), fit=SimpleNamespace(decidable=True), poses=pose[None],
-        ...                       image_consistency=None)
+        >>> fit = SimpleNamespace(decidable=True, branch_decided=True, branch_from_request=False)
+        >>> out = SimpleNamespace(expected_error_mm=np.array([3.0]), fit=fit, poses=pose[None], image_consistency=None)
         >>> info = SimpleNamespace(expected_error_floor_mm=4.0, twin_risk_logit=(-1.0, -0.1))
         >>> _ = add_unseen_errors(out, info); out.expected_error_mm.round(2).tolist()   # sqrt(9 + 16 + 11.92)
         [6.08]
@@ -148,8 +154,11 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate |
     own = np.asarray(out.expected_error_mm, np.float64) * (misfit_factor(out.fit) if refined is None else 1.0)
     variance = own ** 2 + float(getattr(info, "expected_error_floor_mm", 0.0)) ** 2
     logit = getattr(info, "twin_risk_logit", None)
-    if logit is not None and out.fit is not None and out.fit.decidable:
-        d = twin_distance_mm(out.poses, getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM))
+    known = branch_set(out) if branch_known is None else branch_known
+    d = twin_distance_mm(out.poses, getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM))
+    if not known:
+        variance = variance + undecided_twin_variance(d)
+    elif logit is not None and out.fit is not None and out.fit.decidable:
         variance = variance + twin_variance(d, logit)
     variance = np.maximum(variance, (refined.placement_floor_mm if refined is not None else 0.0) ** 2)
     if estimate is not None:

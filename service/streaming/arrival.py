@@ -129,8 +129,5 @@ def pose_alone(info: object, state: ReceivedSlice, fit: StackPoses | None, place
         if placement_mm is not None:
             pose[0], expected[0] = immediate.with_placement(pose[0], float(expected[0]), predicted, placement_mm)
     out = StackPoses(pose, mass, twinned, np.zeros(1, bool), None, expected)
-    add_unseen_errors(out, info, est, noise)
-    if not decided:                                  # a slice alone cannot tell its twin
-        out.expected_error_mm = np.sqrt(out.expected_error_mm ** 2 + immediate.UNDECIDED_TWIN_CHANCE
-                                        * twin.twin_distance_mm(pose, plane) ** 2)
+    add_unseen_errors(out, info, est, noise, branch_known=decided)      # a slice alone cannot tell its twin
     return out

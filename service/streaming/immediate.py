@@ -9,7 +9,7 @@ is decided. Two things follow for the immediate answer:
 * **The branch.** Before the stack decides it, nothing tells a slice from its mirror twin (the atlas
   space is left-right symmetric): the truth is the answered pose or its twin with even chances, so
   the expected squared error gains half the squared distance to the twin
-  (:data:`UNDECIDED_TWIN_CHANCE`). Once decided, the slice takes the twin nearer to the placement's
+  (:data:`~service.geometry.twin.UNDECIDED_TWIN_CHANCE`). Once decided, the slice takes the twin nearer to the placement's
   prediction.
 * **Two estimates of one pose.** The network's answer and the placement's prediction are weighed
   by their expected errors. The prediction's (:func:`placement_error_mm`) is what the stack stage
@@ -47,9 +47,6 @@ from numpy.typing import NDArray
 
 from service.geometry import anchors, se3
 
-UNDECIDED_TWIN_CHANCE = 0.5
-"""The chance that a slice answered before its stack decided its branch sits on its mirror twin: a
-slice alone cannot tell (docs/realtime.md gives the share measured on simulated acquisitions)."""
 MIN_WEIGHED_MM = 0.5
 """The smallest expected error an estimate is weighed by (an error of 0 would trust one estimate alone)."""
 OUTLIER_SIGMAS = 3.0

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.geometry import anchors, se3, twin
-from service.inference.estimator import statistics
+from service.geometry import anchors, encodings, se3, twin
+from service.inference.estimator import slice_statistics, statistics
 
 
 def cloud(rng: np.random.Generator, n_slices: int, n_mc: int, on_twin: float) -> tuple[np.ndarray, np.ndarray]:
@@ -68,3 +68,20 @@ def test_one_sample_has_no_measured_variance_and_no_slice_is_accepted_on_it() ->
     assert flags == ["high_variance"] * 5
     two = statistics(anchors.encode(cloud(rng, 5, 2, 0.0)[1]), "anchor", 0.7)
     assert np.isfinite(two.variance).all()
+
+
+@pytest.mark.parametrize("label_type", ["anchor", "grid"])
+def test_a_non_finite_sample_makes_its_slice_degenerate_not_its_stack_undecidable(label_type: str) -> None:
+    """One NaN sample in one slice: that slice may not vote (degenerate) and its statistics are those
+    of its finite samples (a grid label decodes NaN to the identity pose, which would be averaged
+    in); the other slices are as without it."""
+    rng = np.random.default_rng(4)
+    poses = se3.exp(np.array([0.3, 0.1, 0.2, 25.0, 4.0, 10.0])) @ se3.exp(rng.normal(0, 0.02, (3, 20, 6)))
+    lab = encodings.encode(label_type, poses)
+    clean = slice_statistics(lab, label_type)
+    lab[1, 7] = np.nan
+    broken = slice_statistics(lab, label_type)
+    assert broken.degenerate.tolist() == [False, True, False] and not clean.degenerate.any()
+    assert np.isfinite(broken.mean).all() and np.isfinite(broken.variance).all()
+    np.testing.assert_allclose(broken.mean[[0, 2]], clean.mean[[0, 2]])
+    assert anchors.ed(broken.mean[1], clean.mean[1]) < 0.5 and broken.variance[1] < 2 * clean.variance[1]

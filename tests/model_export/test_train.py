@@ -117,6 +117,14 @@ def test_pose_errors_report_the_truth_and_the_nearer_twin() -> None:
     assert np.allclose(err["ed_twin_mm"], 0.0, atol=1e-9)
     assert np.allclose(err["ed_mm"][:4], 0.0) and np.all(err["ed_mm"][4:] > 1.0)
     assert err["on_twin"].tolist() == [False] * 4 + [True] * 4
+    assert np.allclose(err["gd_twin"], 0.0, atol=1e-6) and np.all(err["gd"][4:] > 0.1)     # G.D. both ways too
+
+
+def test_a_run_given_no_loss_takes_the_mirror_aware_one_for_point_labels() -> None:
+    from model_export.train import TrainConfig, default_loss
+
+    assert TrainConfig().loss == "" and default_loss("anchor") == default_loss("grid") == "min"
+    assert default_loss("euler") == "l2"
 
 
 def test_totals_add_up_segments_and_checkpoints_without_history() -> None:

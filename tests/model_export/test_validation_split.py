@@ -49,6 +49,9 @@ def test_a_model_records_its_own_split_and_is_evaluated_on_it(own_split: tuple[P
     assert validation_volumes({"training_data": meta["training_data"]}) == OWN_SPLIT     # a file of before
     summary = evaluate(onnx_path, tmp_path / "report.md", phantom_atlas, per_volume=2, mc_samples=2)
     assert sorted(summary["per_volume"]) == OWN_SPLIT
+    report = (tmp_path / "report.md").read_text()              # every pose figure against the truth and twin-min
+    assert "inliers (3-MAD on twin-min G.D.)" in report and "G.D., truth / twin-min" in report
+    assert summary["gd_twin_mean"] <= summary["gd_mean"] + 1e-9 and "outlier_twin_fraction" in summary
 
 
 def test_the_accept_flags_and_the_noise_error_are_measured_on_the_models_own_split(

@@ -47,7 +47,8 @@ def _placed(sd: float | None, pooled: bool = True) -> SimpleNamespace:
     """A stage output of three slices with expected errors of 9 mm, placed to ``sd`` mm per coordinate."""
     import numpy as np
 
-    fit = SimpleNamespace(placement_sd_mm=sd if not pooled else 99.0)
+    fit = SimpleNamespace(placement_sd_mm=sd if not pooled else 99.0, decidable=True, branch_decided=True,
+                          branch_from_request=False)
     return SimpleNamespace(poses=np.repeat(np.eye(4)[None], 3, 0), expected_error_mm=np.full(3, 9.0),
                            inconsistent=np.zeros(3, bool), fit=fit,
                            pooled=SimpleNamespace(placement_sd_mm=sd) if pooled else None, image_consistency=None)
