@@ -16,6 +16,7 @@ Example:
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 
 SERVER_PACKAGES = ("numpy", "scipy", "fastapi", "fastapi_offline", "starlette", "anyio", "uvicorn", "pydantic",
@@ -39,18 +40,28 @@ def run_entry_point(command: str, target: str) -> None:
     entry()
 
 
+def private_files() -> None:
+    """Files the process creates from now on are readable by its own user only (umask 077): set
+    before the service's imports, some of which write files of their own (onnxruntime a session
+    file in the temporary folder), as well as by :func:`~service.core.settings.load_settings`."""
+    os.umask(0o077)
+
+
 def server() -> None:
     """Run ``svrnet-server`` (:func:`service.main.run`)."""
+    private_files()
     run_entry_point("svrnet-server", "service.main:run")
 
 
 def worker() -> None:
     """Run ``svrnet-worker`` (:func:`service.main.run_worker`)."""
+    private_files()
     run_entry_point("svrnet-worker", "service.main:run_worker")
 
 
 def mrd_server() -> None:
     """Run ``svrnet-mrd`` (:func:`service.mrd.server.run`)."""
+    private_files()
     run_entry_point("svrnet-mrd", "service.mrd.server:run")
 
 

@@ -24,7 +24,7 @@ from service.api.uploads import sweep_stale_uploads
 from service.core import logging as service_logging
 from service.core.machine import cpu_description
 from service.core.onnx import model_files
-from service.core.settings import Settings, load_settings
+from service.core.settings import Settings, load_settings, warn_unknown_variables
 from service.core.threads import limit_blas_threads
 from service.inference.registry import ModelRegistry
 from service.jobs.backends import open_backend, queue_extra_missing
@@ -153,6 +153,7 @@ def run(argv: list[str] | None = None) -> None:
         if held is not None:
             held.close()                                        # the server's job runner takes it at start
     service_logging.configure(settings.log_level, libraries=("rq",) if settings.queue_url else ())  # its clean-ups
+    warn_unknown_variables("svrnet-server")
     if not model_files(settings.localisers_dir):
         log.warning("no brain localiser in SVRNET_LOCALISERS_DIR: every stack needs its mask")
     if settings.host not in ("127.0.0.1", "localhost", "::1") and not settings.key_set():

@@ -32,3 +32,14 @@ def test_with_the_server_extra_a_command_runs() -> None:
     code = f"import sys; sys.argv = ['svrnet-server', '--help']; from {module} import {function}; {function}()"
     done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0 and "--port" in done.stdout, done.stderr
+
+
+@pytest.mark.parametrize("entry", ["server", "worker", "mrd_server"])
+def test_a_server_command_makes_its_files_private_before_any_import(entry: str) -> None:
+    """The umask is 077 before the service is imported: an import that writes a file (onnxruntime's
+    session file in the temporary folder) writes it readable by its user only."""
+    code = ("import os, service.launch as launch; os.umask(0o022); "
+            "launch.run_entry_point = lambda command, target: print(oct(os.umask(0o022))); "
+            f"launch.{entry}()")
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert done.stdout.strip() == "0o77", done.stderr

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Mapping
 from pathlib import Path
 from urllib.parse import urlsplit
 
@@ -245,3 +246,30 @@ def load_settings(prog: str, *, needs_default_model: bool = True, **given: objec
         raise SystemExit(f"{prog}: " + "; ".join(problems))
     os.umask(0o077)
     return settings
+
+
+OTHER_VARIABLES = ("SVRNET_SERVER", "SVRNET_API_KEY", "SVRNET_TIMEOUT", "SVRNET_BIND", "SVRNET_TEST_",
+                   "SVRNET_SCHEMATHESIS_")
+"""``SVRNET_`` variables (or prefixes) that are not the service's settings and share its environment:
+the client's (``svrnet``), docker compose's and the tests'."""
+
+
+def unknown_variables(environ: Mapping[str, str] | None = None) -> list[str]:
+    """The ``SVRNET_`` variables of ``environ`` (default the process's) that no setting reads: a
+    misspelt one (``SVRNET_THREADS``) would otherwise be ignored without a word.
+
+    Example:
+        >>> unknown_variables({"SVRNET_THREADS": "1", "SVRNET_ONNX_THREADS": "1", "SVRNET_SERVER": "x", "HOME": "/"})
+        ['SVRNET_THREADS']
+    """
+    env = os.environ if environ is None else environ
+    known = {f"SVRNET_{name.upper()}" for name in Settings.model_fields}
+    return sorted(k for k in env if k.upper().startswith("SVRNET_") and k.upper() not in known
+                  and not k.upper().startswith(OTHER_VARIABLES))
+
+
+def warn_unknown_variables(prog: str) -> None:
+    """Log one warning naming the :func:`unknown_variables` (call once logging is configured)."""
+    if names := unknown_variables():
+        logging.getLogger(__name__).warning("%s: no setting reads %s; ignored (the settings: docs/configuration.md)",
+                                            prog, ", ".join(names))

@@ -35,7 +35,7 @@ from rq.worker import Worker
 
 from service.core import logging as service_logging
 from service.core.process_pools import watch_parent
-from service.core.settings import Settings, load_settings
+from service.core.settings import Settings, load_settings, warn_unknown_variables
 from service.core.threads import limit_blas_threads
 from service.jobs.rq_runner import worker_context, set_context
 
@@ -233,6 +233,7 @@ def main(argv: list[str] | None = None) -> int:
         print("svrnet-worker: set SVRNET_QUEUE_URL=redis://host:port/db", file=sys.stderr)
         return 2
     service_logging.configure(settings.log_level, libraries=("rq",))     # RQ's lines as JSON on stderr too
+    warn_unknown_variables("svrnet-worker")
     if args.health:
         try:
             return 0 if healthy(settings) else 1

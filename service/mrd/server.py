@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 from service.core import logging as service_logging
 from service.core.errors import Saturated
-from service.core.settings import Settings, load_settings
+from service.core.settings import Settings, load_settings, warn_unknown_variables
 from service.core.threads import limit_blas_threads
 from service.inference.registry import ModelRegistry
 from service.mrd.connection import MrdConnection, SessionFactory, refuse
@@ -208,6 +208,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     settings = load_settings("svrnet-mrd")
     service_logging.configure(settings.log_level)
+    warn_unknown_variables("svrnet-mrd")
     limit_blas_threads(settings.blas_threads)
     limits = ServerLimits(args.max_sessions or settings.stream_max_sessions, args.idle_s or settings.stream_idle_s)
     server = build_server(settings, args.host or settings.host, args.port, limits)
