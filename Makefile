@@ -7,21 +7,22 @@ PY     := $(VENV)/bin/python
 # torch's CPU build comes from PyTorch's own index (PyPI's Linux torch is the multi-GB CUDA build);
 # `make test TORCH_INDEX=URL` points elsewhere (a mirror), and a machine without it uses what pip has.
 TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
-PIP    := $(PY) -m pip install --disable-pip-version-check -q -c constraints.txt --extra-index-url $(TORCH_INDEX) --retries 2
+PIP    := $(PY) -m pip install --disable-pip-version-check -q -c constraints.txt --retries 2
+TORCH  := --extra-index-url $(TORCH_INDEX)
 HOST   := $(or $(SVRNET_HOST),127.0.0.1)
 PORT   := $(or $(SVRNET_PORT),8000)
 
 .PHONY: serve test install-server install-dev install-queue bench cli-docs config-docs clean
 
-$(PY):
-	$(PYTHON) -m venv $(VENV)
+$(PY):   # a venv made without pip (Debian without python3-venv) is removed, not kept half-made
+	$(PYTHON) -m venv $(VENV) && $(PY) -m pip --version >/dev/null || { rm -rf $(VENV); exit 1; }
 
 $(VENV)/.server-installed: $(PY) pyproject.toml constraints.txt   # the server and the svrnet command
 	$(PIP) -e ".[server,client]"
 	touch $@
 
 $(VENV)/.dev-installed: $(PY) pyproject.toml constraints.txt
-	$(PIP) -e ".[dev]"
+	$(PIP) $(TORCH) -e ".[dev]"
 	touch $@ $(VENV)/.server-installed
 
 $(VENV)/.queue-installed: $(VENV)/.server-installed   # the Redis job back-end (docs/deployment.md)

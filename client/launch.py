@@ -30,4 +30,4 @@ def run_or_name_missing(module: str, packages: tuple[str, ...], missing_says: st
 def main() -> None:
     """Run ``svrnet``."""
     run_or_name_missing("client.cli", CLIENT_PACKAGES, "svrnet: the client's packages are not installed ({name} is "
-                        "missing): pip install \".[client]\" (make serve installs them)")
+                        "missing): pip install \"svrnet[client]\" (in a checkout: make serve)")

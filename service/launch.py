@@ -36,7 +36,7 @@ def run_entry_point(command: str, target: str) -> None:
         if name not in SERVER_PACKAGES:          # a submodule's import names no ``name`` of its own
             raise
         sys.exit(f"{command}: the server's packages are not installed ({name} is missing): "
-                 "pip install -c constraints.txt \".[server]\" (make serve installs them)")
+                 "pip install \"svrnet[server]\" (in a checkout: make serve)")
     entry()
 
 

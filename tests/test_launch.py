@@ -24,7 +24,7 @@ def test_a_server_command_without_the_server_extra_names_it(command: str) -> Non
             f"from {module} import {function}; {function}()")
     done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
-    assert done.stderr.startswith(f"{command}: ") and '".[server]"' in done.stderr and " is missing" in done.stderr
+    assert done.stderr.startswith(f"{command}: ") and '"svrnet[server]"' in done.stderr and " is missing" in done.stderr
 
 
 def test_with_the_server_extra_a_command_runs() -> None:

@@ -96,7 +96,7 @@ def test_the_redis_back_end_without_the_queue_extra_is_named_in_one_line(monkeyp
     with pytest.raises(SystemExit) as end:
         main.run([])
     err = capsys.readouterr().err
-    assert end.value.code == 1 and "rq is missing" in err and ".[queue]" in err and "Traceback" not in err
+    assert end.value.code == 1 and "rq is missing" in err and "svrnet[queue]" in err and "Traceback" not in err
     with pytest.raises(SystemExit) as end:
         main.run_worker()
     assert "svrnet-worker:" in str(end.value.code) and "rq is missing" in str(end.value.code)

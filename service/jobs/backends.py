@@ -26,7 +26,7 @@ from service.jobs.store import JobStore
 QUEUE_PACKAGES = ("redis", "rq")
 """What the ``queue`` extra installs: the distributed back-end's client and queue."""
 QUEUE_EXTRA_MISSING = ("SVRNET_QUEUE_URL needs the queue extra ({name} is missing): "
-                       "pip install -c constraints.txt -e \".[queue]\" (make install-queue)")
+                       "pip install \"svrnet[queue]\" (in a checkout: make install-queue)")
 """What a server or worker started for the distributed back-end without it says, in one line."""
 
 

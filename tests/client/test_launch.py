@@ -17,7 +17,7 @@ def run_without(package: str, module: str) -> subprocess.CompletedProcess:
 
 def test_svrnet_without_httpx_names_the_extra_to_install() -> None:
     r = run_without("httpx", "client.launch")
-    assert r.returncode == 1 and "httpx is missing" in r.stderr and '".[client]"' in r.stderr
+    assert r.returncode == 1 and "httpx is missing" in r.stderr and '"svrnet[client]"' in r.stderr
     assert "Traceback" not in r.stderr
 
 
