@@ -30,21 +30,31 @@ def hardware(device: torch.device) -> str:
     return f"CPU, {os.cpu_count()} cores"
 
 
-def git_commit(repo: Path = Path(__file__).parent, short: bool = True) -> str:
+CHECKOUT = Path(__file__).resolve().parents[1]
+"""The checkout this code runs from (an installed package's parent folder is none)."""
+
+
+def git_commit(repo: Path | None = None, short: bool = True) -> str:
     """The commit (``short``: abbreviated) of the repository holding ``repo``, with ``-dirty`` when a tracked file
     differs from it (staged or not); ``unknown`` outside git. Untracked files do not count
     (``git status --porcelain --untracked-files=no``): run folders, packed data and reports are
-    untracked, while code a run imports is tracked once committed.
+    untracked, while code a run imports is tracked once committed. Without ``repo``: this code's
+    own checkout, ``unknown`` where the code is an installed package (a virtualenv inside some
+    other repository must not lend it that repository's commit).
 
     Example:
         >>> import tempfile
         >>> git_commit(Path(tempfile.mkdtemp()))
         'unknown'
     """
+    folder = CHECKOUT if repo is None else Path(repo)
+
     def git(*args: str) -> str:
-        return subprocess.run(["git", *args], capture_output=True, text=True, check=True, cwd=repo).stdout.strip()
+        return subprocess.run(["git", *args], capture_output=True, text=True, check=True, cwd=folder).stdout.strip()
 
     try:
+        if repo is None and Path(git("rev-parse", "--show-toplevel")).resolve() != CHECKOUT:
+            return "unknown"
         commit = git("rev-parse", *(["--short"] if short else []), "HEAD")
         return commit + ("-dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
     except (OSError, subprocess.CalledProcessError):

@@ -28,12 +28,11 @@ import numpy as np
 from model_export.training_record import git_commit
 from service.core.onnx import file_sha256
 
-REPOSITORY = Path(__file__).resolve().parents[2]
 
 
-def git_state(repo: Path = REPOSITORY) -> str:
-    """The whole commit the code runs at, with ``-dirty`` when tracked files have uncommitted changes
-    (``unknown`` outside git; :func:`~model_export.training_record.git_commit`)."""
+def git_state(repo: Path | None = None) -> str:
+    """The whole commit the code runs at (or ``repo``'s), with ``-dirty`` when tracked files have
+    uncommitted changes (``unknown`` outside a checkout; :func:`~model_export.training_record.git_commit`)."""
     return git_commit(repo, short=False)
 
 

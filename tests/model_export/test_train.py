@@ -98,6 +98,19 @@ def test_git_commit_is_dirty_with_uncommitted_changes_to_tracked_files_only(tmp_
     assert git_commit(tmp_path) == f"{head}-dirty"
 
 
+def test_installed_code_inside_another_repository_records_no_commit(tmp_path: Path,
+                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """A virtualenv inside some project's repository: the package's parent folder is in git, but it
+    is not this code's checkout, and its commit says nothing of this code."""
+    import model_export.training_record as record
+
+    subprocess.run(["git", "init", "-q"], cwd=tmp_path, check=True)
+    site = tmp_path / "venv" / "lib" / "site-packages"
+    site.mkdir(parents=True)
+    monkeypatch.setattr(record, "CHECKOUT", site.resolve())
+    assert record.git_commit() == "unknown"
+
+
 def test_a_run_that_holds_out_its_own_volumes_trains_on_none_of_them(packed: Path, tmp_path: Path) -> None:
     train(_tiny(steps=1, val_every=1, val_per_volume=2, val_volumes=["STA30"]), tmp_path / "own", packed,
           progress=False)
