@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import hmac
 import ipaddress
 import threading
@@ -21,7 +22,7 @@ from service.api.metrics import Metrics
 from service.core.cancellation import cancelled_by
 from service.core.errors import (ClientGone, ForeignOrigin, InvalidParameter, QueueFull, Saturated, ServiceError,
                                  Unauthorized)
-from service.core.names import clean_name
+from service.core.names import shown_name
 from service.core.settings import Settings, plain_origin
 from service.inference.registry import ModelRegistry
 from service.preprocess.localise import Localiser, Localisers
@@ -70,12 +71,22 @@ def api_key_ok(keys: set[str], authorization: str | None, x_api_key: str | None)
     """
     if not keys:
         return True
-    given = x_api_key
-    if authorization and authorization.lower().startswith("bearer "):
-        given = authorization[7:].strip()
+    given = presented_key(authorization, x_api_key)
     if not given or not given.isascii():
         return False
     return any(hmac.compare_digest(given.encode(), k.encode()) for k in keys)
+
+
+def presented_key(authorization: str | None, x_api_key: str | None) -> str:
+    """The API key a request presents (``Authorization: Bearer`` first, else ``X-API-Key``), or ``""``.
+
+    Example:
+        >>> presented_key("Bearer k-1 ", None), presented_key(None, "k-2"), presented_key("Basic x", None)
+        ('k-1', 'k-2', '')
+    """
+    if authorization and authorization.lower().startswith("bearer "):
+        return authorization[7:].strip()
+    return x_api_key or ""
 
 
 def origin_ok(settings: Settings, headers: dict[str, str]) -> bool:
@@ -143,6 +154,33 @@ def needs_key(settings: Settings, path: str) -> bool:
     return path.startswith("/v1/") or (path == "/metrics" and not settings.metrics_public)
 
 
+IDEMPOTENCY_HEADER = "Idempotency-Key"
+"""A request header of ``POST /v1/reconstructions``: a client's random key for one submission, sent
+again with every retry of it, so that a retry whose first answer was lost returns the job the first
+made instead of starting a second."""
+
+
+def idempotency_digest(key: str | None, owner: str = "") -> str | None:
+    """The digest a job keeps of an ``Idempotency-Key`` (none of the client's text is stored), or None;
+    :class:`InvalidParameter` for a key that is not 8 to 200 printable ASCII characters. ``owner``,
+    the API key the submission presents, scopes it: one client's key never matches, nor names,
+    another client's job.
+
+    Example:
+        >>> idempotency_digest("4f1c2a9e0b7d"), idempotency_digest(None)
+        ('0ffe3575cb6c496d947afe5441358c1720b414d1c3a8857562c43469609125af', None)
+        >>> idempotency_digest("4f1c2a9e0b7d", owner="k-1") != idempotency_digest("4f1c2a9e0b7d", owner="k-2")
+        True
+    """
+    if key is None:
+        return None
+    if not 8 <= len(key) <= 200 or not all("!" <= c <= "~" for c in key):
+        raise InvalidParameter(f"{IDEMPOTENCY_HEADER}: 8 to 200 printable ASCII characters, the same for every "
+                               "retry of one submission")
+    scoped = key if not owner else hashlib.sha256(owner.encode("utf-8", "replace")).hexdigest() + "\0" + key
+    return hashlib.sha256(scoped.encode()).hexdigest()
+
+
 def early_rejection(state: State, method: str, path: str, headers: dict[str, str]) -> ServiceError | None:
     """What can be refused before the upload is read (run by the middleware, so a client without a
     key, or one that would only be told to come back later, does not push its stacks first).
@@ -155,8 +193,18 @@ def early_rejection(state: State, method: str, path: str, headers: dict[str, str
     if needs_key(settings, path) and not api_key_ok(settings.key_set(), headers.get("authorization"),
                                                     headers.get("x-api-key")):
         return Unauthorized(UNAUTHORIZED)
-    if method == "POST" and path == "/v1/reconstructions" and "idempotency-key" not in headers:
-        return queue_full(state)       # a keyed retry is first matched to the job its key made (the route)
+    if method == "POST" and path == "/v1/reconstructions":
+        key = headers.get("idempotency-key")
+        if key is not None:
+            try:
+                digest = idempotency_digest(key.strip(), presented_key(headers.get("authorization"),
+                                                                       headers.get("x-api-key")))
+            except InvalidParameter as exc:
+                return exc
+            store = getattr(state, "job_store", None)
+            if store is not None and store.job_for_key(digest) is not None:
+                return None            # a retry: the route answers with the job its key made, queue full or not
+        return queue_full(state)
     return None
 
 
@@ -286,8 +334,10 @@ def known_query(request: Request) -> None:
     given = [k for k, _ in request.query_params.multi_items()]
     unknown = [k for k in dict.fromkeys(given) if k not in declared]
     if unknown:
-        takes = f"this route takes {', '.join(declared)}" if declared else "this route takes none (its options go in the body)"
-        raise InvalidParameter(f"{clean_name(unknown[0]) or repr(unknown[0])}: unknown query parameter; {takes}")
+        body = request.method in ("POST", "PUT", "PATCH")
+        takes = f"this route takes {', '.join(declared)}" if declared else \
+            "this route takes none" + (" (its options go in the body)" if body else "")
+        raise InvalidParameter(f"{shown_name(unknown[0])}: unknown query parameter; {takes}")
     doubled = [(k, n) for k, n in Counter(given).items() if n > 1]
     if doubled:
         raise InvalidParameter(f"{doubled[0][0]}: given {doubled[0][1]} times; this query parameter takes one value")

@@ -18,31 +18,10 @@ import json
 from anyio import to_thread
 from fastapi import Response
 
+from service.api.deps import IDEMPOTENCY_HEADER
 from service.api.uploads import UploadForm
-from service.core.errors import InvalidParameter, KeyReused, Saturated, ServiceError
+from service.core.errors import KeyReused, Saturated, ServiceError
 from service.jobs.store import SUBMISSION_LEASE_S, Job, JobStore
-
-IDEMPOTENCY_HEADER = "Idempotency-Key"
-"""A request header of ``POST /v1/reconstructions``: a client's random key for one submission, sent
-again with every retry of it, so that a retry whose first answer was lost returns the job the first
-made instead of starting a second."""
-
-
-def idempotency_digest(key: str | None) -> str | None:
-    """The digest a job keeps of an ``Idempotency-Key`` (none of the client's text is stored), or None;
-    :class:`InvalidParameter` for a key that is not 8 to 200 printable ASCII characters.
-
-    Example:
-        >>> idempotency_digest("4f1c2a9e0b7d"), idempotency_digest(None)
-        ('0ffe3575cb6c496d947afe5441358c1720b414d1c3a8857562c43469609125af', None)
-    """
-    if key is None:
-        return None
-    if not 8 <= len(key) <= 200 or not all("!" <= c <= "~" for c in key):
-        raise InvalidParameter(f"{IDEMPOTENCY_HEADER}: 8 to 200 printable ASCII characters, the same for every "
-                               "retry of one submission")
-    return hashlib.sha256(key.encode()).hexdigest()
-
 
 async def submission_digest(form: UploadForm, poses_text: str | None, params: dict) -> str:
     """A digest of what a submission sends: its files (names and bytes, in order), its poses and its

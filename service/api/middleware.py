@@ -12,6 +12,7 @@ import uuid
 import weakref
 
 from anyio import to_thread
+from python_multipart.multipart import parse_options_header
 from starlette.routing import compile_path
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -29,23 +30,33 @@ value per invented method would grow the metrics without bound)."""
 
 
 _TEMPLATES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-BOUNDARY = re.compile(r'boundary="?([^";]{1,200})"?', re.IGNORECASE)
 
 
 def closing_delimiter(content_type: str) -> bytes | None:
-    """The delimiter a multipart body ends with (``--BOUNDARY--``, RFC 2046), or None for another body.
+    """The delimiter a multipart body ends with (``--BOUNDARY--``, RFC 2046), or None for another body
+    (or one without a boundary, which the form parser refuses). The boundary is read as the form
+    parser reads it (python-multipart's ``parse_options_header``: blanks around ``=``, quoting,
+    other parameters before it), so that the check and the parser agree on every header.
 
     Example:
         >>> closing_delimiter('multipart/form-data; boundary="zz"'), closing_delimiter("application/json")
         (b'--zz--', None)
+        >>> closing_delimiter("multipart/form-data; x-boundary=yy; boundary = zz ; charset=utf-8")
+        b'--zz--'
     """
-    if not content_type.lower().startswith("multipart/"):
+    if not content_type.lower().lstrip().startswith("multipart/"):
         return None
-    found = BOUNDARY.search(content_type)
-    return None if found is None else b"--" + found.group(1).encode("latin-1") + b"--"
+    boundary = parse_options_header(content_type)[1].get(b"boundary")
+    return b"--" + boundary + b"--" if boundary else None
 
 
-EPILOGUE_BYTES = 1024
+def first_header(scope: Scope, name: bytes) -> str:
+    """A request header's first value (``""`` if absent): the one Starlette's ``Request.headers[name]``,
+    and so the form parser, reads where a client sent it twice."""
+    return next((v.decode("latin-1") for k, v in scope.get("headers", []) if k.lower() == name), "")
+
+
+EPILOGUE_BYTES = 8 * 1024
 """What a multipart body may carry after its closing delimiter (RFC 2046's epilogue, which clients
 leave empty or a line break) for the delimiter still to be found at its end."""
 
@@ -134,7 +145,7 @@ class RequestContext:
         state: dict = {"code": 500, "started": False, "received": 0, "refusal": None, "replaced": False,
                        "body_done": False, "left": False}
         body_deadline = asyncio.get_running_loop().time() + self.timeout_s
-        delimiter = closing_delimiter(headers.get("content-type", ""))
+        delimiter = closing_delimiter(first_header(scope, b"content-type"))
         tail = b""
 
         async def emit(message: Message) -> None:

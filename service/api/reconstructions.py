@@ -15,9 +15,9 @@ from fastapi.responses import FileResponse
 from starlette.types import Receive, Scope, Send
 from pydantic import Field
 
-from service.api.deps import ApiKey, LocalisersDep, RegistryDep, SettingsDep, localiser_for, processing, queue_full
-from service.api.idempotency import (IDEMPOTENCY_HEADER, hold_submission, idempotency_digest, made_by_key,
-                                     submission_digest, unless_abandoned)
+from service.api.deps import (IDEMPOTENCY_HEADER, ApiKey, LocalisersDep, RegistryDep, SettingsDep, idempotency_digest,
+                              localiser_for, presented_key, processing, queue_full)
+from service.api.idempotency import hold_submission, made_by_key, submission_digest, unless_abandoned
 from service.api.schemas import (UPLOAD_ERRORS, JobCreated, JobStatus, RefinedPoses, download, job_poses,
                                  problem_responses)
 from service.api.uploads import UploadForm, UploadFormDep, known_fields, upload_directory, upload_reader
@@ -232,7 +232,8 @@ async def submit(
     thickness = thickness_per_stack(slice_thickness_mm, len(form.stacks))
     if len(request.headers.getlist(IDEMPOTENCY_HEADER)) > 1:      # not one chosen of two
         raise InvalidParameter(f"{IDEMPOTENCY_HEADER}: given more than once; send one key per submission")
-    key = idempotency_digest(idempotency_key)
+    key = idempotency_digest(idempotency_key, presented_key(request.headers.get("authorization"),
+                                                            request.headers.get("x-api-key")))
     async with processing(request):
         return await _submit(request, response, settings, form, key, {
             "resolution_mm": resolution_mm, "svr_iterations": svr_iterations, "mc_samples": form.mc_samples,

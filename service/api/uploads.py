@@ -24,7 +24,7 @@ from service.api.deps import SettingsDep
 from service.consistency.slice_order import MAX_TEXT, PATTERN, VALUES, SliceOrder, per_stack
 from service.core.cancellation import carried, checkpoint
 from service.core.errors import InvalidParameter, UnusableImage
-from service.core.names import clean_name
+from service.core.names import clean_name, shown_name
 from service.core.settings import Settings
 from service.pipeline.prepare import StackUpload, mask_on_stack_grid
 from service.io.limits import DecodeBudget, raise_if_out_of_space
@@ -110,7 +110,7 @@ def known_fields(*extra: str) -> Callable[[Request], Awaitable[None]]:
     async def check(request: Request) -> None:
         declared = declared_fields(request.scope["endpoint"]) | dict.fromkeys(extra, False)
         form = await request.form()       # parsed once: FastAPI reuses it for the route's fields
-        unknown = [clean_name(k) or repr(k) for k in dict.fromkeys(form.keys()) if k not in declared]
+        unknown = [shown_name(k) for k in dict.fromkeys(form.keys()) if k not in declared]
         if unknown:
             raise InvalidParameter(f"{unknown[0]}: unknown field; this route takes {', '.join(declared)}")
         counts = Counter(k for k, _ in form.multi_items())

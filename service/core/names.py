@@ -32,6 +32,20 @@ def clean_name(name: str) -> str:
     return kept.strip()[:MAX_NAME]
 
 
+def shown_name(name: str) -> str:
+    """``name`` as a message shows a client's field or parameter name: as it is where it is clean, else
+    quoted with its hidden characters escaped (``'stack\\x00'``), so that the message names what was
+    sent, not the clean name it was mistaken for.
+
+    Example:
+        >>> shown_name("stak"), shown_name("stack\\x00"), shown_name("model ")
+        ('stak', "'stack\\\\x00'", "'model '")
+    """
+    if clean_name(name) == name and name:
+        return name
+    return ascii(name[:MAX_NAME])
+
+
 def has_unsafe_characters(name: str) -> bool:
     """Whether ``name`` holds a character :func:`clean_name` would remove (not counting white space
     at its ends).

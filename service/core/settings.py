@@ -248,10 +248,11 @@ def load_settings(prog: str, *, needs_default_model: bool = True, **given: objec
     return settings
 
 
-OTHER_VARIABLES = ("SVRNET_SERVER", "SVRNET_API_KEY", "SVRNET_TIMEOUT", "SVRNET_BIND", "SVRNET_TEST_",
-                   "SVRNET_SCHEMATHESIS_")
-"""``SVRNET_`` variables (or prefixes) that are not the service's settings and share its environment:
-the client's (``svrnet``), docker compose's and the tests'."""
+OTHER_VARIABLES = frozenset({"SVRNET_SERVER", "SVRNET_API_KEY", "SVRNET_TIMEOUT", "SVRNET_BIND"})
+"""``SVRNET_`` variables that are not the service's settings and share its environment: the client's
+(``svrnet``) and docker compose's."""
+OTHER_PREFIXES = ("SVRNET_TEST_", "SVRNET_SCHEMATHESIS_")
+"""Prefixes of the tests' ``SVRNET_`` variables."""
 
 
 def unknown_variables(environ: Mapping[str, str] | None = None) -> list[str]:
@@ -259,17 +260,22 @@ def unknown_variables(environ: Mapping[str, str] | None = None) -> list[str]:
     misspelt one (``SVRNET_THREADS``) would otherwise be ignored without a word.
 
     Example:
-        >>> unknown_variables({"SVRNET_THREADS": "1", "SVRNET_ONNX_THREADS": "1", "SVRNET_SERVER": "x", "HOME": "/"})
-        ['SVRNET_THREADS']
+        >>> unknown_variables({"SVRNET_THREADS": "1", "SVRNET_ONNX_THREADS": "1", "SVRNET_SERVER": "x",
+        ...                    "SVRNET_API_KEYSS": "k", "HOME": "/"})
+        ['SVRNET_API_KEYSS', 'SVRNET_THREADS']
     """
     env = os.environ if environ is None else environ
-    known = {f"SVRNET_{name.upper()}" for name in Settings.model_fields}
+    known = {f"SVRNET_{name.upper()}" for name in Settings.model_fields} | OTHER_VARIABLES
     return sorted(k for k in env if k.upper().startswith("SVRNET_") and k.upper() not in known
-                  and not k.upper().startswith(OTHER_VARIABLES))
+                  and not k.upper().startswith(OTHER_PREFIXES))
 
 
 def warn_unknown_variables(prog: str) -> None:
     """Log one warning naming the :func:`unknown_variables` (call once logging is configured)."""
+    log = logging.getLogger(__name__)
     if names := unknown_variables():
-        logging.getLogger(__name__).warning("%s: no setting reads %s; ignored (the settings: docs/configuration.md)",
-                                            prog, ", ".join(names))
+        log.warning("%s: no setting reads %s; ignored (the settings: docs/configuration.md)", prog, ", ".join(names))
+    upper = {k.upper() for k in os.environ}
+    if "SVRNET_API_KEY" in upper and "SVRNET_API_KEYS" not in upper:
+        log.warning("%s: SVRNET_API_KEY is the client's key; the server's keys are SVRNET_API_KEYS (none set: "
+                    "no authentication)", prog)

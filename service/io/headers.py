@@ -327,6 +327,10 @@ def _nrrd(lines: list[tuple[bytes, int]], filename: str) -> tuple[bytes, int | N
 _TEXT_BYTES = bytes(range(32, 127)) + b"\t\r"
 """The bytes a MetaImage header line is written in (printable ASCII, a tab; a carriage return is
 judged on its own below)."""
+_HIGH_BYTES = bytes(range(128, 256))
+_FIELD_NAME = re.compile(rb"[ \t]*[A-Za-z][A-Za-z0-9_]*[ \t]*")
+"""A MetaImage field's name: a field whose value holds other bytes (a name or a comment in Latin-1
+or UTF-8, as ITK writes metadata) is a field still, dropped as every field the service does not read."""
 
 
 def _mha(lines: list[tuple[bytes, int]], filename: str) -> tuple[bytes, int | None]:
@@ -339,8 +343,14 @@ def _mha(lines: list[tuple[bytes, int]], filename: str) -> tuple[bytes, int | No
             if value.strip().upper() != b"LOCAL":
                 raise _detached(filename, "mha")
             return b"\n".join(out + [b"ElementDataFile = LOCAL"]) + b"\n", after
-        if line.translate(None, _TEXT_BYTES):       # bytes no header holds: its voxel data, read as lines
+        if line.translate(None, _TEXT_BYTES) and (   # bytes no header holds: its voxel data, read as lines
+                not sep or not _FIELD_NAME.fullmatch(key) or value.translate(None, _TEXT_BYTES + _HIGH_BYTES)):
             raise UnsupportedFile(f"{filename}: an MHA header with no ElementDataFile line before its voxel data")
+        if line.translate(None, _TEXT_BYTES):       # a field in another script: one the service reads is refused
+            if name in MHA_FIELDS or name in MHA_YES_NO or name == "headersize":
+                raise UnsupportedFile(f"{filename}: the MHA header's {MHA_CANONICAL.get(name, name)} holds bytes "
+                                      "that are not ASCII")
+            continue
         if _DETACHED.search(key) or b"\r" in line:      # a \r inside a line: no field of any reader's
             raise _detached(filename, "mha") if _DETACHED.search(line) else UnsupportedFile(
                 f"{filename}: an MHA header line with a carriage return inside it")
@@ -378,7 +388,7 @@ def _inflated_mha(header: bytes, data: bytes, src: BinaryIO, dst: BinaryIO, file
                               f"(a compressed MHA file that declares {expected} bytes)")
     kept = [line for line in header.split(b"\n") if not line.startswith((b"CompressedData", b"ElementDataFile"))]
     dst.write(b"\n".join(kept[:-1] + [b"CompressedData = False", b"ElementDataFile = LOCAL"]) + b"\n")
-    inflater, written = zlib.decompressobj(), 0
+    inflater, written = zlib.decompressobj(zlib.MAX_WBITS | 32), 0      # zlib or gzip, as ITK reads them
     try:
         chunk = data or src.read(1 << 20)
         while chunk and not inflater.eof:

@@ -192,6 +192,14 @@ def test_a_body_cut_off_before_its_closing_boundary_is_400_not_answered_for_its_
     r = oracle_client.post("/v1/predict", content=body + b"--zz--\r\n",      # closed: the half file is the fault
                            headers={"content-type": "multipart/form-data; boundary=zz"})
     assert_problem(r, 415, "b.nii.gz")
+    for spelt in ("boundary = zz", "boundary\t=\tzz", 'x-boundary=yy; boundary="zz" ; charset=utf-8'):
+        r = oracle_client.post("/v1/predict", content=body,                 # read as the form parser reads it
+                               headers={"content-type": f"multipart/form-data; {spelt}"})
+        assert_problem(r, 400, "closing boundary", "cut off")
+    closed = body + b"--zz--\r\n" + b"an epilogue, which RFC 2046 allows\r\n" * 60      # 2 KB after the end
+    for spelt in ("boundary = zz", 'x-boundary=yy; boundary="zz" ; charset=utf-8'):
+        r = oracle_client.post("/v1/predict", content=closed, headers={"content-type": f"multipart/form-data; {spelt}"})
+        assert_problem(r, 415, "b.nii.gz")                      # whole: every part read, the half file named
 
 
 def test_gzip_of_garbage_is_415(oracle_client: TestClient) -> None:

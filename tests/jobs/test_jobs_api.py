@@ -17,7 +17,7 @@ import pytest
 import SimpleITK as sitk
 from fastapi.testclient import TestClient
 
-from service.api import idempotency, reconstructions
+from service.api import deps, reconstructions
 from service.inference.registry import ModelRegistry
 from service.io.volume import Volume, read_volume, write_volume
 from service.jobs.store import SqliteJobStore
@@ -368,7 +368,7 @@ def test_a_retried_submission_with_its_idempotency_key_gets_the_same_job(client:
     # A retry while the first submission's files are still being read: told to ask again, not given
     # a job that a refusal of those files would delete a moment later.
     reading = {"Idempotency-Key": "k-5555555555555555"}
-    client.app.state.job_store.create({"idempotency_key": idempotency.idempotency_digest(reading["Idempotency-Key"])})
+    client.app.state.job_store.create({"idempotency_key": deps.idempotency_digest(reading["Idempotency-Key"])})
     busy = submit(client, case, headers=reading)
     assert busy.status_code == 503 and busy.headers["retry-after"] and "still being read" in busy.json()["detail"]
     for job in (first, other):
@@ -694,7 +694,7 @@ def test_a_retry_of_a_submission_its_replica_abandoned_is_told_at_once(client: T
 
     key = "k-7777777777777777"
     store = client.app.state.job_store
-    orphan = store.create({"idempotency_key": idempotency.idempotency_digest(key)})
+    orphan = store.create({"idempotency_key": deps.idempotency_digest(key)})
     store.hold_submission(orphan.id)                            # its replica still reading it
     later = time.time() + SUBMISSION_LEASE_S + 1
     monkeypatch.setattr(store_module.time, "time", lambda: later)
@@ -719,3 +719,17 @@ def test_a_submission_given_up_while_its_files_were_read_is_told_not_queued(clie
     r = submit(client, case, headers={"Idempotency-Key": "k-8888888888888888"})
     assert r.status_code == 503 and "gave this submission up" in r.json()["detail"], r.text
     assert store.queued() == [] and all(store.get(j).status == "failed" for j in store.ids("failed"))
+
+
+def test_an_idempotency_key_is_each_clients_own(case: dict) -> None:
+    """Two clients (two API keys) that happen to send one idempotency key: the second gets a job of
+    its own, not a 422 naming the first client's job (nor that job)."""
+    with make_client(ModelRegistry({"default": OracleEstimator()}), api_keys="k-lab-one,k-lab-two") as client:
+        key = "k-3333333333333333"
+        first = submit(client, case, headers={"Idempotency-Key": key, "Authorization": "Bearer k-lab-one"},
+                       svr_iterations="0")
+        again = submit(client, case, headers={"Idempotency-Key": key, "Authorization": "Bearer k-lab-one"},
+                       svr_iterations="0")
+        other = submit(client, case, headers={"Idempotency-Key": key, "X-API-Key": "k-lab-two"}, svr_iterations="1")
+    assert first.status_code == again.status_code == other.status_code == 202, other.text
+    assert again.json()["job_id"] == first.json()["job_id"] != other.json()["job_id"]

@@ -1,0 +1,33 @@
+"""What is refused before an upload is read (``deps.early_rejection``): a job submission's
+``Idempotency-Key`` lets it past a full queue only where the key already made a job."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+from service.api.deps import early_rejection, idempotency_digest
+from service.core.errors import InvalidParameter, QueueFull
+from service.core.settings import Settings
+
+
+class FullQueue:
+    """A job store whose queue holds its maximum, and one job made under a known key."""
+
+    def __init__(self, keys: set[str]) -> None:
+        self.keys = keys
+
+    def queued(self) -> list[object]:
+        return [object()]
+
+    def job_for_key(self, digest: str) -> object | None:
+        return object() if digest in self.keys else None
+
+
+def test_a_full_queue_refuses_new_submissions_keyed_or_not_before_their_upload() -> None:
+    known = "k-retry-of-a-lost-answer"
+    state = SimpleNamespace(settings=Settings(max_queued_jobs=1), job_store=FullQueue({idempotency_digest(known)}))
+    submit = lambda headers: early_rejection(state, "POST", "/v1/reconstructions", headers)  # noqa: E731
+    assert isinstance(submit({}), QueueFull)
+    assert isinstance(submit({"idempotency-key": "k-a-new-submission"}), QueueFull)    # any key skipped it before
+    assert isinstance(submit({"idempotency-key": "x"}), InvalidParameter)              # no key at all: said at once
+    assert submit({"idempotency-key": known}) is None          # a retry: the route answers with its key's job
