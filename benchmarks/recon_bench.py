@@ -10,15 +10,14 @@ motion per slice; the reconstruction is a 0.8 mm volume. Scenarios:
   2. SVR (3 rounds) from the true poses;
   3. SVR from poses perturbed like a prediction (RMS 3 mm translation, RMS 3 deg rotation per slice,
      about each slice's centre);
-  4. SVR from the poses the service predicts (``--model``, default the shipped
-     ``service/models/default/model.onnx``; 100 MC passes, N4, the stacks' true masks), using only
-     the slices it accepts -- exactly what a reconstruction job without uploaded poses does.
-
-  5. SVR from poses perturbed by 20 mm / 20 deg (RMS) -- scenario 3 is run at 10 mm / 10 deg by
+  4. SVR from poses perturbed by 20 mm / 20 deg (RMS) -- scenario 3 is run at 10 mm / 10 deg by
      default (``--perturb-mm/--perturb-deg``), the coarse-to-fine capture range;
-  6. SVR from 10 mm / 10 deg with 15 % of the slices replaced by their left-right twin (mirror
+  5. SVR from 10 mm / 10 deg with 15 % of the slices replaced by their left-right twin (mirror
      across the atlas mid-sagittal plane, measured on the atlas, normal reversed): reports the
      fraction of those slices moved back to their true side or excluded;
+  6. SVR from the poses the service predicts (``--model``, default the shipped
+     ``service/models/default/model.onnx``; 100 MC passes, N4, the stacks' true masks), using only
+     the slices it accepts -- exactly what a reconstruction job without uploaded poses does;
   7. real size: 6 stacks of 320 x 320 x 22 at 0.55 mm pixels (4 mm slices), from 3 mm / 3 deg;
      time and peak RSS (run it alone, ``--only 7``, for a meaningful peak RSS).
 
