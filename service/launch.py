@@ -32,8 +32,9 @@ def run_entry_point(command: str, target: str) -> None:
     try:
         entry = getattr(importlib.import_module(module), function)
     except ModuleNotFoundError as missing:
+        # a submodule's failed import may carry no ``name``: its message then names the module
         name = (missing.name or str(missing).partition("'")[2].partition("'")[0]).split(".")[0]
-        if name not in SERVER_PACKAGES:          # a submodule's import names no ``name`` of its own
+        if name not in SERVER_PACKAGES:
             raise
         sys.exit(f"{command}: the server's packages are not installed ({name} is missing): "
                  "pip install \"svrnet[server]\" (in a checkout: make serve)")
