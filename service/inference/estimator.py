@@ -128,22 +128,35 @@ def slice_statistics(labels: NDArray, label_type: str, plane_x_mm: float = twin.
     render the same image), so a split between the twins is not taken for spread, nor lost: it is
     reported as ``twin_mass``. From a single sample the variance is NaN (not measured), so that no
     slice is accepted on a spread that was never seen. A slice with a non-finite sample is
-    ``degenerate`` (it neither votes in its stack's model nor is accepted), its statistics taken
-    over its finite samples.
+    ``degenerate`` (it neither votes in its stack's model nor is accepted) and its statistics are
+    those of its finite samples alone (none: no spread, no variance).
 
-    Example (one NaN among a slice's three samples):
-        >>> lab = np.tile(encodings.encode("anchor", np.eye(4)[None]), (1, 3, 1))
-        >>> lab[0, 1, 0] = np.nan
+    Example (one NaN among a slice's three samples; a slice of one finite sample of three):
+        >>> lab = np.tile(encodings.encode("anchor", np.eye(4)[None]), (2, 3, 1))
+        >>> lab[0, 1, 0] = lab[1, :2, 0] = np.nan
         >>> est = slice_statistics(lab, "anchor")
-        >>> bool(est.degenerate[0]), bool(np.isfinite(est.mean).all())
-        (True, True)
+        >>> est.degenerate.tolist(), bool(np.isfinite(est.mean).all()), np.isnan(est.variance).tolist()
+        ([True, True], True, [False, True])
     """
     lab = np.asarray(labels, dtype=np.float64)
     finite = np.isfinite(lab).all(axis=-1)                           # [B, N]
-    if not finite.all():                 # a broken sample: the slice's first finite one stands in for it
-        first = np.argmax(finite, axis=1)
-        stand_in = np.where(finite.any(axis=1)[:, None], lab[np.arange(len(lab)), first], 0.0)
-        lab = np.where(finite[..., None], lab, stand_in[:, None, :])
+    if finite.all():
+        return _reduced(lab, label_type, plane_x_mm)
+    est = _reduced(np.where(finite[..., None], lab, 0.0), label_type, plane_x_mm)
+    for b in np.flatnonzero(~finite.all(axis=1)):     # a broken sample: the slice's finite samples alone
+        kept = lab[b][finite[b]]
+        if len(kept):
+            own = _reduced(kept[None], label_type, plane_x_mm)
+            est.mean[b], est.variance[b], est.twin_mass[b], est.spread_mm[b] = (
+                own.mean[0], own.variance[0], own.twin_mass[0], own.spread_mm[0])
+        else:
+            est.variance[b] = est.twin_mass[b] = est.spread_mm[b] = np.nan
+        est.degenerate[b] = True
+    return est
+
+
+def _reduced(lab: NDArray[np.float64], label_type: str, plane_x_mm: float) -> PoseEstimate:
+    """:func:`slice_statistics` of finite labels ``[B, N, D]``."""
     poses = encodings.decode(label_type, lab)                        # [B, N, 4, 4]
     aligned, flipped = twin.align_samples(poses, plane_x_mm)
     mean, var = se3.frechet_mean_and_variance(aligned)
@@ -153,11 +166,10 @@ def slice_statistics(labels: NDArray, label_type: str, plane_x_mm: float = twin.
         degenerate = anchors.degenerate(lab).mean(axis=1) > 0.5
     else:
         degenerate = np.zeros(len(lab), dtype=bool)
-    degenerate = degenerate | ~finite.all(axis=1)
     pts = anchors.encode(aligned).reshape(aligned.shape[:-2] + (3, 3))
     centre = anchors.encode(mean).reshape(mean.shape[:-2] + (1, 3, 3))
     spread = np.sqrt(np.mean(np.linalg.norm(pts - centre, axis=-1).mean(axis=-1) ** 2, axis=-1))
-    return PoseEstimate(mean, var, degenerate, flipped.mean(axis=-1), spread)
+    return PoseEstimate(mean, np.asarray(var, np.float64), degenerate, flipped.mean(axis=-1).astype(np.float64), spread)
 
 
 class OnnxPoseEstimator:

@@ -84,4 +84,11 @@ def test_a_non_finite_sample_makes_its_slice_degenerate_not_its_stack_undecidabl
     assert broken.degenerate.tolist() == [False, True, False] and not clean.degenerate.any()
     assert np.isfinite(broken.mean).all() and np.isfinite(broken.variance).all()
     np.testing.assert_allclose(broken.mean[[0, 2]], clean.mean[[0, 2]])
-    assert anchors.ed(broken.mean[1], clean.mean[1]) < 0.5 and broken.variance[1] < 2 * clean.variance[1]
+    alone = slice_statistics(np.delete(lab[1:2], 7, axis=1), label_type)      # its 19 finite samples
+    np.testing.assert_allclose(broken.mean[1], alone.mean[0], atol=1e-9)
+    np.testing.assert_allclose([broken.variance[1], broken.spread_mm[1]], [alone.variance[0], alone.spread_mm[0]])
+    lab[0, 1:] = np.nan                                  # one finite sample: no spread measured
+    lab[2] = np.nan                                      # none: no variance, no spread
+    worse = slice_statistics(lab, label_type)
+    assert worse.degenerate.tolist() == [True, True, True]
+    assert np.isnan(worse.variance[[0, 2]]).all() and np.isnan(worse.spread_mm[2]) and not worse.estimated[2]
