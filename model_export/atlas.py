@@ -223,3 +223,9 @@ def validation_volumes(record: Mapping) -> list[str]:
     if HELD_OUT in text:
         return [n.strip() for n in text.split(HELD_OUT, 1)[1].split(",") if n.strip()]
     return list(VALIDATION_VOLUMES)
+
+
+def held_out_volumes(record: Mapping, root: Path = DEFAULT_ATLAS_ROOT) -> list[AtlasVolume]:
+    """The loaded :func:`validation_volumes` of a model (its checkpoint dict or its file's metadata)
+    that ``root`` holds, in ``root``'s order: what an evaluation or calibration of it runs on."""
+    return load_volumes(split(root, validation_volumes(record))[1], root)

@@ -61,7 +61,7 @@ def calibrate_acceptance(
 ) -> None:
     """Calibrate the accept flags on the pipeline's final poses over simulated acquisitions of the
     model's validation volumes (its metadata's) at every motion level (mild, moderate, jumps, independent)."""
-    from model_export.atlas import load_volumes, split, validation_volumes
+    from model_export.atlas import held_out_volumes
     from model_export.calibrate_acceptance import LEVELS, PER_VOLUME, calibrate, flag_metadata, level_columns, markdown, measure
     from model_export.spread import write_metadata
     from service.inference.estimator import OnnxPoseEstimator
@@ -71,7 +71,7 @@ def calibrate_acceptance(
         result = calibrate(level_columns(columns, LEVELS))
     else:
         loaded = load_model(model)
-        result = measure(OnnxPoseEstimator(loaded), load_volumes(split(root, validation_volumes(loaded.info.metadata))[1], root),
+        result = measure(OnnxPoseEstimator(loaded), held_out_volumes(loaded.info.metadata, root),
                          per_volume or PER_VOLUME, seed, slices=slices)
     report = report or model.with_name("acceptance.md")        # never the shipped model's report by default
     report.parent.mkdir(parents=True, exist_ok=True)
@@ -100,7 +100,7 @@ def calibrate_noise(
     two pixel sizes."""
     import numpy as np
 
-    from model_export.atlas import load_volumes, split, validation_volumes
+    from model_export.atlas import held_out_volumes
     from model_export.calibrate_noise import PER_VOLUME, calibrate, markdown, measure, noise_metadata
     from model_export.spread import write_metadata
     from service.inference.estimator import OnnxPoseEstimator
@@ -114,7 +114,7 @@ def calibrate_noise(
         measured = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     else:
         loaded = load_model(model)
-        measured = measure(OnnxPoseEstimator(loaded), load_volumes(split(root, validation_volumes(loaded.info.metadata))[1], root),
+        measured = measure(OnnxPoseEstimator(loaded), held_out_volumes(loaded.info.metadata, root),
                            per_volume or PER_VOLUME, seed)
         if slices is not None:
             np.savez_compressed(slices, **measured)

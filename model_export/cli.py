@@ -201,14 +201,14 @@ def evaluate(
         seed = 1 if seed is None else seed
         import numpy as np
 
-        from model_export.atlas import load_volumes, split, validation_volumes
+        from model_export.atlas import held_out_volumes
         from model_export.evaluate_acquisitions import NoisyTwinEstimator, evaluate_acquisitions, markdown
         from service.inference.estimator import OnnxPoseEstimator
         from service.inference.model_file import load_model
 
         onnx = OnnxPoseEstimator(load_model(model))
         est = NoisyTwinEstimator(onnx.info, np.random.default_rng(seed)) if fake else onnx
-        vols = load_volumes(split(root, validation_volumes(onnx.info.metadata))[1], root)
+        vols = held_out_volumes(onnx.info.metadata, root)
         summary = evaluate_acquisitions(vols, est, np.random.default_rng(seed), per_volume=max(1, per_volume),
                                         mc_samples=mc_samples, told=tuple(told or ()), slices=slices)
         report.parent.mkdir(parents=True, exist_ok=True)

@@ -108,14 +108,14 @@ def ship_into(staging: Path, out: Path, checkpoint: Path, ck: dict, name: str, v
                "totals": totals(prior_history(ck)), "history": prior_history(ck),
                "train_volumes_text": f"{len(ck['config']['train_volumes'])} atlas volumes: "
                                      + ", ".join(ck["config"]["train_volumes"])}
-    from model_export.atlas import load_volumes, split, validation_volumes
+    from model_export.atlas import held_out_volumes
     from model_export.calibrate_acceptance import PER_VOLUME, flag_metadata, measure, markdown as acceptance_markdown
     from service.inference.estimator import OnnxPoseEstimator
 
-    held_out = split(root, validation_volumes(ck))[1]
+    held_out = held_out_volumes(ck, root)             # loaded once: the accept flags and the noise error
     acquisitions = budget.get("acquisitions", PER_VOLUME)
     say(f"accept flags: {acquisitions} acquisitions per validation volume and motion level through every stage")
-    flags = measure(OnnxPoseEstimator(load_model(onnx_path)), load_volumes(held_out, root), per_volume=acquisitions)
+    flags = measure(OnnxPoseEstimator(load_model(onnx_path)), held_out, per_volume=acquisitions)
     write_metadata(onnx_path, flag_metadata(flags))
     noise_table = ""
     if budget.get("noise", 1):
@@ -123,7 +123,7 @@ def ship_into(staging: Path, out: Path, checkpoint: Path, ck: dict, name: str, v
 
         say("noise error: acquisitions at a ladder of noise levels and two pixel sizes through every stage")
         noise = calibrate_noise.calibrate(calibrate_noise.measure(
-            OnnxPoseEstimator(load_model(onnx_path)), load_volumes(held_out, root),
+            OnnxPoseEstimator(load_model(onnx_path)), held_out,
             budget.get("noise", calibrate_noise.PER_VOLUME)))
         write_metadata(onnx_path, calibrate_noise.noise_metadata(noise))
         noise_table = calibrate_noise.markdown(noise)

@@ -27,7 +27,7 @@ import numpy as np
 import onnx
 
 from model_export.acquisitions import simulate_acquisition
-from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split, validation_volumes
+from model_export.atlas import DEFAULT_ATLAS_ROOT, held_out_volumes, split, validation_volumes
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, prepare_acquisition
 from model_export.export import metadata_of, set_metadata
 from model_export.simulate import SimulationConfig
@@ -74,7 +74,7 @@ def measure_error_shape(model_path: Path, root: Path = DEFAULT_ATLAS_ROOT, per_v
     model = load_model(model_path)
     info = model.info
     estimator = OnnxPoseEstimator(model)
-    volumes = load_volumes(split(root, validation_volumes(info.metadata))[1], root)
+    volumes = held_out_volumes(info.metadata, root)
     rng, coords, spread, depth = np.random.default_rng(seed), [], [], []
     for vol in volumes:
         for _ in range(per_volume):

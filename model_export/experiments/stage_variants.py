@@ -53,7 +53,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.acquisitions import MOTION_LEVELS, simulate_acquisition, stored_last_to_first  # noqa: E402
-from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split, validation_volumes  # noqa: E402
+from model_export.atlas import DEFAULT_ATLAS_ROOT, held_out_volumes  # noqa: E402
 from model_export.calibrate_acceptance import measuring, rates, rms, share  # noqa: E402
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, acceptance_columns, prepare_acquisition  # noqa: E402
 from model_export.experiments.frame_bias import common_frame  # noqa: E402
@@ -75,7 +75,7 @@ def build(model: Path, root: Path, levels: list[str], per_volume: int, seed: int
     (:func:`~model_export.acquisitions.stored_last_to_first`)."""
     loaded = load_model(model)
     estimator = OnnxPoseEstimator(loaded)
-    volumes = source_volumes(sources) if sources else load_volumes(split(root, validation_volumes(loaded.info.metadata))[1], root)
+    volumes = source_volumes(sources) if sources else held_out_volumes(loaded.info.metadata, root)
     rng = np.random.default_rng(seed)
     cases = []
     for level in levels:
