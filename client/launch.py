@@ -15,16 +15,19 @@ CLIENT_PACKAGES = ("httpx", "typer", "rich", "click", "websockets", "numpy", "ni
 """What the ``client`` extra installs (and what they bring)."""
 
 
-def run_or_name_missing(module: str, packages: tuple[str, ...], missing_says: str) -> None:
-    """Run the typer ``app`` of ``module``; where importing it misses one of ``packages``, exit 1
-    with ``missing_says`` (formatted with the missing package's ``name``) instead."""
+def run_or_name_missing(module: str, packages: tuple[str, ...], missing_says: str, entry: str = "app") -> None:
+    """Call ``entry`` of ``module`` (a typer ``app``, or a console entry function); where importing
+    the module misses one of ``packages``, exit 1 with ``missing_says`` (formatted with the missing
+    package's ``name``) instead."""
     try:
-        app = importlib.import_module(module).app
+        run = getattr(importlib.import_module(module), entry)
     except ModuleNotFoundError as missing:
-        if (missing.name or "").split(".")[0] not in packages:
+        # a submodule's failed import may carry no ``name``: its message then names the module
+        name = (missing.name or str(missing).partition("'")[2].partition("'")[0]).split(".")[0]
+        if name not in packages:
             raise
-        sys.exit(missing_says.format(name=missing.name))
-    app()
+        sys.exit(missing_says.format(name=name))
+    run()
 
 
 def main() -> None:

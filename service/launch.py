@@ -3,7 +3,8 @@
 The server's commands (``svrnet-server``, ``svrnet-worker``, ``svrnet-mrd``, ``svrnet-mrd-send``)
 need the ``server`` extra. The distribution installs them with the ``client`` extra too (one
 package, three extras); there, a server command says what to install instead of failing with a
-traceback. This module imports nothing beyond the standard library.
+traceback. This module imports nothing beyond the standard library and :mod:`client.launch`
+(itself the standard library only), whose launcher ``svrnet`` and ``svrnet-train`` share.
 
 Example:
     >>> import subprocess, sys
@@ -15,9 +16,7 @@ Example:
 
 from __future__ import annotations
 
-import importlib
 import os
-import sys
 
 SERVER_PACKAGES = ("numpy", "scipy", "fastapi", "fastapi_offline", "starlette", "anyio", "uvicorn", "pydantic",
                    "pydantic_settings", "multipart", "python_multipart", "onnxruntime", "SimpleITK",
@@ -27,18 +26,13 @@ SERVER_PACKAGES = ("numpy", "scipy", "fastapi", "fastapi_offline", "starlette", 
 
 def run_entry_point(command: str, target: str) -> None:
     """Call ``target`` (``"module:function"``) for ``command``; where importing its module misses one
-    of :data:`SERVER_PACKAGES`, exit 1 with one line naming it and the extra to install."""
+    of :data:`SERVER_PACKAGES`, exit 1 with one line naming it and the extra to install
+    (:func:`client.launch.run_or_name_missing`, which ``svrnet`` and ``svrnet-train`` use too)."""
+    from client.launch import run_or_name_missing     # the standard library only, in every extra
+
     module, _, function = target.partition(":")
-    try:
-        entry = getattr(importlib.import_module(module), function)
-    except ModuleNotFoundError as missing:
-        # a submodule's failed import may carry no ``name``: its message then names the module
-        name = (missing.name or str(missing).partition("'")[2].partition("'")[0]).split(".")[0]
-        if name not in SERVER_PACKAGES:
-            raise
-        sys.exit(f"{command}: the server's packages are not installed ({name} is missing): "
-                 "pip install \"svrnet[server]\" (in a checkout: make serve)")
-    entry()
+    run_or_name_missing(module, SERVER_PACKAGES, f"{command}: the server's packages are not installed ({{name}} is "
+                        "missing): pip install \"svrnet[server]\" (in a checkout: make serve)", entry=function)
 
 
 def private_files() -> None:
