@@ -108,6 +108,11 @@ def check_frame(frame: SliceFrame, max_pixels: int) -> None:
                                f"{list(px.shape)}")
 
 
+def along_normal(frame: SliceFrame, first: SliceFrame, normal: NDArray[np.float64]) -> float:
+    """How far ``frame``'s origin lies from ``first``'s along the stack's unit ``normal`` (mm)."""
+    return float((frame.scanner_from_voxel[:3, 3] - first.scanner_from_voxel[:3, 3]) @ normal)
+
+
 @dataclass
 class StreamedStack:
     """The slices of one stack received so far, checked to form one stack (see the module)."""
@@ -152,10 +157,9 @@ class StreamedStack:
         kept wherever it lies: one misplaced slice among the first two must not make the line that
         refuses every correct slice after it; it lies off the line the later ones draw, and the
         stack's end drops it to be sent again (:meth:`off_line`)."""
-        along = float((frame.scanner_from_voxel[:3, 3] - first.scanner_from_voxel[:3, 3]) @ normal)
+        along = along_normal(frame, first, normal)
         for k, other in self.frames.items():
-            if abs(along - float((other.scanner_from_voxel[:3, 3] - first.scanner_from_voxel[:3, 3]) @ normal)) \
-                    < LINE_TOLERANCE_MM:
+            if abs(along - along_normal(other, first, normal)) < LINE_TOLERANCE_MM:
                 raise InvalidParameter(f"slice.scanner_from_voxel: slice {frame.index} sits where slice {k} of stack "
                                        f"{self.name!r} does (each index is its own place along the normal)")
         agreed = self.agreed_line(first, normal)
@@ -189,8 +193,7 @@ class StreamedStack:
         mm along ``normal`` from ``first``: the median step over every pair of slices and the median of
         what each slice then says of index 0 (one slice off the line moves neither)."""
         idx = np.array(sorted(self.frames), dtype=np.float64)
-        along = np.array([(self.frames[int(k)].scanner_from_voxel[:3, 3] - first.scanner_from_voxel[:3, 3]) @ normal
-                          for k in idx])
+        along = np.array([along_normal(self.frames[int(k)], first, normal) for k in idx])
         i, j = np.triu_indices(len(idx), 1)
         step = float(np.median((along[j] - along[i]) / (idx[j] - idx[i])))
         return float(np.median(along - step * idx)), step
@@ -198,8 +201,7 @@ class StreamedStack:
     def line_and_misfits(self, first: SliceFrame, normal: NDArray[np.float64]) -> tuple[float, float, dict[int, float]]:
         """:meth:`line` and each received slice's distance from it along ``normal`` (mm)."""
         start, step = self.line(first, normal)
-        return start, step, {k: abs(float((f.scanner_from_voxel[:3, 3] - first.scanner_from_voxel[:3, 3]) @ normal)
-                                    - start - step * k) for k, f in self.frames.items()}
+        return start, step, {k: abs(along_normal(f, first, normal) - start - step * k) for k, f in self.frames.items()}
 
     @staticmethod
     def place_tolerance_mm(step: float) -> float:
