@@ -142,6 +142,16 @@ class Transport:
         delay = base * 2 ** attempt * (1.0 + 0.25 * random.random())
         return min(max(delay, 0.0), MAX_RETRY_SLEEP_S)
 
+    def _again(self, attempt: int, exc: httpx.TransportError, keyed: bool = False) -> bool:
+        """Whether a safe request whose ``attempt`` failed with ``exc`` is sent again (after the
+        backoff's sleep): not past the retries, nor after a timeout (the server may still be at work on
+        it) unless a keyed submission's answer was lost to a read timeout."""
+        if attempt >= self.retries or (isinstance(exc, _NO_RETRY_TRANSPORT)
+                                       and not (keyed and isinstance(exc, httpx.ReadTimeout))):
+            return False
+        sleep(self._sleep_for(attempt, None))
+        return True
+
     def _send(self, method: str, path: str, *, body: MultipartBody | None = None,
               progress: ProgressCallback | None = None, stream: bool = False,
               params: Mapping[str, str] | None = None, headers: Mapping[str, str] | None = None) -> httpx.Response:
@@ -161,9 +171,7 @@ class Transport:
                                                    params=params, timeout=self._timeout_for(body, stream))
                 response = self._http.send(request, stream=True)
             except httpx.TransportError as exc:
-                again = not isinstance(exc, _NO_RETRY_TRANSPORT) or (keyed and isinstance(exc, httpx.ReadTimeout))
-                if idempotent and attempt < self.retries and again:     # a keyed answer lost to a timeout: ask again
-                    sleep(self._sleep_for(attempt, None))
+                if idempotent and self._again(attempt, exc, keyed):     # a keyed answer lost to a timeout too
                     continue
                 raise self._transport_error(method, path, exc) from exc
             except httpx.InvalidURL as exc:
@@ -191,8 +199,7 @@ class Transport:
                 try:
                     response.read()
                 except httpx.TransportError as exc:     # the answer cut off: asked again where that is safe
-                    if idempotent and attempt < self.retries and not isinstance(exc, _NO_RETRY_TRANSPORT):
-                        sleep(self._sleep_for(attempt, None))
+                    if idempotent and self._again(attempt, exc):
                         continue
                     raise self._transport_error(method, path, exc) from exc
                 finally:
@@ -254,8 +261,7 @@ class Transport:
                 os.replace(tmp, out)
                 return out
             except httpx.TransportError as exc:
-                if attempt < self.retries and not isinstance(exc, _NO_RETRY_TRANSPORT):
-                    sleep(self._sleep_for(attempt, None))
+                if self._again(attempt, exc):
                     continue
                 raise self._transport_error("GET", path, exc) from exc
             finally:
