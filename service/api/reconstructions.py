@@ -228,6 +228,7 @@ async def submit(
     same files; without it the job predicts first.
     """
     model = registry.resolve(form.model)
+    request.scope["state"]["model"] = model          # the metrics' label from here on
     localiser_for(localisers, form.masks)            # the job's worker localises; refused now, not failed later
     thickness = thickness_per_stack(slice_thickness_mm, len(form.stacks))
     if len(request.headers.getlist(IDEMPOTENCY_HEADER)) > 1:      # not one chosen of two

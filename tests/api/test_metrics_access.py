@@ -54,3 +54,19 @@ def test_stream_sessions_and_the_job_store_are_watched(oracle) -> None:  # noqa:
         client.app.state.job_store.db_path = client.app.state.job_store.data_dir / "jobs"   # no database opens there
         text = client.get("/metrics").text
     assert "svrnet_stream_sessions 2.0" in text and "svrnet_job_store_up 0.0" in text
+
+
+def test_the_model_label_is_the_model_a_submission_named(oracle, phantom_files) -> None:  # noqa: ANN001
+    """A job's submission is counted under its pose model once its form is read, as a prediction is;
+    one whose form cannot be read, under none."""
+    stack, _, _ = phantom_files
+    with make_client(ModelRegistry({"default": oracle})) as client:
+        with stack.open("rb") as f:
+            refused = client.post("/v1/reconstructions", files=[("stacks", ("s.nii.gz", f.read()))],
+                                  headers=[("Idempotency-Key", "a" * 16), ("Idempotency-Key", "b" * 16)])
+        assert refused.status_code == 400                   # refused after its model was resolved
+        assert client.post("/v1/reconstructions", data={"resolution_mm": "x"}).status_code in (400, 422)
+        lines = [x for x in client.get("/metrics").text.splitlines() if x.startswith("svrnet_requests_total{")]
+    assert any('model="default"' in x and 'route="/v1/reconstructions"' in x and 'status="400"' in x
+               for x in lines), lines
+    assert any('model=""' in x and 'route="/v1/reconstructions"' in x and 'status="4' in x for x in lines), lines
