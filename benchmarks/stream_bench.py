@@ -38,7 +38,7 @@ sys.path.insert(0, str(ROOT))
 
 from client import SVRnetClient  # noqa: E402
 from model_export.acquisitions import SimulatedStack, simulate_acquisition  # noqa: E402
-from model_export.atlas import VALIDATION_VOLUMES, load_volumes  # noqa: E402
+from model_export.atlas import load_volumes, validation_volumes  # noqa: E402
 from model_export.experiments.immediate_poses import ed, network_frame  # noqa: E402
 from model_export.localiser.scenes import HeadModel, synth_stack  # noqa: E402
 from service.core.machine import cpu_description  # noqa: E402
@@ -223,8 +223,9 @@ def main() -> None:
         server = Server(Path(data), Path(data) / "server.log", max_concurrent="2",
                         stream_max_sessions=str(max(32, args.sessions)))
         try:
-            plane_x = load_model(ROOT / "service" / "models" / "default" / "model.onnx").info.symmetry_plane_x_mm
-            volumes, rng = load_volumes(list(VALIDATION_VOLUMES)), np.random.default_rng(7)
+            served = load_model(ROOT / "service" / "models" / "default" / "model.onnx").info
+            plane_x = served.symmetry_plane_x_mm
+            volumes, rng = load_volumes(validation_volumes(served.metadata)), np.random.default_rng(7)
             if "accuracy" not in skip:
                 accuracy(args.levels.split(","), args.per_level, server, plane_x, volumes, rng)
             if "field" not in skip:

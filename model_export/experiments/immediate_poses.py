@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from model_export.acquisitions import SimulatedStack, simulate_acquisition
-from model_export.atlas import VALIDATION_VOLUMES, load_volumes
+from model_export.atlas import load_volumes, validation_volumes
 from service.geometry import anchors, twin
 from service.geometry.pose import translate
 from service.inference.estimator import OnnxPoseEstimator
@@ -87,7 +87,7 @@ def main() -> None:
     args = ap.parse_args()
     model = load_model(args.model)
     estimator, plane = OnnxPoseEstimator(model), model.info.symmetry_plane_x_mm
-    volumes = load_volumes(VALIDATION_VOLUMES)
+    volumes = load_volumes(validation_volumes(model.info.metadata))
     rng = np.random.default_rng(args.seed)
     by_level: dict[str, list[dict]] = defaultdict(list)
     for n, level in enumerate(LEVELS):

@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from immediate_poses import LEVELS, MIN_BRAIN_PIXELS, ed, network_frame  # noqa: E402
 from model_export.acquisitions import simulate_acquisition  # noqa: E402
-from model_export.atlas import VALIDATION_VOLUMES, load_volumes  # noqa: E402
+from model_export.atlas import load_volumes, validation_volumes  # noqa: E402
 from service.consistency.motion_model import from_coordinates, to_coordinates  # noqa: E402
 from service.core.settings import DEFAULT_MODELS_DIR  # noqa: E402
 from service.geometry.pose import translate  # noqa: E402
@@ -67,7 +67,7 @@ def main() -> None:
     args = ap.parse_args()
     model = load_model(str(DEFAULT_MODELS_DIR / "default" / "model.onnx"))
     estimator, plane = OnnxPoseEstimator(model), model.info.symmetry_plane_x_mm
-    volumes = load_volumes(VALIDATION_VOLUMES)
+    volumes = load_volumes(validation_volumes(model.info.metadata))
     rng = np.random.default_rng(args.seed)
     rows: dict[str, list[dict[str, float]]] = defaultdict(list)
     for n, level in enumerate(LEVELS):
