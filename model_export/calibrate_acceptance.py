@@ -51,13 +51,15 @@ GOOD_MM, BAD_MM = 5.0, 10.0
 MAX_BAD_ACCEPTED = 0.10
 MIN_BAD_SLICES = 20
 """A level's share of slices over :data:`BAD_MM` accepted judges a limit only where it has this many:
-mild motion has 3-4 such slices in 3,100, and one of them accepted is 25-33 %, which would decide the
-limit by one slice."""
+mild motion has only a few such slices, and one of them accepted would decide the limit by one
+slice (the counts: docs/reports/accuracy-analyses.md, "Accept flags: the calibration's sample
+sizes")."""
 GOOD_VARIANCE_QUANTILE = 99.5
 PER_VOLUME = 8
-"""Acquisitions per validation volume and motion level: 40 per level, about 100 slices over 10 mm at
-jumping motion. With 15 per level (30–60 such slices, one slice 2–3 % of them) the limit moved by
-0.8 mm between runs of the same acquisitions with other MC draws."""
+"""Acquisitions per validation volume and motion level: enough slices over :data:`BAD_MM` at jumping
+motion that one slice moves the accepted share little, and the limit holds between runs of the
+same acquisitions with other MC draws (the counts: docs/reports/accuracy-analyses.md, "Accept
+flags: the calibration's sample sizes")."""
 FLOORS_MM = np.arange(0.0, 4.01, 0.1)
 LIMITS_MM = np.arange(2.0, 12.001, 0.1)
 MIN_TWIN_SLICES = 10

@@ -11,7 +11,7 @@ from model_export.training_record import commits
 
 SHIPPED_SCALE_SAMPLES = 1_000_000
 """Training samples (all stages) under which a card calls its model a quick look: the shipped models
-were trained on millions (``default`` 2.11: 6.4 million over its stages, 12.6 h)."""
+are trained on several millions (each model's card states its own budget)."""
 
 
 def budget_text(train_summary: dict, train_config: dict, budget: list[tuple[str, int | None, int]] | None = None) -> str:

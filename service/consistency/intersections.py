@@ -38,9 +38,9 @@ MIN_SINE = np.sin(np.radians(30.0))
 """Pairs whose planes meet at less than this angle are left out (their line is ill-placed)."""
 MAX_POINTS = 25_000
 """Points per pass at most: a fixed random share of the crossing pairs (their lines whole) bounds
-the time. Three stacks of a fetal brain cross at about 7,000-60,000 points; the poses improve a
-little with more (docs/reports/benchmark-history.md: 15,000 cost 0.2 mm at moderate motion, 35,000 gain 0.05 mm
-for 15 % more time)."""
+the time, whatever the stacks: three stacks of a fetal brain may cross at fewer or at several
+times as many points. The poses improve a little with more, at a cost in time, and lose more with fewer (the runs:
+docs/reports/benchmark-history.md)."""
 
 
 @dataclass

@@ -118,8 +118,8 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path 
 def _check_size(path: str, size: tuple[int, ...], label: str) -> None:
     """Refuse a file whose image size GDCM, which builds the series' volume, reads otherwise than
     pydicom, whose reading was checked and charged (``size``: columns, rows, frames): a header that
-    states Rows or Columns twice is read by its first value in one and its last in the other (a
-    1 KB archive stating 20,000 and then 8 was built into 3.5 GB)."""
+    states Rows or Columns twice is read by its first value in one and its last in the other, so
+    a small archive could make GDCM build a volume far larger than the one charged."""
     info = sitk.ImageFileReader()
     info.SetImageIO("GDCMImageIO")
     info.SetFileName(path)

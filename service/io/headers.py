@@ -19,7 +19,7 @@ its own files, so an upload is never handed to a reader as sent:
   starting with T, t or 1 is yes), so that ``CompressedData = 1`` is inflated here, bounded, like
   ``True``. ITK's NRRD reader crashes on a ``dimension`` of 12, its
   MetaImage reader loops for ever on an ``NDims`` of -1, both count sizes of 2**32 and more in 32 bits
-  (a file declaring 4,294,967,297 voxels was charged as 1 and allocated 16 GB), and a gzip NRRD's
+  (a declared size wraps to a small voxel count while the reader allocates the full one), and a gzip NRRD's
   ``byte skip`` is inflated and thrown away uncounted.
 
 Example:

@@ -70,8 +70,9 @@ MIN_ACCEPTED_SHARE = 0.3
 """A job starts from the accepted slices alone when at least this share of the request's posed slices
 (those not ``empty``) is accepted, and at least :data:`MIN_ACCEPTED_SLICES`; otherwise from every slice."""
 MIN_ACCEPTED_SLICES = 30
-"""Fewer accepted slices than this make no volume to judge a job's paths by (15 slices of three
-stacks gave a volume that was no brain, held-out NCC 0, where every slice's start reached 4.1 mm)."""
+"""Fewer accepted slices than this make no volume to judge a job's paths by: their volume is no brain,
+and its held-out score cannot tell a good path from a bad one (docs/reports/reconstruction-experiments.md,
+"The figures behind the job's constants")."""
 
 
 def starting_inclusion(poses: list[tuple[np.ndarray, np.ndarray]], posed: list[np.ndarray] | None = None,

@@ -246,10 +246,9 @@ def placement_floor_mm(outs: list[StackPoses]) -> float:
     placement in the atlas (its pooled placement's standard error where the request's stacks were
     pooled, else its own; ``sqrt(3)`` x the error per coordinate). The images relate the slices to
     each other, not to the atlas: two stacks that agree where they cross are placed no better than
-    the better of the two. The stacks of simulated acquisitions are placed to 1.2-2.1 mm a
-    coordinate (a floor of 2.0-3.6 mm, under the stages' own estimates); a real request whose stacks
-    carry the network's poses 30-36 mm about their motion models, to 4.6 mm (a floor of 8.0 mm;
-    docs/consistency.md).
+    the better of the two. The floor matters where the stacks' placements are poor, as in real
+    requests whose network poses scatter widely about their motion models (the placements and
+    floors measured: docs/consistency.md).
 
     Example (two stacks placed to 4 and 1.5 mm per coordinate: the better one's, 2.6 mm):
         >>> from types import SimpleNamespace as N

@@ -198,10 +198,10 @@ def _band(images: NDArray[np.float32], grid_mm: float) -> tuple[int, int, int, i
 def intensity_scale(images: NDArray[np.float32]) -> float:
     """The :data:`PERCENTILE` th percentile of a stack's pixels ``[n, H, W]``, over every ``s``-th pixel
     of each slice in raster order, ``s`` the first step from 9 up that shares no factor with ``W``: as
-    the whole stack's (within 0.3 % on the real stacks) at a ninth of the cost, never in step with a
-    row or a column, and the same pixels whichever order the slices are stored in. A grid of every third row and column counted a bright line (a zipper artefact, a
-    saturated edge) three times or not at all: on one of its rows it set the scale and left the
-    stack black.
+    the whole stack's at a ninth of the cost, never in step with a row or a column, and the same
+    pixels whichever order the slices are stored in. A grid of every third row and column would
+    count a bright line (a zipper artefact, a saturated edge) three times or not at all: on one of
+    its rows it sets the scale and leaves the stack black.
 
     Example (a saturated column on a row and column of the every-third grid):
         >>> images = np.random.default_rng(0).uniform(0, 100, (2, 320, 320)).astype(np.float32)

@@ -16,18 +16,17 @@ response over the brain's inner pixels (as a robust SD: x 1.4826) divided by 6 i
 It is then carried to the network's pixel size: resampling pixels finer than the network's
 (1.25 mm) averages ``(1.25 / p)^2`` of them, which divides the noise by ``1.25 / p``; pixels
 coarser than it are interpolated and keep their noise. Measured on the resampled inputs
-themselves, the estimate would miss that noise, which interpolation makes smooth (a stack of 1.6 mm
-pixels would read 0.4 times one of 1.0 mm at the same noise).
+themselves, the estimate would miss that noise, which interpolation makes smooth (a stack of coarse
+pixels would read much less noisy than one of fine pixels at the same noise).
 
 Pixels much finer than the network's are also read about the network's pixel apart
 (:func:`decimated`): scanners write interpolated reconstructions (a 512 x 512 or 640 x 640 matrix
 of 0.5-0.7 mm pixels from an acquisition of about 1.1 mm), whose noise is smooth over two or more
-pixels, and the kernel, which sees only the finest scale, reads such a stack 8-17 times less
+pixels, and the kernel, which sees only the finest scale, reads such a stack many times less
 noisy than the same acquisition written at its own pixels. Where the pixels so far apart read
 much noisier than all of them (:data:`SMOOTH_NOISE`: white noise reads alike), the noise is smooth
-over the pixels and the estimate is theirs: a real stack with Rician noise of 15 % reads 0.129 at
-its own 1.125 mm pixels, 0.0074 interpolated to 0.56 mm and 0.017 to 0.70 mm, and so read 0.097
-and 0.146.
+over the pixels and the estimate is theirs (the readings of one real stack at its own and at
+interpolated pixels: docs/accuracy.md).
 """
 
 from __future__ import annotations
@@ -47,9 +46,9 @@ MIN_PIXELS = 50
 """Inner brain pixels a slice needs to count (an end slice's cap tells little)."""
 NOISY_INPUT = 0.10
 """Input noise (a share of the inputs' 0-255 range) above which a stack is noisier than the network
-learnt and the pipeline's benchmarks hold (``beyond_calibration``). Simulated acquisitions of 1 mm
-pixels with Rician noise of 3 / 8 / 15 % of the bright end give about 0.036 / 0.084 / 0.124, of
-1.6 mm pixels 0.049 / 0.109 / 0.160; the real scans at hand 0.017-0.023 (docs/accuracy.md)."""
+learnt and the pipeline's benchmarks hold (``beyond_calibration``): above what the simulated
+acquisitions of moderate noise read and well above the real scans at hand (their readings:
+docs/accuracy.md)."""
 
 
 SMOOTH_NOISE = 2.0

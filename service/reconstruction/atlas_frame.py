@@ -62,10 +62,10 @@ MAX_ROTATION_DEG = 20.0
 MAX_SHIFT_MM = 20.0
 MIN_FRAME_NCC = 0.7
 """The leave-one-stack-out median NCC a job's volume needs for its frame to be re-estimated, above
-the coherence floor (:data:`~service.reconstruction.quality.MIN_HELD_OUT_NCC`): every simulated job
-scores 0.75-0.94 and the shared real scan 0.85-0.88, while the four whole-uterus scenes without
-masks whose volumes scored 0.56-0.60 were each moved the wrong way (their slices in the volume
-1.8-5.0 mm further off, the frame's spread 22-61 mm against 11-18 on good volumes)."""
+the coherence floor (:data:`~service.reconstruction.quality.MIN_HELD_OUT_NCC`): re-cut from a
+volume that scores below it, the slices pose the frame nowhere in particular and move it the wrong
+way, while good volumes score above it (the scores measured: docs/reconstruction.md, "Atlas
+frame", and docs/reports/reconstruction-experiments.md)."""
 
 
 @dataclass

@@ -65,8 +65,9 @@ from service.reconstruction.slices import SliceSet, StackInput
 from service.reconstruction.stack_rigid import fit_stack_rigid, frame_from_scanner
 
 PLACED_MM = 1.0
-"""The expected E.D. the motion model gives a slice the volume placed (simulated acquisitions: the
-slices in a job's volume lie 0.4-1.1 mm from the truth in the acquisition's own frame)."""
+"""The expected E.D. the motion model gives a slice the volume placed: about how far the slices in a
+job's volume lie from the truth in the acquisition's own frame (docs/reports/reconstruction-experiments.md,
+"Limits, measured")."""
 SMOOTH_MM = 2.0
 """A left-out slice follows the model where it predicts every slice of the volume within this many
 mm of its refined pose over :data:`REACH` acquisitions on either side."""
@@ -192,8 +193,8 @@ def place_left_out(slices: SliceSet, refined: ArrayLike, placed: ArrayLike, expe
             ``coherent``: motion only; the NCC is measured against any volume given).
         starting: ``[n, 4, 4]`` the poses the job started from: the left-out slices start from these,
             the poses ``expected_error_mm`` is of (None: from ``refined``). A path that registered a
-            slice and then left it out of its volume leaves it where nothing vouches for it (on a
-            whole-uterus scene, 9.3 -> 22.9 mm).
+            slice and then left it out of its volume leaves it where nothing vouches for it (far
+            from where it started, on a whole-uterus scene).
     """
     poses = np.array(refined, dtype=np.float64)
     inside = np.asarray(placed, bool)

@@ -73,11 +73,10 @@ PATHS = ("full", "starting_poses", "slice_level")
 MIN_MISMATCH_RATIO = 1.15
 """How many times smaller than the starting poses' a registered path's leave-one-stack-out mismatch
 (1 - median NCC) must be for it to be taken: the score's noise grows with the mismatch, so the gain
-asked for does too (0.0065 from 0.95, 0.065 from 0.5). On the simulated acquisitions of
-``refine_bench.py`` (two sets, 40 acquisitions) a registered path at mild to independent motion,
-which never made the poses better and sometimes worse, reduced the mismatch by up to 1.09 x; the
-slice level that brings extreme motion's slices from about 6-7 mm to 3 mm (twin-min) by 1.9-3.3 x;
-on the shared real scan with its masks the full job reduces it 1.27 x."""
+asked for does too. The ratio lies between what a registered path that does not make the poses
+better reaches (mild to independent motion) and what one that does reaches (extreme motion, the
+shared real scan with its masks): the ratios measured are in docs/reports/reconstruction-experiments.md,
+"The figures behind the job's constants"."""
 
 REFERENCE_SLICES = 60
 """The held-out slices at which a job's score is judged by :data:`MIN_MISMATCH_RATIO` as it is: the
@@ -87,12 +86,11 @@ acquisitions it was judged on: docs/reports/reconstruction-experiments.md)."""
 
 
 MAX_FURTHER_PASSES = 1
-"""Slice-level passes tried after a registered path wins. On simulated extreme motion (every slice
-in its own orientation) the first cut the held-out mismatch 1.19-1.45 x and the slices' twin-min
-error 2.40-3.28 -> 2.08-2.84 mm; a second cut it 1.04-1.15 x, which the rule kept in none of six
-acquisitions (at 1.5 and 0.8 mm), at 10-30 s each for three stacks of 128 x 128 at 0.8 mm. At mild
-motion, from the starting poses, no pass cut it (registration made those poses worse: 1.72-2.67 ->
-1.75-2.85 mm): hence only after a registered path has won."""
+"""Slice-level passes tried after a registered path wins. The first further pass cuts the held-out
+mismatch and the slices' error where the motion is extreme; a second one gains less than
+:data:`MIN_MISMATCH_RATIO` asks and costs as much again. From the starting poses at mild motion no
+pass cuts it (registration makes those poses worse): hence only after a registered path has won
+(the runs: docs/reports/reconstruction-experiments.md, "The figures behind the job's constants")."""
 
 PATH_RESOLUTION_MM = 1.5
 """The resolution the paths and further passes run at when the job asks for a finer volume (the

@@ -49,9 +49,9 @@ from service.reconstruction.superresolution import solve_without
 
 MIN_HELD_OUT_NCC = 0.5
 """Below this leave-one-stack-out median NCC the stacks do not predict each other: the volume is no
-coherent brain, and neither the frame steps nor a user should trust it. Simulated jobs score
-0.87-0.95 and the real scans' 0.88-0.93; a jumping acquisition whose volume scored 0.17 was turned
-the wrong way by the midline step (its poses 6.1 -> 7.5 mm)."""
+coherent brain, and neither the frame steps nor a user should trust it: good jobs score well above
+it, and the midline step turns an incoherent volume the wrong way (the scores measured:
+docs/reports/reconstruction-experiments.md, "The figures behind the job's constants")."""
 
 MIN_ALTERNATE_NCC = MIN_HELD_OUT_NCC
 """Below this leave-alternate-slices-out median NCC a single stack's slices do not predict each other

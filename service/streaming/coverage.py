@@ -41,9 +41,8 @@ HULL_TOLERANCE_MM = 1e-6
 REACH_THICKNESS = 0.6
 """A point of the hull is brain within this many slice thicknesses of a brain pixel the slices show:
 the middle between two neighbouring slices of a stack is, the hull's bridge over the brain's
-concavities is not (on simulated sessions of three stacks of held-out brains the brain so counted
-is 0.98-0.99 covered, as the truth; counted by the hull alone, 0.95, its largest gap 5-15 ml below
-the frontal lobes, 1-9 % brain)."""
+concavities is not: counted so, simulated sessions read as covered as the truth says they are,
+where the hull alone reads a false gap below the frontal lobes (the figures: docs/realtime.md)."""
 MIN_GAP_ML = 0.1
 MAX_GAPS = 5
 
