@@ -2,10 +2,18 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from anyio import to_thread
 from fastapi import APIRouter, Request, Response
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 from prometheus_client.core import GaugeMetricFamily
+
+if TYPE_CHECKING:
+    from starlette.datastructures import State
+
+    from service.jobs.runner import JobRunner
+    from service.jobs.store import JobStore
 
 
 class Metrics:
@@ -24,12 +32,12 @@ class Metrics:
         self.rejected = Counter("svrnet_slices_rejected_total", "slices not accepted", ["model", "reason"],
                                 registry=self.registry)
 
-    def watch_jobs(self, store, runner) -> None:  # noqa: ANN001 - JobStore, JobRunner
+    def watch_jobs(self, store: JobStore, runner: JobRunner) -> None:
         """Export the job counts per state and the runner's numbers (workers, queue length), read from
         the store at each scrape: with the distributed back-end every replica reports the whole queue."""
         self.registry.register(_JobCollector(store, runner))
 
-    def watch_streams(self, state) -> None:  # noqa: ANN001 - the app's state
+    def watch_streams(self, state: State) -> None:
         """Export the open ``/v1/stream`` sessions (``state.stream_sessions``), read at each scrape."""
         Gauge("svrnet_stream_sessions", "open /v1/stream sessions", registry=self.registry).set_function(
             lambda: float(getattr(state, "stream_sessions", 0)))

@@ -33,6 +33,7 @@ import time
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
+from typing import IO
 
 from service.core.errors import StoreUnavailable
 from service.core.process_pools import end_pool, release_memory
@@ -50,7 +51,7 @@ class StoreInUse(RuntimeError):
     """Another live server owns the job store."""
 
 
-def lock_store(data_dir: Path):  # noqa: ANN201 - an open file, or None where the OS has no flock
+def lock_store(data_dir: Path) -> IO[str] | None:
     """Lock ``data_dir`` for this process (:class:`StoreInUse`, naming the owner's pid, where another
     process holds it); the returned file keeps the lock until it is closed or the process ends."""
     if sys.platform == "win32":

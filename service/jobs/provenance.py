@@ -14,16 +14,16 @@ from __future__ import annotations
 
 from importlib.metadata import PackageNotFoundError, version
 
-from service.preprocess.localise import default_localiser
+from service.preprocess.localise import Localiser, default_localiser
 
 
-def localiser_provenance(uploads: list, localiser) -> dict | None:  # noqa: ANN001
+def localiser_provenance(uploads: list, localiser: Localiser | None) -> dict | None:
     """The localiser (``localiser``, default the shipped one) that found the brain of the stacks
     without a mask, as ``/v1/predict`` names it; None where every stack came with one."""
     return (localiser or default_localiser()).provenance() if any(u.mask is None for u in uploads) else None
 
 
-def provenance(model: dict | None, uploads: list, localiser, masks_hold_csf: bool) -> dict:  # noqa: ANN001
+def provenance(model: dict | None, uploads: list, localiser: Localiser | None, masks_hold_csf: bool) -> dict:
     """What made a job's outputs: this service's version, the pose model (the starting body's), the
     localiser (:func:`localiser_provenance`), and per stack whether its mask was uploaded or the
     localiser's (``"uploaded"`` / ``"localiser"``). No file names: they often name the patient."""

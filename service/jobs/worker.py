@@ -26,6 +26,7 @@ import shutil
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -37,6 +38,10 @@ from service.jobs.store import JobStore
 from service.jobs.provenance import localiser_provenance, provenance
 from service.jobs.uploaded_poses import expected_errors, poses_from_predict_body
 from service.preprocess.intensity import SIGNAL_LOST
+
+if TYPE_CHECKING:
+    from service.inference.estimator import OnnxPoseEstimator, PoseEstimator
+    from service.preprocess.localise import Localiser
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +61,7 @@ def _stack_files(inputs: Path) -> list[tuple[Path, Path | None]]:
     return [(s, (inputs / f"mask{s.name[5:]}") if (inputs / f"mask{s.name[5:]}").exists() else None) for s in stacks]
 
 
-def predicted_poses(uploads: list, estimator, mc_samples: int = 100,  # noqa: ANN001
+def predicted_poses(uploads: list, estimator: PoseEstimator, mc_samples: int = 100,
                     variance_threshold: float | None = None) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[np.ndarray]]:
     """The reconstruction's start from the service's own prediction: ``[(atlas_from_voxel, include)]``
     and the brain masks (on each stack's grid) per stack; the poses are those ``/v1/predict`` answers
@@ -157,7 +162,7 @@ def start_label(body: dict, poses: list[tuple[np.ndarray, np.ndarray]]) -> str:
     return "accepted_slices" if kept else "every_slice"
 
 
-def uploaded_pose_masks(uploads: list, localiser=None) -> list[np.ndarray]:  # noqa: ANN001
+def uploaded_pose_masks(uploads: list, localiser: Localiser | None = None) -> list[np.ndarray]:
     """Each upload's brain as the pose network cut its slices (its mask, or ``localiser``'s, default
     the shipped one; the CSF rim of a mask that holds it inset): what a job that predicts its own
     poses reconstructs from (:func:`predicted_body`), so that a job given those poses reconstructs
@@ -168,7 +173,7 @@ def uploaded_pose_masks(uploads: list, localiser=None) -> list[np.ndarray]:  # n
             for found, u in zip(localise_uploads(uploads, localiser), uploads)]
 
 
-def job_localiser(localisers_dir: Path | None, uploads: list):  # noqa: ANN201
+def job_localiser(localisers_dir: Path | None, uploads: list) -> Localiser | None:
     """The server's default localiser (``SVRNET_LOCALISERS_DIR``, as ``/v1/predict`` runs it) where a
     stack came without a mask; None where every stack has one, or no folder is given (the shipped one)."""
     if localisers_dir is None or all(u.mask is not None for u in uploads):
@@ -178,7 +183,7 @@ def job_localiser(localisers_dir: Path | None, uploads: list):  # noqa: ANN201
     return Localisers.from_directory(localisers_dir, threads=1).get()
 
 
-def job_estimator(model_file: Path, required: bool = True):  # noqa: ANN201
+def job_estimator(model_file: Path, required: bool = True) -> tuple[OnnxPoseEstimator | None, float]:
     """The pose model a job names (one thread), and its atlas mid-sagittal plane: the plane its poses
     and the frame steps are in, given poses included (they come from that model's ``/v1/predict``).
     Not ``required`` (a job given poses) and the server without such a file: ``(None, the default
@@ -193,9 +198,10 @@ def job_estimator(model_file: Path, required: bool = True):  # noqa: ANN201
     return estimator, estimator.info.symmetry_plane_x_mm
 
 
-def predicted_body(uploads: list, estimator, mc_samples: int = 100,  # noqa: ANN001
+def predicted_body(uploads: list, estimator: PoseEstimator, mc_samples: int = 100,
                    variance_threshold: float | None = None, orders: list | None = None,
-                   max_expected_error_mm: float | None = None, localiser=None) -> tuple[dict, list[np.ndarray]]:  # noqa: ANN001
+                   max_expected_error_mm: float | None = None, localiser: Localiser | None = None,
+                   ) -> tuple[dict, list[np.ndarray]]:
     """The ``/v1/predict``-shaped body (``model``, ``mc_samples``, ``variance_threshold``, ``stacks``) of
     the service's own prediction, and the brain masks per stack; ``orders``: the stacks'
     acquisition orders (:class:`~service.consistency.slice_order.SliceOrder`), if known;
