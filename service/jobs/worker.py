@@ -75,9 +75,8 @@ MIN_ACCEPTED_SHARE = 0.3
 """A job starts from the accepted slices alone when at least this share of the request's posed slices
 (those not ``empty``) is accepted, and at least :data:`MIN_ACCEPTED_SLICES`; otherwise from every slice."""
 MIN_ACCEPTED_SLICES = 30
-"""Fewer accepted slices than this make no volume to judge a job's paths by: their volume is no brain,
-and its held-out score cannot tell a good path from a bad one (docs/reports/reconstruction-experiments.md,
-"The figures behind the job's constants")."""
+"""Fewer accepted slices than this make no volume to judge a job's paths by: their volume is no brain
+(docs/reports/reconstruction-experiments.md, "The figures behind the job's constants")."""
 
 
 def starting_inclusion(poses: list[tuple[np.ndarray, np.ndarray]], posed: list[np.ndarray] | None = None,
@@ -200,8 +199,8 @@ def job_estimator(model_file: Path, required: bool = True) -> tuple[OnnxPoseEsti
 
 def predicted_body(uploads: list, estimator: PoseEstimator, mc_samples: int = 100,
                    variance_threshold: float | None = None, orders: list | None = None,
-                   max_expected_error_mm: float | None = None, localiser: Localiser | None = None,
-                   ) -> tuple[dict, list[np.ndarray]]:
+                   max_expected_error_mm: float | None = None,
+                   localiser: Localiser | None = None) -> tuple[dict, list[np.ndarray]]:
     """The ``/v1/predict``-shaped body (``model``, ``mc_samples``, ``variance_threshold``, ``stacks``) of
     the service's own prediction, and the brain masks per stack; ``orders``: the stacks'
     acquisition orders (:class:`~service.consistency.slice_order.SliceOrder`), if known;
