@@ -88,6 +88,38 @@ def sform_affine(t: NiftiTransforms) -> NDArray[np.float64]:
     return out
 
 
+def qform_affine(t: NiftiTransforms) -> NDArray[np.float64]:
+    """The qform as a 4 x 4 voxel -> RAS mm matrix, as the standard's ``quatern_to_mat44``, nibabel
+    and FSL build it: the rotation of the quaternion ``(a, b, c, d)`` (``a`` from ``b, c, d``), the
+    voxel edges ``pixdim[1..3]`` (the third times ``qfac``, -1 where ``pixdim[0]`` is negative, else
+    1) and the offsets, read as millimetres whatever ``xyzt_units`` says, as the sform is.
+
+    ITK scales both voxel edges and offsets of the qform by the unit the header names (a thousand
+    for metres, a thousandth for microns), which nibabel, FSL and the sform's reading do not: the
+    same header would place its voxels a thousand times larger by its qform than by an identical
+    sform or through nibabel (a NIfTI-2 file).
+
+    Example:
+        >>> t = NiftiTransforms(1, 0, (-1.0, 1.1, 0.9, 3.3), (0.0, 0.0, 1.0, 5.0, -4.0, 2.0), (0.0,) * 12)
+        >>> (qform_affine(t).round(6) + 0.0).tolist()
+        [[-1.1, 0.0, 0.0, 5.0], [0.0, -0.9, 0.0, -4.0], [0.0, 0.0, -3.3, 2.0], [0.0, 0.0, 0.0, 1.0]]
+    """
+    b, c, d, *offset = (float(x) for x in t.quatern)
+    squares = b * b + c * c + d * d
+    if 1.0 - squares < 1e-7:                # a rotation by 180 degrees: a = 0, (b, c, d) made a unit vector
+        a, (b, c, d) = 0.0, np.array([b, c, d]) / np.sqrt(squares)
+    else:
+        a = float(np.sqrt(1.0 - squares))
+    rotation = np.array([[a * a + b * b - c * c - d * d, 2 * (b * c - a * d), 2 * (b * d + a * c)],
+                         [2 * (b * c + a * d), a * a + c * c - b * b - d * d, 2 * (c * d - a * b)],
+                         [2 * (b * d - a * c), 2 * (c * d + a * b), a * a + d * d - c * c - b * b]])
+    qfac = -1.0 if t.pixdim[0] < 0 else 1.0
+    out = np.eye(4)
+    out[:3, :3] = rotation * np.array([t.pixdim[1], t.pixdim[2], qfac * t.pixdim[3]])
+    out[:3, 3] = offset
+    return out
+
+
 def missing_voxel_size(t: NiftiTransforms) -> str | None:
     """The voxel edges ``pixdim[1..3]`` (as text) where one of the image's axes has none (zero,
     negative or not finite), else None. ITK puts 1 mm in its place without a word, and every pose and

@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.geometry import frames
-from service.io.nifti_header import NiftiTransforms, read_transforms, sform_affine
+from service.io.nifti_header import NiftiTransforms, qform_affine, read_transforms, sform_affine
 
 if TYPE_CHECKING:
     import SimpleITK as sitk
@@ -146,12 +146,19 @@ def read_volume(path: str | Path) -> Volume:
 
 def placed_by_header(volume: Volume, nifti: NiftiTransforms | None) -> Volume:
     """``volume`` (as SimpleITK read it) placed as its NIfTI header's transforms ``nifti`` say: by the
-    sform whenever the sform's code is above 0, with the sform's own voxel sizes, as the standard,
-    nibabel and FSL do (:mod:`service.io.nifti_header`); the transforms kept with it. Other files
-    (``nifti`` None) as they were read."""
+    sform whenever the sform's code is above 0, with the sform's own voxel sizes, else by the qform
+    where its code is above 0, both in millimetres whatever the header's unit, as the standard's
+    reference code, nibabel and FSL do (:mod:`service.io.nifti_header`); the transforms kept with
+    it. Other files (``nifti`` None), and a header with neither code, as they were read."""
     if nifti is None:
         return volume
-    return replace(volume, affine=sform_affine(nifti) if nifti.sform_code > 0 else volume.affine, nifti=nifti)
+    if nifti.sform_code > 0:
+        affine = sform_affine(nifti)
+    elif nifti.qform_code > 0:
+        affine = qform_affine(nifti)
+    else:
+        affine = volume.affine
+    return replace(volume, affine=affine, nifti=nifti)
 
 
 def write_volume(volume: Volume, path: str | Path) -> None:

@@ -71,6 +71,27 @@ def test_without_an_sform_the_qform_places_the_voxels(tmp_path: Path) -> None:
     np.testing.assert_allclose(read_upload(path, "q.nii.gz").affine, qform, atol=1e-4)
 
 
+@pytest.mark.parametrize("units", [1, 3, 0, 10])                       # metres, microns, unknown, mm and s
+def test_the_qform_places_the_voxels_in_millimetres_as_the_sform_does_whatever_the_unit(tmp_path: Path,
+                                                                                         units: int) -> None:
+    """A header's ``xyzt_units`` changes neither transform (as nibabel and FSL read them): the same
+    qform-only header is placed where its sform-only twin and its NIfTI-2 twin are, never a thousand
+    times larger or smaller (ITK scales the qform alone by the unit)."""
+    qform = sform_of((1.1, 0.9, 3.3), 40, (-28, 12, 7))
+    placed = []
+    for name, sform_code, qform_code, image_class in (("q.nii", 0, 1, nib.Nifti1Image), ("s.nii", 1, 0, nib.Nifti1Image),
+                                                      ("q2.nii", 0, 1, nib.Nifti2Image)):
+        img = image_class(np.arange(np.prod(SHAPE), dtype=np.float32).reshape(SHAPE) + 1, None)
+        img.header.set_qform(qform, code=qform_code)
+        img.header.set_sform(qform, code=sform_code)
+        img.header["xyzt_units"] = units
+        nib.save(img, str(tmp_path / name))
+        placed.append(read_upload(tmp_path / name, name).affine)
+    for affine in placed:
+        np.testing.assert_allclose(affine, qform, atol=1e-4)
+    np.testing.assert_allclose(placed[0], nib.load(str(tmp_path / "q.nii")).affine, atol=1e-5)
+
+
 def test_a_sheared_sform_is_refused_naming_the_shear(tmp_path: Path) -> None:
     sform = sform_of((1.1, 0.9, 3.3), 0, (0, 0, 0))
     sform[0, 1] = 0.2                                          # the second axis leans on the first
