@@ -34,7 +34,7 @@ from service.core.names import clean_name
 from service.io.acquisition_geometry import Tags, series_problem, stated_thickness
 from service.io.acquisition_times import order_of, seconds
 from service.io.dicom import read_dicom_file
-from service.io.dicom_guard import load_dataset
+from service.io.dicom_guard import BARE_DICOM, bare_dicom, load_dataset
 from service.io.limits import FileBudget, raise_if_out_of_space
 from service.io.volume import SITK_FILES, Volume, from_sitk
 
@@ -70,6 +70,7 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path 
         thicknesses: dict[str, object] = {}     # unpacked file -> its SliceThickness
         tags: dict[str, Tags] = {}            # unpacked file -> its geometry tags (to check the series)
         sizes: dict[str, tuple[int, ...]] = {}  # unpacked file -> (columns, rows, frames) as pydicom read them
+        bare: list[str] = []                  # members that are DICOM data sets without the file preamble
         try:
             _check_directory(path, filename)
             with zipfile.ZipFile(path) as z:
@@ -82,7 +83,7 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path 
                     base = clean_name(m.filename.replace("\\", "/").rsplit("/", 1)[-1])   # not its folders (a
                     label = f"{filename}: member {i + 1} of {len(members)}" + (f" ({base})" if base else "")  # patient's)
                     out = Path(tmp) / f"{i:05d}.dcm"
-                    if _unpack(z, m, out, budget.member(label), label, times, tags, thicknesses, sizes):
+                    if _unpack(z, m, out, budget.member(label), label, times, tags, thicknesses, sizes, bare):
                         labels[str(out)] = label
                         budget.slices(len(labels), "DICOM images in the archive or more (counted as they are read)")
         except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as exc:
@@ -94,6 +95,9 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path 
         reader = sitk.ImageSeriesReader()
         with SITK_FILES:
             series = reader.GetGDCMSeriesIDs(tmp) if labels else ()
+        if not series and bare:
+            raise UnsupportedFile(f"{bare[0]}" + (f" and {len(bare) - 1} more" if len(bare) > 1 else "") +
+                                  f": {BARE_DICOM}")
         if not series:
             raise UnsupportedFile(f"{filename}: the ZIP archive holds no DICOM series")
         if len(series) > 1:
@@ -132,8 +136,9 @@ def _check_size(path: str, size: tuple[int, ...], label: str) -> None:
 
 def _unpack(z: zipfile.ZipFile, member: zipfile.ZipInfo, out: Path, budget: FileBudget, label: str,
             times: dict[str, float | None], tags: dict[str, Tags], thicknesses: dict[str, object],
-            sizes: dict[str, tuple[int, ...]]) -> bool:
-    """Inflate ``member`` to ``out`` (charged to ``budget``) and screen it; False: not a DICOM image.
+            sizes: dict[str, tuple[int, ...]], bare: list[str]) -> bool:
+    """Inflate ``member`` to ``out`` (charged to ``budget``) and screen it; False: not a DICOM image
+    (its ``label`` added to ``bare`` where it is a DICOM data set without the file preamble).
     Its acquisition time goes to ``times`` (:mod:`service.io.acquisition_times`), its geometry tags
     to ``tags`` (:mod:`service.io.acquisition_geometry`), its slice thickness to ``thicknesses``, its
     image size to ``sizes``."""
@@ -148,6 +153,8 @@ def _unpack(z: zipfile.ZipFile, member: zipfile.ZipInfo, out: Path, budget: File
                               "series in a single ZIP")
     if head[128:132] != b"DICM":
         out.unlink()
+        if bare_dicom(head):
+            bare.append(label)
         return False
     try:
         ds = load_dataset(out, label, budget, require_pixels=False)

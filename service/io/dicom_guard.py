@@ -195,4 +195,28 @@ def _j2k_size(frame: bytes) -> tuple[int, int] | None:
     return x - x0, y - y0
 
 
-__all__ = ["check_pixels", "load_dataset"]
+
+BARE_DICOM = ("a DICOM data set without the DICOM file preamble (no 'DICM' at byte 128, as older "
+              "archives and some exports write it); export it again as DICOM files (Part 10)")
+"""Why a DICOM data set without its file preamble is refused: the readers here, as the scanners'
+own, read DICOM files (Part 10); a bare data set's encoding is a guess."""
+
+
+def bare_dicom(head: bytes) -> bool:
+    """Whether ``head`` (a file's first bytes) starts like a DICOM data set stored without the file
+    preamble: a little-endian tag of the file-meta (0002) or identifying (0008) group, then an
+    explicit VR of two capitals or an implicit element's length.
+
+    Example:
+        >>> bare_dicom(b"\\x08\\x00\\x05\\x00CS\\x0a\\x00ISO_IR 100"), bare_dicom(b"\\x08\\x00\\x16\\x00\\x1a\\x00\\x00\\x00")
+        (True, True)
+        >>> bare_dicom(b"hello world, not an image"), bare_dicom(b"\\x08\\x00")
+        (False, False)
+    """
+    if len(head) < 8 or head[:2] not in (b"\x02\x00", b"\x08\x00"):
+        return False
+    explicit = head[4:6].isalpha() and head[4:6].isupper()
+    return explicit or int.from_bytes(head[4:8], "little") < 1 << 16
+
+
+__all__ = ["BARE_DICOM", "bare_dicom", "check_pixels", "load_dataset"]

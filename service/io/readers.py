@@ -36,6 +36,7 @@ from service.geometry import frames
 from service.io.acquisition_geometry import grid_problem, slice_axis_problem, stacking_problem
 from service.io.archive import read_dicom_zip
 from service.io.dicom import read_dicom_file
+from service.io.dicom_guard import BARE_DICOM, bare_dicom
 from service.io.headers import clean_header, declared_values, geometry_problem
 from service.io.limits import DecodeBudget, FileBudget, raise_if_out_of_space
 from service.io.nifti_header import (MAX_SHEAR_COS, NiftiTransforms, missing_voxel_size, orientation_problem,
@@ -52,7 +53,8 @@ sitk.ProcessObject_SetGlobalWarningDisplay(False)   # ITK's warnings reach stder
 
 
 def sniff(path: Path) -> str:
-    """The kind of file: ``nifti``, ``nifti-gz``, ``nrrd``, ``mha``, ``dicom``, ``zip`` or ``unknown``
+    """The kind of file: ``nifti``, ``nifti-gz``, ``nrrd``, ``mha``, ``dicom``, ``zip``, ``bare-dicom``
+    (:func:`~service.io.dicom_guard.bare_dicom`, refused with its reason) or ``unknown``
     (from the first bytes; a gzip stream's integrity is checked when it is decoded, once)."""
     with open(path, "rb") as f:
         head = f.read(1024)
@@ -73,6 +75,8 @@ def sniff(path: Path) -> str:
         return "dicom"
     if head[:4] in (b"PK\x03\x04", b"PK\x05\x06"):       # a ZIP, or an empty one
         return "zip"
+    if bare_dicom(head):
+        return "bare-dicom"
     return "unknown"
 
 
@@ -145,6 +149,8 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
                                                                                                  scratch)
             if (problem := stacking_problem(vol.spacing, vol.array.shape[2])) is not None:
                 raise UnusableImage(f"{filename}: {problem}")
+        elif kind == "bare-dicom":
+            raise UnsupportedFile(f"{filename}: {BARE_DICOM}")
         else:
             raise UnsupportedFile(f"{filename}: not a NIfTI, NRRD, MHA, DICOM or ZIP file (or truncated)")
     except ServiceError:

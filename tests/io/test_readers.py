@@ -524,3 +524,27 @@ def test_a_voxel_of_absurd_size_is_named_so_not_a_shear() -> None:
     for edge in (30.0, 1e300):
         with pytest.raises(UnusableImage, match="voxel size .* beyond (20 mm|any size)"):
             validate(Volume(np.ones((4, 4, 3), np.float32), np.diag([edge, 1.0, 3.0, 1.0])), "big.nii")
+
+
+def test_a_dicom_data_set_without_its_file_preamble_is_refused_by_name_and_reason(tmp_path: Path) -> None:
+    """Older archives store DICOM data sets without the 128-byte preamble and ``DICM``: the answer says
+    so, for a file and for the members of a ZIP, instead of calling it an unknown format."""
+    from tests.support.corpus import dicom
+
+    bare = [dicom(np.full((8, 8), 100 + k, np.uint16), k)[132:] for k in range(3)]
+    single = tmp_path / "old.dcm"
+    single.write_bytes(bare[0])
+    assert sniff(single) == "bare-dicom"
+    with pytest.raises(UnsupportedFile, match=r"old\.dcm: a DICOM data set without the DICOM file preamble"):
+        read_upload(single, "old.dcm")
+    archive = tmp_path / "old.zip"
+    with zipfile.ZipFile(archive, "w") as z:
+        z.writestr("readme.txt", "exported 1999")
+        for k, data in enumerate(bare):
+            z.writestr(f"IM{k:04d}", data)
+    with pytest.raises(UnsupportedFile, match=r"old\.zip: member 2 of 4 \(IM0000\) and 2 more: a DICOM data set "
+                                              r"without the DICOM file preamble"):
+        read_upload(archive, "old.zip")
+    with_preamble = tmp_path / "new.dcm"
+    with_preamble.write_bytes(dicom(np.full((8, 8), 100, np.uint16)))
+    assert sniff(with_preamble) == "dicom"
