@@ -11,11 +11,16 @@
    sets of poses. Stacks: the real scan of ``../shared/data/real_scans/mial_lausanne_t30`` where it
    is, else generated whole-uterus stacks around a phantom brain.
 
-    .venv/bin/python benchmarks/localise_bench.py
+3. With ``--baseline DIR``: :meth:`Localiser.localise` of the 320 x 320 x 22 stack by the localiser
+   against another localiser's folder (a model about to ship against the shipped one), alternating
+   in one process, and the largest difference of their probabilities.
+
+    .venv/bin/python benchmarks/localise_bench.py [--localiser DIR] [--baseline DIR]
 """
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from pathlib import Path
@@ -45,17 +50,24 @@ def timed(fn, repeats: int = 5) -> tuple[float, object]:  # noqa: ANN001
     return (time.perf_counter() - t) / repeats * 1e3, out
 
 
+def random_stack(shape: tuple[int, int, int], pixel: float, thick: float, rng: np.random.Generator,
+                 cut: bool = False) -> Volume:
+    """Random content in a field of view that ends in 10 mm of air (``cut``: cut through the body on
+    two sides, as a stack cropped to the uterus is)."""
+    content = rng.random(shape, np.float32) * 300
+    air = int(round(10 / pixel))
+    content[:air], content[-air:], content[:, :air], content[:, -air:] = 0, 0, 0, 0
+    if cut:
+        content = np.ascontiguousarray(content[air:, air:])
+    return Volume(content, np.diag([pixel, pixel, thick, 1.0]))
+
+
 def stage_times(loc: Localiser) -> None:
     print(f"{'stack':>18} {'pixel':>6} {'inputs ms':>10} {'network ms':>11} {'geometry ms':>12} {'total ms':>9}")
     rng = np.random.default_rng(0)
     rows = [(shape, pixel, thick, "") for shape, pixel, thick in SIZES] + [(SIZES[0][0], *SIZES[0][1:], "cut")]
     for shape, pixel, thick, cut in rows:
-        content = rng.random(shape, np.float32) * 300
-        air = int(round(10 / pixel))                                  # 10 mm of air at the field of view's edge
-        content[:air], content[-air:], content[:, :air], content[:, -air:] = 0, 0, 0, 0
-        if cut:                                                       # cut through the body on two sides
-            content = np.ascontiguousarray(content[air:, air:])
-        vol = Volume(content, np.diag([pixel, pixel, thick, 1.0]))
+        vol = random_stack(shape, pixel, thick, rng, cut=bool(cut))
         t_in, (x, grid) = timed(lambda: localiser_inputs(vol, loc.grid_mm))
         name = loc.session.get_inputs()[0].name
         t_net, logits = timed(lambda: loc._logits(name, x))
@@ -95,6 +107,21 @@ def side_by_side_ratios(loc: Localiser) -> None:
         print(f"{label:>36} {a:>23.0f} {b:>12.0f} {a / b:>6.2f}")
 
 
+def baseline_ratio(loc: Localiser, baseline: Localiser, repeats: int = 9) -> None:
+    """A stack's :meth:`Localiser.localise` by ``loc`` and by ``baseline``, alternating (the same machine
+    state for both), and how far apart their probabilities lie."""
+    vol = random_stack(*SIZES[0], np.random.default_rng(1))
+    times: dict[str, list[float]] = {"loc": [], "base": []}
+    for _ in range(repeats):
+        times["loc"].append(timed(lambda: loc.localise(vol), 1)[0])
+        times["base"].append(timed(lambda: baseline.localise(vol), 1)[0])
+    a, b = (float(np.median(times[k])) for k in ("loc", "base"))
+    apart = float(np.abs(loc.probabilities(vol)[0] - baseline.probabilities(vol)[0]).max())
+    print(f"\nlocalise, 320x320x22 ({repeats} alternating runs, median): {loc.path.parent.name} {loc.version} "
+          f"{a:.0f} ms, {baseline.path.parent.name} {baseline.version} {b:.0f} ms: ratio {a / b:.2f} "
+          f"(best {min(times['loc']):.0f} / {min(times['base']):.0f} ms); probabilities at most {apart:.1e} apart")
+
+
 def uploads() -> tuple[list[StackUpload], str]:
     real = REAL_SCANS / "mial_lausanne_t30"
     if real.is_dir():
@@ -112,11 +139,18 @@ def uploads() -> tuple[list[StackUpload], str]:
 
 
 def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--localiser", type=Path, default=DEFAULT_LOCALISERS_DIR / "default",
+                    help="the localiser's folder (default: the shipped one)")
+    ap.add_argument("--baseline", type=Path, help="another localiser's folder, timed against it")
+    args = ap.parse_args()
     print(f"machine: {cpu_description()}")
-    loc = Localiser.load(DEFAULT_LOCALISERS_DIR / "default" / "model.onnx")
-    print(f"localiser {loc.version}, grid {loc.grid_mm} mm")
+    loc = Localiser.load(args.localiser / "model.onnx")
+    print(f"localiser {loc.version}, grid {loc.grid_mm} mm, mirrored pass run by the service: {loc.mirrored}")
     stage_times(loc)
     side_by_side_ratios(loc)
+    if args.baseline:
+        baseline_ratio(loc, Localiser.load(args.baseline / "model.onnx"))
     stacks, what = uploads()
     print(f"\n/v1/predict pipeline on {what}:")
     r = pose_agreement(stacks, loc, _pose_estimator())

@@ -150,8 +150,9 @@ class Localiser:
         :data:`BATCH_SLICES` (:attr:`side_by_side`: two at a time); with :attr:`mirrored`, averaged
         with those of the inputs mirrored along ``W`` (mirrored back)."""
         seen = [x, np.ascontiguousarray(x[..., ::-1])] if self.mirrored else [x]
-        batches = [(view, k) for view in seen for k in range(0, len(x), BATCH_SLICES)]
-        run = lambda batch: self.session.run(None, {name: batch[0][batch[1]:batch[1] + BATCH_SLICES]})[0][:, 0]  # noqa: E731
+        edges = batch_edges(len(x), len(seen), self.side_by_side)
+        batches = [(view, a, b) for view in seen for a, b in zip(edges[:-1], edges[1:])]
+        run = lambda batch: self.session.run(None, {name: batch[0][batch[1]:batch[2]]})[0][:, 0]  # noqa: E731
         out = side_by_side(run, batches) if self.side_by_side else [run(batch) for batch in batches]
         logits = np.concatenate(out[:len(out) // len(seen)])
         if self.mirrored:
@@ -296,6 +297,22 @@ class Localiser:
         reach = ndimage.binary_dilation(brain[beside], structure=margin_disk(self.grid_mm))
         overlap = ndimage.sum_labels(reach, labels, np.arange(1, int(labels.max()) + 1))
         return labels == int(np.argmax(overlap)) + 1 if overlap.max() > 0 else None
+
+
+def batch_edges(slices: int, views: int = 1, paired: bool = False) -> list[int]:
+    """Where a stack's ``slices`` are cut into the onnxruntime calls of one view: about
+    :data:`BATCH_SLICES` a call, in calls of equal size; ``paired`` (two calls at a time, one per
+    core, :func:`~service.core.threads.side_by_side`), in an even number of calls over the ``views``,
+    so that neither core waits for the other's last call.
+
+    Example (22 slices: one view, paired; two views; one view, one call at a time):
+        >>> batch_edges(22, 1, True), batch_edges(22, 2, True), batch_edges(22)
+        ([0, 6, 11, 16, 22], [0, 7, 15, 22], [0, 7, 15, 22])
+    """
+    calls = max(1, -(-slices // BATCH_SLICES))
+    if paired and calls * views % 2 and calls < slices:
+        calls += 1
+    return [int(e) for e in np.linspace(0, slices, calls + 1).round()] if slices else [0]
 
 
 def reversed_slices(volume: Volume) -> bool:

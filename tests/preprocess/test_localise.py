@@ -427,3 +427,17 @@ def test_a_sliver_of_the_received_slices_brain_does_not_overrule_the_slice() -> 
                     volume.affine @ np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 6], [0, 0, 0, 1.0]]))
     found, _ = localiser.slice_in_stack(window, 0, received, 6, 3.0)
     assert found.mask[26:46, 24:46, 0].all() and not found.mask[4:6, 4:6, 0].any()
+
+
+@pytest.mark.parametrize("slices", [1, 5, 8, 9, 16, 22, 23, 64])
+@pytest.mark.parametrize(("views", "paired"), [(1, False), (1, True), (2, True), (2, False)])
+def test_a_stacks_slices_go_to_calls_of_equal_size_and_an_even_count_where_two_run_at_a_time(
+        slices: int, views: int, paired: bool) -> None:
+    from service.preprocess.localise import BATCH_SLICES, batch_edges
+
+    edges = batch_edges(slices, views, paired)
+    sizes = np.diff(edges)
+    assert edges[0] == 0 and edges[-1] == slices and sizes.min() >= 1
+    assert sizes.max() - sizes.min() <= 1 and sizes.max() <= BATCH_SLICES
+    if paired and slices > 1:
+        assert len(sizes) * views % 2 == 0
