@@ -147,7 +147,7 @@ def _unpack(z: zipfile.ZipFile, member: zipfile.ZipInfo, out: Path, budget: File
             budget.inflate(len(chunk))
             dst.write(chunk)
     with open(out, "rb") as f:
-        head = f.read(132)
+        head = f.read(1024)                   # the preamble, or a bare data set's first elements
     if head.startswith(ARCHIVE_MAGIC):
         raise UnsupportedFile(f"{label}: an archive nested in the archive; upload the DICOM files of one "
                               "series in a single ZIP")

@@ -548,3 +548,32 @@ def test_a_dicom_data_set_without_its_file_preamble_is_refused_by_name_and_reaso
     with_preamble = tmp_path / "new.dcm"
     with_preamble.write_bytes(dicom(np.full((8, 8), 100, np.uint16)))
     assert sniff(with_preamble) == "dicom"
+
+
+def test_bytes_08_00_at_a_files_start_alone_are_not_called_a_bare_dicom(tmp_path: Path) -> None:
+    """A raw array that starts with the number 8 (little-endian) is an unknown format, alone or as a ZIP's
+    member, not a DICOM data set without its preamble; a bare data set in implicit VR still is one."""
+    import pydicom
+    from pydicom.filebase import DicomBytesIO
+    from pydicom.filewriter import write_dataset
+
+    from tests.support.corpus import dicom
+
+    raw = tmp_path / "raw.bin"
+    raw.write_bytes(np.array([8, 16, 300, 7, 2048, 5, 0, 12] * 32, "<u4").tobytes())
+    assert sniff(raw) == "unknown"
+    with pytest.raises(UnsupportedFile, match=r"raw\.bin: not a NIfTI"):
+        read_upload(raw, "raw.bin")
+    archive = tmp_path / "raw.zip"
+    with zipfile.ZipFile(archive, "w") as z:
+        z.writestr("IM0000", raw.read_bytes())
+    with pytest.raises(UnsupportedFile, match=r"raw\.zip: the ZIP archive holds no DICOM series"):
+        read_upload(archive, "raw.zip")
+    full = tmp_path / "full.dcm"
+    full.write_bytes(dicom(np.full((8, 8), 100, np.uint16)))
+    out = DicomBytesIO()
+    out.is_little_endian, out.is_implicit_VR = True, True
+    write_dataset(out, pydicom.dcmread(full))
+    implicit = tmp_path / "implicit.dcm"
+    implicit.write_bytes(out.getvalue())
+    assert sniff(implicit) == "bare-dicom"
