@@ -50,14 +50,23 @@ def test_no_module_imports_itself_through_others() -> None:
             visit(m, [])
 
 
+def _layer(module: str) -> str:
+    return module.split(".")[1] if module.count(".") else ""
+
+
+def _upward(known: dict, top_level: bool) -> list[tuple[str, str]]:
+    """``(module, imported)`` where a layer imports one above it (``top_level``: module-level imports
+    alone; else every import, those inside functions too)."""
+    return [(m, n) for m, p in known.items() for n in imports(p, known, top_level=top_level)
+            if _layer(m) in RANK and _layer(n) in RANK and RANK[_layer(n)] > RANK[_layer(m)]]
+
+
 def test_a_layer_imports_only_the_layers_below_it() -> None:
     known = modules()
-    layer = lambda m: m.split(".")[1] if m.count(".") else ""  # noqa: E731
-    wrong = [(m, n) for m, p in known.items() for n in imports(p, known, top_level=True)
-             if layer(m) in RANK and layer(n) in RANK and RANK[layer(n)] > RANK[layer(m)]]
+    wrong = _upward(known, top_level=True)
     assert not wrong, wrong
-    numeric = [(m, n) for m, p in known.items() if layer(m) in ("geometry",)
-               for n in imports(p, known, top_level=False) if layer(n) not in ("geometry", "")]
+    numeric = [(m, n) for m, p in known.items() if _layer(m) in ("geometry",)
+               for n in imports(p, known, top_level=False) if _layer(n) not in ("geometry", "")]
     assert not numeric, numeric
 
 
@@ -82,10 +91,7 @@ def _top(name: str) -> str:
 
 
 def test_lazy_imports_inside_functions_follow_the_layers_too() -> None:
-    known = modules()
-    layer = lambda m: m.split(".")[1] if m.count(".") else ""  # noqa: E731
-    wrong = [(m, n) for m, p in known.items() for n in imports(p, known, top_level=False)
-             if layer(m) in RANK and layer(n) in RANK and RANK[layer(n)] > RANK[layer(m)]]
+    wrong = _upward(modules(), top_level=False)
     assert not wrong, wrong
 
 
