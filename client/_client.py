@@ -99,8 +99,9 @@ class SVRnetClient(Transport):
                 mc_samples: int | None = None, variance_threshold: float | None = None,
                 max_expected_error_mm: float | None = None,
                 bias_correction: bool | None = None, model: str | None = None,
-                slice_order: str | Sequence[str] | None = None, image_consistency: bool | None = None,
-                masks_hold_csf: bool | None = None, progress: ProgressCallback | None = None) -> dict[str, Any]:
+                slice_order: str | Sequence[str] | None = None, stack_consistency: bool | None = None,
+                image_consistency: bool | None = None, masks_hold_csf: bool | None = None,
+                progress: ProgressCallback | None = None) -> dict[str, Any]:
         """``POST /v1/predict``: the atlas pose and confidence of every slice of every stack.
 
         Only the optional parameters that are given are sent; the server's defaults apply otherwise.
@@ -118,7 +119,11 @@ class SVRnetClient(Transport):
                 per stack; each ``auto``, ``interleaved``, ``sequential``, ``interleaved-even-first``,
                 ``interleaved-odd-first``, or the slice indices in the order they were acquired
                 (``"0,2,4,1,3"``). Without it the server's motion model chooses.
-            image_consistency: refine the poses where slices of different stacks cross (default on).
+            stack_consistency: decide each stack's left-right branch from all its slices, fit its
+                motion model and flag the slices inconsistent with it (default on; off, every slice
+                is answered alone, its branch undecided).
+            image_consistency: refine the poses where slices of different stacks cross (default on;
+                needs ``stack_consistency``).
             masks_hold_csf: the masks are the skull's inside (brain and the CSF around it, as manual
                 fetal masks are usually drawn): the pose network sees them less their outer 2 mm.
             progress: ``progress(bytes_sent, total)`` during the upload.
@@ -139,6 +144,7 @@ class SVRnetClient(Transport):
                                                    ("variance_threshold", variance_threshold),
                                                    ("max_expected_error_mm", max_expected_error_mm),
                                                    ("bias_correction", bias_correction), ("model", model),
+                                                   ("stack_consistency", stack_consistency),
                                                    ("image_consistency", image_consistency),
                                                    ("masks_hold_csf", masks_hold_csf))
                   if v is not None]

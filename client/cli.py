@@ -120,6 +120,10 @@ def predict(
         help="acquisition order, once for every stack or once per stack: interleaved, sequential, "
              "interleaved-even-first, interleaved-odd-first, or slice indices as acquired (0,2,4,1,3); "
              "default: the server's motion model chooses")] = None,
+    stack_consistency: Annotated[bool, typer.Option(
+        "--stack-consistency/--no-stack-consistency",
+        help="decide each stack's left-right branch from all its slices and fit its motion model "
+             "(off: every slice alone, its branch undecided; image consistency needs it)")] = True,
     image_consistency: Annotated[bool, typer.Option(
         "--image-consistency/--no-image-consistency",
         help="refine the poses where slices of different stacks cross")] = True,
@@ -139,7 +143,8 @@ def predict(
             result = svr.predict(stacks, mask, mc_samples=mc_samples, variance_threshold=threshold,
                                  max_expected_error_mm=max_expected_error,
                                  bias_correction=None if bias_correction else False, model=model,
-                                 slice_order=slice_order, image_consistency=None if image_consistency else False,
+                                 slice_order=slice_order, stack_consistency=None if stack_consistency else False,
+                                 image_consistency=None if image_consistency else False,
                                  masks_hold_csf=True if masks_hold_csf else None, progress=progress)
         if out is not None:                 # the files first: a closed pipe on stdout loses no answer
             write_json(out, result)

@@ -75,7 +75,7 @@ def test_cli_predict_writes_json_and_prints_a_summary(fake_cli: Callable, stack_
     fake, made = fake_cli()
     out = tmp_path / "poses.json"
     r = invoke(["predict", str(stack_file), "--out", str(out), "--mc-samples", "5", "--no-bias-correction",
-                "--no-image-consistency", "--masks-hold-csf", "--server", "http://scanner:9000"])
+                "--no-stack-consistency", "--no-image-consistency", "--masks-hold-csf", "--server", "http://scanner:9000"])
     assert r.exit_code == 0, r.output
     assert json.loads(out.read_text()) == PREDICT_BODY
     assert made == [("http://scanner:9000", None)]
@@ -84,8 +84,8 @@ def test_cli_predict_writes_json_and_prints_a_summary(fake_cli: Callable, stack_
     assert "312 ml" in r.stdout and "(0.93)" in r.stdout and "2 of 3" in r.stdout      # of the slices with brain
     assert "no slice accepted" not in r.stdout
     fields, files = parse_multipart(fake.requests[0])
-    assert fields == {"mc_samples": ["5"], "bias_correction": ["false"], "image_consistency": ["false"],
-                      "masks_hold_csf": ["true"]}
+    assert fields == {"mc_samples": ["5"], "bias_correction": ["false"], "stack_consistency": ["false"],
+                      "image_consistency": ["false"], "masks_hold_csf": ["true"]}
     assert files[0][1] == "stack.nii.gz"
 
 

@@ -256,14 +256,14 @@ def test_upload_progress_reaches_the_total(stack_file: Path) -> None:
         return httpx.Response(200, json={"stacks": []})
 
     seen: list[tuple[int, int]] = []
-    mock(handler).predict([big, stack_file], bias_correction=True, model="m", image_consistency=False,
-                          masks_hold_csf=True, progress=lambda s, t: seen.append((s, t)))
+    mock(handler).predict([big, stack_file], bias_correction=True, model="m", stack_consistency=True,
+                          image_consistency=False, masks_hold_csf=True, progress=lambda s, t: seen.append((s, t)))
     total = len(got[0].content)
     assert len(seen) > 4 and all(t == total for _, t in seen)
     assert [s for s, _ in seen] == sorted(s for s, _ in seen) and seen[0][0] == 0 and seen[-1][0] == total
     fields, files = parse_multipart(got[0])
-    assert fields == {"bias_correction": ["true"], "model": ["m"], "image_consistency": ["false"],
-                      "masks_hold_csf": ["true"]}
+    assert fields == {"bias_correction": ["true"], "model": ["m"], "stack_consistency": ["true"],
+                      "image_consistency": ["false"], "masks_hold_csf": ["true"]}
     assert [(f[0], f[1]) for f in files] == [("stacks", "big.nii"), ("stacks", "stack.nii.gz")]
     assert files[0][3] == big.read_bytes()
 
