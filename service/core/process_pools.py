@@ -51,7 +51,9 @@ def end_pool(pool: ProcessPoolExecutor, grace_s: float, timeout_s: float = 5.0) 
 def watch_parent(parent: int | None = None, interval_s: float = 0.5) -> None:
     """In a pool's process: exit as soon as the process that started it is gone (even after its
     ``kill -9``), so no orphan keeps running a job that the queue will hand to another worker, or
-    holds the memory of a stage nobody will ask for again."""
+    holds the memory of a stage nobody will ask for again. ``parent``: that process's pid, passed by
+    it; the default, this process's parent when it calls this, is already the adoptive one where
+    the starter died while this process was starting (a spawned interpreter takes a second)."""
     parent = os.getppid() if parent is None else parent
 
     def watch() -> None:

@@ -60,12 +60,13 @@ STAGE_BLAS_THREADS = 1
 server's own work (:func:`~service.core.threads.limit_blas_threads`)."""
 
 
-def _start_stage_process() -> None:
+def _start_stage_process(server: int) -> None:
     """The stage process's start: a lower priority, one BLAS thread, and an end with the server's
-    process (a server killed with ``kill -9`` leaves no stage process behind)."""
+    process ``server`` (a server killed with ``kill -9`` leaves no stage process behind, even one
+    killed while this process was still starting)."""
     lower_priority()
     limit_blas_threads(STAGE_BLAS_THREADS)
-    watch_parent()
+    watch_parent(server)
 
 
 def stage_process() -> ProcessPoolExecutor:
@@ -76,7 +77,7 @@ def stage_process() -> ProcessPoolExecutor:
     with _stage_pool_lock:
         if _stage_pool is None:
             _stage_pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
-                                              initializer=_start_stage_process)
+                                              initializer=_start_stage_process, initargs=(os.getpid(),))
         return _stage_pool
 
 
