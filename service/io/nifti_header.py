@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from nibabel.quaternions import fillpositive, quat2mat
 from numpy.typing import NDArray
 
 from service.geometry import frames
@@ -36,6 +37,9 @@ LAYOUTS = {348: dict(dim=40, pixdim=76, qform_code=252, sform_code=254, quatern=
                      code="i2"),
            540: dict(dim=16, pixdim=104, qform_code=344, sform_code=348, quatern=352, srow=400, d="i8", f="f8",
                      code="i4")}
+QUATERNION_SLACK = 1e-6
+"""How far the squares of a qform's ``b, c, d`` may pass 1 (float32 rounding of a turn by 180 degrees)
+and still be read as a rotation, with ``a = 0``."""
 MAX_SHEAR_COS = frames.MAX_SHEAR_COS
 """Axes of the sform further from right angles than this are a sheared grid (one tolerance with what
 the service can write back: :func:`~service.geometry.frames.itk_from_affine`)."""
@@ -89,10 +93,12 @@ def sform_affine(t: NiftiTransforms) -> NDArray[np.float64]:
 
 
 def qform_affine(t: NiftiTransforms) -> NDArray[np.float64]:
-    """The qform as a 4 x 4 voxel -> RAS mm matrix, as the standard's ``quatern_to_mat44``, nibabel
-    and FSL build it: the rotation of the quaternion ``(a, b, c, d)`` (``a`` from ``b, c, d``), the
-    voxel edges ``pixdim[1..3]`` (the third times ``qfac``, -1 where ``pixdim[0]`` is negative, else
-    1) and the offsets, read as millimetres whatever ``xyzt_units`` says, as the sform is.
+    """The qform as a 4 x 4 voxel -> RAS mm matrix, built as nibabel builds it (the standard's
+    ``quatern_to_mat44``): the rotation of the quaternion whose ``a`` follows from ``b, c, d``
+    (:func:`nibabel.quaternions.fillpositive`, ``a = 0`` within :data:`QUATERNION_SLACK` of a turn by
+    180 degrees, as :func:`qform_problem` lets through), the voxel edges ``pixdim[1..3]`` (the third
+    times ``qfac``, -1 where ``pixdim[0]`` is negative, else 1) and the offsets, read as millimetres
+    whatever ``xyzt_units`` says, as the sform is.
 
     ITK scales both voxel edges and offsets of the qform by the unit the header names (a thousand
     for metres, a thousandth for microns), which nibabel, FSL and the sform's reading do not: the
@@ -104,19 +110,11 @@ def qform_affine(t: NiftiTransforms) -> NDArray[np.float64]:
         >>> (qform_affine(t).round(6) + 0.0).tolist()
         [[-1.1, 0.0, 0.0, 5.0], [0.0, -0.9, 0.0, -4.0], [0.0, 0.0, -3.3, 2.0], [0.0, 0.0, 0.0, 1.0]]
     """
-    b, c, d, *offset = (float(x) for x in t.quatern)
-    squares = b * b + c * c + d * d
-    if 1.0 - squares < 1e-7:                # a rotation by 180 degrees: a = 0, (b, c, d) made a unit vector
-        a, (b, c, d) = 0.0, np.array([b, c, d]) / np.sqrt(squares)
-    else:
-        a = float(np.sqrt(1.0 - squares))
-    rotation = np.array([[a * a + b * b - c * c - d * d, 2 * (b * c - a * d), 2 * (b * d + a * c)],
-                         [2 * (b * c + a * d), a * a + c * c - b * b - d * d, 2 * (c * d - a * b)],
-                         [2 * (b * d - a * c), 2 * (c * d + a * b), a * a + d * d - c * c - b * b]])
     qfac = -1.0 if t.pixdim[0] < 0 else 1.0
     out = np.eye(4)
+    rotation = quat2mat(fillpositive(np.asarray(t.quatern[:3], np.float64), QUATERNION_SLACK))
     out[:3, :3] = rotation * np.array([t.pixdim[1], t.pixdim[2], qfac * t.pixdim[3]])
-    out[:3, 3] = offset
+    out[:3, 3] = t.quatern[3:]
     return out
 
 
@@ -163,7 +161,7 @@ def qform_problem(t: NiftiTransforms) -> str | None:
     quatern = np.asarray(t.quatern, np.float64)
     if not np.all(np.isfinite(quatern)):
         return "its NIfTI qform holds values that are not finite"
-    if float(quatern[:3] @ quatern[:3]) > 1.0 + 1e-6:
+    if float(quatern[:3] @ quatern[:3]) > 1.0 + QUATERNION_SLACK:
         return "its NIfTI qform's quaternion (quatern_b, c, d) is no rotation (their squares sum over 1)"
     return None
 

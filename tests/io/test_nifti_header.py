@@ -11,7 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from service.core.errors import UnusableImage
-from service.io.nifti_header import copy_transforms, parse, read_transforms
+from service.io.nifti_header import NiftiTransforms, copy_transforms, parse, qform_affine, read_transforms
 from service.io.readers import read_upload
 from service.io.volume import Volume, read_volume, write_volume
 
@@ -114,3 +114,23 @@ def test_copied_transforms_make_a_written_file_read_as_the_upload(tmp_path: Path
     assert (int(written["sform_code"]), int(written["qform_code"])) == (2, 1)
     assert parse(b"not a header" * 50) is None and read_transforms(tmp_path / "sq.nii") == upload.nifti
     np.testing.assert_allclose(read_volume(out).affine, sform, atol=1e-5)         # the service's own reader too
+
+
+def test_qform_affine_is_nibabels_for_any_rotation_qfac_and_voxel_size() -> None:
+    """Against nibabel's own reading of the same header fields, over random rotations (a turn by 180
+    degrees among them, whose ``a`` is 0), both ``qfac`` signs and random voxel edges and offsets."""
+    rng = np.random.default_rng(7)
+    rotations = list(Rotation.random(40, random_state=rng).as_matrix()) + [np.diag([1.0, -1.0, -1.0])]
+    for rotation in rotations:
+        qfac = rng.choice([-1.0, 1.0])
+        edges = rng.uniform(0.3, 5.0, 3)
+        affine = np.eye(4)
+        affine[:3, :3] = rotation * edges * np.array([1.0, 1.0, qfac])
+        affine[:3, 3] = rng.uniform(-200, 200, 3)
+        header = nib.Nifti1Header()
+        header.set_qform(affine, code=1)
+        fields = NiftiTransforms(1, 0, tuple(float(x) for x in header["pixdim"][:4]),
+                                 tuple(float(header[k]) for k in ("quatern_b", "quatern_c", "quatern_d",
+                                                                  "qoffset_x", "qoffset_y", "qoffset_z")), (0.0,) * 12)
+        np.testing.assert_allclose(qform_affine(fields), header.get_qform(), atol=1e-5)
+        np.testing.assert_allclose(qform_affine(fields), affine, atol=1e-4)        # the simulated truth
