@@ -34,7 +34,8 @@ from service.core.names import clean_name
 from service.io.acquisition_geometry import Tags, series_problem, stated_thickness
 from service.io.acquisition_times import order_of, seconds
 from service.io.dicom import read_dicom_file
-from service.io.dicom_guard import BARE_DICOM, bare_dicom, load_dataset
+from service.io.dicom_guard import load_dataset
+from service.io.dicom_structure import BARE_DICOM, bare_dicom
 from service.io.limits import FileBudget, raise_if_out_of_space
 from service.io.volume import SITK_FILES, Volume, from_sitk
 
@@ -83,7 +84,10 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path 
                     base = clean_name(m.filename.replace("\\", "/").rsplit("/", 1)[-1])   # not its folders (a
                     label = f"{filename}: member {i + 1} of {len(members)}" + (f" ({base})" if base else "")  # patient's)
                     out = Path(tmp) / f"{i:05d}.dcm"
-                    if _unpack(z, m, out, budget.member(label), label, times, tags, thicknesses, sizes, bare):
+                    found = _unpack(z, m, out, budget.member(label), label, times, tags, thicknesses, sizes)
+                    if found == "bare":
+                        bare.append(label)
+                    elif found == "image":
                         labels[str(out)] = label
                         budget.slices(len(labels), "DICOM images in the archive or more (counted as they are read)")
         except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as exc:
@@ -136,9 +140,10 @@ def _check_size(path: str, size: tuple[int, ...], label: str) -> None:
 
 def _unpack(z: zipfile.ZipFile, member: zipfile.ZipInfo, out: Path, budget: FileBudget, label: str,
             times: dict[str, float | None], tags: dict[str, Tags], thicknesses: dict[str, object],
-            sizes: dict[str, tuple[int, ...]], bare: list[str]) -> bool:
-    """Inflate ``member`` to ``out`` (charged to ``budget``) and screen it; False: not a DICOM image
-    (its ``label`` added to ``bare`` where it is a DICOM data set without the file preamble).
+            sizes: dict[str, tuple[int, ...]]) -> str:
+    """Inflate ``member`` to ``out`` (charged to ``budget``) and screen it: ``"image"`` (a DICOM
+    image, kept), ``"bare"`` (a DICOM data set without the file preamble, :func:`bare_dicom`) or
+    ``"other"`` (neither; both removed again).
     Its acquisition time goes to ``times`` (:mod:`service.io.acquisition_times`), its geometry tags
     to ``tags`` (:mod:`service.io.acquisition_geometry`), its slice thickness to ``thicknesses``, its
     image size to ``sizes``."""
@@ -153,9 +158,7 @@ def _unpack(z: zipfile.ZipFile, member: zipfile.ZipInfo, out: Path, budget: File
                               "series in a single ZIP")
     if head[128:132] != b"DICM":
         out.unlink()
-        if bare_dicom(head):
-            bare.append(label)
-        return False
+        return "bare" if bare_dicom(head) else "other"
     try:
         ds = load_dataset(out, label, budget, require_pixels=False)
     except (PayloadTooLarge, UnsupportedFile):
@@ -164,14 +167,14 @@ def _unpack(z: zipfile.ZipFile, member: zipfile.ZipInfo, out: Path, budget: File
         raise UnsupportedFile(f"{label}: unreadable DICOM file") from exc
     if "PixelData" not in ds:
         out.unlink()
-        return False
+        return "other"
     times[str(out)] = seconds(ds)
     thicknesses[str(out)] = ds.get("SliceThickness")
     sizes[str(out)] = (int(ds.Columns), int(ds.Rows), int(getattr(ds, "NumberOfFrames", 1) or 1))   # checked by load_dataset
     tags[str(out)] = (ds.get("ImagePositionPatient"), ds.get("ImageOrientationPatient"), ds.get("PixelSpacing"))
     if ds.file_meta.TransferSyntaxUID == uid.ExplicitVRLittleEndian and _was_deflated(out):
         ds.save_as(out, implicit_vr=False, little_endian=True, enforce_file_format=True)
-    return True
+    return "image"
 
 
 def _was_deflated(path: Path) -> bool:

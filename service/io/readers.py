@@ -36,7 +36,7 @@ from service.geometry import frames
 from service.io.acquisition_geometry import grid_problem, slice_axis_problem, stacking_problem
 from service.io.archive import read_dicom_zip
 from service.io.dicom import read_dicom_file
-from service.io.dicom_guard import BARE_DICOM, bare_dicom
+from service.io.dicom_structure import BARE_DICOM, bare_dicom
 from service.io.headers import clean_header, declared_values, geometry_problem
 from service.io.limits import DecodeBudget, FileBudget, raise_if_out_of_space
 from service.io.nifti_header import (MAX_SHEAR_COS, NiftiTransforms, missing_voxel_size, orientation_problem,
@@ -54,7 +54,7 @@ sitk.ProcessObject_SetGlobalWarningDisplay(False)   # ITK's warnings reach stder
 
 def sniff(path: Path) -> str:
     """The kind of file: ``nifti``, ``nifti-gz``, ``nrrd``, ``mha``, ``dicom``, ``zip``, ``bare-dicom``
-    (:func:`~service.io.dicom_guard.bare_dicom`, refused with its reason) or ``unknown``
+    (:func:`~service.io.dicom_structure.bare_dicom`, refused with its reason) or ``unknown``
     (from the first bytes; a gzip stream's integrity is checked when it is decoded, once)."""
     with open(path, "rb") as f:
         head = f.read(1024)
