@@ -19,16 +19,26 @@ def modules() -> dict[str, Path]:
     return out
 
 
+def imported(path: Path, top_level: bool = False) -> list[tuple[str, list[str]]]:
+    """``(module, names)`` of every absolute import statement of ``path`` (everywhere, lazy ones inside
+    functions too, or only at its top level): ``from m import a, b`` is ``(m, [a, b])``, ``import m``
+    is ``(m, [])``."""
+    tree = ast.parse(path.read_text())
+    out = []
+    for node in tree.body if top_level else ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            out.append((node.module, [a.name for a in node.names]))
+        elif isinstance(node, ast.Import):
+            out.extend((a.name, []) for a in node.names)
+    return out
+
+
 def imports(path: Path, known: dict[str, Path], top_level: bool) -> set[str]:
     """The service modules ``path`` imports (everywhere, or only at its top level)."""
-    tree = ast.parse(path.read_text())
     out = set()
-    for node in tree.body if top_level else ast.walk(tree):
-        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("service"):
-            subs = {f"{node.module}.{a.name}" for a in node.names} & set(known)
-            out |= subs or ({node.module} & set(known))
-        elif isinstance(node, ast.Import):
-            out |= {a.name for a in node.names} & set(known)
+    for module, names in imported(path, top_level):
+        subs = {f"{module}.{n}" for n in names} & set(known)
+        out |= subs or ({module} & set(known))
     return out
 
 
@@ -75,15 +85,8 @@ ROOT = SERVICE.parent
 
 def _all_imports(package: str) -> list[tuple[str, str]]:
     """``(module, imported)`` for every import statement of ``package``, lazy ones inside functions too."""
-    out = []
-    for p in (ROOT / package).rglob("*.py"):
-        module = ".".join(p.relative_to(ROOT).with_suffix("").parts)
-        for node in ast.walk(ast.parse(p.read_text())):
-            if isinstance(node, ast.ImportFrom) and node.module and not node.level:
-                out.append((module, node.module))
-            elif isinstance(node, ast.Import):
-                out.extend((module, a.name) for a in node.names)
-    return out
+    return [(".".join(p.relative_to(ROOT).with_suffix("").parts), module)
+            for p in (ROOT / package).rglob("*.py") for module, _ in imported(p)]
 
 
 def _top(name: str) -> str:
