@@ -18,7 +18,7 @@ import redis
 from rq.worker import Worker as RqWorker
 
 from tests.jobs.conftest import env_of
-from tests.support.live_server import Server, Worker, completions, stop_all
+from tests.support.live_server import Server, Worker, alive, completions, stop_all
 from tests.support.phantoms import orthogonal_stacks_case
 
 FINAL = ("succeeded", "failed", "cancelled")
@@ -47,14 +47,6 @@ def submit(url: str, files: list, **data: str) -> str:
 
 def status(url: str, job_id: str) -> dict:
     return httpx.get(f"{url}/v1/reconstructions/{job_id}", timeout=10).json()
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-        return True
-    except ProcessLookupError:
-        return False
 
 
 @pytest.mark.slow
@@ -95,7 +87,7 @@ def test_two_replicas_two_workers_and_a_worker_killed_mid_job(tmp_path: Path, jo
     # The killed worker's work horse did not outlive it (it would otherwise finish the job a second time).
     leftovers = [int(p) for p in os.listdir("/proc") if p.isdigit() and
                  f"w0-{cluster_settings['queue_name']}".encode() in Path(f"/proc/{p}/cmdline").read_bytes()]
-    assert not [p for p in leftovers if _alive(p)]
+    assert not [p for p in leftovers if alive(p)]
 
 
 @pytest.mark.slow

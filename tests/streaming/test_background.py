@@ -15,6 +15,7 @@ from service.main import create_app
 from service.core.threads import blas_threads
 from service.streaming.background import STAGE_BLAS_THREADS, run_in_stage_process, stage_process, stop_stage_process
 from tests.api.conftest import OracleEstimator
+from tests.support.live_server import gone_within
 from tests.support.scratch import job_store_dir
 
 
@@ -104,15 +105,6 @@ def test_the_stage_process_ends_with_a_server_killed_at_once(tmp_path) -> None: 
         os.kill(child, 0)                                                  # running
         server.send_signal(signal.SIGKILL)
         server.wait(10)
-        deadline = time.monotonic() + 10.0
-        while time.monotonic() < deadline:
-            try:
-                os.kill(child, 0)
-            except ProcessLookupError:
-                break
-            time.sleep(0.1)
-        else:
-            os.kill(child, signal.SIGKILL)
-            raise AssertionError("the stage process outlived the server")
+        assert gone_within(child, 10.0), "the stage process outlived the server"
     finally:
         server.kill()

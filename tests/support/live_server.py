@@ -96,6 +96,26 @@ class Server:
             pass
 
 
+def alive(pid: int) -> bool:
+    """Whether a process ``pid`` exists (not yet reaped)."""
+    try:
+        os.kill(pid, 0)
+        return True
+    except ProcessLookupError:
+        return False
+
+
+def gone_within(pid: int, seconds: float) -> bool:
+    """Whether process ``pid`` is gone within ``seconds``; one still there then is killed."""
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        if not alive(pid):
+            return True
+        time.sleep(0.1)
+    os.kill(pid, signal.SIGKILL)
+    return False
+
+
 def _pgid(pid: int) -> int | None:
     try:
         return os.getpgid(pid)
