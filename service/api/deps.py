@@ -50,6 +50,14 @@ MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 LocalisersDep = Annotated[Localisers, Depends(get_localisers)]
 
 
+def requested_model(request: Request, registry: ModelRegistry, name: str) -> str:
+    """The pose model ``name`` means (:meth:`~service.inference.registry.ModelRegistry.resolve`),
+    recorded as the request's ``model`` label in the metrics from here on."""
+    model = registry.resolve(name)
+    request.scope["state"]["model"] = model
+    return model
+
+
 def localiser_for(localisers: Localisers, masks: list) -> Localiser | None:
     """The default brain localiser for a request whose stacks come without masks (None when masks
     come); a server without one refuses such a request at once, naming the field ``masks``."""

@@ -9,7 +9,7 @@ from anyio import to_thread
 from fastapi import APIRouter, Depends, Form, Request
 
 from service.api.deps import (ApiKey, LocalisersDep, MetricsDep, RegistryDep, SettingsDep, localiser_for,
-                              processing)
+                              processing, requested_model)
 from service.api.responses import stack_objects
 from service.api.schemas import UPLOAD_ERRORS, PredictResponse
 from service.api.uploads import UploadFormDep, known_fields, upload_directory, upload_reader
@@ -38,8 +38,7 @@ async def predict(
     """Every slice of every stack, accepted or not, in order, with its SE(3) Fréchet-mean pose (the work
     stops at its next step where the client leaves)."""
     t0 = time.perf_counter()
-    model = registry.resolve(form.model)
-    request.scope["state"]["model"] = model
+    model = requested_model(request, registry, form.model)
     estimator = registry.get(model)
     localiser = localiser_for(localisers, form.masks)
     info = estimator.info

@@ -16,7 +16,7 @@ from starlette.types import Receive, Scope, Send
 from pydantic import Field
 
 from service.api.deps import (IDEMPOTENCY_HEADER, ApiKey, LocalisersDep, RegistryDep, SettingsDep, idempotency_digest,
-                              localiser_for, presented_key, processing, queue_full)
+                              localiser_for, presented_key, processing, queue_full, requested_model)
 from service.api.idempotency import hold_submission, made_by_key, submission_digest, unless_abandoned
 from service.api.schemas import (UPLOAD_ERRORS, JobCreated, JobStatus, RefinedPoses, download, job_poses,
                                  problem_responses)
@@ -227,8 +227,7 @@ async def submit(
     ``poses`` (optional, a form field or a file): the JSON body ``/v1/predict`` returned for the
     same files; without it the job predicts first.
     """
-    model = registry.resolve(form.model)
-    request.scope["state"]["model"] = model          # the metrics' label from here on
+    model = requested_model(request, registry, form.model)
     localiser_for(localisers, form.masks)            # the job's worker localises; refused now, not failed later
     thickness = thickness_per_stack(slice_thickness_mm, len(form.stacks))
     if len(request.headers.getlist(IDEMPOTENCY_HEADER)) > 1:      # not one chosen of two
