@@ -27,7 +27,7 @@ from service.geometry.anchors import ed
 from service.inference.estimator import PoseEstimate, shown, statistics
 from service.inference.model_file import ModelInfo
 from service.consistency.slice_order import SliceOrder
-from service.api.responses import stack_objects
+from service.pipeline.documents import stack_objects
 from service.pipeline.predict import StackPrediction, predict
 from service.pipeline.prepare import PreparedStack, StackUpload, prepare_stacks
 
@@ -104,7 +104,7 @@ def run_acquisition(stacks: list[SimulatedStack], estimator, mc_samples: int = 1
                     ) -> tuple[list[list[StackPrediction]], list[PreparedStack], list[NDArray]]:
     """Predict one acquisition as the server would, once per ``orders`` (``slice_order`` values;
     ``None``: not given) from one network pass; returns the stacks' predictions per order
-    (:func:`~service.api.responses.stack_objects` writes their answers), the prepared stacks and each
+    (:func:`~service.pipeline.documents.stack_objects` writes their answers), the prepared stacks and each
     stack's true network-frame poses."""
     prepared, truth = prepare_acquisition(stacks, estimator.info, bias_correction)
     if hasattr(estimator, "truth"):

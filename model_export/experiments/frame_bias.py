@@ -41,7 +41,7 @@ from model_export.acquisitions import simulate_acquisition  # noqa: E402
 from model_export.atlas import DEFAULT_ATLAS_ROOT, VALIDATION_VOLUMES, AtlasVolume, load_volumes  # noqa: E402
 from model_export.evaluate_acquisitions import run_acquisition  # noqa: E402
 from model_export.localiser.evaluate import _pose_estimator  # noqa: E402
-from service.api.responses import stack_objects  # noqa: E402
+from service.pipeline.documents import stack_objects  # noqa: E402
 from service.geometry import anchors, se3, twin  # noqa: E402
 from service.geometry.pose import about_centre, make_pose, translate  # noqa: E402
 from service.io.volume import Volume  # noqa: E402

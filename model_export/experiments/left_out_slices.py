@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from model_export.acquisitions import simulate_acquisition  # noqa: E402
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, run_acquisition  # noqa: E402
 from model_export.experiments.refine_bench import network_poses, to_truth_frame, validation_setup  # noqa: E402
-from service.api.responses import stack_objects  # noqa: E402
+from service.pipeline.documents import stack_objects  # noqa: E402
 from service.geometry import twin  # noqa: E402
 from service.geometry.anchors import ed  # noqa: E402
 from service.jobs.uploaded_poses import expected_errors  # noqa: E402

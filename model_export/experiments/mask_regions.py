@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from model_export.experiments.mask_vote import accepted_in_both, common_offset  # noqa: E402
 from model_export.experiments.real_scan_poses import read_scan  # noqa: E402
 from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator  # noqa: E402
-from service.api.responses import stack_objects  # noqa: E402
+from service.pipeline.documents import stack_objects  # noqa: E402
 from service.geometry import anchors, se3  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
 from service.io.volume import Volume  # noqa: E402

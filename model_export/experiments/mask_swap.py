@@ -24,7 +24,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, csf_mask_upload, dice, masked_stacks, median_ed  # noqa: E402
-from service.api.responses import stack_objects  # noqa: E402
+from service.pipeline.documents import stack_objects  # noqa: E402
 from service.core.settings import DEFAULT_LOCALISERS_DIR  # noqa: E402
 from service.pipeline.predict import predict  # noqa: E402
 from service.pipeline.prepare import StackUpload, prepare_stacks  # noqa: E402

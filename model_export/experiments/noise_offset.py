@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
 from model_export.calibrate_noise import acquire  # noqa: E402
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, run_acquisition  # noqa: E402
-from service.api.responses import stack_objects  # noqa: E402
+from service.pipeline.documents import stack_objects  # noqa: E402
 from service.geometry import se3  # noqa: E402
 from service.geometry.anchors import ed, encode  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator  # noqa: E402

@@ -34,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from model_export.experiments.frame_bias import as_row, common_frame  # noqa: E402
 from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, csf_mask_upload, dice, masked_stacks, median_ed  # noqa: E402
 from model_export.localiser.pose_accuracy import slice_poses  # noqa: E402
-from service.api.responses import stack_objects  # noqa: E402
+from service.pipeline.documents import stack_objects  # noqa: E402
 from service.core.settings import DEFAULT_LOCALISERS_DIR  # noqa: E402
 from service.geometry import anchors, twin  # noqa: E402
 from service.pipeline.predict import estimate_stacks, predict_from_estimates  # noqa: E402

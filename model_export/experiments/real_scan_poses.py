@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from model_export.experiments.frame_bias import common_frame  # noqa: E402
 from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, masked_files  # noqa: E402
 from model_export.localiser.pose_accuracy import slice_poses  # noqa: E402
-from service.api.responses import stack_objects  # noqa: E402
+from service.pipeline.documents import stack_objects  # noqa: E402
 from service.geometry import anchors, se3  # noqa: E402
 from service.inference.acceptance import ATLAS_CENTRE_MM  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator, PoseEstimator  # noqa: E402

@@ -43,7 +43,7 @@ from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, run_acquisition
 from model_export.experiments.frame_bias import midline_offset
 from model_export.experiments.scanner_sweep import with_shading, with_signal_loss
 from model_export.volume_metrics import volume_psnr_ncc
-from service.api.responses import stack_objects
+from service.pipeline.documents import stack_objects
 from service.geometry import se3, twin
 from service.geometry.anchors import ed
 from service.geometry.pose import about_centre

@@ -31,7 +31,7 @@ from model_export.acquisitions import simulate_acquisition
 from model_export.calibrate import auroc
 from model_export.evaluate_acquisitions import run_acquisition
 from model_export.experiments.refine_bench import network_poses, to_truth_frame, validation_setup
-from service.api.responses import stack_objects
+from service.pipeline.documents import stack_objects
 from service.geometry import twin
 from service.geometry.anchors import ed
 from service.jobs.uploaded_poses import expected_errors

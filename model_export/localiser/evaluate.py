@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.geometry import anchors
-from service.api.responses import stack_objects
+from service.pipeline.documents import stack_objects
 from model_export.localiser.pose_accuracy import pose_accuracy, slice_poses, validation_scenes
 from service.pipeline.predict import predict
 from service.pipeline.prepare import StackUpload, prepare_stacks

@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
 from model_export.localiser.scenes import HeadModel, Scene, synth_scene
-from service.api.responses import stack_objects
+from service.pipeline.documents import stack_objects
 from service.geometry import anchors, twin
 from service.io.volume import Volume
 from service.pipeline.predict import predict

@@ -205,7 +205,7 @@ def predicted_body(uploads: list, estimator: PoseEstimator, mc_samples: int = 10
     the service's own prediction, and the brain masks per stack; ``orders``: the stacks'
     acquisition orders (:class:`~service.consistency.slice_order.SliceOrder`), if known;
     ``localiser``: for the stacks without a mask (default: the shipped one)."""
-    from service.api.responses import stack_objects
+    from service.pipeline.documents import stack_objects
     from service.pipeline.predict import predict
     from service.pipeline.prepare import prepare_stacks
 
@@ -311,7 +311,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     from service.reconstruction.export import write_outputs
     from service.preprocess.stack import split_stack
     from service.reconstruction.job import bias_corrected_stacks, refine_job
-    from service.api.responses import stack_geometry
+    from service.pipeline.documents import stack_geometry
     from service.reconstruction.refined_poses import refined_poses_body
     from service.reconstruction.slices import SliceSet
 

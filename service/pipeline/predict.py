@@ -5,7 +5,7 @@ Stages follow the paper's Fig. 1: localisation (uploaded mask, else the learned 
 rescale/crop/centre (:mod:`service.pipeline.prepare`), then here MC-dropout
 inference of ALL slices of ALL stacks in one batched estimator call, twin-aware SE(3) statistics,
 stack consistency (:mod:`service.consistency`), acceptance. The results are plain data
-(:class:`StackPrediction`); :mod:`service.api.responses` writes them as the contract's JSON.
+(:class:`StackPrediction`); :mod:`service.pipeline.documents` writes them as the contract's JSON.
 
 Geometry of every slice (the composition is written once, in
 :func:`service.consistency.stage.network_from_voxel`)::
@@ -75,7 +75,7 @@ def stack_poses(est: PoseEstimate, prepared: PreparedStack, net_from_vox: np.nda
 
 @dataclass
 class StackPrediction:
-    """One stack's answer, as plain data (:mod:`service.api.responses` writes it as the contract's JSON).
+    """One stack's answer, as plain data (:mod:`service.pipeline.documents` writes it as the contract's JSON).
 
     Attributes:
         prepared: the stack as it was prepared (its upload, slices, network inputs, localisation).

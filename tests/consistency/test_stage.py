@@ -15,7 +15,7 @@ from service.consistency.stage import (
     request_reference,
     undecided,
 )
-from service.api.responses import stack_report
+from service.pipeline.documents import stack_report
 from service.geometry import anchors, se3, twin
 from service.geometry.pose import make_pose, translate
 from service.io.volume import Volume

@@ -111,7 +111,7 @@ def test_the_stages_rigid_placement_is_the_stacks_true_mean_placement() -> None:
     placement, composed with the file's geometry and the service's crop, lands every slice where the
     stack's true mean placement puts it: the composition behind ``fitted_motion_mm``."""
     from model_export.evaluate_acquisitions import rigid_poses, run_acquisition
-    from service.api.responses import stack_objects
+    from service.pipeline.documents import stack_objects
     from service.geometry import anchors, se3, twin
 
     img, mask, aff = BRAIN

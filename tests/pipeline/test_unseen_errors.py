@@ -134,7 +134,7 @@ def test_predict_gives_each_stack_the_noise_error_of_its_own_input_noise() -> No
                                    np.hypot(b.poses.expected_error_mm, noise_error_mm(p.input_noise, (0.09, 50.0))))
     assert [p.noise_error_mm for p in before] == [0.0, 0.0]
     assert after[0].noise_error_mm == 0.0 and after[1].noise_error_mm == pytest.approx(3.0)
-    from service.api.responses import stack_objects
+    from service.pipeline.documents import stack_objects
 
     assert [s["noise"]["expected_error_added_mm"] for s in stack_objects(after)] == [0.0, 3.0]
     grown = after[1].poses.expected_error_mm - before[1].poses.expected_error_mm
