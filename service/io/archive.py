@@ -35,7 +35,7 @@ from service.io.acquisition_geometry import Tags, series_problem, stated_thickne
 from service.io.acquisition_times import order_of, seconds
 from service.io.dicom import read_dicom_file
 from service.io.dicom_guard import load_dataset
-from service.io.dicom_structure import BARE_DICOM, bare_dicom
+from service.io.bare_dicom import as_part10, bare_dicom
 from service.io.limits import FileBudget, raise_if_out_of_space
 from service.io.volume import SITK_FILES, Volume, from_sitk
 
@@ -71,7 +71,6 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path 
         thicknesses: dict[str, object] = {}     # unpacked file -> its SliceThickness
         tags: dict[str, Tags] = {}            # unpacked file -> its geometry tags (to check the series)
         sizes: dict[str, tuple[int, ...]] = {}  # unpacked file -> (columns, rows, frames) as pydicom read them
-        bare: list[str] = []                  # members that are DICOM data sets without the file preamble
         try:
             _check_directory(path, filename)
             with zipfile.ZipFile(path) as z:
@@ -84,10 +83,7 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path 
                     base = clean_name(m.filename.replace("\\", "/").rsplit("/", 1)[-1])   # not its folders (a
                     label = f"{filename}: member {i + 1} of {len(members)}" + (f" ({base})" if base else "")  # patient's)
                     out = Path(tmp) / f"{i:05d}.dcm"
-                    found = _unpack(z, m, out, budget.member(label), label, times, tags, thicknesses, sizes)
-                    if found == "bare":
-                        bare.append(label)
-                    elif found == "image":
+                    if _unpack(z, m, out, budget.member(label), label, times, tags, thicknesses, sizes):
                         labels[str(out)] = label
                         budget.slices(len(labels), "DICOM images in the archive or more (counted as they are read)")
         except (zipfile.BadZipFile, zlib.error, EOFError, OSError) as exc:
@@ -99,9 +95,6 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path 
         reader = sitk.ImageSeriesReader()
         with SITK_FILES:
             series = reader.GetGDCMSeriesIDs(tmp) if labels else ()
-        if not series and bare:
-            raise UnsupportedFile(f"{bare[0]}" + (f" and {len(bare) - 1} more" if len(bare) > 1 else "") +
-                                  f": {BARE_DICOM}")
         if not series:
             raise UnsupportedFile(f"{filename}: the ZIP archive holds no DICOM series")
         if len(series) > 1:
@@ -140,10 +133,10 @@ def _check_size(path: str, size: tuple[int, ...], label: str) -> None:
 
 def _unpack(z: zipfile.ZipFile, member: zipfile.ZipInfo, out: Path, budget: FileBudget, label: str,
             times: dict[str, float | None], tags: dict[str, Tags], thicknesses: dict[str, object],
-            sizes: dict[str, tuple[int, ...]]) -> str:
-    """Inflate ``member`` to ``out`` (charged to ``budget``) and screen it: ``"image"`` (a DICOM
-    image, kept), ``"bare"`` (a DICOM data set without the file preamble, :func:`bare_dicom`) or
-    ``"other"`` (neither; both removed again).
+            sizes: dict[str, tuple[int, ...]]) -> bool:
+    """Inflate ``member`` to ``out`` (charged to ``budget``) and screen it: whether it is a DICOM
+    image (kept; a data set without the file preamble, :func:`bare_dicom`, kept as a DICOM file) or
+    not (removed again).
     Its acquisition time goes to ``times`` (:mod:`service.io.acquisition_times`), its geometry tags
     to ``tags`` (:mod:`service.io.acquisition_geometry`), its slice thickness to ``thicknesses``, its
     image size to ``sizes``."""
@@ -157,8 +150,11 @@ def _unpack(z: zipfile.ZipFile, member: zipfile.ZipInfo, out: Path, budget: File
         raise UnsupportedFile(f"{label}: an archive nested in the archive; upload the DICOM files of one "
                               "series in a single ZIP")
     if head[128:132] != b"DICM":
-        out.unlink()
-        return "bare" if bare_dicom(head) else "other"
+        if not bare_dicom(head):
+            out.unlink()
+            return False
+        as_part10(out, out.with_suffix(".part10"), label)
+        out.with_suffix(".part10").replace(out)
     try:
         ds = load_dataset(out, label, budget, require_pixels=False)
     except (PayloadTooLarge, UnsupportedFile):
@@ -167,14 +163,14 @@ def _unpack(z: zipfile.ZipFile, member: zipfile.ZipInfo, out: Path, budget: File
         raise UnsupportedFile(f"{label}: unreadable DICOM file") from exc
     if "PixelData" not in ds:
         out.unlink()
-        return "other"
+        return False
     times[str(out)] = seconds(ds)
     thicknesses[str(out)] = ds.get("SliceThickness")
     sizes[str(out)] = (int(ds.Columns), int(ds.Rows), int(getattr(ds, "NumberOfFrames", 1) or 1))   # checked by load_dataset
     tags[str(out)] = (ds.get("ImagePositionPatient"), ds.get("ImageOrientationPatient"), ds.get("PixelSpacing"))
     if ds.file_meta.TransferSyntaxUID == uid.ExplicitVRLittleEndian and _was_deflated(out):
         ds.save_as(out, implicit_vr=False, little_endian=True, enforce_file_format=True)
-    return "image"
+    return True
 
 
 def _was_deflated(path: Path) -> bool:

@@ -1,5 +1,4 @@
-"""A DICOM dataset's elements counted from its bytes, before pydicom builds any of them, and a data
-set stored without the file preamble recognised from its first elements (:func:`bare_dicom`).
+"""A DICOM dataset's elements counted from its bytes, before pydicom builds any of them.
 
 pydicom makes a Python object of every element and sequence item it reads: hundreds of bytes for an
 element of eight, so a file of a few hundred KB of empty items or zero-length elements would take
@@ -130,64 +129,3 @@ def _walk(fp: BinaryIO, start: int, size: int, filename: str, implicit: bool, e:
         if len(stack) == 1 and fp.tell() - start > MAX_HEADER_BYTES and tag < PIXEL_DATA:
             raise PayloadTooLarge(f"{filename}: a DICOM header of more than {MAX_HEADER_BYTES >> 20} MB before its "
                                   "pixel data")
-
-
-BARE_DICOM = ("a DICOM data set without the DICOM file preamble (no 'DICM' at byte 128, as older "
-              "archives and some exports write it); export it again as DICOM files (Part 10)")
-"""Why a DICOM data set without its file preamble is refused: the readers here, as the scanners'
-own, read DICOM files (Part 10); a bare data set's encoding is a guess."""
-
-VRS = frozenset(b"AE AS AT CS DA DS DT FD FL IS LO LT OB OD OF OL OV OW PN SH SL SQ SS ST SV TM UC UI UL UN UR "
-                b"US UT UV".split())
-"""The value representations of an explicit-VR element (:data:`LONG_VRS` among them)."""
-BARE_ELEMENTS = 4
-"""Elements of a bare data set's start walked (within the bytes read) before it is called one."""
-
-
-def bare_dicom(head: bytes) -> bool:
-    """Whether ``head`` (a file's first bytes) starts like a DICOM data set stored without the file
-    preamble: a little-endian tag of the file-meta (0002) or identifying (0008) group, then, for as
-    many of the first :data:`BARE_ELEMENTS` elements as ``head`` holds, an explicit VR or an
-    implicit element's length under 64 KB, each value of even length (a group's length 4 bytes) and
-    each tag after the one before it (the file-meta group is walked alone: the data set after it
-    may change its encoding). Two bytes ``08 00`` at a file's start alone, as a raw array starting
-    with the number 8 has them, are no DICOM.
-
-    Example:
-        >>> bare_dicom(b"\\x08\\x00\\x05\\x00CS\\x0a\\x00ISO_IR 100"), bare_dicom(b"\\x08\\x00\\x16\\x00\\x1a\\x00\\x00\\x00")
-        (True, True)
-        >>> bare_dicom(b"hello world, not an image"), bare_dicom(b"\\x08\\x00")
-        (False, False)
-        >>> bare_dicom((8).to_bytes(4, "little") + (16).to_bytes(4, "little") + bytes(range(40)))  # uint32s
-        False
-    """
-    if len(head) < 8 or head[:2] not in (b"\x02\x00", b"\x08\x00"):
-        return False
-    explicit = head[4:6] in VRS
-    at, last = 0, (-1, -1)
-    for _ in range(BARE_ELEMENTS):
-        if at + 8 > len(head):
-            break
-        tag = (int.from_bytes(head[at:at + 2], "little"), int.from_bytes(head[at + 2:at + 4], "little"))
-        if last[0] == 2 and tag[0] != 2:        # the file-meta group walked: the data set may be encoded otherwise
-            return tag > last
-        if tag <= last:
-            return False
-        if not explicit:
-            length, at = int.from_bytes(head[at + 4:at + 8], "little"), at + 8
-        elif (vr := head[at + 4:at + 6]) not in VRS:
-            return False
-        elif vr in LONG_VRS:
-            if head[at + 6:at + 8] != b"\0\0":
-                return False
-            if at + 12 > len(head):
-                break
-            length, at = int.from_bytes(head[at + 8:at + 12], "little"), at + 12
-        else:
-            length, at = int.from_bytes(head[at + 6:at + 8], "little"), at + 8
-        if length == UNDEFINED:                 # a sequence or item of undefined length: its items follow
-            break
-        if length % 2 or (not explicit and length >= 1 << 16) or (tag[1] == 0 and length != 4):
-            return False                        # an odd length, a header's value that long, a group length not a UL
-        at, last = at + length, tag
-    return True

@@ -36,7 +36,7 @@ from service.geometry import frames
 from service.io.acquisition_geometry import grid_problem, slice_axis_problem, stacking_problem
 from service.io.archive import read_dicom_zip
 from service.io.dicom import read_dicom_file
-from service.io.dicom_structure import BARE_DICOM, bare_dicom
+from service.io.bare_dicom import as_part10, bare_dicom
 from service.io.headers import clean_header, declared_values, geometry_problem
 from service.io.limits import DecodeBudget, FileBudget, raise_if_out_of_space
 from service.io.nifti_header import (MAX_SHEAR_COS, NiftiTransforms, missing_voxel_size, orientation_problem,
@@ -54,7 +54,7 @@ sitk.ProcessObject_SetGlobalWarningDisplay(False)   # ITK's warnings reach stder
 
 def sniff(path: Path) -> str:
     """The kind of file: ``nifti``, ``nifti-gz``, ``nrrd``, ``mha``, ``dicom``, ``zip``, ``bare-dicom``
-    (:func:`~service.io.dicom_structure.bare_dicom`, refused with its reason) or ``unknown``
+    (a DICOM data set without the file preamble, :func:`~service.io.bare_dicom.bare_dicom`) or ``unknown``
     (from the first bytes; a gzip stream's integrity is checked when it is decoded, once)."""
     with open(path, "rb") as f:
         head = f.read(1024)
@@ -78,6 +78,15 @@ def sniff(path: Path) -> str:
     if bare_dicom(head):
         return "bare-dicom"
     return "unknown"
+
+
+def _read_dicom(path: Path, filename: str, kind: str, budget: FileBudget, scratch: Path | None) -> Volume:
+    """One DICOM file; a bare data set (``kind`` ``bare-dicom``) read from its copy as a DICOM file."""
+    if kind == "dicom":
+        return read_dicom_file(path, filename, budget)
+    with tempfile.TemporaryDirectory(prefix="svrnet-read-", dir=scratch) as tmp:
+        as_part10(path, Path(tmp) / "upload.dcm", filename)
+        return read_dicom_file(Path(tmp) / "upload.dcm", filename, budget)
 
 
 def _is_nifti(head: bytes) -> bool:
@@ -144,13 +153,11 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
                     vol = placed_by_header(from_sitk(_squeeze_4d(image, filename)), transforms)
                     if header is not None and (problem := geometry_problem(header, kind)) is not None:
                         raise UnusableImage(f"{filename}: {problem}")      # what the reader made up
-        elif kind in ("dicom", "zip"):
-            vol = read_dicom_file(path, filename, budget) if kind == "dicom" else read_dicom_zip(path, filename, budget,
-                                                                                                 scratch)
+        elif kind in ("dicom", "bare-dicom", "zip"):
+            vol = read_dicom_zip(path, filename, budget, scratch) if kind == "zip" else _read_dicom(path, filename, kind,
+                                                                                                    budget, scratch)
             if (problem := stacking_problem(vol.spacing, vol.array.shape[2])) is not None:
                 raise UnusableImage(f"{filename}: {problem}")
-        elif kind == "bare-dicom":
-            raise UnsupportedFile(f"{filename}: {BARE_DICOM}")
         else:
             raise UnsupportedFile(f"{filename}: not a NIfTI, NRRD, MHA, DICOM or ZIP file (or truncated)")
     except ServiceError:
