@@ -93,6 +93,25 @@ def slice_affine(atlas_from_voxel: ArrayLike, k: int, thickness_mm: float, slice
     return a
 
 
+NIFTYMIC_EXTENSIONS = ("nii.gz", "nii")
+"""The file name endings NiftyMIC reads a stack from, in the order it tries them."""
+
+
+def niftymic_name(path: Path) -> str:
+    """The name NiftyMIC gives the stack read from ``path``, which its ``.tfm`` files must start with:
+    the file name without every match of the regular expression ``.`` + its ending (NiftyMIC's
+    ``Stack.from_filename``); :class:`UnusableInput` for a name NiftyMIC does not read.
+
+    Example (the ending's dot matches any character, elsewhere in the name too):
+        >>> niftymic_name(Path("ax.nii.gz")), niftymic_name(Path("haste_nii.nii"))
+        ('ax', 'haste')
+    """
+    ending = next((e for e in NIFTYMIC_EXTENSIONS if path.name.endswith(e)), None)
+    if ending is None:
+        raise UnusableInput(f"export: NiftyMIC reads stacks named *.nii or *.nii.gz, not {path.name}: rename it")
+    return re.sub("." + ending, "", path.name)
+
+
 def mean_transform(transforms: ArrayLike) -> NDArray[np.float64]:
     """The mean of rigid ``4 x 4`` transforms: the rotations' chordal mean (the rotation nearest their
     sum), the translations' mean.
@@ -261,8 +280,8 @@ def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None,
         raise UnusableInput(f"export: unknown format {to!r}; one of {', '.join(FORMATS)}")
     done = Exported(0, list(stacks), None if not masks else list(masks))
     rows = ["i\tstack\tfile\tslice\taccepted\texpected_error_mm"]
-    stems = [p.name.removesuffix(".gz").removesuffix(".nii") for p in stacks]
-    if to == "niftymic" and len(set(stems)) < len(stems):
+    stems = [niftymic_name(p) for p in stacks] if to == "niftymic" else []
+    if len(set(stems)) < len(stems):
         raise UnusableInput("export: NiftyMIC names each stack's transforms by its file name, and two stacks are "
                             f"named {max(set(stems), key=stems.count)!r}: rename one")
     answered = matched_stacks(answer, stacks)           # the answer checked before the folder is touched
@@ -308,9 +327,9 @@ def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None,
 def _niftymic_stack(path: Path, chosen: list[dict[str, Any]], with_brain: list[dict[str, Any]], sfv: NDArray,
                     folder: Path) -> None:
     """NiftyMIC's ``NAME_slice{k}.tfm`` per chosen slice and ``NAME.tfm``, their mean (the module); the
-    mean of every slice with brain where none is chosen: NiftyMIC then drops the stack's slices, but
-    may still start its volume from the stack, which should lie in atlas space too."""
-    stem = path.name.removesuffix(".gz").removesuffix(".nii")
+    mean of every slice with brain where none is chosen (NiftyMIC then leaves the stack out: it
+    removes a stack none of whose slices has a file)."""
+    stem = niftymic_name(path)
     moves = [niftymic_transform(item["atlas_from_voxel"], sfv) for item in chosen]
     for item, t in zip(chosen, moves):
         write_whole(folder / f"{stem}_slice{int(item['index'])}.tfm", tfm_text(t).encode())
@@ -375,9 +394,11 @@ def _rewritten(values: NDArray, scanner_from_voxel: NDArray, slice_axis: int, pa
 
 
 def _write_nifti(values: NDArray, affine: NDArray, path: Path, code: int = 2) -> None:
-    """``values`` as a gzipped NIfTI-1 file placed by ``affine``, qform and sform alike (``code`` 2:
-    aligned to another space, the atlas; 1: scanner)."""
+    """``values`` as a NIfTI-1 file placed by ``affine``, qform and sform alike (``code`` 2: aligned to
+    another space, the atlas; 1: scanner); gzipped where the name ends in ``.gz`` (ITK's readers
+    take a file's compression from its name)."""
     out = nib.Nifti1Image(values, affine)
     out.set_qform(affine, code)
     out.set_sform(affine, code)
-    write_whole(path, gzip.compress(out.to_bytes(), compresslevel=6))
+    raw = out.to_bytes()
+    write_whole(path, gzip.compress(raw, compresslevel=6) if path.name.endswith(".gz") else raw)

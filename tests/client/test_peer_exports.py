@@ -5,6 +5,7 @@ file's own placement) read it."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import nibabel as nib
@@ -321,3 +322,101 @@ def test_niftymic_gets_each_file_it_needs_and_no_file_overwrites_another(tmp_pat
     nib.save(nib.Nifti1Image(np.ones((3, 3, 3), np.uint8), np.eye(4)), small)
     with pytest.raises(UnusableInput, match="small.nii.gz is not on its stack's grid"):
         export(case["answer"], [case["stack"]], [small], tmp_path / "y", "nesvor")
+
+
+def _nesvor_world(path: Path, u: int, v: int) -> np.ndarray:
+    """Where NeSVoR puts pixel ``(u, v)`` of the slice file ``path`` (``load_slices`` and
+    ``affine2transformation`` of nesvor.image): voxel sizes from ``pixdim``, the rotation
+    ``affine[:3, :3] / pixdim``, the pixel's offset from the slice's centre (its columns flipped where
+    the rotation is improper), and the affine's translation moved to the centre."""
+    image = nib.load(path)
+    res = np.asarray(image.header["pixdim"][1:4], np.float64)
+    affine = image.affine
+    w, h = image.shape[:2]
+    rotation = affine[:3, :3] @ np.diag(1 / res)
+    centre = np.array([(w - 1) / 2 * res[0], (h - 1) / 2 * res[1], 0.0])
+    shift = np.linalg.inv(rotation) @ affine[:3, 3] + centre
+    offset = np.array([u * res[0], v * res[1], 0.0]) - centre
+    if np.linalg.det(rotation) < 0:
+        flip = np.diag([-1.0, 1.0, 1.0])
+        rotation, shift, offset = rotation @ flip, flip @ shift, flip @ offset
+    assert np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-5)      # NeSVoR takes it for a rotation
+    return rotation @ (offset + shift)
+
+
+@pytest.mark.parametrize("slice_axis", [2, 1])
+def test_nesvor_reads_each_slice_file_at_its_atlas_place(slice_axis: int, tmp_path: Path) -> None:
+    """NeSVoR places a slice by its rotation ``affine / pixdim`` about the slice's centre, not by the
+    affine alone: each pixel lands at the atlas point its pose gives, the slice's third voxel size is
+    the thickness, and the mask of ``{i}.nii.gz`` is ``mask_{i}.nii.gz``."""
+    case = make_case(tmp_path, slice_axis)
+    out = tmp_path / "nesvor"
+    export(case["answer"], [case["stack"]], [case["mask"]], out, "nesvor", thickness_mm=[4.0])
+    names = sorted(p.name for p in out.iterdir() if p.name.endswith((".nii", ".nii.gz")))
+    slices = [n for n in names if not n.startswith("mask_")]
+    assert names == sorted(slices + [f"mask_{n}" for n in slices]) and all(re.fullmatch(r"\d+\.nii\.gz", n) for n in slices)
+    for i, k in enumerate([1, 2, 4, 5]):
+        path = out / f"{i}.nii.gz"
+        assert float(nib.load(path).header["pixdim"][3]) == pytest.approx(4.0, abs=1e-5)
+        for u, v in ((0, 0), (15, 0), (7, 11)):
+            want = case["poses"][k] @ np.array(voxel(slice_axis, (u, v), k) + [1.0])
+            np.testing.assert_allclose(_nesvor_world(path, u, v), want[:3], atol=1e-4)
+
+
+def _itk_matrix(transform) -> np.ndarray:
+    """A SimpleITK affine transform as a ``4 x 4`` matrix: ``x -> A (x - c) + c + t``."""
+    import SimpleITK as sitk
+
+    t = sitk.AffineTransform(transform)
+    a, c = np.array(t.GetMatrix()).reshape(3, 3), np.array(t.GetCenter())
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = a, c + np.array(t.GetTranslation()) - a @ c
+    return out
+
+
+def _niftymic_slices(stack: Path, name: str, folder: Path) -> dict[int, np.ndarray]:
+    """Each slice NiftyMIC keeps of the file ``stack`` (named ``name`` by NiftyMIC) with its placement
+    after reading ``--dir-input-mc folder`` (MotionUpdater.run of niftymic.utilities): the stack moved
+    by ``name.tfm``; slice ``k`` by ``name_slice{k}.tfm`` composed with the stack's move undone; a
+    slice without a file left out. Placements are slice voxel -> LPS mm."""
+    import SimpleITK as sitk
+
+    image = sitk.ReadImage(str(stack), sitk.sitkFloat64)
+    whole = folder / f"{name}.tfm"
+    moved = _itk_matrix(sitk.ReadTransform(str(whole))) if whole.is_file() else np.eye(4)
+    pattern = re.compile(name + "_slice([0-9]+)[.]tfm")
+    files = {int(m.group(1)): folder / m.group(0) for f in sorted(p.name for p in folder.iterdir()) if (m := pattern.match(f))}
+    kept = {}
+    for k in range(image.GetSize()[2]):
+        piece = image[:, :, k:k + 1]
+        placed = np.eye(4)
+        placed[:3, :3] = np.array(piece.GetDirection()).reshape(3, 3) @ np.diag(piece.GetSpacing())
+        placed[:3, 3] = piece.GetOrigin()
+        if k in files:
+            own = _itk_matrix(sitk.ReadTransform(str(files[k])))
+            kept[k] = own @ np.linalg.inv(moved) @ moved @ placed
+    return kept
+
+
+@pytest.mark.parametrize("slice_axis", [2, 0])
+def test_niftymic_finds_and_applies_each_slices_transform_by_its_own_rules(slice_axis: int, tmp_path: Path) -> None:
+    """NiftyMIC names a stack by its file name without every match of the pattern ``.nii`` (a file
+    ``haste_nii.nii`` is the stack ``haste``), finds its transforms by that name, and keeps only the
+    slices that have one: each slice it keeps lies where its pose puts it, in LPS."""
+    sitk = pytest.importorskip("SimpleITK")
+    case = make_case(tmp_path, slice_axis)
+    stack = tmp_path / "haste_nii.nii"
+    nib.save(nib.load(case["stack"]), stack)
+    answer = json.loads(json.dumps(case["answer"]))
+    answer["stacks"][0]["filename"] = stack.name
+    out = tmp_path / "mc"
+    done = export(answer, [stack], None, out, "niftymic")
+    assert sitk.ReadImage(str(done.stacks[0])).GetSize() == (20, 16, 6)
+    kept = _niftymic_slices(done.stacks[0], "haste", out)
+    assert sorted(kept) == [1, 2, 4, 5]
+    for k, placed in kept.items():
+        for u, v in ((0, 0), (19, 15), (5, 9)):
+            want = F @ case["poses"][k] @ np.array(voxel(slice_axis, (u, v), k) + [1.0])
+            np.testing.assert_allclose((placed @ [u, v, 0, 1.0])[:3], want[:3], atol=1e-4)
+    with pytest.raises(UnusableInput, match="NiftyMIC reads stacks named"):
+        export(answer, [case["stack"].rename(tmp_path / "AX.NII.GZ")], None, tmp_path / "upper", "niftymic")
