@@ -23,7 +23,9 @@ reconstruct --poses-out``) gives every slice ``k`` of stack ``s`` its ``atlas_fr
   starts from, a stack resampled into the reconstruction space, lies there too. NiftyMIC cuts a
   stack's slices along the file's third axis: a stack whose ``slice_axis`` is another is written
   again into ``DIR/stacks/`` with its voxels in cyclic order, the slice axis last (the same image,
-  placed alike), its mask into ``DIR/masks/``; give NiftyMIC those files.
+  placed alike). NiftyMIC takes a mask's voxels as stored, on its stack's voxels, and refuses values
+  above 1: the mask of a stack written again, or one stored in another voxel order or with other
+  values, is written into ``DIR/masks/`` as ``NAME_mask.nii.gz`` (0 and 1); give NiftyMIC those files.
 
 Only the slices the answer trusts are written unless ``all_slices`` (a prediction's accepted ones;
 of a job's refined poses, those the job reconstructed from, ``included``, and those it placed by
@@ -297,9 +299,11 @@ def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None,
             if axis != 2:                   # NiftyMIC cuts along the third axis: the stack written so
                 done.stacks[s] = _rewritten(np.asarray(image.dataobj, np.float32).reshape(image.shape[:3]), sfv, axis,
                                             folder / "stacks" / path.name)
-                if masks and done.masks is not None:
-                    done.masks[s] = _rewritten(_mask(masks[s], image).astype(np.uint8), sfv, axis,
-                                               folder / "masks" / masks[s].name)
+            if masks and done.masks is not None:
+                brain = _mask(masks[s], image)
+                if axis != 2 or not _binary_as_stored(masks[s], image):     # NiftyMIC takes it voxel by voxel
+                    done.masks[s] = _rewritten(brain.astype(np.uint8), sfv, axis,
+                                               folder / "masks" / f"{niftymic_name(path)}_mask.nii.gz")
             done.count += len(chosen)
             continue
         order = axis_order(axis)
@@ -383,6 +387,25 @@ def _mask(path: Path, stack: nib.Nifti1Image) -> NDArray[np.bool_]:
         if abs(corner) > 1e-2:
             raise refused
     return moved != 0
+
+
+def _binary_as_stored(path: Path, stack: nib.Nifti1Image) -> bool:
+    """Whether the mask file ``path`` (on ``stack``'s grid: :func:`_mask`) holds the stack's voxels in
+    the stack's order and only the values 0 and 1: as NiftyMIC reads a mask, giving it the stack's
+    placement and taking its voxels as they are stored, and refusing values above 1.
+
+    Example (a mask of 0 and 255):
+        >>> import tempfile
+        >>> stack = nib.Nifti1Image(np.zeros((3, 4, 2), np.float32), np.diag([1.0, 2.0, 3.0, 1.0]))
+        >>> path = Path(tempfile.mkdtemp()) / "m.nii.gz"
+        >>> nib.save(nib.Nifti1Image(np.full((3, 4, 2), 255, np.uint8), stack.affine), path)
+        >>> _binary_as_stored(path, stack)
+        False
+    """
+    image = nib.load(str(path))
+    values = np.asarray(image.dataobj)
+    same_order = np.allclose(np.linalg.inv(image.affine) @ stack.affine, np.eye(4), atol=1e-2)
+    return bool(same_order and values.size == int(np.prod(stack.shape[:3])) and np.isin(values, (0, 1)).all())
 
 
 def _rewritten(values: NDArray, scanner_from_voxel: NDArray, slice_axis: int, path: Path) -> Path:

@@ -291,7 +291,7 @@ def test_the_cli_names_the_stacks_niftymic_must_read(tmp_path: Path) -> None:
 
 
 def test_niftymic_gets_each_file_it_needs_and_no_file_overwrites_another(tmp_path: Path) -> None:
-    """A mask of its stack's name (stacks/ax.nii.gz, masks/ax.nii.gz) rewritten beside its stack
+    """A mask of its stack's name (stacks/ax.nii.gz, masks/ax_mask.nii.gz) rewritten beside its stack
     overwrites neither; a stack without an accepted slice is still placed (NAME.tfm from its slices
     with brain, no slice files); two stacks of one name, and a mask off its stack's grid, are refused
     by name."""
@@ -301,7 +301,7 @@ def test_niftymic_gets_each_file_it_needs_and_no_file_overwrites_another(tmp_pat
     mask.write_bytes(case["mask"].read_bytes())
     out = tmp_path / "mc"
     done = export(case["answer"], [case["stack"]], [mask], out, "niftymic")
-    assert done.stacks == [out / "stacks" / "ax.nii.gz"] and done.masks == [out / "masks" / "ax.nii.gz"]
+    assert done.stacks == [out / "stacks" / "ax.nii.gz"] and done.masks == [out / "masks" / "ax_mask.nii.gz"]
     np.testing.assert_array_equal(np.asarray(nib.load(done.stacks[0]).dataobj),
                                   np.transpose(case["data"], (1, 2, 0)))
     assert set(np.unique(np.asarray(nib.load(done.masks[0]).dataobj))) <= {0, 1}
@@ -420,3 +420,33 @@ def test_niftymic_finds_and_applies_each_slices_transform_by_its_own_rules(slice
             np.testing.assert_allclose((placed @ [u, v, 0, 1.0])[:3], want[:3], atol=1e-4)
     with pytest.raises(UnusableInput, match="NiftyMIC reads stacks named"):
         export(answer, [case["stack"].rename(tmp_path / "AX.NII.GZ")], None, tmp_path / "upper", "niftymic")
+
+
+def test_niftymic_is_given_masks_it_takes_as_they_are_meant(case: dict, tmp_path: Path) -> None:
+    """NiftyMIC lays a mask's stored voxels on its stack's and refuses values above 1: a mask of 0 and
+    255, and one stored with an axis reversed, are written again as 0 and 1 on the stack's voxels,
+    named by their stacks (two masks of one name do not overwrite each other); a 0/1 mask stored as
+    its stack is given as it is."""
+    sitk = pytest.importorskip("SimpleITK")
+    flip = np.diag([1.0, -1.0, 1.0, 1.0])
+    flip[1, 3] = SHAPE[1] - 1
+    stored = {"a/mask.nii.gz": (case["mask_data"] * 255, case["scanner_from_voxel"]),
+              "b/mask.nii.gz": (case["mask_data"][:, ::-1, :], case["scanner_from_voxel"] @ flip),
+              "c/mask.nii.gz": (case["mask_data"], case["scanner_from_voxel"])}
+    stacks, masks = [], []
+    answer = {"stacks": []}
+    for s, (name, (values, affine)) in enumerate(stored.items()):
+        path = tmp_path / name
+        path.parent.mkdir()
+        nib.save(nib.Nifti1Image(np.ascontiguousarray(values).astype(np.uint8), affine), path)
+        stacks.append(tmp_path / f"{'abc'[s]}x.nii.gz")
+        stacks[-1].write_bytes(case["stack"].read_bytes())
+        masks.append(path)
+        answer["stacks"].append({**case["answer"]["stacks"][0], "index": s, "filename": stacks[-1].name})
+    out = tmp_path / "mc"
+    done = export(answer, stacks, masks, out, "niftymic")
+    assert done.masks == [out / "masks" / "ax_mask.nii.gz", out / "masks" / "bx_mask.nii.gz", masks[2]]
+    for path in done.masks:
+        image = sitk.ReadImage(str(path), sitk.sitkUInt8)
+        assert image.GetSize() == sitk.ReadImage(str(stacks[0])).GetSize()
+        np.testing.assert_array_equal(sitk.GetArrayFromImage(image), np.transpose(case["mask_data"], (2, 1, 0)))
