@@ -220,9 +220,10 @@ class Exported:
 
 MANIFEST = ".svrnet-export.json"
 """The list of the files an export wrote into its folder: all that ``overwrite`` removes."""
-TOOL_FILES = re.compile(r"^(\d+\.nii\.gz|mask_\d+\.nii\.gz|.+_slice\d+\.tfm|slices\.tsv)$")
-"""Names of files either tool reads from the folder (NeSVoR every ``{i}.nii.gz`` and ``mask_{i}``,
-NiftyMIC every ``NAME_slice{k}.tfm``)."""
+TOOL_FILES = re.compile(r"^(.+\.nii(\.gz)?|.+\.tfm|slices\.tsv)$")
+"""Names of the files of the folder itself (not of its subfolders) that either tool reads: NeSVoR
+every ``*.nii`` and ``*.nii.gz`` (each a slice ``{i}`` or its ``mask_{i}``; any other name stops it),
+NiftyMIC every ``NAME.tfm`` and ``NAME_slice{k}.tfm``."""
 
 
 def _files(folder: Path) -> set[str]:
@@ -264,7 +265,7 @@ def clear_for_export(folder: Path, overwrite: bool, inputs: list[Path] = ()) -> 
         if ".." not in Path(str(name)).parts and path.is_file():
             path.unlink()
     (folder / MANIFEST).unlink(missing_ok=True)
-    left = sorted(n for n in _files(folder) if TOOL_FILES.match(Path(n).name))
+    left = sorted(n for n in _files(folder) if "/" not in n and TOOL_FILES.match(n))
     if left:
         raise UnusableInput(f"export: {folder} holds {left[0]}, a file a tool would read that no export of svrnet "
                             "wrote; give a new or empty folder")

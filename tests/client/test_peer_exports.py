@@ -450,3 +450,18 @@ def test_niftymic_is_given_masks_it_takes_as_they_are_meant(case: dict, tmp_path
         image = sitk.ReadImage(str(path), sitk.sitkUInt8)
         assert image.GetSize() == sitk.ReadImage(str(stacks[0])).GetSize()
         np.testing.assert_array_equal(sitk.GetArrayFromImage(image), np.transpose(case["mask_data"], (2, 1, 0)))
+
+
+@pytest.mark.parametrize("foreign", ["T2_ax.nii.gz", "7.nii", "mask_3.nii", "ax.tfm"])
+def test_an_overwrite_refuses_any_file_of_the_folder_a_tool_would_read(foreign: str, case: dict, tmp_path: Path) -> None:
+    """NeSVoR reads every ``*.nii`` and ``*.nii.gz`` of its folder (a name not a number stops it) and
+    NiftyMIC every ``NAME.tfm``: such a file that no export wrote is refused even with ``overwrite``;
+    files in subfolders, which neither tool reads, are not."""
+    out = tmp_path / "out"
+    export(case["answer"], [case["stack"]], None, out, "nesvor")
+    (out / "stacks").mkdir()
+    (out / "stacks" / "0.nii.gz").write_bytes(b"the user's own")
+    assert export(case["answer"], [case["stack"]], None, out, "nesvor", overwrite=True).count == 4
+    (out / foreign).write_bytes(b"the user's own")
+    with pytest.raises(UnusableInput, match=f"holds {re.escape(foreign)}, a file a tool would read"):
+        export(case["answer"], [case["stack"]], None, out, "nesvor", overwrite=True)
