@@ -14,7 +14,7 @@ from client.exits import EXIT_BAD_INPUT, errors, fail, stderr, stdout
 
 NEXT_STEP = {
     "nesvor": "nesvor reconstruct --input-slices {out} --output-volume recon.nii.gz",
-    "niftymic": "niftymic_reconstruct_volume_from_slices --filenames {stacks}{masks} --dir-input-mc {out} "
+    "niftymic": "niftymic_reconstruct_volume_from_slices --filenames {stacks}{masks}{thickness} --dir-input-mc {out} "
                 "--reconstruction-space ATLAS_VOLUME.nii.gz --output recon.nii.gz",
 }
 """What to run next, per tool (the docs give each in full: docs/reconstruction.md)."""
@@ -37,8 +37,8 @@ def export(
         "--all-slices",
         help="also the slices not accepted (default: accepted ones only; never those without brain)")] = False,
     thickness: Annotated[Optional[list[float]], typer.Option(
-        "--thickness", help="slice thickness in mm for NeSVoR's slice profile, once for every stack or once per "
-        "stack (default: the slice spacing)")] = None,
+        "--thickness", help="slice thickness in mm, once for every stack or once per stack (default: the slice "
+        "spacing): NeSVoR's slice profile; NiftyMIC's --slice-thicknesses in the command printed")] = None,
     overwrite: Annotated[bool, typer.Option(
         "--overwrite", help="replace an earlier export in --out-dir (without it, a folder that holds anything "
                             "stops the command: each tool reads every slice file of its folder)")] = False,
@@ -71,5 +71,7 @@ def export(
             stderr().print(f"NiftyMIC finds a stack's .tfm files by a regular expression of its name: rename "
                            f"{', '.join(odd)} (no {''.join(sorted(REGEX_CHARACTERS))})", style="yellow", markup=False)
     masks = "" if not done.masks else " --filenames-masks " + " ".join(str(m) for m in done.masks)
-    console.print("next: " + NEXT_STEP[to].format(out=out_dir, stacks=" ".join(str(s) for s in done.stacks), masks=masks),
-                  soft_wrap=True, markup=False)
+    per_stack = [] if not thickness else thickness * len(stacks) if len(thickness) == 1 else thickness
+    thick = "" if not per_stack else " --slice-thicknesses " + " ".join(f"{t:g}" for t in per_stack)
+    console.print("next: " + NEXT_STEP[to].format(out=out_dir, stacks=" ".join(str(s) for s in done.stacks), masks=masks,
+                                                  thickness=thick), soft_wrap=True, markup=False)

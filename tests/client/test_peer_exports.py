@@ -465,3 +465,13 @@ def test_an_overwrite_refuses_any_file_of_the_folder_a_tool_would_read(foreign: 
     (out / foreign).write_bytes(b"the user's own")
     with pytest.raises(UnusableInput, match=f"holds {re.escape(foreign)}, a file a tool would read"):
         export(case["answer"], [case["stack"]], None, out, "nesvor", overwrite=True)
+
+
+def test_the_cli_gives_niftymic_the_thickness(case: dict, tmp_path: Path) -> None:
+    """``--thickness`` reaches NiftyMIC as ``--slice-thicknesses``, one per stack."""
+    answer = tmp_path / "poses.json"
+    answer.write_text(json.dumps(case["answer"]))
+    r = CliRunner().invoke(cli.app, ["export", str(answer), str(case["stack"]), "--to", "niftymic", "--out-dir",
+                                     str(tmp_path / "mc"), "--thickness", "2.5"], env={"COLUMNS": "400"})
+    assert r.exit_code == 0, r.output
+    assert f"--filenames {case['stack']} --slice-thicknesses 2.5 --dir-input-mc" in r.stdout
