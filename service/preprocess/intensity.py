@@ -20,6 +20,10 @@ from numpy.typing import ArrayLike, NDArray
 
 LOW_PERCENTILE = 1.0
 HIGH_PERCENTILE = 99.0
+FLAT_SPAN = 1e-6
+"""A slice whose pruned range spans less than this share of its largest magnitude is flat (one value
+up to float rounding) and rescales to 0: a share, not a number of units, so that a stack stored in
+small units (brain values of 1e-9, say) is rescaled as the same stack in large ones."""
 
 
 def masked_percentiles(images: ArrayLike, masks: ArrayLike, q: tuple[float, float]) -> NDArray[np.float64]:
@@ -40,15 +44,22 @@ def rescale_0_255(
 ) -> NDArray[np.float32]:
     """Mask, clip to the ``[low, high]`` percentiles inside the mask and rescale to 0-255.
 
-    Pixels outside the mask are 0; slices with an empty mask are all 0.
+    Pixels outside the mask are 0; slices with an empty mask, and flat slices (:data:`FLAT_SPAN`),
+    are all 0. The result does not depend on the units the image is stored in.
+
+    Example (one slice in ordinary units and in very small ones):
+        >>> img = np.arange(16.0).reshape(1, 4, 4)
+        >>> bool(np.allclose(rescale_0_255(img * 1e-12, img >= 0), rescale_0_255(img, img >= 0)))
+        True
     """
     x = np.asarray(images, dtype=np.float32)
     m = np.asarray(masks, dtype=bool)
     p = masked_percentiles(x, m, (low, high)).astype(np.float32)
     lo, hi = p[:, 0, None, None], p[:, 1, None, None]
-    span = np.where(hi - lo > 1e-6, hi - lo, 1.0)
-    out = (np.clip(x, lo, hi) - lo) / span * 255.0
-    return np.where(m & np.isfinite(out), out, 0.0).astype(np.float32)
+    span = hi - lo
+    varies = span > FLAT_SPAN * np.maximum(np.abs(lo), np.abs(hi))        # False for NaN (an empty mask) too
+    out = (np.clip(x, lo, hi) - lo) / np.where(varies, span, 1.0) * 255.0
+    return np.where(m & varies & np.isfinite(out), out, 0.0).astype(np.float32)
 
 
 SIGNAL_LOST = "signal_lost"

@@ -1,0 +1,38 @@
+"""``/v1/predict`` on stacks stored in unusual units: the network sees what the same stack in ordinary
+units shows it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from service.io.volume import Volume, write_volume
+from tests.api.conftest import OracleEstimator
+from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine
+
+
+@pytest.mark.parametrize("bias_correction", ["false", "true"])
+def test_a_stack_stored_in_very_small_units_shows_the_network_the_same_slices(
+        oracle: OracleEstimator, oracle_client: TestClient, tmp_path: Path, bias_correction: str) -> None:
+    """Brain values of about 1e-7 (a float export in other units): the network's inputs are the
+    same as for the stack in ordinary units (they were nearly black: a fixed 1e-6 took the slices'
+    whole range for none)."""
+    shape = (40, 40, 12)
+    aff = stack_affine(2, np.eye(3), 1.6, 3.5, shape)
+    img, msk = acquire_stack(*phantom_brain(2), aff, shape, 2, np.broadcast_to(np.eye(4), (12, 4, 4)))
+    oracle.truth = np.broadcast_to(np.eye(4), (12, 4, 4)).copy()
+    write_volume(Volume(msk.astype(np.uint8), aff), tmp_path / "m.nii.gz")
+    seen = {}
+    for scale in (1.0, 1e-9):
+        write_volume(Volume((img * 3 + 20) * np.float32(scale), aff), tmp_path / "s.nii.gz")
+        files = [("stacks", ("s.nii.gz", (tmp_path / "s.nii.gz").read_bytes())),
+                 ("masks", ("m.nii.gz", (tmp_path / "m.nii.gz").read_bytes()))]
+        r = oracle_client.post("/v1/predict", files=files, data={"bias_correction": bias_correction, "mc_samples": "2",
+                                                                 "stack_consistency": "false"})
+        assert r.status_code == 200, r.text
+        seen[scale] = oracle.seen.copy()
+    assert seen[1.0].max() == pytest.approx(255.0)
+    np.testing.assert_allclose(seen[1e-9], seen[1.0], atol=0.5)
