@@ -117,6 +117,7 @@ class BlockedStack:
     def of(cls, s: StackImages) -> "BlockedStack":
         brain = s.images[s.masks]
         scale = float(np.median(brain)) if brain.size else 1.0
+        scale = scale if np.isfinite(scale) and scale > 0 else 1.0     # the units' own size, however small
         f = (max(1, round(1.0 / s.pixel_mm[0])), max(1, round(1.0 / s.pixel_mm[1])))
         h, w = s.images.shape[1:]
         box = [slice(0, h), slice(0, w)]
@@ -128,7 +129,7 @@ class BlockedStack:
                 lo = int(max(hit[0] - margin, 0) // f[axis] * f[axis])
                 box[axis] = slice(lo, int(min(hit[-1] + margin + 1, (h, w)[axis])))
         images, masks = s.images[:, box[0], box[1]], s.masks[:, box[0], box[1]]
-        images = _blocks(images.astype(np.float32) / max(scale, 1e-6), f)
+        images = _blocks(images.astype(np.float32) / np.float32(scale), f)
         masks = _blocks(masks.astype(np.float32), f)
         if SHADING_SCALE_MM:                                   # on the blocks: the same smooth mean, a quarter of the work
             images = images / shading(images, masks, (s.pixel_mm[0] * f[0], s.pixel_mm[1] * f[1]))

@@ -36,3 +36,25 @@ def test_a_stack_stored_in_very_small_units_shows_the_network_the_same_slices(
         seen[scale] = oracle.seen.copy()
     assert seen[1.0].max() == pytest.approx(255.0)
     np.testing.assert_allclose(seen[1e-9], seen[1.0], atol=0.5)
+
+
+def test_stacks_stored_in_very_small_units_get_the_poses_of_ordinary_units(oracle: OracleEstimator,
+                                                                            oracle_client: TestClient,
+                                                                            tmp_path: Path) -> None:
+    """Two crossing stacks, every stage on (the image stage refines them where they cross): stored
+    with brain values of about 1e-9, each slice gets the pose the same stacks in ordinary units get
+    (the image stage's slices were scaled by 1e-6 in place of their brain's median, and it moved
+    slices by a millimetre and more)."""
+    from tests.api.test_predict_geometry import answered, rewritten, stacks_apart, two_still_stacks
+
+    files, truths = two_still_stacks(tmp_path)
+    small = rewritten(files, tmp_path, "stacks",
+                      lambda v: Volume(v.array.astype(np.float32) * np.float32(1e-9), v.affine))
+    poses = []
+    for upload in (files, small):
+        oracle.truth = stacks_apart(truths, np.random.default_rng(5), 2.5, 0.5)
+        oracle.spread_mm = 4.0
+        [stacks] = answered(oracle_client, [upload], bias_correction="false", mc_samples="5")
+        assert all(st["consistency"]["image_consistency"]["slices_refined"] > 5 for st in stacks)
+        poses.append(np.array([s["atlas_from_voxel"] for st in stacks for s in st["slices"]]))
+    np.testing.assert_allclose(poses[1], poses[0], atol=1e-3)

@@ -124,3 +124,18 @@ def test_an_image_narrower_than_two_blocks_is_smoothed_on_its_pixels() -> None:
     assert out.shape == image.shape
     np.testing.assert_allclose(out, ndimage.gaussian_filter(image, (0, 4.5 / 1.1, 0)), atol=1e-5)
     assert module.shading(image[:, :1], np.ones((2, 1, 40), bool), (1.1, 1.1)).shape == (2, 1, 40)
+
+
+def test_a_stack_in_very_small_units_is_scaled_as_the_same_stack_in_ordinary_units() -> None:
+    """The images are divided by their brain's median however small it is (brain values of 1e-9): the
+    image term sees the numbers the same stack stored in ordinary units gives it."""
+    from service.consistency.slice_images import BlockedStack
+
+    rng = np.random.default_rng(4)
+    images = (50.0 + 100.0 * rng.random((2, 40, 40))).astype(np.float32)
+    masks = np.zeros(images.shape, bool)
+    masks[:, 10:30, 8:32] = True
+    poses = np.repeat(np.eye(4)[None], 2, 0)
+    ordinary = BlockedStack.of(StackImages(images, masks, (1.0, 1.0), poses, np.ones(2, bool)))
+    small = BlockedStack.of(StackImages(images * np.float32(1e-9), masks, (1.0, 1.0), poses, np.ones(2, bool)))
+    np.testing.assert_allclose(small.images, ordinary.images, rtol=1e-5)
