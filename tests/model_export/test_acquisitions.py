@@ -37,7 +37,7 @@ def test_pipeline_with_a_twin_confused_estimator_per_motion_level(tmp_path) -> N
     img, mask, aff = BRAIN
     vol = type("V", (), {"image": img, "mask": mask, "affine": aff})
     est = NoisyTwinEstimator(INFO, np.random.default_rng(1))
-    out = evaluate_acquisitions([vol], est, np.random.default_rng(2), per_volume=2, mc_samples=20,
+    out = evaluate_acquisitions([vol], est, np.random.default_rng(2), ("mild", "moderate", "extreme"), per_volume=2, mc_samples=20,
                                 bias_correction=False, told=("interleaved",), size=64, pixel_mm=1.6,
                                 slices=tmp_path / "slices.npz")
     for level in ("mild", "moderate"):
