@@ -22,7 +22,7 @@ from service.api.schemas import (UPLOAD_ERRORS, JobCreated, JobStatus, RefinedPo
                                  problem_responses)
 from service.api.uploads import UploadForm, UploadFormDep, known_fields, upload_directory, upload_reader
 from service.pipeline.predict import stack_orders
-from service.pipeline.prepare import StackUpload, check_distinct_stacks, check_mask_grid
+from service.pipeline.prepare import StackUpload, check_distinct_stacks, check_mask_grid, check_mask_volume
 from service.core.client_json import client_json
 from service.core.errors import Conflict, InvalidParameter, NotFound, PayloadTooLarge, Saturated, UnusableImage
 from service.core.settings import Settings
@@ -181,6 +181,7 @@ async def _keep_submission(request: Request, response: Response, settings: Setti
             (inputs / "poses.json").write_text(json.dumps(kept))
         for u in uploads:
             check_mask_grid(u)
+            check_mask_volume(u)
         check_distinct_stacks(uploads)
         check_slices_to_use(uploads, None if not poses_text else [accepted for _, accepted in given])
     except Exception:

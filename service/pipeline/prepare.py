@@ -202,6 +202,33 @@ def check_mask_grid(upload: StackUpload) -> None:
                             "(different origin, spacing or orientation)")
 
 
+MAX_MASK_ML = 1500.0
+"""The most an uploaded mask may mark (ml): about twice the head of a fetus at term. A mask of more is
+not a brain's (the body's, the uterus's, a field of view of ones) and would make every later step
+work on the whole image."""
+
+
+def check_mask_volume(upload: StackUpload) -> None:
+    """422 naming the mask where it marks more than :data:`MAX_MASK_ML`.
+
+    Example (a mask of ones over a 400 x 400 x 100 mm field of view):
+        >>> stack = Volume(np.zeros((100, 100, 25), np.float32), np.diag([4.0, 4.0, 4.0, 1.0]))
+        >>> check_mask_volume(StackUpload("s.nii.gz", stack, Volume(np.ones((100, 100, 25), np.uint8), stack.affine),
+        ...                               "m.nii.gz"))
+        Traceback (most recent call last):
+        ...
+        service.core.errors.UnusableImage: masks: m.nii.gz marks 16000 ml, more than a fetal head holds (1500 ml at most): send a mask of the fetal brain (not of the head, the body or the field of view), or none
+    """
+    if upload.mask is None:
+        return
+    voxel_ml = float(np.prod(upload.mask.spacing)) / 1000.0
+    marked_ml = int(np.count_nonzero(upload.mask_voxels)) * voxel_ml
+    if marked_ml > MAX_MASK_ML:
+        raise UnusableImage(f"masks: {upload.mask_filename or 'mask'} marks {marked_ml:.0f} ml, more than a fetal head "
+                            f"holds ({MAX_MASK_ML:.0f} ml at most): send a mask of the fetal brain (not of the head, "
+                            "the body or the field of view), or none")
+
+
 def check_distinct_stacks(uploads: list[StackUpload]) -> None:
     """400 naming both files where a request sends one stack twice (the same grid and voxels under two
     names): the stages would take the copy for a second acquisition that agrees with the first and
@@ -285,6 +312,7 @@ def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction:
     of them see) and are prepared again."""
     for u in uploads:
         check_mask_grid(u)
+        check_mask_volume(u)
     check_distinct_stacks(uploads)
     with ThreadPoolExecutor(max_workers=max(1, min(workers, len(uploads)))) as pool:
         futures = [pool.submit(carried(prepare_stack), u, info, bias_correction) if u.mask is not None else None

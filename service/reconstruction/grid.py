@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import sparse
 
+from service.core.errors import InvalidParameter
 from service.geometry.pose import apply
 
 _CORNERS = np.array([[dx, dy, dz] for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)])
@@ -95,6 +96,38 @@ MAX_EXTENT_MM = 250.0
 """The widest a reconstruction's field of view gets along an axis (mm): twice a term brain's length.
 Slices placed farther apart than that (poses a client sent, or a stage that went astray) are not
 followed: the box is cut to this extent about the median of the points, where most of them are."""
+
+
+MAX_VOLUME_VOXELS = 16_000_000
+"""The most voxels a reconstruction's volume holds. A job keeps a few tens of bytes a voxel at its
+output resolution; this many keep a job of a few stacks within 2 GB (docs/reconstruction.md,
+"Time and memory by voxel size")."""
+FINEST_STEP_MM = 0.05
+"""The voxel sizes :func:`check_volume_size` suggests are multiples of this."""
+
+
+def check_volume_size(grid: Grid) -> None:
+    """Refuse a volume of more than :data:`MAX_VOLUME_VOXELS`: :class:`InvalidParameter` naming
+    ``resolution_mm``, its field of view and the finest voxel size that field of view allows.
+
+    Example (a box of 150 mm, at 1 mm and at 0.3 mm):
+        >>> check_volume_size(make_grid(1.0, ([0.0, 0, 0], [150, 150, 150])))
+        >>> check_volume_size(make_grid(0.3, ([0.0, 0, 0], [150, 150, 150])))
+        Traceback (most recent call last):
+        ...
+        service.core.errors.InvalidParameter: resolution_mm: the volume's field of view (150 x 150 x 150 mm, where the slices lie) at 0.3 mm holds 125,751,501 voxels, more than a reconstruction may (16,000,000); ask for 0.60 mm or coarser
+    """
+    if grid.size <= MAX_VOLUME_VOXELS:
+        return
+    resolution = float(grid.spacing[0])
+    bounds = grid.bounds_mm
+    finest = np.ceil(resolution * (grid.size / MAX_VOLUME_VOXELS) ** (1 / 3) / FINEST_STEP_MM) * FINEST_STEP_MM
+    while make_grid(finest, bounds).size > MAX_VOLUME_VOXELS:
+        finest += FINEST_STEP_MM
+    extent = " x ".join(f"{e:.0f}" for e in bounds[1] - bounds[0])
+    raise InvalidParameter(f"resolution_mm: the volume's field of view ({extent} mm, where the slices lie) at "
+                           f"{resolution:g} mm holds {grid.size:,} voxels, more than a reconstruction may "
+                           f"({MAX_VOLUME_VOXELS:,}); ask for {finest:.2f} mm or coarser")
 
 
 def bounds_of(points: ArrayLike, margin_mm: float, max_extent_mm: float = MAX_EXTENT_MM) -> NDArray[np.float64]:

@@ -24,6 +24,7 @@ from service.reconstruction.left_out import LeftOutPlacement, VolumeReference, p
 from service.reconstruction.midline import FrameCorrection, midline_fit
 from service.reconstruction.never_worse import coherence_score, held_out_score, reconstruct_never_worse, stack_held_out
 from service.reconstruction.config import ReconstructionConfig
+from service.reconstruction.grid import bounds_of, check_volume_size, make_grid
 from service.reconstruction.pipeline import ReconstructionResult
 from service.reconstruction.pose_errors import refined_expected_errors, refined_summary, roles
 from service.reconstruction.slices import SliceSet, StackInput
@@ -117,6 +118,8 @@ def refine_job(slice_set: SliceSet, stacks: Sequence[StackInput], starting_error
         progress: ``(stage, fraction of the steps done)`` as each stage begins.
     """
     report = progress or (lambda stage, fraction: None)
+    margin = ReconstructionConfig().margin_mm          # the volume where the slices start: refused now, not later
+    check_volume_size(make_grid(resolution_mm, bounds_of(slice_set.positions(), margin)))
     result = reconstruct_never_worse(slice_set, resolution_mm=resolution_mm, svr_iterations=svr_iterations,
                                      progress=report,
                                      config=ReconstructionConfig(symmetry_plane_x_mm=plane_x_mm,

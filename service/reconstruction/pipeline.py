@@ -56,7 +56,7 @@ from service.reconstruction.coarse_to_fine import START_OWN, CoarseAlignment, co
 from service.reconstruction.config import ReconstructionConfig
 from service.reconstruction.forward import ForwardModel, inplane_sigma_mm
 from service.reconstruction.gaussian_average import compact_brain, gaussian_average
-from service.reconstruction.grid import Grid, bounds_of, bounds_within, make_grid
+from service.reconstruction.grid import Grid, bounds_of, bounds_within, check_volume_size, make_grid
 from service.reconstruction.intensity import SliceIntensity, fit_intensity
 from service.reconstruction.registration import anchor_frame, register_slices
 from service.reconstruction.quality import (exclusion_reasons, held_out_groups, held_out_ncc, judged_slices,
@@ -219,6 +219,7 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
         reach = bounds_of(unbinned.positions(unbinned.atlas_from_voxel), cfg.margin_mm + cfg.fov_growth_mm)
         bounds = bounds_within(bounds, reach)          # every slice moved out of reach: where they started
     grid = make_grid(resolution_mm, bounds)
+    check_volume_size(grid)
     lams = list(np.geomspace(cfg.lam_first, cfg.lam, rounds)) if rounds > 1 else [cfg.lam] * rounds
     if rounds:
         lams.insert(0, cfg.lam_initial)                 # round 0: sharpen the average, no registration

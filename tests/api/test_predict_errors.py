@@ -89,6 +89,22 @@ def test_mask_problems(oracle_client: TestClient, tmp_path: Path) -> None:
     assert_problem(post(oracle_client, two_masks), 400, "masks", "2 masks for 1 stacks")
 
 
+def test_a_mask_of_more_than_a_fetal_head_is_422_naming_it(real_client: TestClient, tmp_path: Path) -> None:
+    """A mask of ones over a whole field of view (the body's, the uterus's) is no brain mask: refused,
+    for /v1/predict and for a reconstruction job at its submission, where it would make every step
+    work on the whole image; a head-sized mask of the same field of view is taken."""
+    wide = np.diag([4.0, 4.0, 4.0, 1.0])                    # 160 x 160 x 100 mm
+    image = nifti_bytes(stack((40, 40, 25)), wide, tmp_path)
+    ones = np.ones((40, 40, 25), np.uint8)                  # 2,560 ml
+    files = [("stacks", ("s.nii.gz", image)), ("masks", ("body.nii.gz", nifti_bytes(ones, wide, tmp_path)))]
+    assert_problem(post(real_client, files), 422, "masks", "body.nii.gz", "2560 ml", "fetal brain")
+    assert_problem(real_client.post("/v1/reconstructions", files=files), 422, "body.nii.gz", "2560 ml")
+    head = np.zeros((40, 40, 25), np.uint8)
+    head[10:30, 10:30, 5:20] = 1                             # 80 x 80 x 60 mm: 384 ml
+    files = [("stacks", ("s.nii.gz", image)), ("masks", ("head.nii.gz", nifti_bytes(head, wide, tmp_path)))]
+    assert post(real_client, files).status_code == 200
+
+
 def test_a_mask_saved_as_signed_numbers_marks_the_same_brain(real_client: TestClient, tmp_path: Path) -> None:
     """A mask of 255 saved as signed bytes holds -1 where the brain is: its nonzero voxels are the
     brain, as for the same mask of 1, not the complement an image's magnitude would make of it."""

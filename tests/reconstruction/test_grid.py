@@ -1,13 +1,18 @@
 """A grid's box in atlas mm is where its affine puts its first and last voxel centres, and holds the
 box it was made for; a box is cut to a limit, or falls back to the limit where they do not meet;
-a box of points is at most MAX_EXTENT_MM wide."""
+a box of points is at most MAX_EXTENT_MM wide; a volume of more than MAX_VOLUME_VOXELS is refused."""
 
 from __future__ import annotations
 
-import numpy as np
+import re
 
+import numpy as np
+import pytest
+
+from service.core.errors import InvalidParameter
 from service.geometry.pose import apply
-from service.reconstruction.grid import MAX_EXTENT_MM, bounds_of, bounds_within, make_grid
+from service.reconstruction.grid import (FINEST_STEP_MM, MAX_EXTENT_MM, MAX_VOLUME_VOXELS, bounds_of, bounds_within,
+                                         check_volume_size, make_grid)
 
 
 def test_a_grids_box_is_its_corner_voxels_in_atlas_space_and_holds_the_box_asked_for() -> None:
@@ -44,3 +49,15 @@ def test_a_few_slices_far_away_do_not_stretch_the_field_of_view() -> None:
     assert inside.mean() > 0.999                                     # centred where the points are
     plain = bounds_of(brain, margin_mm=6.0)                          # a brain alone keeps its own box
     assert np.allclose(plain, [brain.min(axis=0) - 6.0, brain.max(axis=0) + 6.0])
+
+
+def test_a_volume_too_large_is_refused_with_the_finest_voxel_size_that_fits() -> None:
+    """A volume of more than MAX_VOLUME_VOXELS is refused naming ``resolution_mm``; the voxel size the
+    answer suggests fits, a step finer does not."""
+    bounds = ([-70.0, -60, -55], [70.0, 60, 55])
+    check_volume_size(make_grid(0.8, bounds))
+    for asked in (0.21, 0.3, 0.4):
+        with pytest.raises(InvalidParameter, match=r"^resolution_mm: the volume's field of view \(140 x 120 x 110 mm") as e:
+            check_volume_size(make_grid(asked, bounds))
+        finest = float(re.search(r"ask for ([0-9.]+) mm or coarser", str(e.value)).group(1))
+        assert make_grid(finest, bounds).size <= MAX_VOLUME_VOXELS < make_grid(finest - FINEST_STEP_MM, bounds).size
