@@ -190,7 +190,7 @@ def main() -> None:
     ap.add_argument("--resolution", type=float, default=0.8)
     ap.add_argument("--perturb-mm", type=float, default=10.0, help="RMS translation error of scenario 3")
     ap.add_argument("--perturb-deg", type=float, default=10.0, help="RMS rotation error of scenario 3")
-    ap.add_argument("--twin-fraction", type=float, default=0.15, help="slices replaced by their twin (6)")
+    ap.add_argument("--twin-fraction", type=float, default=0.15, help="slices replaced by their twin (scenario 5)")
     ap.add_argument("--config", default="{}", help="ReconstructionConfig overrides, as a Python dict literal")
     ap.add_argument("--only", default="123456", help="scenarios to run (7: real size, alone)")
     ap.add_argument("--model", type=Path, default=ROOT / "service" / "models" / "default" / "model.onnx")
