@@ -4,7 +4,7 @@ Commands::
 
     svrnet predict STACK... [--mask M...] [--out poses.json] [--mc-samples N] [--threshold T]
                             [--no-bias-correction] [--model NAME] [--transforms-out transforms.zip]
-    svrnet masks STACK... [--out-dir DIR] [--margin-mm MM]
+    svrnet masks STACK... --out-dir DIR [--margin-mm MM]
     svrnet reconstruct STACK... [--mask M...] [--poses poses.json] [--resolution 0.8] [--svr-iterations 3]
                        [--wait] [--out recon.nii.gz] [--preview preview.png] [--poses-out refined.json]
     svrnet fetch JOB [--out recon.nii.gz] [--preview preview.png] [--poses-out refined.json]
@@ -28,7 +28,7 @@ Exit codes:
     5   bad input (400, 413, 415, 422: malformed request, too large, unreadable or unusable file; every
         slice of a stream refused)
     6   not found (unknown model or job)
-    7   busy (429/503 after every retry)
+    7   busy (429/503/507 after every retry)
     8   job failed or cancelled
     9   server error (5xx)
     10  conflict (409, e.g. result asked for before the job succeeded; a submission's idempotency key that
