@@ -57,8 +57,8 @@ from client._client import DEFAULT_SERVER, SVRnetClient
 from client.cli_export import export
 from client.cli_stream import stream
 from client.cli_support import (DEFAULT_VOLUME, ApiKeyOpt, BiasCorrectionOpt, JobArg, MaskOpt, MasksHoldCsfOpt, OverwriteOpt,
-                                MaxExpectedOpt, McSamplesOpt, ModelOpt, ServerOpt, StackSpaceOpt, StacksArg, ThresholdOpt,
-                                check_folder_writable, check_masks, check_writable, follow_job, job_id_of,
+                                MaxExpectedOpt, McSamplesOpt, ModelOpt, ServerOpt, STACK_SPACE_HELP, StackSpaceOpt, StacksArg,
+                                ThresholdOpt, check_folder_writable, check_masks, check_writable, follow_job, job_id_of,
                                 once_or_per_stack, resolution_range, timeout_from_env, user_path, write_json,
                                 write_results)
 from client.exits import (EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, EXIT_USAGE, errors, fail,
@@ -212,7 +212,8 @@ def reconstruct(
     transforms_out: Annotated[Optional[Path], typer.Option(
         "--transforms-out", dir_okay=False, callback=user_path,
         help="also download the per-slice ITK transforms (.zip of .tfm files) here (implies --wait)")] = None,
-    stack_space: StackSpaceOpt = None,
+    stack_space: Annotated[Optional[int], typer.Option(
+        "--stack-space", min=0, help=STACK_SPACE_HELP + " (implies --wait)")] = None,
     timeout: Annotated[float, typer.Option(min=0, help="seconds to wait for the job")] = 3600.0,
     poll: Annotated[float, typer.Option(min=0.05, help="seconds between status polls")] = 1.0,
     slice_order: Annotated[Optional[list[str]], typer.Option(

@@ -147,10 +147,10 @@ ApiKeyOpt = Annotated[Optional[str], typer.Option("--api-key", envvar="SVRNET_AP
 MasksHoldCsfOpt = Annotated[bool, typer.Option(
     "--masks-hold-csf", help="the masks are the skull's inside (brain and the CSF around it, as manual fetal masks "
                              "are usually drawn): the pose network sees them less their outer 2 mm")]
-StackSpaceOpt = Annotated[Optional[int], typer.Option(
-    "--stack-space", min=0, help="write the volume in the scanner coordinates of the job's stack N (0: its first "
-                                 "stack), where the brain was while that stack was acquired, so that it overlays "
-                                 "the stack in a viewer (default: atlas space)")]
+STACK_SPACE_HELP = ("write the volume in the scanner coordinates of the job's stack N (0: its first stack), where the "
+                    "brain was while that stack was acquired, so that it overlays the stack in a viewer (default: atlas "
+                    "space)")
+StackSpaceOpt = Annotated[Optional[int], typer.Option("--stack-space", min=0, help=STACK_SPACE_HELP)]
 McSamplesOpt = Annotated[Optional[int], typer.Option(min=1, max=1000, help="MC-dropout passes per slice "
                                                                            "(default: the server's, 100)")]
 ThresholdOpt = Annotated[Optional[float], typer.Option(
