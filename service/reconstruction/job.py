@@ -118,8 +118,8 @@ def refine_job(slice_set: SliceSet, stacks: Sequence[StackInput], starting_error
         progress: ``(stage, fraction of the steps done)`` as each stage begins.
     """
     report = progress or (lambda stage, fraction: None)
-    margin = ReconstructionConfig().margin_mm          # the volume where the slices start: refused now, not later
-    check_volume_size(make_grid(resolution_mm, bounds_of(slice_set.positions(), margin)))
+    if slice_set.n_pixels:                             # the volume where the slices start: refused now, not later
+        check_volume_size(make_grid(resolution_mm, bounds_of(slice_set.positions(), ReconstructionConfig().margin_mm)))
     result = reconstruct_never_worse(slice_set, resolution_mm=resolution_mm, svr_iterations=svr_iterations,
                                      progress=report,
                                      config=ReconstructionConfig(symmetry_plane_x_mm=plane_x_mm,
