@@ -45,7 +45,6 @@ Example (one slice 5 mm right of where it was acquired):
 from __future__ import annotations
 
 import gzip
-import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,6 +55,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from client.errors import UnusableInput
+from client.export_folder import clear_for_export, write_manifest
 from client.files import write_whole
 from client.scanner_stack import slice_axis_of
 from client.slice_transforms import stack_from_atlas_lps, tfm_text
@@ -218,65 +218,11 @@ class Exported:
     masks: list[Path] | None = None
 
 
-MANIFEST = ".svrnet-export.json"
-"""The list of the files an export wrote into its folder: all that ``overwrite`` removes."""
-TOOL_FILES = re.compile(r"^(.+\.nii(\.gz)?|.+\.tfm|slices\.tsv)$")
-"""Names of the files of the folder itself (not of its subfolders) that either tool reads: NeSVoR
-every ``*.nii`` and ``*.nii.gz`` (each a slice ``{i}`` or its ``mask_{i}``; any other name stops it),
-NiftyMIC every ``NAME.tfm`` and ``NAME_slice{k}.tfm``."""
-
-
-def _files(folder: Path) -> set[str]:
-    """The files under ``folder``, as paths relative to it."""
-    return {p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file()} if folder.is_dir() else set()
-
-
-def clear_for_export(folder: Path, overwrite: bool, inputs: list[Path] = ()) -> set[str]:
-    """Make ``folder`` ready for an export and return the files already there. Both tools read every
-    slice file of the folder, so one patient's export must never lie among another's: a folder that
-    holds anything is refused (:class:`UnusableInput`) unless ``overwrite``, which removes what an
-    earlier export listed in its :data:`MANIFEST` and nothing else, and then still refuses a folder
-    holding files a tool would read (:data:`TOOL_FILES`) that no export listed. A folder that holds
-    one of the ``inputs`` (the stacks and masks exported) is refused.
-
-    Example:
-        >>> import tempfile
-        >>> d = Path(tempfile.mkdtemp()); _ = (d / "0.nii.gz").write_bytes(b""); _ = (d / "notes.txt").write_text("")
-        >>> _ = (d / MANIFEST).write_text('["0.nii.gz"]')
-        >>> sorted(clear_for_export(d, overwrite=True))
-        ['notes.txt']
-    """
-    folder = folder.expanduser()
-    inside = [p for p in inputs if folder.resolve() in Path(p).expanduser().resolve().parents]
-    if inside:
-        raise UnusableInput(f"export: {inside[0].name} lies in the folder to write, {folder}; give another folder")
-    if not _files(folder):
-        folder.mkdir(parents=True, exist_ok=True)
-        return set()
-    if not overwrite:
-        raise UnusableInput(f"export: {folder} is not empty; each tool reads every slice file of its folder, so "
-                            "give a new or empty folder (--overwrite replaces an earlier export there)")
-    try:
-        listed = json.loads((folder / MANIFEST).read_text()) if (folder / MANIFEST).is_file() else []
-    except (OSError, ValueError):
-        listed = []
-    for name in listed if isinstance(listed, list) else []:
-        path = folder / str(name)
-        if ".." not in Path(str(name)).parts and path.is_file():
-            path.unlink()
-    (folder / MANIFEST).unlink(missing_ok=True)
-    left = sorted(n for n in _files(folder) if "/" not in n and TOOL_FILES.match(n))
-    if left:
-        raise UnusableInput(f"export: {folder} holds {left[0]}, a file a tool would read that no export of svrnet "
-                            "wrote; give a new or empty folder")
-    return _files(folder)
-
-
 def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None, folder: Path, to: str,
            all_slices: bool = False, thickness_mm: list[float] | None = None, overwrite: bool = False) -> Exported:
     """Write the slices of ``answer`` for the tool ``to`` (:data:`FORMATS`) into ``folder``, a new or
     empty folder unless ``overwrite`` (:func:`clear_for_export`), and the list of what it wrote
-    (:data:`MANIFEST`). ``stacks`` (and ``masks``): the files
+    (:data:`~client.export_folder.MANIFEST`). ``stacks`` (and ``masks``): the files
     the answer was made from, NIfTI. ``thickness_mm``: one per stack, or one for all (default: each
     stack's slice spacing)."""
     if to not in FORMATS:
@@ -325,7 +271,7 @@ def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None,
             done.count += 1
     if to == "nesvor":
         write_whole(folder / "slices.tsv", ("\n".join(rows) + "\n").encode())
-    write_whole(folder / MANIFEST, json.dumps(sorted(_files(folder) - before - {MANIFEST}), indent=0).encode())
+    write_manifest(folder, before)
     return done
 
 
