@@ -245,7 +245,9 @@ class RequestContext:
                                    "status": state["code"], "duration_ms": round(elapsed * 1e3, 1)})
 
     def _too_large(self) -> PayloadTooLarge:
-        return PayloadTooLarge(f"the request body exceeds the limit of {self.max_body} bytes")
+        return PayloadTooLarge(f"the request body (every file of the request together) exceeds the server's limit of "
+                               f"{self.max_body / 2**20:.4g} MB (SVRNET_MAX_UPLOAD_MB): send the stacks gzipped "
+                               "(.nii.gz), or fewer of them in one request")
 
     def _timed_out(self) -> RequestTimeout:
         return RequestTimeout(f"the request body did not arrive in time: nothing for {self.idle_s:g} s, or not "

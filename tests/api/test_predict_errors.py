@@ -173,7 +173,7 @@ def test_too_many_files_and_too_large(oracle: object, tmp_path: Path) -> None:
         assert_problem(post(client, [("stacks", (f"s{i}.nii.gz", s)) for i in range(3)]), 400, "stacks", "at most 2")
     with make_client(ModelRegistry({"default": oracle}), max_upload_mb=0.001) as client:
         r = post(client, [("stacks", ("big.nii.gz", s + b"\0" * 4096))])
-        assert_problem(r, 413, "limit")
+        assert_problem(r, 413, "request body", "limit", "SVRNET_MAX_UPLOAD_MB", "gzipped")
 
 
 def test_a_stack_of_more_slices_than_the_limit_is_422_before_any_stage(oracle: object, tmp_path: Path) -> None:
