@@ -1,6 +1,6 @@
 """The two job back-ends, and the choice between them.
 
-* **embedded** (default, nothing to install): :class:`~service.jobs.store.SqliteJobStore` and a pool
+* **embedded** (default, nothing to install): :class:`~service.jobs.sqlite_store.SqliteJobStore` and a pool
   of worker processes beside the API (:class:`~service.jobs.local_runner.LocalRunner`).
 * **distributed** (``SVRNET_QUEUE_URL=redis://...``): :class:`~service.jobs.redis_store.RedisJobStore`
   and an RQ queue (:class:`~service.jobs.rq_runner.RqRunner`); the API replicas only enqueue, and
@@ -57,7 +57,7 @@ def open_backend(settings: Settings) -> tuple[JobStore, JobRunner]:
         store = RedisJobStore(settings.queue_url, settings.data_dir, settings.queue_name)
         return store, RqRunner(store, settings)
     from service.jobs.local_runner import LocalRunner
-    from service.jobs.store import SqliteJobStore
+    from service.jobs.sqlite_store import SqliteJobStore
 
     sqlite = SqliteJobStore(settings.data_dir)
     return sqlite, LocalRunner(sqlite, settings.models_dir, settings.job_workers, settings.job_max_attempts,

@@ -1,7 +1,7 @@
 """The embedded back-end's runner: a pool of worker processes beside the API.
 
 Jobs are recovered at start (interrupted ones re-queued, see
-:meth:`~service.jobs.store.SqliteJobStore.recover`); on shutdown the workers are stopped and their
+:meth:`~service.jobs.sqlite_store.SqliteJobStore.recover`); on shutdown the workers are stopped and their
 running jobs handed back to the queue, to be re-run after a restart (as after ``kill -9``).
 
 A worker process that dies under a job (the kernel's out-of-memory killer, a signal) breaks its
@@ -38,7 +38,8 @@ from typing import IO
 from service.core.errors import StoreUnavailable
 from service.core.process_pools import end_pool, release_memory
 from service.jobs.runner import INTERRUPTED, JobRunner, start_worker
-from service.jobs.store import Job, SqliteJobStore
+from service.jobs.sqlite_store import SqliteJobStore
+from service.jobs.store import Job
 from service.jobs.worker import TIMED_OUT, run_job
 
 log = logging.getLogger(__name__)

@@ -14,7 +14,7 @@ import psutil
 import pytest
 
 from service.jobs.runner import lost_worker
-from service.jobs.store import SqliteJobStore
+from service.jobs.sqlite_store import SqliteJobStore
 from service.jobs.worker import TIMED_OUT
 from tests.support.live_server import Server
 from tests.support.phantoms import orthogonal_stacks_case

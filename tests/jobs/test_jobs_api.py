@@ -20,7 +20,7 @@ from fastapi.testclient import TestClient
 from service.api import deps, reconstructions
 from service.inference.registry import ModelRegistry
 from service.io.volume import Volume, read_volume, write_volume
-from service.jobs.store import SqliteJobStore
+from service.jobs.sqlite_store import SqliteJobStore
 from tests.api.conftest import OracleEstimator, make_client, tiny_model_path  # noqa: F401 - fixture
 from tests.jobs.conftest import BACKENDS, env_of
 from tests.support.live_server import Worker

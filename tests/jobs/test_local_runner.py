@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from service.jobs.local_runner import LOCK_NAME, LocalRunner, StoreInUse
-from service.jobs.store import SqliteJobStore
+from service.jobs.sqlite_store import SqliteJobStore
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -19,7 +19,7 @@ HOLD = """
 import sys, time
 from pathlib import Path
 from service.jobs.local_runner import LocalRunner
-from service.jobs.store import SqliteJobStore
+from service.jobs.sqlite_store import SqliteJobStore
 runner = LocalRunner(SqliteJobStore(Path(sys.argv[1])), Path(sys.argv[1]))
 runner.start()
 print("owner", flush=True)

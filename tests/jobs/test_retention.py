@@ -10,7 +10,7 @@ from fastapi.testclient import TestClient
 
 from service.api import reconstructions
 from service.inference.registry import ModelRegistry
-from service.jobs.store import SqliteJobStore
+from service.jobs.sqlite_store import SqliteJobStore
 from tests.api.conftest import OracleEstimator, make_client
 from tests.jobs.conftest import BACKENDS
 from tests.jobs.test_jobs_api import case, submit, wait, zeroed  # noqa: F401 - fixture

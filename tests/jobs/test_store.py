@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from service.jobs.store import JobStore, SqliteJobStore
+from service.jobs.sqlite_store import SqliteJobStore
+from service.jobs.store import JobStore
 from tests.jobs.conftest import BACKENDS
 
 both = pytest.mark.parametrize("queue_settings", BACKENDS, indirect=True)
