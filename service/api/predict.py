@@ -10,9 +10,9 @@ from fastapi import APIRouter, Depends, Form, Request
 
 from service.api.deps import (ApiKey, LocalisersDep, MetricsDep, RegistryDep, SettingsDep, localiser_for,
                               processing, requested_model)
-from service.pipeline.documents import stack_objects
 from service.api.schemas import UPLOAD_ERRORS, PredictResponse
 from service.api.uploads import UploadFormDep, known_fields, upload_directory, upload_reader
+from service.pipeline.documents import stack_objects
 from service.pipeline.predict import predict as run_prediction
 from service.pipeline.prepare import prepare_stacks
 
