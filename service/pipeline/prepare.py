@@ -202,10 +202,10 @@ def check_mask_grid(upload: StackUpload) -> None:
                             "(different origin, spacing or orientation)")
 
 
-MAX_MASK_ML = 1500.0
-"""The most an uploaded mask may mark (ml): about twice the head of a fetus at term. A mask of more is
-not a brain's (the body's, the uterus's, a field of view of ones) and would make every later step
-work on the whole image."""
+MAX_MASK_ML = 2500.0
+"""The most an uploaded mask may mark (ml): more than the head of a fetus at term holds, a
+hydrocephalic one's too. A mask of more is not a brain's (the body's, the uterus's, a field of view
+of ones) and would make every later step work on the whole image."""
 
 
 def check_mask_volume(upload: StackUpload) -> None:
@@ -217,7 +217,7 @@ def check_mask_volume(upload: StackUpload) -> None:
         ...                               "m.nii.gz"))
         Traceback (most recent call last):
         ...
-        service.core.errors.UnusableImage: masks: m.nii.gz marks 16000 ml, more than a fetal head holds (1500 ml at most): send a mask of the fetal brain (not of the head, the body or the field of view), or none
+        service.core.errors.UnusableImage: masks: m.nii.gz marks 16000 ml, more than a fetal head holds (2500 ml at most): send a mask of the fetal brain (not of the head, the body or the field of view), or none
     """
     if upload.mask is None:
         return

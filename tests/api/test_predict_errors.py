@@ -93,14 +93,14 @@ def test_a_mask_of_more_than_a_fetal_head_is_422_naming_it(real_client: TestClie
     """A mask of ones over a whole field of view (the body's, the uterus's) is no brain mask: refused,
     for /v1/predict and for a reconstruction job at its submission, where it would make every step
     work on the whole image; a head-sized mask of the same field of view is taken."""
-    wide = np.diag([4.0, 4.0, 4.0, 1.0])                    # 160 x 160 x 100 mm
+    wide = np.diag([4.0, 4.0, 6.0, 1.0])                    # 160 x 160 x 150 mm
     image = nifti_bytes(stack((40, 40, 25)), wide, tmp_path)
-    ones = np.ones((40, 40, 25), np.uint8)                  # 2,560 ml
+    ones = np.ones((40, 40, 25), np.uint8)                  # 3,840 ml
     files = [("stacks", ("s.nii.gz", image)), ("masks", ("body.nii.gz", nifti_bytes(ones, wide, tmp_path)))]
-    assert_problem(post(real_client, files), 422, "masks", "body.nii.gz", "2560 ml", "fetal brain")
-    assert_problem(real_client.post("/v1/reconstructions", files=files), 422, "body.nii.gz", "2560 ml")
+    assert_problem(post(real_client, files), 422, "masks", "body.nii.gz", "3840 ml", "fetal brain")
+    assert_problem(real_client.post("/v1/reconstructions", files=files), 422, "body.nii.gz", "3840 ml")
     head = np.zeros((40, 40, 25), np.uint8)
-    head[10:30, 10:30, 5:20] = 1                             # 80 x 80 x 60 mm: 384 ml
+    head[10:30, 10:30, 5:20] = 1                             # 80 x 80 x 90 mm: 576 ml
     files = [("stacks", ("s.nii.gz", image)), ("masks", ("head.nii.gz", nifti_bytes(head, wide, tmp_path)))]
     assert post(real_client, files).status_code == 200
 
