@@ -22,14 +22,17 @@ from service.api.schemas import (UPLOAD_ERRORS, JobCreated, JobStatus, RefinedPo
                                  problem_responses)
 from service.api.uploads import UploadForm, UploadFormDep, known_fields, upload_directory, upload_reader
 from service.pipeline.predict import stack_orders
-from service.pipeline.prepare import StackUpload, check_distinct_stacks, check_mask_grid, check_mask_volume
+from service.pipeline.prepare import (StackUpload, check_distinct_stacks, check_mask_grid, check_mask_volume,
+                                      marked_brain)
 from service.core.client_json import client_json
 from service.core.errors import Conflict, InvalidParameter, NotFound, PayloadTooLarge, Saturated, UnusableImage
 from service.core.settings import Settings
 from service.io.acquisition_geometry import MAX_VOXEL_MM, MIN_VOXEL_MM
 from service.jobs.store import Job, JobStore
 from service.jobs.uploaded_poses import in_upload_order, poses_from_predict_body
+from service.reconstruction.config import ReconstructionConfig
 from service.reconstruction.export import volume_in_stack_space, zip_folder
+from service.reconstruction.grid import check_brain_fits
 from service.reconstruction.stack_space import NoStackFrame
 
 log = logging.getLogger(__name__)
@@ -183,6 +186,8 @@ async def _keep_submission(request: Request, response: Response, settings: Setti
             check_mask_grid(u)
             check_mask_volume(u)
         check_distinct_stacks(uploads)
+        brain_mm3, extent = max((marked_brain(u) for u in uploads), key=lambda marked: marked[0])
+        check_brain_fits(brain_mm3, extent, job.params["resolution_mm"], ReconstructionConfig().margin_mm)
         check_slices_to_use(uploads, None if not poses_text else [accepted for _, accepted in given])
     except Exception:
         await to_thread.run_sync(store.delete, job.id)     # rejected input (or a client gone) leaves no job behind

@@ -219,14 +219,34 @@ def check_mask_volume(upload: StackUpload) -> None:
         ...
         service.core.errors.UnusableImage: masks: m.nii.gz marks 16000 ml, more than a fetal head holds (2500 ml at most): send a mask of the fetal brain (not of the head, the body or the field of view), or none
     """
-    if upload.mask is None:
-        return
-    voxel_ml = float(np.prod(upload.mask.spacing)) / 1000.0
-    marked_ml = int(np.count_nonzero(upload.mask_voxels)) * voxel_ml
+    marked_ml = marked_brain(upload)[0] / 1000.0
     if marked_ml > MAX_MASK_ML:
         raise UnusableImage(f"masks: {upload.mask_filename or 'mask'} marks {marked_ml:.0f} ml, more than a fetal head "
                             f"holds ({MAX_MASK_ML:.0f} ml at most): send a mask of the fetal brain (not of the head, "
                             "the body or the field of view), or none")
+
+
+def marked_brain(upload: StackUpload) -> tuple[float, NDArray[np.float64]]:
+    """What the uploaded mask marks: its volume (mm³) and the extent (mm, along the scanner's axes) of
+    the box around its voxels; zeros where there is no mask or it marks no voxel.
+
+    Example (a block of 10 x 20 x 5 voxels of 1 x 1 x 3 mm):
+        >>> mask = np.zeros((30, 30, 10), np.uint8)
+        >>> mask[5:15, 5:25, 2:7] = 1
+        >>> v = Volume(mask.astype(np.float32), np.diag([1.0, 1.0, 3.0, 1.0]))
+        >>> volume, extent = marked_brain(StackUpload("s.nii.gz", v, Volume(mask, v.affine), "m.nii.gz"))
+        >>> volume, extent.tolist()
+        (3000.0, [10.0, 20.0, 15.0])
+    """
+    marked = upload.mask_voxels
+    if marked is None or not marked.any():
+        return 0.0, np.zeros(3)
+    ranges = [np.flatnonzero(marked.any(axis=tuple(a for a in range(3) if a != axis)))[[0, -1]] for axis in range(3)]
+    corners = np.array([[r[i] + (i - 0.5) for r, i in zip(ranges, pick)] + [1.0]
+                        for pick in np.ndindex(2, 2, 2)])       # the box's outer faces, half a voxel out
+    world = corners @ np.asarray(upload.mask.affine, np.float64).T
+    volume = float(np.count_nonzero(marked)) * float(np.prod(upload.mask.spacing))
+    return volume, world[:, :3].max(axis=0) - world[:, :3].min(axis=0)
 
 
 def check_distinct_stacks(uploads: list[StackUpload]) -> None:

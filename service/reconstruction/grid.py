@@ -106,9 +106,10 @@ FINEST_STEP_MM = 0.05
 """The voxel sizes :func:`check_volume_size` suggests are multiples of this."""
 
 
-def check_volume_size(grid: Grid) -> None:
+def check_volume_size(grid: Grid, where: str = "where the slices lie") -> None:
     """Refuse a volume of more than :data:`MAX_VOLUME_VOXELS`: :class:`InvalidParameter` naming
-    ``resolution_mm``, its field of view and the finest voxel size that field of view allows.
+    ``resolution_mm``, its field of view (``where`` says what it covers) and the finest voxel size that
+    field of view allows.
 
     Example (a box of 150 mm, at 1 mm and at 0.3 mm):
         >>> check_volume_size(make_grid(1.0, ([0.0, 0, 0], [150, 150, 150])))
@@ -125,9 +126,28 @@ def check_volume_size(grid: Grid) -> None:
     while make_grid(finest, bounds).size > MAX_VOLUME_VOXELS:
         finest += FINEST_STEP_MM
     extent = " x ".join(f"{e:.0f}" for e in bounds[1] - bounds[0])
-    raise InvalidParameter(f"resolution_mm: the volume's field of view ({extent} mm, where the slices lie) at "
+    raise InvalidParameter(f"resolution_mm: the volume's field of view ({extent} mm, {where}) at "
                            f"{resolution:g} mm holds {grid.size:,} voxels, more than a reconstruction may "
                            f"({MAX_VOLUME_VOXELS:,}); ask for {finest:.2f} mm or coarser")
+
+
+def check_brain_fits(brain_mm3: float, extent_mm: ArrayLike, resolution_mm: float, margin_mm: float) -> None:
+    """Refuse before a job starts a ``resolution_mm`` at which the brain alone (``brain_mm3``, what
+    the masks mark) would hold more than :data:`MAX_VOLUME_VOXELS`: every volume that holds it holds
+    more. The finest voxel size the answer names is that of the box around it (``extent_mm``, with
+    ``margin_mm`` each side), as the job's own check (:func:`check_volume_size`) would name it.
+
+    Example (a brain of 400 ml in a box of 100 x 90 x 80 mm, at 0.8 mm and at 0.25 mm):
+        >>> check_brain_fits(400e3, [100, 90, 80], 0.8, 5.0)
+        >>> check_brain_fits(400e3, [100, 90, 80], 0.25, 5.0)
+        Traceback (most recent call last):
+        ...
+        service.core.errors.InvalidParameter: resolution_mm: the volume's field of view (110 x 100 x 90 mm, where the masks mark the brain) at 0.25 mm holds 63,839,601 voxels, more than a reconstruction may (16,000,000); ask for 0.40 mm or coarser
+    """
+    if brain_mm3 / resolution_mm ** 3 <= MAX_VOLUME_VOXELS:
+        return
+    half = (np.asarray(extent_mm, np.float64) + 2 * margin_mm) / 2
+    check_volume_size(make_grid(resolution_mm, np.stack([-half, half])), where="where the masks mark the brain")
 
 
 def bounds_of(points: ArrayLike, margin_mm: float, max_extent_mm: float = MAX_EXTENT_MM) -> NDArray[np.float64]:

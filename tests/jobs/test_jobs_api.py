@@ -412,6 +412,28 @@ def test_stacks_without_masks_on_a_server_without_a_localiser_are_refused_at_sub
 
 
 @pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)     # the back-end plays no part
+def test_a_resolution_the_masked_brain_cannot_fit_is_refused_at_submission(client: TestClient, tmp_path: Path) -> None:
+    """A brain of 300 ml holds more than a reconstruction's voxels at 0.25 mm: a 400 naming
+    ``resolution_mm`` and the voxel size that fits, no job queued; at that size the job is taken."""
+    client.app.state.job_runner.submit = lambda job_id: None           # the submission is what is checked
+    aff = np.diag([2.0, 2.0, 4.0, 1.0])
+    image = np.random.default_rng(0).random((80, 80, 40)).astype(np.float32) * 100
+    mask = np.zeros(image.shape, np.uint8)
+    mask[15:65, 20:60, 10:29] = 1                                       # 100 x 80 x 76 mm: 304 ml
+    files = []
+    for name, array in (("s.nii.gz", image), ("m.nii.gz", mask)):
+        write_volume(Volume(array, aff), tmp_path / name)
+        files.append(("stacks" if name == "s.nii.gz" else "masks", (name, (tmp_path / name).read_bytes())))
+    r = client.post("/v1/reconstructions", files=files, data={"resolution_mm": "0.25"})
+    assert r.status_code == 400, r.text
+    detail = r.json()["detail"]
+    assert detail.startswith("resolution_mm: ") and "110 x 90 x 86 mm, where the masks mark the brain" in detail, detail
+    assert not client.app.state.job_store.queued()
+    fits = re.search(r"ask for ([0-9.]+) mm or coarser", detail).group(1)
+    assert client.post("/v1/reconstructions", files=files, data={"resolution_mm": fits}).status_code == 202
+
+
+@pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)     # the back-end plays no part
 def test_poses_are_matched_to_the_uploaded_stacks_by_file_name(client: TestClient, case: dict) -> None:
     """Poses naming their files are put in the uploads' order; poses of other files are refused, even
     where slice counts and voxel sizes would let them pass."""
