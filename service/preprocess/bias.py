@@ -70,7 +70,7 @@ def n4_correct(volume: Volume, mask: NDArray | None = None, *, shrink: int = 4, 
     small, at = centred_samples(region_array, factors)
     import SimpleITK as sitk      # here: a training host prepares stacks without N4 and has no SimpleITK
 
-    small_image = sitk.GetImageFromArray(np.ascontiguousarray(small.transpose(2, 1, 0)))
+    small_image = sitk.GetImageFromArray(np.ascontiguousarray((small / otsu_unit(small)).transpose(2, 1, 0)))
     fit_mask = sitk.GetArrayFromImage(sitk.OtsuThreshold(small_image, 0, 1, 200)).transpose(2, 1, 0) > 0
     if fit_mask.sum() < 10:
         fit_mask = small > 0
@@ -79,6 +79,20 @@ def n4_correct(volume: Volume, mask: NDArray | None = None, *, shrink: int = 4, 
     out = arr.copy()
     out[box] = arr[box] / np.exp(log_field)
     return out
+
+
+def otsu_unit(values: NDArray) -> np.float32:
+    """The unit the fit image is divided by before ITK's Otsu threshold: its largest value (1 where
+    it holds none above 0). ITK's histogram does not tell apart values that are small in absolute
+    terms, so a stack stored in very small units (brain values of 1e-9, say) would get another fit
+    mask than the same stack in ordinary units; divided by it, every stack is thresholded on one scale.
+
+    Example:
+        >>> bool(otsu_unit(np.array([0.0, 2e-9, 5e-9], np.float32)) == np.float32(5e-9)), float(otsu_unit(np.zeros(3)))
+        (True, 1.0)
+    """
+    peak = np.float32(np.max(values)) if np.size(values) else np.float32(0.0)
+    return peak if np.isfinite(peak) and peak > 0 else np.float32(1.0)
 
 
 def centred_samples(values: NDArray, factors: list[int]) -> tuple[NDArray[np.float32], list[NDArray[np.float64]]]:

@@ -44,3 +44,21 @@ def test_n4_corrects_a_stack_stored_the_other_way_alike() -> None:
         for flip in ((2,), (0,), (0, 1, 2)):
             other = n4_correct(Volume(np.flip(image, flip).copy(), stack.affine), np.flip(mask, flip))
             np.testing.assert_allclose(np.flip(other, flip), corrected, rtol=2e-5, err_msg=f"{shape} {flip}")
+
+
+def test_n4_corrects_a_stack_stored_in_very_small_or_large_units_alike() -> None:
+    """The same stack stored in units 1e-12 to 1e12 times as large gets the same correction, to
+    float rounding: the fit mask's Otsu threshold is taken on one scale (ITK's histogram does not
+    tell apart values that are small in absolute terms)."""
+    rng = np.random.default_rng(7)
+    shape = (96, 90, 16)
+    x = np.linspace(-1, 1, shape[0])[:, None, None]
+    image = (400 * np.exp(0.5 * x) * np.ones(shape) + rng.normal(0, 30, shape)).astype(np.float32)
+    image[:, :20] = 0.0                                         # air: a fit image of two classes
+    mask = np.zeros(shape, bool)
+    mask[20:80, 25:80, 2:14] = True
+    stack = Volume(image, np.diag([1.2, 1.2, 3.0, 1.0]))
+    corrected = n4_correct(stack, mask)
+    for unit in (1e-12, 1e-9, 1e-6, 1e6, 1e12):
+        scaled = n4_correct(Volume(image * np.float32(unit), stack.affine), mask) / np.float32(unit)
+        np.testing.assert_allclose(scaled, corrected, rtol=1e-4, atol=1e-3, err_msg=str(unit))
