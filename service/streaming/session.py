@@ -149,9 +149,14 @@ class StreamSession:
             step_mm = stack.step_mm()
             fit, placement_mm = self.fits.get(frame.stack), self.placement_errors.get(frame.stack)   # of one firm-up
             noise = [st.prepared.input_noise for st in self.slices.get(frame.stack, {}).values()]
-        try:
+        try:                        # a slice that gets no answer is not kept: it may come again, its stack end
             state = prepare_alone(self.estimator, self.localiser, frame, self.mc_samples, self.masks_hold_csf, around,
                                   received, step_mm)
+            alone = pose_alone(self.estimator.info, state, fit, placement_mm,
+                               stack_noise([*noise, state.prepared.input_noise]))
+            answer = SliceAnswer(frame.stack, frame.index, self._judged(state.prepared, state.network_from_voxel,
+                                                                         state.estimate, alone))
+            kept = array_bytes(state.prepared, state.estimate, [state.brain_map], besides=(frame.pixels,))
         except Exception:
             with self._lock:
                 stack.remove(frame.index)
@@ -159,10 +164,6 @@ class StreamSession:
                 if not len(stack):
                     del self.stacks[frame.stack]
             raise
-        alone = pose_alone(self.estimator.info, state, fit, placement_mm, stack_noise([*noise, state.prepared.input_noise]))
-        answer = SliceAnswer(frame.stack, frame.index, self._judged(state.prepared, state.network_from_voxel,
-                                                                     state.estimate, alone))
-        kept = array_bytes(state.prepared, state.estimate, [state.brain_map], besides=(frame.pixels,))   # beside its pixels
         with self._lock:
             self.slices.setdefault(frame.stack, {})[frame.index] = state
             state.answer = answer
