@@ -42,7 +42,7 @@ from service.api.responses import error_message, pose_object, stack_message, sum
 from service.core.errors import (InternalError, InvalidParameter, PayloadTooLarge, RequestTimeout, ServiceError,
                                  UnusableImage)
 from service.mrd.images import pixel_count, slice_from_image, with_pose
-from service.streaming.frames import IncompleteStack, SliceFrame
+from service.streaming.frames import IncompleteStack, SliceFrame, SlicesDropped
 from service.streaming.background import background_executor
 from service.streaming.options import SessionOptions, StreamLimits
 from service.streaming.session import StreamSession
@@ -348,13 +348,22 @@ class MrdConnection:
         return self.session
 
     def end_series(self, series_index: int) -> None:
-        """End the series' stack (answered by its final poses) and start its next pass afresh."""
+        """End the series' stack (answered by its final poses) and start its next pass afresh; where its
+        end dropped slices off its even spacing, the series stays open for them instead (it ends when
+        they come again, or at close without them)."""
         series = self.series.pop(series_index)
         others = self.settle(series.stack)
+        next_pass = SeriesState(f"{series_index}.{series.passes + 1}", passes=series.passes + 1)
         try:
             answer = self.stage.submit(self.open_session().end_stack, series.stack).result()   # at the stages' priority
         except ServiceError as failed:
-            if series.passes > 1 and isinstance(failed, IncompleteStack):
+            if isinstance(failed, SlicesDropped):
+                series.slices -= set(failed.indices)
+                next_pass = series
+                failed = InvalidParameter(f"series {series_index}: the slices {failed.indices[:10]} lie off the even "
+                                          "spacing of its other slices along their normal and are dropped from it; it "
+                                          "ends once they come again where they belong, or at close without them")
+            elif series.passes > 1 and isinstance(failed, IncompleteStack):
                 failed = InvalidParameter(
                     f"series {series_index}: the slices {sorted(series.slices)[:10]} came after the series had ended; "
                     f"they make a pass of their own (stack {series.stack!r}), which ends as a stack only with most "
@@ -370,7 +379,7 @@ class MrdConnection:
             self.send_text(stack_message(answer))
         for other in others:                               # the other series' firm-ups, still to come
             self.firm_up(other)
-        self.series[series_index] = SeriesState(f"{series_index}.{series.passes + 1}", passes=series.passes + 1)
+        self.series[series_index] = next_pass
 
     def finish(self) -> None:
         """The client closed: end the open stacks, send the summary, close."""

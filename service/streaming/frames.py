@@ -52,6 +52,15 @@ class IncompleteStack(InvalidParameter):
     """A stack ended with too many of its slices missing (:meth:`StreamedStack.volume`)."""
 
 
+class SlicesDropped(InvalidParameter):
+    """A stack did not end: the slices ``indices`` lay off its even spacing and were dropped from it,
+    to be sent again (:meth:`~service.streaming.session.StreamSession.end_stack`)."""
+
+    def __init__(self, detail: str, indices: list[int]) -> None:
+        super().__init__(detail)
+        self.indices = list(indices)
+
+
 @dataclass
 class SliceFrame:
     """One slice as sent: its stack's name, its index along the stack normal, pixels and geometry.

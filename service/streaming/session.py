@@ -53,7 +53,7 @@ from service.streaming.arrival import ReceivedSlice, neighbours, pose_alone, pre
 from service.streaming.background import run_in_stage_process
 from service.streaming.footprint import array_bytes
 from service.streaming.coverage import Coverage, CoveredSlice, coverage
-from service.streaming.frames import SliceFrame, StreamedStack, check_frame
+from service.streaming.frames import SliceFrame, SlicesDropped, StreamedStack, check_frame
 from service.streaming.options import SessionOptions, StreamLimits
 
 UPDATE_MM = 1.0
@@ -273,9 +273,9 @@ class StreamSession:
             if off:                 # a slice taken while the step was known from few slices: let it come again
                 for k in off:
                     self._forget(stack, k)
-                raise InvalidParameter(f"end_stack.stack: the slices {off[:10]} of stack {stack!r} lie off the even "
-                                       "spacing of its other slices along their normal; they are dropped from the "
-                                       "stack: send them again where they belong, then end_stack again")
+                raise SlicesDropped(f"end_stack.stack: the slices {off[:10]} of stack {stack!r} lie off the even "
+                                    "spacing of its other slices along their normal; they are dropped from the "
+                                    "stack: send them again where they belong, then end_stack again", off)
             volume, mask = streamed.volume(checked=True)
             missing = tuple(streamed.missing())
             order = SliceOrder((), streamed.arrival_order() + missing, STREAMED)

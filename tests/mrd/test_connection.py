@@ -1,16 +1,24 @@
-"""The MRD connection's firm-up queue: ending one series neither waits for nor loses another's."""
+"""The MRD connection's firm-up queue: ending one series neither waits for nor loses another's; a
+series whose end drops a misplaced slice stays open for it."""
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor, wait
 
+import ismrmrd
 import pytest
+from ismrmrd.serialization import ConfigText
 
 from service.mrd import connection as mrd_connection
 from service.mrd.connection import MrdConnection, SeriesState
+from service.mrd.send import MrdLink, mrd_header
+from tests.mrd.conftest import Case
 from tests.support.firm_ups import GatedSession
+
+CONFIG = ConfigText(json.dumps({"mc_samples": 10, "bias_correction": False}))
 
 
 def _connection(session: GatedSession) -> MrdConnection:
@@ -45,3 +53,31 @@ def test_ending_a_series_keeps_the_firm_up_another_series_has_queued(monkeypatch
     assert session.calls.count(("firm_up", "1.1")) == 1  # series 1's firm-up ran after series 0's end
     assert session.calls.index(("end_stack", "0.1")) < session.calls.index(("firm_up", "1.1"))
     conn.stage.shutdown()
+
+
+def _shifted(image: ismrmrd.Image, mm: float) -> ismrmrd.Image:
+    """``image`` with its position moved ``mm`` along its slice direction (its pixels and the rest alike)."""
+    moved = ismrmrd.Image(head=image.getHead(), data=image.data, meta=image.meta)
+    moved.position = tuple(float(p) + mm * float(d) for p, d in zip(image.position, image.slice_dir))
+    return moved
+
+
+@pytest.mark.parametrize("sent_again", [True, False])
+def test_a_series_whose_end_drops_a_misplaced_slice_stays_open_for_it(case: Case, serve, sent_again: bool) -> None:  # noqa: ANN001
+    """Slice 2 taken 1 mm off its place before the series' slices agreed on their spacing: the
+    series' end drops it and says so in the series' terms; the series stays the same stack, which
+    ends once the slice comes again where it belongs, or at close without it (``not_received``)."""
+    server = serve()
+    client = MrdLink("127.0.0.1", server.port)
+    images = case.images[0]
+    client.send(CONFIG, mrd_header(slices=20), images[0], _shifted(images[2], 1.0),
+                *[images[k] for k in range(20) if k not in (0, 2)], *([images[2]] if sent_again else []))
+    received = client.close()
+    messages = [json.loads(m) for m in received if isinstance(m, str)]
+    (error,) = [m for m in messages if m["type"] == "error"]
+    assert error["image_series_index"] == 0 and error["detail"].startswith(
+        "series 0: the slices [2] lie off the even spacing of its other slices")
+    (stack,) = [m for m in messages if m["type"] == "stack"]
+    missing = [k for k, s in enumerate(stack["slices"]) if s["reason"] == "not_received"]
+    assert stack["stack"] == "0" and len(stack["slices"]) == 20 and missing == ([] if sent_again else [2])
+    assert messages[-1]["type"] == "summary" and messages[-1]["unfinished"] == {}
