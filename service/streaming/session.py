@@ -119,6 +119,10 @@ class StreamSession:
         unchanged, when the slice cannot be taken)."""
         t0 = time.perf_counter()
         check_frame(frame, self.limits.max_pixels)
+        if frame.index >= self.limits.max_stack_slices:       # so a stack holds no more slices than that either
+            raise InvalidParameter(f"slice.index: {frame.index} is beyond the {self.limits.max_stack_slices} slices one "
+                                   f"stack may hold (indices 0 to {self.limits.max_stack_slices - 1}); end the stack "
+                                   "and send the rest as another")
         frame = replace(frame, pixels=magnitude(np.asarray(frame.pixels, np.float32)))   # as a file's values are read
         with self._lock:
             gap = frame.stack in self.ended and frame.index in self.ended[frame.stack].missing
@@ -133,9 +137,6 @@ class StreamSession:
             if frame.stack not in self.stacks and len(self.stacks) >= self.limits.max_stacks:
                 raise InvalidParameter(f"slice.stack: a session holds at most {self.limits.max_stacks} stacks; "
                                        "end it and start another (its stacks may go on)")
-            if frame.stack in self.stacks and len(self.stacks[frame.stack]) >= self.limits.max_stack_slices:
-                raise InvalidParameter(f"slice.stack: stack {frame.stack!r} holds {self.limits.max_stack_slices} "
-                                       "slices, the most one stack may; end it and send the rest as another")
             size = np.asarray(frame.pixels).size * 4
             if self.held_bytes + size > self.limits.max_bytes:
                 raise SessionFull(f"slice: a session keeps at most {self.limits.max_bytes / 2**20:.3g} MB (its "

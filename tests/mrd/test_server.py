@@ -78,7 +78,7 @@ class TightServer(MrdServer):
 
 def test_a_client_that_reads_only_after_sending_everything_gets_every_answer(case: Case) -> None:
     factory = session_factory(ModelRegistry({"default": case.oracle}), case.localiser, StreamLimits())  # type: ignore[dict-item]
-    server = TightServer(("127.0.0.1", 0), factory, StreamLimits(), ServerLimits(idle_s=5.0))
+    server = TightServer(("127.0.0.1", 0), factory, StreamLimits(), ServerLimits(idle_s=30.0))   # not the limit under test
     threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True).start()
     try:
         sock = socket.socket()

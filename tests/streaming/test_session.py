@@ -314,14 +314,18 @@ def test_a_session_holds_no_more_than_its_memory_limit_counting_what_it_keeps(ca
 
 
 def test_a_stack_holds_no_more_than_its_slice_limit_and_the_next_stack_goes_on(case) -> None:  # noqa: ANN001
-    """As an upload's: the stack stage's work grows with the cube of a stack's slices."""
+    """As an upload's: the stack stage's work grows with the cube of a stack's slices. An index at
+    the limit or beyond is refused at once: a stack's missing slices and its volume reach up to its
+    largest index, so one slice of index 10**9 would have made them that long."""
     oracle, stacks, _ = case
     session = StreamSession(oracle, None, StreamLimits(max_stack_slices=2), FAST)
     session.add_slice(stacks[0][0])
     session.add_slice(stacks[0][1])
-    with pytest.raises(InvalidParameter, match="stack 'ax' holds 2 slices, the most one stack may"):
+    with pytest.raises(InvalidParameter, match=r"slice.index: 2 is beyond the 2 slices one stack may hold"):
         session.add_slice(stacks[0][2])
-    assert len(session.stacks["ax"]) == 2
+    with pytest.raises(InvalidParameter, match=r"slice.index: 1000000000 is beyond"):
+        session.add_slice(replace(stacks[0][2], index=10**9))
+    assert len(session.stacks["ax"]) == 2 and session.summary().unfinished == {"ax": []}
     session.add_slice(stacks[1][0])                                      # another stack is taken
     assert len(session.stacks[stacks[1][0].stack]) == 1
 
