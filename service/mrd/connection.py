@@ -318,8 +318,11 @@ class MrdConnection:
     def finish(self) -> None:
         """The client closed: end the open stacks, send the summary, close."""
         for series_index, series in list(self.series.items()):
-            if series.slices:
+            while series.slices:
+                left = len(series.slices)
                 self.end_series(series_index)
+                if self.series.get(series_index) is not series or len(series.slices) >= left:
+                    break       # ended (or failed); else its end dropped slices, which cannot come now: again
         self.settle()
         if self.session is not None:
             self.send_text(summary_message(self.session.summary(), self.started, self.latencies))

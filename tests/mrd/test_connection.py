@@ -81,3 +81,22 @@ def test_a_series_whose_end_drops_a_misplaced_slice_stays_open_for_it(case: Case
     missing = [k for k, s in enumerate(stack["slices"]) if s["reason"] == "not_received"]
     assert stack["stack"] == "0" and len(stack["slices"]) == 20 and missing == ([] if sent_again else [2])
     assert messages[-1]["type"] == "summary" and messages[-1]["unfinished"] == {}
+
+
+def test_a_series_ended_by_close_whose_end_drops_a_misplaced_slice_still_ends(case: Case, serve) -> None:  # noqa: ANN001
+    """No slice count in the header: the series ends at CLOSE; its end drops the misplaced slice, and
+    the stack then ends without it (``not_received``) rather than staying open with the summary's
+    unfinished naming it."""
+    server = serve()
+    client = MrdLink("127.0.0.1", server.port)
+    images = case.images[0]
+    client.send(CONFIG, mrd_header(slices=None), images[0], _shifted(images[2], 1.0),
+                *[images[k] for k in range(20) if k not in (0, 2)])
+    received = client.close()
+    messages = [json.loads(m) for m in received if isinstance(m, str)]
+    (error,) = [m for m in messages if m["type"] == "error"]
+    assert error["detail"].startswith("series 0: the slices [2] lie off the even spacing of its other slices")
+    (stack,) = [m for m in messages if m["type"] == "stack"]
+    missing = [k for k, s in enumerate(stack["slices"]) if s["reason"] == "not_received"]
+    assert stack["stack"] == "0" and missing == [2]
+    assert messages[-1]["type"] == "summary" and messages[-1]["unfinished"] == {}
