@@ -111,7 +111,9 @@ def _walk(fp: BinaryIO, start: int, size: int, filename: str, implicit: bool, e:
         if not top.implicit:
             vr = head[4:6]
             if vr in LONG_VRS:
-                length, header = struct.unpack(e + "I", fp.read(4))[0], 12
+                if len(long := fp.read(4)) < 4:
+                    return                               # cut short: pydicom's reading says so
+                length, header = struct.unpack(e + "I", long)[0], 12
             else:
                 length = struct.unpack(e + "H", head[6:])[0]
         if tag == PIXEL_DATA and len(stack) == 1 and at > MAX_HEADER_BYTES:

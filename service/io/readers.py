@@ -85,7 +85,11 @@ def _read_dicom(path: Path, filename: str, kind: str, budget: FileBudget, scratc
     if kind == "dicom":
         return read_dicom_file(path, filename, budget)
     with tempfile.TemporaryDirectory(prefix="svrnet-read-", dir=scratch) as tmp:
-        as_part10(path, Path(tmp) / "upload.dcm", filename)
+        try:
+            as_part10(path, Path(tmp) / "upload.dcm", filename)
+        except OSError as exc:
+            raise_if_out_of_space(exc)            # a full disk is the server's (507), not the file's
+            raise
         return read_dicom_file(Path(tmp) / "upload.dcm", filename, budget)
 
 

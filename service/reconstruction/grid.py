@@ -122,9 +122,10 @@ def check_volume_size(grid: Grid, where: str = "where the slices lie") -> None:
         return
     resolution = float(grid.spacing[0])
     bounds = grid.bounds_mm
-    finest = np.ceil(resolution * (grid.size / MAX_VOLUME_VOXELS) ** (1 / 3) / FINEST_STEP_MM) * FINEST_STEP_MM
-    while make_grid(finest, bounds).size > MAX_VOLUME_VOXELS:
-        finest += FINEST_STEP_MM
+    steps = int(np.ceil(resolution * (grid.size / MAX_VOLUME_VOXELS) ** (1 / 3) / FINEST_STEP_MM))
+    while make_grid(round(steps * FINEST_STEP_MM, 2), bounds).size > MAX_VOLUME_VOXELS:   # as the answer prints it
+        steps += 1
+    finest = round(steps * FINEST_STEP_MM, 2)
     extent = " x ".join(f"{e:.0f}" for e in bounds[1] - bounds[0])
     raise InvalidParameter(f"resolution_mm: the volume's field of view ({extent} mm, {where}) at "
                            f"{resolution:g} mm holds {grid.size:,} voxels, more than a reconstruction may "

@@ -98,3 +98,29 @@ def test_bytes_08_00_at_a_files_start_alone_are_not_called_a_bare_dicom(tmp_path
         z.writestr("IM0000", raw.read_bytes())
     with pytest.raises(UnsupportedFile, match=r"raw\.zip: the ZIP archive holds no DICOM series"):
         read_upload(tmp_path / "raw.zip", "raw.zip")
+
+
+def test_a_bare_data_set_cut_inside_an_element_header_is_a_415_and_a_full_disk_a_507(tmp_path: Path,
+                                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """The element walk stops where a long VR's length is cut short (pydicom's reading then names the
+    file); a disk that fills while the data set is copied is the server's 507, not the file's 415."""
+    import errno
+    import io
+
+    from service.core.errors import InsufficientStorage
+    from service.io import readers
+    from service.io.dicom_structure import check_structure
+
+    cut = struct.pack("<HH2sH", 8, 0x16, b"UI", 6) + b"1.2.3\0" + struct.pack("<HH2sH", 8, 0x17, b"OB", 0) + b"\x01"
+    check_structure(io.BytesIO(cut), "cut.dcm", False, True)              # no struct.error
+    (tmp_path / "cut.dcm").write_bytes(cut)
+    with pytest.raises(UnsupportedFile, match=r"cut\.dcm"):
+        read_upload(tmp_path / "cut.dcm", "cut.dcm")
+
+    def full(*args: object) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(readers, "as_part10", full)
+    (tmp_path / "old.dcm").write_bytes(_bare(dicom(np.full((2, 8, 8), 100, np.uint16)), True))
+    with pytest.raises(InsufficientStorage):
+        read_upload(tmp_path / "old.dcm", "old.dcm")
