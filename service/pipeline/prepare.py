@@ -219,16 +219,23 @@ def check_mask_volume(upload: StackUpload) -> None:
         ...
         service.core.errors.UnusableImage: masks: m.nii.gz marks 16000 ml, more than a fetal head holds (2500 ml at most): send a mask of the fetal brain (not of the head, the body or the field of view), or none
     """
-    marked_ml = marked_brain(upload)[0] / 1000.0
+    marked_ml = marked_volume_mm3(upload) / 1000.0
     if marked_ml > MAX_MASK_ML:
         raise UnusableImage(f"masks: {upload.mask_filename or 'mask'} marks {marked_ml:.0f} ml, more than a fetal head "
                             f"holds ({MAX_MASK_ML:.0f} ml at most): send a mask of the fetal brain (not of the head, "
                             "the body or the field of view), or none")
 
 
+def marked_volume_mm3(upload: StackUpload) -> float:
+    """What the uploaded mask marks, mm³ (0 without a mask)."""
+    marked = upload.mask_voxels
+    return 0.0 if marked is None else float(np.count_nonzero(marked)) * float(np.prod(upload.mask.spacing))
+
+
 def marked_brain(upload: StackUpload) -> tuple[float, NDArray[np.float64]]:
     """What the uploaded mask marks: its volume (mm³) and the extent (mm, along the scanner's axes) of
-    the box around its voxels; zeros where there is no mask or it marks no voxel.
+    its voxels, each a box half a voxel about its centre; zeros where there is no mask or it marks
+    no voxel.
 
     Example (a block of 10 x 20 x 5 voxels of 1 x 1 x 3 mm):
         >>> mask = np.zeros((30, 30, 10), np.uint8)
@@ -241,12 +248,10 @@ def marked_brain(upload: StackUpload) -> tuple[float, NDArray[np.float64]]:
     marked = upload.mask_voxels
     if marked is None or not marked.any():
         return 0.0, np.zeros(3)
-    ranges = [np.flatnonzero(marked.any(axis=tuple(a for a in range(3) if a != axis)))[[0, -1]] for axis in range(3)]
-    corners = np.array([[r[i] + (i - 0.5) for r, i in zip(ranges, pick)] + [1.0]
-                        for pick in np.ndindex(2, 2, 2)])       # the box's outer faces, half a voxel out
-    world = corners @ np.asarray(upload.mask.affine, np.float64).T
-    volume = float(np.count_nonzero(marked)) * float(np.prod(upload.mask.spacing))
-    return volume, world[:, :3].max(axis=0) - world[:, :3].min(axis=0)
+    linear = np.asarray(upload.mask.affine, np.float64)[:3, :3]
+    centres = np.argwhere(marked) @ linear.T                    # the offset cancels in an extent
+    voxel_reach = np.abs(linear).sum(axis=1)                     # one voxel's extent along each scanner axis
+    return marked_volume_mm3(upload), centres.max(axis=0) - centres.min(axis=0) + voxel_reach
 
 
 def check_distinct_stacks(uploads: list[StackUpload]) -> None:

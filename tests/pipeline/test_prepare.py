@@ -170,3 +170,23 @@ def test_an_uploaded_mask_that_marks_nothing_is_reported_with_no_confidence() ->
     box[5:15, 5:15] = 1
     assert localise(StackUpload("s.nii.gz", vol, Volume(box, vol.affine))).confidence == 1.0
 
+
+
+def test_the_box_a_mask_marks_is_measured_along_the_scanners_axes_on_an_oblique_grid() -> None:
+    """Against every marked voxel's own eight corners placed by the grid: the box around them."""
+    from scipy.spatial.transform import Rotation
+
+    from service.pipeline.prepare import marked_brain
+
+    affine = np.eye(4)
+    affine[:3, :3] = Rotation.from_euler("xyz", [20, -35, 50], degrees=True).as_matrix() @ np.diag([0.8, 1.1, 3.0])
+    affine[:3, 3] = [-40.0, 12.0, 7.5]
+    mask = np.zeros((30, 28, 12), np.uint8)
+    mask[4:19, 6:25, 3:9] = 1
+    mask[20:23, 2:5, 10] = 1                                           # a second, separate part
+    upload = StackUpload("s.nii.gz", Volume(mask.astype(np.float32), affine), Volume(mask, affine), "m.nii.gz")
+    volume, extent = marked_brain(upload)
+    corners = (np.argwhere(mask)[:, None, :] + (np.array(list(np.ndindex(2, 2, 2))) - 0.5)[None]).reshape(-1, 3)
+    world = corners @ affine[:3, :3].T + affine[:3, 3]
+    np.testing.assert_allclose(extent, world.max(axis=0) - world.min(axis=0), atol=1e-9)
+    assert volume == pytest.approx(mask.sum() * 0.8 * 1.1 * 3.0)
