@@ -352,7 +352,7 @@ def _binary_as_stored(path: Path, stack: nib.Nifti1Image) -> bool:
     image = nib.load(str(path))
     values = np.asarray(image.dataobj)
     same_order = np.allclose(np.linalg.inv(image.affine) @ stack.affine, np.eye(4), atol=1e-2)
-    return bool(same_order and values.size == int(np.prod(stack.shape[:3])) and np.isin(values, (0, 1)).all())
+    return bool(same_order and values.shape == tuple(stack.shape[:3]) and np.isin(values, (0, 1)).all())
 
 
 def _rewritten(values: NDArray, scanner_from_voxel: NDArray, slice_axis: int, path: Path) -> Path:
