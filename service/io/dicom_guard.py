@@ -3,7 +3,8 @@
 * Deflated Explicit VR Little Endian: the dataset is inflated here, in chunks, charged to the file's
   :class:`~service.io.limits.FileBudget` as it grows (pydicom would inflate it whole, unbounded).
 * The dataset's elements and items, at every depth, and its header's bytes are counted from its raw
-  bytes before pydicom builds any of them (:func:`~service.io.dicom_structure.check_structure`).
+  bytes before pydicom builds any of them (:func:`~service.io.dicom_structure.check_structure`), the
+  file-meta group's before pydicom reads it (:func:`~service.io.dicom_structure.check_file_meta`).
 * Pixel data: ``Rows x Columns x NumberOfFrames x SamplesPerPixel`` is charged before any pixel is
   decoded (multi-frame included); colour pixel data (``SamplesPerPixel`` above 1) are refused (422).
 * Encapsulated pixel data: every frame is checked against ``Rows``/``Columns`` before a codec sees it:
@@ -27,7 +28,7 @@ from pydicom.filebase import DicomBytesIO
 from pydicom.filereader import _read_file_meta_info, read_dataset, read_preamble
 
 from service.core.errors import UnsupportedFile, UnusableImage
-from service.io.dicom_structure import check_structure
+from service.io.dicom_structure import check_file_meta, check_structure
 from service.io.limits import FileBudget
 
 JPEG_FAMILY = set(uid.JPEGTransferSyntaxes) | set(uid.JPEGLSTransferSyntaxes)
@@ -46,6 +47,7 @@ def load_dataset(path: Path, filename: str, budget: FileBudget, require_pixels: 
     """
     with open(path, "rb") as fp:
         preamble = read_preamble(fp, False)
+        check_file_meta(fp, filename)
         meta = _read_file_meta_info(fp)
         if meta.get("TransferSyntaxUID") == uid.DeflatedExplicitVRLittleEndian:
             raw = _inflate(fp, budget)

@@ -25,6 +25,8 @@ MAX_ELEMENTS = 200_000
 thousand frames holds about a hundred thousand)."""
 MAX_HEADER_BYTES = 8 << 20
 """The most bytes of a dataset before its pixel data."""
+MAX_META_ELEMENTS = 1_000
+"""The most elements of a file-meta group (group 0002; the standard defines twelve)."""
 PIXEL_DATA = 0x7FE00010
 UNDEFINED = 0xFFFFFFFF
 LONG_VRS = frozenset({b"OB", b"OD", b"OF", b"OL", b"OV", b"OW", b"SQ", b"SV", b"UC", b"UN", b"UR", b"UT", b"UV"})
@@ -72,6 +74,40 @@ def check_structure(fp: BinaryIO, filename: str, implicit_vr: bool, little_endia
     fp.seek(start)
     try:
         _walk(fp, start, size, filename, implicit_vr, "<" if little_endian else ">")
+    finally:
+        fp.seek(start)
+
+
+def check_file_meta(fp: BinaryIO, filename: str) -> None:
+    """Refuse (413) the file-meta group that starts at ``fp``'s position (left there again) when it
+    holds more than :data:`MAX_META_ELEMENTS` elements. pydicom reads the group whole before the
+    dataset's own count (:func:`check_structure`) can start, every element a Python object.
+
+    Example (a group of two elements, then the dataset's first tag):
+        >>> import io, struct
+        >>> meta = struct.pack("<HH2sHI", 2, 0, b"UL", 4, 30) + struct.pack("<HH2sH", 2, 0x10, b"UI", 20) + bytes(20)
+        >>> check_file_meta(io.BytesIO(meta + struct.pack("<HH", 8, 0x16)), "a.dcm")
+        >>> try:
+        ...     check_file_meta(io.BytesIO(struct.pack("<HH2sH", 2, 0x10, b"UI", 0) * 2000), "b.dcm")
+        ... except PayloadTooLarge as exc:
+        ...     print(exc.detail)
+        b.dcm: a DICOM file-meta group of more than 1000 elements
+    """
+    start = fp.tell()
+    try:
+        for _ in range(MAX_META_ELEMENTS + 1):
+            head = fp.read(8)
+            if len(head) < 8 or struct.unpack("<H", head[:2])[0] != 2:
+                return
+            length = struct.unpack("<H", head[6:])[0]
+            if head[4:6] in LONG_VRS:
+                if len(long := fp.read(4)) < 4:
+                    return
+                length = struct.unpack("<I", long)[0]
+            if length == UNDEFINED:
+                return                                   # no meta group pydicom reads: it says what is wrong
+            fp.seek(length, 1)
+        raise PayloadTooLarge(f"{filename}: a DICOM file-meta group of more than {MAX_META_ELEMENTS} elements")
     finally:
         fp.seek(start)
 

@@ -25,9 +25,9 @@ class StreamLimits:
 
     max_slices: int = 2000
     max_pixels: int = 1024 * 1024
-    max_bytes: int = 256 * 2**20
+    max_bytes: int = 512 * 2**20
     """What a session may keep in memory: its slices' pixels as float32, each slice's preparation and each ended
-    stack's (about three times the pixels)."""
+    stack's, reserved as its slices come (five to six times the pixels)."""
     max_stack_slices: int = 128
     """What one stack may hold (``max_slices_per_stack``, as an upload: its stage's work grows with the cube)."""
     max_stacks: int = 32

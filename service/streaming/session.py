@@ -67,6 +67,10 @@ SHOWN_MAX_EXPECTED_MM = 10.0
 """A slice not accepted still shows where the brain is when its expected error is at most this: its
 brain pixels extend the brain :mod:`~service.streaming.coverage` counts (not what is covered); one
 placed further off would draw brain, and a gap, where there is none."""
+END_SHARE = 3.0
+"""What a stack's end keeps (the stack rebuilt whole, its preparation and its masks), as a share of its
+slices' pixels as float32; each slice reserves it as it comes, so that no end takes a session past
+its memory limit (the shared real scan's stacks measure 2.7-2.9)."""
 
 
 @dataclass
@@ -111,6 +115,7 @@ class StreamSession:
         self.reopened: dict[str, int] = {}      # a reopened stack's earlier end, still held: its bytes
         self.compute_ms: dict[str, float] = {"slices": 0.0, "firm_up": 0.0, "end_stack": 0.0}
         self.held_bytes = 0                     # the received slices' pixels as float32, and what is kept of them
+        self.reserved: dict[str, float] = {}    # each open stack's reserve for its end (:data:`END_SHARE`)
         self._lock = threading.Lock()
 
     # -- 1. a slice arrives ------------------------------------------------------------------------------
@@ -138,13 +143,14 @@ class StreamSession:
                 raise InvalidParameter(f"slice.stack: a session holds at most {self.limits.max_stacks} stacks; "
                                        "end it and start another (its stacks may go on)")
             size = np.asarray(frame.pixels).size * 4
-            if self.held_bytes + size > self.limits.max_bytes:
+            if self.held_bytes + sum(self.reserved.values()) + size * (1 + END_SHARE) > self.limits.max_bytes:
                 raise SessionFull(f"slice: a session keeps at most {self.limits.max_bytes / 2**20:.3g} MB (its "
-                                  "slices and their preparation); end it and start another")
+                                  "slices, their preparation and their stacks' ends); end it and start another")
             stack = self.stacks.get(frame.stack) or StreamedStack(frame.stack)
             stack.add(frame)
             self.stacks[frame.stack] = stack
             self.held_bytes += size
+            self.reserved[frame.stack] = self.reserved.get(frame.stack, 0.0) + size * END_SHARE
             around = neighbours(stack, frame.index)
             received = {k: st.brain_map for k, st in self.slices.get(frame.stack, {}).items() if st.brain_map is not None}
             step_mm = stack.step_mm()
@@ -162,8 +168,10 @@ class StreamSession:
             with self._lock:
                 stack.remove(frame.index)
                 self.held_bytes -= size
+                self.reserved[frame.stack] -= size * END_SHARE
                 if not len(stack):
                     del self.stacks[frame.stack]
+                    del self.reserved[frame.stack]
             raise
         with self._lock:
             self.slices.setdefault(frame.stack, {})[frame.index] = state
@@ -246,6 +254,7 @@ class StreamSession:
         frame = self.stacks[stack].frames[index]
         self.stacks[stack].remove(index)
         self.held_bytes -= np.asarray(frame.pixels).size * 4
+        self.reserved[stack] -= np.asarray(frame.pixels).size * 4 * END_SHARE
         state = self.slices.get(stack, {}).pop(index, None)
         if state is not None:
             self.held_bytes -= array_bytes(state.prepared, state.estimate, [state.brain_map], besides=(frame.pixels,))
@@ -295,6 +304,7 @@ class StreamSession:
         with self._lock:
             self.ended[stack] = ended[stack]
             self.held_bytes += array_bytes(ended[stack]) - self.reopened.pop(stack, 0)   # the stack as prepared whole
+            self.reserved.pop(stack, None)                                               # in place of its reserve
             for state in self.slices.get(stack, {}).values():     # its slices' maps serve no later slice
                 self.held_bytes -= array_bytes([state.brain_map])
                 state.brain_map = None

@@ -82,6 +82,29 @@ def test_a_dicom_dataset_of_countless_tiny_parts_is_refused_before_pydicom_build
     assert peak < 64 * MB, peak
 
 
+def test_a_file_meta_group_of_countless_elements_is_refused_before_pydicom_reads_it(tmp_path: Path) -> None:
+    """pydicom reads the file-meta group whole before the dataset is counted: a group of a million
+    zero-length elements (8 MB) is refused from its bytes, within bounded memory, and a file whose
+    group holds a few private elements beside the standard ones is still read."""
+    import struct
+
+    from service.io import dicom_structure
+
+    valid = corpus.dicom(np.zeros((2, 8, 8)))
+    head = 128 + 4
+    group_end = head + 12 + struct.unpack("<I", valid[head + 8:head + 12])[0]
+    extra = lambda n: b"".join(struct.pack("<HH2sH", 2, 0x100 + k % 0xFE00, b"LO", 0) for k in range(n))  # noqa: E731
+    assert read(tmp_path, valid[:group_end] + extra(20) + valid[group_end:], "few.dcm").array.shape[:2] == (8, 8)
+    bomb = valid[:group_end] + extra(1) * 1_000_000 + valid[group_end:]
+    tracemalloc.start()
+    with pytest.raises(PayloadTooLarge, match=f"bomb.dcm: a DICOM file-meta group of more than "
+                                              f"{dicom_structure.MAX_META_ELEMENTS} elements"):
+        read(tmp_path, bomb, "bomb.dcm", limit_mb=64)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 4 * MB, peak
+
+
 def test_a_deflated_dicom_within_the_limit_is_read(tmp_path: Path) -> None:
     pixels = np.arange(3 * 8 * 6, dtype=np.uint16).reshape(3, 8, 6)
     vol = read(tmp_path, corpus.dicom(pixels, ts=uid.DeflatedExplicitVRLittleEndian), "ok.dcm")

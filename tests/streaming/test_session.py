@@ -13,7 +13,7 @@ from service.geometry import twin
 from service.streaming.answers import NOT_RECEIVED
 from service.streaming.frames import IncompleteStack, SliceFrame, StreamedStack
 from service.streaming.options import SessionOptions, StreamLimits
-from service.streaming.session import StreamSession, sent_network_from_voxel
+from service.streaming.session import END_SHARE, StreamSession, sent_network_from_voxel
 from tests.api.conftest import INFO
 from tests.support.streams import SHAPE, KeyedOracle, true_sent, two_stacks_case
 
@@ -289,16 +289,16 @@ def test_masks_hold_csf_sets_the_pose_mask_inset_of_mask_frames(case) -> None:  
 
 
 def test_a_session_holds_no_more_than_its_memory_limit_counting_what_it_keeps(case) -> None:  # noqa: ANN001
-    """The limit counts each slice's preparation beside its pixels (about three times the pixels
-    kept in all), and each ended stack's."""
+    """The limit counts each slice's preparation beside its pixels, and reserves its stack's end as it
+    comes: a session filled to its limit ends its stacks within it."""
     oracle, stacks, _ = case
     one = stacks[0][0].pixels.size * 4
     probe = StreamSession(oracle, None, options=FAST)
     probe.add_slice(stacks[0][0])
-    first = probe.held_bytes
-    assert first > 2 * one                                               # more than the pixels alone
-    for limit, taken in ((first + one - 1, 1), (first + one, 2)):
-        session = StreamSession(oracle, None, StreamLimits(max_bytes=limit), FAST)
+    first = probe.held_bytes + sum(probe.reserved.values())
+    assert first > (2 + END_SHARE) * one                                 # more than the pixels and the reserve
+    for limit, taken in ((first + (1 + END_SHARE) * one - 1, 1), (first + (1 + END_SHARE) * one, 2)):
+        session = StreamSession(oracle, None, StreamLimits(max_bytes=int(limit)), FAST)
         session.add_slice(stacks[0][0])
         if taken == 1:
             with pytest.raises(SessionFull, match="a session keeps at most"):
@@ -310,7 +310,21 @@ def test_a_session_holds_no_more_than_its_memory_limit_counting_what_it_keeps(ca
         probe.add_slice(frame)
     before = probe.held_bytes
     probe.end_stack("ax")
-    assert probe.held_bytes > before                                     # the stack as prepared whole
+    assert probe.held_bytes > before and probe.reserved == {}           # the stack as prepared whole, for its reserve
+    for limit in (probe.held_bytes + 6 * (1 + END_SHARE) * one, 10 * 2**20):
+        full = StreamSession(oracle, None, StreamLimits(max_bytes=int(limit)), FAST)
+        taken = []
+        for frames in stacks:
+            for frame in frames:
+                try:
+                    full.add_slice(frame)
+                except SessionFull:
+                    break
+                taken.append(frame)
+            if frame.stack in full.stacks and len(full.stacks[frame.stack]) > 1:
+                full.end_stack(frame.stack)
+                assert full.held_bytes <= limit, (full.held_bytes, limit)
+        assert len(taken) > len(stacks[0])
 
 
 def test_a_stack_holds_no_more_than_its_slice_limit_and_the_next_stack_goes_on(case) -> None:  # noqa: ANN001
