@@ -168,6 +168,27 @@ def test_a_niftymic_transform_composed_with_the_stack_file_gives_each_voxel_its_
     assert np.linalg.norm(np.subtract(whole.TransformPoint(centre), np.mean(moved, axis=0))) < 5.0
 
 
+def test_a_rigid_stacks_niftymic_transform_places_every_voxel_where_its_pose_does(case: dict, tmp_path: Path) -> None:
+    """Where every slice has the same pose (a stack that did not move), ``NAME.tfm`` is that move: it
+    takes each voxel's scanner point to its atlas point, as each slice's own transform does."""
+    sitk = pytest.importorskip("SimpleITK")
+    move = np.eye(4)
+    move[:3, :3] = Rotation.from_rotvec([0.2, -0.4, 0.3]).as_matrix()
+    move[:3, 3] = (7.0, -3.0, 12.0)
+    pose = move @ case["scanner_from_voxel"]
+    answer = json.loads(json.dumps(case["answer"]))
+    for item in answer["stacks"][0]["slices"]:
+        item["atlas_from_voxel"] = pose.tolist()
+    out = tmp_path / "rigid"
+    export(answer, [case["stack"]], [case["mask"]], out, "niftymic", all_slices=True)
+    image = sitk.ReadImage(str(case["stack"]))
+    for name in ("ax.tfm", "ax_slice2.tfm"):
+        t = sitk.ReadTransform(str(out / name))
+        for index in ((0, 0, 0), (19, 15, 5), (5, 9, 2)):
+            scanner_lps = image.TransformContinuousIndexToPhysicalPoint(tuple(map(float, index)))
+            np.testing.assert_allclose(t.TransformPoint(scanner_lps), (F @ pose @ [*index, 1.0])[:3], atol=1e-4)
+
+
 def test_files_that_are_not_the_answers_are_refused(case: dict, tmp_path: Path) -> None:
     other = tmp_path / "ax.nii.gz"
     moved = case["scanner_from_voxel"].copy()
