@@ -10,10 +10,11 @@ cut away, on the network's grid of per-slice maps ``[n, H, W]``:
    void darkened), as a blank slice is;
 2. what hangs on to it through a waist: a thin bridge of one or more slices into the fetal neck, body
    or face, or a dip past which the component widens again (:func:`cut_at_waists`);
-3. what a slice adds in its own plane beyond its neighbours (:func:`trim_outlier_slices`: a sagittal
-   slice that runs on from the head into the fetal trunk), beyond its neighbour nearer the brain's
-   middle where it is wider than that neighbour (:func:`trim_growing_caps`: the face beside the frontal
-   lobes in the last slices of a coronal stack) or beyond the ellipse its outline follows
+3. what a slice adds in its own plane (:mod:`~service.preprocess.slice_trims`) beyond its neighbours
+   (``trim_outlier_slices``: a sagittal slice that runs on from the head into the fetal trunk),
+   beyond its neighbour nearer the brain's middle where it is wider than that neighbour
+   (``trim_growing_caps``: the face beside the frontal lobes in the last slices of a coronal stack)
+   or beyond the ellipse its outline follows
    (:func:`~service.preprocess.head_ellipses.trim_to_head_ellipses`: neighbouring slices that run on
    together);
 4. its in-plane holes filled (:func:`fill_holes_in_plane`).
@@ -32,6 +33,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from service.preprocess.head_ellipses import trim_to_head_ellipses
+from service.preprocess.slice_trims import CAP_GROWTH, trim_growing_caps, trim_outlier_slices
 from service.preprocess.stack import mask_box
 
 PLAUSIBLE_ML = (30.0, 700.0)
@@ -51,12 +53,6 @@ on each side of it is a waist: a thin bridge into a neighbouring structure (:fun
 WAIST_OVERLAP = 0.5
 """A thin slice is a waist only where the slices on either side of it overlap by less than this share
 of the smaller: a brain's poor slice lies between two slices of one brain, a bridge between two objects."""
-CAP_GROWTH = 1.2
-"""A thin slice whose neighbours overlap is still a waist where what lies beyond it (the side with less
-mass) has a slice wider than this times the two slices past it on the other side: a brain's area
-rises to one widest slice and falls, so a cap beyond a poor slice narrows, and a face beyond a skull
-base does not (two slices, so that a partly seen slice beside a poor one does not make a cap look wide).
-A cap's slice wider than this times its neighbour nearer the middle is trimmed (:func:`trim_growing_caps`)."""
 VALLEY_SHARE = 0.3
 """Two or more neighbouring slices, each under this share of the component's largest slice on each side,
 are a bridge whatever their overlap, cut at its narrowest slice: a poor slice of a brain comes alone
@@ -66,13 +62,6 @@ END_DIP = 0.5
 """At either end of a component, a run of small slices (each under :data:`VALLEY_SHARE` of the largest)
 is a bridge to something else where its narrowest slice is under this share of a slice beyond it: a
 brain's cap narrows to its last slice, bits of a fetal body beyond it do not (:func:`end_dips`)."""
-OUTLIER_AREA = 1.5
-"""A slice whose area exceeds this times the median of its component's nearest slices (two on each
-side) has run on into its surroundings in its own plane (:func:`trim_outlier_slices`); a head's
-cross-sections change far less from one slice to the next."""
-OUTLIER_MARGIN_MM = 5.0
-"""Such a slice keeps only what lies within this distance of its nearest regular slices' regions; so does
-a cap's slice wider than its inner neighbour (:func:`trim_growing_caps`)."""
 TAIL_SHARE = 0.35
 """What lies beyond a waist is cut off when it holds less than this share of the component's
 probability mass; a larger part on each side is the brain itself, split by a poor slice."""
@@ -173,8 +162,9 @@ def cut_at_waists(component: NDArray[np.bool_], prob: NDArray[np.float32]) -> ND
 
 def widens_beyond(k: int, area: NDArray, mass: NDArray) -> bool:
     """Whether, beyond slice ``k`` (on the side with less ``mass``), some slice is over
-    :data:`CAP_GROWTH` times as wide as the wider of the two slices past ``k`` on the other side: the
-    profile of ``area`` rises again past ``k``, which no cap of a brain does.
+    :data:`~service.preprocess.slice_trims.CAP_GROWTH` times as wide as the wider of the two slices
+    past ``k`` on the other side: the profile of ``area`` rises again past ``k``, which no cap of a
+    brain does.
 
     Example (a face of three slices, 22-37 pixels, beyond a thin slice, then a skull base of 16 and
     25 pixels; the same with the face at most 12 pixels wide):
@@ -231,83 +221,6 @@ def end_dips(area: NDArray) -> NDArray[np.int64]:
         if len(run) - k > 2 and area[run[k]] < END_DIP * area[run[k + 1:]].max():
             dips.append(int(run[k]))
     return np.array(sorted(dips), np.int64)
-
-
-def margin_disk(grid_mm: float) -> NDArray[np.bool_]:
-    """The in-plane disk of radius :data:`OUTLIER_MARGIN_MM` (pixels of ``grid_mm``, at least one)."""
-    radius = max(1, int(round(OUTLIER_MARGIN_MM / grid_mm)))
-    return np.hypot(*np.mgrid[-radius:radius + 1, -radius:radius + 1]) <= radius
-
-
-def trim_outlier_slices(component: NDArray[np.bool_], grid_mm: float) -> NDArray[np.bool_]:
-    """A component of per-slice maps ``[n, H, W]`` whose outlying slices keep only what lies near their
-    neighbours.
-
-    A slice whose area exceeds :data:`OUTLIER_AREA` times the median of its nearest slices (two on
-    each side, within the component) holds more than the head: along a sagittal slice the brain runs
-    on into the fetal trunk through a neck as wide as itself, which no waist shows. Such a slice keeps
-    what lies within :data:`OUTLIER_MARGIN_MM` (pixels of ``grid_mm``) of the regions of its
-    nearest regular slices on either side.
-
-    Example (slice 3 of a square brain runs on to the right: it keeps the square and 2 pixels more):
-        >>> c = np.zeros((7, 30, 40), bool); c[:, 5:15, 5:15] = True; c[3, 5:15, 15:38] = True
-        >>> trim_outlier_slices(c, grid_mm=2.5)[3].any(0).nonzero()[0][[0, -1]].tolist()
-        [5, 16]
-    """
-    area = component.reshape(len(component), -1).sum(1)
-    if np.count_nonzero(area) < 5:
-        return component
-    n = len(area)
-    outlier = np.zeros(n, bool)
-    for k in np.flatnonzero(area):
-        near = [j for j in (k - 2, k - 1, k + 1, k + 2) if 0 <= j < n and area[j] > 0]
-        outlier[k] = len(near) >= 2 and area[k] > OUTLIER_AREA * np.median(area[near])
-    if not outlier.any():
-        return component
-    regular = np.flatnonzero((area > 0) & ~outlier)
-    disk = margin_disk(grid_mm)
-    out = component.copy()
-    for k in np.flatnonzero(outlier):
-        below, above = regular[regular < k], regular[regular > k]
-        guides = ([below[-1]] if len(below) else []) + ([above[0]] if len(above) else [])
-        if guides:
-            out[k] &= ndimage.binary_dilation(component[guides].any(0), structure=disk)
-    return out
-
-
-def trim_growing_caps(component: NDArray[np.bool_], grid_mm: float) -> NDArray[np.bool_]:
-    """A component of per-slice maps ``[n, H, W]`` whose slices on either side of its middle (the
-    area-weighted mean slice: a head's widest) keep, where they are wider than :data:`CAP_GROWTH`
-    times their neighbour nearer the middle, only what lies within :data:`OUTLIER_MARGIN_MM` of that
-    neighbour's region (as trimmed), slice by slice outwards.
-
-    A head's cross-sections shrink from its widest slice to either cap; a slice past it that grows
-    again holds something beside the head in its own plane, as the face does beside the frontal
-    lobes in a coronal stack's last slices, where no waist parts them. The margin leaves the few
-    millimetres a head moves between two slices.
-
-    Example (slices 0-6 of a brain that narrows to slice 6, whose slice 5 also holds a face beside it):
-        >>> c = np.zeros((7, 30, 40), bool)
-        >>> for k, half in enumerate([6, 8, 9, 9, 8, 6, 4]): c[k, 15 - half:15 + half, 15 - half:15 + half] = True
-        >>> c[5, 9:21, 21:36] = True
-        >>> out = trim_growing_caps(c, grid_mm=2.5)
-        >>> int(c[5].sum()), int(out[5].sum()), bool(out[5, :, 30:].any())
-        (324, 192, False)
-    """
-    area = component.reshape(len(component), -1).sum(1)
-    if np.count_nonzero(area) < 5:
-        return component
-    disk = margin_disk(grid_mm)
-    out = component.copy()
-    middle = int(round(float(np.arange(len(area)) @ area / area.sum())))     # the widest slices' place,
-    for step in (1, -1):                                                      # whatever lies beside a cap
-        k = middle + step
-        while 0 <= k < len(out) and out[k].any() and out[k - step].any():   # no empty slice to grow from
-            inner = out[k - step]
-            if out[k].sum() > CAP_GROWTH * inner.sum():
-                out[k] &= ndimage.binary_dilation(inner, structure=disk)
-            k += step
-    return out
 
 
 def largest_mass(mask: NDArray[np.bool_], prob: NDArray[np.float32]) -> NDArray[np.bool_]:

@@ -58,7 +58,8 @@ from service.core.onnx import file_sha256, model_files, session_options, session
 from service.core.settings import DEFAULT_LOCALISERS_DIR
 from service.core.threads import side_by_side
 from service.io.volume import Volume
-from service.preprocess.brain_shape import THRESHOLD, brain_from_probabilities, margin_disk
+from service.preprocess.brain_shape import THRESHOLD, brain_from_probabilities
+from service.preprocess.slice_trims import margin_disk
 from service.preprocess.localisation import Localisation
 from service.preprocess.localiser_inputs import LocaliserGrid, localiser_inputs
 from service.preprocess.one_fetus import one_fetus
@@ -237,7 +238,7 @@ class Localiser:
         slice is the slice's brain (unless a sliver, under :data:`MIN_SLICE_AREA_MM2`: then the
         slice tells better). Where it misses this slice but holds one of the two on either
         side (past the brain's end, or a slice it trimmed), the candidate that reaches within
-        :data:`~service.preprocess.brain_shape.OUTLIER_MARGIN_MM` of that slice's region is.
+        :data:`~service.preprocess.slice_trims.OUTLIER_MARGIN_MM` of that slice's region is.
         Otherwise (no brain of two slices or more and :data:`MIN_CONFIDENCE` in the received maps,
         no candidate near it, or none of the maps on this slice's grid) the slice is judged alone:
         a stack whose face end arrives first has a face for its brain until the brain's own slices

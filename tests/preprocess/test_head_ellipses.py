@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.preprocess.brain_shape import trim_outlier_slices
+from service.preprocess.slice_trims import trim_outlier_slices
 from service.preprocess.head_ellipses import trim_to_head_ellipses
 from tests.support.phantoms import ellipsoid_brain_maps
 
