@@ -66,9 +66,10 @@ def train(
 ) -> None:
     """Train a model on simulated slices of the atlas volumes. An option not given takes the value of
     the run --resume continues, else of the stage --init starts from (not its host's device, workers,
-    threads or time budget), else TrainConfig's (model_export/train.py)."""
+    threads or time budget), else TrainConfig's (model_export/train_config.py)."""
     from model_export.stream import SLICES_PER_ACQUISITION
-    from model_export.train import stage_config, train as run
+    from model_export.train import train as run
+    from model_export.train_config import stage_config
 
     given = {k: v for k, v in dict(
         backbone=backbone, width=width, label_type=label_type, sampling=sampling, steps=steps, batch=batch, lr=lr,

@@ -16,7 +16,8 @@ import torch
 
 from model_export.atlas import DEFAULT_ATLAS_ROOT, validation_volumes
 from model_export.packaging import load_checkpoint
-from model_export.train import TrainConfig, pose_errors, predict_poses, train, validation_set
+from model_export.train import pose_errors, predict_poses, train, validation_set
+from model_export.train_config import TrainConfig
 from service.geometry import se3
 
 PAPER_BACKBONES = ("caffenet", "googlenet", "inception_v4", "nin", "resnet", "vgg")

@@ -14,7 +14,8 @@ from model_export.atlas import pack
 from model_export.distil import DistilConfig, all_views, distil, main, student_of
 from model_export.model import SVRNet
 from model_export.packaging import load_checkpoint
-from model_export.train import TrainConfig, train
+from model_export.train import train
+from model_export.train_config import TrainConfig
 from service.inference.views import view_images, views
 
 

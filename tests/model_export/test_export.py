@@ -150,7 +150,8 @@ def test_decoded_outputs_are_proper_rotations(exported: tuple[SVRNet, Path]) -> 
 
 def test_tiny_pipeline_trains_exports_and_loads(phantom_atlas: Path, tmp_path: Path) -> None:
     from model_export.packaging import export_checkpoint
-    from model_export.train import TrainConfig, train
+    from model_export.train import train
+    from model_export.train_config import TrainConfig
 
     cfg = TrainConfig(backbone="compact", width=0.25, steps=6, batch=16, lr=1e-3, val_every=3, val_per_volume=4,
                       reuse=2, pool=3, hidden=32, simulation=dict(size=48, pixel_mm=2.5))

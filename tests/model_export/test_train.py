@@ -13,7 +13,8 @@ import torch
 from model_export.atlas import load_volumes, pack
 from model_export.model import SVRNet
 from model_export.stream import validation_set
-from model_export.train import TrainConfig, _load_init, pose_errors, train
+from model_export.train import _load_init, pose_errors, train
+from model_export.train_config import TrainConfig
 from model_export.training_record import UNRECORDED_HARDWARE, git_commit, prior_history, totals
 from service.geometry import iterators, twin
 
@@ -134,7 +135,7 @@ def test_pose_errors_report_the_truth_and_the_nearer_twin() -> None:
 
 
 def test_a_run_given_no_loss_takes_the_mirror_aware_one_for_point_labels() -> None:
-    from model_export.train import TrainConfig, default_loss
+    from model_export.train_config import TrainConfig, default_loss
 
     assert TrainConfig().loss == "" and default_loss("anchor") == default_loss("grid") == "min"
     assert default_loss("euler") == "l2"
