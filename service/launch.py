@@ -38,8 +38,19 @@ def run_entry_point(command: str, target: str) -> None:
 def private_files() -> None:
     """Files the process creates from now on are readable by its own user only (umask 077): set
     before the service's imports, some of which write files of their own (onnxruntime a session
-    file in the temporary folder), as well as by :func:`~service.core.settings.load_settings`."""
+    file in the temporary folder), as well as by :func:`~service.core.settings.load_settings`.
+
+    Nor does a crash write a core dump (``RLIMIT_CORE`` 0, soft and hard, inherited by the job
+    workers): a decoder or the network failing on a client's file would otherwise leave the
+    process's memory, every upload and image it held, on disk (a container's limit is often
+    unlimited, its core files in the working folder).
+    """
     os.umask(0o077)
+    try:
+        import resource
+    except ImportError:                                 # not a POSIX system: no core files to stop
+        return
+    resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
 
 
 def server() -> None:

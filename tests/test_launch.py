@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import signal
 import subprocess
 import sys
 import tomllib
@@ -43,3 +45,22 @@ def test_a_server_command_makes_its_files_private_before_any_import(entry: str) 
             f"launch.{entry}()")
     done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert done.stdout.strip() == "0o77", done.stderr
+
+
+@pytest.mark.parametrize("entry", ["server", "worker", "mrd_server"])
+def test_a_server_command_that_crashes_leaves_no_core_dump(entry: str, tmp_path: Path) -> None:
+    """A crash (a decoder failing on a client's file) writes no core file of the process's memory,
+    which holds the uploads it was reading, whatever core limit it was started with; the job
+    workers it starts inherit the limit."""
+    code = ("import ctypes, resource, service.launch as launch; "
+            "hard = resource.getrlimit(resource.RLIMIT_CORE)[1]; "
+            "resource.setrlimit(resource.RLIMIT_CORE, (hard, hard)); "
+            "launch.run_entry_point = lambda command, target: (print(resource.getrlimit(resource.RLIMIT_CORE), "
+            "flush=True), ctypes.string_at(0)); "
+            f"launch.{entry}()")
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    done = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == -signal.SIGSEGV, done.stderr
+    assert done.stdout.strip() == "(0, 0)"
+    assert not [p.name for p in tmp_path.iterdir() if p.name.startswith("core")]
