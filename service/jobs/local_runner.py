@@ -208,7 +208,7 @@ class LocalRunner(JobRunner):
                 if job is not None and job.started_at is not None and now - job.started_at > self.timeout_s]
         late = [job for job in late if self.store.fail(job.id, TIMED_OUT, job.attempts)]   # not ended meanwhile
         for job in late:
-            self.store.discard_inputs(job.id)
+            self.store.discard_files(job.id)          # what the stopped run wrote of the results too
             log.warning(f"job {job.id} ran longer than SVRNET_JOB_TIMEOUT_H and was stopped", extra={"job_id": job.id})
         if late:
             self._stop_workers("a timed-out job", spared=[j for j in self.store.ids("running") if j in self.futures])

@@ -183,7 +183,7 @@ class RqRunner(JobRunner):
             except NoSuchJobError:
                 gone, reason = True, "the queue lost the job (was Redis restarted without persistence?)"
             if gone and self.store.fail(job_id, reason):
-                self.store.discard_inputs(job_id)
+                self.store.discard_files(job_id)      # what the lost runs wrote of the results too
                 log.warning(f"job {job_id} failed: {reason}", extra={"job_id": job_id})
                 failed.append(job_id)
         return failed

@@ -211,7 +211,7 @@ class SqliteJobStore(JobStore):
             db.execute("UPDATE jobs SET status = 'queued', stage = ?, progress = 0, updated_at = ? "
                        "WHERE status = 'running'", (f"queued (re-run after {cause})", now))
         for job_id in given_up:
-            self.discard_inputs(job_id)
+            self.discard_files(job_id)            # what the interrupted runs wrote of the results too
             log.warning(f"job {job_id} failed: {error}", extra={"job_id": job_id})
         return self.queued()
 

@@ -72,13 +72,26 @@ class JobStore(ABC):
         """Delete a job's uploads (``inputs/``): done once the job has ended, whatever its outcome."""
         shutil.rmtree(self.directory(job_id) / "inputs", ignore_errors=True)
 
+    def discard_files(self, job_id: str) -> None:
+        """Delete a job's uploads and results (``inputs/``, ``outputs/``): done when it fails or is
+        cancelled, which serve no results. A run stopped from outside (the time limit, a lost or killed
+        worker) may have written some of them before it stopped: they would stay, never to be served,
+        until the retention limit."""
+        self.discard_inputs(job_id)
+        shutil.rmtree(self.directory(job_id) / "outputs", ignore_errors=True)
+
     def discard_ended_inputs(self) -> list[str]:
         """Delete the uploads of every ended job that still has them (a worker that could not, e.g. one
-        on another data folder, or one killed as the job ended); the ids whose uploads went."""
-        ended = [i for status in FINAL for i in self.ids(status) if (self.directory(i) / "inputs").exists()]
-        for job_id in ended:
-            self.discard_inputs(job_id)
-        return ended
+        on another data folder, or one killed as the job ended), and the results of every failed or
+        cancelled job that has them (:meth:`discard_files`); the ids whose files went."""
+        ended = [(i, status) for status in FINAL for i in self.ids(status) if (self.directory(i) / "inputs").exists()
+                 or (status != "succeeded" and (self.directory(i) / "outputs").exists())]
+        for job_id, status in ended:
+            if status == "succeeded":
+                self.discard_inputs(job_id)
+            else:
+                self.discard_files(job_id)
+        return [job_id for job_id, _ in ended]
 
     def sweep_orphans(self, grace_s: float) -> list[str]:
         """Delete the job folders no record names, untouched for ``grace_s``: a record lost with a

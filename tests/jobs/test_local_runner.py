@@ -153,6 +153,29 @@ def test_a_job_running_beside_a_timed_out_one_runs_again_without_losing_an_attem
         runner.shutdown()
 
 
+def test_a_timed_out_job_keeps_neither_its_uploads_nor_what_it_wrote_of_its_results(tmp_path: Path) -> None:
+    """The time limit fails the job and stops its run: what the run had written of its results (a
+    volume, before the poses' step) is never served, so it goes with the uploads, not at the
+    retention limit."""
+    import time
+
+    store = SqliteJobStore(tmp_path)
+    runner = LocalRunner(store, tmp_path, max_attempts=1, timeout_s=60.0)
+    try:
+        late = store.create({})
+        assert store.claim(late.id) == 1
+        for part, name in (("inputs", "stack0"), ("outputs", "volume.nii.gz")):
+            (store.directory(late.id) / part).mkdir()
+            (store.directory(late.id) / part / name).write_bytes(b"Doe^Jane")
+        with store._db() as db:
+            db.execute("UPDATE jobs SET started_at = ? WHERE id = ?", (time.time() - 120, late.id))
+        runner.maintain()
+        assert store.get(late.id).status == "failed"
+        assert not [p for p in store.directory(late.id).rglob("*") if p.is_file()]
+    finally:
+        runner.shutdown()
+
+
 def test_an_orderly_stop_hands_running_jobs_back_without_spending_an_attempt(tmp_path: Path) -> None:
     """Two rolling restarts at ``max_attempts`` 1 leave the job queued; a server killed outright
     (the next start's recovery, without a shutdown) still counts."""

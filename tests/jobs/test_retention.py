@@ -62,9 +62,12 @@ def test_a_job_failed_by_too_many_restarts_keeps_nothing(tmp_path: Path) -> None
     (store.directory(job.id) / "inputs" / "stack0").write_bytes(PATIENT)
     for _ in range(2):
         assert store.claim(job.id)
+        (store.directory(job.id) / "outputs").mkdir(exist_ok=True)          # a run killed as it wrote its results
+        (store.directory(job.id) / "outputs" / "volume.nii.gz").write_bytes(PATIENT)
         store.recover()
     assert store.get(job.id).status == "failed"
     assert not (store.directory(job.id) / "inputs").exists()
+    assert not (store.directory(job.id) / "outputs").exists()              # a failed job's, never served
 
 
 def test_a_job_folder_whose_record_was_lost_goes_after_the_grace(tmp_path: Path) -> None:

@@ -160,6 +160,26 @@ def test_uploads_of_ended_jobs_are_discarded_whoever_ended_them(store: JobStore)
     assert (store.directory(live.id) / "inputs" / "stack_0.nii.gz").exists()     # a queued job keeps them
 
 
+@both
+def test_results_of_failed_or_cancelled_jobs_are_discarded_whoever_ended_them(store: JobStore) -> None:
+    """What a run stopped from outside wrote of its results (a worker killed as it wrote them, after
+    its job was failed or cancelled) goes at the upkeep: those jobs never serve them. A succeeded
+    job's results stay."""
+    failed, cancelled, done = store.create({}), store.create({}), store.create({})
+    for job in (failed, cancelled, done):
+        assert store.claim(job.id)
+    assert store.fail(failed.id, "the worker running it was lost") and store.cancel(cancelled.id)
+    assert store.finish(done.id, {})
+    for job in (failed, cancelled, done):
+        (store.directory(job.id) / "outputs").mkdir(parents=True)
+        (store.directory(job.id) / "outputs" / "volume.nii.gz").write_bytes(b"Doe^Jane")
+    assert sorted(store.discard_ended_inputs()) == sorted([failed.id, cancelled.id])
+    assert store.discard_ended_inputs() == []
+    assert not (store.directory(failed.id) / "outputs").exists()
+    assert not (store.directory(cancelled.id) / "outputs").exists()
+    assert (store.directory(done.id) / "outputs" / "volume.nii.gz").exists()
+
+
 def test_a_worker_without_the_uploads_fails_the_job_saying_why(tmp_path: Path) -> None:
     from service.jobs.worker import MISSING_UPLOADS, run_job
 
@@ -242,6 +262,7 @@ def test_the_queue_maintenance_fails_orphaned_and_given_up_jobs_with_reasons(que
     orphan, lost, healthy = (store.create({}) for _ in range(3))
     for job in (orphan, lost):
         (store.directory(job.id) / "inputs").mkdir()
+    (store.directory(lost.id) / "outputs").mkdir()          # what a lost run wrote of its results
     store.update(lost.id, submitted_at=time.time())      # handed over, but the queue has no record of it
     runner.submit(healthy.id)
     runner.submit_grace_s = 2.0
@@ -250,6 +271,7 @@ def test_the_queue_maintenance_fails_orphaned_and_given_up_jobs_with_reasons(que
     assert sorted(runner.reconcile()) == sorted([orphan.id, lost.id])
     assert store.get(orphan.id).error == INTERRUPTED and "lost the job" in store.get(lost.id).error
     assert not (store.directory(orphan.id) / "inputs").exists()
+    assert not (store.directory(lost.id) / "inputs").exists() and not (store.directory(lost.id) / "outputs").exists()
     assert store.get(uploading.id).status == "queued" and store.get(healthy.id).status == "queued"
     runner.shutdown()
 
