@@ -176,6 +176,13 @@ class MrdServer(socketserver.ThreadingTCPServer):
     def port(self) -> int:
         return int(self.server_address[1])
 
+    def handle_error(self, request: object, client_address: object) -> None:
+        """A connection's unexpected failure, logged by its type and place only: socketserver's own
+        prints the traceback (whose messages may quote what the client sent) and the client's address."""
+        exc = sys.exc_info()[1]
+        log.error("mrd connection failed", extra={"error_type": type(exc).__name__,
+                                                  "error_at": service_logging.error_at(exc) if exc else None})
+
 
 def build_server(settings: Settings, host: str, port: int, limits: ServerLimits) -> MrdServer:
     """The server with the models and the default localiser of ``settings``; :class:`SystemExit` (2)

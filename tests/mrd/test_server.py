@@ -372,3 +372,31 @@ def test_an_image_errors_name_the_mrd_header_fields(case: Case, serve) -> None: 
     assert error["status"] == 400 and error["slice"] == first.slice, error
     assert error["detail"].startswith("image header (position, read_dir, phase_dir, slice_dir, field_of_view): ")
     assert "scanner_from_voxel" not in error["detail"] and "20 mm" in error["detail"], error
+
+
+def test_a_connection_that_fails_unexpectedly_is_logged_by_type_and_place_only(serve, monkeypatch, capfd,  # noqa: ANN001
+                                                                               caplog) -> None:  # noqa: ANN001
+    """socketserver's own handler prints the traceback, whose message may quote what the client sent,
+    and the client's address; the server logs the failure's type and place, and frees the slot."""
+    import logging
+
+    import service.mrd.server as mrd_server
+
+    def fail(self: object) -> None:
+        raise RuntimeError("DOE^JANE 1970-01-01")
+
+    server = serve(limits=ServerLimits(max_sessions=1))
+    monkeypatch.setattr(mrd_server.MrdConnection, "run", fail)
+    with caplog.at_level(logging.ERROR, logger="service.mrd.server"):
+        for _ in range(2):                                                  # the one slot is free again
+            with socket.create_connection(("127.0.0.1", server.port)) as gone:
+                gone.settimeout(5)
+                assert gone.recv(1) == b""
+        deadline = time.monotonic() + 5
+        while len([r for r in caplog.records if r.getMessage() == "mrd connection failed"]) < 2:
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+    failed = [r for r in caplog.records if r.getMessage() == "mrd connection failed"]
+    assert {r.error_type for r in failed} == {"RuntimeError"}
+    out, err = capfd.readouterr()
+    assert "DOE^JANE" not in out + err + caplog.text and "Traceback" not in err
