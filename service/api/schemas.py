@@ -8,7 +8,7 @@ from typing import Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
-from service.consistency.image_refinement import AGREED_MISMATCH
+from service.consistency.refined_errors import AGREED_MISMATCH
 
 Vec3 = list[float]
 Mat = list[list[float]]

@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from service.consistency.image_refinement import agreed
+from service.consistency.refined_errors import agreed
 from service.consistency.stage import StackPoses
 from service.geometry import anchors
 from service.io.volume import Volume

@@ -24,7 +24,8 @@ from itertools import pairwise
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from service.consistency.image_refinement import agreed, expected_after, refine, relative_mismatch, smooth_ahead
+from service.consistency.image_refinement import refine, smooth_ahead
+from service.consistency.refined_errors import agreed, expected_after, relative_mismatch
 from service.consistency.slice_images import SampledStack, StackImages
 from service.consistency.slice_order import FROM_FILE, SliceOrder, per_stack
 from service.consistency.stage import (
@@ -281,7 +282,7 @@ def _refine_stacks(prepared: list[PreparedStack], outs: list[StackPoses], proper
                    moving: list[int], partners: list[int], smoothed: dict[int, dict] | None = None) -> None:
     """:func:`refine` the stacks ``moving`` (indices into the request) with the stacks ``partners`` as
     fixed partners; sets the moving stacks' poses, expected errors (with partners, or where the
-    refinement left the slices disagreeing, :func:`~service.consistency.image_refinement.agreed`:
+    refinement left the slices disagreeing, :func:`~service.consistency.refined_errors.agreed`:
     never below the stage's) and ``image_consistency`` (with the :func:`placement_floor_mm` of the
     stacks refined). Where no slice of theirs crosses another's (stacks of one orientation), nothing
     changes: the images checked nothing.

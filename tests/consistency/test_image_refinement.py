@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from service.consistency import slice_images
-from service.consistency.image_refinement import _brain_radius, expected_after, follow_neighbours, laplace_spread_mm, refine
+from service.consistency.image_refinement import _brain_radius, follow_neighbours, refine
 from service.consistency.slice_images import StackImages
 from service.geometry import se3
 from service.geometry.anchors import ed
@@ -140,20 +140,6 @@ def test_the_brain_radius_is_the_farthest_brain_pixel_from_its_slice_origin() ->
         assert _brain_radius(stack) == pytest.approx(want, abs=1e-9)
 
 
-def test_the_laplace_spread_reads_each_slices_block_of_the_inverse_hessian() -> None:
-    """Against the explicit inverse of a random coupled Hessian (slices tied to each other, as
-    crossing lines tie them): each slice's spread from its own 6 x 6 block, not a neighbour's."""
-    from service.geometry.anchors import twist_spread_mm
-
-    rng = np.random.default_rng(2)
-    root = rng.normal(size=(30, 30)) * np.tile([0.02, 0.02, 0.02, 1.0, 1.0, 1.0], 5)[None]
-    hess = root.T @ root + np.diag(np.tile([400.0, 400.0, 400.0, 0.5, 0.5, 0.5], 5))
-    inv = np.linalg.inv(hess)
-    want = [float(twist_spread_mm(inv[6 * k:6 * k + 6, 6 * k:6 * k + 6])) for k in range(5)]
-    np.testing.assert_allclose(laplace_spread_mm(hess), want, rtol=1e-8)
-    assert len(set(np.round(want, 6))) == 5
-
-
 def test_refined_slices_get_a_spread_that_grows_with_less_image_evidence(acquisition) -> None:  # noqa: ANN001
     """Every refined slice gets a finite spread, a slice that takes no part none; and a louder image
     noise scale (each point worth less) widens every spread."""
@@ -167,32 +153,6 @@ def test_refined_slices_get_a_spread_that_grows_with_less_image_evidence(acquisi
     a, b = np.concatenate(quiet.spread_mm), np.concatenate(loud.spread_mm)
     both = np.isfinite(a) & np.isfinite(b)
     assert both.sum() > 50 and np.median(b[both] / a[both]) > 1.5
-
-
-def test_the_expected_error_after_refinement_meets_the_images_halfway() -> None:
-    """The geometric mean of the stage's estimate and the images' spread where both exist; the stage's
-    alone without a spread; a slice on no line keeps the unchecked gain."""
-    from service.consistency.image_refinement import REFINED_GAIN, SPREAD_GAIN, UNCHECKED_GAIN
-
-    out = expected_after([np.array([4.0, 4.0, 4.0])], [np.array([1.0, 1.0, np.nan])], [np.array([0.5, np.nan, 0.5])])[0]
-    assert out[0] == pytest.approx(np.sqrt(REFINED_GAIN * 4.0 * SPREAD_GAIN * 0.5))
-    assert out[1] == pytest.approx(REFINED_GAIN * 4.0) and out[2] == pytest.approx(UNCHECKED_GAIN * 4.0)
-
-
-def test_the_stage_estimate_follows_the_mismatch_up_to_its_limit_only() -> None:
-    """Below :data:`MAX_RELATIVE_MISMATCH` the stage's estimate grows in proportion to the mismatch;
-    beyond it a slice is lost and every further mismatch gives the same estimate, with and without
-    the images' spread."""
-    from service.consistency.image_refinement import MAX_RELATIVE_MISMATCH, MISMATCH_POWER, REFINED_GAIN
-
-    cap = MAX_RELATIVE_MISMATCH
-    m = np.array([0.5 * cap, cap, 2.0 * cap, 10.0 * cap])
-    alone = expected_after([np.full(4, 3.0)], [m])[0]
-    assert alone[:2] == pytest.approx(REFINED_GAIN * 3.0 * m[:2] ** MISMATCH_POWER)
-    assert alone[2] == alone[3] == pytest.approx(alone[1])
-    spread = expected_after([np.full(4, 3.0)], [m], [np.full(4, 1.5)])[0]
-    assert spread[1] == pytest.approx(np.sqrt(2.0 ** MISMATCH_POWER) * spread[0])
-    assert spread[3] == pytest.approx(spread[1])
 
 
 def test_a_stack_refined_against_fixed_partners_moves_to_them_and_they_stay(acquisition) -> None:  # noqa: ANN001

@@ -9,7 +9,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from service.consistency.image_refinement import AGREED_MISMATCH, Refinement
+from service.consistency.image_refinement import Refinement
+from service.consistency.refined_errors import AGREED_MISMATCH
 from service.pipeline import predict
 from tests.pipeline.test_signal_loss import _prepared
 
