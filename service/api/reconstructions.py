@@ -6,6 +6,7 @@ import asyncio
 import json
 import logging
 from datetime import datetime, timezone
+from pathlib import Path
 from typing import Annotated, Optional
 
 import numpy as np
@@ -21,6 +22,7 @@ from service.api.idempotency import hold_submission, made_by_key, submission_dig
 from service.api.schemas import (UPLOAD_ERRORS, JobCreated, JobStatus, RefinedPoses, download, job_poses,
                                  problem_responses)
 from service.api.uploads import UploadForm, UploadFormDep, known_fields, upload_directory, upload_reader
+from service.consistency.slice_order import SliceOrder
 from service.pipeline.predict import stack_orders
 from service.pipeline.prepare import (StackUpload, check_distinct_stacks, check_mask_grid, check_mask_volume,
                                       marked_brain)
@@ -144,6 +146,24 @@ def check_slices_to_use(uploads: list[StackUpload], accepted: list[np.ndarray] |
                                "reconstruct")
 
 
+def check_submission(uploads: list[StackUpload], orders: list[SliceOrder], poses_text: str | None, inputs: Path,
+                     resolution_mm: float) -> None:
+    """The checks a submission's read files must pass before its job is queued, and its ``poses``
+    kept in ``inputs`` (blocking: run in a worker thread); 4xx naming what is wrong."""
+    stack_orders(orders, uploads)
+    given = None
+    if poses_text:
+        kept, given = checked_poses(poses_text, uploads)
+        (inputs / "poses.json").write_text(json.dumps(kept))
+    for u in uploads:
+        check_mask_grid(u)
+        check_mask_volume(u)
+    check_distinct_stacks(uploads)
+    brain_mm3, extent = max((marked_brain(u) for u in uploads), key=lambda marked: marked[0])
+    check_brain_fits(brain_mm3, extent, resolution_mm, ReconstructionConfig().margin_mm)
+    check_slices_to_use(uploads, None if given is None else [accepted for _, accepted in given])
+
+
 async def _submit(request: Request, response: Response, settings: Settings, form: UploadForm, key: str | None,
                   params: dict) -> dict:
     """The job made from a valid submission (or the one an earlier submission with its key made):
@@ -178,17 +198,10 @@ async def _keep_submission(request: Request, response: Response, settings: Setti
     inputs.mkdir()
     try:
         uploads = await to_thread.run_sync(upload_reader(settings), form.stacks, form.masks, inputs)
-        stack_orders(form.orders, uploads)
-        if poses_text:
-            kept, given = await to_thread.run_sync(checked_poses, poses_text, uploads)
-            (inputs / "poses.json").write_text(json.dumps(kept))
-        for u in uploads:
-            check_mask_grid(u)
-            check_mask_volume(u)
-        check_distinct_stacks(uploads)
-        brain_mm3, extent = max((marked_brain(u) for u in uploads), key=lambda marked: marked[0])
-        check_brain_fits(brain_mm3, extent, job.params["resolution_mm"], ReconstructionConfig().margin_mm)
-        check_slices_to_use(uploads, None if not poses_text else [accepted for _, accepted in given])
+        # Whole-volume work (seconds for many large stacks): off the event loop, which serves every
+        # other request and stream meanwhile.
+        await to_thread.run_sync(check_submission, uploads, form.orders, poses_text, inputs,
+                                 job.params["resolution_mm"])
     except Exception:
         await to_thread.run_sync(store.delete, job.id)     # rejected input (or a client gone) leaves no job behind
         raise

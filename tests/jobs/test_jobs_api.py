@@ -689,6 +689,33 @@ def test_a_stalled_job_store_holds_its_own_requests_not_the_replica(client: Test
 
 
 @pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)
+def test_a_submission_s_checks_of_its_volumes_hold_no_other_request(client: TestClient, case: dict,
+                                                                     monkeypatch) -> None:  # noqa: ANN001
+    """The whole-volume checks of a submission (masks, slices to use: seconds for many large stacks)
+    run off the event loop: the liveness probe is answered while they are under way (they ran on
+    the event loop and froze the replica, its streams included)."""
+    import threading
+
+    checking, released, answered_while_checking = threading.Event(), threading.Event(), []
+    check = reconstructions.check_slices_to_use
+
+    def slow_check(*args: object) -> None:
+        checking.set()
+        answered_while_checking.append(released.wait(10))   # False: nothing else was answered meanwhile
+        check(*args)
+
+    monkeypatch.setattr(reconstructions, "check_slices_to_use", slow_check)
+    statuses: list[int] = []
+    submitting = threading.Thread(target=lambda: statuses.append(submit(client, case).status_code))
+    submitting.start()
+    assert checking.wait(30)
+    assert client.get("/healthz").status_code == 200
+    released.set()
+    submitting.join(30)
+    assert answered_while_checking == [True] and statuses == [202]
+
+
+@pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)
 def test_a_full_disk_while_a_submission_s_files_are_kept_is_507_and_leaves_no_job(client: TestClient, case: dict,
                                                                                    monkeypatch) -> None:  # noqa: ANN001
     """The job's folder fills while a stack is copied into it: 507 (the server's disk, Retry-After),
