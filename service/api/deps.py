@@ -331,10 +331,14 @@ def query_names(dependant: Dependant) -> list[str]:
     return [p.alias for p in dependant.query_params] + [n for d in dependant.dependencies for n in query_names(d)]
 
 
-def known_query(request: Request) -> None:
+async def known_query(request: Request) -> None:
     """Refuses (400, by name) a query parameter the route does not declare, and one given twice: a
     misspelt ``?stak=0`` would otherwise be ignored (the volume served in atlas space) and a doubled
     one decided by its last copy. Routes with a body take their options in it, and declare none here.
+
+    Async, so that it runs on the event loop (it reads no file, no store): a route whose only
+    dependency it is -- ``/healthz`` -- needs no worker thread, and is answered while calls to a
+    stalled job store hold every one of them.
     """
     route = request.scope.get("route")
     dependant = getattr(route, "dependant", None)

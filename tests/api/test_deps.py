@@ -31,3 +31,33 @@ def test_a_full_queue_refuses_new_submissions_keyed_or_not_before_their_upload()
     assert isinstance(submit({"idempotency-key": "k-a-new-submission"}), QueueFull)    # any key skipped it before
     assert isinstance(submit({"idempotency-key": "x"}), InvalidParameter)              # no key at all: said at once
     assert submit({"idempotency-key": known}) is None          # a retry: the route answers with its key's job
+
+
+def test_the_liveness_probe_is_answered_while_every_worker_thread_is_taken() -> None:
+    """``/healthz`` needs no thread of the app's pool: its one dependency (the query check) runs on the
+    event loop. Status reads of a job store that stalls (a Redis that stopped answering) can take
+    every thread; the replica is then unready, but never taken for dead and restarted."""
+    import threading
+
+    from anyio import to_thread
+
+    from service.inference.registry import ModelRegistry
+    from tests.api.conftest import OracleEstimator, make_client
+
+    taken, released = threading.Event(), threading.Event()
+
+    def occupy() -> bool:
+        taken.set()
+        return released.wait(10)            # False: nothing else was answered meanwhile
+
+    async def take_every_thread() -> bool:
+        to_thread.current_default_thread_limiter().total_tokens = 1
+        return await to_thread.run_sync(occupy)
+
+    with make_client(ModelRegistry({"default": OracleEstimator()})) as client:
+        holding = client.portal.start_task_soon(take_every_thread)
+        assert taken.wait(10)
+        r = client.get("/healthz")
+        released.set()
+        assert holding.result(10) is True and r.status_code == 200
+        assert client.get("/healthz?x=1").status_code == 400          # the query check still runs
