@@ -213,7 +213,11 @@ async def _keep_submission(request: Request, response: Response, settings: Setti
     names = {"stacks": [u.filename for u in uploads], "masks": [u.mask_filename for u in uploads if u.mask_filename]}
     (inputs / "names.json").write_text(json.dumps(names))
     (inputs / "params.json").write_text(json.dumps(job.params))
-    await to_thread.run_sync(request.app.state.job_runner.submit, job.id)
+    try:
+        await to_thread.run_sync(request.app.state.job_runner.submit, job.id)
+    except Exception:
+        await to_thread.run_sync(store.delete, job.id)     # never queued (a queue that stopped answering): no job
+        raise
     log.info("job submitted", extra={"request_id": request.scope["state"]["request_id"], "job_id": job.id,
                                      "n_stacks": len(uploads)})           # the request's id, linked to its job's lines
     response.headers["Location"] = f"/v1/reconstructions/{job.id}"

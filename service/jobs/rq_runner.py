@@ -30,6 +30,7 @@ from rq.job import Job as RqJob
 from rq.job import JobStatus
 from rq.registry import clean_registries
 
+from service.core.errors import StoreUnavailable
 from service.core.process_pools import watch_parent
 from service.core.settings import Settings
 from service.jobs.redis_store import RedisJobStore
@@ -127,12 +128,17 @@ class RqRunner(JobRunner):
         return []
 
     def submit(self, job_id: str) -> None:
+        """Enqueue ``job_id``; :class:`~service.core.errors.StoreUnavailable` (503) where Redis does not
+        answer (the caller then deletes the job, which no worker will run)."""
         handed = time.time()
         retries = self.settings.job_max_attempts - 1
-        self.queue.enqueue(execute, job_id, job_id=job_id, retry=Retry(max=retries) if retries else None,
-                           job_timeout=int(self.settings.job_timeout_h * 3600), result_ttl=600,
-                           failure_ttl=int(self.settings.retention_hours * 3600), on_stopped=Callback(on_stopped),
-                           description="svrnet reconstruction")
+        try:
+            self.queue.enqueue(execute, job_id, job_id=job_id, retry=Retry(max=retries) if retries else None,
+                               job_timeout=int(self.settings.job_timeout_h * 3600), result_ttl=600,
+                               failure_ttl=int(self.settings.retention_hours * 3600), on_stopped=Callback(on_stopped),
+                               description="svrnet reconstruction")
+        except redis.RedisError as exc:
+            raise StoreUnavailable("the job queue (Redis) does not answer; retry later", 5) from exc
         self.store.update(job_id, submitted_at=handed)
 
     def cancel(self, job_id: str) -> None:

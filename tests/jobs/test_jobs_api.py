@@ -733,6 +733,32 @@ def test_a_full_disk_while_a_submission_s_files_are_kept_is_507_and_leaves_no_jo
 
 
 @pytest.mark.parametrize("queue_settings", ["redis"], indirect=True)
+def test_a_queue_that_stops_answering_as_a_job_is_handed_to_it_is_503_and_leaves_no_job(
+        client: TestClient, case: dict, monkeypatch) -> None:  # noqa: ANN001
+    """Redis goes away while a submission's files are read (a restart, a fail-over): handing the job
+    to the queue fails. The client is told to come back (503, Retry-After), not a 500, and no job is
+    left behind (it stayed queued, never to run, until the upkeep failed it as interrupted); a retry
+    with the same key then makes its job."""
+    import redis
+
+    runner = client.app.state.job_runner
+    enqueue = runner.queue.enqueue
+
+    def unanswered(*args: object, **kwargs: object) -> None:
+        raise redis.ConnectionError("Connection refused")
+
+    monkeypatch.setattr(runner.queue, "enqueue", unanswered)
+    key = "k-8888888888888888"
+    r = submit(client, case, headers={"Idempotency-Key": key})
+    assert r.status_code == 503 and r.json()["type"] == "/problems/store-unavailable", r.text
+    assert int(r.headers["Retry-After"]) > 0
+    assert client.app.state.job_store.queued() == [] and client.app.state.job_store.ids("failed") == []
+    monkeypatch.setattr(runner.queue, "enqueue", enqueue)
+    r = submit(client, case, headers={"Idempotency-Key": key})
+    assert r.status_code == 202 and r.json()["status"] == "queued", r.text
+
+
+@pytest.mark.parametrize("queue_settings", ["redis"], indirect=True)
 def test_a_retry_of_a_submission_its_replica_abandoned_is_told_at_once(client: TestClient, case: dict,
                                                                         monkeypatch) -> None:  # noqa: ANN001
     """A replica stopped while it read a keyed submission: the job was stored, never queued. A retry
