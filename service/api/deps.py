@@ -28,19 +28,19 @@ from service.inference.registry import ModelRegistry
 from service.preprocess.localise import Localiser, Localisers
 
 
-def get_settings(request: Request) -> Settings:
+async def get_settings(request: Request) -> Settings:
     return request.app.state.settings
 
 
-def get_registry(request: Request) -> ModelRegistry:
+async def get_registry(request: Request) -> ModelRegistry:
     return request.app.state.registry
 
 
-def get_localisers(request: Request) -> Localisers:
+async def get_localisers(request: Request) -> Localisers:
     return request.app.state.localisers
 
 
-def get_metrics(request: Request) -> Metrics:
+async def get_metrics(request: Request) -> Metrics:
     return request.app.state.metrics
 
 
@@ -136,17 +136,21 @@ FOREIGN_ORIGIN = ("Origin: this server serves browser pages of its own address o
 UNAUTHORIZED = "Authorization: a valid API key is required (Bearer token or X-API-Key header)"
 
 
-def require_api_key(
+async def require_api_key(
     settings: SettingsDep,
     authorization: Annotated[str | None, Header(include_in_schema=False)] = None,
     x_api_key: Annotated[str | None, Header(include_in_schema=False)] = None,
 ) -> None:
-    """When ``SVRNET_API_KEYS`` is set: ``Authorization: Bearer <key>`` or ``X-API-Key: <key>``."""
+    """When ``SVRNET_API_KEYS`` is set: ``Authorization: Bearer <key>`` or ``X-API-Key: <key>``.
+
+    This dependency and the others of this module that read the app's state do no I/O: they run on
+    the event loop (``async def``), so no request waits for a thread of anyio's pool to be let in,
+    whatever holds those threads (calls to a stalled job store)."""
     if not api_key_ok(settings.key_set(), authorization, x_api_key):
         raise Unauthorized(UNAUTHORIZED)
 
 
-def require_metrics_access(
+async def require_metrics_access(
     settings: SettingsDep,
     authorization: Annotated[str | None, Header(include_in_schema=False)] = None,
     x_api_key: Annotated[str | None, Header(include_in_schema=False)] = None,
@@ -154,7 +158,7 @@ def require_metrics_access(
     """``/metrics`` (routes, status counts, slice reasons per model) needs a key like ``/v1/`` when keys
     are configured, unless ``SVRNET_METRICS_PUBLIC=true``."""
     if not settings.metrics_public:
-        require_api_key(settings, authorization, x_api_key)
+        await require_api_key(settings, authorization, x_api_key)
 
 
 def needs_key(settings: Settings, path: str) -> bool:

@@ -251,7 +251,8 @@ def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: 
 
 def _read(upload: UploadFile, path: Path, name: str, budget: DecodeBudget, image: bool = True):  # noqa: ANN202
     """Write one upload to ``path`` and read it: a stack's values as magnitudes, a mask's as they are
-    (``image`` False)."""
+    (``image`` False). The form parser's spooled copy is closed (deleted) once written, so that a
+    request keeps its files on disk once, not twice."""
     checkpoint()
     upload.file.seek(0)
     try:
@@ -260,5 +261,7 @@ def _read(upload: UploadFile, path: Path, name: str, budget: DecodeBudget, image
     except OSError as exc:
         raise_if_out_of_space(exc)        # a full disk is the server's (507), not the client's file
         raise
+    finally:
+        upload.file.close()
     with DECODING:
         return read_upload(path, name, budget=budget.file(name), scratch=path.parent, magnitudes=image)

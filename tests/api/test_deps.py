@@ -35,7 +35,7 @@ def test_a_full_queue_refuses_new_submissions_keyed_or_not_before_their_upload()
 
 def test_the_liveness_probe_is_answered_while_every_worker_thread_is_taken() -> None:
     """``/healthz`` needs no thread of the app's pool: its one dependency (the query check) runs on the
-    event loop. Status reads of a job store that stalls (a Redis that stopped answering) can take
+    event loop, as do the API key's and the app state's of every route (``/v1/models`` here). Status reads of a job store that stalls (a Redis that stopped answering) can take
     every thread; the replica is then unready, but never taken for dead and restarted."""
     import threading
 
@@ -54,10 +54,13 @@ def test_the_liveness_probe_is_answered_while_every_worker_thread_is_taken() -> 
         to_thread.current_default_thread_limiter().total_tokens = 1
         return await to_thread.run_sync(occupy)
 
-    with make_client(ModelRegistry({"default": OracleEstimator()})) as client:
+    with make_client(ModelRegistry({"default": OracleEstimator()}), api_keys="k1") as client:
         holding = client.portal.start_task_soon(take_every_thread)
         assert taken.wait(10)
         r = client.get("/healthz")
+        models = client.get("/v1/models", headers={"X-API-Key": "k1"})   # the key, the registry: no thread either
+        refused = client.get("/v1/models")
         released.set()
         assert holding.result(10) is True and r.status_code == 200
+        assert models.status_code == 200 and refused.status_code == 401
         assert client.get("/healthz?x=1").status_code == 400          # the query check still runs

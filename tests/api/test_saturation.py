@@ -262,6 +262,26 @@ def test_a_request_whose_first_file_fails_does_not_read_the_rest(monkeypatch: py
     assert len(read) <= uploads.READ_WORKERS + 1, read          # those under way finish; no more start
 
 
+def test_each_uploads_spooled_copy_is_deleted_once_it_is_written_to_the_request_folder(tmp_path: Path) -> None:
+    """The form parser spools every file of a request to disk before the route runs; each spool goes
+    as soon as its file is in the request's folder, so a request holds its files on disk once."""
+    import tempfile
+
+    class Upload:
+        def __init__(self, data: bytes, name: str) -> None:
+            self.file = tempfile.SpooledTemporaryFile(max_size=0, dir=tmp_path)    # on disk at once
+            self.file.write(data)
+            self.filename, self.size = name, len(data)
+
+    data = corpus.gz(corpus.nifti(np.ones((6, 6, 4))))
+    files = [Upload(data, f"s{j}.nii.gz") for j in range(3)]
+    folder = tmp_path / "request"
+    folder.mkdir()
+    assert not any(f.file.closed for f in files)
+    assert len(uploads.save_and_read(files, [], folder)) == 3
+    assert all(f.file.closed for f in files)          # an unnamed temporary file: closed is deleted
+
+
 def test_a_request_whose_client_leaves_stops_at_its_next_step_and_frees_its_slot(
         oracle, phantom_files, monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: ANN001
     """The client closes its connection while its stacks are prepared: the work stops at the next step
