@@ -56,6 +56,21 @@ def first_header(scope: Scope, name: bytes) -> str:
     return next((v.decode("latin-1") for k, v in scope.get("headers", []) if k.lower() == name), "")
 
 
+def first_values(scope: Scope) -> dict[str, str]:
+    """A request's headers by lower-case name, each with its first value: the one the routes'
+    dependencies read (Starlette's ``Request.headers[name]``), so that the early refusals judge a
+    header sent twice (an API key, an ``Origin``) as the route would, not by another copy.
+
+    Example:
+        >>> first_values({"headers": [(b"X-API-Key", b"k-1"), (b"x-api-key", b"k-2")]})
+        {'x-api-key': 'k-1'}
+    """
+    headers: dict[str, str] = {}
+    for k, v in scope.get("headers", []):
+        headers.setdefault(k.decode("latin-1").lower(), v.decode("latin-1"))
+    return headers
+
+
 EPILOGUE_BYTES = 8 * 1024
 """What a multipart body may carry after its closing delimiter (RFC 2046's epilogue, which clients
 leave empty or a line break) for the delimiter still to be found at its end."""
@@ -133,7 +148,7 @@ class RequestContext:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
+        headers = first_values(scope)
         sent_method = scope["method"]
         if sent_method == "HEAD":                    # answered as GET, without the body (RFC 9110, 9.3.2)
             scope = {**scope, "method": "GET"}

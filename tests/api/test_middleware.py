@@ -143,3 +143,20 @@ def test_a_client_that_leaves_during_its_upload_is_recorded_as_gone_and_frees_it
     predicts = [line for line in scraped.splitlines()
                 if line.startswith("svrnet_requests_total{") and 'route="/v1/predict"' in line]
     assert len(predicts) == 1 and 'status="499"' in predicts[0], predicts
+
+
+def test_a_header_sent_twice_is_read_as_the_routes_read_it(oracle: object) -> None:
+    """The early refusals read a header sent twice by its first value, as the routes' dependencies do
+    (Starlette's ``Request.headers``): a request whose first key is wrong is refused before its upload
+    is read, and one whose first key is right is not refused by a later copy."""
+    with make_client(ModelRegistry({"default": oracle}), api_keys="k1") as client:
+        assert client.get("/v1/models", headers=[("X-API-Key", "k1"), ("X-API-Key", "nope")]).status_code == 200
+        read: list[bytes] = []
+
+        def body() -> object:
+            read.append(b"")
+            yield multipart("stacks", "s.nii.gz", nifti_bytes(stack()))
+
+        r = client.post("/v1/predict", content=body(), headers=[
+            ("X-API-Key", "nope"), ("X-API-Key", "k1"), ("Content-Type", f"multipart/form-data; boundary={BOUNDARY}")])
+        assert r.status_code == 401 and not read, (r.status_code, len(read))
