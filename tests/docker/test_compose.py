@@ -70,3 +70,25 @@ def test_the_load_balancer_sends_to_both_replicas() -> None:
     stream = conf[conf.index("location /v1/stream"):]                        # WebSockets pass the upgrade
     assert "proxy_set_header Upgrade $http_upgrade;" in stream and "$connection_upgrade" in stream
     assert set(SERVICES["lb"]["depends_on"]) == {"api-1", "api-2"}
+
+
+def test_the_load_balancer_passes_the_host_with_its_port() -> None:
+    """A server without keys serves its own pages' requests: their ``Origin`` (``http://127.0.0.1:8000``)
+    must equal the ``Host`` it receives. nginx's ``$host`` drops the port (``127.0.0.1``), which made
+    every browser request of the OpenAPI page behind the load balancer a 403; ``$http_host`` keeps it."""
+    from fastapi.testclient import TestClient
+
+    from service.core.settings import Settings
+    from service.inference.registry import ModelRegistry
+    from service.main import create_app
+
+    conf = (ROOT / "docker" / SERVICES["lb"]["volumes"][0].split(":")[0]).read_text()
+    passed = re.findall(r"^\s*proxy_set_header\s+Host\s+(\S+);", conf, re.MULTILINE)
+    assert passed and set(passed) == {"$http_host"}, passed
+    published = "127.0.0.1:8000"                               # the browser's address of the load balancer
+    as_passed = {"$http_host": published, "$host": published.rsplit(":", 1)[0]}
+    app = create_app(Settings(api_keys="", allowed_origins=""), registry=ModelRegistry({}))
+    with TestClient(app, raise_server_exceptions=False) as client:
+        for variable in ("$http_host", "$host"):
+            r = client.get("/v1/models", headers={"Origin": f"http://{published}", "Host": as_passed[variable]})
+            assert (r.status_code == 403) == (variable == "$host"), (variable, r.status_code)
