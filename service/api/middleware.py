@@ -28,6 +28,13 @@ METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"}
 """HTTP methods named in metrics and logs; any other token a client sends is ``other`` (a label
 value per invented method would grow the metrics without bound)."""
 
+FRAMING_AND_SNIFFING = ((b"x-frame-options", b"DENY"), (b"content-security-policy", b"frame-ancestors 'none'"),
+                        (b"x-content-type-options", b"nosniff"))
+"""Headers of every answer. No page of another site may frame this server's (the OpenAPI page's
+requests are its own origin's, which a server without keys serves: framed, a click on the other
+site's page could send them), and no answer is read as another type than it says (a problem+json
+quotes the path it was asked for)."""
+
 
 _TEMPLATES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
@@ -123,7 +130,8 @@ CLIENT_CLOSED = 499
 class RequestContext:
     """The outermost layer of the app, around every request:
 
-    * assigns ``X-Request-ID`` (kept from the client when it is a safe token) to every answer;
+    * assigns ``X-Request-ID`` (kept from the client when it is a safe token) to every answer, with
+      :data:`FRAMING_AND_SNIFFING`;
     * refuses what needs no body -- a missing API key, a full job queue -- before the upload is read
       (:func:`service.api.deps.early_rejection`), and admits a request to a processing route then too
       (:func:`service.api.deps.take_admission`: 503 at once when every admission is taken), held until
@@ -166,7 +174,8 @@ class RequestContext:
         async def emit(message: Message) -> None:
             if message["type"] == "http.response.start":
                 state["code"], state["started"] = message["status"], True
-                message["headers"] = list(message.get("headers", [])) + [(b"x-request-id", rid.encode())]
+                message["headers"] = list(message.get("headers", [])) + [(b"x-request-id", rid.encode()),
+                                                                         *FRAMING_AND_SNIFFING]
             elif sent_method == "HEAD" and message["type"] == "http.response.body":
                 if message.get("more_body", False):
                     return

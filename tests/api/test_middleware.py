@@ -160,3 +160,18 @@ def test_a_header_sent_twice_is_read_as_the_routes_read_it(oracle: object) -> No
         r = client.post("/v1/predict", content=body(), headers=[
             ("X-API-Key", "nope"), ("X-API-Key", "k1"), ("Content-Type", f"multipart/form-data; boundary={BOUNDARY}")])
         assert r.status_code == 401 and not read, (r.status_code, len(read))
+
+
+def test_no_answer_may_be_framed_by_another_site_or_sniffed(oracle: object) -> None:
+    """The OpenAPI page (whose requests a server without keys serves as its own), its assets, an API
+    answer, a route's problem and an early refusal: each forbids framing and type sniffing."""
+    with make_client(ModelRegistry({"default": oracle}), api_keys="k1") as client:
+        answers = [client.get("/docs"), client.get("/redoc"), client.get("/static-offline-docs/swagger-ui.css"),
+                   client.get("/openapi.json"), client.get("/healthz"), client.get("/v1/models"),
+                   client.get("/v1/models", headers={"X-API-Key": "k1"}),
+                   client.get("/v1/reconstructions/<b>x</b>", headers={"X-API-Key": "k1"})]
+    assert [r.status_code for r in answers] == [200, 200, 200, 200, 200, 401, 200, 404]
+    for r in answers:
+        assert r.headers["x-frame-options"] == "DENY", r.url
+        assert r.headers["content-security-policy"] == "frame-ancestors 'none'", r.url
+        assert r.headers["x-content-type-options"] == "nosniff", r.url
