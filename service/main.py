@@ -6,6 +6,7 @@ Run with ``svrnet-server`` (or ``make serve``); settings come from ``SVRNET_*`` 
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import threading
 from collections.abc import AsyncIterator
@@ -16,7 +17,7 @@ from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
 
 from service.api import health, masks, metrics, models, openapi, predict, problems, reconstructions, stream
-from service.api.deps import KnownQuery, MetricsAccess
+from service.api.deps import KnownQuery, MetricsAccess, needs_key
 from service.api.metrics import Metrics
 from service.api.middleware import RequestContext
 from service.api.schemas import problem_responses
@@ -103,7 +104,8 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
     app.state.registry = None
     app.state.localisers = Localisers({})
     problems.install(app)
-    openapi.document_uploads(app, settings.max_files)
+    openapi.document_uploads(app, settings.max_files,
+                             functools.partial(needs_key, settings) if settings.key_set() else None)
     app.state.stream_sessions = 0
     app.state.metrics.watch_streams(app.state)
     app.state.stream_pose_limiter = CapacityLimiter(settings.stream_workers)

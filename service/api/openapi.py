@@ -10,10 +10,15 @@
 * ``poses`` (read by ``POST /v1/reconstructions`` from the raw form: a JSON text or a JSON file) is
   documented with the other fields;
 * :func:`allowed_methods` lists every documented method of a path, for ``Allow`` (on ``405`` and
-  ``OPTIONS``): Starlette's own answer names only the methods of the first route that matched.
+  ``OPTIONS``): Starlette's own answer names only the methods of the first route that matched;
+* where ``SVRNET_API_KEYS`` is set, the operations that need a key say so (``security``: a bearer
+  token or ``X-API-Key``, :data:`KEY_SCHEMES`), so the page's "Authorize" sends it; a server without
+  keys declares none.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 from fastapi import FastAPI
 
@@ -24,10 +29,16 @@ POSES = {
                    "without it the job predicts the poses first",
 }
 EXTRA_FIELDS = {"/v1/reconstructions": {"poses": POSES}}
+KEY_SCHEMES = {
+    "bearer": {"type": "http", "scheme": "bearer", "description": "a key of SVRNET_API_KEYS"},
+    "apiKey": {"type": "apiKey", "in": "header", "name": "X-API-Key", "description": "a key of SVRNET_API_KEYS"},
+}
+"""The two ways a request presents its API key (either one)."""
 
 
-def document_uploads(app: FastAPI, max_files: int) -> None:
-    """Add the list sizes and the undeclared ``poses`` field to the multipart bodies of ``app``'s schema."""
+def document_uploads(app: FastAPI, max_files: int, needs_key: Callable[[str], bool] | None = None) -> None:
+    """Add the list sizes and the undeclared ``poses`` field to the multipart bodies of ``app``'s schema;
+    with ``needs_key`` (where keys are configured: whether a path needs one), the key schemes."""
     generate = app.openapi
 
     def openapi() -> dict:
@@ -53,6 +64,12 @@ def document_uploads(app: FastAPI, max_files: int) -> None:
                         if low:
                             props[name]["minItems"] = low
                 props.update(EXTRA_FIELDS.get(path, {}))
+        if needs_key is not None:
+            schema.setdefault("components", {})["securitySchemes"] = KEY_SCHEMES
+            for path, ops in schema.get("paths", {}).items():
+                for op in ops.values():
+                    if needs_key(path):
+                        op["security"] = [{name: []} for name in KEY_SCHEMES]
         app.openapi_schema = schema
         return schema
 

@@ -73,3 +73,25 @@ def test_a_path_with_no_route_says_where_the_routes_are(oracle_client: TestClien
     assert r.status_code == 404 and r.headers["content-type"].startswith("application/problem+json")
     assert "no route '/v1/v1/models'" in r.json()["detail"] and "ends in /v1" in r.json()["detail"]
     assert oracle_client.get("/v1/reconstructions/abc").json()["detail"].startswith("job_id: no job")
+
+
+def test_the_operations_that_need_a_key_say_so_where_keys_are_set(oracle) -> None:  # noqa: ANN001
+    """With ``SVRNET_API_KEYS``, every operation the keys protect declares the two ways to send one (so
+    the page's "Authorize" sends it), and those open without a key declare none; a server without
+    keys declares no scheme at all. A key sent as the page sends it is taken."""
+    with make_client(ModelRegistry({"default": oracle}), api_keys="k1") as client:
+        spec = client.get("/openapi.json").json()
+        schemes = spec["components"]["securitySchemes"]
+        assert schemes["apiKey"]["name"] == "X-API-Key" and schemes["bearer"]["scheme"] == "bearer"
+        for path, ops in spec["paths"].items():
+            for method, op in ops.items():
+                declared = {next(iter(s)) for s in op.get("security", [])}
+                want = {"bearer", "apiKey"} if path.startswith("/v1/") or path == "/metrics" else set()
+                assert declared == want, (method, path)
+        assert client.get("/v1/models", headers={"Authorization": "Bearer k1"}).status_code == 200
+    with make_client(ModelRegistry({"default": oracle}), api_keys="k1", metrics_public=True) as client:
+        assert "security" not in client.get("/openapi.json").json()["paths"]["/metrics"]["get"]
+    with make_client(ModelRegistry({"default": oracle})) as client:
+        spec = client.get("/openapi.json").json()
+    assert "securitySchemes" not in spec.get("components", {})
+    assert not [p for p, ops in spec["paths"].items() for op in ops.values() if "security" in op]
