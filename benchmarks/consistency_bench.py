@@ -18,6 +18,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from service.core.settings import Settings  # noqa: E402
+from service.core.threads import limit_blas_threads  # noqa: E402
 from service.consistency import fit_stack  # noqa: E402
 from service.core.machine import cpu_description  # noqa: E402
 from service.geometry import anchors, se3  # noqa: E402
@@ -46,6 +48,7 @@ def measure(n_stacks: int, n_slices: int, repeats: int = 5, seed: int = 0) -> di
 
 
 def main() -> None:
+    limit_blas_threads(Settings().blas_threads)              # as the server and the job workers run
     print(f"machine: {cpu_description()}")
     for n_stacks, n_slices in ((6, 22), (3, 40), (3, 80)):
         m = measure(n_stacks, n_slices)

@@ -6,9 +6,9 @@
    body on two sides (the network then also sees the fluid band beyond them: a larger grid). Then
    the network's time with its calls two at a time on half the cores each (as the service runs
    it) against one call at a time on all of them, and the pose network's alike.
-2. The predict pipeline (no HTTP; N4, 100 MC samples, every stage on) on the same stacks with the
-   reference masks and without them: wall times, their ratio, and the median E.D. between the two
-   sets of poses. Stacks: the real scan of ``../shared/data/real_scans/mial_lausanne_t30`` where it
+2. The predict pipeline (no HTTP; BLAS threads limited as the server limits them; N4, 100 MC
+   samples, every stage on) on the same stacks with the reference masks and without them: wall
+   times, their ratio, and the median E.D. between the two sets of poses. Stacks: the real scan of ``../shared/data/real_scans/mial_lausanne_t30`` where it
    is, else generated whole-uterus stacks around a phantom brain.
 
 3. With ``--baseline DIR``: :meth:`Localiser.localise` of the 320 x 320 x 22 stack by the localiser
@@ -32,7 +32,8 @@ sys.path.insert(0, str(ROOT))
 
 from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, masked_files, pose_agreement  # noqa: E402
 from service.core.machine import cpu_description  # noqa: E402
-from service.core.settings import DEFAULT_LOCALISERS_DIR  # noqa: E402
+from service.core.settings import DEFAULT_LOCALISERS_DIR, Settings  # noqa: E402
+from service.core.threads import limit_blas_threads  # noqa: E402
 from service.pipeline.prepare import StackUpload  # noqa: E402
 from service.io.volume import Volume, read_volume  # noqa: E402
 from service.preprocess.brain_shape import brain_from_probabilities  # noqa: E402
@@ -144,6 +145,7 @@ def main() -> None:
                     help="the localiser's folder (default: the shipped one)")
     ap.add_argument("--baseline", type=Path, help="another localiser's folder, timed against it")
     args = ap.parse_args()
+    limit_blas_threads(Settings().blas_threads)              # as the server and the job workers run
     print(f"machine: {cpu_description()}")
     loc = Localiser.load(args.localiser / "model.onnx")
     print(f"localiser {loc.version}, grid {loc.grid_mm} mm, mirrored pass run by the service: {loc.mirrored}")

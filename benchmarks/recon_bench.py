@@ -50,6 +50,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from model_export.volume_metrics import volume_psnr_ncc  # noqa: E402
+from service.core.settings import Settings  # noqa: E402
+from service.core.threads import limit_blas_threads  # noqa: E402
 from service.core.machine import cpu_description  # noqa: E402
 from service.geometry import se3  # noqa: E402
 from service.geometry.pose import make_pose  # noqa: E402
@@ -195,6 +197,7 @@ def main() -> None:
     ap.add_argument("--only", default="123456", help="scenarios to run (7: real size, alone)")
     ap.add_argument("--model", type=Path, default=ROOT / "service" / "models" / "default" / "model.onnx")
     args = ap.parse_args()
+    limit_blas_threads(Settings().blas_threads)              # as the server and the job workers run
     print(f"machine: {cpu_description()}")
     cfg = ReconstructionConfig(**eval(args.config, {}))  # noqa: S307 - a local benchmark option
     if args.only == "7":
