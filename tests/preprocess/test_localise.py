@@ -25,6 +25,20 @@ def localiser() -> Localiser:
     return Localiser.load(DEFAULT_LOCALISERS_DIR / "default" / "model.onnx")
 
 
+@pytest.fixture(scope="module")
+def heldout_stack() -> Volume:
+    """A generated whole-uterus stack (the phantom brain of seed 11, scene seed 7, held-out style),
+    made once for the tests that read it (3 s a stack); its voxels are read-only, so a test that
+    wrote into them would fail rather than change the next test's stack."""
+    from model_export.localiser.scenes import HeadModel, synth_stack
+    from tests.support.phantoms import phantom_brain
+
+    image, mask, affine = phantom_brain(11)
+    volume, _ = synth_stack(HeadModel.from_arrays(image, mask, affine), np.random.default_rng(7), "heldout")
+    volume.array.flags.writeable = False
+    return volume
+
+
 def test_the_registry_names_what_it_lacks() -> None:
     from service.core.errors import NotFound
 
@@ -47,16 +61,13 @@ def test_the_shipped_localiser_finds_the_brain_of_a_generated_whole_uterus_stack
     assert np.median(scores) > 0.8, scores
 
 
-def test_batches_run_side_by_side_give_the_logits_of_one_call(localiser: Localiser) -> None:
+def test_batches_run_side_by_side_give_the_logits_of_one_call(localiser: Localiser, heldout_stack: Volume) -> None:
     """Two network calls at a time, each on half the cores, are a matter of speed: every batch's
     logits, the mirrored pass's too, land where one call on the whole stack puts them."""
-    from model_export.localiser.scenes import HeadModel, synth_stack
     from service.core.threads import available_cores
     from service.preprocess.localiser_inputs import localiser_inputs
-    from tests.support.phantoms import phantom_brain
 
-    image, mask, affine = phantom_brain(11)
-    volume, _ = synth_stack(HeadModel.from_arrays(image, mask, affine), np.random.default_rng(7), "heldout")
+    volume = heldout_stack
     x, _ = localiser_inputs(volume, localiser.grid_mm)
     name = localiser.session.get_inputs()[0].name
     whole = lambda inputs: localiser.session.run(None, {name: np.ascontiguousarray(inputs)})[0][:, 0]  # noqa: E731
@@ -91,43 +102,52 @@ def test_a_zero_filled_slice_through_the_brain_does_not_cut_it_in_two(localiser:
     assert blanked[:middle].any() and blanked[middle + 1:].any()
 
 
-def test_a_stack_whose_file_stores_its_in_plane_voxels_in_any_order_gets_the_same_mask(localiser: Localiser) -> None:
+def test_a_stack_whose_file_stores_its_in_plane_voxels_in_any_order_gets_the_same_mask(localiser: Localiser,
+                                                                                       heldout_stack: Volume) -> None:
     """The localiser sees each slice laid out by the scanner's axes: a file that stores the stack's
     rows or columns reversed or its two in-plane axes swapped (its header saying so) gives the network
     the same pictures, so the same probabilities and the same mask voxel for voxel, with the
     mirrored pass and without it (where the file's own order was seen, the same stack stored
-    transposed lost its accepted slices: docs/reports/localiser-experiments.md)."""
-    from model_export.localiser.scenes import HeadModel, synth_stack
-    from tests.support.phantoms import phantom_brain
+    transposed lost its accepted slices: docs/reports/localiser-experiments.md). The probabilities
+    compared are those ``localise`` itself computed on the model's grid (its first
+    ``probabilities_of`` call): one network run a storage, not two."""
     from model_export.experiments.localiser_sweep import STORAGES, stored_as
 
-    image, mask, affine = phantom_brain(11)
-    volume, _ = synth_stack(HeadModel.from_arrays(image, mask, affine), np.random.default_rng(7), "heldout")
-    one_pass = Localiser(**{**localiser.__dict__, "mirrored": False})
-    for loc in (localiser, one_pass):
-        prob, found = loc.probabilities(volume)[0], loc.localise(volume)
+    volume = heldout_stack
+    for mirrored in (localiser.mirrored, False):          # as loaded, and without the mirrored pass
+        loc = Localiser(**{**localiser.__dict__, "mirrored": mirrored})     # a copy: the spy stays on it
+        runs = []
+        network = loc.probabilities_of
+        loc.probabilities_of = lambda volumes, grids_mm=None: runs.append(network(volumes, grids_mm)) or runs[-1]
+
+        def localised(v: Volume):  # noqa: ANN202 - the Localisation and the model-grid probabilities it rests on
+            runs.clear()
+            found = loc.localise(v)
+            assert runs and len(runs[0]) == 1 and runs[0][0][1].grid_mm == loc.grid_mm
+            return found, runs[0][0][0]
+
+        found, prob = localised(volume)
+        assert np.array_equal(prob, Localiser.probabilities(loc, volume)[0])     # what probabilities() says
         assert found.mask.sum() > 1000
         for storage in STORAGES[1:]:
             other = stored_as(volume, *storage)
-            assert np.array_equal(loc.probabilities(other)[0], prob), storage
-            there = loc.localise(other)
+            there, prob_other = localised(other)
+            assert np.array_equal(prob_other, prob), storage
             assert np.array_equal(there.mask, stored_as(Volume(found.mask, volume.affine), *storage).array), storage
             assert there.brain_volume_ml == found.brain_volume_ml and there.confidence == found.confidence
 
 
-def test_a_stack_whose_file_stores_its_slices_last_to_first_gets_the_same_mask(localiser: Localiser) -> None:
+def test_a_stack_whose_file_stores_its_slices_last_to_first_gets_the_same_mask(localiser: Localiser,
+                                                                              heldout_stack: Volume) -> None:
     """The network sees each slice between its neighbours and the geometry walks the slices: both
     see a stack's slices in one order whichever way its file stores them, so the mask is the same
     voxel for voxel (one of the two files is seen last to first); without that order the two files
     got masks that differed in their end slices (real stacks by 1,300-3,300 voxels)."""
-    from model_export.localiser.scenes import HeadModel, synth_stack
     from service.geometry.pose import index_reversal
     from service.preprocess.localise import reversed_slices
     from service.preprocess.stack import stack_axis
-    from tests.support.phantoms import phantom_brain
 
-    image, mask, affine = phantom_brain(11)
-    volume, _ = synth_stack(HeadModel.from_arrays(image, mask, affine), np.random.default_rng(7), "heldout")
+    volume = heldout_stack
     axis = stack_axis(volume)
     stored = Volume(np.ascontiguousarray(np.flip(volume.array, axis)),
                     volume.affine @ index_reversal(axis, volume.array.shape[axis]))
