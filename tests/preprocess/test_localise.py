@@ -3,6 +3,8 @@ whole-uterus phantoms, on noise, and on the real scans of ../shared/data (skippe
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -26,17 +28,30 @@ def localiser() -> Localiser:
 
 
 @pytest.fixture(scope="module")
-def heldout_stack() -> Volume:
-    """A generated whole-uterus stack (the phantom brain of seed 11, scene seed 7, held-out style),
-    made once for the tests that read it (3 s a stack); its voxels are read-only, so a test that
-    wrote into them would fail rather than change the next test's stack."""
+def generated() -> Callable[[int], tuple[Volume, np.ndarray]]:
+    """``generated(seed)``: the whole-uterus stack of the phantom brain of seed 11 drawn with scene
+    seed ``seed`` (held-out style) and its brain mask, made once a module for the tests that read it
+    (2-3 s a stack; several tests draw the same seeds). Its voxels and mask are read-only: a test
+    that wrote into them would fail rather than change another test's stack."""
     from model_export.localiser.scenes import HeadModel, synth_stack
     from tests.support.phantoms import phantom_brain
 
-    image, mask, affine = phantom_brain(11)
-    volume, _ = synth_stack(HeadModel.from_arrays(image, mask, affine), np.random.default_rng(7), "heldout")
-    volume.array.flags.writeable = False
-    return volume
+    head = HeadModel.from_arrays(*phantom_brain(11))
+
+    @functools.cache
+    def draw(seed: int) -> tuple[Volume, np.ndarray]:
+        volume, truth = synth_stack(head, np.random.default_rng(seed), "heldout")
+        volume.array.flags.writeable = False
+        truth.flags.writeable = False
+        return volume, truth
+
+    return draw
+
+
+@pytest.fixture(scope="module")
+def heldout_stack(generated: Callable[[int], tuple[Volume, np.ndarray]]) -> Volume:
+    """The generated stack of scene seed 7."""
+    return generated(7)[0]
 
 
 def test_the_registry_names_what_it_lacks() -> None:
@@ -46,15 +61,11 @@ def test_the_registry_names_what_it_lacks() -> None:
         Localisers.from_directory(DEFAULT_LOCALISERS_DIR).get("other")
 
 
-def test_the_shipped_localiser_finds_the_brain_of_a_generated_whole_uterus_stack(localiser: Localiser) -> None:
-    from model_export.localiser.scenes import HeadModel, synth_stack
-    from tests.support.phantoms import phantom_brain
-
-    image, mask, affine = phantom_brain(11)
-    head = HeadModel.from_arrays(image, mask, affine)
+def test_the_shipped_localiser_finds_the_brain_of_a_generated_whole_uterus_stack(localiser: Localiser,
+                                                                                 generated: Callable) -> None:
     scores = []
     for seed in range(3):
-        volume, truth = synth_stack(head, np.random.default_rng(100 + seed), "heldout")
+        volume, truth = generated(100 + seed)
         found = localiser.localise(volume)
         assert found.mask.shape == volume.array.shape and found.method == "network"
         scores.append(dice(found.mask, truth))
@@ -79,16 +90,13 @@ def test_batches_run_side_by_side_give_the_logits_of_one_call(localiser: Localis
         assert np.abs(loaded._logits(name, x) - expected).max() < 1e-4
 
 
-def test_a_zero_filled_slice_through_the_brain_does_not_cut_it_in_two(localiser: Localiser) -> None:
+def test_a_zero_filled_slice_through_the_brain_does_not_cut_it_in_two(localiser: Localiser, generated: Callable) -> None:
     """A slice a scanner or converter filled with zeros, in the middle of the brain, holds no image:
     it gets no mask, and the brain on either side of it is found as in the stack without it (the
     network sees nothing there; the geometry took the gap for the brain's end and kept one half)."""
-    from model_export.localiser.scenes import HeadModel, synth_stack
     from service.preprocess.stack import stack_axis
-    from tests.support.phantoms import phantom_brain
 
-    head = HeadModel.from_arrays(*phantom_brain(11))
-    volume, truth = synth_stack(head, np.random.default_rng(101), "heldout")
+    volume, truth = generated(101)
     axis = stack_axis(volume)
     found = np.moveaxis(localiser.localise(volume).mask, axis, 0)
     brain = np.flatnonzero(np.moveaxis(truth, axis, 0).reshape(truth.shape[axis], -1).any(1))
@@ -160,19 +168,15 @@ def test_a_stack_whose_file_stores_its_slices_last_to_first_gets_the_same_mask(l
     assert found.confidence == found_stored.confidence
 
 
-def test_a_stack_cropped_to_the_head_before_it_is_sent_is_localised(localiser: Localiser) -> None:
+def test_a_stack_cropped_to_the_head_before_it_is_sent_is_localised(localiser: Localiser, generated: Callable) -> None:
     """Other pipelines send stacks cut to the head (here its box and 15 mm: a field of view of about
     100 mm, padded to the network's 160 mm canvas): the brain is found in two of three such stacks
     with a Dice over 0.9."""
-    from model_export.localiser.scenes import HeadModel, synth_stack
     from service.preprocess.localiser_inputs import MIN_GRID_PX, localiser_inputs
-    from tests.support.phantoms import phantom_brain
 
-    image, mask, affine = phantom_brain(11)
-    head = HeadModel.from_arrays(image, mask, affine)
     scores = []
     for seed in range(3):
-        volume, truth = synth_stack(head, np.random.default_rng(300 + seed), "heldout")
+        volume, truth = generated(300 + seed)
         axis = int(np.argmax(volume.spacing))
         found = np.argwhere(truth)
         box = [slice(None)] * 3
@@ -187,18 +191,13 @@ def test_a_stack_cropped_to_the_head_before_it_is_sent_is_localised(localiser: L
     assert sorted(scores)[1] > 0.9, scores
 
 
-def test_a_head_at_the_edge_of_the_image_is_found_whole(localiser: Localiser) -> None:
+def test_a_head_at_the_edge_of_the_image_is_found_whole(localiser: Localiser, generated: Callable) -> None:
     """A stack cropped to the head's box, or whose field of view ends inside the brain, shows brain
     right up to the image's end: the network sees fluid beyond that edge, not zeros, and finds the
     brain there as it finds a whole head (zeros against the brain leave it part of the brain, or none)."""
-    from model_export.localiser.scenes import HeadModel, synth_stack
-    from tests.support.phantoms import phantom_brain
-
-    image, mask, affine = phantom_brain(11)
-    head = HeadModel.from_arrays(image, mask, affine)
     scores = {"box": [], "cut": []}
     for seed in range(4):
-        volume, truth = synth_stack(head, np.random.default_rng(300 + seed), "heldout")
+        volume, truth = generated(300 + seed)
         axis = int(np.argmax(volume.spacing))
         plane = [a for a in range(3) if a != axis]
         found = np.argwhere(truth)
@@ -212,20 +211,17 @@ def test_a_head_at_the_edge_of_the_image_is_found_whole(localiser: Localiser) ->
     assert np.median(scores["box"]) > 0.85 and np.median(scores["cut"]) > 0.85, scores
 
 
-def test_a_younger_fetus_is_localised_on_a_grid_that_shows_its_head_at_a_known_size(localiser: Localiser) -> None:
+def test_a_younger_fetus_is_localised_on_a_grid_that_shows_its_head_at_a_known_size(localiser: Localiser,
+                                                                                     generated: Callable) -> None:
     """The generated stacks said to hold voxels 0.7 times their size: head and uterus as a younger
     pregnancy's (brains of 46-76 ml). Each brain found under SMALL_BRAIN_ML is looked at again on
     finer pixels; every stack's mask then scores over 0.9 (at the model's grid alone one of them
     held half its brain)."""
-    from model_export.localiser.scenes import HeadModel, synth_stack
     from service.preprocess.localise import SMALL_BRAIN_ML
-    from tests.support.phantoms import phantom_brain
 
-    image, mask, affine = phantom_brain(11)
-    head = HeadModel.from_arrays(image, mask, affine)
     scores = []
     for seed in range(4):
-        volume, truth = synth_stack(head, np.random.default_rng(100 + seed), "heldout")
+        volume, truth = generated(100 + seed)
         smaller = volume.affine.copy()
         smaller[:3, :3] *= 0.7
         found = localiser.localise(Volume(volume.array, smaller))
@@ -310,18 +306,16 @@ def test_a_real_brain_leaking_into_the_fetal_body_is_cut_at_the_waist(localiser:
     assert per_slice[:38].all() and per_slice[38:].sum() < 0.01 * per_slice.sum() and not per_slice[41:].any()
 
 
-def test_the_mask_is_cut_lower_than_the_region_the_pose_network_starts_from(localiser: Localiser) -> None:
+def test_the_mask_is_cut_lower_than_the_region_the_pose_network_starts_from(localiser: Localiser,
+                                                                            generated: Callable) -> None:
     """The localiser's mask holds its pose region and more (cut at MASK_THRESHOLD, not THRESHOLD); the
     pose network's mask is the pose region less its rim, with nothing of the mask's extra; a slice
     localised alone keeps the two cuts too."""
-    from model_export.localiser.scenes import HeadModel, synth_stack
     from service.preprocess.brain_shape import MASK_THRESHOLD, THRESHOLD
     from service.preprocess.localisation import POSE_MASK_INSET_MM, inset_in_plane
-    from tests.support.phantoms import phantom_brain
 
     assert MASK_THRESHOLD < THRESHOLD
-    image, mask, affine = phantom_brain(11)
-    volume, _ = synth_stack(HeadModel.from_arrays(image, mask, affine), np.random.default_rng(100), "heldout")
+    volume, _ = generated(100)
     found = localiser.localise(volume)
     assert found.pose_region is not None and found.pose_region.any()
     assert not (found.pose_region & ~found.mask).any() and found.mask.sum() > found.pose_region.sum()
