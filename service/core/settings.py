@@ -105,9 +105,10 @@ class Settings(BaseSettings):
     stream_max_slices: int = Field(2000, ge=1, description="slices one stream session may send")
     stream_max_pixels: int = Field(1024 * 1024, ge=4, description="pixels of one streamed slice")
     stream_max_session_mb: float = Field(512.0, gt=0, description="what one stream session may keep in memory: its "
-                                         "slices' pixels as float32, their preparations and their stacks' ends, "
-                                         "five to six times the pixels; an MRD connection's unread answers as much "
-                                         "again")
+                                         "slices' pixels as float32, their preparations and their stacks' ends "
+                                         "(reserved as each slice comes, so that ending a stack stays within the "
+                                         "limit), five to six times the pixels; an MRD connection's unread answers "
+                                         "as much again")
     stream_idle_s: float = Field(300.0, gt=0, description="a stream session silent this long is closed (code 1001)")
     stream_ping_interval_s: float = Field(20.0, gt=0, description="how often the server pings a WebSocket client")
     stream_ping_timeout_s: float = Field(60.0, gt=0, description="a ping unanswered this long closes the connection "
