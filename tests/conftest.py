@@ -1,6 +1,7 @@
 """Shared fixtures: the location of ``../shared/data`` and a skip when it is absent; every test's
 job store in a folder of the test run's, never the user's ``~/.svrnet``; the process's umask as
-each test found it."""
+each test found it. The tests run numpy's and scipy's BLAS on one thread, as every process of the
+service runs its stages (``SVRNET_BLAS_THREADS``)."""
 
 from __future__ import annotations
 
@@ -9,8 +10,11 @@ from pathlib import Path
 
 import pytest
 
+from service.core.threads import limit_blas_threads
+
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 ATLAS_DIR = SHARED_DATA / "fetal_atlas"
+limit_blas_threads(1)
 
 
 @pytest.fixture(autouse=True)
