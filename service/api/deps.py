@@ -104,7 +104,11 @@ def origin_ok(settings: Settings, headers: dict[str, str]) -> bool:
     post a form to, or open a websocket on, a service on their machine without any CORS
     permission. Without API keys, a request carrying an ``Origin`` is therefore served only from the
     server's own pages at an address (an IP literal or ``localhost``, which a rebound DNS name
-    cannot pose as) or from one of ``allowed_origins``; with keys, the key decides.
+    cannot pose as) or from one of ``allowed_origins``; with keys, the key decides. A browser's
+    request without an ``Origin`` (a same-origin ``GET``) says it came from a page by
+    ``Sec-Fetch-Site``: it is served where the server is reached at an address, so a page whose DNS
+    name was rebound to the server cannot read it either; an address typed by the user
+    (``Sec-Fetch-Site: none``) always is.
 
     Example:
         >>> s = Settings(allowed_origins="https://viewer.example")
@@ -113,21 +117,39 @@ def origin_ok(settings: Settings, headers: dict[str, str]) -> bool:
         [True, True, True, False, False]
         >>> origin_ok(s, {"host": "evil.example:8000", "origin": "http://evil.example:8000"})
         False
+        >>> [origin_ok(s, {"host": h, "sec-fetch-site": site}) for h, site in
+        ...  (("evil.example:8000", "same-origin"), ("localhost:8000", "same-origin"), ("evil.example:8000", "none"))]
+        [False, True, True]
     """
     origin = headers.get("origin")
-    if origin is None or settings.key_set():
+    if settings.key_set():
         return True
+    if origin is None:
+        return headers.get("sec-fetch-site", "none") == "none" or _at_address(headers.get("host", ""))
     origin = plain_origin(origin)
     allowed = settings.origin_set()
     if "*" in allowed or origin in allowed:
         return True
     try:
         parts = urlsplit(origin)
-        host = parts.hostname or ""
-        at_address = host == "localhost" or bool(ipaddress.ip_address(host))
     except ValueError:
         return False
-    return at_address and parts.scheme in ("http", "https") and parts.netloc == headers.get("host", "").lower()
+    return (_at_address(parts.netloc) and parts.scheme in ("http", "https")
+            and parts.netloc == headers.get("host", "").lower())
+
+
+def _at_address(netloc: str) -> bool:
+    """Whether ``host[:port]`` names an IP literal or ``localhost``, which no DNS name can pose as.
+
+    Example:
+        >>> [_at_address(h) for h in ("127.0.0.1:8000", "[::1]:8000", "localhost", "evil.example:8000", "")]
+        [True, True, True, False, False]
+    """
+    try:
+        host = urlsplit(f"//{netloc}").hostname or ""
+        return host == "localhost" or bool(ipaddress.ip_address(host))
+    except ValueError:
+        return False
 
 
 FOREIGN_ORIGIN = ("Origin: this server serves browser pages of its own address only; list the page's origin "

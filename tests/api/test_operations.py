@@ -90,7 +90,9 @@ def test_api_keys(tiny_model_path: Path, phantom_files) -> None:
 
 def test_another_site_s_page_is_refused_without_keys(tiny_model_path: Path, phantom_files) -> None:
     """A browser page of another origin posts a form without any CORS permission: refused (403) before
-    its upload is read, unless listed; the server's own page at its address, and scripts, are served."""
+    its upload is read, unless listed; so is a page whose DNS name was rebound to the server, even
+    where its same-origin GET carries no Origin; the server's own page at its address, an address
+    the user typed, and scripts, are served."""
     registry = ModelRegistry({"default": OnnxPoseEstimator(load_model(tiny_model_path))})
     stack = [("stacks", ("s.nii.gz", phantom_files[0].read_bytes()))]
     with make_client(registry, allowed_origins="https://viewer.example/") as client:
@@ -101,6 +103,10 @@ def test_another_site_s_page_is_refused_without_keys(tiny_model_path: Path, phan
         assert client.get("/v1/models", headers={"Origin": "null"}).status_code == 403
         rebound = {"Host": "evil.example:8000", "Origin": "http://evil.example:8000"}    # DNS rebinding
         assert client.get("/v1/models", headers=rebound).status_code == 403
+        page = {"Host": "evil.example:8000", "Sec-Fetch-Site": "same-origin"}    # a rebound page's GET: no Origin
+        assert client.get("/v1/models", headers=page).status_code == 403
+        assert client.get("/v1/models", headers={**page, "Host": "127.0.0.1:8000"}).status_code == 200
+        assert client.get("/v1/models", headers={**page, "Sec-Fetch-Site": "none"}).status_code == 200   # typed
         own = {"Host": "127.0.0.1:8000", "Origin": "http://127.0.0.1:8000"}
         assert client.get("/v1/models", headers=own).status_code == 200
         assert client.get("/v1/models", headers={"Origin": "https://Viewer.example"}).status_code == 200
