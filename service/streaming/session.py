@@ -69,8 +69,9 @@ brain pixels extend the brain :mod:`~service.streaming.coverage` counts (not wha
 placed further off would draw brain, and a gap, where there is none."""
 END_SHARE = 3.0
 """What a stack's end keeps (the stack rebuilt whole, its preparation and its masks), as a share of its
-slices' pixels as float32; each slice reserves it as it comes, so that no end takes a session past
-its memory limit (the shared real scan's stacks measure 2.7-2.9)."""
+slices' pixels as float32 (the shared real scan's stacks measure 2.7-2.9). An open stack reserves it
+for every slice up to its largest index as its slices come (the end's volume holds a blank slice
+for each that has not), so that no end takes a session past its memory limit."""
 
 
 @dataclass
@@ -143,14 +144,15 @@ class StreamSession:
                 raise InvalidParameter(f"slice.stack: a session holds at most {self.limits.max_stacks} stacks; "
                                        "end it and start another (its stacks may go on)")
             size = np.asarray(frame.pixels).size * 4
-            if self.held_bytes + sum(self.reserved.values()) + size * (1 + END_SHARE) > self.limits.max_bytes:
+            others = sum(v for k, v in self.reserved.items() if k != frame.stack)
+            if self.held_bytes + others + size + self._end_reserve(frame.stack, frame.index, size) > self.limits.max_bytes:
                 raise SessionFull(f"slice: a session keeps at most {self.limits.max_bytes / 2**20:.3g} MB (its "
                                   "slices, their preparation and their stacks' ends); end it and start another")
             stack = self.stacks.get(frame.stack) or StreamedStack(frame.stack)
             stack.add(frame)
             self.stacks[frame.stack] = stack
             self.held_bytes += size
-            self.reserved[frame.stack] = self.reserved.get(frame.stack, 0.0) + size * END_SHARE
+            self._reserve(frame.stack)
             around = neighbours(stack, frame.index)
             received = {k: st.brain_map for k, st in self.slices.get(frame.stack, {}).items() if st.brain_map is not None}
             step_mm = stack.step_mm()
@@ -168,10 +170,9 @@ class StreamSession:
             with self._lock:
                 stack.remove(frame.index)
                 self.held_bytes -= size
-                self.reserved[frame.stack] -= size * END_SHARE
                 if not len(stack):
                     del self.stacks[frame.stack]
-                    del self.reserved[frame.stack]
+                self._reserve(frame.stack)
             raise
         with self._lock:
             self.slices.setdefault(frame.stack, {})[frame.index] = state
@@ -254,10 +255,29 @@ class StreamSession:
         frame = self.stacks[stack].frames[index]
         self.stacks[stack].remove(index)
         self.held_bytes -= np.asarray(frame.pixels).size * 4
-        self.reserved[stack] -= np.asarray(frame.pixels).size * 4 * END_SHARE
+        self._reserve(stack)
         state = self.slices.get(stack, {}).pop(index, None)
         if state is not None:
             self.held_bytes -= array_bytes(state.prepared, state.estimate, [state.brain_map], besides=(frame.pixels,))
+
+    def _end_reserve(self, stack: str, index: int, size: int) -> float:
+        """What ``stack`` reserves for its end once it holds a slice ``index`` of ``size`` pixel bytes:
+        :data:`END_SHARE` of them for each slice up to its largest index, or nothing where its end is
+        held already (ended, or reopened by a slice it lacked; ending again keeps as much)."""
+        if stack in self.ended or stack in self.reopened:
+            return 0.0
+        frames = self.stacks[stack].frames if stack in self.stacks else {}
+        return END_SHARE * size * (max([index, *frames]) + 1)
+
+    def _reserve(self, stack: str) -> None:
+        """Set ``stack``'s reserve for its end from the slices it holds (:meth:`_end_reserve`; under the lock)."""
+        frames = self.stacks[stack].frames if stack in self.stacks else {}
+        reserve = self._end_reserve(stack, max(frames), np.asarray(next(iter(frames.values())).pixels).size * 4) \
+            if frames else 0.0
+        if reserve:
+            self.reserved[stack] = reserve
+        else:
+            self.reserved.pop(stack, None)
 
     def _reopen(self, stack: str) -> None:
         """A slice the ended ``stack`` lacked has come: the stack is open again, its final poses

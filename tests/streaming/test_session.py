@@ -327,6 +327,54 @@ def test_a_session_holds_no_more_than_its_memory_limit_counting_what_it_keeps(ca
         assert len(taken) > len(stacks[0])
 
 
+def test_a_stack_ended_without_some_slices_ends_within_the_memory_limit(case) -> None:  # noqa: ANN001
+    """A stack's end holds a blank slice for each that has not come: its reserve counts every slice
+    up to its largest index, so a session whose stack lacks every other slice still ends it within
+    its limit (refusing a slice first where it must), and one with room for that end takes them all."""
+    oracle, stacks, _ = case
+    frames = stacks[0]
+    sent = [*range(0, len(frames), 2), len(frames) - 1]          # 9 of 20 missing: a stack that may end
+    one = frames[0].pixels.size * 4
+    probe = StreamSession(oracle, None, options=FAST)
+    for k in sent:
+        probe.add_slice(frames[k])
+    before = probe.held_bytes
+    probe.end_stack("ax")
+    assert probe.held_bytes - before > (END_SHARE + 1) * len(sent) * one   # more than the slices' own share
+    for limit, all_taken in ((before + END_SHARE * len(sent) * one, False), (before + END_SHARE * len(frames) * one, True)):
+        session = StreamSession(oracle, None, StreamLimits(max_bytes=int(limit)), FAST)
+        taken = 0
+        for k in sent:
+            try:
+                session.add_slice(frames[k])
+            except SessionFull:
+                break
+            taken += 1
+        assert (taken == len(sent)) == all_taken, (taken, limit)
+        try:
+            session.end_stack("ax")
+        except IncompleteStack:
+            assert not all_taken
+        assert session.held_bytes <= limit, (session.held_bytes, limit)
+
+
+def test_a_reopened_stack_reserves_nothing_more_and_ends_again_within_its_limit(case) -> None:  # noqa: ANN001
+    """A slice an ended stack lacked reopens it: its end is held already, and ending it again keeps
+    as much, so the slice reserves nothing more."""
+    oracle, stacks, _ = case
+    frames = stacks[0]
+    session = StreamSession(oracle, None, options=FAST)
+    for k in range(len(frames)):
+        if k != 5:
+            session.add_slice(frames[k])
+    session.end_stack("ax")
+    session.add_slice(frames[5])
+    assert session.reserved == {} and "ax" in session.reopened
+    held = session.held_bytes
+    session.end_stack("ax")
+    assert session.reserved == {} and session.held_bytes <= held                 # the end it held, no more
+
+
 def test_a_stack_holds_no_more_than_its_slice_limit_and_the_next_stack_goes_on(case) -> None:  # noqa: ANN001
     """As an upload's: the stack stage's work grows with the cube of a stack's slices. An index at
     the limit or beyond is refused at once: a stack's missing slices and its volume reach up to its
