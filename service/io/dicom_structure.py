@@ -17,8 +17,9 @@ from dataclasses import dataclass
 from typing import BinaryIO
 
 from pydicom.datadict import dictionary_VR
+from pydicom.filereader import ENCODED_VR
 
-from service.core.errors import PayloadTooLarge
+from service.core.errors import PayloadTooLarge, UnsupportedFile
 
 MAX_ELEMENTS = 200_000
 """The most elements and sequence items in one file, at every depth (an enhanced MR file of a
@@ -80,8 +81,12 @@ def check_structure(fp: BinaryIO, filename: str, implicit_vr: bool, little_endia
 
 def check_file_meta(fp: BinaryIO, filename: str) -> None:
     """Refuse (413) the file-meta group that starts at ``fp``'s position (left there again) when it
-    holds more than :data:`MAX_META_ELEMENTS` elements. pydicom reads the group whole before the
-    dataset's own count (:func:`check_structure`) can start, every element a Python object.
+    holds more than :data:`MAX_META_ELEMENTS` elements, counted as pydicom reads them: explicit VR,
+    an element whose VR is no two capitals read as implicit VR (pydicom's switch), and the whole
+    group as implicit VR too where its first element's VR is no known one (pydicom reads it again so).
+    An element of undefined length is refused (415): pydicom would read on past it, and no element of
+    the group has one. pydicom reads the group whole before the dataset's own count
+    (:func:`check_structure`) can start, every element a Python object.
 
     Example (a group of two elements, then the dataset's first tag):
         >>> import io, struct
@@ -95,21 +100,40 @@ def check_file_meta(fp: BinaryIO, filename: str) -> None:
     """
     start = fp.tell()
     try:
-        for _ in range(MAX_META_ELEMENTS + 1):
-            head = fp.read(8)
-            if len(head) < 8 or struct.unpack("<H", head[:2])[0] != 2:
-                return
-            length = struct.unpack("<H", head[6:])[0]
-            if head[4:6] in LONG_VRS:
-                if len(long := fp.read(4)) < 4:
-                    return
-                length = struct.unpack("<I", long)[0]
-            if length == UNDEFINED:
-                return                                   # no meta group pydicom reads: it says what is wrong
-            fp.seek(length, 1)
-        raise PayloadTooLarge(f"{filename}: a DICOM file-meta group of more than {MAX_META_ELEMENTS} elements")
+        first = fp.read(8)
+        _count_meta(fp, start, filename, False)
+        if len(first) == 8 and first[4:6] not in ENCODED_VR:
+            _count_meta(fp, start, filename, True)
     finally:
         fp.seek(start)
+
+
+def _count_meta(fp: BinaryIO, start: int, filename: str, implicit: bool) -> None:
+    fp.seek(start)
+    for _ in range(MAX_META_ELEMENTS + 1):
+        head = fp.read(8)
+        if len(head) < 8 or struct.unpack("<H", head[:2])[0] != 2:
+            return
+        if implicit or _switches_to_implicit(head[4:6]):
+            length = struct.unpack("<I", head[4:])[0]
+        elif head[4:6] in LONG_VRS:
+            if len(long := fp.read(4)) < 4:
+                return
+            length = struct.unpack("<I", long)[0]
+        else:
+            length = struct.unpack("<H", head[6:])[0]
+        if length == UNDEFINED:
+            group, element = struct.unpack("<HH", head[:4])
+            raise UnsupportedFile(f"{filename}: a DICOM file-meta element ({group:04X},{element:04X}) of undefined "
+                                  "length (the file-meta group's elements have defined lengths)")
+        fp.seek(length, 1)
+    raise PayloadTooLarge(f"{filename}: a DICOM file-meta group of more than {MAX_META_ELEMENTS} elements")
+
+
+def _switches_to_implicit(vr: bytes) -> bool:
+    """Whether pydicom reads an element of an explicit VR dataset whose VR bytes are ``vr`` as implicit
+    VR (tag, then a 4-byte length): where they are no two capital letters."""
+    return not b"AA" <= vr <= b"ZZ"
 
 
 def _walk(fp: BinaryIO, start: int, size: int, filename: str, implicit: bool, e: str) -> None:
@@ -144,7 +168,7 @@ def _walk(fp: BinaryIO, start: int, size: int, filename: str, implicit: bool, e:
             return
         tag = group << 16 | element
         vr, length, header = None, struct.unpack(e + "I", head[4:])[0], 8
-        if not top.implicit:
+        if not top.implicit and not _switches_to_implicit(head[4:6]):      # as pydicom reads it
             vr = head[4:6]
             if vr in LONG_VRS:
                 if len(long := fp.read(4)) < 4:

@@ -105,6 +105,66 @@ def test_a_file_meta_group_of_countless_elements_is_refused_before_pydicom_reads
     assert peak < 4 * MB, peak
 
 
+def _implicit_meta(valid: bytes, elements: bytes) -> bytes:
+    """``valid`` (a DICOM file) with its file-meta group written in implicit VR (as some writers do,
+    and pydicom reads), ``elements`` after the standard ones."""
+    import io
+    import struct
+
+    from pydicom.filereader import _read_file_meta_info
+
+    head = 128 + 4
+    group_end = head + 12 + struct.unpack("<I", valid[head + 8:head + 12])[0]
+    body = b""
+    for el in _read_file_meta_info(io.BytesIO(valid[head:])):
+        if el.tag != 0x00020000:
+            v = el.value if isinstance(el.value, bytes) else str(el.value).encode()
+            v += b"\0" * (len(v) % 2)
+            body += struct.pack("<HHI", 2, el.tag & 0xFFFF, len(v)) + v
+    body += elements
+    return valid[:head] + struct.pack("<HHI", 2, 0, 4) + struct.pack("<I", len(body)) + body + valid[group_end:]
+
+
+def test_a_file_meta_group_is_counted_as_pydicom_reads_it_in_implicit_vr_and_refused_past_an_undefined_length(
+        tmp_path: Path) -> None:
+    """Elements of a file-meta group written in implicit VR (pydicom reads an element whose VR is no
+    two capitals so) are counted too: a few are read, a hundred thousand of ten bytes refused from
+    their bytes; an element of undefined length (pydicom reads on past it) is a 415 naming the file."""
+    import struct
+
+    valid = corpus.dicom(np.zeros((2, 8, 8)))
+    extra = lambda n: b"".join(struct.pack("<HHI", 2, 0x100 + k % 0xFE00, 2) + b"AB" for k in range(n))  # noqa: E731
+    assert read(tmp_path, _implicit_meta(valid, extra(20)), "few.dcm").array.shape[:2] == (8, 8)
+    bomb = _implicit_meta(valid, extra(100_000))
+    tracemalloc.start()
+    with pytest.raises(PayloadTooLarge, match="bomb.dcm: a DICOM file-meta group of more than"):
+        read(tmp_path, bomb, "bomb.dcm", limit_mb=64)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 4 * MB, peak
+    head = 128 + 4
+    group_end = head + 12 + struct.unpack("<I", valid[head + 8:head + 12])[0]
+    undefined = struct.pack("<HH2sHI", 2, 0x100, b"OB", 0, 0xFFFFFFFF) + b"XXXX" + struct.pack("<HHI", 0xFFFE, 0xE0DD, 0)
+    with pytest.raises(UnsupportedFile, match=r"past.dcm: a DICOM file-meta element \(0002,0100\) of undefined length"):
+        read(tmp_path, valid[:group_end] + undefined + valid[group_end:], "past.dcm")
+
+
+def test_elements_pydicom_reads_as_implicit_vr_in_an_explicit_vr_dataset_are_counted(tmp_path: Path) -> None:
+    """pydicom reads an element whose VR bytes are no two capitals as implicit VR (tag, 4-byte
+    length): the count reads them so, and a dataset of more than MAX_ELEMENTS of them is refused
+    (each value the bytes of an item tag, which sent a walk reading a 2-byte length out of step)."""
+    import struct
+
+    from service.io import dicom_structure
+
+    valid = corpus.dicom(np.zeros((2, 8, 8)))
+    n = dicom_structure.MAX_ELEMENTS + 1
+    implicit = b"".join(struct.pack("<HHI", 0x7FE1, 0x1000 + k % 0xEF00, 4) + b"\xfe\xff\x00\x00" for k in range(n))
+    assert read(tmp_path, valid + implicit[:12 * 20], "few.dcm").array.shape[:2] == (8, 8)
+    with pytest.raises(PayloadTooLarge, match="many.dcm: a DICOM dataset of more than"):
+        read(tmp_path, valid + implicit, "many.dcm", limit_mb=64)
+
+
 def test_a_deflated_dicom_within_the_limit_is_read(tmp_path: Path) -> None:
     pixels = np.arange(3 * 8 * 6, dtype=np.uint16).reshape(3, 8, 6)
     vol = read(tmp_path, corpus.dicom(pixels, ts=uid.DeflatedExplicitVRLittleEndian), "ok.dcm")
