@@ -3,11 +3,11 @@
 pydicom makes a Python object of every element and sequence item it reads: hundreds of bytes for an
 element of eight, so a file of a few hundred KB of empty items or zero-length elements would take
 gigabytes, at any depth and after the pixel data too. :func:`check_structure` walks the dataset's
-raw bytes (tag, VR, length; into sequences and items, over every other value) and refuses a dataset
-of more than :data:`MAX_ELEMENTS` elements and items, or of more than :data:`MAX_HEADER_BYTES` before
-its pixel data, holding nothing but a stack of open containers. Where the bytes stop making sense
-(a length past the end, a stray tag) it stops counting: pydicom's own reading then says what is
-wrong, as it always has.
+raw bytes as pydicom reads them (tag, VR, length; into sequences and items, over every other
+value) and refuses a dataset of more than :data:`MAX_ELEMENTS` elements and items, or of more than
+:data:`MAX_HEADER_BYTES` before its pixel data, holding nothing but a stack of open containers.
+Where the bytes stop making sense (a length past the end, a stray tag) it stops counting: pydicom's
+own reading then says what is wrong, as it always has.
 """
 
 from __future__ import annotations
@@ -37,9 +37,11 @@ ITEM, ITEM_END, SEQUENCE_END = 0xE000, 0xE00D, 0xE0DD
 
 @dataclass
 class _Open:
-    """A container the walk is inside: a dataset (the file's, or an item's), a sequence of items, or
-    encapsulated pixel data (items whose values are fragments); ``end``: its last byte + 1 where its
-    length is defined; ``implicit``: its elements' VR encoding."""
+    """A container the walk is inside: a dataset (the file's, or an item's) or a sequence of items;
+    ``end``: its last byte + 1 where its length is defined; ``implicit``: its elements' VR encoding.
+    An element of undefined length that is no sequence (encapsulated pixel data) is no container:
+    pydicom takes its value up to the next sequence delimiter, and so does the walk
+    (:func:`_past_delimiter`)."""
 
     kind: str
     end: int | None
@@ -136,6 +138,28 @@ def _switches_to_implicit(vr: bytes) -> bool:
     return not b"AA" <= vr <= b"ZZ"
 
 
+def _past_delimiter(fp: BinaryIO, e: str) -> bool:
+    """Move ``fp`` past the next sequence delimiter (its tag and 4-byte length), as pydicom reads an
+    element of undefined length that is no sequence: its value is every byte up to that tag. False
+    (``fp`` anywhere) where the file holds none.
+
+    Example:
+        >>> import io
+        >>> fp = io.BytesIO(b"\x01\x02" + struct.pack("<HHI", 0xFFFE, SEQUENCE_END, 0) + b"next")
+        >>> _past_delimiter(fp, "<"), fp.read()
+        (True, b'next')
+    """
+    delimiter = struct.pack(e + "HH", 0xFFFE, SEQUENCE_END)
+    tail = b""
+    while chunk := fp.read(1 << 20):
+        data = tail + chunk
+        if (found := data.find(delimiter)) >= 0:
+            fp.seek(found - len(data) + len(delimiter) + 4, 1)
+            return True
+        tail = data[-(len(delimiter) - 1):]
+    return False
+
+
 def _walk(fp: BinaryIO, start: int, size: int, filename: str, implicit: bool, e: str) -> None:
     stack = [_Open("dataset", size, implicit)]
     count = 0
@@ -153,12 +177,10 @@ def _walk(fp: BinaryIO, start: int, size: int, filename: str, implicit: bool, e:
         top = stack[-1]
         if group == 0xFFFE:                              # items and delimiters: tag and a 4-byte length, no VR
             length = struct.unpack(e + "I", head[4:])[0]
-            if element == SEQUENCE_END and top.kind in ("sequence", "fragments"):
+            if element == SEQUENCE_END and top.kind == "sequence":
                 stack.pop()
             elif element == ITEM_END and top.kind == "dataset" and len(stack) > 1:
                 stack.pop()
-            elif element == ITEM and top.kind == "fragments" and length != UNDEFINED and at + 8 + length <= size:
-                fp.seek(length, 1)                       # a fragment's compressed bytes
             elif element == ITEM and top.kind == "sequence":
                 stack.append(_Open("dataset", None if length == UNDEFINED else at + 8 + length, top.implicit))
             else:
@@ -182,8 +204,9 @@ def _walk(fp: BinaryIO, start: int, size: int, filename: str, implicit: bool, e:
         end = None if length == UNDEFINED else at + header + length
         if vr == b"SQ" or (vr in (None, b"UN") and tag != PIXEL_DATA and (length == UNDEFINED or _is_sequence(tag))):
             stack.append(_Open("sequence", end, top.implicit or vr == b"UN"))   # a UN sequence is implicit VR
-        elif length == UNDEFINED:
-            stack.append(_Open("fragments", None, top.implicit))
+        elif length == UNDEFINED:          # encapsulated pixel data too: pydicom takes the bytes up to the delimiter
+            if not _past_delimiter(fp, e):
+                return
         elif end > size:
             return
         else:

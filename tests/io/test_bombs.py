@@ -165,6 +165,29 @@ def test_elements_pydicom_reads_as_implicit_vr_in_an_explicit_vr_dataset_are_cou
         read(tmp_path, valid + implicit, "many.dcm", limit_mb=64)
 
 
+def test_elements_behind_an_undefined_length_value_are_counted(tmp_path: Path) -> None:
+    """pydicom takes the value of an element of undefined length that is no sequence (a private OB,
+    encapsulated pixel data) up to the next sequence delimiter, whatever it holds, and reads on: the
+    elements after it are counted, and a dataset of more than MAX_ELEMENTS of them is refused (the
+    count stopped at the first byte that was no fragment item, and pydicom read them all)."""
+    import struct
+
+    from service.io import dicom_structure
+
+    valid = corpus.dicom(np.zeros((2, 8, 8)))
+    hidden = struct.pack("<HH2sHI", 0x7FE1, 0x0010, b"OB", 0, 0xFFFFFFFF) + b"not an item" + \
+        struct.pack("<HHI", 0xFFFE, 0xE0DD, 0)
+    tiny = b"".join(struct.pack("<HH2sH", 0x7FE3 + 2 * (k // 60000), k % 60000 + 1, b"LO", 0)
+                    for k in range(dicom_structure.MAX_ELEMENTS + 1))
+    assert read(tmp_path, valid + hidden + tiny[:8 * 20], "few.dcm").array.shape[:2] == (8, 8)
+    tracemalloc.start()
+    with pytest.raises(PayloadTooLarge, match="many.dcm: a DICOM dataset of more than"):
+        read(tmp_path, valid + hidden + tiny, "many.dcm", limit_mb=64)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 64 * MB, peak
+
+
 def test_a_deflated_dicom_within_the_limit_is_read(tmp_path: Path) -> None:
     pixels = np.arange(3 * 8 * 6, dtype=np.uint16).reshape(3, 8, 6)
     vol = read(tmp_path, corpus.dicom(pixels, ts=uid.DeflatedExplicitVRLittleEndian), "ok.dcm")
