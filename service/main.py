@@ -16,7 +16,8 @@ from anyio import CapacityLimiter
 from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
 
-from service.api import health, masks, metrics, models, openapi, predict, problems, reconstructions, stream
+from service.api import (health, masks, metrics, models, openapi, predict, problems, reconstructions, stream,
+                         stream_messages)
 from service.api.deps import KnownQuery, MetricsAccess, needs_key
 from service.api.metrics import Metrics
 from service.api.middleware import RequestContext
@@ -179,7 +180,7 @@ def run(argv: list[str] | None = None) -> None:
                           log_config=service_logging.server_log_config(settings.log_level, (stream.STREAM_PATH,)),
                           access_log=False, http=with_header_deadline(settings.header_timeout_s),
                           ws_ping_interval=settings.stream_ping_interval_s, ws_ping_timeout=settings.stream_ping_timeout_s,
-                          ws_max_size=stream.largest_frame_bytes(settings.stream_max_pixels),
+                          ws_max_size=stream_messages.largest_frame_bytes(settings.stream_max_pixels),
                           timeout_graceful_shutdown=SHUTDOWN_GRACE_S)).run()
 
 

@@ -31,6 +31,7 @@ from starlette.datastructures import State
 from starlette.websockets import WebSocketDisconnect, WebSocketDisconnected
 
 from service.api.deps import UNAUTHORIZED, api_key_ok, origin_ok
+from service.api.stream_messages import DTYPES, parse, slice_header, text_field
 from service.api.responses import error_message, pose_object, stack_message, summary_message, update_messages
 from service.core.errors import (
     InternalError,
@@ -42,8 +43,6 @@ from service.core.errors import (
     ServiceError,
     Unauthorized,
 )
-from service.core.client_json import client_json
-from service.core.names import has_unsafe_characters
 from service.streaming.answers import SliceAnswer
 from service.streaming.frames import SliceFrame
 from service.streaming.options import SessionOptions, StreamLimits
@@ -55,26 +54,7 @@ STREAM_PATH = "/v1/stream"
 T = TypeVar("T")
 log = logging.getLogger(__name__)
 
-DTYPES = {"uint8": "<u1", "int16": "<i2", "uint16": "<u2", "float32": "<f4"}
-MAX_TEXT_BYTES = 64 * 1024
-"""Longest JSON message accepted (a slice's header is a few hundred bytes)."""
-WS_MIN_FRAME_BYTES = 16 * 2**20
-"""The server's cap on one websocket frame is at least this (uvicorn's default) and at least the
-largest slice :func:`largest_frame_bytes` allows: a frame past it closes the connection (1009)."""
 POLICY_VIOLATION, GOING_AWAY, TRY_AGAIN_LATER = 1008, 1001, 1013
-
-
-def largest_frame_bytes(max_pixels: int) -> int:
-    """The websocket frame cap for slices of up to ``max_pixels`` pixels (the widest dtype; at least
-    :data:`WS_MIN_FRAME_BYTES`): a deployment that allows larger slices must not have them cut off
-    by the server's default cap.
-
-    Example:
-        >>> largest_frame_bytes(1024 * 1024) == WS_MIN_FRAME_BYTES, largest_frame_bytes(4096 * 4096)
-        (True, 67108864)
-    """
-    widest = max(np.dtype(d).itemsize for d in DTYPES.values())
-    return max(WS_MIN_FRAME_BYTES, int(max_pixels) * widest)
 
 
 class _Closed(Exception):
@@ -196,7 +176,7 @@ class StreamConnection:
         if kind == "slice":
             return await self.slice(msg)
         if kind == "end_stack":
-            return await self.end_stack(_text(msg, "stack", "end_stack"))
+            return await self.end_stack(text_field(msg, "stack", "end_stack"))
         if kind == "end":
             await self.settle()
             summary = await self.in_background("end_stack", self.session.summary)
@@ -246,34 +226,17 @@ class StreamConnection:
         self.firm_up(frame.stack)
 
     async def read_slice(self, msg: dict) -> SliceFrame:
-        """The slice message's fields and its binary frame(s), checked before anything is decoded."""
-        stack = _text(msg, "stack", "slice")
-        index = _integer(msg, "index", "slice")
-        acquisition = _integer(msg, "acquisition_index", "slice") if msg.get("acquisition_index") is not None else None
-        shape = msg.get("shape")
-        if not (isinstance(shape, list) and len(shape) == 2 and all(type(n) is int and n > 0 for n in shape)):
-            raise InvalidParameter("slice.shape: [n0, n1], two positive integers (a slice is 2D)")
-        if shape[0] * shape[1] > self.settings.stream_max_pixels:
-            raise InvalidParameter(f"slice.shape: {shape[0]} x {shape[1]} pixels is over this server's limit of "
-                                   f"{self.settings.stream_max_pixels} pixels per slice")
-        dtype = msg.get("dtype")
-        if dtype not in DTYPES:
-            raise InvalidParameter(f"slice.dtype: one of {', '.join(DTYPES)}")
-        affine = msg.get("scanner_from_voxel")
-        rows = affine if isinstance(affine, list) and len(affine) == 4 else []
-        numbers = all(isinstance(r, list) and len(r) == 4 and all(type(v) in (int, float) for v in r) for r in rows)
-        if not rows or not numbers:            # numpy would read "3" and true as numbers
-            raise InvalidParameter("slice.scanner_from_voxel: a 4 x 4 array of numbers")
-        affine = np.array(affine, dtype=np.float64)
-        with_mask = msg.get("mask", False)
-        if not isinstance(with_mask, bool):
-            raise InvalidParameter("slice.mask: true or false")
-        pixels = np.frombuffer(await self.binary(np.dtype(DTYPES[dtype]).itemsize * shape[0] * shape[1], "pixels"),
-                               DTYPES[dtype]).reshape(shape)
+        """The slice message's fields (:func:`~service.api.stream_messages.slice_header`, checked before
+        anything is decoded) and its binary frame(s)."""
+        head = slice_header(msg, self.settings.stream_max_pixels)
+        n0, n1 = head.shape
+        pixels = np.frombuffer(await self.binary(np.dtype(DTYPES[head.dtype]).itemsize * n0 * n1, "pixels"),
+                               DTYPES[head.dtype]).reshape(head.shape)
         mask = None
-        if with_mask:
-            mask = np.frombuffer(await self.binary(shape[0] * shape[1], "mask"), np.uint8).reshape(shape) > 0
-        return SliceFrame(stack, index, pixels.astype(np.float32), affine, mask, acquisition)
+        if head.with_mask:
+            mask = np.frombuffer(await self.binary(n0 * n1, "mask"), np.uint8).reshape(head.shape) > 0
+        return SliceFrame(head.stack, head.index, pixels.astype(np.float32), head.scanner_from_voxel, mask,
+                          head.acquisition_index)
 
     async def binary(self, size: int, what: str) -> bytes:
         frame = await self.receive()
@@ -345,35 +308,6 @@ class StreamConnection:
         if not (isinstance(msg, dict) and msg.get("type") == "slice"):
             return 0
         return max(0, 1 + (msg.get("mask") not in (None, False)) - self.binaries_read)
-
-
-def parse(text: str) -> dict:
-    """A client message: a JSON object with a string ``type`` (:class:`MalformedRequest` otherwise)."""
-    if len(text) > MAX_TEXT_BYTES:
-        raise MalformedRequest(f"message: {len(text)} characters is over the limit of {MAX_TEXT_BYTES}")
-    try:
-        msg = client_json(text)
-    except ValueError:
-        raise MalformedRequest("message: not JSON (or nested too deeply)") from None
-    if not isinstance(msg, dict) or not isinstance(msg.get("type"), str):
-        raise MalformedRequest("message: a JSON object with a string field type")
-    return msg
-
-
-def _text(msg: dict, name: str, kind: str, default: str | None = None) -> str:
-    value = msg.get(name, default)
-    if not isinstance(value, str) or not 1 <= len(value) <= 128:
-        raise InvalidParameter(f"{kind}.{name}: a string of 1 to 128 characters")
-    if has_unsafe_characters(value):      # echoed in every answer about it: nothing that could disguise one
-        raise InvalidParameter(f"{kind}.{name}: control, format or line-separator characters are not allowed")
-    return value
-
-
-def _integer(msg: dict, name: str, kind: str) -> int:
-    value = msg.get(name)
-    if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value < 100_000:
-        raise InvalidParameter(f"{kind}.{name}: an integer from 0 to 99999")
-    return value
 
 
 AUTH_TIMEOUT_S = 10.0

@@ -1,0 +1,114 @@
+"""Stream v1's client messages, read and checked before anything is decoded (``docs/stream.md``).
+
+A text frame is a JSON object with a string ``type`` (:func:`parse`); a ``slice`` message's fields
+say what its binary frames hold (:func:`slice_header`): a refused field names itself and no byte of
+pixels is read. The websocket's frame cap follows the largest slice allowed (:func:`largest_frame_bytes`).
+
+Example:
+    >>> head = slice_header({"type": "slice", "stack": "ax", "index": 3, "shape": [4, 5], "dtype": "uint16",
+    ...                      "scanner_from_voxel": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 3, 0], [0, 0, 0, 1]]}, 1024)
+    >>> head.stack, head.index, head.shape, head.with_mask
+    ('ax', 3, (4, 5), False)
+    >>> slice_header({"type": "slice", "stack": "ax", "index": 3, "shape": [4]}, 1024)
+    Traceback (most recent call last):
+    ...
+    service.core.errors.InvalidParameter: slice.shape: [n0, n1], two positive integers (a slice is 2D)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from service.core.client_json import client_json
+from service.core.errors import InvalidParameter, MalformedRequest
+from service.core.names import has_unsafe_characters
+
+DTYPES = {"uint8": "<u1", "int16": "<i2", "uint16": "<u2", "float32": "<f4"}
+MAX_TEXT_BYTES = 64 * 1024
+"""Longest JSON message accepted (a slice's header is a few hundred bytes)."""
+WS_MIN_FRAME_BYTES = 16 * 2**20
+"""The server's cap on one websocket frame is at least this (uvicorn's default) and at least the
+largest slice :func:`largest_frame_bytes` allows: a frame past it closes the connection (1009)."""
+def largest_frame_bytes(max_pixels: int) -> int:
+    """The websocket frame cap for slices of up to ``max_pixels`` pixels (the widest dtype; at least
+    :data:`WS_MIN_FRAME_BYTES`): a deployment that allows larger slices must not have them cut off
+    by the server's default cap.
+
+    Example:
+        >>> largest_frame_bytes(1024 * 1024) == WS_MIN_FRAME_BYTES, largest_frame_bytes(4096 * 4096)
+        (True, 67108864)
+    """
+    widest = max(np.dtype(d).itemsize for d in DTYPES.values())
+    return max(WS_MIN_FRAME_BYTES, int(max_pixels) * widest)
+
+
+@dataclass(frozen=True)
+class SliceHeader:
+    """A ``slice`` message's fields, checked: what its binary frames hold."""
+
+    stack: str
+    index: int
+    acquisition_index: int | None
+    shape: tuple[int, int]
+    dtype: str                                    # a key of :data:`DTYPES`
+    scanner_from_voxel: NDArray[np.float64]
+    with_mask: bool
+
+
+def slice_header(msg: dict, max_pixels: int) -> SliceHeader:
+    """The fields of the ``slice`` message ``msg``, each checked (:class:`InvalidParameter` naming it);
+    a slice of more than ``max_pixels`` pixels is refused before its frames are read."""
+    stack = text_field(msg, "stack", "slice")
+    index = integer_field(msg, "index", "slice")
+    acquisition = integer_field(msg, "acquisition_index", "slice") if msg.get("acquisition_index") is not None else None
+    shape = msg.get("shape")
+    if not (isinstance(shape, list) and len(shape) == 2 and all(type(n) is int and n > 0 for n in shape)):
+        raise InvalidParameter("slice.shape: [n0, n1], two positive integers (a slice is 2D)")
+    if shape[0] * shape[1] > max_pixels:
+        raise InvalidParameter(f"slice.shape: {shape[0]} x {shape[1]} pixels is over this server's limit of "
+                               f"{max_pixels} pixels per slice")
+    dtype = msg.get("dtype")
+    if dtype not in DTYPES:
+        raise InvalidParameter(f"slice.dtype: one of {', '.join(DTYPES)}")
+    affine = msg.get("scanner_from_voxel")
+    rows = affine if isinstance(affine, list) and len(affine) == 4 else []
+    numbers = all(isinstance(r, list) and len(r) == 4 and all(type(v) in (int, float) for v in r) for r in rows)
+    if not rows or not numbers:            # numpy would read "3" and true as numbers
+        raise InvalidParameter("slice.scanner_from_voxel: a 4 x 4 array of numbers")
+    with_mask = msg.get("mask", False)
+    if not isinstance(with_mask, bool):
+        raise InvalidParameter("slice.mask: true or false")
+    return SliceHeader(stack, index, acquisition, (shape[0], shape[1]), dtype, np.array(affine, dtype=np.float64),
+                       with_mask)
+
+
+def parse(text: str) -> dict:
+    """A client message: a JSON object with a string ``type`` (:class:`MalformedRequest` otherwise)."""
+    if len(text) > MAX_TEXT_BYTES:
+        raise MalformedRequest(f"message: {len(text)} characters is over the limit of {MAX_TEXT_BYTES}")
+    try:
+        msg = client_json(text)
+    except ValueError:
+        raise MalformedRequest("message: not JSON (or nested too deeply)") from None
+    if not isinstance(msg, dict) or not isinstance(msg.get("type"), str):
+        raise MalformedRequest("message: a JSON object with a string field type")
+    return msg
+
+
+def text_field(msg: dict, name: str, kind: str, default: str | None = None) -> str:
+    value = msg.get(name, default)
+    if not isinstance(value, str) or not 1 <= len(value) <= 128:
+        raise InvalidParameter(f"{kind}.{name}: a string of 1 to 128 characters")
+    if has_unsafe_characters(value):      # echoed in every answer about it: nothing that could disguise one
+        raise InvalidParameter(f"{kind}.{name}: control, format or line-separator characters are not allowed")
+    return value
+
+
+def integer_field(msg: dict, name: str, kind: str) -> int:
+    value = msg.get(name)
+    if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value < 100_000:
+        raise InvalidParameter(f"{kind}.{name}: an integer from 0 to 99999")
+    return value
