@@ -8,8 +8,9 @@
    it) against one call at a time on all of them, and the pose network's alike.
 2. The predict pipeline (no HTTP; BLAS threads limited as the server limits them; N4, 100 MC
    samples, every stage on) on the same stacks with the reference masks and without them: wall
-   times, their ratio, and the median E.D. between the two sets of poses. Stacks: the real scan of ``../shared/data/real_scans/mial_lausanne_t30`` where it
-   is, else generated whole-uterus stacks around a phantom brain.
+   times, their ratio, and the median E.D. between the two sets of poses. Stacks: the real scan of
+   ``../shared/data/real_scans/mial_lausanne_t30`` where it is, else generated whole-uterus stacks
+   around a phantom brain.
 
 3. With ``--baseline DIR``: :meth:`Localiser.localise` of the 320 x 320 x 22 stack by the localiser
    against another localiser's folder (a model about to ship against the shipped one), alternating

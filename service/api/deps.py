@@ -106,9 +106,9 @@ def origin_ok(settings: Settings, headers: dict[str, str]) -> bool:
     server's own pages at an address (an IP literal or ``localhost``, which a rebound DNS name
     cannot pose as) or from one of ``allowed_origins``; with keys, the key decides. A browser's
     request without an ``Origin`` (a same-origin ``GET``) says it came from a page by
-    ``Sec-Fetch-Site``: it is served where the server is reached at an address, so a page whose DNS
-    name was rebound to the server cannot read it either; an address typed by the user
-    (``Sec-Fetch-Site: none``) always is.
+    ``Sec-Fetch-Site``: it is served where the server is reached at an address or at a listed
+    origin, so a page whose DNS name was rebound to the server cannot read it either; an address
+    typed by the user (``Sec-Fetch-Site: none``) always is.
 
     Example:
         >>> s = Settings(allowed_origins="https://viewer.example")
@@ -118,16 +118,19 @@ def origin_ok(settings: Settings, headers: dict[str, str]) -> bool:
         >>> origin_ok(s, {"host": "evil.example:8000", "origin": "http://evil.example:8000"})
         False
         >>> [origin_ok(s, {"host": h, "sec-fetch-site": site}) for h, site in
-        ...  (("evil.example:8000", "same-origin"), ("localhost:8000", "same-origin"), ("evil.example:8000", "none"))]
-        [False, True, True]
+        ...  (("evil.example:8000", "same-origin"), ("localhost:8000", "same-origin"), ("evil.example:8000", "none"),
+        ...   ("viewer.example", "same-origin"))]
+        [False, True, True, True]
     """
     origin = headers.get("origin")
     if settings.key_set():
         return True
-    if origin is None:
-        return headers.get("sec-fetch-site", "none") == "none" or _at_address(headers.get("host", ""))
-    origin = plain_origin(origin)
     allowed = settings.origin_set()
+    if origin is None:
+        host = headers.get("host", "")
+        return (headers.get("sec-fetch-site", "none") == "none" or _at_address(host) or "*" in allowed
+                or any(plain_origin(f"{scheme}://{host}") in allowed for scheme in ("http", "https")))
+    origin = plain_origin(origin)
     if "*" in allowed or origin in allowed:
         return True
     try:
