@@ -57,16 +57,11 @@ def closing_delimiter(content_type: str) -> bytes | None:
     return b"--" + boundary + b"--" if boundary else None
 
 
-def first_header(scope: Scope, name: bytes) -> str:
-    """A request header's first value (``""`` if absent): the one Starlette's ``Request.headers[name]``,
-    and so the form parser, reads where a client sent it twice."""
-    return next((v.decode("latin-1") for k, v in scope.get("headers", []) if k.lower() == name), "")
-
-
 def first_values(scope: Scope) -> dict[str, str]:
     """A request's headers by lower-case name, each with its first value: the one the routes'
-    dependencies read (Starlette's ``Request.headers[name]``), so that the early refusals judge a
-    header sent twice (an API key, an ``Origin``) as the route would, not by another copy.
+    dependencies and the form parser read (Starlette's ``Request.headers[name]``), so that the early
+    refusals and the body's checks judge a header sent twice (an API key, an ``Origin``, the
+    ``Content-Type`` and its boundary) as the route would, not by another copy.
 
     Example:
         >>> first_values({"headers": [(b"X-API-Key", b"k-1"), (b"x-api-key", b"k-2")]})
@@ -168,7 +163,7 @@ class RequestContext:
         state: dict = {"code": 500, "started": False, "received": 0, "refusal": None, "replaced": False,
                        "body_done": False, "left": False}
         body_deadline = asyncio.get_running_loop().time() + self.timeout_s
-        delimiter = closing_delimiter(first_header(scope, b"content-type"))
+        delimiter = closing_delimiter(headers.get("content-type", ""))
         tail = b""
 
         async def emit(message: Message) -> None:
