@@ -249,7 +249,13 @@ def marked_brain(upload: StackUpload) -> tuple[float, NDArray[np.float64]]:
     if marked is None or not marked.any():
         return 0.0, np.zeros(3)
     linear = np.asarray(upload.mask.affine, np.float64)[:3, :3]
-    centres = np.argwhere(marked) @ linear.T                    # the offset cancels in an extent
+    # Along a row of the last axis a scanner coordinate is monotone: its first and last marked voxels
+    # bound the row's, so they alone are placed (not every voxel of a mask of millions).
+    i, j = np.nonzero(marked.any(axis=2))
+    first = np.argmax(marked, axis=2)[i, j]
+    last = marked.shape[2] - 1 - np.argmax(marked[:, :, ::-1], axis=2)[i, j]
+    ends = np.concatenate([np.stack([i, j, first], axis=1), np.stack([i, j, last], axis=1)])
+    centres = ends @ linear.T                                    # the offset cancels in an extent
     voxel_reach = np.abs(linear).sum(axis=1)                     # one voxel's extent along each scanner axis
     return marked_volume_mm3(upload), centres.max(axis=0) - centres.min(axis=0) + voxel_reach
 

@@ -184,6 +184,7 @@ def test_the_box_a_mask_marks_is_measured_along_the_scanners_axes_on_an_oblique_
     mask = np.zeros((30, 28, 12), np.uint8)
     mask[4:19, 6:25, 3:9] = 1
     mask[20:23, 2:5, 10] = 1                                           # a second, separate part
+    mask[10, 10, 11] = 1                                               # a row of the last axis with a gap
     upload = StackUpload("s.nii.gz", Volume(mask.astype(np.float32), affine), Volume(mask, affine), "m.nii.gz")
     volume, extent = marked_brain(upload)
     corners = (np.argwhere(mask)[:, None, :] + (np.array(list(np.ndindex(2, 2, 2))) - 0.5)[None]).reshape(-1, 3)
