@@ -116,7 +116,6 @@ class StreamSession:
         self.reopened: dict[str, int] = {}      # a reopened stack's earlier end, still held: its bytes
         self.compute_ms: dict[str, float] = {"slices": 0.0, "firm_up": 0.0, "end_stack": 0.0}
         self.held_bytes = 0                     # the received slices' pixels as float32, and what is kept of them
-        self.reserved: dict[str, float] = {}    # each open stack's reserve for its end (:data:`END_SHARE`)
         self._lock = threading.Lock()
 
     # -- 1. a slice arrives ------------------------------------------------------------------------------
@@ -145,14 +144,13 @@ class StreamSession:
                                        "end it and start another (its stacks may go on)")
             size = np.asarray(frame.pixels).size * 4
             others = sum(v for k, v in self.reserved.items() if k != frame.stack)
-            if self.held_bytes + others + size + self._end_reserve(frame.stack, frame.index, size) > self.limits.max_bytes:
+            if self.held_bytes + others + size + self._end_reserve(frame.stack, frame) > self.limits.max_bytes:
                 raise SessionFull(f"slice: a session keeps at most {self.limits.max_bytes / 2**20:.3g} MB (its "
                                   "slices, their preparation and their stacks' ends); end it and start another")
             stack = self.stacks.get(frame.stack) or StreamedStack(frame.stack)
             stack.add(frame)
             self.stacks[frame.stack] = stack
             self.held_bytes += size
-            self._reserve(frame.stack)
             around = neighbours(stack, frame.index)
             received = {k: st.brain_map for k, st in self.slices.get(frame.stack, {}).items() if st.brain_map is not None}
             step_mm = stack.step_mm()
@@ -172,7 +170,6 @@ class StreamSession:
                 self.held_bytes -= size
                 if not len(stack):
                     del self.stacks[frame.stack]
-                self._reserve(frame.stack)
             raise
         with self._lock:
             self.slices.setdefault(frame.stack, {})[frame.index] = state
@@ -255,29 +252,28 @@ class StreamSession:
         frame = self.stacks[stack].frames[index]
         self.stacks[stack].remove(index)
         self.held_bytes -= np.asarray(frame.pixels).size * 4
-        self._reserve(stack)
         state = self.slices.get(stack, {}).pop(index, None)
         if state is not None:
             self.held_bytes -= array_bytes(state.prepared, state.estimate, [state.brain_map], besides=(frame.pixels,))
 
-    def _end_reserve(self, stack: str, index: int, size: int) -> float:
-        """What ``stack`` reserves for its end once it holds a slice ``index`` of ``size`` pixel bytes:
-        :data:`END_SHARE` of them for each slice up to its largest index, or nothing where its end is
-        held already (ended, or reopened by a slice it lacked; ending again keeps as much)."""
+    def _end_reserve(self, stack: str, new: SliceFrame | None = None) -> float:
+        """What ``stack`` reserves for its end (with the slice ``new`` too): :data:`END_SHARE` of a
+        slice's pixel bytes for each slice up to its largest index, or nothing where its end is held
+        already (ended, or reopened by a slice it lacked; ending again keeps as much)."""
         if stack in self.ended or stack in self.reopened:
             return 0.0
         frames = self.stacks[stack].frames if stack in self.stacks else {}
-        return END_SHARE * size * (max([index, *frames]) + 1)
+        largest = max(max(frames, default=-1), -1 if new is None else new.index)
+        if largest < 0:
+            return 0.0
+        size = np.asarray((new or next(iter(frames.values()))).pixels).size * 4
+        return END_SHARE * size * (largest + 1)
 
-    def _reserve(self, stack: str) -> None:
-        """Set ``stack``'s reserve for its end from the slices it holds (:meth:`_end_reserve`; under the lock)."""
-        frames = self.stacks[stack].frames if stack in self.stacks else {}
-        reserve = self._end_reserve(stack, max(frames), np.asarray(next(iter(frames.values())).pixels).size * 4) \
-            if frames else 0.0
-        if reserve:
-            self.reserved[stack] = reserve
-        else:
-            self.reserved.pop(stack, None)
+    @property
+    def reserved(self) -> dict[str, float]:
+        """Each open stack's reserve for its end (:meth:`_end_reserve`), worked out from its slices
+        whenever asked: no count to keep in step as slices come, fail, are dropped or end."""
+        return {name: r for name in self.stacks if (r := self._end_reserve(name))}
 
     def _reopen(self, stack: str) -> None:
         """A slice the ended ``stack`` lacked has come: the stack is open again, its final poses
@@ -324,7 +320,6 @@ class StreamSession:
         with self._lock:
             self.ended[stack] = ended[stack]
             self.held_bytes += array_bytes(ended[stack]) - self.reopened.pop(stack, 0)   # the stack as prepared whole
-            self.reserved.pop(stack, None)                                               # in place of its reserve
             for state in self.slices.get(stack, {}).values():     # its slices' maps serve no later slice
                 self.held_bytes -= array_bytes([state.brain_map])
                 state.brain_map = None
