@@ -116,20 +116,37 @@ def _count_meta(fp: BinaryIO, start: int, filename: str, implicit: bool) -> None
         head = fp.read(8)
         if len(head) < 8 or struct.unpack("<H", head[:2])[0] != 2:
             return
-        if implicit or _switches_to_implicit(head[4:6]):
-            length = struct.unpack("<I", head[4:])[0]
-        elif head[4:6] in LONG_VRS:
-            if len(long := fp.read(4)) < 4:
-                return
-            length = struct.unpack("<I", long)[0]
-        else:
-            length = struct.unpack("<H", head[6:])[0]
+        if (read := _vr_and_length(fp, head, implicit, "<")) is None:
+            return
+        _, length, _ = read
         if length == UNDEFINED:
             group, element = struct.unpack("<HH", head[:4])
             raise UnsupportedFile(f"{filename}: a DICOM file-meta element ({group:04X},{element:04X}) of undefined "
                                   "length (the file-meta group's elements have defined lengths)")
         fp.seek(length, 1)
     raise PayloadTooLarge(f"{filename}: a DICOM file-meta group of more than {MAX_META_ELEMENTS} elements")
+
+
+def _vr_and_length(fp: BinaryIO, head: bytes, implicit: bool, e: str) -> tuple[bytes | None, int, int] | None:
+    """An element's VR (None: read as implicit VR), value length and header bytes, from its first 8
+    bytes ``head`` (and the 4 that follow a long VR's, read from ``fp``), as pydicom reads them; None
+    where the file ends first.
+
+    Example (a short VR, and VR bytes that are no two capitals: implicit VR, a 4-byte length):
+        >>> import io
+        >>> _vr_and_length(io.BytesIO(), struct.pack("<HH2sH", 8, 0x16, b"UI", 20), False, "<")
+        (b'UI', 20, 8)
+        >>> _vr_and_length(io.BytesIO(), struct.pack("<HHI", 8, 0x16, 20), False, "<")
+        (None, 20, 8)
+    """
+    if implicit or _switches_to_implicit(head[4:6]):
+        return None, struct.unpack(e + "I", head[4:])[0], 8
+    vr = head[4:6]
+    if vr in LONG_VRS:
+        if len(long := fp.read(4)) < 4:
+            return None
+        return vr, struct.unpack(e + "I", long)[0], 12
+    return vr, struct.unpack(e + "H", head[6:])[0], 8
 
 
 def _switches_to_implicit(vr: bytes) -> bool:
@@ -189,15 +206,9 @@ def _walk(fp: BinaryIO, start: int, size: int, filename: str, implicit: bool, e:
         if top.kind != "dataset":
             return
         tag = group << 16 | element
-        vr, length, header = None, struct.unpack(e + "I", head[4:])[0], 8
-        if not top.implicit and not _switches_to_implicit(head[4:6]):      # as pydicom reads it
-            vr = head[4:6]
-            if vr in LONG_VRS:
-                if len(long := fp.read(4)) < 4:
-                    return                               # cut short: pydicom's reading says so
-                length, header = struct.unpack(e + "I", long)[0], 12
-            else:
-                length = struct.unpack(e + "H", head[6:])[0]
+        if (read := _vr_and_length(fp, head, top.implicit, e)) is None:
+            return                                       # cut short: pydicom's reading says so
+        vr, length, header = read
         if tag == PIXEL_DATA and len(stack) == 1 and at > MAX_HEADER_BYTES:
             raise PayloadTooLarge(f"{filename}: a DICOM header of more than {MAX_HEADER_BYTES >> 20} MB before its "
                                   "pixel data")
