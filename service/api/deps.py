@@ -16,7 +16,7 @@ from collections import Counter
 
 from fastapi import Depends, Header, Request
 from fastapi.dependencies.models import Dependant
-from starlette.datastructures import State
+from starlette.datastructures import Headers, State
 
 from service.api.metrics import Metrics
 from service.core.cancellation import cancelled_by
@@ -214,8 +214,27 @@ def idempotency_digest(key: str | None, owner: str = "") -> str | None:
     if not 8 <= len(key) <= 200 or not all("!" <= c <= "~" for c in key):
         raise InvalidParameter(f"{IDEMPOTENCY_HEADER}: 8 to 200 printable ASCII characters, the same for every "
                                "retry of one submission")
-    scoped = key if not owner else hashlib.sha256(owner.encode("utf-8", "replace")).hexdigest() + "\0" + key
+    scoped = key if not owner else key_owner(owner) + "\0" + key
     return hashlib.sha256(scoped.encode()).hexdigest()
+
+
+def key_owner(api_key: str) -> str:
+    """The digest that stands for the client presenting ``api_key`` wherever the server keeps who made
+    something (a job's owner, the scope of its idempotency key): no key is stored.
+
+    Example:
+        >>> key_owner("k-1")[:16], key_owner("k-1") == key_owner("k-2")
+        ('7c35c5a1785d2070', False)
+    """
+    return hashlib.sha256(api_key.encode("utf-8", "replace")).hexdigest()
+
+
+def job_owner(settings: Settings, headers: Headers) -> str | None:
+    """Who a request acts for where jobs are concerned: the digest of its API key (:func:`key_owner`)
+    on a server with keys, None on one without (every client is then the same client)."""
+    if not settings.key_set():
+        return None
+    return key_owner(presented_key(headers.get("authorization"), headers.get("x-api-key")))
 
 
 def early_rejection(state: State, method: str, path: str, headers: dict[str, str]) -> ServiceError | None:

@@ -17,7 +17,7 @@ from starlette.types import Receive, Scope, Send
 from pydantic import Field
 
 from service.api.deps import (IDEMPOTENCY_HEADER, ApiKey, LocalisersDep, RegistryDep, SettingsDep, idempotency_digest,
-                              localiser_for, presented_key, processing, queue_full, requested_model)
+                              job_owner, localiser_for, presented_key, processing, queue_full, requested_model)
 from service.api.idempotency import hold_submission, made_by_key, submission_digest, unless_abandoned
 from service.api.schemas import (UPLOAD_ERRORS, JobCreated, JobStatus, RefinedPoses, download, job_poses,
                                  problem_responses)
@@ -67,9 +67,14 @@ def _status(job: Job, workers: int | None = None) -> dict:
 
 
 async def _job(request: Request, job_id: str) -> Job:
-    """The job ``job_id`` (404 when there is none), read off the event loop: a store that stalls (a
-    Redis that does not answer) holds this request, not every other of the replica's."""
+    """The job ``job_id`` (404 when there is none, or when another API key made it), read off the event
+    loop: a store that stalls (a Redis that does not answer) holds this request, not every other of
+    the replica's. A job belongs to the key that submitted it: another client learns not even that
+    it exists."""
     job = await to_thread.run_sync(_store(request).get, job_id)
+    if job is not None and "owner" in job.params and job.params["owner"] != job_owner(request.app.state.settings,
+                                                                                       request.headers):
+        job = None                      # another client's (a job made by an earlier release has no owner: anyone's)
     if job is None:
         shown = job_id if len(job_id) <= 64 else f"{job_id[:32]}... ({len(job_id)} characters)"
         raise NotFound(f"job_id: no job {shown!r}")
@@ -262,7 +267,8 @@ async def submit(
             "resolution_mm": resolution_mm, "svr_iterations": svr_iterations, "mc_samples": form.mc_samples,
             "variance_threshold": form.variance_threshold, "max_expected_error_mm": form.max_expected_error_mm,
             "model": model, "slice_order": form.slice_order, "atlas_frame": atlas_frame,
-            "masks_hold_csf": form.masks_hold_csf, "slice_thickness_mm": thickness})
+            "masks_hold_csf": form.masks_hold_csf, "slice_thickness_mm": thickness,
+            "owner": job_owner(settings, request.headers)})
 
 
 @router.get("/{job_id}", summary="Job status", response_model=JobStatus, responses=problem_responses(401, 404))

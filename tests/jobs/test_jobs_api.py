@@ -809,3 +809,22 @@ def test_an_idempotency_key_is_each_clients_own(case: dict) -> None:
         other = submit(client, case, headers={"Idempotency-Key": key, "X-API-Key": "k-lab-two"}, svr_iterations="1")
     assert first.status_code == again.status_code == other.status_code == 202, other.text
     assert again.json()["job_id"] == first.json()["job_id"] != other.json()["job_id"]
+
+
+def test_a_job_is_its_clients_alone(case: dict) -> None:
+    """On a server with API keys a job answers only the key that submitted it: another key gets the
+    404 of an unknown job for its status, its results and its deletion, and the job stays whole."""
+    with make_client(ModelRegistry({"default": OracleEstimator()}), api_keys="k-lab-one,k-lab-two") as client:
+        made = submit(client, case, headers={"Authorization": "Bearer k-lab-one"}, svr_iterations="0")
+        assert made.status_code == 202, made.text
+        url = made.json()["status_url"]
+        one, two = {"Authorization": "Bearer k-lab-one"}, {"X-API-Key": "k-lab-two"}
+        for path in ("", "/volume", "/poses", "/transforms", "/preview.png"):
+            r = client.get(url + path, headers=two)
+            assert r.status_code == 404 and r.headers["content-type"] == "application/problem+json", (path, r.text)
+            assert r.json()["detail"] == f"job_id: no job {made.json()['job_id']!r}"     # as for a job never made
+        assert client.delete(url, headers=two).status_code == 404
+        assert client.get(url, headers=one).json()["job_id"] == made.json()["job_id"]
+        assert client.delete(url, headers=one).status_code == 204
+        older = client.app.state.job_store.create({"resolution_mm": 0.8})      # made before jobs had owners
+        assert client.get(f"/v1/reconstructions/{older.id}", headers=two).json()["status"] == "queued"
