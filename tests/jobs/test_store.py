@@ -223,7 +223,7 @@ def test_a_deleted_or_expired_job_leaves_no_trace_in_the_database_files(store: J
         reader.execute("SELECT COUNT(*) FROM jobs").fetchone()       # a read under way: the deletion does not wait
         started = time.perf_counter()
         store.delete(store.create({}).id)
-        assert time.perf_counter() - started < 1.0
+        assert time.perf_counter() - started < 10          # not the 30 s a write waits for a lock
         reader.close()                                                 # the next deletion's checkpoint does it
         if end == "delete":
             store.delete(job.id)
