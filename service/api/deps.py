@@ -361,13 +361,20 @@ async def processing(request: Request) -> AsyncIterator[None]:
 
 
 def queue_full(state: State) -> QueueFull | None:
-    """429 when ``max_queued_jobs`` jobs are waiting already."""
+    """429 when ``max_queued_jobs`` jobs are waiting already: the early answer, before an upload is
+    read or hashed. The store checks again as it adds the job (:meth:`~service.jobs.store.JobStore.create_once`),
+    so that submissions arriving together never queue more."""
     store = getattr(state, "job_store", None)
     settings: Settings = state.settings
     if store is not None and len(store.queued()) >= settings.max_queued_jobs:
-        return QueueFull(f"{settings.max_queued_jobs} reconstruction jobs are queued already; retry later",
-                         settings.retry_after_s)
+        return full_queue(settings)
     return None
+
+
+def full_queue(settings: Settings) -> QueueFull:
+    """The 429 of a queue that holds ``max_queued_jobs``, with the server's ``Retry-After``."""
+    return QueueFull(f"{settings.max_queued_jobs} reconstruction jobs are queued already; retry later",
+                     settings.retry_after_s)
 
 
 ApiKey = Depends(require_api_key)

@@ -16,8 +16,9 @@ from fastapi.responses import FileResponse
 from starlette.types import Receive, Scope, Send
 from pydantic import Field
 
-from service.api.deps import (IDEMPOTENCY_HEADER, ApiKey, LocalisersDep, RegistryDep, SettingsDep, idempotency_digest,
-                              job_owner, localiser_for, presented_key, processing, queue_full, requested_model)
+from service.api.deps import (IDEMPOTENCY_HEADER, ApiKey, LocalisersDep, RegistryDep, SettingsDep, full_queue,
+                              idempotency_digest, job_owner, localiser_for, presented_key, processing, queue_full,
+                              requested_model)
 from service.api.idempotency import hold_submission, made_by_key, submission_digest, unless_abandoned
 from service.api.schemas import (UPLOAD_ERRORS, JobCreated, JobStatus, RefinedPoses, download, job_poses,
                                  problem_responses)
@@ -27,7 +28,8 @@ from service.pipeline.predict import stack_orders
 from service.pipeline.prepare import (StackUpload, check_distinct_stacks, check_mask_grid, check_mask_volume,
                                       marked_brain)
 from service.core.client_json import client_json
-from service.core.errors import Conflict, InvalidParameter, NotFound, PayloadTooLarge, Saturated, UnusableImage
+from service.core.errors import (Conflict, InvalidParameter, NotFound, PayloadTooLarge, QueueFull, Saturated,
+                                 UnusableImage)
 from service.core.settings import Settings
 from service.io.acquisition_geometry import MAX_VOXEL_MM, MIN_VOXEL_MM
 from service.jobs.store import Job, JobStore
@@ -186,7 +188,10 @@ async def _submit(request: Request, response: Response, settings: Settings, form
         raise full                                   # before the files are hashed: a busy server answers at once
     if key is not None:
         params = {**params, "idempotency_key": key, "request_digest": await submission_digest(form, poses_text, params)}
-    job, made = await to_thread.run_sync(store.create_once, params)
+    try:
+        job, made = await to_thread.run_sync(store.create_once, params, settings.max_queued_jobs)
+    except QueueFull:                                # others filled the queue since the check above
+        raise full_queue(settings) from None
     if not made:                                     # a submission with the same key came in meanwhile
         return made_by_key(job, response, settings.retry_after_s, params["request_digest"])
     holding = asyncio.create_task(hold_submission(store, job.id))

@@ -127,25 +127,40 @@ class RedisJobStore(JobStore):
         return self.folders_take_jobs()
 
     @_answering
-    def create(self, params: dict, map_key: bool = True) -> Job:
-        """A new ``queued`` job; with ``map_key``, its idempotency key (if any) names it from now on."""
-        job_id, now = self._new_id(), repr(time.time())
+    def create(self, params: dict, map_key: bool = True, max_queued: int | None = None) -> Job:
+        """A new ``queued`` job; with ``map_key``, its idempotency key (if any) names it from now on;
+        :class:`~service.core.errors.QueueFull` where ``max_queued`` jobs are queued already (counted
+        and added in one transaction: Redis runs it only if no job entered or left the queue
+        meanwhile, else it is tried again)."""
+        job_id, queued = self._new_id(), f"{self.prefix}state:queued"
         with self.redis.pipeline(transaction=True) as pipe:
-            pipe.hset(self._key(job_id), mapping={"id": job_id, "status": "queued", "stage": "queued", "progress": "0",
-                                                  "params": json.dumps(params), "attempts": "0", "created_at": now,
-                                                  "updated_at": now})
-            pipe.zadd(f"{self.prefix}state:queued", {job_id: float(now)})
-            if map_key and params.get("idempotency_key"):
-                pipe.set(self._idempotency(params["idempotency_key"]), job_id)
-            pipe.execute()
+            while True:
+                try:
+                    if max_queued is not None:
+                        pipe.watch(queued)
+                        if pipe.zcard(queued) >= max_queued:
+                            pipe.reset()
+                            raise self._queue_full(job_id, max_queued)
+                        pipe.multi()
+                    now = repr(time.time())
+                    pipe.hset(self._key(job_id), mapping={"id": job_id, "status": "queued", "stage": "queued",
+                                                          "progress": "0", "params": json.dumps(params),
+                                                          "attempts": "0", "created_at": now, "updated_at": now})
+                    pipe.zadd(queued, {job_id: float(now)})
+                    if map_key and params.get("idempotency_key"):
+                        pipe.set(self._idempotency(params["idempotency_key"]), job_id)
+                    pipe.execute()
+                    break
+                except redis.WatchError:
+                    continue
         return self.get(job_id)  # type: ignore[return-value]
 
     @_answering
-    def create_once(self, params: dict) -> tuple[Job, bool]:
+    def create_once(self, params: dict, max_queued: int | None = None) -> tuple[Job, bool]:
         key = params.get("idempotency_key")
         if not key:
-            return self.create(params), True
-        made = self.create(params, map_key=False)
+            return self.create(params, max_queued=max_queued), True
+        made = self.create(params, map_key=False, max_queued=max_queued)
         if self.redis.set(self._idempotency(key), made.id, nx=True):      # the key is this job's
             return made, True
         earlier = self.job_for_key(key)
@@ -156,6 +171,7 @@ class RedisJobStore(JobStore):
             pipe.zrem(f"{self.prefix}state:queued", made.id)
             pipe.delete(self._key(made.id))
             pipe.execute()
+        shutil.rmtree(self.directory(made.id), ignore_errors=True)
         return earlier, False
 
     def _idempotency(self, key: str) -> str:

@@ -105,21 +105,27 @@ class SqliteJobStore(JobStore):
         self._write(INSERT_JOB, (job_id, json.dumps(params), now, now))
         return self.get(job_id)  # type: ignore[return-value]
 
-    def create_once(self, params: dict) -> tuple[Job, bool]:
+    def create_once(self, params: dict, max_queued: int | None = None) -> tuple[Job, bool]:
         key = params.get("idempotency_key")
-        if not key:
+        if not key and max_queued is None:
             return self.create(params), True
         job_id, now = self._new_id(), time.time()
         with self._db() as db:
-            db.execute("BEGIN IMMEDIATE")             # the check and the insert, one writer at a time
+            db.execute("BEGIN IMMEDIATE")             # the checks and the insert, one writer at a time
             try:
-                row = db.execute(KEY_QUERY, (key,)).fetchone()
-                if row is None:
+                row = db.execute(KEY_QUERY, (key,)).fetchone() if key else None
+                full = row is None and max_queued is not None and db.execute(
+                    "SELECT COUNT(*) FROM jobs WHERE status = 'queued'").fetchone()[0] >= max_queued
+                if row is None and not full:
                     db.execute(INSERT_JOB, (job_id, json.dumps(params), now, now))
                 db.execute("COMMIT")
             except BaseException:
                 db.execute("ROLLBACK")
                 raise
+        if full:
+            raise self._queue_full(job_id, max_queued)  # type: ignore[arg-type]
+        if row is not None:                               # another submission's job: the id drawn for this one goes
+            shutil.rmtree(self.directory(job_id), ignore_errors=True)
         return (self.get(job_id), True) if row is None else (self.get(row["id"]), False)  # type: ignore[return-value]
 
     def job_for_key(self, key: str) -> Job | None:

@@ -18,6 +18,7 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
 
+from service.core.errors import QueueFull
 from service.jobs.runner import INTERRUPTED
 
 STATES = ("queued", "running", "succeeded", "failed", "cancelled")
@@ -157,10 +158,17 @@ class JobStore(ABC):
         """A new ``queued`` job with an empty folder."""
 
     @abstractmethod
-    def create_once(self, params: dict) -> tuple[Job, bool]:
+    def create_once(self, params: dict, max_queued: int | None = None) -> tuple[Job, bool]:
         """:meth:`create` and True; but where a job of ``params["idempotency_key"]`` exists already,
-        that job and False. Checked and created in one step: two submissions with one key that arrive
-        at the same moment make one job."""
+        that job and False; :class:`~service.core.errors.QueueFull` where ``max_queued`` jobs are
+        queued already. Checked and created in one step: two submissions with one key that arrive at
+        the same moment make one job, and submissions that arrive together (on any replica) never
+        queue more than ``max_queued``."""
+
+    def _queue_full(self, job_id: str, max_queued: int) -> QueueFull:
+        """The refusal of a job the full queue did not take (its folder, made for it, removed)."""
+        shutil.rmtree(self.directory(job_id), ignore_errors=True)
+        return QueueFull(f"{max_queued} reconstruction jobs are queued already; retry later")
 
     @abstractmethod
     def get(self, job_id: str) -> Job | None:

@@ -68,6 +68,34 @@ def test_submissions_with_one_key_at_the_same_moment_make_one_job(store: JobStor
     assert sum(made for _, made in answers) == 1 and len({job_id for job_id, _ in answers}) == 1
     assert store.queued() == [answers[0][0]] and store.job_for_key("k" * 64).id == answers[0][0]
     assert store.create_once({})[1] and store.create_once({})[1] and len(store.queued()) == 3
+    folders = sorted(p.name for p in (store.data_dir / "jobs").iterdir())
+    assert folders == sorted(store.queued())                  # the ids drawn for the seven retries left no folder
+
+
+@both
+def test_submissions_at_the_same_moment_never_queue_more_than_the_limit(store: JobStore) -> None:
+    """Twelve submissions at once against a limit of five queued jobs (two queued already): three are
+    made, nine refused with the queue's 429, and only the made jobs have folders."""
+    from concurrent.futures import ThreadPoolExecutor
+    from threading import Barrier
+
+    from service.core.errors import QueueFull
+
+    store.create({}), store.create({})
+    start = Barrier(12)
+
+    def submit(k: int) -> str | None:
+        start.wait()
+        try:
+            return store.create_once({"resolution_mm": 0.8} if k % 2 else {"idempotency_key": f"k-{k:016d}"}, 5)[0].id
+        except QueueFull as refused:
+            assert refused.status == 429
+            return None
+
+    with ThreadPoolExecutor(12) as pool:
+        made = [j for j in pool.map(submit, range(12)) if j is not None]
+    assert len(made) == 3 and len(store.queued()) == 5
+    assert sorted(p.name for p in (store.data_dir / "jobs").iterdir()) == sorted(store.queued())
 
 
 @both
