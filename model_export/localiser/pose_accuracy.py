@@ -23,12 +23,14 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
 
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
 from model_export.localiser.scenes import HeadModel, Scene, synth_scene
+from model_export.localiser.surroundings import random_rotation
 from service.pipeline.documents import stack_objects
 from service.geometry import anchors, twin
 from service.io.volume import Volume
@@ -47,6 +49,52 @@ def validation_scenes(count: int, seed: int = 2_000_000, root=DEFAULT_ATLAS_ROOT
     heads = [HeadModel.from_arrays(v.image, v.mask, v.affine) for v in load_volumes(split(root)[1], root)]
     return [synth_scene(heads[i % len(heads)], np.random.default_rng(seed + i), "heldout", random_contrast=False,
                         rigid=True) for i in range(count)]
+
+
+def validation_cases(count: int, seed: int = 2_000_000, stacks: int = 1, root=DEFAULT_ATLAS_ROOT,  # noqa: ANN001
+                     motion: str | None = None) -> list[list[Scene]]:
+    """``count`` held-out requests of ``stacks`` whole-uterus stacks each: one stack, as
+    :func:`validation_scenes` draws it, or several of one head (the validation volumes in turn),
+    each drawn in its own orientation and surroundings with the first's contrast (a scan's) and
+    placed in one scanner frame (:func:`in_one_frame`), as a scan's stacks of one fetus are sent
+    together."""
+    if stacks == 1 and motion is None:
+        return [[scene] for scene in validation_scenes(count, seed, root)]
+    heads = [HeadModel.from_arrays(v.image, v.mask, v.affine) for v in load_volumes(split(root)[1], root)]
+    cases = []
+    for i in range(count):
+        rngs = [np.random.default_rng(seed + 1000 * i + k) for k in range(stacks + 1)]
+        scenes = [synth_scene(heads[i % len(heads)], rngs[0], "heldout", random_contrast=False, rigid=True,
+                              motion=motion)]
+        scenes += [synth_scene(heads[i % len(heads)], rng, "heldout", random_contrast=False, rigid=True, motion=motion,
+                               look=scenes[0].look) for rng in rngs[1:stacks]]
+        cases.append(in_one_frame(scenes, rngs[stacks]))
+    return cases
+
+
+def in_one_frame(scenes: list[Scene], rng: np.random.Generator) -> list[Scene]:
+    """The stacks of one head given scanner affines that place the head alike in each: every stack's
+    voxels map to the scanner through one drawn atlas -> scanner transform and its middle slice's
+    true pose (the other slices' poses then differ from it by the head's motion, as a moving
+    fetus's do). The slices' true atlas poses, the images and the masks stay as drawn.
+
+    Example (two stacks' middle slices map through one frame):
+        >>> from model_export.localiser.scenes import Scene
+        >>> from service.io.volume import Volume
+        >>> poses = [np.repeat(np.diag([1.0, 1.0, 3.0, 1.0])[None], 3, 0), np.repeat(np.eye(4)[None], 3, 0)]
+        >>> out = in_one_frame([Scene(Volume(np.zeros((2, 2, 3)), np.eye(4)), None, None, p) for p in poses],
+        ...                    np.random.default_rng(0))
+        >>> bool(np.allclose(out[0].volume.affine @ np.diag([1, 1, 1 / 3, 1]), out[1].volume.affine))
+        True
+    """
+    scanner_from_atlas = np.eye(4)
+    scanner_from_atlas[:3, :3] = random_rotation(rng)
+    scanner_from_atlas[:3, 3] = rng.uniform(-60.0, 60.0, 3)
+    out = []
+    for scene in scenes:
+        middle = scene.atlas_from_voxel[len(scene.atlas_from_voxel) // 2]
+        out.append(replace(scene, volume=replace(scene.volume, affine=scanner_from_atlas @ middle)))
+    return out
 
 
 def _upload(scene: Scene, variant: str) -> StackUpload:
@@ -68,45 +116,54 @@ def slice_poses(answer: dict, prepared: PreparedStack) -> tuple[NDArray[np.float
     return poses, np.array([s["reason"] != "empty" for s in answer["slices"]])
 
 
-def score_scene(scene: Scene, variant: str, estimator, localiser: Localiser | None = None,  # noqa: ANN001
+def score_scene(scene: Scene | list[Scene], variant: str, estimator, localiser: Localiser | None = None,  # noqa: ANN001
                 mc_samples: int = 100) -> dict[str, NDArray]:
-    """Per scored slice of one scene and mask variant: E.D. and twin-min E.D. (NaN where ``empty``).
-    An estimator with a ``truth`` attribute (a stand-in for the network) is told each slice's true
-    network-frame pose first, as :func:`model_export.evaluate_acquisitions.run_acquisition` does."""
+    """Per scored slice of one request (a scene, or a case's stacks sent together) and mask variant:
+    E.D. and twin-min E.D. (NaN where ``empty``), and the answer's poses (``poses``, slice -> atlas
+    mm; NaN where ``empty``), the stacks' scored slices one after the other. An estimator with a
+    ``truth`` attribute (a stand-in for the network) is told each slice's true network-frame pose
+    first, as :func:`model_export.evaluate_acquisitions.run_acquisition` does."""
+    scenes = scene if isinstance(scene, list) else [scene]
     info = estimator.info
-    prepared = prepare_stacks([_upload(scene, variant)], info, True, workers=1, localiser=localiser)
+    prepared = prepare_stacks([_upload(s, variant) for s in scenes], info, True, workers=1, localiser=localiser)
     if hasattr(estimator, "truth"):
-        estimator.truth = prepared[0].in_network_frame(scene.atlas_from_voxel)
+        estimator.truth = np.concatenate([p.in_network_frame(s.atlas_from_voxel) for p, s in zip(prepared, scenes)])
     predictions, _ = predict(prepared, estimator, mc_samples, info.variance_threshold)
-    answer = stack_objects(predictions)[0]
-    poses, posed = slice_poses(answer, prepared[0])
-    truth = scene.atlas_from_voxel @ np.linalg.inv(prepared[0].slices.slice_from_voxel)
-    scored = np.flatnonzero(scene.brain.sum(axis=(0, 1)) >= MIN_BRAIN_PIXELS)
-    keep = scored[posed[scored]]
     plane = float(getattr(info, "symmetry_plane_x_mm", twin.DEFAULT_PLANE_X_MM))
-    ed, ed_min = np.full(len(scored), np.nan), np.full(len(scored), np.nan)
-    ed[posed[scored]] = anchors.ed(poses[keep], truth[keep])
-    ed_min[posed[scored]] = twin.twin_min_ed(poses[keep], truth[keep], plane)
-    expected = np.array([np.nan if a["expected_error_mm"] is None else a["expected_error_mm"]
-                         for a in answer["slices"]], np.float64)[scored]
-    accepted = np.array([bool(a["accepted"]) for a in answer["slices"]])[scored]
-    return {"ed": ed, "ed_min": ed_min, "expected": expected, "accepted": accepted}
+    rows: dict[str, list] = {"ed": [], "ed_min": [], "expected": [], "accepted": [], "poses": []}
+    for one, answer, stack in zip(scenes, stack_objects(predictions), prepared):
+        poses, posed = slice_poses(answer, stack)
+        truth = one.atlas_from_voxel @ np.linalg.inv(stack.slices.slice_from_voxel)
+        scored = np.flatnonzero(one.brain.sum(axis=(0, 1)) >= MIN_BRAIN_PIXELS)
+        keep = scored[posed[scored]]
+        ed, ed_min = np.full(len(scored), np.nan), np.full(len(scored), np.nan)
+        ed[posed[scored]] = anchors.ed(poses[keep], truth[keep])
+        ed_min[posed[scored]] = twin.twin_min_ed(poses[keep], truth[keep], plane)
+        shown = np.where(posed[:, None, None], poses, np.nan)[scored]
+        expected = np.array([np.nan if a["expected_error_mm"] is None else a["expected_error_mm"]
+                             for a in answer["slices"]], np.float64)[scored]
+        accepted = np.array([bool(a["accepted"]) for a in answer["slices"]])[scored]
+        for key, value in zip(rows, (ed, ed_min, expected, accepted, shown)):
+            rows[key].append(value)
+    return {key: np.concatenate(value) for key, value in rows.items()}
 
 
-def pose_accuracy(scenes: list[Scene], estimator, localiser: Localiser,  # noqa: ANN001
+def pose_accuracy(scenes: list[Scene] | list[list[Scene]], estimator, localiser: Localiser,  # noqa: ANN001
                   variants: tuple[str, ...] = VARIANTS, mc_samples: int = 100) -> dict[str, dict]:
-    """Per mask variant over all ``scenes``: median and mean E.D. and twin-min E.D. of the posed brain
-    slices, their count, the share of brain slices left ``empty``, RMS E.D. over RMS
-    ``expected_error_mm`` (1: the expected errors are honest), and the slices accepted, of which
-    how many lie over 10 mm from the truth."""
-    keys = ("ed", "ed_min", "expected", "accepted")
+    """Per mask variant over all ``scenes`` (each a request: one scene, or a case's stacks): median and
+    mean E.D. and twin-min E.D. of the posed brain slices, their count, the share of brain slices
+    left ``empty``, RMS E.D. over RMS ``expected_error_mm`` (1: the expected errors are honest), and
+    the slices accepted, of which how many lie over 10 mm from the truth. ``gap_to_<variant>``: the
+    median E.D. between the ``localiser`` answer's slices and that variant's where both posed them
+    (issue 27's measure between poses without and with masks, here with a truth to read it by)."""
+    keys = ("ed", "ed_min", "expected", "accepted", "poses")
     rows: dict[str, dict[str, list]] = {v: {key: [] for key in keys} for v in variants}
     for scene in scenes:
         for variant in variants:
             got = score_scene(scene, variant, estimator, localiser if variant == "localiser" else None, mc_samples)
             for key in keys:
                 rows[variant][key].append(got[key])
-    out = {}
+    out: dict[str, dict] = {}
     for variant, r in rows.items():
         ed, ed_min = np.concatenate(r["ed"]), np.concatenate(r["ed_min"])
         expected, accepted = np.concatenate(r["expected"]), np.concatenate(r["accepted"])
@@ -121,6 +178,13 @@ def pose_accuracy(scenes: list[Scene], estimator, localiser: Localiser,  # noqa:
                         if told.any() else None,
                         "accepted": int((accepted & posed).sum()),
                         "accepted_over_10mm": int((accepted & posed & (np.nan_to_num(ed, nan=0.0) > 10.0)).sum())}
+    if "localiser" in rows:
+        found = np.concatenate(rows["localiser"]["poses"])
+        for variant in (v for v in variants if v != "localiser"):
+            given = np.concatenate(rows[variant]["poses"])
+            both = np.isfinite(found[:, 0, 0]) & np.isfinite(given[:, 0, 0])
+            out["localiser"][f"gap_to_{variant}_mm"] = float(np.median(anchors.ed(found[both], given[both]))) \
+                if both.any() else None
     return out
 
 
@@ -133,9 +197,12 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=2_000_000)
     ap.add_argument("--localiser", default=str(DEFAULT_LOCALISERS_DIR / "default" / "model.onnx"))
     ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--stacks", type=int, default=1, help="stacks of one head sent together in each request")
+    ap.add_argument("--motion", default=None, help="the head's motion: a pose benchmark's level (default: the "
+                                                   "generator's own drift)")
     args = ap.parse_args()
-    result = pose_accuracy(validation_scenes(args.scenes, args.seed), _pose_estimator(), Localiser.load(args.localiser),
-                           tuple(args.variants.split(",")))
+    result = pose_accuracy(validation_cases(args.scenes, args.seed, args.stacks, motion=args.motion),
+                           _pose_estimator(), Localiser.load(args.localiser), tuple(args.variants.split(",")))
     print(json.dumps(result, indent=1))
 
 

@@ -306,6 +306,21 @@ class Scene:
     mask: NDArray[np.bool_]
     brain: NDArray[np.bool_]
     atlas_from_voxel: NDArray[np.float64] | None
+    look: Look | None = None
+    """The contrast and head layers it was drawn with: another stack of the same scan is drawn with
+    them (``look``)."""
+
+
+@dataclass(frozen=True)
+class Look:
+    """What every stack of one scan shares: each tissue's intensity, the brain's scale and the gamma
+    of its T2 map (the contrast), and the layers about the fetus's head."""
+
+    tissue: dict[str, float]
+    brain_scale: float
+    gamma: float
+    layers: tuple[float, float, float] | None = None
+    """The head's CSF, skull and scalp thicknesses (mm; :func:`head_layers`): one head's in every stack."""
 
 
 def synth_stack(head: HeadModel, rng: np.random.Generator, style: str = "train",
@@ -320,7 +335,7 @@ def synth_stack(head: HeadModel, rng: np.random.Generator, style: str = "train",
 def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
                 random_contrast: bool | None = None, rigid: bool = False, csf_mm: float | None = None,
                 shading_share: float = 0.0, csf_patches_mm: float = 0.0, faint_skull_share: float = 0.0,
-                motion: str | None = None) -> Scene:
+                motion: str | None = None, look: Look | None = None) -> Scene:
     """One synthetic whole-uterus stack, its masks and, with ``rigid`` (the head at the atlas's own
     size, not scaled by 0.9-1.1), its slices' true atlas poses. ``csf_mm``: the extra-axial CSF
     layer this thick instead of drawn (:func:`head_layers`; the other draws stay the same).
@@ -335,6 +350,10 @@ def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
     ``jumps``, ``independent``; :func:`~model_export.acquisitions.motion_twists`) over an
     interleaved acquisition, instead of the generator's own drift (from a child of ``rng``: the
     scene is otherwise the one the seed gives without it).
+
+    ``look``: the contrast and head layers of another stack of the same scan (:attr:`Scene.look`)
+    instead of those drawn (the draws are made all the same: the scene is otherwise the one the seed
+    gives without it).
 
     ``random_contrast``: every tissue's intensity drawn uniformly (True) or T2-like (False); by
     default drawn, for 20 % of the ``train`` stacks and half of the ``heldout`` ones. The same seed
@@ -361,6 +380,9 @@ def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
     background = ndimage.zoom(coarse, (2, 2, 1), order=1, grid_mode=True, mode="nearest")[:geo.size, :geo.size]
     brain_scale = tissue["fluid"] * rng.uniform(0.75, 1.05) if rng.random() > 0.15 else rng.uniform(0.2, 1.0)
     gamma = rng.uniform(0.6, 1.6)
+    if look is not None:
+        tissue, brain_scale, gamma = dict(look.tissue), look.brain_scale, look.gamma
+    contrast = (dict(tissue), float(brain_scale), float(gamma))
     level = brain_scale * float(np.mean(np.power(head.brain_t2, gamma)))       # the brain's mean intensity
     camouflaged = bool(rng.random() < CAMOUFLAGE_SHARE[style])
     if camouflaged:
@@ -369,6 +391,9 @@ def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
     layers = head_layers(rng, camouflaged)
     if csf_mm is not None:
         layers = (float(csf_mm), *layers[1:])
+    if look is not None and look.layers is not None:
+        layers = look.layers
+    drawn = Look(*contrast, layers=tuple(float(t) for t in layers))
     faint = rng.spawn(1)[0] if faint_skull_share > 0 else None           # the scene's own draws untouched
     if faint is not None and faint.random() < faint_skull_share:
         layers = (layers[0], float(faint.uniform(*FAINT_SKULL_MM)), layers[2])
@@ -397,7 +422,7 @@ def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
     affine = np.diag([geo.pixel_mm, geo.pixel_mm, geo.gap_mm, 1.0])
     truth = _slice_poses(head, geo, affine, centre, rotation, *motion) if rigid and head.atlas_from_voxel is not None \
         else None
-    return Scene(Volume((image * rng.uniform(100, 2000)).astype(np.float32), affine), mask, brain, truth)
+    return Scene(Volume((image * rng.uniform(100, 2000)).astype(np.float32), affine), mask, brain, truth, drawn)
 
 
 def _slice_poses(head: HeadModel, geo: StackGeometry, affine: NDArray, centre: NDArray, rotation: NDArray,
