@@ -145,12 +145,15 @@ def _mha_counts(fields: dict[str, bytes]) -> str | None:
     return None
 
 
-ANATOMICAL_SPACES = frozenset(f"{name}{time}" for name in ("right-anterior-superior", "left-anterior-superior",
-                                                           "left-posterior-superior", "ras", "las", "lps")
-                               for time in ("", "-time", "t"))
-"""NRRD ``space`` values that say which side is the patient's left (teem's names, long and short,
-with their time variants; lower case). ``scanner-xyz`` and ``3D-right-handed`` do not: ITK reads
-them as LPS whatever the file meant."""
+ANATOMICAL_SPACES = frozenset(("right-anterior-superior", "left-anterior-superior", "left-posterior-superior",
+                               "ras", "las", "lps"))
+"""NRRD ``space`` values that say which side is the patient's left (teem's names, long and short;
+lower case). ``scanner-xyz`` and ``3D-right-handed`` do not: ITK reads them as LPS whatever the
+file meant."""
+TIMED_SPACES = frozenset(f"{name}{time}" for name in ANATOMICAL_SPACES for time in ("-time", "t"))
+"""The anatomical spaces' time variants (``RAST``, ``left-anterior-superior-time``, ...): ITK places
+every one of them as LPS, so that a ``RAST`` stack would be turned half a turn and a ``LAST`` one
+mirrored; they are refused by name."""
 
 
 def geometry_problem(header: bytes, kind: str) -> str | None:
@@ -171,6 +174,8 @@ def geometry_problem(header: bytes, kind: str) -> str | None:
         'its NRRD header names no anatomical space (sp'
         >>> geometry_problem(b"NRRD0004\\nspace: scanner-xyz\\nspace directions: (1,0,0) (0,1,0) (0,0,3)\\n\\n", "nrrd")[-39:]
         "space 'scanner-xyz' names no such thing"
+        >>> geometry_problem(b"NRRD0004\\nspace: LAST\\nspace directions: (1,0,0,0) (0,1,0,0) (0,0,3,0)\\n\\n", "nrrd")[:52]
+        "its NRRD header's space 'last' is a space with time,"
         >>> geometry_problem(b"NRRD0004\\nspace directions: (1e200,0,0) (0,1,0) (0,0,1)\\n\\n", "nrrd")[-9:]
         '1e+06 mm)'
     """
@@ -194,6 +199,9 @@ def geometry_problem(header: bytes, kind: str) -> str | None:
         return (f"its NRRD header's space directions place {placed} of the image's axes (the others 'none'); the "
                 "reader would invent 1 mm for the rest")
     space = fields.get("space", b"").strip().decode("latin-1").lower()
+    if kind == "nrrd" and space in TIMED_SPACES:
+        return (f"its NRRD header's space {space!r} is a space with time, which the reader would place as LPS "
+                "(a RAS or LAS stack turned or mirrored): write the stack in its 3D space (RAS, LAS or LPS)")
     if kind == "nrrd" and space not in ANATOMICAL_SPACES:
         return ("its NRRD header names no anatomical space (space: RAS, LAS or LPS): which side is the patient's left "
                 "is unknown, and it decides each slice's mirror twin" + (f"; space {space!r} names no such thing"

@@ -164,6 +164,12 @@ MHA_HEAD = b"ObjectType = Image\nNDims = 3\nDimSize = 8 8 8\nElementType = MET_U
      "names no anatomical space"),
     ("g.nrrd", NRRD_HEAD + b"space dimension: 3\nspace directions: (1,0,0) (0,1,0) (0,0,3)\n\n",
      "names no anatomical space"),
+    # ITK places every space with time as LPS: RAST would be turned, LAST mirrored
+    ("g.nrrd", NRRD_HEAD.replace(b"8 8 8", b"8 8 8 1").replace(b"dimension: 3", b"dimension: 4")
+     + b"space: RAST\nspace directions: (1,0,0,0) (0,1,0,0) (0,0,3,0) none\n\n", "'rast' is a space with time"),
+    ("g.nrrd", NRRD_HEAD.replace(b"8 8 8", b"8 8 8 1").replace(b"dimension: 3", b"dimension: 4")
+     + b"space: left-anterior-superior-time\nspace directions: (1,0,0,0) (0,1,0,0) (0,0,3,0) none\n\n",
+     "'left-anterior-superior-time' is a space with time"),
 ])
 def test_a_geometry_the_reader_would_make_up_is_422(tmp_path: Path, name: str, content: bytes, words: str) -> None:
     """As a NIfTI header without voxel sizes, with a sheared sform or without any orientation is: never
