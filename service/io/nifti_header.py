@@ -193,6 +193,12 @@ def copy_transforms(path: Path, t: NiftiTransforms) -> None:
                        "quatern": t.quatern, "srow": t.srow})
 
 
+def set_sform(path: Path, affine: NDArray[np.float64]) -> None:
+    """Write ``affine`` (voxel -> RAS mm) as the sform of the NIfTI-1 file at ``path`` (as the service
+    writes them), its code unchanged."""
+    _put_fields(path, {"srow": tuple(float(v) for v in np.asarray(affine, np.float64)[:3].ravel())})
+
+
 def set_codes(path: Path, code: int) -> None:
     """Set both ``qform_code`` and ``sform_code`` of the NIfTI-1 file at ``path`` (as the service writes
     them) to ``code``, the transforms themselves unchanged: what their coordinates are

@@ -149,12 +149,23 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
                 else:
                     named.symlink_to(Path(path).resolve())
                 if transforms is not None and transforms.header_size == 540:      # NIfTI-2
-                    vol = _read_nifti2(named, filename, budget, transforms)
+                    vol = _read_by_nibabel(named, filename, budget, transforms)
                 else:
-                    budget.voxels(_declared_values(named, kind) if header is None else declared_values(header, kind, filename))
-                    with SITK_FILES:
-                        image = _reader(named, kind).Execute()
-                    vol = placed_by_header(from_sitk(_squeeze_4d(image, filename)), transforms)
+                    charged = False
+                    try:
+                        budget.voxels(_declared_values(named, kind) if header is None
+                                      else declared_values(header, kind, filename))
+                        charged = True
+                        with SITK_FILES:
+                            image = _reader(named, kind).Execute()
+                    except RuntimeError as exc:
+                        if not (by_sform and "orthonormal" in str(exc)):
+                            raise
+                        # ITK refuses an sform whose axes are a hair off right angles (as converters'
+                        # float32 rounding leaves them); the sform is read here, the voxels by nibabel.
+                        vol = _read_by_nibabel(named, filename, budget, transforms, charged)
+                    else:
+                        vol = placed_by_header(from_sitk(_squeeze_4d(image, filename)), transforms)
                     if header is not None and (problem := geometry_problem(header, kind)) is not None:
                         raise UnusableImage(f"{filename}: {problem}")      # what the reader made up
         elif kind in ("dicom", "bare-dicom", "zip"):
@@ -285,17 +296,23 @@ def _nifti_has_nonfinite(path: Path) -> bool:
     return not np.isfinite(data).all()
 
 
-def _read_nifti2(path: Path, filename: str, budget: FileBudget, transforms: NiftiTransforms | None) -> Volume:
-    """A NIfTI-2 file (which SimpleITK does not read) with nibabel: its declared voxels charged to
-    ``budget`` before any is read, one 3D volume of real numbers, placed as its NIfTI-1 twin is
-    (:func:`placed_by_header`: the sform when its code is above 0, else the qform). The voxels
-    are scaled in float32, the only array beside the file's own."""
-    image = nibabel.Nifti2Image.from_filename(str(path))
-    if image.dataobj.offset < 544:                         # one file: the data after header and extension flag
-        raise UnsupportedFile(f"{filename}: impossible NIfTI-2 header (its voxel data would start inside the header: "
-                              "vox_offset < 544)")                 # as a NIfTI-1 header's (415)
+def _read_by_nibabel(path: Path, filename: str, budget: FileBudget, transforms: NiftiTransforms,
+                     charged: bool = False) -> Volume:
+    """A NIfTI file with nibabel: a NIfTI-2 file (which SimpleITK does not read), or a NIfTI-1 file
+    whose sform SimpleITK refuses as not orthonormal though it lies within the service's own
+    tolerance (:func:`~service.io.nifti_header.sform_problem`). Its declared voxels are charged to
+    ``budget`` before any is read (unless ``charged`` already); one 3D volume of real numbers,
+    placed as SimpleITK's reading is (:func:`placed_by_header`: the sform when its code is above
+    0, else the qform). The voxels are scaled in float32, the only array beside the file's own."""
+    nifti2 = transforms.header_size == 540
+    image = (nibabel.Nifti2Image if nifti2 else nibabel.Nifti1Image).from_filename(str(path))
+    first = 544 if nifti2 else 352                         # one file: the data after header and extension flag
+    if image.dataobj.offset < first:
+        raise UnsupportedFile(f"{filename}: impossible NIfTI-{2 if nifti2 else 1} header (its voxel data would start "
+                              f"inside the header: vox_offset < {first})")          # as a NIfTI-1 header's (415)
     shape = tuple(int(n) for n in image.shape)
-    budget.voxels(int(np.prod(shape, dtype=np.float64)))
+    if not charged:
+        budget.voxels(int(np.prod(shape, dtype=np.float64)))
     if len(shape) < 3:
         raise UnusableImage(f"{filename}: {len(shape)}D image; a stack of slices (3D) is required")
     if any(n != 1 for n in shape[3:]):

@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.geometry import frames
-from service.io.nifti_header import NiftiTransforms, qform_affine, read_transforms, sform_affine
+from service.io.nifti_header import NiftiTransforms, qform_affine, read_transforms, set_sform, sform_affine
 
 if TYPE_CHECKING:
     import SimpleITK as sitk
@@ -162,8 +162,19 @@ def placed_by_header(volume: Volume, nifti: NiftiTransforms | None) -> Volume:
 
 
 def write_volume(volume: Volume, path: str | Path) -> None:
-    """Write a :class:`Volume`; the format follows the file name (``.nii.gz``, ``.nrrd``, ``.mha``)."""
+    """Write a :class:`Volume`; the format follows the file name (``.nii.gz``, ``.nrrd``, ``.mha``).
+
+    ITK stores axes a hair off right angles (within :data:`~service.geometry.frames.MAX_SHEAR_COS`,
+    as a scanner's or converter's rounding leaves them) as the nearest rotation; a NIfTI file then
+    gets the volume's own affine as its sform, so that a mask written on an upload's grid lies on
+    that grid exactly (the qform keeps the rotation)."""
     import SimpleITK as sitk
     image = to_sitk(volume)
     with SITK_FILES:
         sitk.WriteImage(image, str(path), useCompression=True)
+    if str(path).endswith((".nii", ".nii.gz")) and float(frames.axes_cosine(volume.affine[:3, :3])) > EXACT_AXES_COS:
+        set_sform(Path(path), volume.affine)
+
+
+EXACT_AXES_COS = 1e-7
+"""Axes closer than this to right angles are stored by ITK as they are (to float32's precision)."""

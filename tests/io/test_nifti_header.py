@@ -134,3 +134,16 @@ def test_qform_affine_is_nibabels_for_any_rotation_qfac_and_voxel_size() -> None
                                                                   "qoffset_x", "qoffset_y", "qoffset_z")), (0.0,) * 12)
         np.testing.assert_allclose(qform_affine(fields), header.get_qform(), atol=1e-5)
         np.testing.assert_allclose(qform_affine(fields), affine, atol=1e-4)        # the simulated truth
+
+
+@pytest.mark.parametrize("cos", [3e-4, 9e-4])
+def test_an_sform_a_hair_off_right_angles_is_read_as_it_is(tmp_path: Path, cos: float) -> None:
+    """An sform-only file whose axes lie within the service's shear tolerance (1e-3) but beyond
+    ITK's (which refuses it as not orthonormal) is read, voxels and sform as they are, not refused
+    as an unreadable file."""
+    sform = sform_of((1.1, 0.9, 3.3), 25, (-40, 12, 7))
+    sform[:3, 1] += cos * 0.9 * sform[:3, 0] / 1.1            # the second axis leans towards the first
+    path = write(tmp_path / "h.nii.gz", sform, 1, None, 0)
+    vol = read_upload(path, "h.nii.gz")
+    np.testing.assert_allclose(vol.affine, sform, atol=1e-5)
+    np.testing.assert_array_equal(vol.array, np.asarray(nib.load(str(path)).dataobj))
