@@ -171,32 +171,36 @@ def stacking_problem(spacing: Sequence[float], n_slices: int) -> str | None:
         'its slices lie 1 mm apart, closer than its 1.2 mm pixels: the axis of largest spacing, the slice axis of API v1, would be an in-plane one; resample the stack to slices at least a pixel apart'
     """
     sp = np.asarray(spacing, np.float64)
-    if n_slices < 2 or sp[2] >= sp[:2].max() * (1 - 1e-6):
+    if n_slices < 2 or sp[2] >= sp[:2].max() * (1 - SPACING_TIE):
         return None
     return (f"its slices lie {sp[2]:.3g} mm apart, closer than its {sp[:2].max():.3g} mm pixels: the axis of largest "
             "spacing, the slice axis of API v1, would be an in-plane one; resample the stack to slices at least a "
             "pixel apart")
 
 
-OVERLAP_RATIO = 0.95
-"""A file's third axis at most this share of the spacing its first two share: its slices overlap."""
+SPACING_TIE = 1e-3
+"""Voxel spacings within this share of each other are one spacing (a header's rounding): the slice
+axis, the axis of largest spacing, is then the last of those that share it."""
 
 
 def slice_axis_problem(spacing: Sequence[float]) -> str | None:
     """Why a stack file that does not say which axis its slices run along (NIfTI, NRRD, MHA; by
     convention its third) cannot be cut into slices: its first two axes share the largest spacing
-    and the third's is clearly smaller (:data:`OVERLAP_RATIO`), so that its slices lie closer together
-    than its pixels (slices that overlap) and the axis of largest spacing, the slice axis of API v1,
-    is an in-plane one. None if it can (a tie that holds the third axis leaves it the slice axis).
+    and the third's is smaller (beyond :data:`SPACING_TIE`), so that its slices lie closer together
+    than its pixels (slices that overlap, or a volume of nearly cubic voxels) and the axis of
+    largest spacing, the slice axis of API v1, is an in-plane one. None if it can (a tie that holds
+    the third axis leaves it the slice axis).
 
     Example:
         >>> slice_axis_problem([1.5, 1.5, 1.2])
         'its first two voxel axes share the largest spacing (1.5 mm) and its third lies 1.2 mm apart: its slices are closer together than its pixels, so the axis of largest spacing, the slice axis of API v1, is an in-plane one; resample the stack to slices at least a pixel apart'
+        >>> slice_axis_problem([1.125, 1.125, 1.1])[:60]
+        'its first two voxel axes share the largest spacing (1.12 mm)'
         >>> slice_axis_problem([1.2, 1.2, 3.0]), slice_axis_problem([1.0, 1.2, 1.2]), slice_axis_problem([1.0, 1.0, 0.9999])
         (None, None, None)
     """
     sp = np.asarray(spacing, np.float64)
-    if abs(sp[0] - sp[1]) > 1e-6 * sp.max() or sp[2] > OVERLAP_RATIO * sp[0]:
+    if abs(sp[0] - sp[1]) > SPACING_TIE * sp.max() or sp[2] >= sp[0] * (1 - SPACING_TIE):
         return None
     return (f"its first two voxel axes share the largest spacing ({sp[0]:.3g} mm) and its third lies "
             f"{sp[2]:.3g} mm apart: its slices are closer together than its pixels, so the axis of largest "
@@ -218,5 +222,5 @@ def stated_thickness(values: Sequence[object]) -> float | None:
     return float(np.median(found))
 
 
-__all__ = ["MAX_FIELD_OF_VIEW_MM", "MAX_VOXEL_MM", "MIN_VOXEL_MM", "Tags", "grid_problem", "series_problem",
-           "stacking_problem", "stated_thickness"]
+__all__ = ["MAX_FIELD_OF_VIEW_MM", "MAX_VOXEL_MM", "MIN_VOXEL_MM", "SPACING_TIE", "Tags", "grid_problem",
+           "series_problem", "stacking_problem", "stated_thickness"]

@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.geometry import frames
+from service.io.acquisition_geometry import SPACING_TIE
 from service.io.volume import Volume
 
 
@@ -79,9 +80,15 @@ def mask_box(mask: NDArray, margin: NDArray | list[int]) -> tuple[slice, ...] | 
 
 
 def slice_axis_of(spacing: NDArray) -> int:
-    """The axis of largest spacing; ties go to the last axis."""
+    """The axis of largest spacing; ties (within :data:`~service.io.acquisition_geometry.SPACING_TIE`,
+    a header's rounding) go to the last axis.
+
+    Example:
+        >>> slice_axis_of([1.0, 3.0, 1.0]), slice_axis_of([1.0, 1.0, 0.9999]), slice_axis_of([1.2, 1.2, 1.2])
+        (1, 2, 2)
+    """
     sp = np.asarray(spacing, dtype=np.float64)
-    return int(np.flatnonzero(sp >= sp.max() * (1 - 1e-6))[-1])
+    return int(np.flatnonzero(sp >= sp.max() * (1 - SPACING_TIE))[-1])
 
 
 def stack_axis(volume: Volume) -> int:

@@ -344,9 +344,10 @@ def test_a_stack_file_of_slices_closer_than_its_pixels_is_422_not_cut_along_a_pi
     say which axis is the slices', and the axis of largest spacing would be an in-plane one. Slices
     as far apart as the pixels are a stack as before."""
     arr = (np.random.default_rng(9).random((30, 30, 40)) * 1000).astype(np.float32).round()
-    write_volume(Volume(arr, np.diag([1.5, 1.5, 1.2, 1.0])), path := tmp_path / f"overlap{suffix}")
-    with pytest.raises(UnusableImage, match=f"overlap{suffix}: its first two voxel axes share the largest spacing"):
-        read_upload(path, path.name)
+    for spacing in ([1.5, 1.5, 1.2], [1.125, 1.125, 1.1]):             # overlapping; nearly cubic voxels
+        write_volume(Volume(arr, np.diag([*spacing, 1.0])), path := tmp_path / f"overlap{suffix}")
+        with pytest.raises(UnusableImage, match=f"overlap{suffix}: its first two voxel axes share the largest"):
+            read_upload(path, path.name)
     for spacing in ([1.5, 1.5, 1.5], [1.2, 1.5, 1.5], [1.0, 1.0, 0.9999]):   # the third axis the slices' (a tie
         write_volume(Volume(arr, np.diag([*spacing, 1.0])), ok := tmp_path / f"ok{suffix}")  # holds it, or none)
         assert read_upload(ok, ok.name).array.shape == (30, 30, 40)
