@@ -33,10 +33,13 @@ from numpy.typing import NDArray
 from service.geometry import frames
 
 # (header size, byte offsets: dim, pixdim, qform_code, sform_code, quatern_b, srow_x; dim, float and code types)
-LAYOUTS = {348: dict(dim=40, pixdim=76, qform_code=252, sform_code=254, quatern=256, srow=280, d="i2", f="f4",
-                     code="i2"),
-           540: dict(dim=16, pixdim=104, qform_code=344, sform_code=348, quatern=352, srow=400, d="i8", f="f8",
-                     code="i4")}
+LAYOUTS = {348: dict(dim=40, pixdim=76, qform_code=252, sform_code=254, quatern=256, srow=280, units=123, d="i2",
+                     f="f4", code="i2", unit="u1"),
+           540: dict(dim=16, pixdim=104, qform_code=344, sform_code=348, quatern=352, srow=400, units=500, d="i8",
+                     f="f8", code="i4", unit="i4")}
+SPATIAL_UNITS = {1: "metres", 3: "micrometres"}
+"""``xyzt_units`` spatial codes other than millimetres (2) or unknown (0): the service reads every
+NIfTI distance as millimetres, as nibabel and FSL do."""
 QUATERNION_SLACK = 1e-6
 """How far the squares of a qform's ``b, c, d`` may pass 1 (float32 rounding of a turn by 180 degrees)
 and still be read as a rotation, with ``a = 0``."""
@@ -61,6 +64,8 @@ class NiftiTransforms:
     """The image's spatial axes (``dim[0]``, 1 to 3)."""
     header_size: int = 348
     """348 for NIfTI-1, 540 for NIfTI-2."""
+    spatial_unit: int = 2
+    """``xyzt_units & 7``: the unit the header names for distances (2: mm; :data:`SPATIAL_UNITS`)."""
 
 
 def parse(head: bytes) -> NiftiTransforms | None:
@@ -73,7 +78,8 @@ def parse(head: bytes) -> NiftiTransforms | None:
                 return NiftiTransforms(int(values(at["qform_code"], 1, at["code"])[0]),
                                        int(values(at["sform_code"], 1, at["code"])[0]),
                                        values(at["pixdim"], 4), values(at["quatern"], 6), values(at["srow"], 12),
-                                       int(np.clip(values(at["dim"], 1, at["d"])[0], 1, 3)), size)
+                                       int(np.clip(values(at["dim"], 1, at["d"])[0], 1, 3)), size,
+                                       int(values(at["units"], 1, at["unit"])[0]) & 7)
     return None
 
 

@@ -39,8 +39,8 @@ from service.io.dicom import read_dicom_file
 from service.io.bare_dicom import as_part10, bare_dicom
 from service.io.headers import clean_header, declared_values, geometry_problem
 from service.io.limits import DecodeBudget, FileBudget, raise_if_out_of_space
-from service.io.nifti_header import (MAX_SHEAR_COS, NiftiTransforms, missing_voxel_size, orientation_problem,
-                                     qform_problem, read_transforms, sform_problem)
+from service.io.nifti_header import (MAX_SHEAR_COS, SPATIAL_UNITS, NiftiTransforms, missing_voxel_size,
+                                     orientation_problem, qform_problem, read_transforms, sform_problem)
 from service.io.volume import SITK_FILES, Volume, from_sitk, magnitude, placed_by_header
 
 SUFFIX_BY_KIND = {"nifti": ".nii", "nifti-gz": ".nii.gz", "nrrd": ".nrrd", "mha": ".mha"}
@@ -366,7 +366,10 @@ def validate(vol: Volume, filename: str, magnitudes: bool = True) -> Volume:
     if not np.isfinite(vol.affine).all() or abs(np.linalg.det(vol.affine[:3, :3])) < 1e-9:
         raise UnusableImage(f"{filename}: invalid geometry (singular voxel-to-world matrix)")
     if (problem := grid_problem(vol.affine, a.shape)) is not None:     # first: a voxel of 1e300 mm is no shear
-        raise UnusableImage(f"{filename}: {problem}")
+        unit = SPATIAL_UNITS.get(vol.nifti.spatial_unit) if vol.nifti is not None else None
+        raise UnusableImage(f"{filename}: {problem}" + (f" (its NIfTI header says its distances are in {unit}; they "
+                                                         "are read as millimetres, as nibabel and FSL read them)"
+                                                         if unit else ""))
     if (cos := float(frames.axes_cosine(vol.affine[:3, :3]))) > MAX_SHEAR_COS:
         raise UnusableImage(f"{filename}: its voxel axes are sheared ({np.degrees(np.arccos(cos)):.2f} deg apart, "
                             "not 90); resample the stack to a grid with axes at right angles")

@@ -147,3 +147,17 @@ def test_an_sform_a_hair_off_right_angles_is_read_as_it_is(tmp_path: Path, cos: 
     vol = read_upload(path, "h.nii.gz")
     np.testing.assert_allclose(vol.affine, sform, atol=1e-5)
     np.testing.assert_array_equal(vol.array, np.asarray(nib.load(str(path)).dataobj))
+
+
+@pytest.mark.parametrize(("units", "named"), [(1, "metres"), (3, "micrometres")])
+def test_a_grid_refused_in_a_header_that_names_another_unit_says_so(tmp_path: Path, units: int, named: str) -> None:
+    """Distances written in metres (0.0011 "mm" pixels) are refused as no MRI grid, and the answer
+    names the header's unit, which the service (as nibabel and FSL) does not apply."""
+    sform = sform_of((0.0011, 0.0009, 0.0033), 25, (-0.04, 0.012, 0.007))
+    path = write(tmp_path / "u.nii", sform, 1, None, 0)
+    raw = bytearray(path.read_bytes())
+    raw[123] = units | 8                                      # its unit, and seconds
+    path.write_bytes(bytes(raw))
+    assert parse(bytes(raw[:348])).spatial_unit == units
+    with pytest.raises(UnusableImage, match=f"its NIfTI header says its distances are in {named}"):
+        read_upload(path, "u.nii")
