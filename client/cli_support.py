@@ -175,6 +175,11 @@ StacksArg = Annotated[list[Path], typer.Argument(
 COHERENT_NCC = 0.5
 """The held-out median NCC under which the service calls a volume (or one stack of it) no coherent
 brain (``service.reconstruction.quality.MIN_HELD_OUT_NCC``; the client does not import the service)."""
+UNSETTLED_MM = 10.0
+"""A job whose refined poses' median expected error exceeds this has many slices whose left-right
+branch is not settled (extreme motion: 23 mm where 34 % of the slices sat on their mirror twin,
+against about 2 mm for jobs of mild to independent motion); the leave-one-stack-out score cannot
+see a volume so blended, for a slice and its twin look alike."""
 
 
 def follow_job(svr: SVRnetClient, job_id: str, poll: float, timeout: float) -> dict[str, Any]:
@@ -251,14 +256,25 @@ def write_results(svr: SVRnetClient, job_id: str, done: dict[str, Any], out: Pat
                 f"the stacks do not predict each other (leave one stack out under {COHERENT_NCC})")
         console.print(f"{what}: the volume is no coherent brain; do not use it. Check the stacks' poses (svrnet "
                       "predict) and masks (svrnet masks)", style="bold red", markup=False)
+    refined = (report.get("refined_poses") or {}).get("median_expected_error_mm")
+    if refined is not None and refined > UNSETTLED_MM and not incoherent:
+        console.print(f"the refined poses' median expected error is {refined:.0f} mm: many slices' left-right "
+                      "branch is not settled, and the volume may blend the brain with its mirror image, which the "
+                      "quality scores cannot see; judge it by the preview", style="yellow", markup=False)
     per_stack = (quality.get("leave_one_stack_out") or {}).get("per_stack_median_ncc") or []
+    left_out = [int(i) for i in quality.get("stacks_left_out") or []]
+    if left_out and not incoherent:
+        console.print(f"stack {', '.join(map(str, left_out))}: the other stacks do not predict it (leave one stack "
+                      f"out under {COHERENT_NCC}): another fetus, another contrast, or a stack far off; the volume "
+                      "was made again without it, and its slices keep their starting expected errors",
+                      style="yellow", markup=False)
     apart = [str(i) for i, x in enumerate(per_stack) if x is not None and x < COHERENT_NCC]
     if apart and not incoherent:
         console.print(f"stack {', '.join(apart)}: the other stacks do not predict it (leave one stack out under "
-                      f"{COHERENT_NCC}): "
-                      "another fetus, another contrast, or a stack far off; the volume rests on the others, and its "
-                      "slices keep their starting expected errors", style="yellow", markup=False)
-    unused = [str(i) for i, x in enumerate(per_stack) if x is None]
+                      f"{COHERENT_NCC}): another fetus, another contrast, or a stack far off; its slices are in the "
+                      "volume and keep their starting expected errors: send the job again without it",
+                      style="yellow", markup=False)
+    unused = [str(i) for i, x in enumerate(per_stack) if x is None and i not in left_out]
     if unused and len(per_stack) > 1 and not incoherent:
         console.print(f"stack {', '.join(unused)}: no slice of it is in the volume (none accepted, or no brain "
                       "found); the volume rests on the other stacks. See its slices in svrnet predict, or send "

@@ -22,7 +22,8 @@ from service.preprocess.bias import n4_correct
 from service.reconstruction.atlas_frame import FrameFit, atlas_frame, with_frame
 from service.reconstruction.left_out import LeftOutPlacement, VolumeReference, place_left_out
 from service.reconstruction.midline import FrameCorrection, midline_fit
-from service.reconstruction.never_worse import coherence_score, held_out_score, reconstruct_never_worse, stack_held_out
+from service.reconstruction.never_worse import (coherence_score, held_out_score, reconstruct_never_worse,
+                                                stack_held_out, without_stacks_apart)
 from service.reconstruction.config import ReconstructionConfig
 from service.reconstruction.grid import bounds_of, check_volume_size, make_grid
 from service.reconstruction.pipeline import ReconstructionResult
@@ -120,10 +121,12 @@ def refine_job(slice_set: SliceSet, stacks: Sequence[StackInput], starting_error
     report = progress or (lambda stage, fraction: None)
     if slice_set.n_pixels:                             # the volume where the slices start: refused now, not later
         check_volume_size(make_grid(resolution_mm, bounds_of(slice_set.positions(), ReconstructionConfig().margin_mm)))
+    config = ReconstructionConfig(symmetry_plane_x_mm=plane_x_mm, slice_orders=tuple(orders) or None)
     result = reconstruct_never_worse(slice_set, resolution_mm=resolution_mm, svr_iterations=svr_iterations,
-                                     progress=report,
-                                     config=ReconstructionConfig(symmetry_plane_x_mm=plane_x_mm,
-                                                                 slice_orders=tuple(orders) or None))
+                                     progress=report, config=config)
+    result = without_stacks_apart(slice_set, result, lambda kept, named: reconstruct_never_worse(
+        kept, resolution_mm=resolution_mm, svr_iterations=svr_iterations, config=config,
+        progress=lambda stage, fraction: report(f"without stack {named}: {stage}", 1.0)))
     reference = VolumeReference.of(result, stacks)
     left_out = place_left_out(slice_set, result.atlas_from_voxel_final, result.included, starting_error_mm,
                               plane_x_mm=plane_x_mm, orders=list(orders) or None, volume=reference,

@@ -532,6 +532,16 @@ def test_a_stack_the_others_do_not_predict_is_named_and_a_scrambled_lone_stack_i
     assert "per stack 0.86, 0.44, 0.90, -" in text and "stack 3: no slice of it is in the volume" in text
     whole = [line for line in r.stdout.splitlines() if line.startswith("stack 3: no slice")]   # one line in a pipe
     assert len(whole) == 1 and whole[0].endswith("or send its mask") and len(whole[0]) > 80, r.stdout
+    assert "send the job again without it" in text
+    fake_cli(jobs="one_left_out")
+    r = invoke(["reconstruct", *[str(stack_file)] * 3, "--poll", "0.05", "--out", str(tmp_path / "c.nii.gz")])
+    text = " ".join(r.stdout.split())
+    assert r.exit_code == 0 and "stack 1: the other stacks do not predict it" in text, r.output
+    assert "was made again without it" in text and "no slice of it is in the volume" not in text
+    fake_cli(jobs="blended")
+    r = invoke(["reconstruct", *[str(stack_file)] * 3, "--poll", "0.05", "--out", str(tmp_path / "d.nii.gz")])
+    text = " ".join(r.stdout.split())
+    assert r.exit_code == 0 and "median expected error is 23 mm" in text and "mirror image" in text, r.output
     fake_cli(jobs="lone_scrambled")
     r = invoke(["reconstruct", str(stack_file), "--poll", "0.05", "--out", str(tmp_path / "b.nii.gz")])
     text = " ".join(r.stdout.split())

@@ -150,7 +150,8 @@ class FakeJobs:
         job["polls"] += 1
         if job["polls"] == 2:
             job.update(status="running", stage="svr", progress=0.5, workers=None)
-        elif job["polls"] >= 3 and self.outcome in ("succeeded", "incoherent", "one_apart", "lone_scrambled"):
+        elif job["polls"] >= 3 and self.outcome in ("succeeded", "incoherent", "one_apart", "one_left_out",
+                                                    "lone_scrambled", "blended"):
             report: dict[str, Any] = {"slices": [], "refined_poses": {
                 "posed": 3, "in_volume": 2, "placed_by_stack_motion": 1, "placed_by_volume": 0,
                 "median_expected_error_mm": 1.9, "median_starting_expected_error_mm": 2.5}}
@@ -164,6 +165,15 @@ class FakeJobs:
                 report.update(n_stacks=4, quality={"judged_slices": 60, "median_ncc": 0.97,    # and one not in it
                                                    "fraction_ncc_above_0_7": 1.0, "coherent": True, "leave_one_stack_out": {
                                                        "median_ncc": 0.79, "per_stack_median_ncc": [0.86, 0.44, 0.9, None]}})
+            if self.outcome == "blended":             # extreme motion: branches unsettled, scores blind to it
+                report["refined_poses"]["median_expected_error_mm"] = 23.3
+                report.update(n_stacks=3, quality={"judged_slices": 90, "median_ncc": 0.96, "coherent": True,
+                                                   "fraction_ncc_above_0_7": 1.0, "leave_one_stack_out": {
+                                                       "median_ncc": 0.85, "per_stack_median_ncc": [0.88, 0.83, 0.85]}})
+            if self.outcome == "one_left_out":        # the job made the volume again without the stack apart
+                report.update(n_stacks=3, quality={"judged_slices": 50, "median_ncc": 0.97, "stacks_left_out": [1],
+                                                   "fraction_ncc_above_0_7": 1.0, "coherent": True, "leave_one_stack_out": {
+                                                       "median_ncc": 0.88, "per_stack_median_ncc": [0.86, None, 0.9]}})
             if self.outcome == "lone_scrambled":      # one stack whose alternate slices do not predict each other
                 report.update(n_stacks=1, quality={"judged_slices": 22, "median_ncc": 0.95, "fraction_ncc_above_0_7": 1.0,
                                                    "coherent": False, "leave_one_stack_out": {
