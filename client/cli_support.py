@@ -266,7 +266,8 @@ def write_results(svr: SVRnetClient, job_id: str, done: dict[str, Any], out: Pat
     if left_out and not incoherent:
         console.print(f"stack {', '.join(map(str, left_out))}: the other stacks do not predict it (leave one stack "
                       f"out under {COHERENT_NCC}): another fetus, another contrast, or a stack far off; the volume "
-                      "was made again without it, and its slices keep their starting expected errors",
+                      "was made again without it, and its slices keep their starting expected errors. The others' "
+                      "poses were predicted beside it: send the job again without it for the best volume",
                       style="yellow", markup=False)
     apart = [str(i) for i, x in enumerate(per_stack) if x is not None and x < COHERENT_NCC]
     if apart and not incoherent:
