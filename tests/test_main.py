@@ -34,6 +34,8 @@ def test_help_serves_nothing_and_options_override_the_environment(monkeypatch: p
     ("SVRNET_DATA_DIR", "{tmp}/a_file/below", "cannot be created"),
     ("SVRNET_TMP_DIR", "{tmp}/none", "not a folder"),
     ("SVRNET_API_KEYS", " , ", "no key"),
+    ("SVRNET_MAX_UPLOAD_MB", "inf", "finite number"),          # no limit at all: refused, not a traceback
+    ("SVRNET_JOB_TIMEOUT_H", "inf", "finite number"),
 ])
 def test_a_setting_that_cannot_work_stops_every_command_in_one_line_naming_it(
         variable: str, value: str, said: str, tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: ANN001

@@ -30,7 +30,7 @@ DEFAULT_LOCALISERS_DIR = Path(__file__).resolve().parents[1] / "localisers"
 class Settings(BaseSettings):
     """Service settings; every field can be set as ``SVRNET_<FIELD>`` (case-insensitive)."""
 
-    model_config = SettingsConfigDict(env_prefix="SVRNET_", extra="ignore")
+    model_config = SettingsConfigDict(env_prefix="SVRNET_", extra="ignore", allow_inf_nan=False)   # inf: no limit
 
     host: str = Field("127.0.0.1", description="address the server listens on (0.0.0.0: every interface)")
     port: int = Field(8000, ge=1, le=65535, description="port the server listens on")

@@ -120,7 +120,8 @@ class SqliteJobStore(JobStore):
                     db.execute(INSERT_JOB, (job_id, json.dumps(params), now, now))
                 db.execute("COMMIT")
             except BaseException:
-                db.execute("ROLLBACK")
+                if db.in_transaction:              # SQLite rolls back by itself on some errors (a full disk)
+                    db.execute("ROLLBACK")
                 raise
         if full:
             raise self._queue_full(job_id, max_queued)  # type: ignore[arg-type]
