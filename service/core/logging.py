@@ -14,7 +14,7 @@ import time
 import warnings
 
 SAFE_FIELDS = ("request_id", "route", "method", "status", "duration_ms", "n_stacks", "n_slices", "model",
-               "error_type", "error_at", "job_id", "stage", "session_id")
+               "error_type", "error_at", "job_id", "stage", "session_id", "attempt")
 
 
 def error_at(exc: BaseException) -> str:

@@ -26,7 +26,8 @@ def test_libraries_that_quote_what_they_parse_pass_nothing_below_their_floor(cap
     logging.getLogger("pydicom").warning("Value 'Doe^Jane' is not valid for VR DS")
     import nibabel.imageglobals                                      # its own plain-text handler on stderr
     nibabel.imageglobals.logger.error("magic string 'Doe ' is not valid")
-    logging.getLogger("service.test").info("request", extra={"route": "/v1/predict", "stack_name": "Doe_Jane.nii"})
+    logging.getLogger("service.test").info("request", extra={"route": "/v1/predict", "stack_name": "Doe_Jane.nii",
+                                                             "job_id": "3f2a", "attempt": 2})
     with warnings.catch_warnings(record=True) as caught:
         service_logging.configure("debug")                         # filters are set again inside catch_warnings
         warnings.warn_explicit("The PN component length (200) exceeds 64", UserWarning, "valuerep.py", 1,
@@ -36,6 +37,7 @@ def test_libraries_that_quote_what_they_parse_pass_nothing_below_their_floor(cap
     assert "Doe" not in err
     line = json.loads(err.strip().splitlines()[-1])
     assert line["route"] == "/v1/predict" and "stack_name" not in line
+    assert (line["job_id"], line["attempt"]) == ("3f2a", 2)          # a job's attempt, as its id, is kept
     assert service_logging.server_log_level("DEBUG") == "info"     # uvicorn's frames never logged
 
 
