@@ -55,8 +55,8 @@ def validation_cases(count: int, seed: int = 2_000_000, stacks: int = 1, root=DE
                      motion: str | None = None) -> list[list[Scene]]:
     """``count`` held-out requests of ``stacks`` whole-uterus stacks each: one stack, as
     :func:`validation_scenes` draws it, or several of one head (the validation volumes in turn),
-    each drawn in its own orientation and surroundings with the first's contrast (a scan's) and
-    placed in one scanner frame (:func:`in_one_frame`), as a scan's stacks of one fetus are sent
+    each drawn in its own orientation and surroundings with the first's look (the scan's contrast,
+    the head's CSF, skull and scalp) and placed in one scanner frame (:func:`in_one_frame`), as a scan's stacks of one fetus are sent
     together."""
     if stacks == 1 and motion is None:
         return [[scene] for scene in validation_scenes(count, seed, root)]
