@@ -373,8 +373,7 @@ def queue_full(state: State) -> QueueFull | None:
 
 def full_queue(settings: Settings) -> QueueFull:
     """The 429 of a queue that holds ``max_queued_jobs``, with the server's ``Retry-After``."""
-    return QueueFull(f"{settings.max_queued_jobs} reconstruction jobs are queued already; retry later",
-                     settings.retry_after_s)
+    return QueueFull.holding(settings.max_queued_jobs, settings.retry_after_s)
 
 
 ApiKey = Depends(require_api_key)

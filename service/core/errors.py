@@ -105,6 +105,11 @@ class QueueFull(Saturated):
 
     status, title, type = 429, "Too many queued jobs", "/problems/queue-full"
 
+    @classmethod
+    def holding(cls, max_queued: int, retry_after_s: int = 2) -> "QueueFull":
+        """The refusal of a queue that holds ``max_queued`` jobs already."""
+        return cls(f"{max_queued} reconstruction jobs are queued already; retry later", retry_after_s)
+
 
 class StoreUnavailable(Saturated):
     """503: the job store does not answer (Redis, with the distributed back-end) or cannot be used

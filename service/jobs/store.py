@@ -168,7 +168,7 @@ class JobStore(ABC):
     def _queue_full(self, job_id: str, max_queued: int) -> QueueFull:
         """The refusal of a job the full queue did not take (its folder, made for it, removed)."""
         shutil.rmtree(self.directory(job_id), ignore_errors=True)
-        return QueueFull(f"{max_queued} reconstruction jobs are queued already; retry later")
+        return QueueFull.holding(max_queued)
 
     @abstractmethod
     def get(self, job_id: str) -> Job | None:
