@@ -161,13 +161,30 @@ def motion_twists(times: ArrayLike, rng: np.random.Generator, motion: str) -> ND
     return se3.log(se3.exp(offsets[segment]) @ se3.exp(drift))
 
 
+def stack_axes(orientation: str, rng: np.random.Generator) -> NDArray[np.float64]:
+    """``[3, 3]`` a stack's axes (columns: in-plane x, in-plane y, normal; atlas directions) as
+    planned about the fetal head: the ``orientation``'s, tilted by a random rotation of about
+    :data:`STACK_TILT_DEG` (the planning's error, the head's move since).
+
+    Example:
+        >>> axes = stack_axes("sagittal", np.random.default_rng(0))
+        >>> bool(np.allclose(axes.T @ axes, np.eye(3))), bool(abs(axes[0, 2]) > 0.9)    # normal near left-right
+        (True, True)
+    """
+    tilt = se3.so3_exp(rng.normal(0, 1, 3) * np.radians(STACK_TILT_DEG) / np.sqrt(3))
+    return tilt @ ORIENTATIONS[orientation]
+
+
 def simulate_stack(image: NDArray, mask: NDArray, affine: NDArray, centre: NDArray, orientation: str,
                    scanner_from_atlas: NDArray, rng: np.random.Generator, motion: str, *, size: int = 128,
                    pixel_mm: float = 1.0, gap_mm: float = 3.0, thickness_mm: float = 3.0, noise: float = 0.03,
-                   bias: float = 0.2) -> SimulatedStack:
-    """One stack through ``centre`` (atlas mm) in ``orientation``; see the module docstring."""
-    tilt = se3.so3_exp(rng.normal(0, 1, 3) * np.radians(STACK_TILT_DEG) / np.sqrt(3))
-    rot = tilt @ ORIENTATIONS[orientation]
+                   bias: float = 0.2, axes: NDArray | None = None) -> SimulatedStack:
+    """One stack through ``centre`` (atlas mm) in ``orientation``; see the module docstring. ``axes``:
+    the stack's axes (:func:`stack_axes`' columns) instead of the orientation's planned ones (the
+    planning's draw is made all the same)."""
+    rot = stack_axes(orientation, rng)
+    if axes is not None:
+        rot = np.asarray(axes, np.float64)
     n = int(np.ceil(_brain_extent(mask, affine, rot[:, 2]) / gap_mm)) + 2
     spacing = np.array([pixel_mm, pixel_mm, gap_mm])
     static = make_pose(rot, centre) @ translate(-(np.array([size, size, n]) - 1) / 2.0 * spacing) @ np.diag([*spacing, 1.0])

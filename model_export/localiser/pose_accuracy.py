@@ -28,6 +28,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
+from model_export.acquisitions import ORIENTATIONS, stack_axes
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
 from model_export.localiser.scenes import HeadModel, Scene, synth_scene
 from model_export.localiser.surroundings import random_rotation
@@ -40,6 +41,11 @@ from service.preprocess.localisation import grown
 from service.preprocess.localise import Localiser
 
 VARIANTS = ("brain", "skull", "localiser")
+PLANNINGS = ("independent", "orthogonal")
+"""How a case's stacks lie about the head: each in an orientation of its own (``independent``: two
+stacks can be near parallel), or ``orthogonal``: axial, coronal and sagittal to the head, each
+tilted by about 10 deg (:func:`~model_export.acquisitions.stack_axes`), as a radiographer plans a
+scan's stacks about the fetal brain and as the pose benchmarks' acquisitions lie."""
 MIN_BRAIN_PIXELS = 200
 """Slices with less true brain than this are not scored (the brain's caps: no pose network sees them well)."""
 
@@ -52,22 +58,29 @@ def validation_scenes(count: int, seed: int = 2_000_000, root=DEFAULT_ATLAS_ROOT
 
 
 def validation_cases(count: int, seed: int = 2_000_000, stacks: int = 1, root=DEFAULT_ATLAS_ROOT,  # noqa: ANN001
-                     motion: str | None = None) -> list[list[Scene]]:
+                     motion: str | None = None, planning: str = "independent") -> list[list[Scene]]:
     """``count`` held-out requests of ``stacks`` whole-uterus stacks each: one stack, as
     :func:`validation_scenes` draws it, or several of one head (the validation volumes in turn),
-    each drawn in its own orientation and surroundings with the first's look (the scan's contrast,
-    the head's CSF, skull and scalp) and placed in one scanner frame (:func:`in_one_frame`), as a scan's stacks of one fetus are sent
-    together."""
-    if stacks == 1 and motion is None:
+    each drawn in its own surroundings with the first's look (the scan's contrast, the head's CSF,
+    skull and scalp), lying about the head as ``planning`` says (:data:`PLANNINGS`; the draws are
+    made all the same), and placed in one scanner frame (:func:`in_one_frame`), as a scan's stacks
+    of one fetus are sent together."""
+    if planning not in PLANNINGS:
+        raise ValueError(f"planning must be one of {PLANNINGS}")
+    if stacks == 1 and motion is None and planning == "independent":
         return [[scene] for scene in validation_scenes(count, seed, root)]
     heads = [HeadModel.from_arrays(v.image, v.mask, v.affine) for v in load_volumes(split(root)[1], root)]
+    planes = list(ORIENTATIONS)
     cases = []
     for i in range(count):
         rngs = [np.random.default_rng(seed + 1000 * i + k) for k in range(stacks + 1)]
+        plan = rngs[stacks].spawn(1)[0]                       # the frame's draws untouched
+        axes = [stack_axes(planes[k % len(planes)], plan).T if planning == "orthogonal" else None
+                for k in range(stacks)]
         scenes = [synth_scene(heads[i % len(heads)], rngs[0], "heldout", random_contrast=False, rigid=True,
-                              motion=motion)]
+                              motion=motion, orientation=axes[0])]
         scenes += [synth_scene(heads[i % len(heads)], rng, "heldout", random_contrast=False, rigid=True, motion=motion,
-                               look=scenes[0].look) for rng in rngs[1:stacks]]
+                               look=scenes[0].look, orientation=a) for rng, a in zip(rngs[1:stacks], axes[1:])]
         cases.append(in_one_frame(scenes, rngs[stacks]))
     return cases
 
@@ -200,8 +213,11 @@ def main() -> None:
     ap.add_argument("--stacks", type=int, default=1, help="stacks of one head sent together in each request")
     ap.add_argument("--motion", default=None, help="the head's motion: a pose benchmark's level (default: the "
                                                    "generator's own drift)")
+    ap.add_argument("--planning", default="independent", choices=PLANNINGS,
+                    help="the stacks' orientations about the head: each its own, or orthogonal as a scan is planned")
     args = ap.parse_args()
-    result = pose_accuracy(validation_cases(args.scenes, args.seed, args.stacks, motion=args.motion),
+    result = pose_accuracy(validation_cases(args.scenes, args.seed, args.stacks, motion=args.motion,
+                                            planning=args.planning),
                            _pose_estimator(), Localiser.load(args.localiser), tuple(args.variants.split(",")))
     print(json.dumps(result, indent=1))
 

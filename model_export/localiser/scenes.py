@@ -335,7 +335,8 @@ def synth_stack(head: HeadModel, rng: np.random.Generator, style: str = "train",
 def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
                 random_contrast: bool | None = None, rigid: bool = False, csf_mm: float | None = None,
                 shading_share: float = 0.0, csf_patches_mm: float = 0.0, faint_skull_share: float = 0.0,
-                motion: str | None = None, look: Look | None = None) -> Scene:
+                motion: str | None = None, look: Look | None = None,
+                orientation: NDArray | None = None) -> Scene:
     """One synthetic whole-uterus stack, its masks and, with ``rigid`` (the head at the atlas's own
     size, not scaled by 0.9-1.1), its slices' true atlas poses. ``csf_mm``: the extra-axial CSF
     layer this thick instead of drawn (:func:`head_layers`; the other draws stay the same).
@@ -354,6 +355,10 @@ def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
     ``look``: the contrast and head layers of another stack of the same scan (:attr:`Scene.look`)
     instead of those drawn (the draws are made all the same: the scene is otherwise the one the seed
     gives without it).
+
+    ``orientation``: the head's axes in the stack (``[3, 3]``, head frame -> stack frame), as a
+    radiographer plans a stack about the fetal head, instead of drawn (the draw is made all the
+    same: the scene is otherwise the one the seed gives without it).
 
     ``random_contrast``: every tissue's intensity drawn uniformly (True) or T2-like (False); by
     default drawn, for 20 % of the ``train`` stacks and half of the ``heldout`` ones. The same seed
@@ -374,6 +379,8 @@ def synth_scene(head: HeadModel, rng: np.random.Generator, style: str = "train",
     if rigid:
         rng.uniform(0.9, 1.1)                                   # the same draws after it as without
     rotation = random_rotation(rng) / scale                    # head frame -> stack frame: rotation @ v
+    if orientation is not None:
+        rotation = np.asarray(orientation, np.float64) / scale
     with_face = bool(rng.random() < FACE_SHARE[style])
     neck = rotation @ NECK_AXIS / np.linalg.norm(rotation @ NECK_AXIS) if with_face else None
     coarse = draw_surroundings(rng, geo, centre, 0.8 * head.radius_mm * scale, tissue, style, head, neck)

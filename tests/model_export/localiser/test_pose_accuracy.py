@@ -82,3 +82,12 @@ def test_a_case_s_stacks_sent_together_place_one_head_in_one_frame(scene) -> Non
     posed = np.isfinite(got["ed"])
     assert len(got["ed"]) == len(got["poses"]) and posed.sum() >= 15
     assert np.median(got["ed_min"][posed]) < 0.8, got["ed_min"]
+
+
+def test_an_unknown_planning_of_the_stacks_is_refused_before_any_scene_is_drawn() -> None:
+    """``planning`` is one of :data:`PLANNINGS`; another is refused by name (no atlas is read)."""
+    from model_export.localiser.pose_accuracy import PLANNINGS, validation_cases
+
+    assert PLANNINGS == ("independent", "orthogonal")
+    with pytest.raises(ValueError, match="planning"):
+        validation_cases(1, stacks=3, planning="diagonal", root="/nonexistent")

@@ -339,3 +339,28 @@ def test_a_scene_can_move_its_head_as_the_pose_benchmarks_levels_do(small_fields
     assert neighbours_turn_deg(mild).max() <= 10.0 + 1e-6
     with pytest.raises(ValueError, match="motion"):
         synth_scene(head, np.random.default_rng(12), "heldout", motion="extreme")
+
+
+def test_a_stack_planned_about_the_head_cuts_it_in_that_plane_and_keeps_the_scene(small_fields: None) -> None:
+    """``orientation`` sets the head's axes in the stack: a stack planned sagittal to the head has its
+    slice normal along the atlas's left-right axis in every slice's true pose (within the planning's
+    tilt and the head's mild motion), an axial one along inferior-superior; every other draw stays
+    the seed's (the same field of view, slices and look; the fetal body follows the head's neck)."""
+    from model_export.acquisitions import stack_axes
+
+    image, mask, affine = phantom_brain(3)
+    head = HeadModel.from_arrays(image, mask, affine)
+
+    def normals(scene) -> np.ndarray:  # noqa: ANN001
+        n = scene.atlas_from_voxel[:, :3, 2]
+        return np.abs(n / np.linalg.norm(n, axis=1, keepdims=True))
+
+    drawn = synth_scene(head, np.random.default_rng(13), "heldout", rigid=True, motion="mild")
+    for plane, axis in (("sagittal", 0), ("axial", 2)):
+        axes = stack_axes(plane, np.random.default_rng(1))
+        planned = synth_scene(head, np.random.default_rng(13), "heldout", rigid=True, motion="mild",
+                              orientation=axes.T)
+        assert np.all(normals(planned)[:, axis] > np.cos(np.radians(35.0))), normals(planned)
+        assert planned.volume.array.shape == drawn.volume.array.shape and planned.look == drawn.look
+        assert np.allclose(planned.volume.affine, drawn.volume.affine)
+        assert not np.all(normals(drawn)[:, axis] > np.cos(np.radians(35.0)))        # drawn: another plane
