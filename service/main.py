@@ -24,12 +24,14 @@ from service.api.middleware import RequestContext
 from service.api.schemas import problem_responses
 from service.api.uploads import sweep_stale_uploads
 from service.core import logging as service_logging
+from service.core.errors import UnusableModelFile
 from service.core.machine import cpu_description
 from service.core.onnx import model_files
 from service.core.settings import Settings, load_settings, warn_unknown_variables
 from service.core.threads import limit_blas_threads
 from service.inference.registry import ModelRegistry
 from service.jobs.backends import open_backend, queue_extra_missing
+from service.jobs.store_probe import StoreProbe, readiness
 from service.preprocess.localise import Localisers
 from service.streaming.background import background_executor, stop_stage_process
 
@@ -43,8 +45,10 @@ finish (a predict takes seconds; an upload still arriving after it is cut); runn
 back to the queue at once, not after that (docs/deployment.md)."""
 
 
-def create_app(settings: Settings | None = None, registry: ModelRegistry | None = None) -> FastAPI:
-    """Build the app; models load in the lifespan from ``settings.models_dir`` unless ``registry`` is given."""
+def create_app(settings: Settings | None = None, registry: ModelRegistry | None = None,
+               localisers: Localisers | None = None) -> FastAPI:
+    """Build the app; models and localisers load in the lifespan from ``settings.models_dir`` and
+    ``settings.localisers_dir`` unless ``registry`` and ``localisers`` are given."""
     settings = settings or Settings()
 
     @asynccontextmanager
@@ -52,8 +56,10 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
         blas = limit_blas_threads(settings.blas_threads)
         app.state.registry = registry or ModelRegistry.from_directory(
             settings.models_dir, settings.default_model, settings.onnx_threads)
-        app.state.localisers = Localisers.from_directory(settings.localisers_dir, settings.onnx_threads)
+        app.state.localisers = localisers if localisers is not None else Localisers.from_directory(
+            settings.localisers_dir, settings.onnx_threads)
         app.state.job_store, app.state.job_runner = open_backend(settings)
+        app.state.store_probe = StoreProbe(functools.partial(readiness, app.state.job_store, app.state.job_runner))
         await asyncio.to_thread(app.state.job_runner.start)
         app.state.metrics.watch_jobs(app.state.job_store, app.state.job_runner)
         log.info("machine: %s", cpu_description())       # latency depends on it (service/core/machine.py)
@@ -161,9 +167,14 @@ def run(argv: list[str] | None = None) -> None:
         log.warning("no brain localiser in SVRNET_LOCALISERS_DIR: every stack needs its mask")
     if settings.host not in ("127.0.0.1", "localhost", "::1") and not settings.key_set():
         log.warning("serving every host that reaches this address without API keys (SVRNET_API_KEYS)")
+    try:                                                        # a broken model file: one line, not a traceback
+        registry = ModelRegistry.from_directory(settings.models_dir, settings.default_model, settings.onnx_threads)
+        localisers = Localisers.from_directory(settings.localisers_dir, settings.onnx_threads)
+    except UnusableModelFile as exc:
+        raise SystemExit(f"svrnet-server: {exc}") from None
     # uvicorn's own access log writes each raw request path (job ids as sent, anything a client
     # puts in a URL); the service's JSON log records the route instead (service/api/middleware.py).
-    app = create_app(settings)
+    app = create_app(settings, registry, localisers)
 
     class Server(uvicorn.Server):
         def handle_exit(self, sig: int, frame: object) -> None:

@@ -11,7 +11,9 @@ def test_help_serves_nothing_and_options_override_the_environment(monkeypatch: p
                                                                   capsys: pytest.CaptureFixture[str]) -> None:
     served: list = []
     monkeypatch.setattr("uvicorn.Server.run", lambda server, sockets=None: served.append(server.config))
-    monkeypatch.setattr(main, "create_app", lambda settings: settings)
+    monkeypatch.setattr(main, "create_app", lambda settings, *models: settings)
+    monkeypatch.setattr(main.ModelRegistry, "from_directory", classmethod(lambda cls, *args: None))
+    monkeypatch.setattr(main.Localisers, "from_directory", classmethod(lambda cls, *args: None))
     with pytest.raises(SystemExit) as end:
         main.run(["--help"])
     assert end.value.code == 0 and "SVRNET_" in capsys.readouterr().out and not served
@@ -55,6 +57,48 @@ def test_a_setting_that_cannot_work_stops_every_command_in_one_line_naming_it(
         message = str(end.value.code)
         assert message.startswith(f"{prog}: ") and f"{variable}: " in message and said in message, message
         assert "\n" not in message
+
+
+@pytest.mark.parametrize("variable", ["SVRNET_MODELS_DIR", "SVRNET_LOCALISERS_DIR"])
+def test_a_model_file_that_does_not_load_stops_the_servers_in_one_line_naming_it(
+        variable: str, tmp_path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:  # noqa: ANN001
+    """A truncated or foreign ``model.onnx``: the HTTP and MRD servers stop before serving, in one line
+    that names the file and the setting of its folder (not a traceback from inside the start-up)."""
+    import shutil
+
+    from service.core.settings import Settings
+    from service.mrd import server as mrd_server
+
+    shipped = {"SVRNET_MODELS_DIR": Settings().models_dir, "SVRNET_LOCALISERS_DIR": Settings().localisers_dir}
+    folder = tmp_path / "models"
+    shutil.copytree(shipped[variable] / "default", folder / "default")
+    (folder / "default" / "model.onnx").write_bytes(b"half a model")
+    (folder / "copied-without-its-file").mkdir()
+    monkeypatch.setenv("SVRNET_DATA_DIR", str(tmp_path / "data"))
+    monkeypatch.setenv(variable, str(folder))
+    monkeypatch.setattr("uvicorn.Server.run", lambda server, sockets=None: pytest.fail("served a broken model"))
+    with pytest.raises(SystemExit) as end:
+        main.run([])
+    message = str(end.value.code)
+    assert message.startswith(f"svrnet-server: {variable}: ") and "default/model.onnx does not load" in message
+    assert "\n" not in message
+    with pytest.raises(SystemExit) as end:
+        mrd_server.main([])
+    said = capsys.readouterr().err
+    assert end.value.code == 2 and f"svrnet-mrd: {variable}: " in said and "Traceback" not in said
+
+
+def test_a_folder_without_its_model_file_is_named_in_a_warning(tmp_path, caplog: pytest.LogCaptureFixture) -> None:  # noqa: ANN001
+    """A model folder copied without ``model.onnx`` loads nothing and says so; dot folders (a model
+    being shipped into place) are passed over in silence."""
+    from service.core.onnx import load_models
+
+    (tmp_path / "v2").mkdir()
+    (tmp_path / ".v3.shipping").mkdir()
+    with caplog.at_level("WARNING"):
+        assert load_models(tmp_path, "SVRNET_MODELS_DIR", lambda path: path) == {}
+    warned = [r for r in caplog.records if "without model.onnx" in r.getMessage()]
+    assert [r.model for r in warned] == ["v2"] and "SVRNET_MODELS_DIR" in warned[0].getMessage()
 
 
 def test_a_started_command_makes_its_files_private(monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:  # noqa: ANN001

@@ -156,3 +156,9 @@ class NotReady(ServiceError):
 class Cancelled(Exception):
     """A job was cancelled while it ran: the reconstruction's ``cancel`` hook said so, or the worker
     found the job cancelled in the store. Not a client error: it never reaches an HTTP answer."""
+
+
+class UnusableModelFile(Exception):
+    """A model file of the models or localisers folder does not load (a truncated copy, another
+    format, a file without the service's metadata). Raised at start; never reaches an HTTP answer:
+    the server and the workers stop with one line naming the file and its folder's setting."""

@@ -1,4 +1,5 @@
-"""What every ONNX model of the service shares: its CPU session options and the file's checksum.
+"""What every ONNX model of the service shares: its CPU session options, the file's checksum and how a
+models folder is loaded.
 
 Example:
     >>> session_options(2).intra_op_num_threads
@@ -10,11 +11,18 @@ Example:
 from __future__ import annotations
 
 import hashlib
+import logging
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import onnxruntime as ort
 
+from service.core.errors import UnusableModelFile
 from service.core.threads import available_cores
+
+log = logging.getLogger(__name__)
+Loaded = TypeVar("Loaded")
 
 
 def file_sha256(path: Path) -> str:
@@ -39,6 +47,42 @@ def model_files(folder: Path) -> list[Path]:
         ['default']
     """
     return sorted(p for p in Path(folder).glob("*/model.onnx") if not p.parent.name.startswith("."))
+
+
+def load_models(folder: Path, setting: str, load: Callable[[Path], Loaded]) -> dict[str, Loaded]:
+    """Each ``<name>/model.onnx`` of ``folder`` (:func:`model_files`) opened by ``load``, by name.
+
+    A subfolder without ``model.onnx`` is named in a warning (a model copied without its file); a
+    file that does not load raises :class:`~service.core.errors.UnusableModelFile` naming it and
+    ``setting``, the variable that points to the folder, so that the start fails in one line
+    rather than with a traceback or a server without the model.
+
+    Example:
+        >>> import tempfile
+        >>> root = Path(tempfile.mkdtemp())
+        >>> (root / "default").mkdir(); _ = (root / "default" / "model.onnx").write_bytes(b"not onnx")
+        >>> load_models(root, "SVRNET_MODELS_DIR", lambda p: p.read_bytes())
+        {'default': b'not onnx'}
+        >>> def refuse(path): raise ValueError("bad\\nmore")
+        >>> try:
+        ...     load_models(root, "SVRNET_MODELS_DIR", refuse)
+        ... except UnusableModelFile as exc:
+        ...     print(str(exc).replace(str(root), "ROOT"))
+        SVRNET_MODELS_DIR: ROOT/default/model.onnx does not load as a model (ValueError: bad)
+    """
+    folder = Path(folder)
+    for sub in sorted(folder.iterdir()) if folder.is_dir() else []:
+        if sub.is_dir() and not sub.name.startswith(".") and not (sub / "model.onnx").is_file():
+            log.warning("a folder of %s without model.onnx: no model loaded from it", setting, extra={"model": sub.name})
+    loaded: dict[str, Loaded] = {}
+    for path in model_files(folder):
+        try:
+            loaded[path.parent.name] = load(path)
+        except Exception as exc:  # noqa: BLE001 - onnxruntime's own errors, missing metadata: one answer
+            reason = (str(exc).strip().splitlines() or [""])[0][:200]
+            raise UnusableModelFile(f"{setting}: {path} does not load as a model "
+                                    f"({type(exc).__name__}: {reason})") from exc
+    return loaded
 
 
 def session_options(threads: int = 0) -> ort.SessionOptions:

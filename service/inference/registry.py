@@ -6,7 +6,7 @@ import logging
 from pathlib import Path
 
 from service.core.errors import NotFound
-from service.core.onnx import model_files
+from service.core.onnx import load_models
 from service.inference.estimator import OnnxPoseEstimator, PoseEstimator
 from service.inference.model_file import load_model
 
@@ -22,10 +22,12 @@ class ModelRegistry:
 
     @classmethod
     def from_directory(cls, models_dir: Path, default_name: str = "default", threads: int = 0) -> "ModelRegistry":
-        estimators: dict[str, PoseEstimator] = {}
-        for path in model_files(models_dir):
-            estimators[path.parent.name] = OnnxPoseEstimator(load_model(path, threads))
-            log.info("model loaded", extra={"model": path.parent.name})
+        """Every model of ``models_dir`` (:func:`~service.core.onnx.load_models`:
+        :class:`~service.core.errors.UnusableModelFile` names a file that does not load)."""
+        estimators: dict[str, PoseEstimator] = load_models(
+            models_dir, "SVRNET_MODELS_DIR", lambda path: OnnxPoseEstimator(load_model(path, threads)))
+        for name in estimators:
+            log.info("model loaded", extra={"model": name})
         return cls(estimators, default_name)
 
     def resolve(self, name: str) -> str:

@@ -31,7 +31,7 @@ import time
 from dataclasses import dataclass
 
 from service.core import logging as service_logging
-from service.core.errors import Saturated
+from service.core.errors import Saturated, UnusableModelFile
 from service.core.settings import Settings, load_settings, warn_unknown_variables
 from service.core.threads import limit_blas_threads
 from service.inference.registry import ModelRegistry
@@ -186,9 +186,13 @@ class MrdServer(socketserver.ThreadingTCPServer):
 
 def build_server(settings: Settings, host: str, port: int, limits: ServerLimits) -> MrdServer:
     """The server with the models and the default localiser of ``settings``; :class:`SystemExit` (2)
-    when no model or no localiser is installed."""
-    registry = ModelRegistry.from_directory(settings.models_dir, settings.default_model, settings.onnx_threads)
-    localisers = Localisers.from_directory(settings.localisers_dir, settings.onnx_threads)
+    when no model or no localiser is installed, or one does not load."""
+    try:
+        registry = ModelRegistry.from_directory(settings.models_dir, settings.default_model, settings.onnx_threads)
+        localisers = Localisers.from_directory(settings.localisers_dir, settings.onnx_threads)
+    except UnusableModelFile as exc:
+        print(f"svrnet-mrd: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
     if not registry.estimators:
         print(f"svrnet-mrd: no model in {settings.models_dir}", file=sys.stderr)
         raise SystemExit(2)

@@ -54,7 +54,7 @@ from scipy import ndimage
 
 from service.core.cancellation import checkpoint
 from service.core.errors import NotFound
-from service.core.onnx import file_sha256, model_files, session_options, session_threads
+from service.core.onnx import file_sha256, load_models, session_options, session_threads
 from service.core.settings import DEFAULT_LOCALISERS_DIR
 from service.core.threads import side_by_side
 from service.io.volume import Volume
@@ -366,7 +366,9 @@ class Localisers:
 
     @classmethod
     def from_directory(cls, folder: Path, threads: int = 0) -> "Localisers":
-        found = {p.parent.name: Localiser.load(p, threads) for p in model_files(folder)}
+        """Every localiser of ``folder`` (:func:`~service.core.onnx.load_models`:
+        :class:`~service.core.errors.UnusableModelFile` names a file that does not load)."""
+        found = load_models(folder, "SVRNET_LOCALISERS_DIR", lambda path: Localiser.load(path, threads))
         for name in found:
             log.info("localiser loaded", extra={"model": name})
         return cls(found)
