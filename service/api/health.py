@@ -21,14 +21,20 @@ async def healthz() -> dict[str, str]:
 async def readyz(request: Request) -> dict[str, object]:
     """``200`` once every model is loaded and the job store is reachable; ``503`` before. ``workers``:
     how many reconstruction workers serve the queue (0: jobs are accepted and wait for one; null
-    where the back-end cannot tell). The API is ready without them: workers scale on their own."""
+    where the back-end cannot tell). The API is ready without them: workers scale on their own. A job
+    store that does not answer within :data:`~service.jobs.store_probe.PROBE_WAIT_S` is not ready (a
+    hung Redis holds a question for its socket timeout; the probe answers all the same)."""
     state = request.app.state
     registry = getattr(state, "registry", None)
     if registry is None or not registry.estimators:
         raise NotReady("no model loaded yet")
-    store = getattr(state, "job_store", None)
-    if store is not None and not await to_thread.run_sync(store.ping):     # a database query: off the loop
-        raise NotReady("the job store is not reachable, or its data folder cannot be written or is full")
-    runner = getattr(state, "job_runner", None)
-    return {"status": "ready", "models": sorted(registry.estimators),
-            "workers": await to_thread.run_sync(runner.live_workers) if runner is not None else None}
+    workers = None
+    probe = getattr(state, "store_probe", None)
+    if probe is not None:                                  # a question to a database or Redis: off the loop
+        answer = await to_thread.run_sync(probe)
+        if answer is None:
+            raise NotReady(f"the job store did not answer within {probe.wait_s:g} s")
+        up, workers = answer
+        if not up:
+            raise NotReady("the job store is not reachable, or its data folder cannot be written or is full")
+    return {"status": "ready", "models": sorted(registry.estimators), "workers": workers}

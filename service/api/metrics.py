@@ -9,6 +9,8 @@ from fastapi import APIRouter, Request, Response
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 from prometheus_client.core import GaugeMetricFamily
 
+from service.jobs.store_probe import StoreProbe
+
 if TYPE_CHECKING:
     from starlette.datastructures import State
 
@@ -54,25 +56,33 @@ class Metrics:
 
 
 class _JobCollector:
+    """The job store's figures at each scrape, asked within :data:`~service.jobs.store_probe.PROBE_WAIT_S`
+    (a hung store reads as down, its counts left out, rather than holding the scrape)."""
+
     def __init__(self, store, runner) -> None:  # noqa: ANN001
         self.store, self.runner = store, runner
+        self.probe = StoreProbe(self._figures)
 
-    def collect(self):  # noqa: ANN201
-        jobs = GaugeMetricFamily("svrnet_jobs", "reconstruction jobs by state", labels=["status"])
-        runner = GaugeMetricFamily("svrnet_job_runner", "job runner figures (workers, queue_length)", labels=["what"])
+    def _figures(self) -> tuple[bool, dict, dict]:
         try:
             up = bool(self.store.ping())
         except Exception:  # noqa: BLE001 - as below
             up = False
+        try:                              # a store that cannot be written (a full disk) still counts
+            return up, self.store.counts(), self.runner.stats()
+        except Exception:  # noqa: BLE001 - a scrape never fails because the queue is briefly unreachable
+            return up, {}, {}
+
+    def collect(self):  # noqa: ANN201
+        jobs = GaugeMetricFamily("svrnet_jobs", "reconstruction jobs by state", labels=["status"])
+        runner = GaugeMetricFamily("svrnet_job_runner", "job runner figures (workers, queue_length)", labels=["what"])
+        up, counts, stats = self.probe() or (False, {}, {})
         yield GaugeMetricFamily("svrnet_job_store_up", "1 while the job store answers and can be written (as /readyz)",
                                 value=float(up))
-        try:
-            for status, n in self.store.counts().items():
-                jobs.add_metric([status], n)
-            for what, value in self.runner.stats().items():
-                runner.add_metric([what], value)
-        except Exception:  # noqa: BLE001 - a scrape never fails because the queue is briefly unreachable
-            pass
+        for status, n in counts.items():
+            jobs.add_metric([status], n)
+        for what, value in stats.items():
+            runner.add_metric([what], value)
         yield jobs
         yield runner
 

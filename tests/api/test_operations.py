@@ -73,6 +73,35 @@ def test_readyz_is_503_without_models() -> None:
     assert r.status_code == 503 and r.headers["retry-after"]
 
 
+def test_a_job_store_that_hangs_is_reported_down_without_waiting_for_it(oracle, monkeypatch) -> None:  # noqa: ANN001
+    """A store that takes the question and answers nothing (a hung Redis costs each question its 10 s
+    socket timeout): ``/readyz`` answers 503 naming the wait, and ``/metrics`` reports the store down,
+    while its question is still unanswered; once the store answers, both see it up again."""
+    import threading
+    import time
+
+    from service.jobs import store_probe
+
+    monkeypatch.setattr(store_probe, "PROBE_WAIT_S", 0.2)
+    with make_client(ModelRegistry({"default": oracle})) as client:
+        store = client.app.state.job_store
+        answering, release = store.ping, threading.Event()
+        monkeypatch.setattr(store, "ping", lambda: release.wait(60) and answering())
+        try:
+            r = client.get("/readyz")
+            assert r.status_code == 503 and "did not answer within 0.2 s" in r.json()["detail"], r.text
+            assert "svrnet_job_store_up 0.0" in client.get("/metrics").text
+            assert client.get("/readyz").status_code == 503              # the same question, still unanswered
+        finally:
+            release.set()
+        for _ in range(100):
+            if client.get("/readyz").status_code == 200 and "svrnet_job_store_up 1.0" in client.get("/metrics").text:
+                break
+            time.sleep(0.05)
+        else:
+            raise AssertionError("the store answers again and is not seen up")
+
+
 def test_api_keys(tiny_model_path: Path, phantom_files) -> None:
     registry = ModelRegistry({"default": OnnxPoseEstimator(load_model(tiny_model_path))})
     with make_client(registry, api_keys="k1,k2") as client:
