@@ -179,6 +179,7 @@ class LocalRunner(JobRunner):
         else:
             log.info(f"job workers stopped for {stopped_for} and replaced; {len(queued)} job(s) queued again")
         for job in queued:
+            log.info("job queued again after its worker was lost", extra={"job_id": job.id, "attempt": job.attempts})
             self.submit(job.id)
 
     def _handed_over(self, queued: list[str], fail_others: bool = False) -> list[Job]:
