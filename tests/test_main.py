@@ -77,6 +77,11 @@ def test_a_model_file_that_does_not_load_stops_the_servers_in_one_line_naming_it
     monkeypatch.setenv("SVRNET_DATA_DIR", str(tmp_path / "data"))
     monkeypatch.setenv(variable, str(folder))
     monkeypatch.setattr("uvicorn.Server.run", lambda server, sockets=None: pytest.fail("served a broken model"))
+    import logging
+
+    monkeypatch.setattr(main.service_logging, "configure", lambda *args, **kwargs: None)   # the process's logging,
+    monkeypatch.setattr(logging.getLogger("service"), "handlers", [])                    # not an earlier test's
+    monkeypatch.setattr(logging.getLogger("service"), "propagate", True)
     with pytest.raises(SystemExit) as end:
         main.run([])
     message = str(end.value.code)

@@ -87,6 +87,10 @@ def main() -> None:
     ap.add_argument("--alone", action="store_true", help="each stack in a request of its own")
     ap.add_argument("--raw", action="store_true", help="the stack stage off; twin-min of the network's MC means")
     args = ap.parse_args()
+    if args.source == "acquisitions" and args.planning != "independent":
+        ap.error("--planning is the scenes' (the acquisitions' stacks: --orientations)")
+    if args.source != "acquisitions" and (args.orientations != "standard" or args.pixel_mm != 1.0 or args.gap_mm != 3.0):
+        ap.error("--orientations, --pixel-mm and --gap-mm are the acquisitions' (the scenes draw their own)")
 
     volumes = load_volumes(split(DEFAULT_ATLAS_ROOT)[1], DEFAULT_ATLAS_ROOT)
     if args.source == "acquisitions":

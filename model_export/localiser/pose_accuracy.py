@@ -75,8 +75,8 @@ def validation_cases(count: int, seed: int = 2_000_000, stacks: int = 1, root=DE
     for i in range(count):
         rngs = [np.random.default_rng(seed + 1000 * i + k) for k in range(stacks + 1)]
         plan = rngs[stacks].spawn(1)[0]                       # the frame's draws untouched
-        axes = [stack_axes(planes[k % len(planes)], plan).T if planning == "orthogonal" else None
-                for k in range(stacks)]
+        axes = [stack_axes(planes[(k if stacks > 1 else i) % len(planes)], plan).T if planning == "orthogonal"
+                else None for k in range(stacks)]               # single stacks: the planes in turn
         scenes = [synth_scene(heads[i % len(heads)], rngs[0], "heldout", random_contrast=False, rigid=True,
                               motion=motion, orientation=axes[0])]
         scenes += [synth_scene(heads[i % len(heads)], rng, "heldout", random_contrast=False, rigid=True, motion=motion,

@@ -161,4 +161,5 @@ class Cancelled(Exception):
 class UnusableModelFile(Exception):
     """A model file of the models or localisers folder does not load (a truncated copy, another
     format, a file without the service's metadata). Raised at start; never reaches an HTTP answer:
-    the server and the workers stop with one line naming the file and its folder's setting."""
+    ``svrnet-server`` and ``svrnet-mrd`` stop with one line naming the file and its folder's setting
+    (a job worker, which loads the default localiser for a job without masks, fails that job)."""

@@ -49,11 +49,14 @@ def model_files(folder: Path) -> list[Path]:
     return sorted(p for p in Path(folder).glob("*/model.onnx") if not p.parent.name.startswith("."))
 
 
-def load_models(folder: Path, setting: str, load: Callable[[Path], Loaded]) -> dict[str, Loaded]:
-    """Each ``<name>/model.onnx`` of ``folder`` (:func:`model_files`) opened by ``load``, by name.
+def load_models(folder: Path, setting: str, load: Callable[[Path], Loaded],
+                names: tuple[str, ...] | None = None) -> dict[str, Loaded]:
+    """Each ``<name>/model.onnx`` of ``folder`` (:func:`model_files`; ``names``: those alone) opened by
+    ``load``, by name.
 
-    A subfolder without ``model.onnx`` is named in a warning (a model copied without its file); a
-    file that does not load raises :class:`~service.core.errors.UnusableModelFile` naming it and
+    Loading the whole folder (a server's start), a subfolder without ``model.onnx`` is named in a
+    warning (a model copied without its file); a folder that cannot be listed loads nothing, as an
+    empty one. A file that does not load raises :class:`~service.core.errors.UnusableModelFile` naming it and
     ``setting``, the variable that points to the folder, so that the start fails in one line
     rather than with a traceback or a server without the model.
 
@@ -71,11 +74,17 @@ def load_models(folder: Path, setting: str, load: Callable[[Path], Loaded]) -> d
         SVRNET_MODELS_DIR: ROOT/default/model.onnx does not load as a model (ValueError: bad)
     """
     folder = Path(folder)
-    for sub in sorted(folder.iterdir()) if folder.is_dir() else []:
-        if sub.is_dir() and not sub.name.startswith(".") and not (sub / "model.onnx").is_file():
+    try:
+        subfolders = sorted(p for p in folder.iterdir() if p.is_dir()) if folder.is_dir() and names is None else []
+    except OSError:                              # not to be listed: no model, as the start's checks say
+        subfolders = []
+    for sub in subfolders:
+        if not sub.name.startswith(".") and not (sub / "model.onnx").is_file():
             log.warning("a folder of %s without model.onnx: no model loaded from it", setting, extra={"model": sub.name})
     loaded: dict[str, Loaded] = {}
     for path in model_files(folder):
+        if names is not None and path.parent.name not in names:
+            continue
         try:
             loaded[path.parent.name] = load(path)
         except Exception as exc:  # noqa: BLE001 - onnxruntime's own errors, missing metadata: one answer

@@ -173,13 +173,19 @@ class LocalRunner(JobRunner):
             broken.shutdown(wait=False, cancel_futures=True)
             stopped_for, self.stopped_for = self.stopped_for, None
             spared, self.spared = self.spared, []
+        interrupted = set(self.store.ids("running")) - set(spared)     # the runs the lost workers held
         queued = self._handed_over(self.store.recover(self.max_attempts, cause="lost worker", spared=spared))
         if stopped_for is None:
             log.warning(f"a job worker process was lost (killed, or out of memory); {len(queued)} job(s) queued again")
         else:
             log.info(f"job workers stopped for {stopped_for} and replaced; {len(queued)} job(s) queued again")
         for job in queued:
-            log.info("job queued again after its worker was lost", extra={"job_id": job.id, "attempt": job.attempts})
+            if job.id in spared:
+                log.info(f"resumed job {job.id} (its worker stopped for {stopped_for}; the run did not count)",
+                         extra={"job_id": job.id, "attempt": job.attempts + 1})
+            elif job.id in interrupted:
+                log.info(f"re-queued job {job.id}, attempt {job.attempts + 1}",
+                         extra={"job_id": job.id, "attempt": job.attempts + 1})
             self.submit(job.id)
 
     def _handed_over(self, queued: list[str], fail_others: bool = False) -> list[Job]:

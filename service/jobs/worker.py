@@ -179,7 +179,7 @@ def job_localiser(localisers_dir: Path | None, uploads: list) -> Localiser | Non
         return None
     from service.preprocess.localise import Localisers
 
-    return Localisers.from_directory(localisers_dir, threads=1).get()
+    return Localisers.from_directory(localisers_dir, threads=1, names=("default",)).get()
 
 
 def job_estimator(model_file: Path, required: bool = True) -> tuple[OnnxPoseEstimator | None, float]:

@@ -365,10 +365,10 @@ class Localisers:
         self.default_name = default_name
 
     @classmethod
-    def from_directory(cls, folder: Path, threads: int = 0) -> "Localisers":
-        """Every localiser of ``folder`` (:func:`~service.core.onnx.load_models`:
+    def from_directory(cls, folder: Path, threads: int = 0, names: tuple[str, ...] | None = None) -> "Localisers":
+        """Every localiser of ``folder`` (``names``: those alone; :func:`~service.core.onnx.load_models`:
         :class:`~service.core.errors.UnusableModelFile` names a file that does not load)."""
-        found = load_models(folder, "SVRNET_LOCALISERS_DIR", lambda path: Localiser.load(path, threads))
+        found = load_models(folder, "SVRNET_LOCALISERS_DIR", lambda path: Localiser.load(path, threads), names)
         for name in found:
             log.info("localiser loaded", extra={"model": name})
         return cls(found)

@@ -152,8 +152,8 @@ def test_a_job_worker_killed_mid_job_is_replaced_and_its_job_runs_again_or_fails
         else:
             assert st["status"] == "failed" and st["error"] == lost_worker(1), st
         assert "a job worker process was lost" in log.read_text()
-        again = [line for line in log.read_text().splitlines() if "queued again after its worker was lost" in line]
-        assert [json.loads(line)["job_id"] for line in again] == ([job_id] if attempts == 2 else []), again
+        again = [json.loads(line) for line in log.read_text().splitlines() if "re-queued job" in line]
+        assert [(line["job_id"], line["attempt"]) for line in again] == ([(job_id, 2)] if attempts == 2 else []), again
         r = server.post("/v1/reconstructions", files=files + [("poses", ("p.json", json.dumps(poses)))],
                        data={**data, "svr_iterations": "0"}, timeout=60)
         assert r.status_code == 202, r.text                          # the new pool takes jobs
