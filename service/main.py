@@ -25,6 +25,7 @@ from service.api.schemas import problem_responses
 from service.api.uploads import sweep_stale_uploads
 from service.core import logging as service_logging
 from service.core.errors import UnusableModelFile
+from service.core.listening import listen_problem
 from service.core.machine import cpu_description
 from service.core.onnx import model_files
 from service.core.settings import Settings, load_settings, warn_unknown_variables
@@ -147,6 +148,8 @@ def run(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     given = {k: v for k, v in (("host", args.host), ("port", args.port)) if v is not None}
     settings = load_settings("svrnet-server", **given)
+    if problem := listen_problem(settings.host, settings.port):   # before the start, not after it
+        raise SystemExit(f"svrnet-server: {problem}")
     if settings.tmp_dir is not None:                            # the form parser spools large uploads there too
         tempfile.tempdir = str(settings.tmp_dir)
         os.environ["TMPDIR"] = str(settings.tmp_dir)

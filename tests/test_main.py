@@ -14,6 +14,7 @@ def test_help_serves_nothing_and_options_override_the_environment(monkeypatch: p
     monkeypatch.setattr(main, "create_app", lambda settings, *models: settings)
     monkeypatch.setattr(main.ModelRegistry, "from_directory", classmethod(lambda cls, *args: None))
     monkeypatch.setattr(main.Localisers, "from_directory", classmethod(lambda cls, *args: None))
+    monkeypatch.setattr(main.service_logging, "configure", lambda *args, **kwargs: None)   # the process's logging kept
     with pytest.raises(SystemExit) as end:
         main.run(["--help"])
     assert end.value.code == 0 and "SVRNET_" in capsys.readouterr().out and not served
@@ -153,3 +154,31 @@ def test_the_redis_back_end_without_the_queue_extra_is_named_in_one_line(monkeyp
     assert "svrnet-worker:" in str(end.value.code) and "rq is missing" in str(end.value.code)
     monkeypatch.setattr(importlib.util, "find_spec", real)
     assert backends.queue_extra_missing() is None                        # the dev extras hold the queue's
+
+
+def test_an_address_the_servers_cannot_listen_on_stops_them_before_they_start_naming_the_setting(
+        tmp_path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:  # noqa: ANN001
+    """A host name that does not resolve, or a port another program listens on: one line naming the
+    setting, before any model loads (uvicorn said ``[Errno -2] Name or service not known`` after the
+    whole start)."""
+    import socket
+
+    from service.mrd import server as mrd_server
+
+    monkeypatch.setenv("SVRNET_DATA_DIR", str(tmp_path / "data"))
+    monkeypatch.setattr(main.ModelRegistry, "from_directory", classmethod(lambda cls, *args: pytest.fail("loaded")))
+    monkeypatch.setattr("uvicorn.Server.run", lambda server, sockets=None: pytest.fail("served"))
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        for variable, value, said in (("SVRNET_HOST", "no-such-host.invalid", "SVRNET_HOST: cannot listen on"),
+                                      ("SVRNET_PORT", str(port), f"SVRNET_PORT: port {port} on 127.0.0.1 is in use")):
+            monkeypatch.setenv(variable, value)
+            with pytest.raises(SystemExit) as end:
+                main.run([])
+            assert str(end.value.code).startswith(f"svrnet-server: {said}"), end.value.code
+            monkeypatch.delenv(variable)
+        monkeypatch.setattr(mrd_server.service_logging, "configure", lambda *args, **kwargs: None)
+        assert mrd_server.main(["--port", str(port)]) == 2
+        assert capsys.readouterr().err.startswith(f"svrnet-mrd: --port: port {port} on 127.0.0.1 is in use")

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 from service.core import logging as service_logging
 from service.core.errors import Saturated, UnusableModelFile
+from service.core.listening import listen_problem
 from service.core.settings import Settings, load_settings, warn_unknown_variables
 from service.core.threads import limit_blas_threads
 from service.inference.registry import ModelRegistry
@@ -220,9 +221,12 @@ def main(argv: list[str] | None = None) -> int:
     settings = load_settings("svrnet-mrd")
     service_logging.configure(settings.log_level)
     warn_unknown_variables("svrnet-mrd")
-    limit_blas_threads(settings.blas_threads)
     limits = ServerLimits(args.max_sessions or settings.stream_max_sessions, args.idle_s or settings.stream_idle_s)
+    if problem := listen_problem(args.host or settings.host, args.port, "--host or SVRNET_HOST", "--port"):
+        print(f"svrnet-mrd: {problem}", file=sys.stderr)
+        return 2
     server = build_server(settings, args.host or settings.host, args.port, limits)
+    limit_blas_threads(settings.blas_threads)               # the process's, once it is sure to serve
 
     def stop(signum: int, frame: object) -> None:  # noqa: ARG001
         raise KeyboardInterrupt
