@@ -91,3 +91,17 @@ def test_websocket_handshake_lines_name_the_route_never_the_path_or_query_sent()
     messages = [json.loads(line)["msg"] for line in err.strip().splitlines()]
     assert messages == ['- - "WebSocket /v1/stream" [accepted]', '- - "WebSocket (another path)" 403'], err
     assert "Doe" not in err and "SECRET" not in err and "10.0.0.7" not in err
+
+
+def test_a_line_s_time_is_utc_to_the_millisecond_with_its_zone() -> None:
+    """Lines of one request, or of a server and a worker, fall within one second: they sort by ``ts``
+    (ISO 8601, UTC, milliseconds truncated, never a 1000th)."""
+    import datetime
+
+    from service.core.logging import JsonFormatter
+
+    record = logging.LogRecord("service.x", logging.INFO, "", 0, "request", (), None)
+    record.created = 1796579547.9996
+    ts = json.loads(JsonFormatter().format(record))["ts"]
+    assert ts == "2026-12-06T17:52:27.999Z"
+    assert datetime.datetime.fromisoformat(ts.replace("Z", "+00:00")).timestamp() == pytest.approx(record.created, abs=1e-3)
