@@ -19,7 +19,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from service.api.deps import PROCESSING_ROUTES, early_rejection, take_admission
 from service.api.metrics import Metrics
 from service.api.problems import MEDIA_TYPE, problem_body
-from service.core.errors import InternalError, MalformedRequest, PayloadTooLarge, RequestTimeout, ServiceError
+from service.core.errors import InternalError, MalformedRequest, NotReady, PayloadTooLarge, RequestTimeout, ServiceError
 from service.core.logging import error_at
 
 log = logging.getLogger("service.access")
@@ -137,7 +137,8 @@ class RequestContext:
       body is not whole ``timeout_s`` after the request began, so a client trickling bytes holds no
       connection for ever (the answer, once the body is in, has no such limit);
     * turns any unexpected exception into a 500 problem+json with the request id, logged by type
-      only (no traceback reaches the client or the log, no patient data the log);
+      only (no traceback reaches the client or the log, no patient data the log), and a request the
+      server stops past its shutdown grace into a 503 (:data:`STOPPING`), counted and logged;
     * records metrics and writes one access-log line (:data:`CLIENT_CLOSED` for a client that left
       during its upload).
     """
@@ -231,7 +232,7 @@ class RequestContext:
                                                 "error_at": error_at(exc)})
             early = InternalError()
         length = headers.get("content-length")
-        held = False
+        held, stopped = False, None
         if early is None and app is not None and (scope["method"], scope["path"]) in PROCESSING_ROUTES:
             early = await take_admission(app.state)      # before its body
             held = early is None and getattr(app.state, "admissions", None) is not None
@@ -245,6 +246,13 @@ class RequestContext:
         except BodyRefused:
             if not state["started"]:
                 await self._problem(emit, rid, state["refusal"])
+        except asyncio.CancelledError as exc:     # the server stops past its grace: uvicorn cancels what still runs
+            stopped = exc
+            if not state["started"]:               # a 503 to send again, not uvicorn's plain 500
+                try:
+                    await self._problem(emit, rid, STOPPING)
+                except Exception:  # noqa: BLE001 - the connection is gone: nothing to tell
+                    pass
         except Exception as exc:  # noqa: BLE001 - the last line of defence: never a traceback
             log.error("unhandled error", extra={"request_id": rid, "error_type": type(exc).__name__,
                                                 "error_at": error_at(exc)})
@@ -262,6 +270,8 @@ class RequestContext:
         self.metrics.observe_request(path, method, model, state["code"], elapsed)
         log.info("request", extra={"request_id": rid, "route": path, "method": method,
                                    "status": state["code"], "duration_ms": round(elapsed * 1e3, 1)})
+        if stopped is not None:
+            raise stopped
 
     def _too_large(self) -> PayloadTooLarge:
         return PayloadTooLarge(f"the request body (every file of the request together) exceeds the server's limit of "
@@ -279,6 +289,11 @@ class RequestContext:
         raw += [(k.lower().encode("latin-1"), v.encode("latin-1")) for k, v in (error.headers or {}).items()]
         await send({"type": "http.response.start", "status": error.status, "headers": raw})
         await send({"type": "http.response.body", "body": data})
+
+
+STOPPING = NotReady("the server stopped before the answer was ready (it waits for the requests under way, "
+                    "then stops them); send the request again")
+"""What a request still running when the server stops past its grace is answered (503, ``Retry-After``)."""
 
 
 class BodyRefused(Exception):

@@ -175,3 +175,51 @@ def test_no_answer_may_be_framed_by_another_site_or_sniffed(oracle: object) -> N
         assert r.headers["x-frame-options"] == "DENY", r.url
         assert r.headers["content-security-policy"] == "frame-ancestors 'none'", r.url
         assert r.headers["x-content-type-options"] == "nosniff", r.url
+
+
+def test_a_request_the_server_stops_past_its_grace_is_answered_503_and_logged(caplog) -> None:  # noqa: ANN001
+    """uvicorn cancels the requests still running when its shutdown grace ends, and answered them a
+    plain-text 500 without an access line: the client gets a problem+json 503 to send again, the
+    request is counted and logged with that status, and the cancellation goes on."""
+    import logging
+
+    running, sent = asyncio.Event(), []
+
+    async def endless_app(scope: dict, receive: Callable, send: Callable) -> None:
+        running.set()
+        await asyncio.sleep(3600)                          # a request still running at the end of the grace
+
+    async def receive() -> dict:
+        return {"type": "http.request", "body": b"", "more_body": False}
+
+    async def send(message: dict) -> None:
+        sent.append(message)
+
+    scope = {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1", "method": "GET",
+             "scheme": "http", "path": "/v1/models", "raw_path": b"/v1/models", "query_string": b"",
+             "root_path": "", "headers": [], "client": ("127.0.0.1", 1), "server": ("testserver", 80)}
+    metrics = Metrics()
+    layer = RequestContext(endless_app, metrics, max_body_bytes=100)
+
+    async def stop_past_grace() -> None:
+        task = asyncio.create_task(layer(scope, receive, send))
+        await asyncio.wait_for(running.wait(), 10)
+        task.cancel(msg="Task cancelled, timeout graceful shutdown exceeded")     # what uvicorn does
+        try:
+            await task
+        except asyncio.CancelledError:
+            return
+        raise AssertionError("the cancellation was swallowed")
+
+    with caplog.at_level(logging.INFO, logger="service.access"):
+        asyncio.run(stop_past_grace())
+    start = next(m for m in sent if m["type"] == "http.response.start")
+    body = json.loads(b"".join(m.get("body", b"") for m in sent if m["type"] == "http.response.body"))
+    assert start["status"] == 503 and (b"retry-after", b"5") in start["headers"]
+    assert body["type"] == "/problems/not-ready" and "send the request again" in body["detail"]
+    assert [r.status for r in caplog.records if r.getMessage() == "request"] == [503]
+    from prometheus_client import generate_latest
+
+    counted = [line for line in generate_latest(metrics.registry).decode().splitlines()
+               if line.startswith("svrnet_requests_total{") and 'status="503"' in line]
+    assert counted and counted[0].endswith(" 1.0"), counted
