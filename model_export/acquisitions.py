@@ -210,15 +210,17 @@ def simulate_stack(image: NDArray, mask: NDArray, affine: NDArray, centre: NDArr
 
 
 def simulate_acquisition(image: NDArray, mask: NDArray, affine: NDArray, rng: np.random.Generator,
-                         motion: str = "mild", **kwargs: float) -> list[SimulatedStack]:
-    """Axial, coronal and sagittal stacks of one volume, one fetus position in the scanner."""
+                         motion: str = "mild", axes: list[NDArray | None] | None = None,
+                         **kwargs: float) -> list[SimulatedStack]:
+    """Axial, coronal and sagittal stacks of one volume, one fetus position in the scanner; ``axes``: each
+    stack's axes instead of its planned ones (:func:`simulate_stack`; the draws are made all the same)."""
     if motion not in MOTION_LEVELS:
         raise ValueError(f"unknown motion level {motion!r}; expected one of {list(MOTION_LEVELS)}")
     m = np.asarray(mask) > 0.5
     centre = _centroid(m, affine)
     scanner_from_atlas = make_pose(iterators.random_rotations(1, rng, np.pi)[0], rng.uniform(-SCANNER_ORIGIN_MM, SCANNER_ORIGIN_MM, 3))
-    return [simulate_stack(np.asarray(image, np.float32), m, affine, centre, o, scanner_from_atlas, rng, motion, **kwargs)
-            for o in ORIENTATIONS]
+    return [simulate_stack(np.asarray(image, np.float32), m, affine, centre, o, scanner_from_atlas, rng, motion,
+                           axes=a, **kwargs) for o, a in zip(ORIENTATIONS, axes or [None] * len(ORIENTATIONS))]
 
 
 def _centroid(mask: NDArray, affine: NDArray) -> NDArray:

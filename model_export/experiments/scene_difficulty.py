@@ -9,7 +9,7 @@ brain scored against its true pose (:func:`~model_export.localiser.pose_accuracy
 * ``scenes-atlas-image``: the same stacks, each slice's image replaced by the atlas volume sampled at
   its true pose with the acquisitions' slice profile (no noise, bias, CSF or contrast of the scene:
   what the image content costs);
-* ``acquisitions``: the pose benchmarks' stacks (:func:`~model_export.acquisitions.simulate_stack`)
+* ``acquisitions``: the pose benchmarks' stacks (:func:`~model_export.acquisitions.simulate_acquisition`)
   with ``--orientations`` ``standard`` (axial, coronal, sagittal to the head, tilted about 10 deg),
   ``orthogonal`` (three orthogonal stacks turned together at random) or ``independent`` (each stack
   its own random orientation), ``--pixel-mm`` and ``--gap-mm`` as scanners set them.
@@ -33,14 +33,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from model_export.acquisitions import ORIENTATIONS, SCANNER_ORIGIN_MM, _centroid, simulate_stack  # noqa: E402
+from model_export.acquisitions import ORIENTATIONS, simulate_acquisition  # noqa: E402
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
 from model_export.localiser import pose_accuracy  # noqa: E402
 from model_export.localiser.evaluate import _pose_estimator  # noqa: E402
 from model_export.localiser.scenes import Scene  # noqa: E402
 from model_export.localiser.surroundings import random_rotation  # noqa: E402
-from service.geometry import iterators, sampling  # noqa: E402
-from service.geometry.pose import make_pose  # noqa: E402
+from service.geometry import sampling  # noqa: E402
 from service.io.volume import Volume  # noqa: E402
 from service.pipeline.predict import predict  # noqa: E402
 from service.preprocess.stack import split_stack  # noqa: E402
@@ -61,18 +60,14 @@ def atlas_image(scene: Scene, volume) -> Scene:  # noqa: ANN001
 
 
 def acquisition(volume, rng: np.random.Generator, orientations: str, **geometry: float) -> list[Scene]:  # noqa: ANN001
-    """Three stacks of ``volume`` at mild motion as :func:`~model_export.acquisitions.simulate_acquisition`
-    draws them, their axes as ``orientations`` says."""
-    mask = np.asarray(volume.mask) > 0.5
-    centre = _centroid(mask, volume.affine)
-    scanner_from_atlas = make_pose(iterators.random_rotations(1, rng, np.pi)[0],
-                                   rng.uniform(-SCANNER_ORIGIN_MM, SCANNER_ORIGIN_MM, 3))
-    plan = rng.spawn(1)[0]                              # the acquisition's own draws untouched
+    """Three stacks of ``volume`` at mild motion (:func:`~model_export.acquisitions.simulate_acquisition`),
+    their axes as ``orientations`` says (drawn from a child of ``rng``: the acquisition's own draws
+    are those of ``standard``)."""
+    plan = rng.spawn(1)[0]
     turn = random_rotation(plan)
-    axes = {"standard": [None] * 3, "orthogonal": [turn @ ORIENTATIONS[o] for o in ORIENTATIONS],
+    axes = {"standard": None, "orthogonal": [turn @ ORIENTATIONS[o] for o in ORIENTATIONS],
             "independent": [random_rotation(plan) for _ in ORIENTATIONS]}[orientations]
-    stacks = [simulate_stack(np.asarray(volume.image, np.float32), mask, volume.affine, centre, o, scanner_from_atlas,
-                             rng, "mild", axes=a, **geometry) for o, a in zip(ORIENTATIONS, axes)]
+    stacks = simulate_acquisition(volume.image, volume.mask, volume.affine, rng, "mild", axes=axes, **geometry)
     return [Scene(s.volume, s.mask.array > 0, s.mask.array > 0, s.atlas_from_voxel) for s in stacks]
 
 

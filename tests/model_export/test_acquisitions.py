@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from model_export.acquisitions import interleaved_times, simulate_acquisition
 from model_export.evaluate_acquisitions import NoisyTwinEstimator, evaluate_acquisitions, markdown
@@ -15,13 +16,20 @@ from tests.support.phantoms import phantom_brain
 BRAIN = phantom_brain(0)
 
 
-@pytest.mark.parametrize("motion", ["moderate", "jumps", "independent"])
-def test_every_voxel_shows_the_atlas_at_its_true_position(motion: str) -> None:
+@pytest.mark.parametrize(("motion", "turned"), [("moderate", False), ("jumps", False), ("independent", False),
+                                               ("moderate", True)])
+def test_every_voxel_shows_the_atlas_at_its_true_position(motion: str, turned: bool) -> None:
     """The simulated truth composes the motion about the brain centre with the stack's geometry: every
-    voxel shows the atlas where its ``atlas_from_voxel`` says, smooth, jumping and independent motion alike."""
+    voxel shows the atlas where its ``atlas_from_voxel`` says, smooth, jumping and independent motion
+    alike, and for stacks given axes of their own (``turned``: each slice's true normal is its axes')."""
     img, mask, aff = BRAIN
-    stacks = simulate_acquisition(img, mask, aff, np.random.default_rng(0), motion, size=48, pixel_mm=2.0,
+    axes = [Rotation.random(random_state=k).as_matrix() for k in range(3)] if turned else None
+    stacks = simulate_acquisition(img, mask, aff, np.random.default_rng(0), motion, axes=axes, size=48, pixel_mm=2.0,
                                   thickness_mm=0.0, noise=0.0, bias=0.0)
+    for s, a in zip(stacks, axes or [None] * 3):
+        normals = s.atlas_from_voxel[:, :3, 2] / np.linalg.norm(s.atlas_from_voxel[:, :3, 2], axis=1, keepdims=True)
+        if a is not None:                                  # within the moderate motion's 20 deg
+            assert np.all(np.abs(normals @ a[:, 2]) > np.cos(np.radians(21.0)))
     for s in stacks:
         n = s.volume.array.shape[2]
         ij = np.stack(np.meshgrid(np.arange(48), np.arange(48), indexing="ij"), -1).reshape(-1, 2)
