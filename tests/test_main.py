@@ -7,6 +7,18 @@ import pytest
 from service import main
 
 
+@pytest.fixture
+def kept_logging(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A command started in the test process leaves the process's logging as it is: ``configure`` would
+    send the ``service`` loggers to the stderr of the test that ran it (closed for later tests)."""
+    import logging
+
+    monkeypatch.setattr(main.service_logging, "configure", lambda *args, **kwargs: None)
+    monkeypatch.setattr(logging.getLogger("service"), "handlers", [])
+    monkeypatch.setattr(logging.getLogger("service"), "propagate", True)
+
+
+@pytest.mark.usefixtures("kept_logging")
 def test_help_serves_nothing_and_options_override_the_environment(monkeypatch: pytest.MonkeyPatch,
                                                                   capsys: pytest.CaptureFixture[str]) -> None:
     served: list = []
@@ -14,7 +26,6 @@ def test_help_serves_nothing_and_options_override_the_environment(monkeypatch: p
     monkeypatch.setattr(main, "create_app", lambda settings, *models: settings)
     monkeypatch.setattr(main.ModelRegistry, "from_directory", classmethod(lambda cls, *args: None))
     monkeypatch.setattr(main.Localisers, "from_directory", classmethod(lambda cls, *args: None))
-    monkeypatch.setattr(main.service_logging, "configure", lambda *args, **kwargs: None)   # the process's logging kept
     with pytest.raises(SystemExit) as end:
         main.run(["--help"])
     assert end.value.code == 0 and "SVRNET_" in capsys.readouterr().out and not served
@@ -61,6 +72,7 @@ def test_a_setting_that_cannot_work_stops_every_command_in_one_line_naming_it(
 
 
 @pytest.mark.parametrize("variable", ["SVRNET_MODELS_DIR", "SVRNET_LOCALISERS_DIR"])
+@pytest.mark.usefixtures("kept_logging")
 def test_a_model_file_that_does_not_load_stops_the_servers_in_one_line_naming_it(
         variable: str, tmp_path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:  # noqa: ANN001
     """A truncated or foreign ``model.onnx``: the HTTP and MRD servers stop before serving, in one line
@@ -78,11 +90,6 @@ def test_a_model_file_that_does_not_load_stops_the_servers_in_one_line_naming_it
     monkeypatch.setenv("SVRNET_DATA_DIR", str(tmp_path / "data"))
     monkeypatch.setenv(variable, str(folder))
     monkeypatch.setattr("uvicorn.Server.run", lambda server, sockets=None: pytest.fail("served a broken model"))
-    import logging
-
-    monkeypatch.setattr(main.service_logging, "configure", lambda *args, **kwargs: None)   # the process's logging,
-    monkeypatch.setattr(logging.getLogger("service"), "handlers", [])                    # not an earlier test's
-    monkeypatch.setattr(logging.getLogger("service"), "propagate", True)
     with pytest.raises(SystemExit) as end:
         main.run([])
     message = str(end.value.code)
@@ -156,6 +163,7 @@ def test_the_redis_back_end_without_the_queue_extra_is_named_in_one_line(monkeyp
     assert backends.queue_extra_missing() is None                        # the dev extras hold the queue's
 
 
+@pytest.mark.usefixtures("kept_logging")
 def test_an_address_the_servers_cannot_listen_on_stops_them_before_they_start_naming_the_setting(
         tmp_path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:  # noqa: ANN001
     """A host name that does not resolve, or a port another program listens on: one line naming the
@@ -179,6 +187,5 @@ def test_an_address_the_servers_cannot_listen_on_stops_them_before_they_start_na
                 main.run([])
             assert str(end.value.code).startswith(f"svrnet-server: {said}"), end.value.code
             monkeypatch.delenv(variable)
-        monkeypatch.setattr(mrd_server.service_logging, "configure", lambda *args, **kwargs: None)
         assert mrd_server.main(["--port", str(port)]) == 2
         assert capsys.readouterr().err.startswith(f"svrnet-mrd: --port: port {port} on 127.0.0.1 is in use")
