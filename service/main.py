@@ -27,7 +27,6 @@ from service.core import logging as service_logging
 from service.core.errors import UnusableModelFile
 from service.core.listening import listen_problem
 from service.core.machine import cpu_description
-from service.core.onnx import model_files
 from service.core.settings import Settings, load_settings, warn_unknown_variables
 from service.core.threads import limit_blas_threads
 from service.inference.registry import ModelRegistry
@@ -166,8 +165,6 @@ def run(argv: list[str] | None = None) -> None:
             held.close()                                        # the server's job runner takes it at start
     service_logging.configure(settings.log_level, libraries=("rq",) if settings.queue_url else ())  # its clean-ups
     warn_unknown_variables("svrnet-server")
-    if not model_files(settings.localisers_dir):
-        log.warning("no brain localiser in SVRNET_LOCALISERS_DIR: every stack needs its mask")
     if settings.host not in ("127.0.0.1", "localhost", "::1") and not settings.key_set():
         log.warning("serving every host that reaches this address without API keys (SVRNET_API_KEYS)")
     try:                                                        # a broken model file: one line, not a traceback
@@ -175,6 +172,8 @@ def run(argv: list[str] | None = None) -> None:
         localisers = Localisers.from_directory(settings.localisers_dir, settings.onnx_threads)
     except UnusableModelFile as exc:
         raise SystemExit(f"svrnet-server: {exc}") from None
+    if not localisers.localisers:
+        log.warning("no brain localiser in SVRNET_LOCALISERS_DIR: every stack needs its mask")
     # uvicorn's own access log writes each raw request path (job ids as sent, anything a client
     # puts in a URL); the service's JSON log records the route instead (service/api/middleware.py).
     app = create_app(settings, registry, localisers)

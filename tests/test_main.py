@@ -25,7 +25,7 @@ def test_help_serves_nothing_and_options_override_the_environment(monkeypatch: p
     monkeypatch.setattr("uvicorn.Server.run", lambda server, sockets=None: served.append(server.config))
     monkeypatch.setattr(main, "create_app", lambda settings, *models: settings)
     monkeypatch.setattr(main.ModelRegistry, "from_directory", classmethod(lambda cls, *args: None))
-    monkeypatch.setattr(main.Localisers, "from_directory", classmethod(lambda cls, *args: None))
+    monkeypatch.setattr(main.Localisers, "from_directory", classmethod(lambda cls, *args: cls({})))
     with pytest.raises(SystemExit) as end:
         main.run(["--help"])
     assert end.value.code == 0 and "SVRNET_" in capsys.readouterr().out and not served
