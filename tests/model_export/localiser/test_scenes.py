@@ -104,11 +104,14 @@ def test_some_heads_sit_at_the_uterine_wall_without_a_fluid_rim(monkeypatch: pyt
     assert fluid_share(0.0) > 0.5 and fluid_share(1.0) < 0.6 * fluid_share(0.0)
 
 
-@pytest.mark.parametrize("motion", [None, "independent"])
-def test_a_rigid_scene_knows_each_slice_pose_in_the_atlas(small_fields: None, motion: str | None) -> None:
+@pytest.mark.parametrize(("motion", "planned"), [(None, False), ("independent", False), ("mild", True)])
+def test_a_rigid_scene_knows_each_slice_pose_in_the_atlas(small_fields: None, motion: str | None, planned: bool) -> None:
     """The atlas brain mask sampled at each slice's true pose is the scene's brain in that slice; the
     skull-inside mask holds the brain; and the head moved between slices (by the generator's drift,
-    or as the pose benchmarks' independent motion moves it)."""
+    or as the pose benchmarks' independent motion moves it); the same for a stack planned coronal to
+    the head (``orientation``)."""
+    from model_export.acquisitions import stack_axes
+
     from scipy import ndimage
 
     from model_export.localiser.scenes import synth_scene
@@ -117,7 +120,8 @@ def test_a_rigid_scene_knows_each_slice_pose_in_the_atlas(small_fields: None, mo
     affine = affine.copy()
     affine[:3, 3] = [-40.0, 25.0, 7.0]                   # an atlas whose world origin is not its corner
     head = HeadModel.from_arrays(image, mask, affine)
-    scene = synth_scene(head, np.random.default_rng(11), "heldout", rigid=True, motion=motion)
+    orientation = stack_axes("coronal", np.random.default_rng(2)).T if planned else None
+    scene = synth_scene(head, np.random.default_rng(11), "heldout", rigid=True, motion=motion, orientation=orientation)
     assert scene.atlas_from_voxel is not None and len(scene.atlas_from_voxel) == scene.volume.array.shape[2]
     assert np.allclose(np.linalg.det(scene.atlas_from_voxel[:, :3, :3]), np.prod(scene.volume.spacing))   # rigid
     assert (scene.brain <= scene.mask).all() and scene.mask.sum() > scene.brain.sum() > 0
