@@ -6,7 +6,8 @@ show, and the slices' images can (:mod:`service.consistency.intersections`). The
 ``P_k`` (network frame -> atlas) are refined by a right perturbation in each slice's network frame
 (its mask centroid, its own axes), ``P_k' = P_k exp(d_k)``, minimising the image term (soft L1)
 plus ``sum_k |d_k / s_k|^2``, the stage's expected error as a Gaussian prior, by Levenberg-Marquardt
-in passes from coarse to fine in-plane smoothing. The images do not see a rigid move of all slices
+in passes from coarse to fine in-plane smoothing, the stacks' intensities matched where they cross
+(:mod:`~service.consistency.intensity_match`). The images do not see a rigid move of all slices
 together: the result is put back in the frame of the stage's poses. Slices on no line follow their
 stack's nearest checked slices; each slice's expected error follows its remaining mismatch and how
 firmly the images hold it (its Laplace spread at the optimum; :mod:`~service.consistency.refined_errors`).
@@ -27,6 +28,7 @@ from numpy.typing import NDArray
 from scipy import linalg
 
 from service.consistency.image_jacobian import PointJacobian, image_jacobian
+from service.consistency.intensity_match import matched
 from service.consistency.intersections import ImageTerm, candidate_pairs
 from service.consistency.refined_errors import laplace_spread_mm
 from service.consistency.slice_images import BlockedStack, SampledStack, StackImages
@@ -55,6 +57,12 @@ TOLERANCE = 1e-2
 """A pass ends when an iteration lowers the objective by less than this fraction."""
 SMOOTHING_WORKERS = 2
 """Stacks smoothed at a time (threads) before the passes."""
+MATCHED_FROM_PASS: int | None = 1
+"""The first pass (0: the coarsest) whose images are divided by the stacks' fitted gains and shading
+(:func:`~service.consistency.intensity_match.matched`, at the pass's starting poses; None: no pass's).
+The coarsest pass moves slices from where the stack stage left them, up to a few millimetres: fitted
+there, a stack's gain and slope take up part of the mismatch of a stack placed off as a whole, which
+is what moves it back; from the second pass on, the lines show the same tissue."""
 
 
 @dataclass
@@ -135,13 +143,17 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
     finest = None                         # the last pass's residuals, weights and image term at its optimum
     used = 0
     mismatch = np.full(len(p0), np.nan)
-    for (_, step, budget), sampled in zip(passes, _smoothed_passes(stacks, [p[0] for p in passes], smoothed)):
+    smoothed_passes = _smoothed_passes(stacks, [p[0] for p in passes], smoothed)
+    for index, ((_, step, budget), sampled) in enumerate(zip(passes, smoothed_passes)):
         t = np.arange(-radius, radius + 1e-9, step)
         start = atlas_from_slice(x)
         term = ImageTerm(sampled, stack_of, local, pairs, t, start)
         term.select_in_masks(start, MIN_LINE_WEIGHT, budget)
         if not len(term.pair_of):
             break
+        if MATCHED_FROM_PASS is not None and index >= MATCHED_FROM_PASS:
+            sampled, _ = matched(sampled, term, start, stack_of)
+            term.use_images(sampled)
         used = len(term.pairs)
 
         def residual(params: NDArray, term: ImageTerm = term) -> NDArray:

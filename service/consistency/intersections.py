@@ -269,18 +269,33 @@ class ImageTerm:
         """Per role, each point's slice and where it falls among that slice's pixels (:class:`Cells`)."""
         if self._last is not None and np.array_equal(self._last[0], atlas_from_slice):
             return self._last[1]
-        ends = self._line_ends(atlas_from_slice)
-        t = self.t[self.t_of]
+        at = self.pixels(atlas_from_slice)
 
         def site(role: int) -> tuple[NDArray, Cells]:
-            base, slope = ends[role][:, 0].T, (ends[role][:, 1] - ends[role][:, 0]).T      # [2, M]: rows, columns
-            rows, cols = (base[k][self.pair_of] + t * slope[k][self.pair_of] for k in (0, 1))
             slices, start, h, w = self._slices_of_points(role)
-            return slices, self.stacks.cells_from(start, h, w, rows, cols)
+            return slices, self.stacks.cells_from(start, h, w, at[role, :, 0], at[role, :, 1])
 
         sites = [site(0), site(1)]
         self._last = (np.array(atlas_from_slice, copy=True), sites)
         return sites
+
+    def pixels(self, atlas_from_slice: NDArray) -> NDArray[np.float64]:
+        """``[2, P, 2]`` where each point falls in each role's slice: (row, column) of its stack's
+        images (:class:`~service.consistency.slice_images.SampledStack`'s grid)."""
+        ends = self._line_ends(atlas_from_slice)
+        t = self.t[self.t_of]
+        out = np.empty((2, len(t), 2))
+        for role in (0, 1):
+            base, slope = ends[role][:, 0].T, (ends[role][:, 1] - ends[role][:, 0]).T      # [2, M]: rows, columns
+            for k in (0, 1):
+                out[role, :, k] = base[k][self.pair_of] + t * slope[k][self.pair_of]
+        return out
+
+    def use_images(self, sampled: list[SampledStack]) -> None:
+        """Sample ``sampled`` (the same stacks on the same grids, other values) from here on; the
+        points and their weights stay."""
+        self.stacks = SampledStacks(sampled)
+        self._last = None
 
     def _slices_of_points(self, role: int) -> tuple[NDArray, NDArray, NDArray, NDArray]:
         """Each point's slice in ``role``, where that slice starts in the flat arrays and its padded
