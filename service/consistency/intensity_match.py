@@ -43,7 +43,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import sparse
 
 from service.consistency.intersections import ImageTerm
 from service.consistency.slice_images import SampledStack
@@ -123,23 +122,20 @@ def fit_fields(values: NDArray, weights: NDArray, slice_of: NDArray, stack_of: N
     if not ok.any():
         return Fields(np.zeros((stacks, TERMS)), 0)
     p = int(ok.sum())
-    cols, vals = [], []
+    design = np.zeros((p, stacks, TERMS))                          # dense: a few numbers a stack
     for role, sign in ((0, 1.0), (1, -1.0)):
-        s = np.asarray(stack_of[role])[ok]
-        cols.append(TERMS * s[:, None] + np.arange(TERMS))
-        vals.append(sign * np.concatenate([basis[np.asarray(slice_of[role])[ok]], np.asarray(u[role])[ok]], axis=1))
-    design = sparse.csr_matrix((np.concatenate(vals, axis=1).ravel(),
-                                (np.repeat(np.arange(p), 2 * TERMS), np.concatenate(cols, axis=1).ravel())),
-                               shape=(p, TERMS * stacks))
+        terms = np.concatenate([basis[np.asarray(slice_of[role])[ok]], np.asarray(u[role])[ok]], axis=1)
+        design[np.arange(p), np.asarray(stack_of[role])[ok]] += sign * terms
+    design = design.reshape(p, stacks * TERMS)
     y = np.log(v[0, ok]) - np.log(v[1, ok])
     w0 = np.asarray(weights, np.float64)[ok] / HUBER ** 2
     prior = np.diag(np.tile(1.0 / np.array([*GAIN_SD, SLOPE_SD, SLOPE_SD]) ** 2, stacks))
-    robust = np.ones(p)
+    w = w0
     for _ in range(ROUNDS):
-        weighted = design.multiply((w0 * robust)[:, None]).tocsr()
-        z = np.linalg.solve((design.T @ weighted).toarray() + prior, weighted.T @ y)
+        weighted = design * w[:, None]
+        z = np.linalg.solve(design.T @ weighted + prior, weighted.T @ y)
         r = np.abs(y - design @ z)
-        robust = np.where(r > HUBER, HUBER / np.maximum(r, 1e-12), 1.0)
+        w = w0 * np.where(r > HUBER, HUBER / np.maximum(r, 1e-12), 1.0)
     return Fields(z.reshape(stacks, TERMS), p)
 
 
