@@ -33,11 +33,17 @@ class Metrics:
                               registry=self.registry)
         self.rejected = Counter("svrnet_slices_rejected_total", "slices not accepted", ["model", "reason"],
                                 registry=self.registry)
+        self._jobs: _JobCollector | None = None
 
     def watch_jobs(self, store: JobStore, runner: JobRunner) -> None:
         """Export the job counts per state and the runner's numbers (workers, queue length), read from
-        the store at each scrape: with the distributed back-end every replica reports the whole queue."""
-        self.registry.register(_JobCollector(store, runner))
+        the store at each scrape: with the distributed back-end every replica reports the whole queue.
+        An app started again (its lifespan entered a second time) watches its new store and runner in
+        place of the old ones: the scrape holds each family once."""
+        if self._jobs is not None:
+            self.registry.unregister(self._jobs)
+        self._jobs = _JobCollector(store, runner)
+        self.registry.register(self._jobs)
 
     def watch_streams(self, state: State) -> None:
         """Export the open ``/v1/stream`` sessions (``state.stream_sessions``), read at each scrape."""
