@@ -27,7 +27,7 @@ from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
 if TYPE_CHECKING:
-    from model_export.localiser.scenes import HeadModel
+    from model_export.localiser.head import HeadModel
 
 ENGAGED_SHARE = {"train": 0.3, "heldout": 0.25}
 """Share of stacks whose head sits at or beyond the uterine wall (late pregnancy, head in the maternal
