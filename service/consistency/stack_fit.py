@@ -53,8 +53,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from service.consistency.error_shape import anatomical_axes, relative_depth
-from service.consistency.motion_model import ERROR_CORRELATIONS, NO_VOTE, Grid, MotionFit, fit_motion, refit
+from service.consistency.motion_model import ERROR_CORRELATIONS, NO_VOTE, Grid, fit_motion, refit
 from service.consistency.slice_order import acquisition_orders
+from service.consistency.slice_weights import MIN_NOISE_MM, noise_scales, precisions, robust_weights
+from service.consistency.slice_weights import votes as slice_votes
 from service.geometry import se3, twin
 from service.geometry.anchors import ed
 from service.geometry.pose import make_pose, translate
@@ -67,8 +69,6 @@ MAX_MODEL_ERROR_MM = 25.0
 """A stack whose model predicts its slices worse than this (the spread of the others' prediction)
 has no common geometry (e.g. every slice moved independently): undecidable, nothing is changed."""
 MIN_SLICES = 3
-MIN_SCALE_MM = 3.0
-"""Floor of the robust residual scale (mm), so a near-perfect stack does not reject its noise."""
 OUTLIER_K = 3.0
 OUTLIER_FLOOR_MM = 15.0
 """A slice is inconsistent when its residual to the model exceeds ``max(K * sqrt(network^2 +
@@ -90,12 +90,8 @@ shared real scan, its branch decided by the request, lies 14 mm from it on that 
 mm on its twin. At 3 it did not agree, left the joint refinement and lost every accepted slice
 whenever its own margin fell under 1.5, which a change of its voxels below the file's rounding
 did. A branch the stack decided itself is overruled only on more (``stage.OVERRULE_MARGIN``)."""
-MIN_NOISE_MM = 0.01
-"""Floor of a pose's expected error (mm), so an exact oracle still has a finite weight."""
 FIRST_GRID = Grid(error_correlations=(0.5,))
 """The first motion fit only re-weighs the slices: one error correlation suffices."""
-MIN_STANDARD_SCALE = 0.5
-"""Floor of the robust scale of residuals in units of the slices' expected errors."""
 
 
 @dataclass
@@ -246,15 +242,15 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
 
     # 2. rigid fit: IRLS with Tukey weights (on residuals in units of each slice's expected error,
     #    and times its precision, when the errors are known), branches re-decided each round
-    sig = None if expected_error_mm is None else _noise(expected_error_mm, use)
+    sig = None if expected_error_mm is None else noise_scales(expected_error_mm, use)
     s = proposals[idx[h], b]
     for _ in range(IRLS_ROUNDS):
         model = s @ inv_n                                                   # [n, 4, 4]
         both = ed(model[:, None], cand)                                     # [n, 2]
         branch = _branch(both)
         r = both[np.arange(n), branch]
-        tukey = _robust(r, sig, use)
-        w = tukey * (1.0 if sig is None else _precision(sig, use))
+        tukey = robust_weights(r, sig, use)
+        w = tukey * (1.0 if sig is None else precisions(sig, use))
         if w.sum() <= 0:
             return unchanged
         s = _local_models(proposals[np.arange(n), branch], s, w[None])[0]   # one Gauss-Newton step a round
@@ -289,7 +285,7 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     motion = fit_motion(chosen, s, votes, orders, centre, first, **shape)
     # a slice far from the rigid fit may just have moved: every usable slice is weighed again by
     # how well the others predict it, in units of the spread both errors explain
-    votes = _votes(ed(motion.loo @ inv_n, own), motion, sig, use)
+    votes = slice_votes(ed(motion.loo @ inv_n, own), motion, sig, use)
     memo: dict = {}                        # the final fit reuses this one's eigendecompositions where its votes are these
     motion = fit_motion(chosen, s, votes, orders, centre, grid, memo=memo, **shape)
     first = branch
@@ -383,45 +379,3 @@ def _local_models(chosen: NDArray, centre: NDArray, weights: NDArray) -> NDArray
     w_omega = norm @ omega
     w_t = np.where(total > 0, norm @ chosen[:, :3, 3], centre[:3, 3])
     return make_pose(rc @ se3.so3_exp(w_omega), w_t)
-
-
-def _robust(r: NDArray, sig: NDArray | None, use: NDArray) -> NDArray:
-    """Tukey weights of the residuals ``r`` (mm), in units of each slice's expected error ``sig`` when
-    known (then with a scale floor of :data:`MIN_STANDARD_SCALE`), zero where not ``use``."""
-    if sig is None:
-        return se3.tukey_weights(r, _scale(r[use])) * use
-    u = r / sig
-    return se3.tukey_weights(u, max(se3.MAD_SCALE * float(np.median(u[use])), MIN_STANDARD_SCALE)) * use
-
-
-def _votes(r_loo: NDArray, motion: MotionFit, sig: NDArray, use: NDArray) -> NDArray:
-    """Each usable slice's expected error, inflated by its Tukey weight on the residual to the
-    others' prediction in units of the spread that both errors explain (:data:`NO_VOTE` at zero)."""
-    z = r_loo / np.sqrt((motion.noise_scale * sig) ** 2 + motion.model_sd_mm ** 2)
-    tk = se3.tukey_weights(z, 1.0) * use
-    return np.where(tk > 0, sig / np.sqrt(np.maximum(tk, 1e-12)), NO_VOTE)
-
-
-def _noise(expected_error_mm: ArrayLike, use: NDArray) -> NDArray[np.float64]:
-    """Each slice's expected error as the fit's noise scale, floored at :data:`MIN_NOISE_MM`; a slice
-    that may not vote has none (an empty slice the network never saw: NaN), so it gets the largest
-    of the others', which weighs nothing where it does not vote."""
-    e = np.asarray(expected_error_mm, dtype=np.float64)
-    known = np.isfinite(e)
-    floor = float(e[use & known].max()) if (use & known).any() else MIN_NOISE_MM
-    return np.maximum(np.where(known, e, floor), MIN_NOISE_MM)
-
-
-def _precision(sig: NDArray, use: NDArray) -> NDArray:
-    """``1 / sig^2`` normalised to a mean of 1 over the usable slices."""
-    prec = 1.0 / sig ** 2
-    return prec / prec[use].mean()
-
-
-def _scale(r: NDArray) -> float:
-    """Robust scale of non-negative residuals ``r``: ``1.4826 median(r)`` (a standard deviation for
-    half-normal residuals), floored at :data:`MIN_SCALE_MM`."""
-    if len(r) == 0:
-        return MIN_SCALE_MM
-    return float(max(se3.MAD_SCALE * np.median(r), MIN_SCALE_MM))
-
