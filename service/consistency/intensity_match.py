@@ -9,8 +9,10 @@ only part of a field that changes across it. Each stack is scaled by its median 
 whole-uterus stacks disagree at their true poses by as much as they do at poses millimetres off,
 and the refinement then trades one mismatch for another.
 
-Before each pass of the refinement, a log-linear model of those differences is fitted to both
-slices' values on every line at the pass's starting poses, by weighted, robust least squares:
+Before each pass of the refinement from the second on
+(:data:`~service.consistency.image_refinement.MATCHED_FROM_PASS`), a log-linear model of those
+differences is fitted to both slices' values on every line at the pass's starting poses, by
+weighted, robust least squares:
 
 ::
 
