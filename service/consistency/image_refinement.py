@@ -7,7 +7,7 @@ show, and the slices' images can (:mod:`service.consistency.intersections`). The
 (its mask centroid, its own axes), ``P_k' = P_k exp(d_k)``, minimising the image term (soft L1)
 plus ``sum_k |d_k / s_k|^2``, the stage's expected error as a Gaussian prior, by Levenberg-Marquardt
 in passes from coarse to fine in-plane smoothing, the stacks' intensities matched where they cross
-(:mod:`~service.consistency.intensity_match`). The images do not see a rigid move of all slices
+from the second pass on (:mod:`~service.consistency.intensity_match`). The images do not see a rigid move of all slices
 together: the result is put back in the frame of the stage's poses. Slices on no line follow their
 stack's nearest checked slices; each slice's expected error follows its remaining mismatch and how
 firmly the images hold it (its Laplace spread at the optimum; :mod:`~service.consistency.refined_errors`).
@@ -73,7 +73,8 @@ class Refinement:
     moved_mm: list[NDArray[np.float64]]   # per stack [n]: how far each slice moved (E.D.-like, mm)
     pairs: int                            # intersecting pairs used
     cost_before: float                    # the finest pass's image term per weighted point, at the stage's
-                                          # poses / at the refined ones (one smoothing, one set of points)
+                                          # poses / at the refined ones (one smoothing, one set of points,
+                                          # the intensities matched alike)
     cost_after: float
     mismatch: list[NDArray[np.float64]]   # per stack [n]: each slice's image term per weighted point, after (NaN: none)
     spread_mm: list[NDArray[np.float64]]  # per stack [n]: each refined slice's Laplace spread (mm; NaN: not refined)

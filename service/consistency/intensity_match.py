@@ -20,7 +20,7 @@ weighted, robust least squares:
     f_s(k, x) = c_s + d_s z_k + e_s p_k + g_s . u(x)
 
 for slice ``a`` of stack ``s`` and ``b`` of stack ``t``: ``c_s`` the stack's gain, ``d_s`` its drift
-over the slice's place ``z_k`` (-1 at its first slice, 1 at its last), ``e_s`` its odd slices' step
+over the slice's place ``z_k`` (-1 at its first slice, 1 at its last; :func:`slice_basis`), ``e_s`` its odd slices' step
 from its even ones (``p_k = +-1``), ``g_s`` its in-plane slope (per :data:`SLOPE_SCALE_MM`) at the
 point's place ``u(x)`` from the stack's image centre. The pass then samples each slice's image
 divided by ``exp f``. Lines see only differences between stacks: Gaussian priors (:data:`GAIN_SD`,
@@ -72,8 +72,8 @@ TERMS = len(GAIN_SD) + 2
 @dataclass
 class Fields:
     """A request's fitted intensity fields: ``coefficients [S, 5]`` per stack (``c, d, e`` of the
-    slice basis, :func:`slice_basis`, then the in-plane slopes along its rows and columns) and the
-    points that took part."""
+    slice basis, :func:`slice_basis`, then the in-plane slopes along its rows and columns) and how
+    many points took part."""
 
     coefficients: NDArray[np.float64]
     points: int
@@ -101,7 +101,9 @@ class Fields:
 
 def slice_basis(local: NDArray, size: NDArray | int) -> NDArray[np.float64]:
     """``[N, 3]`` the gain basis of slices ``local`` (their places in stacks of ``size`` slices): 1,
-    the place from the stack's middle (-1 .. 1), and the parity (+1 even, -1 odd).
+    the place from the stack's middle (-1 at its first slice, 1 at its last; 0 in a stack of one), and
+    the parity (+1 even, -1 odd). In a stack of two slices the place is minus the parity, and in a
+    stack of one the parity is the gain: there the priors share what the lines tell between them.
 
     Example:
         >>> slice_basis(np.arange(3), 3).tolist()
@@ -109,7 +111,8 @@ def slice_basis(local: NDArray, size: NDArray | int) -> NDArray[np.float64]:
     """
     k = np.asarray(local, np.float64)
     mid = (np.asarray(size, np.float64) - 1.0) / 2.0
-    return np.stack([np.ones(len(k)), (k - mid) / np.maximum(mid, 1.0), 1.0 - 2.0 * (np.asarray(local) % 2)], axis=1)
+    place = np.where(mid > 0, (k - mid) / np.maximum(mid, 1e-9), 0.0)
+    return np.stack([np.ones(len(k)), place, 1.0 - 2.0 * (np.asarray(local) % 2)], axis=1)
 
 
 def fit_fields(values: NDArray, weights: NDArray, slice_of: NDArray, stack_of: NDArray, u: NDArray,
@@ -120,7 +123,7 @@ def fit_fields(values: NDArray, weights: NDArray, slice_of: NDArray, stack_of: N
     :data:`SLOPE_SCALE_MM`, from its stack's image centre), every slice's :func:`slice_basis` row
     (``basis [N, 3]``) and the request's number of ``stacks``."""
     v = np.asarray(values, np.float64)
-    ok = (v[0] > MIN_VALUE) & (v[1] > MIN_VALUE) & (np.asarray(weights) > 0)
+    ok = np.isfinite(v).all(axis=0) & (v[0] > MIN_VALUE) & (v[1] > MIN_VALUE) & (np.asarray(weights) > 0)
     if not ok.any():
         return Fields(np.zeros((stacks, TERMS)), 0)
     p = int(ok.sum())
@@ -138,6 +141,8 @@ def fit_fields(values: NDArray, weights: NDArray, slice_of: NDArray, stack_of: N
         z = np.linalg.solve(design.T @ weighted + prior, weighted.T @ y)
         r = np.abs(y - design @ z)
         w = w0 * np.where(r > HUBER, HUBER / np.maximum(r, 1e-12), 1.0)
+    if not np.isfinite(z).all():                                   # nothing the lines can tell
+        return Fields(np.zeros((stacks, TERMS)), 0)
     return Fields(z.reshape(stacks, TERMS), p)
 
 

@@ -11,7 +11,8 @@ geometry of those lines and the image term of :mod:`service.consistency.image_re
         w_i (I_a(x_i) - I_b(x_i))^2 / sigma^2
 
 ``I_a`` is slice ``a``'s image (bias-corrected, scaled by its stack's median brain intensity,
-smoothed in-plane: :mod:`service.consistency.slice_images`), sampled bilinearly; ``w_i`` the
+smoothed in-plane: :mod:`service.consistency.slice_images`; divided by its stack's fitted intensity
+field from the refinement's second pass on: :mod:`service.consistency.intensity_match`), sampled bilinearly; ``w_i`` the
 product of both slices' brain masks at ``x_i``, fixed once chosen (a weight that followed the poses would reward moving the lines out of the brain).
 
 Example:
@@ -296,6 +297,7 @@ class ImageTerm:
         points and their weights stay."""
         self.stacks = SampledStacks(sampled)
         self._last = None
+        self._slices = [None, None]
 
     def _slices_of_points(self, role: int) -> tuple[NDArray, NDArray, NDArray, NDArray]:
         """Each point's slice in ``role``, where that slice starts in the flat arrays and its padded

@@ -61,6 +61,16 @@ def test_points_that_show_other_tissue_do_not_set_the_fields() -> None:
     assert np.abs(fitted - fitted[0] - TRUE)[:, :3].max() < 0.05, (fitted - fitted[0]).round(3)
 
 
+def test_a_value_that_is_not_finite_takes_no_part() -> None:
+    rng = np.random.default_rng(2)
+    slices, stack, u, basis, anatomy = _points(rng)
+    values = _observed(anatomy, slices, stack, u, basis, TRUE)
+    values[0, :5], values[1, 5:10] = np.inf, np.nan
+    fitted = fit_fields(values, np.ones(len(anatomy)), slices, stack, u, basis, 3)
+    assert fitted.points == len(anatomy) - 10
+    assert np.abs(fitted.coefficients - fitted.coefficients[0] - TRUE).max() < 0.02
+
+
 def test_without_points_nothing_is_changed() -> None:
     fields = fit_fields(np.zeros((2, 0)), np.zeros(0), np.zeros((2, 0), int), np.zeros((2, 0), int),
                         np.zeros((2, 0, 2)), slice_basis(np.arange(4), 4), 2)
