@@ -19,6 +19,7 @@ Example (the passes' smoothing and point spacing, coarse to fine, mm):
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -73,8 +74,9 @@ class Refinement:
     moved_mm: list[NDArray[np.float64]]   # per stack [n]: how far each slice moved (E.D.-like, mm)
     pairs: int                            # intersecting pairs used
     cost_before: float                    # the finest pass's image term per weighted point, at the stage's
-                                          # poses / at the refined ones (one smoothing, one set of points,
-                                          # the intensities matched alike)
+                                          # poses / at the refined ones (one smoothing, one set of points;
+                                          # the intensities as they are, unmatched: the scale that
+                                          # refined_errors.AGREED_MISMATCH judges)
     cost_after: float
     mismatch: list[NDArray[np.float64]]   # per stack [n]: each slice's image term per weighted point, after (NaN: none)
     spread_mm: list[NDArray[np.float64]]  # per stack [n]: each refined slice's Laplace spread (mm; NaN: not refined)
@@ -141,7 +143,7 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
     pairs = pairs[free[pairs[:, 0]] | free[pairs[:, 1]]]                    # not two fixed partners
     if not len(pairs):
         return unchanged
-    finest = None                         # the last pass's residuals, weights and image term at its optimum
+    finest = None                         # the last pass's points on its unmatched images, and their weights
     used = 0
     mismatch = np.full(len(p0), np.nan)
     smoothed_passes = _smoothed_passes(stacks, [p[0] for p in passes], smoothed)
@@ -152,7 +154,9 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
         term.select_in_masks(start, MIN_LINE_WEIGHT, budget)
         if not len(term.pair_of):
             break
+        plain = term                      # the same points on the images as they are
         if MATCHED_FROM_PASS is not None and index >= MATCHED_FROM_PASS:
+            plain = copy.copy(term)
             sampled, _ = matched(sampled, term, start, stack_of)
             term.use_images(sampled)
         used = len(term.pairs)
@@ -165,7 +169,7 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
             return image_jacobian(term, current @ network_from_slice, current, col, noise)
 
         x, r = _gauss_newton(residual, jac, x, prior, iterations, residual(x))
-        finest = (residual, term.sw, _mean_square(r, term.sw))
+        finest = (plain, term.sw)
         mismatch = _per_slice(r, term.sw, term.pairs[term.pair_of], len(p0))
     final = atlas_from_slice(x) @ se3.inverse(network_from_slice)
     checked = np.isfinite(mismatch)
@@ -180,9 +184,9 @@ def refine(stacks: list[StackImages], poses: list[NDArray], expected_error_mm: l
         final = frame @ final
     moved = ed(final, p0)
     cut = lambda a: [a[i:j] for i, j in zip(bounds[:-1], bounds[1:])]  # noqa: E731
-    before = _mean_square(finest[0](np.zeros_like(x)), finest[1])      # the same points and smoothing
-    return Refinement(cut(final), cut(moved), used, before, finest[2],
-                      cut(mismatch), cut(spread))
+    plain, sw = finest                    # the same points and smoothing, the intensities as they are
+    before, after = (_mean_square(plain.residuals(atlas_from_slice(at)) / noise, sw) for at in (np.zeros_like(x), x))
+    return Refinement(cut(final), cut(moved), used, before, after, cut(mismatch), cut(spread))
 
 
 def smooth_ahead(stacks: list[StackImages], passes: tuple[tuple[float, float, int | None], ...] = PASSES,
