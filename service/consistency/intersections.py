@@ -12,8 +12,9 @@ geometry of those lines and the image term of :mod:`service.consistency.image_re
 
 ``I_a`` is slice ``a``'s image (bias-corrected, scaled by its stack's median brain intensity,
 smoothed in-plane: :mod:`service.consistency.slice_images`; divided by its stack's fitted intensity
-field from the refinement's second pass on: :mod:`service.consistency.intensity_match`), sampled bilinearly; ``w_i`` the
-product of both slices' brain masks at ``x_i``, fixed once chosen (a weight that followed the poses would reward moving the lines out of the brain).
+field from the refinement's second pass on: :mod:`service.consistency.intensity_match`), sampled
+bilinearly; ``w_i`` the product of both slices' brain masks at ``x_i``, fixed once chosen (a weight
+that followed the poses would reward moving the lines out of the brain).
 
 Example:
     >>> import numpy as np
