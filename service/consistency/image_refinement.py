@@ -8,9 +8,10 @@ show, and the slices' images can (:mod:`service.consistency.intersections`). The
 plus ``sum_k |d_k / s_k|^2``, the stage's expected error as a Gaussian prior, by Levenberg-Marquardt
 in passes from coarse to fine in-plane smoothing, the stacks' intensities matched where they cross
 from the second pass on (:mod:`~service.consistency.intensity_match`). The images do not see a rigid
-move of all slices together: the result is put back in the frame of the stage's poses. Slices on no line follow their
-stack's nearest checked slices; each slice's expected error follows its remaining mismatch and how
-firmly the images hold it (its Laplace spread at the optimum; :mod:`~service.consistency.refined_errors`).
+move of all slices together: the result is put back in the frame of the stage's poses. Slices on no
+line follow their stack's nearest checked slices; each slice's expected error follows its remaining
+mismatch and how firmly the images hold it (its Laplace spread at the optimum;
+:mod:`~service.consistency.refined_errors`).
 
 Example (the passes' smoothing and point spacing, coarse to fine, mm):
     >>> [(sigma, spacing) for sigma, spacing, _ in PASSES]
