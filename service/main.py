@@ -18,7 +18,8 @@ from fastapi_offline import FastAPIOffline
 
 from service.api import (health, masks, metrics, models, openapi, predict, problems, reconstructions, stream,
                          stream_messages)
-from service.api.deps import KnownQuery, MetricsAccess, needs_key
+from service.api.access import needs_key
+from service.api.deps import KnownQuery, MetricsAccess
 from service.api.metrics import Metrics
 from service.api.middleware import RequestContext
 from service.api.schemas import problem_responses

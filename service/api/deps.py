@@ -4,26 +4,24 @@ from __future__ import annotations
 
 import asyncio
 import hashlib
-import hmac
-import ipaddress
 import threading
+from collections import Counter
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Annotated
-from urllib.parse import urlsplit
-
-from collections import Counter
 
 from fastapi import Depends, Header, Request
 from fastapi.dependencies.models import Dependant
-from starlette.datastructures import Headers, State
+from starlette.datastructures import State
 
+from service.api.access import (FOREIGN_ORIGIN, UNAUTHORIZED, api_key_ok, key_owner, needs_key, origin_ok,
+                                presented_key)
 from service.api.metrics import Metrics
 from service.core.cancellation import cancelled_by
 from service.core.errors import (ClientGone, ForeignOrigin, InvalidParameter, QueueFull, Saturated, ServiceError,
                                  Unauthorized)
 from service.core.names import shown_name
-from service.core.settings import Settings, plain_origin
+from service.core.settings import Settings
 from service.inference.registry import ModelRegistry
 from service.preprocess.localise import Localiser, Localisers
 
@@ -68,99 +66,6 @@ def localiser_for(localisers: Localisers, masks: list) -> Localiser | None:
     return localisers.get()
 
 
-def api_key_ok(keys: set[str], authorization: str | None, x_api_key: str | None) -> bool:
-    """``Authorization: Bearer <key>`` or ``X-API-Key: <key>`` is one of ``keys`` (always true without keys),
-    compared in constant time. Keys are printable ASCII (the settings check them): a key sent with
-    any other character is no key, whatever it holds.
-
-    Example:
-        >>> api_key_ok({"k-1"}, None, "k-1"), api_key_ok({"k-1"}, "Bearer café", None), api_key_ok({"k-1"}, None, "\\ud800")
-        (True, False, False)
-    """
-    if not keys:
-        return True
-    given = presented_key(authorization, x_api_key)
-    if not given or not given.isascii():
-        return False
-    return any(hmac.compare_digest(given.encode(), k.encode()) for k in keys)
-
-
-def presented_key(authorization: str | None, x_api_key: str | None) -> str:
-    """The API key a request presents (``Authorization: Bearer`` first, else ``X-API-Key``), or ``""``.
-
-    Example:
-        >>> presented_key("Bearer k-1 ", None), presented_key(None, "k-2"), presented_key("Basic x", None)
-        ('k-1', 'k-2', '')
-    """
-    if authorization and authorization.lower().startswith("bearer "):
-        return authorization[7:].strip()
-    return x_api_key or ""
-
-
-def origin_ok(settings: Settings, headers: dict[str, str]) -> bool:
-    """Whether a request may come from where its ``Origin`` header says (lower-case ``headers``).
-
-    Scripts and the client send no ``Origin``; browsers do, and a page the user merely visits can
-    post a form to, or open a websocket on, a service on their machine without any CORS
-    permission. Without API keys, a request carrying an ``Origin`` is therefore served only from the
-    server's own pages at an address (an IP literal or ``localhost``, which a rebound DNS name
-    cannot pose as) or from one of ``allowed_origins``; with keys, the key decides. A browser's
-    request without an ``Origin`` (a same-origin ``GET``) says it came from a page by
-    ``Sec-Fetch-Site``: it is served where the server is reached at an address or at a listed
-    origin, so a page whose DNS name was rebound to the server cannot read it either; an address
-    typed by the user (``Sec-Fetch-Site: none``) always is.
-
-    Example:
-        >>> s = Settings(allowed_origins="https://viewer.example")
-        >>> [origin_ok(s, {"host": "127.0.0.1:8000", "origin": o}) for o in
-        ...  (None, "http://127.0.0.1:8000", "https://viewer.example", "https://evil.example", "null")]
-        [True, True, True, False, False]
-        >>> origin_ok(s, {"host": "evil.example:8000", "origin": "http://evil.example:8000"})
-        False
-        >>> [origin_ok(s, {"host": h, "sec-fetch-site": site}) for h, site in
-        ...  (("evil.example:8000", "same-origin"), ("localhost:8000", "same-origin"), ("evil.example:8000", "none"),
-        ...   ("viewer.example", "same-origin"))]
-        [False, True, True, True]
-    """
-    origin = headers.get("origin")
-    if settings.key_set():
-        return True
-    allowed = settings.origin_set()
-    if origin is None:
-        host = headers.get("host", "")
-        return (headers.get("sec-fetch-site", "none") == "none" or _at_address(host) or "*" in allowed
-                or any(plain_origin(f"{scheme}://{host}") in allowed for scheme in ("http", "https")))
-    origin = plain_origin(origin)
-    if "*" in allowed or origin in allowed:
-        return True
-    try:
-        parts = urlsplit(origin)
-    except ValueError:
-        return False
-    return (_at_address(parts.netloc) and parts.scheme in ("http", "https")
-            and parts.netloc == headers.get("host", "").lower())
-
-
-def _at_address(netloc: str) -> bool:
-    """Whether ``host[:port]`` names an IP literal or ``localhost``, which no DNS name can pose as.
-
-    Example:
-        >>> [_at_address(h) for h in ("127.0.0.1:8000", "[::1]:8000", "localhost", "evil.example:8000", "")]
-        [True, True, True, False, False]
-    """
-    try:
-        host = urlsplit(f"//{netloc}").hostname or ""
-        return host == "localhost" or bool(ipaddress.ip_address(host))
-    except ValueError:
-        return False
-
-
-FOREIGN_ORIGIN = ("Origin: this server serves browser pages of its own address only; list the page's origin "
-                  "in SVRNET_ALLOWED_ORIGINS, or configure API keys")
-
-UNAUTHORIZED = "Authorization: a valid API key is required (Bearer token or X-API-Key header)"
-
-
 async def require_api_key(
     settings: SettingsDep,
     authorization: Annotated[str | None, Header(include_in_schema=False)] = None,
@@ -184,11 +89,6 @@ async def require_metrics_access(
     are configured, unless ``SVRNET_METRICS_PUBLIC=true``."""
     if not settings.metrics_public:
         await require_api_key(settings, authorization, x_api_key)
-
-
-def needs_key(settings: Settings, path: str) -> bool:
-    """Whether ``path`` is protected by the API keys (when some are configured)."""
-    return path.startswith("/v1/") or (path == "/metrics" and not settings.metrics_public)
 
 
 IDEMPOTENCY_HEADER = "Idempotency-Key"
@@ -216,25 +116,6 @@ def idempotency_digest(key: str | None, owner: str = "") -> str | None:
                                "retry of one submission")
     scoped = key if not owner else key_owner(owner) + "\0" + key
     return hashlib.sha256(scoped.encode()).hexdigest()
-
-
-def key_owner(api_key: str) -> str:
-    """The digest that stands for the client presenting ``api_key`` wherever the server keeps who made
-    something (a job's owner, the scope of its idempotency key): no key is stored.
-
-    Example:
-        >>> key_owner("k-1")[:16], key_owner("k-1") == key_owner("k-2")
-        ('7c35c5a1785d2070', False)
-    """
-    return hashlib.sha256(api_key.encode("utf-8", "replace")).hexdigest()
-
-
-def job_owner(settings: Settings, headers: Headers) -> str | None:
-    """Who a request acts for where jobs are concerned: the digest of its API key (:func:`key_owner`)
-    on a server with keys, None on one without (every client is then the same client)."""
-    if not settings.key_set():
-        return None
-    return key_owner(presented_key(headers.get("authorization"), headers.get("x-api-key")))
 
 
 def early_rejection(state: State, method: str, path: str, headers: dict[str, str]) -> ServiceError | None:

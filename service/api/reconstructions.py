@@ -16,9 +16,9 @@ from fastapi.responses import FileResponse
 from starlette.types import Receive, Scope, Send
 from pydantic import Field
 
+from service.api.access import job_owner, presented_key
 from service.api.deps import (IDEMPOTENCY_HEADER, ApiKey, LocalisersDep, RegistryDep, SettingsDep, full_queue,
-                              idempotency_digest, job_owner, localiser_for, presented_key, processing, queue_full,
-                              requested_model)
+                              idempotency_digest, localiser_for, processing, queue_full, requested_model)
 from service.api.idempotency import hold_submission, made_by_key, submission_digest, unless_abandoned
 from service.api.schemas import (UPLOAD_ERRORS, JobCreated, JobStatus, RefinedPoses, download, job_poses,
                                  problem_responses)

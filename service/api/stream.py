@@ -30,7 +30,7 @@ from fastapi import APIRouter, WebSocket
 from starlette.datastructures import State
 from starlette.websockets import WebSocketDisconnect, WebSocketDisconnected
 
-from service.api.deps import UNAUTHORIZED, api_key_ok, origin_ok
+from service.api.access import UNAUTHORIZED, api_key_ok, origin_ok
 from service.api.stream_messages import DTYPES, parse, slice_header, text_field
 from service.api.responses import error_message, pose_object, stack_message, summary_message, update_messages
 from service.core.errors import (
