@@ -8,8 +8,11 @@ import numpy as np
 import pytest
 
 import service.consistency.image_refinement as image_refinement
-from service.consistency.image_refinement import refine
-from service.consistency.intensity_match import Fields, fit_fields, slice_basis
+from service.consistency.image_refinement import MIN_LINE_WEIGHT, refine
+from service.consistency.intensity_match import SLOPE_SCALE_MM, Fields, fit_fields, matched, slice_basis
+from service.consistency.intersections import ImageTerm, candidate_pairs
+from service.consistency.slice_images import SampledStack
+from service.geometry import se3
 from service.geometry.anchors import ed
 from tests.consistency.conftest import disturbed
 
@@ -115,3 +118,32 @@ def test_matching_leaves_clean_stacks_as_they_were_refined(acquisition, monkeypa
     without, matched = (_refined_error(images, truth, m, monkeypatch) for m in (False, True))
     print(f"clean stacks refined: E.D. {without:.2f} mm unmatched, {matched:.2f} mm matched")
     assert matched < without + 0.15, (without, matched)
+
+
+def test_a_fall_off_along_a_stacks_columns_is_found_in_its_column_slope_at_the_true_poses(acquisition) -> None:  # noqa: ANN001
+    """The points' places in a stack's images (:meth:`ImageTerm.pixels`), the images' centre and pixel
+    size, and the field divided out (:meth:`Fields.stack_field`) are one grid: a fall-off drawn along
+    the second stack's columns at its true poses comes back as that stack's column slope, in log units
+    per 100 mm, with no row slope, and its images divided by the field agree with the others again."""
+    images, truth = acquisition
+    second = images[1]
+    n, h, w = second.images.shape
+    per_mm = 0.5 / ((w - 1) * second.pixel_mm[1])                             # log intensity per mm along columns
+    ramp = np.exp(per_mm * (np.arange(w) - (w - 1) / 2.0) * second.pixel_mm[1])[None, None, :]
+    stacks = [images[0], replace(second, images=(second.images * ramp).astype(np.float32)), images[2]]
+    sizes = [len(t) for t in truth]
+    stack_of, local = np.repeat(np.arange(3), sizes), np.concatenate([np.arange(k) for k in sizes])
+    atlas_from_slice = np.concatenate(truth) @ se3.inverse(np.concatenate([s.slice_from_network for s in stacks]))
+    sampled = [SampledStack(s, 0.9) for s in stacks]
+    term = ImageTerm(sampled, stack_of, local, candidate_pairs(atlas_from_slice, stack_of, np.ones(len(stack_of), bool)),
+                     np.arange(-80.0, 80.0, 2.0), atlas_from_slice)
+    term.select_in_masks(atlas_from_slice, MIN_LINE_WEIGHT)
+    both = term.sw > 0.5
+    disagreement = lambda v: float(np.median(np.abs(np.log(np.maximum(v[0][both], 1e-3) / np.maximum(v[1][both], 1e-3)))))  # noqa: E731
+    unmatched = disagreement(term.values(atlas_from_slice))
+    out, fields = matched(sampled, term, atlas_from_slice, stack_of)
+    relative = fields.coefficients[1] - (fields.coefficients[0] + fields.coefficients[2]) / 2.0
+    assert relative[3] == pytest.approx(per_mm * SLOPE_SCALE_MM, rel=0.25), fields.coefficients.round(3)
+    assert abs(relative[2]) < 0.25 * per_mm * SLOPE_SCALE_MM
+    term.use_images(out)
+    assert disagreement(term.values(atlas_from_slice)) < 0.8 * unmatched
