@@ -71,6 +71,22 @@ def acquisition(volume, rng: np.random.Generator, orientations: str, **geometry:
     return [Scene(s.volume, s.mask.array > 0, s.mask.array > 0, s.atlas_from_voxel) for s in stacks]
 
 
+def requests_of(source: str, count: int, planning: str = "independent", orientations: str = "standard",
+                pixel_mm: float = 1.0, gap_mm: float = 3.0) -> list[list[Scene]]:
+    """``count`` requests of three stacks of the validation brains at mild motion, as ``source`` says
+    (the module docstring's sources): scenes planned as ``planning`` says, or acquisitions with
+    ``orientations``, ``pixel_mm`` and ``gap_mm`` (a 128 mm field of view)."""
+    volumes = load_volumes(split(DEFAULT_ATLAS_ROOT)[1], DEFAULT_ATLAS_ROOT)
+    if source == "acquisitions":
+        size = int(round(128 * 1.0 / pixel_mm))
+        return [acquisition(volumes[i % len(volumes)], np.random.default_rng(300 + i), orientations,
+                            pixel_mm=pixel_mm, size=size, gap_mm=gap_mm, thickness_mm=gap_mm) for i in range(count)]
+    cases = pose_accuracy.validation_cases(count, stacks=3, motion="mild", planning=planning)
+    if source == "scenes-atlas-image":
+        cases = [[atlas_image(s, volumes[i % len(volumes)]) for s in case] for i, case in enumerate(cases)]
+    return cases
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("source", choices=("scenes", "scenes-atlas-image", "acquisitions"))
@@ -87,16 +103,7 @@ def main() -> None:
     if args.source != "acquisitions" and (args.orientations != "standard" or args.pixel_mm != 1.0 or args.gap_mm != 3.0):
         ap.error("--orientations, --pixel-mm and --gap-mm are the acquisitions' (the scenes draw their own)")
 
-    volumes = load_volumes(split(DEFAULT_ATLAS_ROOT)[1], DEFAULT_ATLAS_ROOT)
-    if args.source == "acquisitions":
-        size = int(round(128 * 1.0 / args.pixel_mm))            # the acquisitions' 128 mm field of view
-        cases = [acquisition(volumes[i % len(volumes)], np.random.default_rng(300 + i), args.orientations,
-                             pixel_mm=args.pixel_mm, size=size, gap_mm=args.gap_mm, thickness_mm=args.gap_mm)
-                 for i in range(args.requests)]
-    else:
-        cases = pose_accuracy.validation_cases(args.requests, stacks=3, motion="mild", planning=args.planning)
-        if args.source == "scenes-atlas-image":
-            cases = [[atlas_image(s, volumes[i % len(volumes)]) for s in case] for i, case in enumerate(cases)]
+    cases = requests_of(args.source, args.requests, args.planning, args.orientations, args.pixel_mm, args.gap_mm)
     if args.raw:
         pose_accuracy.predict = lambda prepared, est, mc, thr: predict(prepared, est, mc, thr, stack_consistency=False)
     estimator, key = _pose_estimator(), "ed_min" if args.raw else "ed"

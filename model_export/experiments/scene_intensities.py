@@ -4,8 +4,8 @@ the slices' placement relative to each other, and what the stacks' intensities h
 Requests of three stacks at mild motion (the validation brains, seed 2,000,000, the atlas's own brain
 mask; :func:`~model_export.localiser.pose_accuracy.validation_cases`, ``--planning orthogonal``) go
 through ``/v1/predict``'s pipeline. Per request it prints the RMS E.D. of the slices with brain, the
-RMS of the request's common rigid offset (one rigid move fitted over every slice's anchor points
-against the truth) and of what is left once it is undone (each slice's own placement: what the
+RMS of the request's common rigid offset (:func:`~model_export.experiments.frame_bias.common_frame`,
+about the slices' centre) and of what is left once it is undone (each slice's own placement: what the
 image stage works on), and the image stage's term per weighted point at the true poses and where
 the stage ended (in units of its noise).
 
@@ -33,11 +33,12 @@ from numpy.typing import NDArray
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import service.consistency.image_refinement as image_refinement  # noqa: E402
-from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
-from model_export.experiments.scene_difficulty import acquisition, atlas_image  # noqa: E402
+from model_export.experiments.frame_bias import common_frame  # noqa: E402
+from model_export.experiments.scene_difficulty import requests_of  # noqa: E402
 from model_export.localiser import pose_accuracy, scenes  # noqa: E402
 from model_export.localiser.evaluate import _pose_estimator  # noqa: E402
-from service.geometry import anchors, grid  # noqa: E402
+from service.geometry import anchors  # noqa: E402
+from service.geometry.pose import about_centre  # noqa: E402
 from service.pipeline import predict as pipeline  # noqa: E402
 from service.pipeline.prepare import prepare_stacks  # noqa: E402
 
@@ -45,17 +46,19 @@ NUISANCES = ("bias", "gains")
 
 
 def own_frame(poses: NDArray, truth: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """``[n]`` twice: each pose's E.D. once the request's common rigid offset (fitted over every
-    pose's anchor points against the truth) is undone, and that offset's E.D. at each true pose.
+    """``[n]`` twice: each pose's E.D. once the request's common error about the slices' centre
+    (:func:`~model_export.experiments.frame_bias.common_frame`) is undone, and that error's E.D. at
+    each true pose.
 
-    Example (every pose moved alike by 2 mm: all of it is the common offset):
+    Example (every pose moved alike by 2 mm: all of it is the common error):
         >>> truth = np.repeat(np.eye(4)[None], 3, 0); truth[:, 2, 3] = [-3.0, 0.0, 3.0]
         >>> moved = truth.copy(); moved[:, 0, 3] += 2.0
         >>> [e.round(6).tolist() for e in own_frame(moved, truth)]
         [[0.0, 0.0, 0.0], [2.0, 2.0, 2.0]]
     """
-    fit = grid.kabsch(anchors.encode(poses).reshape(-1, 3), anchors.encode(truth).reshape(-1, 3))
-    return anchors.ed(fit @ poses, truth), anchors.ed(fit @ truth, truth)
+    centre = truth[:, :3, 3].mean(axis=0)
+    frame, own = common_frame(poses, truth, centre)
+    return own, anchors.ed(about_centre(frame, centre)[None] @ truth, truth)
 
 
 def without(nuisances: list[str]) -> None:
@@ -99,14 +102,7 @@ def main() -> None:
     without(left_out)
     if args.unmatched:
         image_refinement.MATCHED_FROM_PASS = None
-    volumes = load_volumes(split(DEFAULT_ATLAS_ROOT)[1], DEFAULT_ATLAS_ROOT)
-    if args.source == "acquisitions":
-        cases = [acquisition(volumes[i % len(volumes)], np.random.default_rng(300 + i), "standard")
-                 for i in range(args.requests)]
-    else:
-        cases = pose_accuracy.validation_cases(args.requests, stacks=3, motion="mild", planning=args.planning)
-        if args.source == "scenes-atlas-image":
-            cases = [[atlas_image(s, volumes[i % len(volumes)]) for s in case] for i, case in enumerate(cases)]
+    cases = requests_of(args.source, args.requests, args.planning)
     estimator = _pose_estimator()
     rows = []
     for i, case in enumerate(cases):
