@@ -55,7 +55,8 @@ from service.reconstruction.atlas_frame import atlas_frame, with_frame
 from service.reconstruction.job import bias_corrected_stacks
 from service.reconstruction.left_out import LeftOutPlacement, VolumeReference, place_left_out
 from service.reconstruction.midline import midline_fit
-from service.reconstruction.never_worse import held_out_score, reconstruct_never_worse
+from service.reconstruction.held_out import held_out_score
+from service.reconstruction.never_worse import reconstruct_never_worse
 from service.reconstruction.config import ReconstructionConfig
 from service.reconstruction.pipeline import reconstruct
 from service.reconstruction.slices import SliceSet

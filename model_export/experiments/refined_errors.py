@@ -38,7 +38,7 @@ from service.jobs.uploaded_poses import expected_errors
 from service.jobs.worker import starting_poses
 from service.reconstruction.job import refine_job
 from service.reconstruction.left_out import MIN_AREA_MM2
-from service.reconstruction.never_worse import held_out_score
+from service.reconstruction.held_out import held_out_score
 from service.reconstruction.pose_errors import (
     IN_VOLUME,
     LEFT_OUT,

@@ -94,21 +94,11 @@ def _lines(head: bytes, kind: str) -> list[tuple[bytes, int]]:
     return out
 
 
-_NOT_FINITE = re.compile(rb"nan|inf", re.I)
-MAX_GEOMETRY_MM = 1e6
-"""Larger numbers in a header's sizes, directions or origin are no scanner's (the reader would put
-1 mm in place of a direction it cannot normalise)."""
-_NUMBER = re.compile(rb"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
-SIZE_FIELDS = {"nrrd": ("spacedirections", "spacings"), "mha": ("elementspacing", "elementsize")}
-PLACE_FIELDS = {"nrrd": ("spaceorigin",), "mha": ("offset", "position", "origin", "transformmatrix", "rotation",
-                                                   "orientation")}
-
-
-def _fields(header: bytes, kind: str) -> dict[str, bytes]:
+def header_fields(header: bytes, kind: str) -> dict[str, bytes]:
     """The fields of a header rebuilt here, by :func:`_key` name (NRRD's magic line left out).
 
     Example:
-        >>> _fields(b"ObjectType = Image\\nElementType = MET_UCHAR\\n", "mha")["elementtype"]
+        >>> header_fields(b"ObjectType = Image\\nElementType = MET_UCHAR\\n", "mha")["elementtype"]
         b' MET_UCHAR'
     """
     fields: dict[str, bytes] = {}
@@ -117,96 +107,6 @@ def _fields(header: bytes, kind: str) -> dict[str, bytes]:
         if sep:
             fields[_key(key)] = value
     return fields
-
-
-_MHA_MATRICES = ("transformmatrix", "rotation", "orientation")
-
-
-def _mha_counts(fields: dict[str, bytes]) -> str | None:
-    """Why an MHA header's sizes, origin or axes are not ``NDims`` plain numbers (axes: ``NDims``
-    squared), or None: its reader reads what numbers it finds and puts 0 in place of the rest.
-
-    Example:
-        >>> _mha_counts({"ndims": b" 3", "offset": b" 10"})
-        "its MHA header's offset is not 3 numbers"
-        >>> _mha_counts({"ndims": b" 3", "offset": b" 1 2 3", "transformmatrix": b" 1 0 0 0 1 0 0 0 1"}) is None
-        True
-    """
-    ndims = fields.get("ndims", b"").strip()
-    if not ndims.isdigit():
-        return None                                      # the reader refuses the header itself
-    n = int(ndims)
-    for name in (*SIZE_FIELDS["mha"], *PLACE_FIELDS["mha"]):
-        if name in fields:
-            want = n * n if name in _MHA_MATRICES else n
-            values = fields[name].split()
-            if len(values) != want or not all(_NUMBER.fullmatch(v) for v in values):
-                return f"its MHA header's {name} is not {want} numbers"
-    return None
-
-
-ANATOMICAL_SPACES = frozenset(("right-anterior-superior", "left-anterior-superior", "left-posterior-superior",
-                               "ras", "las", "lps"))
-"""NRRD ``space`` values that say which side is the patient's left (teem's names, long and short;
-lower case). ``scanner-xyz`` and ``3D-right-handed`` do not: ITK reads them as LPS whatever the
-file meant."""
-TIMED_SPACES = frozenset(f"{name}{time}" for name in ANATOMICAL_SPACES for time in ("-time", "t"))
-"""The anatomical spaces' time variants (``RAST``, ``left-anterior-superior-time``, ...): ITK places
-every one of them as LPS, so that a ``RAST`` stack would be turned half a turn and a ``LAST`` one
-mirrored; they are refused by name."""
-
-
-def geometry_problem(header: bytes, kind: str) -> str | None:
-    """Why a rebuilt header's geometry would be made up by its reader, or None: no voxel size at all
-    (the reader invents 1 mm, as for a NIfTI header without one), or sizes, origin or axes that are
-    not finite numbers (the reader puts 1 mm or 0 in their place) or, in an MHA header, not as many
-    numbers as the image has dimensions (:func:`_mha_counts`), or a size that is not positive; or an
-    NRRD header that names no anatomical ``space`` (:data:`ANATOMICAL_SPACES`): which side is the
-    patient's left is then unknown, and it decides each slice's mirror twin, as a NIfTI header with
-    neither transform is refused for.
-
-    Example:
-        >>> geometry_problem(b"NRRD0004\\ntype: uchar\\nsizes: 2 2 2\\n\\n", "nrrd")
-        'its NRRD header gives no voxel size (no space directions or spacings); the reader would invent 1 mm'
-        >>> geometry_problem(b"NRRD0004\\nspace: RAS\\nspace directions: (1,0,0) (0,1,0) (0,0,3)\\n\\n", "nrrd") is None
-        True
-        >>> geometry_problem(b"NRRD0004\\nspacings: 1 1 3\\nspace origin: (0,0,0)\\n\\n", "nrrd")[:45]
-        'its NRRD header names no anatomical space (sp'
-        >>> geometry_problem(b"NRRD0004\\nspace: scanner-xyz\\nspace directions: (1,0,0) (0,1,0) (0,0,3)\\n\\n", "nrrd")[-39:]
-        "space 'scanner-xyz' names no such thing"
-        >>> geometry_problem(b"NRRD0004\\nspace: LAST\\nspace directions: (1,0,0,0) (0,1,0,0) (0,0,3,0)\\n\\n", "nrrd")[:52]
-        "its NRRD header's space 'last' is a space with time,"
-        >>> geometry_problem(b"NRRD0004\\nspace directions: (1e200,0,0) (0,1,0) (0,0,1)\\n\\n", "nrrd")[-9:]
-        '1e+06 mm)'
-    """
-    fields = _fields(header, kind)
-    sizes = [fields[name] for name in SIZE_FIELDS[kind] if name in fields]
-    if not sizes:
-        names = " or ".join(n.replace("space", "space ") if kind == "nrrd" else n for n in SIZE_FIELDS[kind])
-        return (f"its {kind.upper()} header gives no voxel size (no {names}); the reader would invent 1 mm")
-    for name in (*SIZE_FIELDS[kind], *PLACE_FIELDS[kind]):
-        if name in fields and (_NOT_FINITE.search(fields[name]) or
-                               any(abs(float(v)) > MAX_GEOMETRY_MM for v in _NUMBER.findall(fields[name]))):
-            return (f"its {kind.upper()} header's {name} holds values that are not finite numbers (or beyond "
-                    f"{MAX_GEOMETRY_MM:.0e} mm)")
-    if kind == "mha" and (problem := _mha_counts(fields)) is not None:
-        return problem
-    if any(float(v) <= 0 for v in _NUMBER.findall(fields.get("spacings", b"") + fields.get("elementspacing", b"")
-                                                 + fields.get("elementsize", b""))):
-        return f"its {kind.upper()} header gives a voxel size that is not positive"
-    directions = fields.get("spacedirections", b"") if kind == "nrrd" else b""
-    if b"none" in directions.lower() and (placed := directions.count(b"(")) < 3:
-        return (f"its NRRD header's space directions place {placed} of the image's axes (the others 'none'); the "
-                "reader would invent 1 mm for the rest")
-    space = fields.get("space", b"").strip().decode("latin-1").lower()
-    if kind == "nrrd" and space in TIMED_SPACES:
-        return (f"its NRRD header's space {space!r} is a space with time, which the reader would place as LPS "
-                "(a RAS or LAS stack turned or mirrored): write the stack in its 3D space (RAS, LAS or LPS)")
-    if kind == "nrrd" and space not in ANATOMICAL_SPACES:
-        return ("its NRRD header names no anatomical space (space: RAS, LAS or LPS): which side is the patient's left "
-                "is unknown, and it decides each slice's mirror twin" + (f"; space {space!r} names no such thing"
-                                                                           if space else ""))
-    return None
 
 
 MAX_AXES = 4
@@ -239,7 +139,7 @@ def declared_values(header: bytes, kind: str, filename: str) -> int:
         ...
         service.core.errors.UnsupportedFile: b.mha: its MHA header's NDims is not a whole number of 1 to 4 axes
     """
-    fields, name = _fields(header, kind), kind.upper()
+    fields, name = header_fields(header, kind), kind.upper()
 
     def problem(what: str) -> UnsupportedFile:
         return UnsupportedFile(f"{filename}: its {name} header's {what}")
@@ -282,7 +182,7 @@ def clean_header(src: BinaryIO, dst: BinaryIO, kind: str, filename: str, max_inf
     """Copy an NRRD (``kind="nrrd"``) or MetaImage (``"mha"``) upload from ``src`` to ``dst`` with a
     header rebuilt from allowed fields; its data bytes are copied unchanged, but for a compressed
     MetaImage, whose data are inflated here (to at most ``max_inflated`` bytes). Returns the rebuilt
-    header (for :func:`geometry_problem`, once the reader has read what it declares).
+    header (for :func:`~service.io.header_geometry.geometry_problem`, once the reader has read what it declares).
 
     Raises:
         UnsupportedFile: the header names another file, is longer than :data:`MAX_HEADER_BYTES`, or
@@ -302,7 +202,7 @@ def clean_header(src: BinaryIO, dst: BinaryIO, kind: str, filename: str, max_inf
             raise UnsupportedFile(f"{filename}: a {kind.upper()} header longer than {MAX_HEADER_BYTES >> 10} KB")
         raise UnsupportedFile(f"{filename}: a {kind.upper()} header with no voxel data after it")
     declared_values(header, kind, filename)                # before any reader sees it
-    if kind == "mha" and _fields(header, "mha").get("compresseddata", b"").strip().lower() == b"true":
+    if kind == "mha" and header_fields(header, "mha").get("compresseddata", b"").strip().lower() == b"true":
         _inflated_mha(header, head[data_at:], src, dst, filename, max_inflated)
         return header
     dst.write(header)
@@ -387,7 +287,7 @@ def _inflated_mha(header: bytes, data: bytes, src: BinaryIO, dst: BinaryIO, file
     inflated here, bounded by the values the header declares. ITK's reader leaves the voxels of a
     stream that fails to inflate as the memory it allocated held (an earlier upload's voxels, say)
     and says nothing; here a stream that is corrupt, cut short or longer than declared is refused."""
-    item = MET_ITEM_BYTES[_fields(header, "mha")["elementtype"].decode("latin-1").strip().upper()]
+    item = MET_ITEM_BYTES[header_fields(header, "mha")["elementtype"].decode("latin-1").strip().upper()]
     expected = declared_values(header, "mha", filename) * item
     if expected <= 0:
         raise UnsupportedFile(f"{filename}: a compressed MHA file that declares {expected} bytes of voxel data")
@@ -413,4 +313,4 @@ def _inflated_mha(header: bytes, data: bytes, src: BinaryIO, dst: BinaryIO, file
                               "header declares (corrupt or truncated)")
 
 
-__all__ = ["MAX_HEADER_BYTES", "clean_header", "declared_values", "geometry_problem"]
+__all__ = ["MAX_HEADER_BYTES", "clean_header", "declared_values", "header_fields"]

@@ -37,7 +37,8 @@ from service.io.acquisition_geometry import grid_problem, slice_axis_problem, st
 from service.io.archive import read_dicom_zip
 from service.io.dicom import read_dicom_file
 from service.io.bare_dicom import as_part10, bare_dicom
-from service.io.headers import clean_header, declared_values, geometry_problem
+from service.io.header_geometry import geometry_problem
+from service.io.headers import clean_header, declared_values
 from service.io.limits import DecodeBudget, FileBudget, raise_if_out_of_space
 from service.io.nifti_header import (MAX_SHEAR_COS, SPATIAL_UNITS, NiftiTransforms, missing_voxel_size,
                                      orientation_problem, qform_problem, read_transforms, sform_problem)

@@ -22,8 +22,8 @@ from service.preprocess.bias import n4_correct
 from service.reconstruction.atlas_frame import FrameFit, atlas_frame, with_frame
 from service.reconstruction.left_out import LeftOutPlacement, VolumeReference, place_left_out
 from service.reconstruction.midline import FrameCorrection, midline_fit
-from service.reconstruction.never_worse import (coherence_score, held_out_score, reconstruct_never_worse,
-                                                stack_held_out, without_stacks_apart)
+from service.reconstruction.held_out import coherence_score, held_out_score, stack_held_out, without_stacks_apart
+from service.reconstruction.never_worse import reconstruct_never_worse
 from service.reconstruction.config import ReconstructionConfig
 from service.reconstruction.grid import bounds_of, check_volume_size, make_grid
 from service.reconstruction.pipeline import ReconstructionResult

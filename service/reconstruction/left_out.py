@@ -57,7 +57,7 @@ from service.consistency.slice_order import SliceOrder
 from service.geometry.anchors import ed
 from service.reconstruction.forward import inplane_sigma_mm
 from service.reconstruction.grid import Grid
-from service.reconstruction.never_worse import coherence_score
+from service.reconstruction.held_out import coherence_score
 from service.reconstruction.pipeline import ReconstructionResult
 from service.reconstruction.quality import incoherent
 from service.reconstruction.registration import RegistrationResult, blurred_volume, register_slices

@@ -25,7 +25,7 @@ import typer
 from fastapi.testclient import TestClient
 
 from client import (BadRequest, Busy, Conflict, ConnectionFailed, JobFailed, KeyReused, NotFound, OriginNotAllowed,
-                    ServerError, SVRnetClient, SVRnetError, Unauthorized, UnsupportedFile, UnusableInput, WaitTimeout)
+                    ServerError, SVRnetClient, SVRnetError, Unauthorized, UnsupportedFile, UnusableInput)
 from client import stream as client_stream
 from client.errors import ArgumentError, error_from_response
 from client.exits import EXIT_CONNECTION, EXIT_HELP, EXIT_INTERRUPTED, errors, exit_code_for
@@ -459,55 +459,6 @@ def test_poses_from_a_file_and_failed_and_cancelled_jobs(stack_file: Path, tmp_p
         assert ("SVR diverged" in str(e.value)) == (outcome == "failed")
 
 
-def test_wait_goes_on_through_a_server_restart_and_gives_up_on_a_server_gone(no_sleep: list[float]) -> None:
-    fake, down = FakeJobs(), {"left": 0, "status": None}
-
-    def restarting(request: httpx.Request) -> httpx.Response:
-        if request.method == "GET" and down["left"] > 0:
-            down["left"] -= 1
-            if down["status"] is None:
-                raise httpx.ConnectError("[Errno 111] Connection refused", request=request)
-            return httpx.Response(down["status"], json=problem(down["status"], "no replica"))
-        return fake(request)
-
-    svr = mock(restarting, retries=1)
-    for status in (None, 502, 503):                  # refused connections (a restart), a proxy's 502, a 503 past retries
-        job_id = svr.reconstruct([__file__])["job_id"]
-        down.update(left=9, status=status)
-        assert svr.wait(job_id, poll_s=0.0)["status"] == "succeeded" and down["left"] == 0
-    job_id = svr.reconstruct([__file__])["job_id"]
-    down.update(left=9, status=None)
-    with pytest.raises(ConnectionFailed):
-        svr.wait(job_id, poll_s=0.0, unreachable_s=0.0)
-    down.update(left=1, status=500)                  # the server's own error is not waited out
-    with pytest.raises(ServerError):
-        svr.wait(job_id, poll_s=0.0)
-
-
-def test_wait_waits_as_long_as_a_busy_server_asks(no_sleep: list[float]) -> None:
-    fake, busy = FakeJobs(), {"left": 0}
-
-    def saturated(request: httpx.Request) -> httpx.Response:
-        if request.method == "GET" and busy["left"] > 0:
-            busy["left"] -= 1
-            return httpx.Response(503, json=problem(503, "busy"), headers={"Retry-After": "60"})
-        return fake(request)
-
-    svr = mock(saturated, retries=0)
-    job_id = svr.reconstruct([__file__])["job_id"]
-    busy["left"] = 2
-    assert svr.wait(job_id, poll_s=1.0, unreachable_s=600.0)["status"] == "succeeded"
-    assert sorted(no_sleep)[-2:] == [60.0, 60.0], no_sleep
-
-
-def test_wait_times_out() -> None:
-    svr = mock(FakeJobs("running"))
-    job_id = svr.reconstruct([__file__])["job_id"]
-    with pytest.raises(WaitTimeout) as e:
-        svr.wait(job_id, poll_s=0.01, timeout_s=0.05)
-    assert e.value.job["status"] == "running"
-
-
 # --- (e) the client stays thin ------------------------------------------------------------------------------
 
 
@@ -607,18 +558,6 @@ def test_a_post_is_not_sent_again_after_a_502(stack_file: Path) -> None:
     with pytest.raises(ServerError):
         mock(gateway, retries=3).predict([stack_file])
     assert calls == ["POST"]                                   # /v1/predict may have run: not repeated unasked
-
-
-def test_waiting_on_a_server_that_never_answered_ends_at_once(no_sleep: list[float]) -> None:
-    calls = []
-
-    def stopped(request: httpx.Request) -> httpx.Response:
-        calls.append(request.method)
-        raise httpx.ConnectError("[Errno 111] Connection refused", request=request)
-
-    with pytest.raises(ConnectionFailed, match="Connection refused"):
-        mock(stopped, retries=2).wait("3f2a", poll_s=1.0, timeout_s=3600.0, unreachable_s=120.0)
-    assert calls == ["GET"] * 3 and sum(no_sleep) < 5              # the transport's retries, not 120 s of polls
 
 
 @pytest.mark.parametrize(("status", "ptype", "cls", "code"), [

@@ -364,31 +364,3 @@ def test_no_registered_path_whose_stacks_do_not_predict_each_other_replaces_the_
     result, _ = run_with(monkeypatch, {"full": 0.62, "starting_poses": 0.18, "slice_level": 0.21},
                          ReconstructionConfig())                                  # a coherent path still wins
     assert result.quality["path"] == "full"
-
-
-def test_a_stack_the_others_do_not_predict_is_left_out_only_where_the_volume_without_it_holds() -> None:
-    """Stack 2 apart from the two others: the volume is made again without its slices, and kept
-    where its stacks predict each other; a volume again incoherent, or a job of two stacks (neither
-    the odd one), keeps the first."""
-    from dataclasses import dataclass
-    from types import SimpleNamespace
-
-    @dataclass
-    class Slices:
-        stack_index: np.ndarray
-        include: np.ndarray
-
-    def result(per: list, median: float) -> SimpleNamespace:
-        return SimpleNamespace(quality={"leave_one_stack_out": {"median_ncc": median, "per_stack_median_ncc": per}})
-
-    asked: list = []
-    slices = Slices(np.array([0, 0, 1, 1, 2, 2]), np.array([1, 1, 1, 0, 1, 1], bool))
-    first = result([0.9, 0.86, 0.41], 0.8)
-    good = never_worse.without_stacks_apart(slices, first, lambda kept, named: asked.append((kept, named)) or
-                                            result([0.9, 0.87, None], 0.88))
-    assert good.quality["stacks_left_out"] == [2] and asked[0][1] == "2"
-    assert asked[0][0].include.tolist() == [True, True, True, False, False, False]
-    assert never_worse.without_stacks_apart(slices, first, lambda kept, named: result([0.3, 0.4, None], 0.35)) is first
-    two = Slices(np.array([0, 1]), np.ones(2, bool))
-    assert never_worse.without_stacks_apart(two, result([0.9, 0.41], 0.6), lambda *a: pytest.fail("made again")) \
-        is not None
