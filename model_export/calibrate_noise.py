@@ -112,11 +112,12 @@ def missing_error(ed: NDArray, expected: NDArray, target: float, top_mm: float =
 
 
 def fit_hinge(noise: NDArray, ed: NDArray, expected: NDArray, groups: list[NDArray], target: float,
-              slopes: NDArray = np.arange(0.0, 150.1, 1.0)) -> tuple[float, float]:
+              slopes: NDArray = np.arange(0.0, 150.1, 1.0), onsets: NDArray | None = None) -> tuple[float, float]:
     """``(onset, slope)`` of ``slope x max(0, noise - onset)`` that brings each group of slices
     (boolean masks ``groups``) nearest :func:`median_ratio` ``target``, each slice with its own
-    stack's ``noise``: the sum over groups of their slices times the squared log of their median
-    ratio over the target, smallest (the onset on a 0.005 grid, the slope on ``slopes``).
+    stack's ``noise`` (or any level the error grows with): the sum over groups of their slices
+    times the squared log of their median ratio over the target, smallest (the onset on
+    ``onsets``, default a 0.005 grid from 0, the slope on ``slopes``).
 
     Example (slices of noise 0.05 as trusted as they should be, those of 0.15 lacking 3 mm):
         >>> noise = np.repeat([0.05, 0.15], 4); x = np.full(8, 4.0)
@@ -126,7 +127,7 @@ def fit_hinge(noise: NDArray, ed: NDArray, expected: NDArray, groups: list[NDArr
         3.0
     """
     best = (np.inf, 0.0, 0.0)
-    for onset in np.arange(0.0, float(noise.max()) + 1e-9, 0.005):
+    for onset in np.arange(0.0, float(noise.max()) + 1e-9, 0.005) if onsets is None else onsets:
         hinge = np.maximum(noise - onset, 0.0)
         for slope in slopes:
             scaled = ed / np.hypot(expected, slope * hinge)

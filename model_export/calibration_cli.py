@@ -1,5 +1,5 @@
-"""``svrnet-train``'s calibrations: the variance threshold, the MC spread, the accept flags and the
-noise error (registered on the app by :mod:`model_export.cli`)."""
+"""``svrnet-train``'s calibrations: the variance threshold, the MC spread, the accept flags, the
+noise error and the frame error (registered on the app by :mod:`model_export.cli`)."""
 
 from __future__ import annotations
 
@@ -127,7 +127,55 @@ def calibrate_noise(
     typer.echo(json.dumps(result, indent=2))
 
 
+def calibrate_frame(
+    model: Path,
+    root: Root = DEFAULT_ATLAS_ROOT,
+    per_volume: Annotated[Optional[int], typer.Option(help="acquisitions per validation volume and motion level "
+                                                           "(default: calibrate_frame.PER_VOLUME)")] = None,
+    scenes: Annotated[Optional[int], typer.Option(help="whole-uterus requests of three stacks, each sent without "
+                                                       "masks and with the atlas's (default: calibrate_frame.SCENES)")] = None,
+    report: Annotated[Optional[Path], typer.Option(help="markdown report (default: frame.md beside the model; "
+                                                        "the shipped model's is model_export/reports/frame.md)")] = None,
+    write: Annotated[bool, typer.Option(help="write frame_error into the model's metadata")] = True,
+    seed: int = 11,
+    scene_seed: Annotated[int, typer.Option(help="the first whole-uterus request's seed")] = 2_400_000,
+    slices: Annotated[Optional[Path], typer.Option(help="also keep every slice's columns here (.npz)")] = None,
+    columns: Annotated[Optional[list[Path]], typer.Option(
+        help="calibrate from the slice columns previous runs kept (--slices) instead of measuring again; "
+             "given several times, their slices pooled")] = None,
+) -> None:
+    """Calibrate how a request's frame error grows with the network's error on its slices (frame_error)
+    on simulated acquisitions and whole-uterus requests of the model's validation volumes."""
+    import numpy as np
+
+    from model_export.atlas import held_out_volumes
+    from model_export.calibrate_frame import PER_VOLUME, SCENES, calibrate, frame_metadata, markdown, measure
+    from model_export.spread import write_metadata
+    from service.inference.estimator import OnnxPoseEstimator
+    from service.inference.model_file import load_model
+
+    if columns:
+        parts = []
+        for path in columns:
+            with np.load(path) as kept:
+                parts.append({k: kept[k] for k in ("ed", "expected", "sigma", "request", "source")})
+        measured = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    else:
+        loaded = load_model(model)
+        measured = measure(OnnxPoseEstimator(loaded), held_out_volumes(loaded.info.metadata, root),
+                           per_volume or PER_VOLUME, seed, SCENES if scenes is None else scenes, scene_seed)
+        if slices is not None:
+            np.savez_compressed(slices, **measured)
+    result = calibrate(measured)
+    report = report or model.with_name("frame.md")              # never the shipped model's report by default
+    report.parent.mkdir(parents=True, exist_ok=True)
+    report.write_text(f"# Frame-error calibration of {model}\n\n{markdown(result)}\n")
+    if write:
+        write_metadata(model, frame_metadata(result))
+    typer.echo(json.dumps(result, indent=2))
+
+
 COMMANDS = {"calibrate": calibrate, "calibrate-spread": calibrate_spread, "calibrate-acceptance": calibrate_acceptance,
-            "calibrate-noise": calibrate_noise}
+            "calibrate-noise": calibrate_noise, "calibrate-frame": calibrate_frame}
 """Each command's name and function (:mod:`model_export.cli` registers them first, so ``svrnet-train
 --help`` lists them before its own)."""

@@ -133,7 +133,8 @@ def score_scene(scene: Scene | list[Scene], variant: str, estimator, localiser: 
                 mc_samples: int = 100) -> dict[str, NDArray]:
     """Per scored slice of one request (a scene, or a case's stacks sent together) and mask variant:
     E.D. and twin-min E.D. (NaN where ``empty``), and the answer's poses (``poses``, slice -> atlas
-    mm; NaN where ``empty``), the stacks' scored slices one after the other. An estimator with a
+    mm; NaN where ``empty``), the stacks' scored slices one after the other; and the request's
+    network error (``network_error``, :mod:`service.consistency.frame_error`). An estimator with a
     ``truth`` attribute (a stand-in for the network) is told each slice's true network-frame pose
     first, as :func:`model_export.evaluate_acquisitions.run_acquisition` does."""
     scenes = scene if isinstance(scene, list) else [scene]
@@ -158,7 +159,8 @@ def score_scene(scene: Scene | list[Scene], variant: str, estimator, localiser: 
         accepted = np.array([bool(a["accepted"]) for a in answer["slices"]])[scored]
         for key, value in zip(rows, (ed, ed_min, expected, accepted, shown)):
             rows[key].append(value)
-    return {key: np.concatenate(value) for key, value in rows.items()}
+    return {**{key: np.concatenate(value) for key, value in rows.items()},
+            "network_error": np.array(predictions[0].request_network_error_mm if predictions else np.nan)}
 
 
 def pose_accuracy(scenes: list[Scene] | list[list[Scene]], estimator, localiser: Localiser,  # noqa: ANN001

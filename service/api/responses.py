@@ -15,7 +15,7 @@ import time
 import numpy as np
 
 from service.core.errors import ServiceError
-from service.pipeline.documents import noise_report, slice_objects, stack_report
+from service.pipeline.documents import frame_report, noise_report, slice_objects, stack_report
 from service.pipeline.predict import StackPrediction
 from service.streaming.answers import SessionSummary, SliceAnswer, StackAnswer
 
@@ -42,7 +42,8 @@ def stack_message(answer: StackAnswer) -> dict:
     slices = [{"stack": answer.stack, **s, "localisation": found} for s in slice_objects(p)]
     return {"type": "stack", "stack": answer.stack, "slices": slices, "consistency": stack_report(p.poses),
             "localisation": p.prepared.localisation.report(),
-            "noise": noise_report(p.prepared.input_noise, p.noise_error_mm), "reacquire": _reacquire(answer.reacquire),
+            "noise": noise_report(p.prepared.input_noise, p.noise_error_mm),
+            "frame": frame_report(p.request_network_error_mm, p.frame_error_mm), "reacquire": _reacquire(answer.reacquire),
             "judged_alone": answer.judged_alone, "coverage": answer.coverage.report(),
             "timing_ms": {k: round(v * 1e3, 1) for k, v in answer.timings.items()}}
 

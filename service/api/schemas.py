@@ -146,6 +146,23 @@ class Noise(BaseModel):
                                                             "error its noise brings too")
 
 
+class Frame(BaseModel):
+    request_network_error_mm: Optional[float] = Field(
+        description="the request's network error: the RMS over its stacks (weighted by their posed slices) of "
+                    "consistency.network_error_mm, how far the network's poses scatter about each stack's motion "
+                    "model; null when no stack had a fit. The same for every stack of a request. The simulated "
+                    "acquisitions the expected errors were calibrated on lie near 12 mm; whole-uterus requests "
+                    "without masks and real scans often at 15-35 mm")
+    expected_error_added_mm: float = Field(0.0, description="what the request's frame error added, in quadrature, to "
+                                                            "each slice's expected_error_mm: the whole request is "
+                                                            "placed worse in the atlas frame where the network is "
+                                                            "less sure of its slices, while they still agree with "
+                                                            "each other (the model's frame_error calibration; 0 up "
+                                                            "to its onset, or for a model without one). A "
+                                                            "reconstruction job places its volume itself and reads "
+                                                            "the expected errors without it")
+
+
 class StackResult(BaseModel):
     index: int
     filename: str
@@ -159,6 +176,9 @@ class StackResult(BaseModel):
     consistency: Optional[StackConsistency] = Field(None, description="the stack-consistency stage (null when off)")
     localisation: Optional[Localisation] = Field(None, description="how the stack's brain was localised")
     noise: Optional[Noise] = Field(None, description="how noisy the stack's slices are as the pose network sees them")
+    frame: Optional[Frame] = Field(None, description="the request's frame error: how much less sure of the whole "
+                                                     "request's placement in the atlas frame its slices' network "
+                                                     "errors make it")
 
 
 class PredictResponse(BaseModel):

@@ -69,6 +69,11 @@ class ModelInfo:
     """Calibration: ``(onset, slope)``, the error (mm) a stack's slices carry beyond their MC spread
     when its inputs are noisier than the network learnt, ``slope x max(0, input_noise - onset)``
     (:func:`service.preprocess.noise.noise_error_mm`); None (not calibrated): none is added."""
+    frame_error: tuple[float, float] | None = None
+    """Calibration: ``(onset, slope)``, the error (mm) a request's placement in the atlas frame carries
+    beyond the floor when the network is less sure of its slices, ``slope x max(0, sigma - onset)``,
+    ``sigma`` the request's network error (:func:`service.consistency.frame_error.frame_error_mm`);
+    None (not calibrated): none is added."""
     tta_views: int = 1
     """Test-time views the MC samples are shared among (:mod:`service.inference.views`); the variance
     threshold and ``mc_error_scale`` were calibrated with them."""
@@ -93,6 +98,7 @@ class ModelInfo:
                 max_expected_error_mm=float(meta["max_expected_error_mm"]) if meta.get("max_expected_error_mm") else None,
                 twin_risk_logit=_logit(meta.get("twin_risk_logit", "")),
                 noise_error=_noise_error(meta.get("noise_error", "")),
+                frame_error=_frame_error(meta.get("frame_error", "")),
                 mc_seed=int(meta["mc_seed"]) if meta.get("mc_seed") else None,
                 metadata=dict(meta),
             )
@@ -108,6 +114,25 @@ def _shape(text: str) -> tuple[float, ...] | None:
     if len(shape) != 6 or not all(x > 0 for x in shape):
         raise ValueError(f"mc_error_shape must be six positive numbers, not {text!r}")
     return shape
+
+
+def _frame_error(text: str) -> tuple[float, float] | None:
+    """``frame_error`` from its metadata text (a non-negative onset in mm and a non-negative slope;
+    absent or empty: None).
+
+    Example:
+        >>> _frame_error("13,0.5"), _frame_error("")
+        ((13.0, 0.5), None)
+    """
+    if not text:
+        return None
+    try:
+        values = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 2 or not all(0.0 <= v < np.inf for v in values):
+        raise ValueError(f"frame_error must be a non-negative onset (mm) and a non-negative slope, not {text!r}")
+    return values
 
 
 def _noise_error(text: str) -> tuple[float, float] | None:

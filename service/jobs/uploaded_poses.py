@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from service.geometry import frames
+from service.inference.acceptance import EMPTY
 from service.io.acquisition_geometry import MAX_FIELD_OF_VIEW_MM
 
 
@@ -205,7 +206,9 @@ def expected_errors(body: dict) -> np.ndarray:
     """``[n]`` every slice's ``expected_error_mm`` of a ``/v1/predict`` body (stacks in order, each
     stack's slices by their ``index``, :func:`in_index_order`, as :func:`poses_from_predict_body`
     reads the poses), NaN where a slice has none or not a finite, non-negative number (a client's
-    body is read, not trusted).
+    body is read, not trusted); less its stack's ``frame.expected_error_added_mm`` in quadrature
+    (:func:`frame_added_mm`): a job weighs its slices against each other and places the volume
+    in the atlas frame itself, so the request's frame error is no slice's.
 
     Example:
         >>> expected_errors({"stacks": [{"slices": [{"expected_error_mm": 2.5}, {"expected_error_mm": None}]},
@@ -218,15 +221,72 @@ def expected_errors(body: dict) -> np.ndarray:
         ...                                         {"index": 0, "expected_error_mm": 2.0}]}]}).tolist()
         [2.0, 4.0]
     """
-    def number(value: object) -> float:
-        if not isinstance(value, (int, float)) or isinstance(value, bool):
-            return np.nan
-        try:
-            as_float = float(value)
-        except OverflowError:                            # an int beyond float's range (JSON has no limit)
-            return np.nan
-        return as_float if np.isfinite(as_float) and as_float >= 0 else np.nan
+    given = np.array([_number(s.get("expected_error_mm") if isinstance(s, dict) else None)
+                      for i, st in enumerate(body.get("stacks", [])) for s in in_index_order(st.get("slices", []), i)],
+                     dtype=np.float64)
+    return np.sqrt(np.maximum(given ** 2 - frame_added_mm(body) ** 2, 0.0))
 
-    return np.array([number(s.get("expected_error_mm") if isinstance(s, dict) else None)
-                     for i, st in enumerate(body.get("stacks", [])) for s in in_index_order(st.get("slices", []), i)],
-                    dtype=np.float64)
+
+def frame_added_mm(body: dict) -> np.ndarray:
+    """``[n]`` what the request's frame error added to each slice's expected error (its stack's
+    ``frame.expected_error_added_mm``; 0 where the body has none: an answer of an earlier version,
+    or a client's), in the order of :func:`expected_errors`.
+
+    Example:
+        >>> frame_added_mm({"stacks": [{"frame": {"expected_error_added_mm": 3.0}, "slices": [{}, {}]},
+        ...                            {"slices": [{}]}]}).tolist()
+        [3.0, 3.0, 0.0]
+    """
+    out = []
+    for st in body.get("stacks", []):
+        frame = st.get("frame") if isinstance(st, dict) else None
+        added = _number(frame.get("expected_error_added_mm")) if isinstance(frame, dict) else 0.0
+        out += [0.0 if np.isnan(added) else added] * len(st.get("slices", []) if isinstance(st, dict) else [])
+    return np.array(out, dtype=np.float64)
+
+
+def accepted_without_frame(body: dict) -> list[np.ndarray]:
+    """Per stack of the service's own ``/v1/predict`` body, its slices accepted or rejected only for an
+    expected error that the request's frame error put over the body's ``max_expected_error_mm``
+    (:func:`expected_errors`): what a job starts from. A job places its volume in the atlas frame
+    itself, so the request's frame error makes no slice worse to start from.
+
+    Example (the second slice was over 4.4 mm by its frame error alone; the third is over without it):
+        >>> slices = [{"accepted": True, "reason": None, "expected_error_mm": 2.0},
+        ...           {"accepted": False, "reason": "high_expected_error", "expected_error_mm": 5.0},
+        ...           {"accepted": False, "reason": "high_expected_error", "expected_error_mm": 6.0}]
+        >>> body = {"max_expected_error_mm": 4.4, "stacks": [{"frame": {"expected_error_added_mm": 3.0}, "slices": slices}]}
+        >>> [a.tolist() for a in accepted_without_frame(body)]
+        [[True, True, False]]
+    """
+    limit = _number(body.get("max_expected_error_mm"))
+    own = expected_errors(body)
+    out, start = [], 0
+    for i, st in enumerate(body.get("stacks", [])):
+        slices = in_index_order(st.get("slices", []), i)
+        errors = own[start:start + len(slices)]
+        start += len(slices)
+        out.append(np.array([bool(s.get("accepted")) or (s.get("reason") == "high_expected_error" and e <= limit)
+                             for s, e in zip(slices, errors)], dtype=bool))
+    return out
+
+
+def posed_slices(body: dict) -> list[np.ndarray]:
+    """Per stack of a ``/v1/predict`` body, which slices were posed (not ``empty``)."""
+    return [np.array([s.get("reason") != EMPTY for s in st["slices"]]) for st in body["stacks"]]
+
+
+def signal_lost_slices(body: dict) -> list[np.ndarray]:
+    """Per stack of a ``/v1/predict`` body, which slices lost the brain's signal (``signal_lost``)."""
+    return [np.array([bool(s.get("signal_lost")) for s in st["slices"]], bool) for st in body["stacks"]]
+
+
+def _number(value: object) -> float:
+    """A JSON value as a finite, non-negative float, else NaN."""
+    if not isinstance(value, (int, float)) or isinstance(value, bool):
+        return np.nan
+    try:
+        as_float = float(value)
+    except OverflowError:                                # an int beyond float's range (JSON has no limit)
+        return np.nan
+    return as_float if np.isfinite(as_float) and as_float >= 0 else np.nan

@@ -33,10 +33,10 @@ import numpy as np
 from service.consistency.slice_order import SliceOrder, per_stack
 from service.core.errors import Cancelled, InternalError, ServiceError, UnusableImage
 from service.core.logging import error_at
-from service.inference.acceptance import EMPTY
 from service.jobs.store import JobStore
 from service.jobs.provenance import localiser_provenance, provenance
-from service.jobs.uploaded_poses import expected_errors, poses_from_predict_body
+from service.jobs.uploaded_poses import (accepted_without_frame, expected_errors, posed_slices, poses_from_predict_body,
+                                        signal_lost_slices)
 from service.preprocess.intensity import SIGNAL_LOST
 
 if TYPE_CHECKING:
@@ -106,16 +106,6 @@ def starting_inclusion(poses: list[tuple[np.ndarray, np.ndarray]], posed: list[n
     return [(mats, np.ones(len(mats), dtype=bool)) for mats, _ in poses]
 
 
-def posed_slices(body: dict) -> list[np.ndarray]:
-    """Per stack of a ``/v1/predict`` body, which slices were posed (not ``empty``)."""
-    return [np.array([s.get("reason") != EMPTY for s in st["slices"]]) for st in body["stacks"]]
-
-
-def signal_lost_slices(body: dict) -> list[np.ndarray]:
-    """Per stack of a ``/v1/predict`` body, which slices lost the brain's signal (``signal_lost``)."""
-    return [np.array([bool(s.get("signal_lost")) for s in st["slices"]], bool) for st in body["stacks"]]
-
-
 def lost_reasons(reasons: list[str | None] | None, body: dict) -> list[str | None] | None:
     """A job's per-slice exclusion reasons (all stacks' slices in order) with ``signal_lost`` for the
     slices left out because their brain lost its signal (:func:`starting_poses`), not ``not_used``.
@@ -134,10 +124,12 @@ def lost_reasons(reasons: list[str | None] | None, body: dict) -> list[str | Non
 def starting_poses(body: dict, min_share: float = MIN_ACCEPTED_SHARE, min_slices: int = MIN_ACCEPTED_SLICES,
                    keep_signal_lost: bool = False) -> list[tuple[np.ndarray, np.ndarray]]:
     """``(atlas_from_voxel, include)`` per stack that a job starts from, given the service's own
-    ``/v1/predict`` body (:func:`~service.jobs.uploaded_poses.poses_from_predict_body`,
-    :func:`starting_inclusion`), less the slices whose brain lost its signal (their images would
-    darken the volume where they lie; kept with ``keep_signal_lost``, or where nothing else is left)."""
+    ``/v1/predict`` body (:func:`~service.jobs.uploaded_poses.poses_from_predict_body`, accepted as
+    :func:`~service.jobs.uploaded_poses.accepted_without_frame` reads them, :func:`starting_inclusion`),
+    less the slices whose brain lost its signal (their images would darken the volume where they
+    lie; kept with ``keep_signal_lost``, or where nothing else is left)."""
     poses = poses_from_predict_body(body, [len(st["slices"]) for st in body["stacks"]])
+    poses = [(mats, own) for (mats, _), own in zip(poses, accepted_without_frame(body))]
     started = starting_inclusion(poses, posed_slices(body), min_share, min_slices)
     kept = [(mats, include & ~lost) for (mats, include), lost in zip(started, signal_lost_slices(body))]
     return started if keep_signal_lost or not any(include.any() for _, include in kept) else kept
@@ -155,7 +147,7 @@ def start_label(body: dict, poses: list[tuple[np.ndarray, np.ndarray]]) -> str:
         >>> start_label(body, [(None, np.array([True, True])), (None, np.array([True]))])
         'every_slice'
     """
-    accepted = [np.array([bool(s.get("accepted")) for s in st["slices"]]) for st in body["stacks"]]
+    accepted = accepted_without_frame(body)
     kept = all(np.array_equal(include, acc) or np.array_equal(include, acc & ~lost)
                for (_, include), acc, lost in zip(poses, accepted, signal_lost_slices(body)))
     return "accepted_slices" if kept else "every_slice"

@@ -111,6 +111,7 @@ def stack_objects(predictions: list[StackPrediction]) -> list[dict]:
             "slices": slice_objects(p), "consistency": stack_report(p.poses),
             "localisation": p.prepared.localisation.report(),
             "noise": noise_report(p.prepared.input_noise, p.noise_error_mm),
+            "frame": frame_report(p.request_network_error_mm, p.frame_error_mm),
         })
     return stacks
 
@@ -129,4 +130,20 @@ def noise_report(level: float, added_mm: float = 0.0) -> dict:
     known = bool(np.isfinite(level))
     return {"input_noise": round(float(level), 4) if known else None,
             "beyond_calibration": bool(known and level > NOISY_INPUT),
+            "expected_error_added_mm": round(float(added_mm), 2)}
+
+
+def frame_report(network_error_mm: float, added_mm: float = 0.0) -> dict:
+    """A stack's ``frame`` object: the request's network error (the slice-weighted RMS of its stacks'
+    ``network_error_mm``; null where no stack had a fit), which the request's placement in the atlas
+    frame is worse with, and what that added to each slice's expected error (``added_mm``, in
+    quadrature; the model's ``frame_error`` calibration, :mod:`service.consistency.frame_error`).
+    Every stack of a request has the same.
+
+    Example:
+        >>> frame_report(23.64, 5.318), frame_report(float("nan"))
+        ({'request_network_error_mm': 23.6, 'expected_error_added_mm': 5.32}, {'request_network_error_mm': None, 'expected_error_added_mm': 0.0})
+    """
+    known = bool(np.isfinite(network_error_mm))
+    return {"request_network_error_mm": round(float(network_error_mm), 1) if known else None,
             "expected_error_added_mm": round(float(added_mm), 2)}

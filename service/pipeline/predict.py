@@ -22,8 +22,9 @@ from dataclasses import dataclass
 from itertools import pairwise
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
+from service.consistency.frame_error import frame_error_mm, request_network_error_mm
 from service.consistency.image_refinement import refine, smooth_ahead
 from service.consistency.refined_errors import agreed, expected_after, relative_mismatch
 from service.consistency.slice_images import SampledStack, StackImages
@@ -31,22 +32,20 @@ from service.consistency.slice_order import FROM_FILE, SliceOrder, per_stack
 from service.consistency.stage import (
     ImageConsistency,
     StackPoses,
-    branch_set,
     checked_branch,
     consistent_poses,
-    misfit_factor,
     pool_request,
     request_reference,
     undecided,
 )
 from service.core.cancellation import checkpoint
 from service.core.errors import InvalidParameter
-from service.geometry.twin import DEFAULT_PLANE_X_MM, twin_distance_mm, twin_variance, undecided_twin_variance
+from service.geometry.twin import DEFAULT_PLANE_X_MM
 from service.inference import acceptance
 from service.inference.estimator import PoseEstimate, PoseEstimator
 from service.inference.model_file import ModelInfo
 from service.pipeline.prepare import PreparedStack, StackUpload
-from service.preprocess.noise import noise_error_mm
+from service.pipeline.unseen_errors import add_unseen_errors
 
 STAGE_WORKERS = 3
 """Stacks through the stack-consistency stage at a time (threads: its eigendecompositions release the
@@ -86,6 +85,15 @@ class StackPrediction:
         reasons: why each slice is not accepted (None: accepted).
         noise_error_mm: what the stack's input noise added to each slice's expected error, in
             quadrature (:func:`~service.preprocess.noise.noise_error_mm`; 0: nothing).
+        request_network_error_mm: the request's network error, which its frame error grows
+            with (:func:`~service.consistency.frame_error.request_network_error_mm`; NaN: no
+            stack had a fit).
+        frame_error_mm: what that added to each slice's expected error, in quadrature
+            (:func:`~service.consistency.frame_error.frame_error_mm`; 0: nothing).
+        own_reasons: each slice's accept flag by its expected error without the request's frame error
+            (None: that added nothing): what the slice itself allows. Acquiring a slice again, or
+            leaving it out of a reconstruction, does not move the request's frame, so a stream's
+            slices worth acquiring again are judged by these.
     """
 
     prepared: PreparedStack
@@ -94,95 +102,20 @@ class StackPrediction:
     poses: StackPoses
     reasons: list[str | None]
     noise_error_mm: float = 0.0
+    request_network_error_mm: float = float("nan")
+    frame_error_mm: float = 0.0
+    own_reasons: list[str | None] | None = None
 
 
 def judge(prepared: PreparedStack, estimate: PoseEstimate, out: StackPoses, threshold: float,
-          max_expected_error_mm: float | None) -> list[str | None]:
-    """Each returned pose's accept flag (:func:`~service.inference.acceptance.reasons`)."""
-    expected = out.expected_error_mm
+          max_expected_error_mm: float | None, expected: NDArray | None = None) -> list[str | None]:
+    """Each returned pose's accept flag (:func:`~service.inference.acceptance.reasons`), by its
+    expected error (``expected``: others instead of ``out``'s)."""
+    expected = out.expected_error_mm if expected is None else expected
     return acceptance.reasons(prepared.prepared.mask_fraction, estimate.degenerate, out.poses[:, :3, 3],
                               estimate.variance, threshold, out.inconsistent,
                               None if expected is None else np.where(np.isfinite(expected), expected, np.nan),
                               max_expected_error_mm)
-
-
-def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate | None = None,
-                      input_noise: ArrayLike = np.nan, branch_known: bool | None = None) -> NDArray[np.float64]:
-    """Add to each returned pose's expected error (in place) what no stage sees; return what the
-    noise added (mm, in quadrature; shaped as ``input_noise``).
-
-    * Where no image stage weighed the stack's slices again (a stack sent alone, a stream's stack, a
-      stack the request could not place), the motion its model did not explain: the stage's
-      expected errors times :func:`~service.consistency.stage.misfit_factor`.
-    * The request's placement in the atlas frame: the model's ``expected_error_floor_mm``, in quadrature.
-    * Inputs noisier than the network learnt (its stack's ``input_noise``, one value or one per
-      slice): the model's ``noise_error`` calibration (:func:`~service.preprocess.noise.noise_error_mm`),
-      in quadrature. Such a stack is posed worse than its spread says, mostly by a larger turn and
-      shift of the whole request, which its slices' agreement cannot show.
-    * Where the image stage refined the stack, no less than its placement floor
-      (:func:`placement_floor_mm`): the whole expected error, not a term beside the others (the
-      floor is the request's placement, which the first term stands for where no stack tells it).
-    * In a stack the stage found consistent (each slice's branch set by its stack-mates), the chance
-      that a slice sits on its mirror twin all the same: near the mid-sagittal plane a slice and its
-      twin show one image, and a sudden move of the fetus can put a slice's stack-mates' prediction
-      nearer its twin. The model's ``twin_risk_logit`` gives that chance ``p`` from the slice's
-      distance ``d`` to its twin; the expected squared error grows by ``p d^2``
-      (:func:`~service.geometry.twin.twin_variance`).
-    * Where nothing decided the slice's branch (the stage off, a stack it found inconsistent, a
-      consistent stack whose branch neither it nor the request decided, a streamed slice answered
-      before its stack's branch is known: ``branch_known`` False), the pose's branch is the
-      network's, which a single slice cannot tell: it is on its twin by even odds, and the expected
-      squared error grows by half its squared distance to it
-      (:func:`~service.geometry.twin.undecided_twin_variance`). A slice near the mid-plane keeps a
-      small error and may be accepted; a lateral one does not pass as a sure pose.
-
-    A slice the network saw without measuring its spread (one MC pass: ``estimate``'s variance NaN)
-    has no expected error (NaN, null in the answer): the calibration scales a spread, and the
-    floor alone would read as a confident pose.
-
-    Example (a sagittal slice 5 mm off the plane, 10 mm from its twin, in a consistent stack):
-        >>> from types import SimpleNamespace
-        >>> pose = np.array([[0.0, 0, 1, 5], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]])
-        >>> fit = SimpleNamespace(decidable=True, branch_decided=True, branch_from_request=False)
-        >>> out = SimpleNamespace(expected_error_mm=np.array([3.0]), fit=fit, poses=pose[None], image_consistency=None)
-        >>> info = SimpleNamespace(expected_error_floor_mm=4.0, twin_risk_logit=(-1.0, -0.1))
-        >>> _ = add_unseen_errors(out, info); out.expected_error_mm.round(2).tolist()   # sqrt(9 + 16 + 11.92)
-        [6.08]
-    """
-    if out.expected_error_mm is None:
-        return add_noise_error(out, info, input_noise)
-    refined = out.image_consistency
-    own = np.asarray(out.expected_error_mm, np.float64) * (misfit_factor(out.fit) if refined is None else 1.0)
-    variance = own ** 2 + float(getattr(info, "expected_error_floor_mm", 0.0)) ** 2
-    logit = getattr(info, "twin_risk_logit", None)
-    known = branch_set(out) if branch_known is None else branch_known
-    d = twin_distance_mm(out.poses, getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM))
-    if not known:
-        variance = variance + undecided_twin_variance(d)
-    elif logit is not None and out.fit is not None and out.fit.decidable:
-        variance = variance + twin_variance(d, logit)
-    variance = np.maximum(variance, (refined.placement_floor_mm if refined is not None else 0.0) ** 2)
-    if estimate is not None:
-        variance = np.where(estimate.estimated & np.isnan(estimate.variance), np.nan, variance)
-    out.expected_error_mm = np.sqrt(variance)
-    return add_noise_error(out, info, input_noise)
-
-
-def add_noise_error(out: StackPoses, info: ModelInfo, input_noise: ArrayLike) -> NDArray[np.float64]:
-    """Add to each returned pose's expected error (in place, in quadrature) the model's noise error
-    for ``input_noise`` (:func:`~service.preprocess.noise.noise_error_mm`); return what it added.
-
-    Example (a stack of input noise 0.15 under a calibration of onset 0.1 and slope 80 mm: 4 mm):
-        >>> from types import SimpleNamespace
-        >>> out = SimpleNamespace(expected_error_mm=np.array([3.0, np.nan]))
-        >>> added = add_noise_error(out, SimpleNamespace(noise_error=(0.1, 80.0)), 0.15)
-        >>> round(float(added), 6), out.expected_error_mm.round(6).tolist()
-        (4.0, [5.0, nan])
-    """
-    added = noise_error_mm(input_noise, getattr(info, "noise_error", None))
-    if out.expected_error_mm is not None:
-        out.expected_error_mm = np.hypot(out.expected_error_mm, added)
-    return added
 
 
 def stack_orders(orders: list[SliceOrder] | None, uploads: list[StackUpload]) -> list[SliceOrder]:
@@ -390,8 +323,14 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
         refine_where_stacks_cross(prepared, outs, [~e.degenerate & ~s.signal_lost for e, s in zip(parts, prepared)],
                                   smoothed.result())
     timings["image_consistency"] = time.perf_counter() - t
+    sigma = request_network_error_mm([o.fit.noise_mm if o.fit is not None and o.fit.decidable else np.nan for o in outs],
+                                     [int((~e.degenerate).sum()) for e in parts])
+    frame = float(frame_error_mm(sigma, getattr(info, "frame_error", None)))
     results = []
     for s, e, nfv, out in zip(prepared, parts, frames, outs):
-        added = add_unseen_errors(out, info, e, s.input_noise)
-        results.append(StackPrediction(s, nfv, e, out, judge(s, e, out, threshold, max_expected_error_mm), float(added)))
+        added = add_unseen_errors(out, info, e, s.input_noise, frame_mm=frame)
+        own = None if frame <= 0 or out.expected_error_mm is None else judge(
+            s, e, out, threshold, max_expected_error_mm, np.sqrt(np.maximum(out.expected_error_mm ** 2 - frame ** 2, 0.0)))
+        results.append(StackPrediction(s, nfv, e, out, judge(s, e, out, threshold, max_expected_error_mm), float(added),
+                                       sigma, frame, own))
     return results, timings

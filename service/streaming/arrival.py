@@ -30,7 +30,7 @@ from service.geometry import anchors, twin
 from service.geometry.twin import DEFAULT_PLANE_X_MM
 from service.inference.estimator import PoseEstimate, PoseEstimator
 from service.io.volume import Volume
-from service.pipeline.predict import add_unseen_errors
+from service.pipeline.unseen_errors import add_unseen_errors
 from service.pipeline.prepare import PreparedStack, StackUpload
 from service.preprocess.localisation import Localisation
 from service.preprocess.localise import Localiser

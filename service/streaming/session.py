@@ -33,6 +33,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from service.consistency.frame_error import frame_error_mm
 from service.consistency.slice_order import STREAMED, SliceOrder
 from service.consistency.stage import StackPoses, checked_branch, consistent_poses, request_reference
 from service.core.errors import InvalidParameter, SessionFull
@@ -41,9 +42,9 @@ from service.geometry.twin import DEFAULT_PLANE_X_MM
 from service.inference import acceptance
 from service.inference.estimator import PoseEstimate, PoseEstimator
 from service.io.volume import magnitude
-from service.pipeline.predict import (StackPrediction, add_noise_error, add_unseen_errors, estimate_stacks, judge,
-                                     predict_from_estimates)
+from service.pipeline.predict import StackPrediction, estimate_stacks, judge, predict_from_estimates
 from service.pipeline.prepare import PreparedStack, StackUpload, prepare_stack
+from service.pipeline.unseen_errors import add_noise_error, add_unseen_errors
 from service.preprocess.localise import Localiser
 from service.preprocess.noise import stack_noise
 from service.streaming import immediate
@@ -216,7 +217,8 @@ class StreamSession:
                 None if shape is None else np.asarray(shape), float(getattr(info, "mc_error_depth_gain", 0.0)))
         out = run_in_stage_process(consistent_poses, *args, reference)
         out = checked_branch(out, reference, lambda ref, margin: run_in_stage_process(consistent_poses, *args, ref, margin))
-        add_unseen_errors(out, info, est)
+        sigma = out.fit.noise_mm if out.fit is not None and out.fit.decidable else float("nan")
+        add_unseen_errors(out, info, est, frame_mm=float(frame_error_mm(sigma, getattr(info, "frame_error", None))))
         placement_mm = None
         if out.fit is not None and out.fit.atlas_from_scanner is not None:
             placement_mm = immediate.placement_error_mm(out.expected_error_mm, out.poses, out.fit.atlas_from_scanner,
@@ -338,7 +340,8 @@ class StreamSession:
                     updates += self._changed(name, answers)
             covered, shown = self._covered()
             alone = len(names) == 1
-            lists = {n: worth_acquiring_again(self.finals[n].reasons, alone, self.finals[n].prepared.signal_lost)
+            lists = {n: worth_acquiring_again(self.finals[n].own_reasons or self.finals[n].reasons, alone,
+                                             self.finals[n].prepared.signal_lost)
                      for n in names}
             changed = {n: r for n, r in lists.items() if n != stack and r != self.reacquire_sent.get(n)}
             self.reacquire_sent.update(lists)
@@ -381,7 +384,7 @@ class StreamSession:
         with self._lock:
             names = list(self.stacks)
             n = sum(len(s) for s in self.stacks.values())
-            final = {k: worth_acquiring_again(p.reasons, False, p.prepared.signal_lost)          # nothing more comes
+            final = {k: worth_acquiring_again(p.own_reasons or p.reasons, False, p.prepared.signal_lost)   # nothing more comes
                      for k, p in self.finals.items()}
             unfinished = {k: s.missing() for k, s in self.stacks.items() if k not in self.finals}
         return SessionSummary(names, self.coverage(), n, dict(self.compute_ms), final, unfinished)

@@ -40,6 +40,18 @@ def test_a_noise_error_that_is_not_an_onset_and_a_non_negative_slope_is_refused(
         ModelInfo.from_metadata({**META, "noise_error": text}, "s")
 
 
+def test_the_frame_error_is_read_and_absent_or_empty_means_none() -> None:
+    assert ModelInfo.from_metadata({**META, "frame_error": "13,0.5"}, "s").frame_error == (13.0, 0.5)
+    assert ModelInfo.from_metadata(META, "s").frame_error is None
+    assert ModelInfo.from_metadata({**META, "frame_error": ""}, "s").frame_error is None
+
+
+@pytest.mark.parametrize("text", ["13,-0.5", "-1,0.5", "13", "13,inf", "nan,0.5", "a,b", "1,2,3"])
+def test_a_frame_error_that_is_not_an_onset_and_a_non_negative_slope_is_refused(text: str) -> None:
+    with pytest.raises(ValueError, match="frame_error"):
+        ModelInfo.from_metadata({**META, "frame_error": text}, "s")
+
+
 @pytest.mark.parametrize("text", ["2", "0", "16"])
 def test_a_view_count_the_estimator_cannot_run_is_refused_when_the_file_is_read(text: str) -> None:
     """A file with another count of test-time views would load and then fail every request."""

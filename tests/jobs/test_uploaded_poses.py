@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.jobs.uploaded_poses import in_upload_order, poses_from_predict_body
+from service.jobs.uploaded_poses import accepted_without_frame, expected_errors, in_upload_order, poses_from_predict_body
 
 
 def _slices(n: int, accepted: list[bool] | None = None) -> list[dict]:
@@ -47,3 +47,20 @@ def test_poses_named_alike_are_matched_only_where_their_order_says_which_is_whic
         in_upload_order({"stacks": [{"filename": 7}, {"filename": "x"}]}, ["x", "y"])
     placeholders = {"stacks": [{"filename": "stacks[0]"}, {"filename": "stacks[1]"}]}
     assert in_upload_order(placeholders, ["b", "a"]) is placeholders                      # a job's own poses
+
+
+def test_a_job_reads_each_slice_without_its_request_s_frame_error() -> None:
+    """The frame error added to every slice of a request (5 mm here) is the request's placement, which
+    the job re-estimates: each slice's expected error is read without it, and a slice rejected for
+    an expected error that only it put over the limit is one the job starts from. A slice over the
+    limit without it, or rejected for another reason, is not; a body without a frame object (an
+    earlier version's, a client's) is read as it is."""
+    def one(e: float, reason: str | None) -> dict:
+        return {"expected_error_mm": e, "reason": reason, "accepted": reason is None}
+
+    stack = {"frame": {"request_network_error_mm": 23.0, "expected_error_added_mm": 5.0},
+             "slices": [one(3.0, None), one(np.hypot(4.0, 5.0), "high_expected_error"),
+                        one(np.hypot(5.0, 5.0), "high_expected_error"), one(np.hypot(2.0, 5.0), "high_variance")]}
+    body = {"max_expected_error_mm": 4.4, "stacks": [stack, {"slices": [one(4.0, None), one(5.0, "high_expected_error")]}]}
+    np.testing.assert_allclose(expected_errors(body), [0.0, 4.0, 5.0, 2.0, 4.0, 5.0], atol=1e-9)
+    assert [a.tolist() for a in accepted_without_frame(body)] == [[True, True, False, False], [True, False]]

@@ -8,8 +8,9 @@ import pytest
 
 from service.core.errors import UnusableImage
 from service.io.volume import Volume
-from service.jobs.worker import (MIN_ACCEPTED_SHARE, MIN_ACCEPTED_SLICES, job_estimator, posed_slices,
-                                 predicted_body, start_label, starting_inclusion, starting_poses)
+from service.jobs.uploaded_poses import posed_slices
+from service.jobs.worker import (MIN_ACCEPTED_SHARE, MIN_ACCEPTED_SLICES, job_estimator, predicted_body, start_label,
+                                 starting_inclusion, starting_poses)
 from service.pipeline.prepare import StackUpload
 from service.preprocess.localise import default_localiser
 from tests.api.conftest import tiny_model_path  # noqa: F401 - fixture

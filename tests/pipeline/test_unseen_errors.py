@@ -1,5 +1,5 @@
-"""What no stage sees, added to the returned poses' expected errors: the floor, the twin risk and the
-error of inputs noisier than the network learnt."""
+"""What no stage sees, added to the returned poses' expected errors: the floor, the request's frame
+error, the twin risk and the error of inputs noisier than the network learnt."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 from service.consistency.stage import StackPoses
 from service.geometry import twin
 from service.geometry.pose import make_pose
-from service.pipeline.predict import add_unseen_errors
+from service.pipeline.unseen_errors import add_unseen_errors
 
 SAGITTAL = np.array([[0.0, 0, 1], [1, 0, 0], [0, 1, 0]])      # the slice's normal along the atlas x
 
@@ -157,3 +157,60 @@ def test_a_stack_no_image_stage_weighed_again_takes_its_misfit_factor_before_the
             out.image_consistency = ImageConsistency(2, 10, 3, 0.5, 1.0, 0.8)
         add_unseen_errors(out, info)
         np.testing.assert_allclose(out.expected_error_mm, np.hypot(own, 2.0))
+
+
+def test_the_request_s_frame_error_is_added_in_quadrature_beside_the_floor() -> None:
+    out = _stack([10.0, 20.0], decidable=True)
+    add_unseen_errors(out, SimpleNamespace(expected_error_floor_mm=2.0, symmetry_plane_x_mm=0.0), frame_mm=6.0)
+    np.testing.assert_allclose(out.expected_error_mm, np.sqrt(9.0 + 4.0 + 36.0))
+
+
+def test_predict_gives_every_stack_the_frame_error_of_the_request_s_network_error() -> None:
+    """Two stacks of one request through the shipped network (its fixed MC draws: the same poses
+    twice), without and with a frame-error calibration: every slice's expected error grows by the
+    same ``slope x (sigma - onset)`` in quadrature, ``sigma`` the slice-weighted RMS of the two
+    stacks' network errors; the answer reports both, and each slice's own accept flag (judged
+    without the request's frame error) is the one it had without the calibration."""
+    from copy import copy
+    from dataclasses import replace
+
+    from service.consistency.frame_error import request_network_error_mm
+    from service.core.settings import DEFAULT_MODELS_DIR
+    from service.inference.estimator import OnnxPoseEstimator
+    from service.inference.model_file import load_model
+    from service.io.volume import Volume
+    from service.pipeline.documents import stack_objects
+    from service.pipeline.predict import predict
+    from service.pipeline.prepare import StackUpload, prepare_stack
+    from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine
+
+    estimator = OnnxPoseEstimator(load_model(DEFAULT_MODELS_DIR / "default" / "model.onnx"))
+    image, mask, atlas_affine = phantom_brain(3)
+    prepared = []
+    for axis in (2, 1):
+        shape = (64, 64, 18) if axis == 2 else (64, 18, 64)
+        affine = stack_affine(axis, np.eye(3), 1.2, 3.0, shape)
+        img, msk = acquire_stack(image, mask, atlas_affine, affine, shape, axis, np.broadcast_to(np.eye(4), (18, 4, 4)))
+        prepared.append(prepare_stack(StackUpload(f"s{axis}.nii.gz", Volume(img, affine), Volume(msk.astype(np.uint8), affine)),
+                                      estimator.info, False))
+    estimator.info = replace(estimator.info, frame_error=None, max_expected_error_mm=None)
+    first, _ = predict(prepared, estimator, 20, 1e9)                  # a limit half of these slices pass
+    limit = float(np.median(np.concatenate([p.poses.expected_error_mm for p in first])))
+    estimator.info = replace(estimator.info, max_expected_error_mm=limit)
+    calibrated = copy(estimator)
+    calibrated.info = replace(estimator.info, frame_error=(0.0, 0.3))
+    before, _ = predict(prepared, estimator, 20, 1e9)
+    after, _ = predict(prepared, calibrated, 20, 1e9)
+    sigma = request_network_error_mm([p.poses.fit.noise_mm for p in before],
+                                     [int((~p.estimate.degenerate).sum()) for p in before])
+    assert np.isfinite(sigma) and sigma > 1.0
+    for b, a in zip(before, after):
+        np.testing.assert_allclose(a.poses.poses, b.poses.poses)
+        np.testing.assert_allclose(a.poses.expected_error_mm, np.hypot(b.poses.expected_error_mm, 0.3 * sigma), rtol=1e-9)
+        assert b.frame_error_mm == 0.0 and b.own_reasons is None
+        assert a.frame_error_mm == pytest.approx(0.3 * sigma) and a.request_network_error_mm == pytest.approx(sigma)
+        assert a.own_reasons == b.reasons
+    assert sum(r is None for a in after for r in a.reasons) < sum(r is None for b in before for r in b.reasons)
+    frames = [s["frame"] for s in stack_objects(after)]
+    assert frames[0] == frames[1] == {"request_network_error_mm": round(sigma, 1),
+                                      "expected_error_added_mm": round(0.3 * sigma, 2)}

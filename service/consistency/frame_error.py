@@ -1,0 +1,64 @@
+"""A request's frame error: its placement in the atlas frame, from how unsure the network is of its slices.
+
+Every slice of a request shares one error that no stage sees: the whole request turned and shifted in
+the atlas frame, its slices in agreement with each other (the common error of
+``model_export/experiments/frame_bias.py``). The network's bias on a request's slices grows with
+its noise on them: across simulated acquisitions and whole-uterus requests the common error runs at
+about a quarter of the network's per-slice error about the stacks' motion models
+(:attr:`~service.consistency.stack_fit.StackFit.noise_mm`; docs/reports/accuracy-analyses.md, "The
+request's frame error"). The model's expected errors were calibrated on acquisitions whose network
+error lies near 12 mm, which their common error is part of; a request on which the network is less
+sure (a stack sent without a mask, whose localiser mask the network did not learn; a whole-uterus
+stack of coarse pixels; a real scan) is placed worse by the excess. :func:`frame_error_mm` is
+that excess, ``slope x max(0, sigma - onset)`` (mm, the model's ``frame_error`` calibration,
+``model_export/calibrate_frame.py``), ``sigma`` the request's network error
+(:func:`request_network_error_mm`): the service adds it in quadrature to every slice's expected
+error (:func:`~service.pipeline.unseen_errors.add_unseen_errors`), as it adds the floor it extends.
+
+Example (three stacks' network errors of 9, 10 and 24 mm over 20, 20 and 10 slices; onset 13, slope 0.5):
+    >>> sigma = request_network_error_mm([9.0, 10.0, 24.0], [20, 20, 10])
+    >>> round(sigma, 2), round(float(frame_error_mm(sigma, (13.0, 0.5))), 2)
+    (13.7, 0.35)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+
+def request_network_error_mm(noise_mm: Sequence[float], slices: Sequence[int]) -> float:
+    """A request's network error (mm): the RMS of its stacks' network errors ``noise_mm`` (the stage's
+    fits; NaN where a stack had none) weighted by their posed ``slices``; NaN where no stack has one.
+
+    Example (a stack without a fit counts for nothing):
+        >>> request_network_error_mm([10.0, float("nan"), 20.0], [30, 5, 10])
+        13.228756555322953
+        >>> bool(np.isnan(request_network_error_mm([float("nan")], [12])))
+        True
+    """
+    noise = np.asarray(noise_mm, np.float64)
+    weight = np.where(np.isfinite(noise), np.asarray(slices, np.float64), 0.0)
+    if weight.sum() <= 0:
+        return float("nan")
+    return float(np.sqrt((weight * np.where(np.isfinite(noise), noise, 0.0) ** 2).sum() / weight.sum()))
+
+
+def frame_error_mm(sigma_mm: ArrayLike, calibration: tuple[float, float] | None) -> NDArray[np.float64]:
+    """The placement error (mm) of a request of network error ``sigma_mm`` beyond what the model's
+    expected errors hold: ``slope x max(0, sigma - onset)`` for the model's ``frame_error``
+    calibration ``(onset, slope)``; 0 without a calibration or where ``sigma`` is unknown (NaN).
+
+    Example:
+        >>> frame_error_mm([10.0, 17.0, float("nan")], (13.0, 0.5)).tolist()
+        [0.0, 2.0, 0.0]
+        >>> frame_error_mm(30.0, None).tolist()
+        0.0
+    """
+    sigma = np.asarray(sigma_mm, np.float64)
+    if calibration is None:
+        return np.zeros_like(sigma)
+    onset, slope = calibration
+    return np.where(np.isfinite(sigma), slope * np.maximum(sigma - onset, 0.0), 0.0)
