@@ -459,6 +459,22 @@ def test_predict_without_the_image_stage_blames_the_stage_not_the_images(fake_cl
     assert "stage off" not in on and "do not agree" in on
 
 
+def test_a_request_whose_frame_error_holds_its_slices_back_is_told_so_not_that_its_stacks_disagree() -> None:
+    """Two stacks, no slice accepted, every expected error raised by the request's frame error: the
+    hint names the frame error and that a job starts from the slices whose own errors pass, and
+    does not blame the stacks' agreement; without the frame error it does."""
+    two = {**_alone("high_expected_error"), "stacks": _alone("high_expected_error")["stacks"] * 2}
+    framed = {**two, "stacks": [{**st, "frame": {"request_network_error_mm": 23.6, "expected_error_added_mm": 2.8}}
+                                for st in two["stacks"]]}
+    hints = views.predict_hints(framed)
+    assert len(hints) == 1 and "2.80 mm for the request's placement" in hints[0] and "24 mm" in hints[0]
+    assert "job starts from" in hints[0] and "do not agree" not in hints[0]
+    assert "do not agree" in views.predict_hints(two)[0]
+    done = {**framed, "stacks": [{**st, "slices": [{**sl, "accepted": True, "reason": None} for sl in st["slices"]]}
+                                 for st in framed["stacks"]]}
+    assert views.predict_hints(done) == []                          # accepted all the same: nothing to say
+
+
 def test_an_answer_with_nothing_usable_says_what_to_do() -> None:
     """A stack sent alone with no slice accepted, a localiser that was unsure, a stack without brain:
     each gets its hint; a usable answer none."""
