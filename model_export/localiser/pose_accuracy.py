@@ -132,8 +132,9 @@ def slice_poses(answer: dict, prepared: PreparedStack) -> tuple[NDArray[np.float
 def score_scene(scene: Scene | list[Scene], variant: str, estimator, localiser: Localiser | None = None,  # noqa: ANN001
                 mc_samples: int = 100) -> dict[str, NDArray]:
     """Per scored slice of one request (a scene, or a case's stacks sent together) and mask variant:
-    E.D. and twin-min E.D. (NaN where ``empty``), and the answer's poses (``poses``, slice -> atlas
-    mm; NaN where ``empty``), the stacks' scored slices one after the other; and the request's
+    E.D. and twin-min E.D. (NaN where ``empty``), the answer's poses (``poses``, slice -> atlas mm;
+    NaN where ``empty``) and the true ones (``truth``), the stacks' scored slices one after the
+    other; and the request's
     network error (``network_error``, :mod:`service.consistency.frame_error`). An estimator with a
     ``truth`` attribute (a stand-in for the network) is told each slice's true network-frame pose
     first, as :func:`model_export.evaluate_acquisitions.run_acquisition` does."""
@@ -144,7 +145,7 @@ def score_scene(scene: Scene | list[Scene], variant: str, estimator, localiser: 
         estimator.truth = np.concatenate([p.in_network_frame(s.atlas_from_voxel) for p, s in zip(prepared, scenes)])
     predictions, _ = predict(prepared, estimator, mc_samples, info.variance_threshold)
     plane = float(getattr(info, "symmetry_plane_x_mm", twin.DEFAULT_PLANE_X_MM))
-    rows: dict[str, list] = {"ed": [], "ed_min": [], "expected": [], "accepted": [], "poses": []}
+    rows: dict[str, list] = {"ed": [], "ed_min": [], "expected": [], "accepted": [], "poses": [], "truth": []}
     for one, answer, stack in zip(scenes, stack_objects(predictions), prepared):
         poses, posed = slice_poses(answer, stack)
         truth = one.atlas_from_voxel @ np.linalg.inv(stack.slices.slice_from_voxel)
@@ -157,7 +158,7 @@ def score_scene(scene: Scene | list[Scene], variant: str, estimator, localiser: 
         expected = np.array([np.nan if a["expected_error_mm"] is None else a["expected_error_mm"]
                              for a in answer["slices"]], np.float64)[scored]
         accepted = np.array([bool(a["accepted"]) for a in answer["slices"]])[scored]
-        for key, value in zip(rows, (ed, ed_min, expected, accepted, shown)):
+        for key, value in zip(rows, (ed, ed_min, expected, accepted, shown, truth[scored])):
             rows[key].append(value)
     return {**{key: np.concatenate(value) for key, value in rows.items()},
             "network_error": np.array(predictions[0].request_network_error_mm if predictions else np.nan)}
