@@ -292,7 +292,7 @@ def ship(
     version: str = "1.0.0",
     comparison: Annotated[Optional[Path], typer.Option(help="table.json of `compare`")] = None,
     report: Annotated[Optional[Path], typer.Option(
-        help="the evaluation report (beside it: its figures, acceptance.md and noise.md) [default: OUT/report.md]")] = None,
+        help="the evaluation report (beside it: its figures, acceptance.md, noise.md and frame.md) [default: OUT/report.md]")] = None,
     force: Annotated[bool, typer.Option(help="replace a model folder that holds files")] = False,
     root: Root = DEFAULT_ATLAS_ROOT,
     tta_views: Annotated[int, typer.Option(help="test-time views the MC samples are shared among: 1, 4 "
@@ -309,11 +309,14 @@ def ship(
     noise_per_volume: Annotated[Optional[int], typer.Option(
         min=0, help="acquisitions per validation volume, noise level, pixel size and motion level of the noise "
                     "error [default: 2; 0: not calibrated]")] = None,
+    frame_per_volume: Annotated[Optional[int], typer.Option(
+        min=0, help="acquisitions per validation volume and motion level of the frame error, beside its "
+                    "whole-uterus requests [default: 2; 0: not calibrated]")] = None,
 ) -> None:
     """Calibrate, export, evaluate and write the model card: the folder the service loads (the MC
     spread's expected error calibrated as `calibrate-spread` does, then the accept flags on the
     pipeline's final poses, as `calibrate-acceptance` does, then the noise error, as
-    `calibrate-noise` does). The folder is built beside ``out`` and
+    `calibrate-noise` does, and the frame error, as `calibrate-frame` does). The folder is built beside ``out`` and
     takes its place only when whole: a server never finds a model without its calibration or card."""
     from model_export.packaging import load_checkpoint
     from model_export.shipping import ship_folder, ship_into
@@ -325,7 +328,7 @@ def ship(
     except (KeyError, ValueError, OSError) as bad:
         raise typer.BadParameter(f"not a pose-network checkpoint ({bad})", param_hint="CHECKPOINT") from None
     budget = {"slices": slices_per_volume, "acquisitions": acceptance_per_volume, "quant": quant_slices,
-              "noise": noise_per_volume}
+              "noise": noise_per_volume, "frame": frame_per_volume}
     evaluation = ship_folder(out, report, lambda staging, written, shown: ship_into(
         staging, out, checkpoint, ck, name, version, comparison, written, shown, root, tta_views, int8,
         {k: v for k, v in budget.items() if v is not None}, typer.echo))

@@ -1,5 +1,5 @@
 """``svrnet-train ship``'s steps: export, quantise, calibrate the variance threshold, calibrate the
-spread, evaluate, calibrate the accept flags and the noise error, and write the model card, each into
+spread, evaluate, calibrate the accept flags, the noise error and the frame error, and write the model card, each into
 the folder being built. Every calibration and the evaluation measure the file shipped (int8 where it
 is), on the checkpoint's own validation volumes.
 
@@ -25,9 +25,9 @@ def budgets(budget: dict[str, int], int8: bool) -> list[tuple[str, int | None, i
 
     Example:
         >>> [row[1:] for row in budgets({"slices": 7, "noise": 0}, int8=False)]
-        [(7, 120), (7, 60), (7, 100), (None, 8), (0, 2)]
+        [(7, 120), (7, 60), (7, 100), (None, 8), (0, 2), (None, 2)]
     """
-    from model_export import calibrate_noise
+    from model_export import calibrate_frame, calibrate_noise
     from model_export.calibrate_acceptance import PER_VOLUME
     from model_export.quantise import CALIBRATION_SLICES
 
@@ -38,6 +38,8 @@ def budgets(budget: dict[str, int], int8: bool) -> list[tuple[str, int | None, i
         rows.append(("slices of the int8 ranges", budget.get("quant"), CALIBRATION_SLICES))
     rows.append(("acquisitions per validation volume and setting of the noise error", budget.get("noise"),
                  calibrate_noise.PER_VOLUME))
+    rows.append(("acquisitions per validation volume and motion level of the frame error", budget.get("frame"),
+                 calibrate_frame.PER_VOLUME))
     return rows
 
 
@@ -112,7 +114,7 @@ def ship_into(staging: Path, out: Path, checkpoint: Path, ck: dict, name: str, v
     from model_export.calibrate_acceptance import PER_VOLUME, flag_metadata, measure, markdown as acceptance_markdown
     from service.inference.estimator import OnnxPoseEstimator
 
-    held_out = held_out_volumes(ck, root)             # loaded once: the accept flags and the noise error
+    held_out = held_out_volumes(ck, root)             # loaded once: the accept flags, the noise and frame errors
     acquisitions = budget.get("acquisitions", PER_VOLUME)
     say(f"accept flags: {acquisitions} acquisitions per validation volume and motion level through every stage")
     flags = measure(OnnxPoseEstimator(load_model(onnx_path)), held_out, per_volume=acquisitions)
@@ -128,13 +130,24 @@ def ship_into(staging: Path, out: Path, checkpoint: Path, ck: dict, name: str, v
         write_metadata(onnx_path, calibrate_noise.noise_metadata(noise))
         noise_table = calibrate_noise.markdown(noise)
         (report.parent / "noise.md").write_text(f"# Noise error of {name} {version}\n\n{noise_table}\n")
+    frame_table = ""
+    if budget.get("frame", 1):
+        from model_export import calibrate_frame
+
+        say("frame error: acquisitions and whole-uterus requests (the localiser's masks and the atlas's) through every stage")
+        frame = calibrate_frame.calibrate(calibrate_frame.measure(
+            OnnxPoseEstimator(load_model(onnx_path)), held_out, budget.get("frame", calibrate_frame.PER_VOLUME)))
+        write_metadata(onnx_path, calibrate_frame.frame_metadata(frame))
+        frame_table = calibrate_frame.markdown(frame)
+        (report.parent / "frame.md").write_text(f"# Frame error of {name} {version}\n\n{frame_table}\n")
     info = load_model(onnx_path).info.metadata
     write_card(staging / "card.md", info=info, train_summary=summary, train_config=ck["config"], calibration=cal,
                evaluation=evaluation, comparison=load_json(comparison) if comparison else None,
                report_path=str(shown_report), onnx_bytes=onnx_path.stat().st_size, budget=budgets(budget, int8))
     card = staging / "card.md"
     card.write_text(card.read_text() + "\n" + acceptance_markdown(flags, "Accept flags").replace("# Accept", "## Accept", 1)
-                    + (f"\n## Noise error\n\n{noise_table}\n" if noise_table else ""))
+                    + (f"\n## Noise error\n\n{noise_table}\n" if noise_table else "")
+                    + (f"\n## Frame error\n\n{frame_table}\n" if frame_table else ""))
     (report.parent / "acceptance.md").write_text(acceptance_markdown(flags, f"Accept flags of {out / 'model.onnx'}"))
     (staging / "calibration.json").write_text(json.dumps(cal))
     return evaluation

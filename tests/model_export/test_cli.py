@@ -9,7 +9,8 @@ from typer.testing import CliRunner
 
 
 @pytest.mark.parametrize("budget", [[], ["--slices-per-volume", "7", "--acceptance-per-volume", "2",
-                                     "--quant-slices", "32", "--noise-per-volume", "3"]], ids=["defaults", "a quick look"])
+                                     "--quant-slices", "32", "--noise-per-volume", "3", "--frame-per-volume", "1"]],
+                         ids=["defaults", "a quick look"])
 def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                              budget: list[str]) -> None:
     """The accept flags are measured on the expected error, so the spread's calibration (which sets
@@ -20,6 +21,7 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
     import model_export.atlas as atlas
     import model_export.calibrate as calibrate
     import model_export.calibrate_acceptance as acceptance
+    import model_export.calibrate_frame as frame
     import model_export.calibrate_noise as noise
     import model_export.card as card
     import model_export.evaluate as evaluate
@@ -76,6 +78,9 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
     monkeypatch.setattr(noise, "measure", lambda *a, **k: calls.append("noise") or sizes.update(noise=a[2]) or {})
     monkeypatch.setattr(noise, "calibrate", lambda columns: {"noise_error": [0.09, 50.0]})
     monkeypatch.setattr(noise, "markdown", lambda result: "noise table")
+    monkeypatch.setattr(frame, "measure", lambda *a, **k: calls.append("frame") or sizes.update(frame=a[2]) or {})
+    monkeypatch.setattr(frame, "calibrate", lambda columns: {"frame_error": [9.5, 0.26]})
+    monkeypatch.setattr(frame, "markdown", lambda result: "frame table")
     monkeypatch.setattr(estimator, "OnnxPoseEstimator", lambda model: None)
     monkeypatch.setattr(model_file, "load_model", lambda path: Loaded())
     monkeypatch.setattr(quantise, "load_model", lambda path: Loaded())
@@ -90,18 +95,21 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
 
     assert result.exit_code == 0, result.output
     assert calls == ["slices 96", "int8 slices", "threshold on model.onnx, int8", "flags written", "spread", "evaluate",
-                     "acceptance", "flags written", "noise", "flags written"]
+                     "acceptance", "flags written", "noise", "flags written", "frame", "flags written"]
     assert held_out == [["STA30"]]
     given = [row[1] for row in card_budget[0]]
-    assert given == ([7, 7, 7, 2, 32, 3] if budget else [None] * 6)
-    assert sizes == ({"threshold": 7, "quant": 32, "spread": 7, "evaluate": 7, "acceptance": 2, "noise": 3} if budget else
+    assert given == ([7, 7, 7, 2, 32, 3, 1] if budget else [None] * 7)
+    assert sizes == ({"threshold": 7, "quant": 32, "spread": 7, "evaluate": 7, "acceptance": 2, "noise": 3, "frame": 1}
+                     if budget else
                      {"threshold": None, "quant": quantise.CALIBRATION_SLICES, "spread": None, "evaluate": None,
-                      "acceptance": acceptance.PER_VOLUME, "noise": noise.PER_VOLUME})
+                      "acceptance": acceptance.PER_VOLUME, "noise": noise.PER_VOLUME, "frame": frame.PER_VOLUME})
     assert (report.parent / "noise.md").read_text().endswith("noise table\n")
+    assert (report.parent / "frame.md").read_text().endswith("frame table\n")
     assert views == [SHIPPED_VIEWS]
     assert (report.parent / "acceptance.md").read_text().startswith("# Accept flags of")
     assert "## Accept flags" in (tmp_path / "model" / "card.md").read_text()
     assert "## Noise error\n\nnoise table" in (tmp_path / "model" / "card.md").read_text()
+    assert "## Frame error\n\nframe table" in (tmp_path / "model" / "card.md").read_text()
     # A model folder is never replaced unasked, nor left half-shipped: the new one takes its place whole.
     again = ["ship", str(checkpoint), "--out", str(tmp_path / "model")]
     refused = CliRunner().invoke(app, again, env={"COLUMNS": "250"})
@@ -121,9 +129,11 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
     assert (tmp_path / "model" / "acceptance.md").exists()              # the report's default place: the model's folder
     calls.clear()
-    unmeasured = CliRunner().invoke(app, [*again, "--force", "--noise-per-volume", "0"])
-    assert unmeasured.exit_code == 0 and "acceptance" in calls and "noise" not in calls, unmeasured.output
+    unmeasured = CliRunner().invoke(app, [*again, "--force", "--noise-per-volume", "0", "--frame-per-volume", "0"])
+    assert unmeasured.exit_code == 0 and "acceptance" in calls and "noise" not in calls and "frame" not in calls, \
+        unmeasured.output
     assert "## Noise error" not in (tmp_path / "model" / "card.md").read_text()
+    assert "## Frame error" not in (tmp_path / "model" / "card.md").read_text()
 
 
 def test_export_takes_over_another_models_calibration(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -225,3 +235,28 @@ def test_the_noise_error_is_calibrated_from_several_kept_column_files_pooled(tmp
     assert result.exit_code == 0, result.output
     assert sorted(pooled) == ["ed", "expected", "input_noise"]
     assert pooled["input_noise"].tolist() == [0.0, 0.1, 0.2, 0.0, 0.1]
+
+def test_the_frame_error_is_calibrated_from_several_kept_column_files_pooled(tmp_path: Path,
+                                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """``calibrate-frame --columns A --columns B`` pools the slices of both files, measuring nothing,
+    and writes its report where asked."""
+    import numpy as np
+
+    import model_export.calibrate_frame as frame
+    from model_export.cli import app
+
+    pooled = {}
+    monkeypatch.setattr(frame, "measure", lambda *a, **k: pytest.fail("measured again"))
+    monkeypatch.setattr(frame, "calibrate", lambda columns: pooled.update(columns) or {"frame_error": [9.5, 0.26]})
+    monkeypatch.setattr(frame, "markdown", lambda result: "frame table")
+    for name, n in (("a", 3), ("b", 2)):
+        np.savez(tmp_path / f"{name}.npz", ed=np.full(n, 2.0), expected=np.full(n, 1.5), sigma=np.arange(n) * 10.0,
+                 request=np.zeros(n, int), source=np.full(n, "mild"))
+    result = CliRunner().invoke(app, ["calibrate-frame", str(tmp_path / "model.onnx"), "--no-write", "--columns",
+                                      str(tmp_path / "a.npz"), "--columns", str(tmp_path / "b.npz"),
+                                      "--report", str(tmp_path / "frame.md")])
+    assert result.exit_code == 0, result.output
+    assert sorted(pooled) == ["ed", "expected", "request", "sigma", "source"]
+    assert pooled["sigma"].tolist() == [0.0, 10.0, 20.0, 0.0, 10.0]
+    assert (tmp_path / "frame.md").read_text().endswith("frame table\n")
+
