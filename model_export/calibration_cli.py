@@ -107,11 +107,7 @@ def calibrate_noise(
     from service.inference.model_file import load_model
 
     if columns:
-        parts = []
-        for path in columns:
-            with np.load(path) as kept:
-                parts.append({k: kept[k] for k in ("ed", "expected", "input_noise")})
-        measured = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+        measured = pooled_columns(columns, ("ed", "expected", "input_noise"))
     else:
         loaded = load_model(model)
         measured = measure(OnnxPoseEstimator(loaded), held_out_volumes(loaded.info.metadata, root),
@@ -155,11 +151,7 @@ def calibrate_frame(
     from service.inference.model_file import load_model
 
     if columns:
-        parts = []
-        for path in columns:
-            with np.load(path) as kept:
-                parts.append({k: kept[k] for k in ("ed", "expected", "sigma", "request", "source")})
-        measured = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+        measured = pooled_columns(columns, ("ed", "expected", "sigma", "request", "source"))
     else:
         loaded = load_model(model)
         measured = measure(OnnxPoseEstimator(loaded), held_out_volumes(loaded.info.metadata, root),
@@ -173,6 +165,17 @@ def calibrate_frame(
     if write:
         write_metadata(model, frame_metadata(result))
     typer.echo(json.dumps(result, indent=2))
+
+
+def pooled_columns(paths: list[Path], keys: tuple[str, ...]) -> dict:
+    """The slice columns ``keys`` that earlier runs kept (``--slices``: one ``.npz`` each), their slices pooled."""
+    import numpy as np
+
+    parts = []
+    for path in paths:
+        with np.load(path) as kept:
+            parts.append({k: kept[k] for k in keys})
+    return {k: np.concatenate([p[k] for p in parts]) for k in keys}
 
 
 COMMANDS = {"calibrate": calibrate, "calibrate-spread": calibrate_spread, "calibrate-acceptance": calibrate_acceptance,

@@ -28,6 +28,8 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from service.core.hinge import hinge_mm
+
 
 def request_network_error_mm(noise_mm: Sequence[float], slices: Sequence[int]) -> float:
     """A request's network error (mm): the RMS of its stacks' network errors ``noise_mm`` (the stage's
@@ -57,8 +59,4 @@ def frame_error_mm(sigma_mm: ArrayLike, calibration: tuple[float, float] | None)
         >>> frame_error_mm(30.0, None).tolist()
         0.0
     """
-    sigma = np.asarray(sigma_mm, np.float64)
-    if calibration is None:
-        return np.zeros_like(sigma)
-    onset, slope = calibration
-    return np.where(np.isfinite(sigma), slope * np.maximum(sigma - onset, 0.0), 0.0)
+    return hinge_mm(sigma_mm, calibration)

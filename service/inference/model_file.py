@@ -97,8 +97,8 @@ class ModelInfo:
                 expected_error_floor_mm=float(meta.get("expected_error_floor_mm", 0.0)),
                 max_expected_error_mm=float(meta["max_expected_error_mm"]) if meta.get("max_expected_error_mm") else None,
                 twin_risk_logit=_logit(meta.get("twin_risk_logit", "")),
-                noise_error=_noise_error(meta.get("noise_error", "")),
-                frame_error=_frame_error(meta.get("frame_error", "")),
+                noise_error=_hinge(meta.get("noise_error", ""), "noise_error", 1.0, "in [0, 1)"),
+                frame_error=_hinge(meta.get("frame_error", ""), "frame_error", np.inf, "(mm, not negative)"),
                 mc_seed=int(meta["mc_seed"]) if meta.get("mc_seed") else None,
                 metadata=dict(meta),
             )
@@ -116,13 +116,15 @@ def _shape(text: str) -> tuple[float, ...] | None:
     return shape
 
 
-def _frame_error(text: str) -> tuple[float, float] | None:
-    """``frame_error`` from its metadata text (a non-negative onset in mm and a non-negative slope;
-    absent or empty: None).
+def _hinge(text: str, field: str, onset_below: float, onset_text: str) -> tuple[float, float] | None:
+    """A hinge calibration ``(onset, slope)`` from its metadata text: an onset in ``[0, onset_below)``
+    and a non-negative slope (absent or empty: None); a :class:`ValueError` naming ``field`` else.
 
-    Example:
-        >>> _frame_error("13,0.5"), _frame_error("")
-        ((13.0, 0.5), None)
+    Example (the noise error's onset is a share of the bright end, the frame error's a distance):
+        >>> _hinge("0.1,40", "noise_error", 1.0, "in [0, 1)"), _hinge("13,0.5", "frame_error", np.inf, "(mm)")
+        ((0.1, 40.0), (13.0, 0.5))
+        >>> _hinge("", "frame_error", np.inf, "(mm)") is None
+        True
     """
     if not text:
         return None
@@ -130,27 +132,8 @@ def _frame_error(text: str) -> tuple[float, float] | None:
         values = tuple(float(x) for x in text.split(","))
     except ValueError:
         values = ()
-    if len(values) != 2 or not all(0.0 <= v < np.inf for v in values):
-        raise ValueError(f"frame_error must be a non-negative onset (mm) and a non-negative slope, not {text!r}")
-    return values
-
-
-def _noise_error(text: str) -> tuple[float, float] | None:
-    """``noise_error`` from its metadata text (an onset in [0, 1) and a non-negative slope; absent or
-    empty: None).
-
-    Example:
-        >>> _noise_error("0.1,40"), _noise_error("")
-        ((0.1, 40.0), None)
-    """
-    if not text:
-        return None
-    try:
-        values = tuple(float(x) for x in text.split(","))
-    except ValueError:
-        values = ()
-    if len(values) != 2 or not (0.0 <= values[0] < 1.0 and 0.0 <= values[1] < np.inf):
-        raise ValueError(f"noise_error must be an onset in [0, 1) and a non-negative slope, not {text!r}")
+    if len(values) != 2 or not (0.0 <= values[0] < onset_below and 0.0 <= values[1] < np.inf):
+        raise ValueError(f"{field} must be an onset {onset_text} and a non-negative slope, not {text!r}")
     return values[0], values[1]
 
 

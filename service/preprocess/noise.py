@@ -35,6 +35,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
+from service.core.hinge import hinge_mm
 from service.preprocess.intensity import rescale_0_255
 from service.preprocess.stack import mask_box
 
@@ -135,11 +136,7 @@ def noise_error_mm(level: ArrayLike, calibration: tuple[float, float] | None) ->
         >>> noise_error_mm(0.2, None).tolist()
         0.0
     """
-    level = np.asarray(level, np.float64)
-    if calibration is None:
-        return np.zeros_like(level)
-    onset, slope = calibration
-    return np.where(np.isfinite(level), slope * np.maximum(level - onset, 0.0), 0.0)
+    return hinge_mm(level, calibration)
 
 
 def stack_noise(levels: ArrayLike) -> float:

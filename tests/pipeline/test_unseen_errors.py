@@ -24,6 +24,27 @@ def _stack(offsets_mm: list[float], decidable: bool | None) -> StackPoses:
     return StackPoses(poses, np.zeros(n), np.zeros(n, bool), np.zeros(n, bool), fit, np.full(n, 3.0))  # type: ignore[arg-type]
 
 
+def _two_phantom_stacks() -> tuple:
+    """The shipped network and two prepared stacks (axial and coronal, 18 slices each) of a phantom brain."""
+    from service.core.settings import DEFAULT_MODELS_DIR
+    from service.inference.estimator import OnnxPoseEstimator
+    from service.inference.model_file import load_model
+    from service.io.volume import Volume
+    from service.pipeline.prepare import StackUpload, prepare_stack
+    from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine
+
+    estimator = OnnxPoseEstimator(load_model(DEFAULT_MODELS_DIR / "default" / "model.onnx"))
+    image, mask, atlas_affine = phantom_brain(3)
+    prepared = []
+    for axis in (2, 1):
+        shape = (64, 64, 18) if axis == 2 else (64, 18, 64)
+        affine = stack_affine(axis, np.eye(3), 1.2, 3.0, shape)
+        img, msk = acquire_stack(image, mask, atlas_affine, affine, shape, axis, np.broadcast_to(np.eye(4), (18, 4, 4)))
+        upload = StackUpload(f"s{axis}.nii.gz", Volume(img, affine), Volume(msk.astype(np.uint8), affine))
+        prepared.append(prepare_stack(upload, estimator.info, False))
+    return estimator, prepared
+
+
 def test_a_decided_stack_adds_each_slices_twin_risk_times_its_squared_distance_to_the_twin() -> None:
     """Sagittal slices 0, 5 and 30 mm off the plane are 0, 10 and 60 mm from their twins: the first
     gains nothing beyond the floor, the second its chance on the twin times 100 mm^2 (enough to pass
@@ -104,24 +125,10 @@ def test_predict_gives_each_stack_the_noise_error_of_its_own_input_noise() -> No
     from copy import copy
     from dataclasses import replace
 
-    from service.core.settings import DEFAULT_MODELS_DIR
-    from service.inference.estimator import OnnxPoseEstimator
-    from service.inference.model_file import load_model
-    from service.io.volume import Volume
     from service.pipeline.predict import predict
-    from service.pipeline.prepare import StackUpload, prepare_stack
     from service.preprocess.noise import noise_error_mm
-    from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine
 
-    estimator = OnnxPoseEstimator(load_model(DEFAULT_MODELS_DIR / "default" / "model.onnx"))
-    image, mask, atlas_affine = phantom_brain(3)
-    prepared = []
-    for axis in (2, 1):
-        shape = (64, 64, 18) if axis == 2 else (64, 18, 64)
-        affine = stack_affine(axis, np.eye(3), 1.2, 3.0, shape)
-        img, msk = acquire_stack(image, mask, atlas_affine, affine, shape, axis, np.broadcast_to(np.eye(4), (18, 4, 4)))
-        upload = StackUpload(f"s{axis}.nii.gz", Volume(img, affine), Volume(msk.astype(np.uint8), affine))
-        prepared.append(prepare_stack(upload, estimator.info, False))
+    estimator, prepared = _two_phantom_stacks()
     estimator.info = replace(estimator.info, noise_error=None)      # the shipped model's own is set below
     calibrated = copy(estimator)
     calibrated.info = replace(estimator.info, noise_error=(0.09, 50.0))
@@ -175,24 +182,10 @@ def test_predict_gives_every_stack_the_frame_error_of_the_request_s_network_erro
     from dataclasses import replace
 
     from service.consistency.frame_error import request_network_error_mm
-    from service.core.settings import DEFAULT_MODELS_DIR
-    from service.inference.estimator import OnnxPoseEstimator
-    from service.inference.model_file import load_model
-    from service.io.volume import Volume
     from service.pipeline.documents import stack_objects
     from service.pipeline.predict import predict
-    from service.pipeline.prepare import StackUpload, prepare_stack
-    from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine
 
-    estimator = OnnxPoseEstimator(load_model(DEFAULT_MODELS_DIR / "default" / "model.onnx"))
-    image, mask, atlas_affine = phantom_brain(3)
-    prepared = []
-    for axis in (2, 1):
-        shape = (64, 64, 18) if axis == 2 else (64, 18, 64)
-        affine = stack_affine(axis, np.eye(3), 1.2, 3.0, shape)
-        img, msk = acquire_stack(image, mask, atlas_affine, affine, shape, axis, np.broadcast_to(np.eye(4), (18, 4, 4)))
-        prepared.append(prepare_stack(StackUpload(f"s{axis}.nii.gz", Volume(img, affine), Volume(msk.astype(np.uint8), affine)),
-                                      estimator.info, False))
+    estimator, prepared = _two_phantom_stacks()
     estimator.info = replace(estimator.info, frame_error=None, max_expected_error_mm=None)
     first, _ = predict(prepared, estimator, 20, 1e9)                  # a limit half of these slices pass
     limit = float(np.median(np.concatenate([p.poses.expected_error_mm for p in first])))
