@@ -184,13 +184,16 @@ def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[
                      "without one is not judged usable; send --mc-samples 100, the count the accept flags are "
                      "calibrated at")
     frame = next((st.get("frame") for st in stacks if isinstance(st.get("frame"), dict)), None) or {}
-    added = float(frame.get("expected_error_added_mm") or 0.0)
-    if not one_pass and added > 0 and slices and sum(bool(s.get("accepted")) for s in slices) < len(slices) / 2:
+    added, limit = float(frame.get("expected_error_added_mm") or 0.0), result.get("max_expected_error_mm")
+    held_back = [s for s in slices if s.get("reason") == "high_expected_error" and limit is not None
+                 and float(s.get("expected_error_mm") or 0.0) ** 2 - added ** 2 <= float(limit) ** 2]
+    if not one_pass and added > 0 and len(held_back) >= len(slices) / 2:
         hints.append(f"every slice's expected error includes {added:.2f} mm for the request's placement in the atlas "
                      f"(the network's poses scatter {frame.get('request_network_error_mm') or 0:.0f} mm about the "
                      "stacks' motion: less sure than on the scans the accept flags were calibrated on), so fewer are "
-                     "accepted; the slices may still agree with each other, and a reconstruction job starts from "
-                     "those whose own errors pass; brain masks (`svrnet masks`, checked) often place a request surer")
+                     "accepted; the slices may still agree with each other, and a reconstruction job of these "
+                     "stacks starts from those whose own errors pass (one given these poses keeps their flags); "
+                     "brain masks (`svrnet masks`, checked) often place a request surer")
         return hints
     if slices and not one_pass and not any(s.get("accepted") for s in slices):
         limit = result.get("max_expected_error_mm")

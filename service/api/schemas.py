@@ -148,9 +148,10 @@ class Noise(BaseModel):
 
 class Frame(BaseModel):
     request_network_error_mm: Optional[float] = Field(
-        description="the request's network error: the RMS over its stacks (weighted by their posed slices) of "
-                    "consistency.network_error_mm, how far the network's poses scatter about each stack's motion "
-                    "model; null when no stack had a fit. The same for every stack of a request. The simulated "
+        description="the request's network error: the RMS of consistency.network_error_mm (how far the network's "
+                    "poses scatter about each stack's motion model) over the request's stacks whose fit is "
+                    "decidable, weighted by the slices the network posed; null when no stack's is (nothing is "
+                    "added then). The same for every stack of a request. The simulated "
                     "acquisitions the expected errors were calibrated on lie near 12 mm; whole-uterus requests "
                     "without masks and real scans often at 15-35 mm")
     expected_error_added_mm: float = Field(0.0, description="what the request's frame error added, in quadrature, to "

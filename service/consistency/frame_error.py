@@ -7,13 +7,14 @@ its noise on them: across simulated acquisitions and whole-uterus requests the c
 about a quarter of the network's per-slice error about the stacks' motion models
 (:attr:`~service.consistency.stack_fit.StackFit.noise_mm`; docs/reports/accuracy-analyses.md, "The
 request's frame error"). The model's expected errors were calibrated on acquisitions whose network
-error lies near 12 mm, which their common error is part of; a request on which the network is less
-sure (a stack sent without a mask, whose localiser mask the network did not learn; a whole-uterus
-stack of coarse pixels; a real scan) is placed worse by the excess. :func:`frame_error_mm` is
-that excess, ``slope x max(0, sigma - onset)`` (mm, the model's ``frame_error`` calibration,
-``model_export/calibrate_frame.py``), ``sigma`` the request's network error
+error lies near 12 mm, and their floor holds part of that common error; a request on which the
+network is less sure (a stack sent without a mask, whose localiser mask the network did not learn;
+a whole-uterus stack of coarse pixels; a real scan) is placed worse. :func:`frame_error_mm` is what
+the expected errors lack, ``slope x max(0, sigma - onset)`` (mm, the model's ``frame_error``
+calibration, ``model_export/calibrate_frame.py``; its onset may lie under the acquisitions' 12 mm,
+which then gain a little too), ``sigma`` the request's network error
 (:func:`request_network_error_mm`): the service adds it in quadrature to every slice's expected
-error (:func:`~service.pipeline.unseen_errors.add_unseen_errors`), as it adds the floor it extends.
+error, after every other term (:func:`~service.pipeline.unseen_errors.add_unseen_errors`).
 
 Example (three stacks' network errors of 9, 10 and 24 mm over 20, 20 and 10 slices; onset 13, slope 0.5):
     >>> sigma = request_network_error_mm([9.0, 10.0, 24.0], [20, 20, 10])
@@ -31,9 +32,10 @@ from numpy.typing import ArrayLike, NDArray
 from service.core.hinge import hinge_mm
 
 
-def request_network_error_mm(noise_mm: Sequence[float], slices: Sequence[int]) -> float:
-    """A request's network error (mm): the RMS of its stacks' network errors ``noise_mm`` (the stage's
-    fits; NaN where a stack had none) weighted by their posed ``slices``; NaN where no stack has one.
+def request_network_error_mm(network_error_mm: Sequence[float], slices: Sequence[int]) -> float:
+    """A request's network error (mm): the RMS of its stacks' network errors (the stage's fits'
+    :attr:`~service.consistency.stack_fit.StackFit.noise_mm`; NaN where a stack had no fit that
+    decided) weighted by their ``slices`` the network posed; NaN where no stack has one.
 
     Example (a stack without a fit counts for nothing):
         >>> request_network_error_mm([10.0, float("nan"), 20.0], [30, 5, 10])
@@ -41,7 +43,7 @@ def request_network_error_mm(noise_mm: Sequence[float], slices: Sequence[int]) -
         >>> bool(np.isnan(request_network_error_mm([float("nan")], [12])))
         True
     """
-    noise = np.asarray(noise_mm, np.float64)
+    noise = np.asarray(network_error_mm, np.float64)
     weight = np.where(np.isfinite(noise), np.asarray(slices, np.float64), 0.0)
     if weight.sum() <= 0:
         return float("nan")

@@ -224,7 +224,9 @@ def expected_errors(body: dict) -> np.ndarray:
     given = np.array([_number(s.get("expected_error_mm") if isinstance(s, dict) else None)
                       for i, st in enumerate(body.get("stacks", [])) for s in in_index_order(st.get("slices", []), i)],
                      dtype=np.float64)
-    return np.sqrt(np.maximum(given ** 2 - frame_added_mm(body) ** 2, 0.0))
+    frame = frame_added_mm(body)
+    with np.errstate(over="ignore"):                     # a finite but huge error stays huge
+        return np.where(frame > 0, np.sqrt(np.maximum(given ** 2 - frame ** 2, 0.0)), given)
 
 
 def frame_added_mm(body: dict) -> np.ndarray:
@@ -248,26 +250,32 @@ def frame_added_mm(body: dict) -> np.ndarray:
 def accepted_without_frame(body: dict) -> list[np.ndarray]:
     """Per stack of the service's own ``/v1/predict`` body, its slices accepted or rejected only for an
     expected error that the request's frame error put over the body's ``max_expected_error_mm``
-    (:func:`expected_errors`): what a job starts from. A job places its volume in the atlas frame
-    itself, so the request's frame error makes no slice worse to start from.
+    (:func:`expected_errors`), and not over its ``variance_threshold`` either (a reason the
+    expected error's hides): what a job starts from. The request's frame error moves every slice
+    alike, so it makes no slice worse to start from than another.
 
     Example (the second slice was over 4.4 mm by its frame error alone; the third is over without it):
         >>> slices = [{"accepted": True, "reason": None, "expected_error_mm": 2.0},
         ...           {"accepted": False, "reason": "high_expected_error", "expected_error_mm": 5.0},
         ...           {"accepted": False, "reason": "high_expected_error", "expected_error_mm": 6.0}]
-        >>> body = {"max_expected_error_mm": 4.4, "stacks": [{"frame": {"expected_error_added_mm": 3.0}, "slices": slices}]}
+        >>> body = {"max_expected_error_mm": 4.4, "variance_threshold": 400.0,
+        ...         "stacks": [{"frame": {"expected_error_added_mm": 3.0}, "slices": slices}]}
         >>> [a.tolist() for a in accepted_without_frame(body)]
         [[True, True, False]]
+        >>> slices[1]["geodesic_variance"] = 900.0              # over the spread's limit too
+        >>> [a.tolist() for a in accepted_without_frame(body)]
+        [[True, False, False]]
     """
-    limit = _number(body.get("max_expected_error_mm"))
+    limit, spread = _number(body.get("max_expected_error_mm")), _number(body.get("variance_threshold"))
     own = expected_errors(body)
     out, start = [], 0
     for i, st in enumerate(body.get("stacks", [])):
         slices = in_index_order(st.get("slices", []), i)
         errors = own[start:start + len(slices)]
         start += len(slices)
-        out.append(np.array([bool(s.get("accepted")) or (s.get("reason") == "high_expected_error" and e <= limit)
-                             for s, e in zip(slices, errors)], dtype=bool))
+        out.append(np.array([bool(s.get("accepted")) or (
+            s.get("reason") == "high_expected_error" and e <= limit              # its only other fault can be the spread
+            and not _number(s.get("geodesic_variance")) > spread) for s, e in zip(slices, errors)], dtype=bool))
     return out
 
 

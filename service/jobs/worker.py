@@ -35,8 +35,8 @@ from service.core.errors import Cancelled, InternalError, ServiceError, Unusable
 from service.core.logging import error_at
 from service.jobs.store import JobStore
 from service.jobs.provenance import localiser_provenance, provenance
-from service.jobs.uploaded_poses import (accepted_without_frame, expected_errors, posed_slices, poses_from_predict_body,
-                                        signal_lost_slices)
+from service.jobs.uploaded_poses import (accepted_without_frame, expected_errors, frame_added_mm, posed_slices,
+                                        poses_from_predict_body, signal_lost_slices)
 from service.preprocess.intensity import SIGNAL_LOST
 
 if TYPE_CHECKING:
@@ -362,7 +362,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
                      resolution_mm=float(params.get("resolution_mm", 0.8)),
                      svr_iterations=int(params.get("svr_iterations", 3)), orders=known_orders,
                      frame_steps=params.get("atlas_frame", True), mc_samples=int(params.get("mc_samples", 100)),
-                     progress=refining)
+                     progress=refining, frame_error_mm=frame_added_mm(body))
     result, left_out = job.result, job.left_out
     if started_from != "uploaded_poses":        # uploaded poses keep the client's flags
         result.exclusion_reason = lost_reasons(result.exclusion_reason, body)

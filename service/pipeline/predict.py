@@ -325,12 +325,12 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
     timings["image_consistency"] = time.perf_counter() - t
     sigma = request_network_error_mm([o.fit.noise_mm if o.fit is not None and o.fit.decidable else np.nan for o in outs],
                                      [int((~e.degenerate).sum()) for e in parts])
-    frame = float(frame_error_mm(sigma, getattr(info, "frame_error", None)))
+    frame_mm = float(frame_error_mm(sigma, getattr(info, "frame_error", None)))
     results = []
     for s, e, nfv, out in zip(prepared, parts, frames, outs):
-        added = add_unseen_errors(out, info, e, s.input_noise, frame_mm=frame)
-        own = None if frame <= 0 or out.expected_error_mm is None else judge(
-            s, e, out, threshold, max_expected_error_mm, np.sqrt(np.maximum(out.expected_error_mm ** 2 - frame ** 2, 0.0)))
+        added = add_unseen_errors(out, info, e, s.input_noise, frame_mm=frame_mm)
+        own = None if frame_mm <= 0 or out.expected_error_mm is None else judge(
+            s, e, out, threshold, max_expected_error_mm, np.sqrt(np.maximum(out.expected_error_mm ** 2 - frame_mm ** 2, 0.0)))
         results.append(StackPrediction(s, nfv, e, out, judge(s, e, out, threshold, max_expected_error_mm), float(added),
-                                       sigma, frame, own))
+                                       sigma, frame_mm, own))
     return results, timings

@@ -37,9 +37,7 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate |
     * Where no image stage weighed the stack's slices again (a stack sent alone, a stream's stack, a
       stack the request could not place), the motion its model did not explain: the stage's
       expected errors times :func:`~service.consistency.stage.misfit_factor`.
-    * The request's placement in the atlas frame: the model's ``expected_error_floor_mm``, and
-      ``frame_mm``, what a request the network is less sure of adds to it
-      (:func:`~service.consistency.frame_error.frame_error_mm`), in quadrature.
+    * The request's placement in the atlas frame: the model's ``expected_error_floor_mm``, in quadrature.
     * Inputs noisier than the network learnt (its stack's ``input_noise``, one value or one per
       slice): the model's ``noise_error`` calibration (:func:`~service.preprocess.noise.noise_error_mm`),
       in quadrature. Such a stack is posed worse than its spread says, mostly by a larger turn and
@@ -61,6 +59,10 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate |
       squared error grows by half its squared distance to it
       (:func:`~service.geometry.twin.undecided_twin_variance`). A slice near the mid-plane keeps a
       small error and may be accepted; a lateral one does not pass as a sure pose.
+    * Last, beside everything else, the request's frame error ``frame_mm`` (what a request the
+      network is less sure of than the calibration's acquisitions adds to its placement,
+      :func:`~service.consistency.frame_error.frame_error_mm`), in quadrature: a reconstruction job
+      and a stream's list of slices worth acquiring again take exactly that off again.
 
     A slice the network saw without measuring its spread (one MC pass: ``estimate``'s variance NaN)
     has no expected error (NaN, null in the answer): the calibration scales a spread, and the
@@ -79,7 +81,7 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate |
         return add_noise_error(out, info, input_noise)
     refined = out.image_consistency
     own = np.asarray(out.expected_error_mm, np.float64) * (misfit_factor(out.fit) if refined is None else 1.0)
-    variance = own ** 2 + float(getattr(info, "expected_error_floor_mm", 0.0)) ** 2 + float(frame_mm) ** 2
+    variance = own ** 2 + float(getattr(info, "expected_error_floor_mm", 0.0)) ** 2
     logit = getattr(info, "twin_risk_logit", None)
     known = branch_set(out) if branch_known is None else branch_known
     d = twin_distance_mm(out.poses, getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM))
@@ -88,6 +90,7 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate |
     elif logit is not None and out.fit is not None and out.fit.decidable:
         variance = variance + twin_variance(d, logit)
     variance = np.maximum(variance, (refined.placement_floor_mm if refined is not None else 0.0) ** 2)
+    variance = variance + float(frame_mm) ** 2              # last, whole: a job and a stream take it off again
     if estimate is not None:
         variance = np.where(estimate.estimated & np.isnan(estimate.variance), np.nan, variance)
     out.expected_error_mm = np.sqrt(variance)

@@ -104,7 +104,8 @@ def bias_corrected_stacks(volumes: Sequence[Volume], masks: Sequence[NDArray]) -
 def refine_job(slice_set: SliceSet, stacks: Sequence[StackInput], starting_error_mm: NDArray, *,
                estimator: PoseEstimator | None, plane_x_mm: float, resolution_mm: float, svr_iterations: int,
                orders: Sequence[SliceOrder | None] = (), frame_steps: bool = True, mc_samples: int = 100,
-               progress: Callable[[str, float], None] | None = None) -> RefinedJob:
+               progress: Callable[[str, float], None] | None = None,
+               frame_error_mm: NDArray | None = None) -> RefinedJob:
     """The job's steps on ``slice_set`` (made from ``stacks``, as
     :meth:`~service.reconstruction.slices.SliceSet.from_stacks` takes them) from its starting poses,
     whose expected errors are ``starting_error_mm`` (``[n]``, NaN: none known).
@@ -117,6 +118,10 @@ def refine_job(slice_set: SliceSet, stacks: Sequence[StackInput], starting_error
         orders: per stack, what is known of its acquisition order (empty: nothing).
         frame_steps: run the atlas-frame and midline steps.
         progress: ``(stage, fraction of the steps done)`` as each stage begins.
+        frame_error_mm: ``[n]`` the request's frame error the starting prediction added to each
+            slice's expected error and ``starting_error_mm`` leaves out
+            (:mod:`service.consistency.frame_error`): the slices are weighed without it, and a
+            refined pose keeps it where no frame step placed the volume again.
     """
     report = progress or (lambda stage, fraction: None)
     if slice_set.n_pixels:                             # the volume where the slices start: refused now, not later
@@ -144,9 +149,10 @@ def refine_job(slice_set: SliceSet, stacks: Sequence[StackInput], starting_error
         midline = midline_fit(result.volume, plane_x_mm, coherence_score(result))
         result = with_frame(result, midline)
     role = roles(result.included, left_out.moved, left_out.registered)
-    expected = refined_expected_errors(role, left_out.ncc, areas, starting_error_mm,
-                                       held_out_ncc=held_out_score(result),
-                                       framed=frame is not None and frame.applied,
+    framed = frame is not None and frame.applied
+    unplaced = starting_error_mm if framed or frame_error_mm is None else np.hypot(starting_error_mm, frame_error_mm)
+    expected = refined_expected_errors(role, left_out.ncc, areas, unplaced,
+                                       held_out_ncc=held_out_score(result), framed=framed,
                                        stack_held_out_ncc=stack_held_out(result, slice_set.stack_index))
     return RefinedJob(result, left_out, frame, midline, role, areas, expected,
                       np.asarray(starting_error_mm, np.float64))

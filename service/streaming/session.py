@@ -328,8 +328,10 @@ class StreamSession:
             updates = []
             for name, p in zip(names, predictions):
                 sent, gone = self.stacks[name].frames, ended[name].missing
+                received = lambda flags: None if flags is None else [NOT_RECEIVED if k in gone else r  # noqa: E731
+                                                                     for k, r in enumerate(flags)]
                 p = replace(p, network_from_voxel=sent_network_from_voxel(p, [sent.get(k) for k in range(len(p.reasons))]),
-                            reasons=[NOT_RECEIVED if k in gone else r for k, r in enumerate(p.reasons)])
+                            reasons=received(p.reasons), own_reasons=received(p.own_reasons))
                 answers = [SliceAnswer(name, k, p, k) for k in range(len(p.reasons)) if k in sent]
                 self.finals[name] = p
                 if name == stack:

@@ -122,6 +122,8 @@ def test_atlas_from_voxel_matches_truth(oracle, oracle_client, tmp_path: Path, w
     np.testing.assert_allclose(stack["scanner_from_voxel"], aff, atol=1e-4)          # the file's own voxel -> RAS
     assert 0.0 <= stack["noise"]["input_noise"] < 0.06 and stack["noise"]["beyond_calibration"] is False  # noise-free
     assert stack["noise"]["expected_error_added_mm"] == 0.0
+    assert set(stack["frame"]) == {"request_network_error_mm", "expected_error_added_mm"}   # the oracle's model: none
+    assert stack["frame"]["expected_error_added_mm"] == 0.0
     # Each slice's ITK transform (client side, from the answer alone) takes the atlas point a voxel
     # shows to where the file puts that voxel, both in ITK's LPS.
     for name, text in transform_files(body).items():

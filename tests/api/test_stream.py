@@ -74,6 +74,7 @@ def test_a_session_answers_every_slice_in_order_where_the_truth_is(client, case)
             assert np.abs(got[:, :3, 3] - want[:, :3, 3]).max() < 0.5
             assert stack["consistency"]["acquisition_order"] == "as-streamed"
             assert 0.0 < stack["noise"]["input_noise"] < 0.06 and stack["noise"]["beyond_calibration"] is False
+            assert stack["frame"]["expected_error_added_mm"] == 0.0 and "request_network_error_mm" in stack["frame"]
             assert 0.0 < stack["coverage"]["brain_fraction"] <= 1.0
             assert all(r["reason"] for r in stack["reacquire"])
             assert stack["judged_alone"] is (frames is stacks[0])          # the first stack had no other to cross it

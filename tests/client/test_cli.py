@@ -463,13 +463,16 @@ def test_a_request_whose_frame_error_holds_its_slices_back_is_told_so_not_that_i
     """Two stacks, no slice accepted, every expected error raised by the request's frame error: the
     hint names the frame error and that a job starts from the slices whose own errors pass, and
     does not blame the stacks' agreement; without the frame error it does."""
-    two = {**_alone("high_expected_error"), "stacks": _alone("high_expected_error")["stacks"] * 2}
-    framed = {**two, "stacks": [{**st, "frame": {"request_network_error_mm": 23.6, "expected_error_added_mm": 2.8}}
+    two = {**_alone("high_expected_error"), "stacks": _alone("high_expected_error")["stacks"] * 2}   # 6 mm over 4.5
+    framed = {**two, "stacks": [{**st, "frame": {"request_network_error_mm": 23.6, "expected_error_added_mm": 4.2}}
                                 for st in two["stacks"]]}
     hints = views.predict_hints(framed)
-    assert len(hints) == 1 and "2.80 mm for the request's placement" in hints[0] and "24 mm" in hints[0]
+    assert len(hints) == 1 and "4.20 mm for the request's placement" in hints[0] and "24 mm" in hints[0]
     assert "job starts from" in hints[0] and "do not agree" not in hints[0]
     assert "do not agree" in views.predict_hints(two)[0]
+    slight = {**two, "stacks": [{**st, "frame": {"request_network_error_mm": 12.0, "expected_error_added_mm": 0.65}}
+                                for st in two["stacks"]]}
+    assert "do not agree" in views.predict_hints(slight)[0]      # 6 mm without the frame error too: not its fault
     done = {**framed, "stacks": [{**st, "slices": [{**sl, "accepted": True, "reason": None} for sl in st["slices"]]}
                                  for st in framed["stacks"]]}
     assert views.predict_hints(done) == []                          # accepted all the same: nothing to say

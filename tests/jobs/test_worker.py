@@ -63,6 +63,26 @@ def test_a_predict_body_gives_the_poses_and_the_accepted_start() -> None:
     assert starting_poses(body)[0][1].tolist() == [True, True, True]                  # 1 slice: too few
 
 
+def test_a_job_starts_from_the_slices_only_the_request_s_frame_error_held_back() -> None:
+    """Slices whose expected error (6 mm) is over the 4.4 mm limit only because the request's frame
+    error (5 mm) is in it are where a job starts, as the accepted ones; one over the limit without it
+    (8 mm), or over the variance threshold too, is not; the report calls that start the accepted
+    slices. Without a frame error the same body starts from the one accepted slice's share rule."""
+    def one(accepted: bool, reason: str | None, error: float, variance: float = 100.0) -> dict:
+        return {"atlas_from_voxel": np.eye(4).tolist(), "accepted": accepted, "reason": reason,
+                "expected_error_mm": error, "geodesic_variance": variance}
+
+    slices = [one(True, None, 4.0), one(False, "high_expected_error", 6.0), one(False, "high_expected_error", 6.0),
+              one(False, "high_expected_error", 8.0), one(False, "high_expected_error", 6.0, variance=900.0)]
+    framed = {"max_expected_error_mm": 4.4, "variance_threshold": 439.4,
+              "stacks": [{"frame": {"request_network_error_mm": 28.7, "expected_error_added_mm": 5.0}, "slices": slices}]}
+    start = starting_poses(framed, min_slices=1)
+    assert start[0][1].tolist() == [True, True, True, False, False]
+    assert start_label(framed, start) == "accepted_slices"
+    bare = {**framed, "stacks": [{"slices": slices}]}
+    assert starting_poses(bare, min_slices=1, min_share=0.5)[0][1].tolist() == [True] * 5   # 1 of 5: every slice
+
+
 def test_a_job_starts_without_the_slices_whose_brain_lost_its_signal() -> None:
     """Their images would darken the volume where they lie: left out whether the job starts from the
     accepted slices or from every slice, unless nothing else is left; the report still says which rule

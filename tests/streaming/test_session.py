@@ -557,3 +557,24 @@ def test_a_misplaced_second_slice_does_not_lock_out_the_correct_ones_after_it() 
             refused.append((k, str(e)))
     assert [k for k, _ in refused] == [3] and "sits where slice 2" in refused[0][1]
     assert stack.off_line() == [2]
+
+
+def test_a_request_s_frame_error_holds_its_slices_back_but_lists_none_but_the_missing_to_acquire_again(case) -> None:  # noqa: ANN001
+    """A model whose frame error puts every slice of the stack over the limit (onset 0, 50 mm per mm of
+    the network's error): the stack's answer accepts none of them, and the slices worth acquiring
+    again are still the ones that never came, each named so, since acquiring a slice again does not
+    move the request's frame; the summary says the same."""
+    oracle, stacks, _ = case
+    oracle.info = replace(INFO, frame_error=(0.0, 50.0), max_expected_error_mm=4.0)   # the oracle errs little
+    frames, n = stacks[0], len(stacks[0])
+    session = StreamSession(oracle, None, options=FAST)
+    gone = (0, 7, 8)
+    for k in range(n):
+        if k not in gone:
+            session.add_slice(frames[k])
+    final = session.end_stack("ax")
+    p = final.prediction
+    assert p.frame_error_mm > 4.0 and all(r is not None for r in p.reasons)
+    assert [k for k, r in enumerate(p.own_reasons) if r == NOT_RECEIVED] == list(gone)
+    assert final.reacquire == [(k, NOT_RECEIVED) for k in gone]
+    assert session.summary().reacquire["ax"] == [(k, NOT_RECEIVED) for k in gone]
