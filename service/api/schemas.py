@@ -150,7 +150,7 @@ class Frame(BaseModel):
     request_network_error_mm: Optional[float] = Field(
         description="the request's network error: the RMS of consistency.network_error_mm (how far the network's "
                     "poses scatter about each stack's motion model) over the request's stacks whose fit is "
-                    "decidable, weighted by the slices the network posed; null when no stack's is (nothing is "
+                    "decidable, weighted by their slices (all but degenerate ones); null when no stack's is (nothing is "
                     "added then). The same for every stack of a request. The simulated "
                     "acquisitions the expected errors were calibrated on lie near 12 mm; whole-uterus requests "
                     "without masks and real scans often at 15-35 mm")

@@ -35,7 +35,7 @@ from service.core.hinge import hinge_mm
 def request_network_error_mm(network_error_mm: Sequence[float], slices: Sequence[int]) -> float:
     """A request's network error (mm): the RMS of its stacks' network errors (the stage's fits'
     :attr:`~service.consistency.stack_fit.StackFit.noise_mm`; NaN where a stack had no fit that
-    decided) weighted by their ``slices`` the network posed; NaN where no stack has one.
+    decided) weighted by their ``slices`` (all but the degenerate ones); NaN where no stack has one.
 
     Example (a stack without a fit counts for nothing):
         >>> request_network_error_mm([10.0, float("nan"), 20.0], [30, 5, 10])

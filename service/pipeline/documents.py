@@ -135,10 +135,10 @@ def noise_report(level: float, added_mm: float = 0.0) -> dict:
 
 def frame_report(network_error_mm: float, added_mm: float = 0.0) -> dict:
     """A stack's ``frame`` object: the request's network error (the slice-weighted RMS of its stacks'
-    ``network_error_mm``; null where no stack had a fit), which the request's placement in the atlas
-    frame is worse with, and what that added to each slice's expected error (``added_mm``, in
-    quadrature; the model's ``frame_error`` calibration, :mod:`service.consistency.frame_error`).
-    Every stack of a request has the same.
+    ``network_error_mm`` over those whose fit is decidable; null where none is), which the request's
+    placement in the atlas frame is worse with, and what that added to each slice's expected error
+    (``added_mm``, in quadrature; the model's ``frame_error`` calibration,
+    :mod:`service.consistency.frame_error`). Every stack of a request has the same.
 
     Example:
         >>> frame_report(23.64, 5.318), frame_report(float("nan"))
