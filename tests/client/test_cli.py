@@ -468,7 +468,7 @@ def test_a_request_whose_frame_error_holds_its_slices_back_is_told_so_not_that_i
                                 for st in two["stacks"]]}
     hints = views.predict_hints(framed)
     assert len(hints) == 1 and "4.20 mm for the request's placement" in hints[0] and "24 mm" in hints[0]
-    assert "job starts from" in hints[0] and "do not agree" not in hints[0]
+    assert "starts from those whose own errors pass" in hints[0] and "do not agree" not in hints[0]
     assert "do not agree" in views.predict_hints(two)[0]
     slight = {**two, "stacks": [{**st, "frame": {"request_network_error_mm": 12.0, "expected_error_added_mm": 0.65}}
                                 for st in two["stacks"]]}
