@@ -31,7 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from model_export.acquisitions import simulate_acquisition
-from model_export.calibrate_noise import MIN_GROUP_SLICES, fit_hinge, median_ratio, missing_error
+from model_export.calibrate_noise import calibrate_hinge, hinge_table
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, Scored, run_acquisition, score
 
 LEVELS = ("mild", "moderate", "jumps")
@@ -54,22 +54,19 @@ FRAME_FLAGS = ("frame_error",)
 def measure(estimator, volumes: list, per_volume: int = PER_VOLUME, seed: int = 11, scenes: int = SCENES,  # noqa: ANN001
             scene_seed: int = 2_400_000) -> dict[str, NDArray]:
     """Per slice with brain: its E.D. against the truth (``ed``), its expected error (``expected``, inf
-    where it has none), its request's network error (``sigma``, NaN where no stack had a fit) and
-    the request (``request``: its number) and source (``source``: the motion level, or
-    ``scene-localiser`` / ``scene-brain``); the estimator's own ``frame_error`` switched off."""
+    where it has none) and its request's network error (``sigma``, NaN where no stack had a fit); the
+    estimator's own ``frame_error`` switched off."""
     from model_export.localiser.pose_accuracy import score_scene, validation_cases
     from service.preprocess.localise import default_localiser
 
     estimator = copy(estimator)                  # the caller's keeps its calibration
     estimator.info = replace(estimator.info, frame_error=None)
-    rows: dict[str, list] = {k: [] for k in ("ed", "expected", "sigma", "request", "source")}
+    rows: dict[str, list] = {k: [] for k in ("ed", "expected", "sigma")}
 
-    def add(ed: NDArray, expected: NDArray, sigma: float, source: str) -> None:
-        request = len(rows["ed"])                          # one request's slices per call
-        for key, value in (("ed", ed), ("expected", np.where(np.isfinite(expected), expected, np.inf)),
-                           ("sigma", np.full(len(ed), sigma)), ("request", np.full(len(ed), request)),
-                           ("source", np.full(len(ed), source))):
-            rows[key].append(value)
+    def add(ed: NDArray, expected: NDArray, sigma: float) -> None:          # one request's slices
+        rows["ed"].append(ed)
+        rows["expected"].append(np.where(np.isfinite(expected), expected, np.inf))
+        rows["sigma"].append(np.full(len(ed), sigma))
 
     for level in LEVELS:
         for a, vol in enumerate(volumes * per_volume):
@@ -78,41 +75,22 @@ def measure(estimator, volumes: list, per_volume: int = PER_VOLUME, seed: int = 
             scored = Scored()
             score(predictions, prepared, truth, stacks, estimator.info.symmetry_plane_x_mm, scored)
             keep = scored.array("mask_pixels") >= MIN_MASK_PIXELS
-            add(scored.array("ed")[keep], scored.array("expected")[keep], predictions[0].request_network_error_mm, level)
+            add(scored.array("ed")[keep], scored.array("expected")[keep], predictions[0].request_network_error_mm)
     localiser = default_localiser()
     for case in validation_cases(scenes, scene_seed, 3, motion="mild", planning="orthogonal"):
         for variant in SCENE_VARIANTS:
             got = score_scene(case, variant, estimator, localiser if variant == "localiser" else None)
             posed = np.isfinite(got["ed"])
-            add(got["ed"][posed], got["expected"][posed], float(got["network_error"]), f"scene-{variant}")
+            add(got["ed"][posed], got["expected"][posed], float(got["network_error"]))
     return {k: np.concatenate(v) for k, v in rows.items()}
 
 
 def calibrate(columns: dict[str, NDArray]) -> dict:
-    """``frame_error`` (onset, slope) from :func:`measure`'s columns, and each group's figures."""
-    ed, expected, sigma = columns["ed"], columns["expected"], columns["sigma"]
-    have = np.isfinite(expected) & np.isfinite(sigma)
-    ed, expected, sigma = ed[have], expected[have], sigma[have]
-    clean = sigma < CLEAN_SIGMA_MM
-    if clean.sum() < MIN_GROUP_SLICES:
-        raise ValueError(f"{int(clean.sum())} slices of requests under a network error of {CLEAN_SIGMA_MM} mm: the "
-                         f"reference needs {MIN_GROUP_SLICES}; measure with acquisitions")
-    target = median_ratio(ed[clean], expected[clean])
-    groups, masks = [], []
-    for lo, hi in zip(SIGMA_EDGES[:-1], SIGMA_EDGES[1:]):
-        g = (sigma >= lo) & (sigma < hi)
-        if g.sum() < MIN_GROUP_SLICES:
-            continue
-        masks.append(g)
-        groups.append({"sigma_mm": float(np.median(sigma[g])), "slices": int(g.sum()),
-                       "ed_median_mm": float(np.median(ed[g])), "expected_median_mm": float(np.median(expected[g])),
-                       "median_ratio": median_ratio(ed[g], expected[g]),
-                       "missing_mm": missing_error(ed[g], expected[g], target)})
-    if len(groups) < 2:
-        raise ValueError("the slices fill fewer than two groups of network error: nothing to fit a growth to")
-    onset, slope = fit_hinge(sigma, ed, expected, masks, target, SLOPES, ONSETS_MM)
-    for g, m in zip(groups, masks):
-        g["median_ratio_after"] = median_ratio(ed[m], np.hypot(expected[m], slope * np.maximum(sigma[m] - onset, 0.0)))
+    """``frame_error`` (onset, slope) from :func:`measure`'s columns, and each group's figures
+    (:func:`~model_export.calibrate_noise.calibrate_hinge`)."""
+    onset, slope, target, groups = calibrate_hinge(
+        columns["sigma"], columns["ed"], columns["expected"], SIGMA_EDGES, CLEAN_SIGMA_MM, "sigma_mm",
+        f"requests under a network error of {CLEAN_SIGMA_MM} mm; measure with acquisitions", SLOPES, ONSETS_MM)
     return {"frame_error": [onset, slope], "clean_median_ratio": target, "groups": groups}
 
 
@@ -128,15 +106,9 @@ def frame_metadata(result: dict) -> dict[str, str]:
 
 
 def markdown(result: dict) -> str:
-    """The groups and the fit as a Markdown table."""
+    """The groups and the fit as a Markdown table (:func:`~model_export.calibrate_noise.hinge_table`)."""
     onset, slope = result["frame_error"]
-    lines = [f"frame_error: onset {onset:.1f} mm, slope {slope:.2f} mm per mm of the request's network error "
-             f"(reference median E.D. / expected {result['clean_median_ratio']:.2f})", "",
-             "| request's network error (median) | slices | median E.D. | median expected | median ratio "
-             "| its missing error | the fit's | median ratio with it |",
-             "|---|---|---|---|---|---|---|---|"]
-    for g in result["groups"]:
-        fitted = slope * max(g["sigma_mm"] - onset, 0.0)
-        lines.append(f"| {g['sigma_mm']:.1f} mm | {g['slices']} | {g['ed_median_mm']:.2f} mm | {g['expected_median_mm']:.2f} mm "
-                     f"| {g['median_ratio']:.2f} | {g['missing_mm']:.2f} mm | {fitted:.2f} mm | {g['median_ratio_after']:.2f} |")
-    return "\n".join(lines)
+    return hinge_table(result["groups"], "sigma_mm", onset, slope,
+                       f"frame_error: onset {onset:.1f} mm, slope {slope:.2f} mm per mm of the request's network error "
+                       f"(reference median E.D. / expected {result['clean_median_ratio']:.2f})",
+                       "request's network error", "{:.1f} mm")

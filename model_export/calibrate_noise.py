@@ -139,32 +139,76 @@ def fit_hinge(noise: NDArray, ed: NDArray, expected: NDArray, groups: list[NDArr
     return best[1], best[2]
 
 
-def calibrate(columns: dict[str, NDArray]) -> dict:
-    """``noise_error`` (onset, slope) from :func:`measure`'s columns, and each group's figures."""
-    ed, expected, noise = columns["ed"], columns["expected"], columns["input_noise"]
-    have = np.isfinite(expected) & np.isfinite(noise)
-    ed, expected, noise = ed[have], expected[have], noise[have]
-    clean = noise < CLEAN_NOISE
+def calibrate_hinge(level: NDArray, ed: NDArray, expected: NDArray, edges: tuple[float, ...], clean_below: float,
+                    key: str, reference: str, slopes: NDArray = np.arange(0.0, 150.1, 1.0),
+                    onsets: NDArray | None = None) -> tuple[float, float, float, list[dict]]:
+    """``(onset, slope, target, groups)`` of a hinge error on ``level`` (a stack's input noise, a
+    request's network error): the slices grouped by their level between ``edges`` (a group of under
+    :data:`MIN_GROUP_SLICES` left out), the target the median ratio of E.D. to expected error of the
+    slices under ``clean_below``, the hinge :func:`fit_hinge`'s; each group's median level under
+    ``key``, its slices, median E.D. and expected error, median ratio before and after the fit and
+    its own missing error (:func:`missing_error`). Slices without an expected error or a level are
+    left out. :class:`ValueError` where the reference (``reference``: what its slices are) or two
+    groups are missing.
+
+    Example (slices of level 1 as trusted as they should be, those of level 3 lacking 4 mm):
+        >>> level = np.repeat([1.0, 3.0], 120); ed = np.r_[np.full(120, 3.0), np.full(120, 5.0)]
+        >>> onset, slope, target, groups = calibrate_hinge(level, ed, np.full(240, 3.0), (0, 2, 4), 2.0, "level",
+        ...                                                "slices of level 1", np.arange(0.0, 5.0, 0.5), np.arange(0.0, 3.5, 0.5))
+        >>> round(slope * (3.0 - onset), 1), target, [g["slices"] for g in groups]
+        (4.0, 1.0, [120, 120])
+    """
+    have = np.isfinite(expected) & np.isfinite(level)
+    level, ed, expected = level[have], ed[have], expected[have]
+    clean = level < clean_below
     if clean.sum() < MIN_GROUP_SLICES:
-        raise ValueError(f"{int(clean.sum())} slices of stacks under input noise {CLEAN_NOISE}: the clean reference "
-                         f"needs {MIN_GROUP_SLICES}; measure with the noise ladder's lowest levels")
+        raise ValueError(f"{int(clean.sum())} slices of {reference}: the clean reference needs {MIN_GROUP_SLICES}")
     target = median_ratio(ed[clean], expected[clean])
     groups, masks = [], []
-    for lo, hi in zip(BIN_EDGES[:-1], BIN_EDGES[1:]):
-        g = (noise >= lo) & (noise < hi)
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        g = (level >= lo) & (level < hi)
         if g.sum() < MIN_GROUP_SLICES:
             continue
         masks.append(g)
-        groups.append({"noise": float(np.median(noise[g])), "slices": int(g.sum()),
+        groups.append({key: float(np.median(level[g])), "slices": int(g.sum()),
                        "ed_median_mm": float(np.median(ed[g])), "expected_median_mm": float(np.median(expected[g])),
                        "median_ratio": median_ratio(ed[g], expected[g]),
                        "missing_mm": missing_error(ed[g], expected[g], target)})
     if len(groups) < 2:
-        raise ValueError("the slices fill fewer than two groups of input noise: nothing to fit a growth to")
-    onset, slope = fit_hinge(noise, ed, expected, masks, target)
+        raise ValueError("the slices fill fewer than two groups of their level: nothing to fit a growth to")
+    onset, slope = fit_hinge(level, ed, expected, masks, target, slopes, onsets)
     for g, m in zip(groups, masks):
-        g["median_ratio_after"] = median_ratio(ed[m] / np.hypot(expected[m], slope * np.maximum(noise[m] - onset, 0.0)),
-                                               np.ones(int(m.sum())))
+        g["median_ratio_after"] = median_ratio(ed[m], np.hypot(expected[m], slope * np.maximum(level[m] - onset, 0.0)))
+    return onset, slope, target, groups
+
+
+def hinge_table(groups: list[dict], key: str, onset: float, slope: float, header: str, level_label: str,
+                level_format: str) -> str:
+    """:func:`calibrate_hinge`'s groups and fit as a Markdown table under ``header``, the groups' levels
+    in a column ``level_label`` written with ``level_format``.
+
+    Example:
+        >>> g = {"noise": 0.12, "slices": 9, "ed_median_mm": 3.0, "expected_median_mm": 2.5, "median_ratio": 1.2,
+        ...      "missing_mm": 1.6, "median_ratio_after": 1.0}
+        >>> hinge_table([g], "noise", 0.1, 50.0, "fit", "input noise", "{:.3f}").splitlines()[-1]
+        '| 0.120 | 9 | 3.00 mm | 2.50 mm | 1.20 | 1.60 mm | 1.00 mm | 1.00 |'
+    """
+    lines = [header, "", f"| {level_label} (median) | slices | median E.D. | median expected | median ratio "
+             "| its missing error | the fit's | median ratio with it |", "|---|---|---|---|---|---|---|---|"]
+    for g in groups:
+        fitted = slope * max(g[key] - onset, 0.0)
+        lines.append(f"| {level_format.format(g[key])} | {g['slices']} | {g['ed_median_mm']:.2f} mm "
+                     f"| {g['expected_median_mm']:.2f} mm | {g['median_ratio']:.2f} | {g['missing_mm']:.2f} mm "
+                     f"| {fitted:.2f} mm | {g['median_ratio_after']:.2f} |")
+    return "\n".join(lines)
+
+
+def calibrate(columns: dict[str, NDArray]) -> dict:
+    """``noise_error`` (onset, slope) from :func:`measure`'s columns, and each group's figures
+    (:func:`calibrate_hinge`)."""
+    onset, slope, target, groups = calibrate_hinge(
+        columns["input_noise"], columns["ed"], columns["expected"], BIN_EDGES, CLEAN_NOISE, "noise",
+        f"stacks under input noise {CLEAN_NOISE}; measure with the noise ladder's lowest levels")
     return {"noise_error": [onset, slope], "clean_median_ratio": target, "groups": groups}
 
 
@@ -180,15 +224,8 @@ def noise_metadata(result: dict) -> dict[str, str]:
 
 
 def markdown(result: dict) -> str:
-    """The groups and the fit as a Markdown table."""
+    """The groups and the fit as a Markdown table (:func:`hinge_table`)."""
     onset, slope = result["noise_error"]
-    lines = [f"noise_error: onset {onset:.3f}, slope {slope:.1f} mm per unit of input noise "
-             f"(clean median E.D. / expected {result['clean_median_ratio']:.2f})", "",
-             "| input noise (median) | slices | median E.D. | median expected | median ratio | its missing error "
-             "| the fit's | median ratio with it |",
-             "|---|---|---|---|---|---|---|---|"]
-    for g in result["groups"]:
-        fitted = slope * max(g["noise"] - onset, 0.0)
-        lines.append(f"| {g['noise']:.3f} | {g['slices']} | {g['ed_median_mm']:.2f} mm | {g['expected_median_mm']:.2f} mm "
-                     f"| {g['median_ratio']:.2f} | {g['missing_mm']:.2f} mm | {fitted:.2f} mm | {g['median_ratio_after']:.2f} |")
-    return "\n".join(lines)
+    return hinge_table(result["groups"], "noise", onset, slope,
+                       f"noise_error: onset {onset:.3f}, slope {slope:.1f} mm per unit of input noise "
+                       f"(clean median E.D. / expected {result['clean_median_ratio']:.2f})", "input noise", "{:.3f}")

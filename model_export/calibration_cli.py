@@ -151,7 +151,7 @@ def calibrate_frame(
     from service.inference.model_file import load_model
 
     if columns:
-        measured = pooled_columns(columns, ("ed", "expected", "sigma", "request", "source"))
+        measured = pooled_columns(columns, ("ed", "expected", "sigma"))
     else:
         loaded = load_model(model)
         measured = measure(OnnxPoseEstimator(loaded), held_out_volumes(loaded.info.metadata, root),

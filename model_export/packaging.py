@@ -8,16 +8,17 @@ import torch
 
 from model_export.atlas import ATLAS_ID, HELD_OUT, POPULATIONS, validation_volumes
 from model_export.calibrate_acceptance import FLAGS
+from model_export.calibrate_frame import FRAME_FLAGS
 from model_export.calibrate_noise import NOISE_FLAGS
 from model_export.export import build_metadata, export_onnx, fix_draws
 from model_export.model import SVRNet
 from model_export.spread import SPREAD_FLAGS
 from service.inference.views import SHIPPED_VIEWS
 
-CALIBRATION = (*SPREAD_FLAGS, *FLAGS, *NOISE_FLAGS)
+CALIBRATION = (*SPREAD_FLAGS, *FLAGS, *NOISE_FLAGS, *FRAME_FLAGS)
 """A model's calibrated metadata: the spread's (``calibrate-spread``), then the accept flags'
-(``calibrate-acceptance``), then the noise error's (``calibrate-noise``); the rest of its metadata is
-the network's own."""
+(``calibrate-acceptance``), then the noise error's (``calibrate-noise``) and the frame error's
+(``calibrate-frame``); the rest of its metadata is the network's own."""
 
 
 def load_checkpoint(path: Path) -> tuple[SVRNet, dict]:

@@ -20,8 +20,7 @@ def columns(rng: np.random.Generator, per_request: int = 60, slope: float = SLOP
     expected = rng.uniform(1.5, 4.0, sigma.size)
     rms = np.hypot(expected, slope * np.maximum(sigma - ONSET, 0.0))
     ed = rms * np.linalg.norm(rng.normal(size=(sigma.size, 3)), axis=1) / np.sqrt(3.0)
-    return {"ed": ed, "expected": expected, "sigma": sigma, "request": np.repeat(np.arange(80), per_request),
-            "source": np.full(sigma.size, "mild")}
+    return {"ed": ed, "expected": expected, "sigma": sigma}
 
 
 def test_the_frame_error_the_slices_lack_is_found_again_and_read_back_by_the_service() -> None:

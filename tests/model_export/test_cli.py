@@ -163,7 +163,7 @@ def test_export_takes_over_another_models_calibration(tmp_path: Path, monkeypatc
                                  atlas_id="phantom", training_data="none", licences="n/a")
     source_meta.update(mc_error_scale="0.7", mc_error_shape="1,2,1,1,1,3", mc_error_depth_gain="0.25",
                        expected_error_floor_mm="2.2", max_expected_error_mm="4.5", twin_risk_logit="-0.5,-0.2",
-                       noise_error="0.09,52", tta_views="4")
+                       noise_error="0.09,52", frame_error="9.5,0.26", tta_views="4")
     source = export_onnx(model, tmp_path / "shipped.onnx", source_meta)
     monkeypatch.setattr(calibrate, "calibrate", lambda *a, **k: pytest.fail("calibrated although told not to"))
     monkeypatch.setattr(packaging, "export_checkpoint", own)
@@ -175,7 +175,7 @@ def test_export_takes_over_another_models_calibration(tmp_path: Path, monkeypatc
     got, want = load_model(out).info, load_model(source).info
     for key in CALIBRATION:
         assert getattr(got, key) == getattr(want, key), key
-    assert got.noise_error == (0.09, 52.0)
+    assert got.noise_error == (0.09, 52.0) and got.frame_error == (9.5, 0.26)
     assert got.variance_threshold == 123.0 and got.metadata["name"] == "tuned"
     assert got.tta_views == 4
 
@@ -250,13 +250,12 @@ def test_the_frame_error_is_calibrated_from_several_kept_column_files_pooled(tmp
     monkeypatch.setattr(frame, "calibrate", lambda columns: pooled.update(columns) or {"frame_error": [9.5, 0.26]})
     monkeypatch.setattr(frame, "markdown", lambda result: "frame table")
     for name, n in (("a", 3), ("b", 2)):
-        np.savez(tmp_path / f"{name}.npz", ed=np.full(n, 2.0), expected=np.full(n, 1.5), sigma=np.arange(n) * 10.0,
-                 request=np.zeros(n, int), source=np.full(n, "mild"))
+        np.savez(tmp_path / f"{name}.npz", ed=np.full(n, 2.0), expected=np.full(n, 1.5), sigma=np.arange(n) * 10.0)
     result = CliRunner().invoke(app, ["calibrate-frame", str(tmp_path / "model.onnx"), "--no-write", "--columns",
                                       str(tmp_path / "a.npz"), "--columns", str(tmp_path / "b.npz"),
                                       "--report", str(tmp_path / "frame.md")])
     assert result.exit_code == 0, result.output
-    assert sorted(pooled) == ["ed", "expected", "request", "sigma", "source"]
+    assert sorted(pooled) == ["ed", "expected", "sigma"]
     assert pooled["sigma"].tolist() == [0.0, 10.0, 20.0, 0.0, 10.0]
     assert (tmp_path / "frame.md").read_text().endswith("frame table\n")
 
