@@ -98,29 +98,11 @@ def calibrate_noise(
     """Calibrate how the expected errors grow with a stack's input noise (noise_error) on simulated
     acquisitions of the model's validation volumes (its metadata's) at a ladder of noise levels and
     two pixel sizes."""
-    import numpy as np
+    from model_export import calibrate_noise as noise
 
-    from model_export.atlas import held_out_volumes
-    from model_export.calibrate_noise import PER_VOLUME, calibrate, markdown, measure, noise_metadata
-    from model_export.spread import write_metadata
-    from service.inference.estimator import OnnxPoseEstimator
-    from service.inference.model_file import load_model
-
-    if columns:
-        measured = pooled_columns(columns, ("ed", "expected", "input_noise"))
-    else:
-        loaded = load_model(model)
-        measured = measure(OnnxPoseEstimator(loaded), held_out_volumes(loaded.info.metadata, root),
-                           per_volume or PER_VOLUME, seed)
-        if slices is not None:
-            np.savez_compressed(slices, **measured)
-    result = calibrate(measured)
-    report = report or model.with_name("noise.md")              # never the shipped model's report by default
-    report.parent.mkdir(parents=True, exist_ok=True)
-    report.write_text(f"# Noise calibration of {model}\n\n{markdown(result)}\n")
-    if write:
-        write_metadata(model, noise_metadata(result))
-    typer.echo(json.dumps(result, indent=2))
+    hinge_calibration(model, root, report or model.with_name("noise.md"), write, slices, columns,
+                      ("ed", "expected", "input_noise"), noise, noise.noise_metadata, "Noise calibration",
+                      lambda estimator, volumes: noise.measure(estimator, volumes, per_volume or noise.PER_VOLUME, seed))
 
 
 def calibrate_frame(
@@ -142,28 +124,41 @@ def calibrate_frame(
 ) -> None:
     """Calibrate how a request's frame error grows with the network's error on its slices (frame_error)
     on simulated acquisitions and whole-uterus requests of the model's validation volumes."""
+    from model_export import calibrate_frame as frame
+
+    hinge_calibration(model, root, report or model.with_name("frame.md"), write, slices, columns, ("ed", "expected", "sigma"),
+                      frame, frame.frame_metadata, "Frame-error calibration",
+                      lambda estimator, volumes: frame.measure(estimator, volumes, per_volume or frame.PER_VOLUME, seed,
+                                                               frame.SCENES if scenes is None else scenes, scene_seed))
+
+
+def hinge_calibration(model: Path, root: Path, report: Path, write: bool, slices: Optional[Path],
+                      columns: Optional[list[Path]], keys: tuple[str, ...], module, metadata, title: str,  # noqa: ANN001
+                      measure) -> None:  # noqa: ANN001
+    """A hinge calibration's command (``calibrate-noise``, ``calibrate-frame``): the slice columns
+    ``keys`` measured on the model's validation volumes by ``measure(estimator, volumes)`` (kept in
+    ``slices``) or pooled from earlier runs' ``columns``; ``module.calibrate`` and ``module.markdown``
+    of them; the report written to ``report`` under ``title``, the model's metadata (``metadata`` of
+    the result) with ``write``; the result printed."""
     import numpy as np
 
     from model_export.atlas import held_out_volumes
-    from model_export.calibrate_frame import PER_VOLUME, SCENES, calibrate, frame_metadata, markdown, measure
     from model_export.spread import write_metadata
     from service.inference.estimator import OnnxPoseEstimator
     from service.inference.model_file import load_model
 
     if columns:
-        measured = pooled_columns(columns, ("ed", "expected", "sigma"))
+        measured = pooled_columns(columns, keys)
     else:
         loaded = load_model(model)
-        measured = measure(OnnxPoseEstimator(loaded), held_out_volumes(loaded.info.metadata, root),
-                           per_volume or PER_VOLUME, seed, SCENES if scenes is None else scenes, scene_seed)
+        measured = measure(OnnxPoseEstimator(loaded), held_out_volumes(loaded.info.metadata, root))
         if slices is not None:
             np.savez_compressed(slices, **measured)
-    result = calibrate(measured)
-    report = report or model.with_name("frame.md")              # never the shipped model's report by default
-    report.parent.mkdir(parents=True, exist_ok=True)
-    report.write_text(f"# Frame-error calibration of {model}\n\n{markdown(result)}\n")
+    result = module.calibrate(measured)
+    report.parent.mkdir(parents=True, exist_ok=True)                   # never the shipped model's report by default
+    report.write_text(f"# {title} of {model}\n\n{module.markdown(result)}\n")
     if write:
-        write_metadata(model, frame_metadata(result))
+        write_metadata(model, metadata(result))
     typer.echo(json.dumps(result, indent=2))
 
 
