@@ -14,6 +14,13 @@ from model_export.cli_options import Root
 from service.inference.views import SHIPPED_VIEWS
 
 
+KeptSlices = Annotated[Optional[Path], typer.Option(help="also keep every slice's columns here (.npz)")]
+KeptColumns = Annotated[Optional[list[Path]], typer.Option(
+    help="calibrate from the slice columns previous runs kept (--slices) instead of measuring again; "
+         "given several times, their slices pooled")]
+"""The options of a calibration measured on slice columns (the accept flags, the noise and frame errors)."""
+
+
 def calibrate(checkpoint: Path, root: Root = DEFAULT_ATLAS_ROOT, mc_samples: int = 100,
               tta_views: int = SHIPPED_VIEWS,
               model: Annotated[Optional[Path], typer.Option(
@@ -54,10 +61,8 @@ def calibrate_acceptance(
     write: Annotated[bool, typer.Option(help="write twin_risk_logit, expected_error_floor_mm, variance_threshold "
                                              "and max_expected_error_mm into the model's metadata")] = True,
     seed: int = 1,
-    slices: Annotated[Optional[Path], typer.Option(help="also keep every slice's columns here (.npz)")] = None,
-    columns: Annotated[Optional[list[Path]], typer.Option(
-        help="calibrate from the slice columns previous runs kept (--slices) instead of measuring again; "
-             "given several times, their slices pooled")] = None,
+    slices: KeptSlices = None,
+    columns: KeptColumns = None,
 ) -> None:
     """Calibrate the accept flags on the pipeline's final poses over simulated acquisitions of the
     model's validation volumes (its metadata's) at every motion level (mild, moderate, jumps, independent)."""
@@ -90,10 +95,8 @@ def calibrate_noise(
                                                         "the shipped model's is model_export/reports/noise.md)")] = None,
     write: Annotated[bool, typer.Option(help="write noise_error into the model's metadata")] = True,
     seed: int = 7,
-    slices: Annotated[Optional[Path], typer.Option(help="also keep every slice's columns here (.npz)")] = None,
-    columns: Annotated[Optional[list[Path]], typer.Option(
-        help="calibrate from the slice columns previous runs kept (--slices) instead of measuring again; "
-             "given several times, their slices pooled")] = None,
+    slices: KeptSlices = None,
+    columns: KeptColumns = None,
 ) -> None:
     """Calibrate how the expected errors grow with a stack's input noise (noise_error) on simulated
     acquisitions of the model's validation volumes (its metadata's) at a ladder of noise levels and
@@ -117,10 +120,8 @@ def calibrate_frame(
     write: Annotated[bool, typer.Option(help="write frame_error into the model's metadata")] = True,
     seed: int = 11,
     scene_seed: Annotated[int, typer.Option(help="the first whole-uterus request's seed")] = 2_400_000,
-    slices: Annotated[Optional[Path], typer.Option(help="also keep every slice's columns here (.npz)")] = None,
-    columns: Annotated[Optional[list[Path]], typer.Option(
-        help="calibrate from the slice columns previous runs kept (--slices) instead of measuring again; "
-             "given several times, their slices pooled")] = None,
+    slices: KeptSlices = None,
+    columns: KeptColumns = None,
 ) -> None:
     """Calibrate how a request's frame error grows with the network's error on its slices (frame_error)
     on simulated acquisitions and whole-uterus requests of the model's validation volumes."""
