@@ -147,7 +147,9 @@ def predict(
             write_transforms_zip(result, transforms_out)
         console = stdout()
         console.print(summarise(result))
-        for hint in predict_hints(result, None if image_consistency else "the image consistency stage"):
+        stage_off = ("the stack consistency stage" if not stack_consistency else
+                     None if image_consistency else "the image consistency stage")
+        for hint in predict_hints(result, stage_off):
             console.print(hint, style="yellow", markup=False)
         total = (result.get("timing_ms") or {}).get("total")
         console.print(f"request {result.get('request_id', '?')}"

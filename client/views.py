@@ -192,20 +192,43 @@ def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[
                      f"(the network's poses scatter {frame.get('request_network_error_mm') or 0:.0f} mm about the "
                      "stacks' motion: less sure than on the scans the accept flags were calibrated on), so fewer are "
                      "accepted; the slices may still agree with each other, and a reconstruction job of these "
-                     "stacks starts from those whose own errors pass (one given these poses keeps their flags); "
-                     "brain masks (`svrnet masks`, checked) often place a request surer")
+                     "stacks (`svrnet reconstruct`) starts from those whose own errors pass (one given these poses "
+                     "keeps their flags); " + (
+                         "brain masks drawn by hand often place a request surer (the service's own, from `svrnet "
+                         "masks`, place it as it is placed now unless corrected)"
+                         if any((st.get("localisation") or {}).get("method") == "network" for st in stacks) else
+                         "masks drawn to the brain alone (sent without --masks-hold-csf), or to its skull's inside "
+                         "(sent with it), place a request surer than masks that take in tissue beside the brain"))
         return hints
     if slices and not one_pass and not any(s.get("accepted") for s in slices):
         limit = result.get("max_expected_error_mm")
         why = (f" (every one expects an error over {limit:.3g} mm)"
                if limit is not None and all(s.get("reason") == "high_expected_error" for s in slices) else "")
+        disagree = [st.get("filename", "?") for st in stacks if (st.get("consistency") or {}).get("decidable") is False
+                    or (st.get("image_consistency") or {}).get("agreed") is False
+                    or any(s.get("reason") == "inconsistent_with_stack" for s in st.get("slices") or [])]
         hints.append(f"no slice accepted{why}: " + (
             "a stack sent alone has no other stack to agree with; send all the stacks of a scan in one request "
             "(if nothing is accepted then either, the images are the cause: see the reasons above)"
             if len(stacks) == 1 else
-            "the stacks do not agree on where their slices lie (motion beyond the model's reach, signal voids, "
-            "a contrast unlike T2), so no pose is worth using; see the reasons above"))
+            f"the slices do not agree on where they lie ({', '.join(disagree)}: motion beyond the model's reach, "
+            "signal voids, a contrast unlike T2), so no pose is worth using; see the reasons above"
+            if disagree else
+            f"the network is unsure where these slices lie{median_of(slices)}; brain masks drawn by hand often help where the service's own "
+            "(or the ones sent) take in tissue beside the brain; a reconstruction job (`svrnet reconstruct`) "
+            "starts from every slice where its request has few accepted"))
     return hints
+
+
+def median_of(slices: list[dict[str, Any]]) -> str:
+    """`` (their median expected error X mm)`` of ``slices`` that have one; empty where none has.
+
+    Example:
+        >>> median_of([{"expected_error_mm": 6.0}, {"expected_error_mm": 9.0}, {"expected_error_mm": None}])
+        ' (their median expected error 7.5 mm)'
+    """
+    expected = [float(s["expected_error_mm"]) for s in slices if s.get("expected_error_mm") is not None]
+    return f" (their median expected error {statistics.median(expected):.1f} mm)" if expected else ""
 
 
 NO_WORKER = "no worker is running (svrnet-worker)"

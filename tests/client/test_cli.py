@@ -447,16 +447,23 @@ def _alone(reason: str, confidence: float = 0.9, method: str = "network") -> dic
 
 
 def test_predict_without_the_image_stage_blames_the_stage_not_the_images(fake_cli: Callable, stack_file: Path) -> None:
-    """Two stacks, none of their slices accepted: with ``--no-image-consistency`` the CLI says the
-    stage was off and to send the request with every stage on; with every stage on it says the
-    stacks do not agree."""
-    two = {**_alone("high_expected_error"), "stacks": _alone("high_expected_error")["stacks"] * 2}
-    fake_cli(predict_body=two)
-    off = " ".join(invoke(["predict", str(stack_file), str(stack_file), "--no-image-consistency"]).stdout.split())
-    assert "with the image consistency stage off" in off and "every stage on" in off and "do not agree" not in off
+    """Two stacks, none of their slices accepted: with ``--no-image-consistency`` (or
+    ``--no-stack-consistency``) the CLI says that stage was off and to send the request with every
+    stage on; with every stage on it says the slices do not agree where the image stage left them
+    disagreeing, and that the network is unsure of them where nothing says they disagree."""
+    two = {**_alone("high_expected_error"), "stacks": [{**st, "image_consistency": {"agreed": False}}
+                                                        for st in _alone("high_expected_error")["stacks"] * 2]}
+    for option, stage in (("--no-image-consistency", "image"), ("--no-stack-consistency", "stack")):
+        fake_cli(predict_body=two)
+        off = " ".join(invoke(["predict", str(stack_file), str(stack_file), option]).stdout.split())
+        assert f"with the {stage} consistency stage off" in off and "every stage on" in off and "do not agree" not in off
     fake_cli(predict_body=two)
     on = " ".join(invoke(["predict", str(stack_file), str(stack_file)]).stdout.split())
     assert "stage off" not in on and "do not agree" in on
+    plain = {**two, "stacks": [{k: v for k, v in st.items() if k != "image_consistency"} for st in two["stacks"]]}
+    fake_cli(predict_body=plain)
+    unsure = " ".join(invoke(["predict", str(stack_file), str(stack_file)]).stdout.split())
+    assert "do not agree" not in unsure and "unsure where these slices lie" in unsure and "6.0 mm" in unsure
 
 
 def test_a_request_whose_frame_error_holds_its_slices_back_is_told_so_not_that_its_stacks_disagree() -> None:
@@ -469,6 +476,10 @@ def test_a_request_whose_frame_error_holds_its_slices_back_is_told_so_not_that_i
     hints = views.predict_hints(framed)
     assert len(hints) == 1 and "4.20 mm for the request's placement" in hints[0] and "24 mm" in hints[0]
     assert "starts from those whose own errors pass" in hints[0] and "do not agree" not in hints[0]
+    assert "drawn by hand" in hints[0] and "unless corrected" in hints[0]      # the service's own masks: no remedy
+    masked = {**framed, "stacks": [{**st, "localisation": {"method": "mask"}} for st in framed["stacks"]]}
+    assert "tissue beside the brain" in views.predict_hints(masked)[0]
+    two = {**two, "stacks": [{**st, "consistency": {"decidable": False}} for st in two["stacks"]]}
     assert "do not agree" in views.predict_hints(two)[0]
     slight = {**two, "stacks": [{**st, "frame": {"request_network_error_mm": 12.0, "expected_error_added_mm": 0.65}}
                                 for st in two["stacks"]]}
