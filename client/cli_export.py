@@ -10,7 +10,7 @@ from typing import Annotated, Optional
 import typer
 
 from client.cli_support import MaskOpt, check_masks, once_or_per_stack, user_path
-from client.exits import EXIT_BAD_INPUT, errors, fail, stderr, stdout
+from client.exits import EXIT_BAD_INPUT, EXIT_NOTHING_USABLE, errors, fail, stderr, stdout
 
 NEXT_STEP = {
     "nesvor": "nesvor reconstruct --input-slices {out} --output-volume recon.nii.gz",
@@ -58,6 +58,11 @@ def export(
         done = write(body, stacks, mask, out_dir, to, all_slices, thickness, overwrite)
     console = stdout()
     console.print(f"wrote {done.count} slices for {to} into {out_dir}", soft_wrap=True)
+    if not done.count:
+        stderr().print("no slice the answer trusts (none accepted, or none the job placed within its limit): "
+                       "--all-slices writes every slice with brain, their expected errors in slices.tsv; or "
+                       "start the tool from its own registration", style="yellow", markup=False)
+        raise typer.Exit(EXIT_NOTHING_USABLE)
     if to == "nesvor" and not mask:
         stderr().print("no --mask: NeSVoR takes every pixel of each slice (the whole uterus of a stack as it leaves "
                        "the scanner); `svrnet masks` makes the masks", style="yellow", markup=False)

@@ -27,7 +27,8 @@ EXIT_BUSY, EXIT_JOB_FAILED, EXIT_SERVER, EXIT_CONFLICT, EXIT_TIMEOUT = 7, 8, 9, 
 EXIT_NOTHING_USABLE = 12
 EXIT_INTERRUPTED = 130
 """The request succeeded and its outputs are written, but nothing in them is worth using: no slice
-accepted (``predict``, ``stream``), a volume whose stacks do not predict each other (``reconstruct``)."""
+accepted (``predict``, ``stream``; none to write, ``export``), a volume whose stacks do not predict
+each other (``reconstruct``)."""
 
 EXIT_CODES: list[tuple[type[SVRnetError] | tuple[type[SVRnetError], ...], int]] = [
     (ConnectionFailed, EXIT_CONNECTION),

@@ -179,6 +179,19 @@ def _trusted(item: dict[str, Any], limit_mm: float | None = None) -> bool:
     return bool(item["included"]) or (placed and limit_mm is not None and error is not None and float(error) <= limit_mm)
 
 
+def _read_stack(path: Path, stack: dict[str, Any], mask: Path | None, read_by_qform: bool,
+                ) -> tuple[nib.Nifti1Image, NDArray, NDArray[np.float32], NDArray[np.bool_] | None]:
+    """A stack file and its mask file read whole and checked (:func:`_stack_file`, :func:`_mask`):
+    the image, its ``scanner_from_voxel``, its voxels and its mask (None: none given). Every file is
+    read before anything is written, so that a file that does not read leaves no half-written folder."""
+    image, sfv = _stack_file(path, stack, read_by_qform)
+    try:
+        voxels = np.asarray(image.dataobj, np.float32).reshape(image.shape[:3])
+    except (OSError, ValueError, EOFError, TypeError) as e:
+        raise UnusableInput(f"export: {path.name}: its voxels do not read ({e})") from None
+    return image, sfv, voxels, None if mask is None else _mask(mask, image)
+
+
 def _stack_file(path: Path, stack: dict[str, Any], read_by_qform: bool) -> tuple[nib.Nifti1Image, NDArray]:
     """The stack file read with nibabel, checked to be the grid the answer's poses are of; for a tool
     that places it by its qform (``read_by_qform``: ITK's readers), checked that its qform is where
@@ -233,29 +246,28 @@ def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None,
     if len(set(stems)) < len(stems):
         raise UnusableInput("export: NiftyMIC names each stack's transforms by its file name, and two stacks are "
                             f"named {max(set(stems), key=stems.count)!r}: rename one")
-    answered = matched_stacks(answer, stacks)           # the answer checked before the folder is touched
+    answered = matched_stacks(answer, stacks)           # the answer and every file checked before the folder is touched
+    read = [_read_stack(path, stack, None if not masks else masks[s], read_by_qform=to == "niftymic")
+            for s, (path, stack) in enumerate(zip(stacks, answered))]
     limit = answer.get("max_expected_error_mm")
     before = clear_for_export(folder, overwrite, [*stacks, *(masks or [])])
-    for s, (path, stack) in enumerate(zip(stacks, answered)):
-        image, sfv = _stack_file(path, stack, read_by_qform=to == "niftymic")
+    for s, (path, stack, (image, sfv, voxels, brain)) in enumerate(zip(stacks, answered, read)):
         chosen = _chosen(stack, all_slices, limit)
         axis = int(stack["slice_axis"]) if stack.get("slice_axis") is not None else \
             slice_axis_of(np.linalg.norm(sfv[:3, :3], axis=0))          # the service's rule, not a guess
         if to == "niftymic":
             _niftymic_stack(path, chosen, _chosen(stack, True), sfv, folder)
             if axis != 2:                   # NiftyMIC cuts along the third axis: the stack written so
-                done.stacks[s] = _rewritten(np.asarray(image.dataobj, np.float32).reshape(image.shape[:3]), sfv, axis,
-                                            folder / "stacks" / path.name)
+                done.stacks[s] = _rewritten(voxels, sfv, axis, folder / "stacks" / path.name)
             if masks and done.masks is not None:
-                brain = _mask(masks[s], image)
                 if axis != 2 or not _binary_as_stored(masks[s], image):     # NiftyMIC takes it voxel by voxel
                     done.masks[s] = _rewritten(brain.astype(np.uint8), sfv, axis,
                                                folder / "masks" / f"{niftymic_name(path)}_mask.nii.gz")
             done.count += len(chosen)
             continue
         order = axis_order(axis)
-        data = np.transpose(np.asarray(image.dataobj, np.float32).reshape(image.shape[:3]), order)
-        mask = None if not masks else np.transpose(_mask(masks[s], image), order)
+        data = np.transpose(voxels, order)
+        mask = None if brain is None else np.transpose(brain, order)
         spacing = float(np.linalg.norm(sfv[:3, axis]))
         thick = spacing if not thickness_mm else float(thickness_mm[0] if len(thickness_mm) == 1 else thickness_mm[s])
         for item in chosen:
@@ -309,7 +321,7 @@ def _mask(path: Path, stack: nib.Nifti1Image) -> NDArray[np.bool_]:
     try:
         image = nib.load(str(path))
         values = np.asarray(image.dataobj)
-    except (nib.filebasedimages.ImageFileError, OSError, ValueError) as e:
+    except (nib.filebasedimages.ImageFileError, OSError, ValueError, EOFError) as e:
         raise UnusableInput(f"export: {path.name} is not a NIfTI mask ({e})") from None
     shape = tuple(stack.shape[:3])
     if values.ndim > 3 and values.size == int(np.prod(values.shape[:3])):

@@ -496,3 +496,34 @@ def test_the_cli_gives_niftymic_the_thickness(case: dict, tmp_path: Path) -> Non
                                      str(tmp_path / "mc"), "--thickness", "2.5"], env={"COLUMNS": "400"})
     assert r.exit_code == 0, r.output
     assert f"--filenames {case['stack']} --slice-thicknesses 2.5 --dir-input-mc" in r.stdout
+
+
+def test_a_file_that_does_not_read_leaves_the_folder_untouched_and_an_answer_without_trusted_slices_says_so(
+        case: dict, tmp_path: Path) -> None:
+    """Every stack and mask file is read before anything is written: a truncated mask (or stack)
+    refuses the export with the folder as it was, so that the export run again with the right files
+    writes into it; an answer with no slice to write exits 12 and points at ``--all-slices``."""
+    answer = tmp_path / "poses.json"
+    answer.write_text(json.dumps(case["answer"]))
+    out = tmp_path / "slices"
+    truncated = tmp_path / "cut" / case["mask"].name
+    truncated.parent.mkdir()
+    truncated.write_bytes(case["mask"].read_bytes()[:60])
+    run = lambda *more: CliRunner().invoke(cli.app, ["export", str(answer), str(case["stack"]), "--to", "nesvor",  # noqa: E731
+                                                     "--out-dir", str(out), *more], env={"COLUMNS": "200"})
+    for bad in (truncated, tmp_path / "cut" / "ax.nii.gz"):
+        if bad.name == "ax.nii.gz":
+            bad.write_bytes(case["stack"].read_bytes()[:400])
+            r = CliRunner().invoke(cli.app, ["export", str(answer), str(bad), "--to", "nesvor", "--out-dir", str(out)],
+                                   env={"COLUMNS": "200"})
+        else:
+            r = run("--mask", str(bad))
+        assert r.exit_code == 5 and bad.name in r.output, r.output
+        assert not out.exists() or not list(out.iterdir())
+    assert run("--mask", str(case["mask"])).exit_code == 0 and len(list(out.glob("mask_*.nii.gz"))) == 4
+    refused = {**case["answer"], "stacks": [{**st, "slices": [{**sl, "accepted": False} for sl in st["slices"]]}
+                                            for st in case["answer"]["stacks"]]}
+    answer.write_text(json.dumps(refused))
+    r = run("--overwrite")
+    assert r.exit_code == 12 and "wrote 0 slices" in r.stdout and "--all-slices" in r.stderr and "next:" not in r.stdout
+    assert run("--overwrite", "--all-slices").exit_code == 0
