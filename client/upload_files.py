@@ -21,11 +21,14 @@ from pathlib import Path
 from client.errors import ArgumentError
 from client.transport import PathLike
 
-__all__ = ["MAX_FOLDER_BYTES", "file_parts", "zipped_folder"]
+__all__ = ["MAX_FOLDER_BYTES", "VOLUME_SUFFIXES", "file_parts", "zipped_folder"]
 
 MAX_FOLDER_BYTES = 512 << 20
 """The most a folder of one DICOM series may hold to be sent (zipped in memory; the server's default
 upload limit)."""
+VOLUME_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd", ".hdr", ".img", ".zip")
+"""Files that are whole stacks (or an archive of one series) in themselves: a folder holding them is
+no DICOM series, and is refused with the files to give instead."""
 
 
 def zipped_folder(folder: Path) -> bytes:
@@ -34,7 +37,8 @@ def zipped_folder(folder: Path) -> bytes:
     paths in it.
 
     Raises:
-        ArgumentError: naming the folder, when it holds no file or more than :data:`MAX_FOLDER_BYTES`.
+        ArgumentError: naming the folder, when it holds no file, more than :data:`MAX_FOLDER_BYTES`, or
+            files that are stacks in themselves (:data:`VOLUME_SUFFIXES`: a folder of NIfTI stacks).
 
     Example:
         >>> import tempfile
@@ -47,6 +51,11 @@ def zipped_folder(folder: Path) -> bytes:
                    and not any(part.startswith(".") for part in p.relative_to(folder).parts))
     if not files:
         raise ArgumentError(f"stacks: the folder {folder} holds no file")
+    volumes = [p for p in files if p.name.lower().endswith(VOLUME_SUFFIXES)]
+    if volumes:
+        shown = ", ".join(p.name for p in volumes[:4]) + (", ..." if len(volumes) > 4 else "")
+        raise ArgumentError(f"stacks: the folder {folder} holds image files ({shown}); a folder is sent as one "
+                            f"DICOM series: give its stacks as files instead ({folder / '*.nii.gz'})")
     if sum(p.stat().st_size for p in files) > MAX_FOLDER_BYTES:
         raise ArgumentError(f"stacks: the folder {folder} holds more than {MAX_FOLDER_BYTES >> 20} MB; send one series")
     buffer = io.BytesIO()

@@ -639,6 +639,13 @@ def test_a_dicom_folder_goes_as_the_zip_the_server_takes(fake_cli: Callable, tmp
     (tmp_path / "empty").mkdir()
     r = invoke(["predict", str(tmp_path / "empty")])
     assert r.exit_code == 2 and "error: stacks: the folder" in r.stderr and "holds no file" in r.stderr
+    scan = tmp_path / "scan"                                 # a folder of NIfTI stacks is no DICOM series
+    scan.mkdir()
+    for name in ("axial.nii.gz", "axial_mask.nii.gz", "LICENSE.txt"):
+        (scan / name).write_bytes(b"x")
+    r = invoke(["predict", str(scan)])
+    out = " ".join(r.stderr.split())
+    assert r.exit_code == 2 and "holds image files (axial.nii.gz, axial_mask.nii.gz)" in out and "*.nii.gz" in out
 
 
 def test_reconstruct_options_out_of_the_servers_range_are_usage_errors_naming_the_option(fake_cli: Callable,
