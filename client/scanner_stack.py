@@ -14,6 +14,7 @@ Example:
 
 from __future__ import annotations
 
+import gzip
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -102,15 +103,15 @@ def scanner_slices(image: NDArray, affine: NDArray, mask: NDArray | None = None)
 
 
 def _nifti(path: Path) -> nib.Nifti1Image:
-    """The NIfTI image of ``path``, read by its content where its name says gzip and it is not (as the
-    server reads it): a plain NIfTI-1 or -2 file named ``.nii.gz``."""
-    if path.name.endswith(".gz"):
-        with open(path, "rb") as f:
-            plain = f.read(2) != b"\x1f\x8b"
-        if plain:
-            raw = path.read_bytes()
-            nifti2 = 540 in (int.from_bytes(raw[:4], "little"), int.from_bytes(raw[:4], "big"))
-            return (nib.Nifti2Image if nifti2 else nib.Nifti1Image).from_bytes(raw)
+    """The NIfTI image of ``path``, read by its content where its name says gzip and it is not, or the
+    reverse (as the server reads it): a plain NIfTI-1 or -2 file named ``.nii.gz``, a gzipped one
+    named ``.nii``."""
+    with open(path, "rb") as f:
+        gzipped = f.read(2) == b"\x1f\x8b"
+    if gzipped != path.name.endswith(".gz"):             # the name says the other: read by the content
+        raw = gzip.decompress(path.read_bytes()) if gzipped else path.read_bytes()
+        nifti2 = 540 in (int.from_bytes(raw[:4], "little"), int.from_bytes(raw[:4], "big"))
+        return (nib.Nifti2Image if nifti2 else nib.Nifti1Image).from_bytes(raw)
     return nib.load(str(path))
 
 
@@ -123,6 +124,10 @@ def _volume(path: Path, what: str) -> tuple[NDArray, NDArray[np.float64]]:
         raise UnsupportedFile(f"{what}: {path.name} is not a NIfTI file nibabel can read ({e})") from None
     except (EOFError, OSError, ValueError, zlib.error) as e:          # a truncated or corrupt file
         raise UnsupportedFile(f"{what}: {path.name} is truncated or corrupt ({type(e).__name__}: {e})") from None
+    stored = img.get_data_dtype()
+    if stored.names is not None or stored.kind not in "iuf":           # RGB, complex: as the server refuses them
+        raise UnusableInput(f"{what}: {path.name}: unsupported pixel type {stored} (one real number per voxel "
+                            "is required)")
     data = data.reshape(data.shape[:3]) if data.ndim > 3 and np.prod(data.shape[3:]) == 1 else data
     if data.ndim != 3:
         raise UnusableInput(f"{what}: {path.name} has shape {data.shape}; a stack is 3D")
@@ -172,9 +177,11 @@ def read_stack(path: str | Path, mask_path: str | Path | None = None, name: str 
         image = image.astype(np.float32)
     mask = None
     if mask_path is not None:
-        mask, mask_affine = in_stack_order(*_volume(Path(mask_path), "mask"), affine)
+        stored, stored_affine = _volume(Path(mask_path), "mask")
+        mask, mask_affine = in_stack_order(stored, stored_affine, affine)
         if mask.shape != image.shape or not np.allclose(mask_affine, affine, atol=1e-3):
-            raise UnusableInput(f"mask: the grid of {Path(mask_path).name} ({mask.shape}) differs from that of its "
-                                f"stack {path.name} ({image.shape})")
+            why = (f"shape {list(stored.shape)} against {list(image.shape)}" if mask.shape != image.shape else
+                   "the same shape at another origin, spacing or orientation")
+            raise UnusableInput(f"mask: {Path(mask_path).name} is not on the grid of its stack {path.name} ({why})")
     axis, slices = scanner_slices(image, affine, mask)
     return ScannerStack(name or path.name.removesuffix(".gz").removesuffix(".nii"), axis, slices)

@@ -60,8 +60,18 @@ def test_a_file_is_read_with_its_type_and_its_mask_must_share_its_grid(tmp_path:
     assert (stack.name, stack.slice_axis, len(stack.slices)) == ("cor", 1, 4)
     assert stack.slices[2].pixels.dtype == np.int16 and np.array_equal(stack.slices[2].pixels, image[:, 2, :])
     assert np.array_equal(stack.slices[2].mask, image[:, 2, :] % 2 == 1)
-    with pytest.raises(UnusableInput, match="differs"):
+    with pytest.raises(UnusableInput, match=r"other.nii.gz is not on the grid of its stack cor.nii.gz \(shape \[5, 4, 2\] "
+                                            r"against \[5, 4, 3\]\)"):
         read_stack(tmp_path / "cor.nii.gz", tmp_path / "other.nii.gz")
+    nib.save(nib.Nifti1Image((image % 2).astype(np.uint8), affine @ np.diag([1.0, 1.0, 1.1, 1.0])), tmp_path / "s.nii.gz")
+    with pytest.raises(UnusableInput, match="same shape at another origin, spacing or orientation"):
+        read_stack(tmp_path / "cor.nii.gz", tmp_path / "s.nii.gz")
+    rgb = np.zeros((5, 4, 3), dtype=[("R", "u1"), ("G", "u1"), ("B", "u1")])
+    nib.save(nib.Nifti1Image(rgb, affine), tmp_path / "rgb.nii.gz")
+    nib.save(nib.Nifti1Image(image.astype(np.complex64), affine), tmp_path / "complex.nii.gz")
+    for name in ("rgb.nii.gz", "complex.nii.gz"):            # refused as the server refuses them, not cast
+        with pytest.raises(UnusableInput, match=f"stack: {name}: unsupported pixel type"):
+            read_stack(tmp_path / name)
     noise = np.random.default_rng(0).integers(0, 1000, (5, 4, 3, 200)).astype(np.int16).reshape(5, 4, 600)
     nib.save(nib.Nifti1Image(noise, affine), tmp_path / "big.nii.gz")
     data = (tmp_path / "big.nii.gz").read_bytes()
@@ -78,6 +88,9 @@ def test_a_file_is_read_with_its_type_and_its_mask_must_share_its_grid(tmp_path:
         assert np.array_equal(misnamed.slices[2].pixels, image[:, 2, :])
         for a, b in zip(misnamed.slices, named.slices):           # placed where the file says, as read by its name
             np.testing.assert_array_equal(a.scanner_from_voxel, b.scanner_from_voxel)
+    gzipped = tmp_path / "gz.nii"                            # and a gzipped one named .nii
+    gzipped.write_bytes((tmp_path / "cor.nii.gz").read_bytes())
+    assert np.array_equal(read_stack(gzipped).slices[2].pixels, image[:, 2, :])
 
 
 @pytest.mark.parametrize("axis", [0, 1, 2])
