@@ -37,7 +37,9 @@ def poses_from_predict_body(body: dict, n_slices: list[int],
     stacks = body.get("stacks") if isinstance(body, dict) else None
     refined = isinstance(body, dict) and isinstance(body.get("refined_by"), dict)
     if not isinstance(stacks, list) or len(stacks) != len(n_slices):
-        raise ValueError(f"poses: expected results for {len(n_slices)} stacks")
+        held = f"{len(stacks)}" if isinstance(stacks, list) else "no list of"
+        raise ValueError(f"poses: the answer holds {held} stacks' results, and {len(n_slices)} stacks were uploaded; "
+                         "send the answer of these stacks, in the order they are sent")
     out = []
     for i, (st, n) in enumerate(zip(stacks, n_slices)):
         slices = st.get("slices") if isinstance(st, dict) else None

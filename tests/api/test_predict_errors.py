@@ -87,6 +87,11 @@ def test_mask_problems(oracle_client: TestClient, tmp_path: Path) -> None:
     assert_problem(post(oracle_client, [("stacks", ("s.nii.gz", s)), ("masks", ("m3.nii.gz", denser))]), 422, "m3.nii.gz", "grid")
     two_masks = [("stacks", ("s.nii.gz", s)), ("masks", ("a.nii.gz", s)), ("masks", ("b.nii.gz", s))]
     assert_problem(post(oracle_client, two_masks), 400, "masks", "2 masks for 1 stacks")
+    # a mask that does not read, named as its stack is (two folders' files): the problem says it is the mask
+    r = post(oracle_client, [("stacks", ("s.nii.gz", s)), ("masks", ("s.nii.gz", s[: len(s) // 2]))])
+    assert r.status_code in (415, 422) and r.json()["detail"].startswith("masks: s.nii.gz"), r.json()
+    r = post(oracle_client, [("stacks", ("s.nii.gz", s[: len(s) // 2])), ("masks", ("s.nii.gz", s))])
+    assert r.status_code in (415, 422) and r.json()["detail"].startswith("s.nii.gz"), r.json()
 
 
 def test_a_mask_of_more_than_a_fetal_head_is_422_naming_it(real_client: TestClient, tmp_path: Path) -> None:
