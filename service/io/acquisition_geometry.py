@@ -28,7 +28,7 @@ Example:
     >>> series_problem(tags) is None
     True
     >>> series_problem(tags[:2] + tags[3:])
-    'its slices are not evenly spaced (3, 6, 3 mm between neighbours): one is missing, or it holds more than one stack'
+    'its slices are not evenly spaced (6 mm between slices 2 and 3, where the others lie 3 mm apart, counted along the stack): one is missing, or it holds more than one stack'
 """
 
 from __future__ import annotations
@@ -129,9 +129,11 @@ def series_problem(files: Sequence[Tags], what: str = "files") -> str | None:
     if len(steps) and steps.min() < MIN_STEP_MM:
         return f"two of its {what} lie at one position: it holds more than one stack, or one twice"
     if len(steps) and np.abs(steps - np.median(steps)).max() > SPACING_TOLERANCE * np.median(steps):
-        shown = ", ".join(f"{s:.3g}" for s in steps[:8]) + (", ..." if len(steps) > 8 else "")
-        return f"its slices are not evenly spaced ({shown} mm between neighbours): one is missing, or it " \
-               "holds more than one stack"
+        odd = np.flatnonzero(np.abs(steps - np.median(steps)) > SPACING_TOLERANCE * np.median(steps))
+        shown = ", ".join(f"{steps[k]:.3g} mm between slices {k + 1} and {k + 2}" for k in odd[:4]) \
+            + (f" and {len(odd) - 4} more" if len(odd) > 4 else "")
+        return f"its slices are not evenly spaced ({shown}, where the others lie {np.median(steps):.3g} mm apart, " \
+               "counted along the stack): one is missing, or it holds more than one stack"
     return None
 
 

@@ -305,7 +305,7 @@ def _damaged(kind: str) -> dict:
 
 @pytest.mark.parametrize(("kind", "words"), [
     ("a frame missing", "ImagePositionPatient is missing in 1 of its 8 frames"),
-    ("uneven", "its slices are not evenly spaced (3.3, 3.3, 3.3, 6.6"),
+    ("uneven", "its slices are not evenly spaced (6.6 mm between slices 4 and 5, where the others lie 3.3 mm apart"),
     ("repeated", "two of its frames lie at one position"),
     ("two orientations", "its frames' ImageOrientationPatient differ"),
     ("sheared", "its frames are shifted within their plane"),

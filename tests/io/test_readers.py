@@ -102,7 +102,7 @@ def test_zipped_dicom_series_keeps_geometry(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(("damage", "words"), [
-    ("a file missing", "not evenly spaced (3, 6, 3, 3 mm"),
+    ("a file missing", "not evenly spaced (6 mm between slices 2 and 3, where the others lie 3 mm apart"),
     ("a file twice", "two of its files lie at one position"),
     ("no position", "ImagePositionPatient is missing in 1 of its 6 files"),
     ("one turned", "ImageOrientationPatient differ"),
