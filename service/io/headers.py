@@ -292,8 +292,8 @@ def _inflated_mha(header: bytes, data: bytes, src: BinaryIO, dst: BinaryIO, file
     if expected <= 0:
         raise UnsupportedFile(f"{filename}: a compressed MHA file that declares {expected} bytes of voxel data")
     if expected > max_bytes:                 # refused as every decoder refuses its bomb: before it inflates
-        raise PayloadTooLarge(f"{filename}: its voxel data decode to more than {max_bytes / 2**20:.3g} MB "
-                              f"(a compressed MHA file that declares {expected} bytes)")
+        raise PayloadTooLarge(f"{filename}: its header declares {expected:,} bytes of voxel data (a compressed MHA "
+                              f"file), more than the {max_bytes / 2**20:.3g} MB one file may decode to")
     kept = [line for line in header.split(b"\n") if not line.startswith((b"CompressedData", b"ElementDataFile"))]
     dst.write(b"\n".join(kept[:-1] + [b"CompressedData = False", b"ElementDataFile = LOCAL"]) + b"\n")
     inflater, written = zlib.decompressobj(zlib.MAX_WBITS | 32), 0      # zlib or gzip, as ITK reads them

@@ -117,9 +117,16 @@ class FileBudget:
         n = int(n_values) * 4
         owner = self.parent or self
         owner.voxel_bytes += n
-        if owner.voxel_bytes > self.limit:
-            raise owner.too_large("its voxel data decode" if owner is self else "its images' voxel data decode")
+        if owner.voxel_bytes > self.limit:            # a header's word, checked before anything is allocated
+            raise owner.declared_too_large(owner.voxel_bytes // 4, "its header declares" if owner is self else
+                                           "its images declare")
         self.request._charge(self.filename, n)
+
+    def declared_too_large(self, n_values: int, who: str = "its header declares") -> PayloadTooLarge:
+        """The refusal of ``n_values`` voxel values a header declares (as float32) beyond the file's
+        limit: what the header says, before anything is decoded or allocated."""
+        return PayloadTooLarge(f"{self.filename}: {who} {int(n_values):,} voxels ({mb(int(n_values) * 4)} as float32), "
+                               f"more than the {mb(self.limit)} one file may decode to")
 
 
 __all__ = ["DecodeBudget", "FileBudget", "mb"]

@@ -198,8 +198,8 @@ def _gunzip(path: Path, out: Path, budget: FileBudget) -> Path:
     try:
         with igzip.open(path, "rb") as src, open(out, "wb") as dst:
             head = src.read(352)
-            if _nifti_values(head) * 4 > budget.limit:
-                raise budget.too_large("its voxel data decode")
+            if (declared := _nifti_values(head)) * 4 > budget.limit:
+                raise budget.declared_too_large(declared)
             budget.inflate(len(head))
             dst.write(head)
             while chunk := src.read(1 << 22):   # to the end: a truncated stream or a bad CRC raises here
@@ -272,8 +272,9 @@ def _nifti1_problem(path: Path) -> str | None:
         return f"inconsistent NIfTI header (bitpix {bitpix} for datatype {datatype}, which has {8 * item})"
     if not (np.isfinite(offset) and offset >= 352):
         return "impossible NIfTI header (its voxel data would start inside the header: vox_offset < 352)"
-    if path.stat().st_size < int(offset) + values * item:
-        return "truncated NIfTI file (less voxel data than its header declares)"
+    if (held := path.stat().st_size - int(offset)) < values * item:
+        return (f"truncated NIfTI file (its header declares {values:,} voxels, {values * item:,} bytes of voxel data; "
+                f"the file holds {max(held, 0):,})")
     return None
 
 
