@@ -31,7 +31,7 @@ from starlette.datastructures import State
 from starlette.websockets import WebSocketDisconnect, WebSocketDisconnected
 
 from service.api.access import UNAUTHORIZED, api_key_ok, origin_ok
-from service.api.stream_messages import DTYPES, parse, slice_header, text_field
+from service.api.stream_messages import DTYPES, known_fields, parse, slice_header, text_field
 from service.api.responses import error_message, pose_object, stack_message, summary_message, update_messages
 from service.core.errors import (
     InternalError,
@@ -176,8 +176,9 @@ class StreamConnection:
         if kind == "slice":
             return await self.slice(msg)
         if kind == "end_stack":
-            return await self.end_stack(text_field(msg, "stack", "end_stack"))
+            return await self.end_stack(text_field(known_fields(msg, kind), "stack", "end_stack"))
         if kind == "end":
+            known_fields(msg, kind)
             await self.settle()
             summary = await self.in_background("end_stack", self.session.summary)
             await self.send(summary_message(summary, self.started, self.latencies))

@@ -58,9 +58,36 @@ class SliceHeader:
     with_mask: bool
 
 
+FIELDS = {"slice": ("type", "stack", "index", "acquisition_index", "shape", "dtype", "scanner_from_voxel", "mask"),
+          "end_stack": ("type", "stack"), "end": ("type",)}
+"""The fields of each client message but ``start`` (whose options :mod:`service.streaming.options`
+checks) and ``auth``: stream-v1.md's."""
+
+
+def known_fields(msg: dict, kind: str) -> dict:
+    """``msg`` where it holds no field beyond :data:`FIELDS` ``[kind]``; else :class:`InvalidParameter`
+    naming them, as ``start`` refuses an unknown option and ``/v1/predict`` an unknown form field:
+    a misspelt ``mask`` must not send a slice without its mask.
+
+    Example:
+        >>> known_fields({"type": "end_stack", "stack": "ax"}, "end_stack")["stack"]
+        'ax'
+        >>> try:
+        ...     known_fields({"type": "slice", "maks": True}, "slice")
+        ... except InvalidParameter as e:
+        ...     print(e)
+        slice: unknown fields ['maks'] (type, stack, index, acquisition_index, shape, dtype, scanner_from_voxel, mask)
+    """
+    unknown = sorted(k for k in msg if k not in FIELDS[kind])
+    if unknown:
+        raise InvalidParameter(f"{kind}: unknown fields {unknown[:8]} ({', '.join(FIELDS[kind])})")
+    return msg
+
+
 def slice_header(msg: dict, max_pixels: int) -> SliceHeader:
     """The fields of the ``slice`` message ``msg``, each checked (:class:`InvalidParameter` naming it);
     a slice of more than ``max_pixels`` pixels is refused before its frames are read."""
+    known_fields(msg, "slice")
     stack = text_field(msg, "stack", "slice")
     index = integer_field(msg, "index", "slice")
     acquisition = integer_field(msg, "acquisition_index", "slice") if msg.get("acquisition_index") is not None else None

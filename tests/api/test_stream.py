@@ -193,6 +193,10 @@ def test_bad_messages_get_an_error_naming_them_and_the_session_goes_on(client, c
             (json.dumps({"type": "slice", "stack": "ax", "index": 1, "shape": [4, 4], "dtype": "uint8",
                          "scanner_from_voxel": [[True, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}), None,
              "slice.scanner_from_voxel"),
+            (json.dumps({"type": "slice", "stack": "ax", "index": 1, "shape": [4, 4], "dtype": "uint8", "maks": True,
+                         "scanner_from_voxel": np.eye(4).tolist()}), b"\x00" * 16, "slice: unknown fields ['maks']"),
+            (json.dumps({"type": "end_stack", "stack": "ax", "foo": 1}), None, "end_stack: unknown fields ['foo']"),
+            (json.dumps({"type": "end", "now": True}), None, "end: unknown fields ['now']"),    # the session stays
             (json.dumps({"type": "end_stack", "stack": "nothing"}), None, "no slice"),
             (json.dumps({"type": "end_stack", "stack": "ax\u202e\r\nevil"}), None,      # echoed in every answer
              "end_stack.stack: control, format or line-separator characters are not allowed"),
