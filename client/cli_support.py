@@ -83,13 +83,18 @@ def check_writable(overwrite: bool = False, **paths: Path | None) -> None:
 
 
 def check_folder_writable(option: str, folder: Path) -> None:
-    """An output folder (by option name) must be, or be creatable as, a writable folder BEFORE anything
+    """An output folder (by option name) must be, or be made now as, a writable folder BEFORE anything
     is uploaded: no file in its place, and its nearest existing folder writable."""
     folder = folder.expanduser().resolve()
     existing = next(p for p in (folder, *folder.parents) if p.exists())
     if not existing.is_dir() or not os.access(existing, os.W_OK):
         raise typer.BadParameter(f"{folder}: {existing} is not a writable folder",
                                  param_hint=f"--{option.replace('_', '-')}")
+    try:                       # made now: permissions are not the whole story (root in /proc, a read-only mount)
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise typer.BadParameter(f"{folder} cannot be made ({e.strerror or e})",
+                                 param_hint=f"--{option.replace('_', '-')}") from None
 
 
 def job_id_of(job: str) -> str:

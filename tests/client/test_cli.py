@@ -170,7 +170,7 @@ def test_cli_masks_writes_the_masks_and_nothing_outside(fake_cli: Callable, stac
 
 
 def test_cli_masks_keeps_files_already_there_unless_told_and_checks_its_folder_first(
-        fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
+        fake_cli: Callable, stack_file: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A hand-drawn ``stack_mask.nii.gz`` beside its stack is not replaced without ``--overwrite``, and
     nothing else of the answer is written either; a folder that cannot be one is refused before the upload."""
     fake, _ = fake_cli()
@@ -185,6 +185,17 @@ def test_cli_masks_keeps_files_already_there_unless_told_and_checks_its_folder_f
     sent = len(fake.requests)
     r = invoke(["masks", str(stack_file), "--out-dir", str(stack_file / "sub")])      # under a file
     assert r.exit_code == 2 and "--out-dir" in r.output and len(fake.requests) == sent, r.output
+    real_mkdir = Path.mkdir                 # a folder its parent's permissions allow but the system does not (/proc)
+
+    def refuse(self: Path, *args: object, **kwargs: object) -> None:
+        if self.name == "refused":
+            raise OSError(30, "Read-only file system")
+        real_mkdir(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "mkdir", refuse)
+    r = invoke(["masks", str(stack_file), "--out-dir", str(tmp_path / "refused")])
+    assert r.exit_code == 2 and "cannot be made (Read-only file system)" in " ".join(r.output.split())
+    assert len(fake.requests) == sent                                   # nothing sent, no traceback
 
 
 def test_cli_masks_of_a_second_batch_join_the_folder_s_report(fake_cli: Callable, stack_file: Path,
