@@ -48,7 +48,8 @@ EXIT_HELP = (
     "6 not found · 7 busy (429/503/507 after retries) · "
     "8 job failed/cancelled · 9 server error (5xx) · 10 conflict (409; a submission's key held by another "
     "request) · 11 timed out waiting · "
-    "12 nothing usable in the answer (no slice accepted; a volume that is no coherent brain), its files written · "
+    "12 nothing usable in the answer (no slice accepted, none to export; a volume that is no coherent brain), its "
+    "files written · "
     "130 interrupted (Ctrl-C; a job already submitted goes on on the server)."
 )
 
