@@ -214,8 +214,9 @@ def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[
             f"the slices do not agree on where they lie ({', '.join(disagree)}: motion beyond the model's reach, "
             "signal voids, a contrast unlike T2), so no pose is worth using; see the reasons above"
             if disagree else
-            f"the network is unsure where these slices lie{median_of(slices)}; brain masks drawn by hand often help where the service's own "
-            "(or the ones sent) take in tissue beside the brain; a reconstruction job (`svrnet reconstruct`) "
+            f"the network is unsure where these slices lie{median_of(slices)}; brain masks drawn by hand often "
+            "help where the service's own (or the ones sent) take in tissue beside the brain; a reconstruction job "
+            "(`svrnet reconstruct`) "
             "starts from every slice where its request has few accepted"))
     return hints
 
