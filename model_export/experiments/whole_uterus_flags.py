@@ -1,4 +1,4 @@
-"""Where whole-uterus requests lose their accept flags: the request's common offset against the slices' relative placement.
+"""Where whole-uterus requests lose their accept flags: their common offset against their slices' relative placement.
 
 The expected errors are honest on the pose benchmarks' acquisitions and too small on whole-uterus
 requests (docs/localisation.md). This script measures, per request, how the slices' error splits
@@ -81,7 +81,8 @@ def request_rows(group: str, poses: list[NDArray], truths: list[NDArray], answer
 
 def _answered(answer: dict, keep: NDArray) -> dict:
     slices = [answer["slices"][k] for k in keep]
-    return {"expected": np.array([np.nan if s["expected_error_mm"] is None else s["expected_error_mm"] for s in slices]),
+    expected = [np.nan if s["expected_error_mm"] is None else s["expected_error_mm"] for s in slices]
+    return {"expected": np.array(expected),
             "accepted": np.array([bool(s["accepted"]) for s in slices])}
 
 

@@ -251,8 +251,8 @@ def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: 
 
 def _read(upload: UploadFile, path: Path, name: str, budget: DecodeBudget, image: bool = True):  # noqa: ANN202
     """Write one upload to ``path`` and read it: a stack's values as magnitudes, a mask's as they are
-    (``image`` False; what is wrong with it is said of ``masks: <name>``). The form parser's spooled copy is closed (deleted) once written, so that a
-    request keeps its files on disk once, not twice."""
+    (``image`` False; what is wrong with it is said of ``masks: <name>``). The form parser's spooled
+    copy is closed (deleted) once written, so that a request keeps its files on disk once, not twice."""
     checkpoint()
     upload.file.seek(0)
     try:
@@ -263,6 +263,6 @@ def _read(upload: UploadFile, path: Path, name: str, budget: DecodeBudget, image
         raise
     finally:
         upload.file.close()
-    said = name if image else f"masks: {name}"   # a mask's problems name the field too: a stack and its mask share names
+    said = name if image else f"masks: {name}"   # a stack and its mask share names: a mask's problems name the field
     with DECODING:
         return read_upload(path, said, budget=budget.file(said), scratch=path.parent, magnitudes=image)

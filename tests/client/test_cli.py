@@ -467,7 +467,8 @@ def test_predict_without_the_image_stage_blames_the_stage_not_the_images(fake_cl
     for option, stage in (("--no-image-consistency", "image"), ("--no-stack-consistency", "stack")):
         fake_cli(predict_body=two)
         off = " ".join(invoke(["predict", str(stack_file), str(stack_file), option]).stdout.split())
-        assert f"with the {stage} consistency stage off" in off and "every stage on" in off and "do not agree" not in off
+        assert f"with the {stage} consistency stage off" in off and "every stage on" in off
+        assert "do not agree" not in off
     fake_cli(predict_body=two)
     on = " ".join(invoke(["predict", str(stack_file), str(stack_file)]).stdout.split())
     assert "stage off" not in on and "do not agree" in on

@@ -509,8 +509,9 @@ def test_a_file_that_does_not_read_leaves_the_folder_untouched_and_an_answer_wit
     truncated = tmp_path / "cut" / case["mask"].name
     truncated.parent.mkdir()
     truncated.write_bytes(case["mask"].read_bytes()[:60])
-    run = lambda *more: CliRunner().invoke(cli.app, ["export", str(answer), str(case["stack"]), "--to", "nesvor",  # noqa: E731
-                                                     "--out-dir", str(out), *more], env={"COLUMNS": "200"})
+    run = lambda *more: CliRunner().invoke(  # noqa: E731
+        cli.app, ["export", str(answer), str(case["stack"]), "--to", "nesvor", "--out-dir", str(out), *more],
+        env={"COLUMNS": "200"})
     for bad in (truncated, tmp_path / "cut" / "ax.nii.gz"):
         if bad.name == "ax.nii.gz":
             bad.write_bytes(case["stack"].read_bytes()[:400])

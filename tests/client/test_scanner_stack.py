@@ -60,10 +60,11 @@ def test_a_file_is_read_with_its_type_and_its_mask_must_share_its_grid(tmp_path:
     assert (stack.name, stack.slice_axis, len(stack.slices)) == ("cor", 1, 4)
     assert stack.slices[2].pixels.dtype == np.int16 and np.array_equal(stack.slices[2].pixels, image[:, 2, :])
     assert np.array_equal(stack.slices[2].mask, image[:, 2, :] % 2 == 1)
-    with pytest.raises(UnusableInput, match=r"other.nii.gz is not on the grid of its stack cor.nii.gz \(shape \[5, 4, 2\] "
-                                            r"against \[5, 4, 3\]\)"):
+    grid = r"other.nii.gz is not on the grid of its stack cor.nii.gz \(shape \[5, 4, 2\] against \[5, 4, 3\]\)"
+    with pytest.raises(UnusableInput, match=grid):
         read_stack(tmp_path / "cor.nii.gz", tmp_path / "other.nii.gz")
-    nib.save(nib.Nifti1Image((image % 2).astype(np.uint8), affine @ np.diag([1.0, 1.0, 1.1, 1.0])), tmp_path / "s.nii.gz")
+    denser = affine @ np.diag([1.0, 1.0, 1.1, 1.0])
+    nib.save(nib.Nifti1Image((image % 2).astype(np.uint8), denser), tmp_path / "s.nii.gz")
     with pytest.raises(UnusableInput, match="same shape at another origin, spacing or orientation"):
         read_stack(tmp_path / "cor.nii.gz", tmp_path / "s.nii.gz")
     rgb = np.zeros((5, 4, 3), dtype=[("R", "u1"), ("G", "u1"), ("B", "u1")])
