@@ -112,7 +112,10 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
     assert {"stack", "slice", "included", "exclusion_reason", "weight"} <= set(report["slices"][0])
     made_by = report["provenance"]                             # what made it, without the clients' file names
     assert made_by["masks"] == ["uploaded"] * 3 and made_by["localiser"] is None and made_by["service"]["version"]
-    assert made_by["model"] == case["poses"].get("model") and made_by["masks_hold_csf"] is False
+    assert made_by["model"]["name"] == "default" and set(made_by["model"]) == {"name", "version", "backbone", "sha256"}
+    assert made_by["model"]["sha256"] != case["poses"].get("model", {}).get("sha256")   # the job's own, not the upload's
+    assert json.loads(client.get(st["poses_url"]).text)["model"] == made_by["model"]   # as RefinedPoses requires
+    assert made_by["masks_hold_csf"] is False
     assert not any(f.name in json.dumps(made_by) for f, _ in case["files"])
     times = report["timings_s"]
     assert times["job"] >= times["all_paths"] >= times["total"] > 0     # the job holds its paths, they the winner
