@@ -46,6 +46,8 @@ from service.streaming.frames import IncompleteStack, SliceFrame, SlicesDropped
 from service.streaming.background import background_executor
 from service.streaming.options import SessionOptions, StreamLimits
 from service.streaming.session import StreamSession
+from service.streaming.answers import SessionSummary
+from service.streaming.coverage import Coverage
 
 log = logging.getLogger(__name__)
 
@@ -316,7 +318,8 @@ class MrdConnection:
         self.series[series_index] = next_pass
 
     def finish(self) -> None:
-        """The client closed: end the open stacks, send the summary, close."""
+        """The client closed: end the open stacks, send the summary (an empty one where no session
+        was opened: every image refused with its options), close."""
         for series_index, series in list(self.series.items()):
             while series.slices:
                 left = len(series.slices)
@@ -324,8 +327,9 @@ class MrdConnection:
                 if self.series.get(series_index) is not series or len(series.slices) >= left:
                     break       # ended (or failed); else its end dropped slices, which cannot come now: again
         self.settle()
-        if self.session is not None:
-            self.send_text(summary_message(self.session.summary(), self.started, self.latencies))
+        summary = self.session.summary() if self.session is not None else \
+            SessionSummary([], Coverage(0.0, 0.0, measured=False), 0, {})    # no session opened (its options refused)
+        self.send_text(summary_message(summary, self.started, self.latencies))
         self.outgoing.close()
 
     # -- answers ---------------------------------------------------------------------------------------------------

@@ -14,7 +14,8 @@ slices worth acquiring again) and, with ``--out``, writes every answer as a JSON
 When every series has as many slices, the XML header says so, and each series ends (its ``stack``
 message) as soon as it has arrived; otherwise the series end at ``CLOSE``.
 
-Exit codes (those of ``svrnet``): 0 once the server's summary arrived, 2 for bad options, 3 when the
+Exit codes (those of ``svrnet``): 0 once the server's summary arrived, 2 for bad options (a file that
+does not exist among them), 3 when the
 server cannot be reached, does not answer in MRD, or ends the session (or does not end it within
 ``--wait-s``) before its summary, 5 for a file that cannot be read as a stack, 7 when the server's
 sessions are all taken (its error says when to retry).
@@ -337,6 +338,8 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(f"--order: {e}", EXIT_USAGE)
     series = []
     for i, path in enumerate(args.stacks):
+        if not path.is_file():                                # a mistyped name is no corrupt file
+            return _fail(f"{path}: no such file", EXIT_USAGE)
         try:
             volume = read_upload(path, path.name)             # as /v1/predict reads a file, with its checks
         except ServiceError as e:

@@ -103,6 +103,8 @@ def test_exit_codes_name_what_is_wrong(tmp_path: Path, capsys: pytest.CaptureFix
     assert f"127.0.0.1:{port}" in capsys.readouterr().err
     assert send.main([str(tmp_path / "notes.nii.gz"), "--port", str(port)]) == send.EXIT_BAD_INPUT
     assert "notes.nii.gz" in capsys.readouterr().err
+    assert send.main([str(tmp_path / "mistyped.nii.gz"), "--port", str(port)]) == send.EXIT_USAGE
+    assert "mistyped.nii.gz: no such file" in capsys.readouterr().err                # not "corrupt"
     for order in ("auto", "sideways", "0,1,1"):
         assert send.main([str(stack), "--order", order]) == send.EXIT_USAGE
         assert "--order" in capsys.readouterr().err

@@ -346,6 +346,8 @@ def test_images_after_a_refused_config_are_refused_not_posed_with_defaults(case:
     assert "config.mc_samples" in errors[0], errors
     assert len(errors) >= 4 and all("config was refused" in e and "config.mc_samples" in e for e in errors[1:4]), errors
     assert not [m for m in received if isinstance(m, ismrmrd.Image)]
+    summary = texts(received)[-1]              # the session ends as every session does: its (empty) summary
+    assert summary["type"] == "summary" and summary["stacks"] == [] and summary["slices"] == 0
 
 
 def test_a_text_message_that_cannot_be_parsed_is_a_bad_request_not_an_unusable_image(serve) -> None:  # noqa: ANN001
@@ -355,8 +357,10 @@ def test_a_text_message_that_cannot_be_parsed_is_a_bad_request_not_an_unusable_i
     client.writer.write(int(ismrmrd.serialization.ISMRMRDMessageID.TEXT).to_bytes(2, "little")
                         + len(text).to_bytes(4, "little") + text)
     client.writer.flush()
-    (error,) = [m for m in texts(client.close()) if m["type"] == "error"]
+    received = texts(client.close())
+    (error,) = [m for m in received if m["type"] == "error"]
     assert error["status"] == 400 and "text: the message could not be parsed" in error["detail"], error
+    assert received[-1]["type"] == "summary"
 
 
 def test_an_image_errors_name_the_mrd_header_fields(case: Case, serve) -> None:  # noqa: ANN001
