@@ -23,6 +23,7 @@ from collections import defaultdict
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import spearmanr
 
 from model_export.acquisitions import simulate_acquisition
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
@@ -123,15 +124,18 @@ def measure(scenes: int, seed: int, motion: str, acquisitions: int) -> dict[str,
     return {k: np.asarray(v) if k == "group" else np.concatenate(v) for k, v in rows.items()}
 
 
-def split_per_request(c: dict[str, NDArray], g: NDArray) -> tuple[float, float]:
-    """The median over the requests of ``g`` of their common and relative error (RMS over a request's
-    slices; the common part what the relative part leaves of the E.D.)."""
-    common, relative = [], []
+def per_request(c: dict[str, NDArray], g: NDArray) -> dict[str, NDArray]:
+    """Per request of ``g``: its common and relative error (RMS over its slices; the common part what
+    the relative part leaves of the E.D.), its network error, pooled placement's standard error and
+    image mismatch."""
+    out: dict[str, list] = defaultdict(list)
     for r in np.unique(c["request"][g]):
         m = g & (c["request"] == r)
-        relative.append(rms(c["relative"][m]))
-        common.append(np.sqrt(max(rms(c["ed"][m]) ** 2 - relative[-1] ** 2, 0.0)))
-    return float(np.median(common)), float(np.median(relative))
+        out["relative"].append(rms(c["relative"][m]))
+        out["common"].append(np.sqrt(max(rms(c["ed"][m]) ** 2 - out["relative"][-1] ** 2, 0.0)))
+        for key in ("sigma", "pooled_sd", "mismatch"):
+            out[key].append(float(c[key][m][0]))
+    return {k: np.asarray(v) for k, v in out.items()}
 
 
 def rms(x: NDArray) -> float:
@@ -157,12 +161,17 @@ def report(c: dict[str, NDArray], limit_mm: float) -> None:
         ed, acc, new = c["ed"][g], c["accepted"][g], flags[g]
         bad, good = ed > 10.0, ed < 5.0
         share = lambda f, m: f"{100 * f[m].mean():.0f} %" if m.any() else "-"  # noqa: E731
-        common, relative = split_per_request(c, g)
+        requests = per_request(c, g)
+        common, relative = float(np.median(requests["common"])), float(np.median(requests["relative"]))
         print(f"| {group} | {g.sum()} | {np.nanmedian(c['mismatch'][g]):.2f} | {acc.sum()} | {(acc & bad).sum()} "
               f"({share(acc, bad)}) | {share(acc, good)} | {rms(ed[acc]) / rms(c['expected'][g][acc]):.2f} "
               f"| {common:.2f} / {relative:.2f} mm | {new.sum()}, {(new & bad).sum()}, {share(new, good)} |")
         print(f"  median ratio E.D. / expected {median_ratio(ed, c['expected'][g]):.2f}", end="; ")
         print(f"with the hinge {median_ratio(ed, raised[g]):.2f}")
+    scenes = per_request(c, np.char.startswith(c["group"], "scenes"))
+    ranks = {k: spearmanr(scenes["common"], scenes[k], nan_policy="omit")[0] for k in ("sigma", "pooled_sd", "mismatch")}
+    print(f"the scene requests' common error ranked by (Spearman, {len(scenes['common'])} requests): "
+          + ", ".join(f"{k} {v:.2f}" for k, v in ranks.items()))
 
 
 def main() -> None:
