@@ -15,10 +15,9 @@ When every series has as many slices, the XML header says so, and each series en
 message) as soon as it has arrived; otherwise the series end at ``CLOSE``.
 
 Exit codes (those of ``svrnet``): 0 once the server's summary arrived, 2 for bad options (a file that
-does not exist among them), 3 when the
-server cannot be reached, does not answer in MRD, or ends the session (or does not end it within
-``--wait-s``) before its summary, 5 for a file that cannot be read as a stack, 7 when the server's
-sessions are all taken (its error says when to retry).
+does not exist among them), 3 when the server cannot be reached, does not answer in MRD, or ends the
+session (or does not end it within ``--wait-s``) before its summary, 5 for a file that cannot be read
+as a stack, 7 when the server's sessions are all taken (its error says when to retry).
 
 Example:
     >>> send_order(5, "interleaved"), send_order(4, "3,2,1,0")
