@@ -27,7 +27,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from nibabel.quaternions import fillpositive, quat2mat
 from numpy.typing import NDArray
 
 from service.geometry import frames
@@ -118,6 +117,8 @@ def qform_affine(t: NiftiTransforms) -> NDArray[np.float64]:
     """
     qfac = -1.0 if t.pixdim[0] < 0 else 1.0
     out = np.eye(4)
+    from nibabel.quaternions import fillpositive, quat2mat   # here: a training host without nibabel imports this module
+
     rotation = quat2mat(fillpositive(np.asarray(t.quatern[:3], np.float64), QUATERNION_SLACK))
     out[:3, :3] = rotation * np.array([t.pixdim[1], t.pixdim[2], qfac * t.pixdim[3]])
     out[:3, 3] = t.quatern[3:]
