@@ -32,6 +32,7 @@ from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, run_acquisition
 from model_export.localiser import pose_accuracy as pa
 from model_export.localiser.evaluate import _pose_estimator
 from service.geometry import anchors
+from service.geometry.grid import kabsch
 from service.pipeline.documents import stack_objects
 from service.pipeline.predict import StackPrediction, predict
 from service.pipeline.prepare import prepare_stacks
@@ -43,7 +44,7 @@ MISMATCH_EDGES = (0.0, 0.25, 0.5, 0.75, 1.0, 1.3, 1.7, 9.0)
 
 def rigid_fit(points: NDArray, truth: NDArray) -> NDArray[np.float64]:
     """The residual distances ``[n]`` of ``points [n, 3]`` once the one rigid move that best brings
-    them onto ``truth`` (Kabsch) is applied.
+    them onto ``truth`` (:func:`~service.geometry.grid.kabsch`) is applied.
 
     Example (a shifted and turned copy fits exactly):
         >>> rng = np.random.default_rng(0); q = rng.normal(size=(9, 3))
@@ -51,11 +52,8 @@ def rigid_fit(points: NDArray, truth: NDArray) -> NDArray[np.float64]:
         >>> float(rigid_fit(q @ r.T + 5.0, q).max()) < 1e-9
         True
     """
-    pc, qc = points.mean(0), truth.mean(0)
-    u, _, vt = np.linalg.svd((points - pc).T @ (truth - qc))
-    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))])
-    rotation = vt.T @ d @ u.T
-    return np.linalg.norm((points - pc) @ rotation.T + qc - truth, axis=1)
+    move = kabsch(points, truth)
+    return np.linalg.norm(points @ move[:3, :3].T + move[:3, 3] - truth, axis=1)
 
 
 def request_rows(group: str, poses: list[NDArray], truths: list[NDArray], answers: list[dict],
