@@ -216,8 +216,7 @@ def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[
             if disagree else
             f"the network is unsure where these slices lie{median_of(slices)}; brain masks drawn by hand often "
             "help where the service's own (or the ones sent) take in tissue beside the brain; a reconstruction job "
-            "(`svrnet reconstruct`) "
-            "starts from every slice where its request has few accepted"))
+            "(`svrnet reconstruct`) starts from every slice where its request has few accepted"))
     return hints
 
 
