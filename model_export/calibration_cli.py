@@ -46,9 +46,9 @@ def calibrate_spread(
 
     typer.echo(json.dumps(run(model, root, per_volume, write), indent=2))
     if write:
-        typer.echo("the accept flags (expected-error limit, floor, twin risk, variance threshold) and the noise error "
-                   "were calibrated on the expected errors before: run `calibrate-acceptance`, then `calibrate-noise`, "
-                   "on the model again", err=True)
+        typer.echo("the accept flags (expected-error limit, floor, twin risk, variance threshold), the noise error and "
+                   "the frame error were calibrated on the expected errors before: run `calibrate-acceptance`, then "
+                   "`calibrate-noise`, then `calibrate-frame`, on the model again", err=True)
 
 
 def calibrate_acceptance(

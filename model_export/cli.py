@@ -6,6 +6,7 @@ Examples:
     svrnet-train calibrate runs/default/best.pt
     svrnet-train calibrate-acceptance runs/default/model.onnx
     svrnet-train calibrate-noise runs/default/model.onnx
+    svrnet-train calibrate-frame runs/default/model.onnx
     svrnet-train evaluate service/models/default/model.onnx --report model_export/reports/default.md
     svrnet-train quantise service/models/default/model.onnx /tmp/model-int8.onnx
     svrnet-train localiser --help
@@ -25,7 +26,8 @@ from model_export.cli_options import Root
 from model_export.localiser.cli import app as localiser_app
 from service.inference.views import SHIPPED_VIEWS
 
-app = typer.Typer(add_completion=False, help=__doc__, no_args_is_help=True)
+app = typer.Typer(add_completion=False, help=__doc__, no_args_is_help=True,
+                  rich_markup_mode=None)     # click's plain help: every option's help and default whole
 app.add_typer(localiser_app, name="localiser", help="the brain localiser: synthetic data, training, shipping")
 for _name, _command in CALIBRATION_COMMANDS.items():
     app.command(_name)(_command)
@@ -43,7 +45,8 @@ def train(
     steps: Annotated[Optional[int], typer.Option(min=1)] = None,
     batch: Annotated[Optional[int], typer.Option(min=16, help="slices a step, a multiple of 16")] = None,
     lr: Annotated[Optional[float], typer.Option(help="Adam learning rate (step decay x0.2 at 60 % and 85 %)")] = None,
-    constant_lr: Annotated[bool, typer.Option(help="no step decay")] = False,
+    constant_lr: Annotated[Optional[bool], typer.Option(
+        help="no step decay; --no-constant-lr the step decay again (after a stage at a constant rate)")] = None,
     dropout: Annotated[Optional[float], typer.Option()] = None,
     val_every: Annotated[Optional[int], typer.Option(min=1)] = None,
     val_per_volume: Annotated[Optional[int], typer.Option(min=1)] = None,
@@ -69,15 +72,15 @@ def train(
     threads or time budget), else TrainConfig's (model_export/train_config.py)."""
     from model_export.stream import SLICES_PER_ACQUISITION
     from model_export.train import train as run
-    from model_export.train_config import stage_config
+    from model_export.train_config import TrainConfig, stage_config
 
     given = {k: v for k, v in dict(
         backbone=backbone, width=width, label_type=label_type, sampling=sampling, steps=steps, batch=batch, lr=lr,
         dropout=dropout, val_every=val_every, threads=threads, seed=seed, loss=loss, val_per_volume=val_per_volume,
         workers=workers, reuse=reuse, device=device, max_minutes=max_minutes, plane_x_mm=plane_x_mm).items()
         if v is not None}
-    if constant_lr:
-        given["lr_milestones"] = ()
+    if constant_lr is not None:
+        given["lr_milestones"] = () if constant_lr else TrainConfig.lr_milestones
     if simulation is not None:
         try:
             given["simulation"] = json.loads(simulation)
@@ -186,8 +189,9 @@ def evaluate(
     root: Root = DEFAULT_ATLAS_ROOT,
     per_volume: int = 100,
     mc_samples: int = 100,
-    acquisitions: Annotated[bool, typer.Option(help="simulated 3-stack acquisitions (mild, moderate, extreme motion) "
-                                                    "through the server's pipeline with stack consistency")] = False,
+    acquisitions: Annotated[bool, typer.Option(help="simulated 3-stack acquisitions at every motion level (mild, moderate, "
+                                                    "jumps, independent, extreme) through the server's pipeline with "
+                                                    "stack consistency")] = False,
     fake: Annotated[bool, typer.Option(help="with --acquisitions: an estimator giving truth or twin + 10 mm / 10 deg "
                                             "instead of the model (tests the service's half)")] = False,
     told: Annotated[Optional[list[str]], typer.Option(help="with --acquisitions: also score each stage told this "
@@ -281,7 +285,7 @@ def quantise(
     path = quantise_model(source, output, slices, seed, root)
     typer.echo(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB; {source.stat().st_size / 1e6:.1f} MB before)")
     typer.echo("its calibrations are the float model's: run `calibrate-spread`, then `calibrate-acceptance`, then "
-               "`calibrate-noise`, on it", err=True)
+               "`calibrate-noise`, then `calibrate-frame`, on it", err=True)
 
 
 @app.command()

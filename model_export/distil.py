@@ -47,7 +47,8 @@ from model_export.atlas import DEFAULT_ATLAS_ROOT, validation_volumes
 from model_export.model import SVRNet
 from model_export.simulate import SimulationConfig
 from model_export.stream import SliceStream, validation_set
-from model_export.train import pose_errors, predict_poses, resolve_device, stream_seed
+from model_export.device import resolve_device
+from model_export.train import pose_errors, predict_poses, stream_seed
 from model_export.train_config import parse_fields
 from model_export.training_record import git_commit, hardware, prior_history, totals
 

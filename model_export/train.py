@@ -31,6 +31,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from model_export.atlas import DEFAULT_ATLAS_ROOT, VALIDATION_VOLUMES, split
+from model_export.device import resolve_device
 from model_export.losses import check_label_type, point_loss
 from model_export.model import SVRNet, multi_loss
 from model_export.simulate import SimulationConfig
@@ -41,13 +42,6 @@ from service.geometry import anchors, encodings, se3
 from service.geometry.twin import POINT_LABELS, twin
 
 __all__ = ["train", "stream_seed", "predict_poses", "pose_errors", "validation_set"]
-
-
-def resolve_device(name: str) -> torch.device:
-    """``auto`` -> ``cuda`` when available, else ``cpu``."""
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    return torch.device(name)
 
 
 def stream_seed(seed: int, samples_seen: int) -> int:
@@ -235,7 +229,7 @@ def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resu
             sched.step()
             step += 1
             run_steps += 1
-            value = float(loss.detach())
+            value = loss.detach()                 # averaged on the device: no wait for the GPU each step
             running = value if running is None else 0.98 * running + 0.02 * value
             out_of_time = time.perf_counter() >= deadline
             segment.update(samples=base["samples"] + run_steps * cfg.batch, steps=base["steps"] + run_steps,
@@ -258,10 +252,10 @@ def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resu
                 if score < best:
                     best = score
                     torch.save(state, best_path)
-                bar.update(task, info=f"loss {running:.3f} val twin-min E.D. {score:.2f} mm (best {best:.2f})")
+                bar.update(task, info=f"loss {float(running):.3f} val twin-min E.D. {score:.2f} mm (best {best:.2f})")
             if step % 50 == 0 or row is not None:
                 writer.writerow([step, totals(history + [segment])["samples"], round(segment["seconds"], 1),
-                                 sched.get_last_lr()[0], round(running, 5), *(row or [""] * 7)])
+                                 sched.get_last_lr()[0], round(float(running), 5), *(row or [""] * 7)])
                 log.flush()
             bar.update(task, completed=step)
             if out_of_time:
@@ -310,7 +304,12 @@ def main(argv: list[str] | None = None) -> Path:
     ap.add_argument("--resume", type=Path)
     ap.add_argument("fields", nargs="*", help="TrainConfig overrides, field=value (JSON)")
     args = ap.parse_args(argv)
-    cfg = stage_config(parse_fields(ap, args.fields, TrainConfig), args.resume, args.init)
+    if args.resume is not None and args.init is not None:
+        ap.error("a run resumes (--resume) or starts a new stage (--init), not both")
+    try:
+        cfg = stage_config(parse_fields(ap, args.fields, TrainConfig), args.resume, args.init)
+    except ValueError as bad:
+        ap.error(str(bad))
     best = train(cfg, args.out, args.root, resume=args.resume, init=args.init, progress=False)
     print(json.loads((args.out / "summary.json").read_text()))
     return best

@@ -116,6 +116,9 @@ def stage_config(given: dict, resume: Path | None = None, init: Path | None = No
         saved = torch.load(resume or init, map_location="cpu", weights_only=False)
         if "config" not in saved:
             raise ValueError(f"{resume or init}: not a pose-network checkpoint of svrnet-train train (no config)")
+        if resume is not None and not {"optimizer", "scheduler"} <= saved.keys():
+            raise ValueError(f"{resume}: holds the network without its optimiser and schedule (a shipped or pruned "
+                             "checkpoint), so no run goes on from it: start a new stage from it with --init")
         keep = TrainConfig.__dataclass_fields__.keys() - (set() if resume is not None else HOST_FIELDS)
         old = {k: v for k, v in saved["config"].items() if k in keep}
         if "simulation" in values:                     # a setting given changes the stage's, the others stay

@@ -4,7 +4,8 @@ Examples:
     svrnet-train localiser data --out runs/localiser/train --count 600
     svrnet-train localiser data --out runs/localiser/heldout --count 40 --style heldout --seed 1000000 --keep-stack
     svrnet-train localiser train --data runs/localiser/train --out runs/localiser/localiser.pt --steps 12000
-    svrnet-train localiser ship runs/localiser/localiser.pt --heldout runs/localiser/heldout --out runs/localiser/next
+    svrnet-train localiser ship runs/localiser/localiser.pt --heldout runs/localiser/heldout --out runs/localiser/next \\
+        --version 1.3.0
 """
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ from model_export.atlas import DEFAULT_ATLAS_ROOT
 from model_export.cli_options import Root
 from model_export.localiser import GRID_MM
 
-app = typer.Typer(add_completion=False, help=__doc__, no_args_is_help=True)
+app = typer.Typer(add_completion=False, help=__doc__, no_args_is_help=True,
+                  rich_markup_mode=None)     # click's plain help: every option's help and default whole
 CHECKPOINT_GRID = ("the network grid (mm); default: the one the checkpoint's shards were made on, which it records "
                    f"({GRID_MM} for a checkpoint that does not); another is refused")
 

@@ -9,13 +9,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import onnx
 import torch
 
 from model_export.atlas import POPULATIONS
-from model_export.export import git_commit
 from model_export.localiser import GRID_MM
 from model_export.localiser.net import LocaliserNet
+from model_export.training_record import git_commit
 
 INPUT, OUTPUT = "stacks", "logits"
 
@@ -46,6 +45,8 @@ def export_onnx(checkpoint: Path, out: Path, *, grid_mm: float | None = None, ve
                 extra: dict | None = None) -> Path:
     """Write the ONNX file of ``checkpoint`` with its metadata (its grid: :func:`checkpoint_grid_mm`
     of ``grid_mm``); returns ``out``."""
+    import onnx                            # here: training imports this module, and a training host may lack it
+
     grid_mm = checkpoint_grid_mm(checkpoint, grid_mm)
     net = load_checkpoint(checkpoint)
     out = Path(out)

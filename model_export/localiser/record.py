@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from model_export.training_record import git_commit
-from service.core.onnx import file_sha256
+from service.core.checksum import file_sha256
 
 
 

@@ -22,7 +22,9 @@ import json
 import random
 import sys
 import time
+import warnings
 import zipfile
+from collections import deque
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,6 +34,7 @@ import torch
 import torch.nn.functional as F
 from scipy import ndimage
 
+from model_export.device import fast_cuda
 from model_export.localiser.distil import distillation_loss, mirrored_logits, pruned
 from model_export.localiser.export import load_checkpoint
 from model_export.localiser.net import LocaliserNet
@@ -193,6 +196,23 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+def _resumed_network(out: Path, config: dict, in_channels: int, width: int, depth: int) -> tuple[int, int, int]:
+    """The network a resumed run goes on with: the checkpoint's own (its ``in_channels``, ``width``
+    and ``depth``), with a warning where the options given name another (a run's network cannot
+    change shape halfway; ``--init`` starts a new run from a checkpoint of another width).
+
+    Example:
+        >>> _resumed_network(Path("w8.pt"), {"in_channels": 3, "width": 8, "depth": 4}, 3, 8, 4)
+        (3, 8, 4)
+    """
+    saved = (int(config["in_channels"]), int(config["width"]), int(config["depth"]))
+    if saved != (in_channels, width, depth):
+        warnings.warn(f"{out} resumes its own network (channels {saved[0]}, width {saved[1]}, depth {saved[2]}), "
+                      f"not channels {in_channels}, width {width}, depth {depth}: to start another network "
+                      "from it, give a new --out and --init it", stacklevel=3)
+    return saved
+
+
 def train(data: Path, out: Path, minutes: float | None = None, *, steps: int | None = None, width: int = 8,
           depth: int = 4, batch: int = 16, crop: int = 128, lr: float = 2e-3, seed: int = 0,
           checkpoint_s: float = 120.0, threads: int = 2, log: Path | None = None, in_channels: int = 3,
@@ -236,17 +256,20 @@ def train(data: Path, out: Path, minutes: float | None = None, *, steps: int | N
     if not Path(data).is_dir():
         raise FileNotFoundError(f"data: {data} is not a folder of shards (`svrnet-train localiser data --out`)")
     torch.set_num_threads(threads)
+    fast_cuda(device)
     seed_everything(seed)
     out = Path(out)
+    state = torch.load(out, map_location="cpu", weights_only=False) if out.exists() else None   # our own
+    if state is not None:
+        in_channels, width, depth = _resumed_network(out, state["config"], in_channels, width, depth)
     net = LocaliserNet(in_channels=in_channels, width=width, depth=depth)
     opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
     step, spent, recorded, runs, started = 0, 0.0, None, [], None
-    if init is not None and not out.exists():
+    if init is not None and state is None:
         started = file_record(init)
         net.load_state_dict(pruned(load_checkpoint(init), width).state_dict())     # the identity at its own width
     teacher_net = load_checkpoint(teacher).to(device) if teacher is not None else None
-    if out.exists():
-        state = torch.load(out, map_location="cpu", weights_only=False)
+    if state is not None:
         net.load_state_dict(state["model"])
         opt.load_state_dict(state["optimiser"])
         step, spent, recorded = state["step"], state.get("spent_s", 0.0), state.get("grid_mm")
@@ -256,7 +279,8 @@ def train(data: Path, out: Path, minutes: float | None = None, *, steps: int | N
     for values in opt.state.values():                  # a resumed optimiser's moments beside the weights
         values.update({k: v.to(device) for k, v in values.items() if torch.is_tensor(v) and k != "step"})
     budget = spent + (minutes or 0.0) * 60.0
-    start, last_ckpt, losses, first_step = time.perf_counter() - spent, time.perf_counter(), [], step
+    start, last_ckpt, first_step = time.perf_counter() - spent, time.perf_counter(), step
+    losses: deque[torch.Tensor] = deque(maxlen=200)         # on the device: no wait for the GPU each step
     stream = BatchStream(data, batch, crop, seed + step, in_channels)
     batches = iter(stream if loaders == 0 else torch.utils.data.DataLoader(
         stream, batch_size=None, num_workers=loaders, pin_memory=device != "cpu", persistent_workers=True))
@@ -293,7 +317,7 @@ def train(data: Path, out: Path, minutes: float | None = None, *, steps: int | N
         opt.zero_grad()
         loss.backward()
         opt.step()
-        losses.append(float(loss.detach()))
+        losses.append(loss.detach())
         step += 1
         if time.perf_counter() - last_ckpt > checkpoint_s:
             save()
@@ -301,7 +325,7 @@ def train(data: Path, out: Path, minutes: float | None = None, *, steps: int | N
             if log is not None:
                 with open(log, "a") as f:
                     f.write(json.dumps({"step": step, "elapsed_s": round(time.perf_counter() - start),
-                                        "loss": float(np.mean(losses[-200:])), "lr": opt.param_groups[0]["lr"]}) + "\n")
+                                        "loss": float(torch.stack(tuple(losses)).mean()), "lr": opt.param_groups[0]["lr"]}) + "\n")
     if step > first_step or not runs:                  # a finished budget leaves its checkpoint as it is
         save()
     return out

@@ -1,4 +1,4 @@
-"""What every ONNX model of the service shares: its CPU session options, the file's checksum and how a
+"""What every ONNX model of the service shares: its CPU session options and how a
 models folder is loaded.
 
 Example:
@@ -10,7 +10,6 @@ Example:
 
 from __future__ import annotations
 
-import hashlib
 import logging
 from collections.abc import Callable
 from pathlib import Path
@@ -23,15 +22,6 @@ from service.core.threads import available_cores
 
 log = logging.getLogger(__name__)
 Loaded = TypeVar("Loaded")
-
-
-def file_sha256(path: Path) -> str:
-    """The SHA-256 of a file (hex), read in 1 MiB chunks."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def model_files(folder: Path) -> list[Path]:

@@ -15,7 +15,8 @@ import numpy as np
 import onnxruntime as ort
 from numpy.typing import NDArray
 
-from service.core.onnx import file_sha256, session_options, session_threads
+from service.core.checksum import file_sha256
+from service.core.onnx import session_options, session_threads
 from service.geometry.twin import DEFAULT_PLANE_X_MM
 from service.inference.views import view_count
 

@@ -54,7 +54,8 @@ from scipy import ndimage
 
 from service.core.cancellation import checkpoint
 from service.core.errors import NotFound
-from service.core.onnx import file_sha256, load_models, session_options, session_threads
+from service.core.checksum import file_sha256
+from service.core.onnx import load_models, session_options, session_threads
 from service.core.settings import DEFAULT_LOCALISERS_DIR
 from service.core.threads import side_by_side
 from service.io.volume import Volume

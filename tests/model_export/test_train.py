@@ -278,10 +278,13 @@ def test_module_entry_point_trains_without_typer_rich_or_matplotlib(packed: Path
 
 
 def test_training_modules_import_without_the_service_stack() -> None:
-    """A GPU host has numpy, scipy and torch, not SimpleITK or the web stack: the training imports none."""
-    blocked = ("SimpleITK", "pydantic", "fastapi", "starlette", "typer", "pydantic_settings", "redis", "rq")
+    """A GPU host has numpy, scipy and torch, not SimpleITK, the web stack or ONNX: the training of
+    either network imports none (the pose network's scene share runs the localiser: onnxruntime)."""
+    blocked = ("SimpleITK", "pydantic", "fastapi", "starlette", "typer", "pydantic_settings", "redis", "rq",
+               "onnx", "onnxruntime")
     code = ("import sys\n" + "".join(f"sys.modules[{n!r}] = None\n" for n in blocked) +
-            "import model_export.train, model_export.stream, model_export.simulate\nprint('ok')")
+            "import model_export.train, model_export.stream, model_export.simulate\n"
+            "import model_export.localiser.train, model_export.localiser.dataset\nprint('ok')")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.stdout.strip() == "ok", out.stderr[-2000:]
 
@@ -317,3 +320,34 @@ def test_the_cli_resumes_and_stages_with_the_runs_own_settings(packed: Path, tmp
     assert stage["config"]["simulation"] == {"size": 48, "pixel_mm": 2.5, "tz_fraction": 0.5, "surroundings_share": 0.3}
     r = runner.invoke(app, [*first, "--out", str(tmp_path / "c"), "--batch", "24"])
     assert r.exit_code != 0 and "groups of 16" in r.output
+
+
+def test_a_checkpoint_without_its_optimiser_is_refused_for_resume_and_starts_a_stage(packed: Path,
+                                                                                    tmp_path: Path) -> None:
+    """A shipped checkpoint (weights, no optimiser or schedule) cannot continue a run: ``--resume``
+    names ``--init`` (it was a KeyError after the atlas had loaded); ``--no-constant-lr`` gives a
+    stage after one at a constant rate its step decay again."""
+    from typer.testing import CliRunner
+
+    from model_export.cli import app
+    from model_export.train import main
+
+    runner = CliRunner()
+    r = runner.invoke(app, ["train", "--root", str(packed), "--out", str(tmp_path / "a"), "--backbone", "compact",
+                            "--width", "0.25", "--steps", "1", "--batch", "16", "--val-every", "1",
+                            "--val-per-volume", "2", "--workers", "0", "--constant-lr",
+                            "--simulation", '{"size": 48, "pixel_mm": 2.5}'])
+    assert r.exit_code == 0, r.output
+    state = torch.load(tmp_path / "a" / "last.pt", weights_only=False)
+    assert tuple(state["config"]["lr_milestones"]) == ()
+    shipped = tmp_path / "shipped.pt"
+    torch.save({k: v for k, v in state.items() if k not in ("optimizer", "scheduler")}, shipped)
+    r = runner.invoke(app, ["train", "--root", str(packed), "--out", str(tmp_path / "b"), "--resume", str(shipped)])
+    assert r.exit_code != 0 and "--init" in r.output and "optimiser" in r.output
+    with pytest.raises(SystemExit) as stop:
+        main(["--out", str(tmp_path / "c"), "--root", str(packed), "--resume", str(shipped)])
+    assert stop.value.code == 2
+    r = runner.invoke(app, ["train", "--root", str(packed), "--out", str(tmp_path / "d"), "--init", str(shipped),
+                            "--workers", "0", "--no-constant-lr"])
+    assert r.exit_code == 0, r.output
+    assert torch.load(tmp_path / "d" / "last.pt", weights_only=False)["config"]["lr_milestones"] == (0.6, 0.85)

@@ -43,6 +43,9 @@ def test_training_resumes_and_the_export_computes_what_the_network_does(shards: 
     first = torch.load(ckpt, weights_only=False)["step"]
     train(shards, ckpt, 0.02, width=4, depth=2, batch=4, crop=32, threads=1)
     assert torch.load(ckpt, weights_only=False)["step"] > first > 0
+    with pytest.warns(UserWarning, match="resumes its own network"):       # the options' default width
+        train(shards, ckpt, steps=torch.load(ckpt, weights_only=False)["step"] + 1, batch=4, crop=32, threads=1)
+    assert torch.load(ckpt, weights_only=False)["config"]["width"] == 4
     onnx_path = export_onnx(ckpt, tmp_path / "model.onnx", grid_mm=GRID_MM, version="0.0.1")
     x = np.random.default_rng(1).random((3, 3, 48, 32), np.float32)
     sess = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
