@@ -57,7 +57,7 @@ from numpy.typing import ArrayLike, NDArray
 from client.errors import UnusableInput
 from client.export_folder import clear_for_export, write_manifest
 from client.files import write_whole
-from client.scanner_stack import slice_axis_of
+from client.scanner_stack import nifti_image, slice_axis_of
 from client.slice_transforms import stack_from_atlas_lps, tfm_text
 
 FORMATS = ("nesvor", "niftymic")
@@ -197,7 +197,7 @@ def _stack_file(path: Path, stack: dict[str, Any], read_by_qform: bool) -> tuple
     that places it by its qform (``read_by_qform``: ITK's readers), checked that its qform is where
     the service placed it (its sform). NeSVoR is given slices written here, not the stack's header."""
     try:
-        image = nib.load(str(path))
+        image = nifti_image(path)
     except (nib.filebasedimages.ImageFileError, OSError, ValueError) as e:
         raise UnusableInput(f"export: {path.name} is not a NIfTI file ({e}); NeSVoR and NiftyMIC read NIfTI") from None
     if stack.get("scanner_from_voxel") is None:
@@ -319,7 +319,7 @@ def _mask(path: Path, stack: nib.Nifti1Image) -> NDArray[np.bool_]:
         [[0, 1, 1]]
     """
     try:
-        image = nib.load(str(path))
+        image = nifti_image(path)
         values = np.asarray(image.dataobj)
     except (nib.filebasedimages.ImageFileError, OSError, ValueError, EOFError) as e:
         raise UnusableInput(f"export: {path.name} is not a NIfTI mask ({e})") from None

@@ -15,8 +15,10 @@ Example:
 from __future__ import annotations
 
 import gzip
+import logging
 import zlib
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -102,23 +104,38 @@ def scanner_slices(image: NDArray, affine: NDArray, mask: NDArray | None = None)
     return axis, slices
 
 
-def _nifti(path: Path) -> nib.Nifti1Image:
+@contextmanager
+def _quiet_nibabel() -> Iterator[None]:
+    """nibabel's header notes held back (its logger at ERROR for the while)."""
+    logger = logging.getLogger("nibabel.global")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
+def nifti_image(path: Path) -> nib.Nifti1Image:
     """The NIfTI image of ``path``, read by its content where its name says gzip and it is not, or the
     reverse (as the server reads it): a plain NIfTI-1 or -2 file named ``.nii.gz``, a gzipped one
-    named ``.nii``."""
+    named ``.nii``. nibabel's notes on the header it mends as it reads (``pixdim`` of zero where the
+    sform places the voxels) stay out of the command's output: the server reads the file by its own
+    rules and says what it refuses."""
     with open(path, "rb") as f:
         gzipped = f.read(2) == b"\x1f\x8b"
-    if gzipped != path.name.endswith(".gz"):             # the name says the other: read by the content
-        raw = gzip.decompress(path.read_bytes()) if gzipped else path.read_bytes()
-        nifti2 = 540 in (int.from_bytes(raw[:4], "little"), int.from_bytes(raw[:4], "big"))
-        return (nib.Nifti2Image if nifti2 else nib.Nifti1Image).from_bytes(raw)
-    return nib.load(str(path))
+    with _quiet_nibabel():
+        if gzipped != path.name.endswith(".gz"):             # the name says the other: read by the content
+            raw = gzip.decompress(path.read_bytes()) if gzipped else path.read_bytes()
+            nifti2 = 540 in (int.from_bytes(raw[:4], "little"), int.from_bytes(raw[:4], "big"))
+            return (nib.Nifti2Image if nifti2 else nib.Nifti1Image).from_bytes(raw)
+        return nib.load(str(path))
 
 
 def _volume(path: Path, what: str) -> tuple[NDArray, NDArray[np.float64]]:
     """A 3D NIfTI file's voxels (scaled where the file says) and its affine."""
     try:
-        img = _nifti(path)
+        img = nifti_image(path)
         data = np.asanyarray(img.dataobj)
     except nib.filebasedimages.ImageFileError as e:
         raise UnsupportedFile(f"{what}: {path.name} is not a NIfTI file nibabel can read ({e})") from None

@@ -372,7 +372,7 @@ def job_table(state: dict[str, Any], job: str) -> Table:
     """The table of ``svrnet status``: a reconstruction job's fields, one a row."""
     table = Table(show_header=False, title=f"job {job}", title_justify="left")
     table.add_column("field", style="bold")
-    table.add_column("value")
+    table.add_column("value", overflow="fold")            # a URL whole on any terminal, not cut at its width
     for key in ("status", "stage", "progress", "error", "created_at", "updated_at", "result_url",
                 "preview_url"):
         value = state.get(key)

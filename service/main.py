@@ -102,7 +102,9 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
                 blas.restore_original_limits()
 
     # Swagger UI and ReDoc assets are served by the app itself: /docs works without internet access.
-    app = FastAPIOffline(title="SVRnet", version="1.0.0", lifespan=lifespan,
+    # No redirect of a path with a trailing slash: a 307 makes a client that follows it (curl -L)
+    # send a whole upload twice; the 404 names the route instead (service/api/problems.py).
+    app = FastAPIOffline(title="SVRnet", version="1.0.0", lifespan=lifespan, redirect_slashes=False,
                   description="Slice-to-atlas pose estimation for fetal MRI with MC-dropout confidence "
                               "(Hou et al., IEEE TMI). Contract: API v1.")
     app.state.settings = settings

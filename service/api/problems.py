@@ -111,7 +111,11 @@ def install(app: FastAPI) -> None:
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
         if exc.status_code == 404 and exc.detail == "Not Found":     # no route (a route's own 404 is a NotFound)
-            return problem(404, "Not found", f"no route {request.url.path[:80]!r}: the API's routes start with /v1/ "
+            path = request.url.path
+            if path.endswith("/") and path.strip("/") and allowed_methods(request.app, path):
+                return problem(404, "Not found", f"no route {path[:80]!r}: the route is {path.rstrip('/')[:80]!r}, "
+                               "without the trailing slash", request=request)
+            return problem(404, "Not found", f"no route {path[:80]!r}: the API's routes start with /v1/ "
                            "(the list: /docs); a server URL that ends in /v1 doubles it", request=request)
         if exc.status_code == 405:      # Allow: every method of the path, not only the first route's
             methods = allowed_methods(request.app, request.url.path) or [(exc.headers or {}).get("Allow", "GET")]

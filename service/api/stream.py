@@ -212,6 +212,7 @@ class StreamConnection:
                          "mc_samples": options.mc_samples, "variance_threshold": self.session.threshold,
                          "max_expected_error_mm": self.session.max_expected_error_mm,
                          "localiser": localiser is not None,
+                         "localiser_model": None if localiser is None else localiser.provenance(),
                          "limits": {"slices": limits.max_slices, "stacks": limits.max_stacks,
                                     "stack_slices": limits.max_stack_slices,
                                     "pixels_per_slice": limits.max_pixels,

@@ -75,6 +75,17 @@ def test_a_path_with_no_route_says_where_the_routes_are(oracle_client: TestClien
     assert oracle_client.get("/v1/reconstructions/abc").json()["detail"].startswith("job_id: no job")
 
 
+def test_a_trailing_slash_is_not_redirected_and_the_problem_names_the_route(oracle_client: TestClient) -> None:
+    """``POST /v1/predict/`` is a 404 naming ``/v1/predict``, not a 307 (which ``curl -L`` follows by
+    sending the whole upload again)."""
+    r = oracle_client.post("/v1/predict/", files={"stacks": ("a.nii.gz", b"x")}, follow_redirects=False)
+    assert r.status_code == 404 and r.headers["content-type"].startswith("application/problem+json")
+    assert "the route is '/v1/predict', without the trailing slash" in r.json()["detail"]
+    r = oracle_client.get("/v1/reconstructions/abc/", follow_redirects=False)
+    assert r.status_code == 404 and "'/v1/reconstructions/abc', without" in r.json()["detail"]
+    assert "routes start with /v1/" in oracle_client.get("/v1/nothing/", follow_redirects=False).json()["detail"]
+
+
 def test_the_operations_that_need_a_key_say_so_where_keys_are_set(oracle) -> None:  # noqa: ANN001
     """With ``SVRNET_API_KEYS``, every operation the keys protect declares the two ways to send one (so
     the page's "Authorize" sends it), and those open without a key declare none; a server without

@@ -58,6 +58,8 @@ def test_a_session_answers_every_slice_in_order_where_the_truth_is(client, case)
         ws.send_text(json.dumps({"type": "start", "mc_samples": 10, "bias_correction": False}))
         ready = ws.receive_json()
         assert ready["type"] == "ready" and ready["mc_samples"] == 10 and ready["model"]["name"] == "default"
+        assert ready["localiser"] is True and ready["localiser_model"]["name"] == "default"    # the shipped one
+        assert len(ready["localiser_model"]["sha256"]) == 64 and ready["localiser_model"]["version"]
         for frames, truth in zip(stacks, truths):
             for f in frames:
                 send_slice(ws, f)

@@ -689,3 +689,14 @@ def test_a_busy_server_s_retry_after_and_a_wait_that_ran_out_say_what_to_do(caps
     svr.status = lambda job_id: {"job_id": job_id, "status": "running"}          # never ends
     with pytest.raises(WaitTimeout, match="svrnet fetch j1 waits for it again"):
         svr.wait("j1", poll_s=0.0, timeout_s=0.0)
+
+
+def test_a_jobs_urls_are_whole_on_an_80_column_terminal() -> None:
+    """``svrnet status`` prints ``preview_url`` and ``result_url`` whole (folded), not cut with an ellipsis."""
+    from rich.console import Console
+
+    url = "http://scanner-host.example.org:8000/v1/reconstructions/" + "a1b2c3d4" * 4 + "/preview.png"
+    console = Console(width=80, record=True, file=io.StringIO())
+    console.print(views.job_table({"status": "succeeded", "preview_url": url, "result_url": url[:-12]}, "j"))
+    text = re.sub(r"[\s│|]", "", console.export_text())
+    assert url in text and "…" not in text

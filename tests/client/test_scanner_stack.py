@@ -3,6 +3,7 @@ by voxel, as read from a file, and as the server's stream core puts them back to
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import nibabel as nib
@@ -130,6 +131,22 @@ def test_a_file_whose_header_places_its_voxels_nowhere_is_refused_as_the_server_
         read_stack(tmp_path / "old.nii.gz")
     nib.save(nib.Nifti1Image(np.ones((8, 8, 4), np.int16), np.diag([1.1, 1.1, 3.0, 1.0])), tmp_path / "scanner.nii.gz")
     assert len(read_stack(tmp_path / "scanner.nii.gz").slices) == 4
+
+
+def test_nibabels_notes_on_a_header_it_mends_stay_out_of_the_output(tmp_path: Path,
+                                                                      caplog: pytest.LogCaptureFixture) -> None:
+    """A file whose ``pixdim`` is zero where its sform places the voxels: nibabel logs that it sets
+    them to 1 (printed to the terminal by its own handler); the command's output is the command's."""
+    img = nib.Nifti1Image(np.ones((8, 8, 4), np.int16), np.diag([1.1, 1.1, 3.0, 1.0]))
+    img.header["pixdim"][1:4] = 0
+    nib.save(img, tmp_path / "zero.nii.gz")
+    with caplog.at_level(logging.WARNING, logger="nibabel.global"):
+        caplog.handler.setLevel(logging.NOTSET)
+        stack = read_stack(tmp_path / "zero.nii.gz")
+        assert len(stack.slices) == 4 and np.allclose(stack.slices[1].scanner_from_voxel[2, 3], 3.0)
+        assert not [r for r in caplog.records if "pixdim" in r.getMessage()]
+        nib.load(tmp_path / "zero.nii.gz")                   # what nibabel says where it is not held back
+        assert [r for r in caplog.records if "pixdim" in r.getMessage()]
 
 
 def test_a_mask_that_stores_its_stacks_voxels_in_another_order_is_read_in_the_stacks(tmp_path: Path) -> None:
