@@ -140,6 +140,10 @@ def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[
         elif where.get("method") == "network" and float(where.get("confidence") or 0.0) < LOW_CONFIDENCE:
             hints.append(f"{name}: the localiser was unsure of the brain (confidence {where.get('confidence', 0):.2f}); "
                          "check its mask with `svrnet masks`, or upload one with --mask")
+        if (stack.get("consistency") or {}).get("mirrored"):
+            hints.append(f"{name}: its voxels are the mirror image of what its header says, against the other stacks "
+                         "(slices written in reverse order, or rows or columns flipped, without the affine): none of "
+                         "its slices is accepted; convert the series again from the scanner's files (e.g. dcm2niix)")
         lost = [s.get("index") for s in brain if s.get("signal_lost")]
         if lost:
             hints.append(f"{name}: {len(lost)} slice(s) lost the brain's signal (a signal void, motion within the "

@@ -103,6 +103,11 @@ class StackConsistency(BaseModel):
         False, description="the request decided the branch and the stack sits with the request's stacks on it (its "
                            "twin far from them): it is pooled and refined with them, like a stack that decided "
                            "its branch itself")
+    mirrored: bool = Field(
+        False, description="the request's other stacks hold the fetus where this stack does only reflected: its "
+                           "voxels are the mirror image of what its file's header says (slices reversed, or rows "
+                           "or columns flipped, without the affine); none of its slices is accepted "
+                           "(inconsistent_with_stack), and it takes no part in the request's decisions")
     pooled_atlas_from_scanner: Optional[Mat] = Field(
         None, description="4x4: the stack's position after pooling it with the request's other stacks whose "
                           "left-right branch is known (decided by themselves, or agreeing with the request; the "

@@ -126,6 +126,9 @@ class StackFit:
         residual_z: ``[n]`` each slice's ``residual_mm`` in units of the spread that the network's error
             and the others' prediction explain (the measure of :data:`OUTLIER_K`; NaN for a slice that
             may not vote, whose own pose is no measurement: an empty slice; None when undecidable).
+        mirrored: the request's other stacks hold the fetus where this stack, reflected, does: its
+            voxels are the mirror image of what its file says
+            (:func:`~service.consistency.mirrored_stacks.mirrored_stacks`); its branch is not known.
     """
 
     poses: NDArray[np.float64]
@@ -147,6 +150,7 @@ class StackFit:
     branch_from_request: bool = False
     request_distance_mm: tuple[float, float] = (float("nan"), float("nan"))
     residual_z: NDArray[np.float64] | None = None
+    mirrored: bool = False
 
     @property
     def branch_decided(self) -> bool:
@@ -168,8 +172,9 @@ class StackFit:
 
     @property
     def branch_known(self) -> bool:
-        """The branch is decided by the stack itself, or by the request with the stack agreeing."""
-        return self.branch_decided or self.agrees_with_request
+        """The branch is decided by the stack itself, or by the request with the stack agreeing, and
+        the stack is not the mirror image of the request's others (:attr:`mirrored`)."""
+        return (self.branch_decided or self.agrees_with_request) and not self.mirrored
 
 
 def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLike | None = None,

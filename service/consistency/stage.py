@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.consistency.cross_stack import pool_stacks
+from service.consistency.mirrored_stacks import mirrored_stacks
 from service.consistency.stack_fit import StackFit, fit_stack
 from service.geometry import se3
 from service.geometry.pose import translate
@@ -100,15 +101,17 @@ def consistent_poses(mean: NDArray, twin_mass: NDArray, network_from_vox: NDArra
 
 def branch_set(out: StackPoses) -> bool:
     """The stage fitted one consistent stack and its left-right branch is set, by the stack's own
-    slices or by the request's other stacks; otherwise each slice keeps the network's branch.
+    slices or by the request's other stacks; otherwise (and for a stack the request took for
+    mirrored, ``StackFit.mirrored``) each slice keeps the network's branch.
 
     Example:
         >>> from types import SimpleNamespace
-        >>> fit = SimpleNamespace(decidable=True, branch_decided=False, branch_from_request=True)
+        >>> fit = SimpleNamespace(decidable=True, branch_decided=False, branch_from_request=True, mirrored=False)
         >>> branch_set(SimpleNamespace(fit=fit)), branch_set(SimpleNamespace(fit=None))
         (True, False)
     """
-    return out.fit is not None and out.fit.decidable and (out.fit.branch_decided or out.fit.branch_from_request)
+    return (out.fit is not None and out.fit.decidable and (out.fit.branch_decided or out.fit.branch_from_request)
+            and not out.fit.mirrored)
 
 
 def undecided(out: StackPoses) -> bool:
@@ -192,14 +195,35 @@ def request_reference(outs: list[StackPoses]) -> NDArray[np.float64] | None:
     (:func:`fit_stack`'s ``reference``). The mean is taken about the stacks' centre, not the scanner's
     origin (a mean of rigid maps depends on the point they turn about), so where the files place the
     scanner's origin changes nothing."""
-    fits = [o.fit for o in outs if o.fit is not None and o.fit.branch_decided and o.fit.atlas_from_scanner is not None
-            and o.fit.centre is not None and np.isfinite(o.fit.placement_sd_mm)]
+    fits = [o.fit for o in outs if o.fit is not None and o.fit.branch_decided and not o.fit.mirrored
+            and o.fit.atlas_from_scanner is not None and o.fit.centre is not None and np.isfinite(o.fit.placement_sd_mm)]
     if not fits:
         return None
     weights = np.array([1.0 / max(f.placement_sd_mm, 1e-3) ** 2 for f in fits])
     centre = np.mean([f.centre for f in fits], axis=0)
     about = np.stack([f.atlas_from_scanner for f in fits]) @ translate(centre)
     return se3.frechet_mean(about, weights) @ translate(-centre)
+
+
+def mark_mirrored(outs: list[StackPoses], scanner_from_network: list[NDArray], scanner_from_voxel: list[NDArray],
+                  plane_x_mm: float) -> list[int]:
+    """Mark the stacks whose voxels the request finds mirrored against their file's header
+    (:func:`~service.consistency.mirrored_stacks.mirrored_stacks` of the stacks that decided their
+    branch by their own slices), in place: ``StackFit.mirrored``, and every slice inconsistent (none
+    is accepted: each lies on the twin of where the others put it, or its stack cannot be told from
+    its mirror-image partner). Returns their indices.
+
+    ``scanner_from_network``: each stack's slice frames ``[n, 4, 4]`` (network frame -> scanner mm);
+    ``scanner_from_voxel``: each stack's affine.
+    """
+    placements = [o.fit.atlas_from_scanner if o.fit is not None and o.fit.branch_decided else None for o in outs]
+    flagged = mirrored_stacks(placements, scanner_from_network, [np.asarray(a)[:3, :3] for a in scanner_from_voxel],
+                              plane_x_mm)
+    for out, mirrored in zip(outs, flagged):
+        if mirrored:
+            out.fit.mirrored = True
+            out.inconsistent = np.ones(len(out.poses), bool)
+    return [i for i, m in enumerate(flagged) if m]
 
 
 def pool_request(outs: list[StackPoses]) -> None:

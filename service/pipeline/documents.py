@@ -80,6 +80,7 @@ def stack_report(out: StackPoses | None) -> dict | None:
         "branch_decided": fit.branch_decided,
         "branch_from_request": fit.branch_from_request,
         "branch_agrees_with_request": fit.agrees_with_request,
+        "mirrored": fit.mirrored,
     }
     if out.pooled is not None:
         report.update({"pooled_atlas_from_scanner": out.pooled.atlas_from_scanner.tolist(),

@@ -33,7 +33,9 @@ from service.consistency.stage import (
     ImageConsistency,
     StackPoses,
     checked_branch,
+    branch_set,
     consistent_poses,
+    mark_mirrored,
     pool_request,
     request_reference,
     undecided,
@@ -160,8 +162,7 @@ def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPos
 
     ``smoothed``: per stack of the request, its smoothed images made ahead (:func:`smooth_images_ahead`);
     otherwise they are made here, once for both steps."""
-    take = [i for i, o in enumerate(outs) if o.fit is not None and o.fit.decidable
-            and (o.fit.branch_decided or o.fit.branch_from_request)]
+    take = [i for i, o in enumerate(outs) if branch_set(o)]
     if len(take) < 2:
         return
     own = [i for i in take if outs[i].fit.branch_known]
@@ -309,6 +310,9 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
             outs[i] = checked_branch(outs[i], request_reference(outs[:i] + outs[i + 1:]), lambda ref, margin: stack_poses(
                 parts[i], prepared[i], frames[i], True, plane_x_mm, parts[i].spread_mm * scale, orders[i], shape, gain,
                 ref, margin))
+        if stack_consistency:              # a stack whose file mirrors its voxels: out of the request's decisions
+            affines = [s.upload.volume.affine for s in prepared]
+            mark_mirrored(outs, [a @ np.linalg.inv(nfv) for a, nfv in zip(affines, frames)], affines, plane_x_mm)
         reference = request_reference(outs) if stack_consistency else None
         if reference is not None:          # a stack that did not decide its branch takes the others' word
             outs = list(pool.map(lambda e, s, nfv, order, out: stack_poses(

@@ -9,7 +9,7 @@ for ``/v1/predict``, the stream and the poses a reconstruction job starts from a
 Example (a slice of expected error 3 mm, a model floor of 1 mm, 2 mm of frame error added):
     >>> from types import SimpleNamespace
     >>> pose = np.array([[0.0, 0, 1, 40], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]])   # far from its twin
-    >>> fit = SimpleNamespace(decidable=True, branch_decided=True, branch_from_request=False)
+    >>> fit = SimpleNamespace(decidable=True, branch_decided=True, branch_from_request=False, mirrored=False)
     >>> out = SimpleNamespace(expected_error_mm=np.array([3.0]), fit=fit, poses=pose[None], image_consistency=None)
     >>> _ = add_unseen_errors(out, SimpleNamespace(expected_error_floor_mm=1.0), frame_mm=2.0)
     >>> out.expected_error_mm.round(3).tolist()                             # sqrt(9 + 1 + 4)
@@ -71,7 +71,7 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate |
     Example (a sagittal slice 5 mm off the plane, 10 mm from its twin, in a consistent stack):
         >>> from types import SimpleNamespace
         >>> pose = np.array([[0.0, 0, 1, 5], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]])
-        >>> fit = SimpleNamespace(decidable=True, branch_decided=True, branch_from_request=False)
+        >>> fit = SimpleNamespace(decidable=True, branch_decided=True, branch_from_request=False, mirrored=False)
         >>> out = SimpleNamespace(expected_error_mm=np.array([3.0]), fit=fit, poses=pose[None], image_consistency=None)
         >>> info = SimpleNamespace(expected_error_floor_mm=4.0, twin_risk_logit=(-1.0, -0.1))
         >>> _ = add_unseen_errors(out, info); out.expected_error_mm.round(2).tolist()   # sqrt(9 + 16 + 11.92)

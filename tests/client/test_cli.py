@@ -700,3 +700,13 @@ def test_a_jobs_urls_are_whole_on_an_80_column_terminal() -> None:
     console.print(views.job_table({"status": "succeeded", "preview_url": url, "result_url": url[:-12]}, "j"))
     text = re.sub(r"[\s│|]", "", console.export_text())
     assert url in text and "…" not in text
+
+
+def test_a_stack_the_request_found_mirrored_is_named_with_what_to_do() -> None:
+    ok = {"filename": "cor.nii.gz", "consistency": {"mirrored": False}, "slices": [{"accepted": True, "reason": None}] * 3}
+    mirrored = {"filename": "ax.nii.gz", "consistency": {"mirrored": True},
+                "slices": [{"accepted": False, "reason": "inconsistent_with_stack"}] * 3}
+    hints = views.predict_hints({"stacks": [ok, mirrored]})
+    assert [h for h in hints if h.startswith("ax.nii.gz: its voxels are the mirror image")]
+    assert not [h for h in hints if "mirror image" in h and h.startswith("cor.nii.gz")]
+    assert not [h for h in views.predict_hints({"stacks": [ok, ok]}) if "mirror image" in h]

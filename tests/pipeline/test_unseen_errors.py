@@ -20,7 +20,7 @@ def _stack(offsets_mm: list[float], decidable: bool | None) -> StackPoses:
     poses = np.stack([make_pose(SAGITTAL, [x, 3.0, 10.0]) for x in offsets_mm])
     n = len(offsets_mm)
     fit = None if decidable is None else SimpleNamespace(decidable=decidable, branch_decided=decidable,
-                                                         branch_from_request=False)
+                                                         branch_from_request=False, mirrored=False)
     return StackPoses(poses, np.zeros(n), np.zeros(n, bool), np.zeros(n, bool), fit, np.full(n, 3.0))  # type: ignore[arg-type]
 
 
@@ -159,7 +159,8 @@ def test_a_stack_no_image_stage_weighed_again_takes_its_misfit_factor_before_the
     factor = 1.0 + MISFIT_GAIN * (1.7 - MISFIT_ONSET)
     for z, refined, own in (([1.7, 1.7, 0.2], None, 3.0 * factor), ([1.7, 1.7, 0.2], True, 3.0), ([0.5, 0.6, 0.2], None, 3.0)):
         out = _stack([10.0, 20.0, 30.0], decidable=True)
-        out.fit = SimpleNamespace(decidable=True, branch_decided=True, branch_from_request=False, residual_z=np.array(z))
+        out.fit = SimpleNamespace(decidable=True, branch_decided=True, branch_from_request=False, mirrored=False,
+                                  residual_z=np.array(z))
         if refined:
             out.image_consistency = ImageConsistency(2, 10, 3, 0.5, 1.0, 0.8)
         add_unseen_errors(out, info)
