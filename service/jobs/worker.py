@@ -127,12 +127,23 @@ def starting_poses(body: dict, min_share: float = MIN_ACCEPTED_SHARE, min_slices
     ``/v1/predict`` body (:func:`~service.jobs.uploaded_poses.poses_from_predict_body`, accepted as
     :func:`~service.jobs.uploaded_poses.accepted_without_frame` reads them, :func:`starting_inclusion`),
     less the slices whose brain lost its signal (their images would darken the volume where they
-    lie; kept with ``keep_signal_lost``, or where nothing else is left)."""
+    lie; kept with ``keep_signal_lost``, or where nothing else is left), and less every slice of a
+    stack the request found mirrored (``consistency.mirrored``: its slices lie on the twin of where
+    the others put them, and would blend the brain with its mirror image; kept where nothing else is
+    left)."""
     poses = poses_from_predict_body(body, [len(st["slices"]) for st in body["stacks"]])
     poses = [(mats, own) for (mats, _), own in zip(poses, accepted_without_frame(body))]
     started = starting_inclusion(poses, posed_slices(body), min_share, min_slices)
+    mirrored = [bool((st.get("consistency") or {}).get("mirrored")) for st in body["stacks"]]
+    started = _unless_nothing_left(started, [(mats, include & ~m) for (mats, include), m in zip(started, mirrored)])
     kept = [(mats, include & ~lost) for (mats, include), lost in zip(started, signal_lost_slices(body))]
-    return started if keep_signal_lost or not any(include.any() for _, include in kept) else kept
+    return started if keep_signal_lost else _unless_nothing_left(started, kept)
+
+
+def _unless_nothing_left(poses: list[tuple[np.ndarray, np.ndarray]], fewer: list[tuple[np.ndarray, np.ndarray]]
+                         ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``fewer`` (the same poses, fewer slices included), or ``poses`` where ``fewer`` includes none."""
+    return fewer if any(include.any() for _, include in fewer) else poses
 
 
 def start_label(body: dict, poses: list[tuple[np.ndarray, np.ndarray]]) -> str:

@@ -205,3 +205,19 @@ def test_a_job_whose_stacks_hold_no_brain_the_localiser_finds_says_so(tiny_model
     estimator, _ = job_estimator(tiny_model_path)
     with pytest.raises(UnusableImage, match="the localiser found no brain in any stack.*upload a brain mask"):
         predicted_body([upload], estimator, mc_samples=5, localiser=default_localiser())
+
+
+def test_a_job_never_starts_from_a_stack_the_request_found_mirrored() -> None:
+    """Its slices lie on the twin of where the others put them: left out of a start from every slice
+    too (too few accepted), unless nothing else is left."""
+    def stack(mirrored: bool, accepted: tuple[bool, ...]) -> dict:
+        return {"consistency": {"mirrored": mirrored}, "slices": [
+            {"atlas_from_voxel": np.eye(4).tolist(), "accepted": a, "reason": None if a else "inconsistent_with_stack"}
+            for a in accepted]}
+
+    body = {"stacks": [stack(False, (True, False, False)), stack(True, (False, False, False))]}
+    start = starting_poses(body)                                                         # 1 of 6: every slice
+    assert [inc.tolist() for _, inc in start] == [[True, True, True], [False, False, False]]
+    assert start_label(body, start) == "every_slice"
+    alone = {"stacks": [stack(True, (False, False, False))]}
+    assert starting_poses(alone)[0][1].tolist() == [True, True, True]                   # nothing else left
