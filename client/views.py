@@ -141,9 +141,11 @@ def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[
             hints.append(f"{name}: the localiser was unsure of the brain (confidence {where.get('confidence', 0):.2f}); "
                          "check its mask with `svrnet masks`, or upload one with --mask")
         if (stack.get("consistency") or {}).get("mirrored"):
-            hints.append(f"{name}: its voxels are the mirror image of what its header says, against the other stacks "
-                         "(slices written in reverse order, or rows or columns flipped, without the affine): none of "
-                         "its slices is accepted; convert the series again from the scanner's files (e.g. dcm2niix)")
+            hints.append(f"{name}: it lies on the mirror image of where the other stacks put the fetus, so none of its "
+                         "slices is accepted: its file's voxels are most likely reversed or flipped against its header "
+                         "(slices written in reverse order, rows or columns flipped, without the affine): convert the "
+                         "series again from the scanner's files (e.g. dcm2niix); if it was, its own slices decided "
+                         "its left-right branch wrongly: acquire it again")
         lost = [s.get("index") for s in brain if s.get("signal_lost")]
         if lost:
             hints.append(f"{name}: {len(lost)} slice(s) lost the brain's signal (a signal void, motion within the "
@@ -169,6 +171,8 @@ def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[
     if usable(result):
         for stack in stacks:
             if with_brain(stack.get("slices") or []) and not any(s.get("accepted") for s in stack.get("slices") or []):
+                if (stack.get("consistency") or {}).get("mirrored"):
+                    continue                                  # said above, with what to do
                 if stage_off:
                     hints.append(f"{stack.get('filename', '?')}: no slice accepted with {stage_off} off, while the "
                                  "other stacks have some: send the request with every stage on before you acquire "

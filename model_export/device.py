@@ -20,10 +20,9 @@ def resolve_device(name: str) -> torch.device:
 
 
 def fast_cuda(device: torch.device | str) -> None:
-    """On a GPU: TF32 matrix products and convolutions, and cuDNN's fastest algorithm for the
-    network's fixed input shapes (found once). Both are the usual settings for training a CNN;
-    neither changes what runs on a CPU."""
+    """On a GPU: TF32 matrix products and convolutions (the usual setting for training a CNN; nothing
+    changes on a CPU). cuDNN's benchmarked choice of algorithms stays off: it picks by timing, and a
+    run would no longer give the same weights on the same kind of device."""
     if torch.device(device).type == "cuda":
-        torch.backends.cudnn.benchmark = True
         torch.backends.cuda.matmul.allow_tf32 = True
         torch.backends.cudnn.allow_tf32 = True

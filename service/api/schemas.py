@@ -82,7 +82,8 @@ class StackConsistency(BaseModel):
                           "of the fitted motion)")
     inlier_fraction: float = Field(description="share of the usable slices the rigid fit explains")
     twinned_slices: int = Field(description="slices moved to the twin of the network's branch")
-    inconsistent_slices: int = Field(description="slices whose network pose disagreed with the stack model")
+    inconsistent_slices: int = Field(description="slices whose network pose disagreed with the stack model (every "
+                                                 "slice of a mirrored stack)")
     acquisition_order: Optional[str] = Field(None, description="acquisition order the motion model chose among those the request allowed (slice_order): "
                                                      "sequential, interleaved-even-first, interleaved-odd-first, or given")
     motion_bandwidth_slices: Optional[float] = Field(

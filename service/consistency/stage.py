@@ -205,20 +205,17 @@ def request_reference(outs: list[StackPoses]) -> NDArray[np.float64] | None:
     return se3.frechet_mean(about, weights) @ translate(-centre)
 
 
-def mark_mirrored(outs: list[StackPoses], scanner_from_network: list[NDArray], scanner_from_voxel: list[NDArray],
-                  plane_x_mm: float) -> list[int]:
+def mark_mirrored(outs: list[StackPoses], scanner_from_voxel: list[NDArray]) -> list[int]:
     """Mark the stacks whose voxels the request finds mirrored against their file's header
     (:func:`~service.consistency.mirrored_stacks.mirrored_stacks` of the stacks that decided their
     branch by their own slices), in place: ``StackFit.mirrored``, and every slice inconsistent (none
     is accepted: each lies on the twin of where the others put it, or its stack cannot be told from
     its mirror-image partner). Returns their indices.
 
-    ``scanner_from_network``: each stack's slice frames ``[n, 4, 4]`` (network frame -> scanner mm);
     ``scanner_from_voxel``: each stack's affine.
     """
     placements = [o.fit.atlas_from_scanner if o.fit is not None and o.fit.branch_decided else None for o in outs]
-    flagged = mirrored_stacks(placements, scanner_from_network, [np.asarray(a)[:3, :3] for a in scanner_from_voxel],
-                              plane_x_mm)
+    flagged = mirrored_stacks(placements, [np.asarray(a)[:3, :3] for a in scanner_from_voxel])
     for out, mirrored in zip(outs, flagged):
         if mirrored:
             out.fit.mirrored = True

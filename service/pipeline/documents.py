@@ -71,7 +71,7 @@ def stack_report(out: StackPoses | None) -> dict | None:
         "atlas_from_scanner": fit.atlas_from_scanner.tolist() if fit.decidable and fit.atlas_from_scanner is not None else None,
         "inlier_fraction": float(fit.inlier_fraction),
         "twinned_slices": int(fit.twinned.sum()),
-        "inconsistent_slices": int(fit.inconsistent.sum()),
+        "inconsistent_slices": int(out.inconsistent.sum()),
         "acquisition_order": fit.acquisition_order if fit.decidable else None,
         "motion_bandwidth_slices": _finite(fit.bandwidth) if fit.decidable else None,
         "network_error_mm": _finite(fit.noise_mm),

@@ -306,13 +306,17 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
         outs = list(pool.map(lambda e, s, nfv, order: stack_poses(e, s, nfv, stack_consistency, plane_x_mm,
                                                                   e.spread_mm * scale, order, shape, gain),
                              parts, prepared, frames, orders))
-        for i in range(len(outs) if stack_consistency else 0):   # a weak decision checked against the others
-            outs[i] = checked_branch(outs[i], request_reference(outs[:i] + outs[i + 1:]), lambda ref, margin: stack_poses(
+        def check(i: int) -> StackPoses:       # a weak decision checked against the others
+            return checked_branch(outs[i], request_reference(outs[:i] + outs[i + 1:]), lambda ref, margin: stack_poses(
                 parts[i], prepared[i], frames[i], True, plane_x_mm, parts[i].spread_mm * scale, orders[i], shape, gain,
                 ref, margin))
-        if stack_consistency:              # a stack whose file mirrors its voxels: out of the request's decisions
-            affines = [s.upload.volume.affine for s in prepared]
-            mark_mirrored(outs, [a @ np.linalg.inv(nfv) for a, nfv in zip(affines, frames)], affines, plane_x_mm)
+
+        for i in range(len(outs) if stack_consistency else 0):
+            outs[i] = check(i)
+        if stack_consistency:              # a stack whose file mirrors its voxels: out of the request's decisions ...
+            mirrored = mark_mirrored(outs, [s.upload.volume.affine for s in prepared])
+            for i in [i for i in range(len(outs)) if mirrored and i not in mirrored]:
+                outs[i] = check(i)         # ... and out of the others' checks, which it pulled its way
         reference = request_reference(outs) if stack_consistency else None
         if reference is not None:          # a stack that did not decide its branch takes the others' word
             outs = list(pool.map(lambda e, s, nfv, order, out: stack_poses(
