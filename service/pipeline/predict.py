@@ -32,8 +32,8 @@ from service.consistency.slice_order import FROM_FILE, SliceOrder, per_stack
 from service.consistency.stage import (
     ImageConsistency,
     StackPoses,
-    checked_branch,
     branch_set,
+    checked_branch,
     consistent_poses,
     mark_mirrored,
     pool_request,
