@@ -48,11 +48,15 @@ def stack_message(answer: StackAnswer) -> dict:
             "timing_ms": {k: round(v * 1e3, 1) for k, v in answer.timings.items()}}
 
 
-def update_messages(answers: list[SliceAnswer], reacquire_of: dict[str, list[tuple[int, str]]] | None = None) -> list[dict]:
+def update_messages(answers: list[SliceAnswer], reacquire_of: dict[str, list[tuple[int, str]]] | None = None,
+                    consistency: bool = False) -> list[dict]:
     """A stream's ``update`` messages: one per stack, its slices whose pose moved (or whose accept
     flag changed), in the order given; and for each ended stack whose list of slices worth
     acquiring again a later stack's end changed (``reacquire_of``), that list now (``reacquire``),
-    with the slices that moved or none.
+    with the slices that moved or none. With ``consistency`` (the updates a later stack's end made
+    of the stacks ended before it), each stack with moved slices carries its ``consistency`` as the
+    request's stage now sees it: why its slices moved or lost their flags (a stack found
+    ``mirrored`` against the later one).
 
     Example (an earlier stack's list changed, none of its slices moved):
         >>> update_messages([], {"ax": [(3, "high_expected_error")]})
@@ -65,7 +69,8 @@ def update_messages(answers: list[SliceAnswer], reacquire_of: dict[str, list[tup
     for stack in reacquire_of:
         by_stack.setdefault(stack, [])
     return [{"type": "update", "stack": stack, "slices": [pose_object(a) for a in group],
-             **({"reacquire": _reacquire(reacquire_of[stack])} if stack in reacquire_of else {})}
+             **({"reacquire": _reacquire(reacquire_of[stack])} if stack in reacquire_of else {}),
+             **({"consistency": stack_report(group[0].prediction.poses)} if consistency and group else {})}
             for stack, group in by_stack.items()]
 
 

@@ -295,7 +295,7 @@ class StreamConnection:
         others = await self.settle(stack)
         try:
             answer = await self.in_background("end_stack", self.session.end_stack, stack)
-            for message in update_messages(answer.updates, answer.reacquire_of):
+            for message in update_messages(answer.updates, answer.reacquire_of, consistency=True):
                 await self.send(message)
             await self.send(stack_message(answer))
         finally:                                    # a refused end changes nothing: the others' firm-ups run

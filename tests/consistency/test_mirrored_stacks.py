@@ -143,11 +143,12 @@ def test_a_request_with_one_stack_reversed_answers_its_slices_unaccepted_and_kee
     stacks[0] = replace(s, volume=Volume(s.volume.array[:, :, ::-1].copy(), s.volume.affine),
                         mask=Volume(s.mask.array[:, :, ::-1].copy(), s.mask.affine),
                         atlas_from_voxel=s.atlas_from_voxel[::-1] @ shift)
-    answers = []
+    answers, first = [], None
     for request in (stacks, stacks[1:]):
         est = NoisyTwinEstimator(INFO, np.random.default_rng(5), noise_deg=2.0, noise_mm=2.0, other_twin_fraction=0.0)
         (predictions,), _, _ = run_acquisition(request, est, mc_samples=20, bias_correction=False)
         answers.append(stack_objects(predictions))
+        first = first or predictions
     reversed_stack = answers[0][0]
     assert reversed_stack["consistency"]["mirrored"] is True
     assert {sl["reason"] for sl in reversed_stack["slices"]} <= {"inconsistent_with_stack", "empty"}
@@ -161,3 +162,11 @@ def test_a_request_with_one_stack_reversed_answers_its_slices_unaccepted_and_kee
         assert with_it["consistency"]["image_consistency"]["stacks"] == 2
         accepted = [sum(sl["accepted"] for sl in a["slices"]) for a in (with_it, without)]
         assert accepted[0] >= 0.8 * len(with_it["slices"]) and abs(accepted[0] - accepted[1]) <= 2, accepted
+    # A stream whose later stack's end finds an earlier one mirrored says so in that stack's update.
+    from service.api.responses import update_messages
+    from service.streaming.answers import SliceAnswer
+
+    moved = [SliceAnswer("ax", k, first[0], k) for k in range(3)]
+    (update,) = update_messages(moved, consistency=True)
+    assert update["consistency"]["mirrored"] is True and not any(sl["accepted"] for sl in update["slices"])
+    assert "consistency" not in update_messages(moved)[0]                  # a firm-up's: the stack's own fit
