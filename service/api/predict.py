@@ -59,7 +59,7 @@ async def predict(
     stage = lambda key: sum(p.timings.get(key, 0.0) for p in prepared)  # noqa: E731 - CPU time summed over stacks
     return {
         "request_id": request.scope["state"]["request_id"],
-        "model": {"name": model, "version": info.version, "backbone": info.backbone, "sha256": info.sha256},
+        "model": info.reference(model),
         "mc_samples": form.mc_samples, "variance_threshold": threshold, "max_expected_error_mm": max_expected,
         "localiser": None if localiser is None else localiser.provenance(),
         "stacks": stack_objects(predictions),

@@ -207,8 +207,7 @@ class StreamConnection:
         self.session = StreamSession(estimator, localiser, limits, options)
         info = estimator.info
         await self.send({"type": "ready", "session_id": self.session_id,
-                         "model": {"name": model, "version": info.version, "backbone": info.backbone,
-                                   "sha256": info.sha256},
+                         "model": info.reference(model),
                          "mc_samples": options.mc_samples, "variance_threshold": self.session.threshold,
                          "max_expected_error_mm": self.session.max_expected_error_mm,
                          "localiser": localiser is not None,

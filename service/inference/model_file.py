@@ -83,6 +83,19 @@ class ModelInfo:
     :data:`DRAWS_PREFIX` inputs); None: the graph draws its own at every call."""
     metadata: dict[str, str] = field(default_factory=dict, repr=False)
 
+    def reference(self, name: str | None = None) -> dict[str, str]:
+        """The model as an answer names it: ``name`` (the name it is served under; default its own),
+        ``version``, ``backbone`` and ``sha256`` (``/v1/predict``'s ``model``, a stream's ``ready``,
+        a job's provenance, ``GET /v1/models``).
+
+        Example:
+            >>> info = ModelInfo("default", "2.11.2", "resnet18", "anchor", 96, 1.25, 400.0, 0.5, "", "", "ab")
+            >>> info.reference("served")
+            {'name': 'served', 'version': '2.11.2', 'backbone': 'resnet18', 'sha256': 'ab'}
+        """
+        return {"name": self.name if name is None else name, "version": self.version, "backbone": self.backbone,
+                "sha256": self.sha256}
+
     @classmethod
     def from_metadata(cls, meta: dict[str, str], sha256: str) -> "ModelInfo":
         try:

@@ -53,9 +53,8 @@ class ModelRegistry:
         out = []
         for name, est in sorted(self.estimators.items()):
             i = est.info
-            out.append({"name": name, "version": i.version, "backbone": i.backbone, "sha256": i.sha256,
-                        "input_size": i.input_size, "spacing_mm": i.pixel_spacing_mm, "label_type": i.label_type,
-                        "variance_threshold": i.variance_threshold,
+            out.append({**i.reference(name), "input_size": i.input_size, "spacing_mm": i.pixel_spacing_mm,
+                        "label_type": i.label_type, "variance_threshold": i.variance_threshold,
                         "max_expected_error_mm": i.max_expected_error_mm, "trained_on": i.trained_on,
                         "mc_seed": i.mc_seed})
         return out

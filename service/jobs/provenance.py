@@ -17,17 +17,6 @@ from importlib.metadata import PackageNotFoundError, version
 from service.preprocess.localise import Localiser, default_localiser
 
 
-def model_record(info) -> dict:  # noqa: ANN001 - a ModelInfo; its module loads onnxruntime
-    """The pose model as ``/v1/predict`` names it (``name``, ``version``, ``backbone``, ``sha256``).
-
-    Example:
-        >>> from types import SimpleNamespace as U
-        >>> model_record(U(name="default", version="2.11.2", backbone="resnet18", sha256="ab"))["version"]
-        '2.11.2'
-    """
-    return {"name": info.name, "version": info.version, "backbone": info.backbone, "sha256": info.sha256}
-
-
 def localiser_provenance(uploads: list, localiser: Localiser | None) -> dict | None:
     """The localiser (``localiser``, default the shipped one) that found the brain of the stacks
     without a mask, as ``/v1/predict`` names it; None where every stack came with one."""

@@ -34,7 +34,7 @@ from service.consistency.slice_order import SliceOrder, per_stack
 from service.core.errors import Cancelled, InternalError, ServiceError, UnusableImage
 from service.core.logging import error_at
 from service.jobs.store import JobStore
-from service.jobs.provenance import localiser_provenance, model_record, provenance
+from service.jobs.provenance import localiser_provenance, provenance
 from service.jobs.uploaded_poses import (accepted_without_frame, expected_errors, frame_added_mm, posed_slices,
                                         poses_from_predict_body, signal_lost_slices)
 from service.preprocess.intensity import SIGNAL_LOST
@@ -222,7 +222,7 @@ def predicted_body(uploads: list, estimator: PoseEstimator, mc_samples: int = 10
     max_expected = max_expected_error_mm or info.max_expected_error_mm
     predictions, _ = predict(prepared, estimator, mc_samples, threshold, orders=orders, max_expected_error_mm=max_expected)
     masks = [p.slices.to_stack(p.slices.masks) for p in prepared]
-    return {"model": model_record(info), "mc_samples": mc_samples, "variance_threshold": threshold,
+    return {"model": info.reference(), "mc_samples": mc_samples, "variance_threshold": threshold,
             "max_expected_error_mm": max_expected, "localiser": localiser_provenance(uploads, localiser),
             "stacks": stack_objects(predictions)}, masks
 
@@ -348,7 +348,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         poses = poses_from_predict_body(body, counts, [u.volume.affine for u in uploads])
         estimator, plane = job_estimator(model_file, required=False)
         if estimator is not None:       # the job's own model (its frame steps, its report), not the earlier request's
-            body["model"] = model_record(estimator.info)
+            body["model"] = estimator.info.reference()
         masks = uploaded_pose_masks(uploads, localiser)
         started_from = "uploaded_poses"
     else:
