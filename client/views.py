@@ -105,6 +105,11 @@ LARGEST_BRAIN_ML = 700.0
 30-700 ml with their CSF as plausible; a term brain holds about 450)."""
 
 
+def _mirrored(stack: dict[str, Any]) -> bool:
+    """The request found the stack's voxels mirrored against its header (``consistency.mirrored``)."""
+    return bool((stack.get("consistency") or {}).get("mirrored"))
+
+
 def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[str]:
     """What to do about an answer with nothing usable in it: a stack without brain slices, a localiser
     that was unsure, no slice accepted (``stage_off``: the consistency stage the request turned off,
@@ -140,7 +145,7 @@ def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[
         elif where.get("method") == "network" and float(where.get("confidence") or 0.0) < LOW_CONFIDENCE:
             hints.append(f"{name}: the localiser was unsure of the brain (confidence {where.get('confidence', 0):.2f}); "
                          "check its mask with `svrnet masks`, or upload one with --mask")
-        if (stack.get("consistency") or {}).get("mirrored"):
+        if _mirrored(stack):
             hints.append(f"{name}: it lies on the mirror image of where the other stacks put the fetus, so none of its "
                          "slices is accepted: its file's voxels are most likely reversed or flipped against its header "
                          "(slices written in reverse order, rows or columns flipped, without the affine): convert the "
@@ -171,7 +176,7 @@ def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[
     if usable(result):
         for stack in stacks:
             if with_brain(stack.get("slices") or []) and not any(s.get("accepted") for s in stack.get("slices") or []):
-                if (stack.get("consistency") or {}).get("mirrored"):
+                if _mirrored(stack):
                     continue                                  # said above, with what to do
                 if stage_off:
                     hints.append(f"{stack.get('filename', '?')}: no slice accepted with {stage_off} off, while the "

@@ -74,6 +74,12 @@ def update_messages(answers: list[SliceAnswer], reacquire_of: dict[str, list[tup
             for stack, group in by_stack.items()]
 
 
+def end_stack_messages(answer: StackAnswer) -> list[dict]:
+    """What a stack's end sends, on a stream as over MRD: the ``update`` messages of the stacks ended
+    before it (each with its ``consistency`` as the request's stage now sees it), then its ``stack``."""
+    return [*update_messages(answer.updates, answer.reacquire_of, consistency=True), stack_message(answer)]
+
+
 def _reacquire(slices: list[tuple[int, str]]) -> list[dict]:
     return [{"index": k, "reason": r} for k, r in slices]
 

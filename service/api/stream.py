@@ -32,7 +32,8 @@ from starlette.websockets import WebSocketDisconnect, WebSocketDisconnected
 
 from service.api.access import UNAUTHORIZED, api_key_ok, origin_ok
 from service.api.stream_messages import DTYPES, known_fields, parse, slice_header, text_field
-from service.api.responses import error_message, pose_object, stack_message, summary_message, update_messages
+from service.api.responses import (end_stack_messages, error_message, pose_object, summary_message,
+                                   update_messages)
 from service.core.errors import (
     InternalError,
     InvalidParameter,
@@ -294,9 +295,8 @@ class StreamConnection:
         others = await self.settle(stack)
         try:
             answer = await self.in_background("end_stack", self.session.end_stack, stack)
-            for message in update_messages(answer.updates, answer.reacquire_of, consistency=True):
+            for message in end_stack_messages(answer):
                 await self.send(message)
-            await self.send(stack_message(answer))
         finally:                                    # a refused end changes nothing: the others' firm-ups run
             for other in others:
                 self.firm_up(other)

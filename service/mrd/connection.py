@@ -37,17 +37,18 @@ from typing import Any, BinaryIO
 import ismrmrd
 from ismrmrd.serialization import ConfigText, ISMRMRDMessageID
 
-from service.api.responses import error_message, pose_object, stack_message, summary_message, update_messages
+from service.api.responses import (end_stack_messages, error_message, pose_object, summary_message,
+                                   update_messages)
 from service.core.errors import (InternalError, InvalidParameter, PayloadTooLarge, RequestTimeout, ServiceError,
                                  UnusableImage)
 from service.mrd.images import pixel_count, slice_from_image, with_pose
 from service.mrd.protocol import BYTES_PER_VALUE, MAX_TEXT_BYTES, BoundedReader, ProtocolBroken, in_mrd_terms
 from service.streaming.frames import IncompleteStack, SliceFrame, SlicesDropped
+from service.streaming.answers import SessionSummary
 from service.streaming.background import background_executor
+from service.streaming.coverage import Coverage
 from service.streaming.options import SessionOptions, StreamLimits
 from service.streaming.session import StreamSession
-from service.streaming.answers import SessionSummary
-from service.streaming.coverage import Coverage
 
 log = logging.getLogger(__name__)
 
@@ -310,9 +311,8 @@ class MrdConnection:
             self.send_error(InternalError("stack: the server failed on this series"), series=series_index)
         else:
             self.counts["stacks"] += 1
-            for message in update_messages(answer.updates, answer.reacquire_of):   # earlier stacks' slices it moved
+            for message in end_stack_messages(answer):      # earlier stacks' slices it moved, then its own
                 self.send_text(message)
-            self.send_text(stack_message(answer))
         for other in others:                               # the other series' firm-ups, still to come
             self.firm_up(other)
         self.series[series_index] = next_pass

@@ -315,8 +315,8 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
             outs[i] = check(i)
         if stack_consistency:              # a stack whose file mirrors its voxels: out of the request's decisions ...
             mirrored = mark_mirrored(outs, [s.upload.volume.affine for s in prepared])
-            for i in [i for i in range(len(outs)) if mirrored and i not in mirrored]:
-                outs[i] = check(i)         # ... and out of the others' checks, which it pulled its way
+            if mirrored:                   # ... and out of the others' checks, which it pulled its way
+                outs = [out if i in mirrored else check(i) for i, out in enumerate(outs)]
         reference = request_reference(outs) if stack_consistency else None
         if reference is not None:          # a stack that did not decide its branch takes the others' word
             outs = list(pool.map(lambda e, s, nfv, order, out: stack_poses(

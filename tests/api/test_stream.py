@@ -368,7 +368,7 @@ def test_auth_after_start_is_refused_and_keeps_no_session_alive(case) -> None:  
 def test_ending_a_stack_keeps_the_firm_up_another_stack_has_queued(monkeypatch: pytest.MonkeyPatch) -> None:
     """One stack's end waits for the running firm-up only; another stack's queued one runs after it,
     and an end the session refuses changes nothing: the queued firm-up still runs."""
-    monkeypatch.setattr(stream, "stack_message", lambda answer: {"type": "stack"})
+    monkeypatch.setattr(stream, "end_stack_messages", lambda answer: [{"type": "stack"}])
     session = GatedSession(held="a", stacks=("a", "b"))
     conn = object.__new__(stream.StreamConnection)         # the queue alone: no socket
     conn.session, conn.dirty, conn.firming, conn.sent = session, set(), None, []

@@ -33,7 +33,7 @@ def _connection(session: GatedSession) -> MrdConnection:
 
 
 def test_ending_a_series_keeps_the_firm_up_another_series_has_queued(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(mrd_connection, "stack_message", lambda answer: {"type": "stack"})
+    monkeypatch.setattr(mrd_connection, "end_stack_messages", lambda answer: [{"type": "stack"}])
     session = GatedSession(held="0.1", stacks=("0.1", "1.1"))
     conn = _connection(session)
     conn.series = {0: SeriesState("0.1", {0, 1}), 1: SeriesState("1.1", {0})}
