@@ -122,27 +122,64 @@ def test_groups_of_stacks_no_pair_links_are_judged_apart() -> None:
     assert flags == [True, False, False, False, False]
 
 
-def test_a_request_with_one_stack_reversed_answers_its_slices_unaccepted_and_keeps_the_others() -> None:
-    """Through the predict pipeline (phantom acquisition, an estimator giving each slice's truth or
-    twin, as the network sees the slice): one stack's voxels reversed along its slice axis, affine
-    kept. Its stack says ``mirrored`` and none of its slices is accepted (``inconsistent_with_stack``);
-    the other two stacks are answered as without it."""
+def reversed_voxels(s, axis: int):  # noqa: ANN001, ANN201 - a SimulatedStack
+    """``s`` with its voxels reversed along ``axis`` (0, 1 in-plane; 2 the slices) and its affine kept,
+    and the truth of what each voxel now holds: voxel ``(i, j, k)`` holds what ``(i, j, n - 1 - k)``
+    (or ``(w - 1 - i, j, k)``, ...) held, so slice ``k``'s pose is the old pose of the slice it came
+    from, composed with that move of the voxel grid (for an in-plane axis, the proper map that also
+    turns the slice's normal: it agrees with the reflection on the slice's own plane)."""
+    from service.io.volume import Volume
+
+    n, size = len(s.atlas_from_voxel), s.volume.array.shape[axis]
+    move = np.tile(np.eye(4), (n, 1, 1))
+    if axis == 2:
+        old = s.atlas_from_voxel[::-1]
+        move[:, 2, 3] = n - 1 - 2 * np.arange(n)                 # k -> n - 1 - k
+    else:
+        old = s.atlas_from_voxel
+        move[:, axis, axis], move[:, axis, 3] = -1.0, size - 1   # i -> size - 1 - i ...
+        move[:, 2, 2], move[:, 2, 3] = -1.0, 2 * np.arange(n)    # ... and the normal turned about slice k
+    flip = lambda v: Volume(np.flip(v.array, axis).copy(), v.affine)  # noqa: E731
+    return replace(s, volume=flip(s.volume), mask=flip(s.mask), atlas_from_voxel=old @ move)
+
+
+def test_reversed_voxels_are_what_the_truth_says_they_hold() -> None:
+    """The simulated truth of a reversed stack: every voxel, placed by its slice's new pose, lands
+    where the old pose put the voxel it came from."""
+    from model_export.acquisitions import simulate_acquisition
+    from tests.support.phantoms import phantom_brain
+
+    img, mask, aff = phantom_brain(0)
+    s = simulate_acquisition(img, mask, aff, np.random.default_rng(4), "mild", size=64, pixel_mm=1.6)[0]
+    n, (w, h, _) = len(s.atlas_from_voxel), s.volume.array.shape
+    for axis in range(3):
+        r = reversed_voxels(s, axis)
+        for k in (0, n // 2, n - 1):
+            for i, j in ((0, 0), (5, 60), (63, 17)):
+                src = [i, j, k]
+                src[axis] = (w, h, n)[axis] - 1 - src[axis]
+                new_place = r.atlas_from_voxel[k] @ [i, j, k, 1.0]
+                old_place = s.atlas_from_voxel[src[2]] @ [*src, 1.0]
+                assert np.allclose(new_place, old_place), (axis, k, i, j)
+                assert np.isclose(np.linalg.det(r.atlas_from_voxel[k][:3, :3]), np.linalg.det(s.atlas_from_voxel[k][:3, :3]))
+                assert r.volume.array[i, j, k] == s.volume.array[src[0], src[1], src[2]]
+
+
+@pytest.mark.parametrize("axis", [2, 1])
+def test_a_request_with_one_stack_reversed_answers_its_slices_unaccepted_and_keeps_the_others(axis: int) -> None:
+    """Through the predict pipeline (phantom acquisition, an estimator giving each slice's simulated
+    truth or twin, as the network sees the slice): one stack's voxels reversed along its slice axis,
+    or along its rows, affine kept. Its stack says ``mirrored`` and none of its slices is accepted
+    (``inconsistent_with_stack``); the other two stacks are answered as without it."""
     from model_export.acquisitions import simulate_acquisition
     from model_export.evaluate_acquisitions import NoisyTwinEstimator, run_acquisition
-    from service.io.volume import Volume
     from service.pipeline.documents import stack_objects
     from tests.api.conftest import INFO
     from tests.support.phantoms import phantom_brain
 
     img, mask, aff = phantom_brain(0)
     stacks = simulate_acquisition(img, mask, aff, np.random.default_rng(4), "mild", size=64, pixel_mm=1.6)
-    s = stacks[0]
-    n = len(s.atlas_from_voxel)
-    shift = np.tile(np.eye(4), (n, 1, 1))
-    shift[:, 2, 3] = n - 1 - 2 * np.arange(n)                  # voxel k now holds what voxel n-1-k held
-    stacks[0] = replace(s, volume=Volume(s.volume.array[:, :, ::-1].copy(), s.volume.affine),
-                        mask=Volume(s.mask.array[:, :, ::-1].copy(), s.mask.affine),
-                        atlas_from_voxel=s.atlas_from_voxel[::-1] @ shift)
+    stacks[0] = reversed_voxels(stacks[0], axis)
     answers, first = [], None
     for request in (stacks, stacks[1:]):
         est = NoisyTwinEstimator(INFO, np.random.default_rng(5), noise_deg=2.0, noise_mm=2.0, other_twin_fraction=0.0)
