@@ -39,6 +39,7 @@ Example (a stack and its copy whose slices were written in reverse order):
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from itertools import combinations, product
 
 import numpy as np
@@ -55,8 +56,9 @@ MIRROR_MARGIN = 3.0
 as it is at least this many times as far (as a stack's own branch is overruled by the request:
 ``stage.OVERRULE_MARGIN``)."""
 MAX_STACKS = 12
-"""Handedness is assigned by trying every assignment of a group of related stacks (``2 ** stacks``);
-a group of more stacks than this is not checked."""
+"""Handedness is assigned by trying every assignment of a group of related stacks (``2 ** stacks``)
+up to this many stacks; a larger group is searched from each stack's propagated handedness, one
+stack turned over at a time while that satisfies more pairs (:func:`_local_best`)."""
 MIRROR = twin.mirror()[:3, :3]
 """The atlas's left-right reflection, its linear part (:func:`~service.geometry.twin.mirror`)."""
 
@@ -97,7 +99,7 @@ def mirrored_stacks(placements: list[NDArray | None], axes: list[NDArray]) -> li
         Per stack, whether it is taken for mirrored: within its group of related stacks, on the
         smaller side of the handedness that satisfies the most pairs of stacks that agree or are
         mirror images (both sides where they are even; a stack related to no other has no side). A
-        group with no mirror-image pair, or of more than :data:`MAX_STACKS` stacks, has none.
+        group with no mirror-image pair has none.
 
     Example (three stacks, the first the mirror image of two that agree):
         >>> from service.geometry import se3
@@ -117,7 +119,7 @@ def mirrored_stacks(placements: list[NDArray | None], axes: list[NDArray]) -> li
             pairs[i, j] = kind
     for group in _groups(pairs):
         within = {pair: kind for pair, kind in pairs.items() if pair[0] in group}
-        if "mirrored" in within.values() and len(group) <= MAX_STACKS:
+        if "mirrored" in within.values():
             for i in _smaller_sides(group, within):
                 flagged[i] = True
     return flagged
@@ -135,23 +137,57 @@ def _groups(pairs: dict[tuple[int, int], str]) -> list[list[int]]:
     return [sorted(k for k, g in group.items() if g == root) for root in sorted(set(group.values()))]
 
 
-def _smaller_sides(group: list[int], pairs: dict[tuple[int, int], str]) -> set[int]:
+def _smaller_sides(group: list[int], pairs: dict[tuple[int, int], str],
+                   exhaustive_up_to: int = MAX_STACKS) -> set[int]:
     """The stacks of ``group`` on the smaller side of each handedness that satisfies the most of its
-    ``pairs`` (both sides where they are even)."""
-    best, ties = -1, []
-    for signs in product((1, -1), repeat=len(group) - 1):    # the first stack's handedness fixed at +1
-        hand = dict(zip(group, (1, *signs)))
-        score = sum((hand[i] == hand[j]) == (kind == "same") for (i, j), kind in pairs.items())
-        if score > best:
-            best, ties = score, [hand]
-        elif score == best:
-            ties.append(hand)
+    ``pairs`` (both sides where they are even): every handedness tried up to ``exhaustive_up_to``
+    stacks, the local optima of :func:`_local_best` beyond."""
+    def score(hand: dict[int, int]) -> int:
+        return sum((hand[i] == hand[j]) == (kind == "same") for (i, j), kind in pairs.items())
+
+    if len(group) <= exhaustive_up_to:
+        hands = [dict(zip(group, (1, *signs))) for signs in product((1, -1), repeat=len(group) - 1)]
+    else:
+        hands = _local_best(group, pairs, score)
+    scores = [score(hand) for hand in hands]
     out: set[int] = set()
-    for hand in ties:
+    for hand in (h for h, sc in zip(hands, scores) if sc == max(scores)):
         plus = [i for i in group if hand[i] == 1]
         minus = [i for i in group if hand[i] == -1]
         out.update(minus if len(minus) < len(plus) else plus if len(plus) < len(minus) else plus + minus)
     return out
+
+
+def _local_best(group: list[int], pairs: dict[tuple[int, int], str],
+                score: Callable[[dict[int, int]], int]) -> list[dict[int, int]]:
+    """Handedness assignments of a large ``group``: from each stack, its handedness carried to the
+    others along the ``pairs`` (breadth first: a stack takes its first related neighbour's, the
+    same or the opposite), then one stack at a time turned over while that satisfies more pairs.
+    Where the pairs agree with each other (every request but one with a stack the fetus left
+    mid-way) the first assignment satisfies them all, and it is the one answer, as the exhaustive
+    search finds; the search is linear in the stacks and quadratic in the pairs."""
+    links: dict[int, list[tuple[int, int]]] = {i: [] for i in group}
+    for (i, j), kind in pairs.items():
+        sign = 1 if kind == "same" else -1
+        links[i].append((j, sign))
+        links[j].append((i, sign))
+    found = []
+    for root in group:
+        hand, queue = {root: 1}, [root]
+        for i in queue:
+            for j, sign in links[i]:
+                if j not in hand:
+                    hand[j] = hand[i] * sign
+                    queue.append(j)
+        best = score(hand)
+        while True:
+            turned = [{**hand, i: -hand[i]} for i in group]
+            gains = [score(h) for h in turned]
+            if max(gains) <= best:
+                break
+            best, hand = max(gains), turned[int(np.argmax(gains))]
+        found.append({i: hand[i] * hand[group[0]] for i in group})      # the first stack at +1, as above
+    return [dict(t) for t in {tuple(sorted(h.items())) for h in found}]
 
 
 __all__ = ["MAX_STACKS", "MIRROR_MARGIN", "SAME_TURN_DEG", "mirrored_stacks", "relation"]

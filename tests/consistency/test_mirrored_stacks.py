@@ -7,6 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from service.consistency import mirrored_stacks as mirrored_stacks_module
 from service.consistency.mirrored_stacks import SAME_TURN_DEG, mirrored_stacks, relation
 from service.geometry import se3, twin
 from service.geometry.pose import make_pose
@@ -120,6 +121,38 @@ def test_groups_of_stacks_no_pair_links_are_judged_apart() -> None:
     order = [0, 1, 2, 1, 2]
     flags = mirrored_stacks(placed, [affines[i][:3, :3] for i in order])
     assert flags == [True, False, False, False, False]
+
+
+def test_a_request_of_more_stacks_than_the_exhaustive_search_takes_finds_its_mirrored_ones() -> None:
+    """Twenty stacks of one fetus (the three orientations in turn), two of them reflected: those two
+    are flagged, and none of the same request without them."""
+    rng = np.random.default_rng(3)
+    affines = orthogonal_stacks(rng)
+    true = [p for _ in range(7) for p in placements(rng)][:20]
+    order = [k % 3 for k in range(20)]
+    base = se3.exp(np.array([0.4, -0.3, 0.2, 3.0, 1.0, -2.0]))
+    placed = [base @ q @ np.linalg.inv(true[0]) for q in true]
+    assert mirrored_stacks(placed, [affines[i][:3, :3] for i in order]) == [False] * 20
+    for k in (4, 13):
+        placed[k] = twin.mirror(PLANE_X_MM) @ placed[k] @ reflection(affines[order[k]], 2, 11.5)
+    flags = mirrored_stacks(placed, [affines[i][:3, :3] for i in order])
+    assert [k for k, f in enumerate(flags) if f] == [4, 13]
+
+
+def test_the_large_groups_search_answers_as_the_exhaustive_one_where_the_pairs_agree() -> None:
+    """On 200 random groups of 4-12 stacks whose pairs (about half of them known) agree with one
+    handedness, the search for large groups flags the same stacks as trying every assignment."""
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        n = int(rng.integers(4, 13))
+        hand = rng.choice([1, -1], n)
+        pairs = {(i, j): "same" if hand[i] == hand[j] else "mirrored"
+                 for i in range(n) for j in range(i + 1, n) if rng.random() < 0.5}
+        for group in mirrored_stacks_module._groups(pairs):
+            within = {pair: kind for pair, kind in pairs.items() if pair[0] in group}
+            exhaustive = mirrored_stacks_module._smaller_sides(group, within)
+            searched = mirrored_stacks_module._smaller_sides(group, within, exhaustive_up_to=0)
+            assert searched == exhaustive
 
 
 def reversed_voxels(s, axis: int):  # noqa: ANN001, ANN201 - a SimulatedStack
