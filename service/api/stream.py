@@ -200,12 +200,12 @@ class StreamConnection:
             await self.send(error_message(busy, retry_after_s=self.settings.retry_after_s))
             await self.ws.close(TRY_AGAIN_LATER)
             raise _Closed
-        state.stream_sessions += 1                  # a slot from the session's start, not the connection's
-        self.counted = True
-        self.model = model
         localiser = self.localisers.get() if self.localisers.localisers else None
         limits = StreamLimits.of(self.settings)
         self.session = StreamSession(estimator, localiser, limits, options)
+        self.model = model
+        state.stream_sessions += 1                  # a slot from the session's start (once it stands), not the connection's
+        self.counted = True
         info = estimator.info
         await self.send({"type": "ready", "session_id": self.session_id,
                          "model": info.reference(model),

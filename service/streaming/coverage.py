@@ -32,6 +32,8 @@ from numpy.typing import NDArray
 from scipy import ndimage
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
+from service.inference.acceptance import ATLAS_CENTRE_MM
+
 GRID_MM = 2.0
 """Spacing of the atlas-space grid coverage is counted on."""
 MAX_HULL_POINTS = 4000
@@ -45,6 +47,15 @@ concavities is not: counted so, simulated sessions read as covered as the truth 
 where the hull alone reads a false gap below the frontal lobes (the figures: docs/realtime.md)."""
 MIN_GAP_ML = 0.1
 MAX_GAPS = 5
+BRAIN_REACH_MM = 90.0
+"""Brain pixels further than this from the atlas brain's centre
+(:data:`~service.inference.acceptance.ATLAS_CENTRE_MM`) are left out: the largest atlas brains reach
+about 60 mm from it, and a slice's mask drawn over its whole field of view (up to a metre a side)
+would otherwise make the grid, which grows with the cube of the pixels' extent, gigabytes."""
+MAX_REACH_PIXELS = 2_000_000
+"""Brain pixels kept (evenly, per slice) to tell which grid points lie within reach of one: at most
+about this many over a session (48 MB), so that a session's memory limit, which counts its slices'
+pixels, also bounds coverage's."""
 
 
 @dataclass(frozen=True)
@@ -84,13 +95,24 @@ class Coverage:
 
 
 def brain_points(slices: list[CoveredSlice], every: bool = False) -> NDArray[np.float64]:
-    """Atlas mm of the slices' brain pixels (an even subset of at most :data:`MAX_HULL_POINTS`, or
-    ``every`` one: :func:`hull_points` takes the subset of those)."""
+    """Atlas mm of the slices' brain pixels within :data:`BRAIN_REACH_MM` of the atlas brain's centre
+    (an even subset of at most :data:`MAX_HULL_POINTS`, or ``every`` one, up to an even share of
+    :data:`MAX_REACH_PIXELS` per slice: :func:`hull_points` takes the subset of those).
+
+    Example (a mask over a 600 mm field of view keeps the pixels near the atlas brain alone):
+        >>> a = np.diag([2.0, 2.0, 3.0, 1.0]); a[:3, 3] = (-300.0, -300.0, 0.0)
+        >>> pts = brain_points([CoveredSlice(a, np.ones((300, 300), bool))], every=True)
+        >>> len(pts) < 300 * 300 / 10, bool(np.abs(pts).max() < 100)
+        (True, True)
+    """
     pts = []
+    share = max(1, MAX_REACH_PIXELS // max(1, len(slices)))
     for s in slices:
         idx = np.argwhere(np.asarray(s.mask))
         if len(idx):
-            pts.append(idx @ s.atlas_from_voxel[:3, :2].T + s.atlas_from_voxel[:3, 3])
+            found = idx @ s.atlas_from_voxel[:3, :2].T + s.atlas_from_voxel[:3, 3]
+            found = found[np.linalg.norm(found - ATLAS_CENTRE_MM, axis=1) <= BRAIN_REACH_MM]
+            pts.append(found[:: max(1, -(-len(found) // share))])
     if not pts:
         return np.zeros((0, 3))
     found = np.concatenate(pts)

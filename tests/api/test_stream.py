@@ -265,6 +265,27 @@ def test_another_site_s_page_cannot_open_a_session_without_keys(case) -> None:  
             assert ws.receive_json()["type"] == "ready"
 
 
+def test_a_start_that_fails_takes_no_session_slot(case, monkeypatch) -> None:  # noqa: ANN001
+    """A start refused after the slots were counted (here: its session cannot be made) answers an
+    error each time it is sent, and the slots are all free once the client goes: retries do not
+    hold slots for good."""
+    from service.api import stream
+    from service.core.errors import InvalidParameter
+
+    def refused(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        raise InvalidParameter("start: refused by the test")
+
+    monkeypatch.setattr(stream, "StreamSession", refused)
+    with make_client(ModelRegistry({"default": case[0]}), stream_max_sessions=3) as client:
+        with client.websocket_connect("/v1/stream") as ws:
+            for _ in range(3):
+                ws.send_text(json.dumps({"type": "start", "mc_samples": 5}))
+                error = ws.receive_json()
+                assert error["type"] == "error" and "refused by the test" in error["detail"]
+                assert client.app.state.stream_sessions == 0
+        assert client.app.state.stream_sessions == 0
+
+
 def test_a_session_slot_is_taken_by_a_start_and_a_connection_that_never_starts_is_closed(case, monkeypatch) -> None:  # noqa: ANN001
     """One session slot: a connection that says nothing holds none (another starts its session
     beside it) and is closed going away after the start deadline; a start while the slot is taken

@@ -86,3 +86,24 @@ def test_coverage_without_a_volume_says_it_is_not_measured() -> None:
     one = ball_stack(rotation, keep=[10])
     assert coverage(one).report() == {"brain_fraction": 0.0, "brain_volume_ml": 0.0, "gaps": [], "measured": False}
     assert coverage(ball_stack(rotation)).report()["measured"] is True
+
+
+def test_masks_over_the_whole_field_of_view_count_the_atlas_brains_reach_alone() -> None:
+    """Four slices of 640 mm fields of view whose masks are all brain (a client's, accepted by its own
+    thresholds) in four orientations: coverage counts only what lies within the atlas brain's reach,
+    so its grid stays that size (the whole fields of view made a grid of gigabytes and 4.7 litres)."""
+    from service.inference.acceptance import ATLAS_CENTRE_MM
+    from service.streaming.coverage import BRAIN_REACH_MM
+
+    rng = np.random.default_rng(2)
+    slices = []
+    for _ in range(4):
+        turn = se3.exp(np.concatenate([rng.normal(0, 1, 3), np.zeros(3)]))[:3, :3]
+        a = np.eye(4)
+        a[:3, :3] = turn @ np.diag([2.5, 2.5, 3.0])
+        a[:3, 3] = ATLAS_CENTRE_MM - turn @ np.array([320.0, 320.0, 0.0])
+        slices.append(CoveredSlice(a, np.ones((256, 256), bool)))
+    pts = brain_points(slices, every=True)
+    assert np.linalg.norm(pts - ATLAS_CENTRE_MM, axis=1).max() <= BRAIN_REACH_MM
+    c = coverage(slices)
+    assert c.measured and 0 < c.brain_volume_ml <= 4 / 3 * np.pi * BRAIN_REACH_MM ** 3 / 1000
