@@ -176,6 +176,10 @@ def _mosaic(ds, pixels: np.ndarray, filename: str) -> Volume:  # noqa: ANN001
     if empty.size:
         raise UnusableImage(f"{filename}: tile {empty[0]} of the mosaic's {n} images (NumberOfImagesInMosaic) is empty")
     stack = tiles[:n]
+    tags = [(getattr(ds, "ImagePositionPatient", None), getattr(ds, "ImageOrientationPatient", None),
+             getattr(ds, "PixelSpacing", None))]
+    if (problem := series_problem(tags, "frames")) is not None:     # as a classic file's are checked
+        raise UnusableImage(f"{filename}: {problem}")
     row_dir, col_dir = _orientation(getattr(ds, "ImageOrientationPatient", None))
     ps = [float(x) for x in ds.PixelSpacing]
     stated_normal, tile_times = _csa_slices(ds, n, filename)

@@ -133,7 +133,10 @@ def check_pixels(ds: Dataset, filename: str, budget: FileBudget) -> None:
 
 def _rle_fits(frame: bytes, segment_bytes: int, max_segments: int) -> bool:
     """Whether every RLE segment of ``frame`` decodes to at most ``segment_bytes`` (counted, not decoded;
-    a segment that has decoded whole may end in the one pad byte of PS3.5 Annex G, nothing more).
+    a segment that has decoded whole may end in the one pad byte of PS3.5 Annex G, nothing more). A
+    segment longer than twice ``segment_bytes`` is refused before it is read: no encoder writes one,
+    and its no-op bytes (128) would otherwise be stepped over one by one, a Python loop over all of
+    a file's bytes.
 
     Example (one segment of 4 bytes: a literal run of 3, then a repeat of 1, padded to even length):
         >>> header = (1).to_bytes(4, "little") + (64).to_bytes(4, "little") + bytes(56)
@@ -147,8 +150,8 @@ def _rle_fits(frame: bytes, segment_bytes: int, max_segments: int) -> bool:
         return False
     offsets = [int.from_bytes(frame[4 + 4 * i:8 + 4 * i], "little") for i in range(n)] + [len(frame)]
     for start, end in zip(offsets, offsets[1:]):
-        if not 64 <= start <= end <= len(frame):
-            return False
+        if not 64 <= start <= end <= len(frame) or end - start > 2 * segment_bytes + 2:
+            return False            # longer than any encoding of it (each byte its own literal run) is
         seg, pos, out = frame[start:end], 0, 0
         while pos < len(seg):
             if out == segment_bytes:        # decoded whole: one byte more pads the segment to an even length

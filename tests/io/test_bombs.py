@@ -318,6 +318,18 @@ def test_rle_frames_padded_to_an_even_length_are_read(tmp_path: Path) -> None:
         read(tmp_path, corpus.encapsulated([corpus.rle_bomb()], 8, 8, uid.RLELossless), "lying.dcm")
 
 
+def test_an_rle_segment_longer_than_any_encoding_of_its_pixels_is_refused_unread() -> None:
+    """A segment of RLE's no-op bytes (128) decodes to nothing however long it is: one twice as long as
+    its pixels' bytes is refused before it is stepped through (30 MB of them, 60 KB zipped, took
+    12.6 s of CPU to refuse); a real encoder's longest segment (every byte its own literal run) fits."""
+    from service.io.dicom_guard import _rle_fits
+
+    header = (1).to_bytes(4, "little") + (64).to_bytes(4, "little") + bytes(56)
+    assert not _rle_fits(header + bytes([128]) * (2 * 64 + 3), 64, 1)
+    assert _rle_fits(header + bytes([0, 7]) * 64, 64, 1)                # 64 literal runs of one byte
+    assert not _rle_fits(header + bytes([0, 7]) * 65, 64, 1)            # one byte too many decoded
+
+
 def _decoded_before_the_end(frame: bytes) -> int:
     """How many of ``frame``'s RLE segments hold their pixels' bytes before their last byte (padded)."""
     n = int.from_bytes(frame[:4], "little")

@@ -96,6 +96,27 @@ def test_a_mosaic_of_oblong_pixels_takes_each_spacing_along_its_own_axis(tmp_pat
     np.testing.assert_allclose(tile_centre[:3], centre_lps * [-1, -1, 1], atol=1e-9)
 
 
+@pytest.mark.parametrize(("tag", "value", "needle"), [
+    ("PixelSpacing", [-2.0, 2.0], "PixelSpacing is missing or not positive"),          # read as a mirrored image
+    ("ImageOrientationPatient", [2, 0, 0, 0, 2, 0], "not two unit vectors"),          # read as 2 mm voxels
+    ("ImageOrientationPatient", [1, 0, 0, 0.5, 0.866, 0], "not two unit vectors at right angles"),
+])
+def test_a_mosaic_s_geometry_is_checked_as_a_classic_file_s(tmp_path: Path, tag: str, value: list,
+                                                            needle: str) -> None:
+    """A mosaic's PixelSpacing and ImageOrientationPatient pass the checks a classic file's do: a
+    negative spacing (a mirrored stack) or orientation vectors that are not unit and at right angles
+    are refused, not read into a wrong geometry."""
+    import pydicom
+
+    slices = (np.random.default_rng(6).random((10, 24, 20)) * 1000 + 100).astype(np.uint16)
+    path = _mosaic_file(tmp_path / "m.dcm", slices, 10, None)
+    ds = pydicom.dcmread(str(path))
+    setattr(ds, tag, value)
+    ds.save_as(str(path))
+    with pytest.raises(UnusableImage, match=needle):
+        read_upload(path, "m.dcm")
+
+
 @pytest.mark.parametrize(("declared", "matrix", "needle"), [
     (2, None, "beyond its NumberOfImagesInMosaic 2"),          # 2 x 2 tiles of 48 x 40: images after the 2nd
     (9, None, "does not fit a mosaic of 96 x 80"),             # 3 x 3 tiles: 80 / 3 pixels
