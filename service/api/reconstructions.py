@@ -32,6 +32,7 @@ from service.core.errors import (Conflict, InvalidParameter, NotFound, PayloadTo
                                  UnusableImage)
 from service.core.settings import Settings
 from service.io.acquisition_geometry import MAX_VOXEL_MM, MIN_VOXEL_MM
+from service.jobs.job_inputs import keep_decoded
 from service.jobs.store import Job, JobStore
 from service.jobs.uploaded_poses import in_upload_order, poses_from_predict_body
 from service.reconstruction.config import ReconstructionConfig
@@ -212,6 +213,7 @@ async def _keep_submission(request: Request, response: Response, settings: Setti
         # other request and stream meanwhile.
         await to_thread.run_sync(check_submission, uploads, form.orders, poses_text, inputs,
                                  job.params["resolution_mm"])
+        await to_thread.run_sync(keep_decoded, uploads, inputs)      # the voxels wait for a worker, not the files
     except Exception:
         await to_thread.run_sync(store.delete, job.id)     # rejected input (or a client gone) leaves no job behind
         raise

@@ -1,6 +1,7 @@
 """Job execution in worker processes (bounded concurrency), outside the request handlers.
 
-A job folder holds ``inputs/`` (the uploaded stacks and masks as sent, ``params.json``, ``names.json``,
+A job folder holds ``inputs/`` (the uploaded stacks and masks as the submission decoded them,
+:mod:`service.jobs.job_inputs`; ``params.json``, ``names.json``,
 optional ``poses.json``: :mod:`service.jobs.uploaded_poses`) while the job is queued or running --
 they are deleted as soon as it ends, whatever the outcome -- and, once done, ``outputs/``
 (``volume.nii.gz``, ``preview.png``, ``report.json``, ``transforms/`` and ``transforms.zip``,
@@ -33,6 +34,7 @@ import numpy as np
 from service.consistency.slice_order import SliceOrder, per_stack
 from service.core.errors import Cancelled, InternalError, ServiceError, UnusableImage
 from service.core.logging import error_at
+from service.jobs.job_inputs import decoded_files, load_volume
 from service.jobs.store import JobStore
 from service.jobs.provenance import localiser_provenance, provenance
 from service.jobs.uploaded_poses import (accepted_without_frame, expected_errors, frame_added_mm, posed_slices,
@@ -320,7 +322,8 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     if not (folder / "inputs" / "params.json").is_file():
         raise InternalError(MISSING_UPLOADS)
     params = json.loads((folder / "inputs" / "params.json").read_text())
-    files = _stack_files(folder / "inputs")
+    kept = decoded_files(folder / "inputs")
+    files = kept or _stack_files(folder / "inputs")     # files as sent: a job queued by an earlier version
     orders = per_stack([SliceOrder.parse(t) for t in params.get("slice_order") or []], len(files))
     thickness = params.get("slice_thickness_mm") or [None] * len(files)       # the client's word over the file's
     progress("reading", 0.02)
@@ -331,12 +334,15 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     budget = DecodeBudget(2**62)
     for i, (s, m) in enumerate(files):
         sname = _name(names, "stacks", i)
-        vol = read_upload(s, sname, budget=budget.file(sname), scratch=s.parent)
+        mname = _name(names, "masks", i) if m is not None else None
+        if kept:
+            vol, mask = load_volume(s), None if m is None else load_volume(m)
+        else:
+            vol = read_upload(s, sname, budget=budget.file(sname), scratch=s.parent)
+            mask = (read_upload(m, mname, budget=budget.file(mname), scratch=m.parent, magnitudes=False)
+                    if m is not None else None)
         if thickness[i] is not None:
             vol = replace(vol, slice_thickness_mm=float(thickness[i]))
-        mname = _name(names, "masks", i) if m is not None else None
-        mask = (read_upload(m, mname, budget=budget.file(mname), scratch=m.parent, magnitudes=False)
-                if m is not None else None)
         uploads.append(mask_on_stack_grid(StackUpload(sname, vol, mask, mname,
                                                       mask_holds_csf=bool(params.get("masks_hold_csf", False)))))
     poses_path = folder / "inputs" / "poses.json"

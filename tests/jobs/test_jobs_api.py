@@ -457,6 +457,25 @@ def test_poses_are_matched_to_the_uploaded_stacks_by_file_name(client: TestClien
         assert r.status_code == 400 and needle in r.json()["detail"], r.text
 
 
+@pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)     # the back-end plays no part
+def test_a_queued_job_keeps_the_decoded_voxels_not_the_files_as_sent(client: TestClient, case: dict) -> None:
+    """While a job waits for a worker its folder holds each stack and mask as the submission decoded
+    them (voxels, placement), not the files as sent (a DICOM file's header names the patient)."""
+    from service.jobs.job_inputs import decoded_files, load_volume
+
+    client.app.state.job_runner.submit = lambda job_id: None           # queued, never run: what is stored
+    r = submit(client, case)
+    assert r.status_code == 202, r.text
+    inputs = client.app.state.job_store.directory(r.json()["job_id"]) / "inputs"
+    assert sorted(p.name for p in inputs.iterdir() if p.suffix != ".json") == \
+        sorted(f"{kind}{i}.npz" for kind in ("stack", "mask") for i in range(len(case["files"])))
+    for (stack, mask), (kept_stack, kept_mask) in zip(case["files"], decoded_files(inputs)):
+        for sent, kept in ((stack, kept_stack), (mask, kept_mask)):
+            want, got = read_volume(sent), load_volume(kept)
+            np.testing.assert_array_equal(got.array, want.array)
+            np.testing.assert_allclose(got.affine, want.affine, atol=1e-6)
+
+
 @both
 def test_delete_of_a_finished_job_removes_it_and_a_full_queue_is_429(case: dict, queue_settings: dict) -> None:
     with make_client(ModelRegistry({"default": OracleEstimator()}), max_queued_jobs=1, retry_after_s=9,
