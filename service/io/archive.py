@@ -62,6 +62,11 @@ def _check_directory(path: Path, filename: str) -> None:
                             f"{size} bytes)")
 
 
+GEOMETRY_TOLERANCE = 1e-4
+"""How far (relative) GDCM's reading of a file's position, orientation and pixel spacing may lie
+from pydicom's: the decimal strings' rounding, not another value."""
+
+
 def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path | None = None) -> Volume:
     """The one DICOM series inside the ZIP archive ``path`` (the client's ``filename``), its members
     unpacked into a temporary folder in ``scratch`` (default: the system's)."""
@@ -107,7 +112,7 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path 
         if (problem := series_problem([tags[f] for f in files])) is not None:
             raise UnusableImage(f"{filename}: a DICOM series of {len(files)} files, but {problem}")
         for f in files:
-            _check_size(f, sizes[f], labels.get(f, filename))
+            _check_size(f, sizes[f], tags[f], labels.get(f, filename))
         reader.SetFileNames(files)
         reader.SetOutputPixelType(sitk.sitkFloat32)   # each file's own rescale kept: else the first file's type
         with SITK_FILES:
@@ -116,11 +121,13 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path 
                        slice_thickness_mm=stated_thickness([thicknesses.get(f) for f in files]))
 
 
-def _check_size(path: str, size: tuple[int, ...], label: str) -> None:
-    """Refuse a file whose image size GDCM, which builds the series' volume, reads otherwise than
-    pydicom, whose reading was checked and charged (``size``: columns, rows, frames): a header that
-    states Rows or Columns twice is read by its first value in one and its last in the other, so
-    a small archive could make GDCM build a volume far larger than the one charged."""
+def _check_size(path: str, size: tuple[int, ...], tags: Tags, label: str) -> None:
+    """Refuse a file whose image size or geometry GDCM, which builds the series' volume, reads
+    otherwise than pydicom, whose reading was checked and charged (``size``: columns, rows, frames)
+    and whose tags the series' checks passed (``tags``: position, orientation, pixel spacing): a
+    header that states Rows, Columns or a geometry tag twice is read by its first value in one and
+    its last in the other, so a small archive could make GDCM build a volume far larger than the
+    one charged, or place its slices where no check looked (reversed, a slice missing, sheared)."""
     info = sitk.ImageFileReader()
     info.SetImageIO("GDCMImageIO")
     info.SetFileName(path)
@@ -129,6 +136,13 @@ def _check_size(path: str, size: tuple[int, ...], label: str) -> None:
     found = info.GetSize()
     if tuple(found[:2]) != size[:2] or int(np.prod(found[2:], dtype=np.int64)) != size[2]:
         raise UnsupportedFile(f"{label}: a DICOM header that states the image size twice, differently")
+    position, orientation, spacing = (np.asarray(t, np.float64) for t in tags)      # checked: present, finite
+    axes = np.asarray(info.GetDirection(), np.float64).reshape(3, 3)[:, :2].T.reshape(-1)
+    stated = np.concatenate([position, orientation, spacing[::-1]])
+    read = np.concatenate([info.GetOrigin(), axes, info.GetSpacing()[:2]])
+    if np.abs(read - stated).max() > GEOMETRY_TOLERANCE * max(1.0, float(np.abs(stated).max())):
+        raise UnsupportedFile(f"{label}: a DICOM header that states its position, orientation or pixel spacing "
+                              "twice, differently")
 
 
 def _unpack(z: zipfile.ZipFile, member: zipfile.ZipInfo, out: Path, budget: FileBudget, label: str,

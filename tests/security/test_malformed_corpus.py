@@ -4,6 +4,7 @@ the ZIP member), no job or file left behind, and a healthy server afterwards."""
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -30,6 +31,15 @@ def _series(uid_suffix: str) -> dict[str, bytes]:
         data = corpus.dicom(p, k)
         out[f"{uid_suffix}/IM{k}"] = data.replace(corpus.SERIES.encode(), (corpus.SERIES[:-1] + uid_suffix).encode())
     return out
+
+
+def _position_twice(data: bytes, k: int) -> bytes:
+    """``data`` (slice ``k`` of :func:`_series`) with an ImagePositionPatient before its own, placing it
+    where slice ``2 - k`` lies: GDCM reads the first, pydicom the last (the series reversed)."""
+    value = f"0\\0\\{3.0 * (2 - k)}".encode()
+    value += b" " * (len(value) % 2)
+    at = data.find(b"\x20\x00\x32\x00DS")
+    return data[:at] + struct.pack("<HH2sH", 0x20, 0x32, b"DS", len(value)) + value + data[at:]
 
 
 def _patched(data: bytes, offset: int, values: np.ndarray) -> bytes:
@@ -85,6 +95,10 @@ CORPUS: list[tuple[str, Callable[[], bytes], int, tuple[str, ...]]] = [
     # Rows stated twice: GDCM, which builds the series, reads the first value, pydicom the last.
     ("rows-twice.zip", lambda: corpus.zipped({name: data.replace(ROWS, ROWS.replace(b"\x08\x00", b"\x20\x4e") + ROWS)
                                               for name, data in _series("1").items()}), 415, ("states the image size twice",)),
+    # ImagePositionPatient stated twice: the series' checks saw one order, GDCM would build another.
+    ("position-twice.zip", lambda: corpus.zipped({name: _position_twice(data, k)
+                                                  for k, (name, data) in enumerate(_series("1").items())}), 415,
+     ("states its position, orientation or pixel spacing twice",)),
     ("many-images.zip", lambda: corpus.zipped({f"IM{k}": corpus.dicom(SLICES[0], k) for k in range(129)}), 422,
      ("129 DICOM images in the archive", "at most 128")),
     # Geometry a reader would make up: a qform of NaN (ITK: the identity), an axis of no direction
