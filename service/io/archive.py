@@ -137,9 +137,10 @@ def _check_size(path: str, size: tuple[int, ...], tags: Tags, label: str) -> Non
     if tuple(found[:2]) != size[:2] or int(np.prod(found[2:], dtype=np.int64)) != size[2]:
         raise UnsupportedFile(f"{label}: a DICOM header that states the image size twice, differently")
     position, orientation, spacing = (np.asarray(t, np.float64) for t in tags)      # checked: present, finite
+    unit = lambda v: (v.reshape(2, 3) / np.linalg.norm(v.reshape(2, 3), axis=1, keepdims=True)).reshape(-1)  # noqa: E731
     axes = np.asarray(info.GetDirection(), np.float64).reshape(3, 3)[:, :2].T.reshape(-1)
-    stated = np.concatenate([position, orientation, spacing[::-1]])
-    read = np.concatenate([info.GetOrigin(), axes, info.GetSpacing()[:2]])
+    stated = np.concatenate([position, unit(orientation), spacing[::-1]])
+    read = np.concatenate([info.GetOrigin(), unit(axes), info.GetSpacing()[:2]])
     if np.abs(read - stated).max() > GEOMETRY_TOLERANCE * max(1.0, float(np.abs(stated).max())):
         raise UnsupportedFile(f"{label}: a DICOM header that states its position, orientation or pixel spacing "
                               "twice, differently")
