@@ -155,6 +155,25 @@ def _volume(path: Path, what: str) -> tuple[NDArray, NDArray[np.float64]]:
     return data, np.asarray(img.affine, dtype=np.float64)
 
 
+def mask_voxels(array: NDArray) -> NDArray[np.bool_]:
+    """The voxels a mask file marks, by the server's rule for an uploaded mask (its
+    ``service.pipeline.prepare.mask_voxels``; this client installs without the server): every nonzero
+    voxel of a mask of whole numbers (a mask of 255 saved as signed bytes marks its brain by -1), and
+    of a mask of fractions (a probability map) those at half its largest magnitude or more.
+
+    Example:
+        >>> mask_voxels(np.array([0, -1, 1], np.int8)).tolist(), mask_voxels(np.array([0.02, 0.3, 0.9])).tolist()
+        ([False, True, True], [False, False, True])
+    """
+    a = np.asarray(array)
+    if a.dtype.kind in "biu":
+        return a != 0
+    a = np.where(np.isfinite(a), a, 0.0)
+    if not a.size or np.array_equal(a, np.round(a)):
+        return a != 0
+    return np.abs(a) >= 0.5 * float(np.abs(a).max())
+
+
 def in_stack_order(mask: NDArray, mask_affine: NDArray, stack_affine: NDArray) -> tuple[NDArray, NDArray]:
     """A mask's voxels and affine brought into its stack's axis order and directions (nibabel's
     orientation tools), as the server takes a mask file that stores its stack's voxels in another
@@ -195,7 +214,7 @@ def read_stack(path: str | Path, mask_path: str | Path | None = None, name: str 
     mask = None
     if mask_path is not None:
         stored, stored_affine = _volume(Path(mask_path), "mask")
-        mask, mask_affine = in_stack_order(stored, stored_affine, affine)
+        mask, mask_affine = in_stack_order(mask_voxels(stored), stored_affine, affine)
         if mask.shape != image.shape or not np.allclose(mask_affine, affine, atol=1e-3):
             why = (f"shape {list(stored.shape)} against {list(image.shape)}" if mask.shape != image.shape else
                    "the same shape at another origin, spacing or orientation")

@@ -162,3 +162,24 @@ def test_a_mask_that_stores_its_stacks_voxels_in_another_order_is_read_in_the_st
     plain = read_stack(tmp_path / "cor.nii.gz", tmp_path / "m.nii.gz")
     other = read_stack(tmp_path / "cor.nii.gz", tmp_path / "turned.nii.gz")
     assert all(np.array_equal(a.mask, b.mask) for a, b in zip(plain.slices, other.slices))
+
+
+@pytest.mark.parametrize("kind", ["signed", "probability"])
+def test_a_mask_marks_the_voxels_the_server_takes_from_the_same_file(tmp_path: Path, kind: str) -> None:
+    """A mask of 255 saved as signed bytes (-1) and a probability map with a faint background: each
+    slice's mask is what the server's rule for an uploaded mask marks (the client counted -1 as
+    background and the background's 0.02 as brain)."""
+    from service.pipeline.prepare import mask_voxels
+
+    affine = oblique_affine((1.0, 1.0, 3.0), seed=2)
+    image = np.arange(6 * 5 * 4, dtype=np.int16).reshape(6, 5, 4)
+    rng = np.random.default_rng(3)
+    brain = rng.random(image.shape) < 0.4
+    stored = (np.where(brain, -1, 0).astype(np.int8) if kind == "signed"
+              else np.where(brain, rng.uniform(0.6, 1.0, image.shape), 0.02).astype(np.float32))
+    nib.save(nib.Nifti1Image(image, affine), tmp_path / "s.nii.gz")
+    nib.save(nib.Nifti1Image(stored, affine), tmp_path / "m.nii.gz")
+    stack = read_stack(tmp_path / "s.nii.gz", tmp_path / "m.nii.gz")
+    server = mask_voxels(stored)
+    assert all(np.array_equal(s.mask, server[:, :, k]) and np.array_equal(s.mask, brain[:, :, k])
+               for k, s in enumerate(stack.slices))
