@@ -60,15 +60,23 @@ class ScannerStack:
     slices: list[ScannerSlice]
 
 
+SPACING_TIE = 1e-3
+"""Spacings within this share of the largest tie (the server's ``SPACING_TIE``): a header's rounding
+(3.0 and 2.9995 mm) does not choose the slice axis."""
+
+
 def slice_axis_of(spacing: Sequence[float]) -> int:
-    """The voxel axis of largest spacing; ties go to the last axis (as the server's ``/v1/predict``).
+    """The voxel axis of largest spacing; ties (within :data:`SPACING_TIE`) go to the last axis (as
+    the server's ``/v1/predict``).
 
     Example:
         >>> slice_axis_of([1.0, 4.0, 1.0]), slice_axis_of([3.0, 1.0, 3.0]), slice_axis_of([2.0, 2.0, 2.0])
         (1, 2, 2)
+        >>> slice_axis_of([3.0, 1.0, 2.9995])
+        2
     """
     sp = np.asarray(spacing, dtype=np.float64)
-    return int(np.flatnonzero(sp >= sp.max() * (1 - 1e-6))[-1])
+    return int(np.flatnonzero(sp >= sp.max() * (1 - SPACING_TIE))[-1])
 
 
 def scanner_slices(image: NDArray, affine: NDArray, mask: NDArray | None = None) -> tuple[int, list[ScannerSlice]]:

@@ -183,3 +183,13 @@ def test_a_mask_marks_the_voxels_the_server_takes_from_the_same_file(tmp_path: P
     server = mask_voxels(stored)
     assert all(np.array_equal(s.mask, server[:, :, k]) and np.array_equal(s.mask, brain[:, :, k])
                for k, s in enumerate(stack.slices))
+
+
+def test_the_slice_axis_is_the_servers_for_spacings_a_header_rounds_apart() -> None:
+    """Near-isotropic voxels whose largest spacings differ by a header's rounding: the client cuts
+    its slices along the axis the server's stream core takes."""
+    from client.scanner_stack import slice_axis_of
+    from service.preprocess.stack import slice_axis_of as server_axis
+
+    for spacing in ([3.0, 1.0, 2.9995], [2.9995, 3.0, 1.0], [1.0, 3.0, 2.99999], [2.0, 2.0, 2.0], [1.0, 4.0, 1.0]):
+        assert slice_axis_of(spacing) == server_axis(np.asarray(spacing)), spacing
