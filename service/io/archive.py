@@ -109,6 +109,9 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path 
         if len(files) == 1:                  # read again as a file of its own: its voxels charged to it alone
             label = labels.get(files[0], filename)
             return read_dicom_file(Path(files[0]), label, budget.request.file(label))
+        if (many := sum(sizes[f][2] > 1 for f in files)):
+            raise UnusableImage(f"{filename}: a DICOM series of {len(files)} files, {many} of them multi-frame; "
+                                "a multi-frame file is a stack of its own: upload it as one")
         if (problem := series_problem([tags[f] for f in files])) is not None:
             raise UnusableImage(f"{filename}: a DICOM series of {len(files)} files, but {problem}")
         for f in files:

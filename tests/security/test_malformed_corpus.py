@@ -99,6 +99,8 @@ CORPUS: list[tuple[str, Callable[[], bytes], int, tuple[str, ...]]] = [
     ("position-twice.zip", lambda: corpus.zipped({name: _position_twice(data, k)
                                                   for k, (name, data) in enumerate(_series("1").items())}), 415,
      ("states its position, orientation or pixel spacing twice",)),
+    ("multi-frame-series.zip", lambda: corpus.zipped({f"IM{k}": corpus.dicom(np.stack([SLICES[k]] * 2), k)
+                                                      for k in range(3)}), 422, ("3 files, 3 of them multi-frame",)),
     ("many-images.zip", lambda: corpus.zipped({f"IM{k}": corpus.dicom(SLICES[0], k) for k in range(129)}), 422,
      ("129 DICOM images in the archive", "at most 128")),
     # Geometry a reader would make up: a qform of NaN (ITK: the identity), an axis of no direction
