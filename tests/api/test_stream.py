@@ -265,6 +265,19 @@ def test_another_site_s_page_cannot_open_a_session_without_keys(case) -> None:  
             assert ws.receive_json()["type"] == "ready"
 
 
+def test_a_site_without_a_default_localiser_streams_slices_that_bring_their_masks(case) -> None:  # noqa: ANN001
+    """A server whose only localiser has another name starts sessions without one (``localiser``
+    false): it refused every session, masks or not, naming the missing ``default``."""
+    from service.preprocess.localise import Localisers
+
+    with make_client(ModelRegistry({"default": case[0]})) as client:
+        client.app.state.localisers = Localisers({"fetal-v2": object()})
+        with client.websocket_connect("/v1/stream") as ws:
+            ws.send_text(json.dumps({"type": "start", "mc_samples": 5}))
+            ready = ws.receive_json()
+            assert ready["type"] == "ready" and ready["localiser"] is False, ready
+
+
 def test_a_start_that_fails_takes_no_session_slot(case, monkeypatch) -> None:  # noqa: ANN001
     """A start refused after the slots were counted (here: its session cannot be made) answers an
     error each time it is sent, and the slots are all free once the client goes: retries do not
