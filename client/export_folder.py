@@ -56,9 +56,14 @@ def clear_for_export(folder: Path, overwrite: bool, inputs: list[Path] = ()) -> 
         listed = json.loads((folder / MANIFEST).read_text()) if (folder / MANIFEST).is_file() else []
     except (OSError, ValueError):
         listed = []
+    root = folder.resolve()
     for name in listed if isinstance(listed, list) else []:
-        path = folder / str(name)
-        if ".." not in Path(str(name)).parts and path.is_file():
+        relative = Path(str(name))
+        path = folder / relative
+        # a manifest copied, shared or edited may name anything: only a file inside the folder goes
+        # (not an absolute name, nor one through ".." or a linked subfolder)
+        if not relative.is_absolute() and ".." not in relative.parts and root in path.resolve().parents \
+                and path.is_file():
             path.unlink()
     (folder / MANIFEST).unlink(missing_ok=True)
     left = sorted(n for n in folder_files(folder) if "/" not in n and TOOL_FILES.match(n))

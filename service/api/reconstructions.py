@@ -105,12 +105,25 @@ def thickness_per_stack(values: list[float] | None, n_stacks: int) -> list[float
 
 MAX_POSES_BYTES = 64 << 20
 """The largest ``poses`` upload: a job's refined poses of 32 stacks of 128 slices take about 20 MB."""
+POSES_BYTES_PER_SLICE = 16 << 10
+"""What a ``poses`` upload may hold per slice of the uploaded stacks (and 64 KB besides), JSON
+objects and arrays included (:data:`POSES_CONTAINERS_PER_SLICE`), checked before it is decoded:
+``/v1/predict`` writes about 3 KB, 1.3 objects and 22 arrays a slice, while small JSON objects
+decode to twenty times their text (64 MB of ``{}`` held 1.5 GB)."""
+POSES_CONTAINERS_PER_SLICE = 64
 
 
 def checked_poses(text: str, uploads: list[StackUpload]) -> tuple[dict, list[tuple[np.ndarray, np.ndarray]]]:
     """A ``poses`` upload as the job keeps it (:func:`~service.api.schemas.job_poses`) and the poses and
     accepted flags the worker will read from it, per stack (blocking: run in a worker thread);
-    :class:`InvalidParameter` naming what does not match the uploads."""
+    :class:`InvalidParameter` naming what does not match the uploads; :class:`PayloadTooLarge` where
+    the text holds more than such poses could (:data:`POSES_BYTES_PER_SLICE`), before it is decoded."""
+    slices = sum(u.volume.array.shape[u.slice_axis] for u in uploads)
+    containers = text.count("{") + text.count("[")
+    if len(text) > POSES_BYTES_PER_SLICE * slices + (64 << 10) or containers > POSES_CONTAINERS_PER_SLICE * slices + 256:
+        raise PayloadTooLarge(f"poses: {len(text)} characters, {containers} JSON objects and arrays for the "
+                              f"{slices} slices of the uploaded stacks; /v1/predict's poses take about 3 KB and "
+                              "23 objects and arrays a slice")
     try:
         body = client_json(text)
     except ValueError as exc:

@@ -488,6 +488,27 @@ def test_an_overwrite_refuses_any_file_of_the_folder_a_tool_would_read(foreign: 
         export(case["answer"], [case["stack"]], None, out, "nesvor", overwrite=True)
 
 
+def test_an_overwrite_removes_nothing_outside_its_folder_whatever_the_manifest_names(tmp_path: Path) -> None:
+    """A manifest copied, shared or edited may name an absolute path, a path through ``..`` or through
+    a linked subfolder: ``overwrite`` removes none of them, only the files inside the folder it lists
+    (an absolute name deleted the file it named anywhere on the disk)."""
+    from client.export_folder import MANIFEST, clear_for_export
+
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    victims = [elsewhere / n for n in ("absolute.txt", "dotdot.txt", "linked.txt")]
+    for v in victims:
+        v.write_text("the user's own")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "sub").symlink_to(elsewhere, target_is_directory=True)
+    (out / "0.nii.gz").write_bytes(b"an earlier export's")
+    (out / MANIFEST).write_text(json.dumps([str(victims[0]), "../elsewhere/dotdot.txt", "sub/linked.txt", "0.nii.gz"]))
+    clear_for_export(out, overwrite=True)
+    assert all(v.read_text() == "the user's own" for v in victims)
+    assert not (out / "0.nii.gz").exists()
+
+
 def test_the_cli_gives_niftymic_the_thickness(case: dict, tmp_path: Path) -> None:
     """``--thickness`` reaches NiftyMIC as ``--slice-thicknesses``, one per stack."""
     answer = tmp_path / "poses.json"

@@ -265,10 +265,14 @@ def test_cancel_and_failure(client: TestClient, case: dict, monkeypatch: pytest.
 def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict, monkeypatch: pytest.MonkeyPatch) -> None:
     n = len(case["poses"]["stacks"])
     for bad in ({"stacks": case["poses"]["stacks"][:2]}, {"stacks": [{"slices": 5}] * n},
-                {"stacks": [{"slices": [[1, 2]]}] * n}, {"stacks": [None] * n}, [1, 2],
-                "[" * 100_000 + "]" * 100_000, "{not json"):
+                {"stacks": [{"slices": [[1, 2]]}] * n}, {"stacks": [None] * n}, [1, 2], "{not json"):
         r = submit(client, case, poses=bad)
         assert r.status_code == 400 and "poses" in r.json()["detail"], r.text
+    # more JSON than poses of these stacks' slices could be, refused before it is decoded (small objects
+    # decode to twenty times their text)
+    for bad in ("[" * 100_000 + "]" * 100_000, "[" + ",".join(["{}"] * 200_000) + "]"):
+        r = submit(client, case, poses=bad)
+        assert r.status_code == 413 and r.json()["detail"].startswith("poses: "), r.text
     for value in ("nan", "inf"):                                # not a size: named so, not as out of range
         r = submit(client, case, resolution_mm=value)
         assert r.status_code == 400 and "resolution_mm" in r.json()["detail"] and "finite" in r.json()["detail"], r.text
