@@ -101,8 +101,8 @@ def stream(
                           "server's session was full; stream them in another session", style="red", markup=False)
         if json_out is not None:
             console.print(f"wrote {json_out}")
-    if result.unsent:
-        raise typer.Exit(EXIT_BAD_INPUT)                   # what the session could not take is not posed
+    if result.unsent or (result.summary or {}).get("unfinished"):
+        raise typer.Exit(EXIT_BAD_INPUT)                   # what the session could not take, or end, is not posed
     if error_count and not result.of_type("pose"):
         raise typer.Exit(EXIT_BAD_INPUT)                   # the server refused every slice
     if not usable({"stacks": result.of_type("stack")}):

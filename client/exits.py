@@ -44,7 +44,8 @@ EXIT_CODES: list[tuple[type[SVRnetError] | tuple[type[SVRnetError], ...], int]] 
 
 EXIT_HELP = (
     "Exit codes: 0 ok · 1 unexpected error · 2 usage · 3 connection failed (or not an SVRnet server) · 4 unauthorized · "
-    "5 bad input (400/413/415/422; a stream whose every slice is refused, or whose session could not take them all) · "
+    "5 bad input (400/413/415/422; a stream whose every slice is refused, whose session could not take them all, "
+    "or a stack of which got no final poses) · "
     "6 not found · 7 busy (429/503/507 after retries) · "
     "8 job failed/cancelled · 9 server error (5xx) · 10 conflict (409; a submission's key held by another "
     "request) · 11 timed out waiting · "

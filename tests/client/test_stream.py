@@ -115,7 +115,7 @@ def test_a_scripted_session_shows_poses_updates_errors_and_the_summary(stack_fil
         result = runner.invoke(cli.app, ["stream", str(stack_file), str(cor), "--server", url, "--api-key", "k1",
                                          "--slice-order", "interleaved-even-first", "--slice-order", "3,2,1,0",
                                          "--mc-samples", "10", "--masks-hold-csf", "--json-out", str(out)])
-    assert result.exit_code == 0, result.output
+    assert result.exit_code == exits.EXIT_BAD_INPUT, result.output        # a stack without final poses (sag)
     assert keys == ["Bearer k1"]
     slices = [(m, f) for m, f in heard if m["type"] == "slice"]
     assert [(m["stack"], m["index"]) for m, _ in slices] == [("ax", 0), ("ax", 2), ("ax", 1), ("ax", 3),
