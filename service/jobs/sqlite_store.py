@@ -179,9 +179,9 @@ class SqliteJobStore(JobStore):
         return True
 
     def delete(self, job_id: str) -> None:
-        self._write("DELETE FROM jobs WHERE id = ?", (job_id,))
+        shutil.rmtree(self.directory(job_id), ignore_errors=True)     # the files first: on a full disk their space
+        self._write("DELETE FROM jobs WHERE id = ?", (job_id,))      # is what lets the record's deletion write
         self._checkpoint()
-        shutil.rmtree(self.directory(job_id), ignore_errors=True)
 
     def _checkpoint(self) -> None:
         """Write the log's pages back into the database and empty the log, so that deleted jobs'
@@ -227,9 +227,10 @@ class SqliteJobStore(JobStore):
         with self._db() as db:
             ids = [r["id"] for r in db.execute(
                 "SELECT id FROM jobs WHERE status IN ('succeeded', 'failed', 'cancelled') AND updated_at < ?", (cutoff,))]
-            db.executemany("DELETE FROM jobs WHERE id = ?", [(i,) for i in ids])
-        if ids:
-            self._checkpoint()
-        for i in ids:
+        for i in ids:                  # the files first: on a full disk their space lets the records' deletion write
             shutil.rmtree(self.directory(i), ignore_errors=True)
+        if ids:
+            with self._db() as db:
+                db.executemany("DELETE FROM jobs WHERE id = ?", [(i,) for i in ids])
+            self._checkpoint()
         return ids

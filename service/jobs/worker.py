@@ -260,9 +260,15 @@ def run_job(store: JobStore, models_dir: Path, job_id: str, redelivered: bool = 
         log.info("job cancelled", extra={"job_id": job_id})
         shutil.rmtree(folder, ignore_errors=True)          # what the run wrote after the cancel deleted its files
     except Exception as exc:  # noqa: BLE001 - every failure is recorded on the job, not lost
+        now = store.get(job_id)
+        if now is not None and now.status != "cancelled" and now.attempts != attempt:
+            log.warning(f"job {job_id}: attempt {attempt} failed after a re-delivery took it over", extra={"job_id": job_id})
+            return                     # the later run owns the job's files, its inputs included
+        # A failed job's results are no results: none stay; gone before the failure is recorded, which
+        # on a disk the results filled is what lets the record be written.
+        shutil.rmtree(folder / "outputs", ignore_errors=True)
         if store.fail(job_id, failure_reason(exc), attempt):
             log.warning("job failed", extra={"job_id": job_id, "error_type": type(exc).__name__, "error_at": error_at(exc)})
-            shutil.rmtree(folder / "outputs", ignore_errors=True)   # a failed job's results are no results: none stay
         else:                          # cancelled meanwhile (its files deleted under the run): no failure
             log.info("job ended after it was cancelled or superseded", extra={"job_id": job_id})
             if store.is_cancelled(job_id):

@@ -380,3 +380,57 @@ def test_a_job_that_fails_or_is_cancelled_after_writing_results_leaves_none(stor
         worker.run_job(store, tmp_path / "models", job_id)
         assert store.get(job_id).status == status
         assert not (store.directory(job_id) / "outputs").exists(), status
+
+
+@both
+def test_a_superseded_runs_failure_leaves_the_live_runs_files(store: JobStore, tmp_path: Path,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """A first run that fails after a re-delivery took the job over leaves its inputs and results to
+    the run that owns them (it deleted the inputs, and the live run then failed saying the replicas
+    shared no data folder)."""
+    from service.jobs import worker
+
+    job = store.create({})
+    inputs = store.directory(job.id) / "inputs"
+    inputs.mkdir(parents=True)
+    (inputs / "stack0.npz").write_bytes(b"voxels")
+
+    def taken_over_then_fails(store_, folder: Path, *args: object) -> None:  # noqa: ANN001
+        assert store_.claim(job.id, redelivered=True) == 2                     # the re-delivery's run
+        (folder / "outputs").mkdir(parents=True, exist_ok=True)
+        (folder / "outputs" / "volume.nii.gz").write_bytes(b"the live run's")
+        raise ValueError("the first run's late error")
+
+    monkeypatch.setattr(worker, "_execute", taken_over_then_fails)
+    worker.run_job(store, tmp_path / "models", job.id)
+    now = store.get(job.id)
+    assert (now.status, now.attempts) == ("running", 2)
+    assert (inputs / "stack0.npz").exists() and (store.directory(job.id) / "outputs" / "volume.nii.gz").exists()
+
+
+def test_retention_frees_the_files_even_where_the_database_cannot_be_written(tmp_path: Path,
+                                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """On a full disk the database refuses every write: retention removes the expired jobs' files
+    first (their space is what a later write needs), and their records go once it can write."""
+    from service.core.errors import StoreUnavailable
+
+    store = SqliteJobStore(tmp_path)
+    job = store.create({})
+    assert store.claim(job.id) and store.finish(job.id, {})
+    (store.directory(job.id) / "outputs").mkdir(parents=True)
+    (store.directory(job.id) / "outputs" / "volume.nii.gz").write_bytes(b"results")
+    real = SqliteJobStore._db
+    calls = []
+
+    def refusing_writes(self):  # noqa: ANN001, ANN202
+        calls.append(1)
+        if len(calls) > 1:                                      # the SELECT reads; the DELETE cannot write
+            raise StoreUnavailable("the job store's database cannot be used (database or disk is full)")
+        return real(self)
+
+    monkeypatch.setattr(SqliteJobStore, "_db", refusing_writes)
+    with pytest.raises(StoreUnavailable):
+        store.expire(0.0)
+    assert not store.directory(job.id).exists()
+    monkeypatch.undo()
+    assert store.expire(0.0) == [job.id] and store.get(job.id) is None
