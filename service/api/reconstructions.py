@@ -20,6 +20,7 @@ from service.api.access import job_owner, presented_key
 from service.api.deps import (IDEMPOTENCY_HEADER, ApiKey, LocalisersDep, RegistryDep, SettingsDep, full_queue,
                               idempotency_digest, localiser_for, processing, queue_full, requested_model)
 from service.api.idempotency import hold_submission, made_by_key, submission_digest, unless_abandoned
+from service.api.problems import problem
 from service.api.schemas import (UPLOAD_ERRORS, JobCreated, JobStatus, RefinedPoses, download, job_poses,
                                  problem_responses)
 from service.api.uploads import UploadForm, UploadFormDep, known_fields, upload_directory, upload_reader
@@ -307,7 +308,13 @@ class Download(FileResponse):
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope.get("state", {}).get("sent_method") == "HEAD":
             scope = {**scope, "method": "HEAD"}
-        await super().__call__(scope, receive, send)
+        try:
+            await super().__call__(scope, receive, send)
+        except RuntimeError:            # Starlette's stat found no file: deleted or expired since the handler looked
+            if Path(self.path).exists():
+                raise
+            gone = NotFound("job_id: the job's results were deleted or expired while they were asked for")
+            await problem(gone.status, gone.title, gone.detail, gone.type)(scope, receive, send)
 
 
 async def _result(request: Request, job_id: str, name: str, media_type: str, download: str,

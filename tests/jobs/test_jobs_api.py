@@ -854,3 +854,17 @@ def test_a_job_is_its_clients_alone(case: dict) -> None:
         assert client.delete(url, headers=one).status_code == 204
         older = client.app.state.job_store.create({"resolution_mm": 0.8})      # made before jobs had owners
         assert client.get(f"/v1/reconstructions/{older.id}", headers=two).json()["status"] == "queued"
+
+
+def test_a_result_deleted_after_its_handler_looked_is_a_404_not_a_500(tmp_path: Path) -> None:
+    """A download racing the job's deletion or the retention clean-up (the file gone between the
+    handler's check and the response's own): a 404 problem, not the server error Starlette raises."""
+    from starlette.applications import Starlette
+    from starlette.routing import Route
+
+    gone = tmp_path / "volume.nii.gz"
+    app = Starlette(routes=[Route("/v", lambda request: reconstructions.Download(gone, filename="volume.nii.gz"))])
+    with TestClient(app, raise_server_exceptions=False) as client:
+        r = client.get("/v")
+    assert r.status_code == 404 and r.headers["content-type"] == "application/problem+json", r.text
+    assert "deleted or expired" in r.json()["detail"]
