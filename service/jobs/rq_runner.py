@@ -186,9 +186,10 @@ class RqRunner(JobRunner):
                     last = rq_job.latest_result()
                     reason = failure_reason(status, (last.exc_string if last else None) or "",
                                             self.settings.job_max_attempts)
-            except NoSuchJobError:
-                gone, reason = True, "the queue lost the job (was Redis restarted without persistence?)"
-            if gone and self.store.fail(job_id, reason):
+            except NoSuchJobError:     # or a superseded run's `finished` record that expired under the live run
+                gone = not (job.attempts > 1 and self._within_a_live_run(job))
+                reason = "the queue lost the job (was Redis restarted without persistence?)"
+            if gone and self.store.fail(job_id, reason, job.attempts):   # not a later run's claim
                 self.store.discard_files(job_id)      # what the lost runs wrote of the results too
                 log.warning(f"job {job_id} failed: {reason}", extra={"job_id": job_id})
                 failed.append(job_id)
@@ -203,10 +204,15 @@ class RqRunner(JobRunner):
         all, stopped at its next stage): that return marks the shared RQ job ``finished`` under the
         run in progress. The job is given up only once that run could no longer be alive (the job
         time limit and a lost worker's silence past its latest start)."""
-        if status != JobStatus.FINISHED or job.status != "running":
-            return False
+        return status == JobStatus.FINISHED and self._within_a_live_run(job)
+
+    def _within_a_live_run(self, job: Job) -> bool:
+        """Whether a run of the running ``job`` may still be alive: its latest start lies within the
+        job time limit and a lost worker's silence. The superseded run's ``finished`` record expires
+        (``result_ttl``) long before that, so a re-delivered job whose RQ record is gone is given
+        up on the same clock."""
         limit = self.settings.job_timeout_h * 3600 + self.settings.worker_lost_after_s + self.settings.worker_heartbeat_s
-        return time.time() - (job.started_at or job.updated_at) < limit
+        return job.status == "running" and time.time() - (job.started_at or job.updated_at) < limit
 
     def stats(self) -> dict[str, float]:
         return {"workers": float(self._alive_workers()), "queue_length": float(len(self.queue))}

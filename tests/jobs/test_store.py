@@ -327,6 +327,15 @@ def test_a_superseded_runs_return_does_not_fail_the_run_in_progress(queue_settin
     monkeypatch.setattr(rq_runner.time, "time", lambda: later)                         # no run can be alive now
     assert runner.reconcile() == [job.id]
     assert store.get(job.id).error == "the worker ended without completing the job"
+    # the finished record expires (result_ttl) while the second run goes on: not taken for a lost job
+    monkeypatch.undo()
+    again = store.create({})
+    runner.submit(again.id)
+    assert store.claim(again.id) == 1 and store.claim(again.id, redelivered=True) == 2
+    RqJob.fetch(again.id, connection=runner.connection).delete()
+    assert runner.reconcile() == [] and store.get(again.id).status == "running"
+    monkeypatch.setattr(rq_runner.time, "time", lambda: later)
+    assert runner.reconcile() == [again.id] and "lost the job" in store.get(again.id).error
     runner.shutdown()
 
 
