@@ -39,7 +39,7 @@ from service.core.errors import StoreUnavailable
 from service.core.process_pools import end_pool, release_memory
 from service.jobs.runner import INTERRUPTED, JobRunner, start_worker
 from service.jobs.sqlite_store import SqliteJobStore
-from service.jobs.store import Job
+from service.jobs.store import SUBMISSION_LEASE_S, Job
 from service.jobs.worker import TIMED_OUT, run_job
 
 log = logging.getLogger(__name__)
@@ -209,7 +209,12 @@ class LocalRunner(JobRunner):
     def maintain(self) -> None:
         """Stop the jobs running longer than ``timeout_s``: each fails saying so (its uploads go now),
         and the pool's processes are stopped; the pool is then replaced and any other job it was
-        running recovered (the module)."""
+        running recovered (the module). Fail the queued jobs whose submission no request reads any
+        more (a request whose clean-up could not delete its job: they would count against the queue's
+        limit until a restart)."""
+        for job in map(self.store.get, self.store.ids("queued")):
+            if job is not None:
+                self.store.fail_abandoned(job, SUBMISSION_LEASE_S)
         now = time.time()
         late = [job for job in map(self.store.get, self.store.ids("running"))
                 if job is not None and job.started_at is not None and now - job.started_at > self.timeout_s]

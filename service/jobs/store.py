@@ -30,6 +30,10 @@ FIELDS = ("id", "status", "stage", "progress", "error", "params", "report", "att
 SUBMISSION_LEASE_S = 30.0
 """How long a replica's word that it still reads a submission holds (:meth:`JobStore.hold_submission`;
 renewed every third of it)."""
+_HELD: dict[tuple[str, str], float] = {}
+"""The embedded store's words that a request of this process reads a submission: (data folder, job
+id) -> when it last said so. One process owns an embedded store (its file lock), so its own memory
+is where they are."""
 MIN_FREE_BYTES = 64 << 20
 """The free disk a data folder must have for its store to be ready (``/readyz``): less takes no
 stack of a submission."""
@@ -112,13 +116,19 @@ class JobStore(ABC):
 
     def hold_submission(self, job_id: str) -> None:
         """Say, for :data:`SUBMISSION_LEASE_S`, that a replica is still reading ``job_id``'s submission
-        (called again while it does). One process owns the embedded store: nothing to say."""
+        (called again while it does). One process owns the embedded store: it keeps the word itself
+        (:data:`_HELD`), and forgets words older than the lease."""
+        now = time.time()
+        for key in [k for k, said in _HELD.items() if now - said > 2 * SUBMISSION_LEASE_S]:
+            _HELD.pop(key, None)
+        _HELD[str(self.data_dir), job_id] = now
 
     def submission_held(self, job_id: str) -> bool:
         """Whether a replica said within :data:`SUBMISSION_LEASE_S` that it reads ``job_id``'s
-        submission; without, a job never handed to the queue was left by a replica that stopped. The
-        embedded store's server is the only one, and its restart recovers such jobs: always true."""
-        return True
+        submission; without, a job never handed to the queue was left by a replica that stopped, or
+        by a request of this server whose clean-up could not delete it (a full disk)."""
+        said = _HELD.get((str(self.data_dir), job_id))
+        return said is not None and time.time() - said < SUBMISSION_LEASE_S
 
     def fail_abandoned(self, job: Job, grace_s: float) -> bool:
         """Fail ``job`` as :data:`~service.jobs.runner.INTERRUPTED`, its uploads discarded, where its

@@ -443,3 +443,32 @@ def test_retention_frees_the_files_even_where_the_database_cannot_be_written(tmp
     assert not store.directory(job.id).exists()
     monkeypatch.undo()
     assert store.expire(0.0) == [job.id] and store.get(job.id) is None
+
+
+@pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)
+def test_the_embedded_upkeep_fails_a_submission_no_request_reads_any_more(queue_settings: dict,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """A job whose request could not delete it (its clean-up refused by a full disk) stayed queued,
+    never handed over, until a restart, counting against the queue's limit; the upkeep fails it once
+    no request of the server has said for a lease that it reads it, and leaves one that is read."""
+    from service.core.settings import Settings
+    from service.jobs import store as store_module
+    from service.jobs.backends import open_backend
+    from service.jobs.runner import INTERRUPTED
+
+    store, runner = open_backend(Settings(**queue_settings))
+    try:
+        ghost, read = store.create({}), store.create({})
+        (store.directory(ghost.id) / "inputs").mkdir()
+        store.hold_submission(read.id)
+        runner.maintain()
+        assert store.get(ghost.id).status == "queued"                    # within the lease of its making
+        later = time.time() + store_module.SUBMISSION_LEASE_S + 1
+        monkeypatch.setattr(store_module.time, "time", lambda: later)
+        store.hold_submission(read.id)                                    # its request goes on reading it
+        runner.maintain()
+        assert (store.get(ghost.id).status, store.get(ghost.id).error) == ("failed", INTERRUPTED)
+        assert not (store.directory(ghost.id) / "inputs").exists()
+        assert store.get(read.id).status == "queued"
+    finally:
+        runner.shutdown()
