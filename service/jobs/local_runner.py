@@ -91,6 +91,10 @@ def _run(data_dir: str, models_dir: str, job_id: str, localisers_dir: str | None
         release_memory()
 
 
+UNRECORDED = "the job's worker could not record how the job ended (the job store refused its write)"
+"""A job's failure where its run raised instead of recording its end."""
+
+
 class LocalRunner(JobRunner):
     """Submits queued jobs to a pool of ``workers`` processes (spawned, each exits with the server)."""
 
@@ -160,8 +164,20 @@ class LocalRunner(JobRunner):
         with self.lock:
             if self.futures.get(job_id) is future:
                 del self.futures[job_id]
-        if not future.cancelled() and isinstance(future.exception(), BrokenProcessPool):
+        error = None if future.cancelled() else future.exception()
+        if isinstance(error, BrokenProcessPool):
             threading.Thread(target=self._replace, args=(pool,), name="job-pool-recovery", daemon=True).start()
+        elif error is not None:        # the run could not record its own end (the store refused its write)
+            threading.Thread(target=self._fail_unrecorded, args=(job_id, error), name="job-end", daemon=True).start()
+
+    def _fail_unrecorded(self, job_id: str, error: BaseException) -> None:
+        """Fail the job whose run raised out of :func:`~service.jobs.worker.run_job` (its own record of
+        the end refused), its files discarded: it showed ``running`` until the job time limit, then
+        failed saying so, stopping the jobs beside it."""
+        job = self.store.get(job_id)
+        if job is not None and job.status == "running" and self.store.fail(job_id, UNRECORDED, job.attempts):
+            self.store.discard_files(job_id)
+            log.warning(f"job {job_id} failed: {UNRECORDED}", extra={"job_id": job_id, "error_type": type(error).__name__})
 
     def _replace(self, broken: ProcessPoolExecutor) -> None:
         """Start a new pool in place of ``broken`` (once, whichever job noticed first) and recover its

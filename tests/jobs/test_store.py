@@ -472,3 +472,36 @@ def test_the_embedded_upkeep_fails_a_submission_no_request_reads_any_more(queue_
         assert store.get(read.id).status == "queued"
     finally:
         runner.shutdown()
+
+
+@pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)
+def test_a_run_that_could_not_record_its_end_fails_its_job_at_once(queue_settings: dict) -> None:
+    """A run that raised out of its worker (its store refused the failure's record) left its job
+    running until the job time limit; the runner fails it when the run's future ends so, its files
+    discarded, and leaves a job whose run ended cleanly alone."""
+    from concurrent.futures import Future
+
+    from service.core.errors import StoreUnavailable
+    from service.core.settings import Settings
+    from service.jobs.backends import open_backend
+    from service.jobs.local_runner import UNRECORDED
+
+    store, runner = open_backend(Settings(**queue_settings))
+    try:
+        stuck, clean = store.create({}), store.create({})
+        for job in (stuck, clean):
+            assert store.claim(job.id)
+        (store.directory(stuck.id) / "outputs").mkdir(parents=True)
+        raised, ended = Future(), Future()
+        raised.set_exception(StoreUnavailable("the job store's database cannot be used (database or disk is full)"))
+        ended.set_result(None)
+        runner._check(raised, runner.pool, stuck.id)
+        runner._check(ended, runner.pool, clean.id)
+        deadline = time.time() + 10
+        while store.get(stuck.id).status == "running" and time.time() < deadline:
+            time.sleep(0.05)
+        assert (store.get(stuck.id).status, store.get(stuck.id).error) == ("failed", UNRECORDED)
+        assert not (store.directory(stuck.id) / "outputs").exists()
+        assert store.get(clean.id).status == "running"
+    finally:
+        runner.shutdown()
