@@ -54,6 +54,9 @@ class WorkerContext:
     models_dir: Path
     max_attempts: int
     localisers_dir: Path | None = None
+    timeout_s: float = float("inf")
+    """The job time limit (``SVRNET_JOB_TIMEOUT_H``): a re-delivered job whose earlier run started longer
+    ago has had its time."""
 
 
 _context: WorkerContext | None = None
@@ -63,7 +66,8 @@ def set_context(settings: Settings) -> WorkerContext:
     global _context
     assert settings.queue_url, "the distributed back-end needs SVRNET_QUEUE_URL"
     _context = WorkerContext(RedisJobStore(settings.queue_url, settings.data_dir, settings.queue_name),
-                             Path(settings.models_dir), settings.job_max_attempts, Path(settings.localisers_dir))
+                             Path(settings.models_dir), settings.job_max_attempts, Path(settings.localisers_dir),
+                             settings.job_timeout_h * 3600)
     return _context
 
 
@@ -81,7 +85,22 @@ def execute(job_id: str) -> None:
     redelivered = retries_left is not None and retries_left < ctx.max_attempts - 1
     if redelivered:
         log.info(f"re-delivered job {job_id}, attempt {ctx.max_attempts - retries_left}", extra={"job_id": job_id})
+        if out_of_time(ctx, job_id):
+            return
     run_job(ctx.store, ctx.models_dir, job_id, redelivered=redelivered, localisers_dir=ctx.localisers_dir)
+
+
+def out_of_time(ctx: WorkerContext, job_id: str) -> bool:
+    """Fail a re-delivered job whose earlier run started longer ago than the job time limit (RQ kills a
+    work process that cannot take its time-out signal, stuck in native code, a minute past the limit,
+    and retries it: the job would run its whole time again), saying so; whether it did."""
+    job = ctx.store.get(job_id)
+    if job is None or job.status != "running" or job.started_at is None or time.time() - job.started_at <= ctx.timeout_s:
+        return False
+    if ctx.store.fail(job_id, TIMED_OUT, job.attempts):
+        ctx.store.discard_files(job_id)
+        log.warning(f"job {job_id} failed: {TIMED_OUT}", extra={"job_id": job_id})
+    return True
 
 
 def on_stopped(job: RqJob, connection: redis.Redis) -> None:  # noqa: ARG001 - RQ's callback signature

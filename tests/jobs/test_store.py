@@ -505,3 +505,34 @@ def test_a_run_that_could_not_record_its_end_fails_its_job_at_once(queue_setting
         assert store.get(clean.id).status == "running"
     finally:
         runner.shutdown()
+
+
+@pytest.mark.parametrize("queue_settings", ["redis"], indirect=True)
+def test_a_redelivered_job_past_its_time_limit_fails_as_timed_out(queue_settings: dict,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """RQ kills a work process stuck past the job time limit (in native code, deaf to its time-out
+    signal) and retries the job, which would run its whole time again and end as a lost worker: a
+    re-delivery whose earlier run started longer ago than the limit fails the job saying so; one
+    within it runs."""
+    from pathlib import Path
+
+    from service.core.settings import Settings
+    from service.jobs import rq_runner
+    from service.jobs.backends import open_backend
+    from service.jobs.worker import TIMED_OUT
+
+    store, runner = open_backend(Settings(**queue_settings))
+    try:
+        late, fresh = store.create({}), store.create({})
+        for job in (late, fresh):
+            assert store.claim(job.id) == 1
+        (store.directory(late.id) / "inputs").mkdir()
+        ctx = rq_runner.WorkerContext(store, Path("models"), 2, None, timeout_s=3600.0)
+        assert not rq_runner.out_of_time(ctx, fresh.id)
+        later = time.time() + 3601
+        monkeypatch.setattr(rq_runner.time, "time", lambda: later)
+        assert rq_runner.out_of_time(ctx, late.id)
+        assert (store.get(late.id).status, store.get(late.id).error) == ("failed", TIMED_OUT)
+        assert not (store.directory(late.id) / "inputs").exists()
+    finally:
+        runner.shutdown()
