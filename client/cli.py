@@ -61,6 +61,7 @@ from client.cli_support import (DEFAULT_VOLUME, ApiKeyOpt, BiasCorrectionOpt, Jo
                                 ThresholdOpt, check_folder_writable, check_masks, check_writable, follow_job, job_id_of,
                                 once_or_per_stack, resolution_range, timeout_from_env, user_path, write_json,
                                 write_results)
+from client.errors import NotFound
 from client.exits import (EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, EXIT_USAGE, errors, fail,
                           stderr, stdout)
 from client.views import (job_table, masks_table, models_table, predict_hints, quality_line, refined_poses_line,
@@ -332,7 +333,15 @@ def cancel(
     with errors(), _client(server, api_key) as svr:
         before = str(svr.status(job).get("status", ""))
         svr.cancel(job)
-        stdout().print(f"job {job} cancelled" if before in ("queued", "running") else f"job {job} ({before}) deleted")
+        if before in ("queued", "running"):
+            try:
+                cancelled = svr.status(job).get("status") == "cancelled"
+            except NotFound:              # it ended between the two calls: the server deleted it, results and all
+                cancelled = False
+            stdout().print(f"job {job} cancelled" if cancelled else
+                           f"job {job} had ended before the cancel arrived: deleted with its results")
+        else:
+            stdout().print(f"job {job} ({before}) deleted")
 
 
 @app.command(epilog=EXIT_HELP)

@@ -402,7 +402,7 @@ def test_cli_reconstruct_without_wait_and_failed_job(fake_cli: Callable, stack_f
     assert invoke(["status", "job1", "--json"]).exit_code == 8
 
 
-def test_cli_status_cancel_and_conflict(fake_cli: Callable, stack_file: Path) -> None:
+def test_cli_status_cancel_and_conflict(fake_cli: Callable, stack_file: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     fake, _ = fake_cli()
     assert invoke(["reconstruct", str(stack_file)]).exit_code == 0
     r = invoke(["status", "job1"])
@@ -414,6 +414,21 @@ def test_cli_status_cancel_and_conflict(fake_cli: Callable, stack_file: Path) ->
     r = invoke(["cancel", "job1"])                        # the fake's job moves on at each poll: now finished
     assert r.exit_code == 0 and "job1 (succeeded) deleted" in r.stdout
     assert invoke(["cancel", "job1"]).exit_code == 6
+    assert invoke(["reconstruct", str(stack_file)]).exit_code == 0
+    queued = list(fake.jobs.jobs)[-1]
+    r = invoke(["cancel", queued])                        # queued at the first look, still at the DELETE
+    assert r.exit_code == 0 and f"job {queued} cancelled" in r.stdout, r.stdout
+    assert invoke(["reconstruct", str(stack_file)]).exit_code == 0
+    ending = list(fake.jobs.jobs)[-1]
+    real_cancel = SVRnetClient.cancel
+
+    def finished_first(self, job_id: str) -> None:         # queued at the first look, finished before the DELETE
+        fake.jobs.jobs[job_id].update(status="succeeded")
+        real_cancel(self, job_id)
+
+    monkeypatch.setattr(SVRnetClient, "cancel", finished_first)
+    r = invoke(["cancel", ending])
+    assert r.exit_code == 0 and f"{ending} had ended before the cancel arrived: deleted with its results" in r.stdout
 
 
 def test_status_of_a_finished_job_prints_how_to_judge_its_volume(fake_cli: Callable, stack_file: Path) -> None:

@@ -132,8 +132,11 @@ class FakeJobs:
         if not m or m.group(1) not in self.jobs:
             return httpx.Response(404, json=problem(404, f"job: unknown job {m.group(1) if m else path}"))
         job = self.jobs[m.group(1)]
-        if method == "DELETE" and not m.group(2):
-            del self.jobs[m.group(1)]
+        if method == "DELETE" and not m.group(2):        # as the server: a queued or running job is cancelled,
+            if job["status"] in ("queued", "running"):      # its status still readable; a finished one is deleted
+                job.update(status="cancelled", stage="cancelled")
+            else:
+                del self.jobs[m.group(1)]
             return httpx.Response(204)
         if m.group(2):
             if job["status"] != "succeeded":
@@ -148,7 +151,9 @@ class FakeJobs:
             content = {"/volume": self.VOLUME, "/preview.png": self.PREVIEW, "/transforms": self.TRANSFORMS}
             return httpx.Response(200, content=content[m.group(2)])
         job["polls"] += 1
-        if job["polls"] == 2:
+        if job["status"] == "cancelled":                    # ended: it moves on no further
+            pass
+        elif job["polls"] == 2:
             job.update(status="running", stage="svr", progress=0.5, workers=None)
         elif job["polls"] >= 3 and self.outcome in ("succeeded", "incoherent", "one_apart", "one_left_out",
                                                     "lone_scrambled", "blended"):
