@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from client import transport
+from client.errors import Busy
 from client.mask_archive import write_mask_archive
 from client.job_calls import JobCalls, not_svrnet, stacks_answer
 from client.multipart import MultipartBody, ProgressCallback, form_value, order_fields
@@ -165,7 +166,8 @@ class SVRnetClient(JobCalls):
                     variance_threshold: float | None = None, max_expected_error_mm: float | None = None,
                     slice_order: str | Sequence[str] | None = None, atlas_frame: bool | None = None,
                     masks_hold_csf: bool | None = None, slice_thickness_mm: float | Sequence[float] | None = None,
-                    model: str | None = None, progress: ProgressCallback | None = None) -> dict[str, Any]:
+                    model: str | None = None, progress: ProgressCallback | None = None,
+                    idempotency_key: str | None = None) -> dict[str, Any]:
         """``POST /v1/reconstructions``: start a slice-to-volume reconstruction job.
 
         Args:
@@ -187,6 +189,10 @@ class SVRnetClient(JobCalls):
             model: the pose model that predicts and re-estimates the atlas frame, as for :meth:`predict`
                 (default: the server's).
             progress: ``progress(bytes_sent, total)`` during the upload.
+            idempotency_key: the submission's key (default: a new random one), sent as
+                ``Idempotency-Key``: a retry, or the same request sent again with the same key, gets the
+                job the first made. A submission retried until the server stayed busy raises
+                :class:`~client.errors.Busy` naming its key: the first may still be queued.
 
         Returns:
             ``{"job_id", "status", "status_url"}`` (``status_url`` filled from ``Location`` if absent).
@@ -217,8 +223,16 @@ class SVRnetClient(JobCalls):
                 if not path.is_file():
                     raise FileNotFoundError(f"poses: no such file: {path}")
                 files.append(("poses", path.name, path, "application/json"))
-        response = self._send("POST", "/v1/reconstructions", body=MultipartBody(fields, files), progress=progress,
-                              headers={transport.IDEMPOTENCY_HEADER: secrets.token_urlsafe(24)})
+        key = idempotency_key or secrets.token_urlsafe(24)
+        try:
+            response = self._send("POST", "/v1/reconstructions", body=MultipartBody(fields, files), progress=progress,
+                                  headers={transport.IDEMPOTENCY_HEADER: key})
+        except Busy as exc:
+            if (exc.attempts or 1) > 1:     # sent more than once: the first may be queued, still being read
+                exc.detail = (f"{exc.detail} (the request was sent {exc.attempts} times with idempotency key {key}: "
+                              "send it again with that key to get its job, not a second one)")
+                exc.args = (exc.detail,)
+            raise
         body = self._json(response)
         if isinstance(body, dict):
             location = response.headers.get("location")

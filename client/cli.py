@@ -229,6 +229,10 @@ def reconstruct(
         "file's SliceThickness, else the slice spacing; give it for slices with gaps or overlap)")] = None,
     model: ModelOpt = None,
     overwrite: OverwriteOpt = False,
+    idempotency_key: Annotated[Optional[str], typer.Option(
+        "--idempotency-key", help="the submission's key, 8 to 200 printable ASCII characters (default: a new "
+        "one): the same command sent again with the key an earlier run named gets that job, not a second "
+        "one")] = None,
 ) -> None:
     """Start a reconstruction job (POST /v1/reconstructions); with --wait, follow it and download the volume."""
     check_masks(stacks, mask)
@@ -248,7 +252,7 @@ def reconstruct(
                                   max_expected_error_mm=max_expected_error, slice_order=slice_order,
                                   atlas_frame=None if atlas_frame else False,
                                   masks_hold_csf=True if masks_hold_csf else None, slice_thickness_mm=thickness,
-                                  model=model, progress=progress)
+                                  model=model, progress=progress, idempotency_key=idempotency_key)
         job_id = str(job.get("job_id", ""))
         console.print(f"job {job_id} {job.get('status', 'queued')}: {job.get('status_url', '')}", soft_wrap=True)
         if not wait:

@@ -584,3 +584,27 @@ def test_the_cli_names_the_origin_not_the_key(capsys: pytest.CaptureFixture[str]
     with pytest.raises(typer.Exit) as e, errors():
         raise KeyboardInterrupt
     assert e.value.exit_code == EXIT_INTERRUPTED and "130 interrupted" in EXIT_HELP
+
+
+def test_a_keyed_submission_that_stays_busy_names_its_key_and_a_rerun_sends_it(stack_file: Path,
+                                                                               no_sleep: list[float]) -> None:
+    """A submission whose answer the server kept busy (its first copy may be queued, still being read)
+    raises Busy naming the key it was sent with; the same request with that key sends it again, so
+    the server answers with the first one's job, not a second."""
+    keys: list[str] = []
+
+    def busy(request: httpx.Request) -> httpx.Response:
+        keys.append(request.headers["idempotency-key"])
+        return httpx.Response(503, headers={"Retry-After": "1"},
+                              json=problem(503, "Idempotency-Key: the first submission with this key is still being read"))
+
+    with pytest.raises(Busy) as e:
+        mock(busy, retries=2).reconstruct([stack_file])
+    assert len(set(keys)) == 1 and len(keys) == 3
+    assert f"idempotency key {keys[0]}" in str(e.value) and "send it again with that key" in str(e.value)
+
+    def made(request: httpx.Request) -> httpx.Response:
+        keys.append(request.headers["idempotency-key"])
+        return httpx.Response(202, json={"job_id": "j1", "status": "queued", "status_url": "/v1/reconstructions/j1"})
+
+    assert mock(made).reconstruct([stack_file], idempotency_key=keys[0])["job_id"] == "j1" and keys[-1] == keys[0]
