@@ -22,12 +22,14 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import signal
 import socket
 import socketserver
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from service.core import logging as service_logging
@@ -45,7 +47,8 @@ from service.streaming.session import StreamSession
 log = logging.getLogger(__name__)
 
 LINGER_S, LINGER_CHUNKS = 2.0, 256
-"""After a broken stream: how long, and how many 64 KiB chunks, the server drains before it closes."""
+"""After a broken stream: how long in all, and how many 64 KiB chunks at most, the server drains
+before it closes."""
 DEFAULT_PORT = 9002
 """The port of FIRE's python-ismrmrd-server, which scanners' FIRE configurations name by default."""
 
@@ -145,11 +148,15 @@ class MrdHandler(socketserver.StreamRequestHandler):
     def linger(self) -> None:
         """Half-close and drain what the client still sends (bounded), so that closing with unread data
         does not reset the connection before the client has read the error and ``CLOSE``."""
+        deadline = time.monotonic() + LINGER_S       # in all: a byte every second must not hold the thread
         try:
             self.wfile.flush()
             self.connection.shutdown(socket.SHUT_WR)
-            self.connection.settimeout(LINGER_S)
             for _ in range(LINGER_CHUNKS):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                self.connection.settimeout(left)
                 if not self.connection.recv(1 << 16):
                     break
         except OSError:
@@ -171,6 +178,8 @@ class MrdServer(socketserver.ThreadingTCPServer):
         self.new_session, self.stream_limits, self.limits = new_session, stream_limits, limits
         self.retry_after_s = retry_after_s
         self.slots = threading.BoundedSemaphore(limits.max_sessions)
+        if ":" in address[0]:              # an IPv6 address (``::1``, ``::``): socketserver's family is IPv4's
+            self.address_family = socket.AF_INET6
         super().__init__(address, MrdHandler)
 
     @property
@@ -211,9 +220,29 @@ def parser() -> argparse.ArgumentParser:
                                  "Gadgetron's external language interface, Siemens FIRE.")
     ap.add_argument("--host", help="address to listen on (default: SVRNET_HOST)")
     ap.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"TCP port (default {DEFAULT_PORT})")
-    ap.add_argument("--max-sessions", type=int, help="connections at once (default: SVRNET_STREAM_MAX_SESSIONS)")
-    ap.add_argument("--idle-s", type=float, help="seconds a connection may stay silent (default: SVRNET_STREAM_IDLE_S)")
+    ap.add_argument("--max-sessions", type=positive(int), help="connections at once (default: SVRNET_STREAM_MAX_SESSIONS)")
+    ap.add_argument("--idle-s", type=positive(float),
+                    help="seconds a connection may stay silent (default: SVRNET_STREAM_IDLE_S)")
     return ap
+
+
+def positive(kind: type) -> Callable[[str], int | float]:
+    """An argparse type: a finite number of ``kind`` over 0 (0, a negative number or NaN is a usage
+    error, not a default in disguise or a server that drops every connection).
+
+    Example:
+        >>> positive(float)("2.5"), positive(int)("4")
+        (2.5, 4)
+    """
+    def parse(text: str) -> int | float:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        if not math.isfinite(value) or value <= 0:
+            raise argparse.ArgumentTypeError(f"{text!r}: a number over 0 is required")
+        return value
+    return parse
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -221,7 +250,8 @@ def main(argv: list[str] | None = None) -> int:
     settings = load_settings("svrnet-mrd")
     service_logging.configure(settings.log_level)
     warn_unknown_variables("svrnet-mrd")
-    limits = ServerLimits(args.max_sessions or settings.stream_max_sessions, args.idle_s or settings.stream_idle_s)
+    limits = ServerLimits(settings.stream_max_sessions if args.max_sessions is None else args.max_sessions,
+                          settings.stream_idle_s if args.idle_s is None else args.idle_s)
     if problem := listen_problem(args.host or settings.host, args.port, "--host or SVRNET_HOST", "--port"):
         print(f"svrnet-mrd: {problem}", file=sys.stderr)
         return 2

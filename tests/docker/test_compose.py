@@ -42,7 +42,8 @@ def test_every_command_exists() -> None:
         assert service["build"]["dockerfile"] == "docker/Dockerfile"
     assert [SERVICES[n]["command"] for n in ("api-1", "api-2")] == [["svrnet-server"]] * 2
     assert SERVICES["worker"]["command"] == ["svrnet-worker"]
-    assert SERVICES["mrd"]["command"][0] == "svrnet-mrd" and SERVICES["mrd"]["ports"] == ["${SVRNET_BIND:-127.0.0.1}:9002:9002"]
+    assert SERVICES["mrd"]["command"][0] == "svrnet-mrd"
+    assert SERVICES["mrd"]["ports"] == ["${SVRNET_MRD_BIND:-127.0.0.1}:9002:9002"]    # its own: opening the API leaves it closed
     assert SERVICES["worker"]["healthcheck"]["test"][1:] == ["svrnet-worker", "--health"]
     out = io.StringIO()                               # the worker's option parser knows those options
     with contextlib.redirect_stdout(out), contextlib.suppress(SystemExit):

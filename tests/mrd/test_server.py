@@ -319,6 +319,68 @@ def test_a_client_that_trickles_a_message_is_closed_like_a_silent_one(serve) -> 
     assert answered is not None and answered < 3.0, f"the server kept a trickling connection open ({answered})"
 
 
+def test_a_broken_stream_is_drained_for_the_linger_in_all_not_per_byte(serve, monkeypatch) -> None:  # noqa: ANN001
+    """After a broken stream the server drains what the client still sends for LINGER_S in all: a client
+    that sends a byte now and then within each read's wait held the thread (and the socket) for
+    256 of those waits."""
+    from service.mrd import server as server_module
+
+    monkeypatch.setattr(server_module, "LINGER_S", 0.5)
+    spans: list[float] = []
+    real = server_module.MrdHandler.linger
+
+    def timed(self) -> None:  # noqa: ANN001
+        t0 = time.monotonic()
+        real(self)
+        spans.append(time.monotonic() - t0)
+
+    monkeypatch.setattr(server_module.MrdHandler, "linger", timed)
+    server = serve()
+    sock = socket.create_connection(("127.0.0.1", server.port), timeout=10)
+    sock.sendall(b"\xff\xff")                                  # an unknown message: the stream is broken
+    t0 = time.monotonic()
+    try:
+        while time.monotonic() - t0 < 2.5 and not spans:
+            sock.sendall(b"x")
+            time.sleep(0.2)
+    except OSError:
+        pass
+    sock.close()
+    deadline = time.monotonic() + 5
+    while not spans and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert spans and spans[0] < 1.5, spans
+
+
+def test_the_mrd_server_listens_on_an_ipv6_address(case: Case) -> None:
+    """``--host ::1`` (or ``SVRNET_HOST=::``, which the HTTP server takes) binds: socketserver's family
+    is IPv4's, and svrnet-mrd ended in a traceback."""
+    factory = session_factory(ModelRegistry({"default": case.oracle}), case.localiser, StreamLimits())  # type: ignore[dict-item]
+    try:
+        server = MrdServer(("::1", 0), factory, StreamLimits())
+    except OSError as exc:                   # a host without IPv6
+        pytest.skip(f"no IPv6 loopback here: {exc}")
+    try:
+        threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True).start()
+        socket.create_connection(("::1", server.port), timeout=5).close()
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_the_mrd_servers_limits_on_its_command_line_are_numbers_over_zero(capsys) -> None:  # noqa: ANN001
+    """0, a negative number or NaN is a usage error: 0 turned into the default in disguise, a negative
+    session count was a traceback, a negative idle time a server that dropped every connection."""
+    from service.mrd import server as server_module
+
+    for option, value in (("--max-sessions", "0"), ("--max-sessions", "-2"), ("--idle-s", "-1"), ("--idle-s", "nan")):
+        with pytest.raises(SystemExit) as stopped:
+            server_module.parser().parse_args([option, value])
+        assert stopped.value.code == 2 and "a number over 0 is required" in capsys.readouterr().err, (option, value)
+    args = server_module.parser().parse_args(["--max-sessions", "3", "--idle-s", "2.5"])
+    assert (args.max_sessions, args.idle_s) == (3, 2.5)
+
+
 @pytest.mark.parametrize(("limit", "slices"), [("<maximum>19</maximum>", 20), ("", None), ("<maximum></maximum>", None),
                                                ("<maximum>-3</maximum>", None), ("<maximum>0</maximum>", None)])
 def test_a_header_gives_the_slices_of_a_series_only_when_it_says_so(limit: str, slices: int | None) -> None:
