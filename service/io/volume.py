@@ -85,6 +85,10 @@ BACKGROUND_PERCENTILE = 0.5
 """The share (%) of an image's values, its darkest, taken for the background where it lies below zero."""
 MAX_SAMPLED_VALUES = 1 << 20
 """The values :func:`magnitude` takes its background level from at most (a stride over the array)."""
+FILL_SHARE, FILL_GAP = 1e-3, 0.5
+"""A value below zero is a fill (the padding a tool writes where a resampled or oblique grid has no
+data, -1024 or -32768) where at least :data:`FILL_SHARE` of the values hold it, its lowest, and the
+next lowest value lies above it by more than :data:`FILL_GAP` of the other values' range."""
 
 
 def magnitude(values: NDArray) -> NDArray:
@@ -95,9 +99,12 @@ def magnitude(values: NDArray) -> NDArray:
     divides by the brain's median. A file whose values go below zero stores them with an offset (a
     signed export, a z-score, a rescale intercept): its darkest :data:`BACKGROUND_PERCENTILE` % of
     values (of up to :data:`MAX_SAMPLED_VALUES`, the air around the body in a whole field of view) is
-    taken as the background and moved to 0, and what lies below is clipped. An image without values
-    below zero is returned as it is, the same array: the stacks of every scanner so far, and the
-    training volumes.
+    taken as the background and moved to 0, and what lies below is clipped. A fill value
+    (:data:`FILL_SHARE`; a tool's padding, far below the image) is no background: it becomes 0, and
+    the background level comes from the other values (a fill on 0.5 % of the voxels became the
+    background, and at -32768 lifted the whole image so far that no brain was found). An image
+    without values below zero is returned as it is, the same array: the stacks of every scanner so
+    far, and the training volumes.
 
     Example:
         >>> a = np.array([[0.0, 10.0], [20.0, 40.0]], np.float32)
@@ -105,13 +112,22 @@ def magnitude(values: NDArray) -> NDArray:
         True
         >>> magnitude(a - 1000).tolist(), (magnitude((a - 17.5) / 15.0) * 15).round(4).tolist()   # an offset, a z-score
         ([[0.0, 10.0], [20.0, 40.0]], [[0.0, 10.0], [20.0, 40.0]])
+        >>> magnitude(np.array([[-32768.0, 0.0, 10.0], [20.0, 40.0, 5.0]], np.float32)).tolist()   # a fill
+        [[0.0, 0.0, 10.0], [20.0, 40.0, 5.0]]
     """
     a = np.asarray(values)
     if a.size == 0 or a.dtype.kind not in "if" or not a.min() < 0:
         return values
     sample = a.ravel()[::max(1, a.size // MAX_SAMPLED_VALUES)]
-    background = float(np.percentile(sample, BACKGROUND_PERCENTILE, method="lower"))
-    return np.maximum(a.astype(np.float32) - np.float32(min(background, 0.0)), np.float32(0.0))
+    lowest = sample.min()
+    rest = sample[sample > lowest]
+    fill = (float(np.mean(sample == lowest)) >= FILL_SHARE and rest.size > 0
+            and float(rest.min()) - float(lowest) > FILL_GAP * float(rest.max() - rest.min()))
+    background = float(np.percentile(rest if fill else sample, BACKGROUND_PERCENTILE, method="lower"))
+    out = np.maximum(a.astype(np.float32) - np.float32(min(background, 0.0)), np.float32(0.0))
+    if fill:
+        out[a == lowest] = 0.0
+    return out
 
 
 def from_sitk(image: sitk.Image) -> Volume:

@@ -484,6 +484,27 @@ def test_a_file_stored_with_an_offset_is_read_as_its_magnitudes(tmp_path: Path, 
     np.testing.assert_allclose(read * scale, magnitudes, atol=1e-3 * magnitudes.max())
 
 
+@pytest.mark.parametrize("fill", [-1024, -32768])
+def test_a_tools_fill_value_is_no_background(tmp_path: Path, fill: int) -> None:
+    """A resampled stack whose corners a tool padded with a fill value (3.5 % of its voxels): the fill
+    reads as 0 and the rest as it was (the fill was taken for the background and lifted the image by
+    it: at -32768 no brain was found). An offset export whose air sits exactly on its lowest value
+    keeps its background there (the test above)."""
+    rng = np.random.default_rng(5)
+    magnitudes = rng.uniform(0, 20, (6, 40, 40)).round().astype(np.float32)           # air, with its noise
+    magnitudes[:, 10:30, 12:28] = rng.uniform(100, 900, (6, 20, 16)).round()
+    corners = np.zeros((40, 40), bool)
+    corners[:5, :5] = corners[:5, -5:] = corners[-5:, :5] = corners[-5:, -5:] = True    # 100 of 1600 px
+    corners &= np.add.outer(np.arange(40), np.arange(40)) % 2 == 0               # half: 3.1 %
+    array = np.where(corners[None], np.float32(fill), magnitudes).astype(np.int16)
+    image = sitk.GetImageFromArray(array)
+    image.SetSpacing((1.0, 1.0, 3.0))
+    path = tmp_path / "stack.nii.gz"
+    sitk.WriteImage(image, str(path))
+    read = read_upload(path, path.name).array.transpose(2, 1, 0)
+    np.testing.assert_array_equal(read, np.where(corners[None], 0.0, magnitudes))
+
+
 def test_a_file_without_negative_values_is_read_as_it_is(tmp_path: Path) -> None:
     array = np.random.default_rng(4).uniform(5, 50, (6, 20, 20)).astype(np.float32)
     image = sitk.GetImageFromArray(array)
