@@ -98,7 +98,9 @@ def inset_in_plane(mask: NDArray, spacing: NDArray, inset_mm: float, axis: int |
     """``mask`` without the pixels within ``inset_mm`` of its outside, in the plane of each slice along
     ``axis`` (default: the thick one), by exact Euclidean distances on the voxel sizes ``spacing``:
     an erosion by the in-plane disc of the offsets within ``inset_mm`` (outside the array counts as
-    outside), which on a fine grid costs half a distance transform.
+    outside), which on a fine grid costs half a distance transform. Pixels coarser than the inset
+    lose one pixel along each in-plane axis (a disc of the coarser pixel's size): by the inset alone
+    they kept every pixel.
 
     Example (a 20 x 20 mm square of 1 mm pixels loses 2 mm on each side):
         >>> m = np.zeros((30, 30, 3), bool); m[5:25, 5:25] = True
@@ -112,9 +114,11 @@ def inset_in_plane(mask: NDArray, spacing: NDArray, inset_mm: float, axis: int |
         return mask.copy()
     axis = slice_axis_of(spacing) if axis is None else axis
     sampling = np.asarray(spacing, np.float64)
-    reach = [0 if k == axis else int(np.floor(inset_mm / sampling[k])) for k in range(3)]
+    # at least one pixel along each in-plane axis: pixels coarser than the inset would keep it all
+    radius = max(inset_mm, max(float(sampling[k]) for k in range(3) if k != axis)) if inset_mm > 0 else 0.0
+    reach = [0 if k == axis else int(np.floor(radius / sampling[k] + 1e-9)) for k in range(3)]
     offsets = np.meshgrid(*[np.arange(-r, r + 1) * sampling[k] for k, r in enumerate(reach)], indexing="ij")
-    disc = sum(o ** 2 for o in offsets) <= inset_mm ** 2
+    disc = sum(o ** 2 for o in offsets) <= radius ** 2 + 1e-9
     inside = np.pad(mask[box], [(r, r) for r in reach])
     out = np.zeros_like(mask)
     out[box] = ndimage.binary_erosion(inside, disc)[tuple(slice(r, len_ - r) for r, len_ in zip(reach, inside.shape))]

@@ -22,7 +22,8 @@ def test_an_uploaded_mask_is_reported_as_such() -> None:
 def test_the_inset_removes_exactly_the_pixels_within_its_distance_of_the_outside() -> None:
     """Against exact in-plane Euclidean distances to the nearest outside pixel (outside the array
     counts as outside): random masks on grids of scanners' voxel sizes, touching the array's edge,
-    distances that tie with a pixel's, and each axis as the slice axis."""
+    distances that tie with a pixel's, and each axis as the slice axis. In-plane pixels coarser than
+    the inset lose the pixels within one of them (by the inset alone they kept every pixel)."""
     rng = np.random.default_rng(0)
     for case in range(60):
         shape = tuple(int(n) for n in rng.integers(5, 30, 3))
@@ -33,7 +34,22 @@ def test_the_inset_removes_exactly_the_pixels_within_its_distance_of_the_outside
         sampling = np.array(spacing, np.float64)
         sampling[axis] = 1e6                                   # the nearest outside within the slice's plane
         distance = ndimage.distance_transform_edt(np.pad(mask, 1), sampling=sampling)[1:-1, 1:-1, 1:-1]
-        np.testing.assert_array_equal(inset_in_plane(mask, spacing, inset, axis), mask & (distance > inset))
+        reach = max(inset, max(spacing[k] for k in range(3) if k != axis))
+        np.testing.assert_array_equal(inset_in_plane(mask, spacing, inset, axis), mask & (distance > reach + 1e-9))
+
+
+@pytest.mark.parametrize("pixel_mm", [2.05, 2.5, 3.0])
+def test_pixels_coarser_than_the_inset_still_lose_the_csf_rim(pixel_mm: float) -> None:
+    """A low-field scanner's 2-3 mm pixels: the localiser's mask loses its outer pixel in each
+    slice's plane (it kept them all: no offset lay within 2 mm), and the answer says 2 mm."""
+    spacing = np.array([pixel_mm, pixel_mm, 4.0])
+    x, y = np.meshgrid(*[np.arange(40) * pixel_mm] * 2, indexing="ij")
+    disc = ((x - 20 * pixel_mm) ** 2 + (y - 20 * pixel_mm) ** 2 <= 30 ** 2)[..., None].repeat(5, axis=2)
+    found = Localisation.of(disc, spacing, "network", 0.9)
+    inner = found.pose_mask(spacing)
+    cross = ndimage.generate_binary_structure(2, 1)[..., None]          # one pixel along each in-plane axis
+    assert np.array_equal(inner, ndimage.binary_erosion(np.pad(disc, ((1, 1), (1, 1), (0, 0))), cross)[1:-1, 1:-1])
+    assert found.report()["pose_mask_inset_mm"] == POSE_MASK_INSET_MM
 
 
 def test_the_pose_network_gets_the_localisers_mask_without_its_csf_rim() -> None:
