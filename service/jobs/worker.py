@@ -265,8 +265,9 @@ def run_job(store: JobStore, models_dir: Path, job_id: str, redelivered: bool = 
             log.warning(f"job {job_id}: attempt {attempt} failed after a re-delivery took it over", extra={"job_id": job_id})
             return                     # the later run owns the job's files, its inputs included
         # A failed job's results are no results: none stay; gone before the failure is recorded, which
-        # on a disk the results filled is what lets the record be written.
-        shutil.rmtree(folder / "outputs", ignore_errors=True)
+        # on a disk the results filled is what lets the record be written (a job that ended is left).
+        if now is not None and now.status in ("queued", "running"):
+            shutil.rmtree(folder / "outputs", ignore_errors=True)
         if store.fail(job_id, failure_reason(exc), attempt):
             log.warning("job failed", extra={"job_id": job_id, "error_type": type(exc).__name__, "error_at": error_at(exc)})
         else:                          # cancelled meanwhile (its files deleted under the run): no failure
