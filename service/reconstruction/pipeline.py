@@ -60,7 +60,7 @@ from service.reconstruction.grid import Grid, bounds_of, bounds_within, check_vo
 from service.reconstruction.intensity import SliceIntensity, fit_intensity
 from service.reconstruction.registration import anchor_frame, register_slices
 from service.reconstruction.quality import (exclusion_reasons, held_out_groups, held_out_ncc, judged_slices,
-                                           quality_report, slice_ncc)
+                                           live_stacks, quality_report, slice_ncc)
 from service.reconstruction.robust import ncc_outliers, robust_weights
 from service.reconstruction.slices import SliceSet, inplane_bin_factors
 from service.reconstruction.superresolution import default_delta, solve_without, super_resolve
@@ -139,11 +139,11 @@ def _register(slices: SliceSet, poses: NDArray, x: NDArray, grid: Grid, model: F
     kw = dict(subsample=cfg.registration_subsample, psf_points=cfg.registration_psf_points,
               max_iterations=cfg.registration_iterations, step_mm=step_mm, blur_sigma_mm=blur_mm,
               prior=start, prior_sd_mm=cfg.registration_prior_sd_mm)
-    n_stacks = int(slices.stack_index.max()) + 1
-    folds = min(cfg.leave_out_folds, n_stacks)
+    live = live_stacks(slices.stack_index, slices.include)      # a stack without an included slice is no fold
+    folds = min(cfg.leave_out_folds, len(live))
     if folds < 2 or model is None:
         return register_slices(x, grid, slices, poses, **kw).atlas_from_voxel, 0.0
-    fold_of_slice = slices.stack_index % folds
+    fold_of_slice = np.searchsorted(live, slices.stack_index) % folds
     fold_of_pixel = fold_of_slice[slices.slice_id]
     moved = poses.copy()
     t_sr = 0.0
@@ -294,14 +294,14 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
     if cfg.quality:
         t0 = time.perf_counter()
         held_out = held_out_ncc(model, slice_set.values, pixel_weight, sid,
-                                held_out_groups(slice_set.stack_index, slice_set.slice_index),
+                                held_out_groups(slice_set.stack_index, slice_set.slice_index, slice_set.include),
                                 lambda w: gaussian_average(slice_set, poses, grid, sigma_mm=cfg.ga_sigma_mm,
                                                            pixel_weight=w).volume,
                                 lambda sim, val: slice_ncc(sim, val, sid, n), float(lams[-1] if lams else cfg.lam),
                                 default_delta(x, support, cfg.delta_fraction), support,
-                                judged=observed.values)     # as acquired: the matching saw the volume
+                                judged=observed.values, include=slice_set.include)   # as acquired: the matching saw the volume
         quality = quality_report(ncc, held_out, judged_slices(included, counts), slice_set.stack_index,
-                                 judged, slice_set.slice_index)
+                                 judged, slice_set.slice_index, slice_set.include)
         timings["quality"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
     if progress is not None:

@@ -72,24 +72,40 @@ def judged_slices(use: NDArray, pixel_counts: NDArray) -> NDArray[np.bool_]:
     return use & (counts >= MIN_PIXEL_FRACTION * np.median(counts[use]))
 
 
-def held_out_groups(stack_index: NDArray, slice_index: NDArray) -> NDArray[np.int64]:
-    """The groups :func:`held_out_ncc` leaves out in turn: the stacks, or with one stack its even and
-    its odd slices (see the module).
+def live_stacks(stack_index: NDArray, include: NDArray | None = None) -> NDArray[np.int64]:
+    """The stacks with an ``include``-d slice (default: every stack): those a volume can be made of.
+
+    Example:
+        >>> live_stacks(np.array([0, 0, 1, 2]), np.array([True, False, False, True])).tolist()
+        [0, 2]
+    """
+    stack_index = np.asarray(stack_index, np.int64)
+    return np.unique(stack_index if include is None else stack_index[np.asarray(include, bool)])
+
+
+def held_out_groups(stack_index: NDArray, slice_index: NDArray, include: NDArray | None = None) -> NDArray[np.int64]:
+    """The groups :func:`held_out_ncc` leaves out in turn: the stacks, or with one stack that holds an
+    ``include``-d slice its even and its odd slices (see the module; a stack none of whose slices is
+    included is no group: left out, it would leave the volume as it is, and the others' volume empty).
 
     Example:
         >>> held_out_groups(np.array([0, 0, 1]), np.array([0, 1, 0])).tolist(), held_out_groups(np.zeros(4, int), np.arange(4)).tolist()
         ([0, 0, 1], [0, 1, 0, 1])
+        >>> held_out_groups(np.array([0, 0, 1]), np.array([0, 1, 0]), np.array([True, True, False])).tolist()
+        [0, 1, 0]
     """
     stack_index = np.asarray(stack_index, np.int64)
-    return stack_index if len(np.unique(stack_index)) > 1 else np.asarray(slice_index, np.int64) % 2
+    return stack_index if len(live_stacks(stack_index, include)) > 1 else np.asarray(slice_index, np.int64) % 2
 
 
 def held_out_ncc(model: ForwardModel, values: NDArray, pixel_weight: NDArray, slice_id: NDArray,
                  stack_index: NDArray, start: Callable[[NDArray], NDArray],
                  ncc: Callable[[NDArray, NDArray], NDArray], lam: float, delta: float, support: NDArray | None,
-                 iterations: int = HELD_OUT_ITERATIONS, judged: NDArray | None = None) -> NDArray[np.float64]:
+                 iterations: int = HELD_OUT_ITERATIONS, judged: NDArray | None = None,
+                 include: NDArray | None = None) -> NDArray[np.float64]:
     """``[n]``: each slice's NCC against the volume solved without its stack's pixels (NaN where
-    the stack is the only one; ``stack_index`` may be any grouping, :func:`held_out_groups`).
+    the stack is the only one, or a group without an ``include``-d slice; ``stack_index`` may be any
+    grouping, :func:`held_out_groups`).
     ``start(weights)`` gives the volume the solve starts from, given the pixel weights without the
     stack (the other stacks' Gaussian average); ``ncc(simulated, values)`` gives the per-slice NCC of
     pixel vectors; ``judged``: the pixel values the left-out slices are judged by (default
@@ -97,7 +113,7 @@ def held_out_ncc(model: ForwardModel, values: NDArray, pixel_weight: NDArray, sl
     judges them as acquired)."""
     n = len(stack_index)
     out = np.full(n, np.nan)
-    stacks = np.unique(stack_index)
+    stacks = live_stacks(stack_index, include)
     if len(stacks) < 2:
         return out
     stack_of_pixel = np.asarray(stack_index)[slice_id]
@@ -130,11 +146,12 @@ def _median(x: NDArray) -> float | None:
 
 
 def quality_report(ncc: NDArray, held_out: NDArray, judged: NDArray, stack_index: NDArray,
-                   held_out_judged: NDArray | None = None, slice_index: NDArray | None = None) -> dict:
+                   held_out_judged: NDArray | None = None, slice_index: NDArray | None = None,
+                   include: NDArray | None = None) -> dict:
     """The ``quality`` object of a job's report (see the module): agreement over the ``judged``
-    slices, leaving a stack out over ``held_out_judged`` (default: the same slices). With one stack,
-    ``held_out`` holds each slice's NCC with its alternate slices left out (:func:`held_out_groups`
-    of ``slice_index``), reported as ``leave_alternate_slices_out``."""
+    slices, leaving a stack out over ``held_out_judged`` (default: the same slices). With one stack
+    holding an ``include``-d slice, ``held_out`` holds each slice's NCC with its alternate slices
+    left out (:func:`held_out_groups` of ``slice_index``), reported as ``leave_alternate_slices_out``."""
     judged = np.asarray(judged, bool)
     held_judged = judged if held_out_judged is None else np.asarray(held_out_judged, bool)
     c = np.asarray(ncc, np.float64)[judged]
@@ -143,7 +160,7 @@ def quality_report(ncc: NDArray, held_out: NDArray, judged: NDArray, stack_index
     stacks = np.unique(stack_index)
     held_median = _median(h[held_judged])
     held = {"median_ncc": held_median, "slices": int(np.isfinite(h[held_judged]).sum())}
-    alone = len(stacks) == 1 and slice_index is not None
+    alone = len(live_stacks(stack_index, include)) == 1 and slice_index is not None
     minimum = MIN_ALTERNATE_NCC if alone else MIN_HELD_OUT_NCC
     report = {"judged_slices": int(judged.sum()),
               "coherent": None if held_median is None else not incoherent(held_median, minimum),
@@ -152,8 +169,9 @@ def quality_report(ncc: NDArray, held_out: NDArray, judged: NDArray, stack_index
     if not alone:
         return {**report, "leave_one_stack_out": {
             **held, "per_stack_median_ncc": [_median(h[held_judged & (stack_index == s)]) for s in stacks]}}
-    halves = held_out_groups(stack_index, slice_index)
-    return {**report, "leave_one_stack_out": {"median_ncc": None, "slices": 0, "per_stack_median_ncc": [None]},
+    halves = held_out_groups(stack_index, slice_index, include)
+    return {**report, "leave_one_stack_out": {"median_ncc": None, "slices": 0,
+                                              "per_stack_median_ncc": [None] * len(stacks)},
             "leave_alternate_slices_out": {
                 **held, "even_odd_median_ncc": [_median(h[held_judged & (halves == p)]) for p in (0, 1)]}}
 

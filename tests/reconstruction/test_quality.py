@@ -138,3 +138,20 @@ def test_left_out_slices_are_judged_as_acquired_not_as_matched(acquisition, monk
     reconstruct(ss, resolution_mm=1.5, svr_iterations=1, config=FAST)
     np.testing.assert_array_equal(seen["judged"], ss.values)
     assert not np.array_equal(seen["solved"], ss.values)
+
+
+def test_a_stack_without_an_included_slice_is_no_group_of_the_held_out_score(acquisition) -> None:  # noqa: ANN001
+    """A request's stack none of whose slices the job may use (none accepted, or found mirrored) is no
+    stack to leave out: the job is judged as the one stack it holds, by its alternate slices (it left
+    the empty stack out, and the real stack out of a volume then made of nothing: median 0, incoherent,
+    and no frame step ran)."""
+    (vol0, mask0), (vol1, mask1) = acquisition.stacks[:2]
+    t0, t1 = acquisition.truth[:2]
+    alone = reconstruct(SliceSet.from_stacks([(vol0, mask0, t0, np.ones(len(t0), bool))]), resolution_mm=1.5,
+                        svr_iterations=0, config=FAST).quality
+    with_empty = reconstruct(SliceSet.from_stacks([(vol0, mask0, t0, np.ones(len(t0), bool)),
+                                                   (vol1, mask1, t1, np.zeros(len(t1), bool))]),
+                             resolution_mm=1.5, svr_iterations=0, config=FAST).quality
+    assert with_empty["coherent"] is True and alone["coherent"] is True
+    assert with_empty["leave_one_stack_out"] == {"median_ncc": None, "slices": 0, "per_stack_median_ncc": [None, None]}
+    assert with_empty["leave_alternate_slices_out"]["median_ncc"] == alone["leave_alternate_slices_out"]["median_ncc"]
