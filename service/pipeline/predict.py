@@ -244,6 +244,24 @@ def _refine_stacks(prepared: list[PreparedStack], outs: list[StackPoses], proper
                                                      relative[j], expected[j], ref.spread_mm[j], floor)
 
 
+def weakest_first(outs: list[StackPoses]) -> list[int]:
+    """The order the stacks' weak branch decisions are checked against the others in: the weakest
+    first (smallest branch margin; a stack without a fit last), so that of two weak stacks that
+    disagree the weaker takes the stronger one's branch whatever their order in the request (in
+    upload order the first was overruled by the second, and the second had no reference left).
+
+    Example:
+        >>> from types import SimpleNamespace as N
+        >>> weakest_first([N(fit=N(branch_margin=2.5)), N(fit=None), N(fit=N(branch_margin=1.7))])
+        [2, 0, 1]
+    """
+    def margin(i: int) -> float:
+        fit = outs[i].fit
+        value = np.inf if fit is None else float(fit.branch_margin)
+        return value if np.isfinite(value) else np.inf
+    return sorted(range(len(outs)), key=lambda i: (margin(i), i))
+
+
 def predict(prepared: list[PreparedStack], estimator: PoseEstimator, mc_samples: int,
             threshold: float, stack_consistency: bool = True,
             orders: list[SliceOrder] | None = None,
@@ -311,7 +329,7 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
                 parts[i], prepared[i], frames[i], True, plane_x_mm, parts[i].spread_mm * scale, orders[i], shape, gain,
                 ref, margin))
 
-        for i in range(len(outs) if stack_consistency else 0):
+        for i in weakest_first(outs) if stack_consistency else ():
             outs[i] = check(i)
         if stack_consistency:              # a stack whose file mirrors its voxels: out of the request's decisions ...
             mirrored = mark_mirrored(outs, [s.upload.volume.affine for s in prepared])
