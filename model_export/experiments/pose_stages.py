@@ -110,7 +110,8 @@ def main() -> None:
         for j, n in enumerate(names):
             pa, ka = slice_poses(a[0]["network"][j], a[1][j])
             pb, kb = slice_poses(b[0]["network"][j], a[1][j])
-            ed, ed_min = anchors.ed(pa, pb), twin.twin_min_ed(pa, pb)
+            plane = float(getattr(estimator.info, "symmetry_plane_x_mm", twin.DEFAULT_PLANE_X_MM))
+            ed, ed_min = anchors.ed(pa, pb), twin.twin_min_ed(pa, pb, plane)      # about the model's plane
             print(f"\n{n}: slice, mask pixels manual / localiser, Dice, centroid shift (mm), network poses' E.D. / twin-min (mm)")
             for k in range(masks[j].shape[2]):
                 m, f = masks[j][..., k], found[j][..., k]
