@@ -175,9 +175,8 @@ class LocalRunner(JobRunner):
         the end refused), its files discarded: it showed ``running`` until the job time limit, then
         failed saying so, stopping the jobs beside it."""
         job = self.store.get(job_id)
-        if job is not None and job.status == "running" and self.store.fail(job_id, UNRECORDED, job.attempts):
-            self.store.discard_files(job_id)
-            log.warning(f"job {job_id} failed: {UNRECORDED}", extra={"job_id": job_id, "error_type": type(error).__name__})
+        if job is not None and job.status == "running" and self.store.give_up(job_id, UNRECORDED, job.attempts):
+            log.info("the run's error", extra={"job_id": job_id, "error_type": type(error).__name__})
 
     def _replace(self, broken: ProcessPoolExecutor) -> None:
         """Start a new pool in place of ``broken`` (once, whichever job noticed first) and recover its
@@ -234,10 +233,7 @@ class LocalRunner(JobRunner):
         now = time.time()
         late = [job for job in map(self.store.get, self.store.ids("running"))
                 if job is not None and job.started_at is not None and now - job.started_at > self.timeout_s]
-        late = [job for job in late if self.store.fail(job.id, TIMED_OUT, job.attempts)]   # not ended meanwhile
-        for job in late:
-            self.store.discard_files(job.id)          # what the stopped run wrote of the results too
-            log.warning(f"job {job.id} ran longer than SVRNET_JOB_TIMEOUT_H and was stopped", extra={"job_id": job.id})
+        late = [job for job in late if self.store.give_up(job.id, TIMED_OUT, job.attempts)]   # not ended meanwhile
         if late:
             self._stop_workers("a timed-out job", spared=[j for j in self.store.ids("running") if j in self.futures])
 

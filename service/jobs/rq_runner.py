@@ -97,9 +97,7 @@ def out_of_time(ctx: WorkerContext, job_id: str) -> bool:
     job = ctx.store.get(job_id)
     if job is None or job.status != "running" or job.started_at is None or time.time() - job.started_at <= ctx.timeout_s:
         return False
-    if ctx.store.fail(job_id, TIMED_OUT, job.attempts):
-        ctx.store.discard_files(job_id)
-        log.warning(f"job {job_id} failed: {TIMED_OUT}", extra={"job_id": job_id})
+    ctx.store.give_up(job_id, TIMED_OUT, job.attempts)
     return True
 
 
@@ -208,9 +206,7 @@ class RqRunner(JobRunner):
             except NoSuchJobError:     # or a superseded run's `finished` record that expired under the live run
                 gone = not (job.attempts > 1 and self._within_a_live_run(job))
                 reason = "the queue lost the job (was Redis restarted without persistence?)"
-            if gone and self.store.fail(job_id, reason, job.attempts):   # not a later run's claim
-                self.store.discard_files(job_id)      # what the lost runs wrote of the results too
-                log.warning(f"job {job_id} failed: {reason}", extra={"job_id": job_id})
+            if gone and self.store.give_up(job_id, reason, job.attempts):   # not a later run's claim
                 failed.append(job_id)
         return failed
 

@@ -10,6 +10,7 @@ the same tests run against both.
 
 from __future__ import annotations
 
+import logging
 import os
 import shutil
 import time
@@ -20,6 +21,8 @@ from pathlib import Path
 
 from service.core.errors import QueueFull
 from service.jobs.runner import INTERRUPTED
+
+log = logging.getLogger(__name__)
 
 STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 FINAL = ("succeeded", "failed", "cancelled")
@@ -84,6 +87,26 @@ class JobStore(ABC):
         until the retention limit."""
         self.discard_inputs(job_id)
         shutil.rmtree(self.directory(job_id) / "outputs", ignore_errors=True)
+
+    def give_up(self, job_id: str, reason: str, attempt: int | None = None) -> bool:
+        """Fail the job (its run ``attempt``, as :meth:`fail`) from outside its run, saying ``reason``,
+        and discard what that run wrote (:meth:`discard_files`); whether it did (not where the job had
+        ended, or a later run holds it). A runner's upkeep gives up a job so: past its time limit,
+        lost by the queue, or whose run could not record its end.
+
+        Example (the embedded store):
+            >>> import tempfile
+            >>> from service.jobs.sqlite_store import SqliteJobStore
+            >>> store = SqliteJobStore(Path(tempfile.mkdtemp()))
+            >>> job = store.create({}); _ = store.claim(job.id)
+            >>> store.give_up(job.id, "lost", 1), store.get(job.id).error, store.give_up(job.id, "again", 1)
+            (True, 'lost', False)
+        """
+        if not self.fail(job_id, reason, attempt):
+            return False
+        self.discard_files(job_id)
+        log.warning(f"job {job_id} failed: {reason}", extra={"job_id": job_id})
+        return True
 
     def discard_ended_inputs(self) -> list[str]:
         """Delete the uploads of every ended job that still has them (a worker that could not, e.g. one
