@@ -200,7 +200,7 @@ class StreamConnection:
             await self.send(error_message(busy, retry_after_s=self.settings.retry_after_s))
             await self.ws.close(TRY_AGAIN_LATER)
             raise _Closed
-        localiser = self.localisers.localisers.get(self.localisers.default_name)   # none: slices bring masks
+        localiser = self.localisers.default()             # none: slices bring masks
         limits = StreamLimits.of(self.settings)
         self.session = StreamSession(estimator, localiser, limits, options)
         self.model = model

@@ -374,6 +374,11 @@ class Localisers:
             log.info("localiser loaded", extra={"model": name})
         return cls(found)
 
+    def default(self) -> Localiser | None:
+        """The default localiser, or None where none is installed under its name (a stream then takes
+        slices with their masks only)."""
+        return self.localisers.get(self.default_name)
+
     def get(self, name: str = "default") -> Localiser:
         """The localiser ``name`` (``default``: the default one); :class:`NotFound` names the field."""
         resolved = self.default_name if name == "default" else name
