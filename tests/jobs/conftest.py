@@ -56,11 +56,17 @@ def workers(queue_settings: dict[str, str], tmp_path: Path) -> Iterator[list]:
 
 
 @pytest.fixture
-def store(queue_settings: dict[str, str]):  # noqa: ANN201
-    """The job store of the back-end, as a worker or an API replica opens it."""
+def backend(queue_settings: dict[str, str]):  # noqa: ANN201
+    """The back-end's job store and runner, as an API replica opens them (shut down after the test)."""
     from service.core.settings import Settings
     from service.jobs.backends import open_backend
 
     store, runner = open_backend(Settings(**queue_settings))
-    yield store
+    yield store, runner
     runner.shutdown()
+
+
+@pytest.fixture
+def store(backend):  # noqa: ANN001, ANN201
+    """The job store of the back-end, as a worker or an API replica opens it."""
+    return backend[0]

@@ -446,69 +446,59 @@ def test_retention_frees_the_files_even_where_the_database_cannot_be_written(tmp
 
 
 @pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)
-def test_the_embedded_upkeep_fails_a_submission_no_request_reads_any_more(queue_settings: dict,
+def test_the_embedded_upkeep_fails_a_submission_no_request_reads_any_more(backend: tuple,
                                                                           monkeypatch: pytest.MonkeyPatch) -> None:
     """A job whose request could not delete it (its clean-up refused by a full disk) stayed queued,
     never handed over, until a restart, counting against the queue's limit; the upkeep fails it once
     no request of the server has said for a lease that it reads it, and leaves one that is read."""
-    from service.core.settings import Settings
     from service.jobs import store as store_module
-    from service.jobs.backends import open_backend
     from service.jobs.runner import INTERRUPTED
 
-    store, runner = open_backend(Settings(**queue_settings))
-    try:
-        ghost, read = store.create({}), store.create({})
-        (store.directory(ghost.id) / "inputs").mkdir()
-        store.hold_submission(read.id)
-        runner.maintain()
-        assert store.get(ghost.id).status == "queued"                    # within the lease of its making
-        later = time.time() + store_module.SUBMISSION_LEASE_S + 1
-        monkeypatch.setattr(store_module.time, "time", lambda: later)
-        store.hold_submission(read.id)                                    # its request goes on reading it
-        runner.maintain()
-        assert (store.get(ghost.id).status, store.get(ghost.id).error) == ("failed", INTERRUPTED)
-        assert not (store.directory(ghost.id) / "inputs").exists()
-        assert store.get(read.id).status == "queued"
-    finally:
-        runner.shutdown()
+    store, runner = backend
+    ghost, read = store.create({}), store.create({})
+    (store.directory(ghost.id) / "inputs").mkdir()
+    store.hold_submission(read.id)
+    runner.maintain()
+    assert store.get(ghost.id).status == "queued"                    # within the lease of its making
+    later = time.time() + store_module.SUBMISSION_LEASE_S + 1
+    monkeypatch.setattr(store_module.time, "time", lambda: later)
+    store.hold_submission(read.id)                                    # its request goes on reading it
+    runner.maintain()
+    assert (store.get(ghost.id).status, store.get(ghost.id).error) == ("failed", INTERRUPTED)
+    assert not (store.directory(ghost.id) / "inputs").exists()
+    assert store.get(read.id).status == "queued"
 
 
 @pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)
-def test_a_run_that_could_not_record_its_end_fails_its_job_at_once(queue_settings: dict) -> None:
+def test_a_run_that_could_not_record_its_end_fails_its_job_at_once(backend: tuple) -> None:
     """A run that raised out of its worker (its store refused the failure's record) left its job
     running until the job time limit; the runner fails it when the run's future ends so, its files
     discarded, and leaves a job whose run ended cleanly alone."""
     from concurrent.futures import Future
 
     from service.core.errors import StoreUnavailable
-    from service.core.settings import Settings
-    from service.jobs.backends import open_backend
     from service.jobs.local_runner import UNRECORDED
 
-    store, runner = open_backend(Settings(**queue_settings))
-    try:
-        stuck, clean = store.create({}), store.create({})
-        for job in (stuck, clean):
-            assert store.claim(job.id)
-        (store.directory(stuck.id) / "outputs").mkdir(parents=True)
-        raised, ended = Future(), Future()
-        raised.set_exception(StoreUnavailable("the job store's database cannot be used (database or disk is full)"))
-        ended.set_result(None)
-        runner._check(raised, runner.pool, stuck.id)
-        runner._check(ended, runner.pool, clean.id)
-        deadline = time.time() + 10
-        while store.get(stuck.id).status == "running" and time.time() < deadline:
-            time.sleep(0.05)
-        assert (store.get(stuck.id).status, store.get(stuck.id).error) == ("failed", UNRECORDED)
-        assert not (store.directory(stuck.id) / "outputs").exists()
-        assert store.get(clean.id).status == "running"
-    finally:
-        runner.shutdown()
+    store, runner = backend
+    stuck, clean = store.create({}), store.create({})
+    for job in (stuck, clean):
+        assert store.claim(job.id)
+    (store.directory(stuck.id) / "outputs").mkdir(parents=True)
+    raised, ended = Future(), Future()
+    raised.set_exception(StoreUnavailable("the job store's database cannot be used (database or disk is full)"))
+    ended.set_result(None)
+    runner._check(raised, runner.pool, stuck.id)
+    runner._check(ended, runner.pool, clean.id)
+    deadline = time.time() + 10
+    while store.get(stuck.id).status == "running" and time.time() < deadline:
+        time.sleep(0.05)
+    assert (store.get(stuck.id).status, store.get(stuck.id).error) == ("failed", UNRECORDED)
+    assert not (store.directory(stuck.id) / "outputs").exists()
+    assert store.get(clean.id).status == "running"
 
 
 @pytest.mark.parametrize("queue_settings", ["redis"], indirect=True)
-def test_a_redelivered_job_past_its_time_limit_fails_as_timed_out(queue_settings: dict,
+def test_a_redelivered_job_past_its_time_limit_fails_as_timed_out(backend: tuple,
                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
     """RQ kills a work process stuck past the job time limit (in native code, deaf to its time-out
     signal) and retries the job, which would run its whole time again and end as a lost worker: a
@@ -516,23 +506,18 @@ def test_a_redelivered_job_past_its_time_limit_fails_as_timed_out(queue_settings
     within it runs."""
     from pathlib import Path
 
-    from service.core.settings import Settings
     from service.jobs import rq_runner
-    from service.jobs.backends import open_backend
     from service.jobs.worker import TIMED_OUT
 
-    store, runner = open_backend(Settings(**queue_settings))
-    try:
-        late, fresh = store.create({}), store.create({})
-        for job in (late, fresh):
-            assert store.claim(job.id) == 1
-        (store.directory(late.id) / "inputs").mkdir()
-        ctx = rq_runner.WorkerContext(store, Path("models"), 2, None, timeout_s=3600.0)
-        assert not rq_runner.out_of_time(ctx, fresh.id)
-        later = time.time() + 3601
-        monkeypatch.setattr(rq_runner.time, "time", lambda: later)
-        assert rq_runner.out_of_time(ctx, late.id)
-        assert (store.get(late.id).status, store.get(late.id).error) == ("failed", TIMED_OUT)
-        assert not (store.directory(late.id) / "inputs").exists()
-    finally:
-        runner.shutdown()
+    store, runner = backend
+    late, fresh = store.create({}), store.create({})
+    for job in (late, fresh):
+        assert store.claim(job.id) == 1
+    (store.directory(late.id) / "inputs").mkdir()
+    ctx = rq_runner.WorkerContext(store, Path("models"), 2, None, timeout_s=3600.0)
+    assert not rq_runner.out_of_time(ctx, fresh.id)
+    later = time.time() + 3601
+    monkeypatch.setattr(rq_runner.time, "time", lambda: later)
+    assert rq_runner.out_of_time(ctx, late.id)
+    assert (store.get(late.id).status, store.get(late.id).error) == ("failed", TIMED_OUT)
+    assert not (store.directory(late.id) / "inputs").exists()
