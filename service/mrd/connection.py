@@ -27,6 +27,7 @@ from __future__ import annotations
 import ctypes
 import json
 import logging
+import struct
 import threading
 import time
 from collections.abc import Callable
@@ -42,7 +43,8 @@ from service.api.responses import (end_stack_messages, error_message, pose_objec
 from service.core.errors import (InternalError, InvalidParameter, PayloadTooLarge, RequestTimeout, ServiceError,
                                  UnusableImage)
 from service.mrd.images import pixel_count, slice_from_image, with_pose
-from service.mrd.protocol import BYTES_PER_VALUE, MAX_TEXT_BYTES, BoundedReader, ProtocolBroken, in_mrd_terms
+from service.mrd.protocol import (BYTES_PER_VALUE, MAX_TEXT_BYTES, BoundedReader, ProtocolBroken, in_mrd_terms,
+                                 skip_raw_message)
 from service.streaming.frames import IncompleteStack, SliceFrame, SlicesDropped
 from service.streaming.answers import SessionSummary
 from service.streaming.background import background_executor
@@ -126,6 +128,9 @@ class MrdConnection:
             raise ProtocolBroken(InvalidParameter(f"message: unknown MRD message id {kind}"))
         if kind == ISMRMRDMessageID.IMAGE:
             self.check_announced_image()
+        elif kind in RAW_DATA:
+            self.skip_raw(kind)
+            return True
         try:
             message = next(self.incoming.deserialize(), None)
         except (EOFError, OSError):
@@ -145,6 +150,23 @@ class MrdConnection:
             return False
         self.dispatch(kind, message)
         return True
+
+    def skip_raw(self, kind: int) -> None:
+        """Read past a raw-data message, bounded by its head before its data (``ismrmrd`` would allocate
+        what the head announces first), and say once per kind that it is ignored."""
+        try:
+            skip_raw_message(kind, self.reader)
+        except PayloadTooLarge as too_large:
+            raise ProtocolBroken(too_large) from None
+        except struct.error:
+            raise ProtocolBroken(InvalidParameter(f"{RAW_DATA[ISMRMRDMessageID(kind)]}: the message could not "
+                                                  "be parsed")) from None
+        self.incoming = ismrmrd.ProtocolDeserializer(self.reader)  # type: ignore[arg-type]  # forgets the peeked id
+        name = RAW_DATA[ISMRMRDMessageID(kind)]
+        if name not in self.ignored:                      # said once per kind: raw data come by the thousand
+            self.ignored.add(name)
+            self.send_error(InvalidParameter(f"{name}: svrnet-mrd takes reconstructed images; "
+                                             f"{name} messages are ignored"))
 
     def check_announced_image(self) -> None:
         """Refuse, before its data are read, an image whose header announces more pixels than the limit
@@ -166,12 +188,6 @@ class MrdConnection:
             self.on_config(message)
         elif kind == ISMRMRDMessageID.CONFIG_FILE:
             log.info("mrd config file name ignored")
-        elif kind in RAW_DATA:
-            name = RAW_DATA[ISMRMRDMessageID(kind)]
-            if name not in self.ignored:                      # said once per kind: raw data come by the thousand
-                self.ignored.add(name)
-                self.send_error(InvalidParameter(f"{name}: svrnet-mrd takes reconstructed images; "
-                                                 f"{name} messages are ignored"))
         else:
             log.info("mrd text message ignored")
 

@@ -5,7 +5,13 @@ stream's end when it cannot be followed, and the MRD image's names of the fields
 from __future__ import annotations
 
 import copy
+import ctypes
+import math
+import struct
 from typing import BinaryIO
+
+import ismrmrd
+from ismrmrd.serialization import ISMRMRDMessageID
 
 from service.core.errors import PayloadTooLarge, ServiceError
 
@@ -66,6 +72,63 @@ class BoundedReader:
             raise PayloadTooLarge(f"message: a field of {n} bytes is over this server's limit of {self.max_read_bytes}")
         self.last = self.raw.read(n)
         return self.last
+
+
+SKIP_CHUNK_BYTES = 1 << 20
+"""Raw data are read past in chunks of at most this many bytes."""
+NDARRAY_HEAD = struct.Struct("<HHH")                 # data type, version, number of dimensions
+
+
+def raw_payload_bytes(kind: int, reader: BoundedReader) -> int:
+    """The bytes that follow the head of a raw-data message (acquisition, waveform, NDArray), read
+    here from ``reader`` past the message id: what ``ismrmrd`` would allocate for before it reads them
+    (struct.error: an NDArray of an unknown element type).
+
+    Example:
+        >>> import io
+        >>> head = ismrmrd.AcquisitionHeader(number_of_samples=16, active_channels=2, trajectory_dimensions=0)
+        >>> raw_payload_bytes(ISMRMRDMessageID.ACQUISITION, BoundedReader(io.BytesIO(bytes(head)), 1 << 20))
+        256
+    """
+    if kind == ISMRMRDMessageID.ACQUISITION:
+        acq = ismrmrd.AcquisitionHeader.from_buffer_copy(read_exactly(reader, ctypes.sizeof(ismrmrd.AcquisitionHeader)))
+        return acq.number_of_samples * (acq.trajectory_dimensions * 4 + acq.active_channels * 8)
+    if kind == ISMRMRDMessageID.WAVEFORM:
+        wave = ismrmrd.WaveformHeader.from_buffer_copy(read_exactly(reader, ctypes.sizeof(ismrmrd.WaveformHeader)))
+        return wave.channels * wave.number_of_samples * 4
+    data_type, _, ndim = NDARRAY_HEAD.unpack(read_exactly(reader, NDARRAY_HEAD.size))
+    if data_type not in ismrmrd.image.dtype_mapping:
+        raise struct.error(f"unknown data type {data_type}")
+    dims = struct.unpack(f"<{ndim}Q", read_exactly(reader, 8 * ndim))
+    return math.prod(dims) * ismrmrd.image.dtype_mapping[data_type].itemsize
+
+
+def skip_raw_message(kind: int, reader: BoundedReader) -> None:
+    """Read past a raw-data message (the server takes images only) without building it: its payload,
+    as its head announces it, is refused above the reader's limit before a byte of it is read.
+
+    Example:
+        >>> import io
+        >>> head = ismrmrd.WaveformHeader(channels=1, number_of_samples=4)
+        >>> stream = io.BytesIO(bytes(head) + bytes(16) + b"next")
+        >>> skip_raw_message(ISMRMRDMessageID.WAVEFORM, BoundedReader(stream, 1 << 20)); stream.read()
+        b'next'
+    """
+    left = raw_payload_bytes(kind, reader)
+    if left > reader.max_read_bytes:
+        name = ISMRMRDMessageID(kind).name.lower()
+        raise PayloadTooLarge(f"{name}: its head announces {left} bytes of data, over this server's limit of "
+                              f"{reader.max_read_bytes}")
+    while left > 0:
+        left -= len(read_exactly(reader, min(left, SKIP_CHUNK_BYTES)))
+
+
+def read_exactly(reader: BoundedReader, n: int) -> bytes:
+    """``n`` bytes from ``reader``; EOFError where the stream ends first."""
+    chunk = reader.read(n)
+    if len(chunk) < n:
+        raise EOFError("the stream ended inside a message")
+    return chunk
 
 
 class ProtocolBroken(Exception):

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import select
 import socket
+import struct
 import threading
 import time
 
@@ -466,3 +467,39 @@ def test_a_connection_that_fails_unexpectedly_is_logged_by_type_and_place_only(s
     assert {r.error_type for r in failed} == {"RuntimeError"}
     out, err = capfd.readouterr()
     assert "DOE^JANE" not in out + err + caplog.text and "Traceback" not in err
+
+
+def test_raw_data_is_read_past_without_being_built(case: Case, serve, monkeypatch) -> None:  # noqa: ANN001
+    """Acquisitions, waveforms and NDArrays are skipped by their heads' sizes (``ismrmrd`` would
+    allocate what a head announces before reading it): each kind named once, the images answered."""
+    def built(*args: object) -> None:
+        raise AssertionError("a raw-data message was built")
+
+    monkeypatch.setattr(ismrmrd.Acquisition, "deserialize_from", staticmethod(built))
+    monkeypatch.setattr(ismrmrd.Waveform, "deserialize_from", staticmethod(built))
+    server = serve()
+    client = MrdLink("127.0.0.1", server.port)
+    wave = ismrmrd.Waveform.from_array(np.arange(12, dtype=np.uint32).reshape(3, 4))
+    client.send(CONFIG, mrd_header(slices=20), ismrmrd.Acquisition.from_array(np.ones((2, 16), np.complex64)), wave,
+                np.ones((3, 5), np.float32), wave, ismrmrd.Acquisition.from_array(np.ones((1, 8), np.complex64)))
+    client.send(*[case.images[0][k] for k in INTERLEAVED])
+    received = client.close()
+    errors = [m for m in texts(received) if m["type"] == "error"]
+    assert [e["detail"].split(":")[0] for e in errors] == ["acquisition", "waveform", "ndarray"]
+    assert [i.slice for i in received if isinstance(i, ismrmrd.Image)] == INTERLEAVED
+    assert [m["stack"] for m in texts(received) if m["type"] == "stack"] == ["0"]
+
+
+def test_an_acquisition_announcing_more_data_than_the_limit_is_refused_before_it_is_read(serve) -> None:  # noqa: ANN001
+    server = serve()
+    client = MrdLink("127.0.0.1", server.port)
+    head = ismrmrd.AcquisitionHeader(number_of_samples=65535, active_channels=65535, trajectory_dimensions=3)
+    try:
+        client.writer.write(struct.pack("<H", int(ismrmrd.serialization.ISMRMRDMessageID.ACQUISITION)) + bytes(head))
+        client.writer.flush()
+    except OSError:
+        pass
+    received = client.wait()
+    assert client.closed_by_server
+    (error,) = texts(received)
+    assert error["status"] == 413 and error["detail"].startswith("acquisition: its head announces 34359476220 bytes")
