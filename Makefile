@@ -38,7 +38,7 @@ serve: install-server
 
 test: install-dev
 	$(PY) -m pytest -q $(PYTEST_ARGS)
-	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict -q -d $(or $(TMPDIR),/tmp)/svrnet-site
+	site=$$(mktemp -d) && NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict -q -d $$site; built=$$?; rm -rf $$site; exit $$built   # a folder of its own: checkouts side by side build apart
 
 cli-docs: install-dev   # docs/cli.md, the reference of every svrnet command, from the CLI itself
 	$(PY) -m typer client.cli utils docs --name svrnet --title "Command line: svrnet" --output docs/cli.md
