@@ -196,7 +196,7 @@ class MrdServer(socketserver.ThreadingTCPServer):
 
 def build_server(settings: Settings, host: str, port: int, limits: ServerLimits) -> MrdServer:
     """The server with the models and the default localiser of ``settings``; :class:`SystemExit` (2)
-    when no model or no localiser is installed, or one does not load."""
+    when no model or no localiser named ``default`` is installed, or one does not load."""
     try:
         registry = ModelRegistry.from_directory(settings.models_dir, settings.default_model, settings.onnx_threads)
         localisers = Localisers.from_directory(settings.localisers_dir, settings.onnx_threads)
@@ -206,12 +206,14 @@ def build_server(settings: Settings, host: str, port: int, limits: ServerLimits)
     if not registry.estimators:
         print(f"svrnet-mrd: no model in {settings.models_dir}", file=sys.stderr)
         raise SystemExit(2)
-    if not localisers.localisers:
-        print(f"svrnet-mrd: no localiser in {settings.localisers_dir}; MRD images carry no brain mask",
-              file=sys.stderr)
+    localiser = localisers.default()
+    if localiser is None:
+        found = f" (found: {', '.join(sorted(localisers.localisers))})" if localisers.localisers else ""
+        print(f"svrnet-mrd: no 'default' localiser in {settings.localisers_dir}{found}; MRD images carry no "
+              "brain mask", file=sys.stderr)
         raise SystemExit(2)
     stream_limits = StreamLimits.of(settings)
-    factory = session_factory(registry, localisers.get(), stream_limits)
+    factory = session_factory(registry, localiser, stream_limits)
     return MrdServer((host, port), factory, stream_limits, limits, settings.retry_after_s)
 
 
@@ -219,11 +221,31 @@ def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="svrnet-mrd", description="SVRnet poses for MRD (ISMRMRD) image streams: "
                                  "Gadgetron's external language interface, Siemens FIRE.")
     ap.add_argument("--host", help="address to listen on (default: SVRNET_HOST)")
-    ap.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"TCP port (default {DEFAULT_PORT})")
+    ap.add_argument("--port", type=port_number, default=DEFAULT_PORT, help=f"TCP port (default {DEFAULT_PORT})")
     ap.add_argument("--max-sessions", type=positive(int), help="connections at once (default: SVRNET_STREAM_MAX_SESSIONS)")
     ap.add_argument("--idle-s", type=positive(float),
                     help="seconds a connection may stay silent (default: SVRNET_STREAM_IDLE_S)")
     return ap
+
+
+def port_number(text: str) -> int:
+    """An argparse type: a TCP port, 0-65535 (0: one the system chooses).
+
+    Example:
+        >>> port_number("7000")
+        7000
+        >>> port_number("70000")
+        Traceback (most recent call last):
+        ...
+        argparse.ArgumentTypeError: '70000': a port is a whole number from 0 to 65535
+    """
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"{text!r}: a port is a whole number from 0 to 65535")
+    return value
 
 
 def positive(kind: type) -> Callable[[str], int | float]:

@@ -382,6 +382,32 @@ def test_the_mrd_servers_limits_on_its_command_line_are_numbers_over_zero(capsys
     assert (args.max_sessions, args.idle_s) == (3, 2.5)
 
 
+def test_the_mrd_servers_port_is_a_port_number(capsys) -> None:  # noqa: ANN001
+    """A port over 65535 resolved (wrapped round) and bound in the address check, then the server's own
+    bind raised a traceback; a negative one blamed the host."""
+    from service.mrd import server as server_module
+
+    for value in ("70000", "-1", "http"):
+        with pytest.raises(SystemExit) as stopped:
+            server_module.parser().parse_args(["--port", value])
+        assert stopped.value.code == 2 and "a port is a whole number from 0 to 65535" in capsys.readouterr().err
+    assert server_module.parser().parse_args(["--port", "0"]).port == 0
+
+
+def test_an_mrd_server_without_a_default_localiser_stops_in_one_line(monkeypatch, capsys) -> None:  # noqa: ANN001
+    """Its images carry no masks: a localiser named otherwise is no default (a traceback before)."""
+    from service.core.settings import Settings
+    from service.mrd import server as server_module
+    from service.preprocess.localise import Localisers
+
+    monkeypatch.setattr(ModelRegistry, "from_directory", classmethod(lambda cls, *a, **k: cls({"default": object()})))
+    monkeypatch.setattr(Localisers, "from_directory", classmethod(lambda cls, *a, **k: cls({"fetal-v2": object()})))
+    with pytest.raises(SystemExit) as stopped:
+        server_module.build_server(Settings(), "127.0.0.1", 0, ServerLimits())
+    assert stopped.value.code == 2
+    assert "no 'default' localiser" in (err := capsys.readouterr().err) and "(found: fetal-v2)" in err
+
+
 @pytest.mark.parametrize(("limit", "slices"), [("<maximum>19</maximum>", 20), ("", None), ("<maximum></maximum>", None),
                                                ("<maximum>-3</maximum>", None), ("<maximum>0</maximum>", None)])
 def test_a_header_gives_the_slices_of_a_series_only_when_it_says_so(limit: str, slices: int | None) -> None:
