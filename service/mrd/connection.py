@@ -43,8 +43,8 @@ from service.api.responses import (end_stack_messages, error_message, pose_objec
 from service.core.errors import (InternalError, InvalidParameter, PayloadTooLarge, RequestTimeout, ServiceError,
                                  UnusableImage)
 from service.mrd.images import pixel_count, slice_from_image, with_pose
-from service.mrd.protocol import (BYTES_PER_VALUE, MAX_TEXT_BYTES, BoundedReader, ProtocolBroken, in_mrd_terms,
-                                 skip_raw_message)
+from service.mrd.protocol import (BYTES_PER_VALUE, MAX_META_BYTES, MAX_TEXT_BYTES, BoundedReader, ProtocolBroken,
+                                 in_mrd_terms, skip_raw_message)
 from service.streaming.frames import IncompleteStack, SliceFrame, SlicesDropped
 from service.streaming.answers import SessionSummary
 from service.streaming.background import background_executor
@@ -55,6 +55,7 @@ from service.streaming.session import StreamSession
 log = logging.getLogger(__name__)
 
 IMAGE_HEADER_BYTES = ctypes.sizeof(ismrmrd.ImageHeader)
+META_LENGTH = struct.Struct("<Q")                    # the length of an image's meta attributes, after its header
 RAW_DATA = {ISMRMRDMessageID.ACQUISITION: "acquisition", ISMRMRDMessageID.WAVEFORM: "waveform",
             ISMRMRDMessageID.NDARRAY: "ndarray"}
 KNOWN = {int(m) for m in ISMRMRDMessageID} - {int(ISMRMRDMessageID.UNPEEKED)}
@@ -73,7 +74,8 @@ class SeriesState:
 class MrdConnection:
     """The messages of one connection, answered in order (see the module)."""
 
-    def __init__(self, reader: BinaryIO, writer: BinaryIO, new_session: SessionFactory, limits: StreamLimits) -> None:
+    def __init__(self, reader: BinaryIO, writer: BinaryIO, new_session: SessionFactory, limits: StreamLimits,
+                 idle_s: float | None = None) -> None:
         self.reader = BoundedReader(reader, max(limits.max_pixels * BYTES_PER_VALUE, MAX_TEXT_BYTES))
         self.writer = writer
         self.incoming = ismrmrd.ProtocolDeserializer(self.reader)  # type: ignore[arg-type]
@@ -89,6 +91,9 @@ class MrdConnection:
         self.ignored: set[str] = set()
         self.broken = False
         """Whether the connection ended inside a message (its rest unread)."""
+        self.idle_s, self.active_at = idle_s, time.monotonic()
+        """How long a connection may go without a message the server takes (None: no limit), and when
+        it last took one: ignored and refused messages do not keep a session slot."""
         self.send_lock, self.stage_lock = threading.Lock(), threading.Lock()
         self.stage = background_executor("svrnet-mrd-stage")
         self.dirty: set[str] = set()
@@ -122,6 +127,9 @@ class MrdConnection:
 
     def step(self) -> bool:
         """Read and answer one message; ``False`` at the client's ``CLOSE``."""
+        if self.idle_s is not None and time.monotonic() - self.active_at > self.idle_s:
+            raise ProtocolBroken(RequestTimeout(f"connection: no message the server takes for {self.idle_s:g} s "
+                                                "(ignored and refused ones do not count); the server closes it"))
         self.reader.next_message()
         kind = self.incoming.peek()
         if kind not in KNOWN:
@@ -169,8 +177,9 @@ class MrdConnection:
                                              f"{name} messages are ignored"))
 
     def check_announced_image(self) -> None:
-        """Refuse, before its data are read, an image whose header announces more pixels than the limit
-        (``peek`` has read the header: the last chunk of the stream)."""
+        """Refuse, before its data are read, an image whose header announces more pixels than the limit,
+        or whose meta attributes are longer than :data:`MAX_META_BYTES` (``peek`` has read the header:
+        the last chunk of the stream; the attributes' length follows it)."""
         head = ismrmrd.ImageHeader.from_buffer_copy(self.reader.last[:IMAGE_HEADER_BYTES])
         if int(head.data_type) not in ismrmrd.image.dtype_mapping:
             raise ProtocolBroken(UnusableImage(f"image.data_type: unknown code {int(head.data_type)}"))
@@ -178,6 +187,11 @@ class MrdConnection:
             raise ProtocolBroken(PayloadTooLarge(
                 f"image: {pixel_count(head)} values (channels x matrix_size) is over this server's limit of "
                 f"{self.limits.max_pixels} pixels per image"))
+        length = self.reader.peek(META_LENGTH.size)
+        if len(length) == META_LENGTH.size and META_LENGTH.unpack(length)[0] > MAX_META_BYTES:
+            raise ProtocolBroken(PayloadTooLarge(
+                f"image: meta attributes of {META_LENGTH.unpack(length)[0]} bytes are over this server's limit of "
+                f"{MAX_META_BYTES}"))
 
     def dispatch(self, kind: int, message: Any) -> None:
         if kind == ISMRMRDMessageID.IMAGE:
@@ -203,7 +217,7 @@ class MrdConnection:
         try:
             options = SessionOptions.from_json(text, "config")
             self.session = self.new_session(options)      # an unknown model is named now, not at each image
-            self.refused_config = None
+            self.refused_config, self.active_at = None, time.monotonic()
         except ServiceError as bad:
             self.session, self.refused_config = None, bad
             self.send_error(bad)
@@ -216,6 +230,7 @@ class MrdConnection:
         limit = None if encoding is None or encoding.encodingLimits is None else encoding.encodingLimits.slice
         maximum = None if limit is None else limit.maximum
         self.slices_per_series = int(maximum) + 1 if maximum is not None and int(maximum) >= 1 else None
+        self.active_at = time.monotonic()
 
     def on_image(self, image: ismrmrd.Image) -> None:
         received = time.perf_counter()
@@ -236,6 +251,7 @@ class MrdConnection:
             self.send_error(InternalError("image: the server failed on this image"), series_index, int(image.slice))
             return
         self.latencies.append((time.perf_counter() - received) * 1e3)
+        self.active_at = time.monotonic()
         pose = pose_object(answer, latency_ms=round(self.latencies[-1], 2))
         self.send(with_pose(image, pose))
         series.slices.add(int(image.slice))

@@ -18,6 +18,9 @@ from service.core.errors import PayloadTooLarge, ServiceError
 MAX_TEXT_BYTES = 1 << 20
 """The smallest limit on one read from a client (a config, XML header, TEXT or meta string): the
 reader allows what the largest image of the pixel limit needs, and never less than this."""
+MAX_META_BYTES = 1 << 18
+"""An image's meta attributes (an XML text) are refused above this many bytes before they are read:
+parsed into a tree, a text of empty elements takes over twenty times its size in memory."""
 BYTES_PER_VALUE = 16
 """The widest MRD pixel (complex double): what a pixel of an announced image can cost to read."""
 MRD_FIELDS = {"slice.scanner_from_voxel": "image header (position, read_dir, phase_dir, slice_dir, field_of_view)",
@@ -61,6 +64,7 @@ class BoundedReader:
     def __init__(self, raw: BinaryIO, max_read_bytes: int) -> None:
         self.raw, self.max_read_bytes = raw, max_read_bytes
         self.last = b""
+        self.ahead = b""                               # bytes :meth:`peek` read, which the next reads return first
 
     def next_message(self) -> None:
         """A new message is awaited (a reader with a deadline per message starts it now)."""
@@ -70,8 +74,22 @@ class BoundedReader:
     def read(self, n: int = -1) -> bytes:
         if n is None or n < 0 or n > self.max_read_bytes:
             raise PayloadTooLarge(f"message: a field of {n} bytes is over this server's limit of {self.max_read_bytes}")
-        self.last = self.raw.read(n)
+        first, self.ahead = self.ahead[:n], self.ahead[n:]
+        self.last = first + self.raw.read(n - len(first)) if len(first) < n else first
         return self.last
+
+    def peek(self, n: int) -> bytes:
+        """The next ``n`` bytes (fewer at the stream's end), which the next reads still return.
+
+        Example:
+            >>> import io
+            >>> r = BoundedReader(io.BytesIO(b"abcdef"), 4)
+            >>> r.peek(2), r.read(3), r.read(3)
+            (b'ab', b'abc', b'def')
+        """
+        if len(self.ahead) < n:
+            self.ahead += self.raw.read(n - len(self.ahead))
+        return self.ahead[:n]
 
 
 SKIP_CHUNK_BYTES = 1 << 20

@@ -135,7 +135,7 @@ class MrdHandler(socketserver.StreamRequestHandler):
         try:
             outbox = Outbox(self.connection, server.limits.idle_s, server.stream_limits.max_bytes)
             reader = MessageDeadlineReader(self.connection, server.limits.idle_s)
-            connection = MrdConnection(reader, outbox, server.new_session, server.stream_limits)
+            connection = MrdConnection(reader, outbox, server.new_session, server.stream_limits, server.limits.idle_s)
             connection.run()
             outbox.drain(server.limits.idle_s)          # the answers still queued, as far as the client reads
         finally:

@@ -529,3 +529,57 @@ def test_an_acquisition_announcing_more_data_than_the_limit_is_refused_before_it
     assert client.closed_by_server
     (error,) = texts(received)
     assert error["status"] == 413 and error["detail"].startswith("acquisition: its head announces 34359476220 bytes")
+
+
+def test_an_image_with_meta_attributes_over_the_limit_is_refused_before_they_are_read(case: Case, serve) -> None:  # noqa: ANN001
+    """Parsed into a tree, a text of empty elements took over twenty times its size in memory, up to
+    the whole read limit (16 MiB): the attributes' length is checked after the header."""
+    from service.mrd.protocol import MAX_META_BYTES
+
+    server = serve()
+    client = MrdLink("127.0.0.1", server.port)
+    announced = MAX_META_BYTES + 1
+    try:
+        client.writer.write(struct.pack("<H", int(ismrmrd.serialization.ISMRMRDMessageID.IMAGE))
+                            + bytes(case.images[0][0].getHead()) + struct.pack("<Q", announced) + b"<a/>" * 1000)
+        client.writer.flush()
+    except OSError:
+        pass
+    received = client.wait()
+    assert client.closed_by_server
+    (error,) = texts(received)
+    assert error["status"] == 413 and error["detail"].startswith(f"image: meta attributes of {announced} bytes")
+
+
+def test_an_image_with_meta_attributes_under_the_limit_is_posed_and_keeps_them(case: Case, serve) -> None:  # noqa: ANN001
+    server = serve()
+    client = MrdLink("127.0.0.1", server.port)
+    first = case.images[0][0]
+    tagged = ismrmrd.Image(head=first.getHead(), data=first.data)
+    tagged.meta["ImageComments"] = "x" * 20000
+    client.send(CONFIG, tagged)
+    received = client.close()
+    (image,) = [m for m in received if isinstance(m, ismrmrd.Image)]
+    assert image.meta["ImageComments"] == "x" * 20000 and "SVRnet.AtlasFromVoxel" in image.meta
+
+
+def test_a_client_sending_only_ignored_messages_loses_its_slot_at_the_idle_limit(case: Case, serve) -> None:  # noqa: ANN001
+    """Each message started the idle deadline again: an NDArray now and then held the one session slot
+    for ever, and other scanners got 503. Only messages the server takes count."""
+    server = serve(limits=ServerLimits(max_sessions=1, idle_s=1.0))
+    client = MrdLink("127.0.0.1", server.port)
+    started = time.monotonic()
+    try:
+        while time.monotonic() - started < 3.0 and not client.closed_by_server:
+            client.send(np.zeros(4, np.float32))
+            time.sleep(0.3)
+    except OSError:
+        pass                                            # the server closed while the array went out
+    received = client.wait(5.0)
+    assert client.closed_by_server and time.monotonic() - started < 3.0
+    errors = [m for m in texts(received) if m["type"] == "error"]
+    assert errors[0]["detail"].startswith("ndarray: svrnet-mrd takes reconstructed images")
+    assert errors[-1]["status"] == 408 and "no message the server takes for 1 s" in errors[-1]["detail"]
+    second = MrdLink("127.0.0.1", server.port)                  # the slot is free again
+    second.send(CONFIG, mrd_header(slices=20), *[case.images[0][k] for k in INTERLEAVED])
+    assert [m["stack"] for m in texts(second.close()) if m["type"] == "stack"] == ["0"]
