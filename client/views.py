@@ -156,6 +156,11 @@ def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[
             hints.append(f"{name}: {len(lost)} slice(s) lost the brain's signal (a signal void, motion within the "
                          f"slice: {', '.join(str(k) for k in lost)}): no other stack's image checks their poses; "
                          "acquire them again if you need them")
+        cut = [s.get("index") for s in brain if s.get("cut_by_field_of_view")]
+        if cut:
+            hints.append(f"{name}: the field of view ends inside the brain in {len(cut)} slice(s) "
+                         f"({', '.join(str(k) for k in cut)}): the pose network saw part of a brain, and those poses "
+                         "may be far off; acquire the stack again with a field of view that holds the whole head")
         noise = stack.get("noise") or {}
         if brain and noise.get("beyond_calibration"):
             added = float(noise.get("expected_error_added_mm") or 0.0)

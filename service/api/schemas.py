@@ -58,6 +58,10 @@ class SliceResult(BaseModel):
                            "brain median: a signal void, motion within the slice): no other stack's image checks its "
                            "pose; null where there is no stack to judge it against (a stream's slice before its "
                            "stack ends, a stack of one slice)")
+    cut_by_field_of_view: bool = Field(
+        False, description="the slice's brain runs out of its picture (the field of view ends inside the brain): the "
+                           "network saw part of a brain, and its pose may be far off (its accept flag says whether "
+                           "the stages placed it); a field of view that holds the whole head avoids it")
 
 
 class ImageConsistency(BaseModel):

@@ -44,6 +44,7 @@ def slice_objects(p: StackPrediction, rows: slice = slice(None)) -> list[dict]:
     expected: NDArray = out.expected_error_mm if out.expected_error_mm is not None else np.full(len(mean), np.nan)
     seen = est.estimated
     lost = p.prepared.signal_lost[rows] if len(p.prepared.slices.images) > 1 else [None] * len(mean)
+    cut = p.prepared.cut_by_field_of_view[rows]
     return [
         {
             "index": i, "accepted": p.reasons[i] is None, "reason": p.reasons[i],
@@ -55,6 +56,7 @@ def slice_objects(p: StackPrediction, rows: slice = slice(None)) -> list[dict]:
             "network_atlas_from_voxel": network_atlas_from_voxel[i].tolist() if seen[i] else None,
             "expected_error_mm": _finite(expected[i]),
             "signal_lost": None if lost[i] is None else bool(lost[i]),
+            "cut_by_field_of_view": bool(cut[i]),
         }
         for i in range(len(mean))
     ]

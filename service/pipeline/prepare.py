@@ -35,6 +35,7 @@ from service.core.errors import InvalidParameter, UnusableImage
 from service.inference.model_file import ModelInfo
 from service.io.volume import Volume
 from service.preprocess.bias import n4_correct
+from service.preprocess.field_of_view import cut_by_field_of_view
 from service.preprocess.intensity import signal_lost
 from service.preprocess.localisation import Localisation
 from service.preprocess.localise import Localiser, default_localiser
@@ -42,7 +43,7 @@ from service.preprocess.localiser_inputs import LocaliserGrid
 from service.preprocess.noise import input_noise
 from service.preprocess.one_fetus import brain_centre_mm, one_fetus
 from service.preprocess.slices import PreparedSlices, preprocess_slices
-from service.preprocess.stack import StackSlices, split_stack, stack_axis
+from service.preprocess.stack import StackSlices, pictures, split_stack, stack_axis
 
 GRID_TOLERANCE_VOXELS = 0.01
 """How far (a share of the stack's smallest voxel) a mask's grid may lie from its stack's at the
@@ -117,6 +118,16 @@ class PreparedStack:
         """``[n]`` the slices whose brain lost its signal (:func:`~service.preprocess.intensity.signal_lost`,
         on the bias-corrected slices and their pose masks): they take no part in image consistency."""
         return signal_lost(self.slices.images, self.slices.masks)
+
+    @functools.cached_property
+    def cut_by_field_of_view(self) -> NDArray[np.bool_]:
+        """``[n]`` the slices whose brain runs out of the picture in their plane
+        (:func:`~service.preprocess.field_of_view.cut_by_field_of_view`, on the localisation's whole
+        mask): the network sees part of a brain. The stages treat them as any other slice (the
+        images of their crossings still relate them to the others); the answer names them, so that a
+        user knows why their poses may be off and that a larger field of view avoids it."""
+        masks = pictures(self.localisation.mask, self.slices.slice_axis, self.slices.layout)
+        return cut_by_field_of_view(masks, self.slices.pixel_mm)
 
     def network_from_voxel(self) -> np.ndarray:
         """``[n, 4, 4]`` voxel ``(i, j, k)`` of slice ``k`` -> its network frame (the service's crop/centre)."""

@@ -546,6 +546,11 @@ def test_an_answer_with_nothing_usable_says_what_to_do() -> None:
     voided = {**PREDICT_BODY, "stacks": [{**PREDICT_BODY["stacks"][0], "slices": [
         {**s, "index": k, "signal_lost": k in (1, 2)} for k, s in enumerate(PREDICT_BODY["stacks"][0]["slices"] * 3)]}]}
     assert [h for h in views.predict_hints(voided) if "2 slice(s) lost the brain's signal" in h and ": 1, 2)" in h]
+    # Slices whose brain the field of view cuts: named, with what to do.
+    cut = {**PREDICT_BODY, "stacks": [{**PREDICT_BODY["stacks"][0], "slices": [
+        {**s, "index": k, "cut_by_field_of_view": k in (0, 2)} for k, s in enumerate(PREDICT_BODY["stacks"][0]["slices"] * 3)]}]}
+    assert [h for h in views.predict_hints(cut) if "field of view ends inside the brain in 2 slice(s) (0, 2)" in h
+            and "holds the whole head" in h]
     # One MC pass: no spread was measured; the stacks are not to blame.
     once = _alone("high_variance")
     for s in once["stacks"][0]["slices"]:
