@@ -182,7 +182,8 @@ class RqRunner(JobRunner):
     def reconcile(self) -> list[str]:
         """Fail (with the reason) every unfinished job RQ has given up or lost, or whose submission a
         stopped replica left half done (their ids); show as queued again a job whose run RQ put back
-        in the queue after its worker was lost (:data:`WAITING`)."""
+        in the queue after its worker was lost (:data:`WAITING`), or fail it as timed out where that
+        run started longer ago than the job time limit (:meth:`_past_time_limit`)."""
         failed = []
         for job_id in self.store.ids("queued") + self.store.ids("running"):
             job = self.store.get(job_id)
@@ -195,20 +196,33 @@ class RqRunner(JobRunner):
             try:
                 rq_job = RqJob.fetch(job_id, connection=self.connection)
                 status = rq_job.get_status(refresh=True)
-                if job.status == "running" and status in WAITING and self.store.back_in_queue(job_id, job.attempts):
+                waiting = job.status == "running" and status in WAITING
+                if waiting and self._past_time_limit(job):     # its waiting re-delivery finds it ended
+                    gone, reason = True, TIMED_OUT
+                elif waiting and self.store.back_in_queue(job_id, job.attempts):
                     log.warning(f"job {job_id} is queued again: its worker was lost", extra={"job_id": job_id})
                     continue
-                gone, reason = status in GIVEN_UP and not self._finished_under_a_live_run(job, status), ""
-                if gone:
-                    last = rq_job.latest_result()
+                else:
+                    gone = status in GIVEN_UP and not self._finished_under_a_live_run(job, status)
+                    last = rq_job.latest_result() if gone else None
                     reason = failure_reason(status, (last.exc_string if last else None) or "",
-                                            self.settings.job_max_attempts)
+                                            self.settings.job_max_attempts) if gone else ""
             except NoSuchJobError:     # or a superseded run's `finished` record that expired under the live run
                 gone = not (job.attempts > 1 and self._within_a_live_run(job))
                 reason = "the queue lost the job (was Redis restarted without persistence?)"
             if gone and self.store.give_up(job_id, reason, job.attempts):   # not a later run's claim
                 failed.append(job_id)
         return failed
+
+    def _past_time_limit(self, job: Job) -> bool:
+        """Whether the run of ``job`` that RQ put back in the queue (its worker fell silent, or RQ killed
+        its work horse past the limit) started longer ago than the job time limit: its re-delivery
+        would run the job's whole time again. The re-delivery's own check (:func:`out_of_time`)
+        acts on a job the store shows running, and the reconcile that shows it queued again would
+        hide it from that check, so the reconcile judges the time itself while the store still
+        holds the run's start. A job queued otherwise (handed back by a stopping worker, its
+        earlier start kept) is never judged so: the store shows it queued, not running."""
+        return job.started_at is not None and time.time() - job.started_at > self.settings.job_timeout_h * 3600
 
     def _finished_under_a_live_run(self, job: Job, status: str) -> bool:
         """Whether RQ's ``finished`` is a superseded run's while a later run may still be running the
