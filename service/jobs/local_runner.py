@@ -115,6 +115,9 @@ class LocalRunner(JobRunner):
         """Why the runner itself stopped the pool's processes (a timed-out or cancelled job), for the log."""
         self.spared: list[str] = []
         """The jobs running beside the one the runner stopped the pool for: their run does not count."""
+        self.unrecorded: dict[str, str] = {}
+        """The jobs whose run raised out of :func:`~service.jobs.worker.run_job` (its record of the end
+        refused) and that are not failed yet, with the run's kind of error: :meth:`maintain` tries again."""
         self.owner = None
         """The store's lock file while this runner owns the store (:func:`lock_store`)."""
         self.started = False
@@ -168,15 +171,32 @@ class LocalRunner(JobRunner):
         if isinstance(error, BrokenProcessPool):
             threading.Thread(target=self._replace, args=(pool,), name="job-pool-recovery", daemon=True).start()
         elif error is not None:        # the run could not record its own end (the store refused its write)
-            threading.Thread(target=self._fail_unrecorded, args=(job_id, error), name="job-end", daemon=True).start()
+            with self.lock:
+                self.unrecorded[job_id] = type(error).__name__
+            threading.Thread(target=self._fail_unrecorded, args=(job_id,), name="job-end", daemon=True).start()
 
-    def _fail_unrecorded(self, job_id: str, error: BaseException) -> None:
-        """Fail the job whose run raised out of :func:`~service.jobs.worker.run_job` (its own record of
-        the end refused), its files discarded: it showed ``running`` until the job time limit, then
-        failed saying so, stopping the jobs beside it."""
+    def _fail_unrecorded(self, job_id: str) -> None:
+        """At once, :meth:`_give_up_unrecorded`; a store that refuses this write too (the full disk that
+        refused the run's) leaves it to :meth:`maintain`."""
+        try:
+            self._give_up_unrecorded(job_id)
+        except StoreUnavailable:
+            log.warning("a job's end could not be recorded; the job upkeep tries again", extra={"job_id": job_id})
+
+    def _give_up_unrecorded(self, job_id: str) -> None:
+        """Fail the job whose run raised out of :func:`~service.jobs.worker.run_job` (:attr:`unrecorded`),
+        its files discarded: it would show ``running``, run by no process, until the job time limit,
+        whose stop takes the jobs beside it. Only while the store still shows it running and no run
+        of it is in this runner's pool (a later run's claim takes a new attempt, which
+        :meth:`~service.jobs.store.JobStore.give_up` refuses to fail); :class:`StoreUnavailable` where
+        the store refuses the write, the job kept for the next try."""
+        error_type = self.unrecorded.get(job_id)
         job = self.store.get(job_id)
-        if job is not None and job.status == "running" and self.store.give_up(job_id, UNRECORDED, job.attempts):
-            log.info("the run's error", extra={"job_id": job_id, "error_type": type(error).__name__})
+        if (job is not None and job.status == "running" and job_id not in self.futures
+                and self.store.give_up(job_id, UNRECORDED, job.attempts)):
+            log.info("the run's error", extra={"job_id": job_id, "error_type": error_type})
+        with self.lock:
+            self.unrecorded.pop(job_id, None)
 
     def _replace(self, broken: ProcessPoolExecutor) -> None:
         """Start a new pool in place of ``broken`` (once, whichever job noticed first) and recover its
@@ -226,7 +246,12 @@ class LocalRunner(JobRunner):
         and the pool's processes are stopped; the pool is then replaced and any other job it was
         running recovered (the module). Fail the queued jobs whose submission no request reads any
         more (a request whose clean-up could not delete its job: they would count against the queue's
-        limit until a restart)."""
+        limit until a restart). First, fail the jobs whose run could not record its end where the
+        store refused that at once too (:meth:`_give_up_unrecorded`)."""
+        with self.lock:
+            unrecorded = list(self.unrecorded)
+        for job_id in unrecorded:
+            self._give_up_unrecorded(job_id)
         for job in map(self.store.get, self.store.ids("queued")):
             if job is not None:
                 self.store.fail_abandoned(job, SUBMISSION_LEASE_S)

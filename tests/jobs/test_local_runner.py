@@ -211,3 +211,44 @@ def test_a_stop_hands_back_and_logs_only_the_jobs_that_had_started(tmp_path: Pat
     assert [r.job_id for r in caplog.records if r.getMessage() == "handed a job back to the queue"] == [started.id]
     assert [store.get(j.id).status for j in (started, waiting)] == ["queued", "queued"]
     assert store.get(started.id).attempts == 0                           # an orderly stop spends no attempt
+
+
+def test_a_run_whose_end_the_store_refused_twice_fails_at_the_next_upkeep(tmp_path: Path,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A run raised out of its worker (the full disk refused its failure's record) and the runner's
+    immediate try is refused too: the next upkeep, once the store writes again, fails the job, its
+    files discarded (it showed running, run by no process, until the job time limit). A job running
+    in the pool, and one whose run is not known to have ended (its pool being replaced), stay running."""
+    import threading
+    from concurrent.futures import Future
+
+    from service.core.errors import StoreUnavailable
+    from service.jobs.local_runner import UNRECORDED
+
+    store = SqliteJobStore(tmp_path)
+    runner = LocalRunner(store, tmp_path, timeout_s=3600.0)
+    try:
+        stuck, beside, recovering = store.create({}), store.create({}), store.create({})
+        for job in (stuck, beside, recovering):
+            assert store.claim(job.id) == 1
+        (store.directory(stuck.id) / "outputs").mkdir()
+        runner.futures[beside.id] = Future()                                # its run goes on in the pool
+        full = StoreUnavailable("the job store's database cannot be used (database or disk is full)")
+
+        def refused(*args: object, **kwargs: object) -> bool:
+            raise full
+
+        monkeypatch.setattr(SqliteJobStore, "fail", refused)
+        raised = Future()
+        raised.set_exception(full)
+        runner._check(raised, runner.pool, stuck.id)
+        for thread in [t for t in threading.enumerate() if t.name == "job-end"]:
+            thread.join(10)
+        assert store.get(stuck.id).status == "running"
+        monkeypatch.undo()                                                  # the disk has room again
+        runner.maintain()
+        assert (store.get(stuck.id).status, store.get(stuck.id).error) == ("failed", UNRECORDED)
+        assert not (store.directory(stuck.id) / "outputs").exists() and runner.unrecorded == {}
+        assert store.get(beside.id).status == "running" and store.get(recovering.id).status == "running"
+    finally:
+        runner.shutdown()
