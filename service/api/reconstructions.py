@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 from datetime import datetime, timezone
 from pathlib import Path
@@ -33,7 +32,7 @@ from service.core.errors import (Conflict, InvalidParameter, NotFound, PayloadTo
                                  UnusableImage)
 from service.core.settings import Settings
 from service.io.acquisition_geometry import MAX_VOXEL_MM, MIN_VOXEL_MM
-from service.jobs.job_inputs import keep_decoded
+from service.jobs.job_inputs import keep_decoded, keep_json
 from service.jobs.store import Job, JobStore
 from service.jobs.uploaded_poses import in_upload_order, poses_from_predict_body
 from service.reconstruction.config import ReconstructionConfig
@@ -176,7 +175,7 @@ def check_submission(uploads: list[StackUpload], orders: list[SliceOrder], poses
     given = None
     if poses_text:
         kept, given = checked_poses(poses_text, uploads)
-        (inputs / "poses.json").write_text(json.dumps(kept))
+        keep_json(kept, inputs / "poses.json")
     for u in uploads:
         check_mask_grid(u)
         check_mask_volume(u)
@@ -237,12 +236,12 @@ async def _keep_submission(request: Request, response: Response, settings: Setti
                         f"(job {job.id} is {now.status if now else 'gone'}); send it again with a new key",
                         retry_after_s=settings.retry_after_s)
     names = {"stacks": [u.filename for u in uploads], "masks": [u.mask_filename for u in uploads if u.mask_filename]}
-    (inputs / "names.json").write_text(json.dumps(names))
-    (inputs / "params.json").write_text(json.dumps(job.params))
     try:
+        keep_json(names, inputs / "names.json")
+        keep_json(job.params, inputs / "params.json")      # last: a job that has it was submitted whole
         await to_thread.run_sync(request.app.state.job_runner.submit, job.id)
     except Exception:
-        await to_thread.run_sync(store.delete, job.id)     # never queued (a queue that stopped answering): no job
+        await to_thread.run_sync(store.delete, job.id)     # never queued (a full disk, a queue not answering): no job
         raise
     log.info("job submitted", extra={"request_id": request.scope["state"]["request_id"], "job_id": job.id,
                                      "n_stacks": len(uploads)})           # the request's id, linked to its job's lines

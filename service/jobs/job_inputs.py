@@ -22,6 +22,7 @@ Example:
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -45,6 +46,16 @@ def keep_volume(volume: Volume, path: Path) -> None:
                  slice_axis=-1 if volume.slice_axis is None else volume.slice_axis)
     except OSError as exc:
         raise_if_out_of_space(exc)        # a full disk is the server's (507)
+        raise
+
+
+def keep_json(value: object, path: Path) -> None:
+    """Write ``value`` as JSON to ``path`` (a job's ``params.json``, ``names.json``, ``poses.json``); a
+    full disk is the server's (507), as for the stacks."""
+    try:
+        path.write_text(json.dumps(value))
+    except OSError as exc:
+        raise_if_out_of_space(exc)
         raise
 
 

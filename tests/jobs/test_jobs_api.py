@@ -759,6 +759,29 @@ def test_a_full_disk_while_a_submission_s_files_are_kept_is_507_and_leaves_no_jo
     assert int(r.headers["Retry-After"]) > 0 and client.app.state.job_store.queued() == []
 
 
+@pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)
+@pytest.mark.parametrize("name", ["poses.json", "names.json", "params.json"])
+def test_a_full_disk_while_a_submission_s_json_is_written_is_507_and_leaves_nothing(client: TestClient, case: dict,
+                                                                                   name: str, monkeypatch) -> None:  # noqa: ANN001
+    """The job's folder fills as its poses, the files' names or its parameters are written: 507 (the
+    server's disk, Retry-After), not a 500, and neither a queued job nor its decoded stacks are left."""
+    import errno
+
+    write_text = Path.write_text
+
+    def full(path: Path, *args: object, **kwargs: object) -> int:
+        if path.name == name and "jobs" in path.parts:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return write_text(path, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "write_text", full)
+    r = submit(client, case)
+    assert r.status_code == 507 and r.json()["type"] == "/problems/insufficient-storage", r.text
+    store = client.app.state.job_store
+    assert int(r.headers["Retry-After"]) > 0 and store.queued() == [] and store.counts()["queued"] == 0
+    assert list((store.data_dir / "jobs").iterdir()) == []
+
+
 @pytest.mark.parametrize("queue_settings", ["redis"], indirect=True)
 def test_a_queue_that_stops_answering_as_a_job_is_handed_to_it_is_503_and_leaves_no_job(
         client: TestClient, case: dict, monkeypatch) -> None:  # noqa: ANN001
