@@ -227,7 +227,8 @@ class RedisJobStore(JobStore):
 
     @_answering
     def finish(self, job_id: str, report: dict, attempt: int | None = None) -> bool:
-        return self._move(job_id, ("running",), "succeeded", attempt, stage="done", progress="1.0", report=report) >= 0
+        allowed = ("running",) if attempt is None else ("running", "queued")     # queued: put back under this run
+        return self._move(job_id, allowed, "succeeded", attempt, stage="done", progress="1.0", report=report) >= 0
 
     @_answering
     def fail(self, job_id: str, reason: str, attempt: int | None = None) -> bool:

@@ -35,7 +35,7 @@ from service.core.process_pools import watch_parent
 from service.core.settings import Settings
 from service.jobs.redis_store import RedisJobStore
 from service.jobs.runner import JobRunner, lost_worker
-from service.jobs.store import SUBMISSION_LEASE_S, Job
+from service.jobs.store import FINAL, SUBMISSION_LEASE_S, Job
 from service.jobs.worker import TIMED_OUT, run_job
 
 log = logging.getLogger(__name__)
@@ -88,6 +88,22 @@ def execute(job_id: str) -> None:
         if out_of_time(ctx, job_id):
             return
     run_job(ctx.store, ctx.models_dir, job_id, redelivered=redelivered, localisers_dir=ctx.localisers_dir)
+    if current is not None:
+        drop_waiting_redelivery(ctx, current)
+
+
+def drop_waiting_redelivery(ctx: WorkerContext, current: RqJob) -> None:
+    """Take out of the queue a re-delivery of ``current`` that waits there although its job has ended:
+    RQ put the job back when it took this run for lost (its worker silent too long), and the run
+    lived on and ended the job (:meth:`~service.jobs.redis_store.RedisJobStore.finish` accepts a job
+    put back under its run). The re-delivery would only find the job ended, after taking a worker;
+    where the store or the queue does not answer it is left to do so."""
+    try:
+        job = ctx.store.get(current.id)
+        if job is not None and job.status in FINAL:
+            Queue(current.origin, connection=current.connection).remove(current.id)
+    except (StoreUnavailable, redis.RedisError):
+        log.warning("a re-delivery of an ended job may wait in the queue", extra={"job_id": current.id})
 
 
 def out_of_time(ctx: WorkerContext, job_id: str) -> bool:

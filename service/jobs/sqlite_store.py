@@ -163,8 +163,9 @@ class SqliteJobStore(JobStore):
 
     def finish(self, job_id: str, report: dict, attempt: int | None = None) -> bool:
         return self._write("UPDATE jobs SET status = 'succeeded', stage = 'done', progress = 1.0, report = ?, "
-                           "updated_at = ? WHERE id = ? AND status = 'running' AND (? IS NULL OR attempts = ?)",
-                           (json.dumps(report), time.time(), job_id, attempt, attempt))
+                           "updated_at = ? WHERE id = ? AND (status = 'running' OR (status = 'queued' AND ? IS NOT "
+                           "NULL)) AND (? IS NULL OR attempts = ?)",
+                           (json.dumps(report), time.time(), job_id, attempt, attempt, attempt))
 
     def fail(self, job_id: str, reason: str, attempt: int | None = None) -> bool:
         return self._write("UPDATE jobs SET status = 'failed', stage = 'failed', error = ?, updated_at = ? "

@@ -226,7 +226,12 @@ class JobStore(ABC):
     @abstractmethod
     def finish(self, job_id: str, report: dict, attempt: int | None = None) -> bool:
         """``running -> succeeded`` with ``report``, atomically; False if the job was cancelled meanwhile
-        or (given ``attempt``) a later run has claimed it."""
+        or (given ``attempt``) a later run has claimed it. Given ``attempt``, ``queued -> succeeded``
+        too where the job was put back in the queue under that run and no run has claimed it since
+        (its attempts are still ``attempt``): the queue took the run for lost (its worker silent too
+        long), yet it lived on and completed the job, whose results then stand rather than being
+        computed again. A job handed back by a stopping worker does not count that run (its attempts
+        are one fewer), so its stopped run never finishes it."""
 
     @abstractmethod
     def fail(self, job_id: str, reason: str, attempt: int | None = None) -> bool:

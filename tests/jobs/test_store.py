@@ -133,6 +133,28 @@ def test_a_redelivered_job_may_be_claimed_while_running_but_not_once_finished(st
 
 
 @both
+def test_a_run_whose_job_was_put_back_in_the_queue_under_it_may_still_finish_it(store: JobStore) -> None:
+    """The queue took a live run for lost and put its job back (its attempts unchanged): that run's
+    finish still ends the job, unless a later run claimed it meanwhile; a run whose job was handed
+    back by a stopping worker (the run not counted) never does, nor does a finish without an attempt."""
+    put_back, claimed_again, handed_back = store.create({}), store.create({}), store.create({})
+    for job in (put_back, claimed_again, handed_back):
+        assert store.claim(job.id) == 1
+    if isinstance(store, SqliteJobStore):                 # its worker processes lost: the pool's recovery
+        store.recover(max_attempts=2, cause="lost worker", spared=[handed_back.id])
+    else:                                                 # RQ's clean-up, seen by a replica's reconcile
+        assert store.back_in_queue(put_back.id, 1) and store.back_in_queue(claimed_again.id, 1)
+        assert store.hand_back(handed_back.id)
+    assert [store.get(j.id).status for j in (put_back, claimed_again, handed_back)] == ["queued"] * 3
+    assert store.claim(claimed_again.id) == 2
+    assert not store.finish(put_back.id, {"run": 1}) and not store.finish(handed_back.id, {"run": 1}, attempt=1)
+    assert store.finish(put_back.id, {"run": 1}, attempt=1) and store.get(put_back.id).report == {"run": 1}
+    assert not store.finish(claimed_again.id, {"run": 1}, attempt=1)
+    assert store.finish(claimed_again.id, {"run": 2}, attempt=2)
+    assert store.get(handed_back.id).status == "queued" and store.queued() == [handed_back.id]
+
+
+@both
 def test_cancel_deletes_files_and_stops_claims(store: JobStore) -> None:
     job = store.create({})
     (store.directory(job.id) / "inputs").mkdir()
