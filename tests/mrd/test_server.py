@@ -517,18 +517,23 @@ def test_raw_data_is_read_past_without_being_built(case: Case, serve, monkeypatc
 
 
 def test_an_acquisition_announcing_more_data_than_the_limit_is_refused_before_it_is_read(serve) -> None:  # noqa: ANN001
-    server = serve()
-    client = MrdLink("127.0.0.1", server.port)
     head = ismrmrd.AcquisitionHeader(number_of_samples=65535, active_channels=65535, trajectory_dimensions=3)
+    error = only_error(serve(), struct.pack("<H", int(ismrmrd.serialization.ISMRMRDMessageID.ACQUISITION)) + bytes(head))
+    assert error["status"] == 413 and error["detail"].startswith("acquisition: its head announces 34359476220 bytes")
+
+
+def only_error(server: MrdServer, raw: bytes) -> dict:
+    """The one message a server answers ``raw`` bytes with, then closes (it may close while they go out)."""
+    client = MrdLink("127.0.0.1", server.port)
     try:
-        client.writer.write(struct.pack("<H", int(ismrmrd.serialization.ISMRMRDMessageID.ACQUISITION)) + bytes(head))
+        client.writer.write(raw)
         client.writer.flush()
     except OSError:
         pass
     received = client.wait()
     assert client.closed_by_server
     (error,) = texts(received)
-    assert error["status"] == 413 and error["detail"].startswith("acquisition: its head announces 34359476220 bytes")
+    return error
 
 
 def test_an_image_with_meta_attributes_over_the_limit_is_refused_before_they_are_read(case: Case, serve) -> None:  # noqa: ANN001
@@ -536,18 +541,9 @@ def test_an_image_with_meta_attributes_over_the_limit_is_refused_before_they_are
     the whole read limit (16 MiB): the attributes' length is checked after the header."""
     from service.mrd.protocol import MAX_META_BYTES
 
-    server = serve()
-    client = MrdLink("127.0.0.1", server.port)
     announced = MAX_META_BYTES + 1
-    try:
-        client.writer.write(struct.pack("<H", int(ismrmrd.serialization.ISMRMRDMessageID.IMAGE))
-                            + bytes(case.images[0][0].getHead()) + struct.pack("<Q", announced) + b"<a/>" * 1000)
-        client.writer.flush()
-    except OSError:
-        pass
-    received = client.wait()
-    assert client.closed_by_server
-    (error,) = texts(received)
+    error = only_error(serve(), struct.pack("<H", int(ismrmrd.serialization.ISMRMRDMessageID.IMAGE))
+                       + bytes(case.images[0][0].getHead()) + struct.pack("<Q", announced) + b"<a/>" * 1000)
     assert error["status"] == 413 and error["detail"].startswith(f"image: meta attributes of {announced} bytes")
 
 
