@@ -68,9 +68,10 @@ def export(
                        "the scanner); `svrnet masks` makes the masks", style="yellow", markup=False)
     if to == "niftymic":
         if done.stacks != list(stacks):
-            stderr().print(f"NiftyMIC cuts slices along a file's third axis: the stacks stored otherwise were written "
-                           f"again into {out_dir / 'stacks'}, their masks into {out_dir / 'masks'} (the same images); "
-                           "give NiftyMIC those", style="yellow", markup=False)
+            stderr().print(f"NiftyMIC cuts slices along a file's third axis, and reads a file compressed as its name "
+                           f"says: the stacks stored otherwise were written again into {out_dir / 'stacks'}, their "
+                           f"masks into {out_dir / 'masks'} (the same images); give NiftyMIC those", style="yellow",
+                           markup=False)
         odd = [s.name for s in stacks if set(s.name) & REGEX_CHARACTERS]
         if odd:
             stderr().print(f"NiftyMIC finds a stack's .tfm files by a regular expression of its name: rename "

@@ -57,7 +57,7 @@ from numpy.typing import ArrayLike, NDArray
 from client.errors import UnusableInput
 from client.export_folder import clear_for_export, write_manifest
 from client.files import write_whole
-from client.scanner_stack import nifti_image, slice_axis_of
+from client.scanner_stack import named_as_stored, nifti_image, slice_axis_of
 from client.slice_transforms import stack_from_atlas_lps, tfm_text
 
 FORMATS = ("nesvor", "niftymic")
@@ -257,8 +257,8 @@ def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None,
             slice_axis_of(np.linalg.norm(sfv[:3, :3], axis=0))          # the service's rule, not a guess
         if to == "niftymic":
             _niftymic_stack(path, chosen, _chosen(stack, True), sfv, folder)
-            if axis != 2:                   # NiftyMIC cuts along the third axis: the stack written so
-                done.stacks[s] = _rewritten(voxels, sfv, axis, folder / "stacks" / path.name)
+            if axis != 2 or not named_as_stored(path):   # NiftyMIC cuts along the third axis, and ITK reads
+                done.stacks[s] = _rewritten(voxels, sfv, axis, folder / "stacks" / path.name)   # by the name
             if masks and done.masks is not None:
                 if axis != 2 or not _binary_as_stored(masks[s], image):     # NiftyMIC takes it voxel by voxel
                     done.masks[s] = _rewritten(brain.astype(np.uint8), sfv, axis,
@@ -350,8 +350,9 @@ def _mask(path: Path, stack: nib.Nifti1Image) -> NDArray[np.bool_]:
 
 def _binary_as_stored(path: Path, stack: nib.Nifti1Image) -> bool:
     """Whether the mask file ``path`` (on ``stack``'s grid: :func:`_mask`) holds the stack's voxels in
-    the stack's order and only the values 0 and 1: as NiftyMIC reads a mask, giving it the stack's
-    placement and taking its voxels as they are stored, and refusing values above 1.
+    the stack's order and only the values 0 and 1, compressed as its name says: as NiftyMIC reads a
+    mask, giving it the stack's placement and taking its voxels as they are stored, refusing values
+    above 1, and reading by the file's name.
 
     Example (a mask of 0 and 255):
         >>> import tempfile
@@ -361,7 +362,9 @@ def _binary_as_stored(path: Path, stack: nib.Nifti1Image) -> bool:
         >>> _binary_as_stored(path, stack)
         False
     """
-    image = nib.load(str(path))
+    if not named_as_stored(path):                       # ITK would not read it as named
+        return False
+    image = nifti_image(path)
     values = np.asarray(image.dataobj)
     same_order = np.allclose(np.linalg.inv(image.affine) @ stack.affine, np.eye(4), atol=1e-2)
     return bool(same_order and values.shape == tuple(stack.shape[:3]) and np.isin(values, (0, 1)).all())

@@ -124,14 +124,25 @@ def _quiet_nibabel() -> Iterator[None]:
         logger.setLevel(level)
 
 
+def is_gzipped(path: Path) -> bool:
+    """Whether the file ``path`` is gzip-compressed, by its content (its first two bytes)."""
+    with open(path, "rb") as f:
+        return f.read(2) == b"\x1f\x8b"
+
+
+def named_as_stored(path: Path) -> bool:
+    """Whether the name of the file ``path`` says its compression (``.gz`` where gzipped, else not):
+    as ITK's readers take it, which go by the name."""
+    return is_gzipped(path) == path.name.endswith(".gz")
+
+
 def nifti_image(path: Path) -> nib.Nifti1Image:
     """The NIfTI image of ``path``, read by its content where its name says gzip and it is not, or the
     reverse (as the server reads it): a plain NIfTI-1 or -2 file named ``.nii.gz``, a gzipped one
     named ``.nii``. nibabel's notes on the header it mends as it reads (``pixdim`` of zero where the
     sform places the voxels) stay out of the command's output: the server reads the file by its own
     rules and says what it refuses."""
-    with open(path, "rb") as f:
-        gzipped = f.read(2) == b"\x1f\x8b"
+    gzipped = is_gzipped(path)
     with _quiet_nibabel():
         if gzipped != path.name.endswith(".gz"):             # the name says the other: read by the content
             raw = gzip.decompress(path.read_bytes()) if gzipped else path.read_bytes()

@@ -473,6 +473,26 @@ def test_niftymic_is_given_masks_it_takes_as_they_are_meant(case: dict, tmp_path
         np.testing.assert_array_equal(sitk.GetArrayFromImage(image), np.transpose(case["mask_data"], (2, 1, 0)))
 
 
+def test_niftymic_is_given_files_compressed_as_their_names_say(case: dict, tmp_path: Path) -> None:
+    """ITK reads a file by its name's compression: a gzipped stack named ``.nii`` and a plain mask named
+    ``.nii.gz`` (both read here by their content, as the server reads them) are written again as their
+    names say, the same voxels; the mask failed to read, leaving a half-written folder."""
+    sitk = pytest.importorskip("SimpleITK")
+    stack, mask = tmp_path / "in" / "ax.nii", tmp_path / "in" / "ax_mask.nii.gz"
+    stack.parent.mkdir()
+    stack.write_bytes(case["stack"].read_bytes())                                    # gzipped, named .nii
+    plain = nib.Nifti1Image(case["mask_data"], case["scanner_from_voxel"])
+    mask.write_bytes(plain.to_bytes())                                               # plain, named .nii.gz
+    answer = {"stacks": [{**case["answer"]["stacks"][0], "filename": stack.name}]}
+    out = tmp_path / "mc"
+    done = export(answer, [stack], [mask], out, "niftymic")
+    assert done.stacks == [out / "stacks" / "ax.nii"] and done.masks == [out / "masks" / "ax_mask.nii.gz"]
+    np.testing.assert_array_equal(sitk.GetArrayFromImage(sitk.ReadImage(str(done.stacks[0]))),
+                                  np.transpose(case["data"], (2, 1, 0)))
+    np.testing.assert_array_equal(sitk.GetArrayFromImage(sitk.ReadImage(str(done.masks[0]), sitk.sitkUInt8)),
+                                  np.transpose(case["mask_data"], (2, 1, 0)))
+
+
 @pytest.mark.parametrize("foreign", ["T2_ax.nii.gz", "7.nii", "mask_3.nii", "ax.tfm"])
 def test_an_overwrite_refuses_any_file_of_the_folder_a_tool_would_read(foreign: str, case: dict, tmp_path: Path) -> None:
     """NeSVoR reads every ``*.nii`` and ``*.nii.gz`` of its folder (a name not a number stops it) and
