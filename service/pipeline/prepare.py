@@ -26,13 +26,13 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from nibabel import orientations
 from numpy.typing import NDArray
 
 from service.consistency.stage import network_from_voxel
 from service.core.cancellation import carried, checkpoint
 from service.core.errors import InvalidParameter, UnusableImage
 from service.inference.model_file import ModelInfo
+from service.io.grids import in_order_of, on_grid
 from service.io.volume import Volume
 from service.preprocess.bias import n4_correct
 from service.preprocess.field_of_view import cut_by_field_of_view
@@ -44,17 +44,6 @@ from service.preprocess.noise import input_noise
 from service.preprocess.one_fetus import brain_centre_mm, one_fetus
 from service.preprocess.slices import PreparedSlices, preprocess_slices
 from service.preprocess.stack import StackSlices, pictures, split_stack, stack_axis
-
-GRID_TOLERANCE_VOXELS = 0.01
-"""How far (a share of the stack's smallest voxel) a mask's grid may lie from its stack's at the
-grid's corners, or :data:`GRID_TOLERANCE_OF_EXTENT` of the grid's diagonal where that is more: a
-mask on another grid lies a voxel or more off."""
-GRID_TOLERANCE_OF_EXTENT = 1e-4
-"""A mask written with a qform alone, beside a stack whose sform is very slightly oblique, cannot
-hold that obliqueness in its quaternion: it lies a few micrometres off at the grid's corners, in
-proportion to the field of view (a third-party manual mask: 1.5 micrometres on a 300 mm grid;
-a 512 x 512 reconstruction of 0.59 mm pixels, 9 micrometres, 0.015 of its voxel)."""
-
 
 @dataclass
 class StackUpload:
@@ -156,35 +145,8 @@ def mask_on_stack_grid(upload: StackUpload) -> StackUpload:
         [1, 0, 0]
     """
     mask = upload.mask
-    if mask is None:
-        return upload
-    ornt = orientations.ornt_transform(orientations.io_orientation(mask.affine),
-                                       orientations.io_orientation(upload.volume.affine))
-    if (ornt == [[0, 1], [1, 1], [2, 1]]).all():                       # already in the stack's order
-        return upload
-    array = orientations.apply_orientation(np.asarray(mask.array), ornt)
-    affine = np.asarray(mask.affine, np.float64) @ orientations.inv_ornt_aff(ornt, mask.array.shape)
-    if array.shape != upload.volume.array.shape or not on_grid(affine, upload.volume):
-        return upload
-    return replace(upload, mask=replace(mask, array=np.ascontiguousarray(array), affine=affine))
-
-
-def on_grid(affine: NDArray, volume: Volume) -> bool:
-    """Whether voxel -> world ``affine`` puts the corners of ``volume``'s voxel grid where its own
-    affine does, within :data:`GRID_TOLERANCE_VOXELS` of a voxel (or :data:`GRID_TOLERANCE_OF_EXTENT`
-    of the grid's diagonal, where that is more).
-
-    Example (a hundredth of a millimetre off on a 1 mm grid: on it; a tenth: not):
-        >>> v = Volume(np.zeros((8, 8, 4), np.float32), np.eye(4))
-        >>> on_grid(np.eye(4) + np.eye(4, k=3) * 0.005, v), on_grid(np.eye(4) + np.eye(4, k=3) * 0.1, v)
-        (True, False)
-    """
-    last = np.array(volume.array.shape[:3]) - 1
-    corners = np.array([[*(last * bits), 1] for bits in np.ndindex(2, 2, 2)], dtype=np.float64).T
-    world = np.asarray(volume.affine, np.float64) @ corners
-    diagonal = float(np.linalg.norm(world[:3, -1] - world[:3, 0]))
-    tolerance = max(GRID_TOLERANCE_VOXELS * float(np.min(volume.spacing)), GRID_TOLERANCE_OF_EXTENT * diagonal)
-    return bool(np.abs(np.asarray(affine, np.float64) @ corners - world).max() <= tolerance)
+    ordered = None if mask is None else in_order_of(mask, upload.volume)
+    return upload if ordered is None or ordered is mask else replace(upload, mask=ordered)
 
 
 def check_mask_grid(upload: StackUpload) -> None:
@@ -273,7 +235,8 @@ def marked_brain(upload: StackUpload) -> tuple[float, NDArray[np.float64]]:
 
 def check_distinct_stacks(uploads: list[StackUpload]) -> None:
     """400 naming both files where a request sends one stack twice (the same grid and voxels under two
-    names): the stages would take the copy for a second acquisition that agrees with the first and
+    names, stored in the same voxel order or another: :func:`in_order_of`): the stages would take
+    the copy for a second acquisition that agrees with the first and
     answer surer than the scan allows (or, for two copies alone, with nothing crossing them, accept
     none).
 
@@ -287,9 +250,8 @@ def check_distinct_stacks(uploads: list[StackUpload]) -> None:
     """
     for j, b in enumerate(uploads):
         for a in uploads[:j]:
-            same_grid = a.volume.array.shape == b.volume.array.shape and np.allclose(a.volume.affine, b.volume.affine,
-                                                                                       atol=1e-4)
-            if same_grid and np.array_equal(a.volume.array, b.volume.array):
+            same_grid = in_order_of(b.volume, a.volume)             # however either file stores its voxels
+            if same_grid is not None and np.array_equal(a.volume.array, same_grid.array):
                 raise InvalidParameter(f"stacks: {b.filename} is the same image as {a.filename} (the same grid and "
                                        "voxels): send each stack of a scan once")
 

@@ -372,3 +372,23 @@ def test_a_stack_sent_twice_is_refused_naming_both_files(oracle_client: TestClie
     data = nifti_bytes(stack(), tmp=tmp_path)
     r = post(oracle_client, [("stacks", ("ax.nii.gz", data)), ("stacks", ("copy_of_ax.nii.gz", data))])
     assert_problem(r, 400, "copy_of_ax.nii.gz is the same image as ax.nii.gz")
+
+
+def test_a_stack_sent_twice_in_two_voxel_orders_is_refused_too(oracle_client: TestClient, tmp_path: Path) -> None:
+    """A copy a reorienting tool wrote (slices reversed, slice axis first) is the same image: it was
+    taken for a second acquisition, and the answer was surer than the scan allows."""
+    from service.geometry.pose import index_reversal
+
+    voxels, affine = stack(), np.diag([1.0, 1.0, 3.0, 1.0])
+    data = nifti_bytes(voxels, affine, tmp=tmp_path)
+    reversed_k = nifti_bytes(np.ascontiguousarray(voxels[:, :, ::-1]), affine @ index_reversal(2, voxels.shape[2]),
+                             tmp=tmp_path)
+    slice_first = nifti_bytes(np.ascontiguousarray(np.transpose(voxels, (2, 0, 1))), affine[:, [2, 0, 1, 3]], tmp=tmp_path)
+    for name, copy in (("reversed.nii.gz", reversed_k), ("slice_first.nii.gz", slice_first)):
+        r = post(oracle_client, [("stacks", ("ax.nii.gz", data)), ("stacks", (name, copy))])
+        assert_problem(r, 400, f"{name} is the same image as ax.nii.gz")
+    from service.io.volume import Volume
+    from service.pipeline.prepare import StackUpload, check_distinct_stacks
+
+    other = Volume(np.ascontiguousarray(stack(seed=1)[:, :, ::-1]), affine @ index_reversal(2, voxels.shape[2]))
+    check_distinct_stacks([StackUpload("ax.nii.gz", Volume(voxels, affine)), StackUpload("other.nii.gz", other)])
