@@ -26,6 +26,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+CUT_BY_FIELD_OF_VIEW = "cut_by_field_of_view"
+"""The name of the fault, in the answer's slices and a stream's slices to acquire again."""
 EDGE_DEPTH_MM = 5.0
 """How far inside the picture's edge the brain's width is compared with its width at the edge."""
 EDGE_WIDTH_SHARE = 0.6

@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 
 from service.geometry import anchors
 from service.inference import acceptance
+from service.preprocess.field_of_view import CUT_BY_FIELD_OF_VIEW
 from service.preprocess.intensity import SIGNAL_LOST
 from service.pipeline.predict import StackPrediction
 from service.streaming.coverage import Coverage
@@ -69,14 +70,18 @@ def moved_mm(a: SliceAnswer, b: SliceAnswer, reference: NDArray) -> float:
 
 
 def worth_acquiring_again(reasons: list[str | None], judged_alone: bool,
-                          signal_lost: Sequence[bool] | None = None) -> list[tuple[int, str]]:
+                          signal_lost: Sequence[bool] | None = None,
+                          cut: Sequence[bool] | None = None) -> list[tuple[int, str]]:
     """``(index, reason)`` of the slices of a stack worth acquiring again: those not accepted, but
     for ``empty`` ones (no brain: nothing to gain) and, for a stack judged alone (the session's
     first), those whose only fault is their expected error: the next stack that crosses them is
     what brings it down (the shared real scan's axial stack: 0 of 24 accepted alone, 21 once the
     coronal stack ended); and those whose brain lost its signal (``signal_lost``), accepted or not,
     with that reason before any other: it is the cause, and a slice acquired again may show the brain;
-    but a slice that never arrived (:data:`NOT_RECEIVED`) is listed as such.
+    a slice not accepted whose brain runs out of its picture (``cut``) with the reason
+    :data:`~service.preprocess.field_of_view.CUT_BY_FIELD_OF_VIEW`, the likely cause, which no
+    later stack mends (a field of view that holds the whole head does); but a slice that never
+    arrived (:data:`NOT_RECEIVED`) is listed as such.
 
     Example:
         >>> worth_acquiring_again([None, "empty", "high_expected_error", "inconsistent_with_stack"], True)
@@ -87,8 +92,17 @@ def worth_acquiring_again(reasons: list[str | None], judged_alone: bool,
         [(0, 'signal_lost'), (1, 'signal_lost'), (2, 'signal_lost')]
         >>> worth_acquiring_again([None, "not_received", "empty"], True, [False, True, False])
         [(1, 'not_received')]
+        >>> worth_acquiring_again([None, "high_expected_error", "high_variance"], True, None, [True, True, False])
+        [(1, 'cut_by_field_of_view'), (2, 'high_variance')]
     """
     waits = {acceptance.EMPTY} | ({acceptance.HIGH_EXPECTED_ERROR} if judged_alone else set())
     lost = [False] * len(reasons) if signal_lost is None else [bool(x) for x in signal_lost]
-    return [(k, SIGNAL_LOST if lost[k] and r != NOT_RECEIVED else r) for k, r in enumerate(reasons)
-            if r != acceptance.EMPTY and (lost[k] or (r is not None and r not in waits))]
+    cut_off = [False] * len(reasons) if cut is None else [bool(x) for x in cut]
+
+    def why(k: int, r: str | None) -> str | None:
+        if r == NOT_RECEIVED:
+            return r
+        return SIGNAL_LOST if lost[k] else CUT_BY_FIELD_OF_VIEW if cut_off[k] and r is not None else r
+
+    return [(k, why(k, r)) for k, r in enumerate(reasons)
+            if r != acceptance.EMPTY and (lost[k] or (r is not None and (r not in waits or cut_off[k])))]

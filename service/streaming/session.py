@@ -343,7 +343,8 @@ class StreamSession:
             covered, shown = self._covered()
             alone = len(names) == 1
             lists = {n: worth_acquiring_again(self.finals[n].own_reasons or self.finals[n].reasons, alone,
-                                             self.finals[n].prepared.signal_lost)
+                                             self.finals[n].prepared.signal_lost,
+                                             self.finals[n].prepared.cut_by_field_of_view)
                      for n in names}
             changed = {n: r for n, r in lists.items() if n != stack and r != self.reacquire_sent.get(n)}
             self.reacquire_sent.update(lists)
@@ -386,7 +387,7 @@ class StreamSession:
         with self._lock:
             names = list(self.stacks)
             n = sum(len(s) for s in self.stacks.values())
-            final = {k: worth_acquiring_again(p.own_reasons or p.reasons, False, p.prepared.signal_lost)   # nothing more comes
-                     for k, p in self.finals.items()}
+            final = {k: worth_acquiring_again(p.own_reasons or p.reasons, False, p.prepared.signal_lost,  # nothing more
+                                              p.prepared.cut_by_field_of_view) for k, p in self.finals.items()}   # comes
             unfinished = {k: s.missing() for k, s in self.stacks.items() if k not in self.finals}
         return SessionSummary(names, self.coverage(), n, dict(self.compute_ms), final, unfinished)

@@ -538,6 +538,29 @@ def test_slices_whose_brain_lost_its_signal_are_named_once_their_stack_ends_and_
     assert {k: listed.get(k) for k in dark} == dict.fromkeys(dark, "signal_lost")     # the cause, whatever else
 
 
+def test_slices_whose_brain_runs_out_of_the_picture_are_named_and_worth_acquiring_again_at_once() -> None:
+    """The field of view ends inside the brain: each such slice's `pose` says so, and the `stack`
+    message lists those not accepted with that reason even for a stack judged alone, whose slices
+    held back by their expected error alone wait for the next stack (which mends no cut)."""
+    from service.api.responses import pose_object, stack_message
+    from service.inference.registry import ModelRegistry
+    from tests.support.streams import frames_of, simulated_stack
+
+    estimator = ModelRegistry.from_directory("service/models", "default", 0).get("default")
+    image, mask, affine, _ = simulated_stack(3, np.eye(3))
+    rows = np.flatnonzero(mask.any(axis=(1, 2)))
+    end = (rows[0] + rows[-1]) // 2 + 4                            # the picture ends past the brain's middle
+    options = SessionOptions(mc_samples=4, bias_correction=False, max_expected_error_mm=0.01)   # none accepted
+    session = StreamSession(estimator, None, options=options)
+    cut = [pose_object(session.add_slice(f))["cut_by_field_of_view"]
+           for f in frames_of("ax", (image[:end] * 3.0 + 20.0).astype(np.float32), mask[:end].astype(np.uint8), affine)]
+    final = stack_message(session.end_stack("ax"))
+    named = [s["index"] for s in final["slices"] if s["cut_by_field_of_view"]]
+    assert named and named == [k for k, c in enumerate(cut) if c]
+    assert final["judged_alone"] and not any(s["accepted"] for s in final["slices"])
+    assert {r["index"]: r["reason"] for r in final["reacquire"]} == dict.fromkeys(named, "cut_by_field_of_view")
+
+
 def test_a_misplaced_second_slice_does_not_lock_out_the_correct_ones_after_it() -> None:
     """Slice 0 right, then an index 2 sent at slice 3's place (an off-by-one client): the two make
     no line their thickness confirms, so the correct slices after them are kept; the line they draw
