@@ -49,8 +49,9 @@ def in_order_of(volume: Volume, reference: Volume) -> Volume | None:
         affine = np.asarray(volume.affine, np.float64) @ orientations.inv_ornt_aff(ornt, volume.array.shape)
     if array.shape != reference.array.shape or not on_grid(affine, reference):
         return None
-    return volume if array is volume.array else Volume(np.ascontiguousarray(array), affine)   # the voxels and grid:
-                                                    # what the file says of its own storage (its slice order) is not
+    if array is volume.array:
+        return volume
+    return Volume(np.ascontiguousarray(array), affine)     # not what the file says of its own storage (slice order)
 
 
 def on_grid(affine: NDArray, volume: Volume) -> bool:
