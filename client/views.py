@@ -206,17 +206,20 @@ def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[
     held_back = [s for s in slices if s.get("reason") == "high_expected_error" and limit is not None
                  and float(s.get("expected_error_mm") or 0.0) ** 2 - added ** 2 <= float(limit) ** 2]
     if not one_pass and added > 0 and len(held_back) >= len(slices) / 2:
-        hints.append(f"every slice's expected error includes {added:.2f} mm for the request's placement in the atlas "
-                     f"(the network's poses scatter {frame.get('request_network_error_mm') or 0:.0f} mm about the "
-                     "stacks' motion: less sure than on the scans the accept flags were calibrated on), so fewer are "
-                     "accepted; the slices may still agree with each other, and a reconstruction job of these "
-                     "stacks (`svrnet reconstruct`) starts from those whose own errors pass (one given these poses "
-                     "keeps their flags); " + (
-                         "brain masks drawn by hand often place a request surer (the service's own, from `svrnet "
-                         "masks`, place it as it is placed now unless corrected)"
-                         if any((st.get("localisation") or {}).get("method") == "network" for st in stacks) else
+        none = not any(s.get("accepted") for s in slices)
+        found = any((st.get("localisation") or {}).get("method") == "network" for st in stacks)
+        hints.append(("no slice accepted: " if none else "fewer slices accepted: ") +
+                     f"every expected error includes {added:.2f} mm for the request's placement in the atlas as a "
+                     f"whole (the network's poses scatter {frame.get('request_network_error_mm') or 0:.0f} mm about "
+                     "the stacks' motion, more than on the scans the accept flags are calibrated on); the slices may "
+                     "still agree with each other. Next: " + (
+                         "send brain masks drawn by hand (`svrnet masks` makes drafts to correct: sent as they are, "
+                         "they place the request as it is placed now)"
+                         if found else
                          "masks drawn to the brain alone (sent without --masks-hold-csf), or to its skull's inside "
-                         "(sent with it), place a request surer than masks that take in tissue beside the brain"))
+                         "(sent with it), place a request surer than masks that take in tissue beside the brain") +
+                     "; or `svrnet reconstruct` these stacks: the job starts from the slices whose own errors pass "
+                     "(one given these poses keeps their flags)")
         return hints
     if slices and not one_pass and not any(s.get("accepted") for s in slices):
         limit = result.get("max_expected_error_mm")

@@ -501,9 +501,14 @@ def test_a_request_whose_frame_error_holds_its_slices_back_is_told_so_not_that_i
     framed = {**two, "stacks": [{**st, "frame": {"request_network_error_mm": 23.6, "expected_error_added_mm": 4.2}}
                                 for st in two["stacks"]]}
     hints = views.predict_hints(framed)
-    assert len(hints) == 1 and "4.20 mm for the request's placement" in hints[0] and "24 mm" in hints[0]
-    assert "starts from those whose own errors pass" in hints[0] and "do not agree" not in hints[0]
-    assert "drawn by hand" in hints[0] and "unless corrected" in hints[0]      # the service's own masks: no remedy
+    assert len(hints) == 1 and hints[0].startswith("no slice accepted: ")
+    assert "4.20 mm for the request's placement" in hints[0] and "24 mm" in hints[0]
+    assert "starts from the slices whose own errors pass" in hints[0] and "do not agree" not in hints[0]
+    assert "drawn by hand" in hints[0] and "drafts to correct" in hints[0]      # the service's own masks: no remedy
+    half = {**framed, "stacks": [{**framed["stacks"][0], "slices": [{**sl, "accepted": True, "reason": None}
+                                                                     for sl in framed["stacks"][0]["slices"]]},
+                                 framed["stacks"][1]]}
+    assert [h for h in views.predict_hints(half) if h.startswith("fewer slices accepted: ")]
     masked = {**framed, "stacks": [{**st, "localisation": {"method": "mask"}} for st in framed["stacks"]]}
     assert "tissue beside the brain" in views.predict_hints(masked)[0]
     two = {**two, "stacks": [{**st, "consistency": {"decidable": False}} for st in two["stacks"]]}
