@@ -22,6 +22,7 @@ import ctypes.util
 import gc
 import multiprocessing.process
 import os
+import signal
 import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -62,6 +63,13 @@ def watch_parent(parent: int | None = None, interval_s: float = 0.5) -> None:
         os._exit(0)
 
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+def ignore_interrupts() -> None:
+    """In a pool's process, at its start: ignore SIGINT. A Ctrl-C in a terminal reaches every process
+    of the server's group, and an idle pool process printed a traceback of its interrupted wait for
+    work; the pool's owner ends its processes itself (:func:`end_pool`)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def release_memory() -> None:

@@ -6,7 +6,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 
 from service.core import logging as service_logging
-from service.core.process_pools import watch_parent
+from service.core.process_pools import ignore_interrupts, watch_parent
 from service.core.threads import limit_blas_threads
 
 
@@ -67,8 +67,10 @@ def lost_worker(max_attempts: int) -> str:
 
 def start_worker(parent: int, log_level: str, blas_threads: int = 1) -> None:
     """A pool worker process's start: the server's JSON logging (a failed job's line carries its id
-    and the kind of error), :func:`~service.core.process_pools.watch_parent` and the server's BLAS threads
+    and the kind of error), Ctrl-C left to the server (:func:`~service.core.process_pools.ignore_interrupts`),
+    :func:`~service.core.process_pools.watch_parent` and the server's BLAS threads
     (:func:`~service.core.threads.limit_blas_threads`: a job runs beside the server's requests)."""
     service_logging.configure(log_level)
+    ignore_interrupts()
     watch_parent(parent)
     limit_blas_threads(blas_threads)

@@ -27,7 +27,7 @@ from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, TypeVar
 
-from service.core.process_pools import end_pool, watch_parent
+from service.core.process_pools import end_pool, ignore_interrupts, watch_parent
 from service.core.threads import limit_blas_threads
 
 BACKGROUND_NICE = 10
@@ -61,10 +61,11 @@ server's own work (:func:`~service.core.threads.limit_blas_threads`)."""
 
 
 def _start_stage_process(server: int) -> None:
-    """The stage process's start: a lower priority, one BLAS thread, and an end with the server's
-    process ``server`` (a server killed with ``kill -9`` leaves no stage process behind, even one
-    killed while this process was still starting)."""
+    """The stage process's start: a lower priority, Ctrl-C left to the server, one BLAS thread, and an
+    end with the server's process ``server`` (a server killed with ``kill -9`` leaves no stage
+    process behind, even one killed while this process was still starting)."""
     lower_priority()
+    ignore_interrupts()
     limit_blas_threads(STAGE_BLAS_THREADS)
     watch_parent(server)
 

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
 import time
 from concurrent.futures import ProcessPoolExecutor
 
 
-from service.core.process_pools import end_pool, watch_parent
+from service.core.process_pools import end_pool, ignore_interrupts, watch_parent
 from tests.support.live_server import gone_within
 
 
@@ -67,3 +68,16 @@ def test_a_pool_process_exits_when_its_parent_is_gone() -> None:
     grandchild = ready.get(timeout=60.0)
     parent.join(30.0)
     assert gone_within(grandchild, 20.0), "the pool process outlived its parent by 20 s"
+
+
+def test_a_ctrl_c_leaves_an_idle_pool_process_to_its_owner(capfd) -> None:  # noqa: ANN001
+    """Its SIGINT ignored, a pool process interrupted waiting for work neither dies nor prints the
+    wait's traceback; the owner ends it."""
+    pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=ignore_interrupts)
+    pid = pool.submit(os.getpid).result(timeout=60.0)
+    os.kill(pid, signal.SIGINT)
+    time.sleep(0.5)
+    assert pool.submit(os.getpid).result(timeout=10.0) == pid        # still there, still working
+    workers = end_pool(pool, grace_s=1.0)
+    assert not any(w.is_alive() for w in workers)
+    assert "KeyboardInterrupt" not in capfd.readouterr().err
