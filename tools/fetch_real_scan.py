@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import gzip
 import hashlib
+import urllib.error
 import urllib.request
 from pathlib import Path
 
@@ -62,17 +63,27 @@ DEFAULT_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "extra_s
 
 
 def fetch(root: Path, scan: str = "mial_sub01") -> Path:
-    """Download ``scan`` into ``root/<scan>`` (files already there are kept); returns that folder."""
+    """Download ``scan`` into ``root/<scan>`` (files already there are kept); returns that folder.
+    :class:`SystemExit` names a file that could not be downloaded (no network, the host not
+    answering); a folder this call made is removed where it is still empty."""
     spec = SCANS[scan]
     folder = Path(root) / scan
+    made = not folder.exists()
     folder.mkdir(parents=True, exist_ok=True)
     for name, path in spec["files"].items():
         target = folder / name
         if target.exists():
             continue
         url = f"{RAW}/{spec['repository']}/{spec['commit']}/{path}"
-        with urllib.request.urlopen(url, timeout=60) as r:  # noqa: S310 - a fixed https URL
-            data = r.read()
+        try:
+            with urllib.request.urlopen(url, timeout=60) as r:  # noqa: S310 - a fixed https URL
+                data = r.read()
+        except (urllib.error.URLError, OSError) as e:
+            if made and not any(folder.iterdir()):
+                folder.rmdir()
+            reason = getattr(e, "reason", None) or e
+            raise SystemExit(f"{name}: could not be downloaded from {RAW.split('//')[1]} ({reason}); "
+                             "a machine with access to GitHub can fetch it, then copy the folder") from None
         if hashlib.sha256(data).hexdigest()[:16] != spec["sha256"][name]:
             raise SystemExit(f"{name}: the download differs from the pinned file")
         if name.endswith(".gz") and not path.endswith(".gz"):

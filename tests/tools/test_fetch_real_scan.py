@@ -37,3 +37,15 @@ def test_a_download_that_differs_from_the_pinned_file_is_refused(monkeypatch: py
     with pytest.raises(SystemExit, match="differs"):
         fetch_real_scan.fetch(tmp_path, "test_scan")
     assert not (tmp_path / "test_scan" / "s.nii.gz").exists()
+
+
+def test_no_network_is_one_line_naming_the_file_and_leaves_no_empty_folder(monkeypatch: pytest.MonkeyPatch,
+                                                                             tmp_path: Path) -> None:
+    def offline(url: str, timeout: float) -> io.BytesIO:  # noqa: ARG001
+        raise fetch_real_scan.urllib.error.URLError(OSError(-2, "Name or service not known"))
+    spec = {"repository": "o/r", "commit": "c", "files": {"s.nii.gz": "d/s.nii.gz"}, "sha256": {"s.nii.gz": "0" * 16}}
+    monkeypatch.setitem(fetch_real_scan.SCANS, "test_scan", spec)
+    monkeypatch.setattr(fetch_real_scan.urllib.request, "urlopen", offline)
+    with pytest.raises(SystemExit, match=r"s.nii.gz: could not be downloaded from raw.githubusercontent.com .*not known"):
+        fetch_real_scan.fetch(tmp_path, "test_scan")
+    assert not (tmp_path / "test_scan").exists()
