@@ -63,7 +63,7 @@ from client.cli_support import (DEFAULT_VOLUME, ApiKeyOpt, BiasCorrectionOpt, Jo
                                 write_results)
 from client.errors import NotFound
 from client.exits import (EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, EXIT_USAGE, errors, fail,
-                          stderr, stdout)
+                          job_goes_on, stderr, stdout)
 from client.views import (job_table, masks_table, models_table, predict_hints, quality_line, refined_poses_line,
                           summarise, upload_bar, usable)
 
@@ -258,8 +258,9 @@ def reconstruct(
         if not wait:
             console.print(f"follow it with: svrnet status {job_id}; download it with: svrnet fetch {job_id}")
             return
-        done = follow_job(svr, job_id, poll, timeout)
-        incoherent = write_results(svr, job_id, done, out, preview, poses_out, transforms_out, stack_space)
+        with job_goes_on(job_id):
+            done = follow_job(svr, job_id, poll, timeout)
+            incoherent = write_results(svr, job_id, done, out, preview, poses_out, transforms_out, stack_space)
     if incoherent:
         raise typer.Exit(EXIT_NOTHING_USABLE)
 
@@ -290,8 +291,9 @@ def fetch(
     check_writable(overwrite, out=out if out is not None else DEFAULT_VOLUME, preview=preview, poses_out=poses_out,
                    transforms_out=transforms_out)
     with errors(), _client(server, api_key) as svr:
-        incoherent = write_results(svr, job, follow_job(svr, job, poll, timeout), out, preview, poses_out,
-                                   transforms_out, stack_space)
+        with job_goes_on(job):
+            incoherent = write_results(svr, job, follow_job(svr, job, poll, timeout), out, preview, poses_out,
+                                       transforms_out, stack_space)
     if incoherent:
         raise typer.Exit(EXIT_NOTHING_USABLE)
 

@@ -91,6 +91,25 @@ def fail(message: str, code: int) -> None:
 
 
 @contextmanager
+def job_goes_on(job_id: str) -> Iterator[None]:
+    """A Ctrl-C while a job is followed ends the command (exit 130) saying that the job goes on on the
+    server, and how to reach it.
+
+    Example:
+        >>> with job_goes_on("j1"):
+        ...     raise KeyboardInterrupt
+        Traceback (most recent call last):
+        ...
+        typer.exceptions.Exit: 130
+    """
+    try:
+        yield
+    except KeyboardInterrupt:
+        fail(f"interrupted; job {job_id} goes on on the server: svrnet status {job_id}, svrnet fetch {job_id} "
+             f"(waits for it and downloads it), or svrnet cancel {job_id}", EXIT_INTERRUPTED)
+
+
+@contextmanager
 def errors() -> Iterator[None]:
     """Client errors -> one red line on stderr and the documented exit code; never a traceback."""
     try:

@@ -357,6 +357,21 @@ def test_cli_checks_the_default_volume_path_before_uploading(fake_cli: Callable,
     assert r.exit_code == 2 and "recon.nii.gz" in r.output and not fake.requests, r.output
 
 
+def test_a_ctrl_c_while_a_job_is_followed_says_the_job_goes_on(fake_cli: Callable, stack_file: Path, tmp_path: Path,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    fake_cli()
+    monkeypatch.chdir(tmp_path)
+
+    def interrupted(*args: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "follow_job", interrupted)
+    for args in (["reconstruct", str(stack_file), "--wait"], ["fetch", "job1"]):
+        r = invoke(args)
+        said = " ".join(r.output.split())
+        assert r.exit_code == 130 and "goes on on the server" in said and "svrnet cancel job" in said, r.output
+
+
 def test_cli_fetch_writes_the_volume_in_a_stack_s_scanner_coordinates(fake_cli: Callable, stack_file: Path,
                                                                       tmp_path: Path) -> None:
     """``--stack-space N`` asks for the volume placed in stack N's scanner coordinates and says how far
