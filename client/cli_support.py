@@ -22,6 +22,7 @@ from rich.progress import BarColumn, Progress, SpinnerColumn, TaskProgressColumn
 
 from client._client import SVRnetClient
 from client.files import write_whole
+from client.job_calls import UNREACHABLE_S
 from client.exits import EXIT_NOT_FOUND, EXIT_USAGE, fail, stderr, stdout
 from client.views import NO_WORKER, quality_line, refined_poses_line, stage_label, waits_for_a_worker
 
@@ -209,7 +210,15 @@ def follow_job(svr: SVRnetClient, job_id: str, poll: float, timeout: float) -> d
                 last = label
                 err.print(f"job {job_id}: {label} ({time.monotonic() - started:.0f} s)", markup=False, highlight=False)
 
-        return svr.wait(job_id, poll_s=poll, timeout_s=timeout, on_progress=on_progress)
+        def on_unreachable(exc: Exception | None) -> None:
+            if exc is None:
+                bar.console.print(f"job {job_id}: the server answers again", markup=False, highlight=False)
+                return
+            why = " ".join(str(exc).split())
+            bar.console.print(f"job {job_id}: the server does not answer ({why}); trying again for up to "
+                              f"{UNREACHABLE_S:.0f} s (the job goes on on the server)", style="yellow", markup=False)
+
+        return svr.wait(job_id, poll_s=poll, timeout_s=timeout, on_progress=on_progress, on_unreachable=on_unreachable)
 
 
 def stack_frame_entry(done: dict[str, Any], stack: int) -> dict[str, Any]:

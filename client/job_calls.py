@@ -62,7 +62,8 @@ class JobCalls(Transport):
 
     def wait(self, job_id: str, poll_s: float = 1.0, timeout_s: float = 3600.0,
              on_progress: Callable[[dict[str, Any]], None] | None = None,
-             unreachable_s: float = UNREACHABLE_S) -> dict[str, Any]:
+             unreachable_s: float = UNREACHABLE_S,
+             on_unreachable: Callable[[Exception | None], None] | None = None) -> dict[str, Any]:
         """Poll :meth:`status` until the job is ``succeeded``, ``failed`` or ``cancelled``.
 
         A server that restarts (its jobs go on: they are stored) or a load balancer without a
@@ -79,6 +80,8 @@ class JobCalls(Transport):
             on_progress: called with every status body (e.g. to draw ``body["progress"]``).
             unreachable_s: how long in a row the server may be unreachable or refuse to answer
                 (refused connections, 502 / 504 from a proxy, 429 / 503 after the transport's retries).
+            on_unreachable: called with the error when a poll first finds no server (the wait goes
+                on), and with None when the server answers again (e.g. to tell a user why nothing moves).
 
         Returns:
             The final status body of a succeeded job.
@@ -95,6 +98,8 @@ class JobCalls(Transport):
         while True:
             try:
                 job = self.status(job_id)
+                if unreachable_since is not None and on_unreachable is not None:
+                    on_unreachable(None)
                 unreachable_since = None
             except (ConnectionFailed, Busy, ServerError) as exc:
                 if isinstance(exc, ServerError) and exc.status not in (502, 504):
@@ -102,6 +107,8 @@ class JobCalls(Transport):
                 if not self.answered and not isinstance(exc, Busy):
                     raise                          # never reached: no server to wait for at this address
                 now = time.monotonic()
+                if unreachable_since is None and on_unreachable is not None:
+                    on_unreachable(exc)
                 unreachable_since = now if unreachable_since is None else unreachable_since
                 if now - unreachable_since >= unreachable_s or now >= deadline:
                     raise

@@ -25,7 +25,9 @@ def test_wait_goes_on_through_a_server_restart_and_gives_up_on_a_server_gone(no_
     for status in (None, 502, 503):                  # refused connections (a restart), a proxy's 502, a 503 past retries
         job_id = svr.reconstruct([__file__])["job_id"]
         down.update(left=9, status=status)
-        assert svr.wait(job_id, poll_s=0.0)["status"] == "succeeded" and down["left"] == 0
+        told: list[Exception | None] = []
+        assert svr.wait(job_id, poll_s=0.0, on_unreachable=told.append)["status"] == "succeeded" and down["left"] == 0
+        assert len(told) == 2 and told[0] is not None and told[1] is None     # once gone, once back
     job_id = svr.reconstruct([__file__])["job_id"]
     down.update(left=9, status=None)
     with pytest.raises(ConnectionFailed):
@@ -69,3 +71,20 @@ def test_waiting_on_a_server_that_never_answered_ends_at_once(no_sleep: list[flo
     with pytest.raises(ConnectionFailed, match="Connection refused"):
         mock(stopped, retries=2).wait("3f2a", poll_s=1.0, timeout_s=3600.0, unreachable_s=120.0)
     assert calls == ["GET"] * 3 and sum(no_sleep) < 5              # the transport's retries, not 120 s of polls
+
+
+def test_following_a_job_says_when_the_server_stops_answering_and_when_it_answers_again(capsys) -> None:  # noqa: ANN001
+    """A user watching a wait is told why nothing moves (the job goes on), not left in silence."""
+    from types import SimpleNamespace
+
+    from client.cli_support import follow_job
+
+    def wait(job_id: str, poll_s: float, timeout_s: float, on_progress, on_unreachable) -> dict:  # noqa: ANN001
+        on_unreachable(ConnectionFailed("GET /v1/reconstructions/j1: Connection refused"))
+        on_unreachable(None)
+        return {"status": "succeeded"}
+
+    assert follow_job(SimpleNamespace(wait=wait), "j1", 1.0, 60.0) == {"status": "succeeded"}
+    said = " ".join(capsys.readouterr().err.split())
+    assert "job j1: the server does not answer (GET /v1/reconstructions/j1: Connection refused)" in said
+    assert "the job goes on on the server" in said and "job j1: the server answers again" in said
