@@ -49,6 +49,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, Optional
+from urllib.parse import urlsplit
 
 import httpx
 import typer
@@ -84,8 +85,11 @@ def make_client(server: str, api_key: str | None) -> SVRnetClient:
     """The client every command uses (tests monkeypatch this factory); a URL that is no URL is a usage
     error naming ``--server``."""
     try:
+        if urlsplit(server).scheme not in ("http", "https"):
+            raise typer.BadParameter(f"{server!r}: give the server's URL with its scheme, e.g. http://127.0.0.1:8000",
+                                     param_hint="--server")
         return SVRnetClient(base_url=server, api_key=api_key, timeout=timeout_from_env())
-    except httpx.InvalidURL as exc:
+    except (httpx.InvalidURL, ValueError) as exc:
         raise typer.BadParameter(f"{server!r}: {exc}", param_hint="--server") from None
 
 

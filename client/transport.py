@@ -225,6 +225,9 @@ class Transport:
                        "raise SVRNET_TIMEOUT, in seconds, for svrnet, or timeout= of SVRnetClient)")
         elif isinstance(exc, httpx.ReadTimeout):
             reason += " (the server accepted the connection and said nothing: it is stuck or overloaded)"
+        elif isinstance(exc, httpx.ConnectError) and not self.answered:
+            reason += (f" (no server answers at {shown_url(self.base_url)}: is it running, and at this address and "
+                       "port? `make serve` starts one; --server or SVRNET_SERVER names another)")
         return ConnectionFailed(f"{method} {shown_url(self._url(path))}: {reason}", title="Connection failed")
 
     @staticmethod

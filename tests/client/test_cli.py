@@ -6,6 +6,7 @@ from __future__ import annotations
 import io
 import json
 import re
+import socket
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
@@ -478,6 +479,17 @@ def test_cli_timeout_from_the_environment(stack_file: Path) -> None:
     assert cli.make_client("http://x", None)._http.timeout.read == 300.0
     r = invoke(["models", "--server", "http://[::1"])                                  # no URL at all: usage
     assert r.exit_code == 2 and "--server" in r.output, r.output
+    r = invoke(["models", "--server", "127.0.0.1:8000"])                               # no scheme: usage, said so
+    assert r.exit_code == 2 and "http://127.0.0.1:8000" in " ".join(r.output.split()), r.output
+
+
+def test_cli_says_where_no_server_answers() -> None:
+    with socket.socket() as s:                                   # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    r = invoke(["models", "--server", f"http://127.0.0.1:{port}"])
+    said = " ".join(r.output.split())
+    assert r.exit_code == 3 and f"no server answers at http://127.0.0.1:{port}" in said and "make serve" in said, said
 
 
 def _alone(reason: str, confidence: float = 0.9, method: str = "network") -> dict:
