@@ -81,3 +81,7 @@ def export(
     thick = "" if not per_stack else " --slice-thicknesses " + " ".join(f"{t:g}" for t in per_stack)
     console.print("next: " + NEXT_STEP[to].format(out=out_dir, stacks=" ".join(str(s) for s in done.stacks), masks=masks,
                                                   thickness=thick), soft_wrap=True, markup=False)
+    if to == "niftymic":
+        console.print("ATLAS_VOLUME.nii.gz: an atlas volume of the fetus's age in the atlas space the poses are in "
+                      "(docs/pose-convention.md, \"Spaces\"): the reconstruction's grid and place", soft_wrap=True,
+                      markup=False)

@@ -67,7 +67,8 @@ def summarise(result: dict[str, Any]) -> Table:
                   collapse_padding=True,
                   caption="brain: the uploaded mask, or the intracranial volume the localiser found (brain and "
                           "the CSF around it; its confidence); "
-                          "accepted: of the slices with brain (empty ones have none); rejected: error = "
+                          "accepted: of the slices with brain (empty ones have none); rejected: every slice not "
+                          "accepted, empty ones too, by reason: error = "
                           "high_expected_error, variance = high_variance, inconsistent = inconsistent_with_stack, "
                           "outside = outside_atlas, degenerate = degenerate_anchor_points; expected error (mm), "
                           "variance (the network's spread, about mm^2): their medians")

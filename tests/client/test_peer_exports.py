@@ -305,6 +305,7 @@ def test_the_cli_names_the_stacks_niftymic_must_read(tmp_path: Path) -> None:
     assert r.exit_code == 0, r.output
     assert f"--filenames {out / 'stacks' / 'ax.nii.gz'} --filenames-masks {out / 'masks' / 'ax_mask.nii.gz'} " in r.stdout
     assert "written again" in r.stderr and "rename" not in r.stderr
+    assert "ATLAS_VOLUME.nii.gz: an atlas volume of the fetus's age" in r.stdout     # what to put in the command
     r = CliRunner().invoke(cli.app, ["export", str(answer), str(odd), "--to", "niftymic", "--out-dir",
                                      str(tmp_path / "mc2")], env={"COLUMNS": "400"})
     assert r.exit_code == 0, r.output
