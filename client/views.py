@@ -297,7 +297,7 @@ def quality_line(quality: dict[str, Any] | None, stacks: int | None = None) -> s
         'quality: slices vs volume median NCC 0.91, 95% above 0.7 (80 slices); leave one stack out 0.84 (per stack 0.86, 0.80, 0.85)'
         >>> quality_line({"judged_slices": 80, "path": "slice_level", "further_passes": {"scores": [0.85, 0.86], "kept": 1}},
         ...              stacks=3).split("; ")[-1]
-        'path slice_level + 1 further slice-level pass'
+        'slices registered one by one + 1 further slice-level pass'
         >>> quality_line({"judged_slices": 22, "median_ncc": 0.99, "fraction_ncc_above_0_7": 1.0}, stacks=1).split("; ")[1]
         'leave one stack out: - (one stack: the volume is judged by its own slices only)'
         >>> quality_line({"judged_slices": 22, "median_ncc": 0.99, "fraction_ncc_above_0_7": 1.0,
@@ -324,10 +324,15 @@ def quality_line(quality: dict[str, Any] | None, stacks: int | None = None) -> s
                                               if stacks == 1 else "")
     if quality.get("path"):
         kept = (quality.get("further_passes") or {}).get("kept") or 0
-        line += f"; path {quality['path']}"
+        line += f"; {PATH_WORDS.get(quality['path'], 'path ' + str(quality['path']))}"
         if kept:
             line += f" + {kept} further slice-level pass{'es' if kept > 1 else ''}"
     return line
+
+
+PATH_WORDS = {"full": "slices registered (stacks, then slices)", "slice_level": "slices registered one by one",
+              "starting_poses": "slices kept at their starting poses (registration did not make them agree better)"}
+"""How the quality line names the job's path (``quality.path``: docs/reconstruction.md)."""
 
 
 def refined_poses_line(summary: dict[str, Any] | None) -> str:
