@@ -251,7 +251,6 @@ class MrdConnection:
             self.send_error(InternalError("image: the server failed on this image"), series_index, int(image.slice))
             return
         self.latencies.append((time.perf_counter() - received) * 1e3)
-        self.active_at = time.monotonic()
         pose = pose_object(answer, latency_ms=round(self.latencies[-1], 2))
         self.send(with_pose(image, pose))
         series.slices.add(int(image.slice))
@@ -259,6 +258,7 @@ class MrdConnection:
             self.end_series(series_index)
         else:
             self.firm_up(series.stack)
+        self.active_at = time.monotonic()              # after the server's own work: that is not the client idle
 
     def check_slice(self, index: int) -> None:
         """Refuse a slice the header's slice count leaves out (MRD counts slices from 0): the series

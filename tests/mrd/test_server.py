@@ -579,3 +579,23 @@ def test_a_client_sending_only_ignored_messages_loses_its_slot_at_the_idle_limit
     second = MrdLink("127.0.0.1", server.port)                  # the slot is free again
     second.send(CONFIG, mrd_header(slices=20), *[case.images[0][k] for k in INTERLEAVED])
     assert [m["stack"] for m in texts(second.close()) if m["type"] == "stack"] == ["0"]
+
+
+def test_the_servers_own_work_on_a_stack_is_not_the_clients_idle_time(case: Case, serve, monkeypatch) -> None:  # noqa: ANN001
+    """A stack's end that takes longer than the idle limit (a large stack, a busy CPU) does not close
+    a client whose next images wait in the socket."""
+    from service.streaming.session import StreamSession
+
+    ending = StreamSession.end_stack
+
+    def slow(self, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        time.sleep(1.5)
+        return ending(self, *args, **kwargs)
+
+    monkeypatch.setattr(StreamSession, "end_stack", slow)
+    server = serve(limits=ServerLimits(idle_s=1.0))
+    client = MrdLink("127.0.0.1", server.port)
+    client.send(CONFIG, mrd_header(slices=20), *[case.images[s][k] for s in (0, 1) for k in INTERLEAVED])
+    received = client.close()
+    assert [m["stack"] for m in texts(received) if m["type"] == "stack"] == ["0", "1"]
+    assert not [m for m in texts(received) if m["type"] == "error"]
