@@ -295,9 +295,11 @@ def quality_line(quality: dict[str, Any] | None, stacks: int | None = None) -> s
         >>> quality_line({"judged_slices": 80, "median_ncc": 0.91, "fraction_ncc_above_0_7": 0.95,
         ...               "leave_one_stack_out": {"median_ncc": 0.84, "per_stack_median_ncc": [0.86, 0.8, 0.85]}})
         'quality: slices vs volume median NCC 0.91, 95% above 0.7 (80 slices); leave one stack out 0.84 (per stack 0.86, 0.80, 0.85)'
-        >>> quality_line({"judged_slices": 80, "path": "slice_level", "further_passes": {"scores": [0.85, 0.86], "kept": 1}},
-        ...              stacks=3).split("; ")[-1]
+        >>> quality_line({"judged_slices": 80, "path": "slice_level", "paths": {"full": 0.8, "slice_level": 0.85},
+        ...               "further_passes": {"scores": [0.85, 0.86], "kept": 1}}, stacks=3).split("; ")[-1]
         'slices registered one by one + 1 further slice-level pass'
+        >>> quality_line({"judged_slices": 8, "path": "full", "paths": {"full": None}}).split("; ")[-1]   # nothing compared
+        'path full'
         >>> quality_line({"judged_slices": 22, "median_ncc": 0.99, "fraction_ncc_above_0_7": 1.0}, stacks=1).split("; ")[1]
         'leave one stack out: - (one stack: the volume is judged by its own slices only)'
         >>> quality_line({"judged_slices": 22, "median_ncc": 0.99, "fraction_ncc_above_0_7": 1.0,
@@ -324,7 +326,9 @@ def quality_line(quality: dict[str, Any] | None, stacks: int | None = None) -> s
                                               if stacks == 1 else "")
     if quality.get("path"):
         kept = (quality.get("further_passes") or {}).get("kept") or 0
-        line += f"; {PATH_WORDS.get(quality['path'], 'path ' + str(quality['path']))}"
+        compared = len(quality.get("paths") or {}) > 1           # one path alone (no registration asked): its key
+        words = PATH_WORDS.get(quality["path"]) if compared else None
+        line += f"; {words}" if words else f"; path {quality['path']}"
         if kept:
             line += f" + {kept} further slice-level pass{'es' if kept > 1 else ''}"
     return line
