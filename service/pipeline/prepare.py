@@ -111,12 +111,16 @@ class PreparedStack:
     @functools.cached_property
     def cut_by_field_of_view(self) -> NDArray[np.bool_]:
         """``[n]`` the slices whose brain runs out of the picture in their plane
-        (:func:`~service.preprocess.field_of_view.cut_by_field_of_view`, on the localisation's whole
-        mask): the network sees part of a brain. The stages treat them as any other slice (the
-        images of their crossings still relate them to the others); the answer names them, so that a
-        user knows why their poses may be off and that a larger field of view avoids it."""
-        masks = pictures(self.localisation.mask, self.slices.slice_axis, self.slices.layout)
-        return cut_by_field_of_view(masks, self.slices.pixel_mm)
+        (:func:`~service.preprocess.field_of_view.cut_by_field_of_view`, on the localisation's brain
+        region; where it holds the CSF around the brain, a cut as deep as the pose network's mask's
+        inset takes the CSF alone): the network sees part of a brain. The
+        stages treat them as any other slice (the images of their crossings still relate them to
+        the others); the answer names them, so that a user knows why their poses may be off and that
+        a larger field of view avoids it."""
+        found = self.localisation
+        region = found.mask if found.pose_region is None else found.pose_region
+        masks = pictures(region, self.slices.slice_axis, self.slices.layout)
+        return cut_by_field_of_view(masks, self.slices.pixel_mm, found.pose_inset_mm)
 
     def network_from_voxel(self) -> np.ndarray:
         """``[n, 4, 4]`` voxel ``(i, j, k)`` of slice ``k`` -> its network frame (the service's crop/centre)."""

@@ -8,10 +8,13 @@ stages treat it as any other.
 
 The brain's mask meets the picture's edge in two ways. Cropped tight about the brain (a common
 upload: a stack cut to its mask's box), the outline touches the edge where it is tangent to it:
-one pixel inwards the brain's width there grows fast (a round outline's chord grows as the
-square root of the depth), and a few millimetres in it is more than twice the width at the edge.
-Cut by the field of view, the edge runs through the brain: its width at the edge is most of its
-width a few millimetres in. :func:`cut_by_field_of_view` compares the two.
+a few millimetres inwards the brain's width there is more than twice its width at the edge (a
+round outline's chord grows as the square root of the depth). Cut by the field of view, the
+edge runs through the brain: its width at the edge is most of its width a few millimetres in.
+:func:`cut_by_field_of_view` tells how deep the edge runs from the two widths, as into a round
+outline (:func:`cut_depth_mm`); an outline flat along the edge over more than a centimetre reads
+as cut. Where the mask holds the CSF around the brain, a crop tight about the brain cuts the
+CSF, as deep as the pose network's mask lies inside the mask: that much is allowed for.
 
 Example (a disc of radius 30 px, cut by the first row, then only touching it):
     >>> yy, xx = np.mgrid[:80, :80]
@@ -30,21 +33,29 @@ CUT_BY_FIELD_OF_VIEW = "cut_by_field_of_view"
 """The name of the fault, in the answer's slices and a stream's slices to acquire again."""
 EDGE_DEPTH_MM = 5.0
 """How far inside the picture's edge the brain's width is compared with its width at the edge."""
-EDGE_WIDTH_SHARE = 0.6
-"""The brain runs out of the picture where its width along an edge is at least this share of its width
-:data:`EDGE_DEPTH_MM` inside it: a round outline tangent to the edge at one pixel's depth gives 0.4
-to 0.45 for pixels of 1 to 1.25 mm (the square root of the depths' ratio), an edge through the brain
-3 mm deep about 0.6, deeper 0.8 and more."""
+MIN_CUT_DEPTH_MM = 3.0
+"""The brain runs out of the picture where the edge runs this far into it or more
+(:func:`cut_depth_mm`). An outline tangent to the edge lies about one pixel deep."""
 MIN_EDGE_WIDTH_MM = 10.0
 """A brain that meets the edge over less than this is not judged cut: a pole or a sliver there tells
 nothing, and the network's picture of it hardly changes."""
 
 
-def cut_by_field_of_view(masks: NDArray, pixel_mm: tuple[float, float]) -> NDArray[np.bool_]:
+def cut_by_field_of_view(masks: NDArray, pixel_mm: tuple[float, float], beyond_mm: float = 0.0) -> NDArray[np.bool_]:
     """``[n]`` which slices of ``masks`` (``[n, H, W]``, the brain's mask of each slice; ``pixel_mm``
     the row and column pitches) have their brain running out of the picture at one of its four
-    edges (see the module): its width along the edge at least :data:`MIN_EDGE_WIDTH_MM` and at
-    least :data:`EDGE_WIDTH_SHARE` of its width :data:`EDGE_DEPTH_MM` inside."""
+    edges (see the module): its width along the edge at least :data:`MIN_EDGE_WIDTH_MM`, and the
+    edge at least :data:`MIN_CUT_DEPTH_MM` into it. ``beyond_mm``: how far the masks' outline lies
+    beyond the brain's (a mask that holds the CSF around the brain: a picture cropped tight about
+    the brain cuts that far into the mask and leaves the brain whole).
+
+    Example (a disc whose first row the picture cuts 2 px deep: no cut of the brain, or of a mask
+    whose CSF rim is 2 mm wide; 8 px deep: a cut of either):
+        >>> yy, xx = np.mgrid[:80, :80]
+        >>> shallow, deep = (((yy - c) ** 2 + (xx - 40) ** 2 <= 32 ** 2)[None] for c in (30, 24))
+        >>> [cut_by_field_of_view(m, (1.0, 1.0), b).tolist() for m in (shallow, deep) for b in (0.0, 2.0)]
+        [[False], [False], [True], [True]]
+    """
     masks = np.asarray(masks, bool)
     n, h, w = masks.shape
     row_mm, col_mm = (float(p) for p in pixel_mm)
@@ -56,5 +67,22 @@ def cut_by_field_of_view(masks: NDArray, pixel_mm: tuple[float, float]) -> NDArr
         widths = masks.sum(axis=3 - axis) * along_mm           # [n, size]: the brain's width along each line
         for edge, inside in ((0, inward), (size - 1, size - 1 - inward)):
             at_edge, within = widths[:, edge], widths[:, inside]
-            cut |= (at_edge >= MIN_EDGE_WIDTH_MM) & (at_edge >= EDGE_WIDTH_SHARE * within)
+            cut |= (at_edge >= MIN_EDGE_WIDTH_MM) & (cut_depth_mm(at_edge, within, inward * across_mm)
+                                                      >= MIN_CUT_DEPTH_MM + beyond_mm)
     return cut
+
+
+def cut_depth_mm(at_edge: NDArray, within: NDArray, apart_mm: float) -> NDArray[np.float64]:
+    """How far an edge runs into a round outline whose chords along it are ``at_edge`` long and, at
+    ``apart_mm`` inside it, ``within`` (mm): the circle through both chords (a chord ``2 sqrt(d (2R -
+    d))`` at depth ``d``; its centre ``k`` inside the edge, ``k = ((b^2 - a^2) / 4 + D^2) / 2D``) is
+    cut ``sqrt(k^2 + a^2 / 4) - k`` deep. An outline no wider inside than at the edge is cut at
+    least through its middle: the depth then exceeds the chords' distance.
+
+    Example (a circle of radius 20 mm cut 3 mm deep: chords 2 sqrt(3 x 37) and 2 sqrt(8 x 32)):
+        >>> round(float(cut_depth_mm(np.array([2 * 111 ** 0.5]), np.array([2 * 256 ** 0.5]), 5.0)[0]), 6)
+        3.0
+    """
+    a2, b2 = np.asarray(at_edge, np.float64) ** 2 / 4, np.asarray(within, np.float64) ** 2 / 4
+    k = (b2 - a2 + apart_mm ** 2) / (2 * apart_mm)
+    return np.sqrt(k ** 2 + a2) - k

@@ -62,3 +62,27 @@ def test_slices_are_judged_each_on_its_own_and_an_empty_one_is_not_cut() -> None
     brain = crop(ellipse(1.0, (40.0, 32.0)))
     slices = np.stack([brain, np.zeros_like(brain), np.pad(brain[10:], ((0, 10), (0, 0)))])
     assert cut_by_field_of_view(slices, (1.0, 1.0)).tolist() == [False, False, True]
+
+
+@pytest.mark.parametrize("pixel_mm", [0.8, 1.125, 1.6])
+def test_a_crop_tight_about_the_brain_through_its_csf_rim_is_not_a_cut_of_it(pixel_mm: float) -> None:
+    """A mask that holds the CSF around the brain (2 mm wide), cropped tight about the brain: the
+    picture cuts the CSF alone; 6 mm past the brain's edge it cuts the brain."""
+    brain = crop(ellipse(pixel_mm, (40.0, 32.0)))
+    rim = int(round(2.0 / pixel_mm))
+    with_csf = ellipse(pixel_mm, (42.0, 34.0), size_mm=200.0)
+    rows, cols = np.flatnonzero(with_csf.any(1)), np.flatnonzero(with_csf.any(0))
+    tight = with_csf[rows[0] + rim:rows[-1] + 1 - rim, cols[0] + rim:cols[-1] + 1 - rim]    # the brain's box
+    assert tight.shape == brain.shape or abs(tight.shape[0] - brain.shape[0]) <= 2
+    assert not cut_by_field_of_view(tight[None], (pixel_mm, pixel_mm), beyond_mm=2.0).any()
+    deeper = int(round(6.0 / pixel_mm))
+    assert cut_by_field_of_view(tight[deeper:][None], (pixel_mm, pixel_mm), beyond_mm=2.0).all()
+
+
+def test_the_depth_of_a_cut_is_that_of_the_round_outline_through_both_widths() -> None:
+    from service.preprocess.field_of_view import cut_depth_mm
+
+    r, apart = 25.0, 5.0
+    for depth in (0.5, 3.0, 10.0, 30.0):                               # past the centre too
+        chord = lambda d: 2 * np.sqrt(d * (2 * r - d))  # noqa: E731
+        assert cut_depth_mm(np.array([chord(depth)]), np.array([chord(depth + apart)]), apart)[0] == pytest.approx(depth)
