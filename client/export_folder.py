@@ -11,7 +11,7 @@ import json
 import re
 from pathlib import Path
 
-from client.errors import UnusableInput
+from client.errors import ArgumentError
 from client.files import write_whole
 
 MANIFEST = ".svrnet-export.json"
@@ -30,8 +30,9 @@ def folder_files(folder: Path) -> set[str]:
 def clear_for_export(folder: Path, overwrite: bool, inputs: list[Path] = ()) -> set[str]:
     """Make ``folder`` ready for an export and return the files already there. Both tools read every
     slice file of the folder, so one patient's export must never lie among another's: a folder that
-    holds anything is refused (:class:`UnusableInput`) unless ``overwrite``, which removes what an
-    earlier export listed in its :data:`MANIFEST` and nothing else, and then still refuses a folder
+    holds anything is refused (:class:`~client.errors.ArgumentError`: the usage exit code) unless
+    ``overwrite``, which removes what an earlier export listed in its :data:`MANIFEST` and nothing
+    else, and then still refuses a folder
     holding files a tool would read (:data:`TOOL_FILES`) that no export listed. A folder that holds
     one of the ``inputs`` (the stacks and masks exported) is refused.
 
@@ -45,12 +46,12 @@ def clear_for_export(folder: Path, overwrite: bool, inputs: list[Path] = ()) -> 
     folder = folder.expanduser()
     inside = [p for p in inputs if folder.resolve() in Path(p).expanduser().resolve().parents]
     if inside:
-        raise UnusableInput(f"export: {inside[0].name} lies in the folder to write, {folder}; give another folder")
+        raise ArgumentError(f"out_dir: {inside[0].name} lies in the folder to write, {folder}; give another folder")
     if not folder_files(folder):
         folder.mkdir(parents=True, exist_ok=True)
         return set()
     if not overwrite:
-        raise UnusableInput(f"export: {folder} is not empty; each tool reads every slice file of its folder, so "
+        raise ArgumentError(f"out_dir: {folder} is not empty; each tool reads every slice file of its folder, so "
                             "give a new or empty folder (--overwrite replaces an earlier export there)")
     try:
         listed = json.loads((folder / MANIFEST).read_text()) if (folder / MANIFEST).is_file() else []
@@ -68,7 +69,7 @@ def clear_for_export(folder: Path, overwrite: bool, inputs: list[Path] = ()) -> 
     (folder / MANIFEST).unlink(missing_ok=True)
     left = sorted(n for n in folder_files(folder) if "/" not in n and TOOL_FILES.match(n))
     if left:
-        raise UnusableInput(f"export: {folder} holds {left[0]}, a file a tool would read that no export of svrnet "
+        raise ArgumentError(f"out_dir: {folder} holds {left[0]}, a file a tool would read that no export of svrnet "
                             "wrote; give a new or empty folder")
     return folder_files(folder)
 

@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
 from client import cli
-from client.errors import UnusableInput
+from client.errors import ArgumentError, UnusableInput
 from client.peer_exports import export
 
 SHAPE = (20, 16, 6)
@@ -242,7 +242,7 @@ def test_an_export_never_lies_among_an_earlier_one(case: dict, tmp_path: Path) -
     (out / "stacks" / "3_t2_haste.nii.gz").write_bytes(b"the user's own")
     before = sorted(p.name for p in out.iterdir())
     r = run("--to", "nesvor")
-    assert r.exit_code == 5 and "not empty" in r.output and "--overwrite" in r.output
+    assert r.exit_code == 2 and "not empty" in r.output and "--overwrite" in r.output     # a usage error, as predict's
     assert sorted(p.name for p in out.iterdir()) == before
     r = run("--to", "nesvor", "--overwrite")                                # accepted slices only, no masks now
     assert r.exit_code == 0, r.output
@@ -254,13 +254,13 @@ def test_an_export_never_lies_among_an_earlier_one(case: dict, tmp_path: Path) -
     assert len(list(out.glob("ax_slice*.tfm"))) == 4 and (out / "stacks" / "3_t2_haste.nii.gz").exists()
     (out / ".svrnet-export.json").unlink()                                 # slice files no export listed
     r = run("--to", "nesvor", "--overwrite")
-    assert r.exit_code == 5 and "no export of svrnet wrote" in r.output, r.output
+    assert r.exit_code == 2 and "no export of svrnet wrote" in r.output, r.output
     inputs = tmp_path / "inputs"
     inputs.mkdir()
     (inputs / "ax.nii.gz").write_bytes(case["stack"].read_bytes())
     r = CliRunner().invoke(cli.app, ["export", str(answer), str(inputs / "ax.nii.gz"), "--to", "nesvor", "--out-dir",
                                      str(tmp_path), "--overwrite"], env={"COLUMNS": "200"})
-    assert r.exit_code == 5 and "lies in the folder to write" in r.output and (inputs / "ax.nii.gz").exists()
+    assert r.exit_code == 2 and "lies in the folder to write" in r.output and (inputs / "ax.nii.gz").exists()
 
 
 def test_a_jobs_refined_poses_are_exported_by_the_jobs_verdict(case: dict, tmp_path: Path) -> None:
@@ -505,7 +505,7 @@ def test_an_overwrite_refuses_any_file_of_the_folder_a_tool_would_read(foreign: 
     (out / "stacks" / "0.nii.gz").write_bytes(b"the user's own")
     assert export(case["answer"], [case["stack"]], None, out, "nesvor", overwrite=True).count == 4
     (out / foreign).write_bytes(b"the user's own")
-    with pytest.raises(UnusableInput, match=f"holds {re.escape(foreign)}, a file a tool would read"):
+    with pytest.raises(ArgumentError, match=f"holds {re.escape(foreign)}, a file a tool would read"):
         export(case["answer"], [case["stack"]], None, out, "nesvor", overwrite=True)
 
 
