@@ -85,11 +85,15 @@ def make_client(server: str, api_key: str | None) -> SVRnetClient:
     """The client every command uses (tests monkeypatch this factory); a URL that is no URL is a usage
     error naming ``--server``."""
     try:
-        if urlsplit(server).scheme not in ("http", "https"):
-            raise typer.BadParameter(f"{server!r}: give the server's URL with its scheme, e.g. http://127.0.0.1:8000",
-                                     param_hint="--server")
+        scheme = urlsplit(server).scheme
+    except ValueError as exc:
+        raise typer.BadParameter(f"{server!r}: {exc}", param_hint="--server") from None
+    if scheme not in ("http", "https"):
+        raise typer.BadParameter(f"{server!r}: give the server's URL with its scheme, e.g. http://127.0.0.1:8000",
+                                 param_hint="--server")
+    try:
         return SVRnetClient(base_url=server, api_key=api_key, timeout=timeout_from_env())
-    except (httpx.InvalidURL, ValueError) as exc:
+    except httpx.InvalidURL as exc:
         raise typer.BadParameter(f"{server!r}: {exc}", param_hint="--server") from None
 
 
@@ -264,6 +268,7 @@ def reconstruct(
             return
         with job_goes_on(job_id):
             done = follow_job(svr, job_id, poll, timeout)
+        with job_goes_on(job_id, succeeded=True):
             incoherent = write_results(svr, job_id, done, out, preview, poses_out, transforms_out, stack_space)
     if incoherent:
         raise typer.Exit(EXIT_NOTHING_USABLE)
@@ -296,8 +301,9 @@ def fetch(
                    transforms_out=transforms_out)
     with errors(), _client(server, api_key) as svr:
         with job_goes_on(job):
-            incoherent = write_results(svr, job, follow_job(svr, job, poll, timeout), out, preview, poses_out,
-                                       transforms_out, stack_space)
+            done = follow_job(svr, job, poll, timeout)
+        with job_goes_on(job, succeeded=True):
+            incoherent = write_results(svr, job, done, out, preview, poses_out, transforms_out, stack_space)
     if incoherent:
         raise typer.Exit(EXIT_NOTHING_USABLE)
 

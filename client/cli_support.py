@@ -21,6 +21,7 @@ import typer
 from rich.progress import BarColumn, Progress, SpinnerColumn, TaskProgressColumn, TextColumn, TimeElapsedColumn
 
 from client._client import SVRnetClient
+from client.errors import Busy
 from client.files import write_whole
 from client.job_calls import UNREACHABLE_S
 from client.exits import EXIT_NOT_FOUND, EXIT_USAGE, fail, stderr, stdout
@@ -215,7 +216,8 @@ def follow_job(svr: SVRnetClient, job_id: str, poll: float, timeout: float) -> d
                 bar.console.print(f"job {job_id}: the server answers again", markup=False, highlight=False)
                 return
             why = " ".join(str(exc).split())
-            bar.console.print(f"job {job_id}: the server does not answer ({why}); trying again for up to "
+            state = "is busy" if isinstance(exc, Busy) else "does not answer"
+            bar.console.print(f"job {job_id}: the server {state} ({why}); trying again for up to "
                               f"{UNREACHABLE_S:.0f} s (the job goes on on the server)", style="yellow", markup=False)
 
         return svr.wait(job_id, poll_s=poll, timeout_s=timeout, on_progress=on_progress, on_unreachable=on_unreachable)

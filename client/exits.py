@@ -91,9 +91,10 @@ def fail(message: str, code: int) -> None:
 
 
 @contextmanager
-def job_goes_on(job_id: str) -> Iterator[None]:
+def job_goes_on(job_id: str, succeeded: bool = False) -> Iterator[None]:
     """A Ctrl-C while a job is followed ends the command (exit 130) saying that the job goes on on the
-    server, and how to reach it.
+    server, and how to reach it; while a ``succeeded`` job's results download, that they wait there
+    (cancelling it would delete them).
 
     Example:
         >>> with job_goes_on("j1"):
@@ -105,6 +106,9 @@ def job_goes_on(job_id: str) -> Iterator[None]:
     try:
         yield
     except KeyboardInterrupt:
+        if succeeded:
+            fail(f"interrupted; job {job_id} succeeded and its results wait on the server: svrnet fetch {job_id} "
+                 "downloads them again", EXIT_INTERRUPTED)
         fail(f"interrupted; job {job_id} goes on on the server: svrnet status {job_id}, svrnet fetch {job_id} "
              f"(waits for it and downloads it), or svrnet cancel {job_id}", EXIT_INTERRUPTED)
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import os
 import random
 import secrets
+import ssl
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -225,7 +226,10 @@ class Transport:
                        "raise SVRNET_TIMEOUT, in seconds, for svrnet, or timeout= of SVRnetClient)")
         elif isinstance(exc, httpx.ReadTimeout):
             reason += " (the server accepted the connection and said nothing: it is stuck or overloaded)"
-        elif isinstance(exc, httpx.ConnectError) and not self.answered:
+        elif isinstance(exc, httpx.ConnectError) and not self.answered and _caused_by(exc, ssl.SSLError):
+            reason += (f" (the server at {shown_url(self.base_url)} does not speak TLS: give its address with "
+                       "http://, as `make serve` serves it)")
+        elif isinstance(exc, httpx.ConnectError) and not self.answered and _caused_by(exc, ConnectionRefusedError):
             reason += (f" (no server answers at {shown_url(self.base_url)}: is it running, and at this address and "
                        "port? `make serve` starts one; --server or SVRNET_SERVER names another)")
         return ConnectionFailed(f"{method} {shown_url(self._url(path))}: {reason}", title="Connection failed")
@@ -271,3 +275,25 @@ class Transport:
                 response.close()
                 tmp.unlink(missing_ok=True)
         raise AssertionError("unreachable")  # pragma: no cover
+
+
+def _caused_by(exc: BaseException, kind: type[BaseException]) -> bool:
+    """Whether ``exc`` or an exception it was raised from or while handling is a ``kind``.
+
+    Example:
+        >>> try:
+        ...     try:
+        ...         raise ConnectionRefusedError(111, "refused")
+        ...     except OSError as inner:
+        ...         raise RuntimeError("connect failed") from inner
+        ... except RuntimeError as outer:
+        ...     _caused_by(outer, ConnectionRefusedError), _caused_by(outer, TimeoutError)
+        (True, False)
+    """
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, kind):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False

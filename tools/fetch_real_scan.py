@@ -65,10 +65,10 @@ DEFAULT_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "extra_s
 def fetch(root: Path, scan: str = "mial_sub01") -> Path:
     """Download ``scan`` into ``root/<scan>`` (files already there are kept); returns that folder.
     :class:`SystemExit` names a file that could not be downloaded (no network, the host not
-    answering); a folder this call made is removed where it is still empty."""
+    answering); the folders this call made are removed where they are still empty."""
     spec = SCANS[scan]
     folder = Path(root) / scan
-    made = not folder.exists()
+    made = [p for p in (folder, *folder.parents) if not p.exists()]      # the folders this call makes
     folder.mkdir(parents=True, exist_ok=True)
     for name, path in spec["files"].items():
         target = folder / name
@@ -79,8 +79,9 @@ def fetch(root: Path, scan: str = "mial_sub01") -> Path:
             with urllib.request.urlopen(url, timeout=60) as r:  # noqa: S310 - a fixed https URL
                 data = r.read()
         except (urllib.error.URLError, OSError) as e:
-            if made and not any(folder.iterdir()):
-                folder.rmdir()
+            for path in made:                                               # innermost first, while empty
+                if not any(path.iterdir()):
+                    path.rmdir()
             reason = getattr(e, "reason", None) or e
             raise SystemExit(f"{name}: could not be downloaded from {RAW.split('//')[1]} ({reason}); "
                              "a machine with access to GitHub can fetch it, then copy the folder") from None

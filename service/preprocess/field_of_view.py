@@ -67,8 +67,9 @@ def cut_by_field_of_view(masks: NDArray, pixel_mm: tuple[float, float], beyond_m
         widths = masks.sum(axis=3 - axis) * along_mm           # [n, size]: the brain's width along each line
         for edge, inside in ((0, inward), (size - 1, size - 1 - inward)):
             at_edge, within = widths[:, edge], widths[:, inside]
-            cut |= (at_edge >= MIN_EDGE_WIDTH_MM) & (cut_depth_mm(at_edge, within, inward * across_mm)
-                                                      >= MIN_CUT_DEPTH_MM + beyond_mm)
+            deep = (cut_depth_mm(at_edge, within, inward * across_mm) >= MIN_CUT_DEPTH_MM + beyond_mm) \
+                | (within <= at_edge)                   # no wider inside: the edge runs through its middle
+            cut |= (at_edge >= MIN_EDGE_WIDTH_MM) & deep
     return cut
 
 
@@ -76,8 +77,8 @@ def cut_depth_mm(at_edge: NDArray, within: NDArray, apart_mm: float) -> NDArray[
     """How far an edge runs into a round outline whose chords along it are ``at_edge`` long and, at
     ``apart_mm`` inside it, ``within`` (mm): the circle through both chords (a chord ``2 sqrt(d (2R -
     d))`` at depth ``d``; its centre ``k`` inside the edge, ``k = ((b^2 - a^2) / 4 + D^2) / 2D``) is
-    cut ``sqrt(k^2 + a^2 / 4) - k`` deep. An outline no wider inside than at the edge is cut at
-    least through its middle: the depth then exceeds the chords' distance.
+    cut ``sqrt(k^2 + a^2 / 4) - k`` deep. (An outline no wider inside than at the edge fits no such
+    circle well; :func:`cut_by_field_of_view` takes it as cut.)
 
     Example (a circle of radius 20 mm cut 3 mm deep: chords 2 sqrt(3 x 37) and 2 sqrt(8 x 32)):
         >>> round(float(cut_depth_mm(np.array([2 * 111 ** 0.5]), np.array([2 * 256 ** 0.5]), 5.0)[0]), 6)

@@ -371,6 +371,11 @@ def test_a_ctrl_c_while_a_job_is_followed_says_the_job_goes_on(fake_cli: Callabl
         r = invoke(args)
         said = " ".join(r.output.split())
         assert r.exit_code == 130 and "goes on on the server" in said and "svrnet cancel job" in said, r.output
+    monkeypatch.setattr(cli, "follow_job", lambda *args: {"status": "succeeded"})
+    monkeypatch.setattr(cli, "write_results", interrupted)                # the download interrupted
+    r = invoke(["fetch", "job1"])
+    said = " ".join(r.output.split())
+    assert r.exit_code == 130 and "succeeded and its results wait" in said and "cancel" not in said, r.output
 
 
 def test_cli_fetch_writes_the_volume_in_a_stack_s_scanner_coordinates(fake_cli: Callable, stack_file: Path,
@@ -481,6 +486,26 @@ def test_cli_timeout_from_the_environment(stack_file: Path) -> None:
     assert r.exit_code == 2 and "--server" in r.output, r.output
     r = invoke(["models", "--server", "127.0.0.1:8000"])                               # no scheme: usage, said so
     assert r.exit_code == 2 and "http://127.0.0.1:8000" in " ".join(r.output.split()), r.output
+
+
+def test_a_bad_api_key_is_named_as_the_key_not_the_server() -> None:
+    r = invoke(["models", "--server", "http://127.0.0.1:1", "--api-key", "bad\tkey"])
+    said = " ".join(r.output.split())
+    assert r.exit_code == 2 and "api_key" in said and "--server" not in said, said
+
+
+def test_cli_says_where_a_server_speaks_no_tls() -> None:
+    import http.server
+    import threading
+
+    plain = http.server.HTTPServer(("127.0.0.1", 0), http.server.BaseHTTPRequestHandler)
+    threading.Thread(target=plain.serve_forever, daemon=True).start()
+    try:
+        r = invoke(["models", "--server", f"https://127.0.0.1:{plain.server_port}"])
+    finally:
+        plain.shutdown()
+    said = " ".join(r.output.split())
+    assert r.exit_code == 3 and "does not speak TLS" in said and "no server answers" not in said, said
 
 
 def test_cli_says_where_no_server_answers() -> None:

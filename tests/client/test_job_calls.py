@@ -88,3 +88,13 @@ def test_following_a_job_says_when_the_server_stops_answering_and_when_it_answer
     said = " ".join(capsys.readouterr().err.split())
     assert "job j1: the server does not answer (GET /v1/reconstructions/j1: Connection refused)" in said
     assert "the job goes on on the server" in said and "job j1: the server answers again" in said
+
+    from client import Busy
+
+    def busy(job_id: str, poll_s: float, timeout_s: float, on_progress, on_unreachable) -> dict:  # noqa: ANN001
+        on_unreachable(Busy("GET /v1/reconstructions/j1: 429 Too Many Requests"))
+        return {"status": "succeeded"}
+
+    follow_job(SimpleNamespace(wait=busy), "j1", 1.0, 60.0)
+    said = " ".join(capsys.readouterr().err.split())
+    assert "job j1: the server is busy (" in said and "does not answer" not in said

@@ -86,3 +86,11 @@ def test_the_depth_of_a_cut_is_that_of_the_round_outline_through_both_widths() -
     for depth in (0.5, 3.0, 10.0, 30.0):                               # past the centre too
         chord = lambda d: 2 * np.sqrt(d * (2 * r - d))  # noqa: E731
         assert cut_depth_mm(np.array([chord(depth)]), np.array([chord(depth + apart)]), apart)[0] == pytest.approx(depth)
+
+
+def test_a_brain_no_narrower_inside_than_at_the_edge_is_cut_whatever_its_csf() -> None:
+    """A band as wide at the edge as inside (the edge through its middle) fits no round outline."""
+    band = np.zeros((1, 40, 40), bool)
+    band[0, :20, 14:26] = True                                       # 12 mm wide, running off the first row
+    for beyond in (0.0, 2.0):
+        assert cut_by_field_of_view(band, (1.0, 1.0), beyond_mm=beyond).all()

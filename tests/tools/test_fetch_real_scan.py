@@ -47,5 +47,5 @@ def test_no_network_is_one_line_naming_the_file_and_leaves_no_empty_folder(monke
     monkeypatch.setitem(fetch_real_scan.SCANS, "test_scan", spec)
     monkeypatch.setattr(fetch_real_scan.urllib.request, "urlopen", offline)
     with pytest.raises(SystemExit, match=r"s.nii.gz: could not be downloaded from raw.githubusercontent.com .*not known"):
-        fetch_real_scan.fetch(tmp_path, "test_scan")
-    assert not (tmp_path / "test_scan").exists()
+        fetch_real_scan.fetch(tmp_path / "data" / "extra", "test_scan")
+    assert not (tmp_path / "data").exists()                          # nor the folders made above it
