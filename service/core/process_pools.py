@@ -67,8 +67,8 @@ def watch_parent(parent: int | None = None, interval_s: float = 0.5) -> None:
 
 def ignore_interrupts() -> None:
     """In a pool's process, at its start: ignore SIGINT. A Ctrl-C in a terminal reaches every process
-    of the server's group, and an idle pool process printed a traceback of its interrupted wait for
-    work; the pool's owner ends its processes itself (:func:`end_pool`)."""
+    of the server's group, where an idle pool process would print a traceback of its interrupted
+    wait for work; the pool's owner ends its processes itself (:func:`end_pool`)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
