@@ -65,6 +65,7 @@ from client.cli_support import (DEFAULT_VOLUME, ApiKeyOpt, BiasCorrectionOpt, Jo
 from client.errors import NotFound
 from client.exits import (EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, EXIT_USAGE, errors, fail,
                           job_goes_on, stderr, stdout)
+from client.mask_archive import masks_already_there
 from client.views import (job_table, masks_table, models_table, predict_hints, quality_line, refined_poses_line,
                           summarise, upload_bar, usable)
 
@@ -187,6 +188,10 @@ def masks(
 ) -> None:
     """Brain masks of stacks as they leave the scanner (POST /v1/masks): one NIfTI per stack."""
     check_folder_writable("out_dir", out_dir)
+    there = [] if overwrite else masks_already_there(stacks, out_dir)
+    if there:
+        fail(f"out_dir: {out_dir} holds {', '.join(there)} already; nothing was sent (--overwrite replaces them)",
+             EXIT_USAGE)
     err = stderr()
     with errors(), _client(server, api_key) as svr:
         with upload_bar(err, f"{len(stacks)} stack(s)") as progress:

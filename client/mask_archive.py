@@ -21,6 +21,30 @@ REPORT = "report.json"
 """The masks' report, beside them (:meth:`SVRnetClient.masks`)."""
 
 
+MASK_NAME_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd", ".dcm", ".zip", ".gz")
+"""The extensions the server drops from a stack's name before ``_mask.nii.gz`` (api-v1: ``<stem>``)."""
+
+
+def masks_already_there(stacks: list[Path], out: Path) -> list[str]:
+    """The masks in ``out`` that masks of ``stacks`` would most likely replace: ``<stem>_mask.nii.gz``
+    of each stack's plain name. The server makes stems safe and unique by rules of its own, so the
+    archive's names are checked again as it is written; this check spares the upload in the usual
+    case (a folder of an earlier call for the same stacks).
+
+    Example:
+        >>> import tempfile
+        >>> out = Path(tempfile.mkdtemp()); _ = (out / "ax_mask.nii.gz").write_bytes(b"")
+        >>> masks_already_there([Path("scan/ax.nii.gz"), Path("scan/co.nii.gz")], out)
+        ['ax_mask.nii.gz']
+    """
+    names = []
+    for stack in stacks:
+        base = Path(stack).name
+        stem = next((base[:-len(x)] for x in MASK_NAME_SUFFIXES if base.lower().endswith(x)), base)
+        names.append(f"{stem}_mask.nii.gz")
+    return [n for n in names if (out / n).exists()]
+
+
 def _with_earlier_masks(report: Any, out: Path) -> Any:
     """``report`` (of masks about to be written into ``out``) with the entries of the report already
     there whose masks stay: other masks of earlier calls, which the new report would otherwise hide,

@@ -180,6 +180,7 @@ def test_cli_masks_keeps_files_already_there_unless_told_and_checks_its_folder_f
     r = invoke(["masks", str(stack_file), "--out-dir", str(tmp_path)])
     assert r.exit_code == 2 and "stack_mask.nii.gz" in r.output and "--overwrite" in r.output, r.output
     assert own.read_bytes() == b"drawn by hand" and not (tmp_path / "report.json").exists()
+    assert not fake.requests and "nothing was sent" in " ".join(r.output.split())     # refused before the upload
     r = invoke(["masks", str(stack_file), "--out-dir", str(tmp_path), "--overwrite"])
     assert r.exit_code == 0 and own.read_bytes() == b"mask bytes", r.output
     assert not list(tmp_path.glob(".*.partial"))
