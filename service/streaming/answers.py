@@ -69,6 +69,14 @@ def moved_mm(a: SliceAnswer, b: SliceAnswer, reference: NDArray) -> float:
     return float(anchors.ed(pose(a), pose(b)))
 
 
+def stack_to_acquire_again(prediction: StackPrediction, judged_alone: bool) -> list[tuple[int, str]]:
+    """:func:`worth_acquiring_again` of an ended stack's answer: by its slices' own accept flags (the
+    request's frame error does not move with one slice acquired again), with the causes its
+    preparation found (brain signal lost, brain cut by the field of view)."""
+    return worth_acquiring_again(prediction.own_reasons or prediction.reasons, judged_alone,
+                                 prediction.prepared.signal_lost, prediction.prepared.cut_by_field_of_view)
+
+
 def worth_acquiring_again(reasons: list[str | None], judged_alone: bool,
                           signal_lost: Sequence[bool] | None = None,
                           cut: Sequence[bool] | None = None) -> list[tuple[int, str]]:

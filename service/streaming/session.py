@@ -49,7 +49,7 @@ from service.preprocess.localise import Localiser
 from service.preprocess.noise import stack_noise
 from service.streaming import immediate
 from service.streaming.answers import (NOT_RECEIVED, SessionSummary, SliceAnswer, StackAnswer, moved_mm,
-                                       worth_acquiring_again)
+                                       stack_to_acquire_again)
 from service.streaming.arrival import ReceivedSlice, neighbours, pose_alone, prepare_alone
 from service.streaming.background import run_in_stage_process
 from service.streaming.footprint import array_bytes
@@ -342,10 +342,7 @@ class StreamSession:
                     updates += self._changed(name, answers)
             covered, shown = self._covered()
             alone = len(names) == 1
-            lists = {n: worth_acquiring_again(self.finals[n].own_reasons or self.finals[n].reasons, alone,
-                                             self.finals[n].prepared.signal_lost,
-                                             self.finals[n].prepared.cut_by_field_of_view)
-                     for n in names}
+            lists = {n: stack_to_acquire_again(self.finals[n], alone) for n in names}
             changed = {n: r for n, r in lists.items() if n != stack and r != self.reacquire_sent.get(n)}
             self.reacquire_sent.update(lists)
         answer = StackAnswer(stack, final, updates, lists[stack], coverage(covered, shown), timings, alone, changed)
@@ -387,7 +384,6 @@ class StreamSession:
         with self._lock:
             names = list(self.stacks)
             n = sum(len(s) for s in self.stacks.values())
-            final = {k: worth_acquiring_again(p.own_reasons or p.reasons, False, p.prepared.signal_lost,  # nothing more
-                                              p.prepared.cut_by_field_of_view) for k, p in self.finals.items()}   # comes
+            final = {k: stack_to_acquire_again(p, False) for k, p in self.finals.items()}   # nothing more comes
             unfinished = {k: s.missing() for k, s in self.stacks.items() if k not in self.finals}
         return SessionSummary(names, self.coverage(), n, dict(self.compute_ms), final, unfinished)
