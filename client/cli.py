@@ -271,12 +271,20 @@ def reconstruct(
         if not wait:
             console.print(f"follow it with: svrnet status {job_id}; download it with: svrnet fetch {job_id}")
             return
-        with job_goes_on(job_id):
-            done = follow_job(svr, job_id, poll, timeout)
-        with job_goes_on(job_id, succeeded=True):
-            incoherent = write_results(svr, job_id, done, out, preview, poses_out, transforms_out, stack_space)
+        incoherent = follow_and_write(svr, job_id, poll, timeout, out, preview, poses_out, transforms_out, stack_space)
     if incoherent:
         raise typer.Exit(EXIT_NOTHING_USABLE)
+
+
+def follow_and_write(svr: SVRnetClient, job_id: str, poll: float, timeout: float, out: Path | None,
+                     preview: Path | None, poses_out: Path | None, transforms_out: Path | None,
+                     stack_space: int | None) -> bool:
+    """Wait for a job, then download its results (:func:`write_results`; True: no coherent brain), a
+    Ctrl-C in either told as what it leaves on the server (:func:`~client.exits.job_goes_on`)."""
+    with job_goes_on(job_id):
+        done = follow_job(svr, job_id, poll, timeout)
+    with job_goes_on(job_id, succeeded=True):
+        return write_results(svr, job_id, done, out, preview, poses_out, transforms_out, stack_space)
 
 
 @app.command(epilog=EXIT_HELP)
@@ -305,10 +313,7 @@ def fetch(
     check_writable(overwrite, out=out if out is not None else DEFAULT_VOLUME, preview=preview, poses_out=poses_out,
                    transforms_out=transforms_out)
     with errors(), _client(server, api_key) as svr:
-        with job_goes_on(job):
-            done = follow_job(svr, job, poll, timeout)
-        with job_goes_on(job, succeeded=True):
-            incoherent = write_results(svr, job, done, out, preview, poses_out, transforms_out, stack_space)
+        incoherent = follow_and_write(svr, job, poll, timeout, out, preview, poses_out, transforms_out, stack_space)
     if incoherent:
         raise typer.Exit(EXIT_NOTHING_USABLE)
 
