@@ -187,11 +187,11 @@ class MrdConnection:
             raise ProtocolBroken(PayloadTooLarge(
                 f"image: {pixel_count(head)} values (channels x matrix_size) is over this server's limit of "
                 f"{self.limits.max_pixels} pixels per image"))
-        length = self.reader.peek(META_LENGTH.size)
-        if len(length) == META_LENGTH.size and META_LENGTH.unpack(length)[0] > MAX_META_BYTES:
+        ahead = self.reader.peek(META_LENGTH.size)
+        meta_bytes = META_LENGTH.unpack(ahead)[0] if len(ahead) == META_LENGTH.size else 0   # short: the stream ends
+        if meta_bytes > MAX_META_BYTES:
             raise ProtocolBroken(PayloadTooLarge(
-                f"image: meta attributes of {META_LENGTH.unpack(length)[0]} bytes are over this server's limit of "
-                f"{MAX_META_BYTES}"))
+                f"image: meta attributes of {meta_bytes} bytes are over this server's limit of {MAX_META_BYTES}"))
 
     def dispatch(self, kind: int, message: Any) -> None:
         if kind == ISMRMRDMessageID.IMAGE:
