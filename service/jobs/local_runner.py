@@ -257,7 +257,7 @@ class LocalRunner(JobRunner):
                 self.store.fail_abandoned(job, SUBMISSION_LEASE_S)
         now = time.time()
         late = [job for job in map(self.store.get, self.store.ids("running"))
-                if job is not None and job.started_at is not None and now - job.started_at > self.timeout_s]
+                if job is not None and job.ran_longer_than(self.timeout_s, now)]
         late = [job for job in late if self.store.give_up(job.id, TIMED_OUT, job.attempts)]   # not ended meanwhile
         if late:
             self._stop_workers("a timed-out job", spared=[j for j in self.store.ids("running") if j in self.futures])

@@ -111,7 +111,7 @@ def out_of_time(ctx: WorkerContext, job_id: str) -> bool:
     work process that cannot take its time-out signal, stuck in native code, a minute past the limit,
     and retries it: the job would run its whole time again), saying so; whether it did."""
     job = ctx.store.get(job_id)
-    if job is None or job.status != "running" or job.started_at is None or time.time() - job.started_at <= ctx.timeout_s:
+    if job is None or job.status != "running" or not job.ran_longer_than(ctx.timeout_s):
         return False
     ctx.store.give_up(job_id, TIMED_OUT, job.attempts)
     return True
@@ -238,7 +238,7 @@ class RqRunner(JobRunner):
         hide it from that check, so the reconcile judges the time itself while the store still
         holds the run's start. A job queued otherwise (handed back by a stopping worker, its
         earlier start kept) is never judged so: the store shows it queued, not running."""
-        return job.started_at is not None and time.time() - job.started_at > self.settings.job_timeout_h * 3600
+        return job.ran_longer_than(self.settings.job_timeout_h * 3600)
 
     def _finished_under_a_live_run(self, job: Job, status: str) -> bool:
         """Whether RQ's ``finished`` is a superseded run's while a later run may still be running the

@@ -63,6 +63,17 @@ class Job:
     submitted_at: float | None = None
     started_at: float | None = None
 
+    def ran_longer_than(self, seconds: float, now: float | None = None) -> bool:
+        """Whether the job's latest run started more than ``seconds`` ago (never where none started):
+        a run past the job time limit.
+
+        Example:
+            >>> job = Job("j", "running", None, 0.0, None, {}, None, 1, 0.0, 0.0, started_at=100.0)
+            >>> job.ran_longer_than(60.0, now=170.0), job.ran_longer_than(60.0, now=150.0)
+            (True, False)
+        """
+        return self.started_at is not None and (time.time() if now is None else now) - self.started_at > seconds
+
 
 class JobStore(ABC):
     """The job records (state, stage, progress, report) and the job folders under ``data_dir``.
