@@ -117,10 +117,8 @@ class PreparedStack:
         stages treat them as any other slice (the images of their crossings still relate them to
         the others); the answer names them, so that a user knows why their poses may be off and that
         a larger field of view avoids it."""
-        found = self.localisation
-        region = found.mask if found.pose_region is None else found.pose_region
-        masks = pictures(region, self.slices.slice_axis, self.slices.layout)
-        return cut_by_field_of_view(masks, self.slices.pixel_mm, found.pose_inset_mm)
+        masks = pictures(self.localisation.brain_region, self.slices.slice_axis, self.slices.layout)
+        return cut_by_field_of_view(masks, self.slices.pixel_mm, self.localisation.pose_inset_mm)
 
     def network_from_voxel(self) -> np.ndarray:
         """``[n, 4, 4]`` voxel ``(i, j, k)`` of slice ``k`` -> its network frame (the service's crop/centre)."""

@@ -65,6 +65,11 @@ class Localisation:
         return cls(m, method, float(m.sum() * np.prod(spacing) / 1000.0), float(confidence), slices, csf, region)
 
     @property
+    def brain_region(self) -> NDArray[np.bool_]:
+        """What the pose network's mask starts from: :attr:`pose_region` where there is one, else the mask."""
+        return self.mask if self.pose_region is None else self.pose_region
+
+    @property
     def pose_inset_mm(self) -> float:
         """How far inside the mask the pose network's mask lies (:meth:`pose_mask`)."""
         return POSE_MASK_INSET_MM if self.holds_csf else 0.0
@@ -83,7 +88,7 @@ class Localisation:
         :data:`POSE_MASK_INSET_MM` in the plane of the slices along ``axis`` (default: the thick one),
         the brain as the atlas masks the pose network learnt from draw it; the localiser's from its
         :attr:`pose_region`."""
-        region = self.mask if self.pose_region is None else self.pose_region
+        region = self.brain_region
         if not self.holds_csf or not region.any():
             return region
         return inset_in_plane(region, np.asarray(spacing, np.float64), POSE_MASK_INSET_MM, axis)
