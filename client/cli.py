@@ -60,8 +60,8 @@ from client.cli_stream import stream
 from client.cli_support import (DEFAULT_VOLUME, ApiKeyOpt, BiasCorrectionOpt, JobArg, MaskOpt, MasksHoldCsfOpt, OverwriteOpt,
                                 MaxExpectedOpt, McSamplesOpt, ModelOpt, ServerOpt, STACK_SPACE_HELP, StackSpaceOpt, StacksArg,
                                 ThresholdOpt, check_folder_writable, check_masks, check_writable, follow_job, job_id_of,
-                                once_or_per_stack, resolution_range, timeout_from_env, user_path, write_json,
-                                write_results)
+                                once_or_per_stack, resolution_range, slice_order_words, timeout_from_env, user_path,
+                                write_json, write_results)
 from client.errors import NotFound
 from client.exits import (EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, EXIT_USAGE, errors, fail,
                           job_goes_on, stderr, stdout)
@@ -121,6 +121,7 @@ def predict(
     bias_correction: BiasCorrectionOpt = True,
     model: ModelOpt = None,
     slice_order: Annotated[Optional[list[str]], typer.Option(
+        callback=slice_order_words,
         help="acquisition order, once for every stack or once per stack: interleaved, sequential, "
              "interleaved-even-first, interleaved-odd-first, or slice indices as acquired (0,2,4,1,3); "
              "default: the server's motion model chooses")] = None,
@@ -233,6 +234,7 @@ def reconstruct(
     timeout: Annotated[float, typer.Option(min=0, help="seconds to wait for the job")] = 3600.0,
     poll: Annotated[float, typer.Option(min=0.05, help="seconds between status polls")] = 1.0,
     slice_order: Annotated[Optional[list[str]], typer.Option(
+        callback=slice_order_words,
         help="acquisition order, once for every stack or once per stack (as for predict)")] = None,
     atlas_frame: Annotated[bool, typer.Option("--atlas-frame/--no-atlas-frame",
                                               help="re-estimate the volume's atlas frame with the model")] = True,

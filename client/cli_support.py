@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import time
 from pathlib import Path
 from typing import Annotated, Any, Optional
@@ -118,6 +119,28 @@ def positive(value: float | None) -> float | None:
     if value is not None and not value > 0:
         raise typer.BadParameter("must be > 0")
     return value
+
+
+ORDER_WORDS = ("auto", "sequential", "interleaved", "interleaved-even-first", "interleaved-odd-first")
+"""The acquisition orders ``/v1/predict`` and a job take by name (``auto``: the server's motion model chooses)."""
+SLICE_INDICES = re.compile(r"\d{1,6}( *, *\d{1,6})*")
+
+
+def slice_order_words(values: list[str] | None) -> list[str] | None:
+    """``--slice-order`` values that the server can take: a name of :data:`ORDER_WORDS` or slice
+    indices as acquired; a usage error naming the value otherwise, before anything is sent (the server
+    checks that indices list each of the stack's slices once).
+
+    Example:
+        >>> slice_order_words(["interleaved", " 0,2,1 "])
+        ['interleaved', ' 0,2,1 ']
+    """
+    for value in values or []:
+        text = value.strip()
+        if text not in ORDER_WORDS and not SLICE_INDICES.fullmatch(text):
+            raise typer.BadParameter(f"{value!r} is none of {', '.join(ORDER_WORDS)}, nor slice indices as acquired "
+                                     "(0,2,4,1,3)")
+    return values
 
 
 def resolution_range(value: float | None) -> float | None:

@@ -754,6 +754,19 @@ def test_reconstruct_options_out_of_the_servers_range_are_usage_errors_naming_th
     assert "at most 5" in invoke(["reconstruct", "--help"]).output
 
 
+def test_a_slice_order_the_server_cannot_read_is_a_usage_error_before_the_upload(fake_cli: Callable,
+                                                                                 stack_file: Path) -> None:
+    """A misspelt name (``interleave``) was refused by the server's 422 only after the stacks were sent."""
+    fake, _ = fake_cli()
+    for command in ("predict", "reconstruct"):
+        r = invoke([command, str(stack_file), "--slice-order", "interleave"])
+        assert r.exit_code == 2 and "'interleave' is none of auto, sequential" in r.output, r.output
+        assert "--slice-order" in r.output
+    assert not fake.requests
+    r = invoke(["predict", str(stack_file), "--slice-order", " 0, 2,1 "])
+    assert r.exit_code == 0, r.output
+
+
 def test_a_busy_server_s_retry_after_and_a_wait_that_ran_out_say_what_to_do(capsys: pytest.CaptureFixture) -> None:
     import typer
 
