@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import io
 import json
+import re
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -23,26 +24,47 @@ REPORT = "report.json"
 
 MASK_NAME_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd", ".dcm", ".zip", ".gz")
 """The extensions the server drops from a stack's name before ``_mask.nii.gz`` (api-v1: ``<stem>``)."""
+MASK_SUFFIX = "_mask.nii.gz"
+MAX_NAME = 255
+
+
+def mask_names(stacks: list[Path]) -> list[str]:
+    """The names api-v1 gives the masks of ``stacks``, sent as :meth:`SVRnetClient.masks` sends them
+    (a folder as ``<folder>.zip``): ``<stem>_mask.nii.gz``, the stem the upload's name without its
+    extensions, only ``[A-Za-z0-9._-]``, made unique in order regardless of case with ``-1``, ``-2``
+    ..., at most 255 characters in all (the server's rule, written again: the client imports no
+    server code).
+
+    Example:
+        >>> mask_names([Path("a/ax.nii.gz"), Path("b/AX.nii"), Path("x y.mha")])
+        ['ax_mask.nii.gz', 'AX-1_mask.nii.gz', 'x_y_mask.nii.gz']
+    """
+    longest = MAX_NAME - len(MASK_SUFFIX)
+    stems: list[str] = []
+    for stack in stacks:
+        path = Path(stack)
+        base = (f"{path.resolve().name}.zip" if path.is_dir() else path.name).replace("\\", "/").rsplit("/", 1)[-1]
+        base = next((base[:-len(x)] for x in MASK_NAME_SUFFIXES if base.lower().endswith(x)), base)
+        stem = (re.sub(r"[^A-Za-z0-9._-]+", "_", base).strip("._") or "stack")[:longest]
+        candidate, k = stem, 0
+        while candidate.lower() in {s.lower() for s in stems}:
+            k += 1
+            candidate = f"{stem[:longest - len(str(k)) - 1]}-{k}"
+        stems.append(candidate)
+    return [stem + MASK_SUFFIX for stem in stems]
 
 
 def masks_already_there(stacks: list[Path], out: Path) -> list[str]:
-    """The masks in ``out`` that masks of ``stacks`` would most likely replace: ``<stem>_mask.nii.gz``
-    of each stack's plain name. The server makes stems safe and unique by rules of its own, so the
-    archive's names are checked again as it is written; this check spares the upload in the usual
-    case (a folder of an earlier call for the same stacks).
+    """The masks in ``out`` that masks of ``stacks`` would replace (:func:`mask_names`): checked
+    before the upload, and again as the archive is written (another server may name them otherwise).
 
     Example:
         >>> import tempfile
-        >>> out = Path(tempfile.mkdtemp()); _ = (out / "ax_mask.nii.gz").write_bytes(b"")
-        >>> masks_already_there([Path("scan/ax.nii.gz"), Path("scan/co.nii.gz")], out)
-        ['ax_mask.nii.gz']
+        >>> out = Path(tempfile.mkdtemp()); _ = (out / "ax-1_mask.nii.gz").write_bytes(b"")
+        >>> masks_already_there([Path("scan/ax.nii.gz"), Path("old/ax.nii.gz")], out)
+        ['ax-1_mask.nii.gz']
     """
-    names = []
-    for stack in stacks:
-        base = Path(stack).name
-        stem = next((base[:-len(x)] for x in MASK_NAME_SUFFIXES if base.lower().endswith(x)), base)
-        names.append(f"{stem}_mask.nii.gz")
-    return [n for n in names if (out / n).exists()]
+    return [n for n in mask_names(stacks) if (out / n).exists()]
 
 
 def _with_earlier_masks(report: Any, out: Path) -> Any:
