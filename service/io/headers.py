@@ -14,7 +14,7 @@ its own files, so an upload is never handed to a reader as sent:
   compressed MetaImage's data are inflated here, bounded, and must give the size the header declares
   (ITK's reader would leave the voxels of a stream that fails to inflate as its memory held them);
 * the header's shape is checked here, in Python integers, before any reader sees it
-  (:func:`declared_values`): 1-4 axes of 1 to 2**31 - 1 voxels, a value type and encoding the reader
+  (:func:`declared_grid`): 1-4 axes of 1 to 2**31 - 1 voxels, a value type and encoding the reader
   knows; a MetaImage's yes/no fields are written ``True`` or ``False`` as MetaIO reads them (a value
   starting with T, t or 1 is yes), so that ``CompressedData = 1`` is inflated here, bounded, like
   ``True``. ITK's NRRD reader crashes on a ``dimension`` of 12, its
@@ -126,15 +126,14 @@ NRRD_ENCODINGS = {"raw": False, "txt": False, "text": False, "ascii": False, "he
 MHA_YES_NO = ("binarydata", "binarydatabyteordermsb", "elementbyteordermsb", "compresseddata")
 
 
-def declared_values(header: bytes, kind: str, filename: str) -> int:
-    """The number of voxel values a rebuilt header declares (channels included), counted here in
-    Python integers; :class:`UnsupportedFile` naming the field for a header its reader would
-    misread, crash or hang on (see the module).
+def declared_grid(header: bytes, kind: str, filename: str) -> tuple[list[int], int]:
+    """The axes' sizes and the values per voxel a rebuilt header declares; :class:`UnsupportedFile`
+    naming the field for a header its reader would misread, crash or hang on (see the module).
 
     Example:
-        >>> declared_values(b"NRRD0004\\ntype: short\\ndimension: 3\\nsizes: 4 5 6\\nencoding: gzip\\n\\n", "nrrd", "a")
-        120
-        >>> declared_values(b"NDims = -1\\nDimSize = 2\\nElementType = MET_UCHAR\\n", "mha", "b.mha")
+        >>> declared_grid(b"NRRD0004\\ntype: short\\ndimension: 3\\nsizes: 4 5 6\\nencoding: gzip\\n\\n", "nrrd", "a")
+        ([4, 5, 6], 1)
+        >>> declared_grid(b"NDims = -1\\nDimSize = 2\\nElementType = MET_UCHAR\\n", "mha", "b.mha")
         Traceback (most recent call last):
         ...
         service.core.errors.UnsupportedFile: b.mha: its MHA header's NDims is not a whole number of 1 to 4 axes
@@ -175,7 +174,19 @@ def declared_values(header: bytes, kind: str, filename: str) -> int:
     sizes = fields.get(sizes_field, b"").split()
     if len(sizes) != axes or not all(re.fullmatch(rb"\d+", s) and 1 <= int(s) <= MAX_AXIS_VOXELS for s in sizes):
         raise problem(f"{label} does not give {axes} whole numbers from 1 to {MAX_AXIS_VOXELS}")
-    return int(np.prod([int(s) for s in sizes], dtype=object)) * channels
+    return [int(s) for s in sizes], channels
+
+
+def declared_values(header: bytes, kind: str, filename: str) -> int:
+    """The number of voxel values a rebuilt header declares (channels included), counted in Python
+    integers (:func:`declared_grid`'s checks).
+
+    Example:
+        >>> declared_values(b"NRRD0004\\ntype: short\\ndimension: 3\\nsizes: 4 5 6\\nencoding: gzip\\n\\n", "nrrd", "a")
+        120
+    """
+    sizes, channels = declared_grid(header, kind, filename)
+    return int(np.prod(sizes, dtype=object)) * channels
 
 
 def clean_header(src: BinaryIO, dst: BinaryIO, kind: str, filename: str, max_inflated: int = 1 << 30) -> bytes:
@@ -313,4 +324,4 @@ def _inflated_mha(header: bytes, data: bytes, src: BinaryIO, dst: BinaryIO, file
                               "header declares (corrupt or truncated)")
 
 
-__all__ = ["MAX_HEADER_BYTES", "clean_header", "declared_values", "header_fields"]
+__all__ = ["MAX_HEADER_BYTES", "clean_header", "declared_grid", "declared_values", "header_fields"]

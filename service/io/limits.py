@@ -21,6 +21,7 @@ from __future__ import annotations
 import errno
 import logging
 import threading
+from collections.abc import Sequence
 
 from service.core.errors import InsufficientStorage, PayloadTooLarge, UnusableImage
 
@@ -98,6 +99,24 @@ class FileBudget:
         most = self.request.max_slices
         if most is not None and n > most:
             raise UnusableImage(f"{self.filename}: {n} {what}; at most {most} in one stack of 2D slices "
+                                "(SVRNET_MAX_SLICES_PER_STACK)")
+
+    def grid(self, sizes: Sequence[int]) -> None:
+        """Refuse, from its header, a grid of ``sizes`` voxels that holds more slices than a stack may
+        (:attr:`DecodeBudget.max_slices`) along each of its first three axes, whichever of them its
+        slices lie along (which one is told by the voxel sizes, once the file is read).
+
+        Example:
+            >>> DecodeBudget(1 << 30, max_slices=128).file("a.nii").grid([512, 480, 129])
+            Traceback (most recent call last):
+            ...
+            service.core.errors.UnusableImage: a.nii: a grid of 512 x 480 x 129 voxels holds over 128 slices along each axis; at most 128 in one stack of 2D slices (SVRNET_MAX_SLICES_PER_STACK)
+        """
+        most = self.request.max_slices
+        spatial = [int(n) for n in list(sizes)[:3]]
+        if most is not None and len(spatial) == 3 and min(spatial) > most:
+            raise UnusableImage(f"{self.filename}: a grid of {' x '.join(map(str, spatial))} voxels holds over {most} "
+                                f"slices along each axis; at most {most} in one stack of 2D slices "
                                 "(SVRNET_MAX_SLICES_PER_STACK)")
 
     def too_large(self, what: str = "its data decode") -> PayloadTooLarge:

@@ -38,7 +38,7 @@ from service.io.archive import read_dicom_zip
 from service.io.dicom import read_dicom_file
 from service.io.bare_dicom import as_part10, bare_dicom
 from service.io.header_geometry import geometry_problem
-from service.io.headers import clean_header, declared_values
+from service.io.headers import clean_header, declared_grid
 from service.io.limits import DecodeBudget, FileBudget, raise_if_out_of_space
 from service.io.nifti_header import (MAX_SHEAR_COS, SPATIAL_UNITS, NiftiTransforms, missing_voxel_size,
                                      orientation_problem, qform_problem, read_transforms, sform_problem)
@@ -154,8 +154,10 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
                 else:
                     charged = False
                     try:
-                        budget.voxels(_declared_values(named, kind) if header is None
-                                      else declared_values(header, kind, filename))
+                        sizes, channels = _declared_grid(named, kind) if header is None \
+                            else declared_grid(header, kind, filename)
+                        budget.grid(sizes)
+                        budget.voxels(int(np.prod(sizes, dtype=object)) * channels)
                         charged = True
                         with SITK_FILES:
                             image = _reader(named, kind).Execute()
@@ -200,6 +202,7 @@ def _gunzip(path: Path, out: Path, budget: FileBudget) -> Path:
             head = src.read(352)
             if (declared := _nifti_values(head)) * 4 > budget.limit:
                 raise budget.declared_too_large(declared)
+            budget.grid(_nifti_dims(head))
             budget.inflate(len(head))
             dst.write(head)
             while chunk := src.read(1 << 22):   # to the end: a truncated stream or a bad CRC raises here
@@ -211,15 +214,26 @@ def _gunzip(path: Path, out: Path, budget: FileBudget) -> Path:
     return out
 
 
-def _nifti_values(head: bytes) -> int:
-    """Voxel values a NIfTI-1 or NIfTI-2 header declares (0 when it is neither)."""
+def _nifti_dims(head: bytes) -> list[int]:
+    """The axes' sizes a NIfTI-1 or NIfTI-2 header declares, each at least 1 (``[0]`` when it is neither).
+
+    Example:
+        >>> head = (348).to_bytes(4, "little") + bytes(36) + np.array([3, 64, 48, 20, 1, 1, 1, 1], "<i2").tobytes()
+        >>> _nifti_dims(head + bytes(300)), _nifti_dims(bytes(352))
+        ([64, 48, 20], [0])
+    """
     sizes = int.from_bytes(head[:4], "little"), int.from_bytes(head[:4], "big")
     for size, offset, kind in ((348, 40, "i2"), (540, 16, "i8")):
         if len(head) >= offset + 64 and size in sizes:
             endian = "<" if sizes[0] == size else ">"
             dim = np.frombuffer(head, endian + kind, 8, offset).astype(np.float64)
-            return int(min(np.prod(np.clip(dim[1:1 + int(np.clip(dim[0], 1, 7))], 1, None)), 2.0 ** 62))
-    return 0
+            return [int(min(n, 2.0 ** 62)) for n in np.clip(dim[1:1 + int(np.clip(dim[0], 1, 7))], 1, None)]
+    return [0]
+
+
+def _nifti_values(head: bytes) -> int:
+    """Voxel values a NIfTI-1 or NIfTI-2 header declares (0 when it is neither)."""
+    return int(min(np.prod(_nifti_dims(head), dtype=np.float64), 2.0 ** 62))
 
 
 def _reader(path: Path, kind: str) -> sitk.ImageFileReader:
@@ -230,12 +244,12 @@ def _reader(path: Path, kind: str) -> sitk.ImageFileReader:
     return reader
 
 
-def _declared_values(path: Path, kind: str) -> int:
-    """Voxel values the header declares (read without decoding any voxels)."""
+def _declared_grid(path: Path, kind: str) -> tuple[list[int], int]:
+    """The axes' sizes and the values per voxel the header declares (read without decoding any voxels)."""
     reader = _reader(path, kind)
     with SITK_FILES:
         reader.ReadImageInformation()
-    return int(np.prod(reader.GetSize(), dtype=np.float64) * reader.GetNumberOfComponents())
+    return [int(n) for n in reader.GetSize()], int(reader.GetNumberOfComponents())
 
 
 def _nifti_pair(path: Path) -> bool:
@@ -313,6 +327,7 @@ def _read_by_nibabel(path: Path, filename: str, budget: FileBudget, transforms: 
         raise UnsupportedFile(f"{filename}: impossible NIfTI-{2 if nifti2 else 1} header (its voxel data would start "
                               f"inside the header: vox_offset < {first})")          # as a NIfTI-1 header's (415)
     shape = tuple(int(n) for n in image.shape)
+    budget.grid(shape)
     if not charged:
         budget.voxels(int(np.prod(shape, dtype=np.float64)))
     if len(shape) < 3:

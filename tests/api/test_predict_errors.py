@@ -184,12 +184,27 @@ def test_too_many_files_and_too_large(oracle: object, tmp_path: Path) -> None:
 def test_a_stack_of_more_slices_than_the_limit_is_422_before_any_stage(oracle: object, tmp_path: Path) -> None:
     """The stack stage's work grows with the cube of a stack's slices: a few MB of 16 x 16 slices must
     not hold a processing slot for minutes."""
-    long = nifti_bytes(np.ones((16, 16, 12), np.float32), tmp=tmp_path)
+    long = nifti_bytes(np.ones((8, 16, 12), np.float32), tmp=tmp_path)
     with make_client(ModelRegistry({"default": oracle}), max_slices_per_stack=10) as client:
         for route in ("/v1/predict", "/v1/masks", "/v1/reconstructions"):
             r = client.post(route, files=[("stacks", ("long.nii.gz", long))])
             assert_problem(r, 422, "long.nii.gz", "12 slices along its array axis 2", "at most 10")
         assert not client.app.state.job_store.queued()
+
+
+def test_a_grid_of_more_slices_than_the_limit_along_every_axis_is_422_from_its_header(
+        oracle: object, tmp_path: Path) -> None:
+    """Told from the header, before the voxels are inflated: a few hundred kB of gzip could otherwise
+    decode to the file's limit (and a request's every file) before its slices were counted. Its
+    voxels here are cut short, which a decoded file would answer with a 415."""
+    whole = nifti_bytes(np.zeros((24, 20, 12), np.float32), tmp=tmp_path)
+    plain = gzip.decompress(whole)
+    cut = gzip.compress(plain[:400])
+    with make_client(ModelRegistry({"default": oracle}), max_slices_per_stack=10) as client:
+        for name, body in (("whole.nii.gz", whole), ("cut.nii.gz", cut), ("plain.nii", plain)):
+            r = client.post("/v1/predict", files=[("stacks", (name, body))])
+            assert_problem(r, 422, name, "a grid of 24 x 20 x 12 voxels holds over 10 slices along each axis",
+                           "SVRNET_MAX_SLICES_PER_STACK")
 
 
 def test_malformed_multipart_is_400_never_500(oracle_client: TestClient) -> None:
