@@ -156,8 +156,8 @@ def read_upload(path: Path, filename: str, max_decoded_bytes: int = MAX_DECODED_
                     try:
                         sizes, channels = _declared_grid(named, kind) if header is None \
                             else declared_grid(header, kind, filename)
-                        budget.grid(sizes)
                         budget.voxels(int(np.prod(sizes, dtype=object)) * channels)
+                        budget.grid(sizes)
                         charged = True
                         with SITK_FILES:
                             image = _reader(named, kind).Execute()
@@ -327,9 +327,9 @@ def _read_by_nibabel(path: Path, filename: str, budget: FileBudget, transforms: 
         raise UnsupportedFile(f"{filename}: impossible NIfTI-{2 if nifti2 else 1} header (its voxel data would start "
                               f"inside the header: vox_offset < {first})")          # as a NIfTI-1 header's (415)
     shape = tuple(int(n) for n in image.shape)
-    budget.grid(shape)
     if not charged:
         budget.voxels(int(np.prod(shape, dtype=np.float64)))
+    budget.grid(shape)
     if len(shape) < 3:
         raise UnusableImage(f"{filename}: {len(shape)}D image; a stack of slices (3D) is required")
     if any(n != 1 for n in shape[3:]):
