@@ -45,6 +45,11 @@ from service.jobs.worker import TIMED_OUT, run_job
 log = logging.getLogger(__name__)
 
 LOCK_NAME = "server.lock"
+UNRECORDED_RETRY_S = 5.0
+"""How often a job whose end the store refused is tried again (:meth:`LocalJobRunner._fail_unrecorded`):
+a full disk is usually freed within minutes, and the job should not show ``running`` much longer."""
+UNRECORDED_RETRY_FOR_S = 600.0
+"""How long it is tried so; after that the job upkeep tries (:meth:`LocalJobRunner.maintain`)."""
 """The file in the store's folder whose lock says which server owns the store (its pid inside)."""
 
 
@@ -107,6 +112,8 @@ class LocalRunner(JobRunner):
         self.lock = threading.Lock()
         self.closing = False
         """Set at shutdown: the workers stopped then are not lost ones, and no pool replaces theirs."""
+        self.closed = threading.Event()
+        """Set at shutdown, for the threads that wait to try a write again."""
         self.stopping = threading.Lock()
         """Held while the runner stops: one stop at a time."""
         self.pool = self._new_pool()
@@ -176,12 +183,21 @@ class LocalRunner(JobRunner):
             threading.Thread(target=self._fail_unrecorded, args=(job_id,), name="job-end", daemon=True).start()
 
     def _fail_unrecorded(self, job_id: str) -> None:
-        """At once, :meth:`_give_up_unrecorded`; a store that refuses this write too (the full disk that
-        refused the run's) leaves it to :meth:`maintain`."""
-        try:
-            self._give_up_unrecorded(job_id)
-        except StoreUnavailable:
-            log.warning("a job's end could not be recorded; the job upkeep tries again", extra={"job_id": job_id})
+        """:meth:`_give_up_unrecorded` at once, and while the store refuses that write too (the full
+        disk that refused the run's) again every :data:`UNRECORDED_RETRY_S` for
+        :data:`UNRECORDED_RETRY_FOR_S`, until the runner closes; then :meth:`maintain` tries."""
+        deadline = time.monotonic() + UNRECORDED_RETRY_FOR_S
+        warned = False
+        while True:
+            try:
+                self._give_up_unrecorded(job_id)
+                return
+            except StoreUnavailable:
+                if not warned:
+                    log.warning("a job's end could not be recorded; it is tried again", extra={"job_id": job_id})
+                    warned = True
+            if self.closed.wait(UNRECORDED_RETRY_S) or time.monotonic() > deadline:
+                return
 
     def _give_up_unrecorded(self, job_id: str) -> None:
         """Fail the job whose run raised out of :func:`~service.jobs.worker.run_job` (:attr:`unrecorded`),
@@ -306,6 +322,7 @@ class LocalRunner(JobRunner):
             with self.lock:
                 self.closing = True
                 running = list(self.futures)           # before the pool's end empties them
+            self.closed.set()
             end_pool(self.pool, grace_s=0.0, timeout_s=timeout_s)
             handed_back: list[str] = []
             if self.started:

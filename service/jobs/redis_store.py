@@ -132,8 +132,8 @@ class RedisJobStore(JobStore):
         :class:`~service.core.errors.QueueFull` where ``max_queued`` jobs are queued already (counted
         and added in one transaction: Redis runs it only if no job entered or left the queue
         meanwhile, else it is tried again)."""
-        job_id, queued = self._new_id(), f"{self.prefix}state:queued"
-        with self.redis.pipeline(transaction=True) as pipe:
+        queued = f"{self.prefix}state:queued"
+        with self._new_job() as job_id, self.redis.pipeline(transaction=True) as pipe:
             while True:
                 try:
                     if max_queued is not None:

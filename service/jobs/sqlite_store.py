@@ -101,16 +101,17 @@ class SqliteJobStore(JobStore):
         return self.folders_take_jobs(self.db_path)
 
     def create(self, params: dict) -> Job:
-        job_id, now = self._new_id(), time.time()
-        self._write(INSERT_JOB, (job_id, json.dumps(params), now, now))
+        with self._new_job() as job_id:
+            now = time.time()
+            self._write(INSERT_JOB, (job_id, json.dumps(params), now, now))
         return self.get(job_id)  # type: ignore[return-value]
 
     def create_once(self, params: dict, max_queued: int | None = None) -> tuple[Job, bool]:
         key = params.get("idempotency_key")
         if not key and max_queued is None:
             return self.create(params), True
-        job_id, now = self._new_id(), time.time()
-        with self._db() as db:
+        with self._new_job() as job_id, self._db() as db:
+            now = time.time()
             db.execute("BEGIN IMMEDIATE")             # the checks and the insert, one writer at a time
             try:
                 row = db.execute(KEY_QUERY, (key,)).fetchone() if key else None
@@ -173,8 +174,22 @@ class SqliteJobStore(JobStore):
                            (reason, time.time(), job_id, attempt, attempt))
 
     def cancel(self, job_id: str) -> bool:
-        if not self._write("UPDATE jobs SET status = 'cancelled', stage = 'cancelled', updated_at = ? "
-                           "WHERE id = ? AND status IN ('queued', 'running')", (time.time(), job_id)):
+        """As :meth:`JobStore.cancel`; where the store refuses the write (a full disk), the files of a
+        job not yet ended go first and the write is tried again: their space is what lets it through,
+        and the user asked for them to go (the run finds them gone and stops)."""
+        def cancelled() -> bool:
+            return self._write("UPDATE jobs SET status = 'cancelled', stage = 'cancelled', updated_at = ? "
+                               "WHERE id = ? AND status IN ('queued', 'running')", (time.time(), job_id))
+
+        try:
+            done = cancelled()
+        except StoreUnavailable:
+            job = self.get(job_id)
+            if job is None or job.status not in ("queued", "running"):
+                raise
+            shutil.rmtree(self.directory(job_id), ignore_errors=True)
+            done = cancelled()
+        if not done:
             return False
         shutil.rmtree(self.directory(job_id), ignore_errors=True)
         return True

@@ -16,6 +16,8 @@ import shutil
 import time
 import uuid
 from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -183,6 +185,17 @@ class JobStore(ABC):
         job_id = uuid.uuid4().hex
         self.directory(job_id).mkdir(parents=True)
         return job_id
+
+    @contextmanager
+    def _new_job(self) -> Iterator[str]:
+        """A new job's id, its folder made; the folder removed where the job's record is not written
+        (a full disk, a store that does not answer): a refused submission leaves nothing behind."""
+        job_id = self._new_id()
+        try:
+            yield job_id
+        except BaseException:
+            shutil.rmtree(self.directory(job_id), ignore_errors=True)
+            raise
 
     @abstractmethod
     def ping(self) -> bool:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -213,18 +214,24 @@ def test_a_stop_hands_back_and_logs_only_the_jobs_that_had_started(tmp_path: Pat
     assert store.get(started.id).attempts == 0                           # an orderly stop spends no attempt
 
 
-def test_a_run_whose_end_the_store_refused_twice_fails_at_the_next_upkeep(tmp_path: Path,
-                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("disk_freed", ["while_retried", "after_the_retries"])
+def test_a_run_whose_end_the_store_refused_twice_fails_once_the_store_writes_again(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, disk_freed: str) -> None:
     """A run raised out of its worker (the full disk refused its failure's record) and the runner's
-    immediate try is refused too: the next upkeep, once the store writes again, fails the job, its
-    files discarded (it showed running, run by no process, until the job time limit). A job running
-    in the pool, and one whose run is not known to have ended (its pool being replaced), stay running."""
+    immediate try is refused too: once the store writes again the job fails, its files discarded (it
+    showed running, run by no process, until the job time limit): within seconds while the runner
+    tries again, else at the next upkeep. A job running in the pool, and one whose run is not known
+    to have ended (its pool being replaced), stay running."""
     import threading
     from concurrent.futures import Future
 
     from service.core.errors import StoreUnavailable
+    from service.jobs import local_runner
     from service.jobs.local_runner import UNRECORDED
 
+    monkeypatch.setattr(local_runner, "UNRECORDED_RETRY_S", 0.05)
+    if disk_freed == "after_the_retries":
+        monkeypatch.setattr(local_runner, "UNRECORDED_RETRY_FOR_S", 0.0)
     store = SqliteJobStore(tmp_path)
     runner = LocalRunner(store, tmp_path, timeout_s=3600.0)
     try:
@@ -234,19 +241,31 @@ def test_a_run_whose_end_the_store_refused_twice_fails_at_the_next_upkeep(tmp_pa
         (store.directory(stuck.id) / "outputs").mkdir()
         runner.futures[beside.id] = Future()                                # its run goes on in the pool
         full = StoreUnavailable("the job store's database cannot be used (database or disk is full)")
+        real_fail = SqliteJobStore.fail
+        room = threading.Event()
+        tries: list[float] = []
 
-        def refused(*args: object, **kwargs: object) -> bool:
-            raise full
+        def refused_while_full(self: SqliteJobStore, *args: object, **kwargs: object) -> bool:
+            tries.append(time.monotonic())
+            if not room.is_set():
+                raise full
+            return real_fail(self, *args, **kwargs)
 
-        monkeypatch.setattr(SqliteJobStore, "fail", refused)
+        monkeypatch.setattr(SqliteJobStore, "fail", refused_while_full)
         raised = Future()
         raised.set_exception(full)
         runner._check(raised, runner.pool, stuck.id)
-        for thread in [t for t in threading.enumerate() if t.name == "job-end"]:
-            thread.join(10)
+        [ender] = [t for t in threading.enumerate() if t.name == "job-end"]
+        time.sleep(0.3)
         assert store.get(stuck.id).status == "running"
-        monkeypatch.undo()                                                  # the disk has room again
-        runner.maintain()
+        room.set()                                                          # the disk has room again
+        ender.join(10)
+        assert not ender.is_alive()
+        if disk_freed == "while_retried":
+            assert len(tries) > 2                                           # tried again without the upkeep
+        else:
+            assert len(tries) == 1 and store.get(stuck.id).status == "running"
+            runner.maintain()
         assert (store.get(stuck.id).status, store.get(stuck.id).error) == ("failed", UNRECORDED)
         assert not (store.directory(stuck.id) / "outputs").exists() and runner.unrecorded == {}
         assert store.get(beside.id).status == "running" and store.get(recovering.id).status == "running"

@@ -120,6 +120,24 @@ def test_a_store_on_a_full_disk_is_not_ready(store: JobStore, monkeypatch: pytes
     assert not store.ping()
 
 
+def test_a_submission_the_database_refuses_leaves_no_job_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A full disk refuses the new job's record (503): the folder made for the job goes with it, by
+    either way of submitting."""
+    from service.core.errors import StoreUnavailable
+
+    store = SqliteJobStore(tmp_path)
+
+    def refused(self: SqliteJobStore) -> None:
+        raise StoreUnavailable("the job store's database cannot be used (database or disk is full)")
+
+    monkeypatch.setattr(SqliteJobStore, "_db", refused)
+    for submit in (lambda: store.create({}), lambda: store.create_once({"idempotency_key": "k"}),
+                   lambda: store.create_once({}, max_queued=4)):
+        with pytest.raises(StoreUnavailable):
+            submit()
+    assert not list((tmp_path / "jobs").iterdir())
+
+
 @both
 def test_a_redelivered_job_may_be_claimed_while_running_but_not_once_finished(store: JobStore) -> None:
     job = store.create({})
@@ -260,6 +278,34 @@ def test_delete_removes_record_and_files(store: JobStore) -> None:
     job = store.create({})
     store.delete(job.id)
     assert store.get(job.id) is None and not store.directory(job.id).exists() and store.queued() == []
+
+
+def test_a_cancel_on_a_full_disk_frees_the_job_s_files_to_make_its_write(tmp_path: Path,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """The database refuses the cancel's write until the job's files are gone (their space is what
+    the write needs): the uploads go first, and the job is cancelled. A job that has ended is left as
+    it is, its results kept, and the refusal stands (503)."""
+    from service.core.errors import StoreUnavailable
+
+    store = SqliteJobStore(tmp_path)
+    running, ended = store.create({}), store.create({})
+    assert store.claim(running.id) and store.claim(ended.id) and store.finish(ended.id, {})
+    for job, part in ((running, "inputs"), (ended, "outputs")):
+        (store.directory(job.id) / part).mkdir(parents=True)
+        (store.directory(job.id) / part / "stack0.npz").write_bytes(b"patient data")
+    real = SqliteJobStore._write
+
+    def full_while_files(self: SqliteJobStore, sql: str, args: tuple) -> bool:
+        if any(store.directory(j.id).exists() for j in (running, ended) if j.id in args):
+            raise StoreUnavailable("the job store's database cannot be used (database or disk is full)")
+        return real(self, sql, args)
+
+    monkeypatch.setattr(SqliteJobStore, "_write", full_while_files)
+    assert store.cancel(running.id)
+    assert store.get(running.id).status == "cancelled" and not store.directory(running.id).exists()
+    with pytest.raises(StoreUnavailable):
+        store.cancel(ended.id)
+    assert store.get(ended.id).status == "succeeded" and (store.directory(ended.id) / "outputs" / "stack0.npz").exists()
 
 
 @pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)
