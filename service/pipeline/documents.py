@@ -84,9 +84,10 @@ def stack_report(out: StackPoses | None) -> dict | None:
         "branch_agrees_with_request": fit.agrees_with_request,
         "mirrored": fit.mirrored,
     }
-    if out.pooled is not None:
-        report.update({"pooled_atlas_from_scanner": out.pooled.atlas_from_scanner.tolist(),
-                       "stacks_pooled": out.pooled.stacks, "between_stacks_sd_mm": out.pooled.between_stacks_sd_mm})
+    pooled = out.pooled          # the keys always there (None: not pooled), as /v1/predict's schema gives them
+    report.update({"pooled_atlas_from_scanner": None if pooled is None else pooled.atlas_from_scanner.tolist(),
+                   "stacks_pooled": None if pooled is None else pooled.stacks,
+                   "between_stacks_sd_mm": None if pooled is None else pooled.between_stacks_sd_mm})
     ic = out.image_consistency
     report["image_consistency"] = None if ic is None else {
         "stacks": ic.stacks, "pairs": ic.pairs, "slices_refined": ic.slices_refined,

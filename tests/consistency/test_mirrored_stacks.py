@@ -224,7 +224,7 @@ def test_a_request_with_one_stack_reversed_answers_its_slices_unaccepted_and_kee
     assert {sl["reason"] for sl in reversed_stack["slices"]} <= {"inconsistent_with_stack", "empty"}
     assert not any(sl["accepted"] for sl in reversed_stack["slices"])
     assert reversed_stack["consistency"]["inconsistent_slices"] == len(reversed_stack["slices"])
-    assert "stacks_pooled" not in reversed_stack["consistency"]                 # out of the pooling ...
+    assert reversed_stack["consistency"]["stacks_pooled"] is None               # out of the pooling ...
     assert reversed_stack["consistency"]["image_consistency"] is None            # ... and the image stage
     for with_it, without in zip(answers[0][1:], answers[1]):
         assert with_it["consistency"]["mirrored"] is False

@@ -514,6 +514,24 @@ def test_streamed_slices_gain_the_noise_error_of_their_stacks_input_noise_once(c
     np.testing.assert_allclose(noisy.poses.expected_error_mm, np.hypot(plain.poses.expected_error_mm, noisy.noise_error_mm))
 
 
+def test_the_first_stack_message_holds_every_consistency_key_that_v1_predict_gives() -> None:
+    """stream-v1: ``consistency`` as in `/v1/predict`, whose schema gives every key (null where it does not
+    apply): the session's first stack, pooled with none, lacked the three pooling keys."""
+    from service.api.responses import stack_message
+    from service.api.schemas import StackConsistency
+    from service.inference.registry import ModelRegistry
+    from tests.support.streams import frames_of, simulated_stack
+
+    estimator = ModelRegistry.from_directory("service/models", "default", 0).get("default")
+    image, mask, affine, _ = simulated_stack(3, np.eye(3))
+    session = StreamSession(estimator, None, options=SessionOptions(mc_samples=2, bias_correction=False))
+    for frame in frames_of("ax", (image * 3.0 + 20.0).astype(np.float32), mask.astype(np.uint8), affine):
+        session.add_slice(frame)
+    consistency = stack_message(session.end_stack("ax"))["consistency"]
+    assert set(consistency) == set(StackConsistency.model_fields)
+    assert consistency["stacks_pooled"] is None
+
+
 def test_slices_whose_brain_lost_its_signal_are_named_once_their_stack_ends_and_worth_acquiring_again() -> None:
     """Two slices darkened over most of their brain: each `pose` has no stack to judge it against
     (null); the `stack` message names them and lists them to acquire again, with reason `signal_lost`."""
