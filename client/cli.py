@@ -66,8 +66,8 @@ from client.errors import NotFound
 from client.exits import (EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, EXIT_USAGE, errors, fail,
                           job_goes_on, stderr, stdout)
 from client.mask_archive import masks_already_there
-from client.views import (job_table, masks_table, models_table, predict_hints, quality_line, refined_poses_line,
-                          summarise, upload_bar, usable)
+from client.job_views import job_table, quality_line, refined_poses_line
+from client.views import masks_table, models_table, predict_hints, summarise, upload_bar, usable
 
 app = typer.Typer(
     name="svrnet",

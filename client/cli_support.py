@@ -26,7 +26,7 @@ from client.errors import Busy
 from client.files import write_whole
 from client.job_calls import UNREACHABLE_S
 from client.exits import EXIT_NOT_FOUND, EXIT_USAGE, fail, stderr, stdout
-from client.views import NO_WORKER, quality_line, refined_poses_line, stage_label, waits_for_a_worker
+from client.job_views import NO_WORKER, quality_line, refined_poses_line, stage_label, waits_for_a_worker
 
 
 def timeout_from_env() -> httpx.Timeout:

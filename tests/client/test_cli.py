@@ -17,6 +17,7 @@ import pytest
 from typer.testing import CliRunner
 
 import client.cli as cli
+import client.job_views as job_views
 import client.stream_views as stream_views
 import client.views as views
 from client import SVRnetClient
@@ -672,8 +673,8 @@ def test_a_stack_the_others_do_not_predict_is_named_and_a_scrambled_lone_stack_i
 
 def test_a_quality_line_says_when_no_stack_can_be_left_out() -> None:
     quality = {"judged_slices": 22, "median_ncc": 0.99, "fraction_ncc_above_0_7": 1.0, "leave_one_stack_out": None}
-    assert "one stack: the volume is judged by its own slices only" in views.quality_line(quality, stacks=1)
-    two = views.quality_line(quality, stacks=2)                     # missing for another reason: no blame on the count
+    assert "one stack: the volume is judged by its own slices only" in job_views.quality_line(quality, stacks=1)
+    two = job_views.quality_line(quality, stacks=2)                     # missing for another reason: no blame on the count
     assert two.endswith("leave one stack out: -")
 
 
@@ -788,7 +789,7 @@ def test_a_jobs_urls_are_whole_on_an_80_column_terminal() -> None:
 
     url = "http://scanner-host.example.org:8000/v1/reconstructions/" + "a1b2c3d4" * 4 + "/preview.png"
     console = Console(width=80, record=True, file=io.StringIO())
-    console.print(views.job_table({"status": "succeeded", "preview_url": url, "result_url": url[:-12]}, "j"))
+    console.print(job_views.job_table({"status": "succeeded", "preview_url": url, "result_url": url[:-12]}, "j"))
     text = re.sub(r"[\s│|]", "", console.export_text())
     assert url in text and "…" not in text
 
