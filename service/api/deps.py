@@ -21,6 +21,7 @@ from service.core.cancellation import cancelled_by
 from service.core.errors import (ClientGone, ForeignOrigin, InvalidParameter, QueueFull, Saturated, ServiceError,
                                  Unauthorized)
 from service.core.names import shown_name
+from service.core.process_pools import trim_heap
 from service.core.settings import Settings
 from service.inference.registry import ModelRegistry
 from service.preprocess.localise import Localiser, Localisers
@@ -232,13 +233,29 @@ async def processing(request: Request) -> AsyncIterator[None]:
                             state.settings.retry_after_s)
         if got == "gone":
             raise ClientGone()
+        state.processing_now = getattr(state, "processing_now", 0) + 1
         try:
             with cancelled_by(gone):
                 yield
         finally:
             state.slots.release()
+            state.processing_now -= 1
+            if not state.processing_now:
+                asyncio.get_running_loop().call_later(TRIM_AFTER_S, _trim_if_idle, state)
     finally:
         listener.cancel()
+
+
+TRIM_AFTER_S = 1.0
+"""How long after the last request's processing ends the server trims its heap (:func:`_trim_if_idle`):
+its answer has been built and sent by then, and the arrays it held are freed."""
+
+
+def _trim_if_idle(state: State) -> None:
+    """Hand the heap's free pages back (:func:`~service.core.process_pools.trim_heap`, in a thread) where
+    no request has begun processing meanwhile: a request's peak is not kept by an idle server."""
+    if not getattr(state, "processing_now", 0):
+        asyncio.get_running_loop().run_in_executor(None, trim_heap)
 
 
 def queue_full(state: State) -> QueueFull | None:

@@ -64,3 +64,30 @@ def test_the_liveness_probe_is_answered_while_every_worker_thread_is_taken() -> 
         assert holding.result(10) is True and r.status_code == 200
         assert models.status_code == 200 and refused.status_code == 401
         assert client.get("/healthz?x=1").status_code == 400          # the query check still runs
+
+
+def test_an_idle_server_hands_its_heap_back_once_the_last_request_s_processing_has_ended(
+        monkeypatch: object, phantom_files: tuple) -> None:
+    """A request's stages leave freed pages in the threads' heaps: the server trims them a moment after
+    its last processing ends, and not while a request is processing."""
+    import threading
+    import time
+
+    from service.api import deps
+    from service.inference.registry import ModelRegistry
+    from tests.api.conftest import OracleEstimator, make_client
+
+    trimmed = threading.Event()
+    monkeypatch.setattr(deps, "TRIM_AFTER_S", 0.05)
+    monkeypatch.setattr(deps, "trim_heap", trimmed.set)
+    stack, _, _ = phantom_files
+    with make_client(ModelRegistry({"default": OracleEstimator()})) as client:
+        state = client.app.state
+        state.processing_now = 1                       # a request still processing: no trim
+        deps._trim_if_idle(state)
+        time.sleep(0.2)
+        assert not trimmed.is_set()
+        state.processing_now = 0
+        r = client.post("/v1/masks", files=[("stacks", ("s.nii.gz", stack.read_bytes()))])
+        assert r.status_code == 200, r.text
+        assert trimmed.wait(5)
