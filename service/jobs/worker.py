@@ -54,6 +54,11 @@ MISSING_UPLOADS = ("the job's uploads are not in the worker's data folder: every
 """A job's failure where its worker does not see the folder the API wrote its uploads to."""
 
 
+NO_BRAIN_FOUND = ("masks: the localiser found no brain in any stack sent without a mask (every slice is empty); "
+                  "upload a brain mask with each stack")
+"""Why a job whose stacks came without masks has nothing to reconstruct (as /v1/predict's hint says it)."""
+
+
 class Superseded(Exception):
     """A later run of the job (re-delivered by the queue) has claimed it: this run leaves everything to it."""
 
@@ -219,8 +224,7 @@ def predicted_body(uploads: list, estimator: PoseEstimator, mc_samples: int = 10
     prepared = prepare_stacks(uploads, info, bias_correction=True, workers=1, localiser=localiser)
     looked = any(p.localisation.method == "network" for p in prepared)
     if looked and not any(p.localisation.mask.any() for p in prepared):
-        raise UnusableImage("masks: the localiser found no brain in any stack sent without a mask (every slice is "
-                            "empty); upload a brain mask with each stack")     # as /v1/predict's hint says it
+        raise UnusableImage(NO_BRAIN_FOUND)
     max_expected = max_expected_error_mm or info.max_expected_error_mm
     predictions, _ = predict(prepared, estimator, mc_samples, threshold, orders=orders, max_expected_error_mm=max_expected)
     masks = [p.slices.to_stack(p.slices.masks) for p in prepared]
@@ -363,6 +367,8 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         if estimator is not None:       # the job's own model (its frame steps, its report), not the earlier request's
             body["model"] = estimator.info.reference()
         masks = uploaded_pose_masks(uploads, localiser)
+        if any(u.mask is None for u in uploads) and not any(m.any() for m in masks):
+            raise UnusableImage(NO_BRAIN_FOUND)       # not the reconstruction's "no pixel inside its mask"
         started_from = "uploaded_poses"
     else:
         progress("predicting poses", 0.05)

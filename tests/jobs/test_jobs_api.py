@@ -37,14 +37,15 @@ def case(tmp_path_factory: pytest.TempPathFactory) -> dict:
 
 
 def submit(client: TestClient, case: dict, poses: object = None, masks: list[bytes] | None = None,
-           stacks: list[bytes] | None = None, headers: dict[str, str] | None = None, **data: str):  # noqa: ANN201
+           stacks: list[bytes] | None = None, headers: dict[str, str] | None = None, with_masks: bool = True,
+           **data: str):  # noqa: ANN201
     """Submit the case; ``poses``: a body (default: the true poses) or the raw text of one; ``masks``
-    and ``stacks``: the files' bytes (default: the case's)."""
+    and ``stacks``: the files' bytes (default: the case's; no masks at all without ``with_masks``)."""
     text = poses if isinstance(poses, str) else json.dumps(poses or case["poses"])
     stacks = stacks or [s.read_bytes() for s, _ in case["files"]]
     files = [("stacks", (s.name, data_)) for (s, _), data_ in zip(case["files"], stacks)]
     masks = masks or [m.read_bytes() for _, m in case["files"]]
-    files += [("masks", (m.name, data_)) for (_, m), data_ in zip(case["files"], masks)]
+    files += [("masks", (m.name, data_)) for (_, m), data_ in zip(case["files"], masks) if with_masks]
     files.append(("poses", ("poses.json", text.encode(), "application/json")))
     data = {"resolution_mm": "2.0", "svr_iterations": "1", "atlas_frame": "false", **data}   # a phantom, no brain
     return client.post("/v1/reconstructions", files=files, data=data, headers=headers)
@@ -259,6 +260,17 @@ def test_cancel_and_failure(client: TestClient, case: dict, monkeypatch: pytest.
     job_id = submit(client, case, masks=zeroed(case, 1)).json()["job_id"]
     st = wait(client, job_id)
     assert st["status"] == "failed" and "no included slice" in st["error"] and st["coherent"] is None, st
+
+
+@pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)
+def test_a_job_with_uploaded_poses_whose_stacks_show_no_brain_the_localiser_finds_says_so(
+        client: TestClient, case: dict) -> None:
+    """No masks sent, and the localiser finds no brain (blank stacks): the job fails saying so and what to
+    send, not with the reconstruction's "no pixel inside its mask" of masks the user never sent."""
+    from service.jobs.worker import NO_BRAIN_FOUND
+
+    st = wait(client, submit(client, case, stacks=zeroed(case, 0), with_masks=False).json()["job_id"])
+    assert (st["status"], st["error"]) == ("failed", NO_BRAIN_FOUND), st
 
 
 @both
