@@ -2,7 +2,7 @@
 what registering the left-out ones to the volume does to them.
 
 A job starts from `/v1/predict`'s poses and puts only the accepted slices in its volume
-(:func:`service.jobs.worker.starting_poses`); the others keep their predicted poses. For each
+(:func:`service.jobs.starting_poses.starting_poses`); the others keep their predicted poses. For each
 simulated acquisition of the validation volumes: the slice level (``coarse_to_fine`` off, 3 rounds)
 is run; the mean and median E.D. against the truth in the acquisition's own frame (its common
 frame undone) are printed for the slices in the volume and those left out, before and after; then
@@ -32,7 +32,7 @@ from service.pipeline.documents import stack_objects  # noqa: E402
 from service.geometry.anchors import ed  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
 from service.inference.model_file import load_model  # noqa: E402
-from service.jobs.worker import MIN_ACCEPTED_SHARE, starting_poses  # noqa: E402
+from service.jobs.starting_poses import MIN_ACCEPTED_SHARE, starting_poses  # noqa: E402
 from service.reconstruction.forward import inplane_sigma_mm  # noqa: E402
 from service.reconstruction.config import ReconstructionConfig  # noqa: E402
 from service.reconstruction.pipeline import reconstruct  # noqa: E402

@@ -28,7 +28,8 @@ from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator  # noqa:
 from service.geometry import anchors, se3  # noqa: E402
 from service.inference.acceptance import ATLAS_CENTRE_MM  # noqa: E402
 from service.jobs.uploaded_poses import expected_errors  # noqa: E402
-from service.jobs.worker import predicted_body, starting_poses  # noqa: E402
+from service.jobs.starting_poses import starting_poses  # noqa: E402
+from service.jobs.worker import predicted_body  # noqa: E402
 from service.pipeline.prepare import StackUpload, prepare_stacks  # noqa: E402
 from service.preprocess.localise import default_localiser  # noqa: E402
 from service.reconstruction.job import refine_job  # noqa: E402

@@ -30,7 +30,7 @@ from service.pipeline.documents import stack_objects  # noqa: E402
 from service.geometry import twin  # noqa: E402
 from service.geometry.anchors import ed  # noqa: E402
 from service.jobs.uploaded_poses import expected_errors  # noqa: E402
-from service.jobs.worker import MIN_ACCEPTED_SHARE, starting_poses  # noqa: E402
+from service.jobs.starting_poses import MIN_ACCEPTED_SHARE, starting_poses  # noqa: E402
 from service.reconstruction.left_out import VolumeReference, place_left_out  # noqa: E402
 from service.reconstruction.never_worse import reconstruct_never_worse  # noqa: E402
 from service.reconstruction.config import ReconstructionConfig  # noqa: E402

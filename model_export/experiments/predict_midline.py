@@ -32,7 +32,8 @@ from service.geometry import anchors, se3  # noqa: E402
 from service.inference.acceptance import ATLAS_CENTRE_MM  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
 from service.io.volume import Volume  # noqa: E402
-from service.jobs.worker import predicted_body, starting_poses  # noqa: E402
+from service.jobs.starting_poses import starting_poses  # noqa: E402
+from service.jobs.worker import predicted_body  # noqa: E402
 from service.pipeline.prepare import StackUpload, prepare_stacks  # noqa: E402
 from service.preprocess.localise import default_localiser  # noqa: E402
 from service.reconstruction.gaussian_average import gaussian_average  # noqa: E402

@@ -50,7 +50,7 @@ from service.geometry.pose import about_centre
 from service.inference.estimator import OnnxPoseEstimator
 from service.inference.model_file import load_model
 from service.jobs.uploaded_poses import expected_errors
-from service.jobs.worker import MIN_ACCEPTED_SHARE, starting_poses
+from service.jobs.starting_poses import MIN_ACCEPTED_SHARE, starting_poses
 from service.reconstruction.atlas_frame import atlas_frame, with_frame
 from service.reconstruction.job import bias_corrected_stacks
 from service.reconstruction.left_out import LeftOutPlacement, VolumeReference, place_left_out

@@ -35,7 +35,7 @@ from service.pipeline.documents import stack_objects
 from service.geometry import twin
 from service.geometry.anchors import ed
 from service.jobs.uploaded_poses import expected_errors
-from service.jobs.worker import starting_poses
+from service.jobs.starting_poses import starting_poses
 from service.reconstruction.job import refine_job
 from service.reconstruction.left_out import MIN_AREA_MM2
 from service.reconstruction.held_out import held_out_score

@@ -208,7 +208,8 @@ def job_floor(scan: Path) -> None:
     from model_export.experiments import real_scan_poses
     from model_export.localiser.evaluate import _pose_estimator
     from service.jobs.uploaded_poses import expected_errors
-    from service.jobs.worker import predicted_body, starting_poses
+    from service.jobs.starting_poses import starting_poses
+    from service.jobs.worker import predicted_body
     from service.pipeline.prepare import StackUpload, prepare_stacks
     from service.preprocess.localise import default_localiser
     from service.reconstruction.job import refine_job
