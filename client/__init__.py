@@ -13,16 +13,16 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:                     # what type checkers and IDEs see; at run time, imported on first use
     from client._client import DEFAULT_SERVER, SVRnetClient
-    from client.errors import (BadRequest, Busy, Conflict, ConnectionFailed, JobFailed, KeyReused, NotFound,
+    from client.errors import (ArgumentError, BadRequest, Busy, Conflict, ConnectionFailed, JobFailed, KeyReused, NotFound,
                                OriginNotAllowed, PayloadTooLarge, ServerError, SVRnetError, Unauthorized,
                                UnsupportedFile, UnusableInput, WaitTimeout, error_from_response)
 
-_ERRORS = ("BadRequest", "Busy", "Conflict", "ConnectionFailed", "JobFailed", "KeyReused", "NotFound",
+_ERRORS = ("ArgumentError", "BadRequest", "Busy", "Conflict", "ConnectionFailed", "JobFailed", "KeyReused", "NotFound",
            "OriginNotAllowed", "PayloadTooLarge", "ServerError", "SVRnetError", "Unauthorized", "UnsupportedFile", "UnusableInput", "WaitTimeout",
            "error_from_response")
 
-_SUBMODULES = ("cli", "errors", "exits", "launch", "multipart", "scanner_stack", "slice_transforms", "stream",
-               "transport", "upload_files", "views")
+_SUBMODULES = ("cli", "errors", "exits", "job_views", "launch", "multipart", "scanner_stack", "slice_transforms",
+               "stream", "transport", "upload_files", "views")
 
 __all__ = ["SVRnetClient", "DEFAULT_SERVER", *_ERRORS]
 

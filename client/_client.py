@@ -12,6 +12,7 @@ Example:
 from __future__ import annotations
 
 import json
+import numbers
 import secrets
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -114,6 +115,9 @@ class SVRnetClient(JobCalls):
         Raises:
             UnsupportedFile: 415. UnusableInput: 422. PayloadTooLarge: 413. Busy: still 429/503
             after the retries. ConnectionFailed, Unauthorized, NotFound, ServerError.
+            ArgumentError: arguments refused before anything is sent (no stacks, masks not one per
+            stack, an API key that cannot be sent); FileNotFoundError: a stack or mask that is not
+            there. :meth:`masks` and :meth:`reconstruct` raise the same.
 
         Example:
             >>> r = SVRnetClient().predict(["ax.nii.gz"], masks=["ax_mask.nii.gz"], mc_samples=50)  # doctest: +SKIP
@@ -150,6 +154,10 @@ class SVRnetClient(JobCalls):
             The report: ``stacks[]`` with ``filename``, ``mask``, ``brain_volume_ml``, ``confidence``,
             ``slices_with_brain``.
 
+        Raises:
+            ArgumentError: masks of those names already in ``out_dir`` (without ``overwrite``), and as
+            for :meth:`predict`.
+
         Example:
             >>> SVRnetClient().masks(["ax.nii.gz"], "masks/")["stacks"][0]["confidence"]   # doctest: +SKIP
             0.97
@@ -157,7 +165,8 @@ class SVRnetClient(JobCalls):
         fields = [(k, v) for k, v in (("model", model), ("margin_mm", margin_mm)) if v is not None]
         body = MultipartBody(fields, file_parts(stacks, None))
         response = self._send("POST", "/v1/masks", body=body, progress=progress)
-        return write_mask_archive(response.content, Path(out_dir), overwrite, status=response.status_code,
+        out = Path(out_dir).expanduser()                   # as a shell would (the CLI's come expanded)
+        return write_mask_archive(response.content, out, overwrite, status=response.status_code,
                                   request_id=response.headers.get("x-request-id"))
 
     def reconstruct(self, stacks: Sequence[PathLike], masks: Sequence[PathLike] | None = None,
@@ -212,14 +221,14 @@ class SVRnetClient(JobCalls):
                                                    ("model", model))
                   if v is not None]
         fields += order_fields(slice_order)
-        thickness = [slice_thickness_mm] if isinstance(slice_thickness_mm, (int, float)) else slice_thickness_mm or []
+        thickness = [slice_thickness_mm] if isinstance(slice_thickness_mm, numbers.Real) else slice_thickness_mm or []
         fields += [("slice_thickness_mm", form_value(float(t))) for t in thickness]
         files: list[tuple[str, str, Path | bytes, str]] = list(file_parts(stacks, masks))
         if poses is not None:
             if isinstance(poses, Mapping):
                 files.append(("poses", "poses.json", json.dumps(poses).encode(), "application/json"))
             else:
-                path = Path(poses)
+                path = Path(poses).expanduser()
                 if not path.is_file():
                     raise FileNotFoundError(f"poses: no such file: {path}")
                 files.append(("poses", path.name, path, "application/json"))

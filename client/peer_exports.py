@@ -240,12 +240,16 @@ def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None,
     stack's slice spacing)."""
     if to not in FORMATS:
         raise UnusableInput(f"export: unknown format {to!r}; one of {', '.join(FORMATS)}")
+    folder = Path(folder).expanduser()                   # as a shell would (the CLI's paths come expanded)
+    stacks = [Path(p).expanduser() for p in stacks]
+    masks = None if masks is None else [Path(p).expanduser() for p in masks]
     done = Exported(0, list(stacks), None if not masks else list(masks))
     rows = ["i\tstack\tfile\tslice\taccepted\texpected_error_mm"]
-    stems = [niftymic_name(p) for p in stacks] if to == "niftymic" else []
-    if len(set(stems)) < len(stems):
+    stems = [niftymic_name(p).casefold() for p in stacks] if to == "niftymic" else []
+    if len(set(stems)) < len(stems):                # AX and ax: one file on macOS's and Windows's disks
+        clash = [niftymic_name(p) for p, stem in zip(stacks, stems) if stems.count(stem) > 1]
         raise UnusableInput("export: NiftyMIC names each stack's transforms by its file name, and two stacks are "
-                            f"named {max(set(stems), key=stems.count)!r}: rename one")
+                            f"named {' and '.join(repr(c) for c in clash[:2])} (alike but for case): rename one")
     answered = matched_stacks(answer, stacks)           # the answer and every file checked before the folder is touched
     read = [_read_stack(path, stack, None if not masks else masks[s], read_by_qform=to == "niftymic")
             for s, (path, stack) in enumerate(zip(stacks, answered))]

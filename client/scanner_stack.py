@@ -158,6 +158,8 @@ def _volume(path: Path, what: str) -> tuple[NDArray, NDArray[np.float64]]:
         data = np.asanyarray(img.dataobj)
     except nib.filebasedimages.ImageFileError as e:
         raise UnsupportedFile(f"{what}: {path.name} is not a NIfTI file nibabel can read ({e})") from None
+    except (FileNotFoundError, IsADirectoryError, PermissionError):    # the path, not the file's content
+        raise
     except (EOFError, OSError, ValueError, zlib.error) as e:          # a truncated or corrupt file
         raise UnsupportedFile(f"{what}: {path.name} is truncated or corrupt ({type(e).__name__}: {e})") from None
     stored = img.get_data_dtype()

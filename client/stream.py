@@ -17,6 +17,7 @@ Example:
 from __future__ import annotations
 
 import json
+import os
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -229,7 +230,7 @@ class _Session:
         return ConnectionFailed(f"the server closed the stream (close code {code}{': ' + why if why else ''})")
 
 
-def stream_stacks(stacks: Sequence[ScannerStack], server: str = DEFAULT_SERVER, *, api_key: str | None = None,
+def stream_stacks(stacks: Sequence[ScannerStack], server: str | None = None, *, api_key: str | None = None,
                   mc_samples: int | None = None, variance_threshold: float | None = None,
                   max_expected_error_mm: float | None = None, bias_correction: bool | None = None,
                   masks_hold_csf: bool | None = None, model: str | None = None, pace_s: float = 0.0, order: str | Sequence[str] = "sequential",
@@ -243,8 +244,9 @@ def stream_stacks(stacks: Sequence[ScannerStack], server: str = DEFAULT_SERVER, 
 
     Args:
         stacks: the stacks, in the order they are sent (see :func:`read_stack`).
-        server: the server's address (``http(s)://`` or ``ws(s)://``).
-        api_key: sent as ``Authorization: Bearer``.
+        server: the server's address (``http(s)://`` or ``ws(s)://``; default ``$SVRNET_SERVER``, else
+            the local server), as :class:`~client.SVRnetClient` takes it.
+        api_key: sent as ``Authorization: Bearer`` (default ``$SVRNET_API_KEY``).
         mc_samples: MC-dropout passes per slice (server default 100).
         variance_threshold: as for ``/v1/predict`` (default: the model's).
         max_expected_error_mm: as for ``/v1/predict`` (default: the model's).
@@ -287,7 +289,8 @@ def stream_stacks(stacks: Sequence[ScannerStack], server: str = DEFAULT_SERVER, 
             orders.append(send_order(len(stack.slices), o))
         except ArgumentError as e:
             raise ArgumentError(f"{stack.name}: {e}") from None
-    key = clean_api_key(api_key)
+    key = clean_api_key(api_key if api_key is not None else os.environ.get("SVRNET_API_KEY"))
+    server = server or os.environ.get("SVRNET_SERVER") or DEFAULT_SERVER
     with _connect(stream_url(server), key, answer_timeout_s) as ws, \
             (open(json_out, "w", encoding="utf-8") if json_out is not None else nullcontext()) as record:   # kept if none
         session = _Session(ws, on_message, record, answer_timeout_s, key_sent=bool(key))

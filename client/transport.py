@@ -247,7 +247,7 @@ class Transport:
     def _download(self, path: str, out_path: PathLike, progress: ProgressCallback | None) -> Path:
         """``GET path`` into ``out_path``, written under a temporary name and renamed when whole; a
         download cut off is started again (up to the client's retries), never left half-written."""
-        out = Path(out_path)
+        out = Path(out_path).expanduser()            # as a shell would: the CLI's paths come expanded already
         tmp = out.with_name(f".{out.name}.part-{secrets.token_hex(4)}")
         for attempt in range(self.retries + 1):
             response = self._send("GET", path, stream=True)

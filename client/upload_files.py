@@ -79,7 +79,7 @@ def file_parts(stacks: Sequence[PathLike], masks: Sequence[PathLike] | None) -> 
     files: list[tuple[str, str, Path | bytes, str]] = []
     for field, paths in (("stacks", stacks), ("masks", masks)):
         for p in paths:
-            path = Path(p)
+            path = Path(p).expanduser()
             if field == "stacks" and path.is_dir():
                 files.append((field, f"{path.resolve().name}.zip", zipped_folder(path), "application/zip"))
                 continue

@@ -196,6 +196,57 @@ def mock(handler: Callable[[httpx.Request], httpx.Response], **kwargs: Any) -> S
     return SVRnetClient("http://svr.test", transport=httpx.MockTransport(handler), **kwargs)
 
 
+def test_the_library_takes_paths_and_numbers_as_a_script_holds_them(stack_file: Path, tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """``~`` expanded where a path goes in or out, as a shell expands the command line's; a slice thickness
+    read from a header (a numpy scalar) sent as a number; a stack that is not there named as such, not
+    as a corrupt file; the library's own refusal importable from the package."""
+    import shutil
+
+    from client import ArgumentError as exported
+    from client.scanner_stack import read_stack
+
+    assert exported is ArgumentError
+    monkeypatch.setenv("HOME", str(tmp_path))
+    shutil.copy(stack_file, tmp_path / "ax.nii.gz")
+    sent: list[httpx.Request] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        sent.append(request)
+        if request.url.path.endswith("/volume"):
+            return httpx.Response(200, content=b"volume", headers={"content-type": "application/gzip"})
+        return httpx.Response(202, json={"job_id": "j", "status": "queued", "status_url": "/v1/reconstructions/j"})
+
+    with mock(handler) as svr:
+        svr.reconstruct(["~/ax.nii.gz"], slice_thickness_mm=np.float32(3.0))
+        assert svr.download_volume("j", "~/recon.nii.gz") == tmp_path / "recon.nii.gz"
+    fields, _ = parse_multipart(sent[0])
+    assert fields["slice_thickness_mm"] == ["3.0"]
+    assert (tmp_path / "recon.nii.gz").read_bytes() == b"volume" and not Path("~").exists()
+    with pytest.raises(FileNotFoundError):
+        read_stack(tmp_path / "absent.nii.gz")
+
+
+def test_a_stream_reads_the_server_and_key_from_the_environment_as_the_client_does(
+        stack_file: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from client.scanner_stack import read_stack
+
+    seen: list[tuple[str, str | None]] = []
+
+    def connect(url: str, key: str | None, timeout_s: float) -> None:
+        seen.append((url, key))
+        raise ConnectionFailed("stop here")
+
+    monkeypatch.setattr(client_stream, "_connect", connect)
+    monkeypatch.setenv("SVRNET_SERVER", "https://svr.example:8443")
+    monkeypatch.setenv("SVRNET_API_KEY", "k-env")
+    with pytest.raises(ConnectionFailed):
+        client_stream.stream_stacks([read_stack(stack_file)])
+    with pytest.raises(ConnectionFailed):
+        client_stream.stream_stacks([read_stack(stack_file)], "http://other:8000", api_key="k-given")
+    assert seen == [("wss://svr.example:8443/v1/stream", "k-env"), ("ws://other:8000/v1/stream", "k-given")]
+
+
 def test_503_twice_then_success_resends_the_whole_body(stack_file: Path, mask_file: Path,
                                                         no_sleep: list[float]) -> None:
     calls: list[httpx.Request] = []

@@ -338,8 +338,13 @@ def test_niftymic_gets_each_file_it_needs_and_no_file_overwrites_another(tmp_pat
     (tmp_path / "other").mkdir()
     copy = tmp_path / "other" / "ax.nii.gz"
     copy.write_bytes(case["stack"].read_bytes())
-    with pytest.raises(UnusableInput, match="two stacks are named 'ax'"):
+    with pytest.raises(UnusableInput, match="two stacks are named 'ax' and 'ax'"):
         export(twice, [case["stack"], copy], None, tmp_path / "x", "niftymic")
+    upper = tmp_path / "other" / "AX.nii.gz"                          # one file on a case-insensitive disk
+    copy.rename(upper)
+    with pytest.raises(UnusableInput, match="named 'ax' and 'AX' \\(alike but for case\\)"):
+        export(twice, [case["stack"], upper], None, tmp_path / "x", "niftymic")
+    assert not (tmp_path / "x").exists()
     small = tmp_path / "small.nii.gz"
     nib.save(nib.Nifti1Image(np.ones((3, 3, 3), np.uint8), np.eye(4)), small)
     with pytest.raises(UnusableInput, match="small.nii.gz is not on its stack's grid"):
@@ -570,3 +575,14 @@ def test_a_file_that_does_not_read_leaves_the_folder_untouched_and_an_answer_wit
     r = run("--overwrite")
     assert r.exit_code == 12 and "wrote 0 slices" in r.stdout and "--all-slices" in r.stderr and "next:" not in r.stdout
     assert run("--overwrite", "--all-slices").exit_code == 0
+
+
+def test_a_folder_given_with_a_tilde_is_written_where_the_user_means(case: dict, tmp_path: Path,
+                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """The folder checked and made was the expanded one, the files written under a literal ``~``."""
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "home").mkdir()
+    done = export(case["answer"], [case["stack"]], None, Path("~/exp"), "nesvor")
+    assert done.count == 4 and len(list((tmp_path / "home" / "exp").glob("*.nii.gz"))) == 4
+    assert not (tmp_path / "~").exists()
