@@ -30,7 +30,6 @@ import SimpleITK as sitk
 from pydicom import uid
 
 from service.core.errors import PayloadTooLarge, UnsupportedFile, UnusableImage
-from service.core.names import clean_name
 from service.io.acquisition_geometry import Tags, series_problem, stated_thickness
 from service.io.acquisition_times import order_of, seconds
 from service.io.dicom import read_dicom_file
@@ -85,8 +84,8 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path 
                 if sum(m.file_size for m in members) > budget.limit:
                     raise budget.too_large("the archive inflates")
                 for i, m in enumerate(members):
-                    base = clean_name(m.filename.replace("\\", "/").rsplit("/", 1)[-1])   # not its folders (a
-                    label = f"{filename}: member {i + 1} of {len(members)}" + (f" ({base})" if base else "")  # patient's)
+                    # By its place alone: scanners name members (and folders) after the patient and the date.
+                    label = f"{filename}: member {i + 1} of {len(members)}"
                     out = Path(tmp) / f"{i:05d}.dcm"
                     if _unpack(z, m, out, budget.member(label), label, times, tags, thicknesses, sizes):
                         labels[str(out)] = label
@@ -175,7 +174,7 @@ def _unpack(z: zipfile.ZipFile, member: zipfile.ZipInfo, out: Path, budget: File
         out.with_suffix(".part10").replace(out)
     try:
         ds = load_dataset(out, label, budget, require_pixels=False)
-    except (PayloadTooLarge, UnsupportedFile):
+    except (PayloadTooLarge, UnsupportedFile, UnusableImage):    # a 422 says what is wrong with it
         raise
     except Exception as exc:  # noqa: BLE001 - pydicom's errors on a client's bytes
         raise UnsupportedFile(f"{label}: unreadable DICOM file") from exc

@@ -70,12 +70,21 @@ def read_dicom_file(path: Path, filename: str, budget: FileBudget) -> Volume:
     ``filename`` is the client's name of the file (for a ZIP member: ``archive.zip: member``); every
     decoder is bounded by ``budget`` (:mod:`service.io.dicom_guard`).
     """
+    ds = None
     try:
         ds = load_dataset(path, filename, budget)
         pixels = ds.pixel_array.astype(np.float32)
     except (InvalidDicomError, AttributeError, ValueError, OSError, KeyError, EOFError) as exc:
         raise_if_out_of_space(exc)
         raise UnsupportedFile(f"{filename}: unreadable DICOM pixel data") from exc
+    except (RuntimeError, NotImplementedError) as exc:       # pydicom has no decoder for its compression
+        if ds is None:
+            raise
+        syntax = ds.file_meta.get("TransferSyntaxUID")
+        named = getattr(syntax, "name", None) or "its transfer syntax"
+        raise UnsupportedFile(f"{filename}: DICOM pixel data compressed as {named}, which this server cannot "
+                              "decode as one multi-frame file; send the series as single-frame files in a ZIP, or "
+                              "uncompressed") from exc
     slope = float(getattr(ds, "RescaleSlope", 1) or 1)
     pixels = pixels * slope + float(getattr(ds, "RescaleIntercept", 0) or 0)
     image_type = [str(t).upper() for t in getattr(ds, "ImageType", [])]

@@ -19,11 +19,14 @@ def test_a_dicom_error_names_the_clients_file(oracle_client: TestClient) -> None
     assert "stack0" not in r.text
 
 
-def test_a_dicom_error_inside_a_zip_names_the_archive_and_the_member(oracle_client: TestClient) -> None:
-    r = post(oracle_client, [("stacks", ("study.zip", corpus.zipped({"series 3/IM0007": BROKEN_DICOM})))])
-    assert_problem(r, 415, "study.zip", "member 1 of 1 (IM0007)")
+def test_a_dicom_error_inside_a_zip_names_the_archive_and_the_member_by_its_place(oracle_client: TestClient) -> None:
+    """Not by its name: scanners name the files of an export after the patient and the date
+    (``DOE_JANE.MR.HASTE.0005.0008.2024.03.11...IMA``), and PACS exports their folders."""
+    member = "series 3/DOE_JANE.MR.FETAL_HASTE.0005.0008.2024.03.11.10.15.07.IMA"
+    r = post(oracle_client, [("stacks", ("study.zip", corpus.zipped({member: BROKEN_DICOM})))])
+    assert_problem(r, 415, "study.zip: member 1 of 1: ")
     assert "00000.dcm" not in r.text and "svrnet-" not in r.text
-    assert "series 3" not in r.text                     # a PACS export's folders name the patient
+    assert "series 3" not in r.text and "DOE" not in r.text and "2024" not in r.text
 
 
 @pytest.mark.parametrize("name", ["scan\u202egpj.nii.gz", "scan\x1b[31m.nii.gz", "scan\u200b\x07.nii.gz"])
