@@ -256,7 +256,7 @@ def align_samples(poses: ArrayLike, plane_x_mm: float = DEFAULT_PLANE_X_MM) -> t
     distances to all samples (a medoid of the quotient space) fixes a branch, every sample is replaced
     by whichever of itself and its twin is nearer that medoid, and finally the branch holding the
     greater part of the samples becomes the reference (so a slice's reported pose is where most
-    of its MC mass sat).
+    of its MC mass sat; on an even split, the first sample's branch).
 
     Returns:
         ``(aligned [..., N, 4, 4], flipped [..., N] bool)``: ``flipped`` marks the samples replaced
@@ -284,7 +284,10 @@ def align_samples(poses: ArrayLike, plane_x_mm: float = DEFAULT_PLANE_X_MM) -> t
     medoid = np.argmin(np.minimum(direct, mirrored).sum(axis=-1), axis=-1)          # [...]
     take = np.expand_dims(medoid, (-1, -2))
     flipped = np.take_along_axis(mirrored, take, axis=-2)[..., 0, :] < np.take_along_axis(direct, take, axis=-2)[..., 0, :]
-    majority_twin = flipped.mean(axis=-1) > 0.5
+    share = flipped.mean(axis=-1)
+    # An even split keeps the first sample's branch: a rule the mirror carries over (the medoid's own
+    # would be settled by rounding, and a slice and its twin could answer on one branch).
+    majority_twin = (share > 0.5) | ((share == 0.5) & flipped[..., 0])
     flipped = flipped ^ majority_twin[..., None]
     aligned = np.where(flipped[..., None, None], twin(x, plane_x_mm), x)
     return aligned, flipped

@@ -128,3 +128,20 @@ def test_twin_risk_falls_with_the_distance_and_is_the_logistic() -> None:
     p = twin.twin_risk(d, (-1.2, -0.13))
     assert np.all(np.diff(p) < 0) and p[-1] < 1e-4
     np.testing.assert_allclose(np.log(p / (1 - p)), -1.2 - 0.13 * d)
+
+
+@pytest.mark.parametrize("n", [2, 4, 6])
+def test_an_even_split_between_the_twins_is_mirrored_with_the_slice(n: int) -> None:
+    """Half the MC samples on each twin: the branch followed the medoid, chosen among equal sums by
+    rounding (with the plane off x = 0, 2 x0 - x), so a slice and its mirror twin could answer on the
+    same branch. Now the first sample's branch is kept, which the mirror carries over."""
+    rng = np.random.default_rng(7)
+    plane = 1.2
+    for _ in range(50):
+        base = se3.exp(np.concatenate([rng.normal(0, 0.6, 3), rng.normal(0, 20, 3)]))
+        x = base @ se3.exp(rng.normal(0, 0.05, (n, 6)))
+        x[n // 2:] = twin.twin(x[n // 2:], plane)                       # an exact 50/50 split
+        aligned, flipped = twin.align_samples(x, plane)
+        mirrored, flipped_m = twin.align_samples(twin.twin(x, plane), plane)
+        np.testing.assert_allclose(mirrored, twin.twin(aligned, plane), atol=1e-9)
+        assert not flipped[0] and not flipped_m[0] and flipped.sum() == n // 2
