@@ -10,7 +10,7 @@ from typing import Annotated, Optional
 import typer
 
 from model_export.atlas import DEFAULT_ATLAS_ROOT
-from model_export.cli_options import Root
+from model_export.cli_options import PoseCheckpoint, Root
 from service.inference.views import SHIPPED_VIEWS
 
 
@@ -21,7 +21,7 @@ KeptColumns = Annotated[Optional[list[Path]], typer.Option(
 """The options of a calibration measured on slice columns (the accept flags, the noise and frame errors)."""
 
 
-def calibrate(checkpoint: Path, root: Root = DEFAULT_ATLAS_ROOT, mc_samples: int = 100,
+def calibrate(checkpoint: PoseCheckpoint, root: Root = DEFAULT_ATLAS_ROOT, mc_samples: int = 100,
               tta_views: int = SHIPPED_VIEWS,
               model: Annotated[Optional[Path], typer.Option(
                   help="the ONNX file exported from CHECKPOINT to measure as the service runs it (its own views; "

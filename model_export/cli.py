@@ -22,7 +22,7 @@ import typer
 
 from model_export.atlas import DEFAULT_ATLAS_ROOT
 from model_export.calibration_cli import COMMANDS as CALIBRATION_COMMANDS
-from model_export.cli_options import Root
+from model_export.cli_options import PoseCheckpoint, Root
 from model_export.localiser.cli import app as localiser_app
 from service.inference.views import SHIPPED_VIEWS
 
@@ -72,7 +72,7 @@ def train(
     threads or time budget), else TrainConfig's (model_export/train_config.py)."""
     from model_export.stream import SLICES_PER_ACQUISITION
     from model_export.train import train as run
-    from model_export.train_config import TrainConfig, stage_config
+    from model_export.train_config import TrainConfig, check_root, stage_config
 
     given = {k: v for k, v in dict(
         backbone=backbone, width=width, label_type=label_type, sampling=sampling, steps=steps, batch=batch, lr=lr,
@@ -90,8 +90,9 @@ def train(
         raise typer.BadParameter("a run resumes or starts a new stage, not both", param_hint="--init")
     try:
         cfg = stage_config(given, resume, init)
+        check_root(root, cfg)
     except ValueError as bad:
-        raise typer.BadParameter(str(bad), param_hint="--resume" if resume else "--init") from None
+        raise typer.BadParameter(str(bad)) from None
     if cfg.batch % SLICES_PER_ACQUISITION:
         raise typer.BadParameter(f"{cfg.batch}: slices come in groups of {SLICES_PER_ACQUISITION}", param_hint="--batch")
     best = run(cfg, out, root, resume, init=init)
@@ -118,7 +119,7 @@ def pack(
 
 @app.command()
 def export(
-    checkpoint: Path,
+    checkpoint: PoseCheckpoint,
     output: Path,
     name: str = "default",
     version: str = "0.1.0",
@@ -290,7 +291,7 @@ def quantise(
 
 @app.command()
 def ship(
-    checkpoint: Path,
+    checkpoint: PoseCheckpoint,
     out: Annotated[Path, typer.Option(help="model folder the service reads (SVRNET_MODELS_DIR/<name>)")],
     name: str = "default",
     version: str = "1.0.0",

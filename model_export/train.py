@@ -36,7 +36,7 @@ from model_export.losses import check_label_type, point_loss
 from model_export.model import SVRNet, multi_loss
 from model_export.simulate import SimulationConfig
 from model_export.stream import SLICES_PER_ACQUISITION, SliceStream, label_sample, validation_set
-from model_export.train_config import TrainConfig, default_loss, parse_fields, stage_config
+from model_export.train_config import TrainConfig, check_root, default_loss, parse_fields, stage_config
 from model_export.training_record import git_commit, hardware, plot_log, prior_history, totals
 from service.geometry import anchors, encodings, se3
 from service.geometry.twin import POINT_LABELS, twin
@@ -308,6 +308,7 @@ def main(argv: list[str] | None = None) -> Path:
         ap.error("a run resumes (--resume) or starts a new stage (--init), not both")
     try:
         cfg = stage_config(parse_fields(ap, args.fields, TrainConfig), args.resume, args.init)
+        check_root(args.root, cfg)
     except ValueError as bad:
         ap.error(str(bad))
     best = train(cfg, args.out, args.root, resume=args.resume, init=args.init, progress=False)

@@ -17,7 +17,7 @@ import torch
 
 from service.geometry.twin import POINT_LABELS
 
-__all__ = ["TrainConfig", "HOST_FIELDS", "default_loss", "parse_fields", "stage_config"]
+__all__ = ["TrainConfig", "HOST_FIELDS", "check_root", "default_loss", "parse_fields", "stage_config"]
 
 
 @dataclass
@@ -88,14 +88,36 @@ def parse_fields(ap: argparse.ArgumentParser, items: list[str], config: type) ->
     """
     values: dict = {}
     for item in items:
-        key, _, raw = item.partition("=")
+        key, equals, raw = item.partition("=")
         if key not in config.__dataclass_fields__:
             ap.error(f"unknown {config.__name__} field {key!r}")
+        if not equals:
+            ap.error(f"{key}: give it as {key}=VALUE")
         try:
             values[key] = json.loads(raw)
         except json.JSONDecodeError:
             values[key] = raw                      # a bare string: loss=min
+        wanted = str(config.__dataclass_fields__[key].type)
+        if not _of_type(values[key], wanted):
+            ap.error(f"{item}: {key} takes {wanted} (JSON: true/false, numbers, [lists], {{objects}}, null)")
     return values
+
+
+def _of_type(value: object, annotation: str) -> bool:
+    """Whether a parsed ``value`` fits a field annotated ``annotation`` (the dataclass's text: ``int``,
+    ``float | None``, ``tuple[float, ...]``, ...): ``True`` is no number, ``"False"`` no boolean.
+
+    Example:
+        >>> _of_type(3, "float"), _of_type(True, "int"), _of_type("False", "bool"), _of_type(None, "float | None")
+        (True, False, False, True)
+    """
+    kinds = {"bool": lambda v: isinstance(v, bool),
+             "int": lambda v: isinstance(v, int) and not isinstance(v, bool),
+             "float": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
+             "str": lambda v: isinstance(v, str), "dict": lambda v: isinstance(v, dict),
+             "tuple": lambda v: isinstance(v, list), "list": lambda v: isinstance(v, list),
+             "None": lambda v: v is None}
+    return any(kinds.get(part.strip().split("[")[0], lambda v: True)(value) for part in annotation.split("|"))
 
 
 def stage_config(given: dict, resume: Path | None = None, init: Path | None = None) -> TrainConfig:
@@ -113,9 +135,13 @@ def stage_config(given: dict, resume: Path | None = None, init: Path | None = No
     """
     values = dict(given)
     if resume is not None or init is not None:
-        saved = torch.load(resume or init, map_location="cpu", weights_only=False)
-        if "config" not in saved:
-            raise ValueError(f"{resume or init}: not a pose-network checkpoint of svrnet-train train (no config)")
+        path = resume or init
+        if not Path(path).is_file():
+            raise ValueError(f"{path}: no such checkpoint")
+        saved = torch.load(path, map_location="cpu", weights_only=False)
+        if not isinstance(saved, dict) or "config" not in saved or "model_config" not in saved:
+            raise ValueError(f"{path}: not a pose-network checkpoint of svrnet-train train (a localiser's, or no "
+                             "checkpoint at all)")
         if resume is not None and not {"optimizer", "scheduler"} <= saved.keys():
             raise ValueError(f"{resume}: holds the network without its optimiser and schedule (a shipped or pruned "
                              "checkpoint), so no run goes on from it: start a new stage from it with --init")
@@ -124,7 +150,47 @@ def stage_config(given: dict, resume: Path | None = None, init: Path | None = No
         if "simulation" in values:                     # a setting given changes the stage's, the others stay
             values["simulation"] = {**(old.get("simulation") or {}), **values["simulation"]}
         values = {**old, **values}
+    if resume is not None or init is not None:         # its weights are that network's: no other fits them
+        fixed = [k for k in ARCHITECTURE_FIELDS if resume is not None or k != "label_type"]   # a new stage may
+        changed = {k: (saved["config"].get(k), values[k]) for k in fixed        # take other labels: a new head
+                   if k in given and k in saved["config"] and given[k] != saved["config"][k]}
+        if changed:
+            raise ValueError(f"{resume or init}: its network has {changed} (saved, given)" +
+                             ("; a run goes on with its own network: start a new stage from it with --init"
+                              if resume is not None else "; a new stage starts from the same network"))
+    from model_export.simulate import SimulationConfig   # its dataclass only (the module is imported by train)
+
+    unknown = sorted(set(values.get("simulation") or {}) - set(SimulationConfig.__dataclass_fields__))
+    if unknown:
+        raise ValueError(f"simulation: no such setting {unknown} (model_export/simulate.py, SimulationConfig)")
     for key in ("lr_milestones", "loss_weights"):
         if values.get(key) is not None:
             values[key] = tuple(values[key])
-    return TrainConfig(**values)
+    cfg = TrainConfig(**values)
+    from model_export.backbones import BACKBONES
+    from model_export.losses import check_label_type
+    from service.geometry.encodings import LABEL_TYPES
+
+    if cfg.label_type not in LABEL_TYPES:
+        raise ValueError(f"label_type {cfg.label_type!r}: one of {', '.join(LABEL_TYPES)}")
+    if cfg.backbone not in BACKBONES:
+        raise ValueError(f"backbone {cfg.backbone!r}: one of {', '.join(BACKBONES)}")
+    check_label_type(cfg.label_type, cfg.loss or default_loss(cfg.label_type))
+    if cfg.device.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"device {cfg.device}: this torch sees no CUDA device (device=auto takes one where there is)")
+    return cfg
+
+
+def check_root(root: Path, cfg: TrainConfig) -> None:
+    """A :class:`ValueError` in one line where ``root`` holds no atlas volumes, or not the validation
+    volumes a run holds out (a ``pack --training-only`` folder: the localiser's scenes only)."""
+    from model_export.atlas import VALIDATION_VOLUMES, split
+
+    try:
+        split(root, cfg.val_volumes or VALIDATION_VOLUMES)
+    except (OSError, ValueError) as bad:
+        raise ValueError(f"--root {root}: {getattr(bad, 'strerror', None) or bad}") from None
+
+
+ARCHITECTURE_FIELDS = ("backbone", "width", "label_type", "hidden", "spatial_grid", "grid_channels")
+"""The fields that make the network: a resumed run cannot change them."""

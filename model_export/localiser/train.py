@@ -375,6 +375,16 @@ def main(argv: list[str] | None = None) -> Path:
     ap.add_argument("--freeze-norm", action="store_true")
     ap.add_argument("--device", default="cpu")
     args = vars(ap.parse_args(argv))
+    if args["init"] is not None:                 # its depth, and its width unless a narrower one is asked
+        try:
+            start = torch.load(args["init"], map_location="cpu", weights_only=False)["config"]
+            start = {k: int(start[k]) for k in ("width", "depth")}
+        except Exception as bad:  # noqa: BLE001 - no file, a pose network's checkpoint, no checkpoint at all
+            ap.error(f"--init {args['init']}: not a localiser checkpoint ({type(bad).__name__})")
+        args["width"], args["depth"] = args["width"] or start["width"], args["depth"] or start["depth"]
+        if args["width"] > start["width"] or args["depth"] != start["depth"]:
+            ap.error(f"--init {args['init']} is a network of width {start['width']} and depth {start['depth']}: a "
+                     "new run from it keeps its depth and takes its width or a narrower one")
     keywords = {k: v for k, v in args.items() if v is not None and k not in ("data", "out", "minutes")}
     return train(args["data"], args["out"], args["minutes"], log=Path(f"{args['out']}.log"), **keywords)
 

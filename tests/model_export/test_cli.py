@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+import torch
 from typer.testing import CliRunner
 
 
@@ -86,7 +87,7 @@ def test_ship_calibrates_the_spread_before_the_accept_flags(tmp_path: Path, monk
     monkeypatch.setattr(quantise, "load_model", lambda path: Loaded())
     monkeypatch.setattr(card, "write_card", lambda out, **kw: card_budget.append(kw["budget"]) or out.write_text("# card\n"))
     checkpoint = tmp_path / "run.pt"
-    checkpoint.write_bytes(b"weights")
+    torch.save({"model_config": {}}, checkpoint)              # a pose network's, as the command checks
     report = tmp_path / "reports" / "default.md"
     report.parent.mkdir()
 
@@ -168,6 +169,7 @@ def test_export_takes_over_another_models_calibration(tmp_path: Path, monkeypatc
     monkeypatch.setattr(calibrate, "calibrate", lambda *a, **k: pytest.fail("calibrated although told not to"))
     monkeypatch.setattr(packaging, "export_checkpoint", own)
     out = tmp_path / "tuned.onnx"
+    torch.save({"model_config": {}}, tmp_path / "run.pt")          # a pose network's, as the command checks
 
     result = CliRunner().invoke(app, ["export", str(tmp_path / "run.pt"), str(out), "--calibration-from", str(source)])
 

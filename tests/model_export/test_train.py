@@ -351,3 +351,55 @@ def test_a_checkpoint_without_its_optimiser_is_refused_for_resume_and_starts_a_s
                             "--workers", "0", "--no-constant-lr"])
     assert r.exit_code == 0, r.output
     assert torch.load(tmp_path / "d" / "last.pt", weights_only=False)["config"]["lr_milestones"] == (0.6, 0.85)
+
+
+def test_wrong_usage_of_a_training_run_is_one_usage_line_before_any_work(packed: Path, tmp_path: Path,
+                                                                         capsys: pytest.CaptureFixture) -> None:
+    """On a GPU host's 15 minutes a traceback after the atlas has loaded, or a setting read wrongly, costs
+    the run: a value of another type (``channels_last=False`` was the string "False", which is true), a
+    setting the simulation does not have, a label type or device that does not exist, a root without
+    the validation volumes, a checkpoint that is a localiser's or of another network than the run
+    asks, each stops ``python -m model_export.train`` with one line (exit 2), before its folder is made."""
+    from model_export.train import main
+
+    run = ["--out", str(tmp_path / "run"), "--root", str(packed)]
+    state = torch.load(Path("service/models/default/checkpoint.pt"), map_location="cpu", weights_only=False)
+    localiser = Path("service/localisers/default/checkpoint.pt")
+    cases = [([*run, "steps=abc"], "steps takes int"), ([*run, "steps"], "steps=VALUE"),
+             ([*run, "channels_last=False"], "channels_last takes bool"),
+             ([*run, 'simulation={"tz_fractin": 0.5}'], "no such setting ['tz_fractin']"),
+             ([*run, "label_type=foo"], "label_type 'foo'"),
+             (["--out", str(tmp_path / "run"), "--root", str(tmp_path / "none")], "no atlas volumes"),
+             ([*run, "--init", str(localiser)], "not a pose-network checkpoint"),
+             ([*run, "--init", str(tmp_path / "absent.pt")], "no such checkpoint"),
+             ([*run, "--init", "service/models/default/checkpoint.pt", f"width={state['config']['width'] / 2}"],
+              "its network has {'width'")]
+    if not torch.cuda.is_available():
+        cases.append(([*run, "device=cuda"], "sees no CUDA device"))
+    for argv, words in cases:
+        with pytest.raises(SystemExit) as stop:
+            main(argv)
+        err = capsys.readouterr().err
+        assert stop.value.code == 2 and words in err and "Traceback" not in err, (argv, err)
+    assert not (tmp_path / "run").exists()
+
+
+def test_the_cli_refuses_checkpoints_of_the_other_network_by_name(tmp_path: Path) -> None:
+    """A localiser's checkpoint given to the pose network's commands, a pose network's to the
+    localiser's, a path that is not there: one line, not a KeyError or TypeError traceback."""
+    from typer.testing import CliRunner
+
+    from model_export.cli import app
+
+    runner = CliRunner()
+    localiser, pose = "service/localisers/default/checkpoint.pt", "service/models/default/checkpoint.pt"
+    for argv, words in ((["export", localiser, str(tmp_path / "x.onnx")], "a localiser's?"),
+                        (["calibrate", localiser], "a localiser's?"),
+                        (["export", str(tmp_path / "nope.pt"), str(tmp_path / "x.onnx")], "no such file"),
+                        (["localiser", "train", "--data", str(tmp_path), "--out", str(tmp_path / "l.pt"), "--steps", "1",
+                          "--init", pose], "a pose network's?"),
+                        (["localiser", "train", "--data", str(tmp_path), "--out", str(tmp_path / "l.pt"), "--steps", "1",
+                          "--init", localiser, "--width", "64"], "takes its width or a narrower one")):
+        r = runner.invoke(app, argv, env={"COLUMNS": "200"})
+        assert r.exit_code == 2 and words in " ".join(r.output.split()), (argv, r.output)
+    assert not (tmp_path / "x.onnx").exists() and not (tmp_path / "l.pt").exists()
