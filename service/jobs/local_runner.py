@@ -46,10 +46,10 @@ log = logging.getLogger(__name__)
 
 LOCK_NAME = "server.lock"
 UNRECORDED_RETRY_S = 5.0
-"""How often a job whose end the store refused is tried again (:meth:`LocalJobRunner._fail_unrecorded`):
+"""How often a job whose end the store refused is tried again (:meth:`LocalRunner._fail_unrecorded`):
 a full disk is usually freed within minutes, and the job should not show ``running`` much longer."""
 UNRECORDED_RETRY_FOR_S = 600.0
-"""How long it is tried so; after that the job upkeep tries (:meth:`LocalJobRunner.maintain`)."""
+"""How long it is tried so; after that the job upkeep tries (:meth:`LocalRunner.maintain`)."""
 """The file in the store's folder whose lock says which server owns the store (its pid inside)."""
 
 
