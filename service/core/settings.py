@@ -250,7 +250,7 @@ def load_settings(prog: str, *, needs_default_model: bool = True, **given: objec
     return settings
 
 
-OTHER_VARIABLES = frozenset({"SVRNET_SERVER", "SVRNET_API_KEY", "SVRNET_TIMEOUT", "SVRNET_BIND"})
+OTHER_VARIABLES = frozenset({"SVRNET_SERVER", "SVRNET_API_KEY", "SVRNET_TIMEOUT", "SVRNET_BIND", "SVRNET_MRD_BIND"})
 """``SVRNET_`` variables that are not the service's settings and share its environment: the client's
 (``svrnet``) and docker compose's."""
 OTHER_PREFIXES = ("SVRNET_TEST_", "SVRNET_SCHEMATHESIS_")

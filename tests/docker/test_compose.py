@@ -93,3 +93,24 @@ def test_the_load_balancer_passes_the_host_with_its_port() -> None:
         for variable in ("$http_host", "$host"):
             r = client.get("/v1/models", headers={"Origin": f"http://{published}", "Host": as_passed[variable]})
             assert (r.status_code == 403) == (variable == "$host"), (variable, r.status_code)
+
+
+def test_the_load_balancer_lets_the_requests_under_way_finish_and_leaves_upload_limits_to_the_service() -> None:
+    """compose stops the service others depend on first: with its default 10 s, a prediction under way
+    was cut at the proxy while its replica had 75 s. nginx's own 413 (HTML, no request id) answered
+    any body over its fixed size, whatever SVRNET_MAX_UPLOAD_MB said."""
+    def seconds(text: str) -> float:
+        return float(re.fullmatch(r"(\d+)s", text).group(1))
+
+    assert seconds(SERVICES["lb"]["stop_grace_period"]) >= seconds(SERVICES["api-1"]["stop_grace_period"])
+    sizes = re.findall(r"^\s*client_max_body_size\s+(\S+);", (ROOT / "docker" / "nginx.conf").read_text(), re.M)
+    assert sizes == ["0"]
+
+
+def test_every_variable_compose_reads_is_one_the_services_know() -> None:
+    """Those compose substitutes from the operator's shell are not the service's settings: the service,
+    started from that shell, would otherwise warn that nothing reads them."""
+    from service.core.settings import unknown_variables
+
+    read = set(re.findall(r"\$\{(SVRNET_[A-Z_]+)", (ROOT / "docker" / "compose.yaml").read_text()))
+    assert read and unknown_variables(dict.fromkeys(read, "x")) == []

@@ -599,3 +599,24 @@ def test_the_servers_own_work_on_a_stack_is_not_the_clients_idle_time(case: Case
     received = client.close()
     assert [m["stack"] for m in texts(received) if m["type"] == "stack"] == ["0", "1"]
     assert not [m for m in texts(received) if m["type"] == "error"]
+
+
+def test_a_port_probe_is_logged_at_debug_a_session_at_info(serve, caplog) -> None:  # noqa: ANN001
+    """compose's health check opens the port every 30 s and sends nothing: a line at INFO each time
+    (2,900 a day) buried the sessions' own. A connection that sends a message is still logged at INFO."""
+    import logging
+
+    server = serve()
+    with caplog.at_level(logging.DEBUG, logger="service.mrd.connection"):
+        socket.create_connection(("127.0.0.1", server.port), 3).close()          # the health check
+        with socket.create_connection(("127.0.0.1", server.port), 3) as client:
+            client.sendall(struct.pack("<H", 4))                                 # CLOSE, a message
+            client.settimeout(5)
+            while client.recv(4096):
+                pass
+        deadline = time.monotonic() + 5
+        while len([r for r in caplog.records if r.getMessage().startswith("mrd connection ended")]) < 2:
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+    ended = {r.getMessage(): r.levelno for r in caplog.records if r.getMessage().startswith("mrd connection ended")}
+    assert ended == {"mrd connection ended: client gone": logging.DEBUG, "mrd connection ended: closed": logging.INFO}
