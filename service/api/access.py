@@ -57,11 +57,12 @@ def origin_ok(settings: Settings, headers: dict[str, str]) -> bool:
     post a form to, or open a websocket on, a service on their machine without any CORS
     permission. Without API keys, a request carrying an ``Origin`` is therefore served only from the
     server's own pages at an address (an IP literal or ``localhost``, which a rebound DNS name
-    cannot pose as) or from one of ``allowed_origins``; with keys, the key decides. A browser's
-    request without an ``Origin`` (a same-origin ``GET``) says it came from a page by
-    ``Sec-Fetch-Site``: it is served where the server is reached at an address or at a listed
-    origin, so a page whose DNS name was rebound to the server cannot read it either; an address
-    typed by the user (``Sec-Fetch-Site: none``) always is.
+    cannot pose as) or from one of ``allowed_origins``; with keys, the key decides. A request
+    without an ``Origin`` (a script's, or a page's same-origin ``GET``) is served where the server is
+    reached at an address or at a listed origin (its ``Host``), so a page whose DNS name was rebound
+    to the server cannot read it either: browsers do not send ``Sec-Fetch-Site`` to a plain-HTTP
+    name, so a page's ``GET`` there looks like a script's. An address typed in a browser that says
+    so (``Sec-Fetch-Site: none``, which no page can send) is served at any ``Host``.
 
     Example:
         >>> s = Settings(allowed_origins="https://viewer.example")
@@ -74,14 +75,20 @@ def origin_ok(settings: Settings, headers: dict[str, str]) -> bool:
         ...  (("evil.example:8000", "same-origin"), ("localhost:8000", "same-origin"), ("evil.example:8000", "none"),
         ...   ("viewer.example", "same-origin"))]
         [False, True, True, True]
+        >>> [origin_ok(s, {"host": h}) for h in ("127.0.0.1:8000", "svr.example:8000", "viewer.example")]
+        [True, False, True]
+        >>> origin_ok(s, {})                          # no Host: no browser's request
+        True
     """
     origin = headers.get("origin")
     if settings.key_set():
         return True
     allowed = settings.origin_set()
     if origin is None:
-        host = headers.get("host", "")
-        return (headers.get("sec-fetch-site", "none") == "none" or _at_address(host) or "*" in allowed
+        host = headers.get("host")
+        if host is None:                             # HTTP/1.0 without one: no browser sends that
+            return True
+        return (headers.get("sec-fetch-site") == "none" or _at_address(host) or "*" in allowed
                 or any(plain_origin(f"{scheme}://{host}") in allowed for scheme in ("http", "https")))
     origin = plain_origin(origin)
     if "*" in allowed or origin in allowed:
@@ -110,6 +117,9 @@ def _at_address(netloc: str) -> bool:
 
 FOREIGN_ORIGIN = ("Origin: this server serves browser pages of its own address only; list the page's origin "
                   "in SVRNET_ALLOWED_ORIGINS, or configure API keys")
+FOREIGN_HOST = ("Host: a server without API keys answers at an IP address or localhost (a web page whose DNS name "
+                "was pointed at it could otherwise read it); list this address (http://NAME:PORT) in "
+                "SVRNET_ALLOWED_ORIGINS, or configure API keys")
 
 UNAUTHORIZED = "Authorization: a valid API key is required (Bearer token or X-API-Key header)"
 

@@ -14,7 +14,7 @@ from fastapi import Depends, Header, Request
 from fastapi.dependencies.models import Dependant
 from starlette.datastructures import State
 
-from service.api.access import (FOREIGN_ORIGIN, UNAUTHORIZED, api_key_ok, key_owner, needs_key, origin_ok,
+from service.api.access import (FOREIGN_HOST, FOREIGN_ORIGIN, UNAUTHORIZED, api_key_ok, key_owner, needs_key, origin_ok,
                                 presented_key)
 from service.api.metrics import Metrics
 from service.core.cancellation import cancelled_by
@@ -127,7 +127,7 @@ def early_rejection(state: State, method: str, path: str, headers: dict[str, str
     """
     settings: Settings = state.settings
     if path.startswith("/v1/") and not origin_ok(settings, headers):      # the API: probes and docs stay open
-        return ForeignOrigin(FOREIGN_ORIGIN)
+        return ForeignOrigin(FOREIGN_ORIGIN if "origin" in headers else FOREIGN_HOST)
     if needs_key(settings, path) and not api_key_ok(settings.key_set(), headers.get("authorization"),
                                                     headers.get("x-api-key")):
         return Unauthorized(UNAUTHORIZED)

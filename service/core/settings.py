@@ -43,11 +43,14 @@ class Settings(BaseSettings):
     log_level: str = Field("info", description="the service's log level: debug, info, warning, error or critical "
                            "(JSON lines; never file names or DICOM attributes)")
     api_keys: str = Field("", description="comma-separated keys; empty = no authentication")
-    allowed_origins: str = Field("", description="without API keys: comma-separated browser origins "
+    allowed_origins: str = Field("", description="without API keys: comma-separated origins "
                                  "(scheme://host[:port]) that may call the service besides its own pages at an "
                                  "address; * = any. Another page's request (it carries an Origin header; scripts "
                                  "send none) is refused, 403, a stream connection too: a web page the user visits "
-                                 "must not use a service on their machine. With keys, the key decides")
+                                 "must not use a service on their machine. A request to the server by name (its "
+                                 "Host) is served only where that origin is listed, as a page whose DNS name was "
+                                 "pointed at the server could otherwise read it: scripts that call it by name list "
+                                 "it here. With keys, the key decides")
     metrics_public: bool = Field(False, description="serve /metrics without an API key even when keys are "
                                  "configured (by default it needs one, like /v1/)")
     max_upload_mb: float = Field(512.0, gt=0, description="limit of one request body (413 above)")

@@ -87,8 +87,6 @@ class MrdConnection:
         self.slices_per_series: int | None = None
         self.series: dict[int, SeriesState] = {}
         self.counts = {"images": 0, "refused": 0, "stacks": 0}
-        self.messages = 0
-        """Messages read (a connection that ends before its first is a port probe: a health check's)."""
         self.started, self.latencies = time.perf_counter(), []
         self.ignored: set[str] = set()
         self.broken = False
@@ -122,11 +120,10 @@ class MrdConnection:
         finally:
             self.settle()
             self.stage.shutdown()
-        quiet = outcome == "client gone" and not self.messages       # a probe: one log line a check is noise
-        log.log(logging.DEBUG if quiet else logging.INFO, "mrd connection ended: %s", outcome,
-                extra={"n_slices": self.counts["images"], "n_refused": self.counts["refused"],
-                       "n_stacks": self.counts["stacks"],
-                       "duration_ms": round((time.perf_counter() - t0) * 1e3, 1)})
+        log.info("mrd connection ended: %s", outcome,
+                 extra={"n_slices": self.counts["images"], "n_refused": self.counts["refused"],
+                        "n_stacks": self.counts["stacks"],
+                        "duration_ms": round((time.perf_counter() - t0) * 1e3, 1)})
 
     def step(self) -> bool:
         """Read and answer one message; ``False`` at the client's ``CLOSE``."""
@@ -135,7 +132,6 @@ class MrdConnection:
                                                 "(ignored and refused ones do not count); the server closes it"))
         self.reader.next_message()
         kind = self.incoming.peek()
-        self.messages += 1
         if kind not in KNOWN:
             raise ProtocolBroken(InvalidParameter(f"message: unknown MRD message id {kind}"))
         if kind == ISMRMRDMessageID.IMAGE:

@@ -33,7 +33,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from service.core import logging as service_logging
-from service.core.errors import Saturated, UnusableModelFile
+from service.core.errors import RequestTimeout, Saturated, UnusableModelFile
 from service.core.listening import listen_problem
 from service.core.settings import Settings, load_settings, warn_unknown_variables
 from service.core.threads import limit_blas_threads
@@ -51,6 +51,10 @@ LINGER_S, LINGER_CHUNKS = 2.0, 256
 before it closes."""
 DEFAULT_PORT = 9002
 """The port of FIRE's python-ismrmrd-server, which scanners' FIRE configurations name by default."""
+FIRST_BYTES_S = 10.0
+"""How long a new connection may send nothing before the server closes it, holding no session slot
+meanwhile: a scanner sends its configuration at once; a peer that connects and waits (or a port
+probe) would otherwise keep a slot for the whole idle limit, and a few such the scanners out."""
 
 
 def session_factory(registry: ModelRegistry, localiser: Localiser | None, limits: StreamLimits) -> SessionFactory:
@@ -122,14 +126,15 @@ class MrdHandler(socketserver.StreamRequestHandler):
 
     def handle(self) -> None:
         server = self.server
+        if not server.slots.acquire(blocking=False):
+            self.refuse_busy()
+            return
+        server.slots.release()         # one is free: taken once the client speaks (a silent peer holds none)
+        if not self.first_bytes(min(FIRST_BYTES_S, server.limits.idle_s or FIRST_BYTES_S)):
+            return
         self.connection.settimeout(server.limits.idle_s)
         if not server.slots.acquire(blocking=False):
-            log.warning("mrd connection refused: every session slot is taken")
-            busy = Saturated(f"session: {server.limits.max_sessions} MRD sessions are open; try again later")
-            try:
-                refuse(self.wfile, busy, retry_after_s=server.retry_after_s)
-            except OSError:                 # the client left first: nothing to tell it
-                log.info("mrd refused connection closed before its answer")
+            self.refuse_busy()
             return
         outbox: Outbox | None = None
         try:
@@ -144,6 +149,38 @@ class MrdHandler(socketserver.StreamRequestHandler):
             server.slots.release()
         if connection.broken:
             self.linger()
+
+    def refuse_busy(self) -> None:
+        """Every session slot is taken: the client is told when to try again."""
+        server = self.server
+        log.warning("mrd connection refused: every session slot is taken")
+        busy = Saturated(f"session: {server.limits.max_sessions} MRD sessions are open; try again later")
+        try:
+            refuse(self.wfile, busy, retry_after_s=server.retry_after_s)
+        except OSError:                 # the client left first: nothing to tell it
+            log.info("mrd refused connection closed before its answer")
+
+    def first_bytes(self, within_s: float) -> bool:
+        """Whether the client sends something within ``within_s`` (looked at, not read). A connection
+        closed first is a probe (logged at debug); a silent one is told it waited too long, and closed
+        (as an idle session is), before it takes a slot."""
+        self.connection.settimeout(within_s)
+        try:
+            return bool(self.connection.recv(1, socket.MSG_PEEK)) or self.probed()
+        except TimeoutError:
+            log.info("mrd connection sent nothing within %g s", within_s)
+            try:
+                refuse(self.wfile, RequestTimeout(f"connection: no message for too long ({within_s:g} s before the "
+                                                  "first); the server closes it"))
+            except OSError:
+                pass
+        except OSError:                               # reset before a byte: a probe too
+            return self.probed()
+        return False
+
+    def probed(self) -> bool:
+        log.debug("mrd connection closed before its first message")
+        return False
 
     def linger(self) -> None:
         """Half-close and drain what the client still sends (bounded), so that closing with unread data

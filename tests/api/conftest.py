@@ -18,6 +18,7 @@ from service.inference.model_file import ModelInfo, load_model
 from service.inference.registry import ModelRegistry
 from service.io.volume import Volume, write_volume
 from service.main import create_app
+from tests.support.local_client import LocalClient
 from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine
 from tests.support.scratch import job_store_dir
 
@@ -61,7 +62,7 @@ def tiny_model_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def make_client(registry: ModelRegistry, **settings: object) -> TestClient:
     """A TestClient of the app with ``registry``; the job store goes to a fresh temporary folder."""
     settings.setdefault("data_dir", job_store_dir())
-    return TestClient(create_app(Settings(**settings), registry=registry), raise_server_exceptions=False)
+    return LocalClient(create_app(Settings(**settings), registry=registry), raise_server_exceptions=False)
 
 
 @pytest.fixture

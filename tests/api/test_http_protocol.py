@@ -55,14 +55,14 @@ def test_a_silent_connection_is_closed(server: Server) -> None:
 
 def test_headers_trickled_line_by_line_are_cut_off(server: Server) -> None:
     with socket.create_connection(("127.0.0.1", server.port)) as sock:
-        sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n")
+        sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n")
         data, closed_after = read_until_closed(sock, 10, drip=b"X-Slow: 1\r\n")   # never the blank line
     assert data == b"" and closed_after is not None and closed_after < LIMIT_S + 2
 
 
 def test_a_stalled_body_gets_408_and_the_connection_closes(server: Server) -> None:
     with socket.create_connection(("127.0.0.1", server.port)) as sock:
-        sock.sendall(b"POST /v1/predict HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary=xx\r\n"
+        sock.sendall(b"POST /v1/predict HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: multipart/form-data; boundary=xx\r\n"
                      b"Content-Length: 100000\r\n\r\n--xx\r\n")
         data, closed_after = read_until_closed(sock, 10)
     head, _, body = data.partition(b"\r\n\r\n")
@@ -76,7 +76,7 @@ def test_kept_alive_requests_each_get_their_own_deadline(server: Server) -> None
         sock.settimeout(5)
         for _ in range(4):                    # 4 x 0.6 deadlines on one connection: longer than one
             time.sleep(0.6 * LIMIT_S)
-            sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n")
+            sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
             answer = b""
             while not answer.endswith(b"}"):  # the head and the body may come in two reads
                 answer += sock.recv(65536)

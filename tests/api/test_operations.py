@@ -17,6 +17,7 @@ from service.inference.registry import ModelRegistry
 from service.io.volume import Volume, write_volume
 from service.main import create_app
 from tests.api.conftest import make_client
+from tests.support.local_client import LocalClient
 
 
 def upload(client: TestClient, stack: Path, mask: Path | None, **data: str):  # noqa: ANN201
@@ -120,8 +121,9 @@ def test_api_keys(tiny_model_path: Path, phantom_files) -> None:
 def test_another_site_s_page_is_refused_without_keys(tiny_model_path: Path, phantom_files) -> None:
     """A browser page of another origin posts a form without any CORS permission: refused (403) before
     its upload is read, unless listed; so is a page whose DNS name was rebound to the server, even
-    where its same-origin GET carries no Origin; the server's own page at its address, an address
-    the user typed, and scripts, are served."""
+    where its same-origin GET carries neither Origin nor Sec-Fetch-Site (Chromium sends none to a
+    plain-HTTP name: it was served); the server's own page at its address, an address the user typed,
+    and scripts at an address or a listed name, are served."""
     registry = ModelRegistry({"default": OnnxPoseEstimator(load_model(tiny_model_path))})
     stack = [("stacks", ("s.nii.gz", phantom_files[0].read_bytes()))]
     with make_client(registry, allowed_origins="https://viewer.example/") as client:
@@ -142,8 +144,15 @@ def test_another_site_s_page_is_refused_without_keys(tiny_model_path: Path, phan
         assert client.get("/v1/models", headers={"Origin": "https://viewer.example:443"}).status_code == 200
         assert client.get("/healthz", headers=evil).status_code == 200          # probes and docs stay open
         assert client.get("/v1/models").status_code == 200
+        # A page at a plain-HTTP name gets no Sec-Fetch-Site from the browser: its GET looks like a
+        # script's, and a script's at a name is refused unless the name is listed.
+        r = client.get("/v1/models", headers={"Host": "evil.example:8000"})
+        assert r.status_code == 403 and r.json()["detail"].startswith("Host: ") and "SVRNET_ALLOWED_ORIGINS" in r.json()["detail"]
+        assert client.get("/v1/models", headers={"Host": "viewer.example"}).status_code == 200     # listed
+        assert client.get("/healthz", headers={"Host": "evil.example:8000"}).status_code == 200
     with make_client(registry, api_keys="k1") as client:                    # with keys, the key decides
         assert client.get("/v1/models", headers={"Origin": "https://evil.example", "X-API-Key": "k1"}).status_code == 200
+        assert client.get("/v1/models", headers={"Host": "svr-box:8000", "X-API-Key": "k1"}).status_code == 200
 
 
 def test_request_id_is_returned_and_kept(real_client: TestClient) -> None:
@@ -209,7 +218,7 @@ def test_model_default_means_the_configured_default(tiny_model_path: Path, phant
     """SVRNET_DEFAULT_MODEL=v7 with only ``<models_dir>/v7/model.onnx``: ``model=default`` is v7."""
     (tmp_path / "models" / "v7").mkdir(parents=True)
     (tmp_path / "models" / "v7" / "model.onnx").symlink_to(tiny_model_path)
-    with TestClient(create_app(Settings(models_dir=tmp_path / "models", default_model="v7",
+    with LocalClient(create_app(Settings(models_dir=tmp_path / "models", default_model="v7",
                                         data_dir=tmp_path / "jobs"))) as client:
         r = upload(client, phantom_files[0], phantom_files[1], mc_samples="2")
         assert r.status_code == 200 and r.json()["model"]["name"] == "v7", r.text

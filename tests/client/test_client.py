@@ -36,6 +36,7 @@ from service.inference.registry import ModelRegistry
 from service.io.volume import Volume, write_volume
 from service.main import create_app
 from tests.support.client_fakes import FakeJobs, parse_multipart, problem
+from tests.support.local_client import LocalClient
 
 REPO = Path(__file__).resolve().parents[2]
 INFO = ModelInfo(name="oracle", version="0", backbone="oracle", label_type="anchor", input_size=64,
@@ -64,7 +65,7 @@ class OracleEstimator:
 
 def make_test_client(**settings: object) -> TestClient:
     app = create_app(Settings(**settings), registry=ModelRegistry({"default": OracleEstimator()}))
-    return TestClient(app, raise_server_exceptions=False)
+    return LocalClient(app, raise_server_exceptions=False)
 
 
 @pytest.fixture

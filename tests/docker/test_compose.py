@@ -13,6 +13,7 @@ from pathlib import Path
 import yaml
 
 from service.jobs.worker_cli import main
+from tests.support.local_client import LocalClient
 
 ROOT = Path(__file__).resolve().parents[2]
 COMPOSE = yaml.safe_load((ROOT / "docker" / "compose.yaml").read_text())
@@ -77,8 +78,6 @@ def test_the_load_balancer_passes_the_host_with_its_port() -> None:
     """A server without keys serves its own pages' requests: their ``Origin`` (``http://127.0.0.1:8000``)
     must equal the ``Host`` it receives. nginx's ``$host`` drops the port (``127.0.0.1``), which made
     every browser request of the OpenAPI page behind the load balancer a 403; ``$http_host`` keeps it."""
-    from fastapi.testclient import TestClient
-
     from service.core.settings import Settings
     from service.inference.registry import ModelRegistry
     from service.main import create_app
@@ -89,7 +88,7 @@ def test_the_load_balancer_passes_the_host_with_its_port() -> None:
     published = "127.0.0.1:8000"                               # the browser's address of the load balancer
     as_passed = {"$http_host": published, "$host": published.rsplit(":", 1)[0]}
     app = create_app(Settings(api_keys="", allowed_origins=""), registry=ModelRegistry({}))
-    with TestClient(app, raise_server_exceptions=False) as client:
+    with LocalClient(app, raise_server_exceptions=False) as client:
         for variable in ("$http_host", "$host"):
             r = client.get("/v1/models", headers={"Origin": f"http://{published}", "Host": as_passed[variable]})
             assert (r.status_code == 403) == (variable == "$host"), (variable, r.status_code)

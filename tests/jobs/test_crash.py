@@ -90,7 +90,7 @@ def test_a_stopping_server_hands_its_running_job_back_at_once_while_requests_fin
         job_id = _running_job(server, job_files, resolution_mm="1.5", svr_iterations="2")
         worker = _job_worker(server)
         upload = socket.create_connection(("127.0.0.1", server.port))
-        upload.sendall(b"POST /v1/predict HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary=b\r\n"
+        upload.sendall(b"POST /v1/predict HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: multipart/form-data; boundary=b\r\n"
                        b"Content-Length: 100000\r\n\r\n--b\r\n")           # a body still on its way
         time.sleep(0.5)
         server.proc.send_signal(signal.SIGTERM)

@@ -24,6 +24,7 @@ from service.jobs.sqlite_store import SqliteJobStore
 from tests.api.conftest import OracleEstimator, make_client, tiny_model_path  # noqa: F401 - fixture
 from tests.jobs.conftest import BACKENDS, env_of
 from tests.support.live_server import Worker
+from tests.support.local_client import LocalClient
 from tests.support.phantoms import orthogonal_stacks_case
 
 both = pytest.mark.parametrize("queue_settings", BACKENDS, indirect=True)
@@ -899,7 +900,7 @@ def test_a_result_deleted_after_its_handler_looked_is_a_404_not_a_500(tmp_path: 
 
     gone = tmp_path / "volume.nii.gz"
     app = Starlette(routes=[Route("/v", lambda request: reconstructions.Download(gone, filename="volume.nii.gz"))])
-    with TestClient(app, raise_server_exceptions=False) as client:
+    with LocalClient(app, raise_server_exceptions=False) as client:
         r = client.get("/v")
     assert r.status_code == 404 and r.headers["content-type"] == "application/problem+json", r.text
     assert "deleted or expired" in r.json()["detail"]

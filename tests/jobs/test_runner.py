@@ -11,6 +11,7 @@ import pytest
 
 from service.core.settings import Settings
 from service.jobs.backends import QUEUE_EXTRA_MISSING, open_backend
+from tests.support.local_client import LocalClient
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -57,14 +58,12 @@ def test_the_queue_url_chooses_the_back_end(queue_settings: dict[str, str]) -> N
 
 
 def test_an_unreachable_queue_makes_the_replica_unready_not_dead(tmp_path: Path) -> None:
-    from fastapi.testclient import TestClient
-
     from service.inference.registry import ModelRegistry
     from service.main import create_app
     from tests.api.conftest import OracleEstimator
 
     settings = Settings(data_dir=str(tmp_path), queue_url="redis://127.0.0.1:1/0")   # nothing listens there
-    with TestClient(create_app(settings, ModelRegistry({"default": OracleEstimator()})),
+    with LocalClient(create_app(settings, ModelRegistry({"default": OracleEstimator()})),
                     raise_server_exceptions=False) as client:
         assert client.get("/healthz").status_code == 200
         r = client.get("/readyz")
@@ -79,14 +78,12 @@ def test_an_unreachable_queue_makes_the_replica_unready_not_dead(tmp_path: Path)
 def test_a_job_database_that_cannot_be_used_is_503_and_unready(tmp_path: Path) -> None:
     """A data folder turned read-only (or a damaged database) answers reads and fails every write:
     readiness says so, and the job routes answer problem+json 503, counted like any answer."""
-    from fastapi.testclient import TestClient
-
     from service.inference.registry import ModelRegistry
     from service.main import create_app
     from tests.api.conftest import OracleEstimator
 
     settings = Settings(data_dir=str(tmp_path))
-    with TestClient(create_app(settings, ModelRegistry({"default": OracleEstimator()})),
+    with LocalClient(create_app(settings, ModelRegistry({"default": OracleEstimator()})),
                     raise_server_exceptions=False) as client:
         assert client.get("/readyz").status_code == 200
         store = client.app.state.job_store

@@ -483,6 +483,7 @@ def test_a_connection_that_fails_unexpectedly_is_logged_by_type_and_place_only(s
     with caplog.at_level(logging.ERROR, logger="service.mrd.server"):
         for _ in range(2):                                                  # the one slot is free again
             with socket.create_connection(("127.0.0.1", server.port)) as gone:
+                gone.sendall(b"\x01")                                      # a first byte: the session starts
                 gone.settimeout(5)
                 assert gone.recv(1) == b""
         deadline = time.monotonic() + 5
@@ -601,22 +602,35 @@ def test_the_servers_own_work_on_a_stack_is_not_the_clients_idle_time(case: Case
     assert not [m for m in texts(received) if m["type"] == "error"]
 
 
-def test_a_port_probe_is_logged_at_debug_a_session_at_info(serve, caplog) -> None:  # noqa: ANN001
-    """compose's health check opens the port every 30 s and sends nothing: a line at INFO each time
-    (2,900 a day) buried the sessions' own. A connection that sends a message is still logged at INFO."""
+def test_a_silent_connection_holds_no_session_slot_and_a_probe_logs_at_debug(serve, caplog,  # noqa: ANN001
+                                                                               monkeypatch) -> None:  # noqa: ANN001
+    """A slot was taken at ``accept``: a peer that connects and sends nothing held it for the idle limit
+    (32 such kept every scanner out, answered 503), and compose's health check (an empty connection
+    every 30 s) logged a line at INFO each time. Now the slot waits for the first bytes, which a
+    silent peer does not send within ``FIRST_BYTES_S``; a session is still logged at INFO."""
     import logging
 
-    server = serve()
-    with caplog.at_level(logging.DEBUG, logger="service.mrd.connection"):
+    import service.mrd.server as mrd_server
+
+    monkeypatch.setattr(mrd_server, "FIRST_BYTES_S", 0.5)
+    server = serve(limits=ServerLimits(max_sessions=1))
+    with caplog.at_level(logging.DEBUG, logger="service.mrd"):
         socket.create_connection(("127.0.0.1", server.port), 3).close()          # the health check
+        silent = socket.create_connection(("127.0.0.1", server.port), 3)         # holds no slot
         with socket.create_connection(("127.0.0.1", server.port), 3) as client:
-            client.sendall(struct.pack("<H", 4))                                 # CLOSE, a message
+            client.sendall(struct.pack("<H", 4))                                 # CLOSE: the one slot is free
             client.settimeout(5)
-            while client.recv(4096):
-                pass
-        deadline = time.monotonic() + 5
-        while len([r for r in caplog.records if r.getMessage().startswith("mrd connection ended")]) < 2:
-            assert time.monotonic() < deadline
-            time.sleep(0.02)
-    ended = {r.getMessage(): r.levelno for r in caplog.records if r.getMessage().startswith("mrd connection ended")}
-    assert ended == {"mrd connection ended: client gone": logging.DEBUG, "mrd connection ended: closed": logging.INFO}
+            answered = b""
+            while chunk := client.recv(4096):
+                answered += chunk
+        silent.settimeout(5)
+        told = b""
+        while chunk := silent.recv(4096):                                        # told, then closed
+            told += chunk
+        silent.close()
+    assert b"MRD sessions are open" not in answered
+    assert b'"status": 408' in told and b"before the first" in told
+    levels = {(r.getMessage().split(" within")[0], r.levelno) for r in caplog.records
+              if r.getMessage().startswith("mrd connection")}
+    assert levels == {("mrd connection closed before its first message", logging.DEBUG),
+                      ("mrd connection sent nothing", logging.INFO), ("mrd connection ended: closed", logging.INFO)}
