@@ -179,6 +179,7 @@ class MrdHandler(socketserver.StreamRequestHandler):
         return False
 
     def probed(self) -> bool:
+        """A connection closed before its first byte (a port check): logged at debug; False."""
         log.debug("mrd connection closed before its first message")
         return False
 
