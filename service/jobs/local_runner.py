@@ -110,10 +110,9 @@ class LocalRunner(JobRunner):
         self.localisers_dir = localisers_dir
         self.log_level, self.timeout_s, self.blas_threads = log_level, timeout_s, blas_threads
         self.lock = threading.Lock()
-        self.closing = False
-        """Set at shutdown: the workers stopped then are not lost ones, and no pool replaces theirs."""
-        self.closed = threading.Event()
-        """Set at shutdown, for the threads that wait to try a write again."""
+        self.closing = threading.Event()
+        """Set at shutdown: the workers stopped then are not lost ones, no pool replaces theirs, and the
+        threads that wait to try a write again stop waiting."""
         self.stopping = threading.Lock()
         """Held while the runner stops: one stop at a time."""
         self.pool = self._new_pool()
@@ -152,7 +151,7 @@ class LocalRunner(JobRunner):
     def submit(self, job_id: str) -> None:
         self.store.update(job_id, submitted_at=time.time())
         with self.lock:
-            if self.closing:                   # the server is stopping: the job waits, queued, for its next start
+            if self.closing.is_set():          # the server is stopping: the job waits, queued, for its next start
                 log.info("job queued for the next start", extra={"job_id": job_id})
                 return
             try:
@@ -196,7 +195,7 @@ class LocalRunner(JobRunner):
                 if not warned:
                     log.warning("a job's end could not be recorded; it is tried again", extra={"job_id": job_id})
                     warned = True
-            if self.closed.wait(UNRECORDED_RETRY_S) or time.monotonic() > deadline:
+            if self.closing.wait(UNRECORDED_RETRY_S) or time.monotonic() > deadline:
                 return
 
     def _give_up_unrecorded(self, job_id: str) -> None:
@@ -218,7 +217,7 @@ class LocalRunner(JobRunner):
         """Start a new pool in place of ``broken`` (once, whichever job noticed first) and recover its
         jobs (the module)."""
         with self.lock:
-            if self.pool is not broken or self.closing:
+            if self.pool is not broken or self.closing.is_set():
                 return
             self.pool = self._new_pool()
             broken.shutdown(wait=False, cancel_futures=True)
@@ -320,9 +319,8 @@ class LocalRunner(JobRunner):
         store stays this server's until :meth:`shutdown`."""
         with self.stopping:
             with self.lock:
-                self.closing = True
+                self.closing.set()
                 running = list(self.futures)           # before the pool's end empties them
-            self.closed.set()
             end_pool(self.pool, grace_s=0.0, timeout_s=timeout_s)
             handed_back: list[str] = []
             if self.started:
