@@ -57,28 +57,6 @@ def data(
     typer.echo(f"{len(names)} shards in {out}")
 
 
-def torch_config(path: Path) -> dict:
-    """The network configuration a localiser checkpoint records."""
-    import torch
-
-    return torch.load(path, map_location="cpu", weights_only=False)["config"]
-
-
-def localiser_checkpoint(path: Path) -> Path:
-    """A localiser's checkpoint (``svrnet-train localiser train``'s), else a usage error naming it: a
-    path that is not there, or a pose network's checkpoint, is refused in one line."""
-    if not path.is_file():
-        raise typer.BadParameter(f"{path}: no such file")
-    try:
-        config = torch_config(path)
-    except Exception as bad:  # noqa: BLE001 - torch's errors, a checkpoint without a config
-        raise typer.BadParameter(f"{path}: not a localiser checkpoint ({type(bad).__name__})") from None
-    if not isinstance(config, dict) or not {"in_channels", "width", "depth"} <= config.keys():
-        raise typer.BadParameter(f"{path}: not a localiser checkpoint (a pose network's? `svrnet-train train --init` "
-                                 "takes those)")
-    return path
-
-
 @app.command()
 def train(
     data: Annotated[Path, typer.Option(help="shard folder of `data` (read again as it grows)")],
@@ -94,8 +72,7 @@ def train(
     threads: int = 2,
     seed: int = 0,
     channels: Annotated[int, typer.Option(help="3: 2.5D (a slice between its neighbours); 1: 2D")] = 3,
-    init: Annotated[Optional[Path], typer.Option(help="start from this localiser checkpoint's weights, fresh optimiser",
-                                                 callback=lambda p: p and localiser_checkpoint(p))] = None,
+    init: Annotated[Optional[Path], typer.Option(help="start from this localiser checkpoint's weights, fresh optimiser")] = None,
     lr: float = 2e-3,
     teacher: Annotated[Optional[Path], typer.Option(help="distil: learn this checkpoint's mirrored-pass logits")] = None,
     teacher_weight: Annotated[float, typer.Option(help="the teacher's share of the loss (the rest: the true mask)")] = 0.7,
@@ -111,18 +88,14 @@ def train(
     """Train (or continue training) the localiser for ``--steps`` (or ``--minutes``); progress in
     ``<out>.log``. The checkpoint records the seed, budget, steps done, the shards' identity and the
     commit. With ``--init`` of another width the network starts from that one's strongest channels."""
-    from model_export.localiser.train import train as run
+    from model_export.localiser.train import network_shape, train as run
 
     if (steps is None) == (minutes is None):
         raise typer.BadParameter("give one budget: --steps (reproducible) or --minutes", param_hint="--steps")
-    if init is not None:                       # a network of its depth, at its width or narrower (its strongest channels)
-        start = torch_config(init)
-        width, depth = width or start["width"], depth or start["depth"]
-        if width > start["width"] or depth != start["depth"]:
-            raise typer.BadParameter(f"{init} is a network of width {start['width']} and depth {start['depth']}: a new "
-                                     "run from it keeps its depth and takes its width or a narrower one",
-                                     param_hint="--width / --depth")
-    width, depth = width or 8, depth or 4
+    try:
+        width, depth = network_shape(init, width, depth)
+    except ValueError as bad:
+        raise typer.BadParameter(str(bad)) from None
     run(data, out, minutes, steps=steps, width=width, depth=depth, threads=threads, seed=seed, log=Path(f"{out}.log"),
         in_channels=channels, init=init, lr=lr, teacher=teacher, teacher_weight=teacher_weight, freeze_norm=freeze_norm,
         batch=batch, device=device, loaders=loaders)

@@ -213,6 +213,29 @@ def _resumed_network(out: Path, config: dict, in_channels: int, width: int, dept
     return saved
 
 
+def network_shape(init: Path | None, width: int | None = None, depth: int | None = None) -> tuple[int, int]:
+    """The width and depth of a new run: those asked, else ``init``'s (a run from a checkpoint keeps its
+    depth and takes its width or a narrower one: its strongest channels), else 8 and 4.
+
+    Raises:
+        ValueError: ``init`` is no localiser checkpoint (not there, a pose network's), or the shape
+            asked is not one it can start.
+    """
+    if init is None:
+        return width or 8, depth or 4
+    try:
+        config = torch.load(init, map_location="cpu", weights_only=False)["config"]
+        start = {k: int(config[k]) for k in ("in_channels", "width", "depth")}
+    except Exception as bad:  # noqa: BLE001 - no file, a pose network's checkpoint, no checkpoint at all
+        raise ValueError(f"--init {init}: not a localiser checkpoint ({type(bad).__name__}; a pose network's? "
+                         "`svrnet-train train --init` takes those)") from None
+    width, depth = width or start["width"], depth or start["depth"]
+    if width > start["width"] or depth != start["depth"]:
+        raise ValueError(f"--init {init} is a network of width {start['width']} and depth {start['depth']}: a new "
+                         "run from it keeps its depth and takes its width or a narrower one")
+    return width, depth
+
+
 def train(data: Path, out: Path, minutes: float | None = None, *, steps: int | None = None, width: int = 8,
           depth: int = 4, batch: int = 16, crop: int = 128, lr: float = 2e-3, seed: int = 0,
           checkpoint_s: float = 120.0, threads: int = 2, log: Path | None = None, in_channels: int = 3,
@@ -375,16 +398,10 @@ def main(argv: list[str] | None = None) -> Path:
     ap.add_argument("--freeze-norm", action="store_true")
     ap.add_argument("--device", default="cpu")
     args = vars(ap.parse_args(argv))
-    if args["init"] is not None:                 # its depth, and its width unless a narrower one is asked
-        try:
-            start = torch.load(args["init"], map_location="cpu", weights_only=False)["config"]
-            start = {k: int(start[k]) for k in ("width", "depth")}
-        except Exception as bad:  # noqa: BLE001 - no file, a pose network's checkpoint, no checkpoint at all
-            ap.error(f"--init {args['init']}: not a localiser checkpoint ({type(bad).__name__})")
-        args["width"], args["depth"] = args["width"] or start["width"], args["depth"] or start["depth"]
-        if args["width"] > start["width"] or args["depth"] != start["depth"]:
-            ap.error(f"--init {args['init']} is a network of width {start['width']} and depth {start['depth']}: a "
-                     "new run from it keeps its depth and takes its width or a narrower one")
+    try:
+        args["width"], args["depth"] = network_shape(args["init"], args["width"], args["depth"])
+    except ValueError as bad:
+        ap.error(str(bad))
     keywords = {k: v for k, v in args.items() if v is not None and k not in ("data", "out", "minutes")}
     return train(args["data"], args["out"], args["minutes"], log=Path(f"{args['out']}.log"), **keywords)
 
