@@ -43,14 +43,12 @@ def in_order_of(volume: Volume, reference: Volume) -> Volume | None:
     ornt = orientations.ornt_transform(orientations.io_orientation(volume.affine),
                                        orientations.io_orientation(reference.affine))
     if (ornt == [[0, 1], [1, 1], [2, 1]]).all():                       # already in the reference's order
-        array, affine = np.asarray(volume.array), np.asarray(volume.affine, np.float64)
-    else:
-        array = orientations.apply_orientation(np.asarray(volume.array), ornt)
-        affine = np.asarray(volume.affine, np.float64) @ orientations.inv_ornt_aff(ornt, volume.array.shape)
+        same = volume.array.shape == reference.array.shape and on_grid(np.asarray(volume.affine, np.float64), reference)
+        return volume if same else None                                # with what its file says of itself
+    array = orientations.apply_orientation(np.asarray(volume.array), ornt)
+    affine = np.asarray(volume.affine, np.float64) @ orientations.inv_ornt_aff(ornt, volume.array.shape)
     if array.shape != reference.array.shape or not on_grid(affine, reference):
         return None
-    if array is volume.array:
-        return volume
     return Volume(np.ascontiguousarray(array), affine)     # not what the file says of its own storage (slice order)
 
 
