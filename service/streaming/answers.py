@@ -77,9 +77,8 @@ def stack_to_acquire_again(prediction: StackPrediction, judged_alone: bool) -> l
                                  prediction.prepared.signal_lost, prediction.prepared.cut_by_field_of_view)
 
 
-def worth_acquiring_again(reasons: list[str | None], judged_alone: bool,
-                          signal_lost: Sequence[bool] | None = None,
-                          cut: Sequence[bool] | None = None) -> list[tuple[int, str]]:
+def worth_acquiring_again(reasons: list[str | None], judged_alone: bool, signal_lost: Sequence[bool],
+                          cut: Sequence[bool]) -> list[tuple[int, str]]:
     """``(index, reason)`` of the slices of a stack worth acquiring again: those not accepted, but
     for ``empty`` ones (no brain: nothing to gain) and, for a stack judged alone (the session's
     first), those whose only fault is their expected error: the next stack that crosses them is
@@ -92,25 +91,19 @@ def worth_acquiring_again(reasons: list[str | None], judged_alone: bool,
     arrived (:data:`NOT_RECEIVED`) is listed as such.
 
     Example:
-        >>> worth_acquiring_again([None, "empty", "high_expected_error", "inconsistent_with_stack"], True)
+        >>> no = [False] * 4
+        >>> worth_acquiring_again([None, "empty", "high_expected_error", "inconsistent_with_stack"], True, no, no)
         [(3, 'inconsistent_with_stack')]
-        >>> worth_acquiring_again([None, "high_expected_error"], False)
+        >>> worth_acquiring_again([None, "high_expected_error"], False, no[:2], no[:2])
         [(1, 'high_expected_error')]
-        >>> worth_acquiring_again([None, "high_expected_error", "inconsistent_with_stack"], False, [True, True, True])
+        >>> worth_acquiring_again([None, "high_expected_error", "inconsistent_with_stack"], False, [True] * 3, no[:3])
         [(0, 'signal_lost'), (1, 'signal_lost'), (2, 'signal_lost')]
-        >>> worth_acquiring_again([None, "not_received", "empty"], True, [False, True, False])
+        >>> worth_acquiring_again([None, "not_received", "empty"], True, [False, True, False], no[:3])
         [(1, 'not_received')]
-        >>> worth_acquiring_again([None, "high_expected_error", "high_variance"], True, None, [True, True, False])
+        >>> worth_acquiring_again([None, "high_expected_error", "high_variance"], True, no[:3], [True, True, False])
         [(1, 'cut_by_field_of_view'), (2, 'high_variance')]
     """
     waits = {acceptance.EMPTY} | ({acceptance.HIGH_EXPECTED_ERROR} if judged_alone else set())
-    lost = [False] * len(reasons) if signal_lost is None else [bool(x) for x in signal_lost]
-    cut_off = [False] * len(reasons) if cut is None else [bool(x) for x in cut]
-
-    def why(k: int, r: str | None) -> str | None:
-        if r == NOT_RECEIVED:
-            return r
-        return SIGNAL_LOST if lost[k] else CUT_BY_FIELD_OF_VIEW if cut_off[k] and r is not None else r
-
-    return [(k, why(k, r)) for k, r in enumerate(reasons)
-            if r != acceptance.EMPTY and (lost[k] or (r is not None and (r not in waits or cut_off[k])))]
+    return [(k, r if r == NOT_RECEIVED else SIGNAL_LOST if lost else CUT_BY_FIELD_OF_VIEW if cut_off and r else r)
+            for k, (r, lost, cut_off) in enumerate(zip(reasons, map(bool, signal_lost), map(bool, cut)))
+            if r != acceptance.EMPTY and (lost or (r is not None and (r not in waits or cut_off)))]

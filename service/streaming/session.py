@@ -312,6 +312,7 @@ class StreamSession:
         upload = StackUpload(stack, volume, mask, None if mask is None else f"{stack} (mask frames)",
                              mask_holds_csf=self.masks_hold_csf)
         prepared = prepare_stack(upload, info, self.bias_correction, self.localiser)
+        prepared.cut_by_field_of_view                  # worked out here, not under the session's lock at its answer
         (estimate,), timings = estimate_stacks([prepared], self.estimator, self.mc_samples)
         ended = {**before, stack: _Ended(prepared, estimate, order, missing)}
         names = list(ended)
