@@ -62,6 +62,27 @@ digits of each file's SHA-256 as downloaded: a download that differs is refused.
 DEFAULT_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "extra_scans"
 
 
+def _fetch_file(spec: dict, name: str, path: str, target: Path) -> None:
+    """One file of a scan into ``target`` (kept where it is there already), checked against its pin."""
+    if target.exists():
+        return
+    url = f"{RAW}/{spec['repository']}/{spec['commit']}/{path}"
+    try:
+        with urllib.request.urlopen(url, timeout=60) as r:  # noqa: S310 - a fixed https URL
+            data = r.read()
+    except OSError as e:                                    # URLError is one
+        reason = getattr(e, "reason", None) or e
+        raise SystemExit(f"{name}: could not be downloaded from {RAW.split('//')[1]} ({reason}); "
+                         "a machine with access to GitHub can fetch it, then copy the folder") from None
+    if hashlib.sha256(data).hexdigest()[:16] != spec["sha256"][name]:
+        raise SystemExit(f"{name}: the download differs from the pinned file")
+    if name.endswith(".gz") and not path.endswith(".gz"):
+        data = gzip.compress(data, mtime=0)
+    target.with_suffix(".part").write_bytes(data)
+    target.with_suffix(".part").rename(target)
+    print(f"{target} ({len(data) // 1024} KB)")
+
+
 def fetch(root: Path, scan: str = "mial_sub01") -> Path:
     """Download ``scan`` into ``root/<scan>`` (files already there are kept); returns that folder.
     :class:`SystemExit` names a file that could not be downloaded (no network, the host not
@@ -70,28 +91,14 @@ def fetch(root: Path, scan: str = "mial_sub01") -> Path:
     folder = Path(root) / scan
     made = [p for p in (folder, *folder.parents) if not p.exists()]      # the folders this call makes
     folder.mkdir(parents=True, exist_ok=True)
-    for name, path in spec["files"].items():
-        target = folder / name
-        if target.exists():
-            continue
-        url = f"{RAW}/{spec['repository']}/{spec['commit']}/{path}"
-        try:
-            with urllib.request.urlopen(url, timeout=60) as r:  # noqa: S310 - a fixed https URL
-                data = r.read()
-        except (urllib.error.URLError, OSError) as e:
-            for path in made:                                               # innermost first, while empty
-                if not any(path.iterdir()):
-                    path.rmdir()
-            reason = getattr(e, "reason", None) or e
-            raise SystemExit(f"{name}: could not be downloaded from {RAW.split('//')[1]} ({reason}); "
-                             "a machine with access to GitHub can fetch it, then copy the folder") from None
-        if hashlib.sha256(data).hexdigest()[:16] != spec["sha256"][name]:
-            raise SystemExit(f"{name}: the download differs from the pinned file")
-        if name.endswith(".gz") and not path.endswith(".gz"):
-            data = gzip.compress(data, mtime=0)
-        target.with_suffix(".part").write_bytes(data)
-        target.with_suffix(".part").rename(target)
-        print(f"{target} ({len(data) // 1024} KB)")
+    try:
+        for name, path in spec["files"].items():
+            _fetch_file(spec, name, path, folder / name)
+    except BaseException:                     # no download, one that differs, an interrupt: no empty folders left
+        for made_folder in made:                                           # innermost first, while empty
+            if not any(made_folder.iterdir()):
+                made_folder.rmdir()
+        raise
     return folder
 
 

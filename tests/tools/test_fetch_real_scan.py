@@ -35,8 +35,8 @@ def test_a_download_that_differs_from_the_pinned_file_is_refused(monkeypatch: py
     monkeypatch.setitem(fetch_real_scan.SCANS, "test_scan", spec)
     _serve(monkeypatch, {"s.nii.gz": b"not the pinned file"})
     with pytest.raises(SystemExit, match="differs"):
-        fetch_real_scan.fetch(tmp_path, "test_scan")
-    assert not (tmp_path / "test_scan" / "s.nii.gz").exists()
+        fetch_real_scan.fetch(tmp_path / "data", "test_scan")
+    assert not (tmp_path / "data").exists()                          # no file, and no empty folder either
 
 
 def test_no_network_is_one_line_naming_the_file_and_leaves_no_empty_folder(monkeypatch: pytest.MonkeyPatch,
