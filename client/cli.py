@@ -49,7 +49,6 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, Optional
-from urllib.parse import urlsplit
 
 import httpx
 import typer
@@ -62,11 +61,12 @@ from client.cli_support import (DEFAULT_VOLUME, ApiKeyOpt, BiasCorrectionOpt, Jo
                                 ThresholdOpt, check_folder_writable, check_masks, check_writable, follow_job, job_id_of,
                                 once_or_per_stack, resolution_range, slice_order_words, timeout_from_env, user_path,
                                 write_json, write_results)
-from client.errors import NotFound
+from client.errors import ArgumentError, NotFound
 from client.exits import (EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, EXIT_USAGE, errors, fail,
                           job_goes_on, stderr, stdout)
-from client.mask_archive import masks_already_there
 from client.job_views import job_table, quality_line, refined_poses_line
+from client.mask_archive import masks_already_there
+from client.transport import server_address
 from client.views import masks_table, models_table, predict_hints, summarise, upload_bar, usable
 
 app = typer.Typer(
@@ -84,14 +84,11 @@ app = typer.Typer(
 
 def make_client(server: str, api_key: str | None) -> SVRnetClient:
     """The client every command uses (tests monkeypatch this factory); a URL that is no URL is a usage
-    error naming ``--server``."""
+    error naming ``--server`` (the client's :func:`~client.transport.server_address`, or httpx's)."""
     try:
-        scheme = urlsplit(server).scheme
-    except ValueError as exc:
-        raise typer.BadParameter(f"{server!r}: {exc}", param_hint="--server") from None
-    if scheme not in ("http", "https"):
-        raise typer.BadParameter(f"{server!r}: give the server's URL with its scheme, e.g. http://127.0.0.1:8000",
-                                 param_hint="--server")
+        server_address(server)
+    except ArgumentError as exc:
+        raise typer.BadParameter(str(exc).removeprefix("server: "), param_hint="--server") from None
     try:
         return SVRnetClient(base_url=server, api_key=api_key, timeout=timeout_from_env())
     except httpx.InvalidURL as exc:

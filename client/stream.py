@@ -30,7 +30,7 @@ import numpy as np
 from websockets.exceptions import ConnectionClosed, InvalidStatus, InvalidURI, WebSocketException
 from websockets.sync.client import ClientConnection, connect
 
-from client.transport import USER_AGENT, clean_api_key
+from client.transport import USER_AGENT, clean_api_key, server_address
 from client._client import DEFAULT_SERVER
 from client.errors import (ArgumentError, Busy, ConnectionFailed, ServerError, SVRnetError, Unauthorized,
                            UnusableInput, error_class_for_status)
@@ -113,10 +113,8 @@ def stream_url(server: str) -> str:
         >>> stream_url("http://127.0.0.1:8000"), stream_url("https://svr.example/api/")
         ('ws://127.0.0.1:8000/v1/stream', 'wss://svr.example/api/v1/stream')
     """
-    scheme, sep, rest = server.strip().partition("://")
     schemes = {"http": "ws", "https": "wss", "ws": "ws", "wss": "wss"}
-    if not sep or scheme.lower() not in schemes:
-        raise ConnectionFailed(f"{server}: not an http(s):// or ws(s):// address of a server")
+    scheme, _, rest = server_address(server.strip(), tuple(schemes)).strip().partition("://")
     return f"{schemes[scheme.lower()]}://{rest.rstrip('/')}/v1/stream"
 
 

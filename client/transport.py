@@ -58,6 +58,28 @@ IDEMPOTENCY_HEADER = "Idempotency-Key"
 the job the first attempt made, so a lost answer costs no second job."""
 
 
+def server_address(server: str, schemes: tuple[str, ...] = ("http", "https")) -> str:
+    """``server`` where it is a URL of one of ``schemes``; else :class:`ArgumentError` naming ``server``
+    (``svrnet`` ends with the usage exit code), before any request: a URL without its scheme otherwise
+    fails only at the first call, as a connection error.
+
+    Example:
+        >>> server_address("http://127.0.0.1:8000")
+        'http://127.0.0.1:8000'
+        >>> server_address("127.0.0.1:8000")
+        Traceback (most recent call last):
+        ...
+        client.errors.ArgumentError: server: '127.0.0.1:8000': give the server's URL with its scheme, e.g. http://127.0.0.1:8000
+    """
+    try:
+        scheme = urlsplit(server).scheme.lower()
+    except ValueError as exc:
+        raise ArgumentError(f"server: {server!r}: {exc}") from None
+    if scheme not in schemes:
+        raise ArgumentError(f"server: {server!r}: give the server's URL with its scheme, e.g. http://127.0.0.1:8000")
+    return server
+
+
 def clean_api_key(key: str | None) -> str | None:
     """``key`` without surrounding blanks (a key file's line end), None for an empty one;
     :class:`~client.errors.ArgumentError` for a key with a control, blank or non-ASCII character
@@ -99,7 +121,7 @@ class Transport:
                  backoff_s: float = 0.5) -> None:
         if retries < 0:
             raise ValueError("retries must be >= 0")
-        base_url = base_url or os.environ.get("SVRNET_SERVER") or DEFAULT_SERVER     # as the CLI reads it
+        base_url = server_address(base_url or os.environ.get("SVRNET_SERVER") or DEFAULT_SERVER)   # as the CLI reads it
         self.api_key = clean_api_key(api_key if api_key is not None else os.environ.get("SVRNET_API_KEY"))
         self.retries = retries
         self.backoff_s = backoff_s

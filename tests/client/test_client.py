@@ -228,6 +228,18 @@ def test_the_library_takes_paths_and_numbers_as_a_script_holds_them(stack_file: 
         read_stack(tmp_path / "absent.nii.gz")
 
 
+def test_a_server_given_without_its_scheme_is_refused_by_the_library_before_any_call(stack_file: Path) -> None:
+    """The check sat in the command line alone: a script's ``SVRnetClient("127.0.0.1:8000")`` failed at
+    its first call as a connection error, and ``svrnet stream`` said "connection failed"."""
+    from client.scanner_stack import read_stack
+
+    for make in (lambda: SVRnetClient("127.0.0.1:8000"),
+                 lambda: client_stream.stream_stacks([read_stack(stack_file)], "127.0.0.1:8000")):
+        with pytest.raises(ArgumentError, match="server: '127.0.0.1:8000': give the server's URL with its scheme"):
+            make()
+    assert client_stream.stream_url("wss://svr.example/") == "wss://svr.example/v1/stream"
+
+
 def test_a_stream_reads_the_server_and_key_from_the_environment_as_the_client_does(
         stack_file: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from client.scanner_stack import read_stack
