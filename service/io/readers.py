@@ -200,9 +200,10 @@ def _gunzip(path: Path, out: Path, budget: FileBudget) -> Path:
     try:
         with igzip.open(path, "rb") as src, open(out, "wb") as dst:
             head = src.read(352)
-            if (declared := _nifti_values(head)) * 4 > budget.limit:
+            dims = _nifti_dims(head)
+            if (declared := _nifti_values(dims)) * 4 > budget.limit:
                 raise budget.declared_too_large(declared)
-            budget.grid(_nifti_dims(head))
+            budget.grid(dims)
             budget.inflate(len(head))
             dst.write(head)
             while chunk := src.read(1 << 22):   # to the end: a truncated stream or a bad CRC raises here
@@ -231,9 +232,9 @@ def _nifti_dims(head: bytes) -> list[int]:
     return [0]
 
 
-def _nifti_values(head: bytes) -> int:
-    """Voxel values a NIfTI-1 or NIfTI-2 header declares (0 when it is neither)."""
-    return int(min(np.prod(_nifti_dims(head), dtype=np.float64), 2.0 ** 62))
+def _nifti_values(dims: list[int]) -> int:
+    """Voxel values of a header's axes' sizes (:func:`_nifti_dims`; 0 when it is no NIfTI header)."""
+    return int(min(np.prod(dims, dtype=np.float64), 2.0 ** 62))
 
 
 def _reader(path: Path, kind: str) -> sitk.ImageFileReader:
@@ -272,7 +273,7 @@ def _nifti1_problem(path: Path) -> str | None:
     missing voxels). None for a header with none of these, and for NIfTI-2, which nibabel checks."""
     with open(path, "rb") as f:
         head = f.read(352)
-    values = _nifti_values(head)
+    values = _nifti_values(_nifti_dims(head))
     if not values or 348 not in (int.from_bytes(head[:4], "little"), int.from_bytes(head[:4], "big")):
         return None
     endian = "<" if int.from_bytes(head[:4], "little") == 348 else ">"
