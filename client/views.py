@@ -112,6 +112,13 @@ def _mirrored(stack: dict[str, Any]) -> bool:
     return bool((stack.get("consistency") or {}).get("mirrored"))
 
 
+def _apart_mm(stack: dict[str, Any]) -> float | None:
+    """How far the stack's brain lies from the request's fetus where it is another's
+    (``consistency.apart_from_request``, ``apart_mm``); None where it is not."""
+    fit = stack.get("consistency") or {}
+    return float(fit.get("apart_mm") or 0.0) if fit.get("apart_from_request") else None
+
+
 def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[str]:
     """What to do about an answer with nothing usable in it: a stack without brain slices, a localiser
     that was unsure, no slice accepted (``stage_off``: the consistency stage the request turned off,
@@ -153,6 +160,11 @@ def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[
                          "(slices written in reverse order, rows or columns flipped, without the affine): convert the "
                          "series again from the scanner's files (e.g. dcm2niix); if it was, its own slices decided "
                          "its left-right branch wrongly: acquire it again")
+        apart = _apart_mm(stack)
+        if apart is not None:
+            hints.append(f"{name}: its brain lies {apart:.0f} mm from the other stacks' (its mask holds another fetus's "
+                         "brain, a twin's, or it is another scan's file), so none of its slices is accepted: send the "
+                         "stacks of one fetus in a request, a twin's in a request of their own")
         lost = [s.get("index") for s in brain if s.get("signal_lost")]
         if lost:
             hints.append(f"{name}: {len(lost)} slice(s) lost the brain's signal (a signal void, motion within the "
@@ -183,7 +195,7 @@ def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[
     if usable(result):
         for stack in stacks:
             if with_brain(stack.get("slices") or []) and not any(s.get("accepted") for s in stack.get("slices") or []):
-                if _mirrored(stack):
+                if _mirrored(stack) or _apart_mm(stack) is not None:
                     continue                                  # said above, with what to do
                 if stage_off:
                     hints.append(f"{stack.get('filename', '?')}: no slice accepted with {stage_off} off, while the "

@@ -113,6 +113,13 @@ class StackConsistency(BaseModel):
                            "voxels are the mirror image of what its file's header says (slices reversed, or rows "
                            "or columns flipped, without the affine); none of its slices is accepted "
                            "(inconsistent_with_stack), and it takes no part in the request's decisions")
+    apart_from_request: bool = Field(
+        False, description="the stack's brain (its mask's centre in the scanner frame) lies farther from the "
+                           "request's fetus than a fetus moves between stacks (60 mm): another fetus's (a twin's "
+                           "mask, another scan's file); none of its slices is accepted (inconsistent_with_stack), "
+                           "and it takes no part in the request's decisions, pooling or image stage")
+    apart_mm: Optional[float] = Field(
+        None, description="with apart_from_request, how far its brain's centre lies from the request's fetus's (mm)")
     pooled_atlas_from_scanner: Optional[Mat] = Field(
         None, description="4x4: the stack's position after pooling it with the request's other stacks whose "
                           "left-right branch is known (decided by themselves, or agreeing with the request; the "

@@ -60,6 +60,15 @@ class StackPoses:
     expected_error_mm: NDArray[np.float64] | None = None   # [n] expected E.D. of each pose (None: not calibrated)
     pooled: Pooled | None = None
     image_consistency: ImageConsistency | None = None
+    apart_mm: float = float("nan")
+    """How far the stack's brain lies from the request's fetus where it sees another
+    (:func:`~service.preprocess.one_fetus.apart_from_fetus`; NaN: with it): the stack takes no part
+    in the request's decisions, pooling or image stage, and none of its slices is accepted."""
+
+    @property
+    def apart(self) -> bool:
+        """The stack's brain is not the request's fetus's (:attr:`apart_mm`)."""
+        return bool(np.isfinite(self.apart_mm))
 
     def part(self, which: slice) -> "StackPoses":
         """The poses of the slices ``which`` alone (what a stream answers for one slice)."""
@@ -187,15 +196,15 @@ def checked_branch(out: StackPoses, reference: NDArray | None,
 
 
 def request_reference(outs: list[StackPoses]) -> NDArray[np.float64] | None:
-    """Where the request's stacks that decided their left-right branch put the scanner frame: their
-    placements' mean, each weighed by its precision (None when no stack decided).
+    """Where the request's stacks that decided their left-right branch (of its fetus: not
+    :attr:`StackPoses.apart`) put the scanner frame: their placements' mean, each weighed by its precision (None when no stack decided).
 
     The stacks of one request share the scanner frame; a stack that cannot tell its own branch (its
     slices' order along the normal fits its twin nearly as well) takes the branch nearer to this
     (:func:`fit_stack`'s ``reference``). The mean is taken about the stacks' centre, not the scanner's
     origin (a mean of rigid maps depends on the point they turn about), so where the files place the
     scanner's origin changes nothing."""
-    fits = [o.fit for o in outs if o.fit is not None and o.fit.branch_decided and not o.fit.mirrored
+    fits = [o.fit for o in outs if o.fit is not None and o.fit.branch_decided and not o.fit.mirrored and not o.apart
             and o.fit.atlas_from_scanner is not None and o.fit.centre is not None and np.isfinite(o.fit.placement_sd_mm)]
     if not fits:
         return None
@@ -207,14 +216,15 @@ def request_reference(outs: list[StackPoses]) -> NDArray[np.float64] | None:
 
 def mark_mirrored(outs: list[StackPoses], scanner_from_voxel: list[NDArray]) -> list[int]:
     """Mark the stacks whose voxels the request finds mirrored against their file's header
-    (:func:`~service.consistency.mirrored_stacks.mirrored_stacks` of the stacks that decided their
-    branch by their own slices), in place: ``StackFit.mirrored``, and every slice inconsistent (none
+    (:func:`~service.consistency.mirrored_stacks.mirrored_stacks` of the stacks of its fetus that
+    decided their branch by their own slices), in place: ``StackFit.mirrored``, and every slice inconsistent (none
     is accepted: each lies on the twin of where the others put it, or its stack cannot be told from
     its mirror-image partner). Returns their indices.
 
     ``scanner_from_voxel``: each stack's affine.
     """
-    placements = [o.fit.atlas_from_scanner if o.fit is not None and o.fit.branch_decided else None for o in outs]
+    placements = [o.fit.atlas_from_scanner if o.fit is not None and o.fit.branch_decided and not o.apart else None
+                  for o in outs]
     flagged = mirrored_stacks(placements, [np.asarray(a)[:3, :3] for a in scanner_from_voxel])
     for out, mirrored in zip(outs, flagged):
         if mirrored:
@@ -228,12 +238,14 @@ def pool_request(outs: list[StackPoses]) -> None:
 
     Only stacks whose left-right branch is known take part: decided by their own slices, or by the
     request where they agree with it (``StackFit.branch_known``; a stack that may be the mirror image
-    of the others would only add spread). A stack's placement is where its motion model puts it on
+    of the others would only add spread), and whose brain is the request's fetus's (not
+    :attr:`StackPoses.apart`). A stack's placement is where its motion model puts it on
     average over its acquisition (not its robust rigid fit, which sits off that mean where the fetus
     moved, and would pool a position the stack never had). Each such
     stack's poses move with its pooled placement, and their ``expected_error_mm`` follows
     (:func:`pooled_expected_error_mm`); its ``pooled`` says where it went."""
-    which = [i for i, o in enumerate(outs) if o.fit is not None and o.fit.branch_known and o.fit.centre is not None
+    which = [i for i, o in enumerate(outs) if o.fit is not None and o.fit.branch_known and not o.apart
+             and o.fit.centre is not None
              and o.fit.atlas_from_scanner is not None and np.isfinite(o.fit.placement_sd_mm)]
     if len(which) < 2:
         return

@@ -1,6 +1,7 @@
 """Which slices a reconstruction job starts from, and with which poses, given the service's own
 ``/v1/predict`` answer: its accepted slices where enough are accepted, else every slice; never a
-stack the request found mirrored or a slice whose brain lost its signal, unless nothing else is left.
+stack the request found mirrored or apart from its fetus, or a slice whose brain lost its signal, unless
+nothing else is left.
 
 Example:
     >>> body = {"stacks": [{"slices": [{"accepted": True}, {"accepted": False}]}]}
@@ -73,13 +74,15 @@ def starting_poses(body: dict, min_share: float = MIN_ACCEPTED_SHARE, min_slices
     less the slices whose brain lost its signal (their images would darken the volume where they
     lie; kept with ``keep_signal_lost``, or where nothing else is left), and less every slice of a
     stack the request found mirrored (``consistency.mirrored``: its slices lie on the twin of where
-    the others put them, and would blend the brain with its mirror image; kept where nothing else is
-    left)."""
+    the others put them, and would blend the brain with its mirror image) or apart from the
+    request's fetus (``consistency.apart_from_request``: another brain); kept where nothing else is
+    left."""
     poses = poses_from_predict_body(body, [len(st["slices"]) for st in body["stacks"]])
     poses = [(mats, own) for (mats, _), own in zip(poses, accepted_without_frame(body))]
     started = starting_inclusion(poses, posed_slices(body), min_share, min_slices)
-    mirrored = [bool((st.get("consistency") or {}).get("mirrored")) for st in body["stacks"]]
-    started = _unless_nothing_left(started, [(mats, include & ~m) for (mats, include), m in zip(started, mirrored)])
+    left_out = [any((st.get("consistency") or {}).get(key) for key in ("mirrored", "apart_from_request"))
+                for st in body["stacks"]]
+    started = _unless_nothing_left(started, [(mats, include & ~out) for (mats, include), out in zip(started, left_out)])
     kept = [(mats, include & ~lost) for (mats, include), lost in zip(started, signal_lost_slices(body))]
     return started if keep_signal_lost else _unless_nothing_left(started, kept)
 

@@ -83,6 +83,8 @@ def stack_report(out: StackPoses | None) -> dict | None:
         "branch_from_request": fit.branch_from_request,
         "branch_agrees_with_request": fit.agrees_with_request,
         "mirrored": fit.mirrored,
+        "apart_from_request": out.apart,
+        "apart_mm": _finite(round(out.apart_mm, 1)),
     }
     pooled = out.pooled          # the keys always there (None: not pooled), as /v1/predict's schema gives them
     report.update({"pooled_atlas_from_scanner": None if pooled is None else pooled.atlas_from_scanner.tolist(),

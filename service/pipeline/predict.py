@@ -48,6 +48,7 @@ from service.inference.estimator import PoseEstimate, PoseEstimator
 from service.inference.model_file import ModelInfo
 from service.pipeline.prepare import PreparedStack, StackUpload
 from service.pipeline.unseen_errors import add_unseen_errors
+from service.preprocess.one_fetus import apart_from_fetus, brain_centre_mm
 
 STAGE_WORKERS = 3
 """Stacks through the stack-consistency stage at a time (threads: its eigendecompositions release the
@@ -162,7 +163,7 @@ def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPos
 
     ``smoothed``: per stack of the request, its smoothed images made ahead (:func:`smooth_images_ahead`);
     otherwise they are made here, once for both steps."""
-    take = [i for i, o in enumerate(outs) if branch_set(o)]
+    take = [i for i, o in enumerate(outs) if branch_set(o) and not o.apart]
     if len(take) < 2:
         return
     own = [i for i in take if outs[i].fit.branch_known]
@@ -242,6 +243,20 @@ def _refine_stacks(prepared: list[PreparedStack], outs: list[StackPoses], proper
                                                      float(np.median(moved)) if len(moved) else 0.0,
                                                      float(ref.cost_before), float(ref.cost_after),
                                                      relative[j], expected[j], ref.spread_mm[j], floor)
+
+
+def set_apart(outs: list[StackPoses], prepared: list[PreparedStack]) -> None:
+    """Mark the stacks whose brain is not the request's fetus's, in place: each mask's brain centre
+    in the scanner frame (the stacks share it) farther from the request's fetus than a fetus moves
+    between stacks (:func:`~service.preprocess.one_fetus.apart_from_fetus`; an uploaded mask of a
+    twin, a file of another scan). Such a stack's ``apart_mm`` says how far; every slice of it is
+    inconsistent (none is accepted: its poses place another brain), and the request's later steps
+    leave it out."""
+    centres = [brain_centre_mm(p.localisation.mask, p.upload.volume.affine) for p in prepared]
+    for out, distance in zip(outs, apart_from_fetus(centres, [p.localisation.confidence for p in prepared])):
+        if np.isfinite(distance):
+            out.apart_mm = float(distance)
+            out.inconsistent = np.ones(len(out.poses), bool)
 
 
 def weakest_first(outs: list[StackPoses]) -> list[int]:
@@ -324,22 +339,24 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
         outs = list(pool.map(lambda e, s, nfv, order: stack_poses(e, s, nfv, stack_consistency, plane_x_mm,
                                                                   e.spread_mm * scale, order, shape, gain),
                              parts, prepared, frames, orders))
+        if stack_consistency:              # a stack of another fetus: out of the request's steps
+            set_apart(outs, prepared)
         def check(i: int) -> StackPoses:       # a weak decision checked against the others
             return checked_branch(outs[i], request_reference(outs[:i] + outs[i + 1:]), lambda ref, margin: stack_poses(
                 parts[i], prepared[i], frames[i], True, plane_x_mm, parts[i].spread_mm * scale, orders[i], shape, gain,
                 ref, margin))
 
         for i in weakest_first(outs) if stack_consistency else ():
-            outs[i] = check(i)
+            outs[i] = outs[i] if outs[i].apart else check(i)
         if stack_consistency:              # a stack whose file mirrors its voxels: out of the request's decisions ...
             mirrored = mark_mirrored(outs, [s.upload.volume.affine for s in prepared])
             if mirrored:                   # ... and out of the others' checks, which it pulled its way
-                outs = [out if i in mirrored else check(i) for i, out in enumerate(outs)]
+                outs = [out if i in mirrored or out.apart else check(i) for i, out in enumerate(outs)]
         reference = request_reference(outs) if stack_consistency else None
         if reference is not None:          # a stack that did not decide its branch takes the others' word
             outs = list(pool.map(lambda e, s, nfv, order, out: stack_poses(
                 e, s, nfv, True, plane_x_mm, e.spread_mm * scale, order, shape, gain, reference)
-                if undecided(out) else out, parts, prepared, frames, orders, outs))
+                if undecided(out) and not out.apart else out, parts, prepared, frames, orders, outs))
     if stack_consistency:
         pool_request(outs)
     timings["stack_consistency"] = time.perf_counter() - t
@@ -349,8 +366,8 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
         refine_where_stacks_cross(prepared, outs, [~e.degenerate & ~s.signal_lost for e, s in zip(parts, prepared)],
                                   smoothed.result())
     timings["image_consistency"] = time.perf_counter() - t
-    sigma = request_network_error_mm([o.fit.noise_mm if o.fit is not None and o.fit.decidable else np.nan for o in outs],
-                                     [int((~e.degenerate).sum()) for e in parts])
+    sigma = request_network_error_mm([o.fit.noise_mm if o.fit is not None and o.fit.decidable and not o.apart
+                                      else np.nan for o in outs], [int((~e.degenerate).sum()) for e in parts])
     frame_mm = float(frame_error_mm(sigma, getattr(info, "frame_error", None)))
     results = []
     for s, e, nfv, out in zip(prepared, parts, frames, outs):

@@ -88,6 +88,34 @@ def request_centre(centres: list[NDArray | None], confidences: list[float],
     return np.asarray(found[int(np.argmax(support))][0], np.float64)
 
 
+def apart_from_fetus(centres: list[NDArray | None], confidences: list[float]) -> NDArray[np.float64]:
+    """How far each stack's brain lies from the request's fetus (:func:`request_centre`, of the
+    stacks' brain centres weighed by ``confidences``), where it lies farther than
+    :data:`BRAIN_MOVE_MM`: mm, NaN where it lies with it, sees no brain (``None``), or the request's
+    brains are one fetus's. Where the stacks divide evenly between two places, the first stack's
+    is the request's.
+
+    The request's later stages (the stacks' branches decided together, their placements pooled,
+    their slices refined where they cross) relate the stacks of one fetus. A stack whose mask holds
+    another fetus's brain (a twin, or another scan's file) would pull the others towards a brain
+    that is not theirs.
+
+    Example (two stacks of one fetus, a third 100 mm away; all three on one fetus):
+        >>> centres = [np.zeros(3), np.array([10.0, 0.0, 0.0]), np.array([100.0, 0.0, 0.0])]
+        >>> apart_from_fetus(centres, [1.0, 1.0, 1.0]).tolist()
+        [nan, nan, 100.0]
+        >>> apart_from_fetus(centres[:2] + [None], [1.0, 1.0, 0.0]).tolist()
+        [nan, nan, nan]
+    """
+    target = request_centre(centres, confidences, [])
+    apart = np.full(len(centres), np.nan)
+    for i, centre in enumerate(centres):
+        distance = np.inf if target is None or centre is None else float(np.linalg.norm(centre - target))
+        if np.isfinite(distance) and distance > BRAIN_MOVE_MM:
+            apart[i] = distance
+    return apart
+
+
 def near_on_grid(volume: Volume, grid: LocaliserGrid, centre_mm: NDArray) -> NDArray[np.bool_]:
     """The localiser grid's pixels within :data:`CENTRE_REACH_MM` of ``centre_mm`` (scanner mm), as
     ``[n, Hp, Wp]`` maps of the stack (:func:`~service.preprocess.localiser_inputs.target_maps`)."""

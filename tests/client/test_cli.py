@@ -803,3 +803,14 @@ def test_a_stack_the_request_found_mirrored_is_named_with_what_to_do() -> None:
     assert not [h for h in hints if h.startswith("cor.nii.gz")]
     assert len([h for h in hints if h.startswith("ax.nii.gz")]) == 1           # not also "too uncertain"
     assert not [h for h in views.predict_hints({"stacks": [ok, ok]}) if "mirror image" in h]
+
+
+def test_a_stack_of_another_fetus_is_named_with_what_to_do() -> None:
+    ok = {"filename": "cor.nii.gz", "consistency": {"apart_from_request": False, "apart_mm": None},
+          "slices": [{"accepted": True, "reason": None}] * 3}
+    apart = {"filename": "twin.nii.gz", "consistency": {"apart_from_request": True, "apart_mm": 96.4},
+             "slices": [{"accepted": False, "reason": "inconsistent_with_stack"}] * 3}
+    hints = views.predict_hints({"stacks": [ok, apart]})
+    assert [h for h in hints if h.startswith("twin.nii.gz: its brain lies 96 mm from the other stacks'")]
+    assert len([h for h in hints if h.startswith("twin.nii.gz")]) == 1         # not also "too uncertain"
+    assert not [h for h in views.predict_hints({"stacks": [ok, ok]}) if "another fetus" in h]

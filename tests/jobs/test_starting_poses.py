@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from service.jobs.starting_poses import (MIN_ACCEPTED_SHARE, MIN_ACCEPTED_SLICES, start_label, starting_inclusion,
                                          starting_poses)
@@ -109,11 +110,13 @@ def test_the_report_says_which_slices_a_job_started_from() -> None:
     assert start_label(everyone, starting_poses(everyone)) == "accepted_slices"        # all accepted: the same set
 
 
-def test_a_job_never_starts_from_a_stack_the_request_found_mirrored() -> None:
-    """Its slices lie on the twin of where the others put them: left out of a start from every slice
-    too (too few accepted), unless nothing else is left."""
+@pytest.mark.parametrize("flag", ["mirrored", "apart_from_request"])
+def test_a_job_never_starts_from_a_stack_the_request_found_mirrored_or_apart(flag: str) -> None:
+    """A mirrored stack's slices lie on the twin of where the others put them, an apart stack's on
+    another fetus's brain: left out of a start from every slice too (too few accepted), unless
+    nothing else is left."""
     def stack(mirrored: bool, accepted: tuple[bool, ...]) -> dict:
-        return {"consistency": {"mirrored": mirrored}, "slices": [
+        return {"consistency": {flag: mirrored}, "slices": [
             {"atlas_from_voxel": np.eye(4).tolist(), "accepted": a, "reason": None if a else "inconsistent_with_stack"}
             for a in accepted]}
 

@@ -11,10 +11,12 @@ from service.pipeline import predict
 
 def _outs(*kinds: str) -> list[SimpleNamespace]:
     """Stage outputs: ``own`` (branch decided by the stack), ``request`` (by the request, the stack
-    fitting it on neither branch), ``agrees`` (by the request, the stack sitting with its stacks), ``none``."""
-    return [SimpleNamespace(fit=SimpleNamespace(decidable=k != "none", branch_decided=k == "own",
+    fitting it on neither branch), ``agrees`` (by the request, the stack sitting with its stacks), ``none``,
+    ``apart`` (decided by the stack, its brain another fetus's)."""
+    return [SimpleNamespace(fit=SimpleNamespace(decidable=k != "none", branch_decided=k in ("own", "apart"),
                                                 branch_from_request=k in ("request", "agrees"),
-                                                branch_known=k in ("own", "agrees"), mirrored=False)) for k in kinds]
+                                                branch_known=k in ("own", "agrees", "apart"), mirrored=False),
+                            apart=k == "apart") for k in kinds]
 
 
 @pytest.fixture
@@ -41,6 +43,12 @@ def test_a_stack_that_agrees_with_the_request_is_refined_with_the_self_decided_o
     predict.refine_where_stacks_cross([None] * 4, _outs("own", "agrees", "request", "own"), [None] * 4)
     predict.refine_where_stacks_cross([None] * 2, _outs("own", "agrees"), [None] * 2)
     assert calls == [([0, 1, 3], []), ([2], [0, 1, 3]), ([0, 1], [])]
+
+
+def test_a_stack_of_another_fetus_is_refined_with_none(calls) -> None:  # noqa: ANN001
+    predict.refine_where_stacks_cross([None] * 4, _outs("own", "apart", "request", "own"), [None] * 4)
+    predict.refine_where_stacks_cross([None] * 2, _outs("own", "apart"), [None] * 2)
+    assert calls == [([0, 3], []), ([2], [0, 3])]
 
 
 def _placed(sd: float | None, pooled: bool = True) -> SimpleNamespace:
