@@ -17,7 +17,7 @@ from rich import box
 from rich.console import Console
 from rich.table import Table
 
-from client.views import with_brain
+from client.views import consistency_hints, with_brain
 
 if TYPE_CHECKING:                     # client.stream needs numpy and nibabel: imported by `svrnet stream` only
     from client.stream import Sent
@@ -34,6 +34,7 @@ class StreamView:
         self.rows: dict[tuple[str, int], dict[str, Any]] = {}    # (stack, index) -> the row's fields
         self.finished: set[str] = set()                           # stacks whose `stack` message came
         self.limit: float | None = None                           # the session's accept limit (mm)
+        self.hinted: set[str] = set()                             # consistency hints printed
 
     def on_message(self, message: dict[str, Any], answered: Sent | None) -> None:
         kind = message.get("type")
@@ -54,6 +55,8 @@ class StreamView:
                 self.console.print(f"update of stack {name}: " + ", ".join(
                     f"#{s.get('index')} {' '.join(pose_cells(s, self.limit)[2:4])}" for s in message.get("slices") or []),
                     markup=False)
+            if name in self.finished and "consistency" in message:
+                self.print_hints(name, message)
             if name in self.finished and "reacquire" in message:
                 rows = [row for (stack, _), row in self.rows.items() if stack == name]
                 self.console.print(f"stack {name} now: {accepted_text(rows)} · "
@@ -80,6 +83,15 @@ class StreamView:
         self.console.print(f"stack {name}: {accepted_text(final)}{alone} · "
                            f"reacquire: {reacquire_text(message.get('reacquire'))} · "
                            f"coverage {coverage_text(message.get('coverage'))}", markup=False)
+        self.print_hints(name, message)
+
+    def print_hints(self, name: str, message: dict[str, Any]) -> None:
+        """What to do about a stack the session left out of its decisions (mirrored, another fetus's:
+        :func:`~client.views.consistency_hints`), once each, as its ``stack`` or a later ``update`` says."""
+        for hint in consistency_hints(f"stack {name}", message):
+            if hint not in self.hinted:
+                self.hinted.add(hint)
+                self.console.print(hint, style="yellow", markup=False)
 
     def table(self, rows: list[dict[str, Any]], title: str | None = None) -> Table:
         """Poses as rows that fit an 80-column terminal (stack names fold; nothing is cut short)."""

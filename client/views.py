@@ -119,6 +119,29 @@ def _apart_mm(stack: dict[str, Any]) -> float | None:
     return float(fit.get("apart_mm") or 0.0) if fit.get("apart_from_request") else None
 
 
+def consistency_hints(name: str, stack: dict[str, Any]) -> list[str]:
+    """What to do about a stack the request left out of its decisions: one whose voxels it found
+    mirrored, or whose brain is another fetus's (``svrnet predict`` and ``svrnet stream`` say it alike).
+
+    Example:
+        >>> consistency_hints("ax.nii.gz", {"consistency": {"apart_from_request": True, "apart_mm": 96.4}})[0][:60]
+        "ax.nii.gz: its brain lies 96 mm from the other stacks' (its "
+    """
+    hints = []
+    if _mirrored(stack):
+        hints.append(f"{name}: it lies on the mirror image of where the other stacks put the fetus, so none of its "
+                     "slices is accepted: its file's voxels are most likely reversed or flipped against its header "
+                     "(slices written in reverse order, rows or columns flipped, without the affine): convert the "
+                     "series again from the scanner's files (e.g. dcm2niix); if it was, its own slices decided "
+                     "its left-right branch wrongly: acquire it again")
+    apart = _apart_mm(stack)
+    if apart is not None:
+        hints.append(f"{name}: its brain lies {apart:.0f} mm from the other stacks' (its mask holds another fetus's "
+                     "brain, a twin's, or it is another scan's file), so none of its slices is accepted: send the "
+                     "stacks of one fetus in a request, a twin's in a request of their own")
+    return hints
+
+
 def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[str]:
     """What to do about an answer with nothing usable in it: a stack without brain slices, a localiser
     that was unsure, no slice accepted (``stage_off``: the consistency stage the request turned off,
@@ -154,17 +177,7 @@ def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[
         elif where.get("method") == "network" and float(where.get("confidence") or 0.0) < LOW_CONFIDENCE:
             hints.append(f"{name}: the localiser was unsure of the brain (confidence {where.get('confidence', 0):.2f}); "
                          "check its mask with `svrnet masks`, or upload one with --mask")
-        if _mirrored(stack):
-            hints.append(f"{name}: it lies on the mirror image of where the other stacks put the fetus, so none of its "
-                         "slices is accepted: its file's voxels are most likely reversed or flipped against its header "
-                         "(slices written in reverse order, rows or columns flipped, without the affine): convert the "
-                         "series again from the scanner's files (e.g. dcm2niix); if it was, its own slices decided "
-                         "its left-right branch wrongly: acquire it again")
-        apart = _apart_mm(stack)
-        if apart is not None:
-            hints.append(f"{name}: its brain lies {apart:.0f} mm from the other stacks' (its mask holds another fetus's "
-                         "brain, a twin's, or it is another scan's file), so none of its slices is accepted: send the "
-                         "stacks of one fetus in a request, a twin's in a request of their own")
+        hints += consistency_hints(name, stack)
         lost = [s.get("index") for s in brain if s.get("signal_lost")]
         if lost:
             hints.append(f"{name}: {len(lost)} slice(s) lost the brain's signal (a signal void, motion within the "

@@ -49,35 +49,40 @@ def stack_message(answer: StackAnswer) -> dict:
 
 
 def update_messages(answers: list[SliceAnswer], reacquire_of: dict[str, list[tuple[int, str]]] | None = None,
-                    consistency: bool = False) -> list[dict]:
+                    consistency: bool = False, restated: dict[str, StackPrediction] | None = None) -> list[dict]:
     """A stream's ``update`` messages: one per stack, its slices whose pose moved (or whose accept
     flag changed), in the order given; and for each ended stack whose list of slices worth
     acquiring again a later stack's end changed (``reacquire_of``), that list now (``reacquire``),
     with the slices that moved or none. With ``consistency`` (the updates a later stack's end made
     of the stacks ended before it), each stack with moved slices carries its ``consistency`` as the
     request's stage now sees it: why its slices moved or lost their flags (a stack found
-    ``mirrored`` against the later one).
+    ``mirrored`` against the later one); so does each stack in ``restated`` (those whose
+    :func:`~service.streaming.answers.consistency_decisions` the later end changed), moved or not.
 
     Example (an earlier stack's list changed, none of its slices moved):
         >>> update_messages([], {"ax": [(3, "high_expected_error")]})
         [{'type': 'update', 'stack': 'ax', 'slices': [], 'reacquire': [{'index': 3, 'reason': 'high_expected_error'}]}]
     """
-    reacquire_of = reacquire_of or {}
+    reacquire_of, restated = reacquire_of or {}, restated or {}
     by_stack: dict[str, list[SliceAnswer]] = {}
     for a in answers:
         by_stack.setdefault(a.stack, []).append(a)
-    for stack in reacquire_of:
+    for stack in [*reacquire_of, *restated]:
         by_stack.setdefault(stack, [])
+    def told(stack: str, group: list[SliceAnswer]) -> dict:
+        if stack in restated:
+            return {"consistency": stack_report(restated[stack].poses)}
+        return {"consistency": stack_report(group[0].prediction.poses)} if consistency and group else {}
     return [{"type": "update", "stack": stack, "slices": [pose_object(a) for a in group],
-             **({"reacquire": _reacquire(reacquire_of[stack])} if stack in reacquire_of else {}),
-             **({"consistency": stack_report(group[0].prediction.poses)} if consistency and group else {})}
+             **({"reacquire": _reacquire(reacquire_of[stack])} if stack in reacquire_of else {}), **told(stack, group)}
             for stack, group in by_stack.items()]
 
 
 def end_stack_messages(answer: StackAnswer) -> list[dict]:
     """What a stack's end sends, on a stream as over MRD: the ``update`` messages of the stacks ended
     before it (each with its ``consistency`` as the request's stage now sees it), then its ``stack``."""
-    return [*update_messages(answer.updates, answer.reacquire_of, consistency=True), stack_message(answer)]
+    return [*update_messages(answer.updates, answer.reacquire_of, consistency=True, restated=answer.restated),
+            stack_message(answer)]
 
 
 def _reacquire(slices: list[tuple[int, str]]) -> list[dict]:

@@ -19,6 +19,7 @@ from service.geometry import anchors
 from service.inference import acceptance
 from service.preprocess.field_of_view import CUT_BY_FIELD_OF_VIEW
 from service.preprocess.intensity import SIGNAL_LOST
+from service.pipeline.documents import stack_report
 from service.pipeline.predict import StackPrediction
 from service.streaming.coverage import Coverage
 
@@ -49,6 +50,7 @@ class StackAnswer:
     timings: dict[str, float]
     judged_alone: bool = False                                   # no stack had ended before it
     reacquire_of: dict[str, list[tuple[int, str]]] = field(default_factory=dict)   # earlier stacks' lists that changed
+    restated: dict[str, StackPrediction] = field(default_factory=dict)   # earlier stacks whose decisions changed
 
 
 @dataclass
@@ -69,10 +71,30 @@ def moved_mm(a: SliceAnswer, b: SliceAnswer, reference: NDArray) -> float:
     return float(anchors.ed(pose(a), pose(b)))
 
 
+def consistency_decisions(prediction: StackPrediction) -> dict:
+    """What the request's stages decided of an ended stack: its ``consistency`` less its
+    measurements (numbers that move a little with every later stack). A later stack's end that
+    changes them (the stack found ``mirrored`` or ``apart_from_request``, its branch taken from the
+    request, pooled with more stacks) is told the client with the stack's ``consistency``, whether
+    or not a slice moved.
+
+    Example:
+        >>> from types import SimpleNamespace
+        >>> consistency_decisions(SimpleNamespace(poses=SimpleNamespace(fit=None)))
+        {}
+    """
+    report = stack_report(prediction.poses) or {}
+    return {k: v for k, v in report.items() if v is None or isinstance(v, (bool, int, str))}
+
+
 def stack_to_acquire_again(prediction: StackPrediction, judged_alone: bool) -> list[tuple[int, str]]:
     """:func:`worth_acquiring_again` of an ended stack's answer: by its slices' own accept flags (the
     request's frame error does not move with one slice acquired again), with the causes its
-    preparation found (brain signal lost, brain cut by the field of view)."""
+    preparation found (brain signal lost, brain cut by the field of view). None of a stack apart
+    from the request's fetus (``StackPoses.apart``: another fetus's brain, which no slice acquired
+    again mends; its ``consistency`` says so)."""
+    if prediction.poses.apart:
+        return []
     return worth_acquiring_again(prediction.own_reasons or prediction.reasons, judged_alone,
                                  prediction.prepared.signal_lost, prediction.prepared.cut_by_field_of_view)
 

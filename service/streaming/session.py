@@ -48,8 +48,8 @@ from service.pipeline.unseen_errors import add_noise_error, add_unseen_errors
 from service.preprocess.localise import Localiser
 from service.preprocess.noise import stack_noise
 from service.streaming import immediate
-from service.streaming.answers import (NOT_RECEIVED, SessionSummary, SliceAnswer, StackAnswer, moved_mm,
-                                       stack_to_acquire_again)
+from service.streaming.answers import (NOT_RECEIVED, SessionSummary, SliceAnswer, StackAnswer, consistency_decisions,
+                                       moved_mm, stack_to_acquire_again)
 from service.streaming.arrival import ReceivedSlice, neighbours, pose_alone, prepare_alone
 from service.streaming.background import run_in_stage_process
 from service.streaming.footprint import array_bytes
@@ -114,6 +114,7 @@ class StreamSession:
         self.ended: dict[str, _Ended] = {}
         self.finals: dict[str, StackPrediction] = {}
         self.reacquire_sent: dict[str, list[tuple[int, str]]] = {}   # each ended stack's list as last sent
+        self.decisions_sent: dict[str, dict] = {}    # each ended stack's consistency_decisions as last sent
         self.reopened: dict[str, int] = {}      # a reopened stack's earlier end, still held: its bytes
         self.compute_ms: dict[str, float] = {"slices": 0.0, "firm_up": 0.0, "end_stack": 0.0}
         self.held_bytes = 0                     # the received slices' pixels as float32, and what is kept of them
@@ -237,14 +238,14 @@ class StreamSession:
         return changed
 
     def _changed(self, stack: str, answers: list[SliceAnswer]) -> list[SliceAnswer]:
-        """Of ``answers`` (new poses of ``stack``'s slices), those that moved or changed their flag
-        since last sent; they become the last sent (call under the lock)."""
+        """Of ``answers`` (new poses of ``stack``'s slices), those that moved or changed their accept
+        flag or its reason since last sent; they become the last sent (call under the lock)."""
         out = []
         for a in answers:
             state = self.slices[stack][a.index]
             last = state.answer
-            flag = lambda x: x.prediction.reasons[x.row] is None  # noqa: E731
-            if last is None or flag(last) != flag(a) or moved_mm(last, a, state.network_from_voxel[0]) > UPDATE_MM:
+            reason = lambda x: x.prediction.reasons[x.row]  # noqa: E731
+            if last is None or reason(last) != reason(a) or moved_mm(last, a, state.network_from_voxel[0]) > UPDATE_MM:
                 out.append(a)
                 state.answer = a
         return out
@@ -346,7 +347,12 @@ class StreamSession:
             lists = {n: stack_to_acquire_again(self.finals[n], alone) for n in names}
             changed = {n: r for n, r in lists.items() if n != stack and r != self.reacquire_sent.get(n)}
             self.reacquire_sent.update(lists)
-        answer = StackAnswer(stack, final, updates, lists[stack], coverage(covered, shown), timings, alone, changed)
+            decided = {n: consistency_decisions(self.finals[n]) for n in names}
+            restated = {n: self.finals[n] for n in names
+                        if n != stack and decided[n] != self.decisions_sent.get(n)}
+            self.decisions_sent.update(decided)
+        answer = StackAnswer(stack, final, updates, lists[stack], coverage(covered, shown), timings, alone, changed,
+                             restated)
         self.compute_ms["end_stack"] += (time.perf_counter() - t0) * 1e3
         return answer
 
