@@ -31,6 +31,9 @@ the Dice against the rewritten mask, per stack and as the median and minimum per
   image (aliasing: the two magnitudes summed as signals of random phase), the brain kept inside;
 * ``edge0``, ``edge15``: the field of view ending at the brain's outline along one in-plane axis,
   or 15 mm inside it (a head at the edge of the image; the mask cut alike);
+* ``turned15``, ``turned30``, ``turned45``: each slice's content turned by that many degrees in
+  its plane about the field of view's centre (a head at another angle to the picture's rows, as a
+  stack planned at another in-plane angle shows it);
 * ``moving``: each slice's content (and mask) shifted in its plane by up to 10 mm either way (the
   fetus moving between slices);
 * ``younger0.8``, ``younger0.7``: the voxels said to be 0.8 or 0.7 times their size (the header
@@ -127,6 +130,28 @@ def in_plane_pixels(volume: Volume, mask: NDArray, pixel_mm: float) -> tuple[Vol
     affine = volume.affine.copy()
     affine[:3, :3] = volume.affine[:3, :3] * step
     return Volume(image.astype(np.float32), affine), resampled
+
+
+def turned_in_plane(volume: Volume, mask: NDArray, degrees: float) -> tuple[Volume, NDArray]:
+    """The stack's content turned by ``degrees`` in the plane of its slices about the field of
+    view's centre (in mm: pixels need not be square), stack and mask alike (linear, the mask at 0.5):
+    a head lying at another angle to the picture's rows, as a stack planned at another in-plane
+    angle shows it. What turns out of the picture is lost; what turns in is the background."""
+    axis = slice_axis_of(volume.spacing)
+    plane = [a for a in range(3) if a != axis]
+    shape = np.array(volume.array.shape)
+    spacing = np.asarray(volume.spacing, np.float64)
+    grid = np.meshgrid(*[np.arange(n, dtype=np.float64) for n in shape], indexing="ij")
+    mm = [(grid[a] - (shape[a] - 1) / 2.0) * spacing[a] for a in plane]
+    c, s = np.cos(np.radians(degrees)), np.sin(np.radians(degrees))
+    source = list(grid)                                   # each output voxel's place in the input
+    source[plane[0]] = (c * mm[0] + s * mm[1]) / spacing[plane[0]] + (shape[plane[0]] - 1) / 2.0
+    source[plane[1]] = (-s * mm[0] + c * mm[1]) / spacing[plane[1]] + (shape[plane[1]] - 1) / 2.0
+    image = volume.array.astype(np.float32)
+    background = float(np.percentile(image, 5))
+    turned = ndimage.map_coordinates(image, source, order=1, cval=background)
+    turned_mask = ndimage.map_coordinates(mask.astype(np.float32), source, order=1, cval=0.0) >= 0.5
+    return Volume(turned.astype(np.float32), volume.affine), turned_mask
 
 
 def wrapped(volume: Volume, mask: NDArray, axis: int, share: float) -> tuple[Volume, NDArray] | None:
@@ -231,6 +256,8 @@ def rewrites(volume: Volume, mask: NDArray[np.bool_], rng: np.random.Generator) 
             box = [slice(None)] * 3
             box[a] = slice(found[:, a].min() + int(round(cut_mm / volume.spacing[a])), None)
             yield f"edge{cut_mm}", volume.region(tuple(box)), mask[tuple(box)]
+    for degrees in (15, 30, 45):
+        yield (f"turned{degrees}", *turned_in_plane(volume, mask, degrees))
     moved, moved_mask = np.moveaxis(image.copy(), axis, 0), np.moveaxis(mask.copy(), axis, 0)
     for k in range(len(moved)):
         shift = own.uniform(-10.0, 10.0, 2) / volume.spacing[plane]

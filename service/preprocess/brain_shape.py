@@ -62,6 +62,11 @@ END_DIP = 0.5
 """At either end of a component, a run of small slices (each under :data:`VALLEY_SHARE` of the largest)
 is a bridge to something else where its narrowest slice is under this share of a slice beyond it: a
 brain's cap narrows to its last slice, bits of a fetal body beyond it do not (:func:`end_dips`)."""
+MISSING_RUN = 2
+"""Up to this many neighbouring slices in which the network sees (almost) no brain between two
+slices of one brain are missing slices (:func:`missing_slices`): neighbouring slices of an
+interleaved stack are acquired apart in time, and each can be darkened on its own; a head turned in
+the picture's plane shows the network a poor slice more often."""
 TAIL_SHARE = 0.35
 """What lies beyond a waist is cut off when it holds less than this share of the component's
 probability mass; a larger part on each side is the brain itself, split by a poor slice."""
@@ -233,41 +238,59 @@ def largest_mass(mask: NDArray[np.bool_], prob: NDArray[np.float32]) -> NDArray[
 
 def missing_slices(labels: NDArray[np.int32], best: int) -> NDArray[np.bool_]:
     """Slices (of 3D-labelled per-slice maps ``labels [n, H, W]``) in which the network sees (almost) no
-    brain between two slices of one brain: inside component ``best``, a slice under :data:`WAIST_SHARE`
-    of its neighbours, which are wide (over :data:`VALLEY_SHARE` of its widest slice) and overlap by
-    :data:`WAIST_OVERLAP` of the larger; or just past either end of ``best``, where the slice beyond
-    holds a component whose region overlaps the end slice's so, both wide, and which is large (over
-    :data:`TAIL_SHARE` of ``best``'s voxels): one brain that a slice without it splits in two.
+    brain between two slices of one brain: up to :data:`MISSING_RUN` neighbouring slices, each under
+    :data:`WAIST_SHARE` of the slices on either side of them, which are wide (over
+    :data:`VALLEY_SHARE` of the widest slice) and overlap by :data:`WAIST_OVERLAP` of the larger:
+    inside component ``best``, or past either end of ``best``'s wide slices, where the slice beyond
+    holds another component that so overlaps the last wide slice and is a brain's part (over
+    :data:`TAIL_SHARE` of ``best``'s voxels, or over :data:`MISSING_RUN` slices long): one brain that
+    slices without it split in two.
 
     A slice that a signal void or intra-slice motion darkened over the brain shows the network little
     or no brain there: the brain's component ends at it, or the rules that follow take the next slice
     for a growing cap and trim every slice beyond. The two halves lie one above the other, as a
-    head's neighbouring slices do; a bridge into the neck, the body or the face does not.
+    head's neighbouring slices do; a bridge into the neck, the body or the face does not, and a blob
+    of a slice or two past a brain's end is no part of it.
 
-    Example (a brain of 7 slices whose slice 3 the network does not see):
+    Example (a brain of 7 slices whose slice 3 the network does not see; then slices 3 and 4):
         >>> p = np.zeros((7, 10, 10), np.float32); p[:, 2:8, 2:8] = 0.9; p[3] = 0.0
         >>> labels, _ = ndimage.label(p > 0.5, structure=np.ones((3, 3, 3), bool))
         >>> missing_slices(labels, 1).tolist()
         [False, False, False, True, False, False, False]
+        >>> p[4] = 0.0; labels, _ = ndimage.label(p > 0.5, structure=np.ones((3, 3, 3), bool))
+        >>> missing_slices(labels, 1).tolist()
+        [False, False, False, True, True, False, False]
     """
     comp = labels == best
     area = comp.reshape(len(comp), -1).sum(1)
     rows = np.flatnonzero(area)
     out = np.zeros(len(labels), bool)
-    for k in range(rows[0] + 1, rows[-1]):                          # a poor slice inside the component
-        smaller, larger = sorted((area[k - 1], area[k + 1]))
-        if smaller >= VALLEY_SHARE * area.max() and area[k] < WAIST_SHARE * smaller:
-            out[k] = (comp[k - 1] & comp[k + 1]).sum() >= WAIST_OVERLAP * larger
-    for end, step in ((rows[-1], 1), (rows[0], -1)):
-        gap, beyond = end + step, end + 2 * step
-        here = comp[end]
-        if not 0 <= beyond < len(labels) or (labels[gap] > 0)[here].sum() >= WAIST_SHARE * here.sum():
-            continue
-        for other in set(np.unique(labels[beyond][here]).tolist()) - {0, best}:
-            there = labels[beyond] == other
-            wide = min(here.sum(), there.sum()) >= VALLEY_SHARE * area.max()
-            large = np.count_nonzero(labels == other) >= TAIL_SHARE * area.sum()
-            out[gap] |= wide and large and (here & there).sum() >= WAIST_OVERLAP * max(here.sum(), there.sum())
+    for run in range(1, MISSING_RUN + 1):                           # poor slices inside the component
+        for k in range(rows[0] + 1, rows[-1] - run + 1):
+            smaller, larger = sorted((area[k - 1], area[k + run]))
+            if smaller >= VALLEY_SHARE * area.max() and np.all(area[k:k + run] < WAIST_SHARE * smaller):
+                out[k:k + run] |= (comp[k - 1] & comp[k + run]).sum() >= WAIST_OVERLAP * larger
+    wide = np.flatnonzero(area >= VALLEY_SHARE * area.max())
+    for last, step in ((wide[-1], 1), (wide[0], -1)):               # past the wide slices at either end
+        here = comp[last]
+        for run in range(1, MISSING_RUN + 1):
+            gap = last + step * np.arange(1, run + 1)
+            beyond = last + step * (run + 1)
+            if not 0 <= beyond < len(labels):
+                break
+            if np.any(area[gap] >= WAIST_SHARE * here.sum()) or \
+                    any((labels[k] > 0)[here].sum() >= WAIST_SHARE * here.sum() for k in gap):
+                break                                               # the brain goes on: no gap
+            if area[beyond]:
+                break                                               # the component itself goes on
+            for other in set(np.unique(labels[beyond][here]).tolist()) - {0, best}:
+                there = labels[beyond] == other
+                part = labels == other
+                brainlike = (np.count_nonzero(part) >= TAIL_SHARE * area.sum()
+                             or np.count_nonzero(part.reshape(len(part), -1).any(1)) > MISSING_RUN)
+                joined = (there.sum() >= VALLEY_SHARE * area.max() and brainlike
+                          and (here & there).sum() >= WAIST_OVERLAP * max(here.sum(), there.sum()))
+                out[gap] |= joined
     return out
 
 
