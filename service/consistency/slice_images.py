@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from service.core.threads import two_threads
+from service.preprocess.stack import voxels_covering
 
 
 @dataclass
@@ -125,7 +126,7 @@ class BlockedStack:
         if found.any():
             for axis in (0, 1):
                 hit = np.flatnonzero(found.any(axis=1 - axis))
-                margin = int(np.ceil(CROP_MARGIN_MM / s.pixel_mm[axis]))
+                margin = int(voxels_covering(CROP_MARGIN_MM, s.pixel_mm[axis]))
                 lo = int(max(hit[0] - margin, 0) // f[axis] * f[axis])
                 box[axis] = slice(lo, int(min(hit[-1] + margin + 1, (h, w)[axis])))
         images, masks = s.images[:, box[0], box[1]], s.masks[:, box[0], box[1]]

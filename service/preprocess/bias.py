@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from service.geometry.sampling import linear_operator
 from service.io.volume import Volume
 from service.preprocess.n4 import n4_log_field
-from service.preprocess.stack import mask_box
+from service.preprocess.stack import mask_box, voxels_covering
 
 MARGIN_MM = 20.0
 FIT_SPACING_MM = 8.0
@@ -55,7 +55,7 @@ def n4_correct(volume: Volume, mask: NDArray | None = None, *, shrink: int = 4, 
             shrunk further (a 0.55 mm stack by 15, not 4).
     """
     arr = np.asarray(volume.array, dtype=np.float32)
-    box = None if mask is None else mask_box(np.asarray(mask, bool), np.ceil(margin_mm / volume.spacing).astype(int))
+    box = None if mask is None else mask_box(np.asarray(mask, bool), voxels_covering(margin_mm, volume.spacing))
     box = box or tuple(slice(0, n) for n in arr.shape)
     region = volume.region(box)
     # The fit works on the voxel grid alone (the field lives on the index domain), on samples centred
