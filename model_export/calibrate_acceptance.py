@@ -237,9 +237,11 @@ def level_columns(npz: Path | list[Path], levels: tuple[str, ...]) -> dict[str, 
 
 def measuring(info: ModelInfo) -> ModelInfo:
     """``info`` with its floor, limit and twin risk switched off: the expected errors and flags as
-    they are measured for :func:`calibrate` (which chooses those three); its noise error too, which is
-    calibrated on the accept flags' settings (``calibrate-noise``)."""
-    return replace(info, expected_error_floor_mm=0.0, max_expected_error_mm=None, twin_risk_logit=None, noise_error=None)
+    they are measured for :func:`calibrate` (which chooses those three); its noise and frame errors
+    too, which are calibrated after the accept flags, on their settings (``calibrate-noise``,
+    ``calibrate-frame``): a model that carries them is calibrated again as it was first."""
+    return replace(info, expected_error_floor_mm=0.0, max_expected_error_mm=None, twin_risk_logit=None, noise_error=None,
+                   frame_error=None)
 
 
 def measure(estimator, volumes: list, per_volume: int, seed: int = 1, levels: tuple[str, ...] = LEVELS,  # noqa: ANN001

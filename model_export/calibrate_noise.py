@@ -61,9 +61,10 @@ def measure(estimator, volumes: list, per_volume: int = PER_VOLUME, seed: int = 
             levels: tuple[str, ...] = LEVELS) -> dict[str, NDArray]:
     """Per slice with brain, over the ladder: its E.D. against the truth (``ed``), its expected error
     (``expected``, inf where it has none) and its stack's input noise (``input_noise``); the
-    estimator's own ``noise_error`` switched off while they are measured."""
+    estimator's own ``noise_error`` switched off while they are measured, and its ``frame_error``,
+    which is calibrated after it (``calibrate-frame``)."""
     estimator = copy(estimator)                  # the caller's keeps its calibration
-    estimator.info = replace(estimator.info, noise_error=None)
+    estimator.info = replace(estimator.info, noise_error=None, frame_error=None)
     scored = Scored()
     for level in levels:
         for noise in NOISE_LADDER:

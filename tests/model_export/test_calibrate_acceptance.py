@@ -121,3 +121,18 @@ def test_a_model_that_places_no_slice_well_is_told_so_not_an_index_error() -> No
            for k, c in {"mild": level(rng, 200, 2.0, 1.0), "moderate": level(rng, 200, 3.0, 1.0)}.items()}
     with pytest.raises(ValueError, match="none of the 400 slices lies within 5 mm"):
         calibrate(far)
+
+
+def test_the_flags_are_measured_without_the_terms_calibrated_after_them() -> None:
+    """A shipped model carries its noise and frame errors; calibrating its flags again measures the
+    expected errors as they were first calibrated, without either (before, the frame error stayed on)."""
+    from dataclasses import replace
+
+    from model_export.calibrate_acceptance import measuring
+    from tests.api.conftest import INFO
+
+    info = replace(INFO, noise_error=(0.06, 2.0), frame_error=(9.5, 0.26), max_expected_error_mm=4.5,
+                   expected_error_floor_mm=1.0, twin_risk_logit=(1.0, -2.0))
+    off = measuring(info)
+    assert (off.noise_error, off.frame_error, off.max_expected_error_mm, off.twin_risk_logit) == (None, None, None, None)
+    assert off.expected_error_floor_mm == 0.0 and off.mc_error_scale == info.mc_error_scale

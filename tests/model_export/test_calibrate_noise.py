@@ -94,3 +94,29 @@ def test_without_clean_stacks_or_with_one_group_there_is_nothing_to_calibrate_ag
         calibrate({k: v[cols["input_noise"] > 0.07] for k, v in cols.items()})
     with pytest.raises(ValueError, match="fewer than two groups"):
         calibrate({k: v[cols["input_noise"] < 0.045] for k, v in cols.items()})
+
+
+def test_the_noise_error_is_measured_without_the_frame_error_calibrated_after_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The acquisitions run with the model's noise and frame errors off (before, the frame error stayed on)."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    import model_export.calibrate_noise as calibrate_noise
+    from tests.api.conftest import INFO
+
+    seen = []
+
+    class Seen(Exception):
+        pass
+
+    def run(stacks, estimator):  # noqa: ANN001, ANN202
+        seen.append(estimator.info)
+        raise Seen
+
+    monkeypatch.setattr(calibrate_noise, "acquire", lambda *a, **k: [])
+    monkeypatch.setattr(calibrate_noise, "run_acquisition", run)
+    estimator = SimpleNamespace(info=replace(INFO, noise_error=(0.06, 2.0), frame_error=(9.5, 0.26)))
+    with pytest.raises(Seen):
+        calibrate_noise.measure(estimator, [object()], per_volume=1)
+    assert seen[0].noise_error is None and seen[0].frame_error is None
+    assert estimator.info.frame_error == (9.5, 0.26)                        # the caller's model keeps its own
