@@ -76,12 +76,14 @@ def starting_poses(body: dict, min_share: float = MIN_ACCEPTED_SHARE, min_slices
     stack the request found mirrored (``consistency.mirrored``: its slices lie on the twin of where
     the others put them, and would blend the brain with its mirror image) or apart from the
     request's fetus (``consistency.apart_from_request``: another brain); kept where nothing else is
-    left."""
+    left. The share of accepted slices is that of the stacks kept: a twin's stack, none of its slices
+    accepted, does not make a job start from every slice of the fetus's."""
     poses = poses_from_predict_body(body, [len(st["slices"]) for st in body["stacks"]])
     poses = [(mats, own) for (mats, _), own in zip(poses, accepted_without_frame(body))]
-    started = starting_inclusion(poses, posed_slices(body), min_share, min_slices)
     left_out = [any((st.get("consistency") or {}).get(key) for key in ("mirrored", "apart_from_request"))
                 for st in body["stacks"]]
+    posed = [p & ~out for p, out in zip(posed_slices(body), left_out)]     # the share among the stacks kept
+    started = starting_inclusion(poses, posed, min_share, min_slices)
     started = _unless_nothing_left(started, [(mats, include & ~out) for (mats, include), out in zip(started, left_out)])
     kept = [(mats, include & ~lost) for (mats, include), lost in zip(started, signal_lost_slices(body))]
     return started if keep_signal_lost else _unless_nothing_left(started, kept)

@@ -248,12 +248,14 @@ def _refine_stacks(prepared: list[PreparedStack], outs: list[StackPoses], proper
 def set_apart(outs: list[StackPoses], prepared: list[PreparedStack]) -> None:
     """Mark the stacks whose brain is not the request's fetus's, in place: each mask's brain centre
     in the scanner frame (the stacks share it) farther from the request's fetus than a fetus moves
-    between stacks (:func:`~service.preprocess.one_fetus.apart_from_fetus`; an uploaded mask of a
-    twin, a file of another scan). Such a stack's ``apart_mm`` says how far; every slice of it is
+    between stacks (:func:`~service.preprocess.one_fetus.apart_from_fetus`, the uploaded masks'
+    fetus the request's; an uploaded mask of a twin, a file of another scan). Such a stack's
+    ``apart_mm`` says how far; every slice of it is
     inconsistent (none is accepted: its poses place another brain), and the request's later steps
     leave it out."""
     centres = [brain_centre_mm(p.localisation.mask, p.upload.volume.affine) for p in prepared]
-    for out, distance in zip(outs, apart_from_fetus(centres, [p.localisation.confidence for p in prepared])):
+    for out, distance in zip(outs, apart_from_fetus(centres, [p.localisation.confidence for p in prepared],
+                                                    [p.localisation.method == "mask" for p in prepared])):
         if np.isfinite(distance):
             out.apart_mm = float(distance)
             out.inconsistent = np.ones(len(out.poses), bool)

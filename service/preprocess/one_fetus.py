@@ -88,26 +88,37 @@ def request_centre(centres: list[NDArray | None], confidences: list[float],
     return np.asarray(found[int(np.argmax(support))][0], np.float64)
 
 
-def apart_from_fetus(centres: list[NDArray | None], confidences: list[float]) -> NDArray[np.float64]:
-    """How far each stack's brain lies from the request's fetus (:func:`request_centre`, of the
-    stacks' brain centres weighed by ``confidences``), where it lies farther than
+def apart_from_fetus(centres: list[NDArray | None], confidences: list[float],
+                     uploaded: list[bool] | None = None) -> NDArray[np.float64]:
+    """How far each stack's brain lies from the request's fetus, where it lies farther than
     :data:`BRAIN_MOVE_MM`: mm, NaN where it lies with it, sees no brain (``None``), or the request's
-    brains are one fetus's. Where the stacks divide evenly between two places, the first stack's
-    is the request's.
+    brains are one fetus's. The request's fetus is the user's where the request uploaded masks
+    (``uploaded``: which stacks' brains are an uploaded mask's): the place most of those masks'
+    brains lie near; otherwise the place most of the brains found lie near, weighed by
+    ``confidences`` (:func:`request_centre`). Where the stacks divide evenly between two places,
+    the first stack's is the request's.
 
     The request's later stages (the stacks' branches decided together, their placements pooled,
     their slices refined where they cross) relate the stacks of one fetus. A stack whose mask holds
     another fetus's brain (a twin, or another scan's file) would pull the others towards a brain
     that is not theirs.
 
-    Example (two stacks of one fetus, a third 100 mm away; all three on one fetus):
+    Example (two stacks of one fetus, a third 100 mm away; all three on one fetus; the third's brain
+    an uploaded mask's, the others the localiser's):
         >>> centres = [np.zeros(3), np.array([10.0, 0.0, 0.0]), np.array([100.0, 0.0, 0.0])]
         >>> apart_from_fetus(centres, [1.0, 1.0, 1.0]).tolist()
         [nan, nan, 100.0]
         >>> apart_from_fetus(centres[:2] + [None], [1.0, 1.0, 0.0]).tolist()
         [nan, nan, nan]
+        >>> apart_from_fetus(centres, [0.9, 0.9, 1.0], uploaded=[False, False, True]).round(1).tolist()
+        [100.0, 90.0, nan]
     """
+    uploaded = uploaded or [False] * len(centres)
+    masks = [np.asarray(c, np.float64) for c, own in zip(centres, uploaded) if own and c is not None]
     target = request_centre(centres, confidences, [])
+    if masks:                                      # the user's masks decide among themselves
+        support = [sum(np.linalg.norm(other - here) <= BRAIN_MOVE_MM for other in masks) for here in masks]
+        target = masks[int(np.argmax(support))]
     apart = np.full(len(centres), np.nan)
     for i, centre in enumerate(centres):
         distance = np.inf if target is None or centre is None else float(np.linalg.norm(centre - target))

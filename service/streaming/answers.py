@@ -71,9 +71,15 @@ def moved_mm(a: SliceAnswer, b: SliceAnswer, reference: NDArray) -> float:
     return float(anchors.ed(pose(a), pose(b)))
 
 
+DECISIONS = ("decidable", "branch_decided", "branch_from_request", "branch_agrees_with_request", "mirrored",
+             "apart_from_request", "stacks_pooled", "acquisition_order")
+"""The keys of a stack's ``consistency`` that say what the request decided of it (the others measure)."""
+
+
 def consistency_decisions(prediction: StackPrediction) -> dict:
-    """What the request's stages decided of an ended stack: its ``consistency`` less its
-    measurements (numbers that move a little with every later stack). A later stack's end that
+    """What the request's stages decided of an ended stack: its ``consistency``'s :data:`DECISIONS`
+    and whether the image stage refined it, not its measurements (numbers that move a little with
+    every later stack, or turn null). A later stack's end that
     changes them (the stack found ``mirrored`` or ``apart_from_request``, its branch taken from the
     request, pooled with more stacks) is told the client with the stack's ``consistency``, whether
     or not a slice moved.
@@ -81,10 +87,10 @@ def consistency_decisions(prediction: StackPrediction) -> dict:
     Example:
         >>> from types import SimpleNamespace
         >>> consistency_decisions(SimpleNamespace(poses=SimpleNamespace(fit=None)))
-        {}
+        {'refined': False}
     """
     report = stack_report(prediction.poses) or {}
-    return {k: v for k, v in report.items() if v is None or isinstance(v, (bool, int, str))}
+    return {k: report[k] for k in DECISIONS if k in report} | {"refined": report.get("image_consistency") is not None}
 
 
 def stack_to_acquire_again(prediction: StackPrediction, judged_alone: bool) -> list[tuple[int, str]]:

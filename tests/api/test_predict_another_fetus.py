@@ -44,3 +44,25 @@ def test_a_stack_whose_brain_lies_100_mm_away_is_apart_and_changes_nothing_of_th
         assert there["consistency"]["stacks_pooled"] == 2 and there["consistency"]["image_consistency"]["stacks"] == 2
         np.testing.assert_allclose(_atlas_from_voxel(there), _atlas_from_voxel(here), atol=1e-6)
         assert [s["accepted"] for s in there["slices"]] == [s["accepted"] for s in here["slices"]]
+
+
+def test_the_uploaded_masks_decide_the_requests_fetus() -> None:
+    """A stack sent with its mask of one fetus and two without, in which the localiser kept a brain
+    100 mm away (it saw none near the mask's): the user's mask decides, and the two are apart,
+    though their confidences together outweigh the mask's (before, the masked stack was)."""
+    from types import SimpleNamespace
+
+    from service.pipeline.predict import set_apart
+
+    def stack(x_mm: float, method: str, confidence: float) -> SimpleNamespace:
+        mask = np.zeros((10, 10, 4), bool)
+        mask[4:6, 4:6, 1:3] = True
+        volume = SimpleNamespace(affine=translate(np.array([x_mm, 0.0, 0.0])))
+        return SimpleNamespace(localisation=SimpleNamespace(mask=mask, method=method, confidence=confidence),
+                               upload=SimpleNamespace(volume=volume))
+
+    prepared = [stack(0.0, "mask", 1.0), stack(100.0, "network", 0.8), stack(100.0, "network", 0.8)]
+    outs = [SimpleNamespace(poses=np.zeros((4, 4, 4)), inconsistent=np.zeros(4, bool), apart_mm=np.nan) for _ in prepared]
+    set_apart(outs, prepared)
+    assert np.isnan(outs[0].apart_mm) and not outs[0].inconsistent.any()
+    assert [round(o.apart_mm) for o in outs[1:]] == [100, 100] and all(o.inconsistent.all() for o in outs[1:])

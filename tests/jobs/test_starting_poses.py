@@ -126,3 +126,18 @@ def test_a_job_never_starts_from_a_stack_the_request_found_mirrored_or_apart(fla
     assert start_label(body, start) == "every_slice"
     alone = {"stacks": [stack(True, (False, False, False))]}
     assert starting_poses(alone)[0][1].tolist() == [True, True, True]                   # nothing else left
+
+
+@pytest.mark.parametrize("flag", ["mirrored", "apart_from_request"])
+def test_stacks_left_out_do_not_count_against_the_share_of_accepted_slices(flag: str) -> None:
+    """The fetus's stack, 40 of its 60 slices accepted, and two stacks left out (none accepted): the
+    job starts from those 40, as from the stack alone (before, 40 of 180 made it start from every
+    slice of the fetus, its rejected ones included)."""
+    def stack(out: bool, accepted: int, n: int = 60) -> dict:
+        return {"consistency": {flag: out}, "slices": [
+            {"atlas_from_voxel": np.eye(4).tolist(), "accepted": k < accepted,
+             "reason": None if k < accepted else "inconsistent_with_stack"} for k in range(n)]}
+
+    alone = starting_poses({"stacks": [stack(False, 40)]})
+    beside = starting_poses({"stacks": [stack(False, 40), stack(True, 0), stack(True, 0)]})
+    assert [int(inc.sum()) for _, inc in beside] == [40, 0, 0] == [int(alone[0][1].sum()), 0, 0]
