@@ -58,16 +58,18 @@ def n4_correct(volume: Volume, mask: NDArray | None = None, *, shrink: int = 4, 
     box = None if mask is None else mask_box(np.asarray(mask, bool), voxels_covering(margin_mm, volume.spacing))
     box = box or tuple(slice(0, n) for n in arr.shape)
     region = volume.region(box)
-    # The fit works on the voxel grid alone (the field lives on the index domain), on samples centred
-    # in the region: the same samples whichever way the file stores its axes (a shrink from the first
-    # voxel, as ITK's, samples a stack stored last to first elsewhere and moved its poses by about an
-    # MC draw's spread), and no physical position to round.
+    # The fit works on the voxel grid alone (the field lives on the index domain), on samples on a
+    # lattice through the stack's middle: the same samples whichever way the file stores its axes (a
+    # shrink from the first voxel, as ITK's, samples a stack stored last to first elsewhere and moved
+    # its poses by about an MC draw's spread) and whatever the region's exact extent, and no physical
+    # position to round.
     region_array = np.maximum(np.asarray(region.array, np.float32), 0.0)
     sp = np.asarray(region.spacing, np.float64)
     target = max(shrink * min(sp), fit_spacing_mm)
     factors = [max(1, int(round(target / s))) for s in sp]                    # keep thick-slice axis
     factors = [min(f, max(1, n // 4)) for f, n in zip(factors, region_array.shape)]
-    small, at = centred_samples(region_array, factors)
+    centres = [(n - 1) / 2.0 - b.start for n, b in zip(arr.shape, box)]        # the whole stack's middle
+    small, at = centred_samples(region_array, factors, centres)
     import SimpleITK as sitk      # here: a training host prepares stacks without N4 and has no SimpleITK
 
     small_image = sitk.GetImageFromArray(np.ascontiguousarray((small / otsu_unit(small)).transpose(2, 1, 0)))
@@ -95,25 +97,38 @@ def otsu_unit(values: NDArray) -> np.float32:
     return peak if np.isfinite(peak) and peak > 0 else np.float32(1.0)
 
 
-def centred_samples(values: NDArray, factors: list[int]) -> tuple[NDArray[np.float32], list[NDArray[np.float64]]]:
-    """``values`` shrunk by ``factors``: ``n // factor`` samples per axis, ``factor`` voxels apart and
-    centred on the axis's middle; and, per axis, where each of ``values``' voxels lies in the shrunk
-    grid's continuous index. A sample that falls between two voxels (where the voxels left over and
-    the factor are both even or both odd) is their mean. Reversing an axis of ``values`` reverses
-    its samples. Samples, not block means, as ITK's shrink: N4 sharpens the histogram of the fit
-    image, and means of blocks that straddle tissues fill in the peaks it sharpens.
+def centred_samples(values: NDArray, factors: list[int], centres: list[float] | None = None,
+                    ) -> tuple[NDArray[np.float32], list[NDArray[np.float64]]]:
+    """``values`` shrunk by ``factors``: samples ``factor`` voxels apart on a lattice through each
+    axis's ``centres`` (index along the axis, a voxel or halfway between two; default the axis's
+    middle), every one that lies in ``values``; and, per axis, where each of ``values``' voxels lies
+    in the shrunk grid's continuous index. A sample halfway between two voxels is their mean.
+    Samples, not block means, as ITK's shrink: N4 sharpens the histogram of the fit image, and means
+    of blocks that straddle tissues fill in the peaks it sharpens.
 
-    Example (7 voxels every 2: three samples, at voxels 1, 3 and 5):
+    The lattice through the middle of the whole stack (:func:`n4_correct`) is the same whichever way
+    the file stores its axes (reversing an axis reverses its samples), and the same for a fit region
+    a voxel larger or smaller: only a sample that enters or leaves changes (a lattice through the
+    region's own middle moved every sample by half a voxel when the mask grew by one voxel at its
+    edge, and the field and the poses with it).
+
+    Example (7 voxels every 2: samples at voxels 1, 3 and 5; through voxel 4 of a larger array: 0, 2,
+    4 and 6):
         >>> small, at = centred_samples(np.arange(7.0)[:, None, None], [2, 1, 1])
         >>> small[:, 0, 0].tolist(), at[0][[0, 6]].tolist()
         ([1.0, 3.0, 5.0], [-0.5, 2.5])
+        >>> centred_samples(np.arange(7.0)[:, None, None], [2, 1, 1], [4.0, 0.0, 0.0])[0][:, 0, 0].tolist()
+        [0.0, 2.0, 4.0, 6.0]
     """
     out = np.asarray(values, np.float64)
     at = []
     for axis, f in enumerate(factors):
         n = out.shape[axis]
-        m = max(1, n // f)
-        first = (n - 1) / 2.0 - f * (m - 1) / 2.0           # the first sample's place: a voxel or halfway
+        centre = (n - 1) / 2.0 if centres is None else float(centres[axis])
+        first = float(np.mod(centre, f))                    # the first sample's place: a voxel or halfway
+        m = int(np.floor((n - 1 - first) / f)) + 1
+        if m < 1 or first > n - 1:                          # no lattice point inside: one sample, the middle's
+            first, m = (n - 1) / 2.0, 1
         low = int(np.floor(first))
         moved = np.moveaxis(out, axis, 0)
         picked = moved[low:low + f * (m - 1) + 1:f]

@@ -68,3 +68,22 @@ def test_n4_corrects_a_stack_stored_in_very_small_or_large_units_alike() -> None
     for unit in (1e-12, 1e-9, 1e-6, 1e6, 1e12):
         scaled = n4_correct(Volume(image * np.float32(unit), stack.affine), mask) / np.float32(unit)
         np.testing.assert_allclose(scaled, corrected, rtol=1e-4, atol=1e-3, err_msg=str(unit))
+
+
+def test_a_mask_a_voxel_larger_at_its_edge_leaves_the_field_where_it_was() -> None:
+    """The fit region (the mask's box and 20 mm) one voxel larger: the fit's samples lie on a lattice
+    through the stack's middle, so none moves and the field is the same wherever both regions reach
+    (before, every sample moved by half a voxel: the network's inputs changed on 23 of 24 slices of
+    a real stack, its poses by up to 13 mm)."""
+    rng = np.random.default_rng(3)
+    shape = (120, 110, 24)
+    zz = np.linspace(-1, 1, shape[0])[:, None, None]
+    image = (400 + 200 * np.exp(0.6 * zz) * np.ones(shape) + rng.normal(0, 20, shape)).astype(np.float32)
+    mask = np.zeros(shape, bool)
+    mask[30:90, 25:85, 3:21] = True
+    stack = Volume(image, np.diag([1.125, 1.125, 3.3, 1.0]))
+    grown = mask.copy()
+    grown[29, 50, 10] = True                                    # the box now starts a voxel sooner along x
+    before, after = n4_correct(stack, mask), n4_correct(stack, grown)
+    assert not np.array_equal(before[11], after[11])            # the voxel row the larger region added
+    np.testing.assert_allclose(after[12:], before[12:], rtol=1e-6)
