@@ -81,6 +81,14 @@ def test_every_rewrite_keeps_the_mask_on_the_stacks_grid_and_the_brain_in_view()
                     shift = _centroid(v, np.where(np.arange(m.shape[1])[None, :, None] == k, m, False)) - \
                         _centroid(volume, np.where(np.arange(mask.shape[1])[None, :, None] == k, mask, False))
                     assert np.linalg.norm(shift) <= np.sqrt(2) * 10.0 + 1.0, (k, shift)
+        elif name.startswith("turned"):                              # the content turned about the picture's middle
+            middle = apply(volume.affine, (np.array(volume.array.shape) - 1) / 2.0)
+            normal = volume.affine[:3, 1] / np.linalg.norm(volume.affine[:3, 1])          # the slice axis: 1
+            off = [c - middle - (c - middle) @ normal * normal for c in (_centroid(volume, mask), _centroid(v, m))]
+            assert abs(int(m.sum()) - int(mask.sum())) <= 0.05 * mask.sum(), name
+            assert abs(np.linalg.norm(off[1]) - np.linalg.norm(off[0])) < 1.0, name      # as far from the middle
+            turn = np.degrees(np.arccos(np.clip(off[0] @ off[1] / np.linalg.norm(off[0]) / np.linalg.norm(off[1]), -1, 1)))
+            assert abs(turn - float(name.removeprefix("turned"))) < 3.0, (name, turn)
         elif name.startswith("younger"):                             # the same voxels, said to be smaller
             scale = float(name.removeprefix("younger"))
             np.testing.assert_allclose(v.affine[:3, :3], scale * volume.affine[:3, :3], atol=1e-12)
@@ -97,7 +105,7 @@ def test_every_rewrite_keeps_the_mask_on_the_stacks_grid_and_the_brain_in_view()
     assert {"base", "x-reversed", "y-reversed", "in-plane-swapped", "px2.0", "cropped", "cropped-tight", "fov420",
             "noise", "noise15", "moving", "every2nd", "first-half", "last-half", "brain-slab", "zero-filled", "dark-slice", "signal-void",
             "wrap-u", "wrap-v", "edge0",
-            "edge15", "younger0.8", "younger0.7"} <= set(names)
+            "edge15", "turned15", "turned30", "turned45", "younger0.8", "younger0.7"} <= set(names)
 
 
 def test_a_folded_field_of_view_keeps_the_brain_and_adds_what_lay_beyond() -> None:
