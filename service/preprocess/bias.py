@@ -63,13 +63,16 @@ def n4_correct(volume: Volume, mask: NDArray | None = None, *, shrink: int = 4, 
     # shrink from the first voxel, as ITK's, samples a stack stored last to first elsewhere and moved
     # its poses by about an MC draw's spread) and whatever the region's exact extent, and no physical
     # position to round.
-    region_array = np.maximum(np.asarray(region.array, np.float32), 0.0)
     sp = np.asarray(region.spacing, np.float64)
     target = max(shrink * min(sp), fit_spacing_mm)
     factors = [max(1, int(round(target / s))) for s in sp]                    # keep thick-slice axis
-    factors = [min(f, max(1, n // 4)) for f, n in zip(factors, region_array.shape)]
-    centres = [(n - 1) / 2.0 - b.start for n, b in zip(arr.shape, box)]        # the whole stack's middle
-    small, at = centred_samples(region_array, factors, centres)
+    factors = [min(f, max(1, b.stop - b.start) // 4 or 1) for f, b in zip(factors, box)]
+    # the region and a sample's spacing around it (where the stack has it): samples cover the region
+    reach = tuple(slice(max(b.start - f, 0), min(b.stop + f, n)) for b, f, n in zip(box, factors, arr.shape))
+    through = [(n - 1) / 2.0 - f * (max(1, n // f) - 1) / 2.0 - r.start       # the whole stack's centred samples
+               for n, f, r in zip(arr.shape, factors, reach)]
+    small, at = centred_samples(np.maximum(arr[reach], 0.0), factors, through)
+    at = [a[b.start - r.start:b.stop - r.start] for a, b, r in zip(at, box, reach)]   # the region's voxels
     import SimpleITK as sitk      # here: a training host prepares stacks without N4 and has no SimpleITK
 
     small_image = sitk.GetImageFromArray(np.ascontiguousarray((small / otsu_unit(small)).transpose(2, 1, 0)))
@@ -97,23 +100,23 @@ def otsu_unit(values: NDArray) -> np.float32:
     return peak if np.isfinite(peak) and peak > 0 else np.float32(1.0)
 
 
-def centred_samples(values: NDArray, factors: list[int], centres: list[float] | None = None,
+def centred_samples(values: NDArray, factors: list[int], through: list[float] | None = None,
                     ) -> tuple[NDArray[np.float32], list[NDArray[np.float64]]]:
-    """``values`` shrunk by ``factors``: samples ``factor`` voxels apart on a lattice through each
-    axis's ``centres`` (index along the axis, a voxel or halfway between two; default the axis's
-    middle), every one that lies in ``values``; and, per axis, where each of ``values``' voxels lies
-    in the shrunk grid's continuous index. A sample halfway between two voxels is their mean.
+    """``values`` shrunk by ``factors``: samples ``factor`` voxels apart on a lattice through
+    ``through`` (per axis, an index, a voxel or halfway between two), every one that lies in
+    ``values`` (default: ``n // factor`` samples centred on the axis's middle); and, per axis,
+    where each of ``values``' voxels lies in the shrunk grid's continuous index. A sample halfway
+    between two voxels is their mean.
     Samples, not block means, as ITK's shrink: N4 sharpens the histogram of the fit image, and means
     of blocks that straddle tissues fill in the peaks it sharpens.
 
-    The lattice through the middle of the whole stack (:func:`n4_correct`) is the same whichever way
-    the file stores its axes (reversing an axis reverses its samples), and the same for a fit region
-    a voxel larger or smaller: only a sample that enters or leaves changes (a lattice through the
-    region's own middle moved every sample by half a voxel when the mask grew by one voxel at its
-    edge, and the field and the poses with it).
+    The lattice of the whole stack's centred samples (:func:`n4_correct`, on the fit region and a
+    sample's spacing around it) is the same whichever way the file stores its axes (reversing an
+    axis reverses its samples), and the same for a fit region a voxel larger or smaller: only a
+    sample that enters or leaves changes (samples centred on the region moved by half a voxel when
+    the mask grew by one voxel at its edge, and the field and the poses with it).
 
-    Example (7 voxels every 2: samples at voxels 1, 3 and 5; through voxel 4 of a larger array: 0, 2,
-    4 and 6):
+    Example (7 voxels every 2: samples at voxels 1, 3 and 5; through voxel 4: 0, 2, 4 and 6):
         >>> small, at = centred_samples(np.arange(7.0)[:, None, None], [2, 1, 1])
         >>> small[:, 0, 0].tolist(), at[0][[0, 6]].tolist()
         ([1.0, 3.0, 5.0], [-0.5, 2.5])
@@ -124,11 +127,14 @@ def centred_samples(values: NDArray, factors: list[int], centres: list[float] | 
     at = []
     for axis, f in enumerate(factors):
         n = out.shape[axis]
-        centre = (n - 1) / 2.0 if centres is None else float(centres[axis])
-        first = float(np.mod(centre, f))                    # the first sample's place: a voxel or halfway
-        m = int(np.floor((n - 1 - first) / f)) + 1
-        if m < 1 or first > n - 1:                          # no lattice point inside: one sample, the middle's
-            first, m = (n - 1) / 2.0, 1
+        if through is None:                                 # n // f samples about the axis's middle
+            m = max(1, n // f)
+            first = (n - 1) / 2.0 - f * (m - 1) / 2.0       # the first sample's place: a voxel or halfway
+        else:                                               # every lattice point inside
+            first = float(np.mod(float(through[axis]), f))
+            m = int(np.floor((n - 1 - first) / f)) + 1
+            if m < 1 or first > n - 1:                      # none inside: one sample, the middle's
+                first, m = (n - 1) / 2.0, 1
         low = int(np.floor(first))
         moved = np.moveaxis(out, axis, 0)
         picked = moved[low:low + f * (m - 1) + 1:f]
