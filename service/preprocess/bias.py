@@ -58,11 +58,11 @@ def n4_correct(volume: Volume, mask: NDArray | None = None, *, shrink: int = 4, 
     box = None if mask is None else mask_box(np.asarray(mask, bool), voxels_covering(margin_mm, volume.spacing))
     box = box or tuple(slice(0, n) for n in arr.shape)
     region = volume.region(box)
-    # The fit works on the voxel grid alone (the field lives on the index domain), on samples on a
-    # lattice through the stack's middle: the same samples whichever way the file stores its axes (a
-    # shrink from the first voxel, as ITK's, samples a stack stored last to first elsewhere and moved
-    # its poses by about an MC draw's spread) and whatever the region's exact extent, and no physical
-    # position to round.
+    # The fit works on the voxel grid alone (the field lives on the index domain), on samples on the
+    # lattice of the whole stack's centred samples: the same samples whichever way the file stores its
+    # axes (a shrink from the first voxel, as ITK's, samples a stack stored last to first elsewhere and
+    # moved its poses by about an MC draw's spread) and whatever the region's exact extent, and no
+    # physical position to round.
     sp = np.asarray(region.spacing, np.float64)
     target = max(shrink * min(sp), fit_spacing_mm)
     factors = [max(1, int(round(target / s))) for s in sp]                    # keep thick-slice axis
