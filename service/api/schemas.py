@@ -115,7 +115,8 @@ class StackConsistency(BaseModel):
                            "(inconsistent_with_stack), and it takes no part in the request's decisions")
     apart_from_request: bool = Field(
         False, description="the stack's brain (its mask's centre in the scanner frame) lies farther from the "
-                           "request's fetus than a fetus moves between stacks (60 mm): another fetus's (a twin's "
+                           "request's fetus (where the uploaded masks' brains lie; without masks, most stacks' "
+                           "brains) than a fetus moves between stacks (60 mm): another fetus's (a twin's "
                            "mask, another scan's file); none of its slices is accepted (inconsistent_with_stack), "
                            "and it takes no part in the request's decisions, pooling or image stage")
     apart_mm: Optional[float] = Field(
