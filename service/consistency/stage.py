@@ -125,8 +125,10 @@ def branch_set(out: StackPoses) -> bool:
 
 def undecided(out: StackPoses) -> bool:
     """The stage found one consistent stack but not its left-right branch, and the request has not
-    decided it either (it may: a stack the other stacks overruled, :func:`checked_branch`, has been)."""
-    return out.fit is not None and out.fit.decidable and not out.fit.branch_decided and not out.fit.branch_from_request
+    decided it either (it may: a stack the other stacks overruled, :func:`checked_branch`, has been);
+    a stack of another fetus (:attr:`StackPoses.apart`) is not the request's to decide."""
+    return (out.fit is not None and out.fit.decidable and not out.fit.branch_decided and not out.fit.branch_from_request
+            and not out.apart)
 
 
 MISFIT_ONSET = 0.6
@@ -185,10 +187,11 @@ def checked_branch(out: StackPoses, reference: NDArray | None,
     :data:`CHECKED_MARGIN`, is fitted again (``refit(reference, CHECKED_MARGIN)``) with the other
     stacks' placement ``reference`` (:func:`request_reference` of the others) deciding. The refit is
     taken where it chose the other branch and sits where the other stacks do on it and far from
-    them on its first one (``StackFit.agrees_by(OVERRULE_MARGIN)``); otherwise ``out`` stands.
+    them on its first one (``StackFit.agrees_by(OVERRULE_MARGIN)``); otherwise ``out`` stands, as does
+    a stack of another fetus (:attr:`StackPoses.apart`).
     """
     fit = out.fit
-    if reference is None or fit is None or not fit.branch_decided or fit.branch_margin >= CHECKED_MARGIN:
+    if reference is None or fit is None or out.apart or not fit.branch_decided or fit.branch_margin >= CHECKED_MARGIN:
         return out
     redo = refit(reference, CHECKED_MARGIN)
     flipped = redo.fit is not None and redo.fit.branch_margin < 1.0 and redo.fit.agrees_by(OVERRULE_MARGIN)

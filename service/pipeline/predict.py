@@ -349,16 +349,16 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
                 ref, margin))
 
         for i in weakest_first(outs) if stack_consistency else ():
-            outs[i] = outs[i] if outs[i].apart else check(i)
+            outs[i] = check(i)
         if stack_consistency:              # a stack whose file mirrors its voxels: out of the request's decisions ...
             mirrored = mark_mirrored(outs, [s.upload.volume.affine for s in prepared])
             if mirrored:                   # ... and out of the others' checks, which it pulled its way
-                outs = [out if i in mirrored or out.apart else check(i) for i, out in enumerate(outs)]
+                outs = [out if i in mirrored else check(i) for i, out in enumerate(outs)]
         reference = request_reference(outs) if stack_consistency else None
         if reference is not None:          # a stack that did not decide its branch takes the others' word
             outs = list(pool.map(lambda e, s, nfv, order, out: stack_poses(
                 e, s, nfv, True, plane_x_mm, e.spread_mm * scale, order, shape, gain, reference)
-                if undecided(out) and not out.apart else out, parts, prepared, frames, orders, outs))
+                if undecided(out) else out, parts, prepared, frames, orders, outs))
     if stack_consistency:
         pool_request(outs)
     timings["stack_consistency"] = time.perf_counter() - t

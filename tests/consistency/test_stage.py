@@ -3,6 +3,8 @@ crop/centre and the file's geometry gives back the stack's true atlas_from_scann
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -52,6 +54,7 @@ def test_the_request_reference_is_the_precision_weighted_placement_of_the_decide
     told = placed(np.eye(4), 1.0, 0.5)
     told.fit.branch_from_request = True                                   # the request decided it already
     assert not undecided(told)
+    assert not undecided(replace(undecided_one, apart_mm=100.0))          # another fetus's: not the request's
     assert request_reference([undecided_one]) is None
     ref = request_reference([placed(np.eye(4), 1.0, 3.0), placed(translate([3.0, 0.0, 0.0]), 2.0, 2.0), undecided_one])
     np.testing.assert_allclose(ref[:3, 3], [0.6, 0.0, 0.0], atol=1e-6)     # weights 1 and 1/4
@@ -115,6 +118,8 @@ def test_the_other_stacks_overrule_a_stack_that_decided_its_branch_weakly(monkey
     assert anchors.ed(redo.poses, truth).mean() > 50.0
     assert checked_branch(alone, true_side, refit) is alone and len(asked) == 2    # asked, agrees with it
     assert checked_branch(alone, None, refit) is alone and len(asked) == 2          # no other stack
+    other_fetus = replace(alone, apart_mm=100.0)
+    assert checked_branch(other_fetus, mirrored, refit) is other_fetus and len(asked) == 2   # not the request's
 
 
 def test_slices_that_move_on_their_own_raise_the_misfit_factor_and_it_makes_their_errors_more_honest() -> None:
