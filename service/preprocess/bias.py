@@ -5,9 +5,10 @@ least, but never to fewer than 4 samples along an axis) and restricted to the re
 bounding box plus a margin), on two fitting levels (a third, with twice the control points, fits a
 field finer than the brain's extent needs). The fit is N4 in numpy
 (:func:`~service.preprocess.n4.n4_log_field`: ITK's algorithm and ITK's field, without ITK's fixed
-cost per iteration, which dominates on a fit image of a few thousand voxels) on samples centred
-on each axis of the region (:func:`centred_samples`: a file that stores an axis the other way gets
-the same samples); SimpleITK thresholds the fit mask (Otsu); the fitted log field is
+cost per iteration, which dominates on a fit image of a few thousand voxels) on samples on the
+lattice of the whole stack's centred samples, over the region and a sample's spacing around it
+(:func:`centred_samples`: a file that stores an axis the other way gets the same samples, a region
+a voxel larger the same but where a sample enters); SimpleITK thresholds the fit mask (Otsu); the fitted log field is
 interpolated linearly onto the full-resolution grid of the region (:func:`upsample_linear`: three
 small matrix products), where it is divided out. Outside the region the image is left as it is (it
 is masked out later anyway).
@@ -69,8 +70,7 @@ def n4_correct(volume: Volume, mask: NDArray | None = None, *, shrink: int = 4, 
     factors = [min(f, max(1, b.stop - b.start) // 4 or 1) for f, b in zip(factors, box)]
     # the region and a sample's spacing around it (where the stack has it): samples cover the region
     reach = tuple(slice(max(b.start - f, 0), min(b.stop + f, n)) for b, f, n in zip(box, factors, arr.shape))
-    through = [(n - 1) / 2.0 - f * (max(1, n // f) - 1) / 2.0 - r.start       # the whole stack's centred samples
-               for n, f, r in zip(arr.shape, factors, reach)]
+    through = [centred_first(n, f) - r.start for n, f, r in zip(arr.shape, factors, reach)]   # the whole stack's
     small, at = centred_samples(np.maximum(arr[reach], 0.0), factors, through)
     at = [a[b.start - r.start:b.stop - r.start] for a, b, r in zip(at, box, reach)]   # the region's voxels
     import SimpleITK as sitk      # here: a training host prepares stacks without N4 and has no SimpleITK
@@ -100,6 +100,17 @@ def otsu_unit(values: NDArray) -> np.float32:
     return peak if np.isfinite(peak) and peak > 0 else np.float32(1.0)
 
 
+def centred_first(n: int, factor: int) -> float:
+    """Where the first of ``n // factor`` samples ``factor`` voxels apart, centred on an axis of ``n``
+    voxels, lies (an index, a voxel or halfway between two).
+
+    Example:
+        >>> centred_first(7, 2), centred_first(32, 4)
+        (1.0, 1.5)
+    """
+    return (n - 1) / 2.0 - factor * (max(1, n // factor) - 1) / 2.0
+
+
 def centred_samples(values: NDArray, factors: list[int], through: list[float] | None = None,
                     ) -> tuple[NDArray[np.float32], list[NDArray[np.float64]]]:
     """``values`` shrunk by ``factors``: samples ``factor`` voxels apart on a lattice through
@@ -127,14 +138,11 @@ def centred_samples(values: NDArray, factors: list[int], through: list[float] | 
     at = []
     for axis, f in enumerate(factors):
         n = out.shape[axis]
-        if through is None:                                 # n // f samples about the axis's middle
-            m = max(1, n // f)
-            first = (n - 1) / 2.0 - f * (m - 1) / 2.0       # the first sample's place: a voxel or halfway
-        else:                                               # every lattice point inside
-            first = float(np.mod(float(through[axis]), f))
-            m = int(np.floor((n - 1 - first) / f)) + 1
-            if m < 1 or first > n - 1:                      # none inside: one sample, the middle's
-                first, m = (n - 1) / 2.0, 1
+        anchor = centred_first(n, f) if through is None else float(through[axis])
+        first = float(np.mod(anchor, f))                    # the first sample's place: a voxel or halfway
+        m = int(np.floor((n - 1 - first) / f)) + 1          # every lattice point inside
+        if m < 1 or first > n - 1:                          # none inside: one sample, the middle's
+            first, m = (n - 1) / 2.0, 1
         low = int(np.floor(first))
         moved = np.moveaxis(out, axis, 0)
         picked = moved[low:low + f * (m - 1) + 1:f]
