@@ -112,13 +112,15 @@ def apart_from_fetus(centres: list[NDArray | None], confidences: list[float],
         [nan, nan, nan]
         >>> apart_from_fetus(centres, [0.9, 0.9, 1.0], uploaded=[False, False, True]).round(1).tolist()
         [100.0, 90.0, nan]
+        >>> apart_from_fetus(centres[::-1], [1.0, 1.0, 1.0], uploaded=[True, True, True]).round(1).tolist()   # a twin's mask first
+        [90.0, nan, nan]
     """
-    uploaded = uploaded or [False] * len(centres)
-    masks = [np.asarray(c, np.float64) for c, own in zip(centres, uploaded) if own and c is not None]
-    target = request_centre(centres, confidences, [])
+    masks = [np.asarray(c, np.float64) for c, own in zip(centres, uploaded or []) if own and c is not None]
     if masks:                                      # the user's masks decide among themselves
-        support = [sum(np.linalg.norm(other - here) <= BRAIN_MOVE_MM for other in masks) for here in masks]
-        target = masks[int(np.argmax(support))]
+        target = request_centre(masks, [1.0] * len(masks), [])
+        target = masks[0] if target is None else target
+    else:
+        target = request_centre(centres, confidences, [])
     apart = np.full(len(centres), np.nan)
     for i, centre in enumerate(centres):
         distance = np.inf if target is None or centre is None else float(np.linalg.norm(centre - target))
