@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from service.core.threads import two_threads
-from service.preprocess.stack import voxels_covering
+from service.geometry.frames import voxels_covering
 
 
 @dataclass

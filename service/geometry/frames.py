@@ -88,6 +88,21 @@ def voxel_spacing(affine: ArrayLike) -> NDArray[np.float64]:
     return np.linalg.norm(np.asarray(affine, dtype=np.float64)[:3, :3], axis=0)
 
 
+def voxels_covering(length_mm: ArrayLike, spacing: ArrayLike) -> NDArray[np.int64]:
+    """The whole voxels of ``spacing`` (mm) that cover ``length_mm`` (broadcast): the ratio rounded
+    up, a ratio within float rounding of a whole number (a millionth of it) taken as that number. A
+    header's float32 rounding of a 1 mm pixel (0.99999994 mm) must not add a voxel to a 20 mm
+    margin: the same scan in a float64 header would get another box, and every stage after it
+    another answer.
+
+    Example:
+        >>> voxels_covering(20.0, np.array([1.0, 0.99999994, 3.3])).tolist()
+        [20, 20, 7]
+    """
+    ratio = np.asarray(length_mm, np.float64) / np.asarray(spacing, np.float64)
+    return np.ceil(ratio * (1.0 - 1e-6)).astype(np.int64)
+
+
 def axes_cosine(axes: ArrayLike) -> NDArray[np.float64]:
     """The largest ``|cos|`` between two columns of each ``[..., 3, 3]`` matrix: 0 for axes at right
     angles (a rigid placement, an acquisition's grid), up to 1 for parallel ones.

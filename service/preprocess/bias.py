@@ -29,10 +29,11 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from service.geometry.frames import voxels_covering
 from service.geometry.sampling import linear_operator
 from service.io.volume import Volume
 from service.preprocess.n4 import n4_log_field
-from service.preprocess.stack import mask_box, voxels_covering
+from service.preprocess.stack import mask_box
 
 MARGIN_MM = 20.0
 FIT_SPACING_MM = 8.0

@@ -79,20 +79,6 @@ def mask_box(mask: NDArray, margin: NDArray | list[int]) -> tuple[slice, ...] | 
     return tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
 
 
-def voxels_covering(length_mm: float, spacing: NDArray) -> NDArray[np.int64]:
-    """The whole voxels per axis that cover ``length_mm`` at ``spacing`` (mm): the ratio rounded up,
-    a ratio within float rounding of a whole number (a millionth of it) taken as that number. A
-    header's float32 rounding of a 1 mm pixel (0.99999994 mm) must not add a voxel to a 20 mm
-    margin: the same scan in a float64 header would get another box, and every stage after it
-    another answer.
-
-    Example:
-        >>> voxels_covering(20.0, np.array([1.0, 0.99999994, 3.3])).tolist()
-        [20, 20, 7]
-    """
-    return np.ceil(float(length_mm) / np.asarray(spacing, np.float64) * (1.0 - 1e-6)).astype(np.int64)
-
-
 def slice_axis_of(spacing: NDArray) -> int:
     """The axis of largest spacing; ties (within :data:`~service.io.acquisition_geometry.SPACING_TIE`,
     a header's rounding) go to the last axis.

@@ -27,6 +27,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import sparse
 
 from service.core.errors import InvalidParameter
+from service.geometry.frames import voxels_covering
 from service.geometry.pose import apply
 
 _CORNERS = np.array([[dx, dy, dz] for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)])
@@ -85,7 +86,7 @@ def make_grid(resolution_mm: float, bounds_mm: ArrayLike) -> Grid:
     lo, hi = np.asarray(bounds_mm, dtype=np.float64).reshape(2, 3)
     if resolution_mm <= 0 or np.any(hi < lo):
         raise ValueError("make_grid: resolution must be > 0 and bounds ordered (lower, upper)")
-    shape = np.ceil((hi - lo) / resolution_mm - 1e-6).astype(int) + 1     # a whole number of voxels stays whole
+    shape = voxels_covering(hi - lo, resolution_mm) + 1                   # a whole number of voxels stays whole
     centre = (lo + hi) / 2.0
     affine = np.diag([resolution_mm] * 3 + [1.0])
     affine[:3, 3] = centre - (shape - 1) / 2.0 * resolution_mm
