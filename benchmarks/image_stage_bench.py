@@ -44,12 +44,13 @@ def real_scan_case() -> tuple[list, list, list] | None:
     """The shared real scan's stacks (manual masks) at the stack stage's poses, or None without the data."""
     if not REAL_SCAN.exists():
         return None
-    from model_export.localiser.evaluate import _pose_estimator, masked_files
+    from model_export.localiser.evaluate import masked_files
+    from model_export.localiser.pose_accuracy import pose_estimator
     from service.io.volume import read_volume
     from service.pipeline import predict as pipeline
     from service.pipeline.prepare import StackUpload, prepare_stacks
 
-    estimator = _pose_estimator()
+    estimator = pose_estimator()
     uploads = [StackUpload(name, read_volume(stack), read_volume(mask)) for name, stack, mask in masked_files(REAL_SCAN)]
     prepared = prepare_stacks(uploads, estimator.info, True, workers=2)
     predictions, _ = pipeline.predict(prepared, estimator, 100, estimator.info.variance_threshold, image_consistency=False)

@@ -31,7 +31,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, masked_files, pose_agreement  # noqa: E402
+from model_export.localiser.evaluate import REAL_SCANS, masked_files, pose_agreement  # noqa: E402
+from model_export.localiser.pose_accuracy import pose_estimator  # noqa: E402
 from service.core.machine import cpu_description  # noqa: E402
 from service.core.settings import DEFAULT_LOCALISERS_DIR, Settings  # noqa: E402
 from service.core.threads import limit_blas_threads  # noqa: E402
@@ -156,7 +157,7 @@ def main() -> None:
         baseline_ratio(loc, Localiser.load(args.baseline / "model.onnx"))
     stacks, what = uploads()
     print(f"\n/v1/predict pipeline on {what}:")
-    r = pose_agreement(stacks, loc, _pose_estimator())
+    r = pose_agreement(stacks, loc, pose_estimator())
     print(f"with masks {r['seconds_with_masks']:.2f} s, without {r['seconds_without']:.2f} s: "
           f"ratio {r['latency_ratio']:.2f}; poses without vs with masks: median E.D. {r['median_ed_mm']:.2f} mm "
           f"over {r['slices']} slices (two runs with masks: {r['repeat_median_ed_mm']:.2f} mm)")

@@ -29,6 +29,7 @@ from scipy import stats
 from model_export.atlas import DEFAULT_ATLAS_ROOT, validation_volumes
 from model_export.packaging import load_checkpoint
 from model_export.simulate import SimulationConfig
+from model_export.pose_metrics import auroc, youden_threshold
 from model_export.train import pose_errors, validation_set
 from service.inference.estimator import statistics
 from service.inference.views import sample_views
@@ -37,21 +38,8 @@ ERROR_MM = 10.0
 MIN_CLASS_FRACTION = 0.1
 
 
-def auroc(scores: np.ndarray, positive: np.ndarray) -> float:
-    """Area under the ROC curve of ``scores`` for ``positive`` (Mann-Whitney U / (n+ n-))."""
-    pos, neg = scores[positive], scores[~positive]
-    if len(pos) == 0 or len(neg) == 0:
-        return float("nan")
-    u = stats.mannwhitneyu(pos, neg, alternative="two-sided").statistic
-    return float(u / (len(pos) * len(neg)))
 
 
-def youden_threshold(scores: np.ndarray, positive: np.ndarray) -> float:
-    """The score threshold (flag if above) that maximises TPR - FPR."""
-    cand = np.unique(scores)
-    tpr = (scores[None, positive] > cand[:, None]).mean(1) if positive.any() else np.zeros(len(cand))
-    fpr = (scores[None, ~positive] > cand[:, None]).mean(1) if (~positive).any() else np.zeros(len(cand))
-    return float(cand[np.argmax(tpr - fpr)])
 
 
 @torch.no_grad()

@@ -25,10 +25,10 @@ from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
-from scipy.spatial.transform import Rotation
 
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split, validation_volumes
-from model_export.calibrate import ERROR_MM, auroc
+from model_export.calibrate import ERROR_MM
+from model_export.pose_metrics import auroc, by_orientation, error_components
 from model_export.simulate import SimulationConfig
 from model_export.train import pose_errors, validation_set
 from service.geometry import sampling, se3
@@ -107,45 +107,8 @@ def evaluate(model_path: Path, report: Path, root: Path = DEFAULT_ATLAS_ROOT, *,
             | {k: summary[k] for k in ("per_volume", "per_volume_twin", "components", "by_orientation")})
 
 
-def error_components(pred: np.ndarray, true: np.ndarray) -> dict[str, np.ndarray]:
-    """Where a pose error comes from, per slice (poses ``[n, 4, 4]`` in atlas mm).
-
-    The relative rotation ``R = R_true^T R_pred`` (in the true slice frame) is split into a swing,
-    which tilts the slice normal, and a twist about the normal (swing-twist decomposition):
-
-    * ``tilt_deg``: angle between the two planes (0-90, whichever side each faces);
-    * ``flipped``: the predicted normal points the other way (tilt beyond 90 degrees before folding);
-    * ``twist_deg``: in-plane rotation about the normal (0-180);
-    * ``centre_mm``: distance between the plane centres; ``off_plane_mm``: its part along the true normal.
-
-    Example:
-        >>> from scipy.spatial.transform import Rotation
-        >>> true, pred = np.eye(4)[None], np.eye(4)[None].copy()
-        >>> pred[0, :3, :3] = Rotation.from_euler("xz", [40, 30], degrees=True).as_matrix()
-        >>> c = error_components(pred, true)
-        >>> round(float(c["tilt_deg"][0]), 6), round(float(c["twist_deg"][0]), 6)
-        (40.0, 30.0)
-    """
-    rel = np.einsum("nji,njk->nik", true[:, :3, :3], pred[:, :3, :3])
-    cos_tilt = np.clip(rel[:, 2, 2], -1.0, 1.0)
-    x, y, z, w = Rotation.from_matrix(rel).as_quat().T
-    twist = 2.0 * np.arctan2(np.abs(z), np.abs(w))
-    shift = pred[:, :3, 3] - true[:, :3, 3]
-    return {"tilt_deg": np.degrees(np.arccos(np.abs(cos_tilt))), "flipped": cos_tilt < 0,
-            "twist_deg": np.degrees(twist), "centre_mm": np.linalg.norm(shift, axis=1),
-            "off_plane_mm": np.abs(np.einsum("ni,ni->n", shift, true[:, :3, 2]))}
 
 
-def by_orientation(errors: np.ndarray, poses: np.ndarray) -> dict[str, float]:
-    """Mean error per class of slice normal: the atlas axis the normal is nearest (axial, coronal, sagittal).
-
-    Example:
-        >>> by_orientation(np.array([1.0, 3.0]), np.stack([np.eye(4)] * 2))
-        {'sagittal': nan, 'coronal': nan, 'axial': 2.0}
-    """
-    axis = np.argmax(np.abs(poses[:, :3, 2]), axis=1)
-    names = ("sagittal", "coronal", "axial")                   # normal along x, y, z (RAS)
-    return {n: float(errors[axis == i].mean()) if (axis == i).any() else float("nan") for i, n in enumerate(names)}
 
 
 def _stats(metrics: dict[str, np.ndarray], sel: np.ndarray) -> dict[str, float]:

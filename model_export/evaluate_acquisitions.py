@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from model_export.acquisitions import MOTION_LEVELS, SimulatedStack, simulate_acquisition
+from model_export.pose_metrics import auroc, error_components
 from service.geometry import anchors, se3, twin
 from service.geometry.anchors import ed
 from service.inference.estimator import PoseEstimate, shown, statistics
@@ -150,8 +151,6 @@ def score(predictions: list[StackPrediction], prepared: list[PreparedStack], tru
     to its own twin, its depth in the stack (0 centre, 1 the outermost slice with >=
     :data:`MIN_MASK_PIXELS`) and its place in the acquisition (0 first, 1 last); and what the
     service knows of each slice besides its answer (:func:`slice_evidence`)."""
-    from model_export.evaluate import error_components
-
     for res, pred, p, true, sim in zip(stack_objects(predictions), predictions, prepared, truth, stacks):
         final = p.in_network_frame([s["atlas_from_voxel"] for s in res["slices"]])
         unseen = np.full((4, 4), np.nan)                # an empty slice is not shown to the network
@@ -227,8 +226,6 @@ def true_motion_mm(atlas_from_voxel: NDArray, scanner_from_voxel: NDArray, poses
 def summarise(sc: Scored) -> dict:
     """Per motion level: E.D. (mean, median, p90) against the truth and twin-min, before and after
     the stack stage, the right-branch fraction, the AUROC of the variance and acceptance."""
-    from model_export.calibrate import auroc
-
     keep = sc.array("mask_pixels") >= MIN_MASK_PIXELS
     out: dict = {"slices": int(keep.sum())}
     for key in ("ed", "ed_min", "ed_network", "ed_network_min"):

@@ -1,19 +1,21 @@
-"""The service's imports follow the data and never loop: io -> preprocess -> inference ->
-consistency -> pipeline -> streaming -> api -> mrd, with the numeric core (geometry, core) below
-them all and reconstruction and jobs apart."""
+"""The service's imports follow the data and never loop: io -> preprocess -> inference -> consistency
+-> pipeline -> streaming -> api -> mrd, with the numeric core (geometry, core) below them all and
+reconstruction and jobs apart. Nor do the training code's and the client's imports loop."""
 
 from __future__ import annotations
 
 import ast
 from pathlib import Path
 
+import pytest
+
 SERVICE = Path(__file__).resolve().parents[1] / "service"
 RANK = {"core": 0, "geometry": 0, "io": 1, "preprocess": 2, "inference": 3, "consistency": 4, "pipeline": 5, "streaming": 6, "api": 7, "mrd": 8}
 
 
-def modules() -> dict[str, Path]:
+def modules(package: str = "service") -> dict[str, Path]:
     out = {}
-    for p in SERVICE.rglob("*.py"):
+    for p in (SERVICE.parent / package).rglob("*.py"):
         parts = p.relative_to(SERVICE.parent).with_suffix("").parts
         out[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = p
     return out
@@ -42,8 +44,9 @@ def imports(path: Path, known: dict[str, Path], top_level: bool) -> set[str]:
     return out
 
 
-def test_no_module_imports_itself_through_others() -> None:
-    known = modules()
+@pytest.mark.parametrize("package", ["service", "model_export", "client"])
+def test_no_module_imports_itself_through_others(package: str) -> None:
+    known = modules(package)
     graph = {m: imports(p, known, top_level=False) - {m} for m, p in known.items()}
     state: dict[str, int] = {}
 

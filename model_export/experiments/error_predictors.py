@@ -24,7 +24,7 @@ from scipy.optimize import minimize
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from model_export.calibrate import auroc  # noqa: E402
+from model_export.pose_metrics import auroc  # noqa: E402
 from model_export.evaluate_acquisitions import ERROR_MM, MIN_MASK_PIXELS  # noqa: E402
 
 SERVICE = ("variance", "expected", "expected_stage", "mismatch", "spread", "twin_mass", "moved_mm", "fitted_motion_mm", "depth",

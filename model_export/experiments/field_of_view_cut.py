@@ -22,7 +22,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, masked_files  # noqa: E402
+from model_export.localiser.evaluate import REAL_SCANS, masked_files  # noqa: E402
+from model_export.localiser.pose_accuracy import pose_estimator  # noqa: E402
 from model_export.localiser.pose_accuracy import slice_poses  # noqa: E402
 from service.geometry import anchors  # noqa: E402
 from service.io.volume import Volume, read_volume  # noqa: E402
@@ -69,7 +70,7 @@ def main() -> None:
     files = masked_files(args.scan)
     if not files:
         sys.exit(f"needs stacks with manual masks in {args.scan}")
-    estimator = _pose_estimator()
+    estimator = pose_estimator()
     stacks: list[Stack] = [(name, read_volume(s), read_volume(m)) for name, s, m in files]
 
     def answer(request: list[Stack]) -> tuple[dict[str, dict], dict[str, PreparedStack]]:

@@ -40,7 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from model_export.acquisitions import simulate_acquisition  # noqa: E402
 from model_export.atlas import DEFAULT_ATLAS_ROOT, VALIDATION_VOLUMES, AtlasVolume, load_volumes  # noqa: E402
 from model_export.evaluate_acquisitions import run_acquisition  # noqa: E402
-from model_export.localiser.evaluate import _pose_estimator  # noqa: E402
+from model_export.localiser.pose_accuracy import pose_estimator  # noqa: E402
 from service.pipeline.documents import stack_objects  # noqa: E402
 from service.geometry import anchors, se3, twin  # noqa: E402
 from service.geometry.pose import about_centre, make_pose, translate  # noqa: E402
@@ -113,7 +113,7 @@ def main() -> None:
     args = ap.parse_args()
     every = load_volumes(None, DEFAULT_ATLAS_ROOT)
     held_out = [v for v in every if v.name in VALIDATION_VOLUMES]
-    estimator, rng = _pose_estimator(), np.random.default_rng(args.seed)
+    estimator, rng = pose_estimator(), np.random.default_rng(args.seed)
     means: dict[str, list[NDArray]] = {}
     for level in args.levels.split(","):
         print(f"\n## {level}\n\n| volume | mean E.D. | frame undone | frame's mean over acquisitions | its spread (sd) |\n|---|---|---|---|---|")

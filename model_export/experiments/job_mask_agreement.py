@@ -24,7 +24,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.experiments.frame_bias import common_frame  # noqa: E402
 from model_export.experiments.real_scan_poses import read_scan  # noqa: E402
-from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator  # noqa: E402
+from model_export.localiser.evaluate import REAL_SCANS  # noqa: E402
+from model_export.localiser.pose_accuracy import pose_estimator  # noqa: E402
 from service.geometry import anchors, se3  # noqa: E402
 from service.inference.acceptance import ATLAS_CENTRE_MM  # noqa: E402
 from service.jobs.uploaded_poses import expected_errors  # noqa: E402
@@ -59,7 +60,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scan", type=Path, nargs="?", default=REAL_SCANS / "mial_lausanne_t30")
     args = ap.parse_args()
-    estimator, localiser = _pose_estimator(None), default_localiser()
+    estimator, localiser = pose_estimator(None), default_localiser()
     plane = estimator.info.symmetry_plane_x_mm
     volumes, manual = read_scan(args.scan)
     names = list(volumes)

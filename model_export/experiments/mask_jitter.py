@@ -25,7 +25,8 @@ from scipy import ndimage
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, dice, masked_files, median_ed  # noqa: E402
+from model_export.localiser.evaluate import REAL_SCANS, dice, masked_files, median_ed  # noqa: E402
+from model_export.localiser.pose_accuracy import pose_estimator  # noqa: E402
 from service.io.volume import Volume, read_volume  # noqa: E402
 from service.pipeline.documents import stack_objects  # noqa: E402
 from service.pipeline.predict import predict  # noqa: E402
@@ -62,7 +63,7 @@ def main() -> None:
     files = masked_files(args.scan)
     if not files:
         sys.exit(f"needs stacks with manual masks in {args.scan}")
-    estimator = _pose_estimator(args.model)
+    estimator = pose_estimator(args.model)
     stacks = [(name, read_volume(s), read_volume(m)) for name, s, m in files]
 
     def answer(masks: list[NDArray]) -> tuple[list[dict], list]:

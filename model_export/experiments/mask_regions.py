@@ -30,7 +30,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.experiments.mask_vote import accepted_in_both, common_offset  # noqa: E402
 from model_export.experiments.real_scan_poses import read_scan  # noqa: E402
-from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator  # noqa: E402
+from model_export.localiser.evaluate import REAL_SCANS  # noqa: E402
+from model_export.localiser.pose_accuracy import pose_estimator  # noqa: E402
 from service.pipeline.documents import stack_objects  # noqa: E402
 from service.geometry import anchors, se3  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
@@ -102,7 +103,7 @@ def main() -> None:
     ap.add_argument("--seeds", default="0,1")
     ap.add_argument("--margin", type=float, default=1.2, help="mm the manual masks are grown and inset by (one pixel or more)")
     args = ap.parse_args()
-    base = _pose_estimator(None)
+    base = pose_estimator(None)
     volumes, manual_volumes = read_scan(args.scan)
     manual = {n: manual_volumes[n].array > 0 for n in volumes}
     found = {n: default_localiser().localise(volumes[n]).mask for n in volumes}

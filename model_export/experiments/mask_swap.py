@@ -23,7 +23,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, csf_mask_upload, dice, masked_stacks, median_ed  # noqa: E402
+from model_export.localiser.evaluate import REAL_SCANS, csf_mask_upload, dice, masked_stacks, median_ed  # noqa: E402
+from model_export.localiser.pose_accuracy import pose_estimator  # noqa: E402
 from service.pipeline.documents import stack_objects  # noqa: E402
 from service.core.settings import DEFAULT_LOCALISERS_DIR  # noqa: E402
 from service.pipeline.predict import predict  # noqa: E402
@@ -48,7 +49,7 @@ def main() -> None:
     ap.add_argument("--model", type=Path, help="the pose model (default: the shipped one)")
     ap.add_argument("--scan", type=Path, default=REAL_SCANS / "mial_lausanne_t30")
     args = ap.parse_args()
-    estimator, localiser = _pose_estimator(args.model), Localiser.load(args.localiser)
+    estimator, localiser = pose_estimator(args.model), Localiser.load(args.localiser)
     names, volumes, manual, found = masked_stacks(args.scan, localiser)
     if not names:
         sys.exit(f"needs stacks with manual masks in {args.scan}")

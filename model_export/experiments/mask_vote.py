@@ -49,7 +49,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.experiments.frame_bias import common_frame  # noqa: E402
 from model_export.experiments import real_scan_poses  # noqa: E402
-from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, dice  # noqa: E402
+from model_export.localiser.evaluate import REAL_SCANS, dice  # noqa: E402
+from model_export.localiser.pose_accuracy import pose_estimator  # noqa: E402
 from model_export.localiser.pose_accuracy import pose_accuracy, slice_poses, validation_scenes  # noqa: E402
 from service.geometry import anchors, se3  # noqa: E402
 from service.inference import acceptance  # noqa: E402
@@ -178,7 +179,7 @@ def main() -> None:
                     help="instead: this many generated whole-uterus scenes without masks against the truth "
                          "(model_export.localiser.pose_accuracy), per variant without an oracle")
     args = ap.parse_args()
-    base = _pose_estimator(None)
+    base = pose_estimator(None)
     if args.scenes:
         scenes = validation_scenes(args.scenes)
         for variant in [v for v in args.variants.split(",") if not v.startswith("dice<")]:

@@ -40,7 +40,8 @@ import service.pipeline.prepare as prepare  # noqa: E402
 import service.preprocess.localisation as localisation  # noqa: E402
 import service.preprocess.localise as localise  # noqa: E402
 from model_export.experiments.real_scan_poses import compare, read_scan  # noqa: E402
-from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator  # noqa: E402
+from model_export.localiser.evaluate import REAL_SCANS  # noqa: E402
+from model_export.localiser.pose_accuracy import pose_estimator  # noqa: E402
 from model_export.localiser.pose_accuracy import pose_accuracy, validation_scenes  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
 from service.io.volume import Volume  # noqa: E402
@@ -107,7 +108,7 @@ def main() -> None:
                     help="CUT/INSET_MM or rim:EDGE/DEPTH/HI, comma-separated")
     ap.add_argument("--scan", type=Path, default=REAL_SCANS / "mial_lausanne_t30", help="a real scan with manual masks")
     args = ap.parse_args()
-    estimator, localiser = _pose_estimator(), localise.default_localiser()
+    estimator, localiser = pose_estimator(), localise.default_localiser()
     scenes = validation_scenes(args.scenes)
     volumes, manual = read_scan(args.scan)
     shipped = localisation.THRESHOLD

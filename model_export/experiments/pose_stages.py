@@ -32,7 +32,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.experiments.frame_bias import as_row, common_frame  # noqa: E402
-from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, csf_mask_upload, dice, masked_stacks, median_ed  # noqa: E402
+from model_export.localiser.evaluate import REAL_SCANS, csf_mask_upload, dice, masked_stacks, median_ed  # noqa: E402
+from model_export.localiser.pose_accuracy import pose_estimator  # noqa: E402
 from model_export.localiser.pose_accuracy import slice_poses  # noqa: E402
 from service.pipeline.documents import stack_objects  # noqa: E402
 from service.core.settings import DEFAULT_LOCALISERS_DIR  # noqa: E402
@@ -67,7 +68,7 @@ def main() -> None:
     ap.add_argument("--slices", action="store_true", help="each slice of the first pair manual/localiser")
     ap.add_argument("--oracle-below", type=float, default=0.0, help="manual masks on slices under this Dice")
     args = ap.parse_args()
-    estimator = _pose_estimator(args.model)
+    estimator = pose_estimator(args.model)
     names, volumes, masks, found = masked_stacks(args.scan, Localiser.load(args.localiser))
     if not names:
         sys.exit(f"needs stacks with manual masks in {args.scan}")

@@ -27,7 +27,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.experiments.frame_bias import common_frame  # noqa: E402
 from model_export.experiments.real_scan_poses import read_scan  # noqa: E402
-from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator  # noqa: E402
+from model_export.localiser.evaluate import REAL_SCANS  # noqa: E402
+from model_export.localiser.pose_accuracy import pose_estimator  # noqa: E402
 from service.geometry import anchors, se3  # noqa: E402
 from service.inference.acceptance import ATLAS_CENTRE_MM  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
@@ -58,7 +59,7 @@ def main() -> None:
     ap.add_argument("--resolution", type=float, default=2.0)
     ap.add_argument("--seeds", default="0,1")
     args = ap.parse_args()
-    base, localiser = _pose_estimator(None), default_localiser()
+    base, localiser = pose_estimator(None), default_localiser()
     plane = base.info.symmetry_plane_x_mm
     volumes, manual = read_scan(args.scan)
     names = list(volumes)

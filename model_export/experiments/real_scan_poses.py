@@ -33,7 +33,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.experiments.frame_bias import common_frame  # noqa: E402
-from model_export.localiser.evaluate import REAL_SCANS, _pose_estimator, masked_files  # noqa: E402
+from model_export.localiser.evaluate import REAL_SCANS, masked_files  # noqa: E402
+from model_export.localiser.pose_accuracy import pose_estimator  # noqa: E402
 from model_export.localiser.pose_accuracy import slice_poses  # noqa: E402
 from service.pipeline.documents import stack_objects  # noqa: E402
 from service.geometry import anchors, se3  # noqa: E402
@@ -150,7 +151,7 @@ def main() -> None:
     if args.floor and args.repeats < 2:
         ap.error("--floor compares answers under other draws: give --repeats 2 or more")
     localiser = Localiser.load(args.localiser) if args.localiser else default_localiser()
-    estimator = _pose_estimator(args.model)
+    estimator = pose_estimator(args.model)
     volumes, manual = read_scan(args.scan, args.stacks)
     seeded = [estimator if r == 0 or estimator.model.mc_seed is None
               else OnnxPoseEstimator(estimator.model.with_seed(estimator.model.mc_seed + r)) for r in range(args.repeats)]

@@ -28,7 +28,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.acquisitions import simulate_acquisition
-from model_export.calibrate import auroc
+from model_export.pose_metrics import auroc
 from model_export.evaluate_acquisitions import run_acquisition
 from model_export.experiments.refine_bench import network_poses, to_truth_frame, validation_setup
 from service.pipeline.documents import stack_objects

@@ -32,7 +32,7 @@ from model_export.acquisitions import simulate_acquisition  # noqa: E402
 from model_export.atlas import DEFAULT_ATLAS_ROOT, VALIDATION_VOLUMES, load_volumes  # noqa: E402
 from model_export.evaluate_acquisitions import run_acquisition  # noqa: E402
 from model_export.experiments.frame_bias import common_frame  # noqa: E402
-from model_export.localiser.evaluate import _pose_estimator  # noqa: E402
+from model_export.localiser.pose_accuracy import pose_estimator  # noqa: E402
 from model_export.localiser.pose_accuracy import score_scene, validation_cases  # noqa: E402
 from service.geometry import anchors, twin  # noqa: E402
 from service.pipeline.documents import stack_objects  # noqa: E402
@@ -50,7 +50,7 @@ def request_row(final: NDArray, truth: NDArray, expected: NDArray, sigma: float)
 
 
 def acquisition_rows(levels: list[str], per_volume: int, seed: int) -> dict[str, list]:
-    estimator = _pose_estimator()
+    estimator = pose_estimator()
     plane = estimator.info.symmetry_plane_x_mm
     rng, rows = np.random.default_rng(seed), defaultdict(list)
     for level in levels:
@@ -71,7 +71,7 @@ def acquisition_rows(levels: list[str], per_volume: int, seed: int) -> dict[str,
 
 
 def scene_rows(count: int, seed: int) -> dict[str, list]:
-    estimator, localiser, rows = _pose_estimator(), default_localiser(), defaultdict(list)
+    estimator, localiser, rows = pose_estimator(), default_localiser(), defaultdict(list)
     for case in validation_cases(count, seed, 3, motion="mild", planning="orthogonal"):
         for variant in ("brain", "localiser"):
             got = score_scene(case, variant, estimator, localiser if variant == "localiser" else None)

@@ -131,10 +131,10 @@ def cached_requests(cache: Cache) -> list[Request]:
 def real_mismatch(scan: Path) -> None:
     """A real scan's answers with its manual masks and without them: the image stage's remaining mismatch."""
     from model_export.experiments import mask_vote, real_scan_poses
-    from model_export.localiser.evaluate import _pose_estimator
+    from model_export.localiser.pose_accuracy import pose_estimator
     from service.inference.estimator import OnnxPoseEstimator
 
-    base = _pose_estimator(None)
+    base = pose_estimator(None)
     volumes, manual = real_scan_poses.read_scan(scan)
     for seed in (0, 1):
         estimator = base if seed == 0 else OnnxPoseEstimator(base.model.with_seed(base.model.mc_seed + seed))
@@ -206,7 +206,7 @@ def job_floor(scan: Path) -> None:
     stack stage's poses, and at the poses a reconstruction job (its never-worse slice-to-volume
     refinement, 1.5 mm) takes them to, before and after its frame steps."""
     from model_export.experiments import real_scan_poses
-    from model_export.localiser.evaluate import _pose_estimator
+    from model_export.localiser.pose_accuracy import pose_estimator
     from service.jobs.uploaded_poses import expected_errors
     from service.jobs.starting_poses import starting_poses
     from service.jobs.worker import predicted_body
@@ -215,7 +215,7 @@ def job_floor(scan: Path) -> None:
     from service.reconstruction.job import refine_job
     from service.reconstruction.slices import SliceSet
 
-    estimator, localiser = _pose_estimator(None), default_localiser()
+    estimator, localiser = pose_estimator(None), default_localiser()
     volumes, manual = real_scan_poses.read_scan(scan)
     uploads = [StackUpload(n, volumes[n], manual[n], f"{n}_brain_mask", mask_holds_csf=True) for n in volumes]
     prepared = prepare_stacks(uploads, estimator.info, True, workers=2, localiser=localiser)

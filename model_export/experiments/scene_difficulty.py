@@ -36,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from model_export.acquisitions import ORIENTATIONS, simulate_acquisition  # noqa: E402
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split  # noqa: E402
 from model_export.localiser import pose_accuracy  # noqa: E402
-from model_export.localiser.evaluate import _pose_estimator  # noqa: E402
+from model_export.localiser.pose_accuracy import pose_estimator  # noqa: E402
 from model_export.localiser.scenes import Scene  # noqa: E402
 from model_export.localiser.surroundings import random_rotation  # noqa: E402
 from service.geometry import sampling  # noqa: E402
@@ -106,7 +106,7 @@ def main() -> None:
     cases = requests_of(args.source, args.requests, args.planning, args.orientations, args.pixel_mm, args.gap_mm)
     if args.raw:
         pose_accuracy.predict = lambda prepared, est, mc, thr: predict(prepared, est, mc, thr, stack_consistency=False)
-    estimator, key = _pose_estimator(), "ed_min" if args.raw else "ed"
+    estimator, key = pose_estimator(), "ed_min" if args.raw else "ed"
     errors, per_request = [], []
     for case in cases:
         requests = [[s] for s in case] if args.alone else [case]

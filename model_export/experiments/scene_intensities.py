@@ -36,7 +36,7 @@ import service.consistency.image_refinement as image_refinement  # noqa: E402
 from model_export.experiments.frame_bias import common_frame  # noqa: E402
 from model_export.experiments.scene_difficulty import requests_of  # noqa: E402
 from model_export.localiser import pose_accuracy, scenes  # noqa: E402
-from model_export.localiser.evaluate import _pose_estimator  # noqa: E402
+from model_export.localiser.pose_accuracy import pose_estimator  # noqa: E402
 from service.geometry import anchors  # noqa: E402
 from service.geometry.pose import about_centre  # noqa: E402
 from service.pipeline import predict as pipeline  # noqa: E402
@@ -103,7 +103,7 @@ def main() -> None:
     if args.unmatched:
         image_refinement.MATCHED_FROM_PASS = None
     cases = requests_of(args.source, args.requests, args.planning)
-    estimator = _pose_estimator()
+    estimator = pose_estimator()
     rows = []
     for i, case in enumerate(cases):
         rows.append(request_row(case, estimator))

@@ -34,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.atlas import load_volumes  # noqa: E402
 from model_export.experiments.real_scan_poses import answer, read_scan  # noqa: E402
-from model_export.localiser.evaluate import _pose_estimator  # noqa: E402
+from model_export.localiser.pose_accuracy import pose_estimator  # noqa: E402
 from service.geometry import se3  # noqa: E402
 from service.io.volume import Volume, read_volume, to_sitk  # noqa: E402
 from service.preprocess.localise import Localiser, default_localiser  # noqa: E402
@@ -112,7 +112,7 @@ def main() -> None:
     if args.scan is None:
         ap.error("a scan folder, or --job-volume")
     localiser = Localiser.load(args.localiser) if args.localiser else default_localiser()
-    estimator = _pose_estimator()
+    estimator = pose_estimator()
     volumes, manual = read_scan(args.scan)
     answers = [answer(volumes, m, localiser, estimator)[0] for m in (manual, None)]
     grid = Grid(templates[0].affine, tuple(templates[0].image.shape))

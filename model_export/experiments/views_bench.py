@@ -23,7 +23,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from model_export.atlas import DEFAULT_ATLAS_ROOT  # noqa: E402
-from model_export.calibrate import auroc, mc_statistics  # noqa: E402
+from model_export.calibrate import mc_statistics
+from model_export.pose_metrics import auroc  # noqa: E402
 from model_export.packaging import export_checkpoint, load_checkpoint  # noqa: E402
 from model_export.simulate import SimulationConfig  # noqa: E402
 from model_export.train import pose_errors, validation_set  # noqa: E402

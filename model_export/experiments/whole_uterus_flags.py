@@ -30,7 +30,7 @@ from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
 from model_export.calibrate_noise import calibrate_hinge, median_ratio
 from model_export.evaluate_acquisitions import MIN_MASK_PIXELS, run_acquisition
 from model_export.localiser import pose_accuracy as pa
-from model_export.localiser.evaluate import _pose_estimator
+from model_export.localiser.pose_accuracy import pose_estimator
 from service.geometry import anchors
 from service.geometry.grid import kabsch
 from service.pipeline.documents import stack_objects
@@ -90,7 +90,7 @@ def measure(scenes: int, seed: int, motion: str, acquisitions: int) -> dict[str,
     """Per slice with brain: whole-uterus requests of three stacks planned about the head (the atlas's
     brain masks, and none), and ``acquisitions`` acquisitions a level (mild, moderate, jumps) of each
     validation brain, through ``/v1/predict``'s pipeline."""
-    estimator, localiser = _pose_estimator(), default_localiser()
+    estimator, localiser = pose_estimator(), default_localiser()
     rows: dict[str, list] = defaultdict(list)
     for case in pa.validation_cases(scenes, seed, 3, motion=None if motion == "drift" else motion,
                                     planning="orthogonal"):
@@ -179,7 +179,7 @@ def main() -> None:
     ap.add_argument("--motion", default="mild", help="a pose benchmark's level, or drift (the generator's own)")
     ap.add_argument("--acquisitions", type=int, default=2, help="acquisitions a level of each validation brain")
     args = ap.parse_args()
-    limit = float(_pose_estimator().info.max_expected_error_mm)
+    limit = float(pose_estimator().info.max_expected_error_mm)
     report(measure(args.scenes, args.seed, args.motion, args.acquisitions), limit)
 
 

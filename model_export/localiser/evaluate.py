@@ -28,7 +28,7 @@ from service.core.settings import Settings
 from service.core.threads import limit_blas_threads
 from service.geometry import anchors
 from service.pipeline.documents import stack_objects
-from model_export.localiser.pose_accuracy import pose_accuracy, slice_poses, validation_scenes
+from model_export.localiser.pose_accuracy import pose_accuracy, pose_estimator, slice_poses, validation_scenes
 from service.pipeline.predict import predict
 from service.pipeline.prepare import StackUpload, prepare_stacks
 from service.io.volume import Volume, read_volume
@@ -141,12 +141,6 @@ def pose_agreement(uploads_with_masks: list[StackUpload], localiser: Localiser, 
             "seconds_with_masks": t_masks, "seconds_without": t_without}
 
 
-def _pose_estimator(model: Path | None = None):  # noqa: ANN202 - the service's default pose model
-    from service.core.settings import DEFAULT_MODELS_DIR
-    from service.inference.estimator import OnnxPoseEstimator
-    from service.inference.model_file import load_model
-
-    return OnnxPoseEstimator(load_model(model or DEFAULT_MODELS_DIR / "default" / "model.onnx"))
 
 
 def latency_ms(localiser: Localiser, shape: tuple[int, int, int] = (320, 320, 22), pixel_mm: float = 1.125,
@@ -169,7 +163,7 @@ def measure(localiser: Localiser, heldout: Path, pose_stacks: int = 8, root: Pat
     (:func:`~model_export.localiser.pose_accuracy.pose_accuracy`)."""
     held = heldout_dice(localiser, heldout)
     real = real_scan_rows(localiser, root) if Path(root).exists() else []
-    estimator = _pose_estimator()
+    estimator = pose_estimator()
     poses_heldout = []
     def is_t2_like(path: Path) -> bool:
         with np.load(path) as z:

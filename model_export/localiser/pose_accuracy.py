@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
@@ -32,8 +33,11 @@ from model_export.acquisitions import ORIENTATIONS, stack_axes
 from model_export.atlas import DEFAULT_ATLAS_ROOT, load_volumes, split
 from model_export.localiser.scenes import HeadModel, Scene, synth_scene
 from model_export.localiser.surroundings import random_rotation
-from service.pipeline.documents import stack_objects
+from service.core.settings import DEFAULT_LOCALISERS_DIR, DEFAULT_MODELS_DIR
 from service.geometry import anchors, twin
+from service.inference.estimator import OnnxPoseEstimator
+from service.inference.model_file import load_model
+from service.pipeline.documents import stack_objects
 from service.io.volume import Volume
 from service.pipeline.predict import predict
 from service.pipeline.prepare import PreparedStack, StackUpload, prepare_stacks
@@ -48,6 +52,12 @@ tilted by about 10 deg (:func:`~model_export.acquisitions.stack_axes`), as a rad
 scan's stacks about the fetal brain and as the pose benchmarks' acquisitions lie."""
 MIN_BRAIN_PIXELS = 200
 """Slices with less true brain than this are not scored (the brain's caps: no pose network sees them well)."""
+
+
+def pose_estimator(model: Path | None = None) -> OnnxPoseEstimator:
+    """The pose network the benchmarks measure with: ``model`` (an exported ONNX file) or the
+    service's shipped ``default`` model."""
+    return OnnxPoseEstimator(load_model(model or DEFAULT_MODELS_DIR / "default" / "model.onnx"))
 
 
 def validation_scenes(count: int, seed: int = 2_000_000, root=DEFAULT_ATLAS_ROOT) -> list[Scene]:  # noqa: ANN001
@@ -205,9 +215,6 @@ def pose_accuracy(scenes: list[Scene] | list[list[Scene]], estimator, localiser:
 
 
 def main() -> None:
-    from model_export.localiser.evaluate import _pose_estimator
-    from service.core.settings import DEFAULT_LOCALISERS_DIR
-
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", type=int, default=10)
     ap.add_argument("--seed", type=int, default=2_000_000)
@@ -221,7 +228,7 @@ def main() -> None:
     args = ap.parse_args()
     result = pose_accuracy(validation_cases(args.scenes, args.seed, args.stacks, motion=args.motion,
                                             planning=args.planning),
-                           _pose_estimator(), Localiser.load(args.localiser), tuple(args.variants.split(",")))
+                           pose_estimator(), Localiser.load(args.localiser), tuple(args.variants.split(",")))
     print(json.dumps(result, indent=1))
 
 

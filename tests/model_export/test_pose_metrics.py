@@ -1,12 +1,26 @@
-"""The decomposition of pose errors that the evaluation report gives (on constructed poses)."""
+"""The pose-error metrics of the reports: AUROC and Youden's threshold on synthetic scores, the
+decomposition of pose errors on constructed poses."""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from model_export.evaluate import error_components
+from model_export.pose_metrics import auroc, error_components, youden_threshold
 from service.geometry.pose import make_pose
+
+RNG = np.random.default_rng(0)
+
+
+def test_auroc_and_youden_on_separable_and_random_scores() -> None:
+    bad = np.r_[np.zeros(50, bool), np.ones(50, bool)]
+    scores = np.r_[RNG.uniform(0, 1, 50), RNG.uniform(2, 3, 50)]
+    assert auroc(scores, bad) == 1.0 and auroc(-scores, bad) == 0.0
+    thr = youden_threshold(scores, bad)
+    assert scores[:50].max() <= thr < scores[50:].min() and ((scores > thr) == bad).all()
+    noise = RNG.uniform(size=4000)
+    assert abs(auroc(noise, RNG.uniform(size=4000) > 0.5) - 0.5) < 0.05
+    assert np.isnan(auroc(scores, np.zeros(100, bool)))
 
 
 def test_tilt_twist_flip_and_shift_are_told_apart() -> None:
