@@ -47,16 +47,6 @@ def slice_pixel_coordinates(size: int, pixel_mm: float) -> NDArray[np.float64]:
     return np.stack([x, y], axis=-1)
 
 
-def slice_from_pixel(size: int, pixel_mm: float) -> NDArray[np.float64]:
-    """The ``4 x 4`` map from homogeneous pixel indices ``(c, r, 0, 1)`` to slice-frame mm.
-
-    Note the order: column first (x), then row (y), matching voxel-index conventions ``(i, j, k)``
-    where ``i`` runs along x.
-    """
-    centre = (size - 1) / 2.0
-    m = np.diag([pixel_mm, pixel_mm, pixel_mm, 1.0])
-    m[0, 3] = m[1, 3] = -centre * pixel_mm
-    return m
 
 
 def translate(offset: ArrayLike) -> NDArray[np.float64]:

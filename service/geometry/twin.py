@@ -33,6 +33,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.special import expit
 
+from service.geometry import anchors, encodings
+
 DEFAULT_PLANE_X_MM = 0.0
 """The mid-sagittal plane assumed for models whose metadata does not name one (atlas RAS mm)."""
 
@@ -88,8 +90,6 @@ def twin_label(label_type: str, label: ArrayLike, plane_x_mm: float = DEFAULT_PL
     if label_type in POINT_LABELS:
         pts = lab.reshape(lab.shape[:-1] + (-1, 3))
         return mirror_points(pts, plane_x_mm).reshape(lab.shape)
-    from service.geometry import encodings     # encodings imports anchors only; no cycle at import time
-
     enc = encodings.get(label_type)
     return enc.encode(twin(enc.decode(lab), plane_x_mm))
 
@@ -104,8 +104,6 @@ def twin_min_ed(pred: ArrayLike, true: ArrayLike, plane_x_mm: float = DEFAULT_PL
         >>> float(twin_min_ed(twin(pose), pose))
         0.0
     """
-    from service.geometry import anchors
-
     return np.minimum(anchors.ed(pred, true), anchors.ed(pred, twin(true, plane_x_mm)))
 
 
@@ -120,8 +118,6 @@ def twin_distance_mm(poses: ArrayLike, plane_x_mm: float = DEFAULT_PLANE_X_MM) -
         >>> twin_distance_mm(np.stack([sagittal, lateral])).round(3).tolist()
         [0.0, 12.0]
     """
-    from service.geometry import anchors
-
     p = np.asarray(poses, dtype=np.float64)
     return anchors.ed(p, twin(p, plane_x_mm))
 
@@ -180,8 +176,6 @@ def nearer(pred: ArrayLike, true: ArrayLike, plane_x_mm: float = DEFAULT_PLANE_X
         >>> bool(np.allclose(nearer(twin(pose), pose), twin(pose)))
         True
     """
-    from service.geometry import anchors
-
     t = np.asarray(true, dtype=np.float64)
     tw = twin(t, plane_x_mm)
     return np.where((anchors.ed(pred, t) <= anchors.ed(pred, tw))[..., None, None], t, tw)
@@ -273,8 +267,6 @@ def align_samples(poses: ArrayLike, plane_x_mm: float = DEFAULT_PLANE_X_MM) -> t
         >>> int(flipped.sum()), bool(np.allclose(aligned[:3], twin(x[:3])))
         (3, True)
     """
-    from service.geometry import anchors        # anchors imports pose only
-
     x = np.asarray(poses, dtype=np.float64)
     pts = anchors.encode(x).reshape(x.shape[:-2] + (3, 3))          # [..., N, 3, 3]
     tw = mirror_points(pts, plane_x_mm)

@@ -38,7 +38,7 @@ from typing import Any, BinaryIO
 import ismrmrd
 from ismrmrd.serialization import ConfigText, ISMRMRDMessageID
 
-from service.api.responses import (end_stack_messages, error_message, pose_object, summary_message,
+from service.streaming.messages import (end_stack_messages, error_message, pose_object, summary_message,
                                    update_messages)
 from service.core.errors import (InternalError, InvalidParameter, PayloadTooLarge, RequestTimeout, ServiceError,
                                  UnusableImage)

@@ -1,7 +1,7 @@
 """The JSON documents of a prediction: its stacks, their slices and their ``consistency`` reports.
 
 The one place that writes a stack and a slice as the HTTP contract (``docs/api.md``) names them.
-``/v1/predict``'s answer, a stream's ``pose`` and ``stack`` messages (``service.api.responses``), a
+``/v1/predict``'s answer, a stream's ``pose`` and ``stack`` messages (``service.streaming.messages``), a
 reconstruction job's starting poses and the evaluations all write them here, so that a job worker
 or an evaluation needs no request layer to write what ``/v1/predict`` would have answered.
 

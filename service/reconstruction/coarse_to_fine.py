@@ -45,7 +45,6 @@ from service.reconstruction.stack_registration import DEFAULT_LEVELS_MM, registe
 from service.reconstruction.stack_rigid import StackFit, fit_stack_rigid
 
 START_OWN, START_STACK = 0, 1
-START_NAMES = ("own", "stack")
 
 
 @dataclass

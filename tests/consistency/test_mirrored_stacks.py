@@ -233,7 +233,7 @@ def test_a_request_with_one_stack_reversed_answers_its_slices_unaccepted_and_kee
         accepted = [sum(sl["accepted"] for sl in a["slices"]) for a in (with_it, without)]
         assert accepted[0] >= 0.8 * len(with_it["slices"]) and abs(accepted[0] - accepted[1]) <= 2, accepted
     # A stream whose later stack's end finds an earlier one mirrored says so in that stack's update.
-    from service.api.responses import update_messages
+    from service.streaming.messages import update_messages
     from service.streaming.answers import SliceAnswer
 
     moved = [SliceAnswer("ax", k, first[0], k) for k in range(3)]

@@ -60,7 +60,7 @@ def test_slices_without_signal_take_no_part_in_image_consistency(monkeypatch: py
 
 
 def test_the_answer_names_the_slices_without_signal() -> None:
-    from service.api.responses import pose_object
+    from service.streaming.messages import pose_object
     from service.pipeline.documents import stack_objects
     from service.streaming.answers import SliceAnswer
 

@@ -517,7 +517,7 @@ def test_streamed_slices_gain_the_noise_error_of_their_stacks_input_noise_once(c
 def test_the_first_stack_message_holds_every_consistency_key_that_v1_predict_gives() -> None:
     """stream-v1: ``consistency`` as in `/v1/predict`, whose schema gives every key (null where it does not
     apply): the session's first stack, pooled with none, lacked the three pooling keys."""
-    from service.api.responses import stack_message
+    from service.streaming.messages import stack_message
     from service.api.schemas import StackConsistency
     from service.inference.registry import ModelRegistry
     from tests.support.streams import frames_of, simulated_stack
@@ -535,7 +535,7 @@ def test_the_first_stack_message_holds_every_consistency_key_that_v1_predict_giv
 def test_slices_whose_brain_lost_its_signal_are_named_once_their_stack_ends_and_worth_acquiring_again() -> None:
     """Two slices darkened over most of their brain: each `pose` has no stack to judge it against
     (null); the `stack` message names them and lists them to acquire again, with reason `signal_lost`."""
-    from service.api.responses import pose_object, stack_message
+    from service.streaming.messages import pose_object, stack_message
     from service.inference.registry import ModelRegistry
     from tests.support.streams import frames_of, simulated_stack
 
@@ -560,7 +560,7 @@ def test_slices_whose_brain_runs_out_of_the_picture_are_named_and_worth_acquirin
     """The field of view ends inside the brain: each such slice's `pose` says so, and the `stack`
     message lists those not accepted with that reason even for a stack judged alone, whose slices
     held back by their expected error alone wait for the next stack (which mends no cut)."""
-    from service.api.responses import pose_object, stack_message
+    from service.streaming.messages import pose_object, stack_message
     from service.inference.registry import ModelRegistry
     from tests.support.streams import frames_of, simulated_stack
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.api.responses import end_stack_messages
+from service.streaming.messages import end_stack_messages
 from service.geometry.pose import translate
 from service.streaming.frames import SliceFrame
 from service.streaming.options import SessionOptions
