@@ -56,8 +56,8 @@ import typer
 from client._client import DEFAULT_SERVER, SVRnetClient
 from client.cli_export import export
 from client.cli_stream import stream
-from client.cli_support import (DEFAULT_VOLUME, ApiKeyOpt, BiasCorrectionOpt, JobArg, MaskOpt, MasksHoldCsfOpt, OverwriteOpt,
-                                MaxExpectedOpt, McSamplesOpt, ModelOpt, ServerOpt, STACK_SPACE_HELP, StackSpaceOpt, StacksArg,
+from client.cli_support import (DEFAULT_VOLUME, DELETE_HELP, ApiKeyOpt, BiasCorrectionOpt, DeleteOpt, JobArg, MaskOpt,
+                                MasksHoldCsfOpt, OverwriteOpt, MaxExpectedOpt, McSamplesOpt, ModelOpt, ServerOpt, STACK_SPACE_HELP, StackSpaceOpt, StacksArg,
                                 ThresholdOpt, check_folder_writable, check_masks, check_writable, follow_job, job_id_of,
                                 once_or_per_stack, resolution_range, slice_order_words, timeout_from_env, user_path,
                                 write_json, write_results)
@@ -228,6 +228,7 @@ def reconstruct(
         help="also download the per-slice ITK transforms (.zip of .tfm files) here (implies --wait)")] = None,
     stack_space: Annotated[Optional[int], typer.Option(
         "--stack-space", min=0, help=STACK_SPACE_HELP + " (implies --wait)")] = None,
+    delete: Annotated[bool, typer.Option("--delete", help=DELETE_HELP + " (implies --wait)")] = False,
     timeout: Annotated[float, typer.Option(min=0, help="seconds to wait for the job")] = 3600.0,
     poll: Annotated[float, typer.Option(min=0.05, help="seconds between status polls")] = 1.0,
     slice_order: Annotated[Optional[list[str]], typer.Option(
@@ -253,7 +254,7 @@ def reconstruct(
     if stack_space is not None and stack_space >= len(stacks):
         fail(f"--stack-space: {stack_space} is not one of the {len(stacks)} stacks given (0-{len(stacks) - 1})",
              EXIT_USAGE)
-    wait = wait or any(p is not None for p in (out, preview, poses_out, transforms_out, stack_space))
+    wait = wait or delete or any(p is not None for p in (out, preview, poses_out, transforms_out, stack_space))
     check_writable(overwrite, out=out if out is not None or not wait else DEFAULT_VOLUME, preview=preview,
                    poses_out=poses_out, transforms_out=transforms_out)
     err, console = stderr(), stdout()
@@ -270,20 +271,30 @@ def reconstruct(
         if not wait:
             console.print(f"follow it with: svrnet status {job_id}; download it with: svrnet fetch {job_id}")
             return
-        incoherent = follow_and_write(svr, job_id, poll, timeout, out, preview, poses_out, transforms_out, stack_space)
+        incoherent = follow_and_write(svr, job_id, poll, timeout, out, preview, poses_out, transforms_out, stack_space,
+                                      delete)
     if incoherent:
         raise typer.Exit(EXIT_NOTHING_USABLE)
 
 
 def follow_and_write(svr: SVRnetClient, job_id: str, poll: float, timeout: float, out: Path | None,
                      preview: Path | None, poses_out: Path | None, transforms_out: Path | None,
-                     stack_space: int | None) -> bool:
+                     stack_space: int | None, delete: bool = False) -> bool:
     """Wait for a job, then download its results (:func:`write_results`; True: no coherent brain), a
-    Ctrl-C in either told as what it leaves on the server (:func:`~client.exits.job_goes_on`)."""
+    Ctrl-C in either told as what it leaves on the server (:func:`~client.exits.job_goes_on`); then,
+    with ``delete``, delete the job on the server, else say until when the server keeps it."""
     with job_goes_on(job_id):
         done = follow_job(svr, job_id, poll, timeout)
     with job_goes_on(job_id, succeeded=True):
-        return write_results(svr, job_id, done, out, preview, poses_out, transforms_out, stack_space)
+        incoherent = write_results(svr, job_id, done, out, preview, poses_out, transforms_out, stack_space)
+    if delete:
+        svr.cancel(job_id)
+        stdout().print(f"deleted job {job_id} and its results on the server")
+    else:
+        until = f" until {done['expires_at']}" if done.get("expires_at") else ""
+        stdout().print(f"the server keeps the job's results{until}; svrnet cancel {job_id} deletes them now",
+                       markup=False)
+    return incoherent
 
 
 @app.command(epilog=EXIT_HELP)
@@ -302,6 +313,7 @@ def fetch(
         "--transforms-out", dir_okay=False, callback=user_path,
         help="also download the per-slice ITK transforms (.zip of .tfm files) here")] = None,
     stack_space: StackSpaceOpt = None,
+    delete: DeleteOpt = False,
     timeout: Annotated[float, typer.Option(min=0, help="seconds to wait for a job still running")] = 3600.0,
     poll: Annotated[float, typer.Option(min=0.05, help="seconds between status polls")] = 1.0,
     overwrite: OverwriteOpt = False,
@@ -312,7 +324,8 @@ def fetch(
     check_writable(overwrite, out=out if out is not None else DEFAULT_VOLUME, preview=preview, poses_out=poses_out,
                    transforms_out=transforms_out)
     with errors(), _client(server, api_key) as svr:
-        incoherent = follow_and_write(svr, job, poll, timeout, out, preview, poses_out, transforms_out, stack_space)
+        incoherent = follow_and_write(svr, job, poll, timeout, out, preview, poses_out, transforms_out, stack_space,
+                                      delete)
     if incoherent:
         raise typer.Exit(EXIT_NOTHING_USABLE)
 

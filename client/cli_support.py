@@ -181,6 +181,9 @@ STACK_SPACE_HELP = ("write the volume in the scanner coordinates of the job's st
                     "brain was while that stack was acquired, so that it overlays the stack in a viewer (default: atlas "
                     "space)")
 StackSpaceOpt = Annotated[Optional[int], typer.Option("--stack-space", min=0, help=STACK_SPACE_HELP)]
+DELETE_HELP = ("delete the job and its results on the server once every file asked for is written (without it the "
+               "server keeps them until the time printed, SVRNET_RETENTION_HOURS after the job ended)")
+DeleteOpt = Annotated[bool, typer.Option("--delete", help=DELETE_HELP)]
 McSamplesOpt = Annotated[Optional[int], typer.Option(min=1, max=1000, help="MC-dropout passes per slice "
                                                                            "(default: the server's, 100)")]
 ThresholdOpt = Annotated[Optional[float], typer.Option(

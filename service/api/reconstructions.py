@@ -33,7 +33,7 @@ from service.core.errors import (Conflict, InvalidParameter, NotFound, PayloadTo
 from service.core.settings import Settings
 from service.io.acquisition_geometry import MAX_VOXEL_MM, MIN_VOXEL_MM
 from service.jobs.job_inputs import keep_decoded, keep_json
-from service.jobs.store import Job, JobStore
+from service.jobs.store import FINAL, Job, JobStore
 from service.jobs.uploaded_poses import in_upload_order, poses_from_predict_body
 from service.reconstruction.config import ReconstructionConfig
 from service.reconstruction.export import volume_in_stack_space, zip_folder
@@ -53,10 +53,13 @@ def _iso(t: float) -> str:
     return datetime.fromtimestamp(t, timezone.utc).isoformat()
 
 
-def _status(job: Job, workers: int | None = None) -> dict:
+def _status(job: Job, workers: int | None = None, retention_s: float | None = None) -> dict:
     """A job's status object; ``coherent`` repeats the report's verdict (``quality.coherent``), so that a
-    client reading only the status learns that a succeeded job's volume is no coherent brain."""
+    client reading only the status learns that a succeeded job's volume is no coherent brain;
+    ``expires_at``, when a finished job's records and files are deleted (``retention_s`` after its last
+    change: the stores' ``expire``)."""
     done = job.status == "succeeded"
+    ends = retention_s is not None and job.status in FINAL
     base = f"/v1/reconstructions/{job.id}"
     quality = (job.report or {}).get("quality") if done else None
     return {"job_id": job.id, "status": job.status, "stage": job.stage, "progress": job.progress, "error": job.error,
@@ -66,7 +69,8 @@ def _status(job: Job, workers: int | None = None) -> dict:
             "transforms_url": f"{base}/transforms" if done else None, "report": job.report, "attempts": job.attempts,
             "started_at": _iso(job.started_at) if job.started_at else None,
             "workers": workers if job.status == "queued" else None,
-            "coherent": quality.get("coherent") if isinstance(quality, dict) else None}
+            "coherent": quality.get("coherent") if isinstance(quality, dict) else None,
+            "expires_at": _iso(job.updated_at + retention_s) if ends else None}
 
 
 async def _job(request: Request, job_id: str) -> Job:
@@ -297,7 +301,7 @@ async def status(request: Request, job_id: str) -> dict:
     running, and the job waits until one is started; null where the back-end cannot tell)."""
     job = await _job(request, job_id)
     workers = await to_thread.run_sync(request.app.state.job_runner.live_workers) if job.status == "queued" else None
-    return _status(job, workers)
+    return _status(job, workers, request.app.state.settings.retention_hours * 3600.0)
 
 
 class Download(FileResponse):

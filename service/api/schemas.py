@@ -292,6 +292,8 @@ class JobStatus(BaseModel):
     workers: Optional[int] = Field(None, description="a queued job: the workers serving the queue (0: it waits "
                                                      "for one); null otherwise or where the back-end cannot tell")
     coherent: Optional[bool] = Field(None, description="a succeeded job: the report's quality.coherent")
+    expires_at: Optional[str] = Field(None, description="a finished job: when the server deletes it and its files "
+                                      "(ISO 8601, UTC; DELETE deletes them at once); null while it is queued or running")
 
 
 class Problem(BaseModel):

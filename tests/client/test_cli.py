@@ -323,6 +323,25 @@ def test_cli_reconstruct_wait_downloads(fake_cli: Callable, stack_file: Path, tm
                       "max_expected_error_mm": ["4.0"]} and files[-1][0] == "poses"
 
 
+def test_cli_reconstruct_says_until_when_the_server_keeps_the_results_and_delete_deletes_them(
+        fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
+    """A finished job's volume is patient data on the server: without ``--delete`` the command says
+    until when the server keeps it and how to delete it now; with it (which implies ``--wait``), the
+    job is deleted once the files are written; ``fetch --delete`` likewise."""
+    fake, _ = fake_cli()
+    r = invoke(["reconstruct", str(stack_file), "--wait", "--poll", "0.05", "--out", str(tmp_path / "a.nii.gz")])
+    assert r.exit_code == 0, r.output
+    assert ("the server keeps the job's results until 2026-12-10T09:30:00.000Z; svrnet cancel job1 deletes them "
+            "now") in " ".join(r.stdout.split()) and "job1" in fake.jobs.jobs
+    r = invoke(["reconstruct", str(stack_file), "--delete", "--poll", "0.05", "--out", str(tmp_path / "b.nii.gz")])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "b.nii.gz").read_bytes() == FakeJobs.VOLUME
+    assert "deleted job job2 and its results on the server" in " ".join(r.stdout.split())
+    assert "job2" not in fake.jobs.jobs and "job1" in fake.jobs.jobs
+    r = invoke(["fetch", "job1", "--delete", "--poll", "0.05", "--out", str(tmp_path / "c.nii.gz")])
+    assert r.exit_code == 0 and "job1" not in fake.jobs.jobs, r.output
+
+
 def test_cli_fetch_follows_a_job_started_without_wait_and_downloads_its_results(fake_cli: Callable, stack_file: Path,
                                                                                tmp_path: Path) -> None:
     fake_cli()

@@ -9,6 +9,7 @@ import json
 import re
 import time
 import zipfile
+from datetime import datetime, timedelta
 from pathlib import Path
 
 import anyio
@@ -91,8 +92,12 @@ def test_job_succeeds_with_volume_preview_and_report(client: TestClient, case: d
     assert r.headers["location"] == f"/v1/reconstructions/{job_id}" == r.json()["status_url"]
     early = client.get(f"/v1/reconstructions/{job_id}/volume")
     assert early.status_code in (409, 200)
+    first = client.get(f"/v1/reconstructions/{job_id}").json()     # no end of its keeping before it ends
+    assert first["expires_at"] is None or first["status"] == "succeeded", first
     st = wait(client, job_id)
     assert st["status"] == "succeeded", st
+    kept = datetime.fromisoformat(st["expires_at"]) - datetime.fromisoformat(st["updated_at"])
+    assert kept == timedelta(hours=client.app.state.settings.retention_hours), st   # when the stores expire it
     assert st["progress"] == 1.0 and st["result_url"].endswith("/volume") and st["preview_url"].endswith(".png")
     vol_bytes = client.get(st["result_url"]).content
     opened = []

@@ -185,7 +185,7 @@ class FakeJobs:
                                                        "median_ncc": None, "slices": 0, "per_stack_median_ncc": [None]},
                                                    "leave_alternate_slices_out": {
                                                        "median_ncc": -0.02, "even_odd_median_ncc": [-0.04, 0.05]}})
-            job.update(status="succeeded", stage="done", progress=1.0,
+            job.update(status="succeeded", stage="done", progress=1.0, expires_at="2026-12-10T09:30:00.000Z",
                        result_url=f"/v1/reconstructions/{job['job_id']}/volume",
                        preview_url=f"/v1/reconstructions/{job['job_id']}/preview.png", report=report)
         elif job["polls"] >= 3 and self.outcome != "running":
