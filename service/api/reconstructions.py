@@ -122,6 +122,9 @@ def checked_poses(text: str, uploads: list[StackUpload]) -> tuple[dict, list[tup
     accepted flags the worker will read from it, per stack (blocking: run in a worker thread);
     :class:`InvalidParameter` naming what does not match the uploads; :class:`PayloadTooLarge` where
     the text holds more than such poses could (:data:`POSES_BYTES_PER_SLICE`), before it is decoded."""
+    if text.lstrip()[:1] not in ("{", "["):         # an image sent as poses: said so, not measured as JSON
+        raise InvalidParameter("poses: not JSON; poses are the JSON answer of /v1/predict for these stacks "
+                               "(svrnet predict --out)")
     slices = sum(u.volume.array.shape[u.slice_axis] for u in uploads)
     containers = text.count("{") + text.count("[")
     if len(text) > POSES_BYTES_PER_SLICE * slices + (64 << 10) or containers > POSES_CONTAINERS_PER_SLICE * slices + 256:

@@ -75,7 +75,9 @@ def poses_from_predict_body(body: dict, n_slices: list[int],
                              f"{MAX_FIELD_OF_VIEW_MM:.0f} mm of the atlas, keeping the stack's handedness")
         out.append((mats, np.array(acc, bool)))
     if affines is not None and not any(acc.any() for _, acc in out):
-        raise ValueError("poses: no slice is accepted; a job starts from the accepted slices")
+        raise ValueError("poses: no slice is accepted; a job starts from the accepted slices of the poses it is "
+                         "given. Submit without poses: the job predicts them and starts from every slice where few "
+                         "are accepted")
     return out
 
 

@@ -286,6 +286,9 @@ def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict, mo
                 {"stacks": [{"slices": [[1, 2]]}] * n}, {"stacks": [None] * n}, [1, 2], "{not json"):
         r = submit(client, case, poses=bad)
         assert r.status_code == 400 and "poses" in r.json()["detail"], r.text
+    stack_as_poses = case["files"][0][0].read_bytes().decode("utf-8", "replace")   # a stack where poses go
+    r = submit(client, case, poses=stack_as_poses)
+    assert r.status_code == 400 and r.json()["detail"].startswith("poses: not JSON"), r.text
     # more JSON than poses of these stacks' slices could be, refused before it is decoded (small objects
     # decode to twenty times their text)
     for bad in ("[" * 100_000 + "]" * 100_000, "[" + ",".join(["{}"] * 200_000) + "]"):
@@ -323,6 +326,7 @@ def test_bad_poses_are_rejected_at_submission(client: TestClient, case: dict, mo
             s["accepted"] = False
     r = submit(client, case, poses=rejected)
     assert r.status_code == 400 and "no slice is accepted" in r.json()["detail"], r.text
+    assert "Submit without poses" in r.json()["detail"]                  # what to do instead
     # Nothing to reconstruct from: masks without a voxel; poses accepted only where the masks hold none.
     r = submit(client, case, masks=zeroed(case, 1))
     assert r.status_code == 422 and r.json()["detail"].startswith("masks: no mask holds a voxel"), r.text
