@@ -45,7 +45,8 @@ def files_of(folder: Path, names: list[str], masks: bool) -> list[tuple[str, tup
 
 
 def answer_row(client: TestClient, folder: Path, names: list[str], masks: bool) -> str:
-    """One request's stacks: accepted of the slices with a brain (median expected error)."""
+    """One request's stacks: accepted of the slices with a brain (median expected error), and the
+    request's frame error (its network error, and what it adds to each slice's expected error)."""
     r = client.post("/v1/predict", files=files_of(folder, names, masks), data={"mc_samples": "100"})
     r.raise_for_status()
     cells = []
@@ -53,7 +54,9 @@ def answer_row(client: TestClient, folder: Path, names: list[str], masks: bool) 
         brain = [s for s in stack["slices"] if s["reason"] != "empty"]
         expected = np.median([s["expected_error_mm"] for s in brain]) if brain else float("nan")
         cells.append(f"{sum(s['accepted'] for s in brain)} of {len(brain)} ({expected:.1f} mm)")
-    return ", ".join(cells)
+    frame = r.json()["stacks"][0].get("frame") or {}
+    return (", ".join(cells) + f"; frame: network error {frame.get('request_network_error_mm')} mm, "
+            f"{frame.get('expected_error_added_mm')} mm added")
 
 
 def storage_rows(client: TestClient, folder: Path) -> None:
@@ -75,14 +78,14 @@ def main() -> None:
     ap.add_argument("--storages", type=Path, nargs="+", help="scan folders to send stored every way, without masks")
     args = ap.parse_args()
     if args.storages:
-        with TestClient(create_app()) as client:
+        with TestClient(create_app(), base_url="http://127.0.0.1") as client:
             for folder in args.storages:
                 storage_rows(client, folder)
         return
     shared, other = REAL_SCANS / SHARED[0], REAL_SCANS / OTHER_SITE[0]
     if not shared.is_dir():
         sys.exit(f"needs the real scans at {REAL_SCANS}")
-    with TestClient(create_app()) as client:
+    with TestClient(create_app(), base_url="http://127.0.0.1") as client:
         for _ in range(args.repeats):
             print("shared scan, localiser:", answer_row(client, shared, SHARED[1], False), flush=True)
             print("shared scan, manual masks:", answer_row(client, shared, SHARED[1], True), flush=True)

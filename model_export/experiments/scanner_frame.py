@@ -176,7 +176,7 @@ def main() -> None:
         return {name: StackAnswer.of(stack) for name, stack in zip(order, r.json()["stacks"])}
 
     with tempfile.TemporaryDirectory() as tmp, \
-            TestClient(create_app(Settings(data_dir=Path(tmp) / "jobs"), registry=registry)) as client:
+            TestClient(create_app(Settings(data_dir=Path(tmp) / "jobs"), registry=registry), base_url="http://127.0.0.1") as client:
         folder = Path(tmp)
         base = ask(client, folder, names, lambda v, _: v)
         variants = {label: (ask(client, folder, names, lambda v, _, f=frame: moved(v, f)), frame)
