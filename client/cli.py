@@ -66,7 +66,7 @@ from client.exits import (EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, EXIT_
                           job_goes_on, stderr, stdout)
 from client.job_views import job_table, quality_line, refined_poses_line
 from client.mask_archive import masks_already_there
-from client.transport import server_address
+from client.transport import PACKAGE_VERSION, server_address
 from client.views import masks_table, models_table, predict_hints, summarise, upload_bar, usable
 
 app = typer.Typer(
@@ -80,6 +80,18 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
     rich_markup_mode=None,            # click's plain help: option names whole at any width (rich's panels cut them)
 )
+
+
+def _print_version(asked: bool) -> None:
+    if asked:
+        print(f"svrnet {PACKAGE_VERSION or '(not installed: run from a folder)'}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _options(version: Annotated[bool, typer.Option(
+        "--version", is_eager=True, callback=_print_version, help="print the client's version and exit")] = False) -> None:
+    """The options every command shares (none but ``--version``)."""
 
 
 def make_client(server: str, api_key: str | None) -> SVRnetClient:

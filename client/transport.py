@@ -43,9 +43,11 @@ _NO_RETRY_TRANSPORT = (httpx.ReadTimeout, httpx.WriteTimeout, httpx.UnsupportedP
 try:
     from importlib.metadata import version as _version
 
-    USER_AGENT = f"svrnet-client/{_version('svrnet')}"
+    PACKAGE_VERSION: str | None = _version("svrnet")
 except Exception:  # noqa: BLE001 - not installed as a distribution
-    USER_AGENT = "svrnet-client"
+    PACKAGE_VERSION = None
+"""The installed ``svrnet`` distribution's version (None where the code runs from a folder not installed)."""
+USER_AGENT = f"svrnet-client/{PACKAGE_VERSION}" if PACKAGE_VERSION else "svrnet-client"
 
 
 def sleep(seconds: float) -> None:

@@ -32,6 +32,7 @@ from service.core.settings import Settings, load_settings, warn_unknown_variable
 from service.core.threads import limit_blas_threads
 from service.inference.registry import ModelRegistry
 from service.jobs.backends import open_backend, queue_extra_missing
+from service.jobs.provenance import service_version
 from service.jobs.store_probe import StoreProbe, readiness
 from service.preprocess.localise import Localisers
 from service.streaming.background import background_executor, stop_stage_process
@@ -147,6 +148,7 @@ def run(argv: list[str] | None = None) -> None:
                "environment variable: docs/configuration.md.")
     parser.add_argument("--host", help="address to listen on (default: $SVRNET_HOST, else 127.0.0.1)")
     parser.add_argument("--port", type=int, help="port to listen on (default: $SVRNET_PORT, else 8000)")
+    parser.add_argument("--version", action="version", version=f"svrnet-server {service_version()}")
     args = parser.parse_args(argv)
     given = {k: v for k, v in (("host", args.host), ("port", args.port)) if v is not None}
     settings = load_settings("svrnet-server", **given)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 from service import main
+from service.jobs.provenance import service_version
 
 
 @pytest.fixture
@@ -29,6 +30,10 @@ def test_help_serves_nothing_and_options_override_the_environment(monkeypatch: p
     with pytest.raises(SystemExit) as end:
         main.run(["--help"])
     assert end.value.code == 0 and "SVRNET_" in capsys.readouterr().out and not served
+    with pytest.raises(SystemExit) as end:                  # a lab filing a bug says which release
+        main.run(["--version"])
+    assert end.value.code == 0 and capsys.readouterr().out.strip() == f"svrnet-server {service_version()}"
+    assert service_version() != "unknown" and not served       # the test environment installs the package
     monkeypatch.setenv("SVRNET_PORT", "8123")
     main.run([])
     main.run(["--port", "9001", "--host", "0.0.0.0"])

@@ -17,6 +17,14 @@ from importlib.metadata import PackageNotFoundError, version
 from service.preprocess.localise import Localiser, default_localiser
 
 
+def service_version() -> str:
+    """The installed ``svrnet`` distribution's version; ``unknown`` where the code runs uninstalled."""
+    try:
+        return version("svrnet")
+    except PackageNotFoundError:
+        return "unknown"
+
+
 def localiser_provenance(uploads: list, localiser: Localiser | None) -> dict | None:
     """The localiser (``localiser``, default the shipped one) that found the brain of the stacks
     without a mask, as ``/v1/predict`` names it; None where every stack came with one."""
@@ -27,11 +35,7 @@ def provenance(model: dict | None, uploads: list, localiser: Localiser | None, m
     """What made a job's outputs: this service's version, the pose model (the starting body's), the
     localiser (:func:`localiser_provenance`), and per stack whether its mask was uploaded or the
     localiser's (``"uploaded"`` / ``"localiser"``). No file names: they often name the patient."""
-    try:
-        service = version("svrnet")
-    except PackageNotFoundError:
-        service = "unknown"
-    return {"service": {"name": "svrnet", "version": service}, "model": model,
+    return {"service": {"name": "svrnet", "version": service_version()}, "model": model,
             "localiser": localiser_provenance(uploads, localiser),
             "masks": ["uploaded" if u.mask is not None else "localiser" for u in uploads],
             "masks_hold_csf": masks_hold_csf}
