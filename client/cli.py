@@ -148,7 +148,7 @@ def predict(
     overwrite: OverwriteOpt = False,
 ) -> None:
     """Atlas pose and confidence of every slice of every stack (POST /v1/predict)."""
-    check_masks(stacks, mask)
+    check_masks(stacks, mask, masks_hold_csf)
     once_or_per_stack(slice_order, stacks, "--slice-order")
     check_writable(overwrite, out=out, transforms_out=transforms_out)
     err = stderr()
@@ -260,7 +260,7 @@ def reconstruct(
         "one")] = None,
 ) -> None:
     """Start a reconstruction job (POST /v1/reconstructions); with --wait, follow it and download the volume."""
-    check_masks(stacks, mask)
+    check_masks(stacks, mask, masks_hold_csf)
     once_or_per_stack(thickness, stacks, "--thickness")
     once_or_per_stack(slice_order, stacks, "--slice-order")
     if stack_space is not None and stack_space >= len(stacks):

@@ -55,7 +55,7 @@ def stream(
     """Send stacks slice by slice as a scanner would (WebSocket /v1/stream) and show each pose as it comes."""
     from client import stream as streaming
 
-    check_masks(stacks, mask)
+    check_masks(stacks, mask, masks_hold_csf)
     check_writable(overwrite, json_out=json_out)
     console = stdout()
     view = StreamView(console)

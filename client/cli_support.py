@@ -107,11 +107,15 @@ def job_id_of(job: str) -> str:
     return job.strip()
 
 
-def check_masks(stacks: list[Path], masks: list[Path] | None) -> None:
-    """None, or one mask per stack (a usage error otherwise)."""
+def check_masks(stacks: list[Path], masks: list[Path] | None, masks_hold_csf: bool = False) -> None:
+    """None, or one mask per stack (a usage error otherwise); ``--masks-hold-csf`` without masks is
+    said to do nothing (it tells how the uploaded masks were drawn)."""
     if masks and len(masks) != len(stacks):
         raise typer.BadParameter(f"{len(masks)} masks for {len(stacks)} stacks; give none or one per stack",
                                  param_hint="--mask")
+    if masks_hold_csf and not masks:
+        stderr().print("--masks-hold-csf: no --mask given, so it does nothing (the service's own masks are "
+                       "made as the pose network needs them)", markup=False)
 
 
 def positive(value: float | None) -> float | None:

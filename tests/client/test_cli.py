@@ -90,6 +90,9 @@ def test_cli_predict_writes_json_and_prints_a_summary(fake_cli: Callable, stack_
     assert fields == {"mc_samples": ["5"], "bias_correction": ["false"], "stack_consistency": ["false"],
                       "image_consistency": ["false"], "masks_hold_csf": ["true"]}
     assert files[0][1] == "stack.nii.gz"
+    assert "--masks-hold-csf: no --mask given, so it does nothing" in " ".join(r.stderr.split())   # sent all the same
+    with_mask = invoke(["predict", str(stack_file), "--mask", str(stack_file), "--masks-hold-csf"])
+    assert with_mask.exit_code == 0 and "does nothing" not in with_mask.stderr, with_mask.output
 
 
 @pytest.mark.parametrize("name", ["axial1_lr.nii.gz", "sub-000_ses-01_T2w_haste_coronal_run-2.nii.gz"])
