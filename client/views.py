@@ -169,7 +169,9 @@ def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[
             hints.append(f"{name}: no slice with brain: " + (
                 "its mask holds no brain on the stack's slices; check that it is the stack's mask"
                 if where.get("method") == "mask" else
-                "the localiser found none; upload a brain mask with --mask"))
+                "the localiser found none" + (
+                    " and its name says mask: a mask sent as a stack? Pass each mask with --mask, after the stacks"
+                    if "mask" in name.lower() else "; upload a brain mask with --mask")))
         elif where.get("method") == "mask" and float(where.get("brain_volume_ml") or 0.0) > LARGEST_BRAIN_ML:
             hints.append(f"{name}: its mask holds {float(where['brain_volume_ml']):.0f} ml, more than any fetal brain "
                          "(a box or the whole head?): the pose network reads the brain's outline; upload a brain "

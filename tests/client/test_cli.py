@@ -839,3 +839,15 @@ def test_a_stack_of_another_fetus_is_named_with_what_to_do() -> None:
     assert [h for h in hints if h.startswith("twin.nii.gz: its brain lies 96 mm from the other stacks'")]
     assert len([h for h in hints if h.startswith("twin.nii.gz")]) == 1         # not also "too uncertain"
     assert not [h for h in views.predict_hints({"stacks": [ok, ok]}) if "another fetus" in h]
+
+
+def test_a_stack_without_brain_whose_name_says_mask_is_told_to_be_sent_as_a_mask() -> None:
+    """A shell glob that sends ``axial_mask.nii.gz`` as a stack: the localiser finds no brain in it, and
+    the hint says it may be a mask sent as a stack; a stack of another name is told to send a mask."""
+    empty = {"method": "network", "confidence": 0.0}
+    body = {"stacks": [{"filename": name, "localisation": empty, "slices": [{"accepted": False, "reason": "empty"}]}
+                       for name in ("axial_mask.nii.gz", "coronal.nii.gz")]}
+    hints = views.predict_hints(body)
+    assert hints[0].startswith("axial_mask.nii.gz: no slice with brain") and "a mask sent as a stack?" in hints[0]
+    assert hints[1].startswith("coronal.nii.gz: no slice with brain") and "upload a brain mask with --mask" in hints[1]
+    assert "sent as a stack" not in hints[1]
