@@ -99,16 +99,18 @@ PATH_WORDS = {"full": "slices registered (stacks, then slices)", "slice_level": 
 
 
 def refined_poses_line(summary: dict[str, Any] | None) -> str:
-    """The job report's ``refined_poses`` in one line (empty when the report has none): how many of
-    the posed slices the job placed and how, and their median expected error against the starting
-    poses'.
+    """The job report's ``refined_poses`` in one line (empty when the report has none, or no posed
+    slice: poses uploaded without expected errors): how many of the posed slices the job placed and
+    how, and their median expected error against the starting poses'.
 
     Example:
         >>> print(refined_poses_line({"posed": 4, "in_volume": 2, "placed_by_stack_motion": 1, "placed_by_volume": 0,
         ...                           "median_expected_error_mm": 2.5, "median_starting_expected_error_mm": 6.5}))
         refined poses: 3 of 4 posed slices placed (2 in the volume, 1 by their stack's motion, 0 registered to it); median expected error 2.50 mm (starting poses 6.50 mm)
+        >>> refined_poses_line({"posed": 0, "in_volume": 0})
+        ''
     """
-    if not summary:
+    if not summary or not summary.get("posed"):
         return ""
     inside, motion, volume = (int(summary.get(k) or 0) for k in ("in_volume", "placed_by_stack_motion",
                                                                   "placed_by_volume"))

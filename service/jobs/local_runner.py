@@ -278,10 +278,15 @@ class LocalRunner(JobRunner):
             self._stop_workers("a timed-out job", spared=[j for j in self.store.ids("running") if j in self.futures])
 
     def cancel(self, job_id: str) -> None:
-        """A job not yet started never starts; a running one stops now when it runs alone in the pool
-        (its worker processes are stopped and replaced), else at its next stage."""
+        """A job not yet started never starts (its run finds it cancelled in the store and ends at once);
+        a running one stops now when it runs alone in the pool (its worker processes are stopped and
+        replaced), else at its next stage.
+
+        The pool's future of a job not yet started is left as it is: a cancelled future makes a pool
+        whose processes are stopped fail its clean-up (the pool's thread sets an error on every future
+        still waiting, and a cancelled one refuses it)."""
         future = self.futures.get(job_id)
-        if future is None or future.cancel() or future.done():    # done: it saw the cancel at a stage's end
+        if future is None or future.done() or not future.running():   # done: it saw the cancel at a stage's end
             return
         job = self.store.get(job_id)
         if job is None or job.started_at is None or any(j in self.futures for j in self.store.ids("running")):

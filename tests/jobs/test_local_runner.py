@@ -271,3 +271,36 @@ def test_a_run_whose_end_the_store_refused_twice_fails_once_the_store_writes_aga
         assert store.get(beside.id).status == "running" and store.get(recovering.id).status == "running"
     finally:
         runner.shutdown()
+
+
+def test_cancelling_a_waiting_job_then_the_running_one_leaves_the_pools_clean_up_whole(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # One worker runs R; B waits in the pool's call queue and W behind it. W is cancelled, then R,
+    # which runs alone: its worker is killed. The broken pool's management thread sets an error on
+    # every waiting future; a future the runner had cancelled raised InvalidStateError there, the
+    # thread died part-way and the broken pool's clean-up was skipped.
+    import threading
+
+    died: list[BaseException] = []
+    monkeypatch.setattr(threading, "excepthook", lambda args: died.append(args.exc_value))
+    store = SqliteJobStore(tmp_path)
+    runner = LocalRunner(store, tmp_path, workers=1)
+    try:
+        running, behind, waiting = store.create({}), store.create({}), store.create({})
+        assert store.claim(running.id) == 1
+        for job in (running, behind, waiting):
+            runner.futures[job.id] = runner.pool.submit(time.sleep, 30)     # what the pool's processes run
+        runner.submit = lambda job_id: None                                 # the new pool is not needed here
+        broken = runner.pool
+        for job in (waiting, running):                                      # as DELETE does
+            assert store.cancel(job.id)
+            runner.cancel(job.id)
+        deadline = time.time() + 60
+        while runner.pool is broken:                                        # replaced once the worker is gone
+            assert time.time() < deadline
+            time.sleep(0.05)
+        time.sleep(0.5)                                                     # the broken pool's thread ends
+        assert not died, died
+        assert store.get(waiting.id).status == "cancelled" and store.get(behind.id).status == "queued"
+    finally:
+        runner.shutdown()
