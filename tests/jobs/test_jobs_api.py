@@ -18,7 +18,7 @@ import pytest
 import SimpleITK as sitk
 from fastapi.testclient import TestClient
 
-from service.api import deps, reconstructions
+from service.api import deps, job_submission, reconstructions
 from service.inference.registry import ModelRegistry
 from service.io.volume import Volume, read_volume, write_volume
 from service.jobs.sqlite_store import SqliteJobStore
@@ -262,7 +262,7 @@ def test_cancel_and_failure(client: TestClient, case: dict, monkeypatch: pytest.
     assert st["status"] == "cancelled"
     assert client.get(f"/v1/reconstructions/{job_id}/volume").status_code == 409
     # No slice inside its mask (what the submission refuses, let through): the job fails, with its reason.
-    monkeypatch.setattr(reconstructions, "check_slices_to_use", lambda *_: None)
+    monkeypatch.setattr(job_submission, "check_slices_to_use", lambda *_: None)
     job_id = submit(client, case, masks=zeroed(case, 1)).json()["job_id"]
     st = wait(client, job_id)
     assert st["status"] == "failed" and "no included slice" in st["error"] and st["coherent"] is None, st
@@ -746,14 +746,14 @@ def test_a_submission_s_checks_of_its_volumes_hold_no_other_request(client: Test
     import threading
 
     checking, released, answered_while_checking = threading.Event(), threading.Event(), []
-    check = reconstructions.check_slices_to_use
+    check = job_submission.check_slices_to_use
 
     def slow_check(*args: object) -> None:
         checking.set()
         answered_while_checking.append(released.wait(10))   # False: nothing else was answered meanwhile
         check(*args)
 
-    monkeypatch.setattr(reconstructions, "check_slices_to_use", slow_check)
+    monkeypatch.setattr(job_submission, "check_slices_to_use", slow_check)
     statuses: list[int] = []
     submitting = threading.Thread(target=lambda: statuses.append(submit(client, case).status_code))
     submitting.start()
@@ -861,7 +861,7 @@ def test_a_submission_given_up_while_its_files_were_read_is_told_not_queued(clie
     from service.jobs.runner import INTERRUPTED
 
     store = client.app.state.job_store
-    monkeypatch.setattr(reconstructions, "check_slices_to_use",
+    monkeypatch.setattr(job_submission, "check_slices_to_use",
                         lambda uploads, accepted: [store.fail(j, INTERRUPTED) for j in store.ids("queued")])
     r = submit(client, case, headers={"Idempotency-Key": "k-8888888888888888"})
     assert r.status_code == 503 and "gave this submission up" in r.json()["detail"], r.text

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from service.api import reconstructions
+from service.api import job_submission
 from service.inference.registry import ModelRegistry
 from service.jobs.sqlite_store import SqliteJobStore
 from tests.api.conftest import OracleEstimator, make_client
@@ -49,7 +49,7 @@ def test_a_succeeded_job_keeps_only_its_results(client: TestClient, case: dict) 
 
 @pytest.mark.parametrize("queue_settings", BACKENDS, indirect=True)
 def test_a_failed_job_keeps_nothing_of_its_uploads(client: TestClient, case: dict, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(reconstructions, "check_slices_to_use", lambda *_: None)      # a job the worker fails
+    monkeypatch.setattr(job_submission, "check_slices_to_use", lambda *_: None)      # a job the worker fails
     job_id = submit(client, case, masks=zeroed(case, 1)).json()["job_id"]
     assert wait(client, job_id)["status"] == "failed"
     _assert_no_upload_left(client.app.state.job_store.directory(job_id))
