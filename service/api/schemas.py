@@ -150,9 +150,7 @@ class Noise(BaseModel):
     input_noise: Optional[float] = Field(description="the noise SD the stack's slices carry into the pose network's "
                                                      "inputs (the brain rescaled to 0-255, on the network's 1.25 mm "
                                                      "pixels) as a share of their range; null when no slice holds "
-                                                     "enough brain to tell. Simulated acquisitions of 1 mm pixels "
-                                                     "with Rician noise of 3 / 8 / 15 % of the bright end give about "
-                                                     "0.036 / 0.084 / 0.124")
+                                                     "enough brain to tell (what scanners' noise gives: docs/accuracy.md)")
     beyond_calibration: bool = Field(description="input_noise exceeds what the network learnt and the pipeline's "
                                                  "benchmarks hold (0.10), as a low-field scanner's noise can: the "
                                                  "poses are less accurate, mostly by a larger turn and shift of the whole "
@@ -169,9 +167,7 @@ class Frame(BaseModel):
         description="the request's network error: the RMS of consistency.network_error_mm (how far the network's "
                     "poses scatter about each stack's motion model) over the request's stacks whose fit is "
                     "decidable, weighted by their slices (all but degenerate ones); null when no stack's is (nothing is "
-                    "added then). The same for every stack of a request. The simulated "
-                    "acquisitions the expected errors were calibrated on lie near 12 mm; whole-uterus requests "
-                    "without masks and real scans often at 15-35 mm")
+                    "added then). The same for every stack of a request (what requests give: docs/accuracy.md)")
     expected_error_added_mm: float = Field(0.0, description="what the request's frame error added, in quadrature, to "
                                                             "each slice's expected_error_mm: the whole request is "
                                                             "placed worse in the atlas frame where the network is "
