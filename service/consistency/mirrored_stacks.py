@@ -54,9 +54,8 @@ may lie further apart than their turn says, which handedness does not care for).
 MIRROR_TURN_DEG = 20.0
 """A stack is another's mirror image only where, reflected, it lies within this of it: tighter than
 :data:`SAME_TURN_DEG`, since a fetus turned far between two stacks can fall near one of a stack's
-reflections by chance (random turns of 60-180 deg: 3.7-3.9 % of draws within 30 deg, 1.0-1.4 %
-within 20), while a reflected file's stack lies a median 6 deg, at most 17, from its reflection (the
-held-out acquisitions, mild to independent motion)."""
+reflections by chance, while a reflected file's stack lies near its reflection at every motion
+level of the held-out acquisitions (the rates: docs/consistency.md)."""
 MIRROR_MARGIN = 3.0
 """A stack is another's mirror image where, reflected, it lies within :data:`SAME_TURN_DEG` of it and
 as it is at least this many times as far (as a stack's own branch is overruled by the request:

@@ -85,11 +85,11 @@ lies within this mean E.D. of the request's reference (the fetus's move between 
 twin at least :data:`REQUEST_MARGIN` times as far; a stack that fits the request on neither branch
 (a mask that runs on into the fetal body) does not."""
 REQUEST_MARGIN = 1.25
-"""A stack near the mid-sagittal plane has a twin placement close to its own: a sagittal stack of the
-shared real scan, its branch decided by the request, lies 14 mm from it on that branch and 18.5-19.3
-mm on its twin. At 3 it did not agree, left the joint refinement and lost every accepted slice
-whenever its own margin fell under 1.5, which a change of its voxels below the file's rounding
-did. A branch the stack decided itself is overruled only on more (``stage.OVERRULE_MARGIN``)."""
+"""A stack near the mid-sagittal plane has a twin placement close to its own (a real sagittal stack
+lies about as far from the request on its twin as on its branch), so a small margin lets it agree
+with the request and keeps a change of its voxels below the file's rounding from parting them
+(docs/reports/consistency-experiments.md). A branch the stack decided itself is overruled only on
+more (``stage.OVERRULE_MARGIN``)."""
 FIRST_GRID = Grid(error_correlations=(0.5,))
 """The first motion fit only re-weighs the slices: one error correlation suffices."""
 

@@ -12,9 +12,8 @@ starting threads of its own. A forked child starts its own.
 
 **BLAS** (:func:`limit_blas_threads`): the consistency stages multiply many small matrices, which
 one thread does faster, and OpenBLAS threads that wait for work spin: on a machine whose cores are
-busy (a server's inference, a job beside it) a BLAS thread per core made the stack fits about 17
-times slower (the stack-fit tests beside two busy processes on 2 cores: 192 s, 11 s with one
-thread). Every process of the service that runs them limits its BLAS: the server, ``svrnet-mrd``,
+busy (a server's inference, a job beside it) a BLAS thread per core makes the stack fits many times
+slower ([benchmarks](docs/benchmarks.md)). Every process of the service that runs them limits its BLAS: the server, ``svrnet-mrd``,
 the streams' stage process, the job workers.
 
 Example:

@@ -1,6 +1,6 @@
 """Dense grid labels: the atlas mm of ``G x G`` points of the slice plane, decoded by weighted Kabsch.
 
-The paper's three anchor points generalised (issue 12): the label of a pose ``T`` is ``T @ q`` for
+The paper's three anchor points generalised: the label of a pose ``T`` is ``T @ q`` for
 every point ``q`` of a regular ``G x G`` grid spanning the same ``120 mm x 120 mm`` plane as the
 anchors (``[-h, h]^2`` at ``z = 0``, ``h = ANCHOR_HALF_SIZE_MM``), flattened row by row as
 ``(x, y, z)`` triples: ``3 G^2`` numbers (192 for the default ``G = 8``), 21x the supervision of the

@@ -8,8 +8,8 @@
    pixel size or field of view is special to it. Each slice is seen laid out as a picture by the
    scanner's axes (:func:`~service.geometry.frames.in_plane_layout`), so a file that stores its
    rows or columns reversed or its in-plane axes swapped gets the same mask voxel for voxel (a
-   network answers a picture and its turned copy a little differently: seen as the file stored
-   them, the real stacks' masks moved by up to 0.15 Dice between storages). Each slice is also
+   network answers a picture and its turned copy a little differently; the measurements:
+   docs/reports/localiser-experiments.md). Each slice is also
    seen mirrored along the picture's columns (the grid's ``W``), and the two answers' logits
    averaged: what the network decides by a narrow margin at the brain's edge (a face, a neck as
    wide as the head) is decided alike for every sampling a scanner makes of it. A network

@@ -110,8 +110,7 @@ def worth_acquiring_again(reasons: list[str | None], judged_alone: bool, signal_
     """``(index, reason)`` of the slices of a stack worth acquiring again: those not accepted, but
     for ``empty`` ones (no brain: nothing to gain) and, for a stack judged alone (the session's
     first), those whose only fault is their expected error: the next stack that crosses them is
-    what brings it down (the shared real scan's axial stack: 0 of 24 accepted alone, 21 once the
-    coronal stack ended); and those whose brain lost its signal (``signal_lost``), accepted or not,
+    what brings it down (docs/realtime.md); and those whose brain lost its signal (``signal_lost``), accepted or not,
     with that reason before any other: it is the cause, and a slice acquired again may show the brain;
     a slice not accepted whose brain runs out of its picture (``cut``) with the reason
     :data:`~service.preprocess.field_of_view.CUT_BY_FIELD_OF_VIEW`, the likely cause, which no

@@ -8,8 +8,7 @@ delaying the poses on a small CPU:
   (:func:`background_executor`);
 * the stack-consistency fits of the firm-ups run in a separate process of that priority
   (:func:`stage_process`): in a thread they would share Python's interpreter lock with the poses,
-  and each pose, handing the lock back and forth, waited for them (p95 of a 128 x 128 pose: 130 ms
-  beside firm-ups, 27 ms median).
+  and each pose, handing the lock back and forth, would wait for them (docs/realtime.md, "Measured").
 
 Example:
     >>> stage_process().submit(pow, 2, 10).result()

@@ -70,7 +70,7 @@ brain pixels extend the brain :mod:`~service.streaming.coverage` counts (not wha
 placed further off would draw brain, and a gap, where there is none."""
 END_SHARE = 3.0
 """What a stack's end keeps (the stack rebuilt whole, its preparation and its masks), as a share of its
-slices' pixels as float32 (the shared real scan's stacks measure 2.7-2.9). An open stack reserves it
+slices' pixels as float32, with room above what real stacks measure. An open stack reserves it
 for every slice up to its largest index as its slices come (the end's volume holds a blank slice
 for each that has not), so that no end takes a session past its memory limit."""
 
