@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from client.views import refined_poses_line  # noqa: E402
+from client.job_views import refined_poses_line  # noqa: E402
 from model_export.localiser.evaluate import masked_files  # noqa: E402
 from predict_bench import revision_tree, served, wait_ready  # noqa: E402
 from service.core.machine import cpu_description  # noqa: E402

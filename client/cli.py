@@ -61,7 +61,7 @@ from client.cli_support import (DEFAULT_VOLUME, DELETE_HELP, ApiKeyOpt, BiasCorr
                                 ThresholdOpt, check_folder_writable, check_masks, check_writable, follow_job, job_id_of,
                                 once_or_per_stack, resolution_range, slice_order_words, timeout_from_env, user_path,
                                 write_json, write_results)
-from client.errors import ArgumentError, NotFound
+from client.errors import ArgumentError, NotFound, SVRnetError
 from client.exits import (EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, EXIT_USAGE, errors, fail,
                           job_goes_on, stderr, stdout)
 from client.job_views import job_table, quality_line, refined_poses_line
@@ -300,8 +300,14 @@ def follow_and_write(svr: SVRnetClient, job_id: str, poll: float, timeout: float
     with job_goes_on(job_id, succeeded=True):
         incoherent = write_results(svr, job_id, done, out, preview, poses_out, transforms_out, stack_space)
     if delete:
-        svr.cancel(job_id)
-        stdout().print(f"deleted job {job_id} and its results on the server")
+        try:
+            svr.cancel(job_id)
+        except (SVRnetError, KeyboardInterrupt) as exc:     # the files are written: the command's answer stands
+            why = "interrupted" if isinstance(exc, KeyboardInterrupt) else str(exc)
+            stderr().print(f"the results are written, but the job could not be deleted on the server ({why}): "
+                           f"svrnet cancel {job_id} deletes it", markup=False)
+        else:
+            stdout().print(f"deleted job {job_id} and its results on the server")
     else:
         until = f" until {done['expires_at']}" if done.get("expires_at") else ""
         stdout().print(f"the server keeps the job's results{until}; svrnet cancel {job_id} deletes them now",

@@ -14,6 +14,7 @@ Example:
 
 from __future__ import annotations
 
+import re
 import statistics
 from collections import Counter
 from collections.abc import Callable, Iterator
@@ -142,6 +143,10 @@ def consistency_hints(name: str, stack: dict[str, Any]) -> list[str]:
     return hints
 
 
+MASK_NAME = re.compile(r"(^|[_\-.])mask([_\-.]|$)", re.IGNORECASE)
+"""A file name that says it holds a mask (``axial_mask.nii.gz``, ``brain-mask.nii``; not ``unmasked``)."""
+
+
 def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[str]:
     """What to do about an answer with nothing usable in it: a stack without brain slices, a localiser
     that was unsure, no slice accepted (``stage_off``: the consistency stage the request turned off,
@@ -171,7 +176,7 @@ def predict_hints(result: dict[str, Any], stage_off: str | None = None) -> list[
                 if where.get("method") == "mask" else
                 "the localiser found none" + (
                     " and its name says mask: a mask sent as a stack? Pass each mask with --mask, after the stacks"
-                    if "mask" in name.lower() else "; upload a brain mask with --mask")))
+                    if MASK_NAME.search(name) else "; upload a brain mask with --mask")))
         elif where.get("method") == "mask" and float(where.get("brain_volume_ml") or 0.0) > LARGEST_BRAIN_ML:
             hints.append(f"{name}: its mask holds {float(where['brain_volume_ml']):.0f} ml, more than any fetal brain "
                          "(a box or the whole head?): the pose network reads the brain's outline; upload a brain "

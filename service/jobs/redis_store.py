@@ -191,7 +191,8 @@ class RedisJobStore(JobStore):
     def update(self, job_id: str, **fields: object) -> None:
         if not set(fields) <= {"stage", "progress", "submitted_at"}:
             raise ValueError(f"update: only stage, progress, submitted_at (not {sorted(fields)})")
-        args: list[str] = ["running" if {"stage", "progress"} & set(fields) else "", "updated_at", repr(time.time())]
+        progress = bool({"stage", "progress"} & set(fields))   # a change; the queue's hand-over time is not
+        args: list[str] = ["running", "updated_at", repr(time.time())] if progress else [""]
         for k, v in fields.items():
             args += [k, v if isinstance(v, str) else repr(float(v))]  # type: ignore[arg-type]
         self._update(keys=[self._key(job_id)], args=args)

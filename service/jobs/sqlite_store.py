@@ -149,7 +149,8 @@ class SqliteJobStore(JobStore):
         if not set(fields) <= {"stage", "progress", "submitted_at"}:
             raise ValueError(f"update: only stage, progress, submitted_at (not {sorted(fields)})")
         running = " AND status = 'running'" if {"stage", "progress"} & set(fields) else ""
-        fields["updated_at"] = time.time()
+        if running:                     # progress is a change; the queue's hand-over time is not (expiry reads it)
+            fields["updated_at"] = time.time()
         cols = ", ".join(f"{k} = ?" for k in fields)
         self._write(f"UPDATE jobs SET {cols} WHERE id = ?{running}", (*fields.values(), job_id))
 

@@ -239,7 +239,9 @@ class JobStore(ABC):
     def update(self, job_id: str, **fields: object) -> None:
         """Set ``stage``, ``progress`` or ``submitted_at`` of an existing job (never its status); a
         stage or progress only while the job runs (a run's last report, read before a cancel or
-        the end, does not show an ended job at work)."""
+        the end, does not show an ended job at work), and ``updated_at`` with them alone: a job's
+        hand-over to the queue, which may come after a quick job has ended, moves no ended job's
+        expiry."""
 
     @abstractmethod
     def claim(self, job_id: str, redelivered: bool = False) -> int:

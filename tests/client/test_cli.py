@@ -348,6 +348,27 @@ def test_cli_reconstruct_says_until_when_the_server_keeps_the_results_and_delete
     assert r.exit_code == 0 and "job1" not in fake.jobs.jobs, r.output
 
 
+
+def test_a_delete_that_fails_after_the_files_are_written_keeps_the_commands_answer(
+        fake_cli: Callable, stack_file: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The files are on disk: a server that cannot delete the job now (busy, gone, a Ctrl-C) is told as a
+    warning naming what deletes it later, and the command's exit code stays that of its answer."""
+    from client.errors import ServerError
+
+    fake, _ = fake_cli()
+    for raised in (ServerError("503 store down"), KeyboardInterrupt()):
+        def refuse(self: SVRnetClient, job_id: str, raised: BaseException = raised) -> None:
+            raise raised
+
+        monkeypatch.setattr(SVRnetClient, "cancel", refuse)
+        out = tmp_path / f"{type(raised).__name__}.nii.gz"
+        r = invoke(["reconstruct", str(stack_file), "--delete", "--poll", "0.05", "--out", str(out)])
+        assert r.exit_code == 0 and out.read_bytes() == FakeJobs.VOLUME, r.output
+        said = " ".join(r.stderr.split())
+        assert "the results are written, but the job could not be deleted on the server" in said
+        assert "svrnet cancel job" in said and "deleted job" not in r.stdout
+
+
 def test_cli_fetch_follows_a_job_started_without_wait_and_downloads_its_results(fake_cli: Callable, stack_file: Path,
                                                                                tmp_path: Path) -> None:
     fake_cli()
@@ -851,3 +872,5 @@ def test_a_stack_without_brain_whose_name_says_mask_is_told_to_be_sent_as_a_mask
     assert hints[0].startswith("axial_mask.nii.gz: no slice with brain") and "a mask sent as a stack?" in hints[0]
     assert hints[1].startswith("coronal.nii.gz: no slice with brain") and "upload a brain mask with --mask" in hints[1]
     assert "sent as a stack" not in hints[1]
+    unmasked = {"stacks": [{**body["stacks"][1], "filename": "sub-01_T2w_unmasked.nii.gz"}]}
+    assert "upload a brain mask with --mask" in views.predict_hints(unmasked)[0]     # the word, not a part of one

@@ -47,6 +47,9 @@ def test_a_run_s_late_progress_report_does_not_show_an_ended_job_at_work(store: 
         store.update(job.id, stage="registration 2/3", progress=0.4)
         got = store.get(job.id)
         assert got.status == status and got.stage != "registration 2/3" and got.progress == progress, got
+        ended = got.updated_at                                # the queue's late hand-over time moves no expiry
+        store.update(job.id, submitted_at=ended + 5.0)
+        assert store.get(job.id).updated_at == ended and store.get(job.id).submitted_at == ended + 5.0
 
 
 @both

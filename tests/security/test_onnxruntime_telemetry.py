@@ -28,6 +28,7 @@ def _run_session(home: Path, first_import: str, telemetry: str | None = None) ->
 @pytest.mark.parametrize("package", ["service", "model_export"])
 def test_the_packages_leave_no_telemetry_files(tmp_path: Path, package: str) -> None:
     assert _run_session(tmp_path, package) == []
+    assert _run_session(tmp_path / "empty", package, telemetry="") == []    # an empty line of an env file
 
 
 def test_onnxruntime_alone_would_keep_them(tmp_path: Path) -> None:
