@@ -57,8 +57,8 @@ from client._client import DEFAULT_SERVER, SVRnetClient
 from client.cli_export import export
 from client.cli_stream import stream
 from client.cli_support import (DEFAULT_VOLUME, DELETE_HELP, ApiKeyOpt, BiasCorrectionOpt, DeleteOpt, JobArg, MaskOpt,
-                                MasksHoldCsfOpt, OverwriteOpt, MaxExpectedOpt, McSamplesOpt, ModelOpt, ServerOpt, STACK_SPACE_HELP, StackSpaceOpt, StacksArg,
-                                ThresholdOpt, check_folder_writable, check_masks, check_writable, follow_job, job_id_of,
+                                MasksHoldCsfOpt, OverwriteOpt, MaxExpectedOpt, McSamplesOpt, ModelOpt, ServerOpt,
+                                STACK_SPACE_HELP, StackSpaceOpt, StacksArg, ThresholdOpt, check_folder_writable, check_masks, check_writable, follow_job, job_id_of,
                                 once_or_per_stack, resolution_range, slice_order_words, timeout_from_env, user_path,
                                 write_json, write_results)
 from client.errors import ArgumentError, NotFound, SVRnetError
