@@ -11,7 +11,8 @@ import pytest
 import torch
 
 from model_export.localiser.export import export_onnx, load_checkpoint
-from model_export.localiser.train import draw_batch, load_shards, train
+from model_export.localiser.batches import draw_batch, load_shards
+from model_export.localiser.train import train
 from service.preprocess.localise import Localiser
 from tests.model_export.localiser.conftest import GRID_MM
 
@@ -57,11 +58,11 @@ def test_training_resumes_and_the_export_computes_what_the_network_does(shards: 
 
 
 def test_contrast_augmentation_keeps_the_input_range_and_changes_neighbours_apart() -> None:
-    from model_export.localiser.train import _contrast
+    from model_export.localiser.batches import vary_contrast
 
     rng = np.random.default_rng(0)
     x = np.random.default_rng(1).random((3, 32, 32)).astype(np.float32) * 1.5
-    outs = [_contrast(x.copy(), rng) for _ in range(200)]
+    outs = [vary_contrast(x.copy(), rng) for _ in range(200)]
     assert all(o.shape == x.shape and o.dtype == np.float32 and 0 <= o.min() and o.max() <= 2 for o in outs)
     ratios = np.array([[o[c].mean() / x[c].mean() for c in range(3)] for o in outs])
     assert ratios.min() < 0.5 and ratios.max() > 1.2                       # brighter and darker
@@ -96,7 +97,7 @@ def test_a_checkpoint_carries_its_shards_grid_into_the_model_file(shards: Path, 
     export takes it from there: a model file cannot claim a grid its network never learnt."""
     import shutil
 
-    from model_export.localiser.train import shards_grid_mm
+    from model_export.localiser.batches import shards_grid_mm
 
     assert shards_grid_mm(load_shards(shards, {})) == GRID_MM
     ckpt = tmp_path / "loc.pt"
@@ -150,7 +151,8 @@ def test_the_generator_writes_whole_shards_of_the_training_volumes_alone(phantom
 def test_batches_drawn_by_worker_processes_train_the_network(shards: Path, tmp_path: Path) -> None:
     """``python -m model_export.localiser.train ... --loaders 1``: the batches come from a worker
     process (a GPU host's way), and the run trains, checkpoints and records the shards' grid."""
-    from model_export.localiser.train import BatchStream, main
+    from model_export.localiser.batches import BatchStream
+    from model_export.localiser.train import main
 
     x, y = next(iter(BatchStream(shards, 4, 32, seed=0)))
     assert x.shape == (4, 3, 32, 32) and y.shape == (4, 1, 32, 32) and 0 <= y.min() and y.max() <= 1
