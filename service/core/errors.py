@@ -1,7 +1,9 @@
 """The one exception tree of the service. Each error knows its HTTP status and problem type;
 :mod:`service.api.problems` is the only place that turns them into RFC 7807 responses.
 
-Messages name the offending field or file and never contain patient information.
+Messages name the offending field or file and never contain patient information. Two errors here
+never reach an answer and stand outside the tree: :class:`Cancelled` (a job's run stops) and
+:class:`UnusableModelFile` (a start stops).
 """
 
 from __future__ import annotations
