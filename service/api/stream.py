@@ -90,10 +90,21 @@ class StreamConnection:
 
     async def send(self, message: dict) -> None:
         """Send ``message``; :class:`_Closed` where the client has gone (a normal end of a session,
-        whichever task finds it first: the messages' loop or the background firm-up)."""
+        whichever task finds it first: the messages' loop or the background firm-up), or where it has
+        read nothing for ``stream_ping_timeout_s``: a client that stops reading fills the connection's
+        buffers, the send waits for it, and neither the pings (their close waits for the same buffer)
+        nor the idle limit (it counts while the server reads) would end the session and free its slot."""
+        text = json.dumps(message)
+        try:
+            await asyncio.wait_for(self._send_text(text), self.settings.stream_ping_timeout_s)
+        except TimeoutError:
+            log.info("stream client stopped reading; session closed", extra={"session_id": self.session_id})
+            raise _Closed from None
+
+    async def _send_text(self, text: str) -> None:
         async with self.send_lock:
             try:
-                await self.ws.send_text(json.dumps(message))
+                await self.ws.send_text(text)
             except (WebSocketDisconnect, WebSocketDisconnected):
                 raise _Closed from None
 
@@ -119,7 +130,10 @@ class StreamConnection:
             raise _Closed from None
         except TimeoutError:
             await self.send(error_message(RequestTimeout(f"session: idle for {limit:g} s; closing")))
-            await self.ws.close(GOING_AWAY)
+            try:                                    # the close frame waits on the buffers as a send does
+                await asyncio.wait_for(self.ws.close(GOING_AWAY), self.settings.stream_ping_timeout_s)
+            except TimeoutError:
+                pass
             raise _Closed from None
         if frame["type"] == "websocket.disconnect":
             raise _Closed

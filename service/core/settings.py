@@ -116,7 +116,8 @@ class Settings(BaseSettings):
     stream_ping_interval_s: float = Field(20.0, gt=0, description="how often the server pings a WebSocket client")
     stream_ping_timeout_s: float = Field(60.0, gt=0, description="a ping unanswered this long closes the connection "
                                          "(1011): a live client on a busy 2-core host can take longer than "
-                                         "uvicorn's 20 s")
+                                         "uvicorn's 20 s; a client that reads none of its answers this long "
+                                         "loses its session")
     stream_workers: int = Field(1, ge=1, description="slices of all stream sessions posed at once (threads; each "
                                 "takes up to a core from /v1/predict)")
 

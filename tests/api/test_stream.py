@@ -449,7 +449,8 @@ def test_a_client_gone_while_an_answer_is_sent_ends_its_session_quietly(monkeypa
     from starlette.websockets import WebSocketDisconnected
 
     class GoneSocket:
-        app = SimpleNamespace(state=SimpleNamespace(settings=None, registry=None, localisers=None, metrics=None,
+        app = SimpleNamespace(state=SimpleNamespace(settings=SimpleNamespace(stream_ping_timeout_s=60.0),
+                                                    registry=None, localisers=None, metrics=None,
                                                     stream_pose_limiter=None,
                                                     stream_stages={"firm_up": ThreadPoolExecutor(1)}, stream_sessions=0))
 
@@ -465,9 +466,38 @@ def test_a_client_gone_while_an_answer_is_sent_ends_its_session_quietly(monkeypa
     monkeypatch.setattr(stream, "update_messages", lambda updates: [{"type": "update"}])
     conn.session = SimpleNamespace(firm_up=lambda stack: ["an update"])
     conn.dirty = {"ax", "cor"}
-    conn.settings = SimpleNamespace(stream_idle_s=30.0)
+    conn.settings = SimpleNamespace(stream_idle_s=30.0, stream_ping_timeout_s=60.0)
     with caplog.at_level(logging.INFO, logger="service"):
         asyncio.run(conn._firm_up_loop())
         asyncio.run(conn.run())                                               # returns: the client has gone
     assert not conn.dirty
     assert not [r for r in caplog.records if r.levelno >= logging.WARNING], [r.getMessage() for r in caplog.records]
+
+
+def test_a_client_that_stops_reading_ends_its_session_instead_of_holding_its_slot() -> None:
+    """A client that sends and never reads fills the connection's buffers and every send waits on it:
+    without a deadline the session, its memory and its slot were held for as long as the client kept
+    the socket open (neither the pings nor the idle limit ended it). Each send, and each one queued
+    behind it, now gives up after ``stream_ping_timeout_s`` as a client gone."""
+    from types import SimpleNamespace
+
+    from service.core.settings import Settings
+
+    class StuckSocket:
+        async def send_text(self, text: str) -> None:
+            await asyncio.Event().wait()                 # a buffer that never drains
+
+    state = SimpleNamespace(settings=Settings(stream_ping_timeout_s=0.3), registry=None, localisers=None,
+                            stream_pose_limiter=None, stream_stages={}, metrics=None)
+    ws = StuckSocket()
+    ws.app = SimpleNamespace(state=state)
+    conn = stream.StreamConnection(ws)
+
+    async def two_sends() -> list[str]:
+        outcomes = await asyncio.gather(conn.send({"type": "pose"}), conn.send({"type": "stack"}),
+                                        return_exceptions=True)
+        return [type(o).__name__ for o in outcomes]
+
+    t = time.perf_counter()
+    assert asyncio.run(two_sends()) == ["_Closed", "_Closed"]
+    assert time.perf_counter() - t < 3.0                  # each within its deadline, not for ever
