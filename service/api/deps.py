@@ -205,7 +205,7 @@ async def _wait_for_slot(slots: asyncio.Semaphore, wait_s: float, left: asyncio.
 
 
 @asynccontextmanager
-async def processing(request: Request) -> AsyncIterator[None]:
+async def processing(request: Request, answer_only: bool = True) -> AsyncIterator[None]:
     """A request's processing, around the work of a route's body (entered there, so after FastAPI has
     read the upload and checked every field: an invalid request gets its 400 without waiting):
 
@@ -213,7 +213,9 @@ async def processing(request: Request) -> AsyncIterator[None]:
       then 503 with ``Retry-After``; given back when the work ends, before the answer is sent (a
       client that reads its answer slowly holds no slot);
     * the work stops at its next checkpoint once the client has closed its connection
-      (:mod:`service.core.cancellation`; 499), and a client that leaves while its request waits for a
+      (:mod:`service.core.cancellation`; 499; where the work makes nothing but the answer,
+      ``answer_only``, one that leaves during the last step is a 499 as its work ends: a job's
+      submission stands, answered or not), and a client that leaves while its request waits for a
       slot ends the wait. A task listens for the ASGI ``http.disconnect`` (once the body is in, the
       server's next message is that one)."""
     state = request.app.state
@@ -237,6 +239,8 @@ async def processing(request: Request) -> AsyncIterator[None]:
         try:
             with cancelled_by(gone):
                 yield
+            if answer_only and gone.is_set():   # it left during the last step, past every checkpoint
+                raise ClientGone()
         finally:
             state.slots.release()
             state.processing_now -= 1

@@ -175,7 +175,7 @@ async def submit(
         raise InvalidParameter(f"{IDEMPOTENCY_HEADER}: given more than once; send one key per submission")
     key = idempotency_digest(idempotency_key, presented_key(request.headers.get("authorization"),
                                                             request.headers.get("x-api-key")))
-    async with processing(request):
+    async with processing(request, answer_only=False):
         return await _submit(request, response, settings, form, key, {
             "resolution_mm": resolution_mm, "svr_iterations": svr_iterations, "mc_samples": form.mc_samples,
             "variance_threshold": form.variance_threshold, "max_expected_error_mm": form.max_expected_error_mm,

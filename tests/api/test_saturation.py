@@ -333,3 +333,47 @@ def test_a_request_whose_client_leaves_stops_at_its_next_step_and_frees_its_slot
     counted = [line for line in scraped.splitlines()
                if line.startswith("svrnet_requests_total{") and 'route="/v1/predict"' in line]
     assert len(counted) == 1 and 'status="499"' in counted[0], counted
+
+
+def test_a_client_that_leaves_during_the_last_step_is_counted_as_gone_not_answered(
+        oracle, phantom_files, monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: ANN001
+    """The client closes its connection while the poses are made, past the last checkpoint: the work
+    ends, and the request is recorded as 499, not as a 200 no one received."""
+    import httpx
+
+    from service.api import predict as route
+    from service.core import cancellation
+
+    stack, mask, _ = phantom_files
+    built = httpx.Request("POST", "http://test/v1/predict", data={"mc_samples": "2"},
+                          files=[("stacks", (stack.name, stack.read_bytes())), ("masks", (mask.name, mask.read_bytes()))])
+    body, content_type = built.read(), built.headers["content-type"].encode()
+    predicting = threading.Event()
+
+    def predict(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        predicting.set()
+        assert cancellation._GONE.get().wait(10), "the request never learnt that its client left"
+        return [], {}                                       # the last step ends all the same (no stacks: a 200)
+
+    monkeypatch.setattr(route, "run_prediction", predict)
+    with make_client(ModelRegistry({"default": oracle}), max_concurrent=1, max_admitted=2) as client:
+        app, answers, sent = client.app, {}, [False]
+
+        async def scenario() -> None:
+            async def receive() -> dict:
+                if not sent[0]:
+                    sent[0] = True
+                    return {"type": "http.request", "body": body, "more_body": False}
+                while not predicting.is_set():
+                    await asyncio.sleep(0.01)
+                return {"type": "http.disconnect"}
+
+            await asyncio.wait_for(app(_scope(app, content_type=content_type), receive, _sender(answers, "gone")), 30)
+
+        client.portal.call(scenario)
+        assert answers["gone"][0] == 499
+        assert app.state.slots._value == 1 and app.state.admissions._value == 2
+        scraped = client.get("/metrics").text
+    counted = [line for line in scraped.splitlines()
+               if line.startswith("svrnet_requests_total{") and 'route="/v1/predict"' in line]
+    assert len(counted) == 1 and 'status="499"' in counted[0], counted
