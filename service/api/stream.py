@@ -33,7 +33,7 @@ from starlette.websockets import WebSocketDisconnect, WebSocketDisconnected
 from service.api.access import UNAUTHORIZED, api_key_ok, origin_ok
 from service.api.stream_messages import DTYPES, known_fields, parse, slice_header, text_field
 from service.streaming.messages import (end_stack_messages, error_message, pose_object, summary_message,
-                                   update_messages)
+                                        update_messages)
 from service.core.errors import (
     InternalError,
     InvalidParameter,

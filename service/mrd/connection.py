@@ -39,7 +39,7 @@ import ismrmrd
 from ismrmrd.serialization import ConfigText, ISMRMRDMessageID
 
 from service.streaming.messages import (end_stack_messages, error_message, pose_object, summary_message,
-                                   update_messages)
+                                        update_messages)
 from service.core.errors import (InternalError, InvalidParameter, PayloadTooLarge, RequestTimeout, ServiceError,
                                  UnusableImage)
 from service.mrd.images import pixel_count, slice_from_image, with_pose
