@@ -283,20 +283,46 @@ def test_each_uploads_spooled_copy_is_deleted_once_it_is_written_to_the_request_
     assert all(f.file.closed for f in files)          # an unnamed temporary file: closed is deleted
 
 
-def test_a_request_whose_client_leaves_stops_at_its_next_step_and_frees_its_slot(
-        oracle, phantom_files, monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: ANN001
-    """The client closes its connection while its stacks are prepared: the work stops at the next step
-    (the network never runs), the slot and the admission are free again, and the request is
-    recorded as 499 (no one got an answer)."""
+def _leaving_client(app, phantom_files, leave: threading.Event) -> tuple:  # noqa: ANN001
+    """Send ``/v1/predict`` the phantom with its mask in one piece, then close the connection once
+    ``leave`` is set: the scenario to run on the app's portal, and the answers it sends
+    (``answers["gone"]``: status, headers)."""
     import httpx
-
-    from service.api import predict as route
-    from service.core import cancellation
 
     stack, mask, _ = phantom_files
     built = httpx.Request("POST", "http://test/v1/predict", data={"mc_samples": "2"},
                           files=[("stacks", (stack.name, stack.read_bytes())), ("masks", (mask.name, mask.read_bytes()))])
     body, content_type = built.read(), built.headers["content-type"].encode()
+    answers, sent = {}, [False]
+
+    async def receive() -> dict:
+        if not sent[0]:
+            sent[0] = True
+            return {"type": "http.request", "body": body, "more_body": False}
+        while not leave.is_set():
+            await asyncio.sleep(0.01)
+        return {"type": "http.disconnect"}
+
+    async def scenario() -> None:
+        await asyncio.wait_for(app(_scope(app, content_type=content_type), receive, _sender(answers, "gone")), 30)
+
+    return scenario, answers
+
+
+def _predicts_counted(client) -> list[str]:  # noqa: ANN001
+    """The ``svrnet_requests_total`` lines of ``/v1/predict`` the app's metrics hold."""
+    return [line for line in client.get("/metrics").text.splitlines()
+            if line.startswith("svrnet_requests_total{") and 'route="/v1/predict"' in line]
+
+
+def test_a_request_whose_client_leaves_stops_at_its_next_step_and_frees_its_slot(
+        oracle, phantom_files, monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: ANN001
+    """The client closes its connection while its stacks are prepared: the work stops at the next step
+    (the network never runs), the slot and the admission are free again, and the request is
+    recorded as 499 (no one got an answer)."""
+    from service.api import predict as route
+    from service.core import cancellation
+
     preparing, steps = threading.Event(), []
     real_prepare, real_predict = route.prepare_stacks, route.run_prediction
 
@@ -313,25 +339,11 @@ def test_a_request_whose_client_leaves_stops_at_its_next_step_and_frees_its_slot
     monkeypatch.setattr(route, "prepare_stacks", prepare)
     monkeypatch.setattr(route, "run_prediction", predict)
     with make_client(ModelRegistry({"default": oracle}), max_concurrent=1, max_admitted=2) as client:
-        app, answers, sent = client.app, {}, [False]
-
-        async def scenario() -> None:
-            async def receive() -> dict:
-                if not sent[0]:
-                    sent[0] = True
-                    return {"type": "http.request", "body": body, "more_body": False}
-                while not preparing.is_set():               # the client leaves once its stacks are being prepared
-                    await asyncio.sleep(0.01)
-                return {"type": "http.disconnect"}
-
-            await asyncio.wait_for(app(_scope(app, content_type=content_type), receive, _sender(answers, "gone")), 30)
-
+        scenario, _ = _leaving_client(client.app, phantom_files, preparing)   # it leaves as its stacks are prepared
         client.portal.call(scenario)
         assert steps == ["prepare"]                          # stopped before the network
-        assert app.state.slots._value == 1 and app.state.admissions._value == 2
-        scraped = client.get("/metrics").text
-    counted = [line for line in scraped.splitlines()
-               if line.startswith("svrnet_requests_total{") and 'route="/v1/predict"' in line]
+        assert client.app.state.slots._value == 1 and client.app.state.admissions._value == 2
+        counted = _predicts_counted(client)
     assert len(counted) == 1 and 'status="499"' in counted[0], counted
 
 
@@ -339,15 +351,9 @@ def test_a_client_that_leaves_during_the_last_step_is_counted_as_gone_not_answer
         oracle, phantom_files, monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: ANN001
     """The client closes its connection while the poses are made, past the last checkpoint: the work
     ends, and the request is recorded as 499, not as a 200 no one received."""
-    import httpx
-
     from service.api import predict as route
     from service.core import cancellation
 
-    stack, mask, _ = phantom_files
-    built = httpx.Request("POST", "http://test/v1/predict", data={"mc_samples": "2"},
-                          files=[("stacks", (stack.name, stack.read_bytes())), ("masks", (mask.name, mask.read_bytes()))])
-    body, content_type = built.read(), built.headers["content-type"].encode()
     predicting = threading.Event()
 
     def predict(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
@@ -357,23 +363,9 @@ def test_a_client_that_leaves_during_the_last_step_is_counted_as_gone_not_answer
 
     monkeypatch.setattr(route, "run_prediction", predict)
     with make_client(ModelRegistry({"default": oracle}), max_concurrent=1, max_admitted=2) as client:
-        app, answers, sent = client.app, {}, [False]
-
-        async def scenario() -> None:
-            async def receive() -> dict:
-                if not sent[0]:
-                    sent[0] = True
-                    return {"type": "http.request", "body": body, "more_body": False}
-                while not predicting.is_set():
-                    await asyncio.sleep(0.01)
-                return {"type": "http.disconnect"}
-
-            await asyncio.wait_for(app(_scope(app, content_type=content_type), receive, _sender(answers, "gone")), 30)
-
+        scenario, answers = _leaving_client(client.app, phantom_files, predicting)
         client.portal.call(scenario)
         assert answers["gone"][0] == 499
-        assert app.state.slots._value == 1 and app.state.admissions._value == 2
-        scraped = client.get("/metrics").text
-    counted = [line for line in scraped.splitlines()
-               if line.startswith("svrnet_requests_total{") and 'route="/v1/predict"' in line]
+        assert client.app.state.slots._value == 1 and client.app.state.admissions._value == 2
+        counted = _predicts_counted(client)
     assert len(counted) == 1 and 'status="499"' in counted[0], counted
