@@ -65,8 +65,9 @@ from client.errors import ArgumentError, NotFound, SVRnetError
 from client.exits import (EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, EXIT_USAGE, errors, fail,
                           job_goes_on, stderr, stdout)
 from client.job_views import job_table, quality_line, refined_poses_line
+from client.launch import installed_version
 from client.mask_archive import masks_already_there
-from client.transport import PACKAGE_VERSION, server_address
+from client.transport import server_address
 from client.views import masks_table, models_table, predict_hints, summarise, upload_bar, usable
 
 app = typer.Typer(
@@ -84,7 +85,7 @@ app = typer.Typer(
 
 def _print_version(asked: bool) -> None:
     if asked:
-        print(f"svrnet {PACKAGE_VERSION or '(not installed: run from a folder)'}")
+        print(f"svrnet {installed_version() or '(not installed: run from a folder)'}")
         raise typer.Exit()
 
 

@@ -3,16 +3,32 @@
 The command line needs the ``client`` extra (httpx, typer, rich; numpy, nibabel and websockets for
 ``svrnet stream``). An installation without it, e.g. ``pip install ".[server]"`` alone, gets that
 said instead of a traceback. :func:`run_or_name_missing` serves ``svrnet-train`` too
-(``model_export/launch.py``); it imports nothing beyond the standard library.
+(``model_export/launch.py``), and :func:`installed_version` every command that names the release;
+it imports nothing beyond the standard library.
 """
 
 from __future__ import annotations
 
 import importlib
 import sys
+from importlib.metadata import PackageNotFoundError, version
 
 CLIENT_PACKAGES = ("httpx", "typer", "rich", "click", "websockets", "numpy", "nibabel")
 """What the ``client`` extra installs (and what they bring)."""
+
+
+def installed_version() -> str | None:
+    """The installed ``svrnet`` distribution's version (the client's and the server's, one package);
+    None where the code runs from a folder that was not installed.
+
+    Example:
+        >>> installed_version() is None or installed_version()[0].isdigit()
+        True
+    """
+    try:
+        return version("svrnet")
+    except PackageNotFoundError:
+        return None
 
 
 def run_or_name_missing(module: str, packages: tuple[str, ...], missing_says: str, entry: str = "app") -> None:

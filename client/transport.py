@@ -27,6 +27,7 @@ from urllib.parse import urlsplit, urlunsplit
 import httpx
 
 from client.errors import ArgumentError, ConnectionFailed, error_from_response, parse_retry_after
+from client.launch import installed_version
 from client.multipart import CHUNK, MultipartBody, ProgressCallback
 
 PathLike = Union[str, "os.PathLike[str]"]
@@ -40,14 +41,7 @@ cancel), where a server that says nothing for this long is stuck, not busy: the 
 made for uploads and reconstructions on a CPU, would hold a scanner script for minutes."""
 _NO_RETRY_TRANSPORT = (httpx.ReadTimeout, httpx.WriteTimeout, httpx.UnsupportedProtocol)
 
-try:
-    from importlib.metadata import version as _version
-
-    PACKAGE_VERSION: str | None = _version("svrnet")
-except Exception:  # noqa: BLE001 - not installed as a distribution
-    PACKAGE_VERSION = None
-"""The installed ``svrnet`` distribution's version (None where the code runs from a folder not installed)."""
-USER_AGENT = f"svrnet-client/{PACKAGE_VERSION}" if PACKAGE_VERSION else "svrnet-client"
+USER_AGENT = "svrnet-client" + (f"/{release}" if (release := installed_version()) else "")
 
 
 def sleep(seconds: float) -> None:

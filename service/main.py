@@ -16,6 +16,7 @@ from anyio import CapacityLimiter
 from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
 
+from client.launch import installed_version
 from service.api import (health, masks, metrics, models, openapi, predict, problems, reconstructions, stream,
                          stream_messages)
 from service.api.access import needs_key
@@ -32,7 +33,6 @@ from service.core.settings import Settings, load_settings, warn_unknown_variable
 from service.core.threads import limit_blas_threads
 from service.inference.registry import ModelRegistry
 from service.jobs.backends import open_backend, queue_extra_missing
-from service.jobs.provenance import service_version
 from service.jobs.store_probe import StoreProbe, readiness
 from service.preprocess.localise import Localisers
 from service.streaming.background import background_executor, stop_stage_process
@@ -148,7 +148,7 @@ def run(argv: list[str] | None = None) -> None:
                "environment variable: docs/configuration.md.")
     parser.add_argument("--host", help="address to listen on (default: $SVRNET_HOST, else 127.0.0.1)")
     parser.add_argument("--port", type=int, help="port to listen on (default: $SVRNET_PORT, else 8000)")
-    parser.add_argument("--version", action="version", version=f"svrnet-server {service_version()}")
+    parser.add_argument("--version", action="version", version=f"svrnet-server {installed_version() or 'unknown'}")
     args = parser.parse_args(argv)
     given = {k: v for k, v in (("host", args.host), ("port", args.port)) if v is not None}
     settings = load_settings("svrnet-server", **given)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from service import main
-from service.jobs.provenance import service_version
+from client.launch import installed_version
 
 
 @pytest.fixture
@@ -32,8 +32,8 @@ def test_help_serves_nothing_and_options_override_the_environment(monkeypatch: p
     assert end.value.code == 0 and "SVRNET_" in capsys.readouterr().out and not served
     with pytest.raises(SystemExit) as end:                  # a lab filing a bug says which release
         main.run(["--version"])
-    assert end.value.code == 0 and capsys.readouterr().out.strip() == f"svrnet-server {service_version()}"
-    assert service_version() != "unknown" and not served       # the test environment installs the package
+    assert end.value.code == 0 and capsys.readouterr().out.strip() == f"svrnet-server {installed_version()}"
+    assert installed_version() is not None and not served       # the test environment installs the package
     monkeypatch.setenv("SVRNET_PORT", "8123")
     main.run([])
     main.run(["--port", "9001", "--host", "0.0.0.0"])

@@ -12,17 +12,8 @@ Example (two stacks, one sent with its mask):
 
 from __future__ import annotations
 
-from importlib.metadata import PackageNotFoundError, version
-
+from client.launch import installed_version
 from service.preprocess.localise import Localiser, default_localiser
-
-
-def service_version() -> str:
-    """The installed ``svrnet`` distribution's version; ``unknown`` where the code runs uninstalled."""
-    try:
-        return version("svrnet")
-    except PackageNotFoundError:
-        return "unknown"
 
 
 def localiser_provenance(uploads: list, localiser: Localiser | None) -> dict | None:
@@ -35,7 +26,7 @@ def provenance(model: dict | None, uploads: list, localiser: Localiser | None, m
     """What made a job's outputs: this service's version, the pose model (the starting body's), the
     localiser (:func:`localiser_provenance`), and per stack whether its mask was uploaded or the
     localiser's (``"uploaded"`` / ``"localiser"``). No file names: they often name the patient."""
-    return {"service": {"name": "svrnet", "version": service_version()}, "model": model,
+    return {"service": {"name": "svrnet", "version": installed_version() or "unknown"}, "model": model,
             "localiser": localiser_provenance(uploads, localiser),
             "masks": ["uploaded" if u.mask is not None else "localiser" for u in uploads],
             "masks_hold_csf": masks_hold_csf}

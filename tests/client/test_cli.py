@@ -21,7 +21,7 @@ import client.job_views as job_views
 import client.stream_views as stream_views
 import client.views as views
 from client import SVRnetClient
-from client.transport import PACKAGE_VERSION
+from client.launch import installed_version
 from tests.support.client_fakes import PREDICT_BODY, FakeJobs, FakeServer, parse_multipart
 
 
@@ -298,7 +298,7 @@ def test_cli_usage_errors_and_help(fake_cli: Callable, stack_file: Path, tmp_pat
     assert "Exit codes" in invoke(["predict", "--help"]).stdout
     assert "Exit codes:" in cli.__doc__
     version = invoke(["--version"])
-    assert version.exit_code == 0 and version.stdout.strip() == f"svrnet {PACKAGE_VERSION}" and PACKAGE_VERSION
+    assert version.exit_code == 0 and version.stdout.strip() == f"svrnet {installed_version()}" and installed_version()
 
 
 def test_cli_reconstruct_wait_downloads(fake_cli: Callable, stack_file: Path, tmp_path: Path) -> None:
