@@ -68,7 +68,7 @@ def n4_correct(volume: Volume, mask: NDArray | None = None, *, shrink: int = 4, 
     sp = np.asarray(region.spacing, np.float64)
     target = max(shrink * min(sp), fit_spacing_mm)
     factors = [max(1, int(round(target / s))) for s in sp]                    # keep thick-slice axis
-    factors = [min(f, max(1, b.stop - b.start) // 4 or 1) for f, b in zip(factors, box)]
+    factors = [min(f, max(1, (b.stop - b.start) // 4)) for f, b in zip(factors, box)]
     # the region and a sample's spacing around it (where the stack has it): samples cover the region
     reach = tuple(slice(max(b.start - f, 0), min(b.stop + f, n)) for b, f, n in zip(box, factors, arr.shape))
     through = [centred_first(n, f) - r.start for n, f, r in zip(arr.shape, factors, reach)]   # the whole stack's
@@ -142,7 +142,7 @@ def centred_samples(values: NDArray, factors: list[int], through: list[float] | 
         anchor = centred_first(n, f) if through is None else float(through[axis])
         first = float(np.mod(anchor, f))                    # the first sample's place: a voxel or halfway
         m = int(np.floor((n - 1 - first) / f)) + 1          # every lattice point inside
-        if m < 1 or first > n - 1:                          # none inside: one sample, the middle's
+        if m < 1:                                           # none inside: one sample, the middle's
             first, m = (n - 1) / 2.0, 1
         low = int(np.floor(first))
         moved = np.moveaxis(out, axis, 0)
