@@ -1,7 +1,7 @@
 """A ZIP archive holding one DICOM series, unpacked with every decoder bounded.
 
-* The member count and the member list's size are read from the archive's end record and bounded
-  before the list is parsed.
+* The member list's size is read from the archive's end record and its entries are counted by
+  their fixed headers, both bounded before the ZIP reader parses the list.
 * Members are inflated in chunks to flat, numbered files of a private folder (archive paths are never
   used), each chunk charged to the upload's :class:`~service.io.limits.FileBudget`.
 * A member that is itself an archive (ZIP, gzip, bzip2, xz, 7z, RAR) is refused by name: nothing nested
@@ -45,20 +45,48 @@ ARCHIVE_MAGIC = (b"PK\x03\x04", b"PK\x05\x06", b"\x1f\x8b", b"BZh", b"\xfd7zXZ",
 
 
 def _check_directory(path: Path, filename: str) -> None:
-    """Refuse an archive whose end record declares more members than :data:`MAX_MEMBERS` or a member
-    list over :data:`MAX_DIRECTORY_BYTES`, before the list is parsed (which takes time and memory in
-    proportion to it). An end record that cannot be read is left to the ZIP reader to refuse."""
+    """Refuse an archive with more than :data:`MAX_MEMBERS` members or a member list over
+    :data:`MAX_DIRECTORY_BYTES`, before the ZIP reader parses the list (which takes time and memory
+    in proportion to its entries). The list's size comes from the end record and its entries are
+    counted by their fixed headers, so an end record that understates the count is not believed.
+    An end record that cannot be read is left to the ZIP reader to refuse."""
     with open(path, "rb") as f:
         try:
             end = zipfile._EndRecData(f)              # the end record the ZIP reader itself uses (ZIP64 too)
         except (OSError, ValueError, struct.error):
             return
-    if end is None:
-        return
-    count, size = int(end[zipfile._ECD_ENTRIES_TOTAL]), int(end[zipfile._ECD_SIZE])
-    if count > MAX_MEMBERS or size > MAX_DIRECTORY_BYTES:
-        raise UnusableImage(f"{filename}: too many files in the archive ({count} members, a member list of "
-                            f"{size} bytes)")
+        if end is None:
+            return
+        count, size = int(end[zipfile._ECD_ENTRIES_TOTAL]), int(end[zipfile._ECD_SIZE])
+        if count > MAX_MEMBERS or size > MAX_DIRECTORY_BYTES:
+            raise UnusableImage(f"{filename}: too many files in the archive ({count} members, a member list of "
+                                f"{size} bytes)")
+        start = int(end[zipfile._ECD_LOCATION]) - size            # where the ZIP reader looks for the list
+        if end[zipfile._ECD_SIGNATURE] == zipfile.stringEndArchive64:
+            start -= zipfile.sizeEndCentDir64 + zipfile.sizeEndCentDir64Locator
+        if start < 0:
+            return
+        f.seek(start)
+        listed = _entries(f.read(size))
+    if listed > MAX_MEMBERS:
+        raise UnusableImage(f"{filename}: too many files in the archive (more than {MAX_MEMBERS} members in a "
+                            f"member list of {size} bytes)")
+
+
+def _entries(directory: bytes) -> int:
+    """The entries of a ZIP member list, counted by their 46-byte fixed headers up to one more than
+    :data:`MAX_MEMBERS` (the rest of the list is not looked at).
+
+    Example (one entry named ``a``):
+        >>> _entries(b"PK\\x01\\x02" + bytes(24) + b"\\x01\\x00" + bytes(16) + b"a")
+        1
+    """
+    count = position = 0
+    while count <= MAX_MEMBERS and position + 46 <= len(directory) and directory[position:position + 4] == b"PK\x01\x02":
+        name, extra, comment = struct.unpack_from("<HHH", directory, position + 28)
+        position += 46 + name + extra + comment
+        count += 1
+    return count
 
 
 GEOMETRY_TOLERANCE = 1e-4
@@ -78,7 +106,7 @@ def read_dicom_zip(path: Path, filename: str, budget: FileBudget, scratch: Path 
         try:
             _check_directory(path, filename)
             with zipfile.ZipFile(path) as z:
-                members = [m for m in z.infolist() if not m.is_dir()]
+                members = [m for m in z.infolist() if m.filename and not m.is_dir()]   # a nameless one: no file
                 if len(members) > MAX_MEMBERS:
                     raise UnusableImage(f"{filename}: too many files in the archive ({len(members)})")
                 if sum(m.file_size for m in members) > budget.limit:

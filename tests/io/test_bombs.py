@@ -292,6 +292,41 @@ def test_a_zip_declaring_too_many_members_is_refused_before_its_list_is_parsed(t
     assert not parsed
 
 
+def _listing(names: list[bytes], declared: int) -> bytes:
+    """A ZIP of one empty stored member and a member list of an entry per name, every entry pointing at
+    that member, its end record declaring ``declared`` members."""
+    import struct
+
+    local = struct.pack("<IHHHHHIIIHH", 0x04034B50, 20, 0, 0, 0, 0, 0, 0, 0, 1, 0) + b"a"
+    listing = b"".join(struct.pack("<IHHHHHHIIIHHHHHII", 0x02014B50, 20, 20, 0, 0, 0, 0, 0, 0, 0, len(name),
+                                   0, 0, 0, 0, 0, 0) + name for name in names)
+    return local + listing + struct.pack("<IHHHHIIH", 0x06054B50, 0, 0, declared, declared, len(listing), len(local), 0)
+
+
+def test_a_zip_whose_end_record_understates_its_members_is_refused_before_its_list_is_parsed(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An end record that declares one member in front of a list of 5,001 (47 bytes each, well under
+    the list's byte limit) is not believed: the entries are counted before the ZIP reader builds them."""
+    import service.io.archive as archive
+
+    path = tmp_path / "lying.zip"
+    path.write_bytes(_listing([b"%d" % (i % 10) for i in range(archive.MAX_MEMBERS + 1)], declared=1))
+    parsed: list[int] = []
+    monkeypatch.setattr(archive.zipfile, "ZipFile", lambda *a, **k: parsed.append(1))
+    with pytest.raises(UnusableImage, match=r"lying.zip: too many files in the archive \(more than 5000 members"):
+        read_upload(path, "lying.zip")
+    assert not parsed
+
+
+def test_a_zip_member_without_a_name_is_no_file(tmp_path: Path) -> None:
+    """A nameless entry (which the ZIP reader cannot ask whether it is a folder) is left out like a
+    folder: the archive then holds no series."""
+    path = tmp_path / "nameless.zip"
+    path.write_bytes(_listing([b""], declared=1))
+    with pytest.raises(UnsupportedFile, match="nameless.zip: the ZIP archive holds no DICOM series"):
+        read_upload(path, "nameless.zip")
+
+
 def test_rle_frames_padded_to_an_even_length_are_read(tmp_path: Path) -> None:
     """PS3.5 Annex G pads each RLE segment of odd length with one byte: the guard counts a segment
     decoded whole and stops there (it counted the pad as a run's header and refused half a real
