@@ -11,7 +11,8 @@ placed by their stacks' motion, :mod:`service.reconstruction.left_out`). Printed
 variant: the mean E.D. (mm, slices with >= 20 mask pixels, network frames; against the truth,
 twin-min, and the truth in the acquisition's own frame) of the predicted and of the refined poses,
 on how many acquisitions the refined poses are worse than the predicted ones, the quality report's
-leave-one-stack-out NCC (what a user sees without the truth) and the seconds of each reconstruction. ``--atlas-frame`` adds each variant with its atlas frame re-estimated by the
+leave-one-stack-out NCC (what a user sees without the truth), the volume's PSNR and NCC against the truth (as
+placed, frame-free, and with ``--midline`` midline-placed) and the seconds of each reconstruction. ``--atlas-frame`` adds each variant with its atlas frame re-estimated by the
 network (``service/reconstruction/atlas_frame.py``), and then with its midline put on the atlas plane
 (``service/reconstruction/midline.py``), as a job does; ``--midline`` adds twin-min against the truth moved so
 that the brain's own midline lies on the atlas plane (a brain off that plane has no mirror twin in a
@@ -109,16 +110,13 @@ def to_truth_frame(pose: np.ndarray, true: np.ndarray) -> np.ndarray:
 
 def psnrs(res, vol, stacks, prepared, mid: np.ndarray | None) -> list[float]:  # noqa: ANN001
     """The volume's PSNR (dB) against the truth as placed, frame-free (the frame its poses share
-    undone), with ``mid`` against the truth placed with its midline on the atlas plane, and last its
-    NCC as placed."""
+    undone) and, with ``mid``, against the truth placed with its midline on the atlas plane; then its
+    NCC the same ways."""
     pose, true = network_poses(stacks, prepared, res.atlas_from_voxel_final)
     used = res.included
-    placed = volume_psnr_ncc(res.volume, vol.image, vol.mask, vol.affine)
-    out = [placed[0], volume_psnr_ncc(res.volume, vol.image, vol.mask, vol.affine,
-                                      frame=se3.inverse(to_truth_frame(pose[used], true[used])))[0]]
-    if mid is not None:
-        out.append(volume_psnr_ncc(res.volume, vol.image, vol.mask, vol.affine, frame=mid)[0])
-    return [*out, placed[1]]
+    frames = [None, se3.inverse(to_truth_frame(pose[used], true[used]))] + ([mid] if mid is not None else [])
+    scores = [volume_psnr_ncc(res.volume, vol.image, vol.mask, vol.affine, frame=f) for f in frames]
+    return [s[0] for s in scores] + [s[1] for s in scores]
 
 
 VARIANTS: dict[str, dict] = {
@@ -264,9 +262,8 @@ def main() -> None:
         worse = {k: int(np.sum(np.array([r[1].mean() for r in rows[k]]) > before)) for k in variants}
         summary = ", ".join(f"{k} " + " / ".join(f"{x:.2f}" for x in m) + " mm" for k, m in means.items())
         times = ", ".join(f"{k} {np.mean(v):.1f} s" for k, v in seconds.items())
-        summary += ("; PSNR (dB) as placed / frame-free"
-                    + (" / against the midline-placed truth" if args.midline else "")
-                    + " / NCC as placed " + ", ".join(f"{k} " + " / ".join(f"{x:.2f}" for x in np.mean(v, axis=0))
+        ways = "as placed / frame-free" + (" / against the midline-placed truth" if args.midline else "")
+        summary += (f"; PSNR (dB) {ways}; NCC {ways}: " + ", ".join(f"{k} " + " / ".join(f"{x:.2f}" for x in np.mean(v, axis=0))
                                                       for k, v in psnr.items()))
         print(f"== {level} ({args.per_level} acquisitions, {args.resolution} mm, {args.rounds} rounds; mean E.D. "
               f"against the truth / twin-min / the truth in the acquisition's own frame"
