@@ -215,7 +215,7 @@ async def processing(request: Request, answer_only: bool = True) -> AsyncIterato
     * the work stops at its next checkpoint once the client has closed its connection
       (:mod:`service.core.cancellation`; 499; where the work makes nothing but the answer,
       ``answer_only``, one that leaves during the last step is a 499 as its work ends: a job's
-      submission stands, answered or not), and a client that leaves while its request waits for a
+      submission stands once it is queued, answered or not), and a client that leaves while its request waits for a
       slot ends the wait. A task listens for the ASGI ``http.disconnect`` (once the body is in, the
       server's next message is that one)."""
     state = request.app.state

@@ -21,6 +21,7 @@ from service.api.job_submission import SLICE_THICKNESS_HELP, ThicknessField, che
 from service.api.problems import problem
 from service.api.schemas import UPLOAD_ERRORS, JobCreated, JobStatus, RefinedPoses, download, problem_responses
 from service.api.uploads import UploadForm, UploadFormDep, known_fields, upload_directory, upload_reader
+from service.core.cancellation import checkpoint
 from service.core.errors import Conflict, InvalidParameter, NotFound, PayloadTooLarge, QueueFull, Saturated
 from service.core.settings import Settings
 from service.jobs.job_inputs import keep_decoded, keep_json
@@ -120,6 +121,7 @@ async def _keep_submission(request: Request, response: Response, settings: Setti
         await to_thread.run_sync(check_submission, uploads, form.orders, poses_text, inputs,
                                  job.params["resolution_mm"])
         await to_thread.run_sync(keep_decoded, uploads, inputs)      # the voxels wait for a worker, not the files
+        checkpoint()               # a client gone before the job is queued leaves none: it could not learn its id
     except Exception:
         await to_thread.run_sync(store.delete, job.id)     # rejected input (or a client gone) leaves no job behind
         raise

@@ -283,14 +283,14 @@ def test_each_uploads_spooled_copy_is_deleted_once_it_is_written_to_the_request_
     assert all(f.file.closed for f in files)          # an unnamed temporary file: closed is deleted
 
 
-def _leaving_client(app, phantom_files, leave: threading.Event) -> tuple:  # noqa: ANN001
-    """Send ``/v1/predict`` the phantom with its mask in one piece, then close the connection once
+def _leaving_client(app, phantom_files, leave: threading.Event, path: str = "/v1/predict") -> tuple:  # noqa: ANN001
+    """Send ``path`` the phantom with its mask in one piece, then close the connection once
     ``leave`` is set: the scenario to run on the app's portal, and the answers it sends
     (``answers["gone"]``: status, headers)."""
     import httpx
 
     stack, mask, _ = phantom_files
-    built = httpx.Request("POST", "http://test/v1/predict", data={"mc_samples": "2"},
+    built = httpx.Request("POST", f"http://test{path}", data={"mc_samples": "2"},
                           files=[("stacks", (stack.name, stack.read_bytes())), ("masks", (mask.name, mask.read_bytes()))])
     body, content_type = built.read(), built.headers["content-type"].encode()
     answers, sent = {}, [False]
@@ -304,7 +304,7 @@ def _leaving_client(app, phantom_files, leave: threading.Event) -> tuple:  # noq
         return {"type": "http.disconnect"}
 
     async def scenario() -> None:
-        await asyncio.wait_for(app(_scope(app, content_type=content_type), receive, _sender(answers, "gone")), 30)
+        await asyncio.wait_for(app(_scope(app, path, content_type), receive, _sender(answers, "gone")), 30)
 
     return scenario, answers
 
@@ -369,3 +369,28 @@ def test_a_client_that_leaves_during_the_last_step_is_counted_as_gone_not_answer
         assert client.app.state.slots._value == 1 and client.app.state.admissions._value == 2
         counted = _predicts_counted(client)
     assert len(counted) == 1 and 'status="499"' in counted[0], counted
+
+
+def test_a_client_that_leaves_before_its_job_is_queued_leaves_no_job(
+        oracle, phantom_files, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: ANN001
+    """The client closes its connection while its submission's files are kept: it never learns the
+    job's id, so no job is queued and nothing of its files stays (a 499)."""
+    from service.api import reconstructions as route
+    from service.core import cancellation
+
+    keeping, submitted = threading.Event(), []
+    real_keep = route.keep_decoded
+
+    def keep(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        keeping.set()
+        assert cancellation._GONE.get().wait(10), "the request never learnt that its client left"
+        return real_keep(*args, **kwargs)
+
+    monkeypatch.setattr(route, "keep_decoded", keep)
+    with make_client(ModelRegistry({"default": oracle}), data_dir=tmp_path / "data") as client:
+        monkeypatch.setattr(client.app.state.job_runner, "submit", submitted.append)
+        scenario, answers = _leaving_client(client.app, phantom_files, keeping, "/v1/reconstructions")
+        client.portal.call(scenario)
+        assert answers["gone"][0] == 499
+        assert submitted == [] and not any(client.app.state.job_store.counts().values())
+    assert not [p for p in (tmp_path / "data").rglob("*") if p.is_file() and "inputs" in p.parts]
