@@ -50,6 +50,7 @@ def test_help_serves_nothing_and_options_override_the_environment(monkeypatch: p
     ("SVRNET_QUEUE_URL", "http://127.0.0.1:6379", "redis://"),
     ("SVRNET_MODELS_DIR", "{tmp}/none", "holds no <name>/model.onnx"),
     ("SVRNET_DEFAULT_MODEL", "huge", "no model 'huge'"),
+    ("SVRNET_LOCALISERS_DIR", "{tmp}/localisers", "none named default"),   # stacks without masks would all fail
     ("SVRNET_DATA_DIR", "{tmp}/a_file/below", "cannot be created"),
     ("SVRNET_TMP_DIR", "{tmp}/none", "not a folder"),
     ("SVRNET_API_KEYS", " , ", "no key"),
@@ -63,6 +64,8 @@ def test_a_setting_that_cannot_work_stops_every_command_in_one_line_naming_it(
     from service.mrd import server as mrd_server
 
     (tmp_path / "a_file").write_text("")
+    (tmp_path / "localisers" / "quick").mkdir(parents=True)
+    (tmp_path / "localisers" / "quick" / "model.onnx").write_bytes(b"")
     monkeypatch.setenv("SVRNET_DATA_DIR", str(tmp_path / "data"))
     monkeypatch.setenv(variable, value.format(tmp=tmp_path))
     monkeypatch.setattr("uvicorn.Server.run", lambda server, sockets=None: pytest.fail("served with a setting that cannot work"))

@@ -224,7 +224,8 @@ def write_card(path: Path, onnx_path: Path, figures: dict) -> Path:
 {meta['architecture']} on a {meta['grid_mm']} mm grid; {s['onnx_mb']:.1f} MB ONNX; passes: {passes}.
 It finds the fetal brain (everything inside the skull: brain and
 extra-axial CSF) in stacks as they leave the scanner, whole uterus and maternal body included: what
-the service runs for a stack sent without a mask once this folder is among its localisers.
+the service runs for a stack sent without a mask once this folder is its localisers' `default`
+(`SVRNET_LOCALISERS_DIR/default`; under another name `/v1/masks` runs it when a request names it).
 
 ## Intended use
 Research use only (the atlas licences below): fetal brain T2-weighted single-shot stacks, any

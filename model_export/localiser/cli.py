@@ -123,8 +123,9 @@ a larger one is recorded by its sha256 alone."""
 def ship(
     checkpoint: Path,
     heldout: Annotated[Path, typer.Option(help="shard folder of `data --style heldout --keep-stack`")],
-    out: Annotated[Path, typer.Option(help="the new model's folder (the service loads every folder under "
-                                           "service/localisers/; service/localisers/default is the shipped one)")],
+    out: Annotated[Path, typer.Option(help="the new model's folder (the service loads every folder of "
+                                           "SVRNET_LOCALISERS_DIR; its default, the one stacks without masks go "
+                                           "to, is the folder named default)")],
     version: Annotated[str, typer.Option(help="the version the model file and the card carry")],
     force: Annotated[bool, typer.Option(help="write into a folder that already holds files")] = False,
     grid_mm: Annotated[Optional[float], typer.Option(help=CHECKPOINT_GRID)] = None,

@@ -62,9 +62,10 @@ def localiser_for(localisers: Localisers, masks: list) -> Localiser | None:
     come); a server without one refuses such a request at once, naming the field ``masks``."""
     if masks:
         return None
-    if not localisers.localisers:
-        raise InvalidParameter("masks: this server has no brain localiser installed; send a mask with every stack")
-    return localisers.get()
+    if localisers.default() is None:
+        raise InvalidParameter("masks: this server has no brain localiser named default installed; send a mask with "
+                               "every stack")
+    return localisers.default()
 
 
 async def require_api_key(

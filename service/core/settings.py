@@ -161,7 +161,8 @@ class Settings(BaseSettings):
         """What makes these settings unusable on this machine, each naming its variable: a models
         folder without a model, folders that cannot be written. A server started with them would pass
         its health check and fail every request (see :func:`load_settings`). A localisers folder
-        without a localiser is not one: such a server serves requests that send their masks.
+        without a localiser is not one: such a server serves requests that send their masks; one whose
+        localisers have none named ``default`` is (every request without masks would fail).
         ``needs_default_model``: whether :attr:`default_model` must be among the models (a job
         worker runs the model each job names)."""
         from service.core.onnx import model_files
@@ -177,6 +178,10 @@ class Settings(BaseSettings):
             out.append(f"SVRNET_MODELS_DIR: {self.models_dir} holds no <name>/model.onnx")
         elif needs_default_model and self.default_model not in names:
             out.append(f"SVRNET_DEFAULT_MODEL: no model {self.default_model!r} in {self.models_dir}")
+        localisers = [p.parent.name for p in model_files(self.localisers_dir)]
+        if localisers and "default" not in localisers:
+            out.append(f"SVRNET_LOCALISERS_DIR: {self.localisers_dir} holds localisers ({', '.join(localisers)}) but "
+                       "none named default, the one stacks without masks go to: name one's folder default")
         for name, folder, create in (("SVRNET_DATA_DIR", self.data_dir, True), ("SVRNET_TMP_DIR", self.tmp_dir, False)):
             if folder is None:
                 continue
