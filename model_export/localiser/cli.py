@@ -92,6 +92,12 @@ def train(
 
     if (steps is None) == (minutes is None):
         raise typer.BadParameter("give one budget: --steps (reproducible) or --minutes", param_hint="--steps")
+    if not data.is_dir():
+        raise typer.BadParameter(f"{data} is not a folder of shards (`svrnet-train localiser data --out`)",
+                                 param_hint="--data")
+    for path, hint in ((out, "--out"), (init, "--init"), (teacher, "--teacher")):
+        if path is not None and (path.exists() or hint != "--out"):
+            localiser_checkpoint(path, hint)
     try:
         width, depth = network_shape(init, width, depth)
     except ValueError as bad:
@@ -111,6 +117,9 @@ def average(
     """Average a fine-tuned network's weights with those it started from (weight-space ensembling)."""
     from model_export.localiser.train import average_weights
 
+    first, second = localiser_checkpoint(base, "BASE"), localiser_checkpoint(tuned, "TUNED")
+    if first["config"] != second["config"]:
+        raise typer.BadParameter(f"the two networks differ: {first['config']} and {second['config']}", param_hint="TUNED")
     typer.echo(str(average_weights(base, tuned, out, weight)))
 
 
@@ -127,7 +136,7 @@ def ship(
                                            "SVRNET_LOCALISERS_DIR; its default, the one stacks without masks go "
                                            "to, is the folder named default)")],
     version: Annotated[str, typer.Option(help="the version the model file and the card carry")],
-    force: Annotated[bool, typer.Option(help="write into a folder that already holds files")] = False,
+    force: Annotated[bool, typer.Option(help="replace a folder that already holds files")] = False,
     grid_mm: Annotated[Optional[float], typer.Option(help=CHECKPOINT_GRID)] = None,
     pose_stacks: Annotated[int, typer.Option(help="held-out stacks whose poses are compared without/with masks")] = 8,
     ablation: Annotated[Optional[Path], typer.Option(help="JSON of `compare`: architectures measured alike")] = None,
@@ -137,16 +146,17 @@ def ship(
 ) -> None:
     """Export to ONNX, measure (held-out set, real scans, poses without masks) and write the card, into
     ``--out`` with the checkpoint (or its sha256 where it is over 64 MB). The card is written from the
-    checkpoint's record and the measurements; small budgets make it a quick look, which it says."""
+    checkpoint's record and the measurements; small budgets make it a quick look, which it says. The
+    folder is built beside ``--out`` and takes its place only when whole: a server never finds a
+    localiser without its card."""
     import os
     import shutil
-
-    import torch
 
     from model_export.localiser.card import write_card
     from model_export.localiser.evaluate import measure
     from model_export.localiser.export import export_onnx
     from model_export.localiser.record import data_record, file_record, git_state, shard_manifest
+    from model_export.shipping import ship_folder
     from service.preprocess.localise import Localiser
 
     if mirrored_pass not in ("run", "learnt"):
@@ -154,30 +164,68 @@ def ship(
     if out.exists() and (not out.is_dir() or any(out.iterdir())) and not force:
         raise typer.BadParameter(f"{out} is not an empty folder; give a new one, or --force to write into it",
                                  param_hint="--out")
-    state = torch.load(checkpoint, map_location="cpu", weights_only=False)          # our own checkpoint
+    state = localiser_checkpoint(checkpoint)
+    check_heldout(heldout)
     record = file_record(checkpoint)
-    try:
-        onnx_path = export_onnx(checkpoint, out / "model.onnx", grid_mm=grid_mm, version=version,
-                                extra={"mirrored_pass": mirrored_pass, "checkpoint_sha256": record["sha256"],
-                                       "steps": state.get("step", 0)})
-    except ValueError as e:
-        raise typer.BadParameter(str(e), param_hint="--grid-mm") from None
     copied = record["bytes"] <= CHECKPOINT_COPY_MB * 2**20
-    if copied and Path(checkpoint).resolve() != (out / "checkpoint.pt").resolve():
-        shutil.copyfile(checkpoint, out / "checkpoint.pt")
-    figures = measure(Localiser.load(onnx_path), heldout, pose_stacks, pose_scenes=pose_scenes)
-    figures["architectures"] = json.loads(ablation.read_text()) if ablation else []
-    figures["shipped"] = {"version": version, "checkpoint": {**record, "copied": copied},
-                          "training": state.get("training"), "step": state.get("step", 0),
-                          "shards": state.get("shards", 0), "config": state["config"],
-                          "heldout": {k: v for k, v in data_record(heldout, shard_manifest(heldout, {})).items()
-                                      if k != "names"},
-                          "commit": git_state(), "machine": f"{os.cpu_count()} CPU cores"}
-    (out / "evaluation.json").write_text(json.dumps(figures, indent=1))
-    write_card(out / "card.md", onnx_path, figures)
+
+    def build(staging: Path, _report: Path, _shown: Path) -> dict:
+        try:
+            onnx_path = export_onnx(checkpoint, staging / "model.onnx", grid_mm=grid_mm, version=version,
+                                    extra={"mirrored_pass": mirrored_pass, "checkpoint_sha256": record["sha256"],
+                                           "steps": state.get("step", 0)})
+        except ValueError as e:
+            raise typer.BadParameter(str(e), param_hint="--grid-mm") from None
+        if copied:
+            shutil.copyfile(checkpoint, staging / "checkpoint.pt")
+        figures = measure(Localiser.load(onnx_path), heldout, pose_stacks, pose_scenes=pose_scenes)
+        figures["architectures"] = json.loads(ablation.read_text()) if ablation else []
+        figures["shipped"] = {"version": version, "checkpoint": {**record, "copied": copied},
+                              "training": state.get("training"), "step": state.get("step", 0),
+                              "shards": state.get("shards", 0), "config": state["config"],
+                              "heldout": {k: v for k, v in data_record(heldout, shard_manifest(heldout, {})).items()
+                                          if k != "names"},
+                              "commit": git_state(), "machine": f"{os.cpu_count()} CPU cores"}
+        (staging / "evaluation.json").write_text(json.dumps(figures, indent=1))
+        write_card(staging / "card.md", onnx_path, figures)
+        return figures
+
+    figures = ship_folder(out, None, build)
     typer.echo(json.dumps(figures["summary"], indent=1))
     if not copied:
         typer.echo(f"{checkpoint} is {record['bytes'] / 2**20:.0f} MB: not copied; the card records its sha256")
+
+
+def localiser_checkpoint(path: Path, hint: str = "CHECKPOINT") -> dict:
+    """The localiser checkpoint ``path`` as ``train`` wrote it; :class:`typer.BadParameter` naming
+    ``hint`` and what the file is instead (none, a pose network's, not a checkpoint)."""
+    import torch
+
+    if not path.is_file():
+        raise typer.BadParameter(f"{path}: no such file", param_hint=hint)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)             # our own checkpoint
+    except (OSError, RuntimeError, EOFError, ValueError) as e:
+        raise typer.BadParameter(f"{path} is no checkpoint ({type(e).__name__})", param_hint=hint) from None
+    if not isinstance(state, dict) or "in_channels" not in (state.get("config") or {}):
+        raise typer.BadParameter(f"{path} is not a localiser checkpoint (a pose network's? `svrnet-train ship` "
+                                 "and `train` take those)", param_hint=hint)
+    return state
+
+
+def check_heldout(folder: Path) -> None:
+    """:class:`typer.BadParameter` unless ``folder`` holds shards that keep their stacks (``data --style
+    heldout --keep-stack``), before anything is exported or measured."""
+    import numpy as np
+
+    shards = sorted(Path(folder).glob("*.npz"))
+    if not shards:
+        raise typer.BadParameter(f"{folder} holds no shards (.npz): make them with `svrnet-train localiser data "
+                                 "--style heldout --keep-stack`", param_hint="--heldout")
+    with np.load(shards[0]) as z:
+        if "stack" not in z.files:
+            raise typer.BadParameter(f"{folder}'s shards keep no stack: make them with `--keep-stack`",
+                                     param_hint="--heldout")
 
 
 @app.command()

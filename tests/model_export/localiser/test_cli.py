@@ -18,3 +18,26 @@ def test_data_refuses_a_motion_the_scenes_do_not_know(tmp_path: Path) -> None:
     assert result.exit_code == 2
     assert "--motion" in result.output and "independent" in result.output
     assert not out.exists()
+
+
+def test_train_and_average_refuse_what_is_no_localiser_checkpoint_in_one_line(tmp_path: Path) -> None:
+    """A data folder that is not there, a pose network's checkpoint where a localiser's belongs (as
+    ``--out`` to resume, ``--init``, either of ``average``'s), a file that is not there: each a usage
+    error naming the option, not a traceback from inside the training."""
+    import torch
+
+    pose = tmp_path / "pose.pt"
+    torch.save({"config": {"backbone": "resnet", "width": 1.0}, "model": {}}, pose)
+    (tmp_path / "shards").mkdir()
+    train = ["train", "--steps", "1", "--data", str(tmp_path / "shards")]
+    for args, hint, said in (
+            (["train", "--steps", "1", "--data", str(tmp_path / "none"), "--out", str(tmp_path / "a.pt")], "--data",
+             "not a folder of shards"),
+            ([*train, "--out", str(pose)], "--out", "not a localiser checkpoint"),
+            ([*train, "--out", str(tmp_path / "a.pt"), "--init", str(tmp_path / "nope.pt")], "--init", "no such file"),
+            (["average", str(pose), str(pose), "--out", str(tmp_path / "m.pt")], "BASE", "not a localiser checkpoint"),
+            (["average", str(tmp_path / "nope.pt"), str(pose), "--out", str(tmp_path / "m.pt")], "BASE", "no such file")):
+        result = CliRunner().invoke(app, args, env={"COLUMNS": "250"})
+        assert result.exit_code == 2, (args, result.output)
+        assert hint in result.output and said in result.output and "Traceback" not in result.output, result.output
+    assert not (tmp_path / "a.pt").exists() and not (tmp_path / "m.pt").exists()

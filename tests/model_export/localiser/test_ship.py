@@ -83,3 +83,34 @@ def test_ship_needs_an_out_folder_and_refuses_one_with_files(quick_checkpoint: P
     assert result.exit_code == 0, result.output
     assert sorted(p.name for p in taken.iterdir()) == ["card.md", "checkpoint.pt", "evaluation.json", "model.onnx"]
     assert "`0.0.2`" in (taken / "card.md").read_text()
+
+
+def test_a_ship_that_fails_leaves_no_folder_and_says_why_in_one_line(quick_checkpoint: Path, shards: Path,
+                                                                   tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Inputs that cannot make a localiser are refused before anything is exported, and a step that
+    fails later leaves nothing: a server never finds a half-written localiser folder."""
+    from model_export.localiser import evaluate
+
+    out = tmp_path / "next"
+    args = ["ship", str(quick_checkpoint), "--out", str(out), "--version", "0.0.3", "--pose-scenes", "0"]
+    no_stacks = tmp_path / "no_stacks"
+    no_stacks.mkdir()
+    with np.load(next(shards.glob("*.npz"))) as z:
+        np.savez(no_stacks / "a.npz", **{k: z[k] for k in z.files if k != "stack"})
+    for heldout, said in ((tmp_path / "nowhere", "holds no shards"), (no_stacks, "keep no stack")):
+        result = CliRunner().invoke(app, [*args, "--heldout", str(heldout)], env=ENV)
+        assert result.exit_code == 2 and said in result.output and "Traceback" not in result.output, result.output
+    pose = tmp_path / "pose.pt"
+    import torch
+
+    torch.save({"config": {"backbone": "resnet"}}, pose)
+    result = CliRunner().invoke(app, ["ship", str(pose), *args[2:], "--heldout", str(shards)], env=ENV)
+    assert result.exit_code == 2 and "not a localiser checkpoint" in result.output, result.output
+
+    def broken(*a, **k):  # noqa: ANN002, ANN003, ANN202
+        raise RuntimeError("a measurement failed")
+
+    monkeypatch.setattr(evaluate, "measure", broken)
+    result = CliRunner().invoke(app, [*args, "--heldout", str(shards)], env=ENV)
+    assert result.exit_code != 0 and isinstance(result.exception, RuntimeError)
+    assert not [p.name for p in tmp_path.iterdir() if "next" in p.name]          # neither the folder nor its draft
