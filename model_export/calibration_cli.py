@@ -10,7 +10,7 @@ from typing import Annotated, Optional
 import typer
 
 from model_export.atlas import DEFAULT_ATLAS_ROOT
-from model_export.cli_options import PoseCheckpoint, Root
+from model_export.cli_options import PoseCheckpoint, PoseModel, ValidationRoot, pose_model
 from service.inference.views import SHIPPED_VIEWS
 
 
@@ -21,10 +21,10 @@ KeptColumns = Annotated[Optional[list[Path]], typer.Option(
 """The options of a calibration measured on slice columns (the accept flags, the noise and frame errors)."""
 
 
-def calibrate(checkpoint: PoseCheckpoint, root: Root = DEFAULT_ATLAS_ROOT, mc_samples: int = 100,
+def calibrate(checkpoint: PoseCheckpoint, root: ValidationRoot = DEFAULT_ATLAS_ROOT, mc_samples: int = 100,
               tta_views: int = SHIPPED_VIEWS,
               model: Annotated[Optional[Path], typer.Option(
-                  help="the ONNX file exported from CHECKPOINT to measure as the service runs it (its own views; "
+                  callback=pose_model, help="the ONNX file exported from CHECKPOINT to measure as the service runs it (its own views; "
                        "int8 where quantised) [default: CHECKPOINT's float network with --tta-views]")] = None) -> None:
     """Choose the variance threshold on the checkpoint's validation volumes; print AUROC and the chosen value."""
     from model_export.calibrate import calibrate as run
@@ -34,8 +34,8 @@ def calibrate(checkpoint: PoseCheckpoint, root: Root = DEFAULT_ATLAS_ROOT, mc_sa
 
 
 def calibrate_spread(
-    model: Path,
-    root: Root = DEFAULT_ATLAS_ROOT,
+    model: PoseModel,
+    root: ValidationRoot = DEFAULT_ATLAS_ROOT,
     per_volume: int = 60,
     write: Annotated[bool, typer.Option(help="write mc_error_scale, mc_error_shape and mc_error_depth_gain into the model's metadata")] = True,
 ) -> None:
@@ -52,8 +52,8 @@ def calibrate_spread(
 
 
 def calibrate_acceptance(
-    model: Path,
-    root: Root = DEFAULT_ATLAS_ROOT,
+    model: PoseModel,
+    root: ValidationRoot = DEFAULT_ATLAS_ROOT,
     per_volume: Annotated[Optional[int], typer.Option(help="acquisitions per validation volume and motion level "
                                                            "(default: calibrate_acceptance.PER_VOLUME)")] = None,
     report: Annotated[Optional[Path], typer.Option(help="markdown report (default: acceptance.md beside the model; "
@@ -87,8 +87,8 @@ def calibrate_acceptance(
 
 
 def calibrate_noise(
-    model: Path,
-    root: Root = DEFAULT_ATLAS_ROOT,
+    model: PoseModel,
+    root: ValidationRoot = DEFAULT_ATLAS_ROOT,
     per_volume: Annotated[Optional[int], typer.Option(help="acquisitions per validation volume, noise level, pixel size "
                                                            "and motion level (default: calibrate_noise.PER_VOLUME)")] = None,
     report: Annotated[Optional[Path], typer.Option(help="markdown report (default: noise.md beside the model; "
@@ -109,8 +109,8 @@ def calibrate_noise(
 
 
 def calibrate_frame(
-    model: Path,
-    root: Root = DEFAULT_ATLAS_ROOT,
+    model: PoseModel,
+    root: ValidationRoot = DEFAULT_ATLAS_ROOT,
     per_volume: Annotated[Optional[int], typer.Option(help="acquisitions per validation volume and motion level "
                                                            "(default: calibrate_frame.PER_VOLUME)")] = None,
     scenes: Annotated[Optional[int], typer.Option(help="whole-uterus requests of three stacks, each sent without "

@@ -22,7 +22,7 @@ import typer
 
 from model_export.atlas import DEFAULT_ATLAS_ROOT
 from model_export.calibration_cli import COMMANDS as CALIBRATION_COMMANDS
-from model_export.cli_options import PoseCheckpoint, Root
+from model_export.cli_options import PoseCheckpoint, PoseModel, Root, ValidationRoot
 from model_export.localiser.cli import app as localiser_app
 from service.inference.views import SHIPPED_VIEWS
 
@@ -169,7 +169,7 @@ def export(
 
 
 @app.command("fix-draws")
-def fix_draws(source: Path, output: Annotated[Optional[Path], typer.Argument(help="default: SOURCE itself")] = None,
+def fix_draws(source: PoseModel, output: Annotated[Optional[Path], typer.Argument(help="default: SOURCE itself")] = None,
               seed: int = 0) -> None:
     """Rewrite a model so that the service feeds its MC-dropout draws from SEED (a fixed ensemble: one
     request, one answer); its metadata, calibrations included, are kept."""
@@ -185,9 +185,9 @@ def fix_draws(source: Path, output: Annotated[Optional[Path], typer.Argument(hel
 
 @app.command()
 def evaluate(
-    model: Path,
+    model: PoseModel,
     report: Annotated[Path, typer.Option(help="markdown report; figures beside it")],
-    root: Root = DEFAULT_ATLAS_ROOT,
+    root: ValidationRoot = DEFAULT_ATLAS_ROOT,
     per_volume: int = 100,
     mc_samples: int = 100,
     acquisitions: Annotated[bool, typer.Option(help="simulated 3-stack acquisitions at every motion level (mild, moderate, "
@@ -272,7 +272,7 @@ def compare(
 
 @app.command()
 def quantise(
-    source: Path,
+    source: PoseModel,
     output: Path,
     slices: Annotated[int, typer.Option(help="simulated training slices that calibrate the activation ranges")] = 1024,
     seed: int = 0,
@@ -299,7 +299,7 @@ def ship(
     report: Annotated[Optional[Path], typer.Option(
         help="the evaluation report (beside it: its figures, acceptance.md, noise.md and frame.md) [default: OUT/report.md]")] = None,
     force: Annotated[bool, typer.Option(help="replace a model folder that holds files")] = False,
-    root: Root = DEFAULT_ATLAS_ROOT,
+    root: ValidationRoot = DEFAULT_ATLAS_ROOT,
     tta_views: Annotated[int, typer.Option(help="test-time views the MC samples are shared among: 1, 4 "
                                                 "(rotations) or 8 (rotations and flips)")] = SHIPPED_VIEWS,
     int8: Annotated[bool, typer.Option("--int8/--float", help="int8 convolutions (`quantise`) before the "

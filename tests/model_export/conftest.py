@@ -24,3 +24,14 @@ def phantom_atlas(tmp_path_factory: pytest.TempPathFactory) -> Path:
         write_volume(Volume(img, aff), root / folder / f"{name}_T2.nii.gz")
         write_volume(Volume(mask, aff), root / folder / f"{name}_mask.nii.gz")
     return root
+
+
+@pytest.fixture
+def pose_model_copy(tmp_path: Path) -> Path:
+    """The shipped default pose model copied to ``tmp_path/model.onnx``: a file the commands that take
+    an exported model accept (and may write metadata into)."""
+    import shutil
+
+    from service.core.settings import DEFAULT_MODELS_DIR
+
+    return Path(shutil.copyfile(DEFAULT_MODELS_DIR / "default" / "model.onnx", tmp_path / "model.onnx"))

@@ -65,7 +65,7 @@ def test_the_missing_error_and_the_hinge_are_what_they_say() -> None:
 
 
 def test_the_command_calibrates_from_kept_columns_and_writes_the_metadata_and_report(
-        tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: ANN001
+        tmp_path, monkeypatch: pytest.MonkeyPatch, pose_model_copy) -> None:  # noqa: ANN001
     from typer.testing import CliRunner
 
     import model_export.spread as spread
@@ -79,11 +79,11 @@ def test_the_command_calibrates_from_kept_columns_and_writes_the_metadata_and_re
     half = {k: v[1::2] for k, v in cols.items()}
     np.savez_compressed(tmp_path / "odd.npz", **half)
     np.savez_compressed(tmp_path / "even.npz", **{k: v[::2] for k, v in cols.items()})
-    result = CliRunner().invoke(app, ["calibrate-noise", str(tmp_path / "m.onnx"), "--columns", str(tmp_path / "odd.npz"),
+    result = CliRunner().invoke(app, ["calibrate-noise", str(pose_model_copy), "--columns", str(tmp_path / "odd.npz"),
                                       "--columns", str(tmp_path / "even.npz"), "--report", str(report)])
     assert result.exit_code == 0, result.output
     pooled = {k: np.concatenate([v[1::2], v[::2]]) for k, v in cols.items()}      # two runs' slices together
-    assert written == [(tmp_path / "m.onnx", noise_metadata(calibrate(pooled)))]
+    assert written == [(pose_model_copy, noise_metadata(calibrate(pooled)))]
     assert calibrate(pooled)["noise_error"] == calibrate(cols)["noise_error"]
     assert "| input noise (median) |" in report.read_text()
 

@@ -190,7 +190,7 @@ def test_export_takes_over_another_models_calibration(tmp_path: Path, monkeypatc
 
 
 def test_the_accept_flags_are_calibrated_again_from_kept_slice_columns(tmp_path: Path,
-                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+                                                                       monkeypatch: pytest.MonkeyPatch, pose_model_copy: Path) -> None:
     """``--columns`` calibrates from the columns a previous run kept, measuring nothing."""
     import numpy as np
 
@@ -218,7 +218,7 @@ def test_the_accept_flags_are_calibrated_again_from_kept_slice_columns(tmp_path:
 
 
 def test_the_noise_error_is_calibrated_from_several_kept_column_files_pooled(tmp_path: Path,
-                                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+                                                                             monkeypatch: pytest.MonkeyPatch, pose_model_copy: Path) -> None:
     """``calibrate-noise --columns A --columns B`` pools the slices of both files, measuring nothing."""
     import numpy as np
 
@@ -239,7 +239,7 @@ def test_the_noise_error_is_calibrated_from_several_kept_column_files_pooled(tmp
     assert pooled["input_noise"].tolist() == [0.0, 0.1, 0.2, 0.0, 0.1]
 
 def test_the_frame_error_is_calibrated_from_several_kept_column_files_pooled(tmp_path: Path,
-                                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+                                                                             monkeypatch: pytest.MonkeyPatch, pose_model_copy: Path) -> None:
     """``calibrate-frame --columns A --columns B`` pools the slices of both files, measuring nothing,
     and writes its report where asked."""
     import numpy as np

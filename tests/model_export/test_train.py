@@ -386,7 +386,8 @@ def test_wrong_usage_of_a_training_run_is_one_usage_line_before_any_work(packed:
 
 def test_the_cli_refuses_checkpoints_of_the_other_network_by_name(tmp_path: Path) -> None:
     """A localiser's checkpoint given to the pose network's commands, a pose network's to the
-    localiser's, a path that is not there: one line, not a KeyError or TypeError traceback."""
+    localiser's, a checkpoint or a localiser's file where an exported pose model belongs, a path that
+    is not there: one line, not a KeyError, TypeError or onnxruntime traceback."""
     from typer.testing import CliRunner
 
     from model_export.cli import app
@@ -399,7 +400,34 @@ def test_the_cli_refuses_checkpoints_of_the_other_network_by_name(tmp_path: Path
                         (["localiser", "train", "--data", str(tmp_path), "--out", str(tmp_path / "l.pt"), "--steps", "1",
                           "--init", pose], "a pose network's?"),
                         (["localiser", "train", "--data", str(tmp_path), "--out", str(tmp_path / "l.pt"), "--steps", "1",
-                          "--init", localiser, "--width", "64"], "takes its width or a narrower one")):
+                          "--init", localiser, "--width", "64"], "takes its width or a narrower one"),
+                        (["evaluate", "service/localisers/default/model.onnx", "--report", str(tmp_path / "r.md")],
+                         "not an exported pose model"),
+                        (["calibrate-spread", pose], "not an exported pose model"),
+                        (["calibrate", pose, "--model", "service/localisers/default/model.onnx"],
+                         "not an exported pose model"),
+                        (["quantise", str(tmp_path / "nope.onnx"), str(tmp_path / "x.onnx")], "no such file"),
+                        (["fix-draws", str(tmp_path / "nope.onnx")], "no such file")):
         r = runner.invoke(app, argv, env={"COLUMNS": "200"})
         assert r.exit_code == 2 and words in " ".join(r.output.split()), (argv, r.output)
     assert not (tmp_path / "x.onnx").exists() and not (tmp_path / "l.pt").exists()
+
+
+def test_the_measuring_commands_refuse_an_atlas_folder_without_the_validation_volumes(
+        phantom_atlas: Path, pose_model_copy: Path, tmp_path: Path) -> None:
+    """A folder of ``pack --training-only`` (the training volumes alone) given to the commands that
+    measure on the validation volumes: one line naming ``--root``, not a ValueError traceback."""
+    from typer.testing import CliRunner
+
+    from model_export.cli import app
+
+    runner = CliRunner()
+    packed = tmp_path / "packed"
+    assert runner.invoke(app, ["pack", "--out", str(packed), "--root", str(phantom_atlas), "--training-only"]).exit_code == 0
+    pose = "service/models/default/checkpoint.pt"
+    for argv in (["evaluate", str(pose_model_copy), "--report", str(tmp_path / "r.md")], ["calibrate-spread", str(pose_model_copy)],
+                 ["calibrate", pose], ["ship", pose, "--out", str(tmp_path / "m")]):
+        r = runner.invoke(app, [*argv, "--root", str(packed)], env={"COLUMNS": "200"})
+        said = " ".join(r.output.split())
+        assert r.exit_code == 2 and "--root" in said and "validation volumes not found" in said, (argv, r.output)
+    assert not (tmp_path / "r.md").exists() and not (tmp_path / "m").exists()
