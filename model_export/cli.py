@@ -216,7 +216,8 @@ def evaluate(
         est = NoisyTwinEstimator(onnx.info, np.random.default_rng(seed)) if fake else onnx
         vols = held_out_volumes(onnx.info.metadata, root)
         summary = evaluate_acquisitions(vols, est, np.random.default_rng(seed), per_volume=max(1, per_volume),
-                                        mc_samples=mc_samples, told=tuple(told or ()), slices=slices)
+                                        mc_samples=mc_samples, told=tuple(told or ()), slices=slices,
+                                        progress=lambda line: typer.echo(line, err=True))
         report.parent.mkdir(parents=True, exist_ok=True)
         report.write_text(markdown(summary, f"Acquisitions through the pipeline: {'fake estimator' if fake else model}"))
         typer.echo(json.dumps(summary, indent=2))

@@ -15,7 +15,9 @@ independently of any model.
 
 from __future__ import annotations
 
+import time
 from collections import defaultdict
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -271,16 +273,19 @@ def summarise(sc: Scored) -> dict:
 
 def evaluate_acquisitions(volumes: list, estimator, rng: np.random.Generator, levels: tuple[str, ...] = tuple(MOTION_LEVELS),  # noqa: ANN001
                           per_volume: int = 1, mc_samples: int = 100, bias_correction: bool = True,
-                          told: tuple[str, ...] = (), slices: Path | None = None, **sim: float) -> dict[str, dict]:
+                          told: tuple[str, ...] = (), slices: Path | None = None,
+                          progress: Callable[[str], object] | None = None, **sim: float) -> dict[str, dict]:
     """Score ``per_volume`` acquisitions of each of ``volumes`` (objects with ``image``, ``mask``,
     ``affine``) at each motion level; returns :func:`summarise` per level. Each of ``told``
     (``slice_order`` values, e.g. ``interleaved``: what the simulation acquires) adds a row per
     level, ``"<level>, told <order>"``, scored on the same network poses. ``slices``: also write every
     per-slice column of every row to this ``.npz`` (keys ``"<row>/<column>"``; ``stack`` numbers the
-    stacks of a row), for analyses the summary does not make."""
+    stacks of a row), for analyses the summary does not make. ``progress``: told a line after each
+    acquisition (its level, count and the seconds so far: N4 and every stage run on each stack)."""
     plane = estimator.info.symmetry_plane_x_mm
     out, columns = {}, {}
     orders = (None, *told)
+    start, done, total = time.perf_counter(), 0, len(levels) * len(volumes) * per_volume
     for level in levels:
         scored = [Scored() for _ in orders]
         for vol in volumes:
@@ -289,6 +294,9 @@ def evaluate_acquisitions(volumes: list, estimator, rng: np.random.Generator, le
                 predictions, prepared, truth = run_acquisition(stacks, estimator, mc_samples, bias_correction, orders)
                 for res, sc in zip(predictions, scored):
                     score(res, prepared, truth, stacks, plane, sc)
+                done += 1
+                if progress is not None:
+                    progress(f"{level}: acquisition {done} of {total} ({time.perf_counter() - start:.0f} s)")
         for order, sc in zip(orders, scored):
             row = level if order is None else f"{level}, told {order}"
             out[row] = summarise(sc)

@@ -45,9 +45,12 @@ def test_pipeline_with_a_twin_confused_estimator_per_motion_level(tmp_path) -> N
     img, mask, aff = BRAIN
     vol = type("V", (), {"image": img, "mask": mask, "affine": aff})
     est = NoisyTwinEstimator(INFO, np.random.default_rng(1))
+    said: list[str] = []
     out = evaluate_acquisitions([vol], est, np.random.default_rng(2), ("mild", "moderate", "extreme"), per_volume=2, mc_samples=20,
                                 bias_correction=False, told=("interleaved",), size=64, pixel_mm=1.6,
-                                slices=tmp_path / "slices.npz")
+                                slices=tmp_path / "slices.npz", progress=said.append)
+    assert [line.split(" (")[0] for line in said] == [f"{level}: acquisition {k} of 6" for k, level in
+                                                    enumerate(["mild"] * 2 + ["moderate"] * 2 + ["extreme"] * 2, 1)]
     for level in ("mild", "moderate"):
         s = out[level]
         # >= 99 % is the target on the validation volumes (model_export/reports/acquisitions.md); this
