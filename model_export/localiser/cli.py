@@ -86,7 +86,7 @@ def train(
                                               "holds the shards it has read in memory")] = 0,
 ) -> None:
     """Train (or continue training) the localiser for ``--steps`` (or ``--minutes``); progress in
-    ``<out>.log``. The checkpoint records the seed, budget, steps done, the shards' identity and the
+    ``<out>.log`` (at each checkpoint and the last step). The checkpoint records the seed, budget, steps done, the shards' identity and the
     commit. With ``--init`` of another width the network starts from that one's strongest channels."""
     from model_export.localiser.train import network_shape, train as run
 
@@ -95,16 +95,20 @@ def train(
     if not data.is_dir():
         raise typer.BadParameter(f"{data} is not a folder of shards (`svrnet-train localiser data --out`)",
                                  param_hint="--data")
-    for path, hint in ((out, "--out"), (init, "--init"), (teacher, "--teacher")):
-        if path is not None and (path.exists() or hint != "--out"):
+    for path, hint in ((init, "--init"), (teacher, "--teacher")):
+        if path is not None:
             localiser_checkpoint(path, hint)
     try:
         width, depth = network_shape(init, width, depth)
     except ValueError as bad:
         raise typer.BadParameter(str(bad)) from None
+    before = localiser_checkpoint(out, "--out")["step"] if out.exists() else 0
     run(data, out, minutes, steps=steps, width=width, depth=depth, threads=threads, seed=seed, log=Path(f"{out}.log"),
         in_channels=channels, init=init, lr=lr, teacher=teacher, teacher_weight=teacher_weight, freeze_norm=freeze_norm,
         batch=batch, device=device, loaders=loaders)
+    after = localiser_checkpoint(out, "--out")["step"]
+    typer.echo(f"nothing to do: {out} has done {after} steps (--steps counts them all)" if after == before
+               else f"{out}: steps {before} to {after}")
 
 
 @app.command()

@@ -193,6 +193,12 @@ def train(data: Path, out: Path, minutes: float | None = None, *, steps: int | N
                     "config": net.config, "step": step, "spent_s": time.perf_counter() - start,
                     "shards": len(manifest), "grid_mm": grid_mm, "training": {**run, "runs": [*runs, this]}}, out)
 
+    def progress() -> None:
+        if log is not None and losses:
+            with open(log, "a") as f:
+                f.write(json.dumps({"step": step, "elapsed_s": round(time.perf_counter() - start),
+                                    "loss": float(torch.stack(tuple(losses)).mean()), "lr": opt.param_groups[0]["lr"]}) + "\n")
+
     net.train()
     if freeze_norm:
         for module in net.modules():
@@ -214,12 +220,10 @@ def train(data: Path, out: Path, minutes: float | None = None, *, steps: int | N
         if time.perf_counter() - last_ckpt > checkpoint_s:
             save()
             last_ckpt = time.perf_counter()
-            if log is not None:
-                with open(log, "a") as f:
-                    f.write(json.dumps({"step": step, "elapsed_s": round(time.perf_counter() - start),
-                                        "loss": float(torch.stack(tuple(losses)).mean()), "lr": opt.param_groups[0]["lr"]}) + "\n")
+            progress()
     if step > first_step or not runs:                  # a finished budget leaves its checkpoint as it is
         save()
+        progress()
     return out
 
 

@@ -41,3 +41,21 @@ def test_train_and_average_refuse_what_is_no_localiser_checkpoint_in_one_line(tm
         assert result.exit_code == 2, (args, result.output)
         assert hint in result.output and said in result.output and "Traceback" not in result.output, result.output
     assert not (tmp_path / "a.pt").exists() and not (tmp_path / "m.pt").exists()
+
+
+def test_train_says_what_it_did_and_logs_its_last_step(shards: Path, tmp_path: Path) -> None:
+    """A short run logs its last step (the log is written at checkpoints, minutes apart); run again
+    with the steps it has done, it says there is nothing to do and leaves the checkpoint as it is."""
+    import json
+
+    out = tmp_path / "l.pt"
+    args = ["train", "--data", str(shards), "--out", str(out), "--steps", "2", "--width", "4", "--depth", "2",
+            "--batch", "2", "--threads", "1"]
+    first = CliRunner().invoke(app, args, env={"COLUMNS": "250"})
+    assert first.exit_code == 0 and f"{out}: steps 0 to 2" in first.output, first.output
+    logged = [json.loads(line) for line in Path(f"{out}.log").read_text().splitlines()]
+    assert logged[-1]["step"] == 2 and logged[-1]["loss"] > 0
+    written = out.read_bytes()
+    again = CliRunner().invoke(app, args, env={"COLUMNS": "250"})
+    assert again.exit_code == 0 and "nothing to do" in again.output and "2 steps" in again.output, again.output
+    assert out.read_bytes() == written and len(Path(f"{out}.log").read_text().splitlines()) == len(logged)
