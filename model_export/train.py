@@ -152,6 +152,10 @@ def train(cfg: TrainConfig, out_dir: Path, root: Path = DEFAULT_ATLAS_ROOT, resu
         step, best = ck["step"], ck.get("best_ed_mm", best)
         history = prior_history(ck)
         cfg.init_from = ck["config"].get("init_from")
+        if step >= cfg.steps:                          # its files stay as they are
+            print(f"nothing to do: {resume} has done {step} of {cfg.steps} steps (--steps counts them all; a "
+                  "resumed run goes on to it)")
+            return out_dir / "best.pt"
     elif init is not None:
         prev = torch.load(init, map_location="cpu", weights_only=False)
         whole = _load_init(model, prev, init)

@@ -309,6 +309,11 @@ def test_the_cli_resumes_and_stages_with_the_runs_own_settings(packed: Path, tmp
     assert r.exit_code == 0, r.output
     resumed = torch.load(tmp_path / "a" / "last.pt", weights_only=False)
     assert resumed["step"] == 3
+    kept = {f.name: f.read_bytes() for f in (tmp_path / "a").iterdir()}
+    r = runner.invoke(app, ["train", "--root", str(packed), "--out", str(tmp_path / "a"), "--steps", "3",
+                            "--resume", str(tmp_path / "a" / "last.pt")])            # a finished run: said, not redone
+    assert r.exit_code == 0 and "nothing to do" in r.output and "3 of 3 steps" in r.output, r.output
+    assert {f.name: f.read_bytes() for f in (tmp_path / "a").iterdir()} == kept
     assert {k: resumed["config"][k] for k in ("dropout", "lr", "label_type", "loss", "width")} == {
         "dropout": 0.25, "lr": 5e-5, "label_type": "grid", "loss": "min", "width": 0.25}
     r = runner.invoke(app, ["train", "--root", str(packed), "--out", str(tmp_path / "b"), "--steps", "1",
