@@ -64,6 +64,25 @@ def pixel_count(header: ismrmrd.ImageHeader | ismrmrd.Image) -> int:
     return int(header.channels) * int(matrix[0]) * int(matrix[1]) * int(matrix[2])
 
 
+def shape_problem(header: ismrmrd.ImageHeader | ismrmrd.Image) -> UnusableImage | None:
+    """What makes an image's announced shape unusable (a volume, or several channels: the streaming
+    core takes 2D one-channel images), else None; known from the header alone, before the data.
+
+    Example:
+        >>> h = ismrmrd.ImageHeader(); h.matrix_size[:] = (8, 8, 1); h.channels = 4
+        >>> shape_problem(h)
+        UnusableImage('channels: 4; svrnet-mrd takes one-channel (coil-combined) images')
+    """
+    nx, ny, nz = (int(n) for n in header.matrix_size)
+    if nz > 1:
+        return UnusableImage(f"matrix_size: a 3D image ({nx} x {ny} x {nz}); svrnet-mrd takes 2D images")
+    if nz < 1:
+        return UnusableImage(f"matrix_size: an empty image ({nx} x {ny} x {nz})")
+    if int(header.channels) != 1:
+        return UnusableImage(f"channels: {int(header.channels)}; svrnet-mrd takes one-channel (coil-combined) images")
+    return None
+
+
 def check_image(header: ismrmrd.ImageHeader | ismrmrd.Image) -> None:
     """Raise :class:`UnusableImage` naming the field of a header the streaming core cannot use:
     not a 2D one-channel real magnitude (or real) image, or no usable geometry.
@@ -75,13 +94,11 @@ def check_image(header: ismrmrd.ImageHeader | ismrmrd.Image) -> None:
         ...
         service.core.errors.UnusableImage: matrix_size: a 3D image (8 x 8 x 4); svrnet-mrd takes 2D images
     """
-    nx, ny, nz = (int(n) for n in header.matrix_size)
-    if nz != 1:
-        raise UnusableImage(f"matrix_size: a 3D image ({nx} x {ny} x {nz}); svrnet-mrd takes 2D images")
+    if problem := shape_problem(header):
+        raise problem
+    nx, ny, _ = (int(n) for n in header.matrix_size)
     if nx < 1 or ny < 1:
         raise UnusableImage(f"matrix_size: an empty image ({nx} x {ny})")
-    if int(header.channels) != 1:
-        raise UnusableImage(f"channels: {int(header.channels)}; svrnet-mrd takes one-channel (coil-combined) images")
     if int(header.image_type) not in ACCEPTED_IMAGE_TYPES:
         name = IMAGE_TYPE_NAMES.get(int(header.image_type), f"code {int(header.image_type)}")
         raise UnusableImage(f"image_type: {name}; svrnet-mrd takes magnitude or real images")

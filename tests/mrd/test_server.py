@@ -17,7 +17,7 @@ import pytest
 from ismrmrd.serialization import ConfigText
 
 from service.inference.registry import ModelRegistry
-from service.mrd.images import pose_from_meta
+from service.mrd.images import pixel_count, pose_from_meta
 from service.mrd.send import MrdLink, mrd_header
 from service.mrd.server import MrdServer, ServerLimits, session_factory
 from service.streaming.options import StreamLimits
@@ -156,6 +156,8 @@ def test_unusable_messages_get_an_error_and_the_session_goes_on(case: Case, serv
                 image_like(first, plane, image_type=ismrmrd.IMTYPE_PHASE),
                 image_like(first, np.repeat(plane, 3, axis=1)),                    # 3D: z = 3
                 image_like(first, np.repeat(plane, 2, axis=0)),                    # two channels
+                image_like(first, np.repeat(plane, 300, axis=1)),                  # a volume over the pixel limit
+                image_like(first, np.repeat(plane, 300, axis=0)),                  # uncombined coils, over it too
                 ismrmrd.Acquisition.from_array(np.zeros((2, 16), np.complex64)),
                 ismrmrd.Acquisition.from_array(np.zeros((2, 16), np.complex64)))
     client.send(*[case.images[0][k] for k in INTERLEAVED])                         # no header: the stack ends at CLOSE
@@ -164,9 +166,10 @@ def test_unusable_messages_get_an_error_and_the_session_goes_on(case: Case, serv
 
     errors = [m for m in texts(received) if m["type"] == "error"]
     details = [e["detail"] for e in errors]
-    assert len(errors) == 5, details
+    assert len(errors) == 7, details
+    assert pixel_count(image_like(first, np.repeat(plane, 300, axis=1))) > StreamLimits().max_pixels
     for words, error in zip(["config.mc_samples", "image_type: phase", "matrix_size: a 3D image", "channels: 2",
-                             "acquisition"], errors):
+                             "matrix_size: a 3D image", "channels: 300", "acquisition"], errors):
         assert words in error["detail"] and error["status"] in (400, 422) and error["problem_type"].startswith("/problems/")
     assert errors[1]["image_series_index"] == 0 and errors[1]["slice"] == 0
     images = [m for m in received if isinstance(m, ismrmrd.Image)]
