@@ -139,7 +139,7 @@ class SVRnetClient(JobCalls):
 
     def masks(self, stacks: Sequence[PathLike], out_dir: PathLike, *, model: str | None = None,
               margin_mm: float | None = None, progress: ProgressCallback | None = None,
-              overwrite: bool = False) -> dict[str, Any]:
+              overwrite: bool = False) -> list[dict[str, Any]]:
         """``POST /v1/masks``: the server's brain mask of every stack, written into ``out_dir``.
 
         Each mask is ``<stem>_mask.nii.gz`` on its stack's own grid (uint8 0/1), grown outward by
@@ -151,15 +151,15 @@ class SVRnetClient(JobCalls):
         masks still beside it: the folder's report describes every mask in it.
 
         Returns:
-            The report: ``stacks[]`` with ``filename``, ``mask``, ``brain_volume_ml``, ``confidence``,
-            ``slices_with_brain``.
+            The report, an object per stack: ``filename``, ``mask``, ``brain_volume_ml``, ``confidence``,
+            ``slices_with_brain``, the ``localiser`` that made it.
 
         Raises:
             ArgumentError: masks of those names already in ``out_dir`` (without ``overwrite``), and as
             for :meth:`predict`.
 
         Example:
-            >>> SVRnetClient().masks(["ax.nii.gz"], "masks/")["stacks"][0]["confidence"]   # doctest: +SKIP
+            >>> SVRnetClient().masks(["ax.nii.gz"], "masks/")[0]["confidence"]   # doctest: +SKIP
             0.97
         """
         fields = [(k, v) for k, v in (("model", model), ("margin_mm", margin_mm)) if v is not None]

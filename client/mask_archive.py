@@ -67,36 +67,46 @@ def masks_already_there(stacks: list[Path], out: Path) -> list[str]:
     return [n for n in mask_names(stacks) if (out / n).exists()]
 
 
-def _with_earlier_masks(report: Any, out: Path) -> Any:
+def report_entries(report: Any) -> list[dict[str, Any]]:
+    """The per-stack objects of a masks report: api-v1's list, or the ``{"localiser", "stacks"}`` of
+    this server before 2.12 (each entry then given its ``localiser``).
+
+    Example:
+        >>> report_entries({"localiser": {"version": "1.2.0"}, "stacks": [{"mask": "ax_mask.nii.gz"}]})
+        [{'localiser': {'version': '1.2.0'}, 'mask': 'ax_mask.nii.gz'}]
+    """
+    if isinstance(report, dict):
+        return [{"localiser": report.get("localiser"), **e} for e in report.get("stacks") or [] if isinstance(e, dict)]
+    return [e for e in report if isinstance(e, dict)] if isinstance(report, list) else []
+
+
+def _with_earlier_masks(report: Any, out: Path) -> list[dict[str, Any]]:
     """``report`` (of masks about to be written into ``out``) with the entries of the report already
     there whose masks stay: other masks of earlier calls, which the new report would otherwise hide,
-    each with the ``localiser`` that made it (the report's own is the latest call's).
+    each with the ``localiser`` that made it.
 
     Example:
         >>> import tempfile
         >>> out = Path(tempfile.mkdtemp()); _ = (out / "ax_mask.nii.gz").write_bytes(b"")
-        >>> _ = (out / REPORT).write_text(json.dumps({"stacks": [{"mask": "ax_mask.nii.gz"}, {"mask": "gone.nii.gz"}]}))
-        >>> [e["mask"] for e in _with_earlier_masks({"stacks": [{"mask": "co_mask.nii.gz"}]}, out)["stacks"]]
+        >>> _ = (out / REPORT).write_text(json.dumps([{"mask": "ax_mask.nii.gz"}, {"mask": "gone.nii.gz"}]))
+        >>> [e["mask"] for e in _with_earlier_masks([{"mask": "co_mask.nii.gz"}], out)]
         ['ax_mask.nii.gz', 'co_mask.nii.gz']
     """
-    if not isinstance(report, dict):                      # another api-v1 server's bare list: as it came
-        return report
+    entries = report_entries(report)
     try:
-        previous = json.loads((out / REPORT).read_text())
-        earlier = previous["stacks"]
-    except (OSError, ValueError, KeyError, TypeError):
-        return report
-    new = {e.get("mask") for e in report.get("stacks") or []}
-    kept = [{"localiser": previous.get("localiser"), **e} for e in earlier if isinstance(e, dict)   # who made it
-            and isinstance(e.get("mask"), str) and e["mask"] not in new and e["mask"] == Path(e["mask"]).name
-            and (out / e["mask"]).is_file()]
-    return {**report, "stacks": kept + list(report.get("stacks") or [])}
+        earlier = report_entries(json.loads((out / REPORT).read_text()))
+    except (OSError, ValueError):
+        return entries
+    new = {e.get("mask") for e in entries}
+    kept = [e for e in earlier if isinstance(e.get("mask"), str) and e["mask"] not in new
+            and e["mask"] == Path(e["mask"]).name and (out / e["mask"]).is_file()]
+    return kept + entries
 
 
 def write_mask_archive(content: bytes, out: Path, overwrite: bool, status: int | None = None,
-                       request_id: str | None = None) -> Any:
-    """Write the masks archive ``content`` into ``out`` and return its report (joined with the
-    folder's earlier one, :func:`_with_earlier_masks`). Masks of those names already there are kept,
+                       request_id: str | None = None) -> list[dict[str, Any]]:
+    """Write the masks archive ``content`` into ``out`` and return its report, an object per stack
+    (joined with the folder's earlier one, :func:`_with_earlier_masks`). Masks of those names already there are kept,
     and nothing is written (:class:`ArgumentError`), unless ``overwrite``; an archive that cannot be
     read is the server's fault (:class:`SVRnetError` with ``status`` and ``request_id``)."""
     try:

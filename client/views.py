@@ -302,11 +302,10 @@ def upload_bar(console: Console, label: str) -> Iterator[Callable[[int, int], No
         yield update
 
 
-def masks_table(report: dict[str, Any] | list[dict[str, Any]], out_dir: object) -> Table:
-    """The table of ``svrnet masks``: one row per stack of a ``/v1/masks`` report (this server's
-    ``{"localiser", "stacks": [...]}``, or the bare list of per-stack objects another server
-    following api-v1 may send). File names fold rather than being cut short, so that the table fits
-    an 80-column terminal."""
+def masks_table(report: list[dict[str, Any]], out_dir: object) -> Table:
+    """The table of ``svrnet masks``: one row per stack of a ``/v1/masks`` report (api-v1's list of
+    per-stack objects). File names fold rather than being cut short, so that the table fits an
+    80-column terminal."""
     table = Table(title=f"brain masks in {out_dir}", title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False,
                   collapse_padding=True, caption_justify="left",
                   caption="volume: the mask's, the skull's inside (brain and the CSF around it: intracranial, not "
@@ -315,8 +314,7 @@ def masks_table(report: dict[str, Any] | list[dict[str, Any]], out_dir: object) 
     for col, just in (("stack", "left"), ("mask", "left"), ("volume (ml)", "right"), ("confidence", "right"),
                       ("slices", "right")):
         table.add_column(col, justify=just, overflow="fold")  # type: ignore[arg-type]
-    rows = report if isinstance(report, list) else report.get("stacks") or []   # api-v1: a list per stack
-    for row in rows:
+    for row in report:
         table.add_row(str(row.get("filename", "")), str(row.get("mask", "")),
                       f"{row.get('brain_volume_ml', 0):.0f}", f"{row.get('confidence', 0):.2f}",
                       str(row.get("slices_with_brain", "")))

@@ -50,10 +50,9 @@ def masks_archive(uploads: list, localiser: Localiser, directory: Path, margin_m
             archive.write(path, member)
             path.unlink()
             report.append({"filename": upload.filename, "mask": member, **found.report(),
-                           "slices_with_brain": found.slices_with_brain, "margin_mm": margin_mm})
-        archive.writestr("report.json", json.dumps({"localiser": {"version": localiser.version,
-                                                                  "sha256": localiser.sha256},
-                                                    "stacks": report}, indent=1))
+                           "slices_with_brain": found.slices_with_brain, "margin_mm": margin_mm,
+                           "localiser": {"version": localiser.version, "sha256": localiser.sha256}})
+        archive.writestr("report.json", json.dumps(report, indent=1))     # api-v1: an object per stack
     return buffer.getvalue()
 
 

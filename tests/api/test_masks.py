@@ -45,8 +45,9 @@ def test_masks_come_back_on_each_stacks_grid_with_a_report(real_client: TestClie
     archive = zipfile.ZipFile(io.BytesIO(r.content))
     assert sorted(archive.namelist()) == ["report.json", "uterus-1_mask.nii.gz", "uterus_mask.nii.gz"]
     report = json.loads(archive.read("report.json"))
-    row = report["stacks"][0]
-    assert set(row) >= {"filename", "brain_volume_ml", "confidence", "slices_with_brain"}
+    assert isinstance(report, list) and len(report) == 2               # api-v1: an object per stack
+    row = report[0]
+    assert set(row) >= {"filename", "brain_volume_ml", "confidence", "slices_with_brain", "localiser"}
     assert row["filename"] == "uterus.nii.gz" and row["confidence"] > 0.5
     (tmp_path / "m.nii.gz").write_bytes(archive.read("uterus_mask.nii.gz"))
     mask, original = read_volume(tmp_path / "m.nii.gz"), read_volume(stack)
@@ -71,8 +72,8 @@ def test_a_margin_grows_each_mask_by_that_distance_on_its_grid(real_client: Test
     spacing = read_volume(stack).spacing
     outside = ndimage.distance_transform_edt(~plain, sampling=spacing)
     assert np.array_equal(wide, outside <= 3.0) and wide.sum() > 1.2 * plain.sum()
-    assert wide_report["stacks"][0]["margin_mm"] == 3.0 and plain_report["stacks"][0]["margin_mm"] == 0.0
-    assert wide_report["stacks"][0]["brain_volume_ml"] > plain_report["stacks"][0]["brain_volume_ml"]
+    assert wide_report[0]["margin_mm"] == 3.0 and plain_report[0]["margin_mm"] == 0.0
+    assert wide_report[0]["brain_volume_ml"] > plain_report[0]["brain_volume_ml"]
     for bad in ("-1", "21", "nan", "wide"):
         r = post_masks(real_client, stack, margin_mm=bad)
         assert r.status_code in (400, 422) and "margin_mm" in r.text, (bad, r.text)

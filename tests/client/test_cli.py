@@ -138,11 +138,11 @@ def test_the_masks_table_fits_an_80_column_terminal_and_cuts_no_name_short() -> 
     row = {"filename": name, "mask": name.replace(".nii.gz", "_mask.nii.gz"), "brain_volume_ml": 301.4,
            "confidence": 0.91, "slices_with_brain": 17}
     console = Console(width=80, record=True, file=io.StringIO())
-    console.print(views.masks_table({"stacks": [row, row]}, "/data/masks"))
+    console.print(views.masks_table([row, row], "/data/masks"))
     text = console.export_text()
     assert max(len(line) for line in text.splitlines()) <= 80 and "…" not in text
     assert text.count("run-2") == 4 and "301" in text and "0.91" in text      # both names of both rows, to the end
-    bare = Console(width=80, record=True, file=io.StringIO())                # api-v1's words: a list per stack
+    bare = Console(width=80, record=True, file=io.StringIO())                # the fields api-v1 names alone
     bare.print(views.masks_table([{k: v for k, v in row.items() if k != "mask"}], "/data/masks"))
     shown = bare.export_text()
     assert "301" in shown and "0.91" in shown
@@ -208,7 +208,8 @@ def test_cli_masks_keeps_files_already_there_unless_told_and_checks_its_folder_f
 def test_cli_masks_of_a_second_batch_join_the_folder_s_report(fake_cli: Callable, stack_file: Path,
                                                              tmp_path: Path) -> None:
     """A second `svrnet masks` into a folder of masks: no refusal for its report.json, which then lists
-    the masks of both batches (an entry whose mask is gone is dropped)."""
+    the masks of both batches (an entry whose mask is gone is dropped), the earlier report in the
+    shape this server wrote before api-v1's list."""
     fake_cli()
     (tmp_path / "ax_mask.nii.gz").write_bytes(b"earlier")
     (tmp_path / "report.json").write_text(json.dumps({"localiser": {"version": "0.9"}, "stacks": [
@@ -217,8 +218,8 @@ def test_cli_masks_of_a_second_batch_join_the_folder_s_report(fake_cli: Callable
     r = invoke(["masks", str(stack_file), "--out-dir", str(tmp_path)])
     assert r.exit_code == 0, r.output
     report = json.loads((tmp_path / "report.json").read_text())
-    assert [e["mask"] for e in report["stacks"]] == ["ax_mask.nii.gz", "stack_mask.nii.gz"]
-    assert report["stacks"][0]["localiser"] == {"version": "0.9"}           # made by the earlier localiser
+    assert [e["mask"] for e in report] == ["ax_mask.nii.gz", "stack_mask.nii.gz"]
+    assert report[0]["localiser"] == {"version": "0.9"}                     # made by the earlier localiser
     assert (tmp_path / "ax_mask.nii.gz").read_bytes() == b"earlier"
 
 

@@ -63,9 +63,9 @@ def masks_archive() -> bytes:
     with zipfile.ZipFile(buffer, "w") as z:
         z.writestr("stack_mask.nii.gz", b"mask bytes")
         z.writestr("../escape.json", b"{}")
-        z.writestr("report.json", json.dumps({"stacks": [{"filename": "stack.nii.gz", "mask": "stack_mask.nii.gz",
-                                                          "brain_volume_ml": 301.0, "confidence": 0.91,
-                                                          "slices_with_brain": 17}]}))
+        z.writestr("report.json", json.dumps([{"filename": "stack.nii.gz", "mask": "stack_mask.nii.gz",
+                                               "brain_volume_ml": 301.0, "confidence": 0.91, "slices_with_brain": 17,
+                                               "localiser": {"version": "1.2.0"}}]))
     return buffer.getvalue()
 
 
