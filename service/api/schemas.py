@@ -31,7 +31,7 @@ class SliceResult(BaseModel):
     index: int = Field(description="index along slice_axis")
     accepted: bool
     reason: Optional[Literal["empty", "high_variance", "high_expected_error", "degenerate_anchor_points", "outside_atlas",
-                             "inconsistent_with_stack"]] = None
+                             "inconsistent_with_stack"]]
     geodesic_variance: Optional[float] = Field(description="SE(3) geodesic variance of the MC samples")
     anchor_points_mm: list[Vec3] = Field(description="P1, P2, P3 of the mean pose, atlas RAS mm")
     rotation: Mat = Field(description="3x3, slice frame -> atlas (Fréchet mean)")
@@ -273,22 +273,22 @@ class JobStatus(BaseModel):
 
     job_id: str
     status: JobState
-    stage: Optional[str] = None
+    stage: Optional[str]
     progress: float = Field(ge=0.0, le=1.0)
-    error: Optional[str] = None
+    error: Optional[str]
     created_at: str = Field(description="ISO 8601, UTC")
     updated_at: str = Field(description="ISO 8601, UTC")
-    started_at: Optional[str] = Field(None, description="ISO 8601, UTC; null until a worker has started it")
-    result_url: Optional[str] = None
-    preview_url: Optional[str] = None
-    poses_url: Optional[str] = None
-    transforms_url: Optional[str] = None
-    report: Optional[dict] = None
-    attempts: int = 0
-    workers: Optional[int] = Field(None, description="a queued job: the workers serving the queue (0: it waits "
+    started_at: Optional[str] = Field(description="ISO 8601, UTC; null until a worker has started it")
+    result_url: Optional[str]
+    preview_url: Optional[str]
+    poses_url: Optional[str]
+    transforms_url: Optional[str]
+    report: Optional[dict]
+    attempts: int
+    workers: Optional[int] = Field(description="a queued job: the workers serving the queue (0: it waits "
                                                      "for one); null otherwise or where the back-end cannot tell")
-    coherent: Optional[bool] = Field(None, description="a succeeded job: the report's quality.coherent")
-    expires_at: Optional[str] = Field(None, description="a finished job: when the server deletes it and its files "
+    coherent: Optional[bool] = Field(description="a succeeded job: the report's quality.coherent")
+    expires_at: Optional[str] = Field(description="a finished job: when the server deletes it and its files "
                                       "(ISO 8601, UTC; DELETE deletes them at once); null while it is queued or running")
 
 

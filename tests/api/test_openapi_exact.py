@@ -106,3 +106,16 @@ def test_the_operations_that_need_a_key_say_so_where_keys_are_set(oracle) -> Non
         spec = client.get("/openapi.json").json()
     assert "securitySchemes" not in spec.get("components", {})
     assert not [p for p, ops in spec["paths"].items() for op in ops.values() if "security" in op]
+
+
+def test_fields_the_server_always_sends_are_required_in_its_schema(oracle) -> None:  # noqa: ANN001
+    """A field every answer holds (null where it has no value) is required and nullable, so that a
+    client generated from the schema reads it as always there: a slice's ``reason``, a job status's
+    stage, error, result URLs and report."""
+    with make_client(ModelRegistry({"default": oracle})) as client:
+        schemas = client.get("/openapi.json").json()["components"]["schemas"]
+    assert "reason" in schemas["SliceResult"]["required"]
+    assert {"type": "null"} in schemas["SliceResult"]["properties"]["reason"]["anyOf"]
+    status = schemas["JobStatus"]
+    assert set(status["required"]) >= {"job_id", "status", "stage", "progress", "error", "result_url", "preview_url",
+                                       "report", "expires_at"}
