@@ -91,9 +91,9 @@ def checked_poses(text: str, uploads: list[StackUpload]) -> tuple[dict, list[tup
 
 def check_slices_to_use(uploads: list[StackUpload], accepted: list[np.ndarray] | None) -> None:
     """Refuse now a job that would fail for want of slices: every stack has its mask, and no slice the
-    job may use (an accepted one, where poses are given) holds a voxel of it. Without a mask the
-    worker's localiser decides."""
-    if any(u.mask is None for u in uploads):
+    job may use (an accepted one, where poses are given) holds a voxel of it. Without a mask (or with
+    a region around the head) the worker's localiser decides."""
+    if any(u.localised for u in uploads):
         return
     holding, showing = [], []                     # per stack: which slices hold a voxel of its mask; and an image there
     for u in uploads:

@@ -48,6 +48,8 @@ async def predict(
         with upload_directory(settings.tmp_dir) as tmp:
             uploads = await to_thread.run_sync(upload_reader(settings, form.masks_hold_csf), form.stacks, form.masks,
                                                tmp)
+        if localiser is None and any(u.localised for u in uploads):   # a region drawn around the head: found in it
+            localiser = localiser_for(localisers, [])
         t_read = time.perf_counter()
         prepared = await to_thread.run_sync(prepare_stacks, uploads, estimator.info, bias_correction,
                                             settings.preprocess_workers, localiser)

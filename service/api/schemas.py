@@ -144,6 +144,8 @@ class Localisation(BaseModel):
     pose_mask_inset_mm: float = Field(0.0, description="how far inside the mask the pose network's slices were cut: "
                                                        "2.0 for a mask that holds the CSF around the brain (the "
                                                        "localiser's, or uploads with masks_hold_csf), else 0.0")
+    region_of_interest: bool = Field(False, description="true where the uploaded mask was a region of interest "
+                                     "around the head (it fills its box): the localiser found the brain inside it")
 
 
 class Noise(BaseModel):

@@ -18,8 +18,9 @@ from service.preprocess.localise import Localiser, default_localiser
 
 def localiser_provenance(uploads: list, localiser: Localiser | None) -> dict | None:
     """The localiser (``localiser``, default the shipped one) that found the brain of the stacks
-    without a mask, as ``/v1/predict`` names it; None where every stack came with one."""
-    return (localiser or default_localiser()).provenance() if any(u.mask is None for u in uploads) else None
+    without a mask (or with a region around the head), as ``/v1/predict`` names it; None where every
+    stack came with its brain's."""
+    return (localiser or default_localiser()).provenance() if any(u.localised for u in uploads) else None
 
 
 def provenance(model: dict | None, uploads: list, localiser: Localiser | None, masks_hold_csf: bool) -> dict:
@@ -28,5 +29,5 @@ def provenance(model: dict | None, uploads: list, localiser: Localiser | None, m
     localiser's (``"uploaded"`` / ``"localiser"``). No file names: they often name the patient."""
     return {"service": {"name": "svrnet", "version": installed_version() or "unknown"}, "model": model,
             "localiser": localiser_provenance(uploads, localiser),
-            "masks": ["uploaded" if u.mask is not None else "localiser" for u in uploads],
+            "masks": ["localiser" if u.localised else "uploaded" for u in uploads],
             "masks_hold_csf": masks_hold_csf}

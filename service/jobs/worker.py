@@ -90,8 +90,9 @@ def uploaded_pose_masks(uploads: list, localiser: Localiser | None = None) -> li
 
 def job_localiser(localisers_dir: Path | None, uploads: list) -> Localiser | None:
     """The server's default localiser (``SVRNET_LOCALISERS_DIR``, as ``/v1/predict`` runs it) where a
-    stack came without a mask; None where every stack has one, or no folder is given (the shipped one)."""
-    if localisers_dir is None or all(u.mask is not None for u in uploads):
+    stack came without a mask (or with a region around the head); None where every stack has its
+    brain's, or no folder is given (the shipped one)."""
+    if localisers_dir is None or not any(u.localised for u in uploads):
         return None
     from service.preprocess.localise import Localisers
 
@@ -273,7 +274,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         if estimator is not None:       # the job's own model (its frame steps, its report), not the earlier request's
             body["model"] = estimator.info.reference()
         masks = uploaded_pose_masks(uploads, localiser)
-        if any(u.mask is None for u in uploads) and not any(m.any() for m in masks):
+        if any(u.localised for u in uploads) and not any(m.any() for m in masks):
             raise UnusableImage(NO_BRAIN_FOUND)       # not the reconstruction's "no pixel inside its mask"
         started_from = "uploaded_poses"
     else:

@@ -115,7 +115,7 @@ def stack_objects(predictions: list[StackPrediction]) -> list[dict]:
         stacks.append({
             **stack_geometry(index, p.prepared.upload.filename, p.prepared.upload.volume, p.prepared.slices.slice_axis),
             "slices": slice_objects(p), "consistency": stack_report(p.poses),
-            "localisation": p.prepared.localisation.report(),
+            "localisation": {**p.prepared.localisation.report(), "region_of_interest": p.prepared.upload.mask_is_region},
             "noise": noise_report(p.prepared.input_noise, p.noise_error_mm),
             "frame": frame_report(p.request_network_error_mm, p.frame_error_mm),
         })

@@ -37,7 +37,7 @@ from service.io.volume import Volume
 from service.preprocess.bias import n4_correct
 from service.preprocess.field_of_view import cut_by_field_of_view
 from service.preprocess.intensity import signal_lost
-from service.preprocess.localisation import Localisation
+from service.preprocess.localisation import Localisation, is_region_box, within_region
 from service.preprocess.localise import Localiser, default_localiser
 from service.preprocess.localiser_inputs import LocaliserGrid
 from service.preprocess.noise import input_noise
@@ -68,6 +68,21 @@ class StackUpload:
         """The uploaded mask's brain voxels (:func:`mask_voxels`), worked out once however many stages
         ask (the localisation, the request's fetus, a job's check); None without a mask."""
         return None if self.mask is None else mask_voxels(self.mask.array)
+
+    @functools.cached_property
+    def mask_is_region(self) -> bool:
+        """The uploaded mask is a region of interest around the head, not a brain's outline
+        (:func:`~service.preprocess.localisation.is_region_box`): the localiser finds the brain in it."""
+        return self.mask_voxels is not None and is_region_box(self.mask_voxels, self.mask.spacing)
+
+    @property
+    def localised(self) -> bool:
+        """The localiser finds this stack's brain: it came without a mask, or with a region around the head."""
+        return self.mask is None or self.mask_is_region
+
+    def kept_to_region(self, found: Localisation) -> Localisation:
+        """The localiser's ``found`` brain, kept to the uploaded region where there is one."""
+        return within_region(found, self.mask_voxels, self.volume.spacing) if self.mask_is_region else found
 
 
 def mask_voxels(array: NDArray) -> NDArray[np.bool_]:
@@ -261,10 +276,10 @@ def check_distinct_stacks(uploads: list[StackUpload]) -> None:
 def localise(upload: StackUpload, localiser: Localiser | None = None) -> Localisation:
     """The uploaded mask (its confidence 1, or 0 where it marks no voxel: the user says the stack
     shows no brain), else the brain that ``localiser`` (default: the shipped one) finds."""
-    if upload.mask is not None:
+    if not upload.localised:
         voxels = upload.mask_voxels
         return Localisation.of(voxels, upload.volume.spacing, "mask", float(voxels.any()), upload.mask_holds_csf)
-    return (localiser or default_localiser()).localise(upload.volume)
+    return upload.kept_to_region((localiser or default_localiser()).localise(upload.volume))
 
 
 def prepare_stack(upload: StackUpload, info: ModelInfo, bias_correction: bool,
@@ -294,9 +309,9 @@ def localise_uploads(uploads: list[StackUpload], localiser: Localiser | None = N
     """Each upload's localisation: its mask, else the brain ``localiser`` (default: the shipped one)
     finds, the uploads without a mask in shared network calls
     (:meth:`~service.preprocess.localise.Localiser.localise_many`), on the fetus the masks show."""
-    missing = [u.volume for u in uploads if u.mask is None]
+    missing = [u.volume for u in uploads if u.localised]
     found = iter((localiser or default_localiser()).localise_many(missing, mask_centres(uploads)) if missing else [])
-    return [localise(u) if u.mask is not None else next(found) for u in uploads]
+    return [u.kept_to_region(next(found)) if u.localised else localise(u) for u in uploads]
 
 
 def mask_centres(uploads: list[StackUpload]) -> list[np.ndarray]:
@@ -309,7 +324,8 @@ def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction:
                    workers: int = 2, localiser: Localiser | None = None) -> list[PreparedStack]:
     """:func:`prepare_stack` for every stack, ``workers`` stacks at a time (N4 releases the GIL).
 
-    The stacks without a mask go through ``localiser``'s network (default: the shipped one) one
+    The stacks without a mask (or with a region of interest around the head,
+    :attr:`StackUpload.mask_is_region`) go through ``localiser``'s network (default: the shipped one) one
     after the other, here; each goes on to the workers as soon as its probabilities are there, so
     that its geometry, N4 and slices are worked out beside the next stack's network passes (the
     network runs on both cores, the rest mostly on one). Stacks with a mask start at once. Where the
@@ -321,11 +337,11 @@ def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction:
         check_mask_volume(u)
     check_distinct_stacks(uploads)
     with ThreadPoolExecutor(max_workers=max(1, min(workers, len(uploads)))) as pool:
-        futures = [pool.submit(carried(prepare_stack), u, info, bias_correction) if u.mask is not None else None
+        futures = [None if u.localised else pool.submit(carried(prepare_stack), u, info, bias_correction)
                    for u in uploads]
         settling = {}
         for i, u in enumerate(uploads):
-            if u.mask is None:
+            if u.localised:
                 checkpoint()
                 loc = localiser or default_localiser()
                 t = time.perf_counter()
@@ -343,7 +359,8 @@ def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction:
         for i, localisation in zip(which, again):
             if localisation is not prepared[i].localisation:
                 prepared[i] = prepare_stack(uploads[i], info, bias_correction,
-                                            found=(localisation, prepared[i].timings["localisation"]))
+                                            found=(uploads[i].kept_to_region(localisation),
+                                                   prepared[i].timings["localisation"]))
     return prepared
 
 
@@ -355,4 +372,5 @@ def _settle_and_prepare(upload: StackUpload, info: ModelInfo, bias_correction: b
     again on finer pixels), then the rest; with the probabilities the brain rests on."""
     t = time.perf_counter()
     localisation, found = localiser.settle_closer(upload.volume, *found)
+    localisation = upload.kept_to_region(localisation)
     return prepare_stack(upload, info, bias_correction, found=(localisation, seconds + time.perf_counter() - t)), found

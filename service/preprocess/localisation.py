@@ -154,3 +154,48 @@ def grown(mask: NDArray, spacing: NDArray, margin_mm: float) -> NDArray[np.bool_
     out = np.zeros_like(mask)
     out[box] = ndimage.distance_transform_edt(~mask[box], sampling=sampling) <= margin_mm
     return out
+
+
+REGION_FILL = 0.95
+"""An uploaded mask that fills at least this share of its bounding box is a region of interest drawn
+around the head (a box in a viewer), not a brain's outline, which fills about half of its box."""
+MIN_REGION_ML = 100.0
+"""A box under this volume cannot hold a fetal head (a 20-week brain alone takes about 60 ml, its box
+twice that): such a box is taken as the mask it is."""
+
+
+def is_region_box(mask: NDArray, spacing: NDArray) -> bool:
+    """Whether an uploaded mask is a region of interest around the head (:data:`REGION_FILL`,
+    :data:`MIN_REGION_ML`): the brain is to be found inside it, not the mask taken for the brain.
+
+    Example (a box of 60 x 60 x 20 voxels of 1 x 1 x 3 mm, 216 ml; the ellipsoid inside it):
+        >>> box = np.zeros((80, 80, 30), bool); box[10:70, 10:70, 5:25] = True
+        >>> x, y, z = np.ogrid[:80, :80, :30]
+        >>> brain = ((x - 40) / 30) ** 2 + ((y - 40) / 30) ** 2 + ((z - 15) / 10) ** 2 <= 1
+        >>> is_region_box(box, np.array([1.0, 1.0, 3.0])), is_region_box(brain, np.array([1.0, 1.0, 3.0]))
+        (True, False)
+    """
+    m = np.asarray(mask, bool)
+    count = int(np.count_nonzero(m))
+    if not count or count * float(np.prod(spacing)) / 1000.0 < MIN_REGION_ML:
+        return False
+    extents = [np.flatnonzero(m.any(axis=tuple(a for a in range(m.ndim) if a != k))) for k in range(m.ndim)]
+    return count >= REGION_FILL * float(np.prod([e[-1] - e[0] + 1 for e in extents]))
+
+
+def within_region(found: Localisation, region: NDArray, spacing: NDArray) -> Localisation:
+    """The localiser's ``found`` brain kept to the user's ``region`` of interest (its confidence scaled
+    by the share of the brain kept): the region says where the fetus's head is.
+
+    Example (a brain half outside the region):
+        >>> m = np.zeros((20, 20, 4), bool); m[5:15, 5:15] = True
+        >>> region = np.zeros_like(m); region[:10] = True
+        >>> kept = within_region(Localisation.of(m, np.ones(3), "network", 0.8), region, np.ones(3))
+        >>> kept.method, kept.brain_volume_ml, round(kept.confidence, 2)
+        ('network', 0.2, 0.4)
+    """
+    r = np.asarray(region, bool)
+    kept = found.mask & r
+    share = float(kept.sum()) / max(float(found.mask.sum()), 1.0)
+    pose_region = None if found.pose_region is None else found.pose_region & r
+    return Localisation.of(kept, spacing, found.method, found.confidence * share, found.holds_csf, pose_region)

@@ -201,3 +201,40 @@ def test_a_stack_whose_axes_are_a_hair_off_right_angles_gets_its_mask_on_its_gri
              ("masks", ("m.nii.gz", (tmp_path / "m.nii.gz").read_bytes()))]
     answer = real_client.post("/v1/predict", files=files, data={"mc_samples": "2", "bias_correction": "false"})
     assert answer.status_code == 200, answer.text
+
+
+def test_a_region_drawn_around_the_head_is_searched_not_taken_for_the_brain(real_client: TestClient, uterus_files,
+                                                                           tmp_path: Path) -> None:
+    """A box around the head sent as the stack's mask (api-v1: a region of interest) is where the
+    localiser finds the brain, not the brain itself: the answer is the one without a mask, and says
+    so; a box that holds no brain gives empty slices."""
+    from service.preprocess.localisation import is_region_box
+
+    stack, _, truth = uterus_files
+    volume = read_volume(stack)
+    ends = [np.flatnonzero(truth.any(axis=tuple(a for a in range(3) if a != k)))[[0, -1]] for k in range(3)]
+    box = np.zeros(truth.shape, np.uint8)
+    box[tuple(slice(max(lo - 12, 0), hi + 13) for lo, hi in ends)] = 1
+    far = np.zeros(truth.shape, np.uint8)
+    far[tuple(slice(0, max(lo - 2, 1)) if k < 2 else slice(None) for k, (lo, _) in enumerate(ends))] = 1
+    assert is_region_box(box > 0, volume.spacing) and not (far.astype(bool) & truth).any()
+
+    def answer(mask: np.ndarray | None) -> dict:
+        files = [("stacks", (stack.name, stack.read_bytes()))]
+        if mask is not None:
+            write_volume(Volume(mask, volume.affine), tmp_path / "roi.nii.gz")
+            files.append(("masks", ("roi.nii.gz", (tmp_path / "roi.nii.gz").read_bytes())))
+        r = real_client.post("/v1/predict", files=files, data={"mc_samples": "2"})
+        assert r.status_code == 200, r.text
+        return r.json()
+
+    without, boxed = answer(None), answer(box)
+    found = boxed["stacks"][0]["localisation"]
+    assert found["method"] == "network" and found["region_of_interest"] is True and boxed["localiser"] is not None
+    assert found["brain_volume_ml"] == without["stacks"][0]["localisation"]["brain_volume_ml"]
+    assert [s["reason"] == "empty" for s in boxed["stacks"][0]["slices"]] == \
+        [s["reason"] == "empty" for s in without["stacks"][0]["slices"]]
+    if is_region_box(far > 0, volume.spacing):
+        nowhere = answer(far)["stacks"][0]
+        assert nowhere["localisation"]["brain_volume_ml"] == 0 and nowhere["localisation"]["confidence"] == 0
+        assert all(s["reason"] == "empty" for s in nowhere["slices"])
