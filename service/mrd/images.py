@@ -31,7 +31,9 @@ from numpy.typing import ArrayLike, NDArray
 from service.core.errors import UnusableImage
 from service.geometry import frames
 
-ACCEPTED_IMAGE_TYPES = {ismrmrd.IMTYPE_MAGNITUDE: "magnitude", ismrmrd.IMTYPE_REAL: "real"}
+ACCEPTED_IMAGE_TYPES = {ismrmrd.IMTYPE_MAGNITUDE: "magnitude", ismrmrd.IMTYPE_REAL: "real", 0: "unset"}
+"""The image types taken: magnitude, real, and 0 (unset, as ``ismrmrd.Image.from_array`` leaves it),
+whose real-valued pixels (:data:`REAL_DATA_TYPES`, checked apart) are taken as a magnitude image's."""
 IMAGE_TYPE_NAMES = {ismrmrd.IMTYPE_PHASE: "phase", ismrmrd.IMTYPE_IMAG: "imaginary",
                     ismrmrd.IMTYPE_COMPLEX: "complex", ismrmrd.IMTYPE_RGB: "rgb", **ACCEPTED_IMAGE_TYPES}
 REAL_DATA_TYPES = {ismrmrd.DATATYPE_USHORT, ismrmrd.DATATYPE_SHORT, ismrmrd.DATATYPE_UINT,

@@ -171,6 +171,15 @@ def test_a_real_image_type_and_integer_pixels_are_taken() -> None:
     assert pixel_count(header(channels=2, matrix_size=(8, 8, 3))) == 384
 
 
+def test_an_unset_image_type_with_real_pixels_is_taken_as_magnitude() -> None:
+    """``ismrmrd.Image.from_array`` leaves ``image_type`` 0: an integrator's first images are not
+    refused for it; complex pixels still are, by their data type."""
+    assert ismrmrd.Image.from_array(np.zeros((1, 1, 4, 4), np.uint16)).image_type == 0
+    check_image(header(image_type=0, data_type=ismrmrd.DATATYPE_USHORT))
+    with pytest.raises(UnusableImage, match="data_type"):
+        check_image(header(image_type=0, data_type=ismrmrd.DATATYPE_CXFLOAT))
+
+
 def test_pose_meta_keeps_the_image_and_its_own_meta() -> None:
     image = image_from_slice(np.arange(6, dtype=np.uint16).reshape(3, 2), np.eye(4), series=1, slice_index=2)
     image.meta = {"ImageComments": "kept", "SVRnet.Accepted": "stale"}
