@@ -24,7 +24,6 @@ over the pixel limit, an unknown message, an unreadable image): then the error i
 
 from __future__ import annotations
 
-import ctypes
 import json
 import logging
 import struct
@@ -42,9 +41,9 @@ from service.streaming.messages import (end_stack_messages, error_message, pose_
                                         update_messages)
 from service.core.errors import (InternalError, InvalidParameter, PayloadTooLarge, RequestTimeout, ServiceError,
                                  UnusableImage)
-from service.mrd.images import pixel_count, shape_problem, slice_from_image, with_pose
-from service.mrd.protocol import (BYTES_PER_VALUE, MAX_META_BYTES, MAX_TEXT_BYTES, SKIP_CHUNK_BYTES, BoundedReader,
-                                 ProtocolBroken, in_mrd_terms, read_exactly, skip_raw_message)
+from service.mrd.images import slice_from_image, with_pose
+from service.mrd.protocol import (BYTES_PER_VALUE, MAX_TEXT_BYTES, BoundedReader, ProtocolBroken, in_mrd_terms,
+                                 read_past_unusable_image, skip_raw_message)
 from service.streaming.frames import IncompleteStack, SliceFrame, SlicesDropped
 from service.streaming.answers import SessionSummary
 from service.streaming.background import background_executor
@@ -54,11 +53,6 @@ from service.streaming.session import StreamSession
 
 log = logging.getLogger(__name__)
 
-IMAGE_HEADER_BYTES = ctypes.sizeof(ismrmrd.ImageHeader)
-META_LENGTH = struct.Struct("<Q")                    # the length of an image's meta attributes, after its header
-MAX_SKIPPED_IMAGE_BYTES = 256 * 2**20
-"""The most data of an image of a shape the stream cannot use (a volume, uncombined coils) the server
-reads past, in chunks, to answer it with an error and go on; beyond it the connection ends (413)."""
 RAW_DATA = {ISMRMRDMessageID.ACQUISITION: "acquisition", ISMRMRDMessageID.WAVEFORM: "waveform",
             ISMRMRDMessageID.NDARRAY: "ndarray"}
 KNOWN = {int(m) for m in ISMRMRDMessageID} - {int(ISMRMRDMessageID.UNPEEKED)}
@@ -181,35 +175,17 @@ class MrdConnection:
                                              f"{name} messages are ignored"))
 
     def check_announced_image(self) -> bool:
-        """Refuse, before its data are read, an image whose header announces more pixels than the limit,
-        or whose meta attributes are longer than :data:`MAX_META_BYTES` (``peek`` has read the header:
-        the last chunk of the stream; the attributes' length follows it): the connection ends. An
-        image whose header shows a shape the stream cannot use (a volume, several channels) is read
-        past instead, up to :data:`MAX_SKIPPED_IMAGE_BYTES`, never built, with its error: ``True``,
-        and the session goes on."""
-        head = ismrmrd.ImageHeader.from_buffer_copy(self.reader.last[:IMAGE_HEADER_BYTES])
-        if int(head.data_type) not in ismrmrd.image.dtype_mapping:
-            raise ProtocolBroken(UnusableImage(f"image.data_type: unknown code {int(head.data_type)}"))
-        ahead = self.reader.peek(META_LENGTH.size)
-        meta_bytes = META_LENGTH.unpack(ahead)[0] if len(ahead) == META_LENGTH.size else 0   # short: the stream ends
-        if meta_bytes > MAX_META_BYTES:
-            raise ProtocolBroken(PayloadTooLarge(
-                f"image: meta attributes of {meta_bytes} bytes are over this server's limit of {MAX_META_BYTES}"))
-        data_bytes = pixel_count(head) * ismrmrd.image.dtype_mapping[int(head.data_type)].itemsize
-        if (problem := shape_problem(head)) is not None and data_bytes <= MAX_SKIPPED_IMAGE_BYTES:
-            left = META_LENGTH.size + meta_bytes + data_bytes
-            while left > 0:
-                left -= len(read_exactly(self.reader, min(left, SKIP_CHUNK_BYTES)))
-            self.incoming = ismrmrd.ProtocolDeserializer(self.reader)  # type: ignore[arg-type]  # forgets the peeked id
-            self.counts["images"] += 1
-            self.counts["refused"] += 1
-            self.send_error(in_mrd_terms(problem), series=int(head.image_series_index), slice_index=int(head.slice))
-            return True
-        if pixel_count(head) > self.limits.max_pixels:
-            raise ProtocolBroken(PayloadTooLarge(
-                f"image: {pixel_count(head)} values (channels x matrix_size) is over this server's limit of "
-                f"{self.limits.max_pixels} pixels per image"))
-        return False
+        """:func:`~service.mrd.protocol.read_past_unusable_image` on the image whose header ``peek`` has
+        read: ``True`` where it was of a shape the stream cannot use, read past and answered with its
+        error (the session goes on); the connection ends where it announces more than the limits."""
+        problem = read_past_unusable_image(self.reader, self.limits.max_pixels)
+        if problem is None:
+            return False
+        self.incoming = ismrmrd.ProtocolDeserializer(self.reader)  # type: ignore[arg-type]  # forgets the peeked id
+        self.counts["images"] += 1
+        self.counts["refused"] += 1
+        self.send_error(in_mrd_terms(problem[0]), series=problem[1], slice_index=problem[2])
+        return True
 
     def dispatch(self, kind: int, message: Any) -> None:
         if kind == ISMRMRDMessageID.IMAGE:
@@ -398,6 +374,16 @@ class MrdConnection:
             self.send_error(error)
             self.outgoing.close()
         except OSError:
+            pass
+
+    def stop(self, error: ServiceError, retry_after_s: int) -> None:
+        """The server stops: ``error`` with ``retry_after_s``, then ``CLOSE``, sent from the server's
+        thread (this session's own may be waiting for the client); as far as the client still listens."""
+        try:
+            self.send_text(error_message(error, retry_after_s=retry_after_s))
+            with self.send_lock:
+                self.outgoing.close()
+        except (OSError, TimeoutError, ConnectionError):
             pass
 
     def send_error(self, error: ServiceError, series: int | None = None, slice_index: int | None = None) -> None:

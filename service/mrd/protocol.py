@@ -13,7 +13,8 @@ from typing import BinaryIO
 import ismrmrd
 from ismrmrd.serialization import ISMRMRDMessageID
 
-from service.core.errors import PayloadTooLarge, ServiceError
+from service.core.errors import PayloadTooLarge, ServiceError, UnusableImage
+from service.mrd.images import pixel_count, shape_problem
 
 MAX_TEXT_BYTES = 1 << 20
 """The smallest limit on one read from a client (a config, XML header, TEXT or meta string): the
@@ -155,3 +156,48 @@ class ProtocolBroken(Exception):
     def __init__(self, error: ServiceError) -> None:
         super().__init__(error.detail)
         self.error = error
+
+
+IMAGE_HEADER_BYTES = ctypes.sizeof(ismrmrd.ImageHeader)
+META_LENGTH = struct.Struct("<Q")                    # the length of an image's meta attributes, after its header
+MAX_SKIPPED_IMAGE_BYTES = 256 * 2**20
+"""The most data of an image of a shape the stream cannot use (a volume, uncombined coils) the server
+reads past, in chunks, to answer it with an error and go on; beyond it the connection ends (413)."""
+
+
+def read_past_unusable_image(reader: BoundedReader, max_pixels: int) -> tuple[UnusableImage, int, int] | None:
+    """Judge an image by the header ``reader`` has just read (its last chunk; the meta attributes'
+    length follows), before its data: :class:`ProtocolBroken` where it announces an unknown data
+    type, meta attributes over :data:`MAX_META_BYTES` or more than ``max_pixels`` values; where its
+    shape is one the stream cannot use (:func:`~service.mrd.images.shape_problem`) and its data are at
+    most :data:`MAX_SKIPPED_IMAGE_BYTES`, the rest of the message is read past, never built, and its
+    problem returned with the image's series and slice; None for an image to read.
+
+    Example (a volume of 8 x 8 x 4 values, read past; what follows it is left to read):
+        >>> import io
+        >>> head = ismrmrd.ImageHeader(); head.matrix_size[:] = (8, 8, 4); head.channels = 1
+        >>> head.data_type = ismrmrd.DATATYPE_FLOAT
+        >>> r = BoundedReader(io.BytesIO(bytes(head) + META_LENGTH.pack(0) + bytes(4 * 256) + b"next"), 1 << 20)
+        >>> _ = r.read(IMAGE_HEADER_BYTES)
+        >>> problem, series, index = read_past_unusable_image(r, 4096)
+        >>> str(problem), r.read(4)
+        ('matrix_size: a 3D image (8 x 8 x 4); svrnet-mrd takes 2D images', b'next')
+    """
+    head = ismrmrd.ImageHeader.from_buffer_copy(reader.last[:IMAGE_HEADER_BYTES])
+    if int(head.data_type) not in ismrmrd.image.dtype_mapping:
+        raise ProtocolBroken(UnusableImage(f"image.data_type: unknown code {int(head.data_type)}"))
+    ahead = reader.peek(META_LENGTH.size)
+    meta_bytes = META_LENGTH.unpack(ahead)[0] if len(ahead) == META_LENGTH.size else 0   # short: the stream ends
+    if meta_bytes > MAX_META_BYTES:
+        raise ProtocolBroken(PayloadTooLarge(
+            f"image: meta attributes of {meta_bytes} bytes are over this server's limit of {MAX_META_BYTES}"))
+    data_bytes = pixel_count(head) * ismrmrd.image.dtype_mapping[int(head.data_type)].itemsize
+    if (problem := shape_problem(head)) is not None and data_bytes <= MAX_SKIPPED_IMAGE_BYTES:
+        left = META_LENGTH.size + meta_bytes + data_bytes
+        while left > 0:
+            left -= len(read_exactly(reader, min(left, SKIP_CHUNK_BYTES)))
+        return problem, int(head.image_series_index), int(head.slice)
+    if pixel_count(head) > max_pixels:
+        raise ProtocolBroken(PayloadTooLarge(f"image: {pixel_count(head)} values (channels x matrix_size) is over "
+                                             f"this server's limit of {max_pixels} pixels per image"))
+    return None

@@ -55,6 +55,9 @@ FIRST_BYTES_S = 10.0
 """How long a new connection may send nothing before the server closes it, holding no session slot
 meanwhile: a scanner sends its configuration at once; a peer that connects and waits (or a port
 probe) would otherwise keep a slot for the whole idle limit, and a few such the scanners out."""
+STOP_GRACE_S = 2.0
+"""How long each open session's last answers (its stop error and ``CLOSE``) may take to go out when the
+server stops."""
 
 
 def session_factory(registry: ModelRegistry, localiser: Localiser | None, limits: StreamLimits) -> SessionFactory:
@@ -137,13 +140,18 @@ class MrdHandler(socketserver.StreamRequestHandler):
             self.refuse_busy()
             return
         outbox: Outbox | None = None
+        connection = None
         try:
             outbox = Outbox(self.connection, server.limits.idle_s, server.stream_limits.max_bytes)
             reader = MessageDeadlineReader(self.connection, server.limits.idle_s)
             connection = MrdConnection(reader, outbox, server.new_session, server.stream_limits, server.limits.idle_s)
+            with server.live_lock:
+                server.live[connection] = outbox
             connection.run()
             outbox.drain(server.limits.idle_s)          # the answers still queued, as far as the client reads
         finally:
+            with server.live_lock:
+                server.live.pop(connection, None)
             if outbox is not None:
                 outbox.drain(0.0)                       # after a failure too: no writer thread left behind
             server.slots.release()
@@ -216,6 +224,8 @@ class MrdServer(socketserver.ThreadingTCPServer):
         self.new_session, self.stream_limits, self.limits = new_session, stream_limits, limits
         self.retry_after_s = retry_after_s
         self.slots = threading.BoundedSemaphore(limits.max_sessions)
+        self.live: dict[MrdConnection, Outbox] = {}
+        self.live_lock = threading.Lock()
         if ":" in address[0]:              # an IPv6 address (``::1``, ``::``): socketserver's family is IPv4's
             self.address_family = socket.AF_INET6
         super().__init__(address, MrdHandler)
@@ -223,6 +233,19 @@ class MrdServer(socketserver.ThreadingTCPServer):
     @property
     def port(self) -> int:
         return int(self.server_address[1])
+
+    def tell_stopping(self, grace_s: float = STOP_GRACE_S) -> int:
+        """Tell every open session that the server stops (a 503 ``error`` with ``retry_after_s``, then
+        ``CLOSE``), each answer given up to ``grace_s`` to go out: a scanner learns to send its series
+        again, not that the network failed. Returns the sessions told."""
+        with self.live_lock:
+            live = list(self.live.items())
+        for connection, _ in live:
+            connection.stop(Saturated("the server is stopping: send the series again once it is back, or to "
+                                      "another"), self.retry_after_s)
+        for _, outbox in live:
+            outbox.drain(grace_s)
+        return len(live)
 
     def handle_error(self, request: object, client_address: object) -> None:
         """A connection's unexpected failure, logged by its type and place only: socketserver's own
@@ -332,6 +355,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         pass
     finally:
+        log.info("svrnet-mrd stopping: %d open sessions told to send again", server.tell_stopping())
         server.server_close()
     return 0
 

@@ -637,3 +637,21 @@ def test_a_silent_connection_holds_no_session_slot_and_a_probe_logs_at_debug(ser
               if r.getMessage().startswith("mrd connection")}
     assert levels == {("mrd connection closed before its first message", logging.DEBUG),
                       ("mrd connection sent nothing", logging.INFO), ("mrd connection ended: closed", logging.INFO)}
+
+
+def test_a_stopping_server_tells_each_open_session_to_send_again(case: Case, serve) -> None:  # noqa: ANN001
+    """Half a series sent, then the server stops (SIGTERM's path): the scanner gets a 503 ``error``
+    with ``retry_after_s`` and the server's ``CLOSE``, not a connection that just ends."""
+    server = serve()
+    client = MrdLink("127.0.0.1", server.port)
+    client.send(CONFIG, mrd_header(slices=20), *[case.images[0][k] for k in INTERLEAVED[:10]])
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and (not server.live or len(client.received) < 10):   # answered so far
+        time.sleep(0.05)
+    assert server.tell_stopping(grace_s=5.0) == 1
+    received = client.wait(30)
+    assert client.closed_by_server and not client.timed_out
+    last = texts(received)[-1]
+    assert (last["type"], last["status"]) == ("error", 503) and last["retry_after_s"] > 0, last
+    assert "stopping" in last["detail"]
+    assert len([m for m in received if isinstance(m, ismrmrd.Image)]) == 10
