@@ -200,8 +200,8 @@ BiasCorrectionOpt = Annotated[bool, typer.Option("--bias-correction/--no-bias-co
 ModelOpt = Annotated[Optional[str], typer.Option(help="model name (see `svrnet models`)")]
 MaskOpt = Annotated[Optional[list[Path]], typer.Option(
     "--mask", "-m", exists=True, dir_okay=False, readable=True, metavar="MASK",
-    help="brain mask (the fetal brain, not a box around the head; drawn to the skull's inside, as fetal masks "
-         "usually are: add --masks-hold-csf); repeat, one per stack in the same order (or none)")]
+    help="brain mask (drawn to the skull's inside, as fetal masks usually are: add --masks-hold-csf; a box around "
+         "the head is searched for the brain); repeat, one per stack in the same order (or none)")]
 JobArg = Annotated[str, typer.Argument(help="job id (as `svrnet reconstruct` printed it)")]
 StacksArg = Annotated[list[Path], typer.Argument(
     exists=True, readable=True, metavar="STACK",

@@ -168,6 +168,9 @@ def ship(
     if out.exists() and (not out.is_dir() or any(out.iterdir())) and not force:
         raise typer.BadParameter(f"{out} is not an empty folder; give a new one, or --force to write into it",
                                  param_hint="--out")
+    for path, hint in ((checkpoint, "CHECKPOINT"), (heldout, "--heldout"), (ablation, "--ablation")):
+        if path is not None and path.resolve().is_relative_to(out.resolve()):
+            raise typer.BadParameter(f"{path} lies inside {out}, which ship replaces: move it out first", param_hint=hint)
     state = localiser_checkpoint(checkpoint)
     check_heldout(heldout)
     record = file_record(checkpoint)

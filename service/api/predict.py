@@ -12,6 +12,7 @@ from service.api.deps import (ApiKey, LocalisersDep, MetricsDep, RegistryDep, Se
                               processing, requested_model)
 from service.api.schemas import UPLOAD_ERRORS, PredictResponse
 from service.api.uploads import UploadFormDep, known_fields, upload_directory, upload_reader
+from service.core.errors import InvalidParameter
 from service.pipeline.documents import stack_objects
 from service.pipeline.predict import predict as run_prediction
 from service.pipeline.prepare import prepare_stacks
@@ -49,7 +50,10 @@ async def predict(
             uploads = await to_thread.run_sync(upload_reader(settings, form.masks_hold_csf), form.stacks, form.masks,
                                                tmp)
         if localiser is None and any(u.localised for u in uploads):   # a region drawn around the head: found in it
-            localiser = localiser_for(localisers, [])
+            localiser = localisers.default()
+            if localiser is None:
+                raise InvalidParameter("masks: a mask that is a box around the head asks for the brain to be found "
+                                       "in it, and this server has no brain localiser named default; send brain masks")
         t_read = time.perf_counter()
         prepared = await to_thread.run_sync(prepare_stacks, uploads, estimator.info, bias_correction,
                                             settings.preprocess_workers, localiser)

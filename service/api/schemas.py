@@ -141,11 +141,10 @@ class Localisation(BaseModel):
     brain_volume_ml: float = Field(description="volume of the brain mask used (intracranial: brain and extra-axial CSF)")
     confidence: float = Field(description="0..1; 1 for an uploaded mask; low when no brain-like region was found "
                                           "(the stack's slices are then 'empty')")
-    pose_mask_inset_mm: float = Field(0.0, description="how far inside the mask the pose network's slices were cut: "
-                                                       "2.0 for a mask that holds the CSF around the brain (the "
-                                                       "localiser's, or uploads with masks_hold_csf), else 0.0")
-    region_of_interest: bool = Field(False, description="true where the uploaded mask was a region of interest "
-                                     "around the head (it fills its box): the localiser found the brain inside it")
+    pose_mask_inset_mm: float = Field(description="how far inside the mask the pose network's slices were cut: 2.0 for "
+                                      "a mask that holds the CSF around the brain (the localiser's, or masks_hold_csf)")
+    region_of_interest: bool = Field(description="true where the uploaded mask was a region of interest around "
+                                     "the head (it fills its box): the localiser found the brain inside it")
 
 
 class Noise(BaseModel):

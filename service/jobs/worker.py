@@ -53,8 +53,8 @@ MISSING_UPLOADS = ("the job's uploads are not in the worker's data folder: every
 """A job's failure where its worker does not see the folder the API wrote its uploads to."""
 
 
-NO_BRAIN_FOUND = ("masks: the localiser found no brain in any stack sent without a mask (every slice is empty); "
-                  "upload a brain mask with each stack")
+NO_BRAIN_FOUND = ("masks: the localiser found no brain in any stack sent without a brain mask (every slice is "
+                  "empty); upload a brain mask with each stack")
 """Why a job whose stacks came without masks has nothing to reconstruct (as /v1/predict's hint says it)."""
 
 

@@ -56,6 +56,9 @@ class StackUpload:
     mask_holds_csf: bool = False
     """The uploaded mask is the skull's inside (brain and extra-axial CSF), as manual fetal masks are
     usually drawn (:attr:`~service.preprocess.localisation.Localisation.holds_csf`)."""
+    mask_may_be_region: bool = True
+    """Whether a mask that fills its box is a region of interest (:attr:`mask_is_region`); not for a
+    stream's mask frames, which were each slice's brain as it arrived."""
 
     @property
     def slice_axis(self) -> int:
@@ -73,7 +76,13 @@ class StackUpload:
     def mask_is_region(self) -> bool:
         """The uploaded mask is a region of interest around the head, not a brain's outline
         (:func:`~service.preprocess.localisation.is_region_box`): the localiser finds the brain in it."""
-        return self.mask_voxels is not None and is_region_box(self.mask_voxels, self.mask.spacing)
+        return self.mask_may_be_region and self.mask_voxels is not None and is_region_box(self.mask_voxels,
+                                                                                            self.mask.spacing)
+
+    @property
+    def region(self) -> NDArray[np.bool_] | None:
+        """The region of interest the localiser searches (:attr:`mask_is_region`), else None."""
+        return self.mask_voxels if self.mask_is_region else None
 
     @property
     def localised(self) -> bool:
@@ -207,13 +216,13 @@ def check_mask_volume(upload: StackUpload) -> None:
         ...                               "m.nii.gz"))
         Traceback (most recent call last):
         ...
-        service.core.errors.UnusableImage: masks: m.nii.gz marks 16000 ml, more than a fetal head holds (2500 ml at most): send a mask of the fetal brain (not of the head, the body or the field of view), or none
+        service.core.errors.UnusableImage: masks: m.nii.gz marks 16000 ml, more than a fetal head holds (2500 ml at most): send a mask of the fetal brain or a box around its head (not of the body or the field of view), or none
     """
     marked_ml = marked_volume_mm3(upload) / 1000.0
     if marked_ml > MAX_MASK_ML:
         raise UnusableImage(f"masks: {upload.mask_filename or 'mask'} marks {marked_ml:.0f} ml, more than a fetal head "
-                            f"holds ({MAX_MASK_ML:.0f} ml at most): send a mask of the fetal brain (not of the head, "
-                            "the body or the field of view), or none")
+                            f"holds ({MAX_MASK_ML:.0f} ml at most): send a mask of the fetal brain or a box around its "
+                            "head (not of the body or the field of view), or none")
 
 
 def marked_volume_mm3(upload: StackUpload) -> float:
@@ -279,7 +288,7 @@ def localise(upload: StackUpload, localiser: Localiser | None = None) -> Localis
     if not upload.localised:
         voxels = upload.mask_voxels
         return Localisation.of(voxels, upload.volume.spacing, "mask", float(voxels.any()), upload.mask_holds_csf)
-    return upload.kept_to_region((localiser or default_localiser()).localise(upload.volume))
+    return upload.kept_to_region((localiser or default_localiser()).localise(upload.volume, upload.region))
 
 
 def prepare_stack(upload: StackUpload, info: ModelInfo, bias_correction: bool,
@@ -309,8 +318,9 @@ def localise_uploads(uploads: list[StackUpload], localiser: Localiser | None = N
     """Each upload's localisation: its mask, else the brain ``localiser`` (default: the shipped one)
     finds, the uploads without a mask in shared network calls
     (:meth:`~service.preprocess.localise.Localiser.localise_many`), on the fetus the masks show."""
-    missing = [u.volume for u in uploads if u.localised]
-    found = iter((localiser or default_localiser()).localise_many(missing, mask_centres(uploads)) if missing else [])
+    missing = [u for u in uploads if u.localised]
+    found = iter((localiser or default_localiser()).localise_many([u.volume for u in missing], mask_centres(uploads),
+                                                                  [u.region for u in missing]) if missing else [])
     return [u.kept_to_region(next(found)) if u.localised else localise(u) for u in uploads]
 
 
@@ -371,6 +381,6 @@ def _settle_and_prepare(upload: StackUpload, info: ModelInfo, bias_correction: b
     brain settled (:meth:`~service.preprocess.localise.Localiser.settle_closer`: a small brain seen
     again on finer pixels), then the rest; with the probabilities the brain rests on."""
     t = time.perf_counter()
-    localisation, found = localiser.settle_closer(upload.volume, *found)
+    localisation, found = localiser.settle_closer(upload.volume, *found, upload.region)
     localisation = upload.kept_to_region(localisation)
     return prepare_stack(upload, info, bias_correction, found=(localisation, seconds + time.perf_counter() - t)), found

@@ -158,10 +158,11 @@ def grown(mask: NDArray, spacing: NDArray, margin_mm: float) -> NDArray[np.bool_
 
 REGION_FILL = 0.95
 """An uploaded mask that fills at least this share of its bounding box is a region of interest drawn
-around the head (a box in a viewer), not a brain's outline, which fills about half of its box."""
+around the head (a box in a viewer), not a brain's outline, which fills far less of its box
+(docs/localisation.md)."""
 MIN_REGION_ML = 100.0
-"""A box under this volume cannot hold a fetal head (a 20-week brain alone takes about 60 ml, its box
-twice that): such a box is taken as the mask it is."""
+"""A box under this volume cannot hold the youngest fetal head the service serves: such a box is taken
+as the mask it is (docs/localisation.md)."""
 
 
 def is_region_box(mask: NDArray, spacing: NDArray) -> bool:

@@ -62,7 +62,7 @@ from service.io.volume import Volume
 from service.preprocess.brain_shape import THRESHOLD, brain_from_probabilities
 from service.preprocess.slice_trims import margin_disk
 from service.preprocess.localisation import Localisation
-from service.preprocess.localiser_inputs import LocaliserGrid, localiser_inputs
+from service.preprocess.localiser_inputs import LocaliserGrid, localiser_inputs, target_maps
 from service.preprocess.one_fetus import one_fetus
 from service.preprocess.stack import blank_slices, mask_box, stack_axis
 
@@ -161,40 +161,46 @@ class Localiser:
             logits = 0.5 * (logits + np.concatenate(out[len(out) // 2:])[..., ::-1])
         return logits
 
-    def localise(self, volume: Volume) -> Localisation:
-        """The brain mask of ``volume`` on its own grid, its volume and the confidence."""
-        return self.localise_many([volume])[0]
+    def localise(self, volume: Volume, region: NDArray[np.bool_] | None = None) -> Localisation:
+        """The brain mask of ``volume`` on its own grid, its volume and the confidence (``region``: see
+        :meth:`settle_closer`)."""
+        return self.localise_many([volume], regions=[region])[0]
 
-    def localise_many(self, volumes: list[Volume], fixed: list[NDArray] | None = None) -> list[Localisation]:
+    def localise_many(self, volumes: list[Volume], fixed: list[NDArray] | None = None,
+                      regions: list[NDArray[np.bool_] | None] | None = None) -> list[Localisation]:
         """:meth:`localise` for each of ``volumes`` (one request's stacks: every one on the same
         fetus's brain, :func:`~service.preprocess.one_fetus.one_fetus`; ``fixed``: the centres of the
-        request's uploaded masks, scanner mm), the network run on their slices together
-        (:meth:`probabilities_of`)."""
+        request's uploaded masks, scanner mm; ``regions``: each stack's region of interest or None),
+        the network run on their slices together (:meth:`probabilities_of`)."""
         answers = []
-        for volume, (prob, grid) in zip(volumes, self.probabilities_of(volumes)):
+        for volume, (prob, grid), region in zip(volumes, self.probabilities_of(volumes), regions or [None] * len(volumes)):
             checkpoint()                          # the request's client may have left meanwhile
-            answers.append(self.settle_closer(volume, prob, grid))
+            answers.append(self.settle_closer(volume, prob, grid, region))
         return one_fetus(self, volumes, [found for _, found in answers], [a for a, _ in answers], fixed)
 
     def settle_closer(self, volume: Volume, prob: NDArray[np.float32], grid: LocaliserGrid,
+                      region: NDArray[np.bool_] | None = None,
                       ) -> tuple[Localisation, tuple[NDArray[np.float32], LocaliserGrid]]:
         """:meth:`settle`, and where the brain is smaller than :data:`SMALL_BRAIN_ML`, the stack seen
         again on a grid of finer pixels, on which it appears at :data:`TYPICAL_BRAIN_ML` (the pixels
         at most :data:`MIN_GRID_SCALE` times finer), that answer kept where it finds a brain; with the
         probabilities the answer rests on. A brain that the stack's first or last slice cuts through
-        is left as it is: it is part of a larger one (a stack that covers half the brain).
+        is left as it is: it is part of a larger one (a stack that covers half the brain). With a
+        ``region`` of interest (the stack's voxels the user drew around the head) the brain is the
+        one that reaches into it (another head or a head-like structure outside it is passed over).
 
         The network is surest of heads of its training heads' usual size. A young fetus's head (under
         about 23 weeks) in a real uterus is not: at the model's grid the amniotic sac, head-sized at
         that age, looks like a head, and the network takes the sac in, or structures beside the
         head. On the finer grid the head is the size the network knows and the sac larger than any
         head (docs/reports/localiser-experiments.md, "A younger fetus")."""
-        found = self.settle(volume, prob, grid)
+        inside = (lambda g: None) if region is None else (lambda g: target_maps(region, volume, g) > 0.5)  # noqa: E731
+        found = self.settle(volume, prob, grid, inside(grid))
         if not 0 < found.brain_volume_ml < SMALL_BRAIN_ML or cut_by_stack_ends(found.mask, volume):
             return found, (prob, grid)
         scale = float(np.clip((found.brain_volume_ml / TYPICAL_BRAIN_ML) ** (1 / 3), MIN_GRID_SCALE, 1.0))
         (finer, finer_grid), = self.probabilities_of([volume], [self.grid_mm * scale])
-        there = self.settle(volume, finer, finer_grid)
+        there = self.settle(volume, finer, finer_grid, inside(finer_grid))
         return (there, (finer, finer_grid)) if there.mask.any() else (found, (prob, grid))
 
     def settle(self, volume: Volume, prob: NDArray[np.float32], grid: LocaliserGrid,

@@ -311,7 +311,7 @@ class StreamSession:
             before = dict(self.ended)
         info = self.estimator.info
         upload = StackUpload(stack, volume, mask, None if mask is None else f"{stack} (mask frames)",
-                             mask_holds_csf=self.masks_hold_csf)
+                             mask_holds_csf=self.masks_hold_csf, mask_may_be_region=False)
         prepared = prepare_stack(upload, info, self.bias_correction, self.localiser)
         prepared.cut_by_field_of_view                  # worked out here, not under the session's lock at its answer
         (estimate,), timings = estimate_stacks([prepared], self.estimator, self.mc_samples)

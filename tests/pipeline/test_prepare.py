@@ -191,3 +191,28 @@ def test_the_box_a_mask_marks_is_measured_along_the_scanners_axes_on_an_oblique_
     world = corners @ affine[:3, :3].T + affine[:3, 3]
     np.testing.assert_allclose(extent, world.max(axis=0) - world.min(axis=0), atol=1e-9)
     assert volume == pytest.approx(mask.sum() * 0.8 * 1.1 * 3.0)
+
+
+def test_a_region_around_the_other_twin_s_head_finds_that_head_on_every_path() -> None:
+    """Twins, the localiser's first choice the first fetus's brain, a box drawn around the second's:
+    the brain is the one that reaches into the box, the same one whether the stack is prepared for
+    ``/v1/predict`` (alone: no other stack to agree with) or localised for a job; a stream's mask
+    frames, each slice's brain as it came, are never taken for a region."""
+    from service.inference.model_file import ModelInfo
+    from service.preprocess.one_fetus import brain_centre_mm
+    from tests.preprocess.test_one_fetus import _ProbabilityLocaliser, _twins
+
+    localiser, volume = _ProbabilityLocaliser(), _twins("first")
+    idx = np.stack(np.meshgrid(*[np.arange(n) for n in volume.array.shape], indexing="ij"), -1)
+    world = idx @ volume.affine[:3, :3].T + volume.affine[:3, 3]
+    box = ((np.abs(world[..., 0] - 60) < 40) & (np.abs(world[..., 1]) < 40)).astype(np.uint8)
+    upload = StackUpload("s.nii.gz", volume, Volume(box, volume.affine), "roi.nii.gz")
+    assert upload.mask_is_region
+    info = ModelInfo(name="m", version="0", backbone="b", label_type="anchor", input_size=32, pixel_spacing_mm=2.0,
+                     variance_threshold=1.0, dropout_p=0.1, atlas_id="a", trained_on="-", sha256="0" * 64)
+    prepared = prepare_stacks([upload], info, False, localiser=localiser)[0].localisation
+    for found in (prepared, localise_uploads([upload], localiser)[0], localise(upload, localiser)):
+        assert found.method == "network" and found.brain_volume_ml > 0
+        assert brain_centre_mm(found.mask, volume.affine)[0] > 30                # the second twin's, at x = +60 mm
+    frames = StackUpload("s", volume, Volume(box, volume.affine), "s (mask frames)", mask_may_be_region=False)
+    assert localise(frames, localiser).method == "mask"

@@ -83,6 +83,10 @@ def test_ship_needs_an_out_folder_and_refuses_one_with_files(quick_checkpoint: P
     assert result.exit_code == 0, result.output
     assert sorted(p.name for p in taken.iterdir()) == ["card.md", "checkpoint.pt", "evaluation.json", "model.onnx"]
     assert "`0.0.2`" in (taken / "card.md").read_text()
+    inside = ["ship", str(taken / "checkpoint.pt"), "--heldout", str(shards), "--version", "0.0.3", "--pose-scenes",
+              "0", "--out", str(taken), "--force"]                 # the folder ship replaces holds its checkpoint
+    result = CliRunner().invoke(app, inside, env=ENV)
+    assert result.exit_code == 2 and "ship replaces" in result.output and (taken / "checkpoint.pt").exists()
 
 
 def test_a_ship_that_fails_leaves_no_folder_and_says_why_in_one_line(quick_checkpoint: Path, shards: Path,
