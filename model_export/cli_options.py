@@ -8,14 +8,19 @@ from typing import Annotated
 import typer
 
 
+def given(ctx: typer.Context, param: typer.CallbackParam) -> bool:
+    """Whether the option was given (on the command line or by its variable), not left at its default.
+    Typer ships its own copy of click, whose ``ParameterSource`` is not ``click.core``'s: compared by name."""
+    source = ctx.get_parameter_source(param.name)
+    return source is not None and source.name != "DEFAULT"
+
+
 def atlas_root(ctx: typer.Context, param: typer.CallbackParam, root: Path) -> Path:
     """A ``--root`` given that holds no atlas volumes (nor a packed folder) is refused at once by name,
     not with a traceback after the run folder is made (the default is checked where it is read)."""
-    from click.core import ParameterSource
-
     from model_export.atlas import list_volumes
 
-    if ctx.get_parameter_source(param.name) is ParameterSource.DEFAULT:
+    if not given(ctx, param):
         return root
     try:
         list_volumes(root)
@@ -31,12 +36,10 @@ Root = Annotated[Path, typer.Option(help="folder holding crl_sta/ and spina_bifi
 def validation_root(ctx: typer.Context, param: typer.CallbackParam, root: Path) -> Path:
     """:func:`atlas_root` for the commands that measure on the validation volumes (evaluate, calibrate,
     ship): a folder without them (``pack --training-only``'s) is refused at once by name."""
-    from click.core import ParameterSource
-
     from model_export.atlas import split
 
     root = atlas_root(ctx, param, root)
-    if ctx.get_parameter_source(param.name) is ParameterSource.DEFAULT:
+    if not given(ctx, param):
         return root
     try:
         split(root)

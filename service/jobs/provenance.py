@@ -2,10 +2,10 @@
 localiser and where each stack's mask came from; never the clients' file names (they often name the
 patient).
 
-Example (two stacks, one sent with its mask):
+Example (two stacks, one sent with its brain mask):
     >>> from types import SimpleNamespace as U
     >>> from service.preprocess.localise import default_localiser
-    >>> made = provenance({"name": "default"}, [U(mask=1), U(mask=None)], default_localiser(), False)
+    >>> made = provenance({"name": "default"}, [U(localised=False), U(localised=True)], default_localiser(), False)
     >>> made["masks"], made["localiser"]["name"], made["service"]["name"]
     (['uploaded', 'localiser'], 'default', 'svrnet')
 """
