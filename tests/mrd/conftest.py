@@ -61,7 +61,7 @@ class LookupLocaliser:
             out[:, :, k] = self.masks.get(np.ascontiguousarray(volume.array[:, :, k], np.float32).tobytes(), False)
         return out
 
-    def localise(self, volume: Volume) -> Localisation:
+    def localise(self, volume: Volume, region: np.ndarray | None = None) -> Localisation:
         return Localisation.of(self._mask(volume), volume.spacing, "network", 1.0)
 
     def localise_slice(self, volume: Volume, which: int) -> Localisation:
