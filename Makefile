@@ -11,6 +11,9 @@ PIP    := $(PY) -m pip install --disable-pip-version-check -q -c constraints.txt
 TORCH  := --extra-index-url $(TORCH_INDEX)
 HOST   := $(or $(SVRNET_HOST),127.0.0.1)
 PORT   := $(or $(SVRNET_PORT),8000)
+# The tests run in one process per core, at most 4 (each holds its models and fixtures: about 3 GB at
+# most); `make test PYTEST_WORKERS=0` runs them in this process alone.
+PYTEST_WORKERS ?= $(shell n=$$(nproc 2>/dev/null || echo 1); [ $$n -gt 4 ] && n=4; echo $$n)
 
 .PHONY: serve test install-server install-dev install-queue bench cli-docs config-docs clean
 
@@ -37,7 +40,7 @@ serve: install-server
 	SVRNET_HOST=$(HOST) SVRNET_PORT=$(PORT) $(VENV)/bin/svrnet-server
 
 test: install-dev
-	$(PY) -m pytest -q $(PYTEST_ARGS)
+	$(PY) -m pytest -q -n $(PYTEST_WORKERS) $(PYTEST_ARGS)
 	site=$$(mktemp -d) && NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict -q -d $$site; built=$$?; rm -rf $$site; exit $$built   # a folder of its own: checkouts side by side build apart
 
 cli-docs: install-dev   # docs/cli.md, the reference of every svrnet command, from the CLI itself
