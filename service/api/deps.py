@@ -57,6 +57,10 @@ def requested_model(request: Request, registry: ModelRegistry, name: str) -> str
     return model
 
 
+REGION_WITHOUT_LOCALISER = ("masks: a mask that is a box around the head asks for the brain to be found in it, and "
+                            "this server has no brain localiser named default; send brain masks")
+
+
 def localiser_for(localisers: Localisers, masks: list) -> Localiser | None:
     """The default brain localiser for a request whose stacks come without masks (None when masks
     come); a server without one refuses such a request at once, naming the field ``masks``."""

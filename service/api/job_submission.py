@@ -126,6 +126,7 @@ def check_submission(uploads: list[StackUpload], orders: list[SliceOrder], poses
         check_mask_grid(u)
         check_mask_volume(u)
     check_distinct_stacks(uploads)
-    brain_mm3, extent = max((marked_brain(u) for u in uploads), key=lambda marked: marked[0])
+    brain_mm3, extent = max((marked_brain(u) for u in uploads if not u.mask_is_region), key=lambda marked: marked[0],
+                            default=(0.0, np.zeros(3)))                 # a region's brain is the localiser's to find
     check_brain_fits(brain_mm3, extent, resolution_mm, ReconstructionConfig().margin_mm)
     check_slices_to_use(uploads, None if given is None else [accepted for _, accepted in given])

@@ -8,8 +8,8 @@ from typing import Annotated
 from anyio import to_thread
 from fastapi import APIRouter, Depends, Form, Request
 
-from service.api.deps import (ApiKey, LocalisersDep, MetricsDep, RegistryDep, SettingsDep, localiser_for,
-                              processing, requested_model)
+from service.api.deps import (REGION_WITHOUT_LOCALISER, ApiKey, LocalisersDep, MetricsDep, RegistryDep, SettingsDep,
+                              localiser_for, processing, requested_model)
 from service.api.schemas import UPLOAD_ERRORS, PredictResponse
 from service.api.uploads import UploadFormDep, known_fields, upload_directory, upload_reader
 from service.core.errors import InvalidParameter
@@ -52,8 +52,7 @@ async def predict(
         if localiser is None and any(u.localised for u in uploads):   # a region drawn around the head: found in it
             localiser = localisers.default()
             if localiser is None:
-                raise InvalidParameter("masks: a mask that is a box around the head asks for the brain to be found "
-                                       "in it, and this server has no brain localiser named default; send brain masks")
+                raise InvalidParameter(REGION_WITHOUT_LOCALISER)
         t_read = time.perf_counter()
         prepared = await to_thread.run_sync(prepare_stacks, uploads, estimator.info, bias_correction,
                                             settings.preprocess_workers, localiser)

@@ -238,3 +238,27 @@ def test_a_region_drawn_around_the_head_is_searched_not_taken_for_the_brain(real
     nowhere = answer(far)["stacks"][0]
     assert nowhere["localisation"]["brain_volume_ml"] == 0 and nowhere["localisation"]["confidence"] == 0
     assert all(s["reason"] == "empty" for s in nowhere["slices"])
+
+
+def test_a_region_without_a_localiser_to_search_it_is_refused_on_both_routes(oracle, uterus_files,
+                                                                           tmp_path: Path) -> None:  # noqa: ANN001
+    """A server with no localiser named default answers a box around the head with a 400 naming
+    ``masks``, on ``/v1/predict`` and on a job's submission alike (which leaves no job)."""
+    from service.inference.registry import ModelRegistry
+    from tests.api.conftest import make_client
+
+    stack, _, truth = uterus_files
+    volume = read_volume(stack)
+    ends = [np.flatnonzero(truth.any(axis=tuple(a for a in range(3) if a != k)))[[0, -1]] for k in range(3)]
+    box = np.zeros(truth.shape, np.uint8)
+    box[tuple(slice(max(lo - 12, 0), hi + 13) for lo, hi in ends)] = 1
+    write_volume(Volume(box, volume.affine), tmp_path / "roi.nii.gz")
+    files = [("stacks", (stack.name, stack.read_bytes())), ("masks", ("roi.nii.gz", (tmp_path / "roi.nii.gz").read_bytes()))]
+    (tmp_path / "no_localisers").mkdir()
+    with make_client(ModelRegistry({"default": oracle}), localisers_dir=tmp_path / "no_localisers",
+                     data_dir=tmp_path / "data") as client:
+        for route in ("/v1/predict", "/v1/reconstructions"):
+            r = client.post(route, files=files, data={"mc_samples": "2"})
+            assert r.status_code == 400 and "box around the head" in r.json()["detail"], (route, r.text)
+        assert not any(client.app.state.job_store.counts().values())
+    assert not [p for p in (tmp_path / "data").rglob("*") if p.is_file() and "inputs" in p.parts]
