@@ -442,13 +442,13 @@ def test_stacks_without_masks_on_a_server_without_a_localiser_are_refused_at_sub
 
 @pytest.mark.parametrize("queue_settings", ["embedded"], indirect=True)     # the back-end plays no part
 def test_a_resolution_the_masked_brain_cannot_fit_is_refused_at_submission(client: TestClient, tmp_path: Path) -> None:
-    """A brain of 300 ml holds more than a reconstruction's voxels at 0.25 mm: a 400 naming
+    """A brain of 318 ml holds more than a reconstruction's voxels at 0.25 mm: a 400 naming
     ``resolution_mm`` and the voxel size that fits, no job queued; at that size the job is taken."""
     client.app.state.job_runner.submit = lambda job_id: None           # the submission is what is checked
     aff = np.diag([2.0, 2.0, 4.0, 1.0])
     image = np.random.default_rng(0).random((80, 80, 40)).astype(np.float32) * 100
-    mask = np.zeros(image.shape, np.uint8)
-    mask[15:65, 20:60, 10:29] = 1                                       # 100 x 80 x 76 mm: 304 ml
+    x, y, z = np.ogrid[:80, :80, :40]                                   # an ellipsoid brain, 100 x 80 x 76 mm: 318 ml
+    mask = (((x - 39.5) / 25) ** 2 + ((y - 39.5) / 20) ** 2 + ((z - 19) / 9.5) ** 2 <= 1).astype(np.uint8)
     files = []
     for name, array in (("s.nii.gz", image), ("m.nii.gz", mask)):
         write_volume(Volume(array, aff), tmp_path / name)
