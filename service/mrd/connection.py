@@ -377,8 +377,9 @@ class MrdConnection:
             pass
 
     def stop(self, error: ServiceError, retry_after_s: int) -> None:
-        """The server stops: ``error`` with ``retry_after_s``, then ``CLOSE``, sent from the server's
-        thread (this session's own may be waiting for the client); as far as the client still listens."""
+        """Tell the client that the server stops: ``error`` with ``retry_after_s``, then ``CLOSE``. Runs on
+        the server's thread while the session's own thread may be blocked reading; a client that is
+        gone is not told."""
         try:
             self.send_text(error_message(error, retry_after_s=retry_after_s))
             with self.send_lock:
