@@ -368,20 +368,19 @@ class MrdConnection:
         self.send(json.dumps(body))
 
     def close_with(self, error: ServiceError) -> None:
-        """The error, then ``CLOSE`` (as far as the client still listens)."""
+        """The session's stages settled, then the error and ``CLOSE`` (:meth:`say_last`)."""
         self.settle()
-        try:
-            self.send_error(error)
-            self.outgoing.close()
-        except OSError:
-            pass
+        self.say_last(error_message(error))
 
     def stop(self, error: ServiceError, retry_after_s: int) -> None:
-        """Tell the client that the server stops: ``error`` with ``retry_after_s``, then ``CLOSE``. Runs on
-        the server's thread while the session's own thread may be blocked reading; a client that is
-        gone is not told."""
+        """Tell the client that the server stops (:meth:`say_last`, with ``retry_after_s``); runs on the
+        server's thread while the session's own may be blocked reading."""
+        self.say_last(error_message(error, retry_after_s=retry_after_s))
+
+    def say_last(self, error: dict) -> None:
+        """The ``error`` message, then ``CLOSE``; a client that is gone or does not read is not told."""
         try:
-            self.send_text(error_message(error, retry_after_s=retry_after_s))
+            self.send_text(error)
             with self.send_lock:
                 self.outgoing.close()
         except (OSError, TimeoutError, ConnectionError):

@@ -138,8 +138,20 @@ def skip_raw_message(kind: int, reader: BoundedReader) -> None:
         name = ISMRMRDMessageID(kind).name.lower()
         raise PayloadTooLarge(f"{name}: its head announces {left} bytes of data, over this server's limit of "
                               f"{reader.max_read_bytes}")
-    while left > 0:
-        left -= len(read_exactly(reader, min(left, SKIP_CHUNK_BYTES)))
+    read_past(reader, left)
+
+
+def read_past(reader: BoundedReader, n: int) -> None:
+    """Read ``n`` bytes of ``reader`` and keep none: in chunks of :data:`SKIP_CHUNK_BYTES`, whatever ``n``
+    (EOFError where the stream ends first).
+
+    Example:
+        >>> import io
+        >>> r = BoundedReader(io.BytesIO(bytes(5) + b"next"), 1 << 20); read_past(r, 5); r.read(4)
+        b'next'
+    """
+    while n > 0:
+        n -= len(read_exactly(reader, min(n, SKIP_CHUNK_BYTES)))
 
 
 def read_exactly(reader: BoundedReader, n: int) -> bytes:
@@ -193,9 +205,7 @@ def read_past_unusable_image(reader: BoundedReader, max_pixels: int) -> tuple[Un
             f"image: meta attributes of {meta_bytes} bytes are over this server's limit of {MAX_META_BYTES}"))
     data_bytes = pixel_count(head) * ismrmrd.image.dtype_mapping[int(head.data_type)].itemsize
     if (problem := shape_problem(head)) is not None and data_bytes <= MAX_SKIPPED_IMAGE_BYTES:
-        left = META_LENGTH.size + meta_bytes + data_bytes
-        while left > 0:
-            left -= len(read_exactly(reader, min(left, SKIP_CHUNK_BYTES)))
+        read_past(reader, META_LENGTH.size + meta_bytes + data_bytes)
         return problem, int(head.image_series_index), int(head.slice)
     if pixel_count(head) > max_pixels:
         raise ProtocolBroken(PayloadTooLarge(f"image: {pixel_count(head)} values (channels x matrix_size) is over "
