@@ -57,10 +57,6 @@ def requested_model(request: Request, registry: ModelRegistry, name: str) -> str
     return model
 
 
-REGION_WITHOUT_LOCALISER = ("masks: a mask that is a box around the head asks for the brain to be found in it, and "
-                            "this server has no brain localiser named default; send brain masks")
-
-
 def localiser_for(localisers: Localisers, masks: list) -> Localiser | None:
     """The default brain localiser for a request whose stacks come without masks (None when masks
     come); a server without one refuses such a request at once, naming the field ``masks``."""
@@ -69,6 +65,18 @@ def localiser_for(localisers: Localisers, masks: list) -> Localiser | None:
     if localisers.default() is None:
         raise InvalidParameter("masks: this server has no brain localiser named default installed; send a mask with "
                                "every stack")
+    return localisers.default()
+
+
+def localiser_for_regions(localisers: Localisers, uploads: list) -> Localiser | None:
+    """The default brain localiser where an upload's mask is a region of interest around the head (or
+    it came without one), the brain to be found in it; None where every upload has its brain mask. A
+    server without one refuses such a request, naming the field ``masks``."""
+    if not any(u.localised for u in uploads):
+        return None
+    if localisers.default() is None:
+        raise InvalidParameter("masks: a mask that is a box around the head asks for the brain to be found in it, and "
+                               "this server has no brain localiser named default; send brain masks")
     return localisers.default()
 
 

@@ -8,11 +8,10 @@ from typing import Annotated
 from anyio import to_thread
 from fastapi import APIRouter, Depends, Form, Request
 
-from service.api.deps import (REGION_WITHOUT_LOCALISER, ApiKey, LocalisersDep, MetricsDep, RegistryDep, SettingsDep,
-                              localiser_for, processing, requested_model)
+from service.api.deps import (ApiKey, LocalisersDep, MetricsDep, RegistryDep, SettingsDep, localiser_for,
+                              localiser_for_regions, processing, requested_model)
 from service.api.schemas import UPLOAD_ERRORS, PredictResponse
 from service.api.uploads import UploadFormDep, known_fields, upload_directory, upload_reader
-from service.core.errors import InvalidParameter
 from service.pipeline.documents import stack_objects
 from service.pipeline.predict import predict as run_prediction
 from service.pipeline.prepare import prepare_stacks
@@ -49,10 +48,7 @@ async def predict(
         with upload_directory(settings.tmp_dir) as tmp:
             uploads = await to_thread.run_sync(upload_reader(settings, form.masks_hold_csf), form.stacks, form.masks,
                                                tmp)
-        if localiser is None and any(u.localised for u in uploads):   # a region drawn around the head: found in it
-            localiser = localisers.default()
-            if localiser is None:
-                raise InvalidParameter(REGION_WITHOUT_LOCALISER)
+        localiser = localiser or localiser_for_regions(localisers, uploads)    # a box around the head: searched
         t_read = time.perf_counter()
         prepared = await to_thread.run_sync(prepare_stacks, uploads, estimator.info, bias_correction,
                                             settings.preprocess_workers, localiser)

@@ -14,8 +14,8 @@ from fastapi.responses import FileResponse
 from starlette.types import Receive, Scope, Send
 
 from service.api.access import job_owner, presented_key
-from service.api.deps import (IDEMPOTENCY_HEADER, REGION_WITHOUT_LOCALISER, ApiKey, LocalisersDep, RegistryDep,
-                              SettingsDep, full_queue, idempotency_digest, localiser_for, processing, queue_full,
+from service.api.deps import (IDEMPOTENCY_HEADER, ApiKey, LocalisersDep, RegistryDep, SettingsDep, full_queue,
+                              idempotency_digest, localiser_for, localiser_for_regions, processing, queue_full,
                               requested_model)
 from service.api.idempotency import hold_submission, made_by_key, submission_digest, unless_abandoned
 from service.api.job_submission import SLICE_THICKNESS_HELP, ThicknessField, check_submission, thickness_per_stack
@@ -117,8 +117,7 @@ async def _keep_submission(request: Request, response: Response, settings: Setti
     inputs.mkdir()
     try:
         uploads = await to_thread.run_sync(upload_reader(settings), form.stacks, form.masks, inputs)
-        if any(u.localised for u in uploads) and request.app.state.localisers.default() is None:
-            raise InvalidParameter(REGION_WITHOUT_LOCALISER)         # a region around the head, and none to search it
+        localiser_for_regions(request.app.state.localisers, uploads)          # refused now, not failed later
         # Whole-volume work (seconds for many large stacks): off the event loop, which serves every
         # other request and stream meanwhile.
         await to_thread.run_sync(check_submission, uploads, form.orders, poses_text, inputs,
