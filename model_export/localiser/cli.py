@@ -121,10 +121,12 @@ def average(
     """Average a fine-tuned network's weights with those it started from (weight-space ensembling)."""
     from model_export.localiser.train import average_weights
 
-    first, second = localiser_checkpoint(base, "BASE"), localiser_checkpoint(tuned, "TUNED")
-    if first["config"] != second["config"]:
-        raise typer.BadParameter(f"the two networks differ: {first['config']} and {second['config']}", param_hint="TUNED")
-    typer.echo(str(average_weights(base, tuned, out, weight)))
+    localiser_checkpoint(base, "BASE")
+    localiser_checkpoint(tuned, "TUNED")
+    try:
+        typer.echo(str(average_weights(base, tuned, out, weight)))
+    except ValueError as differ:                          # two networks of other widths or depths
+        raise typer.BadParameter(str(differ), param_hint="TUNED") from None
 
 
 CHECKPOINT_COPY_MB = 64.0
