@@ -58,7 +58,8 @@ from client.cli_export import export
 from client.cli_stream import stream
 from client.cli_support import (DEFAULT_VOLUME, DELETE_HELP, ApiKeyOpt, BiasCorrectionOpt, DeleteOpt, JobArg, MaskOpt,
                                 MasksHoldCsfOpt, OverwriteOpt, MaxExpectedOpt, McSamplesOpt, ModelOpt, ServerOpt,
-                                STACK_SPACE_HELP, StackSpaceOpt, StacksArg, ThresholdOpt, check_folder_writable, check_masks, check_writable, follow_job, job_id_of,
+                                STACK_SPACE_HELP, StackSpaceOpt, StacksArg, ThresholdOpt, check_folder_writable,
+                                check_masks, check_writable, follow_job, job_id_of,
                                 once_or_per_stack, resolution_range, slice_order_words, timeout_from_env, user_path,
                                 write_json, write_results)
 from client.errors import ArgumentError, NotFound, SVRnetError
@@ -91,7 +92,8 @@ def _print_version(asked: bool) -> None:
 
 @app.callback()
 def _options(version: Annotated[bool, typer.Option(
-        "--version", is_eager=True, callback=_print_version, help="print the client's version and exit")] = False) -> None:
+        "--version", is_eager=True, callback=_print_version,
+        help="print the client's version and exit")] = False) -> None:
     """The options every command shares (none but ``--version``)."""
 
 

@@ -24,7 +24,8 @@ KeptColumns = Annotated[Optional[list[Path]], typer.Option(
 def calibrate(checkpoint: PoseCheckpoint, root: ValidationRoot = DEFAULT_ATLAS_ROOT, mc_samples: int = 100,
               tta_views: int = SHIPPED_VIEWS,
               model: Annotated[Optional[Path], typer.Option(
-                  callback=pose_model, help="the ONNX file exported from CHECKPOINT to measure as the service runs it (its own views; "
+                  callback=pose_model,
+                  help="the ONNX file exported from CHECKPOINT to measure as the service runs it (its own views; "
                        "int8 where quantised) [default: CHECKPOINT's float network with --tta-views]")] = None) -> None:
     """Choose the variance threshold on the checkpoint's validation volumes; print AUROC and the chosen value."""
     from model_export.calibrate import calibrate as run

@@ -86,8 +86,9 @@ def train(
                                               "holds the shards it has read in memory")] = 0,
 ) -> None:
     """Train (or continue training) the localiser for ``--steps`` (or ``--minutes``); progress in
-    ``<out>.log`` (at each checkpoint and the last step). The checkpoint records the seed, budget, steps done, the shards' identity and the
-    commit. With ``--init`` of another width the network starts from that one's strongest channels."""
+    ``<out>.log`` (at each checkpoint and the last step). The checkpoint records the seed, budget, steps
+    done, the shards' identity and the commit. With ``--init`` of another width the network starts from
+    that one's strongest channels."""
     from model_export.localiser.train import network_shape, train as run
 
     if (steps is None) == (minutes is None):
@@ -172,7 +173,8 @@ def ship(
                                  param_hint="--out")
     for path, hint in ((checkpoint, "CHECKPOINT"), (heldout, "--heldout"), (ablation, "--ablation")):
         if path is not None and path.resolve().is_relative_to(out.resolve()):
-            raise typer.BadParameter(f"{path} lies inside {out}, which ship replaces: move it out first", param_hint=hint)
+            raise typer.BadParameter(f"{path} lies inside {out}, which ship replaces: move it out first",
+                                     param_hint=hint)
     state = localiser_checkpoint(checkpoint)
     check_heldout(heldout)
     record = file_record(checkpoint)

@@ -91,7 +91,7 @@ class StackUpload:
 
     def kept_to_region(self, found: Localisation) -> Localisation:
         """The localiser's ``found`` brain, kept to the uploaded region where there is one."""
-        return within_region(found, self.mask_voxels, self.volume.spacing) if self.mask_is_region else found
+        return found if self.region is None else within_region(found, self.region, self.volume.spacing)
 
 
 def mask_voxels(array: NDArray) -> NDArray[np.bool_]:
