@@ -37,7 +37,7 @@ from service.io.volume import Volume
 from service.preprocess.bias import n4_correct
 from service.preprocess.field_of_view import cut_by_field_of_view
 from service.preprocess.intensity import signal_lost
-from service.preprocess.localisation import Localisation, is_region_box, within_region
+from service.preprocess.localisation import Localisation, is_region_of_interest, within_region
 from service.preprocess.localise import Localiser, default_localiser
 from service.preprocess.localiser_inputs import LocaliserGrid
 from service.preprocess.noise import input_noise
@@ -75,8 +75,8 @@ class StackUpload:
     @functools.cached_property
     def mask_is_region(self) -> bool:
         """The uploaded mask is a region of interest around the head, not a brain's outline
-        (:func:`~service.preprocess.localisation.is_region_box`): the localiser finds the brain in it."""
-        return self.mask_may_be_region and self.mask_voxels is not None and is_region_box(self.mask_voxels,
+        (:func:`~service.preprocess.localisation.is_region_of_interest`): the localiser finds the brain in it."""
+        return self.mask_may_be_region and self.mask_voxels is not None and is_region_of_interest(self.mask_voxels,
                                                                                             self.mask.spacing)
 
     @property

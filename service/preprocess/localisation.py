@@ -160,28 +160,60 @@ REGION_FILL = 0.95
 """An uploaded mask that fills at least this share of its bounding box is a region of interest drawn
 around the head (a box in a viewer), not a brain's outline, which fills far less of its box
 (docs/localisation.md)."""
+REGION_REPEAT = 0.9
+"""An uploaded mask whose slices along one voxel axis hold the same cross-section, at least this share
+of their union common to all of them, is a shape drawn in one plane and extruded (a box, an elliptic
+cylinder): a region of interest. A brain's cross-sections change from slice to slice
+(docs/localisation.md)."""
 MIN_REGION_ML = 100.0
-"""A box under this volume cannot hold the youngest fetal head the service serves: such a box is taken
-as the mask it is (docs/localisation.md)."""
+"""A region under this volume cannot hold the youngest fetal head the service serves: such a mask is
+taken as the brain it marks (docs/localisation.md)."""
 
 
-def is_region_box(mask: NDArray, spacing: NDArray) -> bool:
-    """Whether an uploaded mask is a region of interest around the head (:data:`REGION_FILL`,
-    :data:`MIN_REGION_ML`): the brain is to be found inside it, not the mask taken for the brain.
+def drawn_shape_scores(mask: NDArray) -> tuple[float, float]:
+    """How much a mask looks drawn rather than segmented, within its bounding box: the share of the
+    box it fills, and the share of its cross-sections' union common to all of them along the voxel
+    axis where that share is largest (1 for a shape extruded along that axis).
 
-    Example (a box of 60 x 60 x 20 voxels of 1 x 1 x 3 mm, 216 ml; the ellipsoid inside it):
+    Example (a box; an elliptic cylinder; a sphere):
+        >>> x, y, z = np.ogrid[:40, :40, :40]
+        >>> box = np.ones((20, 30, 10), bool)
+        >>> cylinder = np.broadcast_to(((x - 19.5) / 20) ** 2 + ((y - 19.5) / 20) ** 2 <= 1, (40, 40, 40))
+        >>> sphere = ((x - 19.5) / 20) ** 2 + ((y - 19.5) / 20) ** 2 + ((z - 19.5) / 20) ** 2 <= 1
+        >>> [tuple(round(v, 2) for v in drawn_shape_scores(m)) for m in (box, cylinder, sphere)]
+        [(1.0, 1.0), (0.79, 1.0), (0.52, 0.05)]
+    """
+    m = np.asarray(mask, bool)
+    ends = [np.flatnonzero(m.any(axis=tuple(a for a in range(m.ndim) if a != k))) for k in range(m.ndim)]
+    if any(not len(e) for e in ends):
+        return 0.0, 0.0
+    box = m[tuple(slice(e[0], e[-1] + 1) for e in ends)]
+    repeat = max(float(box.all(axis=k).sum()) / float(box.any(axis=k).sum()) for k in range(box.ndim))
+    return float(box.mean()), repeat
+
+
+def is_region_of_interest(mask: NDArray, spacing: NDArray) -> bool:
+    """Whether an uploaded mask is a region of interest around the head, not a brain's outline: a box
+    (:data:`REGION_FILL`) or a shape extruded along a voxel axis (:data:`REGION_REPEAT`: an elliptic
+    cylinder, a contour drawn in one slice and copied to the others) of :data:`MIN_REGION_ML` or more
+    (:func:`drawn_shape_scores`). The brain is to be found inside it, not the mask taken for the brain.
+    An ellipsoid drawn around the head is not told from a brain's mask this way (a smooth brain-like
+    mask fills an ellipsoid nearly as well) and is taken for the brain.
+
+    Example (a box of 60 x 60 x 20 voxels of 1 x 1 x 3 mm, 216 ml; a cylinder; the ellipsoid inside the box):
         >>> box = np.zeros((80, 80, 30), bool); box[10:70, 10:70, 5:25] = True
         >>> x, y, z = np.ogrid[:80, :80, :30]
-        >>> brain = ((x - 40) / 30) ** 2 + ((y - 40) / 30) ** 2 + ((z - 15) / 10) ** 2 <= 1
-        >>> is_region_box(box, np.array([1.0, 1.0, 3.0])), is_region_box(brain, np.array([1.0, 1.0, 3.0]))
-        (True, False)
+        >>> cylinder = box & (((x - 39.5) / 30) ** 2 + ((y - 39.5) / 30) ** 2 <= 1)
+        >>> ellipsoid = ((x - 39.5) / 30) ** 2 + ((y - 39.5) / 30) ** 2 + ((z - 14.5) / 10) ** 2 <= 1
+        >>> [is_region_of_interest(m, np.array([1.0, 1.0, 3.0])) for m in (box, cylinder, ellipsoid)]
+        [True, True, False]
     """
     m = np.asarray(mask, bool)
     count = int(np.count_nonzero(m))
     if not count or count * float(np.prod(spacing)) / 1000.0 < MIN_REGION_ML:
         return False
-    extents = [np.flatnonzero(m.any(axis=tuple(a for a in range(m.ndim) if a != k))) for k in range(m.ndim)]
-    return count >= REGION_FILL * float(np.prod([e[-1] - e[0] + 1 for e in extents]))
+    fill, repeat = drawn_shape_scores(m)
+    return fill >= REGION_FILL or repeat >= REGION_REPEAT
 
 
 def within_region(found: Localisation, region: NDArray, spacing: NDArray) -> Localisation:

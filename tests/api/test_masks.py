@@ -208,7 +208,7 @@ def test_a_region_drawn_around_the_head_is_searched_not_taken_for_the_brain(real
     """A box around the head sent as the stack's mask (api-v1: a region of interest) is where the
     localiser finds the brain, not the brain itself: the answer is the one without a mask, and says
     so; a box that holds no brain gives empty slices."""
-    from service.preprocess.localisation import is_region_box
+    from service.preprocess.localisation import is_region_of_interest
 
     stack, _, truth = uterus_files
     volume = read_volume(stack)
@@ -217,7 +217,7 @@ def test_a_region_drawn_around_the_head_is_searched_not_taken_for_the_brain(real
     box[tuple(slice(max(lo - 12, 0), hi + 13) for lo, hi in ends)] = 1
     far = np.zeros(truth.shape, np.uint8)
     far[tuple(slice(0, max(lo - 2, 1)) if k < 2 else slice(None) for k, (lo, _) in enumerate(ends))] = 1
-    assert is_region_box(box > 0, volume.spacing) and not (far.astype(bool) & truth).any()
+    assert is_region_of_interest(box > 0, volume.spacing) and not (far.astype(bool) & truth).any()
 
     def answer(mask: np.ndarray | None) -> dict:
         files = [("stacks", (stack.name, stack.read_bytes()))]
@@ -234,7 +234,7 @@ def test_a_region_drawn_around_the_head_is_searched_not_taken_for_the_brain(real
     assert found["brain_volume_ml"] == without["stacks"][0]["localisation"]["brain_volume_ml"]
     assert [s["reason"] == "empty" for s in boxed["stacks"][0]["slices"]] == \
         [s["reason"] == "empty" for s in without["stacks"][0]["slices"]]
-    assert is_region_box(far > 0, volume.spacing)
+    assert is_region_of_interest(far > 0, volume.spacing)
     nowhere = answer(far)["stacks"][0]
     assert nowhere["localisation"]["brain_volume_ml"] == 0 and nowhere["localisation"]["confidence"] == 0
     assert all(s["reason"] == "empty" for s in nowhere["slices"])

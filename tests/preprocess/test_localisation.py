@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -84,3 +86,59 @@ def test_a_mask_grown_by_a_margin_holds_exactly_the_voxels_within_that_distance(
         distance = ndimage.distance_transform_edt(~mask, sampling=spacing)
         np.testing.assert_array_equal(grown(mask, spacing, margin), distance <= margin)
     assert not grown(np.zeros((4, 4, 4), bool), np.ones(3), 3.0).any()
+
+
+def _drawn_regions(shape: tuple[int, int, int] = (90, 80, 30)) -> dict[str, np.ndarray]:
+    """Regions of interest as viewers draw them around a head (1 x 1 x 3 mm voxels, 150-270 ml)."""
+    x, y, z = np.ogrid[:shape[0], :shape[1], :shape[2]]
+    box = np.zeros(shape, bool)
+    box[10:80, 10:70, 4:26] = True
+    disc = ((x - 45) / 35.0) ** 2 + ((y - 40) / 30.0) ** 2 <= 1
+    contour = ndimage.binary_fill_holes(ndimage.binary_dilation(disc & (x + y < 110), iterations=2))
+    return {"box": box, "elliptic cylinder": box & disc, "contour copied to every slice": box & contour,
+            "cylinder along the first axis": box & (((y - 40) / 30.0) ** 2 + ((z - 15) / 11.0) ** 2 <= 1)}
+
+
+@pytest.mark.parametrize("name", list(_drawn_regions()))
+def test_a_shape_drawn_around_the_head_is_a_region_of_interest(name: str) -> None:
+    """A box, or any outline drawn in one plane and extruded through the slices, is a region to search."""
+    from service.preprocess.localisation import is_region_of_interest
+
+    assert is_region_of_interest(_drawn_regions()[name], np.array([1.0, 1.0, 3.0]))
+
+
+def test_brain_masks_and_small_drawn_shapes_are_not_regions_of_interest() -> None:
+    """Brain-shaped masks (an egg narrower towards the front, cut by motion between slices; the test
+    phantoms' masks) are brains, however smooth, and a drawn shape under 100 ml marks the brain."""
+    from service.preprocess.localisation import is_region_of_interest
+    from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine
+
+    spacing = np.array([1.0, 1.0, 3.0])
+    x, y, z = np.ogrid[:90, :80, :30]
+    egg = ((x - 45) / (32 - 0.2 * (y - 10))) ** 2 + ((y - 40) / 30.0) ** 2 + ((z - 15) / 11.0) ** 2 <= 1
+    moved = np.stack([np.roll(egg[..., k], (k % 3 - 1) * 2, axis=0) for k in range(egg.shape[2])], axis=-1)
+    assert not is_region_of_interest(egg, spacing) and not is_region_of_interest(moved, spacing)
+    for seed in (1, 2, 5):
+        brain = phantom_brain(seed)
+        for axis in range(3):
+            shape = [36, 36, 36]
+            shape[axis] = 12
+            _, mask = acquire_stack(*brain, stack_affine(axis, np.eye(3), 2.0, 5.0, tuple(shape)), tuple(shape), axis,
+                                    np.broadcast_to(np.eye(4), (12, 4, 4)))
+            spacing = np.full(3, 2.0)
+            spacing[axis] = 5.0
+            assert not is_region_of_interest(mask > 0.5, spacing)
+    small = _drawn_regions()["elliptic cylinder"][:, :, :8]
+    assert small.sum() * 3 / 1000 < 100 and not is_region_of_interest(small, np.array([1.0, 1.0, 3.0]))
+
+
+def test_the_atlas_brain_masks_are_not_regions_of_interest(atlas_dir: Path) -> None:
+    """Every atlas volume's brain mask, on its own grid, is a brain's outline."""
+    from service.io.volume import read_volume
+    from service.preprocess.localisation import is_region_of_interest
+
+    files = sorted(atlas_dir.rglob("*_mask.nii.gz"))
+    assert files
+    for f in files:
+        volume = read_volume(f)
+        assert not is_region_of_interest(np.asarray(volume.array) > 0.5, np.asarray(volume.spacing)), f.name
