@@ -4,6 +4,7 @@ so that those tools start from the poses instead of registering the slices thems
 from __future__ import annotations
 
 import json
+import shlex
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -68,19 +69,21 @@ def export(
                        "the scanner); `svrnet masks` makes the masks", style="yellow", markup=False)
     if to == "niftymic":
         if done.stacks != list(stacks):
-            stderr().print(f"NiftyMIC cuts slices along a file's third axis, and reads a file compressed as its name "
-                           f"says: the stacks stored otherwise were written again into {out_dir / 'stacks'}, their "
+            stderr().print(f"NiftyMIC cuts slices along a file's third axis, reads NIfTI-1 files compressed as their "
+                           f"names say and places them by their qform: the stacks stored otherwise were written again "
+                           f"into {out_dir / 'stacks'}, their "
                            f"masks into {out_dir / 'masks'} (the same images); give NiftyMIC those", style="yellow",
                            markup=False)
         odd = [s.name for s in stacks if set(s.name) & REGEX_CHARACTERS]
         if odd:
             stderr().print(f"NiftyMIC finds a stack's .tfm files by a regular expression of its name: rename "
                            f"{', '.join(odd)} (no {''.join(sorted(REGEX_CHARACTERS))})", style="yellow", markup=False)
-    masks = "" if not done.masks else " --filenames-masks " + " ".join(str(m) for m in done.masks)
+    quoted = lambda paths: " ".join(shlex.quote(str(p)) for p in paths)  # noqa: E731 - pasted into a shell
+    masks = "" if not done.masks else " --filenames-masks " + quoted(done.masks)
     per_stack = [] if not thickness else thickness * len(stacks) if len(thickness) == 1 else thickness
     thick = "" if not per_stack else " --slice-thicknesses " + " ".join(f"{t:g}" for t in per_stack)
-    console.print("next: " + NEXT_STEP[to].format(out=out_dir, stacks=" ".join(str(s) for s in done.stacks), masks=masks,
-                                                  thickness=thick), soft_wrap=True, markup=False)
+    console.print("next: " + NEXT_STEP[to].format(out=shlex.quote(str(out_dir)), stacks=quoted(done.stacks),
+                                                  masks=masks, thickness=thick), soft_wrap=True, markup=False)
     if to == "niftymic":
         console.print("ATLAS_VOLUME.nii.gz: an atlas volume of the fetus's age in the atlas space the poses are in "
                       "(docs/pose-convention.md, \"Spaces\"): the reconstruction's grid and place", soft_wrap=True,

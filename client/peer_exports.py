@@ -23,7 +23,8 @@ reconstruct --poses-out``) gives every slice ``k`` of stack ``s`` its ``atlas_fr
   starts from, a stack resampled into the reconstruction space, lies there too. NiftyMIC cuts a
   stack's slices along the file's third axis: a stack whose ``slice_axis`` is another is written
   again into ``DIR/stacks/`` with its voxels in cyclic order, the slice axis last (the same image,
-  placed alike). NiftyMIC takes a mask's voxels as stored, on its stack's voxels, and refuses values
+  placed alike), and so is a stack ITK reads otherwise than the service (:func:`read_as_itk_does`).
+  NiftyMIC takes a mask's voxels as stored, on its stack's voxels, and refuses values
   above 1: the mask of a stack written again, or one stored in another voxel order or with other
   values, is written into ``DIR/masks/`` as ``NAME_mask.nii.gz`` (0 and 1); give NiftyMIC those files.
 
@@ -57,7 +58,7 @@ from numpy.typing import ArrayLike, NDArray
 from client.errors import UnusableInput
 from client.export_folder import clear_for_export, write_manifest
 from client.files import write_whole
-from client.scanner_stack import named_as_stored, nifti_image, slice_axis_of
+from client.scanner_stack import mask_voxels, named_as_stored, nifti_image, slice_axis_of
 from client.slice_transforms import stack_from_atlas_lps, tfm_text
 
 FORMATS = ("nesvor", "niftymic")
@@ -179,12 +180,12 @@ def _trusted(item: dict[str, Any], limit_mm: float | None = None) -> bool:
     return bool(item["included"]) or (placed and limit_mm is not None and error is not None and float(error) <= limit_mm)
 
 
-def _read_stack(path: Path, stack: dict[str, Any], mask: Path | None, read_by_qform: bool,
+def _read_stack(path: Path, stack: dict[str, Any], mask: Path | None,
                 ) -> tuple[nib.Nifti1Image, NDArray, NDArray[np.float32], NDArray[np.bool_] | None]:
     """A stack file and its mask file read whole and checked (:func:`_stack_file`, :func:`_mask`):
     the image, its ``scanner_from_voxel``, its voxels and its mask (None: none given). Every file is
     read before anything is written, so that a file that does not read leaves no half-written folder."""
-    image, sfv = _stack_file(path, stack, read_by_qform)
+    image, sfv = _stack_file(path, stack)
     try:
         voxels = np.asarray(image.dataobj, np.float32).reshape(image.shape[:3])
     except (OSError, ValueError, EOFError, TypeError) as e:
@@ -192,10 +193,8 @@ def _read_stack(path: Path, stack: dict[str, Any], mask: Path | None, read_by_qf
     return image, sfv, voxels, None if mask is None else _mask(mask, image)
 
 
-def _stack_file(path: Path, stack: dict[str, Any], read_by_qform: bool) -> tuple[nib.Nifti1Image, NDArray]:
-    """The stack file read with nibabel, checked to be the grid the answer's poses are of; for a tool
-    that places it by its qform (``read_by_qform``: ITK's readers), checked that its qform is where
-    the service placed it (its sform). NeSVoR is given slices written here, not the stack's header."""
+def _stack_file(path: Path, stack: dict[str, Any]) -> tuple[nib.Nifti1Image, NDArray]:
+    """The stack file read with nibabel, checked to be the grid the answer's poses are of."""
     try:
         image = nifti_image(path)
     except (nib.filebasedimages.ImageFileError, OSError, ValueError) as e:
@@ -208,17 +207,34 @@ def _stack_file(path: Path, stack: dict[str, Any], read_by_qform: bool) -> tuple
     if not same_grid or not np.allclose(image.affine, sfv, atol=1e-3):
         raise UnusableInput(f"export: {path.name} is not the file the answer's stack {stack.get('index')} was read from "
                             "(another grid or placement)")
-    header = image.header
-    both = header["qform_code"] > 0 and header["sform_code"] > 0
-    if read_by_qform and both and not np.allclose(header.get_qform(), header.get_sform(), atol=1e-3):
-        raise UnusableInput(f"export: {path.name}: its qform and sform disagree; ITK-based tools (NiftyMIC) place it by "
-                            "its qform, the service by its sform: write it with one placement first")
-    zooms = np.asarray(header.get_zooms()[:3], np.float64)
-    if read_by_qform and not np.allclose(zooms, np.linalg.norm(sfv[:3, :3], axis=0), rtol=1e-3):
-        raise UnusableInput(f"export: {path.name}: its voxel sizes (pixdim {', '.join(f'{z:g}' for z in zooms)} mm) "
-                            "disagree with its placement; ITK-based tools (NiftyMIC) take them from pixdim, the service "
-                            "from the sform: write it with one placement first")
     return image, sfv
+
+
+def read_as_itk_does(path: Path, image: nib.Nifti1Image, scanner_from_voxel: NDArray) -> bool:
+    """Whether an ITK-based tool (NiftyMIC) reads the stack file ``path`` as the service read it: a
+    NIfTI-1 file (SimpleITK reads no NIfTI-2), compressed as its name says (ITK goes by the name),
+    placed by its qform where the service placed it (ITK takes the qform where both are set, the
+    service the sform) with voxel sizes that agree with that placement (ITK takes them from pixdim).
+    A stack that is not is written again for the tool, placed as the service placed it.
+
+    Example (a NIfTI-1 file whose qform lies 7 mm from its sform):
+        >>> import tempfile
+        >>> image = nib.Nifti1Image(np.zeros((3, 4, 2), np.float32), np.diag([1.0, 2.0, 3.0, 1.0]))
+        >>> path = Path(tempfile.mkdtemp()) / "s.nii"; nib.save(image, path)
+        >>> read_as_itk_does(path, nib.load(path), image.affine)
+        True
+        >>> moved = image.affine.copy(); moved[0, 3] = 7.0; image.set_qform(moved, 1); nib.save(image, path)
+        >>> read_as_itk_does(path, nib.load(path), image.affine)
+        False
+    """
+    header = image.header
+    if isinstance(image, nib.Nifti2Image) or not named_as_stored(path):
+        return False
+    both = header["qform_code"] > 0 and header["sform_code"] > 0
+    if both and not np.allclose(header.get_qform(), header.get_sform(), atol=1e-3):
+        return False
+    zooms = np.asarray(header.get_zooms()[:3], np.float64)
+    return bool(np.allclose(zooms, np.linalg.norm(scanner_from_voxel[:3, :3], axis=0), rtol=1e-3))
 
 
 @dataclass
@@ -251,7 +267,7 @@ def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None,
         raise UnusableInput("export: NiftyMIC names each stack's transforms by its file name, and two stacks are "
                             f"named {' and '.join(repr(c) for c in clash[:2])} (alike but for case): rename one")
     answered = matched_stacks(answer, stacks)           # the answer and every file checked before the folder is touched
-    read = [_read_stack(path, stack, None if not masks else masks[s], read_by_qform=to == "niftymic")
+    read = [_read_stack(path, stack, None if not masks else masks[s])
             for s, (path, stack) in enumerate(zip(stacks, answered))]
     limit = answer.get("max_expected_error_mm")
     before = clear_for_export(folder, overwrite, [*stacks, *(masks or [])])
@@ -261,8 +277,8 @@ def export(answer: dict[str, Any], stacks: list[Path], masks: list[Path] | None,
             slice_axis_of(np.linalg.norm(sfv[:3, :3], axis=0))          # the service's rule, not a guess
         if to == "niftymic":
             _niftymic_stack(path, chosen, _chosen(stack, True), sfv, folder)
-            if axis != 2 or not named_as_stored(path):   # NiftyMIC cuts along the third axis, and ITK reads
-                done.stacks[s] = _rewritten(voxels, sfv, axis, folder / "stacks" / path.name)   # by the name
+            if axis != 2 or not read_as_itk_does(path, image, sfv):     # NiftyMIC cuts along the third axis
+                done.stacks[s] = _rewritten(voxels, sfv, axis, folder / "stacks" / path.name)
             if masks and done.masks is not None:
                 if axis != 2 or not _binary_as_stored(masks[s], image):     # NiftyMIC takes it voxel by voxel
                     done.masks[s] = _rewritten(brain.astype(np.uint8), sfv, axis,
@@ -306,7 +322,8 @@ def _niftymic_stack(path: Path, chosen: list[dict[str, Any]], with_brain: list[d
 
 
 def _mask(path: Path, stack: nib.Nifti1Image) -> NDArray[np.bool_]:
-    """The mask file ``path`` as a boolean array on ``stack``'s voxels (nonzero: brain), brought into
+    """The mask file ``path`` as a boolean array on ``stack``'s voxels (the voxels the server takes for
+    brain: :func:`~client.scanner_stack.mask_voxels`), brought into
     the stack's voxel order where it stores the same grid's voxels in another (axes swapped or
     reversed, as tools that reorient files write them; as the service reads it);
     :class:`UnusableInput` when it is on another grid or not a NIfTI file.
@@ -349,7 +366,7 @@ def _mask(path: Path, stack: nib.Nifti1Image) -> NDArray[np.bool_]:
             corner = values.shape[i] - 1 - corner
         if abs(corner) > 1e-2:
             raise refused
-    return moved != 0
+    return mask_voxels(moved)
 
 
 def _binary_as_stored(path: Path, stack: nib.Nifti1Image) -> bool:
@@ -369,6 +386,8 @@ def _binary_as_stored(path: Path, stack: nib.Nifti1Image) -> bool:
     if not named_as_stored(path):                       # ITK would not read it as named
         return False
     image = nifti_image(path)
+    if isinstance(image, nib.Nifti2Image):              # nor read NIfTI-2
+        return False
     values = np.asarray(image.dataobj)
     same_order = np.allclose(np.linalg.inv(image.affine) @ stack.affine, np.eye(4), atol=1e-2)
     return bool(same_order and values.shape == tuple(stack.shape[:3]) and np.isin(values, (0, 1)).all())
