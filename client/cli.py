@@ -60,7 +60,7 @@ from client.cli_support import (DEFAULT_VOLUME, DELETE_HELP, ApiKeyOpt, BiasCorr
                                 MasksHoldCsfOpt, OverwriteOpt, MaxExpectedOpt, McSamplesOpt, ModelOpt, ServerOpt,
                                 STACK_SPACE_HELP, StackSpaceOpt, StacksArg, ThresholdOpt, check_folder_writable,
                                 check_masks, check_writable, follow_job, job_id_of,
-                                once_or_per_stack, resolution_range, slice_order_words, timeout_from_env, user_path,
+                                once_or_per_stack, resolution_range, slice_order_words, timeout_from_env, user_path, volume_path,
                                 write_json, write_results)
 from client.errors import ArgumentError, NotFound, SVRnetError
 from client.exits import (EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, EXIT_USAGE, errors, fail,
@@ -231,8 +231,8 @@ def reconstruct(
     max_expected_error: MaxExpectedOpt = None,
     wait: Annotated[bool, typer.Option("--wait", help="wait for the job and download its results")] = False,
     out: Annotated[Optional[Path], typer.Option(
-        "--out", "-o", dir_okay=False, callback=user_path,
-        help="volume file (implies --wait; default recon.nii.gz with --wait)")] = None,
+        "--out", "-o", dir_okay=False, callback=volume_path,
+        help="volume file, .nii.gz or .nii (uncompressed) (implies --wait; default recon.nii.gz with --wait)")] = None,
     preview: Annotated[Optional[Path], typer.Option(
         dir_okay=False, callback=user_path, help="also download the preview PNG here (implies --wait)")] = None,
     poses_out: Annotated[Optional[Path], typer.Option(
@@ -324,7 +324,8 @@ def fetch(
     server: ServerOpt = DEFAULT_SERVER,
     api_key: ApiKeyOpt = None,
     out: Annotated[Optional[Path], typer.Option(
-        "--out", "-o", dir_okay=False, callback=user_path, help="volume file (default recon.nii.gz)")] = None,
+        "--out", "-o", dir_okay=False, callback=volume_path,
+        help="volume file, .nii.gz or .nii (uncompressed) (default recon.nii.gz)")] = None,
     preview: Annotated[Optional[Path], typer.Option(dir_okay=False, callback=user_path,
                                                     help="also download the preview PNG here")] = None,
     poses_out: Annotated[Optional[Path], typer.Option(

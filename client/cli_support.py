@@ -63,6 +63,25 @@ def user_path(value: Path | None) -> Path | None:
     return None if value is None else value.expanduser()
 
 
+def volume_path(value: Path | None) -> Path | None:
+    """A volume file option (:func:`user_path`) whose name says NIfTI, as the volume is written:
+    ``.nii.gz`` as the server sends it, ``.nii`` uncompressed; another name is refused before
+    anything is sent (a file named ``.nrrd`` holding gzipped NIfTI opens nowhere).
+
+    Example:
+        >>> volume_path(Path("recon.NII")), volume_path(None)
+        (PosixPath('recon.NII'), None)
+        >>> try:
+        ...     volume_path(Path("recon.mha"))
+        ... except typer.BadParameter as e:
+        ...     print(e)
+        recon.mha: the volume is NIfTI; name it .nii.gz, or .nii to have it uncompressed
+    """
+    if value is not None and not value.name.lower().endswith((".nii.gz", ".nii")):
+        raise typer.BadParameter(f"{value.name}: the volume is NIfTI; name it .nii.gz, or .nii to have it uncompressed")
+    return user_path(value)
+
+
 def check_writable(overwrite: bool = False, **paths: Path | None) -> None:
     """Output files (by option name) must be writable BEFORE anything is uploaded (not after an hour of
     reconstruction), and new unless ``overwrite``: a second patient's results never replace the first's

@@ -130,9 +130,10 @@ class JobCalls(Transport):
 
     def download_volume(self, job_id: str, out_path: PathLike,
                         progress: ProgressCallback | None = None, stack: int | None = None) -> Path:
-        """``GET /v1/reconstructions/{job_id}/volume``: the ``.nii.gz`` in atlas space, written to ``out_path``;
-        with ``stack``, placed in that stack's scanner coordinates (its index in the upload; the same
-        voxels, so that it overlays the stack in a viewer).
+        """``GET /v1/reconstructions/{job_id}/volume``: the ``.nii.gz`` in atlas space, written to ``out_path``
+        (uncompressed where its name ends in ``.nii``, as viewers then read it); with ``stack``, placed
+        in that stack's scanner coordinates (its index in the upload; the same voxels, so that it
+        overlays the stack in a viewer).
 
         The file is written under a temporary name and renamed when complete.
 
@@ -147,7 +148,8 @@ class JobCalls(Transport):
             PosixPath('recon_stack0.nii.gz')
         """
         query = "" if stack is None else f"?stack={int(stack)}"
-        return self._download(self._job_path(job_id, "/volume") + query, out_path, progress)
+        return self._download(self._job_path(job_id, "/volume") + query, out_path, progress,
+                              gunzip=str(out_path).lower().endswith(".nii"))
 
     def download_preview(self, job_id: str, out_path: PathLike,
                          progress: ProgressCallback | None = None) -> Path:

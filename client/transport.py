@@ -19,6 +19,7 @@ import random
 import secrets
 import ssl
 import time
+import zlib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Self, Union
@@ -262,9 +263,12 @@ class Transport:
                                    status=response.status_code,
                                    request_id=response.headers.get("x-request-id")) from exc
 
-    def _download(self, path: str, out_path: PathLike, progress: ProgressCallback | None) -> Path:
+    def _download(self, path: str, out_path: PathLike, progress: ProgressCallback | None,
+                  gunzip: bool = False) -> Path:
         """``GET path`` into ``out_path``, written under a temporary name and renamed when whole; a
-        download cut off is started again (up to the client's retries), never left half-written."""
+        download cut off is started again (up to the client's retries), never left half-written.
+        ``gunzip``: the file comes gzipped and is written decompressed (``progress`` counts the bytes
+        received)."""
         out = Path(out_path).expanduser()            # as a shell would: the CLI's paths come expanded already
         tmp = out.with_name(f".{out.name}.part-{secrets.token_hex(4)}")
         for attempt in range(self.retries + 1):
@@ -277,12 +281,15 @@ class Transport:
                                            status=response.status_code)
                 total = int(response.headers.get("content-length") or 0)
                 done = 0
+                inflate = zlib.decompressobj(wbits=31) if gunzip else None     # 31: a gzip member
                 with open(tmp, "wb") as fh:
                     for data in response.iter_bytes(CHUNK):
-                        fh.write(data)
+                        fh.write(data if inflate is None else inflate.decompress(data))
                         done += len(data)
                         if progress is not None:
                             progress(done, total or done)
+                    if inflate is not None and not inflate.eof:
+                        raise httpx.ReadError("the gzipped file ended early")
                 os.replace(tmp, out)
                 return out
             except httpx.TransportError as exc:

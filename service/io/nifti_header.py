@@ -194,10 +194,11 @@ what ITK writes, says the scanner's coordinates, which a volume in atlas space i
 
 def copy_transforms(path: Path, t: NiftiTransforms) -> None:
     """Write ``t`` into the header of the NIfTI-1 file at ``path`` (``.nii`` or ``.nii.gz``, as the
-    service writes them): both transforms and their codes, qfac and the voxel edges. Nothing else of
-    the upload's header (descriptions, names) is copied."""
+    service writes them): both transforms and their codes, qfac, the voxel edges and the unit they are
+    in (ITK scales a qform by it: a mask in millimetres over a stack in metres lies elsewhere in ITK's
+    viewers). Nothing else of the upload's header (descriptions, names) is copied."""
     _put_fields(path, {"qform_code": [t.qform_code], "sform_code": [t.sform_code], "pixdim": t.pixdim,
-                       "quatern": t.quatern, "srow": t.srow})
+                       "quatern": t.quatern, "srow": t.srow, "units": [t.spatial_unit]})
 
 
 def set_sform(path: Path, affine: NDArray[np.float64]) -> None:
@@ -221,6 +222,9 @@ def _put_fields(path: Path, fields: dict[str, tuple[float, ...] | list[int]]) ->
     endian = "<" if int.from_bytes(data[:4], "little") == 348 else ">"
     at = LAYOUTS[348]
     for name, values in fields.items():
-        raw = np.asarray(values, endian + (at["code"] if name.endswith("_code") else at["f"])).tobytes()
+        if name == "units":                             # the spatial bits; the time unit kept as written
+            values = [(int(data[at[name]]) & ~7) | (int(values[0]) & 7)]
+        kind = at["unit"] if name == "units" else at["code"] if name.endswith("_code") else at["f"]
+        raw = np.asarray(values, endian + kind).tobytes()
         data[at[name]:at[name] + len(raw)] = raw
     path.write_bytes(gzip.compress(bytes(data), compresslevel=6) if compressed else bytes(data))

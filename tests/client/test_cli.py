@@ -875,3 +875,14 @@ def test_a_stack_without_brain_whose_name_says_mask_is_told_to_be_sent_as_a_mask
     assert "sent as a stack" not in hints[1]
     unmasked = {"stacks": [{**body["stacks"][1], "filename": "sub-01_T2w_unmasked.nii.gz"}]}
     assert "upload a brain mask with --mask" in views.predict_hints(unmasked)[0]     # the word, not a part of one
+
+
+@pytest.mark.parametrize("command", ["reconstruct", "fetch"])
+def test_a_volume_file_not_named_nifti_is_refused_before_anything_is_sent(command: str, fake_cli: Callable,
+                                                                          stack_file: Path, tmp_path: Path) -> None:
+    """The volume is NIfTI: ``--out recon.mha`` (or ``.nrrd``) would hold gzipped NIfTI that no viewer opens."""
+    fake, _ = fake_cli()
+    args = [str(stack_file), "--wait"] if command == "reconstruct" else ["job1"]
+    r = invoke([command, *args, "--out", str(tmp_path / "recon.mha")])
+    assert r.exit_code == 2 and "name it .nii.gz, or .nii" in r.output
+    assert not fake.jobs.uploads and not (tmp_path / "recon.mha").exists()

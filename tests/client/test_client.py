@@ -443,6 +443,28 @@ def test_api_key_header_and_non_json_server_error() -> None:
 # --- (c) reconstruction jobs against a fake of the contract ----------------------------------------------------
 
 
+def test_a_volume_named_nii_is_written_uncompressed_and_a_cut_stream_leaves_nothing(stack_file: Path, mask_file: Path,
+                                                                                     tmp_path: Path) -> None:
+    """The server sends the volume gzipped; a file named ``.nii`` gets it decompressed (a viewer reads a
+    ``.nii`` as plain NIfTI), one named ``.nii.gz`` as it came; a gzip stream that ends early is no file."""
+    import gzip
+
+    raw = bytes(range(256)) * 4000
+
+    class GzippedJobs(FakeJobs):
+        VOLUME = gzip.compress(raw)
+
+    fake = GzippedJobs()
+    svr = mock(fake)
+    svr.reconstruct([stack_file], [mask_file])
+    svr.wait("job1", poll_s=0.0)
+    assert svr.download_volume("job1", tmp_path / "recon.nii").read_bytes() == raw
+    assert svr.download_volume("job1", tmp_path / "recon.nii.gz").read_bytes() == GzippedJobs.VOLUME
+    GzippedJobs.VOLUME = GzippedJobs.VOLUME[:-20]
+    with pytest.raises(ConnectionFailed, match="ended early"):
+        mock(fake, retries=0).download_volume("job1", tmp_path / "cut.nii")
+    assert not (tmp_path / "cut.nii").exists() and not list(tmp_path.glob(".*part*"))
+
 def test_job_flow(stack_file: Path, mask_file: Path, tmp_path: Path, no_sleep: list[float]) -> None:
     fake = FakeJobs()
     svr = mock(fake)

@@ -161,3 +161,27 @@ def test_a_grid_refused_in_a_header_that_names_another_unit_says_so(tmp_path: Pa
     assert parse(bytes(raw[:348])).spatial_unit == units
     with pytest.raises(UnusableImage, match=f"its NIfTI header says its distances are in {named}"):
         read_upload(path, "u.nii")
+
+
+@pytest.mark.parametrize("units", [1, 3, 2 | 8])
+def test_a_written_mask_names_the_uploads_distance_unit_and_lies_on_it_in_itk(units: int, tmp_path: Path) -> None:
+    """A stack whose header says metres (or microns) is placed by ITK a thousand times larger (or
+    smaller) than it reads in millimetres: the mask written over it says the same unit, so that ITK
+    puts mask and stack on one grid; the time unit the service writes is kept."""
+    sitk = pytest.importorskip("SimpleITK")
+    affine = sform_of((1.1, 0.9, 3.3), 30, (-40, 12, 7))
+    img = nib.Nifti1Image(np.zeros(SHAPE, np.float32), affine)
+    img.header.set_qform(affine, code=1)
+    img.header.set_sform(affine, code=1)
+    img.header["xyzt_units"] = units
+    nib.save(img, str(tmp_path / "stack.nii"))
+    upload = read_upload(tmp_path / "stack.nii", "stack.nii")
+    out = tmp_path / "mask.nii.gz"
+    write_volume(Volume(np.ones(SHAPE, np.uint8), upload.affine), out)
+    written_time = int(nib.load(str(out)).header["xyzt_units"]) & ~7
+    copy_transforms(out, upload.nifti)
+    assert int(nib.load(str(out)).header["xyzt_units"]) == (units & 7) | written_time
+    stack, mask = sitk.ReadImage(str(tmp_path / "stack.nii")), sitk.ReadImage(str(out))
+    np.testing.assert_allclose(mask.GetSpacing(), stack.GetSpacing(), rtol=1e-5)
+    np.testing.assert_allclose(mask.GetOrigin(), stack.GetOrigin(), rtol=1e-5, atol=1e-3)
+    np.testing.assert_allclose(read_volume(out).affine, affine, atol=1e-4)       # the service reads it in mm
