@@ -192,6 +192,57 @@ ALIGNED_ANAT = 2
 what ITK writes, says the scanner's coordinates, which a volume in atlas space is not."""
 
 
+RIGID_TOLERANCE = 1e-3
+"""How far a map's rotation part may lie from a rotation (largest entry of ``R^T R - I``) and still be one."""
+
+
+def qform_from_sform(t: NiftiTransforms | None) -> NDArray[np.float64] | None:
+    """Where a file's qform places the voxel its sform places at ``p`` (RAS mm -> RAS mm, ``qform ·
+    sform^-1``): the move between the two readings of a file whose header sets both transforms
+    (codes over 0), which the service reads by the sform and ITK, with a sform code other than 1, by
+    the qform. None where the header does not set both, or the two agree, or the move is no rotation
+    and shift (a qform could not follow a volume placed by it).
+
+    Example (a qform 15 mm along x from the sform):
+        >>> from dataclasses import replace
+        >>> t = NiftiTransforms(1, 2, (1.0, 1.0, 1.0, 3.0), (0.0, 0.0, 0.0, 15.0, 0.0, 0.0),
+        ...                     (1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 3.0, 0))
+        >>> qform_from_sform(t)[:3, 3].tolist(), qform_from_sform(replace(t, qform_code=0))
+        ([15.0, 0.0, 0.0], None)
+    """
+    if t is None or t.qform_code <= 0 or t.sform_code <= 0:
+        return None
+    move = qform_affine(t) @ np.linalg.inv(sform_affine(t))
+    rotation = move[:3, :3]
+    if np.abs(rotation.T @ rotation - np.eye(3)).max() > RIGID_TOLERANCE or np.linalg.det(rotation) <= 0:
+        return None
+    if np.abs(move - np.eye(4)).max() <= RIGID_TOLERANCE:
+        return None
+    return move
+
+
+def placed_by(sform: NDArray, qform: NDArray, qform_code: int, sform_code: int) -> NiftiTransforms:
+    """The header fields (:func:`copy_transforms`) of a NIfTI-1 file placed by ``sform`` and ``qform``
+    (voxel -> RAS mm, each with orthogonal axes) under these codes, qfac and quaternion as the
+    standard builds them (nibabel's ``set_qform``).
+
+    Example:
+        >>> a = np.diag([-1.2, 1.2, 3.0, 1.0]); a[:3, 3] = (5.0, -4.0, 2.0)
+        >>> t = placed_by(a, a, 1, 2)
+        >>> bool(np.allclose(qform_affine(t), a, atol=1e-5)), t.sform_code, t.pixdim[1:]
+        (True, 2, (1.2000000476837158, 1.2000000476837158, 3.0))
+    """
+    import nibabel
+
+    header = nibabel.Nifti1Header()
+    header.set_qform(np.asarray(qform, np.float64), int(qform_code))
+    header.set_sform(np.asarray(sform, np.float64), int(sform_code))
+    quatern = ("quatern_b", "quatern_c", "quatern_d", "qoffset_x", "qoffset_y", "qoffset_z")
+    return NiftiTransforms(int(header["qform_code"]), int(header["sform_code"]),
+                           tuple(float(v) for v in header["pixdim"][:4]), tuple(float(header[k]) for k in quatern),
+                           tuple(float(v) for row in ("srow_x", "srow_y", "srow_z") for v in header[row]))
+
+
 def copy_transforms(path: Path, t: NiftiTransforms) -> None:
     """Write ``t`` into the header of the NIfTI-1 file at ``path`` (``.nii`` or ``.nii.gz``, as the
     service writes them): both transforms and their codes, qfac, the voxel edges and the unit they are

@@ -23,12 +23,14 @@ Example:
 from __future__ import annotations
 
 import json
+from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from service.io.limits import raise_if_out_of_space
+from service.io.nifti_header import NiftiTransforms
 from service.io.volume import Volume
 
 if TYPE_CHECKING:
@@ -36,14 +38,16 @@ if TYPE_CHECKING:
 
 
 def keep_volume(volume: Volume, path: Path) -> None:
-    """Write ``volume``'s voxels, affine, acquisition order, slice thickness and slice axis to ``path``
-    (``.npz``; nothing else of the file it was read from)."""
+    """Write ``volume``'s voxels, affine, acquisition order, slice thickness, slice axis and the
+    transforms of its NIfTI header (where it was read from one: how other readers place the stack) to
+    ``path`` (``.npz``; nothing else of the file it was read from)."""
     order = np.asarray(volume.acquisition_order if volume.acquisition_order is not None else [], np.int64)
     try:
         np.savez(path, array=volume.array, affine=np.asarray(volume.affine, np.float64), acquisition_order=order,
                  has_order=volume.acquisition_order is not None,
                  slice_thickness_mm=np.nan if volume.slice_thickness_mm is None else volume.slice_thickness_mm,
-                 slice_axis=-1 if volume.slice_axis is None else volume.slice_axis)
+                 slice_axis=-1 if volume.slice_axis is None else volume.slice_axis,
+                 nifti=json.dumps(None if volume.nifti is None else asdict(volume.nifti)))
     except OSError as exc:
         raise_if_out_of_space(exc)        # a full disk is the server's (507)
         raise
@@ -63,10 +67,13 @@ def load_volume(path: Path) -> Volume:
     """The :class:`Volume` :func:`keep_volume` wrote to ``path``."""
     with np.load(path, allow_pickle=False) as kept:
         thickness, axis = float(kept["slice_thickness_mm"]), int(kept["slice_axis"])
+        fields = json.loads(str(kept["nifti"])) if "nifti" in kept.files else None     # a job queued before it
+        nifti = None if fields is None else NiftiTransforms(
+            **{k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()})
         return Volume(kept["array"], kept["affine"],
                       tuple(int(k) for k in kept["acquisition_order"]) if bool(kept["has_order"]) else None,
                       slice_thickness_mm=None if np.isnan(thickness) else thickness,
-                      slice_axis=None if axis < 0 else axis)
+                      slice_axis=None if axis < 0 else axis, nifti=nifti)
 
 
 def keep_decoded(uploads: list[StackUpload], inputs: Path) -> None:

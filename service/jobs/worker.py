@@ -309,7 +309,8 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
     result.timings = {**result.timings, "job": time.perf_counter() - t0}
     extra = {"started_from": started_from, **job.report(),
              "provenance": provenance(body.get("model"), uploads, localiser, bool(params.get("masks_hold_csf", False)))}
-    report = write_outputs(result, slice_set, folder / "outputs", extra=extra, more_files=("poses.json",))
+    report = write_outputs(result, slice_set, folder / "outputs", extra=extra, more_files=("poses.json",),
+                           stack_headers=[u.volume.nifti for u in uploads])
     slice_frames = [split_stack(u.volume, np.ones(u.volume.array.shape, bool)).slice_from_voxel for u in uploads]
     refined = refined_poses_body(body, result.atlas_from_voxel_final, slice_frames, included=result.included,
                                  weight=result.slice_weight, ncc=result.ncc, held_out_ncc=result.held_out_ncc,

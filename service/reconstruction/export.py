@@ -34,12 +34,13 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from service.geometry import frames
-from service.io.nifti_header import ALIGNED_ANAT, set_codes
+from service.io.nifti_header import ALIGNED_ANAT, NiftiTransforms, copy_transforms, placed_by, set_codes
 from service.io.volume import Volume, read_volume, write_volume
 from service.reconstruction.pipeline import ReconstructionResult
 from service.reconstruction.preview import preview_png
 from service.reconstruction.slices import SliceSet
-from service.reconstruction.stack_space import in_stack_space, scanner_from_atlas, stack_frame, stack_frames
+from service.reconstruction.stack_space import (in_stack_space, scanner_from_atlas, stack_frame, stack_frames,
+                                                with_header)
 
 TFM_HEADER = "#Insight Transform File V1.0"
 
@@ -112,7 +113,7 @@ def listing_text(result: ReconstructionResult, slices: SliceSet) -> str:
 
 
 def write_outputs(result: ReconstructionResult, slices: SliceSet, folder: str | Path, extra: dict | None = None,
-                  more_files: tuple[str, ...] = ()) -> dict:
+                  more_files: tuple[str, ...] = (), stack_headers: list[NiftiTransforms | None] | None = None) -> dict:
     """Write ``volume.nii.gz`` (its NIfTI codes :data:`~service.io.nifti_header.ALIGNED_ANAT`: atlas
     coordinates), ``preview.png``, ``report.json`` and ``transforms/`` into ``folder``.
 
@@ -123,6 +124,8 @@ def write_outputs(result: ReconstructionResult, slices: SliceSet, folder: str | 
         extra: more entries for the report (e.g. the job's ``atlas_frame``).
         more_files: files the caller writes into ``folder`` after these, listed with them in the
             report's ``files``.
+        stack_headers: each stack's NIfTI transforms (None: not read from NIfTI), kept in its
+            ``stack_frames`` entry for the volume placed in its coordinates.
 
     Returns:
         The JSON-ready report (counts, geometry, timings, file names and, per slice, inclusion, weight
@@ -153,9 +156,10 @@ def write_outputs(result: ReconstructionResult, slices: SliceSet, folder: str | 
         "shape": [int(s) for s in result.volume.array.shape],
         "resolution_mm": [float(s) for s in result.volume.spacing],
         "affine": result.volume.affine.tolist(),
-        "stack_frames": [frame.as_json() for frame in stack_frames(
-            result.atlas_from_voxel_final, slices.stack_affine, slices.stack_index,
-            np.where(result.included, result.slice_weight, 0.0))],
+        "stack_frames": [with_header(frame, (stack_headers or [])[frame.stack:frame.stack + 1]).as_json()
+                         for frame in stack_frames(result.atlas_from_voxel_final, slices.stack_affine,
+                                                   slices.stack_index, np.where(result.included, result.slice_weight,
+                                                                                0.0))],
         "timings_s": {k: round(float(v), 3) for k, v in result.timings.items()},
         "files": ["volume.nii.gz", "preview.png", "report.json", "transforms/slice_transforms.txt",
                   f"transforms/*.tfm ({len(tfms)})", "transforms.zip", *more_files],
@@ -174,5 +178,9 @@ def volume_in_stack_space(volume_path: Path, report: dict, stack: int, target: P
     no such stack or no place for it, OSError where the volume is gone."""
     frame = stack_frame(report, stack)
     volume = read_volume(volume_path)
-    write_volume(Volume(volume.array, in_stack_space(volume.affine, frame)), target)
+    sform = in_stack_space(volume.affine, frame)
+    write_volume(Volume(volume.array, sform), target)
+    if frame.nifti_codes is not None:              # the stack's header: read by its qform, the volume is too
+        qform = sform if frame.qform_from_sform is None else frame.qform_from_sform @ sform
+        copy_transforms(target, placed_by(sform, qform, *frame.nifti_codes))
     return target

@@ -27,12 +27,13 @@ Example (two slices of one stack, 2 mm apart along x about the same frame):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from service.geometry import se3
+from service.io.nifti_header import NiftiTransforms, qform_from_sform
 from service.inference.acceptance import ATLAS_CENTRE_MM
 
 RADIUS_MM = 40.0
@@ -42,18 +43,26 @@ RADIUS_MM = 40.0
 @dataclass(frozen=True)
 class StackFrame:
     """One stack's place: ``scanner_from_atlas`` (``4 x 4``, RAS mm, rigid; None where no slice of the
-    stack is in the volume), the slices it is the mean of, and ``motion_mm`` (see the module)."""
+    stack is in the volume), the slices it is the mean of, and ``motion_mm`` (see the module); for a
+    stack read from a NIfTI file, its header's ``nifti_codes`` (``qform_code, sform_code``) and
+    ``qform_from_sform`` (:func:`~service.io.nifti_header.qform_from_sform`: where its qform places
+    what its sform, the service's placement, puts at ``p``; None where they agree), which the volume
+    placed in its coordinates takes over, so that every reader places both alike."""
 
     stack: int
     scanner_from_atlas: NDArray[np.float64] | None
     slices: int
     motion_mm: float | None
+    nifti_codes: tuple[int, int] | None = None
+    qform_from_sform: NDArray[np.float64] | None = None
 
     def as_json(self) -> dict:
         """The report's entry (``stack_frames[]``)."""
         return {"stack": self.stack, "slices": self.slices,
                 "scanner_from_atlas": None if self.scanner_from_atlas is None else self.scanner_from_atlas.tolist(),
-                "motion_mm": None if self.motion_mm is None else round(float(self.motion_mm), 3)}
+                "motion_mm": None if self.motion_mm is None else round(float(self.motion_mm), 3),
+                "nifti_codes": None if self.nifti_codes is None else list(self.nifti_codes),
+                "qform_from_sform": None if self.qform_from_sform is None else self.qform_from_sform.tolist()}
 
 
 class NoStackFrame(LookupError):
@@ -95,6 +104,16 @@ def stack_frames(atlas_from_voxel: ArrayLike, stack_affine: ArrayLike, stack_ind
     return out
 
 
+def with_header(frame: StackFrame, header: list[NiftiTransforms | None]) -> StackFrame:
+    """``frame`` with its stack's NIfTI header (``header``: its transforms in a list of one, or an
+    empty list or ``[None]`` for a stack not read from NIfTI): the codes and the qform's move that a
+    volume placed in the stack's coordinates takes over."""
+    t = header[0] if header else None
+    if t is None:
+        return frame
+    return replace(frame, nifti_codes=(int(t.qform_code), int(t.sform_code)), qform_from_sform=qform_from_sform(t))
+
+
 def _nearest_rigid(transforms: NDArray) -> NDArray[np.float64]:
     """``[n, 4, 4]`` the rigid transforms nearest to ``transforms`` of positive determinant (their
     rotation parts projected onto SO(3)); the per-slice maps are rigid up to the rounding of the
@@ -117,8 +136,10 @@ def stack_frame(report: dict, stack: int) -> StackFrame:
     entry = entries[stack]
     if entry.get("scanner_from_atlas") is None:
         raise NoStackFrame(f"stack {stack} has no slice in the volume: no place to put the volume by")
+    codes, move = entry.get("nifti_codes"), entry.get("qform_from_sform")        # absent: a job of an earlier version
     return StackFrame(stack, np.asarray(entry["scanner_from_atlas"], np.float64), int(entry.get("slices") or 0),
-                      entry.get("motion_mm"))
+                      entry.get("motion_mm"), None if codes is None else (int(codes[0]), int(codes[1])),
+                      None if move is None else np.asarray(move, np.float64))
 
 
 def in_stack_space(volume_affine: ArrayLike, frame: StackFrame) -> NDArray[np.float64]:

@@ -207,6 +207,7 @@ def test_the_volume_is_served_in_a_stack_s_scanner_coordinates(client: TestClien
     frames = st["report"]["stack_frames"]
     assert [f["stack"] for f in frames] == [0, 1, 2] and all(f["slices"] > 0 for f in frames)
     assert all(f["motion_mm"] < 1.0 for f in frames)
+    assert all(f["nifti_codes"] is not None and f["qform_from_sform"] is None for f in frames)   # NIfTI, one place
     frame = np.array(frames[1]["scanner_from_atlas"])
     np.testing.assert_allclose(frame, np.eye(4), atol=0.5)
     (tmp_path / "atlas.nii.gz").write_bytes(client.get(st["result_url"]).content)

@@ -63,7 +63,8 @@ def test_slices_out_of_the_volume_take_no_part_and_a_stack_without_any_has_no_fr
     np.testing.assert_allclose(frames[0].scanner_from_atlas, SCANNER_FROM_ATLAS, atol=1e-9)
     assert frames[0].slices == SHAPE[2] - 4
     assert frames[1] == StackFrame(1, None, 0, None)
-    assert frames[1].as_json() == {"stack": 1, "slices": 0, "scanner_from_atlas": None, "motion_mm": None}
+    assert frames[1].as_json() == {"stack": 1, "slices": 0, "scanner_from_atlas": None, "motion_mm": None,
+                                  "nifti_codes": None, "qform_from_sform": None}
     with pytest.raises(NoStackFrame, match="stack 1 has no slice"):
         in_stack_space(np.eye(4), frames[1])
 
@@ -111,3 +112,44 @@ def test_the_atlas_volume_placed_by_the_frame_overlays_the_stack_through_a_nifti
 
     assert ncc(placed.affine) > 0.99
     assert ncc(brain_affine) < 0.5                                   # the atlas-space volume misses it
+
+
+@pytest.mark.parametrize("codes", [(1, 2), (2, 1), (1, 1)])
+def test_a_stack_whose_qform_and_sform_differ_gets_a_volume_every_reader_places_as_it_places_the_stack(
+        codes: tuple[int, int], tmp_path: Path) -> None:
+    """A stack file whose qform lies 15 mm and 8 degrees from its sform is placed by the sform in the
+    service and nibabel, and by the qform in ITK (its sform code other than 1): the volume placed in
+    its coordinates carries the stack's codes and a qform moved as the stack's is, so that in either
+    reader each volume voxel lies on the stack voxel the service says it does."""
+    sitk = pytest.importorskip("SimpleITK")
+    nib = pytest.importorskip("nibabel")
+    from service.io.readers import read_upload
+    from service.reconstruction.stack_space import with_header
+
+    affine, atlas_from_voxel, _ = acquisition((0.0, 0.0))
+    move = make_pose(se3.so3_exp([0.0, 0.14, 0.0]), [15.0, 0.0, 4.0])        # qform = move @ sform
+    stack_file = nib.Nifti1Image(np.random.default_rng(1).random(SHAPE).astype(np.float32), affine)
+    stack_file.set_sform(affine, codes[1])
+    stack_file.set_qform(move @ affine, codes[0])
+    nib.save(stack_file, tmp_path / "stack.nii.gz")
+    upload = read_upload(tmp_path / "stack.nii.gz", "stack.nii.gz")
+    np.testing.assert_allclose(upload.affine, affine, atol=1e-4)               # the service reads the sform
+    frame = stack_frames(atlas_from_voxel, np.broadcast_to(affine, atlas_from_voxel.shape), np.zeros(SHAPE[2], int),
+                         np.ones(SHAPE[2]))[0]
+    entry = with_header(frame, [upload.nifti]).as_json()
+    assert entry["nifti_codes"] == list(codes)
+    np.testing.assert_allclose(entry["qform_from_sform"], move, atol=1e-4)
+    image, _, brain_affine = phantom_brain(2)
+    write_volume(Volume(image, brain_affine), tmp_path / "volume.nii.gz")
+    placed = volume_in_stack_space(tmp_path / "volume.nii.gz", {"stack_frames": [entry]}, 0, tmp_path / "placed.nii.gz")
+    voxels = np.array([[0.0, 0.0, 0.0], [30.0, 12.0, 40.0], [55.0, 63.0, 2.0]])
+    on_stack = apply(np.linalg.inv(affine) @ frame.scanner_from_atlas @ brain_affine, voxels)   # the service's word
+    for read in ("nibabel", "itk"):
+        if read == "nibabel":
+            volume_world = apply(nib.load(placed).affine, voxels)
+            stack_world = apply(nib.load(tmp_path / "stack.nii.gz").affine, on_stack)
+        else:
+            vol, stk = sitk.ReadImage(str(placed)), sitk.ReadImage(str(tmp_path / "stack.nii.gz"))
+            volume_world = np.array([vol.TransformContinuousIndexToPhysicalPoint(tuple(v)) for v in voxels])
+            stack_world = np.array([stk.TransformContinuousIndexToPhysicalPoint(tuple(v)) for v in on_stack])
+        np.testing.assert_allclose(volume_world, stack_world, atol=1e-3, err_msg=read)
