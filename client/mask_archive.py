@@ -31,9 +31,9 @@ MAX_NAME = 255
 def mask_names(stacks: list[Path]) -> list[str]:
     """The names api-v1 gives the masks of ``stacks``, sent as :meth:`SVRnetClient.masks` sends them
     (a folder as ``<folder>.zip``): ``<stem>_mask.nii.gz``, the stem the upload's name without its
-    extensions, only ``[A-Za-z0-9._-]``, made unique in order regardless of case with ``-1``, ``-2``
-    ..., at most 255 characters in all (the server's rule, written again: the client imports no
-    server code).
+    extensions, only ``[A-Za-z0-9._-]`` and no leading ``-``, made unique in order regardless of case
+    with ``-1``, ``-2`` ..., at most 255 characters in all (the server's rule, written again: the
+    client imports no server code).
 
     Example:
         >>> mask_names([Path("a/ax.nii.gz"), Path("b/AX.nii"), Path("x y.mha")])
@@ -45,7 +45,7 @@ def mask_names(stacks: list[Path]) -> list[str]:
         path = Path(stack)
         base = (f"{path.resolve().name}.zip" if path.is_dir() else path.name).replace("\\", "/").rsplit("/", 1)[-1]
         base = next((base[:-len(x)] for x in MASK_NAME_SUFFIXES if base.lower().endswith(x)), base)
-        stem = (re.sub(r"[^A-Za-z0-9._-]+", "_", base).strip("._") or "stack")[:longest]
+        stem = (re.sub(r"[^A-Za-z0-9._-]+", "_", base).strip("._").lstrip("-") or "stack")[:longest]
         candidate, k = stem, 0
         while candidate.lower() in {s.lower() for s in stems}:
             k += 1
