@@ -30,7 +30,9 @@ from scipy.ndimage import map_coordinates
 
 from service.io.volume import Volume
 
-GAP_PX = 2
+GAP_PX = 12
+"""Columns between two panels, a grey rule in the strip below them: the side letters of neighbouring
+panels (``A`` and ``L``, ``R`` and ``L``) stand apart."""
 LABEL_PX = 14
 """Height of the strip below the panels that names their sides and holds the scale bar."""
 SCALE_MM = 10.0
@@ -93,6 +95,8 @@ def preview_png(volume: Volume) -> bytes:
         draw.text((x + 1, height + 1), left, fill=255)
         draw.text((x + p.width - 7, height + 1), right, fill=255)
         x += p.width + GAP_PX
+        if x < width:
+            draw.line([(x - GAP_PX // 2 - 1, height), (x - GAP_PX // 2 - 1, height + LABEL_PX - 1)], fill=96)
     bar = max(1, round(SCALE_MM / float(volume.spacing.min())))        # pixels are the finest voxel edge
     start = (panels[0].width - bar) // 2
     draw.line([(start, height + LABEL_PX // 2), (start + bar - 1, height + LABEL_PX // 2)], fill=255, width=2)

@@ -15,7 +15,7 @@ from service.geometry.pose import apply
 from service.io.volume import Volume, read_volume, to_sitk
 from service.reconstruction.export import scanner_from_atlas, write_outputs
 from service.reconstruction.pipeline import reconstruct
-from service.reconstruction.preview import LABEL_PX, atlas_planes, preview_png, window
+from service.reconstruction.preview import GAP_PX, LABEL_PX, atlas_planes, preview_png, window
 from tests.reconstruction.helpers import perturb
 
 
@@ -85,26 +85,31 @@ def test_listing_report_volume_and_preview(written):
     assert np.allclose(header.get_best_affine(), result.volume.affine, atol=1e-4)
     png = Image.open(folder / "preview.png")
     i, j, k = result.volume.array.shape
-    assert png.size == (j + i + i + 4, max(k, j) + LABEL_PX) and png.mode == "L"
+    assert png.size == (j + i + i + 2 * GAP_PX, max(k, j) + LABEL_PX) and png.mode == "L"
 
 
 def test_preview_handles_anisotropic_and_empty_volumes():
     vol = Volume(np.random.default_rng(0).random((10, 12, 6)).astype(np.float32), np.diag([1.0, 1.0, 2.0, 1.0]))
     img = Image.open(io.BytesIO(preview_png(vol)))
-    assert img.size == (12 + 10 + 10 + 4, 12 + LABEL_PX)      # k stretched to 12 mm of 1 mm pixels
+    assert img.size == (12 + 10 + 10 + 2 * GAP_PX, 12 + LABEL_PX)      # k stretched to 12 mm of 1 mm pixels
     blank = Image.open(io.BytesIO(preview_png(Volume(np.zeros((4, 4, 4), np.float32), np.eye(4)))))
     assert np.asarray(blank)[:4].max() == 0                   # nothing in the panels; the strip names their sides
 
 
 def test_the_previews_strip_names_the_sides_and_draws_a_10_mm_bar() -> None:
-    """Below the panels: a letter at each panel's edges and, under the first panel, a bar of 10 mm
-    (20 pixels of 0.5 mm voxels, 10 of 1 mm ones)."""
+    """Below the panels: a letter at each panel's edges, neighbouring panels' letters apart (a gap with
+    a grey rule between them) and, under the first panel, a bar of 10 mm (20 pixels of 0.5 mm voxels,
+    10 of 1 mm ones)."""
     for voxel_mm, bar_px in ((0.5, 20), (1.0, 10)):
         vol = Volume(np.ones((40, 48, 32), np.float32), np.diag([voxel_mm] * 3 + [1.0]))
         strip = np.asarray(Image.open(io.BytesIO(preview_png(vol))))[-LABEL_PX:]
         assert (strip[LABEL_PX // 2, 8:41] == 255).sum() == bar_px      # between the letters
-        for edge in (slice(0, 7), slice(41, 48), slice(50, 57), slice(83, 90), slice(92, 99), slice(125, 132)):
-            assert strip[:, edge].max() > 128                 # a letter at both edges of every panel
+        starts = np.cumsum([0, 48 + GAP_PX, 40 + GAP_PX])
+        for start, width in zip(starts, (48, 40, 40)):
+            for edge in (slice(start, start + 7), slice(start + width - 7, start + width)):
+                assert strip[:, edge].max() > 128                 # a letter at both edges of every panel
+        for start in starts[1:]:
+            assert 0 < strip[:, start - GAP_PX:start].max() < 128       # the rule between two panels, no letter
 
 
 def _world_object(affine: np.ndarray, shape: tuple[int, int, int]) -> Volume:
