@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import functools
+import logging
+import os
 import re
 import shutil
 import tempfile
@@ -23,13 +25,15 @@ from pydantic import AfterValidator, StringConstraints, WithJsonSchema
 from service.api.deps import SettingsDep
 from service.consistency.slice_order import MAX_TEXT, PATTERN, VALUES, SliceOrder, per_stack
 from service.core.cancellation import carried, checkpoint
-from service.core.errors import InvalidParameter, UnusableImage
+from service.core.errors import InvalidParameter, NotReady, UnusableImage
 from service.core.names import clean_name, shown_name
 from service.core.settings import Settings
 from service.pipeline.prepare import StackUpload, mask_on_stack_grid
-from service.io.limits import DecodeBudget, raise_if_out_of_space
+from service.io.limits import MIN_FREE_BYTES, DecodeBudget, raise_if_out_of_space
 from service.io.readers import MAX_DECODED_BYTES, read_upload
 from service.preprocess.stack import slice_axis_of
+
+log = logging.getLogger(__name__)
 
 READ_WORKERS = 2
 # Files decoded at once in the whole process, whatever the number of requests: with the per-file
@@ -41,13 +45,41 @@ STALE_PREFIXES = ("svrnet-req-", "svrnet-read-", "svrnet-zip-")
 """The temporary folders of requests and readers (:func:`upload_directory`, :mod:`service.io.readers`)."""
 
 
+SCRATCH_NOT_WRITABLE = "the server cannot write its scratch folder (SVRNET_TMP_DIR); retry later"
+
+
 @contextmanager
 def upload_directory(base: Path | None) -> Iterator[Path]:
     """A private directory for this request's files, removed afterwards whatever happens; the readers
     decode into it too, so that a process killed mid-request leaves one folder for
-    :func:`sweep_stale_uploads`."""
-    with tempfile.TemporaryDirectory(prefix="svrnet-req-", dir=base) as tmp:
+    :func:`sweep_stale_uploads`. A scratch folder the server may not write is the server's fault, not
+    the request's: 503 (:func:`scratch_takes_uploads` has ``/readyz`` say so too); a full one 507."""
+    try:
+        scratch = tempfile.TemporaryDirectory(prefix="svrnet-req-", dir=base)
+    except OSError as exc:
+        raise_if_out_of_space(exc)
+        log.error("the scratch folder cannot be written (%s)", type(exc).__name__)
+        raise NotReady(SCRATCH_NOT_WRITABLE) from exc
+    with scratch as tmp:
         yield Path(tmp)
+
+
+def scratch_takes_uploads(base: Path | None) -> bool:
+    """Whether the scratch folder ``base`` (default: the system's temporary folder) can be written and
+    its disk has :data:`~service.io.limits.MIN_FREE_BYTES` left: ``/readyz``'s question, as for the
+    job store's folder; a replica whose scratch is full or read-only fails every upload.
+
+    Example:
+        >>> import tempfile
+        >>> scratch_takes_uploads(Path(tempfile.mkdtemp())), scratch_takes_uploads(Path("/nonexistent/svrnet"))
+        (True, False)
+    """
+    root = Path(base or tempfile.gettempdir())
+    try:
+        room = shutil.disk_usage(root).free >= MIN_FREE_BYTES
+    except OSError:
+        return False
+    return room and os.access(root, os.W_OK | os.X_OK)
 
 
 def sweep_stale_uploads(base: Path | None, older_than_s: float) -> int:

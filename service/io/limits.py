@@ -26,6 +26,9 @@ from collections.abc import Sequence
 from service.core.errors import InsufficientStorage, PayloadTooLarge, UnusableImage
 
 log = logging.getLogger(__name__)
+MIN_FREE_BYTES = 64 << 20
+"""The free disk a folder the server writes (its data folder, its scratch) must have for ``/readyz``
+to call it ready: less takes no upload."""
 NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
 
 

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from service.core.errors import QueueFull
+from service.io.limits import MIN_FREE_BYTES
 from service.jobs.runner import INTERRUPTED
 
 log = logging.getLogger(__name__)
@@ -39,9 +40,6 @@ _HELD: dict[tuple[str, str], float] = {}
 """The embedded store's words that a request of this process reads a submission: (data folder, job
 id) -> when it last said so. One process owns an embedded store (its file lock), so its own memory
 is where they are."""
-MIN_FREE_BYTES = 64 << 20
-"""The free disk a data folder must have for its store to be ready (``/readyz``): less takes no
-stack of a submission."""
 
 
 @dataclass
@@ -202,7 +200,7 @@ class JobStore(ABC):
         """Whether the store answers and its folders can take a job (:meth:`folders_take_jobs`)."""
 
     def folders_take_jobs(self, *paths: Path) -> bool:
-        """Whether the data folder and ``paths`` can be written and the disk has :data:`MIN_FREE_BYTES`
+        """Whether the data folder and ``paths`` can be written and the disk has :data:`~service.io.limits.MIN_FREE_BYTES`
         left: a read-only folder, or a full disk, answers reads and fails every submission."""
         try:
             room = shutil.disk_usage(self.data_dir).free >= MIN_FREE_BYTES

@@ -119,12 +119,18 @@ def _preload() -> None:
     import service.jobs.worker  # noqa: F401
 
 
+def worker_ttl_s(settings: Settings) -> int:
+    """How long a worker's registration lives in Redis without a heartbeat (RQ's ``worker_ttl``): at
+    least 30 s, as RQ's idle worker beats only when its wait for a job (the ttl less 15 s) ends."""
+    return max(30, settings.worker_lost_after_s)
+
+
 def build_worker(settings: Settings, name: str | None = None) -> SvrnetWorker:
     connection = redis.Redis.from_url(settings.queue_url)
     worker = SvrnetWorker([Queue(settings.queue_name, connection=connection)], connection=connection, name=name,
                           job_monitoring_interval=settings.worker_heartbeat_s,
                           maintenance_interval=max(1, int(settings.queue_maintenance_s)),
-                          worker_ttl=max(30, settings.worker_lost_after_s))
+                          worker_ttl=worker_ttl_s(settings))
     worker.lost_after_s = settings.worker_lost_after_s
     return worker
 
@@ -139,10 +145,12 @@ def work(settings: Settings, burst: bool = False, name: str | None = None) -> No
 
 
 def healthy(settings: Settings, host: str | None = None) -> bool:
-    """A worker of ``host`` (default: this one) is registered and its heartbeat is recent."""
+    """A worker of ``host`` (default: this one) is registered and its heartbeat is recent: within its
+    registration's life (:func:`worker_ttl_s`) and a heartbeat interval, so that an idle worker, which
+    beats only as often as that life allows, is not taken for a dead one between two beats."""
     connection = redis.Redis.from_url(settings.queue_url, socket_timeout=5, socket_connect_timeout=5)
     host = host or socket.gethostname()
-    limit = settings.worker_heartbeat_s + settings.worker_lost_after_s
+    limit = settings.worker_heartbeat_s + worker_ttl_s(settings)
     now = datetime.now(timezone.utc)
     for worker in Worker.all(connection=connection, queue=Queue(settings.queue_name, connection=connection)):
         beat = worker.last_heartbeat

@@ -74,6 +74,31 @@ def test_readyz_is_503_without_models() -> None:
     assert r.status_code == 503 and r.headers["retry-after"]
 
 
+
+def test_a_scratch_folder_that_cannot_take_uploads_makes_the_server_unready_and_uploads_a_503(
+        oracle, phantom_files, tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
+    """``SVRNET_TMP_DIR`` gone (or read-only) after the start, or its disk full: ``/readyz`` is 503 naming
+    it, so that a load balancer stops sending uploads; an upload sent all the same is a 503 (the
+    server's fault), not a 500; once the folder takes uploads again, both recover."""
+    import shutil
+
+    from service.api import uploads
+
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    with make_client(ModelRegistry({"default": oracle}), tmp_dir=scratch) as client:
+        assert client.get("/readyz").status_code == 200
+        scratch.rmdir()
+        r = client.get("/readyz")
+        assert r.status_code == 503 and "SVRNET_TMP_DIR" in r.json()["detail"] and r.headers["retry-after"]
+        sent = upload(client, *phantom_files[:2])
+        assert sent.status_code == 503 and "scratch folder" in sent.json()["detail"], sent.text
+        scratch.mkdir()
+        assert client.get("/readyz").status_code == 200
+        monkeypatch.setattr(uploads.shutil, "disk_usage",
+                            lambda path: shutil._ntuple_diskusage(10 << 30, 10 << 30, 1 << 20))   # 1 MB free
+        assert client.get("/readyz").status_code == 503
+
 def test_a_job_store_that_hangs_is_reported_down_without_waiting_for_it(oracle, monkeypatch) -> None:  # noqa: ANN001
     """A store that takes the question and answers nothing (a hung Redis costs each question its 10 s
     socket timeout): ``/readyz`` answers 503 naming the wait, and ``/metrics`` reports the store down,

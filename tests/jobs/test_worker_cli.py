@@ -180,3 +180,30 @@ def test_a_worker_that_ends_unasked_is_started_again_and_the_pool_still_stops_wa
         assert proc.poll() is None and len(list(tmp_path.iterdir())) == 4   # the pool keeps two, no more
         os.kill(proc.pid, signal.SIGTERM)
         assert proc.wait(timeout=30) == 0
+
+
+@pytest.mark.parametrize("lost_after_s", [5, 60])
+def test_an_idle_workers_health_holds_between_its_beats_whatever_the_lost_after_setting(
+        lost_after_s: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An idle RQ worker beats only when its wait for a job ends (its registration's life less 15 s):
+    ``--health`` counts it alive for that life and a heartbeat interval, at least 30 s, so that a small
+    ``SVRNET_WORKER_LOST_AFTER_S`` does not make a container's health check flap; a worker silent past
+    it is not alive."""
+    import socket
+    from datetime import datetime, timedelta, timezone
+    from types import SimpleNamespace
+
+    from service.core.settings import Settings
+    from service.jobs import worker_cli
+
+    settings = Settings(queue_url="redis://127.0.0.1:1/0", worker_heartbeat_s=2, worker_lost_after_s=lost_after_s)
+    life = worker_cli.worker_ttl_s(settings)
+    assert life == max(30, lost_after_s)
+    beats: list[float] = []
+    monkeypatch.setattr(worker_cli.redis.Redis, "from_url", staticmethod(lambda *a, **k: None))
+    monkeypatch.setattr(worker_cli, "Queue", lambda *a, **k: None)
+    monkeypatch.setattr(worker_cli.Worker, "all", staticmethod(lambda **k: [SimpleNamespace(
+        hostname=socket.gethostname(), last_heartbeat=datetime.now(timezone.utc) - timedelta(seconds=beats[-1]))]))
+    for silent_s, alive in ((life - 15 + 1, True), (life + 1, True), (life + settings.worker_heartbeat_s + 5, False)):
+        beats.append(silent_s)
+        assert worker_cli.healthy(settings) is alive, silent_s
