@@ -6,6 +6,7 @@ duration, counts and model names. File names, DICOM attributes and error details
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import re
@@ -185,12 +186,41 @@ class HandshakePaths(logging.Filter):
         return True
 
 
+class GraceCancellations(logging.Filter):
+    """Rewrites uvicorn's ``Exception in ASGI application`` ERROR for a request it cancelled because
+    the server stopped past its shutdown grace (the request itself answered 503 and logged its line)
+    as an INFO line saying so (none where the logger is set above INFO): a routine rolling restart
+    raises no alert.
+
+    Example:
+        >>> import asyncio, sys
+        >>> try:
+        ...     raise asyncio.CancelledError()
+        ... except asyncio.CancelledError:
+        ...     record = logging.LogRecord("example.grace", 40, "", 0, "Exception in ASGI application\\n", (),
+        ...                                sys.exc_info())
+        >>> logging.getLogger("example.grace").setLevel(logging.INFO)
+        >>> GraceCancellations().filter(record), record.levelname, record.getMessage(), record.exc_info
+        (True, 'INFO', 'request cancelled: the server stopped past its shutdown grace', None)
+    """
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        cancelled = record.exc_info is not None and isinstance(record.exc_info[1], asyncio.CancelledError)
+        if cancelled and isinstance(record.msg, str) and record.msg.startswith("Exception in ASGI application"):
+            record.levelno, record.levelname = logging.INFO, "INFO"
+            record.msg, record.args, record.exc_info, record.exc_text = \
+                "request cancelled: the server stopped past its shutdown grace", (), None, None
+            return logging.getLogger(record.name).isEnabledFor(logging.INFO)
+        return True
+
+
 def server_log_config(level: str, websocket_paths: tuple[str, ...] = ()) -> dict:
     """uvicorn's ``log_config``: its own loggers write the same JSON lines as the service's (a
     startup line, a refused request, an error in the server) at :func:`server_log_level`, an
     exception by its type and place only, so that stderr holds one format and no traceback; its
     WebSocket handshake lines name the route (one of ``websocket_paths``), never the path or query
-    string sent, nor the client's address (:class:`HandshakePaths`).
+    string sent, nor the client's address (:class:`HandshakePaths`); a request cancelled past the
+    shutdown grace is an INFO line, not an ERROR (:class:`GraceCancellations`).
 
     Example:
         >>> config = server_log_config("debug")
@@ -199,8 +229,9 @@ def server_log_config(level: str, websocket_paths: tuple[str, ...] = ()) -> dict
     """
     return {"version": 1, "disable_existing_loggers": False,
             "formatters": {"json": {"()": JsonFormatter}},
-            "filters": {"handshakes": {"()": HandshakePaths, "paths": list(websocket_paths)}},
+            "filters": {"handshakes": {"()": HandshakePaths, "paths": list(websocket_paths)},
+                        "cancellations": {"()": GraceCancellations}},
             "handlers": {"stderr": {"class": "logging.StreamHandler", "formatter": "json", "stream": "ext://sys.stderr",
-                                    "filters": ["handshakes"]}},
+                                    "filters": ["handshakes", "cancellations"]}},
             "loggers": {name: {"handlers": ["stderr"], "level": server_log_level(level).upper(), "propagate": False}
                         for name in ("uvicorn", "uvicorn.error", "uvicorn.access")}}

@@ -75,6 +75,30 @@ def test_uvicorns_own_lines_are_json_without_tracebacks() -> None:
     assert line["logger"] == "uvicorn.error" and line["error_type"] == "KeyError" and "jane" not in err
 
 
+
+def test_a_request_cancelled_past_the_shutdown_grace_is_an_info_line_not_an_error() -> None:
+    """uvicorn cancels what still runs when the server stops past its grace and logs the cancellation
+    as ``Exception in ASGI application``: one INFO line saying what happened (none at warning level),
+    while any other exception stays an ERROR."""
+    import subprocess
+    import sys
+
+    def lines(level: str) -> list[dict]:
+        code = ("import asyncio, logging, logging.config\n"
+                "from service.core.logging import server_log_config\n"
+                f"logging.config.dictConfig(server_log_config({level!r}))\n"
+                "for kind in (asyncio.CancelledError, KeyError):\n"
+                "    try:\n        raise kind()\n"
+                "    except BaseException:\n"
+                "        logging.getLogger('uvicorn.error').exception('Exception in ASGI application\\n')\n")
+        err = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60).stderr
+        return [json.loads(line) for line in err.strip().splitlines()]
+
+    cancelled, other = lines("info")
+    assert cancelled["level"] == "INFO" and "shutdown grace" in cancelled["msg"] and "error_type" not in cancelled
+    assert other["level"] == "ERROR" and other["error_type"] == "KeyError"
+    assert [line["level"] for line in lines("warning")] == ["ERROR"]
+
 def test_websocket_handshake_lines_name_the_route_never_the_path_or_query_sent() -> None:
     """uvicorn logs each WebSocket handshake with the path and query string as sent: a scanner script
     may put a patient's name or its key there. The line names the route, or 'another path'."""
