@@ -22,6 +22,13 @@ from service.inference.views import sample_views
 
 MIN_SLICES_PER_THREAD = 8
 """Fewer slices than twice this are reduced in one thread (a streamed slice, a short stack)."""
+MAX_SAMPLES_AT_ONCE = 65536
+"""Slices x MC samples whose labels :meth:`OnnxPoseEstimator.estimate` holds at once: a request's
+slices go through the network and are reduced in chunks of this many samples (655 slices at 100
+samples, 65 at the most samples a request may ask), so that memory is bounded by the chunk, not by
+the request's slices x ``mc_samples`` (each chunk's labels and their reduction take a few hundred
+MB). A slice's statistics do not depend on the chunk it is in (every row of a call has the same
+dropout draws)."""
 
 
 PER_SLICE = ("mean", "variance", "degenerate", "twin_mass", "spread_mm")
@@ -205,17 +212,26 @@ class OnnxPoseEstimator:
         return np.concatenate(chunks) if chunks else np.zeros((0, len(passes), 0), np.float32)
 
     def estimate(self, inputs: NDArray[np.float32], mc_samples: int) -> PoseEstimate:
-        """The MC statistics of every slice of ``inputs [B, L, L]``. An input that is not
-        :func:`shown` to the network gets no pose (:meth:`PoseEstimate.scattered`); the others'
-        draws do not depend on it, so their statistics are those of a call with it."""
+        """The MC statistics of every slice of ``inputs [B, L, L]``, in chunks of
+        :data:`MAX_SAMPLES_AT_ONCE` samples. An input that is not :func:`shown` to the network gets
+        no pose (:meth:`PoseEstimate.scattered`); the others' draws do not depend on it, so their
+        statistics are those of a call with it."""
         x = np.asarray(inputs, dtype=np.float32)
         seen = shown(x)
-        t0 = time.perf_counter()
-        labels = self.sample_labels(x if seen.all() else x[seen], mc_samples) if seen.any() else None
-        t1 = time.perf_counter()
-        result = PoseEstimate(np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0, bool)) if labels is None else \
-            statistics(labels, self.info.label_type, self.info.symmetry_plane_x_mm)
+        run = x if seen.all() else x[seen]
+        chunk = max(1, MAX_SAMPLES_AT_ONCE // max(int(mc_samples), 1))
+        parts, timings = [], {"inference": 0.0, "statistics": 0.0}
+        for start in range(0, len(run), chunk):
+            t0 = time.perf_counter()
+            labels = self.sample_labels(run[start:start + chunk], mc_samples)
+            t1 = time.perf_counter()
+            parts.append(statistics(labels, self.info.label_type, self.info.symmetry_plane_x_mm))
+            del labels                                 # the next chunk's labels take its place
+            timings["inference"] += t1 - t0
+            timings["statistics"] += time.perf_counter() - t1
+        result = PoseEstimate.joined(parts) if parts else PoseEstimate(np.zeros((0, 4, 4)), np.zeros(0),
+                                                                        np.zeros(0, bool))
         if not seen.all():
             result = PoseEstimate.scattered(result, seen)
-        result.timings = {"inference": t1 - t0, "statistics": time.perf_counter() - t1}
+        result.timings = timings
         return result

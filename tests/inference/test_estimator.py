@@ -56,3 +56,26 @@ def test_calls_run_two_at_a_time_give_each_row_its_own_labels(tiny_model_path) -
     passes = np.ones(8, np.float32)
     expected = np.concatenate([alone.run(x[g * 10:(g + 1) * 10], passes, g) for g in range(3)])
     assert out.shape == expected.shape and np.abs(out - expected).max() < 1e-4
+
+
+def test_a_large_request_is_estimated_in_chunks_that_bound_its_samples_and_change_no_statistic(
+        tiny_model_path, monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: ANN001, F811
+    """Slices x samples over :data:`MAX_SAMPLES_AT_ONCE` go through the network and the reduction in
+    chunks of at most that many samples (memory bounded by the chunk, not the request), and every
+    slice's statistics are those of one call with all of them."""
+    from service.inference import estimator
+
+    est = OnnxPoseEstimator(load_model(tiny_model_path))
+    size = est.info.input_size
+    x = np.random.default_rng(3).uniform(0, 255, (23, size, size)).astype(np.float32)
+    x[5] = 0.0
+    whole = est.estimate(x, 12)
+    monkeypatch.setattr(estimator, "MAX_SAMPLES_AT_ONCE", 5 * 12)
+    held = []
+    sample_labels = est.sample_labels
+    est.sample_labels = lambda rows, n: (held.append(len(rows) * n), sample_labels(rows, n))[1]
+    chunked = est.estimate(x, 12)
+    assert held == [60, 60, 60, 60, 24] and max(held) <= estimator.MAX_SAMPLES_AT_ONCE
+    for name in ("mean", "variance", "degenerate", "twin_mass", "spread_mm"):
+        np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name))
+    assert set(chunked.timings) == {"inference", "statistics"}
