@@ -60,8 +60,8 @@ from client.cli_support import (DEFAULT_VOLUME, DELETE_HELP, ApiKeyOpt, BiasCorr
                                 MasksHoldCsfOpt, OverwriteOpt, MaxExpectedOpt, McSamplesOpt, ModelOpt, ServerOpt,
                                 STACK_SPACE_HELP, StackSpaceOpt, StacksArg, ThresholdOpt, check_folder_writable,
                                 check_masks, check_writable, follow_job, job_id_of,
-                                once_or_per_stack, resolution_range, slice_order_words, timeout_from_env, user_path, volume_path,
-                                write_json, write_results)
+                                once_or_per_stack, resolution_range, slice_order_words, timeout_from_env, user_path,
+                                volume_path, write_json, write_results)
 from client.errors import ArgumentError, NotFound, SVRnetError
 from client.exits import (EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, EXIT_USAGE, errors, fail,
                           job_goes_on, stderr, stdout)

@@ -200,8 +200,9 @@ class JobStore(ABC):
         """Whether the store answers and its folders can take a job (:meth:`folders_take_jobs`)."""
 
     def folders_take_jobs(self, *paths: Path) -> bool:
-        """Whether the data folder and ``paths`` can be written and the disk has :data:`~service.io.limits.MIN_FREE_BYTES`
-        left: a read-only folder, or a full disk, answers reads and fails every submission."""
+        """Whether the data folder and ``paths`` can be written and the disk has
+        :data:`~service.io.limits.MIN_FREE_BYTES` left: a read-only folder, or a full disk, answers
+        reads and fails every submission."""
         try:
             room = shutil.disk_usage(self.data_dir).free >= MIN_FREE_BYTES
         except OSError:
