@@ -284,7 +284,10 @@ class Transport:
                 inflate = zlib.decompressobj(wbits=31) if gunzip else None     # 31: a gzip member
                 with open(tmp, "wb") as fh:
                     for data in response.iter_bytes(CHUNK):
-                        fh.write(data if inflate is None else inflate.decompress(data))
+                        try:
+                            fh.write(data if inflate is None else inflate.decompress(data))
+                        except zlib.error as exc:          # corrupt on the way: fetched again, as a cut-off one
+                            raise httpx.ReadError(f"the gzipped file does not inflate ({exc})") from exc
                         done += len(data)
                         if progress is not None:
                             progress(done, total or done)
