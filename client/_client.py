@@ -46,6 +46,8 @@ class SVRnetClient(JobCalls):
         http: an existing ``httpx.Client`` to use instead (e.g. FastAPI's ``TestClient``); it is not
             closed by :meth:`close`.
         backoff_s: the first sleep of the exponential backoff used when no ``Retry-After`` came.
+        verify: how an ``https://`` server's certificate is checked: a CA bundle's path or an
+            ``ssl.SSLContext`` (default: the bundle ``SVRNET_CA_BUNDLE`` names, else the system's).
 
     Example:
         >>> with SVRnetClient("http://127.0.0.1:8000", api_key="secret") as svr:   # doctest: +SKIP

@@ -108,6 +108,28 @@ def shown_url(url: str) -> str:
     return urlunsplit(parts._replace(netloc=parts.netloc.rsplit("@", 1)[1]))
 
 
+def trusted(verify: ssl.SSLContext | str | bool | None) -> ssl.SSLContext | bool:
+    """What an HTTPS server's certificate is checked against: ``verify`` as given (an SSL context,
+    False for no check, a CA bundle's path), else the bundle ``SVRNET_CA_BUNDLE`` names (a site's own
+    CA, as hospital servers use), else the system's (``SSL_CERT_FILE`` where set).
+
+    Example:
+        >>> trusted(False), trusted(None) is True or isinstance(trusted(None), ssl.SSLContext)
+        (False, True)
+    """
+    if verify is None:
+        verify = os.environ.get("SVRNET_CA_BUNDLE") or True
+    if isinstance(verify, (str, os.PathLike)):
+        path = Path(verify).expanduser()
+        if not path.is_file():
+            raise ArgumentError(f"verify: the CA bundle {path} (SVRNET_CA_BUNDLE or verify=) is not a file")
+        try:
+            return ssl.create_default_context(cafile=str(path))
+        except ssl.SSLError as exc:
+            raise ArgumentError(f"verify: {path} holds no CA certificate in PEM form ({exc})") from None
+    return verify
+
+
 class Transport:
     """Requests to one server with the client's headers and retry policy (see :class:`~client.SVRnetClient`
     for the arguments)."""
@@ -115,7 +137,7 @@ class Transport:
     def __init__(self, base_url: str | None = None, api_key: str | None = None,
                  timeout: httpx.Timeout | float | None = DEFAULT_TIMEOUT, retries: int = 3,
                  transport: httpx.BaseTransport | None = None, *, http: httpx.Client | None = None,
-                 backoff_s: float = 0.5) -> None:
+                 backoff_s: float = 0.5, verify: ssl.SSLContext | str | bool | None = None) -> None:
         if retries < 0:
             raise ValueError("retries must be >= 0")
         base_url = server_address(base_url or os.environ.get("SVRNET_SERVER") or DEFAULT_SERVER)   # as the CLI reads it
@@ -126,7 +148,7 @@ class Transport:
         """Whether the server has answered this client at all (any status): a server to wait for."""
         self._owns_http = http is None
         self._http = http if http is not None else httpx.Client(base_url=base_url, timeout=timeout,
-                                                                 transport=transport)
+                                                                 transport=transport, verify=trusted(verify))
         self.base_url = str(self._http.base_url)
 
     # -- lifecycle -----------------------------------------------------------------------------
@@ -245,6 +267,10 @@ class Transport:
                        "raise SVRNET_TIMEOUT, in seconds, for svrnet, or timeout= of SVRnetClient)")
         elif isinstance(exc, httpx.ReadTimeout):
             reason += " (the server accepted the connection and said nothing: it is stuck or overloaded)"
+        elif isinstance(exc, httpx.ConnectError) and _caused_by(exc, ssl.SSLCertVerificationError):
+            reason += (f" (the certificate of {shown_url(self.base_url)} is not one this machine trusts: give your "
+                       "site's CA bundle with SVRNET_CA_BUNDLE, or verify= of SVRnetClient; never switch to http://, "
+                       "which sends the API key in the clear)")
         elif isinstance(exc, httpx.ConnectError) and not self.answered and _caused_by(exc, ssl.SSLError):
             reason += (f" (the server at {shown_url(self.base_url)} does not speak TLS: give its address with "
                        "http://, as `make serve` serves it)")

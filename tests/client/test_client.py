@@ -694,3 +694,61 @@ def test_a_keyed_submission_that_stays_busy_names_its_key_and_a_rerun_sends_it(s
         return httpx.Response(202, json={"job_id": "j1", "status": "queued", "status_url": "/v1/reconstructions/j1"})
 
     assert mock(made).reconstruct([stack_file], idempotency_key=keys[0])["job_id"] == "j1" and keys[-1] == keys[0]
+
+
+@pytest.fixture
+def https_server(tmp_path: Path):  # noqa: ANN201
+    """An HTTPS server on 127.0.0.1 with a self-signed certificate (a site's own CA): its URL and the
+    certificate's path."""
+    import http.server
+    import shutil
+    import ssl
+    import subprocess
+    import threading
+
+    if shutil.which("openssl") is None:
+        pytest.skip("needs openssl to make a certificate")
+    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", str(key), "-out", str(cert),
+                    "-days", "1", "-subj", "/CN=127.0.0.1", "-addext", "subjectAltName=IP:127.0.0.1"],
+                   check=True, capture_output=True, timeout=60)
+
+    class Health(http.server.BaseHTTPRequestHandler):
+        def do_GET(self) -> None:  # noqa: N802 - the standard library's name
+            body = b'{"status": "ok"}'
+            self.send_response(200)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args: object) -> None:
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Health)
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    context.load_cert_chain(cert, key)
+    server.socket = context.wrap_socket(server.socket, server_side=True)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        yield f"https://127.0.0.1:{server.server_address[1]}", cert
+    finally:
+        server.shutdown()
+
+
+def test_a_server_certificate_of_a_sites_own_ca_is_trusted_where_its_bundle_is_given(
+        https_server, monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: ANN001
+    """Unknown to this machine, the certificate is refused with advice that keeps TLS (never "use
+    http://", which would send the API key in the clear); the site's CA bundle, by SVRNET_CA_BUNDLE or
+    ``verify=``, makes the server answer; a bundle that is not there is a usage error."""
+    url, cert = https_server
+    monkeypatch.delenv("SVRNET_CA_BUNDLE", raising=False)
+    with pytest.raises(ConnectionFailed, match="not one this machine trusts: give your site's CA bundle") as refused:
+        SVRnetClient(url, retries=0).health()
+    assert "does not speak TLS" not in str(refused.value)
+    assert SVRnetClient(url, verify=str(cert)).health() == {"status": "ok"}
+    monkeypatch.setenv("SVRNET_CA_BUNDLE", str(cert))
+    assert SVRnetClient(url).health() == {"status": "ok"}
+    monkeypatch.setenv("SVRNET_CA_BUNDLE", str(cert.with_name("missing.pem")))
+    with pytest.raises(ArgumentError, match="missing.pem .SVRNET_CA_BUNDLE or verify=. is not a file"):
+        SVRnetClient(url)
