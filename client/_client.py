@@ -13,13 +13,12 @@ from __future__ import annotations
 
 import json
 import numbers
-import secrets
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from client import transport
-from client.errors import Busy
+from client.errors import Busy, ConnectionFailed, ServerError, SVRnetError
 from client.mask_archive import write_mask_archive
 from client.job_calls import JobCalls, not_svrnet, stacks_answer
 from client.multipart import MultipartBody, ProgressCallback, form_value, order_fields
@@ -202,8 +201,9 @@ class SVRnetClient(JobCalls):
             progress: ``progress(bytes_sent, total)`` during the upload.
             idempotency_key: the submission's key (default: a new random one), sent as
                 ``Idempotency-Key``: a retry, or the same request sent again with the same key, gets the
-                job the first made. A submission retried until the server stayed busy raises
-                :class:`~client.errors.Busy` naming its key: the first may still be queued.
+                job the first made. An error after which the server may hold the job (a lost answer, a
+                gateway's 5xx, a server that stayed busy after retries) names the key in its message
+                and carries it as ``idempotency_key``: send the request again with it.
 
         Returns:
             ``{"job_id", "status", "status_url"}`` (``status_url`` filled from ``Location`` if absent).
@@ -234,14 +234,20 @@ class SVRnetClient(JobCalls):
                 if not path.is_file():
                     raise FileNotFoundError(f"poses: no such file: {path}")
                 files.append(("poses", path.name, path, "application/json"))
-        key = idempotency_key or secrets.token_urlsafe(24)
+        key = idempotency_key or transport.new_idempotency_key()
         try:
             response = self._send("POST", "/v1/reconstructions", body=MultipartBody(fields, files), progress=progress,
                                   headers={transport.IDEMPOTENCY_HEADER: key})
-        except Busy as exc:
-            if (exc.attempts or 1) > 1:     # sent more than once: the first may be queued, still being read
-                exc.detail = (f"{exc.detail} (the request was sent {exc.attempts} times with idempotency key {key}: "
-                              "send it again with that key to get its job, not a second one)")
+        except SVRnetError as exc:
+            exc.idempotency_key = key
+            # The server may hold the job where the answer was lost (a dropped connection, a gateway's
+            # 5xx) or where a busy server was asked more than once (the first may still be read).
+            maybe_made = isinstance(exc, (ConnectionFailed, ServerError)) or (
+                isinstance(exc, Busy) and (exc.attempts or 1) > 1)
+            if maybe_made:
+                sent = f"sent {exc.attempts} times" if (exc.attempts or 1) > 1 else "sent"
+                exc.detail = (f"{exc.detail} (the request was {sent} with idempotency key {key}: the server may hold "
+                              "its job; send it again with that key to get that job, not a second one)")
                 exc.args = (exc.detail,)
             raise
         body = self._json(response)

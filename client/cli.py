@@ -64,11 +64,11 @@ from client.cli_support import (DEFAULT_VOLUME, DELETE_HELP, ApiKeyOpt, BiasCorr
                                 volume_path, write_json, write_results)
 from client.errors import ArgumentError, NotFound, SVRnetError
 from client.exits import (EXIT_HELP, EXIT_JOB_FAILED, EXIT_NOTHING_USABLE, EXIT_USAGE, errors, fail,
-                          job_goes_on, stderr, stdout)
+                          job_goes_on, stderr, stdout, submitting)
 from client.job_views import job_table, quality_line, refined_poses_line
 from client.launch import installed_version
 from client.mask_archive import masks_already_there
-from client.transport import server_address
+from client.transport import new_idempotency_key, server_address
 from client.views import masks_table, models_table, predict_hints, summarise, upload_bar, usable
 
 app = typer.Typer(
@@ -275,14 +275,15 @@ def reconstruct(
     check_writable(overwrite, out=out if out is not None or not wait else DEFAULT_VOLUME, preview=preview,
                    poses_out=poses_out, transforms_out=transforms_out)
     err, console = stderr(), stdout()
+    key = idempotency_key or new_idempotency_key()
     with errors(), _client(server, api_key) as svr:
-        with upload_bar(err, f"{len(stacks)} stack(s)") as progress:
+        with upload_bar(err, f"{len(stacks)} stack(s)") as progress, submitting(key):
             job = svr.reconstruct(stacks, mask, poses, resolution_mm=resolution, svr_iterations=svr_iterations,
                                   mc_samples=mc_samples, variance_threshold=threshold,
                                   max_expected_error_mm=max_expected_error, slice_order=slice_order,
                                   atlas_frame=None if atlas_frame else False,
                                   masks_hold_csf=True if masks_hold_csf else None, slice_thickness_mm=thickness,
-                                  model=model, progress=progress, idempotency_key=idempotency_key)
+                                  model=model, progress=progress, idempotency_key=key)
         job_id = str(job.get("job_id", ""))
         console.print(f"job {job_id} {job.get('status', 'queued')}: {job.get('status_url', '')}", soft_wrap=True)
         if not wait:

@@ -45,6 +45,8 @@ class SVRnetError(Exception):
         type: the problem type URI, when given.
         body: the decoded problem body (empty when the body was not JSON).
         attempts: how many times the request was sent before this answer (1: not retried).
+        idempotency_key: a job submission's key (None for other requests): sent again with it, the
+            submission gets the job the first one made, if any.
     """
 
     def __init__(self, detail: str, *, status: int | None = None, title: str | None = None,
@@ -57,6 +59,7 @@ class SVRnetError(Exception):
         self.request_id = request_id
         self.type = type
         self.attempts = 1
+        self.idempotency_key: str | None = None
         self.body = body or {}
 
     def __str__(self) -> str:

@@ -51,7 +51,7 @@ EXIT_HELP = (
     "request) · 11 timed out waiting · "
     "12 nothing usable in the answer (no slice accepted, none to export; a volume that is no coherent brain), its "
     "files written · "
-    "130 interrupted (Ctrl-C; a job already submitted goes on on the server)."
+    "130 interrupted (Ctrl-C or SIGTERM; a job already submitted goes on on the server)."
 )
 
 
@@ -111,6 +111,26 @@ def job_goes_on(job_id: str, succeeded: bool = False) -> Iterator[None]:
                  "downloads them again", EXIT_INTERRUPTED)
         fail(f"interrupted; job {job_id} goes on on the server: svrnet status {job_id}, svrnet fetch {job_id} "
              f"(waits for it and downloads it), or svrnet cancel {job_id}", EXIT_INTERRUPTED)
+
+
+@contextmanager
+def submitting(key: str) -> Iterator[None]:
+    """A Ctrl-C (or SIGTERM) while a job is submitted ends the command (exit 130) naming the
+    submission's key: the server may hold the job already, and the same command with
+    ``--idempotency-key`` gets that job instead of making a second one.
+
+    Example:
+        >>> with submitting("k3y-abcdef"):
+        ...     raise KeyboardInterrupt
+        Traceback (most recent call last):
+        ...
+        typer.exceptions.Exit: 130
+    """
+    try:
+        yield
+    except KeyboardInterrupt:
+        fail(f"interrupted while the job was submitted; the server may hold it: run the same command again with "
+             f"--idempotency-key {key} to get that job, not a second one", EXIT_INTERRUPTED)
 
 
 @contextmanager

@@ -10,6 +10,7 @@ it imports nothing beyond the standard library.
 from __future__ import annotations
 
 import importlib
+import signal
 import sys
 from importlib.metadata import PackageNotFoundError, version
 
@@ -46,7 +47,14 @@ def run_or_name_missing(module: str, packages: tuple[str, ...], missing_says: st
     run()
 
 
+def stop_as_interrupt(signum: int, frame: object) -> None:
+    """A SIGTERM (what systemd, a job scheduler's timeout or a CI runner sends) ends ``svrnet`` as a
+    Ctrl-C does: the same message of what goes on on the server, exit 130, no half-written file."""
+    raise KeyboardInterrupt
+
+
 def main() -> None:
     """Run ``svrnet``."""
+    signal.signal(signal.SIGTERM, stop_as_interrupt)
     run_or_name_missing("client.cli", CLIENT_PACKAGES, "svrnet: the client's packages are not installed ({name} is "
                         "missing): pip install \"svrnet[client]\" (in a checkout: make serve)")

@@ -51,6 +51,16 @@ def sleep(seconds: float) -> None:
 
 
 IDEMPOTENCY_HEADER = "Idempotency-Key"
+
+
+def new_idempotency_key() -> str:
+    """A submission's key (:data:`IDEMPOTENCY_HEADER`): 32 random URL-safe characters.
+
+    Example:
+        >>> len(new_idempotency_key()), new_idempotency_key() != new_idempotency_key()
+        (32, True)
+    """
+    return secrets.token_urlsafe(24)
 """Sent with a job's submission, the same key with every retry of it: the server answers a retry with
 the job the first attempt made, so a lost answer costs no second job."""
 

@@ -886,3 +886,77 @@ def test_a_volume_file_not_named_nifti_is_refused_before_anything_is_sent(comman
     r = invoke([command, *args, "--out", str(tmp_path / "recon.mha")])
     assert r.exit_code == 2 and "name it .nii.gz, or .nii" in r.output
     assert not fake.jobs.uploads and not (tmp_path / "recon.mha").exists()
+
+
+def test_a_sigterm_ends_svrnet_as_a_ctrl_c_does_leaving_no_half_written_file(tmp_path: Path) -> None:
+    """systemd, a scheduler's timeout or a CI runner stop a command with SIGTERM: ``svrnet fetch`` in
+    the middle of a download ends with exit 130, says that the results wait on the server, and leaves
+    no ``.part`` file (before, exit 143 without a word and the part file left behind)."""
+    import http.server
+    import signal
+    import subprocess
+    import sys
+    import threading
+    import time
+
+    class Slow(http.server.BaseHTTPRequestHandler):
+        def do_GET(self) -> None:  # noqa: N802 - the standard library's name
+            if self.path.endswith("/volume"):
+                self.send_response(200)
+                self.send_header("Content-Type", "application/gzip")
+                self.send_header("Content-Length", "1000000")
+                self.end_headers()
+                for _ in range(200):                     # a trickle: the command is killed meanwhile
+                    self.wfile.write(b"\x1f" * 100)
+                    self.wfile.flush()
+                    time.sleep(0.1)
+                return
+            body = json.dumps({"job_id": "j1", "status": "succeeded", "stage": "done", "progress": 1.0,
+                               "result_url": "/v1/reconstructions/j1/volume", "report": {}}).encode()
+            self.send_response(200)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args: object) -> None:
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Slow)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        out = tmp_path / "r.nii.gz"
+        proc = subprocess.Popen([sys.executable, "-c", "from client.launch import main; main()", "fetch", "j1",
+                                 "--out", str(out), "--server", f"http://127.0.0.1:{server.server_address[1]}"],
+                                cwd=Path(__file__).resolve().parents[2], stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        deadline = time.time() + 30
+        while not list(tmp_path.glob(".r.nii.gz.part-*")):
+            assert time.time() < deadline and proc.poll() is None, proc.communicate()
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        server.shutdown()
+    assert proc.returncode == 130 and "interrupted; job j1 succeeded and its results wait on the server" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_a_ctrl_c_while_a_job_is_submitted_names_the_key_that_gets_that_job(stack_file: Path,
+                                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """Interrupted after the upload, before the server's 202: the server may hold the job; the message
+    gives the key the submission was sent with, and the same command with ``--idempotency-key`` sends it."""
+    keys: list[str] = []
+
+    def interrupted(request: httpx.Request) -> httpx.Response:
+        keys.append(request.headers["idempotency-key"])
+        request.read()
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "make_client", lambda server, api_key: SVRnetClient(
+        server, transport=httpx.MockTransport(interrupted), retries=0))
+    r = invoke(["reconstruct", str(stack_file)])
+    assert r.exit_code == 130 and len(keys) == 1, r.output
+    assert f"run the same command again with --idempotency-key {keys[0]} to get that job" in " ".join(r.output.split())
+    invoke(["reconstruct", str(stack_file), "--idempotency-key", keys[0]])
+    assert keys[1] == keys[0]

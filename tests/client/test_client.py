@@ -696,6 +696,37 @@ def test_a_keyed_submission_that_stays_busy_names_its_key_and_a_rerun_sends_it(s
     assert mock(made).reconstruct([stack_file], idempotency_key=keys[0])["job_id"] == "j1" and keys[-1] == keys[0]
 
 
+
+def test_a_submission_whose_answer_is_lost_names_its_key_and_a_refused_one_carries_it_quietly(
+        stack_file: Path, no_sleep: list[float]) -> None:
+    """The connection dropped after the upload (the server may have made the job), or a gateway's 502
+    after the retries: the error names the key and carries it, so that a rerun with it gets that job;
+    a 400 made no job: the key is carried but not offered."""
+    keys: list[str] = []
+
+    def drop(request: httpx.Request) -> httpx.Response:
+        keys.append(request.headers["idempotency-key"])
+        request.read()
+        raise httpx.RemoteProtocolError("Server disconnected without sending a response.", request=request)
+
+    def gateway(request: httpx.Request) -> httpx.Response:
+        keys.append(request.headers["idempotency-key"])
+        return httpx.Response(502, text="bad gateway")
+
+    for handler, kind in ((drop, ConnectionFailed), (gateway, ServerError)):
+        keys.clear()
+        with pytest.raises(kind) as e:
+            mock(handler, retries=1).reconstruct([stack_file])
+        assert len(keys) == 2 and len(set(keys)) == 1 and e.value.idempotency_key == keys[0]
+        assert f"idempotency key {keys[0]}: the server may hold its job" in str(e.value)
+
+    def refused(request: httpx.Request) -> httpx.Response:
+        return httpx.Response(400, json=problem(400, "resolution_mm: at most 5"))
+
+    with pytest.raises(BadRequest) as e:
+        mock(refused).reconstruct([stack_file], idempotency_key="k" * 20)
+    assert e.value.idempotency_key == "k" * 20 and "may hold" not in str(e.value)
+
 @pytest.fixture
 def https_server(tmp_path: Path):  # noqa: ANN201
     """An HTTPS server on 127.0.0.1 with a self-signed certificate (a site's own CA): its URL and the
