@@ -75,8 +75,8 @@ app = typer.Typer(
     name="svrnet",
     help="SVRnet client: slice-to-atlas poses (predict) and reconstructions of fetal MRI stacks.\n\n"
          "Server: --server or $SVRNET_SERVER (default http://127.0.0.1:8000); API key: $SVRNET_API_KEY; "
-         "$SVRNET_TIMEOUT: seconds an upload may wait for the server to read or answer (default 300; a status 30) "
-         "between two bytes; $SVRNET_CA_BUNDLE: your site's CA certificates, for an https:// server whose "
+         "$SVRNET_TIMEOUT: seconds a call may wait between two bytes as the server reads or answers it (default "
+         "300; a status call 30); $SVRNET_CA_BUNDLE: your site's CA certificates, for an https:// server whose "
          "certificate this machine does not trust.",
     epilog=EXIT_HELP,
     no_args_is_help=True,
