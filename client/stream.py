@@ -271,6 +271,10 @@ def stream_stacks(stacks: Sequence[ScannerStack], server: str | None = None, *, 
             the session fills up as it goes (its memory), the rest of the slices are not sent, the
             stacks begun are ended, and ``unsent`` names what is left.
         SVRnetError: the server refused ``start`` or ``end`` (its error's class).
+
+        Every error raised once the connection is open carries ``result`` (the session's messages so
+        far, a :class:`StreamResult`) and ``unanswered`` (per stack, the indices of the slices sent
+        and never answered): what to keep, and what to send again.
     """
     options = {"model": model, "mc_samples": mc_samples, "variance_threshold": variance_threshold,
                "max_expected_error_mm": max_expected_error_mm, "bias_correction": bias_correction,
@@ -289,32 +293,48 @@ def stream_stacks(stacks: Sequence[ScannerStack], server: str | None = None, *, 
             raise ArgumentError(f"{stack.name}: {e}") from None
     key = clean_api_key(api_key if api_key is not None else os.environ.get("SVRNET_API_KEY"))
     server = server or os.environ.get("SVRNET_SERVER") or DEFAULT_SERVER
-    with _connect(stream_url(server), key, answer_timeout_s) as ws, \
-            (open(json_out, "w", encoding="utf-8") if json_out is not None else nullcontext()) as record:   # kept if none
-        session = _Session(ws, on_message, record, answer_timeout_s, key_sent=bool(key))
-        session.send({"type": "start", **{k: v for k, v in options.items() if v is not None}})
-        while not session.result.ready:
-            session.receive(None)
-        _check_limits(stacks, session.result.ready.get("limits") or {})
-        next_send = time.monotonic()
-        for stack, indices in zip(stacks, orders):
-            for position, k in enumerate(indices):
-                session.wait_to_send(next_send, max_in_flight)
-                if session.full:                # nothing more is taken: the rest waits for another session
-                    session.result.unsent.setdefault(stack.name, []).append(k)
-                    continue
-                header, frames = _slice_message(stack.name, stack.slices[k], position)
-                session.send(header, *frames)
-                next_send = time.monotonic() + pace_s
-            if session.full:                    # the answers of the slices sent, to know which stacks began
-                session.wait_to_send(0.0, 1)
-            if not session.full or stack.name in session.posed:      # a stack none of whose slices was taken
-                session.send({"type": "end_stack", "stack": stack.name})    # cannot end
-        session.result.unsent = {name: sorted(ks) for name, ks in session.result.unsent.items()}
-        session.send({"type": "end"})
-        while session.result.summary is None:
-            session.receive(None)
-        return session.result
+    session = None
+    try:
+        with _connect(stream_url(server), key, answer_timeout_s) as ws, \
+                (open(json_out, "w", encoding="utf-8") if json_out is not None else nullcontext()) as record:
+            session = _Session(ws, on_message, record, answer_timeout_s, key_sent=bool(key))    # the file kept if none
+            return _stream(session, stacks, orders, options, pace_s, max_in_flight)
+    except SVRnetError as exc:
+        if session is not None:                 # what the session answered, and what it did not
+            exc.result = session.result
+            exc.unanswered = {}
+            for sent in session.unanswered:
+                if sent.type == "slice":
+                    exc.unanswered.setdefault(str(sent.stack), []).append(int(sent.index))
+        raise
+
+
+def _stream(session: "_Session", stacks: Sequence[ScannerStack], orders: list[list[int]], options: dict[str, Any],
+            pace_s: float, max_in_flight: int) -> StreamResult:
+    """:func:`stream_stacks`'s session once connected: ``start``, the stacks' slices and ends, ``end``."""
+    session.send({"type": "start", **{k: v for k, v in options.items() if v is not None}})
+    while not session.result.ready:
+        session.receive(None)
+    _check_limits(stacks, session.result.ready.get("limits") or {})
+    next_send = time.monotonic()
+    for stack, indices in zip(stacks, orders):
+        for position, k in enumerate(indices):
+            session.wait_to_send(next_send, max_in_flight)
+            if session.full:                # nothing more is taken: the rest waits for another session
+                session.result.unsent.setdefault(stack.name, []).append(k)
+                continue
+            header, frames = _slice_message(stack.name, stack.slices[k], position)
+            session.send(header, *frames)
+            next_send = time.monotonic() + pace_s
+        if session.full:                    # the answers of the slices sent, to know which stacks began
+            session.wait_to_send(0.0, 1)
+        if not session.full or stack.name in session.posed:      # a stack none of whose slices was taken
+            session.send({"type": "end_stack", "stack": stack.name})    # cannot end
+    session.result.unsent = {name: sorted(ks) for name, ks in session.result.unsent.items()}
+    session.send({"type": "end"})
+    while session.result.summary is None:
+        session.receive(None)
+    return session.result
 
 
 def _connect(url: str, api_key: str | None, answer_timeout_s: float) -> ClientConnection:

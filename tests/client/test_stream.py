@@ -356,3 +356,30 @@ def test_a_slice_order_that_fits_no_stack_is_a_usage_error_before_anything_is_se
             args += ["--slice-order", o]
         result = runner.invoke(cli.app, args, env={"COLUMNS": "200"})
         assert result.exit_code == 2 and needle in result.output, result.output
+
+
+def test_a_library_caller_whose_session_ends_early_learns_what_was_answered_and_what_was_not(stack_file: Path) -> None:
+    """A server that restarts after answering two slices: the error raised carries the session's
+    messages so far (``result``) and, per stack, the slices sent but never answered (``unanswered``),
+    to send again."""
+    from client.errors import ConnectionFailed
+    from client.stream import read_stack, stream_stacks
+
+    received: list[int] = []
+
+    def handler(ws: ServerConnection) -> None:
+        ws.recv()
+        ws.send(json.dumps({"type": "ready", "session_id": "s1", "model": {"name": "default"}, "mc_samples": 10}))
+        for answered in range(3):
+            msg = json.loads(ws.recv())
+            ws.recv()
+            received.append(msg["index"])
+            if answered < 2:
+                ws.send(json.dumps(pose(msg)))
+        ws.close(1012, "service restart")
+
+    with scripted_server(handler) as url, pytest.raises(ConnectionFailed, match="restarting") as e:
+        stream_stacks([read_stack(stack_file)], url)
+    poses = [m["index"] for m in e.value.result.of_type("pose")]
+    assert poses == received[:2] and e.value.result.ready["session_id"] == "s1"
+    assert received[2] in e.value.unanswered["ax"] and not set(poses) & set(e.value.unanswered["ax"])
