@@ -263,6 +263,9 @@ def reconstruct(
         "--idempotency-key", help="the submission's key, 8 to 200 printable ASCII characters (default: a new "
         "one): the same command sent again with the key an earlier run named gets that job, not a second "
         "one")] = None,
+    as_json: Annotated[bool, typer.Option(
+        "--json", help="print the submission as JSON (job_id, status, status_url, idempotency_key) instead of "
+        "words, for a script; not with --wait (then: svrnet status JOB --json)")] = False,
 ) -> None:
     """Start a reconstruction job (POST /v1/reconstructions); with --wait, follow it and download the volume."""
     check_masks(stacks, mask, masks_hold_csf)
@@ -272,6 +275,9 @@ def reconstruct(
         fail(f"--stack-space: {stack_space} is not one of the {len(stacks)} stacks given (0-{len(stacks) - 1})",
              EXIT_USAGE)
     wait = wait or delete or any(p is not None for p in (out, preview, poses_out, transforms_out, stack_space))
+    if as_json and wait:
+        fail("--json prints the submission and returns: not with --wait or an output option (follow the job with "
+             "svrnet status JOB --json)", EXIT_USAGE)
     check_writable(overwrite, out=out if out is not None or not wait else DEFAULT_VOLUME, preview=preview,
                    poses_out=poses_out, transforms_out=transforms_out)
     err, console = stderr(), stdout()
@@ -285,6 +291,9 @@ def reconstruct(
                                   masks_hold_csf=True if masks_hold_csf else None, slice_thickness_mm=thickness,
                                   model=model, progress=progress, idempotency_key=key)
         job_id = str(job.get("job_id", ""))
+        if as_json:
+            sys.stdout.write(json.dumps({**job, "idempotency_key": key}, indent=2) + "\n")   # plain, as status's
+            return
         console.print(f"job {job_id} {job.get('status', 'queued')}: {job.get('status_url', '')}", soft_wrap=True)
         if not wait:
             console.print(f"follow it with: svrnet status {job_id}; download it with: svrnet fetch {job_id}")

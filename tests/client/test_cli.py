@@ -960,3 +960,16 @@ def test_a_ctrl_c_while_a_job_is_submitted_names_the_key_that_gets_that_job(stac
     assert f"run the same command again with --idempotency-key {keys[0]} to get that job" in " ".join(r.output.split())
     invoke(["reconstruct", str(stack_file), "--idempotency-key", keys[0]])
     assert keys[1] == keys[0]
+
+
+def test_reconstruct_json_prints_the_submission_for_a_script(fake_cli: Callable, stack_file: Path) -> None:
+    """``--json``: the submission's answer and its key as one JSON document on stdout, nothing else;
+    with ``--wait`` a usage error before anything is sent."""
+    fake, _ = fake_cli()
+    r = invoke(["reconstruct", str(stack_file), "--json", "--idempotency-key", "key-of-the-lab-run"])
+    assert r.exit_code == 0, r.output
+    body = json.loads(r.stdout)
+    assert body["job_id"] == "job1" and body["status_url"].endswith("/job1")
+    assert body["idempotency_key"] == "key-of-the-lab-run"
+    r = invoke(["reconstruct", str(stack_file), "--json", "--wait"])
+    assert r.exit_code == 2 and "not with --wait" in r.output and len(fake.jobs.uploads) == 1
