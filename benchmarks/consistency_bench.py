@@ -11,6 +11,7 @@ translation its lever arm couples form one block of twice the slices,
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -24,7 +25,7 @@ from service.consistency import fit_stack  # noqa: E402
 from service.core.machine import cpu_description  # noqa: E402
 from service.geometry import anchors, se3  # noqa: E402
 from service.inference.estimator import statistics  # noqa: E402
-from benchmarks.se3_bench import best_of  # noqa: E402
+from benchmarks.timing import alternated  # noqa: E402
 from tests.consistency.test_stack_fit import fake_network, stack  # noqa: E402
 
 
@@ -33,21 +34,23 @@ SHAPE = np.array([3.84, 0.53, 0.18, 0.03, 0.13, 1.30]) / 1.0016      # a model's
 
 def measure(n_stacks: int, n_slices: int, repeats: int = 5, seed: int = 0) -> dict[str, float]:
     """Seconds of the stage over ``n_stacks`` simulated stacks of ``n_slices`` slices (moderate motion,
-    best of ``repeats``), with the error's shape weighed, and of the MC-100 statistics of the same slices."""
+    best of ``repeats``), with the error's shape weighed, and of the MC-100 statistics of the same
+    slices, the three timed alternately (:func:`~benchmarks.timing.alternated`)."""
     rng = np.random.default_rng(seed)
     cases = []
     for _ in range(n_stacks):
         truth, nk = stack(rng, "moderate", n=n_slices)
         poses, _ = fake_network(truth, rng)
         cases.append((poses, nk, np.full(n_slices, 14.0)))
-    t = best_of(lambda: [fit_stack(p, nk, expected_error_mm=e) for p, nk, e in cases], repeats)
-    t_shaped = best_of(lambda: [fit_stack(p, nk, expected_error_mm=e, error_shape=SHAPE) for p, nk, e in cases], repeats)
     mc = anchors.encode(np.concatenate([p for p, _, _ in cases])[:, None]
                         @ se3.exp(rng.normal(0, 0.05, (n_stacks * n_slices, 100, 6))))
-    return {"stage": t, "shaped": t_shaped, "statistics": best_of(lambda: statistics(mc, "anchor"), min(repeats, 3))}
+    return alternated({"stage": lambda: [fit_stack(p, nk, expected_error_mm=e) for p, nk, e in cases],
+                       "shaped": lambda: [fit_stack(p, nk, expected_error_mm=e, error_shape=SHAPE) for p, nk, e in cases],
+                       "statistics": lambda: statistics(mc, "anchor")}, repeats, warm=False)
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args()
     limit_blas_threads(Settings().blas_threads)              # as the server and the job workers run
     print(f"machine: {cpu_description()}")
     for n_stacks, n_slices in ((6, 22), (3, 40), (3, 80)):

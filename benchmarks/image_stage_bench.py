@@ -2,7 +2,8 @@
 
 Runs the image refinement (:func:`~service.consistency.image_refinement.refine`) on the same
 stacks and starting poses with the intensities matched (the service's default) and without, best
-of 3 each, and prints both times and their ratio (a ratio holds on a loaded machine too). The
+of 3 each, timed alternately, and prints both times and their ratio (a ratio holds on a loaded
+machine too). The
 stacks: a phantom acquisition of three stacks (64 x 64, mild motion) and, where ``../shared/data``
 holds it, the shared real scan's three stacks with their manual masks at the poses ``/v1/predict``'s
 stack stage gives them. Run: ``.venv/bin/python benchmarks/image_stage_bench.py``.
@@ -10,8 +11,8 @@ stack stage gives them. Run: ``.venv/bin/python benchmarks/image_stage_bench.py`
 
 from __future__ import annotations
 
+import argparse
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -19,25 +20,29 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import service.consistency.image_refinement as image_refinement  # noqa: E402
+from benchmarks.timing import alternated  # noqa: E402
 from service.core.machine import cpu_description  # noqa: E402
 from tests.consistency.conftest import disturbed, prepared_acquisition  # noqa: E402
 
 REAL_SCAN = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_scans" / "mial_lausanne_t30"
 
 
-def timed(stacks: list, poses: list, expected: list, matched_from: int | None, repeats: int = 3) -> float:
-    """Best-of-``repeats`` seconds of one refinement with ``MATCHED_FROM_PASS = matched_from``."""
+def refined_with(matched_from: int | None, stacks: list, poses: list, expected: list) -> None:
+    """One refinement with ``MATCHED_FROM_PASS = matched_from``, the service's setting restored after."""
     saved = image_refinement.MATCHED_FROM_PASS
     image_refinement.MATCHED_FROM_PASS = matched_from
     try:
-        best = np.inf
-        for _ in range(repeats):
-            t = time.perf_counter()
-            image_refinement.refine(stacks, poses, expected)
-            best = min(best, time.perf_counter() - t)
-        return best
+        image_refinement.refine(stacks, poses, expected)
     finally:
         image_refinement.MATCHED_FROM_PASS = saved
+
+
+def timed(stacks: list, poses: list, expected: list, repeats: int = 3) -> dict[str, float]:
+    """Best-of-``repeats`` seconds of one refinement unmatched (``plain``) and matched (``matched``, the
+    service's setting), timed alternately (:func:`~benchmarks.timing.alternated`)."""
+    matched = image_refinement.MATCHED_FROM_PASS
+    return alternated({"plain": lambda: refined_with(None, stacks, poses, expected),
+                       "matched": lambda: refined_with(matched, stacks, poses, expected)}, repeats)
 
 
 def real_scan_case() -> tuple[list, list, list] | None:
@@ -59,7 +64,8 @@ def real_scan_case() -> tuple[list, list, list] | None:
 
 
 def main() -> None:
-    print(cpu_description())
+    argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args()
+    print(f"machine: {cpu_description()}")
     images, truth = prepared_acquisition()
     cases = {"phantom, 3 stacks of 64 x 64": (images, disturbed(truth, 2.0, 2.0, seed=4),
                                               [np.full(len(t), 4.0) for t in truth])}
@@ -67,8 +73,8 @@ def main() -> None:
     if real is not None:
         cases["shared real scan, 3 stacks of 320 x 320, manual masks"] = real
     for name, (stacks, poses, expected) in cases.items():
-        plain = timed(stacks, poses, expected, None)
-        matched = timed(stacks, poses, expected, image_refinement.MATCHED_FROM_PASS)
+        times = timed(stacks, poses, expected)
+        plain, matched = times["plain"], times["matched"]
         print(f"{name}: image stage {1000 * plain:.0f} ms unmatched, {1000 * matched:.0f} ms matched "
               f"(x{matched / plain:.2f})")
 

@@ -172,12 +172,12 @@ def measure(trees: list[tuple[Path, Path]], scenarios: list[list[tuple[Path, Pat
         for client in clients:
             wait_ready(client)
         for (name, _), stacks in zip(SCENARIOS, scenarios):
-            for image in ("true", "false"):
-                for _ in range(3):
+            for _ in range(3):                          # the two settings alternate: a drifting machine moves both
+                for image in ("true", "false"):
                     best(clients, (name, image), stacks, image_consistency=image)
         if real:
-            for masks in (True, False, True):           # masks again: the best of six against three
-                for _ in range(3):
+            for _ in range(3):
+                for masks in (True, False, True):       # masks twice a round: the best of six against three
                     best(clients, ("real", masks), real, masks=masks, masks_hold_csf="true" if masks else "false")
         return out, peak_rss_mb(servers[0][0].pid)
 

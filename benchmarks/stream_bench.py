@@ -102,7 +102,7 @@ def stream(url: str, stacks: list[list[tuple[dict, list[bytes]]]], pace: float =
 def accuracy(levels: list[str], per_level: int, server: Server, plane_x: float, volumes: list,
              rng: np.random.Generator) -> None:
     print("\n## Final poses (mean E.D. mm; truth / twin-min) and pose latency, 128 x 128 with masks, MC-100")
-    print("| motion | stream | /v1/predict (same order) | stream vs predict | predict vs predict again "
+    print("| motion | stream | /v1/predict (same order) | stream vs predict | predict vs predict again (0: one answer) "
           "| pose p50 / p95 server | round trip p95 |")
     print("|---|---|---|---|---|---|---|")
     for level in levels:

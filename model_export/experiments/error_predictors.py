@@ -16,6 +16,7 @@ own training fold), shows what a learned predictor would add.
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -84,4 +85,6 @@ def table(path: Path) -> list[str]:
 
 
 if __name__ == "__main__":
-    print("\n".join(table(Path(sys.argv[1]))))
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("columns", type=Path, help="the .npz of per-slice columns that calibrate-acceptance --slices wrote")
+    print("\n".join(table(ap.parse_args().columns)))

@@ -23,6 +23,7 @@ the stage that depends on the variant.
 
 from __future__ import annotations
 
+import argparse
 import sys
 import tempfile
 from dataclasses import dataclass
@@ -157,8 +158,13 @@ def changes(answer: StackAnswer, base: StackAnswer, moved_from_scanner: np.ndarr
 
 
 def main() -> None:
-    scan, names = Path(sys.argv[1]), sys.argv[2].split(",")
-    fields = {"mc_samples": "30", **dict(arg.split("=", 1) for arg in sys.argv[3:])}
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("scan", type=Path, help="a real scan's folder: NAME.nii.gz beside its manual mask")
+    ap.add_argument("names", help="the stacks' names, comma-separated")
+    ap.add_argument("fields", nargs="*", metavar="FIELD=VALUE", help="form fields, e.g. image_consistency=false")
+    args = ap.parse_args()
+    scan, names = args.scan, args.names.split(",")
+    fields = {"mc_samples": "30", **dict(arg.split("=", 1) for arg in args.fields)}
     volumes = {(field, name): read_volume(scan / f"{name}{suffix}")
                for field, suffix in (("stacks", ".nii.gz"), ("masks", MASK_SUFFIX)) for name in names}
     axes = {name: int(np.argmax(volumes["stacks", name].spacing)) for name in names}

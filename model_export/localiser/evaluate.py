@@ -115,7 +115,8 @@ def median_ed(a: list[dict], b: list[dict], prepared: list) -> tuple[float | Non
 def pose_agreement(uploads_with_masks: list[StackUpload], localiser: Localiser, estimator, mc_samples: int = 100,  # noqa: ANN001
                    ) -> dict:
     """Median E.D. (mm) between the poses predicted with the given masks and with the localiser's, and
-    its floor: between two runs with the given masks (other MC-dropout draws); the ratio of the
+    between two runs with the given masks (0 with the model's fixed MC draws: a request gets one
+    answer; a model that draws afresh shows its draws' spread there); the ratio of the
     requests' wall times without and with masks (each the quicker of two runs, alternating, with
     the BLAS threads the server runs with: ``SVRNET_BLAS_THREADS``)."""
     def run(uploads: list[StackUpload]) -> tuple[list[dict], list, float]:
