@@ -42,12 +42,10 @@ def test_answers_far_beyond_the_socket_buffers_are_queued_and_arrive_in_order(pa
     server_end, client_end = pair
     box = Outbox(server_end, idle_s=10.0)
     messages = [bytes([k]) * 50_000 for k in range(40)]                # 2 MB against buffers of kilobytes
-    started = time.monotonic()
-    for m in messages:
+    for m in messages:              # nothing read yet: a write that waited for the reader would time out
         box.write(m[:10])
         box.write(memoryview(m)[10:])
         box.flush()
-    assert time.monotonic() - started < 2.0                             # the answering side never waited
     got = read_all(client_end, sum(map(len, messages)))
     assert box.drain(5.0) and got == b"".join(messages)
 
