@@ -54,6 +54,7 @@ def test_help_serves_nothing_and_options_override_the_environment(monkeypatch: p
     ("SVRNET_DATA_DIR", "{tmp}/a_file/below", "cannot be created"),
     ("SVRNET_TMP_DIR", "{tmp}/none", "not a folder"),
     ("SVRNET_API_KEYS", " , ", "no key"),
+    ("SVRNET_API_KEYS", "0123456789abcdef0123,secret", "a key of 6 characters is guessed by trying"),
     ("SVRNET_MAX_UPLOAD_MB", "inf", "finite number"),          # no limit at all: refused, not a traceback
     ("SVRNET_JOB_TIMEOUT_H", "inf", "finite number"),
 ])

@@ -8,8 +8,8 @@ Example:
     >>> del os.environ["SVRNET_PORT"]
     >>> sorted(Settings(api_keys="a, b").key_set())
     ['a', 'b']
-    >>> [p for p in Settings(api_keys="a, café").problems() if p.startswith("SVRNET_API_KEYS")]
-    ['SVRNET_API_KEYS: a key holds a character that is not printable ASCII (HTTP headers carry no other reliably)']
+    >>> [p[:48] for p in Settings(api_keys="a, café").problems() if p.startswith("SVRNET_API_KEYS")]
+    ['SVRNET_API_KEYS: a key holds a character that is', 'SVRNET_API_KEYS: a key of 1 characters is guesse']
 """
 
 from __future__ import annotations
@@ -25,6 +25,9 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 DEFAULT_MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
 DEFAULT_LOCALISERS_DIR = Path(__file__).resolve().parents[1] / "localisers"
+MIN_KEY_LENGTH = 20
+"""The fewest characters an API key may have: a short key is guessed by trying (the server answers a
+wrong key at once) or, from a copy of the job store, which holds each job owner's key digest."""
 
 
 class Settings(BaseSettings):
@@ -42,7 +45,8 @@ class Settings(BaseSettings):
                                "fast)")
     log_level: str = Field("info", description="the service's log level: debug, info, warning, error or critical "
                            "(JSON lines; never file names or DICOM attributes)")
-    api_keys: str = Field("", description="comma-separated keys; empty = no authentication")
+    api_keys: str = Field("", description="comma-separated keys, each of 20 characters or more (e.g. `openssl rand "
+                          "-hex 16`, one per client); empty = no authentication")
     allowed_origins: str = Field("", description="without API keys: comma-separated origins "
                                  "(scheme://host[:port]) that may call the service besides its own pages at an "
                                  "address; * = any. Another page's request (it carries an Origin header; scripts "
@@ -173,6 +177,9 @@ class Settings(BaseSettings):
         if any(not ("!" <= c <= "~") for k in self.key_set() for c in k):
             out.append("SVRNET_API_KEYS: a key holds a character that is not printable ASCII (HTTP headers carry "
                        "no other reliably)")
+        if short := sorted({len(k) for k in self.key_set() if len(k) < MIN_KEY_LENGTH}):
+            out.append(f"SVRNET_API_KEYS: a key of {short[0]} characters is guessed by trying; give each client a key "
+                       f"of {MIN_KEY_LENGTH} random characters or more (openssl rand -hex 16)")
         names = [p.parent.name for p in model_files(self.models_dir)]
         if not names:
             out.append(f"SVRNET_MODELS_DIR: {self.models_dir} holds no <name>/model.onnx")

@@ -51,6 +51,10 @@ LINGER_S, LINGER_CHUNKS = 2.0, 256
 before it closes."""
 DEFAULT_PORT = 9002
 """The port of FIRE's python-ismrmrd-server, which scanners' FIRE configurations name by default."""
+DEFAULT_HOST = "127.0.0.1"
+"""Where svrnet-mrd listens unless ``--host`` says otherwise: MRD carries no API key, so the port
+opens to a network only where the operator names that network, not with the HTTP API's
+``SVRNET_HOST``."""
 FIRST_BYTES_S = 10.0
 """How long a new connection may send nothing before the server closes it, holding no session slot
 meanwhile: a scanner sends its configuration at once; a peer that connects and waits (or a port
@@ -281,7 +285,10 @@ def build_server(settings: Settings, host: str, port: int, limits: ServerLimits)
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="svrnet-mrd", description="SVRnet poses for MRD (ISMRMRD) image streams: "
                                  "Gadgetron's external language interface, Siemens FIRE.")
-    ap.add_argument("--host", help="address to listen on (default: SVRNET_HOST)")
+    ap.add_argument("--host", default=DEFAULT_HOST,
+                    help=f"address to listen on (default {DEFAULT_HOST}: this machine only; MRD has no keys, so "
+                         "another address, e.g. the scanner network's or 0.0.0.0, is given here on purpose, never "
+                         "taken from SVRNET_HOST, which opens the HTTP API)")
     ap.add_argument("--port", type=port_number, default=DEFAULT_PORT, help=f"TCP port (default {DEFAULT_PORT})")
     ap.add_argument("--max-sessions", type=positive(int), help="connections at once (default: SVRNET_STREAM_MAX_SESSIONS)")
     ap.add_argument("--idle-s", type=positive(float),
@@ -335,10 +342,10 @@ def main(argv: list[str] | None = None) -> int:
     warn_unknown_variables("svrnet-mrd")
     limits = ServerLimits(settings.stream_max_sessions if args.max_sessions is None else args.max_sessions,
                           settings.stream_idle_s if args.idle_s is None else args.idle_s)
-    if problem := listen_problem(args.host or settings.host, args.port, "--host or SVRNET_HOST", "--port"):
+    if problem := listen_problem(args.host, args.port, "--host", "--port"):
         print(f"svrnet-mrd: {problem}", file=sys.stderr)
         return 2
-    server = build_server(settings, args.host or settings.host, args.port, limits)
+    server = build_server(settings, args.host, args.port, limits)
     limit_blas_threads(settings.blas_threads)               # the process's, once it is sure to serve
 
     def stop(signum: int, frame: object) -> None:  # noqa: ARG001

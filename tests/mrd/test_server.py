@@ -655,3 +655,22 @@ def test_a_stopping_server_tells_each_open_session_to_send_again(case: Case, ser
     assert (last["type"], last["status"]) == ("error", 503) and last["retry_after_s"] > 0, last
     assert "stopping" in last["detail"]
     assert len([m for m in received if isinstance(m, ismrmrd.Image)]) == 10
+
+
+def test_the_mrd_port_stays_on_the_loopback_unless_its_own_option_opens_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    """MRD carries no key: ``SVRNET_HOST=0.0.0.0``, set to open the HTTP API (with its keys) to the
+    network, leaves svrnet-mrd on 127.0.0.1; only ``--host`` opens it."""
+    from service.mrd import server as server_module
+
+    monkeypatch.setenv("SVRNET_HOST", "0.0.0.0")
+    asked: list[str] = []
+
+    def listening_on(settings: object, host: str, port: int, limits: object) -> None:
+        asked.append(host)
+        raise SystemExit(0)                          # where it would listen is all this test asks
+
+    monkeypatch.setattr(server_module, "build_server", listening_on)
+    for argv, host in (([], "127.0.0.1"), (["--host", "0.0.0.0"], "0.0.0.0")):
+        with pytest.raises(SystemExit):
+            server_module.main(["--port", "0", *argv])
+        assert asked[-1] == host
