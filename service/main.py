@@ -19,7 +19,7 @@ from fastapi_offline import FastAPIOffline
 from client.launch import installed_version
 from service.api import (health, masks, metrics, models, openapi, predict, problems, reconstructions, stream,
                          stream_messages)
-from service.api.access import needs_key
+from service.api.access import ListedOriginsCors, needs_key
 from service.api.deps import KnownQuery, MetricsAccess
 from service.api.metrics import Metrics
 from service.api.middleware import RequestContext
@@ -128,6 +128,8 @@ def create_app(settings: Settings | None = None, registry: ModelRegistry | None 
     app.include_router(metrics.router, dependencies=[MetricsAccess, KnownQuery], responses=problem_responses(401))
     app.add_middleware(RequestContext, metrics=app.state.metrics, max_body_bytes=int(settings.max_upload_mb * 2**20),
                        idle_s=settings.upload_idle_s, timeout_s=settings.upload_timeout_s)
+    if settings.origin_set():              # outermost: a listed page's preflight carries no key
+        app.add_middleware(ListedOriginsCors, origins=settings.origin_set())
     return app
 
 

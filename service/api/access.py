@@ -146,3 +146,46 @@ def job_owner(settings: Settings, headers: Headers) -> str | None:
     if not settings.key_set():
         return None
     return key_owner(presented_key(headers.get("authorization"), headers.get("x-api-key")))
+
+
+CORS_HEADERS = ("Authorization", "X-API-Key", "Idempotency-Key", "Content-Type", "X-Request-ID")
+"""What a listed origin's page may send across origins (:class:`ListedOriginsCors`)."""
+CORS_EXPOSED = ("Location", "Retry-After", "X-Request-ID", "Content-Disposition")
+"""What such a page may read of an answer besides its body."""
+
+
+class ListedOriginsCors:
+    """The CORS answers browsers need before a page of another origin may read the service's answers,
+    for the origins ``SVRNET_ALLOWED_ORIGINS`` lists alone (Starlette's ``CORSMiddleware``, preflights
+    answered before the key check: a browser sends no key with one). A request from any other
+    origin goes on to the service's own origin rule (:func:`origin_ok`), which refuses it with its
+    problem, never a CORS error of another shape.
+
+    Example:
+        >>> import asyncio
+        >>> async def app(scope, receive, send): pass
+        >>> cors = ListedOriginsCors(app, {"https://viewer.example"})
+        >>> sent = []
+        >>> async def send(message): sent.append(message)
+        >>> scope = {"type": "http", "method": "OPTIONS", "path": "/v1/predict", "headers": [
+        ...     (b"origin", b"https://viewer.example"), (b"access-control-request-method", b"POST")]}
+        >>> asyncio.run(cors(scope, None, send))
+        >>> sent[0]["status"], dict(sent[0]["headers"])[b"access-control-allow-origin"]
+        (200, b'https://viewer.example')
+    """
+
+    def __init__(self, app, origins: set[str]) -> None:  # noqa: ANN001 - an ASGI app
+        from starlette.middleware.cors import CORSMiddleware
+
+        self.app, self.origins = app, frozenset(origins)
+        self.cors = CORSMiddleware(app, allow_origins=["*"] if "*" in origins else sorted(origins),
+                                   allow_methods=["GET", "POST", "DELETE"], allow_headers=list(CORS_HEADERS),
+                                   expose_headers=list(CORS_EXPOSED), max_age=600)
+
+    async def __call__(self, scope, receive, send) -> None:  # noqa: ANN001 - ASGI
+        if scope["type"] == "http":
+            origin = Headers(scope=scope).get("origin")
+            if origin is not None and ("*" in self.origins or plain_origin(origin) in self.origins):
+                await self.cors(scope, receive, send)
+                return
+        await self.app(scope, receive, send)
