@@ -227,7 +227,7 @@ def reconstruct(
         "--resolution", callback=resolution_range,
         help="output spacing in mm, over 0.2 and at most 5 (server default 0.8)")] = None,
     svr_iterations: Annotated[Optional[int], typer.Option(min=0, max=10,
-                                                          help="SVR iterations (server default 3)")] = None,
+                                                          help="SVR iterations (server default 3; 0: none, the volume at the poses the job starts from)")] = None,
     mc_samples: McSamplesOpt = None,
     threshold: ThresholdOpt = None,
     max_expected_error: MaxExpectedOpt = None,

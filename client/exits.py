@@ -12,7 +12,7 @@ Example:
 from __future__ import annotations
 
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 
 import typer
 from rich.console import Console
@@ -91,13 +91,12 @@ def fail(message: str, code: int) -> None:
 
 
 @contextmanager
-def job_goes_on(job_id: str, succeeded: bool = False) -> Iterator[None]:
-    """A Ctrl-C while a job is followed ends the command (exit 130) saying that the job goes on on the
-    server, and how to reach it; while a ``succeeded`` job's results download, that they wait there
-    (cancelling it would delete them).
+def interrupt_says(message: str) -> Iterator[None]:
+    """A Ctrl-C (or SIGTERM, :func:`client.launch.stop_as_interrupt`) inside ends the command (exit
+    130) with ``message``: what the interrupted call leaves on the server, and how to reach it.
 
     Example:
-        >>> with job_goes_on("j1"):
+        >>> with interrupt_says("interrupted; nothing was sent"):
         ...     raise KeyboardInterrupt
         Traceback (most recent call last):
         ...
@@ -106,31 +105,25 @@ def job_goes_on(job_id: str, succeeded: bool = False) -> Iterator[None]:
     try:
         yield
     except KeyboardInterrupt:
-        if succeeded:
-            fail(f"interrupted; job {job_id} succeeded and its results wait on the server: svrnet fetch {job_id} "
-                 "downloads them again", EXIT_INTERRUPTED)
-        fail(f"interrupted; job {job_id} goes on on the server: svrnet status {job_id}, svrnet fetch {job_id} "
-             f"(waits for it and downloads it), or svrnet cancel {job_id}", EXIT_INTERRUPTED)
+        fail(message, EXIT_INTERRUPTED)
 
 
-@contextmanager
-def submitting(key: str) -> Iterator[None]:
-    """A Ctrl-C (or SIGTERM) while a job is submitted ends the command (exit 130) naming the
-    submission's key: the server may hold the job already, and the same command with
-    ``--idempotency-key`` gets that job instead of making a second one.
+def job_goes_on(job_id: str, succeeded: bool = False) -> AbstractContextManager[None]:
+    """:func:`interrupt_says` while a job is followed: the job goes on on the server, and how to reach
+    it; while a ``succeeded`` job's results download, that they wait there (cancelling it would
+    delete them)."""
+    if succeeded:
+        return interrupt_says(f"interrupted; job {job_id} succeeded and its results wait on the server: svrnet fetch "
+                              f"{job_id} downloads them again")
+    return interrupt_says(f"interrupted; job {job_id} goes on on the server: svrnet status {job_id}, svrnet fetch "
+                          f"{job_id} (waits for it and downloads it), or svrnet cancel {job_id}")
 
-    Example:
-        >>> with submitting("k3y-abcdef"):
-        ...     raise KeyboardInterrupt
-        Traceback (most recent call last):
-        ...
-        typer.exceptions.Exit: 130
-    """
-    try:
-        yield
-    except KeyboardInterrupt:
-        fail(f"interrupted while the job was submitted; the server may hold it: run the same command again with "
-             f"--idempotency-key {key} to get that job, not a second one", EXIT_INTERRUPTED)
+
+def submitting(key: str) -> AbstractContextManager[None]:
+    """:func:`interrupt_says` while a job is submitted: the server may hold the job already, and the
+    same command with ``--idempotency-key`` gets that job instead of making a second one."""
+    return interrupt_says(f"interrupted while the job was submitted; the server may hold it: run the same command "
+                          f"again with --idempotency-key {key} to get that job, not a second one")
 
 
 @contextmanager

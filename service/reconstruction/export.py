@@ -146,7 +146,7 @@ def write_outputs(result: ReconstructionResult, slices: SliceSet, folder: str | 
         "n_included": int(result.included.sum()),
         "n_excluded": int((slices.include & ~result.included).sum()),
         "n_not_used": int((~slices.include).sum()),
-        "slice_thickness_mm": [float(slices.thickness_mm[slices.stack_index == s][0])
+        "slice_thickness_mm": [round(float(slices.thickness_mm[slices.stack_index == s][0]), 6)
                                for s in range(int(slices.stack_index.max()) + 1 if slices.n_slices else 0)],
         "excluded_by_reason": {r: (result.exclusion_reason or []).count(r)
                                for r in sorted({x for x in (result.exclusion_reason or []) if x})},

@@ -178,6 +178,8 @@ def reconstruct_never_worse(slice_set: SliceSet, resolution_mm: float = 0.8, svr
     ``resolution_mm``); the volume returned is then solved at ``resolution_mm``
     (:func:`at_output_resolution`), and ``quality`` says what that pass did (``output_pass``)."""
     cfg = replace(config or ReconstructionConfig(), quality=True)
+    if svr_iterations <= 0:       # no registration round: the robust volume of the starting poses, not their average
+        cfg, svr_iterations = replace(cfg, register=False), 1
     results: dict[str, ReconstructionResult] = {}
     scores: dict[str, float | None] = {}
     registers = cfg.register and svr_iterations > 0
@@ -229,6 +231,8 @@ def reconstruct_never_worse(slice_set: SliceSet, resolution_mm: float = 0.8, svr
     if (kept or output_pass is not None) and results[best].coarse is not None:   # the winner's stack fit still judges
         result.coarse = results[best].coarse
         result.exclusion_reason = exclusion_reasons(slice_set.include, result.included, result.coarse.fit.inlier)
+    if not registers:             # one path, which moved no slice: the starting poses' volume
+        best, scores = "starting_poses", {"starting_poses": scores["full"]}
     result.quality = {**result.quality, "path": best, "paths": scores,
                       "further_passes": {"scores": further, "kept": kept}, "path_resolution_mm": working,
                       **({"output_pass": output_pass} if output_pass is not None else {})}

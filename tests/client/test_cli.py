@@ -22,7 +22,7 @@ import client.stream_views as stream_views
 import client.views as views
 from client import SVRnetClient
 from client.launch import installed_version
-from tests.support.client_fakes import PREDICT_BODY, FakeJobs, FakeServer, parse_multipart
+from tests.support.client_fakes import PREDICT_BODY, FakeJobs, FakeServer, parse_multipart, send_json
 
 
 @pytest.fixture
@@ -911,13 +911,8 @@ def test_a_sigterm_ends_svrnet_as_a_ctrl_c_does_leaving_no_half_written_file(tmp
                     self.wfile.flush()
                     time.sleep(0.1)
                 return
-            body = json.dumps({"job_id": "j1", "status": "succeeded", "stage": "done", "progress": 1.0,
-                               "result_url": "/v1/reconstructions/j1/volume", "report": {}}).encode()
-            self.send_response(200)
-            self.send_header("Content-Type", "application/json")
-            self.send_header("Content-Length", str(len(body)))
-            self.end_headers()
-            self.wfile.write(body)
+            send_json(self, {"job_id": "j1", "status": "succeeded", "stage": "done", "progress": 1.0,
+                             "result_url": "/v1/reconstructions/j1/volume", "report": {}})
 
         def log_message(self, *args: object) -> None:
             pass

@@ -35,7 +35,7 @@ from service.inference.model_file import ModelInfo
 from service.inference.registry import ModelRegistry
 from service.io.volume import Volume, write_volume
 from service.main import create_app
-from tests.support.client_fakes import FakeJobs, parse_multipart, problem
+from tests.support.client_fakes import FakeJobs, parse_multipart, problem, send_json
 from tests.support.local_client import LocalClient
 
 REPO = Path(__file__).resolve().parents[2]
@@ -746,12 +746,7 @@ def https_server(tmp_path: Path):  # noqa: ANN201
 
     class Health(http.server.BaseHTTPRequestHandler):
         def do_GET(self) -> None:  # noqa: N802 - the standard library's name
-            body = b'{"status": "ok"}'
-            self.send_response(200)
-            self.send_header("Content-Type", "application/json")
-            self.send_header("Content-Length", str(len(body)))
-            self.end_headers()
-            self.wfile.write(body)
+            send_json(self, {"status": "ok"})
 
         def log_message(self, *args: object) -> None:
             pass

@@ -4,6 +4,7 @@ and the reconstruction routes, served through ``httpx.MockTransport`` (no server
 from __future__ import annotations
 
 import email
+import http.server
 import email.policy
 import io
 import json
@@ -191,3 +192,13 @@ class FakeJobs:
         elif job["polls"] >= 3 and self.outcome != "running":
             job.update(status=self.outcome, error="SVR diverged" if self.outcome == "failed" else None)
         return httpx.Response(200, json={k: v for k, v in job.items() if k != "polls"})
+
+
+def send_json(handler: http.server.BaseHTTPRequestHandler, body: object, status: int = 200) -> None:
+    """Answer a real HTTP request (a standard-library server of a test) with ``body`` as JSON."""
+    raw = json.dumps(body).encode()
+    handler.send_response(status)
+    handler.send_header("Content-Type", "application/json")
+    handler.send_header("Content-Length", str(len(raw)))
+    handler.end_headers()
+    handler.wfile.write(raw)
