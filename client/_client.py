@@ -17,6 +17,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import httpx
+
 from client import transport
 from client.errors import Busy, ConnectionFailed, ServerError, SVRnetError
 from client.mask_archive import write_mask_archive
@@ -242,7 +244,8 @@ class SVRnetClient(JobCalls):
             exc.idempotency_key = key
             # The server may hold the job where the answer was lost (a dropped connection, a gateway's
             # 5xx) or where a busy server was asked more than once (the first may still be read).
-            maybe_made = isinstance(exc, (ConnectionFailed, ServerError)) or (
+            unsent = isinstance(exc.__cause__, (httpx.ConnectError, httpx.ConnectTimeout))     # never reached it
+            maybe_made = (isinstance(exc, (ConnectionFailed, ServerError)) and not unsent) or (
                 isinstance(exc, Busy) and (exc.attempts or 1) > 1)
             if maybe_made:
                 sent = f"sent {exc.attempts} times" if (exc.attempts or 1) > 1 else "sent"

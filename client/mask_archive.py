@@ -45,7 +45,7 @@ def mask_names(stacks: list[Path]) -> list[str]:
         path = Path(stack)
         base = (f"{path.resolve().name}.zip" if path.is_dir() else path.name).replace("\\", "/").rsplit("/", 1)[-1]
         base = next((base[:-len(x)] for x in MASK_NAME_SUFFIXES if base.lower().endswith(x)), base)
-        stem = (re.sub(r"[^A-Za-z0-9._-]+", "_", base).strip("._").lstrip("-") or "stack")[:longest]
+        stem = (re.sub(r"[^A-Za-z0-9._-]+", "_", base).lstrip("-._").rstrip("._") or "stack")[:longest]
         candidate, k = stem, 0
         while candidate.lower() in {s.lower() for s in stems}:
             k += 1

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import os
+import ssl
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -30,7 +31,7 @@ import numpy as np
 from websockets.exceptions import ConnectionClosed, InvalidStatus, InvalidURI, WebSocketException
 from websockets.sync.client import ClientConnection, connect
 
-from client.transport import USER_AGENT, clean_api_key, server_address
+from client.transport import USER_AGENT, clean_api_key, server_address, trusted
 from client._client import DEFAULT_SERVER
 from client.errors import (ArgumentError, Busy, ConnectionFailed, ServerError, SVRnetError, Unauthorized,
                            UnusableInput, error_class_for_status)
@@ -338,11 +339,21 @@ def _stream(session: "_Session", stacks: Sequence[ScannerStack], orders: list[li
 
 
 def _connect(url: str, api_key: str | None, answer_timeout_s: float) -> ClientConnection:
-    """The open WebSocket (its pings wait for a pong as long as for an answer); a refusal as a client error."""
+    """The open WebSocket (its pings wait for a pong as long as for an answer; a ``wss://`` server's
+    certificate checked as the HTTP calls check it, :func:`~client.transport.trusted`); a refusal as a
+    client error."""
+    tls = {}
+    if url.lower().startswith("wss://"):
+        check = trusted(None)
+        if check is False:                      # verify=False's counterpart: no check
+            check = ssl.create_default_context()
+            check.check_hostname, check.verify_mode = False, ssl.CERT_NONE
+        if isinstance(check, ssl.SSLContext):
+            tls = {"ssl": check}
     try:
         return connect(url, additional_headers={"Authorization": f"Bearer {api_key}"} if api_key else None,
                        open_timeout=OPEN_TIMEOUT_S, ping_timeout=answer_timeout_s, max_size=MAX_MESSAGE_BYTES,
-                       user_agent_header=USER_AGENT)
+                       user_agent_header=USER_AGENT, **tls)
     except InvalidStatus as e:
         status = e.response.status_code
         if status in (403, 404):              # the key is checked after the handshake, not by it
@@ -351,6 +362,9 @@ def _connect(url: str, api_key: str | None, answer_timeout_s: float) -> ClientCo
                                    status=status) from None
         raise error_class_for_status(status)(f"{url}: the server refused the WebSocket ({status})",
                                              status=status) from None
+    except ssl.SSLCertVerificationError as e:
+        raise ConnectionFailed(f"cannot open {url}: {type(e).__name__}: {e} (its certificate is not one this client "
+                               "trusts: give your site's CA bundle with SVRNET_CA_BUNDLE)") from None
     except (OSError, TimeoutError, InvalidURI, WebSocketException) as e:
         raise ConnectionFailed(f"cannot open {url}: {type(e).__name__}: {e}") from None
 

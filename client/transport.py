@@ -51,6 +51,8 @@ def sleep(seconds: float) -> None:
 
 
 IDEMPOTENCY_HEADER = "Idempotency-Key"
+"""Sent with a job's submission, the same key with every retry of it: the server answers a retry with
+the job the first attempt made, so a lost answer costs no second job."""
 
 
 def new_idempotency_key() -> str:
@@ -61,8 +63,6 @@ def new_idempotency_key() -> str:
         (32, True)
     """
     return secrets.token_urlsafe(24)
-"""Sent with a job's submission, the same key with every retry of it: the server answers a retry with
-the job the first attempt made, so a lost answer costs no second job."""
 
 
 def server_address(server: str, schemes: tuple[str, ...] = ("http", "https")) -> str:
@@ -119,9 +119,10 @@ def shown_url(url: str) -> str:
 
 
 def trusted(verify: ssl.SSLContext | str | bool | None) -> ssl.SSLContext | bool:
-    """What an HTTPS server's certificate is checked against: ``verify`` as given (an SSL context,
-    False for no check, a CA bundle's path), else the bundle ``SVRNET_CA_BUNDLE`` names (a site's own
-    CA, as hospital servers use), else the system's (``SSL_CERT_FILE`` where set).
+    """What an HTTPS (or WSS) server's certificate is checked against: ``verify`` as given (an SSL
+    context, False for no check, a CA bundle's path), else the bundle ``SVRNET_CA_BUNDLE`` names (a
+    site's own CA, as hospital servers use), else httpx's default: certifi's bundle, or
+    ``SSL_CERT_FILE`` / ``SSL_CERT_DIR`` where set (not the operating system's store).
 
     Example:
         >>> trusted(False), trusted(None) is True or isinstance(trusted(None), ssl.SSLContext)
@@ -278,7 +279,7 @@ class Transport:
         elif isinstance(exc, httpx.ReadTimeout):
             reason += " (the server accepted the connection and said nothing: it is stuck or overloaded)"
         elif isinstance(exc, httpx.ConnectError) and _caused_by(exc, ssl.SSLCertVerificationError):
-            reason += (f" (the certificate of {shown_url(self.base_url)} is not one this machine trusts: give your "
+            reason += (f" (the certificate of {shown_url(self.base_url)} is not one this client trusts: give your "
                        "site's CA bundle with SVRNET_CA_BUNDLE, or verify= of SVRnetClient; never switch to http://, "
                        "which sends the API key in the clear)")
         elif isinstance(exc, httpx.ConnectError) and not self.answered and _caused_by(exc, ssl.SSLError):

@@ -156,10 +156,10 @@ CORS_EXPOSED = ("Location", "Retry-After", "X-Request-ID", "Content-Disposition"
 
 class ListedOriginsCors:
     """The CORS answers browsers need before a page of another origin may read the service's answers,
-    for the origins ``SVRNET_ALLOWED_ORIGINS`` lists alone (Starlette's ``CORSMiddleware``, preflights
-    answered before the key check: a browser sends no key with one). A request from any other
-    origin goes on to the service's own origin rule (:func:`origin_ok`), which refuses it with its
-    problem, never a CORS error of another shape.
+    for the origins ``SVRNET_ALLOWED_ORIGINS`` lists alone, with or without API keys (Starlette's
+    ``CORSMiddleware``, preflights answered before the key check: a browser sends no key with one).
+    A request from any other origin goes on to the service's own rules (:func:`origin_ok` without
+    keys, the key with them) and gets no CORS header: its page cannot read the answer.
 
     Example:
         >>> import asyncio

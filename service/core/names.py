@@ -59,13 +59,13 @@ def has_unsafe_characters(name: str) -> bool:
 
 def unique_stems(names: list[str], max_length: int | None = None) -> list[str]:
     """File-system-safe stems of upload names (extensions dropped, only ``[A-Za-z0-9._-]``, none
-    starting with ``-``, which a shell's tools take for an option, at most ``max_length``
-    characters), made unique with ``-1``, ``-2`` ... in order, regardless of case: on macOS and
-    Windows ``AX`` and ``ax`` are one file, and one unzipped over the other would be lost.
+    starting with ``-`` (which a shell's tools take for an option) or ``.`` (a hidden file), at most
+    ``max_length`` characters), made unique with ``-1``, ``-2`` ... in order, regardless of case: on
+    macOS and Windows ``AX`` and ``ax`` are one file, and one unzipped over the other would be lost.
 
     Example:
-        >>> unique_stems(["axial.nii.gz", "axial.nii", "../x y.mha", "stacks[3]", "AXIAL.nii", "-rf.nii"])
-        ['axial', 'axial-1', 'x_y', 'stacks_3', 'AXIAL-2', 'rf']
+        >>> unique_stems(["axial.nii.gz", "axial.nii", "../x y.mha", "stacks[3]", "AXIAL.nii", "-rf.nii", "-.x.nii"])
+        ['axial', 'axial-1', 'x_y', 'stacks_3', 'AXIAL-2', 'rf', 'x']
         >>> unique_stems(["abcdef.nii", "abcdeg.nii"], max_length=4)
         ['abcd', 'ab-1']
     """
@@ -76,7 +76,7 @@ def unique_stems(names: list[str], max_length: int | None = None) -> list[str]:
             if base.lower().endswith(suffix):
                 base = base[: -len(suffix)]
                 break
-        stem = (re.sub(r"[^A-Za-z0-9._-]+", "_", base).strip("._").lstrip("-") or "stack")[:max_length]
+        stem = (re.sub(r"[^A-Za-z0-9._-]+", "_", base).lstrip("-._").rstrip("._") or "stack")[:max_length]
         candidate, k = stem, 0
         while candidate.lower() in {o.lower() for o in out}:
             k += 1

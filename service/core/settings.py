@@ -54,7 +54,9 @@ class Settings(BaseSettings):
                                  "must not use a service on their machine. A request to the server by name (its "
                                  "Host) is served only where that origin is listed, as a page whose DNS name was "
                                  "pointed at the server could otherwise read it: scripts that call it by name list "
-                                 "it here. With keys, the key decides")
+                                 "it here. With keys, the key decides who is served. With or without keys, a "
+                                 "listed origin's pages get the CORS headers their browser needs to read the "
+                                 "answers")
     metrics_public: bool = Field(False, description="serve /metrics without an API key even when keys are "
                                  "configured (by default it needs one, like /v1/)")
     max_upload_mb: float = Field(512.0, gt=0, description="limit of one request body (413 above)")

@@ -24,11 +24,10 @@ MIN_SLICES_PER_THREAD = 8
 """Fewer slices than twice this are reduced in one thread (a streamed slice, a short stack)."""
 MAX_SAMPLES_AT_ONCE = 65536
 """Slices x MC samples whose labels :meth:`OnnxPoseEstimator.estimate` holds at once: a request's
-slices go through the network and are reduced in chunks of this many samples (655 slices at 100
-samples, 65 at the most samples a request may ask), so that memory is bounded by the chunk, not by
-the request's slices x ``mc_samples`` (each chunk's labels and their reduction take a few hundred
-MB). A slice's statistics do not depend on the chunk it is in (every row of a call has the same
-dropout draws)."""
+slices go through the network and are reduced in chunks of this many samples, so that memory is
+bounded by the chunk, not by the request's slices x ``mc_samples`` (docs/deployment.md, "Memory").
+A slice's statistics do not depend on the chunk it is in (every row of a call has the same dropout
+draws)."""
 
 
 PER_SLICE = ("mean", "variance", "degenerate", "twin_mass", "spread_mm")

@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 
 from service.core.checksum import file_sha256
 from service.core.onnx import session_options, session_threads
+from service.geometry import encodings
 from service.geometry.twin import DEFAULT_PLANE_X_MM
 from service.inference.views import view_count
 
@@ -231,4 +232,22 @@ def load_model(path: Path, threads: int = 0) -> LoadedModel:
     info = ModelInfo.from_metadata(meta, file_sha256(path))
     draws = [(i.name, int(i.shape[-1])) for i in sess.get_inputs() if i.name.startswith(DRAWS_PREFIX)]
     seed = (DEFAULT_MC_SEED if info.mc_seed is None else info.mc_seed) if draws else None
-    return LoadedModel(path, replace(info, mc_seed=seed), sess, draws, seed, side)
+    model = LoadedModel(path, replace(info, mc_seed=seed), sess, draws, seed, side)
+    check_runs(model)
+    return model
+
+
+def check_runs(model: LoadedModel) -> None:
+    """One deterministic pass on a blank slice of the size the metadata names, whose labels must have
+    the size its ``label_type`` needs: a graph of another input size or label than its metadata says
+    is refused where the server starts (``ValueError``), not by every request it would serve."""
+    size = model.info.input_size
+    try:
+        out = model.run(np.zeros((1, size, size), np.float32), np.zeros(1, np.float32))
+    except Exception as exc:  # noqa: BLE001 - onnxruntime's own errors: one answer naming the metadata
+        raise ValueError(f"the graph does not run on slices of {size} x {size} px, the input_size its metadata "
+                         f"names ({type(exc).__name__})") from None
+    want = encodings.get(model.info.label_type).size
+    if np.ndim(out) != 3 or np.shape(out)[:2] != (1, 1) or np.shape(out)[-1] != want:
+        raise ValueError(f"the graph gives labels of shape {list(np.shape(out))} for one slice and pass, where its "
+                         f"label_type {model.info.label_type!r} needs [1, 1, {want}]")

@@ -221,10 +221,12 @@ def qform_from_sform(t: NiftiTransforms | None) -> NDArray[np.float64] | None:
     return move
 
 
-def placed_by(sform: NDArray, qform: NDArray, qform_code: int, sform_code: int) -> NiftiTransforms:
+def placed_by(sform: NDArray, qform: NDArray, qform_code: int, sform_code: int,
+              spatial_unit: int = 2) -> NiftiTransforms:
     """The header fields (:func:`copy_transforms`) of a NIfTI-1 file placed by ``sform`` and ``qform``
-    (voxel -> RAS mm, each with orthogonal axes) under these codes, qfac and quaternion as the
-    standard builds them (nibabel's ``set_qform``).
+    (voxel -> RAS, each with orthogonal axes) under these codes, qfac and quaternion as the standard
+    builds them (nibabel's ``set_qform``), its distance unit ``spatial_unit`` (2: mm; another file's
+    unit where the file is to overlay that one in ITK, which scales a qform by it).
 
     Example:
         >>> a = np.diag([-1.2, 1.2, 3.0, 1.0]); a[:3, 3] = (5.0, -4.0, 2.0)
@@ -240,7 +242,8 @@ def placed_by(sform: NDArray, qform: NDArray, qform_code: int, sform_code: int) 
     quatern = ("quatern_b", "quatern_c", "quatern_d", "qoffset_x", "qoffset_y", "qoffset_z")
     return NiftiTransforms(int(header["qform_code"]), int(header["sform_code"]),
                            tuple(float(v) for v in header["pixdim"][:4]), tuple(float(header[k]) for k in quatern),
-                           tuple(float(v) for row in ("srow_x", "srow_y", "srow_z") for v in header[row]))
+                           tuple(float(v) for row in ("srow_x", "srow_y", "srow_z") for v in header[row]),
+                           spatial_unit=int(spatial_unit))
 
 
 def copy_transforms(path: Path, t: NiftiTransforms) -> None:

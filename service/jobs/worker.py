@@ -99,29 +99,45 @@ def job_localiser(localisers_dir: Path | None, uploads: list) -> Localiser | Non
     return Localisers.from_directory(localisers_dir, threads=1, names=("default",)).get()
 
 
-def job_estimator(model_file: Path, required: bool = True) -> tuple[OnnxPoseEstimator | None, float]:
+MODEL_CHANGED = ("model: {name}'s file changed on disk since the job was submitted (sha256 {was} then, {now} now): "
+                 "restart the server after adding or replacing a model, and submit the job again")
+MODEL_GONE = "model: {name}'s file is no longer in the models folder or does not load: submit the job again"
+
+
+def job_estimator(model_file: Path, required: bool = True,
+                  sha256: str | None = None) -> tuple[OnnxPoseEstimator | None, float]:
     """The pose model a job names (one thread), and its atlas mid-sagittal plane: the plane its poses
     and the frame steps are in, given poses included (they come from that model's ``/v1/predict``).
     Not ``required`` (a job given poses) and the server without such a file: ``(None, the default
-    plane)``; required, :func:`~service.inference.model_file.load_model` says what is missing."""
+    plane)``; gone or unloadable where required, or another file than ``sha256`` (the one the server
+    served when the job was submitted): a ``ValueError`` naming ``model``, which the job's error
+    says (:data:`MODEL_GONE`, :data:`MODEL_CHANGED`)."""
     from service.geometry.twin import DEFAULT_PLANE_X_MM
     from service.inference.estimator import OnnxPoseEstimator
     from service.inference.model_file import load_model
 
-    if not required and not Path(model_file).exists():
+    model_file = Path(model_file)
+    if not required and not model_file.exists():
         return None, DEFAULT_PLANE_X_MM
-    estimator = OnnxPoseEstimator(load_model(model_file, threads=1))
+    try:
+        estimator = OnnxPoseEstimator(load_model(model_file, threads=1))
+    except Exception:  # noqa: BLE001 - onnxruntime's own errors, a missing file: one account naming the field
+        raise ValueError(MODEL_GONE.format(name=model_file.parent.name)) from None
+    if sha256 is not None and estimator.info.sha256 != sha256:
+        raise ValueError(MODEL_CHANGED.format(name=model_file.parent.name, was=sha256[:10],
+                                              now=estimator.info.sha256[:10]))
     return estimator, estimator.info.symmetry_plane_x_mm
 
 
 def predicted_body(uploads: list, estimator: PoseEstimator, mc_samples: int = 100,
                    variance_threshold: float | None = None, orders: list | None = None,
                    max_expected_error_mm: float | None = None,
-                   localiser: Localiser | None = None) -> tuple[dict, list[np.ndarray]]:
+                   localiser: Localiser | None = None, model_name: str | None = None) -> tuple[dict, list[np.ndarray]]:
     """The ``/v1/predict``-shaped body (``model``, ``mc_samples``, ``variance_threshold``, ``stacks``) of
     the service's own prediction, and the brain masks per stack; ``orders``: the stacks'
     acquisition orders (:class:`~service.consistency.slice_order.SliceOrder`), if known;
-    ``localiser``: for the stacks without a mask (default: the shipped one)."""
+    ``localiser``: for the stacks without a mask (default: the shipped one); ``model_name``: the
+    name the model is served under, as ``/v1/predict`` names it (default: its metadata's)."""
     from service.pipeline.documents import stack_objects
     from service.pipeline.predict import predict
     from service.pipeline.prepare import prepare_stacks
@@ -135,7 +151,7 @@ def predicted_body(uploads: list, estimator: PoseEstimator, mc_samples: int = 10
     max_expected = max_expected_error_mm or info.max_expected_error_mm
     predictions, _ = predict(prepared, estimator, mc_samples, threshold, orders=orders, max_expected_error_mm=max_expected)
     masks = [p.slices.to_stack(p.slices.masks) for p in prepared]
-    return {"model": info.reference(), "mc_samples": mc_samples, "variance_threshold": threshold,
+    return {"model": info.reference(model_name), "mc_samples": mc_samples, "variance_threshold": threshold,
             "max_expected_error_mm": max_expected, "localiser": localiser_provenance(uploads, localiser),
             "stacks": stack_objects(predictions)}, masks
 
@@ -270,19 +286,19 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         counts = [u.volume.array.shape[u.slice_axis] for u in uploads]
         body = json.loads(poses_path.read_text())
         poses = poses_from_predict_body(body, counts, [u.volume.affine for u in uploads])
-        estimator, plane = job_estimator(model_file, required=False)
+        estimator, plane = job_estimator(model_file, required=False, sha256=params.get("model_sha256"))
         if estimator is not None:       # the job's own model (its frame steps, its report), not the earlier request's
-            body["model"] = estimator.info.reference()
+            body["model"] = estimator.info.reference(params.get("model", "default"))
         masks = uploaded_pose_masks(uploads, localiser)
         if any(u.localised for u in uploads) and not any(m.any() for m in masks):
             raise UnusableImage(NO_BRAIN_FOUND)       # not the reconstruction's "no pixel inside its mask"
         started_from = "uploaded_poses"
     else:
         progress("predicting poses", 0.05)
-        estimator, plane = job_estimator(model_file)
+        estimator, plane = job_estimator(model_file, sha256=params.get("model_sha256"))
         body, masks = predicted_body(uploads, estimator, int(params.get("mc_samples", 100)),
                                      params.get("variance_threshold"), orders, params.get("max_expected_error_mm"),
-                                     localiser)
+                                     localiser, model_name=params.get("model", "default"))
         poses = starting_poses(body)
         started_from = start_label(body, poses)
     progress("reconstructing", 0.15)

@@ -57,8 +57,8 @@ class StackUpload:
     """The uploaded mask is the skull's inside (brain and extra-axial CSF), as manual fetal masks are
     usually drawn (:attr:`~service.preprocess.localisation.Localisation.holds_csf`)."""
     mask_may_be_region: bool = True
-    """Whether a mask that fills its box is a region of interest (:attr:`mask_is_region`); not for a
-    stream's mask frames, which were each slice's brain as it arrived."""
+    """Whether a mask drawn rather than segmented may be a region of interest (:attr:`mask_is_region`);
+    not for a stream's mask frames, which were each slice's brain as it arrived."""
 
     @property
     def slice_axis(self) -> int:

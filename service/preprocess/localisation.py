@@ -160,11 +160,12 @@ REGION_FILL = 0.95
 """An uploaded mask that fills at least this share of its bounding box is a region of interest drawn
 around the head (a box in a viewer), not a brain's outline, which fills far less of its box
 (docs/localisation.md)."""
-REGION_REPEAT = 0.9
+REGION_REPEAT = 0.99
 """An uploaded mask whose slices along one voxel axis hold the same cross-section, at least this share
 of their union common to all of them, is a shape drawn in one plane and extruded (a box, an elliptic
-cylinder): a region of interest. A brain's cross-sections change from slice to slice
-(docs/localisation.md)."""
+cylinder, a contour copied to every slice: the share is 1): a region of interest. A brain's
+cross-sections change from slice to slice, even over the few central slices of a stack that covers
+part of it (docs/localisation.md)."""
 MIN_REGION_ML = 100.0
 """A region under this volume cannot hold the youngest fetal head the service serves: such a mask is
 taken as the brain it marks (docs/localisation.md)."""

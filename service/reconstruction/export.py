@@ -182,5 +182,5 @@ def volume_in_stack_space(volume_path: Path, report: dict, stack: int, target: P
     write_volume(Volume(volume.array, sform), target)
     if frame.nifti_codes is not None:              # the stack's header: read by its qform, the volume is too
         qform = sform if frame.qform_from_sform is None else frame.qform_from_sform @ sform
-        copy_transforms(target, placed_by(sform, qform, *frame.nifti_codes))
+        copy_transforms(target, placed_by(sform, qform, *frame.nifti_codes, spatial_unit=frame.nifti_spatial_unit or 2))
     return target

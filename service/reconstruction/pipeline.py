@@ -242,7 +242,7 @@ def reconstruct(slice_set: SliceSet, resolution_mm: float = 0.8, svr_iterations:
     for it, lam in enumerate(lams):
         delta = default_delta(x, support, cfg.delta_fraction)
         if it > 0:
-            stage(f"registration {it}/{rounds}")
+            stage(f"registration {it}/{rounds}" if cfg.register else f"round {it}/{rounds} at the starting poses")
             t0 = time.perf_counter()
             if cfg.register:
                 if coarse is not None:             # a slice started from a pose that does not fit: restart it

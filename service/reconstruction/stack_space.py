@@ -44,10 +44,11 @@ RADIUS_MM = 40.0
 class StackFrame:
     """One stack's place: ``scanner_from_atlas`` (``4 x 4``, RAS mm, rigid; None where no slice of the
     stack is in the volume), the slices it is the mean of, and ``motion_mm`` (see the module); for a
-    stack read from a NIfTI file, its header's ``nifti_codes`` (``qform_code, sform_code``) and
+    stack read from a NIfTI file, its header's ``nifti_codes`` (``qform_code, sform_code``),
     ``qform_from_sform`` (:func:`~service.io.nifti_header.qform_from_sform`: where its qform places
-    what its sform, the service's placement, puts at ``p``; None where they agree), which the volume
-    placed in its coordinates takes over, so that every reader places both alike."""
+    what its sform, the service's placement, puts at ``p``; None where they agree) and
+    ``nifti_spatial_unit`` (``xyzt_units``' distance unit, which ITK scales a qform by), which the
+    volume placed in its coordinates takes over, so that every reader places both alike."""
 
     stack: int
     scanner_from_atlas: NDArray[np.float64] | None
@@ -55,6 +56,7 @@ class StackFrame:
     motion_mm: float | None
     nifti_codes: tuple[int, int] | None = None
     qform_from_sform: NDArray[np.float64] | None = None
+    nifti_spatial_unit: int | None = None
 
     def as_json(self) -> dict:
         """The report's entry (``stack_frames[]``)."""
@@ -62,7 +64,8 @@ class StackFrame:
                 "scanner_from_atlas": None if self.scanner_from_atlas is None else self.scanner_from_atlas.tolist(),
                 "motion_mm": None if self.motion_mm is None else round(float(self.motion_mm), 3),
                 "nifti_codes": None if self.nifti_codes is None else list(self.nifti_codes),
-                "qform_from_sform": None if self.qform_from_sform is None else self.qform_from_sform.tolist()}
+                "qform_from_sform": None if self.qform_from_sform is None else self.qform_from_sform.tolist(),
+                "nifti_spatial_unit": self.nifti_spatial_unit}
 
 
 class NoStackFrame(LookupError):
@@ -111,7 +114,8 @@ def with_header(frame: StackFrame, header: list[NiftiTransforms | None]) -> Stac
     t = header[0] if header else None
     if t is None:
         return frame
-    return replace(frame, nifti_codes=(int(t.qform_code), int(t.sform_code)), qform_from_sform=qform_from_sform(t))
+    return replace(frame, nifti_codes=(int(t.qform_code), int(t.sform_code)), qform_from_sform=qform_from_sform(t),
+                   nifti_spatial_unit=int(t.spatial_unit))
 
 
 def _nearest_rigid(transforms: NDArray) -> NDArray[np.float64]:
@@ -137,9 +141,10 @@ def stack_frame(report: dict, stack: int) -> StackFrame:
     if entry.get("scanner_from_atlas") is None:
         raise NoStackFrame(f"stack {stack} has no slice in the volume: no place to put the volume by")
     codes, move = entry.get("nifti_codes"), entry.get("qform_from_sform")        # absent: a job of an earlier version
+    unit = entry.get("nifti_spatial_unit")
     return StackFrame(stack, np.asarray(entry["scanner_from_atlas"], np.float64), int(entry.get("slices") or 0),
                       entry.get("motion_mm"), None if codes is None else (int(codes[0]), int(codes[1])),
-                      None if move is None else np.asarray(move, np.float64))
+                      None if move is None else np.asarray(move, np.float64), None if unit is None else int(unit))
 
 
 def in_stack_space(volume_affine: ArrayLike, frame: StackFrame) -> NDArray[np.float64]:

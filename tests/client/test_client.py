@@ -701,7 +701,7 @@ def test_a_submission_whose_answer_is_lost_names_its_key_and_a_refused_one_carri
         stack_file: Path, no_sleep: list[float]) -> None:
     """The connection dropped after the upload (the server may have made the job), or a gateway's 502
     after the retries: the error names the key and carries it, so that a rerun with it gets that job;
-    a 400 made no job: the key is carried but not offered."""
+    a server never reached, or a 400, made no job: the key is carried but not offered."""
     keys: list[str] = []
 
     def drop(request: httpx.Request) -> httpx.Response:
@@ -720,6 +720,13 @@ def test_a_submission_whose_answer_is_lost_names_its_key_and_a_refused_one_carri
         assert len(keys) == 2 and len(set(keys)) == 1 and e.value.idempotency_key == keys[0]
         assert f"idempotency key {keys[0]}: the server may hold its job" in str(e.value)
 
+    def unreachable(request: httpx.Request) -> httpx.Response:
+        raise httpx.ConnectError("Connection refused", request=request)
+
+    with pytest.raises(ConnectionFailed) as e:                   # nothing reached the server: no job to get
+        mock(unreachable, retries=0).reconstruct([stack_file], idempotency_key="u" * 20)
+    assert e.value.idempotency_key == "u" * 20 and "may hold" not in str(e.value)
+
     def refused(request: httpx.Request) -> httpx.Response:
         return httpx.Response(400, json=problem(400, "resolution_mm: at most 5"))
 
@@ -732,17 +739,12 @@ def https_server(tmp_path: Path):  # noqa: ANN201
     """An HTTPS server on 127.0.0.1 with a self-signed certificate (a site's own CA): its URL and the
     certificate's path."""
     import http.server
-    import shutil
     import ssl
-    import subprocess
     import threading
 
-    if shutil.which("openssl") is None:
-        pytest.skip("needs openssl to make a certificate")
-    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
-    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", str(key), "-out", str(cert),
-                    "-days", "1", "-subj", "/CN=127.0.0.1", "-addext", "subjectAltName=IP:127.0.0.1"],
-                   check=True, capture_output=True, timeout=60)
+    from tests.support.certificates import self_signed
+
+    cert, key = self_signed(tmp_path)
 
     class Health(http.server.BaseHTTPRequestHandler):
         def do_GET(self) -> None:  # noqa: N802 - the standard library's name
@@ -769,7 +771,7 @@ def test_a_server_certificate_of_a_sites_own_ca_is_trusted_where_its_bundle_is_g
     ``verify=``, makes the server answer; a bundle that is not there is a usage error."""
     url, cert = https_server
     monkeypatch.delenv("SVRNET_CA_BUNDLE", raising=False)
-    with pytest.raises(ConnectionFailed, match="not one this machine trusts: give your site's CA bundle") as refused:
+    with pytest.raises(ConnectionFailed, match="not one this client trusts: give your site's CA bundle") as refused:
         SVRnetClient(url, retries=0).health()
     assert "does not speak TLS" not in str(refused.value)
     assert SVRnetClient(url, verify=str(cert)).health() == {"status": "ok"}

@@ -383,3 +383,41 @@ def test_a_library_caller_whose_session_ends_early_learns_what_was_answered_and_
     poses = [m["index"] for m in e.value.result.of_type("pose")]
     assert poses == received[:2] and e.value.result.ready["session_id"] == "s1"
     assert received[2] in e.value.unanswered["ax"] and not set(poses) & set(e.value.unanswered["ax"])
+
+
+def test_a_wss_server_of_a_sites_own_ca_is_trusted_where_its_bundle_is_given(
+        stack_file: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The stream checks a ``wss://`` server's certificate as the HTTP calls do: refused with advice
+    that keeps TLS where this client does not trust it; served with SVRNET_CA_BUNDLE naming the site's CA."""
+    import ssl
+
+    from client.errors import ConnectionFailed
+    from client.stream import read_stack, stream_stacks
+    from tests.support.certificates import self_signed
+
+    cert, key = self_signed(tmp_path)
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    context.load_cert_chain(cert, key)
+
+    def handler(ws: ServerConnection) -> None:
+        ws.recv()
+        ws.send(json.dumps({"type": "ready", "session_id": "s1", "model": {"name": "default"}, "mc_samples": 10}))
+        while True:
+            msg = json.loads(ws.recv())
+            if msg["type"] == "slice":
+                ws.recv()
+                ws.send(json.dumps(pose(msg)))
+            elif msg["type"] == "end_stack":
+                ws.send(json.dumps({"type": "stack", "stack": msg["stack"], "slices": []}))
+            else:
+                ws.send(json.dumps({"type": "summary", "stacks": []}))
+                return
+
+    monkeypatch.delenv("SVRNET_CA_BUNDLE", raising=False)
+    with scripted_server(handler, ssl=context) as url:
+        secure = url.replace("http://", "https://")
+        with pytest.raises(ConnectionFailed, match="not one this client trusts: give your site's CA bundle"):
+            stream_stacks([read_stack(stack_file)], secure)
+        monkeypatch.setenv("SVRNET_CA_BUNDLE", str(cert))
+        result = stream_stacks([read_stack(stack_file)], secure)
+    assert result.summary == {"type": "summary", "stacks": []} and len(result.of_type("pose")) == 4

@@ -65,3 +65,22 @@ def test_every_shipped_pose_model_states_the_views_it_was_calibrated_with(folder
     """Without ``tta_views`` the service runs one view, where the calibrations and the card's figures
     were measured with :data:`SHIPPED_VIEWS` (docs/training.md measures what one view costs)."""
     assert load_model(MODELS / folder / "model.onnx").info.metadata.get("tta_views") == str(SHIPPED_VIEWS)
+
+
+@pytest.mark.parametrize(("updates", "said"), [({"input_size": "128"}, "does not run on slices of 128 x 128 px"),
+                                                ({"label_type": "euler"}, "label_type 'euler' needs [1, 1, 6]")])
+def test_a_graph_that_is_not_what_its_metadata_says_is_refused_where_it_is_loaded(
+        updates: dict, said: str, tiny_model_path: Path, tmp_path: Path) -> None:
+    """A model whose metadata names another input size or label than its graph has (a file edited by
+    hand, a copy of another model's metadata) fails at load, naming the field, where it had been
+    served and answered every request with a 500."""
+    import shutil
+
+    from model_export.spread import write_metadata
+
+    copy = tmp_path / "model.onnx"
+    shutil.copyfile(tiny_model_path, copy)
+    load_model(copy)
+    write_metadata(copy, updates)
+    with pytest.raises(ValueError, match=said.replace("[", r"\[").replace("]", r"\]")):
+        load_model(copy)

@@ -90,8 +90,20 @@ def test_a_job_given_poses_works_in_the_plane_of_the_model_it_names(tiny_model_p
     estimator, plane = job_estimator(tmp_path / "model.onnx", required=False)
     assert plane == 1.5 != DEFAULT_PLANE_X_MM and estimator.info.symmetry_plane_x_mm == 1.5
     assert job_estimator(tmp_path / "absent.onnx", required=False) == (None, DEFAULT_PLANE_X_MM)
-    with pytest.raises(Exception, match="absent"):
+    with pytest.raises(ValueError, match="model: .*'s file is no longer in the models folder or does not load"):
         job_estimator(tmp_path / "absent.onnx")
+
+
+def test_a_job_whose_model_file_changed_since_it_was_submitted_fails_saying_so(tiny_model_path) -> None:  # noqa: ANN001
+    """The server serves the models it loaded at start; a job loads its model's file when it runs: a
+    file replaced meanwhile (another sha256 than the one the submission recorded) fails the job naming
+    ``model`` rather than running on the new file under the old name."""
+    from service.inference.model_file import load_model
+
+    estimator, _ = job_estimator(tiny_model_path, sha256=load_model(tiny_model_path).info.sha256)
+    assert estimator is not None
+    with pytest.raises(ValueError, match="model: .*'s file changed on disk since the job was submitted"):
+        job_estimator(tiny_model_path, sha256="0" * 64)
 
 
 def test_a_job_whose_stacks_hold_no_brain_the_localiser_finds_says_so(tiny_model_path) -> None:  # noqa: ANN001
@@ -103,3 +115,20 @@ def test_a_job_whose_stacks_hold_no_brain_the_localiser_finds_says_so(tiny_model
     estimator, _ = job_estimator(tiny_model_path)
     with pytest.raises(UnusableImage, match="the localiser found no brain in any stack.*upload a brain mask"):
         predicted_body([upload], estimator, mc_samples=5, localiser=default_localiser())
+
+
+def test_a_job_names_its_model_by_the_name_it_was_served_under(tiny_model_path) -> None:  # noqa: ANN001
+    """A model copied into another folder (a researcher's ``next``) is served under the folder's name:
+    the job's prediction names it so, as ``/v1/predict`` does, not by its file's own metadata name."""
+    from tests.support.phantoms import acquire_stack, phantom_brain, stack_affine
+
+    img, msk, aff = phantom_brain(2)
+    shape = (48, 48, 12)
+    a = stack_affine(2, np.eye(3), 1.5, 3.0, shape)
+    stack, mask = acquire_stack(img, msk, aff, a, shape, 2, np.stack([np.eye(4)] * shape[2]))
+    upload = StackUpload("s.nii.gz", Volume(stack.astype(np.float32), a), Volume((mask > 0.5).astype(np.uint8), a),
+                         "m.nii.gz")
+    estimator, _ = job_estimator(tiny_model_path)
+    body, _ = predicted_body([upload], estimator, mc_samples=2, model_name="next")
+    assert body["model"]["name"] == "next" != estimator.info.name
+    assert body["model"]["sha256"] == estimator.info.sha256

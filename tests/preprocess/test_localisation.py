@@ -118,6 +118,11 @@ def test_brain_masks_and_small_drawn_shapes_are_not_regions_of_interest() -> Non
     egg = ((x - 45) / (32 - 0.2 * (y - 10))) ** 2 + ((y - 40) / 30.0) ** 2 + ((z - 15) / 11.0) ** 2 <= 1
     moved = np.stack([np.roll(egg[..., k], (k % 3 - 1) * 2, axis=0) for k in range(egg.shape[2])], axis=-1)
     assert not is_region_of_interest(egg, spacing) and not is_region_of_interest(moved, spacing)
+    x, y, z = np.ogrid[-60:61, -50:51, -12:13]           # a 38-week brain; stacks that cover its middle only
+    big = (x / 55.0) ** 2 + (y / 45.0) ** 2 + ((z * 3.0) / 40.0) ** 2 <= 1
+    for slices in (5, 7, 9):
+        slab = big[:, :, 12 - slices // 2: 12 - slices // 2 + slices]
+        assert slab.sum() * 3 / 1000 >= 100 and not is_region_of_interest(slab, spacing), slices
     for seed in (1, 2, 5):
         brain = phantom_brain(seed)
         for axis in range(3):

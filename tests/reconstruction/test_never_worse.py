@@ -369,7 +369,7 @@ def test_no_registered_path_whose_stacks_do_not_predict_each_other_replaces_the_
 def test_no_registration_round_gives_the_robust_volume_of_the_starting_poses(acquisition) -> None:  # noqa: ANN001
     """``svr_iterations=0`` (the API's "no registration rounds"): the slices stay where they were given
     and the volume is the robust super-resolved one, nearer the truth than their Gaussian average,
-    and the report names the path ``starting_poses`` (it named ``full``: no slice had moved)."""
+    and the report names the path ``starting_poses``: no slice moved."""
     from service.reconstruction.pipeline import reconstruct
     from tests.reconstruction.helpers import psnr_ncc, reference_on
 

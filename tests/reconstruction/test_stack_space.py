@@ -64,7 +64,7 @@ def test_slices_out_of_the_volume_take_no_part_and_a_stack_without_any_has_no_fr
     assert frames[0].slices == SHAPE[2] - 4
     assert frames[1] == StackFrame(1, None, 0, None)
     assert frames[1].as_json() == {"stack": 1, "slices": 0, "scanner_from_atlas": None, "motion_mm": None,
-                                  "nifti_codes": None, "qform_from_sform": None}
+                                  "nifti_codes": None, "qform_from_sform": None, "nifti_spatial_unit": None}
     with pytest.raises(NoStackFrame, match="stack 1 has no slice"):
         in_stack_space(np.eye(4), frames[1])
 
@@ -153,3 +153,34 @@ def test_a_stack_whose_qform_and_sform_differ_gets_a_volume_every_reader_places_
             volume_world = np.array([vol.TransformContinuousIndexToPhysicalPoint(tuple(v)) for v in voxels])
             stack_world = np.array([stk.TransformContinuousIndexToPhysicalPoint(tuple(v)) for v in on_stack])
         np.testing.assert_allclose(volume_world, stack_world, atol=1e-3, err_msg=read)
+
+
+@pytest.mark.parametrize("units", [1, 3])
+def test_a_stack_in_metres_or_microns_gets_a_volume_itk_places_on_it(units: int, tmp_path: Path) -> None:
+    """ITK scales a qform by the distance unit the header names (nibabel and the service read mm): the
+    volume placed in such a stack's coordinates names the stack's unit, so that in ITK each volume
+    voxel lies on the stack voxel the service says it does, as in nibabel."""
+    sitk = pytest.importorskip("SimpleITK")
+    nib = pytest.importorskip("nibabel")
+    from service.io.readers import read_upload
+    from service.reconstruction.stack_space import with_header
+
+    affine, atlas_from_voxel, _ = acquisition((0.0, 0.0))
+    stack_file = nib.Nifti1Image(np.zeros(SHAPE, np.float32), affine)
+    stack_file.set_sform(affine, 1)
+    stack_file.set_qform(affine, 1)
+    stack_file.header["xyzt_units"] = units
+    nib.save(stack_file, tmp_path / "stack.nii.gz")
+    upload = read_upload(tmp_path / "stack.nii.gz", "stack.nii.gz")
+    frame = stack_frames(atlas_from_voxel, np.broadcast_to(affine, atlas_from_voxel.shape), np.zeros(SHAPE[2], int),
+                         np.ones(SHAPE[2]))[0]
+    image, _, brain_affine = phantom_brain(2)
+    write_volume(Volume(image, brain_affine), tmp_path / "volume.nii.gz")
+    entry = with_header(frame, [upload.nifti]).as_json()
+    placed = volume_in_stack_space(tmp_path / "volume.nii.gz", {"stack_frames": [entry]}, 0, tmp_path / "placed.nii.gz")
+    voxels = np.array([[0.0, 0.0, 0.0], [30.0, 12.0, 40.0]])
+    on_stack = apply(np.linalg.inv(affine) @ frame.scanner_from_atlas @ brain_affine, voxels)
+    vol, stk = sitk.ReadImage(str(placed)), sitk.ReadImage(str(tmp_path / "stack.nii.gz"))
+    np.testing.assert_allclose([vol.TransformContinuousIndexToPhysicalPoint(tuple(v)) for v in voxels],
+                               [stk.TransformContinuousIndexToPhysicalPoint(tuple(v)) for v in on_stack],
+                               rtol=1e-5, atol=1e-3)
