@@ -253,6 +253,20 @@ class ModelDescription(BaseModel):
     trained_on: str
     mc_seed: Optional[int] = Field(None, description="the seed of the model's fixed MC-dropout draws (one answer per "
                                                      "request); null where every call draws afresh")
+    licences: str = Field("", description="the licences of the model's training data, which the model inherits "
+                                          "(empty where its file names none)")
+    card: bool = Field(False, description="whether the model's folder holds its card (card.md: its data, training "
+                                          "and measured accuracy)")
+
+
+class LocaliserDescription(BaseModel):
+    name: str
+    version: str
+    sha256: str
+    default: bool = Field(description="the localiser stacks sent without masks go to")
+    grid_mm: float = Field(description="the pixel size of the network's grid")
+    licences: str = Field("", description="the licences of its training data (empty where its file names none)")
+    card: bool = Field(False, description="whether its folder holds its card (card.md)")
 
 
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]

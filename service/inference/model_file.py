@@ -82,6 +82,9 @@ class ModelInfo:
     mc_seed: int | None = None
     """The seed of the model's fixed MC-dropout draws (metadata ``mc_seed``, written with its
     :data:`DRAWS_PREFIX` inputs); None: the graph draws its own at every call."""
+    licences: str = ""
+    """The licences of the model's training data, which the model inherits (metadata ``licences``;
+    empty where the file names none)."""
     metadata: dict[str, str] = field(default_factory=dict, repr=False)
 
     def reference(self, name: str | None = None) -> dict[str, str]:
@@ -105,6 +108,7 @@ class ModelInfo:
                 input_size=int(meta["input_size"]), pixel_spacing_mm=float(meta["pixel_spacing_mm"]),
                 variance_threshold=float(meta["variance_threshold"]), dropout_p=float(meta.get("dropout_p", 0.5)),
                 atlas_id=meta.get("atlas_id", ""), trained_on=meta.get("training_data", ""), sha256=sha256,
+                licences=meta.get("licences", ""),
                 symmetry_plane_x_mm=float(meta.get("symmetry_plane_x_mm", DEFAULT_PLANE_X_MM)),
                 mc_error_scale=float(meta.get("mc_error_scale", 1.0)), tta_views=view_count(meta.get("tta_views", 1), "tta_views"),
                 mc_error_shape=_shape(meta.get("mc_error_shape", "")),

@@ -16,9 +16,12 @@ log = logging.getLogger(__name__)
 class ModelRegistry:
     """Name -> :class:`PoseEstimator`; ``default_name`` is what ``model=default`` means."""
 
-    def __init__(self, estimators: dict[str, PoseEstimator], default_name: str = "default") -> None:
+    def __init__(self, estimators: dict[str, PoseEstimator], default_name: str = "default",
+                 cards: frozenset[str] = frozenset()) -> None:
         self.estimators = estimators
         self.default_name = default_name
+        self.cards = cards
+        """The models whose folder holds their card (``card.md``)."""
 
     @classmethod
     def from_directory(cls, models_dir: Path, default_name: str = "default", threads: int = 0) -> "ModelRegistry":
@@ -28,7 +31,8 @@ class ModelRegistry:
             models_dir, "SVRNET_MODELS_DIR", lambda path: OnnxPoseEstimator(load_model(path, threads)))
         for name in estimators:
             log.info("model loaded", extra={"model": name})
-        return cls(estimators, default_name)
+        carded = frozenset(n for n in estimators if (Path(models_dir) / n / "card.md").is_file())
+        return cls(estimators, default_name, carded)
 
     def resolve(self, name: str) -> str:
         """The loaded model's name that ``name`` means: ``"default"`` is ``default_name``
@@ -56,5 +60,5 @@ class ModelRegistry:
             out.append({**i.reference(name), "input_size": i.input_size, "spacing_mm": i.pixel_spacing_mm,
                         "label_type": i.label_type, "variance_threshold": i.variance_threshold,
                         "max_expected_error_mm": i.max_expected_error_mm, "trained_on": i.trained_on,
-                        "mc_seed": i.mc_seed})
+                        "mc_seed": i.mc_seed, "licences": i.licences, "card": name in self.cards})
         return out

@@ -105,6 +105,8 @@ class Localiser:
     side_by_side: bool = False
     """Run the network's batches two at a time (:func:`~service.core.threads.side_by_side`), the
     session on half the cores: the U-Net's few channels gain little from a second intra-op thread."""
+    licences: str = ""
+    """The licences of its training data (metadata ``licences``; empty where the file names none)."""
 
     @classmethod
     def load(cls, path: Path, threads: int = 0) -> "Localiser":
@@ -115,7 +117,8 @@ class Localiser:
         sess = ort.InferenceSession(str(path), session_options(per_call), providers=["CPUExecutionProvider"])
         meta = sess.get_modelmeta().custom_metadata_map
         return cls(path, sess, float(meta["grid_mm"]), meta.get("version", "unknown"), file_sha256(path),
-                   mirrored=meta.get("mirrored_pass", "run") != "learnt", side_by_side=side)
+                   mirrored=meta.get("mirrored_pass", "run") != "learnt", side_by_side=side,
+                   licences=meta.get("licences", ""))
 
     def provenance(self) -> dict:
         """What made a mask: ``{"name", "version", "sha256"}`` (the name is the model's folder)."""
@@ -384,6 +387,13 @@ class Localisers:
         """The default localiser, or None where none is installed under its name (a stream then takes
         slices with their masks only)."""
         return self.localisers.get(self.default_name)
+
+    def describe(self) -> list[dict]:
+        """The ``GET /v1/localisers`` body: each localiser's name, version, checksum, grid, licences,
+        whether it is the default and whether its folder holds its card."""
+        return [{"name": name, "version": loc.version, "sha256": loc.sha256, "default": name == self.default_name,
+                 "grid_mm": loc.grid_mm, "licences": loc.licences, "card": (loc.path.parent / "card.md").is_file()}
+                for name, loc in sorted(self.localisers.items())]
 
     def get(self, name: str = "default") -> Localiser:
         """The localiser ``name`` (``default``: the default one); :class:`NotFound` names the field."""

@@ -285,3 +285,17 @@ def test_a_slice_without_brain_gets_no_network_pose(real_client: TestClient, pha
         assert np.isfinite(np.array(s["atlas_from_voxel"])).all()
     for s in slices[3:]:
         assert s["geodesic_variance"] > 0 and s["network_atlas_from_voxel"] is not None
+
+
+def test_the_shipped_models_and_localisers_say_their_licences_cards_and_which_localiser_is_the_default() -> None:
+    """An operator sees what the server serves: each pose model's and localiser's licences (the CRL
+    atlas's non-commercial use, inherited), whether its card is in its folder, and the localiser that
+    stacks without masks go to."""
+    with LocalClient(create_app(Settings()), base_url="http://127.0.0.1") as client:
+        models = client.get("/v1/models").json()
+        localisers = client.get("/v1/localisers").json()
+    assert {m["name"] for m in models} >= {"default", "fast"}
+    assert all("non-commercial" in m["licences"] and m["card"] for m in models), models
+    assert [loc["name"] for loc in localisers if loc["default"]] == ["default"]
+    shipped = next(loc for loc in localisers if loc["name"] == "default")
+    assert shipped["card"] and "non-commercial" in shipped["licences"] and len(shipped["sha256"]) == 64
