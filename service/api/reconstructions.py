@@ -183,7 +183,7 @@ async def submit(
         return await _submit(request, response, settings, form, key, {
             "resolution_mm": resolution_mm, "svr_iterations": svr_iterations, "mc_samples": form.mc_samples,
             "variance_threshold": form.variance_threshold, "max_expected_error_mm": form.max_expected_error_mm,
-            "model": model, "model_sha256": registry.get(model).info.sha256,   # the file the server serves now
+            "model": model, "model_sha256": registry.served_sha256(model),   # the file the server serves now
             "slice_order": form.slice_order, "atlas_frame": atlas_frame,
             "masks_hold_csf": form.masks_hold_csf, "slice_thickness_mm": thickness,
             "owner": job_owner(settings, request.headers)})

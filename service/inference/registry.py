@@ -17,11 +17,14 @@ class ModelRegistry:
     """Name -> :class:`PoseEstimator`; ``default_name`` is what ``model=default`` means."""
 
     def __init__(self, estimators: dict[str, PoseEstimator], default_name: str = "default",
-                 cards: frozenset[str] = frozenset()) -> None:
+                 cards: frozenset[str] = frozenset(), from_files: bool = False) -> None:
         self.estimators = estimators
         self.default_name = default_name
         self.cards = cards
         """The models whose folder holds their card (``card.md``)."""
+        self.from_files = from_files
+        """The estimators are the models folder's files (:meth:`from_directory`), which a job's worker
+        loads again: :meth:`served_sha256` names the file each was."""
 
     @classmethod
     def from_directory(cls, models_dir: Path, default_name: str = "default", threads: int = 0) -> "ModelRegistry":
@@ -32,7 +35,7 @@ class ModelRegistry:
         for name in estimators:
             log.info("model loaded", extra={"model": name})
         carded = frozenset(n for n in estimators if (Path(models_dir) / n / "card.md").is_file())
-        return cls(estimators, default_name, carded)
+        return cls(estimators, default_name, carded, from_files=True)
 
     def resolve(self, name: str) -> str:
         """The loaded model's name that ``name`` means: ``"default"`` is ``default_name``
@@ -51,6 +54,11 @@ class ModelRegistry:
     def get(self, name: str) -> PoseEstimator:
         """The estimator ``name`` resolves to (see :meth:`resolve`)."""
         return self.estimators[self.resolve(name)]
+
+    def served_sha256(self, name: str) -> str | None:
+        """The sha256 of the model file served as ``name`` (what a job records at its submission, to know
+        its worker loads the same file); None where the estimators are no files (a stand-in)."""
+        return self.get(name).info.sha256 if self.from_files else None
 
     def describe(self) -> list[dict]:
         """The ``GET /v1/models`` body."""
