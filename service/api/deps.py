@@ -270,9 +270,13 @@ its answer has been built and sent by then, and the arrays it held are freed."""
 
 def _trim_if_idle(state: State) -> None:
     """Hand the heap's free pages back (:func:`~service.core.process_pools.trim_heap`, in a thread) where
-    no request has begun processing meanwhile: a request's peak is not kept by an idle server."""
+    no request has begun processing meanwhile: a request's peak is not kept by an idle server; none where
+    the server is stopping (its threads' executor shut down)."""
     if not getattr(state, "processing_now", 0):
-        asyncio.get_running_loop().run_in_executor(None, trim_heap)
+        try:
+            asyncio.get_running_loop().run_in_executor(None, trim_heap)
+        except RuntimeError:                       # the executor shut down: the process ends, its heap with it
+            pass
 
 
 def queue_full(state: State) -> QueueFull | None:
