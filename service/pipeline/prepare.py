@@ -39,7 +39,7 @@ from service.preprocess.field_of_view import cut_by_field_of_view
 from service.preprocess.intensity import signal_lost
 from service.preprocess.localisation import Localisation, is_region_of_interest, within_region
 from service.preprocess.localise import Localiser, default_localiser
-from service.preprocess.localiser_inputs import LocaliserGrid
+from service.preprocess.localiser_inputs import LocaliserGrid, check_search
 from service.preprocess.noise import input_noise
 from service.preprocess.one_fetus import brain_centre_mm, one_fetus
 from service.preprocess.slices import PreparedSlices, preprocess_slices
@@ -346,6 +346,7 @@ def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction:
         check_mask_grid(u)
         check_mask_volume(u)
     check_distinct_stacks(uploads)
+    check_search([(u.filename, u.volume) for u in uploads if u.localised])
     with ThreadPoolExecutor(max_workers=max(1, min(workers, len(uploads)))) as pool:
         futures = [None if u.localised else pool.submit(carried(prepare_stack), u, info, bias_correction)
                    for u in uploads]

@@ -46,6 +46,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage, sparse
 
+from service.core.errors import PayloadTooLarge
 from service.geometry.sampling import FWHM_TO_SIGMA, linear_operator
 from service.io.volume import Volume
 from service.preprocess.stack import pictures, slice_images, stack_axis
@@ -70,6 +71,53 @@ FLUID_LEVEL = 0.4
 unlike any head the network learnt: it finds part of it, or none. Against a bright band it sees a
 brain bounded all round, as fluid and CSF bound every head it learnt (docs/reports/localiser-
 experiments.md, "A head at the edge of the image")."""
+
+SEARCH_GRID_MM = 2.5
+MAX_SEARCH_MEGAPIXELS = 40.0
+"""The most pixels (millions, at a grid of :data:`SEARCH_GRID_MM`: each slice's field of view in such
+pixels, padded as :data:`MIN_GRID_PX` pads it) one request may ask the localiser to search, over
+its stacks without a brain mask: its network's cost grows with the field of view in mm, not with
+the bytes a file holds, so a small file of coarse pixels over a field of view no fetus fills would
+hold both processing slots for minutes. A scanner's six whole-uterus stacks ask a tenth of it."""
+
+
+def search_megapixels(volume: Volume, grid_mm: float = SEARCH_GRID_MM) -> float:
+    """The pixels (millions) the localiser searches in ``volume``: its slices times each slice's field of
+    view in pixels of ``grid_mm``, at least :data:`MIN_GRID_PX` a side (before the fluid band and the
+    padding to :data:`PAD_MULTIPLE`, which add little).
+
+    Example (22 slices of 320 x 320 pixels of 1.125 mm: 144 x 144 pixels of 2.5 mm each):
+        >>> round(search_megapixels(Volume(np.zeros((320, 320, 22), np.float32), np.diag([1.125, 1.125, 3.3, 1.0]))), 3)
+        0.456
+    """
+    axis = stack_axis(volume)
+    sides = [max(math.ceil(volume.array.shape[k] * float(volume.spacing[k]) / grid_mm - 1e-6), MIN_GRID_PX)
+             for k in range(3) if k != axis]
+    return volume.array.shape[axis] * sides[0] * sides[1] / 1e6
+
+
+def check_search(stacks: list[tuple[str, Volume]]) -> None:
+    """413 naming the stacks where those the localiser is to search (``(name, volume)``: each stack sent
+    without a mask or with a region of interest) ask it for more than :data:`MAX_SEARCH_MEGAPIXELS`.
+
+    Example (three stacks of 99 slices over a field of view of 1 m, 10 mm pixels):
+        >>> wide = Volume(np.zeros((100, 100, 99), np.float32), np.diag([10.0, 10.0, 11.0, 1.0]))
+        >>> check_search([("a.nii", wide)] * 2)
+        >>> try:
+        ...     check_search([("a.nii", wide), ("b.nii", wide), ("c.nii", wide)])
+        ... except PayloadTooLarge as exc:
+        ...     print(exc.status, str(exc)[:92])
+        413 stacks a.nii, b.nii, c.nii: the localiser would search 47.5 million pixels of 2.5 mm in them
+    """
+    sizes = [(name, search_megapixels(volume)) for name, volume in stacks]
+    asked = sum(mp for _, mp in sizes)
+    if asked > MAX_SEARCH_MEGAPIXELS:
+        widest = max(float(v.array.shape[k] * v.spacing[k]) for _, v in stacks for k in range(3) if k != stack_axis(v))
+        names = ", ".join(n for n, _ in sizes)
+        raise PayloadTooLarge(f"stacks {names}: the localiser would search {asked:.1f} million pixels of "
+                              f"{SEARCH_GRID_MM:g} mm in them (fields of view of up to {widest:.0f} mm), over its "
+                              f"{MAX_SEARCH_MEGAPIXELS:g} a request: send their brain masks, stacks cropped to the "
+                              "uterus, or fewer stacks a request")
 
 
 @dataclass(frozen=True)

@@ -89,6 +89,10 @@ def test_masks_refuse_what_they_cannot_use(real_client: TestClient, uterus_files
     assert r.status_code == 415 and "notes.txt" in r.json()["detail"]
     r = real_client.post("/v1/masks", files=[("stacks", (stack.name, stack.read_bytes()))], data={"mc_samples": "3"})
     assert r.status_code == 400 and "mc_samples" in r.json()["detail"]
+    wide = tmp_path / "wide.nii.gz"               # small bytes over a field of view of 900 mm: the search bounded
+    write_volume(Volume(np.zeros((100, 100, 99), np.float32), np.diag([9.0, 9.0, 10.0, 1.0])), wide)
+    r = post_masks(real_client, wide, wide, wide, wide)
+    assert r.status_code == 413 and "the localiser would search" in r.json()["detail"], r.text
 
 
 def test_predict_says_how_each_stack_was_localised(real_client: TestClient, uterus_files) -> None:

@@ -173,3 +173,20 @@ def test_a_bright_line_does_not_set_the_stacks_intensity_scale() -> None:
     x_clean, _ = localiser_inputs(Volume(np.moveaxis(clean, 0, -1), affine), 2.5)
     x_lined, _ = localiser_inputs(Volume(np.moveaxis(lined, 0, -1), affine), 2.5)
     assert np.median(x_lined[x_lined > 0]) == pytest.approx(np.median(x_clean[x_clean > 0]), rel=0.25)  # was 1 %
+
+
+def test_the_localisers_search_is_counted_in_the_field_of_view_not_the_bytes_and_bounded_a_request() -> None:
+    """A stack of a scanner's field of view asks a fraction of the request's search; the same bytes
+    over a field of view of 900 mm (9 mm pixels) ask 30 times more: three such stacks are searched,
+    four are refused (413, naming them) before the localiser runs."""
+    from service.core.errors import PayloadTooLarge
+    from service.preprocess.localiser_inputs import check_search, search_megapixels
+
+    scanner = Volume(np.zeros((100, 100, 99), np.float32), np.diag([1.125, 1.125, 3.3, 1.0]))
+    wide = Volume(np.zeros((100, 100, 99), np.float32), np.diag([9.0, 9.0, 10.0, 1.0]))
+    assert search_megapixels(scanner) == 99 * 64 * 64 / 1e6            # padded to the network's canvas
+    assert search_megapixels(wide) == 99 * 360 * 360 / 1e6 > 30 * search_megapixels(scanner)
+    check_search([("s.nii", scanner)] * 32)                              # a request of 32 scanner stacks
+    check_search([("w.nii", wide)] * 3)
+    with pytest.raises(PayloadTooLarge, match="stacks a.nii, b.nii, c.nii, d.nii: the localiser would search"):
+        check_search([(name, wide) for name in ("a.nii", "b.nii", "c.nii", "d.nii")])
