@@ -326,7 +326,7 @@ def models_table(listed: list[dict[str, Any]]) -> Table:
     decide ``accepted``; it fits an 80-column terminal (the training volumes are in ``--json``)."""
     table = Table(box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True, caption_justify="left",
                   caption="accepted: expected error (mm) and variance at most these, unless a request says otherwise; "
-                          "the training data: --json")
+                          "the training data and its licences: --json")
     for col in ("name", "version", "backbone", "max expected error", "variance", "sha256"):
         table.add_column(col, overflow="fold")
     for m in listed:
