@@ -342,14 +342,8 @@ def _connect(url: str, api_key: str | None, answer_timeout_s: float) -> ClientCo
     """The open WebSocket (its pings wait for a pong as long as for an answer; a ``wss://`` server's
     certificate checked as the HTTP calls check it, :func:`~client.transport.trusted`); a refusal as a
     client error."""
-    tls = {}
-    if url.lower().startswith("wss://"):
-        check = trusted(None)
-        if check is False:                      # verify=False's counterpart: no check
-            check = ssl.create_default_context()
-            check.check_hostname, check.verify_mode = False, ssl.CERT_NONE
-        if isinstance(check, ssl.SSLContext):
-            tls = {"ssl": check}
+    check = trusted(None) if url.lower().startswith("wss://") else True
+    tls = {"ssl": check} if isinstance(check, ssl.SSLContext) else {}      # else websockets' own default
     try:
         return connect(url, additional_headers={"Authorization": f"Bearer {api_key}"} if api_key else None,
                        open_timeout=OPEN_TIMEOUT_S, ping_timeout=answer_timeout_s, max_size=MAX_MESSAGE_BYTES,
