@@ -140,6 +140,7 @@ def write_outputs(result: ReconstructionResult, slices: SliceSet, folder: str | 
     (out / "transforms" / "slice_transforms.txt").write_text(listing_text(result, slices))
     zip_folder(out / "transforms", out / "transforms.zip")
     ncc = result.ncc[result.included]
+    headers = dict(enumerate(stack_headers or []))
     summary = {
         "n_stacks": int(slices.stack_index.max()) + 1 if slices.n_slices else 0,
         "n_slices": int(slices.n_slices),
@@ -156,7 +157,7 @@ def write_outputs(result: ReconstructionResult, slices: SliceSet, folder: str | 
         "shape": [int(s) for s in result.volume.array.shape],
         "resolution_mm": [float(s) for s in result.volume.spacing],
         "affine": result.volume.affine.tolist(),
-        "stack_frames": [with_header(frame, (stack_headers or [])[frame.stack:frame.stack + 1]).as_json()
+        "stack_frames": [with_header(frame, headers.get(frame.stack)).as_json()
                          for frame in stack_frames(result.atlas_from_voxel_final, slices.stack_affine,
                                                    slices.stack_index, np.where(result.included, result.slice_weight,
                                                                                 0.0))],

@@ -107,15 +107,14 @@ def stack_frames(atlas_from_voxel: ArrayLike, stack_affine: ArrayLike, stack_ind
     return out
 
 
-def with_header(frame: StackFrame, header: list[NiftiTransforms | None]) -> StackFrame:
-    """``frame`` with its stack's NIfTI header (``header``: its transforms in a list of one, or an
-    empty list or ``[None]`` for a stack not read from NIfTI): the codes and the qform's move that a
-    volume placed in the stack's coordinates takes over."""
-    t = header[0] if header else None
-    if t is None:
+def with_header(frame: StackFrame, header: NiftiTransforms | None) -> StackFrame:
+    """``frame`` with its stack's NIfTI header's transforms (None: the stack was not read from NIfTI):
+    the codes, the qform's move and the distance unit that a volume placed in the stack's coordinates
+    takes over."""
+    if header is None:
         return frame
-    return replace(frame, nifti_codes=(int(t.qform_code), int(t.sform_code)), qform_from_sform=qform_from_sform(t),
-                   nifti_spatial_unit=int(t.spatial_unit))
+    return replace(frame, nifti_codes=(int(header.qform_code), int(header.sform_code)),
+                   qform_from_sform=qform_from_sform(header), nifti_spatial_unit=int(header.spatial_unit))
 
 
 def _nearest_rigid(transforms: NDArray) -> NDArray[np.float64]:

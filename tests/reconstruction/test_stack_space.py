@@ -136,7 +136,7 @@ def test_a_stack_whose_qform_and_sform_differ_gets_a_volume_every_reader_places_
     np.testing.assert_allclose(upload.affine, affine, atol=1e-4)               # the service reads the sform
     frame = stack_frames(atlas_from_voxel, np.broadcast_to(affine, atlas_from_voxel.shape), np.zeros(SHAPE[2], int),
                          np.ones(SHAPE[2]))[0]
-    entry = with_header(frame, [upload.nifti]).as_json()
+    entry = with_header(frame, upload.nifti).as_json()
     assert entry["nifti_codes"] == list(codes)
     np.testing.assert_allclose(entry["qform_from_sform"], move, atol=1e-4)
     image, _, brain_affine = phantom_brain(2)
@@ -176,7 +176,7 @@ def test_a_stack_in_metres_or_microns_gets_a_volume_itk_places_on_it(units: int,
                          np.ones(SHAPE[2]))[0]
     image, _, brain_affine = phantom_brain(2)
     write_volume(Volume(image, brain_affine), tmp_path / "volume.nii.gz")
-    entry = with_header(frame, [upload.nifti]).as_json()
+    entry = with_header(frame, upload.nifti).as_json()
     placed = volume_in_stack_space(tmp_path / "volume.nii.gz", {"stack_frames": [entry]}, 0, tmp_path / "placed.nii.gz")
     voxels = np.array([[0.0, 0.0, 0.0], [30.0, 12.0, 40.0]])
     on_stack = apply(np.linalg.inv(affine) @ frame.scanner_from_atlas @ brain_affine, voxels)
