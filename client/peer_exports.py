@@ -210,6 +210,12 @@ def _stack_file(path: Path, stack: dict[str, Any]) -> tuple[nib.Nifti1Image, NDA
     return image, sfv
 
 
+def itk_opens(path: Path, image: nib.Nifti1Image) -> bool:
+    """Whether SimpleITK (NiftyMIC's reader) opens the NIfTI file ``path`` (``image``, read by its
+    content): a NIfTI-1 file compressed as its name says (ITK goes by the name, and reads no NIfTI-2)."""
+    return named_as_stored(path) and not isinstance(image, nib.Nifti2Image)
+
+
 def read_as_itk_does(path: Path, image: nib.Nifti1Image, scanner_from_voxel: NDArray) -> bool:
     """Whether an ITK-based tool (NiftyMIC) reads the stack file ``path`` as the service read it: a
     NIfTI-1 file (SimpleITK reads no NIfTI-2), compressed as its name says (ITK goes by the name),
@@ -228,7 +234,7 @@ def read_as_itk_does(path: Path, image: nib.Nifti1Image, scanner_from_voxel: NDA
         False
     """
     header = image.header
-    if isinstance(image, nib.Nifti2Image) or not named_as_stored(path):
+    if not itk_opens(path, image):
         return False
     both = header["qform_code"] > 0 and header["sform_code"] > 0
     if both and not np.allclose(header.get_qform(), header.get_sform(), atol=1e-3):
@@ -383,10 +389,8 @@ def _binary_as_stored(path: Path, stack: nib.Nifti1Image) -> bool:
         >>> _binary_as_stored(path, stack)
         False
     """
-    if not named_as_stored(path):                       # ITK would not read it as named
-        return False
     image = nifti_image(path)
-    if isinstance(image, nib.Nifti2Image):              # nor read NIfTI-2
+    if not itk_opens(path, image):
         return False
     values = np.asarray(image.dataobj)
     same_order = np.allclose(np.linalg.inv(image.affine) @ stack.affine, np.eye(4), atol=1e-2)
