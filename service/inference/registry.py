@@ -17,14 +17,12 @@ class ModelRegistry:
     """Name -> :class:`PoseEstimator`; ``default_name`` is what ``model=default`` means."""
 
     def __init__(self, estimators: dict[str, PoseEstimator], default_name: str = "default",
-                 cards: frozenset[str] = frozenset(), from_files: bool = False) -> None:
+                 models_dir: Path | None = None) -> None:
         self.estimators = estimators
         self.default_name = default_name
-        self.cards = cards
-        """The models whose folder holds their card (``card.md``)."""
-        self.from_files = from_files
-        """The estimators are the models folder's files (:meth:`from_directory`), which a job's worker
-        loads again: :meth:`served_sha256` names the file each was."""
+        self.models_dir = models_dir
+        """The folder the estimators were loaded from (:meth:`from_directory`; None: stand-ins, no files):
+        where each model's card is, and whose files a job's worker loads again (:meth:`served_sha256`)."""
 
     @classmethod
     def from_directory(cls, models_dir: Path, default_name: str = "default", threads: int = 0) -> "ModelRegistry":
@@ -34,8 +32,7 @@ class ModelRegistry:
             models_dir, "SVRNET_MODELS_DIR", lambda path: OnnxPoseEstimator(load_model(path, threads)))
         for name in estimators:
             log.info("model loaded", extra={"model": name})
-        carded = frozenset(n for n in estimators if (Path(models_dir) / n / "card.md").is_file())
-        return cls(estimators, default_name, carded, from_files=True)
+        return cls(estimators, default_name, Path(models_dir))
 
     def resolve(self, name: str) -> str:
         """The loaded model's name that ``name`` means: ``"default"`` is ``default_name``
@@ -58,7 +55,7 @@ class ModelRegistry:
     def served_sha256(self, name: str) -> str | None:
         """The sha256 of the model file served as ``name`` (what a job records at its submission, to know
         its worker loads the same file); None where the estimators are no files (a stand-in)."""
-        return self.get(name).info.sha256 if self.from_files else None
+        return self.get(name).info.sha256 if self.models_dir is not None else None
 
     def describe(self) -> list[dict]:
         """The ``GET /v1/models`` body."""
@@ -68,5 +65,6 @@ class ModelRegistry:
             out.append({**i.reference(name), "input_size": i.input_size, "spacing_mm": i.pixel_spacing_mm,
                         "label_type": i.label_type, "variance_threshold": i.variance_threshold,
                         "max_expected_error_mm": i.max_expected_error_mm, "trained_on": i.trained_on,
-                        "mc_seed": i.mc_seed, "licences": i.licences, "card": name in self.cards})
+                        "mc_seed": i.mc_seed, "licences": i.licences,
+                        "card": self.models_dir is not None and (self.models_dir / name / "card.md").is_file()})
         return out
