@@ -12,9 +12,10 @@ the network's normalised units ``(label - mean) / scale``:
   twin keeps every point's ``(y, z)`` and negates every offset ``a_i = x_i - x0`` from the symmetry
   plane, all at once. So the ``(y, z)`` parts are compared directly, and the offsets through the
   sign-invariant outer product ``a a^T`` (the Veronese map of R^P / {+-1}):
-  ``|â â^T - a a^T|_F / (|â| + |a|)``, which is ``|â - a| / sqrt 2`` near ``â = a``, the
-  same near ``â = -a``, and smooth across ``a = 0`` (sagittal slices near the midline, where the
-  two twins meet and the ``min`` switches branch). The network's output stays a plain point label
+  ``|â â^T - a a^T|_F / (|â| + |a|)``, which near ``â = a`` lies between ``|â - a| / sqrt 2`` (an
+  error across ``a``, the offsets' pattern) and ``|â - a|`` (an error along ``a``, how far the slice
+  lies from the plane as a whole), the same near ``â = -a``, and smooth across ``a = 0`` (sagittal
+  slices near the midline, where the two twins meet and the ``min`` switches branch). The network's output stays a plain point label
   of one of the twins; which one (the branch) is left to the stack (the service's consistency
   stage), because a single slice of a symmetric atlas cannot decide it.
 
@@ -87,7 +88,7 @@ def point_loss(pred: torch.Tensor, target: torch.Tensor, mean: torch.Tensor, sca
     frob = torch.sqrt(sq + TINY) - TINY ** 0.5                         # finite gradient at 0
     denom = torch.linalg.vector_norm(a_hat, dim=-1) + torch.linalg.vector_norm(a, dim=-1) + EPS
     n_points = a.shape[1]
-    x_term = (2.0 ** 0.5) * frob / denom / n_points ** 0.5           # ~ RMS offset error per point
+    x_term = (2.0 ** 0.5) * frob / denom / n_points ** 0.5           # RMS offset error per point (x1 to x1.41)
     return 3.0 * (yz_term + x_term)
 
 
