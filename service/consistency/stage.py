@@ -111,7 +111,8 @@ def consistent_poses(mean: NDArray, twin_mass: NDArray, network_from_vox: NDArra
 def branch_set(out: StackPoses) -> bool:
     """The stage fitted one consistent stack and its left-right branch is set, by the stack's own
     slices or by the request's other stacks; otherwise (and for a stack the request took for
-    mirrored, ``StackFit.mirrored``) each slice keeps the network's branch.
+    mirrored, ``StackFit.mirrored``) each slice keeps the network's branch. A branch the request set
+    is *known* only where the stack agrees with the request on it (``StackFit.branch_known``).
 
     Example:
         >>> from types import SimpleNamespace

@@ -9,7 +9,7 @@ for ``/v1/predict``, the stream and the poses a reconstruction job starts from a
 Example (a slice of expected error 3 mm, a model floor of 1 mm, 2 mm of frame error added):
     >>> from types import SimpleNamespace
     >>> pose = np.array([[0.0, 0, 1, 40], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]])   # far from its twin
-    >>> fit = SimpleNamespace(decidable=True, branch_decided=True, branch_from_request=False, mirrored=False)
+    >>> fit = SimpleNamespace(decidable=True, branch_known=True)
     >>> out = SimpleNamespace(expected_error_mm=np.array([3.0]), fit=fit, poses=pose[None], image_consistency=None)
     >>> _ = add_unseen_errors(out, SimpleNamespace(expected_error_floor_mm=1.0), frame_mm=2.0)
     >>> out.expected_error_mm.round(3).tolist()                             # sqrt(9 + 1 + 4)
@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from service.consistency.stage import StackPoses, branch_set, misfit_factor
+from service.consistency.stage import StackPoses, misfit_factor
 from service.geometry.twin import DEFAULT_PLANE_X_MM, twin_distance_mm, twin_variance, undecided_twin_variance
 from service.inference.estimator import PoseEstimate
 from service.inference.model_file import ModelInfo
@@ -53,8 +53,10 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate |
       distance ``d`` to its twin; the expected squared error grows by ``p d^2``
       (:func:`~service.geometry.twin.twin_variance`).
     * Where nothing decided the slice's branch (the stage off, a stack it found inconsistent, a
-      consistent stack whose branch neither it nor the request decided, a streamed slice answered
-      before its stack's branch is known: ``branch_known`` False), the pose's branch is the
+      consistent stack whose branch neither it nor the request decided, one whose branch the
+      request took for it but which fits the request on neither branch, a streamed slice answered
+      before its stack's branch is known: ``branch_known`` False; by default the stack fit's
+      :attr:`~service.consistency.stack_fit.StackFit.branch_known`), the pose's branch is the
       network's, which a single slice cannot tell: it is on its twin by even odds, and the expected
       squared error grows by half its squared distance to it
       (:func:`~service.geometry.twin.undecided_twin_variance`). A slice near the mid-plane keeps a
@@ -71,7 +73,7 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate |
     Example (a sagittal slice 5 mm off the plane, 10 mm from its twin, in a consistent stack):
         >>> from types import SimpleNamespace
         >>> pose = np.array([[0.0, 0, 1, 5], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]])
-        >>> fit = SimpleNamespace(decidable=True, branch_decided=True, branch_from_request=False, mirrored=False)
+        >>> fit = SimpleNamespace(decidable=True, branch_known=True)
         >>> out = SimpleNamespace(expected_error_mm=np.array([3.0]), fit=fit, poses=pose[None], image_consistency=None)
         >>> info = SimpleNamespace(expected_error_floor_mm=4.0, twin_risk_logit=(-1.0, -0.1))
         >>> _ = add_unseen_errors(out, info); out.expected_error_mm.round(2).tolist()   # sqrt(9 + 16 + 11.92)
@@ -83,7 +85,7 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate |
     own = np.asarray(out.expected_error_mm, np.float64) * (misfit_factor(out.fit) if refined is None else 1.0)
     variance = own ** 2 + float(getattr(info, "expected_error_floor_mm", 0.0)) ** 2
     logit = getattr(info, "twin_risk_logit", None)
-    known = branch_set(out) if branch_known is None else branch_known
+    known = bool(out.fit is not None and out.fit.branch_known) if branch_known is None else branch_known
     d = twin_distance_mm(out.poses, getattr(info, "symmetry_plane_x_mm", DEFAULT_PLANE_X_MM))
     if not known:
         variance = variance + undecided_twin_variance(d)

@@ -56,7 +56,7 @@ def _placed(sd: float | None, pooled: bool = True) -> SimpleNamespace:
     import numpy as np
 
     fit = SimpleNamespace(placement_sd_mm=sd if not pooled else 99.0, decidable=True, branch_decided=True,
-                          branch_from_request=False, mirrored=False)
+                          branch_from_request=False, branch_known=True, mirrored=False)
     return SimpleNamespace(poses=np.repeat(np.eye(4)[None], 3, 0), expected_error_mm=np.full(3, 9.0),
                            inconsistent=np.zeros(3, bool), fit=fit,
                            pooled=SimpleNamespace(placement_sd_mm=sd) if pooled else None, image_consistency=None)

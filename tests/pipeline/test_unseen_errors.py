@@ -8,6 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from service.consistency.stack_fit import StackFit
 from service.consistency.stage import StackPoses
 from service.geometry import twin
 from service.geometry.pose import make_pose
@@ -16,12 +17,14 @@ from service.pipeline.unseen_errors import add_unseen_errors
 SAGITTAL = np.array([[0.0, 0, 1], [1, 0, 0], [0, 1, 0]])      # the slice's normal along the atlas x
 
 
-def _stack(offsets_mm: list[float], decidable: bool | None) -> StackPoses:
+def _stack(offsets_mm: list[float], decidable: bool | None, **fit_fields: object) -> StackPoses:
+    """Sagittal slices at ``offsets_mm`` from the plane, of expected error 3 mm; their stack's fit
+    decided its branch by its own slices (``decidable``), or as ``fit_fields`` say."""
     poses = np.stack([make_pose(SAGITTAL, [x, 3.0, 10.0]) for x in offsets_mm])
     n = len(offsets_mm)
-    fit = None if decidable is None else SimpleNamespace(decidable=decidable, branch_decided=decidable,
-                                                         branch_from_request=False, mirrored=False)
-    return StackPoses(poses, np.zeros(n), np.zeros(n, bool), np.zeros(n, bool), fit, np.full(n, 3.0))  # type: ignore[arg-type]
+    fit = None if decidable is None else StackFit(poses, np.zeros(n, bool), np.zeros(n, bool), np.zeros(n), decidable,
+                                                  **{"branch_margin": np.inf, **fit_fields})  # type: ignore[arg-type]
+    return StackPoses(poses, np.zeros(n), np.zeros(n, bool), np.zeros(n, bool), fit, np.full(n, 3.0))
 
 
 def _two_phantom_stacks() -> tuple:
@@ -61,23 +64,30 @@ def test_a_decided_stack_adds_each_slices_twin_risk_times_its_squared_distance_t
 
 
 def test_a_slice_whose_branch_nothing_decided_is_on_its_twin_by_even_odds() -> None:
-    """The stage off (no fit), an inconsistent stack, or a consistent one whose branch neither it nor
-    the request decided: each slice keeps the network's branch, which one slice cannot tell, so half
-    its squared distance to the twin is added (sagittal slices 5 and 8 mm off the plane: 10 and 16 mm
+    """The stage off (no fit), an inconsistent stack, a consistent one whose branch neither it nor
+    the request decided, one the request took for mirrored, or one whose branch the request took for
+    it where it fits the request on neither branch (34 and 39 mm from it; 20 and 90 mm): each slice
+    keeps a branch no one could tell, so half its squared distance to the twin is added (sagittal slices 5 and 8 mm off the plane: 10 and 16 mm
     from their twins); one on the plane keeps the floor. A decided stack of an uncalibrated model
     (no twin risk) adds nothing."""
     calibrated = SimpleNamespace(expected_error_floor_mm=2.0, twin_risk_logit=(-1.0, -0.1), symmetry_plane_x_mm=0.0)
-    undecided_branch = _stack([5.0, 8.0, 0.0], decidable=True)
-    undecided_branch.fit.branch_decided = False
-    for out in (_stack([5.0, 8.0, 0.0], decidable=False), _stack([5.0, 8.0, 0.0], decidable=None), undecided_branch):
+    undecided_branch = _stack([5.0, 8.0, 0.0], decidable=True, branch_margin=1.1)
+    mirrored = _stack([5.0, 8.0, 0.0], decidable=True, mirrored=True)
+    for out in (_stack([5.0, 8.0, 0.0], decidable=False), _stack([5.0, 8.0, 0.0], decidable=None), undecided_branch,
+                mirrored):
         add_unseen_errors(out, calibrated)
         np.testing.assert_allclose(out.expected_error_mm, np.sqrt(13.0 + 0.5 * np.array([10.0, 16.0, 0.0]) ** 2))
-    taken = _stack([5.0, 8.0], decidable=True)                       # the request's other stacks set it
-    taken.fit.branch_decided, taken.fit.branch_from_request = False, True
     decided = _stack([5.0, 8.0], decidable=True)
-    for out in (taken, decided):
-        add_unseen_errors(out, calibrated)
-    np.testing.assert_allclose(taken.expected_error_mm, decided.expected_error_mm)     # the twin risk alone
+    add_unseen_errors(decided, calibrated)
+    for distances, agrees in (((5.0, 90.0), True), ((34.0, 39.0), False), ((20.0, 90.0), False)):
+        taken = _stack([5.0, 8.0], decidable=True, branch_margin=1.1, branch_from_request=True,
+                       request_distance_mm=distances)              # the request's other stacks set its branch
+        assert taken.fit.agrees_with_request is agrees
+        add_unseen_errors(taken, calibrated)
+        if agrees:                                                 # where it sits with them: the twin risk alone
+            np.testing.assert_allclose(taken.expected_error_mm, decided.expected_error_mm)
+        else:                                                      # near them on neither branch: even odds
+            np.testing.assert_allclose(taken.expected_error_mm, np.sqrt(13.0 + 0.5 * np.array([10.0, 16.0]) ** 2))
     out = _stack([5.0, 8.0], decidable=True)
     add_unseen_errors(out, SimpleNamespace(expected_error_floor_mm=2.0))
     np.testing.assert_allclose(out.expected_error_mm, np.sqrt(13.0))
@@ -158,9 +168,7 @@ def test_a_stack_no_image_stage_weighed_again_takes_its_misfit_factor_before_the
     info = SimpleNamespace(expected_error_floor_mm=2.0, twin_risk_logit=None, symmetry_plane_x_mm=0.0)
     factor = 1.0 + MISFIT_GAIN * (1.7 - MISFIT_ONSET)
     for z, refined, own in (([1.7, 1.7, 0.2], None, 3.0 * factor), ([1.7, 1.7, 0.2], True, 3.0), ([0.5, 0.6, 0.2], None, 3.0)):
-        out = _stack([10.0, 20.0, 30.0], decidable=True)
-        out.fit = SimpleNamespace(decidable=True, branch_decided=True, branch_from_request=False, mirrored=False,
-                                  residual_z=np.array(z))
+        out = _stack([10.0, 20.0, 30.0], decidable=True, residual_z=np.array(z))
         if refined:
             out.image_consistency = ImageConsistency(2, 10, 3, 0.5, 1.0, 0.8)
         add_unseen_errors(out, info)
