@@ -221,12 +221,16 @@ def within_region(found: Localisation, region: NDArray, spacing: NDArray) -> Loc
     """The localiser's ``found`` brain kept to the user's ``region`` of interest (its confidence scaled
     by the share of the brain kept): the region says where the fetus's head is.
 
-    Example (a brain half outside the region):
+    Example (a brain half outside the region; the pose network's region, larger, kept to it too):
         >>> m = np.zeros((20, 20, 4), bool); m[5:15, 5:15] = True
         >>> region = np.zeros_like(m); region[:10] = True
-        >>> kept = within_region(Localisation.of(m, np.ones(3), "network", 0.8), region, np.ones(3))
+        >>> pose_region = np.zeros_like(m); pose_region[3:17, 3:17] = True
+        >>> found = Localisation.of(m, np.ones(3), "network", 0.8, pose_region=pose_region)
+        >>> kept = within_region(found, region, np.ones(3))
         >>> kept.method, kept.brain_volume_ml, round(kept.confidence, 2)
         ('network', 0.2, 0.4)
+        >>> bool(kept.pose_region[region].any()), bool(kept.pose_region[~region].any())
+        (True, False)
     """
     r = np.asarray(region, bool)
     kept = found.mask & r

@@ -415,3 +415,21 @@ def test_a_zipped_series_places_each_pixel_by_its_file_and_keeps_each_file_s_res
         assert np.allclose(index, np.round(index), atol=1e-4), index
         i, j, k = (int(v) for v in np.round(index))
         assert vol.array[i, j, k] == pytest.approx(stored[f][r, c] * slopes[f] + intercepts[f], rel=1e-5)
+
+
+def test_a_zip_s_member_names_never_choose_where_its_files_are_written(tmp_path: Path) -> None:
+    """A valid series whose members are named to escape the scratch folder (an absolute path, and a
+    chain of ``..`` that lands in the same folder from any depth of the system's temporary folder): the
+    series is read whole, and nothing is written where the names point."""
+    from tests.support import corpus
+
+    target = tmp_path / "outside"
+    target.mkdir()
+    climb = "../" * 40 + target.relative_to(target.anchor).as_posix()
+    pixels = [np.full((8, 6), 100 * (k + 1), np.uint16) for k in range(3)]
+    names = [f"{target.as_posix()}/abs.dcm", f"{climb}/rel.dcm", f"..\\..\\{target.name}\\win.dcm"]
+    (tmp_path / "series.zip").write_bytes(corpus.zipped({name: corpus.dicom(p, k) for k, (name, p)
+                                                         in enumerate(zip(names, pixels))}))
+    vol = read_upload(tmp_path / "series.zip", "series.zip")
+    assert vol.array.shape[2] == 3 and sorted(np.unique(vol.array).tolist()) == [100.0, 200.0, 300.0]
+    assert list(target.iterdir()) == [] and sorted(p.name for p in tmp_path.iterdir()) == ["outside", "series.zip"]

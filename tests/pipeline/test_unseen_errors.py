@@ -67,8 +67,8 @@ def test_a_slice_whose_branch_nothing_decided_is_on_its_twin_by_even_odds() -> N
     """The stage off (no fit), an inconsistent stack, a consistent one whose branch neither it nor
     the request decided, one the request took for mirrored, or one whose branch the request took for
     it where it fits the request on neither branch (34 and 39 mm from it; 20 and 90 mm): each slice
-    keeps a branch no one could tell, so half its squared distance to the twin is added (sagittal slices 5 and 8 mm off the plane: 10 and 16 mm
-    from their twins); one on the plane keeps the floor. A decided stack of an uncalibrated model
+    keeps a branch no one could tell, so half its squared distance to the twin is added (sagittal
+    slices 5 and 8 mm off the plane: 10 and 16 mm from their twins); one on the plane keeps the floor. A decided stack of an uncalibrated model
     (no twin risk) adds nothing."""
     calibrated = SimpleNamespace(expected_error_floor_mm=2.0, twin_risk_logit=(-1.0, -0.1), symmetry_plane_x_mm=0.0)
     undecided_branch = _stack([5.0, 8.0, 0.0], decidable=True, branch_margin=1.1)
