@@ -176,6 +176,10 @@ def test_too_many_files_and_too_large(oracle: object, tmp_path: Path) -> None:
     s = nifti_bytes(stack(), tmp=tmp_path)
     with make_client(ModelRegistry({"default": oracle}), max_files=2) as client:
         assert_problem(post(client, [("stacks", (f"s{i}.nii.gz", s)) for i in range(3)]), 400, "stacks", "at most 2")
+        oracle.truth = np.repeat(np.eye(4)[None], 12, axis=0)             # exactly the limit is taken
+        two = [("stacks", (f"s{i}.nii.gz", nifti_bytes(stack(seed=i), tmp=tmp_path))) for i in range(2)]
+        r = post(client, two, {"bias_correction": "false"})
+        assert r.status_code == 200, r.text
     with make_client(ModelRegistry({"default": oracle}), max_upload_mb=0.001) as client:
         r = post(client, [("stacks", ("big.nii.gz", s + b"\0" * 4096))])
         assert_problem(r, 413, "request body", "limit", "SVRNET_MAX_UPLOAD_MB", "gzipped")
@@ -190,6 +194,10 @@ def test_a_stack_of_more_slices_than_the_limit_is_422_before_any_stage(oracle: o
             r = client.post(route, files=[("stacks", ("long.nii.gz", long))])
             assert_problem(r, 422, "long.nii.gz", "12 slices along its array axis 2", "at most 10")
         assert not client.app.state.job_store.queued()
+        oracle.truth = np.repeat(np.eye(4)[None], 10, axis=0)             # exactly the limit is taken
+        r = post(client, [("stacks", ("ten.nii.gz", nifti_bytes(np.ones((8, 16, 10), np.float32), tmp=tmp_path)))],
+                 {"bias_correction": "false"})
+        assert r.status_code == 200, r.text
 
 
 def test_a_grid_of_more_slices_than_the_limit_along_every_axis_is_422_from_its_header(
