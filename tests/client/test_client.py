@@ -530,6 +530,33 @@ def test_a_job_submission_whose_answer_is_lost_is_sent_again_with_its_key(stack_
     assert len(set(keys)) == len(losses)                            # a new submission, a new key
 
 
+def test_a_keyed_submission_is_sent_again_only_after_a_lost_answer_not_a_stalled_upload(
+        stack_file: Path, no_sleep: list[float]) -> None:
+    """A keyed submission is sent again where its answer was lost to a read timeout (the server has
+    the upload and answers the retry with its job: with 3 retries, four sends), not where the upload
+    itself stalled (a write timeout: sending it all again would stall again) nor where the address is
+    no HTTP one; the error carries the key. An unkeyed POST is never sent again after a read timeout."""
+    for raised, attempts in ((httpx.ReadTimeout, 4), (httpx.WriteTimeout, 1), (httpx.UnsupportedProtocol, 1)):
+        keys: list[str] = []
+
+        def failing(request: httpx.Request) -> httpx.Response:
+            keys.append(request.headers["idempotency-key"])
+            raise raised("timed out", request=request)
+
+        with pytest.raises(ConnectionFailed) as e:
+            mock(failing, retries=3).reconstruct([stack_file])
+        assert len(keys) == attempts and len(set(keys)) == 1 and e.value.idempotency_key == keys[0], raised
+    posts: list[str] = []
+
+    def slow(request: httpx.Request) -> httpx.Response:
+        posts.append(request.method)
+        raise httpx.ReadTimeout("timed out", request=request)
+
+    with pytest.raises(ConnectionFailed):
+        mock(slow, retries=3).predict([stack_file])
+    assert posts == ["POST"]
+
+
 def test_poses_from_a_file_and_failed_and_cancelled_jobs(stack_file: Path, tmp_path: Path,
                                                          no_sleep: list[float]) -> None:
     poses = tmp_path / "poses.json"
