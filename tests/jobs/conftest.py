@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import os
 import signal
 import uuid
 from collections.abc import Iterator
@@ -17,8 +18,11 @@ BACKENDS = ["embedded", "redis"]
 
 @pytest.fixture(scope="session")
 def redis_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
-    """A real redis-server for the session (skips, with the reason, where there is none)."""
+    """A real redis-server for the session (skips, with the reason, where there is none; fails instead
+    where ``SVRNET_TEST_REQUIRE_REDIS=1``, as ``.ci/run`` sets it where it can install one)."""
     if redis_server_binary() is None:
+        if os.environ.get("SVRNET_TEST_REQUIRE_REDIS") == "1":
+            pytest.fail(f"SVRNET_TEST_REQUIRE_REDIS=1 and no redis-server: {SKIP_REASON}")
         pytest.skip(SKIP_REASON)
     server = RedisServer(tmp_path_factory.mktemp("redis"))
     try:

@@ -2,7 +2,8 @@
 free loopback port with no persistence, in a folder of its own, stopped at the end.
 
 The binary comes from the system (Debian's ``redis-server``, which ``.ci/run`` installs) or
-``SVRNET_TEST_REDIS_SERVER``; the tests that need it skip, saying so, where there is none.
+``SVRNET_TEST_REDIS_SERVER``; the tests that need it skip, saying so, where there is none (and fail
+where ``SVRNET_TEST_REQUIRE_REDIS=1``).
 """
 
 from __future__ import annotations
