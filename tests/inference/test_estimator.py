@@ -79,3 +79,19 @@ def test_a_large_request_is_estimated_in_chunks_that_bound_its_samples_and_chang
     for name in ("mean", "variance", "degenerate", "twin_mass", "spread_mm"):
         np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name))
     assert set(chunked.timings) == {"inference", "statistics"}
+
+
+@pytest.mark.parametrize(("collapsed", "degenerate"), [(0, False), (4, False), (5, False), (6, True), (10, True)])
+def test_a_slice_is_degenerate_where_most_of_its_samples_collapse_their_anchors(collapsed: int,
+                                                                                degenerate: bool) -> None:
+    """Of a slice's ten MC samples, ``collapsed`` put its third anchor point on top of its first (no
+    plane through them): the slice is ``degenerate`` (it neither votes in its stack nor is accepted)
+    where they are more than half."""
+    from service.geometry import encodings
+    from service.inference.estimator import slice_statistics
+
+    good = encodings.encode("anchor", np.eye(4)[None])[0]
+    bad = good.reshape(3, 3).copy()
+    bad[2] = bad[0] + 1.0
+    lab = np.stack([bad.ravel() if k < collapsed else good for k in range(10)])[None]
+    assert slice_statistics(lab, "anchor").degenerate.tolist() == [degenerate]
