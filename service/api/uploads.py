@@ -110,10 +110,24 @@ def sweep_stale_uploads(base: Path | None, older_than_s: float) -> int:
     return swept
 
 
+FORM_NAME_ESCAPES = {"%22": '"', "%0A": "\n", "%0D": "\r"}
+"""What browsers, httpx and this project's client write for a quote, a line feed and a carriage return
+in a multipart part's ``filename`` (the WHATWG form-data encoding): read back as they were."""
+
+
 def display_name(upload: UploadFile, field: str, index: int) -> str:
-    """The client's file name (for messages to the client only, without control characters), or
-    ``field[index]``."""
-    name = clean_name(Path((upload.filename or "").replace("\\", "/")).name)
+    """The client's file name (for messages to the client only, without control characters; its form
+    encoding's escapes read back, :data:`FORM_NAME_ESCAPES`), or ``field[index]``.
+
+    Example:
+        >>> from starlette.datastructures import UploadFile
+        >>> display_name(UploadFile(None, filename="C:\\\\scans\\\\axial %221%22.nii.gz"), "stacks", 0)
+        'axial "1".nii.gz'
+        >>> display_name(UploadFile(None, filename=""), "masks", 2)
+        'masks[2]'
+    """
+    name = re.sub("%22|%0A|%0D", lambda m: FORM_NAME_ESCAPES[m.group()], upload.filename or "")
+    name = clean_name(Path(name.replace("\\", "/")).name)
     return name or f"{field}[{index}]"
 
 

@@ -43,6 +43,16 @@ def test_control_characters_never_come_back(oracle_client: TestClient, oracle, n
     assert filename.startswith("scan") and filename.isprintable(), repr(filename)
 
 
+def test_a_quote_in_a_file_name_comes_back_as_a_quote(oracle_client: TestClient, oracle) -> None:  # noqa: ANN001
+    """httpx, like browsers, sends a ``"`` in a file name as ``%22``: the answer names the file as the
+    client named it, in a refusal and in a stack's ``filename`` alike."""
+    r = post(oracle_client, [("stacks", ('axial "1".nii.gz', b"not an image" * 50))])
+    assert r.status_code == 415 and 'axial "1".nii.gz' in r.json()["detail"], r.json()["detail"]
+    oracle.truth = np.broadcast_to(np.eye(4), (6, 4, 4)).copy()
+    ok = post(oracle_client, [("stacks", ('axial "1".nii.gz', nifti_bytes(stack())))], {"mc_samples": "2"})
+    assert ok.status_code == 200 and ok.json()["stacks"][0]["filename"] == 'axial "1".nii.gz', ok.text[:300]
+
+
 @pytest.mark.parametrize(("route", "field"), [("/v1/predict", "bias_corection"), ("/v1/reconstructions", "bias_correction"),
                                                ("/v1/reconstructions", "svr_iteration")])
 def test_unknown_form_fields_are_400_naming_them(oracle_client: TestClient, route: str, field: str) -> None:
