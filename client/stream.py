@@ -316,7 +316,7 @@ def _stream(session: "_Session", stacks: Sequence[ScannerStack], orders: list[li
     session.send({"type": "start", **{k: v for k, v in options.items() if v is not None}})
     while not session.result.ready:
         session.receive(None)
-    _check_limits(stacks, session.result.ready.get("limits") or {})
+    _check_limits(stacks, session.result.ready.get("limits") or {}, pace_s)
     next_send = time.monotonic()
     for stack, indices in zip(stacks, orders):
         for position, k in enumerate(indices):
@@ -363,8 +363,12 @@ def _connect(url: str, api_key: str | None, answer_timeout_s: float) -> ClientCo
         raise ConnectionFailed(f"cannot open {url}: {type(e).__name__}: {e}") from None
 
 
-def _check_limits(stacks: Sequence[ScannerStack], limits: dict[str, Any]) -> None:
-    """Refuse, before any slice is sent, what the server would refuse slice by slice (``ready.limits``)."""
+def _check_limits(stacks: Sequence[ScannerStack], limits: dict[str, Any], pace_s: float = 0.0) -> None:
+    """Refuse, before any slice is sent, what the server would refuse slice by slice (``ready.limits``),
+    and a pace at which the server would close the session as idle between two slices."""
+    if pace_s >= (idle := limits.get("idle_s") or np.inf):
+        raise UnusableInput(f"a slice every {pace_s:g} s: the server closes a session idle for {idle:g} s; "
+                            "send the slices faster")
     pixels, slices = limits.get("pixels_per_slice") or np.inf, limits.get("slices") or np.inf
     for stack in stacks:
         if stack.slices and stack.slices[0].pixels.size > pixels:

@@ -31,7 +31,7 @@ from starlette.datastructures import State
 from starlette.websockets import WebSocketDisconnect, WebSocketDisconnected
 
 from service.api.access import UNAUTHORIZED, api_key_ok, origin_ok
-from service.api.stream_messages import DTYPES, known_fields, parse, slice_header, text_field
+from service.api.stream_messages import DTYPES, is_message, known_fields, parse, slice_header, text_field
 from service.streaming.messages import (end_stack_messages, error_message, pose_object, summary_message,
                                         update_messages)
 from service.core.errors import (
@@ -82,9 +82,8 @@ class StreamConnection:
         self.firming: asyncio.Task | None = None
         self.latencies: list[float] = []
         self.started = time.perf_counter()
-        self.binaries_read = 0                      # binary frames the slice message being read has taken
         self.last_frame_at = self.started           # when the last binary frame came (a pose's latency starts)
-        self.orphans = 0                            # binary frames a refused slice message announced, not read
+        self.refused = False                        # the last text message was refused: its binary frames are dropped
         self.active_at = self.started               # when the client last sent a message that was answered
         self.counted = False                        # this connection holds one of the session slots
 
@@ -118,7 +117,8 @@ class StreamConnection:
     async def receive(self) -> dict:
         """The next frame (``{"text": …}`` or ``{"bytes": …}``); :class:`_Closed` when the client left
         or stayed idle past :meth:`idle_limit_s` (then the server closes with 1001). Only answered
-        messages count as activity: a client that sends nothing but refused ones is idle."""
+        messages count as activity (a ``ping`` is one; a client that sends nothing but refused ones is
+        idle), and a slice's header while its binary frames are awaited."""
         if self.pending is not None:
             frame, self.pending = self.pending, None
             return frame
@@ -144,27 +144,25 @@ class StreamConnection:
             while True:
                 frame = await self.receive()
                 if frame.get("text") is None:
-                    if self.orphans:                # a refused slice's own frames: its error said it all
-                        self.orphans -= 1
+                    if self.refused:                # a refused message's own frames: its error said it all
                         continue
                     size = len(frame.get("bytes") or b"")
                     await self.send(error_message(MalformedRequest(
                         f"binary frame ({size} bytes): not expected here; binary frames follow their slice message")))
                     continue
-                self.orphans, self.binaries_read, msg = 0, 0, None
+                self.refused = False
                 try:
-                    msg = parse(frame["text"])
-                    await self.handle(msg)
+                    await self.handle(parse(frame["text"]))
                     self.active_at = time.perf_counter()
                 except ServiceError as e:
                     log.info("stream message refused", extra={"status": e.status, "session_id": self.session_id})
-                    self.orphans = self.unread_frames(msg)
+                    self.refused = True
                     await self.send(error_message(e))
                 except (_Closed, WebSocketDisconnect):
                     raise
                 except Exception:  # noqa: BLE001 - a server fault ends one message, never the session
                     log.exception("stream message failed", extra={"session_id": self.session_id})
-                    self.orphans = self.unread_frames(msg)
+                    self.refused = True
                     await self.send(error_message(InternalError(f"session {self.session_id}: the server could "
                                                                 "not answer this message")))
         except (_Closed, WebSocketDisconnect):
@@ -184,6 +182,9 @@ class StreamConnection:
             return
         if kind == "auth":                                 # answered, and so no sign of life (the idle limit)
             raise InvalidParameter("auth: the session has started; a key is sent once, before start")
+        if kind == "ping":                                 # a sign of life between stacks (the idle limit)
+            known_fields(msg, kind)
+            return await self.send({"type": "pong"})
         if kind == "start":
             return await self.start(msg)
         if self.session is None and kind in ("slice", "end_stack", "end"):
@@ -199,7 +200,7 @@ class StreamConnection:
             await self.send(summary_message(summary, self.started, self.latencies))
             await self.ws.close(1000)
             raise _Closed
-        raise InvalidParameter(f"type: unknown message type {kind!r} (auth, start, slice, end_stack, end)")
+        raise InvalidParameter(f"type: unknown message type {kind!r} (auth, start, slice, end_stack, end, ping)")
 
     async def start(self, msg: dict) -> None:
         if self.session is not None:
@@ -245,6 +246,7 @@ class StreamConnection:
         """The slice message's fields (:func:`~service.api.stream_messages.slice_header`, checked before
         anything is decoded) and its binary frame(s)."""
         head = slice_header(msg, self.settings.stream_max_pixels)
+        self.active_at = time.perf_counter()               # its frames may take a while: the client is there
         n0, n1 = head.shape
         pixels = np.frombuffer(await self.binary(np.dtype(DTYPES[head.dtype]).itemsize * n0 * n1, "pixels"),
                                DTYPES[head.dtype]).reshape(head.shape)
@@ -255,12 +257,15 @@ class StreamConnection:
                           head.acquisition_index)
 
     async def binary(self, size: int, what: str) -> bytes:
+        """The slice's ``what`` binary frame of ``size`` bytes. A text frame in its place is the
+        client's next message where it is one (read next), else the slice's frame sent as text
+        (dropped with the slice): one error either way."""
         frame = await self.receive()
         data = frame.get("bytes")
         if data is None:
-            self.pending = frame
+            if is_message(frame.get("text") or ""):
+                self.pending = frame
             raise InvalidParameter(f"slice: its {what} binary frame was due, a text frame came; the slice is dropped")
-        self.binaries_read += 1
         self.last_frame_at = time.perf_counter()
         if len(data) != size:
             raise InvalidParameter(f"slice: its {what} frame has {len(data)} bytes, {size} were due "
@@ -314,15 +319,6 @@ class StreamConnection:
         finally:                                    # a refused end changes nothing: the others' firm-ups run
             for other in others:
                 self.firm_up(other)
-
-    def unread_frames(self, msg: object) -> int:
-        """How many binary frames of a refused ``slice`` message are still to come, to be dropped
-        without an error each: its pixels, and a mask for any ``mask`` but absent or false (a wrong
-        value such as "true" most likely came with one; a count too high ends at the next text
-        frame, so it never swallows a message). 0 for any other message."""
-        if not (isinstance(msg, dict) and msg.get("type") == "slice"):
-            return 0
-        return max(0, 1 + (msg.get("mask") not in (None, False)) - self.binaries_read)
 
 
 AUTH_TIMEOUT_S = 10.0

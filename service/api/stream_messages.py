@@ -29,20 +29,20 @@ from service.core.names import has_unsafe_characters
 DTYPES = {"uint8": "<u1", "int16": "<i2", "uint16": "<u2", "float32": "<f4"}
 MAX_TEXT_BYTES = 64 * 1024
 """Longest JSON message accepted (a slice's header is a few hundred bytes)."""
-WS_MIN_FRAME_BYTES = 16 * 2**20
-"""The server's cap on one websocket frame is at least this (uvicorn's default) and at least the
-largest slice :func:`largest_frame_bytes` allows: a frame past it closes the connection (1009)."""
+
+
 def largest_frame_bytes(max_pixels: int) -> int:
-    """The websocket frame cap for slices of up to ``max_pixels`` pixels (the widest dtype; at least
-    :data:`WS_MIN_FRAME_BYTES`): a deployment that allows larger slices must not have them cut off
-    by the server's default cap.
+    """The server's cap on one websocket frame (a frame past it closes the connection, 1009): the
+    largest slice of up to ``max_pixels`` pixels in the widest dtype, or the longest text message.
+    A frame the service would refuse anyway is not read into memory first, and a deployment that
+    allows larger slices does not have them cut off.
 
     Example:
-        >>> largest_frame_bytes(1024 * 1024) == WS_MIN_FRAME_BYTES, largest_frame_bytes(4096 * 4096)
-        (True, 67108864)
+        >>> largest_frame_bytes(1024 * 1024), largest_frame_bytes(100)
+        (4194304, 65536)
     """
     widest = max(np.dtype(d).itemsize for d in DTYPES.values())
-    return max(WS_MIN_FRAME_BYTES, int(max_pixels) * widest)
+    return max(MAX_TEXT_BYTES, int(max_pixels) * widest)
 
 
 @dataclass(frozen=True)
@@ -59,9 +59,9 @@ class SliceHeader:
 
 
 FIELDS = {"slice": ("type", "stack", "index", "acquisition_index", "shape", "dtype", "scanner_from_voxel", "mask"),
-          "end_stack": ("type", "stack"), "end": ("type",)}
+          "end_stack": ("type", "stack"), "end": ("type",), "ping": ("type",)}
 """The fields of each client message but ``start`` (whose options :mod:`service.streaming.options`
-checks) and ``auth``: stream-v1.md's."""
+checks) and ``auth``: stream-v1.md's, and ``ping`` (answered ``pong``: a sign of life)."""
 
 
 def known_fields(msg: dict, kind: str) -> dict:
@@ -123,6 +123,21 @@ def parse(text: str) -> dict:
     if not isinstance(msg, dict) or not isinstance(msg.get("type"), str):
         raise MalformedRequest("message: a JSON object with a string field type")
     return msg
+
+
+def is_message(text: str) -> bool:
+    """Whether ``text`` is a client message (:func:`parse` takes it), not, say, a slice's pixels sent
+    as text where their binary frame was due.
+
+    Example:
+        >>> is_message('{"type": "end"}'), is_message("[0, 0, 0]"), is_message("x" * 70000)
+        (True, False, False)
+    """
+    try:
+        parse(text)
+    except MalformedRequest:
+        return False
+    return True
 
 
 def text_field(msg: dict, name: str, kind: str, default: str | None = None) -> str:

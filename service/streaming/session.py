@@ -132,12 +132,13 @@ class StreamSession:
                                    "and send the rest as another")
         frame = replace(frame, pixels=magnitude(np.asarray(frame.pixels, np.float32)))   # as a file's values are read
         with self._lock:
-            gap = frame.stack in self.ended and frame.index in self.ended[frame.stack].missing
+            # A slice its ended stack has not had (one it ended without, or one past its last, which its
+            # end overtook) opens it again; one it has is refused.
+            gap = frame.stack in self.ended and frame.index not in getattr(self.stacks.get(frame.stack), "frames", {})
             if frame.stack in self.ended and not gap:
-                missing = list(self.ended[frame.stack].missing)
-                raise InvalidParameter(f"slice.stack: stack {frame.stack!r} has ended; send a new stack under a new name"
-                                       + (f" (only the slices it ended without, {missing[:10]}, may still come: "
-                                          "end it again then)" if missing else ""))
+                raise InvalidParameter(f"slice.index: stack {frame.stack!r} has ended with a slice {frame.index}; "
+                                       "slices it has not had may still come (end it again then), a new "
+                                       "acquisition comes as a new stack under a new name")
             if sum(len(s) for s in self.stacks.values()) >= self.limits.max_slices:
                 raise SessionFull(f"slice: a session holds at most {self.limits.max_slices} slices; "
                                   "end it and start another")
@@ -289,8 +290,8 @@ class StreamSession:
     def end_stack(self, stack: str) -> StackAnswer:
         """The stack's final poses, as ``/v1/predict`` gives them with the stacks ended before it.
         Slices below its largest index that have not come are judged blank, their reason
-        :data:`NOT_RECEIVED`, and listed to acquire again; they may still come, and reopen the stack
-        (:meth:`add_slice`)."""
+        :data:`NOT_RECEIVED`, and listed to acquire again; they may still come, as may slices past its
+        last that its end overtook, and reopen the stack (:meth:`add_slice`)."""
         t0 = time.perf_counter()
         with self._lock:
             if stack in self.ended:

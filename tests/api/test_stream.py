@@ -213,6 +213,8 @@ def test_bad_messages_get_an_error_naming_them_and_the_session_goes_on(client, c
         assert "slice.stack" in ws.receive_json()["detail"]
         send_slice(ws, f0, mask="true")                       # a wrong mask value, its two frames: one error
         assert "slice.mask" in ws.receive_json()["detail"]
+        ws.send_text(json.dumps({"type": "ping"}))
+        assert ws.receive_json() == {"type": "pong"}
         ws.send_bytes(b"\x01\x02")                            # a binary frame out of place
         assert "not expected" in ws.receive_json()["detail"]
         huge = f0.scanner_from_voxel.tolist()
@@ -220,6 +222,17 @@ def test_bad_messages_get_an_error_naming_them_and_the_session_goes_on(client, c
         send_slice(ws, f0, scanner_from_voxel=huge)
         err = ws.receive_json()
         assert err["status"] == 400 and "scanner_from_voxel" in err["detail"], err
+        header = {"type": "slice", "stack": "ax", "index": 0, "shape": list(f0.pixels.shape), "dtype": "float32",
+                  "scanner_from_voxel": f0.scanner_from_voxel.tolist()}
+        pixels, mask = f0.pixels.astype("<f4").tobytes(), f0.mask.astype(np.uint8).tobytes()
+        for text, frames in ((json.dumps({**header, "maks": True}), [pixels, mask]),   # a misspelt mask: two frames
+                             (json.dumps({**header, "mask": True, "note": "x" * 70_000}), [pixels, mask]),
+                             (json.dumps({**header, "mask": True}), [json.dumps(f0.pixels.tolist()), mask])):
+            ws.send_text(text)                                # each gets one error and its frames no other
+            for frame in frames:
+                ws.send_text(frame) if isinstance(frame, str) else ws.send_bytes(frame)
+            ws.send_text(json.dumps({"type": "ping"}))
+            assert ws.receive_json()["type"] == "error" and ws.receive_json() == {"type": "pong"}
         send_slice(ws, f0, dtype="uint16")                    # another dtype; the session still works
         pose = receive(ws)
         assert pose["index"] == 0
@@ -381,6 +394,31 @@ def test_an_idle_session_is_told_so_and_closed_going_away(case) -> None:  # noqa
             with pytest.raises(WebSocketDisconnect) as closed:
                 ws.receive_json()
             assert closed.value.code == 1001
+
+
+def test_a_ping_and_a_slice_s_header_are_signs_of_life(case) -> None:  # noqa: ANN001
+    """Between stacks a script pings (each answered ``pong``) and the session outlives its idle limit;
+    a slice whose frames come late after its header is answered, not cut off."""
+    _, stacks, _ = case
+    f0 = stacks[0][0]
+    with make_client(ModelRegistry({"default": case[0]}), stream_idle_s=0.5, stream_max_pixels=64 * 64) as client:
+        with client.websocket_connect("/v1/stream") as ws:
+            ws.send_text(json.dumps({"type": "start", "mc_samples": 5}))
+            assert ws.receive_json()["type"] == "ready"
+            for _ in range(5):                                # 1.5 s in all, three times the limit
+                time.sleep(0.3)
+                ws.send_text(json.dumps({"type": "ping"}))
+                assert ws.receive_json() == {"type": "pong"}
+            time.sleep(0.3)
+            ws.send_text(json.dumps({"type": "slice", "stack": "ax", "index": 0, "shape": list(f0.pixels.shape),
+                                     "dtype": "float32", "scanner_from_voxel": f0.scanner_from_voxel.tolist(),
+                                     "mask": True}))
+            time.sleep(0.35)                                  # 0.65 s since the last pong, 0.35 since the header
+            ws.send_bytes(f0.pixels.astype("<f4").tobytes())
+            ws.send_bytes(f0.mask.astype(np.uint8).tobytes())
+            assert receive(ws)["index"] == 0
+            ws.send_text(json.dumps({"type": "ping", "now": 1}))
+            assert "ping: unknown fields ['now']" in ws.receive_json()["detail"]
 
 
 def test_auth_after_start_is_refused_and_keeps_no_session_alive(case) -> None:  # noqa: ANN001

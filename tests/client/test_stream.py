@@ -297,6 +297,15 @@ def test_a_session_that_fills_up_stops_sending_and_names_what_it_could_not_take(
     assert result.exit_code == exits.EXIT_BAD_INPUT and "5 stacks: over the server's limit of 4" in result.output
 
 
+def test_a_pace_the_server_would_close_the_session_at_is_refused_before_any_slice() -> None:
+    from client.errors import UnusableInput
+
+    with pytest.raises(UnusableInput, match="a slice every 300 s: the server closes a session idle for 300 s"):
+        streaming._check_limits([], {"idle_s": 300}, 300.0)
+    streaming._check_limits([], {"idle_s": 300}, 299.0)
+    streaming._check_limits([], {}, 1e6)                       # a server that says no limit
+
+
 # --- (c) end to end: a real svrnet-server with the shipped model ---------------------------------------------------
 
 

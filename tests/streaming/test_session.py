@@ -128,7 +128,9 @@ def test_bad_slices_are_refused_and_change_nothing(case) -> None:  # noqa: ANN00
     with pytest.raises(InvalidParameter, match="at most 3 slices"):
         session.add_slice(stacks[0][3])
     session.end_stack("ax")
-    with pytest.raises(InvalidParameter, match="has ended"):
+    with pytest.raises(InvalidParameter, match="has ended with a slice 2"):
+        session.add_slice(stacks[0][2])
+    with pytest.raises(InvalidParameter, match="at most 3 slices"):      # one it has not had: full all the same
         session.add_slice(stacks[0][3])
     with pytest.raises(InvalidParameter, match="already ended"):
         session.end_stack("ax")
@@ -160,7 +162,7 @@ def test_a_stack_ends_without_the_slices_that_never_came_and_takes_them_when_the
     assert np.allclose(sent_network_from_voxel(unit, [None if k in gone else f for k, f in enumerate(frames)]),
                        sent_network_from_voxel(unit, frames), atol=1e-6)
     assert session.summary().reacquire["ax"][:3] == [(k, NOT_RECEIVED) for k in gone]
-    with pytest.raises(InvalidParameter, match=r"has ended.*\[0, 7, 8\], may still come"):
+    with pytest.raises(InvalidParameter, match=r"slice.index: stack 'ax' has ended with a slice 3; .* may still come"):
         session.add_slice(frames[3])
     held = session.held_bytes
     session.add_slice(frames[7])                              # it came after all: the stack is open again
@@ -177,6 +179,32 @@ def test_a_stack_ends_without_the_slices_that_never_came_and_takes_them_when_the
     assert abs(session.held_bytes - whole.held_bytes) < 0.01 * whole.held_bytes, (session.held_bytes, whole.held_bytes)
     got = again.poses.poses @ again.network_from_voxel
     assert max(np.linalg.norm(got[k, :3, 3] - true_sent(truths[0], k)[:3, 3]) for k in range(n)) < 0.5
+
+
+def test_slices_an_ended_stack_s_end_overtook_open_it_again(case) -> None:  # noqa: ANN001
+    """A script's ``end_stack`` overtakes its last two slices: they are not refused, and not lost; they
+    open the stack again, and its next end answers the whole stack as a session that sent them in
+    time does."""
+    oracle, stacks, _ = case
+    frames, n = stacks[0], len(stacks[0])
+    session = StreamSession(oracle, None, options=FAST)
+    for frame in frames[:-2]:
+        session.add_slice(frame)
+    first = session.end_stack("ax").prediction
+    assert len(first.reasons) == n - 2 and NOT_RECEIVED not in first.reasons
+    session.add_slice(frames[-2])
+    assert "ax" not in session.finals and session.summary().unfinished == {"ax": []}
+    session.add_slice(frames[-1])
+    session.end_stack("ax")
+    with pytest.raises(InvalidParameter, match=f"has ended with a slice {n - 1}"):    # one it has had
+        session.add_slice(frames[-1])
+    whole = StreamSession(oracle, None, options=FAST)
+    for frame in frames:
+        whole.add_slice(frame)
+    expected = whole.end_stack("ax").prediction
+    again = session.finals["ax"]
+    assert len(again.reasons) == n and again.reasons == expected.reasons
+    np.testing.assert_allclose(again.poses.poses, expected.poses.poses, atol=1e-6)
 
 
 def test_a_stack_with_most_of_its_slices_missing_does_not_end(case) -> None:  # noqa: ANN001
