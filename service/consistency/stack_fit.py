@@ -47,13 +47,13 @@ Example:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from service.consistency.error_shape import anatomical_axes, relative_depth
-from service.consistency.motion_model import ERROR_CORRELATIONS, NO_VOTE, Grid, fit_motion, refit
+from service.consistency.motion_model import ERROR_CORRELATIONS, NO_VOTE, Grid, MotionFit, fit_motion, refit
 from service.consistency.slice_order import acquisition_orders
 from service.consistency.slice_weights import MIN_NOISE_MM, noise_scales, precisions, robust_weights
 from service.consistency.slice_weights import votes as slice_votes
@@ -129,6 +129,8 @@ class StackFit:
         mirrored: the request's other stacks hold the fetus where this stack, reflected, does: its
             voxels are the mirror image of what its file says
             (:func:`~service.consistency.mirrored_stacks.mirrored_stacks`); its branch is not known.
+        evidence: what the fit found before the request had a say (:class:`StackEvidence`): the
+            start of a fit of the same stack with another ``reference``.
     """
 
     poses: NDArray[np.float64]
@@ -151,6 +153,7 @@ class StackFit:
     request_distance_mm: tuple[float, float] = (float("nan"), float("nan"))
     residual_z: NDArray[np.float64] | None = None
     mirrored: bool = False
+    evidence: "StackEvidence | None" = field(default=None, repr=False, compare=False)
 
     @property
     def branch_decided(self) -> bool:
@@ -177,12 +180,127 @@ class StackFit:
         return (self.branch_decided or self.agrees_with_request) and not self.mirrored
 
 
+@dataclass(frozen=True)
+class StackEvidence:
+    """What :func:`stack_evidence` finds of a stack, the same whatever the request's other stacks say:
+    a stack fitted again with their placement (:func:`fit_stack`'s ``reference``) starts from it.
+    ``motion`` is None where too few slices may vote or none keeps a weight (the stack is then
+    returned as the network gave it); the rest is then None too."""
+
+    poses: NDArray[np.float64]
+    origin: NDArray[np.float64]
+    to_scanner: NDArray[np.float64]
+    use: NDArray[np.bool_]
+    cand: NDArray[np.float64] | None = None             # [n, 2, 4, 4]: each pose and its twin
+    proposals: NDArray[np.float64] | None = None        # [n, 2, 4, 4]: the stack placement each implies
+    inv_n: NDArray[np.float64] | None = None
+    sig: NDArray[np.float64] | None = None              # each slice's noise scale (mm)
+    rigid: NDArray[np.float64] | None = None            # the robust rigid placement
+    weights: NDArray[np.float64] | None = None
+    inliers: NDArray[np.bool_] | None = None
+    orders: dict[str, NDArray] | None = None
+    centre: NDArray[np.float64] | None = None
+    shape: dict | None = None                           # the motion model's error shape arguments
+    votes: NDArray[np.float64] | None = None
+    grid: Grid | None = None
+    motion: MotionFit | None = None
+    first_branch: NDArray[np.int64] | None = None       # by the rigid fit, which the motion model was fitted on
+    branch: NDArray[np.int64] | None = None             # by the motion model's leave-one-out prediction
+    margin: float = float("nan")                        # the stack's own branch margin
+    memo: dict | None = None                            # the motion model's eigendecompositions
+
+
+def stack_evidence(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLike | None = None,
+                   plane_x_mm: float = twin.DEFAULT_PLANE_X_MM, expected_error_mm: ArrayLike | None = None,
+                   times: dict[str, NDArray] | None = None, error_shape: ArrayLike | None = None,
+                   depth_gain: float = 0.0, error_correlations: tuple[float, ...] = ERROR_CORRELATIONS) -> StackEvidence:
+    """What :func:`fit_stack` finds of one stack before the request has a say (its arguments, which this
+    takes, are described there): the slices' branches by RANSAC, the robust rigid fit, the motion
+    model and the stack's own branch margin (steps 1 to 3 of the module docstring)."""
+    p = np.asarray(poses, dtype=np.float64)
+    # the fit's frame is the scanner's moved to the slices' centre: means of rigid maps (a rotation
+    # with a translation) depend on the point they turn about, and the scanner's origin (its table
+    # position) lies anywhere, often far from the fetus; from this point on, the fit sees none of it
+    origin = se3.inverse(np.asarray(network_from_scanner, dtype=np.float64))[:, :3, 3].mean(axis=0)
+    nk = np.asarray(network_from_scanner, dtype=np.float64) @ translate(origin)
+    to_scanner = translate(-origin)         # atlas_from_fit_frame @ to_scanner: atlas_from_scanner
+    n = len(p)
+    use = np.ones(n, bool) if usable is None else np.asarray(usable, bool).copy()
+    if use.sum() < MIN_SLICES:
+        return StackEvidence(p, origin, to_scanner, use)
+    cand = np.stack([p, twin.twin(p, plane_x_mm)], axis=1)                 # [n, 2, 4, 4]
+    proposals = cand @ nk[:, None]                                          # S = P_k N_k, [n, 2, 4, 4]
+    inv_n = se3.inverse(nk)
+
+    # 1. branch: RANSAC over the usable slices' proposals
+    idx = np.flatnonzero(use)
+    implied = proposals[idx][:, :, None] @ inv_n[None, None]                # [h, 2, n, 4, 4]
+    res = ed(implied[:, :, :, None], cand[None, None])                      # [h, 2, n, 2]
+    best = res.min(axis=-1)
+    cost = (np.minimum(best, RANSAC_TAU_MM)[..., use] ** 2).sum(axis=-1)   # [h, 2]
+    h, b = np.unravel_index(np.argmin(cost), cost.shape)
+    branch = _branch(res[h, b])                                             # [n]
+
+    # 2. rigid fit: IRLS with Tukey weights (on residuals in units of each slice's expected error,
+    #    and times its precision, when the errors are known), branches re-decided each round
+    sig = None if expected_error_mm is None else noise_scales(expected_error_mm, use)
+    s = proposals[idx[h], b]
+    for _ in range(IRLS_ROUNDS):
+        model = s @ inv_n                                                   # [n, 4, 4]
+        both = ed(model[:, None], cand)                                     # [n, 2]
+        branch = _branch(both)
+        r = both[np.arange(n), branch]
+        tukey = robust_weights(r, sig, use)
+        w = tukey * (1.0 if sig is None else precisions(sig, use))
+        if w.sum() <= 0:
+            return StackEvidence(p, origin, to_scanner, use)
+        s = _local_models(proposals[np.arange(n), branch], s, w[None])[0]   # one Gauss-Newton step a round
+    inliers = (w > 0) & use
+
+    # 3. motion: a Gaussian process over acquisition time (service/consistency/motion_model.py);
+    #    then the branches against what the other slices predict (the rigid fit is off by the
+    #    motion; near the mid-sagittal plane that can exceed half the distance to the twin); then
+    #    the stack's branch as a whole by the rigid model (only the order along the normal tells a
+    #    stack from its twin, and a flexible motion model can bend to either order)
+    orders = acquisition_orders(n) if times is None else times
+    centre = inv_n[:, :3, 3].mean(axis=0)                                   # the slices' centre (0 in the fit's frame)
+    axes = inv_n[idx[0], :3, :3]                                            # the stack's x, y, normal in scanner
+    axes = axes @ anatomical_axes(s[:3, :3] @ axes)                         # x along the brain's left-right
+    # the slices' offsets from the centre along the normal (their in-plane offsets, a few mm, left out:
+    # then only the two in-plane translations vary from slice to slice, and the other four share
+    # one eigendecomposition in the motion model; the poses come out the same to a hundredth of a mm)
+    along = ((inv_n[:, :3, 3] - centre) @ axes) * [0.0, 0.0, 1.0]
+    grow = 1.0 + depth_gain * relative_depth(along[:, 2], use) ** 2
+    shape = {"axes": axes} if error_shape is None else {   # errors per coordinate about each slice's origin
+        "axes": axes, "noise_shape": np.asarray(error_shape, dtype=np.float64)[None] * grow[:, None],
+        "lever_mm": along[:, 2]}
+    on = np.arange(n)
+    own, chosen = cand[on, branch], proposals[on, branch]                   # each slice on its branch
+    if sig is None:
+        noise2 = _neighbour_noise2(chosen, own, inv_n, on, inliers, float(np.median(r[inliers] ** 2)))
+        sig = np.full(n, np.sqrt(max(noise2, MIN_NOISE_MM ** 2)))
+    votes = np.where(inliers, sig / np.sqrt(np.maximum(tukey, 1e-12)), NO_VOTE)
+    grid = Grid(error_correlations=tuple(error_correlations))
+    first = FIRST_GRID if set(FIRST_GRID.error_correlations) <= set(error_correlations) else Grid(
+        error_correlations=grid.error_correlations[:1])             # the first fit only re-weighs: one correlation
+    motion = fit_motion(chosen, s, votes, orders, centre, first, **shape)
+    # a slice far from the rigid fit may just have moved: every usable slice is weighed again by
+    # how well the others predict it, in units of the spread both errors explain
+    votes = slice_votes(ed(motion.loo @ inv_n, own), motion, sig, use)
+    memo: dict = {}                        # the final fit reuses this one's eigendecompositions where its votes are these
+    motion = fit_motion(chosen, s, votes, orders, centre, grid, memo=memo, **shape)
+    decided = _branch(ed((motion.loo @ inv_n)[:, None], cand))
+    return StackEvidence(p, origin, to_scanner, use, cand, proposals, inv_n, sig, s, w, inliers, orders, centre, shape,
+                         votes, grid, motion, branch, decided, _branch_margin(proposals, cand, decided, inv_n, w, inliers),
+                         memo)
+
+
 def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLike | None = None,
               plane_x_mm: float = twin.DEFAULT_PLANE_X_MM, expected_error_mm: ArrayLike | None = None,
               times: dict[str, NDArray] | None = None, error_shape: ArrayLike | None = None,
               depth_gain: float = 0.0, reference: ArrayLike | None = None,
               error_correlations: tuple[float, ...] = ERROR_CORRELATIONS,
-              request_margin: float | None = None) -> StackFit:
+              request_margin: float | None = None, evidence: StackEvidence | None = None) -> StackFit:
     """Make one stack's slice poses consistent (see the module docstring).
 
     Args:
@@ -219,83 +337,21 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
         request_margin: with ``reference``, the request decides the branch wherever the stack's own
             margin is under this (None: :data:`MIN_STACK_BRANCH_MARGIN`, where the stack does not
             decide it); a larger one lets the other stacks overrule a stack that decided by a small margin.
+        evidence: the stack's :func:`stack_evidence` of these arguments (a fit's own
+            :attr:`StackFit.evidence`), where the stack is fitted again with another ``reference``: the
+            same fit as from the arguments, without their work done again.
     """
-    p = np.asarray(poses, dtype=np.float64)
-    # the fit's frame is the scanner's moved to the slices' centre: means of rigid maps (a rotation
-    # with a translation) depend on the point they turn about, and the scanner's origin (its table
-    # position) lies anywhere, often far from the fetus; from this point on, the fit sees none of it
-    origin = se3.inverse(np.asarray(network_from_scanner, dtype=np.float64))[:, :3, 3].mean(axis=0)
-    nk = np.asarray(network_from_scanner, dtype=np.float64) @ translate(origin)
-    to_scanner = translate(-origin)         # atlas_from_fit_frame @ to_scanner: atlas_from_scanner
-    n = len(p)
-    use = np.ones(n, bool) if usable is None else np.asarray(usable, bool).copy()
-    unchanged = StackFit(p.copy(), np.zeros(n, bool), np.zeros(n, bool), np.full(n, np.nan), False)
-    if use.sum() < MIN_SLICES:
-        return unchanged
-    cand = np.stack([p, twin.twin(p, plane_x_mm)], axis=1)                 # [n, 2, 4, 4]
-    proposals = cand @ nk[:, None]                                          # S = P_k N_k, [n, 2, 4, 4]
-    inv_n = se3.inverse(nk)
-
-    # 1. branch: RANSAC over the usable slices' proposals
-    idx = np.flatnonzero(use)
-    implied = proposals[idx][:, :, None] @ inv_n[None, None]                # [h, 2, n, 4, 4]
-    res = ed(implied[:, :, :, None], cand[None, None])                      # [h, 2, n, 2]
-    best = res.min(axis=-1)
-    cost = (np.minimum(best, RANSAC_TAU_MM)[..., use] ** 2).sum(axis=-1)   # [h, 2]
-    h, b = np.unravel_index(np.argmin(cost), cost.shape)
-    branch = _branch(res[h, b])                                             # [n]
-
-    # 2. rigid fit: IRLS with Tukey weights (on residuals in units of each slice's expected error,
-    #    and times its precision, when the errors are known), branches re-decided each round
-    sig = None if expected_error_mm is None else noise_scales(expected_error_mm, use)
-    s = proposals[idx[h], b]
-    for _ in range(IRLS_ROUNDS):
-        model = s @ inv_n                                                   # [n, 4, 4]
-        both = ed(model[:, None], cand)                                     # [n, 2]
-        branch = _branch(both)
-        r = both[np.arange(n), branch]
-        tukey = robust_weights(r, sig, use)
-        w = tukey * (1.0 if sig is None else precisions(sig, use))
-        if w.sum() <= 0:
-            return unchanged
-        s = _local_models(proposals[np.arange(n), branch], s, w[None])[0]   # one Gauss-Newton step a round
-    inliers = (w > 0) & use
-
-    # 3. motion: a Gaussian process over acquisition time (service/consistency/motion_model.py);
-    #    then the branches against what the other slices predict (the rigid fit is off by the
-    #    motion; near the mid-sagittal plane that can exceed half the distance to the twin); then
-    #    the stack's branch as a whole by the rigid model (only the order along the normal tells a
-    #    stack from its twin, and a flexible motion model can bend to either order)
-    orders = acquisition_orders(n) if times is None else times
-    centre = inv_n[:, :3, 3].mean(axis=0)                                   # the slices' centre (0 in the fit's frame)
-    axes = inv_n[idx[0], :3, :3]                                            # the stack's x, y, normal in scanner
-    axes = axes @ anatomical_axes(s[:3, :3] @ axes)                         # x along the brain's left-right
-    # the slices' offsets from the centre along the normal (their in-plane offsets, a few mm, left out:
-    # then only the two in-plane translations vary from slice to slice, and the other four share
-    # one eigendecomposition in the motion model; the poses come out the same to a hundredth of a mm)
-    along = ((inv_n[:, :3, 3] - centre) @ axes) * [0.0, 0.0, 1.0]
-    grow = 1.0 + depth_gain * relative_depth(along[:, 2], use) ** 2
-    shape = {"axes": axes} if error_shape is None else {   # errors per coordinate about each slice's origin
-        "axes": axes, "noise_shape": np.asarray(error_shape, dtype=np.float64)[None] * grow[:, None],
-        "lever_mm": along[:, 2]}
+    ev = evidence if evidence is not None else stack_evidence(poses, network_from_scanner, usable, plane_x_mm,
+                                                               expected_error_mm, times, error_shape, depth_gain,
+                                                               error_correlations)
+    p, origin, to_scanner, use, n = ev.poses, ev.origin, ev.to_scanner, ev.use, len(ev.poses)
+    if ev.motion is None:
+        return StackFit(p.copy(), np.zeros(n, bool), np.zeros(n, bool), np.full(n, np.nan), False, evidence=ev)
+    cand, proposals, inv_n, sig, s, w, inliers = ev.cand, ev.proposals, ev.inv_n, ev.sig, ev.rigid, ev.weights, ev.inliers
+    orders, centre, shape, votes, grid, motion = ev.orders, ev.centre, ev.shape, ev.votes, ev.grid, ev.motion
+    first, branch, margin, memo = ev.first_branch, ev.branch, ev.margin, dict(ev.memo)
     on = np.arange(n)
-    own, chosen = cand[on, branch], proposals[on, branch]                   # each slice on its branch
-    if sig is None:
-        noise2 = _neighbour_noise2(chosen, own, inv_n, on, inliers, float(np.median(r[inliers] ** 2)))
-        sig = np.full(n, np.sqrt(max(noise2, MIN_NOISE_MM ** 2)))
-    votes = np.where(inliers, sig / np.sqrt(np.maximum(tukey, 1e-12)), NO_VOTE)
-    grid = Grid(error_correlations=tuple(error_correlations))
-    first = FIRST_GRID if set(FIRST_GRID.error_correlations) <= set(error_correlations) else Grid(
-        error_correlations=grid.error_correlations[:1])             # the first fit only re-weighs: one correlation
-    motion = fit_motion(chosen, s, votes, orders, centre, first, **shape)
-    # a slice far from the rigid fit may just have moved: every usable slice is weighed again by
-    # how well the others predict it, in units of the spread both errors explain
-    votes = slice_votes(ed(motion.loo @ inv_n, own), motion, sig, use)
-    memo: dict = {}                        # the final fit reuses this one's eigendecompositions where its votes are these
-    motion = fit_motion(chosen, s, votes, orders, centre, grid, memo=memo, **shape)
-    first = branch
-    branch = _branch(ed((motion.loo @ inv_n)[:, None], cand))
-    margin = _branch_margin(proposals, cand, branch, inv_n, w, inliers)
+    own, chosen = cand[on, first], proposals[on, first]
     asked = MIN_STACK_BRANCH_MARGIN if request_margin is None else request_margin
     by_request = reference is not None and 1.0 / asked < margin < asked
     if by_request:                         # the request's other stacks decide: the branch nearer to them
@@ -323,13 +379,13 @@ def fit_stack(poses: ArrayLike, network_from_scanner: ArrayLike, usable: ArrayLi
     fraction = float((use & ~inconsistent).sum() / use.sum())
     if fraction < MIN_INLIER_FRACTION or model_mm > MAX_MODEL_ERROR_MM:
         return StackFit(p.copy(), np.zeros(n, bool), np.zeros(n, bool), r_loo, False, s @ to_scanner, fraction,
-                        motion.order, motion.length, network_mm, model_mm)
+                        motion.order, motion.length, network_mm, model_mm, evidence=ev)
     final_votes = np.where(use & ~inconsistent, np.where(np.isfinite(votes), votes, sig), NO_VOTE)
     final = fit_motion(chosen, s, final_votes, orders, centre, grid, memo=memo, **shape)   # every model again, averaged
     return StackFit(final.poses @ inv_n, branch == 1, inconsistent, r_loo, True, final.placement @ to_scanner, fraction,
                     final.order, final.length, network_mm, model_mm, margin, final.sd_mm, final.placement_sd_mm,
                     centre + origin, final.placement_cov, by_request, (far[0], far[1]) if by_request else (np.nan, np.nan),
-                    np.where(use, r_loo / np.sqrt(noise_sd ** 2 + motion.model_sd_mm ** 2), np.nan))
+                    np.where(use, r_loo / np.sqrt(noise_sd ** 2 + motion.model_sd_mm ** 2), np.nan), evidence=ev)
 
 
 def _branch_margin(proposals: NDArray, cand: NDArray, branch: NDArray, inv_n: NDArray, w: NDArray,

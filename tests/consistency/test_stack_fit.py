@@ -240,6 +240,33 @@ def test_a_stack_that_cannot_tell_its_branch_takes_the_requests_word(monkeypatch
     assert not alone.branch_from_request
 
 
+def test_a_stack_fitted_again_from_its_evidence_gets_the_fit_its_inputs_give(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A stack fitted again with the request's word (a reference on either branch, or none) from its
+    first fit's ``evidence`` gets exactly the fit its inputs give from the start, and leaves that
+    evidence as it was (each fit may be started from it again)."""
+    import dataclasses
+
+    import service.consistency.stack_fit as stack_fit_module
+
+    monkeypatch.setattr(stack_fit_module, "MIN_STACK_BRANCH_MARGIN", 1e9)
+    rng = np.random.default_rng(31)
+    truth, nk = stack(rng, "moderate")
+    poses = twin.twin(truth) @ se3.exp(rng.normal(0, 1, (len(truth), 6)) * NOISE * 0.3)
+    expected = np.full(len(poses), 6.0)
+    first = fit_stack(poses, nk, expected_error_mm=expected)
+    memo = dict(first.evidence.memo)
+    for ref in (se3.frechet_mean(truth @ nk), se3.frechet_mean(twin.twin(truth) @ nk), None):
+        fresh = fit_stack(poses, nk, expected_error_mm=expected, reference=ref)
+        again = fit_stack(poses, nk, expected_error_mm=expected, reference=ref, evidence=first.evidence)
+        for f in dataclasses.fields(fresh):
+            if f.compare:
+                np.testing.assert_array_equal(getattr(again, f.name), getattr(fresh, f.name), err_msg=f.name)
+    assert first.evidence.memo.keys() == memo.keys()
+    few = fit_stack(poses[:2], nk[:2])                              # too few slices: the network's poses, unfitted
+    assert not few.decidable and few.evidence.motion is None
+    np.testing.assert_array_equal(fit_stack(poses[:2], nk[:2], evidence=few.evidence).poses, poses[:2])
+
+
 def test_a_stack_agrees_with_the_request_only_where_it_sits_with_its_stacks(monkeypatch: pytest.MonkeyPatch) -> None:
     """A stack whose branch the request decides agrees with the request when its rigid fit on the
     branch taken lies near the request's placement and its twin far from it; placed 40 mm away (a
