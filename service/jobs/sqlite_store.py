@@ -24,7 +24,7 @@ import shutil
 import sqlite3
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import closing, contextmanager
 from pathlib import Path
 
 from service.core.errors import StoreUnavailable
@@ -75,14 +75,17 @@ class SqliteJobStore(JobStore):
 
     @contextmanager
     def _db(self) -> Iterator[sqlite3.Connection]:
-        """A connection; a database that cannot be read or written (a read-only or full disk, a
-        damaged file) is :class:`~service.core.errors.StoreUnavailable` (503), never a traceback."""
+        """A connection, closed when the block ends (an sqlite3 connection refers to itself through
+        its statement cache: dropped, it would keep its file open until a garbage collection, which
+        an idle server seldom runs while its upkeep opens more); a database that cannot be read or
+        written (a read-only or full disk, a damaged file) is
+        :class:`~service.core.errors.StoreUnavailable` (503), never a traceback."""
         try:
-            db = sqlite3.connect(self.db_path, timeout=30, isolation_level=None)
-            db.row_factory = sqlite3.Row
-            db.execute("PRAGMA secure_delete=ON")    # a deleted job's pages are zeroed, not left in free space
-            with db:
-                yield db
+            with closing(sqlite3.connect(self.db_path, timeout=30, isolation_level=None)) as db:
+                db.row_factory = sqlite3.Row
+                db.execute("PRAGMA secure_delete=ON")    # a deleted job's pages are zeroed, not left in free space
+                with db:
+                    yield db
         except sqlite3.Error as exc:
             raise StoreUnavailable(f"the job store's database cannot be used ({exc})") from exc
 

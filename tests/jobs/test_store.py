@@ -592,3 +592,30 @@ def test_a_redelivered_job_past_its_time_limit_fails_as_timed_out(backend: tuple
     assert rq_runner.out_of_time(ctx, late.id)
     assert (store.get(late.id).status, store.get(late.id).error) == ("failed", TIMED_OUT)
     assert not (store.directory(late.id) / "inputs").exists()
+
+
+@pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="counts open files through Linux's /proc/self/fd")
+def test_the_sqlite_store_keeps_no_database_file_open_between_calls(tmp_path: Path) -> None:
+    """An idle server's upkeep reads the store every few seconds and seldom collects garbage: each
+    call closes its connection, so no file of the database stays open however many calls ran."""
+    import gc
+    import os
+
+    def open_database_files() -> int:
+        names = []
+        for fd in os.listdir("/proc/self/fd"):
+            try:
+                names.append(os.readlink(f"/proc/self/fd/{fd}"))
+            except OSError:
+                continue
+        return sum("jobs.sqlite3" in name for name in names)
+
+    store = SqliteJobStore(tmp_path / "data")
+    gc.disable()
+    try:
+        for _ in range(50):
+            store.get("0" * 32)
+            store.queued()
+        assert open_database_files() == 0
+    finally:
+        gc.enable()
