@@ -367,8 +367,7 @@ def _check_limits(stacks: Sequence[ScannerStack], limits: dict[str, Any], pace_s
     """Refuse, before any slice is sent, what the server would refuse slice by slice (``ready.limits``),
     and a pace at which the server would close the session as idle between two slices."""
     if pace_s >= (idle := limits.get("idle_s") or np.inf):
-        raise UnusableInput(f"a slice every {pace_s:g} s: the server closes a session idle for {idle:g} s; "
-                            "send the slices faster")
+        raise UnusableInput(f"a slice every {pace_s:g} s: the server closes a session idle for {idle:g} s")
     pixels, slices = limits.get("pixels_per_slice") or np.inf, limits.get("slices") or np.inf
     for stack in stacks:
         if stack.slices and stack.slices[0].pixels.size > pixels:

@@ -246,13 +246,16 @@ class StreamConnection:
         """The slice message's fields (:func:`~service.api.stream_messages.slice_header`, checked before
         anything is decoded) and its binary frame(s)."""
         head = slice_header(msg, self.settings.stream_max_pixels)
-        self.active_at = time.perf_counter()               # its frames may take a while: the client is there
         n0, n1 = head.shape
-        pixels = np.frombuffer(await self.binary(np.dtype(DTYPES[head.dtype]).itemsize * n0 * n1, "pixels"),
-                               DTYPES[head.dtype]).reshape(head.shape)
-        mask = None
-        if head.with_mask:
-            mask = np.frombuffer(await self.binary(n0 * n1, "mask"), np.uint8).reshape(head.shape) > 0
+        idle_since, self.active_at = self.active_at, time.perf_counter()   # its frames may take a while
+        try:
+            pixels = np.frombuffer(await self.binary(np.dtype(DTYPES[head.dtype]).itemsize * n0 * n1, "pixels"),
+                                   DTYPES[head.dtype]).reshape(head.shape)
+            mask = None
+            if head.with_mask:
+                mask = np.frombuffer(await self.binary(n0 * n1, "mask"), np.uint8).reshape(head.shape) > 0
+        finally:                           # the slice's answer, not its header, is the sign of life
+            self.active_at = idle_since
         return SliceFrame(head.stack, head.index, pixels.astype(np.float32), head.scanner_from_voxel, mask,
                           head.acquisition_index)
 

@@ -126,7 +126,7 @@ def display_name(upload: UploadFile, field: str, index: int) -> str:
         >>> display_name(UploadFile(None, filename=""), "masks", 2)
         'masks[2]'
     """
-    name = re.sub("%22|%0A|%0D", lambda m: FORM_NAME_ESCAPES[m.group()], upload.filename or "")
+    name = re.sub("|".join(FORM_NAME_ESCAPES), lambda m: FORM_NAME_ESCAPES[m.group()], upload.filename or "")
     name = clean_name(Path(name.replace("\\", "/")).name)
     return name or f"{field}[{index}]"
 

@@ -17,7 +17,8 @@ from numpy.typing import NDArray
 
 from service.consistency.cross_stack import pool_stacks
 from service.consistency.mirrored_stacks import mirrored_stacks
-from service.consistency.stack_fit import StackEvidence, StackFit, fit_stack
+from service.consistency.stack_evidence import StackEvidence
+from service.consistency.stack_fit import StackFit, fit_stack
 from service.geometry import se3
 from service.geometry.pose import translate
 
@@ -87,7 +88,7 @@ def consistent_poses(mean: NDArray, twin_mass: NDArray, network_from_vox: NDArra
                      enabled: bool = True, times: dict[str, NDArray] | None = None,
                      error_shape: NDArray | None = None, depth_gain: float = 0.0,
                      reference: NDArray | None = None, request_margin: float | None = None,
-                     evidence: StackEvidence | None = None) -> StackPoses:
+                     evidence: StackEvidence | None = None, keep_evidence: bool = False) -> StackPoses:
     """Run :func:`fit_stack` on one stack (or pass the network's poses through when ``enabled`` is False).
 
     ``expected_error_mm`` is each network pose's expected error: the MC spread times the model's
@@ -97,14 +98,15 @@ def consistent_poses(mean: NDArray, twin_mass: NDArray, network_from_vox: NDArra
     ``error_shape``, ``depth_gain``: the model's ``mc_error_shape`` and ``mc_error_depth_gain`` (see :func:`fit_stack`).
     ``reference``: the placement of the request's stacks that decided their branch (:func:`request_reference`);
     ``request_margin``: the stack's own branch margin under which that placement decides its branch;
-    ``evidence``: where the stack was fitted before with these inputs, its fit's ``evidence`` (see :func:`fit_stack`).
+    ``evidence``, ``keep_evidence``: where the stack is fitted again with these inputs, its first fit's
+    ``evidence``, which that fit keeps where asked (see :func:`fit_stack`).
     """
     n = len(mean)
     if not enabled:
         return StackPoses(mean, twin_mass, np.zeros(n, bool), np.zeros(n, bool), None, expected_error_mm)
     network_from_scanner = network_from_vox @ np.linalg.inv(scanner_from_voxel)
     fit = fit_stack(mean, network_from_scanner, usable, plane_x_mm, expected_error_mm, times, error_shape, depth_gain,
-                    reference, request_margin=request_margin, evidence=evidence)
+                    reference, request_margin=request_margin, evidence=evidence, keep_evidence=keep_evidence)
     mass = np.where(fit.twinned, 1.0 - twin_mass, twin_mass)
     return StackPoses(fit.poses, mass, fit.twinned, fit.inconsistent, fit,
                       fit.expected_error_mm if fit.decidable else expected_error_mm)

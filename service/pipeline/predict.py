@@ -29,7 +29,7 @@ from service.consistency.image_refinement import refine, smooth_ahead
 from service.consistency.refined_errors import agreed, expected_after, relative_mismatch
 from service.consistency.slice_images import SampledStack, StackImages
 from service.consistency.slice_order import FROM_FILE, SliceOrder, per_stack
-from service.consistency.stack_fit import StackEvidence
+from service.consistency.stack_evidence import StackEvidence
 from service.consistency.stage import (
     ImageConsistency,
     StackPoses,
@@ -61,7 +61,8 @@ def stack_poses(est: PoseEstimate, prepared: PreparedStack, net_from_vox: np.nda
                 stack_consistency: bool, plane_x_mm: float, expected_error_mm: np.ndarray,
                 order: SliceOrder | None = None, error_shape: tuple[float, ...] | None = None,
                 depth_gain: float = 0.0, reference: np.ndarray | None = None,
-                request_margin: float | None = None, evidence: StackEvidence | None = None) -> StackPoses:
+                request_margin: float | None = None, evidence: StackEvidence | None = None,
+                keep_evidence: bool = False) -> StackPoses:
     """One stack's poses through the stack-consistency stage (or as the network gave them), from its
     slices' statistics ``est``;
     ``expected_error_mm`` is each slice's expected error: its MC spread times the model's ``mc_error_scale``;
@@ -69,13 +70,14 @@ def stack_poses(est: PoseEstimate, prepared: PreparedStack, net_from_vox: np.nda
     ``error_shape`` and ``depth_gain`` the model's ``mc_error_shape`` and ``mc_error_depth_gain``;
     ``reference`` where the request's stacks that decided their branch put the scanner frame, deciding
     this stack's branch where its own margin is under ``request_margin``; ``evidence`` the stack's
-    earlier fit's (:attr:`~service.consistency.stack_fit.StackFit.evidence`), where it is fitted again."""
+    first fit's, where it is fitted again, which that fit kept where ``keep_evidence`` asked
+    (:attr:`~service.consistency.stack_fit.StackFit.evidence`)."""
     p = prepared.prepared
     usable = (p.mask_fraction >= acceptance.MIN_MASK_FRACTION) & ~est.degenerate
     return consistent_poses(est.mean, est.twin_mass, net_from_vox, prepared.upload.volume.affine, usable,
                             plane_x_mm, expected_error_mm, stack_consistency, (order or SliceOrder()).times(len(p.inputs)),
                             None if error_shape is None else np.asarray(error_shape), depth_gain, reference,
-                            request_margin, evidence)
+                            request_margin, evidence, keep_evidence)
 
 
 @dataclass
@@ -341,11 +343,15 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
         ahead.shutdown(wait=False)
     with ThreadPoolExecutor(max_workers=max(1, min(STAGE_WORKERS, len(prepared)))) as pool:   # LAPACK frees the GIL
         outs = list(pool.map(lambda e, s, nfv, order: stack_poses(e, s, nfv, stack_consistency, plane_x_mm,
-                                                                  e.spread_mm * scale, order, shape, gain),
+                                                                  e.spread_mm * scale, order, shape, gain,
+                                                                  keep_evidence=True),
                              parts, prepared, frames, orders))
         if stack_consistency:              # a stack of another fetus: out of the request's steps
             set_apart(outs, prepared)
         evidence = [None if o.fit is None else o.fit.evidence for o in outs]   # each stack's fit before the others'
+        for out in outs:                   # held here alone, for the refits below
+            if out.fit is not None:
+                out.fit.evidence = None
         def check(i: int) -> StackPoses:       # a weak decision checked against the others
             return checked_branch(outs[i], request_reference(outs[:i] + outs[i + 1:]), lambda ref, margin: stack_poses(
                 parts[i], prepared[i], frames[i], True, plane_x_mm, parts[i].spread_mm * scale, orders[i], shape, gain,
@@ -362,6 +368,7 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
             outs = list(pool.map(lambda e, s, nfv, order, out, ev: stack_poses(
                 e, s, nfv, True, plane_x_mm, e.spread_mm * scale, order, shape, gain, reference, evidence=ev)
                 if undecided(out) else out, parts, prepared, frames, orders, outs, evidence))
+        evidence.clear()
     if stack_consistency:
         pool_request(outs)
     timings["stack_consistency"] = time.perf_counter() - t

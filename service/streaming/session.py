@@ -116,6 +116,7 @@ class StreamSession:
         self.reacquire_sent: dict[str, list[tuple[int, str]]] = {}   # each ended stack's list as last sent
         self.decisions_sent: dict[str, dict] = {}    # each ended stack's consistency_decisions as last sent
         self.reopened: dict[str, int] = {}      # a reopened stack's earlier end, still held: its bytes
+        self.reopened_slices: dict[str, int] = {}   # ... and the slices that end spanned
         self.compute_ms: dict[str, float] = {"slices": 0.0, "firm_up": 0.0, "end_stack": 0.0}
         self.held_bytes = 0                     # the received slices' pixels as float32, and what is kept of them
         self._lock = threading.Lock()
@@ -262,16 +263,17 @@ class StreamSession:
 
     def _end_reserve(self, stack: str, new: SliceFrame | None = None) -> float:
         """What ``stack`` reserves for its end (with the slice ``new`` too): :data:`END_SHARE` of a
-        slice's pixel bytes for each slice up to its largest index, or nothing where its end is held
-        already (ended, or reopened by a slice it lacked; ending again keeps as much)."""
-        if stack in self.ended or stack in self.reopened:
+        slice's pixel bytes for each slice up to its largest index; nothing where it has ended; where
+        it was reopened by a slice it had not had, for the slices past those its earlier end, still
+        held, spanned (ending again keeps as much for those)."""
+        if stack in self.ended:
             return 0.0
         frames = self.stacks[stack].frames if stack in self.stacks else {}
         largest = max(max(frames, default=-1), -1 if new is None else new.index)
         if largest < 0:
             return 0.0
         size = np.asarray((new or next(iter(frames.values()))).pixels).size * 4
-        return END_SHARE * size * (largest + 1)
+        return END_SHARE * size * max(0, largest + 1 - self.reopened_slices.get(stack, 0))
 
     @property
     def reserved(self) -> dict[str, float]:
@@ -283,7 +285,9 @@ class StreamSession:
         """A slice the ended ``stack`` lacked has come: the stack is open again, its final poses
         withdrawn until it ends again (under the lock). What its end prepared stays counted until
         then: its slices' last answers hold it."""
-        self.reopened[stack] = array_bytes(self.ended.pop(stack))
+        ended = self.ended.pop(stack)
+        self.reopened[stack] = array_bytes(ended)
+        self.reopened_slices[stack] = ended.prepared.upload.volume.array.shape[2]
         self.finals.pop(stack, None)
 
     # -- 3. the stack ends ------------------------------------------------------------------------------------
@@ -325,6 +329,7 @@ class StreamSession:
         with self._lock:
             self.ended[stack] = ended[stack]
             self.held_bytes += array_bytes(ended[stack]) - self.reopened.pop(stack, 0)   # the stack as prepared whole
+            self.reopened_slices.pop(stack, None)
             for state in self.slices.get(stack, {}).values():     # its slices' maps serve no later slice
                 self.held_bytes -= array_bytes([state.brain_map])
                 state.brain_map = None

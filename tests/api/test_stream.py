@@ -353,13 +353,20 @@ def test_a_session_slot_is_taken_by_a_start_and_a_connection_that_never_starts_i
 
 def test_refused_messages_do_not_keep_a_session_open(case) -> None:  # noqa: ANN001
     """A client that sends only messages the server refuses is idle: closed after ``stream_idle_s``
-    however often it sends them."""
-    with make_client(ModelRegistry({"default": case[0]}), stream_idle_s=0.6) as client:
+    however often it sends them, slices whose header is right and whose frame is not among them."""
+    f0 = case[1][0][0]
+    header = json.dumps({"type": "slice", "stack": "ax", "index": 0, "shape": list(f0.pixels.shape),
+                         "dtype": "float32", "scanner_from_voxel": f0.scanner_from_voxel.tolist()})
+    with make_client(ModelRegistry({"default": case[0]}), stream_idle_s=0.6, stream_max_pixels=64 * 64) as client:
         with client.websocket_connect("/v1/stream") as ws:
             ws.send_text(json.dumps({"type": "start", "mc_samples": 5}))
             assert ws.receive_json()["type"] == "ready"
-            for _ in range(20):
-                ws.send_text("garbage{")
+            for k in range(20):
+                if k % 2:
+                    ws.send_text(header)
+                    ws.send_bytes(b"\x00" * 8)
+                else:
+                    ws.send_text("garbage{")
                 answer = ws.receive_json()
                 if answer["status"] == 408:
                     break

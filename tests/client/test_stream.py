@@ -298,6 +298,8 @@ def test_a_session_that_fills_up_stops_sending_and_names_what_it_could_not_take(
 
 
 def test_a_pace_the_server_would_close_the_session_at_is_refused_before_any_slice() -> None:
+    """``--pace`` at or over the server's ``ready.limits.idle_s`` would have the session closed between
+    two slices: refused before any is sent; a server that states no limit takes any pace."""
     from client.errors import UnusableInput
 
     with pytest.raises(UnusableInput, match="a slice every 300 s: the server closes a session idle for 300 s"):

@@ -183,8 +183,8 @@ def test_a_stack_ends_without_the_slices_that_never_came_and_takes_them_when_the
 
 def test_slices_an_ended_stack_s_end_overtook_open_it_again(case) -> None:  # noqa: ANN001
     """A script's ``end_stack`` overtakes its last two slices: they are not refused, and not lost; they
-    open the stack again, and its next end answers the whole stack as a session that sent them in
-    time does."""
+    open the stack again (reserving memory for its next end for the slices past its first end's),
+    and its next end answers the whole stack as a session that sent them in time does."""
     oracle, stacks, _ = case
     frames, n = stacks[0], len(stacks[0])
     session = StreamSession(oracle, None, options=FAST)
@@ -194,6 +194,7 @@ def test_slices_an_ended_stack_s_end_overtook_open_it_again(case) -> None:  # no
     assert len(first.reasons) == n - 2 and NOT_RECEIVED not in first.reasons
     session.add_slice(frames[-2])
     assert "ax" not in session.finals and session.summary().unfinished == {"ax": []}
+    assert session.reserved == {"ax": END_SHARE * frames[-2].pixels.size * 4}   # for the slice past its end alone
     session.add_slice(frames[-1])
     session.end_stack("ax")
     with pytest.raises(InvalidParameter, match=f"has ended with a slice {n - 1}"):    # one it has had
