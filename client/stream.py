@@ -364,8 +364,7 @@ def _connect(url: str, api_key: str | None, answer_timeout_s: float) -> ClientCo
 
 
 def _check_limits(stacks: Sequence[ScannerStack], limits: dict[str, Any], pace_s: float = 0.0) -> None:
-    """Refuse, before any slice is sent, what the server would refuse slice by slice (``ready.limits``),
-    and a pace at which the server would close the session as idle between two slices."""
+    """Refuse, before any slice is sent, what the server would refuse (``ready.limits``), an idle pace too."""
     if pace_s >= (idle := limits.get("idle_s") or np.inf):
         raise UnusableInput(f"a slice every {pace_s:g} s: the server closes a session idle for {idle:g} s")
     pixels, slices = limits.get("pixels_per_slice") or np.inf, limits.get("slices") or np.inf
