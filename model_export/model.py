@@ -137,6 +137,11 @@ def multi_loss(pred: torch.Tensor, target: torch.Tensor, label_type: str,
                weights: tuple[float, ...] | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """The paper's multi-loss: ``sum_b w_b || pred_b - target_b ||_2`` over branches, batch mean.
 
+    As in the paper, a quaternion label keeps its scalar part non-negative, so two rotations on either
+    side of 180 degrees lie far apart in the label (about 2 in the quaternion's branch) though they
+    are near: the quaternion and Euler labels are the paper's baselines; the anchor and grid labels,
+    continuous in the pose, are what the service's models learn.
+
     Returns the total and each branch's mean L2 (for logging).
     """
     enc = encodings.get(label_type)
