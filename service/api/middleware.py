@@ -19,7 +19,8 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from service.api.deps import PROCESSING_ROUTES, early_rejection, take_admission
 from service.api.metrics import Metrics
 from service.api.problems import MEDIA_TYPE, problem_body
-from service.core.errors import InternalError, MalformedRequest, NotReady, PayloadTooLarge, RequestTimeout, ServiceError
+from service.core.errors import (InternalError, MalformedRequest, NotReady, PayloadTooLarge, RequestTimeout, ServiceError,
+                                 UnsupportedFile)
 from service.core.logging import error_at
 
 log = logging.getLogger("service.access")
@@ -183,7 +184,7 @@ class RequestContext:
                 # The body was cut off at a limit: whatever the app answers (the form parser
                 # reports a 400), the client is told why (413, 408).
                 state["replaced"] = True
-                await self._problem(emit, rid, state["refusal"])
+                await self._problem(emit, rid, state["refusal"], close=not state["body_done"])
                 return
             if state["replaced"]:
                 return  # the body of the app's own answer, replaced above
@@ -232,20 +233,24 @@ class RequestContext:
                                                 "error_at": error_at(exc)})
             early = InternalError()
         length = headers.get("content-length")
+        with_body = (length is not None and length.strip() not in ("", "0")) or "chunked" in \
+            headers.get("transfer-encoding", "").lower()
+        if early is None and with_body and headers.get("content-encoding", "identity").strip().lower() != "identity":
+            early = unsupported_coding(headers["content-encoding"])
         held, stopped = False, None
         if early is None and app is not None and (scope["method"], scope["path"]) in PROCESSING_ROUTES:
             early = await take_admission(app.state)      # before its body
             held = early is None and getattr(app.state, "admissions", None) is not None
         try:
             if early is not None:
-                await self._problem(emit, rid, early)
+                await self._problem(emit, rid, early, close=with_body)
             elif length is not None and length.isdigit() and int(length) > self.max_body:
-                await self._problem(emit, rid, self._too_large())
+                await self._problem(emit, rid, self._too_large(), close=True)
             else:
                 await self.app(scope, limited_receive, send_with_id)
         except BodyRefused:
             if not state["started"]:
-                await self._problem(emit, rid, state["refusal"])
+                await self._problem(emit, rid, state["refusal"], close=not state["body_done"])
         except asyncio.CancelledError as exc:     # the server stops past its grace: uvicorn cancels what still runs
             stopped = exc
             if not state["started"]:               # a 503 to send again, not uvicorn's plain 500
@@ -283,12 +288,31 @@ class RequestContext:
                               f"whole within {self.timeout_s:g} s (SVRNET_UPLOAD_IDLE_S, SVRNET_UPLOAD_TIMEOUT_S)")
 
     @staticmethod
-    async def _problem(send: Send, rid: str, error: ServiceError) -> None:
+    async def _problem(send: Send, rid: str, error: ServiceError, close: bool = False) -> None:
+        """``error`` as problem+json; ``close``: the request's body is refused unread, so the connection
+        closes after the answer (else the server would go on reading, and throwing away, what the
+        client goes on sending)."""
         data = json.dumps(problem_body(error.status, error.title, error.detail, error.type, rid)).encode()
         raw = [(b"content-type", MEDIA_TYPE.encode()), (b"content-length", str(len(data)).encode())]
-        raw += [(k.lower().encode("latin-1"), v.encode("latin-1")) for k, v in (error.headers or {}).items()]
+        extra = {**(error.headers or {}), **({"Connection": "close"} if close else {})}
+        raw += [(k.lower().encode("latin-1"), v.encode("latin-1")) for k, v in extra.items()]
         await send({"type": "http.response.start", "status": error.status, "headers": raw})
         await send({"type": "http.response.body", "body": data})
+
+
+def unsupported_coding(coding: str) -> UnsupportedFile:
+    """415 for a request body sent with a ``Content-Encoding`` (RFC 9110, 15.5.16): the service reads
+    bodies as sent, and a coding it does not undo would reach the form parser as a broken form.
+
+    Example:
+        >>> e = unsupported_coding("gzip"); e.status, e.headers["Accept-Encoding"], e.detail[:38]
+        (415, 'identity', 'Content-Encoding: gzip: request bodies')
+    """
+    shown = "".join(c for c in coding if c.isprintable())[:40]
+    error = UnsupportedFile(f"Content-Encoding: {shown}: request bodies are read as sent; send the form "
+                            "without a content coding (the stacks themselves may be gzipped: .nii.gz)")
+    error.headers = {"Accept-Encoding": "identity"}
+    return error
 
 
 STOPPING = NotReady("the server stopped before the answer was ready (it waits for the requests under way, "

@@ -25,8 +25,10 @@ def multipart(name: str, filename: str, data: bytes) -> bytes:
             f"Content-Type: application/octet-stream\r\n\r\n").encode() + data + f"\r\n--{BOUNDARY}--\r\n".encode()
 
 
-async def call(app: Callable, path: str, body: AsyncIterator[bytes]) -> tuple[int, dict[str, str], bytes]:
-    """One POST through the ASGI app, its body's chunks taken from ``body`` as the server would."""
+async def call(app: Callable, path: str, body: AsyncIterator[bytes],
+               headers: tuple[tuple[bytes, bytes], ...] = ()) -> tuple[int, dict[str, str], bytes]:
+    """One POST through the ASGI app, its body's chunks taken from ``body`` as the server would (and
+    ``headers`` besides its content type)."""
     sent: list[dict] = []
     done = False
 
@@ -45,7 +47,7 @@ async def call(app: Callable, path: str, body: AsyncIterator[bytes]) -> tuple[in
 
     scope = {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1", "method": "POST",
              "scheme": "http", "path": path, "raw_path": path.encode(), "query_string": b"", "root_path": "",
-             "headers": [(b"content-type", f"multipart/form-data; boundary={BOUNDARY}".encode())],
+             "headers": [(b"content-type", f"multipart/form-data; boundary={BOUNDARY}".encode()), *headers],
              "client": ("127.0.0.1", 1), "server": ("testserver", 80)}
     await asyncio.wait_for(app(scope, receive, send), 30)     # without the limits: a failure, not a hang
     start = next(m for m in sent if m["type"] == "http.response.start")
@@ -69,6 +71,35 @@ def test_a_stalled_body_is_408_and_the_connection_closed(oracle: object) -> None
     problem = json.loads(body)
     assert problem["status"] == 408 and "did not arrive in time" in problem["detail"]
     assert "SVRNET_UPLOAD_IDLE_S" in problem["detail"]
+
+
+def test_a_body_refused_unread_closes_the_connection(oracle: object) -> None:
+    """A body refused before it was read whole (too large by its Content-Length or as it streams in, a
+    content coding, no key) is answered with ``Connection: close``: the server would otherwise read,
+    and throw away, whatever the client goes on sending on that connection."""
+    async def endless() -> AsyncIterator[bytes]:
+        yield multipart("stacks", "s.nii.gz", b"").split(b"\r\n--" + BOUNDARY.encode() + b"--")[0]
+        while True:                                   # a file that never ends
+            yield b"\0" * 4096
+
+    async def form() -> AsyncIterator[bytes]:
+        yield multipart("stacks", "s.nii.gz", nifti_bytes(stack()))
+
+    chunked = ((b"transfer-encoding", b"chunked"),)
+    with make_client(ModelRegistry({"default": oracle}), max_upload_mb=0.01) as client:
+        for body, headers, status in ((endless(), chunked, 413),
+                                      (endless(), ((b"content-length", b"1000000000"),), 413),
+                                      (form(), ((b"content-encoding", b"gzip"), *chunked), 415)):
+            got, answer, text = client.portal.call(call, client.app, "/v1/predict", body, headers)
+            assert got == status and answer["connection"] == "close", (got, answer, text[:200])
+        problem = json.loads(text)
+        assert problem["detail"].startswith("Content-Encoding: gzip:") and answer["accept-encoding"] == "identity"
+        got, answer, _ = client.portal.call(call, client.app, "/v1/predict", form(),
+                                            ((b"content-encoding", b"identity"), *chunked))
+        assert got != 415 and "connection" not in answer
+    with make_client(ModelRegistry({"default": oracle}), api_keys="k" * 24) as client:
+        got, answer, _ = client.portal.call(call, client.app, "/v1/predict", form(), chunked)
+        assert got == 401 and answer["connection"] == "close"
 
 
 def test_a_trickling_body_is_408_at_the_upload_deadline(oracle: object) -> None:
