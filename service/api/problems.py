@@ -19,6 +19,7 @@ from fastapi.responses import JSONResponse, Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.api.openapi import allowed_methods
+from service.api.stream_messages import STREAM_PATH
 from service.core.errors import InsufficientStorage, InvalidParameter, MalformedRequest, PayloadTooLarge, ServiceError
 from service.io.limits import raise_if_out_of_space
 
@@ -115,6 +116,10 @@ def install(app: FastAPI) -> None:
             if path.endswith("/") and path.strip("/") and allowed_methods(request.app, path):
                 return problem(404, "Not found", f"no route {path[:80]!r}: the route is {path.rstrip('/')[:80]!r}, "
                                "without the trailing slash", request=request)
+            if path == STREAM_PATH:
+                return problem(426, "Upgrade Required", f"{path}: a WebSocket; connect with ws:// or wss:// (an "
+                               "HTTP request with Upgrade: websocket)", headers={"Upgrade": "websocket"},
+                               request=request)
             return problem(404, "Not found", f"no route {path[:80]!r}: the API's routes start with /v1/ "
                            "(the list: /docs); a server URL that ends in /v1 doubles it", request=request)
         if exc.status_code == 405:      # Allow: every method of the path, not only the first route's

@@ -31,7 +31,8 @@ from starlette.datastructures import State
 from starlette.websockets import WebSocketDisconnect, WebSocketDisconnected
 
 from service.api.access import UNAUTHORIZED, api_key_ok, origin_ok
-from service.api.stream_messages import DTYPES, is_message, known_fields, parse, slice_header, text_field
+from service.api.stream_messages import (DTYPES, STREAM_PATH, is_message, known_fields, parse, slice_header,
+                                         text_field)
 from service.streaming.messages import (end_stack_messages, error_message, pose_object, summary_message,
                                         update_messages)
 from service.core.errors import (
@@ -50,8 +51,6 @@ from service.streaming.options import SessionOptions, StreamLimits
 from service.streaming.session import StreamSession
 
 router = APIRouter()
-STREAM_PATH = "/v1/stream"
-"""The stream's route (the server's log names it on each handshake, never the path a client sent)."""
 T = TypeVar("T")
 log = logging.getLogger(__name__)
 

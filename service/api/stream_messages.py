@@ -26,6 +26,9 @@ from service.core.client_json import client_json
 from service.core.errors import InvalidParameter, MalformedRequest
 from service.core.names import has_unsafe_characters
 
+STREAM_PATH = "/v1/stream"
+"""The stream's route (the server's log names it on each handshake, never the path a client sent; an
+HTTP request to it is told to upgrade)."""
 DTYPES = {"uint8": "<u1", "int16": "<i2", "uint16": "<u2", "float32": "<f4"}
 MAX_TEXT_BYTES = 64 * 1024
 """Longest JSON message accepted (a slice's header is a few hundred bytes)."""

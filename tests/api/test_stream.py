@@ -244,6 +244,14 @@ def test_bad_messages_get_an_error_naming_them_and_the_session_goes_on(client, c
         assert "lacks" not in json.dumps(receive(ws, ("stack", "error")))
 
 
+def test_plain_http_to_the_stream_is_told_to_upgrade(client) -> None:  # noqa: ANN001
+    """A GET, HEAD, OPTIONS or POST to the stream's route is no missing route: 426 naming the WebSocket."""
+    for method in ("GET", "HEAD", "OPTIONS", "POST"):
+        r = client.request(method, "/v1/stream")
+        assert r.status_code == 426 and r.headers["upgrade"] == "websocket", (method, r.status_code)
+        assert method == "HEAD" or "a WebSocket; connect with ws://" in r.json()["detail"]
+
+
 def test_keys_and_the_session_limit(case) -> None:  # noqa: ANN001
     registry = ModelRegistry({"default": case[0]})
     with make_client(registry, api_keys="k1", stream_max_sessions=1) as client:
