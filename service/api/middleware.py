@@ -77,6 +77,8 @@ def first_values(scope: Scope) -> dict[str, str]:
 EPILOGUE_BYTES = 8 * 1024
 """What a multipart body may carry after its closing delimiter (RFC 2046's epilogue, which clients
 leave empty or a line break) for the delimiter still to be found at its end."""
+HEAD_BYTES = 1024
+"""The first bytes of a multipart body kept to check where its first part begins."""
 
 
 def cut_off(tail: bytes, delimiter: bytes) -> bool:
@@ -90,6 +92,34 @@ def cut_off(tail: bytes, delimiter: bytes) -> bool:
         (False, True)
     """
     return delimiter not in tail
+
+
+def form_problem(head: bytes, tail: bytes, delimiter: bytes) -> MalformedRequest | None:
+    """Why a whole multipart body (its first bytes ``head``, its last ``tail``) cannot be read as the
+    form its ``Content-Type`` announces (closing ``delimiter``), or None: its parts separated by
+    another boundary, text before its first part (a preamble, which the form parser does not read),
+    or a body that stops before its closing delimiter (:func:`cut_off`).
+
+    Example:
+        >>> for head in (b"--yy", b"note --zz", b"--zz x"):
+        ...     print(form_problem(head, b"x", b"--zz--").detail[:46])
+        the multipart body's parts are not separated b
+        the multipart body starts with text before its
+        the multipart body ends before its closing bou
+        >>> form_problem(b"\\r\\n--zz x", b"x\\r\\n--zz--\\r\\n", b"--zz--") is None
+        True
+    """
+    opening = delimiter[:-2]
+    if not head.lstrip(b"\r\n").startswith(opening):
+        if opening not in head:
+            return MalformedRequest("the multipart body's parts are not separated by the boundary its Content-Type "
+                                    "names: no part of it is used")
+        return MalformedRequest("the multipart body starts with text before its first boundary (a preamble), "
+                                "which is not read: start the body with its first part")
+    if cut_off(tail, delimiter):
+        return MalformedRequest("the multipart body ends before its closing boundary: it was cut off on the way, "
+                                "and no part of it is used; send the request again")
+    return None
 
 
 def _templates(app: object) -> tuple[tuple[re.Pattern, str], ...]:
@@ -166,7 +196,7 @@ class RequestContext:
                        "body_done": False, "left": False}
         body_deadline = asyncio.get_running_loop().time() + self.timeout_s
         delimiter = closing_delimiter(headers.get("content-type", ""))
-        tail = b""
+        head, tail = b"", b""
 
         async def emit(message: Message) -> None:
             if message["type"] == "http.response.start":
@@ -191,7 +221,7 @@ class RequestContext:
             await emit(message)
 
         async def limited_receive() -> Message:
-            nonlocal tail
+            nonlocal head, tail
             if state["body_done"]:                   # later calls wait for a disconnect: no limit
                 return await receive()
             wait = min(self.idle_s, body_deadline - asyncio.get_running_loop().time())
@@ -210,11 +240,11 @@ class RequestContext:
                     raise BodyRefused
                 if delimiter is not None:
                     keep = len(delimiter) + EPILOGUE_BYTES          # the chunk's end only: no copy of a whole chunk
+                    if len(head) < HEAD_BYTES:
+                        head += message.get("body", b"")[:HEAD_BYTES - len(head)]
                     tail = (tail + message.get("body", b"")[-keep:])[-keep:]
-                    if state["body_done"] and cut_off(tail, delimiter):
-                        state["refusal"] = MalformedRequest(
-                            "the multipart body ends before its closing boundary: it was cut off on the way, and "
-                            "no part of it is used; send the request again")
+                    if state["body_done"] and (refusal := form_problem(head, tail, delimiter)) is not None:
+                        state["refusal"] = refusal
                         raise BodyRefused
             return message
 

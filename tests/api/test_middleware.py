@@ -102,6 +102,23 @@ def test_a_body_refused_unread_closes_the_connection(oracle: object) -> None:
         assert got == 401 and answer["connection"] == "close"
 
 
+def test_a_form_whose_parts_do_not_start_where_its_boundary_says_is_told_why(oracle: object) -> None:
+    """A form sent under another boundary than its ``Content-Type`` names, or with text before its
+    first part, is told so (it had been told it was cut off on the way, and to send it again); one
+    with an empty line before its first part, as RFC 2046 allows, is read."""
+    oracle.truth = np.repeat(np.eye(4)[None], 6, axis=0)
+    form = multipart("stacks", "s.nii.gz", nifti_bytes(stack()))
+    with make_client(ModelRegistry({"default": oracle})) as client:
+        for content_type, body, words in (
+                ("multipart/form-data; boundary=other", form, "not separated by the boundary its Content-Type names"),
+                (f"multipart/form-data; boundary={BOUNDARY}", b"a note\r\n" + form, "text before its first boundary")):
+            r = client.post("/v1/predict", content=body, headers={"content-type": content_type})
+            assert r.status_code == 400 and words in r.json()["detail"], r.text[:300]
+        r = client.post("/v1/predict", content=b"\r\n" + form,
+                        headers={"content-type": f"multipart/form-data; boundary={BOUNDARY}"})
+        assert r.status_code == 200, r.text[:300]
+
+
 def test_a_trickling_body_is_408_at_the_upload_deadline(oracle: object) -> None:
     async def trickles() -> AsyncIterator[bytes]:
         yield multipart("stacks", "s.nii.gz", b"")[:60]
