@@ -115,8 +115,7 @@ class StreamSession:
         self.finals: dict[str, StackPrediction] = {}
         self.reacquire_sent: dict[str, list[tuple[int, str]]] = {}   # each ended stack's list as last sent
         self.decisions_sent: dict[str, dict] = {}    # each ended stack's consistency_decisions as last sent
-        self.reopened: dict[str, int] = {}      # a reopened stack's earlier end, still held: its bytes
-        self.reopened_slices: dict[str, int] = {}   # ... and the slices that end spanned
+        self.reopened: dict[str, _Ended] = {}   # a reopened stack's earlier end, still held
         self.compute_ms: dict[str, float] = {"slices": 0.0, "firm_up": 0.0, "end_stack": 0.0}
         self.held_bytes = 0                     # the received slices' pixels as float32, and what is kept of them
         self._lock = threading.Lock()
@@ -273,7 +272,9 @@ class StreamSession:
         if largest < 0:
             return 0.0
         size = np.asarray((new or next(iter(frames.values()))).pixels).size * 4
-        return END_SHARE * size * max(0, largest + 1 - self.reopened_slices.get(stack, 0))
+        earlier = self.reopened.get(stack)
+        spanned = 0 if earlier is None else earlier.prepared.upload.volume.array.shape[2]
+        return END_SHARE * size * max(0, largest + 1 - spanned)
 
     @property
     def reserved(self) -> dict[str, float]:
@@ -282,12 +283,10 @@ class StreamSession:
         return {name: r for name in self.stacks if (r := self._end_reserve(name))}
 
     def _reopen(self, stack: str) -> None:
-        """A slice the ended ``stack`` lacked has come: the stack is open again, its final poses
+        """A slice the ended ``stack`` has not had has come: the stack is open again, its final poses
         withdrawn until it ends again (under the lock). What its end prepared stays counted until
         then: its slices' last answers hold it."""
-        ended = self.ended.pop(stack)
-        self.reopened[stack] = array_bytes(ended)
-        self.reopened_slices[stack] = ended.prepared.upload.volume.array.shape[2]
+        self.reopened[stack] = self.ended.pop(stack)
         self.finals.pop(stack, None)
 
     # -- 3. the stack ends ------------------------------------------------------------------------------------
@@ -328,8 +327,8 @@ class StreamSession:
         timings.update(more)
         with self._lock:
             self.ended[stack] = ended[stack]
-            self.held_bytes += array_bytes(ended[stack]) - self.reopened.pop(stack, 0)   # the stack as prepared whole
-            self.reopened_slices.pop(stack, None)
+            earlier = self.reopened.pop(stack, None)                # the stack as prepared whole, for its earlier end
+            self.held_bytes += array_bytes(ended[stack]) - (0 if earlier is None else array_bytes(earlier))
             for state in self.slices.get(stack, {}).values():     # its slices' maps serve no later slice
                 self.held_bytes -= array_bytes([state.brain_map])
                 state.brain_map = None
