@@ -23,9 +23,7 @@ from service.io.acquisition_geometry import MAX_VOXEL_MM, MIN_VOXEL_MM
 from service.jobs.job_inputs import keep_json
 from service.jobs.uploaded_poses import in_upload_order, poses_from_predict_body
 from service.pipeline.predict import stack_orders
-from service.pipeline.prepare import (StackUpload, check_distinct_stacks, check_mask_grid, check_mask_volume,
-                                      marked_brain)
-from service.preprocess.localiser_inputs import check_search
+from service.pipeline.prepare import StackUpload, check_uploads, marked_brain
 from service.reconstruction.config import ReconstructionConfig
 from service.reconstruction.grid import check_brain_fits
 
@@ -123,11 +121,7 @@ def check_submission(uploads: list[StackUpload], orders: list[SliceOrder], poses
     if poses_text:
         kept, given = checked_poses(poses_text, uploads)
         keep_json(kept, inputs / "poses.json")
-    for u in uploads:
-        check_mask_grid(u)
-        check_mask_volume(u)
-    check_distinct_stacks(uploads)
-    check_search([(u.filename, u.volume) for u in uploads if u.localised])
+    check_uploads(uploads)
     brain_mm3, extent = max((marked_brain(u) for u in uploads if not u.mask_is_region), key=lambda marked: marked[0],
                             default=(0.0, np.zeros(3)))                 # a region's brain is the localiser's to find
     check_brain_fits(brain_mm3, extent, resolution_mm, ReconstructionConfig().margin_mm)

@@ -330,6 +330,17 @@ def mask_centres(uploads: list[StackUpload]) -> list[np.ndarray]:
     return [c for c in centres if c is not None]
 
 
+def check_uploads(uploads: list[StackUpload]) -> None:
+    """The checks of a request's stacks that need no stage (4xx naming what is wrong): each mask on its
+    stack's grid and of a brain's volume, no stack sent twice, and the localiser's search within its
+    bound; a job's submission makes them before it is queued, :func:`prepare_stacks` where it runs."""
+    for u in uploads:
+        check_mask_grid(u)
+        check_mask_volume(u)
+    check_distinct_stacks(uploads)
+    check_search([(u.filename, u.volume) for u in uploads if u.localised])
+
+
 def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction: bool,
                    workers: int = 2, localiser: Localiser | None = None) -> list[PreparedStack]:
     """:func:`prepare_stack` for every stack, ``workers`` stacks at a time (N4 releases the GIL).
@@ -342,11 +353,7 @@ def prepare_stacks(uploads: list[StackUpload], info: ModelInfo, bias_correction:
     stacks settled on brains farther apart than a fetus moves (twins), they settle again on one
     fetus's (:func:`~service.preprocess.one_fetus.one_fetus`: the uploaded masks', or the one most
     of them see) and are prepared again."""
-    for u in uploads:
-        check_mask_grid(u)
-        check_mask_volume(u)
-    check_distinct_stacks(uploads)
-    check_search([(u.filename, u.volume) for u in uploads if u.localised])
+    check_uploads(uploads)
     with ThreadPoolExecutor(max_workers=max(1, min(workers, len(uploads)))) as pool:
         futures = [None if u.localised else pool.submit(carried(prepare_stack), u, info, bias_correction)
                    for u in uploads]
