@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import functools
 import logging
-import os
 import re
 import shutil
 import tempfile
@@ -29,7 +28,7 @@ from service.core.errors import InvalidParameter, NotReady, UnusableImage
 from service.core.names import clean_name, shown_name
 from service.core.settings import Settings
 from service.pipeline.prepare import StackUpload, mask_on_stack_grid
-from service.io.limits import MIN_FREE_BYTES, DecodeBudget, raise_if_out_of_space
+from service.io.limits import DecodeBudget, folders_take_writes, raise_if_out_of_space
 from service.io.readers import MAX_DECODED_BYTES, read_upload
 from service.preprocess.stack import slice_axis_of
 
@@ -65,21 +64,16 @@ def upload_directory(base: Path | None) -> Iterator[Path]:
 
 
 def scratch_takes_uploads(base: Path | None) -> bool:
-    """Whether the scratch folder ``base`` (default: the system's temporary folder) can be written and
-    its disk has :data:`~service.io.limits.MIN_FREE_BYTES` left: ``/readyz``'s question, as for the
-    job store's folder; a replica whose scratch is full or read-only fails every upload.
+    """Whether the scratch folder ``base`` (default: the system's temporary folder) takes uploads
+    (:func:`~service.io.limits.folders_take_writes`); a replica whose scratch is full or read-only
+    fails every upload.
 
     Example:
         >>> import tempfile
         >>> scratch_takes_uploads(Path(tempfile.mkdtemp())), scratch_takes_uploads(Path("/nonexistent/svrnet"))
         (True, False)
     """
-    root = Path(base or tempfile.gettempdir())
-    try:
-        room = shutil.disk_usage(root).free >= MIN_FREE_BYTES
-    except OSError:
-        return False
-    return room and os.access(root, os.W_OK | os.X_OK)
+    return folders_take_writes(Path(base or tempfile.gettempdir()))
 
 
 def sweep_stale_uploads(base: Path | None, older_than_s: float) -> int:

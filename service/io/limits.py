@@ -20,8 +20,11 @@ from __future__ import annotations
 
 import errno
 import logging
+import os
+import shutil
 import threading
 from collections.abc import Sequence
+from pathlib import Path
 
 from service.core.errors import InsufficientStorage, PayloadTooLarge, UnusableImage
 
@@ -30,6 +33,24 @@ MIN_FREE_BYTES = 64 << 20
 """The free disk a folder the server writes (its data folder, its scratch) must have for ``/readyz``
 to call it ready: less takes no upload."""
 NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
+
+
+def folders_take_writes(root: Path, *others: Path) -> bool:
+    """Whether the folder ``root`` and ``others`` (folders or files on its disk) can be written (a folder
+    entered too) and the disk has
+    :data:`MIN_FREE_BYTES` left: a read-only folder, or a full disk, answers reads and fails every
+    upload or submission (``/readyz``'s question for the scratch and the job store's folders).
+
+    Example:
+        >>> import tempfile
+        >>> folders_take_writes(Path(tempfile.mkdtemp())), folders_take_writes(Path("/nonexistent/svrnet"))
+        (True, False)
+    """
+    try:
+        room = shutil.disk_usage(root).free >= MIN_FREE_BYTES
+    except OSError:
+        return False
+    return room and all(os.access(p, os.W_OK | (os.X_OK if p.is_dir() else 0)) for p in (root, *others))
 
 
 def raise_if_out_of_space(exc: BaseException) -> None:

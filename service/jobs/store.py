@@ -11,7 +11,6 @@ the same tests run against both.
 from __future__ import annotations
 
 import logging
-import os
 import shutil
 import time
 import uuid
@@ -22,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from service.core.errors import QueueFull
-from service.io.limits import MIN_FREE_BYTES
+from service.io.limits import folders_take_writes
 from service.jobs.runner import INTERRUPTED
 
 log = logging.getLogger(__name__)
@@ -200,14 +199,9 @@ class JobStore(ABC):
         """Whether the store answers and its folders can take a job (:meth:`folders_take_jobs`)."""
 
     def folders_take_jobs(self, *paths: Path) -> bool:
-        """Whether the data folder and ``paths`` can be written and the disk has
-        :data:`~service.io.limits.MIN_FREE_BYTES` left: a read-only folder, or a full disk, answers
-        reads and fails every submission."""
-        try:
-            room = shutil.disk_usage(self.data_dir).free >= MIN_FREE_BYTES
-        except OSError:
-            return False
-        return room and all(os.access(p, os.W_OK) for p in (*paths, self.data_dir / "jobs", self.data_dir))
+        """Whether the data folder, its jobs' folder and ``paths`` take a job
+        (:func:`~service.io.limits.folders_take_writes`)."""
+        return folders_take_writes(self.data_dir, self.data_dir / "jobs", *paths)
 
     @abstractmethod
     def create(self, params: dict) -> Job:
