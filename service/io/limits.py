@@ -37,9 +37,9 @@ NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
 
 def folders_take_writes(root: Path, *others: Path) -> bool:
     """Whether the folder ``root`` and ``others`` (folders or files on its disk) can be written (a folder
-    entered too) and the disk has
-    :data:`MIN_FREE_BYTES` left: a read-only folder, or a full disk, answers reads and fails every
-    upload or submission (``/readyz``'s question for the scratch and the job store's folders).
+    entered too) and the disk has :data:`MIN_FREE_BYTES` left: a read-only folder, or a full disk,
+    answers reads and fails every upload or submission (``/readyz``'s question for the scratch and the
+    job store's folders).
 
     Example:
         >>> import tempfile
