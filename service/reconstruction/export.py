@@ -26,6 +26,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import threading
 import zipfile
 from pathlib import Path
@@ -34,8 +35,9 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from service.geometry import frames
-from service.io.nifti_header import ALIGNED_ANAT, NiftiTransforms, copy_transforms, placed_by, set_codes
-from service.io.volume import Volume, read_volume, write_volume
+from service.io.nifti_header import (ALIGNED_ANAT, NiftiTransforms, copy_transforms, placed_by, read_transforms, set_codes,
+                                     sform_affine)
+from service.io.volume import write_volume
 from service.reconstruction.pipeline import ReconstructionResult
 from service.reconstruction.preview import preview_png
 from service.reconstruction.slices import SliceSet
@@ -178,10 +180,14 @@ def volume_in_stack_space(volume_path: Path, report: dict, stack: int, target: P
     another affine. Raises :class:`~service.reconstruction.stack_space.NoStackFrame` where the job has
     no such stack or no place for it, OSError where the volume is gone."""
     frame = stack_frame(report, stack)
-    volume = read_volume(volume_path)
-    sform = in_stack_space(volume.affine, frame)
-    write_volume(Volume(volume.array, sform), target)
-    if frame.nifti_codes is not None:              # the stack's header: read by its qform, the volume is too
+    stored = read_transforms(volume_path)
+    if stored is None:
+        raise OSError(f"{volume_path.name}: no NIfTI-1 header")
+    sform = in_stack_space(sform_affine(stored), frame)
+    shutil.copyfile(volume_path, target)           # the voxels as stored: only the header changes
+    if frame.nifti_codes is None:                  # scanner coordinates, both transforms alike
+        copy_transforms(target, placed_by(sform, sform, 1, 1))
+    else:                                          # the stack's header: read by its qform, the volume is too
         qform = sform if frame.qform_from_sform is None else frame.qform_from_sform @ sform
         copy_transforms(target, placed_by(sform, qform, *frame.nifti_codes, spatial_unit=frame.nifti_spatial_unit or 2))
     return target
