@@ -11,7 +11,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import inspect
+from http import HTTPStatus
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -31,7 +33,16 @@ read from the installed Starlette (the service calls ``request.form()`` with its
 
 def problem_body(status: int, title: str, detail: str, type_: str = "about:blank",
                  request_id: str | None = None) -> dict:
-    """The RFC 7807 body (plus the request id, when there is one)."""
+    """The RFC 7807 body (plus the request id, when there is one). A problem of type ``about:blank`` says
+    no more than its status, so its title is the status phrase (RFC 9457, 4.2.1); ``detail`` says the rest.
+
+    Example:
+        >>> problem_body(404, "Not found", "no route '/x'")["title"]
+        'Not Found'
+    """
+    if type_ == "about:blank":
+        with contextlib.suppress(ValueError):
+            title = HTTPStatus(status).phrase
     body = {"type": type_, "title": title, "status": status, "detail": detail}
     if request_id:
         body["request_id"] = request_id
@@ -114,20 +125,20 @@ def install(app: FastAPI) -> None:
         if exc.status_code == 404 and exc.detail == "Not Found":     # no route (a route's own 404 is a NotFound)
             path = request.url.path
             if path.endswith("/") and path.strip("/") and allowed_methods(request.app, path):
-                return problem(404, "Not found", f"no route {path[:80]!r}: the route is {path.rstrip('/')[:80]!r}, "
+                return problem(404, "Not Found", f"no route {path[:80]!r}: the route is {path.rstrip('/')[:80]!r}, "
                                "without the trailing slash", request=request)
             if path == STREAM_PATH:
                 return problem(426, "Upgrade Required", f"{path}: a WebSocket; connect with ws:// or wss:// (an "
                                "HTTP request with Upgrade: websocket)", headers={"Upgrade": "websocket"},
                                request=request)
-            return problem(404, "Not found", f"no route {path[:80]!r}: the API's routes start with /v1/ "
+            return problem(404, "Not Found", f"no route {path[:80]!r}: the API's routes start with /v1/ "
                            "(the list: /docs); a server URL that ends in /v1 doubles it", request=request)
         if exc.status_code == 405:      # Allow: every method of the path, not only the first route's
             methods = allowed_methods(request.app, request.url.path) or [(exc.headers or {}).get("Allow", "GET")]
             allow = {"Allow": ", ".join(methods)}
             if request.method == "OPTIONS":
                 return Response(status_code=204, headers=allow)
-            return problem(405, "Method not allowed", f"{request.method} is not allowed here; allowed: "
+            return problem(405, "Method Not Allowed", f"{request.method} is not allowed here; allowed: "
                            f"{allow['Allow']}", headers=allow, request=request)
         if exc.status_code == 400:      # the form parser (a part header over 8 KB, a broken boundary ...)
             try:                        # ... or the disk filling while it spooled the files: not the client's

@@ -72,6 +72,9 @@ def test_a_path_with_no_route_says_where_the_routes_are(oracle_client: TestClien
     r = oracle_client.get("/v1/v1/models")
     assert r.status_code == 404 and r.headers["content-type"].startswith("application/problem+json")
     assert "no route '/v1/v1/models'" in r.json()["detail"] and "ends in /v1" in r.json()["detail"]
+    assert r.json()["type"] == "about:blank" and r.json()["title"] == "Not Found"     # RFC 9457: the status phrase
+    r = oracle_client.delete("/v1/models")
+    assert r.status_code == 405 and r.json()["title"] == "Method Not Allowed"
     assert oracle_client.get("/v1/reconstructions/abc").json()["detail"].startswith("job_id: no job")
 
 
