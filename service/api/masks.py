@@ -19,6 +19,7 @@ from service.io.nifti_header import copy_transforms
 from service.io.volume import Volume, write_volume
 from service.preprocess.localisation import Localisation, grown
 from service.preprocess.localise import Localiser
+from service.preprocess.intensity import check_stack_values
 from service.preprocess.localiser_inputs import check_search
 
 router = APIRouter(prefix="/v1", tags=["masks"], dependencies=[ApiKey])
@@ -35,6 +36,7 @@ MARGIN_HELP = ("grow each mask outward by this many mm (Euclidean, on the stack'
 def masks_archive(uploads: list, localiser: Localiser, directory: Path, margin_mm: float = 0.0) -> bytes:
     """The zip of one ``<stem>_mask.nii.gz`` per stack (its own grid), grown by ``margin_mm``
     (:func:`~service.preprocess.localisation.grown`), and ``report.json``."""
+    check_stack_values([(u.filename, u.volume.array) for u in uploads])
     check_search([(u.filename, u.volume) for u in uploads])
     report = []
     buffer = io.BytesIO()

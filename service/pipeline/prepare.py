@@ -36,7 +36,7 @@ from service.io.grids import in_order_of, on_grid
 from service.io.volume import Volume
 from service.preprocess.bias import n4_correct
 from service.preprocess.field_of_view import cut_by_field_of_view
-from service.preprocess.intensity import signal_lost
+from service.preprocess.intensity import check_stack_values, signal_lost
 from service.preprocess.localisation import Localisation, is_region_of_interest, within_region
 from service.preprocess.localise import Localiser, default_localiser
 from service.preprocess.localiser_inputs import LocaliserGrid, check_search
@@ -332,8 +332,10 @@ def mask_centres(uploads: list[StackUpload]) -> list[np.ndarray]:
 
 def check_uploads(uploads: list[StackUpload]) -> None:
     """The checks of a request's stacks that need no stage (4xx naming what is wrong): each mask on its
-    stack's grid and of a brain's volume, no stack sent twice, and the localiser's search within its
-    bound; a job's submission makes them before it is queued, :func:`prepare_stacks` where it runs."""
+    stack's grid and of a brain's volume, no stack sent twice, no mask sent as a stack, and the
+    localiser's search within its bound; a job's submission makes them before it is queued,
+    :func:`prepare_stacks` where it runs."""
+    check_stack_values([(u.filename, u.volume.array) for u in uploads])
     for u in uploads:
         check_mask_grid(u)
         check_mask_volume(u)

@@ -18,6 +18,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from service.core.errors import UnusableImage
+
 LOW_PERCENTILE = 1.0
 HIGH_PERCENTILE = 99.0
 FLAT_SPAN = 1e-6
@@ -93,3 +95,42 @@ def signal_lost(images: ArrayLike, masks: ArrayLike) -> NDArray[np.bool_]:
     dark = (x < SIGNAL_LOSS_LEVEL * float(np.median(x[m]))) & m
     counts = m.reshape(len(m), -1).sum(axis=1)
     return (counts > 0) & (dark.reshape(len(m), -1).sum(axis=1) > SIGNAL_LOSS_SHARE * counts)
+
+
+SAMPLED_VOXELS = 1 << 16
+"""How many of a stack's voxels (evenly strided) :func:`two_values` looks at before it looks at all."""
+
+
+def two_values(array: NDArray) -> tuple[float, float] | None:
+    """The two values of an array that holds exactly two (a mask, 0 and 1 or 0 and 255), else None.
+
+    No MR image holds two values: a stack that does is a mask sent where a stack belongs (a folder's
+    ``*.nii.gz`` taking its masks along). A strided sample decides first, so an image costs a
+    look at :data:`SAMPLED_VOXELS` voxels; one value (a blank stack) is an image with no brain in it.
+
+    Example:
+        >>> two_values(np.array([[0, 1], [1, 1]], np.uint8)), two_values(np.zeros((2, 2))), two_values(np.arange(4.0))
+        ((0.0, 1.0), None, None)
+    """
+    flat = array.reshape(-1)
+    if flat.size == 0 or len(np.unique(flat[::max(1, flat.size // SAMPLED_VOXELS)])) > 2:
+        return None
+    lo, hi = float(flat.min()), float(flat.max())
+    if lo == hi or np.count_nonzero((flat != lo) & (flat != hi)):
+        return None
+    return lo, hi
+
+
+def check_stack_values(stacks: list[tuple[str, NDArray]]) -> None:
+    """422 naming the first stack (``(name, voxels)``) that holds two values alone (:func:`two_values`).
+
+    Example:
+        >>> check_stack_values([("a.nii.gz", np.arange(8.0)), ("a_mask.nii.gz", np.eye(3))])
+        Traceback (most recent call last):
+        ...
+        service.core.errors.UnusableImage: stacks: a_mask.nii.gz holds the values 0 and 1 alone: a mask, not an MR image; send a stack's mask as masks (one after its stack), or leave it out
+    """
+    for name, voxels in stacks:
+        if (values := two_values(voxels)) is not None:
+            raise UnusableImage(f"stacks: {name} holds the values {values[0]:g} and {values[1]:g} alone: a mask, not an "
+                                "MR image; send a stack's mask as masks (one after its stack), or leave it out")

@@ -93,6 +93,10 @@ def test_masks_refuse_what_they_cannot_use(real_client: TestClient, uterus_files
     write_volume(Volume(np.zeros((100, 100, 99), np.float32), np.diag([9.0, 9.0, 10.0, 1.0])), wide)
     r = post_masks(real_client, wide, wide, wide, wide)
     assert r.status_code == 413 and "the localiser would search" in r.json()["detail"], r.text
+    binary = tmp_path / "stack_mask.nii.gz"       # a mask sent as a stack
+    write_volume(Volume((np.arange(20 * 20 * 6).reshape(20, 20, 6) % 7 == 0).astype(np.uint8), np.eye(4)), binary)
+    r = post_masks(real_client, stack, binary)
+    assert r.status_code == 422 and "stack_mask.nii.gz holds the values 0 and 1 alone" in r.json()["detail"], r.text
 
 
 def test_predict_says_how_each_stack_was_localised(real_client: TestClient, uterus_files) -> None:

@@ -415,3 +415,16 @@ def test_a_stack_sent_twice_in_two_voxel_orders_is_refused_too(oracle_client: Te
 
     other = Volume(np.ascontiguousarray(stack(seed=1)[:, :, ::-1]), affine @ index_reversal(2, voxels.shape[2]))
     check_distinct_stacks([StackUpload("ax.nii.gz", Volume(voxels, affine)), StackUpload("other.nii.gz", other)])
+
+
+def test_a_mask_sent_as_a_stack_is_refused_naming_it_on_predict_and_a_job(oracle_client: TestClient,
+                                                                          tmp_path: Path) -> None:
+    """A folder's ``*.nii.gz`` sent as stacks takes its masks along: each is 422 naming the mask, before
+    any stage, not an answer with its slices empty."""
+    voxels = stack()
+    mask = (voxels > 50).astype(np.uint8)
+    files = [("stacks", ("ax.nii.gz", nifti_bytes(voxels, tmp=tmp_path))),
+             ("stacks", ("ax_mask.nii.gz", nifti_bytes(mask, tmp=tmp_path)))]
+    assert_problem(post(oracle_client, files), 422, "ax_mask.nii.gz holds the values 0 and 1 alone", "send a stack's mask as masks")
+    r = oracle_client.post("/v1/reconstructions", files=files)
+    assert_problem(r, 422, "ax_mask.nii.gz holds the values 0 and 1 alone")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.preprocess.intensity import rescale_0_255
+from service.preprocess.intensity import SAMPLED_VOXELS, rescale_0_255, two_values
 
 
 @pytest.mark.parametrize("scale", [1e-12, 1e-9, 1e-6, 1e6, 1e20])
@@ -27,3 +27,16 @@ def test_a_flat_slice_rescales_to_zero_whatever_its_level() -> None:
     level = np.array([0.0, 1e-9, 100.0, 1e20], np.float32)[:, None, None]
     img = level * (1 + np.float32(1e-7) * rng.standard_normal((4, 8, 8)).astype(np.float32))
     assert not rescale_0_255(img, np.ones(img.shape, bool)).any()
+
+
+def test_a_mask_is_told_from_an_image_whatever_the_sample_of_its_voxels_sees() -> None:
+    """The strided sample only decides that an image is one: a mask whose few brain voxels the sample
+    misses is a mask, an image whose few bright voxels it misses an image, one value (blank) neither."""
+    size = 4 * SAMPLED_VOXELS
+    mask = np.zeros(size, np.uint8)
+    mask[1::4][:10] = 255                       # off the sample's stride
+    assert two_values(mask) == (0.0, 255.0)
+    image = np.zeros(size, np.float32)
+    image[1::4][:10] = np.arange(1, 11)
+    assert two_values(image) is None and two_values(np.full(size, 7.0)) is None
+    assert two_values(np.where(np.arange(size) % 3, -2.5, 40.0)) == (-2.5, 40.0)
