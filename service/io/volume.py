@@ -89,6 +89,10 @@ FILL_SHARE, FILL_GAP = 1e-3, 0.5
 """A value below zero is a fill (the padding a tool writes where a resampled or oblique grid has no
 data, -1024 or -32768) where at least :data:`FILL_SHARE` of the values hold it, its lowest, and the
 next lowest value lies above it by more than :data:`FILL_GAP` of the other values' range."""
+FLOOR_SHARE = 0.01
+"""An image whose lowest value lies above zero and holds at least this share of its values has its
+air stored with an offset (zero-filled air lifted by an added constant or a rescale intercept: the
+real scans hold 4-16 % of their values at exactly 0); a noise floor never holds one value that often."""
 
 
 def magnitude(values: NDArray) -> NDArray:
@@ -103,8 +107,10 @@ def magnitude(values: NDArray) -> NDArray:
     (:data:`FILL_SHARE`; a tool's padding, far below the image) is no background: it becomes 0, and
     the background level comes from the other values (a fill on 0.5 % of the voxels became the
     background, and at -32768 lifted the whole image so far that no brain was found). An image
-    without values below zero is returned as it is, the same array: the stacks of every scanner so
-    far, and the training volumes.
+    whose lowest value lies above zero is returned as it is, the same array (the stacks of every
+    scanner so far, and the training volumes), unless that value is a floor, :data:`FLOOR_SHARE` of
+    the values or more (air stored with an offset): it is moved to 0. A stack's localisation, N4 and
+    slices are then the same for the stack stored with any offset or scale.
 
     Example:
         >>> a = np.array([[0.0, 10.0], [20.0, 40.0]], np.float32)
@@ -114,11 +120,17 @@ def magnitude(values: NDArray) -> NDArray:
         ([[0.0, 10.0], [20.0, 40.0]], [[0.0, 10.0], [20.0, 40.0]])
         >>> magnitude(np.array([[-32768.0, 0.0, 10.0], [20.0, 40.0, 5.0]], np.float32)).tolist()   # a fill
         [[0.0, 0.0, 10.0], [20.0, 40.0, 5.0]]
+        >>> magnitude(a + 1000).tolist()                                                           # air with an offset
+        [[0.0, 10.0], [20.0, 40.0]]
     """
     a = np.asarray(values)
-    if a.size == 0 or a.dtype.kind not in "if" or not a.min() < 0:
+    if a.size == 0 or a.dtype.kind not in "if":
         return values
     sample = a.ravel()[::max(1, a.size // MAX_SAMPLED_VALUES)]
+    if not (floor := a.min()) < 0:
+        if not floor > 0 or float(np.mean(sample == floor)) < FLOOR_SHARE:
+            return values
+        return a.astype(np.float32) - np.float32(floor)
     lowest = sample.min()
     rest = sample[sample > lowest]
     fill = (float(np.mean(sample == lowest)) >= FILL_SHARE and rest.size > 0

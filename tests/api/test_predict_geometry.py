@@ -295,14 +295,15 @@ def test_where_the_files_put_the_scanners_origin_changes_no_pose(oracle, oracle_
 
 def test_stacks_stored_with_an_offset_or_as_z_scores_get_what_their_magnitudes_get(oracle, oracle_client,
                                                                                      tmp_path: Path) -> None:
-    """A magnitude image stored with values below zero (a signed export's offset, a z-score) is the same
-    image: with N4 and every stage on, the network sees the same inputs and the answer is the same
+    """A magnitude image stored with values below zero (a signed export's offset, a z-score) or with its
+    air lifted above zero (a scale and an intercept) is the same image: with N4 and every stage on, the network sees the same inputs and the answer is the same
     (before, N4 clipped the dark half of a z-scored brain to 0 and the localiser's scaling took the
     offset for the image)."""
     files, truths = two_still_stacks(tmp_path)
     oracle.truth = stacks_apart(truths, np.random.default_rng(9), 3.0, 1.0)
     oracle.spread_mm = 3.0
-    stored = {"offset": lambda a: a - 1000.0, "z-score": lambda a: (a - a.mean()) / a.std()}
+    stored = {"offset": lambda a: a - 1000.0, "z-score": lambda a: (a - a.mean()) / a.std(),
+              "air lifted": lambda a: a * 0.5 + 1000.0}
     answers, inputs = {}, {}
     for how in ("as acquired", *stored):
         upload = files if how == "as acquired" else rewritten(

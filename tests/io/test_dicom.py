@@ -33,6 +33,14 @@ def _dataset(path: Path, sop_class: str, pixels: np.ndarray) -> FileDataset:
     return ds
 
 
+def numbered(k: int, shape: tuple[int, int]) -> np.ndarray:
+    """A frame that holds its number: ``100 (k + 1)``, but for one pixel of air (0) in its last corner, so
+    that a reader keeps its values as they are (a floor above zero would be moved to 0)."""
+    frame = np.full(shape, 100 * (k + 1), np.uint16)
+    frame[-1, -1] = 0
+    return frame
+
+
 def _csa_header(tags: dict[str, list[float]]) -> bytes:
     """A Siemens CSA2 header (``SV10``) holding ``tags`` as decimal strings, as the scanner writes them."""
     out = b"SV10" + b"\x04\x03\x02\x01" + struct.pack("<2I", len(tags), 77)
@@ -137,7 +145,7 @@ def test_a_mosaic_s_tiles_follow_its_csa_slice_normal(tmp_path: Path, direction:
     image's normal (LPS +z here) for ascending slices, its opposite for descending ones. Each tile holds
     its own number, so every slice the reader returns is checked against where its tile was acquired."""
     n = 5
-    slices = np.stack([np.full((24, 20), 100 * (k + 1), np.uint16) for k in range(n)])
+    slices = np.stack([numbered(k, (24, 20)) for k in range(n)])
     csa = _csa_header({"SliceNormalVector": [0.0, 0.0, direction], "NumberOfImagesInMosaic": [float(n)]})
     vol = read_upload(_mosaic_file(tmp_path / "m.dcm", slices, n, None, csa), "m.dcm")
     first_tile = np.array([-100.0, -80.0, 10.0]) + [(60 - 20) / 2 * 2.0, (72 - 24) / 2 * 2.0, 0.0]     # LPS
@@ -247,7 +255,7 @@ def test_a_legacy_multiframe_stacks_its_frames_by_the_sign_of_its_spacing(tmp_pa
     the spacing is negative (frames stored downwards). Each frame holds its own number, so every
     slice the reader returns is checked against where its frame was acquired."""
     n, origin = 6, np.array([-40.0, 20.0, 35.0])
-    ds = _dataset(tmp_path / "legacy.dcm", MRImageStorage, np.stack([np.full((12, 10), 100 * (k + 1)) for k in range(n)]))
+    ds = _dataset(tmp_path / "legacy.dcm", MRImageStorage, np.stack([numbered(k, (12, 10)) for k in range(n)]))
     ds.NumberOfFrames = n
     ds.ImageOrientationPatient, ds.ImagePositionPatient = [*ROW, *COL], list(origin)
     ds.PixelSpacing, ds.SliceThickness, ds.SpacingBetweenSlices = [1.2, 0.9], 3.0, spacing
@@ -264,7 +272,7 @@ def test_frames_without_positions_take_the_spacing_their_functional_group_states
     """Enhanced MR states SpacingBetweenSlices in its Pixel Measures functional group: frames placed by
     one position lie that far apart, not at the file's top-level SliceThickness."""
     n, origin = 5, np.array([-40.0, 20.0, 35.0])
-    ds = _dataset(tmp_path / "grouped.dcm", MRImageStorage, np.stack([np.full((12, 10), 100 * (k + 1)) for k in range(n)]))
+    ds = _dataset(tmp_path / "grouped.dcm", MRImageStorage, np.stack([numbered(k, (12, 10)) for k in range(n)]))
     ds.NumberOfFrames = n
     ds.ImageOrientationPatient, ds.ImagePositionPatient = [*ROW, *COL], list(origin)
     ds.SliceThickness = 3.0
@@ -287,7 +295,9 @@ def test_an_enhanced_multiframe_s_rescale_is_each_frame_s_own(tmp_path: Path, wh
     group (PS3.3 C.7.6.16.2.9), per frame (as Philips writes them) or shared; each frame is rescaled by
     its own, as nibabel does (stored 100 everywhere)."""
     n = 4
-    path = _enhanced_file(tmp_path / "e.dcm", np.full((n, 12, 10), 100, np.uint16),
+    stored = np.full((n, 12, 10), 100, np.uint16)
+    stored[:, -1, -1] = 0                          # air: the values are read as they are
+    path = _enhanced_file(tmp_path / "e.dcm", stored,
                           [np.array([-40.0, 20.0, 35.0]) + 3.3 * d * NORMAL for d in range(n)],
                           shared_orientation=[*ROW, *COL])
     ds = pydicom.dcmread(path)
@@ -426,10 +436,10 @@ def test_a_zip_s_member_names_never_choose_where_its_files_are_written(tmp_path:
     target = tmp_path / "outside"
     target.mkdir()
     climb = "../" * 40 + target.relative_to(target.anchor).as_posix()
-    pixels = [np.full((8, 6), 100 * (k + 1), np.uint16) for k in range(3)]
+    pixels = [numbered(k, (8, 6)) for k in range(3)]
     names = [f"{target.as_posix()}/abs.dcm", f"{climb}/rel.dcm", f"..\\..\\{target.name}\\win.dcm"]
     (tmp_path / "series.zip").write_bytes(corpus.zipped({name: corpus.dicom(p, k) for k, (name, p)
                                                          in enumerate(zip(names, pixels))}))
     vol = read_upload(tmp_path / "series.zip", "series.zip")
-    assert vol.array.shape[2] == 3 and sorted(np.unique(vol.array).tolist()) == [100.0, 200.0, 300.0]
+    assert vol.array.shape[2] == 3 and sorted(np.unique(vol.array).tolist()) == [0.0, 100.0, 200.0, 300.0]
     assert list(target.iterdir()) == [] and sorted(p.name for p in tmp_path.iterdir()) == ["outside", "series.zip"]

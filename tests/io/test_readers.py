@@ -461,9 +461,10 @@ def test_finite_voxels_beyond_float32s_range_are_422_not_read_as_infinite(tmp_pa
     assert path.name in info.value.detail and "float32" in info.value.detail
 
 
-@pytest.mark.parametrize("stored", ["offset int16", "z-score float32"])
+@pytest.mark.parametrize("stored", ["offset int16", "z-score float32", "positive offset uint16"])
 def test_a_file_stored_with_an_offset_is_read_as_its_magnitudes(tmp_path: Path, stored: str) -> None:
-    """A magnitude image stored with values below zero (a signed export's offset, a z-score) is read
+    """A magnitude image stored with values below zero (a signed export's offset, a z-score) or with its
+    air lifted above zero (a positive offset: its lowest value a floor under a fifth of the values) is read
     with its background at 0, as the scanner's own file would be: the same values (a z-score up to
     its scale), where before its brain sat on a negative floor that the localiser's percentile
     scaling and N4's multiplicative model cannot take."""
@@ -472,6 +473,8 @@ def test_a_file_stored_with_an_offset_is_read_as_its_magnitudes(tmp_path: Path, 
     magnitudes[:, 10:30, 12:28] = rng.uniform(100, 900, (6, 20, 16)).round()
     if stored == "offset int16":
         array, scale = (magnitudes - 1024).astype(np.int16), 1.0
+    elif stored == "positive offset uint16":             # the air lifted to 1000 (a rescale intercept)
+        array, scale = (magnitudes + 1000).astype(np.uint16), 1.0
     else:
         scale = float(magnitudes.std())
         array = ((magnitudes - magnitudes.mean()) / scale).astype(np.float32)
@@ -506,6 +509,7 @@ def test_a_tools_fill_value_is_no_background(tmp_path: Path, fill: int) -> None:
 
 
 def test_a_file_without_negative_values_is_read_as_it_is(tmp_path: Path) -> None:
+    """Values above zero without a floor (a noise floor, no value held by 1 % of the voxels) are kept."""
     array = np.random.default_rng(4).uniform(5, 50, (6, 20, 20)).astype(np.float32)
     image = sitk.GetImageFromArray(array)
     image.SetSpacing((1.0, 1.0, 3.0))
