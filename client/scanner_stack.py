@@ -178,7 +178,7 @@ def _volume(path: Path, what: str) -> tuple[NDArray, NDArray[np.float64]]:
 
 def mask_voxels(array: NDArray) -> NDArray[np.bool_]:
     """The voxels a mask file marks, by the server's rule for an uploaded mask (its
-    ``service.pipeline.prepare.mask_voxels``; this client installs without the server): every nonzero
+    ``service.pipeline.stack_upload.mask_voxels``; this client installs without the server): every nonzero
     voxel of a mask of whole numbers (a mask of 255 saved as signed bytes marks its brain by -1), and
     of a mask of fractions (a probability map) those at half its largest magnitude or more.
 

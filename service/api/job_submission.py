@@ -23,7 +23,7 @@ from service.io.acquisition_geometry import MAX_VOXEL_MM, MIN_VOXEL_MM
 from service.jobs.job_inputs import keep_json
 from service.jobs.uploaded_poses import in_upload_order, poses_from_predict_body
 from service.pipeline.predict import stack_orders
-from service.pipeline.prepare import StackUpload, check_uploads, marked_brain
+from service.pipeline.stack_upload import StackUpload, check_uploads, marked_brain
 from service.reconstruction.config import ReconstructionConfig
 from service.reconstruction.grid import check_brain_fits
 

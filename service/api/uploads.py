@@ -27,7 +27,7 @@ from service.core.cancellation import carried, checkpoint
 from service.core.errors import InvalidParameter, NotReady, UnusableImage
 from service.core.names import clean_name, shown_name
 from service.core.settings import Settings
-from service.pipeline.prepare import StackUpload, mask_on_stack_grid
+from service.pipeline.stack_upload import StackUpload, mask_on_stack_grid
 from service.io.limits import DecodeBudget, folders_take_writes, raise_if_out_of_space
 from service.io.readers import MAX_DECODED_BYTES, read_upload
 from service.preprocess.stack import slice_axis_of
@@ -259,7 +259,7 @@ def save_and_read(stacks: list[UploadFile], masks: list[UploadFile], directory: 
                   masks_hold_csf: bool = False, max_slices: int | None = None) -> list[StackUpload]:
     """Write each upload to ``directory`` and read it (blocking: run in a worker thread); the masks
     are the skull's inside with ``masks_hold_csf``, each brought into its stack's voxel order where its
-    file stores the stack's voxels in another (:func:`~service.pipeline.prepare.mask_on_stack_grid`);
+    file stores the stack's voxels in another (:func:`~service.pipeline.stack_upload.mask_on_stack_grid`);
     a stack of more than ``max_slices`` slices is refused (422 naming the file).
 
     Each file may decode to ``max_decoded_bytes``, all of them together to ``max_request_bytes``

@@ -242,7 +242,7 @@ def _name(names: dict, field: str, index: int) -> str:
 def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progress,  # noqa: ANN001
              attempt: int, localisers_dir: Path | None = None) -> None:
     from service.pipeline.predict import stack_orders
-    from service.pipeline.prepare import StackUpload, mask_on_stack_grid
+    from service.pipeline.stack_upload import StackUpload, mask_on_stack_grid
     from service.io.limits import DecodeBudget
     from service.io.readers import read_upload
     from service.reconstruction.export import write_outputs

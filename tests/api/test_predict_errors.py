@@ -395,6 +395,20 @@ def test_a_stack_sent_twice_is_refused_naming_both_files(oracle_client: TestClie
     data = nifti_bytes(stack(), tmp=tmp_path)
     r = post(oracle_client, [("stacks", ("ax.nii.gz", data)), ("stacks", ("copy_of_ax.nii.gz", data))])
     assert_problem(r, 400, "copy_of_ax.nii.gz is the same image as ax.nii.gz")
+    scaled = nifti_bytes((stack() * 37 + 1000).astype(np.int16), tmp=tmp_path)     # exported again, rescaled
+    r = post(oracle_client, [("stacks", ("ax.nii.gz", data)), ("stacks", ("ax_int16.nii.gz", scaled))])
+    assert_problem(r, 400, "ax_int16.nii.gz is the same image as ax.nii.gz", "up to a scale and an offset")
+
+
+def test_a_stack_acquired_again_on_the_same_planning_is_no_copy(oracle, oracle_client: TestClient,  # noqa: ANN001
+                                                                tmp_path: Path) -> None:
+    """The same grid, the same brain, another acquisition's noise (a signal-to-noise ratio of 30): two stacks."""
+    voxels = stack()
+    again = voxels + np.random.default_rng(7).normal(0, voxels.std() / 30, voxels.shape).astype(np.float32)
+    oracle.truth = np.broadcast_to(np.eye(4), (2 * voxels.shape[2], 4, 4)).copy()
+    r = post(oracle_client, [("stacks", ("ax.nii.gz", nifti_bytes(voxels, tmp=tmp_path))),
+                             ("stacks", ("ax_again.nii.gz", nifti_bytes(again, tmp=tmp_path)))], {"bias_correction": "false"})
+    assert r.status_code == 200, r.text
 
 
 def test_a_stack_sent_twice_in_two_voxel_orders_is_refused_too(oracle_client: TestClient, tmp_path: Path) -> None:
@@ -411,7 +425,7 @@ def test_a_stack_sent_twice_in_two_voxel_orders_is_refused_too(oracle_client: Te
         r = post(oracle_client, [("stacks", ("ax.nii.gz", data)), ("stacks", (name, copy))])
         assert_problem(r, 400, f"{name} is the same image as ax.nii.gz")
     from service.io.volume import Volume
-    from service.pipeline.prepare import StackUpload, check_distinct_stacks
+    from service.pipeline.stack_upload import StackUpload, check_distinct_stacks
 
     other = Volume(np.ascontiguousarray(stack(seed=1)[:, :, ::-1]), affine @ index_reversal(2, voxels.shape[2]))
     check_distinct_stacks([StackUpload("ax.nii.gz", Volume(voxels, affine)), StackUpload("other.nii.gz", other)])

@@ -169,7 +169,7 @@ def test_a_mask_marks_the_voxels_the_server_takes_from_the_same_file(tmp_path: P
     """A mask of 255 saved as signed bytes (-1) and a probability map with a faint background: each
     slice's mask is what the server's rule for an uploaded mask marks (the client counted -1 as
     background and the background's 0.02 as brain)."""
-    from service.pipeline.prepare import mask_voxels
+    from service.pipeline.stack_upload import mask_voxels
 
     affine = oblique_affine((1.0, 1.0, 3.0), seed=2)
     image = np.arange(6 * 5 * 4, dtype=np.int16).reshape(6, 5, 4)

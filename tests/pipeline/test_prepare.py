@@ -11,8 +11,8 @@ from service.inference.model_file import load_model
 from service.io.volume import Volume
 from service.core.errors import UnusableImage
 from service.geometry.pose import index_reversal
-from service.pipeline.prepare import (StackUpload, check_mask_grid, localise, localise_uploads, mask_on_stack_grid,
-                                      prepare_stack, prepare_stacks)
+from service.pipeline.prepare import localise, localise_uploads, prepare_stack, prepare_stacks
+from service.pipeline.stack_upload import StackUpload, check_mask_grid, mask_on_stack_grid
 
 
 @pytest.fixture(scope="module")
@@ -176,7 +176,7 @@ def test_the_box_a_mask_marks_is_measured_along_the_scanners_axes_on_an_oblique_
     """Against every marked voxel's own eight corners placed by the grid: the box around them."""
     from scipy.spatial.transform import Rotation
 
-    from service.pipeline.prepare import marked_brain
+    from service.pipeline.stack_upload import marked_brain
 
     affine = np.eye(4)
     affine[:3, :3] = Rotation.from_euler("xyz", [20, -35, 50], degrees=True).as_matrix() @ np.diag([0.8, 1.1, 3.0])
