@@ -16,6 +16,7 @@ function here accepts it as ``root`` in place of the atlas folder.
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,7 +25,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
-DEFAULT_ATLAS_ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "fetal_atlas"
+SHARED_DATA = Path(os.environ.get("SVRNET_SHARED_DATA") or Path(__file__).resolve().parents[1].parent / "shared" / "data")
+"""The project's data (the atlases, the real scans): ``../shared/data`` beside a checkout, or the folder
+``SVRNET_SHARED_DATA`` names (an installed package has no checkout beside it)."""
+DEFAULT_ATLAS_ROOT = SHARED_DATA / "fetal_atlas"
 ATLAS_ID = "fetal-atlas-ras-0.8mm-135x189x155"
 POPULATIONS = {
     "crl_sta": "CRL fetal brain atlas (Gholipour et al. 2017), non-commercial research use only",
@@ -118,7 +122,8 @@ def list_volumes(root: Path = DEFAULT_ATLAS_ROOT) -> list[tuple[str, str, Path, 
             out.append((name, population, t2, t2.with_name(f"{name}_mask.nii.gz")))
     if not out:
         raise FileNotFoundError(f"no atlas volumes under {root}: it holds neither {' nor '.join(f'{p}/*_T2.nii.gz' for p in POPULATIONS)} "
-                                f"(the atlases of ../shared/data/fetal_atlas) nor a {PACKED_INDEX} (svrnet-train pack)")
+                                f"(the atlases of ../shared/data/fetal_atlas) nor a {PACKED_INDEX} (svrnet-train pack): give --root, "
+                                "or set SVRNET_SHARED_DATA to the folder that holds fetal_atlas/")
     return out
 
 

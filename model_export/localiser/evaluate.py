@@ -28,13 +28,14 @@ from service.core.settings import Settings
 from service.core.threads import limit_blas_threads
 from service.geometry import anchors
 from service.pipeline.documents import stack_objects
+from model_export.atlas import SHARED_DATA
 from model_export.localiser.pose_accuracy import pose_accuracy, pose_estimator, slice_poses, validation_scenes
 from service.pipeline.predict import predict
 from service.pipeline.prepare import StackUpload, prepare_stacks
 from service.io.volume import Volume, read_volume
 from service.preprocess.localise import Localiser
 
-REAL_SCANS = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real_scans"
+REAL_SCANS = SHARED_DATA / "real_scans"
 
 
 def dice(a: NDArray, b: NDArray) -> float:

@@ -19,6 +19,10 @@ from model_export.training_record import UNRECORDED_HARDWARE, git_commit, prior_
 from service.geometry import iterators, twin
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+SHIPPED_CHECKPOINTS = Path("service/models/default/checkpoint.pt"), Path("service/localisers/default/checkpoint.pt")
+needs_shipped_checkpoints = pytest.mark.skipif(not all(p.is_file() for p in SHIPPED_CHECKPOINTS),
+                                               reason="needs the shipped networks' checkpoints: a git checkout "
+                                                      "(the source distribution leaves them out)")
 
 
 @pytest.fixture(scope="module")
@@ -358,6 +362,7 @@ def test_a_checkpoint_without_its_optimiser_is_refused_for_resume_and_starts_a_s
     assert torch.load(tmp_path / "d" / "last.pt", weights_only=False)["config"]["lr_milestones"] == (0.6, 0.85)
 
 
+@needs_shipped_checkpoints
 def test_wrong_usage_of_a_training_run_is_one_usage_line_before_any_work(packed: Path, tmp_path: Path,
                                                                          capsys: pytest.CaptureFixture) -> None:
     """On a GPU host's 15 minutes a traceback after the atlas has loaded, or a setting read wrongly, costs
@@ -389,6 +394,7 @@ def test_wrong_usage_of_a_training_run_is_one_usage_line_before_any_work(packed:
     assert not (tmp_path / "run").exists()
 
 
+@needs_shipped_checkpoints
 def test_the_cli_refuses_checkpoints_of_the_other_network_by_name(tmp_path: Path) -> None:
     """A localiser's checkpoint given to the pose network's commands, a pose network's to the
     localiser's, a checkpoint or a localiser's file where an exported pose model belongs, a path that
@@ -418,6 +424,7 @@ def test_the_cli_refuses_checkpoints_of_the_other_network_by_name(tmp_path: Path
     assert not (tmp_path / "x.onnx").exists() and not (tmp_path / "l.pt").exists()
 
 
+@needs_shipped_checkpoints
 def test_the_measuring_commands_refuse_an_atlas_folder_without_the_validation_volumes(
         phantom_atlas: Path, pose_model_copy: Path, tmp_path: Path) -> None:
     """A folder of ``pack --training-only`` (the training volumes alone) given to the commands that
