@@ -35,8 +35,10 @@ class _ProbabilityLocaliser(Localiser):
 
 
 def _again(volume: Volume) -> Volume:
-    """The same scene acquired again: a stack of its own (a request refuses one stack sent twice)."""
-    return Volume(volume.array * np.float32(1.00001), volume.affine)
+    """The same scene acquired again, with its own noise: a stack of its own (a request refuses one stack
+    sent twice, rescaled or not)."""
+    noise = np.random.default_rng(0).normal(0.0, 0.02, volume.array.shape).astype(np.float32)
+    return Volume(np.clip(volume.array + noise, 0.0, 1.0), volume.affine)
 
 
 def _twins(larger: str, slices: int = 20) -> Volume:
