@@ -52,14 +52,14 @@ def real_scan_case() -> tuple[list, list, list] | None:
     from model_export.localiser.evaluate import masked_files
     from model_export.localiser.pose_accuracy import pose_estimator
     from service.io.volume import read_volume
-    from service.pipeline import predict as pipeline
+    from service.pipeline import image_stage, predict as pipeline
     from service.pipeline.prepare import StackUpload, prepare_stacks
 
     estimator = pose_estimator()
     uploads = [StackUpload(name, read_volume(stack), read_volume(mask)) for name, stack, mask in masked_files(REAL_SCAN)]
     prepared = prepare_stacks(uploads, estimator.info, True, workers=2)
     predictions, _ = pipeline.predict(prepared, estimator, 100, estimator.info.variance_threshold, image_consistency=False)
-    stacks = [pipeline.stack_images(p) for p in prepared]
+    stacks = [image_stage.stack_images(p) for p in prepared]
     return stacks, [p.poses.poses for p in predictions], [p.poses.expected_error_mm for p in predictions]
 
 

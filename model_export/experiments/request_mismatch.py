@@ -46,6 +46,7 @@ from model_export.experiments.stage_variants import calibrated_as  # noqa: E402
 from service.geometry.anchors import ed  # noqa: E402
 from service.inference.model_file import ModelInfo, load_model  # noqa: E402
 import service.pipeline.predict as pipeline  # noqa: E402
+from service.pipeline import image_stage  # noqa: E402
 
 
 @dataclass
@@ -151,7 +152,7 @@ def mismatch_at(prepared: list, active: list[NDArray], poses: list[NDArray]) -> 
     stage refines them further from there (a prior of 3 mm per slice)."""
     from service.consistency.image_refinement import refine
 
-    images = [pipeline.stack_images(p, a) for p, a in zip(prepared, active)]
+    images = [image_stage.stack_images(p, a) for p, a in zip(prepared, active)]
     expected = [np.full(len(p), 3.0) for p in poses]
     return refine(images, poses, expected, iterations=0).cost_after, refine(images, poses, expected).cost_after
 

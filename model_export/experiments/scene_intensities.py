@@ -39,7 +39,7 @@ from model_export.localiser import pose_accuracy, scenes  # noqa: E402
 from model_export.localiser.pose_accuracy import pose_estimator  # noqa: E402
 from service.geometry import anchors  # noqa: E402
 from service.geometry.pose import about_centre  # noqa: E402
-from service.pipeline import predict as pipeline  # noqa: E402
+from service.pipeline import image_stage, predict as pipeline  # noqa: E402
 from service.pipeline.prepare import prepare_stacks  # noqa: E402
 
 NUISANCES = ("bias", "gains")
@@ -80,7 +80,7 @@ def request_row(case: list, estimator) -> dict[str, float]:  # noqa: ANN001
     true = np.concatenate([t[k] for t, k in zip(truth, keep)])
     own, common = own_frame(poses, true)
     active = [np.isfinite(p.estimate.spread_mm) for p in predictions]
-    images = [pipeline.stack_images(p, a) for p, a in zip(prepared, active)]
+    images = [image_stage.stack_images(p, a) for p, a in zip(prepared, active)]
     at_truth = image_refinement.refine(images, truth, [np.full(len(t), 3.0) for t in truth], iterations=0).cost_after
     after = predictions[0].poses.image_consistency
     rms = lambda e: float(np.sqrt(np.mean(e ** 2)))  # noqa: E731

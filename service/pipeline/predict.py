@@ -16,6 +16,7 @@ Geometry of every slice (the composition is written once, in
 
 from __future__ import annotations
 
+import hashlib
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -25,15 +26,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from service.consistency.frame_error import frame_error_mm, request_network_error_mm
-from service.consistency.image_refinement import refine, smooth_ahead
-from service.consistency.refined_errors import agreed, expected_after, relative_mismatch
-from service.consistency.slice_images import SampledStack, StackImages
 from service.consistency.slice_order import FROM_FILE, SliceOrder, per_stack
 from service.consistency.stack_evidence import StackEvidence
 from service.consistency.stage import (
-    ImageConsistency,
     StackPoses,
-    branch_set,
     checked_branch,
     consistent_poses,
     mark_mirrored,
@@ -47,6 +43,7 @@ from service.geometry.twin import DEFAULT_PLANE_X_MM
 from service.inference import acceptance
 from service.inference.estimator import PoseEstimate, PoseEstimator
 from service.inference.model_file import ModelInfo
+from service.pipeline.image_stage import refine_where_stacks_cross, smooth_images_ahead
 from service.pipeline.prepare import PreparedStack, StackUpload
 from service.pipeline.unseen_errors import add_unseen_errors
 from service.preprocess.one_fetus import apart_from_fetus, brain_centre_mm
@@ -149,117 +146,22 @@ def stack_orders(orders: list[SliceOrder] | None, uploads: list[StackUpload]) ->
     return out
 
 
-def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPoses], proper: list[np.ndarray],
-                              smoothed: list[dict[float, SampledStack]] | None = None) -> None:
-    """Refine the poses of the request's settled stacks where their slices cross
-    (:func:`~service.consistency.image_refinement.refine`), in place; each such stack's
-    ``image_consistency`` says what it did. A stack takes part when the stage found it consistent and
-    its left-right branch is decided (by its own slices or by the request): a stack that may be the
-    mirror image of the others would pull them towards it. Of their slices, those with a ``proper`` network pose that the stage did not
-    flag as inconsistent take part.
-
-    The stacks whose branch is known (``StackFit.branch_known``: decided by their own slices, or by
-    the request where they sit with its stacks) are refined together first (when two or more are); a
-    stack whose branch the request decided but that fits it on neither branch is then refined against
-    them as fixed partners, and its slices keep at least the stage's expected error: it is the less
-    certain, and a stack whose localisation went wrong (a mask that runs on into the fetal body)
-    would otherwise pull the others its way, or be pulled into a false agreement with them.
-
-    ``smoothed``: per stack of the request, its smoothed images made ahead (:func:`smooth_images_ahead`);
-    otherwise they are made here, once for both steps."""
-    take = [i for i, o in enumerate(outs) if branch_set(o) and not o.apart]
-    if len(take) < 2:
-        return
-    own = [i for i in take if outs[i].fit.branch_known]
-    store = None if smoothed is None else dict(enumerate(smoothed))
-    if len(own) < 2 or len(own) == len(take):
-        _refine_stacks(prepared, outs, proper, take, [], store)
-        return
-    store = {i: {} for i in take} if store is None else store          # smoothed once for both steps
-    _refine_stacks(prepared, outs, proper, own, [], store)
-    _refine_stacks(prepared, outs, proper, [i for i in take if i not in own], own, store)
-
-
-def placement_floor_mm(outs: list[StackPoses]) -> float:
-    """The expected E.D. below which no returned pose of stacks the image stage refined together
-    (``outs``) lies (:func:`add_unseen_errors` applies it last): that of the best-placed stack's
-    placement in the atlas (its pooled placement's standard error where the request's stacks were
-    pooled, else its own; ``sqrt(3)`` x the error per coordinate). The images relate the slices to
-    each other, not to the atlas: two stacks that agree where they cross are placed no better than
-    the better of the two. The floor matters where the stacks' placements are poor, as in real
-    requests whose network poses scatter widely about their motion models (the placements and
-    floors measured: docs/consistency.md).
-
-    Example (two stacks placed to 4 and 1.5 mm per coordinate: the better one's, 2.6 mm):
-        >>> from types import SimpleNamespace as N
-        >>> outs = [N(pooled=N(placement_sd_mm=4.0), fit=None), N(pooled=None, fit=N(placement_sd_mm=1.5))]
-        >>> round(placement_floor_mm(outs), 2)
-        2.6
-    """
-    sds = [o.pooled.placement_sd_mm if o.pooled is not None else
-           (o.fit.placement_sd_mm if o.fit is not None else np.nan) for o in outs]
-    known = [sd for sd in sds if np.isfinite(sd)]
-    return float(np.sqrt(3.0) * min(known)) if known else 0.0
-
-
-def stack_images(prepared: PreparedStack, active: np.ndarray | None = None, fixed: bool = False) -> StackImages:
-    """A prepared stack's slices as the image stage sees them; ``active`` (default: all) the slices
-    that take part."""
-    s = prepared.slices
-    active = np.ones(len(s.images), bool) if active is None else active
-    return StackImages(s.images, s.masks, s.pixel_mm, prepared.prepared.input_from_network(), active, fixed=fixed)
-
-
-def smooth_images_ahead(prepared: list[PreparedStack]) -> list[dict[float, SampledStack]]:
-    """Every image-stage pass's smoothed images of every stack of the request
-    (:func:`~service.consistency.image_refinement.smooth_ahead`): they need neither the poses nor the
-    stage's verdicts, so :func:`predict_from_estimates` makes them beside the stack stage."""
-    return smooth_ahead([stack_images(p) for p in prepared])
-
-
-def _refine_stacks(prepared: list[PreparedStack], outs: list[StackPoses], proper: list[np.ndarray],
-                   moving: list[int], partners: list[int], smoothed: dict[int, dict] | None = None) -> None:
-    """:func:`refine` the stacks ``moving`` (indices into the request) with the stacks ``partners`` as
-    fixed partners; sets the moving stacks' poses, expected errors (with partners, or where the
-    refinement left the slices disagreeing, :func:`~service.consistency.refined_errors.agreed`:
-    never below the stage's) and ``image_consistency`` (with the :func:`placement_floor_mm` of the
-    stacks refined). Where no slice of theirs crosses another's (stacks of one orientation), nothing
-    changes: the images checked nothing.
-    ``smoothed``: per stack (request index), :func:`refine`'s store of its smoothed images."""
-    which = moving + partners
-    images = [stack_images(prepared[i], proper[i] & ~outs[i].inconsistent, fixed=i in partners) for i in which]
-    expected = [outs[i].expected_error_mm if outs[i].expected_error_mm is not None
-                else np.full(len(outs[i].poses), np.nan) for i in which]
-    ref = refine(images, [outs[i].poses for i in which], expected,
-                 smoothed=None if smoothed is None else [smoothed[i] for i in which])
-    if ref.pairs == 0:              # no slice crosses another stack's (parallel stacks): nothing was checked,
-        return                      # and the stacks keep what the stack stage said of them
-    relative = relative_mismatch(ref.mismatch)
-    after = expected_after(expected, relative, ref.spread_mm)
-    floor = placement_floor_mm([outs[i] for i in which])
-    for j, i in enumerate(moving):
-        outs[i].poses = ref.poses[j]
-        if outs[i].expected_error_mm is not None:
-            outs[i].expected_error_mm = (np.fmax(after[j], expected[j]) if partners or not agreed(ref.cost_after)
-                                         else after[j])
-        moved = ref.moved_mm[j][images[j].active]
-        outs[i].image_consistency = ImageConsistency(len(which), ref.pairs, int(images[j].active.sum()),
-                                                     float(np.median(moved)) if len(moved) else 0.0,
-                                                     float(ref.cost_before), float(ref.cost_after),
-                                                     relative[j], expected[j], ref.spread_mm[j], floor)
-
-
-def set_apart(outs: list[StackPoses], prepared: list[PreparedStack]) -> None:
-    """Mark the stacks whose brain is not the request's fetus's, in place: each mask's brain centre
-    in the scanner frame (the stacks share it) farther from the request's fetus than a fetus moves
-    between stacks (:func:`~service.preprocess.one_fetus.apart_from_fetus`, the uploaded masks'
-    fetus the request's; an uploaded mask of a twin, a file of another scan). Such a stack's
-    ``apart_mm`` says how far; every slice of it is
-    inconsistent (none is accepted: its poses place another brain), and the request's later steps
-    leave it out."""
+def apart_distances(prepared: list[PreparedStack]) -> NDArray[np.float64]:
+    """How far each stack's brain lies from the request's fetus where it is not that fetus's, else NaN:
+    each mask's brain centre in the scanner frame (the stacks share it) against the request's fetus
+    (:func:`~service.preprocess.one_fetus.apart_from_fetus`, the uploaded masks' fetus the request's;
+    an uploaded mask of a twin, a file of another scan). Where the stacks divide evenly between two
+    fetuses, the first stack of ``prepared`` (the request's first, a stream's first) holds the request's."""
     centres = [brain_centre_mm(p.localisation.mask, p.upload.volume.affine) for p in prepared]
-    for out, distance in zip(outs, apart_from_fetus(centres, [p.localisation.confidence for p in prepared],
-                                                    [p.localisation.method == "mask" for p in prepared])):
+    return apart_from_fetus(centres, [p.localisation.confidence for p in prepared],
+                            [p.localisation.method == "mask" for p in prepared])
+
+
+def set_apart(outs: list[StackPoses], distances: list[float] | NDArray[np.float64]) -> None:
+    """Mark the stacks whose brain is not the request's fetus's (:func:`apart_distances`), in place:
+    such a stack's ``apart_mm`` says how far; every slice of it is inconsistent (none is accepted: its
+    poses place another brain), and the request's later steps leave it out."""
+    for out, distance in zip(outs, distances):
         if np.isfinite(distance):
             out.apart_mm = float(distance)
             out.inconsistent = np.ones(len(out.poses), bool)
@@ -324,8 +226,48 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
     with its refined neighbours, as a slice the images do not check); returns each stack's
     :class:`StackPrediction` and the timings. ``orders``: what the request says of the stacks' acquisition orders
     (:func:`stack_orders`). ``threshold`` and ``max_expected_error_mm`` (default: the model's)
-    decide the accept flags."""
+    decide the accept flags.
+
+    The stages run over the stacks in :func:`canonical_order`, whatever order the request lists them
+    in (sums over stacks and the order in which weak stacks are checked round differently), so one
+    scan's stacks in any order get the same answer to the bit; the results come back in the
+    request's order."""
     orders = stack_orders(orders, [p.upload for p in prepared])
+    apart = apart_distances(prepared) if stack_consistency else np.full(len(prepared), np.nan)
+    at = canonical_order(prepared)
+    results, timings = _predict_in_order([prepared[i] for i in at], [parts[i] for i in at], info, threshold,
+                                         stack_consistency, [orders[i] for i in at], image_consistency,
+                                         max_expected_error_mm, apart[at])
+    return [results[i] for i in np.argsort(at)], timings
+
+
+def canonical_order(prepared: list[PreparedStack]) -> list[int]:
+    """The stacks' indices ordered by what each holds (a digest of its network inputs and its voxel ->
+    scanner map), not by where the request lists it: the same order for the same stacks however they
+    are listed.
+
+    Example (two lists of the same two stacks):
+        >>> from types import SimpleNamespace as N
+        >>> a, b = (N(prepared=N(inputs=np.full((2, 4, 4), v, np.float32)), upload=N(volume=N(affine=np.eye(4))))
+        ...         for v in (1.0, 2.0))
+        >>> [[a, b][i] for i in canonical_order([a, b])] == [[b, a][i] for i in canonical_order([b, a])]
+        True
+    """
+    def digest(s: PreparedStack) -> bytes:
+        inputs = np.ascontiguousarray(s.prepared.inputs)
+        affine = np.ascontiguousarray(np.asarray(s.upload.volume.affine, np.float64))
+        return hashlib.sha256(inputs.tobytes() + affine.tobytes()).digest()
+
+    keys = [digest(s) for s in prepared]
+    return sorted(range(len(prepared)), key=lambda i: keys[i])
+
+
+def _predict_in_order(prepared: list[PreparedStack], parts: list[PoseEstimate], info: ModelInfo, threshold: float,
+                      stack_consistency: bool, orders: list[SliceOrder], image_consistency: bool,
+                      max_expected_error_mm: float | None, apart: NDArray[np.float64],
+                      ) -> tuple[list[StackPrediction], dict[str, float]]:
+    """:func:`predict_from_estimates` over the stacks in the order given (``orders``: each stack's;
+    ``apart``: each stack's :func:`apart_distances`, decided in the request's order)."""
     if max_expected_error_mm is None:
         max_expected_error_mm = getattr(info, "max_expected_error_mm", None)
     timings: dict[str, float] = {}
@@ -346,8 +288,7 @@ def predict_from_estimates(prepared: list[PreparedStack], parts: list[PoseEstima
                                                                   e.spread_mm * scale, order, shape, gain,
                                                                   keep_evidence=True),
                              parts, prepared, frames, orders))
-        if stack_consistency:              # a stack of another fetus: out of the request's steps
-            set_apart(outs, prepared)
+        set_apart(outs, apart)             # a stack of another fetus: out of the request's steps
         evidence = [None if o.fit is None else o.fit.evidence for o in outs]   # each stack's fit before the others'
         for out in outs:                   # held here alone, for the refits below
             if out.fit is not None:

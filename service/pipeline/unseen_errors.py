@@ -43,7 +43,7 @@ def add_unseen_errors(out: StackPoses, info: ModelInfo, estimate: PoseEstimate |
       in quadrature. Such a stack is posed worse than its spread says, mostly by a larger turn and
       shift of the whole request, which its slices' agreement cannot show.
     * Where the image stage refined the stack, no less than its placement floor
-      (:func:`~service.pipeline.predict.placement_floor_mm`): the whole expected error, not a term
+      (:func:`~service.pipeline.image_stage.placement_floor_mm`): the whole expected error, not a term
       beside the others (the floor is the request's placement, which the first term stands for
       where no stack tells it).
     * In a stack the stage found consistent (each slice's branch set by its stack-mates), the chance

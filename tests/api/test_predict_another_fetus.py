@@ -52,7 +52,7 @@ def test_the_uploaded_masks_decide_the_requests_fetus() -> None:
     though their confidences together outweigh the mask's (before, the masked stack was)."""
     from types import SimpleNamespace
 
-    from service.pipeline.predict import set_apart
+    from service.pipeline.predict import apart_distances, set_apart
 
     def stack(x_mm: float, method: str, confidence: float) -> SimpleNamespace:
         mask = np.zeros((10, 10, 4), bool)
@@ -63,6 +63,6 @@ def test_the_uploaded_masks_decide_the_requests_fetus() -> None:
 
     prepared = [stack(0.0, "mask", 1.0), stack(100.0, "network", 0.8), stack(100.0, "network", 0.8)]
     outs = [SimpleNamespace(poses=np.zeros((4, 4, 4)), inconsistent=np.zeros(4, bool), apart_mm=np.nan) for _ in prepared]
-    set_apart(outs, prepared)
+    set_apart(outs, apart_distances(prepared))
     assert np.isnan(outs[0].apart_mm) and not outs[0].inconsistent.any()
     assert [round(o.apart_mm) for o in outs[1:]] == [100, 100] and all(o.inconsistent.all() for o in outs[1:])

@@ -11,23 +11,23 @@ import pytest
 
 from service.consistency.image_refinement import Refinement
 from service.consistency.refined_errors import AGREED_MISMATCH
-from service.pipeline import predict
+from service.pipeline import image_stage
 from tests.pipeline.test_signal_loss import _prepared
 
 
 def _refined(monkeypatch: pytest.MonkeyPatch, cost_after: float) -> list[np.ndarray]:
-    """Two stacks through :func:`predict._refine_stacks` with a refinement that ends at ``cost_after``
+    """Two stacks through :func:`image_stage._refine_stacks` with a refinement that ends at ``cost_after``
     and leaves its slices at a quarter of the request's median mismatch (the last at the median): their
     expected errors."""
     stacks = [_prepared(), _prepared(seed=4)]
     n = [len(s.prepared.inputs) for s in stacks]
-    monkeypatch.setattr(predict, "refine", lambda images, poses, expected, smoothed=None: Refinement(
+    monkeypatch.setattr(image_stage, "refine", lambda images, poses, expected, smoothed=None: Refinement(
         [p.copy() for p in poses], [np.zeros(k) for k in n], 40, 3.0, cost_after,
         [np.r_[np.full(k - 1, 0.25), 1.0] for k in n], [np.full(k, 0.5) for k in n]))
     outs = [SimpleNamespace(poses=np.repeat(np.eye(4)[None], k, 0), expected_error_mm=np.full(k, 4.0),
                             inconsistent=np.zeros(k, bool), pooled=None, fit=SimpleNamespace(placement_sd_mm=1.0),
                             image_consistency=None) for k in n]
-    predict._refine_stacks(stacks, outs, [np.ones(k, bool) for k in n], [0, 1], [])
+    image_stage._refine_stacks(stacks, outs, [np.ones(k, bool) for k in n], [0, 1], [])
     return [o.expected_error_mm for o in outs]
 
 

@@ -6,7 +6,8 @@ from types import SimpleNamespace
 
 import pytest
 
-from service.pipeline import predict
+from service.pipeline import image_stage
+from service.pipeline.unseen_errors import add_unseen_errors
 
 
 def _outs(*kinds: str) -> list[SimpleNamespace]:
@@ -22,32 +23,32 @@ def _outs(*kinds: str) -> list[SimpleNamespace]:
 @pytest.fixture
 def calls(monkeypatch: pytest.MonkeyPatch) -> list[tuple[list[int], list[int]]]:
     seen: list[tuple[list[int], list[int]]] = []
-    monkeypatch.setattr(predict, "_refine_stacks", lambda prepared, outs, proper, moving, partners, smoothed=None:
+    monkeypatch.setattr(image_stage, "_refine_stacks", lambda prepared, outs, proper, moving, partners, smoothed=None:
                         seen.append((list(moving), list(partners))))
     return seen
 
 
 def test_stacks_decided_by_the_request_are_refined_after_the_others_against_them(calls) -> None:  # noqa: ANN001
-    predict.refine_where_stacks_cross([None] * 5, _outs("own", "request", "own", "none", "own"), [None] * 5)
+    image_stage.refine_where_stacks_cross([None] * 5, _outs("own", "request", "own", "none", "own"), [None] * 5)
     assert calls == [([0, 2, 4], []), ([1], [0, 2, 4])]
 
 
 def test_with_fewer_than_two_self_decided_stacks_all_are_refined_together(calls) -> None:  # noqa: ANN001
-    predict.refine_where_stacks_cross([None] * 3, _outs("own", "request", "request"), [None] * 3)
-    predict.refine_where_stacks_cross([None] * 3, _outs("own", "own", "none"), [None] * 3)
-    predict.refine_where_stacks_cross([None] * 2, _outs("own", "none"), [None] * 2)
+    image_stage.refine_where_stacks_cross([None] * 3, _outs("own", "request", "request"), [None] * 3)
+    image_stage.refine_where_stacks_cross([None] * 3, _outs("own", "own", "none"), [None] * 3)
+    image_stage.refine_where_stacks_cross([None] * 2, _outs("own", "none"), [None] * 2)
     assert calls == [([0, 1, 2], []), ([0, 1], [])]
 
 
 def test_a_stack_that_agrees_with_the_request_is_refined_with_the_self_decided_ones(calls) -> None:  # noqa: ANN001
-    predict.refine_where_stacks_cross([None] * 4, _outs("own", "agrees", "request", "own"), [None] * 4)
-    predict.refine_where_stacks_cross([None] * 2, _outs("own", "agrees"), [None] * 2)
+    image_stage.refine_where_stacks_cross([None] * 4, _outs("own", "agrees", "request", "own"), [None] * 4)
+    image_stage.refine_where_stacks_cross([None] * 2, _outs("own", "agrees"), [None] * 2)
     assert calls == [([0, 1, 3], []), ([2], [0, 1, 3]), ([0, 1], [])]
 
 
 def test_a_stack_of_another_fetus_is_refined_with_none(calls) -> None:  # noqa: ANN001
-    predict.refine_where_stacks_cross([None] * 4, _outs("own", "apart", "request", "own"), [None] * 4)
-    predict.refine_where_stacks_cross([None] * 2, _outs("own", "apart"), [None] * 2)
+    image_stage.refine_where_stacks_cross([None] * 4, _outs("own", "apart", "request", "own"), [None] * 4)
+    image_stage.refine_where_stacks_cross([None] * 2, _outs("own", "apart"), [None] * 2)
     assert calls == [([0, 3], []), ([2], [0, 3])]
 
 
@@ -72,15 +73,15 @@ def test_the_images_place_no_slice_better_than_the_best_placed_stack(monkeypatch
     import numpy as np
 
     outs = [_placed(sds[0]), _placed(sds[1], pooled=False)]
-    monkeypatch.setattr(predict, "stack_images", lambda prepared, active=None, fixed=False: SimpleNamespace(active=active))
-    monkeypatch.setattr(predict, "refine", lambda images, poses, expected, smoothed=None: SimpleNamespace(
+    monkeypatch.setattr(image_stage, "stack_images", lambda prepared, active=None, fixed=False: SimpleNamespace(active=active))
+    monkeypatch.setattr(image_stage, "refine", lambda images, poses, expected, smoothed=None: SimpleNamespace(
         poses=poses, mismatch=[np.zeros(3)] * 2, moved_mm=[np.zeros(3)] * 2, pairs=4, cost_before=1.0, cost_after=0.5,
         spread_mm=[np.ones(3)] * 2))
-    monkeypatch.setattr(predict, "relative_mismatch", lambda mismatch: [np.ones(3)] * 2)
-    monkeypatch.setattr(predict, "expected_after", lambda expected, relative, spread: [np.ones(3)] * 2)
-    predict._refine_stacks([None, None], outs, [np.ones(3, bool)] * 2, [0, 1], [])
+    monkeypatch.setattr(image_stage, "relative_mismatch", lambda mismatch: [np.ones(3)] * 2)
+    monkeypatch.setattr(image_stage, "expected_after", lambda expected, relative, spread: [np.ones(3)] * 2)
+    image_stage._refine_stacks([None, None], outs, [np.ones(3, bool)] * 2, [0, 1], [])
     info = SimpleNamespace(expected_error_floor_mm=0.5, twin_risk_logit=None)
     for out in outs:
         assert out.image_consistency.placement_floor_mm == pytest.approx(floor)
-        predict.add_unseen_errors(out, info)                   # the floor is the whole error, not a term
+        add_unseen_errors(out, info)                   # the floor is the whole error, not a term
         np.testing.assert_allclose(out.expected_error_mm, max(floor, np.hypot(1.0, 0.5)))

@@ -41,9 +41,9 @@ def test_the_slices_whose_brain_went_dark_are_found_and_no_others() -> None:
 
 def test_slices_without_signal_take_no_part_in_image_consistency(monkeypatch: pytest.MonkeyPatch) -> None:
     stacks = [_prepared(DARK), _prepared()]
-    taken: list[list[np.ndarray]] = []
-    monkeypatch.setattr(predict, "refine_where_stacks_cross",
-                        lambda prepared, outs, proper, smoothed=None: taken.append([np.array(p) for p in proper]))
+    taken: list[list[np.ndarray]] = []                     # each stack's, in the request's order
+    monkeypatch.setattr(predict, "refine_where_stacks_cross", lambda prepared, outs, proper, smoothed=None: taken.append(
+        [np.array(proper[[p is s for p in prepared].index(True)]) for s in stacks]))
     parts = []
     for s in stacks:
         n = len(s.prepared.inputs)
