@@ -52,7 +52,7 @@ def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPos
 
 def placement_floor_mm(outs: list[StackPoses]) -> float:
     """The expected E.D. below which no returned pose of stacks the image stage refined together
-    (``outs``) lies (:func:`add_unseen_errors` applies it last): that of the best-placed stack's
+    (``outs``) lies (:func:`~service.pipeline.unseen_errors.add_unseen_errors` applies it last): that of the best-placed stack's
     placement in the atlas (its pooled placement's standard error where the request's stacks were
     pooled, else its own; ``sqrt(3)`` x the error per coordinate). The images relate the slices to
     each other, not to the atlas: two stacks that agree where they cross are placed no better than
@@ -83,7 +83,7 @@ def stack_images(prepared: PreparedStack, active: np.ndarray | None = None, fixe
 def smooth_images_ahead(prepared: list[PreparedStack]) -> list[dict[float, SampledStack]]:
     """Every image-stage pass's smoothed images of every stack of the request
     (:func:`~service.consistency.image_refinement.smooth_ahead`): they need neither the poses nor the
-    stage's verdicts, so :func:`predict_from_estimates` makes them beside the stack stage."""
+    stage's verdicts, so :func:`~service.pipeline.predict.predict_from_estimates` makes them beside the stack stage."""
     return smooth_ahead([stack_images(p) for p in prepared])
 
 
