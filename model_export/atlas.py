@@ -25,7 +25,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
-SHARED_DATA = Path(os.environ.get("SVRNET_SHARED_DATA") or Path(__file__).resolve().parents[1].parent / "shared" / "data")
+SHARED_DATA = Path(os.environ.get("SVRNET_SHARED_DATA")
+                   or Path(__file__).resolve().parents[1].parent / "shared" / "data")
 """The project's data (the atlases, the real scans): ``../shared/data`` beside a checkout, or the folder
 ``SVRNET_SHARED_DATA`` names (an installed package has no checkout beside it)."""
 DEFAULT_ATLAS_ROOT = SHARED_DATA / "fetal_atlas"

@@ -4,7 +4,8 @@ refinement leaves of each slice's expected error (:func:`placement_floor_mm`).
 
 Example (the floor of two stacks placed to 4 and 1.5 mm per coordinate):
     >>> from types import SimpleNamespace as N
-    >>> round(placement_floor_mm([N(pooled=None, fit=N(placement_sd_mm=4.0)), N(pooled=None, fit=N(placement_sd_mm=1.5))]), 2)
+    >>> placed = [N(pooled=None, fit=N(placement_sd_mm=sd)) for sd in (4.0, 1.5)]
+    >>> round(placement_floor_mm(placed), 2)
     2.6
 """
 
@@ -52,8 +53,8 @@ def refine_where_stacks_cross(prepared: list[PreparedStack], outs: list[StackPos
 
 def placement_floor_mm(outs: list[StackPoses]) -> float:
     """The expected E.D. below which no returned pose of stacks the image stage refined together
-    (``outs``) lies (:func:`~service.pipeline.unseen_errors.add_unseen_errors` applies it last): that of the best-placed stack's
-    placement in the atlas (its pooled placement's standard error where the request's stacks were
+    (``outs``) lies (:func:`~service.pipeline.unseen_errors.add_unseen_errors` applies it last):
+    that of the best-placed stack's placement in the atlas (its pooled placement's standard error where the request's stacks were
     pooled, else its own; ``sqrt(3)`` x the error per coordinate). The images relate the slices to
     each other, not to the atlas: two stacks that agree where they cross are placed no better than
     the better of the two. The floor matters where the stacks' placements are poor, as in real

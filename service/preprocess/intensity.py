@@ -132,5 +132,5 @@ def check_stack_values(stacks: list[tuple[str, NDArray]]) -> None:
     """
     for name, voxels in stacks:
         if (values := two_values(voxels)) is not None:
-            raise UnusableImage(f"stacks: {name} holds the values {values[0]:g} and {values[1]:g} alone: a mask, not an "
-                                "MR image; send a stack's mask as masks (one after its stack), or leave it out")
+            raise UnusableImage(f"stacks: {name} holds the values {values[0]:g} and {values[1]:g} alone: a mask, "
+                                "not an MR image; send a stack's mask as masks (one after its stack), or leave it out")
