@@ -21,6 +21,7 @@ from service.core.client_json import client_json
 from service.core.errors import InvalidParameter, PayloadTooLarge, UnusableImage
 from service.io.acquisition_geometry import MAX_VOXEL_MM, MIN_VOXEL_MM
 from service.jobs.job_inputs import keep_json
+from service.jobs.starting_poses import uploaded_start
 from service.jobs.uploaded_poses import in_upload_order, poses_from_predict_body
 from service.pipeline.predict import stack_orders
 from service.pipeline.stack_upload import StackUpload, check_uploads, marked_brain
@@ -125,4 +126,5 @@ def check_submission(uploads: list[StackUpload], orders: list[SliceOrder], poses
     brain_mm3, extent = max((marked_brain(u) for u in uploads if not u.mask_is_region), key=lambda marked: marked[0],
                             default=(0.0, np.zeros(3)))                 # a region's brain is the localiser's to find
     check_brain_fits(brain_mm3, extent, resolution_mm, ReconstructionConfig().margin_mm)
-    check_slices_to_use(uploads, None if given is None else [accepted for _, accepted in given])
+    starts = None if given is None else [include for _, include in uploaded_start(kept, given)[0]]
+    check_slices_to_use(uploads, starts)

@@ -80,8 +80,8 @@ def starting_poses(body: dict, min_share: float = MIN_ACCEPTED_SHARE, min_slices
     accepted, does not make a job start from every slice of the fetus's."""
     poses = poses_from_predict_body(body, [len(st["slices"]) for st in body["stacks"]])
     poses = [(mats, own) for (mats, _), own in zip(poses, accepted_without_frame(body))]
-    left_out = [any((st.get("consistency") or {}).get(key) for key in ("mirrored", "apart_from_request"))
-                for st in body["stacks"]]
+    left_out = np.array([any((st.get("consistency") or {}).get(key) for key in ("mirrored", "apart_from_request"))
+                         for st in body["stacks"]], bool)       # numpy's bools: ~ is not, as for the masks
     posed = [p & ~out for p, out in zip(posed_slices(body), left_out)]     # the share among the stacks kept
     started = starting_inclusion(poses, posed, min_share, min_slices)
     started = _unless_nothing_left(started, [(mats, include & ~out) for (mats, include), out in zip(started, left_out)])
@@ -111,3 +111,25 @@ def start_label(body: dict, poses: list[tuple[np.ndarray, np.ndarray]]) -> str:
     kept = all(np.array_equal(include, acc) or np.array_equal(include, acc & ~lost)
                for (_, include), acc, lost in zip(poses, accepted, signal_lost_slices(body)))
     return "accepted_slices" if kept else "every_slice"
+
+
+def uploaded_start(body: dict, poses: list[tuple[np.ndarray, np.ndarray]]) -> tuple[list[tuple[np.ndarray, np.ndarray]], str]:
+    """What a job starts from given a client's ``poses`` (read from ``body``,
+    :func:`~service.jobs.uploaded_poses.poses_from_predict_body`), and its report's ``started_from``:
+    the client's flags (``uploaded_poses``), unless they accept no slice. ``/v1/predict``'s answer for
+    stacks without masks often accepts none; the job then starts as from its own prediction of them
+    (:func:`starting_poses`, :func:`start_label`), as it would without the upload.
+
+    Example (a body that accepts one slice of two, and one that accepts none):
+        >>> body = {"stacks": [{"slices": [{"accepted": a, "atlas_from_voxel": np.eye(4).tolist()} for a in (True, False)]}]}
+        >>> uploaded_start(body, [(np.zeros((2, 4, 4)), np.array([True, False]))])[1]
+        'uploaded_poses'
+        >>> body["stacks"][0]["slices"][0]["accepted"] = False
+        >>> start, label = uploaded_start(body, [(np.zeros((2, 4, 4)), np.array([False, False]))])
+        >>> label, start[0][1].tolist()
+        ('every_slice', [True, True])
+    """
+    if any(np.any(accepted) for _, accepted in poses):
+        return poses, "uploaded_poses"
+    own = starting_poses(body)
+    return own, start_label(body, own)

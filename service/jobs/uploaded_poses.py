@@ -24,8 +24,10 @@ def poses_from_predict_body(body: dict, n_slices: list[int],
     """``(atlas_from_voxel [n, 4, 4], accepted [n])`` per stack from a ``/v1/predict`` response body.
 
     ``affines``: each stack's voxel -> scanner affine, to check a client's poses against: each
-    ``atlas_from_voxel`` a rigid placement of the stack's voxels (:func:`not_rigid`), and at least
-    one slice accepted. A reconstruction's grid and its every stage are sized by those poses.
+    ``atlas_from_voxel`` a rigid placement of the stack's voxels (:func:`not_rigid`), and of a job's
+    refined poses at least one slice included. A reconstruction's grid and its every stage are sized
+    by those poses. A ``/v1/predict`` answer that accepts no slice is read as it is: the job then
+    starts as from its own prediction (:func:`~service.jobs.starting_poses.starting_poses`).
 
     A stack's slices are matched by their ``index`` where they have one (the body's list is put in
     that order, :func:`in_index_order`), else by their place in the list. Of a job's refined poses
@@ -74,10 +76,9 @@ def poses_from_predict_body(body: dict, n_slices: list[int],
                              f"voxels ({', '.join(f'{e:.4g}' for e in edges)} mm) within "
                              f"{MAX_FIELD_OF_VIEW_MM:.0f} mm of the atlas, keeping the stack's handedness")
         out.append((mats, np.array(acc, bool)))
-    if affines is not None and not any(acc.any() for _, acc in out):
-        raise ValueError("poses: no slice is accepted; a job starts from the accepted slices of the poses it is "
-                         "given. Submit without poses: the job predicts them and starts from every slice where few "
-                         "are accepted")
+    if affines is not None and refined and not any(acc.any() for _, acc in out):
+        raise ValueError("poses: the job's refined poses include no slice (included: false everywhere); send poses "
+                         "that include some, or a /v1/predict answer, or none")
     return out
 
 

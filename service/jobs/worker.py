@@ -36,7 +36,7 @@ from service.core.errors import Cancelled, InternalError, ServiceError, Unusable
 from service.core.logging import error_at
 from service.jobs.job_inputs import decoded_files, load_volume
 from service.jobs.provenance import localiser_provenance, provenance
-from service.jobs.starting_poses import lost_reasons, start_label, starting_poses
+from service.jobs.starting_poses import lost_reasons, start_label, starting_poses, uploaded_start
 from service.jobs.store import JobStore
 from service.jobs.uploaded_poses import expected_errors, frame_added_mm, poses_from_predict_body
 
@@ -292,7 +292,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         masks = uploaded_pose_masks(uploads, localiser)
         if any(u.localised for u in uploads) and not any(m.any() for m in masks):
             raise UnusableImage(NO_BRAIN_FOUND)       # not the reconstruction's "no pixel inside its mask"
-        started_from = "uploaded_poses"
+        poses, started_from = uploaded_start(body, poses)
     else:
         progress("predicting poses", 0.05)
         estimator, plane = job_estimator(model_file, sha256=params.get("model_sha256"))
