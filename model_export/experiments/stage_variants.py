@@ -65,6 +65,7 @@ from service.geometry.anchors import ed  # noqa: E402
 from service.inference.estimator import OnnxPoseEstimator  # noqa: E402
 from service.inference.model_file import ModelInfo, load_model  # noqa: E402
 import service.pipeline.predict as pipeline  # noqa: E402
+from service.pipeline import image_stage  # noqa: E402
 
 
 def build(model: Path, root: Path, levels: list[str], per_volume: int, seed: int, void: bool = False,
@@ -105,8 +106,8 @@ def overridden(variant: str) -> list[tuple[object, str, object]]:
     for item in variant.split(";"):
         name, value = (s.strip() for s in item.split("=", 1))
         if name.startswith("refine:"):
-            saved.append((pipeline, "refine", pipeline.refine))
-            pipeline.refine = functools.partial(pipeline.refine, **{name[len("refine:"):]: eval(value)})  # noqa: S307
+            saved.append((image_stage, "refine", image_stage.refine))
+            image_stage.refine = functools.partial(image_stage.refine, **{name[len("refine:"):]: eval(value)})  # noqa: S307
             continue
         module, constant = name.rsplit(".", 1)
         target = importlib.import_module(f"service.{module}")

@@ -128,9 +128,10 @@ def check_stack_values(stacks: list[tuple[str, NDArray]]) -> None:
         >>> check_stack_values([("a.nii.gz", np.arange(8.0)), ("a_mask.nii.gz", np.eye(3))])
         Traceback (most recent call last):
         ...
-        service.core.errors.UnusableImage: stacks: a_mask.nii.gz holds the values 0 and 1 alone: a mask, not an MR image; send a stack's mask as masks (one after its stack), or leave it out
+        service.core.errors.UnusableImage: stacks: a_mask.nii.gz holds the values 0 and 1 alone: a mask, not an MR image; send it as its stack's mask (the form field masks; svrnet --mask), or leave it out
     """
     for name, voxels in stacks:
         if (values := two_values(voxels)) is not None:
             raise UnusableImage(f"stacks: {name} holds the values {values[0]:g} and {values[1]:g} alone: a mask, "
-                                "not an MR image; send a stack's mask as masks (one after its stack), or leave it out")
+                                "not an MR image; send it as its stack's mask (the form field masks; svrnet --mask), "
+                                "or leave it out")

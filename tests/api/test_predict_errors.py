@@ -439,6 +439,6 @@ def test_a_mask_sent_as_a_stack_is_refused_naming_it_on_predict_and_a_job(oracle
     mask = (voxels > 50).astype(np.uint8)
     files = [("stacks", ("ax.nii.gz", nifti_bytes(voxels, tmp=tmp_path))),
              ("stacks", ("ax_mask.nii.gz", nifti_bytes(mask, tmp=tmp_path)))]
-    assert_problem(post(oracle_client, files), 422, "ax_mask.nii.gz holds the values 0 and 1 alone", "send a stack's mask as masks")
+    assert_problem(post(oracle_client, files), 422, "ax_mask.nii.gz holds the values 0 and 1 alone", "send it as its stack's mask")
     r = oracle_client.post("/v1/reconstructions", files=files)
     assert_problem(r, 422, "ax_mask.nii.gz holds the values 0 and 1 alone")

@@ -7,6 +7,7 @@ import numpy as np
 
 import service.consistency.stack_fit as stack_fit
 import service.pipeline.predict as pipeline
+from service.pipeline import image_stage
 from model_export.experiments.stage_variants import calibrated_as, frame_free, overridden, requests
 from model_export.packaging import CALIBRATION
 from service.geometry import se3
@@ -14,12 +15,12 @@ from service.geometry.twin import DEFAULT_PLANE_X_MM
 
 
 def test_overrides_apply_and_are_put_back() -> None:
-    k, refine = stack_fit.OUTLIER_K, pipeline.refine
+    k, refine = stack_fit.OUTLIER_K, image_stage.refine
     saved = overridden("consistency.stack_fit.OUTLIER_K=2.0; refine:noise=0.1")
-    assert stack_fit.OUTLIER_K == 2.0 and pipeline.refine.keywords == {"noise": 0.1}
+    assert stack_fit.OUTLIER_K == 2.0 and image_stage.refine.keywords == {"noise": 0.1}
     for target, name, value in saved:
         setattr(target, name, value)
-    assert stack_fit.OUTLIER_K == k and pipeline.refine is refine
+    assert stack_fit.OUTLIER_K == k and image_stage.refine is refine
     assert overridden("base") == []
 
 
