@@ -42,7 +42,10 @@ FLIP_NORMAL = np.diag([1.0, 1.0, -1.0, 1.0])
 """Reverses a slice frame's normal (and so its z offsets): the "seen from behind" half of the twin."""
 
 MEDOID_CANDIDATES = 16
-"""Samples tried as the branch reference by :func:`align_samples` (cost ``O(M N)``, not ``O(N^2)``)."""
+"""Samples tried as the branch reference by :func:`align_samples` (cost ``O(M N)``, not ``O(N^2)``).
+Under test-time views the samples come view by view (:func:`~service.inference.views.sample_views`),
+so the first are the unturned picture's and the next view's: candidates spread over every view place
+simulated acquisitions no better (docs/reports/accuracy-analyses.md, "The branch reference's candidates")."""
 
 POINT_LABELS = ("anchor", "grid")
 """Label types made of atlas points of the slice plane: their twin mirrors each point's x."""
@@ -246,7 +249,7 @@ def align_samples(poses: ArrayLike, plane_x_mm: float = DEFAULT_PLANE_X_MM) -> t
 
     Samples are compared by the anchor-point distance modulo the twin (``min(|a - b|,
     |a - twin(b)|)``, mean over the three anchors); of the first :data:`MEDOID_CANDIDATES` samples
-    (MC samples are i.i.d., so these are a random subset) the one minimising the sum of these
+    (a subset of a view's i.i.d. MC samples, or of the first views') the one minimising the sum of these
     distances to all samples (a medoid of the quotient space) fixes a branch, every sample is replaced
     by whichever of itself and its twin is nearer that medoid, and finally the branch holding the
     greater part of the samples becomes the reference (so a slice's reported pose is where most
@@ -270,7 +273,7 @@ def align_samples(poses: ArrayLike, plane_x_mm: float = DEFAULT_PLANE_X_MM) -> t
     x = np.asarray(poses, dtype=np.float64)
     pts = anchors.encode(x).reshape(x.shape[:-2] + (3, 3))          # [..., N, 3, 3]
     tw = mirror_points(pts, plane_x_mm)
-    cand = pts[..., :MEDOID_CANDIDATES, :, :]                     # MC samples are i.i.d.: any subset is random
+    cand = pts[..., :MEDOID_CANDIDATES, :, :]                     # the first samples (MEDOID_CANDIDATES)
     direct = _pairwise_mean_distance(cand, pts)                    # [..., M, N]
     mirrored = _pairwise_mean_distance(cand, tw)
     medoid = np.argmin(np.minimum(direct, mirrored).sum(axis=-1), axis=-1)          # [...]
