@@ -247,7 +247,7 @@ def compare(
     grid_mm: Annotated[Optional[float], typer.Option(help=CHECKPOINT_GRID)] = None,
     real_scans: Annotated[Optional[list[Path]], typer.Option(
         help="folders of real scans (SCAN/NAME.nii.gz beside SCAN/NAME_brain_mask.nii.gz); repeat; "
-             "default ../shared/data/real_scans (tools/fetch_real_scan.py fetches one more)")] = None,
+             "default real_scans/ of ../shared/data or of SVRNET_SHARED_DATA (tools/fetch_real_scan.py fetches one more)")] = None,
     mirrored: Annotated[Optional[bool], typer.Option(
         "--mirrored/--single-pass", help="with or without the mirror-image pass (default: both, one row each)")] = None,
 ) -> None:

@@ -152,5 +152,5 @@ def install(app: FastAPI) -> None:
             return await service_error(request, MalformedRequest(
                 f"the request body could not be parsed ({str(exc.detail).rstrip('.')}): a multipart form's "
                 "boundary broken, or a part's header lines too long or too many (a file name of kilobytes)"))
-        return problem(exc.status_code, str(exc.detail) if exc.status_code < 500 else "Server error",
-                       str(exc.detail), headers=getattr(exc, "headers", None), request=request)
+        return problem(exc.status_code, "", str(exc.detail), headers=getattr(exc, "headers", None),
+                       request=request)                     # about:blank: the status phrase is the title

@@ -95,7 +95,22 @@ air stored with an offset (zero-filled air lifted by an added constant or a resc
 real scans hold 4-16 % of their values at exactly 0); a noise floor never holds one value that often."""
 
 
-def magnitude(values: NDArray) -> NDArray:
+def air_floor(values: NDArray) -> float:
+    """The lowest value of an image without values below zero where it is a floor, :data:`FLOOR_SHARE`
+    of the values or more (air stored with an offset), else 0.
+
+    Example:
+        >>> air_floor(np.array([1000.0, 1000.0, 1010.0, 1040.0])), air_floor(np.array([0.0, 5.0])), air_floor(np.arange(1.0, 300.0))
+        (1000.0, 0.0, 0.0)
+    """
+    a = np.asarray(values)
+    if a.size == 0 or a.dtype.kind not in "if" or not (floor := float(a.min())) > 0:
+        return 0.0
+    sample = a.ravel()[::max(1, a.size // MAX_SAMPLED_VALUES)]
+    return floor if float(np.mean(sample == floor)) >= FLOOR_SHARE else 0.0
+
+
+def magnitude(values: NDArray, floor: float | None = None) -> NDArray:
     """An image's values as magnitudes, the background at 0.
 
     An MR magnitude image holds no value below zero, and the service's steps rely on that: the
@@ -109,8 +124,10 @@ def magnitude(values: NDArray) -> NDArray:
     background, and at -32768 lifted the whole image so far that no brain was found). An image
     whose lowest value lies above zero is returned as it is, the same array (the stacks of every
     scanner so far, and the training volumes), unless that value is a floor, :data:`FLOOR_SHARE` of
-    the values or more (air stored with an offset): it is moved to 0. A stack's localisation, N4 and
-    slices are then the same for the stack stored with any offset or scale.
+    the values or more (air stored with an offset, :func:`air_floor`): it is moved to 0. A stack's
+    localisation, N4 and slices are then the same for the stack stored with any offset or scale.
+    ``floor``: the floor to move to 0 where the image has no value below zero, decided elsewhere (a
+    streamed stack's, by its first slice, so that its slices keep one offset; values under it clip to 0).
 
     Example:
         >>> a = np.array([[0.0, 10.0], [20.0, 40.0]], np.float32)
@@ -126,11 +143,10 @@ def magnitude(values: NDArray) -> NDArray:
     a = np.asarray(values)
     if a.size == 0 or a.dtype.kind not in "if":
         return values
+    if not a.min() < 0:
+        floor = air_floor(a) if floor is None else floor
+        return np.maximum(a.astype(np.float32) - np.float32(floor), np.float32(0.0)) if floor > 0 else values
     sample = a.ravel()[::max(1, a.size // MAX_SAMPLED_VALUES)]
-    if not (floor := a.min()) < 0:
-        if not floor > 0 or float(np.mean(sample == floor)) < FLOOR_SHARE:
-            return values
-        return a.astype(np.float32) - np.float32(floor)
     lowest = sample.min()
     rest = sample[sample > lowest]
     fill = (float(np.mean(sample == lowest)) >= FILL_SHARE and rest.size > 0

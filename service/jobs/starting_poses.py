@@ -129,7 +129,10 @@ def uploaded_start(body: dict, poses: list[tuple[np.ndarray, np.ndarray]]) -> tu
         >>> label, start[0][1].tolist()
         ('every_slice', [True, True])
     """
-    if any(np.any(accepted) for _, accepted in poses):
-        return poses, "uploaded_poses"
-    own = starting_poses(body)
-    return own, start_label(body, own)
+    return (poses, "uploaded_poses") if any(np.any(accepted) for _, accepted in poses) else own_start(body)
+
+
+def own_start(body: dict) -> tuple[list[tuple[np.ndarray, np.ndarray]], str]:
+    """:func:`starting_poses` of the service's own ``/v1/predict`` ``body`` and their :func:`start_label`."""
+    poses = starting_poses(body)
+    return poses, start_label(body, poses)

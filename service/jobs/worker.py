@@ -36,7 +36,7 @@ from service.core.errors import Cancelled, InternalError, ServiceError, Unusable
 from service.core.logging import error_at
 from service.jobs.job_inputs import decoded_files, load_volume
 from service.jobs.provenance import localiser_provenance, provenance
-from service.jobs.starting_poses import lost_reasons, start_label, starting_poses, uploaded_start
+from service.jobs.starting_poses import lost_reasons, own_start, starting_poses, uploaded_start
 from service.jobs.store import JobStore
 from service.jobs.uploaded_poses import expected_errors, frame_added_mm, poses_from_predict_body
 
@@ -299,8 +299,7 @@ def _execute(store: JobStore, folder: Path, models_dir: Path, job_id: str, progr
         body, masks = predicted_body(uploads, estimator, int(params.get("mc_samples", 100)),
                                      params.get("variance_threshold"), orders, params.get("max_expected_error_mm"),
                                      localiser, model_name=params.get("model", "default"))
-        poses = starting_poses(body)
-        started_from = start_label(body, poses)
+        poses, started_from = own_start(body)
     progress("reconstructing", 0.15)
     known_orders = stack_orders(orders, uploads)
     volumes = bias_corrected_stacks([u.volume for u in uploads], masks)

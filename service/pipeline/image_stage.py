@@ -90,13 +90,13 @@ def smooth_images_ahead(prepared: list[PreparedStack]) -> list[dict[float, Sampl
 
 def _refine_stacks(prepared: list[PreparedStack], outs: list[StackPoses], proper: list[np.ndarray],
                    moving: list[int], partners: list[int], smoothed: dict[int, dict] | None = None) -> None:
-    """:func:`refine` the stacks ``moving`` (indices into the request) with the stacks ``partners`` as
+    """:func:`refine` the stacks ``moving`` (indices into ``prepared``) with the stacks ``partners`` as
     fixed partners; sets the moving stacks' poses, expected errors (with partners, or where the
     refinement left the slices disagreeing, :func:`~service.consistency.refined_errors.agreed`:
     never below the stage's) and ``image_consistency`` (with the :func:`placement_floor_mm` of the
     stacks refined). Where no slice of theirs crosses another's (stacks of one orientation), nothing
     changes: the images checked nothing.
-    ``smoothed``: per stack (request index), :func:`refine`'s store of its smoothed images."""
+    ``smoothed``: per stack (its index in ``prepared``), :func:`refine`'s store of its smoothed images."""
     which = moving + partners
     images = [stack_images(prepared[i], proper[i] & ~outs[i].inconsistent, fixed=i in partners) for i in which]
     expected = [outs[i].expected_error_mm if outs[i].expected_error_mm is not None

@@ -41,7 +41,7 @@ from service.geometry.pose import translate
 from service.geometry.twin import DEFAULT_PLANE_X_MM
 from service.inference import acceptance
 from service.inference.estimator import PoseEstimate, PoseEstimator
-from service.io.volume import magnitude
+from service.io.volume import air_floor, magnitude
 from service.pipeline.predict import StackPrediction, estimate_stacks, judge, predict_from_estimates
 from service.pipeline.prepare import PreparedStack, StackUpload, prepare_stack
 from service.pipeline.unseen_errors import add_noise_error, add_unseen_errors
@@ -118,6 +118,7 @@ class StreamSession:
         self.reopened: dict[str, _Ended] = {}   # a reopened stack's earlier end, still held
         self.compute_ms: dict[str, float] = {"slices": 0.0, "firm_up": 0.0, "end_stack": 0.0}
         self.held_bytes = 0                     # the received slices' pixels as float32, and what is kept of them
+        self.floors: dict[str, float] = {}      # each stack's air floor (volume.air_floor), decided by its first slice
         self._lock = threading.Lock()
 
     # -- 1. a slice arrives ------------------------------------------------------------------------------
@@ -130,7 +131,8 @@ class StreamSession:
             raise InvalidParameter(f"slice.index: {frame.index} is beyond the {self.limits.max_stack_slices} slices one "
                                    f"stack may hold (indices 0 to {self.limits.max_stack_slices - 1}); end the stack "
                                    "and send the rest as another")
-        frame = replace(frame, pixels=magnitude(np.asarray(frame.pixels, np.float32)))   # as a file's values are read
+        pixels = np.asarray(frame.pixels, np.float32)             # as a file's values are read, with one floor a stack
+        frame = replace(frame, pixels=magnitude(pixels, self.floors.setdefault(frame.stack, air_floor(pixels))))
         with self._lock:
             # A slice its ended stack has not had (one it ended without, or one past its last, which its
             # end overtook) opens it again; one it has is refused.

@@ -464,7 +464,7 @@ def test_finite_voxels_beyond_float32s_range_are_422_not_read_as_infinite(tmp_pa
 @pytest.mark.parametrize("stored", ["offset int16", "z-score float32", "positive offset uint16"])
 def test_a_file_stored_with_an_offset_is_read_as_its_magnitudes(tmp_path: Path, stored: str) -> None:
     """A magnitude image stored with values below zero (a signed export's offset, a z-score) or with its
-    air lifted above zero (a positive offset: its lowest value a floor under a fifth of the values) is read
+    air lifted above zero (a positive offset: its lowest value a floor, held by 1 % of the values or more) is read
     with its background at 0, as the scanner's own file would be: the same values (a z-score up to
     its scale), where before its brain sat on a negative floor that the localiser's percentile
     scaling and N4's multiplicative model cannot take."""

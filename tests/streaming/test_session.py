@@ -508,6 +508,24 @@ def test_slices_sent_with_an_offset_are_held_as_their_magnitudes(case) -> None: 
     np.testing.assert_allclose(shifted.stacks[name].volume()[0].array, plain.stacks[name].volume()[0].array, atol=1e-3)
 
 
+def test_a_streamed_stacks_air_floor_is_its_first_slices_for_every_slice(case) -> None:  # noqa: ANN001
+    """Air stored with an offset (+500): the first slice, its air a floor, decides the stack's floor and
+    every later slice loses the same 500, whether its own air would show a floor or not (a slice of
+    tissue alone, here one without air); a file of the stack loses it as a whole."""
+    oracle, stacks, _ = case
+    session = StreamSession(oracle, None, options=FAST)
+    frames = stacks[0][:4]
+    for k, frame in enumerate(frames):
+        pixels = np.asarray(frame.pixels, np.float32) + 500.0
+        if k == 2:                                         # no air: no floor of its own
+            pixels = pixels + np.linspace(0.0, 1.0, pixels.size, dtype=np.float32).reshape(pixels.shape)
+        session.add_slice(SliceFrame(frame.stack, frame.index, pixels, frame.scanner_from_voxel, frame.mask))
+    held = session.stacks[frames[0].stack].frames
+    assert session.floors[frames[0].stack] == 500.0
+    for frame in frames:                                    # each slice's air back at 0 (+ the ramp's < 1)
+        assert 0.0 <= float(held[frame.index].pixels.min()) - float(np.asarray(frame.pixels).min()) < 1e-3
+
+
 def test_streamed_slices_gain_the_noise_error_of_their_stacks_input_noise_once(case) -> None:  # noqa: ANN001
     """As in ``/v1/predict``: a model calibrated with a noise error adds it once, in quadrature, to
     each immediate answer (from its stack's input noise so far: the median over the slices received),
