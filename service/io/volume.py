@@ -104,10 +104,15 @@ def air_floor(values: NDArray) -> float:
         (1000.0, 0.0, 0.0)
     """
     a = np.asarray(values)
-    if a.size == 0 or a.dtype.kind not in "if" or not (floor := float(a.min())) > 0:
+    return 0.0 if a.size == 0 or a.dtype.kind not in "if" else _floor_at(a, float(a.min()))
+
+
+def _floor_at(a: NDArray, lowest: float) -> float:
+    """:func:`air_floor` of ``a`` whose lowest value is ``lowest`` (worked out once by the caller)."""
+    if not lowest > 0:
         return 0.0
     sample = a.ravel()[::max(1, a.size // MAX_SAMPLED_VALUES)]
-    return floor if float(np.mean(sample == floor)) >= FLOOR_SHARE else 0.0
+    return lowest if float(np.mean(sample == lowest)) >= FLOOR_SHARE else 0.0
 
 
 def magnitude(values: NDArray, floor: float | None = None) -> NDArray:
@@ -143,8 +148,8 @@ def magnitude(values: NDArray, floor: float | None = None) -> NDArray:
     a = np.asarray(values)
     if a.size == 0 or a.dtype.kind not in "if":
         return values
-    if not a.min() < 0:
-        floor = air_floor(a) if floor is None else floor
+    if not (lowest := float(a.min())) < 0:
+        floor = _floor_at(a, lowest) if floor is None else floor
         return np.maximum(a.astype(np.float32) - np.float32(floor), np.float32(0.0)) if floor > 0 else values
     sample = a.ravel()[::max(1, a.size // MAX_SAMPLED_VALUES)]
     lowest = sample.min()

@@ -129,6 +129,9 @@ class StreamedStack:
     name: str
     frames: dict[int, SliceFrame] = field(default_factory=dict)
     arrivals: list[int] = field(default_factory=list)
+    floor: float = 0.0
+    """The air floor its first slice decided (:func:`~service.io.volume.air_floor`): every slice of the
+    stack loses it, so that its slices keep one offset, as a file's do."""
 
     def add(self, frame: SliceFrame) -> None:
         """Keep ``frame`` (:class:`InvalidParameter`, the stack unchanged, when it does not fit)."""

@@ -118,7 +118,6 @@ class StreamSession:
         self.reopened: dict[str, _Ended] = {}   # a reopened stack's earlier end, still held
         self.compute_ms: dict[str, float] = {"slices": 0.0, "firm_up": 0.0, "end_stack": 0.0}
         self.held_bytes = 0                     # the received slices' pixels as float32, and what is kept of them
-        self.floors: dict[str, float] = {}      # each stack's air floor (volume.air_floor), decided by its first slice
         self._lock = threading.Lock()
 
     # -- 1. a slice arrives ------------------------------------------------------------------------------
@@ -131,8 +130,10 @@ class StreamSession:
             raise InvalidParameter(f"slice.index: {frame.index} is beyond the {self.limits.max_stack_slices} slices one "
                                    f"stack may hold (indices 0 to {self.limits.max_stack_slices - 1}); end the stack "
                                    "and send the rest as another")
-        pixels = np.asarray(frame.pixels, np.float32)             # as a file's values are read, with one floor a stack
-        frame = replace(frame, pixels=magnitude(pixels, self.floors.setdefault(frame.stack, air_floor(pixels))))
+        pixels = np.asarray(frame.pixels, np.float32)          # as a file's values are read, with its stack's floor
+        known = self.stacks.get(frame.stack)
+        floor = air_floor(pixels) if known is None else known.floor
+        frame = replace(frame, pixels=magnitude(pixels, floor))
         with self._lock:
             # A slice its ended stack has not had (one it ended without, or one past its last, which its
             # end overtook) opens it again; one it has is refused.
@@ -152,7 +153,7 @@ class StreamSession:
             if self.held_bytes + others + size + self._end_reserve(frame.stack, frame) > self.limits.max_bytes:
                 raise SessionFull(f"slice: a session keeps at most {self.limits.max_bytes / 2**20:.3g} MB (its "
                                   "slices, their preparation and their stacks' ends); end it and start another")
-            stack = self.stacks.get(frame.stack) or StreamedStack(frame.stack)
+            stack = self.stacks.get(frame.stack) or StreamedStack(frame.stack, floor=floor)
             stack.add(frame)
             self.stacks[frame.stack] = stack
             self.held_bytes += size

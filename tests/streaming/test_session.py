@@ -521,7 +521,7 @@ def test_a_streamed_stacks_air_floor_is_its_first_slices_for_every_slice(case) -
             pixels = pixels + np.linspace(0.0, 1.0, pixels.size, dtype=np.float32).reshape(pixels.shape)
         session.add_slice(SliceFrame(frame.stack, frame.index, pixels, frame.scanner_from_voxel, frame.mask))
     held = session.stacks[frames[0].stack].frames
-    assert session.floors[frames[0].stack] == 500.0
+    assert session.stacks[frames[0].stack].floor == 500.0
     for frame in frames:                                    # each slice's air back at 0 (+ the ramp's < 1)
         assert 0.0 <= float(held[frame.index].pixels.min()) - float(np.asarray(frame.pixels).min()) < 1e-3
 
