@@ -254,9 +254,9 @@ def canonical_order(prepared: list[PreparedStack]) -> list[int]:
         True
     """
     def digest(s: PreparedStack) -> bytes:
-        inputs = np.ascontiguousarray(s.prepared.inputs)
-        affine = np.ascontiguousarray(np.asarray(s.upload.volume.affine, np.float64))
-        return hashlib.sha256(inputs.tobytes() + affine.tobytes()).digest()
+        h = hashlib.sha256(np.ascontiguousarray(s.prepared.inputs))          # the arrays' buffers, not copies
+        h.update(np.ascontiguousarray(s.upload.volume.affine, np.float64))
+        return h.digest()
 
     keys = [digest(s) for s in prepared]
     return sorted(range(len(prepared)), key=lambda i: keys[i])
